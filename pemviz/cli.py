@@ -1,0 +1,46 @@
+"""The ``pemviz`` command line: ``pemviz run | serve | pem | data | ...``.
+
+Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds
+its parser and sets ``func(args) -> int`` as the parser default.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from pemviz import __version__
+from pemviz.commands import UsageError
+
+COMMAND_MODULES = (
+    "pemviz.commands.run",
+    "pemviz.commands.data",
+    "pemviz.commands.pem",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="pemviz", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"pemviz {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (UsageError, ValueError, FileNotFoundError) as exc:  # bad input: one line, no traceback
+        if os.environ.get("PEMVIZ_DEBUG"):
+            raise
+        print(f"pemviz {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

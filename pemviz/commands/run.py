@@ -1,0 +1,121 @@
+"""``pemviz run``: one experiment (adaptive sampler or a baseline), a console table and a rerun recording."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from datetime import datetime
+from pathlib import Path
+
+from pemviz.config import METHODS, METRICS, PRESETS, ConfigError, ExperimentConfig
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    d = ExperimentConfig()
+    p = sub.add_parser(
+        "run",
+        help="estimate the crash probability of the braking scenario",
+        description="Run the PEM + adaptive importance sampling pipeline (or a baseline) and record it.",
+    )
+    p.add_argument("--method", default=d.method, help=f"one of {', '.join(METHODS)} (default {d.method})")
+    p.add_argument("--preset", default="paper", help=f"one of {', '.join(PRESETS)} (default paper)")
+    p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
+    p.add_argument(
+        "--n", dest="n_per_stage", type=int, default=None,
+        help=f"rollouts per stage N, or the baseline's rollouts (default {d.n_per_stage})",
+    )  # fmt: skip
+    p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
+    p.add_argument("--sigma", dest="quantile_level", type=float, default=None, help="quantile level sigma in [0.5, 1)")
+    p.add_argument("--alpha", dest="smoothing", type=float, default=None, help="smoothing alpha in (0, 1]")
+    p.add_argument("--metric", default=None, help=f"robustness metric: {', '.join(METRICS)}")
+    p.add_argument("--seed", type=int, default=None, help=f"random seed (default {d.seed})")
+    p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help="Adam epochs per stage")
+    p.add_argument("--pem", default=None, help="PEM weights file (default: the shipped assets/pem_ml-nn.pt)")
+    rec = p.add_argument_group("recording (rerun)")
+    rec.add_argument("--save", default=None, help="write the recording to this .rrd (default recordings/<name>.rrd)")
+    rec.add_argument("--serve", action="store_true", help="serve the recording over gRPC for a rerun viewer")
+    rec.add_argument("--connect", nargs="?", const="", default=None, metavar="URL", help="stream to a running viewer")
+    rec.add_argument("--no-record", action="store_true", help="write no recording")
+    p.set_defaults(func=main)
+
+
+def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
+    """Build and validate the config; raises ConfigError with a one-line message."""
+    if args.preset not in PRESETS:
+        raise ConfigError(f"preset = {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
+    fields = dict(PRESETS[args.preset])
+    for name in ("method", "n_stages", "n_per_stage", "n_final", "quantile_level", "smoothing", "metric", "seed",
+                 "ce_epochs", "pem"):  # fmt: skip
+        value = getattr(args, name)
+        if value is not None:
+            fields[name] = value
+    return ExperimentConfig(**fields)
+
+
+def check_save_path(path: Path) -> Path:
+    """Refuse a path that cannot be written before any work starts (nothing is created)."""
+    from pemviz.commands import UsageError
+
+    if path.suffix != ".rrd":
+        raise UsageError(f"--save {path}: the recording must be a .rrd file")
+    if path.is_dir():
+        raise UsageError(f"--save {path}: is a directory, give a file name ending in .rrd")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise UsageError(f"--save {path}: folder {parent} does not exist")
+    try:  # the real test: can a file be created there? (root ignores permission bits, not read-only mounts)
+        with tempfile.NamedTemporaryFile(dir=parent, prefix=".pemviz-probe-"):
+            pass
+    except OSError as exc:
+        raise UsageError(f"--save {path}: folder {parent} is not writable ({exc.strerror})") from None
+    if path.exists() and not os.access(path, os.W_OK):
+        raise UsageError(f"--save {path}: not writable")
+    return path
+
+
+def default_recording_path(cfg: ExperimentConfig) -> Path:
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("recordings") / f"{cfg.method}-{cfg.metric}-seed{cfg.seed}-{stamp}.rrd"
+
+
+def main(args: argparse.Namespace) -> int:
+    from pemviz.commands import UsageError
+
+    try:
+        cfg = config_from_args(args)
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from None
+    if args.pem is not None and not Path(args.pem).is_file():
+        raise UsageError(f"--pem {args.pem}: no such file")
+
+    save_path = None
+    if not args.no_record and not args.serve and args.connect is None:
+        if args.save is None:
+            Path("recordings").mkdir(exist_ok=True)
+            save_path = check_save_path(default_recording_path(cfg))
+        else:
+            save_path = check_save_path(Path(args.save))
+
+    from pemviz.engine import Experiment
+    from pemviz.sinks.console import ConsoleSink
+
+    listeners = [ConsoleSink()]
+    recorder = None
+    if save_path is not None or args.serve or args.connect is not None:
+        from pemviz.sinks.recording import RerunSink
+
+        if save_path is not None:
+            recorder = RerunSink.to_file(save_path)
+        else:
+            recorder = RerunSink.to_grpc(args.connect or None, serve=args.serve)
+        listeners.append(recorder)
+    try:
+        Experiment(cfg, listeners).run()
+    finally:
+        if recorder is not None:
+            where = recorder.close()
+            if where is not None:
+                print(f"recording: {where}", file=sys.stderr)
+    return 0

@@ -1,0 +1,112 @@
+"""ExperimentConfig: every knob of a pemviz experiment, validated once.
+
+Where is alpha used? ``ExperimentConfig.smoothing`` here, then :func:`pemviz.sampling.ce_update`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+METHODS = ("adaptive", "mc", "naive50", "mixed50")
+"""adaptive: Algorithm 1; mc: rollouts with the PEM itself; naive50: a 50 % detector at every step;
+mixed50: 50 % inside 10 m and the PEM outside (spec section 5)."""
+
+METRICS = ("classic", "agm", "smooth-cumulative")
+"""Robustness semantics that rank rollouts and set the adaptive thresholds (spec section 3)."""
+
+WEIGHT_MODES = ("frozen", "recomputed")
+FINAL_MODES = ("fresh", "last-stage")
+
+
+class ConfigError(ValueError):
+    """An invalid experiment setting: the message says which, the value, and what is allowed."""
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """One experiment (spec sections 4-5). Defaults are the paper's.
+
+    Attributes:
+        method: one of :data:`METHODS`.
+        n_stages: K, cross-entropy stages (adaptive only).
+        n_per_stage: N, rollouts per stage; for mc / naive50 / mixed50 the number of rollouts.
+        n_final: N_e, fresh rollouts from the final proposal for the estimate.
+        quantile_level: sigma in [0.5, 1): the stage threshold is the (1 - sigma) quantile of robustness.
+        smoothing: alpha in (0, 1]: the power on the importance weights in the CE loss.
+        metric: robustness semantics, one of :data:`METRICS`.
+        seed: seeds numpy and torch; the same seed gives the same estimate.
+        ce_epochs: Adam epochs per stage (paper 500; authors' code 1000).
+        pretrain_rollouts, pretrain_epochs: PEM-driven rollouts and epochs to pretrain the proposal.
+        learning_rate: Adam step size for the proposal.
+        weights: ``frozen`` (paper eq. 10-11) or ``recomputed`` with gradient (authors' code).
+        final_estimate: ``fresh`` N_e rollouts (paper) or ``last-stage`` batch (authors' code).
+        pem: path of PEM weights, or None for the shipped default.
+    """
+
+    method: str = "adaptive"
+    n_stages: int = 10
+    n_per_stage: int = 100
+    n_final: int = 100
+    quantile_level: float = 0.95
+    smoothing: float = 0.1
+    metric: str = "classic"
+    seed: int = 0
+    ce_epochs: int = 500
+    pretrain_rollouts: int = 100
+    pretrain_epochs: int = 1000
+    learning_rate: float = 1e-3
+    weights: str = "frozen"
+    final_estimate: str = "fresh"
+    pem: str | None = None
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, what: str, allowed: str) -> None:
+            if not ok:
+                raise ConfigError(f"{what} = {getattr(self, what.split()[0])!r} is invalid: {allowed}")
+
+        need(self.method in METHODS, "method", f"use one of {', '.join(METHODS)}")
+        need(self.metric in METRICS, "metric", f"use one of {', '.join(METRICS)}")
+        need(self.weights in WEIGHT_MODES, "weights", f"use one of {', '.join(WEIGHT_MODES)}")
+        need(self.final_estimate in FINAL_MODES, "final_estimate", f"use one of {', '.join(FINAL_MODES)}")
+        need(_is_real(self.smoothing) and 0.0 < self.smoothing <= 1.0, "smoothing (alpha)", "alpha must be in (0, 1]")
+        need(
+            _is_real(self.quantile_level) and 0.5 <= self.quantile_level < 1.0,
+            "quantile_level (sigma)",
+            "sigma must be in [0.5, 1)",
+        )
+        need(_is_int(self.n_per_stage) and self.n_per_stage >= 2, "n_per_stage (N)", "N must be an integer >= 2")
+        need(_is_int(self.n_stages) and self.n_stages >= 1, "n_stages (K)", "K must be an integer >= 1")
+        need(_is_int(self.n_final) and self.n_final >= 1, "n_final (N_e)", "N_e must be an integer >= 1")
+        need(_is_int(self.seed) and self.seed >= 0, "seed", "seed must be an integer >= 0")
+        for name in ("ce_epochs", "pretrain_epochs", "pretrain_rollouts"):
+            need(_is_int(getattr(self, name)) and getattr(self, name) >= 1, name, "must be an integer >= 1")
+        need(_is_real(self.learning_rate) and self.learning_rate > 0, "learning_rate", "must be > 0")
+
+    def replace(self, **changes: Any) -> "ExperimentConfig":
+        """A copy with some fields changed, validated again."""
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def n_simulations(self) -> int:
+        """Rollouts the experiment will simulate, pretraining included."""
+        if self.method != "adaptive":
+            return self.n_per_stage
+        final = self.n_final if self.final_estimate == "fresh" else 0
+        return self.pretrain_rollouts + self.n_stages * self.n_per_stage + final
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "authors-code": {"smoothing": 0.5, "ce_epochs": 1000, "weights": "recomputed", "final_estimate": "last-stage"},
+}
+"""Named settings: ``paper`` (the defaults) and ``authors-code`` (how the authors' code ran, spec section 4)."""
+
+
+def _is_real(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x
+
+
+def _is_int(x: object) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)

@@ -1,0 +1,83 @@
+"""Detectors: what the scenario asks each step. Each gives the logit of p(detect | state).
+
+A detector maps the scenario's observation ``obs`` (float64 [N, F], columns named by the scenario,
+``gap_m`` first) to ``logit p(detect)`` float64 [N]. Working with logits keeps every log-probability
+exact: ``log p(detect) = logsigmoid(logit)``, ``log p(miss) = logsigmoid(-logit)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+GAP_COLUMN = 0
+"""Index of ``gap_m`` (metres) in every observation vector."""
+
+
+@runtime_checkable
+class Detector(Protocol):
+    """Anything that gives ``logit p(detect | obs)``, float64 [N], for observations [N, F]."""
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray: ...
+
+
+def log_sigmoid(x: np.ndarray) -> np.ndarray:
+    """Numerically stable ``log(1 / (1 + exp(-x)))`` in float64 (nats), any shape."""
+    x = np.asarray(x, dtype=np.float64)
+    return -np.logaddexp(0.0, -x)
+
+
+def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
+    """``log p(a | s)`` of the taken actions: logsigmoid(+logit) if detected else logsigmoid(-logit).
+
+    Args:
+        logit: float64 [...], logit of p(detect).
+        detected: bool [...], the taken actions (same shape).
+    Returns:
+        float64 [...] log-probabilities in nats.
+    """
+    sign = np.where(np.asarray(detected, dtype=bool), 1.0, -1.0)
+    return log_sigmoid(sign * np.asarray(logit, dtype=np.float64))
+
+
+def logit(p: float) -> float:
+    """``log(p / (1 - p))``; raises ValueError unless 0 < p < 1."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"detection probability must be in (0, 1), got {p}")
+    return math.log(p) - math.log1p(-p)
+
+
+@dataclass(frozen=True)
+class ConstantDetector:
+    """Detects with the same probability at every step (the naive-50 detector when p = 0.5)."""
+
+    p_detect: float = 0.5
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        return np.full(np.shape(obs)[0], logit(self.p_detect))
+
+
+@dataclass(frozen=True)
+class PEMDetector:
+    """The perception error model as a detector: ``logit p_PEM(detect | salient variables(gap))``."""
+
+    pem: object  # pemviz.pem.PEM (kept untyped to avoid importing torch models at import time)
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        return np.asarray(self.pem.logit_at_gap(np.asarray(obs)[:, GAP_COLUMN]), dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class WindowDetector:
+    """``inside`` when the gap is below ``radius_m``, ``outside`` otherwise (mixed-50: 50 % inside 10 m)."""
+
+    inside: Detector
+    outside: Detector
+    radius_m: float = 10.0
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        near = np.asarray(obs)[:, GAP_COLUMN] < self.radius_m
+        return np.where(near, self.inside.detect_logit(obs), self.outside.detect_logit(obs))

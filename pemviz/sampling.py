@@ -1,0 +1,243 @@
+"""Adaptive importance sampling of detector outputs (Innes & Ramamoorthy 2022, Algorithm 1).
+
+The proposal q_phi(detect | h(s)), h(s) = gap / 12, is a small network trained by the cross-entropy
+method: each stage keeps the rollouts whose robustness is at or below the stage threshold gamma_kappa
+(the elites) and maximises their weighted log-likelihood under q_phi, with importance weights raised to
+the smoothing power alpha. The failure probability is then estimated with importance weights
+``prod_t p_PEM(a_t | s_t) / q(a_t | s_t)`` in float64 log-space.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import nn
+
+from pemviz.detectors import GAP_COLUMN
+
+GAP_SCALE_M = 12.0
+"""The braking proposal's input is gap / 12 m (spec section 4)."""
+
+WeightMode = Literal["frozen", "recomputed"]
+
+
+class Proposal(nn.Module):
+    """q_phi(a | d): Linear(1,32)-ReLU-Linear(32,32)-ReLU-Linear(32,2)-LogSoftmax, float64 (spec section 4).
+
+    ``forward(gap_m [M]) -> [M, 2]`` log-probabilities (nats) of (miss, detect); the network sees
+    ``h(s) = gap_m / h_scale``.
+    """
+
+    def __init__(self, h_scale: float = GAP_SCALE_M) -> None:
+        super().__init__()
+        self.h_scale = float(h_scale)
+        self.net = nn.Sequential(
+            nn.Linear(1, 32), nn.ReLU(), nn.Linear(32, 32), nn.ReLU(), nn.Linear(32, 2), nn.LogSoftmax(dim=-1)
+        ).double()
+
+    def forward(self, gap_m: torch.Tensor) -> torch.Tensor:
+        return self.net((gap_m / self.h_scale).reshape(-1, 1))
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        """Detector interface: logit q(detect | obs), float64 [N] for observations [N, F]."""
+        with torch.no_grad():
+            lq = self.forward(torch.as_tensor(np.asarray(obs)[:, GAP_COLUMN], dtype=torch.float64))
+        return (lq[:, 1] - lq[:, 0]).numpy()
+
+    def curve(self, gap_grid_m: np.ndarray) -> np.ndarray:
+        """q(detect | d) on a grid of gaps (metres), float64 [G]."""
+        with torch.no_grad():
+            lq = self.forward(torch.as_tensor(gap_grid_m, dtype=torch.float64))
+        return lq[:, 1].exp().numpy()
+
+
+def _fit(proposal: Proposal, loss_fn, epochs: int, lr: float) -> list[float]:
+    opt = torch.optim.Adam(proposal.parameters(), lr=lr)
+    losses = []
+    for _ in range(epochs):
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    return losses
+
+
+def _action_counts(gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None):
+    """Distinct gaps and the (weighted) number of misses and detections at each: an exact summary.
+
+    q depends on the gap only, so ``sum_it w_i log q(a_it | d_it) = sum_u W0(u) log q(0|u) + W1(u) log q(1|u)``.
+    Rollouts share most gaps (the detector matters only inside 10 m), so an epoch costs a forward pass
+    over a few hundred distinct gaps instead of N * T.
+
+    Returns:
+        (uniq [U] float64 tensor, counts [U, 2] float64 tensor: weighted misses, detections;
+        inverse [N, T] index of each entry into ``uniq``).
+    """
+    gap_m = np.asarray(gap_m, dtype=np.float64)
+    uniq, inverse = np.unique(gap_m, return_inverse=True)
+    inverse = inverse.reshape(gap_m.shape)
+    w = np.ones(gap_m.shape) if row_weight is None else np.broadcast_to(np.asarray(row_weight)[:, None], gap_m.shape)
+    slot = inverse * 2 + np.asarray(detected, dtype=np.int64)
+    counts = np.bincount(slot.ravel(), weights=w.ravel(), minlength=2 * uniq.size).reshape(uniq.size, 2)
+    return torch.as_tensor(uniq), torch.as_tensor(counts), inverse
+
+
+def pretrain_proposal(
+    proposal: Proposal, gap_m: np.ndarray, detected: np.ndarray, *, epochs: int = 1000, lr: float = 1e-3
+) -> list[float]:
+    """Fit q_phi to the PEM's own actions by maximum likelihood (full batch, Adam), in place.
+
+    Args:
+        gap_m: float64 [N, T] gaps of PEM-driven rollouts (metres).
+        detected: bool [N, T] the PEM's detections.
+    Returns:
+        the loss per epoch (mean negative log-likelihood, nats per step).
+    Source: spec section 4, "Pretraining".
+    """
+    uniq, counts, _ = _action_counts(gap_m, detected)
+    total = float(np.size(gap_m))
+    return _fit(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr)
+
+
+def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: float = 0.0) -> float:
+    """gamma_kappa = max(floor, the ceil((1 - sigma) N)-th smallest robustness).
+
+    With sigma = 0.95 and N = 100 this is the 5th smallest value (spec section 4). ``floor`` is the
+    failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
+    """
+    r = np.sort(np.asarray(robustness, dtype=np.float64))
+    k = max(1, int(math.ceil((1.0 - quantile_level) * r.size - 1e-9)))
+    return max(floor, float(r[k - 1]))
+
+
+def ce_update(
+    proposal: Proposal,
+    gap_m: np.ndarray,
+    detected: np.ndarray,
+    log_p: np.ndarray,
+    log_q: np.ndarray,
+    elite: np.ndarray,
+    *,
+    smoothing: float,
+    epochs: int = 500,
+    lr: float = 1e-3,
+    weights: WeightMode = "frozen",
+    n_factors: int | None = None,
+) -> list[float]:
+    """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
+
+    Args:
+        gap_m, detected, log_p, log_q: [N, T] from the stage's rollouts (log_p under the PEM, log_q
+            under the proposal that sampled them; nats).
+        elite: bool [N], robustness <= gamma_kappa.
+        smoothing: alpha in (0, 1], the power on the importance weights.
+        weights: ``"frozen"``: w from the proposal that sampled the batch (textbook CE, paper eq. 10-11);
+            ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
+        n_factors: steps in each weight (default T - 1: the last action affects nothing).
+    Returns:
+        the loss per epoch. The weights are divided by their largest value (a constant factor, to which
+        Adam's steps are invariant), so that w^alpha never overflows.
+    Raises:
+        ValueError: if there is no elite rollout.
+    """
+    idx = np.flatnonzero(elite)
+    if idx.size == 0:
+        raise ValueError("ce_update: no elite rollouts (robustness <= gamma) to fit the proposal to")
+    k = gap_m.shape[1] - 1 if n_factors is None else n_factors
+    lp = (log_p[idx, :k]).sum(axis=1)
+    frozen_log_w = (log_p[idx, :k] - log_q[idx, :k]).sum(axis=1)
+    if weights == "frozen":
+        scaled = smoothing * frozen_log_w
+        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], np.exp(scaled - scaled.max()))
+
+        def loss() -> torch.Tensor:
+            return -(counts * proposal.forward(uniq)).sum()
+
+    else:
+        # w depends on q_phi: per-rollout sums of log q over the first k steps, through the gradient.
+        uniq, _, inverse = _action_counts(gap_m[idx], detected[idx])
+        slot = torch.as_tensor(inverse * 2 + detected[idx].astype(np.int64))
+        lp_t = torch.as_tensor(lp)
+
+        def loss() -> torch.Tensor:
+            log_q_now = proposal.forward(uniq).reshape(-1)[slot]
+            scaled = smoothing * (lp_t - log_q_now[:, :k].sum(dim=1))
+            w = torch.exp(scaled - scaled.detach().max())
+            return -(w * log_q_now.sum(dim=1)).sum()
+
+    return _fit(proposal, loss, epochs, lr)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Importance-sampling estimate of the failure probability and its diagnostics.
+
+    Attributes:
+        n: rollouts used.
+        n_failures: rollouts that failed (crash: classic robustness < 0).
+        log_mu_hat: log of mu_hat = (1/N) sum_i 1[fail_i] w_i (nats; -inf with no failure).
+        nll_mean: mean over failures of -sum_t log p_PEM(a_t | s_t) (nats; nan with no failure).
+        nll_lme: -log-mean-exp over failures of sum_t log p_PEM (nats; nan with no failure).
+        ess: effective sample size of the failure weights, (sum w)^2 / sum w^2 (0 with no failure).
+    """
+
+    n: int
+    n_failures: int
+    log_mu_hat: float
+    nll_mean: float
+    nll_lme: float
+    ess: float
+
+    @property
+    def mu_hat(self) -> float:
+        """mu_hat as a float64 (underflows to 0.0 below ~1e-308; use ``log_mu_hat`` then)."""
+        return math.exp(self.log_mu_hat) if self.log_mu_hat > -math.inf else 0.0
+
+    @property
+    def log10_mu_hat(self) -> float:
+        return self.log_mu_hat / math.log(10.0)
+
+
+def _logsumexp(x: np.ndarray) -> float:
+    if x.size == 0:
+        return -math.inf
+    m = float(np.max(x))
+    return m + math.log(float(np.sum(np.exp(x - m))))
+
+
+def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray) -> Estimate:
+    """mu_hat = logsumexp(log w over failures) - log N, with NLL and ESS (spec section 4).
+
+    Args:
+        log_weight: float64 [N] importance log-weights sum_t (log p - log q) (nats).
+        failed: bool [N] failure indicator.
+        log_p_total: float64 [N] sum_t log p_PEM(a_t | s_t) (nats), for the NLL.
+    """
+    log_weight = np.asarray(log_weight, dtype=np.float64)
+    failed = np.asarray(failed, dtype=bool)
+    n = int(log_weight.size)
+    lw = log_weight[failed]
+    nf = int(lw.size)
+    if nf == 0:
+        return Estimate(n, 0, -math.inf, math.nan, math.nan, 0.0)
+    lp = np.asarray(log_p_total, dtype=np.float64)[failed]
+    ess = math.exp(2 * _logsumexp(lw) - _logsumexp(2 * lw))
+    nll_lme = -(_logsumexp(lp) - math.log(nf))
+    return Estimate(n, nf, _logsumexp(lw) - math.log(n), float(-lp.mean()), nll_lme, ess)
+
+
+def format_probability(log_p: float, digits: int = 3) -> str:
+    """``1.234e-15`` from a natural log, exact also far below float64's range (``0`` for -inf)."""
+    if log_p == -math.inf:
+        return "0"
+    l10 = log_p / math.log(10.0)
+    exponent = math.floor(l10)
+    mantissa = 10 ** (l10 - exponent)
+    if round(mantissa, digits) >= 10:
+        mantissa, exponent = mantissa / 10, exponent + 1
+    return f"{mantissa:.{digits}f}e{exponent:+03d}"

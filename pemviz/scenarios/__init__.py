@@ -1,0 +1,132 @@
+"""Scenarios: black-box simulators that query a detector once per step, and the rollout runner.
+
+A :class:`Simulator` exposes ``reset()``, ``observation()`` (float64 [F], ``gap_m`` first),
+``step(detected)`` and ``params.n_steps``. :func:`simulate` runs N of them in lockstep: each step it
+gathers the N observations, evaluates the sampling detector and the target (PEM) detector on the whole
+batch in one call each, draws the detections, and steps every simulator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Protocol, Sequence
+
+import numpy as np
+
+from pemviz.detectors import Detector, action_log_prob
+
+
+class Simulator(Protocol):
+    """A black-box scenario stepped by the detector's output; its only randomness is the detector."""
+
+    observation_names: Sequence[str]
+
+    def reset(self) -> None: ...
+
+    def observation(self) -> np.ndarray: ...
+
+    def step(self, detected: bool) -> None: ...
+
+
+@dataclass(frozen=True)
+class RolloutBatch:
+    """N rollouts of T steps, with the log-probabilities of every detection under both detectors.
+
+    Attributes:
+        observations: float64 [N, T, F] states reported at each step (``observation_names``).
+        detected: bool [N, T] the detector outputs taken.
+        log_p: float64 [N, T] log p_target(a_t | s_t) (nats), target = the PEM.
+        log_q: float64 [N, T] log q(a_t | s_t) (nats) under the detector that sampled.
+        observation_names: names of the F columns.
+    """
+
+    observations: np.ndarray
+    detected: np.ndarray
+    log_p: np.ndarray
+    log_q: np.ndarray
+    observation_names: tuple[str, ...]
+
+    @property
+    def n(self) -> int:
+        return int(self.detected.shape[0])
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.detected.shape[1])
+
+    def signal(self, name: str) -> np.ndarray:
+        """One observed signal, float64 [N, T]; raises KeyError naming the known signals."""
+        try:
+            return self.observations[:, :, self.observation_names.index(name)]
+        except ValueError:
+            raise KeyError(f"unknown signal {name!r}; this batch has {self.observation_names}") from None
+
+    @property
+    def gap_m(self) -> np.ndarray:
+        return self.signal("gap_m")
+
+    def log_weight(self, n_factors: int | None = None) -> np.ndarray:
+        """Importance log-weights ``sum_t log p - log q`` over the first ``n_factors`` steps, float64 [N].
+
+        The last action of a rollout affects nothing (spec section 4), so the default is T - 1 factors.
+        """
+        k = self.n_steps - 1 if n_factors is None else n_factors
+        return (self.log_p[:, :k] - self.log_q[:, :k]).sum(axis=1)
+
+    @staticmethod
+    def concatenate(batches: Sequence["RolloutBatch"]) -> "RolloutBatch":
+        """Stack batches of equal T along N."""
+        return RolloutBatch(
+            np.concatenate([b.observations for b in batches]),
+            np.concatenate([b.detected for b in batches]),
+            np.concatenate([b.log_p for b in batches]),
+            np.concatenate([b.log_q for b in batches]),
+            batches[0].observation_names,
+        )
+
+
+def simulate(
+    make_simulator: Callable[[], Simulator],
+    n: int,
+    sampler: Detector,
+    target: Detector,
+    rng: np.random.Generator,
+    n_steps: int,
+) -> RolloutBatch:
+    """Run ``n`` rollouts in lockstep, detections drawn from ``sampler``, scored under ``target``.
+
+    A detection happens iff ``u <= q(detect | s)`` with ``u ~ U(0, 1)`` from ``rng`` (one [n] draw per
+    step), as in the authors' code.
+
+    Args:
+        make_simulator: builds a fresh simulator at its start state.
+        n: number of rollouts (>= 1).
+        sampler: the detector that draws the actions (proposal q, the PEM, a constant ...).
+        target: the PEM whose probabilities weight the rollouts (may be ``sampler`` itself).
+        rng: numpy Generator; the same seed gives the same batch.
+        n_steps: T, steps per rollout.
+    Returns:
+        :class:`RolloutBatch` with arrays [n, T].
+    """
+    if n < 1:
+        raise ValueError(f"simulate: n must be >= 1, got {n}")
+    sims = [make_simulator() for _ in range(n)]
+    names = tuple(sims[0].observation_names)
+    obs = np.empty((n, n_steps, len(names)))
+    detected = np.empty((n, n_steps), dtype=bool)
+    log_p = np.empty((n, n_steps))
+    log_q = np.empty((n, n_steps))
+    for t in range(n_steps):
+        o = np.stack([s.observation() for s in sims])
+        q_logit = sampler.detect_logit(o)
+        p_logit = q_logit if target is sampler else target.detect_logit(o)
+        u = rng.random(n)
+        # u <= sigmoid(logit)  <=>  log u <= logsigmoid(logit): exact in log-space.
+        a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
+        obs[:, t] = o
+        detected[:, t] = a
+        log_q[:, t] = action_log_prob(q_logit, a)
+        log_p[:, t] = action_log_prob(p_logit, a)
+        for s, a_i in zip(sims, a):
+            s.step(bool(a_i))
+    return RolloutBatch(obs, detected, log_p, log_q, names)

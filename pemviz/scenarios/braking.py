@@ -1,0 +1,233 @@
+"""The automated-braking scenario (spec section 1) on highway-env vehicles.
+
+A lead car drives at 8.04 m/s and stops for a red light; the ego follows with a stripped-down CARLA
+BasicAgent: each step it asks a detector whether the lead is seen, and brakes hard (brake 0.5) when
+the lead is detected within 10 m; otherwise a PID speed controller drives it toward 27 km/h. The
+brake does not latch. The only randomness is the detector's output, so the scenario's state
+``(step, ego position, ego speed, PID integral, last emergency-brake command)`` makes it a
+deterministic function of the detection sequence.
+
+The ego's longitudinal response is fitted to the authors' CARLA logs
+(``shared/spec/carla_calibration_rollouts.csv``; see ``scripts/calibrate_braking.py``):
+
+- one step of actuation lag on the emergency brake (a command at step t acts on step t+1);
+- brake deceleration as a function of speed (``brake_decel_mps2`` at ``brake_knots_mps``):
+  ~3.7 m/s^2 at cruise, ~9 m/s^2 near 6 m/s, ~27 m/s^2 below 5 m/s (CARLA's non-linear brake);
+- throttle acceleration ``(a0 - a1 * v) * throttle / max_throttle`` (4 m/s^2 from standstill);
+- the PID's integral term as an exponentially-windowed sum of km/h errors (leak 0.9: the same
+  total weight as CARLA's 10-sample error buffer) so that the state stays low-dimensional.
+
+Units: metres, seconds, m/s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+LEAD_SPEED_PROFILE_MPS: tuple[float, ...] = (
+    (8.038,) * 20
+    + (8.01, 7.89, 7.69, 7.44, 7.16, 6.87, 5.72, 4.40, 3.06, 1.74, 0.43, 0.006)
+    + (0.0,) * 68
+)
+"""Lead speed at step t = 0..99 (spec section 1; 8.038 m/s is the logged start speed)."""
+
+OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "ego_speed_mps", "lead_speed_mps")
+"""Columns of :meth:`BrakingScenario.observation`: what the scenario reports to the detector."""
+
+
+@dataclass(frozen=True)
+class BrakingParams:
+    """Every constant of the braking scenario (spec section 1), fitted to the CARLA logs.
+
+    Distances in metres, speeds in m/s, accelerations in m/s^2, time in seconds.
+    """
+
+    dt_s: float = 0.05
+    n_steps: int = 100
+    gap0_m: float = 12.2932
+    ego_speed0_mps: float = 7.7649
+    lead_speed_profile_mps: tuple[float, ...] = LEAD_SPEED_PROFILE_MPS
+    camera_offset_m: float = 2.0
+    camera_height_m: float = 1.76
+    lead_length_m: float = 4.96
+    ego_length_m: float = 4.96
+    vehicle_width_m: float = 2.0
+    braking_distance_m: float = 10.0
+    crash_gap_m: float = 2.0
+    contact_gap_m: float = 0.7  # CARLA logs: after a collision the gap stays at 0.69-0.72 m
+    # controller (CARLA BasicAgent, longitudinal PID on km/h error)
+    target_speed_kmh: float = 27.0
+    kp: float = 1.0
+    ki: float = 0.05
+    kd: float = 0.0
+    max_throttle: float = 0.75
+    max_pid_brake: float = 0.3
+    emergency_brake: float = 0.5
+    integral_leak: float = 0.9
+    # fitted longitudinal response (scripts/calibrate_braking.py)
+    actuation_lag_steps: int = 1
+    brake_knots_mps: tuple[float, ...] = (0.0, 5.0, 5.5, 5.9, 6.4, 6.7, 9.0)
+    brake_decel_mps2: tuple[float, ...] = (27.5, 27.5, 22.0, 9.2, 9.2, 3.7, 3.7)
+    throttle_accel0_mps2: float = 4.0
+    throttle_accel_slope_per_s: float = 0.36
+    latched_brake: bool = False
+
+    def __post_init__(self) -> None:
+        if len(self.lead_speed_profile_mps) < self.n_steps:
+            raise ValueError(
+                f"BrakingParams: lead_speed_profile_mps has {len(self.lead_speed_profile_mps)} values, "
+                f"needs at least n_steps = {self.n_steps}"
+            )
+        if self.actuation_lag_steps not in (0, 1):
+            raise ValueError("BrakingParams: actuation_lag_steps must be 0 or 1")
+
+    @property
+    def lead_accel_mps2(self) -> np.ndarray:
+        """Lead acceleration per step [n_steps] so that its speed follows the profile exactly."""
+        profile = self.lead_speed_profile_mps
+        v = np.array(profile[: self.n_steps] + (profile[min(self.n_steps, len(profile) - 1)],), dtype=np.float64)
+        return (v[1:] - v[:-1]) / self.dt_s
+
+
+@dataclass
+class ControllerState:
+    """The ego controller's memory, [N] each: PID integral (km/h s) and last step's emergency-brake command."""
+
+    integral_kmh_s: np.ndarray
+    pending_brake: np.ndarray
+
+
+def initial_controller_state(n: int) -> ControllerState:
+    """Controller memory at the start of ``n`` rollouts: zero integral, no brake command."""
+    return ControllerState(np.zeros(n), np.zeros(n, dtype=bool))
+
+
+def ego_acceleration(
+    params: BrakingParams,
+    detected: np.ndarray,
+    gap_m: np.ndarray,
+    ego_speed_mps: np.ndarray,
+    ctrl: ControllerState,
+) -> tuple[np.ndarray, ControllerState]:
+    """One control step of the ego, vectorised over rollouts.
+
+    Args:
+        detected: bool [N], the detector's output at this step.
+        gap_m: [N] gap from the ego's camera to the lead's rear (metres).
+        ego_speed_mps: [N] ego speed (m/s).
+        ctrl: controller memory before this step.
+
+    Returns:
+        (acceleration [N] in m/s^2, never below -speed/dt so the ego never reverses; new memory).
+        In contact with the lead (gap <= ``contact_gap_m``) the ego is stopped, as after a CARLA collision.
+
+    Source: spec section 1 (CARLA BasicAgent emergency stop + PIDLongitudinalController, K_P 1.0,
+    K_I 0.05, K_D 0 on the km/h error, max throttle 0.75, PID brake at most 0.3).
+    """
+    p = params
+    v = ego_speed_mps
+    error = p.target_speed_kmh - 3.6 * v
+    integral = p.integral_leak * ctrl.integral_kmh_s + error * p.dt_s
+    command = p.kp * error + p.ki * integral
+    throttle = np.clip(command, 0.0, p.max_throttle)
+    pid_brake = np.clip(-command, 0.0, p.max_pid_brake)
+    emergency = np.asarray(detected, dtype=bool) & (gap_m < p.braking_distance_m)
+    if p.latched_brake:  # spec section 6: once started, braking never stops
+        emergency = emergency | ctrl.pending_brake
+    applied = ctrl.pending_brake if p.actuation_lag_steps == 1 else emergency
+    full_brake = np.interp(v, p.brake_knots_mps, p.brake_decel_mps2)
+    accel_throttle = (p.throttle_accel0_mps2 - p.throttle_accel_slope_per_s * v) * throttle / p.max_throttle
+    accel_pid = accel_throttle - full_brake * pid_brake / p.emergency_brake
+    accel = np.where(applied, -full_brake, accel_pid)
+    accel = np.maximum(accel, -v / p.dt_s)
+    accel = np.where(gap_m <= p.contact_gap_m, -v / p.dt_s, accel)  # collision: the ego is stopped
+    return accel, ControllerState(integral, emergency)
+
+
+class BrakingScenario:
+    """One rollout of the braking scenario on highway-env vehicles, stepped as a black box.
+
+    Usage: ``obs = sim.observation()`` (a float64 [3] vector, :data:`OBSERVATION_NAMES`), ask a
+    detector, then ``sim.step(detected)``; after ``params.n_steps`` steps the rollout is over.
+    The lead and the ego are :class:`highway_env.vehicle.kinematics.Vehicle` objects on a straight
+    single-lane :class:`highway_env.road.road.Road`; their ``step(dt)`` integrates the motion.
+    """
+
+    observation_names = OBSERVATION_NAMES
+
+    def __init__(self, params: BrakingParams | None = None) -> None:
+        self.params = params or BrakingParams()
+        self._lead_accel = self.params.lead_accel_mps2
+        self.reset()
+
+    def reset(self) -> None:
+        """Put both cars at the logged CARLA start (spec section 1)."""
+        from highway_env.road.lane import StraightLane
+        from highway_env.road.road import Road, RoadNetwork
+        from highway_env.vehicle.kinematics import Vehicle
+
+        p = self.params
+        net = RoadNetwork()
+        net.add_lane("a", "b", StraightLane([0.0, 0.0], [1000.0, 0.0], width=4.0))
+        self.road = Road(network=net)
+        self.ego = Vehicle(self.road, [0.0, 0.0], heading=0.0, speed=p.ego_speed0_mps)
+        lead_x = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
+        self.lead = Vehicle(self.road, [lead_x, 0.0], heading=0.0, speed=p.lead_speed_profile_mps[0])
+        for vehicle, length in ((self.ego, p.ego_length_m), (self.lead, p.lead_length_m)):
+            vehicle.LENGTH = length
+            vehicle.WIDTH = p.vehicle_width_m
+        self.road.vehicles.extend([self.ego, self.lead])
+        self.t = 0
+        self._ctrl = initial_controller_state(1)
+
+    @property
+    def gap_m(self) -> float:
+        """Distance from the ego's camera to the lead's rear (metres)."""
+        p = self.params
+        return float(self.lead.position[0] - p.lead_length_m / 2 - (self.ego.position[0] + p.camera_offset_m))
+
+    def observation(self) -> np.ndarray:
+        """The state reported with each detector query: float64 [3] = (gap_m, ego speed, lead speed)."""
+        return np.array([self.gap_m, self.ego.speed, self.lead.speed], dtype=np.float64)
+
+    @property
+    def done(self) -> bool:
+        return self.t >= self.params.n_steps
+
+    def step(self, detected: bool) -> None:
+        """Advance one step of ``dt`` seconds given the detector's output at the current state.
+
+        Raises:
+            RuntimeError: if the rollout is already over (``n_steps`` steps taken).
+        """
+        if self.done:
+            raise RuntimeError(f"BrakingScenario.step: rollout over after {self.params.n_steps} steps; call reset()")
+        accel, self._ctrl = ego_acceleration(
+            self.params,
+            np.array([bool(detected)]),
+            np.array([self.gap_m]),
+            np.array([self.ego.speed]),
+            self._ctrl,
+        )
+        self.ego.act({"steering": 0.0, "acceleration": float(accel[0])})
+        self.lead.act({"steering": 0.0, "acceleration": float(self._lead_accel[self.t])})
+        dt = self.params.dt_s
+        self.ego.step(dt)
+        self.lead.step(dt)
+        self.ego.speed = max(self.ego.speed, 0.0)  # v + (-v/dt) dt can round to -1e-16
+        self.t += 1
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """How to build a scenario and what its safety requirement is (an STL formula over its signals)."""
+
+    params: BrakingParams = field(default_factory=BrakingParams)
+
+    @property
+    def safety_formula(self) -> str:
+        """``G[0,T-1](d >= crash_gap)``: the gap never drops below 2 m (spec section 3)."""
+        p = self.params
+        return f"G[0,{p.n_steps - 1}](d >= {p.crash_gap_m:g})"

@@ -1,0 +1,95 @@
+"""STL robustness for pemviz: formulas, a parser, and batched classic / AGM / smooth-cumulative semantics.
+
+    >>> from pemviz import stl
+    >>> f = stl.parse("G[0,99](d >= 2)")
+    >>> str(f)
+    'G[0,99](d >= 2)'
+    >>> rho = stl.robustness(f, {"d": gaps}, "classic")          # gaps: [N, T] metres -> rho: [N]
+    >>> rho_agm = stl.robustness(f, {"d": gaps}, "agm", signal_ranges={"d": (0.0, 15.0)})
+
+See :mod:`pemviz.stl.semantics` for the semantics, the trace-end convention and AGM normalisation.
+"""
+
+from pemviz.stl.formula import (
+    KEYWORDS,
+    Always,
+    And,
+    BinaryExpr,
+    Const,
+    Eventually,
+    Expr,
+    Formula,
+    Implies,
+    Negate,
+    Not,
+    Or,
+    Predicate,
+    Signal,
+    Until,
+    always,
+    conjunction,
+    const,
+    disjunction,
+    eventually,
+    format_number,
+    implies,
+    negation,
+    signal,
+    until,
+)
+from pemviz.stl.parser import STLSyntaxError, parse
+from pemviz.stl.semantics import (
+    DEFAULT_TEMPERATURE,
+    SEMANTICS,
+    TRACE_END,
+    agm_scale,
+    robustness,
+    robustness_signal,
+)
+
+BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0)}
+"""AGM normalisation of the braking spec's gap (metres): ``d >= 2`` becomes (d - 2) / 13 as in the authors' code."""
+
+
+def braking_spec(n_steps: int = 100, crash_gap_m: float = 2.0) -> Formula:
+    """The safety spec ``G[0,n_steps-1](d >= crash_gap_m)`` (spec section 3): the gap never drops below 2 m."""
+    return Always(Predicate(Signal("d"), ">=", Const(crash_gap_m)), 0, int(n_steps) - 1)
+
+
+__all__ = [
+    "SEMANTICS",
+    "DEFAULT_TEMPERATURE",
+    "TRACE_END",
+    "BRAKING_SIGNAL_RANGES",
+    "braking_spec",
+    "parse",
+    "STLSyntaxError",
+    "robustness",
+    "robustness_signal",
+    "agm_scale",
+    "Formula",
+    "Predicate",
+    "Not",
+    "And",
+    "Or",
+    "Implies",
+    "Always",
+    "Eventually",
+    "Until",
+    "Expr",
+    "Signal",
+    "Const",
+    "BinaryExpr",
+    "Negate",
+    "signal",
+    "const",
+    "negation",
+    "conjunction",
+    "disjunction",
+    "implies",
+    "always",
+    "eventually",
+    "until",
+    "format_number",
+    "KEYWORDS",
+]

@@ -1,0 +1,618 @@
+"""STL formulas as frozen dataclasses, their canonical text, and builder helpers.
+
+Grammar (time in integer steps; an interval ``[a,b]`` is inclusive, ``b`` may be ``inf`` = to the trace end)::
+
+    formula := predicate | !formula | formula & formula ... | formula | formula ...
+             | formula -> formula | G[a,b](formula) | F[a,b](formula) | (formula) U[a,b] (formula)
+    predicate := expr (>= | > | <= | <) expr      with expr affine in the signals: d - 2, (d - 2) / 13, 2 * v + vl
+
+``str(formula)`` is the canonical text; ``parse(str(f)) == f`` and ``str(parse(s)) == s`` for canonical ``s``
+(:mod:`pemviz.stl.parser`). Canonical spelling: ``!``, ``&``, ``|``, ``->``, ``G[a,b](..)``, ``F[a,b](..)``,
+``(..) U[a,b] (..)``; unary operands are always parenthesised, predicates inside ``&``/``|``/``->`` are not.
+
+Builders: ``signal("d") >= 2`` is a :class:`Predicate`; ``p & q``, ``p | q``, ``~p``, ``p >> q`` (implies);
+:func:`always`, :func:`eventually`, :func:`until`, :func:`conjunction`, :func:`disjunction`, :func:`negation`,
+:func:`implies`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Union
+
+__all__ = [
+    "Expr",
+    "Signal",
+    "Const",
+    "BinaryExpr",
+    "Negate",
+    "Formula",
+    "Predicate",
+    "Not",
+    "And",
+    "Or",
+    "Implies",
+    "Always",
+    "Eventually",
+    "Until",
+    "signal",
+    "const",
+    "negation",
+    "conjunction",
+    "disjunction",
+    "implies",
+    "always",
+    "eventually",
+    "until",
+    "format_number",
+    "KEYWORDS",
+]
+
+KEYWORDS = frozenset(
+    {"G", "F", "U", "always", "eventually", "until", "not", "and", "or", "implies", "inf", "true", "false"}
+)
+"""Words that cannot be signal names."""
+
+COMPARISONS = (">=", ">", "<=", "<")
+
+
+def format_number(value: float) -> str:
+    """Shortest text that parses back to ``value``: ``2`` for 2.0, ``0.1``, ``1e-05``, ``-3.5``."""
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"constants in a formula must be finite, got {value!r}")
+    if value == 0.0:
+        return "0"
+    if value.is_integer() and abs(value) < 1e16:
+        return str(int(value))
+    return repr(value)
+
+
+def _where(pos: int | None) -> str:
+    return "" if pos is None else f" at column {pos + 1}"
+
+
+# --------------------------------------------------------------------------------------------------
+# Arithmetic expressions inside predicates (affine in the signals)
+# --------------------------------------------------------------------------------------------------
+
+Operand = Union["Expr", float, int]
+
+
+def _as_expr(x: Operand) -> Expr:
+    if isinstance(x, Expr):
+        return x
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise TypeError(f"expected a signal expression or a number, got {type(x).__name__}")
+    return Const(float(x))
+
+
+class Expr:
+    """An arithmetic expression over signals; affine ones make predicates. Operators build new ones."""
+
+    _prec = 4
+
+    def affine(self) -> tuple[dict[str, float], float]:
+        """(coefficient per signal, constant): the expression as ``sum_i c_i * x_i + k``.
+
+        Raises:
+            ValueError: the expression is not affine (a product of two signal terms, division by a signal
+                or by zero), with its column when parsed from text.
+        """
+        raise NotImplementedError
+
+    def signals(self) -> frozenset[str]:
+        return frozenset(self.affine()[0])
+
+    def __add__(self, other: Operand) -> Expr:
+        return BinaryExpr("+", self, _as_expr(other))
+
+    def __radd__(self, other: Operand) -> Expr:
+        return BinaryExpr("+", _as_expr(other), self)
+
+    def __sub__(self, other: Operand) -> Expr:
+        return BinaryExpr("-", self, _as_expr(other))
+
+    def __rsub__(self, other: Operand) -> Expr:
+        return BinaryExpr("-", _as_expr(other), self)
+
+    def __mul__(self, other: Operand) -> Expr:
+        return BinaryExpr("*", self, _as_expr(other))
+
+    def __rmul__(self, other: Operand) -> Expr:
+        return BinaryExpr("*", _as_expr(other), self)
+
+    def __truediv__(self, other: Operand) -> Expr:
+        return BinaryExpr("/", self, _as_expr(other))
+
+    def __neg__(self) -> Expr:
+        if isinstance(self, Const):
+            return Const(-self.value)
+        return Negate(self)
+
+    def __ge__(self, other: Operand) -> Predicate:  # type: ignore[override]
+        return Predicate(self, ">=", _as_expr(other))
+
+    def __gt__(self, other: Operand) -> Predicate:  # type: ignore[override]
+        return Predicate(self, ">", _as_expr(other))
+
+    def __le__(self, other: Operand) -> Predicate:  # type: ignore[override]
+        return Predicate(self, "<=", _as_expr(other))
+
+    def __lt__(self, other: Operand) -> Predicate:  # type: ignore[override]
+        return Predicate(self, "<", _as_expr(other))
+
+
+@dataclass(frozen=True, eq=True)
+class Signal(Expr):
+    """A named signal, e.g. ``d`` (gap, metres): one array [N, T] in the signals mapping."""
+
+    name: str
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 4
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not _is_identifier(self.name):
+            raise ValueError(
+                f"invalid signal name {self.name!r}{_where(self.pos)}: use letters, digits, '_' and '.', "
+                "starting with a letter or '_'"
+            )
+        if self.name in KEYWORDS:
+            raise ValueError(f"{self.name!r}{_where(self.pos)} is a keyword, not a signal name "
+                             f"(reserved: {', '.join(sorted(KEYWORDS))})")
+
+    def affine(self) -> tuple[dict[str, float], float]:
+        return {self.name: 1.0}, 0.0
+
+    def __str__(self) -> str:
+        return self.name
+
+
+@dataclass(frozen=True, eq=True)
+class Const(Expr):
+    """A finite number."""
+
+    value: float
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 4
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "value", float(self.value))
+        format_number(self.value)  # finite check
+
+    def affine(self) -> tuple[dict[str, float], float]:
+        return {}, self.value
+
+    def __str__(self) -> str:
+        return format_number(self.value)
+
+
+
+_EXPR_PREC = {"+": 1, "-": 1, "*": 2, "/": 2}
+
+
+@dataclass(frozen=True, eq=True)
+class BinaryExpr(Expr):
+    """``left op right`` with op in ``+ - * /``; ``*`` needs one constant side, ``/`` a constant divisor."""
+
+    op: str
+    left: Expr
+    right: Expr
+    pos: int | None = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.op not in _EXPR_PREC:
+            raise ValueError(f"unknown arithmetic operator {self.op!r}; allowed: + - * /")
+        self.affine()  # validate
+
+    @property
+    def _prec(self) -> int:  # type: ignore[override]
+        return _EXPR_PREC[self.op]
+
+    def affine(self) -> tuple[dict[str, float], float]:
+        lc, lk = self.left.affine()
+        rc, rk = self.right.affine()
+        if self.op in "+-":
+            s = 1.0 if self.op == "+" else -1.0
+            coef = dict(lc)
+            for name, c in rc.items():
+                coef[name] = coef.get(name, 0.0) + s * c
+            return coef, lk + s * rk
+        if self.op == "*":
+            if lc and rc:
+                raise ValueError(f"predicate is not affine{_where(self.pos)}: '{self}' multiplies two signal terms")
+            if lc:
+                return {n: c * rk for n, c in lc.items()}, lk * rk
+            return {n: c * lk for n, c in rc.items()}, lk * rk
+        if rc:
+            raise ValueError(f"predicate is not affine{_where(self.pos)}: '{self}' divides by a signal term")
+        if rk == 0.0:
+            raise ValueError(f"division by zero{_where(self.pos)} in '{self}'")
+        return {n: c / rk for n, c in lc.items()}, lk / rk
+
+    def __str__(self) -> str:
+        p = self._prec
+        left = str(self.left)
+        if self.left._prec < p:
+            left = f"({left})"
+        right = str(self.right)
+        if self.right._prec <= p:
+            right = f"({right})"
+        return f"{left} {self.op} {right}"
+
+
+
+@dataclass(frozen=True, eq=True)
+class Negate(Expr):
+    """``-operand``."""
+
+    operand: Expr
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 3
+
+    def affine(self) -> tuple[dict[str, float], float]:
+        c, k = self.operand.affine()
+        return {n: -v for n, v in c.items()}, -k
+
+    def __str__(self) -> str:
+        inner = str(self.operand)
+        if self.operand._prec < 3 or (isinstance(self.operand, Const) and self.operand.value < 0):
+            inner = f"({inner})"
+        return f"-{inner}"
+
+
+
+def _is_identifier(name: str) -> bool:
+    if not name or not (name[0].isascii() and (name[0].isalpha() or name[0] == "_")):
+        return False
+    return all(ch.isascii() and (ch.isalnum() or ch in "_.") for ch in name)
+
+
+# --------------------------------------------------------------------------------------------------
+# Formulas
+# --------------------------------------------------------------------------------------------------
+
+# precedence for printing: implies 1 < or 2 < and 3 < until 4 < unary 5 < predicate 6
+class Formula:
+    """Base class of STL formulas. Operators: ``&`` and, ``|`` or, ``~`` not, ``>>`` implies."""
+
+    _prec = 6
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return ()
+
+    def signals(self) -> frozenset[str]:
+        """Names of all signals the formula reads."""
+        out: set[str] = set()
+        for c in self.children:
+            out |= c.signals()
+        return frozenset(out)
+
+    def horizon(self) -> int | None:
+        """Steps after the evaluation time the formula looks at (``None``: open-ended, to the trace end).
+
+        ``G[0,150](d < 5 -> F[0,20](v <= 0.1))`` has horizon 170: evaluated at time 0 it needs 171 steps.
+        """
+        hs = [c.horizon() for c in self.children]
+        if any(h is None for h in hs):
+            return None
+        return max(hs, default=0)  # type: ignore[type-var]
+
+    def subformulas(self) -> Iterable[Formula]:
+        """This formula and all its sub-formulas, depth first."""
+        yield self
+        for c in self.children:
+            yield from c.subformulas()
+
+    def __and__(self, other: Formula) -> And:
+        _check_formula(other, "&")
+        left = self.operands if isinstance(self, And) else (self,)
+        return And(left + (other,))
+
+    def __or__(self, other: Formula) -> Or:
+        _check_formula(other, "|")
+        left = self.operands if isinstance(self, Or) else (self,)
+        return Or(left + (other,))
+
+    def __invert__(self) -> Not:
+        return Not(self)
+
+    def __rshift__(self, other: Formula) -> Implies:
+        _check_formula(other, ">>")
+        return Implies(self, other)
+
+
+def _check_formula(x: object, what: str) -> None:
+    if not isinstance(x, Formula):
+        raise TypeError(f"operand of {what} must be an STL Formula, got {type(x).__name__}")
+
+
+def _check_interval(start: int, end: int | None, pos: int | None, op: str) -> None:
+    if isinstance(start, bool) or not isinstance(start, int):
+        raise TypeError(f"interval start of {op}{_where(pos)} must be an int (steps), got {start!r}")
+    if end is not None and (isinstance(end, bool) or not isinstance(end, int)):
+        raise TypeError(f"interval end of {op}{_where(pos)} must be an int (steps) or None (inf), got {end!r}")
+    if start < 0:
+        raise ValueError(f"interval [{start},{_fmt_end(end)}] of {op}{_where(pos)} starts before 0: "
+                         "intervals are future steps [a,b] with 0 <= a <= b")
+    if end is not None and end < start:
+        raise ValueError(f"interval [{start},{end}] of {op}{_where(pos)} is empty: need a <= b")
+
+
+def _fmt_end(end: int | None) -> str:
+    return "inf" if end is None else str(end)
+
+
+def _paren(f: Formula, min_prec: int) -> str:
+    s = str(f)
+    return f"({s})" if f._prec < min_prec else s
+
+
+@dataclass(frozen=True, eq=True)
+class Predicate(Formula):
+    """``lhs op rhs`` with op in ``>= > <= <``; robustness value ``lhs - rhs`` (``>=``, ``>``) or ``rhs - lhs``.
+
+    Strict and non-strict comparisons have the same robustness (as in rtamt and Donze & Maler 2010).
+    """
+
+    lhs: Expr
+    op: str
+    rhs: Expr
+    pos: int | None = field(default=None, compare=False, repr=False)
+    coefficients: dict = field(default=None, init=False, compare=False, repr=False)  # type: ignore[assignment]
+    offset: float = field(default=0.0, init=False, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.op not in COMPARISONS:
+            raise ValueError(f"unknown comparison {self.op!r}{_where(self.pos)}; allowed: {' '.join(COMPARISONS)}")
+        object.__setattr__(self, "lhs", _as_expr(self.lhs))
+        object.__setattr__(self, "rhs", _as_expr(self.rhs))
+        lc, lk = self.lhs.affine()
+        rc, rk = self.rhs.affine()
+        s = 1.0 if self.op in (">=", ">") else -1.0
+        coef = {n: s * c for n, c in lc.items()}
+        for n, c in rc.items():
+            coef[n] = coef.get(n, 0.0) - s * c
+        coef = {n: c for n, c in coef.items() if c != 0.0}
+        if not coef:
+            raise ValueError(f"predicate '{self}'{_where(self.pos)} reads no signal (its signal terms cancel)")
+        object.__setattr__(self, "coefficients", coef)
+        object.__setattr__(self, "offset", s * (lk - rk))
+
+    def signals(self) -> frozenset[str]:
+        return frozenset(self.coefficients)
+
+    def horizon(self) -> int | None:
+        return 0
+
+    def __str__(self) -> str:
+        return f"{self.lhs} {self.op} {self.rhs}"
+
+
+
+@dataclass(frozen=True, eq=True)
+class Not(Formula):
+    """``!operand``: robustness negated."""
+
+    operand: Formula
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 5
+
+    def __post_init__(self) -> None:
+        _check_formula(self.operand, "!")
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return (self.operand,)
+
+    def __str__(self) -> str:
+        return f"!({self.operand})"
+
+
+
+@dataclass(frozen=True, eq=True)
+class And(Formula):
+    """n-ary conjunction ``a & b & ...`` (at least two operands)."""
+
+    operands: tuple[Formula, ...]
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 3
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "operands", tuple(self.operands))
+        if len(self.operands) < 2:
+            raise ValueError(f"& needs at least two operands{_where(self.pos)}, got {len(self.operands)}")
+        for o in self.operands:
+            _check_formula(o, "&")
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return self.operands
+
+    def __str__(self) -> str:
+        return " & ".join(_paren(o, 4) for o in self.operands)
+
+
+
+@dataclass(frozen=True, eq=True)
+class Or(Formula):
+    """n-ary disjunction ``a | b | ...`` (at least two operands)."""
+
+    operands: tuple[Formula, ...]
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 2
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "operands", tuple(self.operands))
+        if len(self.operands) < 2:
+            raise ValueError(f"| needs at least two operands{_where(self.pos)}, got {len(self.operands)}")
+        for o in self.operands:
+            _check_formula(o, "|")
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return self.operands
+
+    def __str__(self) -> str:
+        return " | ".join(_paren(o, 3) for o in self.operands)
+
+
+
+@dataclass(frozen=True, eq=True)
+class Implies(Formula):
+    """``left -> right`` = ``!left | right`` (right-associative in text)."""
+
+    left: Formula
+    right: Formula
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 1
+
+    def __post_init__(self) -> None:
+        _check_formula(self.left, "->")
+        _check_formula(self.right, "->")
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return (self.left, self.right)
+
+    def __str__(self) -> str:
+        return f"{_paren(self.left, 2)} -> {_paren(self.right, 1)}"
+
+
+
+@dataclass(frozen=True, eq=True)
+class Always(Formula):
+    """``G[start,end](operand)``: operand holds at every step of [t+start, t+end] (end None: to the trace end)."""
+
+    operand: Formula
+    start: int = 0
+    end: int | None = None
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 5
+
+    def __post_init__(self) -> None:
+        _check_formula(self.operand, "G")
+        _check_interval(self.start, self.end, self.pos, "G")
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return (self.operand,)
+
+    def horizon(self) -> int | None:
+        h = self.operand.horizon()
+        return None if h is None or self.end is None else self.end + h
+
+    def __str__(self) -> str:
+        return f"G[{self.start},{_fmt_end(self.end)}]({self.operand})"
+
+
+
+@dataclass(frozen=True, eq=True)
+class Eventually(Formula):
+    """``F[start,end](operand)``: operand holds at some step of [t+start, t+end] (end None: to the trace end)."""
+
+    operand: Formula
+    start: int = 0
+    end: int | None = None
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 5
+
+    def __post_init__(self) -> None:
+        _check_formula(self.operand, "F")
+        _check_interval(self.start, self.end, self.pos, "F")
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return (self.operand,)
+
+    def horizon(self) -> int | None:
+        h = self.operand.horizon()
+        return None if h is None or self.end is None else self.end + h
+
+    def __str__(self) -> str:
+        return f"F[{self.start},{_fmt_end(self.end)}]({self.operand})"
+
+
+
+@dataclass(frozen=True, eq=True)
+class Until(Formula):
+    """``(left) U[start,end] (right)``: right holds at some t' in [t+start, t+end] and left at every step of
+    [t, t') before it (strict, discrete-time convention of rtamt and LTL)."""
+
+    left: Formula
+    right: Formula
+    start: int = 0
+    end: int | None = None
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 4
+
+    def __post_init__(self) -> None:
+        _check_formula(self.left, "U")
+        _check_formula(self.right, "U")
+        _check_interval(self.start, self.end, self.pos, "U")
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return (self.left, self.right)
+
+    def horizon(self) -> int | None:
+        hl, hr = self.left.horizon(), self.right.horizon()
+        if hl is None or hr is None or self.end is None:
+            return None
+        return max(self.end - 1 + hl, self.end + hr)
+
+    def __str__(self) -> str:
+        return f"({self.left}) U[{self.start},{_fmt_end(self.end)}] ({self.right})"
+
+
+
+# --------------------------------------------------------------------------------------------------
+# Builders
+# --------------------------------------------------------------------------------------------------
+
+
+def signal(name: str) -> Signal:
+    """A signal expression: ``signal("d") >= 2`` is the predicate ``d >= 2``."""
+    return Signal(name)
+
+
+def const(value: float) -> Const:
+    """A constant expression."""
+    return Const(value)
+
+
+def negation(operand: Formula) -> Not:
+    """``!operand``."""
+    return Not(operand)
+
+
+def conjunction(*operands: Formula) -> Formula:
+    """``a & b & ...`` (one operand: itself)."""
+    return operands[0] if len(operands) == 1 else And(tuple(operands))
+
+
+def disjunction(*operands: Formula) -> Formula:
+    """``a | b | ...`` (one operand: itself)."""
+    return operands[0] if len(operands) == 1 else Or(tuple(operands))
+
+
+def implies(left: Formula, right: Formula) -> Implies:
+    """``left -> right``."""
+    return Implies(left, right)
+
+
+def always(operand: Formula, start: int = 0, end: int | None = None) -> Always:
+    """``G[start,end](operand)``; ``end=None`` is open-ended (to the trace end)."""
+    return Always(operand, start, end)
+
+
+def eventually(operand: Formula, start: int = 0, end: int | None = None) -> Eventually:
+    """``F[start,end](operand)``; ``end=None`` is open-ended (to the trace end)."""
+    return Eventually(operand, start, end)
+
+
+def until(left: Formula, right: Formula, start: int = 0, end: int | None = None) -> Until:
+    """``(left) U[start,end] (right)``; ``end=None`` is open-ended (to the trace end)."""
+    return Until(left, right, start, end)

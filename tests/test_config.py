@@ -1,0 +1,42 @@
+"""ExperimentConfig validation: one clear message naming the setting, the value and what is allowed."""
+
+from __future__ import annotations
+
+import pytest
+
+from pemviz.config import PRESETS, ConfigError, ExperimentConfig
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("smoothing", 0.0, r"alpha must be in \(0, 1\]"),
+        ("smoothing", 1.5, r"alpha must be in \(0, 1\]"),
+        ("quantile_level", 1.0, r"sigma must be in \[0.5, 1\)"),
+        ("quantile_level", 0.4, r"sigma must be in \[0.5, 1\)"),
+        ("n_per_stage", 1, r"N must be an integer >= 2"),
+        ("n_stages", 0, r"K must be an integer >= 1"),
+        ("metric", "robust", r"use one of classic, agm, smooth-cumulative"),
+        ("method", "mcmc", r"use one of adaptive, mc, naive50, mixed50"),
+        ("seed", -1, r"seed must be an integer >= 0"),
+    ],
+)
+def test_invalid_setting_is_rejected_with_its_name_value_and_range(field, value, message):
+    with pytest.raises(ConfigError, match=message) as err:
+        ExperimentConfig(**{field: value})
+    assert field in str(err.value) and repr(value) in str(err.value)
+
+
+def test_defaults_are_the_papers_and_count_1200_simulations():
+    c = ExperimentConfig()
+    assert (c.n_stages, c.n_per_stage, c.n_final, c.quantile_level, c.smoothing, c.metric, c.seed) == (
+        10, 100, 100, 0.95, 0.1, "classic", 0,
+    )  # fmt: skip
+    assert c.n_simulations == 100 + 10 * 100 + 100
+    assert ExperimentConfig(method="mc", n_per_stage=10000).n_simulations == 10000
+
+
+def test_authors_code_preset_matches_spec_section_4():
+    c = ExperimentConfig(**PRESETS["authors-code"])
+    assert (c.smoothing, c.ce_epochs, c.weights, c.final_estimate) == (0.5, 1000, "recomputed", "last-stage")
+    assert c.n_simulations == 100 + 10 * 100

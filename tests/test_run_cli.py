@@ -1,0 +1,124 @@
+"""``pemviz run`` end to end: the default experiment, its recording, the baselines and bad input."""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO, run_cli
+from pemviz.config import ExperimentConfig
+from pemviz.engine import Experiment, FinalEstimate
+
+FINAL_RE = re.compile(r"^\s*final\s+(\d+)/(\d+)\s+(\S+)", re.M)
+MU_RE = re.compile(r"mu_hat = (\S+) \(log mu_hat = (\S+) nats\) from (\d+) simulations")
+
+
+def parse_final(stdout: str) -> tuple[int, int, float, int]:
+    """(failures, n, log mu_hat, simulations) from the printed table."""
+    m = FINAL_RE.search(stdout)
+    mu = MU_RE.search(stdout)
+    assert m and mu, stdout
+    return int(m.group(1)), int(m.group(2)), float(mu.group(2)), int(mu.group(3))
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """The shipped defaults, once: ``pemviz run --save X.rrd``."""
+    out = tmp_path_factory.mktemp("run") / "default.rrd"
+    proc = run_cli("run", "--save", str(out))
+    assert proc.returncode == 0, proc.stderr
+    return proc, out
+
+
+def test_default_run_finds_crashes_and_a_rare_event_estimate(default_run):
+    proc, _ = default_run
+    failures, n, log_mu, sims = parse_final(proc.stdout)
+    assert n == 100 and failures >= 30
+    assert math.log(1e-20) <= log_mu <= math.log(1e-10)
+    assert sims == 1200
+    assert len(re.findall(r"^\s+\d+\s+ce\s", proc.stdout, re.M)) == 10  # one row per stage
+
+
+def test_default_recording_verifies_and_holds_one_proposal_curve_per_stage(default_run):
+    import rerun as rr
+
+    proc, path = default_run
+    verify = subprocess.run(["rerun", "rrd", "verify", str(path)], capture_output=True, text=True, timeout=300)
+    assert verify.returncode == 0, verify.stderr
+    with rr.server.Server(datasets={"run": [str(path)]}) as server:
+        ds = server.client().get_dataset("run")
+        curves = ds.reader(index="gap_mm").to_pandas()
+        finals = ds.reader(index=None).to_pandas()
+        stages = ds.reader(index="stage").to_pandas()
+    proposal_cols = sorted(c for c in curves.columns if re.fullmatch(r"/proposal/stage_\d\d:Scalars:scalars", c))
+    assert [c.split("/")[2][:8] for c in proposal_cols] == [f"stage_{k:02d}" for k in range(11)]
+    for c in proposal_cols + ["/proposal/pem:Scalars:scalars"]:
+        values = np.concatenate([np.atleast_1d(v) for v in curves[c].dropna()])
+        assert values.size == 131 and np.all((values >= 0) & (values <= 1))
+    _, _, log_mu, _ = parse_final(proc.stdout)
+    assert float(np.atleast_1d(finals["/final:log_mu_hat"].dropna().iloc[0])[0]) == pytest.approx(log_mu, abs=1e-4)
+    gap_cols = [c for c in stages.columns if c.startswith("/rollouts/") and c.endswith("Scalars:scalars")]
+    assert len(gap_cols) == 12  # pretraining, 10 CE stages, final batch
+
+
+def test_same_seed_gives_the_same_estimate_twice():
+    cfg = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=20, ce_epochs=50, pretrain_epochs=100, seed=3)
+
+    def final_log_mu(c):
+        got = []
+        Experiment(c, [lambda e: got.append(e) if isinstance(e, FinalEstimate) else None]).run()
+        return got[0].estimate
+
+    a, b = final_log_mu(cfg), final_log_mu(cfg)
+    assert a == b
+    assert final_log_mu(cfg.replace(seed=4)) != a
+
+
+def test_naive50_finds_crashes_with_a_negligible_weighted_estimate():
+    proc = run_cli("run", "--method", "naive50", "--n", "1000", "--no-record")
+    assert proc.returncode == 0, proc.stderr
+    failures, n, log_mu, sims = parse_final(proc.stdout)
+    assert n == 1000 and 0.6 <= failures / n <= 0.9
+    assert log_mu < math.log(1e-30)
+
+
+@pytest.mark.slow
+def test_plain_monte_carlo_with_the_pem_finds_nothing_in_10000():
+    proc = run_cli("run", "--method", "mc", "--n", "10000", "--no-record")
+    assert proc.returncode == 0, proc.stderr
+    failures, n, log_mu, _ = parse_final(proc.stdout)
+    assert (failures, n, log_mu) == (0, 10000, -math.inf)
+    assert re.search(r"^mu_hat = 0 ", proc.stdout, re.M)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--alpha", "0"], "alpha must be in (0, 1]"),
+        (["--alpha", "1.01"], "alpha must be in (0, 1]"),
+        (["--sigma", "1"], "sigma must be in [0.5, 1)"),
+        (["--sigma", "0.3"], "sigma must be in [0.5, 1)"),
+        (["--n", "1"], "N must be an integer >= 2"),
+        (["--metric", "fancy"], "use one of classic, agm, smooth-cumulative"),
+        (["--save", "/nonexistent-dir/x.rrd"], "does not exist"),
+        (["--save", "out.txt"], "must be a .rrd file"),
+    ],
+)
+def test_bad_input_gets_one_clear_error_and_writes_nothing(tmp_path, args, message):
+    proc = run_cli("run", *args, cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and message in lines[0], proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_unwritable_save_folder_is_refused_before_any_work(tmp_path):
+    # /proc refuses new files even to root, unlike a chmod-ed folder.
+    proc = run_cli("run", "--save", "/proc/pemviz-test.rrd", cwd=tmp_path)
+    assert proc.returncode == 2 and "not writable" in proc.stderr, proc.stderr
+    assert list(tmp_path.iterdir()) == []

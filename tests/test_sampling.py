@@ -1,0 +1,122 @@
+"""The estimator, the threshold and the cross-entropy update against closed-form answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pemviz.detectors import ConstantDetector, action_log_prob
+from pemviz.sampling import Proposal, ce_update, estimate, format_probability, pretrain_proposal, quantile_threshold
+from pemviz.scenarios import simulate
+
+
+def test_estimate_equals_hand_computed_mean_of_failure_weights():
+    log_w = np.log(np.array([1e-20, 3e-20, 5e-1, 7e-30]))
+    failed = np.array([True, True, False, False])
+    log_p = np.array([-40.0, -44.0, -1.0, -3.0])
+    e = estimate(log_w, failed, log_p)
+    assert e.n == 4 and e.n_failures == 2
+    assert e.mu_hat == pytest.approx((1e-20 + 3e-20) / 4, rel=1e-12)
+    assert e.ess == pytest.approx((4e-20) ** 2 / (1e-40 + 9e-40), rel=1e-12)  # 1.6
+    assert e.nll_mean == pytest.approx(42.0)
+    assert e.nll_lme == pytest.approx(-math.log((math.exp(-40) + math.exp(-44)) / 2), rel=1e-12)
+
+
+def test_estimate_stays_exact_far_below_float64_range():
+    e = estimate(np.array([-2000.0, -2001.0]), np.array([True, True]), np.array([-1.0, -1.0]))
+    assert e.log_mu_hat == pytest.approx(-2000.0 + math.log(1 + math.exp(-1)) - math.log(2), abs=1e-12)
+    assert e.mu_hat == 0.0  # underflows as a float, but the log is exact
+    assert format_probability(e.log_mu_hat).endswith("e-869")
+
+
+def test_estimate_without_failures_is_zero_with_zero_ess():
+    e = estimate(np.zeros(5), np.zeros(5, bool), np.zeros(5))
+    assert e.log_mu_hat == -math.inf and e.mu_hat == 0.0 and e.ess == 0.0 and math.isnan(e.nll_mean)
+
+
+def test_quantile_threshold_is_the_fifth_smallest_of_100_at_sigma_095():
+    r = np.random.default_rng(0).permutation(np.arange(100, dtype=float) + 1.0)
+    assert quantile_threshold(r, 0.95) == 5.0
+    assert quantile_threshold(r, 0.9) == 10.0
+    assert quantile_threshold(r - 50.0, 0.95) == 0.0  # floored at the failure threshold
+
+
+def test_format_probability_rounds_mantissa_and_exponent():
+    assert format_probability(math.log(5.02e-15)) == "5.020e-15"
+    assert format_probability(math.log(9.9996e-3)) == "1.000e-02"
+    assert format_probability(-math.inf) == "0"
+
+
+def test_action_log_prob_is_logsigmoid_of_plus_minus_logit():
+    logit = np.array([0.0, 5.0, -30.0, 40.0])
+    log_p_detect = -np.log1p(np.exp(-logit))  # exact also where p rounds to 1
+    np.testing.assert_allclose(action_log_prob(logit, np.ones(4, bool)), log_p_detect, rtol=1e-12)
+    p = 1 / (1 + np.exp(-logit[:3]))
+    np.testing.assert_allclose(action_log_prob(logit[:3], np.zeros(3, bool)), np.log1p(-p), rtol=1e-9)
+    assert action_log_prob(np.array([40.0]), np.array([False]))[0] == pytest.approx(-40.0, abs=1e-12)
+
+
+class MissCounter:
+    """Test-only simulator: the observation is the number of misses so far; no dynamics."""
+
+    observation_names = ("misses",)
+
+    def __init__(self) -> None:
+        self.misses = 0
+
+    def reset(self) -> None:
+        self.misses = 0
+
+    def observation(self) -> np.ndarray:
+        return np.array([float(self.misses)])
+
+    def step(self, detected: bool) -> None:
+        self.misses += 0 if detected else 1
+
+
+def test_importance_sampling_recovers_binomial_tail_probability():
+    # 11 steps, failure = at least 6 misses in the first 10 actions (the 11th acts on nothing).
+    p = 0.9
+    exact = sum(math.comb(10, k) * (1 - p) ** k * p ** (10 - k) for k in range(6, 11))  # 1.47e-4
+    target, sampler = ConstantDetector(p), ConstantDetector(0.4)
+    batch = simulate(MissCounter, 8000, sampler, target, np.random.default_rng(0), 11)
+    failed = batch.observations[:, -1, 0] >= 6
+    e = estimate(batch.log_weight(), failed, batch.log_p[:, :10].sum(axis=1))
+    assert e.n_failures > 2000
+    assert e.mu_hat == pytest.approx(exact, rel=0.06)
+
+
+def test_pretraining_fits_the_detection_rate():
+    torch.manual_seed(0)
+    gaps = np.tile(np.linspace(0, 12, 40), (50, 1))
+    detected = np.arange(50)[:, None] < 45 + np.zeros((1, 40))  # exactly 90 % at every gap
+    q = Proposal()
+    pretrain_proposal(q, gaps, detected, epochs=800, lr=1e-2)
+    np.testing.assert_allclose(q.curve(np.array([1.0, 6.0, 11.0])), 0.9, atol=0.01)
+
+
+@pytest.mark.parametrize("weights", ["frozen", "recomputed"])
+def test_ce_update_moves_the_proposal_to_the_elites_miss_rate_inside_10m(weights):
+    torch.manual_seed(0)
+    rng = np.random.default_rng(1)
+    gaps = np.tile(np.linspace(12, 0.5, 40), (60, 1))
+    inside = gaps < 10
+    detected = np.where(inside, rng.random(gaps.shape) < 0.2, rng.random(gaps.shape) < 0.95)
+    log_q = np.log(np.where(detected, 0.5, 0.5))
+    log_p = np.where(detected, np.log(0.99), np.log(0.01))
+    elite = np.zeros(60, bool)
+    elite[:30] = True
+    q = Proposal()
+    ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.0001, epochs=600, lr=1e-2, weights=weights)
+    curve = q.curve(np.array([2.0, 5.0, 8.0, 11.5]))
+    np.testing.assert_allclose(curve[:3], detected[:30][inside[:30]].mean(), atol=0.06)
+    assert curve[3] > 0.85
+
+
+def test_ce_update_refuses_an_empty_elite_set():
+    with pytest.raises(ValueError, match="no elite"):
+        z = np.zeros((3, 4))
+        ce_update(Proposal(), z, z > 0, z, z, np.zeros(3, bool), smoothing=0.1)
