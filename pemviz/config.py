@@ -16,6 +16,11 @@ mixed50: 50 % inside 10 m and the PEM outside (spec section 5)."""
 METRICS = ("classic", "agm", "smooth-cumulative")
 """Robustness semantics that rank rollouts and set the adaptive thresholds (spec section 3)."""
 
+SIMULATORS = ("highway-env", "batched")
+"""Braking-scenario back-ends (the same tuple as :data:`pemviz.problems.SIMULATORS`, kept here so that
+config imports nothing): ``batched`` advances all rollouts together in numpy, ``highway-env`` steps one
+black-box simulator per rollout; the same seed gives the same rollouts on both."""
+
 WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("fresh", "last-stage")
 
@@ -43,6 +48,7 @@ class ExperimentConfig:
         weights: ``frozen`` (paper eq. 10-11) or ``recomputed`` with gradient (authors' code).
         final_estimate: ``fresh`` N_e rollouts (paper) or ``last-stage`` batch (authors' code).
         pem: path of PEM weights, or None for the shipped default.
+        sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
     """
 
     method: str = "adaptive"
@@ -60,6 +66,7 @@ class ExperimentConfig:
     weights: str = "frozen"
     final_estimate: str = "fresh"
     pem: str | None = None
+    sim: str = "batched"
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str, allowed: str) -> None:
@@ -69,6 +76,7 @@ class ExperimentConfig:
         need(self.method in METHODS, "method", f"use one of {', '.join(METHODS)}")
         need(self.metric in METRICS, "metric", f"use one of {', '.join(METRICS)}")
         need(self.weights in WEIGHT_MODES, "weights", f"use one of {', '.join(WEIGHT_MODES)}")
+        need(self.sim in SIMULATORS, "sim", f"use one of {', '.join(SIMULATORS)}")
         need(self.final_estimate in FINAL_MODES, "final_estimate", f"use one of {', '.join(FINAL_MODES)}")
         need(_is_real(self.smoothing) and 0.0 < self.smoothing <= 1.0, "smoothing (alpha)", "alpha must be in (0, 1]")
         need(

@@ -134,7 +134,7 @@ class Experiment:
         if problem is None:
             from pemviz.pem import load_pem
 
-            problem = braking_problem(load_pem(config.pem))
+            problem = braking_problem(load_pem(config.pem), sim=config.sim)
         self.config = config
         self.listeners = list(listeners)
         self.cancel = cancel or threading.Event()

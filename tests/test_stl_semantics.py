@@ -348,3 +348,25 @@ def test_classic_gradient_flows_to_the_minimising_step():
     d = torch.tensor([[5.0, 3.0, 2.5, 4.0]], requires_grad=True)
     stl.robustness("G[0,3](d >= 2)", {"d": d}).sum().backward()
     assert d.grad.tolist() == [[0.0, 0.0, 1.0, 0.0]]
+
+
+def test_agm_windows_longer_than_1000_steps_use_log_sums_without_overflow():
+    rng = np.random.default_rng(13)
+    T = 1200
+    pos = rng.uniform(0.5, 0.9, size=(2, T))  # prod(1 + r) over 1200 steps ~ 1e300: past float64 range
+    neg = -pos
+    got = stl.robustness(f"G[0,{T - 1}](x >= 0)", {"x": pos}, "agm")
+    np.testing.assert_allclose(got, np.expm1(np.log1p(pos).mean(axis=1)), rtol=1e-12)
+    sig = stl.robustness_signal("F[0,1100](x >= 0)", {"x": neg}, "agm")
+    for t in (0, 50, 99, 150):
+        window = neg[:, t : t + 1101]
+        np.testing.assert_allclose(sig[:, t], -np.expm1(np.log1p(-window).mean(axis=1)), rtol=1e-12)
+    # until whose window (1010 candidate steps) takes the log-sum branch
+    T = 1012
+    x = rng.uniform(0.2, 0.9, size=(1, T))
+    y = rng.uniform(-0.9, -0.2, size=(1, T))
+    f = stl.parse("(x >= 0) U[1000,1010] (y >= 0)")
+    got = stl.robustness(f, {"x": x, "y": y}, "agm")
+    rows = {"x": x[0].tolist(), "y": y[0].tolist()}
+    scales = {p: 1.0 for p in f.subformulas() if isinstance(p, stl.Predicate)}
+    assert got[0] == pytest.approx(_ref(f, rows, 0, "agm", 1.0, scales), rel=1e-10)

@@ -9,7 +9,7 @@ import tempfile
 from datetime import datetime
 from pathlib import Path
 
-from pemviz.config import METHODS, METRICS, PRESETS, ConfigError, ExperimentConfig
+from pemviz.config import METHODS, METRICS, PRESETS, SIMULATORS, ConfigError, ExperimentConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,6 +33,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=None, help=f"random seed (default {d.seed})")
     p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help="Adam epochs per stage")
     p.add_argument("--pem", default=None, help="PEM weights file (default: the shipped assets/pem_ml-nn.pt)")
+    p.add_argument(
+        "--sim", default=None,
+        help=f"scenario back-end: {'|'.join(SIMULATORS)} (default {d.sim}; same rollouts for a seed)",
+    )  # fmt: skip
     rec = p.add_argument_group("recording (rerun)")
     rec.add_argument("--save", default=None, help="write the recording to this .rrd (default recordings/<name>.rrd)")
     rec.add_argument("--serve", action="store_true", help="serve the recording over gRPC for a rerun viewer")
@@ -47,7 +51,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         raise ConfigError(f"preset = {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     fields = dict(PRESETS[args.preset])
     for name in ("method", "n_stages", "n_per_stage", "n_final", "quantile_level", "smoothing", "metric", "seed",
-                 "ce_epochs", "pem"):  # fmt: skip
+                 "ce_epochs", "pem", "sim"):  # fmt: skip
         value = getattr(args, name)
         if value is not None:
             fields[name] = value

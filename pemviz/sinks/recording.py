@@ -1,23 +1,48 @@
 """Rerun sink: writes an experiment's events into a rerun recording (``.rrd`` file, or a live viewer).
 
-Layout (entity paths and timelines):
+The sink only listens to the engine's events (:mod:`pemviz.engine`); it never drives the engine.
 
-- ``description``: Markdown text of the run (static).
-- ``proposal/pem`` and ``proposal/stage_KK``: p_PEM(detect | d) and each stage's proposal
-  q(detect | d) as series on the ``gap_mm`` timeline (x axis = gap in millimetres).
-- ``stages/{gamma,failure_rate,log10_mu_hat,nll,ess}``: per-stage numbers on the ``stage`` timeline.
-- ``rollouts/stage_KK/gap_m``: the gap of every rollout of a stage over the ``step`` timeline (also
-  indexed by ``stage``), one series per rollout, red when it crashed, grey otherwise.
-- ``final/log10_mu_hat`` etc.: the final estimate.
+Timelines: ``step`` (0..T-1, one simulation step of dt = 0.05 s; the default timeline, the scene plays on
+it), ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch) and ``repetition`` (only
+when the sink is given one). Figures that summarise stages are static 2D plots or bar charts, so they
+show whatever timeline is selected.
 
+Entity paths (``KK`` = stage number, two digits):
+
+- ``description``: Markdown of the run (what it is, how to read it, its config, the stage table, the
+  final estimate or how it ended), re-logged static after each stage.
+- ``proposal/data/pem``, ``proposal/data/stage_KK``: p_PEM(detect | d) and each stage's proposal
+  q(detect | d) after its update, one :class:`rerun.LineStrips2D` each, points ``(d [m], probability)``;
+  ``proposal/data/elite_KK``: the elite rollouts' empirical detection rate per 0.1 m gap bin
+  (:class:`rerun.Points2D`; for the final batch the "elites" are its crashes). ``proposal/data``
+  carries the transform from (metres, probability) to the plot box; ``proposal/axes`` the frame.
+- ``stages/{gamma,failure_rate,log10_mu_hat,nll,ess}``: per-stage numbers as scalars on ``stage``;
+  ``stage_bars/...``: the same as static bar charts over the stage number (visible on every timeline).
+- ``rollouts/{gap_m,ego_speed_mps,lead_speed_mps}/stage_KK``: every rollout of a stage over ``step``,
+  one entity with N series, sent with one ``send_columns`` each: red = crash, grey = safe, yellow/orange
+  and wider = the stage's least-robust rollouts (tagged in the series name).
+  ``rollouts/detected/stage_KK``: the gap at the steps where the detector saw the lead, as points
+  (NaN where it missed), shown for the tagged rollouts (the others can be switched on).
+  ``rollouts/summary/stage_KK``: static per-rollout values (robustness under each metric, importance
+  log-weight in nats, crash flag, tag).
+- ``scores/{robustness,log_weight}/data/stage_KK``: every rollout's robustness (configured metric) and
+  importance log-weight against its stage, as static scatter plots; ``.../data/gamma`` the thresholds.
+- ``scene/stage_KK/{lane,ego,lead,sight}``: top-down scene of each stage's least-robust rollout, one lane
+  per stage, boxes with the true car sizes, playable on ``step``: the ego is green while the detector
+  sees the lead and amber while it misses (the sight line from the camera to the lead likewise), the
+  lead turns red once the gap is below the crash gap.
+- ``final``: the final estimate (static :class:`rerun.AnyValues`).
+
+Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed.
 The file is written to ``PATH.partial`` and moved to ``PATH`` when the sink is closed (also after an
-exception or Ctrl-C), so a finished recording is never half-written.
+exception or Ctrl-C), so a finished recording is never half-written and keeps every finished stage.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,32 +57,168 @@ from pemviz.engine import (
     RunCancelled,
     RunStarted,
     StageFinished,
+    StageResult,
 )
 from pemviz.sampling import format_probability
+from pemviz.scenarios.braking import BrakingParams
 
 APP_ID = "pemviz"
-CRASH_RGBA = (230, 60, 50, 255)
-SAFE_RGBA = (140, 140, 140, 90)
-PEM_RGBA = (30, 30, 30, 255)
+CRASH_RGBA = (230, 60, 50, 140)
+SAFE_RGBA = (150, 150, 150, 60)
+TAG_RGBA = (250, 210, 60, 255)
+TAG_CRASH_RGBA = (255, 120, 40, 255)
+PEM_RGBA = (245, 245, 245, 255)
+AXIS_RGBA = (170, 170, 170, 255)
+GRID_RGBA = (90, 90, 90, 120)
+DETECTED_RGBA = (70, 200, 110, 255)
+MISSED_RGBA = (250, 170, 40, 255)
+LEAD_RGBA = (110, 160, 240, 255)
+LEAD_CRASH_RGBA = (235, 50, 45, 255)
+LANE_SPACING_M = 5.0
+
+STAGE_METRICS = (
+    ("failure_rate", "failures / N"),
+    ("gamma", "gamma (threshold)"),
+    ("log10_mu_hat", "log10 mu_hat"),
+    ("ess", "ESS"),
+    ("nll", "NLL (nats)"),
+)
 
 
 def stage_colour(stage: int, n_stages: int) -> tuple[int, int, int, int]:
-    """Blue (early) to orange (late) for the proposal curves of stages 0..n_stages."""
-    f = stage / max(1, n_stages)
+    """Blue (early) to orange (late) for the curves and points of stages 0..n_stages."""
+    f = min(1.0, stage / max(1, n_stages))
     return (int(40 + 215 * f), int(110 + 40 * f), int(230 - 200 * f), 255)
 
 
+def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
+    """About ``n`` round tick values (1, 2, 5 x 10^k steps) covering [lo, hi]."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        return np.array([lo])
+    raw = (hi - lo) / max(1, n)
+    mag = 10.0 ** math.floor(math.log10(raw))
+    step = next(m * mag for m in (1, 2, 5, 10) if m * mag >= raw)
+    first = math.ceil(lo / step - 1e-9) * step
+    return np.round(np.arange(first, hi + step * 1e-9, step), 10)
+
+
+@dataclass(frozen=True)
+class Figure:
+    """A static x-y plot in a 2D view: data in axis units under ``PATH/data``, a frame under ``PATH/axes``.
+
+    A :class:`rerun.Transform3D` on ``PATH/data`` maps (x, y) in axis units to a ``width`` x ``height``
+    box with y pointing up (rerun's 2D y axis points down), so the logged points keep their real values.
+    """
+
+    path: str
+    x_label: str
+    y_label: str
+    width: float = 160.0
+    height: float = 100.0
+
+    def draw_axes(self, stream: rr.RecordingStream, x_range: tuple[float, float], y_range: tuple[float, float]):
+        """Log (static) the data transform, the frame, grid lines and tick labels for these ranges."""
+        (x0, x1), (y0, y1) = x_range, y_range
+        if y1 <= y0:
+            y0, y1 = y0 - 0.5, y1 + 0.5
+        sx, sy = self.width / (x1 - x0), self.height / (y1 - y0)
+        stream.log(
+            f"{self.path}/data",
+            rr.Transform3D(translation=[-x0 * sx, y1 * sy, 0.0], scale=[sx, -sy, 1.0]),
+            static=True,
+        )
+        w, h = self.width, self.height
+        xt = nice_ticks(x0, x1, 6)
+        yt = nice_ticks(y0, y1, 5)
+        xt = xt[(xt >= x0) & (xt <= x1)]
+        yt = yt[(yt >= y0) & (yt <= y1)]
+        X = (xt - x0) * sx
+        Y = (y1 - yt) * sy
+        grid = [[[x, 0.0], [x, h]] for x in X] + [[[0.0, y], [w, y]] for y in Y]
+        stream.log(f"{self.path}/axes/grid", rr.LineStrips2D(grid, colors=GRID_RGBA, radii=-0.5), static=True)
+        stream.log(
+            f"{self.path}/axes/frame",
+            rr.LineStrips2D([[[0, 0], [w, 0], [w, h], [0, h], [0, 0]]], colors=AXIS_RGBA, radii=-1.0),
+            static=True,
+        )
+        pos = [[x, h + 0.045 * h] for x in X] + [[-0.06 * w, y] for y in Y]
+        pos += [[w / 2, h + 0.13 * h], [-0.06 * w, -0.07 * h]]
+        labels = [f"{v:g}" for v in xt] + [f"{v:g}" for v in yt] + [self.x_label, self.y_label]
+        stream.log(
+            f"{self.path}/axes/labels",
+            rr.Points2D(pos, radii=-0.01, colors=AXIS_RGBA, labels=labels, show_labels=True),
+            static=True,
+        )
+
+    def view(self, name: str) -> rrb.Spatial2DView:
+        """A 2D view of this figure with bounds that fit the frame and labels."""
+        w, h = self.width, self.height
+        return rrb.Spatial2DView(
+            origin=self.path,
+            name=name,
+            visual_bounds=rrb.VisualBounds2D(x_range=[-0.14 * w, 1.03 * w], y_range=[-0.12 * h, 1.2 * h]),
+        )
+
+
+PROPOSAL_FIG = Figure("proposal", "gap d (m)", "p(detect | d)")
+ROBUSTNESS_FIG = Figure("scores/robustness", "stage", "robustness")
+LOG_WEIGHT_FIG = Figure("scores/log_weight", "stage", "log-weight (nats)")
+SCENE_PATH = "scene"
+
+
 def default_blueprint() -> rrb.Blueprint:
-    """Proposal curves, stage metrics, gap traces and the description, ready to read."""
-    return rrb.Blueprint(
-        rrb.Grid(
-            rrb.TimeSeriesView(origin="/proposal", name="q(detect | d) per stage vs PEM  [timeline gap_mm]"),
-            rrb.TimeSeriesView(origin="/stages", name="Stage metrics  [timeline stage]"),
-            rrb.TimeSeriesView(origin="/rollouts", name="Gap traces, red = crash  [timeline step]"),
-            rrb.TextDocumentView(origin="/description", name="Run"),
+    """Proposal curves, stage metrics, gap traces, the scene and the description, ready to read.
+
+    The selected timeline is ``step`` (the scene and the rollout traces play on it); every stage figure
+    is static, so it shows on any timeline.
+    """
+    traces = rrb.Tabs(
+        rrb.TimeSeriesView(
+            name="Gap d (m) per rollout: red crash, yellow least robust, dots detections",
+            contents=["+ /rollouts/gap_m/**", "+ /rollouts/detected/**"],
+            plot_legend=rrb.PlotLegend(visible=False),
         ),
-        rrb.TimePanel(timeline="gap_mm", expanded=True),
-        collapse_panels=False,
+        rrb.TimeSeriesView(
+            name="Ego speed (m/s)", origin="/rollouts/ego_speed_mps", plot_legend=rrb.PlotLegend(visible=False)
+        ),
+        rrb.TimeSeriesView(
+            name="Lead speed (m/s)", origin="/rollouts/lead_speed_mps", plot_legend=rrb.PlotLegend(visible=False)
+        ),
+        name="Rollouts [step]",
+    )
+    scene = rrb.Spatial2DView(
+        origin=f"/{SCENE_PATH}",
+        name="Least-robust rollout of each stage, top-down (ego green = detected, amber = missed) [step]",
+        background=(25, 28, 32),
+    )
+    bars = rrb.Grid(
+        *[rrb.BarChartView(origin=f"/stage_bars/{key}", name=label) for key, label in STAGE_METRICS],
+        rrb.TimeSeriesView(origin="/stages", name="Stage metrics [stage timeline]"),
+        grid_columns=2,
+        name="Stage metrics",
+    )
+    scores = rrb.Tabs(
+        ROBUSTNESS_FIG.view("Robustness of every rollout by stage (red = crash)"),
+        LOG_WEIGHT_FIG.view("Importance log-weight of every rollout by stage"),
+        rrb.TextDocumentView(origin="/description", name="Run"),
+        name="Rollout scores",
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Horizontal(
+                    PROPOSAL_FIG.view("Proposal q(detect | d) per stage (blue early, orange late), PEM white"),
+                    scores,
+                ),
+                rrb.Horizontal(traces, scene),
+            ),
+            bars,
+            column_shares=[2.6, 1.0],
+        ),
+        rrb.TimePanel(timeline="step", fps=20.0, state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        collapse_panels=True,
     )
 
 
@@ -66,14 +227,46 @@ class RerunSink:
 
     Args:
         stream: where to log (a file sink, a gRPC connection, or memory).
-        rollout_traces: log every rollout's gap trace (the bulk of the recording).
+        rollout_traces: log every rollout's traces and the scene (the bulk of the recording).
+        tagged_per_stage: how many least-robust rollouts of each stage are tagged in the traces.
+        scene_per_stage: how many least-robust rollouts of each stage get a lane in the scene.
+        params: the braking scenario's constants (car sizes, camera offset, dt) for the scene.
+        repetition: when set, an index on the ``repetition`` timeline added to every temporal row
+            (static figures show the latest repetition).
     """
 
-    def __init__(self, stream: rr.RecordingStream, *, rollout_traces: bool = True) -> None:
+    def __init__(
+        self,
+        stream: rr.RecordingStream,
+        *,
+        rollout_traces: bool = True,
+        tagged_per_stage: int = 3,
+        scene_per_stage: int = 1,
+        params: BrakingParams | None = None,
+        repetition: int | None = None,
+    ) -> None:
         self.stream = stream
         self.rollout_traces = rollout_traces
+        self.tagged_per_stage = tagged_per_stage
+        self.scene_per_stage = scene_per_stage
+        self.params = params or BrakingParams()
+        self.repetition = repetition
         self.n_stages = 1
+        self.metric = "classic"
+        self.grid_m = np.zeros(0)
+        self.config_md = ""
+        self.intro_md = ""
+        self.status_md = ""
+        self.stage_rows: list[str] = []
+        self.stage_values: dict[str, list[tuple[int, float]]] = {key: [] for key, _ in STAGE_METRICS}
+        self.scores: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.gammas: list[tuple[int, float]] = []
+        self.n_lanes = 0
+        self.finished = False
         self._pending: RolloutsSampled | None = None
+        self._paths: tuple[Path, Path] | None = None
+        stream.set_log_time_enabled(False)
+        stream.set_log_tick_enabled(False)
 
     # -- constructors -------------------------------------------------------------------------------
     @classmethod
@@ -98,13 +291,20 @@ class RerunSink:
         return cls(stream, **kw)
 
     def close(self) -> Path | None:
-        """Flush, finish the file and move it into place; returns the final path (None for gRPC)."""
+        """Flush, finish the file and move it into place; returns the final path (None for gRPC).
+
+        A run that ended without a final estimate or a cancellation event (Ctrl-C, an exception in a
+        stage) is marked as interrupted in the description; every finished stage is already logged.
+        """
+        if not self.finished and self.intro_md:
+            done = len(self.stage_rows)
+            self.status_md = f"**Interrupted** after {done} finished stage{'s' * (done != 1)}: no final estimate."
+            self._log_description()
         self.stream.flush()
         self.stream.disconnect()
-        paths = getattr(self, "_paths", None)
-        if paths is None:
+        if self._paths is None:
             return None
-        partial, final = paths
+        partial, final = self._paths
         os.replace(partial, final)
         return final
 
@@ -115,25 +315,43 @@ class RerunSink:
         elif isinstance(event, RolloutsSampled):
             self._pending = event
         elif isinstance(event, StageFinished):
-            self._stage_finished(event)
+            self._stage_finished(event.result)
         elif isinstance(event, FinalEstimate):
             self._final(event)
         elif isinstance(event, RunCancelled):
-            self.stream.log("description/status", rr.TextDocument(f"Run cancelled: {event.reason}"), static=True)
+            self.finished = True
+            self.status_md = f"**Run cancelled** ({event.reason}) after {len(event.stages)} finished stages."
+            self._log_description()
+            self.stream.flush()
 
-    def _curve(self, path: str, grid_m: np.ndarray, values: np.ndarray, colour, name: str) -> None:
-        s = self.stream
-        s.log(path, rr.SeriesLines(colors=[colour], names=[name], widths=[2.0]), static=True)
-        s.send_columns(
-            path,
-            indexes=[rr.TimeColumn("gap_mm", sequence=np.round(grid_m * 1000).astype(np.int64))],
-            columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64)),
+    # -- helpers ------------------------------------------------------------------------------------
+    def _indexes(self, **sequences: np.ndarray) -> list[rr.TimeColumn]:
+        n = len(next(iter(sequences.values())))
+        cols = [rr.TimeColumn(name, sequence=np.asarray(seq, dtype=np.int64)) for name, seq in sequences.items()]
+        if self.repetition is not None:
+            cols.append(rr.TimeColumn("repetition", sequence=np.full(n, self.repetition, dtype=np.int64)))
+        return cols
+
+    def _log_description(self) -> None:
+        table = ""
+        if self.stage_rows:
+            table = (
+                "\n## Stages\n\n| stage | kind | gamma | failures | mu_hat | NLL | ESS | wall s |\n"
+                "|---|---|---|---|---|---|---|---|\n" + "\n".join(self.stage_rows) + "\n"
+            )
+        status = f"\n## Result\n\n{self.status_md}\n" if self.status_md else ""
+        self.stream.log(
+            "description",
+            rr.TextDocument(self.intro_md + status + table + self.config_md, media_type=rr.MediaType.MARKDOWN),
+            static=True,
         )
 
+    # -- run started ----------------------------------------------------------------------------------
     def _run_started(self, ev: RunStarted) -> None:
         cfg = ev.config
         self.n_stages = cfg.n_stages + 1 if cfg.method == "adaptive" else 1
-        self.grid_m = ev.curve_grid_m
+        self.metric = cfg.metric
+        self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         s = self.stream
         s.send_property(
             "pemviz",
@@ -146,70 +364,275 @@ class RerunSink:
                 seed=cfg.seed,
             ),
         )
-        config_md = "\n".join(f"| {k} | `{v}` |" for k, v in vars(cfg).items())
-        s.log(
-            "description",
-            rr.TextDocument(
-                f"# pemviz run: {cfg.method}\n\nSafety spec `{ev.formula}` on the braking scenario; "
-                f"robustness metric **{cfg.metric}**. Curves are on the `gap_mm` timeline, stage numbers on "
-                f"`stage`, rollouts on `step` (switch timelines in the time panel).\n\n"
-                f"| setting | value |\n|---|---|\n{config_md}\n",
-                media_type=rr.MediaType.MARKDOWN,
+        s.send_recording_name(f"pemviz {cfg.method} {cfg.metric} seed {cfg.seed}")
+        method = {
+            "adaptive": (
+                f"**adaptive importance sampling** (cross-entropy method, Innes & Ramamoorthy 2022): "
+                f"{cfg.pretrain_rollouts} PEM-driven rollouts pretrain the proposal q(detect | d) (stage 0), "
+                f"K = {cfg.n_stages} stages of N = {cfg.n_per_stage} rollouts each move it toward the "
+                f"failures (elites: robustness at or below the (1 - sigma) quantile gamma, sigma = "
+                f"{cfg.quantile_level}, smoothing alpha = {cfg.smoothing}), and a final batch of "
+                f"N_e = {cfg.n_final} rollouts gives the estimate."
             ),
-            static=True,
+            "mc": f"plain **Monte Carlo** with the PEM: {cfg.n_per_stage} rollouts.",
+            "naive50": f"a **50 % detector** at every step, weighted by the PEM: {cfg.n_per_stage} rollouts.",
+            "mixed50": f"a **50 % detector inside 10 m**, the PEM outside: {cfg.n_per_stage} rollouts.",
+        }[cfg.method]
+        self.intro_md = (
+            f"# pemviz: crash probability of the braking scenario\n\n"
+            f"A car follows a lead that brakes for a red light; the ego brakes only when its detector, "
+            f"a perception error model (PEM) p(detect | d), sees the lead within 10 m. A crash is the gap d "
+            f"dropping below {self.params.crash_gap_m:g} m, safety spec `{ev.formula}`; rollouts are ranked "
+            f"by **{cfg.metric}** robustness. Method: {method}\n\n"
+            "**How to read it.** *Proposal*: q(detect | d) after each stage (blue early, orange late) against "
+            "the PEM (white); dots are the elite rollouts' detection rate per gap bin. *Rollout scores*: "
+            "robustness and importance log-weight of every rollout per stage (red = crash). *Rollouts*: "
+            "gap, ego and lead speed over `step` (red = crash, yellow = least robust, dots = detections). "
+            "*Scene*: the least-robust rollout of each stage, one lane per stage; press play on `step`. "
+            "*Stage metrics*: bar charts per stage (also as series on the `stage` timeline).\n"
         )
-        self._curve("proposal/pem", ev.curve_grid_m, ev.pem_curve, PEM_RGBA, "PEM p(detect | d)")
+        rows = "\n".join(f"| {k} | `{v}` |" for k, v in vars(cfg).items())
+        self.config_md = f"\n## Config\n\n| setting | value |\n|---|---|\n{rows}\n"
+        self._log_description()
+        PROPOSAL_FIG.draw_axes(s, (float(self.grid_m.min()), float(self.grid_m.max())), (0.0, 1.0))
+        s.log(
+            "proposal/data/pem",
+            rr.LineStrips2D([np.column_stack([self.grid_m, ev.pem_curve])], colors=PEM_RGBA, radii=-2.0,
+                            labels="PEM"),
+            static=True,
+        )  # fmt: skip
 
-    def _stage_finished(self, ev: StageFinished) -> None:
-        res = ev.result
+    # -- stage finished -------------------------------------------------------------------------------
+    def _stage_finished(self, res: StageResult) -> None:
         s = self.stream
-        if not np.all(np.isnan(res.proposal_curve)):
-            self._curve(
-                f"proposal/stage_{res.stage:02d}",
-                self.grid_m,
-                res.proposal_curve,
-                stage_colour(res.stage, self.n_stages),
-                f"q stage {res.stage} ({res.kind})",
+        colour = stage_colour(res.stage, self.n_stages)
+        if res.kind != "final" and not np.all(np.isnan(res.proposal_curve)):
+            s.log(
+                f"proposal/data/stage_{res.stage:02d}",
+                rr.LineStrips2D(
+                    [np.column_stack([self.grid_m, res.proposal_curve])], colors=colour, radii=-1.5,
+                    labels=f"q stage {res.stage}",
+                ),
+                static=True,
+            )  # fmt: skip
+        rate = np.asarray(res.elite_detect_rate, dtype=np.float64)
+        ok = np.isfinite(rate)
+        if ok.any():
+            s.log(
+                f"proposal/data/elite_{res.stage:02d}",
+                rr.Points2D(np.column_stack([self.grid_m[ok], rate[ok]]), colors=colour, radii=-2.0),
+                static=True,
             )
+
         e = res.estimate
+        values = {
+            "gamma": res.gamma,
+            "failure_rate": e.n_failures / e.n,
+            "log10_mu_hat": e.log10_mu_hat,
+            "nll": e.nll_mean,
+            "ess": e.ess,
+        }
         s.set_time("stage", sequence=res.stage)
-        for name, value in (
-            ("gamma", res.gamma),
-            ("failure_rate", e.n_failures / e.n),
-            ("log10_mu_hat", e.log10_mu_hat),
-            ("nll", e.nll_mean),
-            ("ess", e.ess),
-        ):
+        if self.repetition is not None:
+            s.set_time("repetition", sequence=self.repetition)
+        for key, value in values.items():
             if math.isfinite(value):
-                s.log(f"stages/{name}", rr.Scalars(value))
-        if self.rollout_traces and self._pending is not None and self._pending.stage == res.stage:
-            self._log_rollouts(self._pending)
+                s.log(f"stages/{key}", rr.Scalars(value))
+                self.stage_values[key].append((res.stage, value))
+                pts = self.stage_values[key]
+                s.log(
+                    f"stage_bars/{key}",
+                    rr.BarChart([v for _, v in pts], abscissa=[k for k, _ in pts], color=(90, 150, 230)),
+                    static=True,
+                )
+
+        def num(x: float, fmt: str) -> str:
+            return format(x, fmt) if math.isfinite(x) else "-"
+
+        self.stage_rows.append(
+            f"| {res.stage} | {res.kind} | {num(res.gamma, '.4f')} | {e.n_failures}/{e.n} | "
+            f"{format_probability(e.log_mu_hat)} | {num(e.nll_mean, '.2f')} | {num(e.ess, '.2f')} | "
+            f"{res.wall_s:.2f} |"
+        )
+        self._log_description()
+
+        pending = self._pending
+        if pending is not None and pending.stage == res.stage:
+            self._log_scores(pending, res)
+            if self.rollout_traces:
+                self._log_rollouts(pending)
         self._pending = None
         s.flush()
 
-    def _log_rollouts(self, ev: RolloutsSampled) -> None:
-        """All N gap traces of a stage as one entity with N series (red = crash), one ``send_columns``."""
+    def _least_robust(self, ev: RolloutsSampled, k: int) -> np.ndarray:
+        """Indices of the ``k`` least-robust rollouts under the configured metric (ties: lower index)."""
+        return np.argsort(ev.robustness, kind="stable")[: min(k, ev.robustness.size)]
+
+    def _log_scores(self, ev: RolloutsSampled, res: StageResult) -> None:
+        """Every rollout's robustness and log-weight against its stage (static scatter plots)."""
         s = self.stream
-        gap = ev.batch.gap_m
-        n, t = gap.shape
-        path = f"rollouts/stage_{ev.stage:02d}/gap_m"
+        n = ev.robustness.size
+        jitter = ev.stage + (np.arange(n) + 0.5) / n * 0.7 - 0.35
+        r = np.asarray(ev.robustness, dtype=np.float64)
+        lw = np.asarray(ev.log_weight, dtype=np.float64)
+        self.scores.append((ev.stage, jitter, r, lw, np.asarray(ev.failed, bool)))
+        if math.isfinite(res.gamma):
+            self.gammas.append((ev.stage, res.gamma))
+        tagged = np.zeros(n, bool)
+        tagged[self._least_robust(ev, self.tagged_per_stage)] = True
+        colours = np.where(ev.failed[:, None], np.array(CRASH_RGBA), np.array(SAFE_RGBA)).astype(np.uint8)
+        colours[:, 3] = 200
+        colours[tagged] = TAG_RGBA
+        stages = [k for k, *_ in self.scores]
+        x_range = (min(stages) - 0.6, max(stages) + 0.6)
+        for fig, values in ((ROBUSTNESS_FIG, r), (LOG_WEIGHT_FIG, lw)):
+            ok = np.isfinite(values)
+            s.log(
+                f"{fig.path}/data/stage_{ev.stage:02d}",
+                rr.Points2D(np.column_stack([jitter[ok], values[ok]]), colors=colours[ok], radii=-2.0),
+                static=True,
+            )
+            idx = 2 if fig is ROBUSTNESS_FIG else 3
+            allv = np.concatenate([sc[idx][np.isfinite(sc[idx])] for sc in self.scores] + [np.zeros(1)])
+            lo, hi = float(allv.min()), float(allv.max())
+            pad = 0.05 * (hi - lo) if hi > lo else 1.0
+            fig.draw_axes(s, x_range, (lo - pad, hi + pad))
+        zero = [[[x_range[0], 0.0], [x_range[1], 0.0]]]
+        s.log(f"{ROBUSTNESS_FIG.path}/data/zero", rr.LineStrips2D(zero, colors=CRASH_RGBA, radii=-1.0), static=True)
+        if self.gammas:
+            s.log(
+                f"{ROBUSTNESS_FIG.path}/data/gamma",
+                rr.LineStrips2D(
+                    [[[k - 0.4, g], [k + 0.4, g]] for k, g in self.gammas], colors=PEM_RGBA, radii=-1.5,
+                    labels=[f"gamma {g:.2f}" for _, g in self.gammas], show_labels=False,
+                ),
+                static=True,
+            )  # fmt: skip
         s.log(
-            path,
-            rr.SeriesLines(
-                colors=[CRASH_RGBA if f else SAFE_RGBA for f in ev.failed],
-                names=[f"s{ev.stage} r{i}{' crash' if f else ''}" for i, f in enumerate(ev.failed)],
+            f"rollouts/summary/stage_{ev.stage:02d}",
+            rr.AnyValues(
+                rollout=np.arange(n),
+                log_weight=lw,
+                failed=np.asarray(ev.failed, bool),
+                least_robust=tagged,
+                **{f"robustness_{m.replace('-', '_')}": np.asarray(v, np.float64)
+                   for m, v in ev.robustness_by_metric.items()},
             ),
             static=True,
+        )  # fmt: skip
+
+    def _log_rollouts(self, ev: RolloutsSampled) -> None:
+        """All N traces of a stage, one entity per signal with N series, one ``send_columns`` each."""
+        s = self.stream
+        batch = ev.batch
+        n, t = batch.n, batch.n_steps
+        order = self._least_robust(ev, self.tagged_per_stage)
+        rank = {int(i): j for j, i in enumerate(order)}
+        failed = np.asarray(ev.failed, bool)
+        colours, widths, names = [], [], []
+        for i in range(n):
+            tag = rank.get(i)
+            crash = " crash" if failed[i] else ""
+            if tag is None:
+                colours.append(CRASH_RGBA if failed[i] else SAFE_RGBA)
+                widths.append(1.0)
+                names.append(f"s{ev.stage} r{i}{crash}")
+            else:
+                colours.append(TAG_CRASH_RGBA if failed[i] else TAG_RGBA)
+                widths.append(2.5)
+                names.append(f"s{ev.stage} r{i} least-robust #{tag + 1} rho={ev.robustness[i]:.3g}{crash}")
+        index = self._indexes(step=np.arange(t))
+        stage = f"stage_{ev.stage:02d}"
+        for name in batch.observation_names:
+            path = f"rollouts/{name}/{stage}"
+            s.log(path, rr.SeriesLines(colors=colours, widths=widths, names=names), static=True)
+            s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=batch.signal(name).T))
+        visible = np.zeros(n, bool)
+        visible[order] = True
+        path = f"rollouts/detected/{stage}"
+        s.log(
+            path,
+            rr.SeriesPoints(
+                colors=[DETECTED_RGBA] * n, names=[f"{nm} detected" for nm in names], marker_sizes=[2.5] * n,
+                visible_series=visible,
+            ),
+            static=True,
+        )  # fmt: skip
+        dots = np.where(batch.detected, batch.gap_m, np.nan)
+        s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=dots.T))
+        if {"gap_m", "ego_speed_mps"} <= set(batch.observation_names):
+            for i in order[: self.scene_per_stage]:
+                self._log_scene_lane(ev, int(i))
+
+    def _log_scene_lane(self, ev: RolloutsSampled, i: int) -> None:
+        """One lane of the top-down scene: rollout ``i`` of the stage, playable on ``step``.
+
+        Positions (metres along the road) are rebuilt from the observations with the scenario's explicit
+        Euler step (highway-env moves a vehicle by its speed before updating the speed): ego centre
+        x_t = dt * sum_{s<t} v_s; the lead's rear is the camera (``camera_offset_m`` ahead of the ego
+        centre) plus the gap.
+        """
+        p = self.params
+        s = self.stream
+        batch = ev.batch
+        gap = batch.gap_m[i]
+        v = batch.signal("ego_speed_mps")[i]
+        seen = batch.detected[i]
+        t = gap.size
+        lane = self.n_lanes
+        self.n_lanes += 1
+        y = lane * LANE_SPACING_M
+        ego_x = p.dt_s * np.concatenate([[0.0], np.cumsum(v[:-1])])
+        camera_x = ego_x + p.camera_offset_m
+        lead_rear = camera_x + gap
+        lead_x = lead_rear + p.lead_length_m / 2
+        ys = np.full(t, y)
+        path = f"{SCENE_PATH}/stage_{ev.stage:02d}" + (f"_{lane}" if self.scene_per_stage > 1 else "")
+        crash = " CRASH" if ev.failed[i] else ""
+        label = f"stage {ev.stage} ({ev.kind}) rollout {i}: robustness {ev.robustness[i]:.3g}{crash}"
+        x_end = float(max(lead_x.max() + p.lead_length_m, 40.0))
+        s.log(
+            f"{path}/lane",
+            rr.LineStrips2D(
+                [[[-p.ego_length_m, y - 2.0], [x_end, y - 2.0]], [[-p.ego_length_m, y + 2.0], [x_end, y + 2.0]]],
+                colors=GRID_RGBA, radii=-0.75,
+            ),
+            static=True,
+        )  # fmt: skip
+        s.log(
+            f"{path}/label",
+            rr.Points2D([[-p.ego_length_m, y - 2.0]], radii=-0.01, colors=AXIS_RGBA, labels=label, show_labels=True),
+            static=True,
+        )
+        index = self._indexes(step=np.arange(t))
+        ego_half = np.tile([p.ego_length_m / 2, p.vehicle_width_m / 2], (t, 1))
+        lead_half = np.tile([p.lead_length_m / 2, p.vehicle_width_m / 2], (t, 1))
+        det_col = np.where(seen[:, None], np.array(DETECTED_RGBA), np.array(MISSED_RGBA)).astype(np.uint8)
+        lead_col = np.where((gap < p.crash_gap_m)[:, None], np.array(LEAD_CRASH_RGBA), np.array(LEAD_RGBA))
+        s.send_columns(
+            f"{path}/ego",
+            indexes=index,
+            columns=rr.Boxes2D.columns(centers=np.column_stack([ego_x, ys]), half_sizes=ego_half, colors=det_col),
         )
         s.send_columns(
-            path,
-            indexes=[rr.TimeColumn("step", sequence=np.arange(t)), rr.TimeColumn("stage", sequence=np.full(t, ev.stage))],
-            columns=rr.Scalars.columns(scalars=np.ascontiguousarray(gap.T)),
+            f"{path}/lead",
+            indexes=index,
+            columns=rr.Boxes2D.columns(
+                centers=np.column_stack([lead_x, ys]), half_sizes=lead_half, colors=lead_col.astype(np.uint8)
+            ),
+        )
+        sight = np.stack([np.column_stack([camera_x, ys]), np.column_stack([lead_rear, ys])], axis=1)
+        s.send_columns(
+            f"{path}/sight",
+            indexes=index,
+            columns=rr.LineStrips2D.columns(strips=sight, colors=det_col, radii=np.full(t, -1.5)),
         )
 
+    # -- final --------------------------------------------------------------------------------------
     def _final(self, ev: FinalEstimate) -> None:
         e = ev.estimate
         s = self.stream
+        self.finished = True
         s.log(
             "final",
             rr.AnyValues(
@@ -224,14 +647,10 @@ class RerunSink:
             ),
             static=True,
         )
-        s.log(
-            "description/final",
-            rr.TextDocument(
-                f"**Final estimate** mu_hat = {format_probability(e.log_mu_hat, 4)} "
-                f"({e.n_failures}/{e.n} failures, ESS {e.ess:.2f}) from {ev.n_simulations} simulations "
-                f"in {ev.wall_s:.1f} s.",
-                media_type=rr.MediaType.MARKDOWN,
-            ),
-            static=True,
+        self.status_md = (
+            f"**Final estimate** mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = "
+            f"{e.log_mu_hat:.4f} nats; {e.n_failures}/{e.n} failures, ESS {e.ess:.2f}) from "
+            f"{ev.n_simulations} simulations in {ev.wall_s:.1f} s."
         )
+        self._log_description()
         s.flush()

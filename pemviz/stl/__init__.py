@@ -1,12 +1,17 @@
 """STL robustness for pemviz: formulas, a parser, and batched classic / AGM / smooth-cumulative semantics.
 
-    >>> from pemviz import stl
-    >>> f = stl.parse("G[0,99](d >= 2)")
-    >>> str(f)
-    'G[0,99](d >= 2)'
-    >>> rho = stl.robustness(f, {"d": gaps}, "classic")          # gaps: [N, T] metres -> rho: [N]
-    >>> rho_agm = stl.robustness(f, {"d": gaps}, "agm", signal_ranges={"d": (0.0, 15.0)})
+Example::
 
+    from pemviz import stl
+
+    spec = stl.parse("G[0,99](d >= 2)")          # str(spec) == "G[0,99](d >= 2)"
+    rho = stl.robustness(spec, {"d": gap_m}, "classic")      # gap_m: [N, T] metres -> rho: [N] metres
+    rho_agm = stl.robustness(spec, {"d": gap_m}, "agm", signal_ranges=stl.BRAKING_SIGNAL_RANGES)
+    rho_sc = stl.robustness(spec, {"d": gap_m}, "smooth-cumulative", temperature=50.0)
+    over_time = stl.robustness_signal(spec, {"d": gap_m})    # [N, T]
+
+Builders: ``stl.always((stl.signal("d") < 5) >> stl.eventually(stl.signal("v") <= 0.1, 0, 20), 0, 150)``
+(parenthesise comparisons next to ``&``, ``|``, ``>>``, which bind tighter in Python).
 See :mod:`pemviz.stl.semantics` for the semantics, the trace-end convention and AGM normalisation.
 """
 

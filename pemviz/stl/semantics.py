@@ -1,13 +1,18 @@
 """Batched robustness of STL formulas in three semantics: classic, AGM and smooth cumulative.
 
 Inputs are one array per signal, float [N, T] (N traces of T steps; a single trace [T] also works), numpy or
-torch; the output has the same kind (torch in: torch out, float64, differentiable). Time is in integer steps.
+torch; the output has the same kind, float64 (torch in: torch out; tensors that require grad are computed
+with torch ops and the result is differentiable, others run through numpy zero-copy). Time is in integer
+steps.
 
 Semantics (``SEMANTICS``):
 
 - ``"classic"`` (Donze & Maler 2010; discrete time as in rtamt's offline monitor): predicate value
   ``lhs - rhs``; ``!`` negates; ``&``/G take min, ``|``/F max; ``(a) U[s,e] (b)`` at t is the max over
-  t' in [t+s, t+e] of min(b(t'), min over [t, t') of a). Agrees with rtamt 0.4.10 to 1e-9 (tests).
+  t' in [t+s, t+e] of min(b(t'), min over [t, t') of a). Agrees with rtamt 0.4.10 to 1e-9 (tests). The
+  left operand must hold strictly before t' (rtamt's and LTL's discrete-time until; the spec's
+  "min over j <= k" is the continuous-time form; ``(a) U (a & b)`` gives the inclusive one). All three
+  semantics use this window for until.
 - ``"agm"`` (Mehdipour, Vasile & Belta, ACC 2019, Def. 2): predicates scaled into [-1, 1] (see below);
   ``&`` / G over m values r_i: if some r_i <= 0, (1/m) sum min(0, r_i); else (prod (1 + r_i))^(1/m) - 1.
   ``|`` / F are the exact De Morgan duals (``|`` = ``!(!a & !b)``): if some r_i >= 0, (1/m) sum max(0, r_i);
@@ -35,9 +40,12 @@ cumulative 0). An operator whose window starts past the trace end at every time 
 error; with ``trace_end="error"`` any window that needs steps past the end is an error.
 
 Speed: only the time range each sub-formula needs is computed (robustness at time 0 of ``G[0,199](d >= 2)``
-is one predicate pass and one min). Sliding min/max use log-doubling, sliding sums and log-sum-exps a
-binary decomposition, classic until an associative (value, running min) monoid; numpy inputs run in
-cache-sized chunks of traces on a thread pool (numpy releases the GIL).
+is one predicate pass and one min over time). Inside, arrays are time-major [L, n] so that a window shift is
+a contiguous block. Sliding min/max use log-doubling (ceil(log2 w) passes), sliding sums, products and
+log-sum-exps a binary decomposition of the width, classic until an associative (value, running min)
+monoid; AGM and cumulative until loop over the window offsets, vectorised over traces and times. Traces
+run in cache-sized chunks on a thread pool (numpy releases the GIL). ``benchmarks/stl_speed.py``: 10^4 x
+200 in milliseconds, >= 1000x rtamt.
 """
 
 from __future__ import annotations
