@@ -18,6 +18,8 @@ COMMAND_MODULES = (
     "pemviz.commands.run",
     "pemviz.commands.data",
     "pemviz.commands.pem",
+    "pemviz.commands.serve",
+    "pemviz.commands.estimate",
 )
 
 

@@ -21,6 +21,10 @@ SIMULATORS = ("highway-env", "batched")
 config imports nothing): ``batched`` advances all rollouts together in numpy, ``highway-env`` steps one
 black-box simulator per rollout; the same seed gives the same rollouts on both."""
 
+EXECUTORS = ("serial", "ray")
+"""Where rollouts are simulated (the same tuple as :data:`pemviz.executors.EXECUTORS`): ``serial`` in this
+process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same estimate."""
+
 WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("fresh", "last-stage")
 
@@ -49,6 +53,8 @@ class ExperimentConfig:
         final_estimate: ``fresh`` N_e rollouts (paper) or ``last-stage`` batch (authors' code).
         pem: path of PEM weights, or None for the shipped default.
         sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
+        executor: where rollouts are simulated, one of :data:`EXECUTORS`.
+        ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
     """
 
     method: str = "adaptive"
@@ -67,6 +73,8 @@ class ExperimentConfig:
     final_estimate: str = "fresh"
     pem: str | None = None
     sim: str = "batched"
+    executor: str = "serial"
+    ray_address: str | None = None
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str, allowed: str) -> None:
@@ -77,6 +85,12 @@ class ExperimentConfig:
         need(self.metric in METRICS, "metric", f"use one of {', '.join(METRICS)}")
         need(self.weights in WEIGHT_MODES, "weights", f"use one of {', '.join(WEIGHT_MODES)}")
         need(self.sim in SIMULATORS, "sim", f"use one of {', '.join(SIMULATORS)}")
+        need(self.executor in EXECUTORS, "executor", f"use one of {', '.join(EXECUTORS)}")
+        need(
+            self.ray_address is None or (isinstance(self.ray_address, str) and self.ray_address != ""
+                                         and self.executor == "ray"),
+            "ray_address", "give a non-empty Ray address, and only with executor = 'ray'",
+        )  # fmt: skip
         need(self.final_estimate in FINAL_MODES, "final_estimate", f"use one of {', '.join(FINAL_MODES)}")
         need(_is_real(self.smoothing) and 0.0 < self.smoothing <= 1.0, "smoothing (alpha)", "alpha must be in (0, 1]")
         need(

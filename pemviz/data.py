@@ -75,7 +75,17 @@ ORIGIN_BASE_URL = f"https://raw.githubusercontent.com/{ORIGIN_REPO}/{ORIGIN_COMM
 """Public origin of the files; ``<ORIGIN_BASE_URL>/<file name>``."""
 
 INPUT_COLUMNS = (
-    "class", "truncation", "occlusion", "alpha", "dim_w", "dim_l", "dim_h", "loc_x", "loc_y", "loc_z", "rot_y",
+    "class",
+    "truncation",
+    "occlusion",
+    "alpha",
+    "dim_w",
+    "dim_l",
+    "dim_h",
+    "loc_x",
+    "loc_y",
+    "loc_z",
+    "rot_y",
 )
 LABEL_COLUMNS = ("detected", "bbox_cx", "bbox_cy", "bbox_w", "bbox_h", "err_cx", "err_cy", "err_w", "err_h")
 
@@ -144,7 +154,9 @@ def find_data_dir(required: Iterable[str] = (INPUTS_FILE, LABELS_FILE)) -> Path:
             return folder
         reasons.append(f"  {i}. {what}: {folder} (missing {', '.join(missing)})")
     raise DataNotFoundError(
-        "KITTI salient files not found (" + ", ".join(required) + "). Searched, in order:\n"
+        "KITTI salient files not found ("
+        + ", ".join(required)
+        + "). Searched, in order:\n"
         + "\n".join(reasons)
         + f"\nRun `{FETCH_COMMAND}` to download them into {user_cache_dir()} "
         f"(or set ${DATA_DIR_ENV} to a folder that holds them)."
@@ -256,9 +268,7 @@ def _parse_table(path: Path, n_columns: int) -> np.ndarray:
                 continue
             fields = text.split()
             if len(fields) != n_columns:
-                raise DataFormatError(
-                    f"{path}, line {line_no}: {len(fields)} columns, expected {n_columns}"
-                )
+                raise DataFormatError(f"{path}, line {line_no}: {len(fields)} columns, expected {n_columns}")
             try:
                 values = [float(f) for f in fields]
             except ValueError:
@@ -295,9 +305,7 @@ def load_salient_labels(path: str | os.PathLike[str]) -> np.ndarray:
     bad = np.flatnonzero((detected != 0.0) & (detected != 1.0))
     if bad.size:
         line_no = _data_line_numbers(path)[bad[0]]
-        raise DataFormatError(
-            f"{path}, line {line_no}: label {detected[bad[0]]:g} is not 0 or 1 (column 0, detected)"
-        )
+        raise DataFormatError(f"{path}, line {line_no}: label {detected[bad[0]]:g} is not 0 or 1 (column 0, detected)")
     return np.ascontiguousarray(detected)
 
 
@@ -325,7 +333,9 @@ class SalientData:
         return int(self.labels.shape[0])
 
 
-def load_salient_data(data_dir: str | os.PathLike[str] | None = None, *, with_misc_unknown: bool = False) -> SalientData:
+def load_salient_data(
+    data_dir: str | os.PathLike[str] | None = None, *, with_misc_unknown: bool = False
+) -> SalientData:
     """Load inputs and labels (default: the ``no_miscUnknown`` files the paper trains on, 37,498 rows).
 
     Args:

@@ -21,6 +21,7 @@ import torch
 
 from pemviz.config import METRICS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, Detector, WindowDetector
+from pemviz.executors import get_executor
 from pemviz.problems import Problem, braking_problem
 from pemviz.sampling import Estimate, Proposal, ce_update, estimate, pretrain_proposal, quantile_threshold
 from pemviz.scenarios import RolloutBatch
@@ -106,15 +107,29 @@ class Cancelled(Exception):
     """Raised inside the engine when the cancel token is set; the run ends with :class:`RunCancelled`."""
 
 
-def _elite_rate(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> np.ndarray:
+STREAM_ABOVE = 100_000
+"""Final / baseline batches of more rollouts than this are simulated chunk by chunk when the problem can
+stream (``Problem.stream``) and kept only as per-rollout numbers: a [10^6, 100] batch holds 4.1 GB."""
+
+
+def _elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Elite steps per bin of ``grid`` and the detections among them, float64 [G] each."""
     edges = np.concatenate([[-np.inf], (grid[1:] + grid[:-1]) / 2, [np.inf]])
     d = batch.observations[elite][:, :, 0].ravel()
     a = batch.detected[elite].ravel()
     idx = np.digitize(d, edges) - 1
-    counts = np.bincount(idx, minlength=grid.size)
+    counts = np.bincount(idx, minlength=grid.size).astype(float)
     hits = np.bincount(idx, weights=a.astype(float), minlength=grid.size)
+    return counts, hits
+
+
+def _rate(counts: np.ndarray, hits: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(counts > 0, hits / np.maximum(counts, 1), np.nan)
+
+
+def _elite_rate(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    return _rate(*_elite_counts(batch, elite, grid))
 
 
 class Experiment:
@@ -154,7 +169,8 @@ class Experiment:
     def _sample(self, stage: int, kind: str, n: int, sampler: Detector, rng: np.random.Generator):
         self._check_cancel()
         self.emit(StageStarted(stage, kind, n))
-        batch = self.problem.simulate(n, sampler, self.problem.target, rng)
+        executor = get_executor(self.config.executor, self.config.ray_address)  # serial or Ray tasks
+        batch = executor.simulate(self.problem, n, sampler, self.problem.target, rng)
         self.n_simulations += n
         by_metric = {m: self.problem.robustness(batch, m) for m in METRICS}
         r = by_metric[self.config.metric]
@@ -218,15 +234,55 @@ class Experiment:
     def _final(self, stage: int, sampler: Detector, rng, proposal: Proposal | None) -> StageResult:
         t0 = time.perf_counter()
         n = self.config.n_final if self.config.method == "adaptive" else self.config.n_per_stage
+        if n > STREAM_ABOVE and self.problem.stream is not None and self.config.executor == "serial":
+            return self._final_streamed(stage, n, sampler, rng, proposal, t0)
         batch, r, failed, log_w = self._sample(stage, "final", n, sampler, rng)
         return self._finish_stage(stage, "final", float("nan"), failed, batch, failed, log_w, proposal, t0)
+
+    def _final_streamed(self, stage, n, sampler, rng, proposal, t0) -> StageResult:
+        """The final batch in chunks (``Problem.stream``): memory one chunk plus ~70 bytes a rollout.
+
+        The same rollouts, failures, weights and estimate as :meth:`_sample`; listeners get one
+        :class:`RolloutsSampled` for the first chunk only (a sample of the batch, not all n rollouts).
+        """
+        pb, grid = self.problem, self.problem.curve_grid
+        self._check_cancel()
+        self.emit(StageStarted(stage, "final", n))
+        failed, log_w, log_p_total = [], [], []
+        counts, hits = np.zeros(grid.size), np.zeros(grid.size)
+        for i, chunk in enumerate(pb.stream(n, sampler, pb.target, rng)):
+            self._check_cancel()
+            if i == 0:
+                by_metric = {m: pb.robustness(chunk, m) for m in METRICS}
+                f = by_metric["classic"] < 0.0
+                self.emit(RolloutsSampled(stage, "final", chunk, by_metric[self.config.metric], by_metric, f,
+                                          chunk.log_weight()))  # fmt: skip
+            else:
+                f = pb.failed(chunk)
+            failed.append(f)
+            log_w.append(chunk.log_weight())
+            log_p_total.append(chunk.log_p[:, : chunk.n_steps - 1].sum(axis=1))
+            c, h = _elite_counts(chunk, f, grid)
+            counts, hits = counts + c, hits + h
+        self.n_simulations += n
+        failed_all = np.concatenate(failed)
+        est = estimate(np.concatenate(log_w), failed_all, np.concatenate(log_p_total))
+        curve = proposal.curve(grid) if proposal is not None else np.full(grid.size, np.nan)
+        res = StageResult(stage, "final", float("nan"), int(failed_all.sum()), est, curve, _rate(counts, hits),
+                          time.perf_counter() - t0)  # fmt: skip
+        self.stages.append(res)
+        self.emit(StageFinished(res))
+        return res
 
     def _adaptive(self, rng: np.random.Generator) -> StageResult:
         cfg = self.config
         t0 = time.perf_counter()
         proposal = Proposal(self.problem.h_scale)
         batch, r, failed, log_w = self._sample(0, "pretrain", cfg.pretrain_rollouts, self.problem.target, rng)
-        pretrain_proposal(proposal, batch.gap_m, batch.detected, epochs=cfg.pretrain_epochs, lr=cfg.learning_rate)
+        pretrain_proposal(
+            proposal, batch.observations[:, :, 0], batch.detected,
+            epochs=cfg.pretrain_epochs, lr=cfg.learning_rate, check=self._check_cancel,
+        )  # fmt: skip
         self._finish_stage(0, "pretrain", float("nan"), np.zeros(batch.n, bool), batch, failed, log_w, proposal, t0)
         last = None
         for stage in range(1, cfg.n_stages + 1):
@@ -238,6 +294,7 @@ class Experiment:
             ce_update(
                 proposal, batch.observations[:, :, 0], batch.detected, batch.log_p, batch.log_q, elite,
                 smoothing=cfg.smoothing, epochs=cfg.ce_epochs, lr=cfg.learning_rate, weights=cfg.weights,
+                check=self._check_cancel,
             )  # fmt: skip
             last = self._finish_stage(stage, "ce", gamma, elite, batch, failed, log_w, proposal, t0)
         if cfg.final_estimate == "last-stage":

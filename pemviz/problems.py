@@ -10,18 +10,21 @@ rollouts and sets the adaptive thresholds (spec section 3).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import Callable, Iterator, Mapping
 
 import numpy as np
 
 from pemviz import stl
 from pemviz.detectors import Detector, PEMDetector
 from pemviz.scenarios import RolloutBatch, simulate
-from pemviz.scenarios.batched import simulate_batched
+from pemviz.scenarios.batched import iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
 """``simulate(n, sampler, target, rng) -> RolloutBatch``: n rollouts drawn from ``sampler``."""
+
+StreamFn = Callable[[int, Detector, Detector, np.random.Generator], Iterator[RolloutBatch]]
+"""``stream(n, sampler, target, rng)``: the rollouts of ``simulate`` with the same arguments, in chunks."""
 
 BRAKING_SIGNALS = {"d": "gap_m", "v": "ego_speed_mps", "vl": "lead_speed_mps"}
 """STL signal name -> braking rollout observation column (metres, m/s)."""
@@ -33,7 +36,8 @@ in the authors' code. Gaps above 15 m never occur in the scenario (it starts at 
 SIMULATORS = ("highway-env", "batched")
 """Simulator back-ends of the braking scenario: ``highway-env`` steps one black-box
 :class:`BrakingScenario` per rollout; ``batched`` (:mod:`pemviz.scenarios.batched`) advances all rollouts
-together in numpy, with the same rollouts for the same seed (tests/scenarios/test_batched.py), ~1000x faster."""
+together in numpy, with the same rollouts for the same seed (tests/scenarios/test_batched.py), some 300-1000x
+faster (benchmarks/sim_speed.py)."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,7 @@ class Problem:
         h_scale: the proposal's input is ``obs[:, 0] / h_scale`` (gap / 12 m for braking).
         curve_grid: values of ``obs[:, 0]`` where proposal and target curves are reported [G].
         window: the mixed-50 baseline detects with 50 % where ``obs[:, 0] < window``.
+        stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
     """
 
     name: str
@@ -61,6 +66,7 @@ class Problem:
     h_scale: float = 12.0
     curve_grid: np.ndarray = field(default_factory=lambda: np.linspace(0.0, 13.0, 131))
     window: float = 10.0
+    stream: StreamFn | None = None
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""
@@ -103,4 +109,10 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
             return simulate_batched(p, n, sampler, target, rng)
         return simulate(lambda: BrakingScenario(p), n, sampler, target, rng, p.n_steps)
 
-    return Problem("braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m)
+    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
+        return iter_batched(p, n, sampler, target, rng)
+
+    return Problem(
+        "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m,
+        stream=stream if sim == "batched" else None,
+    )  # fmt: skip

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 import torch
@@ -55,10 +55,16 @@ class Proposal(nn.Module):
         return lq[:, 1].exp().numpy()
 
 
-def _fit(proposal: Proposal, loss_fn, epochs: int, lr: float) -> list[float]:
+CHECK_EVERY = 25
+"""Epochs between two calls of a training loop's ``check`` callback (e.g. the engine's cancel check)."""
+
+
+def _fit(proposal: Proposal, loss_fn, epochs: int, lr: float, check: Callable[[], None] | None = None) -> list[float]:
     opt = torch.optim.Adam(proposal.parameters(), lr=lr)
     losses = []
-    for _ in range(epochs):
+    for epoch in range(epochs):
+        if check is not None and epoch % CHECK_EVERY == 0:
+            check()  # may raise to stop the run (a cancel token)
         opt.zero_grad()
         loss = loss_fn()
         loss.backward()
@@ -88,20 +94,27 @@ def _action_counts(gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarr
 
 
 def pretrain_proposal(
-    proposal: Proposal, gap_m: np.ndarray, detected: np.ndarray, *, epochs: int = 1000, lr: float = 1e-3
+    proposal: Proposal,
+    gap_m: np.ndarray,
+    detected: np.ndarray,
+    *,
+    epochs: int = 1000,
+    lr: float = 1e-3,
+    check: Callable[[], None] | None = None,
 ) -> list[float]:
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch, Adam), in place.
 
     Args:
         gap_m: float64 [N, T] gaps of PEM-driven rollouts (metres).
         detected: bool [N, T] the PEM's detections.
+        check: called every :data:`CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
     Returns:
         the loss per epoch (mean negative log-likelihood, nats per step).
     Source: spec section 4, "Pretraining".
     """
     uniq, counts, _ = _action_counts(gap_m, detected)
     total = float(np.size(gap_m))
-    return _fit(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr)
+    return _fit(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr, check)
 
 
 def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: float = 0.0) -> float:
@@ -128,6 +141,7 @@ def ce_update(
     lr: float = 1e-3,
     weights: WeightMode = "frozen",
     n_factors: int | None = None,
+    check: Callable[[], None] | None = None,
 ) -> list[float]:
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
@@ -139,6 +153,7 @@ def ce_update(
         weights: ``"frozen"``: w from the proposal that sampled the batch (textbook CE, paper eq. 10-11);
             ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
         n_factors: steps in each weight (default T - 1: the last action affects nothing).
+        check: called every :data:`CHECK_EVERY` epochs; may raise to abandon the update (cancel).
     Returns:
         the loss per epoch. The weights are divided by their largest value (a constant factor, to which
         Adam's steps are invariant), so that w^alpha never overflows.
@@ -170,7 +185,7 @@ def ce_update(
             w = torch.exp(scaled - scaled.detach().max())
             return -(w * log_q_now.sum(dim=1)).sum()
 
-    return _fit(proposal, loss, epochs, lr)
+    return _fit(proposal, loss, epochs, lr, check)
 
 
 @dataclass(frozen=True)

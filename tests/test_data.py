@@ -21,7 +21,9 @@ needs_shared_data = pytest.mark.skipif(
     not (SHARED_DATA / data.INPUTS_FILE).is_file(), reason=f"KITTI salient files absent from {SHARED_DATA}"
 )
 
-INPUT_HEADER = "# Format: <Class Num> <Truncation> <Occlusion> <alpha> <dim_w> <dim_l> <dim_h> <loc_x> <loc_y> <loc_z> <rot_y>\n"
+INPUT_HEADER = (
+    "# Format: <Class Num> <Truncation> <Occlusion> <alpha> <dim_w> <dim_l> <dim_h> <loc_x> <loc_y> <loc_z> <rot_y>\n"
+)
 LABEL_HEADER = "# Format: <Detected> <bbox cx> <bbox cy> <bbox_w> <bbox_h> <err cx> <err cy> <err w> <err h>\n"
 GOOD_INPUT = "0 0.000 0 1.850 1.670 1.870 3.690 -16.530 2.390 58.490 1.570\n"
 GOOD_LABEL = "1 762 226 95 161 0 1 -3 -4\n"
@@ -38,7 +40,9 @@ def isolated(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
     return tmp_path
 
 
-def _write_pair(folder: Path, inputs: str = INPUT_HEADER + GOOD_INPUT * 3, labels: str = LABEL_HEADER + GOOD_LABEL * 3) -> None:
+def _write_pair(
+    folder: Path, inputs: str = INPUT_HEADER + GOOD_INPUT * 3, labels: str = LABEL_HEADER + GOOD_LABEL * 3
+) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / data.INPUTS_FILE).write_text(inputs)
     (folder / data.LABELS_FILE).write_text(labels)
@@ -102,8 +106,18 @@ def test_real_files_load_with_the_spec_row_count_and_detection_rate(monkeypatch)
 @pytest.mark.parametrize(
     ("inputs", "labels", "bad_file", "pattern"),
     [
-        (INPUT_HEADER + GOOD_INPUT + "0 0.0 0 1.0 1.0 1.0\n", None, data.INPUTS_FILE, r"line 3: 6 columns, expected 11"),
-        (None, LABEL_HEADER + GOOD_LABEL * 2 + "2 1 1 1 1 0 0 0 0\n", data.LABELS_FILE, r"line 4: label 2 is not 0 or 1"),
+        (
+            INPUT_HEADER + GOOD_INPUT + "0 0.0 0 1.0 1.0 1.0\n",
+            None,
+            data.INPUTS_FILE,
+            r"line 3: 6 columns, expected 11",
+        ),
+        (
+            None,
+            LABEL_HEADER + GOOD_LABEL * 2 + "2 1 1 1 1 0 0 0 0\n",
+            data.LABELS_FILE,
+            r"line 4: label 2 is not 0 or 1",
+        ),
         (INPUT_HEADER + GOOD_INPUT.replace("58.490", "nan"), None, data.INPUTS_FILE, r"line 2: NaN"),
         (None, LABEL_HEADER + "1 2 3 4 5 6 7 8\n", data.LABELS_FILE, r"line 2: 8 columns, expected 9"),
         (None, LABEL_HEADER + "NaN 2 3 4 5 6 7 8 9\n", data.LABELS_FILE, r"line 2: NaN"),
@@ -183,8 +197,9 @@ def test_fetch_keeps_a_correct_existing_file_without_downloading(tmp_path: Path)
     shutil.copy(SHARED_DATA / data.LABELS_FILE, dest / data.LABELS_FILE)
     statuses: list[tuple[str, str]] = []
     # An unreachable URL: a download attempt would fail.
-    data.fetch(dest, base_url="http://127.0.0.1:9/none", files=[data.LABELS_FILE],
-               on_file=lambda n, s: statuses.append((n, s)))
+    data.fetch(
+        dest, base_url="http://127.0.0.1:9/none", files=[data.LABELS_FILE], on_file=lambda n, s: statuses.append((n, s))
+    )
     assert statuses == [(data.LABELS_FILE, "present")]
 
 

@@ -46,8 +46,13 @@ def _raw_row(cls: int, occ: int, x: float, y: float, z: float, rot: float) -> li
 
 
 def test_encoding_is_one_hot_class_and_occlusion_then_z_scored_pose_hand_computed() -> None:
-    raw = np.array([_raw_row(3, 1, 1.0, 2.0, 30.0, 0.5), _raw_row(6, 2, -3.0, 1.0, 10.0, -1.5),
-                    _raw_row(0, 0, 5.0, 1.5, 50.0, 3.0)])
+    raw = np.array(
+        [
+            _raw_row(3, 1, 1.0, 2.0, 30.0, 0.5),
+            _raw_row(6, 2, -3.0, 1.0, 10.0, -1.5),
+            _raw_row(0, 0, 5.0, 1.5, 50.0, 3.0),
+        ]
+    )
     norm = pem.fit_norm_stats(raw)
     for j, col in enumerate(pem.POSE_COLUMNS):  # independent truth: statistics.mean / stdev (n - 1)
         assert norm.mean[j] == pytest.approx(statistics.mean(raw[:, col]), rel=1e-12)
@@ -62,9 +67,14 @@ def test_encoding_is_one_hot_class_and_occlusion_then_z_scored_pose_hand_compute
     assert enc[1, 12] == pytest.approx(-20.0 / 20.0)  # stdev of {30, 10, 50} is 20
 
 
-@pytest.mark.parametrize(("row", "what"), [(_raw_row(7, 0, 0, 1, 10, 0), "class 7"),
-                                           (_raw_row(0, 3, 0, 1, 10, 0), "occlusion 3"),
-                                           (_raw_row(1.5, 0, 0, 1, 10, 0), "class 1.5")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("row", "what"),
+    [
+        (_raw_row(7, 0, 0, 1, 10, 0), "class 7"),
+        (_raw_row(0, 3, 0, 1, 10, 0), "occlusion 3"),
+        (_raw_row(1.5, 0, 0, 1, 10, 0), "class 1.5"),
+    ],
+)
 def test_encoding_rejects_classes_and_occlusions_outside_the_paper_sets(row, what) -> None:
     norm = pem.NormStats(mean=np.zeros(4), std=np.ones(4))
     with pytest.raises(ValueError, match=f"{what} in row 1"):
@@ -83,7 +93,7 @@ def test_norm_stats_of_the_full_file_match_the_authors_stats(salient) -> None:
 def test_braking_salient_inputs_follow_spec_section_2() -> None:
     raw = pem.braking_salient_inputs(np.array([[5.0, 9.88]]))
     assert raw.shape == (2, 11)
-    for row, gap in zip(raw, (5.0, 9.88)):
+    for row, gap in zip(raw, (5.0, 9.88), strict=False):
         assert row[0] == 0 and row[2] == 0  # Car, not occluded
         assert row[7] == 0.0 and row[8] == 1.76
         assert row[9] == pytest.approx(gap + 2.48, abs=1e-12)
@@ -111,16 +121,27 @@ def _random_pem(seed: int, hidden=(20, 20), temperature: float = 1.0) -> pem.PEM
 def test_folded_float64_network_equals_torch_eval_mode_forward(seed) -> None:
     p = _random_pem(seed)
     rng = np.random.default_rng(seed)
-    raw = np.column_stack([rng.integers(0, 7, 500), rng.uniform(0, 1, 500), rng.integers(0, 3, 500),
-                           rng.normal(size=(500, 4)), rng.normal(0, 8, 500), rng.normal(1.6, 0.4, 500),
-                           rng.uniform(2, 80, 500), rng.uniform(-3, 3, 500)])  # fmt: skip
+    raw = np.column_stack(
+        [
+            rng.integers(0, 7, 500),
+            rng.uniform(0, 1, 500),
+            rng.integers(0, 3, 500),
+            rng.normal(size=(500, 4)),
+            rng.normal(0, 8, 500),
+            rng.normal(1.6, 0.4, 500),
+            rng.uniform(2, 80, 500),
+            rng.uniform(-3, 3, 500),
+        ]
+    )
     module = p.to_module().double()  # torch's own BatchNorm in eval mode, float64
     with torch.no_grad():
         expected = module(torch.as_tensor(p.features(raw))).squeeze(1).numpy()
     np.testing.assert_allclose(p.logit(raw), expected, rtol=0, atol=1e-10)
 
 
-@pytest.mark.parametrize(("seed", "hidden", "temperature"), [(0, (20, 20), 1.0), (3, (20, 20), 1.7), (4, (32, 16, 8), 0.8)])
+@pytest.mark.parametrize(
+    ("seed", "hidden", "temperature"), [(0, (20, 20), 1.0), (3, (20, 20), 1.7), (4, (32, 16, 8), 0.8)]
+)
 def test_logit_at_gap_equals_full_evaluation_to_1e9_including_at_the_kinks(seed, hidden, temperature) -> None:
     p = _random_pem(seed, hidden, temperature)
     rng = np.random.default_rng(seed)
@@ -133,8 +154,7 @@ def test_logit_at_gap_equals_full_evaluation_to_1e9_including_at_the_kinks(seed,
 def test_bce_from_logits_matches_torch_on_extreme_logits() -> None:
     logits = np.array([-800.0, -30.0, -1.0, 0.0, 2.0, 40.0, 900.0])
     labels = np.array([0.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0])
-    expected = torch.nn.functional.binary_cross_entropy_with_logits(
-        torch.tensor(logits), torch.tensor(labels)).item()  # fmt: skip
+    expected = torch.nn.functional.binary_cross_entropy_with_logits(torch.tensor(logits), torch.tensor(labels)).item()
     assert pem.bce_from_logits(logits, labels) == pytest.approx(expected, rel=1e-12)
 
 
@@ -180,8 +200,18 @@ def test_training_is_seeded_and_learns_a_known_logistic_dependence_on_distance()
     rng = np.random.default_rng(0)
     n = 20000
     z = rng.uniform(2, 80, n)
-    raw = np.column_stack([rng.integers(0, 7, n), np.zeros(n), rng.integers(0, 3, n), np.zeros((n, 4)),
-                           rng.normal(0, 5, n), rng.normal(1.7, 0.3, n), z, rng.uniform(-3, 3, n)])  # fmt: skip
+    raw = np.column_stack(
+        [
+            rng.integers(0, 7, n),
+            np.zeros(n),
+            rng.integers(0, 3, n),
+            np.zeros((n, 4)),
+            rng.normal(0, 5, n),
+            rng.normal(1.7, 0.3, n),
+            z,
+            rng.uniform(-3, 3, n),
+        ]
+    )
     p_true = 1 / (1 + np.exp(-(4 - 0.08 * z)))
     y = (rng.uniform(size=n) < p_true).astype(float)
     a = pem.train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=7)
@@ -222,8 +252,9 @@ def test_shipped_file_is_small_and_records_its_training_command() -> None:
 
 @needs_shared_data
 def test_shipped_pem_full_data_bce_beats_guess_mu(shipped, salient) -> None:
-    guess_mu = pem.bce_from_logits(np.full(len(salient), math.log(salient.labels.mean() / (1 - salient.labels.mean()))),
-                                   salient.labels)  # fmt: skip
+    guess_mu = pem.bce_from_logits(
+        np.full(len(salient), math.log(salient.labels.mean() / (1 - salient.labels.mean()))), salient.labels
+    )
     assert guess_mu == pytest.approx(0.2595, abs=5e-4)  # the paper's Guess-mu BCE
     bce = pem.bce_from_logits(shipped.logit(salient.inputs), salient.labels)
     assert bce < 0.2595 - 0.03, bce
@@ -264,11 +295,142 @@ def test_cli_pem_train_writes_a_loadable_pem(tmp_path: Path, capsys) -> None:
     assert pem.load_pem(out).metadata["epochs"] == 1
 
 
-@pytest.mark.parametrize(("argv", "message"), [(["--epochs", "0"], "--epochs"), (["--model", "nope"], "--model"),
-                                               (["--out", "x.txt"], ".pt")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [(["--epochs", "0"], "--epochs"), (["--model", "nope"], "--model"), (["--out", "x.txt"], ".pt")],
+)
 def test_cli_pem_train_bad_values_exit_2_and_write_nothing(tmp_path: Path, capsys, argv, message) -> None:
     argv = [a if a != "x.txt" else str(tmp_path / "x.txt") for a in argv]
-    assert cli_main(["pem", "train", "--out", str(tmp_path / "p.pt"), *argv] if "--out" not in argv
-                    else ["pem", "train", *argv]) == 2  # fmt: skip
+    assert (
+        cli_main(
+            ["pem", "train", "--out", str(tmp_path / "p.pt"), *argv] if "--out" not in argv else ["pem", "train", *argv]
+        )
+        == 2
+    )
     assert message in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------ boosted trees (issue 4)
+
+
+@pytest.fixture(scope="module")
+def small_hgb():
+    """A scikit-learn HistGradientBoostingClassifier on synthetic encoded features (the oracle)."""
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    raw = np.column_stack(
+        [
+            rng.integers(0, 7, n),
+            np.zeros(n),
+            rng.integers(0, 3, n),
+            np.zeros((n, 4)),
+            rng.normal(0, 5, n),
+            rng.normal(1.7, 0.3, n),
+            rng.uniform(2, 80, n),
+            rng.uniform(-3, 3, n),
+        ]
+    )
+    y = (rng.uniform(size=n) < 1 / (1 + np.exp(-(4 - 0.06 * raw[:, 9] - 0.5 * raw[:, 2])))).astype(int)
+    norm = pem.fit_norm_stats(raw)
+    model = HistGradientBoostingClassifier(max_iter=40, max_leaf_nodes=15, early_stopping=False, random_state=0)
+    model.fit(pem.encode_salient(raw, norm), y)
+    return model, norm, raw
+
+
+def test_exported_trees_equal_scikit_learn_decision_function(small_hgb) -> None:
+    model, norm, raw = small_hgb
+    tree = pem.export_hist_gradient_boosting(model, norm, name="t")
+    assert tree.n_trees == 40
+    np.testing.assert_allclose(
+        tree.logit(raw), model.decision_function(pem.encode_salient(raw, norm)), rtol=0, atol=1e-10
+    )
+
+
+def test_tree_logit_at_gap_is_exactly_the_full_evaluation_also_at_the_thresholds(small_hgb) -> None:
+    model, norm, _ = small_hgb
+    tree = pem.export_hist_gradient_boosting(model, norm, name="t")
+    thr_gap = tree._gap_z_thresholds * norm.std[2] + norm.mean[2] - pem.BRAKING_CAMERA_TO_LEAD_CENTRE_M
+    assert thr_gap.size > 10
+    gaps = np.concatenate(
+        [
+            np.linspace(-10, 120, 5001),
+            thr_gap,
+            np.nextafter(thr_gap, np.inf),
+            thr_gap + 1e-9,
+            np.nextafter(thr_gap, -np.inf),
+        ]
+    )
+    np.testing.assert_array_equal(tree.logit_at_gap(gaps), tree.logit(pem.braking_salient_inputs(gaps)))
+
+
+def test_tree_pem_round_trips_through_a_compact_weights_only_file(small_hgb, tmp_path: Path) -> None:
+    model, norm, raw = small_hgb
+    tree = pem.export_hist_gradient_boosting(model, norm, name="t", metadata={"a": 1})
+    path = pem.save_pem(tree, tmp_path / "t.pt")
+    assert torch.load(path, weights_only=True)["kind"] == "gbt"
+    back = pem.load_pem(path)
+    assert isinstance(back, pem.TreePEM) and back.metadata == {"a": 1}
+    np.testing.assert_array_equal(back.logit(raw), tree.logit(raw))
+    internal = int((~tree.is_leaf).sum())
+    assert path.stat().st_size < 4000 + 17 * internal + 9 * tree.is_leaf.size  # int8/int32 splits, leaf values
+
+
+def test_shipped_gbt_pem_curve_and_full_data_fit(salient) -> None:
+    gbt = pem.load_pem(pem.BEST_PEM_NAME)
+    assert isinstance(gbt, pem.TreePEM) and gbt.n_trees == 300
+    p = gbt.prob_at_gap(GAPS_INSIDE_10_M)
+    assert p.min() >= 0.98 and p.max() <= 0.999, (p.min(), p.max())
+    assert gbt.metadata["command"].startswith("pemviz pem train --model gbt")
+    rows = slice(None, None, 5)  # every 5th row keeps the test fast
+    bce = pem.bce_from_logits(gbt.logit(salient.inputs[rows]), salient.labels[rows])
+    assert bce < pem.bce_from_logits(pem.load_pem("ml-nn").logit(salient.inputs[rows]), salient.labels[rows]) - 0.03
+
+
+# ------------------------------------------------------------------------------------- B-NN (issue 4)
+
+
+def test_bnn_predictive_mean_is_the_mean_of_the_sample_probabilities() -> None:
+    from pemviz.pem.bayes import BayesianPEM
+
+    rng = np.random.default_rng(0)
+    s, h = 7, 5
+    weights = {
+        "w1": rng.normal(size=(s, 14, h)),
+        "b1": rng.normal(size=(s, h)),
+        "w2": rng.normal(size=(s, h, h)),
+        "b2": rng.normal(size=(s, h)),
+        "w3": rng.normal(size=(s, h, 1)),
+        "b3": rng.normal(size=(s, 1)),
+    }
+    bnn = BayesianPEM(name="b", norm=pem.NormStats(mean=np.zeros(4), std=np.ones(4)), weights=weights)
+    x = rng.normal(size=(300, 14))
+    probs = []
+    for k in range(s):  # independent: torch, sample by sample
+        w = {n: torch.as_tensor(v[k]) for n, v in weights.items()}
+        hid = torch.relu(torch.relu(torch.as_tensor(x) @ w["w1"] + w["b1"]) @ w["w2"] + w["b2"])
+        probs.append(torch.sigmoid(hid @ w["w3"] + w["b3"]).squeeze(1).numpy())
+    mean_p = np.mean(probs, axis=0)
+    np.testing.assert_allclose(
+        bnn.logit_features(x, chunk=64), np.log(mean_p) - np.log1p(-mean_p), rtol=1e-9, atol=1e-9
+    )
+
+
+def test_bnn_training_runs_seeded_and_checks_its_site_order() -> None:
+    from pemviz.pem.bayes import train_bnn_pem
+
+    raw = pem.braking_salient_inputs(np.linspace(2, 60, 400))
+    y = (raw[:, 9] < 40).astype(float)
+    norm = pem.NormStats(mean=[0.0, 1.7, 30.0, 0.0], std=[1.0, 0.4, 17.0, 1.7])
+    a = train_bnn_pem(raw, y, steps=30, batch_size=128, n_samples=16, seed=4, norm=norm)
+    b = train_bnn_pem(raw, y, steps=30, batch_size=128, n_samples=16, seed=4, norm=norm)
+    assert a.n_samples == 16 and a.weights["w2"].shape == (16, 20, 20)
+    np.testing.assert_array_equal(a.logit(raw), b.logit(raw))
+
+
+def test_cli_lists_every_trainable_pem() -> None:
+    from pemviz.commands.pem import TRAINABLE
+
+    assert TRAINABLE == tuple(pem.PEM_RECIPES)

@@ -52,19 +52,21 @@ def test_default_recording_verifies_and_holds_one_proposal_curve_per_stage(defau
     assert verify.returncode == 0, verify.stderr
     with rr.server.Server(datasets={"run": [str(path)]}) as server:
         ds = server.client().get_dataset("run")
-        curves = ds.reader(index="gap_mm").to_pandas()
-        finals = ds.reader(index=None).to_pandas()
-        stages = ds.reader(index="stage").to_pandas()
-    proposal_cols = sorted(c for c in curves.columns if re.fullmatch(r"/proposal/stage_\d\d:Scalars:scalars", c))
+        finals = ds.reader(index=None).to_pandas()  # static: proposal curves (gap m, p) and the final estimate
+        steps = ds.reader(index="step").to_pandas()
+    proposal_cols = sorted(c for c in finals.columns if re.fullmatch(r"/proposal/data/stage_\d\d:LineStrips2D:strips", c))
     # pretraining (0), the 10 CE stages, and the final batch (drawn from the final proposal)
-    assert [c.split("/")[2][:8] for c in proposal_cols] == [f"stage_{k:02d}" for k in range(12)]
-    for c in proposal_cols + ["/proposal/pem:Scalars:scalars"]:
-        values = np.concatenate([np.atleast_1d(v) for v in curves[c].dropna()])
+    assert [c.split("/")[3][:8] for c in proposal_cols] == [f"stage_{k:02d}" for k in range(12)]
+    for c in proposal_cols + ["/proposal/data/pem:LineStrips2D:strips"]:
+        (strip,) = finals[c].dropna().iloc[0]
+        values = np.stack(strip)[:, 1]
         assert values.size == 131 and np.all((values >= 0) & (values <= 1))
     _, _, log_mu, _ = parse_final(proc.stdout)
     assert float(np.atleast_1d(finals["/final:log_mu_hat"].dropna().iloc[0])[0]) == pytest.approx(log_mu, abs=1e-4)
-    gap_cols = [c for c in stages.columns if c.startswith("/rollouts/") and c.endswith("Scalars:scalars")]
+    gap_cols = [c for c in steps.columns if re.fullmatch(r"/rollouts/gap_m/stage_\d\d:Scalars:scalars", c)]
     assert len(gap_cols) == 12  # pretraining, 10 CE stages, final batch
+    for c in gap_cols:  # 100 steps of 100 rollouts each
+        assert steps[c].dropna().size == 100 and all(len(v) == 100 for v in steps[c].dropna())
 
 
 def test_same_seed_gives_the_same_estimate_twice():

@@ -120,3 +120,17 @@ def test_ce_update_refuses_an_empty_elite_set():
     with pytest.raises(ValueError, match="no elite"):
         z = np.zeros((3, 4))
         ce_update(Proposal(), z, z > 0, z, z, np.zeros(3, bool), smoothing=0.1)
+
+
+def test_training_loops_call_check_every_25_epochs_and_stop_when_it_raises():
+    calls = []
+
+    def check():
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt  # stands for the engine's Cancelled
+
+    gaps = np.tile(np.linspace(0, 12, 10), (4, 1))
+    with pytest.raises(KeyboardInterrupt):
+        pretrain_proposal(Proposal(), gaps, gaps > 5, epochs=1000, check=check)
+    assert len(calls) == 3  # epochs 0, 25, 50: stopped after ~50 of 1000 epochs

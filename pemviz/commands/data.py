@@ -23,8 +23,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         f"({data.user_cache_dir()}) or --dest, checking each SHA-256; a bad download writes nothing.",
     )
     f.add_argument("--dest", default=None, metavar="DIR", help="target folder (default: the user cache)")
-    f.add_argument("--base-url", default=data.ORIGIN_BASE_URL, metavar="URL",
-                   help="folder URL to fetch <URL>/<file> from (default: the public origin)")
+    f.add_argument(
+        "--base-url",
+        default=data.ORIGIN_BASE_URL,
+        metavar="URL",
+        help="folder URL to fetch <URL>/<file> from (default: the public origin)",
+    )
     f.add_argument("--force", action="store_true", help="download even files that are present and correct")
     f.set_defaults(func=fetch_main)
     w = actions.add_parser(
@@ -41,8 +45,12 @@ def fetch_main(args: argparse.Namespace) -> int:
     if not args.base_url.startswith(("http://", "https://", "file://")):
         raise UsageError(f"--base-url {args.base_url!r}: must be an http(s):// or file:// URL")
     try:
-        folder = data.fetch(args.dest, args.base_url, force=args.force,
-                            on_file=lambda name, status: print(f"  {name}: {status}, SHA-256 ok"))
+        folder = data.fetch(
+            args.dest,
+            args.base_url,
+            force=args.force,
+            on_file=lambda name, status: print(f"  {name}: {status}, SHA-256 ok"),
+        )
     except (data.DataError, OSError) as exc:
         print(f"pemviz data fetch: error: {exc}", file=sys.stderr)
         return 1

@@ -9,9 +9,11 @@ from pathlib import Path
 import numpy as np
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    from pemviz.pem import PEM_RECIPES
+TRAINABLE = ("ml-nn", "gbt")
+"""The names of :data:`pemviz.pem.PEM_RECIPES` (listed here so that building the parser imports no torch)."""
 
+
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "pem",
         help="train or evaluate the perception error model (PEM)",
@@ -24,13 +26,49 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Train a named PEM on salient_inputs_no_miscUnknown.txt and write assets/pem_<model>.pt "
         "(or --out).",
     )
-    t.add_argument("--model", default="ml-nn", help=f"one of {', '.join(PEM_RECIPES)} (default ml-nn)")
-    t.add_argument("--epochs", type=int, default=None, help="epochs (default: the model's, 300 for ml-nn)")
+    t.add_argument(
+        "--model",
+        default="ml-nn",
+        help=f"one of {', '.join(TRAINABLE)} (default ml-nn: the paper's; gbt: the best cross-validated)",
+    )
+    t.add_argument(
+        "--epochs", type=int, default=None, help="epochs for ml-nn, trees for gbt (default: the model's, 300 each)"
+    )
     t.add_argument("--seed", type=int, default=None, help="seed (default: the model's shipped seed)")
     t.add_argument("--out", default=None, metavar="PATH", help="weights file (default assets/pem_<model>.pt)")
     t.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_main)
+
+    e = actions.add_parser(
+        "eval",
+        help="5-fold cross-validation of the PEM models (paper Table I) with calibration",
+        description="Cross-validate ML-NN, LR, Guess-mu, B-NN and pemviz's gradient-boosted trees on the paper's "
+        "5 stratified folds; write a Markdown and a CSV table and a rerun recording (ROC curves, reliability "
+        "diagrams, p(detect | gap) beside the authors' PEM).",
+    )
+    e.add_argument("--models", default=None, help="comma-separated subset of ml-nn,lr,guess-mu,b-nn,gbt (default all)")
+    e.add_argument("--folds", default=None, help="comma-separated fold numbers 0..4 (default all)")
+    e.add_argument(
+        "--quick",
+        action="store_true",
+        help="CI size: fold 0 only, 20 ML-NN epochs, 60 trees, 200 B-NN steps, 100 B-NN samples",
+    )
+    e.add_argument("--epochs", type=int, default=None, help="ML-NN epochs per fold (default 300)")
+    e.add_argument("--trees", type=int, default=None, help="boosted trees per fold (default 300)")
+    e.add_argument("--bnn-steps", type=int, default=None, help="B-NN SVI steps per fold (default 2000)")
+    e.add_argument("--bnn-samples", type=int, default=None, help="B-NN posterior samples (default 800)")
+    e.add_argument("--seed", type=int, default=0, help="seed of every model (default 0)")
+    e.add_argument(
+        "--out",
+        default="recordings",
+        metavar="DIR",
+        help="folder for pem-eval.md, pem-eval.csv and pem-eval.rrd (default recordings)",
+    )
+    e.add_argument("--save", default=None, metavar="PATH", help="recording path (default <out>/pem-eval.rrd)")
+    e.add_argument("--no-record", action="store_true", help="write no rerun recording")
+    e.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
+    e.set_defaults(func=eval_main)
 
 
 def _check_out_path(out: Path) -> None:
@@ -70,13 +108,14 @@ def train_main(args: argparse.Namespace) -> int:
         "data_sha256": sha256_file(data.inputs_path),
         "labels_sha256": sha256_file(data.labels_path),
     }
-    pem = recipe.train(data.inputs, data.labels, seed=seed, epochs=epochs, progress=not args.no_progress,
-                       metadata=metadata)
+    pem = recipe.train(
+        data.inputs, data.labels, seed=seed, epochs=epochs, progress=not args.no_progress, metadata=metadata
+    )
     bce = bce_from_logits(pem.logit(data.inputs), data.labels)
     gaps = np.array([2.0, 4.0, 6.0, 8.0, 10.0, 12.293, 13.0])
     p = pem.prob_at_gap(gaps)
     print(f"BCE on the full training file: {bce:.4f} nats (Guess-mu: 0.2595)")
-    print("p(detect | gap): " + ", ".join(f"{g:g} m {q:.4f}" for g, q in zip(gaps, p)))
+    print("p(detect | gap): " + ", ".join(f"{g:g} m {q:.4f}" for g, q in zip(gaps, p, strict=False)))
     try:
         ref = load_reference_pem()
     except FileNotFoundError:
@@ -87,4 +126,94 @@ def train_main(args: argparse.Namespace) -> int:
         print(f"max |p_pemviz - p_authors| over gaps 2..13 m: {diff:.4f}")
     save_pem(pem, out)
     print(f"wrote {out}")
+    return 0
+
+
+def _int_list(text: str | None, option: str) -> tuple[int, ...] | None:
+    from pemviz.cli import UsageError
+
+    if text is None:
+        return None
+    try:
+        return tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise UsageError(f"{option} {text!r}: give comma-separated integers") from None
+
+
+def eval_config_from_args(args: argparse.Namespace):  # -> pemviz.pem_eval.EvalConfig
+    """The :class:`pemviz.pem_eval.EvalConfig` of the command line; UsageError on bad values."""
+    from pemviz.cli import UsageError
+    from pemviz.pem_eval import EvalConfig
+
+    fields: dict = {"seed": args.seed}
+    if args.quick:
+        fields.update(folds=(0,), mlnn_epochs=20, gbt_trees=60, bnn_steps=200, bnn_samples=100)
+    if args.models is not None:
+        fields["models"] = tuple(m.strip() for m in args.models.split(",") if m.strip())
+    folds = _int_list(args.folds, "--folds")
+    if folds is not None:
+        fields["folds"] = folds
+    for option, name in (
+        ("epochs", "mlnn_epochs"),
+        ("trees", "gbt_trees"),
+        ("bnn_steps", "bnn_steps"),
+        ("bnn_samples", "bnn_samples"),
+    ):
+        value = getattr(args, option)
+        if value is not None:
+            fields[name] = value
+    try:
+        return EvalConfig(**fields)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def eval_main(args: argparse.Namespace) -> int:
+    from pemviz.cli import UsageError
+    from pemviz.data import DataError, load_salient_data
+    from pemviz.pem_eval import (
+        evaluate_pems,
+        format_csv,
+        format_markdown,
+        summary_lines,
+        write_recording,
+        write_text_atomic,
+    )
+
+    config = eval_config_from_args(args)
+    out = Path(args.out)
+    if not out.is_dir():
+        raise UsageError(f"--out {out}: not an existing folder")
+    rrd = None if args.no_record else (Path(args.save) if args.save else out / "pem-eval.rrd")
+    if rrd is not None:
+        if rrd.suffix != ".rrd":
+            raise UsageError(f"--save {rrd}: the recording must be a .rrd file")
+        if not rrd.parent.is_dir():
+            raise UsageError(f"--save {rrd}: folder {rrd.parent} does not exist")
+    try:
+        data = load_salient_data(args.data_dir)
+    except (DataError, FileNotFoundError) as exc:
+        print(f"pemviz pem eval: error: {exc}", file=sys.stderr)
+        return 1
+    print(
+        f"cross-validating {', '.join(config.models)} on folds {list(config.fold_ids)} of {config.n_splits} "
+        f"({len(data)} rows from {data.inputs_path.parent})",
+        flush=True,
+    )
+
+    def on_fold(name, fs) -> None:
+        print(
+            f"  {name:9s} fold {fs.fold}: BCE {fs.bce:.4f}  AUC {fs.auc:.4f}  AP {fs.ap:.4f}  ECE {fs.ece:.4f}  "
+            f"({fs.fit_s:.1f} s)",
+            flush=True,
+        )
+
+    result = evaluate_pems(data.inputs, data.labels, config, on_fold=on_fold, data_source=data.inputs_path.name)
+    print("\n".join(summary_lines(result)))
+    md = write_text_atomic(out / "pem-eval.md", format_markdown(result))
+    csv = write_text_atomic(out / "pem-eval.csv", format_csv(result))
+    print(f"wrote {md} and {csv}")
+    if rrd is not None:
+        print(f"wrote {write_recording(result, rrd)}")
+    print(f"best by mean BCE: {result.best()}; wall time {result.wall_s:.0f} s")
     return 0

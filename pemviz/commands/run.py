@@ -9,7 +9,7 @@ import tempfile
 from datetime import datetime
 from pathlib import Path
 
-from pemviz.config import METHODS, METRICS, PRESETS, SIMULATORS, ConfigError, ExperimentConfig
+from pemviz.config import EXECUTORS, METHODS, METRICS, PRESETS, SIMULATORS, ConfigError, ExperimentConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,6 +37,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--sim", default=None,
         help=f"scenario back-end: {'|'.join(SIMULATORS)} (default {d.sim}; same rollouts for a seed)",
     )  # fmt: skip
+    p.add_argument(
+        "--executor", default=None,
+        help=f"where rollouts run: {'|'.join(EXECUTORS)} (default {d.executor}; ray: Ray tasks, same estimate)",
+    )  # fmt: skip
+    p.add_argument("--ray-address", dest="ray_address", default=None, help="Ray cluster (default: start a local one)")
+    p.add_argument(
+        "--save-rollouts", dest="save_rollouts", default=None, metavar="PATH.parquet",
+        help="write the final batch's rollouts (with log_p, log_q) for `pemviz estimate` (format: pemviz.rollout_io)",
+    )  # fmt: skip
     rec = p.add_argument_group("recording (rerun)")
     rec.add_argument("--save", default=None, help="write the recording to this .rrd (default recordings/<name>.rrd)")
     rec.add_argument("--serve", action="store_true", help="serve the recording over gRPC for a rerun viewer")
@@ -51,7 +60,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         raise ConfigError(f"preset = {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     fields = dict(PRESETS[args.preset])
     for name in ("method", "n_stages", "n_per_stage", "n_final", "quantile_level", "smoothing", "metric", "seed",
-                 "ce_epochs", "pem", "sim"):  # fmt: skip
+                 "ce_epochs", "pem", "sim", "executor", "ray_address"):  # fmt: skip
         value = getattr(args, name)
         if value is not None:
             fields[name] = value
@@ -93,6 +102,19 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if args.pem is not None and not Path(args.pem).is_file():
         raise UsageError(f"--pem {args.pem}: no such file")
+    if cfg.executor == "ray":
+        import importlib.util
+
+        if importlib.util.find_spec("ray") is None:
+            raise UsageError("--executor ray: Ray is not installed (pip install ray)")
+    rollout_sink = None
+    if args.save_rollouts is not None:
+        from pemviz.rollout_io import RolloutSink
+
+        try:
+            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem)
+        except ValueError as exc:
+            raise UsageError(f"--save-rollouts {exc}") from None
 
     save_path = None
     if not args.no_record and not args.serve and args.connect is None:
@@ -115,8 +137,12 @@ def main(args: argparse.Namespace) -> int:
         else:
             recorder = RerunSink.to_grpc(args.connect or None, serve=args.serve)
         listeners.append(recorder)
+    if rollout_sink is not None:
+        listeners.append(rollout_sink)
     try:
         Experiment(cfg, listeners).run()
+        if rollout_sink is not None and rollout_sink.written is not None:
+            print(f"rollouts: {rollout_sink.written}", file=sys.stderr)
     finally:
         if recorder is not None:
             where = recorder.close()

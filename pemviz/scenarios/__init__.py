@@ -90,8 +90,9 @@ def simulate(
     n: int,
     sampler: Detector,
     target: Detector,
-    rng: np.random.Generator,
+    rng: np.random.Generator | None,
     n_steps: int,
+    uniforms: np.ndarray | None = None,
 ) -> RolloutBatch:
     """Run ``n`` rollouts in lockstep, detections drawn from ``sampler``, scored under ``target``.
 
@@ -103,13 +104,23 @@ def simulate(
         n: number of rollouts (>= 1).
         sampler: the detector that draws the actions (proposal q, the PEM, a constant ...).
         target: the PEM whose probabilities weight the rollouts (may be ``sampler`` itself).
-        rng: numpy Generator; the same seed gives the same batch.
+        rng: numpy Generator; the same seed gives the same batch (unused, may be None, with ``uniforms``).
         n_steps: T, steps per rollout.
+        uniforms: optional float64 [T, n] pre-drawn u's, row t used at step t instead of ``rng.random(n)``.
+            ``rng.random((T, n))`` holds exactly the numbers of T calls ``rng.random(n)``, so a column slice
+            ``[:, a:b]`` of it reproduces rollouts a..b-1 of the serial run elsewhere (pemviz.executors).
     Returns:
         :class:`RolloutBatch` with arrays [n, T].
+    Raises:
+        ValueError: ``n < 1``, or ``uniforms`` not of shape [T, n] with values in [0, 1).
     """
     if n < 1:
         raise ValueError(f"simulate: n must be >= 1, got {n}")
+    if uniforms is not None:
+        uniforms = np.asarray(uniforms, dtype=np.float64)
+        if uniforms.shape != (n_steps, n) or not np.all((uniforms >= 0.0) & (uniforms < 1.0)):
+            raise ValueError(f"simulate: uniforms must be float64 [T, n] = [{n_steps}, {n}] in [0, 1), "
+                             f"got shape {uniforms.shape}")
     sims = [make_simulator() for _ in range(n)]
     names = tuple(sims[0].observation_names)
     obs = np.empty((n, n_steps, len(names)))
@@ -120,7 +131,7 @@ def simulate(
         o = np.stack([s.observation() for s in sims])
         q_logit = sampler.detect_logit(o)
         p_logit = q_logit if target is sampler else target.detect_logit(o)
-        u = rng.random(n)
+        u = rng.random(n) if uniforms is None else uniforms[t]
         # u <= sigmoid(logit)  <=>  log u <= logsigmoid(logit): exact in log-space.
         a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
         obs[:, t] = o

@@ -266,7 +266,8 @@ def iter_batched(
     """Stream ``n`` rollouts as :class:`RolloutBatch` chunks of at most ``chunk_size`` rollouts each.
 
     Memory: about twice one chunk's ``chunk_size * T * 41`` bytes (~70 MB at 8,192 x 100). The
-    chunks together are the rollouts :func:`simulate_batched` returns (module docstring: random numbers).
+    chunks together are the rollouts :func:`simulate_batched` returns (module docstring: random numbers);
+    with a jumping generator ``rng`` is advanced past all ``n * T`` draws once the last chunk is out.
     Raises:
         ValueError: for ``n`` or ``chunk_size`` not an integer >= 1.
     """

@@ -8,10 +8,11 @@ happens iff the detector misses at every distance ``braking, braking - 1, ..., s
     p_fail = prod_{d = safe}^{braking} (1 - p(d))      (= (1 - p)^(braking - safe + 1) for constant p)
 
 (:func:`pemviz.truth.toy_log_failure_probability`). Source: ``SimParams``/``step_state``/``car_rollout``
-in craigiedon/CarlaStuff ``adaptiveImportanceSampler.py`` and ``approxDP.py``. One difference: the
-authors end a rollout at its failure; here every rollout has ``n_steps`` steps (a fixed-length
-:class:`~pemviz.scenarios.RolloutBatch`) and a failed car stays where it failed (an absorbing crash
-state), which changes no probability.
+in craigiedon/CarlaStuff ``adaptiveImportanceSampler.py`` and ``approxDP.py``. The authors end a rollout
+at its failure; here every rollout has the fixed length ``total - safe + 2`` (a
+:class:`~pemviz.scenarios.RolloutBatch` has one T), which is exactly long enough for a failure to be
+observed at the last step, so a failing rollout also ends at its failure. A car that has stopped stays
+stopped (and reports ``stopped = 1``); its later detector outputs change nothing.
 
 Units: abstract distance units (the ``gap_m`` column, so that every detector and the proposal read
 the distance like the braking scenario's gap), one step per unit of travel.
@@ -42,8 +43,9 @@ class ToyParams:
         braking: a detection at distance <= ``braking`` stops the car.
         safe: failure = the distance drops below ``safe``; 1 <= safe <= braking < total.
         p_detect: p(detect), a constant or a function of the distance (:data:`DetectionProbability`).
-        n_steps: steps per rollout (default ``total``, as in the authors' ``car_rollout``); must leave
-            room to observe the failure: ``n_steps >= total - safe + 2``.
+        n_steps: steps per rollout; default ``total - safe + 2``, the first step at which a failure can
+            be observed plus one (a failing rollout ends at its failure, as in the authors' ``car_rollout``);
+            at least that.
 
     Raises:
         ValueError: for parameters outside these ranges.
@@ -78,7 +80,7 @@ class ToyParams:
     @property
     def steps(self) -> int:
         """T, steps per rollout."""
-        return self.total if self.n_steps is None else int(self.n_steps)
+        return self.total - self.safe + 2 if self.n_steps is None else int(self.n_steps)
 
     def detect_probability(self, distance: np.ndarray) -> np.ndarray:
         """p(detect | distance), float64 of the shape of ``distance``.

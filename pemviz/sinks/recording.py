@@ -4,20 +4,23 @@ The sink only listens to the engine's events (:mod:`pemviz.engine`); it never dr
 
 Timelines: ``step`` (0..T-1, one simulation step of dt = 0.05 s; the default timeline, the scene plays on
 it), ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch) and ``repetition`` (only
-when the sink is given one). Figures that summarise stages are static 2D plots or bar charts, so they
-show whatever timeline is selected.
+when the sink is given one). Figures that summarise stages are static 2D plots (drawn with
+:class:`Figure`: a frame, ticks and a transform from axis units to the plot box), so they show on
+whatever timeline is selected; a time-series view would go blank when the timeline is switched.
 
 Entity paths (``KK`` = stage number, two digits):
 
 - ``description``: Markdown of the run (what it is, how to read it, its config, the stage table, the
   final estimate or how it ended), re-logged static after each stage.
 - ``proposal/data/pem``, ``proposal/data/stage_KK``: p_PEM(detect | d) and each stage's proposal
-  q(detect | d) after its update, one :class:`rerun.LineStrips2D` each, points ``(d [m], probability)``;
+  q(detect | d) after its update (the final batch's repeats stage K's), one :class:`rerun.LineStrips2D`
+  each, points ``(d [m], probability)``;
   ``proposal/data/elite_KK``: the elite rollouts' empirical detection rate per 0.1 m gap bin
   (:class:`rerun.Points2D`; for the final batch the "elites" are its crashes). ``proposal/data``
   carries the transform from (metres, probability) to the plot box; ``proposal/axes`` the frame.
 - ``stages/{gamma,failure_rate,log10_mu_hat,nll,ess}``: per-stage numbers as scalars on ``stage``;
-  ``stage_bars/...``: the same as static bar charts over the stage number (visible on every timeline).
+  ``stage_metrics/<name>/data/bars``: the same as static bar plots over the stage number (visible on
+  every timeline; one bar per stage from 0 to the value, in the stage's colour).
 - ``rollouts/{gap_m,ego_speed_mps,lead_speed_mps}/stage_KK``: every rollout of a stage over ``step``,
   one entity with N series, sent with one ``send_columns`` each: red = crash, grey = safe, yellow/orange
   and wider = the stage's least-robust rollouts (tagged in the series name).
@@ -74,11 +77,15 @@ DETECTED_RGBA = (70, 200, 110, 255)
 MISSED_RGBA = (250, 170, 40, 255)
 LEAD_RGBA = (110, 160, 240, 255)
 LEAD_CRASH_RGBA = (235, 50, 45, 255)
-LANE_SPACING_M = 5.0
+FIGURE_BACKGROUND_RGB = (25, 28, 32)
+LANE_SPACING_M = 3.2
+SCENE_X_RANGE_M = (-15.0, 38.0)
+"""Top-down scene: lanes ``LANE_SPACING_M`` apart (the cars are 2 m wide), x from the lane labels to
+past the lead's stop."""
 
 STAGE_METRICS = (
     ("failure_rate", "failures / N"),
-    ("gamma", "gamma (threshold)"),
+    ("gamma", "gamma"),
     ("log10_mu_hat", "log10 mu_hat"),
     ("ess", "ESS"),
     ("nll", "NLL (nats)"),
@@ -92,12 +99,12 @@ def stage_colour(stage: int, n_stages: int) -> tuple[int, int, int, int]:
 
 
 def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
-    """About ``n`` round tick values (1, 2, 5 x 10^k steps) covering [lo, hi]."""
+    """Round tick values in [lo, hi]: the step of 1, 2 or 5 x 10^k nearest (in ratio) to (hi - lo) / n."""
     if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
         return np.array([lo])
     raw = (hi - lo) / max(1, n)
     mag = 10.0 ** math.floor(math.log10(raw))
-    step = next(m * mag for m in (1, 2, 5, 10) if m * mag >= raw)
+    step = min((m * mag for m in (1, 2, 5, 10)), key=lambda st: abs(math.log(st / raw)))
     first = math.ceil(lo / step - 1e-9) * step
     return np.round(np.arange(first, hi + step * 1e-9, step), 10)
 
@@ -116,7 +123,13 @@ class Figure:
     width: float = 160.0
     height: float = 100.0
 
-    def draw_axes(self, stream: rr.RecordingStream, x_range: tuple[float, float], y_range: tuple[float, float]):
+    def draw_axes(
+        self,
+        stream: rr.RecordingStream,
+        x_range: tuple[float, float],
+        y_range: tuple[float, float],
+        x_ticks: np.ndarray | None = None,
+    ) -> None:
         """Log (static) the data transform, the frame, grid lines and tick labels for these ranges."""
         (x0, x1), (y0, y1) = x_range, y_range
         if y1 <= y0:
@@ -128,7 +141,7 @@ class Figure:
             static=True,
         )
         w, h = self.width, self.height
-        xt = nice_ticks(x0, x1, 6)
+        xt = nice_ticks(x0, x1, 6) if x_ticks is None else np.asarray(x_ticks, dtype=np.float64)
         yt = nice_ticks(y0, y1, 5)
         xt = xt[(xt >= x0) & (xt <= x1)]
         yt = yt[(yt >= y0) & (yt <= y1)]
@@ -142,8 +155,11 @@ class Figure:
             static=True,
         )
         pos = [[x, h + 0.045 * h] for x in X] + [[-0.06 * w, y] for y in Y]
-        pos += [[w / 2, h + 0.13 * h], [-0.06 * w, -0.07 * h]]
-        labels = [f"{v:g}" for v in xt] + [f"{v:g}" for v in yt] + [self.x_label, self.y_label]
+        labels = [f"{v:g}" for v in xt] + [f"{v:g}" for v in yt]
+        for text, xy in ((self.x_label, [w / 2, h + 0.13 * h]), (self.y_label, [-0.06 * w, -0.07 * h])):
+            if text:  # small figures leave the axis titles to the view's name
+                pos.append(xy)
+                labels.append(text)
         stream.log(
             f"{self.path}/axes/labels",
             rr.Points2D(pos, radii=-0.01, colors=AXIS_RGBA, labels=labels, show_labels=True),
@@ -157,6 +173,7 @@ class Figure:
             origin=self.path,
             name=name,
             visual_bounds=rrb.VisualBounds2D(x_range=[-0.14 * w, 1.03 * w], y_range=[-0.12 * h, 1.2 * h]),
+            background=FIGURE_BACKGROUND_RGB,
         )
 
 
@@ -164,55 +181,55 @@ PROPOSAL_FIG = Figure("proposal", "gap d (m)", "p(detect | d)")
 ROBUSTNESS_FIG = Figure("scores/robustness", "stage", "robustness")
 LOG_WEIGHT_FIG = Figure("scores/log_weight", "stage", "log-weight (nats)")
 SCENE_PATH = "scene"
+STAGE_FIGS = {key: Figure(f"stage_metrics/{key}", "", "", width=120.0) for key, _ in STAGE_METRICS}
 
 
-def default_blueprint() -> rrb.Blueprint:
-    """Proposal curves, stage metrics, gap traces, the scene and the description, ready to read.
+def default_blueprint(n_lanes: int = 12) -> rrb.Blueprint:
+    """Proposal curves, rollout scores, gap traces, the scene, stage metrics and the description.
 
     The selected timeline is ``step`` (the scene and the rollout traces play on it); every stage figure
-    is static, so it shows on any timeline.
+    is static, so it shows on any timeline. ``n_lanes`` sizes the scene view (one lane per stage).
     """
+    no_legend = rrb.PlotLegend(visible=False)
     traces = rrb.Tabs(
         rrb.TimeSeriesView(
-            name="Gap d (m) per rollout: red crash, yellow least robust, dots detections",
+            name="Gap d (m): red crash, yellow least robust, dots detections",
             contents=["+ /rollouts/gap_m/**", "+ /rollouts/detected/**"],
-            plot_legend=rrb.PlotLegend(visible=False),
+            plot_legend=no_legend,
         ),
-        rrb.TimeSeriesView(
-            name="Ego speed (m/s)", origin="/rollouts/ego_speed_mps", plot_legend=rrb.PlotLegend(visible=False)
-        ),
-        rrb.TimeSeriesView(
-            name="Lead speed (m/s)", origin="/rollouts/lead_speed_mps", plot_legend=rrb.PlotLegend(visible=False)
-        ),
-        name="Rollouts [step]",
+        rrb.TimeSeriesView(name="Ego speed (m/s)", origin="/rollouts/ego_speed_mps", plot_legend=no_legend),
+        rrb.TimeSeriesView(name="Lead speed (m/s)", origin="/rollouts/lead_speed_mps", plot_legend=no_legend),
     )
     scene = rrb.Spatial2DView(
         origin=f"/{SCENE_PATH}",
-        name="Least-robust rollout of each stage, top-down (ego green = detected, amber = missed) [step]",
-        background=(25, 28, 32),
-    )
-    bars = rrb.Grid(
-        *[rrb.BarChartView(origin=f"/stage_bars/{key}", name=label) for key, label in STAGE_METRICS],
-        rrb.TimeSeriesView(origin="/stages", name="Stage metrics [stage timeline]"),
-        grid_columns=2,
-        name="Stage metrics",
+        name="Scene: least-robust rollout per stage (ego green = detected, amber = missed)",
+        background=FIGURE_BACKGROUND_RGB,
+        visual_bounds=rrb.VisualBounds2D(
+            x_range=list(SCENE_X_RANGE_M), y_range=[-0.6 * LANE_SPACING_M, (n_lanes - 0.4) * LANE_SPACING_M]
+        ),
     )
     scores = rrb.Tabs(
-        ROBUSTNESS_FIG.view("Robustness of every rollout by stage (red = crash)"),
-        LOG_WEIGHT_FIG.view("Importance log-weight of every rollout by stage"),
-        rrb.TextDocumentView(origin="/description", name="Run"),
-        name="Rollout scores",
+        ROBUSTNESS_FIG.view("Robustness per rollout and stage (red = crash, yellow = least robust)"),
+        LOG_WEIGHT_FIG.view("Importance log-weight per rollout and stage"),
+    )
+    bars = {key: STAGE_FIGS[key].view(f"{label} per stage") for key, label in STAGE_METRICS}
+    stage_metrics = rrb.Grid(
+        bars["failure_rate"],
+        bars["gamma"],
+        bars["log10_mu_hat"],
+        rrb.Tabs(bars["ess"], bars["nll"], rrb.TimeSeriesView(origin="/stages", name="Series [stage timeline]")),
+        grid_columns=2,
     )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Horizontal(
-                    PROPOSAL_FIG.view("Proposal q(detect | d) per stage (blue early, orange late), PEM white"),
+                    PROPOSAL_FIG.view("Proposal q(detect | d) per stage vs the PEM; dots: elites' detection rate"),
                     scores,
                 ),
                 rrb.Horizontal(traces, scene),
             ),
-            bars,
+            rrb.Vertical(rrb.TextDocumentView(origin="/description", name="Run"), stage_metrics, row_shares=[1, 2]),
             column_shares=[2.6, 1.0],
         ),
         rrb.TimePanel(timeline="step", fps=20.0, state="collapsed"),
@@ -252,6 +269,7 @@ class RerunSink:
         self.params = params or BrakingParams()
         self.repetition = repetition
         self.n_stages = 1
+        self.last_stage = 1
         self.metric = "classic"
         self.grid_m = np.zeros(0)
         self.config_md = ""
@@ -262,9 +280,12 @@ class RerunSink:
         self.scores: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.gammas: list[tuple[int, float]] = []
         self.n_lanes = 0
+        self.curve_stages: list[int] = []
         self.finished = False
         self._pending: RolloutsSampled | None = None
         self._paths: tuple[Path, Path] | None = None
+        self._closed = False
+        self._axes: dict[str, tuple] = {}
         stream.set_log_time_enabled(False)
         stream.set_log_tick_enabled(False)
 
@@ -275,7 +296,7 @@ class RerunSink:
         path = Path(path)
         stream = rr.RecordingStream(APP_ID)
         partial = path.with_name(path.name + ".partial")
-        stream.save(partial, default_blueprint=default_blueprint())
+        stream.save(partial)
         sink = cls(stream, **kw)
         sink._paths = (partial, path)
         return sink
@@ -285,9 +306,9 @@ class RerunSink:
         """A sink that streams to a running viewer (``url``) or serves a gRPC endpoint (``serve``)."""
         stream = rr.RecordingStream(APP_ID)
         if serve:
-            stream.serve_grpc(default_blueprint=default_blueprint())
+            stream.serve_grpc()
         else:
-            stream.connect_grpc(url, default_blueprint=default_blueprint())
+            stream.connect_grpc(url)
         return cls(stream, **kw)
 
     def close(self) -> Path | None:
@@ -295,7 +316,11 @@ class RerunSink:
 
         A run that ended without a final estimate or a cancellation event (Ctrl-C, an exception in a
         stage) is marked as interrupted in the description; every finished stage is already logged.
+        Closing twice is harmless (the second call returns None).
         """
+        if self._closed:
+            return None
+        self._closed = True
         if not self.finished and self.intro_md:
             done = len(self.stage_rows)
             self.status_md = f"**Interrupted** after {done} finished stage{'s' * (done != 1)}: no final estimate."
@@ -346,10 +371,49 @@ class RerunSink:
             static=True,
         )
 
+    def _log_proposal_legend(self) -> None:
+        """Legend in the proposal plot (data units: metres, probability): the PEM, the first and last stage."""
+        shown = sorted({self.curve_stages[0], self.curve_stages[-1]}) if self.curve_stages else []
+        entries = [("PEM", PEM_RGBA)] + [(f"q stage {k}", stage_colour(k, self.n_stages)) for k in shown]
+        x0, x1 = float(self.grid_m.min()), float(self.grid_m.max())
+        x = x1 - 0.1 * (x1 - x0)
+        pos = [[x, 0.75 - j * 0.1] for j in range(len(entries))]
+        self.stream.log(
+            "proposal/data/legend",
+            rr.Points2D(pos, radii=-0.01, colors=[c for _, c in entries], labels=[t for t, _ in entries],
+                        show_labels=True),
+            static=True,
+        )  # fmt: skip
+
+    def _draw_axes(self, fig: Figure, x_range, y_range, x_ticks: np.ndarray | None = None) -> None:
+        """:meth:`Figure.draw_axes`, skipped when the ranges have not changed since the last stage."""
+        key = (tuple(x_range), tuple(y_range), None if x_ticks is None else tuple(x_ticks))
+        if self._axes.get(fig.path) != key:
+            fig.draw_axes(self.stream, x_range, y_range, x_ticks)
+            self._axes[fig.path] = key
+
+    def _log_stage_bars(self, key: str) -> None:
+        """One bar per finished stage from 0 to the value, in the stage's colour (static 2D plot)."""
+        pts = self.stage_values[key]
+        values = np.array([v for _, v in pts])
+        lo, hi = min(0.0, float(values.min())), max(0.0, float(values.max()))
+        pad = 0.05 * (hi - lo) if hi > lo else 0.5
+        fig = STAGE_FIGS[key]
+        self._draw_axes(fig, (-0.6, self.last_stage + 0.6), (lo - pad if lo < 0 else 0.0, hi + pad if hi > 0 else 0.0))
+        self.stream.log(
+            f"{fig.path}/data/bars",
+            rr.LineStrips2D(
+                [[[k, 0.0], [k, v]] for k, v in pts], colors=[stage_colour(k, self.n_stages) for k, _ in pts],
+                radii=-4.0, labels=[f"stage {k}: {v:.4g}" for k, v in pts], show_labels=False,
+            ),
+            static=True,
+        )  # fmt: skip
+
     # -- run started ----------------------------------------------------------------------------------
     def _run_started(self, ev: RunStarted) -> None:
         cfg = ev.config
         self.n_stages = cfg.n_stages + 1 if cfg.method == "adaptive" else 1
+        self.last_stage = cfg.n_stages + (cfg.final_estimate == "fresh") if cfg.method == "adaptive" else 1
         self.metric = cfg.metric
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         s = self.stream
@@ -365,6 +429,8 @@ class RerunSink:
             ),
         )
         s.send_recording_name(f"pemviz {cfg.method} {cfg.metric} seed {cfg.seed}")
+        n_batches = cfg.n_stages + (2 if cfg.final_estimate == "fresh" else 1) if cfg.method == "adaptive" else 1
+        s.send_blueprint(default_blueprint(n_batches * self.scene_per_stage))
         method = {
             "adaptive": (
                 f"**adaptive importance sampling** (cross-entropy method, Innes & Ramamoorthy 2022): "
@@ -397,30 +463,29 @@ class RerunSink:
         PROPOSAL_FIG.draw_axes(s, (float(self.grid_m.min()), float(self.grid_m.max())), (0.0, 1.0))
         s.log(
             "proposal/data/pem",
-            rr.LineStrips2D([np.column_stack([self.grid_m, ev.pem_curve])], colors=PEM_RGBA, radii=-2.0,
-                            labels="PEM"),
+            rr.LineStrips2D([np.column_stack([self.grid_m, ev.pem_curve])], colors=PEM_RGBA, radii=-2.0),
             static=True,
-        )  # fmt: skip
+        )
+        self._log_proposal_legend()
 
     # -- stage finished -------------------------------------------------------------------------------
     def _stage_finished(self, res: StageResult) -> None:
         s = self.stream
         colour = stage_colour(res.stage, self.n_stages)
-        if res.kind != "final" and not np.all(np.isnan(res.proposal_curve)):
+        if not np.all(np.isnan(res.proposal_curve)):
             s.log(
                 f"proposal/data/stage_{res.stage:02d}",
-                rr.LineStrips2D(
-                    [np.column_stack([self.grid_m, res.proposal_curve])], colors=colour, radii=-1.5,
-                    labels=f"q stage {res.stage}",
-                ),
+                rr.LineStrips2D([np.column_stack([self.grid_m, res.proposal_curve])], colors=colour, radii=-1.5),
                 static=True,
-            )  # fmt: skip
+            )
+            self.curve_stages.append(res.stage)
+            self._log_proposal_legend()
         rate = np.asarray(res.elite_detect_rate, dtype=np.float64)
         ok = np.isfinite(rate)
         if ok.any():
             s.log(
                 f"proposal/data/elite_{res.stage:02d}",
-                rr.Points2D(np.column_stack([self.grid_m[ok], rate[ok]]), colors=colour, radii=-2.0),
+                rr.Points2D(np.column_stack([self.grid_m[ok], rate[ok]]), colors=colour, radii=-1.5),
                 static=True,
             )
 
@@ -439,12 +504,7 @@ class RerunSink:
             if math.isfinite(value):
                 s.log(f"stages/{key}", rr.Scalars(value))
                 self.stage_values[key].append((res.stage, value))
-                pts = self.stage_values[key]
-                s.log(
-                    f"stage_bars/{key}",
-                    rr.BarChart([v for _, v in pts], abscissa=[k for k, _ in pts], color=(90, 150, 230)),
-                    static=True,
-                )
+                self._log_stage_bars(key)
 
         def num(x: float, fmt: str) -> str:
             return format(x, fmt) if math.isfinite(x) else "-"
@@ -496,7 +556,8 @@ class RerunSink:
             allv = np.concatenate([sc[idx][np.isfinite(sc[idx])] for sc in self.scores] + [np.zeros(1)])
             lo, hi = float(allv.min()), float(allv.max())
             pad = 0.05 * (hi - lo) if hi > lo else 1.0
-            fig.draw_axes(s, x_range, (lo - pad, hi + pad))
+            ticks = np.arange(min(stages), max(stages) + 1) if len(stages) <= 16 else None
+            self._draw_axes(fig, x_range, (lo - pad, hi + pad), ticks)
         zero = [[[x_range[0], 0.0], [x_range[1], 0.0]]]
         s.log(f"{ROBUSTNESS_FIG.path}/data/zero", rr.LineStrips2D(zero, colors=CRASH_RGBA, radii=-1.0), static=True)
         if self.gammas:
@@ -553,7 +614,7 @@ class RerunSink:
         s.log(
             path,
             rr.SeriesPoints(
-                colors=[DETECTED_RGBA] * n, names=[f"{nm} detected" for nm in names], marker_sizes=[2.5] * n,
+                colors=[DETECTED_RGBA] * n, names=[f"{nm} detected" for nm in names], marker_sizes=[1.5] * n,
                 visible_series=visible,
             ),
             static=True,
@@ -588,22 +649,25 @@ class RerunSink:
         lead_x = lead_rear + p.lead_length_m / 2
         ys = np.full(t, y)
         path = f"{SCENE_PATH}/stage_{ev.stage:02d}" + (f"_{lane}" if self.scene_per_stage > 1 else "")
-        crash = " CRASH" if ev.failed[i] else ""
-        label = f"stage {ev.stage} ({ev.kind}) rollout {i}: robustness {ev.robustness[i]:.3g}{crash}"
-        x_end = float(max(lead_x.max() + p.lead_length_m, 40.0))
+        crash = " crash" if ev.failed[i] else ""
+        label = f"stage {ev.stage}{crash}"
+        detail = f"stage {ev.stage} ({ev.kind}) rollout {i}: robustness {ev.robustness[i]:.3g}{crash}"
+        half = LANE_SPACING_M / 2 - 0.1
+        x_end = float(max(lead_x.max() + p.lead_length_m, SCENE_X_RANGE_M[1]))
         s.log(
             f"{path}/lane",
             rr.LineStrips2D(
-                [[[-p.ego_length_m, y - 2.0], [x_end, y - 2.0]], [[-p.ego_length_m, y + 2.0], [x_end, y + 2.0]]],
-                colors=GRID_RGBA, radii=-0.75,
+                [[[-4.0, y - half], [x_end, y - half]], [[-4.0, y + half], [x_end, y + half]]],
+                colors=GRID_RGBA, radii=-0.75, labels=[detail, detail], show_labels=False,
             ),
             static=True,
         )  # fmt: skip
         s.log(
             f"{path}/label",
-            rr.Points2D([[-p.ego_length_m, y - 2.0]], radii=-0.01, colors=AXIS_RGBA, labels=label, show_labels=True),
+            rr.Points2D([[-9.0, y]], radii=-0.01, colors=LEAD_CRASH_RGBA if ev.failed[i] else AXIS_RGBA,
+                        labels=label, show_labels=True),
             static=True,
-        )
+        )  # fmt: skip
         index = self._indexes(step=np.arange(t))
         ego_half = np.tile([p.ego_length_m / 2, p.vehicle_width_m / 2], (t, 1))
         lead_half = np.tile([p.lead_length_m / 2, p.vehicle_width_m / 2], (t, 1))
@@ -612,13 +676,16 @@ class RerunSink:
         s.send_columns(
             f"{path}/ego",
             indexes=index,
-            columns=rr.Boxes2D.columns(centers=np.column_stack([ego_x, ys]), half_sizes=ego_half, colors=det_col),
+            columns=rr.Boxes2D.columns(
+                centers=np.column_stack([ego_x, ys]), half_sizes=ego_half, colors=det_col, radii=np.full(t, -2.0)
+            ),
         )
         s.send_columns(
             f"{path}/lead",
             indexes=index,
             columns=rr.Boxes2D.columns(
-                centers=np.column_stack([lead_x, ys]), half_sizes=lead_half, colors=lead_col.astype(np.uint8)
+                centers=np.column_stack([lead_x, ys]), half_sizes=lead_half, colors=lead_col.astype(np.uint8),
+                radii=np.full(t, -2.0),
             ),
         )
         sight = np.stack([np.column_stack([camera_x, ys]), np.column_stack([lead_rear, ys])], axis=1)

@@ -1,0 +1,207 @@
+"""``pemviz estimate ROLLOUTS.parquet``: the failure probability from logged rollouts, and a recording.
+
+The rollouts come from anywhere (``pemviz run --save-rollouts``, CARLA, a user's simulator) in the format
+of :mod:`pemviz.rollout_io`. The importance weights need log p_PEM and log q of every logged action: from
+the file's ``log_p`` / ``log_q`` columns, or recomputed from a PEM (``--pem``) and from what sampled the
+rollouts (``--proposal``: a proposal checkpoint or ``pem`` / ``naive50`` / ``mixed50``). Without options,
+columns are used when present, else the PEM and proposal the sidecar names. Everything is read and
+checked before the recording is created: bad input writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pemviz.config import METRICS
+
+MAX_TRACES = 300
+"""Rollouts whose traces go into the recording: the least robust ones (every failure first)."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "estimate",
+        help="estimate the failure probability from logged rollouts (Parquet)",
+        description="Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its "
+        "JSON sidecar (format: pemviz.rollout_io), and a rerun recording of it.",
+    )
+    p.add_argument("rollouts", metavar="ROLLOUTS.parquet", help="rollout file (its sidecar ROLLOUTS.json beside it)")
+    lp = p.add_mutually_exclusive_group()
+    lp.add_argument("--pem", default=None, metavar="NAME|PATH",
+                    help="recompute log p from this PEM (default: the log_p column, else the sidecar's PEM)")
+    lp.add_argument("--log-p-column", action="store_true", help="use the file's log_p column")
+    lq = p.add_mutually_exclusive_group()
+    lq.add_argument("--proposal", default=None, metavar="CKPT|pem|naive50|mixed50",
+                    help="recompute log q from a proposal checkpoint or a named sampler "
+                         "(default: the log_q column, else the sidecar's proposal)")
+    lq.add_argument("--log-q-column", action="store_true", help="use the file's log_q column")
+    p.add_argument("--metric", default="classic", help=f"robustness metric: {', '.join(METRICS)} (default classic)")
+    p.add_argument("--failure", default="crash", choices=("crash", "metric"),
+                   help="failure event: crash = classic robustness < 0 (default); metric = the metric's < 0")
+    rec = p.add_argument_group("recording (rerun)")
+    rec.add_argument("--save", default=None, help="write the recording here (default recordings/estimate-<name>-<time>.rrd)")
+    rec.add_argument("--no-record", action="store_true", help="write no recording")
+    p.set_defaults(func=main)  # fmt: skip
+
+
+def _resolve(base: Path, ref: str) -> Path:
+    p = Path(ref)
+    return p if p.is_absolute() else base / p
+
+
+def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, str, str]:
+    """(log_p [N, T], log_q [N, T], where log p came from, where log q came from) for the options.
+
+    Raises:
+        UsageError: a column asked for or needed is absent and nothing names how to recompute it.
+        FileNotFoundError / ValueError: a PEM or proposal that cannot be loaded.
+    """
+    from pemviz import rollout_io as rio
+    from pemviz.commands import UsageError
+
+    meta, base = data.meta, (data.path.parent if data.path else Path("."))
+    pem_ref = args.pem or meta.pem
+    pem_cache: dict[str, Any] = {}
+
+    def pem() -> Any:
+        from pemviz.pem import load_pem
+
+        if pem_ref is None:
+            raise UsageError(f"{data.path}: give --pem NAME to recompute log p (the file and its sidecar name no PEM)")
+        if "pem" not in pem_cache:  # a path in the sidecar is relative to the sidecar's folder
+            from_sidecar = args.pem is None and Path(pem_ref).suffix == ".pt"
+            pem_cache["pem"] = load_pem(str(_resolve(base, pem_ref)) if from_sidecar else pem_ref)
+        return pem_cache["pem"]
+
+    if args.log_p_column and data.log_p is None:
+        raise UsageError(f"--log-p-column: {data.path} has no log_p column; give --pem NAME to recompute it")
+    if args.pem is None and data.log_p is not None:
+        log_p, p_src = data.log_p, "column log_p"
+    else:
+        log_p = rio.pem_log_prob(data, pem())
+        how = "salient variables" if data.salient is not None else "gap"
+        p_src = f"PEM {pem_ref} (recomputed from the {how})"
+
+    if args.log_q_column and data.log_q is None:
+        raise UsageError(f"--log-q-column: {data.path} has no log_q column; give --proposal CKPT to recompute it")
+    q_ref = args.proposal
+    if q_ref is None and data.log_q is not None:
+        return log_p, data.log_q, p_src, "column log_q"
+    if q_ref is None:
+        q_ref = meta.proposal
+        if q_ref is None:
+            raise UsageError(f"{data.path}: no log_q column and the sidecar names no proposal; give --proposal "
+                             f"CKPT or one of {', '.join(rio.SAMPLERS)}")  # fmt: skip
+        if q_ref not in rio.SAMPLERS:
+            q_ref = str(_resolve(base, q_ref))
+    if q_ref in rio.SAMPLERS:
+        detector = rio.sampler_detector(q_ref, pem(), meta.window_m)
+    else:
+        detector = rio.load_proposal(q_ref)
+    return log_p, rio.detector_log_prob(data, detector), p_src, f"{q_ref} (recomputed)"
+
+
+def default_recording_path(rollouts: Path) -> Path:
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("recordings") / f"estimate-{rollouts.stem}-{stamp}.rrd"
+
+
+def summary_lines(data: Any, result: Any, p_src: str, q_src: str) -> list[str]:
+    """The printed report: the file, the sources of log p / log q, failures, mu_hat, NLL, ESS."""
+    from pemviz.sampling import format_probability
+
+    e = result.estimate
+    failure = "crash (classic robustness < 0)" if result.failure == "crash" else f"{result.metric} robustness < 0"
+    nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.2f}"
+    return [
+        f"pemviz estimate: {data.path} ({data.n} rollouts x {data.n_steps} steps, dt {data.meta.dt_s:g} s), "
+        f"spec {data.meta.formula}, failure = {failure}, metric {result.metric}",
+        f"  log p: {p_src}",
+        f"  log q: {q_src}",
+        f"{'failures':>10} {'mu_hat':>11} {'NLL':>8} {'ESS':>7} {'min rho':>9}",
+        f"{f'{e.n_failures}/{e.n}':>10} {format_probability(e.log_mu_hat):>11} {nll:>8} {e.ess:>7.2f} "
+        f"{float(np.min(result.robustness)):>9.4f}",
+        f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat!r} nats), "
+        f"NLL mean {e.nll_mean:.4f} / -log-mean-exp {e.nll_lme:.4f} nats, ESS {e.ess:.4f}",
+    ]
+
+
+def write_recording(path: Path, data: Any, result: Any, lines: list[str]) -> Path:
+    """A rerun recording of the estimate: description, estimate values, the least-robust rollouts' traces
+    over ``step`` (red = failure), and robustness against importance log-weight. Written to
+    ``PATH.partial`` and moved to ``PATH`` once complete."""
+    import rerun as rr
+
+    import pemviz
+
+    partial = path.with_name(path.name + ".partial")
+    stream = rr.RecordingStream("pemviz")
+    try:
+        stream.save(partial)
+        stream.set_log_time_enabled(False)
+        stream.set_log_tick_enabled(False)
+        stream.send_recording_name(f"pemviz estimate {data.path.name if data.path else ''}")
+        e = result.estimate
+        text = "# pemviz estimate from logged rollouts\n\n```\n" + "\n".join(lines) + "\n```\n"
+        stream.log("description", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
+        stream.log(
+            "estimate",
+            rr.AnyValues(log_mu_hat=e.log_mu_hat, n_failures=e.n_failures, n=e.n, nll_mean=e.nll_mean,
+                         nll_lme=e.nll_lme, ess=e.ess, metric=result.metric, failure=result.failure,
+                         formula=data.meta.formula, pemviz_version=pemviz.__version__),
+            static=True,
+        )  # fmt: skip
+        order = np.argsort(np.where(result.failed, -np.inf, result.robustness), kind="stable")[:MAX_TRACES]
+        colours = [(230, 60, 50, 160) if result.failed[i] else (150, 150, 150, 80) for i in order]
+        names = [f"rollout {data.rollout_ids[i]}{' failure' if result.failed[i] else ''}" for i in order]
+        index = [rr.TimeColumn("step", sequence=np.arange(data.n_steps, dtype=np.int64))]
+        for col in data.observation_names:
+            entity = f"rollouts/{col}"
+            stream.log(entity, rr.SeriesLines(colors=colours, names=names), static=True)
+            stream.send_columns(entity, indexes=index, columns=rr.Scalars.columns(scalars=data.signal(col)[order].T))
+        points = np.column_stack([result.robustness, result.log_weight])
+        stream.log(
+            "scores",
+            rr.Points2D(points, colors=[(230, 60, 50, 255) if f else (150, 150, 150, 255) for f in result.failed],
+                        labels=[f"rollout {i}: robustness, log w" for i in data.rollout_ids]),
+            static=True,
+        )  # fmt: skip
+        stream.flush()
+        stream.disconnect()
+        os.replace(partial, path)
+    finally:
+        if partial.exists():
+            partial.unlink()
+    return path
+
+
+def main(args: argparse.Namespace) -> int:
+    from pemviz import rollout_io as rio
+    from pemviz.commands import UsageError
+    from pemviz.commands.run import check_save_path
+
+    if args.metric not in METRICS:
+        raise UsageError(f"--metric {args.metric!r}: use one of {', '.join(METRICS)}")
+    rollouts = Path(args.rollouts)
+    if args.save is not None and not args.no_record:
+        check_save_path(Path(args.save))
+    data = rio.read_rollouts(rollouts)
+    log_p, log_q, p_src, q_src = log_probabilities(data, args)
+    result = rio.estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure)
+    lines = summary_lines(data, result, p_src, q_src)
+    print("\n".join(lines), flush=True)
+    if not args.no_record:
+        if args.save is None:
+            Path("recordings").mkdir(exist_ok=True)  # the default folder, as pemviz run makes it
+        save_path = Path(args.save) if args.save is not None else default_recording_path(rollouts)
+        where = write_recording(check_save_path(save_path), data, result, lines)
+        print(f"recording: {where}", file=sys.stderr)
+    return 0

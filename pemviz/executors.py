@@ -1,0 +1,264 @@
+"""Executors: where a stage's rollouts are simulated, in this process (``serial``) or as Ray tasks (``ray``).
+
+The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``).
+Both executors give the same rollouts for the same seed:
+
+- ``serial`` calls ``problem.simulate(n, sampler, target, rng)``, exactly what the engine did before.
+- ``ray`` splits the N rollouts into contiguous chunks (one per CPU of the Ray cluster by default, at
+  most :data:`pemviz.scenarios.batched.DEFAULT_CHUNK_SIZE` each) and simulates each chunk as a Ray
+  task. Every pemviz simulator draws one ``rng.random(n)`` per step (u for rollout i at step t is the
+  ``(t * n + i)``-th uniform of the stream), so the task for rollouts ``a..b-1`` gets a stand-in for
+  ``rng`` (:class:`ChunkUniforms`) whose k-th ``random(b - a)`` returns slice ``[a, b)`` of the serial
+  run's k-th draw, found by jumping a copy of the PCG64 stream (``bit_generator.advance``). Nothing
+  but the generator's state (a few integers) travels with the task, and ``rng`` ends where the serial
+  run leaves it. The rollouts are then identical except that a torch proposal evaluated on a chunk
+  of rows may differ from the whole batch in the last bit of a logit (~2e-16); estimates agree to
+  ~1e-12 relative (tests/test_executors.py).
+
+Requirements for ``ray``: Ray installed (``pip install ray``, the ``ray`` extra of pemviz's ``test``
+extra), pemviz importable on every worker, the problem picklable by cloudpickle (pemviz's problems are),
+a PCG64 / PCG64DXSM generator (``np.random.default_rng`` gives one; any other runs serially, with the
+same result), and a ``problem.simulate`` that draws one ``rng.random(n)`` per step (pemviz's simulators
+and :func:`pemviz.scenarios.simulate` do; anything else raises a RuntimeError naming the problem).
+
+:func:`chunk_uniforms` gives the u's of rollouts ``a..b-1`` as a [T, b - a] array for
+:func:`pemviz.scenarios.simulate` (``uniforms=``), to run chunks on any other infrastructure.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol
+
+import numpy as np
+
+from pemviz.detectors import Detector
+from pemviz.scenarios import RolloutBatch
+
+EXECUTORS = ("serial", "ray")
+"""Executor names accepted by :func:`get_executor` and ``ExperimentConfig.executor``."""
+
+_JUMPABLE = (np.random.PCG64, np.random.PCG64DXSM)
+"""Bit generators whose ``advance(k)`` skips exactly k float64 draws of ``Generator.random``."""
+
+MAX_CHUNK = 8192
+"""Most rollouts per task: :data:`pemviz.scenarios.batched.DEFAULT_CHUNK_SIZE`, so that the batched
+simulator draws one ``random(m)`` per step inside a task (it sub-chunks larger batches)."""
+
+
+class Executor(Protocol):
+    """Simulates a stage's rollouts: ``simulate(problem, n, sampler, target, rng) -> RolloutBatch``."""
+
+    def simulate(
+        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
+    ) -> RolloutBatch: ...
+
+    def close(self) -> None: ...
+
+
+class SerialExecutor:
+    """Runs ``problem.simulate`` in this process (the default)."""
+
+    name = "serial"
+
+    def simulate(
+        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
+    ) -> RolloutBatch:
+        """``problem.simulate(n, sampler, target, rng)``: N rollouts [N, T] (see :class:`pemviz.problems.Problem`)."""
+        return problem.simulate(n, sampler, target, rng)
+
+    def close(self) -> None:
+        pass
+
+
+def chunk_bounds(n: int, n_chunks: int, max_chunk: int = MAX_CHUNK) -> list[tuple[int, int]]:
+    """Contiguous ``(start, stop)`` ranges covering ``0..n-1``: at least ``n_chunks`` (fewer if n is smaller),
+    each of at most ``max_chunk`` rollouts, sizes differing by at most one.
+
+    Raises:
+        ValueError: ``n``, ``n_chunks`` or ``max_chunk`` below 1.
+    """
+    if n < 1 or n_chunks < 1 or max_chunk < 1:
+        raise ValueError(f"chunk_bounds: n, n_chunks, max_chunk must be >= 1, got {n}, {n_chunks}, {max_chunk}")
+    k = min(n, max(n_chunks, math.ceil(n / max_chunk)))
+    edges = [(i * n) // k for i in range(k + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def _bit_generator_at(state: dict, skip: int) -> np.random.BitGenerator:
+    """A fresh bit generator of the type ``state`` names, at ``state`` advanced by ``skip`` float64 draws."""
+    bg = {"PCG64": np.random.PCG64, "PCG64DXSM": np.random.PCG64DXSM}[state["bit_generator"]](0)
+    bg.state = state
+    if skip:
+        bg.advance(skip)
+    return bg
+
+
+class ChunkUniforms:
+    """Stands in for the run's ``np.random.Generator`` inside one chunk of rollouts ``start..stop-1``.
+
+    Its k-th call ``random(stop - start)`` returns ``u[start:stop]`` of the k-th ``rng.random(n)`` the
+    serial run draws from ``state`` (a PCG64 / PCG64DXSM state dict), i.e. the uniforms at positions
+    ``k * n + start .. k * n + stop - 1`` of the stream. ``calls`` counts the draws.
+
+    Raises (from :meth:`random`):
+        RuntimeError: a draw of another size or kind (the simulator does not draw one ``random(n)`` per step).
+    """
+
+    bit_generator = None
+    """Not a real generator: simulators that inspect it (the batched one) then draw plainly."""
+
+    def __init__(self, state: dict, n: int, start: int, stop: int) -> None:
+        self.state, self.n, self.start, self.stop = state, int(n), int(start), int(stop)
+        self.calls = 0
+
+    def random(self, size: Any = None, dtype: Any = np.float64, out: np.ndarray | None = None) -> np.ndarray:
+        m = self.stop - self.start
+        shape = (size,) if isinstance(size, (int, np.integer)) else tuple(size) if size is not None else None
+        if shape != (m,) or np.dtype(dtype) != np.float64:
+            raise RuntimeError(
+                f"ChunkUniforms: the simulator drew random({size!r}, dtype={np.dtype(dtype)}) in a chunk of {m} "
+                f"rollouts; an executor needs exactly one rng.random(n) float64 draw per step"
+            )
+        gen = np.random.Generator(_bit_generator_at(self.state, self.calls * self.n + self.start))
+        self.calls += 1
+        return gen.random(m, out=out)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__"):
+            raise AttributeError(name)
+        raise AttributeError(
+            f"ChunkUniforms has no {name!r}: the simulator used rng.{name}; an executor needs exactly one "
+            f"rng.random(n) per step"
+        )
+
+
+def chunk_uniforms(rng_state: dict, n: int, n_steps: int, start: int, stop: int) -> np.ndarray:
+    """The u's of rollouts ``start..stop-1`` of an n-rollout serial run, float64 [T, stop - start].
+
+    Equal to ``np.random.Generator(bg).random((T, n))[:, start:stop]`` for the bit generator ``bg`` in
+    ``rng_state`` (``rng.bit_generator.state``, PCG64 or PCG64DXSM), without drawing the other columns;
+    pass it to :func:`pemviz.scenarios.simulate` as ``uniforms``.
+
+    Raises:
+        ValueError: a bit generator that cannot jump, or ``0 <= start < stop <= n`` violated.
+    """
+    if rng_state.get("bit_generator") not in ("PCG64", "PCG64DXSM"):
+        raise ValueError(f"chunk_uniforms: needs a PCG64 or PCG64DXSM state, got {rng_state.get('bit_generator')}")
+    if not 0 <= start < stop <= n:
+        raise ValueError(f"chunk_uniforms: need 0 <= start < stop <= n, got start={start}, stop={stop}, n={n}")
+    stream = ChunkUniforms(rng_state, n, start, stop)
+    return np.stack([stream.random(stop - start) for _ in range(n_steps)]) if n_steps else np.empty((0, stop - start))
+
+
+def simulate_chunk(
+    problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, rng_state: dict
+) -> tuple[RolloutBatch, int]:
+    """Rollouts ``start..stop-1`` of the serial run ``problem.simulate(n, sampler, target, rng)`` from
+    ``rng_state``; returns the batch [stop - start, T] and the number of per-step draws it made (T)."""
+    stream = ChunkUniforms(rng_state, n, start, stop)
+    batch = problem.simulate(stop - start, sampler, target, stream)
+    return batch, stream.calls
+
+
+def _advance(rng: np.random.Generator, draws: int) -> None:
+    """Move ``rng`` past ``draws`` float64 draws, as drawing them would (PCG64 / PCG64DXSM)."""
+    bg = rng.bit_generator
+    base = bg.state
+    end = _bit_generator_at(base, draws).state
+    end["has_uint32"], end["uinteger"] = base["has_uint32"], base["uinteger"]  # untouched by random()
+    bg.state = end
+
+
+def gather_chunks(
+    problem: Any, n: int, rng: np.random.Generator, results: list[tuple[RolloutBatch, int]]
+) -> RolloutBatch:
+    """Concatenate chunk results in rollout order, check each drew T times, and advance ``rng`` by n * T.
+
+    Raises:
+        RuntimeError: a chunk drew another number of times than its rollouts have steps.
+    """
+    batches = [b for b, _ in results]
+    n_steps = batches[0].n_steps
+    for batch, calls in results:
+        if calls != n_steps or batch.n_steps != n_steps:
+            raise RuntimeError(
+                f"executor: problem {getattr(problem, 'name', problem)!r} drew rng.random {calls} times for "
+                f"{batch.n_steps} steps; an executor needs exactly one rng.random(n) per step"
+            )
+    _advance(rng, n * n_steps)
+    return batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
+
+
+class RayExecutor:
+    """Simulates each batch as Ray tasks, one per chunk of rollouts (module docstring).
+
+    Args:
+        address: Ray cluster address (``ray.init(address=...)``); None starts a local cluster. If Ray is
+            already initialised in this process, that cluster is used and ``address`` is ignored.
+        n_chunks: chunks per batch (default: the cluster's CPU count).
+        init_kwargs: more keyword arguments for ``ray.init``.
+    Raises:
+        ImportError: Ray is not installed (the message says how to install it).
+    """
+
+    name = "ray"
+
+    def __init__(self, address: str | None = None, *, n_chunks: int | None = None, **init_kwargs: Any) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise ImportError("--executor ray needs Ray: pip install ray (or pip install 'pemviz[test]')") from None
+        self._ray = ray
+        self._started = False
+        if not ray.is_initialized():
+            ray.init(address=address, include_dashboard=False, **init_kwargs)
+            self._started = True
+        self.n_chunks = int(n_chunks) if n_chunks else max(1, int(ray.cluster_resources().get("CPU", 1)))
+        self._task = ray.remote(simulate_chunk)
+
+    def simulate(
+        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
+    ) -> RolloutBatch:
+        """The rollouts of ``problem.simulate(n, sampler, target, rng)``, simulated as Ray tasks [N, T]."""
+        bounds = chunk_bounds(n, self.n_chunks)
+        if len(bounds) == 1 or not isinstance(rng.bit_generator, _JUMPABLE):
+            return problem.simulate(n, sampler, target, rng)
+        state = rng.bit_generator.state
+        ray = self._ray
+        problem_ref = ray.put(problem)
+        futures = [self._task.remote(problem_ref, n, a, b, sampler, target, state) for a, b in bounds]
+        return gather_chunks(problem, n, rng, ray.get(futures))
+
+    def close(self) -> None:
+        """Shut Ray down if this executor started it."""
+        if self._started and self._ray.is_initialized():
+            self._ray.shutdown()
+        self._started = False
+
+
+_EXECUTORS: dict[tuple[str, str | None], Executor] = {}
+
+
+def get_executor(name: str = "serial", address: str | None = None) -> Executor:
+    """The executor called ``name`` (:data:`EXECUTORS`), made once per process and (name, address).
+
+    Raises:
+        ValueError: an unknown name.
+        ImportError: ``ray`` without Ray installed.
+    """
+    if name not in EXECUTORS:
+        raise ValueError(f"unknown executor {name!r}; use one of {', '.join(EXECUTORS)}")
+    key = (name, address if name == "ray" else None)
+    ex = _EXECUTORS.get(key)
+    if ex is None or (name == "ray" and not ex._ray.is_initialized()):  # type: ignore[attr-defined]
+        ex = SerialExecutor() if name == "serial" else RayExecutor(address)
+        _EXECUTORS[key] = ex
+    return ex
+
+
+def close_executors() -> None:
+    """Close every executor :func:`get_executor` made (shuts down a Ray cluster it started)."""
+    for ex in _EXECUTORS.values():
+        ex.close()
+    _EXECUTORS.clear()

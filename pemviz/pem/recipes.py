@@ -1,0 +1,125 @@
+"""Named PEMs: how ``pemviz pem train --model NAME`` (re)trains each shipped PEM.
+
+- ``ml-nn``: the paper's ML-NN (spec section 2), shipped as ``assets/pem_ml-nn.pt``.
+- ``gbt``: gradient-boosted trees on the same 14 features, the best model of pemviz's 5-fold
+  cross-validation (issue 4), shipped as ``assets/pem_gbt.pt``.
+
+``seed`` is the seed of the shipped weights; ``assets/README.md`` says why each was chosen.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pemviz.pem.encoding import NormStats
+from pemviz.pem.network import PEM, train_pem
+from pemviz.pem.trees import TreePEM, train_tree_pem
+
+DEFAULT_PEM_NAME = "ml-nn"
+"""The PEM :func:`pemviz.pem.load_pem` loads when given no name."""
+BEST_PEM_NAME = "gbt"
+"""The best cross-validated PEM (issue 4: the scenario's intended default)."""
+
+
+@dataclass(frozen=True)
+class PemRecipe:
+    """An ML-NN-style PEM: the architecture and optimiser settings passed to :func:`train_pem`."""
+
+    name: str
+    description: str
+    hidden: tuple[int, ...] = (20, 20)
+    batch_norm: bool = True
+    dropout: float = 0.0
+    epochs: int = 300
+    batch_size: int = 1024
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    seed: int = 0
+
+    def train(
+        self,
+        inputs: np.ndarray,
+        labels: np.ndarray,
+        *,
+        seed: int | None = None,
+        epochs: int | None = None,
+        norm: NormStats | None = None,
+        progress: bool = False,
+        metadata: Mapping[str, Any] | None = None,
+    ) -> PEM:
+        """:func:`train_pem` with this recipe (``seed`` / ``epochs`` override the recipe's)."""
+        return train_pem(
+            inputs,
+            labels,
+            name=self.name,
+            hidden=self.hidden,
+            batch_norm=self.batch_norm,
+            dropout=self.dropout,
+            epochs=self.epochs if epochs is None else epochs,
+            batch_size=self.batch_size,
+            lr=self.lr,
+            weight_decay=self.weight_decay,
+            seed=self.seed if seed is None else seed,
+            norm=norm,
+            progress=progress,
+            metadata={"recipe": self.name, **dict(metadata or {})},
+        )
+
+
+@dataclass(frozen=True)
+class TreeRecipe:
+    """A boosted-trees PEM: the settings passed to :func:`train_tree_pem` (``epochs`` = number of trees)."""
+
+    name: str
+    description: str
+    learning_rate: float = 0.05
+    epochs: int = 300
+    max_leaf_nodes: int = 63
+    min_samples_leaf: int = 20
+    l2_regularization: float = 1.0
+    seed: int = 0
+
+    def train(
+        self,
+        inputs: np.ndarray,
+        labels: np.ndarray,
+        *,
+        seed: int | None = None,
+        epochs: int | None = None,
+        norm: NormStats | None = None,
+        progress: bool = False,
+        metadata: Mapping[str, Any] | None = None,
+    ) -> TreePEM:
+        """:func:`train_tree_pem` with this recipe (``epochs`` overrides the number of trees; no progress bar)."""
+        return train_tree_pem(
+            inputs,
+            labels,
+            name=self.name,
+            learning_rate=self.learning_rate,
+            max_iter=self.epochs if epochs is None else epochs,
+            max_leaf_nodes=self.max_leaf_nodes,
+            min_samples_leaf=self.min_samples_leaf,
+            l2_regularization=self.l2_regularization,
+            seed=self.seed if seed is None else seed,
+            norm=norm,
+            metadata={"recipe": self.name, **dict(metadata or {})},
+        )
+
+
+PEM_RECIPES: dict[str, PemRecipe | TreeRecipe] = {
+    "ml-nn": PemRecipe(
+        name="ml-nn",
+        description="the paper's ML-NN: 14-20-20-1 with BatchNorm, Adam 1e-3, batch 1024, 300 epochs",
+        seed=2,
+    ),
+    "gbt": TreeRecipe(
+        name="gbt",
+        description="gradient-boosted trees (scikit-learn HistGradientBoosting) on the same 14 features: "
+        "300 trees of 63 leaves, learning rate 0.05, L2 1.0",
+    ),
+}
+"""Named PEMs that ``pemviz pem train --model NAME`` can (re)train."""

@@ -1,0 +1,241 @@
+"""Store and find PEMs: ``assets/pem_<name>.pt`` files, atomic saves, and the authors' reference PEM.
+
+A PEM file is a ``torch.save`` of a plain dict that ``torch.load(weights_only=True)`` reads: format tag
+``pemviz-pem``, version, ``kind`` (``mlp`` for :class:`PEM`, ``gbt`` for :class:`TreePEM`), name, the
+z-score statistics (float64 tensors), the model's tensors and plain-value metadata.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pemviz.data import repo_root
+from pemviz.pem.encoding import POSE_COLUMNS, NormStats
+from pemviz.pem.network import PEM, PemFormatError
+from pemviz.pem.recipes import DEFAULT_PEM_NAME
+from pemviz.pem.trees import TreePEM
+
+ASSETS_DIR_ENV = "PEMVIZ_ASSETS_DIR"
+FORMAT_TAG = "pemviz-pem"
+FORMAT_VERSION = 1
+
+AnyPEM = PEM | TreePEM
+"""Every PEM kind: each has ``name``, ``norm``, ``metadata``, ``logit``, ``logit_at_gap``, ``prob_at_gap``."""
+
+
+def assets_dir() -> Path:
+    """``$PEMVIZ_ASSETS_DIR`` if set, else ``<repository root>/assets``."""
+    env = os.environ.get(ASSETS_DIR_ENV)
+    return Path(env).expanduser() if env else repo_root() / "assets"
+
+
+def pem_path(name: str = DEFAULT_PEM_NAME) -> Path:
+    """Where the shipped PEM called ``name`` lives: ``<assets>/pem_<name>.pt``."""
+    return assets_dir() / f"pem_{name}.pt"
+
+
+def _plain(value: Any) -> Any:
+    """Metadata as plain Python values (what ``torch.load(weights_only=True)`` accepts)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if value is None or isinstance(value, bool):
+        return value
+    for kind in (int, float, str):  # exact builtins: subclasses (e.g. torch's TorchVersion) are not loadable
+        if isinstance(value, kind):
+            return kind(value)
+    return str(value)
+
+
+def _default_file_mode() -> int:
+    """0o666 minus the process umask (what ``open()`` would give; ``mkstemp`` gives 0o600)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
+    """Write a PEM atomically (temporary file in the same folder, then ``os.replace``).
+
+    ``torch.load(path, weights_only=True)`` reads the file back (see the module docstring); about 10 KB
+    for the ML-NN, about 0.5 MB for the 300-tree ``gbt``.
+
+    Raises:
+        OSError: the folder is not writable (nothing is left behind).
+        TypeError: ``pem`` is not a :class:`PEM` or :class:`TreePEM`.
+    """
+    target = Path(path)
+    payload: dict[str, Any] = {
+        "format": FORMAT_TAG,
+        "version": FORMAT_VERSION,
+        "name": pem.name,
+        "norm_mean": torch.as_tensor(pem.norm.mean, dtype=torch.float64),
+        "norm_std": torch.as_tensor(pem.norm.std, dtype=torch.float64),
+        "metadata": _plain(pem.metadata),
+    }
+    if isinstance(pem, PEM):
+        payload.update(
+            {
+                "kind": PEM.kind,
+                "hidden": list(pem.hidden),
+                "batch_norm": bool(pem.batch_norm),
+                "temperature": float(pem.temperature),
+                "state_dict": {k: v.detach().cpu().clone() for k, v in pem.state_dict.items()},
+            }
+        )
+    elif isinstance(pem, TreePEM):
+        payload.update({"kind": TreePEM.kind, "baseline": float(pem.baseline), "trees": _pack_trees(pem)})
+    else:
+        raise TypeError(f"cannot save a {type(pem).__name__} as a PEM")
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            torch.save(payload, fh)
+        os.chmod(tmp, _default_file_mode())
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return target
+
+
+def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
+    """Load a PEM saved by :func:`save_pem`.
+
+    Args:
+        path: a file path, or the name of a shipped PEM (``"ml-nn"`` -> ``<assets>/pem_ml-nn.pt``, see
+            :func:`pem_path`); default :data:`DEFAULT_PEM_NAME`.
+
+    Returns:
+        A :class:`PEM` (kind ``mlp``) or a :class:`TreePEM` (kind ``gbt``).
+
+    Raises:
+        FileNotFoundError: no such file (the message lists the shipped PEMs).
+        PemFormatError: the file is not a pemviz PEM or is damaged.
+    """
+    if path is None:
+        path = DEFAULT_PEM_NAME
+    p = Path(path)
+    if isinstance(path, str) and p.suffix != ".pt" and len(p.parts) == 1:
+        p = pem_path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"PEM file {p} not found; shipped PEMs in {assets_dir()}: {shipped_pems() or 'none'}")
+    try:
+        payload = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for damaged files
+        raise PemFormatError(f"{p}: not a readable PEM file ({exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT_TAG:
+        raise PemFormatError(f"{p}: not a pemviz PEM file (missing format tag {FORMAT_TAG!r})")
+    if payload.get("version") != FORMAT_VERSION:
+        raise PemFormatError(f"{p}: PEM format version {payload.get('version')}, this pemviz reads {FORMAT_VERSION}")
+    kind = payload.get("kind", PEM.kind)
+    try:
+        norm = NormStats(mean=payload["norm_mean"].numpy(), std=payload["norm_std"].numpy())
+        meta = dict(payload.get("metadata") or {})
+        if kind == PEM.kind:
+            return PEM(
+                name=str(payload["name"]),
+                norm=norm,
+                state_dict=dict(payload["state_dict"]),
+                hidden=tuple(int(h) for h in payload["hidden"]),
+                batch_norm=bool(payload["batch_norm"]),
+                temperature=float(payload["temperature"]),
+                metadata=meta,
+            )
+        if kind == TreePEM.kind:
+            return TreePEM(
+                name=str(payload["name"]),
+                norm=norm,
+                baseline=float(payload["baseline"]),
+                metadata=meta,
+                **_unpack_trees(payload["trees"]),
+            )
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise PemFormatError(f"{p}: damaged PEM file ({exc!r})") from None
+    raise PemFormatError(f"{p}: unknown PEM kind {kind!r} (known: {PEM.kind}, {TreePEM.kind})")
+
+
+def _pack_trees(pem: TreePEM) -> dict[str, torch.Tensor]:
+    """Compact tree tensors: split fields only for internal nodes, values only for leaves, small int types."""
+    internal = ~pem.is_leaf
+    if pem.feature.size and int(pem.feature[internal].max(initial=0)) > 127:
+        raise ValueError("feature index does not fit int8")
+    return {
+        "is_leaf": torch.from_numpy(pem.is_leaf.copy()),
+        "feature": torch.from_numpy(pem.feature[internal].astype(np.int8)),
+        "threshold": torch.from_numpy(pem.threshold[internal].copy()),
+        "left": torch.from_numpy(pem.left[internal].astype(np.int32)),
+        "right": torch.from_numpy(pem.right[internal].astype(np.int32)),
+        "value": torch.from_numpy(pem.value[pem.is_leaf].copy()),
+        "roots": torch.from_numpy(pem.roots.astype(np.int32)),
+    }
+
+
+def _unpack_trees(packed: Mapping[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """Inverse of :func:`_pack_trees`: full-length node arrays (leaves get feature 0, threshold 0, children -1)."""
+    is_leaf = packed["is_leaf"].numpy().astype(bool)
+    internal = ~is_leaf
+    m = is_leaf.shape[0]
+    out = {
+        "is_leaf": is_leaf,
+        "feature": np.zeros(m, dtype=np.int64),
+        "threshold": np.zeros(m, dtype=np.float64),
+        "left": np.full(m, -1, dtype=np.int64),
+        "right": np.full(m, -1, dtype=np.int64),
+        "value": np.zeros(m, dtype=np.float64),
+        "roots": packed["roots"].numpy().astype(np.int64),
+    }
+    out["feature"][internal] = packed["feature"].numpy()
+    out["threshold"][internal] = packed["threshold"].numpy()
+    out["left"][internal] = packed["left"].numpy()
+    out["right"][internal] = packed["right"].numpy()
+    out["value"][is_leaf] = packed["value"].numpy()
+    return out
+
+
+def shipped_pems() -> list[str]:
+    """Names of the PEM files in :func:`assets_dir` (``pem_<name>.pt``), sorted."""
+    return sorted(f.stem[len("pem_") :] for f in assets_dir().glob("pem_*.pt"))
+
+
+def reference_pem_dir() -> Path:
+    """``<repository root>/../shared/reference/carla-stuff-pem``: the authors' PEM (never copied into pemviz)."""
+    return repo_root().parent / "shared" / "reference" / "carla-stuff-pem"
+
+
+def load_reference_pem(folder: str | os.PathLike[str] | None = None) -> PEM:
+    """The authors' ML-NN (CarlaStuff ``models/det_baseline_full/pem_class_train_full`` with
+    ``norm_stats_mu.pt`` / ``norm_stats_std.pt``) as a :class:`PEM` named ``authors``.
+
+    Their stats are float32 over all 11 columns; the pose columns 7..10 are used.
+
+    Raises:
+        FileNotFoundError: the folder or one of its three files is missing.
+    """
+    d = Path(folder) if folder is not None else reference_pem_dir()
+    files = [d / "pem_class_train_full.pt", d / "norm_stats_mu.pt", d / "norm_stats_std.pt"]
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        raise FileNotFoundError(f"authors' PEM files missing: {', '.join(missing)}")
+    state = torch.load(files[0], map_location="cpu", weights_only=True)
+    mu = torch.load(files[1], map_location="cpu", weights_only=True).to(torch.float64).numpy()
+    sd = torch.load(files[2], map_location="cpu", weights_only=True).to(torch.float64).numpy()
+    cols = list(POSE_COLUMNS)
+    return PEM(
+        name="authors",
+        norm=NormStats(mean=mu[cols], std=sd[cols]),
+        state_dict=dict(state),
+        metadata={"source": "craigiedon/CarlaStuff models/det_baseline_full/pem_class_train_full"},
+    )

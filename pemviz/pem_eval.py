@@ -1,0 +1,612 @@
+"""PEM quality: 5-fold cross-validation of the PEM models (paper Table I) with calibration.
+
+Protocol (spec section 2, the authors' ``eval_kfold_class_models.py``): ``StratifiedKFold(n_splits=5)``
+on the detected label, folds in file order (no shuffle); every model is trained on 4 folds and scored on
+the fifth; the 14-dim encoding uses the z-score statistics of the full file. Per fold: BCE (nats), ROC-AUC,
+average precision (AP) and expected calibration error (ECE, 15 equal-width bins); the table reports the
+mean over folds beside the paper's numbers.
+
+Models:
+
+- ``ml-nn``: the paper's ML-NN (300 epochs, :mod:`pemviz.pem.network`);
+- ``lr``: logistic regression on the 14 features (scikit-learn, ``max_iter=10000``, as the authors);
+- ``guess-mu``: the training folds' detection rate for every row;
+- ``b-nn``: the Bayesian NN (pyro, :mod:`pemviz.pem.bayes`);
+- ``gbt``: gradient-boosted trees on the same 14 features (:mod:`pemviz.pem.trees`), pemviz's best model,
+  chosen by cross-validation on these folds (settings compared in ``assets/README.md``).
+
+:func:`evaluate_pems` computes; :func:`format_markdown` / :func:`format_csv` and :func:`write_recording`
+(rerun: ROC curves, reliability diagrams, p(detect | gap) curves beside the authors' PEM) present.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from pemviz.pem import (
+    PEM_RECIPES,
+    NormStats,
+    bce_from_logits,
+    encode_salient,
+    fit_norm_stats,
+    load_reference_pem,
+)
+
+MODEL_NAMES = ("ml-nn", "lr", "guess-mu", "b-nn", "gbt")
+"""Every model :func:`evaluate_pems` knows, in table order."""
+
+MODEL_DESCRIPTIONS = {
+    "ml-nn": "paper ML-NN: 14-20-20-1, BatchNorm, Adam 1e-3, batch 1024",
+    "lr": "logistic regression on the 14 features (scikit-learn)",
+    "guess-mu": "training-fold detection rate for every row",
+    "b-nn": "Bayesian NN (pyro): N(0,1) priors, low-rank MVN guide, predictive mean",
+    "gbt": "pemviz: gradient-boosted trees on the 14 features (scikit-learn)",
+}
+
+PAPER_TABLE_I = {"b-nn": (0.238, 0.726), "lr": (0.244, 0.688), "ml-nn": (0.226, 0.777), "guess-mu": (0.260, 0.5)}
+"""(BCE, ROC-AUC) of the paper's Table I."""
+
+GAP_GRID_M = np.round(np.arange(0.0, 50.0 + 1e-9, 0.25), 6)
+"""Gaps (metres) at which each model's p(detect | braking scenario's lead) is tabulated."""
+
+
+class Predictor(Protocol):
+    def logit(self, raw_inputs: np.ndarray) -> np.ndarray: ...
+
+    def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Settings of :func:`evaluate_pems`.
+
+    ``folds``: which of the ``n_splits`` folds to run (None = all; CI runs one). ``mlnn_epochs``,
+    ``gbt_trees``, ``bnn_steps``, ``bnn_samples`` shrink the models for a quick run; the defaults are the
+    full protocol. ``seed`` seeds every model (ML-NN, B-NN, trees).
+
+    Raises:
+        ValueError: an unknown model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1.
+    """
+
+    models: tuple[str, ...] = MODEL_NAMES
+    n_splits: int = 5
+    folds: tuple[int, ...] | None = None
+    mlnn_epochs: int = 300
+    gbt_trees: int = 300
+    bnn_steps: int = 2000
+    bnn_samples: int = 800
+    n_bins: int = 15
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.models if m not in MODEL_NAMES]
+        if unknown or not self.models:
+            raise ValueError(f"models {list(self.models)}: use one or more of {', '.join(MODEL_NAMES)}")
+        if len(set(self.models)) != len(self.models):
+            raise ValueError(f"models {list(self.models)}: a model is listed twice")
+        if self.n_splits < 2:
+            raise ValueError(f"n_splits = {self.n_splits}: need at least 2 folds")
+        if self.folds is not None and (not self.folds or any(not 0 <= f < self.n_splits for f in self.folds)):
+            raise ValueError(f"folds {self.folds}: each must be in 0..{self.n_splits - 1}")
+        for name in ("mlnn_epochs", "gbt_trees", "bnn_steps", "bnn_samples", "n_bins"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} = {getattr(self, name)}: must be >= 1")
+
+    @property
+    def fold_ids(self) -> tuple[int, ...]:
+        return tuple(range(self.n_splits)) if self.folds is None else tuple(self.folds)
+
+
+@dataclass(frozen=True)
+class FoldScore:
+    """One model on one test fold: BCE (nats), ROC-AUC, average precision, ECE; fit time in seconds."""
+
+    fold: int
+    n_test: int
+    bce: float
+    auc: float
+    ap: float
+    ece: float
+    fit_s: float
+
+
+@dataclass(frozen=True)
+class ModelEvaluation:
+    """A model's cross-validation: per-fold scores, out-of-fold logits and its p(detect | gap) curves.
+
+    ``test_rows`` int ``[M]`` (rows of the data file, fold after fold), ``test_fold`` ``[M]``, ``logits``
+    float64 ``[M]`` (each row scored by the model that did not train on it), ``gap_prob`` float64
+    ``[F, G]`` (each fold's model on :data:`GAP_GRID_M`).
+    """
+
+    name: str
+    description: str
+    folds: tuple[FoldScore, ...]
+    test_rows: np.ndarray
+    test_fold: np.ndarray
+    logits: np.ndarray
+    gap_prob: np.ndarray
+
+    def mean(self, metric: str) -> float:
+        return float(np.mean([getattr(f, metric) for f in self.folds]))
+
+    def std(self, metric: str) -> float:
+        values = [getattr(f, metric) for f in self.folds]
+        return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    """Everything :func:`evaluate_pems` measured (``labels``: the full file's, ``[N]``)."""
+
+    config: EvalConfig
+    models: tuple[ModelEvaluation, ...]
+    labels: np.ndarray
+    gaps_m: np.ndarray
+    authors_gap_prob: np.ndarray | None
+    wall_s: float
+    data_source: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def model(self, name: str) -> ModelEvaluation:
+        for m in self.models:
+            if m.name == name:
+                return m
+        raise KeyError(f"model {name!r} was not evaluated; evaluated: {[m.name for m in self.models]}")
+
+    def best(self) -> str:
+        """The model with the lowest mean BCE."""
+        return min(self.models, key=lambda m: m.mean("bce")).name
+
+
+# ------------------------------------------------------------------------------------------- metrics
+
+
+def stratified_folds(labels: np.ndarray, n_splits: int = 5) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(train_rows, test_rows)`` of ``StratifiedKFold(n_splits)`` on the labels, file order, no shuffle."""
+    from sklearn.model_selection import StratifiedKFold
+
+    y = np.asarray(labels).reshape(-1)
+    return list(StratifiedKFold(n_splits=n_splits, shuffle=False).split(np.zeros((y.shape[0], 1)), y))
+
+
+def reliability_curve(
+    prob: np.ndarray, labels: np.ndarray, n_bins: int = 15
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Equal-width reliability bins on [0, 1]: ``(mean predicted p, observed detection rate, count)``,
+    each ``[n_bins]`` (NaN where a bin is empty). Bin ``k`` holds ``k/n <= p < (k+1)/n`` (p = 1 in the last)."""
+    p = np.asarray(prob, dtype=np.float64).reshape(-1)
+    y = np.asarray(labels, dtype=np.float64).reshape(-1)
+    bins = np.minimum((p * n_bins).astype(np.int64), n_bins - 1)
+    count = np.bincount(bins, minlength=n_bins).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_p = np.bincount(bins, weights=p, minlength=n_bins) / count
+        rate = np.bincount(bins, weights=y, minlength=n_bins) / count
+    return mean_p, rate, count
+
+
+def expected_calibration_error(prob: np.ndarray, labels: np.ndarray, n_bins: int = 15) -> float:
+    """ECE = sum over equal-width bins of (bin share) * |mean predicted p - observed rate| (Guo et al. 2017)."""
+    mean_p, rate, count = reliability_curve(prob, labels, n_bins)
+    filled = count > 0
+    return float(np.sum(count[filled] / count.sum() * np.abs(mean_p[filled] - rate[filled])))
+
+
+def score(logits: np.ndarray, labels: np.ndarray, n_bins: int = 15) -> tuple[float, float, float, float]:
+    """``(BCE nats, ROC-AUC, average precision, ECE)`` of logits against labels in {0, 1}."""
+    from sklearn.metrics import average_precision_score, roc_auc_score
+
+    logit = np.asarray(logits, dtype=np.float64).reshape(-1)
+    y = np.asarray(labels, dtype=np.float64).reshape(-1)
+    prob = np.exp(-np.logaddexp(0.0, -logit))
+    return (
+        bce_from_logits(logit, y),
+        float(roc_auc_score(y, logit)),
+        float(average_precision_score(y, logit)),
+        expected_calibration_error(prob, y, n_bins),
+    )
+
+
+# -------------------------------------------------------------------------------------------- models
+
+
+@dataclass(frozen=True)
+class LinearPredictor:
+    """``logit = features @ coef + intercept`` (the fitted logistic regression), float64."""
+
+    norm: NormStats
+    coef: np.ndarray
+    intercept: float
+
+    def logit(self, raw_inputs: np.ndarray) -> np.ndarray:
+        return encode_salient(raw_inputs, self.norm) @ self.coef + self.intercept
+
+    def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
+        from pemviz.pem import braking_salient_inputs
+
+        gap = np.asarray(gap_m, dtype=np.float64)
+        return self.logit(braking_salient_inputs(gap)).reshape(gap.shape)
+
+
+@dataclass(frozen=True)
+class ConstantPredictor:
+    """The same logit for every row (Guess-mu)."""
+
+    value: float
+
+    def logit(self, raw_inputs: np.ndarray) -> np.ndarray:
+        return np.full(np.asarray(raw_inputs).shape[0], self.value)
+
+    def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
+        return np.full(np.asarray(gap_m, dtype=np.float64).shape, self.value)
+
+
+def fit_model(name: str, inputs: np.ndarray, labels: np.ndarray, norm: NormStats, config: EvalConfig) -> Predictor:
+    """Train model ``name`` on raw inputs ``[N, 11]`` and labels ``[N]`` (one training split)."""
+    y = np.asarray(labels, dtype=np.float64)
+    if name == "ml-nn":
+        return PEM_RECIPES["ml-nn"].train(inputs, y, seed=config.seed, epochs=config.mlnn_epochs, norm=norm)
+    if name == "gbt":
+        return PEM_RECIPES["gbt"].train(inputs, y, seed=config.seed, epochs=config.gbt_trees, norm=norm)
+    if name == "lr":
+        from sklearn.linear_model import LogisticRegression
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1):
+            lr = LogisticRegression(max_iter=10000).fit(encode_salient(inputs, norm), y.astype(np.int64))
+        return LinearPredictor(norm=norm, coef=lr.coef_[0].astype(np.float64), intercept=float(lr.intercept_[0]))
+    if name == "guess-mu":
+        mu = float(y.mean())
+        return ConstantPredictor(math.log(mu) - math.log1p(-mu))
+    if name == "b-nn":
+        from pemviz.pem.bayes import train_bnn_pem
+
+        return train_bnn_pem(
+            inputs, y, norm=norm, steps=config.bnn_steps, n_samples=config.bnn_samples, seed=config.seed
+        )
+    raise ValueError(f"unknown model {name!r}; known: {', '.join(MODEL_NAMES)}")
+
+
+def evaluate_pems(
+    inputs: np.ndarray,
+    labels: np.ndarray,
+    config: EvalConfig | None = None,
+    *,
+    on_fold: Callable[[str, FoldScore], None] | None = None,
+    data_source: str = "",
+) -> EvalResult:
+    """Cross-validate the configured models (default :class:`EvalConfig`, the full protocol) on raw salient
+    inputs ``[N, 11]`` and labels ``[N]``.
+
+    The z-score statistics are those of all ``N`` rows (spec section 2); folds from
+    :func:`stratified_folds`. ``on_fold(model, score)`` is called after each fit (for progress output).
+    The authors' PEM curve is added when ``../shared/reference/carla-stuff-pem`` is present.
+
+    Raises:
+        ValueError: mismatched lengths or labels not in {0, 1}.
+    """
+    config = EvalConfig() if config is None else config
+    start = time.perf_counter()
+    raw = np.asarray(inputs, dtype=np.float64)
+    y = np.asarray(labels, dtype=np.float64).reshape(-1)
+    if raw.shape[0] != y.shape[0]:
+        raise ValueError(f"inputs have {raw.shape[0]} rows but labels {y.shape[0]}")
+    if not np.all((y == 0.0) | (y == 1.0)):
+        raise ValueError("labels must be 0 or 1")
+    norm = fit_norm_stats(raw)
+    splits = stratified_folds(y, config.n_splits)
+    results = []
+    for name in config.models:
+        scores, rows, fold_of, logits, curves = [], [], [], [], []
+        for k in config.fold_ids:
+            train, test = splits[k]
+            t0 = time.perf_counter()
+            model = fit_model(name, raw[train], y[train], norm, config)
+            fit_s = time.perf_counter() - t0
+            logit = np.asarray(model.logit(raw[test]), dtype=np.float64)
+            bce, auc, ap, ece = score(logit, y[test], config.n_bins)
+            fs = FoldScore(fold=k, n_test=int(test.shape[0]), bce=bce, auc=auc, ap=ap, ece=ece, fit_s=fit_s)
+            scores.append(fs)
+            rows.append(test)
+            fold_of.append(np.full(test.shape[0], k))
+            logits.append(logit)
+            curves.append(np.exp(-np.logaddexp(0.0, -np.asarray(model.logit_at_gap(GAP_GRID_M)))))
+            if on_fold is not None:
+                on_fold(name, fs)
+        results.append(
+            ModelEvaluation(
+                name=name,
+                description=MODEL_DESCRIPTIONS[name],
+                folds=tuple(scores),
+                test_rows=np.concatenate(rows),
+                test_fold=np.concatenate(fold_of),
+                logits=np.concatenate(logits),
+                gap_prob=np.stack(curves),
+            )
+        )
+    try:
+        authors = load_reference_pem().prob_at_gap(GAP_GRID_M)
+    except FileNotFoundError:
+        authors = None
+    return EvalResult(
+        config=config,
+        models=tuple(results),
+        labels=y,
+        gaps_m=GAP_GRID_M.copy(),
+        authors_gap_prob=authors,
+        wall_s=time.perf_counter() - start,
+        data_source=data_source,
+    )
+
+
+# ----------------------------------------------------------------------------------------- formatting
+
+
+def format_markdown(result: EvalResult) -> str:
+    """The table as Markdown: mean +- std over folds, the paper's numbers, per-fold BCE and AUC."""
+    folds = result.config.fold_ids
+    lines = [
+        f"PEM cross-validation: {len(folds)} of {result.config.n_splits} stratified folds (file order, no shuffle), "
+        f"{result.labels.shape[0]} rows{f' from {result.data_source}' if result.data_source else ''}; "
+        f"ECE with {result.config.n_bins} equal-width bins; wall time {result.wall_s:.0f} s.",
+        "",
+        "| model | BCE (nats) | ROC-AUC | AP | ECE | paper BCE | paper AUC | per-fold BCE | per-fold AUC "
+        "| fit s/fold |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    best = result.best()
+    for m in result.models:
+        paper = PAPER_TABLE_I.get(m.name)
+        name = f"**{m.name}**" if m.name == best else m.name
+        lines.append(
+            f"| {name} | {m.mean('bce'):.4f} ± {m.std('bce'):.4f} | {m.mean('auc'):.4f} ± {m.std('auc'):.4f} | "
+            f"{m.mean('ap'):.4f} | {m.mean('ece'):.4f} | {f'{paper[0]:.3f}' if paper else '-'} | "
+            f"{f'{paper[1]:.3f}' if paper else '-'} | "
+            f"{' '.join(f'{f.bce:.4f}' for f in m.folds)} | {' '.join(f'{f.auc:.4f}' for f in m.folds)} | "
+            f"{m.mean('fit_s'):.1f} |"
+        )
+    lines += [
+        "",
+        "Bold: lowest mean BCE. Models: " + "; ".join(f"`{m.name}` {m.description}" for m in result.models) + ".",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def format_csv(result: EvalResult) -> str:
+    """Long CSV: one row per model and fold, then one ``mean`` row per model."""
+    out = ["model,fold,n_test,bce,roc_auc,average_precision,ece,fit_s"]
+    for m in result.models:
+        for f in m.folds:
+            out.append(f"{m.name},{f.fold},{f.n_test},{f.bce:.6f},{f.auc:.6f},{f.ap:.6f},{f.ece:.6f},{f.fit_s:.3f}")
+        out.append(
+            f"{m.name},mean,{sum(f.n_test for f in m.folds)},{m.mean('bce'):.6f},{m.mean('auc'):.6f},"
+            f"{m.mean('ap'):.6f},{m.mean('ece'):.6f},{m.mean('fit_s'):.3f}"
+        )
+    return "\n".join(out) + "\n"
+
+
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
+    """Write ``text`` to ``path`` via a temporary file and ``os.replace``."""
+    target = Path(path)
+    tmp = target.with_name(f".{target.name}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, target)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return target
+
+
+# ------------------------------------------------------------------------------------------ recording
+
+MODEL_RGBA = {
+    "ml-nn": (90, 160, 240, 255),
+    "lr": (170, 120, 220, 255),
+    "guess-mu": (150, 150, 150, 255),
+    "b-nn": (80, 200, 160, 255),
+    "gbt": (250, 170, 40, 255),
+    "authors": (245, 245, 245, 255),
+}
+APP_ID = "pemviz_pem_eval"
+
+
+def _roc_points(logits: np.ndarray, labels: np.ndarray, max_points: int = 400) -> np.ndarray:
+    from sklearn.metrics import roc_curve
+
+    fpr, tpr, _ = roc_curve(labels, logits)
+    if fpr.shape[0] > max_points:
+        keep = np.unique(np.linspace(0, fpr.shape[0] - 1, max_points).round().astype(np.int64))
+        fpr, tpr = fpr[keep], tpr[keep]
+    return np.column_stack([fpr, tpr])
+
+
+def log_recording(result: EvalResult, stream: Any) -> None:
+    """Log the evaluation into a rerun ``RecordingStream`` (all static).
+
+    Entities: ``description`` (Markdown table); ``roc/data/<model>`` (pooled out-of-fold ROC curve,
+    thick) and ``roc/data/<model>/fold_K`` (thin); ``reliability/data/<model>`` (pooled reliability
+    diagram: mean predicted p against observed detection rate per bin, points sized by count) and
+    ``reliability/data/diagonal``; ``gap/data/<model>`` (mean over fold models of p(detect | gap) for the
+    braking scenario's lead, spec section 2) and ``gap/data/authors`` (the authors' PEM);
+    ``metrics/<model>`` (the numbers as ``AnyValues``); ``bars/{bce,auc,ece}`` (bar charts in table order).
+    """
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    from pemviz.sinks.recording import Figure
+
+    roc_fig = Figure("roc", "false positive rate", "true positive rate")
+    rel_fig = Figure("reliability", "mean predicted p(detect)", "observed detection rate")
+    gap_fig = Figure("gap", "gap d (m)", "p(detect | d)")
+    stream.log(
+        "description",
+        rr.TextDocument(
+            "# PEM quality (pemviz pem eval)\n\n"
+            + format_markdown(result)
+            + "\n**ROC**: pooled out-of-fold curves (thick) and per fold (thin). **Reliability**: equal-width bins "
+            "of the pooled out-of-fold p(detect); on the diagonal = calibrated. **p(detect | d)**: the braking "
+            "scenario's lead (Car, not occluded, x = 0, y = 1.76, z = d + 2.48, rot_y = -pi/2), mean over the fold "
+            "models; white = the authors' PEM.\n",
+            media_type=rr.MediaType.MARKDOWN,
+        ),
+        static=True,
+    )
+
+    roc_fig.draw_axes(stream, (0.0, 1.0), (0.0, 1.0))
+    stream.log(
+        "roc/data/chance", rr.LineStrips2D([[[0, 0], [1, 1]]], colors=(110, 110, 110, 255), radii=-0.5), static=True
+    )
+    y = result.labels
+    lo = 1.0
+    for m in result.models:
+        colour = MODEL_RGBA.get(m.name, (200, 200, 200, 255))
+        pooled = _roc_points(m.logits, y[m.test_rows])
+        stream.log(
+            f"roc/data/{m.name}",
+            rr.LineStrips2D([pooled], colors=colour, radii=-2.0, labels=[f"{m.name} AUC {m.mean('auc'):.3f}"]),
+            static=True,
+        )
+        for k in np.unique(m.test_fold):
+            sel = m.test_fold == k
+            stream.log(
+                f"roc/data/{m.name}/fold_{k}",
+                rr.LineStrips2D(
+                    [_roc_points(m.logits[sel], y[m.test_rows[sel]])], colors=colour[:3] + (110,), radii=-0.75
+                ),
+                static=True,
+            )
+        prob = np.exp(-np.logaddexp(0.0, -m.logits))
+        lo = min(lo, float(np.quantile(prob, 0.001)))
+    lo = max(0.0, math.floor(lo * 10) / 10)
+
+    rel_fig.draw_axes(stream, (lo, 1.0), (lo, 1.0))
+    stream.log(
+        "reliability/data/diagonal",
+        rr.LineStrips2D([[[lo, lo], [1, 1]]], colors=(110, 110, 110, 255), radii=-0.5),
+        static=True,
+    )
+    for m in result.models:
+        colour = MODEL_RGBA.get(m.name, (200, 200, 200, 255))
+        prob = np.exp(-np.logaddexp(0.0, -m.logits))
+        mean_p, rate, count = reliability_curve(prob, y[m.test_rows], result.config.n_bins)
+        ok = (count > 0) & (mean_p >= lo) & (rate >= lo)
+        pts = np.column_stack([mean_p[ok], rate[ok]])
+        share = count[ok] / count.sum()
+        stream.log(f"reliability/data/{m.name}", rr.LineStrips2D([pts], colors=colour, radii=-1.0), static=True)
+        stream.log(
+            f"reliability/data/{m.name}/bins",
+            rr.Points2D(
+                pts,
+                colors=colour,
+                radii=-(2.0 + 10.0 * np.sqrt(share)),
+                labels=[
+                    f"{m.name}: {int(c)} rows, p {p:.3f}, rate {r:.3f}"
+                    for c, p, r in zip(count[ok], mean_p[ok], rate[ok], strict=False)
+                ],
+            ),
+            static=True,
+        )
+
+    curves = [m.gap_prob.mean(axis=0) for m in result.models]
+    if result.authors_gap_prob is not None:
+        curves.append(result.authors_gap_prob)
+    g_lo = max(0.0, math.floor(min(float(np.min(c)) for c in curves) * 20) / 20)
+    gap_fig.draw_axes(stream, (float(result.gaps_m[0]), float(result.gaps_m[-1])), (g_lo, 1.0))
+    for m, curve in zip(result.models, curves, strict=False):
+        stream.log(
+            f"gap/data/{m.name}",
+            rr.LineStrips2D(
+                [np.column_stack([result.gaps_m, curve])],
+                colors=MODEL_RGBA.get(m.name, (200, 200, 200, 255)),
+                radii=-1.5,
+            ),
+            static=True,
+        )
+    if result.authors_gap_prob is not None:
+        stream.log(
+            "gap/data/authors",
+            rr.LineStrips2D(
+                [np.column_stack([result.gaps_m, result.authors_gap_prob])], colors=MODEL_RGBA["authors"], radii=-2.0
+            ),
+            static=True,
+        )
+    for m in result.models:
+        stream.log(
+            f"metrics/{m.name}",
+            rr.AnyValues(
+                bce=m.mean("bce"),
+                roc_auc=m.mean("auc"),
+                average_precision=m.mean("ap"),
+                ece=m.mean("ece"),
+                bce_per_fold=[f.bce for f in m.folds],
+                auc_per_fold=[f.auc for f in m.folds],
+            ),
+            static=True,
+        )
+    for metric in ("bce", "auc", "ece"):
+        stream.log(f"bars/{metric}", rr.BarChart([m.mean(metric) for m in result.models]), static=True)
+
+    stream.send_blueprint(
+        rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Vertical(roc_fig.view("ROC (out-of-fold)"), rel_fig.view("Reliability (15 bins)")),
+                rrb.Vertical(
+                    gap_fig.view("p(detect | gap), braking scenario"),
+                    rrb.TextDocumentView(origin="/description", name="Table"),
+                ),
+                rrb.Vertical(
+                    *(
+                        rrb.BarChartView(
+                            origin=f"/bars/{k}", name=f"mean {k.upper()} ({', '.join(m.name for m in result.models)})"
+                        )
+                        for k in ("bce", "auc", "ece")
+                    )
+                ),
+                column_shares=[2, 2, 1],
+            ),
+            collapse_panels=True,
+        )
+    )
+
+
+def write_recording(result: EvalResult, path: str | os.PathLike[str]) -> Path:
+    """Write the rerun recording of :func:`log_recording` to ``path`` (via ``path.partial``, then renamed)."""
+    import rerun as rr
+
+    target = Path(path)
+    partial = target.with_name(target.name + ".partial")
+    stream = rr.RecordingStream(APP_ID)
+    stream.set_log_time_enabled(False)
+    stream.set_log_tick_enabled(False)
+    stream.save(partial)
+    try:
+        log_recording(result, stream)
+        stream.flush()
+        stream.disconnect()
+        os.replace(partial, target)
+    finally:
+        if partial.exists():
+            partial.unlink()
+    return target
+
+
+def summary_lines(result: EvalResult) -> Sequence[str]:
+    """One console line per model: mean BCE, AUC, AP, ECE and the paper's numbers."""
+    out = []
+    for m in result.models:
+        paper = PAPER_TABLE_I.get(m.name)
+        ref = f"   (paper {paper[0]:.3f} / {paper[1]:.3f})" if paper else ""
+        out.append(
+            f"{m.name:9s} BCE {m.mean('bce'):.4f}  AUC {m.mean('auc'):.4f}  AP {m.mean('ap'):.4f}  "
+            f"ECE {m.mean('ece'):.4f}{ref}"
+        )
+    return out

@@ -1,0 +1,876 @@
+"""Logged rollouts on disk: a Parquet table, one row per step, and a JSON sidecar (spec, dt, units).
+
+pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``pemviz run
+--save-rollouts``): :func:`write_rollouts` / :func:`read_rollouts` here, ``pemviz estimate`` on the
+command line. Both validate with the same code, so a file pemviz writes is one pemviz reads.
+
+Format, version 1
+-----------------
+``NAME.parquet``: one row per (rollout, step). The rows of a rollout are contiguous, hold steps
+0, 1, ..., T-1 in this order, and every rollout has the same T.
+
+============================  ===========================  =====  ==========================================
+column                        type                         unit   meaning
+============================  ===========================  =====  ==========================================
+``rollout``                   integer                      -      rollout id (any distinct integers)
+``step``                      integer                      -      step t = 0..T-1 (time t * dt_s)
+``gap_m``                     float                        m      the gap: h(s) of the proposal (required)
+signals of the spec           float                        SI     e.g. ``ego_speed_mps``, ``lead_speed_mps``
+``detected``                  bool (or integer 0/1)        -      the detector output a_t taken at step t
+``salient_<name>`` (11)       float                        m/rad  optional: the PEM's salient variables, KITTI
+                                                                  columns :data:`SALIENT_COLUMNS`
+``log_p``                     float                        nats   optional: log p_PEM(a_t | s_t)
+``log_q``                     float                        nats   optional: log q(a_t | s_t), the detector
+                                                                  that sampled the rollout
+============================  ===========================  =====  ==========================================
+
+Floats must be finite; log-probabilities <= 0. Other columns are ignored.
+
+``NAME.json`` (the sidecar, same name with suffix ``.json``), a JSON object:
+
+- ``formula`` (required): the safety spec in STL, e.g. ``"G[0,99](d >= 2)"``; failure = classic
+  robustness < 0 (spec section 3).
+- ``dt_s`` (required): seconds per step.
+- ``signals``: STL signal name -> column (default ``{"d": "gap_m"}``); ``signal_ranges``: per STL
+  signal ``[lo, hi]`` for AGM's normalisation; ``observation_columns``: the state columns in the order
+  detectors see them (default ``gap_m`` then the signals' columns); ``units``: column -> unit (informative).
+- ``pem``: the PEM ``log_p`` was computed under (a shipped name or a path); ``proposal``: a proposal
+  checkpoint (:func:`save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` / ``mixed50``,
+  what sampled the rollouts; ``window_m``: mixed50's 50 % window (metres, default 10).
+- ``n_rollouts``, ``n_steps``: checked against the table when present.
+- ``format`` (``"pemviz-rollouts"``), ``version`` (1), ``pemviz_version``, ``provenance`` (free-form:
+  the run's config, stage, estimate).
+
+Importance weights use the first T - 1 steps (the last action affects nothing; spec section 4), as the
+engine does, so an estimate from a file written by ``pemviz run`` equals the run's to float64 rounding.
+Bad input raises :class:`RolloutFormatError`: one message naming the file, the column, and the rollout
+and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+import pemviz
+from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
+from pemviz.scenarios import RolloutBatch
+
+FORMAT_TAG = "pemviz-rollouts"
+FORMAT_VERSION = 1
+PROPOSAL_FORMAT_TAG = "pemviz-proposal"
+PROPOSAL_FORMAT_VERSION = 1
+
+KITTI_COLUMNS = ("class", "truncation", "occlusion", "alpha", "dim_w", "dim_l", "dim_h", "loc_x", "loc_y", "loc_z",
+                 "rot_y")  # fmt: skip
+"""The 11 salient-variable columns of the KITTI files (:data:`pemviz.data.INPUT_COLUMNS`)."""
+SALIENT_COLUMNS = tuple(f"salient_{c}" for c in KITTI_COLUMNS)
+"""Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads."""
+SALIENT_UNITS = {"alpha": "rad", "rot_y": "rad", "dim_w": "m", "dim_l": "m", "dim_h": "m", "loc_x": "m",
+                 "loc_y": "m", "loc_z": "m"}  # fmt: skip
+BRAKING_UNITS = {"gap_m": "m", "ego_speed_mps": "m/s", "lead_speed_mps": "m/s", "log_p": "nats", "log_q": "nats",
+                 **{f"salient_{k}": u for k, u in SALIENT_UNITS.items()}}  # fmt: skip
+SAMPLERS = ("pem", "naive50", "mixed50")
+"""Named samplers a file's log q can be recomputed from besides a proposal checkpoint."""
+STRUCTURE_COLUMNS = ("rollout", "step", "detected")
+
+
+class RolloutFormatError(ValueError):
+    """A rollout file, its sidecar or a proposal checkpoint is malformed: the message says where and why."""
+
+
+# ----------------------------------------------------------------------------------------- metadata
+
+
+@dataclass(frozen=True)
+class RolloutMeta:
+    """The JSON sidecar of a rollout file (module docstring). Units: seconds, metres, nats.
+
+    Attributes:
+        formula: the safety spec (STL text); failure = classic robustness < 0.
+        dt_s: seconds per step.
+        signals: STL signal name -> column.
+        signal_ranges: STL signal name -> (lo, hi), AGM's predicate normalisation.
+        observation_columns: state columns in the order detectors see them (``gap_m`` first); the
+            signals' columns are added after them (:attr:`columns`).
+        units: column -> unit (informative).
+        pem: the PEM ``log_p`` was computed under (name or path), if known.
+        proposal: what sampled the rollouts: a checkpoint path relative to the sidecar, or one of
+            :data:`SAMPLERS`; None if unknown.
+        window_m: the mixed50 sampler's 50 % window (metres).
+        n_rollouts, n_steps: N and T, checked against the table when set.
+        pemviz_version: the writer's version.
+        provenance: free-form JSON (the run's config, the stage the rollouts come from, its estimate).
+    """
+
+    formula: str
+    dt_s: float
+    signals: Mapping[str, str] = field(default_factory=lambda: {"d": "gap_m"})
+    signal_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    observation_columns: tuple[str, ...] = ()
+    units: Mapping[str, str] = field(default_factory=dict)
+    pem: str | None = None
+    proposal: str | None = None
+    window_m: float = 10.0
+    n_rollouts: int | None = None
+    n_steps: int | None = None
+    pemviz_version: str = pemviz.__version__
+    provenance: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The observation columns: ``gap_m``, then ``observation_columns``, then the signals' columns."""
+        return tuple(dict.fromkeys(["gap_m", *self.observation_columns, *self.signals.values()]))
+
+    def to_json(self) -> dict[str, Any]:
+        """The sidecar as a JSON object."""
+        return {
+            "format": FORMAT_TAG,
+            "version": FORMAT_VERSION,
+            "pemviz_version": self.pemviz_version,
+            "formula": self.formula,
+            "dt_s": self.dt_s,
+            "signals": dict(self.signals),
+            "signal_ranges": {k: [float(lo), float(hi)] for k, (lo, hi) in self.signal_ranges.items()},
+            "observation_columns": list(self.columns),
+            "units": dict(self.units),
+            "pem": self.pem,
+            "proposal": self.proposal,
+            "window_m": self.window_m,
+            "n_rollouts": self.n_rollouts,
+            "n_steps": self.n_steps,
+            "provenance": _plain(self.provenance),
+        }
+
+    @classmethod
+    def from_json(cls, obj: Any, where: str = "sidecar") -> "RolloutMeta":
+        """Parse and check a sidecar object.
+
+        Raises:
+            RolloutFormatError: not an object, wrong format tag or version, a missing or invalid field.
+        """
+        from pemviz import stl
+
+        def bad(msg: str) -> RolloutFormatError:
+            return RolloutFormatError(f"{where}: {msg}")
+
+        if not isinstance(obj, dict):
+            raise bad(f"must be a JSON object, got {type(obj).__name__}")
+        if obj.get("format", FORMAT_TAG) != FORMAT_TAG:
+            raise bad(f"format is {obj.get('format')!r}, expected {FORMAT_TAG!r}")
+        if obj.get("version", FORMAT_VERSION) != FORMAT_VERSION:
+            raise bad(f"format version {obj.get('version')!r}; this pemviz reads version {FORMAT_VERSION}")
+        for key in ("formula", "dt_s"):
+            if key not in obj:
+                raise bad(f"field {key!r} is missing (required: formula, dt_s)")
+        formula = obj["formula"]
+        if not isinstance(formula, str):
+            raise bad(f"formula must be STL text such as 'G[0,99](d >= 2)', got {formula!r}")
+        try:
+            stl.parse(formula)
+        except ValueError as exc:
+            raise bad(f"formula {formula!r} is not valid STL: {exc}") from None
+        dt = obj["dt_s"]
+        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
+            raise bad(f"dt_s must be a number of seconds > 0, got {dt!r}")
+        signals = obj.get("signals") or {"d": "gap_m"}
+        if not isinstance(signals, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in signals.items()):
+            raise bad(f"signals must map STL names to column names, got {signals!r}")
+        ranges: dict[str, tuple[float, float]] = {}
+        for k, v in (obj.get("signal_ranges") or {}).items():
+            if not (isinstance(v, (list, tuple)) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] < v[1]):
+                raise bad(f"signal_ranges[{k!r}] must be [lo, hi] with lo < hi, got {v!r}")
+            ranges[k] = (float(v[0]), float(v[1]))
+        cols = obj.get("observation_columns") or []
+        if not isinstance(cols, list) or not all(isinstance(c, str) for c in cols):
+            raise bad(f"observation_columns must be a list of column names, got {cols!r}")
+        for key in ("n_rollouts", "n_steps"):
+            v = obj.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise bad(f"{key} must be an integer >= 1, got {v!r}")
+        for key in ("pem", "proposal", "pemviz_version"):
+            v = obj.get(key)
+            if v is not None and not isinstance(v, str):
+                raise bad(f"{key} must be a string, got {v!r}")
+        window = obj.get("window_m", 10.0)
+        if not _is_number(window):
+            raise bad(f"window_m must be a number of metres, got {window!r}")
+        return cls(
+            formula=formula,
+            dt_s=float(dt),
+            signals=dict(signals),
+            signal_ranges=ranges,
+            observation_columns=tuple(cols),
+            units=dict(obj.get("units") or {}),
+            pem=obj.get("pem"),
+            proposal=obj.get("proposal"),
+            window_m=float(window),
+            n_rollouts=obj.get("n_rollouts"),
+            n_steps=obj.get("n_steps"),
+            pemviz_version=obj.get("pemviz_version") or "unknown",
+            provenance=dict(obj.get("provenance") or {}),
+        )
+
+
+def braking_meta(
+    formula: str | None = None,
+    *,
+    pem: str | None = None,
+    proposal: str | None = None,
+    provenance: Mapping[str, Any] | None = None,
+) -> RolloutMeta:
+    """The sidecar of braking-scenario rollouts (spec section 1): dt 0.05 s, signals d / v / vl, units.
+
+    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.problems.braking_formula`.
+    """
+    from pemviz.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, braking_formula
+    from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
+
+    p = BrakingParams()
+    return RolloutMeta(
+        formula=formula or str(braking_formula(p)),
+        dt_s=p.dt_s,
+        signals=dict(BRAKING_SIGNALS),
+        signal_ranges=dict(BRAKING_SIGNAL_RANGES),
+        observation_columns=tuple(OBSERVATION_NAMES),
+        units=dict(BRAKING_UNITS),
+        pem=pem,
+        proposal=proposal,
+        window_m=p.braking_distance_m,
+        provenance=dict(provenance or {}),
+    )
+
+
+def braking_salient(gap_m: np.ndarray) -> np.ndarray:
+    """The PEM's salient variables of the lead at each gap, float64 [N, T, 11] for gaps [N, T] (metres).
+
+    :func:`pemviz.pem.braking_salient_inputs` row by row (spec section 2).
+    """
+    from pemviz.pem import braking_salient_inputs
+
+    gap = np.asarray(gap_m, dtype=np.float64)
+    return braking_salient_inputs(gap).reshape(*gap.shape, len(KITTI_COLUMNS))
+
+
+# ---------------------------------------------------------------------------------------- the data
+
+
+@dataclass(frozen=True)
+class RolloutData:
+    """N logged rollouts of T steps, as read by :func:`read_rollouts`.
+
+    Attributes:
+        meta: the sidecar.
+        rollout_ids: int64 [N], in file order.
+        observations: float64 [N, T, F], columns ``observation_names`` (``gap_m`` first).
+        observation_names: the F state columns.
+        detected: bool [N, T].
+        salient: float64 [N, T, 11] (:data:`SALIENT_COLUMNS`) or None.
+        log_p, log_q: float64 [N, T] (nats) or None when the file has no such column.
+        path: the Parquet file (None for data not read from disk).
+    """
+
+    meta: RolloutMeta
+    rollout_ids: np.ndarray
+    observations: np.ndarray
+    observation_names: tuple[str, ...]
+    detected: np.ndarray
+    salient: np.ndarray | None = None
+    log_p: np.ndarray | None = None
+    log_q: np.ndarray | None = None
+    path: Path | None = None
+
+    @property
+    def n(self) -> int:
+        return int(self.detected.shape[0])
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.detected.shape[1])
+
+    def signal(self, column: str) -> np.ndarray:
+        """One observation column, float64 [N, T]; KeyError naming the known columns."""
+        if column not in self.observation_names:
+            raise KeyError(f"unknown column {column!r}; this file has {self.observation_names}")
+        return self.observations[:, :, self.observation_names.index(column)]
+
+    def to_batch(self, log_p: np.ndarray | None = None, log_q: np.ndarray | None = None) -> RolloutBatch:
+        """A :class:`RolloutBatch` with the given (default: the file's) log-probabilities [N, T].
+
+        Raises:
+            ValueError: a log-probability that is neither given nor in the file.
+        """
+        log_p = self.log_p if log_p is None else log_p
+        log_q = self.log_q if log_q is None else log_q
+        if log_p is None or log_q is None:
+            raise ValueError("to_batch: give log_p and log_q, the file has no such column")
+        return RolloutBatch(self.observations, self.detected, log_p, log_q, self.observation_names)
+
+
+def sidecar_path(path: str | os.PathLike[str]) -> Path:
+    """``NAME.parquet`` -> ``NAME.json``."""
+    return Path(path).with_suffix(".json")
+
+
+def _plain(value: Any) -> Any:
+    """JSON-able copy: numpy scalars and arrays as Python values, unknown objects as text."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, (np.generic,)):
+        return value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return str(value)
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+# ----------------------------------------------------------------------------------------- validation
+
+
+def _first_index(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask)[0])
+
+
+class _Table:
+    """Checks a pyarrow table against the format and holds its columns as numpy arrays."""
+
+    def __init__(self, table: Any, meta: RolloutMeta, where: str) -> None:
+        self.table, self.meta, self.where = table, meta, where
+        self.rid = np.zeros(0, np.int64)
+        self.step = np.zeros(0, np.int64)
+
+    def error(self, msg: str) -> RolloutFormatError:
+        return RolloutFormatError(f"{self.where}: {msg}")
+
+    def at(self, row: int) -> str:
+        return f"rollout {self.rid[row]}, step {self.step[row]} (row {row})"
+
+    def _nulls(self, name: str, located: bool) -> None:
+        import pyarrow.compute as pc
+
+        col = self.table.column(name)
+        if col.null_count:
+            row = _first_index(pc.is_null(col).to_numpy(zero_copy_only=False))
+            where = self.at(row) if located else f"row {row}"
+            raise self.error(f"column {name!r} is missing a value (null) at {where}")
+
+    def _type_error(self, name: str, allowed: str, located: bool) -> RolloutFormatError:
+        col = self.table.column(name)
+        first = col[0].as_py() if len(col) else None
+        where = f" at {self.at(0)}" if located and len(col) else ""
+        return self.error(f"column {name!r} has type {col.type} (e.g. {first!r}{where}); it must hold {allowed}")
+
+    def structure(self) -> tuple[np.ndarray, np.ndarray]:
+        """Check rollout ids and steps; returns (rollout ids [N], T)."""
+        import pyarrow as pa
+
+        names = self.table.column_names
+        needed = ["rollout", "step", *self.meta.columns, "detected"]
+        missing = [c for c in needed if c not in names]
+        if missing:
+            raise self.error(
+                f"missing column{'s' * (len(missing) > 1)} {', '.join(map(repr, missing))}; required: "
+                f"{', '.join(needed)} (the sidecar's observation_columns / signals name the state columns); "
+                f"present: {', '.join(names)}"
+            )
+        partial = [c for c in SALIENT_COLUMNS if c in names]
+        if partial and len(partial) != len(SALIENT_COLUMNS):
+            absent = [c for c in SALIENT_COLUMNS if c not in names]
+            raise self.error(f"salient-variable columns incomplete: missing {', '.join(absent)} (give all 11 or none)")
+        if self.table.num_rows == 0:
+            raise self.error("the table has no rows")
+        for name in ("rollout", "step"):
+            if not pa.types.is_integer(self.table.column(name).type):
+                raise self._type_error(name, "integers", located=False)
+            self._nulls(name, located=False)
+        rid = self.table.column("rollout").to_numpy().astype(np.int64)
+        step = self.table.column("step").to_numpy().astype(np.int64)
+        self.rid, self.step = rid, step
+        n_rows = rid.size
+        new = np.ones(n_rows, dtype=bool)
+        new[1:] = rid[1:] != rid[:-1]
+        starts = np.flatnonzero(new)
+        seg_ids = rid[starts]
+        if np.unique(seg_ids).size != seg_ids.size:
+            seen: set[int] = set()
+            for s0 in starts:
+                if int(rid[s0]) in seen:
+                    raise self.error(
+                        f"{self.at(s0)}: rollout {rid[s0]} appears again after other rollouts; the rows of a "
+                        f"rollout must be contiguous"
+                    )
+                seen.add(int(rid[s0]))
+        seg_of_row = np.cumsum(new) - 1
+        expected = np.arange(n_rows) - starts[seg_of_row]
+        bad = step != expected
+        if bad.any():
+            row = _first_index(bad)
+            raise self.error(
+                f"{self.at(row)}: steps out of order, expected step {expected[row]}; each rollout's rows must "
+                f"hold steps 0, 1, ..., T-1 in this order"
+            )
+        lengths = np.diff(np.append(starts, n_rows))
+        n_0 = int(lengths[0])
+        if (lengths != n_0).any():
+            k = _first_index(lengths != n_0)
+            n_k = int(lengths[k])
+            tail = f"ends after step {n_k - 1}" if n_k < n_0 else f"has extra steps {n_0}..{n_k - 1}"
+            raise self.error(
+                f"rollout {seg_ids[k]} has {n_k} steps but rollout {seg_ids[0]} has {n_0}: rollout {seg_ids[k]} "
+                f"{tail}; every rollout must have the same number of steps"
+            )
+        for key, value in (("n_rollouts", seg_ids.size), ("n_steps", n_0)):
+            declared = getattr(self.meta, key)
+            if declared is not None and declared != value:
+                raise self.error(f"the sidecar says {key} = {declared} but the table holds {value}")
+        return seg_ids, n_0
+
+    def floats(self, name: str, *, log_prob: bool = False) -> np.ndarray:
+        """A numeric column as float64 [rows]: finite (and <= 0 for log-probabilities)."""
+        import pyarrow as pa
+
+        col = self.table.column(name)
+        if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
+            raise self._type_error(name, "numbers (float64)", located=True)
+        self._nulls(name, located=True)
+        x = col.to_numpy().astype(np.float64)
+        bad = ~np.isfinite(x)
+        if bad.any():
+            row = _first_index(bad)
+            what = "NaN" if np.isnan(x[row]) else str(x[row])
+            raise self.error(f"{name} is {what} at {self.at(row)}; values must be finite numbers")
+        if log_prob and (x > 0).any():
+            row = _first_index(x > 0)
+            raise self.error(f"{name} = {float(x[row])!r} > 0 at {self.at(row)}: a log-probability (nats) must be <= 0")
+        return x
+
+    def booleans(self, name: str) -> np.ndarray:
+        """A bool column (or integers 0 / 1) as bool [rows]."""
+        import pyarrow as pa
+
+        col = self.table.column(name)
+        if not (pa.types.is_boolean(col.type) or pa.types.is_integer(col.type)):
+            raise self._type_error(name, "booleans (or integers 0 / 1)", located=True)
+        self._nulls(name, located=True)
+        x = col.to_numpy(zero_copy_only=False)
+        if not pa.types.is_boolean(col.type):
+            bad = (x != 0) & (x != 1)
+            if bad.any():
+                row = _first_index(bad)
+                raise self.error(f"{name} = {int(x[row])} at {self.at(row)}; it must be true / false or 0 / 1")
+        return np.asarray(x, dtype=bool)
+
+    def parse(self, path: Path | None) -> RolloutData:
+        ids, n_steps = self.structure()
+        n = ids.size
+        names = self.table.column_names
+        cols = self.meta.columns
+        obs = np.stack([self.floats(c) for c in cols], axis=-1).reshape(n, n_steps, len(cols))
+        detected = self.booleans("detected").reshape(n, n_steps)
+        salient = None
+        if SALIENT_COLUMNS[0] in names:
+            salient = np.stack([self.floats(c) for c in SALIENT_COLUMNS], axis=-1).reshape(n, n_steps, -1)
+        log_p = self.floats("log_p", log_prob=True).reshape(n, n_steps) if "log_p" in names else None
+        log_q = self.floats("log_q", log_prob=True).reshape(n, n_steps) if "log_q" in names else None
+        return RolloutData(self.meta, ids, obs, tuple(cols), detected, salient, log_p, log_q, path)
+
+
+# ---------------------------------------------------------------------------------------- read / write
+
+
+def read_sidecar(path: str | os.PathLike[str]) -> RolloutMeta:
+    """The sidecar of the rollout file ``path`` (``NAME.json`` beside ``NAME.parquet``).
+
+    Raises:
+        RolloutFormatError: no sidecar, not JSON, or an invalid field.
+    """
+    side = sidecar_path(path)
+    if not side.is_file():
+        raise RolloutFormatError(
+            f"{side}: sidecar not found; a rollout file NAME.parquet needs NAME.json with at least "
+            f'{{"formula": "G[0,99](d >= 2)", "dt_s": 0.05}} (see pemviz.rollout_io)'
+        )
+    try:
+        obj = json.loads(side.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RolloutFormatError(f"{side}: not a readable JSON file ({exc})") from None
+    return RolloutMeta.from_json(obj, str(side))
+
+
+def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
+    """Read and validate a rollout file and its sidecar.
+
+    Returns:
+        :class:`RolloutData`: observations [N, T, F], detected [N, T], optional salient [N, T, 11],
+        log_p / log_q [N, T] (nats).
+    Raises:
+        FileNotFoundError: no such file.
+        RolloutFormatError: the sidecar or the table breaks the format (module docstring); the message
+            names the column and the rollout and step.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"rollout file {p} not found")
+    meta = read_sidecar(p)
+    try:
+        table = pq.read_table(p)
+    except (pa.ArrowException, OSError) as exc:
+        raise RolloutFormatError(f"{p}: not a readable Parquet file ({exc})") from None
+    return _Table(table, meta, str(p)).parse(p)
+
+
+def _atomic_write(target: Path, write: Any) -> None:
+    """``write(tmp_path)``, then ``os.replace`` onto ``target``; nothing is left behind on error."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def check_rollouts_path(path: str | os.PathLike[str]) -> Path:
+    """Refuse a path where a rollout file cannot be written, before any work (nothing is created).
+
+    Raises:
+        ValueError: not ``.parquet``, a directory, or a folder that does not exist / is not writable.
+    """
+    p = Path(path)
+    if p.suffix != ".parquet":
+        raise ValueError(f"{p}: a rollout file must end in .parquet")
+    if p.is_dir():
+        raise ValueError(f"{p}: is a directory, give a file name ending in .parquet")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise ValueError(f"{p}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"{p}: folder {parent} is not writable")
+    return p
+
+
+def rollouts_table(
+    batch: RolloutBatch,
+    *,
+    rollout_ids: np.ndarray | None = None,
+    salient: np.ndarray | None = None,
+    log_probs: bool = True,
+) -> Any:
+    """The Parquet table of a batch: rollout, step, observations, detected, [salient], [log_p, log_q].
+
+    Args:
+        batch: N rollouts [N, T].
+        rollout_ids: int [N] (default 0..N-1).
+        salient: float64 [N, T, 11] salient variables (:func:`braking_salient`) or None.
+        log_probs: include ``log_p`` and ``log_q``.
+    Raises:
+        ValueError: arrays of the wrong shape.
+    """
+    import pyarrow as pa
+
+    n, n_steps = batch.n, batch.n_steps
+    ids = np.arange(n, dtype=np.int64) if rollout_ids is None else np.asarray(rollout_ids, dtype=np.int64)
+    if ids.shape != (n,):
+        raise ValueError(f"rollout_ids must have shape ({n},), got {ids.shape}")
+    cols: dict[str, np.ndarray] = {
+        "rollout": np.repeat(ids, n_steps),
+        "step": np.tile(np.arange(n_steps, dtype=np.int64), n),
+    }
+    for k, name in enumerate(batch.observation_names):
+        cols[name] = np.ascontiguousarray(batch.observations[:, :, k], dtype=np.float64).reshape(-1)
+    cols["detected"] = np.asarray(batch.detected, dtype=bool).reshape(-1)
+    if salient is not None:
+        s = np.asarray(salient, dtype=np.float64)
+        if s.shape != (n, n_steps, len(SALIENT_COLUMNS)):
+            raise ValueError(f"salient must have shape ({n}, {n_steps}, {len(SALIENT_COLUMNS)}), got {s.shape}")
+        for k, name in enumerate(SALIENT_COLUMNS):
+            cols[name] = np.ascontiguousarray(s[:, :, k]).reshape(-1)
+    if log_probs:
+        cols["log_p"] = np.asarray(batch.log_p, dtype=np.float64).reshape(-1)
+        cols["log_q"] = np.asarray(batch.log_q, dtype=np.float64).reshape(-1)
+    return pa.table(cols)
+
+
+def write_rollouts(
+    path: str | os.PathLike[str],
+    batch: RolloutBatch,
+    meta: RolloutMeta,
+    *,
+    rollout_ids: np.ndarray | None = None,
+    salient: np.ndarray | None = None,
+    log_probs: bool = True,
+) -> Path:
+    """Write ``NAME.parquet`` and its sidecar ``NAME.json`` (module docstring), each atomically.
+
+    The table is validated as :func:`read_rollouts` validates it before anything is written;
+    ``meta.n_rollouts`` / ``n_steps`` / ``observation_columns`` are filled in from the batch.
+
+    Args:
+        path: ``NAME.parquet``.
+        batch: N rollouts [N, T] (observations, detected, log_p, log_q in nats).
+        meta: the sidecar (:func:`braking_meta` for the braking scenario).
+        rollout_ids, salient, log_probs: see :func:`rollouts_table`.
+    Returns:
+        the Parquet path.
+    Raises:
+        ValueError: a bad path (:func:`check_rollouts_path`), wrong shapes, or a :class:`RolloutFormatError`
+            (NaN, a positive log-probability ...) naming the rollout and step; nothing is written.
+        OSError: the folder is not writable (nothing is left behind).
+    """
+    import pyarrow.parquet as pq
+
+    p = check_rollouts_path(path)
+    meta = dataclasses.replace(
+        meta, n_rollouts=batch.n, n_steps=batch.n_steps, observation_columns=tuple(batch.observation_names)
+    )
+    if meta.columns != tuple(batch.observation_names):
+        raise ValueError(f"write_rollouts: the batch's first observation must be gap_m, got {batch.observation_names}")
+    table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=log_probs)
+    _Table(table, meta, f"{p} (not written)").parse(None)
+    text = json.dumps(meta.to_json(), indent=2, allow_nan=False) + "\n"
+    _atomic_write(p, lambda tmp: pq.write_table(table, tmp))
+    _atomic_write(sidecar_path(p), lambda tmp: Path(tmp).write_text(text))
+    return p
+
+
+# ---------------------------------------------------------------------------------- proposal checkpoints
+
+
+def save_proposal(proposal: Any, path: str | os.PathLike[str]) -> Path:
+    """Write a :class:`pemviz.sampling.Proposal` checkpoint atomically (``torch.save`` of a plain dict:
+    format tag, version, ``h_scale``, ``state_dict``; ``torch.load(weights_only=True)`` reads it)."""
+    import torch
+
+    target = Path(path)
+    payload = {
+        "format": PROPOSAL_FORMAT_TAG,
+        "version": PROPOSAL_FORMAT_VERSION,
+        "h_scale": float(proposal.h_scale),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in proposal.state_dict().items()},
+    }
+    _atomic_write(target, lambda tmp: torch.save(payload, tmp))
+    return target
+
+
+def load_proposal(path: str | os.PathLike[str]) -> Any:
+    """Load a proposal saved by :func:`save_proposal`.
+
+    Raises:
+        FileNotFoundError: no such file.
+        RolloutFormatError: not a pemviz proposal checkpoint.
+    """
+    import torch
+
+    from pemviz.sampling import Proposal
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"proposal checkpoint {p} not found")
+    try:
+        payload = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for damaged files
+        raise RolloutFormatError(f"{p}: not a readable proposal checkpoint ({exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != PROPOSAL_FORMAT_TAG:
+        raise RolloutFormatError(f"{p}: not a pemviz proposal checkpoint (missing format tag {PROPOSAL_FORMAT_TAG!r})")
+    if payload.get("version") != PROPOSAL_FORMAT_VERSION:
+        raise RolloutFormatError(f"{p}: proposal format version {payload.get('version')}, this pemviz reads 1")
+    try:
+        proposal = Proposal(float(payload["h_scale"]))
+        proposal.load_state_dict(payload["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise RolloutFormatError(f"{p}: damaged proposal checkpoint ({exc})") from None
+    return proposal.eval()
+
+
+# ------------------------------------------------------------------------------- log-probabilities, estimate
+
+
+def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
+    """``log p(a_t | s_t)`` of the logged actions under a detector, float64 [N, T] (nats).
+
+    The detector sees the observations of all N rollouts one step at a time, [N, F], as
+    :func:`pemviz.scenarios.simulate` asks it, so the numbers are those of the run that made the file.
+    """
+    out = np.empty((data.n, data.n_steps))
+    for t in range(data.n_steps):
+        out[:, t] = action_log_prob(detector.detect_logit(data.observations[:, t]), data.detected[:, t])
+    return out
+
+
+def pem_log_prob(data: RolloutData, pem: Any) -> np.ndarray:
+    """``log p_PEM(a_t | s_t)`` of the logged actions, float64 [N, T] (nats).
+
+    From the file's salient-variable columns (:meth:`pemviz.pem.PEM.logit`) when it has them; from the
+    gap (:meth:`pemviz.pem.PEM.logit_at_gap`, the braking mapping of spec section 2) when it has none or
+    when they are exactly that mapping of the gap (the same function, evaluated by its exact fast path).
+    """
+    gap = data.signal("gap_m")
+    if data.salient is None or np.array_equal(data.salient, braking_salient(gap)):
+        return detector_log_prob(data, PEMDetector(pem))
+    logit = pem.logit(data.salient.reshape(-1, len(SALIENT_COLUMNS))).reshape(data.n, data.n_steps)
+    return action_log_prob(logit, data.detected)
+
+
+def sampler_detector(name: str, pem: Any, window_m: float = 10.0) -> Detector:
+    """The detector a named baseline sampled with: ``pem``, ``naive50`` (50 % everywhere), ``mixed50``
+    (50 % inside ``window_m``, the PEM outside; spec section 5).
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    target = PEMDetector(pem)
+    if name == "pem":
+        return target
+    if name == "naive50":
+        return ConstantDetector(0.5)
+    if name == "mixed50":
+        return WindowDetector(ConstantDetector(0.5), target, window_m)
+    raise ValueError(f"unknown sampler {name!r}; use a proposal checkpoint or one of {', '.join(SAMPLERS)}")
+
+
+@dataclass(frozen=True)
+class RolloutEstimate:
+    """The failure-probability estimate from logged rollouts.
+
+    Attributes:
+        estimate: mu_hat, failures, NLL, ESS (:class:`pemviz.sampling.Estimate`).
+        robustness: float64 [N] under ``metric``.
+        failed: bool [N].
+        log_weight: float64 [N] importance log-weights over the first T - 1 steps (nats).
+        metric: the robustness semantics.
+        failure: ``crash`` (classic robustness < 0) or ``metric`` (robustness under ``metric`` < 0).
+    """
+
+    estimate: Any
+    robustness: np.ndarray
+    failed: np.ndarray
+    log_weight: np.ndarray
+    metric: str
+    failure: str
+
+
+def estimate_rollouts(
+    data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash"
+) -> RolloutEstimate:
+    """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (spec section 4).
+
+    ``log w_i = sum_{t < T-1} log p - log q`` as the engine computes it; failure = classic robustness of the
+    sidecar's formula < 0 (``failure="crash"``, the default) or robustness under ``metric`` < 0.
+
+    Args:
+        log_p, log_q: float64 [N, T] (nats).
+    Raises:
+        ValueError: an unknown metric or failure mode, arrays of the wrong shape, or a formula the file's
+            signals cannot evaluate (a RolloutFormatError naming the file).
+    """
+    from pemviz import stl
+    from pemviz.config import METRICS
+    from pemviz.sampling import estimate
+
+    if metric not in METRICS:
+        raise ValueError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
+    if failure not in ("crash", "metric"):
+        raise ValueError(f"unknown failure event {failure!r}; use crash or metric")
+    shape = (data.n, data.n_steps)
+    log_p, log_q = np.asarray(log_p, np.float64), np.asarray(log_q, np.float64)
+    if log_p.shape != shape or log_q.shape != shape:
+        raise ValueError(f"log_p and log_q must have shape {shape}, got {log_p.shape}, {log_q.shape}")
+    formula = stl.parse(data.meta.formula)
+    signals = {name: data.signal(col) for name, col in data.meta.signals.items()}
+    try:
+        rho = {m: np.asarray(stl.robustness(formula, signals, semantics=m, signal_ranges=data.meta.signal_ranges),
+                             dtype=np.float64) for m in {"classic", metric}}  # fmt: skip
+    except ValueError as exc:
+        raise RolloutFormatError(f"{data.path or 'rollouts'}: formula {data.meta.formula!r}: {exc}") from None
+    failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
+    k = data.n_steps - 1
+    log_w = (log_p[:, :k] - log_q[:, :k]).sum(axis=1)
+    est = estimate(log_w, failed, log_p[:, :k].sum(axis=1))
+    return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure)
+
+
+# ------------------------------------------------------------------------------------- engine listener
+
+
+class RolloutSink:
+    """Engine listener for ``pemviz run --save-rollouts``: writes the batch the final estimate comes from.
+
+    It keeps the last :class:`pemviz.engine.RolloutsSampled` batch (the fresh final batch, or the last CE
+    stage's with ``final_estimate="last-stage"``) and writes it with ``log_p`` / ``log_q`` and the salient
+    variables when the run finishes (nothing after a cancelled run). If the event carries the detector
+    that sampled the batch (a ``sampler`` attribute) and it is a proposal, a snapshot of it taken when
+    the batch was sampled is saved as ``NAME.proposal.pt`` and named in the sidecar.
+
+    Attributes:
+        written: the Parquet path once written, else None.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, pem: str | None = None) -> None:
+        self.path = check_rollouts_path(path)
+        self.pem = pem
+        self.written: Path | None = None
+        self._formula: str | None = None
+        self._config: Any = None
+        self._last: Any = None
+        self._proposal: Any = None
+
+    def __call__(self, event: Any) -> None:
+        from pemviz.engine import RolloutsSampled, RunFinished, RunStarted
+        from pemviz.sampling import Proposal
+
+        if isinstance(event, RunStarted):
+            self._formula, self._config = event.formula, event.config
+        elif isinstance(event, RolloutsSampled):
+            self._last = event
+            sampler = getattr(event, "sampler", None)  # not an event field yet: see the module's report
+            self._proposal = copy.deepcopy(sampler) if isinstance(sampler, Proposal) else None
+        elif isinstance(event, RunFinished) and self._last is not None:
+            self.write(event)
+
+    def write(self, finished: Any = None) -> Path:
+        """Write the kept batch (and the proposal snapshot, if any); returns the Parquet path."""
+        from pemviz.pem import DEFAULT_PEM_NAME
+
+        ev, cfg = self._last, self._config
+        method = getattr(cfg, "method", None)
+        proposal = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}.get(method)
+        if self._proposal is not None:
+            ckpt = self.path.with_suffix(".proposal.pt")
+            save_proposal(self._proposal, ckpt)
+            proposal = ckpt.name
+        provenance: dict[str, Any] = {"stage": ev.stage, "kind": ev.kind}
+        if cfg is not None:
+            provenance["config"] = dataclasses.asdict(cfg)
+        if finished is not None:
+            e = finished.final.estimate
+            provenance["estimate"] = {"log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n}
+        meta = braking_meta(self._formula, pem=self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME,
+                            proposal=proposal, provenance=provenance)  # fmt: skip
+        batch = ev.batch
+        self.written = write_rollouts(self.path, batch, meta, salient=braking_salient(batch.gap_m))
+        return self.written

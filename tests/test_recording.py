@@ -1,0 +1,289 @@
+"""The rerun recording of a run, read back through rerun's own API (a local catalog server + DataFusion).
+
+Small runs (K = 3, N = 20, and a naive-50 run of 30 rollouts that crashes often) are recorded once per
+module; the tests compare what the recording holds with the engine's events and with an independent
+replay of the braking scenario.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import subprocess
+import threading
+
+import numpy as np
+import pytest
+
+rr = pytest.importorskip("rerun")
+pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
+
+from pemviz import cli  # noqa: E402
+from pemviz import engine  # noqa: E402
+from pemviz.config import ExperimentConfig  # noqa: E402
+from pemviz.engine import Experiment, FinalEstimate, RolloutsSampled, RunStarted, StageFinished  # noqa: E402
+from pemviz.scenarios.braking import BrakingParams, BrakingScenario  # noqa: E402
+from pemviz.sinks.console import ConsoleSink  # noqa: E402
+from pemviz.sinks.recording import (  # noqa: E402
+    CRASH_RGBA,
+    PROPOSAL_FIG,
+    SAFE_RGBA,
+    TAG_CRASH_RGBA,
+    TAG_RGBA,
+    RerunSink,
+    nice_ticks,
+)
+
+SMALL = dict(n_stages=3, n_per_stage=20, n_final=20, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=20, seed=5)
+MU_RE = re.compile(r"mu_hat = (\S+) \(log mu_hat = (\S+) nats\)")
+
+
+def packed(rgba) -> int:
+    """rerun stores a colour as one uint32 0xRRGGBBAA."""
+    r, g, b, a = rgba
+    return (r << 24) | (g << 16) | (b << 8) | a
+
+
+def record(path, cfg: ExperimentConfig, extra_listeners=(), cancel=None):
+    """Run ``cfg`` with a console sink (to a string), the rerun sink and an event log."""
+    events: list = []
+    out = io.StringIO()
+    sink = RerunSink.to_file(path)
+    try:
+        Experiment(cfg, [ConsoleSink(out, io.StringIO()), sink, events.append, *extra_listeners], cancel).run()
+    finally:
+        sink.close()
+    return events, out.getvalue()
+
+
+def read(path_by_name: dict) -> dict:
+    """{name: {index: pyarrow table}} for the static data and the ``step`` and ``stage`` timelines."""
+    tables = {}
+    with rr.server.Server(datasets={name: [str(p)] for name, p in path_by_name.items()}) as server:
+        client = server.client()
+        for name in path_by_name:
+            ds = client.get_dataset(name)
+            tables[name] = {
+                "static": ds.reader(index=None).to_arrow_table(),
+                "step": ds.reader(index="step").to_arrow_table(),
+                "stage": ds.reader(index="stage").to_arrow_table(),
+            }
+    return tables
+
+
+def column(table, name: str) -> list:
+    assert name in table.column_names, f"{name} not in the recording"
+    return table.column(name).to_pylist()
+
+
+def static_value(tables, name: str):
+    """The one static value (a list of instances) of a column."""
+    values = [v for v in column(tables["static"], name) if v is not None]
+    assert len(values) == 1, name
+    return values[0]
+
+
+def verify(path) -> None:
+    proc = subprocess.run(["rerun", "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("recording")
+    adaptive = record(d / "adaptive.rrd", ExperimentConfig(**SMALL))
+    naive = record(d / "naive.rrd", ExperimentConfig(method="naive50", n_per_stage=30, seed=2))
+    tables = read({"adaptive": d / "adaptive.rrd", "naive": d / "naive.rrd"})
+    return {
+        "adaptive": (adaptive[0], adaptive[1], tables["adaptive"], d / "adaptive.rrd"),
+        "naive": (naive[0], naive[1], tables["naive"], d / "naive.rrd"),
+    }
+
+
+def of(events, kind):
+    return [e for e in events if isinstance(e, kind)]
+
+
+def test_recordings_verify_and_are_renamed_from_partial(runs):
+    for _, _, _, path in runs.values():
+        assert path.is_file() and not path.with_name(path.name + ".partial").exists()
+        verify(path)
+
+
+def test_one_proposal_curve_per_stage_in_0_1_equal_to_the_stage_results(runs):
+    events, _, tables, _ = runs["adaptive"]
+    results = [e.result for e in of(events, StageFinished)]
+    grid = of(events, RunStarted)[0].curve_grid_m
+    names = sorted(c for c in tables["static"].column_names if re.fullmatch(r"/proposal/data/stage_\d\d:LineStrips2D:strips", c))
+    # pretraining (stage 0), the K = 3 CE stages and the final batch (drawn from stage 3's proposal)
+    assert names == [f"/proposal/data/stage_{k:02d}:LineStrips2D:strips" for k in range(5)]
+    np.testing.assert_array_equal(results[4].proposal_curve, results[3].proposal_curve)
+    for res in results:
+        (strip,) = static_value(tables, f"/proposal/data/stage_{res.stage:02d}:LineStrips2D:strips")
+        xy = np.asarray(strip)
+        assert xy.shape == (grid.size, 2)
+        assert np.all((xy[:, 1] >= 0) & (xy[:, 1] <= 1))
+        np.testing.assert_allclose(xy[:, 0], grid, atol=1e-6)
+        np.testing.assert_allclose(xy[:, 1], res.proposal_curve, atol=1e-6)  # float32 storage
+    (pem,) = static_value(tables, "/proposal/data/pem:LineStrips2D:strips")
+    np.testing.assert_allclose(np.asarray(pem)[:, 1], of(events, RunStarted)[0].pem_curve, atol=1e-6)
+
+
+def test_final_mu_hat_logged_equals_the_printed_one(runs):
+    for events, printed, tables, _ in runs.values():
+        m = MU_RE.search(printed)
+        assert m, printed
+        logged = static_value(tables, "/final:log_mu_hat")[0]
+        assert logged == pytest.approx(float(m.group(2)), abs=5e-5)
+        assert logged == of(events, FinalEstimate)[0].estimate.log_mu_hat
+
+
+def test_every_rollout_gap_trace_has_T_points_equal_to_the_batch(runs):
+    for events, _, tables, _ in runs.values():
+        table = tables["step"]
+        steps = column(table, "step")
+        for ev in of(events, RolloutsSampled):
+            rows = column(table, f"/rollouts/gap_m/stage_{ev.stage:02d}:Scalars:scalars")
+            got = {s: v for s, v in zip(steps, rows) if v is not None}
+            assert sorted(got) == list(range(ev.batch.n_steps))  # T points per rollout
+            trace = np.array([got[t] for t in range(ev.batch.n_steps)]).T  # [N, T]
+            np.testing.assert_array_equal(trace, ev.batch.gap_m)
+            dots = column(table, f"/rollouts/detected/stage_{ev.stage:02d}:Scalars:scalars")
+            dots = np.array([d for d in dots if d is not None]).T
+            np.testing.assert_array_equal(np.isfinite(dots), ev.batch.detected)
+
+
+def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
+    events, _, tables, _ = runs["naive"]
+    (ev,) = of(events, RolloutsSampled)
+    assert 0 < ev.failed.sum() < ev.failed.size  # the naive-50 run crashes in some rollouts, not all
+    colours = static_value(tables, "/rollouts/gap_m/stage_01:SeriesLines:colors")
+    names = static_value(tables, "/rollouts/gap_m/stage_01:SeriesLines:names")
+    tagged = set(np.argsort(ev.robustness, kind="stable")[:3].tolist())
+    for i, (c, name) in enumerate(zip(colours, names)):
+        if i in tagged:
+            assert c == packed(TAG_CRASH_RGBA if ev.failed[i] else TAG_RGBA) and "least-robust" in name
+        else:
+            assert c == packed(CRASH_RGBA if ev.failed[i] else SAFE_RGBA) and "least-robust" not in name
+        assert ("crash" in name) == bool(ev.failed[i])
+    summary = {k: static_value(tables, f"/rollouts/summary/stage_01:{k}") for k in
+               ("failed", "least_robust", "log_weight", "robustness_classic", "robustness_agm")}  # fmt: skip
+    assert summary["failed"] == ev.failed.tolist()
+    assert [i for i, t in enumerate(summary["least_robust"]) if t] == sorted(tagged)
+    np.testing.assert_array_equal(summary["log_weight"], ev.log_weight)
+    np.testing.assert_array_equal(summary["robustness_agm"], ev.robustness_by_metric["agm"])
+
+
+def test_stage_series_hold_each_stage_result(runs):
+    events, _, tables, _ = runs["adaptive"]
+    table = tables["stage"]
+    stages = column(table, "stage")
+    rate = dict(zip(stages, column(table, "/stages/failure_rate:Scalars:scalars")))
+    ess = dict(zip(stages, column(table, "/stages/ess:Scalars:scalars")))
+    results = [e.result for e in of(events, StageFinished)]
+    assert sorted(rate) == [r.stage for r in results] == [0, 1, 2, 3, 4]
+    for r in results:
+        assert rate[r.stage] == [r.estimate.n_failures / r.estimate.n]
+        assert ess[r.stage] == [pytest.approx(r.estimate.ess)]
+
+
+def test_scene_boxes_follow_a_replay_of_the_braking_scenario(runs):
+    """The ego and lead boxes of each scene lane sit where highway-env puts the cars for that rollout."""
+    p = BrakingParams()
+    for name in ("adaptive", "naive"):
+        events, _, tables, _ = runs[name]
+        steps = column(tables["step"], "step")
+        for ev in of(events, RolloutsSampled):
+            i = int(np.argmin(ev.robustness))
+            path = f"/scene/stage_{ev.stage:02d}"
+            ego = dict(zip(steps, column(tables["step"], f"{path}/ego:Boxes2D:centers")))
+            lead = dict(zip(steps, column(tables["step"], f"{path}/lead:Boxes2D:centers")))
+            half = dict(zip(steps, column(tables["step"], f"{path}/lead:Boxes2D:half_sizes")))
+            sim = BrakingScenario(p)
+            truth = []
+            for t in range(ev.batch.n_steps):
+                truth.append((sim.ego.position[0], sim.lead.position[0]))
+                sim.step(bool(ev.batch.detected[i, t]))
+            logged = [(ego[t][0][0], lead[t][0][0]) for t in range(ev.batch.n_steps)]
+            np.testing.assert_allclose(logged, truth, atol=1e-4)  # float32 positions up to ~40 m
+            assert half[0][0] == pytest.approx([p.lead_length_m / 2, p.vehicle_width_m / 2])
+
+
+def test_properties_carry_the_pemviz_and_rerun_versions(runs):
+    import pemviz
+    from rerun.catalog import ContentFilter
+
+    _, _, _, path = runs["adaptive"]
+    with rr.server.Server(datasets={"run": [str(path)]}) as server:
+        ds = server.client().get_dataset("run")
+        table = ds.filter_contents(ContentFilter.nothing().include_properties()).reader(index=None).to_arrow_table()
+    values = {c.split(":")[-1]: v for c in table.column_names for v in table.column(c).to_pylist() if v is not None}
+    assert values["pemviz_version"] == [pemviz.__version__]
+    assert values["rerun_sdk_version"] == [rr.__version__]
+
+
+def test_figure_transform_maps_the_axis_ranges_onto_the_plot_box(runs):
+    _, _, tables, _ = runs["adaptive"]
+    t = np.asarray(static_value(tables, "/proposal/data:Transform3D:translation")[0])
+    s = np.asarray(static_value(tables, "/proposal/data:Transform3D:scale")[0])
+    # (0 m, probability 0) -> bottom left (0, height); (13 m, 1) -> top right (width, 0): rerun's y points down
+    np.testing.assert_allclose(t + s * [0.0, 0.0, 0.0], [0.0, PROPOSAL_FIG.height, 0.0], atol=1e-4)
+    np.testing.assert_allclose(t + s * [13.0, 1.0, 0.0], [PROPOSAL_FIG.width, 0.0, 0.0], atol=1e-4)
+
+
+def test_nice_ticks_are_round_and_cover_the_range():
+    np.testing.assert_allclose(nice_ticks(0.0, 13.0, 6), [0, 2, 4, 6, 8, 10, 12])  # 13 / 6 = 2.17 -> 2
+    np.testing.assert_allclose(nice_ticks(0.0, 1.0, 5), [0, 0.2, 0.4, 0.6, 0.8, 1.0])
+    np.testing.assert_allclose(nice_ticks(-0.3, 1.2, 5), [-0.2, 0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2])  # 0.3 -> 0.2
+    np.testing.assert_allclose(nice_ticks(-63.0, 2.0, 5), [-60, -50, -40, -30, -20, -10, 0])  # 13 -> 10
+
+
+def _stages_in(path) -> tuple[list[int], list[str], str]:
+    tables = read({"run": path})["run"]
+    stages = [s for s, v in zip(column(tables["stage"], "stage"), column(tables["stage"], "/stages/failure_rate:Scalars:scalars")) if v]
+    curves = sorted(c.split("/")[3][:8] for c in tables["static"].column_names
+                    if re.fullmatch(r"/proposal/data/stage_\d\d:LineStrips2D:strips", c))  # fmt: skip
+    text = static_value(tables, "/description:TextDocument:text")[0]
+    gaps = sorted(c for c in tables["step"].column_names if re.fullmatch(r"/rollouts/gap_m/stage_\d\d:Scalars:scalars", c))
+    assert len(gaps) == len(stages)
+    return stages, curves, text
+
+
+def test_ctrl_c_after_stage_3_of_pemviz_run_leaves_a_valid_recording_of_stages_0_to_3(tmp_path, monkeypatch):
+    """KeyboardInterrupt from a listener after stage 3: ``pemviz run``'s ``finally`` closes the recording."""
+
+    class InterruptedAfterStage3(engine.Experiment):
+        def __init__(self, config, listeners=(), cancel=None, problem=None):
+            def interrupt(event):
+                if isinstance(event, StageFinished) and event.result.stage == 3:
+                    raise KeyboardInterrupt
+
+            config = config.replace(pretrain_rollouts=20, pretrain_epochs=50)
+            super().__init__(config, [*listeners, interrupt], cancel, problem)
+
+    monkeypatch.setattr(engine, "Experiment", InterruptedAfterStage3)
+    out = tmp_path / "cut.rrd"
+    with pytest.raises(KeyboardInterrupt):
+        cli.main(["run", "--k", "6", "--n", "20", "--n-final", "20", "--ce-epochs", "30", "--save", str(out)])
+    assert out.is_file() and not (tmp_path / "cut.rrd.partial").exists()
+    verify(out)
+    stages, curves, text = _stages_in(out)
+    assert stages == [0, 1, 2, 3]
+    assert curves == [f"stage_{k:02d}" for k in range(4)]
+    assert "Interrupted** after 4 finished stages" in text
+
+
+def test_cancel_token_after_stage_3_leaves_a_valid_recording_of_stages_0_to_3(tmp_path):
+    cancel = threading.Event()
+
+    def cancel_after_stage_3(event):
+        if isinstance(event, StageFinished) and event.result.stage == 3:
+            cancel.set()
+
+    out = tmp_path / "cancelled.rrd"
+    record(out, ExperimentConfig(**{**SMALL, "n_stages": 6}), [cancel_after_stage_3], cancel)
+    verify(out)
+    stages, curves, text = _stages_in(out)
+    assert stages == [0, 1, 2, 3]
+    assert curves == [f"stage_{k:02d}" for k in range(4)]
+    assert "Run cancelled** (cancelled by the user) after 4 finished stages" in text

@@ -1,0 +1,350 @@
+"""Logged rollouts (Parquet + JSON sidecar) and ``pemviz estimate``: round trips give the run's mu_hat to
+1e-12 with the log_p / log_q columns and recomputed from the PEM and the proposal; malformed files give one
+error naming the rollout and step and write nothing."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from conftest import run_cli
+from pemviz import cli
+from pemviz import rollout_io as rio
+from pemviz.config import ExperimentConfig
+from pemviz.detectors import ConstantDetector, action_log_prob
+from pemviz.engine import Experiment, FinalEstimate, RolloutsSampled, RunFinished, RunStarted
+from pemviz.pem import load_pem, save_pem
+from pemviz.problems import braking_problem
+from pemviz.sampling import Proposal, ce_update, estimate, pretrain_proposal
+from pemviz.scenarios import RolloutBatch
+
+LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
+
+
+@pytest.fixture(scope="module")
+def pem():
+    return load_pem()
+
+
+@pytest.fixture(scope="module")
+def naive_run(tmp_path_factory, pem):
+    """``naive50`` with N = 200 (146 crashes, weights ~1e-50), its final batch saved by the run's listener."""
+    path = tmp_path_factory.mktemp("naive") / "naive.parquet"
+    finals = []
+    sink = rio.RolloutSink(path)
+    Experiment(ExperimentConfig(method="naive50", n_per_stage=200, seed=1),
+               [sink, lambda ev: finals.append(ev) if isinstance(ev, FinalEstimate) else None]).run()  # fmt: skip
+    assert sink.written == path
+    return path, finals[0].estimate
+
+
+def same_mu(log_a: float, log_b: float) -> bool:
+    """mu_hat equal to 1e-12 relative: |mu_a / mu_b - 1| <= 1e-12."""
+    return abs(math.expm1(log_a - log_b)) <= 1e-12
+
+
+def estimate_cli(capsys, *args: str) -> tuple[int, str, str]:
+    code = cli.main(["estimate", *args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+# ------------------------------------------------------------------------------------ round trips
+
+
+def test_run_rollouts_read_back_with_their_columns_give_the_runs_mu_hat_to_1e_12(naive_run):
+    path, run_estimate = naive_run
+    data = rio.read_rollouts(path)
+    assert (data.n, data.n_steps, data.observation_names) == (200, 100, ("gap_m", "ego_speed_mps", "lead_speed_mps"))
+    result = rio.estimate_rollouts(data, data.log_p, data.log_q)
+    assert run_estimate.n_failures == result.estimate.n_failures > 100
+    assert same_mu(result.estimate.log_mu_hat, run_estimate.log_mu_hat)
+    assert result.estimate.nll_mean == pytest.approx(run_estimate.nll_mean, rel=1e-12)
+    assert result.estimate.ess == pytest.approx(run_estimate.ess, rel=1e-12)
+    meta = json.loads(rio.sidecar_path(path).read_text())
+    assert meta["formula"] == "G[0,99](d >= 2)" and meta["dt_s"] == 0.05 and meta["proposal"] == "naive50"
+    assert meta["units"]["gap_m"] == "m" and meta["units"]["log_p"] == "nats"
+    assert meta["provenance"]["estimate"]["log_mu_hat"] == run_estimate.log_mu_hat
+
+
+def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_give_the_same_mu_hat(
+    naive_run, pem, tmp_path, capsys
+):
+    path, run_estimate = naive_run
+    data = rio.read_rollouts(path)
+    assert data.salient is not None
+    np.testing.assert_array_equal(rio.pem_log_prob(data, pem), data.log_p)  # the run's numbers, bit for bit
+    np.testing.assert_array_equal(rio.detector_log_prob(data, ConstantDetector(0.5)), data.log_q)
+    # the PEM on the salient variables the general way agrees to float64 rounding of its pieces
+    general = action_log_prob(pem.logit(data.salient.reshape(-1, 11)).reshape(200, 100), data.detected)
+    np.testing.assert_allclose(general, data.log_p, rtol=0, atol=1e-12)
+    # a copy without log_p / log_q: the sidecar names the PEM and the sampler
+    bare = tmp_path / "bare.parquet"
+    rio.write_rollouts(bare, data.to_batch(), data.meta, salient=data.salient, log_probs=False)
+    assert "log_p" not in pq.read_schema(bare).names
+    for args in ([str(bare)], [str(path), "--pem", "ml-nn", "--proposal", "naive50"]):
+        code, out, err = estimate_cli(capsys, *args, "--no-record")
+        assert code == 0, err
+        assert "recomputed" in out
+        assert same_mu(float(LOG_MU_RE.search(out).group(1)), run_estimate.log_mu_hat)
+    code, out, err = estimate_cli(capsys, str(bare), "--log-q-column", "--no-record")
+    assert code == 2 and "has no log_q column" in err
+
+
+@dataclass(frozen=True)
+class RolloutsSampledBy(RolloutsSampled):
+    """The event as it would be if the engine said which detector sampled the batch (see the report)."""
+
+    sampler: object = None
+
+
+def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, capsys):
+    """A proposal after a CE stage samples a batch; the listener snapshots it at sampling time; the file's
+    columns and the recomputation from the PEM file and the checkpoint both give the batch's own mu_hat."""
+    weak = load_pem().with_temperature(4.0)  # a less confident PEM: crashes in 60 rollouts
+    pem_file = save_pem(weak, tmp_path / "weak.pt")
+    problem = braking_problem(weak)
+    rng = np.random.default_rng(2)
+    proposal = Proposal()
+    pem_batch = problem.simulate(40, problem.target, problem.target, rng)
+    pretrain_proposal(proposal, pem_batch.gap_m, pem_batch.detected, epochs=100, lr=1e-2)
+    r = problem.robustness(pem_batch, "classic")
+    ce_update(proposal, pem_batch.gap_m, pem_batch.detected, pem_batch.log_p, pem_batch.log_q, r <= np.sort(r)[3],
+              smoothing=0.5, epochs=50, lr=1e-2)  # fmt: skip
+    batch = problem.simulate(60, proposal, problem.target, rng)
+    failed = problem.failed(batch)
+    truth = estimate(batch.log_weight(), failed, batch.log_p[:, :99].sum(axis=1))
+    assert truth.n_failures > 0
+
+    path = tmp_path / "adaptive.parquet"
+    sink = rio.RolloutSink(path, pem=str(pem_file))
+    cfg = ExperimentConfig(pem=str(pem_file))
+    sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve()))
+    rho = problem.robustness(batch, "classic")
+    sink(RolloutsSampledBy(3, "final", batch, rho, {"classic": rho}, failed, batch.log_weight(), sampler=proposal))
+    with torch_no_grad():
+        for p in proposal.parameters():
+            p.add_(0.1)  # the proposal moves on after sampling; the checkpoint must not
+    sink(RunFinished(FinalEstimate(truth, 160, 0.0), ()))
+    ckpt = tmp_path / "adaptive.proposal.pt"
+    assert ckpt.is_file() and json.loads(rio.sidecar_path(path).read_text())["proposal"] == ckpt.name
+
+    data = rio.read_rollouts(path)
+    assert same_mu(rio.estimate_rollouts(data, data.log_p, data.log_q).estimate.log_mu_hat, truth.log_mu_hat)
+    np.testing.assert_array_equal(rio.detector_log_prob(data, rio.load_proposal(ckpt)), batch.log_q)
+    bare = tmp_path / "bare.parquet"
+    rio.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False)  # no salient columns: the gap
+    meta = json.loads(rio.sidecar_path(bare).read_text())
+    assert meta["proposal"] == "adaptive.proposal.pt" and meta["pem"] == str(pem_file)
+    for args in ([str(bare)], [str(bare), "--pem", str(pem_file), "--proposal", str(ckpt)]):
+        code, out, err = estimate_cli(capsys, *args, "--no-record")
+        assert code == 0, err
+        assert f"{truth.n_failures}/60" in out
+        assert same_mu(float(LOG_MU_RE.search(out).group(1)), truth.log_mu_hat)
+
+
+def torch_no_grad():
+    import torch
+
+    return torch.no_grad()
+
+
+def test_a_hand_written_file_with_a_minimal_sidecar_gives_the_hand_computed_estimate(tmp_path):
+    """3 rollouts of 4 steps; rollouts 0 and 2 drop below 2 m. log w over the first T - 1 = 3 steps:
+    rollout 0: 3 x (-1.0 - -0.5) = -1.5; rollout 2: 3 x (-2.0 - -0.25) = -5.25. mu_hat = (e^-1.5 + e^-5.25) / 3."""
+    table = pa.table({
+        "rollout": np.repeat(np.array([10, 11, 12], dtype=np.int32), 4),
+        "step": np.tile(np.arange(4, dtype=np.int16), 3),
+        "gap_m": np.array([9, 5, 1.5, 1, 9, 8, 7, 6, 9, 4, 3, 1.9], dtype=np.float32),
+        "detected": np.array([1, 0, 0, 0, 1, 1, 1, 1, 0, 1, 0, 0], dtype=np.int8),
+        "log_p": np.repeat([-1.0, -0.1, -2.0], 4),
+        "log_q": np.repeat([-0.5, -0.1, -0.25], 4),
+        "note": ["ignored"] * 12,
+    })  # fmt: skip
+    pq.write_table(table, tmp_path / "mine.parquet")
+    (tmp_path / "mine.json").write_text(json.dumps({"formula": "G[0,3](d >= 2)", "dt_s": 0.1}))
+    data = rio.read_rollouts(tmp_path / "mine.parquet")
+    assert list(data.rollout_ids) == [10, 11, 12]
+    res = rio.estimate_rollouts(data, data.log_p, data.log_q).estimate
+    assert res.n_failures == 2
+    assert res.log_mu_hat == pytest.approx(math.log((math.exp(-1.5) + math.exp(-5.25)) / 3), rel=1e-14)
+    assert res.ess == pytest.approx((math.exp(-1.5) + math.exp(-5.25)) ** 2 / (math.exp(-3) + math.exp(-10.5)))
+    assert res.nll_mean == pytest.approx((3.0 + 6.0) / 2)
+
+
+def test_cli_run_then_estimate_prints_the_runs_mu_hat_and_writes_a_recording(tmp_path, capsys):
+    rollouts, recording = tmp_path / "mixed.parquet", tmp_path / "estimate.rrd"
+    code = cli.main(["run", "--method", "mixed50", "--n", "50", "--seed", "3", "--no-record",
+                     "--save-rollouts", str(rollouts)])  # fmt: skip
+    run = capsys.readouterr()
+    assert code == 0, run.err
+    est = run_cli("estimate", str(rollouts), "--save", str(recording))  # the installed entry point, end to end
+    assert est.returncode == 0, est.stderr
+    run_log_mu = json.loads(rio.sidecar_path(rollouts).read_text())["provenance"]["estimate"]["log_mu_hat"]
+    assert same_mu(float(LOG_MU_RE.search(est.stdout).group(1)), run_log_mu)
+    assert re.search(r"log mu_hat = (\S+) nats", run.out).group(1) == f"{run_log_mu:.4f}"
+    assert f"rollouts: {rollouts}" in run.err
+    assert recording.stat().st_size > 10_000 and not (tmp_path / "estimate.rrd.partial").exists()
+    verify = subprocess.run(["rerun", "rrd", "verify", str(recording)], capture_output=True, text=True, timeout=120)
+    assert verify.returncode == 0, verify.stderr
+    assert cli.main(["run", "--n", "5", "--save-rollouts", str(tmp_path / "x.csv"), "--no-record"]) == 2
+    assert "--save-rollouts" in capsys.readouterr().err and not (tmp_path / "x.csv").exists()
+
+
+# ------------------------------------------------------------------------------------ malformed files
+
+
+@pytest.fixture(scope="module")
+def small_file(tmp_path_factory, pem):
+    """6 braking rollouts from the 50 % detector, with salient variables and log-probabilities."""
+    problem = braking_problem(pem)
+    batch = problem.simulate(6, ConstantDetector(0.5), problem.target, np.random.default_rng(0))
+    path = tmp_path_factory.mktemp("small") / "small.parquet"
+    rio.write_rollouts(path, batch, rio.braking_meta(pem="ml-nn", proposal="naive50"),
+                       salient=rio.braking_salient(batch.gap_m))  # fmt: skip
+    return path
+
+
+def _set(table: pa.Table, name: str, array: pa.Array) -> pa.Table:
+    return table.set_column(table.column_names.index(name), name, array)
+
+
+def _values(table: pa.Table, name: str) -> np.ndarray:
+    return table.column(name).to_numpy().copy()
+
+
+def _row(rollout: int, step: int) -> int:
+    return rollout * 100 + step
+
+
+def _nan_gap(t):
+    gap = _values(t, "gap_m")
+    gap[_row(3, 41)] = np.nan
+    return _set(t, "gap_m", pa.array(gap))
+
+
+def _string_gap(t):
+    return _set(t, "gap_m", pa.array([f"{g:.3f}" for g in _values(t, "gap_m")]))
+
+
+def _swap_steps(t):
+    order = np.arange(t.num_rows)
+    order[[_row(2, 10), _row(2, 11)]] = order[[_row(2, 11), _row(2, 10)]]
+    return t.take(order)
+
+
+def _short_rollout(t):
+    return t.take(np.delete(np.arange(t.num_rows), _row(4, 99)))
+
+
+def _split_rollout(t):
+    order = np.concatenate([np.arange(0, 50), np.arange(100, 200), np.arange(50, 100), np.arange(200, 600)])
+    return t.take(order)
+
+
+def _detected_two(t):
+    det = _values(t, "detected").astype(np.int64)
+    det[_row(1, 5)] = 2
+    return _set(t, "detected", pa.array(det))
+
+
+def _positive_log_p(t):
+    lp = _values(t, "log_p")
+    lp[_row(0, 3)] = 0.5
+    return _set(t, "log_p", pa.array(lp))
+
+
+def _null_speed(t):
+    v = _values(t, "lead_speed_mps")
+    mask = np.zeros(v.size, dtype=bool)
+    mask[_row(2, 7)] = True
+    return _set(t, "lead_speed_mps", pa.array(v, mask=mask))
+
+
+def _float_steps(t):
+    return _set(t, "step", pa.array(_values(t, "step").astype(np.float64)))
+
+
+MALFORMED = {
+    "missing-column": (lambda t: t.drop_columns(["detected"]), r"missing column 'detected'; required: rollout, step"),
+    "missing-salient": (lambda t: t.drop_columns(["salient_loc_z"]), r"salient-variable columns incomplete: "
+                                                                     r"missing salient_loc_z"),
+    "wrong-dtype": (_string_gap, r"column 'gap_m' has type string \(e\.g\. '12\.293' at rollout 0, step 0 \(row 0\)\); "
+                                 r"it must hold numbers"),
+    "wrong-dtype-step": (_float_steps, r"column 'step' has type double .*it must hold integers"),
+    "nan-gap": (_nan_gap, r"gap_m is NaN at rollout 3, step 41 \(row 341\); values must be finite"),
+    "steps-out-of-order": (_swap_steps, r"rollout 2, step 11 \(row 210\): steps out of order, expected step 10"),
+    "different-lengths": (_short_rollout, r"rollout 4 has 99 steps but rollout 0 has 100: rollout 4 ends after "
+                                          r"step 98"),
+    "rollout-not-contiguous": (_split_rollout, r"rollout 0, step 50 \(row 150\): rollout 0 appears again"),
+    "detected-not-boolean": (_detected_two, r"detected = 2 at rollout 1, step 5 \(row 105\)"),
+    "positive-log-p": (_positive_log_p, r"log_p = 0\.5 > 0 at rollout 0, step 3 \(row 3\)"),
+    "null-value": (_null_speed, r"column 'lead_speed_mps' is missing a value \(null\) at rollout 2, step 7"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_malformed_file_gives_one_error_naming_rollout_and_step_and_writes_nothing(
+    case, small_file, tmp_path, monkeypatch, capsys
+):
+    mutate, message = MALFORMED[case]
+    bad = tmp_path / "bad.parquet"
+    pq.write_table(mutate(pq.read_table(small_file)), bad)
+    shutil.copy(rio.sidecar_path(small_file), rio.sidecar_path(bad))
+    with pytest.raises(rio.RolloutFormatError, match=message):
+        rio.read_rollouts(bad)
+    monkeypatch.chdir(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for extra in ([], ["--save", str(tmp_path / "out.rrd")]):
+        code, out, err = estimate_cli(capsys, str(bad), *extra)
+        assert code == 2 and out == ""
+        assert len(err.strip().splitlines()) == 1 and re.search(message, err), err
+        assert err.startswith(f"pemviz estimate: error: {bad}: ")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no recording, no partial, no recordings/
+
+
+def test_sidecar_problems_are_named(small_file, tmp_path):
+    bad = tmp_path / "s.parquet"
+    shutil.copy(small_file, bad)
+    with pytest.raises(rio.RolloutFormatError, match=r"s\.json: sidecar not found"):
+        rio.read_rollouts(bad)
+    meta = json.loads(rio.sidecar_path(small_file).read_text())
+    for change, message in [
+        ({"formula": "G[0,99](d >= "}, r"formula 'G\[0,99\]\(d >= ' is not valid STL"),
+        ({"dt_s": -1}, r"dt_s must be a number of seconds > 0, got -1"),
+        ({"n_steps": 50}, r"the sidecar says n_steps = 50 but the table holds 100"),
+        ({"version": 2}, r"format version 2; this pemviz reads version 1"),
+        ({"signals": {"d": "gap_m", "w": "width_m"}}, r"missing column 'width_m'"),
+    ]:
+        rio.sidecar_path(bad).write_text(json.dumps({**meta, **change}))
+        with pytest.raises(rio.RolloutFormatError, match=message):
+            rio.read_rollouts(bad)
+
+
+def test_writer_refuses_bad_rollouts_and_leaves_no_file(tmp_path, pem):
+    problem = braking_problem(pem)
+    batch = problem.simulate(3, ConstantDetector(0.5), problem.target, np.random.default_rng(0))
+    obs = batch.observations.copy()
+    obs[1, 17, 0] = np.inf
+    broken = RolloutBatch(obs, batch.detected, batch.log_p, batch.log_q, batch.observation_names)
+    with pytest.raises(rio.RolloutFormatError, match=r"gap_m is inf at rollout 1, step 17 \(row 117\)"):
+        rio.write_rollouts(tmp_path / "x.parquet", broken, rio.braking_meta())
+    with pytest.raises(ValueError, match="must end in .parquet"):
+        rio.write_rollouts(tmp_path / "x.csv", batch, rio.braking_meta())
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(FileNotFoundError, match="rollout file .* not found"):
+        rio.read_rollouts(tmp_path / "absent.parquet")
+    Path(tmp_path / "junk.parquet").write_text("not parquet")
+    Path(tmp_path / "junk.json").write_text(json.dumps({"formula": "G[0,99](d >= 2)", "dt_s": 0.05}))
+    with pytest.raises(rio.RolloutFormatError, match="not a readable Parquet file"):
+        rio.read_rollouts(tmp_path / "junk.parquet")
