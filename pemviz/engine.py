@@ -58,6 +58,8 @@ class RolloutsSampled:
     """bool [N]: crash (classic robustness < 0)."""
     log_weight: np.ndarray
     """[N] importance log-weights (nats), T - 1 factors."""
+    sampler: Detector | None = None
+    """The detector that drew the batch (the proposal is trained in place afterwards: copy it to keep it)."""
 
 
 @dataclass(frozen=True)
@@ -176,7 +178,7 @@ class Experiment:
         r = by_metric[self.config.metric]
         failed = by_metric["classic"] < 0.0
         log_w = batch.log_weight()
-        self.emit(RolloutsSampled(stage, kind, batch, r, by_metric, failed, log_w))
+        self.emit(RolloutsSampled(stage, kind, batch, r, by_metric, failed, log_w, sampler))
         return batch, r, failed, log_w
 
     def _finish_stage(self, stage, kind, gamma, elite, batch, failed, log_w, proposal, t0) -> StageResult:
@@ -256,7 +258,7 @@ class Experiment:
                 by_metric = {m: pb.robustness(chunk, m) for m in METRICS}
                 f = by_metric["classic"] < 0.0
                 self.emit(RolloutsSampled(stage, "final", chunk, by_metric[self.config.metric], by_metric, f,
-                                          chunk.log_weight()))  # fmt: skip
+                                          chunk.log_weight(), sampler))  # fmt: skip
             else:
                 f = pb.failed(chunk)
             failed.append(f)

@@ -15,8 +15,8 @@ Both executors give the same rollouts for the same seed:
   of rows may differ from the whole batch in the last bit of a logit (~2e-16); estimates agree to
   ~1e-12 relative (tests/test_executors.py).
 
-Requirements for ``ray``: Ray installed (``pip install ray``, the ``ray`` extra of pemviz's ``test``
-extra), pemviz importable on every worker, the problem picklable by cloudpickle (pemviz's problems are),
+Requirements for ``ray``: Ray installed (``pip install ray``; pemviz's ``test`` extra installs it),
+pemviz importable on every worker, the problem picklable by cloudpickle (pemviz's problems are),
 a PCG64 / PCG64DXSM generator (``np.random.default_rng`` gives one; any other runs serially, with the
 same result), and a ``problem.simulate`` that draws one ``rng.random(n)`` per step (pemviz's simulators
 and :func:`pemviz.scenarios.simulate` do; anything else raises a RuntimeError naming the problem).

@@ -183,7 +183,8 @@ class RolloutMeta:
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
             raise bad(f"dt_s must be a number of seconds > 0, got {dt!r}")
         signals = obj.get("signals") or {"d": "gap_m"}
-        if not isinstance(signals, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in signals.items()):
+        if not isinstance(signals, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                     for k, v in signals.items()):
             raise bad(f"signals must map STL names to column names, got {signals!r}")
         ranges: dict[str, tuple[float, float]] = {}
         for k, v in (obj.get("signal_ranges") or {}).items():
@@ -826,31 +827,43 @@ class RolloutSink:
     that sampled the batch (a ``sampler`` attribute) and it is a proposal, a snapshot of it taken when
     the batch was sampled is saved as ``NAME.proposal.pt`` and named in the sidecar.
 
+    A final batch the engine streams in chunks (more than ``pemviz.engine.STREAM_ABOVE`` rollouts) reaches
+    listeners only as its first chunk: then nothing is written and :attr:`skipped` says why.
+
     Attributes:
         written: the Parquet path once written, else None.
+        skipped: why nothing was written after a finished run, else None.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, pem: str | None = None) -> None:
         self.path = check_rollouts_path(path)
         self.pem = pem
         self.written: Path | None = None
+        self.skipped: str | None = None
         self._formula: str | None = None
         self._config: Any = None
+        self._started_n = 0
         self._last: Any = None
         self._proposal: Any = None
 
     def __call__(self, event: Any) -> None:
-        from pemviz.engine import RolloutsSampled, RunFinished, RunStarted
+        from pemviz.engine import RolloutsSampled, RunFinished, RunStarted, StageStarted
         from pemviz.sampling import Proposal
 
         if isinstance(event, RunStarted):
             self._formula, self._config = event.formula, event.config
+        elif isinstance(event, StageStarted):
+            self._started_n = event.n_rollouts
         elif isinstance(event, RolloutsSampled):
             self._last = event
-            sampler = getattr(event, "sampler", None)  # not an event field yet: see the module's report
+            sampler = getattr(event, "sampler", None)  # the detector that sampled, if the engine says
             self._proposal = copy.deepcopy(sampler) if isinstance(sampler, Proposal) else None
         elif isinstance(event, RunFinished) and self._last is not None:
-            self.write(event)
+            if self._last.batch.n != self._started_n:
+                self.skipped = (f"the final batch of {self._started_n} rollouts was streamed in chunks; only "
+                                f"{self._last.batch.n} reached listeners")  # fmt: skip
+            else:
+                self.write(event)
 
     def write(self, finished: Any = None) -> Path:
         """Write the kept batch (and the proposal snapshot, if any); returns the Parquet path."""

@@ -245,15 +245,16 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
 
 
 def _relaxed_step(params: BrakingParams, lead_speed_mps: float, gap_m, speed_mps, pending, detected):
-    """:func:`braking_step` with the PID integral at its largest reachable value (the most throttle).
-
-    For the same action and pending flag, its next state is at least as dangerous (gap no larger, speed no
-    smaller) as the true next state of any state with a gap at least as large and a speed at
-    most as large, whatever its integral: the step is monotone in gap, speed and integral (more integral =
-    more throttle), checked in tests/test_truth.py.
+    """:func:`braking_step` of a controller that is never gentler: the PID integral at its largest
+    reachable value (the most throttle) and no PID brake (which, above 7.5 m/s, makes the true next speed
+    fall as the speed rises). Its next speed is at least the true one from the same gap and speed, whatever
+    the integral, and it is monotone: next gap non-increasing and next speed non-decreasing in the speed
+    (checked in tests/test_truth.py). So a state that is no safer (gap no larger, speed no smaller) stays
+    no safer under the same action, which is what :class:`MissBound` rests on.
     """
+    relaxed = _replace(params, max_pid_brake=0.0)
     i_max = np.full(np.shape(gap_m), params.target_speed_kmh * params.dt_s / (1.0 - params.integral_leak))
-    g2, v2, _, b2 = braking_step(params, lead_speed_mps, gap_m, speed_mps, i_max, pending, detected)
+    g2, v2, _, b2 = braking_step(relaxed, lead_speed_mps, gap_m, speed_mps, i_max, pending, detected)
     return g2, v2, b2
 
 

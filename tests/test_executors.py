@@ -86,7 +86,8 @@ def test_a_simulator_that_does_not_draw_once_per_step_is_refused_with_a_clear_er
     odd = Problem("two-draws", two_draws, base.target, base.formula, signals={"d": "gap_m"})
     state = np.random.default_rng(0).bit_generator.state
     results = [simulate_chunk(odd, 6, a, b, base.target, base.target, state) for a, b in [(0, 3), (3, 6)]]
-    with pytest.raises(RuntimeError, match="drew rng.random 11 times for 10 steps"):
+    steps = ToyParams(10, 5, 3, 0.7).steps
+    with pytest.raises(RuntimeError, match=f"drew rng.random {steps + 1} times for {steps} steps"):
         gather_chunks(odd, 6, np.random.default_rng(0), results)
     with pytest.raises(RuntimeError, match=r"random\(5"):
         ChunkUniforms(state, 6, 0, 3).random(5)
@@ -103,6 +104,16 @@ def test_config_accepts_serial_and_ray_and_refuses_others():
         ExperimentConfig(ray_address="auto")
     with pytest.raises(ValueError, match="unknown executor 'dask'"):
         get_executor("dask")
+
+
+def test_run_command_passes_executor_and_ray_address_to_the_config():
+    from pemviz.cli import build_parser
+    from pemviz.commands.run import config_from_args
+
+    args = build_parser().parse_args(["run", "--executor", "ray", "--ray-address", "ray://head:10001"])
+    cfg = config_from_args(args)
+    assert (cfg.executor, cfg.ray_address) == ("ray", "ray://head:10001")
+    assert config_from_args(build_parser().parse_args(["run"])).executor == "serial"
 
 
 def _run(config: ExperimentConfig, problem: Problem):

@@ -36,6 +36,7 @@ from pemviz.sinks.recording import (  # noqa: E402
 
 SMALL = dict(n_stages=3, n_per_stage=20, n_final=20, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=20, seed=5)
 MU_RE = re.compile(r"mu_hat = (\S+) \(log mu_hat = (\S+) nats\)")
+CURVE_RE = re.compile(r"/proposal/data/stage_\d\d:LineStrips2D:strips")
 
 
 def packed(rgba) -> int:
@@ -114,7 +115,7 @@ def test_one_proposal_curve_per_stage_in_0_1_equal_to_the_stage_results(runs):
     events, _, tables, _ = runs["adaptive"]
     results = [e.result for e in of(events, StageFinished)]
     grid = of(events, RunStarted)[0].curve_grid_m
-    names = sorted(c for c in tables["static"].column_names if re.fullmatch(r"/proposal/data/stage_\d\d:LineStrips2D:strips", c))
+    names = sorted(c for c in tables["static"].column_names if CURVE_RE.fullmatch(c))
     # pretraining (stage 0), the K = 3 CE stages and the final batch (drawn from stage 3's proposal)
     assert names == [f"/proposal/data/stage_{k:02d}:LineStrips2D:strips" for k in range(5)]
     np.testing.assert_array_equal(results[4].proposal_curve, results[3].proposal_curve)
@@ -240,11 +241,11 @@ def test_nice_ticks_are_round_and_cover_the_range():
 
 def _stages_in(path) -> tuple[list[int], list[str], str]:
     tables = read({"run": path})["run"]
-    stages = [s for s, v in zip(column(tables["stage"], "stage"), column(tables["stage"], "/stages/failure_rate:Scalars:scalars")) if v]
-    curves = sorted(c.split("/")[3][:8] for c in tables["static"].column_names
-                    if re.fullmatch(r"/proposal/data/stage_\d\d:LineStrips2D:strips", c))  # fmt: skip
+    rates = zip(column(tables["stage"], "stage"), column(tables["stage"], "/stages/failure_rate:Scalars:scalars"))
+    stages = [s for s, v in rates if v]
+    curves = sorted(c.split("/")[3][:8] for c in tables["static"].column_names if CURVE_RE.fullmatch(c))
     text = static_value(tables, "/description:TextDocument:text")[0]
-    gaps = sorted(c for c in tables["step"].column_names if re.fullmatch(r"/rollouts/gap_m/stage_\d\d:Scalars:scalars", c))
+    gaps = [c for c in tables["step"].column_names if re.fullmatch(r"/rollouts/gap_m/stage_\d\d:Scalars:scalars", c)]
     assert len(gaps) == len(stages)
     return stages, curves, text
 

@@ -22,7 +22,7 @@ from pemviz import cli
 from pemviz import rollout_io as rio
 from pemviz.config import ExperimentConfig
 from pemviz.detectors import ConstantDetector, action_log_prob
-from pemviz.engine import Experiment, FinalEstimate, RolloutsSampled, RunFinished, RunStarted
+from pemviz.engine import Experiment, FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem
 from pemviz.sampling import Proposal, ce_update, estimate, pretrain_proposal
@@ -131,6 +131,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     cfg = ExperimentConfig(pem=str(pem_file))
     sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve()))
     rho = problem.robustness(batch, "classic")
+    sink(StageStarted(3, "final", 60))
     sink(RolloutsSampledBy(3, "final", batch, rho, {"classic": rho}, failed, batch.log_weight(), sampler=proposal))
     with torch_no_grad():
         for p in proposal.parameters():
@@ -151,6 +152,18 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
         assert code == 0, err
         assert f"{truth.n_failures}/60" in out
         assert same_mu(float(LOG_MU_RE.search(out).group(1)), truth.log_mu_hat)
+
+
+def test_rollout_sink_writes_nothing_for_a_streamed_final_batch(tmp_path, pem):
+    problem = braking_problem(pem)
+    batch = problem.simulate(5, problem.target, problem.target, np.random.default_rng(0))
+    sink = rio.RolloutSink(tmp_path / "big.parquet")
+    rho = problem.robustness(batch, "classic")
+    sink(StageStarted(1, "final", 200_000))  # the engine streams it; listeners see the first chunk only
+    sink(RolloutsSampled(1, "final", batch, rho, {"classic": rho}, rho < 0, batch.log_weight()))
+    sink(RunFinished(FinalEstimate(estimate(batch.log_weight(), rho < 0, batch.log_p.sum(1)), 200_000, 1.0), ()))
+    assert sink.written is None and "200000 rollouts was streamed" in sink.skipped
+    assert list(tmp_path.iterdir()) == []
 
 
 def torch_no_grad():

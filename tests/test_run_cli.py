@@ -54,7 +54,8 @@ def test_default_recording_verifies_and_holds_one_proposal_curve_per_stage(defau
         ds = server.client().get_dataset("run")
         finals = ds.reader(index=None).to_pandas()  # static: proposal curves (gap m, p) and the final estimate
         steps = ds.reader(index="step").to_pandas()
-    proposal_cols = sorted(c for c in finals.columns if re.fullmatch(r"/proposal/data/stage_\d\d:LineStrips2D:strips", c))
+    curve_re = re.compile(r"/proposal/data/stage_\d\d:LineStrips2D:strips")
+    proposal_cols = sorted(c for c in finals.columns if curve_re.fullmatch(c))
     # pretraining (0), the 10 CE stages, and the final batch (drawn from the final proposal)
     assert [c.split("/")[3][:8] for c in proposal_cols] == [f"stage_{k:02d}" for k in range(12)]
     for c in proposal_cols + ["/proposal/data/pem:LineStrips2D:strips"]:

@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--failure", default="crash", choices=("crash", "metric"),
                    help="failure event: crash = classic robustness < 0 (default); metric = the metric's < 0")
     rec = p.add_argument_group("recording (rerun)")
-    rec.add_argument("--save", default=None, help="write the recording here (default recordings/estimate-<name>-<time>.rrd)")
+    rec.add_argument("--save", default=None, metavar="PATH.rrd",
+                     help="write the recording here (default recordings/estimate-<name>-<time>.rrd)")
     rec.add_argument("--no-record", action="store_true", help="write no recording")
     p.set_defaults(func=main)  # fmt: skip
 

@@ -111,6 +111,11 @@ def main(args: argparse.Namespace) -> int:
     if args.save_rollouts is not None:
         from pemviz.rollout_io import RolloutSink
 
+        from pemviz.engine import STREAM_ABOVE
+
+        n_final = cfg.n_final if cfg.method == "adaptive" else cfg.n_per_stage
+        if n_final > STREAM_ABOVE:  # such batches are streamed in chunks, never held whole
+            raise UsageError(f"--save-rollouts: at most {STREAM_ABOVE} final rollouts can be saved, got {n_final}")
         try:
             rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem)
         except ValueError as exc:
@@ -143,6 +148,8 @@ def main(args: argparse.Namespace) -> int:
         Experiment(cfg, listeners).run()
         if rollout_sink is not None and rollout_sink.written is not None:
             print(f"rollouts: {rollout_sink.written}", file=sys.stderr)
+        elif rollout_sink is not None and rollout_sink.skipped:
+            print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
     finally:
         if recorder is not None:
             where = recorder.close()
