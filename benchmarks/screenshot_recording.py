@@ -7,7 +7,8 @@ What it does: ``rerun --serve-web RRD`` hosts the web viewer bundled with rerun-
 internet needed) and serves the recording over gRPC; Chromium (Debian's ``chromium``, driven by
 Playwright) opens ``http://127.0.0.1:PORT/?url=rerun+http://127.0.0.1:GRPC/proxy``, waits until the wasm
 viewer has drawn the recording (two equal screenshots in a row, at least ``--min-wait`` seconds after
-loading), and writes the PNG (to a temp file, then ``os.replace``). Chromium is started with
+loading), moves the time cursor to ``--step`` (default 48: safe rollouts brake, the crashing ones still miss), and
+writes the PNG (to a temp file, then ``os.replace``). Chromium is started with
 ``--headless --no-sandbox --disable-gpu --no-first-run --disable-background-networking
 --disable-component-update --disable-sync --user-data-dir=<temp>``; WebGL falls back to its software
 rasterizer.
@@ -65,8 +66,15 @@ def record_default_run(out: Path) -> None:
     subprocess.run(cmd, check=True, cwd=REPO)
 
 
-def screenshot(rrd: Path, out: Path, width: int, height: int, min_wait_s: float, max_wait_s: float) -> Path:
-    """Serve ``rrd`` with rerun's web viewer and save a PNG of it from headless Chromium."""
+def screenshot(
+    rrd: Path, out: Path, width: int, height: int, min_wait_s: float, max_wait_s: float, step: int | None = None
+) -> Path:
+    """Serve ``rrd`` with rerun's web viewer and save a PNG of it from headless Chromium.
+
+    ``step``: move the time cursor there (0..99) by clicking the collapsed time panel's scrub bar, where
+    rerun 0.41 puts step 0 at x = 238 px and step 99 at ``width`` - 194 px (measured; best effort: if the
+    layout changes the cursor lands elsewhere, the views are the same).
+    """
     from playwright.sync_api import sync_playwright
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -107,6 +115,11 @@ def screenshot(rrd: Path, out: Path, width: int, height: int, min_wait_s: float,
                 if (elapsed >= min_wait_s and png == previous) or elapsed >= max_wait_s:
                     break
                 previous = png
+            if step is not None:
+                left, right = 238, width - 194  # step 0 and step 99, measured at 1600 px wide
+                page.mouse.click(left + (right - left) * step / 99, height - 14)
+                time.sleep(5.0)
+                png = page.screenshot()
             browser.close()
         tmp.write_bytes(png)
         os.replace(tmp, out)
@@ -126,6 +139,7 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=1000)
     ap.add_argument("--min-wait", type=float, default=25.0, help="seconds before the page may count as drawn")
     ap.add_argument("--max-wait", type=float, default=120.0)
+    ap.add_argument("--step", type=int, default=48, help="time cursor on the step timeline (-1: leave it at the end)")
     args = ap.parse_args()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
@@ -133,7 +147,8 @@ def main() -> int:
         if rrd is None:
             rrd = Path(tmp) / "default.rrd"
             record_default_run(rrd)
-        screenshot(rrd, args.out, args.width, args.height, args.min_wait, args.max_wait)
+        step = None if args.step < 0 else args.step
+        screenshot(rrd, args.out, args.width, args.height, args.min_wait, args.max_wait, step)
     return 0
 
 

@@ -20,6 +20,8 @@ COMMAND_MODULES = (
     "pemviz.commands.pem",
     "pemviz.commands.serve",
     "pemviz.commands.estimate",
+    "pemviz.commands.validate",
+    "pemviz.commands.tables",
 )
 
 

@@ -23,7 +23,15 @@ from pemviz.config import METRICS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, Detector, WindowDetector
 from pemviz.executors import get_executor
 from pemviz.problems import Problem, braking_problem
-from pemviz.sampling import Estimate, Proposal, ce_update, estimate, pretrain_proposal, quantile_threshold
+from pemviz.sampling import (
+    Estimate,
+    Proposal,
+    StateProposal,
+    ce_update,
+    estimate,
+    pretrain_proposal,
+    quantile_threshold,
+)
 from pemviz.scenarios import RolloutBatch
 
 
@@ -177,7 +185,7 @@ class Experiment:
         by_metric = {m: self.problem.robustness(batch, m) for m in METRICS}
         r = by_metric[self.config.metric]
         failed = by_metric["classic"] < 0.0
-        log_w = batch.log_weight()
+        log_w = self._log_weight(batch)
         self.emit(RolloutsSampled(stage, kind, batch, r, by_metric, failed, log_w, sampler))
         return batch, r, failed, log_w
 
@@ -191,6 +199,41 @@ class Experiment:
         self.stages.append(res)
         self.emit(StageFinished(res))
         return res
+
+    # -- sampler improvements (issue 6; all off by default) ------------------------------------------
+    def _step_mask(self, batch: RolloutBatch) -> np.ndarray | None:
+        """bool [N, T]: the steps whose actions enter the weights and the CE fit, or None for all of them.
+
+        ``weights_until_failure``: the steps before the failure step (the first step where the operand of
+        the ``G`` safety formula is violated); ``proposal_window``: the steps inside the problem's window.
+        """
+        cfg = self.config
+        if not (cfg.weights_until_failure or cfg.proposal_window):
+            return None
+        mask = np.ones(batch.detected.shape, bool)
+        if cfg.weights_until_failure:
+            mask &= np.arange(batch.n_steps)[None, :] < failure_steps(self.problem, batch)[:, None]
+        if cfg.proposal_window:
+            mask &= batch.gap_m < self.problem.window
+        return mask
+
+    def _log_weight(self, batch: RolloutBatch) -> np.ndarray:
+        """Importance log-weights [N] (nats): T - 1 factors, or up to the failure step (``weights_until_failure``)."""
+        if not self.config.weights_until_failure:
+            return batch.log_weight()
+        k = np.minimum(failure_steps(self.problem, batch), batch.n_steps - 1)
+        upto = np.arange(batch.n_steps)[None, :] < k[:, None]
+        return ((batch.log_p - batch.log_q) * upto).sum(axis=1)
+
+    def _new_proposal(self, pretrain: RolloutBatch) -> Proposal:
+        """The paper's gap-only proposal, or a :class:`StateProposal` over every observation column
+        (``proposal_inputs = "state"``): the gap scaled by the problem's ``h_scale``, the other columns by their
+        largest magnitude in the pretraining rollouts; its curve holds them at the start state."""
+        if self.config.proposal_inputs == "gap":
+            return Proposal(self.problem.h_scale)
+        obs = pretrain.observations
+        scales = [self.problem.h_scale] + [float(np.max(np.abs(obs[:, :, j]))) or 1.0 for j in range(1, obs.shape[2])]
+        return StateProposal(tuple(range(obs.shape[2])), tuple(scales), tuple(obs[0, 0]))
 
     # -- the pipeline -----------------------------------------------------------------------------
     def run(self) -> RunFinished | RunCancelled:
@@ -258,11 +301,11 @@ class Experiment:
                 by_metric = {m: pb.robustness(chunk, m) for m in METRICS}
                 f = by_metric["classic"] < 0.0
                 self.emit(RolloutsSampled(stage, "final", chunk, by_metric[self.config.metric], by_metric, f,
-                                          chunk.log_weight(), sampler))  # fmt: skip
+                                          self._log_weight(chunk), sampler))  # fmt: skip
             else:
                 f = pb.failed(chunk)
             failed.append(f)
-            log_w.append(chunk.log_weight())
+            log_w.append(self._log_weight(chunk))
             log_p_total.append(chunk.log_p[:, : chunk.n_steps - 1].sum(axis=1))
             c, h = _elite_counts(chunk, f, grid)
             counts, hits = counts + c, hits + h
@@ -279,29 +322,67 @@ class Experiment:
     def _adaptive(self, rng: np.random.Generator) -> StageResult:
         cfg = self.config
         t0 = time.perf_counter()
-        proposal = Proposal(self.problem.h_scale)
         batch, r, failed, log_w = self._sample(0, "pretrain", cfg.pretrain_rollouts, self.problem.target, rng)
+        proposal = self._new_proposal(batch)
         pretrain_proposal(
-            proposal, batch.observations[:, :, 0], batch.detected,
+            proposal, proposal.features(batch.observations), batch.detected,
             epochs=cfg.pretrain_epochs, lr=cfg.learning_rate, check=self._check_cancel,
         )  # fmt: skip
         self._finish_stage(0, "pretrain", float("nan"), np.zeros(batch.n, bool), batch, failed, log_w, proposal, t0)
+        sampler: Detector = proposal
+        if cfg.proposal_window:  # q = p_PEM where the detector cannot matter
+            sampler = WindowDetector(proposal, self.problem.target, self.problem.window)
         last = None
         for stage in range(1, cfg.n_stages + 1):
             t0 = time.perf_counter()
-            batch, r, failed, log_w = self._sample(stage, "ce", cfg.n_per_stage, proposal, rng)
+            batch, r, failed, log_w = self._sample(stage, "ce", cfg.n_per_stage, sampler, rng)
             gamma = quantile_threshold(r, cfg.quantile_level, floor=0.0)
             elite = r <= gamma
+            if cfg.elite_ties == "random" and gamma > 0.0:
+                elite = _break_ties(r, gamma, cfg.quantile_level, rng)
+            smoothing = cfg.smoothing_at_failure if cfg.smoothing_at_failure is not None and gamma <= 0.0 else cfg.smoothing
             self._check_cancel()
             ce_update(
-                proposal, batch.observations[:, :, 0], batch.detected, batch.log_p, batch.log_q, elite,
-                smoothing=cfg.smoothing, epochs=cfg.ce_epochs, lr=cfg.learning_rate, weights=cfg.weights,
-                check=self._check_cancel,
+                proposal, proposal.features(batch.observations), batch.detected, batch.log_p, batch.log_q, elite,
+                smoothing=smoothing, epochs=cfg.ce_epochs, lr=cfg.learning_rate, weights=cfg.weights,
+                check=self._check_cancel, step_mask=self._step_mask(batch),
             )  # fmt: skip
             last = self._finish_stage(stage, "ce", gamma, elite, batch, failed, log_w, proposal, t0)
         if cfg.final_estimate == "last-stage":
             return last
-        return self._final(cfg.n_stages + 1, proposal, rng, proposal)
+        return self._final(cfg.n_stages + 1, sampler, rng, proposal)
+
+
+def _break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng: np.random.Generator) -> np.ndarray:
+    """bool [N]: the rollouts below gamma plus randomly chosen ties at gamma, ceil((1 - sigma) N) in all."""
+    k = max(1, int(np.ceil((1.0 - quantile_level) * robustness.size - 1e-9)))
+    below = robustness < gamma
+    ties = np.flatnonzero(robustness == gamma)
+    elite = below.copy()
+    elite[rng.permutation(ties)[: max(0, k - int(below.sum()))]] = True
+    return elite
+
+
+def failure_steps(problem: Problem, batch: RolloutBatch) -> np.ndarray:
+    """The step at which each rollout fails, int [N] (T when it does not): the first step in [a, b] at which
+    the operand of the problem's safety formula ``G[a,b](operand)`` has classic robustness < 0.
+
+    Only the actions before that step can change whether it fails (``weights_until_failure``).
+
+    Raises:
+        ValueError: if the formula is not ``G[a,b](operand)`` with a time-free operand (horizon 0).
+    """
+    from pemviz import stl
+
+    f = problem.formula
+    if not isinstance(f, stl.Always) or f.operand.horizon() != 0:
+        raise ValueError(f"weights_until_failure needs a safety formula G[a,b](state predicate), got {f}")
+    rho = stl.robustness_signal(f.operand, problem.signal_arrays(batch), "classic")
+    end = batch.n_steps - 1 if f.end is None else min(f.end, batch.n_steps - 1)
+    bad = rho < 0.0
+    bad[:, : f.start] = False
+    bad[:, end + 1 :] = False
+    return np.where(bad.any(axis=1), bad.argmax(axis=1), batch.n_steps)
 
 
 def run_experiment(

@@ -25,7 +25,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -154,7 +154,6 @@ class EvalResult:
     authors_gap_prob: np.ndarray | None
     wall_s: float
     data_source: str = ""
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def model(self, name: str) -> ModelEvaluation:
         for m in self.models:
@@ -434,7 +433,7 @@ def _legend(stream: Any, fig: Any, entries: Sequence[tuple[str, tuple[int, int, 
     import rerun as rr
 
     n = len(entries)
-    pos = [[0.6 * fig.width, fig.height * (0.93 - 0.075 * (n - 1 - i))] for i in range(n)]
+    pos = [[0.8 * fig.width, fig.height * (0.93 - 0.075 * (n - 1 - i))] for i in range(n)]
     stream.log(
         f"{fig.path}/legend",
         rr.Points2D(pos, colors=[c for _, c in entries], radii=-4.0, labels=[t for t, _ in entries], show_labels=True),

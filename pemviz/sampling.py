@@ -54,6 +54,47 @@ class Proposal(nn.Module):
             lq = self.forward(torch.as_tensor(gap_grid_m, dtype=torch.float64))
         return lq[:, 1].exp().numpy()
 
+    def features(self, observations: np.ndarray) -> np.ndarray:
+        """The proposal's inputs of rollouts' observations [N, T, F]: the gap, [N, T] (metres)."""
+        return np.asarray(observations)[..., GAP_COLUMN]
+
+
+class StateProposal(Proposal):
+    """q_phi(a | h(s)) with h(s) = several observation columns, each divided by its scale (issue 6).
+
+    Same network as :class:`Proposal` with ``len(columns)`` inputs (gap first). ``forward(h [M, k])``;
+    :meth:`curve` varies the gap and holds the other inputs at ``reference`` (e.g. the start state).
+    Opt in with ``ExperimentConfig.proposal_inputs = "state"``; the paper's proposal sees the gap only.
+    """
+
+    def __init__(self, columns: tuple[int, ...], scales: tuple[float, ...], reference: tuple[float, ...]) -> None:
+        if len(columns) != len(scales) or len(columns) != len(reference) or columns[:1] != (GAP_COLUMN,):
+            raise ValueError("StateProposal: columns, scales and reference need one entry per input, the gap first")
+        super().__init__(float(scales[0]))
+        self.columns, self.reference = tuple(columns), tuple(float(r) for r in reference)
+        self.scales = torch.as_tensor(np.asarray(scales, dtype=np.float64))
+        self.net[0] = nn.Linear(len(columns), 32).double()
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return self.net(h.reshape(-1, len(self.columns)) / self.scales)
+
+    def features(self, observations: np.ndarray) -> np.ndarray:
+        """[N, T, k]: the proposal's input columns of observations [N, T, F]."""
+        return np.asarray(observations)[..., list(self.columns)]
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            lq = self.forward(torch.as_tensor(np.asarray(obs)[:, list(self.columns)], dtype=torch.float64))
+        return (lq[:, 1] - lq[:, 0]).numpy()
+
+    def curve(self, gap_grid_m: np.ndarray) -> np.ndarray:
+        """q(detect | d, other inputs = ``reference``) on a grid of gaps, float64 [G]."""
+        h = np.tile(np.asarray(self.reference, dtype=np.float64), (np.size(gap_grid_m), 1))
+        h[:, 0] = gap_grid_m
+        with torch.no_grad():
+            lq = self.forward(torch.as_tensor(h))
+        return lq[:, 1].exp().numpy()
+
 
 CHECK_EVERY = 25
 """Epochs between two calls of a training loop's ``check`` callback (e.g. the engine's cancel check)."""
@@ -74,22 +115,33 @@ def _fit(proposal: Proposal, loss_fn, epochs: int, lr: float, check: Callable[[]
 
 
 def _action_counts(gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None):
-    """Distinct gaps and the (weighted) number of misses and detections at each: an exact summary.
+    """Distinct proposal inputs and the (weighted) number of misses and detections at each: an exact summary.
 
     q depends on the gap only, so ``sum_it w_i log q(a_it | d_it) = sum_u W0(u) log q(0|u) + W1(u) log q(1|u)``.
     Rollouts share most gaps (the detector matters only inside 10 m), so an epoch costs a forward pass
     over a few hundred distinct gaps instead of N * T.
 
+    Args:
+        gap_m: [N, T] gaps, or [N, T, k] inputs of a :class:`StateProposal` (distinct rows then).
+        row_weight: [N] per rollout, or [N, T] per step (0 leaves a step out), or None (all 1).
     Returns:
-        (uniq [U] float64 tensor, counts [U, 2] float64 tensor: weighted misses, detections;
+        (uniq [U] (or [U, k]) float64 tensor, counts [U, 2] float64 tensor: weighted misses, detections;
         inverse [N, T] index of each entry into ``uniq``).
     """
     gap_m = np.asarray(gap_m, dtype=np.float64)
-    uniq, inverse = np.unique(gap_m, return_inverse=True)
-    inverse = inverse.reshape(gap_m.shape)
-    w = np.ones(gap_m.shape) if row_weight is None else np.broadcast_to(np.asarray(row_weight)[:, None], gap_m.shape)
+    shape = np.shape(detected)
+    if gap_m.ndim == 3:
+        uniq, inverse = np.unique(gap_m.reshape(-1, gap_m.shape[2]), axis=0, return_inverse=True)
+    else:
+        uniq, inverse = np.unique(gap_m, return_inverse=True)
+    inverse = inverse.reshape(shape)
+    if row_weight is None:
+        w = np.ones(shape)
+    else:
+        row_weight = np.asarray(row_weight, dtype=np.float64)
+        w = np.broadcast_to(row_weight if row_weight.ndim == 2 else row_weight[:, None], shape)
     slot = inverse * 2 + np.asarray(detected, dtype=np.int64)
-    counts = np.bincount(slot.ravel(), weights=w.ravel(), minlength=2 * uniq.size).reshape(uniq.size, 2)
+    counts = np.bincount(slot.ravel(), weights=w.ravel(), minlength=2 * len(uniq)).reshape(len(uniq), 2)
     return torch.as_tensor(uniq), torch.as_tensor(counts), inverse
 
 
@@ -105,7 +157,8 @@ def pretrain_proposal(
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch, Adam), in place.
 
     Args:
-        gap_m: float64 [N, T] gaps of PEM-driven rollouts (metres).
+        gap_m: float64 [N, T] gaps of PEM-driven rollouts (metres), or [N, T, k] inputs of a
+            :class:`StateProposal` (``proposal.features(observations)``).
         detected: bool [N, T] the PEM's detections.
         check: called every :data:`CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
     Returns:
@@ -113,7 +166,7 @@ def pretrain_proposal(
     Source: spec section 4, "Pretraining".
     """
     uniq, counts, _ = _action_counts(gap_m, detected)
-    total = float(np.size(gap_m))
+    total = float(np.size(detected))
     return _fit(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr, check)
 
 
@@ -142,6 +195,7 @@ def ce_update(
     weights: WeightMode = "frozen",
     n_factors: int | None = None,
     check: Callable[[], None] | None = None,
+    step_mask: np.ndarray | None = None,
 ) -> list[float]:
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
@@ -154,6 +208,8 @@ def ce_update(
             ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
         n_factors: steps in each weight (default T - 1: the last action affects nothing).
         check: called every :data:`CHECK_EVERY` epochs; may raise to abandon the update (cancel).
+        step_mask: bool [N, T] or None: steps that count, in the weights and in the fit (False: left out,
+            e.g. outside the proposal's window or after the failure; issue 6, off by default).
     Returns:
         the loss per epoch. The weights are divided by their largest value (a constant factor, to which
         Adam's steps are invariant), so that w^alpha never overflows.
@@ -163,12 +219,15 @@ def ce_update(
     idx = np.flatnonzero(elite)
     if idx.size == 0:
         raise ValueError("ce_update: no elite rollouts (robustness <= gamma) to fit the proposal to")
-    k = gap_m.shape[1] - 1 if n_factors is None else n_factors
-    lp = (log_p[idx, :k]).sum(axis=1)
-    frozen_log_w = (log_p[idx, :k] - log_q[idx, :k]).sum(axis=1)
+    k = detected.shape[1] - 1 if n_factors is None else n_factors
+    mask = np.ones(detected.shape, bool) if step_mask is None else np.asarray(step_mask, dtype=bool)
+    mask = mask[idx]
+    lp = (log_p[idx, :k] * mask[:, :k]).sum(axis=1)
+    frozen_log_w = ((log_p[idx, :k] - log_q[idx, :k]) * mask[:, :k]).sum(axis=1)
     if weights == "frozen":
         scaled = smoothing * frozen_log_w
-        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], np.exp(scaled - scaled.max()))
+        step_w = np.exp(scaled - scaled.max())[:, None] * mask
+        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w if step_mask is not None else step_w[:, 0])
 
         def loss() -> torch.Tensor:
             return -(counts * proposal.forward(uniq)).sum()
@@ -178,9 +237,10 @@ def ce_update(
         uniq, _, inverse = _action_counts(gap_m[idx], detected[idx])
         slot = torch.as_tensor(inverse * 2 + detected[idx].astype(np.int64))
         lp_t = torch.as_tensor(lp)
+        mask_t = torch.as_tensor(mask, dtype=torch.float64)
 
         def loss() -> torch.Tensor:
-            log_q_now = proposal.forward(uniq).reshape(-1)[slot]
+            log_q_now = proposal.forward(uniq).reshape(-1)[slot] * mask_t
             scaled = smoothing * (lp_t - log_q_now[:, :k].sum(dim=1))
             w = torch.exp(scaled - scaled.detach().max())
             return -(w * log_q_now.sum(dim=1)).sum()
