@@ -270,7 +270,6 @@ class RerunSink:
         self.repetition = repetition
         self.n_stages = 1
         self.last_stage = 1
-        self.metric = "classic"
         self.grid_m = np.zeros(0)
         self.config_md = ""
         self.intro_md = ""
@@ -414,7 +413,6 @@ class RerunSink:
         cfg = ev.config
         self.n_stages = cfg.n_stages + 1 if cfg.method == "adaptive" else 1
         self.last_stage = cfg.n_stages + (cfg.final_estimate == "fresh") if cfg.method == "adaptive" else 1
-        self.metric = cfg.metric
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         s = self.stream
         s.send_property(
