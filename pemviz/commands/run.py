@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--metric", default=None, help=f"robustness metric: {', '.join(METRICS)}")
     p.add_argument("--seed", type=int, default=None, help=f"random seed (default {d.seed})")
     p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help="Adam epochs per stage")
-    p.add_argument("--pem", default=None, help="PEM weights file (default: the shipped assets/pem_ml-nn.pt)")
+    p.add_argument("--pem", default=None, help="a shipped PEM name (ml-nn, gbt) or a weights file (default: pemviz.pem.DEFAULT_PEM_NAME)")
     p.add_argument(
         "--sim", default=None,
         help=f"scenario back-end: {'|'.join(SIMULATORS)} (default {d.sim}; same rollouts for a seed)",
@@ -100,8 +100,11 @@ def main(args: argparse.Namespace) -> int:
         cfg = config_from_args(args)
     except ConfigError as exc:
         raise UsageError(str(exc)) from None
-    if args.pem is not None and not Path(args.pem).is_file():
-        raise UsageError(f"--pem {args.pem}: no such file")
+    if args.pem is not None:
+        from pemviz.pem import shipped_pems
+
+        if args.pem not in shipped_pems() and not Path(args.pem).is_file():
+            raise UsageError(f"--pem {args.pem}: neither a shipped PEM ({', '.join(shipped_pems())}) nor a file")
     if cfg.executor == "ray":
         import importlib.util
 
