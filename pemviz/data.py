@@ -20,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import tempfile
 import urllib.error
 import urllib.request
 from collections.abc import Callable, Iterable
@@ -28,6 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from pemviz.files import atomic_write
 
 __all__ = [
     "DATA_DIR_ENV",
@@ -222,10 +223,10 @@ def fetch(
                 on_file(name, "present")
             continue
         url = f"{base}/{name}"
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".part", dir=folder)
-        try:
+
+        def download(tmp: str, url: str = url, expected: str = expected, target: Path = target) -> None:
             digest = hashlib.sha256()
-            with os.fdopen(fd, "wb") as out:
+            with open(tmp, "wb") as out:
                 try:
                     with urllib.request.urlopen(url, timeout=timeout_s) as response:  # noqa: S310 (https/http only)
                         for chunk in iter(lambda: response.read(1 << 16), b""):
@@ -239,13 +240,8 @@ def fetch(
                     f"{url}: SHA-256 {got} differs from the expected {expected}; "
                     f"the file was not written to {target}"
                 )
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp_name, 0o666 & ~umask)  # mkstemp gives 0o600
-            os.replace(tmp_name, target)
-        finally:
-            if os.path.exists(tmp_name):
-                os.unlink(tmp_name)
+
+        atomic_write(target, download)
         if on_file:
             on_file(name, "downloaded")
     return folder

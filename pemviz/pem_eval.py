@@ -31,6 +31,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from pemviz.files import atomic_write
 from pemviz.pem import (
     PEM_RECIPES,
     NormStats,
@@ -392,19 +393,6 @@ def format_csv(result: EvalResult) -> str:
     return "\n".join(out) + "\n"
 
 
-def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
-    """Write ``text`` to ``path`` via a temporary file and ``os.replace``."""
-    target = Path(path)
-    tmp = target.with_name(f".{target.name}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, target)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return target
-
-
 # ------------------------------------------------------------------------------------------ recording
 
 MODEL_RGBA = {
@@ -590,21 +578,16 @@ def write_recording(result: EvalResult, path: str | os.PathLike[str]) -> Path:
     """Write the rerun recording of :func:`log_recording` to ``path`` (via ``path.partial``, then renamed)."""
     import rerun as rr
 
-    target = Path(path)
-    partial = target.with_name(target.name + ".partial")
-    stream = rr.RecordingStream(APP_ID)
-    stream.set_log_time_enabled(False)
-    stream.set_log_tick_enabled(False)
-    stream.save(partial)
-    try:
+    def write(tmp: str) -> None:
+        stream = rr.RecordingStream(APP_ID)
+        stream.set_log_time_enabled(False)
+        stream.set_log_tick_enabled(False)
+        stream.save(tmp)
         log_recording(result, stream)
         stream.flush()
         stream.disconnect()
-        os.replace(partial, target)
-    finally:
-        if partial.exists():
-            partial.unlink()
-    return target
+
+    return atomic_write(path, write)
 
 
 def summary_lines(result: EvalResult) -> Sequence[str]:

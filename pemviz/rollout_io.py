@@ -54,7 +54,6 @@ import dataclasses
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -62,6 +61,7 @@ from typing import Any, Mapping
 import numpy as np
 
 import pemviz
+from pemviz.files import atomic_write, check_output_path
 from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.scenarios import RolloutBatch
 
@@ -541,38 +541,13 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     return _Table(table, meta, str(p)).parse(p)
 
 
-def _atomic_write(target: Path, write: Any) -> None:
-    """``write(tmp_path)``, then ``os.replace`` onto ``target``; nothing is left behind on error."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, target)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def check_rollouts_path(path: str | os.PathLike[str]) -> Path:
     """Refuse a path where a rollout file cannot be written, before any work (nothing is created).
 
     Raises:
         ValueError: not ``.parquet``, a directory, or a folder that does not exist / is not writable.
     """
-    p = Path(path)
-    if p.suffix != ".parquet":
-        raise ValueError(f"{p}: a rollout file must end in .parquet")
-    if p.is_dir():
-        raise ValueError(f"{p}: is a directory, give a file name ending in .parquet")
-    parent = p.parent if str(p.parent) else Path(".")
-    if not parent.is_dir():
-        raise ValueError(f"{p}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK):
-        raise ValueError(f"{p}: folder {parent} is not writable")
-    return p
+    return check_output_path(path, ".parquet", "rollout file")
 
 
 def rollouts_table(
@@ -654,8 +629,8 @@ def write_rollouts(
     table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=log_probs)
     _Table(table, meta, f"{p} (not written)").parse(None)
     text = json.dumps(meta.to_json(), indent=2, allow_nan=False) + "\n"
-    _atomic_write(p, lambda tmp: pq.write_table(table, tmp))
-    _atomic_write(sidecar_path(p), lambda tmp: Path(tmp).write_text(text))
+    atomic_write(p, lambda tmp: pq.write_table(table, tmp))
+    atomic_write(sidecar_path(p), lambda tmp: Path(tmp).write_text(text))
     return p
 
 
@@ -674,7 +649,7 @@ def save_proposal(proposal: Any, path: str | os.PathLike[str]) -> Path:
         "h_scale": float(proposal.h_scale),
         "state_dict": {k: v.detach().cpu().clone() for k, v in proposal.state_dict().items()},
     }
-    _atomic_write(target, lambda tmp: torch.save(payload, tmp))
+    atomic_write(target, lambda tmp: torch.save(payload, tmp))
     return target
 
 

@@ -111,7 +111,7 @@ def test_plain_monte_carlo_with_the_pem_finds_nothing_in_10000():
         (["--n", "1"], "N must be an integer >= 2"),
         (["--metric", "fancy"], "use one of classic, agm, smooth-cumulative"),
         (["--save", "/nonexistent-dir/x.rrd"], "does not exist"),
-        (["--save", "out.txt"], "must be a .rrd file"),
+        (["--save", "out.txt"], "must end in .rrd"),
     ],
 )
 def test_bad_input_gets_one_clear_error_and_writes_nothing(tmp_path, args, message):

@@ -177,8 +177,8 @@ def eval_main(args: argparse.Namespace) -> int:
         format_markdown,
         summary_lines,
         write_recording,
-        write_text_atomic,
     )
+    from pemviz.files import write_text_atomic
 
     config = eval_config_from_args(args)
     out = Path(args.out)

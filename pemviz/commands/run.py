@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 from datetime import datetime
 from pathlib import Path
 
@@ -68,24 +66,14 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
 
 
 def check_save_path(path: Path) -> Path:
-    """Refuse a path that cannot be written before any work starts (nothing is created)."""
+    """Refuse a recording path that cannot be written, before any work starts (nothing is created)."""
     from pemviz.commands import UsageError
+    from pemviz.files import check_output_path
 
-    if path.suffix != ".rrd":
-        raise UsageError(f"--save {path}: the recording must be a .rrd file")
-    if path.is_dir():
-        raise UsageError(f"--save {path}: is a directory, give a file name ending in .rrd")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise UsageError(f"--save {path}: folder {parent} does not exist")
-    try:  # the real test: can a file be created there? (root ignores permission bits, not read-only mounts)
-        with tempfile.NamedTemporaryFile(dir=parent, prefix=".pemviz-probe-"):
-            pass
-    except OSError as exc:
-        raise UsageError(f"--save {path}: folder {parent} is not writable ({exc.strerror})") from None
-    if path.exists() and not os.access(path, os.W_OK):
-        raise UsageError(f"--save {path}: not writable")
-    return path
+    try:
+        return check_output_path(path, ".rrd", "--save")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def default_recording_path(cfg: ExperimentConfig) -> Path:

@@ -8,7 +8,6 @@ z-score statistics (float64 tensors), the model's tensors and plain-value metada
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 
 from pemviz.data import repo_root
+from pemviz.files import atomic_write
 from pemviz.pem.encoding import POSE_COLUMNS, NormStats
 from pemviz.pem.network import PEM, PemFormatError
 from pemviz.pem.recipes import DEFAULT_PEM_NAME
@@ -59,13 +59,6 @@ def _plain(value: Any) -> Any:
     return str(value)
 
 
-def _default_file_mode() -> int:
-    """0o666 minus the process umask (what ``open()`` would give; ``mkstemp`` gives 0o600)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
 def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
     """Write a PEM atomically (temporary file in the same folder, then ``os.replace``).
 
@@ -99,15 +92,7 @@ def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
         payload.update({"kind": TreePEM.kind, "baseline": float(pem.baseline), "trees": _pack_trees(pem)})
     else:
         raise TypeError(f"cannot save a {type(pem).__name__} as a PEM")
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(payload, fh)
-        os.chmod(tmp, _default_file_mode())
-        os.replace(tmp, target)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    atomic_write(target, lambda tmp: torch.save(payload, tmp))
     return target
 
 
