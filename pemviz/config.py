@@ -69,10 +69,15 @@ class ExperimentConfig:
             happens: later actions change nothing, like the last action already left out (spec section 4).
         smoothing_at_failure: alpha once gamma_kappa has reached the failure threshold 0 (None: ``smoothing``);
             1.0 fits the elites with their full weights, the textbook CE target.
-        elite_ties: ``all`` (paper: every rollout with r <= gamma_kappa is an elite) or ``random``: while
-            gamma_kappa > 0, exactly ceil((1 - sigma) N) elites, ties at gamma_kappa broken at random (with
-            a discrete robustness, e.g. the toy's integer distances, ties can make every rollout an elite and
-            stall the adaptation).
+        elite_ties: ``all`` (paper: every rollout with r <= gamma_kappa is an elite) or ``random``: the rollouts
+            with r < gamma_kappa, plus ties at gamma_kappa drawn at random up to ceil((1 - sigma) N) elites (with a
+            discrete robustness, e.g. the toy's integer distances, ties can make every rollout an elite and stall
+            the adaptation, or make non-failing r = 0 rollouts elites at the last level).
+        pretrain_cap: None (paper: pretrain on PEM-driven rollouts) or c in (0, 1): inside the problem's
+            window the pretraining rollouts detect with min(p_PEM, c), so that the first proposal misses often
+            enough for stage 1 to rank rollouts (with p = 0.999 all 100 rollouts of stage 1 look alike).
+        defensive: eps in [0, 1): rollouts are drawn from the defensive mixture (1 - eps) q + eps x 50 %, so
+            that both outcomes keep probability >= eps / 2 at every step (0: the proposal itself, paper).
     """
 
     method: str = "adaptive"
@@ -98,6 +103,8 @@ class ExperimentConfig:
     weights_until_failure: bool = False
     smoothing_at_failure: float | None = None
     elite_ties: str = "all"
+    pretrain_cap: float | None = None
+    defensive: float = 0.0
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str, allowed: str) -> None:
@@ -129,6 +136,11 @@ class ExperimentConfig:
             need(_is_int(getattr(self, name)) and getattr(self, name) >= 1, name, "must be an integer >= 1")
         need(_is_real(self.learning_rate) and self.learning_rate > 0, "learning_rate", "must be > 0")
         need(self.proposal_inputs in PROPOSAL_INPUTS, "proposal_inputs", f"use one of {', '.join(PROPOSAL_INPUTS)}")
+        need(
+            self.pretrain_cap is None or (_is_real(self.pretrain_cap) and 0.0 < self.pretrain_cap < 1.0),
+            "pretrain_cap", "must be None or in (0, 1)",
+        )  # fmt: skip
+        need(_is_real(self.defensive) and 0.0 <= self.defensive < 1.0, "defensive", "must be in [0, 1)")
         need(self.elite_ties in ELITE_TIES, "elite_ties", f"use one of {', '.join(ELITE_TIES)}")
         for name in ("proposal_window", "weights_until_failure"):
             need(isinstance(getattr(self, name), bool), name, "must be True or False")
@@ -156,7 +168,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "authors-code": {"smoothing": 0.5, "ce_epochs": 1000, "weights": "recomputed", "final_estimate": "last-stage"},
     "improved": {
         "proposal_inputs": "state", "proposal_window": True, "weights_until_failure": True, "smoothing_at_failure": 1.0,
-        "elite_ties": "random",
+        "elite_ties": "random", "pretrain_cap": 0.9, "defensive": 0.2,
     },
 }
 """Named settings: ``paper`` (the defaults), ``authors-code`` (how the authors' code ran, spec section 4) and

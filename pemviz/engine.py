@@ -190,7 +190,7 @@ class Experiment:
         return batch, r, failed, log_w
 
     def _finish_stage(self, stage, kind, gamma, elite, batch, failed, log_w, proposal, t0) -> StageResult:
-        est = estimate(log_w, failed, batch.log_p[:, : batch.n_steps - 1].sum(axis=1))
+        est = estimate(log_w, failed, self._log_p_total(batch))
         grid = self.problem.curve_grid
         curve = proposal.curve(grid) if proposal is not None else np.full(grid.size, np.nan)
         res = StageResult(
@@ -201,29 +201,41 @@ class Experiment:
         return res
 
     # -- sampler improvements (issue 6; all off by default) ------------------------------------------
-    def _step_mask(self, batch: RolloutBatch) -> np.ndarray | None:
+    def _step_mask(self, batch: RolloutBatch, level: float = 0.0) -> np.ndarray | None:
         """bool [N, T]: the steps whose actions enter the weights and the CE fit, or None for all of them.
 
-        ``weights_until_failure``: the steps before the failure step (the first step where the operand of
-        the ``G`` safety formula is violated); ``proposal_window``: the steps inside the problem's window.
+        ``weights_until_failure``: the steps before the rollout reaches the stage's level (failure: the first
+        step where the operand of the ``G`` safety formula is violated; with the classic metric and a level
+        gamma_kappa > 0, the first step where its robustness is <= gamma_kappa: whether a rollout is an
+        elite is settled there, later actions are not what made it one); ``proposal_window``: the steps
+        inside the problem's window.
         """
         cfg = self.config
         if not (cfg.weights_until_failure or cfg.proposal_window):
             return None
         mask = np.ones(batch.detected.shape, bool)
         if cfg.weights_until_failure:
-            mask &= np.arange(batch.n_steps)[None, :] < failure_steps(self.problem, batch)[:, None]
+            level = level if cfg.metric == "classic" else 0.0
+            mask &= np.arange(batch.n_steps)[None, :] < failure_steps(self.problem, batch, level)[:, None]
         if cfg.proposal_window:
             mask &= batch.gap_m < self.problem.window
         return mask
 
     def _log_weight(self, batch: RolloutBatch) -> np.ndarray:
-        """Importance log-weights [N] (nats): T - 1 factors, or up to the failure step (``weights_until_failure``)."""
+        """Importance log-weights [N] (nats): T - 1 factors, or up to the failure step (``weights_until_failure``;
+        the NLL of :meth:`_log_p_total` then covers the same steps)."""
         if not self.config.weights_until_failure:
             return batch.log_weight()
         k = np.minimum(failure_steps(self.problem, batch), batch.n_steps - 1)
         upto = np.arange(batch.n_steps)[None, :] < k[:, None]
         return ((batch.log_p - batch.log_q) * upto).sum(axis=1)
+
+    def _log_p_total(self, batch: RolloutBatch) -> np.ndarray:
+        """sum_t log p_PEM(a_t | s_t) [N] over the steps of the weights (T - 1, or up to the failure step)."""
+        if not self.config.weights_until_failure:
+            return batch.log_p[:, : batch.n_steps - 1].sum(axis=1)
+        k = np.minimum(failure_steps(self.problem, batch), batch.n_steps - 1)
+        return (batch.log_p * (np.arange(batch.n_steps)[None, :] < k[:, None])).sum(axis=1)
 
     def _new_proposal(self, pretrain: RolloutBatch) -> Proposal:
         """The paper's gap-only proposal, or a :class:`StateProposal` over every observation column
@@ -306,7 +318,7 @@ class Experiment:
                 f = pb.failed(chunk)
             failed.append(f)
             log_w.append(self._log_weight(chunk))
-            log_p_total.append(chunk.log_p[:, : chunk.n_steps - 1].sum(axis=1))
+            log_p_total.append(self._log_p_total(chunk))
             c, h = _elite_counts(chunk, f, grid)
             counts, hits = counts + c, hits + h
         self.n_simulations += n
@@ -322,30 +334,39 @@ class Experiment:
     def _adaptive(self, rng: np.random.Generator) -> StageResult:
         cfg = self.config
         t0 = time.perf_counter()
-        batch, r, failed, log_w = self._sample(0, "pretrain", cfg.pretrain_rollouts, self.problem.target, rng)
+        pre_sampler = self.problem.target
+        if cfg.pretrain_cap is not None:  # the first proposal misses at least 1 - cap of the time inside the window
+            capped = _CappedDetector(self.problem.target, float(np.log(cfg.pretrain_cap) - np.log1p(-cfg.pretrain_cap)))
+            pre_sampler = WindowDetector(capped, self.problem.target, self.problem.window)
+        batch, r, failed, log_w = self._sample(0, "pretrain", cfg.pretrain_rollouts, pre_sampler, rng)
         proposal = self._new_proposal(batch)
         pretrain_proposal(
             proposal, proposal.features(batch.observations), batch.detected,
             epochs=cfg.pretrain_epochs, lr=cfg.learning_rate, check=self._check_cancel,
+            step_mask=self._step_mask(batch) if cfg.proposal_window else None,
         )  # fmt: skip
         self._finish_stage(0, "pretrain", float("nan"), np.zeros(batch.n, bool), batch, failed, log_w, proposal, t0)
         sampler: Detector = proposal
+        if cfg.defensive > 0.0:  # every outcome keeps at least probability defensive / 2
+            sampler = _DefensiveDetector(proposal, float(cfg.defensive))
         if cfg.proposal_window:  # q = p_PEM where the detector cannot matter
-            sampler = WindowDetector(proposal, self.problem.target, self.problem.window)
+            sampler = WindowDetector(sampler, self.problem.target, self.problem.window)
         last = None
         for stage in range(1, cfg.n_stages + 1):
             t0 = time.perf_counter()
             batch, r, failed, log_w = self._sample(stage, "ce", cfg.n_per_stage, sampler, rng)
             gamma = quantile_threshold(r, cfg.quantile_level, floor=0.0)
             elite = r <= gamma
-            if cfg.elite_ties == "random" and gamma > 0.0:
+            if cfg.elite_ties == "random":
                 elite = _break_ties(r, gamma, cfg.quantile_level, rng)
-            smoothing = cfg.smoothing_at_failure if cfg.smoothing_at_failure is not None and gamma <= 0.0 else cfg.smoothing
+            smoothing = cfg.smoothing
+            if cfg.smoothing_at_failure is not None and gamma <= 0.0:
+                smoothing = cfg.smoothing_at_failure
             self._check_cancel()
             ce_update(
                 proposal, proposal.features(batch.observations), batch.detected, batch.log_p, batch.log_q, elite,
                 smoothing=smoothing, epochs=cfg.ce_epochs, lr=cfg.learning_rate, weights=cfg.weights,
-                check=self._check_cancel, step_mask=self._step_mask(batch),
+                check=self._check_cancel, step_mask=self._step_mask(batch, gamma),
             )  # fmt: skip
             last = self._finish_stage(stage, "ce", gamma, elite, batch, failed, log_w, proposal, t0)
         if cfg.final_estimate == "last-stage":
@@ -353,8 +374,38 @@ class Experiment:
         return self._final(cfg.n_stages + 1, sampler, rng, proposal)
 
 
+@dataclass(frozen=True)
+class _CappedDetector:
+    """``logit min(p_detector, cap)``: the detector, never more sure to detect than the cap (``pretrain_cap``)."""
+
+    detector: Detector
+    cap_logit: float
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        return np.minimum(self.detector.detect_logit(obs), self.cap_logit)
+
+
+@dataclass(frozen=True)
+class _DefensiveDetector:
+    """The mixture (1 - eps) q + eps * 50 %: detects with (1 - eps) q(detect) + eps / 2 (``defensive``)."""
+
+    detector: Detector
+    eps: float
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        logit = np.asarray(self.detector.detect_logit(obs), dtype=np.float64)
+        a, half = np.log1p(-self.eps), np.log(self.eps / 2.0)
+        log_hit = np.logaddexp(a - np.logaddexp(0.0, -logit), half)
+        log_miss = np.logaddexp(a - np.logaddexp(0.0, logit), half)
+        return log_hit - log_miss
+
+
 def _break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng: np.random.Generator) -> np.ndarray:
-    """bool [N]: the rollouts below gamma plus randomly chosen ties at gamma, ceil((1 - sigma) N) in all."""
+    """bool [N]: every rollout below gamma plus randomly chosen ties at gamma up to ceil((1 - sigma) N) elites.
+
+    At gamma = 0 (the failure threshold) this keeps all failures (r < 0) and admits a non-failing rollout
+    with r = 0 only to reach ceil((1 - sigma) N) elites.
+    """
     k = max(1, int(np.ceil((1.0 - quantile_level) * robustness.size - 1e-9)))
     below = robustness < gamma
     ties = np.flatnonzero(robustness == gamma)
@@ -363,9 +414,11 @@ def _break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng
     return elite
 
 
-def failure_steps(problem: Problem, batch: RolloutBatch) -> np.ndarray:
+def failure_steps(problem: Problem, batch: RolloutBatch, level: float = 0.0) -> np.ndarray:
     """The step at which each rollout fails, int [N] (T when it does not): the first step in [a, b] at which
-    the operand of the problem's safety formula ``G[a,b](operand)`` has classic robustness < 0.
+    the operand of the problem's safety formula ``G[a,b](operand)`` has classic robustness < 0; with
+    ``level`` > 0, the first step at which it is <= ``level`` (the rollout's classic robustness is then
+    <= level whatever comes after).
 
     Only the actions before that step can change whether it fails (``weights_until_failure``).
 
@@ -379,7 +432,7 @@ def failure_steps(problem: Problem, batch: RolloutBatch) -> np.ndarray:
         raise ValueError(f"weights_until_failure needs a safety formula G[a,b](state predicate), got {f}")
     rho = stl.robustness_signal(f.operand, problem.signal_arrays(batch), "classic")
     end = batch.n_steps - 1 if f.end is None else min(f.end, batch.n_steps - 1)
-    bad = rho < 0.0
+    bad = rho <= level if level > 0.0 else rho < 0.0
     bad[:, : f.start] = False
     bad[:, end + 1 :] = False
     return np.where(bad.any(axis=1), bad.argmax(axis=1), batch.n_steps)

@@ -153,6 +153,7 @@ def pretrain_proposal(
     epochs: int = 1000,
     lr: float = 1e-3,
     check: Callable[[], None] | None = None,
+    step_mask: np.ndarray | None = None,
 ) -> list[float]:
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch, Adam), in place.
 
@@ -161,12 +162,18 @@ def pretrain_proposal(
             :class:`StateProposal` (``proposal.features(observations)``).
         detected: bool [N, T] the PEM's detections.
         check: called every :data:`CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
+        step_mask: bool [N, T] or None: only these steps are fitted (e.g. inside the proposal's window).
     Returns:
         the loss per epoch (mean negative log-likelihood, nats per step).
     Source: spec section 4, "Pretraining".
     """
-    uniq, counts, _ = _action_counts(gap_m, detected)
-    total = float(np.size(detected))
+    if step_mask is None:
+        uniq, counts, _ = _action_counts(gap_m, detected)
+        total = float(np.size(detected))
+    else:
+        step_mask = np.asarray(step_mask, dtype=np.float64)
+        uniq, counts, _ = _action_counts(gap_m, detected, step_mask)
+        total = max(float(step_mask.sum()), 1.0)
     return _fit(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr, check)
 
 

@@ -76,7 +76,7 @@ def test_tables_reduced_run_recovers_the_toy_1e_minus_3(tmp_path):
     for name in ("adaptive_100", "adaptive_100 (improved)"):
         assert math.exp(float(rows[name]["log_mu_hat_mean"])) == pytest.approx(1e-3, rel=0.3)
     assert float(rows["MC_100"]["mean_failures"]) < 1.0
-    assert (out / "tables.md").read_text().count("| r_") == 3
+    assert (out / "tables.md").read_text().count("| r_") == 6  # 3 metrics x (paper, improved)
     assert (out / "tables.rrd").stat().st_size > 10_000
 
 
@@ -104,3 +104,85 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, messag
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+# -- the opt-in sampler improvements (pemviz.config, issue 6) --------------------------------------------------
+def test_paper_defaults_leave_every_improvement_off():
+    cfg = ExperimentConfig()
+    assert (cfg.proposal_inputs, cfg.proposal_window, cfg.weights_until_failure) == ("gap", False, False)
+    assert (cfg.smoothing_at_failure, cfg.elite_ties, cfg.pretrain_cap, cfg.defensive) == (None, "all", None, 0.0)
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("proposal_inputs", "speed"), ("defensive", 1.0), ("pretrain_cap", 1.5), ("elite_ties", "some"),
+     ("smoothing_at_failure", 0.0), ("proposal_window", 1)],
+)  # fmt: skip
+def test_improvement_fields_reject_bad_values(field, value):
+    from pemviz.config import ConfigError
+
+    with pytest.raises(ConfigError, match=field):
+        ExperimentConfig(**{field: value})
+
+
+def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
+    import torch
+
+    from pemviz.sampling import Proposal, ce_update
+
+    rng = np.random.default_rng(0)
+    gaps = np.tile(np.linspace(12, 1, 30), (40, 1))
+    detected = rng.random(gaps.shape) < 0.5
+    log_p, log_q = np.log(np.where(detected, 0.99, 0.01)), np.full(gaps.shape, np.log(0.5))
+    elite = np.arange(40) < 8
+    params = []
+    for mask in (None, np.ones(gaps.shape, bool)):
+        torch.manual_seed(0)
+        q = Proposal()
+        ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.1, epochs=30, step_mask=mask)
+        params.append(torch.cat([p.detach().ravel() for p in q.parameters()]))
+    assert torch.equal(params[0], params[1])
+
+
+def test_defensive_mixture_and_tie_breaking_by_hand():
+    from pemviz.detectors import ConstantDetector
+    from pemviz.engine import _break_ties, _DefensiveDetector
+
+    d = _DefensiveDetector(ConstantDetector(0.99), 0.2)
+    p = 1.0 / (1.0 + math.exp(-d.detect_logit(np.zeros((1, 3)))[0]))
+    assert p == pytest.approx(0.8 * 0.99 + 0.1, rel=1e-12)
+    r = np.array([3.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.5, 2.0, 5.0])
+    elite = _break_ties(r, 1.0, 0.7, np.random.default_rng(0))  # ceil(0.3 x 10) = 3 elites
+    assert elite.sum() == 3 and elite[7] and not elite[[0, 8, 9]].any()
+
+
+def test_state_proposal_reads_its_columns_and_holds_the_rest_for_the_curve():
+    import torch
+
+    from pemviz.sampling import StateProposal
+
+    torch.manual_seed(0)
+    q = StateProposal((0, 1), (12.0, 8.0), (12.3, 7.7))
+    obs = np.array([[5.0, 3.0, 0.0], [5.0, 7.7, 9.0]])
+    assert q.features(obs[None]).shape == (1, 2, 2)
+    logit = q.detect_logit(obs)
+    assert logit[0] != logit[1]  # the speed matters
+    assert q.curve(np.array([5.0]))[0] == pytest.approx(1.0 / (1.0 + math.exp(-q.detect_logit(np.array([[5.0, 7.7]]))[0])))
+
+
+def test_tables_recording_holds_fig4_as_the_mean_of_the_stage_3_curves(tmp_path):
+    rr = pytest.importorskip("rerun")
+    pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
+    out = tmp_path / "t"
+    assert cli_main(["tables", "--problem", "toy-1e-3", "--reps", "2", "--k", "3", "--ce-epochs", "30",
+                     "--pretrain-epochs", "50", "--extra", "", "--mc-large", "200", "--jobs", "1", "--out", str(out)]) == 0
+    with rr.server.Server(datasets={"t": [str(out / "tables.rrd")]}) as server:
+        client = server.client()  # keep it alive while reading
+        table = client.get_dataset("t").reader(index="gap_mm").to_arrow_table()
+
+    def series(entity: str) -> np.ndarray:
+        return np.array([x[0] for x in table.column(f"/{entity}:Scalars:scalars").to_pylist() if x is not None])
+
+    reps = [series(f"curves/adaptive_100/rep_{r:02d}/stage_03") for r in range(2)]
+    np.testing.assert_allclose(series("fig4/classic"), (reps[0] + reps[1]) / 2, rtol=1e-12)
+    assert series("fig4/pem").size == reps[0].size == toy_problem(ToyParams(10, 5, 3, 0.9)).curve_grid.size

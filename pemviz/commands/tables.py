@@ -9,7 +9,8 @@ by R), failures, NLL (mean over failing rollouts, and -log-mean-exp), ESS, the e
 Writes ``tables.md``, ``tables.csv`` and ``tables.rrd`` into ``--out``: the recording holds every
 repetition's per-stage proposal curve q(detect | d) (``curves/<row>/rep_RR/stage_KK`` on the ``gap_mm``
 timeline) and the paper's Fig. 4: the curves at stage kappa = 3 averaged over repetitions, per metric
-(``fig4/<metric>``), beside the PEM's p(detect | d).
+(``fig4/<metric>``; ``fig4/<preset>/<metric>`` for the ``--extra`` presets), beside the PEM's p(detect | d)
+(``fig4/pem``). A :class:`~pemviz.sampling.StateProposal`'s curve holds its other inputs at the start state.
 """
 
 from __future__ import annotations
@@ -44,6 +45,15 @@ from pemviz.sampling import format_probability
 
 FIG4_STAGE = 3
 """The paper's Fig. 4 shows the proposal after stage kappa = 3."""
+
+PEM_RGBA = (30, 30, 30, 255)
+METRIC_RGBA = {"classic": (40, 110, 230, 255), "agm": (230, 120, 30, 255), "smooth-cumulative": (40, 170, 80, 255)}
+
+
+def stage_colour(stage: int, n_stages: int) -> tuple[int, int, int, int]:
+    """Blue (early) to orange (late) for the proposal curves of stages 0..n_stages."""
+    f = stage / max(1, n_stages)
+    return (int(40 + 215 * f), int(110 + 40 * f), int(230 - 200 * f), 255)
 
 
 @dataclass(frozen=True)
@@ -117,6 +127,11 @@ def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_l
     for metric in METRICS:
         if metric != "classic":
             specs.append(RowSpec("III", f"r_{metric}", tuple(sorted({**base, "metric": metric}.items()))))
+    for name in extra:
+        for metric in METRICS:
+            if metric != "classic":
+                fields = {**PRESETS[name], **base, "metric": metric}
+                specs.append(RowSpec("III", f"r_{metric} ({name})", tuple(sorted(fields.items()))))
     return specs
 
 
@@ -157,8 +172,6 @@ def write_recording(path: Path, specs: Sequence[RowSpec], records: dict[str, lis
     """Every adaptive repetition's per-stage proposal curves and Fig. 4 into a rerun file (atomic)."""
     import rerun as rr
 
-    from pemviz.sinks.recording import PEM_RGBA, stage_colour
-
     partial = path.with_name(path.name + ".partial")
     stream = rr.RecordingStream("pemviz-tables")
     stream.save(partial)
@@ -171,7 +184,6 @@ def write_recording(path: Path, specs: Sequence[RowSpec], records: dict[str, lis
     try:
         stream.log("description", rr.TextDocument(description, media_type=rr.MediaType.MARKDOWN), static=True)
         curve("fig4/pem", pem_curve, PEM_RGBA, "PEM p(detect | d)")
-        palette = {"classic": (40, 110, 230, 255), "agm": (230, 120, 30, 255), "smooth-cumulative": (40, 170, 80, 255)}
         for spec in specs:
             recs = [r for r in records[spec.label] if r.curves is not None]
             if not recs:
@@ -183,11 +195,13 @@ def write_recording(path: Path, specs: Sequence[RowSpec], records: dict[str, lis
                     curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_colour(k, n_stages),
                           f"{spec.label} rep {r.seed} stage {k}")  # fmt: skip
             metric = dict(spec.fields).get("metric", "classic")
-            if all(r.curves.shape[0] > FIG4_STAGE for r in recs) and (spec.table == "III" or spec.label.endswith(
-                    f"_{dict(spec.fields).get('n_per_stage', 100)}")):  # fmt: skip
+            preset = spec.label[spec.label.index("(") + 1 : -1] if spec.label.endswith(")") else None
+            if spec.label.startswith(("adaptive", "r_")) and all(r.curves.shape[0] > FIG4_STAGE for r in recs):
                 mean = np.mean([r.curves[FIG4_STAGE] for r in recs], axis=0)
-                curve(f"fig4/{metric}", mean, palette.get(metric, (120, 120, 120, 255)),
-                      f"{metric}: mean q(detect | d) at stage {FIG4_STAGE} over {len(recs)} repetitions")  # fmt: skip
+                where = f"fig4/{metric}" if preset is None else f"fig4/{preset}/{metric}"
+                curve(where, mean, METRIC_RGBA.get(metric, (120, 120, 120, 255)),
+                      f"{metric}{'' if preset is None else f' ({preset})'}: mean q(detect | d) at stage {FIG4_STAGE} "
+                      f"over {len(recs)} repetitions")  # fmt: skip
         stream.flush()
     finally:
         stream.disconnect()
@@ -263,9 +277,12 @@ def main(args: argparse.Namespace) -> int:
     for r in sorted(done, key=lambda r: r.seed):
         by_label[r.method].append(r)
     rows = [summarise_row(s, by_label[s.label], truth.log_p_fail) for s in specs]
-    classic = next(r for r in rows if r.table == "II" and r.label == specs[4].label)
-    table3 = [Row("III", "r_classic", *[getattr(classic, f) for f in list(Row.__dataclass_fields__)[2:]])]
-    table3 += [r for r in rows if r.table == "III"]
+    # Table III's classic rows are Table II's adaptive rows (same settings, same seeds)
+    table3 = []
+    for suffix in ("", *(f" ({name})" for name in extra)):
+        classic = next(r for r in rows if r.table == "II" and r.label == f"{specs[4].label}{suffix}")
+        table3.append(Row("III", f"r_classic{suffix}", *[getattr(classic, f) for f in list(Row.__dataclass_fields__)[2:]]))
+        table3 += [r for r in rows if r.table == "III" and r.label.endswith(suffix) and (suffix or "(" not in r.label)]
     rows_all = [r for r in rows if r.table == "II"] + table3
     wall = time.perf_counter() - t0
     cfg = ExperimentConfig(**base)
@@ -282,11 +299,11 @@ def main(args: argparse.Namespace) -> int:
         "",
         markdown(rows_all, "II"),
         "",
-        "## Table III: robustness metrics (adaptive, paper settings)",
+        "## Table III: robustness metrics (adaptive; paper settings, then each --extra preset)",
         "",
         markdown(rows_all, "III"),
         "",
-        *([f"## Exact answer: refinement", "", truth.table, ""] if truth.table else []),
+        *(["## Exact answer: refinement", "", truth.table, ""] if truth.table else []),
         f"Wall time {wall:.0f} s on {args.jobs} process(es).",
     ]) + "\n"  # fmt: skip
     print(text)

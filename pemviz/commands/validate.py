@@ -402,7 +402,9 @@ def main(args: argparse.Namespace) -> int:
 
     def on_record(r: RunRecord) -> None:
         err = relative_error(r.log_mu_hat, truths[r.problem].log_p_fail)
-        say(f"  {r.problem:9s} {r.method:22s} seed {r.seed}: mu_hat {math.exp(r.log_mu_hat) if r.log_mu_hat > -1e300 else 0:.4g} "
+        from pemviz.sampling import format_probability
+
+        say(f"  {r.problem:9s} {r.method:22s} seed {r.seed}: mu_hat {format_probability(r.log_mu_hat)} "
             f"(rel. error {err:.3f}), {r.n_failures}/{r.n} failures, {r.wall_s:.1f} s")  # fmt: skip
 
     records = run_jobs(jobs, args.jobs, on_record)

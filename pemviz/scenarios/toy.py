@@ -21,11 +21,15 @@ the distance like the braking scenario's gap), one step per unit of travel.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Union
+from typing import TYPE_CHECKING, Callable, Union
 
 import numpy as np
 
 from pemviz.detectors import Detector, action_log_prob
+
+if TYPE_CHECKING:  # imported lazily at run time: pemviz.problems imports the scenarios package
+    from pemviz.problems import Problem
+    from pemviz.scenarios import RolloutBatch
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")
 """Columns of the toy's observation: distance to the obstacle (units) and 1.0 once stopped or crashed."""
