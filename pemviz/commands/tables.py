@@ -38,6 +38,7 @@ from pemviz.commands.validate import (
     build_problem,
     exact_answer,
     run_jobs,
+    add_sampler_arguments,
     write_atomic,
 )
 from pemviz.config import METRICS, PRESETS, ExperimentConfig
@@ -209,7 +210,6 @@ def write_recording(path: Path, specs: Sequence[RowSpec], records: dict[str, lis
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    d = ExperimentConfig()
     p = sub.add_parser(
         "tables",
         help="reproduce the paper's Tables II and III with repetitions and the exact answer",
@@ -224,13 +224,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default authors-code,improved; '' for none)")
     p.add_argument("--mc-large", type=int, default=10000, help="rollouts of the large MC row (default 10000)")
     p.add_argument("--naive-large", type=int, default=1000, help="rollouts of the large naive-50 row (default 1000)")
-    p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
-    p.add_argument("--n", dest="n_per_stage", type=int, default=None, help=f"rollouts per stage N (default {d.n_per_stage})")
-    p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
-    p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help=f"epochs per stage (default {d.ce_epochs})")
-    p.add_argument("--pretrain-epochs", dest="pretrain_epochs", type=int, default=None,
-                   help=f"pretraining epochs (default {d.pretrain_epochs})")
-    p.add_argument("--pem", default=None, help="PEM weights (default: the shipped one)")
+    add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2: the CI machine's cores)")
     p.add_argument("--out", default="tables", metavar="DIR", help="folder for tables.md/.csv/.rrd (default tables)")
     p.add_argument("--no-record", action="store_true", help="write no recording")

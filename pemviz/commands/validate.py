@@ -14,9 +14,7 @@ import argparse
 import csv
 import io
 import math
-import os
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +23,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from pemviz.config import PRESETS, ConfigError, ExperimentConfig
+from pemviz.files import write_text_atomic
 
 # -- problems with an exact answer ------------------------------------------------------------------------------
 
@@ -286,16 +285,21 @@ def csv_text(summaries: Sequence[Summary]) -> str:
 
 
 def write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file and ``os.replace`` (never half-written)."""
+    """Write ``text`` to ``path`` (its folder created if needed), never half-written."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, text)
+
+
+def add_sampler_arguments(p: argparse.ArgumentParser) -> None:
+    """The sampler sizes shared by ``validate`` and ``tables``: --k, --n, --n-final, --ce-epochs, ..."""
+    d = ExperimentConfig()
+    p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
+    p.add_argument("--n", dest="n_per_stage", type=int, default=None, help=f"rollouts per stage N (default {d.n_per_stage})")
+    p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
+    p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help=f"epochs per stage (default {d.ce_epochs})")
+    p.add_argument("--pretrain-epochs", dest="pretrain_epochs", type=int, default=None,
+                   help=f"pretraining epochs (default {d.pretrain_epochs})")
+    p.add_argument("--pem", default=None, help="PEM weights (default: the shipped one)")
 
 
 # -- command ------------------------------------------------------------------------------------------------------
@@ -330,7 +334,6 @@ def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    d = ExperimentConfig()
     p = sub.add_parser(
         "validate",
         help="judge the sampler and the baselines against exact failure probabilities",
@@ -344,13 +347,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} (default paper,improved)")
     p.add_argument("--baselines", default="mc,naive50", help=f"from {', '.join(BASELINES)} (default mc,naive50)")
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
-    p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
-    p.add_argument("--n", dest="n_per_stage", type=int, default=None, help=f"rollouts per stage N (default {d.n_per_stage})")
-    p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
-    p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help=f"epochs per stage (default {d.ce_epochs})")
-    p.add_argument("--pretrain-epochs", dest="pretrain_epochs", type=int, default=None,
-                   help=f"pretraining epochs (default {d.pretrain_epochs})")
-    p.add_argument("--pem", default=None, help="PEM weights (default: the shipped one)")
+    add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--out", default=None, metavar="DIR", help="also write DIR/validate.md and DIR/validate.csv")
     p.set_defaults(func=main)  # fmt: skip
