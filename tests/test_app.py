@@ -9,6 +9,7 @@ truth the tests compare against. Chromium is Debian's (``apt-get install chromiu
 from __future__ import annotations
 
 import os
+import tempfile
 import re
 import shutil
 import time
@@ -31,7 +32,11 @@ CHROMIUM_ARGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
     "--disable-component-update", "--disable-sync",
 ]  # fmt: skip
-SCREENSHOT = REPO / "assets" / "screenshots" / "viser_panel.png"
+SCREENSHOT = (
+    REPO / "assets" / "screenshots" / "viser_panel.png"  # the README's picture: refresh it on purpose only
+    if os.environ.get("PEMVIZ_UPDATE_SCREENSHOTS")
+    else Path(tempfile.gettempdir()) / f"pemviz-viser_panel-{os.getpid()}.png"
+)
 VIEWPORT = {"width": 1600, "height": 1000}
 
 
