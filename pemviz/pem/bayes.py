@@ -23,7 +23,7 @@ import torch
 from pemviz.pem.encoding import (
     N_FEATURES,
     NormStats,
-    _check_raw,
+    check_training_data,
     braking_salient_inputs,
     encode_salient,
     fit_norm_stats,
@@ -133,12 +133,7 @@ def train_bnn_pem(
     from pyro.infer import SVI, Trace_ELBO
     from pyro.infer.autoguide import AutoLowRankMultivariateNormal
 
-    raw = _check_raw(inputs)
-    y = np.asarray(labels, dtype=np.float64).reshape(-1)
-    if y.shape[0] != raw.shape[0]:
-        raise ValueError(f"inputs have {raw.shape[0]} rows but labels {y.shape[0]}")
-    if not np.all((y == 0.0) | (y == 1.0)):
-        raise ValueError("labels must be 0 or 1")
+    raw, y = check_training_data(inputs, labels)
     norm = norm if norm is not None else fit_norm_stats(raw)
     x = torch.as_tensor(encode_salient(raw, norm), dtype=torch.float32)
     t = torch.as_tensor(y, dtype=torch.float32)

@@ -78,6 +78,21 @@ def _check_raw(raw_inputs: np.ndarray) -> np.ndarray:
     return raw
 
 
+def check_training_data(inputs: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Raw salient inputs float64 [N, 11] and labels float64 [N] in {0, 1}, checked for training.
+
+    Raises:
+        ValueError: wrong input shape, NaN, mismatched lengths, or labels other than 0 and 1.
+    """
+    raw = _check_raw(inputs)
+    y = np.asarray(labels, dtype=np.float64).reshape(-1)
+    if y.shape[0] != raw.shape[0]:
+        raise ValueError(f"inputs have {raw.shape[0]} rows but labels {y.shape[0]}")
+    if not np.all((y == 0.0) | (y == 1.0)):
+        raise ValueError("labels must be 0 or 1")
+    return raw, y
+
+
 def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:
     """The 14-dim PEM input: one-hot class (7), one-hot occlusion (3), z-scored x, y, z, rot_y.
 

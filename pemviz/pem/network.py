@@ -27,7 +27,7 @@ from pemviz.pem.encoding import (
     BRAKING_Z_FEATURE,
     N_FEATURES,
     NormStats,
-    _check_raw,
+    check_training_data,
     braking_features_at_z,
     encode_salient,
     fit_norm_stats,
@@ -328,12 +328,7 @@ def train_pem(
     Raises:
         ValueError: mismatched lengths, labels not in {0, 1}, bad encodings, epochs < 1 or batch_size < 2.
     """
-    raw = _check_raw(inputs)
-    y = np.asarray(labels, dtype=np.float64).reshape(-1)
-    if y.shape[0] != raw.shape[0]:
-        raise ValueError(f"inputs have {raw.shape[0]} rows but labels {y.shape[0]}")
-    if not np.all((y == 0.0) | (y == 1.0)):
-        raise ValueError("labels must be 0 or 1")
+    raw, y = check_training_data(inputs, labels)
     if epochs < 1 or batch_size < 2:
         raise ValueError(f"need epochs >= 1 and batch_size >= 2, got {epochs}, {batch_size}")
     norm = norm if norm is not None else fit_norm_stats(raw)

@@ -23,7 +23,7 @@ from pemviz.pem.encoding import (
     BRAKING_Z_FEATURE,
     N_FEATURES,
     NormStats,
-    _check_raw,
+    check_training_data,
     braking_features_at_z,
     braking_z_scored,
     encode_salient,
@@ -237,12 +237,7 @@ def train_tree_pem(
     from sklearn.ensemble import HistGradientBoostingClassifier
     from threadpoolctl import threadpool_limits
 
-    raw = _check_raw(inputs)
-    y = np.asarray(labels, dtype=np.float64).reshape(-1)
-    if y.shape[0] != raw.shape[0]:
-        raise ValueError(f"inputs have {raw.shape[0]} rows but labels {y.shape[0]}")
-    if not np.all((y == 0.0) | (y == 1.0)):
-        raise ValueError("labels must be 0 or 1")
+    raw, y = check_training_data(inputs, labels)
     norm = norm if norm is not None else fit_norm_stats(raw)
     model = HistGradientBoostingClassifier(
         learning_rate=learning_rate,
