@@ -69,3 +69,27 @@ def check_output_path(path: str | os.PathLike[str], suffix: str, what: str = "ou
     if p.exists() and not os.access(p, os.W_OK):
         raise ValueError(f"{what} {p}: not writable")
     return p
+
+
+def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Exception]) -> dict:
+    """``torch.load(path, weights_only=True)`` of a pemviz payload dict, checked for its format tag and version.
+
+    Args:
+        path: an existing file.
+        tag, version: the expected ``payload["format"]`` and ``payload["version"]``.
+        what: how messages name the file (``PEM``, ``proposal checkpoint``).
+        error: the exception type raised for an unreadable or foreign file.
+    Raises:
+        ``error``: damaged file, missing tag, or another format version.
+    """
+    import torch
+
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for damaged files
+        raise error(f"{path}: not a readable {what} file ({exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != tag:
+        raise error(f"{path}: not a pemviz {what} file (missing format tag {tag!r})")
+    if payload.get("version") != version:
+        raise error(f"{path}: {what} format version {payload.get('version')}, this pemviz reads {version}")
+    return payload

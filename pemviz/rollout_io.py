@@ -61,7 +61,7 @@ from typing import Any, Mapping
 import numpy as np
 
 import pemviz
-from pemviz.files import atomic_write, check_output_path
+from pemviz.files import atomic_write, check_output_path, load_tagged
 from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.scenarios import RolloutBatch
 
@@ -660,21 +660,13 @@ def load_proposal(path: str | os.PathLike[str]) -> Any:
         FileNotFoundError: no such file.
         RolloutFormatError: not a pemviz proposal checkpoint.
     """
-    import torch
 
     from pemviz.sampling import Proposal
 
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"proposal checkpoint {p} not found")
-    try:
-        payload = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for damaged files
-        raise RolloutFormatError(f"{p}: not a readable proposal checkpoint ({exc})") from None
-    if not isinstance(payload, dict) or payload.get("format") != PROPOSAL_FORMAT_TAG:
-        raise RolloutFormatError(f"{p}: not a pemviz proposal checkpoint (missing format tag {PROPOSAL_FORMAT_TAG!r})")
-    if payload.get("version") != PROPOSAL_FORMAT_VERSION:
-        raise RolloutFormatError(f"{p}: proposal format version {payload.get('version')}, this pemviz reads 1")
+    payload = load_tagged(p, PROPOSAL_FORMAT_TAG, PROPOSAL_FORMAT_VERSION, "proposal checkpoint", RolloutFormatError)
     try:
         proposal = Proposal(float(payload["h_scale"]))
         proposal.load_state_dict(payload["state_dict"])

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from pemviz.data import repo_root
-from pemviz.files import atomic_write
+from pemviz.files import atomic_write, load_tagged
 from pemviz.pem.encoding import POSE_COLUMNS, NormStats
 from pemviz.pem.network import PEM, PemFormatError
 from pemviz.pem.recipes import DEFAULT_PEM_NAME
@@ -117,14 +117,7 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
         p = pem_path(path)
     if not p.is_file():
         raise FileNotFoundError(f"PEM file {p} not found; shipped PEMs in {assets_dir()}: {shipped_pems() or 'none'}")
-    try:
-        payload = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for damaged files
-        raise PemFormatError(f"{p}: not a readable PEM file ({exc})") from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT_TAG:
-        raise PemFormatError(f"{p}: not a pemviz PEM file (missing format tag {FORMAT_TAG!r})")
-    if payload.get("version") != FORMAT_VERSION:
-        raise PemFormatError(f"{p}: PEM format version {payload.get('version')}, this pemviz reads {FORMAT_VERSION}")
+    payload = load_tagged(p, FORMAT_TAG, FORMAT_VERSION, "PEM", PemFormatError)
     kind = payload.get("kind", PEM.kind)
     try:
         norm = NormStats(mean=payload["norm_mean"].numpy(), std=payload["norm_std"].numpy())
