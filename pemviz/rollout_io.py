@@ -660,7 +660,6 @@ def load_proposal(path: str | os.PathLike[str]) -> Any:
         FileNotFoundError: no such file.
         RolloutFormatError: not a pemviz proposal checkpoint.
     """
-
     from pemviz.sampling import Proposal
 
     p = Path(path)
