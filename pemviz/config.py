@@ -11,10 +11,10 @@ from typing import Any
 
 METHODS = ("adaptive", "mc", "naive50", "mixed50")
 """adaptive: Algorithm 1; mc: rollouts with the PEM itself; naive50: a 50 % detector at every step;
-mixed50: 50 % inside 10 m and the PEM outside (spec section 5)."""
+mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table II)."""
 
 METRICS = ("classic", "agm", "smooth-cumulative")
-"""Robustness semantics that rank rollouts and set the adaptive thresholds (spec section 3)."""
+"""Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
 
 SIMULATORS = ("highway-env", "batched")
 """Braking-scenario back-ends (the same tuple as :data:`pemviz.problems.SIMULATORS`, kept here so that
@@ -39,7 +39,10 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class ExperimentConfig:
-    """One experiment (spec sections 4-5). Defaults are the paper's.
+    """One experiment: the sampler of Innes & Ramamoorthy (2022, Algorithm 1) and its baselines.
+
+    The defaults are the recommended sampler (preset :data:`DEFAULT_PRESET`); ``PRESETS["paper"]`` gives the
+    paper's own settings.
 
     Attributes:
         method: one of :data:`METHODS`.
@@ -60,13 +63,13 @@ class ExperimentConfig:
         executor: where rollouts are simulated, one of :data:`EXECUTORS`.
         ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
 
-    Sampler improvements (issue 6; off by default, so the defaults stay the paper's; measured in
-    ``benchmarks/truth_sampler_improvements.py``):
+    Sampler improvements over the paper (on by default; ``PRESETS["paper"]`` turns them off; each one's effect
+    is measured against exact answers in ``benchmarks/truth_sampler_improvements.py``):
         proposal_inputs: h(s), one of :data:`PROPOSAL_INPUTS`.
         proposal_window: the proposal replaces the PEM only where the detector can matter (the problem's
             ``window``: gap < 10 m); elsewhere q = p_PEM, so those steps weigh exactly 1 and are not fitted.
         weights_until_failure: importance weights (estimate and CE fit) stop at the step where the failure
-            happens: later actions change nothing, like the last action already left out (spec section 4).
+            happens: later actions change nothing, like the last action already left out.
         smoothing_at_failure: alpha once gamma_kappa has reached the failure threshold 0 (None: ``smoothing``);
             1.0 fits the elites with their full weights, the textbook CE target.
         elite_ties: ``all`` (paper: every rollout with r <= gamma_kappa is an elite) or ``random``: the rollouts
@@ -98,13 +101,13 @@ class ExperimentConfig:
     sim: str = "batched"
     executor: str = "serial"
     ray_address: str | None = None
-    proposal_inputs: str = "gap"
-    proposal_window: bool = False
-    weights_until_failure: bool = False
-    smoothing_at_failure: float | None = None
-    elite_ties: str = "all"
-    pretrain_cap: float | None = None
-    defensive: float = 0.0
+    proposal_inputs: str = "state"
+    proposal_window: bool = True
+    weights_until_failure: bool = True
+    smoothing_at_failure: float | None = 1.0
+    elite_ties: str = "random"
+    pretrain_cap: float | None = 0.9
+    defensive: float = 0.2
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str, allowed: str) -> None:
@@ -163,16 +166,37 @@ class ExperimentConfig:
         return self.pretrain_rollouts + self.n_stages * self.n_per_stage + final
 
 
+PAPER: dict[str, Any] = {
+    "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False, "smoothing_at_failure": None,
+    "elite_ties": "all", "pretrain_cap": None, "defensive": 0.0,
+}
+"""The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal
+fitted on every step, weights over T - 1 steps, every tie at gamma an elite, no defensive mixture."""
+
+DEFAULT_PRESET = "state-ce"
+"""The recommended sampler and the default of ``ExperimentConfig()``, ``pemviz run``, the panel, ``validate`` and
+``tables``: cross-entropy on a state-dependent proposal (see :class:`ExperimentConfig`)."""
+
 PRESETS: dict[str, dict[str, Any]] = {
-    "paper": {},
-    "authors-code": {"smoothing": 0.5, "ce_epochs": 1000, "weights": "recomputed", "final_estimate": "last-stage"},
-    "improved": {
-        "proposal_inputs": "state", "proposal_window": True, "weights_until_failure": True, "smoothing_at_failure": 1.0,
-        "elite_ties": "random", "pretrain_cap": 0.9, "defensive": 0.2,
+    DEFAULT_PRESET: {},
+    "paper": dict(PAPER),
+    "authors-code": {
+        **PAPER, "smoothing": 0.5, "ce_epochs": 1000, "weights": "recomputed", "final_estimate": "last-stage",
+    },
+    "quick": {
+        "n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2,
     },
 }
-"""Named settings: ``paper`` (the defaults), ``authors-code`` (how the authors' code ran, spec section 4) and
-``improved`` (the paper's sampler with the issue-6 improvements that the exact-answer problems support)."""
+"""Named settings, each applied on top of the defaults.
+
+``state-ce`` (the default): cross-entropy on a proposal over the whole observed state, only where the detector
+can matter, weights up to the failure, full weights once the threshold reaches the failure level, random
+tie-breaking, a capped pretraining and a 20 % defensive mixture. Against exact answers it is the one that is
+right (median relative error 0.09 on the main braking job at 1,200 simulations, against 0.99 for ``paper``).
+``paper``: the sampler as published (biased low on the braking job: its estimator is unbiased but so
+right-skewed that 1,200 simulations almost never see the weights that matter). ``authors-code``: how the
+authors' public code ran it (alpha 0.5, 1000 epochs, weights recomputed through the gradient, the last stage's
+batch as the estimate). ``quick``: the default sampler with fewer, larger Adam steps, a run of a few seconds."""
 
 
 def _is_real(x: object) -> bool:

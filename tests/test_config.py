@@ -27,7 +27,7 @@ def test_invalid_setting_is_rejected_with_its_name_value_and_range(field, value,
     assert field in str(err.value) and repr(value) in str(err.value)
 
 
-def test_defaults_are_the_papers_and_count_1200_simulations():
+def test_defaults_keep_the_papers_budget_and_count_1200_simulations():
     c = ExperimentConfig()
     assert (c.n_stages, c.n_per_stage, c.n_final, c.quantile_level, c.smoothing, c.metric, c.seed) == (
         10, 100, 100, 0.95, 0.1, "classic", 0,
@@ -36,7 +36,18 @@ def test_defaults_are_the_papers_and_count_1200_simulations():
     assert ExperimentConfig(method="mc", n_per_stage=10000).n_simulations == 10000
 
 
-def test_authors_code_preset_matches_spec_section_4():
+def test_default_is_the_state_ce_sampler_and_paper_turns_every_improvement_off():
+    c = ExperimentConfig()
+    assert (c.proposal_inputs, c.proposal_window, c.weights_until_failure, c.defensive) == ("state", True, True, 0.2)
+    p = ExperimentConfig(**PRESETS["paper"])
+    assert (p.proposal_inputs, p.proposal_window, p.weights_until_failure, p.smoothing_at_failure) == (
+        "gap", False, False, None,
+    )  # fmt: skip
+    assert (p.elite_ties, p.pretrain_cap, p.defensive) == ("all", None, 0.0)
+
+
+def test_authors_code_preset_is_the_paper_with_the_authors_training():
     c = ExperimentConfig(**PRESETS["authors-code"])
     assert (c.smoothing, c.ce_epochs, c.weights, c.final_estimate) == (0.5, 1000, "recomputed", "last-stage")
+    assert c.proposal_inputs == "gap" and c.defensive == 0.0
     assert c.n_simulations == 100 + 10 * 100

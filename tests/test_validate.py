@@ -59,7 +59,7 @@ def test_improved_preset_weights_of_a_toy_failure_are_exact():
     # with the window and weights up to the failure, every failing toy rollout has the same weight
     # prod over the window of p / q(miss): the estimate's only noise is the failure count.
     pb = toy_problem(ToyParams(10, 5, 3, 0.9))
-    cfg = ExperimentConfig(**PRESETS["improved"], n_stages=3, ce_epochs=100, pretrain_epochs=200, seed=1)
+    cfg = ExperimentConfig(**PRESETS["state-ce"], n_stages=3, ce_epochs=100, pretrain_epochs=200, seed=1)
     res = Experiment(cfg, problem=pb).run()
     e = res.final.estimate
     assert e.n_failures > 10
@@ -70,13 +70,13 @@ def test_tables_reduced_run_recovers_the_toy_1e_minus_3(tmp_path):
     # the CI version of `pemviz tables`: the toy's 1e-3 case within 30 % (issue 6, acceptance 6)
     out = tmp_path / "t"
     assert cli_main(["tables", "--problem", "toy-1e-3", "--reps", "3", *REDUCED, "--mc-large", "2000",
-                     "--naive-large", "300", "--extra", "improved", "--jobs", "1", "--out", str(out)]) == 0  # fmt: skip
+                     "--naive-large", "300", "--extra", "paper", "--jobs", "1", "--out", str(out)]) == 0  # fmt: skip
     rows = {row["method"]: row for row in csv.DictReader((out / "tables.csv").open())}
     assert set(rows) >= {"MC_100", "MC_2000", "naive-50_100", "naive-50_300", "adaptive_100", "r_agm"}
-    for name in ("adaptive_100", "adaptive_100 (improved)"):
+    for name in ("adaptive_100", "adaptive_100 (paper)"):
         assert math.exp(float(rows[name]["log_mu_hat_mean"])) == pytest.approx(1e-3, rel=0.3)
     assert float(rows["MC_100"]["mean_failures"]) < 1.0
-    assert (out / "tables.md").read_text().count("| r_") == 6  # 3 metrics x (paper, improved)
+    assert (out / "tables.md").read_text().count("| r_") == 6  # 3 metrics x (state-ce, paper)
     assert (out / "tables.rrd").stat().st_size > 10_000
 
 

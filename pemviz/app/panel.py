@@ -118,7 +118,7 @@ class PanelApp:
         *,
         recordings_dir: str | Path = "recordings",
         config: ExperimentConfig | None = None,
-        preset: str = "paper",
+        preset: str = pemviz.config.DEFAULT_PRESET,
         warm_up: bool = True,
         verbose: bool = False,
     ) -> None:
@@ -850,7 +850,7 @@ def serve(
     port: int = 8080,
     *,
     recordings_dir: str | Path = "recordings",
-    preset: str = "paper",
+    preset: str = pemviz.config.DEFAULT_PRESET,
     on_ready: Callable[[PanelApp], None] | None = None,
 ) -> None:
     """Run the panel until Ctrl-C (what ``pemviz serve`` does).

@@ -40,20 +40,11 @@ MAX_RUNS = 3
 N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
 
-QUICK: dict[str, Any] = {
-    "n_stages": 8,
-    "n_per_stage": 100,
-    "n_final": 100,
-    "ce_epochs": 200,
-    "pretrain_rollouts": 50,
-    "pretrain_epochs": 200,
-    "learning_rate": 2e-2,
-}
-"""The ``quick`` preset: a run of a few seconds on 2 cores, to try the panel: fewer, larger Adam steps
-(with AGM, alpha 0.2, sigma 0.9, seeds 0, 1, 3 reach crashes from stage 6-7; seed 2 never does)."""
+QUICK: dict[str, Any] = PRESETS["quick"]
+"""The ``quick`` preset (:data:`pemviz.config.PRESETS`): a run of a few seconds on 2 cores, to try the panel."""
 
-PANEL_PRESETS: dict[str, dict[str, Any]] = {**PRESETS, "quick": QUICK}
-"""Presets offered in the panel: :data:`pemviz.config.PRESETS` plus ``quick``."""
+PANEL_PRESETS: dict[str, dict[str, Any]] = PRESETS
+"""Presets offered in the panel: :data:`pemviz.config.PRESETS`."""
 
 INT_FIELDS = ("n_stages", "n_per_stage", "n_final", "seed", "ce_epochs", "pretrain_rollouts", "pretrain_epochs")
 _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")

@@ -8,6 +8,7 @@ import sys
 
 def register(sub: argparse._SubParsersAction) -> None:
     from pemviz.app.runs import PANEL_PRESETS
+    from pemviz.config import DEFAULT_PRESET
 
     p = sub.add_parser(
         "serve",
@@ -20,7 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
-    p.add_argument("--preset", default="paper", help=f"initial settings: {', '.join(PANEL_PRESETS)} (default paper)")
+    p.add_argument("--preset", default=DEFAULT_PRESET,
+                   help=f"initial settings: {', '.join(PANEL_PRESETS)} (default {DEFAULT_PRESET})")
     p.add_argument("--recordings", default="recordings", help="folder for exported .rrd files (default recordings)")
     p.set_defaults(func=main)
 

@@ -219,9 +219,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--problem", default="main", help=f"one of {', '.join(PROBLEMS)} (default main)")
     p.add_argument("--reps", type=int, default=10, help="repetitions per row (default 10)")
-    p.add_argument("--extra", default="authors-code,improved",
+    p.add_argument("--extra", default="paper,authors-code",
                    help=f"extra adaptive rows with these presets, from {', '.join(PRESETS)} "
-                        "(default authors-code,improved; '' for none)")
+                        "(default paper,authors-code; '' for none)")
     p.add_argument("--mc-large", type=int, default=10000, help="rollouts of the large MC row (default 10000)")
     p.add_argument("--naive-large", type=int, default=1000, help="rollouts of the large naive-50 row (default 1000)")
     add_sampler_arguments(p)

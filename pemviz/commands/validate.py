@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from pemviz.config import PRESETS, ConfigError, ExperimentConfig
+from pemviz.config import DEFAULT_PRESET, PRESETS, ConfigError, ExperimentConfig
 from pemviz.files import write_text_atomic
 
 # -- problems with an exact answer ------------------------------------------------------------------------------
@@ -343,8 +343,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--problems", default=",".join(DEFAULT_PROBLEMS),
                    help=f"comma-separated, from {', '.join(PROBLEMS)} (default {','.join(DEFAULT_PROBLEMS)})")
-    p.add_argument("--presets", default="paper,improved",
-                   help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} (default paper,improved)")
+    p.add_argument("--presets", default=f"{DEFAULT_PRESET},paper",
+                   help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} (default {DEFAULT_PRESET},paper)")
     p.add_argument("--baselines", default="mc,naive50", help=f"from {', '.join(BASELINES)} (default mc,naive50)")
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
     add_sampler_arguments(p)
