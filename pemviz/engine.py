@@ -53,6 +53,19 @@ class StageStarted:
     n_rollouts: int
 
 
+def stage_label(stage: int, kind: str, n_stages: int) -> str:
+    """The one name of a stage in console, panel, recording and CSVs.
+
+    ``pretraining`` (stage 0), ``CE stage k/K`` (stages 1..K, ``n_stages`` = K), ``final batch`` (stage K+1,
+    or the only batch of mc / naive50 / mixed50); the number is the engine's ``stage`` everywhere.
+    """
+    if kind == "pretrain":
+        return "pretraining"
+    if kind == "ce":
+        return f"CE stage {stage}/{n_stages}"
+    return "final batch"
+
+
 @dataclass(frozen=True)
 class RolloutsSampled:
     stage: int

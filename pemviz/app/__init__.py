@@ -1,6 +1,13 @@
-"""The viser panel of ``pemviz serve`` (:class:`PanelApp`); run bookkeeping in :mod:`pemviz.app.runs`."""
+"""The viser panel of ``pemviz serve`` (:class:`PanelApp`, one :class:`Session` per browser client).
+
+Run bookkeeping in :mod:`pemviz.app.runs`, the form in :mod:`pemviz.app.form`, the failure explanation in
+:mod:`pemviz.app.explain`, the figures in :mod:`pemviz.app.plots`.
+"""
 
 from pemviz.app.panel import PanelApp, serve
 from pemviz.app.runs import RunRecord, Trajectory, export_path, sanitize_export_name, scene_positions
+from pemviz.app.session import Session
 
-__all__ = ["PanelApp", "RunRecord", "Trajectory", "export_path", "sanitize_export_name", "scene_positions", "serve"]
+__all__ = [
+    "PanelApp", "RunRecord", "Session", "Trajectory", "export_path", "sanitize_export_name", "scene_positions", "serve",
+]  # fmt: skip

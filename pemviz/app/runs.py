@@ -2,25 +2,28 @@
 
 :class:`RunRecord` is an engine listener (``record(event)``): it keeps the stage results, the proposal
 curves, the final estimate, the least-robust rollouts of the whole run (:class:`Trajectory`) and the
-event log for the ``.rrd`` export. :func:`scene_positions` turns a rollout's observations back into the
+event log for the ``.rrd`` export, and the most likely failure found (the failing rollout with the
+highest probability under the PEM). :func:`keep_runs` decides which runs stay for comparison (pinned and
+finished ones before stopped ones). :func:`scene_positions` turns a rollout's observations back into the
 two cars' positions for the 3D scene, and :func:`export_path` / :func:`export_run` write a run into
 ``recordings/`` without letting a name from the browser escape that folder.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import re
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+import time
 from typing import Any
 
 import numpy as np
 
-from pemviz.config import PRESETS, ConfigError, ExperimentConfig
+from pemviz.app.form import run_label
+from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.engine import (
     Event,
     FinalEstimate,
@@ -34,8 +37,8 @@ from pemviz.engine import (
 )
 from pemviz.scenarios.braking import BrakingParams
 
-MAX_RUNS = 3
-"""Runs kept side by side for comparison (the oldest is dropped when a fourth starts)."""
+MAX_RUNS = 4
+"""Runs kept side by side for comparison (:func:`keep_runs` decides which go when a fifth starts)."""
 
 N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
@@ -46,39 +49,24 @@ QUICK: dict[str, Any] = PRESETS["quick"]
 PANEL_PRESETS: dict[str, dict[str, Any]] = PRESETS
 """Presets offered in the panel: :data:`pemviz.config.PRESETS`."""
 
-INT_FIELDS = ("n_stages", "n_per_stage", "n_final", "seed", "ce_epochs", "pretrain_rollouts", "pretrain_epochs")
 _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")
 
 
-def config_has(field_name: str) -> bool:
-    """Whether :class:`ExperimentConfig` has a field (``sim`` arrives in a later version)."""
-    return any(f.name == field_name for f in dataclasses.fields(ExperimentConfig))
+def keep_runs(runs: list["RunRecord"], new: "RunRecord", max_runs: int = MAX_RUNS) -> list["RunRecord"]:
+    """The runs kept once ``new`` starts: at most ``max_runs``, oldest first.
 
-
-def config_from_values(values: dict[str, Any]) -> ExperimentConfig:
-    """Build and validate a config from the panel's control values.
-
-    Integer fields given as integral floats (``20.0``) become ints; everything else goes to
-    :class:`ExperimentConfig` unchanged, so its validation decides. Keys that the config does not have
-    (e.g. ``sim`` before the simulator field exists) are dropped.
-
-    Raises:
-        ConfigError: the message of :class:`ExperimentConfig`'s validation (what, the value, allowed).
+    Pinned runs and the running one are never dropped. Room is made by dropping, oldest first, unpinned
+    stopped or failed runs, then unpinned finished runs; with every other run pinned the list grows
+    beyond ``max_runs`` instead.
     """
-    known = {f.name for f in dataclasses.fields(ExperimentConfig)}
-    fields: dict[str, Any] = {}
-    for name, value in values.items():
-        if name not in known:
-            continue
-        if name in INT_FIELDS and isinstance(value, float) and value.is_integer():
-            value = int(value)
-        if name == "pem" and value in ("", None):
-            value = None
-        fields[name] = value
-    try:
-        return ExperimentConfig(**fields)
-    except TypeError as exc:  # a wrong field type that __post_init__ did not catch
-        raise ConfigError(str(exc)) from None
+    kept = list(runs) + [new]
+    for statuses in (("cancelled", "failed"), ("finished",)):
+        for r in list(kept):
+            if len(kept) <= max_runs:
+                return kept
+            if r is not new and not r.pinned and r.status in statuses:
+                kept.remove(r)
+    return kept
 
 
 @dataclass(frozen=True)
@@ -93,6 +81,8 @@ class Trajectory:
         crashed: classic robustness < 0 (the gap dropped below 2 m).
         gap_m, ego_speed_mps, lead_speed_mps: float64 [T] observations (metres, m/s).
         detected: bool [T], the detector's output at each step.
+        log_p, log_q: float64 [T] log-probability of each step's detection under the PEM and under the
+            detector that sampled it (nats).
     """
 
     stage: int
@@ -104,6 +94,13 @@ class Trajectory:
     ego_speed_mps: np.ndarray
     lead_speed_mps: np.ndarray
     detected: np.ndarray
+    log_p: np.ndarray
+    log_q: np.ndarray
+
+    @property
+    def log_p_total(self) -> float:
+        """log p_PEM of the rollout's detections over its first T - 1 steps (nats): how likely it is."""
+        return float(np.sum(self.log_p[:-1]))
 
     @property
     def key(self) -> str:
@@ -115,37 +112,56 @@ class Trajectory:
         return int(self.gap_m.shape[0])
 
 
+def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
+    """Rollout ``i`` of a sampled batch as a :class:`Trajectory`."""
+    batch = event.batch
+    names = batch.observation_names
+    obs = batch.observations[i]
+
+    def col(name: str, fallback: int | None = None) -> np.ndarray:
+        if name in names:
+            return np.array(obs[:, names.index(name)], dtype=np.float64)
+        return np.array(obs[:, fallback], dtype=np.float64) if fallback is not None else np.full(obs.shape[0], np.nan)
+
+    return Trajectory(
+        stage=event.stage,
+        index=int(i),
+        robustness=float(event.robustness[i]),
+        log_weight=float(event.log_weight[i]),
+        crashed=bool(event.failed[i]),
+        gap_m=col("gap_m", 0),
+        ego_speed_mps=col("ego_speed_mps"),
+        lead_speed_mps=col("lead_speed_mps"),
+        detected=np.array(batch.detected[i], dtype=bool),
+        log_p=np.array(batch.log_p[i], dtype=np.float64),
+        log_q=np.array(batch.log_q[i], dtype=np.float64),
+    )
+
+
+def most_likely_failure(best: Trajectory | None, event: RolloutsSampled) -> Trajectory | None:
+    """The failing rollout with the highest log p_PEM (T - 1 steps) among ``best`` and this batch's failures.
+
+    Ties keep ``best`` (the earlier one), then the lower index.
+    """
+    failed = np.flatnonzero(np.asarray(event.failed, bool))
+    if failed.size == 0:
+        return best
+    log_p = event.batch.log_p[failed, : event.batch.n_steps - 1].sum(axis=1)
+    j = int(failed[int(np.argmax(log_p))])
+    if best is not None and best.log_p_total >= float(log_p.max()):
+        return best
+    return trajectory(event, j)
+
+
 def least_robust(kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJECTORIES) -> list[Trajectory]:
     """Merge a stage's rollouts into the kept list; the ``n`` least robust, least first.
 
     Ties keep the earlier stage / lower index first (a stable sort on robustness).
     """
-    batch = event.batch
-    if n <= 0 or batch.n == 0:
+    if n <= 0 or event.batch.n == 0:
         return list(kept)
     r = np.asarray(event.robustness, dtype=np.float64)
-    take = np.argsort(r, kind="stable")[:n]
-    names = batch.observation_names
-    cols = {name: names.index(name) for name in ("gap_m", "ego_speed_mps", "lead_speed_mps") if name in names}
-    new = []
-    for i in take:
-        obs = batch.observations[i]
-        gap = obs[:, cols["gap_m"]] if "gap_m" in cols else obs[:, 0]
-        ego = obs[:, cols["ego_speed_mps"]] if "ego_speed_mps" in cols else np.full(gap.shape, np.nan)
-        lead = obs[:, cols["lead_speed_mps"]] if "lead_speed_mps" in cols else np.full(gap.shape, np.nan)
-        new.append(
-            Trajectory(
-                stage=event.stage,
-                index=int(i),
-                robustness=float(r[i]),
-                log_weight=float(event.log_weight[i]),
-                crashed=bool(event.failed[i]),
-                gap_m=np.array(gap, dtype=np.float64),
-                ego_speed_mps=np.array(ego, dtype=np.float64),
-                lead_speed_mps=np.array(lead, dtype=np.float64),
-                detected=np.array(batch.detected[i], dtype=bool),
-            )
-        )
+    new = [trajectory(event, int(i)) for i in np.argsort(r, kind="stable")[:n]]
     merged = sorted(list(kept) + new, key=lambda t: t.robustness)  # sorted() is stable
     return merged[:n]
 
@@ -186,8 +202,17 @@ class RunRecord:
         self.current_stage: StageStarted | None = None
         self.sampled_current = False
         self.final: FinalEstimate | None = None
+        self.exact_log_p: float | None = None
+        """Natural log of the exact failure probability when the engine knows it (``RunStarted.exact_log_p``)."""
         self.trajectories: list[Trajectory] = []
+        self.most_likely_failure: Trajectory | None = None
+        """The failing rollout with the highest probability under the PEM found so far."""
         self.events: list[Event] = []
+        self.pinned = False
+        """Kept for comparison until unpinned (:func:`keep_runs` never drops it)."""
+        self.t_start = time.perf_counter()
+        self.stage_t0 = self.t_start
+        self.t_end: float | None = None
 
     @property
     def n_stage_events(self) -> int:
@@ -199,8 +224,17 @@ class RunRecord:
 
     @property
     def label(self) -> str:
-        cfg = self.config
-        return f"run {self.run_id}: {cfg.metric}, alpha {cfg.smoothing:g}, sigma {cfg.quantile_level:g}"
+        """``run 3 · agm, alpha 0.2, K 8``: the metric and every setting that differs from the defaults."""
+        return run_label(self.run_id, self.config)
+
+    @property
+    def short_label(self) -> str:
+        """``run 3 (agm)``: for legends."""
+        return f"run {self.run_id} ({self.config.metric})"
+
+    def elapsed_s(self) -> float:
+        """Seconds since the run started (to its end once it has ended)."""
+        return (self.t_end or time.perf_counter()) - self.t_start
 
     @property
     def done(self) -> bool:
@@ -214,26 +248,32 @@ class RunRecord:
                 self.formula = event.formula
                 self.curve_grid_m = np.asarray(event.curve_grid_m, dtype=np.float64)
                 self.pem_curve = np.asarray(event.pem_curve, dtype=np.float64)
+                self.exact_log_p = getattr(event, "exact_log_p", None)
             elif isinstance(event, StageStarted):
                 self.current_stage = event
                 self.sampled_current = False
+                self.stage_t0 = time.perf_counter()
             elif isinstance(event, RolloutsSampled):
                 self.sampled_current = True
                 self.trajectories = least_robust(self.trajectories, event)
+                self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
             elif isinstance(event, StageFinished):
                 self.stages = self.stages + [event.result]
             elif isinstance(event, FinalEstimate):
                 self.final = event
             elif isinstance(event, RunFinished):
                 self.status = "finished"
+                self.t_end = time.perf_counter()
             elif isinstance(event, RunCancelled):
                 self.status = "cancelled"
                 self.message = event.reason
+                self.t_end = time.perf_counter()
 
     def fail(self, message: str) -> None:
         with self.lock:
             self.status = "failed"
             self.message = message
+            self.t_end = time.perf_counter()
 
     def progress(self) -> tuple[float, float]:
         """(run, stage) progress in percent: finished stages of all; 0 / 50 / 100 within a stage

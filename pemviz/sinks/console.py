@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from typing import TextIO
 
 from pemviz.engine import (
@@ -14,6 +15,7 @@ from pemviz.engine import (
     StageFinished,
     StageResult,
     StageStarted,
+    stage_label,
 )
 from pemviz.sampling import Estimate, format_probability
 
@@ -34,6 +36,25 @@ def stage_row(res: StageResult) -> str:
     )
 
 
+def expected_stage_s(done: list[StageResult], kind: str, n_rollouts: int) -> float:
+    """Expected seconds of a stage of ``n_rollouts`` rollouts, from the finished stages (nan before any).
+
+    The last finished stage of the same kind scaled by rollouts (a CE stage's update is included, so the
+    final batch's figure is an upper bound); the last finished stage of any kind when none is alike.
+    """
+    alike = [r for r in done if r.kind == kind] or [r for r in done if r.kind != "pretrain"] or list(done)
+    if not alike:
+        return math.nan
+    last = alike[-1]
+    return last.wall_s * n_rollouts / max(1, last.estimate.n)
+
+
+def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: float) -> str:
+    """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s)``."""
+    eta = f", this stage ~{expected_s:.1f} s" if math.isfinite(expected_s) else ""
+    return f"{label}: {n_rollouts} rollouts ... (elapsed {elapsed_s:.1f} s{eta})"
+
+
 class ConsoleSink:
     """Prints a line when each stage starts (progress, to ``progress``) and the table rows (to ``out``)."""
 
@@ -41,11 +62,17 @@ class ConsoleSink:
         self.out = out or sys.stdout
         self.progress = progress or sys.stderr
         self.n_stages = 0
+        self.n_ce = 0
+        self.t0 = time.perf_counter()
+        self.done: list[StageResult] = []
 
     def __call__(self, event: Event) -> None:
         if isinstance(event, RunStarted):
             cfg = event.config
             self.n_stages = cfg.n_stages + 2 if cfg.method == "adaptive" else 1
+            self.n_ce = cfg.n_stages
+            self.t0 = time.perf_counter()
+            self.done = []
             print(
                 f"pemviz: {cfg.method} on the braking scenario, spec {event.formula}, metric {cfg.metric}, "
                 f"K={cfg.n_stages} N={cfg.n_per_stage} N_e={cfg.n_final} sigma={cfg.quantile_level} "
@@ -54,13 +81,12 @@ class ConsoleSink:
             )
             print(HEADER, file=self.out)
         elif isinstance(event, StageStarted):
-            done = event.stage if self.n_stages > 1 else 0
-            print(
-                f"  [{done}/{self.n_stages}] stage {event.stage} ({event.kind}): {event.n_rollouts} rollouts ...",
-                file=self.progress,
-                flush=True,
-            )
+            label = stage_label(event.stage, event.kind, self.n_ce)
+            expected = expected_stage_s(self.done, event.kind, event.n_rollouts)
+            line = progress_line(label, event.n_rollouts, time.perf_counter() - self.t0, expected)
+            print(f"  {line}", file=self.progress, flush=True)
         elif isinstance(event, StageFinished):
+            self.done.append(event.result)
             print(stage_row(event.result), file=self.out, flush=True)
         elif isinstance(event, FinalEstimate):
             e = event.estimate

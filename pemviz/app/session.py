@@ -1,0 +1,872 @@
+"""One browser client's panel: its own form, runs, Stop, plots, rollout explanation and 3D scene.
+
+A :class:`Session` is made for each client that connects (viser's ``server.on_client_connect``) and
+builds everything in that client's own ``client.gui`` / ``client.scene``: two tabs never share a form,
+a run or a Stop button. The experiment runs in a worker thread (:class:`pemviz.engine.Experiment`); the
+session listens to its events and stops it through the cancel token.
+
+Layout: the control panel (right) holds Run / Stop, the cost of the run, the status line (stage,
+elapsed time, expected time), the accuracy of the final estimate and the tabs *Experiment* (the form;
+each field shows its own error), *Rollouts* (choose a rollout: the most likely failure found and the
+least-robust ones; 3D playback) and *Runs* (kept runs with their settings, pin / unpin, export). The
+plots panel (left) holds *Live* (proposal per stage, per-stage values of every kept run), *Explain*
+(the chosen rollout step by step, synced with the 3D playback, and its decisive misses) and *Compare*
+(every setting of every kept run and their proposal curves).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import html
+import math
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import viser
+
+from pemviz.app import plots
+from pemviz.app.explain import Explanation, explain
+from pemviz.app.form import NUMBER_FIELDS, FormResult, format_number, parse_form, run_cost, setting_name, setting_value
+from pemviz.app.runs import PANEL_PRESETS, RunRecord, Trajectory, export_path, export_run, keep_runs, scene_positions
+from pemviz.config import FINAL_MODES, METHODS, METRICS, WEIGHT_MODES, ExperimentConfig
+from pemviz.engine import (
+    Event,
+    FinalEstimate,
+    RolloutsSampled,
+    RunCancelled,
+    RunFinished,
+    RunStarted,
+    StageFinished,
+    StageStarted,
+    stage_label,
+)
+from pemviz.sampling import format_probability
+from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
+from pemviz.sinks.console import expected_stage_s
+
+if TYPE_CHECKING:
+    from pemviz.app.panel import PanelApp
+
+CAR_HEIGHT_M = 1.5
+CAMERA_OFFSET_M = np.array([-5.0, -20.0, 13.0])
+"""Initial camera position relative to the point between the cars (metres; behind-left, above)."""
+NO_ROLLOUT = "(choose a rollout)"
+TABLE_STYLE = (
+    "<style>.pemviz-table{border-collapse:collapse;text-align:right}"
+    ".pemviz-table td,.pemviz-table th{padding:0.05em 0.3em}"
+    ".pemviz-table tr:nth-child(even){background:#0000000a}</style>"
+)
+GREY, BLUE, GREEN, AMBER, RED = "#888888", "#1f6fd1", "#2a9d4b", "#c98a00", "#d6402b"
+VERDICT_COLOURS = {"reliable": GREEN, "doubtful": AMBER, "unreliable": RED}
+
+
+def box(text: str, colour: str) -> str:
+    return (
+        f'<div style="margin:0 0.6em 0.5em; padding:0.4em 0.6em; border-radius:4px; font-size:0.85em; '
+        f'border-left:4px solid {colour}; background:{colour}14">{text}</div>'
+    )
+
+
+def field_error(text: str) -> str:
+    """The error line under a field (empty: none)."""
+    if not text:
+        return ""
+    return f'<div style="margin:-0.3em 0.8em 0.4em; color:{RED}; font-size:0.8em">{html.escape(text)}</div>'
+
+
+def accuracy_html(record: RunRecord, ev: FinalEstimate) -> str:
+    """The final estimate with its 95 % interval, verdict and reason, and the exact answer where known."""
+    e = ev.estimate
+    verdict = getattr(e, "verdict", "")
+    colour = VERDICT_COLOURS.get(verdict, GREY)
+    ci = getattr(e, "log_ci", None)
+    interval = ""
+    if ci is not None and all(isinstance(c, float) for c in ci):
+        interval = f" &nbsp;(95 % interval {format_probability(ci[0])} to {format_probability(ci[1])})"
+    lines = [
+        f"<b>Final estimate</b> of {html.escape(record.short_label)}: mu_hat = "
+        f"<b>{format_probability(e.log_mu_hat, 4)}</b>{interval}",
+    ]
+    if verdict:
+        lines.append(f'<b style="color:{colour}">{html.escape(verdict)}</b>: {html.escape(getattr(e, "reason", ""))}')
+    exact = record.exact_log_p
+    if exact is not None and math.isfinite(exact):
+        rel = ""
+        if math.isfinite(e.log_mu_hat):
+            rel = f" (relative error {math.expm1(e.log_mu_hat - exact):+.0%})"
+        lines.append(f"exact answer {format_probability(exact, 4)}{rel}")
+    if e.n_failures == 0:
+        lines.append(
+            f"no failure among {e.n} rollouts, so mu_hat = 0: the sampler never reached a crash. More stages (K), "
+            "more rollouts (N) or the state-ce preset move the proposal further towards the failures."
+        )
+    khat = getattr(e, "khat", math.nan)
+    lines.append(
+        f"failures {e.n_failures}/{e.n} · ESS {plots.finite_or_dash(e.ess, '.1f')} · k-hat "
+        f"{plots.finite_or_dash(khat, '.2f')} · NLL {plots.finite_or_dash(e.nll_mean, '.1f')} nats · "
+        f"{ev.n_simulations:,} simulations in {ev.wall_s:.1f} s"
+    )
+    return box("<br>".join(lines), colour)
+
+
+def _simulators() -> tuple[str, ...]:
+    import pemviz.config
+
+    sims = getattr(pemviz.config, "SIMULATORS", None)
+    if not sims:
+        from pemviz.problems import SIMULATORS as sims
+    return tuple(sims)
+
+
+class Session:
+    """The panel of one browser client (see the module docstring).
+
+    Args:
+        app: the server (recordings folder, scenario constants, warm-up).
+        client: the viser client this session draws into.
+    """
+
+    def __init__(self, app: "PanelApp", client: viser.ClientHandle) -> None:
+        self.app = app
+        self.client = client
+        self.params = app.params
+        self.lock = threading.RLock()
+        self.runs: list[RunRecord] = []
+        self.record: RunRecord | None = None
+        """The run the live plots, status and rollouts show: the newest."""
+        self._worker: threading.Thread | None = None
+        self._cancel = threading.Event()
+        self._stop_requested_at: float | None = None
+        self.last_stop_latency_s: float | None = None
+        """Seconds from Stop to the worker's end, for the last stopped run."""
+        self.form = FormResult(None, {})
+        self._confirmed_cost = False
+        self.shown: Trajectory | None = None
+        self.shown_record: RunRecord | None = None
+        self.explanation: Explanation | None = None
+        self.shown_step = -1
+        self._shown_x: tuple[np.ndarray, np.ndarray] | None = None
+        self.playing = False
+        self._rollout_labels: dict[str, Trajectory] = {}
+        self.last_export: Path | None = None
+        self.closed = False
+        self._build_gui()
+        self._build_scene()
+        self._validate()
+
+    # == public API (what the buttons do) ============================================================
+    @property
+    def running(self) -> bool:
+        return self._worker is not None and self._worker.is_alive()
+
+    @property
+    def current(self) -> RunRecord | None:
+        return self.record
+
+    def field_texts(self) -> dict[str, str]:
+        return {key: handle.value for key, handle in self.fields.items()}
+
+    def choice_values(self) -> dict[str, Any]:
+        values = {key: handle.value for key, handle in self.choices.items()}
+        if values.get("pem") == self._default_pem:
+            values["pem"] = self.app.config0.pem
+        return values
+
+    def read_form(self) -> FormResult:
+        """Parse what the form holds now (every field, every error)."""
+        name = self.preset.value
+        base = self.app.config0 if name == self.app.preset_name else ExperimentConfig(**PANEL_PRESETS[name])
+        return parse_form(self.field_texts(), self.choice_values(), base)
+
+    def start_run(self, confirmed: bool = False) -> str | None:
+        """Start a run with the form's values; returns why it was refused instead.
+
+        A run whose cost is above the limits (:meth:`pemviz.app.form.RunCost.needs_confirm`) starts only
+        ``confirmed`` (the *Run anyway* button).
+        """
+        with self.lock:
+            if self.running:
+                return "a run is going: press Stop first"
+            form = self.read_form()
+            self._show_form(form)
+            if not form.ok:
+                return "invalid settings: " + "; ".join(form.errors.values())
+            cfg = form.config
+            cost = run_cost(cfg)
+            if cost.needs_confirm and not confirmed:
+                self.cost_html.content = box(
+                    f"<b>This run is large:</b> {html.escape(cost.text())}. Press <b>Run anyway</b> to start it.", AMBER
+                )
+                self.confirm_button.visible = True
+                return "confirm the cost first"
+            self.confirm_button.visible = False
+            record = RunRecord(self.app.next_run_id(), cfg)
+            self.runs = keep_runs(self.runs, record)
+            self.record = record
+            self._cancel = threading.Event()
+            self._stop_requested_at = None
+            self._worker = threading.Thread(
+                target=self._work, args=(record, self._cancel), name=f"pemviz-run-{record.run_id}", daemon=True
+            )
+            self._set_running_ui(True)
+            self._status(f"{record.label}: starting ...")
+            self.result_html.content = ""
+            self._clear_scene(f"{record.short_label} is going: its rollouts appear in the Rollouts tab")
+            self._set_rollouts(record)
+            self._refresh_plots()
+            self._refresh_runs()
+            self._worker.start()
+        return None
+
+    def stop_run(self) -> None:
+        """Set this session's cancel token (the engine stops at its next check)."""
+        with self.lock:
+            if not self.running:
+                return
+            self._stop_requested_at = time.perf_counter()
+            self._cancel.set()
+            self.stop_button.disabled = True
+            self._status("stopping ...")
+
+    def wait_for_run(self, timeout: float | None = None) -> bool:
+        worker = self._worker
+        if worker is None:
+            return True
+        worker.join(timeout)
+        return not worker.is_alive()
+
+    def kept_run(self, run_id: int) -> RunRecord:
+        for r in self.runs:
+            if r.run_id == run_id:
+                return r
+        raise ValueError(f"run {run_id} is not kept in this tab")
+
+    def set_pinned(self, run_id: int, pinned: bool) -> None:
+        self.kept_run(run_id).pinned = pinned
+        self._refresh_runs()
+
+    def export(self, run_id: int, name: str) -> Path:
+        """Write a kept run to ``recordings_dir / <sanitised name>.rrd``.
+
+        Raises:
+            ValueError: the run is not kept or has no events, or an unusable name.
+        """
+        record = self.kept_run(run_id)
+        if not record.events:
+            raise ValueError(f"{record.short_label} has nothing to export yet")
+        path = export_path(self.app.recordings_dir, name)
+        export_run(record, path)
+        self.last_export = path
+        return path
+
+    def close(self) -> None:
+        """The client left: stop its run."""
+        self.closed = True
+        self._cancel.set()
+
+    # == GUI ===========================================================================================
+    def _build_gui(self) -> None:
+        gui = self.client.gui
+        gui.configure_theme(control_width="large", show_share_button=False, brand_color=(31, 111, 209))
+        gui.set_panel_label("pemviz")
+        gui.add_markdown(
+            "**pemviz**: the crash probability of a PEM-driven braking scenario by adaptive importance sampling "
+            "(Innes & Ramamoorthy 2022). Set the experiment, press **Run**; this tab has its own runs."
+        )
+        self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY)
+        self.stop_button = gui.add_button("Stop", color="red", icon=viser.Icon.PLAYER_STOP, disabled=True)
+        self.cost_html = gui.add_html("")
+        self.confirm_button = gui.add_button("Run anyway", color="orange", visible=False)
+        self.status_html = gui.add_html(box("idle", GREY))
+        self.run_progress = gui.add_progress_bar(0.0, color="blue")
+        self.stage_progress = gui.add_progress_bar(0.0, color="teal", animated=False)
+        self.result_html = gui.add_html("")
+        self.error_html = gui.add_html("")
+
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Experiment", viser.Icon.SETTINGS):
+            self._build_form()
+        with tabs.add_tab("Rollouts", viser.Icon.CAR):
+            self._build_rollouts()
+        with tabs.add_tab("Runs", viser.Icon.CHART_LINE):
+            self._build_runs_tab()
+        self.tabs = tabs
+
+        self.run_button.on_click(lambda _: self.start_run())
+        self.confirm_button.on_click(lambda _: self.start_run(confirmed=True))
+        self.stop_button.on_click(lambda _: self.stop_run())
+
+        panel = gui.add_panel()
+        with panel.add_tab("Live", viser.Icon.CHART_LINE):
+            self.proposal_plot = plots.curve_plot(gui, "q(detect | gap) per stage vs the PEM")
+            self.stage_plots = {key: plots.stage_plot(gui, title, y) for key, title, y in plots.STAGE_PLOTS}
+        with panel.add_tab("Explain", viser.Icon.ZOOM_QUESTION):
+            self.explain_html = gui.add_html(box("Choose a rollout in the Rollouts tab to explain it.", GREY))
+            self.strip = plots.strip_plots(gui)
+        with panel.add_tab("Compare", viser.Icon.A_B):
+            self.compare_html = gui.add_html("")
+            self.compare_plots = [plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190) for i in range(4)]
+        self.plot_panel = panel
+        panel.dock_left()
+        panel.set_width(460)
+        gui.main_panel.dock_right()
+
+    def _build_form(self) -> None:
+        gui = self.client.gui
+        c0 = self.app.config0
+        from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
+
+        simulators = _simulators()
+        shipped = sorted(p.stem[len("pem_") :] for p in assets_dir().glob("pem_*.pt")) or [DEFAULT_PEM_NAME]
+        self._default_pem = DEFAULT_PEM_NAME if DEFAULT_PEM_NAME in shipped else shipped[0]
+        pem_options = list(shipped) + ([c0.pem] if c0.pem and c0.pem not in shipped else [])
+
+        self.preset = gui.add_dropdown(
+            "preset", tuple(PANEL_PRESETS), initial_value=self.app.preset_name,
+            hint="state-ce: the recommended sampler; paper: as published; authors-code: as the authors' code ran; "
+                 "quick: a few-second run",
+        )  # fmt: skip
+        self.choices: dict[str, Any] = {}
+        self.fields: dict[str, viser.GuiTextHandle] = {}
+        self.field_errors: dict[str, viser.GuiHtmlHandle] = {}
+
+        def number(key: str) -> None:
+            f = next(f for f in NUMBER_FIELDS if f.key == key)
+            self.fields[key] = gui.add_text(f.label, format_number(f, getattr(c0, key)), hint=f.hint or f.words)
+            self.field_errors[key] = gui.add_html("")
+
+        self.choices["metric"] = gui.add_dropdown("metric", METRICS, initial_value=c0.metric, hint="robustness semantics")
+        for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
+            number(key)
+        self.choices["pem"] = gui.add_dropdown(
+            "PEM", tuple(pem_options), initial_value=c0.pem or self._default_pem, hint="shipped PEM (assets/)"
+        )
+        self.choices["sim"] = gui.add_dropdown(
+            "simulator", simulators, initial_value=c0.sim if c0.sim in simulators else simulators[0],
+            disabled=len(simulators) < 2, hint="back-end of the braking scenario",
+        )  # fmt: skip
+        with gui.add_folder("advanced", expand_by_default=False):
+            self.choices["method"] = gui.add_dropdown("method", METHODS, initial_value=c0.method)
+            for key in ("ce_epochs", "pretrain_rollouts", "pretrain_epochs", "learning_rate"):
+                number(key)
+            self.choices["weights"] = gui.add_dropdown("weights", WEIGHT_MODES, initial_value=c0.weights)
+            self.choices["final_estimate"] = gui.add_dropdown(
+                "final estimate", FINAL_MODES, initial_value=c0.final_estimate
+            )
+        gui.add_markdown("Changes apply to the next run.")
+        for handle in (*self.fields.values(), *self.choices.values()):
+            handle.on_update(lambda _: self._validate())
+        self.preset.on_update(lambda _: self._apply_preset(self.preset.value))
+
+    def _apply_preset(self, name: str) -> None:
+        """Set the fields to ``name``'s settings (metric, seed, PEM, simulator and method stay)."""
+        cfg = ExperimentConfig(**PANEL_PRESETS.get(name, {}))
+        with self.client.atomic():
+            for f in NUMBER_FIELDS:
+                if f.key in self.fields and f.key != "seed":
+                    self.fields[f.key].value = format_number(f, getattr(cfg, f.key))
+            for key in ("weights", "final_estimate"):
+                self.choices[key].value = getattr(cfg, key)
+        self._validate()
+
+    def _build_rollouts(self) -> None:
+        gui = self.client.gui
+        self.rollout_dropdown = gui.add_dropdown(
+            "rollout", (NO_ROLLOUT,), initial_value=NO_ROLLOUT,
+            hint="the most likely failure found, then the least robust (the run's metric)",
+        )  # fmt: skip
+        self.rollout_html = gui.add_html(box("No rollouts yet: run an experiment.", GREY))
+        self.step_slider = gui.add_slider("step", min=0, max=self.params.n_steps - 1, step=1, initial_value=0)
+        self.play_button = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
+        self.follow = gui.add_checkbox("follow cars", True, hint="move the camera along with the cars")
+        self.scene_html = gui.add_html("")
+        self.rollout_dropdown.on_update(lambda _: self._on_rollout_chosen(self.rollout_dropdown.value))
+        self.step_slider.on_update(lambda _: self._render_step(int(self.step_slider.value)))
+        self.play_button.on_click(lambda _: self._toggle_play())
+
+    def _build_runs_tab(self) -> None:
+        gui = self.client.gui
+        self.runs_html = gui.add_html(box("No runs yet.", GREY))
+        gui.add_markdown(
+            "Up to 4 runs are kept; a new run drops stopped runs first, then the oldest finished one; pinned runs stay."
+        )
+        self.run_choice = gui.add_dropdown("kept run", ("(no run yet)",), initial_value="(no run yet)")
+        self.pin_button = gui.add_button("Pin", icon=viser.Icon.PIN, disabled=True)
+        with gui.add_folder("export to rerun (.rrd)"):
+            self.export_name = gui.add_text("export name", "run")
+            self.export_button = gui.add_button("Export chosen run", icon=viser.Icon.DOWNLOAD, disabled=True)
+            self.export_html = gui.add_html("")
+        self.run_choice.on_update(lambda _: self._on_run_choice())
+        self.pin_button.on_click(lambda _: self._toggle_pin())
+        self.export_button.on_click(self._on_export)
+
+    # -- form -> GUI ---------------------------------------------------------------------------------
+    def _validate(self) -> None:
+        form = self.read_form()
+        self._show_form(form)
+
+    def _show_form(self, form: FormResult) -> None:
+        with self.lock:
+            self.form = form
+            with self.client.atomic():
+                for key, handle in self.field_errors.items():
+                    handle.content = field_error(form.errors.get(key, ""))
+                general = form.errors.get("", "")
+                n_bad = len(form.errors)
+                self.error_html.content = (
+                    box(
+                        f"<b>{n_bad} setting{'s' * (n_bad != 1)} to fix before Run.</b> "
+                        + html.escape(general or "See the red lines under the fields (Experiment tab)."),
+                        RED,
+                    )
+                    if n_bad
+                    else ""
+                )
+                if not self.running:
+                    self.run_button.disabled = not form.ok
+                self.confirm_button.visible = False
+                if form.ok:
+                    cost = run_cost(form.config)
+                    colour = AMBER if cost.needs_confirm else GREY
+                    self.cost_html.content = box(f"Cost: {html.escape(cost.text())}", colour)
+                else:
+                    self.cost_html.content = ""
+
+    # == the worker ===================================================================================
+    def _work(self, record: RunRecord, cancel: threading.Event) -> None:
+        self.app.wait_warm()
+        try:
+            from pemviz.engine import Experiment
+
+            Experiment(record.config, [lambda e: self._on_event(record, e)], cancel).run()
+        except Exception as exc:  # a bad PEM file, a simulator error: show it, keep serving
+            record.fail(f"{type(exc).__name__}: {exc}")
+            self._status(f"{record.label} failed: {record.message}", RED)
+        finally:
+            with self.lock:
+                if self._stop_requested_at is not None:
+                    self.last_stop_latency_s = time.perf_counter() - self._stop_requested_at
+                self._set_running_ui(False)
+                if record.status == "cancelled":
+                    latency = self.last_stop_latency_s
+                    self._status(
+                        f"{record.short_label}: stopped after {len(record.stages)} stages"
+                        + (f" ({latency:.2f} s after Stop)" if latency is not None else "")
+                        + f", {record.elapsed_s():.1f} s in all",
+                        AMBER,
+                    )
+                self._refresh_runs()
+                self._refresh_plots()
+
+    def _on_event(self, record: RunRecord, event: Event) -> None:
+        record(event)
+        if self.closed:
+            return
+        with self.lock:
+            if record is not self.record:
+                return
+            if isinstance(event, RunStarted):
+                self._status(f"{record.short_label}: started")
+            elif isinstance(event, StageStarted):
+                self.tick()
+            elif isinstance(event, RolloutsSampled):
+                self._set_rollouts(record)
+                self.tick()
+            elif isinstance(event, StageFinished):
+                self._refresh_plots()
+                self._refresh_runs()
+            elif isinstance(event, FinalEstimate):
+                self.result_html.content = accuracy_html(record, event)
+                self._refresh_plots()
+                self._refresh_runs()
+            elif isinstance(event, RunFinished):
+                self._status(f"{record.short_label}: finished in {record.elapsed_s():.1f} s", GREEN)
+                self._show_default_rollout(record)
+            self._set_progress(record)
+
+    def tick(self) -> None:
+        """Refresh the status line of a running run: stage, what it does, elapsed time, expected time."""
+        with self.lock:
+            record = self.record
+            if record is None or not self.running or self._stop_requested_at is not None:
+                return
+            with record.lock:
+                stage = record.current_stage
+                done = list(record.stages)
+                sampled = record.sampled_current
+            if stage is None:
+                return
+            cfg = record.config
+            label = stage_label(stage.stage, stage.kind, cfg.n_stages)
+            if stage.kind == "final" or not sampled:
+                doing = f"simulating {stage.n_rollouts:,} rollouts"
+            elif stage.kind == "pretrain":
+                doing = f"pretraining the proposal ({cfg.pretrain_epochs} epochs)"
+            else:
+                doing = f"cross-entropy update ({cfg.ce_epochs} epochs)"
+            in_stage = time.perf_counter() - record.stage_t0
+            expected = expected_stage_s(done, stage.kind, stage.n_rollouts)
+            eta = ""
+            if math.isfinite(expected):
+                eta = f", about {max(0.0, expected - in_stage):.1f} s left in it" if in_stage < expected else ", nearly done"
+            self._status(
+                f"{record.short_label} · {label}: {doing} · stage {in_stage:.1f} s{eta} · run {record.elapsed_s():.1f} s"
+            )
+            self._set_progress(record)
+
+    # -- state -> GUI --------------------------------------------------------------------------------
+    def _status(self, text: str, colour: str = BLUE) -> None:
+        self.status_html.content = box(html.escape(text), colour)
+
+    def _set_running_ui(self, running: bool) -> None:
+        self.run_button.disabled = running or not self.form.ok
+        self.stop_button.disabled = not running
+        self.stage_progress.animated = running
+
+    def _set_progress(self, record: RunRecord) -> None:
+        run, stage = record.progress()
+        self.run_progress.value = run
+        self.stage_progress.value = stage
+
+    def _refresh_plots(self) -> None:
+        with self.lock:
+            runs = list(self.runs)
+            record = self.record
+        with self.client.atomic():
+            if record is not None:
+                plots.fill_curve_plot(self.proposal_plot, record, f"{record.short_label}: q(detect | gap) per stage")
+            for i, plot in enumerate(self.compare_plots):
+                if i < len(runs):
+                    r = runs[i]
+                    fin = r.final.estimate if r.final is not None else None
+                    mu = f", mu_hat {format_probability(fin.log_mu_hat)}" if fin is not None else ""
+                    plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}")
+            for key, plot in self.stage_plots.items():
+                plots.fill_stage_plot(plot, key, runs)
+
+    def _refresh_runs(self) -> None:
+        with self.lock:
+            runs = list(self.runs)
+        if not runs:
+            return
+        names = [f.name for f in dataclasses.fields(ExperimentConfig)]
+        head = "".join(
+            f'<th style="color:{plots.run_colour(r.run_id)}">run {r.run_id}{" (pinned)" if r.pinned else ""}</th>'
+            for r in runs
+        )
+
+        def result(r: RunRecord) -> list[str]:
+            fin = r.final.estimate if r.final is not None else None
+            return [
+                format_probability(fin.log_mu_hat) if fin else "-",
+                f"{fin.n_failures}/{fin.n}" if fin else "-",
+                getattr(fin, "verdict", "-") if fin else "-",
+                r.status,
+            ]
+
+        rows = [("mu_hat", "failures", "verdict", "status")]
+        cells = [result(r) for r in runs]
+        body = "".join(
+            f'<tr><th style="text-align:left">{label}</th>' + "".join(f"<td>{html.escape(c[i])}</td>" for c in cells)
+            + "</tr>"
+            for i, label in enumerate(rows[0])
+        )  # fmt: skip
+        defaults = ExperimentConfig()
+        for name in names:
+            values = [getattr(r.config, name) for r in runs]
+            differs = any(v != getattr(defaults, name) for v in values) or len({repr(v) for v in values}) > 1
+            style = "font-weight:bold" if differs else "color:#777"
+            body += (
+                f'<tr style="{style}"><th style="text-align:left">{html.escape(setting_name(name))}</th>'
+                + "".join(f"<td>{html.escape(setting_value(v))}</td>" for v in values)
+                + "</tr>"
+            )
+        table = (
+            TABLE_STYLE + '<table class="pemviz-table" style="width:100%; font-size:0.75em; white-space:nowrap">'
+            f'<tr><th style="text-align:left">setting</th>{head}</tr>{body}</table>'
+        )
+        block = (
+            '<div style="margin:0 0.6em 0.5em; overflow-x:auto">'
+            + "".join(f'<div style="color:{plots.run_colour(r.run_id)}; font-size:0.8em">{html.escape(r.label)}</div>'
+                      for r in runs)
+            + table + "<div style='font-size:0.75em;color:#777'>bold: differs from the defaults or between runs</div>"
+            "</div>"
+        )  # fmt: skip
+        with self.client.atomic():
+            self.runs_html.content = block
+            self.compare_html.content = block
+            options = tuple(r.label for r in runs)
+            current = self.run_choice.value
+            self.run_choice.options = options
+            if current not in options:
+                self.run_choice.value = options[-1]
+            self._on_run_choice()
+
+    def chosen_run(self) -> RunRecord | None:
+        for r in self.runs:
+            if r.label == self.run_choice.value:
+                return r
+        return None
+
+    def _on_run_choice(self) -> None:
+        r = self.chosen_run()
+        self.pin_button.disabled = r is None
+        self.export_button.disabled = r is None or not r.events
+        if r is not None:
+            self.pin_button.label = "Unpin" if r.pinned else "Pin"
+            self.export_name.value = f"run{r.run_id}-{r.config.metric}"
+
+    def _toggle_pin(self) -> None:
+        r = self.chosen_run()
+        if r is not None:
+            self.set_pinned(r.run_id, not r.pinned)
+
+    def _on_export(self, event: viser.GuiEvent) -> None:
+        r = self.chosen_run()
+        try:
+            if r is None:
+                raise ValueError("no run chosen")
+            path = self.export(r.run_id, self.export_name.value)
+        except (ValueError, OSError) as exc:
+            self.export_html.content = box(f"<b>Export refused.</b> {html.escape(str(exc))}", RED)
+            return
+        shown = _display_path(path)
+        size_kb = path.stat().st_size / 1024
+        self.export_html.content = box(
+            f"Saved {html.escape(r.short_label)} to <b>{html.escape(shown)}</b> ({size_kb:.0f} KB). Open it with "
+            f"<code>rerun {html.escape(shown)}</code>; the download link is in this tab's notification.",
+            GREEN,
+        )
+        self.client.send_file_download(path.name, path.read_bytes(), save_immediately=False)
+
+    # == rollouts, explanation and the 3D scene =======================================================
+    @staticmethod
+    def rollout_label(t: Trajectory, most_likely: bool = False) -> str:
+        """The rollout list entry (no rank in it, so a chosen rollout stays chosen while later stages re-rank)."""
+        crash = " · CRASH" if t.crashed else ""
+        head = "most likely failure · " if most_likely else ""
+        return (
+            f"{head}stage {t.stage} rollout {t.index} · rho {t.robustness:+.4g} · log p {t.log_p_total:.1f}{crash}"
+        )
+
+    def _set_rollouts(self, record: RunRecord) -> None:
+        with record.lock:
+            trajectories = list(record.trajectories)
+            best = record.most_likely_failure
+        labels = {}
+        if best is not None:
+            labels[self.rollout_label(best, True)] = best
+        labels.update({self.rollout_label(t): t for t in trajectories})
+        self._rollout_labels = labels
+        current = self.rollout_dropdown.value
+        self.rollout_dropdown.options = (NO_ROLLOUT, *labels)
+        if current not in labels:
+            self.rollout_dropdown.value = NO_ROLLOUT
+        if not trajectories:
+            self.rollout_html.content = box("No rollouts yet.", GREY)
+            return
+        best_text = (
+            f"Most likely failure found: stage {best.stage} rollout {best.index}, log p_PEM = "
+            f"{best.log_p_total:.1f} nats (the failing rollout most probable under the PEM)."
+            if best is not None
+            else "No failure found yet."
+        )
+        rows = "".join(
+            f"<tr><td>{i + 1}</td><td>{t.stage}</td><td>{t.index}</td><td>{t.robustness:+.4g}</td>"
+            f"<td>{t.log_p_total:.1f}</td><td>{'<b style=color:' + RED + '>crash</b>' if t.crashed else 'no'}</td></tr>"
+            for i, t in enumerate(trajectories[:10])
+        )
+        self.rollout_html.content = TABLE_STYLE + (
+            f'<div style="margin:0 0.6em 0.5em; font-size:0.8em">{html.escape(best_text)}<br>'
+            f"Least robust rollouts of {html.escape(record.short_label)} (metric {record.config.metric}; "
+            "log p: log-probability under the PEM, nats):"
+            '<table class="pemviz-table" style="width:100%">'
+            "<tr><th>#</th><th>stage</th><th>rollout</th><th>robustness</th><th>log p</th><th>crash</th></tr>"
+            f"{rows}</table></div>"
+        )
+
+    def _show_default_rollout(self, record: RunRecord) -> None:
+        """After a run: choose its most likely failure (else its least-robust rollout), paused at the start."""
+        for label, t in self._rollout_labels.items():
+            if t is record.most_likely_failure or record.most_likely_failure is None:
+                self.rollout_dropdown.value = label
+                return
+
+    def _on_rollout_chosen(self, label: str) -> None:
+        traj = self._rollout_labels.get(label)
+        if traj is None:
+            return
+        with self.lock:
+            self.shown = traj
+            self.shown_record = self.record
+            self.explanation = explain(traj.gap_m, traj.detected, traj.log_p, traj.log_q, self.params)
+            self._shown_x = scene_positions(traj, self.params)
+            self.step_slider.max = traj.n_steps - 1
+            self._set_playing(False)
+            self._fill_explanation()
+            self.shown_step = -1
+            if self.step_slider.value != 0:
+                self.step_slider.value = 0  # renders step 0 through the slider's callback
+            else:
+                self._render_step(0)
+
+    def _fill_explanation(self) -> None:
+        traj, ex, record = self.shown, self.explanation, self.shown_record
+        if traj is None or ex is None or record is None:
+            return
+        title = f"{record.short_label} {traj.key}"
+        plots.fill_strip_plots(
+            self.strip, traj, ex, 0, title, self.params.crash_gap_m, self.params.braking_distance_m
+        )
+        best = record.most_likely_failure
+        what = "the most likely failure found" if traj is best else ("a crash" if traj.crashed else "no crash")
+        colour = RED if traj.crashed else GREEN
+        self.explain_html.content = box(
+            f"<b>{html.escape(title)}</b>: {what} · robustness {traj.robustness:+.4g} ({record.config.metric}) · "
+            f"log p_PEM {traj.log_p_total:.1f} nats · log w {traj.log_weight:.1f} nats<br>"
+            f"<b>Counterfactual</b> (each miss flipped to a detection, replayed): {html.escape(ex.summary())}",
+            colour,
+        )
+
+    def _toggle_play(self) -> None:
+        with self.lock:
+            if self.shown is None:
+                return
+            if not self.playing and int(self.step_slider.value) >= self.shown.n_steps - 1:
+                self.step_slider.value = 0
+            self._set_playing(not self.playing)
+
+    def _set_playing(self, playing: bool) -> None:
+        self.playing = playing
+        self.play_button.label = "Pause" if playing else "Play"
+        self.play_button.icon = viser.Icon.PLAYER_PAUSE if playing else viser.Icon.PLAYER_PLAY
+
+    def play_tick(self) -> None:
+        """Advance the playback by one step (called every dt by the server's player thread)."""
+        with self.lock:
+            if not self.playing or self.shown is None:
+                return
+            step = int(self.step_slider.value) + 1
+            if step > self.shown.n_steps - 1:
+                self._set_playing(False)
+                return
+            self.step_slider.value = step
+
+    def _build_scene(self) -> None:
+        scene = self.client.scene
+        p = self.params
+        scene.set_up_direction("+z")
+        road_len, x0, lane = 90.0, -15.0, 4.0
+        scene.add_box(
+            "/road", color=(70, 70, 75), dimensions=(road_len, lane + 1.0, 0.05),
+            position=(x0 + road_len / 2, 0.0, -0.03), cast_shadow=False,
+        )  # fmt: skip
+        edges = np.array(
+            [[[x0, s * lane / 2, 0.0], [x0 + road_len, s * lane / 2, 0.0]] for s in (-1, 1)], dtype=np.float32
+        )
+        scene.add_line_segments("/road/edges", edges, colors=(235, 235, 235), thickness=0.12)
+        ticks = np.array([[[x, -lane / 2, 0.01], [x, -lane / 2 - 0.6, 0.01]] for x in range(0, 75, 10)], np.float32)
+        scene.add_line_segments("/road/ticks_10m", ticks, colors=(235, 235, 235), thickness=0.08)
+        size = (p.ego_length_m, p.vehicle_width_m, CAR_HEIGHT_M)
+        lead0 = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
+        self.ego_box = scene.add_box("/ego", color=IDLE, dimensions=size, position=(0.0, 0, CAR_HEIGHT_M / 2))
+        self.lead_box = scene.add_box(
+            "/lead", color=LEAD, dimensions=(p.lead_length_m, p.vehicle_width_m, CAR_HEIGHT_M),
+            position=(lead0, 0.0, CAR_HEIGHT_M / 2),
+        )  # fmt: skip
+        scene.add_label("/lead/label", "lead", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.5), anchor="bottom-center")
+        # zones ahead of the ego's camera, moving with it
+        zones = (
+            ("brake_zone_10m", p.braking_distance_m, BRAKE_ZONE, f"brakes if the lead is detected within {p.braking_distance_m:g} m"),
+            ("crash_zone_2m", p.crash_gap_m, CRASH, f"crash: gap < {p.crash_gap_m:g} m"),
+        )  # fmt: skip
+        for i, (name, length, rgb, text) in enumerate(zones):
+            scene.add_box(
+                f"/ego/{name}", color=rgb, dimensions=(length, p.vehicle_width_m + 0.6, 0.02), opacity=0.35,
+                position=(p.camera_offset_m + length / 2, 0.0, -CAR_HEIGHT_M / 2 + 0.02), cast_shadow=False,
+                receive_shadow=False,
+            )  # fmt: skip
+            scene.add_label(
+                f"/ego/{name}/label", text, position=(0.0, -(p.vehicle_width_m / 2 + 0.8 + 1.2 * i), 0.05),
+                anchor="top-center",
+            )  # fmt: skip
+        cam = p.camera_height_m
+        self.gap_line = scene.add_line_segments(
+            "/gap", np.array([[[p.camera_offset_m, 0, cam], [lead0 - p.lead_length_m / 2, 0, cam]]], np.float32),
+            colors=IDLE, thickness=0.08,
+        )  # fmt: skip
+        self.scene_label = scene.add_label(
+            "/ego/label", "ego: no rollout chosen", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 1.2), anchor="bottom-center"
+        )
+        target = np.array([lead0 / 2, 0.0, 0.0])
+        self.client.camera.position = tuple(target + CAMERA_OFFSET_M)
+        self.client.camera.look_at = tuple(target)
+
+    def _clear_scene(self, why: str) -> None:
+        """Back to the idle scene (no rollout shown): the cars at the start, the ego grey."""
+        p = self.params
+        self.shown, self.shown_record, self.explanation, self._shown_x = None, None, None, None
+        self._set_playing(False)
+        self.shown_step = -1
+        lead0 = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
+        with self.client.atomic():
+            self.ego_box.position = (0.0, 0.0, CAR_HEIGHT_M / 2)
+            self.ego_box.color = IDLE
+            self.lead_box.position = (lead0, 0.0, CAR_HEIGHT_M / 2)
+            self.gap_line.colors = np.array(IDLE, dtype=np.uint8)
+            self.scene_label.text = "ego: no rollout chosen"
+            self.scene_html.content = box(html.escape(why), GREY)
+            self.explain_html.content = box(html.escape(why), GREY)
+
+    def _render_step(self, step: int) -> None:
+        with self.lock:
+            traj, xs, ex, record = self.shown, self._shown_x, self.explanation, self.shown_record
+            if traj is None or xs is None or ex is None or record is None:
+                return
+            t = int(np.clip(step, 0, traj.n_steps - 1))
+            self.shown_step = t
+            p = self.params
+            ego_x, lead_x = float(xs[0][t]), float(xs[1][t])
+            detected = bool(traj.detected[t])
+            colour = DETECTED if detected else MISSED
+            gap = float(traj.gap_m[t])
+            cam = p.camera_height_m
+            decisive = t in set(ex.decisive.tolist())
+            seen = "detected" if detected else ("missed (decisive)" if decisive else "missed")
+            with self.client.atomic():
+                self.ego_box.position = (ego_x, 0.0, CAR_HEIGHT_M / 2)
+                self.ego_box.color = colour
+                self.lead_box.position = (lead_x, 0.0, CAR_HEIGHT_M / 2)
+                self.gap_line.points = np.array(
+                    [[[ego_x + p.camera_offset_m, 0, cam], [lead_x - p.lead_length_m / 2, 0, cam]]], np.float32
+                )
+                self.gap_line.colors = np.array(colour, dtype=np.uint8)  # (3,): one colour (per-vertex shows white)
+                self.scene_label.text = f"{record.short_label} {traj.key} t={t * p.dt_s:.2f}s gap {gap:.2f}m {seen}"
+                plots.move_strip_marker(self.strip, t)
+            if self.follow.value:
+                target = np.array([(ego_x + lead_x) / 2, 0.0, 0.0])
+                try:
+                    with self.client.atomic():
+                        self.client.camera.position = tuple(target + CAMERA_OFFSET_M)
+                        self.client.camera.look_at = tuple(target)
+                except (AssertionError, ValueError):  # the client has not reported its camera yet
+                    pass
+            mark = {"detected": "detected", "missed": f"<b style='color:rgb{MISSED}'>missed</b>",
+                    "missed (decisive)": f"<b style='color:{RED}'>missed (decisive)</b>"}[seen]  # fmt: skip
+            crash = f" · <b style='color:{RED}'>CRASH</b>" if traj.crashed else ""
+            self.scene_html.content = box(
+                f"Scene: <b>{html.escape(record.short_label)} {traj.key}</b> (stage {traj.stage}, rollout "
+                f"{traj.index}{crash}) · step {t} (t = {t * p.dt_s:.2f} s) · gap {gap:.2f} m · ego "
+                f"{traj.ego_speed_mps[t]:.2f} m/s · lead {traj.lead_speed_mps[t]:.2f} m/s · detector: {mark}",
+                RED if traj.crashed else BLUE,
+            )
+
+
+def _display_path(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
