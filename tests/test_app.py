@@ -1,15 +1,15 @@
-"""``pemviz serve`` end to end in headless Chromium (issue 9 acceptance).
+"""``pemviz serve`` end to end in headless Chromium: one test per defect a safety engineer hit in the panel.
 
-One panel server (in-process, 127.0.0.1, a free port) and one browser for the module. The browser sets
-the controls the way a user does (labels, dropdown options, buttons); the server-side state and the
-browser's own scene graph (``window.__viserMutable`` / ``__viserSceneTree``, viser's E2E hooks) are the
-truth the tests compare against. Chromium is Debian's (``apt-get install chromium``; ``.ci/run`` installs it).
+One panel server (in-process, 127.0.0.1, a free port) and one browser for the module; each test opens its
+own tab, which gets its own session (form, runs, Stop, scene). The browser types and clicks the way a user
+does; the session's state, the browser's scene graph (``window.__viserMutable`` / ``__viserSceneTree``)
+and its uPlot charts (``window.__viserTestpoints``) are what the tests compare. Every wait is on a
+condition. Chromium is Debian's (``apt-get install chromium``; ``.ci/run`` installs it).
 """
 
 from __future__ import annotations
 
 import os
-import tempfile
 import re
 import shutil
 import time
@@ -18,32 +18,31 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO
-
 sync_api = pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 if not os.path.exists(CHROMIUM):
     pytest.skip("Debian's chromium is not installed (apt-get install chromium)", allow_module_level=True)
 
-from pemviz.app.panel import DETECTED_RGB, MISSED_RGB, PanelApp  # noqa: E402
+from pemviz.app.explain import explain  # noqa: E402
+from pemviz.app.panel import PanelApp  # noqa: E402
 from pemviz.app.runs import scene_positions  # noqa: E402
+from pemviz.app.session import Session  # noqa: E402
+from pemviz.sinks import colours  # noqa: E402
 
 CHROMIUM_ARGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
     "--disable-component-update", "--disable-sync",
 ]  # fmt: skip
-SCREENSHOT = (
-    REPO / "assets" / "screenshots" / "viser_panel.png"  # the README's picture: refresh it on purpose only
-    if os.environ.get("PEMVIZ_UPDATE_SCREENSHOTS")
-    else Path(tempfile.gettempdir()) / f"pemviz-viser_panel-{os.getpid()}.png"
-)
 VIEWPORT = {"width": 1600, "height": 1000}
+TINY = {"K": "2", "N": "40", "N_e": "60", "CE epochs": "60", "pretrain rollouts": "40", "pretrain epochs": "60"}
+"""A run of about a second: the quick preset with fewer stages, rollouts and epochs."""
+expect = sync_api.expect
 
 
 @pytest.fixture(scope="module")
 def app(tmp_path_factory):
     recordings = tmp_path_factory.mktemp("serve") / "recordings"
-    panel = PanelApp("127.0.0.1", 0, recordings_dir=recordings)
+    panel = PanelApp("127.0.0.1", 0, recordings_dir=recordings, preset="quick")
     yield panel
     panel.close()
 
@@ -56,12 +55,98 @@ def browser():
         b.close()
 
 
-def open_panel(browser, app: PanelApp):
-    page = browser.new_page(viewport=VIEWPORT)
-    page.goto(app.url)
-    page.get_by_label("alpha", exact=True).wait_for(timeout=60_000)
-    dismiss_software_gl_notice(page)
-    return page
+class Tab:
+    """A browser tab and its server-side session."""
+
+    def __init__(self, browser, app: PanelApp) -> None:
+        known = set(app.sessions)
+        self.page = browser.new_page(viewport=VIEWPORT)
+        self.page.goto(app.url)
+        self.session: Session = app.wait_for_session(known)
+        self.field("alpha").wait_for(timeout=60_000)
+        dismiss_software_gl_notice(self.page)
+
+    def close(self) -> None:
+        self.page.close()
+
+    def field(self, label: str):
+        """The text input labelled ``label`` (viser's text inputs are not tied to their label by id)."""
+        return self.page.locator(
+            f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input"
+        ).first
+
+    def type(self, label: str, value: str) -> None:
+        box = self.field(label)
+        box.fill(value)
+        box.press("Tab")
+
+    def fill_form(self, values: dict[str, str]) -> None:
+        if any(k in values for k in ("CE epochs", "pretrain rollouts", "pretrain epochs")):
+            self.open_advanced()
+        for label, value in values.items():
+            self.type(label, value)
+
+    def open_advanced(self) -> None:
+        if not self.field("CE epochs").is_visible():
+            self.page.get_by_text("advanced", exact=True).click()
+            self.field("CE epochs").wait_for()
+
+    def choose(self, label: str, option: str) -> None:
+        self.page.get_by_label(label, exact=True).click()
+        self.page.get_by_role("option", name=option, exact=True).click()
+
+    def button(self, name: str):
+        return self.page.get_by_role("button", name=name, exact=True)
+
+    def tab(self, name: str) -> None:
+        self.page.get_by_role("tab", name=name, exact=True).click()
+
+    def run(self, values: dict[str, str] | None = None, timeout: float = 90.0):
+        """Fill the form, press Run, wait for the final estimate; the finished run's record."""
+        self.tab("Experiment")
+        self.fill_form(values or TINY)
+        previous = self.session.record
+        self.button("Run").click()
+        wait_until(lambda: self.session.record is not previous, what="the run to start")
+        record = self.session.record
+        wait_until(lambda: record.done and not self.session.running, timeout=timeout, what="the run to finish")
+        assert record.status == "finished", record.message
+        expect(self.page.get_by_text(f"Final estimate of {record.short_label}")).to_be_visible(timeout=10_000)
+        return record
+
+    def uplots(self) -> list[dict]:
+        """Every uPlot chart in the page: title, series labels, x data and x / y scale ranges."""
+        return self.page.evaluate(
+            """() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(u => ({
+                   title: u.chart.root.querySelector('.u-title')?.textContent ?? '',
+                   legend: u.chart.root.querySelector('.u-legend')?.textContent ?? '',
+                   labels: u.chart.series.map(s => s.label),
+                   x: Array.from(u.chart.data[0] ?? []),
+                   data: u.chart.data.map(d => Array.from(d ?? []).map(v => v ?? null)),
+                   xmin: u.chart.scales.x.min, xmax: u.chart.scales.x.max,
+                   ymin: u.chart.scales.y?.min, ymax: u.chart.scales.y?.max,
+                   axes: u.chart.axes.map(a => a.label ?? '')}))"""
+        )
+
+    def plot(self, title_part: str) -> dict:
+        found = [p for p in self.uplots() if title_part in p["title"]]
+        assert found, f"no plot titled *{title_part}* in {[p['title'] for p in self.uplots()]}"
+        return found[0]
+
+    def scene(self) -> dict:
+        """The ego and lead in this tab's three.js scene: positions, colours, label texts."""
+        return self.page.evaluate(
+            """() => {
+                const m = window.__viserMutable.nodeRefFromName;
+                const tree = window.__viserSceneTree.getState();
+                const prop = (n, k) => tree[n]?.message?.props?.[k];
+                return {x: m['/ego'].position.x, lead_x: m['/lead'].position.x,
+                        color: prop('/ego', 'color'), label: prop('/ego/label', 'text'),
+                        lead_label: prop('/lead/label', 'text'),
+                        zones: [prop('/ego/brake_zone_10m/label', 'text'), prop('/ego/crash_zone_2m/label', 'text')],
+                        miss_zone_colors: [prop('/ego/brake_zone_10m', 'color'), prop('/ego/crash_zone_2m', 'color')]};
+            }"""
+        )
 
 
 def dismiss_software_gl_notice(page) -> None:
@@ -75,181 +160,234 @@ def dismiss_software_gl_notice(page) -> None:
     notice.wait_for(state="detached", timeout=5_000)
 
 
-@pytest.fixture(scope="module")
-def page(browser, app):
-    p = open_panel(browser, app)
-    yield p
-    p.close()
+def shown_at(values: list) -> list[int]:
+    """Indices of the values a chart draws (not null / NaN)."""
+    return [i for i, v in enumerate(values) if v is not None and v == v]
 
 
-def choose(page, label: str, option: str) -> None:
-    page.get_by_label(label, exact=True).click()
-    page.get_by_role("option", name=option, exact=True).click()
-
-
-def type_number(page, label: str, value: str) -> None:
-    box = page.get_by_label(label, exact=True)
-    box.fill(value)
-    box.press("Tab")
-
-
-def wait_until(predicate, timeout: float = 10.0, what: str = "condition") -> None:
+def wait_until(predicate, timeout: float = 15.0, what: str = "condition") -> None:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if predicate():
             return
-        time.sleep(0.05)
+        time.sleep(0.02)
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
-def scene_in_browser(page) -> dict:
-    """What this tab's three.js scene holds for the ego: position, colour and label text."""
-    return page.evaluate(
-        """() => {
-            const ego = window.__viserMutable.nodeRefFromName['/ego'];
-            const tree = window.__viserSceneTree.getState();
-            return {x: ego.position.x, y: ego.position.y,
-                    color: tree['/ego'].message.props.color,
-                    label: tree['/ego/label'].message.props.text};
-        }"""
-    )
+@pytest.fixture
+def tab(browser, app):
+    t = Tab(browser, app)
+    yield t
+    t.session.stop_run()
+    t.session.wait_for_run(10.0)
+    t.close()
 
 
-def test_agm_run_in_the_browser_reaches_a_final_estimate_and_plays_the_least_robust_rollout(app, browser, page):
-    choose(page, "preset", "quick")
-    choose(page, "metric", "agm")
-    type_number(page, "alpha", "0.2")
-    type_number(page, "sigma", "0.9")
-    wait_until(lambda: app.read_config().quantile_level == 0.9, what="sigma to reach the server")
-    page.get_by_role("button", name="Run", exact=True).click()
-    page.get_by_text("Final estimate", exact=True).wait_for(timeout=90_000)
+# 1 ------------------------------------------------------------------------------------------------
+def test_typed_values_run_exactly_as_typed_and_every_error_shows_on_its_field(tab):
+    tab.fill_form({"alpha": "abc", "sigma": "1", "K": "", "N": "12.5"})
+    page = tab.page
+    for message in (
+        "alpha: 'abc' is not a number; type a number in (0, 1] (the smoothing alpha)",
+        "sigma: 1 is out of range; the quantile level sigma must be a number in [0.5, 1)",
+        "K: empty; type a whole number >= 1 (the number of cross-entropy stages K)",
+        "N: 12.5 is not a whole number; the rollouts per stage N must be a whole number >= 2",
+    ):
+        expect(page.get_by_text(message, exact=True)).to_be_visible(timeout=10_000)
+    expect(page.get_by_text("4 settings to fix before Run.", exact=False)).to_be_visible()
+    expect(tab.button("Run")).to_be_disabled()
+    assert tab.field("N").input_value() == "12.5"  # the form keeps what was typed, nothing rounded
+    assert tab.session.runs == []
 
-    record = app.current
-    cfg = record.config
-    assert (cfg.metric, cfg.smoothing, cfg.quantile_level) == ("agm", 0.2, 0.9)
-    assert record.status == "finished" and record.final is not None
-    page_text = page.inner_text("body")
-    assert f"failures {record.final.estimate.n_failures}/{cfg.n_final}" in page_text
-    assert len(record.stages) == cfg.n_stages + 2  # pretraining, K CE stages, final batch
-    # the live proposal plot holds the PEM and one curve per stage (pretrained + K), as the browser draws it
-    plots = page.evaluate(
-        """() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(u => ({
-               title: u.chart.root.querySelector('.u-title')?.textContent ?? '',
-               labels: u.chart.series.map(s => s.label), n: u.chart.data[0].length}))"""
-    )
-    live = [p for p in plots if p["title"].startswith(f"run {record.run_id}: ") and "per stage vs PEM" in p["title"]]
-    stages = [f"stage {k}" for k in range(1, cfg.n_stages + 1)]
-    assert live and live[0]["labels"] == ["gap (m)", "PEM", "pretrained", *stages]
-    assert live[0]["n"] == record.curve_grid_m.size
+    # valid values, Run pressed at once: the run gets exactly what the fields hold
+    tab.fill_form({**TINY, "alpha": "1e-3", "sigma": "0.9", "N": "41", "seed": "12"})
+    tab.button("Run").click()
+    wait_until(lambda: tab.session.record is not None, what="the run to start")
+    cfg = tab.session.record.config
+    assert (cfg.smoothing, cfg.quantile_level, cfg.n_stages, cfg.n_per_stage, cfg.n_final, cfg.seed) == (
+        0.001, 0.9, 2, 41, 60, 12,
+    )  # fmt: skip
+    assert tab.field("alpha").input_value() == "1e-3"
+    expect(page.get_by_text("settings to fix")).to_have_count(0)
 
-    # the list is sorted least robust first, by the run's metric, across all stages
-    rho = [t.robustness for t in record.trajectories]
-    assert rho == sorted(rho)
-    least = record.trajectories[0]
-    batch_min = min(
-        float(np.min(e.robustness)) for e in record.events if type(e).__name__ == "RolloutsSampled"
-    )
-    assert least.robustness == batch_min
 
-    page.get_by_role("tab", name="Rollouts").click()
-    page.get_by_label("rollout", exact=True).click()
-    first = page.get_by_role("option").nth(1)
-    assert first.inner_text().startswith(f"stage {least.stage} rollout {least.index} · rho ")
-    first.click()
-    wait_until(lambda: app.shown is least and app.shown_step > 3, what="playback to start")
-    page.get_by_role("button", name="Pause").click()
-    wait_until(lambda: not app.playing, what="pause")
-    time.sleep(0.3)
+# 2 ------------------------------------------------------------------------------------------------
+def test_the_scene_and_strip_chart_follow_the_newest_run_and_name_it(tab, app):
+    first = tab.run()
+    wait_until(lambda: tab.session.shown is not None and tab.session.shown_record is first, what="run 1 shown")
+    second = tab.run({"seed": "3"})
+    # run 2's most likely failure (or least-robust rollout) is shown, named by its run, in the browser
+    wait_until(lambda: tab.session.shown_record is second, what="the scene to switch to run 2")
+    shown = tab.session.shown
+    assert shown is second.most_likely_failure or second.most_likely_failure is None
+    ego_x, _ = scene_positions(shown, app.params)
+    wait_until(lambda: tab.scene()["label"].startswith(f"{second.short_label} {shown.key} t=0.00s"),
+               what="the browser's scene label to name run 2")  # fmt: skip
+    assert abs(tab.scene()["x"] - ego_x[0]) < 1e-3
 
-    # the scene shows that rollout at the shown step, in the browser's own scene graph
-    step = app.shown_step
-    ego_x, _ = scene_positions(least, app.params)
-    def shown_in_browser() -> bool:
-        s = scene_in_browser(page)
-        return s["label"].startswith(least.key) and abs(s["x"] - ego_x[step]) < 1e-3
+    # the explanation: strip chart of that rollout, its decisive misses as the counterfactual finds them
+    ex = explain(shown.gap_m, shown.detected, shown.log_p, shown.log_q, app.params)
+    tab.page.get_by_role("tab", name="Explain").click()
+    expect(tab.page.get_by_text("Counterfactual", exact=False)).to_be_visible(timeout=10_000)
+    gap = tab.plot(f"{second.short_label} {shown.key}: gap and speeds")
+    assert np.allclose(gap["data"][1], shown.gap_m)
+    assert set(gap["labels"]) >= {"crash gap 2 m", "braking distance 10 m", "gap (m)"}
+    detect = tab.plot("p(detect) under the PEM")
+    decisive = shown_at(detect["data"][detect["labels"].index("decisive miss")])
+    assert decisive == ex.decisive.tolist()
 
-    wait_until(shown_in_browser, what="the browser's scene to show the rollout")
-    s = scene_in_browser(page)
-    assert tuple(s["color"]) == (DETECTED_RGB if least.detected[step] else MISSED_RGB)
-    assert f"Scene: {least.key}" in page.inner_text("body")
+    # playback moves the scene and the strip chart's marker together
+    tab.session.step_slider.value = 30
+    wait_until(lambda: abs(tab.scene()["x"] - ego_x[30]) < 1e-3, what="the scene at step 30")
+    now = tab.plot("p(detect) under the PEM")["data"][-1]
+    assert shown_at(now) == [30]
 
-    # a second tab sees the same run and the same scene
-    other = open_panel(browser, app)
+
+# 3 ------------------------------------------------------------------------------------------------
+def test_finished_runs_survive_stopped_ones_pinned_runs_stay_and_any_kept_run_exports(tab, app):
+    s = tab.session
+    first = tab.run({**TINY, "K": "1"})
+    second = tab.run({**TINY, "K": "2", "N": "30"})
+    assert first.label != second.label and "K 1" in first.label and "K 2, N 30" in second.label
+    # pin run 1 from the Runs tab
+    tab.tab("Runs")
+    tab.choose("kept run", first.label)
+    tab.button("Pin").click()
+    wait_until(lambda: first.pinned, what="run 1 pinned")
+    expect(tab.button("Unpin")).to_be_visible()
+    # four stopped runs: they drop each other to make room, never the finished run 2 or the pinned run 1
+    stopped = []
+    for _ in range(4):
+        tab.tab("Experiment")
+        tab.fill_form({"K": "40"})
+        tab.button("Run").click()
+        wait_until(lambda: s.running and s.record not in (first, second, *stopped), what="a run to start")
+        stopped.append(s.record)
+        tab.button("Stop").click()
+        wait_until(lambda: not s.running, what="the run to stop")
+    assert first in s.runs and len(s.runs) == 4
+    assert second in s.runs  # finished: only stopped runs made room
+    # the compare table shows every setting of every kept run
+    tab.page.get_by_role("tab", name="Compare").click()
+    compare = tab.page.locator("table.pemviz-table").last
+    for setting in ("seed", "K", "N", "N_e", "simulator", "PEM", "alpha", "sigma", "metric"):
+        expect(compare.locator("th", has_text=re.compile(f"^{re.escape(setting)}$"))).to_have_count(1)
+    # export the pinned run 1 (not the newest)
+    tab.tab("Runs")
+    tab.choose("kept run", first.label)
+    tab.button("Export chosen run").click()
+    expect(tab.page.get_by_text(f"Saved {first.short_label} to", exact=False)).to_be_visible(timeout=30_000)
+    path = Path(app.recordings_dir) / f"run{first.run_id}-{first.config.metric}.rrd"
+    assert s.last_export == path.resolve() and path.stat().st_size > 1000
+
+
+# 4, 5 ---------------------------------------------------------------------------------------------
+def test_one_stage_numbering_and_plot_axes_follow_the_stages_that_ran(tab):
+    tab.fill_form({**TINY, "K": "100000", "N": "40"})
+    expect(tab.page.get_by_text(re.compile(r"Cost: 4,000,100 simulations"))).to_be_visible(timeout=10_000)
+    tab.button("Run").click()
+    expect(tab.button("Run anyway")).to_be_visible(timeout=10_000)  # a large run asks first
+    assert tab.session.record is None
+    tab.button("Run anyway").click()
+    # the status names the stage as the console does: "CE stage k/K"
+    expect(tab.page.get_by_text(re.compile(r"CE stage [3-9]/100000: "))).to_be_visible(timeout=60_000)
+    tab.button("Stop").click()
+    record = tab.session.record
+    wait_until(lambda: not tab.session.running, what="the run to stop")
+    last = record.stages[-1].stage
+    wait_until(lambda: tab.plot("failures / N per stage")["xmax"] < last + 1, what="the x axes to fit the stages")
+    for title in ("failures / N per stage", "log10 mu_hat per stage", "gamma per stage, classic (m)"):
+        p = tab.plot(title)
+        assert p["x"] == list(range(last + 1)), title  # stage numbers as the engine counts them
+        assert p["xmax"] == pytest.approx(last + 0.5) and p["axes"][0].startswith("stage (0 pretraining")
+        assert p["axes"][1] and "--" not in p["legend"]
+    assert tab.plot("log10 mu_hat per stage")["ymax"] > max(v for v in record.stage_series("log10_mu_hat").values())
+    curve = tab.plot(f"{record.short_label}: q(detect | gap) per stage")
+    assert curve["labels"][:3] == ["gap (m)", "PEM", "pretraining"] and curve["labels"][3] == "stage 1"
+    assert curve["ymax"] > 1.0  # the top tick "1" is inside the plot
+
+
+# 5 (units) ------------------------------------------------------------------------------------------
+def test_gamma_of_runs_with_other_metrics_is_not_drawn_on_the_same_axis(tab):
+    classic = tab.run()
+    tab.choose("metric", "agm")
+    agm = tab.run()
+    p = tab.plot("gamma per stage, agm (unitless); 1 run of another metric not shown")
+    assert p["labels"] == ["stage", agm.short_label]
+    assert classic.short_label not in p["labels"]
+
+
+# 6 ------------------------------------------------------------------------------------------------
+def test_the_final_estimate_comes_with_its_interval_verdict_and_a_hint_when_nothing_failed(tab):
+    record = tab.run()
+    e = record.final.estimate
+    text = tab.page.inner_text("body")
+    assert f"failures {e.n_failures}/{e.n}" in text and "ESS" in text and "k-hat" in text
+    if hasattr(e, "log_ci"):
+        assert "95 % interval" in text and e.verdict in text and e.reason in text
+    if record.exact_log_p is not None:
+        assert "exact answer" in text
+    tab.open_advanced()
+    tab.choose("method", "mc")
+    tab.run({"N": "20"})
+    expect(tab.page.get_by_text("no failure among 20 rollouts, so mu_hat = 0", exact=False)).to_be_visible()
+
+
+# 7 ------------------------------------------------------------------------------------------------
+def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_overlap(tab, app):
+    from pemviz.sinks import recording
+
+    before = tab.scene()
+    assert tuple(before["color"]) == colours.IDLE  # not green ("detected") before any rollout
+    assert before["lead_label"] == "lead" and all(before["zones"])
+    assert recording.MISSED_RGBA[:3] == colours.MISSED and recording.DETECTED_RGBA[:3] == colours.DETECTED
+    record = tab.run({**TINY, "K": "3"})
+    shown = tab.session.shown
+    assert shown is not None and shown.crashed, "the quick preset finds a crash"
+    t_crash = int(np.argmax(shown.gap_m < app.params.crash_gap_m))
+    tab.session.step_slider.value = t_crash
+    wait_until(lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={t_crash * 0.05:.2f}s"),
+               what="the crash step")  # fmt: skip
+    s = tab.scene()
+    assert tuple(s["color"]) == (colours.DETECTED if shown.detected[t_crash] else colours.MISSED)
+    p = app.params
+    assert s["lead_x"] - p.lead_length_m / 2 >= s["x"] + p.ego_length_m / 2 - 1e-6  # lead rear ahead of ego front
+
+
+# 8 ------------------------------------------------------------------------------------------------
+def test_two_tabs_have_their_own_form_runs_and_stop(tab, browser, app):
+    other = Tab(browser, app)
     try:
-        other.get_by_text("Final estimate", exact=True).wait_for(timeout=30_000)
-        wait_until(lambda: scene_in_browser(other)["label"].startswith(least.key), what="the second tab's scene")
-        assert abs(scene_in_browser(other)["x"] - ego_x[step]) < 1e-3
+        tab.fill_form({**TINY, "K": "40"})
+        tab.type("alpha", "0.3")
+        expect(other.field("alpha")).to_have_value("0.1")
+        tab.button("Run").click()
+        wait_until(lambda: tab.session.running, what="tab A's run")
+        expect(other.button("Stop")).to_be_disabled()
+        expect(other.button("Run")).to_be_enabled()
+        assert other.session.runs == [] and other.session.record is None
+        # B runs its own experiment while A's goes on; B's Stop stops only B's
+        other.fill_form({"K": "40"})
+        other.button("Run").click()
+        wait_until(lambda: other.session.running, what="tab B's run")
+        other.button("Stop").click()
+        wait_until(lambda: not other.session.running, what="tab B's run to stop")
+        assert other.session.record.status == "cancelled" and tab.session.running
+        assert other.session.record.config.smoothing == 0.1 and tab.session.record.config.smoothing == 0.3
     finally:
         other.close()
 
-    # screenshot for the README: a step where the detector missed inside 10 m, if the rollout has one
-    missed = np.flatnonzero(~least.detected & (least.gap_m < 10.0))
-    app.step_slider.value = int(missed[len(missed) // 2]) if missed.size else 40
-    time.sleep(1.0)
-    SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
-    tmp = SCREENSHOT.with_name(".viser_panel.tmp.png")
-    page.screenshot(path=str(tmp))
-    os.replace(tmp, SCREENSHOT)
-    assert SCREENSHOT.stat().st_size > 20_000
 
-
-def test_invalid_values_are_rejected_in_the_panel_with_a_visible_message(app, page):
-    page.get_by_role("tab", name="Experiment").click()
-    runs_before = len(app.runs), app.current
-    for label, bad, good, message in (
-        ("alpha", "0", "0.2", "alpha must be in (0, 1]"),
-        ("sigma", "1", "0.9", "sigma must be in [0.5, 1)"),
-        ("N", "1", "100", "N must be an integer >= 2"),
-    ):
-        type_number(page, label, bad)
-        sync_api.expect(page.get_by_text(message).first).to_be_visible(timeout=5_000)
-        page.get_by_role("button", name="Run", exact=True).click()
-        sync_api.expect(page.get_by_text("Run refused").first).to_be_visible(timeout=5_000)
-        assert (len(app.runs), app.current) == runs_before and not app.running
-        type_number(page, label, good)
-        sync_api.expect(page.get_by_text(message)).to_have_count(0, timeout=5_000)
-
-
-def test_changing_controls_mid_run_is_harmless_and_stop_ends_the_run_within_2_s(app, page):
-    page.get_by_role("tab", name="Experiment").click()
-    type_number(page, "K", "40")
-    wait_until(lambda: app.read_config().n_stages == 40, what="K to reach the server")
-    page.get_by_role("button", name="Run", exact=True).click()
-    wait_until(lambda: app.running and len(app.current.stages) >= 2, timeout=60, what="two finished stages")
-    record = app.current
-
-    choose(page, "metric", "smooth-cumulative")
-    type_number(page, "alpha", "0.5")
-    type_number(page, "seed", "7")
-    wait_until(lambda: app.read_config().seed == 7, what="the changes to reach the server")
-    assert app.running and record.config.metric == "agm" and record.config.smoothing == 0.2  # the run keeps its config
-    n_done = len(record.stages)
-    wait_until(lambda: len(record.stages) > n_done, timeout=30, what="one more stage after the changes")
-
-    page.get_by_role("button", name="Stop", exact=True).click()
-    wait_until(lambda: not app.running, timeout=10, what="the worker to end")
-    assert record.status == "cancelled"
-    assert app.last_stop_latency_s is not None and app.last_stop_latency_s < 2.0, app.last_stop_latency_s
-    assert len(record.stages) < record.n_stage_events
-    sync_api.expect(page.get_by_text(re.compile(r"stopped after \d+ stages")).first).to_be_visible(timeout=5_000)
-    sync_api.expect(page.get_by_role("button", name="Run", exact=True)).to_be_enabled()
-    type_number(page, "K", "8")
-
-
-def test_export_name_from_the_browser_cannot_escape_recordings(app, page):
-    recordings = Path(app.recordings_dir).resolve()
-    page.get_by_role("tab", name="Runs").click()
-    # viser's text input has no id for its label: find the input beside the label
-    box = page.locator("xpath=//label[normalize-space()='export name']/ancestor::div[.//input][1]//input")
-    box.fill("../x")
-    box.press("Tab")
-    wait_until(lambda: app.export_name.value == "../x", what="the name to reach the server")
-    page.get_by_role("button", name="Export current run").click()
-    sync_api.expect(page.get_by_text("Saved").first).to_be_visible(timeout=30_000)
-    written = recordings / "x.rrd"
-    assert written.is_file() and written.stat().st_size > 1000
-    assert app.last_export == written
-    assert not (recordings.parent / "x.rrd").exists() and not (recordings.parent / "x").exists()
-    assert sorted(p.name for p in recordings.iterdir()) == ["x.rrd"]  # no temp or .partial files left
-    # the browser got a link to the file (viser's download notification)
-    sync_api.expect(page.locator("a[download]").first).to_be_attached(timeout=10_000)
+# 9 ------------------------------------------------------------------------------------------------
+def test_progress_shows_elapsed_and_expected_time(tab):
+    tab.fill_form({**TINY, "K": "40", "CE epochs": "150"})
+    tab.button("Run").click()
+    status = re.compile(
+        r"CE stage \d+/40: cross-entropy update \(150 epochs\) · stage \d+\.\d s(, about \d+\.\d s left in it|, nearly "
+        r"done) · run \d+\.\d s"
+    )
+    expect(tab.page.get_by_text(status)).to_be_visible(timeout=60_000)
+    tab.button("Stop").click()
+    expect(tab.page.get_by_text(re.compile(r"stopped after \d+ stages \(\d\.\d\d s after Stop\), \d+\.\d s in all"))
+           ).to_be_visible(timeout=10_000)  # fmt: skip
+    assert tab.session.last_stop_latency_s < 2.0

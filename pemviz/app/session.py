@@ -405,8 +405,9 @@ class Session:
 
     # -- form -> GUI ---------------------------------------------------------------------------------
     def _validate(self) -> None:
-        form = self.read_form()
-        self._show_form(form)
+        # read and show under the lock: callbacks run in a thread pool, and the last one must win
+        with self.lock:
+            self._show_form(self.read_form())
 
     def _show_form(self, form: FormResult) -> None:
         with self.lock:
