@@ -2,39 +2,46 @@
 
 The sink only listens to the engine's events (:mod:`pemviz.engine`); it never drives the engine.
 
-Timelines: ``step`` (0..T-1, one simulation step of dt = 0.05 s; the default timeline, the scene plays on
-it), ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch) and ``repetition`` (only
-when the sink is given one). Figures that summarise stages are static 2D plots (drawn with
-:class:`Figure`: a frame, ticks and a transform from axis units to the plot box), so they show on
-whatever timeline is selected; a time-series view would go blank when the timeline is switched.
+Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch: the engine's
+numbering, :func:`pemviz.engine.stage_label`; the default timeline: scrubbing it steps the proposal curve,
+the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout traces
+and the scene play on it) and ``repetition`` (only when the sink is given one). Colours are those of the
+panel (:mod:`pemviz.sinks.colours`): detected green, missed orange, crash red.
 
 Entity paths (``KK`` = stage number, two digits):
 
-- ``description``: Markdown of the run (what it is, how to read it, its config, the stage table, the
-  final estimate or how it ended), re-logged static after each stage.
+- ``estimate``: Markdown of the current estimate with its 95 % interval, k-hat, verdict and the exact
+  answer where known (the blueprint's first view), re-logged static after each stage and at the end.
+- ``description``: Markdown of the run (what it is, how to read it, its config, the stage table, how it
+  ended), re-logged static after each stage.
 - ``proposal/data/pem``, ``proposal/data/stage_KK``: p_PEM(detect | d) and each stage's proposal
-  q(detect | d) after its update (the final batch's repeats stage K's), one :class:`rerun.LineStrips2D`
-  each, points ``(d [m], probability)``;
-  ``proposal/data/elite_KK``: the elite rollouts' empirical detection rate per 0.1 m gap bin
-  (:class:`rerun.Points2D`; for the final batch the "elites" are its crashes). ``proposal/data``
-  carries the transform from (metres, probability) to the plot box; ``proposal/axes`` the frame.
-- ``stages/{gamma,failure_rate,log10_mu_hat,nll,ess}``: per-stage numbers as scalars on ``stage``;
-  ``stage_metrics/<name>/data/bars``: the same as static bar plots over the stage number (visible on
-  every timeline; one bar per stage from 0 to the value, in the stage's colour).
-- ``rollouts/{gap_m,ego_speed_mps,lead_speed_mps}/stage_KK``: every rollout of a stage over ``step``,
-  one entity with N series, sent with one ``send_columns`` each: red = crash, grey = safe, yellow/orange
-  and wider = the stage's least-robust rollouts (tagged in the series name).
-  ``rollouts/detected/stage_KK``: the gap at the steps where the detector saw the lead, as points
-  (NaN where it missed), shown for the tagged rollouts (the others can be switched on).
-  ``rollouts/summary/stage_KK``: static per-rollout values (robustness under each metric, importance
-  log-weight in nats, crash flag, tag).
-- ``scores/{robustness,log_weight}/data/stage_KK``: every rollout's robustness (configured metric) and
-  importance log-weight against its stage, as static scatter plots; ``.../data/gamma`` the thresholds.
+  q(detect | d) after its update (the final batch's repeats stage K's), static :class:`rerun.LineStrips2D`,
+  points ``(d [m], probability)``; ``proposal/data/current``: the same curve on the ``stage`` timeline
+  (thick, so scrubbing steps it); ``proposal/data/elite_KK``: the elite rollouts' empirical detection
+  rate per 0.1 m gap bin (for the final batch the "elites" are its crashes). ``proposal/data`` carries the
+  transform from (metres, probability) to the plot box; ``proposal/axes`` the frame.
+- ``stages/{failure_rate,gamma,log10_mu_hat,ess,nll,khat}``: per-stage values as :class:`rerun.Scalars` on
+  ``stage``, styled once (static :class:`rerun.SeriesLines` and :class:`rerun.SeriesPoints`) for rerun's
+  native time-series views (hover values, legends); ``stages/log10_mu_hat/{ci_low,ci_high,exact}``: the
+  95 % interval and the exact answer where known.
+- ``histograms/{robustness,log_weight}``: each stage's histogram of every rollout's robustness (configured
+  metric) and importance log-weight (nats), a :class:`rerun.BarChart` on ``stage``.
+- ``rollouts/{gap_m,ego_speed_mps,lead_speed_mps}/stage_KK``: the kept rollouts of a stage over ``step``
+  (all of them up to :data:`ALL_ROLLOUTS_UP_TO`, else the least robust and a uniform sample), one entity
+  with one series per rollout, one ``send_columns`` each: red = crash, grey = safe, yellow and wider = the
+  stage's least-robust rollouts (tagged in the series name). ``rollouts/gap_m/thresholds``: the 2 m crash
+  gap and the 10 m braking distance. ``rollouts/detected/stage_KK``: the gap at the steps where the
+  detector saw the lead, as points (NaN where it missed), shown for the tagged rollouts.
+  ``rollouts/summary/stage_KK``: static per-rollout values of the kept rollouts (index, robustness under
+  each metric, importance log-weight in nats, crash flag, tag).
 - ``scene/stage_KK/{lane,ego,lead,sight}``: top-down scene of each stage's least-robust rollout, one lane
   per stage, boxes with the true car sizes, playable on ``step``: the ego is green while the detector
-  sees the lead and amber while it misses (the sight line from the camera to the lead likewise), the
-  lead turns red once the gap is below the crash gap.
+  sees the lead and orange while it misses (the sight line likewise), the lead turns red once the gap is
+  below the crash gap.
 - ``final``: the final estimate (static :class:`rerun.AnyValues`).
+
+Size: per stage the recording holds summaries, two histograms and at most
+``ALL_ROLLOUTS_UP_TO`` rollouts' traces, so a run of 10^5 rollouts a stage stays a few MB.
 
 Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed.
 The file is written to ``PATH.partial`` and moved to ``PATH`` when the sink is closed (also after an
@@ -61,22 +68,30 @@ from pemviz.engine import (
     RunStarted,
     StageFinished,
     StageResult,
+    stage_label,
 )
 from pemviz.sampling import format_probability
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.sinks import colours as C
 
 APP_ID = "pemviz"
-CRASH_RGBA = (230, 60, 50, 140)
-SAFE_RGBA = (150, 150, 150, 60)
-TAG_RGBA = (250, 210, 60, 255)
-TAG_CRASH_RGBA = (255, 120, 40, 255)
+CRASH_RGBA = C.rgba(C.CRASH, 170)
+SAFE_RGBA = C.rgba(C.SAFE, 60)
+TAG_RGBA = C.rgba(C.TAGGED)
+TAG_CRASH_RGBA = C.rgba(C.CRASH)
 PEM_RGBA = (245, 245, 245, 255)
 AXIS_RGBA = (170, 170, 170, 255)
 GRID_RGBA = (90, 90, 90, 120)
-DETECTED_RGBA = (70, 200, 110, 255)
-MISSED_RGBA = (250, 170, 40, 255)
-LEAD_RGBA = (110, 160, 240, 255)
-LEAD_CRASH_RGBA = (235, 50, 45, 255)
+DETECTED_RGBA = C.rgba(C.DETECTED)
+MISSED_RGBA = C.rgba(C.MISSED)
+LEAD_RGBA = C.rgba(C.LEAD)
+LEAD_CRASH_RGBA = C.rgba(C.CRASH)
+BRAKE_RGBA = C.rgba(C.BRAKE_ZONE)
+ALL_ROLLOUTS_UP_TO = 500
+"""Stages of at most this many rollouts are recorded rollout by rollout; larger ones keep the least-robust
+rollouts and a uniform sample (:data:`SAMPLED_ROLLOUTS`)."""
+SAMPLED_ROLLOUTS = 100
+HISTOGRAM_BINS = 40
 FIGURE_BACKGROUND_RGB = (25, 28, 32)
 LANE_SPACING_M = 3.2
 SCENE_X_RANGE_M = (-15.0, 38.0)
@@ -84,18 +99,19 @@ SCENE_X_RANGE_M = (-15.0, 38.0)
 past the lead's stop."""
 
 STAGE_METRICS = (
-    ("failure_rate", "failures / N"),
-    ("gamma", "gamma"),
-    ("log10_mu_hat", "log10 mu_hat"),
-    ("ess", "ESS"),
-    ("nll", "NLL (nats)"),
+    ("log10_mu_hat", "log10 mu_hat", (31, 111, 209)),
+    ("failure_rate", "failures / N", C.CRASH),
+    ("gamma", "threshold gamma", (120, 80, 200)),
+    ("ess", "ESS", C.DETECTED),
+    ("khat", "Pareto k-hat", C.MISSED),
+    ("nll", "NLL of the failures (nats)", (150, 150, 150)),
 )
+"""Per-stage values: key under ``stages/``, series name, colour."""
 
 
 def stage_colour(stage: int, n_stages: int) -> tuple[int, int, int, int]:
     """Blue (early) to orange (late) for the curves and points of stages 0..n_stages."""
-    f = min(1.0, stage / max(1, n_stages))
-    return (int(40 + 215 * f), int(110 + 40 * f), int(230 - 200 * f), 255)
+    return C.rgba(C.stage_rgb(stage, n_stages))
 
 
 def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
@@ -178,61 +194,57 @@ class Figure:
 
 
 PROPOSAL_FIG = Figure("proposal", "gap d (m)", "p(detect | d)")
-ROBUSTNESS_FIG = Figure("scores/robustness", "stage", "robustness")
-LOG_WEIGHT_FIG = Figure("scores/log_weight", "stage", "log-weight (nats)")
 SCENE_PATH = "scene"
-STAGE_FIGS = {key: Figure(f"stage_metrics/{key}", "", "", width=120.0) for key, _ in STAGE_METRICS}
 
 
 def default_blueprint(n_lanes: int = 12) -> rrb.Blueprint:
-    """Proposal curves, rollout scores, gap traces, the scene, stage metrics and the description.
+    """The estimate and the proposal first, then the per-stage series and histograms, then rollouts and scene.
 
-    The selected timeline is ``step`` (the scene and the rollout traces play on it); every stage figure
-    is static, so it shows on any timeline. ``n_lanes`` sizes the scene view (one lane per stage).
+    The selected timeline is ``stage``: scrubbing it steps the proposal curve, the histograms and the
+    per-stage series; the rollout traces and the scene play on ``step``. ``n_lanes`` sizes the scene view
+    (one lane per stage).
     """
-    no_legend = rrb.PlotLegend(visible=False)
+    stage_views = [
+        rrb.TimeSeriesView(origin=f"/stages/{key}", name=name, plot_legend=rrb.PlotLegend(visible=key == "log10_mu_hat"))
+        for key, name, _ in STAGE_METRICS
+    ]
     traces = rrb.Tabs(
         rrb.TimeSeriesView(
-            name="Gap d (m): red crash, yellow least robust, dots detections",
+            name="Gap (m) over step",
             contents=["+ /rollouts/gap_m/**", "+ /rollouts/detected/**"],
-            plot_legend=no_legend,
+            plot_legend=rrb.PlotLegend(visible=False),
         ),
-        rrb.TimeSeriesView(name="Ego speed (m/s)", origin="/rollouts/ego_speed_mps", plot_legend=no_legend),
-        rrb.TimeSeriesView(name="Lead speed (m/s)", origin="/rollouts/lead_speed_mps", plot_legend=no_legend),
+        rrb.TimeSeriesView(name="Ego speed (m/s)", origin="/rollouts/ego_speed_mps", plot_legend=rrb.PlotLegend(visible=False)),
+        rrb.TimeSeriesView(name="Lead speed (m/s)", origin="/rollouts/lead_speed_mps", plot_legend=rrb.PlotLegend(visible=False)),
     )
     scene = rrb.Spatial2DView(
         origin=f"/{SCENE_PATH}",
-        name="Scene: least-robust rollout per stage (ego green = detected, amber = missed)",
+        name="Scene over step",
         background=FIGURE_BACKGROUND_RGB,
         visual_bounds=rrb.VisualBounds2D(
             x_range=list(SCENE_X_RANGE_M), y_range=[-0.6 * LANE_SPACING_M, (n_lanes - 0.4) * LANE_SPACING_M]
         ),
     )
-    scores = rrb.Tabs(
-        ROBUSTNESS_FIG.view("Robustness per rollout and stage (red = crash, yellow = least robust)"),
-        LOG_WEIGHT_FIG.view("Importance log-weight per rollout and stage"),
-    )
-    bars = {key: STAGE_FIGS[key].view(f"{label} per stage") for key, label in STAGE_METRICS}
-    stage_metrics = rrb.Grid(
-        bars["failure_rate"],
-        bars["gamma"],
-        bars["log10_mu_hat"],
-        rrb.Tabs(bars["ess"], bars["nll"], rrb.TimeSeriesView(origin="/stages", name="Series [stage timeline]")),
-        grid_columns=2,
+    histograms = rrb.Tabs(
+        rrb.BarChartView(origin="/histograms/robustness", name="Robustness histogram"),
+        rrb.BarChartView(origin="/histograms/log_weight", name="Log-weight histogram (nats)"),
     )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Horizontal(
-                    PROPOSAL_FIG.view("Proposal q(detect | d) per stage vs the PEM; dots: elites' detection rate"),
-                    scores,
+                    rrb.TextDocumentView(origin="/estimate", name="Estimate"),
+                    PROPOSAL_FIG.view("Proposal q(detect | d) vs PEM"),
+                    column_shares=[1.0, 1.5],
                 ),
+                rrb.Horizontal(rrb.Grid(*stage_views, grid_columns=3), histograms, column_shares=[2.0, 1.0]),
                 rrb.Horizontal(traces, scene),
+                row_shares=[1.1, 1.0, 1.0],
             ),
-            rrb.Vertical(rrb.TextDocumentView(origin="/description", name="Run"), stage_metrics, row_shares=[1, 2]),
-            column_shares=[2.6, 1.0],
+            rrb.TextDocumentView(origin="/description", name="Run"),
+            column_shares=[3.0, 1.0],
         ),
-        rrb.TimePanel(timeline="step", fps=20.0, state="collapsed"),
+        rrb.TimePanel(timeline="stage", state="collapsed"),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         collapse_panels=True,
@@ -244,7 +256,8 @@ class RerunSink:
 
     Args:
         stream: where to log (a file sink, a gRPC connection, or memory).
-        rollout_traces: log every rollout's traces and the scene (the bulk of the recording).
+        rollout_traces: log the rollouts' traces and the scene (the bulk of the recording; all rollouts of a
+            stage up to :data:`ALL_ROLLOUTS_UP_TO`, else the least robust and a uniform sample).
         tagged_per_stage: how many least-robust rollouts of each stage are tagged in the traces.
         scene_per_stage: how many least-robust rollouts of each stage get a lane in the scene.
         params: the braking scenario's constants (car sizes, camera offset, dt) for the scene.
@@ -275,9 +288,9 @@ class RerunSink:
         self.intro_md = ""
         self.status_md = ""
         self.stage_rows: list[str] = []
-        self.stage_values: dict[str, list[tuple[int, float]]] = {key: [] for key, _ in STAGE_METRICS}
-        self.scores: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        self.gammas: list[tuple[int, float]] = []
+        self.n_ce = 0
+        self.exact_log_p: float | None = None
+        self.estimate_md = ""
         self.n_lanes = 0
         self.curve_stages: list[int] = []
         self.finished = False
@@ -360,7 +373,7 @@ class RerunSink:
         table = ""
         if self.stage_rows:
             table = (
-                "\n## Stages\n\n| stage | kind | gamma | failures | mu_hat | NLL | ESS | wall s |\n"
+                "\n## Stages\n\n| stage | name | gamma | failures | mu_hat | NLL | ESS | wall s |\n"
                 "|---|---|---|---|---|---|---|---|\n" + "\n".join(self.stage_rows) + "\n"
             )
         status = f"\n## Result\n\n{self.status_md}\n" if self.status_md else ""
@@ -391,22 +404,55 @@ class RerunSink:
             fig.draw_axes(self.stream, x_range, y_range, x_ticks)
             self._axes[fig.path] = key
 
-    def _log_stage_bars(self, key: str) -> None:
-        """One bar per finished stage from 0 to the value, in the stage's colour (static 2D plot)."""
-        pts = self.stage_values[key]
-        values = np.array([v for _, v in pts])
-        lo, hi = min(0.0, float(values.min())), max(0.0, float(values.max()))
-        pad = 0.05 * (hi - lo) if hi > lo else 0.5
-        fig = STAGE_FIGS[key]
-        self._draw_axes(fig, (-0.6, self.last_stage + 0.6), (lo - pad if lo < 0 else 0.0, hi + pad if hi > 0 else 0.0))
-        self.stream.log(
-            f"{fig.path}/data/bars",
-            rr.LineStrips2D(
-                [[[k, 0.0], [k, v]] for k, v in pts], colors=[stage_colour(k, self.n_stages) for k, _ in pts],
-                radii=-4.0, labels=[f"stage {k}: {v:.4g}" for k, v in pts], show_labels=False,
-            ),
+    def _log_estimate(self, res: StageResult | None, final: FinalEstimate | None = None) -> None:
+        """The ``estimate`` view: mu_hat with its interval, k-hat, verdict and the exact answer where known."""
+        e = final.estimate if final is not None else res.estimate
+        where = "Final estimate" if final is not None else f"Estimate after {stage_label(res.stage, res.kind, self.n_ce)}"
+        lines = [f"# {where}", "", f"**mu_hat = {format_probability(e.log_mu_hat, 4)}**"]
+        ci = getattr(e, "log_ci", None)
+        if ci is not None:
+            lines[-1] += f" (95 % interval {format_probability(ci[0])} to {format_probability(ci[1])})"
+        verdict = getattr(e, "verdict", "")
+        if verdict:
+            lines += ["", f"**{verdict}**: {getattr(e, 'reason', '')}"]
+        exact = self.exact_log_p
+        if exact is not None and math.isfinite(exact):
+            rel = f", relative error {math.expm1(e.log_mu_hat - exact):+.0%}" if math.isfinite(e.log_mu_hat) else ""
+            lines += ["", f"exact answer {format_probability(exact, 4)}{rel}"]
+        if e.n_failures == 0:
+            lines += ["", f"No failure among {e.n} rollouts: mu_hat = 0 says only that the sampler found no crash."]
+        khat = getattr(e, "khat", math.nan)
+        lines += [
+            "",
+            f"failures {e.n_failures}/{e.n} · ESS {e.ess:.1f} · k-hat {khat:.2f} · NLL {e.nll_mean:.1f} nats"
+            if math.isfinite(e.nll_mean) else f"failures {e.n_failures}/{e.n} · ESS {e.ess:.1f}",
+        ]  # fmt: skip
+        if final is not None:
+            lines += ["", f"{final.n_simulations:,} simulations in {final.wall_s:.1f} s"]
+        self.estimate_md = "\n".join(lines) + "\n"
+        self.stream.log("estimate", rr.TextDocument(self.estimate_md, media_type=rr.MediaType.MARKDOWN), static=True)
+
+    def _log_series_styles(self) -> None:
+        """Static styling of the per-stage series (names, colours, markers) for the time-series views."""
+        s = self.stream
+        for key, name, rgb in STAGE_METRICS:
+            s.log(f"stages/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[2.0]),
+                  rr.SeriesPoints(colors=[C.rgba(rgb)], names=[name], marker_sizes=[3.0]), static=True)  # fmt: skip
+        for key, name, rgb in (("ci_low", "95 % interval, low", (120, 160, 230)),
+                               ("ci_high", "95 % interval, high", (120, 160, 230)),
+                               ("exact", "exact answer", C.DETECTED)):  # fmt: skip
+            s.log(f"stages/log10_mu_hat/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[1.0]),
+                  static=True)  # fmt: skip
+        s.log(
+            "rollouts/gap_m/thresholds",
+            rr.SeriesLines(colors=[CRASH_RGBA[:3] + (255,), BRAKE_RGBA], widths=[2.0, 2.0],
+                           names=[f"crash gap {self.params.crash_gap_m:g} m",
+                                  f"braking distance {self.params.braking_distance_m:g} m"]),
             static=True,
         )  # fmt: skip
+        t = np.arange(self.params.n_steps)
+        levels = np.array([[self.params.crash_gap_m, self.params.braking_distance_m]] * t.size)
+        s.send_columns("rollouts/gap_m/thresholds", indexes=self._indexes(step=t), columns=rr.Scalars.columns(scalars=levels))
 
     # -- run started ----------------------------------------------------------------------------------
     def _run_started(self, ev: RunStarted) -> None:
@@ -414,6 +460,8 @@ class RerunSink:
         self.n_stages = cfg.n_stages + 1 if cfg.method == "adaptive" else 1
         self.last_stage = cfg.n_stages + (cfg.final_estimate == "fresh") if cfg.method == "adaptive" else 1
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
+        self.n_ce = cfg.n_stages
+        self.exact_log_p = getattr(ev, "exact_log_p", None)
         s = self.stream
         s.send_property(
             "pemviz",
@@ -448,16 +496,19 @@ class RerunSink:
             f"a perception error model (PEM) p(detect | d), sees the lead within 10 m. A crash is the gap d "
             f"dropping below {self.params.crash_gap_m:g} m, safety spec `{ev.formula}`; rollouts are ranked "
             f"by **{cfg.metric}** robustness. Method: {method}\n\n"
-            "**How to read it.** *Proposal*: q(detect | d) after each stage (blue early, orange late) against "
-            "the PEM (white); dots are the elite rollouts' detection rate per gap bin. *Rollout scores*: "
-            "robustness and importance log-weight of every rollout per stage (red = crash). *Rollouts*: "
-            "gap, ego and lead speed over `step` (red = crash, yellow = least robust, dots = detections). "
-            "*Scene*: the least-robust rollout of each stage, one lane per stage; press play on `step`. "
-            "*Stage metrics*: bar charts per stage (also as series on the `stage` timeline).\n"
+            "**How to read it.** Stages are numbered as in the console: 0 = pretraining, 1..K = CE stages, "
+            "K+1 = final batch. *Estimate*: mu_hat with its 95 % interval and verdict. *Proposal*: "
+            "q(detect | d) after each stage (blue early, orange late) against the PEM (white); the thick curve "
+            "is the stage selected on the `stage` timeline; dots are the elite rollouts' detection rate per gap "
+            "bin. *Per-stage series* and *histograms* (robustness, importance log-weight) step with the `stage` "
+            "timeline. Switch the timeline to `step` to play the *rollouts* (gap with the 2 m and 10 m lines; red = "
+            "crash, yellow = least robust, green dots = detections) and the *scene* (ego green = detected, "
+            "orange = missed).\n"
         )
         rows = "\n".join(f"| {k} | `{v}` |" for k, v in vars(cfg).items())
         self.config_md = f"\n## Config\n\n| setting | value |\n|---|---|\n{rows}\n"
         self._log_description()
+        self._log_series_styles()
         PROPOSAL_FIG.draw_axes(s, (float(self.grid_m.min()), float(self.grid_m.max())), (0.0, 1.0))
         s.log(
             "proposal/data/pem",
@@ -470,12 +521,14 @@ class RerunSink:
     def _stage_finished(self, res: StageResult) -> None:
         s = self.stream
         colour = stage_colour(res.stage, self.n_stages)
+        s.set_time("stage", sequence=res.stage)
+        if self.repetition is not None:
+            s.set_time("repetition", sequence=self.repetition)
         if not np.all(np.isnan(res.proposal_curve)):
-            s.log(
-                f"proposal/data/stage_{res.stage:02d}",
-                rr.LineStrips2D([np.column_stack([self.grid_m, res.proposal_curve])], colors=colour, radii=-1.5),
-                static=True,
-            )
+            strip = [np.column_stack([self.grid_m, res.proposal_curve])]
+            s.log(f"proposal/data/stage_{res.stage:02d}", rr.LineStrips2D(strip, colors=colour, radii=-1.5), static=True)
+            s.log("proposal/data/current", rr.LineStrips2D(strip, colors=colour, radii=-4.0,
+                                                           labels=[stage_label(res.stage, res.kind, self.n_ce)]))
             self.curve_stages.append(res.stage)
             self._log_proposal_legend()
         rate = np.asarray(res.elite_detect_rate, dtype=np.float64)
@@ -494,29 +547,32 @@ class RerunSink:
             "log10_mu_hat": e.log10_mu_hat,
             "nll": e.nll_mean,
             "ess": e.ess,
+            "khat": getattr(e, "khat", math.nan),
         }
-        s.set_time("stage", sequence=res.stage)
-        if self.repetition is not None:
-            s.set_time("repetition", sequence=self.repetition)
+        ci = getattr(e, "log_ci", None)
+        if ci is not None and math.isfinite(e.log10_mu_hat):
+            values["log10_mu_hat/ci_low"] = ci[0] / math.log(10.0)
+            values["log10_mu_hat/ci_high"] = ci[1] / math.log(10.0)
+        if self.exact_log_p is not None and math.isfinite(self.exact_log_p):
+            values["log10_mu_hat/exact"] = self.exact_log_p / math.log(10.0)
         for key, value in values.items():
             if math.isfinite(value):
                 s.log(f"stages/{key}", rr.Scalars(value))
-                self.stage_values[key].append((res.stage, value))
-                self._log_stage_bars(key)
 
         def num(x: float, fmt: str) -> str:
             return format(x, fmt) if math.isfinite(x) else "-"
 
         self.stage_rows.append(
-            f"| {res.stage} | {res.kind} | {num(res.gamma, '.4f')} | {e.n_failures}/{e.n} | "
-            f"{format_probability(e.log_mu_hat)} | {num(e.nll_mean, '.2f')} | {num(e.ess, '.2f')} | "
-            f"{res.wall_s:.2f} |"
+            f"| {res.stage} | {stage_label(res.stage, res.kind, self.n_ce)} | {num(res.gamma, '.4f')} | "
+            f"{e.n_failures}/{e.n} | {format_probability(e.log_mu_hat)} | {num(e.nll_mean, '.2f')} | "
+            f"{num(e.ess, '.2f')} | {res.wall_s:.2f} |"
         )
         self._log_description()
+        self._log_estimate(res)
 
         pending = self._pending
         if pending is not None and pending.stage == res.stage:
-            self._log_scores(pending, res)
+            self._log_histograms(pending)
             if self.rollout_traces:
                 self._log_rollouts(pending)
         self._pending = None
@@ -526,70 +582,44 @@ class RerunSink:
         """Indices of the ``k`` least-robust rollouts under the configured metric (ties: lower index)."""
         return np.argsort(ev.robustness, kind="stable")[: min(k, ev.robustness.size)]
 
-    def _log_scores(self, ev: RolloutsSampled, res: StageResult) -> None:
-        """Every rollout's robustness and log-weight against its stage (static scatter plots)."""
-        s = self.stream
-        n = ev.robustness.size
-        jitter = ev.stage + (np.arange(n) + 0.5) / n * 0.7 - 0.35
-        r = np.asarray(ev.robustness, dtype=np.float64)
-        lw = np.asarray(ev.log_weight, dtype=np.float64)
-        self.scores.append((ev.stage, jitter, r, lw, np.asarray(ev.failed, bool)))
-        if math.isfinite(res.gamma):
-            self.gammas.append((ev.stage, res.gamma))
-        tagged = np.zeros(n, bool)
-        tagged[self._least_robust(ev, self.tagged_per_stage)] = True
-        colours = np.where(ev.failed[:, None], np.array(CRASH_RGBA), np.array(SAFE_RGBA)).astype(np.uint8)
-        colours[:, 3] = 200
-        colours[tagged] = TAG_RGBA
-        stages = [k for k, *_ in self.scores]
-        x_range = (min(stages) - 0.6, max(stages) + 0.6)
-        for fig, values in ((ROBUSTNESS_FIG, r), (LOG_WEIGHT_FIG, lw)):
-            ok = np.isfinite(values)
-            s.log(
-                f"{fig.path}/data/stage_{ev.stage:02d}",
-                rr.Points2D(np.column_stack([jitter[ok], values[ok]]), colors=colours[ok], radii=-2.0),
-                static=True,
+    def _log_histograms(self, ev: RolloutsSampled) -> None:
+        """Histograms of every rollout's robustness and log-weight at this stage (:class:`rerun.BarChart` on ``stage``)."""
+        for key, values in (("robustness", ev.robustness), ("log_weight", ev.log_weight)):
+            v = np.asarray(values, dtype=np.float64)
+            v = v[np.isfinite(v)]
+            if v.size == 0:
+                continue
+            counts, edges = np.histogram(v, bins=HISTOGRAM_BINS if np.ptp(v) > 0 else 1)
+            colour = CRASH_RGBA[:3] + (255,) if key == "robustness" else C.rgba(C.LOG_WEIGHT)
+            self.stream.log(
+                f"histograms/{key}",
+                rr.BarChart(counts.astype(np.float64), abscissa=(edges[:-1] + edges[1:]) / 2, color=colour),
             )
-            idx = 2 if fig is ROBUSTNESS_FIG else 3
-            allv = np.concatenate([sc[idx][np.isfinite(sc[idx])] for sc in self.scores] + [np.zeros(1)])
-            lo, hi = float(allv.min()), float(allv.max())
-            pad = 0.05 * (hi - lo) if hi > lo else 1.0
-            ticks = np.arange(min(stages), max(stages) + 1) if len(stages) <= 16 else None
-            self._draw_axes(fig, x_range, (lo - pad, hi + pad), ticks)
-        zero = [[[x_range[0], 0.0], [x_range[1], 0.0]]]
-        s.log(f"{ROBUSTNESS_FIG.path}/data/zero", rr.LineStrips2D(zero, colors=CRASH_RGBA, radii=-1.0), static=True)
-        if self.gammas:
-            s.log(
-                f"{ROBUSTNESS_FIG.path}/data/gamma",
-                rr.LineStrips2D(
-                    [[[k - 0.4, g], [k + 0.4, g]] for k, g in self.gammas], colors=PEM_RGBA, radii=-1.5,
-                    labels=[f"gamma {g:.2f}" for _, g in self.gammas], show_labels=False,
-                ),
-                static=True,
-            )  # fmt: skip
-        s.log(
-            f"rollouts/summary/stage_{ev.stage:02d}",
-            rr.AnyValues(
-                rollout=np.arange(n),
-                log_weight=lw,
-                failed=np.asarray(ev.failed, bool),
-                least_robust=tagged,
-                **{f"robustness_{m.replace('-', '_')}": np.asarray(v, np.float64)
-                   for m, v in ev.robustness_by_metric.items()},
-            ),
-            static=True,
-        )  # fmt: skip
+
+    def kept_rollouts(self, ev: RolloutsSampled) -> np.ndarray:
+        """Indices of the rollouts recorded in full, ascending: all up to :data:`ALL_ROLLOUTS_UP_TO`, else the
+        ``tagged_per_stage`` least robust, every failure up to :data:`SAMPLED_ROLLOUTS` of them and a uniform
+        sample of :data:`SAMPLED_ROLLOUTS` (every ``N / SAMPLED_ROLLOUTS``-th rollout)."""
+        n = ev.robustness.size
+        if n <= ALL_ROLLOUTS_UP_TO:
+            return np.arange(n)
+        keep = set(self._least_robust(ev, max(self.tagged_per_stage, self.scene_per_stage)).tolist())
+        keep |= set(np.flatnonzero(np.asarray(ev.failed, bool))[:SAMPLED_ROLLOUTS].tolist())
+        keep |= set(np.linspace(0, n - 1, SAMPLED_ROLLOUTS).astype(int).tolist())
+        return np.array(sorted(keep))
 
     def _log_rollouts(self, ev: RolloutsSampled) -> None:
-        """All N traces of a stage, one entity per signal with N series, one ``send_columns`` each."""
+        """The kept traces of a stage (:meth:`kept_rollouts`), one entity per signal with one series per
+        rollout, one ``send_columns`` each, and their per-rollout values."""
         s = self.stream
         batch = ev.batch
-        n, t = batch.n, batch.n_steps
+        t = batch.n_steps
+        keep = self.kept_rollouts(ev)
         order = self._least_robust(ev, self.tagged_per_stage)
         rank = {int(i): j for j, i in enumerate(order)}
         failed = np.asarray(ev.failed, bool)
         colours, widths, names = [], [], []
-        for i in range(n):
+        for i in keep.tolist():
             tag = rank.get(i)
             crash = " crash" if failed[i] else ""
             if tag is None:
@@ -605,20 +635,31 @@ class RerunSink:
         for name in batch.observation_names:
             path = f"rollouts/{name}/{stage}"
             s.log(path, rr.SeriesLines(colors=colours, widths=widths, names=names), static=True)
-            s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=batch.signal(name).T))
-        visible = np.zeros(n, bool)
-        visible[order] = True
+            s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=batch.signal(name)[keep].T))
+        visible = np.isin(keep, order)
         path = f"rollouts/detected/{stage}"
         s.log(
             path,
             rr.SeriesPoints(
-                colors=[DETECTED_RGBA] * n, names=[f"{nm} detected" for nm in names], marker_sizes=[1.5] * n,
-                visible_series=visible,
+                colors=[DETECTED_RGBA] * keep.size, names=[f"{nm} detected" for nm in names],
+                marker_sizes=[1.5] * keep.size, visible_series=visible,
             ),
             static=True,
         )  # fmt: skip
-        dots = np.where(batch.detected, batch.gap_m, np.nan)
+        dots = np.where(batch.detected[keep], batch.gap_m[keep], np.nan)
         s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=dots.T))
+        s.log(
+            f"rollouts/summary/{stage}",
+            rr.AnyValues(
+                rollout=keep,
+                log_weight=np.asarray(ev.log_weight, np.float64)[keep],
+                failed=failed[keep],
+                least_robust=np.isin(keep, order),
+                **{f"robustness_{m.replace('-', '_')}": np.asarray(v, np.float64)[keep]
+                   for m, v in ev.robustness_by_metric.items()},
+            ),
+            static=True,
+        )  # fmt: skip
         if {"gap_m", "ego_speed_mps"} <= set(batch.observation_names):
             for i in order[: self.scene_per_stage]:
                 self._log_scene_lane(ev, int(i))
@@ -712,6 +753,7 @@ class RerunSink:
             ),
             static=True,
         )
+        self._log_estimate(None, ev)
         self.status_md = (
             f"**Final estimate** mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = "
             f"{e.log_mu_hat:.4f} nats; {e.n_failures}/{e.n} failures, ESS {e.ess:.2f}) from "
