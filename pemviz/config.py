@@ -26,7 +26,7 @@ EXECUTORS = ("serial", "ray")
 process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same estimate."""
 
 WEIGHT_MODES = ("frozen", "recomputed")
-FINAL_MODES = ("fresh", "last-stage")
+FINAL_MODES = ("pooled", "fresh", "last-stage")
 ELITE_TIES = ("all", "random")
 PROPOSAL_INPUTS = ("gap", "state")
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
@@ -57,7 +57,9 @@ class ExperimentConfig:
         pretrain_rollouts, pretrain_epochs: PEM-driven rollouts and epochs to pretrain the proposal.
         learning_rate: Adam step size for the proposal.
         weights: ``frozen`` (paper eq. 10-11) or ``recomputed`` with gradient (authors' code).
-        final_estimate: ``fresh`` N_e rollouts (paper) or ``last-stage`` batch (authors' code).
+        final_estimate: ``pooled``: the N_e fresh rollouts together with every CE stage whose proposal was fitted to
+            failures (the stage before it had reached gamma = 0), each rollout weighted by the proposal that drew
+            it; ``fresh``: the N_e rollouts alone (paper); ``last-stage``: the last stage's batch (authors' code).
         pem: path of PEM weights, or None for the shipped default.
         sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
         executor: where rollouts are simulated, one of :data:`EXECUTORS`.
@@ -96,7 +98,7 @@ class ExperimentConfig:
     pretrain_epochs: int = 1000
     learning_rate: float = 1e-3
     weights: str = "frozen"
-    final_estimate: str = "fresh"
+    final_estimate: str = "pooled"
     pem: str | None = None
     sim: str = "batched"
     executor: str = "serial"
@@ -158,16 +160,21 @@ class ExperimentConfig:
         return dataclasses.replace(self, **changes)
 
     @property
+    def has_final_batch(self) -> bool:
+        """Whether the run ends with N_e fresh rollouts from the final proposal (not with ``last-stage``)."""
+        return self.method == "adaptive" and self.final_estimate != "last-stage"
+
+    @property
     def n_simulations(self) -> int:
         """Rollouts the experiment will simulate, pretraining included."""
         if self.method != "adaptive":
             return self.n_per_stage
-        final = self.n_final if self.final_estimate == "fresh" else 0
+        final = self.n_final if self.has_final_batch else 0
         return self.pretrain_rollouts + self.n_stages * self.n_per_stage + final
 
 
 PAPER: dict[str, Any] = {
-    "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False, "smoothing_at_failure": None,
+    "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False, "smoothing_at_failure": None,
     "elite_ties": "all", "pretrain_cap": None, "defensive": 0.0,
 }
 """The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal

@@ -19,6 +19,7 @@ from typing import Callable, Iterable, Union
 import numpy as np
 import torch
 
+from pemviz import stl
 from pemviz.config import METRICS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, Detector, WindowDetector
 from pemviz.executors import get_executor
@@ -42,6 +43,9 @@ class RunStarted:
     curve_grid_m: np.ndarray
     pem_curve: np.ndarray
     """p_PEM(detect | d) on ``curve_grid_m``, float64 [G]."""
+    exact_log_p: float | None = None
+    """Natural log of the problem's exact failure probability when one is known (closed form, enumeration),
+    else None: sinks show it beside every estimate with the relative error."""
 
 
 @dataclass(frozen=True)
@@ -106,8 +110,11 @@ class StageFinished:
 @dataclass(frozen=True)
 class FinalEstimate:
     estimate: Estimate
+    """The run's answer: the final batch's estimate, or pooled over stages (``final_estimate="pooled"``)."""
     n_simulations: int
     wall_s: float
+    stages_used: tuple[int, ...] = ()
+    """The stages whose rollouts the estimate uses (e.g. CE stages 4..10 and the final batch 11 when pooled)."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +186,8 @@ class Experiment:
         self.problem = problem
         self.stages: list[StageResult] = []
         self.n_simulations = 0
+        self._per_rollout: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        """stage -> (log-weights, failed, log p before the failure), [N] each, for the pooled estimate."""
 
     # -- plumbing ---------------------------------------------------------------------------------
     def emit(self, event: Event) -> None:
@@ -203,7 +212,9 @@ class Experiment:
         return batch, r, failed, log_w
 
     def _finish_stage(self, stage, kind, gamma, elite, batch, failed, log_w, proposal, t0) -> StageResult:
-        est = estimate(log_w, failed, self._log_p_total(batch))
+        log_p_total = self._log_p_total(batch)
+        self._per_rollout[stage] = (log_w, failed, log_p_total)
+        est = estimate(log_w, failed, log_p_total)
         grid = self.problem.curve_grid
         curve = proposal.curve(grid) if proposal is not None else np.full(grid.size, np.nan)
         res = StageResult(
@@ -244,10 +255,13 @@ class Experiment:
         return ((batch.log_p - batch.log_q) * upto).sum(axis=1)
 
     def _log_p_total(self, batch: RolloutBatch) -> np.ndarray:
-        """sum_t log p_PEM(a_t | s_t) [N] over the steps of the weights (T - 1, or up to the failure step)."""
-        if not self.config.weights_until_failure:
-            return batch.log_p[:, : batch.n_steps - 1].sum(axis=1)
-        k = np.minimum(failure_steps(self.problem, batch), batch.n_steps - 1)
+        """sum_{t < t_fail} log p_PEM(a_t | s_t) [N] (nats), for the NLL of the failures: the actions before the
+        failure step, whatever the sampler, so that NLLs of every preset compare (T - 1 steps for a rollout that
+        does not fail, or when the safety formula is not ``G[a,b](state predicate)``)."""
+        try:
+            k = np.minimum(failure_steps(self.problem, batch), batch.n_steps - 1)
+        except ValueError:
+            k = np.full(batch.n, batch.n_steps - 1)
         return (batch.log_p * (np.arange(batch.n_steps)[None, :] < k[:, None])).sum(axis=1)
 
     def _new_proposal(self, pretrain: RolloutBatch) -> Proposal:
@@ -280,22 +294,26 @@ class Experiment:
         rng = np.random.default_rng(cfg.seed)
         torch.manual_seed(cfg.seed)
         pb = self.problem
-        self.emit(RunStarted(cfg, str(pb.formula), pb.curve_grid, pb.target_curve()))
+        self.emit(RunStarted(cfg, str(pb.formula), pb.curve_grid, pb.target_curve(), pb.exact_log_p))
         try:
             if cfg.method == "adaptive":
-                final_stage = self._adaptive(rng)
+                final_stage, used = self._adaptive(rng)
             else:
                 sampler = {
                     "mc": pb.target,
                     "naive50": ConstantDetector(0.5),
                     "mixed50": WindowDetector(ConstantDetector(0.5), pb.target, pb.window),
                 }[cfg.method]
-                final_stage = self._final(1, sampler, rng, None)
+                final_stage, used = self._final(1, sampler, rng, None), (1,)
         except Cancelled as exc:
             event = RunCancelled(tuple(self.stages), str(exc))
             self.emit(event)
             return event
-        final = FinalEstimate(final_stage.estimate, self.n_simulations, time.perf_counter() - t_start)
+        est = final_stage.estimate
+        if len(used) > 1:  # every stage's weights come from the proposal that drew it: the pooled mean is unbiased
+            log_w, failed, log_p_total = (np.concatenate(a) for a in zip(*(self._per_rollout[k] for k in used)))
+            est = estimate(log_w, failed, log_p_total)
+        final = FinalEstimate(est, self.n_simulations, time.perf_counter() - t_start, used)
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)
@@ -338,14 +356,23 @@ class Experiment:
         failed_all = np.concatenate(failed)
         est = estimate(np.concatenate(log_w), failed_all, np.concatenate(log_p_total))
         curve = proposal.curve(grid) if proposal is not None else np.full(grid.size, np.nan)
+        self._per_rollout[stage] = (np.concatenate(log_w), failed_all, np.concatenate(log_p_total))
         res = StageResult(stage, "final", float("nan"), int(failed_all.sum()), est, curve, _rate(counts, hits),
                           time.perf_counter() - t0)  # fmt: skip
         self.stages.append(res)
         self.emit(StageFinished(res))
         return res
 
-    def _adaptive(self, rng: np.random.Generator) -> StageResult:
+    def _adaptive(self, rng: np.random.Generator) -> tuple[StageResult, tuple[int, ...]]:
+        """Pretraining, K cross-entropy stages and the final batch; returns the last stage and the stages the
+        run's estimate uses: with ``final_estimate="pooled"``, every CE stage after the first one that reached
+        gamma = 0, and the final batch. The pool's size is fixed by then, before any pooled stage is sampled, and
+        each pooled stage is weighted by the proposal that drew it, so the pooled mean of 1[fail] w is unbiased
+        (a sum of martingale differences; cf. Cornuet, Marin, Mira, Robert, "Adaptive multiple importance
+        sampling", Scand. J. Stat. 2012, for recycling the stages of an adaptive sampler)."""
         cfg = self.config
+        pooled: list[int] = []
+        reached_failures = False
         t0 = time.perf_counter()
         pre_sampler = self.problem.target
         if cfg.pretrain_cap is not None:  # the first proposal misses at least 1 - cap of the time inside the window
@@ -367,8 +394,11 @@ class Experiment:
         last = None
         for stage in range(1, cfg.n_stages + 1):
             t0 = time.perf_counter()
+            if reached_failures:
+                pooled.append(stage)
             batch, r, failed, log_w = self._sample(stage, "ce", cfg.n_per_stage, sampler, rng)
             gamma = quantile_threshold(r, cfg.quantile_level, floor=0.0)
+            reached_failures = reached_failures or gamma <= 0.0  # latched: N of the pool is fixed once it starts
             elite = r <= gamma
             if cfg.elite_ties == "random":
                 elite = _break_ties(r, gamma, cfg.quantile_level, rng)
@@ -383,8 +413,11 @@ class Experiment:
             )  # fmt: skip
             last = self._finish_stage(stage, "ce", gamma, elite, batch, failed, log_w, proposal, t0)
         if cfg.final_estimate == "last-stage":
-            return last
-        return self._final(cfg.n_stages + 1, sampler, rng, proposal)
+            return last, (last.stage,)
+        final = self._final(cfg.n_stages + 1, sampler, rng, proposal)
+        if cfg.final_estimate == "pooled" and reached_failures:
+            return final, (*pooled, final.stage)
+        return final, (final.stage,)
 
 
 @dataclass(frozen=True)
@@ -428,27 +461,13 @@ def _break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng
 
 
 def failure_steps(problem: Problem, batch: RolloutBatch, level: float = 0.0) -> np.ndarray:
-    """The step at which each rollout fails, int [N] (T when it does not): the first step in [a, b] at which
-    the operand of the problem's safety formula ``G[a,b](operand)`` has classic robustness < 0; with
-    ``level`` > 0, the first step at which it is <= ``level`` (the rollout's classic robustness is then
-    <= level whatever comes after).
-
-    Only the actions before that step can change whether it fails (``weights_until_failure``).
+    """The step at which each rollout fails, int [N] (T when it does not): :func:`pemviz.stl.first_violation` of
+    the problem's safety formula on the batch's signals.
 
     Raises:
         ValueError: if the formula is not ``G[a,b](operand)`` with a time-free operand (horizon 0).
     """
-    from pemviz import stl
-
-    f = problem.formula
-    if not isinstance(f, stl.Always) or f.operand.horizon() != 0:
-        raise ValueError(f"weights_until_failure needs a safety formula G[a,b](state predicate), got {f}")
-    rho = stl.robustness_signal(f.operand, problem.signal_arrays(batch), "classic")
-    end = batch.n_steps - 1 if f.end is None else min(f.end, batch.n_steps - 1)
-    bad = rho <= level if level > 0.0 else rho < 0.0
-    bad[:, : f.start] = False
-    bad[:, end + 1 :] = False
-    return np.where(bad.any(axis=1), bad.argmax(axis=1), batch.n_steps)
+    return stl.first_violation(problem.formula, problem.signal_arrays(batch), level)
 
 
 def run_experiment(

@@ -19,6 +19,7 @@ from pemviz.detectors import Detector, PEMDetector
 from pemviz.scenarios import RolloutBatch, simulate
 from pemviz.scenarios.batched import iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+from pemviz.truth import known_log_failure_probability
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
 """``simulate(n, sampler, target, rng) -> RolloutBatch``: n rollouts drawn from ``sampler``."""
@@ -55,6 +56,8 @@ class Problem:
         curve_grid: values of ``obs[:, 0]`` where proposal and target curves are reported [G].
         window: the mixed-50 baseline detects with 50 % where ``obs[:, 0] < window``.
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
+        exact_log_p: natural log of the exact failure probability when it is known (closed form, enumeration),
+            else None; shown beside every estimate.
     """
 
     name: str
@@ -67,6 +70,7 @@ class Problem:
     curve_grid: np.ndarray = field(default_factory=lambda: np.linspace(0.0, 13.0, 131))
     window: float = 10.0
     stream: StreamFn | None = None
+    exact_log_p: float | None = None
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""
@@ -115,4 +119,5 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
     return Problem(
         "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m,
         stream=stream if sim == "batched" else None,
+        exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
     )  # fmt: skip

@@ -777,7 +777,11 @@ def estimate_rollouts(
     failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
     k = data.n_steps - 1
     log_w = (log_p[:, :k] - log_q[:, :k]).sum(axis=1)
-    est = estimate(log_w, failed, log_p[:, :k].sum(axis=1))
+    try:  # the NLL covers the actions before the failure step, as in the engine
+        upto = np.minimum(stl.first_violation(formula, signals), k)
+    except ValueError:
+        upto = np.full(data.n, k)
+    est = estimate(log_w, failed, np.where(np.arange(data.n_steps)[None, :] < upto[:, None], log_p, 0.0).sum(axis=1))
     return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure)
 
 

@@ -546,3 +546,39 @@ def braking_truth(
         if stop_when_converged and r.relative_width < tolerance and len(results) >= 2:
             break
     return Refinement(tuple(results), tolerance)
+
+
+# -- exact answers known without computing ---------------------------------------------------------------------
+
+FINGERPRINT_GRID_M = np.linspace(0.0, 15.0, 151)
+"""Gaps (metres) at which a PEM's logit identifies it for :data:`KNOWN_BRAKING_LOG_P`."""
+
+KNOWN_BRAKING_LOG_P: dict[str, float] = {
+    "915fec568bb72b65": -33.85370929668962,  # shipped ml-nn: 1.9839e-15, bracket [1.9839, 1.9852]e-15
+    "a849e1ba0edc2286": -36.44958177841474,  # shipped gbt: 1.4796e-16, bracket width 0.23 %
+}
+"""PEM fingerprint (:func:`pem_fingerprint`) -> natural log of the exact crash probability of the main braking
+scenario (default :class:`BrakingParams`), from :func:`braking_truth` (bracket width < 0.1 %): the enumeration
+takes 20-40 s, so the answers for the shipped PEMs are kept here (``tests/test_truth.py`` recomputes them)."""
+
+
+def pem_fingerprint(logit_at_gap: LogitFn) -> str:
+    """A short hash of a PEM's detection curve: its logits on :data:`FINGERPRINT_GRID_M` rounded to 1e-6."""
+    import hashlib
+
+    values = np.round(np.asarray(logit_at_gap(FINGERPRINT_GRID_M), dtype=np.float64), 6) + 0.0  # no -0.0
+    return hashlib.sha256(values.tobytes()).hexdigest()[:16]
+
+
+def known_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> float | None:
+    """The exact log p_fail (nats) of a braking problem when it is cheap to know, else None.
+
+    The latched-brake scenario is computed (:func:`latched_log_failure_probability`, milliseconds); the main
+    scenario with default parameters is looked up in :data:`KNOWN_BRAKING_LOG_P` by the PEM's fingerprint.
+    """
+    p = params or BrakingParams()
+    if p.latched_brake:
+        return latched_log_failure_probability(logit_at_gap, p).log_p_fail
+    if p != BrakingParams():
+        return None
+    return KNOWN_BRAKING_LOG_P.get(pem_fingerprint(logit_at_gap))

@@ -180,6 +180,11 @@ def test_enumerated_main_truth_agrees_with_importance_sampling(pem):
     assert ex.relative_width < 0.05
     assert 1e-16 < ex.p_fail < 1e-14
     pb = braking_problem(pem)
+    # the answer kept for the shipped PEM (from the -58 nats refinement) lies inside this coarser bracket
+    assert ex.log_p_fail <= pb.exact_log_p <= ex.log_p_fail_upper
+    assert braking_problem(pem, BrakingParams(latched_brake=True)).exact_log_p == pytest.approx(
+        latched_log_failure_probability(pem.logit_at_gap).log_p_fail, abs=1e-12
+    )
     batch = pb.simulate(40000, WindowDetector(ConstantDetector(0.6), pb.target, 10.0), pb.target, np.random.default_rng(0))
     crash = batch.gap_m < 2.0
     first = np.where(crash.any(axis=1), crash.argmax(axis=1), batch.n_steps - 1)

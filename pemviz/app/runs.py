@@ -220,7 +220,7 @@ class RunRecord:
         cfg = self.config
         if cfg.method != "adaptive":
             return 1
-        return cfg.n_stages + (2 if cfg.final_estimate == "fresh" else 1)
+        return cfg.n_stages + (2 if cfg.has_final_batch else 1)
 
     @property
     def label(self) -> str:

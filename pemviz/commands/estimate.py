@@ -131,8 +131,29 @@ def summary_lines(data: Any, result: Any, p_src: str, q_src: str) -> list[str]:
         f"{f'{e.n_failures}/{e.n}':>10} {format_probability(e.log_mu_hat):>11} {nll:>8} {e.ess:>7.2f} "
         f"{float(np.min(result.robustness)):>9.4f}",
         f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat!r} nats), "
-        f"NLL mean {e.nll_mean:.4f} / -log-mean-exp {e.nll_lme:.4f} nats, ESS {e.ess:.4f}",
+        f"NLL mean {e.nll_mean:.4f} / -log-mean-exp {e.nll_lme:.4f} nats, ESS {e.ess:.4f}, "
+        f"mean importance weight {format_probability(e.log_mean_weight)}",
+        e.summary(),
     ]
+
+
+def check_plausible(e: Any, q_src: str) -> None:
+    """Refuse an impossible estimate: mu_hat > 1, or a mean importance weight so large (> 1000: probability
+    <= 0.001 by Markov's inequality, since its expectation is 1) that log q cannot be the proposal that drew
+    the rollouts.
+
+    Raises:
+        UsageError: one line naming the proposal and the numbers.
+    """
+    from pemviz.commands import UsageError
+    from pemviz.sampling import format_probability
+
+    if e.log_mu_hat > 0.0 or e.log_mean_weight > math.log(1000.0):
+        raise UsageError(
+            f"mu_hat = {format_probability(e.log_mu_hat)} with mean importance weight "
+            f"{format_probability(e.log_mean_weight)} (expected ~1): the proposal ({q_src}) does not match the one "
+            "that sampled the file; give the right --proposal, or log_q columns"
+        )
 
 
 def write_recording(path: Path, data: Any, result: Any, lines: list[str]) -> Path:
@@ -197,6 +218,7 @@ def main(args: argparse.Namespace) -> int:
     data = rio.read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
     result = rio.estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure)
+    check_plausible(result.estimate, q_src)
     lines = summary_lines(data, result, p_src, q_src)
     print("\n".join(lines), flush=True)
     if not args.no_record:

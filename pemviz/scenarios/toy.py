@@ -188,6 +188,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Pr
     """
     from pemviz import stl
     from pemviz.problems import Problem
+    from pemviz.truth import toy_log_failure_probability  # truth imports this module
 
     p = params or ToyParams()
     formula = stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})")
@@ -206,6 +207,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Pr
         h_scale=float(p.total),
         curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),
         window=float(p.braking) + 0.5,
+        exact_log_p=toy_log_failure_probability(p),
     )
 
 

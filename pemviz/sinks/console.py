@@ -19,20 +19,21 @@ from pemviz.engine import (
 )
 from pemviz.sampling import Estimate, format_probability
 
-HEADER = f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'NLL':>8} {'ESS':>7} {'wall s':>7}"
+HEADER = (
+    f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} "
+    f"{'k-hat':>6} {'verdict':>10} {'wall s':>7}"
+)
 
 
 def _num(x: float, fmt: str) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
 
 
-def stage_row(res: StageResult) -> str:
-    """One table row: stage, kind, gamma_kappa, failures/N, mu_hat, mean NLL (nats), ESS, wall time (s)."""
-    e: Estimate = res.estimate
+def _estimate_cells(e: Estimate) -> str:
+    """failures/N, mu_hat, its interval, mean NLL (nats), ESS, k-hat and verdict, aligned with :data:`HEADER`."""
     return (
-        f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {f'{e.n_failures}/{e.n}':>10} "
-        f"{format_probability(e.log_mu_hat):>11} {_num(e.nll_mean, '8.2f'):>8} {_num(e.ess, '7.2f'):>7} "
-        f"{res.wall_s:>7.2f}"
+        f"{f'{e.n_failures}/{e.n}':>10} {format_probability(e.log_mu_hat):>11} {e.interval_text():>21} "
+        f"{_num(e.nll_mean, '8.2f'):>8} {_num(e.ess, '7.2f'):>7} {_num(e.khat, '6.2f'):>6} {e.verdict:>10}"
     )
 
 
@@ -55,6 +56,11 @@ def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: flo
     return f"{label}: {n_rollouts} rollouts ... (elapsed {elapsed_s:.1f} s{eta})"
 
 
+def stage_row(res: StageResult) -> str:
+    """One table row: stage, kind, gamma_kappa, the estimate's cells (:func:`_estimate_cells`), wall time (s)."""
+    return f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {_estimate_cells(res.estimate)} {res.wall_s:>7.2f}"
+
+
 class ConsoleSink:
     """Prints a line when each stage starts (progress, to ``progress``) and the table rows (to ``out``)."""
 
@@ -65,10 +71,12 @@ class ConsoleSink:
         self.n_ce = 0
         self.t0 = time.perf_counter()
         self.done: list[StageResult] = []
+        self.exact_log_p: float | None = None
 
     def __call__(self, event: Event) -> None:
         if isinstance(event, RunStarted):
             cfg = event.config
+            self.exact_log_p = event.exact_log_p
             self.n_stages = cfg.n_stages + 2 if cfg.method == "adaptive" else 1
             self.n_ce = cfg.n_stages
             self.t0 = time.perf_counter()
@@ -90,16 +98,12 @@ class ConsoleSink:
             print(stage_row(event.result), file=self.out, flush=True)
         elif isinstance(event, FinalEstimate):
             e = event.estimate
-            print(
-                f"{'final':>7} {'':>8} {'':>9} {f'{e.n_failures}/{e.n}':>10} {format_probability(e.log_mu_hat):>11} "
-                f"{_num(e.nll_mean, '8.2f'):>8} {_num(e.ess, '7.2f'):>7} {event.wall_s:>7.2f}",
-                file=self.out,
-            )
+            print(f"{'final':>7} {'':>8} {'':>9} {_estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
             print(
                 f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat:.4f} nats) "
                 f"from {event.n_simulations} simulations in {event.wall_s:.1f} s",
                 file=self.out,
-                flush=True,
             )
+            print(e.summary(self.exact_log_p), file=self.out, flush=True)
         elif isinstance(event, RunCancelled):
             print(f"run cancelled after {len(event.stages)} stages: {event.reason}", file=self.out, flush=True)

@@ -458,7 +458,7 @@ class RerunSink:
     def _run_started(self, ev: RunStarted) -> None:
         cfg = ev.config
         self.n_stages = cfg.n_stages + 1 if cfg.method == "adaptive" else 1
-        self.last_stage = cfg.n_stages + (cfg.final_estimate == "fresh") if cfg.method == "adaptive" else 1
+        self.last_stage = cfg.n_stages + cfg.has_final_batch if cfg.method == "adaptive" else 1
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         self.n_ce = cfg.n_stages
         self.exact_log_p = getattr(ev, "exact_log_p", None)
@@ -475,7 +475,7 @@ class RerunSink:
             ),
         )
         s.send_recording_name(f"pemviz {cfg.method} {cfg.metric} seed {cfg.seed}")
-        n_batches = cfg.n_stages + (2 if cfg.final_estimate == "fresh" else 1) if cfg.method == "adaptive" else 1
+        n_batches = cfg.n_stages + (2 if cfg.has_final_batch else 1) if cfg.method == "adaptive" else 1
         s.send_blueprint(default_blueprint(n_batches * self.scene_per_stage))
         method = {
             "adaptive": (

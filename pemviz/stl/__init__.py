@@ -48,6 +48,7 @@ from pemviz.stl.semantics import (
     SEMANTICS,
     TRACE_END,
     agm_scale,
+    first_violation,
     robustness,
     robustness_signal,
 )
@@ -71,6 +72,7 @@ __all__ = [
     "STLSyntaxError",
     "robustness",
     "robustness_signal",
+    "first_violation",
     "agm_scale",
     "Formula",
     "Predicate",

@@ -706,3 +706,29 @@ class _Evaluator:
             if k < be:
                 run = ops.logaddexp(run, y1[k : k + n_out])
         return total
+
+
+def first_violation(formula: Formula | str, signals: Mapping[str, Any], level: float = 0.0) -> np.ndarray:
+    """The step at which a safety formula ``G[a,b](operand)`` with a time-free operand is first violated.
+
+    Returns int [N] (``[]`` for [T] inputs): the first step t in [a, b] at which the operand's classic
+    robustness is < 0 (or <= ``level`` when ``level`` > 0: the formula's robustness is then <= ``level`` whatever
+    comes after), and T where there is none. Only the actions before that step can change whether a rollout
+    violates the formula, so importance weights and NLLs stop there.
+
+    Raises:
+        ValueError: if the formula is not ``G[a,b](operand)`` with an operand of horizon 0.
+    """
+    f = parse(formula) if isinstance(formula, str) else formula
+    if not isinstance(f, Always) or f.operand.horizon() != 0:
+        raise ValueError(f"a failure step needs a safety formula G[a,b](state predicate), got {f}")
+    rho = np.asarray(robustness_signal(f.operand, signals, "classic"), dtype=np.float64)
+    single = rho.ndim == 1
+    rho = np.atleast_2d(rho)
+    n_steps = rho.shape[1]
+    end = n_steps - 1 if f.end is None else min(f.end, n_steps - 1)
+    bad = rho <= level if level > 0.0 else rho < 0.0
+    bad[:, : f.start] = False
+    bad[:, end + 1 :] = False
+    steps = np.where(bad.any(axis=1), bad.argmax(axis=1), n_steps)
+    return steps[0] if single else steps

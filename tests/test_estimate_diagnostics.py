@@ -1,0 +1,94 @@
+"""The estimate's interval, Pareto k-hat and verdict against closed forms and known distributions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pemviz.sampling import CI_LEVEL, KHAT_UNRELIABLE, estimate, pareto_khat, relative_error
+
+
+def _is(log_w: np.ndarray, failed: np.ndarray):
+    return estimate(log_w, failed, np.zeros(log_w.size))
+
+
+def test_zero_failures_of_plain_monte_carlo_give_the_rule_of_three_bound():
+    e = _is(np.zeros(10_000), np.zeros(10_000, bool))
+    assert e.verdict == "unreliable" and "rule of three" in e.reason
+    assert e.log_ci == (-math.inf, pytest.approx(math.log(3e-4)))
+    assert e.covers(math.log(1e-15)) and not e.covers(math.log(1e-3))
+
+
+def test_zero_failures_under_importance_sampling_bound_nothing():
+    e = _is(np.full(100, -3.0), np.zeros(100, bool))
+    assert e.verdict == "unreliable" and "bounds nothing" in e.reason
+    assert e.log_ci == (-math.inf, 0.0)
+
+
+def test_plain_monte_carlo_interval_is_clopper_pearson():
+    # 5 failures in 100: the exact binomial interval [0.01643, 0.11284] (Clopper & Pearson 1934 tables)
+    failed = np.zeros(100, bool)
+    failed[:5] = True
+    e = _is(np.zeros(100), failed)
+    assert math.exp(e.log_ci[0]) == pytest.approx(0.01643, abs=5e-5)
+    assert math.exp(e.log_ci[1]) == pytest.approx(0.11284, abs=5e-5)
+    assert e.verdict == "doubtful" and e.reason == "only 5 failures"
+
+
+def test_equal_weights_interval_is_the_log_scale_t_interval_of_a_binomial_mean():
+    # y_i = w 1[fail_i], 30 failures in 100 with weight 1e-20: mean 3e-21, sd/mean = sqrt((1 - 0.3) / 0.3 * 100 / 99)
+    failed = np.arange(100) < 30
+    e = _is(np.full(100, math.log(1e-20)), failed)
+    rel_se = math.sqrt(0.7 / 0.3 * 100 / 99) / 10
+    t975 = 1.9842169515086827  # Student t, 99 degrees of freedom
+    assert e.mu_hat == pytest.approx(3e-21, rel=1e-12)
+    assert e.log_ci[0] == pytest.approx(math.log(3e-21) - t975 * rel_se, abs=1e-9)
+    assert e.log_ci[1] == pytest.approx(math.log(3e-21) + t975 * rel_se, abs=1e-9)
+    assert e.khat == 0.0  # every failure weight equal: a flat tail
+    assert e.verdict == "reliable"
+
+
+def test_interval_covers_a_known_probability_in_about_95_percent_of_repetitions():
+    # Proposal q = Bernoulli(0.3) for a failure of probability p = 1e-6 under the target: log w = log(p / q) for
+    # failures; 2,000 repetitions of N = 200.
+    rng = np.random.default_rng(0)
+    p, q, n = 1e-6, 0.3, 200
+    covered = sum(_is(np.full(n, math.log(p / q)), rng.random(n) < q).covers(math.log(p)) for _ in range(2000))
+    assert 0.93 <= covered / 2000 <= 0.97, covered
+
+
+def test_khat_recovers_the_shape_of_a_generalized_pareto_tail():
+    # GPD(k) samples by inversion: x = ((1 - u)^(-k) - 1) / k; PSIS fits the tail of 10,000 of them.
+    rng = np.random.default_rng(1)
+    for k in (0.3, 0.9):
+        x = ((1.0 - rng.random(10_000)) ** (-k) - 1.0) / k
+        assert pareto_khat(np.log(x)) == pytest.approx(k, abs=0.12)
+
+
+def test_heavy_tailed_weights_are_unreliable_with_their_khat():
+    rng = np.random.default_rng(2)
+    x = ((1.0 - rng.random(400)) ** -1.2 - 1.0) / 1.2  # k = 1.2: infinite mean
+    e = _is(np.log(x) - 40.0, np.ones(400, bool))
+    assert e.khat > KHAT_UNRELIABLE
+    assert e.verdict == "unreliable" and e.reason.startswith(f"k-hat {e.khat:.2f} > 0.7")
+
+
+def test_a_low_ess_is_doubtful_and_weights_far_above_one_on_average_are_unreliable():
+    log_w = np.full(100, -40.0)
+    log_w[:3] = -30.0  # three weights carry everything: ESS ~ 3
+    e = _is(log_w, np.ones(100, bool))
+    assert e.verdict in ("doubtful", "unreliable") and e.verdict != "reliable"
+    bad = _is(np.full(100, math.log(1e8)), np.arange(100) < 50)  # mean weight 1e8: not a proposal's weights
+    assert bad.verdict == "unreliable" and "mean importance weight" in bad.reason
+    assert bad.log_mu_hat > 0.0  # a "probability" above 1
+
+
+def test_summary_line_names_the_exact_answer_and_whether_it_is_covered():
+    failed = np.arange(100) < 30
+    e = _is(np.full(100, math.log(1e-20)), failed)
+    line = e.summary(math.log(3.3e-21))
+    assert f"{CI_LEVEL:.0%} CI" in line and "reliable" in line
+    assert "exact 3.300e-21 (relative error 0.0909, inside the interval)" in line
+    assert relative_error(-math.inf, 0.0) == 1.0
