@@ -1,29 +1,34 @@
-"""The panel's bookkeeping without a browser: scene geometry, the least-robust list, run records,
-config from the controls, export names and files, and the panel's run / stop / validation logic."""
+"""The panel's bookkeeping without a browser: scene geometry, the least-robust list and the most likely
+failure, run records and which runs are kept, the form's parsing and cost, the failure explanation's
+counterfactual, one stage numbering, export names and files."""
 
 from __future__ import annotations
 
-import html
+import io
 import math
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pemviz.app.explain import explain
+from pemviz.app.form import FIELDS_BY_KEY, parse_form, parse_number, run_cost, run_label
 from pemviz.app.runs import (
-    QUICK,
     RunRecord,
     Trajectory,
-    config_from_values,
     export_path,
     export_run,
+    keep_runs,
     least_robust,
+    most_likely_failure,
     sanitize_export_name,
     scene_positions,
 )
-from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.engine import Experiment, RolloutsSampled, StageFinished, StageStarted
+from pemviz.config import ExperimentConfig
+from pemviz.engine import Experiment, RolloutsSampled, StageFinished, StageStarted, stage_label
+from pemviz.sinks.console import ConsoleSink
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 
@@ -44,7 +49,8 @@ def test_scene_positions_reproduce_the_highway_env_vehicles_positions():
         lead_x.append(float(sim.lead.position[0]))
         sim.step(bool(a))
     obs = np.array(obs)
-    traj = Trajectory(0, 0, 0.0, 0.0, False, obs[:, 0], obs[:, 1], obs[:, 2], detections)
+    zeros = np.zeros(params.n_steps)
+    traj = Trajectory(0, 0, 0.0, 0.0, False, obs[:, 0], obs[:, 1], obs[:, 2], detections, zeros, zeros)
     got_ego, got_lead = scene_positions(traj, params)
     np.testing.assert_allclose(got_ego, ego_x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got_lead, lead_x, rtol=0, atol=1e-9)
@@ -52,12 +58,15 @@ def test_scene_positions_reproduce_the_highway_env_vehicles_positions():
 
 
 # -- the least-robust list ------------------------------------------------------------------------
-def _sampled(stage: int, robustness: list[float]) -> RolloutsSampled:
+def _sampled(stage: int, robustness: list[float], log_p: list[float] | None = None) -> RolloutsSampled:
     n, t = len(robustness), 4
     obs = np.zeros((n, t, 3))
     obs[:, :, 0] = np.arange(n)[:, None] + 5.0  # gap = 5 + rollout index, to check the rows travel along
     names = ("gap_m", "ego_speed_mps", "lead_speed_mps")
-    batch = RolloutBatch(obs, np.ones((n, t), bool), np.zeros((n, t)), np.zeros((n, t)), names)
+    lp = np.zeros((n, t))
+    if log_p is not None:
+        lp[:, 0] = log_p  # the whole rollout's log p in its first step
+    batch = RolloutBatch(obs, np.ones((n, t), bool), lp, np.zeros((n, t)), names)
     r = np.array(robustness)
     return RolloutsSampled(stage, "ce", batch, r, {"classic": r}, r < 0, -np.arange(n, dtype=float))
 
@@ -103,25 +112,129 @@ def test_run_record_follows_the_run_and_its_progress(tiny_record):
     assert sorted(gamma) == [1, 2]  # only CE stages have a threshold
     assert gamma[1] == r.stages[1].gamma
     rate = r.stage_series("failure_rate")
-    assert rate[3] == r.final.estimate.n_failures / r.final.estimate.n
+    assert rate[3] == r.stages[3].estimate.n_failures / r.stages[3].estimate.n
     assert len(r.trajectories) == 20
     everything = np.concatenate([e.robustness for e in r.events if isinstance(e, RolloutsSampled)])
     assert [t.robustness for t in r.trajectories] == sorted(everything)[:20]
 
 
-# -- config from the controls ---------------------------------------------------------------------
-def test_config_from_values_casts_integral_floats_and_reports_the_configs_own_message():
-    cfg = config_from_values({"n_stages": 3.0, "n_per_stage": 20, "smoothing": 0.2, "pem": "", "no_such_knob": 1})
-    assert (cfg.n_stages, cfg.n_per_stage, cfg.smoothing, cfg.pem) == (3, 20, 0.2, None)
-    assert isinstance(cfg.n_stages, int)
-    for values, message in (
-        ({"smoothing": 0.0}, "alpha must be in (0, 1]"),
-        ({"quantile_level": 1.0}, "sigma must be in [0.5, 1)"),
-        ({"n_per_stage": 1}, "N must be an integer >= 2"),
-        ({"n_stages": 2.5}, "K must be an integer >= 1"),
-    ):
-        with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
-            config_from_values(values)
+def test_most_likely_failure_is_the_failing_rollout_with_the_highest_pem_log_probability():
+    best = most_likely_failure(None, _sampled(0, [1.0, -1.0, -2.0], log_p=[-1.0, -30.0, -20.0]))
+    assert (best.stage, best.index, best.log_p_total) == (0, 2, -20.0)  # rollout 0 does not fail
+    best = most_likely_failure(best, _sampled(1, [-1.0, 2.0], log_p=[-25.0, -2.0]))
+    assert (best.stage, best.index) == (0, 2)  # -25 < -20
+    best = most_likely_failure(best, _sampled(2, [-0.5], log_p=[-19.5]))
+    assert (best.stage, best.index) == (2, 0)
+    assert most_likely_failure(None, _sampled(0, [1.0, 2.0])) is None
+
+
+# -- which runs are kept --------------------------------------------------------------------------
+def _run(i: int, status: str, pinned: bool = False) -> RunRecord:
+    r = RunRecord(i, ExperimentConfig())
+    r.status, r.pinned = status, pinned
+    return r
+
+
+def test_new_runs_drop_stopped_runs_before_finished_ones_and_never_pinned_ones():
+    runs = [_run(1, "finished", pinned=True), _run(2, "finished"), _run(3, "cancelled"), _run(4, "finished")]
+    kept = keep_runs(runs, _run(5, "starting"))
+    assert [r.run_id for r in kept] == [1, 2, 4, 5]  # the stopped run 3 went first
+    kept = keep_runs(kept, _run(6, "starting"))
+    assert [r.run_id for r in kept] == [1, 4, 5, 6]  # then the oldest unpinned finished run
+    pinned = [_run(i, "finished", pinned=True) for i in range(1, 5)]
+    assert [r.run_id for r in keep_runs(pinned, _run(9, "starting"))] == [1, 2, 3, 4, 9]  # all pinned: grows
+
+
+# -- the form -------------------------------------------------------------------------------------
+def test_the_form_parses_exactly_what_was_typed_and_reports_every_error():
+    ok = parse_form({"smoothing": "1e-3", "quantile_level": " 0.9 ", "n_per_stage": "1e5", "n_stages": "3"},
+                    {"metric": "agm", "pem": ""})  # fmt: skip
+    cfg = ok.config
+    assert (cfg.smoothing, cfg.quantile_level, cfg.n_per_stage, cfg.n_stages, cfg.metric, cfg.pem) == (
+        0.001, 0.9, 100000, 3, "agm", None,
+    )  # fmt: skip
+    assert isinstance(cfg.n_per_stage, int)
+    bad = parse_form({"smoothing": "abc", "quantile_level": "1", "n_stages": "", "n_per_stage": "12.5"}, {})
+    assert bad.config is None
+    assert bad.errors == {
+        "smoothing": "alpha: 'abc' is not a number; type a number in (0, 1] (the smoothing alpha)",
+        "quantile_level": "sigma: 1 is out of range; the quantile level sigma must be a number in [0.5, 1)",
+        "n_stages": "K: empty; type a whole number >= 1 (the number of cross-entropy stages K)",
+        "n_per_stage": "N: 12.5 is not a whole number; the rollouts per stage N must be a whole number >= 2",
+    }
+
+
+@given(st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_value=1e6))
+def test_a_typed_number_is_accepted_exactly_when_it_is_in_range(x):
+    f = FIELDS_BY_KEY["smoothing"]
+    value, error = parse_number(f, repr(x))
+    assert (value == x and error == "") if 0.0 < x <= 1.0 else (value is None and error.startswith("alpha: "))
+
+
+@given(st.integers(min_value=-10**7, max_value=10**7), st.sampled_from(["", ".0", ".5", "e0"]))
+def test_a_whole_number_field_takes_whole_numbers_only(n, suffix):
+    value, error = parse_number(FIELDS_BY_KEY["n_per_stage"], f"{n}{suffix}")
+    if suffix == ".5" or n < 2:
+        assert value is None and error.startswith("N: ")
+    else:
+        assert value == n and isinstance(value, int)
+
+
+def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
+    cfg = ExperimentConfig(n_stages=3, n_per_stage=50, n_final=70, pretrain_rollouts=20)
+    cost = run_cost(cfg)
+    assert cost.simulations == 20 + 3 * 50 + 70 and not cost.needs_confirm
+    assert cost.memory_bytes == 70 * 100 * (3 * 8 + 1 + 8 + 8)
+    assert run_cost(cfg.replace(n_stages=100_000)).needs_confirm
+
+
+def test_a_run_label_names_every_setting_that_differs_from_the_defaults():
+    assert run_label(3, ExperimentConfig()) == "run 3 · classic"
+    cfg = ExperimentConfig(metric="agm", smoothing=0.2, n_stages=4, sim="highway-env", seed=7)
+    assert run_label(4, cfg) == "run 4 · agm, K 4, alpha 0.2, seed 7, simulator highway-env"
+
+
+# -- the failure explanation ----------------------------------------------------------------------
+def test_decisive_misses_are_the_misses_whose_flip_avoids_the_crash_in_highway_env():
+    """The counterfactual (batched twin) against the black-box highway-env scenario, flip by flip."""
+    params = BrakingParams()
+    detected = np.ones(params.n_steps, dtype=bool)
+    detected[46:69] = False  # 23 misses from about 9 m: a detection early among them still stops in time
+    obs = []
+    sim = BrakingScenario(params)
+    for a in detected:
+        obs.append(sim.observation())
+        sim.step(bool(a))
+    gap = np.array(obs)[:, 0]
+    assert gap.min() < params.crash_gap_m
+    log_p = np.log(np.full(params.n_steps, 0.5))
+    ex = explain(gap, detected, log_p, log_p - 0.1, params)
+    assert ex.replay_matches and ex.crashed
+
+    def crashes_with_flip(t: int) -> bool:
+        d = detected.copy()
+        d[t] = True
+        s = BrakingScenario(params)
+        gaps = []
+        for a in d:
+            gaps.append(s.observation()[0])
+            s.step(bool(a))
+        return min(gaps) < params.crash_gap_m
+
+    truth = [t for t in np.flatnonzero(~detected) if not crashes_with_flip(int(t))]
+    assert ex.decisive.tolist() == truth and 0 < len(truth) < 23
+    np.testing.assert_allclose(ex.p_detect, 0.5)
+    np.testing.assert_allclose(ex.cum_log_weight, 0.1 * np.arange(1, params.n_steps + 1))
+
+
+# -- one stage numbering --------------------------------------------------------------------------
+def test_console_progress_names_stages_as_the_panel_and_recording_do(tiny_record):
+    progress = io.StringIO()
+    Experiment(TINY, [ConsoleSink(io.StringIO(), progress)]).run()
+    lines = [line.split(":")[0].strip() for line in progress.getvalue().splitlines()]
+    assert lines == ["pretraining", "CE stage 1/2", "CE stage 2/2", "final batch"]
+    assert [stage_label(s.stage, s.kind, 2) for s in tiny_record.stages] == lines
+    assert "elapsed" in progress.getvalue() and "this stage ~" in progress.getvalue().splitlines()[-1]
 
 
 # -- export ---------------------------------------------------------------------------------------
@@ -183,47 +296,3 @@ def test_a_failed_export_leaves_no_file(tiny_record, tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="disk full"):
         export_run(tiny_record, export_path(rec, "x"))
     assert list(rec.iterdir()) == []
-
-
-# -- the panel without a browser ------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def panel(tmp_path_factory):
-    from pemviz.app.panel import PanelApp
-
-    recordings = tmp_path_factory.mktemp("panel") / "rec"
-    app = PanelApp("127.0.0.1", 0, recordings_dir=recordings, preset="quick")
-    assert app.read_config() == ExperimentConfig(**QUICK) and app.preset.value == "quick"
-    yield app
-    app.close()
-
-
-def test_panel_refuses_invalid_values_and_runs_valid_ones(panel):
-    panel.controls["n_per_stage"].value = 1
-    assert "N must be an integer >= 2" in html.unescape(panel.error_html.content)
-    assert panel.start_run() == "n_per_stage (N) = 1 is invalid: N must be an integer >= 2"
-    assert panel.current is None and not panel.running
-    assert "Run refused" in panel.error_html.content
-    panel.controls["n_per_stage"].value = 20
-    assert panel.error_html.content == ""
-    panel.controls["n_stages"].value = 2
-    assert panel.start_run() is None
-    assert panel.start_run() == "a run is going: press Stop first"
-    assert panel.wait_for_run(60)
-    assert panel.current.status == "finished" and "Final estimate" in panel.result_html.content
-
-
-def test_panel_stop_cancels_within_2_s_and_keeps_at_most_3_runs(panel):
-    panel.controls["n_stages"].value = 50
-    ids = []
-    for _ in range(4):
-        assert panel.start_run() is None
-        record = panel.current
-        ids.append(record.run_id)
-        t0 = time.monotonic()
-        while len(record.stages) < 2 and time.monotonic() - t0 < 60:
-            time.sleep(0.02)
-        panel.stop_run()
-        assert panel.wait_for_run(10)
-        assert record.status == "cancelled" and panel.last_stop_latency_s < 2.0
-    assert [r.run_id for r in panel.runs] == ids[-3:]  # the oldest was dropped
-    assert len(panel.compare_plots) == 3

@@ -248,7 +248,7 @@ class RunRecord:
                 self.formula = event.formula
                 self.curve_grid_m = np.asarray(event.curve_grid_m, dtype=np.float64)
                 self.pem_curve = np.asarray(event.pem_curve, dtype=np.float64)
-                self.exact_log_p = getattr(event, "exact_log_p", None)
+                self.exact_log_p = event.exact_log_p
             elif isinstance(event, StageStarted):
                 self.current_stage = event
                 self.sampled_current = False

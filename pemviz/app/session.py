@@ -43,7 +43,7 @@ from pemviz.engine import (
     StageStarted,
     stage_label,
 )
-from pemviz.sampling import format_probability
+from pemviz.sampling import format_probability, relative_error
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
 from pemviz.sinks.console import expected_stage_s
 
@@ -80,33 +80,27 @@ def field_error(text: str) -> str:
 def accuracy_html(record: RunRecord, ev: FinalEstimate) -> str:
     """The final estimate with its 95 % interval, verdict and reason, and the exact answer where known."""
     e = ev.estimate
-    verdict = getattr(e, "verdict", "")
-    colour = VERDICT_COLOURS.get(verdict, GREY)
-    ci = getattr(e, "log_ci", None)
-    interval = ""
-    if ci is not None and all(isinstance(c, float) for c in ci):
-        interval = f" &nbsp;(95 % interval {format_probability(ci[0])} to {format_probability(ci[1])})"
+    colour = VERDICT_COLOURS.get(e.verdict, GREY)
     lines = [
-        f"<b>Final estimate</b> of {html.escape(record.short_label)}: mu_hat = "
-        f"<b>{format_probability(e.log_mu_hat, 4)}</b>{interval}",
+        f"<b>Final estimate of {html.escape(record.short_label)}</b>: mu_hat = "
+        f"<b>{format_probability(e.log_mu_hat, 4)}</b> &nbsp;(95 % interval {html.escape(e.interval_text())})",
+        f'<b style="color:{colour}">{html.escape(e.verdict)}</b>: {html.escape(e.reason)}',
     ]
-    if verdict:
-        lines.append(f'<b style="color:{colour}">{html.escape(verdict)}</b>: {html.escape(getattr(e, "reason", ""))}')
     exact = record.exact_log_p
-    if exact is not None and math.isfinite(exact):
-        rel = ""
-        if math.isfinite(e.log_mu_hat):
-            rel = f" (relative error {math.expm1(e.log_mu_hat - exact):+.0%})"
-        lines.append(f"exact answer {format_probability(exact, 4)}{rel}")
+    if exact is not None:
+        inside = "inside" if e.covers(exact) else "<b>outside</b>"
+        lines.append(
+            f"exact answer {format_probability(exact, 4)}: relative error "
+            f"{relative_error(e.log_mu_hat, exact):.2g}, {inside} the interval"
+        )
     if e.n_failures == 0:
         lines.append(
             f"no failure among {e.n} rollouts, so mu_hat = 0: the sampler never reached a crash. More stages (K), "
             "more rollouts (N) or the state-ce preset move the proposal further towards the failures."
         )
-    khat = getattr(e, "khat", math.nan)
     lines.append(
         f"failures {e.n_failures}/{e.n} · ESS {plots.finite_or_dash(e.ess, '.1f')} · k-hat "
-        f"{plots.finite_or_dash(khat, '.2f')} · NLL {plots.finite_or_dash(e.nll_mean, '.1f')} nats · "
+        f"{plots.finite_or_dash(e.khat, '.2f')} · NLL {plots.finite_or_dash(e.nll_mean, '.1f')} nats · "
         f"{ev.n_simulations:,} simulations in {ev.wall_s:.1f} s"
     )
     return box("<br>".join(lines), colour)
@@ -564,7 +558,7 @@ class Session:
             return [
                 format_probability(fin.log_mu_hat) if fin else "-",
                 f"{fin.n_failures}/{fin.n}" if fin else "-",
-                getattr(fin, "verdict", "-") if fin else "-",
+                fin.verdict if fin else "-",
                 r.status,
             ]
 

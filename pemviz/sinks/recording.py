@@ -70,7 +70,7 @@ from pemviz.engine import (
     StageResult,
     stage_label,
 )
-from pemviz.sampling import format_probability
+from pemviz.sampling import format_probability, relative_error
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import colours as C
 
@@ -408,25 +408,22 @@ class RerunSink:
         """The ``estimate`` view: mu_hat with its interval, k-hat, verdict and the exact answer where known."""
         e = final.estimate if final is not None else res.estimate
         where = "Final estimate" if final is not None else f"Estimate after {stage_label(res.stage, res.kind, self.n_ce)}"
-        lines = [f"# {where}", "", f"**mu_hat = {format_probability(e.log_mu_hat, 4)}**"]
-        ci = getattr(e, "log_ci", None)
-        if ci is not None:
-            lines[-1] += f" (95 % interval {format_probability(ci[0])} to {format_probability(ci[1])})"
-        verdict = getattr(e, "verdict", "")
-        if verdict:
-            lines += ["", f"**{verdict}**: {getattr(e, 'reason', '')}"]
+        lines = [
+            f"# {where}", "",
+            f"## mu_hat = {format_probability(e.log_mu_hat, 4)}", "",
+            f"95 % interval **{e.interval_text()}**", "",
+            f"**{e.verdict}**: {e.reason}",
+        ]  # fmt: skip
         exact = self.exact_log_p
-        if exact is not None and math.isfinite(exact):
-            rel = f", relative error {math.expm1(e.log_mu_hat - exact):+.0%}" if math.isfinite(e.log_mu_hat) else ""
-            lines += ["", f"exact answer {format_probability(exact, 4)}{rel}"]
+        if exact is not None:
+            inside = "inside" if e.covers(exact) else "**outside**"
+            lines += ["", f"exact answer **{format_probability(exact, 4)}**: relative error "
+                          f"{relative_error(e.log_mu_hat, exact):.2g}, {inside} the interval"]  # fmt: skip
         if e.n_failures == 0:
             lines += ["", f"No failure among {e.n} rollouts: mu_hat = 0 says only that the sampler found no crash."]
-        khat = getattr(e, "khat", math.nan)
-        lines += [
-            "",
-            f"failures {e.n_failures}/{e.n} · ESS {e.ess:.1f} · k-hat {khat:.2f} · NLL {e.nll_mean:.1f} nats"
-            if math.isfinite(e.nll_mean) else f"failures {e.n_failures}/{e.n} · ESS {e.ess:.1f}",
-        ]  # fmt: skip
+        khat = "-" if math.isnan(e.khat) else f"{e.khat:.2f}"
+        nll = f" · NLL {e.nll_mean:.1f} nats" if math.isfinite(e.nll_mean) else ""
+        lines += ["", f"failures {e.n_failures}/{e.n} · ESS {e.ess:.1f} · k-hat {khat}{nll}"]
         if final is not None:
             lines += ["", f"{final.n_simulations:,} simulations in {final.wall_s:.1f} s"]
         self.estimate_md = "\n".join(lines) + "\n"
@@ -461,7 +458,7 @@ class RerunSink:
         self.last_stage = cfg.n_stages + cfg.has_final_batch if cfg.method == "adaptive" else 1
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         self.n_ce = cfg.n_stages
-        self.exact_log_p = getattr(ev, "exact_log_p", None)
+        self.exact_log_p = ev.exact_log_p
         s = self.stream
         s.send_property(
             "pemviz",
@@ -547,12 +544,11 @@ class RerunSink:
             "log10_mu_hat": e.log10_mu_hat,
             "nll": e.nll_mean,
             "ess": e.ess,
-            "khat": getattr(e, "khat", math.nan),
+            "khat": e.khat,
         }
-        ci = getattr(e, "log_ci", None)
-        if ci is not None and math.isfinite(e.log10_mu_hat):
-            values["log10_mu_hat/ci_low"] = ci[0] / math.log(10.0)
-            values["log10_mu_hat/ci_high"] = ci[1] / math.log(10.0)
+        if math.isfinite(e.log10_mu_hat):
+            values["log10_mu_hat/ci_low"] = e.log_ci[0] / math.log(10.0)
+            values["log10_mu_hat/ci_high"] = e.log_ci[1] / math.log(10.0)
         if self.exact_log_p is not None and math.isfinite(self.exact_log_p):
             values["log10_mu_hat/exact"] = self.exact_log_p / math.log(10.0)
         for key, value in values.items():
@@ -748,6 +744,11 @@ class RerunSink:
                 n=e.n,
                 nll_mean=e.nll_mean,
                 ess=e.ess,
+                log_ci_low=e.log_ci[0],
+                log_ci_high=e.log_ci[1],
+                khat=e.khat,
+                verdict=e.verdict,
+                reason=e.reason,
                 n_simulations=ev.n_simulations,
                 wall_s=ev.wall_s,
             ),
