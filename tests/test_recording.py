@@ -288,3 +288,57 @@ def test_cancel_token_after_stage_3_leaves_a_valid_recording_of_stages_0_to_3(tm
     assert stages == [0, 1, 2, 3]
     assert curves == [f"stage_{k:02d}" for k in range(4)]
     assert "Run cancelled** (cancelled by the user) after 4 finished stages" in text
+
+
+def test_scrubbing_the_stage_timeline_steps_the_proposal_curve_and_the_histograms(runs):
+    events, _, tables, _ = runs["adaptive"]
+    table = tables["stage"]
+    stages = column(table, "stage")
+    curves = dict(zip(stages, column(table, "/proposal/data/current:LineStrips2D:strips")))
+    results = {e.result.stage: e.result for e in of(events, StageFinished)}
+    for k, res in results.items():
+        (strip,) = curves[k]
+        np.testing.assert_allclose(np.asarray(strip)[:, 1], res.proposal_curve, atol=1e-6)
+    hist = dict(zip(stages, column(table, "/histograms/robustness:BarChart:values")))
+    for ev in of(events, RolloutsSampled):
+        (tensor,) = hist[ev.stage]
+        assert sum(tensor["buffer"]) == ev.robustness.size  # every rollout counted once
+
+
+def test_the_estimate_view_and_series_carry_the_interval_verdict_and_stage_names(runs):
+    events, _, tables, _ = runs["adaptive"]
+    final = of(events, FinalEstimate)[0].estimate
+    text = static_value(tables, "/estimate:TextDocument:text")[0]
+    assert text.startswith("# Final estimate") and final.interval_text() in text and final.verdict in text
+    table = tables["stage"]
+    lo = [v for v in column(table, "/stages/log10_mu_hat/ci_low:Scalars:scalars") if v]
+    hi = [v for v in column(table, "/stages/log10_mu_hat/ci_high:Scalars:scalars") if v]
+    mu = [v for v in column(table, "/stages/log10_mu_hat:Scalars:scalars") if v]
+    assert len(lo) == len(mu) and all(a[0] <= m[0] <= b[0] for a, m, b in zip(lo, mu, hi))
+    description = static_value(tables, "/description:TextDocument:text")[0]
+    for name in ("| 0 | pretraining |", "| 1 | CE stage 1/3 |", "| 4 | final batch |"):
+        assert name in description
+
+
+def test_the_gap_view_has_the_2_m_and_10_m_lines(runs):
+    _, _, tables, _ = runs["naive"]
+    names = static_value(tables, "/rollouts/gap_m/thresholds:SeriesLines:names")
+    assert names == ["crash gap 2 m", "braking distance 10 m"]
+    rows = [v for v in column(tables["step"], "/rollouts/gap_m/thresholds:Scalars:scalars") if v is not None]
+    assert len(rows) == BrakingParams().n_steps and all(v == [2.0, 10.0] for v in rows)
+
+
+def test_large_stages_keep_the_least_robust_failures_and_a_uniform_sample():
+    from pemviz.sinks.recording import ALL_ROLLOUTS_UP_TO, SAMPLED_ROLLOUTS
+
+    n = 20 * ALL_ROLLOUTS_UP_TO
+    rng = np.random.default_rng(0)
+    r = rng.normal(size=n)
+    failed = r < -2.5
+    ev = RolloutsSampled(1, "ce", None, r, {"classic": r}, failed, np.zeros(n))
+    sink = RerunSink(rr.RecordingStream("test"))
+    keep = sink.kept_rollouts(ev)
+    assert set(np.argsort(r)[:3]) <= set(keep) and set(np.flatnonzero(failed)[:SAMPLED_ROLLOUTS]) <= set(keep)
+    assert {0, n - 1} <= set(keep) and len(keep) <= 2 * SAMPLED_ROLLOUTS + 3
+    small = RolloutsSampled(1, "ce", None, r[:50], {}, failed[:50], np.zeros(50))
+    assert sink.kept_rollouts(small).tolist() == list(range(50))
