@@ -197,6 +197,7 @@ class Session:
                 self.confirm_button.visible = True
                 return "confirm the cost first"
             self.confirm_button.visible = False
+            self._echo_form()
             record = RunRecord(self.app.next_run_id(), cfg)
             self.runs = keep_runs(self.runs, record)
             self.record = record
@@ -214,6 +215,21 @@ class Session:
             self._refresh_runs()
             self._worker.start()
         return None
+
+    def _echo_form(self) -> None:
+        """Send every field's value as the server has it back to the browser, so the form shows what runs.
+
+        viser's browser client sends GUI updates through one 50 ms throttle shared by all inputs and buttons:
+        of several messages inside one window only the last goes out, so a value typed just before pressing
+        Run (or before typing into the next field) can be lost on the way. Echoing makes such a field show
+        the value the run really uses instead of what the browser alone remembers.
+        """
+        from viser._messages import GuiUpdateMessage  # viser has no public "resend" for an unchanged value
+
+        with self.client.atomic():
+            for handle in (*self.fields.values(), *self.choices.values(), self.preset):
+                impl = handle._impl
+                impl.gui_api._websock_interface.queue_message(GuiUpdateMessage(impl.uuid, {"value": impl.value}))
 
     def stop_run(self) -> None:
         """Set this session's cancel token (the engine stops at its next check)."""
