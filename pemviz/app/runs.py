@@ -213,6 +213,8 @@ class RunRecord:
         self.t_start = time.perf_counter()
         self.stage_t0 = self.t_start
         self.t_end: float | None = None
+        self.sample_s_per_rollout = math.nan
+        """Seconds per rollout while the last CE stage sampled (predicts the final batch)."""
 
     @property
     def n_stage_events(self) -> int:
@@ -255,6 +257,8 @@ class RunRecord:
                 self.stage_t0 = time.perf_counter()
             elif isinstance(event, RolloutsSampled):
                 self.sampled_current = True
+                if event.kind == "ce":
+                    self.sample_s_per_rollout = (time.perf_counter() - self.stage_t0) / max(1, event.batch.n)
                 self.trajectories = least_robust(self.trajectories, event)
                 self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
             elif isinstance(event, StageFinished):

@@ -519,7 +519,7 @@ class Session:
             else:
                 doing = f"cross-entropy update ({cfg.ce_epochs} epochs)"
             in_stage = time.perf_counter() - record.stage_t0
-            expected = expected_stage_s(done, stage.kind, stage.n_rollouts)
+            expected = expected_stage_s(done, stage.kind, stage.n_rollouts, record.sample_s_per_rollout)
             eta = ""
             if math.isfinite(expected):
                 eta = f", about {max(0.0, expected - in_stage):.1f} s left in it" if in_stage < expected else ", nearly done"

@@ -10,6 +10,7 @@ from typing import TextIO
 from pemviz.engine import (
     Event,
     FinalEstimate,
+    RolloutsSampled,
     RunCancelled,
     RunStarted,
     StageFinished,
@@ -37,17 +38,17 @@ def _estimate_cells(e: Estimate) -> str:
     )
 
 
-def expected_stage_s(done: list[StageResult], kind: str, n_rollouts: int) -> float:
-    """Expected seconds of a stage of ``n_rollouts`` rollouts, from the finished stages (nan before any).
+def expected_stage_s(done: list[StageResult], kind: str, n_rollouts: int, sample_s_per_rollout: float = math.nan) -> float:
+    """Expected seconds of a stage of ``n_rollouts`` rollouts (nan when nothing comparable has run yet).
 
-    The last finished stage of the same kind scaled by rollouts (a CE stage's update is included, so the
-    final batch's figure is an upper bound); the last finished stage of any kind when none is alike.
+    A CE stage takes as long as the last CE stage did (sampling plus the proposal update). The final batch
+    only samples: ``n_rollouts`` times the seconds per rollout measured while the last CE stage sampled
+    (``sample_s_per_rollout``). Pretraining predicts neither (its time is the fit of a few rollouts).
     """
-    alike = [r for r in done if r.kind == kind] or [r for r in done if r.kind != "pretrain"] or list(done)
-    if not alike:
-        return math.nan
-    last = alike[-1]
-    return last.wall_s * n_rollouts / max(1, last.estimate.n)
+    if kind == "final":
+        return n_rollouts * sample_s_per_rollout
+    alike = [r for r in done if r.kind == kind]
+    return alike[-1].wall_s if alike else math.nan
 
 
 def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: float) -> str:
@@ -71,6 +72,8 @@ class ConsoleSink:
         self.n_ce = 0
         self.t0 = time.perf_counter()
         self.done: list[StageResult] = []
+        self.stage_t0 = self.t0
+        self.sample_s_per_rollout = math.nan
         self.exact_log_p: float | None = None
 
     def __call__(self, event: Event) -> None:
@@ -89,10 +92,13 @@ class ConsoleSink:
             )
             print(HEADER, file=self.out)
         elif isinstance(event, StageStarted):
+            self.stage_t0 = time.perf_counter()
             label = stage_label(event.stage, event.kind, self.n_ce)
-            expected = expected_stage_s(self.done, event.kind, event.n_rollouts)
+            expected = expected_stage_s(self.done, event.kind, event.n_rollouts, self.sample_s_per_rollout)
             line = progress_line(label, event.n_rollouts, time.perf_counter() - self.t0, expected)
             print(f"  {line}", file=self.progress, flush=True)
+        elif isinstance(event, RolloutsSampled) and event.kind == "ce":
+            self.sample_s_per_rollout = (time.perf_counter() - self.stage_t0) / max(1, event.batch.n)
         elif isinstance(event, StageFinished):
             self.done.append(event.result)
             print(stage_row(event.result), file=self.out, flush=True)

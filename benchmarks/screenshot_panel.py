@@ -1,0 +1,98 @@
+"""Screenshot of the ``pemviz serve`` panel explaining a failure, in headless Chromium, for the README.
+
+    python benchmarks/screenshot_panel.py                        # writes assets/screenshots/viser_panel.png
+    python benchmarks/screenshot_panel.py --preset quick --k 6 --out /tmp/panel.png
+
+What it does: starts the panel (:class:`pemviz.app.PanelApp`, 127.0.0.1, a free port), opens it in
+Chromium (Debian's ``chromium`` driven by Playwright, with ``--headless --no-sandbox --disable-gpu
+--no-first-run --disable-background-networking --disable-component-update --disable-sync``), runs an
+experiment from the browser's form (typing K, pressing Run), waits for the final estimate (the panel then
+chooses the most likely failure found), opens the *Explain* tab, moves playback to the first decisive miss
+(or the crash) and writes the PNG (to a temp file, then ``os.replace``). Every wait is on a condition.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM_FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+
+
+def wait_until(predicate, timeout: float, what: str) -> None:
+    end = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > end:
+            raise SystemExit(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=REPO / "assets" / "screenshots" / "viser_panel.png")
+    ap.add_argument("--preset", default="quick", help="the panel's preset (default quick)")
+    ap.add_argument("--k", default="8", help="K typed into the form (default 8)")
+    ap.add_argument("--width", type=int, default=1600)
+    ap.add_argument("--height", type=int, default=1000)
+    args = ap.parse_args()
+
+    from playwright.sync_api import sync_playwright
+
+    sys.path.insert(0, str(REPO))
+    from pemviz.app.panel import PanelApp
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        raise SystemExit("chromium not found: apt-get install -y chromium")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_name(args.out.name + ".partial.png")
+    app = PanelApp("127.0.0.1", 0, recordings_dir=Path(tempfile.gettempdir()) / "pemviz-screenshot", preset=args.preset)
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=chromium, args=CHROMIUM_FLAGS)
+            page = browser.new_page(viewport={"width": args.width, "height": args.height})
+            known = set(app.sessions)
+            page.goto(app.url)
+            session = app.wait_for_session(known)
+            page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
+            k = page.locator("xpath=//label[normalize-space()='K']/ancestor::div[.//input][1]//input").first
+            k.fill(args.k)
+            k.press("Tab")
+            wait_until(lambda: session.fields["n_stages"].value == args.k, 30, "K to reach the server")
+            page.get_by_role("button", name="Run", exact=True).click()
+            wait_until(lambda: session.record is not None and session.record.done, 600, "the run to finish")
+            wait_until(lambda: session.explanation is not None, 30, "the failure explanation")
+            page.get_by_role("tab", name="Explain").click()
+            page.get_by_text("Counterfactual", exact=False).wait_for(timeout=30_000)
+            ex, shown = session.explanation, session.shown
+            step = int(ex.decisive[0]) if ex.decisive.size else int((shown.gap_m < 2.0).argmax())
+            session.step_slider.value = step
+            label = f"{session.record.short_label} {shown.key} t={step * 0.05:.2f}s"
+            wait_until(
+                lambda: page.evaluate(
+                    "() => window.__viserSceneTree.getState()['/ego/label']?.message?.props?.text ?? ''"
+                ).startswith(label),
+                30, "the scene at that step",
+            )  # fmt: skip
+            page.wait_for_function("() => document.fonts.ready.then(() => true)")
+            page.screenshot(path=str(tmp))
+            browser.close()
+        os.replace(tmp, args.out)
+        print(f"{args.out}: {session.record.label}, {shown.key} at step {step}", flush=True)
+    finally:
+        tmp.unlink(missing_ok=True)
+        app.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
