@@ -166,7 +166,7 @@ def strip_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
         "detect": gui.add_uplot(
             data=(t, none), series=(up.Series(label="t (s)"), up.Series(label="p(detect)")),
             title="p(detect) under the PEM and q(detect) of the sampler",
-            scales={"x": x_scale, "y": up.Scale(auto=False, range=(-0.08, 1.08))},
+            scales={"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))},
             axes=axes("time (s)", "probability"), legend=LEGEND, height=200,
         ),
         "weight": gui.add_uplot(
@@ -196,10 +196,11 @@ def fill_strip_plots(
         m[now_i] = values[now_i]
         return m
 
-    det = np.where(traj.detected, 1.0, np.nan)
-    miss = np.where(traj.detected, np.nan, 0.0)
+    # detections as a row of dots just above 1 and misses just below 0, clear of the probability curves
+    det = np.where(traj.detected, 1.05, np.nan)
+    miss = np.where(traj.detected, np.nan, -0.05)
     decisive = np.full(t.size, np.nan)
-    decisive[ex.decisive] = 0.0
+    decisive[ex.decisive] = -0.05
     t_max = float(t[-1])
     x_scale = up.Scale(time=False, auto=False, range=(0.0, t_max))
     gap_hi = float(np.nanmax(np.concatenate([traj.gap_m, traj.ego_speed_mps, traj.lead_speed_mps, [12.0]])))
@@ -229,7 +230,7 @@ def fill_strip_plots(
         up.Series(label="now", stroke="black", points=_points((0, 0, 0), 9), **no_line),
     )
     plots["detect"].data = (t, ex.p_detect, ex.q_detect, det, miss, decisive, marker(ex.p_detect))
-    plots["detect"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(-0.08, 1.08))}
+    plots["detect"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))}
 
     lw = ex.cum_log_weight
     finite = lw[np.isfinite(lw)]

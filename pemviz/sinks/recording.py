@@ -210,7 +210,7 @@ def default_blueprint(n_lanes: int = 12) -> rrb.Blueprint:
     ]
     traces = rrb.Tabs(
         rrb.TimeSeriesView(
-            name="Gap (m) over step",
+            name="Gap (m): play on the step timeline",
             contents=["+ /rollouts/gap_m/**", "+ /rollouts/detected/**"],
             plot_legend=rrb.PlotLegend(visible=False),
         ),
@@ -219,7 +219,7 @@ def default_blueprint(n_lanes: int = 12) -> rrb.Blueprint:
     )
     scene = rrb.Spatial2DView(
         origin=f"/{SCENE_PATH}",
-        name="Scene over step",
+        name="Scene: play on the step timeline",
         background=FIGURE_BACKGROUND_RGB,
         visual_bounds=rrb.VisualBounds2D(
             x_range=list(SCENE_X_RANGE_M), y_range=[-0.6 * LANE_SPACING_M, (n_lanes - 0.4) * LANE_SPACING_M]
@@ -239,7 +239,7 @@ def default_blueprint(n_lanes: int = 12) -> rrb.Blueprint:
                 ),
                 rrb.Horizontal(rrb.Grid(*stage_views, grid_columns=3), histograms, column_shares=[2.0, 1.0]),
                 rrb.Horizontal(traces, scene),
-                row_shares=[1.1, 1.0, 1.0],
+                row_shares=[1.1, 1.0, 0.8],
             ),
             rrb.TextDocumentView(origin="/description", name="Run"),
             column_shares=[3.0, 1.0],
@@ -589,7 +589,8 @@ class RerunSink:
             colour = CRASH_RGBA[:3] + (255,) if key == "robustness" else C.rgba(C.LOG_WEIGHT)
             self.stream.log(
                 f"histograms/{key}",
-                rr.BarChart(counts.astype(np.float64), abscissa=(edges[:-1] + edges[1:]) / 2, color=colour),
+                rr.BarChart(counts.astype(np.float64), abscissa=(edges[:-1] + edges[1:]) / 2, widths=np.diff(edges),
+                            color=colour),
             )
 
     def kept_rollouts(self, ev: RolloutsSampled) -> np.ndarray:
