@@ -36,7 +36,6 @@ from pemviz.engine import (
     Event,
     FinalEstimate,
     RolloutsSampled,
-    RunCancelled,
     RunFinished,
     RunStarted,
     StageFinished,
