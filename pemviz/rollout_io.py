@@ -742,12 +742,16 @@ class RolloutEstimate:
 
 
 def estimate_rollouts(
-    data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash"
+    data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
+    weights_until_failure: bool = True,
 ) -> RolloutEstimate:
-    """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (spec section 4).
+    """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (Innes & Ramamoorthy 2022, eq. 6).
 
-    ``log w_i = sum_{t < T-1} log p - log q`` as the engine computes it; failure = classic robustness of the
-    sidecar's formula < 0 (``failure="crash"``, the default) or robustness under ``metric`` < 0.
+    ``log w_i = sum_{t < k_i} log p - log q`` as the engine computes it: k_i = T - 1 (the last action affects
+    nothing), or, with ``weights_until_failure`` and ``failure="crash"``, the step at which rollout i first violates
+    the sidecar's ``G[a,b](...)`` formula (:func:`pemviz.stl.first_violation`; a stopping time, so the weights stay
+    unbiased). Failure = classic robustness of the formula < 0 (``failure="crash"``, the default) or robustness
+    under ``metric`` < 0. The NLL sums log p over the steps before the failure.
 
     Args:
         log_p, log_q: float64 [N, T] (nats).
@@ -776,12 +780,14 @@ def estimate_rollouts(
         raise RolloutFormatError(f"{data.path or 'rollouts'}: formula {data.meta.formula!r}: {exc}") from None
     failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
     k = data.n_steps - 1
-    log_w = (log_p[:, :k] - log_q[:, :k]).sum(axis=1)
-    try:  # the NLL covers the actions before the failure step, as in the engine
+    try:  # the NLL (and, by default, the weights) cover the actions before the failure step, as in the engine
         upto = np.minimum(stl.first_violation(formula, signals), k)
     except ValueError:
         upto = np.full(data.n, k)
-    est = estimate(log_w, failed, np.where(np.arange(data.n_steps)[None, :] < upto[:, None], log_p, 0.0).sum(axis=1))
+    before = np.arange(data.n_steps)[None, :] < upto[:, None]
+    steps = before if weights_until_failure and failure == "crash" else np.arange(data.n_steps)[None, :] < k
+    log_w = np.where(steps, log_p - log_q, 0.0).sum(axis=1)
+    est = estimate(log_w, failed, np.where(before, log_p, 0.0).sum(axis=1))
     return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure)
 
 
@@ -851,7 +857,11 @@ class RolloutSink:
             provenance["config"] = dataclasses.asdict(cfg)
         if finished is not None:
             e = finished.final.estimate
-            provenance["estimate"] = {"log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n}
+            provenance["estimate"] = {
+                "log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n, "log_ci": list(e.log_ci),
+                "ess": e.ess, "khat": e.khat, "verdict": e.verdict, "reason": e.reason,
+                "stages_used": list(finished.final.stages_used),
+            }  # the run's estimate: with a pooled estimate it uses more stages than this file's final batch
         meta = braking_meta(self._formula, pem=self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME,
                             proposal=proposal, provenance=provenance)  # fmt: skip
         batch = ev.batch

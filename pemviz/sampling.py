@@ -359,21 +359,26 @@ def pareto_khat(log_values: np.ndarray) -> float:
     The generalized Pareto distribution is fitted (Zhang & Stephens 2009, with the weakly informative prior of
     PSIS; ``pyro.ops.stats.fit_generalized_pareto``) to the exceedances of the M = min(S / 5, 3 sqrt(S))
     largest values over the next one, as in Vehtari et al., "Pareto Smoothed Importance Sampling", JMLR 2024,
-    Sec. 3. Values of -inf (zero) may be present; nan when fewer than M + 1 values are positive or M < 5; 0 when
-    fewer than 5 of the M exceed the cutoff (a flat tail, e.g. every failure weight equal).
+    Sec. 3. Values of -inf (zeros, e.g. rollouts that did not fail) may be present: when fewer than M + 1
+    values are positive, the tail is taken from the positive values alone (S = their number). Exceedances below
+    1e-9 of the largest value are ties (sums of log-probabilities differ in their last bits). Returns 0 for a
+    flat tail (fewer than 5 exceedances: e.g. every failure weight equal) and nan for fewer than 25 positive
+    values (M < 5).
     """
     from pyro.ops.stats import fit_generalized_pareto  # torch is loaded already: ~0.1 s, only when needed
 
     lv = np.sort(np.asarray(log_values, dtype=np.float64))
-    s = lv.size
-    m = int(min(s / 5.0, 3.0 * math.sqrt(s)))
-    if m < 5 or not np.isfinite(lv[s - m - 1]):
+    m = int(min(lv.size / 5.0, 3.0 * math.sqrt(lv.size)))
+    if m >= lv.size or not np.isfinite(lv[lv.size - m - 1]):
+        lv = lv[np.isfinite(lv)]
+        m = int(min(lv.size / 5.0, 3.0 * math.sqrt(lv.size)))
+    if m < 5:
         return math.nan
     top = lv[-1]
-    tail = np.exp(lv[s - m :] - top) - math.exp(lv[s - m - 1] - top)  # scale-free exceedances
-    tail = tail[tail > 0.0]  # ties with the cutoff carry no tail information (and break the fit's quartile)
-    if tail.size < 5 or np.all(tail == tail[0]):
-        return 0.0  # a flat tail: the largest values are (nearly) all equal, nothing heavy
+    tail = np.exp(lv[lv.size - m :] - top) - math.exp(lv[lv.size - m - 1] - top)  # scale-free exceedances
+    tail = tail[tail > 1e-9]  # ties with the cutoff carry no tail information (and break the fit's quartile)
+    if tail.size < 5:
+        return 0.0
     k, _ = fit_generalized_pareto(torch.as_tensor(tail))
     return float(k)
 

@@ -217,7 +217,10 @@ def main(args: argparse.Namespace) -> int:
         check_save_path(Path(args.save))
     data = rio.read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
-    result = rio.estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure)
+    run_config = (data.meta.provenance or {}).get("config") or {}
+    until_failure = bool(run_config.get("weights_until_failure", True))  # as the run that wrote the file weighed
+    result = rio.estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure,
+                                   weights_until_failure=until_failure)  # fmt: skip
     check_plausible(result.estimate, q_src)
     lines = summary_lines(data, result, p_src, q_src)
     print("\n".join(lines), flush=True)
