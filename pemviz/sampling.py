@@ -413,7 +413,7 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
     p < 3 / N; under importance sampling the log-scale t interval of the mean of 1[fail_i] w_i (see
     :func:`_log_mean_interval`), and with 0 failures the interval [0, 1]: 0 failures under a proposal bound
     nothing. The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, with Pareto k-hat above
-    :data:`KHAT_UNRELIABLE`, or when the mean importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do
+    :data:`KHAT_UNRELIABLE` and an ESS below 2 :data:`MIN_FAILURES` (above it: ``doubtful``), or when the mean importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do
     not belong to the proposal that drew the rollouts); ``doubtful`` with fewer than :data:`MIN_FAILURES` failures,
     an ESS below it, or k-hat above the sample-size threshold min(1 - 1 / log10 S, 0.7) of Vehtari et al. (2024);
     else ``reliable``.
@@ -473,7 +473,7 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
     from scipy.special import logsumexp
 
     if not plain_mc:
-        if khat > KHAT_UNRELIABLE:
+        if khat > KHAT_UNRELIABLE and ess < 2 * MIN_FAILURES:
             return "unreliable", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: a few weights dominate"
         log_mean = float(logsumexp(log_weight)) - math.log(log_weight.size)
         if log_mean > math.log(MAX_MEAN_WEIGHT):
@@ -486,6 +486,8 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
     if not plain_mc:
         if ess < MIN_FAILURES:
             return "doubtful", f"ESS {ess:.1f} < {MIN_FAILURES}: a few weights carry the estimate"
+        if khat > KHAT_UNRELIABLE:  # with a large ESS: clustered weights, or a tail the ESS does not see yet
+            return "doubtful", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: the weights' tail is heavy or clustered"
         threshold = min(1.0 - 1.0 / math.log10(n), KHAT_UNRELIABLE) if n > 10 else 0.0
         if khat > threshold:
             return "doubtful", f"k-hat {khat:.2f} > {threshold:.2f}: more rollouts needed"
