@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     t = actions.add_parser(
         "train",
         help="train a PEM on the full salient file and write its weights",
-        description="Train a named PEM on salient_inputs_no_miscUnknown.txt and write assets/pem_<model>.pt "
+        description="Train a named PEM on salient_inputs_no_miscUnknown.txt and write pemviz/assets/pem_<model>.pt "
         "(or --out).",
     )
     t.add_argument(
@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--epochs", type=int, default=None, help="epochs for ml-nn, trees for gbt (default: the model's, 300 each)"
     )
     t.add_argument("--seed", type=int, default=None, help="seed (default: the model's shipped seed)")
-    t.add_argument("--out", default=None, metavar="PATH", help="weights file (default assets/pem_<model>.pt)")
+    t.add_argument("--out", default=None, metavar="PATH", help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)")
     t.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_main)
