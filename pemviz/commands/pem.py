@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "pem",
         help="train or evaluate the perception error model (PEM)",
-        description="Train the PEM on the KITTI salient files (spec section 2) or cross-validate the models.",
+        description="Train the PEM on the KITTI salient files or cross-validate the models (both need the files: pemviz data fetch).",
     )
     actions = p.add_subparsers(dest="pem_command", required=True)
     t = actions.add_parser(

@@ -23,7 +23,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--preset", default=DEFAULT_PRESET,
         help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}: the recommended sampler, "
-        "right against exact answers; paper: the published settings, biased low at this budget)",
+        "right against exact answers; paper: the published settings, biased low at this budget; quick: a run in "
+        "seconds). A preset sets some of the values below; a flag given here overrides it.",
     )
     p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
     p.add_argument(

@@ -1,6 +1,6 @@
 """``pemviz validate``: the sampler and the baselines against exact failure probabilities.
 
-Each problem of :data:`PROBLEMS` has a known answer (spec section 6): the toy braking model in closed form,
+Each problem of :data:`PROBLEMS` has a known answer: the toy braking model in closed form,
 the latched-brake scenario from its deterministic simulator, and the main braking scenario by exact
 enumeration of its detection sequences (:mod:`pemviz.truth`). Every method runs on every problem for
 several seeds at the same simulation budget (the adaptive sampler's: pretraining + K x N + N_e), and the
@@ -45,7 +45,7 @@ PROBLEMS: dict[str, str] = {
     "toy": "toy braking (100, 50, 30, p = 0.9): exact 1e-21",
     "toy-1e-30": "toy braking (100, 39, 30, p = 0.999), braking window 10: exact 1e-30",
     "latched": "braking scenario with a latched brake: exact from the deterministic simulator",
-    "main": "braking scenario (spec section 1): exact enumeration of detection sequences",
+    "main": "braking scenario: exact enumeration of detection sequences",
     "toy-1e-3": "toy braking (10, 5, 3, p = 0.9): exact 1e-3 (small; for CI)",
 }
 """Problem name -> description."""
