@@ -37,6 +37,9 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_wheel_holds_the_shipped_pems_and_their_readme(wheel: Path) -> None:
+    import pemviz
+
+    assert wheel.name.startswith(f"pemviz-{pemviz.__version__}-")  # one source for the version
     names = set(zipfile.ZipFile(wheel).namelist())
     assert {"pemviz/assets/pem_ml-nn.pt", "pemviz/assets/pem_gbt.pt", "pemviz/assets/README.md"} <= names
 
