@@ -142,10 +142,10 @@ def probe_viewer(url: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> str:
     url = url or DEFAULT_VIEWER_URL
     try:
         parts = urlsplit(url)
-        host, port = parts.hostname, parts.port
-    except ValueError:
-        host = port = None
-    if not parts.scheme.startswith("rerun") or not host or port is None:
+        scheme, host, port = parts.scheme, parts.hostname, parts.port
+    except ValueError:  # e.g. a port that is not a number
+        scheme = host = port = None
+    if not (scheme or "").startswith("rerun") or not host or port is None:
         raise UsageError(f"--connect {url}: not a rerun viewer URL (expected e.g. {DEFAULT_VIEWER_URL})")
     try:
         with socket.create_connection((host, port), timeout=timeout_s):
