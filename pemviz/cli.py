@@ -1,6 +1,7 @@
-"""The ``pemviz`` command line: ``pemviz run | serve | pem | data | ...``.
+"""pemviz: estimate the probability of rare safety failures of a perception-driven controller with a perception
+error model (PEM) and adaptive importance sampling, recorded for rerun and shown in a browser panel.
 
-Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds
+The command line ``pemviz run | serve | pem | data | estimate | validate | tables``. Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds
 its parser and sets ``func(args) -> int`` as the parser default.
 """
 
@@ -26,7 +27,11 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="pemviz", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="pemviz",
+        description=__doc__.split("\n\n")[0].replace("\n", " "),
+        epilog="`pemviz COMMAND --help` describes a command; the user guide is in docs/ (mkdocs serve).",
+    )
     parser.add_argument("--version", action="version", version=f"pemviz {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name in COMMAND_MODULES:

@@ -13,7 +13,7 @@ Models:
 - ``guess-mu``: the training folds' detection rate for every row;
 - ``b-nn``: the Bayesian NN (pyro, :mod:`pemviz.pem.bayes`);
 - ``gbt``: gradient-boosted trees on the same 14 features (:mod:`pemviz.pem.trees`), pemviz's best model,
-  chosen by cross-validation on these folds (settings compared in ``assets/README.md``).
+  chosen by cross-validation on these folds (settings compared in ``pemviz/assets/README.md``).
 
 :func:`evaluate_pems` computes; :func:`format_markdown` / :func:`format_csv` and :func:`write_recording`
 (rerun: ROC curves, reliability diagrams, p(detect | gap) curves beside the authors' PEM) present.

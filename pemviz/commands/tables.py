@@ -1,6 +1,6 @@
 """``pemviz tables``: the paper's Tables II and III with repetitions, honest error bars and the exact answer.
 
-Table II (spec section 5): MC_100, MC_10000, naive-50_100, naive-50_1000 and adaptive_100 (the paper's
+Table II: MC_100, MC_10000, naive-50_100, naive-50_1000 and adaptive_100 (the paper's
 settings), plus the adaptive sampler under other presets (``--extra``: the authors' code, pemviz's
 improvements). Table III: the adaptive sampler with each robustness metric (classic, AGM, smooth-cumulative).
 Every row: R repetitions (seeds 0..R-1), mu_hat as mean +- standard error std/sqrt(R) (the authors divided
@@ -30,6 +30,7 @@ import numpy as np
 
 from pemviz.commands.validate import (
     PROBLEMS,
+    RUNS_FILE,
     ExactAnswer,
     Job,
     RunRecord,
@@ -226,7 +227,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--naive-large", type=int, default=1000, help="rollouts of the large naive-50 row (default 1000)")
     add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2: the CI machine's cores)")
-    p.add_argument("--out", default="tables", metavar="DIR", help="folder for tables.md/.csv/.rrd (default tables)")
+    p.add_argument(
+        "--out", default="tables", metavar="DIR",
+        help=f"folder for tables.md, tables.csv, tables.rrd and {RUNS_FILE} (each run as it ends; an existing folder "
+        "resumes: finished runs are not run again) (default tables)",
+    )  # fmt: skip
     p.add_argument("--no-record", action="store_true", help="write no recording")
     p.set_defaults(func=main)  # fmt: skip
 
@@ -247,6 +252,9 @@ def main(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: exists and is not a folder")
     base = base_fields(args)
+    from pemviz.commands import output_folder
+
+    out = output_folder(out)
 
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
@@ -266,7 +274,7 @@ def main(args: argparse.Namespace) -> int:
 
     # the slow (adaptive) runs first so that two workers finish together
     order = sorted(range(len(jobs)), key=lambda i: dict(jobs[i].fields).get("method", "adaptive") != "adaptive")
-    done = run_jobs([jobs[i] for i in order], args.jobs, on_record)
+    done = run_jobs([jobs[i] for i in order], args.jobs, on_record, runs_file=out / RUNS_FILE, progress=True)
     by_label: dict[str, list[RunRecord]] = {s.label: [] for s in specs}
     for r in sorted(done, key=lambda r: r.seed):
         by_label[r.method].append(r)
@@ -303,7 +311,7 @@ def main(args: argparse.Namespace) -> int:
     print(text)
     write_atomic(out / "tables.md", text)
     write_atomic(out / "tables.csv", csv_text(rows_all))
-    say(f"wrote {out / 'tables.md'} and {out / 'tables.csv'}")
+    say(f"wrote {out / 'tables.md'}, {out / 'tables.csv'} and {out / RUNS_FILE}")
     if not args.no_record:
         problem = build_problem(args.problem, args.pem)
         write_recording(out / "tables.rrd", specs, by_label, problem.curve_grid, problem.target_curve(), text)

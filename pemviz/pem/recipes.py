@@ -1,10 +1,10 @@
 """Named PEMs: how ``pemviz pem train --model NAME`` (re)trains each shipped PEM.
 
-- ``ml-nn``: the paper's ML-NN (spec section 2), shipped as ``assets/pem_ml-nn.pt``.
+- ``ml-nn``: the paper's ML-NN (spec section 2), shipped as ``pemviz/assets/pem_ml-nn.pt``.
 - ``gbt``: gradient-boosted trees on the same 14 features, the best model of pemviz's 5-fold
-  cross-validation (issue 4), shipped as ``assets/pem_gbt.pt``.
+  cross-validation (issue 4), shipped as ``pemviz/assets/pem_gbt.pt``.
 
-``seed`` is the seed of the shipped weights; ``assets/README.md`` says why each was chosen.
+``seed`` is the seed of the shipped weights; ``pemviz/assets/README.md`` says why each was chosen.
 """
 
 from __future__ import annotations

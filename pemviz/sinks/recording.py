@@ -283,6 +283,7 @@ class RerunSink:
         self.finished = False
         self._pending: RolloutsSampled | None = None
         self._paths: tuple[Path, Path] | None = None
+        self.serve_url: str | None = None
         self._closed = False
         self._axes: dict[str, tuple] = {}
         stream.set_log_time_enabled(False)
@@ -301,13 +302,26 @@ class RerunSink:
         return sink
 
     @classmethod
-    def to_grpc(cls, url: str | None = None, *, serve: bool = False, **kw) -> "RerunSink":
-        """A sink that streams to a running viewer (``url``) or serves a gRPC endpoint (``serve``)."""
+    def to_grpc(
+        cls, url: str | None = None, *, serve: bool = False, grpc_port: int | None = None, **kw
+    ) -> "RerunSink":
+        """A sink that streams to a running viewer (``url``) or serves a gRPC endpoint (``serve``, on
+        ``grpc_port``, default 9876; its ``rerun+http://...`` address is in :attr:`serve_url`)."""
         stream = rr.RecordingStream(APP_ID)
+        serve_url = None
         if serve:
-            stream.serve_grpc()
+            serve_url = stream.serve_grpc(grpc_port=grpc_port)
         else:
             stream.connect_grpc(url)
+        sink = cls(stream, **kw)
+        sink.serve_url = serve_url
+        return sink
+
+    @classmethod
+    def to_stdout(cls, **kw) -> "RerunSink":
+        """A sink that writes the recording to standard output (``pemviz run --stdout | rerun -``)."""
+        stream = rr.RecordingStream(APP_ID)
+        stream.stdout()
         return cls(stream, **kw)
 
     def close(self) -> Path | None:
