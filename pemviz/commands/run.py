@@ -53,6 +53,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rec.add_argument("--serve", action="store_true", help="serve the recording over gRPC for a rerun viewer")
     rec.add_argument("--connect", nargs="?", const="", default=None, metavar="URL", help="stream to a running viewer")
     rec.add_argument("--no-record", action="store_true", help="write no recording")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing --save / --save-rollouts files (only files pemviz wrote)")
     p.set_defaults(func=main)
 
 
@@ -69,20 +71,33 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     return ExperimentConfig(**fields)
 
 
-def check_save_path(path: Path) -> Path:
+FLAGS = {"n_stages": "--k", "n_per_stage": "--n", "n_final": "--n-final", "quantile_level": "--sigma",
+         "smoothing": "--alpha", "ce_epochs": "--ce-epochs", "ray_address": "--ray-address"}
+"""Config fields whose flag is not ``--`` + the field name."""
+
+
+def check_save_path(path: Path, overwrite: bool = False) -> Path:
     """Refuse a recording path that cannot be written, before any work starts (nothing is created)."""
     from pemviz.commands import UsageError
     from pemviz.files import check_output_path
 
     try:
-        return check_output_path(path, ".rrd", "--save")
+        return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
 
 
+def free_default_path(folder: Path, stem: str, suffix: str = ".rrd") -> Path:
+    """``folder/stem.rrd``, or ``stem-2.rrd``, ``stem-3.rrd`` ... when taken: default names never replace a file."""
+    path, k = folder / f"{stem}{suffix}", 2
+    while path.exists():
+        path, k = folder / f"{stem}-{k}{suffix}", k + 1
+    return path
+
+
 def default_recording_path(cfg: ExperimentConfig) -> Path:
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    return Path("recordings") / f"{cfg.method}-{cfg.metric}-seed{cfg.seed}-{stamp}.rrd"
+    return free_default_path(Path("recordings"), f"{cfg.method}-{cfg.metric}-seed{cfg.seed}-{stamp}")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -91,7 +106,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:
-        raise UsageError(str(exc)) from None
+        flag = FLAGS.get(exc.field or "", f"--{(exc.field or '').replace('_', '-')}")
+        raise UsageError(f"{flag}: {exc}" if exc.field else str(exc)) from None
     if args.pem is not None:
         from pemviz.pem import shipped_pems
 
@@ -112,9 +128,9 @@ def main(args: argparse.Namespace) -> int:
         if n_final > STREAM_ABOVE:  # such batches are streamed in chunks, never held whole
             raise UsageError(f"--save-rollouts: at most {STREAM_ABOVE} final rollouts can be saved, got {n_final}")
         try:
-            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem)
+            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite)
         except ValueError as exc:
-            raise UsageError(f"--save-rollouts {exc}") from None
+            raise UsageError(str(exc)) from None
 
     save_path = None
     if not args.no_record and not args.serve and args.connect is None:
@@ -122,32 +138,46 @@ def main(args: argparse.Namespace) -> int:
             Path("recordings").mkdir(exist_ok=True)
             save_path = check_save_path(default_recording_path(cfg))
         else:
-            save_path = check_save_path(Path(args.save))
+            save_path = check_save_path(Path(args.save), args.overwrite)
 
-    from pemviz.engine import Experiment
+    from pemviz.commands import interrupted
+    from pemviz.engine import STREAM_ABOVE, Experiment
+    from pemviz.resources import check_run_memory
+    from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
 
+    check_run_memory(cfg, BrakingParams().n_steps, stream_above=STREAM_ABOVE if cfg.executor == "serial" else None)
+    experiment = Experiment(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     listeners = [ConsoleSink()]
     recorder = None
     if save_path is not None or args.serve or args.connect is not None:
         from pemviz.sinks.recording import RerunSink
 
         if save_path is not None:
-            recorder = RerunSink.to_file(save_path)
+            recorder = RerunSink.to_file(save_path, overwrite=args.overwrite)
         else:
             recorder = RerunSink.to_grpc(args.connect or None, serve=args.serve)
         listeners.append(recorder)
     if rollout_sink is not None:
         listeners.append(rollout_sink)
+    experiment.listeners = listeners
     try:
-        Experiment(cfg, listeners).run()
-        if rollout_sink is not None and rollout_sink.written is not None:
-            print(f"rollouts: {rollout_sink.written}", file=sys.stderr)
-        elif rollout_sink is not None and rollout_sink.skipped:
-            print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
-    finally:
+        experiment.run()
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
+        where = recorder.close() if recorder is not None else None
+        done = f"{len(experiment.stages)} stage(s) finished"
+        raise interrupted(exc, f"{done}; recording {where} (marked interrupted)" if where else
+                          f"{done}; no rollouts written") from None
+    except BaseException:
         if recorder is not None:
-            where = recorder.close()
-            if where is not None:
-                print(f"recording: {where}", file=sys.stderr)
+            recorder.close(commit=False)
+        raise
+    if rollout_sink is not None and rollout_sink.written is not None:
+        print(f"rollouts: {rollout_sink.written}", file=sys.stderr)
+    elif rollout_sink is not None and rollout_sink.skipped:
+        print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
+    if recorder is not None:
+        where = recorder.close()
+        if where is not None:
+            print(f"recording: {where}", file=sys.stderr)
     return 0
