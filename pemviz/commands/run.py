@@ -160,7 +160,7 @@ def main(args: argparse.Namespace) -> int:
         listeners.append(recorder)
     if rollout_sink is not None:
         listeners.append(rollout_sink)
-    experiment.listeners = listeners
+    experiment.listeners[:0] = listeners
     try:
         experiment.run()
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
