@@ -82,11 +82,13 @@ def _run(args: argparse.Namespace) -> int:
         if os.environ.get("PEMVIZ_DEBUG"):
             raise
         if isinstance(exc, MemoryError):
-            what = "out of memory"
-        else:
+            what = "out of memory; nothing partial was left"
+        elif exc.errno in WRITE_ERRNOS:
             where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-            what = f"cannot write{where}: {exc.strerror or exc}" if exc.errno in WRITE_ERRNOS else str(exc)
-        print(f"{name}: failed: {what}; nothing partial was left", file=sys.stderr)
+            what = f"cannot write{where}: {exc.strerror or exc}; nothing partial was left"
+        else:
+            what = str(exc)
+        print(f"{name}: failed: {what}", file=sys.stderr)
         return 1
 
 

@@ -118,6 +118,9 @@ def main(args: argparse.Namespace) -> int:
 
         if importlib.util.find_spec("ray") is None:
             raise UsageError("--executor ray: Ray is not installed (pip install ray)")
+        from pemviz.executors import probe_ray_address
+
+        probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
         from pemviz.rollout_io import RolloutSink
