@@ -6,7 +6,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 
 def default_file_mode() -> int:
@@ -114,6 +114,29 @@ def write_text_atomic(path: str | os.PathLike[str], text: str, *, overwrite: boo
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), overwrite=overwrite)
 
 
+def write_rrd(path: str | os.PathLike[str], log: Callable[[Any], None], *, app_id: str = "pemviz",
+              overwrite: bool = True) -> Path:
+    """A rerun recording: ``log(stream)`` into a :class:`rerun.RecordingStream` encoded in memory, then written
+    through :func:`atomic_write` (rerun's own file sink stalls its writer thread on a write error).
+
+    Raises:
+        OSError: the file could not be written (nothing is left); OutputExists: see :func:`atomic_write`.
+    """
+    import rerun as rr
+
+    stream = rr.RecordingStream(app_id)
+    binary = stream.binary_stream()
+    try:
+        stream.set_log_time_enabled(False)
+        stream.set_log_tick_enabled(False)
+        log(stream)
+        stream.flush()
+        encoded = binary.read(flush=True) or b""
+    finally:
+        stream.disconnect()
+    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(encoded), overwrite=overwrite)
+
+
 def written_by_pemviz(path: Path) -> bool:
     """Whether an existing file looks like one pemviz writes for its suffix (:data:`MAGIC`; a ``.json`` must be a
     pemviz rollout sidecar). Other suffixes (Markdown, CSV, LaTeX reports) cannot be told and count as True."""
@@ -168,13 +191,42 @@ def check_output_path(
     except OSError as exc:
         raise ValueError(f"{what} {p}: folder {parent} is not writable ({exc.strerror})") from None
     if os.path.lexists(p):
-        if not overwrite:
-            raise OutputExists(f"{what} {p}: exists; give --overwrite to replace it")
         if p.is_symlink() or not p.is_file():
             raise ValueError(f"{what} {p}: exists and is not a regular file; not replacing it")
+        if not overwrite:
+            raise OutputExists(f"{what} {p}: exists; give --overwrite to replace it")
         if not written_by_pemviz(p):
             raise ValueError(f"{what} {p}: exists and is not a {suffix} file pemviz wrote; not replacing it")
     return p
+
+
+def check_output_folder(folder: str | os.PathLike[str], names: tuple[str, ...], what: str = "--out") -> Path:
+    """Refuse an output folder where ``names`` cannot be written, before any work starts (nothing is created).
+
+    The folder may be missing when its parent exists (it is made when the files are written). The files are
+    reports the command regenerates, replaced when present (but never a folder or a special file of that name).
+
+    Raises:
+        ValueError: not a folder, no parent folder, not writable, a name too long, or a name taken by a folder.
+    """
+    out = Path(folder)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{what} {out}: exists and is not a folder")
+    probe_dir = out if out.is_dir() else (out.parent if str(out.parent) else Path("."))
+    if not probe_dir.is_dir():
+        raise ValueError(f"{what} {out}: folder {probe_dir} does not exist")
+    try:
+        with tempfile.NamedTemporaryFile(dir=probe_dir, prefix=".pemviz-probe-"):
+            pass
+    except OSError as exc:
+        raise ValueError(f"{what} {out}: folder {probe_dir} is not writable ({exc.strerror})") from None
+    for name in names:
+        target = out / name
+        if len(os.fsencode(name)) + TEMP_NAME_EXTRA > 255:
+            raise ValueError(f"{what} {target}: file name too long")
+        if os.path.lexists(target) and (target.is_symlink() or not target.is_file()):
+            raise ValueError(f"{what} {target}: exists and is not a regular file; not replacing it")
+    return out
 
 
 def check_free_name(path: Path, what: str, *, overwrite: bool = False) -> None:
@@ -185,9 +237,11 @@ def check_free_name(path: Path, what: str, *, overwrite: bool = False) -> None:
     """
     if not os.path.lexists(path):
         return
+    if path.is_symlink() or not path.is_file():
+        raise ValueError(f"{what} {path}: exists and is not a regular file; not replacing it")
     if not overwrite:
         raise OutputExists(f"{what} {path}: exists; give --overwrite to replace it")
-    if path.is_symlink() or not path.is_file() or not written_by_pemviz(path):
+    if not written_by_pemviz(path):
         raise ValueError(f"{what} {path}: exists and is not a file pemviz wrote; not replacing it")
 
 

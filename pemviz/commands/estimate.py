@@ -152,13 +152,9 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
     import rerun as rr
 
     import pemviz
-    from pemviz.files import atomic_write
+    from pemviz.files import write_rrd
 
-    stream = rr.RecordingStream("pemviz")
-    binary = stream.binary_stream()
-    try:
-        stream.set_log_time_enabled(False)
-        stream.set_log_tick_enabled(False)
+    def log(stream: rr.RecordingStream) -> None:
         stream.send_recording_name(f"pemviz estimate {data.path.name if data.path else ''}")
         e = result.estimate
         text = "# pemviz estimate from logged rollouts\n\n```\n" + "\n".join(lines) + "\n```\n"
@@ -185,11 +181,8 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
                         labels=[f"rollout {i}: robustness, log w" for i in data.rollout_ids]),
             static=True,
         )  # fmt: skip
-        stream.flush()
-        encoded = binary.read(flush=True) or b""
-    finally:
-        stream.disconnect()
-    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(encoded), overwrite=overwrite)
+
+    return write_rrd(path, log, overwrite=overwrite)
 
 
 def main(args: argparse.Namespace) -> int:
