@@ -845,8 +845,18 @@ def estimate_rollouts(
         raise RolloutFormatError(f"{data.path or 'rollouts'}: formula {data.meta.formula!r}: {exc}") from None
     failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
     k = data.n_steps - 1
-    log_w = (log_p[:, :k] - log_q[:, :k]).sum(axis=1)
-    est = estimate(log_w, failed, log_p[:, :k].sum(axis=1))
+    with np.errstate(over="ignore", invalid="ignore"):
+        log_w = (log_p[:, :k] - log_q[:, :k]).sum(axis=1)
+        log_p_total = log_p[:, :k].sum(axis=1)
+    for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
+        if not np.isfinite(x).all():
+            i = _first_index(~np.isfinite(x))
+            raise RolloutFormatError(
+                f"{data.path or 'rollouts'}: rollout {data.rollout_ids[i]}: the {name} over its {k} steps is beyond "
+                f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
+                f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
+            )
+    est = estimate(log_w, failed, log_p_total)
     return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure)
 
 
