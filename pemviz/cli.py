@@ -47,8 +47,6 @@ def main(argv: list[str] | None = None) -> int:
     input, one line, nothing written; 130 Ctrl-C and 143 SIGTERM, one line saying what was finished.
     ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line.
     """
-    parser = build_parser()
-    args = parser.parse_args(argv)
     previous = None
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         try:
@@ -56,15 +54,17 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:  # not the main thread (pemviz called from a worker thread): leave it
             pass
     try:
-        return _run(args)
+        return _run(argv)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 
 
-def _run(args: argparse.Namespace) -> int:
-    name = f"pemviz {args.command}"
+def _run(argv: list[str] | None) -> int:
+    name = "pemviz"
     try:
+        args = build_parser().parse_args(argv)
+        name = f"pemviz {args.command}"
         return int(args.func(args) or 0)
     except KeyboardInterrupt as exc:
         if os.environ.get("PEMVIZ_DEBUG"):

@@ -98,15 +98,42 @@ def commit_files(pairs: list[tuple[str, Path]], *, overwrite: bool) -> None:
         OutputExists: ``overwrite`` is False and a target exists.
     """
     done: list[Path] = []
+    with deferred_signals():  # Ctrl-C / SIGTERM wait the few renames out: the unit is never half moved
+        try:
+            for tmp, target in pairs:
+                os.chmod(tmp, default_file_mode())
+                _commit(tmp, target, overwrite)
+                done.append(target)
+        except OutputExists:
+            for target in done:
+                target.unlink(missing_ok=True)
+            raise
+
+
+@contextlib.contextmanager
+def deferred_signals() -> Iterator[None]:
+    """SIGINT and SIGTERM received inside the block are acted on when it ends (main thread only; elsewhere
+    a no-op). For short steps that must not be cut in two, such as moving the files of a unit into place."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    names = [signal.SIGINT, signal.SIGTERM]
+    previous = {sig: signal.signal(sig, lambda signum, frame: received.append(signum)) for sig in names}
     try:
-        for tmp, target in pairs:
-            os.chmod(tmp, default_file_mode())
-            _commit(tmp, target, overwrite)
-            done.append(target)
-    except OutputExists:
-        for target in done:
-            target.unlink(missing_ok=True)
-        raise
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for signum in received[:1]:
+            handler = previous[signum]
+            if callable(handler):
+                handler(signum, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(signum)
 
 
 def write_text_atomic(path: str | os.PathLike[str], text: str, *, overwrite: bool = True) -> Path:
