@@ -212,19 +212,18 @@ def check_output_path(
     if n_bytes > name_max:
         raise ValueError(f"{what} {p}: file name too long ({len(os.fsencode(p.name))} bytes; at most "
                          f"{name_max - TEMP_NAME_EXTRA} here)")  # fmt: skip
+    _check_writable(parent, f"{what} {p}")
+    check_free_name(p, what, overwrite=overwrite, kind=f"{suffix} file")
+    return p
+
+
+def _check_writable(folder: Path, where: str) -> None:
+    """Create and remove a probe file in ``folder`` (root ignores permission bits, not read-only mounts)."""
     try:
-        with tempfile.NamedTemporaryFile(dir=parent, prefix=".pemviz-probe-"):
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".pemviz-probe-"):
             pass
     except OSError as exc:
-        raise ValueError(f"{what} {p}: folder {parent} is not writable ({exc.strerror})") from None
-    if os.path.lexists(p):
-        if p.is_symlink() or not p.is_file():
-            raise ValueError(f"{what} {p}: exists and is not a regular file; not replacing it")
-        if not overwrite:
-            raise OutputExists(f"{what} {p}: exists; give --overwrite to replace it")
-        if not written_by_pemviz(p):
-            raise ValueError(f"{what} {p}: exists and is not a {suffix} file pemviz wrote; not replacing it")
-    return p
+        raise ValueError(f"{where}: folder {folder} is not writable ({exc.strerror})") from None
 
 
 def check_output_folder(folder: str | os.PathLike[str], names: tuple[str, ...], what: str = "--out") -> Path:
@@ -242,11 +241,7 @@ def check_output_folder(folder: str | os.PathLike[str], names: tuple[str, ...], 
     probe_dir = out if out.is_dir() else (out.parent if str(out.parent) else Path("."))
     if not probe_dir.is_dir():
         raise ValueError(f"{what} {out}: folder {probe_dir} does not exist")
-    try:
-        with tempfile.NamedTemporaryFile(dir=probe_dir, prefix=".pemviz-probe-"):
-            pass
-    except OSError as exc:
-        raise ValueError(f"{what} {out}: folder {probe_dir} is not writable ({exc.strerror})") from None
+    _check_writable(probe_dir, f"{what} {out}")
     for name in names:
         target = out / name
         if len(os.fsencode(name)) + TEMP_NAME_EXTRA > 255:
@@ -256,7 +251,7 @@ def check_output_folder(folder: str | os.PathLike[str], names: tuple[str, ...], 
     return out
 
 
-def check_free_name(path: Path, what: str, *, overwrite: bool = False) -> None:
+def check_free_name(path: Path, what: str, *, overwrite: bool = False, kind: str = "file") -> None:
     """Refuse a companion file (a sidecar, a checkpoint) that exists and may not be replaced.
 
     Raises:
@@ -269,7 +264,7 @@ def check_free_name(path: Path, what: str, *, overwrite: bool = False) -> None:
     if not overwrite:
         raise OutputExists(f"{what} {path}: exists; give --overwrite to replace it")
     if not written_by_pemviz(path):
-        raise ValueError(f"{what} {path}: exists and is not a file pemviz wrote; not replacing it")
+        raise ValueError(f"{what} {path}: exists and is not a {kind} pemviz wrote; not replacing it")
 
 
 def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Exception]) -> dict:

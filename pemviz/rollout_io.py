@@ -52,7 +52,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -63,6 +62,7 @@ from typing import Any, Mapping
 import numpy as np
 
 import pemviz
+from pemviz.data import sha256_file
 from pemviz.files import atomic_write, check_free_name, check_output_path, commit_files, load_tagged, temp_file
 from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.scenarios import RolloutBatch
@@ -557,22 +557,13 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     except (pa.ArrowException, OSError) as exc:
         raise RolloutFormatError(f"{p}: not a readable Parquet file ({exc})") from None
     data = _Table(table, meta, str(p)).parse(p)
-    if meta.table_sha256 is not None and file_sha256(p) != meta.table_sha256:
+    if meta.table_sha256 is not None and sha256_file(p) != meta.table_sha256:
         raise RolloutFormatError(
             f"{p}: the table is not the one its sidecar {sidecar_path(p).name} was written with (table_sha256 "
             "differs): an interrupted or concurrent write; write it again (or drop table_sha256 from the sidecar "
             "if the table was changed on purpose)"
         )
     return data
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """SHA-256 hex digest of a file's bytes (the sidecar's ``table_sha256`` / ``proposal_sha256``)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def proposal_path(path: str | os.PathLike[str]) -> Path:
@@ -688,11 +679,11 @@ def write_rollouts(
         if proposal is not None:
             tmp_ckpt = stack.enter_context(temp_file(ckpt))
             _save_proposal_to(proposal, tmp_ckpt)
-            meta = dataclasses.replace(meta, proposal=ckpt.name, proposal_sha256=file_sha256(tmp_ckpt))
+            meta = dataclasses.replace(meta, proposal=ckpt.name, proposal_sha256=sha256_file(tmp_ckpt))
             pairs.append((tmp_ckpt, ckpt))
         tmp_table = stack.enter_context(temp_file(p))
         pq.write_table(table, tmp_table)
-        meta = dataclasses.replace(meta, table_sha256=file_sha256(tmp_table))
+        meta = dataclasses.replace(meta, table_sha256=sha256_file(tmp_table))
         pairs.append((tmp_table, p))
         tmp_side = stack.enter_context(temp_file(side))
         Path(tmp_side).write_text(json.dumps(meta.to_json(), indent=2, allow_nan=False) + "\n", encoding="utf-8")

@@ -103,7 +103,7 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
                              f"CKPT or one of {', '.join(rio.SAMPLERS)}")  # fmt: skip
         if q_ref not in rio.SAMPLERS:
             q_ref = str(_resolve(base, q_ref))
-            if meta.proposal_sha256 and Path(q_ref).is_file() and rio.file_sha256(q_ref) != meta.proposal_sha256:
+            if meta.proposal_sha256 and Path(q_ref).is_file() and rio.sha256_file(q_ref) != meta.proposal_sha256:
                 raise rio.RolloutFormatError(f"{q_ref}: not the proposal checkpoint the sidecar of {data.path} was "
                                              "written with (proposal_sha256 differs); write the rollouts again")
     if q_ref in rio.SAMPLERS:

@@ -170,7 +170,7 @@ def main(args: argparse.Namespace) -> int:
         where = recorder.close() if recorder is not None else None
         done = f"{len(experiment.stages)} stage(s) finished"
         raise interrupted(exc, f"{done}; recording {where} (marked interrupted)" if where else
-                          f"{done}; no rollouts written") from None
+                          f"{done}; nothing written") from None
     except BaseException:
         if recorder is not None:
             recorder.close(commit=False)
