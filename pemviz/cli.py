@@ -8,12 +8,14 @@ its parser and sets ``func(args) -> int`` as the parser default.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
+import signal
 import sys
 
 from pemviz import __version__
-from pemviz.commands import UsageError
+from pemviz.commands import Terminated, UsageError
 
 COMMAND_MODULES = (
     "pemviz.commands.run",
@@ -39,16 +41,63 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run one command; returns the exit status.
+
+    0 done; 1 a failure while working (a write error such as a full disk, out of memory), one line; 2 bad
+    input, one line, nothing written; 130 Ctrl-C and 143 SIGTERM, one line saying what was finished.
+    ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line.
+    """
+    previous = None
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        try:
+            previous = signal.signal(signal.SIGTERM, _raise_terminated)
+        except ValueError:  # not the main thread (pemviz called from a worker thread): leave it
+            pass
     try:
+        return _run(argv)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(argv: list[str] | None) -> int:
+    name = "pemviz"
+    try:
+        args = build_parser().parse_args(argv)
+        name = f"pemviz {args.command}"
         return int(args.func(args) or 0)
+    except KeyboardInterrupt as exc:
+        if os.environ.get("PEMVIZ_DEBUG"):
+            raise
+        how, code = ("SIGTERM", 143) if isinstance(exc, Terminated) else ("Ctrl-C", 130)
+        done = f"; {exc.args[0]}" if exc.args else "; nothing written"
+        print(f"{name}: interrupted ({how}){done}", file=sys.stderr)
+        return code
     except (UsageError, ValueError, FileNotFoundError) as exc:  # bad input: one line, no traceback
         if os.environ.get("PEMVIZ_DEBUG"):
             raise
-        print(f"pemviz {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{name}: error: {exc}", file=sys.stderr)
         return 2
+    except (OSError, MemoryError) as exc:  # while working: a write error, a full disk, out of memory
+        if os.environ.get("PEMVIZ_DEBUG"):
+            raise
+        if isinstance(exc, MemoryError):
+            what = "out of memory; nothing partial was left"
+        elif exc.errno in WRITE_ERRNOS:
+            where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+            what = f"cannot write{where}: {exc.strerror or exc}; nothing partial was left"
+        else:
+            what = str(exc)
+        print(f"{name}: failed: {what}", file=sys.stderr)
+        return 1
+
+
+WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from pemviz.files import atomic_write
+from pemviz.files import write_rrd
 from pemviz.pem import (
     PEM_RECIPES,
     NormStats,
@@ -575,19 +575,8 @@ def log_recording(result: EvalResult, stream: Any) -> None:
 
 
 def write_recording(result: EvalResult, path: str | os.PathLike[str]) -> Path:
-    """Write the rerun recording of :func:`log_recording` to ``path`` (via ``path.partial``, then renamed)."""
-    import rerun as rr
-
-    def write(tmp: str) -> None:
-        stream = rr.RecordingStream(APP_ID)
-        stream.set_log_time_enabled(False)
-        stream.set_log_tick_enabled(False)
-        stream.save(tmp)
-        log_recording(result, stream)
-        stream.flush()
-        stream.disconnect()
-
-    return atomic_write(path, write)
+    """Write the rerun recording of :func:`log_recording` to ``path`` (:func:`pemviz.files.write_rrd`)."""
+    return write_rrd(path, lambda stream: log_recording(result, stream), app_id=APP_ID)
 
 
 def summary_lines(result: EvalResult) -> Sequence[str]:

@@ -30,3 +30,14 @@ def output_folder(path: str | Path, flag: str = "--out") -> Path:
     except OSError as exc:
         raise UsageError(f"{flag} {out}: cannot write there ({exc.strerror or exc})") from None
     return out
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``timeout``, CI, containers), raised where Python runs, handled like Ctrl-C: the command
+    finishes what can be finished (a recording marked interrupted), says so in one line, exit status 143."""
+
+
+def interrupted(exc: KeyboardInterrupt, done: str) -> KeyboardInterrupt:
+    """The same interrupt (Ctrl-C or :class:`Terminated`) carrying what the command finished, for the one line
+    the command line prints."""
+    return type(exc)(done)

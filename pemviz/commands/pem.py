@@ -72,14 +72,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _check_out_path(out: Path) -> None:
+    """``--out`` of ``pem train``: a ``.pt`` file that can be written (checked before training; it is replaced)."""
     from pemviz.cli import UsageError
+    from pemviz.files import check_output_path
 
-    if out.suffix != ".pt":
-        raise UsageError(f"--out {out}: the weights file must end in .pt")
-    if out.is_dir():
-        raise UsageError(f"--out {out}: is a directory")
-    if not out.parent.is_dir():
-        raise UsageError(f"--out {out}: folder {out.parent} does not exist")
+    try:
+        check_output_path(out, ".pt", "--out", overwrite=True)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def train_main(args: argparse.Namespace) -> int:
@@ -178,26 +178,27 @@ def eval_main(args: argparse.Namespace) -> int:
         summary_lines,
         write_recording,
     )
-    from pemviz.files import write_text_atomic
+    from pemviz.files import check_output_folder, check_output_path, write_text_atomic
 
     config = eval_config_from_args(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: exists and is not a folder")
     rrd = None if args.no_record else (Path(args.save) if args.save else out / "pem-eval.rrd")
-    if rrd is not None:
-        if rrd.suffix != ".rrd":
-            raise UsageError(f"--save {rrd}: the recording must be a .rrd file")
-        if rrd.parent != out and not rrd.parent.is_dir():
-            raise UsageError(f"--save {rrd}: folder {rrd.parent} does not exist")
+    from pemviz.commands import output_folder
+
+    out = output_folder(out)  # created like validate's and tables' --out
+    try:  # every output checked before the cross-validation (the reports are regenerated in place)
+        check_output_folder(out, ("pem-eval.md", "pem-eval.csv"))
+        if rrd is not None:
+            check_output_path(rrd, ".rrd", "--save", overwrite=True)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     try:
         data = load_salient_data(args.data_dir)
     except (DataError, FileNotFoundError) as exc:
         print(f"pemviz pem eval: error: {exc}", file=sys.stderr)
         return 1
-    from pemviz.commands import output_folder
-
-    out = output_folder(out)  # created like validate's and tables' --out
     print(
         f"cross-validating {', '.join(config.models)} on folds {list(config.fold_ids)} of {config.n_splits} "
         f"({len(data)} rows from {data.inputs_path.parent})",

@@ -51,6 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--save-rollouts", dest="save_rollouts", default=None, metavar="PATH.parquet",
         help="write the final batch's rollouts (with log_p, log_q) for `pemviz estimate` (format: pemviz.rollout_io)",
     )  # fmt: skip
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing --save / --save-rollouts files (only files pemviz wrote)")
     add_recording_args(p)
     p.set_defaults(func=main)
 
@@ -166,13 +168,18 @@ def web_viewer_url(grpc_url: str, web_port: int) -> str:
     return f"http://127.0.0.1:{web_port}/?url={quote(grpc_url, safe='')}"
 
 
-def check_save_path(path: Path) -> Path:
+FLAGS = {"n_stages": "--k", "n_per_stage": "--n", "n_final": "--n-final", "quantile_level": "--sigma",
+         "smoothing": "--alpha", "ce_epochs": "--ce-epochs", "ray_address": "--ray-address"}
+"""Config fields whose flag is not ``--`` + the field name."""
+
+
+def check_save_path(path: Path, overwrite: bool = False) -> Path:
     """Refuse a recording path that cannot be written, before any work starts (nothing is created)."""
     from pemviz.commands import UsageError
     from pemviz.files import check_output_path
 
     try:
-        return check_output_path(path, ".rrd", "--save")
+        return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
 
@@ -180,11 +187,14 @@ def check_save_path(path: Path) -> Path:
 def default_recording_path(cfg: ExperimentConfig, preset: str, folder: Path = Path("recordings")) -> Path:
     """``recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd``: the name says what ran; a name
     already taken (two runs in one second) gets ``-2``, ``-3``, ... so a default name never collides."""
-    stem = f"{cfg.method}-{preset}-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-{datetime.now():%Y%m%d-%H%M%S}"
-    path, i = folder / f"{stem}.rrd", 1
-    while path.exists() or path.with_name(path.name + ".partial").exists():
-        i += 1
-        path = folder / f"{stem}-{i}.rrd"
+    return free_default_path(folder, f"{cfg.method}-{preset}-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-{datetime.now():%Y%m%d-%H%M%S}")
+
+
+def free_default_path(folder: Path, stem: str, suffix: str = ".rrd") -> Path:
+    """``folder/stem.rrd``, or ``stem-2.rrd``, ``stem-3.rrd`` ... when taken: default names never replace a file."""
+    path, k = folder / f"{stem}{suffix}", 2
+    while path.exists():
+        path, k = folder / f"{stem}-{k}{suffix}", k + 1
     return path
 
 
@@ -226,7 +236,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:
-        raise UsageError(str(exc)) from None
+        flag = FLAGS.get(exc.field or "", f"--{(exc.field or '').replace('_', '-')}")
+        raise UsageError(f"{flag}: {exc}" if exc.field else str(exc)) from None
     if args.pem is not None:
         from pemviz.pem import shipped_pems
 
@@ -237,6 +248,9 @@ def main(args: argparse.Namespace) -> int:
 
         if importlib.util.find_spec("ray") is None:
             raise UsageError("--executor ray: Ray is not installed (pip install ray)")
+        from pemviz.executors import probe_ray_address
+
+        probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
         from pemviz.rollout_io import RolloutSink
@@ -247,9 +261,9 @@ def main(args: argparse.Namespace) -> int:
         if n_final > STREAM_ABOVE:  # such batches are streamed in chunks, never held whole
             raise UsageError(f"--save-rollouts: at most {STREAM_ABOVE} final rollouts can be saved, got {n_final}")
         try:
-            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem)
+            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite)
         except ValueError as exc:
-            raise UsageError(f"--save-rollouts {exc}") from None
+            raise UsageError(str(exc)) from None
 
     target = recording_target(args)
     save_path = None
@@ -258,20 +272,25 @@ def main(args: argparse.Namespace) -> int:
             Path("recordings").mkdir(exist_ok=True)
             save_path = check_save_path(default_recording_path(cfg, args.preset))
         else:
-            save_path = check_save_path(Path(args.save))
+            save_path = check_save_path(Path(args.save), args.overwrite)
     elif target == "connect":
         args.url = probe_viewer(args.url)
 
-    from pemviz.engine import Experiment
+    from pemviz.commands import interrupted
+    from pemviz.engine import STREAM_ABOVE, Experiment
+    from pemviz.resources import check_run_memory
+    from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
 
+    check_run_memory(cfg, BrakingParams().n_steps, stream_above=STREAM_ABOVE if cfg.executor == "serial" else None)
+    experiment = Experiment(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
     recorder = None
     if target != "no-record":
         from pemviz.sinks.recording import RerunSink
 
         if target == "save":
-            recorder = RerunSink.to_file(save_path)
+            recorder = RerunSink.to_file(save_path, overwrite=args.overwrite)
         elif target == "stdout":
             recorder = RerunSink.to_stdout()
         elif target == "connect":
@@ -282,21 +301,33 @@ def main(args: argparse.Namespace) -> int:
         listeners.append(recorder)
     if rollout_sink is not None:
         listeners.append(rollout_sink)
+    experiment.listeners[:0] = listeners
     try:
-        Experiment(cfg, listeners).run()
-        if rollout_sink is not None and rollout_sink.written is not None:
-            for path in rollout_files(rollout_sink.written):
-                print(f"rollouts: {path}", file=sys.stderr)
-        elif rollout_sink is not None and rollout_sink.skipped:
-            print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
-        if target == "serve":
-            print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
-            import rerun as rr
-
-            rr.script_teardown(args)  # waits for Ctrl-C
-    finally:
+        experiment.run()
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
+        where = recorder.close() if recorder is not None else None
+        done = f"{len(experiment.stages)} stage(s) finished"
+        raise interrupted(exc, f"{done}; recording {where} (marked interrupted)" if where else
+                          f"{done}; nothing written") from None
+    except BaseException:
         if recorder is not None:
-            where = recorder.close()
-            if where is not None:
-                print(f"recording: {where}", file=sys.stderr)
+            recorder.close(commit=False)
+        raise
+    if rollout_sink is not None and rollout_sink.written is not None:
+        for path in rollout_files(rollout_sink.written):
+            print(f"rollouts: {path}", file=sys.stderr)
+    elif rollout_sink is not None and rollout_sink.skipped:
+        print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
+    if target == "serve":
+        print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        import rerun as rr
+
+        try:
+            rr.script_teardown(args)  # waits for Ctrl-C
+        except KeyboardInterrupt:
+            pass
+    if recorder is not None:
+        where = recorder.close()
+        if where is not None:
+            print(f"recording: {where}", file=sys.stderr)
     return 0

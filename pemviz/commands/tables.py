@@ -19,7 +19,6 @@ import argparse
 import csv
 import io
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -43,6 +42,8 @@ from pemviz.commands.validate import (
     write_atomic,
 )
 from pemviz.config import METRICS, PRESETS, ExperimentConfig
+from pemviz.files import check_output_folder
+from pemviz.resources import cap_jobs
 from pemviz.sampling import format_probability
 
 FIG4_STAGE = 3
@@ -174,40 +175,40 @@ def write_recording(path: Path, specs: Sequence[RowSpec], records: dict[str, lis
     """Every adaptive repetition's per-stage proposal curves and Fig. 4 into a rerun file (atomic)."""
     import rerun as rr
 
-    partial = path.with_name(path.name + ".partial")
-    stream = rr.RecordingStream("pemviz-tables")
-    stream.save(partial)
+    from pemviz.files import write_rrd
+
     gap_mm = rr.TimeColumn("gap_mm", sequence=np.round(grid * 1000).astype(np.int64))
+    write_rrd(path, lambda stream: _log_tables(stream, gap_mm, specs, records, pem_curve, description),
+              app_id="pemviz-tables")
+
+
+def _log_tables(stream, gap_mm, specs, records, pem_curve, description) -> None:  # type: ignore[no-untyped-def]
+    import rerun as rr
 
     def curve(entity: str, values: np.ndarray, colour, name: str) -> None:
         stream.log(entity, rr.SeriesLines(colors=[colour], names=[name], widths=[2.0]), static=True)
         stream.send_columns(entity, indexes=[gap_mm], columns=rr.Scalars.columns(scalars=np.asarray(values, float)))
 
-    try:
-        stream.log("description", rr.TextDocument(description, media_type=rr.MediaType.MARKDOWN), static=True)
-        curve("fig4/pem", pem_curve, PEM_RGBA, "PEM p(detect | d)")
-        for spec in specs:
-            recs = [r for r in records[spec.label] if r.curves is not None]
-            if not recs:
-                continue
-            key = spec.label.replace(" ", "_").replace("(", "").replace(")", "")
-            for r in recs:
-                n_stages = r.curves.shape[0] - 1
-                for k, c in enumerate(r.curves):
-                    curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_colour(k, n_stages),
-                          f"{spec.label} rep {r.seed} stage {k}")  # fmt: skip
-            metric = dict(spec.fields).get("metric", "classic")
-            preset = spec.label[spec.label.index("(") + 1 : -1] if spec.label.endswith(")") else None
-            if spec.label.startswith(("adaptive", "r_")) and all(r.curves.shape[0] > FIG4_STAGE for r in recs):
-                mean = np.mean([r.curves[FIG4_STAGE] for r in recs], axis=0)
-                where = f"fig4/{metric}" if preset is None else f"fig4/{preset}/{metric}"
-                curve(where, mean, METRIC_RGBA.get(metric, (120, 120, 120, 255)),
-                      f"{metric}{'' if preset is None else f' ({preset})'}: mean q(detect | d) at stage {FIG4_STAGE} "
-                      f"over {len(recs)} repetitions")  # fmt: skip
-        stream.flush()
-    finally:
-        stream.disconnect()
-    os.replace(partial, path)
+    stream.log("description", rr.TextDocument(description, media_type=rr.MediaType.MARKDOWN), static=True)
+    curve("fig4/pem", pem_curve, PEM_RGBA, "PEM p(detect | d)")
+    for spec in specs:
+        recs = [r for r in records[spec.label] if r.curves is not None]
+        if not recs:
+            continue
+        key = spec.label.replace(" ", "_").replace("(", "").replace(")", "")
+        for r in recs:
+            n_stages = r.curves.shape[0] - 1
+            for k, c in enumerate(r.curves):
+                curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_colour(k, n_stages),
+                      f"{spec.label} rep {r.seed} stage {k}")  # fmt: skip
+        metric = dict(spec.fields).get("metric", "classic")
+        preset = spec.label[spec.label.index("(") + 1 : -1] if spec.label.endswith(")") else None
+        if spec.label.startswith(("adaptive", "r_")) and all(r.curves.shape[0] > FIG4_STAGE for r in recs):
+            mean = np.mean([r.curves[FIG4_STAGE] for r in recs], axis=0)
+            where = f"fig4/{metric}" if preset is None else f"fig4/{preset}/{metric}"
+            curve(where, mean, METRIC_RGBA.get(metric, (120, 120, 120, 255)),
+                  f"{metric}{'' if preset is None else f' ({preset})'}: mean q(detect | d) at stage {FIG4_STAGE} "
+                  f"over {len(recs)} repetitions")  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -248,9 +249,7 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError("--jobs, --mc-large and --naive-large must be >= 1")
     if args.pem is not None and not Path(args.pem).is_file():
         raise UsageError(f"--pem {args.pem}: no such file")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out}: exists and is not a folder")
+    out = check_output_folder(args.out, ("tables.md", "tables.csv", "tables.rrd"))
     base = base_fields(args)
     from pemviz.commands import output_folder
 
@@ -259,6 +258,8 @@ def main(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
+    n_jobs = cap_jobs(args.jobs, say)
+
     t0 = time.perf_counter()
     say(f"{args.problem}: {PROBLEMS[args.problem]}")
     truth: ExactAnswer = exact_answer(args.problem, args.pem, progress=say)
@@ -266,7 +267,7 @@ def main(args: argparse.Namespace) -> int:
     specs = row_specs(base, extra, args.mc_large, args.naive_large)
     jobs = [Job(args.problem, s.label, s.fields, seed, keep_curves=True, pem_path=args.pem)
             for s in specs for seed in range(args.reps)]  # fmt: skip
-    say(f"{len(jobs)} runs on {args.jobs} process(es)")
+    say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
         say(f"  {r.method:28s} rep {r.seed}: mu_hat {format_probability(r.log_mu_hat)} {r.n_failures}/{r.n} failures "
@@ -274,7 +275,7 @@ def main(args: argparse.Namespace) -> int:
 
     # the slow (adaptive) runs first so that two workers finish together
     order = sorted(range(len(jobs)), key=lambda i: dict(jobs[i].fields).get("method", "adaptive") != "adaptive")
-    done = run_jobs([jobs[i] for i in order], args.jobs, on_record, runs_file=out / RUNS_FILE, progress=True)
+    done = run_jobs([jobs[i] for i in order], n_jobs, on_record, runs_file=out / RUNS_FILE, progress=True)
     by_label: dict[str, list[RunRecord]] = {s.label: [] for s in specs}
     for r in sorted(done, key=lambda r: r.seed):
         by_label[r.method].append(r)
@@ -306,7 +307,7 @@ def main(args: argparse.Namespace) -> int:
         markdown(rows_all, "III"),
         "",
         *(["## Exact answer: refinement", "", truth.table, ""] if truth.table else []),
-        f"Wall time {wall:.0f} s on {args.jobs} process(es).",
+        f"Wall time {wall:.0f} s on {n_jobs} process(es).",
     ]) + "\n"  # fmt: skip
     print(text)
     write_atomic(out / "tables.md", text)

@@ -26,7 +26,8 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from pemviz.config import DEFAULT_PRESET, PRESETS, ConfigError, ExperimentConfig
-from pemviz.files import write_text_atomic
+from pemviz.files import check_output_folder, write_text_atomic
+from pemviz.resources import cap_jobs
 
 # -- problems with an exact answer ------------------------------------------------------------------------------
 
@@ -465,8 +466,9 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError("--seeds and --jobs must be >= 1")
     if args.pem is not None and not Path(args.pem).is_file():
         raise UsageError(f"--pem {args.pem}: no such file")
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        raise UsageError(f"--out {args.out}: exists and is not a folder")
+    out_dir = Path(args.out) if args.out else None
+    if out_dir is not None:
+        check_output_folder(out_dir, ("validate.md", "validate.csv"))
     base = base_fields(args)
     methods = methods_for(presets, baselines, base)
     if not methods:
@@ -478,6 +480,7 @@ def main(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
+    n_jobs = cap_jobs(args.jobs, say)
     t0 = time.perf_counter()
     truths: dict[str, ExactAnswer] = {}
     for name in problems:
@@ -486,7 +489,7 @@ def main(args: argparse.Namespace) -> int:
         say(f"  truth {math.exp(truths[name].log_p_fail):.6g} ({truths[name].source})")
     jobs = [Job(pb, label, tuple(sorted(fields.items())), seed, pem_path=args.pem)
             for pb in problems for label, fields in methods for seed in range(args.seeds)]  # fmt: skip
-    say(f"{len(jobs)} runs on {args.jobs} process(es)")
+    say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
         err = relative_error(r.log_mu_hat, truths[r.problem].log_p_fail)
@@ -495,7 +498,7 @@ def main(args: argparse.Namespace) -> int:
         say(f"  {r.problem:9s} {r.method:22s} seed {r.seed}: mu_hat {format_probability(r.log_mu_hat)} "
             f"(rel. error {err:.3f}), {r.n_failures}/{r.n} failures, {r.wall_s:.1f} s")  # fmt: skip
 
-    records = run_jobs(jobs, args.jobs, on_record, runs_file=out_dir / RUNS_FILE, progress=True)
+    records = run_jobs(jobs, n_jobs, on_record, runs_file=out_dir / RUNS_FILE, progress=True)
     summaries = summarise(records, truths)
     md = [f"# pemviz validate: {args.seeds} seeds, equal budgets ({summaries[0].n_simulations:,} simulations)", ""]
     for name in problems:
