@@ -84,6 +84,10 @@ class Row:
     ess: float
     log_truth: float
     wall_s: float
+    covered: int = 0
+    """Repetitions whose 95 % interval holds the exact answer."""
+    reliable: int = 0
+    """Repetitions whose verdict is ``reliable``."""
 
 
 def log_mean_and_se(logs: Sequence[float]) -> tuple[float, float]:
@@ -110,6 +114,7 @@ def summarise_row(spec: RowSpec, records: Sequence[RunRecord], log_truth: float)
         spec.table, spec.label, len(records), log_mean, log_se, float(np.mean([r.n_failures for r in records])),
         records[0].n, float(np.mean(nll)) if nll else math.nan, float(np.mean(lme)) if lme else math.nan,
         float(np.mean([r.ess for r in records])), log_truth, float(np.sum([r.wall_s for r in records])),
+        sum(r.log_ci_lo <= log_truth <= r.log_ci_hi for r in records), sum(r.verdict == "reliable" for r in records),
     )  # fmt: skip
 
 
@@ -144,15 +149,16 @@ def _fmt_row(r: Row) -> list[str]:
     nll = "-" if math.isnan(r.nll_mean) else f"{r.nll_mean:.1f}"
     lme = "-" if math.isnan(r.nll_lme) else f"{r.nll_lme:.1f}"
     return [r.label, f"{format_probability(r.log_mean, 3)}{se}", f"{r.mean_failures:.1f}/{r.n}", nll, lme,
-            f"{r.ess:.1f}", format_probability(r.log_truth, 4), ratio]  # fmt: skip
+            f"{r.ess:.1f}", format_probability(r.log_truth, 4), ratio, f"{r.covered}/{r.reps}",
+            f"{r.reliable}/{r.reps}"]  # fmt: skip
 
 
 HEADER = ("method", "mu_hat (+- s.e.)", "failures", "NLL mean", "NLL -log-mean-exp", "ESS", "exact p_fail",
-          "mean / exact")  # fmt: skip
+          "mean / exact", "95% CI covers", "reliable")  # fmt: skip
 
 
 def markdown(rows: Sequence[Row], table: str) -> str:
-    lines = ["| " + " | ".join(HEADER) + " |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| " + " | ".join(HEADER) + " |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     lines += ["| " + " | ".join(_fmt_row(r)) + " |" for r in rows if r.table == table]
     return "\n".join(lines)
 
@@ -162,11 +168,12 @@ def csv_text(rows: Sequence[Row]) -> str:
     w = csv.writer(buf)
     w.writerow(["table", "method", "reps", "mu_hat_mean", "mu_hat_se", "log_mu_hat_mean", "log_mu_hat_se",
                 "mean_failures", "n", "nll_mean", "nll_log_mean_exp", "ess", "exact_p_fail", "log_exact_p_fail",
-                "wall_s"])  # fmt: skip
+                "wall_s", "covered", "reliable"])  # fmt: skip
     for r in rows:
         w.writerow([r.table, r.label, r.reps, format_probability(r.log_mean, 6), format_probability(r.log_se, 6),
                     repr(r.log_mean), repr(r.log_se), r.mean_failures, r.n, r.nll_mean, r.nll_lme, r.ess,
-                    format_probability(r.log_truth, 6), repr(r.log_truth), f"{r.wall_s:.2f}"])  # fmt: skip
+                    format_probability(r.log_truth, 6), repr(r.log_truth), f"{r.wall_s:.2f}", r.covered,
+                    r.reliable])  # fmt: skip
     return buf.getvalue()
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from pemviz.config import DEFAULT_PRESET, PRESETS, ConfigError, ExperimentConfig
 from pemviz.files import check_output_folder, write_text_atomic
 from pemviz.resources import cap_jobs
+from pemviz.sampling import relative_error
 
 # -- problems with an exact answer ------------------------------------------------------------------------------
 
@@ -148,6 +149,12 @@ class RunRecord:
     wall_s: float
     gammas: tuple[float, ...] = ()
     curves: np.ndarray | None = field(default=None, repr=False)
+    log_ci_lo: float = -math.inf
+    """The estimate's 95 % interval as natural logs (:attr:`pemviz.sampling.Estimate.log_ci`)."""
+    log_ci_hi: float = 0.0
+    khat: float = math.nan
+    verdict: str = "unreliable"
+    reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -179,7 +186,8 @@ def run_job(job: Job) -> RunRecord:
     curves = np.stack([s.proposal_curve for s in res.stages]) if job.keep_curves and cfg.method == "adaptive" else None
     gammas = tuple(float(s.gamma) for s in res.stages if s.kind == "ce")
     return RunRecord(job.problem, job.method, job.seed, e.log_mu_hat, e.n_failures, e.n, e.ess, e.nll_mean, e.nll_lme,
-                     res.final.n_simulations, time.perf_counter() - t0, gammas, curves)  # fmt: skip
+                     res.final.n_simulations, time.perf_counter() - t0, gammas, curves, *e.log_ci, e.khat, e.verdict,
+                     e.reason)  # fmt: skip
 
 
 RUNS_FILE = "runs.jsonl"
@@ -306,13 +314,10 @@ class Summary:
     median_ess: float
     n_simulations: int
     median_wall_s: float
-
-
-def relative_error(log_mu_hat: float, log_truth: float) -> float:
-    """|mu_hat - truth| / truth computed from logs (1.0 when mu_hat = 0)."""
-    if log_mu_hat == -math.inf:
-        return 1.0
-    return abs(math.expm1(log_mu_hat - log_truth))
+    covered: int
+    """Seeds whose 95 % interval holds the exact answer."""
+    reliable: int
+    """Seeds whose verdict is ``reliable``."""
 
 
 def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> list[Summary]:
@@ -331,20 +336,23 @@ def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> l
                 int(sum(abs(x - lt) <= math.log(2.0) for x in logs)),
                 float(np.median([r.n_failures for r in rs])), rs[0].n, float(np.median([r.ess for r in rs])),
                 int(np.median([r.n_simulations for r in rs])), float(np.median([r.wall_s for r in rs])),
+                sum(r.log_ci_lo <= lt <= r.log_ci_hi for r in rs), sum(r.verdict == "reliable" for r in rs),
             )
         )  # fmt: skip
     return out
 
 
 COLUMNS = ("problem", "truth", "method", "seeds", "median mu_hat", "min mu_hat", "max mu_hat", "median rel. error",
-           "within x2", "median failures", "median ESS", "simulations", "median wall s")  # fmt: skip
+           "within x2", "95% CI covers", "reliable", "median failures", "median ESS", "simulations",
+           "median wall s")  # fmt: skip
 
 
 def _row(s: Summary) -> list[str]:
     from pemviz.sampling import format_probability as fp
 
     return [s.problem, fp(s.log_truth), s.method, str(s.n_seeds), fp(s.median_mu_hat), fp(s.min_mu_hat),
-            fp(s.max_mu_hat), f"{s.median_rel_error:.3f}", f"{s.within_2x}/{s.n_seeds}",
+            fp(s.max_mu_hat), f"{s.median_rel_error:.3f}", f"{s.within_2x}/{s.n_seeds}", f"{s.covered}/{s.n_seeds}",
+            f"{s.reliable}/{s.n_seeds}",
             f"{s.median_failures:g}/{s.n_per_estimate}", f"{s.median_ess:.1f}", f"{s.n_simulations:,}",
             f"{s.median_wall_s:.1f}"]  # fmt: skip
 
@@ -359,12 +367,13 @@ def csv_text(summaries: Sequence[Summary]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["problem", "log_truth", "truth", "method", "seeds", "median_log_mu_hat", "min_log_mu_hat",
-                "max_log_mu_hat", "median_mu_hat", "median_rel_error", "within_2x", "median_failures", "n_per_estimate",
+                "max_log_mu_hat", "median_mu_hat", "median_rel_error", "within_2x", "covered", "reliable",
+                "median_failures", "n_per_estimate",
                 "median_ess", "simulations", "median_wall_s"])  # fmt: skip
     for s in summaries:
         w.writerow([s.problem, repr(s.log_truth), f"{math.exp(s.log_truth):.6g}", s.method, s.n_seeds,
                     repr(s.median_mu_hat), repr(s.min_mu_hat), repr(s.max_mu_hat),
-                    f"{math.exp(s.median_mu_hat):.6g}", f"{s.median_rel_error:.6g}", s.within_2x,
+                    f"{math.exp(s.median_mu_hat):.6g}", f"{s.median_rel_error:.6g}", s.within_2x, s.covered, s.reliable,
                     s.median_failures, s.n_per_estimate, f"{s.median_ess:.6g}", s.n_simulations,
                     f"{s.median_wall_s:.3f}"])  # fmt: skip
     return buf.getvalue()
