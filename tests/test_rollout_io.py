@@ -365,3 +365,22 @@ def test_writer_refuses_bad_rollouts_and_leaves_no_file(tmp_path, pem):
     Path(tmp_path / "junk.json").write_text(json.dumps({"formula": "G[0,99](d >= 2)", "dt_s": 0.05}))
     with pytest.raises(rio.RolloutFormatError, match="not a readable Parquet file"):
         rio.read_rollouts(tmp_path / "junk.parquet")
+
+
+def test_estimate_with_a_proposal_that_did_not_draw_the_file_is_refused_in_one_line(tmp_path, capsys):
+    # rollouts drawn by the adaptive proposal, re-weighted as if a 50 % detector had drawn them: every detection
+    # then weighs p / 0.5 ~ 2, the mean importance weight is astronomically above its expectation 1 and mu_hat > 1
+    rollouts = tmp_path / "adaptive.parquet"
+    code = cli.main(["run", "--preset", "quick", "--k", "3", "--n-final", "60", "--seed", "1", "--no-record",
+                     "--save-rollouts", str(rollouts)])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    capsys.readouterr()
+    code, out, err = estimate_cli(capsys, str(rollouts), "--pem", "ml-nn", "--proposal", "naive50", "--no-record")
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert "does not match the one that sampled the file" in lines[0] and "mean importance weight" in lines[0]
+    assert out == ""
+    code, out, err = estimate_cli(capsys, str(rollouts), "--no-record")  # its own log_q columns: a plausible answer
+    assert code == 0, err
+    assert re.search(r"^mu_hat = \S+, 95% CI \[\S+, \S+\], ESS \S+, k-hat \S+: (reliable|doubtful|unreliable) \(",
+                     out, re.M)  # fmt: skip
