@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO
+from pemviz.cli import main as cli_main
 from pemviz.commands.run import default_recording_path, web_viewer_url
 from pemviz.config import ExperimentConfig
 
@@ -46,19 +47,22 @@ def free_port() -> int:
         (("--url", "http://127.0.0.1:9876"), "not a rerun viewer URL"),
     ],
 )
-def test_bad_recording_flags_give_one_line_and_exit_2_before_any_work(tmp_path: Path, flags, named) -> None:
-    proc = pemviz("run", *QUICK, *flags, cwd=tmp_path, timeout=60)
-    assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.count("\n") == 1 and named in proc.stderr, proc.stderr
-    assert proc.stdout == "" and list(tmp_path.iterdir()) == []
+def test_bad_recording_flags_give_one_line_and_exit_2_before_any_work(tmp_path, monkeypatch, capsys, flags, named):
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(["run", *QUICK, *flags]) == 2
+    out, err = capsys.readouterr()
+    assert err.count("\n") == 1 and named in err, err
+    assert out == "" and list(tmp_path.iterdir()) == []
 
 
-def test_connect_to_a_port_where_no_viewer_listens_fails_fast_with_one_line(tmp_path: Path) -> None:
+def test_connect_to_a_port_where_no_viewer_listens_fails_fast_with_one_line(tmp_path, monkeypatch, capsys) -> None:
+    monkeypatch.chdir(tmp_path)
     url = f"rerun+http://127.0.0.1:{free_port()}/proxy"
     start = time.monotonic()
-    proc = pemviz("run", *QUICK, "--connect", url, cwd=tmp_path, timeout=60)
-    assert proc.returncode == 2 and time.monotonic() - start < 30, proc.stderr
-    assert proc.stderr.count("\n") == 1 and f"--connect {url}: no rerun viewer there" in proc.stderr
+    assert cli_main(["run", *QUICK, "--connect", url]) == 2
+    assert time.monotonic() - start < 30
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--connect {url}: no rerun viewer there" in err, err
     assert list(tmp_path.iterdir()) == []
 
 
