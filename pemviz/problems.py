@@ -9,6 +9,7 @@ rollouts and sets the adaptive thresholds (spec section 3).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Iterator, Mapping
 
@@ -54,7 +55,9 @@ class Problem:
         signal_ranges: per-signal (lo, hi) for AGM's predicate normalisation.
         h_scale: the proposal's input is ``obs[:, 0] / h_scale`` (gap / 12 m for braking).
         curve_grid: values of ``obs[:, 0]`` where proposal and target curves are reported [G].
-        window: the mixed-50 baseline detects with 50 % where ``obs[:, 0] < window``.
+        window: where the detector can change the outcome: ``obs[:, 0] < window`` (the braking scenario's 10 m).
+            The proposal replaces the target only there (``proposal_window``) and the mixed-50 baseline detects
+            with 50 % there; the default, infinity, is everywhere.
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
         exact_log_p: natural log of the exact failure probability when it is known (closed form, enumeration),
             else None; shown beside every estimate.
@@ -68,7 +71,7 @@ class Problem:
     signal_ranges: Mapping[str, tuple[float, float]] = field(default_factory=lambda: dict(BRAKING_SIGNAL_RANGES))
     h_scale: float = 12.0
     curve_grid: np.ndarray = field(default_factory=lambda: np.linspace(0.0, 13.0, 131))
-    window: float = 10.0
+    window: float = math.inf
     stream: StreamFn | None = None
     exact_log_p: float | None = None
 
