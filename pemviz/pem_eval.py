@@ -1,6 +1,6 @@
 """PEM quality: 5-fold cross-validation of the PEM models (paper Table I) with calibration.
 
-Protocol (spec section 2, the authors' ``eval_kfold_class_models.py``): ``StratifiedKFold(n_splits=5)``
+Protocol (Innes & Ramamoorthy (2022), Table I; the authors' ``eval_kfold_class_models.py``): ``StratifiedKFold(n_splits=5)``
 on the detected label, folds in file order (no shuffle); every model is trained on 4 folds and scored on
 the fifth; the 14-dim encoding uses the z-score statistics of the full file. Per fold: BCE (nats), ROC-AUC,
 average precision (AP) and expected calibration error (ECE, 15 equal-width bins); the table reports the
@@ -286,7 +286,7 @@ def evaluate_pems(
     """Cross-validate the configured models (default :class:`EvalConfig`, the full protocol) on raw salient
     inputs ``[N, 11]`` and labels ``[N]``.
 
-    The z-score statistics are those of all ``N`` rows (spec section 2); folds from
+    The z-score statistics are those of all ``N`` rows (as the authors'); folds from
     :func:`stratified_folds`. ``on_fold(model, score)`` is called after each fit (for progress output).
     The authors' PEM curve is added when ``../shared/reference/carla-stuff-pem`` is present.
 
@@ -436,7 +436,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
     thick) and ``roc/data/<model>/fold_K`` (thin); ``reliability/data/<model>`` and ``.../bins`` (pooled
     reliability diagram: mean predicted p against observed detection rate per bin, point area ~ rows) and
     ``reliability/data/diagonal``; ``gap/data/<model>`` (mean over the fold models of p(detect | gap) for the
-    braking scenario's lead, spec section 2) and ``gap/data/authors`` (the authors' PEM);
+    braking scenario's lead) and ``gap/data/authors`` (the authors' PEM);
     ``folds/{bce,auc}/data/<model>`` (per-fold scores); ``<figure>/legend``; ``metrics/<model>`` (the
     numbers as ``AnyValues``).
     """

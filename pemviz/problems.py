@@ -4,7 +4,7 @@ A :class:`Problem` bundles a black-box simulation (``simulate(n, sampler, target
 detector whose probabilities weight the rollouts (the PEM), the safety requirement as an STL formula
 over named signals, and the proposal's input scale. The failure event is always classic robustness
 of the formula below 0 (for the braking spec: the gap drops below 2 m); the chosen metric only ranks
-rollouts and sets the adaptive thresholds (spec section 3).
+rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV).
 """
 
 from __future__ import annotations
@@ -96,13 +96,13 @@ class Problem:
 
 
 def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":
-    """``G[0,T-1](d >= 2)``: the gap never drops below the crash gap (spec section 3)."""
+    """``G[0,T-1](d >= 2)``: the gap never drops below the crash gap (Innes & Ramamoorthy (2022))."""
     p = params or BrakingParams()
     return stl.parse(f"G[0,{p.n_steps - 1}](d >= {p.crash_gap_m:g})")
 
 
 def braking_problem(pem: object, params: BrakingParams | None = None, sim: str = "batched") -> Problem:
-    """The automated-braking scenario of spec section 1 with the given PEM as target detector.
+    """The automated-braking scenario of Innes & Ramamoorthy (2022) with the given PEM as target detector.
 
     Raises:
         ValueError: for an unknown ``sim`` (allowed: :data:`SIMULATORS`).
