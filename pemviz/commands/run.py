@@ -137,9 +137,14 @@ def main(args: argparse.Namespace) -> int:
 
     save_path = None
     if not args.no_record and not args.serve and args.connect is None:
-        if args.save is None:
-            Path("recordings").mkdir(exist_ok=True)
-            save_path = check_save_path(default_recording_path(cfg))
+        if args.save is None:  # recordings/ is made once every check has passed
+            from pemviz.files import check_output_folder
+
+            save_path = default_recording_path(cfg)
+            try:
+                check_output_folder(save_path.parent, (save_path.name,), "recording folder")
+            except ValueError as exc:
+                raise UsageError(str(exc)) from None
         else:
             save_path = check_save_path(Path(args.save), args.overwrite)
 
@@ -157,6 +162,7 @@ def main(args: argparse.Namespace) -> int:
         from pemviz.sinks.recording import RerunSink
 
         if save_path is not None:
+            save_path.parent.mkdir(exist_ok=True)
             recorder = RerunSink.to_file(save_path, overwrite=args.overwrite)
         else:
             recorder = RerunSink.to_grpc(args.connect or None, serve=args.serve)
