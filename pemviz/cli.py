@@ -50,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
 
     0 done; 1 a failure while working (a write error such as a full disk, out of memory), one line; 2 bad
     input, one line, nothing written; 130 Ctrl-C and 143 SIGTERM, one line saying what was finished.
-    ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line.
+    ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line. Run as the program (``argv`` None), a signal
+    that comes once the command has ended is ignored, so the interpreter shuts down without a traceback.
     """
     previous = None
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
@@ -61,8 +62,23 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(argv)
     finally:
-        if previous is not None:
+        if argv is None:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        elif previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C / SIGTERM behind ``exc``: itself, or one it was raised from (an import machinery or a
+    library can wrap it, e.g. ``RuntimeError`` from ``__set_name__``)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _run(argv: list[str] | None) -> int:
@@ -71,30 +87,42 @@ def _run(argv: list[str] | None) -> int:
         args = build_parser().parse_args(argv)
         name = f"pemviz {args.command}"
         return int(args.func(args) or 0)
+    except Exception as exc:
+        interrupt = _interrupt_in(exc)
+        if interrupt is None or os.environ.get("PEMVIZ_DEBUG"):
+            return _failure(name, exc)
+        return _interrupted(name, interrupt)
     except KeyboardInterrupt as exc:
         if os.environ.get("PEMVIZ_DEBUG"):
             raise
-        how, code = ("SIGTERM", 143) if isinstance(exc, Terminated) else ("Ctrl-C", 130)
-        done = f"; {exc.args[0]}" if exc.args else "; nothing written"
-        print(f"{name}: interrupted ({how}){done}", file=sys.stderr)
-        return code
-    except (UsageError, ValueError, FileNotFoundError) as exc:  # bad input: one line, no traceback
-        if os.environ.get("PEMVIZ_DEBUG"):
-            raise
+        return _interrupted(name, exc)
+
+
+def _interrupted(name: str, exc: KeyboardInterrupt) -> int:
+    how, code = ("SIGTERM", 143) if isinstance(exc, Terminated) else ("Ctrl-C", 130)
+    done = f"; {exc.args[0]}" if exc.args else "; nothing written"
+    print(f"{name}: interrupted ({how}){done}", file=sys.stderr)
+    return code
+
+
+def _failure(name: str, exc: Exception) -> int:
+    """One line for bad input (exit 2) or a failure while working (exit 1); anything else is re-raised."""
+    if os.environ.get("PEMVIZ_DEBUG"):
+        raise exc
+    if isinstance(exc, (UsageError, ValueError, FileNotFoundError)):  # bad input: nothing written
         print(f"{name}: error: {exc}", file=sys.stderr)
         return 2
-    except (OSError, MemoryError) as exc:  # while working: a write error, a full disk, out of memory
-        if os.environ.get("PEMVIZ_DEBUG"):
-            raise
-        if isinstance(exc, MemoryError):
-            what = "out of memory; nothing partial was left"
-        elif exc.errno in WRITE_ERRNOS:
-            where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-            what = f"cannot write{where}: {exc.strerror or exc}; nothing partial was left"
-        else:
-            what = str(exc)
-        print(f"{name}: failed: {what}", file=sys.stderr)
-        return 1
+    if isinstance(exc, MemoryError):
+        what = "out of memory; nothing partial was left"
+    elif isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS:
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        what = f"cannot write{where}: {exc.strerror or exc}; nothing partial was left"
+    elif isinstance(exc, OSError):  # a connection refused, a device gone ...
+        what = str(exc)
+    else:
+        raise exc
+    print(f"{name}: failed: {what}", file=sys.stderr)
+    return 1
 
 
 WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}

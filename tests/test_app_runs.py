@@ -118,7 +118,7 @@ def test_config_from_values_casts_integral_floats_and_reports_the_configs_own_me
         ({"smoothing": 0.0}, "alpha must be in (0, 1]"),
         ({"quantile_level": 1.0}, "sigma must be in [0.5, 1)"),
         ({"n_per_stage": 1}, "N must be an integer >= 2"),
-        ({"n_stages": 2.5}, "K must be an integer >= 1"),
+        ({"n_stages": 2.5}, "K must be an integer in [1, 1000]"),
     ):
         with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
             config_from_values(values)

@@ -215,11 +215,16 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError(f"--metric {args.metric!r}: use one of {', '.join(METRICS)}")
     rollouts = Path(args.rollouts)
     save_path = None
-    if not args.no_record:
-        if args.save is None:
-            Path("recordings").mkdir(exist_ok=True)  # the default folder, as pemviz run makes it
-            save_path = default_recording_path(rollouts)
-        save_path = check_save_path(Path(args.save) if args.save is not None else save_path, args.overwrite)
+    if args.save is not None and not args.no_record:
+        save_path = check_save_path(Path(args.save), args.overwrite)
+    elif not args.no_record:  # recordings/ is made only once there is an estimate to record
+        from pemviz.files import check_output_folder
+
+        save_path = default_recording_path(rollouts)
+        try:
+            check_output_folder(save_path.parent, (save_path.name,), "recording folder")
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     data = rio.read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
     run_config = (data.meta.provenance or {}).get("config") or {}
@@ -230,6 +235,7 @@ def main(args: argparse.Namespace) -> int:
     lines = summary_lines(data, result, p_src, q_src)
     print("\n".join(lines), flush=True)
     if save_path is not None:
+        save_path.parent.mkdir(exist_ok=True)  # the default folder, as pemviz run makes it
         where = write_recording(save_path, data, result, lines, overwrite=args.overwrite)
         print(f"recording: {where}", file=sys.stderr)
     return 0

@@ -268,9 +268,14 @@ def main(args: argparse.Namespace) -> int:
     target = recording_target(args)
     save_path = None
     if target == "save":
-        if args.save is None:
-            Path("recordings").mkdir(exist_ok=True)
-            save_path = check_save_path(default_recording_path(cfg, args.preset))
+        if args.save is None:  # recordings/ is made once every check has passed
+            from pemviz.files import check_output_folder
+
+            save_path = default_recording_path(cfg, args.preset)
+            try:
+                check_output_folder(save_path.parent, (save_path.name,), "recording folder")
+            except ValueError as exc:
+                raise UsageError(str(exc)) from None
         else:
             save_path = check_save_path(Path(args.save), args.overwrite)
     elif target == "connect":
@@ -290,6 +295,7 @@ def main(args: argparse.Namespace) -> int:
         from pemviz.sinks.recording import RerunSink
 
         if target == "save":
+            save_path.parent.mkdir(parents=True, exist_ok=True)
             recorder = RerunSink.to_file(save_path, overwrite=args.overwrite)
         elif target == "stdout":
             recorder = RerunSink.to_stdout()
