@@ -452,7 +452,8 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
                         "unreliable", reason)  # fmt: skip
     lp = log_p_total[failed]
     log_sum = float(logsumexp(lw))
-    ess = math.exp(2 * log_sum - float(logsumexp(2 * lw)))
+    rel = np.exp(lw - lw.max())  # weights relative to the largest: finite whatever the scale of the logs
+    ess = float(rel.sum() ** 2 / np.square(rel).sum())
     nll_lme = -(float(logsumexp(lp)) - math.log(nf))
     log_y = np.where(failed, log_weight, -math.inf)
     if plain_mc:
@@ -498,7 +499,11 @@ def format_probability(log_p: float, digits: int = 3) -> str:
     """``1.234e-15`` from a natural log, exact also far below float64's range (``0`` for -inf)."""
     if log_p == -math.inf:
         return "0"
+    if math.isnan(log_p):
+        return "nan"
     l10 = log_p / math.log(10.0)
+    if abs(l10) > 1e9:  # the exponent itself would need more digits than fit on a line
+        return f"10^({l10:.{digits}e})"
     exponent = math.floor(l10)
     mantissa = 10 ** (l10 - exponent)
     if round(mantissa, digits) >= 10:
