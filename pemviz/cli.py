@@ -1,18 +1,21 @@
-"""The ``pemviz`` command line: ``pemviz run | serve | pem | data | ...``.
+"""pemviz: estimate the probability of rare safety failures of a perception-driven controller with a perception
+error model (PEM) and adaptive importance sampling, recorded for rerun and shown in a browser panel.
 
-Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds
+The command line ``pemviz run | serve | pem | data | estimate | validate | tables``. Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds
 its parser and sets ``func(args) -> int`` as the parser default.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
+import signal
 import sys
 
 from pemviz import __version__
-from pemviz.commands import UsageError
+from pemviz.commands import Terminated, UsageError
 
 COMMAND_MODULES = (
     "pemviz.commands.run",
@@ -26,7 +29,11 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="pemviz", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="pemviz",
+        description=__doc__.split("\n\n")[0].replace("\n", " "),
+        epilog="`pemviz COMMAND --help` describes a command; the user guide is in docs/ (mkdocs serve).",
+    )
     parser.add_argument("--version", action="version", version=f"pemviz {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name in COMMAND_MODULES:
@@ -34,16 +41,91 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run one command; returns the exit status.
+
+    0 done; 1 a failure while working (a write error such as a full disk, out of memory), one line; 2 bad
+    input, one line, nothing written; 130 Ctrl-C and 143 SIGTERM, one line saying what was finished.
+    ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line. Run as the program (``argv`` None), a signal
+    that comes once the command has ended is ignored, so the interpreter shuts down without a traceback.
+    """
+    previous = None
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        try:
+            previous = signal.signal(signal.SIGTERM, _raise_terminated)
+        except ValueError:  # not the main thread (pemviz called from a worker thread): leave it
+            pass
     try:
+        return _run(argv)
+    finally:
+        if argv is None:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        elif previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C / SIGTERM behind ``exc``: itself, or one it was raised from (an import machinery or a
+    library can wrap it, e.g. ``RuntimeError`` from ``__set_name__``)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _run(argv: list[str] | None) -> int:
+    name = "pemviz"
+    try:
+        args = build_parser().parse_args(argv)
+        name = f"pemviz {args.command}"
         return int(args.func(args) or 0)
-    except (UsageError, ValueError, FileNotFoundError) as exc:  # bad input: one line, no traceback
+    except Exception as exc:
+        interrupt = _interrupt_in(exc)
+        if interrupt is None or os.environ.get("PEMVIZ_DEBUG"):
+            return _failure(name, exc)
+        return _interrupted(name, interrupt)
+    except KeyboardInterrupt as exc:
         if os.environ.get("PEMVIZ_DEBUG"):
             raise
-        print(f"pemviz {args.command}: error: {exc}", file=sys.stderr)
+        return _interrupted(name, exc)
+
+
+def _interrupted(name: str, exc: KeyboardInterrupt) -> int:
+    how, code = ("SIGTERM", 143) if isinstance(exc, Terminated) else ("Ctrl-C", 130)
+    done = f"; {exc.args[0]}" if exc.args else "; nothing written"
+    print(f"{name}: interrupted ({how}){done}", file=sys.stderr)
+    return code
+
+
+def _failure(name: str, exc: Exception) -> int:
+    """One line for bad input (exit 2) or a failure while working (exit 1); anything else is re-raised."""
+    if os.environ.get("PEMVIZ_DEBUG"):
+        raise exc
+    if isinstance(exc, (UsageError, ValueError, FileNotFoundError)):  # bad input: nothing written
+        print(f"{name}: error: {exc}", file=sys.stderr)
         return 2
+    if isinstance(exc, MemoryError):
+        what = "out of memory; nothing partial was left"
+    elif isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS:
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        what = f"cannot write{where}: {exc.strerror or exc}; nothing partial was left"
+    elif isinstance(exc, OSError):  # a connection refused, a device gone ...
+        what = str(exc)
+    else:
+        raise exc
+    print(f"{name}: failed: {what}", file=sys.stderr)
+    return 1
+
+
+WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
 
 
 if __name__ == "__main__":

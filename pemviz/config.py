@@ -34,7 +34,23 @@ e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped
 
 
 class ConfigError(ValueError):
-    """An invalid experiment setting: the message says which, the value, and what is allowed."""
+    """An invalid experiment setting: the message says which, the value, and what is allowed.
+
+    Attributes:
+        field: the :class:`ExperimentConfig` attribute at fault (None when not one field).
+    """
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+MAX_SEED = 2**64 - 1
+"""Largest seed: torch's generator takes a 64-bit unsigned seed."""
+MAX_STAGES = 1_000
+"""Largest K: the paper uses 10; past a few dozen stages the proposal has long converged."""
+MAX_EPOCHS = 100_000
+"""Largest Adam epochs per stage (paper 500, authors' code 1000; 10^5 epochs take ~10 min a stage)."""
 
 
 @dataclass(frozen=True)
@@ -114,7 +130,8 @@ class ExperimentConfig:
     def __post_init__(self) -> None:
         def need(ok: bool, what: str, allowed: str) -> None:
             if not ok:
-                raise ConfigError(f"{what} = {getattr(self, what.split()[0])!r} is invalid: {allowed}")
+                name = what.split()[0]
+                raise ConfigError(f"{what} = {getattr(self, name)!r} is invalid: {allowed}", name)
 
         need(self.method in METHODS, "method", f"use one of {', '.join(METHODS)}")
         need(self.metric in METRICS, "metric", f"use one of {', '.join(METRICS)}")
@@ -134,11 +151,15 @@ class ExperimentConfig:
             "sigma must be in [0.5, 1)",
         )
         need(_is_int(self.n_per_stage) and self.n_per_stage >= 2, "n_per_stage (N)", "N must be an integer >= 2")
-        need(_is_int(self.n_stages) and self.n_stages >= 1, "n_stages (K)", "K must be an integer >= 1")
+        need(_is_int(self.n_stages) and 1 <= self.n_stages <= MAX_STAGES, "n_stages (K)",
+             f"K must be an integer in [1, {MAX_STAGES}]")
         need(_is_int(self.n_final) and self.n_final >= 1, "n_final (N_e)", "N_e must be an integer >= 1")
-        need(_is_int(self.seed) and self.seed >= 0, "seed", "seed must be an integer >= 0")
-        for name in ("ce_epochs", "pretrain_epochs", "pretrain_rollouts"):
-            need(_is_int(getattr(self, name)) and getattr(self, name) >= 1, name, "must be an integer >= 1")
+        need(_is_int(self.seed) and 0 <= self.seed <= MAX_SEED, "seed", "seed must be an integer in [0, 2^64 - 1]")
+        for name in ("ce_epochs", "pretrain_epochs"):
+            need(_is_int(getattr(self, name)) and 1 <= getattr(self, name) <= MAX_EPOCHS, name,
+                 f"must be an integer in [1, {MAX_EPOCHS}]")
+        need(_is_int(self.pretrain_rollouts) and self.pretrain_rollouts >= 1, "pretrain_rollouts",
+             "must be an integer >= 1")
         need(_is_real(self.learning_rate) and self.learning_rate > 0, "learning_rate", "must be > 0")
         need(self.proposal_inputs in PROPOSAL_INPUTS, "proposal_inputs", f"use one of {', '.join(PROPOSAL_INPUTS)}")
         need(

@@ -1,6 +1,6 @@
 """The KITTI salient-variable files: find them, fetch them, load and validate them.
 
-Spec section 0. The files are third-party data (KITTI object detection benchmark, CC BY-NC-SA 3.0;
+The files are third-party data (KITTI object detection benchmark, CC BY-NC-SA 3.0;
 YOLOv3 detections matched to ground truth by Hungarian matching at IoU > 0.01, by Innes & Ramamoorthy).
 pemviz never ships them; it finds them at run time, in this order:
 
@@ -68,7 +68,7 @@ FILE_SHA256: dict[str, str] = {
     INPUTS_FILE_ALL: "c70c8ffcc281d719e5fceea0992496c59fd476e8b2c79ac5a56d7ebb83d56e3b",
     LABELS_FILE_ALL: "09ca60fdff3cd9a8410f49fbfd7d45cc81f5b38c7cce5b496a795fc34324b8b7",
 }
-"""SHA-256 of the four files at the origin commit (spec section 0)."""
+"""SHA-256 of the four files at the origin commit."""
 
 ORIGIN_REPO = "craigiedon/PyTorch-YOLOv3-kitti"
 ORIGIN_COMMIT = "0544b1899417eaca808f2094853262a656f0f34d"
@@ -135,7 +135,7 @@ def candidate_data_dirs() -> list[tuple[str, Path | None]]:
 
 
 def find_data_dir(required: Iterable[str] = (INPUTS_FILE, LABELS_FILE)) -> Path:
-    """The first searched folder that holds every ``required`` file (spec section 0).
+    """The first searched folder that holds every ``required`` file.
 
     Raises:
         DataNotFoundError: no folder holds them; the message lists every place searched, why each failed,
@@ -213,8 +213,25 @@ def fetch(
     if unknown:
         raise ValueError(f"unknown salient file(s) {unknown}; known: {sorted(FILE_SHA256)}")
     folder = Path(dest).expanduser() if dest is not None else user_cache_dir()
+    created = [d for d in (folder, *folder.parents) if not d.exists()]  # deepest first
     folder.mkdir(parents=True, exist_ok=True)
-    base = base_url.rstrip("/")
+    try:
+        _fetch_into(folder, names, base_url.rstrip("/"), force, timeout_s, on_file)
+    except BaseException:
+        for d in created:  # a failed fetch leaves no empty folder behind
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
+    return folder
+
+
+def _fetch_into(
+    folder: Path, names: tuple[str, ...], base: str, force: bool, timeout_s: float,
+    on_file: Callable[[str, str], None] | None,
+) -> None:  # fmt: skip
+    """The download loop of :func:`fetch` (same errors)."""
     for name in names:
         target = folder / name
         expected = FILE_SHA256[name]
@@ -244,7 +261,6 @@ def fetch(
         atomic_write(target, download)
         if on_file:
             on_file(name, "downloaded")
-    return folder
 
 
 # ----------------------------------------------------------------------------------------------- load

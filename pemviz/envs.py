@@ -12,7 +12,7 @@
     for _ in range(100):
         obs, reward, terminated, truncated, info = env.step(controller(obs))
 
-The scenario is spec section 1 on highway-env vehicles (:class:`pemviz.scenarios.braking.BrakingScenario`),
+The scenario is Innes & Ramamoorthy (2022)'s automated braking on highway-env vehicles (:class:`pemviz.scenarios.braking.BrakingScenario`),
 except that the agent is the ego's controller:
 
 - **observation** float64 [3]: ``(detected, seen_gap_m, ego_speed_mps)``: 1.0 if the detector sees the
@@ -58,7 +58,7 @@ def register_envs() -> None:
 class BasicAgentController:
     """The braking scenario's ego controller as a policy ``obs [3] -> acceleration [1]`` (m/s^2).
 
-    :func:`pemviz.scenarios.braking.ego_acceleration` (spec section 1: emergency brake if the lead is
+    :func:`pemviz.scenarios.braking.ego_acceleration` (emergency brake if the lead is
     detected within 10 m, otherwise the PID toward 27 km/h; the brake acts one step late) on what the
     controller observes; the collision stop is the environment's. Call :meth:`reset` with each episode.
     """

@@ -190,6 +190,36 @@ def gather_chunks(
     return batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
 
 
+RAY_PROBE_TIMEOUT_S = 5.0
+"""Seconds to wait for a TCP connection to a ``--ray-address`` before giving up (Ray itself retries for minutes)."""
+
+
+def probe_ray_address(address: str | None, timeout_s: float = RAY_PROBE_TIMEOUT_S) -> None:
+    """Check that a Ray cluster address accepts TCP connections, within ``timeout_s`` seconds.
+
+    ``host:port`` (the GCS) and ``ray://host:port`` (Ray client) are probed; None, ``auto`` and ``local`` are
+    left to Ray (they name no socket).
+
+    Raises:
+        ValueError: a malformed address, or nothing answers at it (the message names it and the timeout).
+    """
+    if address is None or address in ("auto", "local"):
+        return
+    import socket
+
+    hostport = address.removeprefix("ray://")
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--ray-address {address!r}: use HOST:PORT or ray://HOST:PORT (or auto)")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except socket.timeout:
+        raise ValueError(f"--ray-address {address}: no answer within {timeout_s:g} s; is the Ray cluster up?") from None
+    except OSError as exc:
+        raise ValueError(f"--ray-address {address}: cannot connect ({exc.strerror or exc}); is the Ray cluster "
+                         "up (ray start --head)?") from None
+
+
 class RayExecutor:
     """Simulates each batch as Ray tasks, one per chunk of rollouts (module docstring).
 
@@ -200,6 +230,7 @@ class RayExecutor:
         init_kwargs: more keyword arguments for ``ray.init``.
     Raises:
         ImportError: Ray is not installed (the message says how to install it).
+        ValueError: ``address`` does not answer (:func:`probe_ray_address`).
     """
 
     name = "ray"
@@ -212,6 +243,7 @@ class RayExecutor:
         self._ray = ray
         self._started = False
         if not ray.is_initialized():
+            probe_ray_address(address)
             ray.init(address=address, include_dashboard=False, **init_kwargs)
             self._started = True
         self.n_chunks = int(n_chunks) if n_chunks else max(1, int(ray.cluster_resources().get("CPU", 1)))

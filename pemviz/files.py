@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Iterator
 
 
 def default_file_mode() -> int:
@@ -15,14 +16,48 @@ def default_file_mode() -> int:
     return 0o666 & ~umask
 
 
-def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None]) -> Path:
-    """``write(tmp)`` into a temporary file beside ``path``, then ``os.replace`` it onto ``path``.
+TEMP_NAME_EXTRA = 14
+"""Characters a temporary name adds to the target's name: ``.NAME.`` + 8 random characters + ``.tmp``."""
 
-    The temporary file is removed whatever happens, so an exception (or Ctrl-C) inside ``write`` leaves
-    neither a partial ``path`` nor a stray file. Returns ``path``.
+MAGIC = {".rrd": b"RRF", ".parquet": b"PAR1", ".pt": b"PK\x03\x04"}
+"""Leading bytes of the files pemviz writes, by suffix: a file without them was not written by pemviz and is
+never replaced (rerun recording, Parquet table, ``torch.save`` zip archive)."""
 
+
+class OutputExists(ValueError):
+    """The output file exists (or appeared while the work ran) and replacing it was not asked for."""
+
+
+def _commit(tmp: str, target: Path, overwrite: bool) -> None:
+    """Move the finished ``tmp`` onto ``target``: ``os.replace`` with ``overwrite``, else a hard link that fails
+    when ``target`` exists (atomic create-if-absent, so a concurrent writer is never silently replaced)."""
+    if overwrite:
+        os.replace(tmp, target)
+        return
+    try:
+        os.link(tmp, target)
+    except FileExistsError:
+        raise OutputExists(f"{target}: appeared while this run worked (another writer?); not replaced, "
+                           "give --overwrite to replace it") from None
+    except OSError:  # a file system without hard links: check, then replace
+        if target.exists():
+            raise OutputExists(f"{target}: exists; give --overwrite to replace it") from None
+        os.replace(tmp, target)
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None], *, overwrite: bool = True) -> Path:
+    """``write(tmp)`` into a temporary file of a unique name beside ``path``, then move it onto ``path``.
+
+    The temporary file is removed whatever happens (an exception, Ctrl-C, SIGTERM, a full disk), so a failure
+    leaves neither a partial ``path`` nor a stray file, and an existing ``path`` is untouched until the new file
+    is complete. Two writers to one path never share a temporary file. Returns ``path``.
+
+    Args:
+        overwrite: replace an existing ``path``; when False, :class:`OutputExists` if one exists at the end.
     Raises:
-        OSError: the folder is missing or not writable; whatever ``write`` raises.
+        OSError: the folder is missing or not writable, the disk is full, the file is too large;
+            whatever ``write`` raises.
+        OutputExists: ``overwrite`` is False and ``path`` exists.
     """
     target = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
@@ -30,28 +65,136 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None]) -> 
     try:
         write(tmp)
         os.chmod(tmp, default_file_mode())
-        os.replace(tmp, target)
+        _commit(tmp, target, overwrite)
     finally:
-        if os.path.exists(tmp):
+        if os.path.lexists(tmp):
             os.unlink(tmp)
     return target
 
 
-def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
+@contextlib.contextmanager
+def temp_file(path: str | os.PathLike[str]) -> Iterator[str]:
+    """A temporary file of a unique name beside ``path`` (created empty), removed on every exit path.
+
+    Write it, then :func:`commit_files` it; whatever was not committed is gone when the block ends (an
+    exception, Ctrl-C, SIGTERM).
+    """
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    try:
+        yield tmp
+    finally:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+
+
+def commit_files(pairs: list[tuple[str, Path]], *, overwrite: bool) -> None:
+    """Move finished temporary files onto their targets, in order (the last one is the unit's commit point:
+    a reader checks the others against it). Without ``overwrite``, targets already moved are removed again
+    when a later one exists, so a refused unit leaves nothing.
+
+    Raises:
+        OutputExists: ``overwrite`` is False and a target exists.
+    """
+    done: list[Path] = []
+    with deferred_signals():  # Ctrl-C / SIGTERM wait the few renames out: the unit is never half moved
+        try:
+            for tmp, target in pairs:
+                os.chmod(tmp, default_file_mode())
+                _commit(tmp, target, overwrite)
+                done.append(target)
+        except OutputExists:
+            for target in done:
+                target.unlink(missing_ok=True)
+            raise
+
+
+@contextlib.contextmanager
+def deferred_signals() -> Iterator[None]:
+    """SIGINT and SIGTERM received inside the block are acted on when it ends (main thread only; elsewhere
+    a no-op). For short steps that must not be cut in two, such as moving the files of a unit into place."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    names = [signal.SIGINT, signal.SIGTERM]
+    previous = {sig: signal.signal(sig, lambda signum, frame: received.append(signum)) for sig in names}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for signum in received[:1]:
+            handler = previous[signum]
+            if callable(handler):
+                handler(signum, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(signum)
+
+
+def write_text_atomic(path: str | os.PathLike[str], text: str, *, overwrite: bool = True) -> Path:
     """Write UTF-8 ``text`` to ``path`` through :func:`atomic_write`."""
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), overwrite=overwrite)
 
 
-def check_output_path(path: str | os.PathLike[str], suffix: str, what: str = "output") -> Path:
+def write_rrd(path: str | os.PathLike[str], log: Callable[[Any], None], *, app_id: str = "pemviz",
+              overwrite: bool = True) -> Path:
+    """A rerun recording: ``log(stream)`` into a :class:`rerun.RecordingStream` encoded in memory, then written
+    through :func:`atomic_write` (rerun's own file sink stalls its writer thread on a write error).
+
+    Raises:
+        OSError: the file could not be written (nothing is left); OutputExists: see :func:`atomic_write`.
+    """
+    import rerun as rr
+
+    stream = rr.RecordingStream(app_id)
+    binary = stream.binary_stream()
+    try:
+        stream.set_log_time_enabled(False)
+        stream.set_log_tick_enabled(False)
+        log(stream)
+        stream.flush()
+        encoded = binary.read(flush=True) or b""
+    finally:
+        stream.disconnect()
+    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(encoded), overwrite=overwrite)
+
+
+def written_by_pemviz(path: Path) -> bool:
+    """Whether an existing file looks like one pemviz writes for its suffix (:data:`MAGIC`; a ``.json`` must be a
+    pemviz rollout sidecar). Other suffixes (Markdown, CSV, LaTeX reports) cannot be told and count as True."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    if path.suffix in MAGIC:
+        return head.startswith(MAGIC[path.suffix])
+    if path.suffix == ".json":
+        return b'"pemviz-rollouts"' in head
+    return True
+
+
+def check_output_path(
+    path: str | os.PathLike[str], suffix: str, what: str = "output", *, overwrite: bool = False
+) -> Path:
     """Refuse a path that cannot be written, before any work starts (nothing is created).
 
     Args:
         path: the file to be written.
         suffix: the extension it must have (``.rrd``, ``.parquet`` ...).
         what: how the message names the path (a flag such as ``--save``).
+        overwrite: an existing file may be replaced (only a regular file that pemviz wrote, see
+            :func:`written_by_pemviz`).
     Raises:
-        ValueError: wrong extension, a directory, a missing folder, or a folder where no file can be
-            created (tested by creating and removing one: root ignores permission bits, not read-only mounts).
+        ValueError: wrong extension, a directory, a missing folder, a name too long for the file system
+            (with the temporary name's extra characters), a folder where no file can be created (tested by
+            creating and removing one: root ignores permission bits, not read-only mounts), or an existing
+            file (:class:`OutputExists` without ``overwrite``; with it, one pemviz did not write).
     """
     p = Path(path)
     if p.suffix != suffix:
@@ -62,13 +205,68 @@ def check_output_path(path: str | os.PathLike[str], suffix: str, what: str = "ou
     if not parent.is_dir():
         raise ValueError(f"{what} {p}: folder {parent} does not exist")
     try:
-        with tempfile.NamedTemporaryFile(dir=parent, prefix=".pemviz-probe-"):
+        name_max = os.pathconf(parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    n_bytes = len(os.fsencode(p.name)) + TEMP_NAME_EXTRA
+    if n_bytes > name_max:
+        raise ValueError(f"{what} {p}: file name too long ({len(os.fsencode(p.name))} bytes; at most "
+                         f"{name_max - TEMP_NAME_EXTRA} here)")  # fmt: skip
+    _check_writable(parent, f"{what} {p}")
+    check_free_name(p, what, overwrite=overwrite, kind=f"{suffix} file")
+    return p
+
+
+def _check_writable(folder: Path, where: str) -> None:
+    """Create and remove a probe file in ``folder`` (root ignores permission bits, not read-only mounts)."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".pemviz-probe-"):
             pass
     except OSError as exc:
-        raise ValueError(f"{what} {p}: folder {parent} is not writable ({exc.strerror})") from None
-    if p.exists() and not os.access(p, os.W_OK):
-        raise ValueError(f"{what} {p}: not writable")
-    return p
+        raise ValueError(f"{where}: folder {folder} is not writable ({exc.strerror})") from None
+
+
+def check_output_folder(folder: str | os.PathLike[str], names: tuple[str, ...], what: str = "--out") -> Path:
+    """Refuse an output folder where ``names`` cannot be written, before any work starts (nothing is created).
+
+    The folder (and its parents) may be missing: they are made when the files are written. The files are
+    reports the command regenerates, replaced when present (but never a folder or a special file of that name).
+
+    Raises:
+        ValueError: not a folder, no parent folder, not writable, a name too long, or a name taken by a folder.
+    """
+    out = Path(folder)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{what} {out}: exists and is not a folder")
+    probe_dir = out.absolute()
+    while not probe_dir.is_dir():  # the nearest existing folder: missing ones are created when the files are written
+        if os.path.lexists(probe_dir) or probe_dir.parent == probe_dir:
+            raise ValueError(f"{what} {out}: {probe_dir} exists and is not a folder")
+        probe_dir = probe_dir.parent
+    _check_writable(probe_dir, f"{what} {out}")
+    for name in names:
+        target = out / name
+        if len(os.fsencode(name)) + TEMP_NAME_EXTRA > 255:
+            raise ValueError(f"{what} {target}: file name too long")
+        if os.path.lexists(target) and (target.is_symlink() or not target.is_file()):
+            raise ValueError(f"{what} {target}: exists and is not a regular file; not replacing it")
+    return out
+
+
+def check_free_name(path: Path, what: str, *, overwrite: bool = False, kind: str = "file") -> None:
+    """Refuse a companion file (a sidecar, a checkpoint) that exists and may not be replaced.
+
+    Raises:
+        OutputExists / ValueError: as :func:`check_output_path` for an existing file.
+    """
+    if not os.path.lexists(path):
+        return
+    if path.is_symlink() or not path.is_file():
+        raise ValueError(f"{what} {path}: exists and is not a regular file; not replacing it")
+    if not overwrite:
+        raise OutputExists(f"{what} {path}: exists; give --overwrite to replace it")
+    if not written_by_pemviz(path):
+        raise ValueError(f"{what} {path}: exists and is not a {kind} pemviz wrote; not replacing it")
 
 
 def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Exception]) -> dict:

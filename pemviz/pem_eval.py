@@ -1,6 +1,6 @@
 """PEM quality: 5-fold cross-validation of the PEM models (paper Table I) with calibration.
 
-Protocol (spec section 2, the authors' ``eval_kfold_class_models.py``): ``StratifiedKFold(n_splits=5)``
+Protocol (Innes & Ramamoorthy (2022), Table I; the authors' ``eval_kfold_class_models.py``): ``StratifiedKFold(n_splits=5)``
 on the detected label, folds in file order (no shuffle); every model is trained on 4 folds and scored on
 the fifth; the 14-dim encoding uses the z-score statistics of the full file. Per fold: BCE (nats), ROC-AUC,
 average precision (AP) and expected calibration error (ECE, 15 equal-width bins); the table reports the
@@ -13,7 +13,7 @@ Models:
 - ``guess-mu``: the training folds' detection rate for every row;
 - ``b-nn``: the Bayesian NN (pyro, :mod:`pemviz.pem.bayes`);
 - ``gbt``: gradient-boosted trees on the same 14 features (:mod:`pemviz.pem.trees`), pemviz's best model,
-  chosen by cross-validation on these folds (settings compared in ``assets/README.md``).
+  chosen by cross-validation on these folds (settings compared in ``pemviz/assets/README.md``).
 
 :func:`evaluate_pems` computes; :func:`format_markdown` / :func:`format_csv` and :func:`write_recording`
 (rerun: ROC curves, reliability diagrams, p(detect | gap) curves beside the authors' PEM) present.
@@ -31,7 +31,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from pemviz.files import atomic_write
+from pemviz.files import write_rrd
 from pemviz.pem import (
     PEM_RECIPES,
     NormStats,
@@ -286,7 +286,7 @@ def evaluate_pems(
     """Cross-validate the configured models (default :class:`EvalConfig`, the full protocol) on raw salient
     inputs ``[N, 11]`` and labels ``[N]``.
 
-    The z-score statistics are those of all ``N`` rows (spec section 2); folds from
+    The z-score statistics are those of all ``N`` rows (as the authors'); folds from
     :func:`stratified_folds`. ``on_fold(model, score)`` is called after each fit (for progress output).
     The authors' PEM curve is added when ``../shared/reference/carla-stuff-pem`` is present.
 
@@ -436,7 +436,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
     thick) and ``roc/data/<model>/fold_K`` (thin); ``reliability/data/<model>`` and ``.../bins`` (pooled
     reliability diagram: mean predicted p against observed detection rate per bin, point area ~ rows) and
     ``reliability/data/diagonal``; ``gap/data/<model>`` (mean over the fold models of p(detect | gap) for the
-    braking scenario's lead, spec section 2) and ``gap/data/authors`` (the authors' PEM);
+    braking scenario's lead) and ``gap/data/authors`` (the authors' PEM);
     ``folds/{bce,auc}/data/<model>`` (per-fold scores); ``<figure>/legend``; ``metrics/<model>`` (the
     numbers as ``AnyValues``).
     """
@@ -575,19 +575,8 @@ def log_recording(result: EvalResult, stream: Any) -> None:
 
 
 def write_recording(result: EvalResult, path: str | os.PathLike[str]) -> Path:
-    """Write the rerun recording of :func:`log_recording` to ``path`` (via ``path.partial``, then renamed)."""
-    import rerun as rr
-
-    def write(tmp: str) -> None:
-        stream = rr.RecordingStream(APP_ID)
-        stream.set_log_time_enabled(False)
-        stream.set_log_tick_enabled(False)
-        stream.save(tmp)
-        log_recording(result, stream)
-        stream.flush()
-        stream.disconnect()
-
-    return atomic_write(path, write)
+    """Write the rerun recording of :func:`log_recording` to ``path`` (:func:`pemviz.files.write_rrd`)."""
+    return write_rrd(path, lambda stream: log_recording(result, stream), app_id=APP_ID)
 
 
 def summary_lines(result: EvalResult) -> Sequence[str]:

@@ -4,11 +4,12 @@ A :class:`Problem` bundles a black-box simulation (``simulate(n, sampler, target
 detector whose probabilities weight the rollouts (the PEM), the safety requirement as an STL formula
 over named signals, and the proposal's input scale. The failure event is always classic robustness
 of the formula below 0 (for the braking spec: the gap drops below 2 m); the chosen metric only ranks
-rollouts and sets the adaptive thresholds (spec section 3).
+rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Iterator, Mapping
 
@@ -54,7 +55,9 @@ class Problem:
         signal_ranges: per-signal (lo, hi) for AGM's predicate normalisation.
         h_scale: the proposal's input is ``obs[:, 0] / h_scale`` (gap / 12 m for braking).
         curve_grid: values of ``obs[:, 0]`` where proposal and target curves are reported [G].
-        window: the mixed-50 baseline detects with 50 % where ``obs[:, 0] < window``.
+        window: where the detector can change the outcome: ``obs[:, 0] < window`` (the braking scenario's 10 m).
+            The proposal replaces the target only there (``proposal_window``) and the mixed-50 baseline detects
+            with 50 % there; the default, infinity, is everywhere.
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
         exact_log_p: natural log of the exact failure probability when it is known (closed form, enumeration),
             else None; shown beside every estimate.
@@ -68,7 +71,7 @@ class Problem:
     signal_ranges: Mapping[str, tuple[float, float]] = field(default_factory=lambda: dict(BRAKING_SIGNAL_RANGES))
     h_scale: float = 12.0
     curve_grid: np.ndarray = field(default_factory=lambda: np.linspace(0.0, 13.0, 131))
-    window: float = 10.0
+    window: float = math.inf
     stream: StreamFn | None = None
     exact_log_p: float | None = None
 
@@ -93,13 +96,13 @@ class Problem:
 
 
 def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":
-    """``G[0,T-1](d >= 2)``: the gap never drops below the crash gap (spec section 3)."""
+    """``G[0,T-1](d >= 2)``: the gap never drops below the crash gap (Innes & Ramamoorthy (2022))."""
     p = params or BrakingParams()
     return stl.parse(f"G[0,{p.n_steps - 1}](d >= {p.crash_gap_m:g})")
 
 
 def braking_problem(pem: object, params: BrakingParams | None = None, sim: str = "batched") -> Problem:
-    """The automated-braking scenario of spec section 1 with the given PEM as target detector.
+    """The automated-braking scenario of Innes & Ramamoorthy (2022) with the given PEM as target detector.
 
     Raises:
         ValueError: for an unknown ``sim`` (allowed: :data:`SIMULATORS`).

@@ -49,6 +49,7 @@ and step where the problem is. Writers write to a temporary file and ``os.replac
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import json
@@ -61,7 +62,8 @@ from typing import Any, Mapping
 import numpy as np
 
 import pemviz
-from pemviz.files import atomic_write, check_output_path, load_tagged
+from pemviz.data import sha256_file
+from pemviz.files import atomic_write, check_free_name, check_output_path, commit_files, load_tagged, temp_file
 from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.scenarios import RolloutBatch
 
@@ -125,6 +127,8 @@ class RolloutMeta:
     n_steps: int | None = None
     pemviz_version: str = pemviz.__version__
     provenance: Mapping[str, Any] = field(default_factory=dict)
+    table_sha256: str | None = None
+    proposal_sha256: str | None = None
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -149,6 +153,8 @@ class RolloutMeta:
             "n_rollouts": self.n_rollouts,
             "n_steps": self.n_steps,
             "provenance": _plain(self.provenance),
+            **({"table_sha256": self.table_sha256} if self.table_sha256 else {}),
+            **({"proposal_sha256": self.proposal_sha256} if self.proposal_sha256 else {}),
         }
 
     @classmethod
@@ -186,6 +192,12 @@ class RolloutMeta:
         if not isinstance(signals, dict) or not all(isinstance(k, str) and isinstance(v, str)
                                                      for k, v in signals.items()):
             raise bad(f"signals must map STL names to column names, got {signals!r}")
+        for key in ("signal_ranges", "units", "provenance"):
+            if not isinstance(obj.get(key) or {}, dict):
+                raise bad(f"{key} must be a JSON object, got {obj[key]!r}")
+        units = obj.get("units") or {}
+        if not all(isinstance(v, str) for v in units.values()):
+            raise bad(f"units must map column names to unit text such as 'm', got {units!r}")
         ranges: dict[str, tuple[float, float]] = {}
         for k, v in (obj.get("signal_ranges") or {}).items():
             if not (isinstance(v, (list, tuple)) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] < v[1]):
@@ -203,15 +215,19 @@ class RolloutMeta:
             if v is not None and not isinstance(v, str):
                 raise bad(f"{key} must be a string, got {v!r}")
         window = obj.get("window_m", 10.0)
-        if not _is_number(window):
-            raise bad(f"window_m must be a number of metres, got {window!r}")
+        if not _is_number(window) or window < 0:
+            raise bad(f"window_m must be a number of metres >= 0, got {window!r}")
+        for key in ("table_sha256", "proposal_sha256"):
+            v = obj.get(key)
+            if v is not None and not (isinstance(v, str) and len(v) == 64):
+                raise bad(f"{key} must be a SHA-256 hex digest (64 characters), got {v!r}")
         return cls(
             formula=formula,
             dt_s=float(dt),
             signals=dict(signals),
             signal_ranges=ranges,
             observation_columns=tuple(cols),
-            units=dict(obj.get("units") or {}),
+            units=dict(units),
             pem=obj.get("pem"),
             proposal=obj.get("proposal"),
             window_m=float(window),
@@ -219,6 +235,8 @@ class RolloutMeta:
             n_steps=obj.get("n_steps"),
             pemviz_version=obj.get("pemviz_version") or "unknown",
             provenance=dict(obj.get("provenance") or {}),
+            table_sha256=obj.get("table_sha256"),
+            proposal_sha256=obj.get("proposal_sha256"),
         )
 
 
@@ -511,7 +529,7 @@ def read_sidecar(path: str | os.PathLike[str]) -> RolloutMeta:
         )
     try:
         obj = json.loads(side.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise RolloutFormatError(f"{side}: not a readable JSON file ({exc})") from None
     return RolloutMeta.from_json(obj, str(side))
 
@@ -538,16 +556,35 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
         table = pq.read_table(p)
     except (pa.ArrowException, OSError) as exc:
         raise RolloutFormatError(f"{p}: not a readable Parquet file ({exc})") from None
-    return _Table(table, meta, str(p)).parse(p)
+    data = _Table(table, meta, str(p)).parse(p)
+    if meta.table_sha256 is not None and sha256_file(p) != meta.table_sha256:
+        raise RolloutFormatError(
+            f"{p}: the table is not the one its sidecar {sidecar_path(p).name} was written with (table_sha256 "
+            "differs): an interrupted or concurrent write; write it again (or drop table_sha256 from the sidecar "
+            "if the table was changed on purpose)"
+        )
+    return data
 
 
-def check_rollouts_path(path: str | os.PathLike[str]) -> Path:
+def proposal_path(path: str | os.PathLike[str]) -> Path:
+    """``NAME.parquet`` -> ``NAME.proposal.pt``, the proposal checkpoint written beside a rollout file."""
+    return Path(path).with_suffix(".proposal.pt")
+
+
+def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False, what: str = "rollout file") -> Path:
     """Refuse a path where a rollout file cannot be written, before any work (nothing is created).
 
+    The sidecar ``NAME.json`` and checkpoint ``NAME.proposal.pt`` are checked too: an existing one is replaced
+    only with ``overwrite`` and only if pemviz wrote it.
+
     Raises:
-        ValueError: not ``.parquet``, a directory, or a folder that does not exist / is not writable.
+        ValueError: not ``.parquet``, a directory, a folder that does not exist / is not writable, a name too
+            long, or an existing file (:class:`pemviz.files.OutputExists` without ``overwrite``).
     """
-    return check_output_path(path, ".parquet", "rollout file")
+    p = check_output_path(path, ".parquet", what, overwrite=overwrite)
+    check_output_path(proposal_path(p), ".pt", f"{what} checkpoint", overwrite=overwrite)
+    check_free_name(sidecar_path(p), f"{what} sidecar", overwrite=overwrite)
+    return p
 
 
 def rollouts_table(
@@ -600,27 +637,35 @@ def write_rollouts(
     rollout_ids: np.ndarray | None = None,
     salient: np.ndarray | None = None,
     log_probs: bool = True,
+    proposal: Any = None,
+    overwrite: bool = False,
 ) -> Path:
-    """Write ``NAME.parquet`` and its sidecar ``NAME.json`` (module docstring), each atomically.
+    """Write ``NAME.parquet``, its sidecar ``NAME.json`` and (with ``proposal``) ``NAME.proposal.pt`` as one unit.
 
-    The table is validated as :func:`read_rollouts` validates it before anything is written;
-    ``meta.n_rollouts`` / ``n_steps`` / ``observation_columns`` are filled in from the batch.
+    All files are written under temporary names first and moved into place sidecar last; the sidecar holds
+    the SHA-256 of the table (and checkpoint), so :func:`read_rollouts` tells a unit cut short by a kill (new
+    table, old sidecar) from a complete one. The table is validated as :func:`read_rollouts` validates it
+    before anything is written; ``meta.n_rollouts`` / ``n_steps`` / ``observation_columns`` are filled in.
 
     Args:
         path: ``NAME.parquet``.
         batch: N rollouts [N, T] (observations, detected, log_p, log_q in nats).
         meta: the sidecar (:func:`braking_meta` for the braking scenario).
         rollout_ids, salient, log_probs: see :func:`rollouts_table`.
+        proposal: a :class:`pemviz.sampling.Proposal` that sampled the batch, saved as ``NAME.proposal.pt`` and
+            named in the sidecar; None: none saved.
+        overwrite: replace existing files of the unit (only ones pemviz wrote).
     Returns:
         the Parquet path.
     Raises:
-        ValueError: a bad path (:func:`check_rollouts_path`), wrong shapes, or a :class:`RolloutFormatError`
-            (NaN, a positive log-probability ...) naming the rollout and step; nothing is written.
-        OSError: the folder is not writable (nothing is left behind).
+        ValueError: a bad path (:func:`check_rollouts_path`; an existing file without ``overwrite``), wrong
+            shapes, or a :class:`RolloutFormatError` (NaN, a positive log-probability ...) naming the rollout
+            and step; nothing is written.
+        OSError: the folder is not writable, the disk is full (nothing is left behind).
     """
     import pyarrow.parquet as pq
 
-    p = check_rollouts_path(path)
+    p = check_rollouts_path(path, overwrite=overwrite)
     meta = dataclasses.replace(
         meta, n_rollouts=batch.n, n_steps=batch.n_steps, observation_columns=tuple(batch.observation_names)
     )
@@ -628,29 +673,44 @@ def write_rollouts(
         raise ValueError(f"write_rollouts: the batch's first observation must be gap_m, got {batch.observation_names}")
     table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=log_probs)
     _Table(table, meta, f"{p} (not written)").parse(None)
-    text = json.dumps(meta.to_json(), indent=2, allow_nan=False) + "\n"
-    atomic_write(p, lambda tmp: pq.write_table(table, tmp))
-    atomic_write(sidecar_path(p), lambda tmp: Path(tmp).write_text(text))
+    side, ckpt = sidecar_path(p), proposal_path(p)
+    with contextlib.ExitStack() as stack:
+        pairs = []
+        if proposal is not None:
+            tmp_ckpt = stack.enter_context(temp_file(ckpt))
+            _save_proposal_to(proposal, tmp_ckpt)
+            meta = dataclasses.replace(meta, proposal=ckpt.name, proposal_sha256=sha256_file(tmp_ckpt))
+            pairs.append((tmp_ckpt, ckpt))
+        tmp_table = stack.enter_context(temp_file(p))
+        pq.write_table(table, tmp_table)
+        meta = dataclasses.replace(meta, table_sha256=sha256_file(tmp_table))
+        pairs.append((tmp_table, p))
+        tmp_side = stack.enter_context(temp_file(side))
+        Path(tmp_side).write_text(json.dumps(meta.to_json(), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        pairs.append((tmp_side, side))
+        commit_files(pairs, overwrite=overwrite)
     return p
 
 
 # ---------------------------------------------------------------------------------- proposal checkpoints
 
 
-def save_proposal(proposal: Any, path: str | os.PathLike[str]) -> Path:
-    """Write a :class:`pemviz.sampling.Proposal` checkpoint atomically (``torch.save`` of a plain dict:
-    format tag, version, ``h_scale``, ``state_dict``; ``torch.load(weights_only=True)`` reads it)."""
+def _save_proposal_to(proposal: Any, path: str) -> None:
     import torch
 
-    target = Path(path)
     payload = {
         "format": PROPOSAL_FORMAT_TAG,
         "version": PROPOSAL_FORMAT_VERSION,
         "h_scale": float(proposal.h_scale),
         "state_dict": {k: v.detach().cpu().clone() for k, v in proposal.state_dict().items()},
     }
-    atomic_write(target, lambda tmp: torch.save(payload, tmp))
-    return target
+    torch.save(payload, path)
+
+
+def save_proposal(proposal: Any, path: str | os.PathLike[str], *, overwrite: bool = True) -> Path:
+    """Write a :class:`pemviz.sampling.Proposal` checkpoint atomically (``torch.save`` of a plain dict:
+    format tag, version, ``h_scale``, ``state_dict``; ``torch.load(weights_only=True)`` reads it)."""
+    return atomic_write(path, lambda tmp: _save_proposal_to(proposal, tmp), overwrite=overwrite)
 
 
 def load_proposal(path: str | os.PathLike[str]) -> Any:
@@ -742,12 +802,16 @@ class RolloutEstimate:
 
 
 def estimate_rollouts(
-    data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash"
+    data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
+    weights_until_failure: bool = True,
 ) -> RolloutEstimate:
-    """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (spec section 4).
+    """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (Innes & Ramamoorthy 2022, eq. 6).
 
-    ``log w_i = sum_{t < T-1} log p - log q`` as the engine computes it; failure = classic robustness of the
-    sidecar's formula < 0 (``failure="crash"``, the default) or robustness under ``metric`` < 0.
+    ``log w_i = sum_{t < k_i} log p - log q`` as the engine computes it: k_i = T - 1 (the last action affects
+    nothing), or, with ``weights_until_failure`` and ``failure="crash"``, the step at which rollout i first violates
+    the sidecar's ``G[a,b](...)`` formula (:func:`pemviz.stl.first_violation`; a stopping time, so the weights stay
+    unbiased). Failure = classic robustness of the formula < 0 (``failure="crash"``, the default) or robustness
+    under ``metric`` < 0. The NLL sums log p over the steps before the failure.
 
     Args:
         log_p, log_q: float64 [N, T] (nats).
@@ -776,12 +840,24 @@ def estimate_rollouts(
         raise RolloutFormatError(f"{data.path or 'rollouts'}: formula {data.meta.formula!r}: {exc}") from None
     failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
     k = data.n_steps - 1
-    log_w = (log_p[:, :k] - log_q[:, :k]).sum(axis=1)
-    try:  # the NLL covers the actions before the failure step, as in the engine
+    try:  # the NLL (and, by default, the weights) cover the actions before the failure step, as in the engine
         upto = np.minimum(stl.first_violation(formula, signals), k)
     except ValueError:
         upto = np.full(data.n, k)
-    est = estimate(log_w, failed, np.where(np.arange(data.n_steps)[None, :] < upto[:, None], log_p, 0.0).sum(axis=1))
+    before = np.arange(data.n_steps)[None, :] < upto[:, None]
+    steps = before if weights_until_failure and failure == "crash" else np.arange(data.n_steps)[None, :] < k
+    with np.errstate(over="ignore", invalid="ignore"):
+        log_w = np.where(steps, log_p - log_q, 0.0).sum(axis=1)
+        log_p_total = np.where(before, log_p, 0.0).sum(axis=1)
+    for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
+        if not np.isfinite(x).all():
+            i = _first_index(~np.isfinite(x))
+            raise RolloutFormatError(
+                f"{data.path or 'rollouts'}: rollout {data.rollout_ids[i]}: the {name} over its {k} steps is beyond "
+                f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
+                f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
+            )
+    est = estimate(log_w, failed, log_p_total)
     return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure)
 
 
@@ -805,9 +881,10 @@ class RolloutSink:
         skipped: why nothing was written after a finished run, else None.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, pem: str | None = None) -> None:
-        self.path = check_rollouts_path(path)
+    def __init__(self, path: str | os.PathLike[str], *, pem: str | None = None, overwrite: bool = False) -> None:
+        self.path = check_rollouts_path(path, overwrite=overwrite, what="--save-rollouts")
         self.pem = pem
+        self.overwrite = overwrite
         self.written: Path | None = None
         self.skipped: str | None = None
         self._formula: str | None = None
@@ -842,18 +919,19 @@ class RolloutSink:
         ev, cfg = self._last, self._config
         method = getattr(cfg, "method", None)
         proposal = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}.get(method)
-        if self._proposal is not None:
-            ckpt = self.path.with_suffix(".proposal.pt")
-            save_proposal(self._proposal, ckpt)
-            proposal = ckpt.name
         provenance: dict[str, Any] = {"stage": ev.stage, "kind": ev.kind}
         if cfg is not None:
             provenance["config"] = dataclasses.asdict(cfg)
         if finished is not None:
             e = finished.final.estimate
-            provenance["estimate"] = {"log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n}
+            provenance["estimate"] = {
+                "log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n, "log_ci": list(e.log_ci),
+                "ess": e.ess, "khat": e.khat, "verdict": e.verdict, "reason": e.reason,
+                "stages_used": list(finished.final.stages_used),
+            }  # the run's estimate: with a pooled estimate it uses more stages than this file's final batch
         meta = braking_meta(self._formula, pem=self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME,
                             proposal=proposal, provenance=provenance)  # fmt: skip
         batch = ev.batch
-        self.written = write_rollouts(self.path, batch, meta, salient=braking_salient(batch.gap_m))
+        self.written = write_rollouts(self.path, batch, meta, salient=braking_salient(batch.gap_m),
+                                      proposal=self._proposal, overwrite=self.overwrite)
         return self.written

@@ -359,21 +359,26 @@ def pareto_khat(log_values: np.ndarray) -> float:
     The generalized Pareto distribution is fitted (Zhang & Stephens 2009, with the weakly informative prior of
     PSIS; ``pyro.ops.stats.fit_generalized_pareto``) to the exceedances of the M = min(S / 5, 3 sqrt(S))
     largest values over the next one, as in Vehtari et al., "Pareto Smoothed Importance Sampling", JMLR 2024,
-    Sec. 3. Values of -inf (zero) may be present; nan when fewer than M + 1 values are positive or M < 5; 0 when
-    fewer than 5 of the M exceed the cutoff (a flat tail, e.g. every failure weight equal).
+    Sec. 3. Values of -inf (zeros, e.g. rollouts that did not fail) may be present: when fewer than M + 1
+    values are positive, the tail is taken from the positive values alone (S = their number). Exceedances below
+    1e-9 of the largest value are ties (sums of log-probabilities differ in their last bits). Returns 0 for a
+    flat tail (fewer than 5 exceedances: e.g. every failure weight equal) and nan for fewer than 25 positive
+    values (M < 5).
     """
     from pyro.ops.stats import fit_generalized_pareto  # torch is loaded already: ~0.1 s, only when needed
 
     lv = np.sort(np.asarray(log_values, dtype=np.float64))
-    s = lv.size
-    m = int(min(s / 5.0, 3.0 * math.sqrt(s)))
-    if m < 5 or not np.isfinite(lv[s - m - 1]):
+    m = int(min(lv.size / 5.0, 3.0 * math.sqrt(lv.size)))
+    if m >= lv.size or not np.isfinite(lv[lv.size - m - 1]):
+        lv = lv[np.isfinite(lv)]
+        m = int(min(lv.size / 5.0, 3.0 * math.sqrt(lv.size)))
+    if m < 5:
         return math.nan
     top = lv[-1]
-    tail = np.exp(lv[s - m :] - top) - math.exp(lv[s - m - 1] - top)  # scale-free exceedances
-    tail = tail[tail > 0.0]  # ties with the cutoff carry no tail information (and break the fit's quartile)
-    if tail.size < 5 or np.all(tail == tail[0]):
-        return 0.0  # a flat tail: the largest values are (nearly) all equal, nothing heavy
+    tail = np.exp(lv[lv.size - m :] - top) - math.exp(lv[lv.size - m - 1] - top)  # scale-free exceedances
+    tail = tail[tail > 1e-9]  # ties with the cutoff carry no tail information (and break the fit's quartile)
+    if tail.size < 5:
+        return 0.0
     k, _ = fit_generalized_pareto(torch.as_tensor(tail))
     return float(k)
 
@@ -408,7 +413,7 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
     p < 3 / N; under importance sampling the log-scale t interval of the mean of 1[fail_i] w_i (see
     :func:`_log_mean_interval`), and with 0 failures the interval [0, 1]: 0 failures under a proposal bound
     nothing. The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, with Pareto k-hat above
-    :data:`KHAT_UNRELIABLE`, or when the mean importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do
+    :data:`KHAT_UNRELIABLE` and an ESS below 2 :data:`MIN_FAILURES` (above it: ``doubtful``), or when the mean importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do
     not belong to the proposal that drew the rollouts); ``doubtful`` with fewer than :data:`MIN_FAILURES` failures,
     an ESS below it, or k-hat above the sample-size threshold min(1 - 1 / log10 S, 0.7) of Vehtari et al. (2024);
     else ``reliable``.
@@ -447,7 +452,8 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
                         "unreliable", reason)  # fmt: skip
     lp = log_p_total[failed]
     log_sum = float(logsumexp(lw))
-    ess = math.exp(2 * log_sum - float(logsumexp(2 * lw)))
+    rel = np.exp(lw - lw.max())  # weights relative to the largest: finite whatever the scale of the logs
+    ess = float(rel.sum() ** 2 / np.square(rel).sum())
     nll_lme = -(float(logsumexp(lp)) - math.log(nf))
     log_y = np.where(failed, log_weight, -math.inf)
     if plain_mc:
@@ -468,7 +474,7 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
     from scipy.special import logsumexp
 
     if not plain_mc:
-        if khat > KHAT_UNRELIABLE:
+        if khat > KHAT_UNRELIABLE and ess < 2 * MIN_FAILURES:
             return "unreliable", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: a few weights dominate"
         log_mean = float(logsumexp(log_weight)) - math.log(log_weight.size)
         if log_mean > math.log(MAX_MEAN_WEIGHT):
@@ -481,6 +487,8 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
     if not plain_mc:
         if ess < MIN_FAILURES:
             return "doubtful", f"ESS {ess:.1f} < {MIN_FAILURES}: a few weights carry the estimate"
+        if khat > KHAT_UNRELIABLE:  # with a large ESS: clustered weights, or a tail the ESS does not see yet
+            return "doubtful", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: the weights' tail is heavy or clustered"
         threshold = min(1.0 - 1.0 / math.log10(n), KHAT_UNRELIABLE) if n > 10 else 0.0
         if khat > threshold:
             return "doubtful", f"k-hat {khat:.2f} > {threshold:.2f}: more rollouts needed"
@@ -491,7 +499,11 @@ def format_probability(log_p: float, digits: int = 3) -> str:
     """``1.234e-15`` from a natural log, exact also far below float64's range (``0`` for -inf)."""
     if log_p == -math.inf:
         return "0"
+    if math.isnan(log_p):
+        return "nan"
     l10 = log_p / math.log(10.0)
+    if abs(l10) > 1e9:  # the exponent itself would need more digits than fit on a line
+        return f"10^({l10:.{digits}e})"
     exponent = math.floor(l10)
     mantissa = 10 ** (l10 - exponent)
     if round(mantissa, digits) >= 10:

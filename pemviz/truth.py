@@ -1,4 +1,4 @@
-"""Exact failure probabilities: closed forms and exact enumeration (spec section 6).
+"""Exact failure probabilities: closed forms and exact enumeration.
 
 Three problems with a known answer judge the sampler:
 
@@ -65,7 +65,7 @@ def toy_log_failure_probability(params: ToyParams) -> float:
 
     The car fails iff every detection at the distances ``braking .. safe`` (each visited once while
     moving) misses. For constant p: ``(braking - safe + 1) log(1 - p)``; (100, 50, 30, 0.9) gives
-    log(1e-21). Source: spec section 6 (authors' ``adaptiveImportanceSampler.py``).
+    log(1e-21). Source: the authors' ``adaptiveImportanceSampler.py``.
     """
     d = np.arange(params.safe, params.braking + 1, dtype=np.float64)
     logit = params.detect_logit(d)
@@ -193,7 +193,7 @@ class LatchedTruth:
 
 
 def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> LatchedTruth:
-    """Exact p_fail of the latched-brake braking scenario (spec section 6).
+    """Exact p_fail of the latched-brake braking scenario.
 
     Before the first effective detection (one at gap < braking distance) the ego follows the all-miss
     path; after it the brake never releases and the rest is deterministic. So, with ``E`` the effective
@@ -393,7 +393,7 @@ def braking_exact(
     bound: MissBound | None = None,
     max_paths: int = 20_000_000,
 ) -> ExactResult:
-    """p_fail of the braking scenario (latched or not) by enumerating detection sequences (spec section 6).
+    """p_fail of the braking scenario (latched or not) by enumerating detection sequences.
 
     From the branching start (:func:`branching_start`) every live sequence is split into its miss and its
     detection (probabilities 1 - p and p, p = sigmoid(logit_at_gap(gap)), in log-space) and stepped exactly
@@ -529,10 +529,10 @@ def braking_truth(
 ) -> Refinement:
     """Refine :func:`braking_exact` over ``log_prunes`` until (upper - lower) / lower < ``tolerance``.
 
-    The default 0.5 % (spec: the answer moves by < 2 %) stops the main scenario at -58 nats: a bracket of
+    The default 0.5 % stops the main scenario at -58 nats: a bracket of
     0.07 % in ~20-40 s and ~3.4 million live sequences (a few hundred MB) at most. The miss bound is
     computed once and shared. Returns every step of the refinement (its table is the
-    "refinement table" of spec section 6). ``converged`` is False if the thresholds ran out first.
+    "refinement table"). ``converged`` is False if the thresholds ran out first.
     """
     p = params or BrakingParams()
     start = branching_start(p)

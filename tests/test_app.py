@@ -204,7 +204,7 @@ def test_typed_values_run_exactly_as_typed_and_every_error_shows_on_its_field(ta
     for message in (
         "alpha: 'abc' is not a number; type a number in (0, 1] (the smoothing alpha)",
         "sigma: 1 is out of range; the quantile level sigma must be a number in [0.5, 1)",
-        "K: empty; type a whole number >= 1 (the number of cross-entropy stages K)",
+        "K: empty; type a whole number in [1, 1000] (the number of cross-entropy stages K)",
         "N: 12.5 is not a whole number; the rollouts per stage N must be a whole number >= 2",
     ):
         expect(page.get_by_text(message, exact=True)).to_be_visible(timeout=10_000)
@@ -308,15 +308,18 @@ def test_finished_runs_survive_stopped_ones_pinned_runs_stay_and_any_kept_run_ex
 
 # 4, 5 ---------------------------------------------------------------------------------------------
 def test_one_stage_numbering_and_plot_axes_follow_the_stages_that_ran(tab):
-    tab.fill_form({**TINY, "K": "100000", "N": "40"})
-    sims = 100_000 * 40 + int(TINY["pretrain rollouts"]) + int(TINY["N_e"])
+    tab.fill_form({**TINY, "K": "100000"})
+    expect(tab.page.get_by_text("K: 100000 is out of range", exact=False)).to_be_visible(timeout=10_000)
+    expect(tab.button("Run")).to_be_disabled()
+    tab.fill_form({"K": "1000", "N": "1000"})
+    sims = 1000 * 1000 + int(TINY["pretrain rollouts"]) + int(TINY["N_e"])
     expect(tab.page.get_by_text(f"Cost: {sims:,} simulations", exact=False)).to_be_visible(timeout=10_000)
     tab.button("Run").click()
     expect(tab.button("Run anyway")).to_be_visible(timeout=10_000)  # a large run asks first
     assert tab.session.record is None
     tab.button("Run anyway").click()
     # the status names the stage as the console does: "CE stage k/K"
-    expect(tab.page.get_by_text(re.compile(r"CE stage [3-9]/100000: "))).to_be_visible(timeout=60_000)
+    expect(tab.page.get_by_text(re.compile(r"CE stage [3-9]/1000: "))).to_be_visible(timeout=60_000)
     tab.button("Stop").click()
     record = tab.session.record
     wait_until(lambda: not tab.session.running, what="the run to stop")

@@ -159,7 +159,7 @@ def test_the_form_parses_exactly_what_was_typed_and_reports_every_error():
     assert bad.errors == {
         "smoothing": "alpha: 'abc' is not a number; type a number in (0, 1] (the smoothing alpha)",
         "quantile_level": "sigma: 1 is out of range; the quantile level sigma must be a number in [0.5, 1)",
-        "n_stages": "K: empty; type a whole number >= 1 (the number of cross-entropy stages K)",
+        "n_stages": "K: empty; type a whole number in [1, 1000] (the number of cross-entropy stages K)",
         "n_per_stage": "N: 12.5 is not a whole number; the rollouts per stage N must be a whole number >= 2",
     }
 
@@ -185,7 +185,9 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     cost = run_cost(cfg)
     assert cost.simulations == 20 + 3 * 50 + 70 and not cost.needs_confirm
     assert cost.memory_bytes == 70 * 100 * (3 * 8 + 1 + 8 + 8)
-    assert run_cost(cfg.replace(n_stages=100_000)).needs_confirm
+    assert run_cost(cfg.replace(n_stages=1000, n_per_stage=1000)).needs_confirm
+    assert parse_number(FIELDS_BY_KEY["n_stages"], "100000")[1].startswith("K: 100000 is out of range")
+    assert parse_number(FIELDS_BY_KEY["seed"], str(2**64 - 1)) == (2**64 - 1, "")
 
 
 def test_a_run_label_names_every_setting_that_differs_from_the_defaults():

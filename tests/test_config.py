@@ -15,10 +15,10 @@ from pemviz.config import PRESETS, ConfigError, ExperimentConfig
         ("quantile_level", 1.0, r"sigma must be in \[0.5, 1\)"),
         ("quantile_level", 0.4, r"sigma must be in \[0.5, 1\)"),
         ("n_per_stage", 1, r"N must be an integer >= 2"),
-        ("n_stages", 0, r"K must be an integer >= 1"),
+        ("n_stages", 0, r"K must be an integer in \[1, 1000\]"),
         ("metric", "robust", r"use one of classic, agm, smooth-cumulative"),
         ("method", "mcmc", r"use one of adaptive, mc, naive50, mixed50"),
-        ("seed", -1, r"seed must be an integer >= 0"),
+        ("seed", -1, r"seed must be an integer in \[0, 2\^64 - 1\]"),
     ],
 )
 def test_invalid_setting_is_rejected_with_its_name_value_and_range(field, value, message):

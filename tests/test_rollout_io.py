@@ -20,7 +20,7 @@ import pytest
 from conftest import run_cli
 from pemviz import cli
 from pemviz import rollout_io as rio
-from pemviz.config import ExperimentConfig
+from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment, FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
@@ -128,7 +128,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
 
     path = tmp_path / "adaptive.parquet"
     sink = rio.RolloutSink(path, pem=str(pem_file))
-    cfg = ExperimentConfig(pem=str(pem_file))
+    cfg = ExperimentConfig(**PRESETS["paper"], pem=str(pem_file))  # weights over T - 1 steps, as `truth` above
     sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve()))
     rho = problem.robustness(batch, "classic")
     sink(StageStarted(3, "final", 60))
@@ -141,7 +141,8 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     assert ckpt.is_file() and json.loads(rio.sidecar_path(path).read_text())["proposal"] == ckpt.name
 
     data = rio.read_rollouts(path)
-    assert same_mu(rio.estimate_rollouts(data, data.log_p, data.log_q).estimate.log_mu_hat, truth.log_mu_hat)
+    paper_weights = rio.estimate_rollouts(data, data.log_p, data.log_q, weights_until_failure=False).estimate
+    assert same_mu(paper_weights.log_mu_hat, truth.log_mu_hat)
     np.testing.assert_array_equal(rio.detector_log_prob(data, rio.load_proposal(ckpt)), batch.log_q)
     bare = tmp_path / "bare.parquet"
     rio.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False)  # no salient columns: the gap
@@ -173,8 +174,9 @@ def torch_no_grad():
 
 
 def test_a_hand_written_file_with_a_minimal_sidecar_gives_the_hand_computed_estimate(tmp_path):
-    """3 rollouts of 4 steps; rollouts 0 and 2 drop below 2 m. log w over the first T - 1 = 3 steps:
-    rollout 0: 3 x (-1.0 - -0.5) = -1.5; rollout 2: 3 x (-2.0 - -0.25) = -5.25. mu_hat = (e^-1.5 + e^-5.25) / 3."""
+    """3 rollouts of 4 steps; rollouts 0 and 2 drop below 2 m, at steps 2 and 3. log w over the steps before the
+    failure: rollout 0: 2 x (-1.0 - -0.5) = -1.0; rollout 2: 3 x (-2.0 - -0.25) = -5.25. mu_hat = (e^-1 + e^-5.25) / 3;
+    over the first T - 1 = 3 steps (the paper's weights) rollout 0 has -1.5 instead."""
     table = pa.table({
         "rollout": np.repeat(np.array([10, 11, 12], dtype=np.int32), 4),
         "step": np.tile(np.arange(4, dtype=np.int16), 3),
@@ -190,9 +192,11 @@ def test_a_hand_written_file_with_a_minimal_sidecar_gives_the_hand_computed_esti
     assert list(data.rollout_ids) == [10, 11, 12]
     res = rio.estimate_rollouts(data, data.log_p, data.log_q).estimate
     assert res.n_failures == 2
-    assert res.log_mu_hat == pytest.approx(math.log((math.exp(-1.5) + math.exp(-5.25)) / 3), rel=1e-14)
-    assert res.ess == pytest.approx((math.exp(-1.5) + math.exp(-5.25)) ** 2 / (math.exp(-3) + math.exp(-10.5)))
-    assert res.nll_mean == pytest.approx((3.0 + 6.0) / 2)
+    assert res.log_mu_hat == pytest.approx(math.log((math.exp(-1.0) + math.exp(-5.25)) / 3), rel=1e-14)
+    assert res.ess == pytest.approx((math.exp(-1.0) + math.exp(-5.25)) ** 2 / (math.exp(-2) + math.exp(-10.5)))
+    assert res.nll_mean == pytest.approx((2.0 + 6.0) / 2)  # -log p over the steps before each failure
+    paper = rio.estimate_rollouts(data, data.log_p, data.log_q, weights_until_failure=False).estimate
+    assert paper.log_mu_hat == pytest.approx(math.log((math.exp(-1.5) + math.exp(-5.25)) / 3), rel=1e-14)
 
 
 def test_cli_run_then_estimate_prints_the_runs_mu_hat_and_writes_a_recording(tmp_path, capsys):
@@ -361,3 +365,22 @@ def test_writer_refuses_bad_rollouts_and_leaves_no_file(tmp_path, pem):
     Path(tmp_path / "junk.json").write_text(json.dumps({"formula": "G[0,99](d >= 2)", "dt_s": 0.05}))
     with pytest.raises(rio.RolloutFormatError, match="not a readable Parquet file"):
         rio.read_rollouts(tmp_path / "junk.parquet")
+
+
+def test_estimate_with_a_proposal_that_did_not_draw_the_file_is_refused_in_one_line(tmp_path, capsys):
+    # rollouts drawn by the adaptive proposal, re-weighted as if a 50 % detector had drawn them: every detection
+    # then weighs p / 0.5 ~ 2, the mean importance weight is astronomically above its expectation 1 and mu_hat > 1
+    rollouts = tmp_path / "adaptive.parquet"
+    code = cli.main(["run", "--preset", "quick", "--k", "3", "--n-final", "60", "--seed", "1", "--no-record",
+                     "--save-rollouts", str(rollouts)])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    capsys.readouterr()
+    code, out, err = estimate_cli(capsys, str(rollouts), "--pem", "ml-nn", "--proposal", "naive50", "--no-record")
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert "does not match the one that sampled the file" in lines[0] and "mean importance weight" in lines[0]
+    assert out == ""
+    code, out, err = estimate_cli(capsys, str(rollouts), "--no-record")  # its own log_q columns: a plausible answer
+    assert code == 0, err
+    assert re.search(r"^mu_hat = \S+, 95% CI \[\S+, \S+\], ESS \S+, k-hat \S+: (reliable|doubtful|unreliable) \(",
+                     out, re.M)  # fmt: skip

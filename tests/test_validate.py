@@ -10,7 +10,8 @@ import pytest
 
 from pemviz.cli import main as cli_main
 from pemviz.commands.tables import log_mean_and_se
-from pemviz.commands.validate import ExactAnswer, RunRecord, exact_answer, relative_error, summarise
+from pemviz.commands.validate import ExactAnswer, RunRecord, exact_answer, summarise
+from pemviz.sampling import relative_error
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, failure_steps
 from pemviz.scenarios.toy import ToyParams, toy_problem
@@ -32,11 +33,14 @@ def test_relative_error_and_summary_by_hand():
     lt = math.log(1e-21)
     assert relative_error(math.log(1.5e-21), lt) == pytest.approx(0.5, rel=1e-9)
     assert relative_error(-math.inf, lt) == 1.0
-    recs = [RunRecord("toy", "m", s, math.log(v), 10, 100, 5.0, 40.0, 39.0, 1200, 1.0)
-            for s, v in enumerate([0.6e-21, 0.9e-21, 1.2e-21, 4e-21])]  # fmt: skip
+    recs = [RunRecord("toy", "m", s, math.log(v), 10, 100, 5.0, 40.0, 39.0, 1200, 1.0,
+                      log_ci_lo=math.log(v / 1.6), log_ci_hi=math.log(v * 1.6), verdict=verdict)
+            for s, (v, verdict) in enumerate([(0.6e-21, "reliable"), (0.9e-21, "doubtful"), (1.2e-21, "reliable"),
+                                              (4e-21, "unreliable")])]  # fmt: skip
     (s,) = summarise(recs, {"toy": ExactAnswer(lt, "closed form")})
     assert s.median_rel_error == pytest.approx((0.2 + 0.4) / 2, rel=1e-9)  # errors 0.4, 0.1, 0.2, 3
     assert s.within_2x == 3 and s.n_seeds == 4
+    assert s.covered == 2 and s.reliable == 2  # 0.6e-21 * 1.6 < 1e-21 and 4e-21 / 1.6 > 1e-21 miss the truth
     assert math.exp(s.median_mu_hat) == pytest.approx(math.sqrt(0.9e-21 * 1.2e-21), rel=1e-9)  # median of logs
 
 
@@ -55,11 +59,11 @@ def test_failure_steps_are_the_first_step_below_the_safe_distance():
     assert np.all(steps[failed] == 8) and np.all(steps[~failed] == batch.n_steps)  # distance 2 at step 8
 
 
-def test_improved_preset_weights_of_a_toy_failure_are_exact():
-    # with the window and weights up to the failure, every failing toy rollout has the same weight
+def test_default_sampler_weights_of_a_toy_failure_are_exact():
+    # with the window and weights up to the failure, every failing toy rollout of one batch has the same weight
     # prod over the window of p / q(miss): the estimate's only noise is the failure count.
     pb = toy_problem(ToyParams(10, 5, 3, 0.9))
-    cfg = ExperimentConfig(**PRESETS["state-ce"], n_stages=3, ce_epochs=100, pretrain_epochs=200, seed=1)
+    cfg = ExperimentConfig(final_estimate="fresh", n_stages=3, ce_epochs=100, pretrain_epochs=200, seed=1)
     res = Experiment(cfg, problem=pb).run()
     e = res.final.estimate
     assert e.n_failures > 10
@@ -107,10 +111,11 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, messag
 
 
 # -- the opt-in sampler improvements (pemviz.config, issue 6) --------------------------------------------------
-def test_paper_defaults_leave_every_improvement_off():
-    cfg = ExperimentConfig()
+def test_paper_preset_leaves_every_improvement_off():
+    cfg = ExperimentConfig(**PRESETS["paper"])
     assert (cfg.proposal_inputs, cfg.proposal_window, cfg.weights_until_failure) == ("gap", False, False)
     assert (cfg.smoothing_at_failure, cfg.elite_ties, cfg.pretrain_cap, cfg.defensive) == (None, "all", None, 0.0)
+    assert cfg.final_estimate == "fresh"
 
 
 @pytest.mark.parametrize(

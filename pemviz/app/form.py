@@ -15,7 +15,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.config import MAX_EPOCHS, MAX_SEED, MAX_STAGES, ConfigError, ExperimentConfig
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,8 @@ class NumberField:
     @property
     def allowed(self) -> str:
         if self.integer:
-            return f"a whole number >= {self.lo:g}" if math.isinf(self.hi) else f"a whole number in [{self.lo:g}, {self.hi:g}]"
+            lo = int(self.lo)
+            return f"a whole number >= {lo}" if math.isinf(self.hi) else f"a whole number in [{lo}, {int(self.hi)}]"
         left = "(" if self.lo_open else "["
         right = ")" if self.hi_open else "]"
         return f"a number > {self.lo:g}" if math.isinf(self.hi) else f"a number in {left}{self.lo:g}, {self.hi:g}{right}"
@@ -55,13 +56,14 @@ NUMBER_FIELDS: tuple[NumberField, ...] = (
                 hint="smoothing alpha in (0, 1]: the weight of the new fit in each stage's update"),
     NumberField("quantile_level", "sigma", "the quantile level sigma", False, 0.5, 1.0, hi_open=True,
                 hint="quantile level sigma in [0.5, 1): the elites are the (1 - sigma) least robust"),
-    NumberField("n_stages", "K", "the number of cross-entropy stages K", True, 1, hint="cross-entropy stages"),
+    NumberField("n_stages", "K", "the number of cross-entropy stages K", True, 1, MAX_STAGES,
+                hint="cross-entropy stages"),
     NumberField("n_per_stage", "N", "the rollouts per stage N", True, 2, hint="rollouts per CE stage"),
     NumberField("n_final", "N_e", "the rollouts of the final estimate N_e", True, 1, hint="rollouts of the final batch"),
-    NumberField("seed", "seed", "the seed", True, 0, hint="random seed: the same seed gives the same run"),
-    NumberField("ce_epochs", "CE epochs", "the Adam epochs per stage", True, 1),
+    NumberField("seed", "seed", "the seed", True, 0, MAX_SEED, hint="random seed: the same seed gives the same run"),
+    NumberField("ce_epochs", "CE epochs", "the Adam epochs per stage", True, 1, MAX_EPOCHS),
     NumberField("pretrain_rollouts", "pretrain rollouts", "the pretraining rollouts", True, 1),
-    NumberField("pretrain_epochs", "pretrain epochs", "the pretraining epochs", True, 1),
+    NumberField("pretrain_epochs", "pretrain epochs", "the pretraining epochs", True, 1, MAX_EPOCHS),
     NumberField("learning_rate", "learning rate", "the learning rate", False, 0.0, lo_open=True),
 )  # fmt: skip
 FIELDS_BY_KEY = {f.key: f for f in NUMBER_FIELDS}
@@ -80,10 +82,13 @@ def parse_number(field: NumberField, text: str) -> tuple[float | int | None, str
         return None, f"{field.label}: empty; type {field.allowed} ({field.words})"
     if not _NUMBER.match(raw):
         return None, f"{field.label}: {raw!r} is not a number; type {field.allowed} ({field.words})"
-    value = float(raw)
+    if field.integer and re.fullmatch(r"[+-]?\d+", raw):
+        value: float | int = int(raw)  # exact, also beyond float64's 2^53
+    else:
+        value = float(raw)
     if not math.isfinite(value):
         return None, f"{field.label}: {raw!r} is too large; type {field.allowed} ({field.words})"
-    if field.integer:
+    if field.integer and isinstance(value, float):
         if not value.is_integer():
             return None, f"{field.label}: {raw} is not a whole number; {field.words} must be {field.allowed}"
         value = int(value)

@@ -12,7 +12,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "data",
         help="fetch or locate the KITTI salient-variable files",
-        description="The KITTI salient files (spec section 0) are never shipped: fetch them or show where "
+        description="The KITTI salient files are never shipped: fetch them or show where "
         "pemviz finds them.",
     )
     actions = p.add_subparsers(dest="data_command", required=True)

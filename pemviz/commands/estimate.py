@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 from datetime import datetime
 from pathlib import Path
@@ -50,6 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     rec.add_argument("--save", default=None, metavar="PATH.rrd",
                      help="write the recording here (default recordings/estimate-<name>-<time>.rrd)")
     rec.add_argument("--no-record", action="store_true", help="write no recording")
+    rec.add_argument("--overwrite", action="store_true", help="replace an existing --save file (only one pemviz wrote)")
     p.set_defaults(func=main)  # fmt: skip
 
 
@@ -103,6 +103,9 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
                              f"CKPT or one of {', '.join(rio.SAMPLERS)}")  # fmt: skip
         if q_ref not in rio.SAMPLERS:
             q_ref = str(_resolve(base, q_ref))
+            if meta.proposal_sha256 and Path(q_ref).is_file() and rio.sha256_file(q_ref) != meta.proposal_sha256:
+                raise rio.RolloutFormatError(f"{q_ref}: not the proposal checkpoint the sidecar of {data.path} was "
+                                             "written with (proposal_sha256 differs); write the rollouts again")
     if q_ref in rio.SAMPLERS:
         detector = rio.sampler_detector(q_ref, pem(), meta.window_m)
     else:
@@ -111,8 +114,11 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
 
 
 def default_recording_path(rollouts: Path) -> Path:
+    """``recordings/estimate-NAME-TIME.rrd`` (``-2``, ``-3`` ... when taken)."""
+    from pemviz.commands.run import free_default_path
+
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    return Path("recordings") / f"estimate-{rollouts.stem}-{stamp}.rrd"
+    return free_default_path(Path("recordings"), f"estimate-{rollouts.stem}-{stamp}")
 
 
 def summary_lines(data: Any, result: Any, p_src: str, q_src: str) -> list[str]:
@@ -156,20 +162,20 @@ def check_plausible(e: Any, q_src: str) -> None:
         )
 
 
-def write_recording(path: Path, data: Any, result: Any, lines: list[str]) -> Path:
+def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, overwrite: bool = False) -> Path:
     """A rerun recording of the estimate: description, estimate values, the least-robust rollouts' traces
-    over ``step`` (red = failure), and robustness against importance log-weight. Written to
-    ``PATH.partial`` and moved to ``PATH`` once complete."""
+    over ``step`` (red = failure), and robustness against importance log-weight. Encoded in memory, written
+    under a unique temporary name and moved to ``PATH`` once complete (:func:`pemviz.files.atomic_write`).
+
+    Raises:
+        OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``.
+    """
     import rerun as rr
 
     import pemviz
+    from pemviz.files import write_rrd
 
-    partial = path.with_name(path.name + ".partial")
-    stream = rr.RecordingStream("pemviz")
-    try:
-        stream.save(partial)
-        stream.set_log_time_enabled(False)
-        stream.set_log_tick_enabled(False)
+    def log(stream: rr.RecordingStream) -> None:
         stream.send_recording_name(f"pemviz estimate {data.path.name if data.path else ''}")
         e = result.estimate
         text = "# pemviz estimate from logged rollouts\n\n```\n" + "\n".join(lines) + "\n```\n"
@@ -196,13 +202,8 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str]) -> Pat
                         labels=[f"rollout {i}: robustness, log w" for i in data.rollout_ids]),
             static=True,
         )  # fmt: skip
-        stream.flush()
-        stream.disconnect()
-        os.replace(partial, path)
-    finally:
-        if partial.exists():
-            partial.unlink()
-    return path
+
+    return write_rrd(path, log, overwrite=overwrite)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -213,18 +214,28 @@ def main(args: argparse.Namespace) -> int:
     if args.metric not in METRICS:
         raise UsageError(f"--metric {args.metric!r}: use one of {', '.join(METRICS)}")
     rollouts = Path(args.rollouts)
+    save_path = None
     if args.save is not None and not args.no_record:
-        check_save_path(Path(args.save))
+        save_path = check_save_path(Path(args.save), args.overwrite)
+    elif not args.no_record:  # recordings/ is made only once there is an estimate to record
+        from pemviz.files import check_output_folder
+
+        save_path = default_recording_path(rollouts)
+        try:
+            check_output_folder(save_path.parent, (save_path.name,), "recording folder")
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     data = rio.read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
-    result = rio.estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure)
+    run_config = (data.meta.provenance or {}).get("config") or {}
+    until_failure = bool(run_config.get("weights_until_failure", True))  # as the run that wrote the file weighed
+    result = rio.estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure,
+                                   weights_until_failure=until_failure)  # fmt: skip
     check_plausible(result.estimate, q_src)
     lines = summary_lines(data, result, p_src, q_src)
     print("\n".join(lines), flush=True)
-    if not args.no_record:
-        if args.save is None:
-            Path("recordings").mkdir(exist_ok=True)  # the default folder, as pemviz run makes it
-        save_path = Path(args.save) if args.save is not None else default_recording_path(rollouts)
-        where = write_recording(check_save_path(save_path), data, result, lines)
+    if save_path is not None:
+        save_path.parent.mkdir(exist_ok=True)  # the default folder, as pemviz run makes it
+        where = write_recording(save_path, data, result, lines, overwrite=args.overwrite)
         print(f"recording: {where}", file=sys.stderr)
     return 0

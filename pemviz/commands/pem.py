@@ -17,13 +17,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "pem",
         help="train or evaluate the perception error model (PEM)",
-        description="Train the PEM on the KITTI salient files (spec section 2) or cross-validate the models.",
+        description="Train the PEM on the KITTI salient files or cross-validate the models (both need the files: pemviz data fetch).",
     )
     actions = p.add_subparsers(dest="pem_command", required=True)
     t = actions.add_parser(
         "train",
         help="train a PEM on the full salient file and write its weights",
-        description="Train a named PEM on salient_inputs_no_miscUnknown.txt and write assets/pem_<model>.pt "
+        description="Train a named PEM on salient_inputs_no_miscUnknown.txt and write pemviz/assets/pem_<model>.pt "
         "(or --out).",
     )
     t.add_argument(
@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--epochs", type=int, default=None, help="epochs for ml-nn, trees for gbt (default: the model's, 300 each)"
     )
     t.add_argument("--seed", type=int, default=None, help="seed (default: the model's shipped seed)")
-    t.add_argument("--out", default=None, metavar="PATH", help="weights file (default assets/pem_<model>.pt)")
+    t.add_argument("--out", default=None, metavar="PATH", help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)")
     t.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_main)
@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="5-fold cross-validation of the PEM models (paper Table I) with calibration",
         description="Cross-validate ML-NN, LR, Guess-mu, B-NN and pemviz's gradient-boosted trees on the paper's "
         "5 stratified folds; write a Markdown and a CSV table and a rerun recording (ROC curves, reliability "
-        "diagrams, p(detect | gap) beside the authors' PEM).",
+        "diagrams, p(detect | gap) beside the authors' PEM). Needs the KITTI salient files (see pemviz data fetch).",
     )
     e.add_argument("--models", default=None, help="comma-separated subset of ml-nn,lr,guess-mu,b-nn,gbt (default all)")
     e.add_argument("--folds", default=None, help="comma-separated fold numbers 0..4 (default all)")
@@ -63,7 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out",
         default="recordings",
         metavar="DIR",
-        help="folder for pem-eval.md, pem-eval.csv and pem-eval.rrd (default recordings)",
+        help="folder for pem-eval.md, pem-eval.csv and pem-eval.rrd, created if needed (default recordings)",
     )
     e.add_argument("--save", default=None, metavar="PATH", help="recording path (default <out>/pem-eval.rrd)")
     e.add_argument("--no-record", action="store_true", help="write no rerun recording")
@@ -72,14 +72,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _check_out_path(out: Path) -> None:
+    """``--out`` of ``pem train``: a ``.pt`` file that can be written (checked before training; it is replaced)."""
     from pemviz.cli import UsageError
+    from pemviz.files import check_output_path
 
-    if out.suffix != ".pt":
-        raise UsageError(f"--out {out}: the weights file must end in .pt")
-    if out.is_dir():
-        raise UsageError(f"--out {out}: is a directory")
-    if not out.parent.is_dir():
-        raise UsageError(f"--out {out}: folder {out.parent} does not exist")
+    try:
+        check_output_path(out, ".pt", "--out", overwrite=True)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def train_main(args: argparse.Namespace) -> int:
@@ -178,18 +178,22 @@ def eval_main(args: argparse.Namespace) -> int:
         summary_lines,
         write_recording,
     )
-    from pemviz.files import write_text_atomic
+    from pemviz.files import check_output_folder, check_output_path, write_text_atomic
 
     config = eval_config_from_args(args)
     out = Path(args.out)
-    if not out.is_dir():
-        raise UsageError(f"--out {out}: not an existing folder")
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out}: exists and is not a folder")
     rrd = None if args.no_record else (Path(args.save) if args.save else out / "pem-eval.rrd")
-    if rrd is not None:
-        if rrd.suffix != ".rrd":
-            raise UsageError(f"--save {rrd}: the recording must be a .rrd file")
-        if not rrd.parent.is_dir():
-            raise UsageError(f"--save {rrd}: folder {rrd.parent} does not exist")
+    from pemviz.commands import output_folder
+
+    out = output_folder(out)  # created like validate's and tables' --out
+    try:  # every output checked before the cross-validation (the reports are regenerated in place)
+        check_output_folder(out, ("pem-eval.md", "pem-eval.csv"))
+        if rrd is not None:
+            check_output_path(rrd, ".rrd", "--save", overwrite=True)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     try:
         data = load_salient_data(args.data_dir)
     except (DataError, FileNotFoundError) as exc:

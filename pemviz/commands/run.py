@@ -15,13 +15,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "run",
         help="estimate the crash probability of the braking scenario",
-        description="Run the PEM + adaptive importance sampling pipeline (or a baseline) and record it.",
+        description="Run the PEM + adaptive importance sampling pipeline (or a baseline) and record it. "
+        "With no recording flag the recording goes to recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd.",
+        conflict_handler="resolve",  # lets --connect also take the viewer URL (rerun's --connect --url still works)
     )
     p.add_argument("--method", default=d.method, help=f"one of {', '.join(METHODS)} (default {d.method})")
     p.add_argument(
         "--preset", default=DEFAULT_PRESET,
         help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}: the recommended sampler, "
-        "right against exact answers; paper: the published settings, biased low at this budget)",
+        "right against exact answers; paper: the published settings, biased low at this budget; quick: a run in "
+        "seconds). A preset sets some of the values below; a flag given here overrides it.",
     )
     p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
     p.add_argument(
@@ -34,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--metric", default=None, help=f"robustness metric: {', '.join(METRICS)}")
     p.add_argument("--seed", type=int, default=None, help=f"random seed (default {d.seed})")
     p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help="Adam epochs per stage")
-    p.add_argument("--pem", default=None, help="a shipped PEM name (ml-nn, gbt) or a weights file (default: pemviz.pem.DEFAULT_PEM_NAME)")
+    p.add_argument("--pem", default=None, help="a shipped PEM name (ml-nn, gbt) or a weights file (default ml-nn)")
     p.add_argument(
         "--sim", default=None,
         help=f"scenario back-end: {'|'.join(SIMULATORS)} (default {d.sim}; same rollouts for a seed)",
@@ -48,11 +51,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--save-rollouts", dest="save_rollouts", default=None, metavar="PATH.parquet",
         help="write the final batch's rollouts (with log_p, log_q) for `pemviz estimate` (format: pemviz.rollout_io)",
     )  # fmt: skip
-    rec = p.add_argument_group("recording (rerun)")
-    rec.add_argument("--save", default=None, help="write the recording to this .rrd (default recordings/<name>.rrd)")
-    rec.add_argument("--serve", action="store_true", help="serve the recording over gRPC for a rerun viewer")
-    rec.add_argument("--connect", nargs="?", const="", default=None, metavar="URL", help="stream to a running viewer")
-    rec.add_argument("--no-record", action="store_true", help="write no recording")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing --save / --save-rollouts files (only files pemviz wrote)")
+    add_recording_args(p)
     p.set_defaults(func=main)
 
 
@@ -69,20 +70,164 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     return ExperimentConfig(**fields)
 
 
-def check_save_path(path: Path) -> Path:
+def add_recording_args(p: argparse.ArgumentParser) -> None:
+    """rerun's standard script flags (``rr.script_add_args``: --save, --serve, --connect, --url, --stdout,
+    --headless) plus ``--no-record`` and the ports of ``--serve``."""
+    import rerun as rr
+
+    rec = p.add_argument_group("recording (rerun's standard script flags; at most one of them)")
+    rr.script_add_args(rec)
+    rec.add_argument(
+        "--save", default=None, metavar="PATH.rrd",
+        help="write the recording to this file (default recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd)",
+    )  # fmt: skip
+    rec.add_argument(
+        "--serve", action="store_true",
+        help="serve the recording over gRPC and a web viewer, print both addresses, keep serving until Ctrl-C",
+    )  # fmt: skip
+    rec.add_argument(
+        "--connect", nargs="?", const=True, default=False, metavar="URL",
+        help=f"stream to a running rerun viewer (default URL {DEFAULT_VIEWER_URL}; or give it with --url)",
+    )  # fmt: skip
+    rec.add_argument("--url", default=None, help="the viewer for --connect, e.g. rerun+http://127.0.0.1:9876/proxy")
+    rec.add_argument("--headless", action="store_true", help="open no browser (with --serve)")
+    rec.add_argument("--grpc-port", dest="grpc_port", type=int, default=9876, help="--serve: gRPC port (default 9876)")
+    rec.add_argument("--web-port", dest="web_port", type=int, default=9090, help="--serve: web viewer port (default 9090)")
+    rec.add_argument("--no-record", action="store_true", help="write no recording")
+
+
+DEFAULT_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
+CONNECT_TIMEOUT_S = 3.0
+
+
+def recording_target(args: argparse.Namespace) -> str:
+    """Which one of save / serve / connect / stdout / none the flags ask for (default: save).
+
+    Raises:
+        UsageError: two of them at once, a port without --serve, or a bad port.
+    """
+    from pemviz.commands import UsageError
+
+    if isinstance(args.connect, str):  # --connect URL
+        if args.url is not None and args.url != args.connect:
+            raise UsageError(f"--connect {args.connect} and --url {args.url}: give the viewer URL once")
+        args.url = args.connect
+    if args.url is not None:
+        args.connect = True
+    chosen = [flag for flag, on in (("--save", args.save is not None), ("--serve", args.serve),
+                                    ("--connect", bool(args.connect)), ("--stdout", args.stdout),
+                                    ("--no-record", args.no_record)) if on]  # fmt: skip
+    if len(chosen) > 1:
+        raise UsageError(f"{' and '.join(chosen)} cannot be combined: choose one place for the recording")
+    for flag, port, default in (("--grpc-port", args.grpc_port, 9876), ("--web-port", args.web_port, 9090)):
+        if port != default and not args.serve:
+            raise UsageError(f"{flag} {port}: only with --serve")
+        if not 1 <= port <= 65535:
+            raise UsageError(f"{flag} {port}: not a port (1..65535)")
+    return chosen[0].lstrip("-") if chosen else "save"
+
+
+def probe_viewer(url: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> str:
+    """Check that a rerun viewer listens at ``url`` (default :data:`DEFAULT_VIEWER_URL`) before any work.
+
+    Returns:
+        The URL.
+
+    Raises:
+        UsageError: not a ``rerun+http(s)://HOST:PORT/...`` URL, or nothing answers within ``timeout_s``.
+    """
+    import socket
+    from urllib.parse import urlsplit
+
+    from pemviz.commands import UsageError
+
+    url = url or DEFAULT_VIEWER_URL
+    try:
+        parts = urlsplit(url)
+        scheme, host, port = parts.scheme, parts.hostname, parts.port
+    except ValueError:  # e.g. a port that is not a number
+        scheme = host = port = None
+    if not (scheme or "").startswith("rerun") or not host or port is None:
+        raise UsageError(f"--connect {url}: not a rerun viewer URL (expected e.g. {DEFAULT_VIEWER_URL})")
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        reason = f"no answer within {timeout_s:g} s" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
+        raise UsageError(
+            f"--connect {url}: no rerun viewer there ({reason.lower()}); "
+            "start one with `rerun`, or use --serve or --save"
+        ) from None
+    return url
+
+
+def web_viewer_url(grpc_url: str, web_port: int) -> str:
+    """The address of rerun's web viewer that opens the gRPC stream ``grpc_url``."""
+    from urllib.parse import quote
+
+    return f"http://127.0.0.1:{web_port}/?url={quote(grpc_url, safe='')}"
+
+
+FLAGS = {"n_stages": "--k", "n_per_stage": "--n", "n_final": "--n-final", "quantile_level": "--sigma",
+         "smoothing": "--alpha", "ce_epochs": "--ce-epochs", "ray_address": "--ray-address"}
+"""Config fields whose flag is not ``--`` + the field name."""
+
+
+def check_save_path(path: Path, overwrite: bool = False) -> Path:
     """Refuse a recording path that cannot be written, before any work starts (nothing is created)."""
     from pemviz.commands import UsageError
     from pemviz.files import check_output_path
 
     try:
-        return check_output_path(path, ".rrd", "--save")
+        return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
 
 
-def default_recording_path(cfg: ExperimentConfig) -> Path:
-    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    return Path("recordings") / f"{cfg.method}-{cfg.metric}-seed{cfg.seed}-{stamp}.rrd"
+def default_recording_path(cfg: ExperimentConfig, preset: str, folder: Path = Path("recordings")) -> Path:
+    """``recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd``: the name says what ran; a name
+    already taken (two runs in one second) gets ``-2``, ``-3``, ... so a default name never collides."""
+    return free_default_path(folder, f"{cfg.method}-{preset}-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-{datetime.now():%Y%m%d-%H%M%S}")
+
+
+def free_default_path(folder: Path, stem: str, suffix: str = ".rrd") -> Path:
+    """``folder/stem.rrd``, or ``stem-2.rrd``, ``stem-3.rrd`` ... when taken: default names never replace a file."""
+    path, k = folder / f"{stem}{suffix}", 2
+    while path.exists():
+        path, k = folder / f"{stem}-{k}{suffix}", k + 1
+    return path
+
+
+def rollout_files(parquet: Path) -> list[Path]:
+    """The files ``--save-rollouts`` wrote: the table, its sidecar and, if the sidecar names one, the proposal."""
+    import json
+
+    from pemviz.rollout_io import sidecar_path
+
+    sidecar = sidecar_path(parquet)
+    files = [parquet, sidecar]
+    try:
+        proposal = json.loads(sidecar.read_text()).get("proposal")
+    except (OSError, ValueError, AttributeError):
+        proposal = None
+    if isinstance(proposal, str) and proposal.endswith(".pt"):
+        files.append(parquet.parent / proposal)
+    return files
+
+
+def serve(args: argparse.Namespace):
+    """A sink serving gRPC on ``--grpc-port`` and rerun's web viewer on ``--web-port``; prints both addresses."""
+    import rerun as rr
+
+    from pemviz.sinks.recording import RerunSink
+
+    sink = RerunSink.to_grpc(serve=True, grpc_port=args.grpc_port)
+    url = sink.serve_url or f"rerun+http://127.0.0.1:{args.grpc_port}/proxy"
+    rr.serve_web_viewer(web_port=args.web_port, open_browser=not args.headless, connect_to=url)
+    print(f"recording: serving at {url} (native viewer: rerun {url})", file=sys.stderr)
+    print(f"recording: web viewer at {web_viewer_url(url, args.web_port)}", file=sys.stderr)
+    print("warning: rerun's servers listen on every network interface, without authentication", file=sys.stderr, flush=True)
+    return sink
 
 
 def main(args: argparse.Namespace) -> int:
@@ -91,7 +236,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:
-        raise UsageError(str(exc)) from None
+        flag = FLAGS.get(exc.field or "", f"--{(exc.field or '').replace('_', '-')}")
+        raise UsageError(f"{flag}: {exc}" if exc.field else str(exc)) from None
     if args.pem is not None:
         from pemviz.pem import shipped_pems
 
@@ -102,6 +248,9 @@ def main(args: argparse.Namespace) -> int:
 
         if importlib.util.find_spec("ray") is None:
             raise UsageError("--executor ray: Ray is not installed (pip install ray)")
+        from pemviz.executors import probe_ray_address
+
+        probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
         from pemviz.rollout_io import RolloutSink
@@ -112,42 +261,79 @@ def main(args: argparse.Namespace) -> int:
         if n_final > STREAM_ABOVE:  # such batches are streamed in chunks, never held whole
             raise UsageError(f"--save-rollouts: at most {STREAM_ABOVE} final rollouts can be saved, got {n_final}")
         try:
-            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem)
+            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite)
         except ValueError as exc:
-            raise UsageError(f"--save-rollouts {exc}") from None
+            raise UsageError(str(exc)) from None
 
+    target = recording_target(args)
     save_path = None
-    if not args.no_record and not args.serve and args.connect is None:
-        if args.save is None:
-            Path("recordings").mkdir(exist_ok=True)
-            save_path = check_save_path(default_recording_path(cfg))
-        else:
-            save_path = check_save_path(Path(args.save))
+    if target == "save":
+        if args.save is None:  # recordings/ is made once every check has passed
+            from pemviz.files import check_output_folder
 
-    from pemviz.engine import Experiment
+            save_path = default_recording_path(cfg, args.preset)
+            try:
+                check_output_folder(save_path.parent, (save_path.name,), "recording folder")
+            except ValueError as exc:
+                raise UsageError(str(exc)) from None
+        else:
+            save_path = check_save_path(Path(args.save), args.overwrite)
+    elif target == "connect":
+        args.url = probe_viewer(args.url)
+
+    from pemviz.commands import interrupted
+    from pemviz.engine import STREAM_ABOVE, Experiment
+    from pemviz.resources import check_run_memory
+    from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
 
-    listeners = [ConsoleSink()]
+    check_run_memory(cfg, BrakingParams().n_steps, stream_above=STREAM_ABOVE if cfg.executor == "serial" else None)
+    experiment = Experiment(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
+    listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
     recorder = None
-    if save_path is not None or args.serve or args.connect is not None:
+    if target != "no-record":
         from pemviz.sinks.recording import RerunSink
 
-        if save_path is not None:
-            recorder = RerunSink.to_file(save_path)
+        if target == "save":
+            save_path.parent.mkdir(parents=True, exist_ok=True)
+            recorder = RerunSink.to_file(save_path, overwrite=args.overwrite)
+        elif target == "stdout":
+            recorder = RerunSink.to_stdout()
+        elif target == "connect":
+            recorder = RerunSink.to_grpc(args.url)
+            print(f"recording: streaming to {args.url}", file=sys.stderr)
         else:
-            recorder = RerunSink.to_grpc(args.connect or None, serve=args.serve)
+            recorder = serve(args)
         listeners.append(recorder)
     if rollout_sink is not None:
         listeners.append(rollout_sink)
+    experiment.listeners[:0] = listeners
     try:
-        Experiment(cfg, listeners).run()
-        if rollout_sink is not None and rollout_sink.written is not None:
-            print(f"rollouts: {rollout_sink.written}", file=sys.stderr)
-        elif rollout_sink is not None and rollout_sink.skipped:
-            print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
-    finally:
+        experiment.run()
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
+        where = recorder.close() if recorder is not None else None
+        done = f"{len(experiment.stages)} stage(s) finished"
+        raise interrupted(exc, f"{done}; recording {where} (marked interrupted)" if where else
+                          f"{done}; nothing written") from None
+    except BaseException:
         if recorder is not None:
-            where = recorder.close()
-            if where is not None:
-                print(f"recording: {where}", file=sys.stderr)
+            recorder.close(commit=False)
+        raise
+    if rollout_sink is not None and rollout_sink.written is not None:
+        for path in rollout_files(rollout_sink.written):
+            print(f"rollouts: {path}", file=sys.stderr)
+    elif rollout_sink is not None and rollout_sink.skipped:
+        print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
+    if target == "serve":
+        print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        import rerun as rr
+
+        try:
+            rr.script_teardown(args)  # waits for Ctrl-C
+        except KeyboardInterrupt:
+            pass
+    if recorder is not None:
+        where = recorder.close()
+        if where is not None:
+            print(f"recording: {where}", file=sys.stderr)
     return 0

@@ -27,6 +27,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=main)
 
 
+def check_host(host: str) -> bool:
+    """Check that ``host`` is an address of this machine (resolve it and bind a socket to it on a free port).
+
+    Returns:
+        True for a loopback-only address (127.0.0.0/8, ::1, ``localhost``); False for any other (``0.0.0.0``,
+        ``''`` and ``::`` bind every interface).
+    Raises:
+        UsageError: the name does not resolve or is not an address of this machine.
+    """
+    import ipaddress
+    import socket
+
+    from pemviz.commands import UsageError
+
+    if host in ("", "0.0.0.0", "::"):
+        return False
+    try:
+        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError, ValueError) as exc:
+        raise UsageError(f"--host {host!r}: not an address or a name that resolves ({exc})") from None
+    for family, kind, proto, _, addr in infos:
+        try:
+            with socket.socket(family, kind, proto) as sock:
+                sock.bind(addr)
+        except OSError as exc:
+            raise UsageError(f"--host {host!r}: not an address of this machine ({exc.strerror or exc}); use "
+                             "127.0.0.1 (this machine only) or an interface address") from None
+    return all(ipaddress.ip_address(addr[0].split("%")[0]).is_loopback for *_, addr in infos)
+
+
 def main(args: argparse.Namespace) -> int:
     from pemviz.app.runs import PANEL_PRESETS
     from pemviz.commands import UsageError
@@ -35,6 +65,9 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PANEL_PRESETS)}")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port {args.port} is invalid: use 0..65535")
+    if not check_host(args.host):
+        print(f"pemviz serve: warning: --host {args.host!r} is reachable from other machines and the panel has no "
+              "authentication: anyone who reaches it can run experiments and write recordings", file=sys.stderr)
 
     from pemviz.app.panel import serve
 

@@ -1,6 +1,6 @@
 """``pemviz tables``: the paper's Tables II and III with repetitions, honest error bars and the exact answer.
 
-Table II (spec section 5): MC_100, MC_10000, naive-50_100, naive-50_1000 and adaptive_100 (the paper's
+Table II: MC_100, MC_10000, naive-50_100, naive-50_1000 and adaptive_100 (the paper's
 settings), plus the adaptive sampler under other presets (``--extra``: the authors' code, pemviz's
 improvements). Table III: the adaptive sampler with each robustness metric (classic, AGM, smooth-cumulative).
 Every row: R repetitions (seeds 0..R-1), mu_hat as mean +- standard error std/sqrt(R) (the authors divided
@@ -19,7 +19,6 @@ import argparse
 import csv
 import io
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ import numpy as np
 
 from pemviz.commands.validate import (
     PROBLEMS,
+    RUNS_FILE,
     ExactAnswer,
     Job,
     RunRecord,
@@ -42,6 +42,8 @@ from pemviz.commands.validate import (
     write_atomic,
 )
 from pemviz.config import METRICS, PRESETS, ExperimentConfig
+from pemviz.files import check_output_folder
+from pemviz.resources import cap_jobs
 from pemviz.sampling import format_probability
 
 FIG4_STAGE = 3
@@ -82,6 +84,10 @@ class Row:
     ess: float
     log_truth: float
     wall_s: float
+    covered: int = 0
+    """Repetitions whose 95 % interval holds the exact answer."""
+    reliable: int = 0
+    """Repetitions whose verdict is ``reliable``."""
 
 
 def log_mean_and_se(logs: Sequence[float]) -> tuple[float, float]:
@@ -108,6 +114,7 @@ def summarise_row(spec: RowSpec, records: Sequence[RunRecord], log_truth: float)
         spec.table, spec.label, len(records), log_mean, log_se, float(np.mean([r.n_failures for r in records])),
         records[0].n, float(np.mean(nll)) if nll else math.nan, float(np.mean(lme)) if lme else math.nan,
         float(np.mean([r.ess for r in records])), log_truth, float(np.sum([r.wall_s for r in records])),
+        sum(r.log_ci_lo <= log_truth <= r.log_ci_hi for r in records), sum(r.verdict == "reliable" for r in records),
     )  # fmt: skip
 
 
@@ -142,15 +149,16 @@ def _fmt_row(r: Row) -> list[str]:
     nll = "-" if math.isnan(r.nll_mean) else f"{r.nll_mean:.1f}"
     lme = "-" if math.isnan(r.nll_lme) else f"{r.nll_lme:.1f}"
     return [r.label, f"{format_probability(r.log_mean, 3)}{se}", f"{r.mean_failures:.1f}/{r.n}", nll, lme,
-            f"{r.ess:.1f}", format_probability(r.log_truth, 4), ratio]  # fmt: skip
+            f"{r.ess:.1f}", format_probability(r.log_truth, 4), ratio, f"{r.covered}/{r.reps}",
+            f"{r.reliable}/{r.reps}"]  # fmt: skip
 
 
 HEADER = ("method", "mu_hat (+- s.e.)", "failures", "NLL mean", "NLL -log-mean-exp", "ESS", "exact p_fail",
-          "mean / exact")  # fmt: skip
+          "mean / exact", "95% CI covers", "reliable")  # fmt: skip
 
 
 def markdown(rows: Sequence[Row], table: str) -> str:
-    lines = ["| " + " | ".join(HEADER) + " |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| " + " | ".join(HEADER) + " |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     lines += ["| " + " | ".join(_fmt_row(r)) + " |" for r in rows if r.table == table]
     return "\n".join(lines)
 
@@ -160,11 +168,12 @@ def csv_text(rows: Sequence[Row]) -> str:
     w = csv.writer(buf)
     w.writerow(["table", "method", "reps", "mu_hat_mean", "mu_hat_se", "log_mu_hat_mean", "log_mu_hat_se",
                 "mean_failures", "n", "nll_mean", "nll_log_mean_exp", "ess", "exact_p_fail", "log_exact_p_fail",
-                "wall_s"])  # fmt: skip
+                "wall_s", "covered", "reliable"])  # fmt: skip
     for r in rows:
         w.writerow([r.table, r.label, r.reps, format_probability(r.log_mean, 6), format_probability(r.log_se, 6),
                     repr(r.log_mean), repr(r.log_se), r.mean_failures, r.n, r.nll_mean, r.nll_lme, r.ess,
-                    format_probability(r.log_truth, 6), repr(r.log_truth), f"{r.wall_s:.2f}"])  # fmt: skip
+                    format_probability(r.log_truth, 6), repr(r.log_truth), f"{r.wall_s:.2f}", r.covered,
+                    r.reliable])  # fmt: skip
     return buf.getvalue()
 
 
@@ -173,40 +182,40 @@ def write_recording(path: Path, specs: Sequence[RowSpec], records: dict[str, lis
     """Every adaptive repetition's per-stage proposal curves and Fig. 4 into a rerun file (atomic)."""
     import rerun as rr
 
-    partial = path.with_name(path.name + ".partial")
-    stream = rr.RecordingStream("pemviz-tables")
-    stream.save(partial)
+    from pemviz.files import write_rrd
+
     gap_mm = rr.TimeColumn("gap_mm", sequence=np.round(grid * 1000).astype(np.int64))
+    write_rrd(path, lambda stream: _log_tables(stream, gap_mm, specs, records, pem_curve, description),
+              app_id="pemviz-tables")
+
+
+def _log_tables(stream, gap_mm, specs, records, pem_curve, description) -> None:  # type: ignore[no-untyped-def]
+    import rerun as rr
 
     def curve(entity: str, values: np.ndarray, colour, name: str) -> None:
         stream.log(entity, rr.SeriesLines(colors=[colour], names=[name], widths=[2.0]), static=True)
         stream.send_columns(entity, indexes=[gap_mm], columns=rr.Scalars.columns(scalars=np.asarray(values, float)))
 
-    try:
-        stream.log("description", rr.TextDocument(description, media_type=rr.MediaType.MARKDOWN), static=True)
-        curve("fig4/pem", pem_curve, PEM_RGBA, "PEM p(detect | d)")
-        for spec in specs:
-            recs = [r for r in records[spec.label] if r.curves is not None]
-            if not recs:
-                continue
-            key = spec.label.replace(" ", "_").replace("(", "").replace(")", "")
-            for r in recs:
-                n_stages = r.curves.shape[0] - 1
-                for k, c in enumerate(r.curves):
-                    curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_colour(k, n_stages),
-                          f"{spec.label} rep {r.seed} stage {k}")  # fmt: skip
-            metric = dict(spec.fields).get("metric", "classic")
-            preset = spec.label[spec.label.index("(") + 1 : -1] if spec.label.endswith(")") else None
-            if spec.label.startswith(("adaptive", "r_")) and all(r.curves.shape[0] > FIG4_STAGE for r in recs):
-                mean = np.mean([r.curves[FIG4_STAGE] for r in recs], axis=0)
-                where = f"fig4/{metric}" if preset is None else f"fig4/{preset}/{metric}"
-                curve(where, mean, METRIC_RGBA.get(metric, (120, 120, 120, 255)),
-                      f"{metric}{'' if preset is None else f' ({preset})'}: mean q(detect | d) at stage {FIG4_STAGE} "
-                      f"over {len(recs)} repetitions")  # fmt: skip
-        stream.flush()
-    finally:
-        stream.disconnect()
-    os.replace(partial, path)
+    stream.log("description", rr.TextDocument(description, media_type=rr.MediaType.MARKDOWN), static=True)
+    curve("fig4/pem", pem_curve, PEM_RGBA, "PEM p(detect | d)")
+    for spec in specs:
+        recs = [r for r in records[spec.label] if r.curves is not None]
+        if not recs:
+            continue
+        key = spec.label.replace(" ", "_").replace("(", "").replace(")", "")
+        for r in recs:
+            n_stages = r.curves.shape[0] - 1
+            for k, c in enumerate(r.curves):
+                curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_colour(k, n_stages),
+                      f"{spec.label} rep {r.seed} stage {k}")  # fmt: skip
+        metric = dict(spec.fields).get("metric", "classic")
+        preset = spec.label[spec.label.index("(") + 1 : -1] if spec.label.endswith(")") else None
+        if spec.label.startswith(("adaptive", "r_")) and all(r.curves.shape[0] > FIG4_STAGE for r in recs):
+            mean = np.mean([r.curves[FIG4_STAGE] for r in recs], axis=0)
+            where = f"fig4/{metric}" if preset is None else f"fig4/{preset}/{metric}"
+            curve(where, mean, METRIC_RGBA.get(metric, (120, 120, 120, 255)),
+                  f"{metric}{'' if preset is None else f' ({preset})'}: mean q(detect | d) at stage {FIG4_STAGE} "
+                  f"over {len(recs)} repetitions")  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -226,7 +235,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--naive-large", type=int, default=1000, help="rollouts of the large naive-50 row (default 1000)")
     add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2: the CI machine's cores)")
-    p.add_argument("--out", default="tables", metavar="DIR", help="folder for tables.md/.csv/.rrd (default tables)")
+    p.add_argument(
+        "--out", default="tables", metavar="DIR",
+        help=f"folder for tables.md, tables.csv, tables.rrd and {RUNS_FILE} (each run as it ends; an existing folder "
+        "resumes: finished runs are not run again) (default tables)",
+    )  # fmt: skip
     p.add_argument("--no-record", action="store_true", help="write no recording")
     p.set_defaults(func=main)  # fmt: skip
 
@@ -243,13 +256,16 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError("--jobs, --mc-large and --naive-large must be >= 1")
     if args.pem is not None and not Path(args.pem).is_file():
         raise UsageError(f"--pem {args.pem}: no such file")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out}: exists and is not a folder")
+    out = check_output_folder(args.out, ("tables.md", "tables.csv", "tables.rrd"))
     base = base_fields(args)
+    from pemviz.commands import output_folder
+
+    out = output_folder(out)
 
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
+
+    n_jobs = cap_jobs(args.jobs, say)
 
     t0 = time.perf_counter()
     say(f"{args.problem}: {PROBLEMS[args.problem]}")
@@ -258,7 +274,7 @@ def main(args: argparse.Namespace) -> int:
     specs = row_specs(base, extra, args.mc_large, args.naive_large)
     jobs = [Job(args.problem, s.label, s.fields, seed, keep_curves=True, pem_path=args.pem)
             for s in specs for seed in range(args.reps)]  # fmt: skip
-    say(f"{len(jobs)} runs on {args.jobs} process(es)")
+    say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
         say(f"  {r.method:28s} rep {r.seed}: mu_hat {format_probability(r.log_mu_hat)} {r.n_failures}/{r.n} failures "
@@ -266,7 +282,7 @@ def main(args: argparse.Namespace) -> int:
 
     # the slow (adaptive) runs first so that two workers finish together
     order = sorted(range(len(jobs)), key=lambda i: dict(jobs[i].fields).get("method", "adaptive") != "adaptive")
-    done = run_jobs([jobs[i] for i in order], args.jobs, on_record)
+    done = run_jobs([jobs[i] for i in order], n_jobs, on_record, runs_file=out / RUNS_FILE, progress=True)
     by_label: dict[str, list[RunRecord]] = {s.label: [] for s in specs}
     for r in sorted(done, key=lambda r: r.seed):
         by_label[r.method].append(r)
@@ -298,12 +314,12 @@ def main(args: argparse.Namespace) -> int:
         markdown(rows_all, "III"),
         "",
         *(["## Exact answer: refinement", "", truth.table, ""] if truth.table else []),
-        f"Wall time {wall:.0f} s on {args.jobs} process(es).",
+        f"Wall time {wall:.0f} s on {n_jobs} process(es).",
     ]) + "\n"  # fmt: skip
     print(text)
     write_atomic(out / "tables.md", text)
     write_atomic(out / "tables.csv", csv_text(rows_all))
-    say(f"wrote {out / 'tables.md'} and {out / 'tables.csv'}")
+    say(f"wrote {out / 'tables.md'}, {out / 'tables.csv'} and {out / RUNS_FILE}")
     if not args.no_record:
         problem = build_problem(args.problem, args.pem)
         write_recording(out / "tables.rrd", specs, by_label, problem.curve_grid, problem.target_curve(), text)

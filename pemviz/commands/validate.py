@@ -1,6 +1,6 @@
-"""``pemviz validate``: the sampler and the baselines against exact failure probabilities (issue 6).
+"""``pemviz validate``: the sampler and the baselines against exact failure probabilities.
 
-Each problem of :data:`PROBLEMS` has a known answer (spec section 6): the toy braking model in closed form,
+Each problem of :data:`PROBLEMS` has a known answer: the toy braking model in closed form,
 the latched-brake scenario from its deterministic simulator, and the main braking scenario by exact
 enumeration of its detection sequences (:mod:`pemviz.truth`). Every method runs on every problem for
 several seeds at the same simulation budget (the adaptive sampler's: pretraining + K x N + N_e), and the
@@ -12,8 +12,11 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
+import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -23,7 +26,9 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from pemviz.config import DEFAULT_PRESET, PRESETS, ConfigError, ExperimentConfig
-from pemviz.files import write_text_atomic
+from pemviz.files import check_output_folder, write_text_atomic
+from pemviz.resources import cap_jobs
+from pemviz.sampling import relative_error
 
 # -- problems with an exact answer ------------------------------------------------------------------------------
 
@@ -42,7 +47,7 @@ PROBLEMS: dict[str, str] = {
     "toy": "toy braking (100, 50, 30, p = 0.9): exact 1e-21",
     "toy-1e-30": "toy braking (100, 39, 30, p = 0.999), braking window 10: exact 1e-30",
     "latched": "braking scenario with a latched brake: exact from the deterministic simulator",
-    "main": "braking scenario (spec section 1): exact enumeration of detection sequences",
+    "main": "braking scenario: exact enumeration of detection sequences",
     "toy-1e-3": "toy braking (10, 5, 3, p = 0.9): exact 1e-3 (small; for CI)",
 }
 """Problem name -> description."""
@@ -144,6 +149,12 @@ class RunRecord:
     wall_s: float
     gammas: tuple[float, ...] = ()
     curves: np.ndarray | None = field(default=None, repr=False)
+    log_ci_lo: float = -math.inf
+    """The estimate's 95 % interval as natural logs (:attr:`pemviz.sampling.Estimate.log_ci`)."""
+    log_ci_hi: float = 0.0
+    khat: float = math.nan
+    verdict: str = "unreliable"
+    reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -175,28 +186,111 @@ def run_job(job: Job) -> RunRecord:
     curves = np.stack([s.proposal_curve for s in res.stages]) if job.keep_curves and cfg.method == "adaptive" else None
     gammas = tuple(float(s.gamma) for s in res.stages if s.kind == "ce")
     return RunRecord(job.problem, job.method, job.seed, e.log_mu_hat, e.n_failures, e.n, e.ess, e.nll_mean, e.nll_lme,
-                     res.final.n_simulations, time.perf_counter() - t0, gammas, curves)  # fmt: skip
+                     res.final.n_simulations, time.perf_counter() - t0, gammas, curves, *e.log_ci, e.khat, e.verdict,
+                     e.reason)  # fmt: skip
 
 
-def run_jobs(jobs: Sequence[Job], n_jobs: int = 1, on_record: Callable[[RunRecord], None] | None = None) -> list[RunRecord]:
-    """Run jobs in order (``n_jobs`` = 1) or in ``n_jobs`` worker processes; results in the jobs' order."""
-    if n_jobs <= 1:
-        out = []
-        for job in jobs:
-            out.append(run_job(job))
-            if on_record is not None:
-                on_record(out[-1])
-        return out
-    import multiprocessing as mp
+RUNS_FILE = "runs.jsonl"
+"""Each finished run of ``validate`` / ``tables``, one JSON line, appended as the run ends (``--out``)."""
 
-    ctx = mp.get_context("spawn")  # torch and fork do not mix
-    with ctx.Pool(n_jobs) as pool:
-        out = []
-        for rec in pool.imap(run_job, jobs):
-            out.append(rec)
-            if on_record is not None:
+
+def job_key(job: Job) -> str:
+    """What identifies a run in :data:`RUNS_FILE`: the whole :class:`Job` as canonical JSON."""
+    return json.dumps(dataclasses.asdict(job), sort_keys=True, default=str)
+
+
+def record_to_json(job: Job, rec: RunRecord) -> str:
+    """One line of :data:`RUNS_FILE` (non-finite floats as ``NaN`` / ``-Infinity``, as Python's json reads them)."""
+    fields = {f.name: getattr(rec, f.name) for f in dataclasses.fields(rec)}
+    fields["gammas"] = list(rec.gammas)
+    fields["curves"] = None if rec.curves is None else rec.curves.tolist()
+    return json.dumps({"job": job_key(job), "record": fields})
+
+
+def read_finished(path: Path, jobs: Sequence[Job]) -> dict[str, RunRecord]:
+    """The records of :data:`RUNS_FILE` at ``path`` that belong to ``jobs``, by :func:`job_key`.
+
+    Lines of other jobs (other settings) are ignored; a torn last line (a killed run) is skipped.
+    """
+    wanted = {job_key(j) for j in jobs}
+    done: dict[str, RunRecord] = {}
+    if not path.is_file():
+        return done
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            item = json.loads(line)
+            if item["job"] not in wanted:
+                continue
+            fields = dict(item["record"])
+            fields["gammas"] = tuple(fields["gammas"])
+            fields["curves"] = None if fields["curves"] is None else np.asarray(fields["curves"], dtype=np.float64)
+            done[item["job"]] = RunRecord(**fields)
+        except (ValueError, KeyError, TypeError):
+            continue
+    return done
+
+
+def run_jobs(
+    jobs: Sequence[Job],
+    n_jobs: int = 1,
+    on_record: Callable[[RunRecord], None] | None = None,
+    *,
+    runs_file: Path | None = None,
+    progress: bool = False,
+) -> list[RunRecord]:
+    """Run jobs in order (``n_jobs`` = 1) or in ``n_jobs`` worker processes; results in the jobs' order.
+
+    With ``runs_file``, every run is appended to it as it ends and runs already there are not run again
+    (resume after Ctrl-C, SIGTERM or a crash). ``progress`` shows a bar with the ETA on stderr.
+    """
+    from tqdm import tqdm
+
+    done = read_finished(runs_file, jobs) if runs_file is not None else {}
+    todo = [job for job in jobs if job_key(job) not in done]
+    if done:
+        print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {runs_file}", file=sys.stderr)
+    tty = sys.stderr.isatty()
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), unit="run", file=sys.stderr,
+               disable=not (progress and tty), dynamic_ncols=True)  # fmt: skip
+    t0, n0 = time.perf_counter(), len(jobs) - len(todo)
+    log = None
+    if runs_file is not None:
+        if runs_file.is_file() and runs_file.stat().st_size and not runs_file.read_bytes().endswith(b"\n"):
+            runs_file.write_bytes(runs_file.read_bytes().rsplit(b"\n", 1)[0] + b"\n")  # drop a torn last line
+        log = runs_file.open("a", encoding="utf-8")
+
+    def finished(job: Job, rec: RunRecord) -> None:
+        done[job_key(job)] = rec
+        if log is not None:
+            log.write(record_to_json(job, rec) + "\n")
+            log.flush()
+            os.fsync(log.fileno())
+        if on_record is not None:
+            with bar.external_write_mode():
                 on_record(rec)
-        return out
+        bar.update(1)
+        if progress and not tty:  # a log, not a terminal: the bar's counts and ETA as a line
+            n, elapsed = len(done), time.perf_counter() - t0
+            eta = elapsed / (n - n0) * (len(jobs) - n)
+            print(f"  [{n}/{len(jobs)} runs, {tqdm.format_interval(elapsed)} elapsed, ETA {tqdm.format_interval(eta)}]",
+                  file=sys.stderr, flush=True)  # fmt: skip
+
+    try:
+        if n_jobs <= 1 or len(todo) <= 1:
+            for job in todo:
+                finished(job, run_job(job))
+        else:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")  # torch and fork do not mix
+            with ctx.Pool(min(n_jobs, len(todo))) as pool:
+                for job, rec in zip(todo, pool.imap(run_job, todo)):
+                    finished(job, rec)
+    finally:
+        bar.close()
+        if log is not None:
+            log.close()
+    return [done[job_key(job)] for job in jobs]
 
 
 # -- summary ------------------------------------------------------------------------------------------------------
@@ -220,13 +314,10 @@ class Summary:
     median_ess: float
     n_simulations: int
     median_wall_s: float
-
-
-def relative_error(log_mu_hat: float, log_truth: float) -> float:
-    """|mu_hat - truth| / truth computed from logs (1.0 when mu_hat = 0)."""
-    if log_mu_hat == -math.inf:
-        return 1.0
-    return abs(math.expm1(log_mu_hat - log_truth))
+    covered: int
+    """Seeds whose 95 % interval holds the exact answer."""
+    reliable: int
+    """Seeds whose verdict is ``reliable``."""
 
 
 def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> list[Summary]:
@@ -245,20 +336,23 @@ def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> l
                 int(sum(abs(x - lt) <= math.log(2.0) for x in logs)),
                 float(np.median([r.n_failures for r in rs])), rs[0].n, float(np.median([r.ess for r in rs])),
                 int(np.median([r.n_simulations for r in rs])), float(np.median([r.wall_s for r in rs])),
+                sum(r.log_ci_lo <= lt <= r.log_ci_hi for r in rs), sum(r.verdict == "reliable" for r in rs),
             )
         )  # fmt: skip
     return out
 
 
 COLUMNS = ("problem", "truth", "method", "seeds", "median mu_hat", "min mu_hat", "max mu_hat", "median rel. error",
-           "within x2", "median failures", "median ESS", "simulations", "median wall s")  # fmt: skip
+           "within x2", "95% CI covers", "reliable", "median failures", "median ESS", "simulations",
+           "median wall s")  # fmt: skip
 
 
 def _row(s: Summary) -> list[str]:
     from pemviz.sampling import format_probability as fp
 
     return [s.problem, fp(s.log_truth), s.method, str(s.n_seeds), fp(s.median_mu_hat), fp(s.min_mu_hat),
-            fp(s.max_mu_hat), f"{s.median_rel_error:.3f}", f"{s.within_2x}/{s.n_seeds}",
+            fp(s.max_mu_hat), f"{s.median_rel_error:.3f}", f"{s.within_2x}/{s.n_seeds}", f"{s.covered}/{s.n_seeds}",
+            f"{s.reliable}/{s.n_seeds}",
             f"{s.median_failures:g}/{s.n_per_estimate}", f"{s.median_ess:.1f}", f"{s.n_simulations:,}",
             f"{s.median_wall_s:.1f}"]  # fmt: skip
 
@@ -273,12 +367,13 @@ def csv_text(summaries: Sequence[Summary]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["problem", "log_truth", "truth", "method", "seeds", "median_log_mu_hat", "min_log_mu_hat",
-                "max_log_mu_hat", "median_mu_hat", "median_rel_error", "within_2x", "median_failures", "n_per_estimate",
+                "max_log_mu_hat", "median_mu_hat", "median_rel_error", "within_2x", "covered", "reliable",
+                "median_failures", "n_per_estimate",
                 "median_ess", "simulations", "median_wall_s"])  # fmt: skip
     for s in summaries:
         w.writerow([s.problem, repr(s.log_truth), f"{math.exp(s.log_truth):.6g}", s.method, s.n_seeds,
                     repr(s.median_mu_hat), repr(s.min_mu_hat), repr(s.max_mu_hat),
-                    f"{math.exp(s.median_mu_hat):.6g}", f"{s.median_rel_error:.6g}", s.within_2x,
+                    f"{math.exp(s.median_mu_hat):.6g}", f"{s.median_rel_error:.6g}", s.within_2x, s.covered, s.reliable,
                     s.median_failures, s.n_per_estimate, f"{s.median_ess:.6g}", s.n_simulations,
                     f"{s.median_wall_s:.3f}"])  # fmt: skip
     return buf.getvalue()
@@ -349,7 +444,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
     add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
-    p.add_argument("--out", default=None, metavar="DIR", help="also write DIR/validate.md and DIR/validate.csv")
+    p.add_argument(
+        "--out", default="validate", metavar="DIR",
+        help=f"folder for validate.md, validate.csv and {RUNS_FILE} (each run as it ends; an existing folder resumes: "
+        "finished runs are not run again) (default validate)",
+    )  # fmt: skip
     p.set_defaults(func=main)  # fmt: skip
 
 
@@ -377,16 +476,20 @@ def main(args: argparse.Namespace) -> int:
     if args.pem is not None and not Path(args.pem).is_file():
         raise UsageError(f"--pem {args.pem}: no such file")
     out_dir = Path(args.out) if args.out else None
-    if out_dir is not None and out_dir.exists() and not out_dir.is_dir():
-        raise UsageError(f"--out {out_dir}: exists and is not a folder")
+    if out_dir is not None:
+        check_output_folder(out_dir, ("validate.md", "validate.csv"))
     base = base_fields(args)
     methods = methods_for(presets, baselines, base)
     if not methods:
         raise UsageError("nothing to run: give --presets and/or --baselines")
+    from pemviz.commands import output_folder
+
+    out_dir = output_folder(args.out)
 
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
+    n_jobs = cap_jobs(args.jobs, say)
     t0 = time.perf_counter()
     truths: dict[str, ExactAnswer] = {}
     for name in problems:
@@ -395,7 +498,7 @@ def main(args: argparse.Namespace) -> int:
         say(f"  truth {math.exp(truths[name].log_p_fail):.6g} ({truths[name].source})")
     jobs = [Job(pb, label, tuple(sorted(fields.items())), seed, pem_path=args.pem)
             for pb in problems for label, fields in methods for seed in range(args.seeds)]  # fmt: skip
-    say(f"{len(jobs)} runs on {args.jobs} process(es)")
+    say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
         err = relative_error(r.log_mu_hat, truths[r.problem].log_p_fail)
@@ -404,7 +507,7 @@ def main(args: argparse.Namespace) -> int:
         say(f"  {r.problem:9s} {r.method:22s} seed {r.seed}: mu_hat {format_probability(r.log_mu_hat)} "
             f"(rel. error {err:.3f}), {r.n_failures}/{r.n} failures, {r.wall_s:.1f} s")  # fmt: skip
 
-    records = run_jobs(jobs, args.jobs, on_record)
+    records = run_jobs(jobs, n_jobs, on_record, runs_file=out_dir / RUNS_FILE, progress=True)
     summaries = summarise(records, truths)
     md = [f"# pemviz validate: {args.seeds} seeds, equal budgets ({summaries[0].n_simulations:,} simulations)", ""]
     for name in problems:
@@ -416,8 +519,7 @@ def main(args: argparse.Namespace) -> int:
     md.append(f"Total wall time {time.perf_counter() - t0:.0f} s.")
     text = "\n".join(md) + "\n"
     print(text)
-    if out_dir is not None:
-        write_atomic(out_dir / "validate.md", text)
-        write_atomic(out_dir / "validate.csv", csv_text(summaries))
-        say(f"wrote {out_dir / 'validate.md'} and {out_dir / 'validate.csv'}")
+    write_atomic(out_dir / "validate.md", text)
+    write_atomic(out_dir / "validate.csv", csv_text(summaries))
+    say(f"wrote {out_dir / 'validate.md'}, {out_dir / 'validate.csv'} and {out_dir / RUNS_FILE}")
     return 0

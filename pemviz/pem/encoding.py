@@ -59,7 +59,7 @@ class NormStats:
 
 
 def fit_norm_stats(raw_inputs: np.ndarray) -> NormStats:
-    """Mean and unbiased (n - 1) std of the pose columns of raw salient inputs ``[N, 11]`` (spec section 2).
+    """Mean and unbiased (n - 1) std of the pose columns of raw salient inputs ``[N, 11]`` (as the authors' training code).
 
     Raises:
         ValueError: fewer than 2 rows or not 11 columns.
@@ -129,7 +129,7 @@ def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:
 
 
 def braking_salient_inputs(gap_m: np.ndarray) -> np.ndarray:
-    """Salient variables of the lead car in the braking scenario (spec section 2).
+    """Salient variables of the lead car in the braking scenario: class Car, no occlusion, the camera 1.76 m up.
 
     class Car, occlusion none, loc_x = 0.0, loc_y = 1.76 (camera height), loc_z = gap + 2.48,
     rot_y = -pi/2; the unused columns (truncation, alpha, box dimensions) are 0.

@@ -259,7 +259,7 @@ class PEM:
         return self._mlp(encode_salient(raw_inputs, self.norm))
 
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
-        """Logit of p(detect) of the lead car at a gap (braking scenario, spec section 2).
+        """Logit of p(detect) of the lead car at a gap (the braking scenario's lead car).
 
         Equal to ``self.logit(braking_salient_inputs(gap_m))`` to float64 rounding (tested to 1e-9): with
         only the gap varying, the ReLU network is an exactly piecewise-linear function of the gap, whose
@@ -304,7 +304,7 @@ def train_pem(
     progress: bool = False,
     metadata: Mapping[str, Any] | None = None,
 ) -> PEM:
-    """Train a PEM network with the paper's recipe (spec section 2; the authors' ``train_tp_pem_det.py``).
+    """Train a PEM network with the paper's recipe (Innes & Ramamoorthy (2022), Sec. V; the authors' ``train_tp_pem_det.py``).
 
     BCE with logits, Adam (lr 1e-3), mini-batches of 1024 reshuffled every epoch, 300 epochs, float32;
     seeded (``torch.manual_seed(seed)`` for the initial weights, a seeded generator for the shuffles), so

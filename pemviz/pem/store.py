@@ -1,4 +1,4 @@
-"""Store and find PEMs: ``assets/pem_<name>.pt`` files, atomic saves, and the authors' reference PEM.
+"""Store and find PEMs: the shipped ``pemviz/assets/pem_<name>.pt`` files (package data), atomic saves, and the authors' reference PEM.
 
 A PEM file is a ``torch.save`` of a plain dict that ``torch.load(weights_only=True)`` reads: format tag
 ``pemviz-pem``, version, ``kind`` (``mlp`` for :class:`PEM`, ``gbt`` for :class:`TreePEM`), name, the
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -31,9 +32,15 @@ AnyPEM = PEM | TreePEM
 
 
 def assets_dir() -> Path:
-    """``$PEMVIZ_ASSETS_DIR`` if set, else ``<repository root>/assets``."""
+    """``$PEMVIZ_ASSETS_DIR`` if set, else the package's own ``pemviz/assets`` folder.
+
+    The shipped PEMs are package data (``importlib.resources``), so a wheel install finds them as a
+    checkout does.
+    """
     env = os.environ.get(ASSETS_DIR_ENV)
-    return Path(env).expanduser() if env else repo_root() / "assets"
+    if env:
+        return Path(env).expanduser()
+    return Path(str(resources.files("pemviz") / "assets"))
 
 
 def pem_path(name: str = DEFAULT_PEM_NAME) -> Path:

@@ -1,7 +1,7 @@
 """A gradient-boosted-trees PEM (scikit-learn's HistGradientBoostingClassifier) on the same 14 features.
 
-pemviz's better-than-the-paper PEM (issue 4): chosen by 5-fold cross-validation on the paper's folds
-(see ``pemviz.pem_eval`` and ``assets/README.md``). scikit-learn fits the trees; pemviz exports them into
+pemviz's better-than-the-paper PEM: chosen by 5-fold cross-validation on the paper's folds
+(see ``pemviz.pem_eval`` and ``pemviz/assets/README.md``). scikit-learn fits the trees; pemviz exports them into
 flat float64 / int arrays (``torch.save``-able, no pickle) and evaluates them itself:
 
 - :meth:`TreePEM.logit` walks all trees at once, vectorised over rows (equal to scikit-learn's

@@ -68,7 +68,7 @@ class RolloutBatch:
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:
         """Importance log-weights ``sum_t log p - log q`` over the first ``n_factors`` steps, float64 [N].
 
-        The last action of a rollout affects nothing (spec section 4), so the default is T - 1 factors.
+        The last action of a rollout affects nothing (Innes & Ramamoorthy (2022), Algorithm 1), so the default is T - 1 factors.
         """
         k = self.n_steps - 1 if n_factors is None else n_factors
         return (self.log_p[:, :k] - self.log_q[:, :k]).sum(axis=1)

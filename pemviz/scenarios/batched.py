@@ -1,4 +1,4 @@
-"""The braking scenario's batched twin: N rollouts advance together in numpy float64 (issue 7).
+"""The braking scenario's batched twin: N rollouts advance together in numpy float64.
 
 :class:`BrakingScenario` steps two highway-env vehicles per rollout (~100 us a step); here the N rollouts
 of one batch advance together, the detector is asked once per step for the whole batch, and 10^6
@@ -67,7 +67,7 @@ class BatchedBraking:
         self.reset()
 
     def reset(self) -> None:
-        """Put both cars of every rollout at the logged CARLA start (spec section 1)."""
+        """Put both cars of every rollout at the logged CARLA start."""
         p = self.params
         self.ego_x_m = np.zeros(self.n)
         self.ego_speed_mps = np.full(self.n, float(p.ego_speed0_mps))
@@ -373,7 +373,7 @@ def summarise_batched(
     Args:
         failed: failure indicator of a chunk, bool [m] (e.g. ``Problem.failed``: classic robustness of the
             safety formula < 0). Default: the gap drops below ``params.crash_gap_m`` at some step, i.e.
-            classic robustness of ``G[0,T-1](d >= crash_gap)`` below 0 (spec section 3).
+            classic robustness of ``G[0,T-1](d >= crash_gap)`` below 0 (Innes & Ramamoorthy (2022)).
         other arguments: as :func:`simulate_batched`.
     Returns:
         :class:`RolloutSummary` of the n rollouts, in order.

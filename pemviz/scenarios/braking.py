@@ -1,4 +1,4 @@
-"""The automated-braking scenario (spec section 1) on highway-env vehicles.
+"""The automated-braking scenario of Innes & Ramamoorthy (2022) on highway-env vehicles.
 
 A lead car drives at 8.04 m/s and stops for a red light; the ego follows with a stripped-down CARLA
 BasicAgent: each step it asks a detector whether the lead is seen, and brakes hard (brake 0.5) when
@@ -31,7 +31,7 @@ LEAD_SPEED_PROFILE_MPS: tuple[float, ...] = (
     + (8.01, 7.89, 7.69, 7.44, 7.16, 6.87, 5.72, 4.40, 3.06, 1.74, 0.43, 0.006)
     + (0.0,) * 68
 )
-"""Lead speed at step t = 0..99 (spec section 1; 8.038 m/s is the logged start speed)."""
+"""Lead speed at step t = 0..99 (the authors' CARLA logs; 8.038 m/s is the logged start speed)."""
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "ego_speed_mps", "lead_speed_mps")
 """Columns of :meth:`BrakingScenario.observation`: what the scenario reports to the detector."""
@@ -39,7 +39,7 @@ OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "ego_speed_mps", "lead_speed_mps"
 
 @dataclass(frozen=True)
 class BrakingParams:
-    """Every constant of the braking scenario (spec section 1), fitted to the CARLA logs.
+    """Every constant of the braking scenario, fitted to the CARLA logs.
 
     Distances in metres, speeds in m/s, accelerations in m/s^2, time in seconds.
     """
@@ -123,7 +123,7 @@ def ego_acceleration(
         (acceleration [N] in m/s^2, never below -speed/dt so the ego never reverses; new memory).
         In contact with the lead (gap <= ``contact_gap_m``) the ego is stopped, as after a CARLA collision.
 
-    Source: spec section 1 (CARLA BasicAgent emergency stop + PIDLongitudinalController, K_P 1.0,
+    Source: Innes & Ramamoorthy (2022), Sec. V (CARLA BasicAgent emergency stop + PIDLongitudinalController, K_P 1.0,
     K_I 0.05, K_D 0 on the km/h error, max throttle 0.75, PID brake at most 0.3).
     """
     p = params
@@ -134,7 +134,7 @@ def ego_acceleration(
     throttle = np.clip(command, 0.0, p.max_throttle)
     pid_brake = np.clip(-command, 0.0, p.max_pid_brake)
     emergency = np.asarray(detected, dtype=bool) & (gap_m < p.braking_distance_m)
-    if p.latched_brake:  # spec section 6: once started, braking never stops
+    if p.latched_brake:  # the latched variant: once started, braking never stops
         emergency = emergency | ctrl.pending_brake
     applied = ctrl.pending_brake if p.actuation_lag_steps == 1 else emergency
     full_brake = np.interp(v, p.brake_knots_mps, p.brake_decel_mps2)
@@ -163,7 +163,7 @@ class BrakingScenario:
         self.reset()
 
     def reset(self) -> None:
-        """Put both cars at the logged CARLA start (spec section 1)."""
+        """Put both cars at the logged CARLA start."""
         from highway_env.road.lane import StraightLane
         from highway_env.road.road import Road, RoadNetwork
         from highway_env.vehicle.kinematics import Vehicle
@@ -228,6 +228,6 @@ class ScenarioSpec:
 
     @property
     def safety_formula(self) -> str:
-        """``G[0,T-1](d >= crash_gap)``: the gap never drops below 2 m (spec section 3)."""
+        """``G[0,T-1](d >= crash_gap)``: the gap never drops below 2 m (Innes & Ramamoorthy (2022))."""
         p = self.params
         return f"G[0,{p.n_steps - 1}](d >= {p.crash_gap_m:g})"

@@ -1,4 +1,4 @@
-"""The toy 1-D braking model of the authors' code (spec section 6), as a scenario with an exact answer.
+"""The toy 1-D braking model of the authors' code (``adaptiveImportanceSampler.py``), as a scenario with an exact answer.
 
 A car starts ``total`` units from an obstacle and moves 1 unit per step. Each step a detector fires
 with probability ``p(distance)``; a detection at distance <= ``braking`` stops the car for good. The
@@ -40,7 +40,7 @@ DetectionProbability = Union[float, Callable[[np.ndarray], np.ndarray]]
 
 @dataclass(frozen=True)
 class ToyParams:
-    """The toy braking problem ``(total, braking, safe, p)`` of spec section 6.
+    """The toy braking problem ``(total, braking, safe, p)`` of the authors' code.
 
     Attributes:
         total: start distance (units, integer >= 2).

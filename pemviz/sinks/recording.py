@@ -44,8 +44,9 @@ Size: per stage the recording holds summaries, two histograms and at most
 ``ALL_ROLLOUTS_UP_TO`` rollouts' traces, so a run of 10^5 rollouts a stage stays a few MB.
 
 Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed.
-The file is written to ``PATH.partial`` and moved to ``PATH`` when the sink is closed (also after an
-exception or Ctrl-C), so a finished recording is never half-written and keeps every finished stage.
+The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM) under a unique temporary name and
+moved to ``PATH``, so a recording is never half-written, keeps every finished stage, and a kill leaves an
+existing ``PATH`` as it was.
 """
 
 from __future__ import annotations
@@ -295,7 +296,10 @@ class RerunSink:
         self.curve_stages: list[int] = []
         self.finished = False
         self._pending: RolloutsSampled | None = None
-        self._paths: tuple[Path, Path] | None = None
+        self.serve_url: str | None = None
+        self._path: Path | None = None
+        self._binary: rr.BinaryStream | None = None
+        self._overwrite = False
         self._closed = False
         self._axes: dict[str, tuple] = {}
         stream.set_log_time_enabled(False)
@@ -303,32 +307,55 @@ class RerunSink:
 
     # -- constructors -------------------------------------------------------------------------------
     @classmethod
-    def to_file(cls, path: str | os.PathLike, **kw) -> "RerunSink":
-        """A sink that saves to ``path`` (written as ``path.partial``, renamed by :meth:`close`)."""
-        path = Path(path)
+    def to_file(cls, path: str | os.PathLike, *, overwrite: bool = False, **kw) -> "RerunSink":
+        """A sink that saves to ``path`` when :meth:`close` commits it.
+
+        The recording is encoded in memory (:meth:`rerun.RecordingStream.binary_stream`) and written by
+        :meth:`close` to a temporary file of a unique name beside ``path``, then moved onto it: a kill leaves the
+        previous ``path`` untouched, and a write error (disk full, file too large) is an ``OSError`` here, with
+        no file left, instead of a stalled writer thread.
+        """
         stream = rr.RecordingStream(APP_ID)
-        partial = path.with_name(path.name + ".partial")
-        stream.save(partial)
         sink = cls(stream, **kw)
-        sink._paths = (partial, path)
+        sink._binary = stream.binary_stream()
+        sink._path = Path(path)
+        sink._overwrite = overwrite
         return sink
 
     @classmethod
-    def to_grpc(cls, url: str | None = None, *, serve: bool = False, **kw) -> "RerunSink":
-        """A sink that streams to a running viewer (``url``) or serves a gRPC endpoint (``serve``)."""
+    def to_grpc(
+        cls, url: str | None = None, *, serve: bool = False, grpc_port: int | None = None, **kw
+    ) -> "RerunSink":
+        """A sink that streams to a running viewer (``url``) or serves a gRPC endpoint (``serve``, on
+        ``grpc_port``, default 9876; its ``rerun+http://...`` address is in :attr:`serve_url`)."""
         stream = rr.RecordingStream(APP_ID)
+        serve_url = None
         if serve:
-            stream.serve_grpc()
+            serve_url = stream.serve_grpc(grpc_port=grpc_port)
         else:
             stream.connect_grpc(url)
+        sink = cls(stream, **kw)
+        sink.serve_url = serve_url
+        return sink
+
+    @classmethod
+    def to_stdout(cls, **kw) -> "RerunSink":
+        """A sink that writes the recording to standard output (``pemviz run --stdout | rerun -``)."""
+        stream = rr.RecordingStream(APP_ID)
+        stream.stdout()
         return cls(stream, **kw)
 
-    def close(self) -> Path | None:
-        """Flush, finish the file and move it into place; returns the final path (None for gRPC).
+    def close(self, commit: bool = True) -> Path | None:
+        """Finish the recording and (file sinks) write it; returns the file written (None for gRPC or no commit).
 
-        A run that ended without a final estimate or a cancellation event (Ctrl-C, an exception in a
+        A run that ended without a final estimate or a cancellation event (Ctrl-C, SIGTERM, an exception in a
         stage) is marked as interrupted in the description; every finished stage is already logged.
-        Closing twice is harmless (the second call returns None).
+        ``commit=False`` drops a file recording (a run that failed on bad input writes nothing). Closing twice
+        is harmless (the second call returns None).
+
+        Raises:
+            OSError: the file could not be written (nothing is left; an existing file is untouched).
+            pemviz.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given.
         """
         if self._closed:
             return None
@@ -337,13 +364,19 @@ class RerunSink:
             done = len(self.stage_rows)
             self.status_md = f"**Interrupted** after {done} finished stage{'s' * (done != 1)}: no final estimate."
             self._log_description()
-        self.stream.flush()
-        self.stream.disconnect()
-        if self._paths is None:
+        if self._path is None:
+            self.stream.flush()
+            self.stream.disconnect()
             return None
-        partial, final = self._paths
-        os.replace(partial, final)
-        return final
+        self.stream.flush()
+        data = self._binary.read(flush=True) or b""
+        self.stream.disconnect()
+        self._binary = None
+        if not commit:
+            return None
+        from pemviz.files import atomic_write
+
+        return atomic_write(self._path, lambda tmp: Path(tmp).write_bytes(data), overwrite=self._overwrite)
 
     # -- events -------------------------------------------------------------------------------------
     def __call__(self, event: Event) -> None:

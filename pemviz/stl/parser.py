@@ -5,11 +5,18 @@ Accepted spellings (canonical first): ``!``/``~``/``not``, ``&``/``&&``/``and``,
 ``[a,inf]``, ``[a,inf)``; an operator without interval is ``[0,inf]``. Precedence, loosest first:
 ``->`` (right-assoc), ``|``, ``&``, ``U`` (non-assoc), unary ``! G F``. Example:
 ``parse("G[0,150](d < 5 -> F[0,20](v <= 0.1))")``.
+
+Numbers are ASCII digits only (``d >= ²`` or full-width digits are errors), at most :data:`MAX_NUMBER_CHARS`
+characters and finite in float64; interval bounds at most :data:`MAX_STEP`; operators and parentheses nest at
+most :data:`MAX_DEPTH` deep. Every failure is an :class:`STLSyntaxError` with its column.
 """
 
 from __future__ import annotations
 
+import math
+from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Iterator
 
 from pemviz.stl.formula import (
     COMPARISONS,
@@ -30,7 +37,17 @@ from pemviz.stl.formula import (
     Until,
 )
 
-__all__ = ["parse", "STLSyntaxError"]
+__all__ = ["parse", "STLSyntaxError", "MAX_DEPTH"]
+
+MAX_DEPTH = 100
+"""Deepest nesting of parentheses, unary operators (``! G F -``) and chained ``->``: deeper text is an error
+(far beyond any safety spec; the recursive-descent parser and the semantics stay far from Python's recursion
+limit)."""
+MAX_NUMBER_CHARS = 64
+"""Longest number literal (digits, point, exponent)."""
+MAX_STEP = 10**9
+"""Largest interval bound (steps)."""
+_DIGITS = frozenset("0123456789")
 
 
 class STLSyntaxError(ValueError):
@@ -66,22 +83,26 @@ def _tokenize(text: str) -> list[_Tok]:
         if ch.isspace():
             i += 1
             continue
-        if ch.isdigit() or (ch == "." and i + 1 < n and text[i + 1].isdigit()):
+        if ch in _DIGITS or (ch == "." and i + 1 < n and text[i + 1] in _DIGITS):
             j = i
-            while j < n and text[j].isdigit():
+            while j < n and text[j] in _DIGITS:
                 j += 1
             if j < n and text[j] == ".":
                 j += 1
-                while j < n and text[j].isdigit():
+                while j < n and text[j] in _DIGITS:
                     j += 1
             if j < n and text[j] in "eE":
                 k = j + 1
                 if k < n and text[k] in "+-":
                     k += 1
-                if k < n and text[k].isdigit():
-                    while k < n and text[k].isdigit():
+                if k < n and text[k] in _DIGITS:
+                    while k < n and text[k] in _DIGITS:
                         k += 1
                     j = k
+            if j - i > MAX_NUMBER_CHARS:
+                raise STLSyntaxError(f"number of {j - i} characters; at most {MAX_NUMBER_CHARS}", text, i)
+            if not math.isfinite(float(text[i:j])):
+                raise STLSyntaxError(f"number {text[i:j]} is out of range (beyond float64, ~1.8e308)", text, i)
             toks.append(_Tok("num", text[i:j], i))
             i = j
             continue
@@ -124,7 +145,20 @@ class _Parser:
         self.text = text
         self.toks = _tokenize(text)
         self.i = 0
+        self.depth = 0
+        self._depths: dict[int, tuple[int, Expr]] = {}  # id -> (tree depth, node kept alive so ids stay unique)
         self.furthest: _Fail | None = None
+
+    @contextmanager
+    def nested(self) -> Iterator[None]:
+        """One level deeper (a parenthesis, a unary operator, a chained ``->``): at most :data:`MAX_DEPTH`."""
+        if self.depth >= MAX_DEPTH:
+            raise self.fail(f"nested more than {MAX_DEPTH} levels deep (parentheses, unary operators or ->)")
+        self.depth += 1
+        try:
+            yield
+        finally:
+            self.depth -= 1
 
     # -- helpers ------------------------------------------------------------------------------------
     @property
@@ -159,8 +193,9 @@ class _Parser:
         t = self.accept("->")
         if t is None:
             return left
-        right = self.formula()
-        return Implies(left, right, pos=t.pos)
+        with self.nested():
+            right = self.formula()
+        return self._build(Implies, t, left, right)
 
     def disjunction(self) -> Formula:
         first = self.conjunction()
@@ -191,7 +226,8 @@ class _Parser:
         t = self.tok
         if t.kind == "op" and t.text == "!":
             self.i += 1
-            return Not(self.unary(), pos=t.pos)
+            with self.nested():
+                return self._build(Not, t, self.unary())
         if t.kind == "op" and t.text in ("G", "F"):
             self.i += 1
             nxt = self.tok
@@ -199,14 +235,15 @@ class _Parser:
                 raise self.fail(f"{self.text[t.pos:nxt.pos].strip()!r} is an operator, not a signal name "
                                 "(G, F, U and their word forms are reserved)", t.pos)
             start, end = self.interval(t.text)
-            operand = self.unary()
+            with self.nested():
+                operand = self.unary()
             return self._build(Always if t.text == "G" else Eventually, t, operand, start, end)
         return self.atom()
 
     def _build(self, cls, t: _Tok, *args):  # type: ignore[no-untyped-def]
         try:
             return cls(*args, pos=t.pos)
-        except (ValueError, TypeError) as e:
+        except (ValueError, TypeError, ArithmeticError) as e:
             raise self.fail(str(e).replace(f" at column {t.pos + 1}", ""), t.pos) from None
 
     def interval(self, op: str) -> tuple[int, int | None]:
@@ -231,7 +268,9 @@ class _Parser:
 
     def integer(self, what: str) -> int:
         t = self.tok
-        if t.kind == "num" and t.text.isdigit():
+        if t.kind == "num" and all(c in _DIGITS for c in t.text):
+            if int(t.text) > MAX_STEP:
+                raise self.fail(f"{what} {t.text} is too large: at most {MAX_STEP} steps")
             self.i += 1
             return int(t.text)
         if t.kind == "op" and t.text == "-" and self.toks[self.i + 1].kind == "num":
@@ -246,7 +285,8 @@ class _Parser:
             pred_fail = self.furthest
             self.i = start
         if self.accept("("):
-            inner = self.formula()
+            with self.nested():
+                inner = self.formula()
             self.expect(")", "')' or an operator")
             return inner
         assert pred_fail is not None
@@ -263,9 +303,13 @@ class _Parser:
         self.i += 1
         rhs = self.expr()
         try:
-            return Predicate(lhs, t.text, rhs, pos=start_tok.pos)
-        except ValueError as e:
+            pred = Predicate(lhs, t.text, rhs, pos=start_tok.pos)
+        except (ValueError, ArithmeticError) as e:
             raise self.fail(str(e).replace(f" at column {start_tok.pos + 1}", ""), start_tok.pos) from None
+        if not all(math.isfinite(c) for c in (*pred.coefficients.values(), pred.offset)):
+            raise self.fail("the predicate's arithmetic goes beyond float64 (a coefficient or offset is not finite)",
+                            start_tok.pos)
+        return pred
 
     def expr(self) -> Expr:
         left = self.term()
@@ -286,9 +330,26 @@ class _Parser:
         return left
 
     def _binary(self, t: _Tok, left: Expr, right: Expr) -> Expr:
+        """``left op right``; the expression tree (``a + b + c ...`` nests to the left) at most :data:`MAX_DEPTH`."""
+        return self._deeper(t, BinaryExpr, left, right, t.text, left, right)
+
+    def _deeper(self, t: _Tok, cls, *children_then_args):  # type: ignore[no-untyped-def]
+        """An expression node one level above its deepest child (``cls(*args)``), at most :data:`MAX_DEPTH`."""
+        n_children = 2 if cls is BinaryExpr else 1
+        children, args = children_then_args[:n_children], children_then_args[n_children:]
+        depth = 1 + max(self._depths.get(id(c), (0, None))[0] for c in children)
+        if depth > MAX_DEPTH:
+            raise self.fail(f"arithmetic nested more than {MAX_DEPTH} operators deep", t.pos)
+        node = self._expr(cls, t, *args)
+        self._depths[id(node)] = (depth, node)
+        return node
+
+    def _expr(self, cls, t: _Tok, *args):  # type: ignore[no-untyped-def]
+        """``cls(*args, pos=t.pos)``; its ValueError / ArithmeticError (e.g. a product beyond float64) a failure
+        at ``t``."""
         try:
-            return BinaryExpr(t.text, left, right, pos=t.pos)
-        except ValueError as e:
+            return cls(*args, pos=t.pos)
+        except (ValueError, TypeError, ArithmeticError) as e:
             raise self.fail(str(e).replace(f" at column {t.pos + 1}", ""), t.pos) from None
 
     def factor(self) -> Expr:
@@ -298,19 +359,22 @@ class _Parser:
             nxt = self.tok
             if nxt.kind == "num":
                 self.i += 1
-                return Const(-float(nxt.text), pos=t.pos)
-            return Negate(self.factor(), pos=t.pos)
+                return self._expr(Const, t, -float(nxt.text))
+            with self.nested():
+                inner = self.factor()
+            return self._deeper(t, Negate, inner, inner)
         if t.kind == "num":
             self.i += 1
-            return Const(float(t.text), pos=t.pos)
+            return self._expr(Const, t, float(t.text))
         if t.kind == "id":
             self.i += 1
             if t.text in KEYWORDS:
                 raise self.fail(f"{t.text!r} is a keyword, not a signal name", t.pos)
-            return Signal(t.text, pos=t.pos)
+            return self._expr(Signal, t, t.text)
         if t.kind == "op" and t.text == "(":
             self.i += 1
-            inner = self.expr()
+            with self.nested():
+                inner = self.expr()
             self.expect(")", "')' or an arithmetic operator")
             return inner
         if t.kind == "op" and t.text in ("G", "F", "U"):

@@ -24,7 +24,7 @@ Semantics (``SEMANTICS``):
   softplus_b(h) = log(1 + e^(b h)) / b (rho- gives -softplus_b(-h)); ``!`` maps rho+ to -rho- of its
   operand; ``&``/G take the soft minimum -(1/b) log sum e^(-b r), ``|`` the soft maximum; F sums over its
   window, U sums over t' of softmin(b(t'), a over [t, t')). Temperature b (``temperature``), default 50
-  (the paper's run). Its sign is not the classic sign on borderline traces (spec section 3).
+  (the paper's run). Its sign is not the classic sign on borderline traces (Haghighi et al. 2019).
 
 Predicate normalisation for AGM (explicit): pass ``signal_ranges={"d": (0.0, 15.0)}``; each predicate's
 value h is divided by max |h| over the box of signal ranges (``d >= 2`` with d in [0, 15] -> (d - 2) / 13,

@@ -1,0 +1,96 @@
+"""Resource guards: memory a run will need, estimated from N, K, T before anything is allocated, and the
+CPUs worker pools may use. A run that cannot fit is refused with the number instead of failing hours in."""
+
+from __future__ import annotations
+
+import os
+
+from pemviz.config import ExperimentConfig
+
+BYTES_PER_ROLLOUT_STEP = 100
+"""Peak bytes per (rollout, step) of a batch: observations [N, T, 3], detected, log p, log q, robustness under
+three metrics and the masks (measured: 79 B from the peak RSS of ``mc`` runs of N = 2,000 and 8,000, T = 100)."""
+BYTES_PER_STREAMED_ROLLOUT = 70
+"""Bytes kept per rollout of a final batch streamed in chunks (failure flag, log-weight, log p total)."""
+BASE_BYTES = 400 * 2**20
+"""The process before any batch: Python, numpy, torch, the PEM (measured ~250 MB resident, with margin)."""
+
+
+def available_memory() -> int | None:
+    """Bytes the system can still give (``MemAvailable`` of /proc/meminfo, else free physical pages); None if
+    unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError):
+        return None
+
+
+def run_memory(cfg: ExperimentConfig, n_steps: int, *, stream_above: int | None = None, chunk: int = 8192) -> int:
+    """Peak bytes a run of ``cfg`` needs for batches of ``n_steps`` steps (T).
+
+    The largest batch held at once: the pretraining batch and each CE stage's N rollouts [N, T], the final N_e
+    (or a baseline's N) either whole or, above ``stream_above`` rollouts, one chunk plus
+    :data:`BYTES_PER_STREAMED_ROLLOUT` a rollout.
+    """
+    cell = BYTES_PER_ROLLOUT_STEP * n_steps
+    held = [cfg.n_per_stage] if cfg.method != "adaptive" else [cfg.pretrain_rollouts, cfg.n_per_stage, cfg.n_final]
+    peaks = []
+    for n in held:
+        if stream_above is not None and n > stream_above and n == held[-1]:
+            peaks.append(min(n, chunk) * cell + n * BYTES_PER_STREAMED_ROLLOUT)
+        else:
+            peaks.append(n * cell)
+    return BASE_BYTES + max(peaks)
+
+
+def format_bytes(n: float) -> str:
+    """``1.2 GB``-style text (powers of 1024: KiB .. EiB)."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if n < 1024 or unit == "PiB":
+            return f"{n:.3g} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return f"{n:.3g} EiB"
+
+
+def check_run_memory(cfg: ExperimentConfig, n_steps: int, *, stream_above: int | None = None) -> int:
+    """Refuse a run whose batches cannot fit in the memory available now.
+
+    Returns:
+        the estimate in bytes (:func:`run_memory`).
+    Raises:
+        ValueError: the estimate exceeds the available memory; the message gives both numbers and the knobs.
+    """
+    need = run_memory(cfg, n_steps, stream_above=stream_above)
+    have = available_memory()
+    if have is not None and need > have:
+        raise ValueError(
+            f"this run needs about {format_bytes(need)} of memory (N = {cfg.n_per_stage}, N_e = {cfg.n_final}, "
+            f"T = {n_steps} steps, {BYTES_PER_ROLLOUT_STEP} B per rollout step) but {format_bytes(have)} is "
+            "available: lower --n / --n-final"
+        )
+    return need
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, else ``os.cpu_count()``)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def cap_jobs(jobs: int, say=None) -> int:
+    """``jobs`` worker processes, at most :func:`usable_cpus`; ``say(message)`` is told when capped."""
+    cpus = usable_cpus()
+    if jobs > cpus:
+        if say is not None:
+            say(f"--jobs {jobs}: this machine gives {cpus} CPU{'s' * (cpus != 1)}; using {cpus} worker processes")
+        return cpus
+    return jobs

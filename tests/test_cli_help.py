@@ -1,0 +1,54 @@
+"""Every help text of the ``pemviz`` command line is plain text a user can act on."""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+import pytest
+
+from pemviz.cli import build_parser
+
+
+def all_parsers() -> list[tuple[str, argparse.ArgumentParser]]:
+    """(command path, parser) for ``pemviz`` and every sub-command, depth first."""
+    out = []
+
+    def walk(name: str, parser: argparse.ArgumentParser) -> None:
+        out.append((name, parser))
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub, p in action.choices.items():
+                    walk(f"{name} {sub}", p)
+
+    walk("pemviz", build_parser())
+    return out
+
+
+MARKUP = re.compile(r"``|:(func|class|data|mod|meth):|spec section|\bissue \d|\bDEFAULT_[A-Z_]+|pemviz\.pem\.[A-Z]")
+
+
+@pytest.mark.parametrize(("name", "parser"), all_parsers(), ids=[n for n, _ in all_parsers()])
+def test_help_has_no_markup_no_internal_names_and_no_documents_the_user_lacks(name, parser) -> None:
+    text = parser.format_help()
+    assert not MARKUP.search(text), f"{name} --help: {MARKUP.search(text).group(0)!r}"
+
+
+def test_run_help_gives_the_real_pem_default() -> None:
+    from pemviz.pem import DEFAULT_PEM_NAME
+
+    run = dict(all_parsers())["pemviz run"]
+    assert f"(default {DEFAULT_PEM_NAME})" in " ".join(run.format_help().split())
+
+
+def test_every_command_that_takes_a_preset_accepts_quick() -> None:
+    from pemviz.commands.run import config_from_args
+    from pemviz.commands.validate import _split
+    from pemviz.config import PRESETS
+
+    parser = build_parser()
+    assert config_from_args(parser.parse_args(["run", "--preset", "quick"])).n_stages == PRESETS["quick"]["n_stages"]
+    assert _split("quick,paper", PRESETS, "presets") == ("quick", "paper")  # validate --presets, tables --extra
+    assert parser.parse_args(["serve", "--preset", "quick"]).preset == "quick"
+    for name in ("pemviz run", "pemviz serve", "pemviz validate", "pemviz tables"):
+        assert "quick" in " ".join(dict(all_parsers())[name].format_help().split()), name
