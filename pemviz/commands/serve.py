@@ -15,7 +15,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="open the interactive panel in the browser (viser)",
         description=(
             "Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM, run the adaptive "
-            "sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, compare up to 3 "
+            "sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, compare up to 4 "
             "runs and export them to recordings/*.rrd."
         ),
     )
