@@ -31,6 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _child(argv: list[str]) -> None:
     """Run one ``pemviz run`` in this process with timing hooks; print one JSON line of figures."""
+    sys.path.insert(0, str(REPO))  # this checkout's pemviz, as ``python -m pemviz.cli`` from the repository root
     import pemviz.engine as engine
     import pemviz.problems as problems
     import pemviz.sampling as sampling
