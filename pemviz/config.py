@@ -208,7 +208,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         **PAPER, "smoothing": 0.5, "ce_epochs": 1000, "weights": "recomputed", "final_estimate": "last-stage",
     },
     "quick": {
-        "fit_rows": None, "fit_tolerance": None, "n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2,
+        "n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2,
     },
 }
 """Named settings, each applied on top of the defaults.

@@ -60,6 +60,6 @@ def test_fitting_settings_are_validated(field, value):
 
 
 def test_paper_presets_keep_the_full_batch_adam_fit():
-    for name in ("paper", "authors-code", "quick"):
+    for name in ("paper", "authors-code"):
         cfg = ExperimentConfig(**PRESETS[name])
         assert (cfg.fit, cfg.fit_rows, cfg.fit_tolerance) == ("adam", None, None)
