@@ -28,6 +28,9 @@ process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives 
 WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("pooled", "fresh", "last-stage")
 ELITE_TIES = ("all", "random")
+FITS = ("adam", "lbfgs")
+"""How the proposal is fitted each stage (the same tuple as :data:`pemviz.sampling.FITS`): ``adam``, a fixed
+number of full-batch Adam epochs (paper); ``lbfgs``, L-BFGS from the last stage's proposal until it converges."""
 PROPOSAL_INPUTS = ("gap", "state")
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
@@ -99,6 +102,15 @@ class ExperimentConfig:
             enough for stage 1 to rank rollouts (with p = 0.999 all 100 rollouts of stage 1 look alike).
         defensive: eps in [0, 1): rollouts are drawn from the defensive mixture (1 - eps) q + eps x 50 %, so
             that both outcomes keep probability >= eps / 2 at every step (0: the proposal itself, paper).
+
+    Fitting cost (``PRESETS["paper"]`` keeps the paper's: ``adam`` on every step):
+        fit: one of :data:`FITS`; ``adam`` runs ``ce_epochs`` / ``pretrain_epochs`` epochs at ``learning_rate``,
+            ``lbfgs`` at most ``fit_max_steps`` iterations per fit, stopping once converged.
+        fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).
+        fit_rows: None (every fitted step) or the most steps one fit sees: beyond that, a weighted systematic
+            subsample with the same expected CE objective, so a stage's fit costs the same at any N.
+        fit_tolerance: None (``adam``: every epoch) or early stopping: a fit stops once its loss fell by less
+            than this (nats per step) over the last 50 epochs (``lbfgs``: within one iteration).
     """
 
     method: str = "adaptive"
@@ -126,6 +138,10 @@ class ExperimentConfig:
     elite_ties: str = "random"
     pretrain_cap: float | None = 0.9
     defensive: float = 0.2
+    fit: str = "adam"
+    fit_max_steps: int = 200
+    fit_rows: int | None = 10_000
+    fit_tolerance: float | None = None
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str, allowed: str) -> None:
@@ -167,6 +183,12 @@ class ExperimentConfig:
             "pretrain_cap", "must be None or in (0, 1)",
         )  # fmt: skip
         need(_is_real(self.defensive) and 0.0 <= self.defensive < 1.0, "defensive", "must be in [0, 1)")
+        need(self.fit in FITS, "fit", f"use one of {', '.join(FITS)}")
+        need(_is_int(self.fit_max_steps) and self.fit_max_steps >= 1, "fit_max_steps", "must be an integer >= 1")
+        need(self.fit_rows is None or (_is_int(self.fit_rows) and self.fit_rows >= 1), "fit_rows",
+             "must be None or an integer >= 1")  # fmt: skip
+        need(self.fit_tolerance is None or (_is_real(self.fit_tolerance) and self.fit_tolerance > 0), "fit_tolerance",
+             "must be None or > 0")  # fmt: skip
         need(self.elite_ties in ELITE_TIES, "elite_ties", f"use one of {', '.join(ELITE_TIES)}")
         for name in ("proposal_window", "weights_until_failure"):
             need(isinstance(getattr(self, name), bool), name, "must be True or False")
@@ -195,11 +217,13 @@ class ExperimentConfig:
 
 
 PAPER: dict[str, Any] = {
-    "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False, "smoothing_at_failure": None,
-    "elite_ties": "all", "pretrain_cap": None, "defensive": 0.0,
+    "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False,
+    "smoothing_at_failure": None, "elite_ties": "all", "pretrain_cap": None, "defensive": 0.0, "fit": "adam",
+    "fit_rows": None, "fit_tolerance": None,
 }
 """The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal
-fitted on every step, weights over T - 1 steps, every tie at gamma an elite, no defensive mixture."""
+fitted on every step by full-batch Adam, weights over T - 1 steps, every tie at gamma an elite, no defensive
+mixture."""
 
 DEFAULT_PRESET = "state-ce"
 """The recommended sampler and the default of ``ExperimentConfig()``, ``pemviz run``, the panel, ``validate`` and

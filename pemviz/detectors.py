@@ -79,5 +79,11 @@ class WindowDetector:
     radius_m: float = 10.0
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
-        near = np.asarray(obs)[:, GAP_COLUMN] < self.radius_m
-        return np.where(near, self.inside.detect_logit(obs), self.outside.detect_logit(obs))
+        """Each detector is asked only about its own rows (a proposal network costs per row)."""
+        obs = np.asarray(obs)
+        near = obs[:, GAP_COLUMN] < self.radius_m
+        out = np.empty(obs.shape[0])
+        for rows, detector in ((near, self.inside), (~near, self.outside)):
+            if rows.any():
+                out[rows] = detector.detect_logit(obs[rows])
+        return out

@@ -379,11 +379,13 @@ class Experiment:
             capped = _CappedDetector(self.problem.target, float(np.log(cfg.pretrain_cap) - np.log1p(-cfg.pretrain_cap)))
             pre_sampler = WindowDetector(capped, self.problem.target, self.problem.window)
         batch, r, failed, log_w = self._sample(0, "pretrain", cfg.pretrain_rollouts, pre_sampler, rng)
+        fit_rng = np.random.default_rng((cfg.seed, 1))  # the fits' subsamples; the rollouts' stream stays as it was
         proposal = self._new_proposal(batch)
         pretrain_proposal(
             proposal, proposal.features(batch.observations), batch.detected,
-            epochs=cfg.pretrain_epochs, lr=cfg.learning_rate, check=self._check_cancel,
-            step_mask=self._step_mask(batch) if cfg.proposal_window else None,
+            epochs=cfg.pretrain_epochs if cfg.fit == "adam" else cfg.fit_max_steps, lr=cfg.learning_rate,
+            check=self._check_cancel, step_mask=self._step_mask(batch) if cfg.proposal_window else None,
+            fit=cfg.fit, max_rows=cfg.fit_rows, rng=fit_rng, tolerance=cfg.fit_tolerance,
         )  # fmt: skip
         self._finish_stage(0, "pretrain", float("nan"), np.zeros(batch.n, bool), batch, failed, log_w, proposal, t0)
         sampler: Detector = proposal
@@ -408,8 +410,10 @@ class Experiment:
             self._check_cancel()
             ce_update(
                 proposal, proposal.features(batch.observations), batch.detected, batch.log_p, batch.log_q, elite,
-                smoothing=smoothing, epochs=cfg.ce_epochs, lr=cfg.learning_rate, weights=cfg.weights,
-                check=self._check_cancel, step_mask=self._step_mask(batch, gamma),
+                smoothing=smoothing, epochs=cfg.ce_epochs if cfg.fit == "adam" else cfg.fit_max_steps,
+                lr=cfg.learning_rate, weights=cfg.weights, check=self._check_cancel,
+                step_mask=self._step_mask(batch, gamma), fit=cfg.fit, max_rows=cfg.fit_rows, rng=fit_rng,
+                tolerance=cfg.fit_tolerance,
             )  # fmt: skip
             last = self._finish_stage(stage, "ce", gamma, elite, batch, failed, log_w, proposal, t0)
         if cfg.final_estimate == "last-stage":

@@ -100,9 +100,65 @@ CHECK_EVERY = 25
 """Epochs between two calls of a training loop's ``check`` callback (e.g. the engine's cancel check)."""
 
 
-def _fit(proposal: Proposal, loss_fn, epochs: int, lr: float, check: Callable[[], None] | None = None) -> list[float]:
+FITS = ("adam", "lbfgs")
+"""How a proposal is fitted: ``adam``, a fixed number of full-batch Adam epochs (paper: 500 per stage);
+``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous stage's proposal (a warm start) until
+the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006, Alg. 7.5)."""
+
+PLATEAU_EPOCHS = 50
+"""Adam with a tolerance stops once the loss fell by less than it over this many epochs (early stopping)."""
+
+LBFGS_TOLERANCE = 1e-6
+"""L-BFGS stops once an iteration changes the loss (nats per step) or any parameter by less than this."""
+
+
+def _fit(
+    proposal: Proposal,
+    loss_fn,
+    epochs: int,
+    lr: float,
+    check: Callable[[], None] | None = None,
+    method: str = "adam",
+    tolerance: float | None = None,
+) -> list[float]:
+    """Minimise ``loss_fn()`` over the proposal's parameters, in place; returns the loss per step.
+
+    ``adam``: ``epochs`` Adam steps of size ``lr``, or fewer with a ``tolerance``: early stopping once the
+    loss fell by less than ``tolerance`` over the last :data:`PLATEAU_EPOCHS` epochs. ``lbfgs``: at most ``epochs`` L-BFGS iterations
+    (history 20, strong-Wolfe line search, unit step), stopped at convergence (``tolerance``, default
+    :data:`LBFGS_TOLERANCE`),
+    the loss recorded at every evaluation; ``loss_fn`` should then be a mean (nats per step), so that the
+    tolerance means the same at any N. ``check`` is called every :data:`CHECK_EVERY` steps and may raise
+    (a cancel token).
+    """
+    losses: list[float] = []
+    if method == "lbfgs":
+        opt = torch.optim.LBFGS(
+            proposal.parameters(), lr=1.0, max_iter=CHECK_EVERY, max_eval=10 * CHECK_EVERY, history_size=20,
+            line_search_fn="strong_wolfe", tolerance_grad=1e-9,
+            tolerance_change=LBFGS_TOLERANCE if tolerance is None else tolerance,
+        )  # fmt: skip
+        state = opt.state[next(iter(proposal.parameters()))]
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            loss = loss_fn()
+            loss.backward()
+            losses.append(loss.item())
+            return loss
+
+        while state.get("n_iter", 0) < epochs:
+            if check is not None:
+                check()  # may raise to stop the run (a cancel token)
+            before = state.get("n_iter", 0)
+            opt.param_groups[0]["max_iter"] = min(CHECK_EVERY, epochs - before)
+            opt.step(closure)
+            if state.get("n_iter", 0) - before < opt.param_groups[0]["max_iter"]:  # converged: stop
+                break
+        return losses
+    if method != "adam":
+        raise ValueError(f"_fit: unknown method {method!r}; use one of {', '.join(FITS)}")
     opt = torch.optim.Adam(proposal.parameters(), lr=lr)
-    losses = []
     for epoch in range(epochs):
         if check is not None and epoch % CHECK_EVERY == 0:
             check()  # may raise to stop the run (a cancel token)
@@ -111,7 +167,53 @@ def _fit(proposal: Proposal, loss_fn, epochs: int, lr: float, check: Callable[[]
         loss.backward()
         opt.step()
         losses.append(loss.item())
+        if tolerance is not None and epoch >= PLATEAU_EPOCHS and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance:
+            break  # converged: the loss has stopped falling
     return losses
+
+
+def _weighted_steps(
+    features: np.ndarray,
+    detected: np.ndarray,
+    step_weight: np.ndarray,
+    max_rows: int,
+    rng: np.random.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The steps of positive weight as fitting rows, at most ``max_rows`` of them, and their weights.
+
+    With more than ``max_rows`` weighted steps, ``max_rows`` are drawn by systematic resampling in
+    proportion to the weights (Kitagawa 1996; Douc, Cappe & Moulines 2005): step j is drawn
+    ``c_j`` times with ``E[c_j] = max_rows w_j / W`` (W = sum of weights), and enters with weight
+    ``c_j W / max_rows``, so ``sum_j w_j log q(a_j | s_j)`` keeps its expectation for every q, and a step
+    whose weight exceeds ``W / max_rows`` is always kept. Cost O(N T) numpy, whatever the fit.
+
+    Args:
+        features: float64 [N, T] or [N, T, k] proposal inputs.
+        detected: bool [N, T] actions.
+        step_weight: float64 [N, T] weights >= 0 (0 leaves a step out).
+        max_rows: the most rows returned (>= 1).
+        rng: draws the resampling offset.
+    Returns:
+        (distinct inputs [M] or [M, k] float64 tensor, counts [M, 2] float64 tensor: weight on miss, on
+        detect), M <= ``max_rows``.
+    """
+    w = np.asarray(step_weight, dtype=np.float64).reshape(-1)
+    keep = np.flatnonzero(w > 0)
+    if keep.size > max_rows:
+        cum = np.cumsum(w[keep])
+        total = float(cum[-1])
+        picks = np.searchsorted(cum, (rng.random() + np.arange(max_rows)) * (total / max_rows), side="right")
+        picks, times = np.unique(np.minimum(picks, keep.size - 1), return_counts=True)
+        keep, weight = keep[picks], times * (total / max_rows)
+    else:
+        weight = w[keep]
+    f = np.asarray(features, dtype=np.float64)
+    rows = f.reshape(-1, f.shape[2])[keep] if f.ndim == 3 else f.reshape(-1)[keep]
+    # Steps at the same input share one row (rollouts agree until their first different action).
+    rows, inverse = np.unique(rows, axis=0, return_inverse=True)
+    slot = inverse.reshape(-1) * 2 + np.asarray(detected, dtype=bool).reshape(-1)[keep]
+    counts = np.bincount(slot, weights=weight, minlength=2 * len(rows)).reshape(len(rows), 2)
+    return torch.as_tensor(rows), torch.as_tensor(counts)
 
 
 def _action_counts(gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None):
@@ -145,6 +247,12 @@ def _action_counts(gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarr
     return torch.as_tensor(uniq), torch.as_tensor(counts), inverse
 
 
+def _summed_fit(fit: str, tolerance: float | None, max_rows: int | None, n_fitted: int) -> bool:
+    """Whether a fit of ``n_fitted`` weighted steps is the paper's: every step, summed over distinct inputs, for a
+    fixed number of Adam epochs (the other fits see at most ``max_rows`` steps, with a normalised loss)."""
+    return fit == "adam" and tolerance is None and (max_rows is None or n_fitted <= max_rows)
+
+
 def pretrain_proposal(
     proposal: Proposal,
     gap_m: np.ndarray,
@@ -154,27 +262,43 @@ def pretrain_proposal(
     lr: float = 1e-3,
     check: Callable[[], None] | None = None,
     step_mask: np.ndarray | None = None,
+    fit: str = "adam",
+    max_rows: int | None = None,
+    rng: np.random.Generator | None = None,
+    tolerance: float | None = None,
 ) -> list[float]:
-    """Fit q_phi to the PEM's own actions by maximum likelihood (full batch, Adam), in place.
+    """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
 
     Args:
         gap_m: float64 [N, T] gaps of PEM-driven rollouts (metres), or [N, T, k] inputs of a
             :class:`StateProposal` (``proposal.features(observations)``).
         detected: bool [N, T] the PEM's detections.
+        epochs: Adam epochs, or the most L-BFGS iterations (``fit``).
         check: called every :data:`CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
         step_mask: bool [N, T] or None: only these steps are fitted (e.g. inside the proposal's window).
+        fit: one of :data:`FITS`.
+        max_rows: None (``adam``: every step, summed over distinct inputs, the paper's fit) or the most steps
+            the fit sees: a uniform systematic subsample of the fitted steps beyond that (:func:`_weighted_steps`).
+        rng: draws that subsample (default: seeded 0).
+        tolerance: early stopping (nats per step; :func:`_fit`), None: every epoch.
     Returns:
-        the loss per epoch (mean negative log-likelihood, nats per step).
+        the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
     Source: spec section 4, "Pretraining".
     """
-    if step_mask is None:
-        uniq, counts, _ = _action_counts(gap_m, detected)
-        total = float(np.size(detected))
-    else:
-        step_mask = np.asarray(step_mask, dtype=np.float64)
-        uniq, counts, _ = _action_counts(gap_m, detected, step_mask)
-        total = max(float(step_mask.sum()), 1.0)
-    return _fit(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr, check)
+    n_fitted = np.size(detected) if step_mask is None else int(np.count_nonzero(step_mask))
+    if _summed_fit(fit, tolerance, max_rows, n_fitted):
+        if step_mask is None:
+            uniq, counts, _ = _action_counts(gap_m, detected)
+            total = float(np.size(detected))
+        else:
+            step_mask = np.asarray(step_mask, dtype=np.float64)
+            uniq, counts, _ = _action_counts(gap_m, detected, step_mask)
+            total = max(float(step_mask.sum()), 1.0)
+        return _fit(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr, check)
+    mask = np.ones(np.shape(detected)) if step_mask is None else np.asarray(step_mask, dtype=np.float64)
+    rows, counts = _weighted_steps(gap_m, detected, mask, max_rows or mask.size, rng or np.random.default_rng(0))
+    total = max(float(counts.sum()), 1.0)
+    return _fit(proposal, lambda: -(counts * proposal.forward(rows)).sum() / total, epochs, lr, check, fit, tolerance)
 
 
 def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: float = 0.0) -> float:
@@ -203,6 +327,10 @@ def ce_update(
     n_factors: int | None = None,
     check: Callable[[], None] | None = None,
     step_mask: np.ndarray | None = None,
+    fit: str = "adam",
+    max_rows: int | None = None,
+    rng: np.random.Generator | None = None,
+    tolerance: float | None = None,
 ) -> list[float]:
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
@@ -216,10 +344,18 @@ def ce_update(
         n_factors: steps in each weight (default T - 1: the last action affects nothing).
         check: called every :data:`CHECK_EVERY` epochs; may raise to abandon the update (cancel).
         step_mask: bool [N, T] or None: steps that count, in the weights and in the fit (False: left out,
-            e.g. outside the proposal's window or after the failure; issue 6, off by default).
+            e.g. outside the proposal's window or after the failure).
+        fit: one of :data:`FITS`; ``epochs`` are then Adam epochs or the most L-BFGS iterations.
+        max_rows: None (``adam``: every elite step, summed over distinct inputs, the paper's fit) or the most
+            steps the fit sees: beyond that a weighted systematic subsample whose weighted log-likelihood has
+            the same expectation (:func:`_weighted_steps`); the loss is then divided by the total weight.
+            ``weights = "recomputed"`` always fits every step.
+        rng: draws that subsample (default: seeded 0).
+        tolerance: early stopping (nats per step; :func:`_fit`), None: every epoch. Needs the normalised loss
+            of ``max_rows`` or ``lbfgs``.
     Returns:
-        the loss per epoch. The weights are divided by their largest value (a constant factor, to which
-        Adam's steps are invariant), so that w^alpha never overflows.
+        the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
+        constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
     Raises:
         ValueError: if there is no elite rollout.
     """
@@ -234,6 +370,13 @@ def ce_update(
     if weights == "frozen":
         scaled = smoothing * frozen_log_w
         step_w = np.exp(scaled - scaled.max())[:, None] * mask
+        if not _summed_fit(fit, tolerance, max_rows, int(np.count_nonzero(step_w))):
+            step_w = np.broadcast_to(step_w, detected[idx].shape)
+            rows, counts = _weighted_steps(gap_m[idx], detected[idx], step_w, max_rows or step_w.size,
+                                           rng or np.random.default_rng(0))  # fmt: skip
+            total = float(counts.sum())
+            return _fit(proposal, lambda: -(counts * proposal.forward(rows)).sum() / total, epochs, lr, check, fit,
+                        tolerance)  # fmt: skip
         uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w if step_mask is not None else step_w[:, 0])
 
         def loss() -> torch.Tensor:
@@ -252,7 +395,7 @@ def ce_update(
             w = torch.exp(scaled - scaled.detach().max())
             return -(w * log_q_now.sum(dim=1)).sum()
 
-    return _fit(proposal, loss, epochs, lr, check)
+    return _fit(proposal, loss, epochs, lr, check, fit)
 
 
 CI_LEVEL = 0.95

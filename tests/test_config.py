@@ -51,3 +51,15 @@ def test_authors_code_preset_is_the_paper_with_the_authors_training():
     assert (c.smoothing, c.ce_epochs, c.weights, c.final_estimate) == (0.5, 1000, "recomputed", "last-stage")
     assert c.proposal_inputs == "gap" and c.defensive == 0.0
     assert c.n_simulations == 100 + 10 * 100
+
+
+@pytest.mark.parametrize("field, value", [("fit", "sgd"), ("fit_max_steps", 0), ("fit_rows", 0), ("fit_tolerance", 0.0)])
+def test_fitting_settings_are_validated(field, value):
+    with pytest.raises(ConfigError, match=field):
+        ExperimentConfig(**{field: value})
+
+
+def test_paper_presets_keep_the_full_batch_adam_fit():
+    for name in ("paper", "authors-code"):
+        cfg = ExperimentConfig(**PRESETS[name])
+        assert (cfg.fit, cfg.fit_rows, cfg.fit_tolerance) == ("adam", None, None)

@@ -134,3 +134,45 @@ def test_training_loops_call_check_every_25_epochs_and_stop_when_it_raises():
     with pytest.raises(KeyboardInterrupt):
         pretrain_proposal(Proposal(), gaps, gaps > 5, epochs=1000, check=check)
     assert len(calls) == 3  # epochs 0, 25, 50: stopped after ~50 of 1000 epochs
+
+
+def test_weighted_step_subsample_keeps_the_ce_objective_in_expectation():
+    """sum_j w_j f(s_j, a_j) over a systematic subsample of 40 of 600 steps: its mean over 4000 draws equals the
+    full sum within 4 standard errors, and every draw carries the total weight exactly."""
+    from pemviz.sampling import _weighted_steps
+
+    rng = np.random.default_rng(3)
+    h = rng.normal(size=(30, 20, 2))
+    detected = rng.random((30, 20)) < 0.4
+    w = rng.lognormal(sigma=2.0, size=(30, 20)) * (rng.random((30, 20)) < 0.8)
+    f = lambda x, a: np.sin(x[..., 0]) + x[..., 1] ** 2 + 3.0 * a  # noqa: E731  any function of (s, a)
+    exact = float((w * f(h, detected)).sum())
+    draws = []
+    for seed in range(4000):
+        rows, counts = _weighted_steps(h, detected, w, 40, np.random.default_rng(seed))
+        rows, counts = rows.numpy(), counts.numpy()
+        assert len(rows) <= 40 and counts.sum() == pytest.approx(w.sum(), rel=1e-12)
+        draws.append(float((counts[:, 0] * f(rows, False) + counts[:, 1] * f(rows, True)).sum()))
+    draws = np.array(draws)
+    assert abs(draws.mean() - exact) < 4 * draws.std() / math.sqrt(draws.size)
+    rows, counts = _weighted_steps(h, detected, w, 10_000, np.random.default_rng(0))  # no subsample: every step
+    assert counts.sum().item() == pytest.approx(w.sum(), rel=1e-12) and len(rows) == np.count_nonzero(w)
+
+
+@pytest.mark.parametrize("fit, epochs, tolerance", [("lbfgs", 200, None), ("adam", 3000, 1e-5)])
+def test_converging_fits_reach_the_elites_miss_rate_and_stop_early(fit, epochs, tolerance):
+    torch.manual_seed(0)
+    rng = np.random.default_rng(1)
+    gaps = np.tile(np.linspace(12, 0.5, 40), (60, 1))
+    inside = gaps < 10
+    detected = np.where(inside, rng.random(gaps.shape) < 0.2, rng.random(gaps.shape) < 0.95)
+    log_q = np.log(np.full(gaps.shape, 0.5))
+    log_p = np.where(detected, np.log(0.99), np.log(0.01))
+    elite = np.arange(60) < 30
+    q = Proposal()
+    losses = ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.0001, epochs=epochs, lr=1e-2, fit=fit,
+                       tolerance=tolerance, max_rows=10_000)  # fmt: skip
+    assert len(losses) < epochs  # converged, then stopped
+    curve = q.curve(np.array([2.0, 5.0, 8.0, 11.5]))
+    np.testing.assert_allclose(curve[:3], detected[:30][inside[:30]].mean(), atol=0.06)
+    assert curve[3] > 0.85
