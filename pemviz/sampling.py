@@ -216,7 +216,9 @@ def _weighted_steps(
     return torch.as_tensor(rows), torch.as_tensor(counts)
 
 
-def _action_counts(gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None):
+def _action_counts(
+    gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None, drop_unweighted: bool = False
+):
     """Distinct proposal inputs and the (weighted) number of misses and detections at each: an exact summary.
 
     q depends on the gap only, so ``sum_it w_i log q(a_it | d_it) = sum_u W0(u) log q(0|u) + W1(u) log q(1|u)``.
@@ -226,6 +228,8 @@ def _action_counts(gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarr
     Args:
         gap_m: [N, T] gaps, or [N, T, k] inputs of a :class:`StateProposal` (distinct rows then).
         row_weight: [N] per rollout, or [N, T] per step (0 leaves a step out), or None (all 1).
+        drop_unweighted: leave out the inputs whose steps all weigh 0 (e.g. outside the proposal's window), so an
+            epoch does not evaluate the network where it cannot change the loss; ``inverse`` is then None.
     Returns:
         (uniq [U] (or [U, k]) float64 tensor, counts [U, 2] float64 tensor: weighted misses, detections;
         inverse [N, T] index of each entry into ``uniq``).
@@ -244,6 +248,9 @@ def _action_counts(gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarr
         w = np.broadcast_to(row_weight if row_weight.ndim == 2 else row_weight[:, None], shape)
     slot = inverse * 2 + np.asarray(detected, dtype=np.int64)
     counts = np.bincount(slot.ravel(), weights=w.ravel(), minlength=2 * len(uniq)).reshape(len(uniq), 2)
+    if drop_unweighted:
+        keep = counts.sum(axis=1) > 0.0
+        return torch.as_tensor(uniq[keep]), torch.as_tensor(counts[keep]), None
     return torch.as_tensor(uniq), torch.as_tensor(counts), inverse
 
 
@@ -292,7 +299,7 @@ def pretrain_proposal(
             total = float(np.size(detected))
         else:
             step_mask = np.asarray(step_mask, dtype=np.float64)
-            uniq, counts, _ = _action_counts(gap_m, detected, step_mask)
+            uniq, counts, _ = _action_counts(gap_m, detected, step_mask, drop_unweighted=True)
             total = max(float(step_mask.sum()), 1.0)
         return _fit(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr, check)
     mask = np.ones(np.shape(detected)) if step_mask is None else np.asarray(step_mask, dtype=np.float64)
@@ -377,7 +384,8 @@ def ce_update(
             total = float(counts.sum())
             return _fit(proposal, lambda: -(counts * proposal.forward(rows)).sum() / total, epochs, lr, check, fit,
                         tolerance)  # fmt: skip
-        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w if step_mask is not None else step_w[:, 0])
+        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w if step_mask is not None else step_w[:, 0],
+                                         drop_unweighted=step_mask is not None)
 
         def loss() -> torch.Tensor:
             return -(counts * proposal.forward(uniq)).sum()

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from pemviz.config import DEFAULT_PRESET, PRESETS
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from pemviz.app.runs import PANEL_PRESETS
-    from pemviz.config import DEFAULT_PRESET
 
     p = sub.add_parser(
         "serve",
@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
     p.add_argument("--preset", default=DEFAULT_PRESET,
-                   help=f"initial settings: {', '.join(PANEL_PRESETS)} (default {DEFAULT_PRESET})")
+                   help=f"initial settings: {', '.join(PRESETS)} (default {DEFAULT_PRESET})")
     p.add_argument("--recordings", default="recordings", help="folder for exported .rrd files (default recordings)")
     p.set_defaults(func=main)
 
@@ -58,11 +58,10 @@ def check_host(host: str) -> bool:
 
 
 def main(args: argparse.Namespace) -> int:
-    from pemviz.app.runs import PANEL_PRESETS
     from pemviz.commands import UsageError
 
-    if args.preset not in PANEL_PRESETS:
-        raise UsageError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PANEL_PRESETS)}")
+    if args.preset not in PRESETS:
+        raise UsageError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port {args.port} is invalid: use 0..65535")
     if not check_host(args.host):
