@@ -9,6 +9,7 @@ rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Callable, Iterator, Mapping
@@ -17,9 +18,11 @@ import numpy as np
 
 from pemviz import stl
 from pemviz.detectors import Detector, PEMDetector
+from pemviz.pem import load_pem
 from pemviz.scenarios import RolloutBatch, simulate
 from pemviz.scenarios.batched import iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+from pemviz.scenarios.toy import ToyParams, toy_problem
 from pemviz.truth import known_log_failure_probability
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
@@ -124,3 +127,40 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         stream=stream if sim == "batched" else None,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
     )  # fmt: skip
+
+
+# -- named problems -----------------------------------------------------------------------------------------------
+
+PROBLEMS: dict[str, str] = {
+    "toy": "toy braking (100, 50, 30, p = 0.9): exact 1e-21",
+    "toy-1e-30": "toy braking (100, 39, 30, p = 0.999), braking window 10: exact 1e-30",
+    "latched": "braking scenario with a latched brake: exact from the deterministic simulator",
+    "main": "braking scenario: exact enumeration of detection sequences",
+    "toy-1e-3": "toy braking (10, 5, 3, p = 0.9): exact 1e-3 (small; for CI)",
+}
+"""Named problems with a known exact failure probability (``pemviz validate``, ``pemviz tables``): name ->
+description."""
+
+TOY_PROBLEMS: dict[str, ToyParams] = {
+    "toy": ToyParams(100, 50, 30, 0.9),
+    "toy-1e-30": ToyParams(100, 39, 30, 0.999),
+    "toy-1e-3": ToyParams(10, 5, 3, 0.9),
+}
+"""The toys of :data:`PROBLEMS` (:class:`~pemviz.scenarios.toy.ToyParams`: total, braking, safe, p_detect)."""
+
+
+@functools.cache
+def build_problem(name: str, pem_path: str | None = None) -> Problem:
+    """The :class:`Problem` named ``name`` in :data:`PROBLEMS` (built once per process and argument pair).
+
+    ``pem_path``: the PEM of the braking problems (``latched``, ``main``; None: the shipped default), run on the
+    ``batched`` simulator.
+
+    Raises:
+        ValueError: an unknown name (allowed: :data:`PROBLEMS`).
+    """
+    if name in TOY_PROBLEMS:
+        return toy_problem(TOY_PROBLEMS[name], name=name)
+    if name in ("latched", "main"):
+        return braking_problem(load_pem(pem_path), BrakingParams(latched_brake=name == "latched"), sim="batched")
+    raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")
