@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+from scipy.special import expit
 
 from pemviz.files import write_rrd
 from pemviz.pem import (
@@ -206,7 +207,7 @@ def score(logits: np.ndarray, labels: np.ndarray, n_bins: int = 15) -> tuple[flo
 
     logit = np.asarray(logits, dtype=np.float64).reshape(-1)
     y = np.asarray(labels, dtype=np.float64).reshape(-1)
-    prob = np.exp(-np.logaddexp(0.0, -logit))
+    prob = expit(logit)
     return (
         bce_from_logits(logit, y),
         float(roc_auc_score(y, logit)),
@@ -318,7 +319,7 @@ def evaluate_pems(
             rows.append(test)
             fold_of.append(np.full(test.shape[0], k))
             logits.append(logit)
-            curves.append(np.exp(-np.logaddexp(0.0, -np.asarray(model.logit_at_gap(GAP_GRID_M)))))
+            curves.append(expit(np.asarray(model.logit_at_gap(GAP_GRID_M))))
             if on_fold is not None:
                 on_fold(name, fs)
         results.append(
@@ -484,7 +485,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
             )
     _legend(stream, roc_fig, [(f"{m.name}  AUC {m.mean('auc'):.3f}", colour(m.name)) for m in result.models])
 
-    probs = {m.name: np.exp(-np.logaddexp(0.0, -m.logits)) for m in result.models}
+    probs = {m.name: expit(m.logits) for m in result.models}
     lo = min(float(np.quantile(p, 0.001)) for p in probs.values())
     lo = max(0.0, math.floor(lo * 10) / 10)
     rel_fig.draw_axes(stream, (lo, 1.0), (lo, 1.0))

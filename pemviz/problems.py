@@ -15,8 +15,10 @@ from dataclasses import dataclass, field
 from typing import Callable, Iterator, Mapping
 
 import numpy as np
+from scipy.special import expit
 
 from pemviz import stl
+from pemviz.config import SIMULATORS
 from pemviz.detectors import Detector, PEMDetector
 from pemviz.pem import load_pem
 from pemviz.scenarios import RolloutBatch, simulate
@@ -37,13 +39,6 @@ BRAKING_SIGNALS = {"d": "gap_m", "v": "ego_speed_mps", "vl": "lead_speed_mps"}
 BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0), "v": (0.0, 10.0), "vl": (0.0, 10.0)}
 """Signal ranges for AGM's normalisation of predicates into [-1, 1]: ``d >= 2`` becomes (d - 2) / 13 as
 in the authors' code. Gaps above 15 m never occur in the scenario (it starts at 12.3 m)."""
-
-SIMULATORS = ("highway-env", "batched")
-"""Simulator back-ends of the braking scenario: ``highway-env`` steps one black-box
-:class:`BrakingScenario` per rollout; ``batched`` (:mod:`pemviz.scenarios.batched`) advances all rollouts
-together in numpy, with the same rollouts for the same seed (tests/scenarios/test_batched.py), some 300-1000x
-faster (benchmarks/sim_speed.py)."""
-
 
 @dataclass(frozen=True)
 class Problem:
@@ -95,7 +90,7 @@ class Problem:
         """p_target(detect | h) on :attr:`curve_grid`, float64 [G]."""
         obs = np.zeros((self.curve_grid.size, 1 + max(2, len(self.signals))))
         obs[:, 0] = self.curve_grid
-        return 1.0 / (1.0 + np.exp(-self.target.detect_logit(obs)))
+        return expit(self.target.detect_logit(obs))
 
 
 def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":

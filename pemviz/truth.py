@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
+from scipy.special import log_expit, logsumexp
 
-from pemviz.detectors import log_sigmoid
 from pemviz.scenarios.braking import BrakingParams, ControllerState, ego_acceleration
 from pemviz.scenarios.toy import ToyParams
 
@@ -48,17 +48,6 @@ def _replace(params: BrakingParams, **changes) -> BrakingParams:
     return dataclasses.replace(params, **changes)
 
 
-def _logsumexp(x: np.ndarray) -> float:
-    """log sum exp(x) in float64; -inf for an empty array or all -inf."""
-    x = np.asarray(x, dtype=np.float64)
-    if x.size == 0:
-        return -math.inf
-    m = float(np.max(x))
-    if m == -math.inf:
-        return -math.inf
-    return m + math.log(float(np.sum(np.exp(x - m))))
-
-
 # -- 1. toy ---------------------------------------------------------------------------------------------
 def toy_log_failure_probability(params: ToyParams) -> float:
     """log p_fail of the toy model, exact: ``sum_{d=safe}^{braking} log(1 - p(d))`` (nats).
@@ -69,7 +58,7 @@ def toy_log_failure_probability(params: ToyParams) -> float:
     """
     d = np.arange(params.safe, params.braking + 1, dtype=np.float64)
     logit = params.detect_logit(d)
-    return float(np.sum(log_sigmoid(-logit)))
+    return float(np.sum(log_expit(-logit)))
 
 
 # -- braking dynamics on the gap --------------------------------------------------------------------------
@@ -222,13 +211,13 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
         det[k, t] = True
     crash_after = (braking_replay(p, det) < p.crash_gap_m).any(axis=1)
     logit = np.asarray(logit_at_gap(all_miss[eff]), dtype=np.float64)
-    log_miss = log_sigmoid(-logit)
-    log_hit = log_sigmoid(logit)
+    log_miss = log_expit(-logit)
+    log_hit = log_expit(logit)
     log_prefix = np.concatenate([[0.0], np.cumsum(log_miss)])  # P(miss at all effective steps before k)
     terms = [log_prefix[k] + log_hit[k] for k in range(len(eff)) if crash_after[k]]
     if c is not None:
         terms.append(log_prefix[-1])
-    log_p = _logsumexp(np.array(terms)) if terms else -math.inf
+    log_p = float(logsumexp(terms)) if terms else -math.inf
     # the window: effective steps whose first detection avoids the crash
     safe = [t for t, cr in zip(eff, crash_after) if not cr]
     first, last = (safe[0], safe[-1]) if safe else (-1, -1)
@@ -422,7 +411,7 @@ def braking_exact(
     vl = lead_speeds(p)
     T = p.n_steps
     gap_probe = np.linspace(p.crash_gap_m, p.braking_distance_m, 20001)
-    q_max = float(np.max(np.exp(log_sigmoid(-np.asarray(logit_at_gap(gap_probe), dtype=np.float64)))))
+    q_max = float(np.max(np.exp(log_expit(-np.asarray(logit_at_gap(gap_probe), dtype=np.float64)))))
     log_tail = _log_binomial_tail(T, q_max)
     g, v = np.array([start.gap_m]), np.array([start.speed_mps])
     i, b = np.array([start.integral]), np.array([start.pending])
@@ -434,7 +423,7 @@ def braking_exact(
         logit = np.asarray(logit_at_gap(g), dtype=np.float64)
         inside = g < p.braking_distance_m
         n = g.size
-        lp2 = np.concatenate([lp + np.where(inside, log_sigmoid(-logit), 0.0), lp + log_sigmoid(logit)])
+        lp2 = np.concatenate([lp + np.where(inside, log_expit(-logit), 0.0), lp + log_expit(logit)])
         live = np.concatenate([np.ones(n, bool), inside])  # outside the braking distance: one outcome
         detected = np.concatenate([np.zeros(n, bool), np.ones(n, bool)])[live]
         g, v, i, b = braking_step(p, vl[t], np.tile(g, 2)[live], np.tile(v, 2)[live], np.tile(i, 2)[live],
@@ -462,7 +451,7 @@ def braking_exact(
     pruned = np.concatenate(pruned_terms) if pruned_terms else np.zeros(0)
     m0 = int(bound(start.step, np.array([start.gap_m]), np.array([start.speed_mps]), np.array([start.pending]))[0])
     return ExactResult(
-        _logsumexp(crashes), _logsumexp(pruned), float(log_prune), m0, int(max_live), int(crashes.size), start,
+        float(logsumexp(crashes)), float(logsumexp(pruned)), float(log_prune), m0, int(max_live), int(crashes.size), start,
         time.perf_counter() - t_start,
     )  # fmt: skip
 

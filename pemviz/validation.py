@@ -27,7 +27,7 @@ import torch
 from tqdm import tqdm
 
 from pemviz import truth
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.config import METHODS, PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, RunFinished
 from pemviz.pem import load_pem
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
@@ -341,7 +341,7 @@ def summaries_csv(summaries: Sequence[Summary]) -> str:
 
 # -- methods at equal budgets -------------------------------------------------------------------------------------
 
-BASELINES = ("mc", "naive50", "mixed50")
+BASELINES = tuple(m for m in METHODS if m != "adaptive")
 """The baseline methods a study can compare the adaptive sampler with."""
 
 

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import ipaddress
+import socket
 import sys
+
+from pemviz.app.panel import serve
+from pemviz.app.runs import PANEL_PRESETS
+from pemviz.commands import UsageError
+from pemviz.config import DEFAULT_PRESET
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from pemviz.app.runs import PANEL_PRESETS
-    from pemviz.config import DEFAULT_PRESET
-
     p = sub.add_parser(
         "serve",
         help="open the interactive panel in the browser (viser)",
@@ -36,11 +40,6 @@ def check_host(host: str) -> bool:
     Raises:
         UsageError: the name does not resolve or is not an address of this machine.
     """
-    import ipaddress
-    import socket
-
-    from pemviz.commands import UsageError
-
     if host in ("", "0.0.0.0", "::"):
         return False
     try:
@@ -58,9 +57,6 @@ def check_host(host: str) -> bool:
 
 
 def main(args: argparse.Namespace) -> int:
-    from pemviz.app.runs import PANEL_PRESETS
-    from pemviz.commands import UsageError
-
     if args.preset not in PANEL_PRESETS:
         raise UsageError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PANEL_PRESETS)}")
     if not 0 <= args.port <= 65535:
@@ -68,8 +64,6 @@ def main(args: argparse.Namespace) -> int:
     if not check_host(args.host):
         print(f"pemviz serve: warning: --host {args.host!r} is reachable from other machines and the panel has no "
               "authentication: anyone who reaches it can run experiments and write recordings", file=sys.stderr)
-
-    from pemviz.app.panel import serve
 
     def ready(app) -> None:
         print(f"pemviz serve: open {app.url} (Ctrl-C to stop)", flush=True)

@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from scipy.special import expit
 from torch import nn
 
 from pemviz.pem.encoding import (
@@ -279,12 +280,12 @@ class PEM:
     def prob_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
         """p(detect) of the lead car at a gap, float64, shape of ``gap_m`` (sigmoid of :meth:`logit_at_gap`)."""
         logit = self.logit_at_gap(gap_m)
-        return np.exp(-np.logaddexp(0.0, -logit))
+        return expit(logit)
 
     def prob(self, raw_inputs: np.ndarray) -> np.ndarray:
         """p(detect) for raw salient inputs ``[N, 11]``, float64 ``[N]``."""
         logit = self.logit(raw_inputs)
-        return np.exp(-np.logaddexp(0.0, -logit))
+        return expit(logit)
 
 
 def train_pem(
