@@ -28,6 +28,7 @@ and :func:`pemviz.scenarios.simulate` do; anything else raises a RuntimeError na
 from __future__ import annotations
 
 import math
+import socket
 from typing import Any, Protocol
 
 import numpy as np
@@ -183,7 +184,6 @@ def probe_ray_address(address: str | None, timeout_s: float = RAY_PROBE_TIMEOUT_
     """
     if address is None or address in ("auto", "local"):
         return
-    import socket
 
     hostport = address.removeprefix("ray://")
     host, sep, port = hostport.rpartition(":")

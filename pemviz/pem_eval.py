@@ -37,10 +37,12 @@ from pemviz.pem import (
     PEM_RECIPES,
     NormStats,
     bce_from_logits,
+    braking_salient_inputs,
     encode_salient,
     fit_norm_stats,
     load_reference_pem,
 )
+from pemviz.pem.bayes import train_bnn_pem
 
 MODEL_NAMES = ("ml-nn", "lr", "guess-mu", "b-nn", "gbt")
 """Every model :func:`evaluate_pems` knows, in table order."""
@@ -231,8 +233,6 @@ class LinearPredictor:
         return encode_salient(raw_inputs, self.norm) @ self.coef + self.intercept
 
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
-        from pemviz.pem import braking_salient_inputs
-
         gap = np.asarray(gap_m, dtype=np.float64)
         return self.logit(braking_salient_inputs(gap)).reshape(gap.shape)
 
@@ -268,8 +268,6 @@ def fit_model(name: str, inputs: np.ndarray, labels: np.ndarray, norm: NormStats
         mu = float(y.mean())
         return ConstantPredictor(math.log(mu) - math.log1p(-mu))
     if name == "b-nn":
-        from pemviz.pem.bayes import train_bnn_pem
-
         return train_bnn_pem(
             inputs, y, norm=norm, steps=config.bnn_steps, n_samples=config.bnn_samples, seed=config.seed
         )

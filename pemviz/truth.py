@@ -27,6 +27,8 @@ natural logs (nats) in float64 and sums are log-sum-exps.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -34,7 +36,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 from scipy.special import log_expit, logsumexp
+from scipy.stats import binom
 
+from pemviz.sampling import format_probability
 from pemviz.scenarios.braking import BrakingParams, ControllerState, ego_acceleration
 from pemviz.scenarios.toy import ToyParams
 
@@ -43,8 +47,6 @@ LogitFn = Callable[[np.ndarray], np.ndarray]
 
 
 def _replace(params: BrakingParams, **changes) -> BrakingParams:
-    import dataclasses
-
     return dataclasses.replace(params, **changes)
 
 
@@ -325,8 +327,6 @@ def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) ->
 
 def _log_binomial_tail(n_max: int, q: float) -> np.ndarray:
     """log P(Binomial(n, q) >= m), float64 [n_max + 1, n_max + 2] (row n, column m; -inf where m > n)."""
-    from scipy.stats import binom
-
     out = np.full((n_max + 1, n_max + 2), -np.inf)
     for n in range(n_max + 1):
         out[n, 0] = 0.0
@@ -490,8 +490,6 @@ class Refinement:
 
     def table(self) -> str:
         """The refinement table as Markdown."""
-        from pemviz.sampling import format_probability
-
         rows = [
             "| drop threshold (nats) | live sequences (max) | crash sequences | p_fail (enumerated) | + dropped bound "
             "| upper bound | width | change | wall s |",
@@ -553,8 +551,6 @@ takes 20-40 s, so the answers for the shipped PEMs are kept here (``tests/test_t
 
 def pem_fingerprint(logit_at_gap: LogitFn) -> str:
     """A short hash of a PEM's detection curve: its logits on :data:`FINGERPRINT_GRID_M` rounded to 1e-6."""
-    import hashlib
-
     values = np.round(np.asarray(logit_at_gap(FINGERPRINT_GRID_M), dtype=np.float64), 6) + 0.0  # no -0.0
     return hashlib.sha256(values.tobytes()).hexdigest()[:16]
 

@@ -20,12 +20,13 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 from scipy.special import expit, log_expit, logsumexp
+from tqdm.auto import tqdm
 
 from pemviz.pem.encoding import (
     N_FEATURES,
     NormStats,
-    check_training_data,
     braking_salient_inputs,
+    check_training_data,
     encode_salient,
     fit_norm_stats,
 )
@@ -152,8 +153,6 @@ def train_bnn_pem(
         svi = SVI(model, guide, optim, Trace_ELBO())
         it: Any = range(steps)
         if progress:
-            from tqdm.auto import tqdm
-
             it = tqdm(it, desc=f"train {name} (SVI)", unit="step", mininterval=0.5)
         loss = float("nan")
         for _ in it:

@@ -22,14 +22,15 @@ import numpy as np
 import torch
 from scipy.special import expit
 from torch import nn
+from tqdm.auto import tqdm
 
 from pemviz.pem.encoding import (
     BRAKING_CAMERA_TO_LEAD_CENTRE_M,
     BRAKING_Z_FEATURE,
     N_FEATURES,
     NormStats,
-    check_training_data,
     braking_features_at_z,
+    check_training_data,
     encode_salient,
     fit_norm_stats,
 )
@@ -396,8 +397,6 @@ def _fit(
 
     epoch_iter: Any = range(epochs)
     if progress:
-        from tqdm.auto import tqdm
-
         epoch_iter = tqdm(epoch_iter, desc=f"train {name}", unit="epoch", mininterval=0.5)
     last_loss = float("nan")
     module.train()

@@ -39,6 +39,7 @@ import numpy as np
 
 from pemviz.detectors import Detector, log_sigmoid
 from pemviz.rng import JUMPABLE, advance, bit_generator_at
+from pemviz.sampling import estimate
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_acceleration, initial_controller_state
 
@@ -340,8 +341,6 @@ class RolloutSummary:
 
     def estimate(self):  # -> pemviz.sampling.Estimate (imported lazily: sampling imports torch)
         """:func:`pemviz.sampling.estimate` of the failure probability from these rollouts."""
-        from pemviz.sampling import estimate
-
         return estimate(self.log_weight, self.failed, self.log_p_total)
 
 
