@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from pemviz import data
-from pemviz.cli import UsageError
+from pemviz.commands import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -8,16 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pemviz.cli import UsageError
-from pemviz.commands import output_folder
+from pemviz.commands import UsageError, output_folder
 from pemviz.data import DataError, load_salient_data, sha256_file
 from pemviz.files import check_output_folder, check_output_path, write_text_atomic
 from pemviz.pem import PEM_RECIPES, bce_from_logits, load_reference_pem, pem_path, save_pem
 from pemviz.pem_eval import EvalConfig, evaluate_pems, format_csv, format_markdown, summary_lines, write_recording
-
-
-TRAINABLE = ("ml-nn", "gbt")
-"""The names of :data:`pemviz.pem.PEM_RECIPES` (listed here so that building the parser imports no torch)."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument(
         "--model",
         default="ml-nn",
-        help=f"one of {', '.join(TRAINABLE)} (default ml-nn: the paper's; gbt: the best cross-validated)",
+        help=f"one of {', '.join(PEM_RECIPES)} (default ml-nn: the paper's; gbt: the best cross-validated)",
     )
     t.add_argument(
         "--epochs", type=int, default=None, help="epochs for ml-nn, trees for gbt (default: the model's, 300 each)"
