@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from pemviz.commands.validate import Job, exact_answer, run_jobs
+from pemviz.validation import Job, exact_answer, run_jobs
 from pemviz.sampling import relative_error
 
 STEPS: tuple[tuple[str, dict], ...] = (

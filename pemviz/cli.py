@@ -129,4 +129,8 @@ WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACC
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    status = main()
+    # the command has finished and committed its files: a Ctrl-C during the interpreter's ~1 s of shutdown (thread
+    # joins, atexit handlers) must not turn its exit status into "killed by SIGINT"
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(status)

@@ -28,18 +28,15 @@ and :func:`pemviz.scenarios.simulate` do; anything else raises a RuntimeError na
 from __future__ import annotations
 
 import math
+import socket
 from typing import Any, Protocol
 
 import numpy as np
 
+from pemviz.config import EXECUTORS
 from pemviz.detectors import Detector
+from pemviz.rng import JUMPABLE, advance, bit_generator_at
 from pemviz.scenarios import RolloutBatch
-
-EXECUTORS = ("serial", "ray")
-"""Executor names accepted by :func:`get_executor` and ``ExperimentConfig.executor``."""
-
-_JUMPABLE = (np.random.PCG64, np.random.PCG64DXSM)
-"""Bit generators whose ``advance(k)`` skips exactly k float64 draws of ``Generator.random``."""
 
 MAX_CHUNK = 8192
 """Most rollouts per task: :data:`pemviz.scenarios.batched.DEFAULT_CHUNK_SIZE`, so that the batched
@@ -85,15 +82,6 @@ def chunk_bounds(n: int, n_chunks: int, max_chunk: int = MAX_CHUNK) -> list[tupl
     return list(zip(edges[:-1], edges[1:]))
 
 
-def _bit_generator_at(state: dict, skip: int) -> np.random.BitGenerator:
-    """A fresh bit generator of the type ``state`` names, at ``state`` advanced by ``skip`` float64 draws."""
-    bg = {"PCG64": np.random.PCG64, "PCG64DXSM": np.random.PCG64DXSM}[state["bit_generator"]](0)
-    bg.state = state
-    if skip:
-        bg.advance(skip)
-    return bg
-
-
 class ChunkUniforms:
     """Stands in for the run's ``np.random.Generator`` inside one chunk of rollouts ``start..stop-1``.
 
@@ -120,7 +108,7 @@ class ChunkUniforms:
                 f"ChunkUniforms: the simulator drew random({size!r}, dtype={np.dtype(dtype)}) in a chunk of {m} "
                 f"rollouts; an executor needs exactly one rng.random(n) float64 draw per step"
             )
-        gen = np.random.Generator(_bit_generator_at(self.state, self.calls * self.n + self.start))
+        gen = np.random.Generator(bit_generator_at(self.state, self.calls * self.n + self.start))
         self.calls += 1
         return gen.random(m, out=out)
 
@@ -161,15 +149,6 @@ def simulate_chunk(
     return batch, stream.calls
 
 
-def _advance(rng: np.random.Generator, draws: int) -> None:
-    """Move ``rng`` past ``draws`` float64 draws, as drawing them would (PCG64 / PCG64DXSM)."""
-    bg = rng.bit_generator
-    base = bg.state
-    end = _bit_generator_at(base, draws).state
-    end["has_uint32"], end["uinteger"] = base["has_uint32"], base["uinteger"]  # untouched by random()
-    bg.state = end
-
-
 def gather_chunks(
     problem: Any, n: int, rng: np.random.Generator, results: list[tuple[RolloutBatch, int]]
 ) -> RolloutBatch:
@@ -186,7 +165,7 @@ def gather_chunks(
                 f"executor: problem {getattr(problem, 'name', problem)!r} drew rng.random {calls} times for "
                 f"{batch.n_steps} steps; an executor needs exactly one rng.random(n) per step"
             )
-    _advance(rng, n * n_steps)
+    advance(rng, n * n_steps)
     return batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
 
 
@@ -205,7 +184,6 @@ def probe_ray_address(address: str | None, timeout_s: float = RAY_PROBE_TIMEOUT_
     """
     if address is None or address in ("auto", "local"):
         return
-    import socket
 
     hostport = address.removeprefix("ray://")
     host, sep, port = hostport.rpartition(":")
@@ -254,7 +232,7 @@ class RayExecutor:
     ) -> RolloutBatch:
         """The rollouts of ``problem.simulate(n, sampler, target, rng)``, simulated as Ray tasks [N, T]."""
         bounds = chunk_bounds(n, self.n_chunks)
-        if len(bounds) == 1 or not isinstance(rng.bit_generator, _JUMPABLE):
+        if len(bounds) == 1 or not isinstance(rng.bit_generator, JUMPABLE):
             return problem.simulate(n, sampler, target, rng)
         state = rng.bit_generator.state
         ray = self._ray

@@ -30,16 +30,19 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+from scipy.special import expit
 
 from pemviz.files import write_rrd
 from pemviz.pem import (
     PEM_RECIPES,
     NormStats,
     bce_from_logits,
+    braking_salient_inputs,
     encode_salient,
     fit_norm_stats,
     load_reference_pem,
 )
+from pemviz.pem.bayes import train_bnn_pem
 
 MODEL_NAMES = ("ml-nn", "lr", "guess-mu", "b-nn", "gbt")
 """Every model :func:`evaluate_pems` knows, in table order."""
@@ -206,7 +209,7 @@ def score(logits: np.ndarray, labels: np.ndarray, n_bins: int = 15) -> tuple[flo
 
     logit = np.asarray(logits, dtype=np.float64).reshape(-1)
     y = np.asarray(labels, dtype=np.float64).reshape(-1)
-    prob = np.exp(-np.logaddexp(0.0, -logit))
+    prob = expit(logit)
     return (
         bce_from_logits(logit, y),
         float(roc_auc_score(y, logit)),
@@ -230,8 +233,6 @@ class LinearPredictor:
         return encode_salient(raw_inputs, self.norm) @ self.coef + self.intercept
 
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
-        from pemviz.pem import braking_salient_inputs
-
         gap = np.asarray(gap_m, dtype=np.float64)
         return self.logit(braking_salient_inputs(gap)).reshape(gap.shape)
 
@@ -267,8 +268,6 @@ def fit_model(name: str, inputs: np.ndarray, labels: np.ndarray, norm: NormStats
         mu = float(y.mean())
         return ConstantPredictor(math.log(mu) - math.log1p(-mu))
     if name == "b-nn":
-        from pemviz.pem.bayes import train_bnn_pem
-
         return train_bnn_pem(
             inputs, y, norm=norm, steps=config.bnn_steps, n_samples=config.bnn_samples, seed=config.seed
         )
@@ -318,7 +317,7 @@ def evaluate_pems(
             rows.append(test)
             fold_of.append(np.full(test.shape[0], k))
             logits.append(logit)
-            curves.append(np.exp(-np.logaddexp(0.0, -np.asarray(model.logit_at_gap(GAP_GRID_M)))))
+            curves.append(expit(np.asarray(model.logit_at_gap(GAP_GRID_M))))
             if on_fold is not None:
                 on_fold(name, fs)
         results.append(
@@ -484,7 +483,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
             )
     _legend(stream, roc_fig, [(f"{m.name}  AUC {m.mean('auc'):.3f}", colour(m.name)) for m in result.models])
 
-    probs = {m.name: np.exp(-np.logaddexp(0.0, -m.logits)) for m in result.models}
+    probs = {m.name: expit(m.logits) for m in result.models}
     lo = min(float(np.quantile(p, 0.001)) for p in probs.values())
     lo = max(0.0, math.floor(lo * 10) / 10)
     rel_fig.draw_axes(stream, (lo, 1.0), (lo, 1.0))

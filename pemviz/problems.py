@@ -9,17 +9,22 @@ rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Callable, Iterator, Mapping
 
 import numpy as np
+from scipy.special import expit
 
 from pemviz import stl
+from pemviz.config import SIMULATORS
 from pemviz.detectors import Detector, PEMDetector
+from pemviz.pem import load_pem
 from pemviz.scenarios import RolloutBatch, simulate
 from pemviz.scenarios.batched import iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+from pemviz.scenarios.toy import ToyParams, toy_problem
 from pemviz.truth import known_log_failure_probability
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
@@ -34,13 +39,6 @@ BRAKING_SIGNALS = {"d": "gap_m", "v": "ego_speed_mps", "vl": "lead_speed_mps"}
 BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0), "v": (0.0, 10.0), "vl": (0.0, 10.0)}
 """Signal ranges for AGM's normalisation of predicates into [-1, 1]: ``d >= 2`` becomes (d - 2) / 13 as
 in the authors' code. Gaps above 15 m never occur in the scenario (it starts at 12.3 m)."""
-
-SIMULATORS = ("highway-env", "batched")
-"""Simulator back-ends of the braking scenario: ``highway-env`` steps one black-box
-:class:`BrakingScenario` per rollout; ``batched`` (:mod:`pemviz.scenarios.batched`) advances all rollouts
-together in numpy, with the same rollouts for the same seed (tests/scenarios/test_batched.py), some 300-1000x
-faster (benchmarks/sim_speed.py)."""
-
 
 @dataclass(frozen=True)
 class Problem:
@@ -92,7 +90,7 @@ class Problem:
         """p_target(detect | h) on :attr:`curve_grid`, float64 [G]."""
         obs = np.zeros((self.curve_grid.size, 1 + max(2, len(self.signals))))
         obs[:, 0] = self.curve_grid
-        return 1.0 / (1.0 + np.exp(-self.target.detect_logit(obs)))
+        return expit(self.target.detect_logit(obs))
 
 
 def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":
@@ -124,3 +122,40 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         stream=stream if sim == "batched" else None,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
     )  # fmt: skip
+
+
+# -- named problems -----------------------------------------------------------------------------------------------
+
+PROBLEMS: dict[str, str] = {
+    "toy": "toy braking (100, 50, 30, p = 0.9): exact 1e-21",
+    "toy-1e-30": "toy braking (100, 39, 30, p = 0.999), braking window 10: exact 1e-30",
+    "latched": "braking scenario with a latched brake: exact from the deterministic simulator",
+    "main": "braking scenario: exact enumeration of detection sequences",
+    "toy-1e-3": "toy braking (10, 5, 3, p = 0.9): exact 1e-3 (small; for CI)",
+}
+"""Named problems with a known exact failure probability (``pemviz validate``, ``pemviz tables``): name ->
+description."""
+
+TOY_PROBLEMS: dict[str, ToyParams] = {
+    "toy": ToyParams(100, 50, 30, 0.9),
+    "toy-1e-30": ToyParams(100, 39, 30, 0.999),
+    "toy-1e-3": ToyParams(10, 5, 3, 0.9),
+}
+"""The toys of :data:`PROBLEMS` (:class:`~pemviz.scenarios.toy.ToyParams`: total, braking, safe, p_detect)."""
+
+
+@functools.cache
+def build_problem(name: str, pem_path: str | None = None) -> Problem:
+    """The :class:`Problem` named ``name`` in :data:`PROBLEMS` (built once per process and argument pair).
+
+    ``pem_path``: the PEM of the braking problems (``latched``, ``main``; None: the shipped default), run on the
+    ``batched`` simulator.
+
+    Raises:
+        ValueError: an unknown name (allowed: :data:`PROBLEMS`).
+    """
+    if name in TOY_PROBLEMS:
+        return toy_problem(TOY_PROBLEMS[name], name=name)
+    if name in ("latched", "main"):
+        return braking_problem(load_pem(pem_path), BrakingParams(latched_brake=name == "latched"), sim="batched")
+    raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")

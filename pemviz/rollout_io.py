@@ -29,7 +29,7 @@ Floats must be finite; log-probabilities <= 0. Other columns are ignored.
 ``NAME.json`` (the sidecar, same name with suffix ``.json``), a JSON object:
 
 - ``formula`` (required): the safety spec in STL, e.g. ``"G[0,99](d >= 2)"``; failure = classic
-  robustness < 0 (spec section 3).
+  robustness < 0 (Innes & Ramamoorthy 2022).
 - ``dt_s`` (required): seconds per step.
 - ``signals``: STL signal name -> column (default ``{"d": "gap_m"}``); ``signal_ranges``: per STL
   signal ``[lo, hi]`` for AGM's normalisation; ``observation_columns``: the state columns in the order
@@ -41,7 +41,7 @@ Floats must be finite; log-probabilities <= 0. Other columns are ignored.
 - ``format`` (``"pemviz-rollouts"``), ``version`` (1), ``pemviz_version``, ``provenance`` (free-form:
   the run's config, stage, estimate).
 
-Importance weights use the first T - 1 steps (the last action affects nothing; spec section 4), as the
+Importance weights use the first T - 1 steps (the last action affects nothing; Innes & Ramamoorthy 2022, Algorithm 1), as the
 engine does, so an estimate from a file written by ``pemviz run`` equals the run's to float64 rounding.
 Bad input raises :class:`RolloutFormatError`: one message naming the file, the column, and the rollout
 and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
@@ -50,7 +50,6 @@ and step where the problem is. Writers write to a temporary file and ``os.replac
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import json
 import math
@@ -60,12 +59,20 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+import torch
 
 import pemviz
+from pemviz import stl
 from pemviz.data import sha256_file
 from pemviz.files import atomic_write, check_free_name, check_output_path, commit_files, load_tagged, temp_file
-from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
+from pemviz.pem import braking_salient_inputs
+from pemviz.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, braking_formula
+from pemviz.sampling import Proposal
 from pemviz.scenarios import RolloutBatch
+from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
 
 FORMAT_TAG = "pemviz-rollouts"
 FORMAT_VERSION = 1
@@ -83,7 +90,6 @@ BRAKING_UNITS = {"gap_m": "m", "ego_speed_mps": "m/s", "lead_speed_mps": "m/s", 
                  **{f"salient_{k}": u for k, u in SALIENT_UNITS.items()}}  # fmt: skip
 SAMPLERS = ("pem", "naive50", "mixed50")
 """Named samplers a file's log q can be recomputed from besides a proposal checkpoint."""
-STRUCTURE_COLUMNS = ("rollout", "step", "detected")
 
 
 class RolloutFormatError(ValueError):
@@ -164,8 +170,6 @@ class RolloutMeta:
         Raises:
             RolloutFormatError: not an object, wrong format tag or version, a missing or invalid field.
         """
-        from pemviz import stl
-
         def bad(msg: str) -> RolloutFormatError:
             return RolloutFormatError(f"{where}: {msg}")
 
@@ -247,13 +251,10 @@ def braking_meta(
     proposal: str | None = None,
     provenance: Mapping[str, Any] | None = None,
 ) -> RolloutMeta:
-    """The sidecar of braking-scenario rollouts (spec section 1): dt 0.05 s, signals d / v / vl, units.
+    """The sidecar of braking-scenario rollouts (Innes & Ramamoorthy 2022): dt 0.05 s, signals d / v / vl, units.
 
     ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.problems.braking_formula`.
     """
-    from pemviz.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, braking_formula
-    from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
-
     p = BrakingParams()
     return RolloutMeta(
         formula=formula or str(braking_formula(p)),
@@ -272,10 +273,8 @@ def braking_meta(
 def braking_salient(gap_m: np.ndarray) -> np.ndarray:
     """The PEM's salient variables of the lead at each gap, float64 [N, T, 11] for gaps [N, T] (metres).
 
-    :func:`pemviz.pem.braking_salient_inputs` row by row (spec section 2).
+    :func:`pemviz.pem.braking_salient_inputs` row by row (the lead's KITTI salient variables at each gap).
     """
-    from pemviz.pem import braking_salient_inputs
-
     gap = np.asarray(gap_m, dtype=np.float64)
     return braking_salient_inputs(gap).reshape(*gap.shape, len(KITTI_COLUMNS))
 
@@ -284,43 +283,27 @@ def braking_salient(gap_m: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class RolloutData:
-    """N logged rollouts of T steps, as read by :func:`read_rollouts`.
+class RolloutData(RolloutBatch):
+    """N logged rollouts of T steps, as read by :func:`read_rollouts`: a :class:`~pemviz.scenarios.RolloutBatch`
+    (its accessors ``n``, ``n_steps``, ``signal``, ``gap_m``, ``log_weight``) plus what the file adds.
 
     Attributes:
+        observations: float64 [N, T, F], columns ``observation_names`` (``gap_m`` first).
+        detected: bool [N, T].
+        log_p, log_q: float64 [N, T] (nats) or None when the file has no such column (:meth:`to_batch` fills them).
+        observation_names: the F state columns.
         meta: the sidecar.
         rollout_ids: int64 [N], in file order.
-        observations: float64 [N, T, F], columns ``observation_names`` (``gap_m`` first).
-        observation_names: the F state columns.
-        detected: bool [N, T].
         salient: float64 [N, T, 11] (:data:`SALIENT_COLUMNS`) or None.
-        log_p, log_q: float64 [N, T] (nats) or None when the file has no such column.
         path: the Parquet file (None for data not read from disk).
     """
 
-    meta: RolloutMeta
-    rollout_ids: np.ndarray
-    observations: np.ndarray
-    observation_names: tuple[str, ...]
-    detected: np.ndarray
+    log_p: np.ndarray | None
+    log_q: np.ndarray | None
+    meta: RolloutMeta | None = None
+    rollout_ids: np.ndarray | None = None
     salient: np.ndarray | None = None
-    log_p: np.ndarray | None = None
-    log_q: np.ndarray | None = None
     path: Path | None = None
-
-    @property
-    def n(self) -> int:
-        return int(self.detected.shape[0])
-
-    @property
-    def n_steps(self) -> int:
-        return int(self.detected.shape[1])
-
-    def signal(self, column: str) -> np.ndarray:
-        """One observation column, float64 [N, T]; KeyError naming the known columns."""
-        if column not in self.observation_names:
-            raise KeyError(f"unknown column {column!r}; this file has {self.observation_names}")
-        return self.observations[:, :, self.observation_names.index(column)]
 
     def to_batch(self, log_p: np.ndarray | None = None, log_q: np.ndarray | None = None) -> RolloutBatch:
         """A :class:`RolloutBatch` with the given (default: the file's) log-probabilities [N, T].
@@ -383,8 +366,6 @@ class _Table:
         return f"rollout {self.rid[row]}, step {self.step[row]} (row {row})"
 
     def _nulls(self, name: str, located: bool) -> None:
-        import pyarrow.compute as pc
-
         col = self.table.column(name)
         if col.null_count:
             row = _first_index(pc.is_null(col).to_numpy(zero_copy_only=False))
@@ -399,8 +380,6 @@ class _Table:
 
     def structure(self) -> tuple[np.ndarray, np.ndarray]:
         """Check rollout ids and steps; returns (rollout ids [N], T)."""
-        import pyarrow as pa
-
         names = self.table.column_names
         needed = ["rollout", "step", *self.meta.columns, "detected"]
         missing = [c for c in needed if c not in names]
@@ -464,8 +443,6 @@ class _Table:
 
     def floats(self, name: str, *, log_prob: bool = False) -> np.ndarray:
         """A numeric column as float64 [rows]: finite (and <= 0 for log-probabilities)."""
-        import pyarrow as pa
-
         col = self.table.column(name)
         if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
             raise self._type_error(name, "numbers (float64)", located=True)
@@ -483,8 +460,6 @@ class _Table:
 
     def booleans(self, name: str) -> np.ndarray:
         """A bool column (or integers 0 / 1) as bool [rows]."""
-        import pyarrow as pa
-
         col = self.table.column(name)
         if not (pa.types.is_boolean(col.type) or pa.types.is_integer(col.type)):
             raise self._type_error(name, "booleans (or integers 0 / 1)", located=True)
@@ -509,7 +484,8 @@ class _Table:
             salient = np.stack([self.floats(c) for c in SALIENT_COLUMNS], axis=-1).reshape(n, n_steps, -1)
         log_p = self.floats("log_p", log_prob=True).reshape(n, n_steps) if "log_p" in names else None
         log_q = self.floats("log_q", log_prob=True).reshape(n, n_steps) if "log_q" in names else None
-        return RolloutData(self.meta, ids, obs, tuple(cols), detected, salient, log_p, log_q, path)
+        return RolloutData(obs, detected, log_p, log_q, tuple(cols), meta=self.meta, rollout_ids=ids, salient=salient,
+                           path=path)
 
 
 # ---------------------------------------------------------------------------------------- read / write
@@ -545,9 +521,6 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
         RolloutFormatError: the sidecar or the table breaks the format (module docstring); the message
             names the column and the rollout and step.
     """
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"rollout file {p} not found")
@@ -604,8 +577,6 @@ def rollouts_table(
     Raises:
         ValueError: arrays of the wrong shape.
     """
-    import pyarrow as pa
-
     n, n_steps = batch.n, batch.n_steps
     ids = np.arange(n, dtype=np.int64) if rollout_ids is None else np.asarray(rollout_ids, dtype=np.int64)
     if ids.shape != (n,):
@@ -663,8 +634,6 @@ def write_rollouts(
             and step; nothing is written.
         OSError: the folder is not writable, the disk is full (nothing is left behind).
     """
-    import pyarrow.parquet as pq
-
     p = check_rollouts_path(path, overwrite=overwrite)
     meta = dataclasses.replace(
         meta, n_rollouts=batch.n, n_steps=batch.n_steps, observation_columns=tuple(batch.observation_names)
@@ -696,8 +665,6 @@ def write_rollouts(
 
 
 def _save_proposal_to(proposal: Any, path: str) -> None:
-    import torch
-
     payload = {
         "format": PROPOSAL_FORMAT_TAG,
         "version": PROPOSAL_FORMAT_VERSION,
@@ -720,8 +687,6 @@ def load_proposal(path: str | os.PathLike[str]) -> Any:
         FileNotFoundError: no such file.
         RolloutFormatError: not a pemviz proposal checkpoint.
     """
-    from pemviz.sampling import Proposal
-
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"proposal checkpoint {p} not found")
@@ -732,206 +697,3 @@ def load_proposal(path: str | os.PathLike[str]) -> Any:
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise RolloutFormatError(f"{p}: damaged proposal checkpoint ({exc})") from None
     return proposal.eval()
-
-
-# ------------------------------------------------------------------------------- log-probabilities, estimate
-
-
-def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
-    """``log p(a_t | s_t)`` of the logged actions under a detector, float64 [N, T] (nats).
-
-    The detector sees the observations of all N rollouts one step at a time, [N, F], as
-    :func:`pemviz.scenarios.simulate` asks it, so the numbers are those of the run that made the file.
-    """
-    out = np.empty((data.n, data.n_steps))
-    for t in range(data.n_steps):
-        out[:, t] = action_log_prob(detector.detect_logit(data.observations[:, t]), data.detected[:, t])
-    return out
-
-
-def pem_log_prob(data: RolloutData, pem: Any) -> np.ndarray:
-    """``log p_PEM(a_t | s_t)`` of the logged actions, float64 [N, T] (nats).
-
-    From the file's salient-variable columns (:meth:`pemviz.pem.PEM.logit`) when it has them; from the
-    gap (:meth:`pemviz.pem.PEM.logit_at_gap`, the braking mapping of spec section 2) when it has none or
-    when they are exactly that mapping of the gap (the same function, evaluated by its exact fast path).
-    """
-    gap = data.signal("gap_m")
-    if data.salient is None or np.array_equal(data.salient, braking_salient(gap)):
-        return detector_log_prob(data, PEMDetector(pem))
-    logit = pem.logit(data.salient.reshape(-1, len(SALIENT_COLUMNS))).reshape(data.n, data.n_steps)
-    return action_log_prob(logit, data.detected)
-
-
-def sampler_detector(name: str, pem: Any, window_m: float = 10.0) -> Detector:
-    """The detector a named baseline sampled with: ``pem``, ``naive50`` (50 % everywhere), ``mixed50``
-    (50 % inside ``window_m``, the PEM outside; spec section 5).
-
-    Raises:
-        ValueError: an unknown name.
-    """
-    target = PEMDetector(pem)
-    if name == "pem":
-        return target
-    if name == "naive50":
-        return ConstantDetector(0.5)
-    if name == "mixed50":
-        return WindowDetector(ConstantDetector(0.5), target, window_m)
-    raise ValueError(f"unknown sampler {name!r}; use a proposal checkpoint or one of {', '.join(SAMPLERS)}")
-
-
-@dataclass(frozen=True)
-class RolloutEstimate:
-    """The failure-probability estimate from logged rollouts.
-
-    Attributes:
-        estimate: mu_hat, failures, NLL, ESS (:class:`pemviz.sampling.Estimate`).
-        robustness: float64 [N] under ``metric``.
-        failed: bool [N].
-        log_weight: float64 [N] importance log-weights over the first T - 1 steps (nats).
-        metric: the robustness semantics.
-        failure: ``crash`` (classic robustness < 0) or ``metric`` (robustness under ``metric`` < 0).
-    """
-
-    estimate: Any
-    robustness: np.ndarray
-    failed: np.ndarray
-    log_weight: np.ndarray
-    metric: str
-    failure: str
-
-
-def estimate_rollouts(
-    data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
-    weights_until_failure: bool = True,
-) -> RolloutEstimate:
-    """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (Innes & Ramamoorthy 2022, eq. 6).
-
-    ``log w_i = sum_{t < k_i} log p - log q`` as the engine computes it: k_i = T - 1 (the last action affects
-    nothing), or, with ``weights_until_failure`` and ``failure="crash"``, the step at which rollout i first violates
-    the sidecar's ``G[a,b](...)`` formula (:func:`pemviz.stl.first_violation`; a stopping time, so the weights stay
-    unbiased). Failure = classic robustness of the formula < 0 (``failure="crash"``, the default) or robustness
-    under ``metric`` < 0. The NLL sums log p over the steps before the failure.
-
-    Args:
-        log_p, log_q: float64 [N, T] (nats).
-    Raises:
-        ValueError: an unknown metric or failure mode, arrays of the wrong shape, or a formula the file's
-            signals cannot evaluate (a RolloutFormatError naming the file).
-    """
-    from pemviz import stl
-    from pemviz.config import METRICS
-    from pemviz.sampling import estimate
-
-    if metric not in METRICS:
-        raise ValueError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
-    if failure not in ("crash", "metric"):
-        raise ValueError(f"unknown failure event {failure!r}; use crash or metric")
-    shape = (data.n, data.n_steps)
-    log_p, log_q = np.asarray(log_p, np.float64), np.asarray(log_q, np.float64)
-    if log_p.shape != shape or log_q.shape != shape:
-        raise ValueError(f"log_p and log_q must have shape {shape}, got {log_p.shape}, {log_q.shape}")
-    formula = stl.parse(data.meta.formula)
-    signals = {name: data.signal(col) for name, col in data.meta.signals.items()}
-    try:
-        rho = {m: np.asarray(stl.robustness(formula, signals, semantics=m, signal_ranges=data.meta.signal_ranges),
-                             dtype=np.float64) for m in {"classic", metric}}  # fmt: skip
-    except ValueError as exc:
-        raise RolloutFormatError(f"{data.path or 'rollouts'}: formula {data.meta.formula!r}: {exc}") from None
-    failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
-    k = data.n_steps - 1
-    try:  # the NLL (and, by default, the weights) cover the actions before the failure step, as in the engine
-        upto = np.minimum(stl.first_violation(formula, signals), k)
-    except ValueError:
-        upto = np.full(data.n, k)
-    before = np.arange(data.n_steps)[None, :] < upto[:, None]
-    steps = before if weights_until_failure and failure == "crash" else np.arange(data.n_steps)[None, :] < k
-    with np.errstate(over="ignore", invalid="ignore"):
-        log_w = np.where(steps, log_p - log_q, 0.0).sum(axis=1)
-        log_p_total = np.where(before, log_p, 0.0).sum(axis=1)
-    for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
-        if not np.isfinite(x).all():
-            i = _first_index(~np.isfinite(x))
-            raise RolloutFormatError(
-                f"{data.path or 'rollouts'}: rollout {data.rollout_ids[i]}: the {name} over its {k} steps is beyond "
-                f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
-                f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
-            )
-    est = estimate(log_w, failed, log_p_total)
-    return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure)
-
-
-# ------------------------------------------------------------------------------------- engine listener
-
-
-class RolloutSink:
-    """Engine listener for ``pemviz run --save-rollouts``: writes the batch the final estimate comes from.
-
-    It keeps the last :class:`pemviz.engine.RolloutsSampled` batch (the fresh final batch, or the last CE
-    stage's with ``final_estimate="last-stage"``) and writes it with ``log_p`` / ``log_q`` and the salient
-    variables when the run finishes (nothing after a cancelled run). If the event carries the detector
-    that sampled the batch (a ``sampler`` attribute) and it is a proposal, a snapshot of it taken when
-    the batch was sampled is saved as ``NAME.proposal.pt`` and named in the sidecar.
-
-    A final batch the engine streams in chunks (more than ``pemviz.engine.STREAM_ABOVE`` rollouts) reaches
-    listeners only as its first chunk: then nothing is written and :attr:`skipped` says why.
-
-    Attributes:
-        written: the Parquet path once written, else None.
-        skipped: why nothing was written after a finished run, else None.
-    """
-
-    def __init__(self, path: str | os.PathLike[str], *, pem: str | None = None, overwrite: bool = False) -> None:
-        self.path = check_rollouts_path(path, overwrite=overwrite, what="--save-rollouts")
-        self.pem = pem
-        self.overwrite = overwrite
-        self.written: Path | None = None
-        self.skipped: str | None = None
-        self._formula: str | None = None
-        self._config: Any = None
-        self._started_n = 0
-        self._last: Any = None
-        self._proposal: Any = None
-
-    def __call__(self, event: Any) -> None:
-        from pemviz.engine import RolloutsSampled, RunFinished, RunStarted, StageStarted
-        from pemviz.sampling import Proposal
-
-        if isinstance(event, RunStarted):
-            self._formula, self._config = event.formula, event.config
-        elif isinstance(event, StageStarted):
-            self._started_n = event.n_rollouts
-        elif isinstance(event, RolloutsSampled):
-            self._last = event
-            sampler = getattr(event, "sampler", None)  # the detector that sampled, if the engine says
-            self._proposal = copy.deepcopy(sampler) if isinstance(sampler, Proposal) else None
-        elif isinstance(event, RunFinished) and self._last is not None:
-            if self._last.batch.n != self._started_n:
-                self.skipped = (f"the final batch of {self._started_n} rollouts was streamed in chunks; only "
-                                f"{self._last.batch.n} reached listeners")  # fmt: skip
-            else:
-                self.write(event)
-
-    def write(self, finished: Any = None) -> Path:
-        """Write the kept batch (and the proposal snapshot, if any); returns the Parquet path."""
-        from pemviz.pem import DEFAULT_PEM_NAME
-
-        ev, cfg = self._last, self._config
-        method = getattr(cfg, "method", None)
-        proposal = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}.get(method)
-        provenance: dict[str, Any] = {"stage": ev.stage, "kind": ev.kind}
-        if cfg is not None:
-            provenance["config"] = dataclasses.asdict(cfg)
-        if finished is not None:
-            e = finished.final.estimate
-            provenance["estimate"] = {
-                "log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n, "log_ci": list(e.log_ci),
-                "ess": e.ess, "khat": e.khat, "verdict": e.verdict, "reason": e.reason,
-                "stages_used": list(finished.final.stages_used),
-            }  # the run's estimate: with a pooled estimate it uses more stages than this file's final batch
-        meta = braking_meta(self._formula, pem=self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME,
-                            proposal=proposal, provenance=provenance)  # fmt: skip
-        batch = ev.batch
-        self.written = write_rollouts(self.path, batch, meta, salient=braking_salient(batch.gap_m),
-                                      proposal=self._proposal, overwrite=self.overwrite)
-        return self.written

@@ -27,14 +27,18 @@ natural logs (nats) in float64 and sums are log-sum-exps.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
+from scipy.special import log_expit, logsumexp
+from scipy.stats import binom
 
-from pemviz.detectors import log_sigmoid
+from pemviz.sampling import format_probability
 from pemviz.scenarios.braking import BrakingParams, ControllerState, ego_acceleration
 from pemviz.scenarios.toy import ToyParams
 
@@ -43,20 +47,7 @@ LogitFn = Callable[[np.ndarray], np.ndarray]
 
 
 def _replace(params: BrakingParams, **changes) -> BrakingParams:
-    import dataclasses
-
     return dataclasses.replace(params, **changes)
-
-
-def _logsumexp(x: np.ndarray) -> float:
-    """log sum exp(x) in float64; -inf for an empty array or all -inf."""
-    x = np.asarray(x, dtype=np.float64)
-    if x.size == 0:
-        return -math.inf
-    m = float(np.max(x))
-    if m == -math.inf:
-        return -math.inf
-    return m + math.log(float(np.sum(np.exp(x - m))))
 
 
 # -- 1. toy ---------------------------------------------------------------------------------------------
@@ -69,7 +60,7 @@ def toy_log_failure_probability(params: ToyParams) -> float:
     """
     d = np.arange(params.safe, params.braking + 1, dtype=np.float64)
     logit = params.detect_logit(d)
-    return float(np.sum(log_sigmoid(-logit)))
+    return float(np.sum(log_expit(-logit)))
 
 
 # -- braking dynamics on the gap --------------------------------------------------------------------------
@@ -222,13 +213,13 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
         det[k, t] = True
     crash_after = (braking_replay(p, det) < p.crash_gap_m).any(axis=1)
     logit = np.asarray(logit_at_gap(all_miss[eff]), dtype=np.float64)
-    log_miss = log_sigmoid(-logit)
-    log_hit = log_sigmoid(logit)
+    log_miss = log_expit(-logit)
+    log_hit = log_expit(logit)
     log_prefix = np.concatenate([[0.0], np.cumsum(log_miss)])  # P(miss at all effective steps before k)
     terms = [log_prefix[k] + log_hit[k] for k in range(len(eff)) if crash_after[k]]
     if c is not None:
         terms.append(log_prefix[-1])
-    log_p = _logsumexp(np.array(terms)) if terms else -math.inf
+    log_p = float(logsumexp(terms)) if terms else -math.inf
     # the window: effective steps whose first detection avoids the crash
     safe = [t for t, cr in zip(eff, crash_after) if not cr]
     first, last = (safe[0], safe[-1]) if safe else (-1, -1)
@@ -336,8 +327,6 @@ def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) ->
 
 def _log_binomial_tail(n_max: int, q: float) -> np.ndarray:
     """log P(Binomial(n, q) >= m), float64 [n_max + 1, n_max + 2] (row n, column m; -inf where m > n)."""
-    from scipy.stats import binom
-
     out = np.full((n_max + 1, n_max + 2), -np.inf)
     for n in range(n_max + 1):
         out[n, 0] = 0.0
@@ -422,7 +411,7 @@ def braking_exact(
     vl = lead_speeds(p)
     T = p.n_steps
     gap_probe = np.linspace(p.crash_gap_m, p.braking_distance_m, 20001)
-    q_max = float(np.max(np.exp(log_sigmoid(-np.asarray(logit_at_gap(gap_probe), dtype=np.float64)))))
+    q_max = float(np.max(np.exp(log_expit(-np.asarray(logit_at_gap(gap_probe), dtype=np.float64)))))
     log_tail = _log_binomial_tail(T, q_max)
     g, v = np.array([start.gap_m]), np.array([start.speed_mps])
     i, b = np.array([start.integral]), np.array([start.pending])
@@ -434,7 +423,7 @@ def braking_exact(
         logit = np.asarray(logit_at_gap(g), dtype=np.float64)
         inside = g < p.braking_distance_m
         n = g.size
-        lp2 = np.concatenate([lp + np.where(inside, log_sigmoid(-logit), 0.0), lp + log_sigmoid(logit)])
+        lp2 = np.concatenate([lp + np.where(inside, log_expit(-logit), 0.0), lp + log_expit(logit)])
         live = np.concatenate([np.ones(n, bool), inside])  # outside the braking distance: one outcome
         detected = np.concatenate([np.zeros(n, bool), np.ones(n, bool)])[live]
         g, v, i, b = braking_step(p, vl[t], np.tile(g, 2)[live], np.tile(v, 2)[live], np.tile(i, 2)[live],
@@ -462,7 +451,7 @@ def braking_exact(
     pruned = np.concatenate(pruned_terms) if pruned_terms else np.zeros(0)
     m0 = int(bound(start.step, np.array([start.gap_m]), np.array([start.speed_mps]), np.array([start.pending]))[0])
     return ExactResult(
-        _logsumexp(crashes), _logsumexp(pruned), float(log_prune), m0, int(max_live), int(crashes.size), start,
+        float(logsumexp(crashes)), float(logsumexp(pruned)), float(log_prune), m0, int(max_live), int(crashes.size), start,
         time.perf_counter() - t_start,
     )  # fmt: skip
 
@@ -501,8 +490,6 @@ class Refinement:
 
     def table(self) -> str:
         """The refinement table as Markdown."""
-        from pemviz.sampling import format_probability
-
         rows = [
             "| drop threshold (nats) | live sequences (max) | crash sequences | p_fail (enumerated) | + dropped bound "
             "| upper bound | width | change | wall s |",
@@ -564,8 +551,6 @@ takes 20-40 s, so the answers for the shipped PEMs are kept here (``tests/test_t
 
 def pem_fingerprint(logit_at_gap: LogitFn) -> str:
     """A short hash of a PEM's detection curve: its logits on :data:`FINGERPRINT_GRID_M` rounded to 1e-6."""
-    import hashlib
-
     values = np.round(np.asarray(logit_at_gap(FINGERPRINT_GRID_M), dtype=np.float64), 6) + 0.0  # no -0.0
     return hashlib.sha256(values.tobytes()).hexdigest()[:16]
 

@@ -43,12 +43,12 @@ def test_run_help_gives_the_real_pem_default() -> None:
 
 def test_every_command_that_takes_a_preset_accepts_quick() -> None:
     from pemviz.commands.run import config_from_args
-    from pemviz.commands.validate import _split
+    from pemviz.commands import split_choices
     from pemviz.config import PRESETS
 
     parser = build_parser()
     assert config_from_args(parser.parse_args(["run", "--preset", "quick"])).n_stages == PRESETS["quick"]["n_stages"]
-    assert _split("quick,paper", PRESETS, "presets") == ("quick", "paper")  # validate --presets, tables --extra
+    assert split_choices("quick,paper", PRESETS, "presets") == ("quick", "paper")  # validate --presets, tables --extra
     assert parser.parse_args(["serve", "--preset", "quick"]).preset == "quick"
     for name in ("pemviz run", "pemviz serve", "pemviz validate", "pemviz tables"):
         assert "quick" in " ".join(dict(all_parsers())[name].format_help().split()), name

@@ -428,9 +428,3 @@ def test_bnn_training_runs_seeded_and_checks_its_site_order() -> None:
     b = train_bnn_pem(raw, y, steps=30, batch_size=128, n_samples=16, seed=4, norm=norm)
     assert a.n_samples == 16 and a.weights["w2"].shape == (16, 20, 20)
     np.testing.assert_array_equal(a.logit(raw), b.logit(raw))
-
-
-def test_cli_lists_every_trainable_pem() -> None:
-    from pemviz.commands.pem import TRAINABLE
-
-    assert TRAINABLE == tuple(pem.PEM_RECIPES)

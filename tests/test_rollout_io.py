@@ -20,6 +20,7 @@ import pytest
 from conftest import run_cli
 from pemviz import cli
 from pemviz import rollout_io as rio
+from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment, FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageStarted
@@ -27,6 +28,7 @@ from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem
 from pemviz.sampling import Proposal, ce_update, estimate, pretrain_proposal
 from pemviz.scenarios import RolloutBatch
+from pemviz.sinks.rollouts import RolloutSink
 
 LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
 
@@ -41,7 +43,7 @@ def naive_run(tmp_path_factory, pem):
     """``naive50`` with N = 200 (146 crashes, weights ~1e-50), its final batch saved by the run's listener."""
     path = tmp_path_factory.mktemp("naive") / "naive.parquet"
     finals = []
-    sink = rio.RolloutSink(path)
+    sink = RolloutSink(path)
     Experiment(ExperimentConfig(method="naive50", n_per_stage=200, seed=1),
                [sink, lambda ev: finals.append(ev) if isinstance(ev, FinalEstimate) else None]).run()  # fmt: skip
     assert sink.written == path
@@ -66,7 +68,7 @@ def test_run_rollouts_read_back_with_their_columns_give_the_runs_mu_hat_to_1e_12
     path, run_estimate = naive_run
     data = rio.read_rollouts(path)
     assert (data.n, data.n_steps, data.observation_names) == (200, 100, ("gap_m", "ego_speed_mps", "lead_speed_mps"))
-    result = rio.estimate_rollouts(data, data.log_p, data.log_q)
+    result = estimate_rollouts(data, data.log_p, data.log_q)
     assert run_estimate.n_failures == result.estimate.n_failures > 100
     assert same_mu(result.estimate.log_mu_hat, run_estimate.log_mu_hat)
     assert result.estimate.nll_mean == pytest.approx(run_estimate.nll_mean, rel=1e-12)
@@ -83,8 +85,8 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     path, run_estimate = naive_run
     data = rio.read_rollouts(path)
     assert data.salient is not None
-    np.testing.assert_array_equal(rio.pem_log_prob(data, pem), data.log_p)  # the run's numbers, bit for bit
-    np.testing.assert_array_equal(rio.detector_log_prob(data, ConstantDetector(0.5)), data.log_q)
+    np.testing.assert_array_equal(pem_log_prob(data, pem), data.log_p)  # the run's numbers, bit for bit
+    np.testing.assert_array_equal(detector_log_prob(data, ConstantDetector(0.5)), data.log_q)
     # the PEM on the salient variables the general way agrees to float64 rounding of its pieces
     general = action_log_prob(pem.logit(data.salient.reshape(-1, 11)).reshape(200, 100), data.detected)
     np.testing.assert_allclose(general, data.log_p, rtol=0, atol=1e-12)
@@ -127,7 +129,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     assert truth.n_failures > 0
 
     path = tmp_path / "adaptive.parquet"
-    sink = rio.RolloutSink(path, pem=str(pem_file))
+    sink = RolloutSink(path, pem=str(pem_file))
     cfg = ExperimentConfig(**PRESETS["paper"], pem=str(pem_file))  # weights over T - 1 steps, as `truth` above
     sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve()))
     rho = problem.robustness(batch, "classic")
@@ -141,9 +143,9 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     assert ckpt.is_file() and json.loads(rio.sidecar_path(path).read_text())["proposal"] == ckpt.name
 
     data = rio.read_rollouts(path)
-    paper_weights = rio.estimate_rollouts(data, data.log_p, data.log_q, weights_until_failure=False).estimate
+    paper_weights = estimate_rollouts(data, data.log_p, data.log_q, weights_until_failure=False).estimate
     assert same_mu(paper_weights.log_mu_hat, truth.log_mu_hat)
-    np.testing.assert_array_equal(rio.detector_log_prob(data, rio.load_proposal(ckpt)), batch.log_q)
+    np.testing.assert_array_equal(detector_log_prob(data, rio.load_proposal(ckpt)), batch.log_q)
     bare = tmp_path / "bare.parquet"
     rio.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False)  # no salient columns: the gap
     meta = json.loads(rio.sidecar_path(bare).read_text())
@@ -158,7 +160,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
 def test_rollout_sink_writes_nothing_for_a_streamed_final_batch(tmp_path, pem):
     problem = braking_problem(pem)
     batch = problem.simulate(5, problem.target, problem.target, np.random.default_rng(0))
-    sink = rio.RolloutSink(tmp_path / "big.parquet")
+    sink = RolloutSink(tmp_path / "big.parquet")
     rho = problem.robustness(batch, "classic")
     sink(StageStarted(1, "final", 200_000))  # the engine streams it; listeners see the first chunk only
     sink(RolloutsSampled(1, "final", batch, rho, {"classic": rho}, rho < 0, batch.log_weight()))
@@ -190,12 +192,12 @@ def test_a_hand_written_file_with_a_minimal_sidecar_gives_the_hand_computed_esti
     (tmp_path / "mine.json").write_text(json.dumps({"formula": "G[0,3](d >= 2)", "dt_s": 0.1}))
     data = rio.read_rollouts(tmp_path / "mine.parquet")
     assert list(data.rollout_ids) == [10, 11, 12]
-    res = rio.estimate_rollouts(data, data.log_p, data.log_q).estimate
+    res = estimate_rollouts(data, data.log_p, data.log_q).estimate
     assert res.n_failures == 2
     assert res.log_mu_hat == pytest.approx(math.log((math.exp(-1.0) + math.exp(-5.25)) / 3), rel=1e-14)
     assert res.ess == pytest.approx((math.exp(-1.0) + math.exp(-5.25)) ** 2 / (math.exp(-2) + math.exp(-10.5)))
     assert res.nll_mean == pytest.approx((2.0 + 6.0) / 2)  # -log p over the steps before each failure
-    paper = rio.estimate_rollouts(data, data.log_p, data.log_q, weights_until_failure=False).estimate
+    paper = estimate_rollouts(data, data.log_p, data.log_q, weights_until_failure=False).estimate
     assert paper.log_mu_hat == pytest.approx(math.log((math.exp(-1.5) + math.exp(-5.25)) / 3), rel=1e-14)
 
 

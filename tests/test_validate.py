@@ -1,4 +1,6 @@
-"""``pemviz validate`` and ``pemviz tables``: numbers against exact answers, and their bad-input behaviour."""
+"""``pemviz validate`` and ``pemviz tables`` on the command line: numbers against exact answers, bad input.
+
+The library under them is tested in test_validation.py and test_paper_tables.py."""
 
 from __future__ import annotations
 
@@ -9,44 +11,11 @@ import numpy as np
 import pytest
 
 from pemviz.cli import main as cli_main
-from pemviz.commands.tables import log_mean_and_se
-from pemviz.commands.validate import ExactAnswer, RunRecord, exact_answer, summarise
-from pemviz.sampling import relative_error
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, failure_steps
 from pemviz.scenarios.toy import ToyParams, toy_problem
 
 REDUCED = ("--k", "4", "--ce-epochs", "150", "--pretrain-epochs", "300")
-
-
-def test_log_mean_and_se_equal_numpy_and_stay_exact_below_float_range():
-    x = np.array([1e-15, 3e-15, 2e-15, 6e-15])
-    lm, lse = log_mean_and_se(np.log(x))
-    assert math.exp(lm) == pytest.approx(x.mean(), rel=1e-12)
-    assert math.exp(lse) == pytest.approx(x.std(ddof=1) / 2.0, rel=1e-12)
-    lm, lse = log_mean_and_se(np.log(x) - 1000.0)  # 1e-450: no float64 holds it, the logs do
-    assert lm == pytest.approx(math.log(x.mean()) - 1000.0, abs=1e-12)
-    assert log_mean_and_se([-math.inf, -math.inf]) == (-math.inf, -math.inf)
-
-
-def test_relative_error_and_summary_by_hand():
-    lt = math.log(1e-21)
-    assert relative_error(math.log(1.5e-21), lt) == pytest.approx(0.5, rel=1e-9)
-    assert relative_error(-math.inf, lt) == 1.0
-    recs = [RunRecord("toy", "m", s, math.log(v), 10, 100, 5.0, 40.0, 39.0, 1200, 1.0,
-                      log_ci_lo=math.log(v / 1.6), log_ci_hi=math.log(v * 1.6), verdict=verdict)
-            for s, (v, verdict) in enumerate([(0.6e-21, "reliable"), (0.9e-21, "doubtful"), (1.2e-21, "reliable"),
-                                              (4e-21, "unreliable")])]  # fmt: skip
-    (s,) = summarise(recs, {"toy": ExactAnswer(lt, "closed form")})
-    assert s.median_rel_error == pytest.approx((0.2 + 0.4) / 2, rel=1e-9)  # errors 0.4, 0.1, 0.2, 3
-    assert s.within_2x == 3 and s.n_seeds == 4
-    assert s.covered == 2 and s.reliable == 2  # 0.6e-21 * 1.6 < 1e-21 and 4e-21 / 1.6 > 1e-21 miss the truth
-    assert math.exp(s.median_mu_hat) == pytest.approx(math.sqrt(0.9e-21 * 1.2e-21), rel=1e-9)  # median of logs
-
-
-def test_exact_answers_of_the_toys():
-    assert exact_answer("toy").log_p_fail == pytest.approx(math.log(1e-21), rel=1e-12)
-    assert exact_answer("toy-1e-30").log_p_fail == pytest.approx(math.log(1e-30), rel=1e-9)
 
 
 def test_failure_steps_are_the_first_step_below_the_safe_distance():

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
+from typing import Iterable
 
 
 class UsageError(Exception):
@@ -18,8 +20,6 @@ def output_folder(path: str | Path, flag: str = "--out") -> Path:
     Raises:
         UsageError: ``path`` is a file, or the folder cannot be created or written.
     """
-    import tempfile
-
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise UsageError(f"{flag} {out}: exists and is not a folder")
@@ -41,3 +41,16 @@ def interrupted(exc: KeyboardInterrupt, done: str) -> KeyboardInterrupt:
     """The same interrupt (Ctrl-C or :class:`Terminated`) carrying what the command finished, for the one line
     the command line prints."""
     return type(exc)(done)
+
+
+def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ...]:
+    """The comma-separated names of ``--FLAG text``, each one of ``allowed``, in the order given.
+
+    Raises:
+        UsageError: an empty list or a name outside ``allowed``.
+    """
+    items = tuple(x.strip() for x in text.split(",") if x.strip())
+    allowed = tuple(allowed)
+    if not items or any(x not in allowed for x in items):
+        raise UsageError(f"--{flag} {text!r}: use a comma-separated list of {', '.join(allowed)}")
+    return items

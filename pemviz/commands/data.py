@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from pemviz import data
+from pemviz.commands import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,8 +41,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def fetch_main(args: argparse.Namespace) -> int:
-    from pemviz.cli import UsageError
-
     if not args.base_url.startswith(("http://", "https://", "file://")):
         raise UsageError(f"--base-url {args.base_url!r}: must be an http(s):// or file:// URL")
     try:

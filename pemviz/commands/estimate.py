@@ -18,8 +18,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import rerun as rr
 
+import pemviz
+from pemviz import rollout_io as rio
+from pemviz.commands import UsageError
+from pemviz.commands.run import check_save_path, free_default_path
 from pemviz.config import METRICS
+from pemviz.data import sha256_file
+from pemviz.files import write_rrd
+from pemviz.pem import load_pem
+from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
+from pemviz.sampling import format_probability
 
 MAX_TRACES = 300
 """Rollouts whose traces go into the recording: the least robust ones (every failure first)."""
@@ -65,16 +75,11 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
         UsageError: a column asked for or needed is absent and nothing names how to recompute it.
         FileNotFoundError / ValueError: a PEM or proposal that cannot be loaded.
     """
-    from pemviz import rollout_io as rio
-    from pemviz.commands import UsageError
-
     meta, base = data.meta, (data.path.parent if data.path else Path("."))
     pem_ref = args.pem or meta.pem
     pem_cache: dict[str, Any] = {}
 
     def pem() -> Any:
-        from pemviz.pem import load_pem
-
         if pem_ref is None:
             raise UsageError(f"{data.path}: give --pem NAME to recompute log p (the file and its sidecar name no PEM)")
         if "pem" not in pem_cache:  # a path in the sidecar is relative to the sidecar's folder
@@ -87,7 +92,7 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
     if args.pem is None and data.log_p is not None:
         log_p, p_src = data.log_p, "column log_p"
     else:
-        log_p = rio.pem_log_prob(data, pem())
+        log_p = pem_log_prob(data, pem())
         how = "salient variables" if data.salient is not None else "gap"
         p_src = f"PEM {pem_ref} (recomputed from the {how})"
 
@@ -103,28 +108,24 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
                              f"CKPT or one of {', '.join(rio.SAMPLERS)}")  # fmt: skip
         if q_ref not in rio.SAMPLERS:
             q_ref = str(_resolve(base, q_ref))
-            if meta.proposal_sha256 and Path(q_ref).is_file() and rio.sha256_file(q_ref) != meta.proposal_sha256:
+            if meta.proposal_sha256 and Path(q_ref).is_file() and sha256_file(q_ref) != meta.proposal_sha256:
                 raise rio.RolloutFormatError(f"{q_ref}: not the proposal checkpoint the sidecar of {data.path} was "
                                              "written with (proposal_sha256 differs); write the rollouts again")
     if q_ref in rio.SAMPLERS:
-        detector = rio.sampler_detector(q_ref, pem(), meta.window_m)
+        detector = sampler_detector(q_ref, pem(), meta.window_m)
     else:
         detector = rio.load_proposal(q_ref)
-    return log_p, rio.detector_log_prob(data, detector), p_src, f"{q_ref} (recomputed)"
+    return log_p, detector_log_prob(data, detector), p_src, f"{q_ref} (recomputed)"
 
 
 def default_recording_path(rollouts: Path) -> Path:
     """``recordings/estimate-NAME-TIME.rrd`` (``-2``, ``-3`` ... when taken)."""
-    from pemviz.commands.run import free_default_path
-
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     return free_default_path(Path("recordings"), f"estimate-{rollouts.stem}-{stamp}")
 
 
 def summary_lines(data: Any, result: Any, p_src: str, q_src: str) -> list[str]:
     """The printed report: the file, the sources of log p / log q, failures, mu_hat, NLL, ESS."""
-    from pemviz.sampling import format_probability
-
     e = result.estimate
     failure = "crash (classic robustness < 0)" if result.failure == "crash" else f"{result.metric} robustness < 0"
     nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.2f}"
@@ -151,9 +152,6 @@ def check_plausible(e: Any, q_src: str) -> None:
     Raises:
         UsageError: one line naming the proposal and the numbers.
     """
-    from pemviz.commands import UsageError
-    from pemviz.sampling import format_probability
-
     if e.log_mu_hat > 0.0 or e.log_mean_weight > math.log(1000.0):
         raise UsageError(
             f"mu_hat = {format_probability(e.log_mu_hat)} with mean importance weight "
@@ -170,11 +168,6 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
     Raises:
         OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``.
     """
-    import rerun as rr
-
-    import pemviz
-    from pemviz.files import write_rrd
-
     def log(stream: rr.RecordingStream) -> None:
         stream.send_recording_name(f"pemviz estimate {data.path.name if data.path else ''}")
         e = result.estimate
@@ -207,10 +200,6 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
 
 
 def main(args: argparse.Namespace) -> int:
-    from pemviz import rollout_io as rio
-    from pemviz.commands import UsageError
-    from pemviz.commands.run import check_save_path
-
     if args.metric not in METRICS:
         raise UsageError(f"--metric {args.metric!r}: use one of {', '.join(METRICS)}")
     rollouts = Path(args.rollouts)
@@ -227,9 +216,12 @@ def main(args: argparse.Namespace) -> int:
             raise UsageError(str(exc)) from None
     data = rio.read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
+    if not args.no_record and args.save is None:  # the input is good: make the default folder, as pemviz run does
+        Path("recordings").mkdir(exist_ok=True)
+        save_path = check_save_path(default_recording_path(rollouts), args.overwrite)
     run_config = (data.meta.provenance or {}).get("config") or {}
     until_failure = bool(run_config.get("weights_until_failure", True))  # as the run that wrote the file weighed
-    result = rio.estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure,
+    result = estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure,
                                    weights_until_failure=until_failure)  # fmt: skip
     check_plausible(result.estimate, q_src)
     lines = summary_lines(data, result, p_src, q_src)

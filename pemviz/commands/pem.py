@@ -8,9 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-
-TRAINABLE = ("ml-nn", "gbt")
-"""The names of :data:`pemviz.pem.PEM_RECIPES` (listed here so that building the parser imports no torch)."""
+from pemviz.commands import UsageError, output_folder
+from pemviz.data import DataError, load_salient_data, sha256_file
+from pemviz.files import check_output_folder, check_output_path, write_text_atomic
+from pemviz.pem import PEM_RECIPES, bce_from_logits, load_reference_pem, pem_path, save_pem
+from pemviz.pem_eval import EvalConfig, evaluate_pems, format_csv, format_markdown, summary_lines, write_recording
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument(
         "--model",
         default="ml-nn",
-        help=f"one of {', '.join(TRAINABLE)} (default ml-nn: the paper's; gbt: the best cross-validated)",
+        help=f"one of {', '.join(PEM_RECIPES)} (default ml-nn: the paper's; gbt: the best cross-validated)",
     )
     t.add_argument(
         "--epochs", type=int, default=None, help="epochs for ml-nn, trees for gbt (default: the model's, 300 each)"
@@ -73,9 +75,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _check_out_path(out: Path) -> None:
     """``--out`` of ``pem train``: a ``.pt`` file that can be written (checked before training; it is replaced)."""
-    from pemviz.cli import UsageError
-    from pemviz.files import check_output_path
-
     try:
         check_output_path(out, ".pt", "--out", overwrite=True)
     except ValueError as exc:
@@ -83,10 +82,6 @@ def _check_out_path(out: Path) -> None:
 
 
 def train_main(args: argparse.Namespace) -> int:
-    from pemviz.cli import UsageError
-    from pemviz.data import DataError, load_salient_data, sha256_file
-    from pemviz.pem import PEM_RECIPES, bce_from_logits, load_reference_pem, pem_path, save_pem
-
     if args.model not in PEM_RECIPES:
         raise UsageError(f"--model {args.model!r}: use one of {', '.join(PEM_RECIPES)}")
     if args.epochs is not None and args.epochs < 1:
@@ -130,8 +125,6 @@ def train_main(args: argparse.Namespace) -> int:
 
 
 def _int_list(text: str | None, option: str) -> tuple[int, ...] | None:
-    from pemviz.cli import UsageError
-
     if text is None:
         return None
     try:
@@ -142,9 +135,6 @@ def _int_list(text: str | None, option: str) -> tuple[int, ...] | None:
 
 def eval_config_from_args(args: argparse.Namespace):  # -> pemviz.pem_eval.EvalConfig
     """The :class:`pemviz.pem_eval.EvalConfig` of the command line; UsageError on bad values."""
-    from pemviz.cli import UsageError
-    from pemviz.pem_eval import EvalConfig
-
     fields: dict = {"seed": args.seed}
     if args.quick:
         fields.update(folds=(0,), mlnn_epochs=20, gbt_trees=60, bnn_steps=200, bnn_samples=100)
@@ -169,23 +159,11 @@ def eval_config_from_args(args: argparse.Namespace):  # -> pemviz.pem_eval.EvalC
 
 
 def eval_main(args: argparse.Namespace) -> int:
-    from pemviz.cli import UsageError
-    from pemviz.data import DataError, load_salient_data
-    from pemviz.pem_eval import (
-        evaluate_pems,
-        format_csv,
-        format_markdown,
-        summary_lines,
-        write_recording,
-    )
-    from pemviz.files import check_output_folder, check_output_path, write_text_atomic
-
     config = eval_config_from_args(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: exists and is not a folder")
     rrd = None if args.no_record else (Path(args.save) if args.save else out / "pem-eval.rrd")
-    from pemviz.commands import output_folder
 
     out = output_folder(out)  # created like validate's and tables' --out
     try:  # every output checked before the cross-validation (the reports are regenerated in place)

@@ -3,11 +3,37 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import json
+import socket
 import sys
 from datetime import datetime
 from pathlib import Path
+from urllib.parse import quote, urlsplit
 
-from pemviz.config import DEFAULT_PRESET, EXECUTORS, METHODS, METRICS, PRESETS, SIMULATORS, ConfigError, ExperimentConfig
+import rerun as rr
+
+from pemviz.commands import UsageError, interrupted
+from pemviz.config import (
+    DEFAULT_PRESET,
+    EXECUTORS,
+    METHODS,
+    METRICS,
+    PRESETS,
+    SIMULATORS,
+    ConfigError,
+    ExperimentConfig,
+)
+from pemviz.engine import STREAM_ABOVE, Experiment
+from pemviz.executors import probe_ray_address
+from pemviz.files import check_output_path
+from pemviz.pem import shipped_pems
+from pemviz.resources import check_run_memory
+from pemviz.rollout_io import sidecar_path
+from pemviz.sinks.rollouts import RolloutSink
+from pemviz.scenarios.braking import BrakingParams
+from pemviz.sinks.console import ConsoleSink
+from pemviz.sinks.recording import RerunSink
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -73,8 +99,6 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
 def add_recording_args(p: argparse.ArgumentParser) -> None:
     """rerun's standard script flags (``rr.script_add_args``: --save, --serve, --connect, --url, --stdout,
     --headless) plus ``--no-record`` and the ports of ``--serve``."""
-    import rerun as rr
-
     rec = p.add_argument_group("recording (rerun's standard script flags; at most one of them)")
     rr.script_add_args(rec)
     rec.add_argument(
@@ -106,8 +130,6 @@ def recording_target(args: argparse.Namespace) -> str:
     Raises:
         UsageError: two of them at once, a port without --serve, or a bad port.
     """
-    from pemviz.commands import UsageError
-
     if isinstance(args.connect, str):  # --connect URL
         if args.url is not None and args.url != args.connect:
             raise UsageError(f"--connect {args.connect} and --url {args.url}: give the viewer URL once")
@@ -136,11 +158,6 @@ def probe_viewer(url: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> str:
     Raises:
         UsageError: not a ``rerun+http(s)://HOST:PORT/...`` URL, or nothing answers within ``timeout_s``.
     """
-    import socket
-    from urllib.parse import urlsplit
-
-    from pemviz.commands import UsageError
-
     url = url or DEFAULT_VIEWER_URL
     try:
         parts = urlsplit(url)
@@ -163,8 +180,6 @@ def probe_viewer(url: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> str:
 
 def web_viewer_url(grpc_url: str, web_port: int) -> str:
     """The address of rerun's web viewer that opens the gRPC stream ``grpc_url``."""
-    from urllib.parse import quote
-
     return f"http://127.0.0.1:{web_port}/?url={quote(grpc_url, safe='')}"
 
 
@@ -175,9 +190,6 @@ FLAGS = {"n_stages": "--k", "n_per_stage": "--n", "n_final": "--n-final", "quant
 
 def check_save_path(path: Path, overwrite: bool = False) -> Path:
     """Refuse a recording path that cannot be written, before any work starts (nothing is created)."""
-    from pemviz.commands import UsageError
-    from pemviz.files import check_output_path
-
     try:
         return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
     except ValueError as exc:
@@ -200,10 +212,6 @@ def free_default_path(folder: Path, stem: str, suffix: str = ".rrd") -> Path:
 
 def rollout_files(parquet: Path) -> list[Path]:
     """The files ``--save-rollouts`` wrote: the table, its sidecar and, if the sidecar names one, the proposal."""
-    import json
-
-    from pemviz.rollout_io import sidecar_path
-
     sidecar = sidecar_path(parquet)
     files = [parquet, sidecar]
     try:
@@ -217,10 +225,6 @@ def rollout_files(parquet: Path) -> list[Path]:
 
 def serve(args: argparse.Namespace):
     """A sink serving gRPC on ``--grpc-port`` and rerun's web viewer on ``--web-port``; prints both addresses."""
-    import rerun as rr
-
-    from pemviz.sinks.recording import RerunSink
-
     sink = RerunSink.to_grpc(serve=True, grpc_port=args.grpc_port)
     url = sink.serve_url or f"rerun+http://127.0.0.1:{args.grpc_port}/proxy"
     rr.serve_web_viewer(web_port=args.web_port, open_browser=not args.headless, connect_to=url)
@@ -231,32 +235,20 @@ def serve(args: argparse.Namespace):
 
 
 def main(args: argparse.Namespace) -> int:
-    from pemviz.commands import UsageError
-
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:
         flag = FLAGS.get(exc.field or "", f"--{(exc.field or '').replace('_', '-')}")
         raise UsageError(f"{flag}: {exc}" if exc.field else str(exc)) from None
     if args.pem is not None:
-        from pemviz.pem import shipped_pems
-
         if args.pem not in shipped_pems() and not Path(args.pem).is_file():
             raise UsageError(f"--pem {args.pem}: neither a shipped PEM ({', '.join(shipped_pems())}) nor a file")
     if cfg.executor == "ray":
-        import importlib.util
-
         if importlib.util.find_spec("ray") is None:
             raise UsageError("--executor ray: Ray is not installed (pip install ray)")
-        from pemviz.executors import probe_ray_address
-
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
-        from pemviz.rollout_io import RolloutSink
-
-        from pemviz.engine import STREAM_ABOVE
-
         n_final = cfg.n_final if cfg.method == "adaptive" else cfg.n_per_stage
         if n_final > STREAM_ABOVE:  # such batches are streamed in chunks, never held whole
             raise UsageError(f"--save-rollouts: at most {STREAM_ABOVE} final rollouts can be saved, got {n_final}")
@@ -281,19 +273,11 @@ def main(args: argparse.Namespace) -> int:
     elif target == "connect":
         args.url = probe_viewer(args.url)
 
-    from pemviz.commands import interrupted
-    from pemviz.engine import STREAM_ABOVE, Experiment
-    from pemviz.resources import check_run_memory
-    from pemviz.scenarios.braking import BrakingParams
-    from pemviz.sinks.console import ConsoleSink
-
     check_run_memory(cfg, BrakingParams().n_steps, stream_above=STREAM_ABOVE if cfg.executor == "serial" else None)
     experiment = Experiment(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
     recorder = None
     if target != "no-record":
-        from pemviz.sinks.recording import RerunSink
-
         if target == "save":
             save_path.parent.mkdir(parents=True, exist_ok=True)
             recorder = RerunSink.to_file(save_path, overwrite=args.overwrite)
@@ -326,8 +310,6 @@ def main(args: argparse.Namespace) -> int:
         print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
     if target == "serve":
         print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        import rerun as rr
-
         try:
             rr.script_teardown(args)  # waits for Ctrl-C
         except KeyboardInterrupt:

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import ipaddress
+import socket
 import sys
 
+from pemviz.commands import UsageError
 from pemviz.config import DEFAULT_PRESET, PRESETS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-
     p = sub.add_parser(
         "serve",
         help="open the interactive panel in the browser (viser)",
@@ -36,11 +38,6 @@ def check_host(host: str) -> bool:
     Raises:
         UsageError: the name does not resolve or is not an address of this machine.
     """
-    import ipaddress
-    import socket
-
-    from pemviz.commands import UsageError
-
     if host in ("", "0.0.0.0", "::"):
         return False
     try:
@@ -58,8 +55,6 @@ def check_host(host: str) -> bool:
 
 
 def main(args: argparse.Namespace) -> int:
-    from pemviz.commands import UsageError
-
     if args.preset not in PRESETS:
         raise UsageError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     if not 0 <= args.port <= 65535:
@@ -68,10 +63,10 @@ def main(args: argparse.Namespace) -> int:
         print(f"pemviz serve: warning: --host {args.host!r} is reachable from other machines and the panel has no "
               "authentication: anyone who reaches it can run experiments and write recordings", file=sys.stderr)
 
-    from pemviz.app.panel import serve
-
     def ready(app) -> None:
         print(f"pemviz serve: open {app.url} (Ctrl-C to stop)", flush=True)
+
+    from pemviz.app.panel import serve  # viser and the panel: ~1.9 s to import, paid only by this command
 
     serve(args.host, args.port, recordings_dir=args.recordings, preset=args.preset, on_ready=ready)
     print("pemviz serve: stopped", file=sys.stderr)

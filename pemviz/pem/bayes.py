@@ -19,17 +19,17 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from scipy.special import expit, log_expit, logsumexp
+from tqdm.auto import tqdm
 
 from pemviz.pem.encoding import (
     N_FEATURES,
     NormStats,
-    check_training_data,
     braking_salient_inputs,
+    check_training_data,
     encode_salient,
     fit_norm_stats,
 )
-
-LAYER_SITES = ("w1", "b1", "w2", "b2", "w3", "b3")
 
 
 def _site_shapes(hidden: int) -> dict[str, tuple[int, ...]]:
@@ -77,8 +77,8 @@ class BayesianPEM:
         out = np.empty(x.shape[0], dtype=np.float64)
         for start in range(0, x.shape[0], chunk):
             logits = self.sample_logits(x[start : start + chunk])  # [S, n]
-            log_p = _logsumexp(-np.logaddexp(0.0, -logits))
-            log_q = _logsumexp(-np.logaddexp(0.0, logits))
+            log_p = logsumexp(log_expit(logits), axis=0)
+            log_q = logsumexp(log_expit(-logits), axis=0)
             out[start : start + chunk] = log_p - log_q  # the log S terms cancel
         return out
 
@@ -92,15 +92,10 @@ class BayesianPEM:
         return self.logit(braking_salient_inputs(gap)).reshape(gap.shape)
 
     def prob_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
-        return np.exp(-np.logaddexp(0.0, -self.logit_at_gap(gap_m)))
+        return expit(self.logit_at_gap(gap_m))
 
     def prob(self, raw_inputs: np.ndarray) -> np.ndarray:
-        return np.exp(-np.logaddexp(0.0, -self.logit(raw_inputs)))
-
-
-def _logsumexp(a: np.ndarray) -> np.ndarray:
-    m = a.max(axis=0)
-    return m + np.log(np.exp(a - m).sum(axis=0))
+        return expit(self.logit(raw_inputs))
 
 
 def train_bnn_pem(
@@ -158,8 +153,6 @@ def train_bnn_pem(
         svi = SVI(model, guide, optim, Trace_ELBO())
         it: Any = range(steps)
         if progress:
-            from tqdm.auto import tqdm
-
             it = tqdm(it, desc=f"train {name} (SVI)", unit="step", mininterval=0.5)
         loss = float("nan")
         for _ in it:

@@ -20,15 +20,17 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from scipy.special import expit
 from torch import nn
+from tqdm.auto import tqdm
 
 from pemviz.pem.encoding import (
     BRAKING_CAMERA_TO_LEAD_CENTRE_M,
     BRAKING_Z_FEATURE,
     N_FEATURES,
     NormStats,
-    check_training_data,
     braking_features_at_z,
+    check_training_data,
     encode_salient,
     fit_norm_stats,
 )
@@ -279,12 +281,12 @@ class PEM:
     def prob_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
         """p(detect) of the lead car at a gap, float64, shape of ``gap_m`` (sigmoid of :meth:`logit_at_gap`)."""
         logit = self.logit_at_gap(gap_m)
-        return np.exp(-np.logaddexp(0.0, -logit))
+        return expit(logit)
 
     def prob(self, raw_inputs: np.ndarray) -> np.ndarray:
         """p(detect) for raw salient inputs ``[N, 11]``, float64 ``[N]``."""
         logit = self.logit(raw_inputs)
-        return np.exp(-np.logaddexp(0.0, -logit))
+        return expit(logit)
 
 
 def train_pem(
@@ -395,8 +397,6 @@ def _fit(
 
     epoch_iter: Any = range(epochs)
     if progress:
-        from tqdm.auto import tqdm
-
         epoch_iter = tqdm(epoch_iter, desc=f"train {name}", unit="epoch", mininterval=0.5)
     last_loss = float("nan")
     module.train()

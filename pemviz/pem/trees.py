@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
+from scipy.special import expit
 
 from pemviz.pem.encoding import (
     BRAKING_Z_FEATURE,
@@ -137,11 +138,11 @@ class TreePEM:
 
     def prob_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
         """p(detect) at ``gap_m`` (sigmoid of :meth:`logit_at_gap`), float64, shape of ``gap_m``."""
-        return np.exp(-np.logaddexp(0.0, -self.logit_at_gap(gap_m)))
+        return expit(self.logit_at_gap(gap_m))
 
     def prob(self, raw_inputs: np.ndarray) -> np.ndarray:
         """p(detect) for raw salient inputs ``[N, 11]``, float64 ``[N]``."""
-        return np.exp(-np.logaddexp(0.0, -self.logit(raw_inputs)))
+        return expit(self.logit(raw_inputs))
 
     @property
     def n_trees(self) -> int:

@@ -38,15 +38,14 @@ from typing import Callable, Iterator
 import numpy as np
 
 from pemviz.detectors import Detector, log_sigmoid
+from pemviz.rng import JUMPABLE, advance, bit_generator_at
+from pemviz.sampling import estimate
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_acceleration, initial_controller_state
 
 DEFAULT_CHUNK_SIZE = 8192
 """Rollouts simulated together: one chunk's working set stays in cache-sized [8192] arrays (measured
 fastest of 2048..65536 on the 2-core CI machine); its outputs are 34 MB at T = 100."""
-
-_JUMPABLE = (np.random.PCG64, np.random.PCG64DXSM)
-"""Bit generators whose ``advance(k)`` skips exactly k float64 draws of ``Generator.random``."""
 
 
 class BatchedBraking:
@@ -172,16 +171,14 @@ def _uniform_chunks(
     """
     bounds = [(s, min(s + chunk_size, n)) for s in range(0, n, chunk_size)]
     bit_gen = rng.bit_generator
-    if len(bounds) == 1 or not isinstance(bit_gen, _JUMPABLE):
+    if len(bounds) == 1 or not isinstance(bit_gen, JUMPABLE):
         for start, stop in bounds:
             yield start, stop, (rng.random(stop - start) for _ in range(n_steps))
         return
     base = bit_gen.state
 
     def draws(start: int, stop: int) -> Iterator[np.ndarray]:
-        bg = type(bit_gen)(0)
-        bg.state = base
-        bg.advance(start)
+        bg = bit_generator_at(base, start)
         gen = np.random.Generator(bg)
         for t in range(n_steps):
             if t:
@@ -190,12 +187,7 @@ def _uniform_chunks(
 
     for start, stop in bounds:
         yield start, stop, draws(start, stop)
-    end = type(bit_gen)(0)
-    end.state = base
-    end.advance(n * n_steps)
-    state = end.state
-    state["has_uint32"], state["uinteger"] = base["has_uint32"], base["uinteger"]  # untouched by random()
-    bit_gen.state = state
+    advance(rng, n * n_steps)
 
 
 def _action_log_prob(logit: np.ndarray, detected: np.ndarray, log_p_detect: np.ndarray | None, out: np.ndarray):
@@ -349,8 +341,6 @@ class RolloutSummary:
 
     def estimate(self):  # -> pemviz.sampling.Estimate (imported lazily: sampling imports torch)
         """:func:`pemviz.sampling.estimate` of the failure probability from these rollouts."""
-        from pemviz.sampling import estimate
-
         return estimate(self.log_weight, self.failed, self.log_p_total)
 
 

@@ -22,7 +22,7 @@ Units: metres, seconds, m/s.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -218,16 +218,3 @@ class BrakingScenario:
         self.lead.step(dt)
         self.ego.speed = max(self.ego.speed, 0.0)  # v + (-v/dt) dt can round to -1e-16
         self.t += 1
-
-
-@dataclass(frozen=True)
-class ScenarioSpec:
-    """How to build a scenario and what its safety requirement is (an STL formula over its signals)."""
-
-    params: BrakingParams = field(default_factory=BrakingParams)
-
-    @property
-    def safety_formula(self) -> str:
-        """``G[0,T-1](d >= crash_gap)``: the gap never drops below 2 m (Innes & Ramamoorthy (2022))."""
-        p = self.params
-        return f"G[0,{p.n_steps - 1}](d >= {p.crash_gap_m:g})"

@@ -209,9 +209,3 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Pr
         window=float(p.braking) + 0.5,
         exact_log_p=toy_log_failure_probability(p),
     )
-
-
-def toy_window_steps(params: ToyParams) -> int:
-    """Number of distances where a detection prevents the failure: braking - safe + 1."""
-    return params.braking - params.safe + 1
-

@@ -150,10 +150,6 @@ class NumpyOps:
         return np.minimum(x, 0.0)
 
     @staticmethod
-    def indicator(c: Array) -> Array:
-        return c.astype(np.float64)
-
-    @staticmethod
     def clip(x: Array, lo: float, hi: float) -> Array:
         return np.clip(x, lo, hi)
 
@@ -266,10 +262,6 @@ class TorchOps:
     @staticmethod
     def neg(x: Array) -> Array:
         return torch.clamp(x, max=0.0)
-
-    @staticmethod
-    def indicator(c: Array) -> Array:
-        return c.to(torch.float64)
 
     @staticmethod
     def clip(x: Array, lo: float, hi: float) -> Array:

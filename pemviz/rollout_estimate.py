@@ -1,0 +1,141 @@
+"""Failure-probability estimates from logged rollouts (a file of :mod:`pemviz.rollout_io`): ``pemviz estimate``.
+
+The importance weights need log p_PEM and log q of every logged action: from the file's ``log_p`` / ``log_q``
+columns, or recomputed here under a PEM (:func:`pem_log_prob`) and the detector that sampled the rollouts
+(:func:`sampler_detector`, or a proposal checkpoint read by :func:`pemviz.rollout_io.load_proposal`).
+:func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pemviz import stl
+from pemviz.config import METRICS
+from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
+from pemviz.rollout_io import SALIENT_COLUMNS, SAMPLERS, RolloutData, RolloutFormatError, braking_salient
+from pemviz.sampling import Estimate, estimate
+
+
+
+def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
+    """``log p(a_t | s_t)`` of the logged actions under a detector, float64 [N, T] (nats).
+
+    The detector sees the observations of all N rollouts one step at a time, [N, F], as
+    :func:`pemviz.scenarios.simulate` asks it, so the numbers are those of the run that made the file.
+    """
+    out = np.empty((data.n, data.n_steps))
+    for t in range(data.n_steps):
+        out[:, t] = action_log_prob(detector.detect_logit(data.observations[:, t]), data.detected[:, t])
+    return out
+
+
+def pem_log_prob(data: RolloutData, pem: Any) -> np.ndarray:
+    """``log p_PEM(a_t | s_t)`` of the logged actions, float64 [N, T] (nats).
+
+    From the file's salient-variable columns (:meth:`pemviz.pem.PEM.logit`) when it has them; from the
+    gap (:meth:`pemviz.pem.PEM.logit_at_gap`, the braking scenario's gap -> salient mapping) when it has none or
+    when they are exactly that mapping of the gap (the same function, evaluated by its exact fast path).
+    """
+    gap = data.signal("gap_m")
+    if data.salient is None or np.array_equal(data.salient, braking_salient(gap)):
+        return detector_log_prob(data, PEMDetector(pem))
+    logit = pem.logit(data.salient.reshape(-1, len(SALIENT_COLUMNS))).reshape(data.n, data.n_steps)
+    return action_log_prob(logit, data.detected)
+
+
+def sampler_detector(name: str, pem: Any, window_m: float = 10.0) -> Detector:
+    """The detector a named baseline sampled with: ``pem``, ``naive50`` (50 % everywhere), ``mixed50``
+    (50 % inside ``window_m``, the PEM outside; the baselines of Innes & Ramamoorthy 2022).
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    target = PEMDetector(pem)
+    if name == "pem":
+        return target
+    if name == "naive50":
+        return ConstantDetector(0.5)
+    if name == "mixed50":
+        return WindowDetector(ConstantDetector(0.5), target, window_m)
+    raise ValueError(f"unknown sampler {name!r}; use a proposal checkpoint or one of {', '.join(SAMPLERS)}")
+
+
+@dataclass(frozen=True)
+class RolloutEstimate:
+    """The failure-probability estimate from logged rollouts.
+
+    Attributes:
+        estimate: mu_hat, failures, NLL, ESS (:class:`pemviz.sampling.Estimate`).
+        robustness: float64 [N] under ``metric``.
+        failed: bool [N].
+        log_weight: float64 [N] importance log-weights over the first T - 1 steps (nats).
+        metric: the robustness semantics.
+        failure: ``crash`` (classic robustness < 0) or ``metric`` (robustness under ``metric`` < 0).
+    """
+
+    estimate: Estimate
+    robustness: np.ndarray
+    failed: np.ndarray
+    log_weight: np.ndarray
+    metric: str
+    failure: str
+
+
+def estimate_rollouts(
+    data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
+    weights_until_failure: bool = True,
+) -> RolloutEstimate:
+    """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (Innes & Ramamoorthy 2022, eq. 6).
+
+    ``log w_i = sum_{t < k_i} log p - log q`` as the engine computes it: k_i = T - 1 (the last action affects
+    nothing), or, with ``weights_until_failure`` and ``failure="crash"``, the step at which rollout i first violates
+    the sidecar's ``G[a,b](...)`` formula (:func:`pemviz.stl.first_violation`; a stopping time, so the weights stay
+    unbiased). Failure = classic robustness of the formula < 0 (``failure="crash"``, the default) or robustness
+    under ``metric`` < 0. The NLL sums log p over the steps before the failure.
+
+    Args:
+        log_p, log_q: float64 [N, T] (nats).
+    Raises:
+        ValueError: an unknown metric or failure mode, arrays of the wrong shape, or a formula the file's
+            signals cannot evaluate (a RolloutFormatError naming the file).
+    """
+    if metric not in METRICS:
+        raise ValueError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
+    if failure not in ("crash", "metric"):
+        raise ValueError(f"unknown failure event {failure!r}; use crash or metric")
+    shape = (data.n, data.n_steps)
+    log_p, log_q = np.asarray(log_p, np.float64), np.asarray(log_q, np.float64)
+    if log_p.shape != shape or log_q.shape != shape:
+        raise ValueError(f"log_p and log_q must have shape {shape}, got {log_p.shape}, {log_q.shape}")
+    formula = stl.parse(data.meta.formula)
+    signals = {name: data.signal(col) for name, col in data.meta.signals.items()}
+    try:
+        rho = {m: np.asarray(stl.robustness(formula, signals, semantics=m, signal_ranges=data.meta.signal_ranges),
+                             dtype=np.float64) for m in {"classic", metric}}  # fmt: skip
+    except ValueError as exc:
+        raise RolloutFormatError(f"{data.path or 'rollouts'}: formula {data.meta.formula!r}: {exc}") from None
+    failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
+    k = data.n_steps - 1
+    try:  # the NLL (and, by default, the weights) cover the actions before the failure step, as in the engine
+        upto = np.minimum(stl.first_violation(formula, signals), k)
+    except ValueError:
+        upto = np.full(data.n, k)
+    before = np.arange(data.n_steps)[None, :] < upto[:, None]
+    steps = before if weights_until_failure and failure == "crash" else np.arange(data.n_steps)[None, :] < k
+    with np.errstate(over="ignore", invalid="ignore"):
+        log_w = np.where(steps, log_p - log_q, 0.0).sum(axis=1)
+        log_p_total = np.where(before, log_p, 0.0).sum(axis=1)
+    for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
+        if not np.isfinite(x).all():
+            i = int(np.flatnonzero(~np.isfinite(x))[0])
+            raise RolloutFormatError(
+                f"{data.path or 'rollouts'}: rollout {data.rollout_ids[i]}: the {name} over its {k} steps is beyond "
+                f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
+                f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
+            )
+    est = estimate(log_w, failed, log_p_total)
+    return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure)

@@ -1,0 +1,360 @@
+"""Validation of the estimators against exact failure probabilities: jobs, their records, summaries.
+
+A :class:`Job` is one method (a config) on one named problem (:data:`pemviz.problems.PROBLEMS`) for one seed;
+:func:`run_jobs` runs jobs in worker processes and appends every :class:`RunRecord` to a ``runs.jsonl`` file as it
+ends, so an interrupted study resumes; :func:`exact_answer` is each problem's truth (closed form, the
+deterministic latched simulator, or exact enumeration, :mod:`pemviz.truth`); :func:`summarise` groups records into
+table rows. ``pemviz validate`` and ``pemviz tables`` are the command-line layers over this module.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+import multiprocessing as mp
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pemviz import truth
+from pemviz.config import METHODS, PRESETS, ExperimentConfig
+from pemviz.engine import Experiment, RunFinished
+from pemviz.pem import load_pem
+from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
+from pemviz.sampling import format_probability, relative_error
+from pemviz.scenarios.braking import BrakingParams
+
+DEFAULT_PROBLEMS = ("toy", "toy-1e-30", "latched", "main")
+"""The problems ``pemviz validate`` runs by default."""
+
+# -- problems with an exact answer ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ExactAnswer:
+    """The truth of a problem: ``log_p_fail`` (nats), where it comes from, and a refinement table if any."""
+
+    log_p_fail: float
+    source: str
+    table: str | None = None
+    wall_s: float = 0.0
+
+
+def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None) -> ExactAnswer:
+    """The exact p_fail of a problem of :data:`~pemviz.problems.PROBLEMS` (seconds for the toys, ~20 s for ``main``).
+
+    ``progress`` receives a line per refinement of the enumeration (``main``).
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    t0 = time.perf_counter()
+    if name in TOY_PROBLEMS:
+        params = TOY_PROBLEMS[name]
+        log_p = truth.toy_log_failure_probability(params)
+        q, n = 1 - params.p_detect, params.braking - params.safe + 1
+        return ExactAnswer(log_p, f"closed form (1 - p)^(braking - safe + 1) = {q:g}^{n}")
+    if name not in ("latched", "main"):
+        raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")
+    pem = load_pem(pem_path)
+    if name == "latched":
+        lt = truth.latched_log_failure_probability(pem.logit_at_gap, BrakingParams(latched_brake=True))
+        return ExactAnswer(
+            lt.log_p_fail,
+            f"product of (1 - p_PEM) over steps {lt.first_step}..{lt.last_step} (deterministic simulator)",
+            wall_s=time.perf_counter() - t0,
+        )
+
+    def on_result(r: truth.ExactResult) -> None:
+        if progress is not None:
+            progress(f"  truth: drop threshold {r.log_prune:g} nats -> p_fail {math.exp(r.log_p_fail):.5g} "
+                     f"(+ at most {math.exp(r.log_pruned_bound):.2g}), {r.wall_s:.1f} s")  # fmt: skip
+
+    ref = truth.braking_truth(pem.logit_at_gap, BrakingParams(), on_result=on_result)
+    status = "converged" if ref.converged else "NOT converged"
+    f = ref.final
+    return ExactAnswer(
+        ref.log_p_fail,
+        f"exact enumeration, bracket [{math.exp(f.log_p_fail):.5g}, {math.exp(f.log_p_fail_upper):.5g}] "
+        f"(width {f.relative_width:.2%}, {status})",
+        ref.table(),
+        time.perf_counter() - t0,
+    )
+
+
+# -- one run ----------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """One method on one problem for one seed: the final estimate and what it cost.
+
+    ``curves``: the proposal curve q(detect | d) after every stage, float64 [stages, G] (adaptive only, when
+    asked for); ``gammas``: gamma_kappa per CE stage.
+    """
+
+    problem: str
+    method: str
+    seed: int
+    log_mu_hat: float
+    n_failures: int
+    n: int
+    ess: float
+    nll_mean: float
+    nll_lme: float
+    n_simulations: int
+    wall_s: float
+    gammas: tuple[float, ...] = ()
+    curves: np.ndarray | None = field(default=None, repr=False)
+    log_ci_lo: float = -math.inf
+    """The estimate's 95 % interval as natural logs (:attr:`pemviz.sampling.Estimate.log_ci`)."""
+    log_ci_hi: float = 0.0
+    khat: float = math.nan
+    verdict: str = "unreliable"
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Job:
+    """What a worker runs: a problem, a method label and the config fields, one seed."""
+
+    problem: str
+    method: str
+    fields: tuple[tuple[str, Any], ...]
+    seed: int
+    keep_curves: bool = False
+    pem_path: str | None = None
+
+
+def run_job(job: Job) -> RunRecord:
+    """Run one :class:`Job` (in this process) and summarise it."""
+    torch.set_num_threads(1)
+    problem = build_problem(job.problem, job.pem_path)
+    cfg = ExperimentConfig(**dict(job.fields), seed=job.seed)
+    t0 = time.perf_counter()
+    res = Experiment(cfg, problem=problem).run()
+    if not isinstance(res, RunFinished):  # pragma: no cover - no cancel token here
+        raise RuntimeError(f"{job.method} on {job.problem} seed {job.seed} did not finish")
+    e = res.final.estimate
+    curves = np.stack([s.proposal_curve for s in res.stages]) if job.keep_curves and cfg.method == "adaptive" else None
+    gammas = tuple(float(s.gamma) for s in res.stages if s.kind == "ce")
+    return RunRecord(job.problem, job.method, job.seed, e.log_mu_hat, e.n_failures, e.n, e.ess, e.nll_mean, e.nll_lme,
+                     res.final.n_simulations, time.perf_counter() - t0, gammas, curves, *e.log_ci, e.khat, e.verdict,
+                     e.reason)  # fmt: skip
+
+
+RUNS_FILE = "runs.jsonl"
+"""Each finished run of ``validate`` / ``tables``, one JSON line, appended as the run ends (``--out``)."""
+
+
+def job_key(job: Job) -> str:
+    """What identifies a run in :data:`RUNS_FILE`: the whole :class:`Job` as canonical JSON."""
+    return json.dumps(dataclasses.asdict(job), sort_keys=True, default=str)
+
+
+def record_to_json(job: Job, rec: RunRecord) -> str:
+    """One line of :data:`RUNS_FILE` (non-finite floats as ``NaN`` / ``-Infinity``, as Python's json reads them)."""
+    fields = {f.name: getattr(rec, f.name) for f in dataclasses.fields(rec)}
+    fields["gammas"] = list(rec.gammas)
+    fields["curves"] = None if rec.curves is None else rec.curves.tolist()
+    return json.dumps({"job": job_key(job), "record": fields})
+
+
+def read_finished(path: Path, jobs: Sequence[Job]) -> dict[str, RunRecord]:
+    """The records of :data:`RUNS_FILE` at ``path`` that belong to ``jobs``, by :func:`job_key`.
+
+    Lines of other jobs (other settings) are ignored; a torn last line (a killed run) is skipped.
+    """
+    wanted = {job_key(j) for j in jobs}
+    done: dict[str, RunRecord] = {}
+    if not path.is_file():
+        return done
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            item = json.loads(line)
+            if item["job"] not in wanted:
+                continue
+            fields = dict(item["record"])
+            fields["gammas"] = tuple(fields["gammas"])
+            fields["curves"] = None if fields["curves"] is None else np.asarray(fields["curves"], dtype=np.float64)
+            done[item["job"]] = RunRecord(**fields)
+        except (ValueError, KeyError, TypeError):
+            continue
+    return done
+
+
+def run_jobs(
+    jobs: Sequence[Job],
+    n_jobs: int = 1,
+    on_record: Callable[[RunRecord], None] | None = None,
+    *,
+    runs_file: Path | None = None,
+    progress: bool = False,
+) -> list[RunRecord]:
+    """Run jobs in order (``n_jobs`` = 1) or in ``n_jobs`` worker processes; results in the jobs' order.
+
+    With ``runs_file``, every run is appended to it as it ends and runs already there are not run again
+    (resume after Ctrl-C, SIGTERM or a crash). ``progress`` shows a bar with the ETA on stderr.
+    """
+    done = read_finished(runs_file, jobs) if runs_file is not None else {}
+    todo = [job for job in jobs if job_key(job) not in done]
+    if done:
+        print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {runs_file}", file=sys.stderr)
+    tty = sys.stderr.isatty()
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), unit="run", file=sys.stderr,
+               disable=not (progress and tty), dynamic_ncols=True)  # fmt: skip
+    t0, n0 = time.perf_counter(), len(jobs) - len(todo)
+    log = None
+    if runs_file is not None:
+        if runs_file.is_file() and runs_file.stat().st_size and not runs_file.read_bytes().endswith(b"\n"):
+            runs_file.write_bytes(runs_file.read_bytes().rsplit(b"\n", 1)[0] + b"\n")  # drop a torn last line
+        log = runs_file.open("a", encoding="utf-8")
+
+    def finished(job: Job, rec: RunRecord) -> None:
+        done[job_key(job)] = rec
+        if log is not None:
+            log.write(record_to_json(job, rec) + "\n")
+            log.flush()
+            os.fsync(log.fileno())
+        if on_record is not None:
+            with bar.external_write_mode():
+                on_record(rec)
+        bar.update(1)
+        if progress and not tty:  # a log, not a terminal: the bar's counts and ETA as a line
+            n, elapsed = len(done), time.perf_counter() - t0
+            eta = elapsed / (n - n0) * (len(jobs) - n)
+            print(f"  [{n}/{len(jobs)} runs, {tqdm.format_interval(elapsed)} elapsed, ETA {tqdm.format_interval(eta)}]",
+                  file=sys.stderr, flush=True)  # fmt: skip
+
+    try:
+        if n_jobs <= 1 or len(todo) <= 1:
+            for job in todo:
+                finished(job, run_job(job))
+        else:
+            ctx = mp.get_context("spawn")  # torch and fork do not mix
+            with ctx.Pool(min(n_jobs, len(todo))) as pool:
+                for job, rec in zip(todo, pool.imap(run_job, todo)):
+                    finished(job, rec)
+    finally:
+        bar.close()
+        if log is not None:
+            log.close()
+    return [done[job_key(job)] for job in jobs]
+
+
+# -- summary ------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Summary:
+    """One table row: a method on a problem over its seeds."""
+
+    problem: str
+    method: str
+    log_truth: float
+    n_seeds: int
+    median_mu_hat: float
+    min_mu_hat: float
+    max_mu_hat: float
+    median_rel_error: float
+    within_2x: int
+    median_failures: float
+    n_per_estimate: int
+    median_ess: float
+    n_simulations: int
+    median_wall_s: float
+    covered: int
+    """Seeds whose 95 % interval holds the exact answer."""
+    reliable: int
+    """Seeds whose verdict is ``reliable``."""
+
+
+def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> list[Summary]:
+    """Group records by (problem, method), keeping first-seen order."""
+    groups: dict[tuple[str, str], list[RunRecord]] = {}
+    for r in records:
+        groups.setdefault((r.problem, r.method), []).append(r)
+    out = []
+    for (problem, method), rs in groups.items():
+        lt = truths[problem].log_p_fail
+        logs = np.array([r.log_mu_hat for r in rs])
+        out.append(
+            Summary(
+                problem, method, lt, len(rs), float(np.median(logs)), float(logs.min()), float(logs.max()),
+                float(np.median([relative_error(x, lt) for x in logs])),
+                int(sum(abs(x - lt) <= math.log(2.0) for x in logs)),
+                float(np.median([r.n_failures for r in rs])), rs[0].n, float(np.median([r.ess for r in rs])),
+                int(np.median([r.n_simulations for r in rs])), float(np.median([r.wall_s for r in rs])),
+                sum(r.log_ci_lo <= lt <= r.log_ci_hi for r in rs), sum(r.verdict == "reliable" for r in rs),
+            )
+        )  # fmt: skip
+    return out
+
+
+COLUMNS = ("problem", "truth", "method", "seeds", "median mu_hat", "min mu_hat", "max mu_hat", "median rel. error",
+           "within x2", "95% CI covers", "reliable", "median failures", "median ESS", "simulations",
+           "median wall s")  # fmt: skip
+
+
+def _row(s: Summary) -> list[str]:
+    fp = format_probability
+    return [s.problem, fp(s.log_truth), s.method, str(s.n_seeds), fp(s.median_mu_hat), fp(s.min_mu_hat),
+            fp(s.max_mu_hat), f"{s.median_rel_error:.3f}", f"{s.within_2x}/{s.n_seeds}", f"{s.covered}/{s.n_seeds}",
+            f"{s.reliable}/{s.n_seeds}",
+            f"{s.median_failures:g}/{s.n_per_estimate}", f"{s.median_ess:.1f}", f"{s.n_simulations:,}",
+            f"{s.median_wall_s:.1f}"]  # fmt: skip
+
+
+def markdown_table(summaries: Sequence[Summary]) -> str:
+    """The summaries as a Markdown table, columns :data:`COLUMNS`."""
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    lines += ["| " + " | ".join(_row(s)) + " |" for s in summaries]
+    return "\n".join(lines)
+
+
+def summaries_csv(summaries: Sequence[Summary]) -> str:
+    """The summaries as CSV text, logs in nats beside the probabilities."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["problem", "log_truth", "truth", "method", "seeds", "median_log_mu_hat", "min_log_mu_hat",
+                "max_log_mu_hat", "median_mu_hat", "median_rel_error", "within_2x", "covered", "reliable",
+                "median_failures", "n_per_estimate",
+                "median_ess", "simulations", "median_wall_s"])  # fmt: skip
+    for s in summaries:
+        w.writerow([s.problem, repr(s.log_truth), f"{math.exp(s.log_truth):.6g}", s.method, s.n_seeds,
+                    repr(s.median_mu_hat), repr(s.min_mu_hat), repr(s.max_mu_hat),
+                    f"{math.exp(s.median_mu_hat):.6g}", f"{s.median_rel_error:.6g}", s.within_2x, s.covered, s.reliable,
+                    s.median_failures, s.n_per_estimate, f"{s.median_ess:.6g}", s.n_simulations,
+                    f"{s.median_wall_s:.3f}"])  # fmt: skip
+    return buf.getvalue()
+
+
+# -- methods at equal budgets -------------------------------------------------------------------------------------
+
+BASELINES = tuple(m for m in METHODS if m != "adaptive")
+"""The baseline methods a study can compare the adaptive sampler with."""
+
+
+def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str, Any]) -> list[tuple[str, dict]]:
+    """(label, config fields) per method: ``adaptive (PRESET)`` for each preset, then the baselines with as
+    many rollouts as the first preset's adaptive run simulates (equal budgets)."""
+    out = []
+    budget = None
+    for name in presets:
+        fields = {**PRESETS[name], **base}
+        budget = budget or ExperimentConfig(**fields).n_simulations
+        out.append((f"adaptive ({name})", fields))
+    budget = budget or ExperimentConfig(**base).n_simulations
+    for m in baselines:
+        out.append((m, {**{k: v for k, v in base.items() if k in ("pem", "sim")}, "method": m, "n_per_stage": budget}))
+    return out

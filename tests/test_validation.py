@@ -1,0 +1,92 @@
+"""pemviz.validation: exact answers, run records on disk, summaries, equal budgets."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.problems import PROBLEMS, build_problem
+from pemviz.sampling import relative_error
+from pemviz.validation import (
+    DEFAULT_PROBLEMS,
+    ExactAnswer,
+    Job,
+    RunRecord,
+    exact_answer,
+    markdown_table,
+    methods_for,
+    read_finished,
+    record_to_json,
+    run_jobs,
+    summaries_csv,
+    summarise,
+)
+
+
+def test_relative_error_and_summary_by_hand():
+    lt = math.log(1e-21)
+    assert relative_error(math.log(1.5e-21), lt) == pytest.approx(0.5, rel=1e-9)
+    assert relative_error(-math.inf, lt) == 1.0
+    recs = [RunRecord("toy", "m", s, math.log(v), 10, 100, 5.0, 40.0, 39.0, 1200, 1.0,
+                      log_ci_lo=math.log(v / 1.6), log_ci_hi=math.log(v * 1.6), verdict=verdict)
+            for s, (v, verdict) in enumerate([(0.6e-21, "reliable"), (0.9e-21, "doubtful"), (1.2e-21, "reliable"),
+                                              (4e-21, "unreliable")])]  # fmt: skip
+    (s,) = summarise(recs, {"toy": ExactAnswer(lt, "closed form")})
+    assert s.median_rel_error == pytest.approx((0.2 + 0.4) / 2, rel=1e-9)  # errors 0.4, 0.1, 0.2, 3
+    assert s.within_2x == 3 and s.n_seeds == 4
+    assert s.covered == 2 and s.reliable == 2  # 0.6e-21 * 1.6 < 1e-21 and 4e-21 / 1.6 > 1e-21 miss the truth
+    assert math.exp(s.median_mu_hat) == pytest.approx(math.sqrt(0.9e-21 * 1.2e-21), rel=1e-9)  # median of logs
+    assert "| toy | 1.000e-21 | m | 4 |" in markdown_table([s])
+    assert summaries_csv([s]).splitlines()[1].startswith(f"toy,{lt!r},1e-21,m,4,")
+
+
+def test_exact_answers_of_the_toys():
+    assert exact_answer("toy").log_p_fail == pytest.approx(math.log(1e-21), rel=1e-12)
+    assert exact_answer("toy-1e-30").log_p_fail == pytest.approx(math.log(1e-30), rel=1e-9)
+    assert exact_answer("toy-1e-3").log_p_fail == pytest.approx(math.log(1e-3), rel=1e-12)
+    with pytest.raises(ValueError, match="unknown problem 'nope'"):
+        exact_answer("nope")
+
+
+def test_named_problems_carry_their_exact_answer():
+    assert set(DEFAULT_PROBLEMS) <= set(PROBLEMS)
+    toy = build_problem("toy-1e-3")
+    assert toy.name == "toy-1e-3" and toy.exact_log_p == pytest.approx(math.log(1e-3), rel=1e-12)
+    assert build_problem("toy-1e-3") is toy  # built once per process
+    with pytest.raises(ValueError, match="use one of toy, "):
+        build_problem("nope")
+
+
+def test_records_round_trip_through_the_runs_file_and_a_torn_line_is_skipped(tmp_path):
+    job = Job("toy-1e-3", "mc", (("method", "mc"), ("n_per_stage", 50)), 3)
+    other = Job("toy-1e-3", "mc", (("method", "mc"), ("n_per_stage", 60)), 3)
+    rec = RunRecord("toy-1e-3", "mc", 3, -math.inf, 0, 50, 0.0, math.nan, math.nan, 50, 0.1, gammas=(1.5, 0.25))
+    path = tmp_path / "runs.jsonl"
+    path.write_text(record_to_json(job, rec) + "\n" + record_to_json(other, rec)[:-7], encoding="utf-8")
+    (back,) = read_finished(path, [job]).values()
+    assert back.log_mu_hat == -math.inf and math.isnan(back.nll_mean) and back.gammas == (1.5, 0.25)
+    assert read_finished(path, [other]) == {}  # its line is torn
+    assert read_finished(tmp_path / "missing.jsonl", [job]) == {}
+
+
+def test_run_jobs_resumes_from_the_runs_file_with_the_same_numbers(tmp_path):
+    jobs = [Job("toy-1e-3", "mc", (("method", "mc"), ("n_per_stage", 2000)), seed) for seed in (0, 1)]
+    path = tmp_path / "runs.jsonl"
+    first = run_jobs(jobs[:1], runs_file=path)
+    seen = []
+    both = run_jobs(jobs, on_record=seen.append, runs_file=path)
+    assert [r.seed for r in seen] == [1]  # seed 0 was read back, not run again
+    assert record_to_json(jobs[0], both[0]) == record_to_json(jobs[0], first[0])  # NaN != NaN: compare the lines
+    assert both[1].n == 2000 and both[1].n_failures == pytest.approx(2, abs=6)  # p_fail 1e-3
+    assert both[1].log_mu_hat == run_jobs(jobs[1:])[0].log_mu_hat  # same seed, same estimate
+
+
+def test_baselines_get_the_first_presets_simulation_budget():
+    base = {"n_stages": 3}
+    methods = dict(methods_for(["paper", "quick"], ["mc", "naive50"], base))
+    budget = ExperimentConfig(**{**PRESETS["paper"], **base}).n_simulations
+    assert list(methods) == ["adaptive (paper)", "adaptive (quick)", "mc", "naive50"]
+    assert methods["mc"] == {"method": "mc", "n_per_stage": budget}
+    assert methods["adaptive (quick)"] == {**PRESETS["quick"], **base}
