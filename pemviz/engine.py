@@ -224,7 +224,7 @@ class Experiment:
         self.emit(StageFinished(res))
         return res
 
-    # -- sampler improvements (issue 6; all off by default) ------------------------------------------
+    # -- sampler improvements over the paper (on by default) ------------------------------------------
     def _step_mask(self, batch: RolloutBatch, level: float = 0.0) -> np.ndarray | None:
         """bool [N, T]: the steps whose actions enter the weights and the CE fit, or None for all of them.
 

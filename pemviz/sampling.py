@@ -20,13 +20,13 @@ from torch import nn
 from pemviz.detectors import GAP_COLUMN
 
 GAP_SCALE_M = 12.0
-"""The braking proposal's input is gap / 12 m (spec section 4)."""
+"""The braking proposal's input is gap / 12 m (Innes & Ramamoorthy 2022, the authors' code)."""
 
 WeightMode = Literal["frozen", "recomputed"]
 
 
 class Proposal(nn.Module):
-    """q_phi(a | d): Linear(1,32)-ReLU-Linear(32,32)-ReLU-Linear(32,2)-LogSoftmax, float64 (spec section 4).
+    """q_phi(a | d): Linear(1,32)-ReLU-Linear(32,32)-ReLU-Linear(32,2)-LogSoftmax, float64 (Innes & Ramamoorthy 2022, Algorithm 1; the authors' ``FFPolicy``).
 
     ``forward(gap_m [M]) -> [M, 2]`` log-probabilities (nats) of (miss, detect); the network sees
     ``h(s) = gap_m / h_scale``.
@@ -60,7 +60,7 @@ class Proposal(nn.Module):
 
 
 class StateProposal(Proposal):
-    """q_phi(a | h(s)) with h(s) = several observation columns, each divided by its scale (issue 6).
+    """q_phi(a | h(s)) with h(s) = several observation columns, each divided by its scale (pemviz's default sampler).
 
     Same network as :class:`Proposal` with ``len(columns)`` inputs (gap first). ``forward(h [M, k])``;
     :meth:`curve` varies the gap and holds the other inputs at ``reference`` (e.g. the start state).
@@ -290,7 +290,7 @@ def pretrain_proposal(
         tolerance: early stopping (nats per step; :func:`_fit`), None: every epoch.
     Returns:
         the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
-    Source: spec section 4, "Pretraining".
+    Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts).
     """
     n_fitted = np.size(detected) if step_mask is None else int(np.count_nonzero(step_mask))
     if _summed_fit(fit, tolerance, max_rows, n_fitted):
@@ -311,7 +311,7 @@ def pretrain_proposal(
 def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: float = 0.0) -> float:
     """gamma_kappa = max(floor, the ceil((1 - sigma) N)-th smallest robustness).
 
-    With sigma = 0.95 and N = 100 this is the 5th smallest value (spec section 4). ``floor`` is the
+    With sigma = 0.95 and N = 100 this is the 5th smallest value (Innes & Ramamoorthy 2022, Algorithm 1). ``floor`` is the
     failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
     """
     r = np.sort(np.asarray(robustness, dtype=np.float64))
