@@ -7,7 +7,7 @@ import ipaddress
 import socket
 import sys
 
-from pemviz.app.panel import serve
+from pemviz.app import panel
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.commands import UsageError
 from pemviz.config import DEFAULT_PRESET
@@ -68,6 +68,6 @@ def main(args: argparse.Namespace) -> int:
     def ready(app) -> None:
         print(f"pemviz serve: open {app.url} (Ctrl-C to stop)", flush=True)
 
-    serve(args.host, args.port, recordings_dir=args.recordings, preset=args.preset, on_ready=ready)
+    panel.serve(args.host, args.port, recordings_dir=args.recordings, preset=args.preset, on_ready=ready)
     print("pemviz serve: stopped", file=sys.stderr)
     return 0
