@@ -13,6 +13,7 @@ from urllib.parse import quote, urlsplit
 
 import rerun as rr
 
+from pemviz import engine
 from pemviz.commands import UsageError, interrupted
 from pemviz.config import (
     DEFAULT_PRESET,
@@ -24,7 +25,6 @@ from pemviz.config import (
     ConfigError,
     ExperimentConfig,
 )
-from pemviz.engine import STREAM_ABOVE, Experiment
 from pemviz.executors import probe_ray_address
 from pemviz.files import check_output_path
 from pemviz.pem import shipped_pems
@@ -250,8 +250,9 @@ def main(args: argparse.Namespace) -> int:
     rollout_sink = None
     if args.save_rollouts is not None:
         n_final = cfg.n_final if cfg.method == "adaptive" else cfg.n_per_stage
-        if n_final > STREAM_ABOVE:  # such batches are streamed in chunks, never held whole
-            raise UsageError(f"--save-rollouts: at most {STREAM_ABOVE} final rollouts can be saved, got {n_final}")
+        if n_final > engine.STREAM_ABOVE:  # such batches are streamed in chunks, never held whole
+            raise UsageError(f"--save-rollouts: at most {engine.STREAM_ABOVE} final rollouts can be saved, "
+                             f"got {n_final}")
         try:
             rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite)
         except ValueError as exc:
@@ -273,8 +274,9 @@ def main(args: argparse.Namespace) -> int:
     elif target == "connect":
         args.url = probe_viewer(args.url)
 
-    check_run_memory(cfg, BrakingParams().n_steps, stream_above=STREAM_ABOVE if cfg.executor == "serial" else None)
-    experiment = Experiment(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
+    stream_above = engine.STREAM_ABOVE if cfg.executor == "serial" else None
+    check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above)
+    experiment = engine.Experiment(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
     recorder = None
     if target != "no-record":

@@ -67,9 +67,9 @@ def main(args: argparse.Namespace) -> int:
     def ready(app) -> None:
         print(f"pemviz serve: open {app.url} (Ctrl-C to stop)", flush=True)
 
-    from pemviz.app.panel import serve  # viser and the panel: ~1.9 s to import, paid only by this command
+    from pemviz.app import panel  # viser and the panel: ~1.9 s to import, paid only by this command
 
-    serve(args.host, args.port, recordings_dir=args.recordings, preset=args.preset, on_ready=ready)
+    panel.serve(args.host, args.port, recordings_dir=args.recordings, preset=args.preset, on_ready=ready)
     print("pemviz serve: stopped", file=sys.stderr)
     if sys.argv[1:2] == ["serve"]:  # the program itself (not pemviz.cli.main called from Python)
         sys.stdout.flush()
