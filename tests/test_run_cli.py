@@ -60,30 +60,19 @@ def test_paper_preset_reproduces_the_published_sampler_bit_for_bit():
     assert e.verdict != "reliable" and not e.covers(math.log(1.9839e-15))
 
 
-def test_default_recording_verifies_and_holds_one_proposal_curve_per_stage(default_run):
+def test_default_recording_verifies_and_holds_the_printed_estimate(default_run):
+    # the recording's content, view by view, is pinned in tests/test_recording.py; here: the CLI's file
     import rerun as rr
 
     proc, path = default_run
     verify = subprocess.run(["rerun", "rrd", "verify", str(path)], capture_output=True, text=True, timeout=300)
     assert verify.returncode == 0, verify.stderr
     with rr.server.Server(datasets={"run": [str(path)]}) as server:
-        ds = server.client().get_dataset("run")
-        finals = ds.reader(index=None).to_pandas()  # static: proposal curves (gap m, p) and the final estimate
-        steps = ds.reader(index="step").to_pandas()
-    curve_re = re.compile(r"/proposal/data/stage_\d\d:LineStrips2D:strips")
-    proposal_cols = sorted(c for c in finals.columns if curve_re.fullmatch(c))
-    # pretraining (0), the 10 CE stages, and the final batch (drawn from the final proposal)
-    assert [c.split("/")[3][:8] for c in proposal_cols] == [f"stage_{k:02d}" for k in range(12)]
-    for c in proposal_cols + ["/proposal/data/pem:LineStrips2D:strips"]:
-        (strip,) = finals[c].dropna().iloc[0]
-        values = np.stack(strip)[:, 1]
-        assert values.size == 131 and np.all((values >= 0) & (values <= 1))
+        client = server.client()  # kept alive while the reader runs
+        static = client.get_dataset("run").reader(index=None).to_arrow_table()
+    logged = [v for v in static.column("/final:log_mu_hat").to_pylist() if v is not None]
     _, _, log_mu, _ = parse_final(proc.stdout)
-    assert float(np.atleast_1d(finals["/final:log_mu_hat"].dropna().iloc[0])[0]) == pytest.approx(log_mu, abs=1e-4)
-    gap_cols = [c for c in steps.columns if re.fullmatch(r"/rollouts/gap_m/stage_\d\d:Scalars:scalars", c)]
-    assert len(gap_cols) == 12  # pretraining, 10 CE stages, final batch
-    for c in gap_cols:  # 100 steps of 100 rollouts each
-        assert steps[c].dropna().size == 100 and all(len(v) == 100 for v in steps[c].dropna())
+    assert len(logged) == 1 and logged[0][0] == pytest.approx(log_mu, abs=1e-4)
 
 
 def test_same_seed_gives_the_same_estimate_twice():
