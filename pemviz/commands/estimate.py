@@ -216,13 +216,10 @@ def main(args: argparse.Namespace) -> int:
             raise UsageError(str(exc)) from None
     data = rio.read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
-    if not args.no_record and args.save is None:  # the input is good: make the default folder, as pemviz run does
-        Path("recordings").mkdir(exist_ok=True)
-        save_path = check_save_path(default_recording_path(rollouts), args.overwrite)
     run_config = (data.meta.provenance or {}).get("config") or {}
     until_failure = bool(run_config.get("weights_until_failure", True))  # as the run that wrote the file weighed
     result = estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure,
-                                   weights_until_failure=until_failure)  # fmt: skip
+                               weights_until_failure=until_failure)  # fmt: skip
     check_plausible(result.estimate, q_src)
     lines = summary_lines(data, result, p_src, q_src)
     print("\n".join(lines), flush=True)
