@@ -36,7 +36,6 @@ from typing import Callable, Sequence
 
 import numpy as np
 from scipy.special import log_expit, logsumexp
-from scipy.stats import binom
 
 from pemviz.sampling import format_probability
 from pemviz.scenarios.braking import BrakingParams, ControllerState, ego_acceleration
@@ -327,6 +326,8 @@ def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) ->
 
 def _log_binomial_tail(n_max: int, q: float) -> np.ndarray:
     """log P(Binomial(n, q) >= m), float64 [n_max + 1, n_max + 2] (row n, column m; -inf where m > n)."""
+    from scipy.stats import binom  # scipy.stats takes ~0.5 s to import: only when a truth is computed
+
     out = np.full((n_max + 1, n_max + 2), -np.inf)
     for n in range(n_max + 1):
         out[n, 0] = 0.0

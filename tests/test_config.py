@@ -27,12 +27,13 @@ def test_invalid_setting_is_rejected_with_its_name_value_and_range(field, value,
     assert field in str(err.value) and repr(value) in str(err.value)
 
 
-def test_defaults_keep_the_papers_budget_and_count_1200_simulations():
+def test_defaults_keep_the_papers_stages_with_a_larger_final_batch_and_count_2100_simulations():
     c = ExperimentConfig()
     assert (c.n_stages, c.n_per_stage, c.n_final, c.quantile_level, c.smoothing, c.metric, c.seed) == (
-        10, 100, 100, 0.95, 0.1, "classic", 0,
+        10, 100, 1000, 0.95, 0.1, "classic", 0,
     )  # fmt: skip
-    assert c.n_simulations == 100 + 10 * 100 + 100
+    assert c.n_simulations == 100 + 10 * 100 + 1000
+    assert ExperimentConfig(**PRESETS["paper"]).n_simulations == 100 + 10 * 100 + 100  # the paper's 1,200
     assert ExperimentConfig(method="mc", n_per_stage=10000).n_simulations == 10000
 
 

@@ -176,3 +176,26 @@ def test_converging_fits_reach_the_elites_miss_rate_and_stop_early(fit, epochs, 
     curve = q.curve(np.array([2.0, 5.0, 8.0, 11.5]))
     np.testing.assert_allclose(curve[:3], detected[:30][inside[:30]].mean(), atol=0.06)
     assert curve[3] > 0.85
+
+
+@pytest.mark.parametrize("rows", [7, 400])
+def test_adam_gives_torch_optims_parameters_bit_for_bit(rows):
+    """pemviz's Adam (imported without torch._dynamo) must not change any fit: same bits as torch.optim.Adam."""
+    from torch import nn
+
+    from pemviz.sampling import Adam
+
+    fitted, start = [], None
+    for make in (lambda ps: torch.optim.Adam(ps, lr=1e-2), lambda ps: Adam(list(ps), lr=1e-2)):
+        torch.manual_seed(3)
+        net = nn.Sequential(nn.Linear(3, 32), nn.ReLU(), nn.Linear(32, 2), nn.LogSoftmax(dim=-1)).double()
+        start = torch.cat([p.detach().reshape(-1) for p in net.parameters()])
+        x, w = torch.randn(rows, 3, dtype=torch.float64), torch.rand(rows, 2, dtype=torch.float64)
+        opt = make(net.parameters())
+        for _ in range(300):
+            opt.zero_grad()
+            (-(w * net(x)).sum()).backward()
+            opt.step()
+        fitted.append(torch.cat([p.detach().reshape(-1) for p in net.parameters()]))
+    assert (fitted[0] - start).abs().max() > 0.1  # the fit moved the parameters
+    assert torch.equal(fitted[0], fitted[1])
