@@ -291,8 +291,7 @@ class Experiment:
     def _run(self) -> RunFinished | RunCancelled:
         cfg = self.config
         t_start = time.perf_counter()
-        rng = np.random.default_rng(cfg.seed)
-        torch.manual_seed(cfg.seed)
+        rng = np.random.default_rng(cfg.seed)  # the rollouts' detections; other purposes have their own streams
         pb = self.problem
         self.emit(RunStarted(cfg, str(pb.formula), pb.curve_grid, pb.target_curve(), pb.exact_log_p))
         try:
@@ -380,7 +379,10 @@ class Experiment:
             pre_sampler = WindowDetector(capped, self.problem.target, self.problem.window)
         batch, r, failed, log_w = self._sample(0, "pretrain", cfg.pretrain_rollouts, pre_sampler, rng)
         fit_rng = np.random.default_rng((cfg.seed, 1))  # the fits' subsamples; the rollouts' stream stays as it was
-        proposal = self._new_proposal(batch)
+        tie_rng = np.random.default_rng((cfg.seed, 2))  # tie-breaking: turning it on leaves the rollouts' stream alone
+        with torch.random.fork_rng(devices=[]):  # the proposal's initial weights, without reseeding the process
+            torch.manual_seed(cfg.seed)
+            proposal = self._new_proposal(batch)
         pretrain_proposal(
             proposal, proposal.features(batch.observations), batch.detected,
             epochs=cfg.pretrain_epochs if cfg.fit == "adam" else cfg.fit_max_steps, lr=cfg.learning_rate,
@@ -403,7 +405,7 @@ class Experiment:
             reached_failures = reached_failures or gamma <= 0.0  # latched: N of the pool is fixed once it starts
             elite = r <= gamma
             if cfg.elite_ties == "random":
-                elite = _break_ties(r, gamma, cfg.quantile_level, rng)
+                elite = _break_ties(r, gamma, cfg.quantile_level, tie_rng)
             smoothing = cfg.smoothing
             if cfg.smoothing_at_failure is not None and gamma <= 0.0:
                 smoothing = cfg.smoothing_at_failure
