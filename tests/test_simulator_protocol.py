@@ -160,3 +160,4 @@ def test_readme_example_is_under_30_lines_runs_and_estimates_its_exact_answer_wi
     exact = exact_failure_probability(namespace["MyCar"], problem.target.detect_logit, 64, 25.0)
     assert exact == pytest.approx(2.8576e-5, rel=1e-3)  # the number the README quotes
     assert est.n_failures > 0 and exact / 3 < est.mu_hat < 3 * exact
+    assert est.log_ci[0] < math.log(exact) < est.log_ci[1]  # the README: the interval holds the exact answer
