@@ -23,7 +23,7 @@ import rerun as rr
 from pemviz.config import METRICS, PRESETS, ExperimentConfig
 from pemviz.files import write_rrd
 from pemviz.sampling import format_probability
-from pemviz.sinks.recording import stage_colour
+from pemviz.sinks.colours import stage_rgba
 from pemviz.validation import RunRecord
 
 FIG4_STAGE = 3
@@ -177,7 +177,7 @@ def _log_tables(stream, gap_mm, specs, records, pem_curve, description) -> None:
         for r in recs:
             n_stages = r.curves.shape[0] - 1
             for k, c in enumerate(r.curves):
-                curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_colour(k, n_stages),
+                curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_rgba(k, n_stages),
                       f"{spec.label} rep {r.seed} stage {k}")  # fmt: skip
         metric = dict(spec.fields).get("metric", "classic")
         preset = spec.label[spec.label.index("(") + 1 : -1] if spec.label.endswith(")") else None
