@@ -36,6 +36,7 @@ from pemviz.engine import (
     StageStarted,
 )
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.sinks.recording import RerunSink
 from pemviz.sinks.scene import car_positions
 
 MAX_RUNS = 4
@@ -342,8 +343,6 @@ def export_run(record: RunRecord, path: Path) -> Path:
     Returns:
         ``path``. Nothing is left at ``path`` (or beside it) if writing fails.
     """
-    from pemviz.sinks.recording import RerunSink
-
     with record.lock:
         events = list(record.events)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,7 @@ from pemviz.config import (
     ExperimentConfig,
 )
 from pemviz.executors import probe_ray_address
-from pemviz.files import check_output_path
+from pemviz.files import check_output_folder, check_output_path
 from pemviz.pem import shipped_pems
 from pemviz.resources import check_run_memory
 from pemviz.rollout_io import sidecar_path
@@ -262,8 +262,6 @@ def main(args: argparse.Namespace) -> int:
     save_path = None
     if target == "save":
         if args.save is None:  # recordings/ is made once every check has passed
-            from pemviz.files import check_output_folder
-
             save_path = default_recording_path(cfg, args.preset)
             try:
                 check_output_folder(save_path.parent, (save_path.name,), "recording folder")

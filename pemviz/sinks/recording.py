@@ -71,6 +71,7 @@ from pemviz.engine import (
     StageResult,
     stage_label,
 )
+from pemviz.files import atomic_write
 from pemviz.sampling import format_probability, relative_error
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import colours as C
@@ -370,8 +371,6 @@ class RerunSink:
         self._binary = None
         if not commit:
             return None
-        from pemviz.files import atomic_write
-
         return atomic_write(self._path, lambda tmp: Path(tmp).write_bytes(data), overwrite=self._overwrite)
 
     # -- events -------------------------------------------------------------------------------------
