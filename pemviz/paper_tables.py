@@ -24,7 +24,8 @@ from pemviz.config import METRICS, PRESETS, ExperimentConfig
 from pemviz.files import write_rrd
 from pemviz.sampling import format_probability
 from pemviz.sinks.colours import stage_rgba
-from pemviz.validation import RunRecord
+from pemviz.problems import PROBLEMS
+from pemviz.validation import ExactAnswer, Job, RunRecord
 
 FIG4_STAGE = 3
 """The paper's Fig. 4 shows the proposal after stage kappa = 3."""
@@ -116,6 +117,50 @@ def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_l
                 fields = {**PRESETS[name], **base, "metric": metric}
                 specs.append(RowSpec("III", f"r_{metric} ({name})", tuple(sorted(fields.items()))))
     return specs
+
+
+def table_jobs(problem: str, specs: Sequence[RowSpec], reps: int, pem_path: str | None = None) -> list[Job]:
+    """R repetitions (seeds 0..reps-1) of every row as :class:`~pemviz.validation.Job`\ s that keep their proposal
+    curves, the slow (adaptive) rows first so that parallel workers finish together."""
+    jobs = [Job(problem, s.label, s.fields, seed, keep_curves=True, pem_path=pem_path)
+            for s in specs for seed in range(reps)]  # fmt: skip
+    return sorted(jobs, key=lambda j: dict(j.fields).get("method", "adaptive") != "adaptive")
+
+
+def records_by_row(specs: Sequence[RowSpec], records: Sequence[RunRecord]) -> dict[str, list[RunRecord]]:
+    """Row label -> its repetitions' records in seed order (every row of ``specs``, empty if none ran)."""
+    by_label: dict[str, list[RunRecord]] = {s.label: [] for s in specs}
+    for r in sorted(records, key=lambda r: r.seed):
+        by_label[r.method].append(r)
+    return by_label
+
+
+def report(problem: str, reps: int, base: dict[str, Any], truth: ExactAnswer, rows: Sequence[Row], n_jobs: int,
+           wall_s: float) -> str:  # fmt: skip
+    """The Markdown report of ``pemviz tables`` (``tables.md``): how rows are formed, Table II, Table III, the
+    refinement of the exact answer, the wall time (seconds) on ``n_jobs`` processes; ``base``: the adaptive
+    sampler's config fields given on the command line."""
+    cfg = ExperimentConfig(**base)
+    return "\n".join([
+        f"# pemviz tables: {PROBLEMS[problem]}",
+        "",
+        f"{reps} repetitions per row (seeds 0..{reps - 1}); mu_hat is the mean over repetitions +- the "
+        f"standard error std/sqrt({reps}); failures and ESS are means over repetitions; NLL is over failing "
+        f"rollouts (nats), averaged over repetitions. Adaptive: K = {cfg.n_stages}, N = {cfg.n_per_stage}, "
+        f"N_e = {cfg.n_final}, sigma = {cfg.quantile_level}, alpha = {cfg.smoothing}, {cfg.ce_epochs} epochs per stage.",
+        f"Exact p_fail {format_probability(truth.log_p_fail, 5)}: {truth.source}.",
+        "",
+        "## Table II: methods (metric: classic)",
+        "",
+        markdown(rows, "II"),
+        "",
+        "## Table III: robustness metrics (adaptive; paper settings, then each --extra preset)",
+        "",
+        markdown(rows, "III"),
+        "",
+        *(["## Exact answer: refinement", "", truth.table, ""] if truth.table else []),
+        f"Wall time {wall_s:.0f} s on {n_jobs} process(es).",
+    ]) + "\n"  # fmt: skip
 
 
 def _fmt_row(r: Row) -> list[str]:
