@@ -290,3 +290,11 @@ def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Excep
     if payload.get("version") != version:
         raise error(f"{path}: {what} format version {payload.get('version')}, this pemviz reads {version}")
     return payload
+
+
+def free_default_path(folder: Path, stem: str, suffix: str = ".rrd") -> Path:
+    """``folder/stem.rrd``, or ``stem-2.rrd``, ``stem-3.rrd`` ... when taken: default names never replace a file."""
+    path, k = folder / f"{stem}{suffix}", 2
+    while path.exists():
+        path, k = folder / f"{stem}-{k}{suffix}", k + 1
+    return path

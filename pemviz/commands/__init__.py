@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.files import check_output_path
 
 
 class UsageError(Exception):
@@ -84,3 +85,11 @@ def base_fields(args: argparse.Namespace) -> dict[str, Any]:
     except ConfigError as exc:
         raise UsageError(str(exc)) from None
     return fields
+
+
+def check_save_path(path: Path, overwrite: bool = False) -> Path:
+    """Refuse a recording path that cannot be written, before any work starts (nothing is created)."""
+    try:
+        return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
