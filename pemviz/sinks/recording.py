@@ -298,7 +298,6 @@ class RerunSink:
         self._binary: rr.BinaryStream | None = None
         self._overwrite = False
         self._closed = False
-        self._axes: dict[str, tuple] = {}
         stream.set_log_time_enabled(False)
         stream.set_log_tick_enabled(False)
 
@@ -424,13 +423,6 @@ class RerunSink:
                         show_labels=True),
             static=True,
         )  # fmt: skip
-
-    def _draw_axes(self, fig: Figure, x_range, y_range, x_ticks: np.ndarray | None = None) -> None:
-        """:meth:`Figure.draw_axes`, skipped when the ranges have not changed since the last stage."""
-        key = (tuple(x_range), tuple(y_range), None if x_ticks is None else tuple(x_ticks))
-        if self._axes.get(fig.path) != key:
-            fig.draw_axes(self.stream, x_range, y_range, x_ticks)
-            self._axes[fig.path] = key
 
     def _log_estimate(self, res: StageResult | None, final: FinalEstimate | None = None) -> None:
         """The ``estimate`` view: mu_hat with its interval, k-hat, verdict and the exact answer where known."""
