@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -114,9 +116,6 @@ def commit_files(pairs: list[tuple[str, Path]], *, overwrite: bool) -> None:
 def deferred_signals() -> Iterator[None]:
     """SIGINT and SIGTERM received inside the block are acted on when it ends (main thread only; elsewhere
     a no-op). For short steps that must not be cut in two, such as moving the files of a unit into place."""
-    import signal
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -149,7 +148,7 @@ def write_rrd(path: str | os.PathLike[str], log: Callable[[Any], None], *, app_i
     Raises:
         OSError: the file could not be written (nothing is left); OutputExists: see :func:`atomic_write`.
     """
-    import rerun as rr
+    import rerun as rr  # ~1.3 s to import: pemviz.data imports this module and needs neither rerun nor torch
 
     stream = rr.RecordingStream(app_id)
     binary = stream.binary_stream()
@@ -280,7 +279,7 @@ def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Excep
     Raises:
         ``error``: damaged file, missing tag, or another format version.
     """
-    import torch
+    import torch  # ~4.6 s to import: only when a checkpoint is read (see write_rrd's rerun)
 
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
@@ -291,3 +290,11 @@ def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Excep
     if payload.get("version") != version:
         raise error(f"{path}: {what} format version {payload.get('version')}, this pemviz reads {version}")
     return payload
+
+
+def free_default_path(folder: Path, stem: str, suffix: str = ".rrd") -> Path:
+    """``folder/stem.rrd``, or ``stem-2.rrd``, ``stem-3.rrd`` ... when taken: default names never replace a file."""
+    path, k = folder / f"{stem}{suffix}", 2
+    while path.exists():
+        path, k = folder / f"{stem}-{k}{suffix}", k + 1
+    return path

@@ -23,8 +23,9 @@ import rerun as rr
 from pemviz.config import METRICS, PRESETS, ExperimentConfig
 from pemviz.files import write_rrd
 from pemviz.sampling import format_probability
-from pemviz.sinks.recording import stage_colour
-from pemviz.validation import RunRecord
+from pemviz.sinks.colours import stage_rgba
+from pemviz.problems import PROBLEMS
+from pemviz.validation import ExactAnswer, Job, RunRecord
 
 FIG4_STAGE = 3
 """The paper's Fig. 4 shows the proposal after stage kappa = 3."""
@@ -118,6 +119,50 @@ def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_l
     return specs
 
 
+def table_jobs(problem: str, specs: Sequence[RowSpec], reps: int, pem_path: str | None = None) -> list[Job]:
+    """R repetitions (seeds 0..reps-1) of every row as :class:`~pemviz.validation.Job`\ s that keep their proposal
+    curves, the slow (adaptive) rows first so that parallel workers finish together."""
+    jobs = [Job(problem, s.label, s.fields, seed, keep_curves=True, pem_path=pem_path)
+            for s in specs for seed in range(reps)]  # fmt: skip
+    return sorted(jobs, key=lambda j: dict(j.fields).get("method", "adaptive") != "adaptive")
+
+
+def records_by_row(specs: Sequence[RowSpec], records: Sequence[RunRecord]) -> dict[str, list[RunRecord]]:
+    """Row label -> its repetitions' records in seed order (every row of ``specs``, empty if none ran)."""
+    by_label: dict[str, list[RunRecord]] = {s.label: [] for s in specs}
+    for r in sorted(records, key=lambda r: r.seed):
+        by_label[r.method].append(r)
+    return by_label
+
+
+def report(problem: str, reps: int, base: dict[str, Any], truth: ExactAnswer, rows: Sequence[Row], n_jobs: int,
+           wall_s: float) -> str:  # fmt: skip
+    """The Markdown report of ``pemviz tables`` (``tables.md``): how rows are formed, Table II, Table III, the
+    refinement of the exact answer, the wall time (seconds) on ``n_jobs`` processes; ``base``: the adaptive
+    sampler's config fields given on the command line."""
+    cfg = ExperimentConfig(**base)
+    return "\n".join([
+        f"# pemviz tables: {PROBLEMS[problem]}",
+        "",
+        f"{reps} repetitions per row (seeds 0..{reps - 1}); mu_hat is the mean over repetitions +- the "
+        f"standard error std/sqrt({reps}); failures and ESS are means over repetitions; NLL is over failing "
+        f"rollouts (nats), averaged over repetitions. Adaptive: K = {cfg.n_stages}, N = {cfg.n_per_stage}, "
+        f"N_e = {cfg.n_final}, sigma = {cfg.quantile_level}, alpha = {cfg.smoothing}, {cfg.ce_epochs} epochs per stage.",
+        f"Exact p_fail {format_probability(truth.log_p_fail, 5)}: {truth.source}.",
+        "",
+        "## Table II: methods (metric: classic)",
+        "",
+        markdown(rows, "II"),
+        "",
+        "## Table III: robustness metrics (adaptive; paper settings, then each --extra preset)",
+        "",
+        markdown(rows, "III"),
+        "",
+        *(["## Exact answer: refinement", "", truth.table, ""] if truth.table else []),
+        f"Wall time {wall_s:.0f} s on {n_jobs} process(es).",
+    ]) + "\n"  # fmt: skip
+
+
 def _fmt_row(r: Row) -> list[str]:
     ratio = "-" if r.log_mean == -math.inf else f"{math.exp(r.log_mean - r.log_truth):.3g}"
     se = "" if r.log_se == -math.inf else f" (+-{format_probability(r.log_se, 2)})"
@@ -177,7 +222,7 @@ def _log_tables(stream, gap_mm, specs, records, pem_curve, description) -> None:
         for r in recs:
             n_stages = r.curves.shape[0] - 1
             for k, c in enumerate(r.curves):
-                curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_colour(k, n_stages),
+                curve(f"curves/{key}/rep_{r.seed:02d}/stage_{k:02d}", c, stage_rgba(k, n_stages),
                       f"{spec.label} rep {r.seed} stage {k}")  # fmt: skip
         metric = dict(spec.fields).get("metric", "classic")
         preset = spec.label[spec.label.index("(") + 1 : -1] if spec.label.endswith(")") else None

@@ -16,9 +16,11 @@ import numpy as np
 from pemviz import stl
 from pemviz.config import METRICS
 from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
-from pemviz.rollout_io import SALIENT_COLUMNS, SAMPLERS, RolloutData, RolloutFormatError, braking_salient
+from pemviz.engine import failure_steps
+from pemviz.problems import Problem
+from pemviz.rollout_io import SALIENT_COLUMNS, SAMPLERS, RolloutData, RolloutFormatError, RolloutMeta, braking_salient
 from pemviz.sampling import Estimate, estimate
-
+from pemviz.scenarios import RolloutBatch
 
 
 def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
@@ -85,17 +87,41 @@ class RolloutEstimate:
     failure: str
 
 
+def _no_simulator(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
+    raise ValueError("a rollout file's problem has no simulator: its rollouts are given")
+
+
+def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
+    """The :class:`~pemviz.problems.Problem` a rollout file poses: the sidecar's formula, signals and signal ranges.
+
+    Its robustness and failure (classic robustness < 0) are the engine's; it has no simulator (the rollouts are
+    given) and no target detector (the logged log-probabilities are).
+
+    Raises:
+        RolloutFormatError: the sidecar's formula is not valid STL.
+    """
+    try:
+        formula = stl.parse(meta.formula)
+    except ValueError as exc:
+        raise RolloutFormatError(f"{name}: formula {meta.formula!r} is not valid STL: {exc}") from None
+    return Problem(name, _no_simulator, None, formula, signals=dict(meta.signals),  # type: ignore[arg-type]
+                   signal_ranges=dict(meta.signal_ranges))  # fmt: skip
+
+
 def estimate_rollouts(
     data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
     weights_until_failure: bool = True,
 ) -> RolloutEstimate:
     """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (Innes & Ramamoorthy 2022, eq. 6).
 
-    ``log w_i = sum_{t < k_i} log p - log q`` as the engine computes it: k_i = T - 1 (the last action affects
-    nothing), or, with ``weights_until_failure`` and ``failure="crash"``, the step at which rollout i first violates
-    the sidecar's ``G[a,b](...)`` formula (:func:`pemviz.stl.first_violation`; a stopping time, so the weights stay
-    unbiased). Failure = classic robustness of the formula < 0 (``failure="crash"``, the default) or robustness
-    under ``metric`` < 0. The NLL sums log p over the steps before the failure.
+    The rollouts go through the engine's code: robustness and failure steps of :func:`file_problem`
+    (:meth:`pemviz.problems.Problem.robustness`, :func:`pemviz.engine.failure_steps`), the estimate of
+    :func:`pemviz.sampling.estimate`. ``log w_i = sum_{t < k_i} log p - log q``: k_i = T - 1
+    (:meth:`pemviz.scenarios.RolloutBatch.log_weight`: the last action affects nothing), or, with
+    ``weights_until_failure`` and ``failure="crash"``, the step at which rollout i first violates the sidecar's
+    ``G[a,b](...)`` formula (a stopping time, so the weights stay unbiased). Failure = classic robustness of the
+    formula < 0 (``failure="crash"``, the default) or robustness under ``metric`` < 0. The NLL sums log p over the
+    steps before the failure.
 
     Args:
         log_p, log_q: float64 [N, T] (nats).
@@ -111,29 +137,31 @@ def estimate_rollouts(
     log_p, log_q = np.asarray(log_p, np.float64), np.asarray(log_q, np.float64)
     if log_p.shape != shape or log_q.shape != shape:
         raise ValueError(f"log_p and log_q must have shape {shape}, got {log_p.shape}, {log_q.shape}")
-    formula = stl.parse(data.meta.formula)
-    signals = {name: data.signal(col) for name, col in data.meta.signals.items()}
+    where = str(data.path or "rollouts")
+    problem = file_problem(data.meta, where)
+    batch = data.to_batch(log_p, log_q)
     try:
-        rho = {m: np.asarray(stl.robustness(formula, signals, semantics=m, signal_ranges=data.meta.signal_ranges),
-                             dtype=np.float64) for m in {"classic", metric}}  # fmt: skip
+        rho = {m: problem.robustness(batch, m) for m in {"classic", metric}}
     except ValueError as exc:
-        raise RolloutFormatError(f"{data.path or 'rollouts'}: formula {data.meta.formula!r}: {exc}") from None
+        raise RolloutFormatError(f"{where}: formula {data.meta.formula!r}: {exc}") from None
     failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
     k = data.n_steps - 1
     try:  # the NLL (and, by default, the weights) cover the actions before the failure step, as in the engine
-        upto = np.minimum(stl.first_violation(formula, signals), k)
-    except ValueError:
+        upto = np.minimum(failure_steps(problem, batch), k)
+    except ValueError:  # not G[a,b](state predicate): the first T - 1 steps
         upto = np.full(data.n, k)
     before = np.arange(data.n_steps)[None, :] < upto[:, None]
-    steps = before if weights_until_failure and failure == "crash" else np.arange(data.n_steps)[None, :] < k
     with np.errstate(over="ignore", invalid="ignore"):
-        log_w = np.where(steps, log_p - log_q, 0.0).sum(axis=1)
-        log_p_total = np.where(before, log_p, 0.0).sum(axis=1)
+        if weights_until_failure and failure == "crash":
+            log_w = ((batch.log_p - batch.log_q) * before).sum(axis=1)
+        else:
+            log_w = batch.log_weight()
+        log_p_total = (batch.log_p * before).sum(axis=1)
     for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
         if not np.isfinite(x).all():
             i = int(np.flatnonzero(~np.isfinite(x))[0])
             raise RolloutFormatError(
-                f"{data.path or 'rollouts'}: rollout {data.rollout_ids[i]}: the {name} over its {k} steps is beyond "
+                f"{where}: rollout {data.rollout_ids[i]}: the {name} over its {k} steps is beyond "
                 f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
                 f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
             )

@@ -284,8 +284,13 @@ def braking_salient(gap_m: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class RolloutData(RolloutBatch):
-    """N logged rollouts of T steps, as read by :func:`read_rollouts`: a :class:`~pemviz.scenarios.RolloutBatch`
-    (its accessors ``n``, ``n_steps``, ``signal``, ``gap_m``, ``log_weight``) plus what the file adds.
+    """N logged rollouts of T steps as :func:`read_rollouts` returns them: a :class:`~pemviz.scenarios.RolloutBatch`
+    (its accessors ``n``, ``n_steps``, ``signal``, ``gap_m``) with one difference, plus what the file adds.
+
+    The difference: ``log_p`` / ``log_q`` are None when the file has no such column (the format makes them
+    optional; ``pemviz estimate`` recomputes them), so :meth:`log_weight` needs both columns and :meth:`to_batch`
+    gives the plain :class:`~pemviz.scenarios.RolloutBatch`, with the file's or recomputed log-probabilities, that
+    the estimators take.
 
     Attributes:
         observations: float64 [N, T, F], columns ``observation_names`` (``gap_m`` first).
@@ -304,6 +309,14 @@ class RolloutData(RolloutBatch):
     rollout_ids: np.ndarray | None = None
     salient: np.ndarray | None = None
     path: Path | None = None
+
+    def log_weight(self, n_factors: int | None = None) -> np.ndarray:
+        """:meth:`pemviz.scenarios.RolloutBatch.log_weight` of the file's columns, float64 [N] (nats).
+
+        Raises:
+            ValueError: the file has no ``log_p`` or no ``log_q`` column.
+        """
+        return self.to_batch().log_weight(n_factors)
 
     def to_batch(self, log_p: np.ndarray | None = None, log_q: np.ndarray | None = None) -> RolloutBatch:
         """A :class:`RolloutBatch` with the given (default: the file's) log-probabilities [N, T].

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.special import log_expit, logsumexp
+from scipy.special import expit, log_expit, logsumexp
 
 from pemviz.sampling import format_probability
 from pemviz.scenarios.braking import BrakingParams, ControllerState, ego_acceleration
@@ -412,7 +412,7 @@ def braking_exact(
     vl = lead_speeds(p)
     T = p.n_steps
     gap_probe = np.linspace(p.crash_gap_m, p.braking_distance_m, 20001)
-    q_max = float(np.max(np.exp(log_expit(-np.asarray(logit_at_gap(gap_probe), dtype=np.float64)))))
+    q_max = float(np.max(expit(-np.asarray(logit_at_gap(gap_probe), dtype=np.float64))))
     log_tail = _log_binomial_tail(T, q_max)
     g, v = np.array([start.gap_m]), np.array([start.speed_mps])
     i, b = np.array([start.integral]), np.array([start.pending])

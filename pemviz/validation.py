@@ -339,6 +339,21 @@ def summaries_csv(summaries: Sequence[Summary]) -> str:
     return buf.getvalue()
 
 
+def report(problems: Sequence[str], truths: dict[str, ExactAnswer], summaries: Sequence[Summary], n_seeds: int,
+           wall_s: float) -> str:  # fmt: skip
+    """The Markdown report of ``pemviz validate`` (``validate.md``): each problem's truth and where it comes from,
+    the table of :func:`markdown_table`, the refinement tables of the enumerated truths, the wall time (seconds)."""
+    md = [f"# pemviz validate: {n_seeds} seeds, equal budgets ({summaries[0].n_simulations:,} simulations)", ""]
+    for name in problems:
+        md.append(f"- **{name}**: {PROBLEMS[name]}; truth {math.exp(truths[name].log_p_fail):.6g}: {truths[name].source}")
+    md += ["", markdown_table(summaries), ""]
+    for name in problems:
+        if truths[name].table:
+            md += [f"Refinement of the {name} truth:", "", truths[name].table, ""]
+    md.append(f"Total wall time {wall_s:.0f} s.")
+    return "\n".join(md) + "\n"
+
+
 # -- methods at equal budgets -------------------------------------------------------------------------------------
 
 BASELINES = tuple(m for m in METHODS if m != "adaptive")
@@ -358,3 +373,11 @@ def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str
     for m in baselines:
         out.append((m, {**{k: v for k, v in base.items() if k in ("pem", "sim")}, "method": m, "n_per_stage": budget}))
     return out
+
+
+def study_jobs(problems: Sequence[str], methods: Sequence[tuple[str, dict]], n_seeds: int,
+               pem_path: str | None = None) -> list[Job]:  # fmt: skip
+    """Every (problem, method, seed) of a study as a :class:`Job`, seeds 0..n_seeds-1; ``methods`` as
+    :func:`methods_for` returns them."""
+    return [Job(pb, label, tuple(sorted(fields.items())), seed, pem_path=pem_path)
+            for pb in problems for label, fields in methods for seed in range(n_seeds)]  # fmt: skip

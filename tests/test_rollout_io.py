@@ -9,7 +9,6 @@ import math
 import re
 import shutil
 import subprocess
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -103,13 +102,6 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     assert code == 2 and "has no log_q column" in err
 
 
-@dataclass(frozen=True)
-class RolloutsSampledBy(RolloutsSampled):
-    """The event as it would be if the engine said which detector sampled the batch (see the report)."""
-
-    sampler: object = None
-
-
 def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, capsys):
     """A proposal after a CE stage samples a batch; the listener snapshots it at sampling time; the file's
     columns and the recomputation from the PEM file and the checkpoint both give the batch's own mu_hat."""
@@ -134,7 +126,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve()))
     rho = problem.robustness(batch, "classic")
     sink(StageStarted(3, "final", 60))
-    sink(RolloutsSampledBy(3, "final", batch, rho, {"classic": rho}, failed, batch.log_weight(), sampler=proposal))
+    sink(RolloutsSampled(3, "final", batch, rho, {"classic": rho}, failed, batch.log_weight(), sampler=proposal))
     with torch_no_grad():
         for p in proposal.parameters():
             p.add_(0.1)  # the proposal moves on after sampling; the checkpoint must not

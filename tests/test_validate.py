@@ -40,7 +40,7 @@ def test_default_sampler_weights_of_a_toy_failure_are_exact():
 
 
 def test_tables_reduced_run_recovers_the_toy_1e_minus_3(tmp_path):
-    # the CI version of `pemviz tables`: the toy's 1e-3 case within 30 % (issue 6, acceptance 6)
+    # the CI version of `pemviz tables`: the toy's 1e-3 case within 30 %
     out = tmp_path / "t"
     assert cli_main(["tables", "--problem", "toy-1e-3", "--reps", "3", *REDUCED, "--mc-large", "2000",
                      "--naive-large", "300", "--extra", "paper", "--jobs", "1", "--out", str(out)]) == 0  # fmt: skip
@@ -79,7 +79,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, messag
     assert not (tmp_path / "o").exists()
 
 
-# -- the opt-in sampler improvements (pemviz.config, issue 6) --------------------------------------------------
+# -- the opt-in sampler improvements (pemviz.config) -----------------------------------------------------------
 def test_paper_preset_leaves_every_improvement_off():
     cfg = ExperimentConfig(**PRESETS["paper"])
     assert (cfg.proposal_inputs, cfg.proposal_window, cfg.weights_until_failure) == ("gap", False, False)

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import viser
 
-import pemviz.config
+from pemviz import engine
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.app.session import Session
-from pemviz.config import ExperimentConfig
+from pemviz.config import DEFAULT_PRESET, ExperimentConfig
 from pemviz.scenarios.braking import BrakingParams
 
 STATUS_EVERY_S = 0.5
@@ -51,7 +51,7 @@ class PanelApp:
         *,
         recordings_dir: str | Path = "recordings",
         config: ExperimentConfig | None = None,
-        preset: str = pemviz.config.DEFAULT_PRESET,
+        preset: str = DEFAULT_PRESET,
         warm_up: bool = True,
         verbose: bool = False,
     ) -> None:
@@ -143,12 +143,10 @@ class PanelApp:
     def _warm_up(self) -> None:
         """Import the simulator and run torch once, so that the first real run is not slowed by them."""
         try:
-            from pemviz.engine import Experiment
-
             tiny = ExperimentConfig(
                 n_stages=1, n_per_stage=2, n_final=1, ce_epochs=1, pretrain_rollouts=1, pretrain_epochs=1
             )
-            Experiment(tiny, [], self._closed).run()
+            engine.Experiment(tiny, [], self._closed).run()
         except Exception:  # warming up is best effort; a real run reports its own errors
             pass
 
@@ -174,7 +172,7 @@ def serve(
     port: int = 8080,
     *,
     recordings_dir: str | Path = "recordings",
-    preset: str = pemviz.config.DEFAULT_PRESET,
+    preset: str = DEFAULT_PRESET,
     on_ready: Callable[[PanelApp], None] | None = None,
 ) -> None:
     """Run the panel until Ctrl-C (what ``pemviz serve`` does).

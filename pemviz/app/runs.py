@@ -36,6 +36,8 @@ from pemviz.engine import (
     StageStarted,
 )
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.sinks.recording import RerunSink
+from pemviz.sinks.scene import car_positions
 
 MAX_RUNS = 4
 """Runs kept side by side for comparison (:func:`keep_runs` decides which go when a fifth starts)."""
@@ -167,18 +169,9 @@ def least_robust(kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJ
 
 
 def scene_positions(traj: Trajectory, params: BrakingParams | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Centre x of the ego and of the lead at every step, float64 [T] each (metres; ego starts at 0).
-
-    The ego moves by explicit Euler on its recorded speed, as highway-env's ``Vehicle.step`` does
-    (``x[t+1] = x[t] + v[t] * dt``); the lead's rear is ``camera_offset_m`` plus the gap ahead of the
-    ego's centre, so ``lead = ego + camera_offset_m + gap_m + lead_length_m / 2``
-    (:class:`pemviz.scenarios.braking.BrakingScenario`).
-    """
-    p = params or BrakingParams()
-    v = np.nan_to_num(traj.ego_speed_mps, nan=0.0)
-    ego_x = np.concatenate([[0.0], np.cumsum(v[:-1] * p.dt_s)])
-    lead_x = ego_x + p.camera_offset_m + traj.gap_m + p.lead_length_m / 2
-    return ego_x, lead_x
+    """Centre x of the ego and of the lead at every step of ``traj``, float64 [T] each (metres; ego starts at 0):
+    :func:`pemviz.sinks.scene.car_positions` of its gaps and ego speeds."""
+    return car_positions(traj.gap_m, traj.ego_speed_mps, params)
 
 
 class RunRecord:
@@ -350,8 +343,6 @@ def export_run(record: RunRecord, path: Path) -> Path:
     Returns:
         ``path``. Nothing is left at ``path`` (or beside it) if writing fails.
     """
-    from pemviz.sinks.recording import RerunSink
-
     with record.lock:
         events = list(record.events)
     path.parent.mkdir(parents=True, exist_ok=True)

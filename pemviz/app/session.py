@@ -26,12 +26,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import viser
+from viser._messages import GuiUpdateMessage  # viser has no public "resend" for an unchanged value
 
 from pemviz.app import plots
 from pemviz.app.explain import Explanation, explain
 from pemviz.app.form import NUMBER_FIELDS, FormResult, format_number, parse_form, run_cost, setting_name, setting_value
 from pemviz.app.runs import PANEL_PRESETS, RunRecord, Trajectory, export_path, export_run, keep_runs, scene_positions
-from pemviz.config import FINAL_MODES, METHODS, METRICS, WEIGHT_MODES, ExperimentConfig
+from pemviz import engine
+from pemviz.config import FINAL_MODES, METHODS, METRICS, SIMULATORS, WEIGHT_MODES, ExperimentConfig
 from pemviz.engine import (
     Event,
     FinalEstimate,
@@ -42,6 +44,7 @@ from pemviz.engine import (
     StageStarted,
     stage_label,
 )
+from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
 from pemviz.sampling import format_probability, relative_error
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
 from pemviz.sinks.console import expected_stage_s
@@ -103,15 +106,6 @@ def accuracy_html(record: RunRecord, ev: FinalEstimate) -> str:
         f"{ev.n_simulations:,} simulations in {ev.wall_s:.1f} s"
     )
     return box("<br>".join(lines), colour)
-
-
-def _simulators() -> tuple[str, ...]:
-    import pemviz.config
-
-    sims = getattr(pemviz.config, "SIMULATORS", None)
-    if not sims:
-        from pemviz.problems import SIMULATORS as sims
-    return tuple(sims)
 
 
 class Session:
@@ -223,8 +217,6 @@ class Session:
         Run (or before typing into the next field) can be lost on the way. Echoing makes such a field show
         the value the run really uses instead of what the browser alone remembers.
         """
-        from viser._messages import GuiUpdateMessage  # viser has no public "resend" for an unchanged value
-
         with self.client.atomic():
             for handle in (*self.fields.values(), *self.choices.values(), self.preset):
                 impl = handle._impl
@@ -326,9 +318,7 @@ class Session:
     def _build_form(self) -> None:
         gui = self.client.gui
         c0 = self.app.config0
-        from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
-
-        simulators = _simulators()
+        simulators = SIMULATORS
         shipped = sorted(p.stem[len("pem_") :] for p in assets_dir().glob("pem_*.pt")) or [DEFAULT_PEM_NAME]
         self._default_pem = DEFAULT_PEM_NAME if DEFAULT_PEM_NAME in shipped else shipped[0]
         pem_options = list(shipped) + ([c0.pem] if c0.pem and c0.pem not in shipped else [])
@@ -449,9 +439,7 @@ class Session:
     def _work(self, record: RunRecord, cancel: threading.Event) -> None:
         self.app.wait_warm()
         try:
-            from pemviz.engine import Experiment
-
-            Experiment(record.config, [lambda e: self._on_event(record, e)], cancel).run()
+            engine.Experiment(record.config, [lambda e: self._on_event(record, e)], cancel).run()
         except Exception as exc:  # a bad PEM file, a simulator error: show it, keep serving
             record.fail(f"{type(exc).__name__}: {exc}")
             self._status(f"{record.label} failed: {record.message}", RED)

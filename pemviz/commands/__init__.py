@@ -1,10 +1,18 @@
-"""Sub-commands of the ``pemviz`` command line; each module exposes ``register(subparsers)``."""
+"""Sub-commands of the ``pemviz`` command line; each module exposes ``register(subparsers)``.
+
+This module holds what the commands share (and :mod:`pemviz.cli` uses): :class:`UsageError`, :class:`Terminated`,
+the output folder check, and the argument helpers of ``validate`` and ``tables``; it imports no command.
+"""
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable
+
+from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.files import check_output_path
 
 
 class UsageError(Exception):
@@ -54,3 +62,34 @@ def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ..
     if not items or any(x not in allowed for x in items):
         raise UsageError(f"--{flag} {text!r}: use a comma-separated list of {', '.join(allowed)}")
     return items
+
+
+def add_sampler_arguments(p: argparse.ArgumentParser) -> None:
+    """The sampler sizes shared by ``validate`` and ``tables``: --k, --n, --n-final, --ce-epochs, ..."""
+    d = ExperimentConfig()
+    p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
+    p.add_argument("--n", dest="n_per_stage", type=int, default=None, help=f"rollouts per stage N (default {d.n_per_stage})")
+    p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
+    p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help=f"epochs per stage (default {d.ce_epochs})")
+    p.add_argument("--pretrain-epochs", dest="pretrain_epochs", type=int, default=None,
+                   help=f"pretraining epochs (default {d.pretrain_epochs})")
+    p.add_argument("--pem", default=None, help="PEM weights (default: the shipped one)")
+
+
+def base_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """Config fields given on the command line (validated by building a config)."""
+    fields = {k: getattr(args, k) for k in ("n_stages", "n_per_stage", "n_final", "ce_epochs", "pretrain_epochs", "pem")
+              if getattr(args, k, None) is not None}  # fmt: skip
+    try:
+        ExperimentConfig(**fields)
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from None
+    return fields
+
+
+def check_save_path(path: Path, overwrite: bool = False) -> Path:
+    """Refuse a recording path that cannot be written, before any work starts (nothing is created)."""
+    try:
+        return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None

@@ -22,11 +22,10 @@ import rerun as rr
 
 import pemviz
 from pemviz import rollout_io as rio
-from pemviz.commands import UsageError
-from pemviz.commands.run import check_save_path, free_default_path
+from pemviz.commands import UsageError, check_save_path
 from pemviz.config import METRICS
 from pemviz.data import sha256_file
-from pemviz.files import write_rrd
+from pemviz.files import check_output_folder, free_default_path, write_rrd
 from pemviz.pem import load_pem
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
 from pemviz.sampling import format_probability
@@ -207,8 +206,6 @@ def main(args: argparse.Namespace) -> int:
     if args.save is not None and not args.no_record:
         save_path = check_save_path(Path(args.save), args.overwrite)
     elif not args.no_record:  # recordings/ is made only once there is an estimate to record
-        from pemviz.files import check_output_folder
-
         save_path = default_recording_path(rollouts)
         try:
             check_output_folder(save_path.parent, (save_path.name,), "recording folder")

@@ -14,7 +14,7 @@ from urllib.parse import quote, urlsplit
 import rerun as rr
 
 from pemviz import engine
-from pemviz.commands import UsageError, interrupted
+from pemviz.commands import UsageError, check_save_path, interrupted
 from pemviz.config import (
     DEFAULT_PRESET,
     EXECUTORS,
@@ -26,7 +26,7 @@ from pemviz.config import (
     ExperimentConfig,
 )
 from pemviz.executors import probe_ray_address
-from pemviz.files import check_output_path
+from pemviz.files import check_output_folder, free_default_path
 from pemviz.pem import shipped_pems
 from pemviz.resources import check_run_memory
 from pemviz.rollout_io import sidecar_path
@@ -188,26 +188,10 @@ FLAGS = {"n_stages": "--k", "n_per_stage": "--n", "n_final": "--n-final", "quant
 """Config fields whose flag is not ``--`` + the field name."""
 
 
-def check_save_path(path: Path, overwrite: bool = False) -> Path:
-    """Refuse a recording path that cannot be written, before any work starts (nothing is created)."""
-    try:
-        return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-
-
 def default_recording_path(cfg: ExperimentConfig, preset: str, folder: Path = Path("recordings")) -> Path:
     """``recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd``: the name says what ran; a name
     already taken (two runs in one second) gets ``-2``, ``-3``, ... so a default name never collides."""
     return free_default_path(folder, f"{cfg.method}-{preset}-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-{datetime.now():%Y%m%d-%H%M%S}")
-
-
-def free_default_path(folder: Path, stem: str, suffix: str = ".rrd") -> Path:
-    """``folder/stem.rrd``, or ``stem-2.rrd``, ``stem-3.rrd`` ... when taken: default names never replace a file."""
-    path, k = folder / f"{stem}{suffix}", 2
-    while path.exists():
-        path, k = folder / f"{stem}-{k}{suffix}", k + 1
-    return path
 
 
 def rollout_files(parquet: Path) -> list[Path]:
@@ -262,8 +246,6 @@ def main(args: argparse.Namespace) -> int:
     save_path = None
     if target == "save":
         if args.save is None:  # recordings/ is made once every check has passed
-            from pemviz.files import check_output_folder
-
             save_path = default_recording_path(cfg, args.preset)
             try:
                 check_output_folder(save_path.parent, (save_path.name,), "recording folder")

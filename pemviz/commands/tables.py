@@ -22,15 +22,14 @@ import sys
 import time
 from pathlib import Path
 
-from pemviz.commands import UsageError, output_folder, split_choices
-from pemviz.commands.validate import add_sampler_arguments, base_fields
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.commands import UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
+from pemviz.config import PRESETS
 from pemviz.files import check_output_folder, write_text_atomic
-from pemviz.paper_tables import markdown, row_specs, rows_csv, tables_rows, write_recording
+from pemviz.paper_tables import records_by_row, report, row_specs, rows_csv, table_jobs, tables_rows, write_recording
 from pemviz.problems import PROBLEMS, build_problem
 from pemviz.resources import cap_jobs
 from pemviz.sampling import format_probability
-from pemviz.validation import RUNS_FILE, ExactAnswer, Job, RunRecord, exact_answer, run_jobs
+from pemviz.validation import RUNS_FILE, ExactAnswer, RunRecord, exact_answer, run_jobs
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -83,43 +82,17 @@ def main(args: argparse.Namespace) -> int:
     truth: ExactAnswer = exact_answer(args.problem, args.pem, progress=say)
     say(f"  exact p_fail {math.exp(truth.log_p_fail):.6g} ({truth.source})")
     specs = row_specs(base, extra, args.mc_large, args.naive_large)
-    jobs = [Job(args.problem, s.label, s.fields, seed, keep_curves=True, pem_path=args.pem)
-            for s in specs for seed in range(args.reps)]  # fmt: skip
+    jobs = table_jobs(args.problem, specs, args.reps, args.pem)
     say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
         say(f"  {r.method:28s} rep {r.seed}: mu_hat {format_probability(r.log_mu_hat)} {r.n_failures}/{r.n} failures "
             f"{r.wall_s:.1f} s")  # fmt: skip
 
-    # the slow (adaptive) runs first so that two workers finish together
-    order = sorted(range(len(jobs)), key=lambda i: dict(jobs[i].fields).get("method", "adaptive") != "adaptive")
-    done = run_jobs([jobs[i] for i in order], n_jobs, on_record, runs_file=out / RUNS_FILE, progress=True)
-    by_label: dict[str, list[RunRecord]] = {s.label: [] for s in specs}
-    for r in sorted(done, key=lambda r: r.seed):
-        by_label[r.method].append(r)
+    done = run_jobs(jobs, n_jobs, on_record, runs_file=out / RUNS_FILE, progress=True)
+    by_label = records_by_row(specs, done)
     rows_all = tables_rows(specs, by_label, truth.log_p_fail, extra)
-    wall = time.perf_counter() - t0
-    cfg = ExperimentConfig(**base)
-    text = "\n".join([
-        f"# pemviz tables: {PROBLEMS[args.problem]}",
-        "",
-        f"{args.reps} repetitions per row (seeds 0..{args.reps - 1}); mu_hat is the mean over repetitions +- the "
-        f"standard error std/sqrt({args.reps}); failures and ESS are means over repetitions; NLL is over failing "
-        f"rollouts (nats), averaged over repetitions. Adaptive: K = {cfg.n_stages}, N = {cfg.n_per_stage}, "
-        f"N_e = {cfg.n_final}, sigma = {cfg.quantile_level}, alpha = {cfg.smoothing}, {cfg.ce_epochs} epochs per stage.",
-        f"Exact p_fail {format_probability(truth.log_p_fail, 5)}: {truth.source}.",
-        "",
-        "## Table II: methods (metric: classic)",
-        "",
-        markdown(rows_all, "II"),
-        "",
-        "## Table III: robustness metrics (adaptive; paper settings, then each --extra preset)",
-        "",
-        markdown(rows_all, "III"),
-        "",
-        *(["## Exact answer: refinement", "", truth.table, ""] if truth.table else []),
-        f"Wall time {wall:.0f} s on {n_jobs} process(es).",
-    ]) + "\n"  # fmt: skip
+    text = report(args.problem, args.reps, base, truth, rows_all, n_jobs, time.perf_counter() - t0)
     print(text)
     write_text_atomic(out / "tables.md", text)
     write_text_atomic(out / "tables.csv", rows_csv(rows_all))

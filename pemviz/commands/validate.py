@@ -16,10 +16,9 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
-from pemviz.commands import UsageError, output_folder, split_choices
-from pemviz.config import DEFAULT_PRESET, PRESETS, ConfigError, ExperimentConfig
+from pemviz.commands import UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
+from pemviz.config import DEFAULT_PRESET, PRESETS
 from pemviz.files import check_output_folder, write_text_atomic
 from pemviz.problems import PROBLEMS
 from pemviz.resources import cap_jobs
@@ -29,27 +28,15 @@ from pemviz.validation import (
     DEFAULT_PROBLEMS,
     RUNS_FILE,
     ExactAnswer,
-    Job,
     RunRecord,
     exact_answer,
-    markdown_table,
     methods_for,
+    report,
     run_jobs,
+    study_jobs,
     summaries_csv,
     summarise,
 )
-
-
-def add_sampler_arguments(p: argparse.ArgumentParser) -> None:
-    """The sampler sizes shared by ``validate`` and ``tables``: --k, --n, --n-final, --ce-epochs, ..."""
-    d = ExperimentConfig()
-    p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
-    p.add_argument("--n", dest="n_per_stage", type=int, default=None, help=f"rollouts per stage N (default {d.n_per_stage})")
-    p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
-    p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help=f"epochs per stage (default {d.ce_epochs})")
-    p.add_argument("--pretrain-epochs", dest="pretrain_epochs", type=int, default=None,
-                   help=f"pretraining epochs (default {d.pretrain_epochs})")
-    p.add_argument("--pem", default=None, help="PEM weights (default: the shipped one)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -74,17 +61,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         "finished runs are not run again) (default validate)",
     )  # fmt: skip
     p.set_defaults(func=main)  # fmt: skip
-
-
-def base_fields(args: argparse.Namespace) -> dict[str, Any]:
-    """Config fields given on the command line (validated by building a config)."""
-    fields = {k: getattr(args, k) for k in ("n_stages", "n_per_stage", "n_final", "ce_epochs", "pretrain_epochs", "pem")
-              if getattr(args, k, None) is not None}  # fmt: skip
-    try:
-        ExperimentConfig(**fields)
-    except ConfigError as exc:
-        raise UsageError(str(exc)) from None
-    return fields
 
 
 def main(args: argparse.Namespace) -> int:
@@ -114,8 +90,7 @@ def main(args: argparse.Namespace) -> int:
         say(f"{name}: {PROBLEMS[name]}")
         truths[name] = exact_answer(name, args.pem, progress=say)
         say(f"  truth {math.exp(truths[name].log_p_fail):.6g} ({truths[name].source})")
-    jobs = [Job(pb, label, tuple(sorted(fields.items())), seed, pem_path=args.pem)
-            for pb in problems for label, fields in methods for seed in range(args.seeds)]  # fmt: skip
+    jobs = study_jobs(problems, methods, args.seeds, args.pem)
     say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
@@ -125,15 +100,7 @@ def main(args: argparse.Namespace) -> int:
 
     records = run_jobs(jobs, n_jobs, on_record, runs_file=out_dir / RUNS_FILE, progress=True)
     summaries = summarise(records, truths)
-    md = [f"# pemviz validate: {args.seeds} seeds, equal budgets ({summaries[0].n_simulations:,} simulations)", ""]
-    for name in problems:
-        md.append(f"- **{name}**: {PROBLEMS[name]}; truth {math.exp(truths[name].log_p_fail):.6g}: {truths[name].source}")
-    md += ["", markdown_table(summaries), ""]
-    for name in problems:
-        if truths[name].table:
-            md += [f"Refinement of the {name} truth:", "", truths[name].table, ""]
-    md.append(f"Total wall time {time.perf_counter() - t0:.0f} s.")
-    text = "\n".join(md) + "\n"
+    text = report(problems, truths, summaries, args.seeds, time.perf_counter() - t0)
     print(text)
     write_text_atomic(out_dir / "validate.md", text)
     write_text_atomic(out_dir / "validate.csv", summaries_csv(summaries))

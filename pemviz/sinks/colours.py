@@ -30,6 +30,11 @@ def stage_rgb(stage: int, n_stages: int) -> tuple[int, int, int]:
     return (int(40 + 215 * f), int(110 + 40 * f), int(230 - 200 * f))
 
 
+def stage_rgba(stage: int, n_stages: int) -> tuple[int, int, int, int]:
+    """:func:`stage_rgb` opaque, for rerun: the curves and points of stage ``stage`` in the recordings."""
+    return rgba(stage_rgb(stage, n_stages))
+
+
 def css(rgb: tuple[int, ...], alpha: float | None = None) -> str:
     """``rgb(r, g, b)`` (or ``rgba(...)`` with ``alpha`` in [0, 1]) for HTML and uPlot."""
     r, g, b = rgb[:3]

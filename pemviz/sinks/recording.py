@@ -71,9 +71,11 @@ from pemviz.engine import (
     StageResult,
     stage_label,
 )
+from pemviz.files import atomic_write
 from pemviz.sampling import format_probability, relative_error
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import colours as C
+from pemviz.sinks.scene import car_positions
 
 APP_ID = "pemviz"
 CRASH_RGBA = C.rgba(C.CRASH, 170)
@@ -108,11 +110,6 @@ STAGE_METRICS = (
     ("nll", "NLL of the failures (nats)", (150, 150, 150)),
 )
 """Per-stage values: key under ``stages/``, series name, colour."""
-
-
-def stage_colour(stage: int, n_stages: int) -> tuple[int, int, int, int]:
-    """Blue (early) to orange (late) for the curves and points of stages 0..n_stages."""
-    return C.rgba(C.stage_rgb(stage, n_stages))
 
 
 def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
@@ -301,7 +298,6 @@ class RerunSink:
         self._binary: rr.BinaryStream | None = None
         self._overwrite = False
         self._closed = False
-        self._axes: dict[str, tuple] = {}
         stream.set_log_time_enabled(False)
         stream.set_log_tick_enabled(False)
 
@@ -374,8 +370,6 @@ class RerunSink:
         self._binary = None
         if not commit:
             return None
-        from pemviz.files import atomic_write
-
         return atomic_write(self._path, lambda tmp: Path(tmp).write_bytes(data), overwrite=self._overwrite)
 
     # -- events -------------------------------------------------------------------------------------
@@ -419,7 +413,7 @@ class RerunSink:
     def _log_proposal_legend(self) -> None:
         """Legend in the proposal plot (data units: metres, probability): the PEM, the first and last stage."""
         shown = sorted({self.curve_stages[0], self.curve_stages[-1]}) if self.curve_stages else []
-        entries = [("PEM", PEM_RGBA)] + [(f"q stage {k}", stage_colour(k, self.n_stages)) for k in shown]
+        entries = [("PEM", PEM_RGBA)] + [(f"q stage {k}", C.stage_rgba(k, self.n_stages)) for k in shown]
         x0, x1 = float(self.grid_m.min()), float(self.grid_m.max())
         x = x1 - 0.1 * (x1 - x0)
         pos = [[x, 0.75 - j * 0.1] for j in range(len(entries))]
@@ -429,13 +423,6 @@ class RerunSink:
                         show_labels=True),
             static=True,
         )  # fmt: skip
-
-    def _draw_axes(self, fig: Figure, x_range, y_range, x_ticks: np.ndarray | None = None) -> None:
-        """:meth:`Figure.draw_axes`, skipped when the ranges have not changed since the last stage."""
-        key = (tuple(x_range), tuple(y_range), None if x_ticks is None else tuple(x_ticks))
-        if self._axes.get(fig.path) != key:
-            fig.draw_axes(self.stream, x_range, y_range, x_ticks)
-            self._axes[fig.path] = key
 
     def _log_estimate(self, res: StageResult | None, final: FinalEstimate | None = None) -> None:
         """The ``estimate`` view: mu_hat with its interval, k-hat, verdict and the exact answer where known."""
@@ -550,7 +537,7 @@ class RerunSink:
     # -- stage finished -------------------------------------------------------------------------------
     def _stage_finished(self, res: StageResult) -> None:
         s = self.stream
-        colour = stage_colour(res.stage, self.n_stages)
+        colour = C.stage_rgba(res.stage, self.n_stages)
         s.set_time("stage", sequence=res.stage)
         if self.repetition is not None:
             s.set_time("repetition", sequence=self.repetition)
@@ -697,10 +684,8 @@ class RerunSink:
     def _log_scene_lane(self, ev: RolloutsSampled, i: int) -> None:
         """One lane of the top-down scene: rollout ``i`` of the stage, playable on ``step``.
 
-        Positions (metres along the road) are rebuilt from the observations with the scenario's explicit
-        Euler step (highway-env moves a vehicle by its speed before updating the speed): ego centre
-        x_t = dt * sum_{s<t} v_s; the lead's rear is the camera (``camera_offset_m`` ahead of the ego
-        centre) plus the gap.
+        Positions (metres along the road) are rebuilt from the observations by
+        :func:`pemviz.sinks.scene.car_positions`.
         """
         p = self.params
         s = self.stream
@@ -712,10 +697,9 @@ class RerunSink:
         lane = self.n_lanes
         self.n_lanes += 1
         y = lane * LANE_SPACING_M
-        ego_x = p.dt_s * np.concatenate([[0.0], np.cumsum(v[:-1])])
+        ego_x, lead_x = car_positions(gap, v, p)
         camera_x = ego_x + p.camera_offset_m
-        lead_rear = camera_x + gap
-        lead_x = lead_rear + p.lead_length_m / 2
+        lead_rear = camera_x + gap  # the sight line from the camera to the lead's rear
         ys = np.full(t, y)
         path = f"{SCENE_PATH}/stage_{ev.stage:02d}" + (f"_{lane}" if self.scene_per_stage > 1 else "")
         crash = " crash" if ev.failed[i] else ""

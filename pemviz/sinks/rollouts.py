@@ -23,9 +23,9 @@ class RolloutSink:
 
     It keeps the last :class:`pemviz.engine.RolloutsSampled` batch (the fresh final batch, or the last CE
     stage's with ``final_estimate="last-stage"``) and writes it with ``log_p`` / ``log_q`` and the salient
-    variables when the run finishes (nothing after a cancelled run). If the event carries the detector
-    that sampled the batch (a ``sampler`` attribute) and it is a proposal, a snapshot of it taken when
-    the batch was sampled is saved as ``NAME.proposal.pt`` and named in the sidecar.
+    variables when the run finishes (nothing after a cancelled run). If the detector that sampled the batch
+    (the event's ``sampler``) is a proposal, a snapshot of it taken when the batch was sampled is saved as
+    ``NAME.proposal.pt`` and named in the sidecar.
 
     A final batch the engine streams in chunks (more than ``pemviz.engine.STREAM_ABOVE`` rollouts) reaches
     listeners only as its first chunk: then nothing is written and :attr:`skipped` says why.
@@ -54,8 +54,7 @@ class RolloutSink:
             self._started_n = event.n_rollouts
         elif isinstance(event, RolloutsSampled):
             self._last = event
-            sampler = getattr(event, "sampler", None)  # the detector that sampled, if the engine says
-            self._proposal = copy.deepcopy(sampler) if isinstance(sampler, Proposal) else None
+            self._proposal = copy.deepcopy(event.sampler) if isinstance(event.sampler, Proposal) else None
         elif isinstance(event, RunFinished) and self._last is not None:
             if self._last.batch.n != self._started_n:
                 self.skipped = (f"the final batch of {self._started_n} rollouts was streamed in chunks; only "
