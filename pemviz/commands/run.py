@@ -293,8 +293,8 @@ def main(args: argparse.Namespace) -> int:
     elif rollout_sink is not None and rollout_sink.skipped:
         print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
     if target == "serve":
-        print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        try:
+        try:  # entered before the line is printed: a Ctrl-C sent as soon as it is read still ends the serving
+            print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
             rr.script_teardown(args)  # waits for Ctrl-C
         except KeyboardInterrupt:
             pass
