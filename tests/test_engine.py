@@ -72,3 +72,29 @@ def test_same_seed_gives_the_estimates_recorded_before_the_estimators_moved(key)
     assert (est.n_failures, est.n, done.final.stages_used, done.final.n_simulations) == (n_failures, n, used, n_sims)
     assert [(s.stage, s.n_elites) for s in done.stages] == [(k, e) for k, _, e in stages]
     assert [s.gamma for s in done.stages] == pytest.approx([g for _, g, _ in stages], abs=1e-9, nan_ok=True)
+
+
+def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
+    import torch
+
+    from pemviz.engine import RunStarted
+
+    events: list = []
+    threads = torch.get_num_threads()
+    Experiment(ExperimentConfig(method="mc", n_per_stage=50), [events.append], problem=build_problem("toy-1e-3")).run()
+    first = events[0]
+    assert isinstance(first, RunStarted) and first.problem.name == "toy-1e-3" and first.problem.signals == ("d",)
+    assert "toy braking" in first.problem.description and torch.get_num_threads() == threads
+    info = build_problem("main").info
+    assert info.name == "braking" and info.signals == ("d", "v", "vl") and "braking" in info.description
+
+
+def test_torch_threads_sets_and_restores_the_process_setting():
+    import torch
+
+    from pemviz.sampling import torch_threads
+
+    before = torch.get_num_threads()
+    with torch_threads(2):
+        assert torch.get_num_threads() == 2
+    assert torch.get_num_threads() == before
