@@ -73,7 +73,7 @@ def _child(argv: list[str]) -> None:
         stream = timed_iter(pb.stream) if pb.stream is not None else None
         return dataclasses.replace(pb, simulate=timed("simulation", pb.simulate), stream=stream)
 
-    engine.braking_problem = hooked_problem
+    problems.braking_problem = hooked_problem  # problems.problem_for builds the run's problem with it
     sampling._fit = timed("fit", sampling._fit)
     engine.Experiment.run = timed("run", engine.Experiment.run)
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy.special import log_expit
 
-from pemviz.detectors import log_sigmoid
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.truth import (
@@ -134,7 +134,7 @@ def braking_dp(
     gg, ss, ii = np.meshgrid(*axes, indexing="ij")
     gg, ss, ii = gg.ravel(), ss.ravel(), ii.ravel()
     logit = np.asarray(logit_at_gap(axes[0]), dtype=np.float64)
-    p_hit = np.exp(log_sigmoid(logit))[np.repeat(np.arange(G), S * I)]
+    p_hit = np.exp(log_expit(logit))[np.repeat(np.arange(G), S * I)]
     n_slice = G * S * I
     V = np.zeros(2 * n_slice)  # V_{T-1} on the grid: every node has gap >= 2
     for t in range(p.n_steps - 2, start.step - 1, -1):

@@ -1,6 +1,9 @@
 """ExperimentConfig: every knob of a pemviz experiment, validated once.
 
-Where is alpha used? ``ExperimentConfig.smoothing`` here, then :func:`pemviz.sampling.ce_update`.
+Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.CrossEntropy` (its CE
+stage) and :func:`pemviz.sampling.ce_update` (the weighted fit). The metric: :class:`pemviz.engine.Experiment`
+ranks the rollouts with it (:meth:`pemviz.problems.Problem.robustness`). The seed: the engine's rollout stream and
+the estimator's fit, tie-breaking and initial-weight streams.
 """
 
 from __future__ import annotations
@@ -17,20 +20,21 @@ METRICS = ("classic", "agm", "smooth-cumulative")
 """Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
 
 SIMULATORS = ("highway-env", "batched")
-"""Braking-scenario back-ends (the same tuple as :data:`pemviz.problems.SIMULATORS`, kept here so that
-config imports nothing): ``batched`` advances all rollouts together in numpy, ``highway-env`` steps one
+"""Braking-scenario back-ends (:func:`pemviz.problems.braking_problem`): ``batched`` advances all rollouts together in numpy, ``highway-env`` steps one
 black-box simulator per rollout; the same seed gives the same rollouts on both."""
 
 EXECUTORS = ("serial", "ray")
-"""Where rollouts are simulated (the same tuple as :data:`pemviz.executors.EXECUTORS`): ``serial`` in this
+"""Where rollouts are simulated (:func:`pemviz.executors.get_executor`): ``serial`` in this
 process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same estimate."""
 
 WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("pooled", "fresh", "last-stage")
 ELITE_TIES = ("all", "random")
 FITS = ("adam", "lbfgs")
-"""How the proposal is fitted each stage (the same tuple as :data:`pemviz.sampling.FITS`): ``adam``, a fixed
-number of full-batch Adam epochs (paper); ``lbfgs``, L-BFGS from the last stage's proposal until it converges."""
+"""How the proposal is fitted each stage (:func:`pemviz.sampling.ce_update`): ``adam``, a fixed number of
+full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous
+stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
+Alg. 7.5)."""
 PROPOSAL_INPUTS = ("gap", "state")
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
@@ -73,7 +77,8 @@ class ExperimentConfig:
         quantile_level: sigma in [0.5, 1): the stage threshold is the (1 - sigma) quantile of robustness.
         smoothing: alpha in (0, 1]: the power on the importance weights in the CE loss.
         metric: robustness semantics, one of :data:`METRICS`.
-        seed: seeds numpy and torch; the same seed gives the same estimate.
+        seed: seeds the rollouts, the fits, tie-breaking and the proposal's initial weights, each its own stream;
+            the same seed gives the same estimate.
         ce_epochs: Adam epochs per stage (paper 500; authors' code 1000).
         pretrain_rollouts, pretrain_epochs: PEM-driven rollouts and epochs to pretrain the proposal (paper: 1000;
             the default sampler 500, which measured as accurate on the braking job and saves a second).

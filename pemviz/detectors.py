@@ -2,7 +2,7 @@
 
 A detector maps the scenario's observation ``obs`` (float64 [N, F], columns named by the scenario,
 ``gap_m`` first) to ``logit p(detect)`` float64 [N]. Working with logits keeps every log-probability
-exact: ``log p(detect) = logsigmoid(logit)``, ``log p(miss) = logsigmoid(-logit)``.
+exact: ``log p(detect) = log_expit(logit)``, ``log p(miss) = log_expit(-logit)`` (``scipy.special.log_expit``).
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from scipy.special import log_expit
 
 GAP_COLUMN = 0
 """Index of ``gap_m`` (metres) in every observation vector."""
@@ -24,14 +25,8 @@ class Detector(Protocol):
     def detect_logit(self, obs: np.ndarray) -> np.ndarray: ...
 
 
-def log_sigmoid(x: np.ndarray) -> np.ndarray:
-    """Numerically stable ``log(1 / (1 + exp(-x)))`` in float64 (nats), any shape."""
-    x = np.asarray(x, dtype=np.float64)
-    return -np.logaddexp(0.0, -x)
-
-
 def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
-    """``log p(a | s)`` of the taken actions: logsigmoid(+logit) if detected else logsigmoid(-logit).
+    """``log p(a | s)`` of the taken actions: log_expit(+logit) if detected else log_expit(-logit).
 
     Args:
         logit: float64 [...], logit of p(detect).
@@ -40,7 +35,7 @@ def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
         float64 [...] log-probabilities in nats.
     """
     sign = np.where(np.asarray(detected, dtype=bool), 1.0, -1.0)
-    return log_sigmoid(sign * np.asarray(logit, dtype=np.float64))
+    return log_expit(sign * np.asarray(logit, dtype=np.float64))
 
 
 def logit(p: float) -> float:

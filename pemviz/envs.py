@@ -117,13 +117,15 @@ class BrakingEnv(gym.Env):
         self._crashed = False
 
     def _detect(self) -> tuple[np.ndarray, dict[str, Any]]:
-        from pemviz.detectors import action_log_prob, log_sigmoid
+        from scipy.special import log_expit
+
+        from pemviz.detectors import action_log_prob
 
         state = self.sim.observation()
         o = state[None, :]
         q_logit = self.detector.detect_logit(o)
         p_logit = q_logit if self.detector is self.target else self.target.detect_logit(o)
-        detected = bool(math.log(self.np_random.random()) <= float(log_sigmoid(q_logit)[0]))
+        detected = bool(math.log(self.np_random.random()) <= float(log_expit(q_logit)[0]))
         a = np.array([detected])
         obs = np.array([float(detected), state[0] if detected else MISSED_GAP_M, state[1]], dtype=np.float64)
         info = {

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.special import expit
 
 from pemviz import stl
-from pemviz.config import SIMULATORS
+from pemviz.config import SIMULATORS, ExperimentConfig
 from pemviz.detectors import Detector, PEMDetector
 from pemviz.pem import load_pem
 from pemviz.scenarios import RolloutBatch, simulate
@@ -40,6 +40,18 @@ BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0), "v": (0.0, 10.0), "vl": (0.0, 10.0)}
 """Signal ranges for AGM's normalisation of predicates into [-1, 1]: ``d >= 2`` becomes (d - 2) / 13 as
 in the authors' code. Gaps above 15 m never occur in the scenario (it starts at 12.3 m)."""
 
+
+@dataclass(frozen=True)
+class ProblemInfo:
+    """What a sink needs to describe a problem it knows nothing else about (the run's first event carries it)."""
+
+    name: str
+    description: str
+    """One line, e.g. ``automated braking behind a stopped car, ...``."""
+    signals: tuple[str, ...]
+    """The STL signal names of the safety formula's rollouts, e.g. ``("d", "v", "vl")``."""
+
+
 @dataclass(frozen=True)
 class Problem:
     """A rare-failure estimation problem: simulator, target detector, safety formula.
@@ -59,6 +71,7 @@ class Problem:
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
         exact_log_p: natural log of the exact failure probability when it is known (closed form, enumeration),
             else None; shown beside every estimate.
+        description: one line saying what is simulated (for sinks and tables).
     """
 
     name: str
@@ -72,6 +85,12 @@ class Problem:
     window: float = math.inf
     stream: StreamFn | None = None
     exact_log_p: float | None = None
+    description: str = ""
+
+    @property
+    def info(self) -> ProblemInfo:
+        """The problem's name, description and signal names."""
+        return ProblemInfo(self.name, self.description or self.name, tuple(self.signals))
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""
@@ -121,6 +140,9 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m,
         stream=stream if sim == "batched" else None,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
+        description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
+                     f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
+                     f"the gap drops below {p.crash_gap_m:g} m"),
     )  # fmt: skip
 
 
@@ -159,3 +181,13 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
     if name in ("latched", "main"):
         return braking_problem(load_pem(pem_path), BrakingParams(latched_brake=name == "latched"), sim="batched")
     raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")
+
+
+def problem_for(config: ExperimentConfig) -> Problem:
+    """The problem a run of ``config`` estimates: the braking scenario with the PEM ``config.pem`` (None: the shipped
+    one) on the simulator ``config.sim``. Loads the PEM on every call (a changed file is read again).
+
+    Raises:
+        pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
+    """
+    return braking_problem(load_pem(config.pem), sim=config.sim)

@@ -9,14 +9,16 @@ the smoothing power alpha. The failure probability is then estimated with import
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
-from typing import Callable, Literal
+from typing import Callable, Iterator, Literal
 
 import numpy as np
 import torch
 from torch import nn
 
+from pemviz.config import FITS
 from pemviz.detectors import GAP_COLUMN
 
 GAP_SCALE_M = 12.0
@@ -100,10 +102,18 @@ CHECK_EVERY = 25
 """Epochs between two calls of a training loop's ``check`` callback (e.g. the engine's cancel check)."""
 
 
-FITS = ("adam", "lbfgs")
-"""How a proposal is fitted: ``adam``, a fixed number of full-batch Adam epochs (paper: 500 per stage);
-``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous stage's proposal (a warm start) until
-the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006, Alg. 7.5)."""
+@contextlib.contextmanager
+def torch_threads(n: int = 1) -> Iterator[None]:
+    """Run the block with torch on ``n`` threads, then restore the process's setting (a process-wide setting:
+    for the command layer, around a whole run). The proposal is tiny, and on 2 cores a second thread only adds
+    synchronisation (measured 7.7 ms vs 74 ms per Adam epoch under load)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
 
 PLATEAU_EPOCHS = 50
 """Adam with a tolerance stops once the loss fell by less than it over this many epochs (early stopping)."""

@@ -9,11 +9,11 @@ from typing import Callable
 
 import numpy as np
 import pytest
+from scipy.special import log_expit
 
 from conftest import REPO
 from pemviz import stl
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import log_sigmoid
 from pemviz.engine import Experiment
 from pemviz.problems import Problem
 from pemviz.scenarios import simulate
@@ -74,9 +74,9 @@ def exact_failure_probability(make: Callable[[], object], logit_fn, n_steps: int
     logit = logit_fn(free[:, None])
     log_miss_so_far, total = 0.0, 0.0
     for k in [t for t in range(n_steps - 1) if free[t] < window_m] + [None]:
-        log_p = log_miss_so_far if k is None else log_miss_so_far + float(log_sigmoid(logit[k]))
+        log_p = log_miss_so_far if k is None else log_miss_so_far + float(log_expit(logit[k]))
         if k is not None:
-            log_miss_so_far += float(log_sigmoid(-logit[k]))
+            log_miss_so_far += float(log_expit(-logit[k]))
         if min(replay(k)) < 2.0:
             total += math.exp(log_p)
     return total

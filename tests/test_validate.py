@@ -12,20 +12,10 @@ import pytest
 
 from pemviz.cli import main as cli_main
 from pemviz.config import PRESETS, ExperimentConfig
-from pemviz.engine import Experiment, failure_steps
+from pemviz.engine import Experiment
 from pemviz.scenarios.toy import ToyParams, toy_problem
 
 REDUCED = ("--k", "4", "--ce-epochs", "150", "--pretrain-epochs", "300")
-
-
-def test_failure_steps_are_the_first_step_below_the_safe_distance():
-    pb = toy_problem(ToyParams(10, 5, 3, 0.9))
-    from pemviz.detectors import ConstantDetector
-
-    batch = pb.simulate(200, ConstantDetector(0.3), pb.target, np.random.default_rng(0))
-    steps = failure_steps(pb, batch)
-    failed = pb.failed(batch)
-    assert np.all(steps[failed] == 8) and np.all(steps[~failed] == batch.n_steps)  # distance 2 at step 8
 
 
 def test_default_sampler_weights_of_a_toy_failure_are_exact():
@@ -116,18 +106,6 @@ def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
         ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.1, epochs=30, step_mask=mask)
         params.append(torch.cat([p.detach().ravel() for p in q.parameters()]))
     assert torch.equal(params[0], params[1])
-
-
-def test_defensive_mixture_and_tie_breaking_by_hand():
-    from pemviz.detectors import ConstantDetector
-    from pemviz.engine import _break_ties, _DefensiveDetector
-
-    d = _DefensiveDetector(ConstantDetector(0.99), 0.2)
-    p = 1.0 / (1.0 + math.exp(-d.detect_logit(np.zeros((1, 3)))[0]))
-    assert p == pytest.approx(0.8 * 0.99 + 0.1, rel=1e-12)
-    r = np.array([3.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.5, 2.0, 5.0])
-    elite = _break_ties(r, 1.0, 0.7, np.random.default_rng(0))  # ceil(0.3 x 10) = 3 elites
-    assert elite.sum() == 3 and elite[7] and not elite[[0, 8, 9]].any()
 
 
 def test_state_proposal_reads_its_columns_and_holds_the_rest_for_the_curve():

@@ -132,7 +132,7 @@ def simulate(
         q_logit = sampler.detect_logit(o)
         p_logit = q_logit if target is sampler else target.detect_logit(o)
         u = rng.random(n) if uniforms is None else uniforms[t]
-        # u <= sigmoid(logit)  <=>  log u <= logsigmoid(logit): exact in log-space.
+        # u <= sigmoid(logit)  <=>  log u <= log_expit(logit): exact in log-space.
         a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
         obs[:, t] = o
         detected[:, t] = a

@@ -16,7 +16,7 @@ order as the black-box path, so the two give bit-identical trajectories for the 
 below 9 m/s) and is not repeated here.
 
 Random numbers (the only randomness is the detector's output): a detection happens iff
-``log u <= logsigmoid(logit q)``, ``u ~ U(0, 1)``, as in :func:`pemviz.scenarios.simulate`, which draws
+``log u <= log_expit(logit q)``, ``u ~ U(0, 1)``, as in :func:`pemviz.scenarios.simulate`, which draws
 ``rng.random(n)`` once per step, so rollout ``i`` at step ``t`` uses the ``(t * n + i)``-th uniform of
 the stream. With ``chunk_size >= n`` the batched path draws exactly those arrays, so the same seed gives
 the same :class:`RolloutBatch` on both back-ends. With ``chunk_size < n`` and a PCG64 / PCG64DXSM
@@ -36,8 +36,9 @@ from dataclasses import dataclass
 from typing import Callable, Iterator
 
 import numpy as np
+from scipy.special import log_expit
 
-from pemviz.detectors import Detector, log_sigmoid
+from pemviz.detectors import Detector
 from pemviz.rng import JUMPABLE, advance, bit_generator_at
 from pemviz.sampling import estimate
 from pemviz.scenarios import RolloutBatch
@@ -191,13 +192,16 @@ def _uniform_chunks(
 
 
 def _action_log_prob(logit: np.ndarray, detected: np.ndarray, log_p_detect: np.ndarray | None, out: np.ndarray):
-    """:func:`pemviz.detectors.action_log_prob` into ``out``, bit for bit, reusing ``logsigmoid(logit)``.
+    """:func:`pemviz.detectors.action_log_prob` into ``out``, bit for bit, reusing ``log_expit(logit)``.
 
-    ``logsigmoid(+logit) = -logaddexp(0, -logit)`` where detected (given as ``log_p_detect`` when already
-    computed), ``logsigmoid(-logit) = -logaddexp(0, logit)`` elsewhere, evaluated only where missed.
+    ``log_expit(+logit)`` where detected (given as ``log_p_detect`` when already computed), ``log_expit(-logit)
+    = -logaddexp(0, logit)`` elsewhere, evaluated only where missed. A hot path, so written out: numpy's
+    ``logaddexp(..., where=missed)`` simulated 20,000 braking rollouts in 0.66 s against 0.74 s for ``log_expit`` on
+    every entry (one run each, loaded 2-core machine), and ``scipy.special.log_expit(..., where=...)`` corrupted the heap (scipy 1.17.1: a segfault a few
+    calls later).
     """
     if log_p_detect is None:
-        log_p_detect = log_sigmoid(logit)
+        log_p_detect = log_expit(logit)
     missed = ~detected
     np.copyto(out, log_p_detect)
     np.logaddexp(0.0, logit, out=out, where=missed)
@@ -218,7 +222,7 @@ def _run_chunk(
     """Simulate ``m = len(obs)`` rollouts, writing into obs [m, T, 3], detected / log_p / log_q [m, T].
 
     Per step, the arithmetic of :func:`pemviz.scenarios.simulate`: one detector call per batch,
-    detect iff ``log u <= logsigmoid(logit q)``, log-probabilities of the taken actions under q and p.
+    detect iff ``log u <= log_expit(logit q)``, log-probabilities of the taken actions under q and p.
     """
     m, n_steps = detected.shape
     sim = BatchedBraking(params, m)
@@ -231,8 +235,8 @@ def _run_chunk(
         o = sim.observation(out=obs_t[t])
         q_logit = sampler.detect_logit(o)
         p_logit = q_logit if target is sampler else target.detect_logit(o)
-        # u <= sigmoid(logit)  <=>  log u <= logsigmoid(logit) (= action_log_prob(logit, True)).
-        ls_q = log_sigmoid(q_logit)
+        # u <= sigmoid(logit)  <=>  log u <= log_expit(logit) (= action_log_prob(logit, True)).
+        ls_q = log_expit(q_logit)
         a = np.less_equal(np.log(u, out=u), ls_q, out=detected_t[t])
         _action_log_prob(q_logit, a, ls_q, out=log_q_t[t])
         if p_logit is q_logit:

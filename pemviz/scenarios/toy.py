@@ -208,4 +208,6 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Pr
         curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),
         window=float(p.braking) + 0.5,
         exact_log_p=toy_log_failure_probability(p),
+        description=(f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
+                     f"closer than {p.safe}; detection probability {p_label}"),
     )

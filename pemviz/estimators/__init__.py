@@ -1,0 +1,40 @@
+"""Rare-event estimators, one per method of :data:`pemviz.config.METHODS`, behind one small interface
+(:class:`Estimator`) that the engine drives stage by stage.
+
+- :class:`CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022) with pemviz's improvements.
+- :class:`FixedSampler` (``mc``, ``naive50``, ``mixed50``): one importance-weighted batch from a fixed detector.
+"""
+
+from __future__ import annotations
+
+from pemviz.config import ExperimentConfig
+from pemviz.estimators.base import (
+    Check,
+    Estimator,
+    StageOutcome,
+    StagePlan,
+    failure_steps,
+    log_p_before_failure,
+    log_weight,
+)
+from pemviz.estimators.cross_entropy import CappedDetector, CrossEntropy, DefensiveDetector, break_ties
+from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
+from pemviz.problems import Problem
+
+__all__ = [
+    "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator", "FixedSampler", "StageOutcome",
+    "StagePlan", "break_ties", "build_estimator", "failure_steps", "log_p_before_failure", "log_weight", "mixed50",
+    "monte_carlo", "naive50",
+]  # fmt: skip
+
+
+def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
+    """The estimator of ``config.method`` on ``problem`` (``check``: called between and inside fits, may raise).
+
+    The baselines draw ``config.n_per_stage`` rollouts and stop their weights at the failure step with
+    ``config.weights_until_failure``, like the adaptive sampler's.
+    """
+    if config.method == "adaptive":
+        return CrossEntropy(config, problem, check)
+    baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
+    return baseline(problem, config.n_per_stage, config.weights_until_failure)

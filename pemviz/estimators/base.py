@@ -1,0 +1,172 @@
+"""What every estimator shares: the interface the engine drives, importance weights up to the failure step, and
+the per-rollout numbers of a stage.
+
+An estimator plans its batches (:class:`StagePlan`: stage number, kind, size, the detector that draws it), is
+shown each batch's rollouts (:meth:`Estimator.observe`, possibly chunk by chunk), closes the stage
+(:meth:`Estimator.finish`: threshold, elites, fit, the stage's estimate) and gives the run's answer
+(:meth:`Estimator.result`). The engine does the rest: simulation, robustness, events, cancellation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from pemviz import stl
+from pemviz.detectors import Detector
+from pemviz.problems import Problem
+from pemviz.sampling import Estimate, estimate
+from pemviz.scenarios import RolloutBatch
+
+Check = Callable[[], None]
+"""Called between and inside fits; raises to abandon the run (the engine's cancel token)."""
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """The next batch an estimator wants drawn.
+
+    Attributes:
+        stage: 0 = pretraining, 1..K = CE stages, K+1 = the final batch (1 for a single-batch estimator).
+        kind: ``pretrain`` | ``ce`` | ``final``.
+        n: rollouts.
+        sampler: the detector that draws them (q); the problem's target (p) weighs them.
+    """
+
+    stage: int
+    kind: str
+    n: int
+    sampler: Detector
+
+
+@dataclass(frozen=True)
+class StageOutcome:
+    """What a stage gave: its threshold, elites, estimate and the proposal after its fit."""
+
+    gamma: float
+    """Stage threshold gamma_kappa (nan for pretraining and final batches)."""
+    n_elites: int
+    estimate: Estimate
+    proposal_curve: np.ndarray
+    """q(detect | d) on the problem's ``curve_grid`` after the stage, float64 [G] (nan without a proposal)."""
+    elite_detect_rate: np.ndarray
+    """Elite rollouts' empirical detection rate per bin of the ``curve_grid`` (nan where empty), [G]."""
+
+
+class Estimator(Protocol):
+    """A rare-event estimator as the engine drives it: ``while (plan := next_stage())``: draw ``plan.n`` rollouts
+    from ``plan.sampler``, ``observe`` them (in one or more chunks), ``finish`` the stage; then ``result``."""
+
+    def next_stage(self) -> StagePlan | None:
+        """The next batch to draw, or None when the estimate is complete."""
+        ...
+
+    def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
+        """Take (a chunk of) the planned batch; returns its importance log-weights [N] (nats).
+
+        ``failed``: bool [N] (classic robustness < 0); ``robustness``: [N] under the configured metric (None for the
+        chunks of a streamed final batch, which need only ``failed``)."""
+        ...
+
+    def finish(self) -> StageOutcome:
+        """Close the planned stage: thresholds, elites, the proposal's fit, the stage's estimate."""
+        ...
+
+    def result(self) -> tuple[Estimate, tuple[int, ...]]:
+        """The run's estimate and the stages whose rollouts it uses."""
+        ...
+
+
+def failure_steps(problem: Problem, batch: RolloutBatch, level: float = 0.0) -> np.ndarray:
+    """The step at which each rollout fails, int [N] (T when it does not): :func:`pemviz.stl.first_violation` of
+    the problem's safety formula on the batch's signals (robustness of the operand <= ``level``; < 0 at level 0).
+
+    Raises:
+        ValueError: if the formula is not ``G[a,b](operand)`` with a time-free operand (horizon 0).
+    """
+    return stl.first_violation(problem.formula, problem.signal_arrays(batch), level)
+
+
+def log_weight(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np.ndarray:
+    """Importance log-weights sum_t log p(a_t | s_t) - log q(a_t | s_t), float64 [N] (nats; Innes & Ramamoorthy
+    2022, eq. 6): over the first T - 1 steps (the last action affects nothing), or with ``until_failure`` over
+    the steps before the failure step, where later actions change nothing either.
+
+    Raises:
+        ValueError: ``until_failure`` with a formula :func:`failure_steps` cannot read.
+    """
+    if not until_failure:
+        return batch.log_weight()
+    k = np.minimum(failure_steps(problem, batch), batch.n_steps - 1)
+    upto = np.arange(batch.n_steps)[None, :] < k[:, None]
+    return ((batch.log_p - batch.log_q) * upto).sum(axis=1)
+
+
+def log_p_before_failure(problem: Problem, batch: RolloutBatch) -> np.ndarray:
+    """sum_{t < t_fail} log p_target(a_t | s_t), float64 [N] (nats), for the NLL of the failures: the actions
+    before the failure step whatever the sampler, so that the NLLs of every preset compare (T - 1 steps for a
+    rollout that does not fail, or when the safety formula is not ``G[a,b](state predicate)``)."""
+    try:
+        k = np.minimum(failure_steps(problem, batch), batch.n_steps - 1)
+    except ValueError:
+        k = np.full(batch.n, batch.n_steps - 1)
+    return (batch.log_p * (np.arange(batch.n_steps)[None, :] < k[:, None])).sum(axis=1)
+
+
+def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Steps of the elite rollouts per bin of ``grid`` (nearest grid value of ``obs[:, :, 0]``) and the detections
+    among them, float64 [G] each."""
+    edges = np.concatenate([[-np.inf], (grid[1:] + grid[:-1]) / 2, [np.inf]])
+    d = batch.observations[elite][:, :, 0].ravel()
+    a = batch.detected[elite].ravel()
+    idx = np.digitize(d, edges) - 1
+    counts = np.bincount(idx, minlength=grid.size).astype(float)
+    hits = np.bincount(idx, weights=a.astype(float), minlength=grid.size)
+    return counts, hits
+
+
+def detect_rate(counts: np.ndarray, hits: np.ndarray) -> np.ndarray:
+    """hits / counts per bin, nan where a bin is empty, float64 [G]."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, hits / np.maximum(counts, 1), np.nan)
+
+
+class StageRollouts:
+    """The per-rollout numbers of one stage, gathered chunk by chunk: log-weights, failures, log p before the
+    failure ([N] each), and the failures' detections per bin of the curve grid."""
+
+    def __init__(self, grid: np.ndarray) -> None:
+        self.grid = grid
+        self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
+
+    def add(self, problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
+            count_failures: bool = True) -> np.ndarray:  # fmt: skip
+        """Add a chunk (``count_failures``: bin its failures' detections too); returns its log-weights [N]."""
+        log_w = log_weight(problem, batch, until_failure)
+        self.parts.append((log_w, failed, log_p_before_failure(problem, batch)))
+        if count_failures:
+            c, h = elite_counts(batch, failed, self.grid)
+            self.counts, self.hits = self.counts + c, self.hits + h
+        return log_w
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(log-weights, failed, log p before the failure), [N] each, over every chunk."""
+        if len(self.parts) == 1:
+            return self.parts[0]
+        return tuple(np.concatenate(a) for a in zip(*self.parts))  # type: ignore[return-value]
+
+    def failures_outcome(self, proposal_curve: np.ndarray) -> StageOutcome:
+        """A batch drawn only to be weighed: its failures are its elites, no threshold."""
+        log_w, failed, log_p = self.arrays()
+        return StageOutcome(float("nan"), int(failed.sum()), estimate(log_w, failed, log_p), proposal_curve,
+                            detect_rate(self.counts, self.hits))  # fmt: skip
+
+
+def pooled_estimate(stages: list[StageRollouts]) -> Estimate:
+    """mu_hat over the rollouts of several stages together, each weighted by the proposal that drew it (see
+    :meth:`pemviz.estimators.CrossEntropy.result` for why the pooled mean is unbiased)."""
+    log_w, failed, log_p = (np.concatenate(a) for a in zip(*(s.arrays() for s in stages)))
+    return estimate(log_w, failed, log_p)

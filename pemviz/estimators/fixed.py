@@ -1,0 +1,64 @@
+"""One batch from a fixed detector, importance-weighted: plain Monte Carlo and the naive-50 / mixed-50 baselines of
+Innes & Ramamoorthy (2022), Table II."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pemviz.detectors import ConstantDetector, Detector, WindowDetector
+from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts
+from pemviz.problems import Problem
+from pemviz.sampling import Estimate
+from pemviz.scenarios import RolloutBatch
+
+
+class FixedSampler:
+    """N rollouts drawn from one fixed detector q, weighted by p_target / q: the estimate of eq. 6 with a proposal
+    that never adapts (stage 1, a ``final`` batch).
+
+    Args:
+        problem: what to estimate.
+        sampler: q.
+        n: rollouts.
+        weights_until_failure: importance weights stop at the failure step (see
+            :func:`pemviz.estimators.base.log_weight`).
+    """
+
+    def __init__(self, problem: Problem, sampler: Detector, n: int, weights_until_failure: bool) -> None:
+        self.problem, self.sampler, self.n, self.until_failure = problem, sampler, n, weights_until_failure
+        self.rollouts = StageRollouts(problem.curve_grid)
+        self._planned = False
+        self._outcome: StageOutcome | None = None
+
+    def next_stage(self) -> StagePlan | None:
+        if self._planned:
+            return None
+        self._planned = True
+        return StagePlan(1, "final", self.n, self.sampler)
+
+    def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
+        return self.rollouts.add(self.problem, batch, failed, self.until_failure)
+
+    def finish(self) -> StageOutcome:
+        self._outcome = self.rollouts.failures_outcome(np.full(self.problem.curve_grid.size, np.nan))
+        return self._outcome
+
+    def result(self) -> tuple[Estimate, tuple[int, ...]]:
+        assert self._outcome is not None, "result() before the batch was finished"
+        return self._outcome.estimate, (1,)
+
+
+def monte_carlo(problem: Problem, n: int, weights_until_failure: bool = False) -> FixedSampler:
+    """Rollouts of the target detector itself: every weight is 1, mu_hat = failures / N."""
+    return FixedSampler(problem, problem.target, n, weights_until_failure)
+
+
+def naive50(problem: Problem, n: int, weights_until_failure: bool = False) -> FixedSampler:
+    """A detector that detects with 50 % at every step (Innes & Ramamoorthy 2022, Table II)."""
+    return FixedSampler(problem, ConstantDetector(0.5), n, weights_until_failure)
+
+
+def mixed50(problem: Problem, n: int, weights_until_failure: bool = False) -> FixedSampler:
+    """50 % inside the problem's window, where the detector can change the outcome, the target elsewhere."""
+    return FixedSampler(problem, WindowDetector(ConstantDetector(0.5), problem.target, problem.window), n,
+                        weights_until_failure)  # fmt: skip

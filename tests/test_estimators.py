@@ -1,0 +1,106 @@
+"""The estimators: failure steps, weights up to the failure, elites, the defensive mixture, the CE fit's closed form."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pemviz.config import ExperimentConfig
+from pemviz.detectors import ConstantDetector
+from pemviz.estimators import (
+    CrossEntropy,
+    DefensiveDetector,
+    FixedSampler,
+    break_ties,
+    build_estimator,
+    failure_steps,
+    log_weight,
+)
+from pemviz.problems import build_problem
+from pemviz.sampling import Proposal, ce_update
+from pemviz.scenarios.toy import ToyParams, toy_problem
+
+
+def test_failure_steps_are_the_first_step_below_the_safe_distance():
+    pb = toy_problem(ToyParams(10, 5, 3, 0.9))
+    batch = pb.simulate(200, ConstantDetector(0.3), pb.target, np.random.default_rng(0))
+    steps = failure_steps(pb, batch)
+    failed = pb.failed(batch)
+    assert np.all(steps[failed] == 8) and np.all(steps[~failed] == batch.n_steps)  # distance 2 at step 8
+
+
+def test_weights_until_failure_sum_the_factors_before_the_failure_step_only():
+    pb = toy_problem(ToyParams(10, 5, 3, 0.9))
+    batch = pb.simulate(100, ConstantDetector(0.3), pb.target, np.random.default_rng(1))
+    failed = pb.failed(batch)
+    assert failed.any() and (~failed).any()
+    by_hand = np.where(failed, (batch.log_p - batch.log_q)[:, :8].sum(axis=1),
+                       (batch.log_p - batch.log_q)[:, : batch.n_steps - 1].sum(axis=1))  # fmt: skip
+    np.testing.assert_allclose(log_weight(pb, batch, until_failure=True), by_hand, rtol=1e-12)
+    np.testing.assert_allclose(log_weight(pb, batch, until_failure=False), batch.log_weight(), rtol=0)
+
+
+def test_defensive_mixture_and_tie_breaking_by_hand():
+    d = DefensiveDetector(ConstantDetector(0.99), 0.2)
+    p = 1.0 / (1.0 + math.exp(-d.detect_logit(np.zeros((1, 3)))[0]))
+    assert p == pytest.approx(0.8 * 0.99 + 0.1, rel=1e-12)
+    r = np.array([3.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.5, 2.0, 5.0])
+    elite = break_ties(r, 1.0, 0.7, np.random.default_rng(0))  # ceil(0.3 x 10) = 3 elites
+    assert elite.sum() == 3 and elite[7] and not elite[[0, 8, 9]].any()
+
+
+@pytest.mark.parametrize("fit", ["adam", "lbfgs"])
+def test_ce_fit_of_a_proposal_with_one_input_is_the_alpha_weighted_detection_rate(fit):
+    # with every step at the same gap, q(detect) is one Bernoulli parameter and the CE objective
+    # sum_i w_i^alpha sum_t m_it log q(a_it) is maximised at
+    # sum_i w_i^alpha sum_t m_it a_it / sum_i w_i^alpha sum_t m_it
+    # (the weighted MLE of a Bernoulli), w_i = prod_{t < T-1, m_it} p / q (Innes & Ramamoorthy 2022, eq. 10-11).
+    rng = np.random.default_rng(3)
+    n, t, alpha = 40, 12, 0.5
+    gaps = np.full((n, t), 5.0)
+    detected = rng.random((n, t)) < 0.3
+    log_p, log_q = np.log(np.where(detected, 0.9, 0.1)), np.log(np.where(detected, 0.3, 0.7))
+    elite = rng.random(n) < 0.4
+    mask = rng.random((n, t)) < 0.8
+    w = np.exp(alpha * ((log_p - log_q)[:, : t - 1] * mask[:, : t - 1]).sum(axis=1))[elite]
+    expected = float((w[:, None] * mask[elite] * detected[elite]).sum() / (w[:, None] * mask[elite]).sum())
+    torch.manual_seed(0)
+    q = Proposal()
+    epochs, lr = (1500, 5e-2) if fit == "adam" else (60, 1e-3)
+    ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=alpha, epochs=epochs, lr=lr, step_mask=mask, fit=fit,
+              tolerance=1e-15 if fit == "lbfgs" else None)  # fmt: skip
+    assert 0.2 < expected < 0.5 and q.curve(np.array([5.0]))[0] == pytest.approx(expected, abs=1e-4)
+
+
+def test_cross_entropy_plans_pretraining_k_stages_and_the_final_batch():
+    pb = build_problem("toy-1e-3")
+    cfg = ExperimentConfig(n_stages=2, n_per_stage=30, n_final=40, pretrain_rollouts=20, pretrain_epochs=20,
+                           ce_epochs=20, seed=0)  # fmt: skip
+    est = build_estimator(cfg, pb)
+    assert isinstance(est, CrossEntropy)
+    plans, rng = [], np.random.default_rng(0)
+    while (plan := est.next_stage()) is not None:
+        plans.append((plan.stage, plan.kind, plan.n))
+        batch = pb.simulate(plan.n, plan.sampler, pb.target, rng)
+        est.observe(batch, pb.failed(batch), pb.robustness(batch, cfg.metric))
+        est.finish()
+    assert plans == [(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 40)]
+
+
+def test_a_baseline_is_one_weighted_batch_whose_estimate_is_eq_6():
+    pb = build_problem("toy-1e-3")
+    est = build_estimator(ExperimentConfig(method="naive50", n_per_stage=500, weights_until_failure=False), pb)
+    assert isinstance(est, FixedSampler)
+    plan = est.next_stage()
+    assert (plan.stage, plan.kind, plan.n) == (1, "final", 500) and est.next_stage() is None
+    batch = pb.simulate(plan.n, plan.sampler, pb.target, np.random.default_rng(0))
+    failed = pb.failed(batch)
+    np.testing.assert_array_equal(est.observe(batch, failed, None), batch.log_weight())
+    outcome = est.finish()
+    mu, used = est.result()
+    w = np.exp(batch.log_weight())
+    assert used == (1,) and outcome.n_elites == failed.sum() > 0
+    assert mu.log_mu_hat == pytest.approx(math.log(np.sum(w * failed) / 500), rel=1e-12)
