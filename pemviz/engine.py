@@ -22,7 +22,7 @@ from pemviz.config import METRICS, ExperimentConfig
 from pemviz.detectors import Detector
 from pemviz.estimators import Estimator, StagePlan, build_estimator
 from pemviz.executors import get_executor
-from pemviz.problems import Problem, ProblemInfo, problem_for
+from pemviz.problems import Problem, ProblemInfo
 from pemviz.sampling import Estimate
 from pemviz.scenarios import RolloutBatch
 
@@ -140,8 +140,8 @@ class Experiment:
 
     The estimator of ``config.method`` (:func:`pemviz.estimators.build_estimator`) plans the batches and does the
     arithmetic; the experiment simulates them (on ``config.executor``), computes their robustness, emits the
-    events and checks the cancel token. ``problem``: None builds :func:`pemviz.problems.problem_for` ``(config)``
-    (the braking scenario with ``config.pem``).
+    events and checks the cancel token. ``problem``: what to estimate (e.g. :func:`pemviz.problems.problem_for`
+    ``(config)``: the braking scenario with ``config.pem``); the engine itself loads nothing.
     """
 
     def __init__(
@@ -149,12 +149,13 @@ class Experiment:
         config: ExperimentConfig,
         listeners: Iterable[Listener] = (),
         cancel: threading.Event | None = None,
-        problem: Problem | None = None,
+        *,
+        problem: Problem,
     ) -> None:
         self.config = config
         self.listeners = list(listeners)
         self.cancel = cancel or threading.Event()
-        self.problem = problem if problem is not None else problem_for(config)
+        self.problem = problem
         self.stages: list[StageResult] = []
         self.n_simulations = 0
 

@@ -16,7 +16,7 @@ import numpy as np
 from pemviz import stl
 from pemviz.config import METRICS
 from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
-from pemviz.engine import failure_steps
+from pemviz.estimators import log_p_before_failure, log_weight
 from pemviz.problems import Problem
 from pemviz.rollout_io import SALIENT_COLUMNS, SAMPLERS, RolloutData, RolloutFormatError, RolloutMeta, braking_salient
 from pemviz.sampling import Estimate, estimate
@@ -115,7 +115,7 @@ def estimate_rollouts(
     """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (Innes & Ramamoorthy 2022, eq. 6).
 
     The rollouts go through the engine's code: robustness and failure steps of :func:`file_problem`
-    (:meth:`pemviz.problems.Problem.robustness`, :func:`pemviz.engine.failure_steps`), the estimate of
+    (:meth:`pemviz.problems.Problem.robustness`, :func:`pemviz.estimators.log_weight`), the estimate of
     :func:`pemviz.sampling.estimate`. ``log w_i = sum_{t < k_i} log p - log q``: k_i = T - 1
     (:meth:`pemviz.scenarios.RolloutBatch.log_weight`: the last action affects nothing), or, with
     ``weights_until_failure`` and ``failure="crash"``, the step at which rollout i first violates the sidecar's
@@ -145,18 +145,13 @@ def estimate_rollouts(
     except ValueError as exc:
         raise RolloutFormatError(f"{where}: formula {data.meta.formula!r}: {exc}") from None
     failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
-    k = data.n_steps - 1
-    try:  # the NLL (and, by default, the weights) cover the actions before the failure step, as in the engine
-        upto = np.minimum(failure_steps(problem, batch), k)
-    except ValueError:  # not G[a,b](state predicate): the first T - 1 steps
-        upto = np.full(data.n, k)
-    before = np.arange(data.n_steps)[None, :] < upto[:, None]
-    with np.errstate(over="ignore", invalid="ignore"):
-        if weights_until_failure and failure == "crash":
-            log_w = ((batch.log_p - batch.log_q) * before).sum(axis=1)
-        else:
+    with np.errstate(over="ignore", invalid="ignore"):  # the same weights and NLL steps as the engine's
+        try:
+            log_w = log_weight(problem, batch, until_failure=weights_until_failure and failure == "crash")
+        except ValueError:  # not G[a,b](state predicate): the first T - 1 steps
             log_w = batch.log_weight()
-        log_p_total = (batch.log_p * before).sum(axis=1)
+        log_p_total = log_p_before_failure(problem, batch)
+    k = data.n_steps - 1
     for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
         if not np.isfinite(x).all():
             i = int(np.flatnonzero(~np.isfinite(x))[0])

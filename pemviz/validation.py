@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from pemviz import truth
@@ -31,7 +30,7 @@ from pemviz.config import METHODS, PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, RunFinished
 from pemviz.pem import load_pem
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
-from pemviz.sampling import format_probability, relative_error
+from pemviz.sampling import format_probability, relative_error, torch_threads
 from pemviz.scenarios.braking import BrakingParams
 
 DEFAULT_PROBLEMS = ("toy", "toy-1e-30", "latched", "main")
@@ -138,11 +137,11 @@ class Job:
 
 def run_job(job: Job) -> RunRecord:
     """Run one :class:`Job` (in this process) and summarise it."""
-    torch.set_num_threads(1)
     problem = build_problem(job.problem, job.pem_path)
     cfg = ExperimentConfig(**dict(job.fields), seed=job.seed)
     t0 = time.perf_counter()
-    res = Experiment(cfg, problem=problem).run()
+    with torch_threads(1):
+        res = Experiment(cfg, problem=problem).run()
     if not isinstance(res, RunFinished):  # pragma: no cover - no cancel token here
         raise RuntimeError(f"{job.method} on {job.problem} seed {job.seed} did not finish")
     e = res.final.estimate

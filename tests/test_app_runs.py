@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from pemviz.problems import problem_for
 from pemviz.app.explain import explain
 from pemviz.app.form import FIELDS_BY_KEY, parse_form, parse_number, run_cost, run_label
 from pemviz.app.runs import (
@@ -92,7 +93,7 @@ def tiny_record() -> RunRecord:
         if isinstance(event, (StageStarted, RolloutsSampled, StageFinished)) and event_stage(event) == 0:
             progress.append(record.progress())
 
-    Experiment(TINY, [listen]).run()
+    Experiment(TINY, [listen], problem=problem_for(TINY)).run()
     record.first_stage_progress = progress
     return record
 
@@ -232,7 +233,7 @@ def test_decisive_misses_are_the_misses_whose_flip_avoids_the_crash_in_highway_e
 # -- one stage numbering --------------------------------------------------------------------------
 def test_console_progress_names_stages_as_the_panel_and_recording_do(tiny_record):
     progress = io.StringIO()
-    Experiment(TINY, [ConsoleSink(io.StringIO(), progress)]).run()
+    Experiment(TINY, [ConsoleSink(io.StringIO(), progress)], problem=problem_for(TINY)).run()
     lines = [line.split(":")[0].strip() for line in progress.getvalue().splitlines()]
     assert lines == ["pretraining", "CE stage 1/2", "CE stage 2/2", "final batch"]
     assert [stage_label(s.stage, s.kind, 2) for s in tiny_record.stages] == lines

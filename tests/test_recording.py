@@ -18,6 +18,7 @@ import pytest
 rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
 
+from pemviz.problems import problem_for
 from pemviz import cli  # noqa: E402
 from pemviz import engine  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
@@ -51,7 +52,8 @@ def record(path, cfg: ExperimentConfig, extra_listeners=(), cancel=None):
     out = io.StringIO()
     sink = RerunSink.to_file(path)
     try:
-        Experiment(cfg, [ConsoleSink(out, io.StringIO()), sink, events.append, *extra_listeners], cancel).run()
+        Experiment(cfg, [ConsoleSink(out, io.StringIO()), sink, events.append, *extra_listeners], cancel,
+                   problem=problem_for(cfg)).run()
     finally:
         sink.close()
     return events, out.getvalue()

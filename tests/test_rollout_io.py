@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from conftest import run_cli
+from pemviz.problems import problem_for
 from pemviz import cli
 from pemviz import rollout_io as rio
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
@@ -43,8 +44,9 @@ def naive_run(tmp_path_factory, pem):
     path = tmp_path_factory.mktemp("naive") / "naive.parquet"
     finals = []
     sink = RolloutSink(path)
-    Experiment(ExperimentConfig(method="naive50", n_per_stage=200, seed=1),
-               [sink, lambda ev: finals.append(ev) if isinstance(ev, FinalEstimate) else None]).run()  # fmt: skip
+    cfg = ExperimentConfig(method="naive50", n_per_stage=200, seed=1)
+    Experiment(cfg, [sink, lambda ev: finals.append(ev) if isinstance(ev, FinalEstimate) else None],
+               problem=problem_for(cfg)).run()  # fmt: skip
     assert sink.written == path
     return path, finals[0].estimate
 

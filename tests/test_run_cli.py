@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO, run_cli
+from pemviz.problems import problem_for
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, FinalEstimate, StageFinished
 
@@ -53,7 +54,8 @@ def test_default_run_is_within_x2_of_the_exact_answer_with_its_interval_and_verd
 def test_paper_preset_reproduces_the_published_sampler_bit_for_bit():
     # seed 0 of the paper's settings (Innes & Ramamoorthy 2022, Algorithm 1): 84/100 crashes, 5.6372e-19 --
     # 3,500x below the exact answer, which the verdict must not call reliable.
-    res = Experiment(ExperimentConfig(**PRESETS["paper"], seed=0)).run()
+    cfg = ExperimentConfig(**PRESETS["paper"], seed=0)
+    res = Experiment(cfg, problem=problem_for(cfg)).run()
     e = res.final.estimate
     assert (e.n_failures, e.n) == (84, 100)
     assert e.log_mu_hat == pytest.approx(-42.0197, abs=5e-5)
@@ -80,7 +82,7 @@ def test_same_seed_gives_the_same_estimate_twice():
 
     def stages_and_final(c):
         got = []
-        Experiment(c, [got.append]).run()
+        Experiment(c, [got.append], problem=problem_for(c)).run()
         stages = [(e.result.gamma, e.result.estimate) for e in got if isinstance(e, StageFinished)]
         return stages, [e.estimate for e in got if isinstance(e, FinalEstimate)]
 

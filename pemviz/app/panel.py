@@ -21,6 +21,7 @@ from pemviz import engine
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.app.session import Session
 from pemviz.config import DEFAULT_PRESET, ExperimentConfig
+from pemviz.problems import problem_for
 from pemviz.scenarios.braking import BrakingParams
 
 STATUS_EVERY_S = 0.5
@@ -146,7 +147,7 @@ class PanelApp:
             tiny = ExperimentConfig(
                 n_stages=1, n_per_stage=2, n_final=1, ce_epochs=1, pretrain_rollouts=1, pretrain_epochs=1
             )
-            engine.Experiment(tiny, [], self._closed).run()
+            engine.Experiment(tiny, [], self._closed, problem=problem_for(tiny)).run()
         except Exception:  # warming up is best effort; a real run reports its own errors
             pass
 

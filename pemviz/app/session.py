@@ -45,7 +45,8 @@ from pemviz.engine import (
     stage_label,
 )
 from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
-from pemviz.sampling import format_probability, relative_error
+from pemviz.problems import problem_for
+from pemviz.sampling import format_probability, relative_error, torch_threads
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
 from pemviz.sinks.console import expected_stage_s
 
@@ -439,7 +440,9 @@ class Session:
     def _work(self, record: RunRecord, cancel: threading.Event) -> None:
         self.app.wait_warm()
         try:
-            engine.Experiment(record.config, [lambda e: self._on_event(record, e)], cancel).run()
+            with torch_threads(1):
+                problem = problem_for(record.config)
+                engine.Experiment(record.config, [lambda e: self._on_event(record, e)], cancel, problem=problem).run()
         except Exception as exc:  # a bad PEM file, a simulator error: show it, keep serving
             record.fail(f"{type(exc).__name__}: {exc}")
             self._status(f"{record.label} failed: {record.message}", RED)

@@ -28,8 +28,10 @@ from pemviz.config import (
 from pemviz.executors import probe_ray_address
 from pemviz.files import check_output_folder, free_default_path
 from pemviz.pem import shipped_pems
+from pemviz.problems import problem_for
 from pemviz.resources import check_run_memory
 from pemviz.rollout_io import sidecar_path
+from pemviz.sampling import torch_threads
 from pemviz.sinks.rollouts import RolloutSink
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks.console import ConsoleSink
@@ -258,7 +260,8 @@ def main(args: argparse.Namespace) -> int:
 
     stream_above = engine.STREAM_ABOVE if cfg.executor == "serial" else None
     check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above)
-    experiment = engine.Experiment(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
+    problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
+    experiment = engine.Experiment(cfg, problem=problem)
     listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
     recorder = None
     if target != "no-record":
@@ -277,7 +280,8 @@ def main(args: argparse.Namespace) -> int:
         listeners.append(rollout_sink)
     experiment.listeners[:0] = listeners
     try:
-        experiment.run()
+        with torch_threads(1):
+            experiment.run()
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
         where = recorder.close() if recorder is not None else None
         done = f"{len(experiment.stages)} stage(s) finished"

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from pemviz.problems import problem_for
 from pemviz import problems
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.detectors import ConstantDetector, PEMDetector, WindowDetector
@@ -232,7 +233,8 @@ def test_engine_runs_the_configured_back_end_and_both_give_the_same_estimate(mon
 
         with monkeypatch.context() as patch:
             patch.setattr(problems, unused, must_not_run)
-            done = Experiment(ExperimentConfig(method="mixed50", n_per_stage=40, seed=1, sim=sim)).run()
+            cfg = ExperimentConfig(method="mixed50", n_per_stage=40, seed=1, sim=sim)
+            done = Experiment(cfg, problem=problem_for(cfg)).run()
         assert isinstance(done, RunFinished)
         estimates[sim] = done.final.estimate
     est = estimates["batched"]
