@@ -168,12 +168,12 @@ def test_signal_sigterm_mid_run_finishes_the_recording_in_process(tmp_path, caps
     from pemviz.engine import StageFinished
 
     class TerminatedAfterStage1(engine.Experiment):
-        def __init__(self, config, listeners=(), cancel=None, problem=None):
+        def __init__(self, config, listeners=(), cancel=None, *, problem):
             def term(event):
                 if isinstance(event, StageFinished) and event.result.stage == 1:
                     raise Terminated
 
-            super().__init__(config, [*listeners, term], cancel, problem)
+            super().__init__(config, [*listeners, term], cancel, problem=problem)
 
     monkeypatch.setattr(engine, "Experiment", TerminatedAfterStage1)
     code, err = cli_line(capsys, *SMALL_RUN, "--k", "3", "--save", str(tmp_path / "t.rrd"))

@@ -256,13 +256,13 @@ def test_ctrl_c_after_stage_3_of_pemviz_run_leaves_a_valid_recording_of_stages_0
     """KeyboardInterrupt from a listener after stage 3: ``pemviz run``'s ``finally`` closes the recording."""
 
     class InterruptedAfterStage3(engine.Experiment):
-        def __init__(self, config, listeners=(), cancel=None, problem=None):
+        def __init__(self, config, listeners=(), cancel=None, *, problem):
             def interrupt(event):
                 if isinstance(event, StageFinished) and event.result.stage == 3:
                     raise KeyboardInterrupt
 
             config = config.replace(pretrain_rollouts=20, pretrain_epochs=50)
-            super().__init__(config, [*listeners, interrupt], cancel, problem)
+            super().__init__(config, [*listeners, interrupt], cancel, problem=problem)
 
     monkeypatch.setattr(engine, "Experiment", InterruptedAfterStage3)
     out = tmp_path / "cut.rrd"
