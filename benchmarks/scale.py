@@ -7,7 +7,7 @@ peak memory and recording size, for N = 10^2 .. 10^5 rollouts per stage (default
 
 Each N runs in a fresh subprocess (``pemviz run --n N --n-final N``), so that its peak resident memory
 (``ru_maxrss``) is its own. Inside, the time spent simulating (``Problem.simulate`` / ``Problem.stream``,
-detector evaluations included) and fitting the proposal (:func:`pemviz.sampling._fit`) is summed; "other"
+detector evaluations included) and fitting the proposal (:func:`pemviz.sampling.fit_proposal`) is summed; "other"
 is the engine's wall time minus both (robustness, weights, elites, estimates, events, sinks). Times are
 wall (``perf_counter``) and CPU (user + system, ``RUSAGE_SELF``); the load average is printed with each row:
 on a machine shared with other jobs compare CPU times. The target (a million rollouts in minutes): at
@@ -34,7 +34,7 @@ def _child(argv: list[str]) -> None:
     sys.path.insert(0, str(REPO))  # this checkout's pemviz, as ``python -m pemviz.cli`` from the repository root
     import pemviz.engine as engine
     import pemviz.problems as problems
-    import pemviz.sampling as sampling
+    import pemviz.estimators.cross_entropy as cross_entropy
     from pemviz.cli import main
 
     spent = {"simulation": 0.0, "fit": 0.0, "run": 0.0}
@@ -74,7 +74,7 @@ def _child(argv: list[str]) -> None:
         return dataclasses.replace(pb, simulate=timed("simulation", pb.simulate), stream=stream)
 
     problems.braking_problem = hooked_problem  # problems.problem_for builds the run's problem with it
-    sampling._fit = timed("fit", sampling._fit)
+    cross_entropy.fit_proposal = timed("fit", cross_entropy.fit_proposal)  # the name the CE stage calls
     engine.Experiment.run = timed("run", engine.Experiment.run)
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     sys.argv = ["pemviz", "run", *argv]

@@ -161,7 +161,7 @@ class Split:
 
 
 def time_split(sim: str) -> None:
-    import pemviz.engine as engine
+    import pemviz.estimators.cross_entropy as cross_entropy
     import pemviz.problems as problems
     import pemviz.sinks.console as console
     import pemviz.sinks.recording as recording
@@ -175,8 +175,8 @@ def time_split(sim: str) -> None:
         (problems, "simulate_batched", "simulation"),
         (PEM, "logit_at_gap", "PEM"),
         (Proposal, "detect_logit", "proposal sampling"),
-        (engine, "pretrain_proposal", "proposal training"),
-        (engine, "ce_update", "proposal training"),
+        (cross_entropy, "pretrain_proposal", "proposal training"),
+        (cross_entropy, "ce_update", "proposal training"),
         (problems.Problem, "robustness", "STL"),
         (recording.RerunSink, "__call__", "recording"),
         (recording.RerunSink, "close", "recording"),

@@ -1,7 +1,7 @@
 """ExperimentConfig: every knob of a pemviz experiment, validated once.
 
 Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.CrossEntropy` (its CE
-stage) and :func:`pemviz.sampling.ce_update` (the weighted fit). The metric: :class:`pemviz.engine.Experiment`
+stage) and :func:`pemviz.estimators.cross_entropy.ce_update` (the weighted fit). The metric: :class:`pemviz.engine.Experiment`
 ranks the rollouts with it (:meth:`pemviz.problems.Problem.robustness`). The seed: the engine's rollout stream and
 the estimator's fit, tie-breaking and initial-weight streams.
 """
@@ -31,7 +31,7 @@ WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("pooled", "fresh", "last-stage")
 ELITE_TIES = ("all", "random")
 FITS = ("adam", "lbfgs")
-"""How the proposal is fitted each stage (:func:`pemviz.sampling.ce_update`): ``adam``, a fixed number of
+"""How the proposal is fitted each stage (:func:`pemviz.estimators.cross_entropy.ce_update`): ``adam``, a fixed number of
 full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous
 stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
 Alg. 7.5)."""

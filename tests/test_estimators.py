@@ -20,7 +20,8 @@ from pemviz.estimators import (
     log_weight,
 )
 from pemviz.problems import build_problem
-from pemviz.sampling import Proposal, ce_update
+from pemviz.estimators.cross_entropy import ce_update
+from pemviz.sampling import Proposal
 from pemviz.scenarios.toy import ToyParams, toy_problem
 
 

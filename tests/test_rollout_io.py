@@ -26,7 +26,8 @@ from pemviz.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment, FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem
-from pemviz.sampling import Proposal, ce_update, estimate, pretrain_proposal
+from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
+from pemviz.sampling import Proposal, estimate
 from pemviz.scenarios import RolloutBatch
 from pemviz.sinks.rollouts import RolloutSink
 

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from pemviz.detectors import ConstantDetector, action_log_prob
-from pemviz.sampling import Proposal, ce_update, estimate, format_probability, pretrain_proposal, quantile_threshold
+from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal, quantile_threshold
+from pemviz.sampling import Proposal, estimate, format_probability
 from pemviz.scenarios import simulate
 
 
@@ -139,7 +140,7 @@ def test_training_loops_call_check_every_25_epochs_and_stop_when_it_raises():
 def test_weighted_step_subsample_keeps_the_ce_objective_in_expectation():
     """sum_j w_j f(s_j, a_j) over a systematic subsample of 40 of 600 steps: its mean over 4000 draws equals the
     full sum within 4 standard errors, and every draw carries the total weight exactly."""
-    from pemviz.sampling import _weighted_steps
+    from pemviz.estimators.cross_entropy import weighted_steps
 
     rng = np.random.default_rng(3)
     h = rng.normal(size=(30, 20, 2))
@@ -149,13 +150,13 @@ def test_weighted_step_subsample_keeps_the_ce_objective_in_expectation():
     exact = float((w * f(h, detected)).sum())
     draws = []
     for seed in range(4000):
-        rows, counts = _weighted_steps(h, detected, w, 40, np.random.default_rng(seed))
+        rows, counts = weighted_steps(h, detected, w, 40, np.random.default_rng(seed))
         rows, counts = rows.numpy(), counts.numpy()
         assert len(rows) <= 40 and counts.sum() == pytest.approx(w.sum(), rel=1e-12)
         draws.append(float((counts[:, 0] * f(rows, False) + counts[:, 1] * f(rows, True)).sum()))
     draws = np.array(draws)
     assert abs(draws.mean() - exact) < 4 * draws.std() / math.sqrt(draws.size)
-    rows, counts = _weighted_steps(h, detected, w, 10_000, np.random.default_rng(0))  # no subsample: every step
+    rows, counts = weighted_steps(h, detected, w, 10_000, np.random.default_rng(0))  # no subsample: every step
     assert counts.sum().item() == pytest.approx(w.sum(), rel=1e-12) and len(rows) == np.count_nonzero(w)
 
 

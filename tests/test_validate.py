@@ -92,7 +92,8 @@ def test_improvement_fields_reject_bad_values(field, value):
 def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
     import torch
 
-    from pemviz.sampling import Proposal, ce_update
+    from pemviz.estimators.cross_entropy import ce_update
+    from pemviz.sampling import Proposal
 
     rng = np.random.default_rng(0)
     gaps = np.tile(np.linspace(12, 1, 30), (40, 1))

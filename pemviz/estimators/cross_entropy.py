@@ -3,14 +3,17 @@ pemviz's improvements over the paper (each switched by a field of :class:`~pemvi
 
 Stage 0 pretrains the proposal on rollouts of the target detector (the PEM); each CE stage draws N rollouts from
 the proposal, takes the elites (robustness <= gamma_kappa, the (1 - sigma) quantile, floored at the failure level
-0) and refits the proposal to them with importance weights raised to the power alpha (:func:`pemviz.sampling.
-ce_update`); a final batch of N_e rollouts from the last proposal gives the estimate, alone or pooled with the CE
-stages drawn from proposals fitted to failures.
+0) and refits the proposal to them with importance weights raised to the power alpha (:func:`ce_update`); a
+final batch of N_e rollouts from the last proposal gives the estimate, alone or pooled with the CE stages drawn
+from proposals fitted to failures. The whole stage lives here: elites, weights, step masks, the fit's data and
+loss (the optimiser and the proposal networks are in :mod:`pemviz.sampling`).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Callable, Literal
 
 import numpy as np
 import torch
@@ -29,16 +32,245 @@ from pemviz.estimators.base import (
     pooled_estimate,
 )
 from pemviz.problems import Problem
-from pemviz.sampling import (
-    Estimate,
-    Proposal,
-    StateProposal,
-    ce_update,
-    estimate,
-    pretrain_proposal,
-    quantile_threshold,
-)
+from pemviz.sampling import Estimate, Proposal, StateProposal, estimate, fit_proposal
 from pemviz.scenarios import RolloutBatch
+
+WeightMode = Literal["frozen", "recomputed"]
+
+
+def weighted_steps(
+    features: np.ndarray,
+    detected: np.ndarray,
+    step_weight: np.ndarray,
+    max_rows: int,
+    rng: np.random.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The steps of positive weight as fitting rows, at most ``max_rows`` of them, and their weights.
+
+    With more than ``max_rows`` weighted steps, ``max_rows`` are drawn by systematic resampling in
+    proportion to the weights (Kitagawa 1996; Douc, Cappe & Moulines 2005): step j is drawn
+    ``c_j`` times with ``E[c_j] = max_rows w_j / W`` (W = sum of weights), and enters with weight
+    ``c_j W / max_rows``, so ``sum_j w_j log q(a_j | s_j)`` keeps its expectation for every q, and a step
+    whose weight exceeds ``W / max_rows`` is always kept. Cost O(N T) numpy, whatever the fit.
+
+    Args:
+        features: float64 [N, T] or [N, T, k] proposal inputs.
+        detected: bool [N, T] actions.
+        step_weight: float64 [N, T] weights >= 0 (0 leaves a step out).
+        max_rows: the most rows returned (>= 1).
+        rng: draws the resampling offset.
+    Returns:
+        (distinct inputs [M] or [M, k] float64 tensor, counts [M, 2] float64 tensor: weight on miss, on
+        detect), M <= ``max_rows``.
+    """
+    w = np.asarray(step_weight, dtype=np.float64).reshape(-1)
+    keep = np.flatnonzero(w > 0)
+    if keep.size > max_rows:
+        cum = np.cumsum(w[keep])
+        total = float(cum[-1])
+        picks = np.searchsorted(cum, (rng.random() + np.arange(max_rows)) * (total / max_rows), side="right")
+        picks, times = np.unique(np.minimum(picks, keep.size - 1), return_counts=True)
+        keep, weight = keep[picks], times * (total / max_rows)
+    else:
+        weight = w[keep]
+    f = np.asarray(features, dtype=np.float64)
+    rows = f.reshape(-1, f.shape[2])[keep] if f.ndim == 3 else f.reshape(-1)[keep]
+    # Steps at the same input share one row (rollouts agree until their first different action).
+    rows, inverse = np.unique(rows, axis=0, return_inverse=True)
+    slot = inverse.reshape(-1) * 2 + np.asarray(detected, dtype=bool).reshape(-1)[keep]
+    counts = np.bincount(slot, weights=weight, minlength=2 * len(rows)).reshape(len(rows), 2)
+    return torch.as_tensor(rows), torch.as_tensor(counts)
+
+
+def _action_counts(
+    gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None, drop_unweighted: bool = False
+):
+    """Distinct proposal inputs and the (weighted) number of misses and detections at each: an exact summary.
+
+    q depends on the gap only, so ``sum_it w_i log q(a_it | d_it) = sum_u W0(u) log q(0|u) + W1(u) log q(1|u)``.
+    Rollouts share most gaps (the detector matters only inside 10 m), so an epoch costs a forward pass
+    over a few hundred distinct gaps instead of N * T.
+
+    Args:
+        gap_m: [N, T] gaps, or [N, T, k] inputs of a :class:`StateProposal` (distinct rows then).
+        row_weight: [N] per rollout, or [N, T] per step (0 leaves a step out), or None (all 1).
+        drop_unweighted: leave out the inputs whose steps all weigh 0 (e.g. outside the proposal's window), so an
+            epoch does not evaluate the network where it cannot change the loss; ``inverse`` is then None.
+    Returns:
+        (uniq [U] (or [U, k]) float64 tensor, counts [U, 2] float64 tensor: weighted misses, detections;
+        inverse [N, T] index of each entry into ``uniq``).
+    """
+    gap_m = np.asarray(gap_m, dtype=np.float64)
+    shape = np.shape(detected)
+    if gap_m.ndim == 3:
+        uniq, inverse = np.unique(gap_m.reshape(-1, gap_m.shape[2]), axis=0, return_inverse=True)
+    else:
+        uniq, inverse = np.unique(gap_m, return_inverse=True)
+    inverse = inverse.reshape(shape)
+    if row_weight is None:
+        w = np.ones(shape)
+    else:
+        row_weight = np.asarray(row_weight, dtype=np.float64)
+        w = np.broadcast_to(row_weight if row_weight.ndim == 2 else row_weight[:, None], shape)
+    slot = inverse * 2 + np.asarray(detected, dtype=np.int64)
+    counts = np.bincount(slot.ravel(), weights=w.ravel(), minlength=2 * len(uniq)).reshape(len(uniq), 2)
+    if drop_unweighted:
+        keep = counts.sum(axis=1) > 0.0
+        return torch.as_tensor(uniq[keep]), torch.as_tensor(counts[keep]), None
+    return torch.as_tensor(uniq), torch.as_tensor(counts), inverse
+
+
+def _summed_fit(fit: str, tolerance: float | None, max_rows: int | None, n_fitted: int) -> bool:
+    """Whether a fit of ``n_fitted`` weighted steps is the paper's: every step, summed over distinct inputs, for a
+    fixed number of Adam epochs (the other fits see at most ``max_rows`` steps, with a normalised loss)."""
+    return fit == "adam" and tolerance is None and (max_rows is None or n_fitted <= max_rows)
+
+
+def pretrain_proposal(
+    proposal: Proposal,
+    gap_m: np.ndarray,
+    detected: np.ndarray,
+    *,
+    epochs: int = 1000,
+    lr: float = 1e-3,
+    check: Callable[[], None] | None = None,
+    step_mask: np.ndarray | None = None,
+    fit: str = "adam",
+    max_rows: int | None = None,
+    rng: np.random.Generator | None = None,
+    tolerance: float | None = None,
+) -> list[float]:
+    """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
+
+    Args:
+        gap_m: float64 [N, T] gaps of PEM-driven rollouts (metres), or [N, T, k] inputs of a
+            :class:`StateProposal` (``proposal.features(observations)``).
+        detected: bool [N, T] the PEM's detections.
+        epochs: Adam epochs, or the most L-BFGS iterations (``fit``).
+        check: called every :data:`pemviz.sampling.CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
+        step_mask: bool [N, T] or None: only these steps are fitted (e.g. inside the proposal's window).
+        fit: one of :data:`pemviz.config.FITS`.
+        max_rows: None (``adam``: every step, summed over distinct inputs, the paper's fit) or the most steps
+            the fit sees: a uniform systematic subsample of the fitted steps beyond that (:func:`weighted_steps`).
+        rng: draws that subsample (default: seeded 0).
+        tolerance: early stopping (nats per step; :func:`pemviz.sampling.fit_proposal`), None: every epoch.
+    Returns:
+        the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
+    Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts).
+    """
+    n_fitted = np.size(detected) if step_mask is None else int(np.count_nonzero(step_mask))
+    if _summed_fit(fit, tolerance, max_rows, n_fitted):
+        if step_mask is None:
+            uniq, counts, _ = _action_counts(gap_m, detected)
+            total = float(np.size(detected))
+        else:
+            step_mask = np.asarray(step_mask, dtype=np.float64)
+            uniq, counts, _ = _action_counts(gap_m, detected, step_mask, drop_unweighted=True)
+            total = max(float(step_mask.sum()), 1.0)
+        return fit_proposal(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr, check)
+    mask = np.ones(np.shape(detected)) if step_mask is None else np.asarray(step_mask, dtype=np.float64)
+    rows, counts = weighted_steps(gap_m, detected, mask, max_rows or mask.size, rng or np.random.default_rng(0))
+    total = max(float(counts.sum()), 1.0)
+    return fit_proposal(proposal, lambda: -(counts * proposal.forward(rows)).sum() / total, epochs, lr, check, fit,
+                        tolerance)  # fmt: skip
+
+
+def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: float = 0.0) -> float:
+    """gamma_kappa = max(floor, the ceil((1 - sigma) N)-th smallest robustness).
+
+    With sigma = 0.95 and N = 100 this is the 5th smallest value (Innes & Ramamoorthy 2022, Algorithm 1). ``floor`` is the
+    failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
+    """
+    r = np.sort(np.asarray(robustness, dtype=np.float64))
+    k = max(1, int(math.ceil((1.0 - quantile_level) * r.size - 1e-9)))
+    return max(floor, float(r[k - 1]))
+
+
+def ce_update(
+    proposal: Proposal,
+    gap_m: np.ndarray,
+    detected: np.ndarray,
+    log_p: np.ndarray,
+    log_q: np.ndarray,
+    elite: np.ndarray,
+    *,
+    smoothing: float,
+    epochs: int = 500,
+    lr: float = 1e-3,
+    weights: WeightMode = "frozen",
+    n_factors: int | None = None,
+    check: Callable[[], None] | None = None,
+    step_mask: np.ndarray | None = None,
+    fit: str = "adam",
+    max_rows: int | None = None,
+    rng: np.random.Generator | None = None,
+    tolerance: float | None = None,
+) -> list[float]:
+    """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
+
+    Args:
+        gap_m, detected, log_p, log_q: [N, T] from the stage's rollouts (log_p under the PEM, log_q
+            under the proposal that sampled them; nats).
+        elite: bool [N], robustness <= gamma_kappa.
+        smoothing: alpha in (0, 1], the power on the importance weights.
+        weights: ``"frozen"``: w from the proposal that sampled the batch (textbook CE, paper eq. 10-11);
+            ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
+        n_factors: steps in each weight (default T - 1: the last action affects nothing).
+        check: called every :data:`pemviz.sampling.CHECK_EVERY` epochs; may raise to abandon the update (cancel).
+        step_mask: bool [N, T] or None: steps that count, in the weights and in the fit (False: left out,
+            e.g. outside the proposal's window or after the failure).
+        fit: one of :data:`pemviz.config.FITS`; ``epochs`` are then Adam epochs or the most L-BFGS iterations.
+        max_rows: None (``adam``: every elite step, summed over distinct inputs, the paper's fit) or the most
+            steps the fit sees: beyond that a weighted systematic subsample whose weighted log-likelihood has
+            the same expectation (:func:`weighted_steps`); the loss is then divided by the total weight.
+            ``weights = "recomputed"`` always fits every step.
+        rng: draws that subsample (default: seeded 0).
+        tolerance: early stopping (nats per step; :func:`pemviz.sampling.fit_proposal`), None: every epoch. Needs the normalised loss
+            of ``max_rows`` or ``lbfgs``.
+    Returns:
+        the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
+        constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
+    Raises:
+        ValueError: if there is no elite rollout.
+    """
+    idx = np.flatnonzero(elite)
+    if idx.size == 0:
+        raise ValueError("ce_update: no elite rollouts (robustness <= gamma) to fit the proposal to")
+    k = detected.shape[1] - 1 if n_factors is None else n_factors
+    mask = np.ones(detected.shape, bool) if step_mask is None else np.asarray(step_mask, dtype=bool)
+    mask = mask[idx]
+    lp = (log_p[idx, :k] * mask[:, :k]).sum(axis=1)
+    frozen_log_w = ((log_p[idx, :k] - log_q[idx, :k]) * mask[:, :k]).sum(axis=1)
+    if weights == "frozen":
+        scaled = smoothing * frozen_log_w
+        step_w = np.exp(scaled - scaled.max())[:, None] * mask
+        if not _summed_fit(fit, tolerance, max_rows, int(np.count_nonzero(step_w))):
+            step_w = np.broadcast_to(step_w, detected[idx].shape)
+            rows, counts = weighted_steps(gap_m[idx], detected[idx], step_w, max_rows or step_w.size,
+                                           rng or np.random.default_rng(0))  # fmt: skip
+            total = float(counts.sum())
+            return fit_proposal(proposal, lambda: -(counts * proposal.forward(rows)).sum() / total, epochs, lr, check, fit,
+                        tolerance)  # fmt: skip
+        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w if step_mask is not None else step_w[:, 0],
+                                         drop_unweighted=step_mask is not None)
+
+        def loss() -> torch.Tensor:
+            return -(counts * proposal.forward(uniq)).sum()
+
+    else:
+        # w depends on q_phi: per-rollout sums of log q over the first k steps, through the gradient.
+        uniq, _, inverse = _action_counts(gap_m[idx], detected[idx])
+        slot = torch.as_tensor(inverse * 2 + detected[idx].astype(np.int64))
+        lp_t = torch.as_tensor(lp)
+        mask_t = torch.as_tensor(mask, dtype=torch.float64)
+
+        def loss() -> torch.Tensor:
+            log_q_now = proposal.forward(uniq).reshape(-1)[slot] * mask_t
+            scaled = smoothing * (lp_t - log_q_now[:, :k].sum(dim=1))
+            w = torch.exp(scaled - scaled.detach().max())
+            return -(w * log_q_now.sum(dim=1)).sum()
+
+    return fit_proposal(proposal, loss, epochs, lr, check, fit)
 
 
 @dataclass(frozen=True)
