@@ -1,6 +1,6 @@
 """Perception error models (PEMs): salient variables of an obstacle -> logit of p(detected).
 
-Spec section 2 (Innes & Ramamoorthy 2022, Sec. IV-A, Table I). Two kinds, one interface (``name``,
+Innes & Ramamoorthy 2022, Sec. IV-A and Table I. Two kinds, one interface (``name``,
 ``norm``, ``metadata``, ``features``, ``logit``, ``logit_at_gap``, ``prob``, ``prob_at_gap``):
 
 - :class:`PEM`: the paper's ML-NN (and wider variants), trained with torch, evaluated in float64 numpy;

@@ -1,6 +1,6 @@
 """The paper's B-NN baseline: a Bayesian PEM fitted by variational inference with pyro.
 
-Spec section 2 / paper Table I: the ML-NN's layers without BatchNorm (Linear(14,20)-ReLU-Linear(20,20)-
+Innes & Ramamoorthy 2022, Table I: the ML-NN's layers without BatchNorm (Linear(14,20)-ReLU-Linear(20,20)-
 ReLU-Linear(20,1)), N(0, 1) priors on every weight and bias, a low-rank multivariate normal guide
 (``pyro.infer.autoguide.AutoLowRankMultivariateNormal``), and as prediction the posterior predictive mean
 p(detect | x) = E_q[sigmoid(f_w(x))] over ~800 posterior samples. The paper's B-NN scored BCE 0.238,

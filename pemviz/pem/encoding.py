@@ -1,6 +1,6 @@
 """PEM inputs: the 14-dim encoding of KITTI salient variables and the braking scenario's mapping.
 
-Spec section 2 (the authors' ``SalientObstacleDataset`` in ``pems.py``): one-hot class (7) + one-hot
+Innes & Ramamoorthy 2022, Sec. IV-A (the authors' ``SalientObstacleDataset`` in ``pems.py``): one-hot class (7) + one-hot
 occlusion (3: none, partly, largely) + loc_x, loc_y, loc_z, rot_y (raw columns 7..10) z-scored with the
 mean and unbiased (n - 1) std of the full 37,498-row file.
 """

@@ -1,6 +1,6 @@
 """The paper's ML-NN PEM (and wider variants): training, and exact float64 evaluation.
 
-Spec section 2: Linear(14,20)-BatchNorm-ReLU-Linear(20,20)-BatchNorm-ReLU-Linear(20,1) -> logit, BCE with
+Innes & Ramamoorthy 2022, Sec. IV-A: Linear(14,20)-BatchNorm-ReLU-Linear(20,20)-BatchNorm-ReLU-Linear(20,1) -> logit, BCE with
 logits, Adam lr 1e-3, batch 1024, 300 epochs, eval mode (the authors' ``PEMClass_Deterministic`` and
 ``train_tp_pem_det.py``).
 
