@@ -171,12 +171,11 @@ class Experiment:
         """Run the whole experiment; returns the last event emitted (see the module docstring for the events)."""
         cfg, pb = self.config, self.problem
         t_start = time.perf_counter()
-        rng = np.random.default_rng(cfg.seed)  # the rollouts' detections; other purposes have their own streams
         self.emit(RunStarted(cfg, str(pb.formula), pb.curve_grid, pb.target_curve(), pb.exact_log_p, pb.info))
-        estimator = build_estimator(cfg, pb, self._check_cancel)
+        estimator = build_estimator(cfg, pb, self._check_cancel)  # it seeds its streams, the rollouts' included
         try:
             while (plan := estimator.next_stage()) is not None:
-                self._stage(estimator, plan, rng)
+                self._stage(estimator, plan, estimator.rng)
         except Cancelled as exc:
             event = RunCancelled(tuple(self.stages), str(exc))
             self.emit(event)

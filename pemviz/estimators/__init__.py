@@ -37,4 +37,4 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
     if config.method == "adaptive":
         return CrossEntropy(config, problem, check)
     baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
-    return baseline(problem, config.n_per_stage, config.weights_until_failure)
+    return baseline(problem, config.n_per_stage, config.weights_until_failure, config.seed)

@@ -57,7 +57,12 @@ class StageOutcome:
 
 class Estimator(Protocol):
     """A rare-event estimator as the engine drives it: ``while (plan := next_stage())``: draw ``plan.n`` rollouts
-    from ``plan.sampler``, ``observe`` them (in one or more chunks), ``finish`` the stage; then ``result``."""
+    from ``plan.sampler``, ``observe`` them (in one or more chunks), ``finish`` the stage; then ``result``.
+
+    ``rng`` is the stream the rollouts' detections are drawn from (the estimator seeds it, with its other streams).
+    """
+
+    rng: np.random.Generator
 
     def next_stage(self) -> StagePlan | None:
         """The next batch to draw, or None when the estimate is complete."""

@@ -320,7 +320,8 @@ class CrossEntropy:
     Stages: 0 pretraining (``pretrain_rollouts``), 1..K cross-entropy (``n_per_stage`` each), K+1 the final batch
     (``n_final``; none with ``final_estimate = "last-stage"``).
 
-    Random streams, one per purpose, all from ``config.seed``: the engine's rollouts; the fits' subsamples
+    Random streams, one per purpose, all from ``config.seed``: the rollouts' detections (:attr:`rng`, which the
+    engine draws from); the fits' subsamples
     (``(seed, 1)``); tie-breaking (``(seed, 2)``); the proposal's initial weights (torch, seeded in a fork of the
     process's generator), so turning one option on leaves the other streams as they were.
 
@@ -333,6 +334,7 @@ class CrossEntropy:
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         self.config, self.problem = config, problem
         self.check: Check = check or (lambda: None)
+        self.rng = np.random.default_rng(config.seed)
         self.fit_rng = np.random.default_rng((config.seed, 1))
         self.tie_rng = np.random.default_rng((config.seed, 2))
         self.proposal: Proposal | None = None

@@ -22,10 +22,12 @@ class FixedSampler:
         n: rollouts.
         weights_until_failure: importance weights stop at the failure step (see
             :func:`pemviz.estimators.base.log_weight`).
+        seed: the rollouts' stream, ``numpy.random.default_rng(seed)``.
     """
 
-    def __init__(self, problem: Problem, sampler: Detector, n: int, weights_until_failure: bool) -> None:
+    def __init__(self, problem: Problem, sampler: Detector, n: int, weights_until_failure: bool, seed: int = 0) -> None:
         self.problem, self.sampler, self.n, self.until_failure = problem, sampler, n, weights_until_failure
+        self.rng = np.random.default_rng(seed)
         self.rollouts = StageRollouts(problem.curve_grid)
         self._planned = False
         self._outcome: StageOutcome | None = None
@@ -48,17 +50,17 @@ class FixedSampler:
         return self._outcome.estimate, (1,)
 
 
-def monte_carlo(problem: Problem, n: int, weights_until_failure: bool = False) -> FixedSampler:
+def monte_carlo(problem: Problem, n: int, weights_until_failure: bool = False, seed: int = 0) -> FixedSampler:
     """Rollouts of the target detector itself: every weight is 1, mu_hat = failures / N."""
-    return FixedSampler(problem, problem.target, n, weights_until_failure)
+    return FixedSampler(problem, problem.target, n, weights_until_failure, seed)
 
 
-def naive50(problem: Problem, n: int, weights_until_failure: bool = False) -> FixedSampler:
+def naive50(problem: Problem, n: int, weights_until_failure: bool = False, seed: int = 0) -> FixedSampler:
     """A detector that detects with 50 % at every step (Innes & Ramamoorthy 2022, Table II)."""
-    return FixedSampler(problem, ConstantDetector(0.5), n, weights_until_failure)
+    return FixedSampler(problem, ConstantDetector(0.5), n, weights_until_failure, seed)
 
 
-def mixed50(problem: Problem, n: int, weights_until_failure: bool = False) -> FixedSampler:
+def mixed50(problem: Problem, n: int, weights_until_failure: bool = False, seed: int = 0) -> FixedSampler:
     """50 % inside the problem's window, where the detector can change the outcome, the target elsewhere."""
     return FixedSampler(problem, WindowDetector(ConstantDetector(0.5), problem.target, problem.window), n,
-                        weights_until_failure)  # fmt: skip
+                        weights_until_failure, seed)  # fmt: skip
