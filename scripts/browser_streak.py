@@ -69,8 +69,9 @@ def reach_load(min_load: float, burners: Burners, timeout_s: float) -> float:
     while (now := load1()) < min_load:
         if time.monotonic() > end:
             raise TimeoutError(f"load {now:.2f} < {min_load} after {timeout_s:.0f} s with {len(burners.procs)} burners")
-        # one more burner when the load has had 40 s to respond to the last change and is still short
-        if not burners.procs or time.monotonic() - added_at > 40:
+        # one more burner when the load has had 20 s to respond to the last change and is still short
+        # (n busy processes alone bring the load towards n, never above it: the target needs more than it)
+        if not burners.procs or time.monotonic() - added_at > 20:
             if burners.add():
                 added_at = time.monotonic()
         time.sleep(5)  # polling the load average, not a synchronisation of the tests
@@ -81,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=20, help="runs in a row to pass (default 20)")
     ap.add_argument("--min-load", type=float, default=3.0, help="1-minute load average at each run's start")
-    ap.add_argument("--max-burners", type=int, default=3, help="most busy-loop processes to add (default 3)")
+    ap.add_argument("--max-burners", type=int, default=5, help="most busy-loop processes to add (default 5)")
+    ap.add_argument("--first", type=int, default=1, help="number of the first run (to continue a streak)")
     ap.add_argument("--keep-going", action="store_true", help="go on after a failing run")
     ap.add_argument("--log-dir", type=Path, default=Path("/tmp/browser_streak"), help="pytest output per run")
     ap.add_argument("tests", nargs="*", default=BROWSER_TESTS, help="test files (default: tests/test_app.py)")
@@ -95,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'run':>3} {'result':<6} {'seconds':>7} {'load start':>10} {'load end':>8} {'burners':>7}", flush=True)
     passed_in_a_row = 0
     try:
-        for run in range(1, args.runs + 1):
+        for run in range(args.first, args.first + args.runs):
             start_load = reach_load(args.min_load, burners, timeout_s=300)
             n_burners = len(burners.procs)
             t0 = time.monotonic()
@@ -114,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
                     break
     finally:
         burners.stop()
-    print(f"{passed_in_a_row} runs passed in a row (of {args.runs} asked)", flush=True)
+    print(f"{passed_in_a_row} runs passed in a row (of {args.runs} asked, from run {args.first})", flush=True)
     return 0 if passed_in_a_row == args.runs else 1
 
 
