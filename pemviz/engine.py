@@ -175,7 +175,7 @@ class Experiment:
         estimator = build_estimator(cfg, pb, self._check_cancel)  # it seeds its streams, the rollouts' included
         try:
             while (plan := estimator.next_stage()) is not None:
-                self._stage(estimator, plan, estimator.rng)
+                self._stage(estimator, plan)
         except Cancelled as exc:
             event = RunCancelled(tuple(self.stages), str(exc))
             self.emit(event)
@@ -187,17 +187,17 @@ class Experiment:
         self.emit(done)
         return done
 
-    def _stage(self, estimator: Estimator, plan: StagePlan, rng: np.random.Generator) -> StageResult:
+    def _stage(self, estimator: Estimator, plan: StagePlan) -> StageResult:
         """Draw the planned batch, show it to the estimator and the listeners, close the stage."""
         t0 = time.perf_counter()
         self._check_cancel()
         self.emit(StageStarted(plan.stage, plan.kind, plan.n))
         pb, cfg = self.problem, self.config
         if plan.kind == "final" and plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
-            chunks = pb.stream(plan.n, plan.sampler, pb.target, rng)
+            chunks = pb.stream(plan.n, plan.sampler, pb.target, estimator.rng)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             executor = get_executor(cfg.executor, cfg.ray_address)
-            chunks = iter([executor.simulate(pb, plan.n, plan.sampler, pb.target, rng)])
+            chunks = iter([executor.simulate(pb, plan.n, plan.sampler, pb.target, estimator.rng)])
         for i, batch in enumerate(chunks):
             self._check_cancel()
             if i == 0:  # listeners see the first chunk of a streamed batch only (a sample of it, not all n)
