@@ -116,9 +116,11 @@ class ExperimentConfig:
             ``lbfgs`` at most ``fit_max_steps`` iterations per fit, stopping once converged.
         fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).
         fit_rows: None (every fitted step) or the most steps one fit sees: beyond that, a weighted systematic
-            subsample with the same expected CE objective, so a stage's fit costs the same at any N.
-        fit_tolerance: None (``adam``: every epoch) or early stopping: a fit stops once its loss fell by less
-            than this (nats per step) over the last 50 epochs (``lbfgs``: within one iteration).
+            subsample with the same expected CE objective, so a stage's fit costs the same at any N (the default
+            sampler's fits at N = 100 see at most 6,400 steps: all of them, summed, the paper's fit).
+        fit_tolerance: early stopping of the ``adam`` fits that see a subsample (more than ``fit_rows`` steps):
+            such a fit stops once its loss (nats per step) fell by less than this over the last 50 epochs; None:
+            every epoch. Fits of at most ``fit_rows`` steps run every epoch; ``lbfgs`` stops at its own tolerance.
     """
 
     method: str = "adaptive"
@@ -149,7 +151,7 @@ class ExperimentConfig:
     fit: str = "adam"
     fit_max_steps: int = 200
     fit_rows: int | None = 10_000
-    fit_tolerance: float | None = None
+    fit_tolerance: float | None = 1e-3
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str, allowed: str) -> None:

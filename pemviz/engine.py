@@ -5,8 +5,14 @@ as listeners ``listener(event) -> None`` and never call back into the engine, ex
 ``cancel`` token (a :class:`threading.Event`).
 
 Events, in order: :class:`RunStarted`; for each stage (0 = pretraining, 1..K = cross-entropy stages,
-K+1 = final batch) :class:`StageStarted`, :class:`RolloutsSampled`, :class:`StageFinished`; then
-:class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`).
+K+1 = final batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one
+:class:`RolloutsSampled`, :class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or
+:class:`RunCancelled`).
+
+A stage of more than :data:`STREAM_ABOVE` rollouts on a problem that can stream is simulated chunk by chunk and
+never held whole: the estimator keeps per-rollout numbers and the rollouts that can still matter (e.g. the
+elites), listeners get each chunk as it passes (:class:`RolloutChunk`, e.g. to write them to a file) and a bounded
+sample of the stage (:class:`RolloutsSampled`): memory stays that of a chunk and a few numbers per rollout.
 """
 
 from __future__ import annotations
@@ -78,6 +84,34 @@ class RolloutsSampled:
     """[N] importance log-weights (nats), T - 1 factors."""
     sampler: Detector | None = None
     """The detector that drew the batch (the proposal is trained in place afterwards: copy it to keep it)."""
+    n_total: int | None = None
+    """The stage's rollouts when ``batch`` is only a sample of them (a stage streamed in chunks: its
+    :data:`SAMPLE_LEAST_ROBUST` least-robust rollouts, its first :data:`SAMPLE_FAILURES` failures and
+    :data:`SAMPLE_UNIFORM` evenly spaced ones); None: ``batch`` is the whole stage."""
+    index: np.ndarray | None = None
+    """int [n]: the sampled rollouts' numbers in the stage (0 .. n_total - 1), with ``n_total``."""
+    stage_robustness: np.ndarray | None = None
+    """[n_total] every rollout's robustness under the configured metric, with ``n_total`` (e.g. for histograms)."""
+    stage_log_weight: np.ndarray | None = None
+    """[n_total] every rollout's importance log-weight, with ``n_total``."""
+
+    @property
+    def rollout_numbers(self) -> np.ndarray:
+        """int [n]: each row's number in the stage (``index``, or 0 .. n - 1 for a whole stage)."""
+        return np.arange(self.batch.n) if self.index is None else self.index
+
+
+@dataclass(frozen=True)
+class RolloutChunk:
+    """Rollouts ``start .. start + batch.n - 1`` of a stage as they are simulated (all of a stage that is not
+    streamed), before :class:`RolloutsSampled`; ``log_weight`` [n] as the estimator computed them (nats)."""
+
+    stage: int
+    kind: str
+    start: int
+    batch: RolloutBatch
+    log_weight: np.ndarray
+    sampler: Detector | None = None
 
 
 @dataclass(frozen=True)
@@ -122,7 +156,7 @@ class RunCancelled:
     reason: str
 
 
-Event = Union[RunStarted, StageStarted, RolloutsSampled, StageFinished, FinalEstimate, RunFinished, RunCancelled]
+Event = Union[RunStarted, StageStarted, RolloutChunk, RolloutsSampled, StageFinished, FinalEstimate, RunFinished, RunCancelled]
 Listener = Callable[[Event], None]
 
 
@@ -130,9 +164,49 @@ class Cancelled(Exception):
     """Raised inside the engine when the cancel token is set; the run ends with :class:`RunCancelled`."""
 
 
-STREAM_ABOVE = 100_000
-"""Final / baseline batches of more rollouts than this are simulated chunk by chunk when the problem can
-stream (``Problem.stream``) and kept only as per-rollout numbers: a [10^6, 100] batch holds 4.1 GB."""
+STREAM_ABOVE = 20_000
+"""Stages of more rollouts than this are simulated chunk by chunk when the problem can stream
+(``Problem.stream``) and the executor is serial, and kept only as per-rollout numbers and a bounded sample: a
+[10^5, 100] batch with its robustness and masks holds ~1 GB, a chunk of 8,192 rollouts ~80 MB."""
+SAMPLE_LEAST_ROBUST = 20
+"""Least-robust rollouts of a streamed stage that listeners see in full."""
+SAMPLE_FAILURES = 100
+"""The first failures of a streamed stage that listeners see in full."""
+SAMPLE_UNIFORM = 100
+"""Evenly spaced rollouts of a streamed stage that listeners see in full."""
+
+
+class StageSample:
+    """A bounded sample of a stage streamed in chunks, gathered as they pass: the :data:`SAMPLE_LEAST_ROBUST`
+    least-robust rollouts (ties: the earlier), the first :data:`SAMPLE_FAILURES` failures and
+    :data:`SAMPLE_UNIFORM` evenly spaced rollouts, plus every rollout's robustness and log-weight [n]."""
+
+    def __init__(self, n: int) -> None:
+        self.n, self.seen, self.n_failed = n, 0, 0
+        self.uniform = np.unique(np.linspace(0, n - 1, SAMPLE_UNIFORM).astype(np.int64))
+        self.robustness, self.log_weight, self.failed = np.empty(n), np.empty(n), np.zeros(n, bool)
+        self.parts: list[tuple[RolloutBatch, np.ndarray]] = []
+
+    def add(self, batch: RolloutBatch, robustness: np.ndarray, failed: np.ndarray, log_weight: np.ndarray) -> None:
+        i0, i1 = self.seen, self.seen + batch.n
+        self.robustness[i0:i1], self.log_weight[i0:i1], self.failed[i0:i1] = robustness, log_weight, failed
+        self.seen = i1
+        k = min(SAMPLE_LEAST_ROBUST, i1)
+        low = robustness <= np.partition(self.robustness[:i1], k - 1)[k - 1]
+        first_failures = failed & (self.n_failed + np.cumsum(failed) <= SAMPLE_FAILURES)
+        self.n_failed += int(failed.sum())
+        keep = low | first_failures | np.isin(np.arange(i0, i1), self.uniform)
+        self.parts.append((batch.select(keep), np.flatnonzero(keep) + i0))
+
+    def rollouts(self) -> tuple[RolloutBatch, np.ndarray]:
+        """(the sample, ascending; its rollout numbers [m])."""
+        index = np.concatenate([i for _, i in self.parts])
+        least = np.argsort(self.robustness[index], kind="stable")[:SAMPLE_LEAST_ROBUST]
+        first_failures = np.flatnonzero(self.failed[index])[:SAMPLE_FAILURES]
+        keep = np.zeros(index.size, bool)
+        keep[least], keep[first_failures] = True, True
+        keep |= np.isin(index, self.uniform)
+        return RolloutBatch.concatenate([b for b, _ in self.parts]).select(keep), index[keep]
 
 
 class Experiment:
@@ -193,21 +267,18 @@ class Experiment:
         self._check_cancel()
         self.emit(StageStarted(plan.stage, plan.kind, plan.n))
         pb, cfg = self.problem, self.config
-        if plan.kind == "final" and plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
-            chunks = pb.stream(plan.n, plan.sampler, pb.target, estimator.rng)
+        if plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
+            self._streamed(estimator, plan)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             executor = get_executor(cfg.executor, cfg.ray_address)
-            chunks = iter([executor.simulate(pb, plan.n, plan.sampler, pb.target, estimator.rng)])
-        for i, batch in enumerate(chunks):
+            batch = executor.simulate(pb, plan.n, plan.sampler, pb.target, estimator.rng)
             self._check_cancel()
-            if i == 0:  # listeners see the first chunk of a streamed batch only (a sample of it, not all n)
-                by_metric = {m: pb.robustness(batch, m) for m in METRICS}
-                failed = by_metric["classic"] < 0.0
-                log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
-                self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, failed,
-                                          log_w, plan.sampler))  # fmt: skip
-            else:
-                estimator.observe(batch, pb.failed(batch), None)
+            by_metric = {m: pb.robustness(batch, m) for m in METRICS}
+            failed = by_metric["classic"] < 0.0
+            log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
+            self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler))
+            self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, failed, log_w,
+                                      plan.sampler))  # fmt: skip
         self.n_simulations += plan.n
         out = estimator.finish()
         res = StageResult(plan.stage, plan.kind, out.gamma, out.n_elites, out.estimate, out.proposal_curve,
@@ -215,3 +286,21 @@ class Experiment:
         self.stages.append(res)
         self.emit(StageFinished(res))
         return res
+
+    def _streamed(self, estimator: Estimator, plan: StagePlan) -> None:
+        """Simulate a stage chunk by chunk (:data:`STREAM_ABOVE`): the estimator and the listeners see each chunk
+        once, then the listeners a :class:`StageSample` of the stage."""
+        pb, cfg = self.problem, self.config
+        sample = StageSample(plan.n)
+        for batch in pb.stream(plan.n, plan.sampler, pb.target, estimator.rng):
+            self._check_cancel()
+            robustness = pb.robustness(batch, cfg.metric)
+            failed = robustness < 0.0 if cfg.metric == "classic" else pb.failed(batch)
+            log_w = estimator.observe(batch, failed, robustness)
+            self.emit(RolloutChunk(plan.stage, plan.kind, sample.seen, batch, log_w, plan.sampler))
+            sample.add(batch, robustness, failed, log_w)
+        batch, index = sample.rollouts()
+        by_metric = {m: pb.robustness(batch, m) for m in METRICS}
+        self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, sample.failed[index],
+                                  sample.log_weight[index], plan.sampler, n_total=plan.n, index=index,
+                                  stage_robustness=sample.robustness, stage_log_weight=sample.log_weight))  # fmt: skip

@@ -120,7 +120,7 @@ def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_l
 
 
 def table_jobs(problem: str, specs: Sequence[RowSpec], reps: int, pem_path: str | None = None) -> list[Job]:
-    """R repetitions (seeds 0..reps-1) of every row as :class:`~pemviz.validation.Job`\ s that keep their proposal
+    """R repetitions (seeds 0..reps-1) of every row as jobs (:class:`~pemviz.validation.Job`) that keep their proposal
     curves, the slow (adaptive) rows first so that parallel workers finish together."""
     jobs = [Job(problem, s.label, s.fields, seed, keep_curves=True, pem_path=pem_path)
             for s in specs for seed in range(reps)]  # fmt: skip

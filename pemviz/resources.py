@@ -11,7 +11,7 @@ BYTES_PER_ROLLOUT_STEP = 100
 """Peak bytes per (rollout, step) of a batch: observations [N, T, 3], detected, log p, log q, robustness under
 three metrics and the masks (measured: 79 B from the peak RSS of ``mc`` runs of N = 2,000 and 8,000, T = 100)."""
 BYTES_PER_STREAMED_ROLLOUT = 70
-"""Bytes kept per rollout of a final batch streamed in chunks (failure flag, log-weight, log p total)."""
+"""Bytes kept per rollout of a stage streamed in chunks (failure flag, log-weight, log p total, robustness)."""
 BASE_BYTES = 400 * 2**20
 """The process before any batch: Python, numpy, torch, the PEM (measured ~250 MB resident, with margin)."""
 
@@ -35,16 +35,17 @@ def available_memory() -> int | None:
 def run_memory(cfg: ExperimentConfig, n_steps: int, *, stream_above: int | None = None, chunk: int = 8192) -> int:
     """Peak bytes a run of ``cfg`` needs for batches of ``n_steps`` steps (T).
 
-    The largest batch held at once: the pretraining batch and each CE stage's N rollouts [N, T], the final N_e
-    (or a baseline's N) either whole or, above ``stream_above`` rollouts, one chunk plus
-    :data:`BYTES_PER_STREAMED_ROLLOUT` a rollout.
+    The largest batch held at once: the pretraining batch, each CE stage's N rollouts and the final N_e (or a
+    baseline's N), each [N, T] whole or, above ``stream_above`` rollouts, one chunk plus
+    :data:`BYTES_PER_STREAMED_ROLLOUT` a rollout and, for a CE stage, its elites ((1 - sigma) N rollouts).
     """
     cell = BYTES_PER_ROLLOUT_STEP * n_steps
     held = [cfg.n_per_stage] if cfg.method != "adaptive" else [cfg.pretrain_rollouts, cfg.n_per_stage, cfg.n_final]
     peaks = []
-    for n in held:
-        if stream_above is not None and n > stream_above and n == held[-1]:
-            peaks.append(min(n, chunk) * cell + n * BYTES_PER_STREAMED_ROLLOUT)
+    for i, n in enumerate(held):
+        if stream_above is not None and n > stream_above:
+            elites = (1.0 - cfg.quantile_level) * n if cfg.method == "adaptive" and i == 1 else 0.0
+            peaks.append(int((min(n, chunk) + elites) * cell + n * BYTES_PER_STREAMED_ROLLOUT))
         else:
             peaks.append(n * cell)
     return BASE_BYTES + max(peaks)

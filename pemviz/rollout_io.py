@@ -613,6 +613,112 @@ def rollouts_table(
     return pa.table(cols)
 
 
+class RolloutWriter:
+    """Writes one rollout unit (``NAME.parquet``, its sidecar ``NAME.json``, optionally ``NAME.proposal.pt``) chunk
+    by chunk: each :meth:`append` validates a chunk and writes it as a Parquet row group, so memory holds one chunk
+    whatever the number of rollouts. Nothing appears under ``path`` before :meth:`commit`, which moves the files
+    into place sidecar last (the sidecar holds the SHA-256 of the table and checkpoint, so :func:`read_rollouts`
+    tells a unit cut short by a kill from a complete one); :meth:`abort`, or leaving a ``with`` block without a
+    commit, removes everything written so far and leaves an existing unit untouched.
+
+    Args:
+        path: ``NAME.parquet``, checked at once (:func:`check_rollouts_path`).
+        meta: the sidecar (:func:`braking_meta` for the braking scenario); ``n_rollouts`` / ``n_steps`` /
+            ``observation_columns`` are filled in.
+        log_probs: write ``log_p`` and ``log_q``.
+        overwrite: replace existing files of the unit (only ones pemviz wrote).
+    Raises:
+        ValueError: a bad path (an existing file without ``overwrite``).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], meta: RolloutMeta, *, log_probs: bool = True,
+                 overwrite: bool = False) -> None:  # fmt: skip
+        self.path = check_rollouts_path(path, overwrite=overwrite)
+        self.meta, self.log_probs, self.overwrite = meta, log_probs, overwrite
+        self.n_rollouts = 0
+        self._shape: tuple[int, tuple[str, ...]] | None = None
+        self._stack = contextlib.ExitStack()
+        self._tmp = self._stack.enter_context(temp_file(self.path))
+        self._writer: Any = None
+
+    def __enter__(self) -> "RolloutWriter":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.abort()
+
+    def append(self, batch: RolloutBatch, *, rollout_ids: np.ndarray | None = None,
+               salient: np.ndarray | None = None) -> None:  # fmt: skip
+        """Validate and write the next rollouts (default ids: continuing from the last chunk's).
+
+        Args:
+            batch: rollouts [n, T] with the same T and observation columns as the chunks before.
+            rollout_ids, salient: see :func:`rollouts_table`.
+        Raises:
+            ValueError: wrong shapes, a batch unlike the earlier ones, or a :class:`RolloutFormatError` (NaN, a
+                positive log-probability ...) naming the rollout and step; nothing of this chunk is written.
+        """
+        names = tuple(batch.observation_names)
+        if self._shape is not None and self._shape != (batch.n_steps, names):
+            raise ValueError(f"RolloutWriter: a chunk of {batch.n_steps} steps of {names} after chunks of "
+                             f"{self._shape[0]} steps of {self._shape[1]}")  # fmt: skip
+        meta = dataclasses.replace(self.meta, n_rollouts=None, n_steps=batch.n_steps, observation_columns=names)
+        if meta.columns != names:
+            raise ValueError(f"write_rollouts: the batch's first observation must be gap_m, got {names}")
+        if rollout_ids is None:
+            rollout_ids = np.arange(self.n_rollouts, self.n_rollouts + batch.n, dtype=np.int64)
+        table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=self.log_probs)
+        _Table(table, meta, f"{self.path} (not written)").parse(None)
+        if self._writer is None:
+            self._writer = pq.ParquetWriter(self._tmp, table.schema)
+        self._writer.write_table(table)
+        self._shape = (batch.n_steps, names)
+        self.n_rollouts += batch.n
+
+    def commit(self, proposal: Any = None) -> Path:
+        """Close the table and move the unit into place; returns the Parquet path.
+
+        Args:
+            proposal: a :class:`pemviz.sampling.Proposal` that sampled the rollouts, saved as ``NAME.proposal.pt``
+                and named in the sidecar; None: none saved.
+        Raises:
+            ValueError: no rollouts were appended.
+            OutputExists: a file of the unit appeared meanwhile (without ``overwrite``).
+            OSError: the folder is not writable, the disk is full (nothing is left behind).
+        """
+        try:
+            if self._writer is None:
+                raise ValueError(f"{self.path}: no rollouts to write")
+            self._writer.close()
+            self._writer = None
+            n_steps, names = self._shape
+            meta = dataclasses.replace(self.meta, n_rollouts=self.n_rollouts, n_steps=n_steps,
+                                       observation_columns=names)  # fmt: skip
+            p, side, ckpt = self.path, sidecar_path(self.path), proposal_path(self.path)
+            pairs = []
+            if proposal is not None:
+                tmp_ckpt = self._stack.enter_context(temp_file(ckpt))
+                _save_proposal_to(proposal, tmp_ckpt)
+                meta = dataclasses.replace(meta, proposal=ckpt.name, proposal_sha256=sha256_file(tmp_ckpt))
+                pairs.append((tmp_ckpt, ckpt))
+            meta = dataclasses.replace(meta, table_sha256=sha256_file(self._tmp))
+            pairs.append((self._tmp, p))
+            tmp_side = self._stack.enter_context(temp_file(side))
+            Path(tmp_side).write_text(json.dumps(meta.to_json(), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+            pairs.append((tmp_side, side))
+            commit_files(pairs, overwrite=self.overwrite)
+            return p
+        finally:
+            self.abort()
+
+    def abort(self) -> None:
+        """Stop writing and remove the temporary files (nothing under ``path`` changes); safe to call twice."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        self._stack.close()
+
+
 def write_rollouts(
     path: str | os.PathLike[str],
     batch: RolloutBatch,
@@ -624,12 +730,11 @@ def write_rollouts(
     proposal: Any = None,
     overwrite: bool = False,
 ) -> Path:
-    """Write ``NAME.parquet``, its sidecar ``NAME.json`` and (with ``proposal``) ``NAME.proposal.pt`` as one unit.
+    """Write ``NAME.parquet``, its sidecar ``NAME.json`` and (with ``proposal``) ``NAME.proposal.pt`` as one unit
+    (a :class:`RolloutWriter` with one chunk).
 
-    All files are written under temporary names first and moved into place sidecar last; the sidecar holds
-    the SHA-256 of the table (and checkpoint), so :func:`read_rollouts` tells a unit cut short by a kill (new
-    table, old sidecar) from a complete one. The table is validated as :func:`read_rollouts` validates it
-    before anything is written; ``meta.n_rollouts`` / ``n_steps`` / ``observation_columns`` are filled in.
+    The table is validated as :func:`read_rollouts` validates it before anything is written; ``meta.n_rollouts``
+    / ``n_steps`` / ``observation_columns`` are filled in.
 
     Args:
         path: ``NAME.parquet``.
@@ -647,31 +752,9 @@ def write_rollouts(
             and step; nothing is written.
         OSError: the folder is not writable, the disk is full (nothing is left behind).
     """
-    p = check_rollouts_path(path, overwrite=overwrite)
-    meta = dataclasses.replace(
-        meta, n_rollouts=batch.n, n_steps=batch.n_steps, observation_columns=tuple(batch.observation_names)
-    )
-    if meta.columns != tuple(batch.observation_names):
-        raise ValueError(f"write_rollouts: the batch's first observation must be gap_m, got {batch.observation_names}")
-    table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=log_probs)
-    _Table(table, meta, f"{p} (not written)").parse(None)
-    side, ckpt = sidecar_path(p), proposal_path(p)
-    with contextlib.ExitStack() as stack:
-        pairs = []
-        if proposal is not None:
-            tmp_ckpt = stack.enter_context(temp_file(ckpt))
-            _save_proposal_to(proposal, tmp_ckpt)
-            meta = dataclasses.replace(meta, proposal=ckpt.name, proposal_sha256=sha256_file(tmp_ckpt))
-            pairs.append((tmp_ckpt, ckpt))
-        tmp_table = stack.enter_context(temp_file(p))
-        pq.write_table(table, tmp_table)
-        meta = dataclasses.replace(meta, table_sha256=sha256_file(tmp_table))
-        pairs.append((tmp_table, p))
-        tmp_side = stack.enter_context(temp_file(side))
-        Path(tmp_side).write_text(json.dumps(meta.to_json(), indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        pairs.append((tmp_side, side))
-        commit_files(pairs, overwrite=overwrite)
-    return p
+    with RolloutWriter(path, meta, log_probs=log_probs, overwrite=overwrite) as writer:
+        writer.append(batch, rollout_ids=rollout_ids, salient=salient)
+        return writer.commit(proposal)
 
 
 # ---------------------------------------------------------------------------------- proposal checkpoints

@@ -23,7 +23,15 @@ from pemviz import rollout_io as rio
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, action_log_prob
-from pemviz.engine import Experiment, FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageStarted
+from pemviz.engine import (
+    Experiment,
+    FinalEstimate,
+    RolloutChunk,
+    RolloutsSampled,
+    RunFinished,
+    RunStarted,
+    StageStarted,
+)
 from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem
 from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
@@ -127,9 +135,8 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     sink = RolloutSink(path, pem=str(pem_file))
     cfg = ExperimentConfig(**PRESETS["paper"], pem=str(pem_file))  # weights over T - 1 steps, as `truth` above
     sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve()))
-    rho = problem.robustness(batch, "classic")
     sink(StageStarted(3, "final", 60))
-    sink(RolloutsSampled(3, "final", batch, rho, {"classic": rho}, failed, batch.log_weight(), sampler=proposal))
+    sink(RolloutChunk(3, "final", 0, batch, batch.log_weight(), sampler=proposal))
     with torch_no_grad():
         for p in proposal.parameters():
             p.add_(0.1)  # the proposal moves on after sampling; the checkpoint must not
@@ -152,15 +159,53 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
         assert same_mu(float(LOG_MU_RE.search(out).group(1)), truth.log_mu_hat)
 
 
-def test_rollout_sink_writes_nothing_for_a_streamed_final_batch(tmp_path, pem):
-    problem = braking_problem(pem)
-    batch = problem.simulate(5, problem.target, problem.target, np.random.default_rng(0))
+@pytest.fixture
+def chunked(pem, monkeypatch):
+    """The braking problem with stages above 300 rollouts streamed in chunks of 128."""
+    import dataclasses
+
+    import pemviz.engine as engine
+    from pemviz.scenarios.batched import iter_batched
+
+    monkeypatch.setattr(engine, "STREAM_ABOVE", 300)
+    return dataclasses.replace(braking_problem(pem), stream=lambda n, sampler, target, rng: iter_batched(
+        None, n, sampler, target, rng, chunk_size=128))  # fmt: skip
+
+
+STREAMED = ExperimentConfig(n_stages=1, n_per_stage=100, n_final=1000, pretrain_rollouts=50, ce_epochs=5,
+                            pretrain_epochs=5, seed=3)  # fmt: skip
+"""A run whose final batch (1,000 rollouts) is streamed in 8 chunks by :func:`chunked`."""
+
+
+def test_a_streamed_final_batch_is_written_chunk_by_chunk_and_reads_back_whole(tmp_path, chunked):
+    """Above STREAM_ABOVE the engine never holds the final batch: the sink writes each chunk as a row group."""
     sink = RolloutSink(tmp_path / "big.parquet")
-    rho = problem.robustness(batch, "classic")
-    sink(StageStarted(1, "final", 200_000))  # the engine streams it; listeners see the first chunk only
-    sink(RolloutsSampled(1, "final", batch, rho, {"classic": rho}, rho < 0, batch.log_weight()))
-    sink(RunFinished(FinalEstimate(estimate(batch.log_weight(), rho < 0, batch.log_p.sum(1)), 200_000, 1.0), ()))
-    assert sink.written is None and "200000 rollouts was streamed" in sink.skipped
+    chunks = []
+    done = Experiment(STREAMED, [sink, lambda e: isinstance(e, RolloutChunk) and e.kind == "final"
+                                 and chunks.append(e)], problem=chunked).run()  # fmt: skip
+    assert [c.start for c in chunks] == list(range(0, 1000, 128)) and pq.ParquetFile(sink.written).num_row_groups == 8
+    data = rio.read_rollouts(sink.written)
+    assert data.detected.shape == (1000, 100)
+    whole = RolloutBatch.concatenate([c.batch for c in chunks])
+    np.testing.assert_array_equal(data.detected, whole.detected)
+    np.testing.assert_array_equal(data.log_q, whole.log_q)
+    assert data.meta.provenance["estimate"]["n"] == done.final.estimate.n
+
+
+def test_a_run_cancelled_while_writing_leaves_no_rollout_file(tmp_path, chunked):
+    import threading
+
+    from pemviz.engine import RunCancelled
+
+    cancel = threading.Event()
+    sink = RolloutSink(tmp_path / "r.parquet")
+
+    def cancel_at_the_third_chunk(e):
+        if isinstance(e, RolloutChunk) and e.kind == "final" and e.start >= 256:
+            cancel.set()
+
+    out = Experiment(STREAMED, [sink, cancel_at_the_third_chunk], cancel, problem=chunked).run()
+    assert isinstance(out, RunCancelled) and sink.written is None
     assert list(tmp_path.iterdir()) == []
 
 

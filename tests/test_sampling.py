@@ -172,7 +172,7 @@ def test_converging_fits_reach_the_elites_miss_rate_and_stop_early(fit, epochs, 
     elite = np.arange(60) < 30
     q = Proposal()
     losses = ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.0001, epochs=epochs, lr=1e-2, fit=fit,
-                       tolerance=tolerance, max_rows=10_000)  # fmt: skip
+                       tolerance=tolerance, max_rows=1_000)  # fmt: skip
     assert len(losses) < epochs  # converged, then stopped
     curve = q.curve(np.array([2.0, 5.0, 8.0, 11.5]))
     np.testing.assert_allclose(curve[:3], detected[:30][inside[:30]].mean(), atol=0.06)

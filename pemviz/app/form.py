@@ -185,14 +185,14 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-def run_cost(cfg: ExperimentConfig, n_steps: int = 100, stream_above: int = 100_000) -> RunCost:
+def run_cost(cfg: ExperimentConfig, n_steps: int = 100, stream_above: int = 20_000) -> RunCost:
     """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, expected seconds.
 
-    The final batch above ``stream_above`` rollouts is simulated in chunks (:data:`pemviz.engine.STREAM_ABOVE`),
-    so it does not count in full towards memory.
+    A stage above ``stream_above`` rollouts is simulated in chunks (:data:`pemviz.engine.STREAM_ABOVE`), so it
+    does not count in full towards memory.
     """
     sims = cfg.n_simulations
-    biggest = max(cfg.n_per_stage, min(cfg.n_final, stream_above), cfg.pretrain_rollouts)
+    biggest = max(min(cfg.n_per_stage, stream_above), min(cfg.n_final, stream_above), cfg.pretrain_rollouts)
     seconds = sims * SIM_S_PER_ROLLOUT.get(cfg.sim, 4e-3)
     if cfg.method == "adaptive":
         seconds += EPOCH_S_PER_STEP * n_steps * (

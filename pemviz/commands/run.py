@@ -237,10 +237,6 @@ def main(args: argparse.Namespace) -> int:
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
-        n_final = cfg.n_final if cfg.method == "adaptive" else cfg.n_per_stage
-        if n_final > engine.STREAM_ABOVE:  # such batches are streamed in chunks, never held whole
-            raise UsageError(f"--save-rollouts: at most {engine.STREAM_ABOVE} final rollouts can be saved, "
-                             f"got {n_final}")
         try:
             rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite)
         except ValueError as exc:
@@ -293,11 +289,12 @@ def main(args: argparse.Namespace) -> int:
         if recorder is not None:
             recorder.close(commit=False)
         raise
+    finally:
+        if rollout_sink is not None:
+            rollout_sink.close()  # rollouts of a run that did not finish are not kept
     if rollout_sink is not None and rollout_sink.written is not None:
         for path in rollout_files(rollout_sink.written):
             print(f"rollouts: {path}", file=sys.stderr)
-    elif rollout_sink is not None and rollout_sink.skipped:
-        print(f"--save-rollouts: nothing written: {rollout_sink.skipped}", file=sys.stderr)
     if target == "serve":
         try:  # entered before the line is printed: a Ctrl-C sent as soon as it is read still ends the serving
             print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)

@@ -71,8 +71,8 @@ class Estimator(Protocol):
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         """Take (a chunk of) the planned batch; returns its importance log-weights [N] (nats).
 
-        ``failed``: bool [N] (classic robustness < 0); ``robustness``: [N] under the configured metric (None for the
-        chunks of a streamed final batch, which need only ``failed``)."""
+        ``failed``: bool [N] (classic robustness < 0); ``robustness``: [N] under the configured metric. A stage of
+        many rollouts comes in chunks, in the order drawn: keep per-rollout numbers, not the chunks."""
         ...
 
     def finish(self) -> StageOutcome:
@@ -168,6 +168,62 @@ class StageRollouts:
         log_w, failed, log_p = self.arrays()
         return StageOutcome(float("nan"), int(failed.sum()), estimate(log_w, failed, log_p), proposal_curve,
                             detect_rate(self.counts, self.hits))  # fmt: skip
+
+
+def elite_count(n: int, quantile_level: float) -> int:
+    """ceil((1 - sigma) N), at least 1: the rollouts at or below the stage threshold gamma_kappa (Innes &
+    Ramamoorthy 2022, Algorithm 1; 5 of N = 100 at sigma = 0.95)."""
+    return max(1, int(np.ceil((1.0 - quantile_level) * n - 1e-9)))
+
+
+class EliteCandidates:
+    """The rollouts of a stage that can still be elites, kept as its chunks arrive, so that a stage of any N
+    holds [N] robustness values and only the rollouts at or below a falling bound, not [N, T] arrays.
+
+    The threshold is gamma_kappa = max(floor, the k-th smallest robustness of all N), k = :func:`elite_count`.
+    After some chunks the k-th smallest value seen so far can only fall as more arrive, so a rollout above
+    max(floor, that value) can never be an elite and is dropped. The kept rollouts are exactly those with
+    robustness <= gamma_kappa at the end (ties included), in the order drawn: the same elites, ties broken by the
+    same random draws, as from one batch of all N.
+
+    Args:
+        n: N, rollouts of the stage.
+        quantile_level: sigma.
+        floor: the failure level (0): every rollout at or below it is kept.
+    """
+
+    def __init__(self, n: int, quantile_level: float, floor: float = 0.0) -> None:
+        self.n, self.k, self.floor = n, elite_count(n, quantile_level), float(floor)
+        self.robustness = np.empty(n)
+        self.seen = 0
+        self._kept: list[tuple[RolloutBatch, np.ndarray]] = []
+
+    def bound(self) -> float:
+        """The largest robustness that can still be an elite (inf until k rollouts were seen)."""
+        if self.seen < self.k:
+            return float("inf")
+        return max(self.floor, float(np.partition(self.robustness[: self.seen], self.k - 1)[self.k - 1]))
+
+    def add(self, batch: RolloutBatch, robustness: np.ndarray) -> None:
+        """Take the next chunk (rollouts ``seen .. seen + n - 1``) and its robustness [n]."""
+        r = np.asarray(robustness, dtype=np.float64)
+        self.robustness[self.seen : self.seen + r.size] = r
+        self.seen += r.size
+        bound = self.bound()
+        kept = [(b.select(rb <= bound), rb[rb <= bound]) if rb.size and rb.max() > bound else (b, rb)
+                for b, rb in self._kept]  # fmt: skip
+        self._kept = kept + [(batch.select(r <= bound) if r.max() > bound else batch, r[r <= bound])]
+
+    def gamma(self) -> float:
+        """gamma_kappa over all N rollouts (once they were all added)."""
+        return self.bound()
+
+    def candidates(self) -> tuple[RolloutBatch, np.ndarray]:
+        """(the kept rollouts, their robustness [M]), M >= k, in the order drawn."""
+        if len(self._kept) == 1:
+            return self._kept[0]
+        return (RolloutBatch.concatenate([b for b, _ in self._kept]),
+                np.concatenate([r for _, r in self._kept]))  # fmt: skip
 
 
 def pooled_estimate(stages: list[StageRollouts]) -> Estimate:

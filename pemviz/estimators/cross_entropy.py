@@ -11,7 +11,6 @@ loss (the optimiser and the proposal networks are in :mod:`pemviz.sampling`).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Callable, Literal
 
@@ -23,10 +22,12 @@ from pemviz.config import ExperimentConfig
 from pemviz.detectors import Detector, WindowDetector, logit
 from pemviz.estimators.base import (
     Check,
+    EliteCandidates,
     StageOutcome,
     StagePlan,
     StageRollouts,
     detect_rate,
+    elite_count,
     elite_counts,
     failure_steps,
     pooled_estimate,
@@ -120,10 +121,12 @@ def _action_counts(
     return torch.as_tensor(uniq), torch.as_tensor(counts), inverse
 
 
-def _summed_fit(fit: str, tolerance: float | None, max_rows: int | None, n_fitted: int) -> bool:
+def _summed_fit(fit: str, max_rows: int | None, n_fitted: int) -> bool:
     """Whether a fit of ``n_fitted`` weighted steps is the paper's: every step, summed over distinct inputs, for a
-    fixed number of Adam epochs (the other fits see at most ``max_rows`` steps, with a normalised loss)."""
-    return fit == "adam" and tolerance is None and (max_rows is None or n_fitted <= max_rows)
+    fixed number of Adam epochs. The other fits (more than ``max_rows`` steps, or L-BFGS) see at most ``max_rows``
+    steps, with a loss normalised to nats per step, and stop once converged (``tolerance``): their cost is bounded
+    whatever the number of rollouts."""
+    return fit == "adam" and (max_rows is None or n_fitted <= max_rows)
 
 
 def pretrain_proposal(
@@ -153,13 +156,14 @@ def pretrain_proposal(
         max_rows: None (``adam``: every step, summed over distinct inputs, the paper's fit) or the most steps
             the fit sees: a uniform systematic subsample of the fitted steps beyond that (:func:`weighted_steps`).
         rng: draws that subsample (default: seeded 0).
-        tolerance: early stopping (nats per step; :func:`pemviz.sampling.fit_proposal`), None: every epoch.
+        tolerance: early stopping of a fit of more than ``max_rows`` steps (nats per step;
+            :func:`pemviz.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps runs every epoch.
     Returns:
         the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
     Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts).
     """
     n_fitted = np.size(detected) if step_mask is None else int(np.count_nonzero(step_mask))
-    if _summed_fit(fit, tolerance, max_rows, n_fitted):
+    if _summed_fit(fit, max_rows, n_fitted):
         if step_mask is None:
             uniq, counts, _ = _action_counts(gap_m, detected)
             total = float(np.size(detected))
@@ -181,9 +185,9 @@ def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: flo
     With sigma = 0.95 and N = 100 this is the 5th smallest value (Innes & Ramamoorthy 2022, Algorithm 1). ``floor`` is the
     failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
     """
-    r = np.sort(np.asarray(robustness, dtype=np.float64))
-    k = max(1, int(math.ceil((1.0 - quantile_level) * r.size - 1e-9)))
-    return max(floor, float(r[k - 1]))
+    r = np.asarray(robustness, dtype=np.float64)
+    k = elite_count(r.size, quantile_level)
+    return max(floor, float(np.partition(r, k - 1)[k - 1]))
 
 
 def ce_update(
@@ -225,8 +229,9 @@ def ce_update(
             the same expectation (:func:`weighted_steps`); the loss is then divided by the total weight.
             ``weights = "recomputed"`` always fits every step.
         rng: draws that subsample (default: seeded 0).
-        tolerance: early stopping (nats per step; :func:`pemviz.sampling.fit_proposal`), None: every epoch. Needs the normalised loss
-            of ``max_rows`` or ``lbfgs``.
+        tolerance: early stopping of a fit of more than ``max_rows`` steps, or of ``lbfgs`` (nats per step;
+            :func:`pemviz.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps with ``adam``
+            runs every epoch (the paper's fit).
     Returns:
         the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
         constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
@@ -244,7 +249,7 @@ def ce_update(
     if weights == "frozen":
         scaled = smoothing * frozen_log_w
         step_w = np.exp(scaled - scaled.max())[:, None] * mask
-        if not _summed_fit(fit, tolerance, max_rows, int(np.count_nonzero(step_w))):
+        if not _summed_fit(fit, max_rows, int(np.count_nonzero(step_w))):
             step_w = np.broadcast_to(step_w, detected[idx].shape)
             rows, counts = weighted_steps(gap_m[idx], detected[idx], step_w, max_rows or step_w.size,
                                            rng or np.random.default_rng(0))  # fmt: skip
@@ -300,13 +305,16 @@ class DefensiveDetector:
         return np.logaddexp(a + log_expit(q_logit), half) - np.logaddexp(a + log_expit(-q_logit), half)
 
 
-def break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng: np.random.Generator) -> np.ndarray:
-    """bool [N]: every rollout below gamma plus randomly chosen ties at gamma up to ceil((1 - sigma) N) elites.
+def break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng: np.random.Generator,
+               n: int | None = None) -> np.ndarray:  # fmt: skip
+    """bool [M]: every rollout below gamma plus randomly chosen ties at gamma up to ceil((1 - sigma) N) elites.
 
     At gamma = 0 (the failure threshold) this keeps all failures (r < 0) and admits a non-failing rollout
-    with r = 0 only to reach ceil((1 - sigma) N) elites.
+    with r = 0 only to reach ceil((1 - sigma) N) elites. ``n``: N, the stage's rollouts, when ``robustness``
+    holds only some of them (:class:`~pemviz.estimators.base.EliteCandidates`: every one at or below gamma);
+    default M.
     """
-    k = max(1, int(np.ceil((1.0 - quantile_level) * robustness.size - 1e-9)))
+    k = elite_count(robustness.size if n is None else n, quantile_level)
     below = robustness < gamma
     ties = np.flatnonzero(robustness == gamma)
     elite = below.copy()
@@ -344,8 +352,13 @@ class CrossEntropy:
         """CE stages drawn after one reached gamma = 0 (their proposals were fitted to failures)."""
         self.reached_failures = False
         self._plan: StagePlan | None = None
-        self._batch: tuple[RolloutBatch, np.ndarray] | None = None
+        self._chunks: list[RolloutBatch] = []
+        """The pretraining batch's chunks."""
+        self._elites: EliteCandidates | None = None
+        """A CE stage's rollouts that can still be elites."""
         self._last: tuple[int, Estimate] | None = None
+        self.tolerance = config.fit_tolerance if config.fit == "adam" else None
+        """Early stopping of the Adam fits that see a subsample (L-BFGS stops at its own tolerance)."""
 
     # -- the interface --------------------------------------------------------------------------------------------
     def next_stage(self) -> StagePlan | None:
@@ -356,6 +369,7 @@ class CrossEntropy:
             if self.reached_failures:
                 self.pooled.append(k)
             plan = StagePlan(k, "ce", cfg.n_per_stage, self.sampler)
+            self._elites = EliteCandidates(plan.n, cfg.quantile_level, floor=0.0)
         elif k == cfg.n_stages + 1 and cfg.final_estimate != "last-stage":
             plan = StagePlan(k, "final", cfg.n_final, self.sampler)
         else:
@@ -366,8 +380,10 @@ class CrossEntropy:
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         plan = self._plan
-        if plan.kind != "final":
-            self._batch = (batch, robustness)
+        if plan.kind == "pretrain":
+            self._chunks.append(batch)
+        elif plan.kind == "ce":
+            self._elites.add(batch, robustness)
         return self.stages[plan.stage].add(self.problem, batch, failed, self.config.weights_until_failure,
                                            count_failures=plan.kind == "final")  # fmt: skip
 
@@ -376,13 +392,15 @@ class CrossEntropy:
         if plan.kind == "final":
             outcome = self.stages[plan.stage].failures_outcome(self.proposal.curve(grid))
         else:
-            batch, r = self._batch
-            self._batch = None
             if plan.kind == "pretrain":
+                batch = RolloutBatch.concatenate(self._chunks) if len(self._chunks) > 1 else self._chunks[0]
+                self._chunks = []
                 gamma, elite = float("nan"), np.zeros(batch.n, bool)
                 self._pretrain(batch)
             else:
-                gamma, elite = self._ce_stage(batch, r)
+                batch, r = self._elites.candidates()
+                gamma, elite = self._ce_stage(batch, r, self._elites.gamma(), plan.n)
+                self._elites = None
             log_w, failed, log_p = self.stages[plan.stage].arrays()
             outcome = StageOutcome(gamma, int(elite.sum()), estimate(log_w, failed, log_p), self.proposal.curve(grid),
                                    detect_rate(*elite_counts(batch, elite, grid)))  # fmt: skip
@@ -423,7 +441,7 @@ class CrossEntropy:
             proposal, proposal.features(batch.observations), batch.detected,
             epochs=cfg.pretrain_epochs if cfg.fit == "adam" else cfg.fit_max_steps, lr=cfg.learning_rate,
             check=self.check, step_mask=self.step_mask(batch) if cfg.proposal_window else None,
-            fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=cfg.fit_tolerance,
+            fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
         sampler: Detector = proposal
         if cfg.defensive > 0.0:  # every outcome keeps at least probability defensive / 2
@@ -432,14 +450,14 @@ class CrossEntropy:
             sampler = WindowDetector(sampler, pb.target, pb.window)
         self.sampler = sampler
 
-    def _ce_stage(self, batch: RolloutBatch, robustness: np.ndarray) -> tuple[float, np.ndarray]:
-        """gamma_kappa, the elites, and the proposal refitted to them (in place); returns (gamma, elite [N])."""
+    def _ce_stage(self, batch: RolloutBatch, robustness: np.ndarray, gamma: float, n: int) -> tuple[float, np.ndarray]:
+        """The elites among ``batch`` (the stage's rollouts at or below gamma_kappa, :class:`EliteCandidates`, of
+        its ``n``) and the proposal refitted to them (in place); returns (gamma, elite bool [M])."""
         cfg, proposal = self.config, self.proposal
-        gamma = quantile_threshold(robustness, cfg.quantile_level, floor=0.0)
         self.reached_failures = self.reached_failures or gamma <= 0.0  # latched: the pool's N is fixed once it starts
         elite = robustness <= gamma
         if cfg.elite_ties == "random":
-            elite = break_ties(robustness, gamma, cfg.quantile_level, self.tie_rng)
+            elite = break_ties(robustness, gamma, cfg.quantile_level, self.tie_rng, n)
         smoothing = cfg.smoothing
         if cfg.smoothing_at_failure is not None and gamma <= 0.0:
             smoothing = cfg.smoothing_at_failure
@@ -448,7 +466,7 @@ class CrossEntropy:
             proposal, proposal.features(batch.observations), batch.detected, batch.log_p, batch.log_q, elite,
             smoothing=smoothing, epochs=cfg.ce_epochs if cfg.fit == "adam" else cfg.fit_max_steps,
             lr=cfg.learning_rate, weights=cfg.weights, check=self.check, step_mask=self.step_mask(batch, gamma),
-            fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=cfg.fit_tolerance,
+            fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
         return gamma, elite
 

@@ -73,6 +73,11 @@ class RolloutBatch:
         k = self.n_steps - 1 if n_factors is None else n_factors
         return (self.log_p[:, :k] - self.log_q[:, :k]).sum(axis=1)
 
+    def select(self, rows: np.ndarray) -> "RolloutBatch":
+        """The rollouts ``rows`` (bool [N] mask or int indices), copied: a batch of its own, in their order."""
+        return RolloutBatch(self.observations[rows], self.detected[rows], self.log_p[rows], self.log_q[rows],
+                            self.observation_names)  # fmt: skip
+
     @staticmethod
     def concatenate(batches: Sequence["RolloutBatch"]) -> "RolloutBatch":
         """Stack batches of equal T along N."""

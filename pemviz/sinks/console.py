@@ -98,7 +98,7 @@ class ConsoleSink:
             line = progress_line(label, event.n_rollouts, time.perf_counter() - self.t0, expected)
             print(f"  {line}", file=self.progress, flush=True)
         elif isinstance(event, RolloutsSampled) and event.kind == "ce":
-            self.sample_s_per_rollout = (time.perf_counter() - self.stage_t0) / max(1, event.batch.n)
+            self.sample_s_per_rollout = (time.perf_counter() - self.stage_t0) / max(1, event.n_total or event.batch.n)
         elif isinstance(event, StageFinished):
             self.done.append(event.result)
             print(stage_row(event.result), file=self.out, flush=True)

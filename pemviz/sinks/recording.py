@@ -600,7 +600,9 @@ class RerunSink:
 
     def _log_histograms(self, ev: RolloutsSampled) -> None:
         """Histograms of every rollout's robustness and log-weight at this stage (:class:`rerun.BarChart` on ``stage``)."""
-        for key, values in (("robustness", ev.robustness), ("log_weight", ev.log_weight)):
+        every = ev.n_total is not None  # a streamed stage: the sample's rows, every rollout's numbers
+        for key, values in (("robustness", ev.stage_robustness if every else ev.robustness),
+                            ("log_weight", ev.stage_log_weight if every else ev.log_weight)):  # fmt: skip
             v = np.asarray(values, dtype=np.float64)
             v = v[np.isfinite(v)]
             if v.size == 0:
@@ -616,9 +618,10 @@ class RerunSink:
     def kept_rollouts(self, ev: RolloutsSampled) -> np.ndarray:
         """Indices of the rollouts recorded in full, ascending: all up to :data:`ALL_ROLLOUTS_UP_TO`, else the
         ``tagged_per_stage`` least robust, every failure up to :data:`SAMPLED_ROLLOUTS` of them and a uniform
-        sample of :data:`SAMPLED_ROLLOUTS` (every ``N / SAMPLED_ROLLOUTS``-th rollout)."""
+        sample of :data:`SAMPLED_ROLLOUTS` (every ``N / SAMPLED_ROLLOUTS``-th rollout); all of the engine's
+        sample of a streamed stage (chosen the same way)."""
         n = ev.robustness.size
-        if n <= ALL_ROLLOUTS_UP_TO:
+        if n <= ALL_ROLLOUTS_UP_TO or ev.n_total is not None:
             return np.arange(n)
         keep = set(self._least_robust(ev, max(self.tagged_per_stage, self.scene_per_stage)).tolist())
         keep |= set(np.flatnonzero(np.asarray(ev.failed, bool))[:SAMPLED_ROLLOUTS].tolist())
@@ -635,6 +638,7 @@ class RerunSink:
         order = self._least_robust(ev, self.tagged_per_stage)
         rank = {int(i): j for j, i in enumerate(order)}
         failed = np.asarray(ev.failed, bool)
+        number = ev.rollout_numbers
         colours, widths, names = [], [], []
         for i in keep.tolist():
             tag = rank.get(i)
@@ -642,11 +646,11 @@ class RerunSink:
             if tag is None:
                 colours.append(CRASH_RGBA if failed[i] else SAFE_RGBA)
                 widths.append(1.0)
-                names.append(f"s{ev.stage} r{i}{crash}")
+                names.append(f"s{ev.stage} r{number[i]}{crash}")
             else:
                 colours.append(TAG_CRASH_RGBA if failed[i] else TAG_RGBA)
                 widths.append(2.5)
-                names.append(f"s{ev.stage} r{i} least-robust #{tag + 1} rho={ev.robustness[i]:.3g}{crash}")
+                names.append(f"s{ev.stage} r{number[i]} least-robust #{tag + 1} rho={ev.robustness[i]:.3g}{crash}")
         index = self._indexes(step=np.arange(t))
         stage = f"stage_{ev.stage:02d}"
         for name in batch.observation_names:
@@ -668,7 +672,7 @@ class RerunSink:
         s.log(
             f"rollouts/summary/{stage}",
             rr.AnyValues(
-                rollout=keep,
+                rollout=number[keep],
                 log_weight=np.asarray(ev.log_weight, np.float64)[keep],
                 failed=failed[keep],
                 least_robust=np.isin(keep, order),
@@ -704,7 +708,7 @@ class RerunSink:
         path = f"{SCENE_PATH}/stage_{ev.stage:02d}" + (f"_{lane}" if self.scene_per_stage > 1 else "")
         crash = " crash" if ev.failed[i] else ""
         label = f"stage {ev.stage}{crash}"
-        detail = f"stage {ev.stage} ({ev.kind}) rollout {i}: robustness {ev.robustness[i]:.3g}{crash}"
+        detail = f"stage {ev.stage} ({ev.kind}) rollout {ev.rollout_numbers[i]}: robustness {ev.robustness[i]:.3g}{crash}"
         half = LANE_SPACING_M / 2 - 0.1
         x_end = float(max(lead_x.max() + p.lead_length_m, SCENE_X_RANGE_M[1]))
         s.log(
