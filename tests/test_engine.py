@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import pytest
 
 from pemviz.config import PRESETS, ExperimentConfig
-from pemviz.engine import Experiment
+from pemviz.engine import Experiment, RolloutsSampled
 from pemviz.problems import build_problem
 
 nan, inf = math.nan, math.inf
@@ -98,3 +100,35 @@ def test_torch_threads_sets_and_restores_the_process_setting():
     with torch_threads(2):
         assert torch.get_num_threads() == 2
     assert torch.get_num_threads() == before
+
+
+@pytest.mark.parametrize("name", ["main", "toy"])
+def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, monkeypatch):
+    """Above STREAM_ABOVE every stage is simulated chunk by chunk and never held whole: same rollouts, same elites,
+    same fits, same answer as one batch per stage."""
+    import dataclasses
+
+    import pemviz.engine as engine
+
+    cfg = ExperimentConfig(**{**SMALL, "n_per_stage": 400, "n_final": 600, "pretrain_rollouts": 300, "seed": 2})
+    problem = build_problem(name, cfg.pem)
+    whole = Experiment(cfg, problem=problem).run()
+    monkeypatch.setattr(engine, "STREAM_ABOVE", 100)
+    if problem.stream is None:  # the toy: stream in chunks of 64 from one batch's uniforms
+        def stream(n, sampler, target, rng):
+            batch = problem.simulate(n, sampler, target, rng)
+            return (batch.select(np.arange(a, min(a + 64, n))) for a in range(0, n, 64))
+
+        problem = dataclasses.replace(problem, stream=stream)
+    samples = []
+    streamed = Experiment(cfg, [lambda e: isinstance(e, RolloutsSampled) and samples.append(e)], problem=problem).run()
+    a, b = whole.final.estimate, streamed.final.estimate
+    assert (a.log_mu_hat, a.n_failures, a.n) == (b.log_mu_hat, b.n_failures, b.n)
+    assert [(repr(s.gamma), s.n_elites) for s in whole.stages] == [(repr(s.gamma), s.n_elites) for s in streamed.stages]
+    assert [s.n_total for s in samples] == [300, 400, 400, 400, 600]
+    last = samples[-1]
+    assert last.batch.n <= engine.SAMPLE_LEAST_ROBUST + engine.SAMPLE_FAILURES + engine.SAMPLE_UNIFORM
+    assert last.stage_robustness.shape == (600,)
+    np.testing.assert_array_equal(last.robustness, last.stage_robustness[last.index])
+    least = np.argsort(last.stage_robustness, kind="stable")[: engine.SAMPLE_LEAST_ROBUST]
+    assert set(least) <= set(last.index.tolist())

@@ -105,3 +105,29 @@ def test_a_baseline_is_one_weighted_batch_whose_estimate_is_eq_6():
     w = np.exp(batch.log_weight())
     assert used == (1,) and outcome.n_elites == failed.sum() > 0
     assert mu.log_mu_hat == pytest.approx(math.log(np.sum(w * failed) / 500), rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of_all_n(seed):
+    """Chunk by chunk, the pool ends with gamma_kappa of the whole stage and every rollout r <= gamma, in order."""
+    from pemviz.estimators.base import EliteCandidates
+    from pemviz.estimators.cross_entropy import quantile_threshold
+    from pemviz.scenarios import RolloutBatch
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(50, 400))
+    r = rng.integers(-3, 30, n).astype(float) if seed % 2 else rng.normal(5, 3, n)  # ties, or none
+    batch = RolloutBatch(np.arange(n, dtype=float)[:, None, None], np.zeros((n, 1), bool), np.zeros((n, 1)),
+                         np.zeros((n, 1)), ("gap_m",))  # fmt: skip
+    pool = EliteCandidates(n, 0.9, floor=0.0)
+    cuts = np.sort(rng.choice(np.arange(1, n), size=int(rng.integers(0, 8)), replace=False))
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, n]):
+        pool.add(batch.select(np.arange(a, b)), r[a:b])
+    gamma = quantile_threshold(r, 0.9, floor=0.0)
+    kept, kept_r = pool.candidates()
+    assert pool.gamma() == gamma
+    np.testing.assert_array_equal(kept.observations[:, 0, 0], np.flatnonzero(r <= gamma))
+    np.testing.assert_array_equal(kept_r, r[r <= gamma])
+    elite = break_ties(kept_r, gamma, 0.9, np.random.default_rng(7), n=n)
+    whole = break_ties(r, gamma, 0.9, np.random.default_rng(7))
+    np.testing.assert_array_equal(np.flatnonzero(r <= gamma)[elite], np.flatnonzero(whole))
