@@ -118,8 +118,13 @@ def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, mon
         def stream(n, sampler, target, rng):
             batch = problem.simulate(n, sampler, target, rng)
             return (batch.select(np.arange(a, min(a + 64, n))) for a in range(0, n, 64))
+    else:
+        from pemviz.scenarios.batched import iter_batched
 
-        problem = dataclasses.replace(problem, stream=stream)
+        def stream(n, sampler, target, rng):
+            return iter_batched(None, n, sampler, target, rng, chunk_size=64)
+
+    problem = dataclasses.replace(problem, stream=stream)
     samples = []
     streamed = Experiment(cfg, [lambda e: isinstance(e, RolloutsSampled) and samples.append(e)], problem=problem).run()
     a, b = whole.final.estimate, streamed.final.estimate

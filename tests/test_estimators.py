@@ -107,7 +107,7 @@ def test_a_baseline_is_one_weighted_batch_whose_estimate_is_eq_6():
     assert mu.log_mu_hat == pytest.approx(math.log(np.sum(w * failed) / 500), rel=1e-12)
 
 
-@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("seed", range(8))
 def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of_all_n(seed):
     """Chunk by chunk, the pool ends with gamma_kappa of the whole stage and every rollout r <= gamma, in order."""
     from pemviz.estimators.base import EliteCandidates
@@ -121,13 +121,51 @@ def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of
                          np.zeros((n, 1)), ("gap_m",))  # fmt: skip
     pool = EliteCandidates(n, 0.9, floor=0.0)
     cuts = np.sort(rng.choice(np.arange(1, n), size=int(rng.integers(0, 8)), replace=False))
+    settled = []
     for a, b in zip(np.r_[0, cuts], np.r_[cuts, n]):
         pool.add(batch.select(np.arange(a, b)), r[a:b])
+        if seed >= 2:  # failures are handed over once the bound is the floor
+            done, index = pool.settle()
+            assert done is None or (np.all(r[index] < 0) and pool.bound() == 0.0)
+            settled += index.tolist()
     gamma = quantile_threshold(r, 0.9, floor=0.0)
-    kept, kept_r = pool.candidates()
-    assert pool.gamma() == gamma
-    np.testing.assert_array_equal(kept.observations[:, 0, 0], np.flatnonzero(r <= gamma))
-    np.testing.assert_array_equal(kept_r, r[r <= gamma])
-    elite = break_ties(kept_r, gamma, 0.9, np.random.default_rng(7), n=n)
+    kept, kept_r, kept_i = pool.candidates()
+    assert pool.gamma() == gamma and pool.n_settled == len(settled)
+    np.testing.assert_array_equal(np.sort(np.r_[settled, kept_i]), np.flatnonzero(r <= gamma))
+    np.testing.assert_array_equal(kept_r, r[kept_i])
+    if kept is not None:
+        np.testing.assert_array_equal(kept.observations[:, 0, 0], kept_i)
+    elite = break_ties(kept_r, gamma, 0.9, np.random.default_rng(7), n=n, settled=len(settled))
     whole = break_ties(r, gamma, 0.9, np.random.default_rng(7))
-    np.testing.assert_array_equal(np.flatnonzero(r <= gamma)[elite], np.flatnonzero(whole))
+    np.testing.assert_array_equal(np.sort(np.r_[settled, kept_i[elite]]), np.flatnonzero(whole))
+
+
+def test_elite_steps_thinned_as_they_come_keep_the_weighted_log_likelihood_in_expectation():
+    """Thinning the gathered steps (systematic resampling, repeated as chunks arrive) keeps
+    E[sum_s w_s f(h_s, a_s)] for any f: the CE objective's expectation."""
+    from pemviz.estimators.cross_entropy import EliteSteps
+    from pemviz.scenarios import RolloutBatch
+
+    rng = np.random.default_rng(0)
+    m, t = 60, 5
+    h = rng.normal(size=(m, t))
+    batch = RolloutBatch(h[:, :, None], rng.random((m, t)) < 0.4, np.zeros((m, t)), np.zeros((m, t)), ("gap_m",))
+    mask = rng.random((m, t)) < 0.7
+    log_w = rng.normal(0, 2, m)
+
+    def f(x, a):
+        return np.sin(3 * x) + a
+
+    exact = float((np.exp(log_w)[:, None] * mask * f(h, batch.detected)).sum())
+    draws = []
+    for seed in range(1500):
+        steps = EliteSteps(np.linspace(0, 1, 3), max_rows=12, rng=np.random.default_rng(seed), thin_above=30)
+        for a in range(0, m, 15):  # 4 chunks of 15 rollouts: thinned whenever more than 30 steps are held
+            sel = np.arange(a, a + 15)
+            steps.add(sel, batch.select(sel), h[sel], mask[sel], log_w[sel])
+        rows, actions, lw = steps.arrays()
+        assert steps.thinned and rows.size <= 2 * 12 + 30
+        draws.append(float((np.exp(lw) * f(rows, actions)).sum()))
+    draws = np.array(draws)
+    assert steps.n_steps == mask.sum() and steps.n_rollouts == m
+    assert abs(draws.mean() - exact) < 4 * draws.std() / math.sqrt(draws.size)

@@ -184,7 +184,9 @@ class EliteCandidates:
     After some chunks the k-th smallest value seen so far can only fall as more arrive, so a rollout above
     max(floor, that value) can never be an elite and is dropped. The kept rollouts are exactly those with
     robustness <= gamma_kappa at the end (ties included), in the order drawn: the same elites, ties broken by the
-    same random draws, as from one batch of all N.
+    same random draws, as from one batch of all N. Once the bound is the floor, gamma_kappa is the floor and every
+    rollout below it is an elite for sure: :meth:`settle` hands those over (e.g. to be reduced to their fitted
+    steps), so that a stage where most rollouts fail does not hold them all.
 
     Args:
         n: N, rollouts of the stage.
@@ -196,7 +198,8 @@ class EliteCandidates:
         self.n, self.k, self.floor = n, elite_count(n, quantile_level), float(floor)
         self.robustness = np.empty(n)
         self.seen = 0
-        self._kept: list[tuple[RolloutBatch, np.ndarray]] = []
+        self.n_settled = 0
+        self._kept: list[tuple[RolloutBatch, np.ndarray, np.ndarray]] = []
 
     def bound(self) -> float:
         """The largest robustness that can still be an elite (inf until k rollouts were seen)."""
@@ -207,23 +210,47 @@ class EliteCandidates:
     def add(self, batch: RolloutBatch, robustness: np.ndarray) -> None:
         """Take the next chunk (rollouts ``seen .. seen + n - 1``) and its robustness [n]."""
         r = np.asarray(robustness, dtype=np.float64)
+        index = np.arange(self.seen, self.seen + r.size)
         self.robustness[self.seen : self.seen + r.size] = r
         self.seen += r.size
-        bound = self.bound()
-        kept = [(b.select(rb <= bound), rb[rb <= bound]) if rb.size and rb.max() > bound else (b, rb)
-                for b, rb in self._kept]  # fmt: skip
-        self._kept = kept + [(batch.select(r <= bound) if r.max() > bound else batch, r[r <= bound])]
+        self._kept = self._select(self._kept + [(batch, r, index)], lambda rb: rb <= self.bound())
+
+    @staticmethod
+    def _select(parts: list, keep) -> list:
+        out = []
+        for b, rb, ib in parts:
+            k = keep(rb)
+            if k.all():
+                out.append((b, rb, ib))
+            elif k.any():
+                out.append((b.select(k), rb[k], ib[k]))
+        return out
+
+    def settle(self) -> tuple[RolloutBatch | None, np.ndarray]:
+        """The kept rollouts that are elites whatever comes next (below the floor, once the bound is the floor),
+        removed from the pool: (their batch or None, their numbers in the stage [m])."""
+        if self.bound() > self.floor:
+            return None, np.zeros(0, np.int64)
+        below = self._select(self._kept, lambda rb: rb < self.floor)
+        self._kept = self._select(self._kept, lambda rb: rb >= self.floor)
+        if not below:
+            return None, np.zeros(0, np.int64)
+        self.n_settled += sum(b.n for b, _, _ in below)
+        return RolloutBatch.concatenate([b for b, _, _ in below]), np.concatenate([i for _, _, i in below])
 
     def gamma(self) -> float:
         """gamma_kappa over all N rollouts (once they were all added)."""
         return self.bound()
 
-    def candidates(self) -> tuple[RolloutBatch, np.ndarray]:
-        """(the kept rollouts, their robustness [M]), M >= k, in the order drawn."""
+    def candidates(self) -> tuple[RolloutBatch | None, np.ndarray, np.ndarray]:
+        """(the kept rollouts or None, their robustness [M], their numbers in the stage [M]), in the order drawn;
+        with the :attr:`n_settled` ones, M + n_settled >= k."""
+        if not self._kept:
+            return None, np.zeros(0), np.zeros(0, np.int64)
         if len(self._kept) == 1:
             return self._kept[0]
-        return (RolloutBatch.concatenate([b for b, _ in self._kept]),
-                np.concatenate([r for _, r in self._kept]))  # fmt: skip
+        return (RolloutBatch.concatenate([b for b, _, _ in self._kept]), np.concatenate([r for _, r, _ in self._kept]),
+                np.concatenate([i for _, _, i in self._kept]))  # fmt: skip
 
 
 def pooled_estimate(stages: list[StageRollouts]) -> Estimate:

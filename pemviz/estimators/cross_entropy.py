@@ -246,6 +246,12 @@ def ce_update(
     mask = mask[idx]
     lp = (log_p[idx, :k] * mask[:, :k]).sum(axis=1)
     frozen_log_w = ((log_p[idx, :k] - log_q[idx, :k]) * mask[:, :k]).sum(axis=1)
+    if weights == "frozen" and step_mask is not None:
+        scaled = smoothing * frozen_log_w
+        rows, actions = gap_m[idx][mask], detected[idx][mask]
+        return fit_elite_steps(proposal, rows, actions, np.broadcast_to(scaled[:, None], mask.shape)[mask],
+                               float(scaled.max()), epochs=epochs, lr=lr, check=check, fit=fit, max_rows=max_rows,
+                               rng=rng, tolerance=tolerance)  # fmt: skip
     if weights == "frozen":
         scaled = smoothing * frozen_log_w
         step_w = np.exp(scaled - scaled.max())[:, None] * mask
@@ -256,8 +262,7 @@ def ce_update(
             total = float(counts.sum())
             return fit_proposal(proposal, lambda: -(counts * proposal.forward(rows)).sum() / total, epochs, lr, check, fit,
                         tolerance)  # fmt: skip
-        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w if step_mask is not None else step_w[:, 0],
-                                         drop_unweighted=step_mask is not None)
+        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w[:, 0])
 
         def loss() -> torch.Tensor:
             return -(counts * proposal.forward(uniq)).sum()
@@ -276,6 +281,116 @@ def ce_update(
             return -(w * log_q_now.sum(dim=1)).sum()
 
     return fit_proposal(proposal, loss, epochs, lr, check, fit)
+
+
+def fit_elite_steps(
+    proposal: Proposal,
+    rows: np.ndarray,
+    actions: np.ndarray,
+    log_w: np.ndarray,
+    log_w_max: float,
+    *,
+    epochs: int,
+    lr: float,
+    check: Callable[[], None] | None = None,
+    fit: str = "adam",
+    max_rows: int | None = None,
+    rng: np.random.Generator | None = None,
+    tolerance: float | None = None,
+    n_steps: int | None = None,
+) -> list[float]:
+    """The frozen-weight CE fit on the elites' fitted steps: minimise ``-sum_s w_s log q_phi(a_s | h_s)``, in place.
+
+    Args:
+        rows: float64 [S] or [S, k] proposal inputs of the steps that count (the elites', inside the step mask), in
+            the order drawn (rollout by rollout, step by step).
+        actions: bool [S] their detections.
+        log_w: float64 [S] each step's weight in log space (nats): alpha times its rollout's importance log-weight.
+        log_w_max: the largest rollout log-weight (alpha log w_i) of the elites; the weights are divided by its
+            exponential (a constant factor, to which Adam's steps are invariant), so that none overflows.
+        n_steps: the steps these rows stand for (default S; more once they were thinned as they came).
+        epochs, lr, check, fit, max_rows, rng, tolerance: see :func:`ce_update`.
+    Returns:
+        the loss per epoch (per L-BFGS evaluation).
+    Source: Innes & Ramamoorthy 2022, eq. 10-11 (the CE update), summed over distinct inputs.
+    """
+    w = np.exp(np.asarray(log_w, dtype=np.float64) - log_w_max)[None]
+    rows, actions = np.asarray(rows)[None], np.asarray(actions, dtype=bool)[None]
+    if not _summed_fit(fit, max_rows, int(np.count_nonzero(w)) if n_steps is None else n_steps):
+        fitted, counts = weighted_steps(rows, actions, w, max_rows or w.size, rng or np.random.default_rng(0))
+        total = float(counts.sum())
+        return fit_proposal(proposal, lambda: -(counts * proposal.forward(fitted)).sum() / total, epochs, lr, check,
+                            fit, tolerance)  # fmt: skip
+    uniq, counts, _ = _action_counts(rows, actions, w, drop_unweighted=True)
+    return fit_proposal(proposal, lambda: -(counts * proposal.forward(uniq)).sum(), epochs, lr, check, fit)
+
+
+class EliteSteps:
+    """The fitted steps of a stage's elites, gathered rollout by rollout as chunks arrive: proposal inputs, actions
+    and log-weights of the steps inside the step mask only, so that a stage of any N holds at most
+    ``thin_above`` steps. Beyond that they are thinned to ``max_rows`` weighted steps by systematic resampling
+    (:func:`weighted_steps`; each thinning keeps the expected weighted log-likelihood, so the fit's objective
+    keeps its expectation). Also the elites' detections per bin of the curve grid.
+
+    Args:
+        grid: the problem's curve grid [G].
+        max_rows: the fit's ``max_rows`` (None: never thinned).
+        rng: draws the thinning.
+        thin_above: steps held before a thinning (default 20 x ``max_rows``).
+    """
+
+    def __init__(self, grid: np.ndarray, max_rows: int | None, rng: np.random.Generator,
+                 thin_above: int | None = None) -> None:  # fmt: skip
+        self.grid, self.max_rows, self.rng = grid, max_rows, rng
+        self.thin_above = None if max_rows is None else (thin_above or 20 * max_rows)
+        self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
+        self.n_rollouts, self.n_steps, self.held, self.thinned = 0, 0, 0, False
+        self.log_w_max = -np.inf
+
+    def add(self, index: np.ndarray, batch: RolloutBatch, features: np.ndarray, mask: np.ndarray,
+            log_w: np.ndarray) -> None:  # fmt: skip
+        """Elite rollouts ``index`` [m] of the stage: their features [m, T(, k)], step mask bool [m, T] and
+        smoothed log-weights alpha log w_i [m]."""
+        if index.size == 0:
+            return
+        c, h = elite_counts(batch, np.ones(batch.n, bool), self.grid)
+        self.counts, self.hits = self.counts + c, self.hits + h
+        order = np.broadcast_to(np.asarray(index)[:, None], mask.shape)[mask]
+        self.parts.append((order, features[mask], batch.detected[mask], np.broadcast_to(log_w[:, None], mask.shape)[mask]))
+        self.n_rollouts += index.size
+        self.n_steps += int(mask.sum())
+        self.held += int(mask.sum())
+        self.log_w_max = max(self.log_w_max, float(np.max(log_w)))
+        if self.thin_above is not None and self.held > self.thin_above:
+            self._thin()
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rows [S(, k)], actions [S], log-weights [S]) in the order drawn."""
+        order, rows, actions, log_w = (np.concatenate(a) for a in zip(*self.parts))
+        if len(self.parts) > 1 and not self.thinned:
+            by = np.argsort(order, kind="stable")
+            rows, actions, log_w = rows[by], actions[by], log_w[by]
+        return rows, actions, log_w
+
+    def _thin(self) -> None:
+        rows, actions, log_w = self.arrays()
+        top = float(log_w.max())
+        uniq, counts = weighted_steps(rows[None], actions[None], np.exp(log_w - top)[None], self.max_rows, self.rng)
+        uniq, counts = uniq.numpy(), counts.numpy()
+        hit = counts > 0  # [U, 2]: (miss, detect) weights of each distinct input
+        slot, action = np.nonzero(hit)
+        with np.errstate(divide="ignore"):
+            self.parts = [(np.zeros(slot.size, np.int64), uniq[slot], action.astype(bool),
+                           np.log(counts[slot, action]) + top)]  # fmt: skip
+        self.held, self.thinned = slot.size, True
+
+    def fit(self, proposal: Proposal, **kwargs) -> list[float]:
+        """:func:`fit_elite_steps` on the gathered steps (``kwargs``: epochs, lr, check, fit, max_rows, rng,
+        tolerance)."""
+        rows, actions, log_w = self.arrays()
+        return fit_elite_steps(proposal, rows, actions, log_w, self.log_w_max,
+                               n_steps=self.n_steps if self.thinned else None, **kwargs)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -306,19 +421,19 @@ class DefensiveDetector:
 
 
 def break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng: np.random.Generator,
-               n: int | None = None) -> np.ndarray:  # fmt: skip
+               n: int | None = None, settled: int = 0) -> np.ndarray:  # fmt: skip
     """bool [M]: every rollout below gamma plus randomly chosen ties at gamma up to ceil((1 - sigma) N) elites.
 
     At gamma = 0 (the failure threshold) this keeps all failures (r < 0) and admits a non-failing rollout
     with r = 0 only to reach ceil((1 - sigma) N) elites. ``n``: N, the stage's rollouts, when ``robustness``
     holds only some of them (:class:`~pemviz.estimators.base.EliteCandidates`: every one at or below gamma);
-    default M.
+    default M. ``settled``: rollouts below gamma already taken as elites and not in ``robustness``.
     """
     k = elite_count(robustness.size if n is None else n, quantile_level)
     below = robustness < gamma
     ties = np.flatnonzero(robustness == gamma)
     elite = below.copy()
-    elite[rng.permutation(ties)[: max(0, k - int(below.sum()))]] = True
+    elite[rng.permutation(ties)[: max(0, k - int(below.sum()) - settled)]] = True
     return elite
 
 
@@ -356,6 +471,9 @@ class CrossEntropy:
         """The pretraining batch's chunks."""
         self._elites: EliteCandidates | None = None
         """A CE stage's rollouts that can still be elites."""
+        self._steps: EliteSteps | None = None
+        """A CE stage's settled elites as fitted steps (frozen weights with a step mask; else the elites are fitted
+        from their rollouts by :func:`ce_update`)."""
         self._last: tuple[int, Estimate] | None = None
         self.tolerance = config.fit_tolerance if config.fit == "adam" else None
         """Early stopping of the Adam fits that see a subsample (L-BFGS stops at its own tolerance)."""
@@ -370,6 +488,8 @@ class CrossEntropy:
                 self.pooled.append(k)
             plan = StagePlan(k, "ce", cfg.n_per_stage, self.sampler)
             self._elites = EliteCandidates(plan.n, cfg.quantile_level, floor=0.0)
+            if cfg.weights == "frozen" and (cfg.weights_until_failure or cfg.proposal_window):
+                self._steps = EliteSteps(self.problem.curve_grid, cfg.fit_rows, self.fit_rng)
         elif k == cfg.n_stages + 1 and cfg.final_estimate != "last-stage":
             plan = StagePlan(k, "final", cfg.n_final, self.sampler)
         else:
@@ -384,6 +504,10 @@ class CrossEntropy:
             self._chunks.append(batch)
         elif plan.kind == "ce":
             self._elites.add(batch, robustness)
+            if self._steps is not None:  # failures of a stage at the failure level: only their fitted steps are kept
+                settled, index = self._elites.settle()
+                if settled is not None:
+                    self._add_steps(settled, index, self._elites.floor)
         return self.stages[plan.stage].add(self.problem, batch, failed, self.config.weights_until_failure,
                                            count_failures=plan.kind == "final")  # fmt: skip
 
@@ -395,15 +519,14 @@ class CrossEntropy:
             if plan.kind == "pretrain":
                 batch = RolloutBatch.concatenate(self._chunks) if len(self._chunks) > 1 else self._chunks[0]
                 self._chunks = []
-                gamma, elite = float("nan"), np.zeros(batch.n, bool)
+                gamma, n_elites, rate = float("nan"), 0, detect_rate(*elite_counts(batch, np.zeros(batch.n, bool), grid))
                 self._pretrain(batch)
             else:
-                batch, r = self._elites.candidates()
-                gamma, elite = self._ce_stage(batch, r, self._elites.gamma(), plan.n)
-                self._elites = None
+                batch, r, index = self._elites.candidates()
+                gamma, n_elites, rate = self._ce_stage(batch, r, index, self._elites.gamma(), plan.n)
+                self._elites = self._steps = None
             log_w, failed, log_p = self.stages[plan.stage].arrays()
-            outcome = StageOutcome(gamma, int(elite.sum()), estimate(log_w, failed, log_p), self.proposal.curve(grid),
-                                   detect_rate(*elite_counts(batch, elite, grid)))  # fmt: skip
+            outcome = StageOutcome(gamma, n_elites, estimate(log_w, failed, log_p), self.proposal.curve(grid), rate)
         self._last = (plan.stage, outcome.estimate)
         return outcome
 
@@ -450,25 +573,43 @@ class CrossEntropy:
             sampler = WindowDetector(sampler, pb.target, pb.window)
         self.sampler = sampler
 
-    def _ce_stage(self, batch: RolloutBatch, robustness: np.ndarray, gamma: float, n: int) -> tuple[float, np.ndarray]:
-        """The elites among ``batch`` (the stage's rollouts at or below gamma_kappa, :class:`EliteCandidates`, of
-        its ``n``) and the proposal refitted to them (in place); returns (gamma, elite bool [M])."""
-        cfg, proposal = self.config, self.proposal
+    def _smoothing(self, gamma: float) -> float:
+        """alpha of a stage at threshold gamma (``smoothing_at_failure`` once gamma reached the failure level)."""
+        cfg = self.config
+        return cfg.smoothing_at_failure if cfg.smoothing_at_failure is not None and gamma <= 0.0 else cfg.smoothing
+
+    def _add_steps(self, batch: RolloutBatch, index: np.ndarray, gamma: float) -> None:
+        """Reduce elite rollouts to their fitted steps (:class:`EliteSteps`): inputs, actions, alpha log w_i."""
+        mask = self.step_mask(batch, gamma)
+        k = batch.n_steps - 1
+        frozen_log_w = ((batch.log_p[:, :k] - batch.log_q[:, :k]) * mask[:, :k]).sum(axis=1)
+        self._steps.add(index, batch, self.proposal.features(batch.observations), mask,
+                        self._smoothing(gamma) * frozen_log_w)  # fmt: skip
+
+    def _ce_stage(self, batch: RolloutBatch | None, robustness: np.ndarray, index: np.ndarray, gamma: float,
+                  n: int) -> tuple[float, int, np.ndarray]:  # fmt: skip
+        """The elites among ``batch`` (the stage's rollouts at or below gamma_kappa not yet settled,
+        :class:`EliteCandidates`, of its ``n``) and the proposal refitted to all elites (in place); returns
+        (gamma, elites, their detection rate per bin of the curve grid [G])."""
+        cfg, proposal, grid = self.config, self.proposal, self.problem.curve_grid
         self.reached_failures = self.reached_failures or gamma <= 0.0  # latched: the pool's N is fixed once it starts
         elite = robustness <= gamma
         if cfg.elite_ties == "random":
-            elite = break_ties(robustness, gamma, cfg.quantile_level, self.tie_rng, n)
-        smoothing = cfg.smoothing
-        if cfg.smoothing_at_failure is not None and gamma <= 0.0:
-            smoothing = cfg.smoothing_at_failure
+            elite = break_ties(robustness, gamma, cfg.quantile_level, self.tie_rng, n, settled=self._elites.n_settled)
         self.check()
+        epochs = cfg.ce_epochs if cfg.fit == "adam" else cfg.fit_max_steps
+        fit = dict(epochs=epochs, lr=cfg.learning_rate, check=self.check, fit=cfg.fit, max_rows=cfg.fit_rows,
+                   rng=self.fit_rng, tolerance=self.tolerance)  # fmt: skip
+        if self._steps is not None:
+            if batch is not None and elite.any():
+                self._add_steps(batch.select(elite), index[elite], gamma)
+            self._steps.fit(proposal, **fit)
+            return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
         ce_update(
             proposal, proposal.features(batch.observations), batch.detected, batch.log_p, batch.log_q, elite,
-            smoothing=smoothing, epochs=cfg.ce_epochs if cfg.fit == "adam" else cfg.fit_max_steps,
-            lr=cfg.learning_rate, weights=cfg.weights, check=self.check, step_mask=self.step_mask(batch, gamma),
-            fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
+            smoothing=self._smoothing(gamma), weights=cfg.weights, step_mask=self.step_mask(batch, gamma), **fit,
         )  # fmt: skip
-        return gamma, elite
+        return gamma, int(elite.sum()), detect_rate(*elite_counts(batch, elite, grid))
 
     def step_mask(self, batch: RolloutBatch, level: float = 0.0) -> np.ndarray | None:
         """bool [N, T]: the steps whose actions enter the CE fit, or None for all of them.
