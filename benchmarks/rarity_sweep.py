@@ -366,6 +366,48 @@ def write_rrd(path: str, rows: Sequence[Row], table_md: str) -> None:
     rec.disconnect()
 
 
+# -- how far from q*: the relative variance of the default sampler --------------------------------------------------
+
+
+def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
+    """Var(w 1[fail]) / mu^2 per rollout of the default sampler's final batch (N_e rollouts from its last proposal,
+    the defensive mixture included) on the named problem of :data:`pemviz.problems.PROBLEMS`, one per seed, with the
+    exact mu; returns (log mu, [relative variance per seed]). q* has 0, plain Monte Carlo (1 - mu) / mu."""
+    from pemviz.engine import RolloutsSampled
+    from pemviz.estimators.optimal import relative_variance
+    from pemviz.problems import build_problem
+
+    problem = build_problem(name)
+    assert problem.exact_log_p is not None
+    out = []
+    for seed in range(n_seeds):
+        finals: list[RolloutsSampled] = []
+
+        def keep(event: object) -> None:
+            if isinstance(event, RolloutsSampled) and event.kind == "final":
+                finals.append(event)
+
+        with torch_threads(1):
+            Experiment(ExperimentConfig(seed=seed), [keep], problem=problem).run()
+        (final,) = finals
+        out.append(relative_variance(final.log_weight, final.failed, problem.exact_log_p))
+    return problem.exact_log_p, out
+
+
+def relative_variance_table(names: Sequence[str], n_seeds: int) -> str:
+    """Markdown: per problem, the default sampler's median relative variance per rollout over the seeds and the
+    rollouts it would need for a 10 % relative standard error (relative variance / 0.01), against Monte Carlo's."""
+    lines = ["| problem | p | seeds | rel. variance per rollout (median) | min - max | rollouts for 10 % | "
+             "Monte Carlo's rel. variance | q*'s |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for name in names:
+        log_mu, rv = relative_variances(name, n_seeds)
+        med = float(np.median(rv))
+        mc = -math.expm1(log_mu) / math.exp(log_mu)
+        lines.append(f"| {name} | {math.exp(log_mu):.4g} | {n_seeds} | {med:.3g} | {min(rv):.3g} - {max(rv):.3g} | "
+                     f"{med / 0.01:.3g} | {mc:.3g} | 0 |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
 # -- command line ---------------------------------------------------------------------------------------------------
 
 OUTPUTS = ("sweep.md", "sweep.csv", "sweep.png", "sweep.rrd")
@@ -381,7 +423,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--overwrite", action="store_true", help="replace existing outputs (and start runs.jsonl anew)")
     ap.add_argument("--resume", action="store_true", help="keep the runs already in OUT/runs.jsonl")
+    ap.add_argument("--relative-variance", metavar="PROBLEMS", default=None,
+                    help="instead: the default sampler's relative variance per rollout on these named problems "
+                         "(comma-separated, e.g. toy,latched,main), printed as a table")  # fmt: skip
     args = ap.parse_args(argv)
+    if args.relative_variance:
+        from pemviz.problems import PROBLEMS
+
+        names = args.relative_variance.split(",")
+        if any(n not in PROBLEMS for n in names):
+            print(f"rarity_sweep: unknown problem in {args.relative_variance!r}; use some of {', '.join(PROBLEMS)}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        print(relative_variance_table(names, args.seeds or 10))
+        return 0
 
     specs = QUICK if args.quick else FULL
     methods = QUICK_METHODS if args.quick else METHODS
