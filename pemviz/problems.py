@@ -146,6 +146,21 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
     )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class ShiftedPEM:
+    """A PEM whose detection logit is moved by ``shift`` (nats) at every gap: ``logit p'(detect | d) = logit
+    p(detect | d) + shift``, so that p'(miss) ~ exp(-shift) p(miss) where misses are rare. A braking problem with it
+    (:func:`braking_problem`) is as rare as wanted, and its exact answer comes from the same enumeration
+    (:func:`pemviz.truth.braking_exact` with ``logit_at_gap``)."""
+
+    pem: object
+    shift: float
+
+    def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
+        """logit p'(detect | gap), float64 of the shape of ``gap_m`` (metres)."""
+        return np.asarray(self.pem.logit_at_gap(gap_m), dtype=np.float64) + self.shift
+
+
 # -- named problems -----------------------------------------------------------------------------------------------
 
 PROBLEMS: dict[str, str] = {

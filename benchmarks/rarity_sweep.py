@@ -1,0 +1,500 @@
+"""Rarity sweep: every method's relative error at equal budgets on problems with an exact answer from ~1e-3 to ~1e-100.
+
+Problems (each with its exact p_fail):
+- ``toy-m<M>-<p>``: toys whose failure needs M misses in a row at a constant p(detect) (closed form (1 - p)^M);
+- ``latched<shift>``: the latched-brake braking scenario with the PEM's logit moved by ``shift`` nats
+  (:class:`pemviz.problems.ShiftedPEM`; exact from the deterministic simulator);
+- ``main<shift>``: the braking scenario itself with the shifted PEM (exact enumeration, :func:`pemviz.truth.braking_truth`).
+
+Methods (:data:`METHODS`, a list of (label, config fields); add a line for a new method): the default sampler
+``ExperimentConfig()`` (2,100 simulations), the ``paper`` preset with its final batch raised to the same budget,
+plain Monte Carlo with that many rollouts, and the exact zero-variance sampler q*
+(:class:`pemviz.estimators.optimal.ZeroVarianceDetector`) where V is known (toys, latched). ``ams`` joins when
+:data:`pemviz.config.METHODS` has it.
+
+Outputs under ``--out`` (default ``recordings/sweep/``; an existing file is never replaced without ``--overwrite``):
+``runs.jsonl`` (one line per run, appended as it ends: ``--resume`` continues a killed sweep), ``sweep.md`` and
+``sweep.csv`` (median relative error over the seeds and the simulations each method would need for a 10 % relative
+error, ``N (rel. error / 0.1)^2``), ``sweep.png`` (both against log10 p) and ``sweep.rrd`` (the same series in a
+rerun recording, on the timeline ``minus_log10_p``).
+
+Usage::
+
+    nice -n 10 python benchmarks/rarity_sweep.py --jobs 2            # full sweep (~30-40 min of CPU)
+    python benchmarks/rarity_sweep.py --quick --out /tmp/sweep       # 3 small problems, 2 seeds (~1-2 min)
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import multiprocessing as mp
+import sys
+import time
+from dataclasses import asdict, dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from pemviz import truth
+from pemviz.config import METHODS as CONFIG_METHODS
+from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.detectors import Detector
+from pemviz.engine import Experiment, RunFinished
+from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
+from pemviz.files import atomic_write
+from pemviz.problems import Problem, ShiftedPEM, braking_problem
+from pemviz.sampling import relative_error, torch_threads
+from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.toy import ToyParams, toy_problem
+
+Q_STAR = "q*"
+"""The label of the exact zero-variance sampler (not a config: built from the problem's exact V)."""
+
+BUDGET = ExperimentConfig().n_simulations
+"""Simulations per run for every method: the default sampler's (2,100)."""
+
+METHODS: list[tuple[str, dict[str, Any] | None]] = [
+    ("state-ce", {}),
+    ("paper", {**PRESETS["paper"], "n_final": 1000}),  # 100 pretraining + 10 x 100 + 1,000 = 2,100
+    ("mc", {"method": "mc", "n_per_stage": BUDGET}),
+    (Q_STAR, None),
+]
+"""(label, ExperimentConfig fields) per method; None: q*. Each at :data:`BUDGET` simulations."""
+if "ams" in CONFIG_METHODS:  # adaptive multilevel splitting, when this pemviz has it
+    METHODS.insert(2, ("ams", {"method": "ams"}))
+
+QUICK_METHODS: list[tuple[str, dict[str, Any] | None]] = [
+    ("state-ce (quick)", dict(PRESETS["quick"])),
+    ("mc", {"method": "mc", "n_per_stage": ExperimentConfig(**PRESETS["quick"]).n_simulations}),
+    (Q_STAR, None),
+]
+"""The methods of ``--quick``: the ``quick`` preset (1,850 simulations), Monte Carlo and q* at its budget."""
+
+
+# -- problems -------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A sweep problem, rebuilt in each worker from these fields: ``kind`` toy | latched | main; a toy needs
+    ``misses`` and ``p_detect``; the braking problems the PEM ``shift`` (nats)."""
+
+    name: str
+    kind: str
+    misses: int = 0
+    p_detect: float = 0.0
+    shift: float = 0.0
+
+
+def toy_spec(misses: int, log10_p: float) -> Spec:
+    """A toy that fails iff M detections miss in a row, with p(detect) set so that (1 - p)^M = 10^log10_p."""
+    p = -math.expm1(log10_p * math.log(10.0) / misses)
+    return Spec(f"toy-m{misses}-1e{log10_p:g}", "toy", misses=misses, p_detect=p)
+
+
+FULL: tuple[Spec, ...] = (
+    toy_spec(3, -3), toy_spec(10, -10), toy_spec(30, -20), toy_spec(10, -30), toy_spec(100, -50),
+    toy_spec(300, -100),
+    Spec("latched-6", "latched", shift=-6.0), Spec("latched+0", "latched", shift=0.0),
+    Spec("latched+8", "latched", shift=8.0),
+    Spec("main+0", "main", shift=0.0), Spec("main+3", "main", shift=3.0),
+)  # fmt: skip
+"""The full sweep's problems (log10 p from -1.4 to -100)."""
+
+QUICK: tuple[Spec, ...] = (toy_spec(3, -3), toy_spec(10, -10), Spec("latched-6", "latched", shift=-6.0))
+"""The ``--quick`` problems: small and fast."""
+
+
+def toy_params(spec: Spec) -> ToyParams:
+    safe = 2
+    braking = safe + spec.misses - 1
+    return ToyParams(braking + 5, braking, safe, spec.p_detect)
+
+
+@cache
+def _pem():
+    from pemviz.pem import load_pem
+
+    return load_pem()
+
+
+@cache
+def build(spec: Spec) -> tuple[Problem, Detector | None]:
+    """The problem of ``spec`` and its q* (None where V is not known), built once per process."""
+    if spec.kind == "toy":
+        params = toy_params(spec)
+        problem = toy_problem(params, name=spec.name)
+        return problem, ZeroVarianceDetector(problem.target, truth.ToyValue(params).log_value_next)
+    pem = ShiftedPEM(_pem(), spec.shift)
+    if spec.kind == "latched":
+        problem = braking_problem(pem, BrakingParams(latched_brake=True))
+        return problem, ZeroVarianceDetector(problem.target, truth.latched_value(pem.logit_at_gap).log_value_next)
+    return braking_problem(pem, BrakingParams()), None
+
+
+def exact_log_p(spec: Spec) -> tuple[float, str]:
+    """The exact log p_fail (nats) of ``spec`` and where it comes from (``main`` shifts: tens of seconds)."""
+    if spec.kind == "toy":
+        return truth.toy_log_failure_probability(toy_params(spec)), f"closed form (1 - {spec.p_detect:.6g})^{spec.misses}"
+    pem = ShiftedPEM(_pem(), spec.shift)
+    if spec.kind == "latched":
+        return truth.latched_log_failure_probability(pem.logit_at_gap).log_p_fail, "latched closed form"
+    known = truth.known_log_failure_probability(pem.logit_at_gap)
+    if known is not None:
+        return known, "exact enumeration (stored)"
+    guess = truth.KNOWN_BRAKING_LOG_P["915fec568bb72b65"] - 9.0 * spec.shift  # ~9 nats per nat of shift (measured)
+    ref = truth.braking_truth(pem.logit_at_gap, BrakingParams(), log_prunes=[guess - 10 - 4 * k for k in range(8)])
+    f = ref.final
+    return ref.log_p_fail, f"exact enumeration, bracket width {f.relative_width:.2%}{'' if ref.converged else ' (NOT converged)'}"
+
+
+# -- runs -----------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Job:
+    spec: Spec
+    method: str
+    fields: tuple[tuple[str, Any], ...] | None
+    seed: int
+
+    def key(self) -> str:
+        return json.dumps({"spec": asdict(self.spec), "method": self.method, "fields": self.fields,
+                           "seed": self.seed}, sort_keys=True, default=str)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Record:
+    problem: str
+    method: str
+    seed: int
+    log_mu_hat: float
+    n_failures: int
+    n_simulations: int
+    wall_s: float
+
+
+def run_job(job: Job) -> Record:
+    """One method on one problem for one seed (in this process)."""
+    problem, q_star = build(job.spec)
+    t0 = time.perf_counter()
+    if job.method == Q_STAR:
+        assert q_star is not None
+        d = draw_fixed(problem, q_star, dict(job.fields or ())["n"], seed=job.seed)
+        e, n_sim = d.estimate, d.estimate.n
+    else:
+        cfg = ExperimentConfig(**dict(job.fields or ()), seed=job.seed)
+        with torch_threads(1):
+            res = Experiment(cfg, problem=problem).run()
+        assert isinstance(res, RunFinished)
+        e, n_sim = res.final.estimate, res.final.n_simulations
+    return Record(job.spec.name, job.method, job.seed, e.log_mu_hat, e.n_failures, n_sim, time.perf_counter() - t0)
+
+
+def jobs_for(specs: Sequence[Spec], methods: Sequence[tuple[str, dict | None]], n_seeds: int) -> list[Job]:
+    """Every (problem, method, seed); q* only where the problem has one, at the first method's budget."""
+    budget = ExperimentConfig(**(methods[0][1] or {})).n_simulations
+    out = []
+    for spec in specs:
+        for label, fields in methods:
+            if fields is None and spec.kind == "main":
+                continue
+            f = (("n", budget),) if fields is None else tuple(sorted(fields.items()))
+            out += [Job(spec, label, f, seed) for seed in range(n_seeds)]
+    return out
+
+
+def run_all(jobs: Sequence[Job], runs_file: Path, n_jobs: int, truths: dict[str, float]) -> list[Record]:
+    """Run the jobs not yet in ``runs_file``, appending each record as it ends; every job's record, in order.
+    ``truths``: problem name -> exact log p_fail, for the progress lines."""
+    done: dict[str, Record] = {}
+    if runs_file.is_file():
+        for line in runs_file.read_text(encoding="utf-8").splitlines():
+            try:
+                item = json.loads(line)
+                done[item["job"]] = Record(**item["record"])
+            except (ValueError, KeyError, TypeError):
+                continue  # a torn last line
+    todo = [j for j in jobs if j.key() not in done]
+    print(f"{len(jobs) - len(todo)} of {len(jobs)} runs already in {runs_file}", file=sys.stderr)
+    t0 = time.perf_counter()
+    with runs_file.open("a", encoding="utf-8") as log:
+        def finished(job: Job, rec: Record) -> None:
+            done[job.key()] = rec
+            log.write(json.dumps({"job": job.key(), "record": asdict(rec)}) + "\n")
+            log.flush()
+            print(f"  [{len(done)}/{len(jobs)}, {time.perf_counter() - t0:.0f} s] {rec.problem} {rec.method} seed "
+                  f"{rec.seed}: rel. error {relative_error(rec.log_mu_hat, truths[rec.problem]):.3g} "
+                  f"({rec.wall_s:.1f} s)", file=sys.stderr, flush=True)  # fmt: skip
+
+        if n_jobs <= 1:
+            for job in todo:
+                finished(job, run_job(job))
+        else:
+            with mp.get_context("spawn").Pool(n_jobs) as pool:  # torch and fork do not mix
+                for job, rec in zip(todo, pool.imap(run_job, todo)):
+                    finished(job, rec)
+    return [done[j.key()] for j in jobs]
+
+
+# -- summary --------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Row:
+    problem: str
+    method: str
+    log_truth: float
+    n_seeds: int
+    median_rel_error: float
+    max_rel_error: float
+    median_failures: float
+    n_simulations: int
+    sims_for_10pct: float
+    median_wall_s: float
+
+    @property
+    def log10_p(self) -> float:
+        return self.log_truth / math.log(10.0)
+
+
+def summarise(records: Sequence[Record], truths: dict[str, float]) -> list[Row]:
+    """One row per (problem, method) in first-seen order."""
+    groups: dict[tuple[str, str], list[Record]] = {}
+    for r in records:
+        groups.setdefault((r.problem, r.method), []).append(r)
+    rows = []
+    for (problem, method), rs in groups.items():
+        errs = [relative_error(r.log_mu_hat, truths[problem]) for r in rs]
+        n = int(np.median([r.n_simulations for r in rs]))
+        med = float(np.median(errs))
+        rows.append(Row(problem, method, truths[problem], len(rs), med, float(max(errs)),
+                        float(np.median([r.n_failures for r in rs])), n, rollouts_for(med, n),
+                        float(np.median([r.wall_s for r in rs]))))  # fmt: skip
+    return rows
+
+
+def _sims(x: float) -> str:
+    return "inf" if not math.isfinite(x) else "< 1" if x < 1.0 else f"{x:.3g}"
+
+
+def markdown(rows: Sequence[Row], n_seeds: int) -> str:
+    head = ("| problem | log10 p | method | seeds | median rel. error | max rel. error | median failures | simulations "
+            "| simulations for 10 % | median wall s |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|")
+    lines = [f"{r.problem} | {r.log10_p:.2f} | {r.method} | {r.n_seeds} | {r.median_rel_error:.3g} | "
+             f"{r.max_rel_error:.3g} | {r.median_failures:g} | {r.n_simulations:,} | {_sims(r.sims_for_10pct)} | "
+             f"{r.median_wall_s:.2f}" for r in rows]  # fmt: skip
+    note = (f"\n\nMedian over {n_seeds} seeds. Simulations for 10 %: N (median rel. error / 0.1)^2, the budget a "
+            "method would need if its error fell as 1 / sqrt(N) (a method that found no failure has rel. error 1).\n")
+    return head + "\n" + "\n".join(f"| {line} |" for line in lines) + note
+
+
+def to_csv(rows: Sequence[Row]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["problem", "log_truth", "log10_p", "method", "seeds", "median_rel_error", "max_rel_error",
+                "median_failures", "n_simulations", "sims_for_10pct", "median_wall_s"])  # fmt: skip
+    for r in rows:
+        w.writerow([r.problem, repr(r.log_truth), f"{r.log10_p:.6g}", r.method, r.n_seeds, f"{r.median_rel_error:.6g}",
+                    f"{r.max_rel_error:.6g}", r.median_failures, r.n_simulations, f"{r.sims_for_10pct:.6g}",
+                    f"{r.median_wall_s:.3f}"])  # fmt: skip
+    return buf.getvalue()
+
+
+FLOOR = 1e-16
+"""Relative errors below this (q*: float64 rounding) are drawn at it on the log axes."""
+
+
+def series(rows: Sequence[Row]) -> dict[str, list[tuple[float, float, float]]]:
+    """method -> [(log10 p, median rel. error, simulations for 10 %)] sorted by log10 p."""
+    out: dict[str, list[tuple[float, float, float]]] = {}
+    for r in rows:
+        out.setdefault(r.method, []).append((r.log10_p, max(r.median_rel_error, FLOOR), r.sims_for_10pct))
+    return {m: sorted(v) for m, v in out.items()}
+
+
+def write_png(path: str, rows: Sequence[Row], n_seeds: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for method, pts in series(rows).items():
+        x = [p[0] for p in pts]
+        ax1.plot(x, [p[1] for p in pts], "o-", label=method)
+        finite = [(p[0], p[2]) for p in pts if math.isfinite(p[2]) and p[2] >= 1.0]
+        if finite:
+            ax2.plot(*zip(*finite), "o-", label=method)
+    ax1.set(yscale="log", xlabel="log10 p (exact)", ylabel="median relative error",
+            title=f"relative error at {BUDGET:,} simulations, {n_seeds} seeds")  # fmt: skip
+    ax1.axhline(0.1, color="grey", lw=0.8, ls="--")
+    ax2.set(yscale="log", xlabel="log10 p (exact)", ylabel="simulations for 10 % relative error",
+            title="N (median rel. error / 0.1)^2 (q*: below 1)")  # fmt: skip
+    for ax in (ax1, ax2):
+        ax.invert_xaxis()
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, format="png", dpi=110)
+    plt.close(fig)
+
+
+def write_rrd(path: str, rows: Sequence[Row], table_md: str) -> None:
+    """The same series as the PNG as log10 values on the sequence timeline ``minus_log10_p`` (rounded)."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("pemviz-rarity-sweep")
+    rec.save(path)
+    rec.log("sweep/table", rr.TextDocument(table_md, media_type=rr.MediaType.MARKDOWN), static=True)
+    for method, pts in series(rows).items():
+        part = rr.escape_entity_path_part(method)
+        for name in ("log10_median_rel_error", "log10_sims_for_10pct"):
+            rec.log(f"sweep/{name}/{part}", rr.SeriesLines(names=method), static=True)
+        for log10_p, err, sims in pts:
+            rec.set_time("minus_log10_p", sequence=int(round(-log10_p)))
+            rec.log(f"sweep/log10_median_rel_error/{part}", rr.Scalars(math.log10(err)))
+            if math.isfinite(sims) and sims >= 1.0:
+                rec.log(f"sweep/log10_sims_for_10pct/{part}", rr.Scalars(math.log10(sims)))
+    rec.flush()
+    rec.disconnect()
+
+
+# -- how far from q*: the relative variance of the default sampler --------------------------------------------------
+
+
+def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
+    """Var(w 1[fail]) / mu^2 per rollout of the default sampler's final batch (N_e rollouts from its last proposal,
+    the defensive mixture included) on the named problem of :data:`pemviz.problems.PROBLEMS`, one per seed, with the
+    exact mu; returns (log mu, [relative variance per seed]). q* has 0, plain Monte Carlo (1 - mu) / mu."""
+    from pemviz.engine import RolloutsSampled
+    from pemviz.estimators.optimal import relative_variance
+    from pemviz.problems import build_problem
+
+    problem = build_problem(name)
+    assert problem.exact_log_p is not None
+    out = []
+    for seed in range(n_seeds):
+        finals: list[RolloutsSampled] = []
+
+        def keep(event: object) -> None:
+            if isinstance(event, RolloutsSampled) and event.kind == "final":
+                finals.append(event)
+
+        with torch_threads(1):
+            Experiment(ExperimentConfig(seed=seed), [keep], problem=problem).run()
+        (final,) = finals
+        out.append(relative_variance(final.log_weight, final.failed, problem.exact_log_p))
+    return problem.exact_log_p, out
+
+
+def relative_variance_table(names: Sequence[str], n_seeds: int) -> str:
+    """Markdown: per problem, the default sampler's median relative variance per rollout over the seeds and the
+    rollouts it would need for a 10 % relative standard error (relative variance / 0.01), against Monte Carlo's."""
+    lines = ["| problem | p | seeds | rel. variance per rollout (median) | min - max | rollouts for 10 % | "
+             "Monte Carlo's rel. variance | q*'s |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for name in names:
+        log_mu, rv = relative_variances(name, n_seeds)
+        med = float(np.median(rv))
+        mc = -math.expm1(log_mu) / math.exp(log_mu)
+        lines.append(f"| {name} | {math.exp(log_mu):.4g} | {n_seeds} | {med:.3g} | {min(rv):.3g} - {max(rv):.3g} | "
+                     f"{med / 0.01:.3g} | {mc:.3g} | 0 |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+# -- command line ---------------------------------------------------------------------------------------------------
+
+OUTPUTS = ("sweep.md", "sweep.csv", "sweep.png", "sweep.rrd")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="recordings/sweep", help="output folder (default %(default)s)")
+    ap.add_argument("--quick", action="store_true", help="3 small problems, 2 seeds, the quick preset (~1-2 min)")
+    ap.add_argument("--seeds", type=int, default=None, help="seeds per method and problem (default 10; quick 2)")
+    ap.add_argument("--problems", default=None, help="comma-separated problem names (default: all of the mode)")
+    ap.add_argument("--methods", default=None, help="comma-separated method labels (default: all)")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    ap.add_argument("--overwrite", action="store_true", help="replace existing outputs (and start runs.jsonl anew)")
+    ap.add_argument("--resume", action="store_true", help="keep the runs already in OUT/runs.jsonl")
+    ap.add_argument("--relative-variance", metavar="PROBLEMS", default=None,
+                    help="instead: the default sampler's relative variance per rollout on these named problems "
+                         "(comma-separated, e.g. toy,latched,main), printed as a table")  # fmt: skip
+    args = ap.parse_args(argv)
+    if args.relative_variance:
+        from pemviz.problems import PROBLEMS
+
+        names = args.relative_variance.split(",")
+        if any(n not in PROBLEMS for n in names):
+            print(f"rarity_sweep: unknown problem in {args.relative_variance!r}; use some of {', '.join(PROBLEMS)}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        print(relative_variance_table(names, args.seeds or 10))
+        return 0
+
+    specs = QUICK if args.quick else FULL
+    methods = QUICK_METHODS if args.quick else METHODS
+    n_seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
+    if n_seeds < 1 or args.jobs < 1:
+        print("rarity_sweep: --seeds and --jobs must be >= 1", file=sys.stderr)
+        return 2
+    if args.problems:
+        names = args.problems.split(",")
+        unknown = [n for n in names if n not in {s.name for s in specs}]
+        if unknown:
+            print(f"rarity_sweep: unknown problem {unknown[0]!r}; use some of {', '.join(s.name for s in specs)}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        specs = tuple(s for s in specs if s.name in names)
+    if args.methods:
+        labels = args.methods.split(",")
+        unknown = [m for m in labels if m not in {m for m, _ in methods}]
+        if unknown:
+            print(f"rarity_sweep: unknown method {unknown[0]!r}; use some of {', '.join(m for m, _ in methods)}",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        methods = [m for m in methods if m[0] in labels]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs_file = out / "runs.jsonl"
+    existing = [out / n for n in OUTPUTS if (out / n).exists()]
+    if runs_file.exists() and not args.resume:
+        existing.append(runs_file)
+    if existing and not args.overwrite:
+        print(f"rarity_sweep: {existing[0]} exists; give --overwrite to replace it"
+              f"{' (or --resume to keep its runs)' if existing[0] == runs_file else ''}", file=sys.stderr)
+        return 2
+    if runs_file.exists() and args.overwrite and not args.resume:
+        runs_file.unlink()
+
+    t0 = time.perf_counter()
+    truths, sources = {}, {}
+    for spec in specs:
+        truths[spec.name], sources[spec.name] = exact_log_p(spec)
+        print(f"{spec.name}: exact p_fail = 10^{truths[spec.name] / math.log(10):.3f} ({sources[spec.name]})",
+              file=sys.stderr, flush=True)  # fmt: skip
+    records = run_all(jobs_for(specs, methods, n_seeds), runs_file, args.jobs, truths)
+    rows = summarise(records, truths)
+    table = markdown(rows, n_seeds)
+    problems_md = "\n".join(f"- **{s.name}**: 10^{truths[s.name] / math.log(10):.3f}, {sources[s.name]}" for s in specs)
+    doc = f"# Rarity sweep\n\n{problems_md}\n\n{table}\nWall time {time.perf_counter() - t0:.0f} s.\n"
+
+    def text(content: str) -> Callable[[str], None]:
+        return lambda tmp: Path(tmp).write_text(content, encoding="utf-8")
+
+    atomic_write(out / "sweep.md", text(doc), overwrite=args.overwrite)
+    atomic_write(out / "sweep.csv", text(to_csv(rows)), overwrite=args.overwrite)
+    atomic_write(out / "sweep.png", lambda tmp: write_png(tmp, rows, n_seeds), overwrite=args.overwrite)
+    atomic_write(out / "sweep.rrd", lambda tmp: write_rrd(tmp, rows, table), overwrite=args.overwrite)
+    print(doc)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,96 @@
+"""The zero-variance sampler q* built from exact value functions: every rollout fails with weight exactly mu."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from pemviz import truth
+from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, relative_variance, rollouts_for
+from pemviz.problems import ShiftedPEM, braking_problem, build_problem
+from pemviz.sampling import relative_error
+from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.toy import ToyBraking, ToyParams, toy_problem
+
+
+@pytest.fixture(scope="module")
+def pem():
+    from pemviz.pem import load_pem
+
+    return load_pem()
+
+
+def assert_zero_variance(problem, sampler, log_mu: float, n: int = 500, seed: int = 3) -> None:
+    d = draw_fixed(problem, sampler, n, seed=seed)
+    assert d.failed.all()
+    np.testing.assert_allclose(d.log_weight, log_mu, rtol=0, atol=1e-11)  # every weight = mu (to 1e-11 nats)
+    assert relative_error(d.estimate.log_mu_hat, log_mu) < 1e-9
+    assert relative_variance(d.log_weight, d.failed, log_mu) < 1e-18
+
+
+def test_toy_q_star_draws_only_failures_each_weighted_1e_21():
+    params = ToyParams(100, 50, 30, 0.9)
+    problem = build_problem("toy")
+    assert problem.exact_log_p == pytest.approx(math.log(1e-21), rel=1e-12)
+    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, truth.ToyValue(params).log_value_next),
+                         math.log(1e-21))  # fmt: skip
+
+
+def test_toy_q_star_with_distance_dependent_p():
+    params = ToyParams(40, 25, 5, lambda d: 0.3 + 0.6 * np.exp(-d / 10.0))
+    problem = toy_problem(params)
+    log_mu = float(np.sum(np.log1p(-(0.3 + 0.6 * np.exp(-np.arange(5, 26) / 10.0)))))  # misses at 25, 24, ..., 5
+    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, truth.ToyValue(params).log_value_next), log_mu)
+
+
+def test_toy_value_equals_brute_force_enumeration_from_every_state():
+    # V(d, moving) of a 6-step toy by summing over every detection sequence from that state
+    params = ToyParams(6, 4, 2, lambda d: 0.2 + 0.1 * d)
+    value = truth.ToyValue(params)
+    for start in range(0, params.total + 1):
+        total = 0.0
+        n_left = params.total - 1  # enough steps to reach distance safe - 1 from any start
+        for seq in itertools.product((False, True), repeat=n_left):
+            car, prob, failed = ToyBraking(params), 1.0, False
+            car.distance = start
+            for a in seq:
+                failed |= car.distance < params.safe
+                p = 0.2 + 0.1 * car.distance
+                prob *= p if a else 1 - p
+                car.step(a)
+            failed |= car.distance < params.safe
+            total += prob if failed else 0.0
+        p = 0.2 + 0.1 * start
+        log_d, log_m = value.log_value_next(np.array([[float(start), 0.0]]))
+        v = p * math.exp(log_d[0]) + (1 - p) * math.exp(log_m[0]) if start >= params.safe else 1.0
+        assert v == pytest.approx(total, rel=1e-12, abs=1e-15), start
+
+
+def test_latched_q_star_draws_only_failures_each_weighted_mu(pem):
+    problem = build_problem("latched")
+    value = truth.latched_value(pem.logit_at_gap)
+    assert value.log_v0 == pytest.approx(problem.exact_log_p, rel=1e-13)
+    assert math.exp(problem.exact_log_p) == pytest.approx(3.3048e-24, rel=1e-4)
+    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, value.log_value_next), problem.exact_log_p)
+
+
+@pytest.mark.parametrize("shift", [-6.0, -3.0, 4.0])
+def test_latched_q_star_with_a_shifted_pem(pem, shift):
+    shifted = ShiftedPEM(pem, shift)
+    problem = braking_problem(shifted, BrakingParams(latched_brake=True))
+    log_mu = truth.latched_log_failure_probability(shifted.logit_at_gap).log_p_fail
+    value = truth.latched_value(shifted.logit_at_gap)
+    assert value.log_v0 == pytest.approx(log_mu, rel=1e-13)
+    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, value.log_value_next), log_mu, n=200)
+
+
+def test_relative_variance_of_plain_monte_carlo_is_one_minus_mu_over_mu():
+    # weights 1, a failure frequency of exactly mu: mean((1[f] / mu - 1)^2) = mu (1/mu - 1)^2 + (1 - mu) = (1 - mu) / mu
+    failed = np.zeros(1000, bool)
+    failed[[7, 500]] = True
+    assert relative_variance(np.zeros(1000), failed, math.log(2e-3)) == pytest.approx((1 - 2e-3) / 2e-3, rel=1e-12)
+    assert rollouts_for(0.2, 1000) == pytest.approx(4000.0)
+    assert rollouts_for(0.0, 1000) == 0.0
