@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} (default {DEFAULT_PRESET},paper)")
     p.add_argument("--baselines", default="mc,naive50,ams",
                    help=f"from {', '.join(BASELINES)} (default mc,naive50,ams; ams: adaptive multilevel splitting, "
-                   "N = budget / 10 particles)")  # fmt: skip
+                   "N = budget / 4 particles)")  # fmt: skip
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
     add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
