@@ -225,3 +225,16 @@ def test_cli_run_method_ams(tmp_path):
     assert rrd.stat().st_size > 0
     r = run_cli("run", "--method", "ams", "--n", "5", "--no-record")
     assert r.returncode == 2 and "Traceback" not in r.stderr and "k must be an integer in [1, N - 1]" in r.stderr
+
+
+def test_ams_through_snapshots_of_single_simulators_equals_the_vectorised_toy():
+    """The generic branch (ToyBraking snapshots) and the vectorised toy give the same AMS run for a seed."""
+    pb = build_problem("toy-1e-3")
+    params = ToyParams(10, 5, 3, 0.9)
+    generic = dataclasses.replace(pb, branch=lambda parents, parent, at, target, rng: branch(
+        lambda: ToyBraking(params), parents, parent, at, target, rng))  # fmt: skip
+    for seed in range(3):
+        a, b = run_ams(pb, 30, 3, seed=seed), run_ams(generic, 30, 3, seed=seed)
+        assert a.iterations == b.iterations > 0
+        assert a.estimate().log_mu_hat == b.estimate().log_mu_hat
+        np.testing.assert_array_equal(a.particles.detected, b.particles.detected)

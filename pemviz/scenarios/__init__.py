@@ -184,7 +184,8 @@ def branch(
     ``target`` (``log_q = log_p``). Each parent is replayed once on one simulator (deterministic: the only
     randomness is the detector), snapshotted at the steps where its children branch, and every child starts
     from ``restore(snapshot)`` on a fresh simulator; the children then advance in lockstep, one
-    ``rng.random(K)`` per step from ``min(at)`` to T - 1 (rows not yet branched ignore theirs).
+    ``rng.random(K)`` per step 0..T - 1 (rows not yet branched ignore theirs), as the vectorised twins
+    (:func:`pemviz.scenarios.batched.branch_batched`, :func:`pemviz.scenarios.toy.branch_toy`) draw.
 
     Args:
         make_simulator: builds a fresh :class:`Snapshotting` simulator at its start state.
@@ -217,8 +218,10 @@ def branch(
     out = parents.select(parent)
     obs, detected, log_p = out.observations, out.detected, out.log_p
     rows = np.arange(n)
-    for t in range(int(at.min()), n_steps):
-        u = rng.random(n)
+    for t in range(n_steps):
+        u = rng.random(n)  # one draw per step, as the vectorised twins draw (the same rollouts for a seed)
+        if t < at.min():
+            continue
         live = rows[at <= t]
         o = np.stack([sims[i].observation() for i in live])
         logit = target.detect_logit(o)
