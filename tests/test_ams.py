@@ -238,3 +238,19 @@ def test_ams_through_snapshots_of_single_simulators_equals_the_vectorised_toy():
         assert a.iterations == b.iterations > 0
         assert a.estimate().log_mu_hat == b.estimate().log_mu_hat
         np.testing.assert_array_equal(a.particles.detected, b.particles.detected)
+
+
+def test_initial_particles_may_arrive_in_chunks():
+    """A streamed stage 0 (N above the engine's STREAM_ABOVE) reaches the estimator chunk by chunk."""
+    pb = build_problem("toy-1e-3")
+    est = build_estimator(ExperimentConfig(method="ams", n_per_stage=30, ams_killed=3), pb)
+    plan = est.next_stage()
+    assert (plan.stage, plan.n, plan.draw) == (0, 30, None)
+    whole = pb.simulate(30, pb.target, pb.target, np.random.default_rng(0))
+    for rows in (slice(0, 12), slice(12, 30)):
+        part = whole.select(np.arange(30)[rows])
+        np.testing.assert_array_equal(est.observe(part, pb.failed(part), None), 0.0)
+    est.finish()
+    assert est.ams.n == 30
+    np.testing.assert_array_equal(est.ams.particles.detected, whole.detected)
+    assert est.next_stage().draw is not None

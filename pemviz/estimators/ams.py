@@ -231,6 +231,7 @@ class AdaptiveMultilevelSplitting:
         self.ams = Splitting(problem, config.ams_killed, config.ams_max_iterations, self.rng,
                              np.random.default_rng((config.seed, 1)))  # fmt: skip
         self._stage = -1
+        self._initial: list[RolloutBatch] = []
 
     @property
     def n_simulations(self) -> int:
@@ -253,11 +254,14 @@ class AdaptiveMultilevelSplitting:
         return self.ams.particles
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
-        if self._stage == 0:
-            self.ams.start(batch)
+        if self._stage == 0:  # the initial particles, possibly in chunks (a streamed stage)
+            self._initial.append(batch)
         return np.zeros(batch.n)  # drawn from the target itself: every importance weight is 1
 
     def finish(self) -> StageOutcome:
+        if self._stage == 0:
+            self.ams.start(RolloutBatch.concatenate(self._initial) if len(self._initial) > 1 else self._initial[0])
+            self._initial = []
         nan = np.full(self.problem.curve_grid.size, np.nan)
         failed = self.ams.score < 0.0
         return StageOutcome(self.ams.level, int(failed.sum()), self.ams.estimate(), nan, nan)
