@@ -12,9 +12,11 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-METHODS = ("adaptive", "mc", "naive50", "mixed50")
+METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams")
 """adaptive: Algorithm 1; mc: rollouts with the PEM itself; naive50: a 50 % detector at every step;
-mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table II)."""
+mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table II); ams: adaptive multilevel
+splitting of PEM rollouts on their robustness, no importance weights (Cerou & Guyader 2007; Brehier et al. 2016;
+:mod:`pemviz.estimators.ams`)."""
 
 METRICS = ("classic", "agm", "smooth-cumulative")
 """Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
@@ -70,7 +72,7 @@ class ExperimentConfig:
     Attributes:
         method: one of :data:`METHODS`.
         n_stages: K, cross-entropy stages (adaptive only).
-        n_per_stage: N, rollouts per stage; for mc / naive50 / mixed50 the number of rollouts.
+        n_per_stage: N, rollouts per stage; for mc / naive50 / mixed50 the number of rollouts; for ams the particles.
         n_final: N_e, fresh rollouts from the final proposal for the estimate (paper 100; the default 1000: once the
             proposal is fitted a rollout costs microseconds of simulation, a CE stage ~0.5 s of fitting, and these
             rollouts are the ones drawn from the best proposal).
@@ -91,6 +93,10 @@ class ExperimentConfig:
         sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
         executor: where rollouts are simulated, one of :data:`EXECUTORS`.
         ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
+        ams_killed: k, particles killed and resampled per AMS iteration at least (every tie at the level is killed
+            too), 1 <= k < N (``method = "ams"``).
+        ams_max_iterations: the most AMS iterations; a run stopped by it before its level reached the failure
+            threshold gets the verdict ``doubtful``.
 
     Sampler improvements over the paper (on by default; ``PRESETS["paper"]`` turns them off; each one's effect
     is measured against exact answers in ``benchmarks/truth_sampler_improvements.py``):
@@ -152,6 +158,8 @@ class ExperimentConfig:
     fit_max_steps: int = 200
     fit_rows: int | None = 10_000
     fit_tolerance: float | None = 1e-3
+    ams_killed: int = 10
+    ams_max_iterations: int = 10_000
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str, allowed: str) -> None:
@@ -199,6 +207,10 @@ class ExperimentConfig:
              "must be None or an integer >= 1")  # fmt: skip
         need(self.fit_tolerance is None or (_is_real(self.fit_tolerance) and self.fit_tolerance > 0), "fit_tolerance",
              "must be None or > 0")  # fmt: skip
+        need(_is_int(self.ams_killed) and 1 <= self.ams_killed and (self.method != "ams" or
+             self.ams_killed < self.n_per_stage), "ams_killed (k)", "k must be an integer in [1, N - 1]")  # fmt: skip
+        need(_is_int(self.ams_max_iterations) and self.ams_max_iterations >= 1, "ams_max_iterations",
+             "must be an integer >= 1")  # fmt: skip
         need(self.elite_ties in ELITE_TIES, "elite_ties", f"use one of {', '.join(ELITE_TIES)}")
         for name in ("proposal_window", "weights_until_failure"):
             need(isinstance(getattr(self, name), bool), name, "must be True or False")
@@ -219,7 +231,8 @@ class ExperimentConfig:
 
     @property
     def n_simulations(self) -> int:
-        """Rollouts the experiment will simulate, pretraining included."""
+        """Rollouts the experiment will simulate, pretraining included (ams: the N initial particles; the run
+        reports the rollout-equivalents its continuations add)."""
         if self.method != "adaptive":
             return self.n_per_stage
         final = self.n_final if self.has_final_batch else 0

@@ -66,6 +66,8 @@ def stage_label(stage: int, kind: str, n_stages: int) -> str:
         return "pretraining"
     if kind == "ce":
         return f"CE stage {stage}/{n_stages}"
+    if kind == "ams":
+        return f"AMS iterations {stage}" if stage else "AMS particles"
     return "final batch"
 
 
@@ -255,7 +257,8 @@ class Experiment:
             self.emit(event)
             return event
         est, used = estimator.result()
-        final = FinalEstimate(est, self.n_simulations, time.perf_counter() - t_start, used)
+        n_sim = getattr(estimator, "n_simulations", self.n_simulations)  # AMS counts rollout-equivalents
+        final = FinalEstimate(est, n_sim, time.perf_counter() - t_start, used)
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)
@@ -267,11 +270,14 @@ class Experiment:
         self._check_cancel()
         self.emit(StageStarted(plan.stage, plan.kind, plan.n))
         pb, cfg = self.problem, self.config
-        if plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
+        if plan.draw is None and plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
             self._streamed(estimator, plan)
         else:  # one batch, on the configured executor (serial or Ray tasks)
-            executor = get_executor(cfg.executor, cfg.ray_address)
-            batch = executor.simulate(pb, plan.n, plan.sampler, pb.target, estimator.rng)
+            if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
+                batch = plan.draw(estimator.rng)
+            else:
+                batch = get_executor(cfg.executor, cfg.ray_address).simulate(pb, plan.n, plan.sampler, pb.target,
+                                                                             estimator.rng)  # fmt: skip
             self._check_cancel()
             by_metric = {m: pb.robustness(batch, m) for m in METRICS}
             failed = by_metric["classic"] < 0.0

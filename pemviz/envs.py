@@ -146,6 +146,19 @@ class BrakingEnv(gym.Env):
         self._crashed = False
         return self._detect()
 
+    def snapshot(self) -> tuple:
+        """The episode's whole state: the scenario's (:meth:`BrakingScenario.snapshot`, a deep copy of the
+        highway-env vehicles), the crash flag and the detector stream's generator state."""
+        import copy
+
+        return self.sim.snapshot(), self._crashed, copy.deepcopy(self.np_random.bit_generator.state)
+
+    def restore(self, state: tuple) -> None:
+        """Put back a :meth:`snapshot`: the same actions then give the same observations, rewards and infos."""
+        sim_state, self._crashed, rng_state = state
+        self.sim.restore(sim_state)
+        self.np_random.bit_generator.state = rng_state
+
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Apply the acceleration command (m/s^2) for dt seconds, then draw the next detection.
 

@@ -25,7 +25,7 @@ from pemviz.files import write_rrd
 from pemviz.sampling import format_probability
 from pemviz.sinks.colours import stage_rgba
 from pemviz.problems import PROBLEMS
-from pemviz.validation import ExactAnswer, Job, RunRecord
+from pemviz.validation import ExactAnswer, Job, RunRecord, ams_fields
 
 FIG4_STAGE = 3
 """The paper's Fig. 4 shows the proposal after stage kappa = 3."""
@@ -94,8 +94,10 @@ def summarise_row(spec: RowSpec, records: Sequence[RunRecord], log_truth: float)
     )  # fmt: skip
 
 
-def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_large: int) -> list[RowSpec]:
-    """Table II then Table III (the classic row of Table III is Table II's adaptive_N row)."""
+def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_large: int,
+              ams: bool = True) -> list[RowSpec]:  # fmt: skip
+    """Table II then Table III (the classic row of Table III is Table II's adaptive_N row); ``ams``: with an AMS row
+    at the adaptive sampler's budget."""
     n = ExperimentConfig(**base).n_per_stage
     sim = {k: v for k, v in base.items() if k in ("pem",)}
     specs = [
@@ -106,6 +108,9 @@ def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_l
                 tuple(sorted({**sim, "method": "naive50", "n_per_stage": naive_large}.items()))),
         RowSpec("II", f"adaptive_{n}", tuple(sorted(base.items()))),
     ]  # fmt: skip
+    if ams:  # adaptive multilevel splitting at the adaptive sampler's budget (pemviz.validation.ams_fields)
+        budget = ExperimentConfig(**base).n_simulations
+        specs.append(RowSpec("II", f"AMS_{budget}", tuple(sorted({**sim, **ams_fields(budget)}.items()))))
     for name in extra:
         specs.append(RowSpec("II", f"adaptive_{n} ({name})", tuple(sorted({**PRESETS[name], **base}.items()))))
     for metric in METRICS:

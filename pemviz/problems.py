@@ -21,14 +21,18 @@ from pemviz import stl
 from pemviz.config import SIMULATORS, ExperimentConfig
 from pemviz.detectors import Detector, PEMDetector
 from pemviz.pem import load_pem
-from pemviz.scenarios import RolloutBatch, simulate
-from pemviz.scenarios.batched import iter_batched, simulate_batched
+from pemviz.scenarios import RolloutBatch, branch, simulate
+from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.toy import ToyParams, toy_problem
 from pemviz.truth import known_log_failure_probability
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
 """``simulate(n, sampler, target, rng) -> RolloutBatch``: n rollouts drawn from ``sampler``."""
+
+BranchFn = Callable[[RolloutBatch, np.ndarray, np.ndarray, Detector, np.random.Generator], RolloutBatch]
+"""``branch(parents, parent, at, target, rng)``: K rollouts continuing rollout ``parent[i]`` of ``parents`` from step
+``at[i]`` on with ``target``'s detections (:func:`pemviz.scenarios.branch`; needs snapshot/restore)."""
 
 StreamFn = Callable[[int, Detector, Detector, np.random.Generator], Iterator[RolloutBatch]]
 """``stream(n, sampler, target, rng)``: the rollouts of ``simulate`` with the same arguments, in chunks."""
@@ -69,6 +73,8 @@ class Problem:
             The proposal replaces the target only there (``proposal_window``) and the mixed-50 baseline detects
             with 50 % there; the default, infinity, is everywhere.
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
+        branch: optional, continues rollouts from one of their steps (:data:`BranchFn`; None: the simulator has
+            no snapshot/restore), for adaptive multilevel splitting (``method = "ams"``).
         exact_log_p: natural log of the exact failure probability when it is known (closed form, enumeration),
             else None; shown beside every estimate.
         description: one line saying what is simulated (for sinks and tables).
@@ -84,6 +90,7 @@ class Problem:
     curve_grid: np.ndarray = field(default_factory=lambda: np.linspace(0.0, 13.0, 131))
     window: float = math.inf
     stream: StreamFn | None = None
+    branch: BranchFn | None = None
     exact_log_p: float | None = None
     description: str = ""
 
@@ -136,9 +143,15 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
     def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
         return iter_batched(p, n, sampler, target, rng)
 
+    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
+               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+        if sim == "batched":
+            return branch_batched(p, parents, parent, at, target, rng)
+        return branch(lambda: BrakingScenario(p), parents, parent, at, target, rng)
+
     return Problem(
         "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m,
-        stream=stream if sim == "batched" else None,
+        stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
                      f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "

@@ -40,11 +40,11 @@ def test_a_row_is_the_mean_and_standard_error_over_repetitions():
 def test_table_three_starts_with_the_classic_row_of_table_two():
     specs = row_specs({"n_per_stage": 100}, [], mc_large=1000, naive_large=300)
     labels = [s.label for s in specs]
-    assert labels[:5] == ["MC_100", "MC_1000", "naive-50_100", "naive-50_300", "adaptive_100"]
-    assert labels[5:] == [f"r_{m}" for m in METRICS if m != "classic"]
+    assert labels[:6] == ["MC_100", "MC_1000", "naive-50_100", "naive-50_300", "adaptive_100", "AMS_2100"]
+    assert labels[6:] == [f"r_{m}" for m in METRICS if m != "classic"]
     records = {s.label: [_record(s.label, k, 1e-3 * (i + 1), 1) for k in range(2)] for i, s in enumerate(specs)}
     rows = tables_rows(specs, records, math.log(1e-3), [])
     (classic,) = [r for r in rows if r.label == "r_classic"]
     (adaptive,) = [r for r in rows if r.label == "adaptive_100"]
     assert classic.table == "III" and classic.log_mean == adaptive.log_mean
-    assert [r.table for r in rows] == ["II"] * 5 + ["III"] * len(METRICS)
+    assert [r.table for r in rows] == ["II"] * 6 + ["III"] * len(METRICS)

@@ -62,6 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"rollouts per stage N, or the baseline's rollouts (default {d.n_per_stage})",
     )  # fmt: skip
     p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
+    p.add_argument("--ams-killed", dest="ams_killed", type=int, default=None,
+                   help=f"--method ams: particles killed per iteration k, 1 <= k < N (default {d.ams_killed})")
     p.add_argument("--sigma", dest="quantile_level", type=float, default=None, help="quantile level sigma in [0.5, 1)")
     p.add_argument("--alpha", dest="smoothing", type=float, default=None, help="smoothing alpha in (0, 1]")
     p.add_argument("--metric", default=None, help=f"robustness metric: {', '.join(METRICS)}")
@@ -93,7 +95,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         raise ConfigError(f"preset = {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     fields = dict(PRESETS[args.preset])
     for name in ("method", "n_stages", "n_per_stage", "n_final", "quantile_level", "smoothing", "metric", "seed",
-                 "ce_epochs", "pem", "sim", "executor", "ray_address"):  # fmt: skip
+                 "ce_epochs", "pem", "sim", "executor", "ray_address", "ams_killed"):  # fmt: skip
         value = getattr(args, name)
         if value is not None:
             fields[name] = value

@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "validate",
         help="judge the sampler and the baselines against exact failure probabilities",
-        description="Run the adaptive sampler (one or more presets), MC and naive-50 on problems with exact answers "
+        description="Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact answers "
         "for several seeds at equal simulation budgets; print truth, median and spread of mu_hat, median relative "
         "error, failures, ESS, simulations and wall time.",
     )
@@ -51,7 +51,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"comma-separated, from {', '.join(PROBLEMS)} (default {','.join(DEFAULT_PROBLEMS)})")
     p.add_argument("--presets", default=f"{DEFAULT_PRESET},paper",
                    help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} (default {DEFAULT_PRESET},paper)")
-    p.add_argument("--baselines", default="mc,naive50", help=f"from {', '.join(BASELINES)} (default mc,naive50)")
+    p.add_argument("--baselines", default="mc,naive50,ams",
+                   help=f"from {', '.join(BASELINES)} (default mc,naive50,ams; ams: adaptive multilevel splitting, "
+                   "N = budget / 4 particles)")  # fmt: skip
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
     add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")

@@ -3,11 +3,13 @@
 
 - :class:`CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022) with pemviz's improvements.
 - :class:`FixedSampler` (``mc``, ``naive50``, ``mixed50``): one importance-weighted batch from a fixed detector.
+- :class:`AdaptiveMultilevelSplitting` (``ams``): splitting of target rollouts on their robustness, no weights.
 """
 
 from __future__ import annotations
 
 from pemviz.config import ExperimentConfig
+from pemviz.estimators.ams import AdaptiveMultilevelSplitting
 from pemviz.estimators.base import (
     Check,
     Estimator,
@@ -22,7 +24,7 @@ from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
 from pemviz.problems import Problem
 
 __all__ = [
-    "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator", "FixedSampler", "StageOutcome",
+    "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator", "FixedSampler", "StageOutcome",
     "StagePlan", "break_ties", "build_estimator", "failure_steps", "log_p_before_failure", "log_weight", "mixed50",
     "monte_carlo", "naive50",
 ]  # fmt: skip
@@ -36,5 +38,7 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
     """
     if config.method == "adaptive":
         return CrossEntropy(config, problem, check)
+    if config.method == "ams":
+        return AdaptiveMultilevelSplitting(config, problem, check)
     baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
     return baseline(problem, config.n_per_stage, config.weights_until_failure, config.seed)

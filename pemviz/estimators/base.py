@@ -30,15 +30,18 @@ class StagePlan:
 
     Attributes:
         stage: 0 = pretraining, 1..K = CE stages, K+1 = the final batch (1 for a single-batch estimator).
-        kind: ``pretrain`` | ``ce`` | ``final``.
+        kind: ``pretrain`` | ``ce`` | ``final`` | ``ams`` (AMS: 0 the initial particles, then groups of iterations).
         n: rollouts.
         sampler: the detector that draws them (q); the problem's target (p) weighs them.
+        draw: None (the engine simulates ``n`` rollouts from ``sampler``) or the estimator's own way to produce the
+            stage's batch, ``draw(rng) -> RolloutBatch`` (AMS continues its particles from snapshots).
     """
 
     stage: int
     kind: str
     n: int
     sampler: Detector
+    draw: Callable[[np.random.Generator], RolloutBatch] | None = None
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,10 @@ A :class:`Simulator` exposes ``reset()``, ``observation()`` (float64 [F], ``gap_
 ``step(detected)`` and ``params.n_steps``. :func:`simulate` runs N of them in lockstep: each step it
 gathers the N observations, evaluates the sampling detector and the target (PEM) detector on the whole
 batch in one call each, draws the detections, and steps every simulator.
+
+Optional capability (:class:`Snapshotting`): ``snapshot()`` returns the simulator's whole state at the
+current step and ``restore(state)`` puts it back, so a rollout can be continued from any of its steps
+(:func:`branch`, used by adaptive multilevel splitting, :mod:`pemviz.estimators.ams`).
 """
 
 from __future__ import annotations
@@ -26,6 +30,23 @@ class Simulator(Protocol):
     def observation(self) -> np.ndarray: ...
 
     def step(self, detected: bool) -> None: ...
+
+
+class Snapshotting(Simulator, Protocol):
+    """A :class:`Simulator` whose state can be saved and put back (the optional snapshot/restore capability).
+
+    ``restore(snapshot())`` on any simulator of the same scenario, then the same detections, gives exactly
+    the observations the snapshotted simulator would have reported (bit for bit).
+    """
+
+    def snapshot(self) -> object: ...
+
+    def restore(self, state: object) -> None: ...
+
+
+def can_snapshot(sim: object) -> bool:
+    """Whether ``sim`` has the snapshot/restore capability (:class:`Snapshotting`)."""
+    return callable(getattr(sim, "snapshot", None)) and callable(getattr(sim, "restore", None))
 
 
 @dataclass(frozen=True)
@@ -146,3 +167,74 @@ def simulate(
         for s, a_i in zip(sims, a):
             s.step(bool(a_i))
     return RolloutBatch(obs, detected, log_p, log_q, names)
+
+
+def branch(
+    make_simulator: Callable[[], Simulator],
+    parents: RolloutBatch,
+    parent: np.ndarray,
+    at: np.ndarray,
+    target: Detector,
+    rng: np.random.Generator,
+) -> RolloutBatch:
+    """Continue rollouts from given steps of earlier ones, detections drawn from ``target``: K new rollouts.
+
+    New rollout i copies rollout ``parent[i]`` of ``parents`` up to step ``at[i]`` (its observations at steps
+    ``0..at[i]`` and its actions at steps ``0..at[i] - 1``) and draws its actions from step ``at[i]`` on from
+    ``target`` (``log_q = log_p``). Each parent is replayed once on one simulator (deterministic: the only
+    randomness is the detector), snapshotted at the steps where its children branch, and every child starts
+    from ``restore(snapshot)`` on a fresh simulator; the children then advance in lockstep, one
+    ``rng.random(K)`` per step 0..T - 1 (rows not yet branched ignore theirs), as the vectorised twins
+    (:func:`pemviz.scenarios.batched.branch_batched`, :func:`pemviz.scenarios.toy.branch_toy`) draw.
+
+    Args:
+        make_simulator: builds a fresh :class:`Snapshotting` simulator at its start state.
+        parents: the rollouts to branch from, [M, T].
+        parent: int [K] row of ``parents`` for each new rollout.
+        at: int [K] branching steps, in [0, T - 1].
+    Returns:
+        :class:`RolloutBatch` [K, T].
+    Raises:
+        ValueError: a simulator without snapshot/restore, or ``parent`` / ``at`` out of range.
+    """
+    parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
+    n, n_steps = parent.size, parents.n_steps
+    check_branch_args(parents, parent, at)
+    probe = make_simulator()
+    if not can_snapshot(probe):
+        raise ValueError(f"branch: {type(probe).__name__} has no snapshot/restore")
+    sims: list[Snapshotting] = [None] * n  # type: ignore[list-item]
+    for j in np.unique(parent):
+        children = np.flatnonzero(parent == j)
+        sim = probe if j == parent.min() else make_simulator()
+        sim.reset()
+        t = 0
+        for i in children[np.argsort(at[children], kind="stable")]:
+            while t < at[i]:
+                sim.step(bool(parents.detected[j, t]))
+                t += 1
+            sims[i] = make_simulator()
+            sims[i].restore(sim.snapshot())
+    out = parents.select(parent)
+    obs, detected, log_p = out.observations, out.detected, out.log_p
+    rows = np.arange(n)
+    for t in range(n_steps):
+        u = rng.random(n)  # one draw per step, as the vectorised twins draw (the same rollouts for a seed)
+        if t < at.min():
+            continue
+        live = rows[at <= t]
+        o = np.stack([sims[i].observation() for i in live])
+        logit = target.detect_logit(o)
+        a = np.log(u[live]) <= action_log_prob(logit, np.ones(live.size, dtype=bool))
+        obs[live, t], detected[live, t], log_p[live, t] = o, a, action_log_prob(logit, a)
+        for i, a_i in zip(live, a):
+            sims[i].step(bool(a_i))
+    return RolloutBatch(obs, detected, log_p, log_p.copy(), parents.observation_names)
+
+
+def check_branch_args(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray) -> None:
+    """Raise ValueError unless ``parent`` and ``at`` are int [K >= 1] rows of ``parents`` and steps in [0, T - 1]."""
+    if parent.ndim != 1 or parent.size < 1 or at.shape != parent.shape:
+        raise ValueError(f"branch: parent and at must be int [K >= 1] of one shape, got {parent.shape}, {at.shape}")
+    if parent.min() < 0 or parent.max() >= parents.n or at.min() < 0 or at.max() >= parents.n_steps:
+        raise ValueError(f"branch: parent must be in [0, {parents.n - 1}] and at in [0, {parents.n_steps - 1}]")

@@ -98,6 +98,27 @@ class BatchedBraking:
     def done(self) -> bool:
         return self.t >= self.params.n_steps
 
+    def snapshot(self) -> dict:
+        """Copies of every rollout's state at the current step (snapshot/restore capability of
+        :class:`~pemviz.scenarios.Snapshotting`); ``restore`` takes it on a simulator of the same N."""
+        c = self._ctrl
+        return {"ego_x_m": self.ego_x_m.copy(), "ego_speed_mps": self.ego_speed_mps.copy(), "lead_x_m": self.lead_x_m,
+                "lead_speed_mps": self.lead_speed_mps, "t": self.t,
+                "ctrl": type(c)(c.integral_kmh_s.copy(), c.pending_brake.copy())}  # fmt: skip
+
+    def restore(self, state: dict) -> None:
+        """Put back a :meth:`snapshot` (copied, so the snapshot can be restored again).
+
+        Raises:
+            ValueError: a snapshot of another number of rollouts.
+        """
+        if state["ego_x_m"].shape != (self.n,):
+            raise ValueError(f"BatchedBraking.restore: a snapshot of {state['ego_x_m'].size} rollouts, this has {self.n}")
+        c = state["ctrl"]
+        self.ego_x_m, self.ego_speed_mps = state["ego_x_m"].copy(), state["ego_speed_mps"].copy()
+        self.lead_x_m, self.lead_speed_mps, self.t = state["lead_x_m"], state["lead_speed_mps"], state["t"]
+        self._ctrl = type(c)(c.integral_kmh_s.copy(), c.pending_brake.copy())
+
     def step(self, detected: np.ndarray, gap_m: np.ndarray | None = None) -> None:
         """Advance every rollout one step of ``dt`` seconds given the detector outputs.
 
@@ -218,11 +239,14 @@ def _run_chunk(
     detected: np.ndarray,
     log_p: np.ndarray,
     log_q: np.ndarray,
+    forced: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Simulate ``m = len(obs)`` rollouts, writing into obs [m, T, 3], detected / log_p / log_q [m, T].
 
     Per step, the arithmetic of :func:`pemviz.scenarios.simulate`: one detector call per batch,
     detect iff ``log u <= log_expit(logit q)``, log-probabilities of the taken actions under q and p.
+    ``forced``: optional (detected bool [m, T], until int [m]): rollout i takes the given actions at the steps
+    before ``until[i]`` (a replayed prefix, :func:`branch_batched`).
     """
     m, n_steps = detected.shape
     sim = BatchedBraking(params, m)
@@ -238,6 +262,8 @@ def _run_chunk(
         # u <= sigmoid(logit)  <=>  log u <= log_expit(logit) (= action_log_prob(logit, True)).
         ls_q = log_expit(q_logit)
         a = np.less_equal(np.log(u, out=u), ls_q, out=detected_t[t])
+        if forced is not None:
+            np.copyto(a, forced[0][:, t], where=t < forced[1])
         _action_log_prob(q_logit, a, ls_q, out=log_q_t[t])
         if p_logit is q_logit:
             log_p_t[t] = log_q_t[t]
@@ -321,6 +347,37 @@ def simulate_batched(
         s = slice(start, stop)
         _run_chunk(p, sampler, target, uniforms, obs[s], detected[s], log_p[s], log_q[s])
     return RolloutBatch(obs, detected, log_p, log_q, OBSERVATION_NAMES)
+
+
+def branch_batched(
+    params: BrakingParams | None,
+    parents: RolloutBatch,
+    parent: np.ndarray,
+    at: np.ndarray,
+    target: Detector,
+    rng: np.random.Generator,
+) -> RolloutBatch:
+    """:func:`pemviz.scenarios.branch` on the batched twin, vectorised: new rollout i replays parent ``parent[i]``'s
+    actions before step ``at[i]`` (the state at a step is a function of the actions before it: the same state,
+    bit for bit, as :meth:`BatchedBraking.restore` of a snapshot there) and draws the rest from ``target``.
+
+    Returns:
+        :class:`RolloutBatch` [K, T]; ``rng`` gives one ``random(K)`` per step.
+    Raises:
+        ValueError: ``parent`` / ``at`` out of range (:func:`pemviz.scenarios.check_branch_args`).
+    """
+    from pemviz.scenarios import check_branch_args
+
+    p = params or BrakingParams()
+    parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
+    check_branch_args(parents, parent, at)
+    k, n_steps = parent.size, p.n_steps
+    out = RolloutBatch(np.empty((k, n_steps, len(OBSERVATION_NAMES))), np.empty((k, n_steps), dtype=bool),
+                       np.empty((k, n_steps)), np.empty((k, n_steps)), OBSERVATION_NAMES)  # fmt: skip
+    uniforms = (rng.random(k) for _ in range(n_steps))
+    _run_chunk(p, target, target, uniforms, out.observations, out.detected, out.log_p, out.log_q,
+               forced=(parents.detected[parent], at))  # fmt: skip
+    return out
 
 
 @dataclass(frozen=True)

@@ -196,6 +196,19 @@ class BrakingScenario:
     def done(self) -> bool:
         return self.t >= self.params.n_steps
 
+    def snapshot(self) -> tuple:
+        """A deep copy of the highway-env road and both vehicles, the step and the controller's memory
+        (snapshot/restore capability of :class:`~pemviz.scenarios.Snapshotting`)."""
+        import copy
+
+        return copy.deepcopy((self.road, self.ego, self.lead, self.t, self._ctrl))
+
+    def restore(self, state: tuple) -> None:
+        """Put back a :meth:`snapshot` (copied again, so it can be restored more than once)."""
+        import copy
+
+        self.road, self.ego, self.lead, self.t, self._ctrl = copy.deepcopy(state)
+
     def step(self, detected: bool) -> None:
         """Advance one step of ``dt`` seconds given the detector's output at the current state.
 

@@ -133,6 +133,13 @@ class ToyBraking:
         """float64 [2]: (distance, stopped)."""
         return np.array([float(self.distance), float(self.stopped)])
 
+    def snapshot(self) -> tuple[int, bool]:
+        """The whole state, (distance, stopped) (the snapshot/restore capability of :class:`~pemviz.scenarios.Snapshotting`)."""
+        return (self.distance, self.stopped)
+
+    def restore(self, state: tuple[int, bool]) -> None:
+        self.distance, self.stopped = state
+
     def step(self, detected: bool) -> None:
         p = self.params
         if self.distance < p.safe:  # crashed: absorbing
@@ -144,10 +151,14 @@ class ToyBraking:
 
 
 def simulate_toy(
-    params: ToyParams, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
+    params: ToyParams, n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
+    forced: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> "RolloutBatch":
     """``n`` toy rollouts, vectorised; the same draws and batch as :func:`pemviz.scenarios.simulate` with
     :class:`ToyBraking` (one ``rng.random(n)`` per step, detect iff ``log u <= log q(detect)``).
+
+    ``forced``: optional (detected bool [n, T], until int [n]): rollout i takes the given actions at steps
+    before ``until[i]`` instead of drawing them (a replayed prefix, for :func:`branch_toy`).
 
     Returns:
         :class:`~pemviz.scenarios.RolloutBatch` with observations [n, T, 2] (distance, stopped).
@@ -171,6 +182,8 @@ def simulate_toy(
         p_logit = q_logit if target is sampler else target.detect_logit(o)
         u = rng.random(n)
         a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
+        if forced is not None:
+            a = np.where(t < forced[1], forced[0][:, t], a)
         obs[:, t] = o
         detected[:, t] = a
         log_q[:, t] = action_log_prob(q_logit, a)
@@ -179,6 +192,19 @@ def simulate_toy(
         stopped = stopped | crashed | (a & (distance <= params.braking))
         distance = np.where(stopped, distance, distance - 1.0)
     return RolloutBatch(obs, detected, log_p, log_q, OBSERVATION_NAMES)
+
+
+def branch_toy(
+    params: ToyParams, parents: "RolloutBatch", parent: np.ndarray, at: np.ndarray, target: Detector,
+    rng: np.random.Generator,
+) -> "RolloutBatch":
+    """:func:`pemviz.scenarios.branch` for the toy, vectorised: the parents' prefixes are replayed (the state at a
+    step is a function of the actions before it) and the rest drawn from ``target``; [K, T]."""
+    from pemviz.scenarios import check_branch_args
+
+    parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
+    check_branch_args(parents, parent, at)
+    return simulate_toy(params, parent.size, target, target, rng, forced=(parents.detected[parent], at))
 
 
 def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Problem":
@@ -196,6 +222,9 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Pr
     def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator):
         return simulate_toy(p, n, sampler, target, rng)
 
+    def branch(parents, parent, at, target: Detector, rng: np.random.Generator):
+        return branch_toy(p, parents, parent, at, target, rng)
+
     p_label = f"{p.p_detect:g}" if not callable(p.p_detect) else "p(d)"
     return Problem(
         name or f"toy({p.total},{p.braking},{p.safe},{p_label})",
@@ -208,6 +237,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Pr
         curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),
         window=float(p.braking) + 0.5,
         exact_log_p=toy_log_failure_probability(p),
+        branch=branch,
         description=(f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
                      f"closer than {p.safe}; detection probability {p_label}"),
     )

@@ -506,6 +506,9 @@ class RerunSink:
             "mc": f"plain **Monte Carlo** with the PEM: {cfg.n_per_stage} rollouts.",
             "naive50": f"a **50 % detector** at every step, weighted by the PEM: {cfg.n_per_stage} rollouts.",
             "mixed50": f"a **50 % detector inside 10 m**, the PEM outside: {cfg.n_per_stage} rollouts.",
+            "ams": (f"**adaptive multilevel splitting** on robustness (Cerou & Guyader 2007): N = {cfg.n_per_stage} "
+                    f"PEM rollouts, the k = {cfg.ams_killed} highest killed per iteration and branched from survivors; "
+                    "each stage shows the particles after about N resamplings."),
         }[cfg.method]
         self.intro_md = (
             f"# pemviz: crash probability of the braking scenario\n\n"

@@ -1,0 +1,286 @@
+"""Adaptive multilevel splitting (AMS) on STL robustness: rare failures without importance weights.
+
+N particles are rollouts drawn from the target detector (the PEM). A particle's score is its classic robustness
+``min_{t in [a, b]} rho(t)`` of the safety formula ``G[a,b](operand)`` (lower = closer to failure; failure: < 0),
+and the score of a prefix is the running minimum up to its last step. Each iteration takes the level ``L`` = the
+k-th highest score, kills every particle scoring ``>= L`` (all ties at the level, K_j >= k of them) and replaces
+each by a copy of a survivor drawn uniformly, branched at the first step where the survivor's operand robustness
+drops strictly below ``L`` and continued from there with the target detector (``Problem.branch``: the simulator's
+snapshot/restore). The run stops once the level reaches the failure threshold (``L <= 0``), when every particle
+ties at the level (extinction: the estimate is 0), or after ``ams_max_iterations``. The estimate is
+
+    p_hat = prod_{j < J} (1 - K_j / N) * (1 / N) sum_i 1[score_i < 0]
+
+Sources: Cerou & Guyader, "Adaptive multilevel splitting for rare event analysis", Stoch. Anal. Appl. 25(2), 2007
+(the algorithm and its asymptotic variance); Brehier, Gazeau, Goudenege, Lelievre & Rousset, "Unbiasedness of some
+generalized adaptive multilevel splitting algorithms", Ann. Appl. Probab. 26(6), 2016 (killing every tie at the
+level and branching where the survivor's path first goes strictly past it make p_hat unbiased for any N >= 2, any
+k, and a discrete-time Markov process such as these simulators; the estimator is a martingale over iterations,
+so stopping early at a fixed iteration budget keeps it unbiased for the failure event, which lies beyond every
+level used); Innes & Ramamoorthy, "Adaptive Splitting of Reusable Temporal Monitors for Rare Traffic Violations",
+arXiv 2405.15771, 2024 (AMS with STL robustness as the score, by the authors of the PEM sampler).
+
+Cost: the N initial rollouts (N T steps) plus, per iteration, the continuations' steps sum_i (T - branch step_i).
+``n_simulations`` counts rollout-equivalents, ceil(simulated steps / T), so that budgets compare with the
+cross-entropy sampler's rollouts (its default spends 2,100). Replayed prefixes are not counted: a snapshot restores
+them without simulation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import logsumexp, ndtri
+
+from pemviz import stl
+from pemviz.config import ExperimentConfig
+from pemviz.estimators.base import Check, StageOutcome, StagePlan, log_p_before_failure
+from pemviz.problems import Problem
+from pemviz.sampling import CI_LEVEL, MIN_FAILURES, Estimate
+from pemviz.scenarios import RolloutBatch
+
+
+def no_branch_message(problem: Problem) -> str:
+    """The one-line error for a problem whose simulator cannot be continued from a step."""
+    return f"method ams needs a simulator with snapshot/restore; {problem.name} has none"
+
+
+def running_score(problem: Problem, batch: RolloutBatch) -> np.ndarray:
+    """The score of every prefix, float64 [N, T]: the running minimum over ``t' <= t`` of the operand's classic
+    robustness of the problem's ``G[a,b](operand)`` formula, counted only for ``t'`` in [a, b] (+inf before a).
+    The last column is the formula's classic robustness (failure: < 0).
+
+    Raises:
+        ValueError: a formula that is not ``G[a,b](state predicate)`` (cf. :func:`pemviz.stl.first_violation`).
+    """
+    f = problem.formula
+    if not isinstance(f, stl.Always) or f.operand.horizon() != 0:
+        raise ValueError(f"method ams needs a safety formula G[a,b](state predicate), got {f}")
+    rho = np.array(stl.robustness_signal(f.operand, problem.signal_arrays(batch), "classic"), dtype=np.float64)
+    rho = np.atleast_2d(rho)
+    end = rho.shape[1] - 1 if f.end is None else min(f.end, rho.shape[1] - 1)
+    rho[:, : f.start] = np.inf
+    rho[:, end + 1 :] = np.inf
+    return np.minimum.accumulate(rho, axis=1)
+
+
+@dataclass
+class Splitting:
+    """The state of one AMS run (module docstring): the N particles, their scores and genealogy, the product.
+
+    Args:
+        problem: needs ``branch`` (snapshot/restore) and a ``G[a,b](state predicate)`` formula.
+        killed: k, the particles killed per iteration at least (ties at the level add to it), 1 <= k < N.
+        max_iterations: stop after this many iterations even if the level has not reached 0.
+        rng: the detections of the continuations; pick_rng: which survivor each killed particle copies.
+    """
+
+    problem: Problem
+    killed: int
+    max_iterations: int
+    rng: np.random.Generator
+    pick_rng: np.random.Generator
+    particles: RolloutBatch | None = None
+    running: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
+    """float64 [N, T] prefix scores (:func:`running_score`)."""
+    eve: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    """int [N]: the initial particle each particle descends from."""
+    log_prod: float = 0.0
+    """sum_j log(1 - K_j / N) (nats; -inf after an extinction)."""
+    ratio_sum: float = 0.0
+    """sum_j K_j / (N - K_j), for the asymptotic variance."""
+    iterations: int = 0
+    level: float = math.inf
+    steps: int = 0
+    """Simulated steps so far (initial rollouts and continuations)."""
+    stop: str = ""
+    """Why the run ended (empty while it goes on)."""
+
+    @property
+    def n(self) -> int:
+        return 0 if self.particles is None else self.particles.n
+
+    @property
+    def score(self) -> np.ndarray:
+        """Each particle's score, its classic robustness, float64 [N]."""
+        return self.running[:, -1]
+
+    @property
+    def n_simulations(self) -> int:
+        """Rollout-equivalents simulated: ceil(steps / T)."""
+        return -(-self.steps // max(self.particles.n_steps, 1)) if self.particles is not None else 0
+
+    def start(self, batch: RolloutBatch) -> None:
+        """Take the N initial rollouts of the target detector."""
+        self.particles, self.running = batch, running_score(self.problem, batch)
+        self.eve = np.arange(batch.n)
+        self.steps += batch.n * batch.n_steps
+        self._check_stop()
+
+    def _check_stop(self) -> None:
+        s = np.sort(self.score)
+        self.level = float(s[-self.killed])
+        if self.level <= 0.0:
+            self.stop = "the level reached the failure threshold"
+        elif self.iterations >= self.max_iterations:
+            self.stop = f"stopped after {self.iterations} iterations (ams_max_iterations) at level {self.level:.4g}"
+        elif s[0] >= self.level:
+            self.stop = f"extinction: every particle ties at level {self.level:.4g}"
+            self.log_prod = -math.inf
+
+    def iterate(self) -> int:
+        """One iteration: kill the particles at or above the level, branch their replacements; returns K_j."""
+        score, n = self.score, self.n
+        killed = np.flatnonzero(score >= self.level)
+        survivors = np.flatnonzero(score < self.level)
+        parent = survivors[self.pick_rng.integers(survivors.size, size=killed.size)]
+        at = np.argmax(self.running[parent] < self.level, axis=1)  # first step strictly below the level
+        new = self.problem.branch(self.particles, parent, at, self.problem.target, self.rng)
+        new_running = running_score(self.problem, new)
+        b = self.particles
+        obs, det, lp, lq = b.observations.copy(), b.detected.copy(), b.log_p.copy(), b.log_q.copy()
+        obs[killed], det[killed], lp[killed], lq[killed] = new.observations, new.detected, new.log_p, new.log_q
+        self.particles = RolloutBatch(obs, det, lp, lq, b.observation_names)
+        self.running = self.running.copy()
+        self.running[killed] = new_running
+        self.eve = self.eve.copy()
+        self.eve[killed] = self.eve[parent]
+        k = killed.size
+        self.log_prod += math.log1p(-k / n)
+        self.ratio_sum += k / (n - k)
+        self.iterations += 1
+        self.steps += int((b.n_steps - at).sum())
+        self._check_stop()
+        return k
+
+    def estimate(self) -> Estimate:
+        """p_hat with its :data:`CI_LEVEL` interval, diagnostics and verdict (see :func:`ams_estimate`)."""
+        return ams_estimate(self.problem, self.particles, self.running[:, -1] < 0.0, self.eve, self.log_prod,
+                            self.ratio_sum, self.stop)  # fmt: skip
+
+
+def ams_estimate(problem: Problem, particles: RolloutBatch, failed: np.ndarray, eve: np.ndarray, log_prod: float,
+                 ratio_sum: float, stop: str) -> Estimate:  # fmt: skip
+    """The AMS estimate of the particles now: ``log p_hat = log_prod + log(failures / N)`` (nats).
+
+    Interval: log p_hat -+ z sqrt(v), z the normal quantile of :data:`CI_LEVEL`, v the larger of two relative
+    variances: the asymptotic one of the ideal algorithm, ``(sum_j K_j / (N - K_j) + (1 - r) / r) / N`` with r the
+    final fraction of failures (Cerou & Guyader 2007, Sec. 4; exact for the ideal score, a lower bound for
+    others), and the spread over the genealogy, ``sum_e (c_e / n_f - 1 / N)^2`` with c_e the failures descending
+    from initial particle e (the N eves taken as independent; for plain Monte Carlo it is (1 - p) / (N p)); once
+    every failure descends from one eve it is ~1, the honest answer when one initial rollout carries the estimate.
+    ``ess`` is 1 / v: the failures a Monte Carlo sample of the same relative variance would hold.
+
+    Verdict: ``unreliable`` with no failure (p_hat = 0, after an extinction or with the level above 0);
+    ``doubtful`` when stopped before the level reached 0, with fewer than :data:`MIN_FAILURES` failures, or when
+    the failures descend from fewer than :data:`MIN_FAILURES` initial particles (the variance then rests on one
+    family); else ``reliable``. There are no importance weights (k-hat nan, mean weight 1).
+    """
+    n = particles.n
+    nf = int(failed.sum())
+    lp = log_p_before_failure(problem, particles)[failed]
+    if nf == 0 or log_prod == -math.inf:
+        why = stop if log_prod == -math.inf else f"no particle fails ({stop or 'the run goes on'})"
+        return Estimate(n, nf, -math.inf, math.nan, math.nan, 0.0, (-math.inf, 0.0), math.nan, 0.0, "unreliable",
+                        f"AMS: {why}")  # fmt: skip
+    r = nf / n
+    v_ideal = (ratio_sum + (1.0 - r) / r) / n
+    counts = np.bincount(eve[failed], minlength=n)
+    v_eve = float(np.square(counts / nf - 1.0 / n).sum())
+    v = max(v_ideal, v_eve)
+    log_p = log_prod + math.log(r)
+    half = float(ndtri(0.5 + CI_LEVEL / 2.0)) * math.sqrt(v)
+    families = int(np.count_nonzero(counts))
+    if stop and not stop.startswith("the level reached"):
+        verdict, reason = "doubtful", f"AMS {stop}"
+    elif nf < MIN_FAILURES:
+        verdict, reason = "doubtful", f"only {nf} failing particle{'s' if nf != 1 else ''}"
+    elif families < MIN_FAILURES:
+        verdict, reason = "doubtful", (f"AMS: the {nf} failures descend from {families} of {n} initial rollout"
+                                       f"{'s' if families != 1 else ''}")  # fmt: skip
+    else:
+        verdict, reason = "reliable", f"AMS: {nf} failures from {families} initial rollouts"
+    return Estimate(n, nf, log_p, float(-lp.mean()), -(float(logsumexp(lp)) - math.log(nf)), 1.0 / v,
+                    (log_p - half, log_p + half), math.nan, 0.0, verdict, reason)  # fmt: skip
+
+
+class AdaptiveMultilevelSplitting:
+    """AMS (module docstring) as an engine estimator (``method = "ams"``).
+
+    Stage 0 draws the N = ``n_per_stage`` initial particles from the target; each later stage runs iterations until
+    about N particles have been resampled (or the run stops) and shows the listeners the N particles after them
+    (``StagePlan.draw``). ``gamma`` of a stage is the level reached. Streams from ``config.seed``: the detections
+    (:attr:`rng`) and the survivor choice (``(seed, 1)``).
+
+    Raises:
+        ValueError: a problem without ``branch`` (no snapshot/restore) or without a ``G[a,b](state predicate)``
+            formula: one line.
+    """
+
+    def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
+        if problem.branch is None:
+            raise ValueError(no_branch_message(problem))
+        f = problem.formula
+        if not isinstance(f, stl.Always) or f.operand.horizon() != 0:
+            raise ValueError(f"method ams needs a safety formula G[a,b](state predicate); {problem.name} has {f}")
+        self.config, self.problem = config, problem
+        self.check: Check = check or (lambda: None)
+        self.rng = np.random.default_rng(config.seed)
+        self.ams = Splitting(problem, config.ams_killed, config.ams_max_iterations, self.rng,
+                             np.random.default_rng((config.seed, 1)))  # fmt: skip
+        self._stage = -1
+        self._initial: list[RolloutBatch] = []
+
+    @property
+    def n_simulations(self) -> int:
+        """Rollout-equivalents simulated (module docstring); the engine reports this, not its count of batches."""
+        return self.ams.n_simulations
+
+    def next_stage(self) -> StagePlan | None:
+        if self._stage >= 0 and self.ams.stop:
+            return None
+        self._stage += 1
+        n = self.config.n_per_stage
+        return StagePlan(self._stage, "ams", n, self.problem.target, None if self._stage == 0 else self._iterate)
+
+    def _iterate(self, rng: np.random.Generator) -> RolloutBatch:
+        """Iterations until N particles were resampled or the run stops; the particles after them [N, T]."""
+        resampled = 0
+        while not self.ams.stop and resampled < self.ams.n:
+            self.check()
+            resampled += self.ams.iterate()
+        return self.ams.particles
+
+    def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
+        if self._stage == 0:  # the initial particles, possibly in chunks (a streamed stage)
+            self._initial.append(batch)
+        return np.zeros(batch.n)  # drawn from the target itself: every importance weight is 1
+
+    def finish(self) -> StageOutcome:
+        if self._stage == 0:
+            self.ams.start(RolloutBatch.concatenate(self._initial) if len(self._initial) > 1 else self._initial[0])
+            self._initial = []
+        nan = np.full(self.problem.curve_grid.size, np.nan)
+        failed = self.ams.score < 0.0
+        return StageOutcome(self.ams.level, int(failed.sum()), self.ams.estimate(), nan, nan)
+
+    def result(self) -> tuple[Estimate, tuple[int, ...]]:
+        return self.ams.estimate(), (self._stage,)
+
+
+def run_ams(problem: Problem, n: int, killed: int, seed: int = 0, max_iterations: int = 100_000) -> Splitting:
+    """One whole AMS run without the engine (for studies and tests): N particles from ``problem.target``, seeded
+    like ``method = "ams"`` with ``seed``; returns the finished :class:`Splitting` (``.estimate()``, ``.steps``).
+
+    Raises:
+        ValueError: as :class:`AdaptiveMultilevelSplitting`.
+    """
+    cfg = ExperimentConfig(method="ams", n_per_stage=n, ams_killed=killed, ams_max_iterations=max_iterations,
+                           seed=seed)  # fmt: skip
+    est = AdaptiveMultilevelSplitting(cfg, problem)
+    est.ams.start(problem.simulate(n, problem.target, problem.target, est.rng))
+    while not est.ams.stop:
+        est.ams.iterate()
+    return est.ams
