@@ -285,7 +285,7 @@ def test_finished_runs_survive_stopped_ones_pinned_runs_stay_and_any_kept_run_ex
     stopped = []
     for _ in range(3):
         tab.tab("Experiment")
-        tab.fill_form({"K": "40"})
+        tab.fill_form({"K": "200"})  # long enough to be stopped under load
         tab.button("Run").click()
         wait_until(lambda: s.running and s.record not in (first, second, *stopped), what="a run to start")
         stopped.append(s.record)
