@@ -49,8 +49,11 @@ class ExactAnswer:
     wall_s: float = 0.0
 
 
-def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None) -> ExactAnswer:
-    """The exact p_fail of a problem of :data:`~pemviz.problems.PROBLEMS` (seconds for the toys, ~20 s for ``main``).
+def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None,
+                 recompute: bool = False) -> ExactAnswer:  # fmt: skip
+    """The exact p_fail of a problem of :data:`~pemviz.problems.PROBLEMS` (milliseconds for the toys, the latched
+    scenario and ``main`` with a shipped PEM, whose answer is kept; 20-40 s of enumeration for ``main`` with another
+    PEM or with ``recompute``).
 
     ``progress`` receives a line per refinement of the enumeration (``main``).
 
@@ -73,6 +76,11 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
             f"product of (1 - p_PEM) over steps {lt.first_step}..{lt.last_step} (deterministic simulator)",
             wall_s=time.perf_counter() - t0,
         )
+
+    known = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams())
+    if known is not None and not recompute:  # a shipped PEM: its enumeration (20-40 s) was kept
+        return ExactAnswer(known, "exact enumeration kept for this PEM (pemviz.truth.KNOWN_BRAKING_LOG_P, bracket "
+                                  "width < 0.25 %; tests/test_truth.py recomputes it)", wall_s=time.perf_counter() - t0)
 
     def on_result(r: truth.ExactResult) -> None:
         if progress is not None:

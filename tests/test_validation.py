@@ -90,3 +90,12 @@ def test_baselines_get_the_first_presets_simulation_budget():
     assert list(methods) == ["adaptive (paper)", "adaptive (quick)", "mc", "naive50"]
     assert methods["mc"] == {"method": "mc", "n_per_stage": budget}
     assert methods["adaptive (quick)"] == {**PRESETS["quick"], **base}
+
+
+def test_the_main_truth_of_a_shipped_pem_is_the_kept_enumeration_not_recomputed():
+    from pemviz.pem import load_pem
+    from pemviz.truth import KNOWN_BRAKING_LOG_P, pem_fingerprint
+
+    answer = exact_answer("main")
+    assert answer.log_p_fail == KNOWN_BRAKING_LOG_P[pem_fingerprint(load_pem().logit_at_gap)] == -33.85370929668962
+    assert "kept" in answer.source and answer.table is None  # no enumeration ran (it has a refinement table)
