@@ -111,7 +111,7 @@ def test_a_baseline_is_one_weighted_batch_whose_estimate_is_eq_6():
 def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of_all_n(seed):
     """Chunk by chunk, the pool ends with gamma_kappa of the whole stage and every rollout r <= gamma, in order."""
     from pemviz.estimators.base import EliteCandidates
-    from pemviz.estimators.cross_entropy import quantile_threshold
+    from pemviz.estimators.base import quantile_threshold
     from pemviz.scenarios import RolloutBatch
 
     rng = np.random.default_rng(seed)

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from pemviz.detectors import ConstantDetector, action_log_prob
-from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal, quantile_threshold
+from pemviz.estimators.base import quantile_threshold
+from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
 from pemviz.sampling import Proposal, estimate, format_probability
 from pemviz.scenarios import simulate
 

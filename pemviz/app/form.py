@@ -185,12 +185,14 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-def run_cost(cfg: ExperimentConfig, n_steps: int = 100, stream_above: int = 20_000) -> RunCost:
+def run_cost(cfg: ExperimentConfig, n_steps: int = 100, stream_above: int | None = None) -> RunCost:
     """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, expected seconds.
 
-    A stage above ``stream_above`` rollouts is simulated in chunks (:data:`pemviz.engine.STREAM_ABOVE`), so it
-    does not count in full towards memory.
+    A stage above ``stream_above`` rollouts (default :data:`pemviz.engine.STREAM_ABOVE`) is simulated in chunks, so
+    it does not count in full towards memory.
     """
+    if stream_above is None:
+        from pemviz.engine import STREAM_ABOVE as stream_above  # the engine imports torch: only when asked
     sims = cfg.n_simulations
     biggest = max(min(cfg.n_per_stage, stream_above), min(cfg.n_final, stream_above), cfg.pretrain_rollouts)
     seconds = sims * SIM_S_PER_ROLLOUT.get(cfg.sim, 4e-3)

@@ -179,6 +179,21 @@ def elite_count(n: int, quantile_level: float) -> int:
     return max(1, int(np.ceil((1.0 - quantile_level) * n - 1e-9)))
 
 
+def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: float = 0.0) -> float:
+    """gamma_kappa = max(floor, the ceil((1 - sigma) N)-th smallest robustness).
+
+    With sigma = 0.95 and N = 100 this is the 5th smallest value (Innes & Ramamoorthy 2022, Algorithm 1). ``floor`` is the
+    failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
+    """
+    r = np.asarray(robustness, dtype=np.float64)
+    return kth_threshold(r, elite_count(r.size, quantile_level), floor)
+
+
+def kth_threshold(robustness: np.ndarray, k: int, floor: float = 0.0) -> float:
+    """max(floor, the k-th smallest of ``robustness`` [M]), 1 <= k <= M."""
+    return max(floor, float(np.partition(robustness, k - 1)[k - 1]))
+
+
 class EliteCandidates:
     """The rollouts of a stage that can still be elites, kept as its chunks arrive, so that a stage of any N
     holds [N] robustness values and only the rollouts at or below a falling bound, not [N, T] arrays.
@@ -208,7 +223,7 @@ class EliteCandidates:
         """The largest robustness that can still be an elite (inf until k rollouts were seen)."""
         if self.seen < self.k:
             return float("inf")
-        return max(self.floor, float(np.partition(self.robustness[: self.seen], self.k - 1)[self.k - 1]))
+        return kth_threshold(self.robustness[: self.seen], self.k, self.floor)
 
     def add(self, batch: RolloutBatch, robustness: np.ndarray) -> None:
         """Take the next chunk (rollouts ``seen .. seen + n - 1``) and its robustness [n]."""

@@ -179,17 +179,6 @@ def pretrain_proposal(
                         tolerance)  # fmt: skip
 
 
-def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: float = 0.0) -> float:
-    """gamma_kappa = max(floor, the ceil((1 - sigma) N)-th smallest robustness).
-
-    With sigma = 0.95 and N = 100 this is the 5th smallest value (Innes & Ramamoorthy 2022, Algorithm 1). ``floor`` is the
-    failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
-    """
-    r = np.asarray(robustness, dtype=np.float64)
-    k = elite_count(r.size, quantile_level)
-    return max(floor, float(np.partition(r, k - 1)[k - 1]))
-
-
 def ce_update(
     proposal: Proposal,
     gap_m: np.ndarray,
