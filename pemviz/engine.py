@@ -17,6 +17,7 @@ sample of the stage (:class:`RolloutsSampled`): memory stays that of a chunk and
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from dataclasses import dataclass
@@ -270,14 +271,16 @@ class Experiment:
         self._check_cancel()
         self.emit(StageStarted(plan.stage, plan.kind, plan.n))
         pb, cfg = self.problem, self.config
+        parts = plan.parts  # (rollouts, detector) in the order drawn
         if plan.draw is None and plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
-            self._streamed(estimator, plan)
+            self._streamed(estimator, plan, parts)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
                 batch = plan.draw(estimator.rng)
             else:
-                batch = get_executor(cfg.executor, cfg.ray_address).simulate(pb, plan.n, plan.sampler, pb.target,
-                                                                             estimator.rng)  # fmt: skip
+                executor = get_executor(cfg.executor, cfg.ray_address)
+                batches = [executor.simulate(pb, k, d, pb.target, estimator.rng) for k, d in parts]
+                batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
             self._check_cancel()
             by_metric = {m: pb.robustness(batch, m) for m in METRICS}
             failed = by_metric["classic"] < 0.0
@@ -293,12 +296,13 @@ class Experiment:
         self.emit(StageFinished(res))
         return res
 
-    def _streamed(self, estimator: Estimator, plan: StagePlan) -> None:
-        """Simulate a stage chunk by chunk (:data:`STREAM_ABOVE`): the estimator and the listeners see each chunk
-        once, then the listeners a :class:`StageSample` of the stage."""
+    def _streamed(self, estimator: Estimator, plan: StagePlan, parts: list[tuple[int, Detector]]) -> None:
+        """Simulate a stage chunk by chunk (:data:`STREAM_ABOVE`), ``parts`` = (rollouts, detector) in order: the
+        estimator and the listeners see each chunk once, then the listeners a :class:`StageSample` of the stage."""
         pb, cfg = self.problem, self.config
         sample = StageSample(plan.n)
-        for batch in pb.stream(plan.n, plan.sampler, pb.target, estimator.rng):
+        chunks = itertools.chain.from_iterable(pb.stream(k, d, pb.target, estimator.rng) for k, d in parts)
+        for batch in chunks:
             self._check_cancel()
             robustness = pb.robustness(batch, cfg.metric)
             failed = robustness < 0.0 if cfg.metric == "classic" else pb.failed(batch)

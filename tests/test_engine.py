@@ -17,7 +17,8 @@ nan, inf = math.nan, math.inf
 SMALL = dict(n_stages=3, n_per_stage=50, n_final=100, ce_epochs=100, pretrain_epochs=100)
 """A run of a few seconds: K = 3 stages of N = 50, N_e = 100, 100 Adam epochs per fit."""
 
-# Recorded before the estimators moved out of the engine (commit 004482e): key -> (log mu_hat, failures, N,
+# Recorded before the estimators moved out of the engine (commit 004482e; ``rollout-mixture``: the default sampler
+# when it became the default, the others with the per-step defensive mixture alone): key -> (log mu_hat, failures, N,
 # stages used, simulations, (stage, gamma, elites) per stage). Any change to the rollouts' stream, the weights, the
 # elites, the fits or the pooling moves these numbers.
 PINNED = {
@@ -40,6 +41,8 @@ PINNED = {
     "braking/mixed50-paper/0": (-78.53820890572328, 367, 500, (1,), 500, ((1, nan, 367),)),
     "toy-1e-3/mc/0": (-7.600902459542082, 1, 2000, (1,), 2000, ((1, nan, 1),)),
     "braking/state-ce-streamed/0": (-33.82918391963035, 17582, 100001, (2,), 100151, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, nan, 17582))),
+    "braking/rollout-mixture/0": (-36.952419734403485, 71, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 3), (3, 0.0, 22), (4, nan, 52))),
+    "toy/rollout-mixture/0": (-48.382317304914295, 46, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 11.0, 3), (3, 0.0, 6), (4, nan, 46))),
 }  # fmt: skip
 
 
@@ -47,13 +50,16 @@ def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     """The config and problem name of a key of :data:`PINNED`."""
     problem, preset, seed = key.split("/")
     seed = int(seed)
+    step = PRESETS["state-ce-step"]  # the numbers were recorded with the per-step defensive mixture alone
     if preset == "state-ce-streamed":  # a final batch above STREAM_ABOVE: simulated chunk by chunk
-        return ExperimentConfig(**{**SMALL, "n_stages": 1, "n_final": 100_001, "seed": seed}), problem
+        return ExperimentConfig(**{**step, **SMALL, "n_stages": 1, "n_final": 100_001, "seed": seed}), problem
+    if preset == "rollout-mixture":  # the default sampler (recorded when it became the default)
+        return ExperimentConfig(**{**SMALL, "seed": seed}), problem
     method, _, base = preset.partition("-")
     if method in ("mc", "naive50", "mixed50"):
         n = 2000 if problem == "toy-1e-3" else 500
         return ExperimentConfig(**{**PRESETS[base or "state-ce"], "method": method, "n_per_stage": n, "seed": seed}), problem
-    return ExperimentConfig(**{**PRESETS[preset], **SMALL, "seed": seed}), problem
+    return ExperimentConfig(**{**step, **PRESETS[preset], **SMALL, "seed": seed}), problem
 
 
 def run_pinned(key: str):

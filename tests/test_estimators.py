@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import ConstantDetector
+from pemviz.detectors import ConstantDetector, action_log_prob
 from pemviz.estimators import (
     CrossEntropy,
     DefensiveDetector,
@@ -22,6 +22,7 @@ from pemviz.estimators import (
 from pemviz.problems import build_problem
 from pemviz.estimators.cross_entropy import ce_update
 from pemviz.sampling import Proposal
+from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.toy import ToyParams, toy_problem
 
 
@@ -169,3 +170,33 @@ def test_elite_steps_thinned_as_they_come_keep_the_weighted_log_likelihood_in_ex
     draws = np.array(draws)
     assert steps.n_steps == mask.sum() and steps.n_rollouts == m
     assert abs(draws.mean() - exact) < 4 * draws.std() / math.sqrt(draws.size)
+
+
+def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on_a_toy():
+    from pemviz.estimators.base import mixture_log_weight, weighted_steps_mask
+    from pemviz.truth import toy_log_failure_probability
+
+    # p(x) = 1e-6, q1(x) = 0.5, q2(x) = 1e-3, shares (0.1, 0.45, 0.45): w = 1e-6 / (1e-7 + 0.225 + 4.5e-4)
+    log_w = mixture_log_weight(np.log([1e-6]), np.log([[1e-6], [0.5], [1e-3]]), np.array([0.1, 0.45, 0.45]))
+    assert log_w[0] == pytest.approx(math.log(1e-6 / (1e-7 + 0.225 + 4.5e-4)), rel=1e-12)
+    # a rollout q misses entirely: its weight is at most 1 / 0.1
+    assert mixture_log_weight(np.log([0.3]), np.array([[math.log(0.3)], [-np.inf]]), np.array([0.1, 0.9]))[0] == \
+        pytest.approx(math.log(10.0), rel=1e-12)
+    # fixed shares of a toy (exact (1 - 0.6)^4): the mean weighted failure indicator is the exact answer within 4
+    # standard errors (balance heuristic, Veach & Guibas 1995)
+    params = ToyParams(8, 5, 2, 0.6)
+    pb = toy_problem(params)
+    q_miss = ConstantDetector(0.2)
+    rng = np.random.default_rng(0)
+    parts = ((2_000, pb.target), (18_000, q_miss))
+    batch = RolloutBatch.concatenate([pb.simulate(n, d, pb.target, rng) for n, d in parts])
+    mask = weighted_steps_mask(pb, batch, until_failure=True)
+    obs = batch.observations.reshape(-1, batch.observations.shape[2])
+    log_q = [(action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected) * mask).sum(axis=1)
+             for _, d in parts]  # fmt: skip
+    log_p = (batch.log_p * mask).sum(axis=1)
+    w = np.exp(mixture_log_weight(log_p, np.stack(log_q), np.array([0.1, 0.9]))) * pb.failed(batch)
+    exact = math.exp(toy_log_failure_probability(params))
+    assert w.max() <= 10.0 + 1e-9
+    assert abs(w.mean() - exact) < 4 * w.std() / math.sqrt(w.size)
+    assert abs(w.mean() / exact - 1) < 0.05

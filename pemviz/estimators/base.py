@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Callable, Protocol
 
 import numpy as np
+from scipy.special import logsumexp
 
 from pemviz import stl
 from pemviz.detectors import Detector
@@ -35,6 +36,9 @@ class StagePlan:
         sampler: the detector that draws them (q); the problem's target (p) weighs them.
         draw: None (the engine simulates ``n`` rollouts from ``sampler``) or the estimator's own way to produce the
             stage's batch, ``draw(rng) -> RolloutBatch`` (AMS continues its particles from snapshots).
+        mixture: a defensive mixture over whole rollouts, ``((n_1, detector_1), ...)`` with n_1 + ... = n, drawn in
+            this order; each rollout then weighs p / sum_k (n_k / n) q_k (:func:`mixture_log_weight`); empty: all ``n``
+            from ``sampler``.
     """
 
     stage: int
@@ -42,6 +46,12 @@ class StagePlan:
     n: int
     sampler: Detector
     draw: Callable[[np.random.Generator], RolloutBatch] | None = None
+    mixture: tuple[tuple[int, Detector], ...] = ()
+
+    @property
+    def parts(self) -> list[tuple[int, Detector]]:
+        """(rollouts, detector) in the order drawn, none empty."""
+        return [(k, d) for k, d in (self.mixture or ((self.n, self.sampler),)) if k > 0]
 
 
 @dataclass(frozen=True)
@@ -107,9 +117,34 @@ def log_weight(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np
     """
     if not until_failure:
         return batch.log_weight()
-    k = np.minimum(failure_steps(problem, batch), batch.n_steps - 1)
-    upto = np.arange(batch.n_steps)[None, :] < k[:, None]
-    return ((batch.log_p - batch.log_q) * upto).sum(axis=1)
+    return ((batch.log_p - batch.log_q) * weighted_steps_mask(problem, batch, until_failure)).sum(axis=1)
+
+
+def weighted_steps_mask(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np.ndarray:
+    """bool [N, T]: the steps whose actions enter the importance weight (:func:`log_weight`): the first T - 1, or
+    with ``until_failure`` those before the failure step too."""
+    k = np.full(batch.n, batch.n_steps - 1)
+    if until_failure:
+        k = np.minimum(failure_steps(problem, batch), k)
+    return np.arange(batch.n_steps)[None, :] < k[:, None]
+
+
+def mixture_log_weight(log_p: np.ndarray, log_q: np.ndarray, shares: np.ndarray) -> np.ndarray:
+    """Importance log-weights of rollouts drawn from a mixture of K samplers, float64 [N] (nats):
+    ``log p(x) - log sum_k c_k q_k(x)``. With fixed shares (n_k of the N rollouts from q_k, c_k = n_k / N) this is the
+    balance heuristic of multiple importance sampling, unbiased (Veach & Guibas, SIGGRAPH 1995); with the target p
+    among the q_k at share c, every weight is at most 1 / c, the defensive mixture (Hesterberg, "Weighted average
+    importance sampling and defensive mixture distributions", Technometrics 1995; Owen & Zhou, "Safe and effective
+    importance sampling", JASA 2000).
+
+    Args:
+        log_p: log p(x) of each rollout under the target, float64 [N] (nats, over the weighted steps).
+        log_q: log q_k(x) of each rollout under each sampler, float64 [K, N] (nats, the same steps).
+        shares: c_k >= 0, [K], summing to 1.
+    """
+    with np.errstate(divide="ignore"):
+        log_c = np.log(np.asarray(shares, dtype=np.float64))[:, None]
+    return np.asarray(log_p, dtype=np.float64) - logsumexp(log_c + np.asarray(log_q, dtype=np.float64), axis=0)
 
 
 def log_p_before_failure(problem: Problem, batch: RolloutBatch) -> np.ndarray:
@@ -151,9 +186,11 @@ class StageRollouts:
         self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
 
     def add(self, problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
-            count_failures: bool = True) -> np.ndarray:  # fmt: skip
-        """Add a chunk (``count_failures``: bin its failures' detections too); returns its log-weights [N]."""
-        log_w = log_weight(problem, batch, until_failure)
+            count_failures: bool = True, log_w: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        """Add a chunk (``count_failures``: bin its failures' detections too); returns its log-weights [N]
+        (``log_w``: given, e.g. by a mixture, :func:`mixture_log_weight`; None: :func:`log_weight`)."""
+        if log_w is None:
+            log_w = log_weight(problem, batch, until_failure)
         self.parts.append((log_w, failed, log_p_before_failure(problem, batch)))
         if count_failures:
             c, h = elite_counts(batch, failed, self.grid)

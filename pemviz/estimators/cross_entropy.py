@@ -19,7 +19,7 @@ import torch
 from scipy.special import log_expit
 
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import Detector, WindowDetector, logit
+from pemviz.detectors import Detector, WindowDetector, action_log_prob, logit
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
@@ -30,7 +30,9 @@ from pemviz.estimators.base import (
     elite_count,
     elite_counts,
     failure_steps,
+    mixture_log_weight,
     pooled_estimate,
+    weighted_steps_mask,
 )
 from pemviz.problems import Problem
 from pemviz.sampling import Estimate, Proposal, StateProposal, estimate, fit_proposal
@@ -451,6 +453,10 @@ class CrossEntropy:
         self.tie_rng = np.random.default_rng((config.seed, 2))
         self.proposal: Proposal | None = None
         self.sampler: Detector | None = None
+        """The CE stages' sampler: the proposal, with the per-step defensive mixture (``defensive``) and the window."""
+        self.plain_sampler: Detector | None = None
+        """The proposal with the window only (a share ``plain_share`` of a stage's rollouts once the failure level is
+        reached)."""
         self.stages: dict[int, StageRollouts] = {}
         self.pooled: list[int] = []
         """CE stages drawn after one reached gamma = 0 (their proposals were fitted to failures)."""
@@ -460,6 +466,10 @@ class CrossEntropy:
         """The pretraining batch's chunks."""
         self._elites: EliteCandidates | None = None
         """A CE stage's rollouts that can still be elites."""
+        self._failure_steps: EliteSteps | None = None
+        """With ``fit_all_failures``: the fitted steps of every failure of the CE stages since the failure level."""
+        self._index_offset = 0
+        """Rollouts of the CE stages already in :attr:`_failure_steps` (the order of their steps)."""
         self._steps: EliteSteps | None = None
         """A CE stage's settled elites as fitted steps (frozen weights with a step mask; else the elites are fitted
         from their rollouts by :func:`ce_update`)."""
@@ -475,17 +485,43 @@ class CrossEntropy:
         elif k <= cfg.n_stages:
             if self.reached_failures:
                 self.pooled.append(k)
-            plan = StagePlan(k, "ce", cfg.n_per_stage, self.sampler)
+            plan = StagePlan(k, "ce", cfg.n_per_stage, self.sampler, mixture=self._mixture(cfg.n_per_stage))
             self._elites = EliteCandidates(plan.n, cfg.quantile_level, floor=0.0)
-            if cfg.weights == "frozen" and (cfg.weights_until_failure or cfg.proposal_window):
+            if self._failure_steps is not None:  # every failure since the failure level was reached
+                self._steps = self._failure_steps
+            elif cfg.weights == "frozen" and (cfg.weights_until_failure or cfg.proposal_window):
                 self._steps = EliteSteps(self.problem.curve_grid, cfg.fit_rows, self.fit_rng)
         elif k == cfg.n_stages + 1 and cfg.final_estimate != "last-stage":
-            plan = StagePlan(k, "final", cfg.n_final, self.sampler)
+            plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
         else:
             return None
         self._plan = plan
         self.stages[k] = StageRollouts(self.problem.curve_grid)
         return plan
+
+    def _mixture(self, n: int) -> tuple[tuple[int, Detector], ...]:
+        """The mixture over whole rollouts of a CE or final stage of ``n`` (:attr:`StagePlan.mixture`):
+        round(``target_share`` n) rollouts from the target, round(``plain_share`` n) from the proposal without the
+        per-step defensive mixture, the rest from :attr:`sampler`; none with both shares 0."""
+        cfg = self.config
+        if cfg.target_share + cfg.plain_share == 0.0:
+            return ()
+        # before the failure level the target's rollouts would not reach the stage's level: none are drawn
+        n_p = int(round(cfg.target_share * n)) if self.reached_failures else 0
+        n_q = int(round(cfg.plain_share * n))
+        n_q = min(n_q, n - n_p)
+        return ((n_p, self.problem.target), (n_q, self.plain_sampler), (n - n_p - n_q, self.sampler))
+
+    def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
+        """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]) for rollouts of the planned
+        stage's mixture (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] (nats)."""
+        plan, pb = self._plan, self.problem
+        obs = batch.observations.reshape(-1, batch.observations.shape[2])
+        log_p = (batch.log_p * mask).sum(axis=1)
+        log_q = [log_p if d is pb.target else
+                 (action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected) * mask).sum(axis=1)
+                 for _, d in plan.mixture]  # fmt: skip
+        return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         plan = self._plan
@@ -497,8 +533,10 @@ class CrossEntropy:
                 settled, index = self._elites.settle()
                 if settled is not None:
                     self._add_steps(settled, index, self._elites.floor)
-        return self.stages[plan.stage].add(self.problem, batch, failed, self.config.weights_until_failure,
-                                           count_failures=plan.kind == "final")  # fmt: skip
+        until = self.config.weights_until_failure
+        log_w = self._mixture_log_weight(batch, weighted_steps_mask(self.problem, batch, until)) if plan.mixture else None
+        return self.stages[plan.stage].add(self.problem, batch, failed, until, count_failures=plan.kind == "final",
+                                           log_w=log_w)  # fmt: skip
 
     def finish(self) -> StageOutcome:
         plan, grid = self._plan, self.problem.curve_grid
@@ -513,6 +551,9 @@ class CrossEntropy:
             else:
                 batch, r, index = self._elites.candidates()
                 gamma, n_elites, rate = self._ce_stage(batch, r, index, self._elites.gamma(), plan.n)
+                if self.config.fit_all_failures and gamma <= 0.0 and self._steps is not None:
+                    self._failure_steps = self._steps
+                    self._index_offset += plan.n
                 self._elites = self._steps = None
             log_w, failed, log_p = self.stages[plan.stage].arrays()
             outcome = StageOutcome(gamma, n_elites, estimate(log_w, failed, log_p), self.proposal.curve(grid), rate)
@@ -555,12 +596,13 @@ class CrossEntropy:
             check=self.check, step_mask=self.step_mask(batch) if cfg.proposal_window else None,
             fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
-        sampler: Detector = proposal
-        if cfg.defensive > 0.0:  # every outcome keeps at least probability defensive / 2
-            sampler = DefensiveDetector(proposal, float(cfg.defensive))
-        if cfg.proposal_window:  # q = p_target where the detector cannot matter
-            sampler = WindowDetector(sampler, pb.target, pb.window)
-        self.sampler = sampler
+        def windowed(sampler: Detector) -> Detector:  # q = p_target where the detector cannot matter
+            return WindowDetector(sampler, pb.target, pb.window) if cfg.proposal_window else sampler
+
+        self.plain_sampler = windowed(proposal)
+        self.sampler = self.plain_sampler
+        if cfg.defensive > 0.0:  # every outcome keeps probability >= eps / 2 at every step
+            self.sampler = windowed(DefensiveDetector(proposal, float(cfg.defensive)))
 
     def _smoothing(self, gamma: float) -> float:
         """alpha of a stage at threshold gamma (``smoothing_at_failure`` once gamma reached the failure level)."""
@@ -571,8 +613,11 @@ class CrossEntropy:
         """Reduce elite rollouts to their fitted steps (:class:`EliteSteps`): inputs, actions, alpha log w_i."""
         mask = self.step_mask(batch, gamma)
         k = batch.n_steps - 1
-        frozen_log_w = ((batch.log_p[:, :k] - batch.log_q[:, :k]) * mask[:, :k]).sum(axis=1)
-        self._steps.add(index, batch, self.proposal.features(batch.observations), mask,
+        if self._plan.mixture:
+            frozen_log_w = self._mixture_log_weight(batch, mask & (np.arange(batch.n_steps) < k))
+        else:
+            frozen_log_w = ((batch.log_p[:, :k] - batch.log_q[:, :k]) * mask[:, :k]).sum(axis=1)
+        self._steps.add(index + self._index_offset, batch, self.proposal.features(batch.observations), mask,
                         self._smoothing(gamma) * frozen_log_w)  # fmt: skip
 
     def _ce_stage(self, batch: RolloutBatch | None, robustness: np.ndarray, index: np.ndarray, gamma: float,
