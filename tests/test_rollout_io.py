@@ -173,8 +173,8 @@ def chunked(pem, monkeypatch):
 
 
 STREAMED = ExperimentConfig(n_stages=1, n_per_stage=100, n_final=1000, pretrain_rollouts=50, ce_epochs=5,
-                            pretrain_epochs=5, seed=3)  # fmt: skip
-"""A run whose final batch (1,000 rollouts) is streamed in 8 chunks by :func:`chunked`."""
+                            pretrain_epochs=5, seed=3, target_share=0.0, plain_share=0.0)  # fmt: skip
+"""A run whose final batch (1,000 rollouts from one sampler) is streamed in 8 chunks by :func:`chunked`."""
 
 
 def test_a_streamed_final_batch_is_written_chunk_by_chunk_and_reads_back_whole(tmp_path, chunked):
