@@ -217,9 +217,10 @@ class ExperimentConfig:
         for name in ("target_share", "plain_share"):
             need(_is_real(getattr(self, name)) and 0.0 <= getattr(self, name) <= 1.0, name, "must be in [0, 1]")
         need(self.target_share + self.plain_share <= 1.0, "target_share", "target_share + plain_share must be <= 1")
-        need(self.target_share + self.plain_share == 0.0 or (self.weights == "frozen" and (
-            self.weights_until_failure or self.proposal_window)), "target_share",
-            "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or proposal_window")
+        need(self.method != "adaptive" or self.target_share + self.plain_share == 0.0 or (
+            self.weights == "frozen" and (self.weights_until_failure or self.proposal_window)), "target_share",
+            "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or proposal_window; "
+            "set target_share = plain_share = 0 (preset state-ce-step) for the others")
         need(self.fit in FITS, "fit", f"use one of {', '.join(FITS)}")
         need(_is_int(self.fit_max_steps) and self.fit_max_steps >= 1, "fit_max_steps", "must be an integer >= 1")
         need(self.fit_rows is None or (_is_int(self.fit_rows) and self.fit_rows >= 1), "fit_rows",
