@@ -327,9 +327,10 @@ def pareto_khat(log_values: np.ndarray) -> float:
     largest values over the next one, as in Vehtari et al., "Pareto Smoothed Importance Sampling", JMLR 2024,
     Sec. 3. Values of -inf (zeros, e.g. rollouts that did not fail) may be present: when fewer than M + 1
     values are positive, the tail is taken from the positive values alone (S = their number). Exceedances below
-    1e-9 of the largest value are ties (sums of log-probabilities differ in their last bits). Returns 0 for a
-    flat tail (fewer than 5 exceedances: e.g. every failure weight equal) and nan for fewer than 25 positive
-    values (M < 5).
+    1e-9 of the largest value are ties (sums of log-probabilities differ in their last bits), and so are
+    exceedances within 1e-9 of each other. Returns 0 for a flat or discrete tail (fewer than 5 distinct
+    exceedances: e.g. every failure weight equal, or pooled stages that each give all their failures one
+    weight: a bounded tail, with finite variance) and nan for fewer than 25 positive values (M < 5).
     """
     from pyro.ops.stats import fit_generalized_pareto  # torch is loaded already: ~0.1 s, only when needed
 
@@ -343,7 +344,7 @@ def pareto_khat(log_values: np.ndarray) -> float:
     top = lv[-1]
     tail = np.exp(lv[lv.size - m :] - top) - math.exp(lv[lv.size - m - 1] - top)  # scale-free exceedances
     tail = tail[tail > 1e-9]  # ties with the cutoff carry no tail information (and break the fit's quartile)
-    if tail.size < 5:
+    if tail.size < 5 or np.unique(np.round(tail / 1e-9)).size < 5:  # a few repeated values: a bounded tail
         return 0.0
     k, _ = fit_generalized_pareto(torch.as_tensor(tail))
     return float(k)

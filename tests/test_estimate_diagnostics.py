@@ -67,6 +67,19 @@ def test_khat_recovers_the_shape_of_a_generalized_pareto_tail():
         assert pareto_khat(np.log(x)) == pytest.approx(k, abs=0.12)
 
 
+def test_a_tail_of_a_few_repeated_weights_is_bounded_and_reliable():
+    # Pooled stages on a problem where each stage gives all its failures one weight (the toy under its
+    # zero-variance proposal): 900 failures in 3 clusters of weights 1e-21 * (1.2, 1.0, 0.9). The variance is
+    # finite; a Pareto fit to repeated values gives a meaningless k-hat (-4.7 here, +4.4 on a pooled toy run).
+    rng = np.random.default_rng(3)
+    w = np.repeat([1.2e-21, 1.0e-21, 0.9e-21], [40, 400, 1360])  # the top 127 span two clusters
+    log_w = np.log(w) + rng.normal(0.0, 1e-12, 1800)
+    failed = np.arange(1800) < 900
+    assert pareto_khat(np.where(failed, log_w, -np.inf)) == 0.0
+    e = _is(log_w, failed)
+    assert e.verdict == "reliable" and e.ess > 800
+
+
 def test_heavy_tailed_weights_are_unreliable_with_their_khat():
     rng = np.random.default_rng(2)
     x = ((1.0 - rng.random(400)) ** -1.2 - 1.0) / 1.2  # k = 1.2: infinite mean
