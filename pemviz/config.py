@@ -31,6 +31,8 @@ process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives 
 
 WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("pooled", "fresh", "last-stage")
+POOL_WEIGHTS = ("linear", "rollouts")
+"""How ``final_estimate = "pooled"`` weighs its stages (:class:`ExperimentConfig` ``pool_weights``)."""
 ELITE_TIES = ("all", "random")
 FITS = ("adam", "lbfgs")
 """How the proposal is fitted each stage (:func:`pemviz.estimators.cross_entropy.ce_update`): ``adam``, a fixed number of
@@ -89,6 +91,10 @@ class ExperimentConfig:
         final_estimate: ``pooled``: the N_e fresh rollouts together with every CE stage whose proposal was fitted to
             failures (the stage before it had reached gamma = 0), each rollout weighted by the proposal that drew
             it; ``fresh``: the N_e rollouts alone (paper); ``last-stage``: the last stage's batch (authors' code).
+        pool_weights: how ``pooled`` combines its stages, one of :data:`POOL_WEIGHTS`: ``rollouts``, every rollout
+            alike (stage kappa's estimate counts n_kappa / N); ``linear``, the j-th pooled stage's estimate counts in
+            proportion to j n_kappa, so later proposals, fitted to more failures, count more. Both are fixed
+            before any pooled stage is drawn, so both are unbiased.
         pem: path of PEM weights, or None for the shipped default.
         sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
         executor: where rollouts are simulated, one of :data:`EXECUTORS`.
@@ -153,6 +159,7 @@ class ExperimentConfig:
     learning_rate: float = 1e-3
     weights: str = "frozen"
     final_estimate: str = "pooled"
+    pool_weights: str = "linear"
     pem: str | None = None
     sim: str = "batched"
     executor: str = "serial"
@@ -191,6 +198,7 @@ class ExperimentConfig:
             "ray_address", "give a non-empty Ray address, and only with executor = 'ray'",
         )  # fmt: skip
         need(self.final_estimate in FINAL_MODES, "final_estimate", f"use one of {', '.join(FINAL_MODES)}")
+        need(self.pool_weights in POOL_WEIGHTS, "pool_weights", f"use one of {', '.join(POOL_WEIGHTS)}")
         need(_is_real(self.smoothing) and 0.0 < self.smoothing <= 1.0, "smoothing (alpha)", "alpha must be in (0, 1]")
         need(
             _is_real(self.quantile_level) and 0.5 <= self.quantile_level < 1.0,
@@ -282,7 +290,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "quick": {
         "n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2,
     },
-    "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False},
+    "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "pool_weights": "rollouts"},
 }
 """Named settings, each applied on top of the defaults.
 

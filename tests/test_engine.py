@@ -18,18 +18,20 @@ SMALL = dict(n_stages=3, n_per_stage=50, n_final=100, ce_epochs=100, pretrain_ep
 """A run of a few seconds: K = 3 stages of N = 50, N_e = 100, 100 Adam epochs per fit."""
 
 # Recorded before the estimators moved out of the engine (commit 004482e; ``rollout-mixture``: the default sampler
-# when it became the default, the others with the per-step defensive mixture alone): key -> (log mu_hat, failures, N,
+# when it became the default, the others with the per-step defensive mixture alone; the braking runs of a state
+# proposal re-recorded when the scenario's observation gained ``brake_pending``, and ``rollout-mixture`` with the
+# linear pool weights, both bit-identical across two runs): key -> (log mu_hat, failures, N,
 # stages used, simulations, (stage, gamma, elites) per stage). Any change to the rollouts' stream, the weights, the
 # elites, the fits or the pooling moves these numbers.
 PINNED = {
-    "braking/state-ce/0": (-34.11497633273203, 73, 150, (3, 4), 350, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, 0.0, 10), (3, 0.0, 21), (4, nan, 52))),
-    "braking/state-ce/1": (-34.86581886445511, 73, 150, (3, 4), 350, ((0, nan, 0), (1, 2.168889557137515, 3), (2, 0.0, 18), (3, 0.0, 23), (4, nan, 50))),
+    "braking/state-ce/0": (-34.004900319844026, 55, 150, (3, 4), 350, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, 0.0, 11), (3, 0.0, 22), (4, nan, 33))),
+    "braking/state-ce/1": (-34.35220324311259, 90, 150, (3, 4), 350, ((0, nan, 0), (1, 2.168889557137515, 3), (2, 0.0, 17), (3, 0.0, 29), (4, nan, 61))),
     "braking/paper/0": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 3.56102621193034, 3), (2, 3.3385582881688016, 3), (3, 3.076266685477176, 3), (4, nan, 0))),
     "braking/paper/1": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 3.5808462119303393, 3), (2, 3.320447356948659, 3), (3, 3.0723753044666644, 3), (4, nan, 0))),
     "braking/authors-code/0": (-inf, 0, 50, (3,), 250, ((0, nan, 0), (1, 3.56102621193034, 3), (2, 3.3385582881688016, 3), (3, 3.3524002318177857, 3))),
     "braking/authors-code/1": (-inf, 0, 50, (3,), 250, ((0, nan, 0), (1, 3.5808462119303393, 3), (2, 3.405125503487902, 3), (3, 3.097067091344499, 3))),
-    "braking/quick/0": (-34.09872214477958, 93, 150, (3, 4), 300, ((0, nan, 0), (1, 1.390010839197359, 3), (2, 0.0, 14), (3, 0.0, 22), (4, nan, 71))),
-    "braking/quick/1": (-33.7254220472554, 96, 150, (3, 4), 300, ((0, nan, 0), (1, 1.1656267103298639, 3), (2, 0.0, 12), (3, 0.0, 26), (4, nan, 70))),
+    "braking/quick/0": (-35.2918497042498, 116, 150, (3, 4), 300, ((0, nan, 0), (1, 1.3554363731010852, 3), (2, 0.0, 16), (3, 0.0, 31), (4, nan, 85))),
+    "braking/quick/1": (-33.94599965039492, 89, 150, (3, 4), 300, ((0, nan, 0), (1, 1.1221105872045953, 3), (2, 0.0, 15), (3, 0.0, 22), (4, nan, 67))),
     "toy/state-ce/0": (-48.39480057676526, 10, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 15.0, 3), (3, 4.0, 3), (4, nan, 10))),
     "toy/state-ce/1": (-48.20519147029259, 12, 100, (4,), 350, ((0, nan, 0), (1, 18.0, 3), (2, 14.0, 3), (3, 1.0, 3), (4, nan, 12))),
     "toy/paper/0": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 5), (2, 19.0, 3), (3, 20.0, 50), (4, nan, 0))),
@@ -40,8 +42,8 @@ PINNED = {
     "braking/mixed50/0": (-33.73266933500028, 367, 500, (1,), 500, ((1, nan, 367),)),
     "braking/mixed50-paper/0": (-78.53820890572328, 367, 500, (1,), 500, ((1, nan, 367),)),
     "toy-1e-3/mc/0": (-7.600902459542082, 1, 2000, (1,), 2000, ((1, nan, 1),)),
-    "braking/state-ce-streamed/0": (-33.82918391963035, 17582, 100001, (2,), 100151, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, nan, 17582))),
-    "braking/rollout-mixture/0": (-36.952419734403485, 71, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 3), (3, 0.0, 22), (4, nan, 52))),
+    "braking/state-ce-streamed/0": (-33.810465161534694, 23670, 100001, (2,), 100151, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, nan, 23670))),
+    "braking/rollout-mixture/0": (-33.824266815815584, 76, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 53))),
     "toy/rollout-mixture/0": (-48.382317304914295, 46, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 11.0, 3), (3, 0.0, 6), (4, nan, 46))),
 }  # fmt: skip
 

@@ -200,3 +200,38 @@ def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on
     assert w.max() <= 10.0 + 1e-9
     assert abs(w.mean() - exact) < 4 * w.std() / math.sqrt(w.size)
     assert abs(w.mean() / exact - 1) < 0.05
+
+
+def test_linear_pool_weights_by_hand_and_unbiased_over_stages_of_different_proposals():
+    from pemviz.estimators.base import StageRollouts, pooled_estimate
+    from pemviz.truth import toy_log_failure_probability
+
+    params = ToyParams(8, 5, 2, 0.6)  # exact (1 - 0.6)^4 = 0.0256
+    pb = toy_problem(params)
+    exact = math.exp(toy_log_failure_probability(params))
+    grid = pb.curve_grid
+    # by hand: stage 1 (2 rollouts, one fails with w = 0.5), stage 2 (4 rollouts, one fails with w = 0.02); linear
+    # weights (1 * 2, 2 * 4) / 10 -> mu_hat = 0.2 * 0.25 + 0.8 * 0.005 = 0.054 (the pool of rollouts alike: 0.52 / 6)
+    one, two = StageRollouts(grid), StageRollouts(grid)
+    one.parts.append((np.log([0.5, 1.0]), np.array([True, False]), np.zeros(2)))
+    two.parts.append((np.log([0.02, 1.0, 1.0, 1.0]), np.array([True, False, False, False]), np.zeros(4)))
+    lam = np.array([1 * 2, 2 * 4], dtype=np.float64) / 10
+    assert math.exp(pooled_estimate([one, two], lam).log_mu_hat) == pytest.approx(0.054, rel=1e-12)
+    assert math.exp(pooled_estimate([one, two]).log_mu_hat) == pytest.approx(0.52 / 6, rel=1e-12)
+    # unbiased: stages of 40 rollouts from q(miss) = 0.3 and 120 from q(miss) = 0.7, linear weights (1/7, 6/7);
+    # the mean of mu_hat over 400 repetitions is the exact answer within 4 standard errors and 5 %
+    rng = np.random.default_rng(1)
+    lam = np.array([1 * 40, 2 * 120], dtype=np.float64)
+    lam /= lam.sum()
+    est = []
+    for _ in range(400):
+        stages = []
+        for n, q in ((40, ConstantDetector(0.7)), (120, ConstantDetector(0.3))):
+            batch = pb.simulate(n, q, pb.target, rng)
+            s = StageRollouts(grid)
+            s.add(pb, batch, pb.failed(batch), until_failure=True)
+            stages.append(s)
+        est.append(math.exp(pooled_estimate(stages, lam).log_mu_hat))
+    est = np.array(est)
+    assert abs(est.mean() - exact) < 4 * est.std(ddof=1) / math.sqrt(est.size)
+    assert abs(est.mean() / exact - 1) < 0.05

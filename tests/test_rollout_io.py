@@ -77,7 +77,7 @@ def estimate_cli(capsys, *args: str) -> tuple[int, str, str]:
 def test_run_rollouts_read_back_with_their_columns_give_the_runs_mu_hat_to_1e_12(naive_run):
     path, run_estimate = naive_run
     data = rio.read_rollouts(path)
-    assert (data.n, data.n_steps, data.observation_names) == (200, 100, ("gap_m", "ego_speed_mps", "lead_speed_mps"))
+    assert (data.n, data.n_steps, data.observation_names) == (200, 100, ("gap_m", "ego_speed_mps", "lead_speed_mps", "brake_pending"))
     result = estimate_rollouts(data, data.log_p, data.log_q)
     assert run_estimate.n_failures == result.estimate.n_failures > 100
     assert same_mu(result.estimate.log_mu_hat, run_estimate.log_mu_hat)

@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
+import math
+
 import numpy as np
 from scipy.special import logsumexp
 
@@ -197,6 +199,11 @@ class StageRollouts:
             self.counts, self.hits = self.counts + c, self.hits + h
         return log_w
 
+    @property
+    def n(self) -> int:
+        """The stage's rollouts so far."""
+        return sum(part[0].size for part in self.parts)
+
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(log-weights, failed, log p before the failure), [N] each, over every chunk."""
         if len(self.parts) == 1:
@@ -308,8 +315,20 @@ class EliteCandidates:
                 np.concatenate([i for _, _, i in self._kept]))  # fmt: skip
 
 
-def pooled_estimate(stages: list[StageRollouts]) -> Estimate:
+def pooled_estimate(stages: list[StageRollouts], stage_weights: np.ndarray | None = None) -> Estimate:
     """mu_hat over the rollouts of several stages together, each weighted by the proposal that drew it (see
-    :meth:`pemviz.estimators.CrossEntropy.result` for why the pooled mean is unbiased)."""
-    log_w, failed, log_p = (np.concatenate(a) for a in zip(*(s.arrays() for s in stages)))
+    :meth:`pemviz.estimators.CrossEntropy.result` for why the pooled mean is unbiased).
+
+    Args:
+        stages: K stages of n_k rollouts each.
+        stage_weights: lambda_k >= 0, [K], summing to 1: mu_hat = sum_k lambda_k mu_hat_k, computed as the mean over
+            all N = sum n_k rollouts of 1[fail] w lambda_k N / n_k; None: n_k / N (every rollout alike).
+    """
+    parts = [s.arrays() for s in stages]
+    if stage_weights is not None:
+        n = np.array([lw.size for lw, _, _ in parts], dtype=np.float64)
+        with np.errstate(divide="ignore"):
+            shift = np.log(np.asarray(stage_weights, dtype=np.float64)) + math.log(n.sum()) - np.log(n)
+        parts = [(lw + c, f, lp) for (lw, f, lp), c in zip(parts, shift)]
+    log_w, failed, log_p = (np.concatenate(a) for a in zip(*parts))
     return estimate(log_w, failed, log_p)

@@ -567,12 +567,20 @@ class CrossEntropy:
         The pool's size is fixed by then, before any pooled stage is sampled, and each pooled stage is weighted by
         the proposal that drew it, so the pooled mean of 1[fail] w is unbiased (a sum of martingale differences;
         cf. Cornuet, Marin, Mira, Robert, "Adaptive multiple importance sampling", Scand. J. Stat. 2012, for
-        recycling the stages of an adaptive sampler).
+        recycling the stages of an adaptive sampler). With ``pool_weights = "linear"`` the j-th pooled stage
+        (j = 1..K) counts lambda_j = j n_j / sum_i i n_i: fixed as soon as the pool starts too, so still unbiased,
+        and later proposals, fitted to more failures, count more (weighting the stages of adaptive importance
+        sampling: Portier & Delyon, "Asymptotic optimality of adaptive importance sampling", NeurIPS 2018).
         """
         stage, est = self._last
         if self.config.final_estimate == "pooled" and self.reached_failures and self.pooled:
             used = (*self.pooled, stage)
-            return pooled_estimate([self.stages[k] for k in used]), used
+            stages = [self.stages[k] for k in used]
+            lam = None
+            if self.config.pool_weights == "linear":
+                lam = np.array([(j + 1) * s.n for j, s in enumerate(stages)], dtype=np.float64)
+                lam /= lam.sum()
+            return pooled_estimate(stages, lam), used
         return est, (stage,)
 
     # -- the algorithm --------------------------------------------------------------------------------------------

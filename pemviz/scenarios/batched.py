@@ -52,7 +52,7 @@ fastest of 2048..65536 on the 2-core CI machine); its outputs are 34 MB at T = 1
 class BatchedBraking:
     """N rollouts of the braking scenario stepped together; the vectorised :class:`BrakingScenario`.
 
-    Usage: ``obs = sim.observation()`` (float64 [N, 3], :data:`OBSERVATION_NAMES`), ask a detector, then
+    Usage: ``obs = sim.observation()`` (float64 [N, 4], :data:`OBSERVATION_NAMES`), ask a detector, then
     ``sim.step(detected)`` with bool [N]; after ``params.n_steps`` steps the rollouts are over.
     """
 
@@ -83,15 +83,17 @@ class BatchedBraking:
         return (self.lead_x_m - p.lead_length_m / 2) - (self.ego_x_m + p.camera_offset_m)
 
     def observation(self, out: np.ndarray | None = None) -> np.ndarray:
-        """The states reported to the detector: float64 [N, 3] = (gap_m, ego speed, lead speed).
+        """The states reported with each detector query: float64 [N, 4] (:data:`OBSERVATION_NAMES`): gap (m), ego and
+        lead speeds (m/s), brake pending (1.0 or 0.0).
 
         Args:
-            out: optional float64 [N, 3] array to write into (returned).
+            out: optional float64 [N, 4] array to write into (returned).
         """
         o = np.empty((self.n, len(OBSERVATION_NAMES))) if out is None else out
         o[:, 0] = self.gap_m
         o[:, 1] = self.ego_speed_mps
         o[:, 2] = self.lead_speed_mps
+        o[:, 3] = self._ctrl.pending_brake
         return o
 
     @property

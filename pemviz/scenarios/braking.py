@@ -33,8 +33,11 @@ LEAD_SPEED_PROFILE_MPS: tuple[float, ...] = (
 )
 """Lead speed at step t = 0..99 (the authors' CARLA logs; 8.038 m/s is the logged start speed)."""
 
-OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "ego_speed_mps", "lead_speed_mps")
-"""Columns of :meth:`BrakingScenario.observation`: what the scenario reports to the detector."""
+OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "ego_speed_mps", "lead_speed_mps", "brake_pending")
+"""Columns of :meth:`BrakingScenario.observation`: what the scenario reports with each detector query. The PEM reads
+the gap; ``brake_pending`` (1.0 or 0.0: the emergency brake commanded at the last step, applied at this one after
+the actuation lag) is the controller's memory that decides this step's deceleration, so that a proposal over
+the observation sees the Markov state that matters (the PID integral moves slowly with the speed)."""
 
 
 @dataclass(frozen=True)
@@ -149,7 +152,7 @@ def ego_acceleration(
 class BrakingScenario:
     """One rollout of the braking scenario on highway-env vehicles, stepped as a black box.
 
-    Usage: ``obs = sim.observation()`` (a float64 [3] vector, :data:`OBSERVATION_NAMES`), ask a
+    Usage: ``obs = sim.observation()`` (a float64 [4] vector, :data:`OBSERVATION_NAMES`), ask a
     detector, then ``sim.step(detected)``; after ``params.n_steps`` steps the rollout is over.
     The lead and the ego are :class:`highway_env.vehicle.kinematics.Vehicle` objects on a straight
     single-lane :class:`highway_env.road.road.Road`; their ``step(dt)`` integrates the motion.
@@ -189,8 +192,10 @@ class BrakingScenario:
         return float(self.lead.position[0] - p.lead_length_m / 2 - (self.ego.position[0] + p.camera_offset_m))
 
     def observation(self) -> np.ndarray:
-        """The state reported with each detector query: float64 [3] = (gap_m, ego speed, lead speed)."""
-        return np.array([self.gap_m, self.ego.speed, self.lead.speed], dtype=np.float64)
+        """The state reported with each detector query: float64 [4] (:data:`OBSERVATION_NAMES`): gap (m), ego and
+        lead speeds (m/s), brake pending (1.0 or 0.0)."""
+        return np.array([self.gap_m, self.ego.speed, self.lead.speed, float(self._ctrl.pending_brake[0])],
+                        dtype=np.float64)  # fmt: skip
 
     @property
     def done(self) -> bool:

@@ -36,9 +36,9 @@ def pem():
 
 
 def highway_env_replay(detected: np.ndarray) -> np.ndarray:
-    """Observations [N, T, 3] of the black-box scenario driven by fixed detections [N, T]."""
+    """Observations [N, T, 4] of the black-box scenario driven by fixed detections [N, T]."""
     sim = BrakingScenario()
-    out = np.empty(detected.shape + (3,))
+    out = np.empty(detected.shape + (len(sim.observation_names),))
     for i, row in enumerate(detected):
         sim.reset()
         for t, a in enumerate(row):
@@ -76,9 +76,13 @@ def test_1000_random_detection_sequences_give_highway_env_gaps_to_1e_6_m_and_sam
     detected = random_detection_sequences(1000, p.n_steps, seed=7)
     black_box = highway_env_replay(detected)
     batched = replay(p, detected)
-    assert batched.shape == black_box.shape == (1000, p.n_steps, 3)
+    assert batched.shape == black_box.shape == (1000, p.n_steps, 4)
     np.testing.assert_allclose(batched[:, :, 0], black_box[:, :, 0], rtol=0, atol=1e-6)  # gap, metres
-    np.testing.assert_allclose(batched[:, :, 1:], black_box[:, :, 1:], rtol=0, atol=1e-9)  # speeds, m/s
+    np.testing.assert_allclose(batched[:, :, 1:3], black_box[:, :, 1:3], rtol=0, atol=1e-9)  # speeds, m/s
+    np.testing.assert_array_equal(batched[:, :, 3], black_box[:, :, 3])  # brake pending
+    # brake pending at t + 1 is the emergency command of step t: detected within the braking distance
+    expected = detected[:, :-1] & (batched[:, :-1, 0] < p.braking_distance_m)
+    np.testing.assert_array_equal(batched[:, 1:, 3] == 1.0, expected)
     crash_black_box = black_box[:, :, 0].min(axis=1) < p.crash_gap_m
     crash_batched = batched[:, :, 0].min(axis=1) < p.crash_gap_m
     assert np.array_equal(crash_batched, crash_black_box)
