@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Union
 
 import numpy as np
 import torch
@@ -40,7 +40,35 @@ class Proposal(nn.Module):
         ).double()
 
     def forward(self, gap_m: torch.Tensor) -> torch.Tensor:
-        return self.net((gap_m / self.h_scale).reshape(-1, 1))
+        return self.net(self.inputs(gap_m))
+
+    def inputs(self, gap_m: torch.Tensor) -> torch.Tensor:
+        """The network's input h(s) of proposal inputs ``gap_m`` [M] (metres): [M, 1], dimensionless."""
+        return (gap_m / self.h_scale).reshape(-1, 1)
+
+    def log_probs_cached(self, h: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        """``net(h)`` for a network input h [M, k] (:meth:`inputs`) without autograd: the log-probabilities [M, 2]
+        (nats) and what :meth:`parameter_grads` needs. The same kernels as ``net(h)``, so the same bits."""
+        lin1, _, lin2, _, lin3, _ = self.net
+        with torch.no_grad():
+            a1 = torch.relu(torch.addmm(lin1.bias, h, lin1.weight.t()))
+            a2 = torch.relu(torch.addmm(lin2.bias, a1, lin2.weight.t()))
+            lq = torch.log_softmax(torch.addmm(lin3.bias, a2, lin3.weight.t()), dim=-1)
+        return lq, (h, a1, a2, lq)
+
+    def parameter_grads(self, cache: tuple[torch.Tensor, ...], grad_lq: torch.Tensor) -> list[torch.Tensor]:
+        """d loss / d parameter for every parameter, in ``parameters()`` order, given d loss / d log q = ``grad_lq``
+        [M, 2] at the forward pass ``cache`` (:meth:`log_probs_cached`): backpropagation through the network
+        written out (Rumelhart, Hinton & Williams 1986), the kernels autograd would run (the same bits) without its
+        per-step overhead (a fit takes thousands of steps on a few hundred inputs)."""
+        h, a1, a2, lq = cache
+        _, _, lin2, _, lin3, _ = self.net
+        with torch.no_grad():
+            dz3 = torch.ops.aten._log_softmax_backward_data(grad_lq, lq, -1, lq.dtype)
+            dz2 = torch.ops.aten.threshold_backward(torch.mm(dz3, lin3.weight), a2, 0)
+            dz1 = torch.ops.aten.threshold_backward(torch.mm(dz2, lin2.weight), a1, 0)
+            return [torch.mm(h.t(), dz1).t(), dz1.sum(0), torch.mm(a1.t(), dz2).t(), dz2.sum(0),
+                    torch.mm(a2.t(), dz3).t(), dz3.sum(0)]  # fmt: skip
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """Detector interface: logit q(detect | obs), float64 [N] for observations [N, F]."""
@@ -76,7 +104,12 @@ class StateProposal(Proposal):
         self.net[0] = nn.Linear(len(columns), 32).double()
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
-        return self.net(h.reshape(-1, len(self.columns)) / self.scales)
+        return self.net(self.inputs(h))
+
+    def inputs(self, h: torch.Tensor) -> torch.Tensor:
+        """The network's input of proposal inputs ``h`` [M, k] (observation units): [M, k], each column divided by
+        its scale."""
+        return h.reshape(-1, len(self.columns)) / self.scales
 
     def features(self, observations: np.ndarray) -> np.ndarray:
         """[N, T, k]: the proposal's input columns of observations [N, T, F]."""
@@ -148,38 +181,81 @@ class Adam:
 
     @torch.no_grad()
     def step(self) -> None:
-        """One update from the parameters' current gradients (parameters without one are left as they are)."""
+        """One update from the parameters' current gradients (parameters without one are left as they are).
+
+        The single-tensor update applied to every parameter at once with ``torch._foreach_*`` (7 kernel calls a step
+        instead of 7 per parameter): element for element the same operations, so the same bits."""
         self.steps += 1
         step = float(self.steps)
         step_size = self.lr / (1 - self.beta1**step)
         bias_correction2_sqrt = (1 - self.beta2**step) ** 0.5
-        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq):
-            if p.grad is None:
-                continue
-            m.lerp_(p.grad, 1 - self.beta1)
-            v.mul_(self.beta2).addcmul_(p.grad, p.grad, value=1 - self.beta2)
-            p.addcdiv_(m, (v.sqrt() / bias_correction2_sqrt).add_(self.eps), value=-step_size)
+        live = [i for i, p in enumerate(self.params) if p.grad is not None]
+        if not live:
+            return
+        params = [self.params[i] for i in live]
+        grads = [p.grad for p in params]
+        exp_avg, exp_avg_sq = [self.exp_avg[i] for i in live], [self.exp_avg_sq[i] for i in live]
+        torch._foreach_lerp_(exp_avg, grads, 1 - self.beta1)
+        torch._foreach_mul_(exp_avg_sq, self.beta2)
+        torch._foreach_addcmul_(exp_avg_sq, grads, grads, value=1 - self.beta2)
+        denom = torch._foreach_sqrt(exp_avg_sq)
+        torch._foreach_div_(denom, bias_correction2_sqrt)
+        torch._foreach_add_(denom, self.eps)
+        torch._foreach_addcdiv_(params, exp_avg, denom, value=-step_size)
+
+
+Objective = Union[torch.Tensor, Callable[[torch.Tensor], "tuple[torch.Tensor, torch.Tensor]"]]
+"""What :func:`fit_proposal` minimises over q_phi's log-probabilities log q [M, 2] (nats) at its inputs: a tensor C
+[M, 2], the loss ``-sum(C * log q)`` (a weighted log-likelihood: C holds each input's weighted counts of misses and
+detections), or a function of log q returning the scalar loss and its gradient d loss / d log q [M, 2]."""
 
 
 def fit_proposal(
     proposal: Proposal,
-    loss_fn,
+    inputs: torch.Tensor,
+    objective: Objective,
     epochs: int,
     lr: float,
     check: Callable[[], None] | None = None,
     method: str = "adam",
     tolerance: float | None = None,
+    per: float | None = None,
 ) -> list[float]:
-    """Minimise ``loss_fn()`` over the proposal's parameters, in place; returns the loss per step.
+    """Minimise the ``objective`` of log q_phi(. | ``inputs``) over the proposal's parameters, in place; returns the
+    loss per step.
 
-    ``adam``: ``epochs`` Adam steps of size ``lr``, or fewer with a ``tolerance``: early stopping once the
-    loss fell by less than ``tolerance`` over the last :data:`PLATEAU_EPOCHS` epochs. ``lbfgs``: at most ``epochs`` L-BFGS iterations
-    (history 20, strong-Wolfe line search, unit step), stopped at convergence (``tolerance``, default
-    :data:`LBFGS_TOLERANCE`),
-    the loss recorded at every evaluation; ``loss_fn`` should then be a mean (nats per step), so that the
-    tolerance means the same at any N. ``check`` is called every :data:`CHECK_EVERY` steps and may raise
-    (a cancel token).
+    Args:
+        inputs: the proposal's inputs, float64 [M] (gaps, metres) or [M, k] (:meth:`Proposal.forward`).
+        objective: see :data:`Objective`.
+        per: with a tensor C, the loss is ``-sum(C * log q) / per`` (e.g. the number of steps C stands for, so that a
+            ``tolerance`` in nats per step means the same at any N); None: not divided.
+        epochs, lr: Adam steps and step size, or the most L-BFGS iterations.
+        check: called every :data:`CHECK_EVERY` steps; may raise (a cancel token) to abandon the fit.
+        method: one of :data:`pemviz.config.FITS`.
+        tolerance: ``adam``: early stopping once the loss fell by less than this over the last :data:`PLATEAU_EPOCHS`
+            epochs (None: every epoch); ``lbfgs``: its tolerance on a change of the loss (default
+            :data:`LBFGS_TOLERANCE`).
+    Returns:
+        the loss per Adam epoch, or per L-BFGS evaluation.
+    Raises:
+        ValueError: for an unknown ``method``.
+
+    ``adam`` (Kingma & Ba 2015, :class:`Adam`) backpropagates through the network by hand
+    (:meth:`Proposal.parameter_grads`); ``lbfgs`` (Nocedal 1980; torch's, history 20, strong-Wolfe line search,
+    unit step) backpropagates the objective's gradient with autograd.
     """
+    if method not in FITS:
+        raise ValueError(f"fit_proposal: unknown method {method!r}; use one of {', '.join(FITS)}")
+    linear = isinstance(objective, torch.Tensor)
+    # d loss / d log q of a tensor objective, formed as autograd forms it (the same bits)
+    grad_linear = (objective * -1.0 if per is None else objective * -(1.0 / per)) if linear else None
+
+    def loss_and_grad(log_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if not linear:
+            return objective(log_q)
+        loss = -(objective * log_q).sum()
+        return (loss if per is None else loss / per), grad_linear
+
     losses: list[float] = []
     if method == "lbfgs":
         opt = torch.optim.LBFGS(
@@ -191,8 +267,9 @@ def fit_proposal(
 
         def closure() -> torch.Tensor:
             opt.zero_grad()
-            loss = loss_fn()
-            loss.backward()
+            log_q = proposal.forward(inputs)
+            loss, grad = loss_and_grad(log_q.detach())
+            log_q.backward(grad)
             losses.append(loss.item())
             return loss
 
@@ -205,19 +282,28 @@ def fit_proposal(
             if state.get("n_iter", 0) - before < opt.param_groups[0]["max_iter"]:  # converged: stop
                 break
         return losses
-    if method != "adam":
-        raise ValueError(f"fit_proposal: unknown method {method!r}; use one of {', '.join(FITS)}")
-    opt = Adam(list(proposal.parameters()), lr=lr)
-    for epoch in range(epochs):
-        if check is not None and epoch % CHECK_EVERY == 0:
-            check()  # may raise to stop the run (a cancel token)
-        opt.zero_grad()
-        loss = loss_fn()
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
-        if tolerance is not None and epoch >= PLATEAU_EPOCHS and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance:
-            break  # converged: the loss has stopped falling
+    h = proposal.inputs(torch.as_tensor(inputs))
+    # one flat tensor for all parameters (each a view into it while the fit runs), so that an Adam step is a few
+    # kernel calls: element for element the same arithmetic as parameter by parameter
+    params = list(proposal.parameters())
+    flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
+    for p, view in zip(params, flat.detach().split([p.numel() for p in params])):
+        p.data = view.view_as(p)
+    opt = Adam([flat], lr=lr)
+    try:
+        for epoch in range(epochs):
+            if check is not None and epoch % CHECK_EVERY == 0:
+                check()  # may raise to stop the run (a cancel token)
+            log_q, cache = proposal.log_probs_cached(h)
+            loss, grad = loss_and_grad(log_q)
+            flat.grad = torch.cat([g.reshape(-1) for g in proposal.parameter_grads(cache, grad)])
+            opt.step()
+            losses.append(loss.item())
+            if tolerance is not None and epoch >= PLATEAU_EPOCHS and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance:
+                break  # converged: the loss has stopped falling
+    finally:
+        for p in params:  # each parameter its own storage again
+            p.data = p.data.clone()
     return losses
 
 

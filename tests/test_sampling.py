@@ -201,3 +201,81 @@ def test_adam_gives_torch_optims_parameters_bit_for_bit(rows):
         fitted.append(torch.cat([p.detach().reshape(-1) for p in net.parameters()]))
     assert (fitted[0] - start).abs().max() > 0.1  # the fit moved the parameters
     assert torch.equal(fitted[0], fitted[1])
+
+
+def _torch_reference_fit(proposal, inputs, loss_of_log_q, epochs, lr):
+    """The fit as torch does it: autograd through the network and torch.optim.Adam (the independent truth)."""
+    opt = torch.optim.Adam(proposal.parameters(), lr=lr)
+    for _ in range(epochs):
+        opt.zero_grad()
+        loss_of_log_q(proposal.forward(inputs)).backward()
+        opt.step()
+    return torch.cat([p.detach().reshape(-1) for p in proposal.parameters()])
+
+
+@pytest.mark.parametrize("state", [False, True])
+def test_fit_proposal_gives_autograd_and_torch_adams_parameters_bit_for_bit(state):
+    """fit_proposal backpropagates by hand on one flat parameter tensor; it must fit exactly what autograd and
+    torch.optim.Adam fit, for the gap-only and the state proposal, the loss divided by a step count or not."""
+    from pemviz.sampling import StateProposal, fit_proposal
+
+    gen = torch.Generator().manual_seed(5)
+    if state:
+        def make():
+            torch.manual_seed(1)
+            return StateProposal((0, 1, 2), (12.0, 8.0, 1.0), (20.0, 8.0, 0.0))
+
+        inputs = torch.rand(300, 3, generator=gen, dtype=torch.float64) * torch.tensor([12.0, 8.0, 1.0])
+    else:
+        def make():
+            torch.manual_seed(1)
+            return Proposal()
+
+        inputs = torch.rand(300, generator=gen, dtype=torch.float64) * 12.0
+    counts = torch.rand(300, 2, generator=gen, dtype=torch.float64)
+    for per in (None, 417.0):
+        ours, ref = make(), make()
+        start = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
+        losses = fit_proposal(ours, inputs, counts, 200, 1e-2, per=per)
+        expected = _torch_reference_fit(
+            ref, inputs, lambda lq: -(counts * lq).sum() if per is None else -(counts * lq).sum() / per, 200, 1e-2)
+        got = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
+        assert (got - start).abs().max() > 0.1  # the fit moved the parameters
+        assert torch.equal(got, expected)
+        assert losses[-1] < losses[0]
+        assert all(p.is_contiguous() and p._base is None for p in ours.parameters())  # own storage after the fit
+
+
+def test_recomputed_weights_objective_matches_autograd_bit_for_bit():
+    """The authors' loss (weights recomputed through the gradient) with its gradient written out must fit what
+    autograd fits on the same loss."""
+    from pemviz.estimators.cross_entropy import recomputed_objective
+    from pemviz.sampling import fit_proposal
+
+    rng = np.random.default_rng(2)
+    n, t_steps, m, k, alpha = 6, 40, 50, 39, 0.5
+    inputs = torch.as_tensor(rng.uniform(0.0, 12.0, m))
+    slot = rng.integers(0, m, (n, t_steps)) * 2 + (rng.random((n, t_steps)) < 0.8)
+    mask = rng.random((n, t_steps)) < 0.9
+    log_p = rng.uniform(-30.0, -5.0, n)
+    objective = recomputed_objective(slot, log_p, mask, k, alpha)
+    slot_t, lp_t, mask_t = torch.as_tensor(slot), torch.as_tensor(log_p), torch.as_tensor(mask, dtype=torch.float64)
+
+    def reference_loss(log_q):
+        log_q_now = log_q.reshape(-1)[slot_t] * mask_t
+        scaled = alpha * (lp_t - log_q_now[:, :k].sum(dim=1))
+        w = torch.exp(scaled - scaled.detach().max())
+        return -(w * log_q_now.sum(dim=1)).sum()
+
+    torch.manual_seed(4)
+    ours = Proposal()
+    torch.manual_seed(4)
+    ref = Proposal()
+    log_q = ref.forward(inputs).detach().requires_grad_(True)
+    loss, grad = objective(log_q.detach())
+    reference = reference_loss(log_q)
+    reference.backward()
+    assert loss.item() == reference.item() and torch.equal(grad, log_q.grad)
+    fit_proposal(ours, inputs, objective, 150, 1e-2)
+    expected = _torch_reference_fit(ref, inputs, reference_loss, 150, 1e-2)
+    assert torch.equal(torch.cat([p.detach().reshape(-1) for p in ours.parameters()]), expected)

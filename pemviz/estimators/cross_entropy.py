@@ -173,12 +173,11 @@ def pretrain_proposal(
             step_mask = np.asarray(step_mask, dtype=np.float64)
             uniq, counts, _ = _action_counts(gap_m, detected, step_mask, drop_unweighted=True)
             total = max(float(step_mask.sum()), 1.0)
-        return fit_proposal(proposal, lambda: -(counts * proposal.forward(uniq)).sum() / total, epochs, lr, check)
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, per=total)
     mask = np.ones(np.shape(detected)) if step_mask is None else np.asarray(step_mask, dtype=np.float64)
     rows, counts = weighted_steps(gap_m, detected, mask, max_rows or mask.size, rng or np.random.default_rng(0))
     total = max(float(counts.sum()), 1.0)
-    return fit_proposal(proposal, lambda: -(counts * proposal.forward(rows)).sum() / total, epochs, lr, check, fit,
-                        tolerance)  # fmt: skip
+    return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
 
 
 def ce_update(
@@ -251,27 +250,51 @@ def ce_update(
             rows, counts = weighted_steps(gap_m[idx], detected[idx], step_w, max_rows or step_w.size,
                                            rng or np.random.default_rng(0))  # fmt: skip
             total = float(counts.sum())
-            return fit_proposal(proposal, lambda: -(counts * proposal.forward(rows)).sum() / total, epochs, lr, check, fit,
-                        tolerance)  # fmt: skip
+            return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
         uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w[:, 0])
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit)
+    # w depends on q_phi: per-rollout sums of log q over the first k steps, through the gradient.
+    uniq, _, inverse = _action_counts(gap_m[idx], detected[idx])
+    slot = inverse * 2 + detected[idx].astype(np.int64)
+    return fit_proposal(proposal, uniq, recomputed_objective(slot, lp, mask, k, smoothing), epochs, lr, check, fit)
 
-        def loss() -> torch.Tensor:
-            return -(counts * proposal.forward(uniq)).sum()
 
-    else:
-        # w depends on q_phi: per-rollout sums of log q over the first k steps, through the gradient.
-        uniq, _, inverse = _action_counts(gap_m[idx], detected[idx])
-        slot = torch.as_tensor(inverse * 2 + detected[idx].astype(np.int64))
-        lp_t = torch.as_tensor(lp)
-        mask_t = torch.as_tensor(mask, dtype=torch.float64)
+def recomputed_objective(
+    slot: np.ndarray, log_p: np.ndarray, mask: np.ndarray, n_factors: int, smoothing: float
+) -> Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
+    """The CE loss with importance weights recomputed from the current proposal (the authors' code), as a
+    :data:`pemviz.sampling.Objective`: ``-sum_i w_i(phi) sum_t m_it log q_phi(a_it | d_it)`` with
+    ``w_i(phi) = exp(alpha (log p_i - sum_{t < k} m_it log q_phi(a_it | d_it)) - c)`` (c: their largest exponent,
+    held constant), and its gradient in log q, which flows through the weights.
 
-        def loss() -> torch.Tensor:
-            log_q_now = proposal.forward(uniq).reshape(-1)[slot] * mask_t
-            scaled = smoothing * (lp_t - log_q_now[:, :k].sum(dim=1))
-            w = torch.exp(scaled - scaled.detach().max())
-            return -(w * log_q_now.sum(dim=1)).sum()
+    Args:
+        slot: int64 [n, T] where each elite step's log q sits in the flattened log q [M * 2] (input row x 2 + action).
+        log_p: float64 [n] each elite's sum of log p over its first k masked steps (nats).
+        mask: bool [n, T] the steps that count.
+        n_factors: k, the steps in each weight.
+        smoothing: alpha in (0, 1].
+    Returns:
+        log q [M, 2] -> (loss, d loss / d log q [M, 2]): the operations autograd would run, in its order, so a fit
+        gives the same bits as differentiating the loss with autograd (a test checks it).
+    Source: Innes & Ramamoorthy 2022, eq. 10-11, with the weights differentiated as in the authors' code.
+    """
+    slot_t, lp_t = torch.as_tensor(slot), torch.as_tensor(log_p)
+    mask_t = torch.as_tensor(mask, dtype=torch.float64)
+    mask_k = torch.zeros_like(mask_t)
+    mask_k[:, :n_factors] = 1.0
 
-    return fit_proposal(proposal, loss, epochs, lr, check, fit)
+    def loss(log_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        log_q_now = log_q.reshape(-1)[slot_t] * mask_t
+        scaled = smoothing * (lp_t - log_q_now[:, :n_factors].sum(dim=1))
+        w = torch.exp(scaled - scaled.max())
+        per_rollout = log_q_now.sum(dim=1)
+        minus_one = torch.full_like(w, -1.0)
+        grad_w_term = -((minus_one * per_rollout) * w * smoothing)  # d loss / d (sum_{t<k} log q) of each rollout
+        grad_now = (minus_one * w)[:, None].expand_as(log_q_now) + grad_w_term[:, None] * mask_k
+        grad = torch.zeros(log_q.numel(), dtype=log_q.dtype).index_put_((slot_t,), grad_now * mask_t, accumulate=True)
+        return -(w * per_rollout).sum(), grad.reshape(log_q.shape)
+
+    return loss
 
 
 def fit_elite_steps(
@@ -310,10 +333,9 @@ def fit_elite_steps(
     if not _summed_fit(fit, max_rows, int(np.count_nonzero(w)) if n_steps is None else n_steps):
         fitted, counts = weighted_steps(rows, actions, w, max_rows or w.size, rng or np.random.default_rng(0))
         total = float(counts.sum())
-        return fit_proposal(proposal, lambda: -(counts * proposal.forward(fitted)).sum() / total, epochs, lr, check,
-                            fit, tolerance)  # fmt: skip
+        return fit_proposal(proposal, fitted, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
     uniq, counts, _ = _action_counts(rows, actions, w, drop_unweighted=True)
-    return fit_proposal(proposal, lambda: -(counts * proposal.forward(uniq)).sum(), epochs, lr, check, fit)
+    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit)
 
 
 class EliteSteps:
