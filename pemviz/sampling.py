@@ -181,27 +181,17 @@ class Adam:
 
     @torch.no_grad()
     def step(self) -> None:
-        """One update from the parameters' current gradients (parameters without one are left as they are).
-
-        The single-tensor update applied to every parameter at once with ``torch._foreach_*`` (7 kernel calls a step
-        instead of 7 per parameter): element for element the same operations, so the same bits."""
+        """One update from the parameters' current gradients (parameters without one are left as they are)."""
         self.steps += 1
         step = float(self.steps)
         step_size = self.lr / (1 - self.beta1**step)
         bias_correction2_sqrt = (1 - self.beta2**step) ** 0.5
-        live = [i for i, p in enumerate(self.params) if p.grad is not None]
-        if not live:
-            return
-        params = [self.params[i] for i in live]
-        grads = [p.grad for p in params]
-        exp_avg, exp_avg_sq = [self.exp_avg[i] for i in live], [self.exp_avg_sq[i] for i in live]
-        torch._foreach_lerp_(exp_avg, grads, 1 - self.beta1)
-        torch._foreach_mul_(exp_avg_sq, self.beta2)
-        torch._foreach_addcmul_(exp_avg_sq, grads, grads, value=1 - self.beta2)
-        denom = torch._foreach_sqrt(exp_avg_sq)
-        torch._foreach_div_(denom, bias_correction2_sqrt)
-        torch._foreach_add_(denom, self.eps)
-        torch._foreach_addcdiv_(params, exp_avg, denom, value=-step_size)
+        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq):
+            if p.grad is None:
+                continue
+            m.lerp_(p.grad, 1 - self.beta1)
+            v.mul_(self.beta2).addcmul_(p.grad, p.grad, value=1 - self.beta2)
+            p.addcdiv_(m, (v.sqrt() / bias_correction2_sqrt).add_(self.eps), value=-step_size)
 
 
 Objective = Union[torch.Tensor, Callable[[torch.Tensor], "tuple[torch.Tensor, torch.Tensor]"]]
@@ -283,8 +273,8 @@ def fit_proposal(
                 break
         return losses
     h = proposal.inputs(torch.as_tensor(inputs))
-    # one flat tensor for all parameters (each a view into it while the fit runs), so that an Adam step is a few
-    # kernel calls: element for element the same arithmetic as parameter by parameter
+    # one flat tensor for all parameters (each a view into it while the fit runs), so that an Adam step is 7 kernel
+    # calls, not 7 per parameter: element for element the same arithmetic as parameter by parameter
     params = list(proposal.parameters())
     flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
     for p, view in zip(params, flat.detach().split([p.numel() for p in params])):

@@ -288,9 +288,8 @@ def recomputed_objective(
         scaled = smoothing * (lp_t - log_q_now[:, :n_factors].sum(dim=1))
         w = torch.exp(scaled - scaled.max())
         per_rollout = log_q_now.sum(dim=1)
-        minus_one = torch.full_like(w, -1.0)
-        grad_w_term = -((minus_one * per_rollout) * w * smoothing)  # d loss / d (sum_{t<k} log q) of each rollout
-        grad_now = (minus_one * w)[:, None].expand_as(log_q_now) + grad_w_term[:, None] * mask_k
+        grad_w_term = -((-per_rollout) * w * smoothing)  # d loss / d (sum_{t<k} log q) of each rollout
+        grad_now = (-w)[:, None].expand_as(log_q_now) + grad_w_term[:, None] * mask_k
         grad = torch.zeros(log_q.numel(), dtype=log_q.dtype).index_put_((slot_t,), grad_now * mask_t, accumulate=True)
         return -(w * per_rollout).sum(), grad.reshape(log_q.shape)
 
