@@ -46,29 +46,11 @@ class Proposal(nn.Module):
         """The network's input h(s) of proposal inputs ``gap_m`` [M] (metres): [M, 1], dimensionless."""
         return (gap_m / self.h_scale).reshape(-1, 1)
 
-    def log_probs_cached(self, h: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-        """``net(h)`` for a network input h [M, k] (:meth:`inputs`) without autograd: the log-probabilities [M, 2]
-        (nats) and what :meth:`parameter_grads` needs. The same kernels as ``net(h)``, so the same bits."""
-        lin1, _, lin2, _, lin3, _ = self.net
-        with torch.no_grad():
-            a1 = torch.relu(torch.addmm(lin1.bias, h, lin1.weight.t()))
-            a2 = torch.relu(torch.addmm(lin2.bias, a1, lin2.weight.t()))
-            lq = torch.log_softmax(torch.addmm(lin3.bias, a2, lin3.weight.t()), dim=-1)
-        return lq, (h, a1, a2, lq)
-
-    def parameter_grads(self, cache: tuple[torch.Tensor, ...], grad_lq: torch.Tensor) -> list[torch.Tensor]:
-        """d loss / d parameter for every parameter, in ``parameters()`` order, given d loss / d log q = ``grad_lq``
-        [M, 2] at the forward pass ``cache`` (:meth:`log_probs_cached`): backpropagation through the network
-        written out (Rumelhart, Hinton & Williams 1986), the kernels autograd would run (the same bits) without its
-        per-step overhead (a fit takes thousands of steps on a few hundred inputs)."""
-        h, a1, a2, lq = cache
-        _, _, lin2, _, lin3, _ = self.net
-        with torch.no_grad():
-            dz3 = torch.ops.aten._log_softmax_backward_data(grad_lq, lq, -1, lq.dtype)
-            dz2 = torch.ops.aten.threshold_backward(torch.mm(dz3, lin3.weight), a2, 0)
-            dz1 = torch.ops.aten.threshold_backward(torch.mm(dz2, lin2.weight), a1, 0)
-            return [torch.mm(h.t(), dz1).t(), dz1.sum(0), torch.mm(a1.t(), dz2).t(), dz2.sum(0),
-                    torch.mm(a2.t(), dz3).t(), dz3.sum(0)]  # fmt: skip
+    def backprop(self, h: torch.Tensor, grads: list[torch.Tensor]) -> "Backprop":
+        """The network's forward and backward passes at a network input h [M, k] (:meth:`inputs`), bound to the
+        current parameter tensors and writing d loss / d parameter into ``grads`` (one tensor per parameter, in
+        ``parameters()`` order). See :class:`Backprop`."""
+        return Backprop(self.net, h, grads)
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """Detector interface: logit q(detect | obs), float64 [N] for observations [N, F]."""
@@ -127,6 +109,55 @@ class StateProposal(Proposal):
         with torch.no_grad():
             lq = self.forward(torch.as_tensor(h))
         return lq[:, 1].exp().numpy()
+
+
+class Backprop:
+    """Backpropagation through a proposal network written out (Rumelhart, Hinton & Williams 1986), without autograd.
+
+    :meth:`forward` returns log q [M, 2] (nats) and what :meth:`backward` needs; :meth:`backward` turns
+    d loss / d log q [M, 2] into d loss / d parameter, written in place into ``grads``. Both call the kernels
+    autograd would run for ``net(h)`` and its backward pass, in its order (``addmm``, ``relu``, ``log_softmax``;
+    ``_log_softmax_backward_data``, ``threshold_backward``, ``mm``), so they give the same bits (a test checks
+    it), without autograd's per-operation overhead: a fit takes thousands of steps on a few hundred inputs.
+    The parameters are read through the tensors bound here, so an optimiser must update them in place.
+
+    Args:
+        net: Linear-ReLU-Linear-ReLU-Linear-LogSoftmax (:class:`Proposal`'s ``net``).
+        h: the network's input, float64 [M, k].
+        grads: float64 tensors shaped like the parameters, in ``net.parameters()`` order.
+    """
+
+    def __init__(self, net: nn.Sequential, h: torch.Tensor, grads: list[torch.Tensor]) -> None:
+        lin1, _, lin2, _, lin3, _ = net
+        self.h, self.h_t, self.grads = h, h.t(), grads
+        self.biases = (lin1.bias.detach(), lin2.bias.detach(), lin3.bias.detach())
+        self.weights_t = (lin1.weight.detach().t(), lin2.weight.detach().t(), lin3.weight.detach().t())
+        self.w2, self.w3 = lin2.weight.detach(), lin3.weight.detach()
+
+    def forward(self) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        """log q [M, 2] (nats) and the activations :meth:`backward` needs."""
+        (b1, b2, b3), (w1t, w2t, w3t) = self.biases, self.weights_t
+        with torch.no_grad():
+            a1 = torch.relu(torch.addmm(b1, self.h, w1t))
+            a2 = torch.relu(torch.addmm(b2, a1, w2t))
+            lq = torch.log_softmax(torch.addmm(b3, a2, w3t), dim=-1)
+        return lq, (a1, a2, lq)
+
+    def backward(self, cache: tuple[torch.Tensor, ...], grad_lq: torch.Tensor) -> None:
+        """d loss / d parameter into ``grads`` from d loss / d log q = ``grad_lq`` [M, 2] at the forward pass
+        ``cache``."""
+        a1, a2, lq = cache
+        g1, gb1, g2, gb2, g3, gb3 = self.grads
+        with torch.no_grad():
+            dz3 = torch.ops.aten._log_softmax_backward_data(grad_lq, lq, -1, lq.dtype)
+            dz2 = torch.ops.aten.threshold_backward(torch.mm(dz3, self.w3), a2, 0)
+            dz1 = torch.ops.aten.threshold_backward(torch.mm(dz2, self.w2), a1, 0)
+            g1.copy_(torch.mm(self.h_t, dz1).t())
+            torch.sum(dz1, 0, out=gb1)
+            g2.copy_(torch.mm(a1.t(), dz2).t())
+            torch.sum(dz2, 0, out=gb2)
+            g3.copy_(torch.mm(a2.t(), dz3).t())
+            torch.sum(dz3, 0, out=gb3)
 
 
 CHECK_EVERY = 25
@@ -231,7 +262,7 @@ def fit_proposal(
         ValueError: for an unknown ``method``.
 
     ``adam`` (Kingma & Ba 2015, :class:`Adam`) backpropagates through the network by hand
-    (:meth:`Proposal.parameter_grads`); ``lbfgs`` (Nocedal 1980; torch's, history 20, strong-Wolfe line search,
+    (:class:`Backprop`); ``lbfgs`` (Nocedal 1980; torch's, history 20, strong-Wolfe line search,
     unit step) backpropagates the objective's gradient with autograd.
     """
     if method not in FITS:
@@ -273,20 +304,24 @@ def fit_proposal(
                 break
         return losses
     h = proposal.inputs(torch.as_tensor(inputs))
-    # one flat tensor for all parameters (each a view into it while the fit runs), so that an Adam step is 7 kernel
-    # calls, not 7 per parameter: element for element the same arithmetic as parameter by parameter
+    # one flat tensor for all parameters and one for their gradients (each parameter and gradient a view into it
+    # while the fit runs), so that an Adam step is 7 kernel calls, not 7 per parameter: element for element the
+    # same arithmetic as parameter by parameter
     params = list(proposal.parameters())
+    sizes = [p.numel() for p in params]
     flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
-    for p, view in zip(params, flat.detach().split([p.numel() for p in params])):
+    flat.grad = torch.zeros_like(flat)
+    for p, view in zip(params, flat.detach().split(sizes)):
         p.data = view.view_as(p)
+    net = proposal.backprop(h, [g.view_as(p) for p, g in zip(params, flat.grad.split(sizes))])
     opt = Adam([flat], lr=lr)
     try:
         for epoch in range(epochs):
             if check is not None and epoch % CHECK_EVERY == 0:
                 check()  # may raise to stop the run (a cancel token)
-            log_q, cache = proposal.log_probs_cached(h)
+            log_q, cache = net.forward()
             loss, grad = loss_and_grad(log_q)
-            flat.grad = torch.cat([g.reshape(-1) for g in proposal.parameter_grads(cache, grad)])
+            net.backward(cache, grad)
             opt.step()
             losses.append(loss.item())
             if tolerance is not None and epoch >= PLATEAU_EPOCHS and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance:
