@@ -6,11 +6,11 @@ Problems (each with its exact p_fail):
   (:class:`pemviz.problems.ShiftedPEM`; exact from the deterministic simulator);
 - ``main<shift>``: the braking scenario itself with the shifted PEM (exact enumeration, :func:`pemviz.truth.braking_truth`).
 
-Methods (:data:`METHODS`, a list of (label, config fields); add a line for a new method): the default sampler
-``ExperimentConfig()`` (2,100 simulations), the ``paper`` preset with its final batch raised to the same budget,
-plain Monte Carlo with that many rollouts, and the exact zero-variance sampler q*
-(:class:`pemviz.estimators.optimal.ZeroVarianceDetector`) where V is known (toys, latched). ``ams`` joins when
-:data:`pemviz.config.METHODS` has it.
+Methods (:func:`methods_at`, a list of (label, config fields); add a line for a new method): the default sampler
+``ExperimentConfig()`` (2,100 simulations; ``--n-final 100``: 1,200), the ``paper`` preset with its final batch
+set to the same budget, adaptive multilevel splitting with budget / 4 particles (when :data:`pemviz.config.METHODS`
+has ``ams``), plain Monte Carlo with that many rollouts, and the exact zero-variance sampler q*
+(:class:`pemviz.estimators.optimal.ZeroVarianceDetector`) where V is known (toys, latched).
 
 Outputs under ``--out`` (default ``recordings/sweep/``; an existing file is never replaced without ``--overwrite``):
 ``runs.jsonl`` (one line per run, appended as it ends: ``--resume`` continues a killed sweep), ``sweep.md`` and
@@ -21,6 +21,7 @@ rerun recording, on the timeline ``minus_log10_p``).
 Usage::
 
     nice -n 10 python benchmarks/rarity_sweep.py --jobs 2            # full sweep (~30-40 min of CPU)
+    python benchmarks/rarity_sweep.py --n-final 100 --jobs 2         # every method at 1,200 simulations (~3.5 min)
     python benchmarks/rarity_sweep.py --quick --out /tmp/sweep       # 3 small problems, 2 seeds (~1-2 min)
 """
 
@@ -50,24 +51,41 @@ from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts
 from pemviz.files import atomic_write
 from pemviz.problems import Problem, ShiftedPEM, braking_problem
 from pemviz.sampling import relative_error, torch_threads
+from pemviz.validation import ams_fields
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.toy import ToyParams, toy_problem
 
 Q_STAR = "q*"
 """The label of the exact zero-variance sampler (not a config: built from the problem's exact V)."""
 
-BUDGET = ExperimentConfig().n_simulations
-"""Simulations per run for every method: the default sampler's (2,100)."""
+def methods_at(n_final: int = ExperimentConfig().n_final) -> list[tuple[str, dict[str, Any] | None]]:
+    """(label, ExperimentConfig fields) per method, None for q*, all at the budget of the default sampler with a final
+    batch of ``n_final`` rollouts (``n_final = 1000``: 2,100 simulations; 100: 1,200): the ``paper`` preset with its
+    final batch set to that budget, Monte Carlo with that many rollouts, adaptive multilevel splitting with
+    budget / 4 particles (:func:`pemviz.validation.ams_fields`, when this pemviz has it) and q*.
 
-METHODS: list[tuple[str, dict[str, Any] | None]] = [
-    ("state-ce", {}),
-    ("paper", {**PRESETS["paper"], "n_final": 1000}),  # 100 pretraining + 10 x 100 + 1,000 = 2,100
-    ("mc", {"method": "mc", "n_per_stage": BUDGET}),
-    (Q_STAR, None),
-]
-"""(label, ExperimentConfig fields) per method; None: q*. Each at :data:`BUDGET` simulations."""
-if "ams" in CONFIG_METHODS:  # adaptive multilevel splitting, when this pemviz has it
-    METHODS.insert(2, ("ams", {"method": "ams"}))
+    Raises:
+        ValueError: if ``n_final`` < 1, or the budget is too small for the paper preset's stages.
+    """
+    if n_final < 1:
+        raise ValueError(f"n_final = {n_final} is invalid: must be >= 1")
+    budget = ExperimentConfig(n_final=n_final).n_simulations
+    before_final = ExperimentConfig(**{**PRESETS["paper"], "n_final": 1}).n_simulations - 1
+    if budget - before_final < 1:
+        raise ValueError(f"n_final = {n_final} leaves the paper preset no final batch")
+    methods: list[tuple[str, dict[str, Any] | None]] = [
+        ("state-ce", {} if n_final == ExperimentConfig().n_final else {"n_final": n_final}),
+        ("paper", {**PRESETS["paper"], "n_final": budget - before_final}),  # 100 pretraining + 10 x 100 + the rest
+        ("mc", {"method": "mc", "n_per_stage": budget}),
+        (Q_STAR, None),
+    ]
+    if "ams" in CONFIG_METHODS:  # adaptive multilevel splitting, when this pemviz has it
+        methods.insert(2, ("ams", ams_fields(budget)))
+    return methods
+
+
+METHODS = methods_at()
+"""The default sweep's methods (:func:`methods_at`), each at 2,100 simulations."""
 
 QUICK_METHODS: list[tuple[str, dict[str, Any] | None]] = [
     ("state-ce (quick)", dict(PRESETS["quick"])),
@@ -197,9 +215,14 @@ def run_job(job: Job) -> Record:
     return Record(job.spec.name, job.method, job.seed, e.log_mu_hat, e.n_failures, n_sim, time.perf_counter() - t0)
 
 
+def budget_of(methods: Sequence[tuple[str, dict | None]]) -> int:
+    """The simulations of the first method's run: the budget every method of the sweep gets."""
+    return ExperimentConfig(**(methods[0][1] or {})).n_simulations
+
+
 def jobs_for(specs: Sequence[Spec], methods: Sequence[tuple[str, dict | None]], n_seeds: int) -> list[Job]:
     """Every (problem, method, seed); q* only where the problem has one, at the first method's budget."""
-    budget = ExperimentConfig(**(methods[0][1] or {})).n_simulations
+    budget = budget_of(methods)
     out = []
     for spec in specs:
         for label, fields in methods:
@@ -319,7 +342,7 @@ def series(rows: Sequence[Row]) -> dict[str, list[tuple[float, float, float]]]:
     return {m: sorted(v) for m, v in out.items()}
 
 
-def write_png(path: str, rows: Sequence[Row], n_seeds: int) -> None:
+def write_png(path: str, rows: Sequence[Row], n_seeds: int, budget: int) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -333,7 +356,7 @@ def write_png(path: str, rows: Sequence[Row], n_seeds: int) -> None:
         if finite:
             ax2.plot(*zip(*finite), "o-", label=method)
     ax1.set(yscale="log", xlabel="log10 p (exact)", ylabel="median relative error",
-            title=f"relative error at {BUDGET:,} simulations, {n_seeds} seeds")  # fmt: skip
+            title=f"relative error at {budget:,} simulations, {n_seeds} seeds")  # fmt: skip
     ax1.axhline(0.1, color="grey", lw=0.8, ls="--")
     ax2.set(yscale="log", xlabel="log10 p (exact)", ylabel="simulations for 10 % relative error",
             title="N (median rel. error / 0.1)^2 (q*: below 1)")  # fmt: skip
@@ -421,6 +444,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--problems", default=None, help="comma-separated problem names (default: all of the mode)")
     ap.add_argument("--methods", default=None, help="comma-separated method labels (default: all)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    ap.add_argument("--n-final", type=int, default=None, metavar="N_E",
+                    help="the default sampler's final batch, which sets every method's budget (default 1000: 2,100 "
+                         "simulations; 100: 1,200)")  # fmt: skip
     ap.add_argument("--overwrite", action="store_true", help="replace existing outputs (and start runs.jsonl anew)")
     ap.add_argument("--resume", action="store_true", help="keep the runs already in OUT/runs.jsonl")
     ap.add_argument("--relative-variance", metavar="PROBLEMS", default=None,
@@ -439,7 +465,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
 
     specs = QUICK if args.quick else FULL
-    methods = QUICK_METHODS if args.quick else METHODS
+    if args.n_final is not None and (args.quick or args.n_final < 1):
+        print("rarity_sweep: --n-final must be >= 1, and cannot go with --quick", file=sys.stderr)
+        return 2
+    methods = QUICK_METHODS if args.quick else methods_at(args.n_final) if args.n_final is not None else METHODS
     n_seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
     if n_seeds < 1 or args.jobs < 1:
         print("rarity_sweep: --seeds and --jobs must be >= 1", file=sys.stderr)
@@ -490,7 +519,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     atomic_write(out / "sweep.md", text(doc), overwrite=args.overwrite)
     atomic_write(out / "sweep.csv", text(to_csv(rows)), overwrite=args.overwrite)
-    atomic_write(out / "sweep.png", lambda tmp: write_png(tmp, rows, n_seeds), overwrite=args.overwrite)
+    budget = budget_of(methods)
+    atomic_write(out / "sweep.png", lambda tmp: write_png(tmp, rows, n_seeds, budget), overwrite=args.overwrite)
     atomic_write(out / "sweep.rrd", lambda tmp: write_rrd(tmp, rows, table), overwrite=args.overwrite)
     print(doc)
     return 0

@@ -31,6 +31,9 @@ process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives 
 
 WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("pooled", "fresh", "last-stage")
+FIT_WEIGHTS = ("mixture", "sampler")
+"""How the CE fits weigh the failures of every stage since the failure level (:class:`ExperimentConfig`
+``fit_weights``)."""
 POOL_WEIGHTS = ("linear", "rollouts")
 """How ``final_estimate = "pooled"`` weighs its stages (:class:`ExperimentConfig` ``pool_weights``)."""
 ELITE_TIES = ("all", "random")
@@ -132,6 +135,14 @@ class ExperimentConfig:
         fit_all_failures: once a stage's threshold reached the failure level, each CE fit uses the failures of every
             stage since then, each weighted by the proposal that drew it (all are weighted samples of the same
             zero-variance density 1[fail] p / mu), instead of the stage's alone.
+        fit_weights: how those fits weigh the failures (``fit_all_failures``), one of :data:`FIT_WEIGHTS`:
+            ``sampler``, by the sampler that drew each; ``mixture``, by the mixture of the samplers of every stage
+            since the failure level, each at its share of their rollouts (the balance heuristic: the
+            deterministic-mixture weights of adaptive multiple importance sampling, Cornuet, Marin, Mira &
+            Robert, Scand. J. Stat. 2012), which bounds the weight of a failure an early, poor proposal drew by
+            what the later ones give it. Only the fits change: the estimate weighs every rollout by its own
+            stage's samplers. Once the fitted steps are thinned (more than 20 x ``fit_rows`` of them) the steps
+            keep the weights they have.
 
     Fitting cost (``PRESETS["paper"]`` keeps the paper's: ``adam`` on every step):
         fit: one of :data:`FITS`; ``adam`` runs ``ce_epochs`` / ``pretrain_epochs`` epochs at ``learning_rate``,
@@ -174,6 +185,7 @@ class ExperimentConfig:
     target_share: float = 0.1
     plain_share: float = 0.45
     fit_all_failures: bool = True
+    fit_weights: str = "mixture"
     fit: str = "adam"
     fit_max_steps: int = 200
     fit_rows: int | None = 10_000
@@ -230,6 +242,9 @@ class ExperimentConfig:
             "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or proposal_window; "
             "set target_share = plain_share = 0 (preset state-ce-step) for the others")
         need(self.fit in FITS, "fit", f"use one of {', '.join(FITS)}")
+        need(self.fit_weights in FIT_WEIGHTS, "fit_weights", f"use one of {', '.join(FIT_WEIGHTS)}")
+        need(self.fit_weights == "sampler" or self.fit_all_failures, "fit_weights",
+             "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it")  # fmt: skip
         need(_is_int(self.fit_max_steps) and self.fit_max_steps >= 1, "fit_max_steps", "must be an integer >= 1")
         need(self.fit_rows is None or (_is_int(self.fit_rows) and self.fit_rows >= 1), "fit_rows",
              "must be None or an integer >= 1")  # fmt: skip
@@ -270,7 +285,7 @@ class ExperimentConfig:
 PAPER: dict[str, Any] = {
     "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False,
     "smoothing_at_failure": None, "elite_ties": "all", "pretrain_cap": None, "defensive": 0.0, "target_share": 0.0,
-    "plain_share": 0.0, "fit_all_failures": False, "fit": "adam",
+    "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler", "fit": "adam",
     "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000, "n_final": 100,
 }
 """The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal
@@ -290,7 +305,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     "quick": {
         "n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2,
     },
-    "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "pool_weights": "rollouts"},
+    "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
+                      "pool_weights": "rollouts"},
 }
 """Named settings, each applied on top of the defaults.
 
@@ -298,10 +314,11 @@ PRESETS: dict[str, dict[str, Any]] = {
 can matter, weights up to the failure, full weights once the threshold reaches the failure level, random
 tie-breaking, a capped pretraining, a 20 % per-step defensive mixture, and a mixture over whole rollouts: 45 % of
 every stage's rollouts from the proposal without the per-step cap, and once the failure level is reached 10 % from
-the target (weights at most 10), each fit using every failure since. Against exact answers at 2,100 simulations,
-10 seeds (``benchmarks/rarity_sweep.py``): median relative error <= 0.006 on toys from 1e-3 to 1e-100 (the
-per-step mixture alone, ``state-ce-step``, found no failure at all on the toys needing 100 and 300 misses in a
-row), 0.006-0.022 on the latched scenario from 1e-14 to 1e-62, 0.056-0.073 on the main braking job.
+the target (weights at most 10), each fit using every failure since, weighed by the mixture of those stages'
+samplers. Against exact answers at 2,100 simulations, 10 seeds (``benchmarks/rarity_sweep.py``): median relative
+error <= 0.007 on toys from 1e-3 to 1e-100 (the per-step mixture alone, ``state-ce-step``, found no failure at all
+on the toys needing 100 and 300 misses in a row), 0.008-0.020 on the latched scenario from 1e-1.4 to 1e-62,
+0.039-0.046 on the main braking job at 1e-15 and 1e-26 (0.022 over seeds 0-99 at 1e-15).
 ``state-ce-step``: the default sampler before the mixture over rollouts (per-step defensive mixture only; median
 relative error 0.054 on the main job, 0.087 on latched at 1e-62).
 ``paper``: the sampler as published (biased low on the braking job: its estimator is unbiased but so

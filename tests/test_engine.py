@@ -20,7 +20,8 @@ SMALL = dict(n_stages=3, n_per_stage=50, n_final=100, ce_epochs=100, pretrain_ep
 # Recorded before the estimators moved out of the engine (commit 004482e; ``rollout-mixture``: the default sampler
 # when it became the default, the others with the per-step defensive mixture alone; the braking runs of a state
 # proposal re-recorded when the scenario's observation gained ``brake_pending``, and ``rollout-mixture`` with the
-# linear pool weights, both bit-identical across two runs): key -> (log mu_hat, failures, N,
+# linear pool weights, both bit-identical across two runs; ``fit-mixture``: the default since the fits weigh the
+# failures by the mixture of the stages' samplers): key -> (log mu_hat, failures, N,
 # stages used, simulations, (stage, gamma, elites) per stage). Any change to the rollouts' stream, the weights, the
 # elites, the fits or the pooling moves these numbers.
 PINNED = {
@@ -45,6 +46,8 @@ PINNED = {
     "braking/state-ce-streamed/0": (-33.810465161534694, 23670, 100001, (2,), 100151, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, nan, 23670))),
     "braking/rollout-mixture/0": (-33.824266815815584, 76, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 53))),
     "toy/rollout-mixture/0": (-48.382317304914295, 46, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 11.0, 3), (3, 0.0, 6), (4, nan, 46))),
+    "braking/fit-mixture/0": (-33.678619214463474, 75, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 52))),
+    "braking/fit-mixture/1": (-34.919902111021415, 89, 150, (3, 4), 350, ((0, nan, 0), (1, 2.081188287303849, 3), (2, 0.0, 6), (3, 0.0, 39), (4, nan, 56))),
 }  # fmt: skip
 
 
@@ -55,7 +58,10 @@ def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     step = PRESETS["state-ce-step"]  # the numbers were recorded with the per-step defensive mixture alone
     if preset == "state-ce-streamed":  # a final batch above STREAM_ABOVE: simulated chunk by chunk
         return ExperimentConfig(**{**step, **SMALL, "n_stages": 1, "n_final": 100_001, "seed": seed}), problem
-    if preset == "rollout-mixture":  # the default sampler (recorded when it became the default)
+    if preset == "rollout-mixture":  # the default sampler when it became the default (each failure weighed by its own
+        # stage's samplers in the fits)
+        return ExperimentConfig(**{**SMALL, "fit_weights": "sampler", "seed": seed}), problem
+    if preset == "fit-mixture":  # the default sampler: the fits weigh the failures by the mixture of the stages
         return ExperimentConfig(**{**SMALL, "seed": seed}), problem
     method, _, base = preset.partition("-")
     if method in ("mc", "naive50", "mixed50"):

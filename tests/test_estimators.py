@@ -235,3 +235,54 @@ def test_linear_pool_weights_by_hand_and_unbiased_over_stages_of_different_propo
     est = np.array(est)
     assert abs(est.mean() - exact) < 4 * est.std(ddof=1) / math.sqrt(est.size)
     assert abs(est.mean() / exact - 1) < 0.05
+
+
+def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_for_one_stage(monkeypatch):
+    """Right after the failure level is reached the pool holds one stage: the balance heuristic over its samplers
+    (``fit_weights = "mixture"``, recomputed from the held observations) must give every fitted step the weight
+    the stage computed as its rollouts came (the mixture weight over rollouts, an independent code path). With two
+    stages of equal size, p / (c_1 q_1 + c_2 q_2) <= p / (c_j q_j) = 2 w_own for the stage j that drew a rollout."""
+    from pemviz.engine import Experiment
+    from pemviz.estimators import cross_entropy as ce
+
+    def in_order(steps):  # the held steps' log-weights, rollout by rollout
+        order = np.concatenate([part[0] for part in steps.parts])
+        return np.concatenate([part[3] for part in steps.parts])[np.argsort(order, kind="stable")]
+
+    calls = []
+    reweight = ce.EliteSteps.reweight
+
+    def recorded(self, log_weight):
+        before = in_order(self)
+        assert reweight(self, log_weight)
+        calls.append((before, self.parts[0][3].copy()))
+        return True
+
+    finish = ce.CrossEntropy.finish
+
+    def finish_and_reweight_the_first_pool(self):
+        out = finish(self)
+        if self._failure_steps is not None and self._pool_start == self._plan.stage and not calls:
+            self._failure_steps.reweight(self._pool_log_weight)
+        return out
+
+    monkeypatch.setattr(ce.EliteSteps, "reweight", recorded)
+    monkeypatch.setattr(ce.CrossEntropy, "finish", finish_and_reweight_the_first_pool)
+    Experiment(ExperimentConfig(n_stages=4, n_per_stage=100, n_final=10, ce_epochs=50, pretrain_epochs=50),
+               problem=build_problem("main")).run()  # fmt: skip
+    (before, after), (before2, after2) = calls[0], calls[1]
+    assert before.size > 100 and np.isfinite(before).all()
+    np.testing.assert_allclose(after, before, rtol=0, atol=1e-9)
+    assert after2.size > before.size and np.isfinite(after2).all()
+    assert np.all(after2 <= before2 + math.log(2.0) + 1e-9)
+    assert np.max(np.abs(after2 - before2)) > 0.1  # the second stage's samplers change the weights
+
+
+def test_fit_weights_are_checked():
+    from pemviz.config import ConfigError
+
+    with pytest.raises(ConfigError, match="fit_weights = 'bogus' is invalid: use one of mixture, sampler"):
+        ExperimentConfig(fit_weights="bogus")
+    with pytest.raises(ConfigError, match="'mixture' weighs the failures of fit_all_failures"):
+        ExperimentConfig(fit_all_failures=False)
+    assert ExperimentConfig(fit_all_failures=False, fit_weights="sampler").fit_weights == "sampler"

@@ -11,6 +11,7 @@ loss (the optimiser and the proposal networks are in :mod:`pemviz.sampling`).
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Callable, Literal
 
@@ -349,27 +350,37 @@ class EliteSteps:
         max_rows: the fit's ``max_rows`` (None: never thinned).
         rng: draws the thinning.
         thin_above: steps held before a thinning (default 20 x ``max_rows``).
+        keep_observations: also hold each step's observation, so that :meth:`reweight` can compute new weights
+            (until a thinning).
     """
 
     def __init__(self, grid: np.ndarray, max_rows: int | None, rng: np.random.Generator,
-                 thin_above: int | None = None) -> None:  # fmt: skip
+                 thin_above: int | None = None, keep_observations: bool = False) -> None:  # fmt: skip
         self.grid, self.max_rows, self.rng = grid, max_rows, rng
         self.thin_above = None if max_rows is None else (thin_above or 20 * max_rows)
         self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.keep_observations = keep_observations
+        self.observations: list[tuple[np.ndarray, np.ndarray]] = []
+        """With ``keep_observations``, per part: the steps' observations [S, F] and whether each counts in its
+        rollout's weight, bool [S]."""
         self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
         self.n_rollouts, self.n_steps, self.held, self.thinned = 0, 0, 0, False
         self.log_w_max = -np.inf
 
     def add(self, index: np.ndarray, batch: RolloutBatch, features: np.ndarray, mask: np.ndarray,
-            log_w: np.ndarray) -> None:  # fmt: skip
-        """Elite rollouts ``index`` [m] of the stage: their features [m, T(, k)], step mask bool [m, T] and
-        smoothed log-weights alpha log w_i [m]."""
+            log_w: np.ndarray, weighted: np.ndarray | None = None) -> None:  # fmt: skip
+        """Elite rollouts ``index`` [m] of the stage: their features [m, T(, k)], step mask bool [m, T],
+        smoothed log-weights alpha log w_i [m] and (``keep_observations``) the steps of ``mask`` that count in
+        the weights, bool [m, T] (None: all)."""
         if index.size == 0:
             return
         c, h = elite_counts(batch, np.ones(batch.n, bool), self.grid)
         self.counts, self.hits = self.counts + c, self.hits + h
         order = np.broadcast_to(np.asarray(index)[:, None], mask.shape)[mask]
         self.parts.append((order, features[mask], batch.detected[mask], np.broadcast_to(log_w[:, None], mask.shape)[mask]))
+        if self.keep_observations:
+            self.observations.append((batch.observations[mask], np.ones(int(mask.sum()), bool) if weighted is None
+                                      else weighted[mask]))  # fmt: skip
         self.n_rollouts += index.size
         self.n_steps += int(mask.sum())
         self.held += int(mask.sum())
@@ -396,6 +407,26 @@ class EliteSteps:
             self.parts = [(np.zeros(slot.size, np.int64), uniq[slot], action.astype(bool),
                            np.log(counts[slot, action]) + top)]  # fmt: skip
         self.held, self.thinned = slot.size, True
+        self.observations, self.keep_observations = [], False  # the steps no longer belong to rollouts: no reweighting
+
+    def reweight(self, log_weight: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> bool:
+        """Give every held step a new log-weight: ``log_weight(rollout [S], observations [S, F], actions [S],
+        counts [S])`` -> [S] (nats), each step's rollout and whether the step counts in the rollout's weight.
+
+        Returns:
+            False (nothing changed) without ``keep_observations`` or once thinned: the steps then no longer
+            belong to whole rollouts.
+        """
+        if not self.keep_observations or self.thinned or not self.parts:
+            return False
+        order, rows, actions, _ = (np.concatenate(a) for a in zip(*self.parts))
+        obs, counts = (np.concatenate(a) for a in zip(*self.observations))
+        by = np.argsort(order, kind="stable")  # rollout by rollout, step by step: the order drawn
+        order, rows, actions, obs, counts = order[by], rows[by], actions[by], obs[by], counts[by]
+        log_w = np.asarray(log_weight(order, obs, actions, counts), dtype=np.float64)
+        self.parts, self.observations = [(order, rows, actions, log_w)], [(obs, counts)]
+        self.log_w_max = float(np.max(log_w))
+        return True
 
     def fit(self, proposal: Proposal, **kwargs) -> list[float]:
         """:func:`fit_elite_steps` on the gathered steps (``kwargs``: epochs, lr, check, fit, max_rows, rng,
@@ -491,6 +522,14 @@ class CrossEntropy:
         """With ``fit_all_failures``: the fitted steps of every failure of the CE stages since the failure level."""
         self._index_offset = 0
         """Rollouts of the CE stages already in :attr:`_failure_steps` (the order of their steps)."""
+        self._pool_start: int | None = None
+        """The stage whose threshold first reached the failure level (its failures start :attr:`_failure_steps`)."""
+        self._stage_samplers: dict[int, tuple[tuple[int, Detector], ...]] = {}
+        """With ``fit_weights = "mixture"``: each CE stage's samplers as (rollouts, detector) with a frozen copy of
+        the proposal that drew them."""
+        self._pool_log_q: dict[object, np.ndarray] = {}
+        """With ``fit_weights = "mixture"``: log p and each stage sampler's log q of every rollout in the failure pool
+        (over the steps that count; nan: not computed yet), by rollout."""
         self._steps: EliteSteps | None = None
         """A CE stage's settled elites as fitted steps (frozen weights with a step mask; else the elites are fitted
         from their rollouts by :func:`ce_update`)."""
@@ -507,11 +546,14 @@ class CrossEntropy:
             if self.reached_failures:
                 self.pooled.append(k)
             plan = StagePlan(k, "ce", cfg.n_per_stage, self.sampler, mixture=self._mixture(cfg.n_per_stage))
+            if cfg.fit_weights == "mixture":
+                self._stage_samplers[k] = self._frozen_samplers(plan)
             self._elites = EliteCandidates(plan.n, cfg.quantile_level, floor=0.0)
             if self._failure_steps is not None:  # every failure since the failure level was reached
                 self._steps = self._failure_steps
             elif cfg.weights == "frozen" and (cfg.weights_until_failure or cfg.proposal_window):
-                self._steps = EliteSteps(self.problem.curve_grid, cfg.fit_rows, self.fit_rng)
+                self._steps = EliteSteps(self.problem.curve_grid, cfg.fit_rows, self.fit_rng,
+                                         keep_observations=cfg.fit_weights == "mixture")  # fmt: skip
         elif k == cfg.n_stages + 1 and cfg.final_estimate != "last-stage":
             plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
         else:
@@ -575,6 +617,7 @@ class CrossEntropy:
                 if self.config.fit_all_failures and gamma <= 0.0 and self._steps is not None:
                     self._failure_steps = self._steps
                     self._index_offset += plan.n
+                    self._pool_start = plan.stage if self._pool_start is None else self._pool_start
                 self._elites = self._steps = None
             log_w, failed, log_p = self.stages[plan.stage].arrays()
             outcome = StageOutcome(gamma, n_elites, estimate(log_w, failed, log_p), self.proposal.curve(grid), rate)
@@ -625,13 +668,64 @@ class CrossEntropy:
             check=self.check, step_mask=self.step_mask(batch) if cfg.proposal_window else None,
             fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
-        def windowed(sampler: Detector) -> Detector:  # q = p_target where the detector cannot matter
+        self.plain_sampler, self.sampler = self._samplers(proposal)
+
+    def _samplers(self, proposal: Proposal) -> tuple[Detector, Detector]:
+        """(the plain sampler, the CE stages' sampler) around a proposal: q inside the problem's window
+        (``proposal_window``; q = p_target where the detector cannot matter), and that with the per-step defensive
+        mixture (``defensive``)."""
+        cfg, pb = self.config, self.problem
+
+        def windowed(sampler: Detector) -> Detector:
             return WindowDetector(sampler, pb.target, pb.window) if cfg.proposal_window else sampler
 
-        self.plain_sampler = windowed(proposal)
-        self.sampler = self.plain_sampler
+        plain = windowed(proposal)
         if cfg.defensive > 0.0:  # every outcome keeps probability >= eps / 2 at every step
-            self.sampler = windowed(DefensiveDetector(proposal, float(cfg.defensive)))
+            return plain, windowed(DefensiveDetector(proposal, float(cfg.defensive)))
+        return plain, plain
+
+    def _frozen_samplers(self, plan: StagePlan) -> tuple[tuple[int, Detector], ...]:
+        """A CE stage's samplers, (rollouts, detector) each, around a copy of the current proposal (later fits
+        change the proposal in place)."""
+        plain, sampler = self._samplers(copy.deepcopy(self.proposal))
+        if not plan.mixture:
+            return ((plan.n, sampler),)
+        target = self.problem.target
+        frozen = {id(target): target, id(self.plain_sampler): plain, id(self.sampler): sampler}
+        return tuple((n, frozen[id(d)]) for n, d in plan.mixture)
+
+    def _pool_log_weight(self, rollout: np.ndarray, obs: np.ndarray, actions: np.ndarray,
+                         counts: np.ndarray) -> np.ndarray:  # fmt: skip
+        """alpha log w of each step's rollout [S] (nats) for ``fit_weights = "mixture"``: w = p(x) / sum_j c_j q_j(x)
+        over the samplers q_j of every stage in the failure pool, c_j their shares of its rollouts (the balance
+        heuristic over all stages, the deterministic-mixture weight of adaptive multiple importance sampling:
+        Cornuet, Marin, Mira & Robert, "Adaptive multiple importance sampling", Scand. J. Stat. 39(4), 2012;
+        Owen & Zhou, "Safe and effective importance sampling", JASA 2000), over the steps that count (``counts``).
+        Arguments as :meth:`EliteSteps.reweight` passes them."""
+        pb = self.problem
+        ids, inverse = np.unique(rollout, return_inverse=True)
+
+        def log_prob(key: object, detector: Detector) -> np.ndarray:
+            """Per rollout, over the steps that count; each (sampler, rollout) computed once (a rollout's steps do
+            not change once held)."""
+            known = self._pool_log_q.get(key, np.empty(0))
+            if known.size <= ids[-1]:
+                known = np.concatenate([known, np.full(ids[-1] + 1 - known.size, np.nan)])
+                self._pool_log_q[key] = known
+            todo = np.isnan(known[ids])
+            if todo.any():
+                steps = todo[inverse]
+                step = np.where(counts[steps], action_log_prob(detector.detect_logit(obs[steps]), actions[steps]), 0.0)
+                known[ids[todo]] = np.bincount(inverse[steps], weights=step, minlength=ids.size)[todo]
+            return known[ids]
+
+        log_p = log_prob("target", pb.target)
+        parts = [(k, i, n, d) for k in range(self._pool_start, self._plan.stage + 1)
+                 for i, (n, d) in enumerate(self._stage_samplers[k])]  # fmt: skip
+        log_q = np.stack([log_p if d is pb.target else log_prob((k, i), d) for k, i, _, d in parts])
+        shares = np.array([n for _, _, n, _ in parts], dtype=np.float64)
+        log_w = mixture_log_weight(log_p, log_q, shares / shares.sum())
+        return (self._smoothing(0.0) * log_w)[inverse]
 
     def _smoothing(self, gamma: float) -> float:
         """alpha of a stage at threshold gamma (``smoothing_at_failure`` once gamma reached the failure level)."""
@@ -647,7 +741,7 @@ class CrossEntropy:
         else:
             frozen_log_w = ((batch.log_p[:, :k] - batch.log_q[:, :k]) * mask[:, :k]).sum(axis=1)
         self._steps.add(index + self._index_offset, batch, self.proposal.features(batch.observations), mask,
-                        self._smoothing(gamma) * frozen_log_w)  # fmt: skip
+                        self._smoothing(gamma) * frozen_log_w, mask & (np.arange(batch.n_steps) < k))  # fmt: skip
 
     def _ce_stage(self, batch: RolloutBatch | None, robustness: np.ndarray, index: np.ndarray, gamma: float,
                   n: int) -> tuple[float, int, np.ndarray]:  # fmt: skip
@@ -666,6 +760,8 @@ class CrossEntropy:
         if self._steps is not None:
             if batch is not None and elite.any():
                 self._add_steps(batch.select(elite), index[elite], gamma)
+            if self._steps is self._failure_steps and self.config.fit_weights == "mixture":
+                self._steps.reweight(self._pool_log_weight)
             self._steps.fit(proposal, **fit)
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
         ce_update(
