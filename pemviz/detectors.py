@@ -7,6 +7,7 @@ exact: ``log p(detect) = log_expit(logit)``, ``log p(miss) = log_expit(-logit)``
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
@@ -82,3 +83,22 @@ class WindowDetector:
             if rows.any():
                 out[rows] = detector.detect_logit(obs[rows])
         return out
+
+
+class LastAnswer:
+    """``detector``, remembering its last answer: asked again about the same observations (the same shape and
+    bytes, compared by a 128-bit BLAKE2b digest), it returns the same logits without asking ``detector`` again,
+    e.g. when two mixture components around one proposal network weigh the same rollouts."""
+
+    def __init__(self, detector: Detector) -> None:
+        self.detector = detector
+        self._key: tuple | None = None
+        self._logit = np.empty(0)
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        """logit p(detect | obs), float64 [N], for observations [N, F]."""
+        obs = np.ascontiguousarray(obs, dtype=np.float64)
+        key = (obs.shape, hashlib.blake2b(obs.data, digest_size=16).digest())
+        if key != self._key:
+            self._logit, self._key = np.asarray(self.detector.detect_logit(obs), dtype=np.float64), key
+        return self._logit.copy()

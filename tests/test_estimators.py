@@ -286,3 +286,27 @@ def test_fit_weights_are_checked():
     with pytest.raises(ConfigError, match="'mixture' weighs the failures of fit_all_failures"):
         ExperimentConfig(fit_all_failures=False)
     assert ExperimentConfig(fit_all_failures=False, fit_weights="sampler").fit_weights == "sampler"
+
+
+def test_last_answer_asks_its_detector_once_per_distinct_observations():
+    from pemviz.detectors import LastAnswer
+
+    class Counting:
+        calls = 0
+
+        def detect_logit(self, obs):
+            Counting.calls += 1
+            return obs[:, 0] * 2.0 - 1.0
+
+    memo = LastAnswer(Counting())
+    obs = np.random.default_rng(0).normal(size=(50, 4))
+    first = memo.detect_logit(obs)
+    again = memo.detect_logit(obs.copy())  # equal bytes, another array
+    assert Counting.calls == 1 and np.array_equal(first, again) and np.array_equal(first, obs[:, 0] * 2.0 - 1.0)
+    first[:] = 0.0  # the caller's copy: the remembered answer is not changed through it
+    np.testing.assert_array_equal(memo.detect_logit(obs), obs[:, 0] * 2.0 - 1.0)
+    changed = obs.copy()
+    changed[7, 3] += 1e-12  # one column the detector does not read: still a new question
+    memo.detect_logit(changed)
+    memo.detect_logit(obs[:49])
+    assert Counting.calls == 3

@@ -20,7 +20,7 @@ import torch
 from scipy.special import log_expit
 
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import Detector, WindowDetector, action_log_prob, logit
+from pemviz.detectors import Detector, LastAnswer, WindowDetector, action_log_prob, logit
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
@@ -581,9 +581,10 @@ class CrossEntropy:
         plan, pb = self._plan, self.problem
         obs = batch.observations.reshape(-1, batch.observations.shape[2])
         log_p = (batch.log_p * mask).sum(axis=1)
+        shared = dict(zip((id(self.plain_sampler), id(self.sampler)), self._samplers(LastAnswer(self.proposal))))
         log_q = [log_p if d is pb.target else
-                 (action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected) * mask).sum(axis=1)
-                 for _, d in plan.mixture]  # fmt: skip
+                 (action_log_prob(shared.get(id(d), d).detect_logit(obs).reshape(mask.shape), batch.detected) * mask
+                  ).sum(axis=1) for _, d in plan.mixture]  # fmt: skip
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
@@ -687,7 +688,7 @@ class CrossEntropy:
     def _frozen_samplers(self, plan: StagePlan) -> tuple[tuple[int, Detector], ...]:
         """A CE stage's samplers, (rollouts, detector) each, around a copy of the current proposal (later fits
         change the proposal in place)."""
-        plain, sampler = self._samplers(copy.deepcopy(self.proposal))
+        plain, sampler = self._samplers(LastAnswer(copy.deepcopy(self.proposal)))
         if not plan.mixture:
             return ((plan.n, sampler),)
         target = self.problem.target
