@@ -46,12 +46,6 @@ class Proposal(nn.Module):
         """The network's input h(s) of proposal inputs ``gap_m`` [M] (metres): [M, 1], dimensionless."""
         return (gap_m / self.h_scale).reshape(-1, 1)
 
-    def backprop(self, h: torch.Tensor, grads: list[torch.Tensor]) -> "Backprop":
-        """The network's forward and backward passes at a network input h [M, k] (:meth:`inputs`), bound to the
-        current parameter tensors and writing d loss / d parameter into ``grads`` (one tensor per parameter, in
-        ``parameters()`` order). See :class:`Backprop`."""
-        return Backprop(self.net, h, grads)
-
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """Detector interface: logit q(detect | obs), float64 [N] for observations [N, F]."""
         with torch.no_grad():
@@ -313,7 +307,7 @@ def fit_proposal(
     flat.grad = torch.zeros_like(flat)
     for p, view in zip(params, flat.detach().split(sizes)):
         p.data = view.view_as(p)
-    net = proposal.backprop(h, [g.view_as(p) for p, g in zip(params, flat.grad.split(sizes))])
+    net = Backprop(proposal.net, h, [g.view_as(p) for p, g in zip(params, flat.grad.split(sizes))])
     opt = Adam([flat], lr=lr)
     try:
         for epoch in range(epochs):

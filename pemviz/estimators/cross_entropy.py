@@ -289,7 +289,7 @@ def recomputed_objective(
         scaled = smoothing * (lp_t - log_q_now[:, :n_factors].sum(dim=1))
         w = torch.exp(scaled - scaled.max())
         per_rollout = log_q_now.sum(dim=1)
-        grad_w_term = -((-per_rollout) * w * smoothing)  # d loss / d (sum_{t<k} log q) of each rollout
+        grad_w_term = per_rollout * w * smoothing  # d loss / d (sum_{t<k} log q) of each rollout
         grad_now = (-w)[:, None].expand_as(log_q_now) + grad_w_term[:, None] * mask_k
         grad = torch.zeros(log_q.numel(), dtype=log_q.dtype).index_put_((slot_t,), grad_now * mask_t, accumulate=True)
         return -(w * per_rollout).sum(), grad.reshape(log_q.shape)
@@ -581,10 +581,9 @@ class CrossEntropy:
         plan, pb = self._plan, self.problem
         obs = batch.observations.reshape(-1, batch.observations.shape[2])
         log_p = (batch.log_p * mask).sum(axis=1)
-        shared = dict(zip((id(self.plain_sampler), id(self.sampler)), self._samplers(LastAnswer(self.proposal))))
         log_q = [log_p if d is pb.target else
-                 (action_log_prob(shared.get(id(d), d).detect_logit(obs).reshape(mask.shape), batch.detected) * mask
-                  ).sum(axis=1) for _, d in plan.mixture]  # fmt: skip
+                 (action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected) * mask).sum(axis=1)
+                 for _, d in self._around(plan.mixture, self.proposal)]  # fmt: skip
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
@@ -685,15 +684,19 @@ class CrossEntropy:
             return plain, windowed(DefensiveDetector(proposal, float(cfg.defensive)))
         return plain, plain
 
+    def _around(self, mixture: tuple[tuple[int, Detector], ...],
+                proposal: Proposal) -> tuple[tuple[int, Detector], ...]:  # fmt: skip
+        """A stage's (rollouts, sampler) components with the proposal's samplers rebuilt around ``proposal`` (the
+        target stays), which remembers its last answer: the plain and the defensive sampler, asked about the same
+        observations, evaluate the network once."""
+        plain, sampler = self._samplers(LastAnswer(proposal))
+        rebuilt = {id(self.plain_sampler): plain, id(self.sampler): sampler}
+        return tuple((n, rebuilt.get(id(d), d)) for n, d in mixture)
+
     def _frozen_samplers(self, plan: StagePlan) -> tuple[tuple[int, Detector], ...]:
         """A CE stage's samplers, (rollouts, detector) each, around a copy of the current proposal (later fits
         change the proposal in place)."""
-        plain, sampler = self._samplers(LastAnswer(copy.deepcopy(self.proposal)))
-        if not plan.mixture:
-            return ((plan.n, sampler),)
-        target = self.problem.target
-        frozen = {id(target): target, id(self.plain_sampler): plain, id(self.sampler): sampler}
-        return tuple((n, frozen[id(d)]) for n, d in plan.mixture)
+        return self._around(plan.mixture or ((plan.n, self.sampler),), copy.deepcopy(self.proposal))
 
     def _pool_log_weight(self, rollout: np.ndarray, obs: np.ndarray, actions: np.ndarray,
                          counts: np.ndarray) -> np.ndarray:  # fmt: skip
