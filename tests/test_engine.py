@@ -21,7 +21,8 @@ SMALL = dict(n_stages=3, n_per_stage=50, n_final=100, ce_epochs=100, pretrain_ep
 # when it became the default, the others with the per-step defensive mixture alone; the braking runs of a state
 # proposal re-recorded when the scenario's observation gained ``brake_pending``, and ``rollout-mixture`` with the
 # linear pool weights, both bit-identical across two runs; ``fit-mixture``: the default since the fits weigh the
-# failures by the mixture of the stages' samplers): key -> (log mu_hat, failures, N,
+# failures by the mixture of the stages' samplers; ``renyi-fit``: the default since the fits at the failure level
+# raise the weights to alpha 1.2 and the last to 1.0, bit-identical across two runs): key -> (log mu_hat, failures, N,
 # stages used, simulations, (stage, gamma, elites) per stage). Any change to the rollouts' stream, the weights, the
 # elites, the fits or the pooling moves these numbers.
 PINNED = {
@@ -48,6 +49,8 @@ PINNED = {
     "toy/rollout-mixture/0": (-48.382317304914295, 46, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 11.0, 3), (3, 0.0, 6), (4, nan, 46))),
     "braking/fit-mixture/0": (-33.678619214463474, 75, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 52))),
     "braking/fit-mixture/1": (-34.919902111021415, 89, 150, (3, 4), 350, ((0, nan, 0), (1, 2.081188287303849, 3), (2, 0.0, 6), (3, 0.0, 39), (4, nan, 56))),
+    "braking/renyi-fit/0": (-33.68657360644383, 75, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 52))),
+    "braking/renyi-fit/1": (-34.88511540007149, 87, 150, (3, 4), 350, ((0, nan, 0), (1, 2.081188287303849, 3), (2, 0.0, 6), (3, 0.0, 37), (4, nan, 56))),
 }  # fmt: skip
 
 
@@ -58,10 +61,13 @@ def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     step = PRESETS["state-ce-step"]  # the numbers were recorded with the per-step defensive mixture alone
     if preset == "state-ce-streamed":  # a final batch above STREAM_ABOVE: simulated chunk by chunk
         return ExperimentConfig(**{**step, **SMALL, "n_stages": 1, "n_final": 100_001, "seed": seed}), problem
+    full = {"smoothing_at_failure": 1.0, "final_smoothing": None}  # every fit at the failure level with alpha = 1
     if preset == "rollout-mixture":  # the default sampler when it became the default (each failure weighed by its own
         # stage's samplers in the fits)
-        return ExperimentConfig(**{**SMALL, "fit_weights": "sampler", "seed": seed}), problem
-    if preset == "fit-mixture":  # the default sampler: the fits weigh the failures by the mixture of the stages
+        return ExperimentConfig(**{**SMALL, **full, "fit_weights": "sampler", "seed": seed}), problem
+    if preset == "fit-mixture":  # the fits weigh the failures by the mixture of the stages
+        return ExperimentConfig(**{**SMALL, **full, "seed": seed}), problem
+    if preset == "renyi-fit":  # the default sampler: alpha 1.2 at the failure level, 1.0 in the last fit
         return ExperimentConfig(**{**SMALL, "seed": seed}), problem
     method, _, base = preset.partition("-")
     if method in ("mc", "naive50", "mixed50"):

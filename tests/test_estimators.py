@@ -21,6 +21,9 @@ from pemviz.estimators import (
 )
 from pemviz.problems import build_problem
 from pemviz.estimators.cross_entropy import ce_update
+
+SMALL_RUN = dict(n_per_stage=50, n_final=100, ce_epochs=100, pretrain_epochs=100)
+"""K x 50 rollouts, N_e = 100, 100 Adam epochs per fit: a run of a second or two."""
 from pemviz.sampling import Proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.toy import ToyParams, toy_problem
@@ -268,7 +271,8 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
 
     monkeypatch.setattr(ce.EliteSteps, "reweight", recorded)
     monkeypatch.setattr(ce.CrossEntropy, "finish", finish_and_reweight_the_first_pool)
-    Experiment(ExperimentConfig(n_stages=4, n_per_stage=100, n_final=10, ce_epochs=50, pretrain_epochs=50),
+    Experiment(ExperimentConfig(n_stages=4, n_per_stage=100, n_final=10, ce_epochs=50, pretrain_epochs=50,
+                                smoothing_at_failure=1.0, final_smoothing=None),
                problem=build_problem("main")).run()  # fmt: skip
     (before, after), (before2, after2) = calls[0], calls[1]
     assert before.size > 100 and np.isfinite(before).all()
@@ -278,6 +282,37 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
     assert np.max(np.abs(after2 - before2)) > 0.1  # the second stage's samplers change the weights
 
 
+@pytest.mark.parametrize("n_stages, field, alpha", [(3, "smoothing_at_failure", 1.5), (2, "final_smoothing", 0.5)])
+def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monkeypatch, n_stages, field, alpha):
+    """The fits at the failure level weigh each failure w^alpha: alpha = ``smoothing_at_failure`` (Renyi order), or
+    ``final_smoothing`` when the stage is the last (with this seed the failure level is reached at stage 2). Until
+    that fit every rollout is the same as with alpha = 1, so with the same seed the fits before it see the same
+    weights and it sees alpha times theirs (up to the constant the held weights are relative to)."""
+    from pemviz.engine import Experiment
+    from pemviz.estimators import cross_entropy as ce
+
+    def fitted_log_weights(**fields):
+        calls = []
+        fit = ce.EliteSteps.fit
+
+        def recorded(self, proposal, **kwargs):
+            log_w = self.arrays()[2]
+            calls.append(log_w - log_w.max())
+            return fit(self, proposal, **kwargs)
+
+        monkeypatch.setattr(ce.EliteSteps, "fit", recorded)
+        Experiment(ExperimentConfig(**{**SMALL_RUN, "n_stages": n_stages, **fields}), problem=build_problem("main")).run()
+        monkeypatch.undo()
+        return calls
+
+    plain = fitted_log_weights(smoothing_at_failure=1.0, final_smoothing=None)
+    other = {"final_smoothing": None} if field == "smoothing_at_failure" else {"smoothing_at_failure": 1.0}
+    raised = fitted_log_weights(**{field: alpha, **other})
+    np.testing.assert_array_equal(raised[0], plain[0])  # stage 1: below the failure level, alpha = smoothing
+    assert plain[1].size > 50 and np.ptp(plain[1]) > 1.0
+    np.testing.assert_allclose(raised[1], alpha * plain[1], rtol=0, atol=1e-9)
+
+
 def test_fit_weights_are_checked():
     from pemviz.config import ConfigError
 
@@ -285,7 +320,13 @@ def test_fit_weights_are_checked():
         ExperimentConfig(fit_weights="bogus")
     with pytest.raises(ConfigError, match="'mixture' weighs the failures of fit_all_failures"):
         ExperimentConfig(fit_all_failures=False)
-    assert ExperimentConfig(fit_all_failures=False, fit_weights="sampler").fit_weights == "sampler"
+    assert ExperimentConfig(fit_all_failures=False, fit_weights="sampler", final_smoothing=None).fit_weights == "sampler"
+    with pytest.raises(ConfigError, match="final_smoothing = 1.0 is invalid: a last fit of its own needs fit_weights"):
+        ExperimentConfig(fit_all_failures=False, fit_weights="sampler")
+    with pytest.raises(ConfigError, match=r"smoothing_at_failure = 2.5 is invalid: must be None or in \(0, 2\]"):
+        ExperimentConfig(smoothing_at_failure=2.5)
+    with pytest.raises(ConfigError, match=r"final_smoothing = 0 is invalid: must be None or in \(0, 2\]"):
+        ExperimentConfig(final_smoothing=0)
 
 
 def test_last_answer_asks_its_detector_once_per_distinct_observations():

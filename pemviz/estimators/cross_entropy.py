@@ -207,7 +207,7 @@ def ce_update(
         gap_m, detected, log_p, log_q: [N, T] from the stage's rollouts (log_p under the PEM, log_q
             under the proposal that sampled them; nats).
         elite: bool [N], robustness <= gamma_kappa.
-        smoothing: alpha in (0, 1], the power on the importance weights.
+        smoothing: alpha in (0, 2], the power on the importance weights.
         weights: ``"frozen"``: w from the proposal that sampled the batch (textbook CE, paper eq. 10-11);
             ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
         n_factors: steps in each weight (default T - 1: the last action affects nothing).
@@ -273,7 +273,7 @@ def recomputed_objective(
         log_p: float64 [n] each elite's sum of log p over its first k masked steps (nats).
         mask: bool [n, T] the steps that count.
         n_factors: k, the steps in each weight.
-        smoothing: alpha in (0, 1].
+        smoothing: alpha in (0, 2].
     Returns:
         log q [M, 2] -> (loss, d loss / d log q [M, 2]): the operations autograd would run, in its order, so a fit
         gives the same bits as differentiating the loss with autograd (a test checks it).
@@ -732,9 +732,14 @@ class CrossEntropy:
         return (self._smoothing(0.0) * log_w)[inverse]
 
     def _smoothing(self, gamma: float) -> float:
-        """alpha of a stage at threshold gamma (``smoothing_at_failure`` once gamma reached the failure level)."""
+        """alpha of a stage at threshold gamma: ``smoothing_at_failure`` once gamma reached the failure level, and
+        ``final_smoothing`` (when set) in the last stage, whose fit gives the final proposal."""
         cfg = self.config
-        return cfg.smoothing_at_failure if cfg.smoothing_at_failure is not None and gamma <= 0.0 else cfg.smoothing
+        if gamma > 0.0:
+            return cfg.smoothing
+        if cfg.final_smoothing is not None and self._plan is not None and self._plan.stage >= cfg.n_stages:
+            return cfg.final_smoothing
+        return cfg.smoothing if cfg.smoothing_at_failure is None else cfg.smoothing_at_failure
 
     def _add_steps(self, batch: RolloutBatch, index: np.ndarray, gamma: float) -> None:
         """Reduce elite rollouts to their fitted steps (:class:`EliteSteps`): inputs, actions, alpha log w_i."""
