@@ -301,7 +301,8 @@ def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monk
             return fit(self, proposal, **kwargs)
 
         monkeypatch.setattr(ce.EliteSteps, "fit", recorded)
-        Experiment(ExperimentConfig(**{**SMALL_RUN, "n_stages": n_stages, **fields}), problem=build_problem("main")).run()
+        config = ExperimentConfig(**{**SMALL_RUN, "n_stages": n_stages, **fields})
+        Experiment(config, problem=build_problem("main")).run()
         monkeypatch.undo()
         return calls
 
@@ -320,7 +321,8 @@ def test_fit_weights_are_checked():
         ExperimentConfig(fit_weights="bogus")
     with pytest.raises(ConfigError, match="'mixture' weighs the failures of fit_all_failures"):
         ExperimentConfig(fit_all_failures=False)
-    assert ExperimentConfig(fit_all_failures=False, fit_weights="sampler", final_smoothing=None).fit_weights == "sampler"
+    sampler = ExperimentConfig(fit_all_failures=False, fit_weights="sampler", final_smoothing=None)
+    assert sampler.fit_weights == "sampler"
     with pytest.raises(ConfigError, match="final_smoothing = 1.0 is invalid: a last fit of its own needs fit_weights"):
         ExperimentConfig(fit_all_failures=False, fit_weights="sampler")
     with pytest.raises(ConfigError, match=r"smoothing_at_failure = 2.5 is invalid: must be None or in \(0, 2\]"):
