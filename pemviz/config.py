@@ -304,8 +304,7 @@ PAPER: dict[str, Any] = {
     "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False,
     "smoothing_at_failure": None, "final_smoothing": None, "elite_ties": "all", "pretrain_cap": None,
     "defensive": 0.0, "target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
-    "fit": "adam",
-    "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000, "n_final": 100,
+    "fit": "adam", "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000, "n_final": 100,
 }
 """The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal
 fitted on every step by full-batch Adam, weights over T - 1 steps, every tie at gamma an elite, no defensive
@@ -335,11 +334,11 @@ can matter, weights up to the failure, once the threshold reaches the failure le
 a 20 % per-step defensive mixture, and a mixture over whole rollouts: 45 % of every stage's rollouts from the
 proposal without the per-step cap, and once the failure level is reached 10 % from the target (weights at most 10),
 each fit using every failure since, weighed by the mixture of those stages' samplers. Against exact answers at
-2,100 simulations, 10 seeds (``benchmarks/rarity_sweep.py``, with alpha 1 at the failure level): median relative
-error <= 0.007 on toys from 1e-3 to 1e-100 (the per-step mixture alone, ``state-ce-step``, found no failure at all
-on the toys needing 100 and 300 misses in a row), 0.008-0.020 on the latched scenario from 1e-1.4 to 1e-62,
-0.039-0.046 on the main braking job at 1e-15 and 1e-26; with alpha 1.2, over seeds 0-99 at 1e-15: 0.021 (1,200
-simulations: 0.039).
+2,100 simulations, 10 seeds (``benchmarks/rarity_sweep.py``): median relative error <= 0.007 on toys from 1e-3 to
+1e-100 (the per-step mixture alone, ``state-ce-step``, found no failure at all on the toys needing 100 and 300
+misses in a row), 0.008-0.013 on the latched scenario from 1e-1.4 to 1e-62, 0.023 and 0.038 on the main braking job
+at 1e-15 and 1e-26 (alpha 1 throughout: 0.039 and 0.046); over seeds 0-99 at 1e-15: 0.021 (1,200 simulations:
+0.039).
 ``state-ce-step``: the default sampler before the mixture over rollouts (per-step defensive mixture only; median
 relative error 0.054 on the main job, 0.087 on latched at 1e-62).
 ``paper``: the sampler as published (biased low on the braking job: its estimator is unbiased but so

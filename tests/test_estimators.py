@@ -21,12 +21,12 @@ from pemviz.estimators import (
 )
 from pemviz.problems import build_problem
 from pemviz.estimators.cross_entropy import ce_update
-
-SMALL_RUN = dict(n_per_stage=50, n_final=100, ce_epochs=100, pretrain_epochs=100)
-"""K x 50 rollouts, N_e = 100, 100 Adam epochs per fit: a run of a second or two."""
 from pemviz.sampling import Proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.toy import ToyParams, toy_problem
+
+SMALL_RUN = dict(n_per_stage=50, n_final=100, ce_epochs=100, pretrain_epochs=100)
+"""K x 50 rollouts, N_e = 100, 100 Adam epochs per fit: a run of a second or two."""
 
 
 def test_failure_steps_are_the_first_step_below_the_safe_distance():
