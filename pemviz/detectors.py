@@ -15,6 +15,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from scipy.special import log_expit
 
+from pemviz.rng import array_rqmc_uniforms
+
 GAP_COLUMN = 0
 """Index of ``gap_m`` (metres) in every observation vector."""
 
@@ -83,6 +85,30 @@ class WindowDetector:
             if rows.any():
                 out[rows] = detector.detect_logit(obs[rows])
         return out
+
+
+@dataclass(frozen=True)
+class ArrayRQMC:
+    """``detector``, drawn by Array-RQMC: a simulator stepping rollouts together ranks them by this detector's logit
+    at each step and takes their uniforms from :func:`pemviz.rng.array_rqmc_uniforms` (:func:`step_uniforms`).
+    Every rollout still follows ``detector`` exactly; a simulator that does not look at ``array_rqmc`` draws i.i.d.
+    uniforms, with the same expectations."""
+
+    detector: Detector
+    array_rqmc: bool = True
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        return self.detector.detect_logit(obs)
+
+
+def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np.ndarray) -> np.ndarray:
+    """The uniforms a simulator compares with ``sampler``'s detection probabilities at one step: ``u`` (float64 [n],
+    i.i.d. U(0, 1)) as drawn, or for an :class:`ArrayRQMC` sampler the Array-RQMC uniforms of the chains ranked by
+    ``q_logit`` (float64 [n], the sampler's logits at this step) and then by their observations ``obs`` [n, F]
+    (:func:`pemviz.rng.array_rqmc_uniforms`)."""
+    if getattr(sampler, "array_rqmc", False) and u.size > 1:
+        return array_rqmc_uniforms(u, np.column_stack([q_logit, obs]))
+    return u
 
 
 class LastAnswer:

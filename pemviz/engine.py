@@ -26,7 +26,7 @@ from typing import Callable, Iterable, Union
 import numpy as np
 
 from pemviz.config import METRICS, ExperimentConfig
-from pemviz.detectors import Detector
+from pemviz.detectors import ArrayRQMC, Detector
 from pemviz.estimators import Estimator, StagePlan, build_estimator
 from pemviz.executors import get_executor
 from pemviz.problems import Problem, ProblemInfo
@@ -272,6 +272,8 @@ class Experiment:
         self.emit(StageStarted(plan.stage, plan.kind, plan.n))
         pb, cfg = self.problem, self.config
         parts = plan.parts  # (rollouts, detector) in the order drawn
+        if cfg.uniforms == "array-rqmc" and cfg.method != "ams":  # ExperimentConfig.uniforms (ams: i.i.d. particles)
+            parts = [(k, ArrayRQMC(d)) for k, d in parts]
         if plan.draw is None and plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
             self._streamed(estimator, plan, parts)
         else:  # one batch, on the configured executor (serial or Ray tasks)

@@ -13,7 +13,9 @@ Both executors give the same rollouts for the same seed:
   but the generator's state (a few integers) travels with the task, and ``rng`` ends where the serial
   run leaves it. The rollouts are then identical except that a torch proposal evaluated on a chunk
   of rows may differ from the whole batch in the last bit of a logit (~2e-16); estimates agree to
-  ~1e-12 relative (tests/test_executors.py).
+  ~1e-12 relative (tests/test_executors.py). That holds for i.i.d. uniforms (``uniforms = "iid"``): with
+  ``array-rqmc`` (the default) each task ranks and couples its own chunk's rollouts, so the rollouts differ from
+  the serial run's while every estimate keeps its expectation.
 
 Requirements for ``ray``: Ray installed (``pip install ray``; pemviz's ``test`` extra installs it),
 pemviz importable on every worker, the problem picklable by cloudpickle (pemviz's problems are),

@@ -40,3 +40,38 @@ def advance(rng: np.random.Generator, draws: int) -> None:
     end = bit_generator_at(base, draws).state
     end["has_uint32"], end["uinteger"] = base["has_uint32"], base["uinteger"]  # untouched by random()
     bg.state = end
+
+
+GOLDEN = 0.6180339887498949
+"""(sqrt(5) - 1) / 2, the generator of the Kronecker (golden-ratio) lattice of :func:`array_rqmc_uniforms`."""
+
+
+def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """One step's uniforms for ``n`` chains simulated together, by Array-RQMC (L'Ecuyer, Lecot & Tuffin, "A
+    randomized quasi-Monte Carlo simulation method for Markov chains", Operations Research 56(4), 2008).
+
+    The chains are ranked by ``key`` (lexicographically by its columns, the first column first; chains of equal keys
+    keep their order), and the chain of rank r gets ``(r * GOLDEN + u[0]) mod 1``: the second coordinate of point r
+    of the two-dimensional golden-ratio lattice ``{(r / n, r * GOLDEN)}``, randomly shifted. Given everything before
+    this step, ``u[0]`` is uniform and independent of the ranks, so every chain's uniform is exactly U(0, 1) and
+    every chain follows its sampler exactly (a mean over chains keeps its expectation); jointly, chains of nearby
+    keys get evenly spread uniforms. With the sampler's detect logit and then the state as the key, chains of
+    similar detection probability detect in nearly their expected number, instead of binomially many.
+
+    Args:
+        u: float64 [n], i.i.d. U(0, 1) draws of this step; only ``u[0]`` is used (the others are drawn so that the
+            random stream advances as with i.i.d. uniforms).
+        key: float64 [n] or [n, k], the order of the chains.
+    Returns:
+        float64 [n] in [0, 1), a new array.
+    Raises:
+        ValueError: ``u`` not [n] with n >= 1, or ``key`` not [n] or [n, k].
+    """
+    u, key = np.asarray(u, dtype=np.float64), np.asarray(key, dtype=np.float64)
+    if u.ndim != 1 or u.size < 1 or key.ndim not in (1, 2) or key.shape[0] != u.size:
+        raise ValueError(f"array_rqmc_uniforms: u must be [n], n >= 1, and key [n] or [n, k]; got {u.shape} and "
+                         f"{key.shape}")
+    order = np.argsort(key, kind="stable") if key.ndim == 1 else np.lexsort(key.T[::-1])
+    out = np.empty(u.size)
+    out[order] = np.arange(u.size) * GOLDEN + u[0]
+    return np.remainder(out, 1.0, out=out)

@@ -51,6 +51,8 @@ PINNED = {
     "braking/fit-mixture/1": (-34.919902111021415, 89, 150, (3, 4), 350, ((0, nan, 0), (1, 2.081188287303849, 3), (2, 0.0, 6), (3, 0.0, 39), (4, nan, 56))),
     "braking/renyi-fit/0": (-33.68657360644383, 75, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 52))),
     "braking/renyi-fit/1": (-34.88511540007149, 87, 150, (3, 4), 350, ((0, nan, 0), (1, 2.081188287303849, 3), (2, 0.0, 6), (3, 0.0, 37), (4, nan, 56))),
+    "braking/array-rqmc/0": (-32.56839624862426, 53, 150, (3, 4), 350, ((0, nan, 0), (1, 2.124224518188786, 3), (2, 0.0, 5), (3, 0.0, 27), (4, nan, 31))),
+    "braking/array-rqmc/1": (-36.13435880117795, 70, 150, (3, 4), 350, ((0, nan, 0), (1, 2.1449127141471287, 3), (2, 0.0, 5), (3, 0.0, 28), (4, nan, 47))),
 }  # fmt: skip
 
 
@@ -58,22 +60,32 @@ def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     """The config and problem name of a key of :data:`PINNED`."""
     problem, preset, seed = key.split("/")
     seed = int(seed)
+    if preset == "array-rqmc":  # the default sampler: Array-RQMC uniforms, stages pooled by j^2 n_j
+        return ExperimentConfig(**{**SMALL, "seed": seed}), problem
+    return _pinned_config(problem, preset, seed), problem
+
+
+RECORDED = {"uniforms": "iid", "pool_weights": "linear"}
+"""The defaults when the other numbers were recorded: i.i.d. uniforms, the stages pooled by j n_j."""
+
+
+def _pinned_config(problem: str, preset: str, seed: int) -> ExperimentConfig:
     step = PRESETS["state-ce-step"]  # the numbers were recorded with the per-step defensive mixture alone
     if preset == "state-ce-streamed":  # a final batch above STREAM_ABOVE: simulated chunk by chunk
-        return ExperimentConfig(**{**step, **SMALL, "n_stages": 1, "n_final": 100_001, "seed": seed}), problem
+        return ExperimentConfig(**{**RECORDED, **step, **SMALL, "n_stages": 1, "n_final": 100_001, "seed": seed})
     full = {"smoothing_at_failure": 1.0, "final_smoothing": None}  # every fit at the failure level with alpha = 1
     if preset == "rollout-mixture":  # the default sampler when it became the default (each failure weighed by its own
         # stage's samplers in the fits)
-        return ExperimentConfig(**{**SMALL, **full, "fit_weights": "sampler", "seed": seed}), problem
+        return ExperimentConfig(**{**RECORDED, **SMALL, **full, "fit_weights": "sampler", "seed": seed})
     if preset == "fit-mixture":  # the fits weigh the failures by the mixture of the stages
-        return ExperimentConfig(**{**SMALL, **full, "seed": seed}), problem
-    if preset == "renyi-fit":  # the default sampler: alpha 1.2 at the failure level, 1.0 in the last fit
-        return ExperimentConfig(**{**SMALL, "seed": seed}), problem
+        return ExperimentConfig(**{**RECORDED, **SMALL, **full, "seed": seed})
+    if preset == "renyi-fit":  # alpha 1.2 at the failure level, 1.0 in the last fit
+        return ExperimentConfig(**{**RECORDED, **SMALL, "seed": seed})
     method, _, base = preset.partition("-")
     if method in ("mc", "naive50", "mixed50"):
         n = 2000 if problem == "toy-1e-3" else 500
-        return ExperimentConfig(**{**PRESETS[base or "state-ce"], "method": method, "n_per_stage": n, "seed": seed}), problem
-    return ExperimentConfig(**{**step, **PRESETS[preset], **SMALL, "seed": seed}), problem
+        return ExperimentConfig(**{**RECORDED, **PRESETS[base or "state-ce"], "method": method, "n_per_stage": n, "seed": seed})
+    return ExperimentConfig(**{**RECORDED, **step, **PRESETS[preset], **SMALL, "seed": seed})
 
 
 def run_pinned(key: str):
@@ -130,7 +142,9 @@ def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, mon
 
     import pemviz.engine as engine
 
-    cfg = ExperimentConfig(**{**SMALL, "n_per_stage": 400, "n_final": 600, "pretrain_rollouts": 300, "seed": 2})
+    # i.i.d. uniforms: with Array-RQMC each chunk's rollouts are coupled among themselves, not with the whole batch's
+    cfg = ExperimentConfig(**{**SMALL, "n_per_stage": 400, "n_final": 600, "pretrain_rollouts": 300, "seed": 2,
+                              "uniforms": "iid"})
     problem = build_problem(name, cfg.pem)
     whole = Experiment(cfg, problem=problem).run()
     monkeypatch.setattr(engine, "STREAM_ABOVE", 100)

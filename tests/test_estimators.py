@@ -353,3 +353,27 @@ def test_last_answer_asks_its_detector_once_per_distinct_observations():
     memo.detect_logit(changed)
     memo.detect_logit(obs[:49])
     assert Counting.calls == 3
+
+
+@pytest.mark.parametrize("pool_weights, power", [("quadratic", 2), ("linear", 1), ("rollouts", 0)])
+def test_pool_weights_count_the_jth_pooled_stage_by_j_to_the_power_times_its_rollouts(monkeypatch, pool_weights,
+                                                                                       power):  # fmt: skip
+    # K = 4 stages of 50 and N_e = 100 on main: the pool starts once a stage reaches gamma = 0; lambda_j (j = 1..J)
+    # must be j^power n_j / sum_i i^power n_i, the final batch's n_j = 100 (``rollouts``: pooled_estimate's own
+    # weights, n_j / sum n_i, passed as None)
+    from pemviz.engine import Experiment
+    from pemviz.estimators import cross_entropy as ce
+
+    seen = []
+    pooled = ce.pooled_estimate
+    monkeypatch.setattr(ce, "pooled_estimate", lambda stages, lam=None: seen.append((stages, lam)) or pooled(stages, lam))
+    cfg = ExperimentConfig(**{**SMALL_RUN, "n_stages": 4, "seed": 0, "pool_weights": pool_weights})
+    done = Experiment(cfg, problem=build_problem("main")).run()
+    stages, lam = seen[-1]
+    n = np.array([s.n for s in stages], dtype=np.float64)
+    assert len(done.final.stages_used) == len(stages) >= 2 and n[-1] == 100
+    if power == 0:
+        assert lam is None
+    else:
+        expect = np.arange(1, n.size + 1) ** power * n
+        np.testing.assert_allclose(lam, expect / expect.sum(), rtol=1e-15)

@@ -136,8 +136,9 @@ def test_ray_executor_with_two_local_workers_gives_the_serial_estimate_for_the_s
 
     # A less confident PEM (logits / 4) so that K = 2 stages of N = 20 already see crashes.
     problem = braking_problem(load_pem().with_temperature(4.0))
+    # i.i.d. uniforms: with Array-RQMC each task couples its own chunk's rollouts (module docstring)
     config = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=20, pretrain_rollouts=20, ce_epochs=100,
-                              pretrain_epochs=200, seed=1)  # fmt: skip
+                              pretrain_epochs=200, seed=1, uniforms="iid")  # fmt: skip
     serial, serial_batches, serial_stages = _run(config, problem)
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:

@@ -632,8 +632,8 @@ class CrossEntropy:
         the proposal that drew it, so the pooled mean of 1[fail] w is unbiased (a sum of martingale differences;
         cf. Cornuet, Marin, Mira, Robert, "Adaptive multiple importance sampling", Scand. J. Stat. 2012, for
         recycling the stages of an adaptive sampler). With ``pool_weights = "linear"`` the j-th pooled stage
-        (j = 1..K) counts lambda_j = j n_j / sum_i i n_i: fixed as soon as the pool starts too, so still unbiased,
-        and later proposals, fitted to more failures, count more (weighting the stages of adaptive importance
+        (j = 1..K) counts lambda_j = j n_j / sum_i i n_i, with ``quadratic`` j^2 n_j / sum_i i^2 n_i: fixed as soon
+        as the pool starts too, so still unbiased, and later proposals, fitted to more failures, count more (weighting the stages of adaptive importance
         sampling: Portier & Delyon, "Asymptotic optimality of adaptive importance sampling", NeurIPS 2018).
         """
         stage, est = self._last
@@ -641,8 +641,9 @@ class CrossEntropy:
             used = (*self.pooled, stage)
             stages = [self.stages[k] for k in used]
             lam = None
-            if self.config.pool_weights == "linear":
-                lam = np.array([(j + 1) * s.n for j, s in enumerate(stages)], dtype=np.float64)
+            if self.config.pool_weights != "rollouts":
+                power = 2 if self.config.pool_weights == "quadratic" else 1
+                lam = np.array([(j + 1) ** power * s.n for j, s in enumerate(stages)], dtype=np.float64)
                 lam /= lam.sum()
             return pooled_estimate(stages, lam), used
         return est, (stage,)

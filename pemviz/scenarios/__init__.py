@@ -17,7 +17,7 @@ from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
-from pemviz.detectors import Detector, action_log_prob
+from pemviz.detectors import Detector, action_log_prob, step_uniforms
 
 
 class Simulator(Protocol):
@@ -157,7 +157,7 @@ def simulate(
         o = np.stack([s.observation() for s in sims])
         q_logit = sampler.detect_logit(o)
         p_logit = q_logit if target is sampler else target.detect_logit(o)
-        u = rng.random(n) if uniforms is None else uniforms[t]
+        u = step_uniforms(rng.random(n) if uniforms is None else uniforms[t], sampler, q_logit, o)
         # u <= sigmoid(logit)  <=>  log u <= log_expit(logit): exact in log-space.
         a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
         obs[:, t] = o

@@ -38,7 +38,7 @@ from typing import Callable, Iterator
 import numpy as np
 from scipy.special import log_expit
 
-from pemviz.detectors import Detector
+from pemviz.detectors import Detector, step_uniforms
 from pemviz.rng import JUMPABLE, advance, bit_generator_at
 from pemviz.sampling import estimate
 from pemviz.scenarios import RolloutBatch
@@ -261,6 +261,7 @@ def _run_chunk(
         o = sim.observation(out=obs_t[t])
         q_logit = sampler.detect_logit(o)
         p_logit = q_logit if target is sampler else target.detect_logit(o)
+        u = step_uniforms(u, sampler, q_logit, o)
         # u <= sigmoid(logit)  <=>  log u <= log_expit(logit) (= action_log_prob(logit, True)).
         ls_q = log_expit(q_logit)
         a = np.less_equal(np.log(u, out=u), ls_q, out=detected_t[t])

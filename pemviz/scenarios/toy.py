@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Callable, Union
 
 import numpy as np
 
-from pemviz.detectors import Detector, action_log_prob
+from pemviz.detectors import Detector, action_log_prob, step_uniforms
 
 if TYPE_CHECKING:  # imported lazily at run time: pemviz.problems imports the scenarios package
     from pemviz.problems import Problem
@@ -180,7 +180,7 @@ def simulate_toy(
         o = np.stack([distance, stopped.astype(np.float64)], axis=1)
         q_logit = sampler.detect_logit(o)
         p_logit = q_logit if target is sampler else target.detect_logit(o)
-        u = rng.random(n)
+        u = step_uniforms(rng.random(n), sampler, q_logit, o)
         a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
         if forced is not None:
             a = np.where(t < forced[1], forced[0][:, t], a)

@@ -14,7 +14,7 @@ import torch
 from pemviz.problems import problem_for
 from pemviz import problems
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.detectors import ConstantDetector, PEMDetector, WindowDetector
+from pemviz.detectors import ArrayRQMC, ConstantDetector, PEMDetector, WindowDetector
 from pemviz.scenarios import RolloutBatch, simulate
 from pemviz.scenarios.batched import (
     BatchedBraking,
@@ -121,10 +121,11 @@ def _detectors(pem):
         "mixed50": WindowDetector(ConstantDetector(0.5), target, 10.0),
         "constant 0.3": ConstantDetector(0.3),
         "proposal (torch)": Proposal(),
+        "mixed50, array-rqmc": ArrayRQMC(WindowDetector(ConstantDetector(0.5), target, 10.0)),
     }
 
 
-@pytest.mark.parametrize("name", ["pem (mc)", "mixed50", "constant 0.3", "proposal (torch)"])
+@pytest.mark.parametrize("name", ["pem (mc)", "mixed50", "constant 0.3", "proposal (torch)", "mixed50, array-rqmc"])
 def test_same_seed_gives_identical_rollout_batch_on_both_backends(pem, name):
     sampler = _detectors(pem)[name]
     target = PEMDetector(pem) if name != "pem (mc)" else sampler
@@ -134,7 +135,7 @@ def test_same_seed_gives_identical_rollout_batch_on_both_backends(pem, name):
     b = simulate_batched(p, 60, sampler, target, rng_b)
     assert_same_batch(a, b)
     assert rng_a.random() == rng_b.random()  # both consumed T draws of size n
-    if name == "mixed50":
+    if name.startswith("mixed50"):
         assert 0 < (a.gap_m.min(axis=1) < 2.0).sum() < 60  # some crash, some do not
 
 

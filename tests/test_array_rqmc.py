@@ -1,0 +1,87 @@
+"""Array-RQMC uniforms (L'Ecuyer, Lecot & Tuffin, Operations Research 2008): by hand, stratified, and on a toy with
+an exact answer the importance-sampling estimate keeps its mean and loses most of its variance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.detectors import ArrayRQMC, ConstantDetector, WindowDetector
+from pemviz.estimators.base import weighted_steps_mask
+from pemviz.rng import GOLDEN, array_rqmc_uniforms
+from pemviz.scenarios import simulate
+from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_problem
+from pemviz.truth import toy_log_failure_probability
+
+
+def test_uniforms_by_hand_ranked_by_key_then_by_the_next_column():
+    # ranks by key: chain 1 (key 1) -> 0, chain 0 (key 2) -> 1, chain 2 (key 3) -> 2; u[0] = 0.3 is the shift
+    got = array_rqmc_uniforms(np.array([0.3, 0.5, 0.9]), np.array([2.0, 1.0, 3.0]))
+    np.testing.assert_allclose(got, [0.3 + GOLDEN, 0.3, 0.3 + 2 * GOLDEN - 1.0], rtol=0, atol=1e-15)
+    # equal first column: the second decides (chain 2 before chain 0), chain 1 last
+    got = array_rqmc_uniforms(np.array([0.0, 0.7, 0.1]), np.array([[1.0, 5.0], [2.0, 0.0], [1.0, 4.0]]))
+    np.testing.assert_allclose(got, [GOLDEN, 2 * GOLDEN - 1.0, 0.0], rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match=r"u must be \[n\], n >= 1, and key \[n\] or \[n, k\]; got \(3,\) and \(2,\)"):
+        array_rqmc_uniforms(np.zeros(3), np.zeros(2))
+
+
+def test_chains_of_equal_detection_probability_detect_in_their_expected_number():
+    # 1,000 chains with q(detect) = 0.3: i.i.d. uniforms give Binomial(1000, 0.3) detections (sd 14.5); the shifted
+    # golden-ratio lattice has at most ~2 points too many or too few in any interval (three-distance theorem)
+    rng = np.random.default_rng(0)
+    counts = [int((array_rqmc_uniforms(rng.random(1000), np.zeros(1000)) < 0.3).sum()) for _ in range(200)]
+    assert max(abs(c - 300) for c in counts) <= 2
+    iid = [int((rng.random(1000) < 0.3).sum()) for _ in range(200)]
+    assert max(abs(c - 300) for c in iid) > 20
+
+
+def test_every_chain_stays_uniform_over_the_random_shift():
+    # chain i's uniform over 20,000 shifts: each decile holds 10 % +- 4 standard errors
+    rng = np.random.default_rng(1)
+    key = rng.normal(size=7)
+    u = np.array([array_rqmc_uniforms(rng.random(7), key) for _ in range(20_000)])
+    deciles = np.stack([np.histogram(u[:, i], bins=10, range=(0, 1))[0] for i in range(7)]) / 20_000
+    assert np.abs(deciles - 0.1).max() < 4 * math.sqrt(0.1 * 0.9 / 20_000)
+
+
+def _toy_estimates(sampler, reps: int, n: int, seed: int) -> tuple[np.ndarray, float]:
+    params = ToyParams(8, 5, 2, 0.6)  # exact (1 - 0.6)^4 = 0.0256
+    pb = toy_problem(params)
+    rng = np.random.default_rng(seed)
+    est = []
+    for _ in range(reps):
+        b = pb.simulate(n, sampler, pb.target, rng)
+        w = np.exp(((b.log_p - b.log_q) * weighted_steps_mask(pb, b, True)).sum(axis=1)) * pb.failed(b)
+        est.append(w.mean())
+    return np.array(est), math.exp(toy_log_failure_probability(params))
+
+
+def test_importance_sampling_with_array_rqmc_is_unbiased_and_varies_far_less_on_a_toy():
+    # a state-dependent proposal (q(detect) 0.2 below 4.5, 0.6 above), 400 batches of 200 rollouts each way: the mean
+    # is the exact answer within 4 standard errors and 2 %; the standard deviation falls from ~14 % to ~2.4 %
+    q = WindowDetector(ConstantDetector(0.2), ConstantDetector(0.6), 4.5)
+    iid, exact = _toy_estimates(q, 400, 200, 7)
+    rqmc, _ = _toy_estimates(ArrayRQMC(q), 400, 200, 7)
+    for est in (iid, rqmc):
+        assert abs(est.mean() - exact) < 4 * est.std(ddof=1) / math.sqrt(est.size)
+    assert abs(rqmc.mean() / exact - 1) < 0.02
+    assert rqmc.var() < 0.1 * iid.var()
+
+
+def test_toy_twins_draw_the_same_array_rqmc_rollouts():
+    params = ToyParams(8, 5, 2, 0.6)
+    q = ArrayRQMC(WindowDetector(ConstantDetector(0.2), ConstantDetector(0.6), 4.5))
+    target = toy_problem(params).target
+    a = simulate_toy(params, 50, q, target, np.random.default_rng(3))
+    b = simulate(lambda: ToyBraking(params), 50, q, target, np.random.default_rng(3), params.steps)
+    np.testing.assert_array_equal(a.detected, b.detected)
+    np.testing.assert_array_equal(a.log_q, b.log_q)
+
+
+def test_config_names_the_allowed_uniforms():
+    assert ExperimentConfig().uniforms == "array-rqmc" and ExperimentConfig().pool_weights == "quadratic"
+    with pytest.raises(ConfigError, match="uniforms = 'sobol' is invalid: use one of array-rqmc, iid"):
+        ExperimentConfig(uniforms="sobol")
