@@ -51,7 +51,7 @@ from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts
 from pemviz.files import atomic_write
 from pemviz.problems import Problem, ShiftedPEM, braking_problem
 from pemviz.sampling import relative_error, torch_threads
-from pemviz.validation import ams_fields
+from pemviz.validation import all_fields, ams_fields
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.toy import ToyParams, toy_problem
 
@@ -183,8 +183,9 @@ class Job:
     seed: int
 
     def key(self) -> str:
-        return json.dumps({"spec": asdict(self.spec), "method": self.method, "fields": self.fields,
-                           "seed": self.seed}, sort_keys=True, default=str)  # fmt: skip
+        fields = self.fields if self.method == Q_STAR else all_fields(self.fields or ())  # defaults filled in
+        return json.dumps({"spec": asdict(self.spec), "method": self.method, "fields": fields, "seed": self.seed},
+                          sort_keys=True, default=str)  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -110,8 +110,8 @@ class ExperimentConfig:
             detect logit and given the points of a randomly shifted golden-ratio lattice
             (:func:`pemviz.rng.array_rqmc_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008).
             Each rollout still follows its sampler exactly, so every estimate keeps its expectation; the batch's
-            estimate varies less (about half the variance at the default sampler's last stages on the braking
-            job). The rollouts of a batch are no longer independent: an interval computed as if they were is
+            estimate varies less (~40 % less variance at the default sampler's last stages on the braking job).
+            The rollouts of a batch are no longer independent: an interval computed as if they were is
             conservative. ``ams`` draws its particles and continuations i.i.d.
         pem: path of PEM weights, or None for the shipped default.
         sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
@@ -338,7 +338,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2,
     },
     "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
-                      "pool_weights": "rollouts", "smoothing_at_failure": 1.0, "final_smoothing": None, "uniforms": "iid"},
+                      "pool_weights": "rollouts", "smoothing_at_failure": 1.0, "final_smoothing": None,
+                      "uniforms": "iid"},
 }
 """Named settings, each applied on top of the defaults.
 
@@ -347,12 +348,12 @@ can matter, weights up to the failure, once the threshold reaches the failure le
 (the Renyi divergence of order 1.2) and to the power 1 in the last fit, random tie-breaking, a capped pretraining,
 a 20 % per-step defensive mixture, and a mixture over whole rollouts: 45 % of every stage's rollouts from the
 proposal without the per-step cap, and once the failure level is reached 10 % from the target (weights at most 10),
-each fit using every failure since, weighed by the mixture of those stages' samplers. Against exact answers at
-2,100 simulations, 10 seeds (``benchmarks/rarity_sweep.py``): median relative error <= 0.007 on toys from 1e-3 to
-1e-100 (the per-step mixture alone, ``state-ce-step``, found no failure at all on the toys needing 100 and 300
-misses in a row), 0.008-0.013 on the latched scenario from 1e-1.4 to 1e-62, 0.023 and 0.038 on the main braking job
-at 1e-15 and 1e-26 (alpha 1 throughout: 0.039 and 0.046); over seeds 0-99 at 1e-15: 0.021 (1,200 simulations:
-0.039).
+each fit using every failure since, weighed by the mixture of those stages' samplers, each batch's detections drawn by
+Array-RQMC and the pooled stages counted by j^2 n_j. Against exact answers at 2,100 simulations, 10 seeds
+(``benchmarks/rarity_sweep.py``): median relative error <= 0.004 on toys from 1e-3 to 1e-100 (the per-step mixture
+alone, ``state-ce-step``, found no failure at all on the toys needing 100 and 300 misses in a row), 0.003-0.015 on the
+latched scenario from 1e-1.4 to 1e-62, 0.017 and 0.037 on the main braking job at 1e-15 and 1e-26; on main over seeds
+0-99: 0.021, RMS 0.032 (1,200 simulations, seeds 0-199: 0.031, RMS 0.053).
 ``state-ce-step``: the default sampler before the mixture over rollouts (per-step defensive mixture only; median
 relative error 0.054 on the main job, 0.087 on latched at 1e-62).
 ``paper``: the sampler as published (biased low on the braking job: its estimator is unbiased but so

@@ -164,9 +164,22 @@ RUNS_FILE = "runs.jsonl"
 """Each finished run of ``validate`` / ``tables``, one JSON line, appended as the run ends (``--out``)."""
 
 
+def all_fields(fields: Sequence[tuple[str, Any]]) -> list[tuple[str, Any]]:
+    """Every field of the config that ``fields`` (name, value pairs) set, defaults filled in, but the seed, sorted by
+    name: what a run depends on, whichever defaults the running pemviz has.
+
+    Raises:
+        ConfigError: ``fields`` not a valid config.
+    """
+    config = dataclasses.asdict(ExperimentConfig(**dict(fields)))
+    return sorted((k, v) for k, v in config.items() if k != "seed")
+
+
 def job_key(job: Job) -> str:
-    """What identifies a run in :data:`RUNS_FILE`: the whole :class:`Job` as canonical JSON."""
-    return json.dumps(dataclasses.asdict(job), sort_keys=True, default=str)
+    """What identifies a run in :data:`RUNS_FILE`: the whole :class:`Job` as canonical JSON, its config with every
+    default filled in (:func:`all_fields`), so that a study resumed by a pemviz whose defaults have changed runs
+    its jobs again instead of reusing their records."""
+    return json.dumps({**dataclasses.asdict(job), "fields": all_fields(job.fields)}, sort_keys=True, default=str)
 
 
 def record_to_json(job: Job, rec: RunRecord) -> str:

@@ -15,6 +15,7 @@ from pemviz.validation import (
     Job,
     RunRecord,
     exact_answer,
+    job_key,
     markdown_table,
     methods_for,
     read_finished,
@@ -99,3 +100,13 @@ def test_the_main_truth_of_a_shipped_pem_is_the_kept_enumeration_not_recomputed(
     answer = exact_answer("main")
     assert answer.log_p_fail == KNOWN_BRAKING_LOG_P[pem_fingerprint(load_pem().logit_at_gap)] == -33.85370929668962
     assert "kept" in answer.source and answer.table is None  # no enumeration ran (it has a refinement table)
+
+
+def test_a_runs_key_holds_every_config_field_so_a_changed_default_reruns_the_run():
+    # the same run, its default given or not: one key; another value of that field: another key; the key names the
+    # default's value, so a pemviz with other defaults finds no finished run under it
+    bare = Job("toy", "adaptive (state-ce)", (), 0)
+    explicit = Job("toy", "adaptive (state-ce)", (("uniforms", ExperimentConfig().uniforms),), 0)
+    other = Job("toy", "adaptive (state-ce)", (("uniforms", "iid"),), 0)
+    assert job_key(bare) == job_key(explicit) != job_key(other)
+    assert '["uniforms", "array-rqmc"]' in job_key(bare) and '["seed"' not in job_key(bare)
