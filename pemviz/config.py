@@ -318,11 +318,12 @@ PAPER: dict[str, Any] = {
     "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False,
     "smoothing_at_failure": None, "final_smoothing": None, "elite_ties": "all", "pretrain_cap": None,
     "defensive": 0.0, "target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
-    "fit": "adam", "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000, "n_final": 100, "uniforms": "iid",
+    "fit": "adam", "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000, "n_final": 100,
+    "uniforms": "iid",
 }
 """The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal
 fitted on every step by full-batch Adam, weights over T - 1 steps, every tie at gamma an elite, no defensive
-mixture."""
+mixture, i.i.d. uniforms."""
 
 DEFAULT_PRESET = "state-ce"
 """The recommended sampler and the default of ``ExperimentConfig()``, ``pemviz run``, the panel, ``validate`` and

@@ -98,6 +98,7 @@ class ArrayRQMC:
     array_rqmc: bool = True
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        """``detector``'s logit p(detect | obs), float64 [N], for observations [N, F]."""
         return self.detector.detect_logit(obs)
 
 

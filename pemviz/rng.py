@@ -71,7 +71,10 @@ def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray) -> np.ndarray:
     if u.ndim != 1 or u.size < 1 or key.ndim not in (1, 2) or key.shape[0] != u.size:
         raise ValueError(f"array_rqmc_uniforms: u must be [n], n >= 1, and key [n] or [n, k]; got {u.shape} and "
                          f"{key.shape}")
-    order = np.argsort(key, kind="stable") if key.ndim == 1 else np.lexsort(key.T[::-1])
+    first = key if key.ndim == 1 else key[:, 0]
+    order = np.argsort(first, kind="stable")
+    if key.ndim == 2 and key.shape[1] > 1 and np.any(first[order[1:]] == first[order[:-1]]):  # ties: the next columns
+        order = np.lexsort(key.T[::-1])
     out = np.empty(u.size)
     out[order] = np.arange(u.size) * GOLDEN + u[0]
     return np.remainder(out, 1.0, out=out)

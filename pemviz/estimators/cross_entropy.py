@@ -632,9 +632,10 @@ class CrossEntropy:
         the proposal that drew it, so the pooled mean of 1[fail] w is unbiased (a sum of martingale differences;
         cf. Cornuet, Marin, Mira, Robert, "Adaptive multiple importance sampling", Scand. J. Stat. 2012, for
         recycling the stages of an adaptive sampler). With ``pool_weights = "linear"`` the j-th pooled stage
-        (j = 1..K) counts lambda_j = j n_j / sum_i i n_i, with ``quadratic`` j^2 n_j / sum_i i^2 n_i: fixed as soon
-        as the pool starts too, so still unbiased, and later proposals, fitted to more failures, count more (weighting the stages of adaptive importance
-        sampling: Portier & Delyon, "Asymptotic optimality of adaptive importance sampling", NeurIPS 2018).
+        (j = 1..K) counts lambda_j = j n_j / sum_i i n_i, with ``quadratic`` (the default) j^2 n_j / sum_i i^2 n_i:
+        fixed as soon as the pool starts too, so still unbiased, and later proposals, fitted to more failures, count
+        more (weighting the stages of adaptive importance sampling: Portier & Delyon, "Asymptotic optimality of
+        adaptive importance sampling", NeurIPS 2018).
         """
         stage, est = self._last
         if self.config.final_estimate == "pooled" and self.reached_failures and self.pooled:
