@@ -52,7 +52,9 @@ def small_batch(n: int = 4, t: int = 6, seed: int = 0) -> RolloutBatch:
     rng = np.random.default_rng(seed)
     gap = np.linspace(20.0, 1.0, t)[None, :] + rng.uniform(0, 1, (n, 1))
     obs = np.stack([gap, np.full((n, t), 10.0), np.zeros((n, t))], axis=-1)
-    return RolloutBatch(obs, rng.uniform(size=(n, t)) < 0.5, np.full((n, t), -0.1), np.full((n, t), -0.7),
+    # log_q = log_p: rollouts of the target itself, weights 1, so that ``pemviz estimate`` on the unit finishes with
+    # exit code 0 when no signal stops it (a mean weight far from 1 is an error, exit 2)
+    return RolloutBatch(obs, rng.uniform(size=(n, t)) < 0.5, np.full((n, t), -0.1), np.full((n, t), -0.1),
                         ("gap_m", "ego_speed_mps", "lead_speed_mps"))  # fmt: skip
 
 
