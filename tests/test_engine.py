@@ -59,33 +59,31 @@ PINNED = {
 def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     """The config and problem name of a key of :data:`PINNED`."""
     problem, preset, seed = key.split("/")
-    seed = int(seed)
     if preset == "array-rqmc":  # the default sampler: Array-RQMC uniforms, stages pooled by j^2 n_j
-        return ExperimentConfig(**{**SMALL, "seed": seed}), problem
-    return _pinned_config(problem, preset, seed), problem
+        return ExperimentConfig(**{**SMALL, "seed": int(seed)}), problem
+    return ExperimentConfig(**{**RECORDED, **_pinned_fields(problem, preset), "seed": int(seed)}), problem
 
 
 RECORDED = {"uniforms": "iid", "pool_weights": "linear"}
 """The defaults when the other numbers were recorded: i.i.d. uniforms, the stages pooled by j n_j."""
 
 
-def _pinned_config(problem: str, preset: str, seed: int) -> ExperimentConfig:
+def _pinned_fields(problem: str, preset: str) -> dict:
     step = PRESETS["state-ce-step"]  # the numbers were recorded with the per-step defensive mixture alone
     if preset == "state-ce-streamed":  # a final batch above STREAM_ABOVE: simulated chunk by chunk
-        return ExperimentConfig(**{**RECORDED, **step, **SMALL, "n_stages": 1, "n_final": 100_001, "seed": seed})
+        return {**step, **SMALL, "n_stages": 1, "n_final": 100_001}
     full = {"smoothing_at_failure": 1.0, "final_smoothing": None}  # every fit at the failure level with alpha = 1
     if preset == "rollout-mixture":  # the default sampler when it became the default (each failure weighed by its own
         # stage's samplers in the fits)
-        return ExperimentConfig(**{**RECORDED, **SMALL, **full, "fit_weights": "sampler", "seed": seed})
+        return {**SMALL, **full, "fit_weights": "sampler"}
     if preset == "fit-mixture":  # the fits weigh the failures by the mixture of the stages
-        return ExperimentConfig(**{**RECORDED, **SMALL, **full, "seed": seed})
+        return {**SMALL, **full}
     if preset == "renyi-fit":  # alpha 1.2 at the failure level, 1.0 in the last fit
-        return ExperimentConfig(**{**RECORDED, **SMALL, "seed": seed})
+        return dict(SMALL)
     method, _, base = preset.partition("-")
     if method in ("mc", "naive50", "mixed50"):
-        n = 2000 if problem == "toy-1e-3" else 500
-        return ExperimentConfig(**{**RECORDED, **PRESETS[base or "state-ce"], "method": method, "n_per_stage": n, "seed": seed})
-    return ExperimentConfig(**{**RECORDED, **step, **PRESETS[preset], **SMALL, "seed": seed})
+        return {**PRESETS[base or "state-ce"], "method": method, "n_per_stage": 2000 if problem == "toy-1e-3" else 500}
+    return {**step, **PRESETS[preset], **SMALL}
 
 
 def run_pinned(key: str):
