@@ -28,6 +28,7 @@ from tqdm import tqdm
 from pemviz import truth
 from pemviz.config import METHODS, PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, RunFinished
+from pemviz.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
 from pemviz.sampling import format_probability, relative_error, torch_threads
@@ -190,27 +191,30 @@ def record_to_json(job: Job, rec: RunRecord) -> str:
     return json.dumps({"job": job_key(job), "record": fields})
 
 
-def read_finished(path: Path, jobs: Sequence[Job]) -> dict[str, RunRecord]:
-    """The records of :data:`RUNS_FILE` at ``path`` that belong to ``jobs``, by :func:`job_key`.
-
-    Lines of other jobs (other settings) are ignored; a torn last line (a killed run) is skipped.
-    """
-    wanted = {job_key(j) for j in jobs}
-    done: dict[str, RunRecord] = {}
+def read_records(path: Path) -> list[tuple[str, RunRecord]]:
+    """Every record of the :data:`RUNS_FILE` at ``path``, in file order, each with its :func:`job_key`; none when
+    the file does not exist. Lines that do not parse (a torn last line of a killed run, a foreign or non-UTF-8
+    line) are skipped."""
+    out: list[tuple[str, RunRecord]] = []
     if not path.is_file():
-        return done
-    for line in path.read_text(encoding="utf-8").splitlines():
+        return out
+    for line in path.read_bytes().splitlines():
         try:
-            item = json.loads(line)
-            if item["job"] not in wanted:
-                continue
+            item = json.loads(line.decode("utf-8"))
             fields = dict(item["record"])
             fields["gammas"] = tuple(fields["gammas"])
             fields["curves"] = None if fields["curves"] is None else np.asarray(fields["curves"], dtype=np.float64)
-            done[item["job"]] = RunRecord(**fields)
+            out.append((str(item["job"]), RunRecord(**fields)))
         except (ValueError, KeyError, TypeError):
             continue
-    return done
+    return out
+
+
+def read_finished(path: Path, jobs: Sequence[Job]) -> dict[str, RunRecord]:
+    """The records of :data:`RUNS_FILE` at ``path`` that belong to ``jobs``, by :func:`job_key`
+    (:func:`read_records`); lines of other jobs (other settings) are ignored."""
+    wanted = {job_key(j) for j in jobs}
+    return {key: rec for key, rec in read_records(path) if key in wanted}
 
 
 def run_jobs(
@@ -237,7 +241,8 @@ def run_jobs(
     log = None
     if runs_file is not None:
         if runs_file.is_file() and runs_file.stat().st_size and not runs_file.read_bytes().endswith(b"\n"):
-            runs_file.write_bytes(runs_file.read_bytes().rsplit(b"\n", 1)[0] + b"\n")  # drop a torn last line
+            kept = runs_file.read_bytes().rsplit(b"\n", 1)[0] + b"\n"  # drop a torn last line, the rest intact
+            atomic_write(runs_file, lambda tmp: Path(tmp).write_bytes(kept))
         log = runs_file.open("a", encoding="utf-8")
 
     def finished(job: Job, rec: RunRecord) -> None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.problems import PROBLEMS, build_problem
@@ -19,6 +21,7 @@ from pemviz.validation import (
     markdown_table,
     methods_for,
     read_finished,
+    read_records,
     record_to_json,
     run_jobs,
     summaries_csv,
@@ -70,6 +73,20 @@ def test_records_round_trip_through_the_runs_file_and_a_torn_line_is_skipped(tmp
     assert back.log_mu_hat == -math.inf and math.isnan(back.nll_mean) and back.gammas == (1.5, 0.25)
     assert read_finished(path, [other]) == {}  # its line is torn
     assert read_finished(tmp_path / "missing.jsonl", [job]) == {}
+    assert read_records(path) == [(job_key(job), back)]  # every setting's records, the torn line skipped
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.binary(max_size=80), max_size=6))
+def test_read_records_skips_any_foreign_line_and_keeps_the_records_around_it(tmp_path, junk):
+    job = Job("toy-1e-3", "mc", (("method", "mc"),), 1)
+    rec = RunRecord("toy-1e-3", "mc", 1, -3.5, 2, 50, 4.0, 1.0, 1.0, 50, 0.1, gammas=(0.0,), khat=0.2)
+    line = record_to_json(job, rec).encode()
+    path = tmp_path / "runs.jsonl"
+    path.write_bytes(b"\n".join([line, *(j.replace(b"\n", b" ").replace(b"\r", b" ") for j in junk), line]) + b"\n")
+    got = read_records(path)
+    assert [k for k, _ in got][:1] == [job_key(job)] and [k for k, _ in got][-1] == job_key(job)
+    assert [r for k, r in got if k == job_key(job)] == [rec, rec]
 
 
 def test_run_jobs_resumes_from_the_runs_file_with_the_same_numbers(tmp_path):
