@@ -46,7 +46,10 @@ def main() -> None:
         job = json.loads(key)
         setting = json.dumps({k: v for k, v in job.items() if k != "seed"}, sort_keys=True)
         if rec.problem not in truths:
-            truths[rec.problem] = exact_answer(rec.problem).log_p_fail
+            try:
+                truths[rec.problem] = exact_answer(rec.problem).log_p_fail
+            except ValueError as e:  # a problem this pemviz does not know
+                sys.exit(f"seed_blocks: {runs}: {e}")
         lt = truths[rec.problem]
         covered = rec.log_ci_lo <= lt <= rec.log_ci_hi
         by_seed = groups.setdefault((rec.problem, rec.method, setting), {})
