@@ -51,9 +51,8 @@ def main() -> None:
             except ValueError as e:  # a problem this pemviz does not know
                 sys.exit(f"seed_blocks: {runs}: {e}")
         lt = truths[rec.problem]
-        covered = rec.log_ci_lo <= lt <= rec.log_ci_hi
         by_seed = groups.setdefault((rec.problem, rec.method, setting), {})
-        by_seed[rec.seed] = (relative_error(rec.log_mu_hat, lt), covered)
+        by_seed[rec.seed] = (relative_error(rec.log_mu_hat, lt), rec.covers(lt))
     rng = np.random.default_rng(0)
     for (problem, method, _), by_seed in groups.items():
         seeds = sorted(by_seed)

@@ -90,7 +90,7 @@ def summarise_row(spec: RowSpec, records: Sequence[RunRecord], log_truth: float)
         spec.table, spec.label, len(records), log_mean, log_se, float(np.mean([r.n_failures for r in records])),
         records[0].n, float(np.mean(nll)) if nll else math.nan, float(np.mean(lme)) if lme else math.nan,
         float(np.mean([r.ess for r in records])), log_truth, float(np.sum([r.wall_s for r in records])),
-        sum(r.log_ci_lo <= log_truth <= r.log_ci_hi for r in records), sum(r.verdict == "reliable" for r in records),
+        sum(r.covers(log_truth) for r in records), sum(r.verdict == "reliable" for r in records),
     )  # fmt: skip
 
 

@@ -131,6 +131,10 @@ class RunRecord:
     verdict: str = "unreliable"
     reason: str = ""
 
+    def covers(self, log_p: float) -> bool:
+        """Whether the 95 % interval holds the probability whose natural log is ``log_p``."""
+        return self.log_ci_lo <= log_p <= self.log_ci_hi
+
 
 @dataclass(frozen=True)
 class Job:
@@ -240,8 +244,9 @@ def run_jobs(
     t0, n0 = time.perf_counter(), len(jobs) - len(todo)
     log = None
     if runs_file is not None:
-        if runs_file.is_file() and runs_file.stat().st_size and not runs_file.read_bytes().endswith(b"\n"):
-            kept = runs_file.read_bytes().rsplit(b"\n", 1)[0] + b"\n"  # drop a torn last line, the rest intact
+        data = runs_file.read_bytes() if runs_file.is_file() else b""
+        if data and not data.endswith(b"\n"):
+            kept = data.rsplit(b"\n", 1)[0] + b"\n"  # drop a torn last line, the rest intact
             atomic_write(runs_file, lambda tmp: Path(tmp).write_bytes(kept))
         log = runs_file.open("a", encoding="utf-8")
 
@@ -320,7 +325,7 @@ def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> l
                 int(sum(abs(x - lt) <= math.log(2.0) for x in logs)),
                 float(np.median([r.n_failures for r in rs])), rs[0].n, float(np.median([r.ess for r in rs])),
                 int(np.median([r.n_simulations for r in rs])), float(np.median([r.wall_s for r in rs])),
-                sum(r.log_ci_lo <= lt <= r.log_ci_hi for r in rs), sum(r.verdict == "reliable" for r in rs),
+                sum(r.covers(lt) for r in rs), sum(r.verdict == "reliable" for r in rs),
             )
         )  # fmt: skip
     return out
