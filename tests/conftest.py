@@ -24,6 +24,18 @@ def shared_dir() -> Path:
     return SHARED
 
 
+BIN = Path(sys.executable).parent
+"""The running environment's scripts folder: commands a test runs (``rerun``, ``pemviz``) are taken from here, not from
+``PATH``, so ``venv/bin/python -m pytest`` without an activated environment finds them."""
+
+
+def verify_rrd(path: Path, timeout: float = 300) -> None:
+    """Assert that ``rerun rrd verify`` (the pinned rerun-sdk's own checker) accepts the recording at ``path``."""
+    proc = subprocess.run([str(BIN / "rerun"), "rrd", "verify", str(path)], capture_output=True, text=True,
+                          timeout=timeout, env={**os.environ, "RERUN_ANALYTICS": "false"})  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
     """Run ``python -m pemviz.cli ARGS`` and capture its output."""
     return subprocess.run(

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import REPO, verify_rrd
 from pemviz import cli
 from pemviz import rollout_io as rio
 from pemviz.files import OutputExists, atomic_write, check_output_path
@@ -67,12 +67,6 @@ def spawn(args: list[str], cwd: Path, **kw) -> subprocess.Popen:
     env = {**os.environ, "RERUN_ANALYTICS": "false", "PYTHONPATH": str(REPO)}
     return subprocess.Popen([sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, **kw)  # fmt: skip
-
-
-def verify_rrd(path: Path) -> None:
-    proc = subprocess.run(["rerun", "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "RERUN_ANALYTICS": "false"})  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-2000:]
 
 
 def unit_state(path: Path) -> str:

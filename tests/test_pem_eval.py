@@ -3,12 +3,12 @@
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import verify_rrd
 from pemviz import data, pem
 from pemviz.cli import main as cli_main
 from pemviz.pem_eval import (
@@ -150,8 +150,7 @@ def test_recording_passes_rrd_verify_and_reads_back(quick, tmp_path: Path) -> No
     rr = pytest.importorskip("rerun")
     path = write_recording(quick, tmp_path / "eval.rrd")
     assert [p.name for p in tmp_path.iterdir()] == ["eval.rrd"]
-    proc = subprocess.run(["rerun", "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
+    verify_rrd(path)
     pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
     with rr.server.Server(datasets={"eval": [str(path)]}) as server:
         client = server.client()

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import io
 import re
-import subprocess
 import threading
 
 import numpy as np
@@ -18,6 +17,7 @@ import pytest
 rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
 
+from conftest import verify_rrd  # noqa: E402
 from pemviz.problems import problem_for
 from pemviz import cli  # noqa: E402
 from pemviz import engine  # noqa: E402
@@ -86,11 +86,6 @@ def static_value(tables, name: str):
     return values[0]
 
 
-def verify(path) -> None:
-    proc = subprocess.run(["rerun", "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
-
-
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     d = tmp_path_factory.mktemp("recording")
@@ -110,7 +105,7 @@ def of(events, kind):
 def test_recordings_verify_and_are_renamed_from_partial(runs):
     for _, _, _, path in runs.values():
         assert path.is_file() and not path.with_name(path.name + ".partial").exists()
-        verify(path)
+        verify_rrd(path)
 
 
 def test_one_proposal_curve_per_stage_in_0_1_equal_to_the_stage_results(runs):
@@ -268,7 +263,7 @@ def test_ctrl_c_after_stage_3_of_pemviz_run_leaves_a_valid_recording_of_stages_0
     out = tmp_path / "cut.rrd"
     assert cli.main(["run", "--k", "6", "--n", "20", "--n-final", "20", "--ce-epochs", "30", "--save", str(out)]) == 130
     assert out.is_file() and not (tmp_path / "cut.rrd.partial").exists()
-    verify(out)
+    verify_rrd(out)
     stages, curves, text = _stages_in(out)
     assert stages == [0, 1, 2, 3]
     assert curves == [f"stage_{k:02d}" for k in range(4)]
@@ -284,7 +279,7 @@ def test_cancel_token_after_stage_3_leaves_a_valid_recording_of_stages_0_to_3(tm
 
     out = tmp_path / "cancelled.rrd"
     record(out, ExperimentConfig(**{**SMALL, "n_stages": 6}), [cancel_after_stage_3], cancel)
-    verify(out)
+    verify_rrd(out)
     stages, curves, text = _stages_in(out)
     assert stages == [0, 1, 2, 3]
     assert curves == [f"stage_{k:02d}" for k in range(4)]

@@ -8,7 +8,6 @@ import json
 import math
 import re
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from conftest import run_cli
+from conftest import run_cli, verify_rrd
 from pemviz.problems import problem_for
 from pemviz import cli
 from pemviz import rollout_io as rio
@@ -254,8 +253,7 @@ def test_cli_run_then_estimate_prints_the_runs_mu_hat_and_writes_a_recording(tmp
     assert re.search(r"log mu_hat = (\S+) nats", run.out).group(1) == f"{run_log_mu:.4f}"
     assert f"rollouts: {rollouts}" in run.err
     assert recording.stat().st_size > 10_000 and not (tmp_path / "estimate.rrd.partial").exists()
-    verify = subprocess.run(["rerun", "rrd", "verify", str(recording)], capture_output=True, text=True, timeout=120)
-    assert verify.returncode == 0, verify.stderr
+    verify_rrd(recording)
     assert cli.main(["run", "--n", "5", "--save-rollouts", str(tmp_path / "x.csv"), "--no-record"]) == 2
     assert "--save-rollouts" in capsys.readouterr().err and not (tmp_path / "x.csv").exists()
 

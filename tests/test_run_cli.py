@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import math
 import re
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import REPO, run_cli
+from conftest import REPO, run_cli, verify_rrd
 from pemviz.problems import problem_for
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, FinalEstimate, StageFinished
@@ -67,8 +66,7 @@ def test_default_recording_verifies_and_holds_the_printed_estimate(default_run):
     import rerun as rr
 
     proc, path = default_run
-    verify = subprocess.run(["rerun", "rrd", "verify", str(path)], capture_output=True, text=True, timeout=300)
-    assert verify.returncode == 0, verify.stderr
+    verify_rrd(path)
     with rr.server.Server(datasets={"run": [str(path)]}) as server:
         client = server.client()  # kept alive while the reader runs
         static = client.get_dataset("run").reader(index=None).to_arrow_table()

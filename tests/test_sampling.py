@@ -181,8 +181,9 @@ def test_converging_fits_reach_the_elites_miss_rate_and_stop_early(fit, epochs, 
 
 
 @pytest.mark.parametrize("rows", [7, 400])
-def test_adam_gives_torch_optims_parameters_bit_for_bit(rows):
-    """pemviz's Adam (imported without torch._dynamo) must not change any fit: same bits as torch.optim.Adam."""
+def test_adam_gives_torch_optims_parameters(rows):
+    """pemviz's Adam (imported without torch._dynamo) must not change any fit: the parameters torch.optim.Adam gives,
+    to rounding (:data:`FIT_TOL`: torch may vectorise its element-wise update differently on another CPU)."""
     from torch import nn
 
     from pemviz.sampling import Adam
@@ -200,7 +201,15 @@ def test_adam_gives_torch_optims_parameters_bit_for_bit(rows):
             opt.step()
         fitted.append(torch.cat([p.detach().reshape(-1) for p in net.parameters()]))
     assert (fitted[0] - start).abs().max() > 0.1  # the fit moved the parameters
-    assert torch.equal(fitted[0], fitted[1])
+    torch.testing.assert_close(fitted[1], fitted[0], **FIT_TOL)
+
+
+FIT_TOL = dict(rtol=1e-9, atol=1e-10)
+"""How close a hand-backpropagated fit must come to autograd + torch.optim.Adam. The two sum each gradient over the
+same 300 rows in different orders, so each gradient differs by a few ulps times the sum's condition number (~1e-14
+relative here), and Adam divides every step by sqrt(v), carrying that difference into each parameter: after 200
+steps the parameters (of order 1) agree to ~1e-13 on an AVX-512 CPU, and another CPU or BLAS build may sum in yet
+another order. A wrong gradient (a missed term, a wrong sign or scale) moves them by more than 1e-3."""
 
 
 def _torch_reference_fit(proposal, inputs, loss_of_log_q, epochs, lr):
@@ -214,9 +223,10 @@ def _torch_reference_fit(proposal, inputs, loss_of_log_q, epochs, lr):
 
 
 @pytest.mark.parametrize("state", [False, True])
-def test_fit_proposal_gives_autograd_and_torch_adams_parameters_bit_for_bit(state):
-    """fit_proposal backpropagates by hand on one flat parameter tensor; it must fit exactly what autograd and
-    torch.optim.Adam fit, for the gap-only and the state proposal, the loss divided by a step count or not."""
+def test_fit_proposal_gives_autograd_and_torch_adams_parameters(state):
+    """fit_proposal backpropagates by hand on one flat parameter tensor; it must fit what autograd and
+    torch.optim.Adam fit (to :data:`FIT_TOL`), for the gap-only and the state proposal, the loss divided by a step
+    count or not."""
     from pemviz.sampling import StateProposal, fit_proposal
 
     gen = torch.Generator().manual_seed(5)
@@ -241,14 +251,14 @@ def test_fit_proposal_gives_autograd_and_torch_adams_parameters_bit_for_bit(stat
             ref, inputs, lambda lq: -(counts * lq).sum() if per is None else -(counts * lq).sum() / per, 200, 1e-2)
         got = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
         assert (got - start).abs().max() > 0.1  # the fit moved the parameters
-        assert torch.equal(got, expected)
+        torch.testing.assert_close(got, expected, **FIT_TOL)
         assert losses[-1] < losses[0]
         assert all(p.is_contiguous() and p._base is None for p in ours.parameters())  # own storage after the fit
 
 
-def test_recomputed_weights_objective_matches_autograd_bit_for_bit():
-    """The authors' loss (weights recomputed through the gradient) with its gradient written out must fit what
-    autograd fits on the same loss."""
+def test_recomputed_weights_objective_matches_autograd():
+    """The authors' loss (weights recomputed through the gradient) with its gradient written out must give autograd's
+    loss and gradient, and fit what autograd fits on the same loss (to :data:`FIT_TOL`)."""
     from pemviz.estimators.cross_entropy import recomputed_objective
     from pemviz.sampling import fit_proposal
 
@@ -275,7 +285,8 @@ def test_recomputed_weights_objective_matches_autograd_bit_for_bit():
     loss, grad = objective(log_q.detach())
     reference = reference_loss(log_q)
     reference.backward()
-    assert loss.item() == reference.item() and torch.equal(grad, log_q.grad)
+    assert loss.item() == pytest.approx(reference.item(), rel=1e-12)  # one sum of 6 x 40 terms, in another order
+    torch.testing.assert_close(grad, log_q.grad, rtol=1e-12, atol=1e-15)
     fit_proposal(ours, inputs, objective, 150, 1e-2)
     expected = _torch_reference_fit(ref, inputs, reference_loss, 150, 1e-2)
-    assert torch.equal(torch.cat([p.detach().reshape(-1) for p in ours.parameters()]), expected)
+    torch.testing.assert_close(torch.cat([p.detach().reshape(-1) for p in ours.parameters()]), expected, **FIT_TOL)

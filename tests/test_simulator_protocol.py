@@ -1,5 +1,5 @@
 """The Simulator protocol: a simulator written here (not in pemviz) plugs into the adaptive sampler, which
-recovers its exact failure probability; pemviz's own scenarios implement the protocol; the README example runs."""
+recovers its exact failure probability; pemviz's own scenarios implement the protocol; the user guide's example runs."""
 
 from __future__ import annotations
 
@@ -140,24 +140,24 @@ def test_user_simulator_through_the_protocol_recovers_its_exact_failure_probabil
     assert est.mu_hat == pytest.approx(exact, rel=0.30)
 
 
-def readme_example() -> str:
-    text = (REPO / "README.md").read_text()
-    section = text.split("## Bring your own simulator", 1)[1]
+def guide_example() -> str:
+    text = (REPO / "docs" / "own-simulator.md").read_text()
+    section = text.split("## A simulator of your own", 1)[1]
     block = re.search(r"```python\n(.*?)```", section, re.S)
-    assert block, "README: no python block under 'Bring your own simulator'"
+    assert block, "docs/own-simulator.md: no python block under 'A simulator of your own'"
     return block.group(1)
 
 
-def test_readme_example_is_under_30_lines_runs_and_estimates_its_exact_answer_within_3x(capsys):
-    code = readme_example()
+def test_user_guide_example_is_under_30_lines_runs_and_estimates_its_exact_answer_within_3x(capsys):
+    code = guide_example()
     assert len([line for line in code.splitlines() if line.strip()]) < 30
-    namespace: dict = {"__name__": "readme_example"}
-    exec(compile(code, "README.md", "exec"), namespace)
+    namespace: dict = {"__name__": "guide_example"}
+    exec(compile(code, "docs/own-simulator.md", "exec"), namespace)
     printed = capsys.readouterr().out
     est = namespace["estimate"]
     assert f"{est.n_failures}/{est.n} failures" in printed
     problem = namespace["problem"]
     exact = exact_failure_probability(namespace["MyCar"], problem.target.detect_logit, 64, 25.0)
-    assert exact == pytest.approx(2.8576e-5, rel=1e-3)  # the number the README quotes
+    assert exact == pytest.approx(2.8576e-5, rel=1e-3)  # the number the guide quotes
     assert est.n_failures > 0 and exact / 3 < est.mu_hat < 3 * exact
-    assert est.log_ci[0] < math.log(exact) < est.log_ci[1]  # the README: the interval holds the exact answer
+    assert est.log_ci[0] < math.log(exact) < est.log_ci[1]  # the guide: the interval holds the exact answer

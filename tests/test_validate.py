@@ -106,7 +106,7 @@ def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
         q = Proposal()
         ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.1, epochs=30, step_mask=mask)
         params.append(torch.cat([p.detach().ravel() for p in q.parameters()]))
-    assert torch.equal(params[0], params[1])
+    torch.testing.assert_close(params[1], params[0], rtol=1e-9, atol=1e-10)  # the same sums, masked or not: ~1e-14
 
 
 def test_state_proposal_reads_its_columns_and_holds_the_rest_for_the_curve():
