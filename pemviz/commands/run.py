@@ -51,10 +51,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--preset", default=DEFAULT_PRESET,
         help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}: the recommended sampler, "
-        "right against exact answers: median relative error 0.056 over 34 seeds on the braking job, every seed "
-        "within x2; paper: the published settings, median relative error 0.99 over 10 seeds, biased low at "
-        "this budget; authors-code: as the authors' code ran it; quick: a run in seconds). A preset sets some "
-        "of the values below; a flag given here overrides it.",
+        "right against exact answers (the user guide's Validation page); paper: the published settings, biased "
+        "low at the default budget; authors-code: as the authors' code ran it; state-ce-step: the default before "
+        "the mixture over whole rollouts; quick: a run in seconds). A preset sets some of the values below; a "
+        "flag given here overrides it.",
     )
     p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
     p.add_argument(
