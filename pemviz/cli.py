@@ -15,20 +15,13 @@ import signal
 import sys
 
 from pemviz import __version__
-from pemviz.commands import Terminated, UsageError
-
-COMMAND_MODULES = (
-    "pemviz.commands.run",
-    "pemviz.commands.data",
-    "pemviz.commands.pem",
-    "pemviz.commands.serve",
-    "pemviz.commands.estimate",
-    "pemviz.commands.validate",
-    "pemviz.commands.tables",
-)
+from pemviz.commands import COMMANDS, Terminated, UsageError
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None, *, full: bool = True) -> argparse.ArgumentParser:
+    """The ``pemviz`` parser. With ``full`` every command's parser is built (the user guide's reference, the tests);
+    without, only ``command``'s, the others listed by their help alone, so that a command imports no other command's
+    module and ``pemviz --help`` imports none."""
     parser = argparse.ArgumentParser(
         prog="pemviz",
         description=__doc__.split("\n\n")[0].replace("\n", " "),
@@ -36,8 +29,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"pemviz {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    for name, (module, help_text) in COMMANDS.items():
+        if full or name == command:
+            importlib.import_module(module).register(sub)
+        else:
+            sub.add_parser(name, help=help_text)
     return parser
 
 
@@ -84,7 +80,9 @@ def _interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
 def _run(argv: list[str] | None) -> int:
     name = "pemviz"
     try:
-        args = build_parser().parse_args(argv)
+        words = sys.argv[1:] if argv is None else argv
+        command = next((w for w in words if not w.startswith("-")), None)
+        args = build_parser(command, full=False).parse_args(argv)
         name = f"pemviz {args.command}"
         return int(args.func(args) or 0)
     except Exception as exc:

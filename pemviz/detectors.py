@@ -7,7 +7,6 @@ exact: ``log p(detect) = log_expit(logit)``, ``log p(miss) = log_expit(-logit)``
 
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
@@ -113,19 +112,63 @@ def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np
 
 
 class LastAnswer:
-    """``detector``, remembering its last answer: asked again about the same observations (the same shape and
-    bytes, compared by a 128-bit BLAKE2b digest), it returns the same logits without asking ``detector`` again,
-    e.g. when two mixture components around one proposal network weigh the same rollouts."""
+    """``detector``, remembering its last answer: asked again about the same observations (equal shape and values),
+    it returns the same logits without asking ``detector`` again, e.g. when the sampler of a step and two mixture
+    components around one proposal network are asked about the same rows. :meth:`forget` drops the answer (the
+    detector changed, e.g. a proposal was fitted)."""
 
     def __init__(self, detector: Detector) -> None:
         self.detector = detector
-        self._key: tuple | None = None
+        self._obs: np.ndarray | None = None
         self._logit = np.empty(0)
+
+    def forget(self) -> None:
+        """Drop the remembered answer."""
+        self._obs = None
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """logit p(detect | obs), float64 [N], for observations [N, F]."""
-        obs = np.ascontiguousarray(obs, dtype=np.float64)
-        key = (obs.shape, hashlib.blake2b(obs.data, digest_size=16).digest())
-        if key != self._key:
-            self._logit, self._key = np.asarray(self.detector.detect_logit(obs), dtype=np.float64), key
+        obs = np.asarray(obs, dtype=np.float64)
+        last = self._obs
+        if last is None or last.shape != obs.shape or not np.array_equal(last, obs):
+            self._logit = np.asarray(self.detector.detect_logit(obs), dtype=np.float64)
+            self._obs = obs.copy()
         return self._logit.copy()
+
+
+class ScoredTarget:
+    """The target detector that also asks ``extras`` about every observation it is asked about and keeps their
+    logits, so that a mixture's component densities come out of the simulation that drew the rollouts instead of a
+    second pass over them (each simulator asks its target once per step about all rollouts it steps together).
+
+    :meth:`take` hands the kept logits over as [K, n, T] for the next ``n`` rollouts of T steps, or None when the
+    asks do not fit that shape (a simulator that asks otherwise, or a remote executor whose copy of this object did
+    the asking): the caller then asks ``extras`` itself.
+    """
+
+    def __init__(self, target: Detector, extras: tuple[Detector, ...]) -> None:
+        self.target, self.extras = target, tuple(extras)
+        self._asked: list[np.ndarray] = []
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        """The target's logit p(detect | obs), float64 [N]; the extras' logits [K, N] are kept."""
+        self._asked.append(np.stack([np.asarray(d.detect_logit(obs), dtype=np.float64) for d in self.extras]))
+        return self.target.detect_logit(obs)
+
+    def take(self, n: int, n_steps: int) -> np.ndarray | None:
+        """The extras' logits of the next ``n`` rollouts, float64 [K, n, T], in the order simulated: groups of T asks
+        of equal rows (one group per chunk of rollouts stepped together), or None (all kept logits are dropped) when
+        the asks kept do not start with such groups covering ``n`` rollouts."""
+        asked, parts, used, rows = self._asked, [], 0, 0
+        while rows < n and used + n_steps <= len(asked):
+            group = asked[used:used + n_steps]
+            m = group[0].shape[1]
+            if any(g.shape[1] != m for g in group):
+                break
+            parts.append(np.stack(group, axis=2))  # [K, m, T]
+            used, rows = used + n_steps, rows + m
+        if rows != n:
+            self._asked = []
+            return None
+        del asked[:used]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)

@@ -271,17 +271,18 @@ class Experiment:
         self._check_cancel()
         self.emit(StageStarted(plan.stage, plan.kind, plan.n))
         pb, cfg = self.problem, self.config
+        target = pb.target if plan.target is None else plan.target
         parts = plan.parts  # (rollouts, detector) in the order drawn
         if cfg.uniforms == "array-rqmc" and cfg.method != "ams":  # ExperimentConfig.uniforms (ams: i.i.d. particles)
             parts = [(k, ArrayRQMC(d)) for k, d in parts]
         if plan.draw is None and plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
-            self._streamed(estimator, plan, parts)
+            self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
                 batch = plan.draw(estimator.rng)
             else:
                 executor = get_executor(cfg.executor, cfg.ray_address)
-                batches = [executor.simulate(pb, k, d, pb.target, estimator.rng) for k, d in parts]
+                batches = [executor.simulate(pb, k, d, target, estimator.rng) for k, d in parts]
                 batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
             self._check_cancel()
             by_metric = {m: pb.robustness(batch, m) for m in METRICS}
@@ -298,12 +299,14 @@ class Experiment:
         self.emit(StageFinished(res))
         return res
 
-    def _streamed(self, estimator: Estimator, plan: StagePlan, parts: list[tuple[int, Detector]]) -> None:
-        """Simulate a stage chunk by chunk (:data:`STREAM_ABOVE`), ``parts`` = (rollouts, detector) in order: the
-        estimator and the listeners see each chunk once, then the listeners a :class:`StageSample` of the stage."""
+    def _streamed(self, estimator: Estimator, plan: StagePlan, parts: list[tuple[int, Detector]],
+                  target: Detector) -> None:  # fmt: skip
+        """Simulate a stage chunk by chunk (:data:`STREAM_ABOVE`), ``parts`` = (rollouts, detector) in order, scored
+        under ``target``: the estimator and the listeners see each chunk once, then the listeners a
+        :class:`StageSample` of the stage."""
         pb, cfg = self.problem, self.config
         sample = StageSample(plan.n)
-        chunks = itertools.chain.from_iterable(pb.stream(k, d, pb.target, estimator.rng) for k, d in parts)
+        chunks = itertools.chain.from_iterable(pb.stream(k, d, target, estimator.rng) for k, d in parts)
         for batch in chunks:
             self._check_cancel()
             robustness = pb.robustness(batch, cfg.metric)

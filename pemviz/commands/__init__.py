@@ -15,6 +15,18 @@ from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.files import check_output_path
 
 
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("pemviz.commands.run", "estimate the crash probability of the braking scenario"),
+    "data": ("pemviz.commands.data", "fetch or locate the KITTI salient-variable files"),
+    "pem": ("pemviz.commands.pem", "train or evaluate the perception error model (PEM)"),
+    "serve": ("pemviz.commands.serve", "open the interactive panel in the browser (viser)"),
+    "estimate": ("pemviz.commands.estimate", "estimate the failure probability from logged rollouts (Parquet)"),
+    "validate": ("pemviz.commands.validate", "judge the sampler and the baselines against exact failure probabilities"),
+    "tables": ("pemviz.commands.tables", "reproduce the paper's Tables II and III with repetitions and the exact answer"),
+}
+"""Each command: (its module, its one-line help). ``pemviz --help`` lists them without importing any command module."""
+
+
 class UsageError(Exception):
     """A bad command-line value: printed as one line, exit status 2, nothing written."""
 

@@ -6,13 +6,13 @@ import argparse
 import sys
 
 from pemviz import data
-from pemviz.commands import UsageError
+from pemviz.commands import COMMANDS, UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "data",
-        help="fetch or locate the KITTI salient-variable files",
+        help=COMMANDS["data"][1],
         description="The KITTI salient files are never shipped: fetch them or show where "
         "pemviz finds them.",
     )

@@ -22,7 +22,7 @@ import rerun as rr
 
 import pemviz
 from pemviz import rollout_io as rio
-from pemviz.commands import UsageError, check_save_path
+from pemviz.commands import COMMANDS, UsageError, check_save_path
 from pemviz.config import METRICS
 from pemviz.data import sha256_file
 from pemviz.files import check_output_folder, free_default_path, write_rrd
@@ -37,7 +37,7 @@ MAX_TRACES = 300
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "estimate",
-        help="estimate the failure probability from logged rollouts (Parquet)",
+        help=COMMANDS["estimate"][1],
         description="Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its "
         "JSON sidecar (format: pemviz.rollout_io), and a rerun recording of it.",
     )

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pemviz.commands import UsageError, output_folder
+from pemviz.commands import COMMANDS, UsageError, output_folder
 from pemviz.data import DataError, load_salient_data, sha256_file
 from pemviz.files import check_output_folder, check_output_path, write_text_atomic
 from pemviz.pem import PEM_RECIPES, bce_from_logits, load_reference_pem, pem_path, save_pem
@@ -18,7 +18,7 @@ from pemviz.pem_eval import EvalConfig, evaluate_pems, format_csv, format_markdo
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "pem",
-        help="train or evaluate the perception error model (PEM)",
+        help=COMMANDS["pem"][1],
         description="Train the PEM on the KITTI salient files or cross-validate the models (both need the files: pemviz data fetch).",
     )
     actions = p.add_subparsers(dest="pem_command", required=True)

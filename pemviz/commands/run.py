@@ -13,8 +13,7 @@ from urllib.parse import quote, urlsplit
 
 import rerun as rr
 
-from pemviz import engine
-from pemviz.commands import UsageError, check_save_path, interrupted
+from pemviz.commands import COMMANDS, UsageError, check_save_path, interrupted
 from pemviz.config import (
     DEFAULT_PRESET,
     EXECUTORS,
@@ -25,24 +24,18 @@ from pemviz.config import (
     ConfigError,
     ExperimentConfig,
 )
-from pemviz.executors import probe_ray_address
 from pemviz.files import check_output_folder, free_default_path
-from pemviz.pem import shipped_pems
-from pemviz.problems import problem_for
 from pemviz.resources import check_run_memory
-from pemviz.rollout_io import sidecar_path
-from pemviz.sampling import torch_threads
-from pemviz.sinks.rollouts import RolloutSink
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.sinks.console import ConsoleSink
-from pemviz.sinks.recording import RerunSink
+
+# The parser needs only the light modules above (and rerun's script flags): torch, the engine, the sinks and pyarrow
+# are imported in main, where a run needs them, so that `pemviz --help` answers at once.
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     d = ExperimentConfig()
     p = sub.add_parser(
         "run",
-        help="estimate the crash probability of the braking scenario",
+        help=COMMANDS["run"][1],
         description="Run the PEM + adaptive importance sampling pipeline (or a baseline) and record it. "
         "With no recording flag the recording goes to recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd.",
         conflict_handler="resolve",  # lets --connect also take the viewer URL (rerun's --connect --url still works)
@@ -202,6 +195,8 @@ def default_recording_path(cfg: ExperimentConfig, preset: str, folder: Path = Pa
 
 def rollout_files(parquet: Path) -> list[Path]:
     """The files ``--save-rollouts`` wrote: the table, its sidecar and, if the sidecar names one, the proposal."""
+    from pemviz.rollout_io import sidecar_path
+
     sidecar = sidecar_path(parquet)
     files = [parquet, sidecar]
     try:
@@ -215,6 +210,8 @@ def rollout_files(parquet: Path) -> list[Path]:
 
 def serve(args: argparse.Namespace):
     """A sink serving gRPC on ``--grpc-port`` and rerun's web viewer on ``--web-port``; prints both addresses."""
+    from pemviz.sinks.recording import RerunSink
+
     sink = RerunSink.to_grpc(serve=True, grpc_port=args.grpc_port)
     url = sink.serve_url or f"rerun+http://127.0.0.1:{args.grpc_port}/proxy"
     rr.serve_web_viewer(web_port=args.web_port, open_browser=not args.headless, connect_to=url)
@@ -231,14 +228,20 @@ def main(args: argparse.Namespace) -> int:
         flag = FLAGS.get(exc.field or "", f"--{(exc.field or '').replace('_', '-')}")
         raise UsageError(f"{flag}: {exc}" if exc.field else str(exc)) from None
     if args.pem is not None:
+        from pemviz.pem import shipped_pems
+
         if args.pem not in shipped_pems() and not Path(args.pem).is_file():
             raise UsageError(f"--pem {args.pem}: neither a shipped PEM ({', '.join(shipped_pems())}) nor a file")
     if cfg.executor == "ray":
         if importlib.util.find_spec("ray") is None:
             raise UsageError("--executor ray: Ray is not installed (pip install ray)")
+        from pemviz.executors import probe_ray_address
+
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
+        from pemviz.sinks.rollouts import RolloutSink
+
         try:
             rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite)
         except ValueError as exc:
@@ -257,6 +260,13 @@ def main(args: argparse.Namespace) -> int:
             save_path = check_save_path(Path(args.save), args.overwrite)
     elif target == "connect":
         args.url = probe_viewer(args.url)
+
+    from pemviz import engine
+    from pemviz.problems import problem_for
+    from pemviz.sampling import torch_threads
+    from pemviz.scenarios.braking import BrakingParams
+    from pemviz.sinks.console import ConsoleSink
+    from pemviz.sinks.recording import RerunSink
 
     stream_above = engine.STREAM_ABOVE if cfg.executor == "serial" else None
     check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above)

@@ -8,14 +8,14 @@ import os
 import socket
 import sys
 
-from pemviz.commands import UsageError
+from pemviz.commands import COMMANDS, UsageError
 from pemviz.config import DEFAULT_PRESET, PRESETS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "serve",
-        help="open the interactive panel in the browser (viser)",
+        help=COMMANDS["serve"][1],
         description=(
             "Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM, run the adaptive "
             "sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, compare up to 4 "

@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from pemviz.commands import UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
+from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
 from pemviz.config import PRESETS
 from pemviz.files import check_output_folder, write_text_atomic
 from pemviz.paper_tables import records_by_row, report, row_specs, rows_csv, table_jobs, tables_rows, write_recording
@@ -35,7 +35,7 @@ from pemviz.validation import RUNS_FILE, ExactAnswer, RunRecord, exact_answer, r
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "tables",
-        help="reproduce the paper's Tables II and III with repetitions and the exact answer",
+        help=COMMANDS["tables"][1],
         description="Table II (MC, naive-50, adaptive) and Table III (robustness metrics) with repetitions, "
         "mean +- standard error, failures, NLL, ESS and the exact p_fail; Markdown, CSV and a rerun recording "
         "of every repetition's proposal curves (Fig. 4).",

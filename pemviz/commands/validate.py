@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from pemviz.commands import UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
+from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
 from pemviz.config import DEFAULT_PRESET, PRESETS
 from pemviz.files import check_output_folder, write_text_atomic
 from pemviz.problems import PROBLEMS
@@ -42,7 +42,7 @@ from pemviz.validation import (
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "validate",
-        help="judge the sampler and the baselines against exact failure probabilities",
+        help=COMMANDS["validate"][1],
         description="Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact answers "
         "for several seeds at equal simulation budgets; print truth, median and spread of mu_hat, median relative "
         "error, failures, ESS, simulations and wall time.",

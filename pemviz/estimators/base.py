@@ -41,6 +41,8 @@ class StagePlan:
         mixture: a defensive mixture over whole rollouts, ``((n_1, detector_1), ...)`` with n_1 + ... = n, drawn in
             this order; each rollout then weighs p / sum_k (n_k / n) q_k (:func:`mixture_log_weight`); empty: all ``n``
             from ``sampler``.
+        target: what the simulator asks for the target's logits: None (the problem's target) or a detector that gives
+            the same logits and keeps more (:class:`pemviz.detectors.ScoredTarget`: the mixture components' logits).
     """
 
     stage: int
@@ -49,6 +51,7 @@ class StagePlan:
     sampler: Detector
     draw: Callable[[np.random.Generator], RolloutBatch] | None = None
     mixture: tuple[tuple[int, Detector], ...] = ()
+    target: Detector | None = None
 
     @property
     def parts(self) -> list[tuple[int, Detector]]:

@@ -12,6 +12,7 @@ loss (the optimiser and the proposal networks are in :mod:`pemviz.sampling`).
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Literal
 
@@ -20,7 +21,7 @@ import torch
 from scipy.special import log_expit
 
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import Detector, LastAnswer, WindowDetector, action_log_prob, logit
+from pemviz.detectors import Detector, LastAnswer, ScoredTarget, WindowDetector, action_log_prob, logit
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
@@ -534,6 +535,10 @@ class CrossEntropy:
         """A CE stage's settled elites as fitted steps (frozen weights with a step mask; else the elites are fitted
         from their rollouts by :func:`ce_update`)."""
         self._last: tuple[int, Estimate] | None = None
+        self._shared: LastAnswer | None = None
+        """The proposal as both samplers around it ask it (they share its answer about a step's observations)."""
+        self._scored: ScoredTarget | None = None
+        """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
         self.tolerance = config.fit_tolerance if config.fit == "adam" else None
         """Early stopping of the Adam fits that see a subsample (L-BFGS stops at its own tolerance)."""
 
@@ -558,6 +563,13 @@ class CrossEntropy:
             plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
         else:
             return None
+        if self._shared is not None:
+            self._shared.forget()  # the proposal was fitted since it last answered
+        self._scored = None
+        if plan.mixture:
+            extras = tuple(dict.fromkeys(d for _, d in plan.mixture if d is not self.problem.target))
+            self._scored = ScoredTarget(self.problem.target, extras)
+            plan = dataclasses.replace(plan, target=self._scored)
         self._plan = plan
         self.stages[k] = StageRollouts(self.problem.curve_grid)
         return plan
@@ -577,17 +589,33 @@ class CrossEntropy:
 
     def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
         """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]) for rollouts of the planned
-        stage's mixture (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] (nats)."""
+        stage's mixture (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] (nats), from the
+        components' log-probabilities the batch carries (:meth:`_with_parts`)."""
         plan, pb = self._plan, self.problem
-        obs = batch.observations.reshape(-1, batch.observations.shape[2])
         log_p = (batch.log_p * mask).sum(axis=1)
-        log_q = [log_p if d is pb.target else
-                 (action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected) * mask).sum(axis=1)
-                 for _, d in self._around(plan.mixture, self.proposal)]  # fmt: skip
+        extras = self._scored.extras
+        log_q = [log_p if d is pb.target else (batch.log_q_parts[:, extras.index(d)] * mask).sum(axis=1)
+                 for _, d in plan.mixture]  # fmt: skip
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
+
+    def _with_parts(self, batch: RolloutBatch) -> RolloutBatch:
+        """``batch`` of a mixture stage with ``log_q_parts`` [N, K, T]: the log-probabilities of its actions under
+        the mixture's proposal components (:attr:`ScoredTarget.extras`), as the simulation asked them, or asked
+        again where it could not keep them (e.g. Ray tasks; the proposal network then runs once for all)."""
+        logits = self._scored.take(batch.n, batch.n_steps)
+        if logits is None:
+            obs = batch.observations.reshape(-1, batch.observations.shape[2])
+            rebuilt = dict(zip((id(d) for _, d in self._plan.mixture), (d for _, d in self._around(
+                self._plan.mixture, self.proposal))))  # fmt: skip
+            logits = np.stack([rebuilt[id(d)].detect_logit(obs).reshape(batch.detected.shape)
+                               for d in self._scored.extras])  # fmt: skip
+        parts = np.stack([action_log_prob(lg, batch.detected) for lg in logits], axis=1)
+        return dataclasses.replace(batch, log_q_parts=parts)
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         plan = self._plan
+        if plan.mixture:
+            batch = self._with_parts(batch)
         if plan.kind == "pretrain":
             self._chunks.append(batch)
         elif plan.kind == "ce":
@@ -660,7 +688,7 @@ class CrossEntropy:
 
     def _pretrain(self, batch: RolloutBatch) -> None:
         """A new proposal fitted to the pretraining rollouts' actions; the CE stages' sampler around it."""
-        cfg, pb = self.config, self.problem
+        cfg = self.config
         with torch.random.fork_rng(devices=[]):  # the proposal's initial weights, without reseeding the process
             torch.manual_seed(cfg.seed)
             self.proposal = proposal = self._new_proposal(batch)
@@ -670,12 +698,14 @@ class CrossEntropy:
             check=self.check, step_mask=self.step_mask(batch) if cfg.proposal_window else None,
             fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
-        self.plain_sampler, self.sampler = self._samplers(proposal)
+        # with two samplers around the proposal, they share its answer about a step (the network runs once a step)
+        self._shared = LastAnswer(proposal) if cfg.defensive > 0.0 else None
+        self.plain_sampler, self.sampler = self._samplers(self._shared or proposal)
 
-    def _samplers(self, proposal: Proposal) -> tuple[Detector, Detector]:
-        """(the plain sampler, the CE stages' sampler) around a proposal: q inside the problem's window
-        (``proposal_window``; q = p_target where the detector cannot matter), and that with the per-step defensive
-        mixture (``defensive``)."""
+    def _samplers(self, proposal: Detector) -> tuple[Detector, Detector]:
+        """(the plain sampler, the CE stages' sampler) around a proposal (or a :class:`LastAnswer` around one): q
+        inside the problem's window (``proposal_window``; q = p_target where the detector cannot matter), and that
+        with the per-step defensive mixture (``defensive``)."""
         cfg, pb = self.config, self.problem
 
         def windowed(sampler: Detector) -> Detector:

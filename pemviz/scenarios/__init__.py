@@ -59,6 +59,8 @@ class RolloutBatch:
         log_p: float64 [N, T] log p_target(a_t | s_t) (nats), target = the PEM.
         log_q: float64 [N, T] log q(a_t | s_t) (nats) under the detector that sampled.
         observation_names: names of the F columns.
+        log_q_parts: None, or float64 [N, K, T] log q_k(a_t | s_t) (nats) under each of K other detectors, e.g. the
+            components of a mixture over rollouts, as an estimator asked them while the rollouts were drawn.
     """
 
     observations: np.ndarray
@@ -66,6 +68,7 @@ class RolloutBatch:
     log_p: np.ndarray
     log_q: np.ndarray
     observation_names: tuple[str, ...]
+    log_q_parts: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -96,18 +99,21 @@ class RolloutBatch:
 
     def select(self, rows: np.ndarray) -> "RolloutBatch":
         """The rollouts ``rows`` (bool [N] mask or int indices), copied: a batch of its own, in their order."""
+        parts = None if self.log_q_parts is None else self.log_q_parts[rows]
         return RolloutBatch(self.observations[rows], self.detected[rows], self.log_p[rows], self.log_q[rows],
-                            self.observation_names)  # fmt: skip
+                            self.observation_names, parts)  # fmt: skip
 
     @staticmethod
     def concatenate(batches: Sequence["RolloutBatch"]) -> "RolloutBatch":
-        """Stack batches of equal T along N."""
+        """Stack batches of equal T along N (``log_q_parts`` too where every batch has them)."""
+        parts = [b.log_q_parts for b in batches]
         return RolloutBatch(
             np.concatenate([b.observations for b in batches]),
             np.concatenate([b.detected for b in batches]),
             np.concatenate([b.log_p for b in batches]),
             np.concatenate([b.log_q for b in batches]),
             batches[0].observation_names,
+            None if any(x is None for x in parts) else np.concatenate(parts),
         )
 
 
