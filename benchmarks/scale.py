@@ -2,8 +2,15 @@
 peak memory and recording size, for N = 10^2 .. 10^5 rollouts per stage (default sampler, batched twin).
 
     python benchmarks/scale.py                          # N = 100, 1000, 10000, 100000; --no-record
+    python benchmarks/scale.py --n 100 10000 --check    # exit 1 if at N = 10,000 (other + fit) / simulation > 1
     python benchmarks/scale.py --n 100 1000 --record    # also write a recording and report its size
     python benchmarks/scale.py --args --preset paper    # extra ExperimentConfig settings via pemviz run flags
+
+Besides the table, one line per N gives the two ratios to watch: (other + fit) / simulation (what the sampler costs
+beyond simulating; at most 1.0 at N = 10,000), and the experiment's simulation cost per rollout against the pure
+batched twin's, measured in the same process (the braking scenario's N rollouts drawn i.i.d. from the PEM with no
+proposal and no mixture, :func:`pemviz.scenarios.batched.simulate_batched`): what the proposal network and the
+mixture's bookkeeping add to each simulated step. ``--check`` is for people, not CI: timings depend on the machine.
 
 Each N runs in a fresh subprocess (``pemviz run --n N --n-final N``), so that its peak resident memory
 (``ru_maxrss``) is its own. Inside, the time spent simulating (``Problem.simulate`` / ``Problem.stream``,
@@ -27,6 +34,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+CHECK_N, CHECK_RATIO = 10_000, 1.0
+"""``--check``: at N = 10,000, what the sampler costs beyond simulating is at most the simulation itself."""
 
 
 def _child(argv: list[str]) -> None:
@@ -83,7 +92,26 @@ def _child(argv: list[str]) -> None:
     spent["cpu"] = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     spent["peak_rss_mb"] = cpu1.ru_maxrss / 1024
     spent["rc"] = rc
+    spent["twin_us"] = _pure_twin_us(int(argv[argv.index("--n") + 1]) if "--n" in argv else 100)
     print("SCALE " + json.dumps(spent), flush=True)
+
+
+def _pure_twin_us(n: int) -> float:
+    """Microseconds per rollout of the pure batched twin: ``min(n, 20,000)`` braking rollouts drawn i.i.d. from the
+    shipped PEM (sampler and target the same detector), the best of three."""
+    import numpy as np
+
+    from pemviz.pem import load_pem
+    from pemviz.detectors import PEMDetector
+    from pemviz.scenarios.batched import simulate_batched
+
+    m, pem = min(n, 20_000), PEMDetector(load_pem())
+    best = float("inf")
+    for seed in range(3):
+        t0 = time.perf_counter()
+        simulate_batched(None, m, pem, pem, np.random.default_rng(seed))
+        best = min(best, time.perf_counter() - t0)
+    return best / m * 1e6
 
 
 def main() -> int:
@@ -92,6 +120,8 @@ def main() -> int:
     ap.add_argument("--record", action="store_true", help="also write a recording and report its size")
     ap.add_argument("--child", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     ap.add_argument("--args", nargs=argparse.REMAINDER, default=[], help="extra arguments for pemviz run")
+    ap.add_argument("--check", action="store_true",
+                    help=f"exit 1 if at N = {CHECK_N:,} (other + fit) / simulation exceeds {CHECK_RATIO}")
     args = ap.parse_args()
     if args.child is not None:
         _child(args.child)
@@ -100,6 +130,8 @@ def main() -> int:
     print(f"{os.cpu_count()} cores; times in seconds, per simulation in microseconds")
     print(f"{'N':>7} {'sims':>9} {'rec':>4} {'wall':>7} {'cpu':>7} {'engine':>7} {'sim/run':>8} {'fit/run':>8} "
           f"{'other/run':>9} {'other+fit / sim':>15} {'peak MB':>8} {'rrd MB':>7}  load")  # fmt: skip
+    ratios: dict[int, float] = {}
+    lines: list[str] = []
     for n in args.n:
         for record in (False, True) if args.record else (False,):
             with tempfile.TemporaryDirectory() as tmp:
@@ -124,6 +156,19 @@ def main() -> int:
                       f"{f['run']:>7.1f} {f['simulation'] * per:>8.1f} {f['fit'] * per:>8.1f} {other * per:>9.1f} "
                       f"{(other + f['fit']) / max(f['simulation'], 1e-9):>15.2f} {f['peak_rss_mb']:>8.0f} "
                       f"{size:>7.1f}  {load}", flush=True)  # fmt: skip
+                if not record:
+                    ratios[n] = (other + f["fit"]) / max(f["simulation"], 1e-9)
+                    lines.append(f"N = {n}: (other + fit) / simulation = {ratios[n]:.2f}; simulation "
+                                 f"{f['simulation'] * per:.1f} us per rollout = {f['simulation'] * per / f['twin_us']:.2f}"
+                                 f" x the pure twin's {f['twin_us']:.1f} us")  # fmt: skip
+    print("\n".join(lines))
+    if args.check:
+        if CHECK_N not in ratios:
+            raise SystemExit(f"--check needs N = {CHECK_N} among --n")
+        if ratios[CHECK_N] > CHECK_RATIO:
+            print(f"check failed: at N = {CHECK_N:,} (other + fit) / simulation = {ratios[CHECK_N]:.2f} > {CHECK_RATIO}")
+            return 1
+        print(f"check passed: at N = {CHECK_N:,} (other + fit) / simulation = {ratios[CHECK_N]:.2f} <= {CHECK_RATIO}")
     return 0
 
 

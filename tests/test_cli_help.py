@@ -52,3 +52,35 @@ def test_every_command_that_takes_a_preset_accepts_quick() -> None:
     assert parser.parse_args(["serve", "--preset", "quick"]).preset == "quick"
     for name in ("pemviz run", "pemviz serve", "pemviz validate", "pemviz tables"):
         assert "quick" in " ".join(dict(all_parsers())[name].format_help().split()), name
+
+
+HEAVY = ("torch", "pemviz.engine", "pemviz.estimators", "pemviz.problems")
+
+
+def modules_loaded_by(argv: list[str]) -> set[str]:
+    """The heavy modules (:data:`HEAVY`) that ``pemviz ARGV`` has imported by the time it exits, in a new process."""
+    import subprocess
+    import sys
+
+    code = ("import contextlib, io, sys\nfrom pemviz.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            f"    try:\n        main({argv!r})\n    except SystemExit:\n        pass\n"
+            f"print(' '.join(m for m in {HEAVY!r} if m in sys.modules))")  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    return set(proc.stdout.split())
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["run", "--help"], ["serve", "--help"], ["data", "--help"]])
+def test_help_imports_no_torch_and_no_engine(argv) -> None:
+    assert modules_loaded_by(argv) == set()
+
+
+def test_the_lean_parser_lists_every_command_with_the_help_of_its_own_parser() -> None:
+    from pemviz.commands import COMMANDS
+
+    full, lean = build_parser(), build_parser("run", full=False)
+    helps = [{a.dest: a.help for a in p._subparsers._group_actions[0]._choices_actions} for p in (full, lean)]
+    assert helps[0] == helps[1] and set(helps[0]) == set(COMMANDS)
+    assert lean.parse_args(["run", "--sigma", "0.9"]).quantile_level == 0.9  # run's own parser, whole
+    with pytest.raises(SystemExit):  # the others are listed only
+        lean.parse_args(["validate", "--seeds", "3"])

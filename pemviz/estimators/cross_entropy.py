@@ -126,10 +126,10 @@ def _action_counts(
 
 
 def _summed_fit(fit: str, max_rows: int | None, n_fitted: int) -> bool:
-    """Whether a fit of ``n_fitted`` weighted steps is the paper's: every step, summed over distinct inputs, for a
-    fixed number of Adam epochs. The other fits (more than ``max_rows`` steps, or L-BFGS) see at most ``max_rows``
-    steps, with a loss normalised to nats per step, and stop once converged (``tolerance``): their cost is bounded
-    whatever the number of rollouts."""
+    """Whether a fit of ``n_fitted`` weighted steps is the paper's: every step, summed over distinct inputs (with a
+    ``tolerance``, a CE stage's such fit stops once converged, as the others do). The other fits (more than
+    ``max_rows`` steps, or L-BFGS) see at most ``max_rows`` steps, with a loss normalised to nats per step, and stop
+    once converged (``tolerance``): their cost is bounded whatever the number of rollouts."""
     return fit == "adam" and (max_rows is None or n_fitted <= max_rows)
 
 
@@ -336,7 +336,10 @@ def fit_elite_steps(
         total = float(counts.sum())
         return fit_proposal(proposal, fitted, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
     uniq, counts, _ = _action_counts(rows, actions, w, drop_unweighted=True)
-    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit)
+    if tolerance is None:
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit)
+    # the proposal starts from the last stage's fit (a warm start): stop once the loss per step stops falling
+    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, tolerance, per=float(counts.sum()))
 
 
 class EliteSteps:
