@@ -128,6 +128,9 @@ class ExperimentConfig:
         proposal_inputs: h(s), one of :data:`PROPOSAL_INPUTS`.
         proposal_window: the proposal replaces the PEM only where the detector can matter (the problem's
             ``window``: gap < 10 m); elsewhere q = p_PEM, so those steps weigh exactly 1 and are not fitted.
+        skip_decided: with ``proposal_window``, the proposal also gives way to the PEM at steps where the outcome is
+            already decided (the problem's ``decided_below``: a gap below the 2 m crash gap), so that the proposal
+            network runs only where a detection can matter; those steps weigh exactly 1 and are not fitted.
         weights_until_failure: importance weights (estimate and CE fit) stop at the step where the failure
             happens: later actions change nothing, like the last action already left out.
         smoothing_at_failure: alpha in (0, 2] once gamma_kappa has reached the failure threshold 0 (None:
@@ -206,6 +209,7 @@ class ExperimentConfig:
     ray_address: str | None = None
     proposal_inputs: str = "state"
     proposal_window: bool = True
+    skip_decided: bool = True
     weights_until_failure: bool = True
     smoothing_at_failure: float | None = 1.2
     final_smoothing: float | None = 1.0
@@ -286,7 +290,7 @@ class ExperimentConfig:
         need(_is_int(self.ams_max_iterations) and self.ams_max_iterations >= 1, "ams_max_iterations",
              "must be an integer >= 1")  # fmt: skip
         need(self.elite_ties in ELITE_TIES, "elite_ties", f"use one of {', '.join(ELITE_TIES)}")
-        for name in ("proposal_window", "weights_until_failure"):
+        for name in ("proposal_window", "skip_decided", "weights_until_failure"):
             need(isinstance(getattr(self, name), bool), name, "must be True or False")
         for name in ("smoothing_at_failure", "final_smoothing"):
             alpha = getattr(self, name)
@@ -341,7 +345,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
     "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
                       "pool_weights": "rollouts", "smoothing_at_failure": 1.0, "final_smoothing": None,
-                      "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500},
+                      "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500, "skip_decided": False},
 }
 """Named settings, each applied on top of the defaults.
 

@@ -69,16 +69,21 @@ class PEMDetector:
 
 @dataclass(frozen=True)
 class WindowDetector:
-    """``inside`` when the gap is below ``radius_m``, ``outside`` otherwise (mixed-50: 50 % inside 10 m)."""
+    """``inside`` when the gap is below ``radius_m`` (and at least ``floor_m``), ``outside`` otherwise (mixed-50:
+    50 % inside 10 m)."""
 
     inside: Detector
     outside: Detector
     radius_m: float = 10.0
+    floor_m: float = -math.inf
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """Each detector is asked only about its own rows (a proposal network costs per row)."""
         obs = np.asarray(obs)
-        near = obs[:, GAP_COLUMN] < self.radius_m
+        gap = obs[:, GAP_COLUMN]
+        near = gap < self.radius_m
+        if self.floor_m > -math.inf:
+            near &= gap >= self.floor_m
         out = np.empty(obs.shape[0])
         for rows, detector in ((near, self.inside), (~near, self.outside)):
             if rows.any():

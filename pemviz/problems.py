@@ -72,6 +72,9 @@ class Problem:
         window: where the detector can change the outcome: ``obs[:, 0] < window`` (the braking scenario's 10 m).
             The proposal replaces the target only there (``proposal_window``) and the mixed-50 baseline detects
             with 50 % there; the default, infinity, is everywhere.
+        decided_below: where the outcome is already decided: ``obs[:, 0] < decided_below`` (the braking scenario's
+            2 m crash gap: the safety formula is violated for good). With ``skip_decided`` the proposal gives way to
+            the target there too; the default, minus infinity, is nowhere.
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
         branch: optional, continues rollouts from one of their steps (:data:`BranchFn`; None: the simulator has
             no snapshot/restore), for adaptive multilevel splitting (``method = "ams"``).
@@ -89,6 +92,7 @@ class Problem:
     h_scale: float = 12.0
     curve_grid: np.ndarray = field(default_factory=lambda: np.linspace(0.0, 13.0, 131))
     window: float = math.inf
+    decided_below: float = -math.inf
     stream: StreamFn | None = None
     branch: BranchFn | None = None
     exact_log_p: float | None = None
@@ -150,7 +154,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         return branch(lambda: BrakingScenario(p), parents, parent, at, target, rng)
 
     return Problem(
-        "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m,
+        "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m, decided_below=p.crash_gap_m,
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "

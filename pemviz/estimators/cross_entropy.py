@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Callable, Literal
 
@@ -711,8 +712,10 @@ class CrossEntropy:
         with the per-step defensive mixture (``defensive``)."""
         cfg, pb = self.config, self.problem
 
+        floor = pb.decided_below if cfg.skip_decided else -math.inf
+
         def windowed(sampler: Detector) -> Detector:
-            return WindowDetector(sampler, pb.target, pb.window) if cfg.proposal_window else sampler
+            return WindowDetector(sampler, pb.target, pb.window, floor) if cfg.proposal_window else sampler
 
         plain = windowed(proposal)
         if cfg.defensive > 0.0:  # every outcome keeps probability >= eps / 2 at every step
