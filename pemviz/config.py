@@ -181,7 +181,7 @@ class ExperimentConfig:
         fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).
         fit_rows: None (every fitted step) or the most steps one fit sees: beyond that, a weighted systematic
             subsample with the same expected CE objective, so a stage's fit costs the same at any N (the default
-            sampler's fits at N = 100 see at most 6,400 steps: all of them, summed, the paper's fit).
+            5,000: the pretraining's 6,400 steps and the failure pool of the later stages are subsampled).
         fit_tolerance: early stopping of the CE stages' ``adam`` fits: a fit stops once its loss (nats per step)
             fell by less than this over the last 50 epochs; None: every epoch. The pretraining fit of at most
             ``fit_rows`` steps runs every epoch; ``lbfgs`` stops at its own tolerance.
@@ -222,7 +222,7 @@ class ExperimentConfig:
     fit_weights: str = "mixture"
     fit: str = "adam"
     fit_max_steps: int = 200
-    fit_rows: int | None = 10_000
+    fit_rows: int | None = 5_000
     fit_tolerance: float | None = 1e-3
     ams_killed: int = 10
     ams_max_iterations: int = 10_000

@@ -55,8 +55,8 @@ PINNED = {
     "braking/renyi-fit/1": (-34.88511540007149, 87, 150, (3, 4), 350, ((0, nan, 0), (1, 2.081188287303849, 3), (2, 0.0, 6), (3, 0.0, 37), (4, nan, 56))),
     "braking/array-rqmc/0": (-32.56839624862426, 53, 150, (3, 4), 350, ((0, nan, 0), (1, 2.124224518188786, 3), (2, 0.0, 5), (3, 0.0, 27), (4, nan, 31))),
     "braking/array-rqmc/1": (-36.13435880117795, 70, 150, (3, 4), 350, ((0, nan, 0), (1, 2.1449127141471287, 3), (2, 0.0, 5), (3, 0.0, 28), (4, nan, 47))),
-    "braking/early-stop/0": (-35.7373952780213, 52, 100, (4,), 350, ((0, nan, 0), (1, 2.1282706743618682, 3), (2, 0.07699677830176199, 3), (3, 0.0, 33), (4, nan, 52))),
-    "braking/early-stop/1": (-35.00010324912287, 52, 100, (4,), 350, ((0, nan, 0), (1, 2.0651947708534735, 3), (2, 0.12755733787107815, 3), (3, 0.0, 21), (4, nan, 52))),
+    "braking/early-stop/0": (-33.771326984532074, 72, 150, (3, 4), 350, ((0, nan, 0), (1, 1.8569760122895076, 3), (2, 0.0, 3), (3, 0.0, 23), (4, nan, 52))),
+    "braking/early-stop/1": (-33.61536509482304, 85, 150, (3, 4), 350, ((0, nan, 0), (1, 1.5691016974257614, 3), (2, 0.0, 5), (3, 0.0, 45), (4, nan, 45))),
 }  # fmt: skip
 
 
@@ -71,9 +71,10 @@ def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     return ExperimentConfig(**{**RECORDED, **_pinned_fields(problem, preset), "seed": int(seed)}), problem
 
 
-FIT_RECORDED = {"learning_rate": 1e-3, "fit_tolerance": None, "skip_decided": False}
+FIT_RECORDED = {"learning_rate": 1e-3, "fit_tolerance": None, "skip_decided": False, "fit_rows": 10_000}
 """The defaults before every CE fit stopped once converged (Adam at 1e-3; fits of at most ``fit_rows`` steps, all of
-these, ran every epoch) and before the proposal gave way to the PEM where the outcome is decided."""
+these, ran every epoch, subsampling above 10,000 steps) and before the proposal gave way to the PEM where the outcome
+is decided."""
 RECORDED = {"uniforms": "iid", "pool_weights": "linear", **FIT_RECORDED}
 """The defaults when the other numbers were recorded: i.i.d. uniforms, the stages pooled by j n_j, the fits above."""
 

@@ -539,8 +539,9 @@ class CrossEntropy:
         """A CE stage's settled elites as fitted steps (frozen weights with a step mask; else the elites are fitted
         from their rollouts by :func:`ce_update`)."""
         self._last: tuple[int, Estimate] | None = None
-        self._shared: LastAnswer | None = None
-        """The proposal as both samplers around it ask it (they share its answer about a step's observations)."""
+        self._memos: tuple[LastAnswer, ...] = ()
+        """The proposal as both samplers around it ask it (they share its answer about a step's observations), and
+        the two samplers, each remembering its last answer (the mixture's target asks both about every step)."""
         self._scored: ScoredTarget | None = None
         """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
         self.tolerance = config.fit_tolerance if config.fit == "adam" else None
@@ -567,8 +568,8 @@ class CrossEntropy:
             plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
         else:
             return None
-        if self._shared is not None:
-            self._shared.forget()  # the proposal was fitted since it last answered
+        for memo in self._memos:
+            memo.forget()  # the proposal was fitted since it last answered
         self._scored = None
         if plan.mixture:
             extras = tuple(dict.fromkeys(d for _, d in plan.mixture if d is not self.problem.target))
@@ -702,9 +703,12 @@ class CrossEntropy:
             check=self.check, step_mask=self.step_mask(batch) if cfg.proposal_window else None,
             fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
-        # with two samplers around the proposal, they share its answer about a step (the network runs once a step)
-        self._shared = LastAnswer(proposal) if cfg.defensive > 0.0 else None
-        self.plain_sampler, self.sampler = self._samplers(self._shared or proposal)
+        if cfg.defensive > 0.0:  # two samplers share the proposal's answer about a step: the network runs once a step
+            shared = LastAnswer(proposal)
+            self._memos = (shared, *(LastAnswer(d) for d in self._samplers(shared)))
+            self.plain_sampler, self.sampler = self._memos[1:]
+        else:
+            self.plain_sampler, self.sampler = self._samplers(proposal)
 
     def _samplers(self, proposal: Detector) -> tuple[Detector, Detector]:
         """(the plain sampler, the CE stages' sampler) around a proposal (or a :class:`LastAnswer` around one): q
