@@ -345,7 +345,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
     "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
                       "pool_weights": "rollouts", "smoothing_at_failure": 1.0, "final_smoothing": None,
-                      "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500, "skip_decided": False},
+                      "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500, "skip_decided": False,
+                      "fit_rows": 10_000, "fit_tolerance": None},
 }
 """Named settings, each applied on top of the defaults.
 
