@@ -76,7 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument(
         "--executor", default=None,
-        help=f"where rollouts run: {'|'.join(EXECUTORS)} (default {d.executor}; ray: Ray tasks, same estimate)",
+        help=f"where rollouts run: {'|'.join(EXECUTORS)} (default {d.executor}; ray: Ray tasks over blocks of 8,192 "
+        "rollouts, the serial run's rollouts and estimate bit for bit; a batch of one block runs in this process)",
     )  # fmt: skip
     p.add_argument("--ray-address", dest="ray_address", default=None, help="Ray cluster (default: start a local one)")
     p.add_argument(
