@@ -32,6 +32,7 @@ from pemviz.estimators.base import (
     elite_counts,
     failure_steps,
     mixture_log_weight,
+    pool_stage_weights,
     pooled_estimate,
     weighted_steps_mask,
 )
@@ -641,12 +642,7 @@ class CrossEntropy:
         if self.config.final_estimate == "pooled" and self.reached_failures and self.pooled:
             used = (*self.pooled, stage)
             stages = [self.stages[k] for k in used]
-            lam = None
-            if self.config.pool_weights != "rollouts":
-                power = 2 if self.config.pool_weights == "quadratic" else 1
-                lam = np.array([(j + 1) ** power * s.n for j, s in enumerate(stages)], dtype=np.float64)
-                lam /= lam.sum()
-            return pooled_estimate(stages, lam), used
+            return pooled_estimate(stages, pool_stage_weights(self.config.pool_weights, [s.n for s in stages])), used
         return est, (stage,)
 
     # -- the algorithm --------------------------------------------------------------------------------------------
