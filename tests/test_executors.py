@@ -1,9 +1,12 @@
-"""Executors: chunks of rollouts simulated elsewhere reproduce the serial run; ``--executor ray`` gives the
-serial estimate for the same seed."""
+"""Executors: chunks of rollouts simulated elsewhere reproduce the serial run; ``--executor ray`` with 1 or 2
+workers gives the serial rollouts and estimate, bit for bit, for the same seed."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import importlib.util
+import io
 
 import numpy as np
 import pytest
@@ -149,16 +152,20 @@ BLOCKS = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=9000, pretrain_rol
 """A small default-sampler run whose final batch spans two Array-RQMC blocks (8,192 + 808 rollouts)."""
 
 
+@functools.lru_cache(maxsize=None)
+def _serial_run(uniforms: str):
+    return _run(BLOCKS.replace(uniforms=uniforms), braking_problem(load_pem().with_temperature(4.0)))
+
+
 @ray_missing
 @pytest.mark.parametrize("uniforms", ["array-rqmc", "iid"])
 def test_ray_tasks_of_whole_blocks_give_the_serial_rollouts_and_estimate_bit_for_bit(ray_workers, uniforms):
     # A less confident PEM (logits / 4) so that K = 2 stages of N = 20 already see crashes.
     problem = braking_problem(load_pem().with_temperature(4.0))
-    config = BLOCKS.replace(uniforms=uniforms)
-    serial, serial_batches, serial_stages = _run(config, problem)
+    serial, serial_batches, serial_stages = _serial_run(uniforms)
     executor = get_executor("ray")
     assert executor.n_chunks == ray_workers
-    remote, remote_batches, remote_stages = _run(config.replace(executor="ray"), problem)
+    remote, remote_batches, remote_stages = _run(BLOCKS.replace(uniforms=uniforms, executor="ray"), problem)
     assert [b.n for b in remote_batches] == [b.n for b in serial_batches] == [20, 20, 20, 9000]
     for a, b in zip(serial_batches, remote_batches):
         for name in ("observations", "detected", "log_p", "log_q"):
@@ -181,17 +188,25 @@ def test_toy_blocks_on_ray_give_the_serial_batch_bit_for_bit(ray_workers):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
-@ray_missing
-@pytest.mark.parametrize("seed", [0, 3, 7])
-def test_cli_run_on_ray_prints_the_serial_final_line(ray_workers, seed, capsys):
+RUN_ARGS = ("run", "--no-record", "--preset", "quick", "--k", "2", "--n", "30", "--n-final", "9000")
+"""A small default-sampler run whose final batch spans two blocks, so that ray runs it as tasks."""
+
+
+@functools.lru_cache(maxsize=None)
+def _final_lines(seed: int, executor: str) -> tuple[str, str]:
+    """(the verdict line, mu_hat with its log) of ``pemviz run`` (:data:`RUN_ARGS`) on ``executor``."""
     from pemviz import cli
 
-    args = ["run", "--no-record", "--preset", "quick", "--k", "2", "--n", "30", "--n-final", "9000", "--seed",
-            str(seed)]  # fmt: skip
-    lines = {}
-    for executor in ("serial", "ray"):
-        assert cli.main([*args, "--executor", executor]) == 0
-        out = capsys.readouterr().out.splitlines()
-        lines[executor] = (out[-1], out[-2].split(" from ")[0])  # the verdict line, and mu_hat with its log
-    assert lines["ray"] == lines["serial"]
-    assert lines["serial"][0].startswith("mu_hat = ") and "exact 1.984e-15" in lines["serial"][0]
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli.main([*RUN_ARGS, "--seed", str(seed), "--executor", executor]) == 0
+    lines = out.getvalue().splitlines()
+    return lines[-1], lines[-2].split(" from ")[0]
+
+
+@ray_missing
+@pytest.mark.parametrize("seed", [0, 3, 7])
+def test_cli_run_on_ray_prints_the_serial_final_line(ray_workers, seed):
+    serial = _final_lines(seed, "serial")
+    assert serial[0].startswith("mu_hat = ") and "exact 1.984e-15" in serial[0]
+    assert _final_lines.__wrapped__(seed, "ray") == serial
