@@ -27,7 +27,8 @@ black-box simulator per rollout; the same seed gives the same rollouts on both."
 
 EXECUTORS = ("serial", "ray")
 """Where rollouts are simulated (:func:`pemviz.executors.get_executor`): ``serial`` in this
-process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same estimate."""
+process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same rollouts and estimate, bit for
+bit (:mod:`pemviz.executors`)."""
 
 WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("pooled", "fresh", "last-stage")
@@ -106,10 +107,11 @@ class ExperimentConfig:
             default), in proportion to j^2 n_kappa. All are fixed before any pooled stage is drawn, so all are
             unbiased.
         uniforms: how the rollouts of a batch draw their detections, one of :data:`UNIFORMS`: ``iid``, one
-            independent U(0, 1) per rollout and step (the paper); ``array-rqmc`` (the default), the rollouts of a
-            batch (of each sampler of a mixture) are stepped as one array, ranked at each step by their sampler's
+            independent U(0, 1) per rollout and step (the paper); ``array-rqmc`` (the default), the rollouts of each
+            fixed block of 8,192 of a batch (of each sampler of a mixture; :data:`pemviz.rng.RQMC_BLOCK`, whatever
+            the executor or chunk size) are stepped as one array, ranked at each step by their sampler's
             detect logit and given the points of a randomly shifted golden-ratio lattice
-            (:func:`pemviz.rng.array_rqmc_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008).
+            (:func:`pemviz.rng.array_rqmc_blocks`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008).
             Each rollout still follows its sampler exactly, so every estimate keeps its expectation; the batch's
             estimate varies less (~40 % less variance at the default sampler's last stages on the braking job).
             The rollouts of a batch are no longer independent: an interval computed as if they were is

@@ -14,7 +14,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from scipy.special import log_expit
 
-from pemviz.rng import array_rqmc_uniforms
+from pemviz.rng import array_rqmc_blocks
 
 GAP_COLUMN = 0
 """Index of ``gap_m`` (metres) in every observation vector."""
@@ -109,10 +109,11 @@ class ArrayRQMC:
 def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np.ndarray) -> np.ndarray:
     """The uniforms a simulator compares with ``sampler``'s detection probabilities at one step: ``u`` (float64 [n],
     i.i.d. U(0, 1)) as drawn, or for an :class:`ArrayRQMC` sampler the Array-RQMC uniforms of the chains ranked by
-    ``q_logit`` (float64 [n], the sampler's logits at this step) and then by their observations ``obs`` [n, F]
-    (:func:`pemviz.rng.array_rqmc_uniforms`)."""
+    ``q_logit`` (float64 [n], the sampler's logits at this step) and then by their observations ``obs`` [n, F],
+    within each fixed block of :data:`pemviz.rng.RQMC_BLOCK` rollouts (:func:`pemviz.rng.array_rqmc_blocks`; the
+    n rollouts start at a block boundary)."""
     if getattr(sampler, "array_rqmc", False) and u.size > 1:
-        return array_rqmc_uniforms(u, np.column_stack([q_logit, obs]))
+        return array_rqmc_blocks(u, np.column_stack([q_logit, obs]))
     return u
 
 

@@ -115,6 +115,11 @@ class RolloutChunk:
     batch: RolloutBatch
     log_weight: np.ndarray
     sampler: Detector | None = None
+    parts: tuple = ()
+    """The stage's samplers in the order drawn, ``(rollouts, detector)`` each (:attr:`StagePlan.parts`): several for a
+    mixture over whole rollouts, whose rollouts are weighed by the mixture (:func:`pemviz.weights.stage_log_q`)."""
+    target: Detector | None = None
+    """The problem's target detector (p)."""
 
 
 @dataclass(frozen=True)
@@ -288,7 +293,7 @@ class Experiment:
             by_metric = {m: pb.robustness(batch, m) for m in METRICS}
             failed = by_metric["classic"] < 0.0
             log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
-            self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler))
+            self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target))
             self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, failed, log_w,
                                       plan.sampler))  # fmt: skip
         self.n_simulations += plan.n
@@ -312,7 +317,8 @@ class Experiment:
             robustness = pb.robustness(batch, cfg.metric)
             failed = robustness < 0.0 if cfg.metric == "classic" else pb.failed(batch)
             log_w = estimator.observe(batch, failed, robustness)
-            self.emit(RolloutChunk(plan.stage, plan.kind, sample.seen, batch, log_w, plan.sampler))
+            self.emit(RolloutChunk(plan.stage, plan.kind, sample.seen, batch, log_w, plan.sampler, tuple(plan.parts),
+                                   pb.target))  # fmt: skip
             sample.add(batch, robustness, failed, log_w)
         batch, index = sample.rollouts()
         by_metric = {m: pb.robustness(batch, m) for m in METRICS}

@@ -1,21 +1,19 @@
 """Executors: where a stage's rollouts are simulated, in this process (``serial``) or as Ray tasks (``ray``).
 
 The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``).
-Both executors give the same rollouts for the same seed:
+Both executors give the same rollouts, bit for bit, for the same seed, whatever the number of workers or tasks:
 
 - ``serial`` calls ``problem.simulate(n, sampler, target, rng)``, exactly what the engine did before.
-- ``ray`` splits the N rollouts into contiguous chunks (one per CPU of the Ray cluster by default, at
-  most :data:`pemviz.scenarios.batched.DEFAULT_CHUNK_SIZE` each) and simulates each chunk as a Ray
-  task. Every pemviz simulator draws one ``rng.random(n)`` per step (u for rollout i at step t is the
-  ``(t * n + i)``-th uniform of the stream), so the task for rollouts ``a..b-1`` gets a stand-in for
-  ``rng`` (:class:`ChunkUniforms`) whose k-th ``random(b - a)`` returns slice ``[a, b)`` of the serial
-  run's k-th draw, found by jumping a copy of the PCG64 stream (``bit_generator.advance``). Nothing
-  but the generator's state (a few integers) travels with the task, and ``rng`` ends where the serial
-  run leaves it. The rollouts are then identical except that a torch proposal evaluated on a chunk
-  of rows may differ from the whole batch in the last bit of a logit (~2e-16); estimates agree to
-  ~1e-12 relative (tests/test_executors.py). That holds for i.i.d. uniforms (``uniforms = "iid"``): with
-  ``array-rqmc`` (the default) each task ranks and couples its own chunk's rollouts, so the rollouts differ from
-  the serial run's while every estimate keeps its expectation.
+- ``ray`` cuts the N rollouts into the fixed blocks of :data:`pemviz.rng.RQMC_BLOCK` rollouts
+  (:func:`pemviz.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the rollouts
+  of a block, and detectors are asked about one block at a time. Each Ray task simulates a run of whole blocks
+  (:func:`task_blocks`: as many tasks as the cluster has CPUs by default), one block after another. Every pemviz
+  simulator draws one ``rng.random(n)`` per step (u for rollout i at step t is the ``(t * n + i)``-th uniform of the
+  stream), so the block ``a..b-1`` gets a stand-in for ``rng`` (:class:`ChunkUniforms`) whose k-th ``random(b - a)``
+  returns slice ``[a, b)`` of the serial run's k-th draw, found by jumping a copy of the PCG64 stream
+  (``bit_generator.advance``). Nothing but the generator's state (a few integers) travels with the task, and
+  ``rng`` ends where the serial run leaves it. A batch of one block (at most 8,192 rollouts, e.g. every batch of the
+  default sampler) is simulated in the driver: there is nothing to split without changing the rollouts.
 
 Requirements for ``ray``: Ray installed (``pip install ray``; pemviz's ``test`` extra installs it),
 pemviz importable on every worker, the problem picklable by cloudpickle (pemviz's problems are),
@@ -24,12 +22,11 @@ same result), and a ``problem.simulate`` that draws one ``rng.random(n)`` per st
 and :func:`pemviz.scenarios.simulate` do; anything else raises a RuntimeError naming the problem).
 
 :func:`chunk_uniforms` gives the u's of rollouts ``a..b-1`` as a [T, b - a] array for
-:func:`pemviz.scenarios.simulate` (``uniforms=``), to run chunks on any other infrastructure.
+:func:`pemviz.scenarios.simulate` (``uniforms=``), to run blocks on any other infrastructure.
 """
 
 from __future__ import annotations
 
-import math
 import socket
 from typing import Any, Protocol
 
@@ -37,12 +34,12 @@ import numpy as np
 
 from pemviz.config import EXECUTORS
 from pemviz.detectors import Detector
-from pemviz.rng import JUMPABLE, advance, bit_generator_at
+from pemviz.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at, block_bounds
 from pemviz.scenarios import RolloutBatch
 
-MAX_CHUNK = 8192
-"""Most rollouts per task: :data:`pemviz.scenarios.batched.DEFAULT_CHUNK_SIZE`, so that the batched
-simulator draws one ``random(m)`` per step inside a task (it sub-chunks larger batches)."""
+MAX_CHUNK = RQMC_BLOCK
+"""Most rollouts a Ray task simulates in one call: one block (:data:`pemviz.rng.RQMC_BLOCK`), so that the batched
+simulator draws one ``random(m)`` per step inside a task."""
 
 
 class Executor(Protocol):
@@ -70,18 +67,19 @@ class SerialExecutor:
         pass
 
 
-def chunk_bounds(n: int, n_chunks: int, max_chunk: int = MAX_CHUNK) -> list[tuple[int, int]]:
-    """Contiguous ``(start, stop)`` ranges covering ``0..n-1``: at least ``n_chunks`` (fewer if n is smaller),
-    each of at most ``max_chunk`` rollouts, sizes differing by at most one.
+def task_blocks(n: int, n_tasks: int, block: int = RQMC_BLOCK) -> list[list[tuple[int, int]]]:
+    """The fixed blocks of ``n`` rollouts (:func:`pemviz.rng.block_bounds`) dealt into at most ``n_tasks`` runs of
+    consecutive blocks, in order, their counts differing by at most one.
 
     Raises:
-        ValueError: ``n``, ``n_chunks`` or ``max_chunk`` below 1.
+        ValueError: ``n``, ``n_tasks`` or ``block`` below 1.
     """
-    if n < 1 or n_chunks < 1 or max_chunk < 1:
-        raise ValueError(f"chunk_bounds: n, n_chunks, max_chunk must be >= 1, got {n}, {n_chunks}, {max_chunk}")
-    k = min(n, max(n_chunks, math.ceil(n / max_chunk)))
-    edges = [(i * n) // k for i in range(k + 1)]
-    return list(zip(edges[:-1], edges[1:]))
+    if n < 1 or n_tasks < 1 or block < 1:
+        raise ValueError(f"task_blocks: n, n_tasks, block must be >= 1, got {n}, {n_tasks}, {block}")
+    blocks = block_bounds(n, block)
+    k = min(len(blocks), n_tasks)
+    edges = [(i * len(blocks)) // k for i in range(k + 1)]
+    return [blocks[a:b] for a, b in zip(edges[:-1], edges[1:])]
 
 
 class ChunkUniforms:
@@ -145,10 +143,19 @@ def simulate_chunk(
     problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, rng_state: dict
 ) -> tuple[RolloutBatch, int]:
     """Rollouts ``start..stop-1`` of the serial run ``problem.simulate(n, sampler, target, rng)`` from
-    ``rng_state``; returns the batch [stop - start, T] and the number of per-step draws it made (T)."""
+    ``rng_state``; returns the batch [stop - start, T] and the number of per-step draws it made (T). The rollouts
+    are the serial run's when ``start..stop-1`` is one block (:func:`pemviz.rng.block_bounds`) or, without
+    Array-RQMC and with detectors that give the same bits at any batch size, any range."""
     stream = ChunkUniforms(rng_state, n, start, stop)
     batch = problem.simulate(stop - start, sampler, target, stream)
     return batch, stream.calls
+
+
+def simulate_blocks(
+    problem: Any, n: int, blocks: list[tuple[int, int]], sampler: Detector, target: Detector, rng_state: dict
+) -> list[tuple[RolloutBatch, int]]:
+    """:func:`simulate_chunk` of each block ``(start, stop)`` in turn (one Ray task's work)."""
+    return [simulate_chunk(problem, n, a, b, sampler, target, rng_state) for a, b in blocks]
 
 
 def gather_chunks(
@@ -206,7 +213,8 @@ class RayExecutor:
     Args:
         address: Ray cluster address (``ray.init(address=...)``); None starts a local cluster. If Ray is
             already initialised in this process, that cluster is used and ``address`` is ignored.
-        n_chunks: chunks per batch (default: the cluster's CPU count).
+        n_chunks: the most tasks per batch, each simulating a run of whole blocks (default: the cluster's CPU
+            count). The rollouts do not depend on it.
         init_kwargs: more keyword arguments for ``ray.init``.
     Raises:
         ImportError: Ray is not installed (the message says how to install it).
@@ -227,20 +235,21 @@ class RayExecutor:
             ray.init(address=address, include_dashboard=False, **init_kwargs)
             self._started = True
         self.n_chunks = int(n_chunks) if n_chunks else max(1, int(ray.cluster_resources().get("CPU", 1)))
-        self._task = ray.remote(simulate_chunk)
+        self._task = ray.remote(simulate_blocks)
 
     def simulate(
         self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
     ) -> RolloutBatch:
-        """The rollouts of ``problem.simulate(n, sampler, target, rng)``, simulated as Ray tasks [N, T]."""
-        bounds = chunk_bounds(n, self.n_chunks)
-        if len(bounds) == 1 or not isinstance(rng.bit_generator, JUMPABLE):
+        """The rollouts of ``problem.simulate(n, sampler, target, rng)``, simulated as Ray tasks of whole blocks
+        [N, T] (in the driver when N is one block)."""
+        tasks = task_blocks(n, self.n_chunks)
+        if len(block_bounds(n)) == 1 or not isinstance(rng.bit_generator, JUMPABLE):
             return problem.simulate(n, sampler, target, rng)
         state = rng.bit_generator.state
         ray = self._ray
         problem_ref = ray.put(problem)
-        futures = [self._task.remote(problem_ref, n, a, b, sampler, target, state) for a, b in bounds]
-        return gather_chunks(problem, n, rng, ray.get(futures))
+        futures = [self._task.remote(problem_ref, n, blocks, sampler, target, state) for blocks in tasks]
+        return gather_chunks(problem, n, rng, [r for part in ray.get(futures) for r in part])
 
     def close(self) -> None:
         """Shut Ray down if this executor started it."""

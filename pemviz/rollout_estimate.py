@@ -3,11 +3,14 @@
 The importance weights need log p_PEM and log q of every logged action: from the file's ``log_p`` / ``log_q``
 columns, or recomputed here under a PEM (:func:`pem_log_prob`) and the detector that sampled the rollouts
 (:func:`sampler_detector`, or a proposal checkpoint read by :func:`pemviz.rollout_io.load_proposal`).
-:func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6).
+:func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6): per stage, pooled over
+the stages the sidecar names with its stage weights, under either weight convention (:mod:`pemviz.weights`), with
+the mean-weight check of the logged density.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,10 +20,12 @@ from pemviz import stl
 from pemviz.config import METRICS
 from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.estimators import log_p_before_failure, log_weight
+from pemviz.estimators.base import pool
 from pemviz.problems import Problem
 from pemviz.rollout_io import SALIENT_COLUMNS, SAMPLERS, RolloutData, RolloutFormatError, RolloutMeta, braking_salient
 from pemviz.sampling import Estimate, estimate
 from pemviz.scenarios import RolloutBatch
+from pemviz.weights import CONVENTIONS, MeanWeight, mean_weight
 
 
 def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
@@ -67,16 +72,31 @@ def sampler_detector(name: str, pem: Any, window_m: float = 10.0) -> Detector:
 
 
 @dataclass(frozen=True)
+class StageRow:
+    """One stage's estimate from a file's rollouts of that stage (``stage`` None: the file has no stage column)."""
+
+    stage: int | None
+    kind: str
+    estimate: Estimate
+
+
+@dataclass(frozen=True)
 class RolloutEstimate:
     """The failure-probability estimate from logged rollouts.
 
     Attributes:
-        estimate: mu_hat, failures, NLL, ESS (:class:`pemviz.sampling.Estimate`).
+        estimate: mu_hat, failures, NLL, ESS, interval, k-hat, verdict (:class:`pemviz.sampling.Estimate`): pooled over
+            :attr:`pooled` with the sidecar's stage weights, or over every rollout alike.
         robustness: float64 [N] under ``metric``.
         failed: bool [N].
-        log_weight: float64 [N] importance log-weights over the first T - 1 steps (nats).
+        log_weight: float64 [N] importance log-weights under :attr:`weights` (nats), before any stage weight.
         metric: the robustness semantics.
         failure: ``crash`` (classic robustness < 0) or ``metric`` (robustness under ``metric`` < 0).
+        weights: the convention used, one of :data:`pemviz.weights.CONVENTIONS`.
+        stages: one row per stage in the file (one row with stage None without a stage column).
+        pooled: the stages the estimate pools with the sidecar's rule (empty: every rollout alike).
+        rule: the sidecar's pooling rule (``every rollout alike`` without one).
+        check: the mean importance weight over all N rollouts (:func:`pemviz.weights.mean_weight`).
     """
 
     estimate: Estimate
@@ -85,6 +105,11 @@ class RolloutEstimate:
     log_weight: np.ndarray
     metric: str
     failure: str
+    weights: str = "to-failure"
+    stages: tuple[StageRow, ...] = ()
+    pooled: tuple[int, ...] = ()
+    rule: str = "every rollout alike"
+    check: MeanWeight | None = None
 
 
 def _no_simulator(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
@@ -110,29 +135,35 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
 
 def estimate_rollouts(
     data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
-    weights_until_failure: bool = True,
+    weights: str = "to-failure",
 ) -> RolloutEstimate:
-    """mu_hat = logsumexp(log w over failures) - log N from logged rollouts (Innes & Ramamoorthy 2022, eq. 6).
+    """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
 
     The rollouts go through the engine's code: robustness and failure steps of :func:`file_problem`
     (:meth:`pemviz.problems.Problem.robustness`, :func:`pemviz.estimators.log_weight`), the estimate of
-    :func:`pemviz.sampling.estimate`. ``log w_i = sum_{t < k_i} log p - log q``: k_i = T - 1
-    (:meth:`pemviz.scenarios.RolloutBatch.log_weight`: the last action affects nothing), or, with
-    ``weights_until_failure`` and ``failure="crash"``, the step at which rollout i first violates the sidecar's
-    ``G[a,b](...)`` formula (a stopping time, so the weights stay unbiased). Failure = classic robustness of the
-    formula < 0 (``failure="crash"``, the default) or robustness under ``metric`` < 0. The NLL sums log p over the
-    steps before the failure.
+    :func:`pemviz.sampling.estimate`, the pool of :func:`pemviz.estimators.base.pool`. ``log w_i = sum_{t < k_i} log p -
+    log q`` with k_i = T - 1 (``weights="full"``: the last action affects nothing) or, with ``"to-failure"`` and
+    ``failure="crash"``, the step at which rollout i first violates the sidecar's ``G[a,b](...)`` formula (both
+    unbiased: :mod:`pemviz.weights`). Failure = classic robustness of the formula < 0 (``failure="crash"``, the
+    default) or robustness under ``metric`` < 0. The NLL sums log p over the steps before the failure. With a stage
+    column and the sidecar's ``pooling``, mu_hat = sum_k lambda_k mu_hat_k over its stages; otherwise the mean over
+    every rollout.
 
     Args:
         log_p, log_q: float64 [N, T] (nats).
+        weights: one of :data:`pemviz.weights.CONVENTIONS`; ``to-failure`` with a formula that is not ``G[a,b](state
+            predicate)``, or with ``failure="metric"``, weighs every step but the last (``full``, said in
+            :attr:`RolloutEstimate.weights`).
     Raises:
-        ValueError: an unknown metric or failure mode, arrays of the wrong shape, or a formula the file's
+        ValueError: an unknown metric, failure mode or convention, arrays of the wrong shape, or a formula the file's
             signals cannot evaluate (a RolloutFormatError naming the file).
     """
     if metric not in METRICS:
         raise ValueError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
     if failure not in ("crash", "metric"):
         raise ValueError(f"unknown failure event {failure!r}; use crash or metric")
+    if weights not in CONVENTIONS:
+        raise ValueError(f"unknown weight convention {weights!r}; use one of {', '.join(CONVENTIONS)}")
     shape = (data.n, data.n_steps)
     log_p, log_q = np.asarray(log_p, np.float64), np.asarray(log_q, np.float64)
     if log_p.shape != shape or log_q.shape != shape:
@@ -145,11 +176,13 @@ def estimate_rollouts(
     except ValueError as exc:
         raise RolloutFormatError(f"{where}: formula {data.meta.formula!r}: {exc}") from None
     failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
+    if failure != "crash":
+        weights = "full"
     with np.errstate(over="ignore", invalid="ignore"):  # the same weights and NLL steps as the engine's
         try:
-            log_w = log_weight(problem, batch, until_failure=weights_until_failure and failure == "crash")
+            log_w = log_weight(problem, batch, until_failure=weights == "to-failure")
         except ValueError:  # not G[a,b](state predicate): the first T - 1 steps
-            log_w = batch.log_weight()
+            log_w, weights = batch.log_weight(), "full"
         log_p_total = log_p_before_failure(problem, batch)
     k = data.n_steps - 1
     for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
@@ -160,5 +193,34 @@ def estimate_rollouts(
                 f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
                 f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
             )
-    est = estimate(log_w, failed, log_p_total)
-    return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure)
+    est, rows, pooled, rule = _pooled(data, log_w, failed, log_p_total)
+    bound = None
+    if data.stage is not None and data.meta.stages:
+        b = {s["stage"]: s["max_weight"] for s in data.meta.stages}
+        bound = np.array([math.nan if b.get(int(k)) is None else b[int(k)] for k in data.stage])
+    return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure, weights, rows, pooled, rule,
+                           mean_weight(log_w, bound))  # fmt: skip
+
+
+def _pooled(data: RolloutData, log_w: np.ndarray, failed: np.ndarray,
+            log_p: np.ndarray) -> tuple[Estimate, tuple[StageRow, ...], tuple[int, ...], str]:  # fmt: skip
+    """(the estimate, the per-stage rows, the pooled stages, the rule) of :func:`estimate_rollouts`."""
+    if data.stage is None:
+        whole = estimate(log_w, failed, log_p)
+        stage = (data.meta.provenance or {}).get("stage") if data.meta else None
+        kind = str((data.meta.provenance or {}).get("kind", "")) if data.meta else ""
+        return whole, (StageRow(stage if isinstance(stage, int) else None, kind, whole),), (), "every rollout alike"
+    rows = []
+    for k in np.unique(data.stage).tolist():
+        m = data.stage == k
+        info = data.meta.stage_info(k) or {}
+        rows.append(StageRow(k, str(info.get("kind", "")), estimate(log_w[m], failed[m], log_p[m])))
+    pooling = data.meta.pooling
+    if pooling is None:
+        return estimate(log_w, failed, log_p), tuple(rows), (), "every rollout alike"
+    parts = [(log_w[data.stage == k], failed[data.stage == k], log_p[data.stage == k]) for k in pooling["stages"]]
+    if len(parts) == 1:
+        est = estimate(*parts[0])
+    else:  # the run's arithmetic: no stage weights for "rollouts", its lambda_k otherwise
+        est = pool(parts, None if pooling["rule"] == "rollouts" else np.asarray(pooling["stage_weights"]))
+    return est, tuple(rows), tuple(pooling["stages"]), pooling["rule"] or "given"

@@ -4,7 +4,7 @@ pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``p
 --save-rollouts``): :func:`write_rollouts` / :func:`read_rollouts` here, ``pemviz estimate`` on the
 command line. Both validate with the same code, so a file pemviz writes is one pemviz reads.
 
-Format, version 1
+Format, version 2
 -----------------
 ``NAME.parquet``: one row per (rollout, step). The rows of a rollout are contiguous, hold steps
 0, 1, ..., T-1 in this order, and every rollout has the same T.
@@ -20,8 +20,16 @@ signals of the spec           float                        SI     e.g. ``ego_spe
 ``salient_<name>`` (11)       float                        m/rad  optional: the PEM's salient variables, KITTI
                                                                   columns :data:`SALIENT_COLUMNS`
 ``log_p``                     float                        nats   optional: log p_PEM(a_t | s_t)
-``log_q``                     float                        nats   optional: log q(a_t | s_t), the detector
-                                                                  that sampled the rollout
+``log_q``                     float                        nats   optional: log q(a_t | s_t, a_0..a_{t-1}),
+                                                                  the density the rollout was drawn from and
+                                                                  weighed with (for a mixture over whole
+                                                                  rollouts its per-step conditional,
+                                                                  :func:`pemviz.weights.mixture_step_log_q`)
+``stage``                     integer >= 0                 -      optional (version 2): the stage that drew the
+                                                                  rollout, the same on all its rows
+``component``                 integer >= 0                 -      optional (version 2): which sampler of the
+                                                                  stage's mixture drew it (index into the
+                                                                  sidecar's ``stages[].components``)
 ============================  ===========================  =====  ==========================================
 
 Floats must be finite; log-probabilities <= 0. Other columns are ignored.
@@ -38,11 +46,23 @@ Floats must be finite; log-probabilities <= 0. Other columns are ignored.
   checkpoint (:func:`save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` / ``mixed50``,
   what sampled the rollouts; ``window_m``: mixed50's 50 % window (metres, default 10).
 - ``n_rollouts``, ``n_steps``: checked against the table when present.
-- ``format`` (``"pemviz-rollouts"``), ``version`` (1), ``pemviz_version``, ``provenance`` (free-form:
-  the run's config, stage, estimate).
+- ``weights`` (version 2): the weight convention the writer weighed with, ``to-failure`` (the product of p / q
+  over the steps before the failure step) or ``full`` (over every step but the last; Innes & Ramamoorthy 2022,
+  eq. 6); ``pemviz estimate`` uses it unless ``--weights`` says otherwise (absent: ``to-failure``).
+- ``stages`` (version 2): one object per stage in the table: ``stage``, ``kind``, ``n`` (its rollouts),
+  ``components`` (``[{"sampler": text, "n": rollouts}, ...]`` in the order of the ``component`` column; the
+  rollouts were drawn from the mixture sum_k (n_k / n) q_k), ``max_weight`` (n / n_target when the target itself is a
+  component, the bound of every weight; else null).
+- ``pooling`` (version 2): how the writer's estimate combines the stages: ``rule`` (``quadratic``, ``linear``,
+  ``rollouts`` or ``single``), ``stages`` (the pooled stages) and ``stage_weights`` (lambda_k >= 0, summing to 1):
+  mu_hat = sum_k lambda_k mu_hat_k (absent: every rollout alike).
+- ``format`` (``"pemviz-rollouts"``), ``version`` (2; version 1 files, without ``weights``, ``stages``,
+  ``pooling`` and the two integer columns, are read too), ``pemviz_version``, ``provenance`` (free-form:
+  the run's config, its estimate and its per-stage estimates).
 
-Importance weights use the first T - 1 steps (the last action affects nothing; Innes & Ramamoorthy 2022, Algorithm 1), as the
-engine does, so an estimate from a file written by ``pemviz run`` equals the run's to float64 rounding.
+Importance weights use at most the first T - 1 steps (the last action affects nothing; Innes & Ramamoorthy 2022,
+Algorithm 1), as the engine does, so an estimate from a file written by ``pemviz run`` equals the run's to float64
+rounding.
 Bad input raises :class:`RolloutFormatError`: one message naming the file, the column, and the rollout
 and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
 """
@@ -75,7 +95,12 @@ from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
 
 FORMAT_TAG = "pemviz-rollouts"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)
+"""Versions this pemviz reads: 1 (one batch, ``log_q`` its sampler's density) and 2 (adds ``stage``, ``component``,
+``weights``, ``stages``, ``pooling``)."""
+WEIGHTS = ("to-failure", "full")
+"""Weight conventions (:mod:`pemviz.weights`)."""
 PROPOSAL_FORMAT_TAG = "pemviz-proposal"
 PROPOSAL_FORMAT_VERSION = 1
 
@@ -118,6 +143,10 @@ class RolloutMeta:
         n_rollouts, n_steps: N and T, checked against the table when set.
         pemviz_version: the writer's version.
         provenance: free-form JSON (the run's config, the stage the rollouts come from, its estimate).
+        weights: the writer's weight convention, one of :data:`WEIGHTS`, or None (not said).
+        stages: per stage in the table: ``{"stage", "kind", "n", "components": [{"sampler", "n"}], "max_weight"}``.
+        pooling: ``{"rule", "stages", "stage_weights"}``: how the writer pooled the stages, or None.
+        version: the file's format version (:data:`READ_VERSIONS`).
     """
 
     formula: str
@@ -135,6 +164,14 @@ class RolloutMeta:
     provenance: Mapping[str, Any] = field(default_factory=dict)
     table_sha256: str | None = None
     proposal_sha256: str | None = None
+    weights: str | None = None
+    stages: tuple[Mapping[str, Any], ...] = ()
+    pooling: Mapping[str, Any] | None = None
+    version: int = FORMAT_VERSION
+
+    def stage_info(self, stage: int) -> Mapping[str, Any] | None:
+        """The sidecar's ``stages`` entry of ``stage``, or None."""
+        return next((s for s in self.stages if s["stage"] == stage), None)
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -159,6 +196,9 @@ class RolloutMeta:
             "n_rollouts": self.n_rollouts,
             "n_steps": self.n_steps,
             "provenance": _plain(self.provenance),
+            **({"weights": self.weights} if self.weights else {}),
+            **({"stages": [_plain(st) for st in self.stages]} if self.stages else {}),
+            **({"pooling": _plain(self.pooling)} if self.pooling else {}),
             **({"table_sha256": self.table_sha256} if self.table_sha256 else {}),
             **({"proposal_sha256": self.proposal_sha256} if self.proposal_sha256 else {}),
         }
@@ -177,8 +217,10 @@ class RolloutMeta:
             raise bad(f"must be a JSON object, got {type(obj).__name__}")
         if obj.get("format", FORMAT_TAG) != FORMAT_TAG:
             raise bad(f"format is {obj.get('format')!r}, expected {FORMAT_TAG!r}")
-        if obj.get("version", FORMAT_VERSION) != FORMAT_VERSION:
-            raise bad(f"format version {obj.get('version')!r}; this pemviz reads version {FORMAT_VERSION}")
+        version = obj.get("version", FORMAT_VERSION)
+        if isinstance(version, bool) or version not in READ_VERSIONS:
+            raise bad(f"format version {version!r}; this pemviz reads versions {', '.join(map(str, READ_VERSIONS))}: "
+                      "a newer pemviz wrote the file, upgrade pemviz to read it")
         for key in ("formula", "dt_s"):
             if key not in obj:
                 raise bad(f"field {key!r} is missing (required: formula, dt_s)")
@@ -225,6 +267,11 @@ class RolloutMeta:
             v = obj.get(key)
             if v is not None and not (isinstance(v, str) and len(v) == 64):
                 raise bad(f"{key} must be a SHA-256 hex digest (64 characters), got {v!r}")
+        weights = obj.get("weights")
+        if weights is not None and weights not in WEIGHTS:
+            raise bad(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
+        stages = _parse_stages(obj.get("stages"), bad)
+        pooling = _parse_pooling(obj.get("pooling"), bad)
         return cls(
             formula=formula,
             dt_s=float(dt),
@@ -241,7 +288,66 @@ class RolloutMeta:
             provenance=dict(obj.get("provenance") or {}),
             table_sha256=obj.get("table_sha256"),
             proposal_sha256=obj.get("proposal_sha256"),
+            weights=weights,
+            stages=stages,
+            pooling=pooling,
+            version=int(version),
         )
+
+
+def _is_count(x: Any, least: int = 0) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool) and x >= least
+
+
+def _parse_stages(value: Any, bad: Any) -> tuple[dict[str, Any], ...]:
+    """The sidecar's ``stages``: a list of ``{"stage", "kind", "n", "components", "max_weight"}``, distinct stages."""
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise bad(f"stages must be a list of objects, got {value!r}")
+    out: list[dict[str, Any]] = []
+    for k, st in enumerate(value):
+        where = f"stages[{k}]"
+        if not isinstance(st, dict):
+            raise bad(f"{where} must be a JSON object, got {st!r}")
+        if not _is_count(st.get("stage")) or not _is_count(st.get("n"), 1):
+            raise bad(f"{where} needs stage (an integer >= 0) and n (an integer >= 1), got {st!r}")
+        comps = st.get("components", [])
+        if not isinstance(comps, list) or not all(isinstance(c, dict) and _is_count(c.get("n"))
+                                                  and isinstance(c.get("sampler", ""), str) for c in comps):
+            raise bad(f"{where}.components must be a list of {{\"sampler\": text, \"n\": rollouts}}, got {comps!r}")
+        if comps and sum(c["n"] for c in comps) != st["n"]:
+            raise bad(f"{where}: its components hold {sum(c['n'] for c in comps)} rollouts, not n = {st['n']}")
+        bound = st.get("max_weight")
+        if bound is not None and not (_is_number(bound) and bound >= 1.0):
+            raise bad(f"{where}.max_weight must be a number >= 1 or null, got {bound!r}")
+        if not isinstance(st.get("kind", ""), str):
+            raise bad(f"{where}.kind must be text, got {st.get('kind')!r}")
+        out.append({"stage": st["stage"], "kind": st.get("kind", ""), "n": st["n"],
+                    "components": [{"sampler": c.get("sampler", ""), "n": c["n"]} for c in comps],
+                    "max_weight": None if bound is None else float(bound)})  # fmt: skip
+    numbers = [st["stage"] for st in out]
+    if len(set(numbers)) != len(numbers):
+        raise bad(f"stages lists stage {next(x for x in numbers if numbers.count(x) > 1)} twice")
+    return tuple(out)
+
+
+def _parse_pooling(value: Any, bad: Any) -> dict[str, Any] | None:
+    """The sidecar's ``pooling``: ``{"rule": text, "stages": [k...], "stage_weights": [lambda_k...]}``."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise bad(f"pooling must be a JSON object, got {value!r}")
+    stages, lam, rule = value.get("stages"), value.get("stage_weights"), value.get("rule", "")
+    if not (isinstance(stages, list) and stages and all(_is_count(k) for k in stages)
+            and len(set(stages)) == len(stages)):
+        raise bad(f"pooling.stages must be a non-empty list of distinct stage numbers, got {stages!r}")
+    if not (isinstance(lam, list) and len(lam) == len(stages) and all(_is_number(x) and x >= 0 for x in lam)
+            and abs(math.fsum(lam) - 1.0) <= 1e-9):
+        raise bad(f"pooling.stage_weights must be {len(stages)} numbers >= 0 summing to 1, got {lam!r}")
+    if not isinstance(rule, str):
+        raise bad(f"pooling.rule must be text, got {rule!r}")
+    return {"rule": rule, "stages": list(stages), "stage_weights": [float(x) for x in lam]}
 
 
 def braking_meta(
@@ -301,6 +407,7 @@ class RolloutData(RolloutBatch):
         rollout_ids: int64 [N], in file order.
         salient: float64 [N, T, 11] (:data:`SALIENT_COLUMNS`) or None.
         path: the Parquet file (None for data not read from disk).
+        stage, component: int64 [N], each rollout's stage and mixture component (version 2), or None.
     """
 
     log_p: np.ndarray | None
@@ -309,6 +416,8 @@ class RolloutData(RolloutBatch):
     rollout_ids: np.ndarray | None = None
     salient: np.ndarray | None = None
     path: Path | None = None
+    stage: np.ndarray | None = None
+    component: np.ndarray | None = None
 
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:
         """:meth:`pemviz.scenarios.RolloutBatch.log_weight` of the file's columns, float64 [N] (nats).
@@ -362,6 +471,31 @@ def _is_number(x: Any) -> bool:
 
 def _first_index(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask)[0])
+
+
+def check_stage_counts(meta: RolloutMeta, counts: Mapping[int, list[int]], error: Any) -> None:
+    """Check a table's rollouts per stage and component, ``{stage: [rollouts of component 0, 1, ...]}``, against the
+    sidecar's ``stages`` (each stage listed, its n and its components' n) and ``pooling`` (each pooled stage held).
+
+    Raises:
+        what ``error(message)`` returns (a :class:`RolloutFormatError` naming the file).
+    """
+    for k, held in sorted(counts.items()):
+        info = meta.stage_info(k)
+        if meta.stages and info is None:
+            raise error(f"stage {k} is in the table but not in the sidecar's stages")
+        if info is None:
+            continue
+        if info["n"] != sum(held):
+            raise error(f"the sidecar says stage {k} has n = {info['n']} rollouts but the table holds {sum(held)}")
+        declared = [c["n"] for c in info["components"]]
+        if declared and len(held) > len(declared):
+            raise error(f"stage {k} has component {len(held) - 1} but the sidecar lists {len(declared)} for it")
+        if declared and held + [0] * (len(declared) - len(held)) != declared:
+            raise error(f"stage {k}: the table holds {held} rollouts per component, the sidecar says {declared}")
+    for k in (meta.pooling or {}).get("stages", []):
+        if k not in counts:
+            raise error(f"the sidecar pools stage {k} but the table holds no rollout of it")
 
 
 class _Table:
@@ -471,6 +605,37 @@ class _Table:
             raise self.error(f"{name} = {float(x[row])!r} > 0 at {self.at(row)}: a log-probability (nats) must be <= 0")
         return x
 
+    def per_rollout(self, name: str, n: int, n_steps: int) -> np.ndarray:
+        """An integer column >= 0 that holds one value per rollout (the same on all its rows), as int64 [N]."""
+        col = self.table.column(name)
+        if not pa.types.is_integer(col.type):
+            raise self._type_error(name, "integers >= 0", located=True)
+        self._nulls(name, located=True)
+        x = col.to_numpy().astype(np.int64)
+        if (x < 0).any():
+            row = _first_index(x < 0)
+            raise self.error(f"{name} = {int(x[row])} at {self.at(row)}; it must be an integer >= 0")
+        per = x.reshape(n, n_steps)
+        differs = (per != per[:, :1]).any(axis=1)
+        if differs.any():
+            i = _first_index(differs)
+            t = _first_index(per[i] != per[i, 0])
+            raise self.error(f"{name} = {per[i, t]} at {self.at(i * n_steps + t)} but {per[i, 0]} at its step 0; "
+                             f"a rollout has one {name}")
+        return per[:, 0].copy()
+
+    def stages(self, stage: np.ndarray | None, component: np.ndarray | None) -> None:
+        """Check the stage / component columns against the sidecar's ``stages`` and ``pooling``."""
+        if stage is None:
+            if self.meta.stages or self.meta.pooling:
+                raise self.error("the sidecar lists stages or a pooling rule but the table has no stage column")
+            if component is not None:
+                raise self.error("a component column needs a stage column")
+            return
+        comp = np.zeros(stage.size, np.int64) if component is None else component
+        counts = {int(k): np.bincount(comp[stage == k]).tolist() for k in np.unique(stage)}
+        check_stage_counts(self.meta, counts, self.error)
+
     def booleans(self, name: str) -> np.ndarray:
         """A bool column (or integers 0 / 1) as bool [rows]."""
         col = self.table.column(name)
@@ -497,8 +662,10 @@ class _Table:
             salient = np.stack([self.floats(c) for c in SALIENT_COLUMNS], axis=-1).reshape(n, n_steps, -1)
         log_p = self.floats("log_p", log_prob=True).reshape(n, n_steps) if "log_p" in names else None
         log_q = self.floats("log_q", log_prob=True).reshape(n, n_steps) if "log_q" in names else None
+        stage, component = (self.per_rollout(c, n, n_steps) if c in names else None for c in ("stage", "component"))
+        self.stages(stage, component)
         return RolloutData(obs, detected, log_p, log_q, tuple(cols), meta=self.meta, rollout_ids=ids, salient=salient,
-                           path=path)
+                           path=path, stage=stage, component=component)
 
 
 # ---------------------------------------------------------------------------------------- read / write
@@ -579,14 +746,19 @@ def rollouts_table(
     rollout_ids: np.ndarray | None = None,
     salient: np.ndarray | None = None,
     log_probs: bool = True,
+    stage: int | np.ndarray | None = None,
+    component: np.ndarray | None = None,
 ) -> Any:
-    """The Parquet table of a batch: rollout, step, observations, detected, [salient], [log_p, log_q].
+    """The Parquet table of a batch: rollout, step, observations, detected, [salient], [log_p, log_q], [stage,
+    component].
 
     Args:
         batch: N rollouts [N, T].
         rollout_ids: int [N] (default 0..N-1).
         salient: float64 [N, T, 11] salient variables (:func:`braking_salient`) or None.
         log_probs: include ``log_p`` and ``log_q``.
+        stage: the stage of all N rollouts, or int [N] each rollout's, or None (no stage column).
+        component: int [N] each rollout's mixture component (with ``stage``; default 0).
     Raises:
         ValueError: arrays of the wrong shape.
     """
@@ -610,6 +782,12 @@ def rollouts_table(
     if log_probs:
         cols["log_p"] = np.asarray(batch.log_p, dtype=np.float64).reshape(-1)
         cols["log_q"] = np.asarray(batch.log_q, dtype=np.float64).reshape(-1)
+    if stage is not None:
+        comp = np.zeros(n, np.int64) if component is None else np.asarray(component, dtype=np.int64)
+        if comp.shape != (n,):
+            raise ValueError(f"component must have shape ({n},), got {comp.shape}")
+        cols["stage"] = np.repeat(np.broadcast_to(np.asarray(stage, dtype=np.int64), (n,)), n_steps)
+        cols["component"] = np.repeat(comp, n_steps)
     return pa.table(cols)
 
 
@@ -636,6 +814,8 @@ class RolloutWriter:
         self.path = check_rollouts_path(path, overwrite=overwrite)
         self.meta, self.log_probs, self.overwrite = meta, log_probs, overwrite
         self.n_rollouts = 0
+        self.stage_counts: dict[int, list[int]] = {}
+        """Rollouts written per stage and component (chunks appended with a ``stage``)."""
         self._shape: tuple[int, tuple[str, ...]] | None = None
         self._stack = contextlib.ExitStack()
         self._tmp = self._stack.enter_context(temp_file(self.path))
@@ -648,12 +828,14 @@ class RolloutWriter:
         self.abort()
 
     def append(self, batch: RolloutBatch, *, rollout_ids: np.ndarray | None = None,
-               salient: np.ndarray | None = None) -> None:  # fmt: skip
+               salient: np.ndarray | None = None, stage: int | np.ndarray | None = None,
+               component: np.ndarray | None = None) -> None:  # fmt: skip
         """Validate and write the next rollouts (default ids: continuing from the last chunk's).
 
         Args:
             batch: rollouts [n, T] with the same T and observation columns as the chunks before.
-            rollout_ids, salient: see :func:`rollouts_table`.
+            rollout_ids, salient, stage, component: see :func:`rollouts_table` (give ``stage`` for every chunk or
+                for none).
         Raises:
             ValueError: wrong shapes, a batch unlike the earlier ones, or a :class:`RolloutFormatError` (NaN, a
                 positive log-probability ...) naming the rollout and step; nothing of this chunk is written.
@@ -662,27 +844,40 @@ class RolloutWriter:
         if self._shape is not None and self._shape != (batch.n_steps, names):
             raise ValueError(f"RolloutWriter: a chunk of {batch.n_steps} steps of {names} after chunks of "
                              f"{self._shape[0]} steps of {self._shape[1]}")  # fmt: skip
-        meta = dataclasses.replace(self.meta, n_rollouts=None, n_steps=batch.n_steps, observation_columns=names)
+        meta = dataclasses.replace(self.meta, n_rollouts=None, n_steps=batch.n_steps, observation_columns=names,
+                                   stages=(), pooling=None)  # checked against the whole table at commit
         if meta.columns != names:
             raise ValueError(f"write_rollouts: the batch's first observation must be gap_m, got {names}")
         if rollout_ids is None:
             rollout_ids = np.arange(self.n_rollouts, self.n_rollouts + batch.n, dtype=np.int64)
-        table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=self.log_probs)
+        table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=self.log_probs, stage=stage,
+                               component=component)  # fmt: skip
         _Table(table, meta, f"{self.path} (not written)").parse(None)
         if self._writer is None:
             self._writer = pq.ParquetWriter(self._tmp, table.schema)
         self._writer.write_table(table)
         self._shape = (batch.n_steps, names)
         self.n_rollouts += batch.n
+        if stage is not None:
+            stages = np.broadcast_to(np.asarray(stage, dtype=np.int64), (batch.n,))
+            comps = np.zeros(batch.n, np.int64) if component is None else np.asarray(component, np.int64)
+            for k in np.unique(stages).tolist():
+                comp = np.bincount(comps[stages == k])
+                held = self.stage_counts.get(k, [])
+                held = held + [0] * (comp.size - len(held))
+                self.stage_counts[k] = [a + (int(comp[i]) if i < comp.size else 0) for i, a in enumerate(held)]
 
-    def commit(self, proposal: Any = None) -> Path:
+    def commit(self, proposal: Any = None, keep_stages: Any = None) -> Path:
         """Close the table and move the unit into place; returns the Parquet path.
 
         Args:
             proposal: a :class:`pemviz.sampling.Proposal` that sampled the rollouts, saved as ``NAME.proposal.pt``
                 and named in the sidecar; None: none saved.
+            keep_stages: the stages to keep (the others are dropped, row group by row group, before the table moves
+                into place); None: every rollout written.
         Raises:
-            ValueError: no rollouts were appended.
+            ValueError: no rollouts were appended, or none of ``keep_stages``; the sidecar's ``stages`` or
+                ``pooling`` do not match the table (a :class:`RolloutFormatError`).
             OutputExists: a file of the unit appeared meanwhile (without ``overwrite``).
             OSError: the folder is not writable, the disk is full (nothing is left behind).
         """
@@ -692,8 +887,14 @@ class RolloutWriter:
             self._writer.close()
             self._writer = None
             n_steps, names = self._shape
-            meta = dataclasses.replace(self.meta, n_rollouts=self.n_rollouts, n_steps=n_steps,
+            n_rollouts = self.n_rollouts
+            if keep_stages is not None and set(self.stage_counts) - set(keep_stages):
+                n_rollouts = self._keep(set(keep_stages))
+            meta = dataclasses.replace(self.meta, n_rollouts=n_rollouts, n_steps=n_steps,
                                        observation_columns=names)  # fmt: skip
+            if self.stage_counts or meta.stages or meta.pooling:
+                kept = {k: c for k, c in self.stage_counts.items() if keep_stages is None or k in keep_stages}
+                check_stage_counts(meta, kept, lambda msg: RolloutFormatError(f"{self.path} (not written): {msg}"))
             p, side, ckpt = self.path, sidecar_path(self.path), proposal_path(self.path)
             pairs = []
             if proposal is not None:
@@ -710,6 +911,29 @@ class RolloutWriter:
             return p
         finally:
             self.abort()
+
+    def _keep(self, stages: set) -> int:
+        """Rewrite the temporary table with the rollouts of ``stages`` only, row group by row group; returns their
+        number."""
+        kept = self._stack.enter_context(temp_file(self.path))
+        source = pq.ParquetFile(self._tmp)
+        writer, n_rows = None, 0
+        try:
+            for g in range(source.num_row_groups):
+                group = source.read_row_group(g)
+                group = group.filter(pc.is_in(group.column("stage"), pa.array(sorted(stages), pa.int64())))
+                if group.num_rows:
+                    writer = writer or pq.ParquetWriter(kept, group.schema)
+                    writer.write_table(group)
+                    n_rows += group.num_rows
+        finally:
+            if writer is not None:
+                writer.close()
+        if writer is None:
+            raise ValueError(f"{self.path}: none of stages {sorted(stages)} was written")
+        self._tmp = kept
+        return n_rows // self._shape[0]
+
 
     def abort(self) -> None:
         """Stop writing and remove the temporary files (nothing under ``path`` changes); safe to call twice."""
@@ -729,6 +953,8 @@ def write_rollouts(
     log_probs: bool = True,
     proposal: Any = None,
     overwrite: bool = False,
+    stage: int | np.ndarray | None = None,
+    component: np.ndarray | None = None,
 ) -> Path:
     """Write ``NAME.parquet``, its sidecar ``NAME.json`` and (with ``proposal``) ``NAME.proposal.pt`` as one unit
     (a :class:`RolloutWriter` with one chunk).
@@ -740,7 +966,8 @@ def write_rollouts(
         path: ``NAME.parquet``.
         batch: N rollouts [N, T] (observations, detected, log_p, log_q in nats).
         meta: the sidecar (:func:`braking_meta` for the braking scenario).
-        rollout_ids, salient, log_probs: see :func:`rollouts_table`.
+        rollout_ids, salient, log_probs, stage, component: see :func:`rollouts_table` (``stage`` / ``component`` of
+            a version-2 file: ``RolloutData.stage`` / ``.component``).
         proposal: a :class:`pemviz.sampling.Proposal` that sampled the batch, saved as ``NAME.proposal.pt`` and
             named in the sidecar; None: none saved.
         overwrite: replace existing files of the unit (only ones pemviz wrote).
@@ -753,7 +980,7 @@ def write_rollouts(
         OSError: the folder is not writable, the disk is full (nothing is left behind).
     """
     with RolloutWriter(path, meta, log_probs=log_probs, overwrite=overwrite) as writer:
-        writer.append(batch, rollout_ids=rollout_ids, salient=salient)
+        writer.append(batch, rollout_ids=rollout_ids, salient=salient, stage=stage, component=component)
         return writer.commit(proposal)
 
 

@@ -85,3 +85,38 @@ def test_config_names_the_allowed_uniforms():
     assert ExperimentConfig().uniforms == "array-rqmc" and ExperimentConfig().pool_weights == "quadratic"
     with pytest.raises(ConfigError, match="uniforms = 'sobol' is invalid: use one of array-rqmc, iid"):
         ExperimentConfig(uniforms="sobol")
+
+
+def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_uniform():
+    from pemviz.rng import array_rqmc_blocks, block_bounds, by_blocks
+
+    rng = np.random.default_rng(4)
+    u, key = rng.random(10), rng.normal(size=(10, 2))
+    got = array_rqmc_blocks(u, key, block=4)  # blocks [0, 4), [4, 8), [8, 10)
+    for a, b in block_bounds(10, 4):
+        np.testing.assert_array_equal(got[a:b], array_rqmc_uniforms(u[a:b], key[a:b]))
+    # block 0 by hand: ranks of key[:, 0] then the shift u[0]
+    ranks = np.argsort(np.argsort(key[:4, 0]))
+    np.testing.assert_allclose(got[:4], np.remainder(ranks * GOLDEN + u[0], 1.0), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(array_rqmc_blocks(u, key), array_rqmc_uniforms(u, key))  # 10 <= 8,192: one block
+    assert block_bounds(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    calls = []
+    out = by_blocks(lambda x: calls.append(len(x)) or x[:, 0] * 2.0, key, block=4)
+    assert calls == [4, 4, 2] and np.array_equal(out, key[:, 0] * 2.0)
+
+
+def test_batched_array_rqmc_rollouts_do_not_depend_on_the_chunk_size():
+    from pemviz.pem import load_pem
+    from pemviz.problems import braking_problem
+    from pemviz.scenarios.batched import iter_batched, simulate_batched
+    from pemviz.scenarios import RolloutBatch
+
+    pb = braking_problem(load_pem())
+    q = ArrayRQMC(WindowDetector(ConstantDetector(0.5), pb.target, 10.0))
+    whole = simulate_batched(None, 9000, q, pb.target, np.random.default_rng(1))
+    small = simulate_batched(None, 9000, q, pb.target, np.random.default_rng(1), chunk_size=97)
+    chunks = list(iter_batched(None, 9000, q, pb.target, np.random.default_rng(1), chunk_size=3000))
+    assert [c.n for c in chunks] == [3000, 3000, 2192, 808]  # block 0 (8,192) in chunks of 3,000, then block 1
+    for other in (small, RolloutBatch.concatenate(chunks)):
+        np.testing.assert_array_equal(whole.detected, other.detected)
+        np.testing.assert_array_equal(whole.log_q, other.log_q)

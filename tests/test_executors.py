@@ -1,10 +1,12 @@
-"""Executors: chunks of rollouts simulated elsewhere reproduce the serial run; ``--executor ray`` gives the
-serial estimate for the same seed."""
+"""Executors: chunks of rollouts simulated elsewhere reproduce the serial run; ``--executor ray`` with 1 or 2
+workers gives the serial rollouts and estimate, bit for bit, for the same seed."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import importlib.util
-import math
+import io
 
 import numpy as np
 import pytest
@@ -15,11 +17,11 @@ from pemviz.engine import Experiment, RolloutsSampled, StageFinished
 from pemviz.executors import (
     ChunkUniforms,
     SerialExecutor,
-    chunk_bounds,
     chunk_uniforms,
     gather_chunks,
     get_executor,
     simulate_chunk,
+    task_blocks,
 )
 from pemviz.pem import load_pem
 from pemviz.problems import Problem, braking_problem
@@ -36,14 +38,13 @@ def test_t_draws_of_n_uniforms_are_the_rows_of_one_t_by_n_draw_and_chunks_are_it
         np.testing.assert_array_equal(chunk_uniforms(state, 7, 5, a, b), block[:, a:b])
 
 
-def test_chunk_bounds_cover_the_rollouts_in_order():
-    assert chunk_bounds(20, 2) == [(0, 10), (10, 20)]
-    assert chunk_bounds(3, 8) == [(0, 1), (1, 2), (2, 3)]
-    bounds = chunk_bounds(20000, 2, max_chunk=8192)
-    assert len(bounds) == 3 and bounds[0][0] == 0 and bounds[-1][1] == 20000
-    assert all(b0[1] == b1[0] for b0, b1 in zip(bounds, bounds[1:]))
-    with pytest.raises(ValueError, match="n, n_chunks"):
-        chunk_bounds(0, 2)
+def test_tasks_take_runs_of_whole_fixed_blocks_in_order():
+    assert task_blocks(20, 2, block=8) == [[(0, 8)], [(8, 16), (16, 20)]]
+    assert task_blocks(3, 8, block=1) == [[(0, 1)], [(1, 2)], [(2, 3)]]
+    assert task_blocks(20_000, 2) == [[(0, 8192)], [(8192, 16384), (16384, 20_000)]]
+    assert task_blocks(1000, 4) == [[(0, 1000)]]  # one block: nothing to split
+    with pytest.raises(ValueError, match="n, n_tasks, block"):
+        task_blocks(0, 2)
 
 
 def test_simulate_with_pre_drawn_uniforms_reproduces_the_serial_rollouts_chunk_by_chunk():
@@ -70,7 +71,7 @@ def test_chunks_gathered_equal_the_serial_batch_and_leave_the_rng_where_it_would
     rng_serial, rng_chunks = np.random.default_rng(9), np.random.default_rng(9)
     serial = SerialExecutor().simulate(problem, n, sampler, problem.target, rng_serial)
     state = rng_chunks.bit_generator.state
-    results = [simulate_chunk(problem, n, a, b, sampler, problem.target, state) for a, b in chunk_bounds(n, 3)]
+    results = [simulate_chunk(problem, n, a, b, sampler, problem.target, state) for a, b in ((0, n // 3), (n // 3, 2 * n // 3), (2 * n // 3, n))]
     gathered = gather_chunks(problem, n, rng_chunks, results)
     for name in ("observations", "detected", "log_p", "log_q"):
         np.testing.assert_array_equal(getattr(gathered, name), getattr(serial, name))
@@ -128,35 +129,84 @@ def _run(config: ExperimentConfig, problem: Problem):
     return Experiment(config, [listen], problem=problem).run(), batches, stages
 
 
-@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install ray)")
-def test_ray_executor_with_two_local_workers_gives_the_serial_estimate_for_the_same_seed():
+ray_missing = pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install ray)")
+
+
+@pytest.fixture(scope="module", params=[1, 2], ids=["1-worker", "2-workers"])
+def ray_workers(request):
+    """A local Ray cluster of 1 or 2 CPUs for the module's tests; ``--executor ray`` then uses it."""
     import ray
 
     from pemviz.executors import close_executors
 
-    # A less confident PEM (logits / 4) so that K = 2 stages of N = 20 already see crashes.
-    problem = braking_problem(load_pem().with_temperature(4.0))
-    # i.i.d. uniforms: with Array-RQMC each task couples its own chunk's rollouts (module docstring)
-    config = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=20, pretrain_rollouts=20, ce_epochs=100,
-                              pretrain_epochs=200, seed=1, uniforms="iid")  # fmt: skip
-    serial, serial_batches, serial_stages = _run(config, problem)
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(num_cpus=request.param, include_dashboard=False, log_to_driver=False)
     try:
-        executor = get_executor("ray")
-        assert executor.n_chunks == 2
-        remote, remote_batches, remote_stages = _run(config.replace(executor="ray"), problem)
+        yield request.param
     finally:
         close_executors()
         ray.shutdown()
-    assert len(remote_batches) == len(serial_batches) == 4  # pretraining, 2 CE stages, final batch
+
+
+BLOCKS = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=9000, pretrain_rollouts=20, ce_epochs=100,
+                          pretrain_epochs=200, seed=1)  # fmt: skip
+"""A small default-sampler run whose final batch spans two Array-RQMC blocks (8,192 + 808 rollouts)."""
+
+
+@functools.lru_cache(maxsize=None)
+def _serial_run(uniforms: str):
+    return _run(BLOCKS.replace(uniforms=uniforms), braking_problem(load_pem().with_temperature(4.0)))
+
+
+@ray_missing
+@pytest.mark.parametrize("uniforms", ["array-rqmc", "iid"])
+def test_ray_tasks_of_whole_blocks_give_the_serial_rollouts_and_estimate_bit_for_bit(ray_workers, uniforms):
+    # A less confident PEM (logits / 4) so that K = 2 stages of N = 20 already see crashes.
+    problem = braking_problem(load_pem().with_temperature(4.0))
+    serial, serial_batches, serial_stages = _serial_run(uniforms)
+    executor = get_executor("ray")
+    assert executor.n_chunks == ray_workers
+    remote, remote_batches, remote_stages = _run(BLOCKS.replace(uniforms=uniforms, executor="ray"), problem)
+    assert [b.n for b in remote_batches] == [b.n for b in serial_batches] == [20, 20, 20, 9000]
     for a, b in zip(serial_batches, remote_batches):
-        np.testing.assert_array_equal(a.detected, b.detected)
-        np.testing.assert_array_equal(a.observations, b.observations)
-        np.testing.assert_allclose(b.log_q, a.log_q, rtol=0, atol=1e-13)  # torch: last bit per chunk size
-    for a, b in zip(serial_stages, remote_stages):
-        assert a.estimate.n_failures == b.estimate.n_failures
-        assert a.gamma == b.gamma or (math.isnan(a.gamma) and math.isnan(b.gamma))
-    s, r = serial.final.estimate, remote.final.estimate
-    assert s.n_failures == r.n_failures > 0
-    assert abs(r.log_mu_hat - s.log_mu_hat) <= 1e-12  # mu_hat equal to 1e-12 relative
-    assert r.ess == pytest.approx(s.ess, rel=1e-9)
+        for name in ("observations", "detected", "log_p", "log_q"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert [(repr(s.gamma), s.n_elites, s.estimate) for s in serial_stages] == \
+        [(repr(s.gamma), s.n_elites, s.estimate) for s in remote_stages]  # fmt: skip
+    assert serial.final.estimate == remote.final.estimate and serial.final.estimate.n_failures > 0
+
+
+@ray_missing
+def test_toy_blocks_on_ray_give_the_serial_batch_bit_for_bit(ray_workers):
+    from pemviz.detectors import ArrayRQMC
+    from pemviz.sampling import StateProposal
+
+    problem = toy_problem(ToyParams(10, 5, 3, 0.7))
+    proposal = ArrayRQMC(StateProposal((0, 1), (10.0, 1.0), (10.0, 0.0)))  # a torch network: asked block by block
+    a = SerialExecutor().simulate(problem, 17_000, proposal, problem.target, np.random.default_rng(5))
+    b = get_executor("ray").simulate(problem, 17_000, proposal, problem.target, np.random.default_rng(5))
+    for name in ("observations", "detected", "log_p", "log_q"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+RUN_ARGS = ("run", "--no-record", "--preset", "quick", "--k", "2", "--n", "30", "--n-final", "9000")
+"""A small default-sampler run whose final batch spans two blocks, so that ray runs it as tasks."""
+
+
+@functools.lru_cache(maxsize=None)
+def _final_lines(seed: int, executor: str) -> tuple[str, str]:
+    """(the verdict line, mu_hat with its log) of ``pemviz run`` (:data:`RUN_ARGS`) on ``executor``."""
+    from pemviz import cli
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli.main([*RUN_ARGS, "--seed", str(seed), "--executor", executor]) == 0
+    lines = out.getvalue().splitlines()
+    return lines[-1], lines[-2].split(" from ")[0]
+
+
+@ray_missing
+@pytest.mark.parametrize("seed", [0, 3, 7])
+def test_cli_run_on_ray_prints_the_serial_final_line(ray_workers, seed):
+    serial = _final_lines(seed, "serial")
+    assert serial[0].startswith("mu_hat = ") and "exact 1.984e-15" in serial[0]
+    assert _final_lines.__wrapped__(seed, "ray") == serial

@@ -281,7 +281,16 @@ HOSTILE_SIDECARS = {
     "formula-digits": ({"formula": "G[0,5](d >= ２)"}, "unexpected character"),
     "digest-short": ({"table_sha256": "abc"}, "table_sha256 must be a SHA-256"),
     "format-other": ({"format": "other"}, "format is 'other'"),
-    "version-2": ({"version": 2}, "format version 2"),
+    "version-3": ({"version": 3}, "format version 3; this pemviz reads versions 1, 2"),
+    "weights-other": ({"weights": "half"}, "weights must be one of to-failure, full"),
+    "stages-not-list": ({"stages": {"stage": 1}}, "stages must be a list of objects"),
+    "stages-no-n": ({"stages": [{"stage": 1}]}, "stages[0] needs stage (an integer >= 0) and n"),
+    "stages-components": ({"stages": [{"stage": 1, "n": 5, "components": [{"sampler": "q", "n": 4}]}]},
+                          "stages[0]: its components hold 4 rollouts, not n = 5"),
+    "stages-twice": ({"stages": [{"stage": 1, "n": 5}, {"stage": 1, "n": 5}]}, "stages lists stage 1 twice"),
+    "stages-bound": ({"stages": [{"stage": 1, "n": 5, "max_weight": 0.5}]}, "max_weight must be a number >= 1"),
+    "pooling-sum": ({"pooling": {"stages": [1, 2], "stage_weights": [0.5, 0.6]}}, "summing to 1"),
+    "pooling-stages": ({"pooling": {"stages": [], "stage_weights": []}}, "pooling.stages must be a non-empty list"),
 }
 
 

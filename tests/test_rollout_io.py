@@ -101,7 +101,8 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     np.testing.assert_allclose(general, data.log_p, rtol=0, atol=1e-12)
     # a copy without log_p / log_q: the sidecar names the PEM and the sampler
     bare = tmp_path / "bare.parquet"
-    rio.write_rollouts(bare, data.to_batch(), data.meta, salient=data.salient, log_probs=False)
+    rio.write_rollouts(bare, data.to_batch(), data.meta, salient=data.salient, log_probs=False, stage=data.stage,
+                       component=data.component)  # fmt: skip
     assert "log_p" not in pq.read_schema(bare).names
     for args in ([str(bare)], [str(path), "--pem", "ml-nn", "--proposal", "naive50"]):
         code, out, err = estimate_cli(capsys, *args, "--no-record")
@@ -144,11 +145,12 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     assert ckpt.is_file() and json.loads(rio.sidecar_path(path).read_text())["proposal"] == ckpt.name
 
     data = rio.read_rollouts(path)
-    paper_weights = estimate_rollouts(data, data.log_p, data.log_q, weights_until_failure=False).estimate
+    paper_weights = estimate_rollouts(data, data.log_p, data.log_q, weights="full").estimate
     assert same_mu(paper_weights.log_mu_hat, truth.log_mu_hat)
     np.testing.assert_array_equal(detector_log_prob(data, rio.load_proposal(ckpt)), batch.log_q)
     bare = tmp_path / "bare.parquet"
-    rio.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False)  # no salient columns: the gap
+    rio.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False, stage=data.stage,
+                       component=data.component)  # no salient columns: the gap
     meta = json.loads(rio.sidecar_path(bare).read_text())
     assert meta["proposal"] == "adaptive.proposal.pt" and meta["pem"] == str(pem_file)
     for args in ([str(bare)], [str(bare), "--pem", str(pem_file), "--proposal", str(ckpt)]):
@@ -236,7 +238,7 @@ def test_a_hand_written_file_with_a_minimal_sidecar_gives_the_hand_computed_esti
     assert res.log_mu_hat == pytest.approx(math.log((math.exp(-1.0) + math.exp(-5.25)) / 3), rel=1e-14)
     assert res.ess == pytest.approx((math.exp(-1.0) + math.exp(-5.25)) ** 2 / (math.exp(-2) + math.exp(-10.5)))
     assert res.nll_mean == pytest.approx((2.0 + 6.0) / 2)  # -log p over the steps before each failure
-    paper = estimate_rollouts(data, data.log_p, data.log_q, weights_until_failure=False).estimate
+    paper = estimate_rollouts(data, data.log_p, data.log_q, weights="full").estimate
     assert paper.log_mu_hat == pytest.approx(math.log((math.exp(-1.5) + math.exp(-5.25)) / 3), rel=1e-14)
 
 
@@ -380,7 +382,7 @@ def test_sidecar_problems_are_named(small_file, tmp_path):
         ({"formula": "G[0,99](d >= "}, r"formula 'G\[0,99\]\(d >= ' is not valid STL"),
         ({"dt_s": -1}, r"dt_s must be a number of seconds > 0, got -1"),
         ({"n_steps": 50}, r"the sidecar says n_steps = 50 but the table holds 100"),
-        ({"version": 2}, r"format version 2; this pemviz reads version 1"),
+        ({"version": 3}, r"format version 3; this pemviz reads versions 1, 2: a newer pemviz wrote the file"),
         ({"signals": {"d": "gap_m", "w": "width_m"}}, r"missing column 'width_m'"),
     ]:
         rio.sidecar_path(bad).write_text(json.dumps({**meta, **change}))

@@ -4,7 +4,9 @@ The rollouts come from anywhere (``pemviz run --save-rollouts``, CARLA, a user's
 of :mod:`pemviz.rollout_io`. The importance weights need log p_PEM and log q of every logged action: from
 the file's ``log_p`` / ``log_q`` columns, or recomputed from a PEM (``--pem``) and from what sampled the
 rollouts (``--proposal``: a proposal checkpoint or ``pem`` / ``naive50`` / ``mixed50``). Without options,
-columns are used when present, else the PEM and proposal the sidecar names. Everything is read and
+columns are used when present, else the PEM and proposal the sidecar names. The weights follow the convention the
+sidecar records (``--weights`` overrides it; :mod:`pemviz.weights`), the stages are pooled as the sidecar says, and
+the mean importance weight checks that ``log q`` is the density that drew the rollouts. Everything is read and
 checked before the recording is created: bad input writes nothing.
 """
 
@@ -29,6 +31,8 @@ from pemviz.files import check_output_folder, free_default_path, write_rrd
 from pemviz.pem import load_pem
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
 from pemviz.sampling import format_probability
+from pemviz.sinks.console import estimate_cells
+from pemviz.weights import CONVENTIONS
 
 MAX_TRACES = 300
 """Rollouts whose traces go into the recording: the least robust ones (every failure first)."""
@@ -54,6 +58,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--metric", default="classic", help=f"robustness metric: {', '.join(METRICS)} (default classic)")
     p.add_argument("--failure", default="crash", choices=("crash", "metric"),
                    help="failure event: crash = classic robustness < 0 (default); metric = the metric's < 0")
+    p.add_argument("--weights", default=None, choices=CONVENTIONS,
+                   help="importance weights: to-failure = prod p/q over the steps before the failure step (pemviz's "
+                        "sampler); full = over every step but the last (the paper's eq. 6); both unbiased. Default: the "
+                        "convention the sidecar records, else to-failure")
     rec = p.add_argument_group("recording (rerun)")
     rec.add_argument("--save", default=None, metavar="PATH.rrd",
                      help="write the recording here (default recordings/estimate-<name>-<time>.rrd)")
@@ -123,24 +131,56 @@ def default_recording_path(rollouts: Path) -> Path:
     return free_default_path(Path("recordings"), f"estimate-{rollouts.stem}-{stamp}")
 
 
-def summary_lines(data: Any, result: Any, p_src: str, q_src: str) -> list[str]:
-    """The printed report: the file, the sources of log p / log q, failures, mu_hat, NLL, ESS."""
+WEIGHT_TEXT = {"to-failure": "prod p/q over the steps before the failure step",
+               "full": "prod p/q over every step but the last (Innes & Ramamoorthy 2022, eq. 6)"}
+
+
+def weights_convention(meta: Any, requested: str | None) -> tuple[str, str]:
+    """(the convention, why): ``--weights``, else the sidecar's ``weights``, else a version-1 file's run config,
+    else ``to-failure`` (what pemviz's sampler weighs with)."""
+    if requested is not None:
+        said = f"; the file's writer used {meta.weights}" if meta.weights and meta.weights != requested else ""
+        return requested, f"--weights{said}"
+    if meta.weights is not None:
+        return meta.weights, "the convention the sidecar records"
+    config = (meta.provenance or {}).get("config")
+    if isinstance(config, dict) and isinstance(config.get("weights_until_failure"), bool):
+        return ("to-failure" if config["weights_until_failure"] else "full"), "the run's config in the sidecar"
+    return "to-failure", "pemviz's default; the sidecar names none"
+
+
+def summary_lines(data: Any, result: Any, p_src: str, q_src: str, why: str = "") -> list[str]:
+    """The printed report: the file, the weight convention, the sources of log p / log q, one row per stage, the
+    pooled estimate and which stages it pools, the mean-weight check (and its warning), the verdict line."""
     e = result.estimate
     failure = "crash (classic robustness < 0)" if result.failure == "crash" else f"{result.metric} robustness < 0"
-    nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.2f}"
-    return [
+    lines = [
         f"pemviz estimate: {data.path} ({data.n} rollouts x {data.n_steps} steps, dt {data.meta.dt_s:g} s), "
         f"spec {data.meta.formula}, failure = {failure}, metric {result.metric}",
+        f"  weights: {result.weights}, {WEIGHT_TEXT[result.weights]} ({why or 'given'})",
         f"  log p: {p_src}",
         f"  log q: {q_src}",
-        f"{'failures':>10} {'mu_hat':>11} {'NLL':>8} {'ESS':>7} {'min rho':>9}",
-        f"{f'{e.n_failures}/{e.n}':>10} {format_probability(e.log_mu_hat):>11} {nll:>8} {e.ess:>7.2f} "
-        f"{float(np.min(result.robustness)):>9.4f}",
-        f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat!r} nats), "
-        f"NLL mean {e.nll_mean:.4f} / -log-mean-exp {e.nll_lme:.4f} nats, ESS {e.ess:.4f}, "
-        f"mean importance weight {format_probability(e.log_mean_weight)}",
-        e.summary(),
+        f"{'stage':>7} {'kind':>8} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} {'k-hat':>6} "
+        f"{'verdict':>10}",
     ]
+    for row in result.stages:
+        lines.append(f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} {estimate_cells(row.estimate)}")
+    if result.pooled:
+        which = ", ".join(map(str, result.pooled))
+        lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- stages {which} pooled ({result.rule})")
+    elif len(result.stages) > 1:
+        lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike (the sidecar gives no pooling)")
+    nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.4f}"
+    lines.append(
+        f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat!r} nats), "
+        f"NLL mean {nll} / -log-mean-exp {e.nll_lme:.4f} nats, ESS {e.ess:.4f}, min robustness "
+        f"{float(np.min(result.robustness)):.4f}"
+    )
+    lines.append(result.check.line())
+    if result.check.warning():
+        lines.append(result.check.warning())
+    lines.append(e.summary())
+    return lines
 
 
 def check_plausible(e: Any, q_src: str) -> None:
@@ -176,7 +216,8 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
             "estimate",
             rr.AnyValues(log_mu_hat=e.log_mu_hat, n_failures=e.n_failures, n=e.n, nll_mean=e.nll_mean,
                          nll_lme=e.nll_lme, ess=e.ess, metric=result.metric, failure=result.failure,
-                         formula=data.meta.formula, pemviz_version=pemviz.__version__),
+                         formula=data.meta.formula, pemviz_version=pemviz.__version__, weights=result.weights,
+                         pooled_stages=",".join(map(str, result.pooled)), log_mean_weight=result.check.log_mean),
             static=True,
         )  # fmt: skip
         order = np.argsort(np.where(result.failed, -np.inf, result.robustness), kind="stable")[:MAX_TRACES]
@@ -213,12 +254,12 @@ def main(args: argparse.Namespace) -> int:
             raise UsageError(str(exc)) from None
     data = rio.read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
-    run_config = (data.meta.provenance or {}).get("config") or {}
-    until_failure = bool(run_config.get("weights_until_failure", True))  # as the run that wrote the file weighed
-    result = estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure,
-                               weights_until_failure=until_failure)  # fmt: skip
+    weights, why = weights_convention(data.meta, args.weights)
+    result = estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure, weights=weights)
+    if result.weights != weights:
+        why = f"{weights} needs a crash of a G[a,b](state predicate) formula; every step but the last instead"
     check_plausible(result.estimate, q_src)
-    lines = summary_lines(data, result, p_src, q_src)
+    lines = summary_lines(data, result, p_src, q_src, why)
     print("\n".join(lines), flush=True)
     if save_path is not None:
         save_path.parent.mkdir(exist_ok=True)  # the default folder, as pemviz run makes it

@@ -69,13 +69,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument(
         "--executor", default=None,
-        help=f"where rollouts run: {'|'.join(EXECUTORS)} (default {d.executor}; ray: Ray tasks, same estimate)",
+        help=f"where rollouts run: {'|'.join(EXECUTORS)} (default {d.executor}; ray: Ray tasks over blocks of 8,192 "
+        "rollouts, the serial run's rollouts and estimate bit for bit; a batch of one block runs in this process)",
     )  # fmt: skip
     p.add_argument("--ray-address", dest="ray_address", default=None, help="Ray cluster (default: start a local one)")
     p.add_argument(
         "--save-rollouts", dest="save_rollouts", default=None, metavar="PATH.parquet",
-        help="write the final batch's rollouts (with log_p, log_q) for `pemviz estimate` (format: pemviz.rollout_io)",
+        help="write the rollouts of every stage the estimate uses, each with its stage, sampler component and the "
+        "log density it was weighed with, for `pemviz estimate` to reproduce the estimate (format: pemviz.rollout_io)",
     )  # fmt: skip
+    p.add_argument("--rollout-stages", dest="rollout_stages", default="used", choices=("used", "all"),
+                   help="--save-rollouts: the stages the estimate uses (default), or all of them")
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing --save / --save-rollouts files (only files pemviz wrote)")
     add_recording_args(p)
@@ -240,10 +244,14 @@ def main(args: argparse.Namespace) -> int:
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
+        if cfg.method == "ams":
+            raise UsageError("--save-rollouts: method ams estimates by splitting, without importance weights; its "
+                             "rollouts cannot be estimated from again (use an importance-sampling method)")
         from pemviz.sinks.rollouts import RolloutSink
 
         try:
-            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite)
+            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite,
+                                       stages=args.rollout_stages)  # fmt: skip
         except ValueError as exc:
             raise UsageError(str(exc)) from None
 

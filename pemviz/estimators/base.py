@@ -320,14 +320,22 @@ class EliteCandidates:
 
 def pooled_estimate(stages: list[StageRollouts], stage_weights: np.ndarray | None = None) -> Estimate:
     """mu_hat over the rollouts of several stages together, each weighted by the proposal that drew it (see
-    :meth:`pemviz.estimators.CrossEntropy.result` for why the pooled mean is unbiased).
+    :meth:`pemviz.estimators.CrossEntropy.result` for why the pooled mean is unbiased); :func:`pool` of their arrays.
 
     Args:
         stages: K stages of n_k rollouts each.
-        stage_weights: lambda_k >= 0, [K], summing to 1: mu_hat = sum_k lambda_k mu_hat_k, computed as the mean over
-            all N = sum n_k rollouts of 1[fail] w lambda_k N / n_k; None: n_k / N (every rollout alike).
+        stage_weights: lambda_k >= 0, [K], summing to 1, or None (:func:`pool`).
     """
-    parts = [s.arrays() for s in stages]
+    return pool([s.arrays() for s in stages], stage_weights)
+
+
+def pool(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], stage_weights: np.ndarray | None = None) -> Estimate:
+    """mu_hat = sum_k lambda_k mu_hat_k over K stages given as (log-weights, failed, log p before the failure),
+    [n_k] each, computed as the mean over all N = sum n_k rollouts of 1[fail] w lambda_k N / n_k (nats, float64).
+
+    Args:
+        stage_weights: lambda_k >= 0, [K], summing to 1; None: n_k / N (every rollout alike).
+    """
     if stage_weights is not None:
         n = np.array([lw.size for lw, _, _ in parts], dtype=np.float64)
         with np.errstate(divide="ignore"):
@@ -335,3 +343,15 @@ def pooled_estimate(stages: list[StageRollouts], stage_weights: np.ndarray | Non
         parts = [(lw + c, f, lp) for (lw, f, lp), c in zip(parts, shift)]
     log_w, failed, log_p = (np.concatenate(a) for a in zip(*parts))
     return estimate(log_w, failed, log_p)
+
+
+def pool_stage_weights(rule: str, sizes: list[int]) -> np.ndarray | None:
+    """lambda_j of the j-th pooled stage (j = 1..K) of n_j rollouts under ``pool_weights`` ``rule``: ``quadratic``
+    j^2 n_j / sum_i i^2 n_i, ``linear`` j n_j / sum_i i n_i, float64 [K]; None for ``rollouts`` (n_j / N, every rollout
+    alike). Fixed by the stage sizes alone, before any pooled stage is drawn (Portier & Delyon, "Asymptotic optimality
+    of adaptive importance sampling", NeurIPS 2018)."""
+    if rule == "rollouts":
+        return None
+    power = 2 if rule == "quadratic" else 1
+    lam = np.array([(j + 1) ** power * n for j, n in enumerate(sizes)], dtype=np.float64)
+    return lam / lam.sum()

@@ -34,10 +34,12 @@ from pemviz.estimators.base import (
     elite_counts,
     failure_steps,
     mixture_log_weight,
+    pool_stage_weights,
     pooled_estimate,
     weighted_steps_mask,
 )
 from pemviz.problems import Problem
+from pemviz.rng import RQMC_BLOCK
 from pemviz.sampling import Estimate, Proposal, StateProposal, estimate, fit_proposal
 from pemviz.scenarios import RolloutBatch
 
@@ -542,6 +544,8 @@ class CrossEntropy:
         self._memos: tuple[LastAnswer, ...] = ()
         """The proposal as both samplers around it ask it (they share its answer about a step's observations), and
         the two samplers, each remembering its last answer (the mixture's target asks both about every step)."""
+        self._seen = 0
+        """Rollouts of the planned stage observed so far."""
         self._scored: ScoredTarget | None = None
         """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
         self.tolerance = config.fit_tolerance if config.fit == "adam" else None
@@ -570,7 +574,7 @@ class CrossEntropy:
             return None
         for memo in self._memos:
             memo.forget()  # the proposal was fitted since it last answered
-        self._scored = None
+        self._scored, self._seen = None, 0
         if plan.mixture:
             extras = tuple(dict.fromkeys(d for _, d in plan.mixture if d is not self.problem.target))
             self._scored = ScoredTarget(self.problem.target, extras)
@@ -604,18 +608,36 @@ class CrossEntropy:
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
 
     def _with_parts(self, batch: RolloutBatch) -> RolloutBatch:
-        """``batch`` of a mixture stage with ``log_q_parts`` [N, K, T]: the log-probabilities of its actions under
-        the mixture's proposal components (:attr:`ScoredTarget.extras`), as the simulation asked them, or asked
-        again where it could not keep them (e.g. Ray tasks; the proposal network then runs once for all)."""
+        """``batch`` (the planned mixture stage's next rollouts) with ``log_q_parts`` [N, K, T]: the log-probabilities
+        of its actions under the mixture's proposal components (:attr:`ScoredTarget.extras`), as the simulation asked
+        them, or asked again where it could not keep them (Ray tasks; :meth:`_ask_again`)."""
+        start, self._seen = self._seen, self._seen + batch.n
         logits = self._scored.take(batch.n, batch.n_steps)
         if logits is None:
-            obs = batch.observations.reshape(-1, batch.observations.shape[2])
-            rebuilt = dict(zip((id(d) for _, d in self._plan.mixture), (d for _, d in self._around(
-                self._plan.mixture, self.proposal))))  # fmt: skip
-            logits = np.stack([rebuilt[id(d)].detect_logit(obs).reshape(batch.detected.shape)
-                               for d in self._scored.extras])  # fmt: skip
+            logits = self._ask_again(batch, start)
         parts = np.stack([action_log_prob(lg, batch.detected) for lg in logits], axis=1)
         return dataclasses.replace(batch, log_q_parts=parts)
+
+    def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
+        """The extras' logits [K, N, T] of rollouts ``start .. start + N - 1`` of the stage, asked as a simulator asks
+        them: one step at a time about the rollouts of one block (:data:`pemviz.rng.RQMC_BLOCK`) of one mixture
+        component, so that the proposal network sees the same rows and gives the same bits as it gave there."""
+        plan, n, n_steps = self._plan, batch.n, batch.n_steps
+        rebuilt = dict(zip((id(d) for _, d in plan.mixture), (d for _, d in self._around(plan.mixture, self.proposal))))
+        extras = [rebuilt[id(d)] for d in self._scored.extras]
+        logits = np.empty((len(extras), n, n_steps))
+        edges = np.cumsum([0] + [k for k, _ in plan.mixture])
+        for lo, hi in zip(edges[:-1], edges[1:]):  # each component's rollouts, drawn one block after another
+            for b0 in range(int(lo), int(hi), RQMC_BLOCK):
+                a, b = max(b0, start), min(b0 + RQMC_BLOCK, int(hi), start + n)
+                if a >= b:
+                    continue
+                rows = slice(a - start, b - start)
+                for t in range(n_steps):
+                    obs = batch.observations[rows, t]
+                    for j, d in enumerate(extras):
+                        logits[j, rows, t] = d.detect_logit(obs)
+        return logits
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         plan = self._plan
@@ -674,12 +696,7 @@ class CrossEntropy:
         if self.config.final_estimate == "pooled" and self.reached_failures and self.pooled:
             used = (*self.pooled, stage)
             stages = [self.stages[k] for k in used]
-            lam = None
-            if self.config.pool_weights != "rollouts":
-                power = 2 if self.config.pool_weights == "quadratic" else 1
-                lam = np.array([(j + 1) ** power * s.n for j, s in enumerate(stages)], dtype=np.float64)
-                lam /= lam.sum()
-            return pooled_estimate(stages, lam), used
+            return pooled_estimate(stages, pool_stage_weights(self.config.pool_weights, [s.n for s in stages])), used
         return est, (stage,)
 
     # -- the algorithm --------------------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from pemviz.detectors import Detector, action_log_prob, step_uniforms
+from pemviz.rng import by_blocks
 
 
 class Simulator(Protocol):
@@ -129,7 +130,9 @@ def simulate(
     """Run ``n`` rollouts in lockstep, detections drawn from ``sampler``, scored under ``target``.
 
     A detection happens iff ``u <= q(detect | s)`` with ``u ~ U(0, 1)`` from ``rng`` (one [n] draw per
-    step), as in the authors' code.
+    step), as in the authors' code. The detectors are asked about one fixed block of :data:`pemviz.rng.RQMC_BLOCK`
+    rollouts at a time, and an Array-RQMC sampler couples the rollouts of each block (``uniforms`` must then start at
+    a block boundary of the batch), so that chunks of whole blocks simulated elsewhere give the same bits.
 
     Args:
         make_simulator: builds a fresh simulator at its start state.
@@ -161,8 +164,8 @@ def simulate(
     log_q = np.empty((n, n_steps))
     for t in range(n_steps):
         o = np.stack([s.observation() for s in sims])
-        q_logit = sampler.detect_logit(o)
-        p_logit = q_logit if target is sampler else target.detect_logit(o)
+        q_logit = by_blocks(sampler.detect_logit, o)  # one fixed block at a time, as on every executor
+        p_logit = q_logit if target is sampler else by_blocks(target.detect_logit, o)
         u = step_uniforms(rng.random(n) if uniforms is None else uniforms[t], sampler, q_logit, o)
         # u <= sigmoid(logit)  <=>  log u <= log_expit(logit): exact in log-space.
         a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))

@@ -25,7 +25,10 @@ generator (``np.random.default_rng`` gives PCG64) each chunk jumps to its rollou
 ``simulate`` leaves it in. Other bit generators cannot jump by draws: their chunks then draw one after
 the other (chunk 0's T arrays, then chunk 1's, ...), and the rollouts depend on ``chunk_size``.
 Detectors evaluated in numpy (the PEM, constants, windows) give the same bits at any batch size; a torch
-proposal may differ in the last bit between batch sizes.
+proposal may differ in the last bit between batch sizes. An Array-RQMC sampler couples the rollouts of each fixed
+block of :data:`pemviz.rng.RQMC_BLOCK` (= :data:`DEFAULT_CHUNK_SIZE`) rollouts, so its rollouts are simulated block by
+block whatever ``chunk_size`` (:func:`iter_batched` hands them out in chunks of ``chunk_size``): the same rollouts,
+bit for bit, for any chunk size and on any executor.
 
 Units: metres, seconds, m/s; log-probabilities in nats.
 """
@@ -39,7 +42,7 @@ import numpy as np
 from scipy.special import log_expit
 
 from pemviz.detectors import Detector, step_uniforms
-from pemviz.rng import JUMPABLE, advance, bit_generator_at
+from pemviz.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 from pemviz.sampling import estimate
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_acceleration, initial_controller_state
@@ -178,6 +181,12 @@ def replay(params: BrakingParams | None, detected: np.ndarray) -> np.ndarray:
 # -- sampled rollouts ------------------------------------------------------------------------------
 
 
+def _coupled(sampler: Detector) -> bool:
+    """Whether ``sampler`` draws by Array-RQMC: its rollouts are then simulated one fixed block of
+    :data:`pemviz.rng.RQMC_BLOCK` at a time, whatever ``chunk_size`` (the block's rollouts are coupled)."""
+    return bool(getattr(sampler, "array_rqmc", False))
+
+
 def _check_args(who: str, n: object, chunk_size: object) -> None:
     for name, value in (("n", n), ("chunk_size", chunk_size)):
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
@@ -299,6 +308,11 @@ def iter_batched(
     _check_args("iter_batched", n, chunk_size)
     p = params or BrakingParams()
     n_steps = p.n_steps
+    if _coupled(sampler) and chunk_size != RQMC_BLOCK:  # simulated block by block, handed out chunk by chunk
+        for batch in iter_batched(p, n, sampler, target, rng, chunk_size=RQMC_BLOCK):
+            for a in range(0, batch.n, int(chunk_size)):
+                yield batch if batch.n <= chunk_size else batch.select(slice(a, a + int(chunk_size)))
+        return
     for start, stop, uniforms in _uniform_chunks(rng, int(n), n_steps, int(chunk_size)):
         m = stop - start
         batch = RolloutBatch(
@@ -346,7 +360,8 @@ def simulate_batched(
     detected = np.empty((n, n_steps), dtype=bool)
     log_p = np.empty((n, n_steps))
     log_q = np.empty((n, n_steps))
-    for start, stop, uniforms in _uniform_chunks(rng, n, n_steps, int(chunk_size)):
+    chunk_size = RQMC_BLOCK if _coupled(sampler) else int(chunk_size)
+    for start, stop, uniforms in _uniform_chunks(rng, n, n_steps, chunk_size):
         s = slice(start, stop)
         _run_chunk(p, sampler, target, uniforms, obs[s], detected[s], log_p[s], log_q[s])
     return RolloutBatch(obs, detected, log_p, log_q, OBSERVATION_NAMES)

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Callable, Union
 import numpy as np
 
 from pemviz.detectors import Detector, action_log_prob, step_uniforms
+from pemviz.rng import by_blocks
 
 if TYPE_CHECKING:  # imported lazily at run time: pemviz.problems imports the scenarios package
     from pemviz.problems import Problem
@@ -178,8 +179,8 @@ def simulate_toy(
     log_q = np.empty((n, T))
     for t in range(T):
         o = np.stack([distance, stopped.astype(np.float64)], axis=1)
-        q_logit = sampler.detect_logit(o)
-        p_logit = q_logit if target is sampler else target.detect_logit(o)
+        q_logit = by_blocks(sampler.detect_logit, o)  # one fixed block at a time, as on every executor
+        p_logit = q_logit if target is sampler else by_blocks(target.detect_logit, o)
         u = step_uniforms(rng.random(n), sampler, q_logit, o)
         a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
         if forced is not None:

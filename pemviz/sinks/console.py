@@ -30,7 +30,7 @@ def _num(x: float, fmt: str) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
 
 
-def _estimate_cells(e: Estimate) -> str:
+def estimate_cells(e: Estimate) -> str:
     """failures/N, mu_hat, its interval, mean NLL (nats), ESS, k-hat and verdict, aligned with :data:`HEADER`."""
     return (
         f"{f'{e.n_failures}/{e.n}':>10} {format_probability(e.log_mu_hat):>11} {e.interval_text():>21} "
@@ -58,8 +58,8 @@ def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: flo
 
 
 def stage_row(res: StageResult) -> str:
-    """One table row: stage, kind, gamma_kappa, the estimate's cells (:func:`_estimate_cells`), wall time (s)."""
-    return f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {_estimate_cells(res.estimate)} {res.wall_s:>7.2f}"
+    """One table row: stage, kind, gamma_kappa, the estimate's cells (:func:`estimate_cells`), wall time (s)."""
+    return f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {estimate_cells(res.estimate)} {res.wall_s:>7.2f}"
 
 
 class ConsoleSink:
@@ -104,7 +104,7 @@ class ConsoleSink:
             print(stage_row(event.result), file=self.out, flush=True)
         elif isinstance(event, FinalEstimate):
             e = event.estimate
-            print(f"{'final':>7} {'':>8} {'':>9} {_estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
+            print(f"{'final':>7} {'':>8} {'':>9} {estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
             print(
                 f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat:.4f} nats) "
                 f"from {event.n_simulations} simulations in {event.wall_s:.1f} s",

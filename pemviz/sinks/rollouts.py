@@ -1,4 +1,4 @@
-"""Engine listener that saves the rollouts of the final estimate as a rollout file (``pemviz run --save-rollouts``).
+"""Engine listener that saves the rollouts of the run's estimate as a rollout file (``pemviz run --save-rollouts``).
 
 The file format (Parquet table, JSON sidecar, proposal checkpoint) is :mod:`pemviz.rollout_io`'s.
 """
@@ -11,86 +11,129 @@ import os
 from pathlib import Path
 from typing import Any
 
-from pemviz.engine import RolloutChunk, RunCancelled, RunFinished, RunStarted
+import numpy as np
+
+from pemviz.engine import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
+from pemviz.estimators.base import pool_stage_weights
 from pemviz.pem import DEFAULT_PEM_NAME
 from pemviz.rollout_io import RolloutWriter, braking_meta, braking_salient, check_rollouts_path
 from pemviz.sampling import Proposal
+from pemviz.weights import convention, describe, stage_log_q
 
+STAGES = ("used", "all")
+"""Which stages ``--save-rollouts`` writes: those the run's estimate uses, or every stage (pretraining included)."""
+
+
+def _estimate_json(e: Any) -> dict[str, Any]:
+    return {"log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n, "log_ci": list(e.log_ci), "ess": e.ess,
+            "khat": e.khat, "verdict": e.verdict, "reason": e.reason}  # fmt: skip
 
 
 class RolloutSink:
-    """Engine listener for ``pemviz run --save-rollouts``: writes the batch the final estimate comes from.
+    """Engine listener for ``pemviz run --save-rollouts``: writes every stage the run's estimate uses (``stages =
+    "used"``: the stages it pooled, or its one batch) or every stage (``"all"``), so that ``pemviz estimate`` on the
+    file reproduces the run's estimate.
 
-    That batch is the fresh final batch, the last CE stage's with ``final_estimate="last-stage"``, or a
-    baseline's one batch. Its rollouts are written chunk by chunk as the engine simulates them
-    (:class:`pemviz.engine.RolloutChunk`, Parquet row groups of a :class:`pemviz.rollout_io.RolloutWriter`), with
-    ``log_p`` / ``log_q`` and the salient variables, so memory stays that of a chunk whatever N is; the unit is
-    moved into place when the run finishes, and nothing is left after a cancelled or failed run. If the
-    detector that sampled the batch is a proposal, a snapshot of it taken when the batch was sampled is saved as
-    ``NAME.proposal.pt`` and named in the sidecar.
+    Each rollout is written with its stage, the component of the stage's mixture that drew it, and as ``log_q`` the
+    per-step density the run weighed it with (:func:`pemviz.weights.stage_log_q`: for a mixture over whole rollouts,
+    the mixture's). The sidecar holds the run's weight convention, each stage's components and weight bound, and the
+    pooling rule with its stage weights (:mod:`pemviz.rollout_io`). Rollouts are written chunk by chunk as the engine
+    simulates them (:class:`pemviz.engine.RolloutChunk`, Parquet row groups of a
+    :class:`pemviz.rollout_io.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of a
+    chunk whatever N is; the stages the estimate did not use are dropped and the unit is moved into place when the
+    run finishes, and nothing is left after a cancelled or failed run. If the file holds one stage drawn by a
+    proposal, a snapshot of it taken when the stage was sampled is saved as ``NAME.proposal.pt`` and named in the
+    sidecar.
 
     Attributes:
         written: the Parquet path once written, else None.
+    Raises:
+        ValueError: a bad path, an unknown ``stages``, or (at the run's start) a method without importance weights.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, pem: str | None = None, overwrite: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, pem: str | None = None, overwrite: bool = False,
+                 stages: str = "used") -> None:  # fmt: skip
+        if stages not in STAGES:
+            raise ValueError(f"stages = {stages!r}: use one of {', '.join(STAGES)}")
         self.path = check_rollouts_path(path, overwrite=overwrite, what="--save-rollouts")
-        self.pem = pem
-        self.overwrite = overwrite
+        self.pem, self.overwrite, self.stages = pem, overwrite, stages
         self.written: Path | None = None
         self._formula: str | None = None
         self._config: Any = None
         self._writer: RolloutWriter | None = None
-        self._stage: tuple[int, str] | None = None
-        self._proposal: Any = None
+        self._sizes: dict[int, int] = {}
+        self._infos: dict[int, dict[str, Any]] = {}
+        self._proposals: dict[int, Any] = {}
+        self._results: dict[int, dict[str, Any]] = {}
 
-    def _saves(self, stage: int, kind: str) -> bool:
-        """Whether the final estimate comes from this stage's batch (known from the run's settings)."""
-        cfg = self._config
-        if kind == "final" or getattr(cfg, "method", "adaptive") != "adaptive":
-            return True
-        return kind == "ce" and not cfg.has_final_batch and stage == cfg.n_stages
+    def _saves(self, kind: str) -> bool:
+        """Whether a stage of this kind can enter the run's estimate (pretraining never does), or all are saved."""
+        return self.stages == "all" or kind != "pretrain"
 
     def __call__(self, event: Any) -> None:
         if isinstance(event, RunStarted):
+            if getattr(event.config, "method", None) == "ams":
+                raise ValueError("--save-rollouts: method ams estimates by splitting, without importance weights; "
+                                 "its rollouts cannot be estimated from again")  # fmt: skip
             self._formula, self._config = event.formula, event.config
-        elif isinstance(event, RolloutChunk) and self._saves(event.stage, event.kind):
-            if self._stage != (event.stage, event.kind):  # a new batch: start over (a single-batch method's last)
-                self.close()
-                self._stage = (event.stage, event.kind)
-                self._proposal = copy.deepcopy(event.sampler) if isinstance(event.sampler, Proposal) else None
-                self._writer = RolloutWriter(self.path, self._meta(event), overwrite=self.overwrite)
-            self._writer.append(event.batch, salient=braking_salient(event.batch.gap_m))
+        elif isinstance(event, StageStarted):
+            self._sizes[event.stage] = event.n_rollouts
+        elif isinstance(event, RolloutChunk) and self._saves(event.kind):
+            self._append(event)
+        elif isinstance(event, StageFinished):
+            self._results[event.result.stage] = _estimate_json(event.result.estimate)
         elif isinstance(event, RunFinished) and self._writer is not None:
             self.write(event)
         elif isinstance(event, RunCancelled):
             self.close()
 
-    def _meta(self, chunk: Any) -> Any:
+    def _append(self, chunk: Any) -> None:
+        if self._writer is None:
+            self._writer = RolloutWriter(self.path, self._meta(), overwrite=self.overwrite)
+        if chunk.stage not in self._infos:
+            n = self._sizes.get(chunk.stage, chunk.batch.n)
+            parts = list(chunk.parts) or [(n, chunk.sampler)]
+            n_target = sum(k for k, d in parts if d is chunk.target and d is not None)
+            self._infos[chunk.stage] = {
+                "stage": chunk.stage, "kind": chunk.kind, "n": n,
+                "components": [{"sampler": describe(d, chunk.target), "n": k} for k, d in parts],
+                "max_weight": n / n_target if n_target else None,
+            }  # fmt: skip
+            if isinstance(chunk.sampler, Proposal):  # trained in place afterwards: keep the one that sampled
+                self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
+        log_q, component = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
+        batch = dataclasses.replace(chunk.batch, log_q=log_q)
+        self._writer.append(batch, salient=braking_salient(batch.gap_m), stage=chunk.stage, component=component)
+
+    def _meta(self) -> Any:
         cfg = self._config
         method = getattr(cfg, "method", None)
         proposal = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}.get(method)
-        provenance: dict[str, Any] = {"stage": chunk.stage, "kind": chunk.kind}
-        if cfg is not None:
-            provenance["config"] = dataclasses.asdict(cfg)
+        provenance: dict[str, Any] = {} if cfg is None else {"config": dataclasses.asdict(cfg)}
         return braking_meta(self._formula, pem=self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME,
                             proposal=proposal, provenance=provenance)  # fmt: skip
 
-    def write(self, finished: Any = None) -> Path:
-        """Commit the rollouts written so far (and the proposal snapshot, if any), with the run's estimate in
-        the sidecar's provenance; returns the Parquet path."""
-        writer = self._writer
-        if finished is not None:
-            e = finished.final.estimate
-            provenance = dict(writer.meta.provenance or {})
-            provenance["estimate"] = {
-                "log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n, "log_ci": list(e.log_ci),
-                "ess": e.ess, "khat": e.khat, "verdict": e.verdict, "reason": e.reason,
-                "stages_used": list(finished.final.stages_used),
-            }  # the run's estimate: with a pooled estimate it uses more stages than this file's final batch
-            writer.meta = dataclasses.replace(writer.meta, provenance=provenance)
+    def write(self, finished: Any) -> Path:
+        """Commit the stages the run's estimate used (or all), with the sidecar's weight convention, stages, pooling
+        rule and the run's estimates, and the proposal snapshot of a single stage; returns the Parquet path."""
+        writer, cfg = self._writer, self._config
+        used = [k for k in finished.final.stages_used if k in self._infos] or sorted(self._infos)  # none said: all
+        keep = sorted(self._infos) if self.stages == "all" else used
+        sizes = [self._infos[k]["n"] for k in used]
+        rule = "single" if len(used) == 1 else getattr(cfg, "pool_weights", "rollouts")
+        lam = None if rule == "single" else pool_stage_weights(rule, sizes)
+        lam = np.asarray(sizes, dtype=np.float64) / sum(sizes) if lam is None else lam
+        provenance = dict(writer.meta.provenance or {})
+        provenance["estimate"] = {**_estimate_json(finished.final.estimate), "stages_used": used}
+        provenance["stage_estimates"] = {str(k): v for k, v in sorted(self._results.items())}
+        writer.meta = dataclasses.replace(
+            writer.meta, provenance=provenance, weights=convention(getattr(cfg, "weights_until_failure", True)),
+            stages=tuple(self._infos[k] for k in keep),
+            pooling={"rule": rule, "stages": used, "stage_weights": [float(x) for x in lam]},
+        )  # fmt: skip
+        proposal = self._proposals.get(keep[0]) if len(keep) == 1 else None
         try:
-            self.written = writer.commit(self._proposal)
+            self.written = writer.commit(proposal, keep_stages=keep)
         finally:
             self._writer = None
         return self.written

@@ -1,0 +1,202 @@
+"""Importance weights of logged rollouts: the two weight conventions, the per-step density of a mixture over whole
+rollouts, and the mean-weight check of a logged sampling density.
+
+Conventions (Owen 2013, "Monte Carlo theory, methods and examples", ch. 9; Innes & Ramamoorthy 2022, eq. 6 and
+Algorithm 1). A rollout of T steps takes actions a_0..a_{T-1}; the one at the last step changes nothing inside the
+spec's horizon, so no convention weighs it.
+
+- ``full``: w = prod_{t < T-1} p(a_t | s_t) / q(a_t | .), the paper's product over the whole trajectory. Unbiased:
+  E_q[1{fail} w] = sum_tau q(tau) 1{fail}(tau) p(tau) / q(tau) = P_p(fail).
+- ``to-failure``: w = prod_{t < min(t_f, T-1)} p / q, stopped at the failure step t_f (the first step where the
+  ``G[a,b]`` formula is violated; T for a rollout that does not fail), what pemviz's default sampler weighs with.
+  Unbiased too: W_t = prod_{s < t} p / q is a q-martingale with W_0 = 1 (E_q[p(a_t | s_t) / q(a_t | .) | past] =
+  sum_a p(a | s_t) = 1), and t_f is a stopping time bounded by T, so E_q[W_{t_f}] = 1 (optional stopping) and
+  E_q[1{fail} W_{t_f}] = P_p(fail): whether a rollout has failed by step t is decided by the actions before t, so
+  the full weight's factors after t_f integrate out to 1 given the past. Both estimate the same mu; the stopped
+  weight drops factors that only add variance.
+
+The weights are formed in float64 log space throughout (sums of log-probabilities, :func:`scipy.special.logsumexp`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+from scipy.special import logsumexp
+
+from pemviz.detectors import ArrayRQMC, ConstantDetector, Detector, WindowDetector, action_log_prob
+
+CONVENTIONS = ("to-failure", "full")
+"""The weight conventions: ``to-failure`` (stopped at the failure step) and ``full`` (every step but the last)."""
+
+CHECK_Z = 4.0
+"""Standard errors beyond which the mean importance weight is called far from 1 (a correct log q: probability
+< 1e-4 under a normal approximation of the mean)."""
+
+
+def convention(weights_until_failure: bool) -> str:
+    """The name of the convention an :class:`~pemviz.config.ExperimentConfig` weighs with."""
+    return "to-failure" if weights_until_failure else "full"
+
+
+def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float]) -> np.ndarray:
+    """Per-step log density of a mixture over whole rollouts, float64 [N, T] (nats).
+
+    Rollouts drawn from sum_k c_k q_k(tau) (component k picked once per rollout with probability c_k) have the
+    sequential density q_mix(a_t | s_t, a_{<t}) = M_t - M_{t-1} in log space, with M_t = logsumexp_k (log c_k +
+    sum_{s <= t} log q_k(a_s | s_s)) and M_{-1} = 0: the components' likelihoods so far weigh each component's
+    prediction (the balance heuristic of multiple importance sampling, Veach & Guibas 1995, written step by step).
+    Its sum over any first k steps is log sum_k c_k prod_{s < k} q_k, so both conventions weigh with the mixture.
+
+    Args:
+        log_q: float64 [K, N, T], log q_k(a_t | s_t) of each component (nats).
+        shares: c_k > 0, [K], summing to 1.
+    Returns:
+        float64 [N, T], each entry <= 0.
+    Raises:
+        ValueError: shapes that do not match, or shares not positive.
+    """
+    log_q = np.asarray(log_q, dtype=np.float64)
+    c = np.asarray(shares, dtype=np.float64)
+    if log_q.ndim != 3 or c.shape != (log_q.shape[0],) or not (c > 0).all():
+        raise ValueError(f"mixture_step_log_q: log_q must be [K, N, T] and shares [K] > 0, got {log_q.shape}, {c.shape}")
+    running = logsumexp(np.log(c)[:, None, None] + np.cumsum(log_q, axis=2), axis=0)  # M_t, [N, T]
+    before = np.concatenate([np.zeros((running.shape[0], 1)), running[:, :-1]], axis=1)
+    return np.minimum(running - before, 0.0)  # a conditional probability: <= 0 up to rounding
+
+
+def component_of(start: int, n: int, sizes: Sequence[int]) -> np.ndarray:
+    """int64 [n]: the mixture component of rollouts ``start .. start + n - 1`` of a stage drawn component by
+    component, ``sizes[k]`` rollouts from component k, in order."""
+    edges = np.cumsum(sizes)
+    return np.searchsorted(edges, np.arange(start, start + n), side="right").astype(np.int64)
+
+
+def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detector | None,
+                start: int = 0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The per-step log density the rollouts of a stage were weighed with, and each rollout's component.
+
+    Args:
+        batch: rollouts ``start .. start + n - 1`` of the stage (a :class:`~pemviz.scenarios.RolloutBatch`, [n, T]).
+        parts: the stage's samplers in the order drawn, ``(rollouts, detector)`` each (one: no mixture).
+        target: the target detector (its component's density is ``batch.log_p``), or None.
+    Returns:
+        (log q float64 [n, T] in nats: ``batch.log_q`` for one sampler, else :func:`mixture_step_log_q` of every
+        sampler's density of the logged actions; component int64 [n]).
+    """
+    sizes = [k for k, _ in parts] or [batch.n]
+    component = component_of(start, batch.n, sizes)
+    if len(parts) <= 1:
+        return np.asarray(batch.log_q, dtype=np.float64), component
+    obs = batch.observations.reshape(-1, batch.observations.shape[2])
+    log_q = [batch.log_p if d is target else
+             action_log_prob(d.detect_logit(obs).reshape(batch.detected.shape), batch.detected)
+             for _, d in parts]  # fmt: skip
+    return mixture_step_log_q(np.stack(log_q), np.asarray(sizes, dtype=np.float64) / sum(sizes)), component
+
+
+def describe(detector: Any, target: Any = None) -> str:
+    """A short name of a sampler for the sidecar: ``target``, ``proposal within 10 m, target beyond`` ..."""
+    from pemviz.estimators.cross_entropy import DefensiveDetector
+    from pemviz.sampling import Proposal
+
+    if detector is target:
+        return "target"
+    if isinstance(detector, WindowDetector):
+        return (f"{describe(detector.inside, target)} within {detector.radius_m:g} m, "
+                f"{describe(detector.outside, target)} beyond")  # fmt: skip
+    if isinstance(detector, DefensiveDetector):
+        return f"(1 - {detector.eps:g}) {describe(detector.detector, target)} + {detector.eps:g} x 50 %"
+    if isinstance(detector, ConstantDetector):
+        return f"{detector.p_detect:g} everywhere"
+    if isinstance(detector, Proposal):
+        return "proposal"
+    if isinstance(detector, ArrayRQMC):
+        return describe(detector.detector, target)
+    inner = getattr(detector, "detector", None)
+    return type(detector).__name__ + ("" if inner is None else f" of {describe(inner, target)}")
+
+
+@dataclass(frozen=True)
+class MeanWeight:
+    """The mean importance weight of N rollouts, a check of the density that drew them (expectation 1).
+
+    Attributes:
+        log_mean: log of the mean weight (nats).
+        se: its standard error, sd(w) / sqrt(N) (inf when the weights overflow float64).
+        n: N.
+        bound_se: the largest standard error of the mean a correct density allows, sqrt(sum_i (B_i - 1)) / N, when
+            every weight is bounded by a known B_i (a share of the stage drawn from the target itself); else None.
+        over_bound: rollouts whose weight exceeds its bound B_i (impossible under the declared density).
+    """
+
+    log_mean: float
+    se: float
+    n: int
+    bound_se: float | None = None
+    over_bound: int = 0
+
+    @property
+    def mean(self) -> float:
+        return math.exp(self.log_mean) if self.log_mean < 709.0 else math.inf
+
+    @property
+    def z(self) -> float:
+        """(mean - 1) in standard errors: of the bound when known, else of the sample (checked above 1 only)."""
+        scale = self.bound_se if self.bound_se is not None else self.se
+        if not scale > 0.0:
+            return 0.0 if self.mean == 1.0 else math.copysign(math.inf, self.mean - 1.0)
+        return (self.mean - 1.0) / scale
+
+    @property
+    def far(self) -> bool:
+        """Whether log q is not the density that drew the rollouts: the mean is more than :data:`CHECK_Z` standard
+        errors from 1 (below 1 only when the weights are bounded: unbounded weights of a proposal aimed at the
+        failures average far below 1 as a rule, their mass lying in rollouts it rarely draws), or a weight exceeds
+        its bound."""
+        if self.over_bound:
+            return True
+        return abs(self.z) > CHECK_Z if self.bound_se is not None else self.z > CHECK_Z
+
+    def line(self) -> str:
+        """``logged-density check: mean importance weight 0.998 (SE 0.031) over 1800 rollouts; ...``."""
+        head = (f"logged-density check: mean importance weight {_number(self.mean)} (SE {_number(self.se)}) over "
+                f"{self.n} rollouts, expected 1")  # fmt: skip
+        if self.bound_se is not None:
+            return f"{head} +- {_number(CHECK_Z * self.bound_se)} here (every weight bounded by the target's share)"
+        return f"{head}; checked above 1 only (unbounded weights: a mean below 1 is usual)"
+
+    def warning(self) -> str | None:
+        """One line when :attr:`far`, else None."""
+        if not self.far:
+            return None
+        why = (f"{self.over_bound} weight(s) above the bound the sidecar's mixture allows" if self.over_bound else
+               f"{abs(self.z):.1f} standard errors from 1")  # fmt: skip
+        return (f"warning: mean importance weight {_number(self.mean)} is {why}: log_q is not the density that drew "
+                "these rollouts (e.g. one mixture component's instead of the mixture's): do not trust the estimate below")
+
+
+def _number(x: float) -> str:
+    return f"{x:.3g}" if math.isfinite(x) else "inf"
+
+
+def mean_weight(log_w: np.ndarray, bound: np.ndarray | None = None) -> MeanWeight:
+    """:class:`MeanWeight` of importance log-weights [N] (nats), ``bound``: B_i >= 1 per rollout [N] (nan: unknown),
+    or None. E_q[w] = 1 when q drew the rollouts (Owen 2013, sec. 9.1); with a defensive share c of the target in
+    the mixture every w <= 1 / c (Hesterberg 1995; Owen & Zhou 2000), so Var(w) <= E[w^2] - 1 <= B - 1."""
+    log_w = np.asarray(log_w, dtype=np.float64)
+    n = log_w.size
+    top = float(np.max(log_w))
+    scaled = np.exp(log_w - top)
+    log_mean = top + math.log(float(scaled.mean()))
+    sd = float(scaled.std(ddof=1)) if n > 1 else 0.0
+    se = sd / math.sqrt(n) * math.exp(top) if top < 709.0 else math.inf
+    bound_se, over = None, 0
+    if bound is not None and np.isfinite(bound).all():
+        b = np.asarray(bound, dtype=np.float64)
+        bound_se = math.sqrt(float(np.sum(b - 1.0))) / n
+        over = int(np.count_nonzero(log_w > np.log(b) + 1e-9))
+    return MeanWeight(log_mean, se, n, bound_se, over)
