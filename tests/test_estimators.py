@@ -282,12 +282,12 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
     assert np.max(np.abs(after2 - before2)) > 0.1  # the second stage's samplers change the weights
 
 
-@pytest.mark.parametrize("n_stages, field, alpha", [(3, "smoothing_at_failure", 1.5), (2, "final_smoothing", 0.5)])
+@pytest.mark.parametrize("n_stages, field, alpha", [(3, "smoothing_at_failure", 1.5), (3, "final_smoothing", 0.5)])
 def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monkeypatch, n_stages, field, alpha):
     """The fits at the failure level weigh each failure w^alpha: alpha = ``smoothing_at_failure`` (Renyi order), or
-    ``final_smoothing`` when the stage is the last (with this seed the failure level is reached at stage 2). Until
-    that fit every rollout is the same as with alpha = 1, so with the same seed the fits before it see the same
-    weights and it sees alpha times theirs (up to the constant the held weights are relative to)."""
+    ``final_smoothing`` when the stage is the last. Until the first fit that uses it every rollout is the same as
+    with alpha = 1, so with the same seed the fits before it see the same weights and it sees alpha times theirs (up
+    to the constant the held weights are relative to)."""
     from pemviz.engine import Experiment
     from pemviz.estimators import cross_entropy as ce
 
@@ -309,9 +309,10 @@ def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monk
     plain = fitted_log_weights(smoothing_at_failure=1.0, final_smoothing=None)
     other = {"final_smoothing": None} if field == "smoothing_at_failure" else {"smoothing_at_failure": 1.0}
     raised = fitted_log_weights(**{field: alpha, **other})
-    np.testing.assert_array_equal(raised[0], plain[0])  # stage 1: below the failure level, alpha = smoothing
-    assert plain[1].size > 50 and np.ptp(plain[1]) > 1.0
-    np.testing.assert_allclose(raised[1], alpha * plain[1], rtol=0, atol=1e-9)
+    first = next(k for k, (a, b) in enumerate(zip(raised, plain)) if not np.array_equal(a, b))  # alpha's first fit
+    assert first >= 1  # stage 1 is below the failure level: alpha = smoothing in both runs
+    assert plain[first].size > 50 and np.ptp(plain[first]) > 1.0
+    np.testing.assert_allclose(raised[first], alpha * plain[first], rtol=0, atol=1e-9)
 
 
 def test_fit_weights_are_checked():
