@@ -549,7 +549,7 @@ class CrossEntropy:
         self._scored: ScoredTarget | None = None
         """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
         self.tolerance = config.fit_tolerance if config.fit == "adam" else None
-        """Early stopping of the Adam fits that see a subsample (L-BFGS stops at its own tolerance)."""
+        """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
 
     # -- the interface --------------------------------------------------------------------------------------------
     def next_stage(self) -> StagePlan | None:
@@ -732,8 +732,7 @@ class CrossEntropy:
         inside the problem's window (``proposal_window``; q = p_target where the detector cannot matter), and that
         with the per-step defensive mixture (``defensive``)."""
         cfg, pb = self.config, self.problem
-
-        floor = pb.decided_below if cfg.skip_decided else -math.inf
+        floor = pb.decided_below if cfg.skip_decided else -math.inf  # below it the outcome is decided
 
         def windowed(sampler: Detector) -> Detector:
             return WindowDetector(sampler, pb.target, pb.window, floor) if cfg.proposal_window else sampler
