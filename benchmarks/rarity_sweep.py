@@ -47,10 +47,11 @@ from pemviz.config import METHODS as CONFIG_METHODS
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.detectors import Detector
 from pemviz.engine import Experiment, RunFinished
+from pemviz.estimate import relative_error
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.files import atomic_write
 from pemviz.problems import Problem, ShiftedPEM, braking_problem
-from pemviz.sampling import relative_error, torch_threads
+from pemviz.sampling import torch_threads
 from pemviz.validation import all_fields, ams_fields
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.toy import ToyParams, toy_problem

@@ -18,8 +18,8 @@ import time
 
 import numpy as np
 
+from pemviz.estimate import relative_error
 from pemviz.validation import Job, exact_answer, run_jobs
-from pemviz.sampling import relative_error
 
 STEPS: tuple[tuple[str, dict], ...] = (
     ("paper", {}),

@@ -27,10 +27,10 @@ import numpy as np
 
 from pemviz.config import METRICS, ExperimentConfig
 from pemviz.detectors import ArrayRQMC, Detector
+from pemviz.estimate import Estimate
 from pemviz.estimators import Estimator, StagePlan, build_estimator
 from pemviz.executors import get_executor
 from pemviz.problems import Problem, ProblemInfo
-from pemviz.sampling import Estimate
 from pemviz.scenarios import RolloutBatch
 
 

@@ -19,11 +19,11 @@ import numpy as np
 from pemviz import stl
 from pemviz.config import METRICS
 from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
+from pemviz.estimate import Estimate, estimate
 from pemviz.estimators import log_p_before_failure, log_weight
 from pemviz.estimators.base import pool
 from pemviz.problems import Problem
 from pemviz.rollout_io import SALIENT_COLUMNS, SAMPLERS, RolloutData, RolloutFormatError, RolloutMeta, braking_salient
-from pemviz.sampling import Estimate, estimate
 from pemviz.scenarios import RolloutBatch
 from pemviz.weights import CONVENTIONS, MeanWeight, mean_weight
 
@@ -85,7 +85,7 @@ class RolloutEstimate:
     """The failure-probability estimate from logged rollouts.
 
     Attributes:
-        estimate: mu_hat, failures, NLL, ESS, interval, k-hat, verdict (:class:`pemviz.sampling.Estimate`): pooled over
+        estimate: mu_hat, failures, NLL, ESS, interval, k-hat, verdict (:class:`pemviz.estimate.Estimate`): pooled over
             :attr:`pooled` with the sidecar's stage weights, or over every rollout alike.
         robustness: float64 [N] under ``metric``.
         failed: bool [N].
@@ -141,7 +141,7 @@ def estimate_rollouts(
 
     The rollouts go through the engine's code: robustness and failure steps of :func:`file_problem`
     (:meth:`pemviz.problems.Problem.robustness`, :func:`pemviz.estimators.log_weight`), the estimate of
-    :func:`pemviz.sampling.estimate`, the pool of :func:`pemviz.estimators.base.pool`. ``log w_i = sum_{t < k_i} log p -
+    :func:`pemviz.estimate.estimate`, the pool of :func:`pemviz.estimators.base.pool`. ``log w_i = sum_{t < k_i} log p -
     log q`` with k_i = T - 1 (``weights="full"``: the last action affects nothing) or, with ``"to-failure"`` and
     ``failure="crash"``, the step at which rollout i first violates the sidecar's ``G[a,b](...)`` formula (both
     unbiased: :mod:`pemviz.weights`). Failure = classic robustness of the formula < 0 (``failure="crash"``, the

@@ -37,7 +37,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.special import expit, log_expit, logsumexp
 
-from pemviz.sampling import format_probability
+from pemviz.estimate import format_probability
 from pemviz.scenarios.braking import BrakingParams, ControllerState, ego_acceleration
 from pemviz.scenarios.toy import ToyParams
 

@@ -28,10 +28,11 @@ from tqdm import tqdm
 from pemviz import truth
 from pemviz.config import METHODS, PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, RunFinished
+from pemviz.estimate import format_probability, relative_error
 from pemviz.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
-from pemviz.sampling import format_probability, relative_error, torch_threads
+from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
 
 DEFAULT_PROBLEMS = ("toy", "toy-1e-30", "latched", "main")
@@ -125,7 +126,7 @@ class RunRecord:
     gammas: tuple[float, ...] = ()
     curves: np.ndarray | None = field(default=None, repr=False)
     log_ci_lo: float = -math.inf
-    """The estimate's 95 % interval as natural logs (:attr:`pemviz.sampling.Estimate.log_ci`)."""
+    """The estimate's 95 % interval as natural logs (:attr:`pemviz.estimate.Estimate.log_ci`)."""
     log_ci_hi: float = 0.0
     khat: float = math.nan
     verdict: str = "unreliable"

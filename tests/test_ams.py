@@ -13,10 +13,10 @@ from conftest import run_cli
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import Experiment, RunFinished
 from pemviz.envs import BrakingEnv
+from pemviz.estimate import relative_error
 from pemviz.estimators import build_estimator
 from pemviz.estimators.ams import run_ams, running_score
 from pemviz.problems import braking_problem, build_problem
-from pemviz.sampling import relative_error
 from pemviz.scenarios import branch, can_snapshot
 from pemviz.scenarios.batched import BatchedBraking
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from pemviz.sampling import CI_LEVEL, KHAT_UNRELIABLE, estimate, pareto_khat, relative_error
+from pemviz.diagnostics import effective_sample_size, pareto_khat
+from pemviz.estimate import CI_LEVEL, KHAT_UNRELIABLE, estimate, relative_error
 
 
 def _is(log_w: np.ndarray, failed: np.ndarray):
@@ -105,3 +106,10 @@ def test_summary_line_names_the_exact_answer_and_whether_it_is_covered():
     assert f"{CI_LEVEL:.0%} CI" in line and "reliable" in line
     assert "exact 3.300e-21 (relative error 0.0909, inside the interval)" in line
     assert relative_error(-math.inf, 0.0) == 1.0
+
+
+def test_effective_sample_size_counts_equal_weights_and_ignores_the_scale_of_the_logs():
+    assert effective_sample_size(np.full(8, -700.0)) == pytest.approx(8.0, rel=1e-12)  # 8 equal weights
+    # weights 1, 1, 2 (times e^-900): (1 + 1 + 2)^2 / (1 + 1 + 4) = 16 / 6
+    assert effective_sample_size(np.log([1.0, 1.0, 2.0]) - 900.0) == pytest.approx(16.0 / 6.0, rel=1e-12)
+    assert effective_sample_size(np.array([0.0, -np.inf, -np.inf])) == 1.0  # zero weights count for nothing

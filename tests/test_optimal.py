@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from pemviz import truth
+from pemviz.estimate import relative_error
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, relative_variance, rollouts_for
 from pemviz.problems import ShiftedPEM, braking_problem, build_problem
-from pemviz.sampling import relative_error
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.toy import ToyBraking, ToyParams, toy_problem
 

@@ -16,6 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from conftest import run_cli, verify_rrd
+from pemviz.estimate import estimate
 from pemviz.problems import problem_for
 from pemviz import cli
 from pemviz import rollout_io as rio
@@ -34,7 +35,7 @@ from pemviz.engine import (
 from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem
 from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
-from pemviz.sampling import Proposal, estimate
+from pemviz.sampling import Proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.sinks.rollouts import RolloutSink
 

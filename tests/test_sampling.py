@@ -9,9 +9,10 @@ import pytest
 import torch
 
 from pemviz.detectors import ConstantDetector, action_log_prob
+from pemviz.estimate import estimate, format_probability
 from pemviz.estimators.base import quantile_threshold
 from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
-from pemviz.sampling import Proposal, estimate, format_probability
+from pemviz.sampling import Proposal
 from pemviz.scenarios import simulate
 
 

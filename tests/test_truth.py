@@ -10,7 +10,7 @@ import pytest
 from scipy.special import log_expit
 
 from pemviz.detectors import ConstantDetector, WindowDetector
-from pemviz.sampling import estimate
+from pemviz.estimate import estimate
 from pemviz.scenarios import simulate
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_problem

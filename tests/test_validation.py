@@ -9,8 +9,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.estimate import relative_error
 from pemviz.problems import PROBLEMS, build_problem
-from pemviz.sampling import relative_error
 from pemviz.validation import (
     DEFAULT_PROBLEMS,
     ExactAnswer,

@@ -44,9 +44,10 @@ from pemviz.engine import (
     StageStarted,
     stage_label,
 )
+from pemviz.estimate import format_probability, relative_error
 from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
 from pemviz.problems import problem_for
-from pemviz.sampling import format_probability, relative_error, torch_threads
+from pemviz.sampling import torch_threads
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
 from pemviz.sinks.console import expected_stage_s
 

@@ -27,10 +27,10 @@ from pemviz import rollout_io as rio
 from pemviz.commands import COMMANDS, UsageError, check_save_path
 from pemviz.config import METRICS
 from pemviz.data import sha256_file
+from pemviz.estimate import format_probability
 from pemviz.files import check_output_folder, free_default_path, write_rrd
 from pemviz.pem import load_pem
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
-from pemviz.sampling import format_probability
 from pemviz.sinks.console import estimate_cells
 from pemviz.weights import CONVENTIONS
 

@@ -36,9 +36,9 @@ from scipy.special import logsumexp, ndtri
 
 from pemviz import stl
 from pemviz.config import ExperimentConfig
+from pemviz.estimate import CI_LEVEL, MIN_FAILURES, Estimate
 from pemviz.estimators.base import Check, StageOutcome, StagePlan, log_p_before_failure
 from pemviz.problems import Problem
-from pemviz.sampling import CI_LEVEL, MIN_FAILURES, Estimate
 from pemviz.scenarios import RolloutBatch
 
 

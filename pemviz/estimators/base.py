@@ -19,8 +19,8 @@ from scipy.special import logsumexp
 
 from pemviz import stl
 from pemviz.detectors import Detector
+from pemviz.estimate import Estimate, estimate
 from pemviz.problems import Problem
-from pemviz.sampling import Estimate, estimate
 from pemviz.scenarios import RolloutBatch
 
 Check = Callable[[], None]

@@ -23,6 +23,7 @@ from scipy.special import log_expit
 
 from pemviz.config import ExperimentConfig
 from pemviz.detectors import Detector, LastAnswer, ScoredTarget, WindowDetector, action_log_prob, logit
+from pemviz.estimate import Estimate, estimate
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
@@ -40,7 +41,7 @@ from pemviz.estimators.base import (
 )
 from pemviz.problems import Problem
 from pemviz.rng import RQMC_BLOCK
-from pemviz.sampling import Estimate, Proposal, StateProposal, estimate, fit_proposal
+from pemviz.sampling import Proposal, StateProposal, fit_proposal
 from pemviz.scenarios import RolloutBatch
 
 WeightMode = Literal["frozen", "recomputed"]

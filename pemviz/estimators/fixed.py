@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from pemviz.detectors import ConstantDetector, Detector, WindowDetector
+from pemviz.estimate import Estimate
 from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts
 from pemviz.problems import Problem
-from pemviz.sampling import Estimate
 from pemviz.scenarios import RolloutBatch
 
 

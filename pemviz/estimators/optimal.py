@@ -26,9 +26,9 @@ from typing import Callable
 import numpy as np
 
 from pemviz.detectors import Detector
+from pemviz.estimate import Estimate
 from pemviz.estimators.fixed import FixedSampler
 from pemviz.problems import Problem
-from pemviz.sampling import Estimate
 
 LogValueNext = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """``log_value_next(obs [N, F]) -> (log V after a detection [N], log V after a miss [N])``, float64 nats

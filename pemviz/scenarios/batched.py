@@ -43,7 +43,6 @@ from scipy.special import log_expit
 
 from pemviz.detectors import Detector, step_uniforms
 from pemviz.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
-from pemviz.sampling import estimate
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_acceleration, initial_controller_state
 
@@ -400,7 +399,8 @@ def branch_batched(
 
 @dataclass(frozen=True)
 class RolloutSummary:
-    """What an estimate needs of N rollouts, without their trajectories (16 + 8 + 1 + 8 bytes a rollout).
+    """What an estimate needs of N rollouts, without their trajectories (16 + 8 + 1 + 8 bytes a rollout): give
+    ``log_weight``, ``failed`` and ``log_p_total`` to :func:`pemviz.estimate.estimate`.
 
     Attributes:
         log_weight: float64 [N] importance log-weights ``sum_t log p - log q`` over T - 1 steps (nats).
@@ -417,10 +417,6 @@ class RolloutSummary:
     @property
     def n(self) -> int:
         return int(self.failed.size)
-
-    def estimate(self):  # -> pemviz.sampling.Estimate (imported lazily: sampling imports torch)
-        """:func:`pemviz.sampling.estimate` of the failure probability from these rollouts."""
-        return estimate(self.log_weight, self.failed, self.log_p_total)
 
 
 def summarise_batched(

@@ -18,7 +18,7 @@ from pemviz.engine import (
     StageStarted,
     stage_label,
 )
-from pemviz.sampling import Estimate, format_probability
+from pemviz.estimate import Estimate, format_probability
 
 HEADER = (
     f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} "

@@ -71,8 +71,8 @@ from pemviz.engine import (
     StageResult,
     stage_label,
 )
+from pemviz.estimate import format_probability, relative_error
 from pemviz.files import atomic_write
-from pemviz.sampling import format_probability, relative_error
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import colours as C
 from pemviz.sinks.scene import car_positions

@@ -1,0 +1,56 @@
+"""Diagnostics of importance weights: the effective sample size and the Pareto k-hat of their tail.
+
+Both take log-weights (natural logs, float64) so that they work whatever the weights' scale, also far below
+float64's range. They are pemviz's own rather than ``arviz.psislw``'s: arviz rounds the tail size up and divides
+it by a relative efficiency, which would move k-hat and with it every verdict pemviz prints.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def effective_sample_size(log_weights: np.ndarray) -> float:
+    """Kish's effective sample size (sum w)^2 / sum w^2 of weights given as natural logs, float64 [S] (S >= 1).
+
+    Computed from the weights relative to the largest, so finite whatever the scale of the logs (Kong, Liu & Wong,
+    "Sequential imputations and Bayesian missing data problems", JASA 89(425), 1994; Owen, "Monte Carlo theory,
+    methods and examples", 2013, Sec. 9.3). Returns a value in [1, S]; nan when every weight is 0 (-inf).
+    """
+    lw = np.asarray(log_weights, dtype=np.float64)
+    rel = np.exp(lw - lw.max())  # weights relative to the largest: finite whatever the scale of the logs
+    return float(rel.sum() ** 2 / np.square(rel).sum())
+
+
+def pareto_khat(log_values: np.ndarray) -> float:
+    """Pareto k-hat of the upper tail of a sample of non-negative values given as natural logs, [S].
+
+    The generalized Pareto distribution is fitted (Zhang & Stephens 2009, with the weakly informative prior of
+    PSIS; ``pyro.ops.stats.fit_generalized_pareto``) to the exceedances of the M = min(S / 5, 3 sqrt(S))
+    largest values over the next one, as in Vehtari et al., "Pareto Smoothed Importance Sampling", JMLR 2024,
+    Sec. 3. Values of -inf (zeros, e.g. rollouts that did not fail) may be present: when fewer than M + 1
+    values are positive, the tail is taken from the positive values alone (S = their number). Exceedances below
+    1e-9 of the largest value are ties (sums of log-probabilities differ in their last bits), and so are
+    exceedances within 1e-9 of each other. Returns 0 for a flat or discrete tail (fewer than 5 distinct
+    exceedances: e.g. every failure weight equal, or pooled stages that each give all their failures one
+    weight: a bounded tail, with finite variance) and nan for fewer than 25 positive values (M < 5).
+    """
+    import torch
+    from pyro.ops.stats import fit_generalized_pareto  # torch and pyro: ~0.1 s once torch is loaded, only when needed
+
+    lv = np.sort(np.asarray(log_values, dtype=np.float64))
+    m = int(min(lv.size / 5.0, 3.0 * math.sqrt(lv.size)))
+    if m >= lv.size or not np.isfinite(lv[lv.size - m - 1]):
+        lv = lv[np.isfinite(lv)]
+        m = int(min(lv.size / 5.0, 3.0 * math.sqrt(lv.size)))
+    if m < 5:
+        return math.nan
+    top = lv[-1]
+    tail = np.exp(lv[lv.size - m :] - top) - math.exp(lv[lv.size - m - 1] - top)  # scale-free exceedances
+    tail = tail[tail > 1e-9]  # ties with the cutoff carry no tail information (and break the fit's quartile)
+    if tail.size < 5 or np.unique(np.round(tail / 1e-9)).size < 5:  # a few repeated values: a bounded tail
+        return 0.0
+    k, _ = fit_generalized_pareto(torch.as_tensor(tail))
+    return float(k)

@@ -1,0 +1,240 @@
+"""The importance-sampling estimate of a failure probability: mu_hat, its interval and a verdict.
+
+Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t), computed in
+float64 log-space. :func:`estimate` gives an :class:`Estimate`; its diagnostics (ESS, Pareto k-hat) come from
+:mod:`pemviz.diagnostics`. :func:`format_probability` and :func:`relative_error` print and compare probabilities
+given as natural logs, exact also far below float64's range.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pemviz.diagnostics import effective_sample_size, pareto_khat
+
+CI_LEVEL = 0.95
+"""Coverage of every interval pemviz reports for mu_hat."""
+
+VERDICTS = ("reliable", "doubtful", "unreliable")
+"""How far an estimate can be trusted; :attr:`Estimate.reason` says why in one line."""
+
+MIN_FAILURES = 10
+"""Fewer failing rollouts than this: the estimate rests on too few weights (verdict ``doubtful``)."""
+
+MAX_MEAN_WEIGHT = 20.0
+"""The mean of N importance weights has expectation 1 when the weights belong to the proposal that drew the
+rollouts, so by Markov's inequality it exceeds 20 with probability <= 0.05: a larger mean says the weights (the
+log q of a logged file, say) do not match the sampler. (A mean far below 1 is normal for a proposal aimed at
+the failures: it rarely draws the PEM's typical rollouts, whose weights carry the rest of the mass.)"""
+
+KHAT_UNRELIABLE = 0.7
+"""Pareto k-hat above which an importance-sampling estimate is unreliable (Vehtari, Simpson, Gelman, Yao, Gabry,
+"Pareto Smoothed Importance Sampling", JMLR 25(72), 2024, Sec. 3.2): the weights' variance is so large that a
+few weights decide the estimate, and no number of further rollouts of this size fixes it quickly."""
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Importance-sampling estimate of the failure probability, its uncertainty and a verdict.
+
+    Attributes:
+        n: rollouts used.
+        n_failures: rollouts that failed (crash: classic robustness < 0).
+        log_mu_hat: log of mu_hat = (1/N) sum_i 1[fail_i] w_i (nats; -inf with no failure).
+        nll_mean: mean over failures of -sum_{t < t_fail} log p_PEM(a_t | s_t): the actions before the failure
+            step t_fail, the same steps for every sampler (nats; nan with no failure).
+        nll_lme: -log-mean-exp over failures of the same sums (nats; nan with no failure).
+        ess: effective sample size of the failure weights, (sum w)^2 / sum w^2 (0 with no failure).
+        log_ci: the :data:`CI_LEVEL` confidence interval of mu_hat as natural logs (lo, hi) (see :func:`estimate`).
+        khat: Pareto k-hat of the tail of the importance-weighted failure indicator (nan with too few failures).
+        log_mean_weight: log of the mean importance weight over all N rollouts (nats): an unbiased estimate of
+            log 1 = 0 when the weights come from the proposal that really drew the rollouts.
+        verdict: one of :data:`VERDICTS`.
+        reason: one line saying why.
+    """
+
+    n: int
+    n_failures: int
+    log_mu_hat: float
+    nll_mean: float
+    nll_lme: float
+    ess: float
+    log_ci: tuple[float, float] = (-math.inf, 0.0)
+    khat: float = math.nan
+    log_mean_weight: float = math.nan
+    verdict: str = "unreliable"
+    reason: str = ""
+
+    @property
+    def mu_hat(self) -> float:
+        """mu_hat as a float64 (underflows to 0.0 below ~1e-308; use ``log_mu_hat`` then)."""
+        return math.exp(self.log_mu_hat) if self.log_mu_hat > -math.inf else 0.0
+
+    @property
+    def log10_mu_hat(self) -> float:
+        return self.log_mu_hat / math.log(10.0)
+
+    def covers(self, log_p: float) -> bool:
+        """Whether the interval holds the probability whose natural log is ``log_p``."""
+        return self.log_ci[0] <= log_p <= self.log_ci[1]
+
+    def interval_text(self) -> str:
+        """``[1.2e-15, 2.6e-15]``: the interval as probabilities."""
+        lo, hi = self.log_ci
+        return f"[{format_probability(lo, 2)}, {format_probability(hi, 2)}]"
+
+    def summary(self, exact_log_p: float | None = None) -> str:
+        """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, the exact answer if known.
+
+        e.g. ``mu_hat = 1.795e-15, 95 % CI [1.3e-15, 2.5e-15], ESS 10.2, k-hat 0.41: reliable (96 failures);
+        exact 1.984e-15 (relative error 0.095, inside the interval)``.
+        """
+        khat = "-" if math.isnan(self.khat) else f"{self.khat:.2f}"
+        line = (
+            f"mu_hat = {format_probability(self.log_mu_hat)}, {CI_LEVEL:.0%} CI {self.interval_text()}, "
+            f"ESS {self.ess:.1f}, k-hat {khat}: {self.verdict} ({self.reason})"
+        )
+        if exact_log_p is not None:
+            inside = "inside" if self.covers(exact_log_p) else "OUTSIDE"
+            line += (
+                f"; exact {format_probability(exact_log_p)} (relative error "
+                f"{relative_error(self.log_mu_hat, exact_log_p):.3g}, {inside} the interval)"
+            )
+        return line
+
+
+def relative_error(log_mu_hat: float, log_truth: float) -> float:
+    """|mu_hat - p| / p from natural logs, exact also far below float64's range (1.0 when mu_hat = 0)."""
+    if log_mu_hat == -math.inf:
+        return 1.0
+    return abs(math.expm1(log_mu_hat - log_truth))
+
+
+def _log_mean_interval(log_y: np.ndarray) -> tuple[float, float, float]:
+    """log of the mean of y >= 0 (given as logs, -inf for 0, [N]) and the log-scale t interval of the mean.
+
+    The interval is exp(log mean -+ t_{N-1} * se / mean) with se the standard error of the mean: the delta-method
+    interval on the log scale (Owen, "Monte Carlo theory, methods and examples", 2013, Ch. 2 and 9), which stays
+    inside (0, inf) and is wider below than a normal interval for right-skewed weights. Computed in log space.
+    """
+    from scipy.special import logsumexp, stdtrit  # stdtrit: the Student-t quantile, without scipy.stats' import
+
+    n = log_y.size
+    log_mean = float(logsumexp(log_y)) - math.log(n)
+    if log_mean == -math.inf or n < 2:
+        return log_mean, -math.inf, 0.0 if n < 2 else -math.inf
+    ratio = np.exp(log_y - log_mean)  # y_i / mean, finite
+    rel_se = float(np.std(ratio, ddof=1)) / math.sqrt(n)  # se / mean
+    half = float(stdtrit(n - 1, 0.5 + CI_LEVEL / 2.0)) * rel_se
+    return log_mean, log_mean - half, log_mean + half
+
+
+def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray) -> Estimate:
+    """mu_hat = logsumexp(log w over failures) - log N with its interval, diagnostics and verdict.
+
+    Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t).
+
+    The interval: with weights all equal to 1 (plain Monte Carlo under the PEM) the Clopper-Pearson interval of
+    the failure count (``scipy.stats.binomtest``), and with 0 failures the one-sided rule-of-three bound
+    p < 3 / N; under importance sampling the log-scale t interval of the mean of 1[fail_i] w_i (see
+    :func:`_log_mean_interval`), and with 0 failures the interval [0, 1]: 0 failures under a proposal bound
+    nothing. The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, with Pareto k-hat above
+    :data:`KHAT_UNRELIABLE` and an ESS below 2 :data:`MIN_FAILURES` (above it: ``doubtful``), or when the mean importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do
+    not belong to the proposal that drew the rollouts); ``doubtful`` with fewer than :data:`MIN_FAILURES` failures,
+    an ESS below it, or k-hat above the sample-size threshold min(1 - 1 / log10 S, 0.7) of Vehtari et al. (2024);
+    else ``reliable``.
+
+    Args:
+        log_weight: float64 [N] importance log-weights sum_t (log p - log q) (nats).
+        failed: bool [N] failure indicator.
+        log_p_total: float64 [N] sum_t log p_PEM(a_t | s_t) over the steps before the failure (nats), for the NLL.
+    Raises:
+        ValueError: if the arrays do not have one entry per rollout, or N = 0.
+    """
+    from scipy.special import logsumexp
+
+    log_weight = np.asarray(log_weight, dtype=np.float64)
+    failed = np.asarray(failed, dtype=bool)
+    log_p_total = np.asarray(log_p_total, dtype=np.float64)
+    n = int(log_weight.size)
+    if n == 0 or failed.shape != log_weight.shape or log_p_total.shape != log_weight.shape:
+        raise ValueError(
+            f"estimate: log_weight, failed and log_p_total need one entry per rollout (N >= 1), got shapes "
+            f"{log_weight.shape}, {failed.shape}, {log_p_total.shape}"
+        )
+    lw = log_weight[failed]
+    nf = int(lw.size)
+    log_mean_w = float(logsumexp(log_weight)) - math.log(n)
+    plain_mc = bool(np.all(log_weight == 0.0))
+    if nf == 0:
+        if plain_mc:
+            bound = math.log(min(1.0, 3.0 / n))
+            reason = f"0 failures in {n} rollouts of the PEM itself: only a bound, p < {3.0 / n:.2g} (rule of three)"
+        else:
+            bound = 0.0
+            reason = "0 failures under importance sampling: this bounds nothing"
+        return Estimate(n, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, bound), math.nan, log_mean_w,
+                        "unreliable", reason)  # fmt: skip
+    lp = log_p_total[failed]
+    log_sum = float(logsumexp(lw))
+    ess = effective_sample_size(lw)
+    nll_lme = -(float(logsumexp(lp)) - math.log(nf))
+    log_y = np.where(failed, log_weight, -math.inf)
+    if plain_mc:
+        from scipy.stats import binomtest  # ~0.5 s to import: only for plain Monte Carlo
+
+        ci = binomtest(nf, n).proportion_ci(confidence_level=CI_LEVEL, method="exact")
+        log_ci = (math.log(ci.low) if ci.low > 0 else -math.inf, math.log(ci.high))
+        khat = math.nan
+    else:
+        _, lo, hi = _log_mean_interval(log_y)
+        log_ci = (lo, hi)
+        khat = pareto_khat(log_y)
+    verdict, reason = _verdict(n, nf, ess, khat, log_weight, plain_mc)
+    return Estimate(n, nf, log_sum - math.log(n), float(-lp.mean()), nll_lme, ess, log_ci, khat, log_mean_w,
+                    verdict, reason)  # fmt: skip
+
+
+def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, plain_mc: bool) -> tuple[str, str]:
+    """The verdict and its one-line reason (see :func:`estimate`)."""
+    from scipy.special import logsumexp
+
+    if not plain_mc:
+        if khat > KHAT_UNRELIABLE and ess < 2 * MIN_FAILURES:
+            return "unreliable", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: a few weights dominate"
+        log_mean = float(logsumexp(log_weight)) - math.log(log_weight.size)
+        if log_mean > math.log(MAX_MEAN_WEIGHT):
+            return "unreliable", (
+                f"mean importance weight {format_probability(log_mean, 2)} > {MAX_MEAN_WEIGHT:g}: the weights do not "
+                "belong to the proposal that drew the rollouts"
+            )
+    if nf < MIN_FAILURES:
+        return "doubtful", f"only {nf} failure{'s' if nf != 1 else ''}"
+    if not plain_mc:
+        if ess < MIN_FAILURES:
+            return "doubtful", f"ESS {ess:.1f} < {MIN_FAILURES}: a few weights carry the estimate"
+        if khat > KHAT_UNRELIABLE:  # with a large ESS: clustered weights, or a tail the ESS does not see yet
+            return "doubtful", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: the weights' tail is heavy or clustered"
+        threshold = min(1.0 - 1.0 / math.log10(n), KHAT_UNRELIABLE) if n > 10 else 0.0
+        if khat > threshold:
+            return "doubtful", f"k-hat {khat:.2f} > {threshold:.2f}: more rollouts needed"
+    return "reliable", f"{nf} failures, ESS {ess:.1f}"
+
+
+def format_probability(log_p: float, digits: int = 3) -> str:
+    """``1.234e-15`` from a natural log, exact also far below float64's range (``0`` for -inf)."""
+    if log_p == -math.inf:
+        return "0"
+    if math.isnan(log_p):
+        return "nan"
+    l10 = log_p / math.log(10.0)
+    if abs(l10) > 1e9:  # the exponent itself would need more digits than fit on a line
+        return f"10^({l10:.{digits}e})"
+    exponent = math.floor(l10)
+    mantissa = 10 ** (l10 - exponent)
+    if round(mantissa, digits) >= 10:
+        mantissa, exponent = mantissa / 10, exponent + 1
+    return f"{mantissa:.{digits}f}e{exponent:+03d}"
