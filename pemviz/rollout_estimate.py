@@ -2,7 +2,7 @@
 
 The importance weights need log p_PEM and log q of every logged action: from the file's ``log_p`` / ``log_q``
 columns, or recomputed here under a PEM (:func:`pem_log_prob`) and the detector that sampled the rollouts
-(:func:`sampler_detector`, or a proposal checkpoint read by :func:`pemviz.rollout_io.load_proposal`).
+(:func:`sampler_detector`, or a proposal checkpoint read by :func:`pemviz.sampling.load_proposal`).
 :func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6): per stage, pooled over
 the stages the sidecar names with its stage weights, under either weight convention (:mod:`pemviz.weights`), with
 the mean-weight check of the logged density.

@@ -43,7 +43,7 @@ Floats must be finite; log-probabilities <= 0. Other columns are ignored.
   signal ``[lo, hi]`` for AGM's normalisation; ``observation_columns``: the state columns in the order
   detectors see them (default ``gap_m`` then the signals' columns); ``units``: column -> unit (informative).
 - ``pem``: the PEM ``log_p`` was computed under (a shipped name or a path); ``proposal``: a proposal
-  checkpoint (:func:`save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` / ``mixed50``,
+  checkpoint (:func:`pemviz.sampling.save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` / ``mixed50``,
   what sampled the rollouts; ``window_m``: mixed50's 50 % window (metres, default 10).
 - ``n_rollouts``, ``n_steps``: checked against the table when present.
 - ``weights`` (version 2): the weight convention the writer weighed with, ``to-failure`` (the product of p / q
@@ -82,15 +82,14 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
-import torch
 
 import pemviz
 from pemviz import stl
 from pemviz.data import sha256_file
-from pemviz.files import atomic_write, check_free_name, check_output_path, commit_files, load_tagged, temp_file
+from pemviz.files import check_free_name, check_output_path, commit_files, temp_file
 from pemviz.pem import braking_salient_inputs
 from pemviz.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, braking_formula
-from pemviz.sampling import Proposal
+from pemviz.sampling import write_proposal_file
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
 
@@ -101,8 +100,6 @@ READ_VERSIONS = (1, 2)
 ``weights``, ``stages``, ``pooling``)."""
 WEIGHTS = ("to-failure", "full")
 """Weight conventions (:mod:`pemviz.weights`)."""
-PROPOSAL_FORMAT_TAG = "pemviz-proposal"
-PROPOSAL_FORMAT_VERSION = 1
 
 KITTI_COLUMNS = ("class", "truncation", "occlusion", "alpha", "dim_w", "dim_l", "dim_h", "loc_x", "loc_y", "loc_z",
                  "rot_y")  # fmt: skip
@@ -118,7 +115,7 @@ SAMPLERS = ("pem", "naive50", "mixed50")
 
 
 class RolloutFormatError(ValueError):
-    """A rollout file, its sidecar or a proposal checkpoint is malformed: the message says where and why."""
+    """A rollout file or its sidecar is malformed: the message says where and why."""
 
 
 # ----------------------------------------------------------------------------------------- metadata
@@ -899,7 +896,7 @@ class RolloutWriter:
             pairs = []
             if proposal is not None:
                 tmp_ckpt = self._stack.enter_context(temp_file(ckpt))
-                _save_proposal_to(proposal, tmp_ckpt)
+                write_proposal_file(proposal, tmp_ckpt)
                 meta = dataclasses.replace(meta, proposal=ckpt.name, proposal_sha256=sha256_file(tmp_ckpt))
                 pairs.append((tmp_ckpt, ckpt))
             meta = dataclasses.replace(meta, table_sha256=sha256_file(self._tmp))
@@ -982,41 +979,3 @@ def write_rollouts(
     with RolloutWriter(path, meta, log_probs=log_probs, overwrite=overwrite) as writer:
         writer.append(batch, rollout_ids=rollout_ids, salient=salient, stage=stage, component=component)
         return writer.commit(proposal)
-
-
-# ---------------------------------------------------------------------------------- proposal checkpoints
-
-
-def _save_proposal_to(proposal: Any, path: str) -> None:
-    payload = {
-        "format": PROPOSAL_FORMAT_TAG,
-        "version": PROPOSAL_FORMAT_VERSION,
-        "h_scale": float(proposal.h_scale),
-        "state_dict": {k: v.detach().cpu().clone() for k, v in proposal.state_dict().items()},
-    }
-    torch.save(payload, path)
-
-
-def save_proposal(proposal: Any, path: str | os.PathLike[str], *, overwrite: bool = True) -> Path:
-    """Write a :class:`pemviz.sampling.Proposal` checkpoint atomically (``torch.save`` of a plain dict:
-    format tag, version, ``h_scale``, ``state_dict``; ``torch.load(weights_only=True)`` reads it)."""
-    return atomic_write(path, lambda tmp: _save_proposal_to(proposal, tmp), overwrite=overwrite)
-
-
-def load_proposal(path: str | os.PathLike[str]) -> Any:
-    """Load a proposal saved by :func:`save_proposal`.
-
-    Raises:
-        FileNotFoundError: no such file.
-        RolloutFormatError: not a pemviz proposal checkpoint.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"proposal checkpoint {p} not found")
-    payload = load_tagged(p, PROPOSAL_FORMAT_TAG, PROPOSAL_FORMAT_VERSION, "proposal checkpoint", RolloutFormatError)
-    try:
-        proposal = Proposal(float(payload["h_scale"]))
-        proposal.load_state_dict(payload["state_dict"])
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise RolloutFormatError(f"{p}: damaged proposal checkpoint ({exc})") from None
-    return proposal.eval()

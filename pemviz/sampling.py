@@ -10,6 +10,8 @@ the smoothing power alpha. The failure probability is then estimated with import
 from __future__ import annotations
 
 import contextlib
+import os
+from pathlib import Path
 from typing import Callable, Iterator, Union
 
 import numpy as np
@@ -18,6 +20,7 @@ from torch import nn
 
 from pemviz.config import FITS
 from pemviz.detectors import GAP_COLUMN
+from pemviz.files import atomic_write, load_tagged
 
 GAP_SCALE_M = 12.0
 """The braking proposal's input is gap / 12 m (Innes & Ramamoorthy 2022, the authors' code)."""
@@ -322,3 +325,58 @@ def fit_proposal(
         for p in params:  # each parameter its own storage again
             p.data = p.data.clone()
     return losses
+
+
+# ---------------------------------------------------------------------------------- proposal checkpoints
+
+PROPOSAL_FORMAT_TAG = "pemviz-proposal"
+PROPOSAL_FORMAT_VERSION = 1
+
+
+class ProposalFormatError(ValueError):
+    """A file is not a readable pemviz proposal checkpoint: the message names the file and why."""
+
+
+def write_proposal_file(proposal: Proposal, path: str | os.PathLike[str]) -> None:
+    """``torch.save`` a :class:`Proposal` checkpoint into ``path`` as it is (no temporary file: for a caller that
+    moves its files into place itself, as :class:`pemviz.rollout_io.RolloutWriter` does; else :func:`save_proposal`).
+
+    The checkpoint is a plain dict: format tag, version, ``h_scale`` (metres) and a copy of the ``state_dict``, so
+    that ``torch.load(weights_only=True)`` reads it and later training of ``proposal`` does not change it.
+    """
+    payload = {
+        "format": PROPOSAL_FORMAT_TAG,
+        "version": PROPOSAL_FORMAT_VERSION,
+        "h_scale": float(proposal.h_scale),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in proposal.state_dict().items()},
+    }
+    torch.save(payload, path)
+
+
+def save_proposal(proposal: Proposal, path: str | os.PathLike[str], *, overwrite: bool = True) -> Path:
+    """Write a :class:`Proposal` checkpoint (:func:`write_proposal_file`) atomically; returns ``path``.
+
+    Raises:
+        OSError: the folder is missing or not writable, the disk is full (nothing is left behind).
+        pemviz.files.OutputExists: ``path`` exists and ``overwrite`` is False.
+    """
+    return atomic_write(path, lambda tmp: write_proposal_file(proposal, tmp), overwrite=overwrite)
+
+
+def load_proposal(path: str | os.PathLike[str]) -> Proposal:
+    """Load a proposal saved by :func:`save_proposal`, in eval mode.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ProposalFormatError: not a pemviz proposal checkpoint, another format version, or damaged weights.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"proposal checkpoint {p} not found")
+    payload = load_tagged(p, PROPOSAL_FORMAT_TAG, PROPOSAL_FORMAT_VERSION, "proposal checkpoint", ProposalFormatError)
+    try:
+        proposal = Proposal(float(payload["h_scale"]))
+        proposal.load_state_dict(payload["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise ProposalFormatError(f"{p}: damaged proposal checkpoint ({exc})") from None
+    return proposal.eval()

@@ -35,7 +35,7 @@ from pemviz.engine import (
 from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem
 from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
-from pemviz.sampling import Proposal
+from pemviz.sampling import Proposal, load_proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.sinks.rollouts import RolloutSink
 
@@ -148,7 +148,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     data = rio.read_rollouts(path)
     paper_weights = estimate_rollouts(data, data.log_p, data.log_q, weights="full").estimate
     assert same_mu(paper_weights.log_mu_hat, truth.log_mu_hat)
-    np.testing.assert_array_equal(detector_log_prob(data, rio.load_proposal(ckpt)), batch.log_q)
+    np.testing.assert_array_equal(detector_log_prob(data, load_proposal(ckpt)), batch.log_q)
     bare = tmp_path / "bare.parquet"
     rio.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False, stage=data.stage,
                        component=data.component)  # no salient columns: the gap

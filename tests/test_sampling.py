@@ -12,7 +12,7 @@ from pemviz.detectors import ConstantDetector, action_log_prob
 from pemviz.estimate import estimate, format_probability
 from pemviz.estimators.base import quantile_threshold
 from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
-from pemviz.sampling import Proposal
+from pemviz.sampling import Proposal, ProposalFormatError, load_proposal, save_proposal
 from pemviz.scenarios import simulate
 
 
@@ -291,3 +291,22 @@ def test_recomputed_weights_objective_matches_autograd():
     fit_proposal(ours, inputs, objective, 150, 1e-2)
     expected = _torch_reference_fit(ref, inputs, reference_loss, 150, 1e-2)
     torch.testing.assert_close(torch.cat([p.detach().reshape(-1) for p in ours.parameters()]), expected, **FIT_TOL)
+
+
+def test_a_saved_proposal_loads_with_the_same_curve_and_a_foreign_file_is_refused(tmp_path):
+    torch.manual_seed(3)
+    q = Proposal(h_scale=7.5)
+    gaps = np.array([0.5, 3.0, 12.0, 40.0])
+    saved = save_proposal(q, tmp_path / "q.proposal.pt")
+    with torch.no_grad():
+        next(q.parameters()).add_(1.0)  # the proposal moves on; the checkpoint must not
+    loaded = load_proposal(saved)
+    assert loaded.h_scale == 7.5 and not loaded.training
+    torch.manual_seed(3)
+    np.testing.assert_array_equal(loaded.curve(gaps), Proposal(h_scale=7.5).curve(gaps))  # the weights at saving
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"format": "something-else", "version": 1}, foreign)
+    with pytest.raises(ProposalFormatError, match="not a pemviz proposal checkpoint file"):
+        load_proposal(foreign)
+    with pytest.raises(FileNotFoundError, match="proposal checkpoint .* not found"):
+        load_proposal(tmp_path / "missing.pt")

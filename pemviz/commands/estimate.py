@@ -31,6 +31,7 @@ from pemviz.estimate import format_probability
 from pemviz.files import check_output_folder, free_default_path, write_rrd
 from pemviz.pem import load_pem
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
+from pemviz.sampling import load_proposal
 from pemviz.sinks.console import estimate_cells
 from pemviz.weights import CONVENTIONS
 
@@ -121,7 +122,7 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
     if q_ref in rio.SAMPLERS:
         detector = sampler_detector(q_ref, pem(), meta.window_m)
     else:
-        detector = rio.load_proposal(q_ref)
+        detector = load_proposal(q_ref)
     return log_p, detector_log_prob(data, detector), p_src, f"{q_ref} (recomputed)"
 
 
