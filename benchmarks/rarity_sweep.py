@@ -43,18 +43,17 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pemviz import truth
-from pemviz.config import METHODS as CONFIG_METHODS
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.config import METHODS as CONFIG_METHODS, PRESETS, ExperimentConfig
 from pemviz.detectors import Detector
 from pemviz.engine import Experiment, RunFinished
 from pemviz.estimate import relative_error
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.files import atomic_write
-from pemviz.problems import Problem, ShiftedPEM, braking_problem
+from pemviz.problems import Problem, ShiftedPEM, braking_problem, toy_problem
 from pemviz.sampling import torch_threads
 from pemviz.validation import all_fields, ams_fields
 from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.toy import ToyParams, toy_problem
+from pemviz.scenarios.toy import ToyParams, ToyValue, toy_log_failure_probability
 
 Q_STAR = "q*"
 """The label of the exact zero-variance sampler (not a config: built from the problem's exact V)."""
@@ -149,7 +148,7 @@ def build(spec: Spec) -> tuple[Problem, Detector | None]:
     if spec.kind == "toy":
         params = toy_params(spec)
         problem = toy_problem(params, name=spec.name)
-        return problem, ZeroVarianceDetector(problem.target, truth.ToyValue(params).log_value_next)
+        return problem, ZeroVarianceDetector(problem.target, ToyValue(params).log_value_next)
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
         problem = braking_problem(pem, BrakingParams(latched_brake=True))
@@ -160,7 +159,7 @@ def build(spec: Spec) -> tuple[Problem, Detector | None]:
 def exact_log_p(spec: Spec) -> tuple[float, str]:
     """The exact log p_fail (nats) of ``spec`` and where it comes from (``main`` shifts: tens of seconds)."""
     if spec.kind == "toy":
-        return truth.toy_log_failure_probability(toy_params(spec)), f"closed form (1 - {spec.p_detect:.6g})^{spec.misses}"
+        return toy_log_failure_probability(toy_params(spec)), f"closed form (1 - {spec.p_detect:.6g})^{spec.misses}"
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
         return truth.latched_log_failure_probability(pem.logit_at_gap).log_p_fail, "latched closed form"

@@ -27,16 +27,8 @@ import numpy as np
 from scipy.special import log_expit
 
 from pemviz.pem import load_pem
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.truth import (
-    BrakingStart,
-    LogitFn,
-    braking_step,
-    braking_truth,
-    branching_start,
-    latched_log_failure_probability,
-    lead_speeds,
-)
+from pemviz.scenarios.braking import BrakingParams, braking_step, lead_speeds
+from pemviz.truth import BrakingStart, LogitFn, braking_truth, branching_start, latched_log_failure_probability
 
 
 @dataclass(frozen=True)

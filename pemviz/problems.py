@@ -24,7 +24,7 @@ from pemviz.pem import load_pem
 from pemviz.scenarios import RolloutBatch, branch, simulate
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
-from pemviz.scenarios.toy import ToyParams, toy_problem
+from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
 from pemviz.truth import known_log_failure_probability
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
@@ -161,6 +161,38 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
                      f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
                      f"the gap drops below {p.crash_gap_m:g} m"),
     )  # fmt: skip
+
+
+def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Problem:
+    """The toy as a :class:`Problem`: failure = classic robustness of
+    ``G[0,T-1](d >= safe)`` below 0; the proposal sees h(s) = distance / total (as the authors'
+    ``FFPolicy`` norm); curves are reported at the integer distances ``safe - 1 .. total``.
+    """
+    p = params or ToyParams()
+    formula = stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})")
+
+    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator):
+        return simulate_toy(p, n, sampler, target, rng)
+
+    def branch(parents, parent, at, target: Detector, rng: np.random.Generator):
+        return branch_toy(p, parents, parent, at, target, rng)
+
+    p_label = f"{p.p_detect:g}" if not callable(p.p_detect) else "p(d)"
+    return Problem(
+        name or f"toy({p.total},{p.braking},{p.safe},{p_label})",
+        run,
+        ToyDetector(p),
+        formula,
+        signals={"d": "gap_m"},
+        signal_ranges={"d": (0.0, float(p.total))},
+        h_scale=float(p.total),
+        curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),
+        window=float(p.braking) + 0.5,
+        exact_log_p=toy_log_failure_probability(p),
+        branch=branch,
+        description=(f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
+                     f"closer than {p.safe}; detection probability {p_label}"),
+    )
 
 
 @dataclass(frozen=True)

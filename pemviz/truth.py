@@ -3,7 +3,7 @@
 Three problems with a known answer judge the sampler:
 
 1. the toy 1-D braking model: ``p_fail = prod_{d=safe}^{braking} (1 - p(d))`` in closed form
-   (:func:`toy_log_failure_probability`);
+   (:func:`pemviz.scenarios.toy.toy_log_failure_probability`, beside the toy);
 2. the latched-brake braking scenario: the first effective detection decides everything, so p_fail is a
    finite sum over the step of the first detection, each term from the deterministic simulator
    (:func:`latched_log_failure_probability`);
@@ -19,10 +19,9 @@ Why not a grid DP of the value function with interpolation: V is a sum of step f
 interpolation smears its jumps; on the latched problem it stays 45 % off on a 401 x 401 grid while moving
 by 50 % from 201 x 201 (``benchmarks/truth_braking.py`` prints both tables).
 
-The braking dynamics here (:func:`braking_step`) are the scenario's (``ego_acceleration`` of
-:mod:`pemviz.scenarios.braking` plus the explicit-Euler update of highway-env's ``Vehicle.step``), written
-on the gap instead of positions; they replay highway-env rollouts to ~1e-13 m (tested). Probabilities are
-natural logs (nats) in float64 and sums are log-sum-exps.
+The braking dynamics are the scenario's own, written on the gap instead of positions
+(:func:`pemviz.scenarios.braking.braking_step`). Probabilities are natural logs (nats) in float64 and sums are
+log-sum-exps.
 """
 
 from __future__ import annotations
@@ -38,93 +37,11 @@ import numpy as np
 from scipy.special import expit, log_expit, logsumexp
 
 from pemviz.estimate import format_probability
-from pemviz.scenarios.braking import BrakingParams, ControllerState, ego_acceleration
-from pemviz.scenarios.toy import ToyParams
+from pemviz.scenarios.batched import replay  # the latched path: the batched simulator's observations bit for bit
+from pemviz.scenarios.braking import BrakingParams, braking_replay, braking_step, lead_speeds
 
 LogitFn = Callable[[np.ndarray], np.ndarray]
 """``logit p(detect | gap_m)``: gaps in metres, any shape -> float64 of the same shape (e.g. ``PEM.logit_at_gap``)."""
-
-
-def _replace(params: BrakingParams, **changes) -> BrakingParams:
-    return dataclasses.replace(params, **changes)
-
-
-# -- 1. toy ---------------------------------------------------------------------------------------------
-def toy_log_failure_probability(params: ToyParams) -> float:
-    """log p_fail of the toy model, exact: ``sum_{d=safe}^{braking} log(1 - p(d))`` (nats).
-
-    The car fails iff every detection at the distances ``braking .. safe`` (each visited once while
-    moving) misses. For constant p: ``(braking - safe + 1) log(1 - p)``; (100, 50, 30, 0.9) gives
-    log(1e-21). Source: the authors' ``adaptiveImportanceSampler.py``.
-    """
-    d = np.arange(params.safe, params.braking + 1, dtype=np.float64)
-    logit = params.detect_logit(d)
-    return float(np.sum(log_expit(-logit)))
-
-
-# -- braking dynamics on the gap --------------------------------------------------------------------------
-def lead_speeds(params: BrakingParams) -> np.ndarray:
-    """Lead speed at steps 0..T (m/s), float64 [T + 1], accumulated exactly as highway-env does
-    (``speed += acceleration * dt`` with the scenario's per-step lead acceleration)."""
-    acc = params.lead_accel_mps2
-    v = np.empty(params.n_steps + 1)
-    v[0] = params.lead_speed_profile_mps[0]
-    for t in range(params.n_steps):
-        v[t + 1] = v[t] + acc[t] * params.dt_s
-    return v
-
-
-def braking_step(
-    params: BrakingParams,
-    lead_speed_mps: float,
-    gap_m: np.ndarray,
-    speed_mps: np.ndarray,
-    integral: np.ndarray,
-    pending: np.ndarray,
-    detected: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One step of the braking scenario for many states at once.
-
-    Args:
-        lead_speed_mps: the lead's speed at this step (m/s).
-        gap_m, speed_mps, integral, pending: state [...] at this step: gap (m), ego speed (m/s), PID
-            integral (km/h s), emergency-brake command of the previous step (bool).
-        detected: bool [...], the detector's output at this step.
-    Returns:
-        the state at the next step (same shapes): gap' = gap + (v_lead - v) dt; v' = max(v + a dt, 0).
-    Source: :func:`pemviz.scenarios.braking.ego_acceleration` and highway-env ``Vehicle.step``.
-    """
-    shape = np.shape(gap_m)
-    g = np.asarray(gap_m, dtype=np.float64).ravel()
-    v = np.asarray(speed_mps, dtype=np.float64).ravel()
-    ctrl = ControllerState(np.asarray(integral, dtype=np.float64).ravel(), np.asarray(pending, dtype=bool).ravel())
-    a = np.broadcast_to(np.asarray(detected, dtype=bool), shape).ravel()
-    accel, ctrl2 = ego_acceleration(params, a, g, v, ctrl)
-    dt = params.dt_s
-    g2 = g + (lead_speed_mps - v) * dt
-    v2 = np.maximum(v + accel * dt, 0.0)
-    return g2.reshape(shape), v2.reshape(shape), ctrl2.integral_kmh_s.reshape(shape), ctrl2.pending_brake.reshape(shape)
-
-
-def braking_replay(params: BrakingParams, detected: np.ndarray) -> np.ndarray:
-    """Gaps of rollouts with given detection sequences, float64 [N, T] (metres), deterministic.
-
-    Args:
-        detected: bool [N, T] (or [N, <T]: missing steps count as misses).
-    """
-    detected = np.atleast_2d(np.asarray(detected, dtype=bool))
-    n, T = detected.shape[0], params.n_steps
-    vl = lead_speeds(params)
-    g = np.full(n, params.gap0_m)
-    v = np.full(n, params.ego_speed0_mps)
-    i = np.zeros(n)
-    b = np.zeros(n, dtype=bool)
-    out = np.empty((n, T))
-    for t in range(T):
-        out[:, t] = g
-        a = detected[:, t] if t < detected.shape[1] else np.zeros(n, dtype=bool)
-        g, v, i, b = braking_step(params, vl[t], g, v, i, b, a)
-    return out
 
 
 @dataclass(frozen=True)
@@ -224,7 +141,7 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
         logit_at_gap: logit p_PEM(detect | gap) (e.g. ``pem.logit_at_gap``).
         params: braking parameters; ``latched_brake`` is forced to True.
     """
-    p = BrakingParams(latched_brake=True) if params is None else _replace(params, latched_brake=True)
+    p = BrakingParams(latched_brake=True) if params is None else dataclasses.replace(params, latched_brake=True)
     path = _latched_path(p)
     all_miss, c, eff, crash_after = path.gaps, path.crash_step, path.effective, path.crash_after
     if not eff:
@@ -252,49 +169,6 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
 # Mandjes & Tuffin, "Importance sampling in rare event simulation", in Rare Event Simulation using Monte Carlo
 # Methods, 2009, Sec. 2.3; :class:`pemviz.estimators.optimal.ZeroVarianceDetector`). Each class below gives, for the
 # observations a detector is asked about, log V of the state after a detection and after a miss (nats).
-
-
-@dataclass(frozen=True)
-class ToyValue:
-    """V of the toy (:mod:`pemviz.scenarios.toy`) in closed form.
-
-    A moving car at distance d >= safe fails iff every detection at the distances ``min(d, braking) .. safe``
-    misses: ``V(d) = prod_{k=safe}^{min(d, braking)} (1 - p(k))`` (1 when d < safe: the failure was observed); a
-    stopped car never fails (V = 0). A detection at ``safe <= d <= braking`` stops the car; elsewhere it changes
-    nothing.
-    """
-
-    params: ToyParams
-    log_v_moving: np.ndarray = field(init=False, repr=False)
-    """log V(d, moving) at d = 0..total, float64 [total + 1] (nats)."""
-
-    def __post_init__(self) -> None:
-        p = self.params
-        d = np.arange(p.total + 1, dtype=np.float64)
-        inside = (d >= p.safe) & (d <= p.braking)
-        log_miss = np.where(inside, log_expit(-p.detect_logit(d)), 0.0)
-        log_miss[d < p.safe] = 0.0
-        object.__setattr__(self, "log_v_moving", np.cumsum(log_miss))  # sum over k = safe..min(d, braking)
-
-    def log_value_next(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(log V after a detection, log V after a miss), float64 [N] each, for observations [N, 2] (distance,
-        stopped) of :data:`pemviz.scenarios.toy.OBSERVATION_NAMES`.
-
-        Raises:
-            ValueError: a distance that is not an integer in [0, total].
-        """
-        p = self.params
-        obs = np.asarray(obs, dtype=np.float64)
-        d = np.rint(obs[:, 0]).astype(np.int64)
-        if np.any(np.abs(obs[:, 0] - d) > 1e-9) or np.any((d < 0) | (d > p.total)):
-            raise ValueError(f"ToyValue: distances must be integers in [0, {p.total}]")
-        stopped = obs[:, 1] > 0.5
-        crashed = d < p.safe  # observed below the safe distance: failed, whatever comes next
-        miss = np.where(stopped, -np.inf, self.log_v_moving[np.maximum(d - 1, 0)])
-        miss = np.where(d - 1 < p.safe, 0.0, miss)
-        miss = np.where(stopped & ~crashed, -np.inf, miss)
-        detect = np.where((d >= p.safe) & (d <= p.braking), -np.inf, miss)
-        return np.where(crashed, 0.0, detect), np.where(crashed, 0.0, miss)
 
 
 @dataclass(frozen=True)
@@ -350,9 +224,7 @@ def latched_value(logit_at_gap: LogitFn, params: BrakingParams | None = None) ->
             after a detection that q* can draw looks like an all-miss state where q* differs from p (then the
             observation does not carry enough state for q*).
     """
-    from pemviz.scenarios.batched import replay  # the batched simulator's own arithmetic: its observations bit for bit
-
-    p = BrakingParams(latched_brake=True) if params is None else _replace(params, latched_brake=True)
+    p = BrakingParams(latched_brake=True) if params is None else dataclasses.replace(params, latched_brake=True)
     T = p.n_steps
     path = _latched_path(p)
     c = path.crash_step
@@ -404,7 +276,7 @@ def _relaxed_step(params: BrakingParams, lead_speed_mps: float, gap_m, speed_mps
     (checked in tests/test_truth.py). So a state that is no safer (gap no larger, speed no smaller) stays
     no safer under the same action, which is what :class:`MissBound` rests on.
     """
-    relaxed = _replace(params, max_pid_brake=0.0)
+    relaxed = dataclasses.replace(params, max_pid_brake=0.0)
     i_max = np.full(np.shape(gap_m), params.target_speed_kmh * params.dt_s / (1.0 - params.integral_leak))
     g2, v2, _, b2 = braking_step(relaxed, lead_speed_mps, gap_m, speed_mps, i_max, pending, detected)
     return g2, v2, b2

@@ -34,6 +34,7 @@ from pemviz.pem import load_pem
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.toy import toy_log_failure_probability
 
 DEFAULT_PROBLEMS = ("toy", "toy-1e-30", "latched", "main")
 """The problems ``pemviz validate`` runs by default."""
@@ -65,7 +66,7 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
     t0 = time.perf_counter()
     if name in TOY_PROBLEMS:
         params = TOY_PROBLEMS[name]
-        log_p = truth.toy_log_failure_probability(params)
+        log_p = toy_log_failure_probability(params)
         q, n = 1 - params.p_detect, params.braking - params.safe + 1
         return ExactAnswer(log_p, f"closed form (1 - p)^(braking - safe + 1) = {q:g}^{n}")
     if name not in ("latched", "main"):

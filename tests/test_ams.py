@@ -16,12 +16,11 @@ from pemviz.envs import BrakingEnv
 from pemviz.estimate import relative_error
 from pemviz.estimators import build_estimator
 from pemviz.estimators.ams import run_ams, running_score
-from pemviz.problems import braking_problem, build_problem
+from pemviz.problems import braking_problem, build_problem, toy_problem
 from pemviz.scenarios import branch, can_snapshot
 from pemviz.scenarios.batched import BatchedBraking
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
-from pemviz.scenarios.toy import ToyBraking, ToyParams, toy_problem
-from pemviz.truth import toy_log_failure_probability
+from pemviz.scenarios.toy import ToyBraking, ToyParams, toy_log_failure_probability
 
 
 def ratios(problem, n: int, k: int, seeds: range) -> np.ndarray:

@@ -11,10 +11,10 @@ import pytest
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.detectors import ArrayRQMC, ConstantDetector, WindowDetector
 from pemviz.estimators.base import weighted_steps_mask
+from pemviz.problems import toy_problem
 from pemviz.rng import GOLDEN, array_rqmc_uniforms
 from pemviz.scenarios import simulate
-from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_problem
-from pemviz.truth import toy_log_failure_probability
+from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_log_failure_probability
 
 
 def test_uniforms_by_hand_ranked_by_key_then_by_the_next_column():

@@ -19,11 +19,11 @@ from pemviz.estimators import (
     failure_steps,
     log_weight,
 )
-from pemviz.problems import build_problem
+from pemviz.problems import build_problem, toy_problem
 from pemviz.estimators.cross_entropy import ce_update
 from pemviz.sampling import Proposal
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.toy import ToyParams, toy_problem
+from pemviz.scenarios.toy import ToyParams
 
 SMALL_RUN = dict(n_per_stage=50, n_final=100, ce_epochs=100, pretrain_epochs=100)
 """K x 50 rollouts, N_e = 100, 100 Adam epochs per fit: a run of a second or two."""
@@ -177,7 +177,7 @@ def test_elite_steps_thinned_as_they_come_keep_the_weighted_log_likelihood_in_ex
 
 def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on_a_toy():
     from pemviz.estimators.base import mixture_log_weight, weighted_steps_mask
-    from pemviz.truth import toy_log_failure_probability
+    from pemviz.scenarios.toy import toy_log_failure_probability
 
     # p(x) = 1e-6, q1(x) = 0.5, q2(x) = 1e-3, shares (0.1, 0.45, 0.45): w = 1e-6 / (1e-7 + 0.225 + 4.5e-4)
     log_w = mixture_log_weight(np.log([1e-6]), np.log([[1e-6], [0.5], [1e-3]]), np.array([0.1, 0.45, 0.45]))
@@ -207,7 +207,7 @@ def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on
 
 def test_linear_pool_weights_by_hand_and_unbiased_over_stages_of_different_proposals():
     from pemviz.estimators.base import StageRollouts, pooled_estimate
-    from pemviz.truth import toy_log_failure_probability
+    from pemviz.scenarios.toy import toy_log_failure_probability
 
     params = ToyParams(8, 5, 2, 0.6)  # exact (1 - 0.6)^4 = 0.0256
     pb = toy_problem(params)

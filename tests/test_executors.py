@@ -24,9 +24,9 @@ from pemviz.executors import (
     task_blocks,
 )
 from pemviz.pem import load_pem
-from pemviz.problems import Problem, braking_problem
+from pemviz.problems import Problem, braking_problem, toy_problem
 from pemviz.scenarios import simulate
-from pemviz.scenarios.toy import ToyBraking, ToyParams, toy_problem
+from pemviz.scenarios.toy import ToyBraking, ToyParams
 
 
 def test_t_draws_of_n_uniforms_are_the_rows_of_one_t_by_n_draw_and_chunks_are_its_columns():

@@ -11,9 +11,9 @@ import pytest
 from pemviz import truth
 from pemviz.estimate import relative_error
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, relative_variance, rollouts_for
-from pemviz.problems import ShiftedPEM, braking_problem, build_problem
+from pemviz.problems import ShiftedPEM, braking_problem, build_problem, toy_problem
 from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.toy import ToyBraking, ToyParams, toy_problem
+from pemviz.scenarios.toy import ToyBraking, ToyParams, ToyValue
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def test_toy_q_star_draws_only_failures_each_weighted_1e_21():
     params = ToyParams(100, 50, 30, 0.9)
     problem = build_problem("toy")
     assert problem.exact_log_p == pytest.approx(math.log(1e-21), rel=1e-12)
-    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, truth.ToyValue(params).log_value_next),
+    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, ToyValue(params).log_value_next),
                          math.log(1e-21))  # fmt: skip
 
 
@@ -43,13 +43,13 @@ def test_toy_q_star_with_distance_dependent_p():
     params = ToyParams(40, 25, 5, lambda d: 0.3 + 0.6 * np.exp(-d / 10.0))
     problem = toy_problem(params)
     log_mu = float(np.sum(np.log1p(-(0.3 + 0.6 * np.exp(-np.arange(5, 26) / 10.0)))))  # misses at 25, 24, ..., 5
-    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, truth.ToyValue(params).log_value_next), log_mu)
+    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, ToyValue(params).log_value_next), log_mu)
 
 
 def test_toy_value_equals_brute_force_enumeration_from_every_state():
     # V(d, moving) of a 6-step toy by summing over every detection sequence from that state
     params = ToyParams(6, 4, 2, lambda d: 0.2 + 0.1 * d)
-    value = truth.ToyValue(params)
+    value = ToyValue(params)
     for start in range(0, params.total + 1):
         total = 0.0
         n_left = params.total - 1  # enough steps to reach distance safe - 1 from any start

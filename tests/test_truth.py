@@ -11,20 +11,11 @@ from scipy.special import log_expit
 
 from pemviz.detectors import ConstantDetector, WindowDetector
 from pemviz.estimate import estimate
+from pemviz.problems import toy_problem
 from pemviz.scenarios import simulate
-from pemviz.scenarios.braking import BrakingParams, BrakingScenario
-from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_problem
-from pemviz.truth import (
-    _relaxed_step,
-    braking_exact,
-    braking_replay,
-    braking_step,
-    branching_start,
-    latched_log_failure_probability,
-    lead_speeds,
-    miss_bound,
-    toy_log_failure_probability,
-)
+from pemviz.scenarios.braking import BrakingParams, BrakingScenario, braking_replay, braking_step, lead_speeds
+from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_log_failure_probability
+from pemviz.truth import _relaxed_step, braking_exact, branching_start, latched_log_failure_probability, miss_bound
 
 
 @pytest.fixture(scope="module")

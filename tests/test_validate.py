@@ -13,7 +13,8 @@ import pytest
 from pemviz.cli import main as cli_main
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.engine import Experiment
-from pemviz.scenarios.toy import ToyParams, toy_problem
+from pemviz.problems import toy_problem
+from pemviz.scenarios.toy import ToyParams
 
 REDUCED = ("--k", "4", "--ce-epochs", "150", "--pretrain-epochs", "300")
 

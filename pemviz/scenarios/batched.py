@@ -44,7 +44,7 @@ from scipy.special import log_expit
 from pemviz.detectors import Detector, step_uniforms
 from pemviz.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_acceleration, initial_controller_state
+from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_step, initial_controller_state, lead_speeds
 
 DEFAULT_CHUNK_SIZE = 8192
 """Rollouts simulated together: one chunk's working set stays in cache-sized [8192] arrays (measured
@@ -65,7 +65,7 @@ class BatchedBraking:
             raise ValueError(f"BatchedBraking: n (rollouts) must be an integer >= 1, got {n!r}")
         self.params = params or BrakingParams()
         self.n = int(n)
-        self._lead_accel = self.params.lead_accel_mps2
+        self._lead_speeds = lead_speeds(self.params)
         self.reset()
 
     def reset(self) -> None:
@@ -140,14 +140,13 @@ class BatchedBraking:
         if detected.shape != (self.n,):
             raise ValueError(f"BatchedBraking.step: detected must have shape ({self.n},), got {detected.shape}")
         gap = self.gap_m if gap_m is None else gap_m
-        accel, self._ctrl = ego_acceleration(p, detected, gap, self.ego_speed_mps, self._ctrl)
+        speed, self._ctrl = ego_step(p, detected, gap, self.ego_speed_mps, self._ctrl)
         dt = p.dt_s
         # highway-env Vehicle.step: position += speed * dt, then speed += acceleration * dt.
         self.ego_x_m = self.ego_x_m + self.ego_speed_mps * dt
-        speed = self.ego_speed_mps + accel * dt
-        self.ego_speed_mps = np.maximum(speed, 0.0, out=speed)  # BrakingScenario: v + (-v/dt) dt can be -1e-16
+        self.ego_speed_mps = speed
         self.lead_x_m = self.lead_x_m + self.lead_speed_mps * dt
-        self.lead_speed_mps = self.lead_speed_mps + float(self._lead_accel[self.t]) * dt
+        self.lead_speed_mps = float(self._lead_speeds[self.t + 1])
         self.t += 1
 
 

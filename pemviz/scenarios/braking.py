@@ -149,6 +149,88 @@ def ego_acceleration(
     return accel, ControllerState(integral, emergency)
 
 
+def lead_speeds(params: BrakingParams) -> np.ndarray:
+    """Lead speed at steps 0..T (m/s), float64 [T + 1], accumulated exactly as highway-env does
+    (``speed += acceleration * dt`` with :attr:`BrakingParams.lead_accel_mps2`)."""
+    acc = params.lead_accel_mps2
+    v = np.empty(params.n_steps + 1)
+    v[0] = params.lead_speed_profile_mps[0]
+    for t in range(params.n_steps):
+        v[t + 1] = v[t] + acc[t] * params.dt_s
+    return v
+
+
+def ego_step(
+    params: BrakingParams,
+    detected: np.ndarray,
+    gap_m: np.ndarray,
+    ego_speed_mps: np.ndarray,
+    ctrl: ControllerState,
+) -> tuple[np.ndarray, ControllerState]:
+    """The ego's speed one step later, vectorised over rollouts: highway-env ``Vehicle.step``'s explicit Euler
+    update ``v' = max(v + a dt, 0)`` with a from :func:`ego_acceleration` (arguments as there).
+
+    Returns:
+        (next speed [N] in m/s, new controller memory). The ego's position moves by ``v dt`` with the speed
+        before the update (``Vehicle.step`` moves first), so the gap moves by ``(v_lead - v) dt``.
+    """
+    accel, ctrl = ego_acceleration(params, detected, gap_m, ego_speed_mps, ctrl)
+    speed = ego_speed_mps + accel * params.dt_s
+    return np.maximum(speed, 0.0, out=speed), ctrl  # v + (-v/dt) dt can round to -1e-16
+
+
+def braking_step(
+    params: BrakingParams,
+    lead_speed_mps: float,
+    gap_m: np.ndarray,
+    speed_mps: np.ndarray,
+    integral: np.ndarray,
+    pending: np.ndarray,
+    detected: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One step of the braking scenario for many states at once.
+
+    Args:
+        lead_speed_mps: the lead's speed at this step (m/s).
+        gap_m, speed_mps, integral, pending: state [...] at this step: gap (m), ego speed (m/s), PID
+            integral (km/h s), emergency-brake command of the previous step (bool).
+        detected: bool [...], the detector's output at this step.
+    Returns:
+        the state at the next step (same shapes): gap' = gap + (v_lead - v) dt; v' = max(v + a dt, 0).
+    Source: :func:`ego_step` (:func:`ego_acceleration` and highway-env ``Vehicle.step``), written on the gap
+    instead of positions; it replays highway-env rollouts to ~1e-13 m (``tests/test_truth.py``).
+    """
+    shape = np.shape(gap_m)
+    g = np.asarray(gap_m, dtype=np.float64).ravel()
+    v = np.asarray(speed_mps, dtype=np.float64).ravel()
+    ctrl = ControllerState(np.asarray(integral, dtype=np.float64).ravel(), np.asarray(pending, dtype=bool).ravel())
+    a = np.broadcast_to(np.asarray(detected, dtype=bool), shape).ravel()
+    v2, ctrl2 = ego_step(params, a, g, v, ctrl)
+    g2 = g + (lead_speed_mps - v) * params.dt_s
+    return g2.reshape(shape), v2.reshape(shape), ctrl2.integral_kmh_s.reshape(shape), ctrl2.pending_brake.reshape(shape)
+
+
+def braking_replay(params: BrakingParams, detected: np.ndarray) -> np.ndarray:
+    """Gaps of rollouts with given detection sequences, float64 [N, T] (metres), deterministic.
+
+    Args:
+        detected: bool [N, T] (or [N, <T]: missing steps count as misses).
+    """
+    detected = np.atleast_2d(np.asarray(detected, dtype=bool))
+    n, T = detected.shape[0], params.n_steps
+    vl = lead_speeds(params)
+    g = np.full(n, params.gap0_m)
+    v = np.full(n, params.ego_speed0_mps)
+    i = np.zeros(n)
+    b = np.zeros(n, dtype=bool)
+    out = np.empty((n, T))
+    for t in range(T):
+        out[:, t] = g
+        a = detected[:, t] if t < detected.shape[1] else np.zeros(n, dtype=bool)
+        g, v, i, b = braking_step(params, vl[t], g, v, i, b, a)
+    return out
+
+
 class BrakingScenario:
     """One rollout of the braking scenario on highway-env vehicles, stepped as a black box.
 

@@ -7,7 +7,7 @@ happens iff the detector misses at every distance ``braking, braking - 1, ..., s
 
     p_fail = prod_{d = safe}^{braking} (1 - p(d))      (= (1 - p)^(braking - safe + 1) for constant p)
 
-(:func:`pemviz.truth.toy_log_failure_probability`). Source: ``SimParams``/``step_state``/``car_rollout``
+(:func:`toy_log_failure_probability`). Source: ``SimParams``/``step_state``/``car_rollout``
 in craigiedon/CarlaStuff ``adaptiveImportanceSampler.py`` and ``approxDP.py``. The authors end a rollout
 at its failure; here every rollout has the fixed length ``total - safe + 2`` (a
 :class:`~pemviz.scenarios.RolloutBatch` has one T), which is exactly long enough for a failure to be
@@ -20,17 +20,16 @@ the distance like the braking scenario's gap), one step per unit of travel.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Union
+from dataclasses import dataclass, field
+from typing import Callable, Union
 
 import numpy as np
+from scipy.special import log_expit
 
 from pemviz.detectors import Detector, action_log_prob, step_uniforms
 from pemviz.rng import by_blocks
+from pemviz.scenarios import RolloutBatch, check_branch_args
 
-if TYPE_CHECKING:  # imported lazily at run time: pemviz.problems imports the scenarios package
-    from pemviz.problems import Problem
-    from pemviz.scenarios import RolloutBatch
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")
 """Columns of the toy's observation: distance to the obstacle (units) and 1.0 once stopped or crashed."""
@@ -154,7 +153,7 @@ class ToyBraking:
 def simulate_toy(
     params: ToyParams, n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
     forced: tuple[np.ndarray, np.ndarray] | None = None,
-) -> "RolloutBatch":
+) -> RolloutBatch:
     """``n`` toy rollouts, vectorised; the same draws and batch as :func:`pemviz.scenarios.simulate` with
     :class:`ToyBraking` (one ``rng.random(n)`` per step, detect iff ``log u <= log q(detect)``).
 
@@ -166,8 +165,6 @@ def simulate_toy(
     Raises:
         ValueError: if ``n < 1``.
     """
-    from pemviz.scenarios import RolloutBatch
-
     if n < 1:
         raise ValueError(f"simulate_toy: n must be >= 1, got {n}")
     T = params.steps
@@ -196,49 +193,69 @@ def simulate_toy(
 
 
 def branch_toy(
-    params: ToyParams, parents: "RolloutBatch", parent: np.ndarray, at: np.ndarray, target: Detector,
+    params: ToyParams, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
     rng: np.random.Generator,
-) -> "RolloutBatch":
+) -> RolloutBatch:
     """:func:`pemviz.scenarios.branch` for the toy, vectorised: the parents' prefixes are replayed (the state at a
     step is a function of the actions before it) and the rest drawn from ``target``; [K, T]."""
-    from pemviz.scenarios import check_branch_args
-
     parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
     check_branch_args(parents, parent, at)
     return simulate_toy(params, parent.size, target, target, rng, forced=(parents.detected[parent], at))
 
 
-def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Problem":
-    """The toy as a :class:`~pemviz.problems.Problem`: failure = classic robustness of
-    ``G[0,T-1](d >= safe)`` below 0; the proposal sees h(s) = distance / total (as the authors'
-    ``FFPolicy`` norm); curves are reported at the integer distances ``safe - 1 .. total``.
+# -- the exact answer ----------------------------------------------------------------------------------
+
+
+def toy_log_failure_probability(params: ToyParams) -> float:
+    """log p_fail of the toy model, exact: ``sum_{d=safe}^{braking} log(1 - p(d))`` (nats).
+
+    The car fails iff every detection at the distances ``braking .. safe`` (each visited once while
+    moving) misses. For constant p: ``(braking - safe + 1) log(1 - p)``; (100, 50, 30, 0.9) gives
+    log(1e-21). Source: the authors' ``adaptiveImportanceSampler.py``.
     """
-    from pemviz import stl
-    from pemviz.problems import Problem
-    from pemviz.truth import toy_log_failure_probability  # truth imports this module
+    d = np.arange(params.safe, params.braking + 1, dtype=np.float64)
+    logit = params.detect_logit(d)
+    return float(np.sum(log_expit(-logit)))
 
-    p = params or ToyParams()
-    formula = stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})")
 
-    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator):
-        return simulate_toy(p, n, sampler, target, rng)
+@dataclass(frozen=True)
+class ToyValue:
+    """V of the toy in closed form: the probability of failing from a state (the zero-variance proposal's value).
 
-    def branch(parents, parent, at, target: Detector, rng: np.random.Generator):
-        return branch_toy(p, parents, parent, at, target, rng)
+    A moving car at distance d >= safe fails iff every detection at the distances ``min(d, braking) .. safe``
+    misses: ``V(d) = prod_{k=safe}^{min(d, braking)} (1 - p(k))`` (1 when d < safe: the failure was observed); a
+    stopped car never fails (V = 0). A detection at ``safe <= d <= braking`` stops the car; elsewhere it changes
+    nothing.
+    """
 
-    p_label = f"{p.p_detect:g}" if not callable(p.p_detect) else "p(d)"
-    return Problem(
-        name or f"toy({p.total},{p.braking},{p.safe},{p_label})",
-        run,
-        ToyDetector(p),
-        formula,
-        signals={"d": "gap_m"},
-        signal_ranges={"d": (0.0, float(p.total))},
-        h_scale=float(p.total),
-        curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),
-        window=float(p.braking) + 0.5,
-        exact_log_p=toy_log_failure_probability(p),
-        branch=branch,
-        description=(f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
-                     f"closer than {p.safe}; detection probability {p_label}"),
-    )
+    params: ToyParams
+    log_v_moving: np.ndarray = field(init=False, repr=False)
+    """log V(d, moving) at d = 0..total, float64 [total + 1] (nats)."""
+
+    def __post_init__(self) -> None:
+        p = self.params
+        d = np.arange(p.total + 1, dtype=np.float64)
+        inside = (d >= p.safe) & (d <= p.braking)
+        log_miss = np.where(inside, log_expit(-p.detect_logit(d)), 0.0)
+        log_miss[d < p.safe] = 0.0
+        object.__setattr__(self, "log_v_moving", np.cumsum(log_miss))  # sum over k = safe..min(d, braking)
+
+    def log_value_next(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(log V after a detection, log V after a miss), float64 [N] each, for observations [N, 2] (distance,
+        stopped) of :data:`OBSERVATION_NAMES`.
+
+        Raises:
+            ValueError: a distance that is not an integer in [0, total].
+        """
+        p = self.params
+        obs = np.asarray(obs, dtype=np.float64)
+        d = np.rint(obs[:, 0]).astype(np.int64)
+        if np.any(np.abs(obs[:, 0] - d) > 1e-9) or np.any((d < 0) | (d > p.total)):
+            raise ValueError(f"ToyValue: distances must be integers in [0, {p.total}]")
+        stopped = obs[:, 1] > 0.5
+        crashed = d < p.safe  # observed below the safe distance: failed, whatever comes next
+        miss = np.where(stopped, -np.inf, self.log_v_moving[np.maximum(d - 1, 0)])
+        miss = np.where(d - 1 < p.safe, 0.0, miss)
+        miss = np.where(stopped & ~crashed, -np.inf, miss)
+        detect = np.where((d >= p.safe) & (d <= p.braking), -np.inf, miss)
+        return np.where(crashed, 0.0, detect), np.where(crashed, 0.0, miss)
