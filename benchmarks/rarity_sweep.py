@@ -48,7 +48,7 @@ from pemviz.detectors import Detector
 from pemviz.engine import Experiment, RunFinished
 from pemviz.estimate import relative_error
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
-from pemviz.files import atomic_write
+from pemviz.io.files import atomic_write
 from pemviz.problems import Problem, ShiftedPEM, braking_problem, toy_problem
 from pemviz.sampling import torch_threads
 from pemviz.validation import all_fields, ams_fields

@@ -22,7 +22,7 @@ import rerun as rr
 
 from pemviz.config import METRICS, PRESETS, ExperimentConfig
 from pemviz.estimate import format_probability
-from pemviz.files import write_rrd
+from pemviz.io.files import write_rrd
 from pemviz.sinks.colours import stage_rgba
 from pemviz.problems import PROBLEMS
 from pemviz.validation import ExactAnswer, Job, RunRecord, ams_fields

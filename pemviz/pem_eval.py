@@ -31,8 +31,7 @@ from typing import Any, Protocol
 
 import numpy as np
 from scipy.special import expit
-
-from pemviz.files import write_rrd
+from pemviz.io.files import write_rrd
 from pemviz.pem import (
     PEM_RECIPES,
     NormStats,
@@ -574,7 +573,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
 
 
 def write_recording(result: EvalResult, path: str | os.PathLike[str]) -> Path:
-    """Write the rerun recording of :func:`log_recording` to ``path`` (:func:`pemviz.files.write_rrd`)."""
+    """Write the rerun recording of :func:`log_recording` to ``path`` (:func:`pemviz.io.files.write_rrd`)."""
     return write_rrd(path, lambda stream: log_recording(result, stream), app_id=APP_ID)
 
 

@@ -1,4 +1,4 @@
-"""Failure-probability estimates from logged rollouts (a file of :mod:`pemviz.rollout_io`): ``pemviz estimate``.
+"""Failure-probability estimates from logged rollouts (a file of :mod:`pemviz.io.rollout_format`): ``pemviz estimate``.
 
 The importance weights need log p_PEM and log q of every logged action: from the file's ``log_p`` / ``log_q``
 columns, or recomputed here under a PEM (:func:`pem_log_prob`) and the detector that sampled the rollouts
@@ -22,8 +22,9 @@ from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDete
 from pemviz.estimate import Estimate, estimate
 from pemviz.estimators import log_p_before_failure, log_weight
 from pemviz.estimators.base import pool
+from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta
+from pemviz.io.rollouts import RolloutData, braking_salient
 from pemviz.problems import Problem
-from pemviz.rollout_io import SALIENT_COLUMNS, SAMPLERS, RolloutData, RolloutFormatError, RolloutMeta, braking_salient
 from pemviz.scenarios import RolloutBatch
 from pemviz.weights import CONVENTIONS, MeanWeight, mean_weight
 

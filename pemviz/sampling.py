@@ -20,7 +20,7 @@ from torch import nn
 
 from pemviz.config import FITS
 from pemviz.detectors import GAP_COLUMN
-from pemviz.files import atomic_write, load_tagged
+from pemviz.io.files import atomic_write, load_tagged
 
 GAP_SCALE_M = 12.0
 """The braking proposal's input is gap / 12 m (Innes & Ramamoorthy 2022, the authors' code)."""
@@ -339,7 +339,8 @@ class ProposalFormatError(ValueError):
 
 def write_proposal_file(proposal: Proposal, path: str | os.PathLike[str]) -> None:
     """``torch.save`` a :class:`Proposal` checkpoint into ``path`` as it is (no temporary file: for a caller that
-    moves its files into place itself, as :class:`pemviz.rollout_io.RolloutWriter` does; else :func:`save_proposal`).
+    moves its files into place itself, as :class:`pemviz.io.rollouts.RolloutWriter` does; else
+    :func:`save_proposal`).
 
     The checkpoint is a plain dict: format tag, version, ``h_scale`` (metres) and a copy of the ``state_dict``, so
     that ``torch.load(weights_only=True)`` reads it and later training of ``proposal`` does not change it.
@@ -358,7 +359,7 @@ def save_proposal(proposal: Proposal, path: str | os.PathLike[str], *, overwrite
 
     Raises:
         OSError: the folder is missing or not writable, the disk is full (nothing is left behind).
-        pemviz.files.OutputExists: ``path`` exists and ``overwrite`` is False.
+        pemviz.io.files.OutputExists: ``path`` exists and ``overwrite`` is False.
     """
     return atomic_write(path, lambda tmp: write_proposal_file(proposal, tmp), overwrite=overwrite)
 

@@ -29,7 +29,7 @@ from pemviz import truth
 from pemviz.config import METHODS, PRESETS, ExperimentConfig
 from pemviz.engine import Experiment, RunFinished
 from pemviz.estimate import format_probability, relative_error
-from pemviz.files import atomic_write
+from pemviz.io.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
 from pemviz.sampling import torch_threads

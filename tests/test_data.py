@@ -1,4 +1,4 @@
-"""pemviz.data: locating, fetching (SHA-256 checked, atomic) and validating the KITTI salient files."""
+"""pemviz.io.data: locating, fetching (SHA-256 checked, atomic) and validating the KITTI salient files."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pemviz import data
+from pemviz.io import data
 from pemviz.cli import main as cli_main
 
 SHARED_DATA = data.repo_root().parent / "shared" / "data" / "kitti-salient"

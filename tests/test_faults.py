@@ -28,8 +28,9 @@ import pytest
 
 from conftest import REPO, verify_rrd
 from pemviz import cli
-from pemviz import rollout_io as rio
-from pemviz.files import OutputExists, atomic_write, check_output_path
+from pemviz.io import rollout_format
+from pemviz.io import rollouts as rio
+from pemviz.io.files import OutputExists, atomic_write, check_output_path
 from pemviz.scenarios import RolloutBatch
 
 FAULT_SEEDS = range(int(os.environ.get("FAULT_SEEDS", "1")))
@@ -60,7 +61,7 @@ def small_batch(n: int = 4, t: int = 6, seed: int = 0) -> RolloutBatch:
 
 def write_unit(path: Path, seed: int = 0) -> None:
     batch = small_batch(seed=seed)
-    rio.write_rollouts(path, batch, rio.braking_meta(formula="G[0,5](d >= 2)"), overwrite=True)
+    rio.write_rollouts(path, batch, rollout_format.braking_meta(formula="G[0,5](d >= 2)"), overwrite=True)
 
 
 def spawn(args: list[str], cwd: Path, **kw) -> subprocess.Popen:
@@ -73,7 +74,7 @@ def unit_state(path: Path) -> str:
     """``complete`` (reads), ``incomplete`` (the reader says the unit was cut short) for a rollout unit."""
     try:
         rio.read_rollouts(path)
-    except rio.RolloutFormatError as exc:
+    except rollout_format.RolloutFormatError as exc:
         assert "interrupted or concurrent write" in str(exc), exc
         return "incomplete"
     return "complete"
@@ -117,7 +118,7 @@ def test_signal_at_a_random_point_of_run_keeps_old_files_or_leaves_complete_new_
     rrd, parquet = tmp_path / "f.rrd", tmp_path / "x.parquet"
     rrd.write_bytes(OLD_RRD)
     write_unit(parquet)
-    old_unit = {p: p.read_bytes() for p in (parquet, rio.sidecar_path(parquet))}
+    old_unit = {p: p.read_bytes() for p in (parquet, rollout_format.sidecar_path(parquet))}
     proc = spawn([*SMALL_RUN, "--save", rrd.name, "--save-rollouts", parquet.name, "--overwrite"], tmp_path)
     code, err = kill_at_random_point(proc, sig, 1000 * int(sig) + seed, latest_s=10.0)
     lines = [ln for ln in err.splitlines() if "Traceback" in ln]
@@ -299,8 +300,8 @@ def test_sidecar_field_of_the_wrong_type_is_one_error_naming_file_and_field(tmp_
     change, message = HOSTILE_SIDECARS[case]
     side = tmp_path / "s.json"
     side.write_text(json.dumps({"formula": "G[0,5](d >= 2)", "dt_s": 0.05, **change}))
-    with pytest.raises(rio.RolloutFormatError) as err:
-        rio.read_sidecar(tmp_path / "s.parquet")
+    with pytest.raises(rollout_format.RolloutFormatError) as err:
+        rollout_format.read_sidecar(tmp_path / "s.parquet")
     assert str(err.value).startswith(f"{side}: ") and message in str(err.value)
     assert "\n" not in str(err.value) or case.startswith("formula")
 
@@ -309,8 +310,8 @@ def test_sidecar_field_of_the_wrong_type_is_one_error_naming_file_and_field(tmp_
 def test_sidecar_that_is_not_a_json_object_is_one_error(tmp_path, body):
     side = tmp_path / "s.json"
     side.write_bytes(body.encode("utf-8", "surrogateescape"))
-    with pytest.raises(rio.RolloutFormatError, match=str(side)):
-        rio.read_sidecar(tmp_path / "s.parquet")
+    with pytest.raises(rollout_format.RolloutFormatError, match=str(side)):
+        rollout_format.read_sidecar(tmp_path / "s.parquet")
 
 
 def test_sidecar_of_another_table_is_reported_as_an_incomplete_unit(tmp_path):
@@ -326,7 +327,7 @@ def test_sidecar_extreme_log_q_is_one_line_not_a_nan_crash(tmp_path, capsys):
     batch = small_batch()
     batch = RolloutBatch(batch.observations, batch.detected, batch.log_p, np.full(batch.log_q.shape, -1e308),
                          batch.observation_names)  # fmt: skip
-    rio.write_rollouts(tmp_path / "x.parquet", batch, rio.braking_meta(formula="G[0,5](d >= 2)"))
+    rio.write_rollouts(tmp_path / "x.parquet", batch, rollout_format.braking_meta(formula="G[0,5](d >= 2)"))
     code, err = cli_line(capsys, "estimate", str(tmp_path / "x.parquet"), "--no-record")
     assert code == 2
     assert err == (f"pemviz estimate: error: {tmp_path / 'x.parquet'}: rollout 0: the importance log-weight "

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from pemviz import data, pem
+from pemviz import pem
+from pemviz.io import data
 from pemviz.cli import main as cli_main
 
 SHARED = data.repo_root().parent / "shared"

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from conftest import verify_rrd
-from pemviz import data, pem
+from pemviz import pem
+from pemviz.io import data
 from pemviz.cli import main as cli_main
 from pemviz.pem_eval import (
     GAP_GRID_M,

@@ -19,7 +19,8 @@ from conftest import run_cli, verify_rrd
 from pemviz.estimate import estimate
 from pemviz.problems import problem_for
 from pemviz import cli
-from pemviz import rollout_io as rio
+from pemviz.io import rollout_format
+from pemviz.io import rollouts as rio
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, action_log_prob
@@ -83,7 +84,7 @@ def test_run_rollouts_read_back_with_their_columns_give_the_runs_mu_hat_to_1e_12
     assert same_mu(result.estimate.log_mu_hat, run_estimate.log_mu_hat)
     assert result.estimate.nll_mean == pytest.approx(run_estimate.nll_mean, rel=1e-12)
     assert result.estimate.ess == pytest.approx(run_estimate.ess, rel=1e-12)
-    meta = json.loads(rio.sidecar_path(path).read_text())
+    meta = json.loads(rollout_format.sidecar_path(path).read_text())
     assert meta["formula"] == "G[0,99](d >= 2)" and meta["dt_s"] == 0.05 and meta["proposal"] == "naive50"
     assert meta["units"]["gap_m"] == "m" and meta["units"]["log_p"] == "nats"
     assert meta["provenance"]["estimate"]["log_mu_hat"] == run_estimate.log_mu_hat
@@ -143,7 +144,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
             p.add_(0.1)  # the proposal moves on after sampling; the checkpoint must not
     sink(RunFinished(FinalEstimate(truth, 160, 0.0), ()))
     ckpt = tmp_path / "adaptive.proposal.pt"
-    assert ckpt.is_file() and json.loads(rio.sidecar_path(path).read_text())["proposal"] == ckpt.name
+    assert ckpt.is_file() and json.loads(rollout_format.sidecar_path(path).read_text())["proposal"] == ckpt.name
 
     data = rio.read_rollouts(path)
     paper_weights = estimate_rollouts(data, data.log_p, data.log_q, weights="full").estimate
@@ -152,7 +153,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     bare = tmp_path / "bare.parquet"
     rio.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False, stage=data.stage,
                        component=data.component)  # no salient columns: the gap
-    meta = json.loads(rio.sidecar_path(bare).read_text())
+    meta = json.loads(rollout_format.sidecar_path(bare).read_text())
     assert meta["proposal"] == "adaptive.proposal.pt" and meta["pem"] == str(pem_file)
     for args in ([str(bare)], [str(bare), "--pem", str(pem_file), "--proposal", str(ckpt)]):
         code, out, err = estimate_cli(capsys, *args, "--no-record")
@@ -251,7 +252,7 @@ def test_cli_run_then_estimate_prints_the_runs_mu_hat_and_writes_a_recording(tmp
     assert code == 0, run.err
     est = run_cli("estimate", str(rollouts), "--save", str(recording))  # the installed entry point, end to end
     assert est.returncode == 0, est.stderr
-    run_log_mu = json.loads(rio.sidecar_path(rollouts).read_text())["provenance"]["estimate"]["log_mu_hat"]
+    run_log_mu = json.loads(rollout_format.sidecar_path(rollouts).read_text())["provenance"]["estimate"]["log_mu_hat"]
     assert same_mu(float(LOG_MU_RE.search(est.stdout).group(1)), run_log_mu)
     assert re.search(r"log mu_hat = (\S+) nats", run.out).group(1) == f"{run_log_mu:.4f}"
     assert f"rollouts: {rollouts}" in run.err
@@ -270,7 +271,7 @@ def small_file(tmp_path_factory, pem):
     problem = braking_problem(pem)
     batch = problem.simulate(6, ConstantDetector(0.5), problem.target, np.random.default_rng(0))
     path = tmp_path_factory.mktemp("small") / "small.parquet"
-    rio.write_rollouts(path, batch, rio.braking_meta(pem="ml-nn", proposal="naive50"),
+    rio.write_rollouts(path, batch, rollout_format.braking_meta(pem="ml-nn", proposal="naive50"),
                        salient=rio.braking_salient(batch.gap_m))  # fmt: skip
     return path
 
@@ -360,8 +361,8 @@ def test_malformed_file_gives_one_error_naming_rollout_and_step_and_writes_nothi
     mutate, message = MALFORMED[case]
     bad = tmp_path / "bad.parquet"
     pq.write_table(mutate(pq.read_table(small_file)), bad)
-    shutil.copy(rio.sidecar_path(small_file), rio.sidecar_path(bad))
-    with pytest.raises(rio.RolloutFormatError, match=message):
+    shutil.copy(rollout_format.sidecar_path(small_file), rollout_format.sidecar_path(bad))
+    with pytest.raises(rollout_format.RolloutFormatError, match=message):
         rio.read_rollouts(bad)
     monkeypatch.chdir(tmp_path)
     before = sorted(p.name for p in tmp_path.iterdir())
@@ -376,9 +377,9 @@ def test_malformed_file_gives_one_error_naming_rollout_and_step_and_writes_nothi
 def test_sidecar_problems_are_named(small_file, tmp_path):
     bad = tmp_path / "s.parquet"
     shutil.copy(small_file, bad)
-    with pytest.raises(rio.RolloutFormatError, match=r"s\.json: sidecar not found"):
+    with pytest.raises(rollout_format.RolloutFormatError, match=r"s\.json: sidecar not found"):
         rio.read_rollouts(bad)
-    meta = json.loads(rio.sidecar_path(small_file).read_text())
+    meta = json.loads(rollout_format.sidecar_path(small_file).read_text())
     for change, message in [
         ({"formula": "G[0,99](d >= "}, r"formula 'G\[0,99\]\(d >= ' is not valid STL"),
         ({"dt_s": -1}, r"dt_s must be a number of seconds > 0, got -1"),
@@ -386,8 +387,8 @@ def test_sidecar_problems_are_named(small_file, tmp_path):
         ({"version": 3}, r"format version 3; this pemviz reads versions 1, 2: a newer pemviz wrote the file"),
         ({"signals": {"d": "gap_m", "w": "width_m"}}, r"missing column 'width_m'"),
     ]:
-        rio.sidecar_path(bad).write_text(json.dumps({**meta, **change}))
-        with pytest.raises(rio.RolloutFormatError, match=message):
+        rollout_format.sidecar_path(bad).write_text(json.dumps({**meta, **change}))
+        with pytest.raises(rollout_format.RolloutFormatError, match=message):
             rio.read_rollouts(bad)
 
 
@@ -397,16 +398,16 @@ def test_writer_refuses_bad_rollouts_and_leaves_no_file(tmp_path, pem):
     obs = batch.observations.copy()
     obs[1, 17, 0] = np.inf
     broken = RolloutBatch(obs, batch.detected, batch.log_p, batch.log_q, batch.observation_names)
-    with pytest.raises(rio.RolloutFormatError, match=r"gap_m is inf at rollout 1, step 17 \(row 117\)"):
-        rio.write_rollouts(tmp_path / "x.parquet", broken, rio.braking_meta())
+    with pytest.raises(rollout_format.RolloutFormatError, match=r"gap_m is inf at rollout 1, step 17 \(row 117\)"):
+        rio.write_rollouts(tmp_path / "x.parquet", broken, rollout_format.braking_meta())
     with pytest.raises(ValueError, match="must end in .parquet"):
-        rio.write_rollouts(tmp_path / "x.csv", batch, rio.braking_meta())
+        rio.write_rollouts(tmp_path / "x.csv", batch, rollout_format.braking_meta())
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(FileNotFoundError, match="rollout file .* not found"):
         rio.read_rollouts(tmp_path / "absent.parquet")
     Path(tmp_path / "junk.parquet").write_text("not parquet")
     Path(tmp_path / "junk.json").write_text(json.dumps({"formula": "G[0,99](d >= 2)", "dt_s": 0.05}))
-    with pytest.raises(rio.RolloutFormatError, match="not a readable Parquet file"):
+    with pytest.raises(rollout_format.RolloutFormatError, match="not a readable Parquet file"):
         rio.read_rollouts(tmp_path / "junk.parquet")
 
 

@@ -18,7 +18,8 @@ from hypothesis import strategies as st
 from scipy.special import logsumexp
 
 from pemviz import cli
-from pemviz import rollout_io as rio
+from pemviz.io import rollout_format
+from pemviz.io import rollouts as rio
 from pemviz.weights import component_of, mean_weight, mixture_step_log_q
 
 LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
@@ -33,7 +34,7 @@ def run_and_estimate(capsys, tmp_path, *run_args: str, estimate_args: tuple[str,
     code = cli.main(["estimate", str(path), "--no-record", *estimate_args])
     out = capsys.readouterr()
     assert code == 0, out.err
-    return run, out.out, json.loads(rio.sidecar_path(path).read_text())
+    return run, out.out, json.loads(rollout_format.sidecar_path(path).read_text())
 
 
 def stage_cells(run_out: str) -> dict[int, str]:
@@ -113,7 +114,7 @@ def test_chunked_runs_above_20000_rollouts_round_trip(tmp_path, capsys):
     run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "naive50", "--n", "20001")
     assert_round_trip(run, est, sidecar)
     assert pq.ParquetFile(tmp_path / "r.parquet").num_row_groups == 3
-    (tmp_path / "r.parquet").unlink(), rio.sidecar_path(tmp_path / "r.parquet").unlink()
+    (tmp_path / "r.parquet").unlink(), rollout_format.sidecar_path(tmp_path / "r.parquet").unlink()
     run, est, sidecar = run_and_estimate(capsys, tmp_path, "--preset", "quick", "--k", "3", "--n", "40", "--n-final",
                                          "20001", "--seed", "2")  # fmt: skip
     assert_round_trip(run, est, sidecar)
@@ -151,7 +152,7 @@ def test_a_file_weighed_by_one_mixture_component_is_warned_about_and_the_right_o
     assert "warning" not in right
     real = sinks.stage_log_q
     monkeypatch.setattr(sinks, "stage_log_q", lambda batch, *a: (batch.log_q, real(batch, *a)[1]))
-    (tmp_path / "r.parquet").unlink(), rio.sidecar_path(tmp_path / "r.parquet").unlink()
+    (tmp_path / "r.parquet").unlink(), rollout_format.sidecar_path(tmp_path / "r.parquet").unlink()
     _, wrong, _ = run_and_estimate(capsys, tmp_path, *args)
     warning = [ln for ln in wrong.splitlines() if ln.startswith("warning:")]
     assert len(warning) == 1 and "log_q is not the density that drew these rollouts" in warning[0]
@@ -294,14 +295,14 @@ def test_stage_and_component_columns_read_back_and_are_checked_against_the_sidec
                        for k, c in counts.items()],
             "pooling": {"rule": "rollouts", "stages": sorted(counts), "stage_weights": [sum(c) / len(rows) for c in
                                                                                          counts.values()]}}  # fmt: skip
-    rio.sidecar_path(path).write_text(json.dumps(side))
+    rollout_format.sidecar_path(path).write_text(json.dumps(side))
     data = rio.read_rollouts(path)
     assert data.stage.tolist() == stages and data.component.tolist() == comps
     first = sorted(counts)[0]
     side["stages"][0]["n"] += 1
     side["stages"][0]["components"][0]["n"] += 1
-    rio.sidecar_path(path).write_text(json.dumps(side))
-    with pytest.raises(rio.RolloutFormatError, match=f"stage {first} has n = "):
+    rollout_format.sidecar_path(path).write_text(json.dumps(side))
+    with pytest.raises(rollout_format.RolloutFormatError, match=f"stage {first} has n = "):
         rio.read_rollouts(path)
 
 
@@ -313,11 +314,11 @@ def test_stage_and_component_columns_read_back_and_are_checked_against_the_sidec
        st.sampled_from(["stages", "pooling", "weights"]))  # fmt: skip
 def test_any_stages_pooling_or_weights_field_parses_or_is_one_format_error(value, key):
     try:
-        meta = rio.RolloutMeta.from_json({"formula": "G[0,2](d >= 2)", "dt_s": 0.1, key: value})
-    except rio.RolloutFormatError as exc:
+        meta = rollout_format.RolloutMeta.from_json({"formula": "G[0,2](d >= 2)", "dt_s": 0.1, key: value})
+    except rollout_format.RolloutFormatError as exc:
         assert str(exc).startswith("sidecar: ") and "\n" not in str(exc)
     else:
-        assert rio.RolloutMeta.from_json(meta.to_json()).to_json() == meta.to_json()  # written back, read the same
+        assert rollout_format.RolloutMeta.from_json(meta.to_json()).to_json() == meta.to_json()  # written back, read the same
 
 
 def test_a_stage_column_that_changes_within_a_rollout_is_named(tmp_path):
@@ -326,5 +327,5 @@ def test_a_stage_column_that_changes_within_a_rollout_is_named(tmp_path):
     stage[4] = 2
     pq.write_table(table.set_column(table.column_names.index("stage"), "stage", pa.array(stage)), tmp_path / "x.parquet")
     (tmp_path / "x.json").write_text(json.dumps({"formula": "G[0,2](d >= 2)", "dt_s": 0.1}))
-    with pytest.raises(rio.RolloutFormatError, match=r"stage = 2 at rollout 1, step 1 \(row 4\) but 1 at its step 0"):
+    with pytest.raises(rollout_format.RolloutFormatError, match=r"stage = 2 at rollout 1, step 1 \(row 4\) but 1 at its step 0"):
         rio.read_rollouts(tmp_path / "x.parquet")

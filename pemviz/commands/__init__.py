@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.files import check_output_path
+from pemviz.io.files import check_output_path
 
 
 COMMANDS: dict[str, tuple[str, str]] = {

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pemviz import data
+from pemviz.io import data
 from pemviz.commands import COMMANDS, UsageError
 
 

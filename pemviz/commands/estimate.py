@@ -1,7 +1,7 @@
 """``pemviz estimate ROLLOUTS.parquet``: the failure probability from logged rollouts, and a recording.
 
 The rollouts come from anywhere (``pemviz run --save-rollouts``, CARLA, a user's simulator) in the format
-of :mod:`pemviz.rollout_io`. The importance weights need log p_PEM and log q of every logged action: from
+of :mod:`pemviz.io.rollout_format`. The importance weights need log p_PEM and log q of every logged action: from
 the file's ``log_p`` / ``log_q`` columns, or recomputed from a PEM (``--pem``) and from what sampled the
 rollouts (``--proposal``: a proposal checkpoint or ``pem`` / ``naive50`` / ``mixed50``). Without options,
 columns are used when present, else the PEM and proposal the sidecar names. The weights follow the convention the
@@ -23,12 +23,13 @@ import numpy as np
 import rerun as rr
 
 import pemviz
-from pemviz import rollout_io as rio
 from pemviz.commands import COMMANDS, UsageError, check_save_path
 from pemviz.config import METRICS
-from pemviz.data import sha256_file
 from pemviz.estimate import format_probability
-from pemviz.files import check_output_folder, free_default_path, write_rrd
+from pemviz.io.data import sha256_file
+from pemviz.io.files import check_output_folder, free_default_path, write_rrd
+from pemviz.io.rollout_format import SAMPLERS, RolloutFormatError
+from pemviz.io.rollouts import read_rollouts
 from pemviz.pem import load_pem
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
 from pemviz.sampling import load_proposal
@@ -44,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "estimate",
         help=COMMANDS["estimate"][1],
         description="Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its "
-        "JSON sidecar (format: pemviz.rollout_io), and a rerun recording of it.",
+        "JSON sidecar (format: pemviz.io.rollout_format), and a rerun recording of it.",
     )
     p.add_argument("rollouts", metavar="ROLLOUTS.parquet", help="rollout file (its sidecar ROLLOUTS.json beside it)")
     lp = p.add_mutually_exclusive_group()
@@ -113,13 +114,13 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
         q_ref = meta.proposal
         if q_ref is None:
             raise UsageError(f"{data.path}: no log_q column and the sidecar names no proposal; give --proposal "
-                             f"CKPT or one of {', '.join(rio.SAMPLERS)}")  # fmt: skip
-        if q_ref not in rio.SAMPLERS:
+                             f"CKPT or one of {', '.join(SAMPLERS)}")  # fmt: skip
+        if q_ref not in SAMPLERS:
             q_ref = str(_resolve(base, q_ref))
             if meta.proposal_sha256 and Path(q_ref).is_file() and sha256_file(q_ref) != meta.proposal_sha256:
-                raise rio.RolloutFormatError(f"{q_ref}: not the proposal checkpoint the sidecar of {data.path} was "
-                                             "written with (proposal_sha256 differs); write the rollouts again")
-    if q_ref in rio.SAMPLERS:
+                raise RolloutFormatError(f"{q_ref}: not the proposal checkpoint the sidecar of {data.path} was "
+                                         "written with (proposal_sha256 differs); write the rollouts again")
+    if q_ref in SAMPLERS:
         detector = sampler_detector(q_ref, pem(), meta.window_m)
     else:
         detector = load_proposal(q_ref)
@@ -203,7 +204,7 @@ def check_plausible(e: Any, q_src: str) -> None:
 def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, overwrite: bool = False) -> Path:
     """A rerun recording of the estimate: description, estimate values, the least-robust rollouts' traces
     over ``step`` (red = failure), and robustness against importance log-weight. Encoded in memory, written
-    under a unique temporary name and moved to ``PATH`` once complete (:func:`pemviz.files.atomic_write`).
+    under a unique temporary name and moved to ``PATH`` once complete (:func:`pemviz.io.files.atomic_write`).
 
     Raises:
         OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``.
@@ -253,7 +254,7 @@ def main(args: argparse.Namespace) -> int:
             check_output_folder(save_path.parent, (save_path.name,), "recording folder")
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-    data = rio.read_rollouts(rollouts)
+    data = read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
     weights, why = weights_convention(data.meta, args.weights)
     result = estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure, weights=weights)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from pemviz.commands import COMMANDS, UsageError, output_folder
-from pemviz.data import DataError, load_salient_data, sha256_file
-from pemviz.files import check_output_folder, check_output_path, write_text_atomic
+from pemviz.io.data import DataError, load_salient_data, sha256_file
+from pemviz.io.files import check_output_folder, check_output_path, write_text_atomic
 from pemviz.pem import PEM_RECIPES, bce_from_logits, load_reference_pem, pem_path, save_pem
 from pemviz.pem_eval import EvalConfig, evaluate_pems, format_csv, format_markdown, summary_lines, write_recording
 

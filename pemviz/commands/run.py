@@ -24,7 +24,7 @@ from pemviz.config import (
     ConfigError,
     ExperimentConfig,
 )
-from pemviz.files import check_output_folder, free_default_path
+from pemviz.io.files import check_output_folder, free_default_path
 from pemviz.resources import check_run_memory
 
 # The parser needs only the light modules above (and rerun's script flags): torch, the engine, the sinks and pyarrow
@@ -76,7 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--save-rollouts", dest="save_rollouts", default=None, metavar="PATH.parquet",
         help="write the rollouts of every stage the estimate uses, each with its stage, sampler component and the "
-        "log density it was weighed with, for `pemviz estimate` to reproduce the estimate (format: pemviz.rollout_io)",
+        "log density it was weighed with, for `pemviz estimate` to reproduce the estimate "
+        "(format: pemviz.io.rollout_format)",
     )  # fmt: skip
     p.add_argument("--rollout-stages", dest="rollout_stages", default="used", choices=("used", "all"),
                    help="--save-rollouts: the stages the estimate uses (default), or all of them")
@@ -199,7 +200,7 @@ def default_recording_path(cfg: ExperimentConfig, preset: str, folder: Path = Pa
 
 def rollout_files(parquet: Path) -> list[Path]:
     """The files ``--save-rollouts`` wrote: the table, its sidecar and, if the sidecar names one, the proposal."""
-    from pemviz.rollout_io import sidecar_path
+    from pemviz.io.rollout_format import sidecar_path
 
     sidecar = sidecar_path(parquet)
     files = [parquet, sidecar]

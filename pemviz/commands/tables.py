@@ -25,7 +25,7 @@ from pathlib import Path
 from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
 from pemviz.config import PRESETS
 from pemviz.estimate import format_probability
-from pemviz.files import check_output_folder, write_text_atomic
+from pemviz.io.files import check_output_folder, write_text_atomic
 from pemviz.paper_tables import records_by_row, report, row_specs, rows_csv, table_jobs, tables_rows, write_recording
 from pemviz.problems import PROBLEMS, build_problem
 from pemviz.resources import cap_jobs

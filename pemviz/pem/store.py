@@ -15,9 +15,8 @@ from typing import Any
 
 import numpy as np
 import torch
-
-from pemviz.data import repo_root
-from pemviz.files import atomic_write, load_tagged
+from pemviz.io.data import repo_root
+from pemviz.io.files import atomic_write, load_tagged
 from pemviz.pem.encoding import POSE_COLUMNS, NormStats
 from pemviz.pem.network import PEM, PemFormatError
 from pemviz.pem.recipes import DEFAULT_PEM_NAME

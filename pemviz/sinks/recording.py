@@ -72,7 +72,7 @@ from pemviz.engine import (
     stage_label,
 )
 from pemviz.estimate import format_probability, relative_error
-from pemviz.files import atomic_write
+from pemviz.io.files import atomic_write
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import colours as C
 from pemviz.sinks.scene import car_positions
@@ -351,7 +351,7 @@ class RerunSink:
 
         Raises:
             OSError: the file could not be written (nothing is left; an existing file is untouched).
-            pemviz.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given.
+            pemviz.io.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given.
         """
         if self._closed:
             return None

@@ -1,6 +1,6 @@
 """Engine listener that saves the rollouts of the run's estimate as a rollout file (``pemviz run --save-rollouts``).
 
-The file format (Parquet table, JSON sidecar, proposal checkpoint) is :mod:`pemviz.rollout_io`'s.
+The file format (Parquet table, JSON sidecar, proposal checkpoint) is :mod:`pemviz.io.rollout_format`'s.
 """
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ import numpy as np
 
 from pemviz.engine import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.estimators.base import pool_stage_weights
+from pemviz.io.rollout_format import braking_meta
+from pemviz.io.rollouts import RolloutWriter, braking_salient, check_rollouts_path
 from pemviz.pem import DEFAULT_PEM_NAME
-from pemviz.rollout_io import RolloutWriter, braking_meta, braking_salient, check_rollouts_path
 from pemviz.sampling import Proposal
 from pemviz.weights import convention, describe, stage_log_q
 
@@ -37,9 +38,9 @@ class RolloutSink:
     Each rollout is written with its stage, the component of the stage's mixture that drew it, and as ``log_q`` the
     per-step density the run weighed it with (:func:`pemviz.weights.stage_log_q`: for a mixture over whole rollouts,
     the mixture's). The sidecar holds the run's weight convention, each stage's components and weight bound, and the
-    pooling rule with its stage weights (:mod:`pemviz.rollout_io`). Rollouts are written chunk by chunk as the engine
-    simulates them (:class:`pemviz.engine.RolloutChunk`, Parquet row groups of a
-    :class:`pemviz.rollout_io.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of a
+    pooling rule with its stage weights (:mod:`pemviz.io.rollout_format`). Rollouts are written chunk by chunk as the
+    engine simulates them (:class:`pemviz.engine.RolloutChunk`, Parquet row groups of a
+    :class:`pemviz.io.rollouts.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of a
     chunk whatever N is; the stages the estimate did not use are dropped and the unit is moved into place when the
     run finishes, and nothing is left after a cancelled or failed run. If the file holds one stage drawn by a
     proposal, a snapshot of it taken when the stage was sampled is saved as ``NAME.proposal.pt`` and named in the

@@ -27,8 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from pemviz.files import atomic_write
+from pemviz.io.files import atomic_write
 
 __all__ = [
     "DATA_DIR_ENV",
@@ -114,7 +113,7 @@ class ChecksumError(DataError, ValueError):
 
 def repo_root() -> Path:
     """The folder holding the ``pemviz`` package folder (the repository root in a checkout)."""
-    return Path(__file__).resolve().parent.parent
+    return Path(__file__).resolve().parents[2]  # pemviz/io/data.py -> the repository
 
 
 def user_cache_dir() -> Path:

@@ -148,7 +148,7 @@ def write_rrd(path: str | os.PathLike[str], log: Callable[[Any], None], *, app_i
     Raises:
         OSError: the file could not be written (nothing is left); OutputExists: see :func:`atomic_write`.
     """
-    import rerun as rr  # ~1.3 s to import: pemviz.data imports this module and needs neither rerun nor torch
+    import rerun as rr  # ~1.3 s to import: pemviz.io.data imports this module and needs neither rerun nor torch
 
     stream = rr.RecordingStream(app_id)
     binary = stream.binary_stream()

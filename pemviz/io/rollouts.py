@@ -1,70 +1,9 @@
-"""Logged rollouts on disk: a Parquet table, one row per step, and a JSON sidecar (spec, dt, units).
+"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`), write one chunk by chunk
+(:class:`RolloutWriter`, :func:`write_rollouts`).
 
-pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``pemviz run
---save-rollouts``): :func:`write_rollouts` / :func:`read_rollouts` here, ``pemviz estimate`` on the
-command line. Both validate with the same code, so a file pemviz writes is one pemviz reads.
-
-Format, version 2
------------------
-``NAME.parquet``: one row per (rollout, step). The rows of a rollout are contiguous, hold steps
-0, 1, ..., T-1 in this order, and every rollout has the same T.
-
-============================  ===========================  =====  ==========================================
-column                        type                         unit   meaning
-============================  ===========================  =====  ==========================================
-``rollout``                   integer                      -      rollout id (any distinct integers)
-``step``                      integer                      -      step t = 0..T-1 (time t * dt_s)
-``gap_m``                     float                        m      the gap: h(s) of the proposal (required)
-signals of the spec           float                        SI     e.g. ``ego_speed_mps``, ``lead_speed_mps``
-``detected``                  bool (or integer 0/1)        -      the detector output a_t taken at step t
-``salient_<name>`` (11)       float                        m/rad  optional: the PEM's salient variables, KITTI
-                                                                  columns :data:`SALIENT_COLUMNS`
-``log_p``                     float                        nats   optional: log p_PEM(a_t | s_t)
-``log_q``                     float                        nats   optional: log q(a_t | s_t, a_0..a_{t-1}),
-                                                                  the density the rollout was drawn from and
-                                                                  weighed with (for a mixture over whole
-                                                                  rollouts its per-step conditional,
-                                                                  :func:`pemviz.weights.mixture_step_log_q`)
-``stage``                     integer >= 0                 -      optional (version 2): the stage that drew the
-                                                                  rollout, the same on all its rows
-``component``                 integer >= 0                 -      optional (version 2): which sampler of the
-                                                                  stage's mixture drew it (index into the
-                                                                  sidecar's ``stages[].components``)
-============================  ===========================  =====  ==========================================
-
-Floats must be finite; log-probabilities <= 0. Other columns are ignored.
-
-``NAME.json`` (the sidecar, same name with suffix ``.json``), a JSON object:
-
-- ``formula`` (required): the safety spec in STL, e.g. ``"G[0,99](d >= 2)"``; failure = classic
-  robustness < 0 (Innes & Ramamoorthy 2022).
-- ``dt_s`` (required): seconds per step.
-- ``signals``: STL signal name -> column (default ``{"d": "gap_m"}``); ``signal_ranges``: per STL
-  signal ``[lo, hi]`` for AGM's normalisation; ``observation_columns``: the state columns in the order
-  detectors see them (default ``gap_m`` then the signals' columns); ``units``: column -> unit (informative).
-- ``pem``: the PEM ``log_p`` was computed under (a shipped name or a path); ``proposal``: a proposal
-  checkpoint (:func:`pemviz.sampling.save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` / ``mixed50``,
-  what sampled the rollouts; ``window_m``: mixed50's 50 % window (metres, default 10).
-- ``n_rollouts``, ``n_steps``: checked against the table when present.
-- ``weights`` (version 2): the weight convention the writer weighed with, ``to-failure`` (the product of p / q
-  over the steps before the failure step) or ``full`` (over every step but the last; Innes & Ramamoorthy 2022,
-  eq. 6); ``pemviz estimate`` uses it unless ``--weights`` says otherwise (absent: ``to-failure``).
-- ``stages`` (version 2): one object per stage in the table: ``stage``, ``kind``, ``n`` (its rollouts),
-  ``components`` (``[{"sampler": text, "n": rollouts}, ...]`` in the order of the ``component`` column; the
-  rollouts were drawn from the mixture sum_k (n_k / n) q_k), ``max_weight`` (n / n_target when the target itself is a
-  component, the bound of every weight; else null).
-- ``pooling`` (version 2): how the writer's estimate combines the stages: ``rule`` (``quadratic``, ``linear``,
-  ``rollouts`` or ``single``), ``stages`` (the pooled stages) and ``stage_weights`` (lambda_k >= 0, summing to 1):
-  mu_hat = sum_k lambda_k mu_hat_k (absent: every rollout alike).
-- ``format`` (``"pemviz-rollouts"``), ``version`` (2; version 1 files, without ``weights``, ``stages``,
-  ``pooling`` and the two integer columns, are read too), ``pemviz_version``, ``provenance`` (free-form:
-  the run's config, its estimate and its per-stage estimates).
-
-Importance weights use at most the first T - 1 steps (the last action affects nothing; Innes & Ramamoorthy 2022,
-Algorithm 1), as the engine does, so an estimate from a file written by ``pemviz run`` equals the run's to float64
-rounding.
-Bad input raises :class:`RolloutFormatError`: one message naming the file, the column, and the rollout
-and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
+The format (the Parquet table's columns, the JSON sidecar's fields, the units) is :mod:`pemviz.io.rollout_format`'s.
+Bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError`: one message naming the file, the column, and
+the rollout and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
 """
 
 from __future__ import annotations
@@ -72,306 +11,31 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-import pemviz
-from pemviz import stl
-from pemviz.data import sha256_file
-from pemviz.files import check_free_name, check_output_path, commit_files, temp_file
+from pemviz.io.data import sha256_file
+from pemviz.io.files import check_free_name, check_output_path, commit_files, temp_file
+from pemviz.io.rollout_format import (
+    KITTI_COLUMNS,
+    SALIENT_COLUMNS,
+    RolloutFormatError,
+    RolloutMeta,
+    check_stage_counts,
+    proposal_path,
+    read_sidecar,
+    sidecar_path,
+)
 from pemviz.pem import braking_salient_inputs
-from pemviz.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, braking_formula
 from pemviz.sampling import write_proposal_file
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
-
-FORMAT_TAG = "pemviz-rollouts"
-FORMAT_VERSION = 2
-READ_VERSIONS = (1, 2)
-"""Versions this pemviz reads: 1 (one batch, ``log_q`` its sampler's density) and 2 (adds ``stage``, ``component``,
-``weights``, ``stages``, ``pooling``)."""
-WEIGHTS = ("to-failure", "full")
-"""Weight conventions (:mod:`pemviz.weights`)."""
-
-KITTI_COLUMNS = ("class", "truncation", "occlusion", "alpha", "dim_w", "dim_l", "dim_h", "loc_x", "loc_y", "loc_z",
-                 "rot_y")  # fmt: skip
-"""The 11 salient-variable columns of the KITTI files (:data:`pemviz.data.INPUT_COLUMNS`)."""
-SALIENT_COLUMNS = tuple(f"salient_{c}" for c in KITTI_COLUMNS)
-"""Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads."""
-SALIENT_UNITS = {"alpha": "rad", "rot_y": "rad", "dim_w": "m", "dim_l": "m", "dim_h": "m", "loc_x": "m",
-                 "loc_y": "m", "loc_z": "m"}  # fmt: skip
-BRAKING_UNITS = {"gap_m": "m", "ego_speed_mps": "m/s", "lead_speed_mps": "m/s", "log_p": "nats", "log_q": "nats",
-                 **{f"salient_{k}": u for k, u in SALIENT_UNITS.items()}}  # fmt: skip
-SAMPLERS = ("pem", "naive50", "mixed50")
-"""Named samplers a file's log q can be recomputed from besides a proposal checkpoint."""
-
-
-class RolloutFormatError(ValueError):
-    """A rollout file or its sidecar is malformed: the message says where and why."""
-
-
-# ----------------------------------------------------------------------------------------- metadata
-
-
-@dataclass(frozen=True)
-class RolloutMeta:
-    """The JSON sidecar of a rollout file (module docstring). Units: seconds, metres, nats.
-
-    Attributes:
-        formula: the safety spec (STL text); failure = classic robustness < 0.
-        dt_s: seconds per step.
-        signals: STL signal name -> column.
-        signal_ranges: STL signal name -> (lo, hi), AGM's predicate normalisation.
-        observation_columns: state columns in the order detectors see them (``gap_m`` first); the
-            signals' columns are added after them (:attr:`columns`).
-        units: column -> unit (informative).
-        pem: the PEM ``log_p`` was computed under (name or path), if known.
-        proposal: what sampled the rollouts: a checkpoint path relative to the sidecar, or one of
-            :data:`SAMPLERS`; None if unknown.
-        window_m: the mixed50 sampler's 50 % window (metres).
-        n_rollouts, n_steps: N and T, checked against the table when set.
-        pemviz_version: the writer's version.
-        provenance: free-form JSON (the run's config, the stage the rollouts come from, its estimate).
-        weights: the writer's weight convention, one of :data:`WEIGHTS`, or None (not said).
-        stages: per stage in the table: ``{"stage", "kind", "n", "components": [{"sampler", "n"}], "max_weight"}``.
-        pooling: ``{"rule", "stages", "stage_weights"}``: how the writer pooled the stages, or None.
-        version: the file's format version (:data:`READ_VERSIONS`).
-    """
-
-    formula: str
-    dt_s: float
-    signals: Mapping[str, str] = field(default_factory=lambda: {"d": "gap_m"})
-    signal_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
-    observation_columns: tuple[str, ...] = ()
-    units: Mapping[str, str] = field(default_factory=dict)
-    pem: str | None = None
-    proposal: str | None = None
-    window_m: float = 10.0
-    n_rollouts: int | None = None
-    n_steps: int | None = None
-    pemviz_version: str = pemviz.__version__
-    provenance: Mapping[str, Any] = field(default_factory=dict)
-    table_sha256: str | None = None
-    proposal_sha256: str | None = None
-    weights: str | None = None
-    stages: tuple[Mapping[str, Any], ...] = ()
-    pooling: Mapping[str, Any] | None = None
-    version: int = FORMAT_VERSION
-
-    def stage_info(self, stage: int) -> Mapping[str, Any] | None:
-        """The sidecar's ``stages`` entry of ``stage``, or None."""
-        return next((s for s in self.stages if s["stage"] == stage), None)
-
-    @property
-    def columns(self) -> tuple[str, ...]:
-        """The observation columns: ``gap_m``, then ``observation_columns``, then the signals' columns."""
-        return tuple(dict.fromkeys(["gap_m", *self.observation_columns, *self.signals.values()]))
-
-    def to_json(self) -> dict[str, Any]:
-        """The sidecar as a JSON object."""
-        return {
-            "format": FORMAT_TAG,
-            "version": FORMAT_VERSION,
-            "pemviz_version": self.pemviz_version,
-            "formula": self.formula,
-            "dt_s": self.dt_s,
-            "signals": dict(self.signals),
-            "signal_ranges": {k: [float(lo), float(hi)] for k, (lo, hi) in self.signal_ranges.items()},
-            "observation_columns": list(self.columns),
-            "units": dict(self.units),
-            "pem": self.pem,
-            "proposal": self.proposal,
-            "window_m": self.window_m,
-            "n_rollouts": self.n_rollouts,
-            "n_steps": self.n_steps,
-            "provenance": _plain(self.provenance),
-            **({"weights": self.weights} if self.weights else {}),
-            **({"stages": [_plain(st) for st in self.stages]} if self.stages else {}),
-            **({"pooling": _plain(self.pooling)} if self.pooling else {}),
-            **({"table_sha256": self.table_sha256} if self.table_sha256 else {}),
-            **({"proposal_sha256": self.proposal_sha256} if self.proposal_sha256 else {}),
-        }
-
-    @classmethod
-    def from_json(cls, obj: Any, where: str = "sidecar") -> "RolloutMeta":
-        """Parse and check a sidecar object.
-
-        Raises:
-            RolloutFormatError: not an object, wrong format tag or version, a missing or invalid field.
-        """
-        def bad(msg: str) -> RolloutFormatError:
-            return RolloutFormatError(f"{where}: {msg}")
-
-        if not isinstance(obj, dict):
-            raise bad(f"must be a JSON object, got {type(obj).__name__}")
-        if obj.get("format", FORMAT_TAG) != FORMAT_TAG:
-            raise bad(f"format is {obj.get('format')!r}, expected {FORMAT_TAG!r}")
-        version = obj.get("version", FORMAT_VERSION)
-        if isinstance(version, bool) or version not in READ_VERSIONS:
-            raise bad(f"format version {version!r}; this pemviz reads versions {', '.join(map(str, READ_VERSIONS))}: "
-                      "a newer pemviz wrote the file, upgrade pemviz to read it")
-        for key in ("formula", "dt_s"):
-            if key not in obj:
-                raise bad(f"field {key!r} is missing (required: formula, dt_s)")
-        formula = obj["formula"]
-        if not isinstance(formula, str):
-            raise bad(f"formula must be STL text such as 'G[0,99](d >= 2)', got {formula!r}")
-        try:
-            stl.parse(formula)
-        except ValueError as exc:
-            raise bad(f"formula {formula!r} is not valid STL: {exc}") from None
-        dt = obj["dt_s"]
-        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
-            raise bad(f"dt_s must be a number of seconds > 0, got {dt!r}")
-        signals = obj.get("signals") or {"d": "gap_m"}
-        if not isinstance(signals, dict) or not all(isinstance(k, str) and isinstance(v, str)
-                                                     for k, v in signals.items()):
-            raise bad(f"signals must map STL names to column names, got {signals!r}")
-        for key in ("signal_ranges", "units", "provenance"):
-            if not isinstance(obj.get(key) or {}, dict):
-                raise bad(f"{key} must be a JSON object, got {obj[key]!r}")
-        units = obj.get("units") or {}
-        if not all(isinstance(v, str) for v in units.values()):
-            raise bad(f"units must map column names to unit text such as 'm', got {units!r}")
-        ranges: dict[str, tuple[float, float]] = {}
-        for k, v in (obj.get("signal_ranges") or {}).items():
-            if not (isinstance(v, (list, tuple)) and len(v) == 2 and all(_is_number(x) for x in v) and v[0] < v[1]):
-                raise bad(f"signal_ranges[{k!r}] must be [lo, hi] with lo < hi, got {v!r}")
-            ranges[k] = (float(v[0]), float(v[1]))
-        cols = obj.get("observation_columns") or []
-        if not isinstance(cols, list) or not all(isinstance(c, str) for c in cols):
-            raise bad(f"observation_columns must be a list of column names, got {cols!r}")
-        for key in ("n_rollouts", "n_steps"):
-            v = obj.get(key)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-                raise bad(f"{key} must be an integer >= 1, got {v!r}")
-        for key in ("pem", "proposal", "pemviz_version"):
-            v = obj.get(key)
-            if v is not None and not isinstance(v, str):
-                raise bad(f"{key} must be a string, got {v!r}")
-        window = obj.get("window_m", 10.0)
-        if not _is_number(window) or window < 0:
-            raise bad(f"window_m must be a number of metres >= 0, got {window!r}")
-        for key in ("table_sha256", "proposal_sha256"):
-            v = obj.get(key)
-            if v is not None and not (isinstance(v, str) and len(v) == 64):
-                raise bad(f"{key} must be a SHA-256 hex digest (64 characters), got {v!r}")
-        weights = obj.get("weights")
-        if weights is not None and weights not in WEIGHTS:
-            raise bad(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
-        stages = _parse_stages(obj.get("stages"), bad)
-        pooling = _parse_pooling(obj.get("pooling"), bad)
-        return cls(
-            formula=formula,
-            dt_s=float(dt),
-            signals=dict(signals),
-            signal_ranges=ranges,
-            observation_columns=tuple(cols),
-            units=dict(units),
-            pem=obj.get("pem"),
-            proposal=obj.get("proposal"),
-            window_m=float(window),
-            n_rollouts=obj.get("n_rollouts"),
-            n_steps=obj.get("n_steps"),
-            pemviz_version=obj.get("pemviz_version") or "unknown",
-            provenance=dict(obj.get("provenance") or {}),
-            table_sha256=obj.get("table_sha256"),
-            proposal_sha256=obj.get("proposal_sha256"),
-            weights=weights,
-            stages=stages,
-            pooling=pooling,
-            version=int(version),
-        )
-
-
-def _is_count(x: Any, least: int = 0) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool) and x >= least
-
-
-def _parse_stages(value: Any, bad: Any) -> tuple[dict[str, Any], ...]:
-    """The sidecar's ``stages``: a list of ``{"stage", "kind", "n", "components", "max_weight"}``, distinct stages."""
-    if value is None:
-        return ()
-    if not isinstance(value, list):
-        raise bad(f"stages must be a list of objects, got {value!r}")
-    out: list[dict[str, Any]] = []
-    for k, st in enumerate(value):
-        where = f"stages[{k}]"
-        if not isinstance(st, dict):
-            raise bad(f"{where} must be a JSON object, got {st!r}")
-        if not _is_count(st.get("stage")) or not _is_count(st.get("n"), 1):
-            raise bad(f"{where} needs stage (an integer >= 0) and n (an integer >= 1), got {st!r}")
-        comps = st.get("components", [])
-        if not isinstance(comps, list) or not all(isinstance(c, dict) and _is_count(c.get("n"))
-                                                  and isinstance(c.get("sampler", ""), str) for c in comps):
-            raise bad(f"{where}.components must be a list of {{\"sampler\": text, \"n\": rollouts}}, got {comps!r}")
-        if comps and sum(c["n"] for c in comps) != st["n"]:
-            raise bad(f"{where}: its components hold {sum(c['n'] for c in comps)} rollouts, not n = {st['n']}")
-        bound = st.get("max_weight")
-        if bound is not None and not (_is_number(bound) and bound >= 1.0):
-            raise bad(f"{where}.max_weight must be a number >= 1 or null, got {bound!r}")
-        if not isinstance(st.get("kind", ""), str):
-            raise bad(f"{where}.kind must be text, got {st.get('kind')!r}")
-        out.append({"stage": st["stage"], "kind": st.get("kind", ""), "n": st["n"],
-                    "components": [{"sampler": c.get("sampler", ""), "n": c["n"]} for c in comps],
-                    "max_weight": None if bound is None else float(bound)})  # fmt: skip
-    numbers = [st["stage"] for st in out]
-    if len(set(numbers)) != len(numbers):
-        raise bad(f"stages lists stage {next(x for x in numbers if numbers.count(x) > 1)} twice")
-    return tuple(out)
-
-
-def _parse_pooling(value: Any, bad: Any) -> dict[str, Any] | None:
-    """The sidecar's ``pooling``: ``{"rule": text, "stages": [k...], "stage_weights": [lambda_k...]}``."""
-    if value is None:
-        return None
-    if not isinstance(value, dict):
-        raise bad(f"pooling must be a JSON object, got {value!r}")
-    stages, lam, rule = value.get("stages"), value.get("stage_weights"), value.get("rule", "")
-    if not (isinstance(stages, list) and stages and all(_is_count(k) for k in stages)
-            and len(set(stages)) == len(stages)):
-        raise bad(f"pooling.stages must be a non-empty list of distinct stage numbers, got {stages!r}")
-    if not (isinstance(lam, list) and len(lam) == len(stages) and all(_is_number(x) and x >= 0 for x in lam)
-            and abs(math.fsum(lam) - 1.0) <= 1e-9):
-        raise bad(f"pooling.stage_weights must be {len(stages)} numbers >= 0 summing to 1, got {lam!r}")
-    if not isinstance(rule, str):
-        raise bad(f"pooling.rule must be text, got {rule!r}")
-    return {"rule": rule, "stages": list(stages), "stage_weights": [float(x) for x in lam]}
-
-
-def braking_meta(
-    formula: str | None = None,
-    *,
-    pem: str | None = None,
-    proposal: str | None = None,
-    provenance: Mapping[str, Any] | None = None,
-) -> RolloutMeta:
-    """The sidecar of braking-scenario rollouts (Innes & Ramamoorthy 2022): dt 0.05 s, signals d / v / vl, units.
-
-    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.problems.braking_formula`.
-    """
-    p = BrakingParams()
-    return RolloutMeta(
-        formula=formula or str(braking_formula(p)),
-        dt_s=p.dt_s,
-        signals=dict(BRAKING_SIGNALS),
-        signal_ranges=dict(BRAKING_SIGNAL_RANGES),
-        observation_columns=tuple(OBSERVATION_NAMES),
-        units=dict(BRAKING_UNITS),
-        pem=pem,
-        proposal=proposal,
-        window_m=p.braking_distance_m,
-        provenance=dict(provenance or {}),
-    )
-
 
 def braking_salient(gap_m: np.ndarray) -> np.ndarray:
     """The PEM's salient variables of the lead at each gap, float64 [N, T, 11] for gaps [N, T] (metres).
@@ -380,9 +44,6 @@ def braking_salient(gap_m: np.ndarray) -> np.ndarray:
     """
     gap = np.asarray(gap_m, dtype=np.float64)
     return braking_salient_inputs(gap).reshape(*gap.shape, len(KITTI_COLUMNS))
-
-
-# ---------------------------------------------------------------------------------------- the data
 
 
 @dataclass(frozen=True)
@@ -437,62 +98,8 @@ class RolloutData(RolloutBatch):
         return RolloutBatch(self.observations, self.detected, log_p, log_q, self.observation_names)
 
 
-def sidecar_path(path: str | os.PathLike[str]) -> Path:
-    """``NAME.parquet`` -> ``NAME.json``."""
-    return Path(path).with_suffix(".json")
-
-
-def _plain(value: Any) -> Any:
-    """JSON-able copy: numpy scalars and arrays as Python values, unknown objects as text."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, (np.generic,)):
-        return value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    if value is None or isinstance(value, (bool, int, float, str)):
-        return value
-    return str(value)
-
-
-def _is_number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-# ----------------------------------------------------------------------------------------- validation
-
-
 def _first_index(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask)[0])
-
-
-def check_stage_counts(meta: RolloutMeta, counts: Mapping[int, list[int]], error: Any) -> None:
-    """Check a table's rollouts per stage and component, ``{stage: [rollouts of component 0, 1, ...]}``, against the
-    sidecar's ``stages`` (each stage listed, its n and its components' n) and ``pooling`` (each pooled stage held).
-
-    Raises:
-        what ``error(message)`` returns (a :class:`RolloutFormatError` naming the file).
-    """
-    for k, held in sorted(counts.items()):
-        info = meta.stage_info(k)
-        if meta.stages and info is None:
-            raise error(f"stage {k} is in the table but not in the sidecar's stages")
-        if info is None:
-            continue
-        if info["n"] != sum(held):
-            raise error(f"the sidecar says stage {k} has n = {info['n']} rollouts but the table holds {sum(held)}")
-        declared = [c["n"] for c in info["components"]]
-        if declared and len(held) > len(declared):
-            raise error(f"stage {k} has component {len(held) - 1} but the sidecar lists {len(declared)} for it")
-        if declared and held + [0] * (len(declared) - len(held)) != declared:
-            raise error(f"stage {k}: the table holds {held} rollouts per component, the sidecar says {declared}")
-    for k in (meta.pooling or {}).get("stages", []):
-        if k not in counts:
-            raise error(f"the sidecar pools stage {k} but the table holds no rollout of it")
 
 
 class _Table:
@@ -665,28 +272,6 @@ class _Table:
                            path=path, stage=stage, component=component)
 
 
-# ---------------------------------------------------------------------------------------- read / write
-
-
-def read_sidecar(path: str | os.PathLike[str]) -> RolloutMeta:
-    """The sidecar of the rollout file ``path`` (``NAME.json`` beside ``NAME.parquet``).
-
-    Raises:
-        RolloutFormatError: no sidecar, not JSON, or an invalid field.
-    """
-    side = sidecar_path(path)
-    if not side.is_file():
-        raise RolloutFormatError(
-            f"{side}: sidecar not found; a rollout file NAME.parquet needs NAME.json with at least "
-            f'{{"formula": "G[0,99](d >= 2)", "dt_s": 0.05}} (see pemviz.rollout_io)'
-        )
-    try:
-        obj = json.loads(side.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise RolloutFormatError(f"{side}: not a readable JSON file ({exc})") from None
-    return RolloutMeta.from_json(obj, str(side))
-
-
 def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     """Read and validate a rollout file and its sidecar.
 
@@ -716,11 +301,6 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     return data
 
 
-def proposal_path(path: str | os.PathLike[str]) -> Path:
-    """``NAME.parquet`` -> ``NAME.proposal.pt``, the proposal checkpoint written beside a rollout file."""
-    return Path(path).with_suffix(".proposal.pt")
-
-
 def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False, what: str = "rollout file") -> Path:
     """Refuse a path where a rollout file cannot be written, before any work (nothing is created).
 
@@ -729,7 +309,7 @@ def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False
 
     Raises:
         ValueError: not ``.parquet``, a directory, a folder that does not exist / is not writable, a name too
-            long, or an existing file (:class:`pemviz.files.OutputExists` without ``overwrite``).
+            long, or an existing file (:class:`pemviz.io.files.OutputExists` without ``overwrite``).
     """
     p = check_output_path(path, ".parquet", what, overwrite=overwrite)
     check_output_path(proposal_path(p), ".pt", f"{what} checkpoint", overwrite=overwrite)
