@@ -22,7 +22,7 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 import viser
@@ -48,11 +48,25 @@ from pemviz.estimate import format_probability, relative_error
 from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
 from pemviz.problems import problem_for
 from pemviz.sampling import torch_threads
+from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
 from pemviz.sinks.console import expected_stage_s
 
-if TYPE_CHECKING:
-    from pemviz.app.panel import PanelApp
+
+class PanelHost(Protocol):
+    """What a session needs of the server that owns it (:class:`pemviz.app.panel.PanelApp`)."""
+
+    params: BrakingParams
+    """The scenario's constants."""
+    config0: ExperimentConfig
+    """The configuration the panel opened with."""
+    preset_name: str
+    recordings_dir: Path
+    """Where exported recordings go."""
+
+    def next_run_id(self) -> int: ...
+
+    def wait_warm(self) -> None: ...
 
 CAR_HEIGHT_M = 1.5
 CAMERA_OFFSET_M = np.array([-5.0, -20.0, 13.0])
@@ -118,7 +132,7 @@ class Session:
         client: the viser client this session draws into.
     """
 
-    def __init__(self, app: "PanelApp", client: viser.ClientHandle) -> None:
+    def __init__(self, app: PanelHost, client: viser.ClientHandle) -> None:
         self.app = app
         self.client = client
         self.params = app.params

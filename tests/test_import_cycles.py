@@ -1,0 +1,81 @@
+"""scripts/import_cycles.py: no import circle among pemviz's modules, and the script finds the circles it should."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+from conftest import REPO
+
+SCRIPT = REPO / "scripts" / "import_cycles.py"
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("import_cycles", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    spec.loader.exec_module(module)
+    return module
+
+
+def package(root: Path, files: dict[str, str]) -> Path:
+    for name, text in files.items():
+        path = root / "pkg" / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return root / "pkg"
+
+
+def test_pemviz_has_no_import_circle_of_any_kind():
+    out = subprocess.run([sys.executable, str(SCRIPT), "--strict"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "0 circles among module-level imports" in out.stdout
+    assert "0 circles among all imports, TYPE_CHECKING ones included" in out.stdout
+
+
+def test_a_module_level_circle_is_found_and_fails(tmp_path, capsys):
+    ic = load_script()
+    root = package(tmp_path, {
+        "__init__.py": "",
+        "a.py": "from pkg import b\n",
+        "b.py": "import pkg.sub.c\n",
+        "sub/__init__.py": "",
+        "sub/c.py": "from ..a import thing\n",  # relative: pkg.a
+        "d.py": "import os\nfrom pkg.a import x\n",  # imports into the circle, not part of it
+    })
+    assert ic.main(["--root", str(root)]) == 1
+    out = capsys.readouterr().out
+    assert "1 circle among module-level imports (6 modules" in out
+    assert "pkg.a -> pkg.b -> pkg.sub.c -> pkg.a" in out
+    assert "pkg.d" not in out
+
+
+def test_function_level_and_type_checking_circles_are_reported_apart(tmp_path, capsys):
+    ic = load_script()
+    root = package(tmp_path, {
+        "__init__.py": "",
+        "a.py": "import pkg.b\n",
+        "b.py": "def f():\n    from pkg import a\n",
+        "c.py": "from typing import TYPE_CHECKING\nimport pkg.d\nif TYPE_CHECKING:\n    from pkg.d import D\n",
+        "d.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from pkg.c import C\nelse:\n    C = None\n",
+    })
+    graph = ic.build_graph(root)
+    assert graph.module_level["pkg.a"] == {"pkg.b"} and graph.function_level["pkg.b"] == {"pkg.a"}
+    assert graph.type_checking["pkg.d"] == {"pkg.c"} and not graph.type_checking.get("pkg.c")  # also module-level
+    assert ic.main(["--root", str(root)]) == 0  # no circle among module-level imports
+    out = capsys.readouterr().out
+    assert "0 circles among module-level imports" in out
+    assert "1 circle among module- and function-level imports" in out and "pkg.a -> pkg.b -> pkg.a" in out
+    assert "2 circles among all imports" in out and "pkg.c -> pkg.d -> pkg.c" in out
+    assert ic.main(["--root", str(root), "--strict"]) == 1
+
+
+def test_a_folder_that_is_no_package_or_does_not_parse_is_refused(tmp_path, capsys):
+    ic = load_script()
+    assert ic.main(["--root", str(tmp_path)]) == 2
+    assert "is not a package folder" in capsys.readouterr().err
+    root = package(tmp_path, {"__init__.py": "", "bad.py": "def (:\n"})
+    assert ic.main(["--root", str(root)]) == 2
+    assert "bad.py:1" in capsys.readouterr().err
