@@ -26,9 +26,9 @@ from typing import Any, Protocol
 
 import numpy as np
 import viser
-from viser._messages import GuiUpdateMessage  # viser has no public "resend" for an unchanged value
 
 from pemviz.app import plots
+from pemviz.app._viser_compat import resend_value
 from pemviz.app.explain import Explanation, explain
 from pemviz.app.form import NUMBER_FIELDS, FormResult, format_number, parse_form, run_cost, setting_name, setting_value
 from pemviz.app.runs import PANEL_PRESETS, RunRecord, Trajectory, export_path, export_run, keep_runs, scene_positions
@@ -235,8 +235,7 @@ class Session:
         """
         with self.client.atomic():
             for handle in (*self.fields.values(), *self.choices.values(), self.preset):
-                impl = handle._impl
-                impl.gui_api._websock_interface.queue_message(GuiUpdateMessage(impl.uuid, {"value": impl.value}))
+                resend_value(handle)
 
     def stop_run(self) -> None:
         """Set this session's cancel token (the engine stops at its next check)."""
