@@ -23,15 +23,15 @@ import rerun as rr
 from pemviz.config import METRICS, PRESETS, ExperimentConfig
 from pemviz.estimate import format_probability
 from pemviz.io.files import write_rrd
-from pemviz.sinks.colours import stage_rgba
+from pemviz.sinks.colours import DARK, METRIC_COLOURS, OTHER, rgba, stage_rgba
 from pemviz.problems import PROBLEMS
 from pemviz.validation import ExactAnswer, Job, RunRecord, ams_fields
 
 FIG4_STAGE = 3
 """The paper's Fig. 4 shows the proposal after stage kappa = 3."""
 
-PEM_RGBA = (30, 30, 30, 255)
-METRIC_RGBA = {"classic": (40, 110, 230, 255), "agm": (230, 120, 30, 255), "smooth-cumulative": (40, 170, 80, 255)}
+PEM_RGBA = rgba(DARK)
+METRIC_RGBA = {metric: rgba(rgb) for metric, rgb in METRIC_COLOURS.items()}
 
 
 @dataclass(frozen=True)
@@ -234,7 +234,7 @@ def _log_tables(stream, gap_mm, specs, records, pem_curve, description) -> None:
         if spec.label.startswith(("adaptive", "r_")) and all(r.curves.shape[0] > FIG4_STAGE for r in recs):
             mean = np.mean([r.curves[FIG4_STAGE] for r in recs], axis=0)
             where = f"fig4/{metric}" if preset is None else f"fig4/{preset}/{metric}"
-            curve(where, mean, METRIC_RGBA.get(metric, (120, 120, 120, 255)),
+            curve(where, mean, METRIC_RGBA.get(metric, rgba(OTHER)),
                   f"{metric}{'' if preset is None else f' ({preset})'}: mean q(detect | d) at stage {FIG4_STAGE} "
                   f"over {len(recs)} repetitions")  # fmt: skip
 

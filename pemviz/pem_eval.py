@@ -42,6 +42,7 @@ from pemviz.pem import (
     load_reference_pem,
 )
 from pemviz.pem.bayes import train_bnn_pem
+from pemviz.sinks.colours import MODEL_COLOURS, MODEL_OTHER, REFERENCE_LINE, rgba
 
 MODEL_NAMES = ("ml-nn", "lr", "guess-mu", "b-nn", "gbt")
 """Every model :func:`evaluate_pems` knows, in table order."""
@@ -393,14 +394,7 @@ def format_csv(result: EvalResult) -> str:
 
 # ------------------------------------------------------------------------------------------ recording
 
-MODEL_RGBA = {
-    "ml-nn": (90, 160, 240, 255),
-    "lr": (170, 120, 220, 255),
-    "guess-mu": (150, 150, 150, 255),
-    "b-nn": (80, 200, 160, 255),
-    "gbt": (250, 170, 40, 255),
-    "authors": (245, 245, 245, 255),
-}
+MODEL_RGBA = {name: rgba(rgb) for name, rgb in MODEL_COLOURS.items()}
 APP_ID = "pemviz_pem_eval"
 
 
@@ -444,7 +438,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
     from pemviz.sinks.recording import Figure
 
     def colour(name: str) -> tuple[int, int, int, int]:
-        return MODEL_RGBA.get(name, (200, 200, 200, 255))
+        return MODEL_RGBA.get(name, rgba(MODEL_OTHER))
 
     roc_fig = Figure("roc", "false positive rate", "true positive rate")
     rel_fig = Figure("reliability", "mean predicted p(detect)", "observed detection rate")
@@ -465,7 +459,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
         static=True,
     )
     y = result.labels
-    grey = (110, 110, 110, 255)
+    grey = rgba(REFERENCE_LINE)
 
     roc_fig.draw_axes(stream, (0.0, 1.0), (0.0, 1.0))
     stream.log("roc/data/chance", rr.LineStrips2D([[[0, 0], [1, 1]]], colors=grey, radii=-0.5), static=True)

@@ -23,6 +23,7 @@ from pemviz.app.session import Session
 from pemviz.config import DEFAULT_PRESET, ExperimentConfig
 from pemviz.problems import problem_for
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.sinks.colours import BLUE
 
 STATUS_EVERY_S = 0.5
 """How often a running run's status line (elapsed, expected time) is refreshed."""
@@ -71,7 +72,7 @@ class PanelApp:
         self._session_added = threading.Condition(self.lock)
 
         self.server = viser.ViserServer(host=host, port=port, label="pemviz", verbose=verbose)
-        self.server.gui.configure_theme(control_width="large", show_share_button=False, brand_color=(31, 111, 209))
+        self.server.gui.configure_theme(control_width="large", show_share_button=False, brand_color=BLUE)
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(self._on_disconnect)
         self._warm = threading.Thread(target=self._warm_up, name="pemviz-warm-up", daemon=True)

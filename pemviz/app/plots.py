@@ -16,6 +16,7 @@ import viser.uplot as up
 
 from pemviz.app.explain import Explanation
 from pemviz.app.runs import RunRecord, Trajectory
+from pemviz.sinks import colours as C
 from pemviz.sinks.colours import (
     BRAKE_ZONE,
     CRASH,
@@ -26,11 +27,12 @@ from pemviz.sinks.colours import (
     MISSED,
     PROPOSAL,
     css,
+    hex_colour,
     stage_rgb,
 )
 
-RUN_COLOURS = ("#1f6fd1", "#d6402b", "#2a9d4b", "#8a4fd1", "#c98a00", "#1aa3a3")
-"""Series colour of a run: its number modulo 6."""
+RUN_COLOURS = tuple(hex_colour(c) for c in C.RUN_COLOURS)
+"""Series colour of a run: its number modulo 6 (:data:`pemviz.sinks.colours.RUN_COLOURS`)."""
 
 STAGE_PLOTS = (
     ("gamma", "threshold gamma per stage", "gamma"),
@@ -68,7 +70,7 @@ def curve_plot(gui: viser.GuiApi, title: str, height: int = 230) -> viser.GuiUpl
     """An empty q(detect | gap) plot: gap 0..13 m, probability 0..1 (the top tick 1 included)."""
     return gui.add_uplot(
         data=(np.linspace(0, 13, 2), np.full(2, np.nan)),
-        series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke="black")),
+        series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(C.BLACK))),
         title=title,
         scales={"x": up.Scale(time=False, auto=False, range=(0.0, 13.0)), "y": up.Scale(auto=False, range=(0.0, 1.04))},
         axes=axes("gap d (m)", "p(detect | d)"),
@@ -85,7 +87,7 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: RunRecord, title: str) -
     if grid.size == 0:
         return
     n_colour = max(1, record.config.n_stages if record.config.method == "adaptive" else 1)
-    series = [up.Series(label="gap (m)"), up.Series(label="PEM", stroke="black", width=2)]
+    series = [up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(C.BLACK), width=2)]
     data = [grid, pem]
     for s in stages:  # the final batch samples from the last stage's proposal: the same curve
         name = "pretraining" if s.kind == "pretrain" else f"stage {s.stage}"
@@ -99,7 +101,7 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: RunRecord, title: str) -
 def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHandle:
     return gui.add_uplot(
         data=(np.arange(2, dtype=np.float64), np.full(2, np.nan)),
-        series=(up.Series(label="stage"), up.Series(label="no run yet", stroke="#888888")),
+        series=(up.Series(label="stage"), up.Series(label="no run yet", stroke=hex_colour(C.GREY))),
         title=title,
         scales={"x": up.Scale(time=False, auto=False, range=(-0.5, 1.5)), "y": up.Scale(auto=False, range=(-0.05, 1.05))},
         axes=axes("stage (0 pretraining, K+1 final batch)", y_label),
@@ -207,12 +209,12 @@ def fill_strip_plots(
     plots["gap"].title = f"{title}: gap and speeds"
     plots["gap"].series = (
         up.Series(label="t (s)"),
-        up.Series(label="gap (m)", stroke="black", width=2),
+        up.Series(label="gap (m)", stroke=hex_colour(C.BLACK), width=2),
         up.Series(label="ego speed (m/s)", stroke=css(EGO_SPEED), width=1.5),
         up.Series(label="lead speed (m/s)", stroke=css(LEAD_SPEED), width=1.5),
         up.Series(label=f"crash gap {crash_gap_m:g} m", stroke=css(CRASH), width=1.5, dash=[6, 4]),
         up.Series(label=f"braking distance {braking_distance_m:g} m", stroke=css(BRAKE_ZONE), width=1.5, dash=[6, 4]),
-        up.Series(label="now", stroke="black", points=_points((0, 0, 0), 9), **no_line),
+        up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
     plots["gap"].data = (
         t, traj.gap_m, traj.ego_speed_mps, traj.lead_speed_mps, np.full(t.size, crash_gap_m),
@@ -222,12 +224,12 @@ def fill_strip_plots(
 
     plots["detect"].series = (
         up.Series(label="t (s)"),
-        up.Series(label="p(detect) PEM", stroke="black", width=2),
+        up.Series(label="p(detect) PEM", stroke=hex_colour(C.BLACK), width=2),
         up.Series(label="q(detect) sampler", stroke=css(PROPOSAL), width=2),
         up.Series(label="detected", stroke=css(DETECTED), points=_points(DETECTED, 5), **no_line),
         up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **no_line),
         up.Series(label="decisive miss", stroke=css(CRASH), points=_points(CRASH, 10), **no_line),
-        up.Series(label="now", stroke="black", points=_points((0, 0, 0), 9), **no_line),
+        up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
     plots["detect"].data = (t, ex.p_detect, ex.q_detect, det, miss, decisive, marker(ex.p_detect))
     plots["detect"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))}
@@ -239,7 +241,7 @@ def fill_strip_plots(
     plots["weight"].series = (
         up.Series(label="t (s)"),
         up.Series(label="cumulative log p - log q (nats)", stroke=css(LOG_WEIGHT), width=2),
-        up.Series(label="now", stroke="black", points=_points((0, 0, 0), 9), **no_line),
+        up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
     plots["weight"].data = (t, lw, marker(lw))
     plots["weight"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(lo - pad, hi + pad))}

@@ -49,7 +49,8 @@ from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
 from pemviz.problems import problem_for
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
-from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
+from pemviz.sinks import colours as C
+from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED, hex_colour
 from pemviz.sinks.console import expected_stage_s
 
 
@@ -77,7 +78,7 @@ TABLE_STYLE = (
     ".pemviz-table td,.pemviz-table th{padding:0.05em 0.3em}"
     ".pemviz-table tr:nth-child(even){background:#0000000a}</style>"
 )
-GREY, BLUE, GREEN, AMBER, RED = "#888888", "#1f6fd1", "#2a9d4b", "#c98a00", "#d6402b"
+GREY, BLUE, GREEN, AMBER, RED = (hex_colour(c) for c in (C.GREY, C.BLUE, C.GREEN, C.AMBER, C.RED))
 VERDICT_COLOURS = {"reliable": GREEN, "doubtful": AMBER, "unreliable": RED}
 
 
@@ -286,7 +287,7 @@ class Session:
     # == GUI ===========================================================================================
     def _build_gui(self) -> None:
         gui = self.client.gui
-        gui.configure_theme(control_width="large", show_share_button=False, brand_color=(31, 111, 209))
+        gui.configure_theme(control_width="large", show_share_button=False, brand_color=C.BLUE)
         gui.set_panel_label("pemviz")
         gui.add_markdown(
             "**pemviz**: the crash probability of a PEM-driven braking scenario by adaptive importance sampling "
@@ -776,15 +777,15 @@ class Session:
         scene.set_up_direction("+z")
         road_len, x0, lane = 90.0, -15.0, 4.0
         scene.add_box(
-            "/road", color=(70, 70, 75), dimensions=(road_len, lane + 1.0, 0.05),
+            "/road", color=C.ROAD, dimensions=(road_len, lane + 1.0, 0.05),
             position=(x0 + road_len / 2, 0.0, -0.03), cast_shadow=False,
         )  # fmt: skip
         edges = np.array(
             [[[x0, s * lane / 2, 0.0], [x0 + road_len, s * lane / 2, 0.0]] for s in (-1, 1)], dtype=np.float32
         )
-        scene.add_line_segments("/road/edges", edges, colors=(235, 235, 235), thickness=0.12)
+        scene.add_line_segments("/road/edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
         ticks = np.array([[[x, -lane / 2, 0.01], [x, -lane / 2 - 0.6, 0.01]] for x in range(0, 75, 10)], np.float32)
-        scene.add_line_segments("/road/ticks_10m", ticks, colors=(235, 235, 235), thickness=0.08)
+        scene.add_line_segments("/road/ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
         size = (p.ego_length_m, p.vehicle_width_m, CAR_HEIGHT_M)
         lead0 = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
         self.ego_box = scene.add_box("/ego", color=IDLE, dimensions=size, position=(0.0, 0, CAR_HEIGHT_M / 2))

@@ -33,6 +33,7 @@ from pemviz.io.rollouts import read_rollouts
 from pemviz.pem import load_pem
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
 from pemviz.sampling import load_proposal
+from pemviz.sinks.colours import FAILED_ROLLOUT, NEUTRAL, rgba
 from pemviz.sinks.console import estimate_cells
 from pemviz.weights import CONVENTIONS
 
@@ -223,7 +224,7 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
             static=True,
         )  # fmt: skip
         order = np.argsort(np.where(result.failed, -np.inf, result.robustness), kind="stable")[:MAX_TRACES]
-        colours = [(230, 60, 50, 160) if result.failed[i] else (150, 150, 150, 80) for i in order]
+        colours = [rgba(FAILED_ROLLOUT, 160) if result.failed[i] else rgba(NEUTRAL, 80) for i in order]
         names = [f"rollout {data.rollout_ids[i]}{' failure' if result.failed[i] else ''}" for i in order]
         index = [rr.TimeColumn("step", sequence=np.arange(data.n_steps, dtype=np.int64))]
         for col in data.observation_names:
@@ -233,7 +234,7 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
         points = np.column_stack([result.robustness, result.log_weight])
         stream.log(
             "scores",
-            rr.Points2D(points, colors=[(230, 60, 50, 255) if f else (150, 150, 150, 255) for f in result.failed],
+            rr.Points2D(points, colors=[rgba(FAILED_ROLLOUT) if f else rgba(NEUTRAL) for f in result.failed],
                         labels=[f"rollout {i}: robustness, log w" for i in data.rollout_ids]),
             static=True,
         )  # fmt: skip

@@ -1,9 +1,11 @@
-"""One colour scheme for the panel (``pemviz serve``) and the rerun recordings, as RGB 0..255.
+"""One colour scheme for the panel (``pemviz serve``) and the rerun recordings, as RGB 0..255: every colour pemviz
+draws with is named here (HTML takes :func:`css` or :func:`hex_colour` of one, rerun :func:`rgba`).
 
 A detection is green and a miss orange at every step, in the 3D scene, the recording's scene and the
 strip charts; a crash (gap below 2 m) and the 2 m line are red; the 10 m braking distance is yellow;
 the lead is blue-grey; a car before any step (idle) is neutral grey; stages go from blue (early) to
-orange (late).
+orange (late). The panel's text (status, verdicts) uses :data:`BLUE`, :data:`GREEN`, :data:`AMBER`, :data:`RED`
+and :data:`GREY`; kept runs take :data:`RUN_COLOURS` in turn.
 """
 
 from __future__ import annotations
@@ -18,10 +20,52 @@ BRAKE_ZONE = (240, 200, 40)
 """The 10 m braking distance: the controller brakes only for a lead detected inside it."""
 TAGGED = (250, 210, 60)
 """The least-robust rollouts of a stage, highlighted."""
-EGO_SPEED = (31, 111, 209)
-LEAD_SPEED = (120, 80, 200)
-PROPOSAL = (31, 111, 209)
-LOG_WEIGHT = (120, 80, 200)
+BLUE = (31, 111, 209)
+"""pemviz's blue: the panel's theme, its status text, mu_hat's curve."""
+VIOLET = (120, 80, 200)
+GREEN = (42, 157, 75)
+"""A reliable verdict, a finished run."""
+AMBER = (201, 138, 0)
+"""A doubtful verdict, a warning."""
+RED = (214, 64, 43)
+"""An unreliable verdict, an error, a crash in the panel's text."""
+GREY = (136, 136, 136)
+"""Neutral text and placeholders."""
+NEUTRAL = (150, 150, 150)
+"""The failures' NLL curve."""
+BLACK = (0, 0, 0)
+"""The target PEM's curve and the current step's marker in the panel's plots."""
+INTERVAL = (120, 160, 230)
+"""The bounds of mu_hat's interval in the recordings."""
+EGO_SPEED = BLUE
+LEAD_SPEED = VIOLET
+PROPOSAL = BLUE
+LOG_WEIGHT = VIOLET
+RUN_COLOURS = (BLUE, RED, GREEN, (138, 79, 209), AMBER, (26, 163, 163))
+"""Series colour of a kept run in the panel: its number modulo 6."""
+FIGURE_BACKGROUND = (25, 28, 32)
+"""The recordings' 2D views."""
+ROAD = (70, 70, 75)
+ROAD_MARKING = (235, 235, 235)
+"""The panel's 3D road: its surface, its edges and the 10 m ticks."""
+ON_DARK = (245, 245, 245)
+"""The target PEM's curve on the recordings' dark background (white)."""
+AXIS = (170, 170, 170)
+GRID = (90, 90, 90)
+DARK = (30, 30, 30)
+"""The PEM's curve in the paper-tables recording."""
+FAILED_ROLLOUT = (230, 60, 50)
+"""A failing rollout in ``pemviz estimate``'s recording."""
+METRIC_COLOURS = {"classic": (40, 110, 230), "agm": (230, 120, 30), "smooth-cumulative": (40, 170, 80)}
+"""The robustness metrics' curves in the paper-tables recording."""
+OTHER = (120, 120, 120)
+"""A series without a colour of its own."""
+MODEL_COLOURS = {"ml-nn": (90, 160, 240), "lr": (170, 120, 220), "guess-mu": (150, 150, 150), "b-nn": (80, 200, 160),
+                 "gbt": (250, 170, 40), "authors": ON_DARK}  # fmt: skip
+"""The PEM families in ``pemviz pem eval``'s recording."""
+MODEL_OTHER = (200, 200, 200)
+REFERENCE_LINE = (110, 110, 110)
+"""The chance line and the diagonal of ``pemviz pem eval``'s recording."""
 
 
 def stage_rgb(stage: int, n_stages: int) -> tuple[int, int, int]:
@@ -39,6 +83,11 @@ def css(rgb: tuple[int, ...], alpha: float | None = None) -> str:
     """``rgb(r, g, b)`` (or ``rgba(...)`` with ``alpha`` in [0, 1]) for HTML and uPlot."""
     r, g, b = rgb[:3]
     return f"rgb({r}, {g}, {b})" if alpha is None else f"rgba({r}, {g}, {b}, {alpha:g})"
+
+
+def hex_colour(rgb: tuple[int, ...]) -> str:
+    """``#rrggbb`` for HTML and uPlot."""
+    return "#{:02x}{:02x}{:02x}".format(*rgb[:3])
 
 
 def rgba(rgb: tuple[int, ...], a: int = 255) -> tuple[int, int, int, int]:

@@ -82,9 +82,9 @@ CRASH_RGBA = C.rgba(C.CRASH, 170)
 SAFE_RGBA = C.rgba(C.SAFE, 60)
 TAG_RGBA = C.rgba(C.TAGGED)
 TAG_CRASH_RGBA = C.rgba(C.CRASH)
-PEM_RGBA = (245, 245, 245, 255)
-AXIS_RGBA = (170, 170, 170, 255)
-GRID_RGBA = (90, 90, 90, 120)
+PEM_RGBA = C.rgba(C.ON_DARK)
+AXIS_RGBA = C.rgba(C.AXIS)
+GRID_RGBA = C.rgba(C.GRID, 120)
 DETECTED_RGBA = C.rgba(C.DETECTED)
 MISSED_RGBA = C.rgba(C.MISSED)
 LEAD_RGBA = C.rgba(C.LEAD)
@@ -95,19 +95,18 @@ ALL_ROLLOUTS_UP_TO = 500
 rollouts and a uniform sample (:data:`SAMPLED_ROLLOUTS`)."""
 SAMPLED_ROLLOUTS = 100
 HISTOGRAM_BINS = 40
-FIGURE_BACKGROUND_RGB = (25, 28, 32)
 LANE_SPACING_M = 3.2
 SCENE_X_RANGE_M = (-15.0, 38.0)
 """Top-down scene: lanes ``LANE_SPACING_M`` apart (the cars are 2 m wide), x from the lane labels to
 past the lead's stop."""
 
 STAGE_METRICS = (
-    ("log10_mu_hat", "log10 mu_hat", (31, 111, 209)),
+    ("log10_mu_hat", "log10 mu_hat", C.BLUE),
     ("failure_rate", "failures / N", C.CRASH),
-    ("gamma", "threshold gamma", (120, 80, 200)),
+    ("gamma", "threshold gamma", C.VIOLET),
     ("ess", "ESS", C.DETECTED),
     ("khat", "Pareto k-hat", C.MISSED),
-    ("nll", "NLL of the failures (nats)", (150, 150, 150)),
+    ("nll", "NLL of the failures (nats)", C.NEUTRAL),
 )
 """Per-stage values: key under ``stages/``, series name, colour."""
 
@@ -187,7 +186,7 @@ class Figure:
             origin=self.path,
             name=name,
             visual_bounds=rrb.VisualBounds2D(x_range=[-0.14 * w, 1.03 * w], y_range=[-0.12 * h, 1.2 * h]),
-            background=FIGURE_BACKGROUND_RGB,
+            background=C.FIGURE_BACKGROUND,
         )
 
 
@@ -218,7 +217,7 @@ def default_blueprint(n_lanes: int = 12) -> rrb.Blueprint:
     scene = rrb.Spatial2DView(
         origin=f"/{SCENE_PATH}",
         name="Scene: play on the step timeline",
-        background=FIGURE_BACKGROUND_RGB,
+        background=C.FIGURE_BACKGROUND,
         visual_bounds=rrb.VisualBounds2D(
             x_range=list(SCENE_X_RANGE_M), y_range=[-0.6 * LANE_SPACING_M, (n_lanes - 0.4) * LANE_SPACING_M]
         ),
@@ -455,8 +454,8 @@ class RerunSink:
         for key, name, rgb in STAGE_METRICS:
             s.log(f"stages/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[2.0]),
                   rr.SeriesPoints(colors=[C.rgba(rgb)], names=[name], marker_sizes=[3.0]), static=True)  # fmt: skip
-        for key, name, rgb in (("ci_low", "95 % interval, low", (120, 160, 230)),
-                               ("ci_high", "95 % interval, high", (120, 160, 230)),
+        for key, name, rgb in (("ci_low", "95 % interval, low", C.INTERVAL),
+                               ("ci_high", "95 % interval, high", C.INTERVAL),
                                ("exact", "exact answer", C.DETECTED)):  # fmt: skip
             s.log(f"stages/log10_mu_hat/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[1.0]),
                   static=True)  # fmt: skip
