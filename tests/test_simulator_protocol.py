@@ -13,6 +13,7 @@ from scipy.special import log_expit
 
 from conftest import REPO
 from pemviz import stl
+from pemviz.checks import check_simulator
 from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
 from pemviz.problems import Problem
@@ -80,27 +81,6 @@ def exact_failure_probability(make: Callable[[], object], logit_fn, n_steps: int
         if min(replay(k)) < 2.0:
             total += math.exp(log_p)
     return total
-
-
-def check_simulator(make: Callable[[], object], n_steps: int) -> None:
-    """The protocol: ``observation_names`` with ``gap_m`` first, ``observation()`` float64 [F], ``step(bool)``
-    for ``n_steps`` steps, ``reset()`` back to the start, and determinism for the same detections."""
-    sim = make()
-    names = tuple(sim.observation_names)
-    assert names[0] == "gap_m" and len(names) >= 1
-    start = sim.observation()
-    assert start.dtype == np.float64 and start.shape == (len(names),)
-    pattern = np.random.default_rng(0).random(n_steps) < 0.5
-    trace = []
-    for t in range(n_steps):
-        trace.append(sim.observation().copy())
-        sim.step(bool(pattern[t]))
-    sim.reset()
-    np.testing.assert_array_equal(sim.observation(), start)
-    again = make()
-    for t in range(n_steps):
-        np.testing.assert_array_equal(again.observation(), trace[t])
-        again.step(bool(pattern[t]))
 
 
 @pytest.mark.parametrize(
