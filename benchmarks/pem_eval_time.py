@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import time
 from pemviz.io.data import load_salient_data
-from pemviz.pem_eval import EvalConfig, evaluate_pems, summary_lines
+from pemviz.studies.pem_eval import EvalConfig, evaluate_pems, summary_lines
 
 BUDGET_S = 900.0
 

@@ -51,9 +51,9 @@ from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts
 from pemviz.io.files import atomic_write
 from pemviz.problems import Problem, ShiftedPEM, braking_problem, toy_problem
 from pemviz.sampling import torch_threads
-from pemviz.validation import all_fields, ams_fields
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.toy import ToyParams, ToyValue, toy_log_failure_probability
+from pemviz.studies.validation import all_fields, ams_fields
 
 Q_STAR = "q*"
 """The label of the exact zero-variance sampler (not a config: built from the problem's exact V)."""
@@ -62,7 +62,7 @@ def methods_at(n_final: int = ExperimentConfig().n_final) -> list[tuple[str, dic
     """(label, ExperimentConfig fields) per method, None for q*, all at the budget of the default sampler with a final
     batch of ``n_final`` rollouts (``n_final = 1000``: 2,100 simulations; 100: 1,200): the ``paper`` preset with its
     final batch set to that budget, Monte Carlo with that many rollouts, adaptive multilevel splitting with
-    budget / 4 particles (:func:`pemviz.validation.ams_fields`, when this pemviz has it) and q*.
+    budget / 4 particles (:func:`pemviz.studies.validation.ams_fields`, when this pemviz has it) and q*.
 
     Raises:
         ValueError: if ``n_final`` < 1, or the budget is too small for the paper preset's stages.

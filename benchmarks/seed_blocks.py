@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from pemviz.estimate import relative_error
-from pemviz.validation import RUNS_FILE, exact_answer, read_records
+from pemviz.studies.validation import RUNS_FILE, exact_answer, read_records
 
 DRAWS = 100_000
 """Bootstrap draws of a block of seeds."""

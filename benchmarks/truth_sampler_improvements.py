@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from pemviz.estimate import relative_error
-from pemviz.validation import Job, exact_answer, run_jobs
+from pemviz.studies.validation import Job, exact_answer, run_jobs
 
 STEPS: tuple[tuple[str, dict], ...] = (
     ("paper", {}),

@@ -16,7 +16,7 @@ import pytest
 from conftest import REPO, SHARED
 from pemviz.cli import main as cli_main
 from pemviz.commands import UsageError, output_folder
-from pemviz.validation import RUNS_FILE
+from pemviz.studies.validation import RUNS_FILE
 
 TINY = ("--problems", "toy-1e-3", "--presets", "paper", "--baselines", "mc",
         "--k", "2", "--ce-epochs", "20", "--pretrain-epochs", "20")  # fmt: skip

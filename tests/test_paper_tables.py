@@ -1,4 +1,4 @@
-"""pemviz.paper_tables: rows of the paper's Tables II and III from run records."""
+"""pemviz.studies.paper_tables: rows of the paper's Tables II and III from run records."""
 
 from __future__ import annotations
 
@@ -8,8 +8,16 @@ import numpy as np
 import pytest
 
 from pemviz.config import METRICS
-from pemviz.paper_tables import RowSpec, log_mean_and_se, markdown, row_specs, rows_csv, summarise_row, tables_rows
-from pemviz.validation import RunRecord
+from pemviz.studies.paper_tables import (
+    RowSpec,
+    log_mean_and_se,
+    markdown,
+    row_specs,
+    rows_csv,
+    summarise_row,
+    tables_rows,
+)
+from pemviz.studies.validation import RunRecord
 
 
 def test_log_mean_and_se_equal_numpy_and_stay_exact_below_float_range():

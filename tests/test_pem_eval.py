@@ -1,4 +1,4 @@
-"""pemviz.pem_eval: metrics against hand-computed values and scikit-learn, the reduced cross-validation
+"""pemviz.studies.pem_eval: metrics against hand-computed values and scikit-learn, the reduced cross-validation
 (one fold, few epochs) in sane ranges, the table files and the rerun recording read back."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from conftest import verify_rrd
 from pemviz import pem
 from pemviz.io import data
 from pemviz.cli import main as cli_main
-from pemviz.pem_eval import (
+from pemviz.studies.pem_eval import (
     GAP_GRID_M,
     EvalConfig,
     evaluate_pems,

@@ -1,4 +1,4 @@
-"""pemviz.validation: exact answers, run records on disk, summaries, equal budgets."""
+"""pemviz.studies.validation: exact answers, run records on disk, summaries, equal budgets."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.estimate import relative_error
 from pemviz.problems import PROBLEMS, build_problem
-from pemviz.validation import (
+from pemviz.studies.validation import (
     DEFAULT_PROBLEMS,
     ExactAnswer,
     Job,

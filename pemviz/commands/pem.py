@@ -12,7 +12,14 @@ from pemviz.commands import COMMANDS, UsageError, output_folder
 from pemviz.io.data import DataError, load_salient_data, sha256_file
 from pemviz.io.files import check_output_folder, check_output_path, write_text_atomic
 from pemviz.pem import PEM_RECIPES, bce_from_logits, load_reference_pem, pem_path, save_pem
-from pemviz.pem_eval import EvalConfig, evaluate_pems, format_csv, format_markdown, summary_lines, write_recording
+from pemviz.studies.pem_eval import (
+    EvalConfig,
+    evaluate_pems,
+    format_csv,
+    format_markdown,
+    summary_lines,
+    write_recording,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -133,8 +140,8 @@ def _int_list(text: str | None, option: str) -> tuple[int, ...] | None:
         raise UsageError(f"{option} {text!r}: give comma-separated integers") from None
 
 
-def eval_config_from_args(args: argparse.Namespace):  # -> pemviz.pem_eval.EvalConfig
-    """The :class:`pemviz.pem_eval.EvalConfig` of the command line; UsageError on bad values."""
+def eval_config_from_args(args: argparse.Namespace):  # -> pemviz.studies.pem_eval.EvalConfig
+    """The :class:`pemviz.studies.pem_eval.EvalConfig` of the command line; UsageError on bad values."""
     fields: dict = {"seed": args.seed}
     if args.quick:
         fields.update(folds=(0,), mlnn_epochs=20, gbt_trees=60, bnn_steps=200, bnn_samples=100)

@@ -11,7 +11,7 @@ repetition's per-stage proposal curve q(detect | d) (``curves/<row>/rep_RR/stage
 timeline) and the paper's Fig. 4: the curves at stage kappa = 3 averaged over repetitions, per metric
 (``fig4/<metric>``; ``fig4/<preset>/<metric>`` for the ``--extra`` presets), beside the PEM's p(detect | d)
 (``fig4/pem``). A :class:`~pemviz.sampling.StateProposal`'s curve holds its other inputs at the start state. The work is done by
-:mod:`pemviz.paper_tables` and :mod:`pemviz.validation`; this module is its command line.
+:mod:`pemviz.studies.paper_tables` and :mod:`pemviz.studies.validation`; this module is its command line.
 """
 
 from __future__ import annotations
@@ -26,10 +26,18 @@ from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fi
 from pemviz.config import PRESETS
 from pemviz.estimate import format_probability
 from pemviz.io.files import check_output_folder, write_text_atomic
-from pemviz.paper_tables import records_by_row, report, row_specs, rows_csv, table_jobs, tables_rows, write_recording
 from pemviz.problems import PROBLEMS, build_problem
 from pemviz.resources import cap_jobs
-from pemviz.validation import RUNS_FILE, ExactAnswer, RunRecord, exact_answer, run_jobs
+from pemviz.studies.paper_tables import (
+    records_by_row,
+    report,
+    row_specs,
+    rows_csv,
+    table_jobs,
+    tables_rows,
+    write_recording,
+)
+from pemviz.studies.validation import RUNS_FILE, ExactAnswer, RunRecord, exact_answer, run_jobs
 
 
 def register(sub: argparse._SubParsersAction) -> None:

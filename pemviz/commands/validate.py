@@ -6,7 +6,7 @@ enumeration of its detection sequences (:mod:`pemviz.truth`). Every method runs 
 several seeds at the same simulation budget (the adaptive sampler's: pretraining + K x N + N_e), and the
 table reports, per problem and method: the truth, the median and spread of mu_hat, the median relative
 error |mu_hat - truth| / truth, how many seeds are within a factor 2, failures, ESS, simulations, wall time.
-The work is done by :mod:`pemviz.validation`; this module is its command line.
+The work is done by :mod:`pemviz.studies.validation`; this module is its command line.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pemviz.estimate import format_probability, relative_error
 from pemviz.io.files import check_output_folder, write_text_atomic
 from pemviz.problems import PROBLEMS
 from pemviz.resources import cap_jobs
-from pemviz.validation import (
+from pemviz.studies.validation import (
     BASELINES,
     DEFAULT_PROBLEMS,
     RUNS_FILE,

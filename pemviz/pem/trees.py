@@ -1,8 +1,8 @@
 """A gradient-boosted-trees PEM (scikit-learn's HistGradientBoostingClassifier) on the same 14 features.
 
 pemviz's better-than-the-paper PEM: chosen by 5-fold cross-validation on the paper's folds
-(see ``pemviz.pem_eval`` and ``pemviz/assets/README.md``). scikit-learn fits the trees; pemviz exports them into
-flat float64 / int arrays (``torch.save``-able, no pickle) and evaluates them itself:
+(see ``pemviz.studies.pem_eval`` and ``pemviz/assets/README.md``). scikit-learn fits the trees; pemviz exports them
+into flat float64 / int arrays (``torch.save``-able, no pickle) and evaluates them itself:
 
 - :meth:`TreePEM.logit` walks all trees at once, vectorised over rows (equal to scikit-learn's
   ``decision_function`` to float64 summation order; tested against it);

@@ -25,7 +25,7 @@ from pemviz.estimate import format_probability
 from pemviz.io.files import write_rrd
 from pemviz.sinks.colours import DARK, METRIC_COLOURS, OTHER, rgba, stage_rgba
 from pemviz.problems import PROBLEMS
-from pemviz.validation import ExactAnswer, Job, RunRecord, ams_fields
+from pemviz.studies.validation import ExactAnswer, Job, RunRecord, ams_fields
 
 FIG4_STAGE = 3
 """The paper's Fig. 4 shows the proposal after stage kappa = 3."""
