@@ -242,9 +242,10 @@ def test_linear_pool_weights_by_hand_and_unbiased_over_stages_of_different_propo
 
 def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_for_one_stage(monkeypatch):
     """Right after the failure level is reached the pool holds one stage: the balance heuristic over its samplers
-    (``fit_weights = "mixture"``, recomputed from the held observations) must give every fitted step the weight
-    the stage computed as its rollouts came (the mixture weight over rollouts, an independent code path). With two
-    stages of equal size, p / (c_1 q_1 + c_2 q_2) <= p / (c_j q_j) = 2 w_own for the stage j that drew a rollout."""
+    (``fit_weights = "mixture"``) is then each sampler's own weight, so the fits and the proposals they give are those
+    of ``fit_weights = "sampler"`` bit for bit; from the second pooled stage on they differ. With two stages of equal
+    size the reweighted steps obey p / (c_1 q_1 + c_2 q_2) <= p / (c_j q_j) = 2 w_own for the stage j that drew a
+    rollout."""
     from pemviz.engine import Experiment
     from pemviz.estimators import cross_entropy as ce
 
@@ -257,29 +258,28 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
 
     def recorded(self, log_weight):
         before = in_order(self)
-        assert reweight(self, log_weight)
-        calls.append((before, self.parts[0][3].copy()))
-        return True
+        changed = reweight(self, log_weight)
+        calls.append((before, in_order(self)))
+        return changed
 
-    finish = ce.CrossEntropy.finish
+    def run(fit_weights):
+        config = ExperimentConfig(n_stages=4, n_per_stage=100, n_final=10, ce_epochs=50, pretrain_epochs=50,
+                                  smoothing_at_failure=1.0, final_smoothing=None, fit_weights=fit_weights)
+        return Experiment(config, problem=build_problem("main")).run().stages
 
-    def finish_and_reweight_the_first_pool(self):
-        out = finish(self)
-        if self._failure_steps is not None and self._pool_start == self._plan.stage and not calls:
-            self._failure_steps.reweight(self._pool_log_weight)
-        return out
-
+    sampler = run("sampler")
     monkeypatch.setattr(ce.EliteSteps, "reweight", recorded)
-    monkeypatch.setattr(ce.CrossEntropy, "finish", finish_and_reweight_the_first_pool)
-    Experiment(ExperimentConfig(n_stages=4, n_per_stage=100, n_final=10, ce_epochs=50, pretrain_epochs=50,
-                                smoothing_at_failure=1.0, final_smoothing=None),
-               problem=build_problem("main")).run()  # fmt: skip
-    (before, after), (before2, after2) = calls[0], calls[1]
-    assert before.size > 100 and np.isfinite(before).all()
-    np.testing.assert_allclose(after, before, rtol=0, atol=1e-9)
-    assert after2.size > before.size and np.isfinite(after2).all()
-    assert np.all(after2 <= before2 + math.log(2.0) + 1e-9)
-    assert np.max(np.abs(after2 - before2)) > 0.1  # the second stage's samplers change the weights
+    mixture = run("mixture")
+    first = next(s.stage for s in mixture if s.kind == "ce" and s.gamma == 0.0)  # the pool's first stage
+    np.testing.assert_array_equal([s.gamma for s in mixture[: first + 1]], [s.gamma for s in sampler[: first + 1]])
+    assert first == 2
+    for a, b in zip(mixture[: first + 1], sampler[: first + 1]):  # one stage in the pool: the same fits
+        np.testing.assert_array_equal(a.proposal_curve, b.proposal_curve)
+    assert np.nanmax(np.abs(mixture[first + 1].proposal_curve - sampler[first + 1].proposal_curve)) > 1e-3
+    before, after = calls[0]  # the first reweight: two pooled stages of 100 rollouts
+    assert after.size > 100 and np.isfinite(after).all() and np.isfinite(before).all()
+    assert np.all(after <= before + math.log(2.0) + 1e-9)
+    assert np.max(np.abs(after - before)) > 0.1  # the second stage's samplers change the weights
 
 
 @pytest.mark.parametrize("n_stages, field, alpha", [(3, "smoothing_at_failure", 1.5), (3, "final_smoothing", 0.5)])
@@ -357,24 +357,18 @@ def test_last_answer_asks_its_detector_once_per_distinct_observations():
 
 
 @pytest.mark.parametrize("pool_weights, power", [("quadratic", 2), ("linear", 1), ("rollouts", 0)])
-def test_pool_weights_count_the_jth_pooled_stage_by_j_to_the_power_times_its_rollouts(monkeypatch, pool_weights,
-                                                                                       power):  # fmt: skip
-    # K = 4 stages of 50 and N_e = 100 on main: the pool starts once a stage reaches gamma = 0; lambda_j (j = 1..J)
-    # must be j^power n_j / sum_i i^power n_i, the final batch's n_j = 100 (``rollouts``: pooled_estimate's own
-    # weights, n_j / sum n_i, passed as None)
+def test_pool_weights_count_the_jth_pooled_stage_by_j_to_the_power_times_its_rollouts(pool_weights, power):
+    # K = 4 stages of 50 and N_e = 100 on main: the pool starts once a stage reaches gamma = 0; the run's mu_hat must
+    # be sum_j lambda_j mu_hat_j over the pooled stages' own estimates, lambda_j = j^power n_j / sum_i i^power n_i
+    # (Portier & Delyon 2018), with the final batch's n_j = 100
     from pemviz.engine import Experiment
-    from pemviz.estimators import cross_entropy as ce
 
-    seen = []
-    pooled = ce.pooled_estimate
-    monkeypatch.setattr(ce, "pooled_estimate", lambda stages, lam=None: seen.append((stages, lam)) or pooled(stages, lam))
     cfg = ExperimentConfig(**{**SMALL_RUN, "n_stages": 4, "seed": 0, "pool_weights": pool_weights})
     done = Experiment(cfg, problem=build_problem("main")).run()
-    stages, lam = seen[-1]
-    n = np.array([s.n for s in stages], dtype=np.float64)
-    assert len(done.final.stages_used) == len(stages) >= 2 and n[-1] == 100
-    if power == 0:
-        assert lam is None
-    else:
-        expect = np.arange(1, n.size + 1) ** power * n
-        np.testing.assert_allclose(lam, expect / expect.sum(), rtol=1e-15)
+    by_stage = {s.stage: s.estimate for s in done.stages}
+    used = done.final.stages_used
+    n = np.array([by_stage[k].n for k in used], dtype=np.float64)
+    assert len(used) >= 2 and n[-1] == 100 and done.final.estimate.n == n.sum()
+    lam = np.arange(1, n.size + 1) ** power * n
+    mu = sum(w / lam.sum() * by_stage[k].mu_hat for w, k in zip(lam, used))
+    assert done.final.estimate.mu_hat == pytest.approx(mu, rel=1e-12)

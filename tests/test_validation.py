@@ -8,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.config import ExperimentConfig
 from pemviz.estimate import relative_error
 from pemviz.problems import PROBLEMS, build_problem
 from pemviz.studies.validation import (
@@ -101,12 +101,13 @@ def test_run_jobs_resumes_from_the_runs_file_with_the_same_numbers(tmp_path):
 
 
 def test_baselines_get_the_first_presets_simulation_budget():
-    base = {"n_stages": 3}
-    methods = dict(methods_for(["paper", "quick"], ["mc", "naive50"], base))
-    budget = ExperimentConfig(**{**PRESETS["paper"], **base}).n_simulations
+    methods = dict(methods_for(["paper", "quick"], ["mc", "naive50"], {"n_stages": 3}))
     assert list(methods) == ["adaptive (paper)", "adaptive (quick)", "mc", "naive50"]
-    assert methods["mc"] == {"method": "mc", "n_per_stage": budget}
-    assert methods["adaptive (quick)"] == {**PRESETS["quick"], **base}
+    # the paper's budget at K = 3: 100 pretraining rollouts + 3 stages x N = 100 + a final batch of 100
+    assert methods["mc"] == {"method": "mc", "n_per_stage": 500}
+    assert methods["naive50"] == {"method": "naive50", "n_per_stage": 500}
+    assert methods["adaptive (quick)"] == {"n_stages": 3, "ce_epochs": 200, "pretrain_rollouts": 50,
+                                           "pretrain_epochs": 200, "learning_rate": 2e-2}  # the quick preset, K = 3
 
 
 def test_the_main_truth_of_a_shipped_pem_is_the_kept_enumeration_not_recomputed():
