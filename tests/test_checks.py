@@ -13,26 +13,11 @@ from pemviz.config import ExperimentConfig
 from pemviz.estimators import build_estimator
 from pemviz.problems import toy_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
+from test_simulator_protocol import ParkedCarAEB
 
 
-class Car:
-    """A correct simulator: 10 m/s towards a parked car 20 m ahead, braking at 6 m/s^2 from a detection within 15 m."""
-
-    observation_names = ("gap_m", "speed_mps")
-
-    def __init__(self) -> None:
-        self.reset()
-
-    def reset(self) -> None:
-        self.gap_m, self.speed_mps, self.braking = 20.0, 10.0, False
-
-    def observation(self) -> np.ndarray:
-        return np.array([self.gap_m, self.speed_mps])
-
-    def step(self, detected: bool) -> None:
-        self.braking = self.braking or (detected and self.gap_m < 15.0)
-        self.gap_m -= 0.1 * self.speed_mps
-        self.speed_mps = max(0.0, self.speed_mps - (0.6 if self.braking else 0.0))
+class Car(ParkedCarAEB):
+    """A correct simulator (the protocol test's), with snapshot / restore."""
 
     def snapshot(self) -> tuple:
         return (self.gap_m, self.speed_mps, self.braking)
