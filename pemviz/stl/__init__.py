@@ -12,7 +12,11 @@ Example::
 
 Builders: ``stl.always((stl.signal("d") < 5) >> stl.eventually(stl.signal("v") <= 0.1, 0, 20), 0, 150)``
 (parenthesise comparisons next to ``&``, ``|``, ``>>``, which bind tighter in Python).
-See :mod:`pemviz.stl.semantics` for the semantics, the trace-end convention and AGM normalisation.
+The semantics are objects (:mod:`pemviz.stl.semantics`): ``stl.robustness(spec, signals, stl.AGM(ranges))`` is
+``stl.robustness(spec, signals, "agm", signal_ranges=ranges)``. Modules: :mod:`pemviz.stl.expr` (arithmetic in
+predicates), :mod:`pemviz.stl.formula` (formulas), :mod:`pemviz.stl.parser`, :mod:`pemviz.stl.semantics`
+(classic, AGM, smooth cumulative, AGM normalisation), :mod:`pemviz.stl.evaluate` (the entry points, input
+kinds, the trace-end convention).
 """
 
 from pemviz.stl.formula import (
@@ -30,6 +34,8 @@ from pemviz.stl.formula import (
     Or,
     Predicate,
     Signal,
+    Temporal,
+    UnaryTemporal,
     Until,
     always,
     conjunction,
@@ -43,14 +49,16 @@ from pemviz.stl.formula import (
     until,
 )
 from pemviz.stl.parser import STLSyntaxError, parse
+from pemviz.stl.evaluate import TRACE_END, first_violation, robustness, robustness_signal
 from pemviz.stl.semantics import (
+    AGM,
     DEFAULT_TEMPERATURE,
     SEMANTICS,
-    TRACE_END,
+    Classic,
+    Semantics,
+    SmoothCumulative,
     agm_scale,
-    first_violation,
-    robustness,
-    robustness_signal,
+    semantics_from_name,
 )
 
 BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0)}
@@ -74,12 +82,19 @@ __all__ = [
     "robustness_signal",
     "first_violation",
     "agm_scale",
+    "Semantics",
+    "Classic",
+    "AGM",
+    "SmoothCumulative",
+    "semantics_from_name",
     "Formula",
     "Predicate",
     "Not",
     "And",
     "Or",
     "Implies",
+    "Temporal",
+    "UnaryTemporal",
     "Always",
     "Eventually",
     "Until",

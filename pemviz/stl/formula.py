@@ -10,6 +10,11 @@ Grammar (time in integer steps; an interval ``[a,b]`` is inclusive, ``b`` may be
 (:mod:`pemviz.stl.parser`). Canonical spelling: ``!``, ``&``, ``|``, ``->``, ``G[a,b](..)``, ``F[a,b](..)``,
 ``(..) U[a,b] (..)``; unary operands are always parenthesised, predicates inside ``&``/``|``/``->`` are not.
 
+The temporal operators share one base, :class:`Temporal` (an interval of future steps); ``G`` and ``F`` are
+the two :class:`UnaryTemporal` operators and differ only in the reduction over their window
+(:attr:`UnaryTemporal.conjunctive`: a conjunction over the steps for ``G``, a disjunction for ``F``).
+Arithmetic inside predicates lives in :mod:`pemviz.stl.expr` (re-exported here).
+
 Builders: ``signal("d") >= 2`` is a :class:`Predicate`; ``p & q``, ``p | q``, ``~p``, ``p >> q`` (implies);
 :func:`always`, :func:`eventually`, :func:`until`, :func:`conjunction`, :func:`disjunction`, :func:`negation`,
 :func:`implies`.
@@ -17,9 +22,21 @@ Builders: ``signal("d") >= 2`` is a :class:`Predicate`; ``p & q``, ``p | q``, ``
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
-from typing import Iterable, Union
+from typing import Iterable
+
+from pemviz.stl.expr import (
+    COMPARISONS,
+    KEYWORDS,
+    BinaryExpr,
+    Const,
+    Expr,
+    Negate,
+    Signal,
+    _as_expr,
+    _where,
+    format_number,
+)
 
 __all__ = [
     "Expr",
@@ -33,6 +50,8 @@ __all__ = [
     "And",
     "Or",
     "Implies",
+    "Temporal",
+    "UnaryTemporal",
     "Always",
     "Eventually",
     "Until",
@@ -48,226 +67,6 @@ __all__ = [
     "format_number",
     "KEYWORDS",
 ]
-
-KEYWORDS = frozenset(
-    {"G", "F", "U", "always", "eventually", "until", "not", "and", "or", "implies", "inf", "true", "false"}
-)
-"""Words that cannot be signal names."""
-
-COMPARISONS = (">=", ">", "<=", "<")
-
-
-def format_number(value: float) -> str:
-    """Shortest text that parses back to ``value``: ``2`` for 2.0, ``0.1``, ``1e-05``, ``-3.5``."""
-    value = float(value)
-    if not math.isfinite(value):
-        raise ValueError(f"constants in a formula must be finite, got {value!r}")
-    if value == 0.0:
-        return "0"
-    if value.is_integer() and abs(value) < 1e16:
-        return str(int(value))
-    return repr(value)
-
-
-def _where(pos: int | None) -> str:
-    return "" if pos is None else f" at column {pos + 1}"
-
-
-# --------------------------------------------------------------------------------------------------
-# Arithmetic expressions inside predicates (affine in the signals)
-# --------------------------------------------------------------------------------------------------
-
-Operand = Union["Expr", float, int]
-
-
-def _as_expr(x: Operand) -> Expr:
-    if isinstance(x, Expr):
-        return x
-    if isinstance(x, bool) or not isinstance(x, (int, float)):
-        raise TypeError(f"expected a signal expression or a number, got {type(x).__name__}")
-    return Const(float(x))
-
-
-class Expr:
-    """An arithmetic expression over signals; affine ones make predicates. Operators build new ones."""
-
-    _prec = 4
-
-    def affine(self) -> tuple[dict[str, float], float]:
-        """(coefficient per signal, constant): the expression as ``sum_i c_i * x_i + k``.
-
-        Raises:
-            ValueError: the expression is not affine (a product of two signal terms, division by a signal
-                or by zero), with its column when parsed from text.
-        """
-        raise NotImplementedError
-
-    def signals(self) -> frozenset[str]:
-        return frozenset(self.affine()[0])
-
-    def __add__(self, other: Operand) -> Expr:
-        return BinaryExpr("+", self, _as_expr(other))
-
-    def __radd__(self, other: Operand) -> Expr:
-        return BinaryExpr("+", _as_expr(other), self)
-
-    def __sub__(self, other: Operand) -> Expr:
-        return BinaryExpr("-", self, _as_expr(other))
-
-    def __rsub__(self, other: Operand) -> Expr:
-        return BinaryExpr("-", _as_expr(other), self)
-
-    def __mul__(self, other: Operand) -> Expr:
-        return BinaryExpr("*", self, _as_expr(other))
-
-    def __rmul__(self, other: Operand) -> Expr:
-        return BinaryExpr("*", _as_expr(other), self)
-
-    def __truediv__(self, other: Operand) -> Expr:
-        return BinaryExpr("/", self, _as_expr(other))
-
-    def __neg__(self) -> Expr:
-        if isinstance(self, Const):
-            return Const(-self.value)
-        return Negate(self)
-
-    def __ge__(self, other: Operand) -> Predicate:  # type: ignore[override]
-        return Predicate(self, ">=", _as_expr(other))
-
-    def __gt__(self, other: Operand) -> Predicate:  # type: ignore[override]
-        return Predicate(self, ">", _as_expr(other))
-
-    def __le__(self, other: Operand) -> Predicate:  # type: ignore[override]
-        return Predicate(self, "<=", _as_expr(other))
-
-    def __lt__(self, other: Operand) -> Predicate:  # type: ignore[override]
-        return Predicate(self, "<", _as_expr(other))
-
-
-@dataclass(frozen=True, eq=True)
-class Signal(Expr):
-    """A named signal, e.g. ``d`` (gap, metres): one array [N, T] in the signals mapping."""
-
-    name: str
-    pos: int | None = field(default=None, compare=False, repr=False)
-    _prec = 4
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not _is_identifier(self.name):
-            raise ValueError(
-                f"invalid signal name {self.name!r}{_where(self.pos)}: use letters, digits, '_' and '.', "
-                "starting with a letter or '_'"
-            )
-        if self.name in KEYWORDS:
-            raise ValueError(f"{self.name!r}{_where(self.pos)} is a keyword, not a signal name "
-                             f"(reserved: {', '.join(sorted(KEYWORDS))})")
-
-    def affine(self) -> tuple[dict[str, float], float]:
-        return {self.name: 1.0}, 0.0
-
-    def __str__(self) -> str:
-        return self.name
-
-
-@dataclass(frozen=True, eq=True)
-class Const(Expr):
-    """A finite number."""
-
-    value: float
-    pos: int | None = field(default=None, compare=False, repr=False)
-    _prec = 4
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "value", float(self.value))
-        format_number(self.value)  # finite check
-
-    def affine(self) -> tuple[dict[str, float], float]:
-        return {}, self.value
-
-    def __str__(self) -> str:
-        return format_number(self.value)
-
-
-
-_EXPR_PREC = {"+": 1, "-": 1, "*": 2, "/": 2}
-
-
-@dataclass(frozen=True, eq=True)
-class BinaryExpr(Expr):
-    """``left op right`` with op in ``+ - * /``; ``*`` needs one constant side, ``/`` a constant divisor."""
-
-    op: str
-    left: Expr
-    right: Expr
-    pos: int | None = field(default=None, compare=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if self.op not in _EXPR_PREC:
-            raise ValueError(f"unknown arithmetic operator {self.op!r}; allowed: + - * /")
-        self.affine()  # validate
-
-    @property
-    def _prec(self) -> int:  # type: ignore[override]
-        return _EXPR_PREC[self.op]
-
-    def affine(self) -> tuple[dict[str, float], float]:
-        lc, lk = self.left.affine()
-        rc, rk = self.right.affine()
-        if self.op in "+-":
-            s = 1.0 if self.op == "+" else -1.0
-            coef = dict(lc)
-            for name, c in rc.items():
-                coef[name] = coef.get(name, 0.0) + s * c
-            return coef, lk + s * rk
-        if self.op == "*":
-            if lc and rc:
-                raise ValueError(f"predicate is not affine{_where(self.pos)}: '{self}' multiplies two signal terms")
-            if lc:
-                return {n: c * rk for n, c in lc.items()}, lk * rk
-            return {n: c * lk for n, c in rc.items()}, lk * rk
-        if rc:
-            raise ValueError(f"predicate is not affine{_where(self.pos)}: '{self}' divides by a signal term")
-        if rk == 0.0:
-            raise ValueError(f"division by zero{_where(self.pos)} in '{self}'")
-        return {n: c / rk for n, c in lc.items()}, lk / rk
-
-    def __str__(self) -> str:
-        p = self._prec
-        left = str(self.left)
-        if self.left._prec < p:
-            left = f"({left})"
-        right = str(self.right)
-        if self.right._prec <= p:
-            right = f"({right})"
-        return f"{left} {self.op} {right}"
-
-
-
-@dataclass(frozen=True, eq=True)
-class Negate(Expr):
-    """``-operand``."""
-
-    operand: Expr
-    pos: int | None = field(default=None, compare=False, repr=False)
-    _prec = 3
-
-    def affine(self) -> tuple[dict[str, float], float]:
-        c, k = self.operand.affine()
-        return {n: -v for n, v in c.items()}, -k
-
-    def __str__(self) -> str:
-        inner = str(self.operand)
-        if self.operand._prec < 3 or (isinstance(self.operand, Const) and self.operand.value < 0):
-            inner = f"({inner})"
-        return f"-{inner}"
-
-
-
-def _is_identifier(name: str) -> bool:
-    if not name or not (name[0].isascii() and (name[0].isalpha() or name[0] == "_")):
-        return False
-    return all(ch.isascii() and (ch.isalnum() or ch in "_.") for ch in name)
-
 
 # --------------------------------------------------------------------------------------------------
 # Formulas
@@ -391,7 +190,6 @@ class Predicate(Formula):
         return f"{self.lhs} {self.op} {self.rhs}"
 
 
-
 @dataclass(frozen=True, eq=True)
 class Not(Formula):
     """``!operand``: robustness negated."""
@@ -409,7 +207,6 @@ class Not(Formula):
 
     def __str__(self) -> str:
         return f"!({self.operand})"
-
 
 
 @dataclass(frozen=True, eq=True)
@@ -435,7 +232,6 @@ class And(Formula):
         return " & ".join(_paren(o, 4) for o in self.operands)
 
 
-
 @dataclass(frozen=True, eq=True)
 class Or(Formula):
     """n-ary disjunction ``a | b | ...`` (at least two operands)."""
@@ -459,7 +255,6 @@ class Or(Formula):
         return " | ".join(_paren(o, 3) for o in self.operands)
 
 
-
 @dataclass(frozen=True, eq=True)
 class Implies(Formula):
     """``left -> right`` = ``!left | right`` (right-associative in text)."""
@@ -481,63 +276,80 @@ class Implies(Formula):
         return f"{_paren(self.left, 2)} -> {_paren(self.right, 1)}"
 
 
+class Temporal(Formula):
+    """Base of the temporal operators ``G``, ``F`` and ``U``: an interval ``[start, end]`` of future steps.
+
+    ``start`` and ``end`` are integer steps after the evaluation time t, inclusive, 0 <= start <= end;
+    ``end`` None runs to the trace end (written ``inf``). Subclasses set ``symbol`` (``"G"``, ``"F"``, ``"U"``),
+    the operator's name in the text and in error messages.
+
+    Raises (on construction): TypeError for a non-int bound or a non-formula operand, ValueError for
+    start < 0 or end < start (with the column when parsed from text).
+    """
+
+    symbol = ""
+    start: int
+    end: int | None
+    pos: int | None
+
+    def _validate(self, *operands: Formula) -> None:
+        for o in operands:
+            _check_formula(o, self.symbol)
+        _check_interval(self.start, self.end, self.pos, self.symbol)
+
+    @property
+    def interval(self) -> str:
+        """The interval as written: ``[0,99]``, ``[5,inf]``."""
+        return f"[{self.start},{_fmt_end(self.end)}]"
+
 
 @dataclass(frozen=True, eq=True)
-class Always(Formula):
+class UnaryTemporal(Temporal):
+    """``G`` or ``F`` over ``[t+start, t+end]`` (cut at the trace end); the two differ only in ``conjunctive``.
+
+    ``conjunctive`` True (``G``): the operand must hold at every step of the window, the window reduces like
+    ``&``; False (``F``): at some step, the window reduces like ``|``. Each robustness semantics
+    (:mod:`pemviz.stl.semantics`) defines both reductions.
+    """
+
+    operand: Formula
+    start: int = 0
+    end: int | None = None
+    pos: int | None = field(default=None, compare=False, repr=False)
+    _prec = 5
+    conjunctive = True
+
+    def __post_init__(self) -> None:
+        self._validate(self.operand)
+
+    @property
+    def children(self) -> tuple[Formula, ...]:
+        return (self.operand,)
+
+    def horizon(self) -> int | None:
+        h = self.operand.horizon()
+        return None if h is None or self.end is None else self.end + h
+
+    def __str__(self) -> str:
+        return f"{self.symbol}{self.interval}({self.operand})"
+
+
+class Always(UnaryTemporal):
     """``G[start,end](operand)``: operand holds at every step of [t+start, t+end] (end None: to the trace end)."""
 
-    operand: Formula
-    start: int = 0
-    end: int | None = None
-    pos: int | None = field(default=None, compare=False, repr=False)
-    _prec = 5
-
-    def __post_init__(self) -> None:
-        _check_formula(self.operand, "G")
-        _check_interval(self.start, self.end, self.pos, "G")
-
-    @property
-    def children(self) -> tuple[Formula, ...]:
-        return (self.operand,)
-
-    def horizon(self) -> int | None:
-        h = self.operand.horizon()
-        return None if h is None or self.end is None else self.end + h
-
-    def __str__(self) -> str:
-        return f"G[{self.start},{_fmt_end(self.end)}]({self.operand})"
+    symbol = "G"
+    conjunctive = True
 
 
-
-@dataclass(frozen=True, eq=True)
-class Eventually(Formula):
+class Eventually(UnaryTemporal):
     """``F[start,end](operand)``: operand holds at some step of [t+start, t+end] (end None: to the trace end)."""
 
-    operand: Formula
-    start: int = 0
-    end: int | None = None
-    pos: int | None = field(default=None, compare=False, repr=False)
-    _prec = 5
-
-    def __post_init__(self) -> None:
-        _check_formula(self.operand, "F")
-        _check_interval(self.start, self.end, self.pos, "F")
-
-    @property
-    def children(self) -> tuple[Formula, ...]:
-        return (self.operand,)
-
-    def horizon(self) -> int | None:
-        h = self.operand.horizon()
-        return None if h is None or self.end is None else self.end + h
-
-    def __str__(self) -> str:
-        return f"F[{self.start},{_fmt_end(self.end)}]({self.operand})"
-
+    symbol = "F"
+    conjunctive = False
 
 
 @dataclass(frozen=True, eq=True)
-class Until(Formula):
+class Until(Temporal):
     """``(left) U[start,end] (right)``: right holds at some t' in [t+start, t+end] and left at every step of
     [t, t') before it (strict, discrete-time convention of rtamt and LTL)."""
 
@@ -547,11 +359,10 @@ class Until(Formula):
     end: int | None = None
     pos: int | None = field(default=None, compare=False, repr=False)
     _prec = 4
+    symbol = "U"
 
     def __post_init__(self) -> None:
-        _check_formula(self.left, "U")
-        _check_formula(self.right, "U")
-        _check_interval(self.start, self.end, self.pos, "U")
+        self._validate(self.left, self.right)
 
     @property
     def children(self) -> tuple[Formula, ...]:
@@ -564,8 +375,7 @@ class Until(Formula):
         return max(self.end - 1 + hl, self.end + hr)
 
     def __str__(self) -> str:
-        return f"({self.left}) U[{self.start},{_fmt_end(self.end)}] ({self.right})"
-
+        return f"({self.left}) U{self.interval} ({self.right})"
 
 
 # --------------------------------------------------------------------------------------------------
