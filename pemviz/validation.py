@@ -27,7 +27,8 @@ from tqdm import tqdm
 
 from pemviz import truth
 from pemviz.config import METHODS, PRESETS, ExperimentConfig
-from pemviz.engine import Experiment, RunFinished
+from pemviz.engine import Experiment
+from pemviz.events import RunFinished
 from pemviz.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem

@@ -214,7 +214,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Pr
     ``FFPolicy`` norm); curves are reported at the integer distances ``safe - 1 .. total``.
     """
     from pemviz import stl
-    from pemviz.problems import Problem
+    from pemviz.problems import Problem, Thresholds
     from pemviz.truth import toy_log_failure_probability  # truth imports this module
 
     p = params or ToyParams()
@@ -233,6 +233,8 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> "Pr
         ToyDetector(p),
         formula,
         signals={"d": "gap_m"},
+        units={"d": "units"},
+        thresholds=Thresholds(float(p.safe), float(p.braking), "units", "failure below", "braking within"),
         signal_ranges={"d": (0.0, float(p.total))},
         h_scale=float(p.total),
         curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),
