@@ -13,8 +13,9 @@ Failure is the problem's (:meth:`pemviz.problems.Problem.failed`), for whole and
 
 A stage of more than :data:`STREAM_ABOVE` rollouts on a problem that can stream is simulated chunk by chunk and
 never held whole: the estimator keeps per-rollout numbers and the rollouts that can still matter (e.g. the
-elites), listeners get each chunk as it passes (:class:`~pemviz.events.RolloutChunk`, e.g. to write them to a file) and a
-bounded sample of the stage (:class:`~pemviz.events.RolloutsSampled`): memory stays that of a chunk and a few numbers per rollout.
+elites), listeners get each chunk as it passes (:class:`~pemviz.events.RolloutChunk`, e.g. to write them to a
+file) and a bounded sample of the stage (:class:`~pemviz.events.RolloutsSampled`): memory stays that of a chunk and a
+few numbers per rollout.
 """
 
 from __future__ import annotations

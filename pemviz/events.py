@@ -167,5 +167,6 @@ class RunCancelled:
     reason: str
 
 
-Event = Union[RunStarted, StageStarted, RolloutChunk, RolloutsSampled, StageFinished, FinalEstimate, RunFinished, RunCancelled]
+Event = Union[RunStarted, StageStarted, RolloutChunk, RolloutsSampled, StageFinished, FinalEstimate, RunFinished,
+              RunCancelled]  # fmt: skip
 Listener = Callable[[Event], None]

@@ -1,7 +1,8 @@
 """What the viser panel knows about a run, built from the engine's events; no viser here.
 
 :class:`PanelRun` is an engine listener (a :class:`pemviz.sinks.Sink`, ``run(event)``): it keeps the run's plan and
-problem view (from its first event), the stage results, the proposal curves, the final estimate, the least-robust rollouts of the whole run (:class:`Trajectory`) and the
+problem view (from its first event), the stage results, the proposal curves, the final estimate, the least-robust
+rollouts of the whole run (:class:`Trajectory`) and the
 event log for the ``.rrd`` export, and the most likely failure found (the failing rollout with the
 highest probability under the PEM). :func:`keep_runs` decides which runs stay for comparison (pinned and
 finished ones before stopped ones). :func:`scene_positions` turns a rollout's observations back into the

@@ -26,9 +26,9 @@ from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
 from pemviz.problems import Problem
 
 __all__ = [
-    "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator", "FixedSampler", "PlannedStage",
-    "RunPlan", "StageOutcome", "StagePlan", "break_ties", "build_estimator", "failure_steps", "log_p_before_failure", "log_weight", "mixed50",
-    "monte_carlo", "naive50", "run_plan",
+    "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator",
+    "FixedSampler", "PlannedStage", "RunPlan", "StageOutcome", "StagePlan", "break_ties", "build_estimator",
+    "failure_steps", "log_p_before_failure", "log_weight", "mixed50", "monte_carlo", "naive50", "run_plan",
 ]  # fmt: skip
 
 

@@ -73,7 +73,8 @@ class Sink:
         """The run was stopped before its answer."""
 
 
-def expected_stage_s(done: list[StageResult], kind: str, n_rollouts: int, sample_s_per_rollout: float = math.nan) -> float:
+def expected_stage_s(done: list[StageResult], kind: str, n_rollouts: int,
+                     sample_s_per_rollout: float = math.nan) -> float:  # fmt: skip
     """Expected seconds of a stage of ``n_rollouts`` rollouts (nan when nothing comparable has run yet).
 
     A CE stage takes as long as the last CE stage did (sampling plus the proposal update). The final batch

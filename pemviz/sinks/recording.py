@@ -6,9 +6,9 @@ signals, thresholds and scene from the problem's view. Its look (colours, figure
 :mod:`pemviz.sinks.rerun_views`'s.
 
 Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch: the engine's
-numbering and the plan's names, :func:`pemviz.events.stage_label`; the default timeline: scrubbing it steps the proposal curve,
-the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout traces
-and the scene play on it) and ``repetition`` (only when the sink is given one). Colours are those of the
+numbering and the plan's names, :func:`pemviz.events.stage_label`; the default timeline: scrubbing it steps the
+proposal curve, the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout
+traces and the scene play on it) and ``repetition`` (only when the sink is given one). Colours are those of the
 panel (:mod:`pemviz.sinks.colours`): detected green, missed orange, crash red.
 
 Entity paths (``KK`` = stage number, two digits):
@@ -29,7 +29,8 @@ Entity paths (``KK`` = stage number, two digits):
   95 % interval and the exact answer where known.
 - ``histograms/{robustness,log_weight}``: each stage's histogram of every rollout's robustness (configured
   metric) and importance log-weight (nats), a :class:`rerun.BarChart` on ``stage``.
-- ``rollouts/<column>/stage_KK`` for each observation column (``gap_m``, ``ego_speed_mps``, ...): the kept rollouts of a stage over ``step``
+- ``rollouts/<column>/stage_KK`` for each observation column (``gap_m``, ``ego_speed_mps``, ...): the kept rollouts
+  of a stage over ``step``
   (all of them up to :data:`ALL_ROLLOUTS_UP_TO`, else the least robust and a uniform sample), one entity
   with one series per rollout, one ``send_columns`` each: red = crash, grey = safe, yellow and wider = the
   stage's least-robust rollouts (tagged in the series name). ``rollouts/gap_m/thresholds``: the problem's failure

@@ -154,7 +154,8 @@ def default_blueprint(n_lanes: int = 12, view: ProblemView | None = None) -> rrb
     first, rest = signals[0], signals[1:]
     traces = rrb.Tabs(
         rrb.TimeSeriesView(name=f"{first.name}: {first.column} ({first.unit}), play on the step timeline",
-                           contents=[f"+ /rollouts/{first.column}/**", "+ /rollouts/detected/**"], plot_legend=no_legend),
+                           contents=[f"+ /rollouts/{first.column}/**", "+ /rollouts/detected/**"],
+                           plot_legend=no_legend),
         *(rrb.TimeSeriesView(name=f"{s.name}: {s.column} ({s.unit})", origin=f"/rollouts/{s.column}",
                              plot_legend=no_legend) for s in rest),
     )  # fmt: skip
@@ -238,15 +239,15 @@ def intro_markdown(ev: RunStarted) -> str:
         "timeline. Switch the timeline to `step` to play the *rollouts*"
     )
     lines = " and ".join(view.thresholds.labels()) if view.thresholds is not None else ""
-    traces = (f" ({view.signals[0].column} with the lines {lines}; red = crash, yellow = least robust, green dots = "
-              "detections)") if lines else " (red = failure, yellow = least robust, green dots = detections)"  # fmt: skip
+    colours = "red = failure, yellow = least robust, green dots = detections"
+    traces = f" ({view.signals[0].column} with the lines {lines}; {colours})" if lines else f" ({colours})"
     if view.scene is not None:
         p = view.scene
         return (
             f"# pemviz: crash probability of the braking scenario\n\n"
             f"A car follows a lead that brakes for a red light; the ego brakes only when its detector, "
-            f"a perception error model (PEM) p(detect | d), sees the lead within {p.braking_distance_m:g} m. A crash is "
-            f"the gap d dropping below {p.crash_gap_m:g} m, safety spec `{ev.formula}`; rollouts are ranked "
+            f"a perception error model (PEM) p(detect | d), sees the lead within {p.braking_distance_m:g} m. A crash "
+            f"is the gap d dropping below {p.crash_gap_m:g} m, safety spec `{ev.formula}`; rollouts are ranked "
             f"by **{cfg.metric}** robustness. Method: {method}\n\n"
             f"{reading}{traces} and the *scene* (ego green = detected, orange = missed).\n"
         )

@@ -15,7 +15,8 @@ from pemviz.scenarios.braking import BrakingParams
 PLAN = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 50)])
 """Pretraining, K = 2 CE stages, the final batch: 130 simulations."""
 
-BRAKING = ProblemView("braking", "a lead car ahead", (SignalView("d", "gap_m", "m"), SignalView("v", "ego_speed_mps", "m/s")),
+BRAKING = ProblemView("braking", "a lead car ahead",
+                      (SignalView("d", "gap_m", "m"), SignalView("v", "ego_speed_mps", "m/s")),
                       Thresholds(2.0, 10.0, "m", "crash gap", "braking distance"), BrakingParams())  # fmt: skip
 TOY = ProblemView("toy-1e-3", "toy braking", (SignalView("d", "gap_m", "units"),),
                   Thresholds(3.0, 5.0, "units", "failure below", "braking within"), None)  # fmt: skip
@@ -28,7 +29,8 @@ def run_started(view: ProblemView = BRAKING, plan: RunPlan = PLAN, **config) -> 
 
 
 def batch(gaps: np.ndarray, columns: tuple[str, ...] = ("gap_m", "ego_speed_mps")) -> RolloutBatch:
-    """Rollouts with the gap rows ``gaps`` [N, T] (metres), ego speed 5 m/s, every step detected, log p = log q = -0.1."""
+    """Rollouts with the gap rows ``gaps`` [N, T] (metres), ego speed 5 m/s, every step detected, log p = log q =
+    -0.1 (nats)."""
     gaps = np.asarray(gaps, dtype=np.float64)
     obs = np.stack([gaps] + [np.full(gaps.shape, 5.0)] * (len(columns) - 1), axis=2)
     return RolloutBatch(obs, np.ones(gaps.shape, bool), np.full(gaps.shape, -0.1), np.full(gaps.shape, -0.1), columns)
@@ -43,7 +45,8 @@ def sampled(stage: int, kind: str, b: RolloutBatch, n_total: int | None = None) 
 
 def finished(stage: int, kind: str, n: int, n_failures: int, gamma: float = float("nan"), wall_s: float = 1.0
              ) -> StageFinished:  # fmt: skip
-    """A stage of ``n`` rollouts, ``n_failures`` of them failing, every importance weight 1 (mu_hat = n_failures / n)."""
+    """A stage of ``n`` rollouts, ``n_failures`` of them failing, every importance weight 1 (mu_hat = n_failures /
+    n)."""
     failed = np.arange(n) < n_failures
     e = estimate(np.zeros(n), failed, np.full(n, -1.0))
     curve = np.full(GRID.size, 0.5)
