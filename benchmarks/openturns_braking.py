@@ -276,7 +276,8 @@ def run_isolated(method: str, budget: int, seed: int, timeout_s: float, eval_cap
 def run_pemviz(seed: int) -> Run:
     """pemviz's default sampler (``ExperimentConfig(seed=seed)``) on the braking job."""
     from pemviz.config import ExperimentConfig
-    from pemviz.engine import Experiment, RunFinished
+    from pemviz.engine import Experiment
+    from pemviz.events import RunFinished
     from pemviz.problems import problem_for
 
     cfg = ExperimentConfig(seed=seed)

@@ -45,8 +45,9 @@ import numpy as np
 from pemviz import truth
 from pemviz.config import METHODS as CONFIG_METHODS, PRESETS, ExperimentConfig
 from pemviz.detectors import Detector
-from pemviz.engine import Experiment, RunFinished
+from pemviz.engine import Experiment
 from pemviz.estimate import relative_error
+from pemviz.events import RunFinished
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.io.files import atomic_write
 from pemviz.problems import Problem, ShiftedPEM, braking_problem, toy_problem
@@ -397,7 +398,7 @@ def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
     """Var(w 1[fail]) / mu^2 per rollout of the default sampler's final batch (N_e rollouts from its last proposal,
     the defensive mixture included) on the named problem of :data:`pemviz.problems.PROBLEMS`, one per seed, with the
     exact mu; returns (log mu, [relative variance per seed]). q* has 0, plain Monte Carlo (1 - mu) / mu."""
-    from pemviz.engine import RolloutsSampled
+    from pemviz.events import RolloutsSampled
     from pemviz.estimators.optimal import relative_variance
     from pemviz.problems import build_problem
 

@@ -107,13 +107,14 @@ def peak_rss_gib() -> float:
 
 def million_child(n: int, seed: int) -> None:
     """Child process: stream n PEM rollouts, print seconds, failures and peak RSS as JSON."""
-    from pemviz.detectors import PEMDetector
     from pemviz.pem import load_pem
+    from pemviz.problems import braking_problem
     from pemviz.scenarios.batched import summarise_batched
 
-    pem = PEMDetector(load_pem())
+    problem = braking_problem(load_pem())
+    pem = problem.target
     t0, c0 = time.perf_counter(), time.process_time()
-    summary = summarise_batched(None, n, pem, pem, np.random.default_rng(seed))
+    summary = summarise_batched(None, n, pem, pem, np.random.default_rng(seed), failed=problem.failed)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     rss_gib = peak_rss_gib()
     print(json.dumps({"seconds": seconds, "cpu_s": cpu, "rss_gib": rss_gib, "failures": int(summary.failed.sum()),

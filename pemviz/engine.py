@@ -4,15 +4,18 @@ No printing, no rerun, no viser here: sinks (console table, rerun recording, the
 as listeners ``listener(event) -> None`` and never call back into the engine, except through the
 ``cancel`` token (a :class:`threading.Event`).
 
-Events, in order: :class:`RunStarted`; for each stage (0 = pretraining, 1..K = cross-entropy stages,
-K+1 = final batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one
-:class:`RolloutsSampled`, :class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or
-:class:`RunCancelled`).
+The events and their order are :mod:`pemviz.events`'s: :class:`~pemviz.events.RunStarted` (with the estimator's
+:class:`~pemviz.estimators.base.RunPlan` and the problem's :class:`~pemviz.problems.ProblemView`), then per stage
+:class:`~pemviz.events.StageStarted`, :class:`~pemviz.events.RolloutChunk` (one per chunk),
+:class:`~pemviz.events.RolloutsSampled`, :class:`~pemviz.events.StageFinished`, then
+:class:`~pemviz.events.FinalEstimate` and :class:`~pemviz.events.RunFinished` (or :class:`~pemviz.events.RunCancelled`).
+Failure is the problem's (:meth:`pemviz.problems.Problem.failed`), for whole and streamed stages alike.
 
 A stage of more than :data:`STREAM_ABOVE` rollouts on a problem that can stream is simulated chunk by chunk and
 never held whole: the estimator keeps per-rollout numbers and the rollouts that can still matter (e.g. the
-elites), listeners get each chunk as it passes (:class:`RolloutChunk`, e.g. to write them to a file) and a bounded
-sample of the stage (:class:`RolloutsSampled`): memory stays that of a chunk and a few numbers per rollout.
+elites), listeners get each chunk as it passes (:class:`~pemviz.events.RolloutChunk`, e.g. to write them to a
+file) and a bounded sample of the stage (:class:`~pemviz.events.RolloutsSampled`): memory stays that of a chunk and a
+few numbers per rollout.
 """
 
 from __future__ import annotations
@@ -20,8 +23,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from dataclasses import dataclass
-from typing import Callable, Iterable, Union
+from typing import Iterable
 
 import numpy as np
 
@@ -29,143 +31,22 @@ from pemviz.config import METRICS, ExperimentConfig
 from pemviz.detectors import ArrayRQMC, Detector
 from pemviz.estimate import Estimate
 from pemviz.estimators import Estimator, StagePlan, build_estimator
+from pemviz.events import (
+    Event,
+    FinalEstimate,
+    Listener,
+    RolloutChunk,
+    RolloutsSampled,
+    RunCancelled,
+    RunFinished,
+    RunStarted,
+    StageFinished,
+    StageResult,
+    StageStarted,
+)
 from pemviz.executors import get_executor
-from pemviz.problems import Problem, ProblemInfo
+from pemviz.problems import Problem
 from pemviz.scenarios import RolloutBatch
-
-
-@dataclass(frozen=True)
-class RunStarted:
-    config: ExperimentConfig
-    formula: str
-    curve_grid_m: np.ndarray
-    pem_curve: np.ndarray
-    """p_PEM(detect | d) on ``curve_grid_m``, float64 [G]."""
-    exact_log_p: float | None = None
-    """Natural log of the problem's exact failure probability when one is known (closed form, enumeration),
-    else None: sinks show it beside every estimate with the relative error."""
-    problem: ProblemInfo | None = None
-    """What the run estimates: the problem's name, a one-line description and its signals."""
-
-
-@dataclass(frozen=True)
-class StageStarted:
-    stage: int
-    """0 = pretraining, 1..K = CE stages, K+1 = the final batch (the only stage of mc / naive50)."""
-    kind: str
-    """``pretrain`` | ``ce`` | ``final``."""
-    n_rollouts: int
-
-
-def stage_label(stage: int, kind: str, n_stages: int) -> str:
-    """The one name of a stage in console, panel, recording and CSVs.
-
-    ``pretraining`` (stage 0), ``CE stage k/K`` (stages 1..K, ``n_stages`` = K), ``final batch`` (stage K+1,
-    or the only batch of mc / naive50 / mixed50); the number is the engine's ``stage`` everywhere.
-    """
-    if kind == "pretrain":
-        return "pretraining"
-    if kind == "ce":
-        return f"CE stage {stage}/{n_stages}"
-    if kind == "ams":
-        return f"AMS iterations {stage}" if stage else "AMS particles"
-    return "final batch"
-
-
-@dataclass(frozen=True)
-class RolloutsSampled:
-    stage: int
-    kind: str
-    batch: RolloutBatch
-    robustness: np.ndarray
-    """[N] under the configured metric."""
-    robustness_by_metric: dict
-    """metric name -> [N] robustness under each semantics of :data:`pemviz.config.METRICS`."""
-    failed: np.ndarray
-    """bool [N]: crash (classic robustness < 0)."""
-    log_weight: np.ndarray
-    """[N] importance log-weights (nats), T - 1 factors."""
-    sampler: Detector | None = None
-    """The detector that drew the batch (the proposal is trained in place afterwards: copy it to keep it)."""
-    n_total: int | None = None
-    """The stage's rollouts when ``batch`` is only a sample of them (a stage streamed in chunks: its
-    :data:`SAMPLE_LEAST_ROBUST` least-robust rollouts, its first :data:`SAMPLE_FAILURES` failures and
-    :data:`SAMPLE_UNIFORM` evenly spaced ones); None: ``batch`` is the whole stage."""
-    index: np.ndarray | None = None
-    """int [n]: the sampled rollouts' numbers in the stage (0 .. n_total - 1), with ``n_total``."""
-    stage_robustness: np.ndarray | None = None
-    """[n_total] every rollout's robustness under the configured metric, with ``n_total`` (e.g. for histograms)."""
-    stage_log_weight: np.ndarray | None = None
-    """[n_total] every rollout's importance log-weight, with ``n_total``."""
-
-    @property
-    def rollout_numbers(self) -> np.ndarray:
-        """int [n]: each row's number in the stage (``index``, or 0 .. n - 1 for a whole stage)."""
-        return np.arange(self.batch.n) if self.index is None else self.index
-
-
-@dataclass(frozen=True)
-class RolloutChunk:
-    """Rollouts ``start .. start + batch.n - 1`` of a stage as they are simulated (all of a stage that is not
-    streamed), before :class:`RolloutsSampled`; ``log_weight`` [n] as the estimator computed them (nats)."""
-
-    stage: int
-    kind: str
-    start: int
-    batch: RolloutBatch
-    log_weight: np.ndarray
-    sampler: Detector | None = None
-    parts: tuple = ()
-    """The stage's samplers in the order drawn, ``(rollouts, detector)`` each (:attr:`StagePlan.parts`): several for a
-    mixture over whole rollouts, whose rollouts are weighed by the mixture (:func:`pemviz.weights.stage_log_q`)."""
-    target: Detector | None = None
-    """The problem's target detector (p)."""
-
-
-@dataclass(frozen=True)
-class StageResult:
-    stage: int
-    kind: str
-    gamma: float
-    """Stage threshold gamma_kappa (nan for pretraining and final batches)."""
-    n_elites: int
-    estimate: Estimate
-    proposal_curve: np.ndarray
-    """q(detect | d) on the problem's ``curve_grid`` after this stage's update, float64 [G]."""
-    elite_detect_rate: np.ndarray
-    """Elite rollouts' empirical detection rate per bin of the ``curve_grid`` (nan where empty)."""
-    wall_s: float
-
-
-@dataclass(frozen=True)
-class StageFinished:
-    result: StageResult
-
-
-@dataclass(frozen=True)
-class FinalEstimate:
-    estimate: Estimate
-    """The run's answer: the final batch's estimate, or pooled over stages (``final_estimate="pooled"``)."""
-    n_simulations: int
-    wall_s: float
-    stages_used: tuple[int, ...] = ()
-    """The stages whose rollouts the estimate uses (e.g. CE stages 4..10 and the final batch 11 when pooled)."""
-
-
-@dataclass(frozen=True)
-class RunFinished:
-    final: FinalEstimate
-    stages: tuple[StageResult, ...]
-
-
-@dataclass(frozen=True)
-class RunCancelled:
-    stages: tuple[StageResult, ...]
-    reason: str
-
-
-Event = Union[RunStarted, StageStarted, RolloutChunk, RolloutsSampled, StageFinished, FinalEstimate, RunFinished, RunCancelled]
-Listener = Callable[[Event], None]
 
 
 class Cancelled(Exception):
@@ -253,8 +134,9 @@ class Experiment:
         """Run the whole experiment; returns the last event emitted (see the module docstring for the events)."""
         cfg, pb = self.config, self.problem
         t_start = time.perf_counter()
-        self.emit(RunStarted(cfg, str(pb.formula), pb.curve_grid, pb.target_curve(), pb.exact_log_p, pb.info))
         estimator = build_estimator(cfg, pb, self._check_cancel)  # it seeds its streams, the rollouts' included
+        self.emit(RunStarted(cfg, str(pb.formula), pb.curve_grid, pb.target_curve(), pb.view, estimator.plan(),
+                             pb.exact_log_p))  # fmt: skip
         try:
             while (plan := estimator.next_stage()) is not None:
                 self._stage(estimator, plan)
@@ -291,7 +173,7 @@ class Experiment:
                 batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
             self._check_cancel()
             by_metric = {m: pb.robustness(batch, m) for m in METRICS}
-            failed = by_metric["classic"] < 0.0
+            failed = pb.failed(batch, by_metric["classic"])
             log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
             self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target))
             self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, failed, log_w,
@@ -315,7 +197,7 @@ class Experiment:
         for batch in chunks:
             self._check_cancel()
             robustness = pb.robustness(batch, cfg.metric)
-            failed = robustness < 0.0 if cfg.metric == "classic" else pb.failed(batch)
+            failed = pb.failed(batch, robustness if cfg.metric == "classic" else None)
             log_w = estimator.observe(batch, failed, robustness)
             self.emit(RolloutChunk(plan.stage, plan.kind, sample.seen, batch, log_w, plan.sampler, tuple(plan.parts),
                                    pb.target))  # fmt: skip

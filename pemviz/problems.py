@@ -45,15 +45,65 @@ BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0), "v": (0.0, 10.0), "vl": (0.0, 10.0)}
 in the authors' code. Gaps above 15 m never occur in the scenario (it starts at 12.3 m)."""
 
 
+BRAKING_UNITS = {"d": "m", "v": "m/s", "vl": "m/s"}
+"""STL signal name -> unit of the braking rollouts' signals."""
+
+
 @dataclass(frozen=True)
-class ProblemInfo:
-    """What a sink needs to describe a problem it knows nothing else about (the run's first event carries it)."""
+class Thresholds:
+    """Levels of the rollouts' first observation (the proposal's input: the gap) that sinks draw beside them.
+
+    Attributes:
+        failure: below it the rollout has failed (the braking scenario's 2 m crash gap).
+        window: the sampler window, where the detector can change the outcome (the braking scenario's 10 m).
+        unit: of both (``m``).
+        failure_name, window_name: what they are called in legends (``crash gap``, ``braking distance``).
+    """
+
+    failure: float
+    window: float
+    unit: str
+    failure_name: str = "failure below"
+    window_name: str = "sampler window"
+
+    def labels(self) -> tuple[str, str]:
+        """``("crash gap 2 m", "braking distance 10 m")``: the failure threshold's and the window's legend."""
+        return (f"{self.failure_name} {self.failure:g} {self.unit}".strip(),
+                f"{self.window_name} {self.window:g} {self.unit}".strip())  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SignalView:
+    """One signal of a problem's rollouts: its STL name, the observation column it is read from, its unit."""
+
+    name: str
+    column: str
+    unit: str
+
+
+@dataclass(frozen=True)
+class ProblemView:
+    """What a sink needs to show a problem it knows nothing else about (the run's first event carries it).
+
+    Attributes:
+        name: short label.
+        description: one line, e.g. ``automated braking behind a lead car 12.3 m ahead, ...``.
+        signals: the safety formula's signals with their observation columns and units.
+        thresholds: the failure threshold and the sampler window to draw beside the rollouts, or None (none known).
+        scene: the braking scenario's constants (car sizes, camera, dt) to draw its rollouts as a scene, or None:
+            the problem has no scene (the toys), and no cars, braking distance or crash gap are drawn.
+    """
 
     name: str
     description: str
-    """One line, e.g. ``automated braking behind a stopped car, ...``."""
-    signals: tuple[str, ...]
-    """The STL signal names of the safety formula's rollouts, e.g. ``("d", "v", "vl")``."""
+    signals: tuple[SignalView, ...]
+    thresholds: Thresholds | None = None
+    scene: BrakingParams | None = None
+
+    @property
+    def signal_names(self) -> tuple[str, ...]:
+        """The STL signal names, e.g. ``("d", "v", "vl")``."""
+        return tuple(s.name for s in self.signals)
 
 
 @dataclass(frozen=True)
@@ -81,6 +131,9 @@ class Problem:
         exact_log_p: natural log of the exact failure probability when it is known (closed form, enumeration),
             else None; shown beside every estimate.
         description: one line saying what is simulated (for sinks and tables).
+        units: STL signal name -> unit, for sinks.
+        thresholds: the failure threshold and sampler window that sinks draw (None: none).
+        scene: the braking scenario's constants when the rollouts can be drawn as its scene (None: no scene).
     """
 
     name: str
@@ -97,11 +150,15 @@ class Problem:
     branch: BranchFn | None = None
     exact_log_p: float | None = None
     description: str = ""
+    units: Mapping[str, str] = field(default_factory=lambda: dict(BRAKING_UNITS))
+    thresholds: Thresholds | None = None
+    scene: BrakingParams | None = None
 
     @property
-    def info(self) -> ProblemInfo:
-        """The problem's name, description and signal names."""
-        return ProblemInfo(self.name, self.description or self.name, tuple(self.signals))
+    def view(self) -> ProblemView:
+        """The problem as sinks show it: name, description, signals with units, thresholds, scene."""
+        signals = tuple(SignalView(n, c, self.units.get(n, "")) for n, c in self.signals.items())
+        return ProblemView(self.name, self.description or self.name, signals, self.thresholds, self.scene)
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""
@@ -112,9 +169,14 @@ class Problem:
         r = stl.robustness(self.formula, self.signal_arrays(batch), semantics=metric, signal_ranges=self.signal_ranges)
         return np.asarray(r, dtype=np.float64)
 
-    def failed(self, batch: RolloutBatch) -> np.ndarray:
-        """Failure indicator, bool [N]: classic robustness < 0."""
-        return self.robustness(batch, "classic") < 0.0
+    def failed(self, batch: RolloutBatch, classic: np.ndarray | None = None) -> np.ndarray:
+        """The failure event, bool [N]: classic robustness of the safety formula < 0 (Innes & Ramamoorthy (2022),
+        Sec. IV), whatever metric ranks the rollouts.
+
+        Args:
+            classic: the batch's classic robustness [N] when it is already computed (None: computed here).
+        """
+        return (self.robustness(batch, "classic") if classic is None else np.asarray(classic)) < 0.0
 
     def target_curve(self) -> np.ndarray:
         """p_target(detect | h) on :attr:`curve_grid`, float64 [G]."""
@@ -157,6 +219,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m, decided_below=p.crash_gap_m,
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
+        thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"), scene=p,
         description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
                      f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
                      f"the gap drops below {p.crash_gap_m:g} m"),
@@ -184,6 +247,8 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
         ToyDetector(p),
         formula,
         signals={"d": "gap_m"},
+        units={"d": "units"},
+        thresholds=Thresholds(float(p.safe), float(p.braking), "units", "failure below", "braking within"),
         signal_ranges={"d": (0.0, float(p.total))},
         h_scale=float(p.total),
         curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),

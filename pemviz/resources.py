@@ -4,8 +4,12 @@ CPUs worker pools may use. A run that cannot fit is refused with the number inst
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 from pemviz.config import ExperimentConfig
+
+if TYPE_CHECKING:
+    from pemviz.estimators.base import RunPlan
 
 BYTES_PER_ROLLOUT_STEP = 100
 """Peak bytes per (rollout, step) of a batch: observations [N, T, 3], detected, log p, log q, robustness under
@@ -32,19 +36,20 @@ def available_memory() -> int | None:
         return None
 
 
-def run_memory(cfg: ExperimentConfig, n_steps: int, *, stream_above: int | None = None, chunk: int = 8192) -> int:
-    """Peak bytes a run of ``cfg`` needs for batches of ``n_steps`` steps (T).
+def run_memory(plan: RunPlan, n_steps: int, quantile_level: float = 0.0, *, stream_above: int | None = None,
+               chunk: int = 8192) -> int:  # fmt: skip
+    """Peak bytes a run of ``plan`` (:class:`~pemviz.estimators.base.RunPlan`) needs for batches of ``n_steps`` steps.
 
-    The largest batch held at once: the pretraining batch, each CE stage's N rollouts and the final N_e (or a
-    baseline's N), each [N, T] whole or, above ``stream_above`` rollouts, one chunk plus
-    :data:`BYTES_PER_STREAMED_ROLLOUT` a rollout and, for a CE stage, its elites ((1 - sigma) N rollouts).
+    The largest stage held at once, each [N, T] whole or, above ``stream_above`` rollouts, one chunk plus
+    :data:`BYTES_PER_STREAMED_ROLLOUT` a rollout and, for a CE stage, its elites ((1 - sigma) N rollouts,
+    ``quantile_level`` = sigma).
     """
     cell = BYTES_PER_ROLLOUT_STEP * n_steps
-    held = [cfg.n_per_stage] if cfg.method != "adaptive" else [cfg.pretrain_rollouts, cfg.n_per_stage, cfg.n_final]
-    peaks = []
-    for i, n in enumerate(held):
+    peaks = [0]
+    for stage in plan.stages:
+        n = stage.n_rollouts
         if stream_above is not None and n > stream_above:
-            elites = (1.0 - cfg.quantile_level) * n if cfg.method == "adaptive" and i == 1 else 0.0
+            elites = (1.0 - quantile_level) * n if stage.kind == "ce" else 0.0
             peaks.append(int((min(n, chunk) + elites) * cell + n * BYTES_PER_STREAMED_ROLLOUT))
         else:
             peaks.append(n * cell)
@@ -68,7 +73,9 @@ def check_run_memory(cfg: ExperimentConfig, n_steps: int, *, stream_above: int |
     Raises:
         ValueError: the estimate exceeds the available memory; the message gives both numbers and the knobs.
     """
-    need = run_memory(cfg, n_steps, stream_above=stream_above)
+    from pemviz.estimators import run_plan  # imports torch: only when a run is checked
+
+    need = run_memory(run_plan(cfg), n_steps, cfg.quantile_level, stream_above=stream_above)
     have = available_memory()
     if have is not None and need > have:
         raise ValueError(

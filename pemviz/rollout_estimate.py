@@ -176,7 +176,7 @@ def estimate_rollouts(
         rho = {m: problem.robustness(batch, m) for m in {"classic", metric}}
     except ValueError as exc:
         raise RolloutFormatError(f"{where}: formula {data.meta.formula!r}: {exc}") from None
-    failed = rho["classic"] < 0.0 if failure == "crash" else rho[metric] < 0.0
+    failed = problem.failed(batch, rho["classic"]) if failure == "crash" else rho[metric] < 0.0
     if failure != "crash":
         weights = "full"
     with np.errstate(over="ignore", invalid="ignore"):  # the same weights and NLL steps as the engine's

@@ -11,7 +11,8 @@ import pytest
 
 from conftest import run_cli
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.engine import Experiment, RunFinished
+from pemviz.engine import Experiment
+from pemviz.events import RunFinished
 from pemviz.envs import BrakingEnv
 from pemviz.estimate import relative_error
 from pemviz.estimators import build_estimator

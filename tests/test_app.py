@@ -369,7 +369,8 @@ def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_ov
     before = tab.scene()
     assert tuple(before["color"]) == colours.IDLE  # not green ("detected") before any rollout
     assert before["lead_label"] == "lead" and all(before["zones"])
-    assert recording.MISSED_RGBA[:3] == colours.MISSED and recording.DETECTED_RGBA[:3] == colours.DETECTED
+    assert recording.MISSED_RGBA == (245, 130, 30, 255) and recording.DETECTED_RGBA == (40, 170, 80, 255)
+    assert (colours.MISSED, colours.DETECTED) == ((245, 130, 30), (40, 170, 80))  # the panel's: orange and green
     record = tab.run({**TINY, "K": "3"})
     shown = tab.session.shown
     assert shown is not None and shown.crashed, "the quick preset finds a crash"

@@ -17,7 +17,7 @@ from pemviz.problems import problem_for
 from pemviz.app.explain import explain
 from pemviz.app.form import FIELDS_BY_KEY, parse_form, parse_number, run_cost, run_label
 from pemviz.app.runs import (
-    RunRecord,
+    PanelRun,
     Trajectory,
     export_path,
     export_run,
@@ -28,7 +28,8 @@ from pemviz.app.runs import (
     scene_positions,
 )
 from pemviz.config import ExperimentConfig
-from pemviz.engine import Experiment, RolloutsSampled, StageFinished, StageStarted, stage_label
+from pemviz.engine import Experiment
+from pemviz.events import RolloutsSampled, StageFinished, StageStarted
 from pemviz.sinks.console import ConsoleSink
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
@@ -84,8 +85,8 @@ def test_least_robust_keeps_the_n_smallest_over_all_stages_least_first():
 
 # -- run records ----------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def tiny_record() -> RunRecord:
-    record = RunRecord(1, TINY)
+def tiny_record() -> PanelRun:
+    record = PanelRun(1, TINY)
     progress = []
 
     def listen(event):
@@ -105,7 +106,7 @@ def event_stage(event) -> int:
 def test_run_record_follows_the_run_and_its_progress(tiny_record):
     r = tiny_record
     assert r.status == "finished" and r.final is not None
-    assert [s.stage for s in r.stages] == [0, 1, 2, 3] and r.n_stage_events == 4
+    assert [s.stage for s in r.stages] == [0, 1, 2, 3] and len(r.plan.stages) == 4
     # stage 0: started, rollouts sampled, finished -> (run %, stage %)
     assert r.first_stage_progress == [(0.0, 5.0), (0.0, 50.0), (25.0, 100.0)]
     assert r.progress() == (100.0, 100.0)
@@ -130,8 +131,8 @@ def test_most_likely_failure_is_the_failing_rollout_with_the_highest_pem_log_pro
 
 
 # -- which runs are kept --------------------------------------------------------------------------
-def _run(i: int, status: str, pinned: bool = False) -> RunRecord:
-    r = RunRecord(i, ExperimentConfig())
+def _run(i: int, status: str, pinned: bool = False) -> PanelRun:
+    r = PanelRun(i, ExperimentConfig())
     r.status, r.pinned = status, pinned
     return r
 
@@ -235,8 +236,9 @@ def test_console_progress_names_stages_as_the_panel_and_recording_do(tiny_record
     progress = io.StringIO()
     Experiment(TINY, [ConsoleSink(io.StringIO(), progress)], problem=problem_for(TINY)).run()
     lines = [line.split(":")[0].strip() for line in progress.getvalue().splitlines()]
-    assert lines == ["pretraining", "CE stage 1/2", "CE stage 2/2", "final batch"]
-    assert [stage_label(s.stage, s.kind, 2) for s in tiny_record.stages] == lines
+    assert lines == ["pretraining", "CE stage 1/2", "CE stage 2/2", "final batch"]  # K = 2 (TINY)
+    panel = [tiny_record.plan.label(s.stage, s.kind) for s in tiny_record.stages]
+    assert panel == ["pretraining", "CE stage 1/2", "CE stage 2/2", "final batch"]
     text = progress.getvalue().splitlines()
     assert all("elapsed" in line for line in text) and "this stage ~" not in text[1]  # nothing to go by yet
     assert "this stage ~" in text[2] and "this stage ~" in text[3]

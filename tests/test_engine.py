@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from pemviz.config import PRESETS, ExperimentConfig
-from pemviz.engine import Experiment, RolloutsSampled
+from pemviz.engine import Experiment
+from pemviz.events import RolloutsSampled
 from pemviz.problems import build_problem
 
 nan, inf = math.nan, math.inf
@@ -120,16 +121,23 @@ def test_same_seed_gives_the_estimates_recorded_before_the_estimators_moved(key)
 def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
     import torch
 
-    from pemviz.engine import RunStarted
+    from pemviz.events import RunStarted
 
     events: list = []
     threads = torch.get_num_threads()
     Experiment(ExperimentConfig(method="mc", n_per_stage=50), [events.append], problem=build_problem("toy-1e-3")).run()
     first = events[0]
-    assert isinstance(first, RunStarted) and first.problem.name == "toy-1e-3" and first.problem.signals == ("d",)
+    assert isinstance(first, RunStarted) and first.problem.name == "toy-1e-3" and first.problem.signal_names == ("d",)
     assert "toy braking" in first.problem.description and torch.get_num_threads() == threads
-    info = build_problem("main").info
-    assert info.name == "braking" and info.signals == ("d", "v", "vl") and "braking" in info.description
+    assert first.problem.scene is None and first.problem.thresholds.labels() == ("failure below 3 units",
+                                                                                 "braking within 5 units")
+    assert [(s.stage, s.kind, s.label, s.n_rollouts) for s in first.plan.stages] == [(1, "final", "final batch", 50)]
+    assert first.plan.n_simulations == 50 and first.plan.has_final_batch
+    view = build_problem("main").view
+    assert view.name == "braking" and view.signal_names == ("d", "v", "vl") and "braking" in view.description
+    assert [(s.column, s.unit) for s in view.signals] == [("gap_m", "m"), ("ego_speed_mps", "m/s"),
+                                                          ("lead_speed_mps", "m/s")]
+    assert view.thresholds.labels() == ("crash gap 2 m", "braking distance 10 m") and view.scene.n_steps == 100
 
 
 def test_torch_threads_sets_and_restores_the_process_setting():

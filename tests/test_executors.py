@@ -13,7 +13,8 @@ import pytest
 
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.detectors import ConstantDetector, WindowDetector
-from pemviz.engine import Experiment, RolloutsSampled, StageFinished
+from pemviz.engine import Experiment
+from pemviz.events import RolloutsSampled, StageFinished
 from pemviz.executors import (
     ChunkUniforms,
     SerialExecutor,

@@ -162,7 +162,7 @@ def test_signal_sigterm_mid_run_finishes_the_recording_in_process(tmp_path, caps
     verifies and is marked interrupted, nothing else in the folder."""
     from pemviz import engine
     from pemviz.commands import Terminated
-    from pemviz.engine import StageFinished
+    from pemviz.events import StageFinished
 
     class TerminatedAfterStage1(engine.Experiment):
         def __init__(self, config, listeners=(), cancel=None, *, problem):

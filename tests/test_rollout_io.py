@@ -24,15 +24,9 @@ from pemviz.io import rollouts as rio
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, action_log_prob
-from pemviz.engine import (
-    Experiment,
-    FinalEstimate,
-    RolloutChunk,
-    RolloutsSampled,
-    RunFinished,
-    RunStarted,
-    StageStarted,
-)
+from pemviz.engine import Experiment
+from pemviz.estimators.base import RunPlan
+from pemviz.events import FinalEstimate, RolloutChunk, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem
 from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
@@ -136,7 +130,8 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     path = tmp_path / "adaptive.parquet"
     sink = RolloutSink(path, pem=str(pem_file))
     cfg = ExperimentConfig(**PRESETS["paper"], pem=str(pem_file))  # weights over T - 1 steps, as `truth` above
-    sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve()))
+    sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve(), problem.view,
+                    RunPlan.of([(3, "final", 60)])))
     sink(StageStarted(3, "final", 60))
     sink(RolloutChunk(3, "final", 0, batch, batch.log_weight(), sampler=proposal))
     with torch_no_grad():
@@ -198,7 +193,7 @@ def test_a_streamed_final_batch_is_written_chunk_by_chunk_and_reads_back_whole(t
 def test_a_run_cancelled_while_writing_leaves_no_rollout_file(tmp_path, chunked):
     import threading
 
-    from pemviz.engine import RunCancelled
+    from pemviz.events import RunCancelled
 
     cancel = threading.Event()
     sink = RolloutSink(tmp_path / "r.parquet")

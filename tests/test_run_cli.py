@@ -12,7 +12,8 @@ import pytest
 from conftest import REPO, run_cli, verify_rrd
 from pemviz.problems import problem_for
 from pemviz.config import PRESETS, ExperimentConfig
-from pemviz.engine import Experiment, FinalEstimate, StageFinished
+from pemviz.engine import Experiment
+from pemviz.events import FinalEstimate, StageFinished
 
 FINAL_RE = re.compile(r"^\s*final\s+(\d+)/(\d+)\s+(\S+)", re.M)
 MU_RE = re.compile(r"mu_hat = (\S+) \(log mu_hat = (\S+) nats\) from (\d+) simulations")

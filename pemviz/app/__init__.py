@@ -5,9 +5,9 @@ Run bookkeeping in :mod:`pemviz.app.runs`, the form in :mod:`pemviz.app.form`, t
 """
 
 from pemviz.app.panel import PanelApp, serve
-from pemviz.app.runs import RunRecord, Trajectory, export_path, sanitize_export_name, scene_positions
+from pemviz.app.runs import PanelRun, Trajectory, export_path, sanitize_export_name, scene_positions
 from pemviz.app.session import Session
 
 __all__ = [
-    "PanelApp", "RunRecord", "Session", "Trajectory", "export_path", "sanitize_export_name", "scene_positions", "serve",
+    "PanelApp", "PanelRun", "Session", "Trajectory", "export_path", "sanitize_export_name", "scene_positions", "serve",
 ]  # fmt: skip

@@ -63,6 +63,8 @@ class PanelApp:
         self.config0 = config or ExperimentConfig(**PANEL_PRESETS[preset])
         self.recordings_dir = Path(recordings_dir)
         self.params = BrakingParams()
+        """The scene every session draws before a run: the panel runs the braking scenario (:func:`problem_for`);
+        each run's own scene, thresholds and stages come with its first event (:class:`pemviz.app.runs.PanelRun`)."""
         self.host = host
         self.lock = threading.RLock()
         self.sessions: dict[int, Session] = {}

@@ -8,14 +8,14 @@ exists, never from what a run planned. Colours come from :mod:`pemviz.sinks.colo
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import viser
 import viser.uplot as up
 
 from pemviz.app.explain import Explanation
-from pemviz.app.runs import RunRecord, Trajectory
+from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import (
     BRAKE_ZONE,
@@ -30,6 +30,9 @@ from pemviz.sinks.colours import (
     hex_colour,
     stage_rgb,
 )
+
+if TYPE_CHECKING:
+    from pemviz.problems import Thresholds
 
 RUN_COLOURS = tuple(hex_colour(c) for c in C.RUN_COLOURS)
 """Series colour of a run: its number modulo 6 (:data:`pemviz.sinks.colours.RUN_COLOURS`)."""
@@ -79,18 +82,18 @@ def curve_plot(gui: viser.GuiApi, title: str, height: int = 230) -> viser.GuiUpl
     )
 
 
-def fill_curve_plot(plot: viser.GuiUplotHandle, record: RunRecord, title: str) -> None:
+def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) -> None:
     """The PEM and the proposal after each stage (blue early, orange late) of ``record``."""
     with record.lock:
         grid, pem = record.curve_grid_m, record.pem_curve
         stages = [s for s in record.stages if not np.all(np.isnan(s.proposal_curve)) and s.kind != "final"]
     if grid.size == 0:
         return
-    n_colour = max(1, record.config.n_stages if record.config.method == "adaptive" else 1)
+    n_colour = max(1, record.plan.n_ce if record.plan is not None else 1)  # blue (stage 0) to orange (stage K)
     series = [up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(C.BLACK), width=2)]
     data = [grid, pem]
     for s in stages:  # the final batch samples from the last stage's proposal: the same curve
-        name = "pretraining" if s.kind == "pretrain" else f"stage {s.stage}"
+        name = "pretraining" if s.kind == "pretrain" else f"stage {s.stage}"  # short: uPlot's legend is narrow
         series.append(up.Series(label=name, stroke=css(stage_rgb(s.stage, n_colour)), width=1.5))
         data.append(np.asarray(s.proposal_curve, dtype=np.float64))
     plot.title = title
@@ -110,7 +113,7 @@ def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHan
     )
 
 
-def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[RunRecord]) -> None:
+def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) -> None:
     """One series per run over the stages finished so far (x from 0 to the last finished stage).
 
     ``gamma`` has a unit that depends on the metric (metres for classic, none for AGM): only runs with the
@@ -185,9 +188,10 @@ def _points(colour: tuple[int, int, int], size: float = 6) -> dict[str, Any]:
 
 def fill_strip_plots(
     plots: dict[str, viser.GuiUplotHandle], traj: Trajectory, ex: Explanation, step: int, title: str,
-    crash_gap_m: float, braking_distance_m: float,
+    thresholds: Thresholds | None,
 ) -> None:  # fmt: skip
-    """Draw ``traj`` with a marker at ``step`` (the 3D scene's step) in each strip chart."""
+    """Draw ``traj`` with a marker at ``step`` (the 3D scene's step) in each strip chart, with the problem's failure
+    threshold and sampler window (:attr:`pemviz.problems.ProblemView.thresholds`; None: no such lines)."""
     t = ex.time_s
     now = np.full(t.size, np.nan)
     now_i = int(np.clip(step, 0, t.size - 1))
@@ -212,13 +216,14 @@ def fill_strip_plots(
         up.Series(label="gap (m)", stroke=hex_colour(C.BLACK), width=2),
         up.Series(label="ego speed (m/s)", stroke=css(EGO_SPEED), width=1.5),
         up.Series(label="lead speed (m/s)", stroke=css(LEAD_SPEED), width=1.5),
-        up.Series(label=f"crash gap {crash_gap_m:g} m", stroke=css(CRASH), width=1.5, dash=[6, 4]),
-        up.Series(label=f"braking distance {braking_distance_m:g} m", stroke=css(BRAKE_ZONE), width=1.5, dash=[6, 4]),
+        *(up.Series(label=label, stroke=css(colour), width=1.5, dash=[6, 4])
+          for label, colour in zip(thresholds.labels() if thresholds else (), (CRASH, BRAKE_ZONE))),
         up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
+    levels = (thresholds.failure, thresholds.window) if thresholds else ()
     plots["gap"].data = (
-        t, traj.gap_m, traj.ego_speed_mps, traj.lead_speed_mps, np.full(t.size, crash_gap_m),
-        np.full(t.size, braking_distance_m), marker(traj.gap_m),
+        t, traj.gap_m, traj.ego_speed_mps, traj.lead_speed_mps, *(np.full(t.size, v) for v in levels),
+        marker(traj.gap_m),
     )  # fmt: skip
     plots["gap"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(min(0.0, float(np.min(traj.gap_m))), gap_hi * 1.05))}
 

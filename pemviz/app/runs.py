@@ -1,7 +1,8 @@
 """What the viser panel knows about a run, built from the engine's events; no viser here.
 
-:class:`RunRecord` is an engine listener (``record(event)``): it keeps the stage results, the proposal
-curves, the final estimate, the least-robust rollouts of the whole run (:class:`Trajectory`) and the
+:class:`PanelRun` is an engine listener (a :class:`pemviz.sinks.Sink`, ``run(event)``): it keeps the run's plan and
+problem view (from its first event), the stage results, the proposal curves, the final estimate, the least-robust
+rollouts of the whole run (:class:`Trajectory`) and the
 event log for the ``.rrd`` export, and the most likely failure found (the failing rollout with the
 highest probability under the PEM). :func:`keep_runs` decides which runs stay for comparison (pinned and
 finished ones before stopped ones). :func:`scene_positions` turns a rollout's observations back into the
@@ -17,14 +18,13 @@ import re
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-import time
 from typing import Any
 
 import numpy as np
 
 from pemviz.app.form import run_label
 from pemviz.config import PRESETS, ExperimentConfig
-from pemviz.engine import (
+from pemviz.events import (
     Event,
     FinalEstimate,
     RolloutsSampled,
@@ -36,6 +36,7 @@ from pemviz.engine import (
     StageStarted,
 )
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.recording import RerunSink
 from pemviz.sinks.scene import car_positions
 
@@ -54,7 +55,7 @@ PANEL_PRESETS: dict[str, dict[str, Any]] = PRESETS
 _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")
 
 
-def keep_runs(runs: list["RunRecord"], new: "RunRecord", max_runs: int = MAX_RUNS) -> list["RunRecord"]:
+def keep_runs(runs: list["PanelRun"], new: "PanelRun", max_runs: int = MAX_RUNS) -> list["PanelRun"]:
     """The runs kept once ``new`` starts: at most ``max_runs``, oldest first.
 
     Pinned runs and the running one are never dropped. Room is made by dropping, oldest first, unpinned
@@ -174,7 +175,7 @@ def scene_positions(traj: Trajectory, params: BrakingParams | None = None) -> tu
     return car_positions(traj.gap_m, traj.ego_speed_mps, params)
 
 
-class RunRecord:
+class PanelRun(Sink):
     """One run as the panel shows it; an engine listener (call it with each event).
 
     Thread-safe: the engine calls it from the worker thread while the panel reads it from viser's
@@ -189,6 +190,10 @@ class RunRecord:
         """``starting`` | ``running`` | ``finished`` | ``cancelled`` | ``failed``."""
         self.message = ""
         self.formula = ""
+        self.plan = None
+        """The stages the run will draw (:class:`pemviz.estimators.base.RunPlan`), once it started; None before."""
+        self.view = None
+        """The problem as the panel shows it (:class:`pemviz.problems.ProblemView`), once it started; None before."""
         self.curve_grid_m = np.zeros(0)
         self.pem_curve = np.zeros(0)
         self.stages: list[StageResult] = []
@@ -203,19 +208,9 @@ class RunRecord:
         self.events: list[Event] = []
         self.pinned = False
         """Kept for comparison until unpinned (:func:`keep_runs` never drops it)."""
-        self.t_start = time.perf_counter()
-        self.stage_t0 = self.t_start
+        self.clock = StageClock()
+        """When the run and its stage started, the seconds per rollout (predicts the final batch)."""
         self.t_end: float | None = None
-        self.sample_s_per_rollout = math.nan
-        """Seconds per rollout while the last CE stage sampled (predicts the final batch)."""
-
-    @property
-    def n_stage_events(self) -> int:
-        """Stages the run will report: pretraining, K CE stages and the final batch (adaptive), else 1."""
-        cfg = self.config
-        if cfg.method != "adaptive":
-            return 1
-        return cfg.n_stages + (2 if cfg.has_final_batch else 1)
 
     @property
     def label(self) -> str:
@@ -229,7 +224,7 @@ class RunRecord:
 
     def elapsed_s(self) -> float:
         """Seconds since the run started (to its end once it has ended)."""
-        return (self.t_end or time.perf_counter()) - self.t_start
+        return (self.t_end or self.clock.now()) - self.clock.t0
 
     @property
     def done(self) -> bool:
@@ -238,45 +233,53 @@ class RunRecord:
     def __call__(self, event: Event) -> None:
         with self.lock:
             self.events.append(event)
-            if isinstance(event, RunStarted):
-                self.status = "running"
-                self.formula = event.formula
-                self.curve_grid_m = np.asarray(event.curve_grid_m, dtype=np.float64)
-                self.pem_curve = np.asarray(event.pem_curve, dtype=np.float64)
-                self.exact_log_p = event.exact_log_p
-            elif isinstance(event, StageStarted):
-                self.current_stage = event
-                self.sampled_current = False
-                self.stage_t0 = time.perf_counter()
-            elif isinstance(event, RolloutsSampled):
-                self.sampled_current = True
-                if event.kind == "ce":
-                    self.sample_s_per_rollout = (time.perf_counter() - self.stage_t0) / max(1, event.batch.n)
-                self.trajectories = least_robust(self.trajectories, event)
-                self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
-            elif isinstance(event, StageFinished):
-                self.stages = self.stages + [event.result]
-            elif isinstance(event, FinalEstimate):
-                self.final = event
-            elif isinstance(event, RunFinished):
-                self.status = "finished"
-                self.t_end = time.perf_counter()
-            elif isinstance(event, RunCancelled):
-                self.status = "cancelled"
-                self.message = event.reason
-                self.t_end = time.perf_counter()
+            self.clock(event)
+            super().__call__(event)
+
+    def on_run_started(self, event: RunStarted) -> None:
+        self.status = "running"
+        self.formula, self.plan, self.view = event.formula, event.plan, event.problem
+        self.curve_grid_m = np.asarray(event.curve_grid_m, dtype=np.float64)
+        self.pem_curve = np.asarray(event.pem_curve, dtype=np.float64)
+        self.exact_log_p = event.exact_log_p
+
+    def on_stage_started(self, event: StageStarted) -> None:
+        self.current_stage = event
+        self.sampled_current = False
+
+    def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
+        self.sampled_current = True
+        self.trajectories = least_robust(self.trajectories, event)
+        self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
+
+    def on_stage_finished(self, event: StageFinished) -> None:
+        self.stages = self.stages + [event.result]
+
+    def on_final_estimate(self, event: FinalEstimate) -> None:
+        self.final = event
+
+    def on_run_finished(self, event: RunFinished) -> None:
+        self.status = "finished"
+        self.t_end = self.clock.now()
+
+    def on_run_cancelled(self, event: RunCancelled) -> None:
+        self.status = "cancelled"
+        self.message = event.reason
+        self.t_end = self.clock.now()
 
     def fail(self, message: str) -> None:
         with self.lock:
             self.status = "failed"
             self.message = message
-            self.t_end = time.perf_counter()
+            self.t_end = self.clock.now()
 
     def progress(self) -> tuple[float, float]:
         """(run, stage) progress in percent: finished stages of all; 0 / 50 / 100 within a stage
         (started, rollouts sampled, finished)."""
         with self.lock:
-            total = self.n_stage_events
+            total = len(self.plan.stages) if self.plan is not None else 1
+            if self.plan is not None and self.plan.open_ended:  # one more than done, until the run ends
+                total = max(total, len(self.stages) + 1)
             done = len(self.stages)
             if self.status == "finished":
                 return 100.0, 100.0
@@ -337,7 +340,7 @@ def export_path(recordings_dir: str | os.PathLike, name: str) -> Path:
     return path
 
 
-def export_run(record: RunRecord, path: Path) -> Path:
+def export_run(record: PanelRun, path: Path) -> Path:
     """Replay a run's events into a rerun recording at ``path`` (written to a temp file, then moved).
 
     Returns:

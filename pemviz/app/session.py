@@ -31,27 +31,18 @@ from pemviz.app import plots
 from pemviz.app._viser_compat import resend_value
 from pemviz.app.explain import Explanation, explain
 from pemviz.app.form import NUMBER_FIELDS, FormResult, format_number, parse_form, run_cost, setting_name, setting_value
-from pemviz.app.runs import PANEL_PRESETS, RunRecord, Trajectory, export_path, export_run, keep_runs, scene_positions
+from pemviz.app.runs import PANEL_PRESETS, PanelRun, Trajectory, export_path, export_run, keep_runs, scene_positions
 from pemviz import engine
 from pemviz.config import FINAL_MODES, METHODS, METRICS, SIMULATORS, WEIGHT_MODES, ExperimentConfig
-from pemviz.engine import (
-    Event,
-    FinalEstimate,
-    RolloutsSampled,
-    RunFinished,
-    RunStarted,
-    StageFinished,
-    StageStarted,
-    stage_label,
-)
 from pemviz.estimate import format_probability, relative_error
+from pemviz.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
 from pemviz.problems import problem_for
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED, hex_colour
-from pemviz.sinks.console import expected_stage_s
 
 
 class PanelHost(Protocol):
@@ -96,7 +87,7 @@ def field_error(text: str) -> str:
     return f'<div style="margin:-0.3em 0.8em 0.4em; color:{RED}; font-size:0.8em">{html.escape(text)}</div>'
 
 
-def accuracy_html(record: RunRecord, ev: FinalEstimate) -> str:
+def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
     """The final estimate with its 95 % interval, verdict and reason, and the exact answer where known."""
     e = ev.estimate
     colour = VERDICT_COLOURS.get(e.verdict, GREY)
@@ -138,8 +129,8 @@ class Session:
         self.client = client
         self.params = app.params
         self.lock = threading.RLock()
-        self.runs: list[RunRecord] = []
-        self.record: RunRecord | None = None
+        self.runs: list[PanelRun] = []
+        self.record: PanelRun | None = None
         """The run the live plots, status and rollouts show: the newest."""
         self._worker: threading.Thread | None = None
         self._cancel = threading.Event()
@@ -149,7 +140,7 @@ class Session:
         self.form = FormResult(None, {})
         self._confirmed_cost = False
         self.shown: Trajectory | None = None
-        self.shown_record: RunRecord | None = None
+        self.shown_record: PanelRun | None = None
         self.explanation: Explanation | None = None
         self.shown_step = -1
         self._shown_x: tuple[np.ndarray, np.ndarray] | None = None
@@ -167,7 +158,7 @@ class Session:
         return self._worker is not None and self._worker.is_alive()
 
     @property
-    def current(self) -> RunRecord | None:
+    def current(self) -> PanelRun | None:
         return self.record
 
     def field_texts(self) -> dict[str, str]:
@@ -208,7 +199,7 @@ class Session:
                 return "confirm the cost first"
             self.confirm_button.visible = False
             self._echo_form()
-            record = RunRecord(self.app.next_run_id(), cfg)
+            record = PanelRun(self.app.next_run_id(), cfg)
             self.runs = keep_runs(self.runs, record)
             self.record = record
             self._cancel = threading.Event()
@@ -255,7 +246,7 @@ class Session:
         worker.join(timeout)
         return not worker.is_alive()
 
-    def kept_run(self, run_id: int) -> RunRecord:
+    def kept_run(self, run_id: int) -> PanelRun:
         for r in self.runs:
             if r.run_id == run_id:
                 return r
@@ -452,12 +443,12 @@ class Session:
                     self.cost_html.content = ""
 
     # == the worker ===================================================================================
-    def _work(self, record: RunRecord, cancel: threading.Event) -> None:
+    def _work(self, record: PanelRun, cancel: threading.Event) -> None:
         self.app.wait_warm()
         try:
             with torch_threads(1):
                 problem = problem_for(record.config)
-                engine.Experiment(record.config, [lambda e: self._on_event(record, e)], cancel, problem=problem).run()
+                engine.Experiment(record.config, [RunListener(self, record)], cancel, problem=problem).run()
         except Exception as exc:  # a bad PEM file, a simulator error: show it, keep serving
             record.fail(f"{type(exc).__name__}: {exc}")
             self._status(f"{record.label} failed: {record.message}", RED)
@@ -477,32 +468,6 @@ class Session:
                 self._refresh_runs()
                 self._refresh_plots()
 
-    def _on_event(self, record: RunRecord, event: Event) -> None:
-        record(event)
-        if self.closed:
-            return
-        with self.lock:
-            if record is not self.record:
-                return
-            if isinstance(event, RunStarted):
-                self._status(f"{record.short_label}: started")
-            elif isinstance(event, StageStarted):
-                self.tick()
-            elif isinstance(event, RolloutsSampled):
-                self._set_rollouts(record)
-                self.tick()
-            elif isinstance(event, StageFinished):
-                self._refresh_plots()
-                self._refresh_runs()
-            elif isinstance(event, FinalEstimate):
-                self.result_html.content = accuracy_html(record, event)
-                self._refresh_plots()
-                self._refresh_runs()
-            elif isinstance(event, RunFinished):
-                self._status(f"{record.short_label}: finished in {record.elapsed_s():.1f} s", GREEN)
-                self._show_default_rollout(record)
-            self._set_progress(record)
-
     def tick(self) -> None:
         """Refresh the status line of a running run: stage, what it does, elapsed time, expected time."""
         with self.lock:
@@ -511,20 +476,19 @@ class Session:
                 return
             with record.lock:
                 stage = record.current_stage
-                done = list(record.stages)
                 sampled = record.sampled_current
             if stage is None:
                 return
             cfg = record.config
-            label = stage_label(stage.stage, stage.kind, cfg.n_stages)
+            label = record.plan.label(stage.stage, stage.kind)
             if stage.kind == "final" or not sampled:
                 doing = f"simulating {stage.n_rollouts:,} rollouts"
             elif stage.kind == "pretrain":
                 doing = f"pretraining the proposal ({cfg.pretrain_epochs} epochs)"
             else:
                 doing = f"cross-entropy update ({cfg.ce_epochs} epochs)"
-            in_stage = time.perf_counter() - record.stage_t0
-            expected = expected_stage_s(done, stage.kind, stage.n_rollouts, record.sample_s_per_rollout)
+            in_stage = record.clock.stage_elapsed_s()
+            expected = record.clock.expected_s(stage.kind, stage.n_rollouts)
             eta = ""
             if math.isfinite(expected):
                 eta = f", about {max(0.0, expected - in_stage):.1f} s left in it" if in_stage < expected else ", nearly done"
@@ -542,7 +506,7 @@ class Session:
         self.stop_button.disabled = not running
         self.stage_progress.animated = running
 
-    def _set_progress(self, record: RunRecord) -> None:
+    def _set_progress(self, record: PanelRun) -> None:
         run, stage = record.progress()
         self.run_progress.value = run
         self.stage_progress.value = stage
@@ -574,7 +538,7 @@ class Session:
             for r in runs
         )
 
-        def result(r: RunRecord) -> list[str]:
+        def result(r: PanelRun) -> list[str]:
             fin = r.final.estimate if r.final is not None else None
             return [
                 format_probability(fin.log_mu_hat) if fin else "-",
@@ -621,7 +585,7 @@ class Session:
                 self.run_choice.value = options[-1]
             self._on_run_choice()
 
-    def chosen_run(self) -> RunRecord | None:
+    def chosen_run(self) -> PanelRun | None:
         for r in self.runs:
             if r.label == self.run_choice.value:
                 return r
@@ -668,7 +632,7 @@ class Session:
             f"{head}stage {t.stage} rollout {t.index} · rho {t.robustness:+.4g} · log p {t.log_p_total:.1f}{crash}"
         )
 
-    def _set_rollouts(self, record: RunRecord) -> None:
+    def _set_rollouts(self, record: PanelRun) -> None:
         with record.lock:
             trajectories = list(record.trajectories)
             best = record.most_likely_failure
@@ -704,7 +668,7 @@ class Session:
             f"{rows}</table></div>"
         )
 
-    def _show_default_rollout(self, record: RunRecord) -> None:
+    def _show_default_rollout(self, record: PanelRun) -> None:
         """After a run: choose its most likely failure (else its least-robust rollout), paused at the start."""
         for label, t in self._rollout_labels.items():
             if t is record.most_likely_failure or record.most_likely_failure is None:
@@ -716,10 +680,13 @@ class Session:
         if traj is None:
             return
         with self.lock:
+            scene = self.record.view.scene if self.record is not None and self.record.view is not None else None
+            if scene is None:  # a problem without a scene: nothing to replay (the panel runs the braking scenario)
+                return
             self.shown = traj
             self.shown_record = self.record
-            self.explanation = explain(traj.gap_m, traj.detected, traj.log_p, traj.log_q, self.params)
-            self._shown_x = scene_positions(traj, self.params)
+            self.explanation = explain(traj.gap_m, traj.detected, traj.log_p, traj.log_q, scene)
+            self._shown_x = scene_positions(traj, scene)
             self.step_slider.max = traj.n_steps - 1
             self._set_playing(False)
             self._fill_explanation()
@@ -734,9 +701,7 @@ class Session:
         if traj is None or ex is None or record is None:
             return
         title = f"{record.short_label} {traj.key}"
-        plots.fill_strip_plots(
-            self.strip, traj, ex, 0, title, self.params.crash_gap_m, self.params.braking_distance_m
-        )
+        plots.fill_strip_plots(self.strip, traj, ex, 0, title, record.view.thresholds)
         best = record.most_likely_failure
         what = "the most likely failure found" if traj is best else ("a crash" if traj.crashed else "no crash")
         colour = RED if traj.crashed else GREEN
@@ -879,6 +844,50 @@ class Session:
                 f"{traj.ego_speed_mps[t]:.2f} m/s · lead {traj.lead_speed_mps[t]:.2f} m/s · detector: {mark}",
                 RED if traj.crashed else BLUE,
             )
+
+
+class RunListener(Sink):
+    """The engine's listener for a session's run: feeds the run's :class:`PanelRun`, then, while it is the run the
+    session shows, refreshes the status line, rollouts, plots, kept runs and progress bars."""
+
+    def __init__(self, session: Session, record: PanelRun) -> None:
+        self.session, self.record = session, record
+
+    def __call__(self, event) -> None:
+        self.record(event)
+        session = self.session
+        if session.closed:
+            return
+        with session.lock:
+            if self.record is not session.record:
+                return
+            super().__call__(event)
+            session._set_progress(self.record)
+
+    def on_run_started(self, event: RunStarted) -> None:
+        self.session._status(f"{self.record.short_label}: started")
+
+    def on_stage_started(self, event: StageStarted) -> None:
+        self.session.tick()
+
+    def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
+        self.session._set_rollouts(self.record)
+        self.session.tick()
+
+    def on_stage_finished(self, event: StageFinished) -> None:
+        self._refresh()
+
+    def on_final_estimate(self, event: FinalEstimate) -> None:
+        self.session.result_html.content = accuracy_html(self.record, event)
+        self._refresh()
+
+    def _refresh(self) -> None:
+        self.session._refresh_plots()
+        self.session._refresh_runs()
+
+    def on_run_finished(self, event: RunFinished) -> None:
+        self.session._status(f"{self.record.short_label}: finished in {self.record.elapsed_s():.1f} s", GREEN)
+        self.session._show_default_rollout(self.record)
 
 
 def _display_path(path: Path) -> str:

@@ -13,6 +13,8 @@ from pemviz.estimators.ams import AdaptiveMultilevelSplitting
 from pemviz.estimators.base import (
     Check,
     Estimator,
+    PlannedStage,
+    RunPlan,
     StageOutcome,
     StagePlan,
     failure_steps,
@@ -24,9 +26,9 @@ from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
 from pemviz.problems import Problem
 
 __all__ = [
-    "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator", "FixedSampler", "StageOutcome",
-    "StagePlan", "break_ties", "build_estimator", "failure_steps", "log_p_before_failure", "log_weight", "mixed50",
-    "monte_carlo", "naive50",
+    "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator",
+    "FixedSampler", "PlannedStage", "RunPlan", "StageOutcome", "StagePlan", "break_ties", "build_estimator",
+    "failure_steps", "log_p_before_failure", "log_weight", "mixed50", "monte_carlo", "naive50", "run_plan",
 ]  # fmt: skip
 
 
@@ -42,3 +44,13 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
         return AdaptiveMultilevelSplitting(config, problem, check)
     baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
     return baseline(problem, config.n_per_stage, config.weights_until_failure, config.seed)
+
+
+def run_plan(config: ExperimentConfig) -> RunPlan:
+    """The :class:`RunPlan` the estimator of ``config.method`` states (:meth:`Estimator.plan`), without building it:
+    e.g. to check a run's memory before its problem is loaded."""
+    if config.method == "adaptive":
+        return CrossEntropy.run_plan(config)
+    if config.method == "ams":
+        return AdaptiveMultilevelSplitting.run_plan(config)
+    return FixedSampler.run_plan(config.n_per_stage)

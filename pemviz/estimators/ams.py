@@ -37,7 +37,7 @@ from scipy.special import logsumexp, ndtri
 from pemviz import stl
 from pemviz.config import ExperimentConfig
 from pemviz.estimate import CI_LEVEL, MIN_FAILURES, Estimate
-from pemviz.estimators.base import Check, StageOutcome, StagePlan, log_p_before_failure
+from pemviz.estimators.base import Check, RunPlan, StageOutcome, StagePlan, log_p_before_failure
 from pemviz.problems import Problem
 from pemviz.scenarios import RolloutBatch
 
@@ -237,6 +237,14 @@ class AdaptiveMultilevelSplitting:
     def n_simulations(self) -> int:
         """Rollout-equivalents simulated (module docstring); the engine reports this, not its count of batches."""
         return self.ams.n_simulations
+
+    @staticmethod
+    def run_plan(config: ExperimentConfig) -> RunPlan:
+        """Stage 0 the N initial particles, then groups of iterations until the run stops (open-ended)."""
+        return RunPlan.of([(0, "ams", config.n_per_stage)], open_ended=True)
+
+    def plan(self) -> RunPlan:
+        return self.run_plan(self.config)
 
     def next_stage(self) -> StagePlan | None:
         if self._stage >= 0 and self.ams.stop:

@@ -27,6 +27,7 @@ from pemviz.estimate import Estimate, estimate
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
+    RunPlan,
     StageOutcome,
     StagePlan,
     StageRollouts,
@@ -553,6 +554,16 @@ class CrossEntropy:
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
 
     # -- the interface --------------------------------------------------------------------------------------------
+    @staticmethod
+    def run_plan(config: ExperimentConfig) -> RunPlan:
+        """Stage 0 pretraining, 1..K cross-entropy stages, K+1 the final batch (none with ``last-stage``)."""
+        final = [(config.n_stages + 1, "final", config.n_final)] if config.has_final_batch else []
+        return RunPlan.of([(0, "pretrain", config.pretrain_rollouts)]
+                          + [(k, "ce", config.n_per_stage) for k in range(1, config.n_stages + 1)] + final)  # fmt: skip
+
+    def plan(self) -> RunPlan:
+        return self.run_plan(self.config)
+
     def next_stage(self) -> StagePlan | None:
         cfg, k = self.config, (-1 if self._plan is None else self._plan.stage) + 1
         if k == 0:

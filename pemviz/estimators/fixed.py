@@ -7,7 +7,7 @@ import numpy as np
 
 from pemviz.detectors import ConstantDetector, Detector, WindowDetector
 from pemviz.estimate import Estimate
-from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts
+from pemviz.estimators.base import RunPlan, StageOutcome, StagePlan, StageRollouts
 from pemviz.problems import Problem
 from pemviz.scenarios import RolloutBatch
 
@@ -32,11 +32,19 @@ class FixedSampler:
         self._planned = False
         self._outcome: StageOutcome | None = None
 
+    @staticmethod
+    def run_plan(n: int) -> RunPlan:
+        """One final batch of ``n`` rollouts, stage 1."""
+        return RunPlan.of([(1, "final", n)])
+
+    def plan(self) -> RunPlan:
+        return self.run_plan(self.n)
+
     def next_stage(self) -> StagePlan | None:
         if self._planned:
             return None
         self._planned = True
-        return StagePlan(1, "final", self.n, self.sampler)
+        return StagePlan(self.plan().last_stage, "final", self.n, self.sampler)
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         return self.rollouts.add(self.problem, batch, failed, self.until_failure)

@@ -425,7 +425,7 @@ def summarise_batched(
     target: Detector,
     rng: np.random.Generator,
     *,
-    failed: Callable[[RolloutBatch], np.ndarray] | None = None,
+    failed: Callable[[RolloutBatch], np.ndarray],
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> RolloutSummary:
     """Simulate ``n`` rollouts in chunks and keep per rollout only what an estimate needs.
@@ -435,9 +435,8 @@ def summarise_batched(
     the same ``rng``.
 
     Args:
-        failed: failure indicator of a chunk, bool [m] (e.g. ``Problem.failed``: classic robustness of the
-            safety formula < 0). Default: the gap drops below ``params.crash_gap_m`` at some step, i.e.
-            classic robustness of ``G[0,T-1](d >= crash_gap)`` below 0 (Innes & Ramamoorthy (2022)).
+        failed: the problem's failure event on a chunk, bool [m]: :meth:`pemviz.problems.Problem.failed` (classic
+            robustness of the safety formula < 0; for the braking problem the gap drops below the crash gap).
         other arguments: as :func:`simulate_batched`.
     Returns:
         :class:`RolloutSummary` of the n rollouts, in order.
@@ -456,7 +455,7 @@ def summarise_batched(
         log_weight[s] = batch.log_weight(k)
         log_p_total[s] = batch.log_p[:, :k].sum(axis=1)
         min_gap[s] = batch.gap_m.min(axis=1)
-        f = min_gap[s] < p.crash_gap_m if failed is None else np.asarray(failed(batch), dtype=bool)
+        f = np.asarray(failed(batch), dtype=bool)
         if f.shape != (batch.n,):
             raise ValueError(f"summarise_batched: failed(batch) must be bool [{batch.n}], got shape {f.shape}")
         fail[s] = f

@@ -4,21 +4,13 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from typing import TextIO
 
-from pemviz.engine import (
-    Event,
-    FinalEstimate,
-    RolloutsSampled,
-    RunCancelled,
-    RunStarted,
-    StageFinished,
-    StageResult,
-    StageStarted,
-    stage_label,
-)
 from pemviz.estimate import Estimate, format_probability
+from pemviz.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
+from pemviz.sinks import Sink, StageClock, expected_stage_s
+
+__all__ = ["ConsoleSink", "HEADER", "estimate_cells", "expected_stage_s", "progress_line", "stage_row"]
 
 HEADER = (
     f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} "
@@ -38,19 +30,6 @@ def estimate_cells(e: Estimate) -> str:
     )
 
 
-def expected_stage_s(done: list[StageResult], kind: str, n_rollouts: int, sample_s_per_rollout: float = math.nan) -> float:
-    """Expected seconds of a stage of ``n_rollouts`` rollouts (nan when nothing comparable has run yet).
-
-    A CE stage takes as long as the last CE stage did (sampling plus the proposal update). The final batch
-    only samples: ``n_rollouts`` times the seconds per rollout measured while the last CE stage sampled
-    (``sample_s_per_rollout``). Pretraining predicts neither (its time is the fit of a few rollouts).
-    """
-    if kind == "final":
-        return n_rollouts * sample_s_per_rollout
-    alike = [r for r in done if r.kind == kind]
-    return alike[-1].wall_s if alike else math.nan
-
-
 def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: float) -> str:
     """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s)``."""
     eta = f", this stage ~{expected_s:.1f} s" if math.isfinite(expected_s) else ""
@@ -62,54 +41,50 @@ def stage_row(res: StageResult) -> str:
     return f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {estimate_cells(res.estimate)} {res.wall_s:>7.2f}"
 
 
-class ConsoleSink:
+class ConsoleSink(Sink):
     """Prints a line when each stage starts (progress, to ``progress``) and the table rows (to ``out``)."""
 
     def __init__(self, out: TextIO | None = None, progress: TextIO | None = None) -> None:
         self.out = out or sys.stdout
         self.progress = progress or sys.stderr
-        self.n_stages = 0
-        self.n_ce = 0
-        self.t0 = time.perf_counter()
-        self.done: list[StageResult] = []
-        self.stage_t0 = self.t0
-        self.sample_s_per_rollout = math.nan
+        self.clock = StageClock()
+        self.plan = None
+        """The run's :class:`~pemviz.estimators.base.RunPlan` (from :class:`~pemviz.events.RunStarted`)."""
         self.exact_log_p: float | None = None
 
-    def __call__(self, event: Event) -> None:
-        if isinstance(event, RunStarted):
-            cfg = event.config
-            self.exact_log_p = event.exact_log_p
-            self.n_stages = cfg.n_stages + 2 if cfg.method == "adaptive" else 1
-            self.n_ce = cfg.n_stages
-            self.t0 = time.perf_counter()
-            self.done = []
-            print(
-                f"pemviz: {cfg.method} on the braking scenario, spec {event.formula}, metric {cfg.metric}, "
-                f"K={cfg.n_stages} N={cfg.n_per_stage} N_e={cfg.n_final} sigma={cfg.quantile_level} "
-                f"alpha={cfg.smoothing} seed={cfg.seed}",
-                file=self.out,
-            )
-            print(HEADER, file=self.out)
-        elif isinstance(event, StageStarted):
-            self.stage_t0 = time.perf_counter()
-            label = stage_label(event.stage, event.kind, self.n_ce)
-            expected = expected_stage_s(self.done, event.kind, event.n_rollouts, self.sample_s_per_rollout)
-            line = progress_line(label, event.n_rollouts, time.perf_counter() - self.t0, expected)
-            print(f"  {line}", file=self.progress, flush=True)
-        elif isinstance(event, RolloutsSampled) and event.kind == "ce":
-            self.sample_s_per_rollout = (time.perf_counter() - self.stage_t0) / max(1, event.n_total or event.batch.n)
-        elif isinstance(event, StageFinished):
-            self.done.append(event.result)
-            print(stage_row(event.result), file=self.out, flush=True)
-        elif isinstance(event, FinalEstimate):
-            e = event.estimate
-            print(f"{'final':>7} {'':>8} {'':>9} {estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
-            print(
-                f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat:.4f} nats) "
-                f"from {event.n_simulations} simulations in {event.wall_s:.1f} s",
-                file=self.out,
-            )
-            print(e.summary(self.exact_log_p), file=self.out, flush=True)
-        elif isinstance(event, RunCancelled):
-            print(f"run cancelled after {len(event.stages)} stages: {event.reason}", file=self.out, flush=True)
+    def __call__(self, event) -> None:
+        self.clock(event)
+        super().__call__(event)
+
+    def on_run_started(self, event: RunStarted) -> None:
+        cfg = event.config
+        self.exact_log_p, self.plan = event.exact_log_p, event.plan
+        print(
+            f"pemviz: {cfg.method} on the {event.problem.name} scenario, spec {event.formula}, metric {cfg.metric}, "
+            f"K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.n_final} sigma={cfg.quantile_level} "
+            f"alpha={cfg.smoothing} seed={cfg.seed}",
+            file=self.out,
+        )
+        print(HEADER, file=self.out)
+
+    def on_stage_started(self, event: StageStarted) -> None:
+        label = self.plan.label(event.stage, event.kind)
+        expected = self.clock.expected_s(event.kind, event.n_rollouts)
+        line = progress_line(label, event.n_rollouts, self.clock.elapsed_s(), expected)
+        print(f"  {line}", file=self.progress, flush=True)
+
+    def on_stage_finished(self, event: StageFinished) -> None:
+        print(stage_row(event.result), file=self.out, flush=True)
+
+    def on_final_estimate(self, event: FinalEstimate) -> None:
+        e = event.estimate
+        print(f"{'final':>7} {'':>8} {'':>9} {estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
+        print(
+            f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat:.4f} nats) "
+            f"from {event.n_simulations} simulations in {event.wall_s:.1f} s",
+            file=self.out,
+        )
+        print(e.summary(self.exact_log_p), file=self.out, flush=True)
+
+    def on_run_cancelled(self, event: RunCancelled) -> None:
+        print(f"run cancelled after {len(event.stages)} stages: {event.reason}", file=self.out, flush=True)

@@ -13,12 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from pemviz.engine import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
+from pemviz.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.estimators.base import pool_stage_weights
 from pemviz.io.rollout_format import braking_meta
 from pemviz.io.rollouts import RolloutWriter, braking_salient, check_rollouts_path
 from pemviz.pem import DEFAULT_PEM_NAME
 from pemviz.sampling import Proposal
+from pemviz.sinks import Sink
 from pemviz.weights import convention, describe, stage_log_q
 
 STAGES = ("used", "all")
@@ -30,7 +31,7 @@ def _estimate_json(e: Any) -> dict[str, Any]:
             "khat": e.khat, "verdict": e.verdict, "reason": e.reason}  # fmt: skip
 
 
-class RolloutSink:
+class RolloutSink(Sink):
     """Engine listener for ``pemviz run --save-rollouts``: writes every stage the run's estimate uses (``stages =
     "used"``: the stages it pooled, or its one batch) or every stage (``"all"``), so that ``pemviz estimate`` on the
     file reproduces the run's estimate.
@@ -39,7 +40,7 @@ class RolloutSink:
     per-step density the run weighed it with (:func:`pemviz.weights.stage_log_q`: for a mixture over whole rollouts,
     the mixture's). The sidecar holds the run's weight convention, each stage's components and weight bound, and the
     pooling rule with its stage weights (:mod:`pemviz.io.rollout_format`). Rollouts are written chunk by chunk as the
-    engine simulates them (:class:`pemviz.engine.RolloutChunk`, Parquet row groups of a
+    engine simulates them (:class:`pemviz.events.RolloutChunk`, Parquet row groups of a
     :class:`pemviz.io.rollouts.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of a
     chunk whatever N is; the stages the estimate did not use are dropped and the unit is moved into place when the
     run finishes, and nothing is left after a cancelled or failed run. If the file holds one stage drawn by a
@@ -71,22 +72,28 @@ class RolloutSink:
         """Whether a stage of this kind can enter the run's estimate (pretraining never does), or all are saved."""
         return self.stages == "all" or kind != "pretrain"
 
-    def __call__(self, event: Any) -> None:
-        if isinstance(event, RunStarted):
-            if getattr(event.config, "method", None) == "ams":
-                raise ValueError("--save-rollouts: method ams estimates by splitting, without importance weights; "
-                                 "its rollouts cannot be estimated from again")  # fmt: skip
-            self._formula, self._config = event.formula, event.config
-        elif isinstance(event, StageStarted):
-            self._sizes[event.stage] = event.n_rollouts
-        elif isinstance(event, RolloutChunk) and self._saves(event.kind):
+    def on_run_started(self, event: RunStarted) -> None:
+        if getattr(event.config, "method", None) == "ams":
+            raise ValueError("--save-rollouts: method ams estimates by splitting, without importance weights; "
+                             "its rollouts cannot be estimated from again")  # fmt: skip
+        self._formula, self._config = event.formula, event.config
+
+    def on_stage_started(self, event: StageStarted) -> None:
+        self._sizes[event.stage] = event.n_rollouts
+
+    def on_rollout_chunk(self, event: RolloutChunk) -> None:
+        if self._saves(event.kind):
             self._append(event)
-        elif isinstance(event, StageFinished):
-            self._results[event.result.stage] = _estimate_json(event.result.estimate)
-        elif isinstance(event, RunFinished) and self._writer is not None:
+
+    def on_stage_finished(self, event: StageFinished) -> None:
+        self._results[event.result.stage] = _estimate_json(event.result.estimate)
+
+    def on_run_finished(self, event: RunFinished) -> None:
+        if self._writer is not None:
             self.write(event)
-        elif isinstance(event, RunCancelled):
-            self.close()
+
+    def on_run_cancelled(self, event: RunCancelled) -> None:
+        self.close()
 
     def _append(self, chunk: Any) -> None:
         if self._writer is None:

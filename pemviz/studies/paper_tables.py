@@ -5,7 +5,7 @@ Table III: the adaptive sampler under each robustness metric. A row is R repetit
 (:class:`RowSpec`), summarised by :func:`summarise_row` as mean +- standard error std/sqrt(R) of mu_hat (the
 authors divided by R), failures, NLL, ESS and the ratio to the exact p_fail. :func:`write_recording` writes every
 repetition's per-stage proposal curves and the paper's Fig. 4 (the stage-3 curves averaged per metric) to rerun.
-``pemviz tables`` is the command-line layer over this module and :mod:`pemviz.validation`.
+``pemviz tables`` is the command-line layer over this module and :mod:`pemviz.studies.validation`.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_l
                 tuple(sorted({**sim, "method": "naive50", "n_per_stage": naive_large}.items()))),
         RowSpec("II", f"adaptive_{n}", tuple(sorted(base.items()))),
     ]  # fmt: skip
-    if ams:  # adaptive multilevel splitting at the adaptive sampler's budget (pemviz.validation.ams_fields)
+    if ams:  # adaptive multilevel splitting at the adaptive sampler's budget (pemviz.studies.validation.ams_fields)
         budget = ExperimentConfig(**base).n_simulations
         specs.append(RowSpec("II", f"AMS_{budget}", tuple(sorted({**sim, **ams_fields(budget)}.items()))))
     for name in extra:
@@ -125,7 +125,7 @@ def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_l
 
 
 def table_jobs(problem: str, specs: Sequence[RowSpec], reps: int, pem_path: str | None = None) -> list[Job]:
-    """R repetitions (seeds 0..reps-1) of every row as jobs (:class:`~pemviz.validation.Job`) that keep their proposal
+    """R repetitions (seeds 0..reps-1) of every row as jobs (:class:`~pemviz.studies.validation.Job`) that keep their proposal
     curves, the slow (adaptive) rows first so that parallel workers finish together."""
     jobs = [Job(problem, s.label, s.fields, seed, keep_curves=True, pem_path=pem_path)
             for s in specs for seed in range(reps)]  # fmt: skip

@@ -27,8 +27,9 @@ from tqdm import tqdm
 
 from pemviz import truth
 from pemviz.config import METHODS, PRESETS, ExperimentConfig
-from pemviz.engine import Experiment, RunFinished
+from pemviz.engine import Experiment
 from pemviz.estimate import format_probability, relative_error
+from pemviz.events import RunFinished
 from pemviz.io.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem

@@ -1,0 +1,172 @@
+"""The events the experiment engine (:class:`pemviz.engine.Experiment`) emits, and what they carry.
+
+Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.estimators.base.RunPlan` and the problem's
+:class:`~pemviz.problems.ProblemView`); for each stage (0 = pretraining, 1..K = cross-entropy stages, K+1 = final
+batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one :class:`RolloutsSampled`,
+:class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`).
+
+Sinks (:class:`pemviz.sinks.Sink`: the console table, the rerun recording, the rollout file, the viser panel) read
+these and nothing else of the engine. This module imports neither torch nor the engine, so a sink can be written and
+tested on hand-made events.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, Union
+
+import numpy as np
+
+if TYPE_CHECKING:  # annotations only: the modules behind them import torch
+    from pemviz.config import ExperimentConfig
+    from pemviz.detectors import Detector
+    from pemviz.estimate import Estimate
+    from pemviz.estimators.base import RunPlan
+    from pemviz.problems import ProblemView
+    from pemviz.scenarios import RolloutBatch
+
+
+@dataclass(frozen=True)
+class RunStarted:
+    config: ExperimentConfig
+    formula: str
+    curve_grid_m: np.ndarray
+    pem_curve: np.ndarray
+    """p_PEM(detect | d) on ``curve_grid_m``, float64 [G]."""
+    problem: ProblemView
+    """What the run estimates: the problem's name and description, its signals with their units, its thresholds and
+    its scene (:attr:`pemviz.problems.Problem.view`)."""
+    plan: RunPlan
+    """The stages the estimator will run (number, kind, label, rollouts) and its simulations, as it states them
+    (:meth:`pemviz.estimators.Estimator.plan`)."""
+    exact_log_p: float | None = None
+    """Natural log of the problem's exact failure probability when one is known (closed form, enumeration),
+    else None: sinks show it beside every estimate with the relative error."""
+
+
+@dataclass(frozen=True)
+class StageStarted:
+    stage: int
+    """0 = pretraining, 1..K = CE stages, K+1 = the final batch (the only stage of mc / naive50)."""
+    kind: str
+    """``pretrain`` | ``ce`` | ``final`` | ``ams``."""
+    n_rollouts: int
+
+
+def stage_label(stage: int, kind: str, n_stages: int) -> str:
+    """The one name of a stage in console, panel, recording and CSVs.
+
+    ``pretraining`` (stage 0), ``CE stage k/K`` (stages 1..K, ``n_stages`` = K), ``final batch`` (stage K+1,
+    or the only batch of mc / naive50 / mixed50), ``AMS particles`` / ``AMS iterations k`` (adaptive multilevel
+    splitting); the number is the engine's ``stage`` everywhere.
+    """
+    if kind == "pretrain":
+        return "pretraining"
+    if kind == "ce":
+        return f"CE stage {stage}/{n_stages}"
+    if kind == "ams":
+        return f"AMS iterations {stage}" if stage else "AMS particles"
+    return "final batch"
+
+
+@dataclass(frozen=True)
+class RolloutsSampled:
+    stage: int
+    kind: str
+    batch: RolloutBatch
+    robustness: np.ndarray
+    """[N] under the configured metric."""
+    robustness_by_metric: dict
+    """metric name -> [N] robustness under each semantics of :data:`pemviz.config.METRICS`."""
+    failed: np.ndarray
+    """bool [N]: the problem's failure (:meth:`pemviz.problems.Problem.failed`: classic robustness < 0)."""
+    log_weight: np.ndarray
+    """[N] importance log-weights (nats), T - 1 factors."""
+    sampler: Detector | None = None
+    """The detector that drew the batch (the proposal is trained in place afterwards: copy it to keep it)."""
+    n_total: int | None = None
+    """The stage's rollouts when ``batch`` is only a sample of them (a stage streamed in chunks: its
+    :data:`pemviz.engine.SAMPLE_LEAST_ROBUST` least-robust rollouts, its first :data:`pemviz.engine.SAMPLE_FAILURES`
+    failures and :data:`pemviz.engine.SAMPLE_UNIFORM` evenly spaced ones); None: ``batch`` is the whole stage."""
+    index: np.ndarray | None = None
+    """int [n]: the sampled rollouts' numbers in the stage (0 .. n_total - 1), with ``n_total``."""
+    stage_robustness: np.ndarray | None = None
+    """[n_total] every rollout's robustness under the configured metric, with ``n_total`` (e.g. for histograms)."""
+    stage_log_weight: np.ndarray | None = None
+    """[n_total] every rollout's importance log-weight, with ``n_total``."""
+
+    @property
+    def rollout_numbers(self) -> np.ndarray:
+        """int [n]: each row's number in the stage (``index``, or 0 .. n - 1 for a whole stage)."""
+        return np.arange(self.batch.n) if self.index is None else self.index
+
+    @property
+    def n_rollouts(self) -> int:
+        """The stage's rollouts: ``n_total`` for a streamed stage (of which ``batch`` is a sample), else the batch's."""
+        return self.batch.n if self.n_total is None else self.n_total
+
+
+@dataclass(frozen=True)
+class RolloutChunk:
+    """Rollouts ``start .. start + batch.n - 1`` of a stage as they are simulated (all of a stage that is not
+    streamed), before :class:`RolloutsSampled`; ``log_weight`` [n] as the estimator computed them (nats)."""
+
+    stage: int
+    kind: str
+    start: int
+    batch: RolloutBatch
+    log_weight: np.ndarray
+    sampler: Detector | None = None
+    parts: tuple = ()
+    """The stage's samplers in the order drawn, ``(rollouts, detector)`` each
+    (:attr:`pemviz.estimators.StagePlan.parts`): several for a mixture over whole rollouts, whose rollouts are
+    weighed by the mixture (:func:`pemviz.weights.stage_log_q`)."""
+    target: Detector | None = None
+    """The problem's target detector (p)."""
+
+
+@dataclass(frozen=True)
+class StageResult:
+    stage: int
+    kind: str
+    gamma: float
+    """Stage threshold gamma_kappa (nan for pretraining and final batches)."""
+    n_elites: int
+    estimate: Estimate
+    proposal_curve: np.ndarray
+    """q(detect | d) on the problem's ``curve_grid`` after this stage's update, float64 [G]."""
+    elite_detect_rate: np.ndarray
+    """Elite rollouts' empirical detection rate per bin of the ``curve_grid`` (nan where empty)."""
+    wall_s: float
+
+
+@dataclass(frozen=True)
+class StageFinished:
+    result: StageResult
+
+
+@dataclass(frozen=True)
+class FinalEstimate:
+    estimate: Estimate
+    """The run's answer: the final batch's estimate, or pooled over stages (``final_estimate="pooled"``)."""
+    n_simulations: int
+    wall_s: float
+    stages_used: tuple[int, ...] = ()
+    """The stages whose rollouts the estimate uses (e.g. CE stages 4..10 and the final batch 11 when pooled)."""
+
+
+@dataclass(frozen=True)
+class RunFinished:
+    final: FinalEstimate
+    stages: tuple[StageResult, ...]
+
+
+@dataclass(frozen=True)
+class RunCancelled:
+    stages: tuple[StageResult, ...]
+    reason: str
+
+
+Event = Union[RunStarted, StageStarted, RolloutChunk, RolloutsSampled, StageFinished, FinalEstimate, RunFinished,
+              RunCancelled]  # fmt: skip
+Listener = Callable[[Event], None]

@@ -1,0 +1,334 @@
+"""What the rerun recording looks like (:mod:`pemviz.sinks.recording`): colours, figures with axes, the blueprint,
+the run's description and the top-down scene of a problem that has one (:attr:`pemviz.problems.ProblemView.scene`).
+
+Everything here draws into a :class:`rerun.RecordingStream` it is given and keeps no state of a run.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from pemviz.events import RolloutsSampled, RunStarted
+from pemviz.problems import BRAKING_SIGNALS, BRAKING_UNITS, ProblemView, SignalView
+from pemviz.scenarios.braking import BrakingParams
+from pemviz.sinks import colours as C
+from pemviz.sinks.scene import car_positions
+
+CRASH_RGBA = C.rgba(C.CRASH, 170)
+SAFE_RGBA = C.rgba(C.SAFE, 60)
+TAG_RGBA = C.rgba(C.TAGGED)
+TAG_CRASH_RGBA = C.rgba(C.CRASH)
+PEM_RGBA = C.rgba(C.ON_DARK)
+AXIS_RGBA = C.rgba(C.AXIS)
+GRID_RGBA = C.rgba(C.GRID, 120)
+DETECTED_RGBA = C.rgba(C.DETECTED)
+MISSED_RGBA = C.rgba(C.MISSED)
+LEAD_RGBA = C.rgba(C.LEAD)
+LEAD_CRASH_RGBA = C.rgba(C.CRASH)
+BRAKE_RGBA = C.rgba(C.BRAKE_ZONE)
+ALL_ROLLOUTS_UP_TO = 500
+"""Stages of at most this many rollouts are recorded rollout by rollout; larger ones keep the least-robust
+rollouts and a uniform sample (:data:`SAMPLED_ROLLOUTS`)."""
+SAMPLED_ROLLOUTS = 100
+HISTOGRAM_BINS = 40
+LANE_SPACING_M = 3.2
+SCENE_X_RANGE_M = (-15.0, 38.0)
+"""Top-down scene: lanes ``LANE_SPACING_M`` apart (the cars are 2 m wide), x from the lane labels to
+past the lead's stop."""
+
+STAGE_METRICS = (
+    ("log10_mu_hat", "log10 mu_hat", C.BLUE),
+    ("failure_rate", "failures / N", C.CRASH),
+    ("gamma", "threshold gamma", C.VIOLET),
+    ("ess", "ESS", C.DETECTED),
+    ("khat", "Pareto k-hat", C.MISSED),
+    ("nll", "NLL of the failures (nats)", C.NEUTRAL),
+)
+"""Per-stage values: key under ``stages/``, series name, colour."""
+
+
+def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
+    """Round tick values in [lo, hi]: the step of 1, 2 or 5 x 10^k nearest (in ratio) to (hi - lo) / n."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        return np.array([lo])
+    raw = (hi - lo) / max(1, n)
+    mag = 10.0 ** math.floor(math.log10(raw))
+    step = min((m * mag for m in (1, 2, 5, 10)), key=lambda st: abs(math.log(st / raw)))
+    first = math.ceil(lo / step - 1e-9) * step
+    return np.round(np.arange(first, hi + step * 1e-9, step), 10)
+
+
+@dataclass(frozen=True)
+class Figure:
+    """A static x-y plot in a 2D view: data in axis units under ``PATH/data``, a frame under ``PATH/axes``.
+
+    A :class:`rerun.Transform3D` on ``PATH/data`` maps (x, y) in axis units to a ``width`` x ``height``
+    box with y pointing up (rerun's 2D y axis points down), so the logged points keep their real values.
+    """
+
+    path: str
+    x_label: str
+    y_label: str
+    width: float = 160.0
+    height: float = 100.0
+
+    def draw_axes(
+        self,
+        stream: rr.RecordingStream,
+        x_range: tuple[float, float],
+        y_range: tuple[float, float],
+        x_ticks: np.ndarray | None = None,
+    ) -> None:
+        """Log (static) the data transform, the frame, grid lines and tick labels for these ranges."""
+        (x0, x1), (y0, y1) = x_range, y_range
+        if y1 <= y0:
+            y0, y1 = y0 - 0.5, y1 + 0.5
+        sx, sy = self.width / (x1 - x0), self.height / (y1 - y0)
+        stream.log(
+            f"{self.path}/data",
+            rr.Transform3D(translation=[-x0 * sx, y1 * sy, 0.0], scale=[sx, -sy, 1.0]),
+            static=True,
+        )
+        w, h = self.width, self.height
+        xt = nice_ticks(x0, x1, 6) if x_ticks is None else np.asarray(x_ticks, dtype=np.float64)
+        yt = nice_ticks(y0, y1, 5)
+        xt = xt[(xt >= x0) & (xt <= x1)]
+        yt = yt[(yt >= y0) & (yt <= y1)]
+        X = (xt - x0) * sx
+        Y = (y1 - yt) * sy
+        grid = [[[x, 0.0], [x, h]] for x in X] + [[[0.0, y], [w, y]] for y in Y]
+        stream.log(f"{self.path}/axes/grid", rr.LineStrips2D(grid, colors=GRID_RGBA, radii=-0.5), static=True)
+        stream.log(
+            f"{self.path}/axes/frame",
+            rr.LineStrips2D([[[0, 0], [w, 0], [w, h], [0, h], [0, 0]]], colors=AXIS_RGBA, radii=-1.0),
+            static=True,
+        )
+        pos = [[x, h + 0.045 * h] for x in X] + [[-0.06 * w, y] for y in Y]
+        labels = [f"{v:g}" for v in xt] + [f"{v:g}" for v in yt]
+        for text, xy in ((self.x_label, [w / 2, h + 0.13 * h]), (self.y_label, [-0.06 * w, -0.07 * h])):
+            if text:  # small figures leave the axis titles to the view's name
+                pos.append(xy)
+                labels.append(text)
+        stream.log(
+            f"{self.path}/axes/labels",
+            rr.Points2D(pos, radii=-0.01, colors=AXIS_RGBA, labels=labels, show_labels=True),
+            static=True,
+        )
+
+    def view(self, name: str) -> rrb.Spatial2DView:
+        """A 2D view of this figure with bounds that fit the frame and labels."""
+        w, h = self.width, self.height
+        return rrb.Spatial2DView(
+            origin=self.path,
+            name=name,
+            visual_bounds=rrb.VisualBounds2D(x_range=[-0.14 * w, 1.03 * w], y_range=[-0.12 * h, 1.2 * h]),
+            background=C.FIGURE_BACKGROUND,
+        )
+
+
+PROPOSAL_FIG = Figure("proposal", "gap d (m)", "p(detect | d)")
+SCENE_PATH = "scene"
+
+
+def default_blueprint(n_lanes: int = 12, view: ProblemView | None = None) -> rrb.Blueprint:
+    """The estimate and the proposal first, then the per-stage series and histograms, then rollouts and scene.
+
+    The selected timeline is ``stage``: scrubbing it steps the proposal curve, the histograms and the
+    per-stage series; the rollout traces and the scene play on ``step``. One trace view per signal of ``view``
+    (the first with the detections), and the scene, sized for ``n_lanes`` lanes (one per stage), only for a problem
+    with one (``view.scene``; None: the braking scenario's signals and scene).
+    """
+    signals = view.signals if view is not None else BRAKING_SIGNAL_VIEWS
+    stage_views = [
+        rrb.TimeSeriesView(origin=f"/stages/{key}", name=name, plot_legend=rrb.PlotLegend(visible=key == "log10_mu_hat"))
+        for key, name, _ in STAGE_METRICS
+    ]
+    no_legend = rrb.PlotLegend(visible=False)
+    first, rest = signals[0], signals[1:]
+    traces = rrb.Tabs(
+        rrb.TimeSeriesView(name=f"{first.name}: {first.column} ({first.unit}), play on the step timeline",
+                           contents=[f"+ /rollouts/{first.column}/**", "+ /rollouts/detected/**"],
+                           plot_legend=no_legend),
+        *(rrb.TimeSeriesView(name=f"{s.name}: {s.column} ({s.unit})", origin=f"/rollouts/{s.column}",
+                             plot_legend=no_legend) for s in rest),
+    )  # fmt: skip
+    bottom = [traces]
+    if view is None or view.scene is not None:
+        bottom.append(rrb.Spatial2DView(
+            origin=f"/{SCENE_PATH}",
+            name="Scene: play on the step timeline",
+            background=C.FIGURE_BACKGROUND,
+            visual_bounds=rrb.VisualBounds2D(
+                x_range=list(SCENE_X_RANGE_M), y_range=[-0.6 * LANE_SPACING_M, (n_lanes - 0.4) * LANE_SPACING_M]
+            ),
+        ))  # fmt: skip
+    histograms = rrb.Tabs(
+        rrb.BarChartView(origin="/histograms/robustness", name="Robustness histogram"),
+        rrb.BarChartView(origin="/histograms/log_weight", name="Log-weight histogram (nats)"),
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Horizontal(
+                    rrb.TextDocumentView(origin="/estimate", name="Estimate"),
+                    PROPOSAL_FIG.view("Proposal q(detect | d) vs PEM"),
+                    column_shares=[1.0, 1.5],
+                ),
+                rrb.Horizontal(rrb.Grid(*stage_views, grid_columns=3), histograms, column_shares=[2.0, 1.0]),
+                rrb.Horizontal(*bottom),
+                row_shares=[1.1, 1.0, 0.8],
+            ),
+            rrb.TextDocumentView(origin="/description", name="Run"),
+            column_shares=[3.0, 1.0],
+        ),
+        rrb.TimePanel(timeline="stage", state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        collapse_panels=True,
+    )
+
+
+BRAKING_SIGNAL_VIEWS = tuple(SignalView(n, c, BRAKING_UNITS[n]) for n, c in BRAKING_SIGNALS.items())
+"""The braking scenario's signals (the blueprint's traces when no view is given)."""
+
+Indexes = Callable[..., list]
+"""``indexes(step=array)``: the time columns of a ``send_columns`` (the sink's, with its repetition)."""
+
+
+def method_markdown(ev: RunStarted) -> str:
+    """One sentence on the run's method, its stages and sizes from the run's plan."""
+    cfg, plan = ev.config, ev.plan
+    window = ev.problem.thresholds.labels()[1] if ev.problem.thresholds is not None else "the sampler window"
+    n_final = plan.stages[-1].n_rollouts if plan.has_final_batch else None
+    final = (f"a final batch of N_e = {n_final} rollouts gives the estimate" if n_final is not None
+             else "the last stages give the estimate")  # fmt: skip
+    return {
+        "adaptive": (
+            f"**adaptive importance sampling** (cross-entropy method, Innes & Ramamoorthy 2022): "
+            f"{plan.stages[0].n_rollouts} rollouts of the target pretrain the proposal q(detect | d) (stage 0), "
+            f"K = {plan.n_ce} stages of N = {cfg.n_per_stage} rollouts each move it toward the "
+            f"failures (elites: robustness at or below the (1 - sigma) quantile gamma, sigma = "
+            f"{cfg.quantile_level}, smoothing alpha = {cfg.smoothing}), and {final}."
+        ),
+        "mc": f"plain **Monte Carlo** with the PEM: {cfg.n_per_stage} rollouts.",
+        "naive50": f"a **50 % detector** at every step, weighted by the PEM: {cfg.n_per_stage} rollouts.",
+        "mixed50": f"a **50 % detector inside the window** ({window}), the PEM outside: {cfg.n_per_stage} rollouts.",
+        "ams": (f"**adaptive multilevel splitting** on robustness (Cerou & Guyader 2007): N = {cfg.n_per_stage} "
+                f"PEM rollouts, the k = {cfg.ams_killed} highest killed per iteration and branched from survivors; "
+                "each stage shows the particles after about N resamplings."),
+    }[cfg.method]
+
+
+def intro_markdown(ev: RunStarted) -> str:
+    """The head of the recording's description: what the run estimates (from its problem view) and how to read it."""
+    view, cfg = ev.problem, ev.config
+    method = method_markdown(ev)
+    reading = (
+        "**How to read it.** Stages are numbered as in the console: 0 = pretraining, 1..K = CE stages, "
+        "K+1 = final batch. *Estimate*: mu_hat with its 95 % interval and verdict. *Proposal*: "
+        "q(detect | d) after each stage (blue early, orange late) against the PEM (white); the thick curve "
+        "is the stage selected on the `stage` timeline; dots are the elite rollouts' detection rate per gap "
+        "bin. *Per-stage series* and *histograms* (robustness, importance log-weight) step with the `stage` "
+        "timeline. Switch the timeline to `step` to play the *rollouts*"
+    )
+    lines = " and ".join(view.thresholds.labels()) if view.thresholds is not None else ""
+    colours = "red = failure, yellow = least robust, green dots = detections"
+    traces = f" ({view.signals[0].column} with the lines {lines}; {colours})" if lines else f" ({colours})"
+    if view.scene is not None:
+        p = view.scene
+        return (
+            f"# pemviz: crash probability of the braking scenario\n\n"
+            f"A car follows a lead that brakes for a red light; the ego brakes only when its detector, "
+            f"a perception error model (PEM) p(detect | d), sees the lead within {p.braking_distance_m:g} m. A crash "
+            f"is the gap d dropping below {p.crash_gap_m:g} m, safety spec `{ev.formula}`; rollouts are ranked "
+            f"by **{cfg.metric}** robustness. Method: {method}\n\n"
+            f"{reading}{traces} and the *scene* (ego green = detected, orange = missed).\n"
+        )
+    return (
+        f"# pemviz: failure probability of {view.name}\n\n{view.description}. Failure: classic robustness of the "
+        f"safety spec `{ev.formula}` below 0; rollouts are ranked by **{cfg.metric}** robustness. Method: {method}\n\n"
+        f"{reading}{traces}.\n"
+    )
+
+
+def log_thresholds(stream: rr.RecordingStream, view: ProblemView, n_steps: int, indexes: Indexes) -> None:
+    """The failure threshold and the sampler window as two lines over ``n_steps`` steps beside the first signal's
+    traces (``rollouts/<column>/thresholds``); nothing for a problem without thresholds."""
+    th = view.thresholds
+    if th is None:
+        return
+    path = f"rollouts/{view.signals[0].column}/thresholds"
+    stream.log(path, rr.SeriesLines(colors=[CRASH_RGBA[:3] + (255,), BRAKE_RGBA], widths=[2.0, 2.0],
+                                    names=list(th.labels())), static=True)  # fmt: skip
+    t = np.arange(n_steps)
+    levels = np.array([[th.failure, th.window]] * t.size)
+    stream.send_columns(path, indexes=indexes(step=t), columns=rr.Scalars.columns(scalars=levels))
+
+
+def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: RolloutsSampled, i: int,
+                   params: BrakingParams, indexes: Indexes) -> None:  # fmt: skip
+    """One lane (number ``lane``) of the top-down scene under ``path``: rollout ``i`` of the stage, playable on
+    ``step``; positions (metres along the road) rebuilt from the observations by
+    :func:`pemviz.sinks.scene.car_positions`."""
+    p, s = params, stream
+    batch = ev.batch
+    gap = batch.gap_m[i]
+    v = batch.signal("ego_speed_mps")[i]
+    seen = batch.detected[i]
+    t = gap.size
+    y = lane * LANE_SPACING_M
+    ego_x, lead_x = car_positions(gap, v, p)
+    camera_x = ego_x + p.camera_offset_m
+    lead_rear = camera_x + gap  # the sight line from the camera to the lead's rear
+    ys = np.full(t, y)
+    crash = " crash" if ev.failed[i] else ""
+    label = f"stage {ev.stage}{crash}"
+    detail = f"stage {ev.stage} ({ev.kind}) rollout {ev.rollout_numbers[i]}: robustness {ev.robustness[i]:.3g}{crash}"
+    half = LANE_SPACING_M / 2 - 0.1
+    x_end = float(max(lead_x.max() + p.lead_length_m, SCENE_X_RANGE_M[1]))
+    s.log(
+        f"{path}/lane",
+        rr.LineStrips2D(
+            [[[-4.0, y - half], [x_end, y - half]], [[-4.0, y + half], [x_end, y + half]]],
+            colors=GRID_RGBA, radii=-0.75, labels=[detail, detail], show_labels=False,
+        ),
+        static=True,
+    )  # fmt: skip
+    s.log(
+        f"{path}/label",
+        rr.Points2D([[-9.0, y]], radii=-0.01, colors=LEAD_CRASH_RGBA if ev.failed[i] else AXIS_RGBA,
+                    labels=label, show_labels=True),
+        static=True,
+    )  # fmt: skip
+    index = indexes(step=np.arange(t))
+    ego_half = np.tile([p.ego_length_m / 2, p.vehicle_width_m / 2], (t, 1))
+    lead_half = np.tile([p.lead_length_m / 2, p.vehicle_width_m / 2], (t, 1))
+    det_col = np.where(seen[:, None], np.array(DETECTED_RGBA), np.array(MISSED_RGBA)).astype(np.uint8)
+    lead_col = np.where((gap < p.crash_gap_m)[:, None], np.array(LEAD_CRASH_RGBA), np.array(LEAD_RGBA))
+    s.send_columns(
+        f"{path}/ego",
+        indexes=index,
+        columns=rr.Boxes2D.columns(
+            centers=np.column_stack([ego_x, ys]), half_sizes=ego_half, colors=det_col, radii=np.full(t, -2.0)
+        ),
+    )
+    s.send_columns(
+        f"{path}/lead",
+        indexes=index,
+        columns=rr.Boxes2D.columns(
+            centers=np.column_stack([lead_x, ys]), half_sizes=lead_half, colors=lead_col.astype(np.uint8),
+            radii=np.full(t, -2.0),
+        ),
+    )
+    sight = np.stack([np.column_stack([camera_x, ys]), np.column_stack([lead_rear, ys])], axis=1)
+    s.send_columns(
+        f"{path}/sight",
+        indexes=index,
+        columns=rr.LineStrips2D.columns(strips=sight, colors=det_col, radii=np.full(t, -1.5)),
+    )

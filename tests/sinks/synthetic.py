@@ -1,0 +1,53 @@
+"""Hand-made engine events for the sinks' tests: no engine, no simulator, no PEM."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pemviz.config import ExperimentConfig
+from pemviz.estimate import estimate
+from pemviz.estimators.base import RunPlan
+from pemviz.events import RolloutsSampled, RunStarted, StageFinished, StageResult
+from pemviz.problems import ProblemView, SignalView, Thresholds
+from pemviz.scenarios import RolloutBatch
+from pemviz.scenarios.braking import BrakingParams
+
+PLAN = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 50)])
+"""Pretraining, K = 2 CE stages, the final batch: 130 simulations."""
+
+BRAKING = ProblemView("braking", "a lead car ahead",
+                      (SignalView("d", "gap_m", "m"), SignalView("v", "ego_speed_mps", "m/s")),
+                      Thresholds(2.0, 10.0, "m", "crash gap", "braking distance"), BrakingParams())  # fmt: skip
+TOY = ProblemView("toy-1e-3", "toy braking", (SignalView("d", "gap_m", "units"),),
+                  Thresholds(3.0, 5.0, "units", "failure below", "braking within"), None)  # fmt: skip
+GRID = np.linspace(0.0, 13.0, 14)
+
+
+def run_started(view: ProblemView = BRAKING, plan: RunPlan = PLAN, **config) -> RunStarted:
+    cfg = ExperimentConfig(**{"n_stages": 2, "n_per_stage": 30, "n_final": 50, "pretrain_rollouts": 20, **config})
+    return RunStarted(cfg, "G[0,4](d >= 2)", GRID, np.full(GRID.size, 0.9), view, plan, exact_log_p=None)
+
+
+def batch(gaps: np.ndarray, columns: tuple[str, ...] = ("gap_m", "ego_speed_mps")) -> RolloutBatch:
+    """Rollouts with the gap rows ``gaps`` [N, T] (metres), ego speed 5 m/s, every step detected, log p = log q =
+    -0.1 (nats)."""
+    gaps = np.asarray(gaps, dtype=np.float64)
+    obs = np.stack([gaps] + [np.full(gaps.shape, 5.0)] * (len(columns) - 1), axis=2)
+    return RolloutBatch(obs, np.ones(gaps.shape, bool), np.full(gaps.shape, -0.1), np.full(gaps.shape, -0.1), columns)
+
+
+def sampled(stage: int, kind: str, b: RolloutBatch, n_total: int | None = None) -> RolloutsSampled:
+    """The batch's rollouts with robustness min gap - 2 m (failure below 0), log-weights 0."""
+    r = b.gap_m.min(axis=1) - 2.0
+    index = None if n_total is None else np.arange(b.n)
+    return RolloutsSampled(stage, kind, b, r, {"classic": r}, r < 0, np.zeros(b.n), n_total=n_total, index=index)
+
+
+def finished(stage: int, kind: str, n: int, n_failures: int, gamma: float = float("nan"), wall_s: float = 1.0
+             ) -> StageFinished:  # fmt: skip
+    """A stage of ``n`` rollouts, ``n_failures`` of them failing, every importance weight 1 (mu_hat = n_failures /
+    n)."""
+    failed = np.arange(n) < n_failures
+    e = estimate(np.zeros(n), failed, np.full(n, -1.0))
+    curve = np.full(GRID.size, 0.5)
+    return StageFinished(StageResult(stage, kind, gamma, n_failures, e, curve, np.full(GRID.size, np.nan), wall_s))

@@ -1,0 +1,90 @@
+"""The rerun sink on hand-made events, logged into a stream that keeps what it is given: the stage names and colours
+come from the run's plan, the threshold lines and the scene from the problem's view (none of the braking scenario's
+for a toy)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rerun")
+
+from pemviz.events import StageStarted  # noqa: E402
+from pemviz.sinks.recording import DETECTED_RGBA, MISSED_RGBA, RerunSink  # noqa: E402
+
+from .synthetic import BRAKING, TOY, batch, finished, run_started, sampled  # noqa: E402
+
+
+class Stream:
+    """Stands for a :class:`rerun.RecordingStream`: keeps every entity logged, with its archetypes."""
+
+    def __init__(self) -> None:
+        self.logged: dict[str, list] = {}
+        self.blueprint = None
+
+    def log(self, path, *archetypes, static=False) -> None:
+        self.logged.setdefault(path, []).extend(archetypes)
+
+    def send_columns(self, path, indexes, columns) -> None:
+        self.logged.setdefault(path, []).append(columns)
+
+    def send_blueprint(self, blueprint) -> None:
+        self.blueprint = blueprint
+
+    def __getattr__(self, name):  # set_time, flush, send_property, ...: nothing to keep
+        return lambda *a, **k: None
+
+
+def record(view):
+    stream = Stream()
+    sink = RerunSink(stream)
+    sink(run_started(view))
+    gaps = np.array([[12.0, 8.0, 4.0, 1.5, 1.0], [12.0, 9.0, 6.0, 4.0, 3.0]])  # the first crashes (gap < 2 m)
+    for stage, kind in ((0, "pretrain"), (1, "ce")):
+        sink(StageStarted(stage, kind, 2))
+        sink(sampled(stage, kind, batch(gaps, ("gap_m", "ego_speed_mps") if view.scene else ("gap_m",))))
+        sink(finished(stage, kind, 2, 1, gamma=0.5))
+    return sink, stream
+
+
+def view_names(part) -> list[str]:
+    """The names of the views in a blueprint (or a container of it), depth first."""
+    part = getattr(part, "root_container", part)
+    inner = getattr(part, "contents", None)
+    if isinstance(inner, (list, tuple)) and hasattr(part, "kind"):  # a container (a view's contents are queries)
+        return [name for child in inner for name in view_names(child)]
+    return [str(part.name)]
+
+
+def threshold_names(stream: Stream) -> list[str]:
+    (lines,) = [a for a in stream.logged["rollouts/gap_m/thresholds"] if type(a).__name__ == "SeriesLines"]
+    return lines.names.as_arrow_array().to_pylist()
+
+
+def test_a_braking_run_draws_the_crash_gap_the_braking_distance_and_a_scene_lane_per_stage():
+    sink, stream = record(BRAKING)
+    assert threshold_names(stream) == ["crash gap 2 m", "braking distance 10 m"]
+    assert {"scene/stage_00/lane", "scene/stage_01/ego"} <= set(stream.logged)
+    assert "| 1 | CE stage 1/2 | 0.5000 | 1/2 |" in sink.stage_rows[1]
+    names = view_names(stream.blueprint)
+    assert "Scene: play on the step timeline" in names and "d: gap_m (m), play on the step timeline" in names
+
+
+def test_a_toy_run_draws_its_own_thresholds_and_no_scene():
+    sink, stream = record(TOY)
+    assert threshold_names(stream) == ["failure below 3 units", "braking within 5 units"]
+    assert not [p for p in stream.logged if p.startswith("scene")]
+    names = view_names(stream.blueprint)
+    assert "Scene: play on the step timeline" not in names and "d: gap_m (units), play on the step timeline" in names
+    assert "braking scenario" not in sink.intro_md
+    assert "10 m" not in sink.intro_md and "2 m" not in sink.intro_md
+
+
+def test_stage_colours_run_from_blue_at_stage_0_to_orange_at_the_plans_last_stage():
+    sink, _ = record(BRAKING)  # the plan's last stage is 3, the final batch
+    assert sink._colour(0) == (40, 110, 230, 255) and sink._colour(3) == (255, 150, 30, 255)
+    assert sink._colour(1) == (40 + 215 // 3, int(110 + 40 / 3), int(230 - 200 / 3), 255)
+
+
+def test_the_detection_colours_are_green_and_orange():
+    assert DETECTED_RGBA == (40, 170, 80, 255) and MISSED_RGBA == (245, 130, 30, 255)
