@@ -5,7 +5,7 @@ as listeners ``listener(event) -> None`` and never call back into the engine, ex
 ``cancel`` token (a :class:`threading.Event`).
 
 The events and their order are :mod:`pemviz.events`'s: :class:`~pemviz.events.RunStarted` (with the estimator's
-:class:`~pemviz.estimators.base.RunPlan` and the problem's :class:`~pemviz.problems.ProblemView`), then per stage
+:class:`~pemviz.plan.RunPlan` and the problem's :class:`~pemviz.problems.ProblemView`), then per stage
 :class:`~pemviz.events.StageStarted`, :class:`~pemviz.events.RolloutChunk` (one per chunk),
 :class:`~pemviz.events.RolloutsSampled`, :class:`~pemviz.events.StageFinished`, then
 :class:`~pemviz.events.FinalEstimate` and :class:`~pemviz.events.RunFinished` (or :class:`~pemviz.events.RunCancelled`).

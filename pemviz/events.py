@@ -1,6 +1,6 @@
 """The events the experiment engine (:class:`pemviz.engine.Experiment`) emits, and what they carry.
 
-Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.estimators.base.RunPlan` and the problem's
+Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.plan.RunPlan` and the problem's
 :class:`~pemviz.problems.ProblemView`); for each stage (0 = pretraining, 1..K = cross-entropy stages, K+1 = final
 batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one :class:`RolloutsSampled`,
 :class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`).
@@ -17,11 +17,12 @@ from typing import TYPE_CHECKING, Callable, Union
 
 import numpy as np
 
+from pemviz.plan import RunPlan
+
 if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.config import ExperimentConfig
     from pemviz.detectors import Detector
     from pemviz.estimate import Estimate
-    from pemviz.estimators.base import RunPlan
     from pemviz.problems import ProblemView
     from pemviz.scenarios import RolloutBatch
 
@@ -51,22 +52,6 @@ class StageStarted:
     kind: str
     """``pretrain`` | ``ce`` | ``final`` | ``ams``."""
     n_rollouts: int
-
-
-def stage_label(stage: int, kind: str, n_stages: int) -> str:
-    """The one name of a stage in console, panel, recording and CSVs.
-
-    ``pretraining`` (stage 0), ``CE stage k/K`` (stages 1..K, ``n_stages`` = K), ``final batch`` (stage K+1,
-    or the only batch of mc / naive50 / mixed50), ``AMS particles`` / ``AMS iterations k`` (adaptive multilevel
-    splitting); the number is the engine's ``stage`` everywhere.
-    """
-    if kind == "pretrain":
-        return "pretraining"
-    if kind == "ce":
-        return f"CE stage {stage}/{n_stages}"
-    if kind == "ams":
-        return f"AMS iterations {stage}" if stage else "AMS particles"
-    return "final batch"
 
 
 @dataclass(frozen=True)

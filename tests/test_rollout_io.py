@@ -17,6 +17,7 @@ import pytest
 
 from conftest import run_cli, verify_rrd
 from pemviz.estimate import estimate
+from pemviz.plan import RunPlan
 from pemviz.problems import problem_for
 from pemviz import cli
 from pemviz.io import rollout_format
@@ -25,7 +26,6 @@ from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_lo
 from pemviz.config import PRESETS, ExperimentConfig
 from pemviz.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment
-from pemviz.estimators.base import RunPlan
 from pemviz.events import FinalEstimate, RolloutChunk, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem

@@ -191,7 +191,7 @@ class PanelRun(Sink):
         self.message = ""
         self.formula = ""
         self.plan = None
-        """The stages the run will draw (:class:`pemviz.estimators.base.RunPlan`), once it started; None before."""
+        """The stages the run will draw (:class:`pemviz.plan.RunPlan`), once it started; None before."""
         self.view = None
         """The problem as the panel shows it (:class:`pemviz.problems.ProblemView`), once it started; None before."""
         self.curve_grid_m = np.zeros(0)

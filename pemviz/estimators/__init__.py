@@ -13,8 +13,6 @@ from pemviz.estimators.ams import AdaptiveMultilevelSplitting
 from pemviz.estimators.base import (
     Check,
     Estimator,
-    PlannedStage,
-    RunPlan,
     StageOutcome,
     StagePlan,
     failure_steps,
@@ -23,6 +21,7 @@ from pemviz.estimators.base import (
 )
 from pemviz.estimators.cross_entropy import CappedDetector, CrossEntropy, DefensiveDetector, break_ties
 from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
+from pemviz.plan import PlannedStage, RunPlan
 from pemviz.problems import Problem
 
 __all__ = [

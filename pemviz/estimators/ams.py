@@ -37,7 +37,8 @@ from scipy.special import logsumexp, ndtri
 from pemviz import stl
 from pemviz.config import ExperimentConfig
 from pemviz.estimate import CI_LEVEL, MIN_FAILURES, Estimate
-from pemviz.estimators.base import Check, RunPlan, StageOutcome, StagePlan, log_p_before_failure
+from pemviz.estimators.base import Check, StageOutcome, StagePlan, log_p_before_failure
+from pemviz.plan import RunPlan
 from pemviz.problems import Problem
 from pemviz.scenarios import RolloutBatch
 

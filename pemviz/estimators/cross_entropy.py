@@ -27,7 +27,6 @@ from pemviz.estimate import Estimate, estimate
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
-    RunPlan,
     StageOutcome,
     StagePlan,
     StageRollouts,
@@ -40,6 +39,7 @@ from pemviz.estimators.base import (
     pooled_estimate,
     weighted_steps_mask,
 )
+from pemviz.plan import RunPlan
 from pemviz.problems import Problem
 from pemviz.rng import RQMC_BLOCK
 from pemviz.sampling import Proposal, StateProposal, fit_proposal

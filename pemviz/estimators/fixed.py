@@ -7,7 +7,8 @@ import numpy as np
 
 from pemviz.detectors import ConstantDetector, Detector, WindowDetector
 from pemviz.estimate import Estimate
-from pemviz.estimators.base import RunPlan, StageOutcome, StagePlan, StageRollouts
+from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts
+from pemviz.plan import RunPlan
 from pemviz.problems import Problem
 from pemviz.scenarios import RolloutBatch
 

@@ -49,7 +49,7 @@ class Sink:
                 return
 
     def on_run_started(self, event: RunStarted) -> None:
-        """The run starts: its config, plan (:class:`~pemviz.estimators.base.RunPlan`) and problem view."""
+        """The run starts: its config, plan (:class:`~pemviz.plan.RunPlan`) and problem view."""
 
     def on_stage_started(self, event: StageStarted) -> None:
         """A stage starts drawing its rollouts."""

@@ -49,7 +49,7 @@ class ConsoleSink(Sink):
         self.progress = progress or sys.stderr
         self.clock = StageClock()
         self.plan = None
-        """The run's :class:`~pemviz.estimators.base.RunPlan` (from :class:`~pemviz.events.RunStarted`)."""
+        """The run's :class:`~pemviz.plan.RunPlan` (from :class:`~pemviz.events.RunStarted`)."""
         self.exact_log_p: float | None = None
 
     def __call__(self, event) -> None:

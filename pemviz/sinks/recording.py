@@ -6,7 +6,7 @@ signals, thresholds and scene from the problem's view. Its look (colours, figure
 :mod:`pemviz.sinks.rerun_views`'s.
 
 Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch: the engine's
-numbering and the plan's names, :func:`pemviz.events.stage_label`; the default timeline: scrubbing it steps the
+numbering and the plan's names, :func:`pemviz.plan.stage_label`; the default timeline: scrubbing it steps the
 proposal curve, the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout
 traces and the scene play on it) and ``repetition`` (only when the sink is given one). Colours are those of the
 panel (:mod:`pemviz.sinks.colours`): detected green, missed orange, crash red.
@@ -131,7 +131,7 @@ class RerunSink(Sink):
         self.scene_per_stage = scene_per_stage
         self.repetition = repetition
         self.plan = None
-        """The run's :class:`~pemviz.estimators.base.RunPlan` (from :class:`~pemviz.events.RunStarted`)."""
+        """The run's :class:`~pemviz.plan.RunPlan` (from :class:`~pemviz.events.RunStarted`)."""
         self.view = None
         """The problem's :class:`~pemviz.problems.ProblemView` (from :class:`~pemviz.events.RunStarted`)."""
         self.scene: BrakingParams | None = None

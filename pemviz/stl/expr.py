@@ -9,10 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Union
-
-if TYPE_CHECKING:
-    from pemviz.stl.formula import Predicate
+from typing import Any, Union
 
 __all__ = ["Expr", "Signal", "Const", "BinaryExpr", "Negate", "format_number", "KEYWORDS", "COMPARISONS"]
 
@@ -52,10 +49,17 @@ def _as_expr(x: Operand) -> Expr:
     return Const(float(x))
 
 
-def _predicate(lhs: Expr, op: str, rhs: Expr) -> Predicate:
-    from pemviz.stl.formula import Predicate  # formula imports this module: import at call time
+Comparison = Any
+"""What comparing expressions gives: a :class:`pemviz.stl.formula.Predicate` (that module imports this one, so the
+annotation cannot name it here)."""
 
-    return Predicate(lhs, op, rhs)
+PREDICATE: list = []
+"""The predicate class, ``[pemviz.stl.formula.Predicate]``, which :mod:`pemviz.stl.formula` registers when it is
+imported (it imports this module, so this one cannot import it back)."""
+
+
+def _predicate(lhs: Expr, op: str, rhs: Expr) -> Comparison:
+    return PREDICATE[0](lhs, op, rhs)
 
 
 class Expr:
@@ -101,16 +105,16 @@ class Expr:
             return Const(-self.value)
         return Negate(self)
 
-    def __ge__(self, other: Operand) -> Predicate:  # type: ignore[override]
+    def __ge__(self, other: Operand) -> Comparison:  # type: ignore[override]
         return _predicate(self, ">=", _as_expr(other))
 
-    def __gt__(self, other: Operand) -> Predicate:  # type: ignore[override]
+    def __gt__(self, other: Operand) -> Comparison:  # type: ignore[override]
         return _predicate(self, ">", _as_expr(other))
 
-    def __le__(self, other: Operand) -> Predicate:  # type: ignore[override]
+    def __le__(self, other: Operand) -> Comparison:  # type: ignore[override]
         return _predicate(self, "<=", _as_expr(other))
 
-    def __lt__(self, other: Operand) -> Predicate:  # type: ignore[override]
+    def __lt__(self, other: Operand) -> Comparison:  # type: ignore[override]
         return _predicate(self, "<", _as_expr(other))
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Iterable
 
+from pemviz.stl import expr
 from pemviz.stl.expr import (
     COMPARISONS,
     KEYWORDS,
@@ -188,6 +189,9 @@ class Predicate(Formula):
 
     def __str__(self) -> str:
         return f"{self.lhs} {self.op} {self.rhs}"
+
+
+expr.PREDICATE.append(Predicate)
 
 
 @dataclass(frozen=True, eq=True)

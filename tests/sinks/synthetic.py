@@ -6,8 +6,8 @@ import numpy as np
 
 from pemviz.config import ExperimentConfig
 from pemviz.estimate import estimate
-from pemviz.estimators.base import RunPlan
 from pemviz.events import RolloutsSampled, RunStarted, StageFinished, StageResult
+from pemviz.plan import RunPlan
 from pemviz.problems import ProblemView, SignalView, Thresholds
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
