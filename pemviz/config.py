@@ -1,5 +1,9 @@
 """ExperimentConfig: every knob of a pemviz experiment, validated once.
 
+What each knob is (symbol, words, allowed range, help, command-line flag, the estimator that reads it) lives in one
+place, :data:`SETTINGS`: the config's checks, the command line (:mod:`pemviz.commands`), the panel's form
+(:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read it there.
+
 Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.CrossEntropy` (its CE
 stage) and :func:`pemviz.estimators.cross_entropy.ce_update` (the weighted fit). The metric: :class:`pemviz.engine.Experiment`
 ranks the rollouts with it (:meth:`pemviz.problems.Problem.robustness`). The seed: the engine's rollout stream and
@@ -9,6 +13,8 @@ the estimator's fit, tie-breaking and initial-weight streams.
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -71,6 +77,273 @@ MAX_SMOOTHING_AT_FAILURE = 2.0
 tail decides the fit."""
 MAX_EPOCHS = 100_000
 """Largest Adam epochs per stage (paper 500, authors' code 1000; 10^5 epochs take ~10 min a stage)."""
+
+RUN = "run"
+"""The owner of a setting that the run itself reads, whatever its method (the engine, the problem, the seed)."""
+
+
+@dataclass(frozen=True)
+class Setting:
+    """What one :class:`ExperimentConfig` field is, in the one place every reader takes it from: the config's own
+    check and its :class:`ConfigError` messages, the command line's flags (:mod:`pemviz.commands`), the panel's form
+    and its hints and the run labels (:mod:`pemviz.app.form`), and the estimators that read it
+    (:func:`settings_of`).
+
+    Attributes:
+        name: the :class:`ExperimentConfig` field.
+        words: what it is, as a noun in plain words with its symbol (``"the smoothing alpha"``); error messages say
+            ``<words> must be <allowed>``.
+        help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
+        kind: ``int``, ``real``, ``choice``, ``bool``, ``text`` or ``pem`` (a shipped PEM name or a file, checked
+            where it is loaded: the config does no I/O).
+        symbol: the paper's symbol (``alpha``, ``sigma``, ``K``, ``N``, ``N_e``; ``k`` of AMS), or None.
+        short: the name in the panel and the run labels when it is neither the symbol nor the field's words.
+        unit: the unit of a physical quantity (``""``: a count, a probability or a name).
+        lo, hi, lo_open, hi_open: the allowed range of a number; ``lo_open`` / ``hi_open`` exclude the end.
+        hi_words: how the upper end is written (``2^64 - 1`` rather than its 20 digits).
+        optional: None is allowed too.
+        choices: the allowed values of a ``choice``.
+        choice_help: (value, what it does) for each choice: the rest of the help, and the panel dropdown's hint.
+        flags: the command-line flags, the first the one error messages name (empty: no flag).
+        owner: who reads it: :data:`RUN` (every method) or the method whose estimator reads it (``adaptive``:
+            :class:`pemviz.estimators.CrossEntropy`; ``ams``: :class:`pemviz.estimators.AdaptiveMultilevelSplitting`).
+    """
+
+    name: str
+    words: str
+    help: str
+    kind: str = "real"
+    symbol: str | None = None
+    short: str | None = None
+    unit: str = ""
+    lo: float = -math.inf
+    hi: float = math.inf
+    lo_open: bool = False
+    hi_open: bool = False
+    hi_words: str | None = None
+    optional: bool = False
+    choices: tuple[str, ...] = ()
+    choice_help: tuple[tuple[str, str], ...] = ()
+    flags: tuple[str, ...] = ()
+    owner: str = "adaptive"
+
+    @property
+    def label(self) -> str:
+        """The name in the panel, the run labels and the compare table (``smoothing`` -> ``alpha``)."""
+        return self.short or self.symbol or self.name.replace("_", " ")
+
+    @property
+    def integer(self) -> bool:
+        return self.kind == "int"
+
+    @property
+    def flag(self) -> str:
+        """The command-line flag that sets it (``--alpha``), or ``--`` + the field's name where it has none."""
+        return self.flags[0] if self.flags else "--" + self.name.replace("_", "-")
+
+    @property
+    def allowed(self) -> str:
+        """The allowed values in words, the same in the config's, the command line's and the form's messages:
+        ``a number in (0, 1]``, ``a whole number >= 2``, ``one of classic, agm, smooth-cumulative``."""
+        if self.kind == "choice":
+            text = f"one of {', '.join(self.choices)}"
+        elif self.kind == "bool":
+            text = "True or False"
+        elif self.kind == "text":
+            text = "a non-empty address"
+        elif self.kind == "pem":
+            text = "a shipped PEM name or a PEM file"
+        elif self.integer:
+            lo = int(self.lo)
+            hi = self.hi_words or (None if math.isinf(self.hi) else int(self.hi))
+            text = f"a whole number >= {lo}" if hi is None else f"a whole number in [{lo}, {hi}]"
+        elif math.isinf(self.hi):
+            text = f"a number {'>' if self.lo_open else '>='} {self.lo:g}"
+        else:
+            text = f"a number in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+        return f"None or {text}" if self.optional else text
+
+    @property
+    def hint(self) -> str:
+        """The flag's help and the panel's hint: ``smoothing alpha, a number in (0, 1]: the power on ...``."""
+        noun = self.words.removeprefix("the ") + (f" in {self.unit}" if self.unit else "")
+        text = f"{noun}, {self.allowed}: {self.help}"
+        return "; ".join((text, *(f"{value}: {what}" for value, what in self.choice_help)))
+
+    def accepts(self, value: object) -> bool:
+        """Whether ``value`` is allowed on its own (the config also checks settings against each other)."""
+        if self.kind == "pem":  # a name or a file: checked where it is loaded (no I/O here)
+            return True
+        if value is None:
+            return self.optional
+        if self.kind == "choice":
+            return isinstance(value, str) and value in self.choices
+        if self.kind == "bool":
+            return isinstance(value, bool)
+        if self.kind == "text":
+            return isinstance(value, str) and value != ""
+        if not (_is_int(value) if self.integer else _is_real(value)):
+            return False
+        too_low = value <= self.lo if self.lo_open else value < self.lo
+        too_high = value >= self.hi if self.hi_open else value > self.hi
+        return not (too_low or too_high)
+
+    def parse(self, text: str) -> int | float:
+        """The number typed as ``text`` (the panel's fields, the command line's flags), its range not checked.
+
+        Decimal and scientific notation (``0.2``, ``1e-3``, ``1e5``) with surrounding spaces; a whole-number
+        setting takes only whole values (``1e5`` yes, ``12.5`` no), exactly beyond float64's 2^53. Nothing is
+        rounded.
+
+        Raises:
+            ValueError: empty, not a number, not finite, or not whole where it must be; the message says what
+                to type, in :attr:`allowed`'s words.
+        """
+        raw = str(text).strip()
+        if raw == "":
+            raise ValueError(f"empty; type {self.allowed} ({self.words})")
+        if not _NUMBER.match(raw):
+            raise ValueError(f"{raw!r} is not a number; type {self.allowed} ({self.words})")
+        value: float | int = int(raw) if self.integer and re.fullmatch(r"[+-]?\d+", raw) else float(raw)
+        if not math.isfinite(value):
+            raise ValueError(f"{raw!r} is too large; type {self.allowed} ({self.words})")
+        if self.integer and isinstance(value, float):
+            if not value.is_integer():
+                raise ValueError(f"{raw} is not a whole number; {self.words} must be {self.allowed}")
+            value = int(value)
+        return value
+
+    @property
+    def title(self) -> str:
+        """``smoothing (alpha)``: the field and its symbol, as the config's messages name it."""
+        return f"{self.name} ({self.symbol})" if self.symbol else self.name
+
+
+_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
+
+
+def _settings(*settings: Setting) -> dict[str, Setting]:
+    return {s.name: s for s in settings}
+
+
+SETTINGS: dict[str, Setting] = _settings(
+    Setting("method", "the method", "the estimator", kind="choice", choices=METHODS, owner=RUN, flags=("--method",),
+            choice_help=(("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1)"),
+                         ("mc", "rollouts with the PEM itself"), ("naive50", "a 50 % detector at every step"),
+                         ("mixed50", "50 % inside the window and the PEM outside"),
+                         ("ams", "adaptive multilevel splitting on the robustness, no importance weights"))),
+    Setting("n_stages", "the number of cross-entropy stages K", "stages of N rollouts, the proposal refitted after each",
+            kind="int", symbol="K", lo=1, hi=MAX_STAGES, flags=("--k", "--stages")),
+    Setting("n_per_stage", "the rollouts per stage N",
+            "rollouts of each stage; of mc, naive50 and mixed50 all their rollouts; of ams its particles",
+            kind="int", symbol="N", lo=2, owner=RUN, flags=("--n",)),
+    Setting("n_final", "the rollouts of the final estimate N_e", "fresh rollouts from the final proposal for the estimate",
+            kind="int", symbol="N_e", lo=1, flags=("--n-final",)),
+    Setting("quantile_level", "the quantile level sigma",
+            "the stage threshold is the (1 - sigma) quantile of robustness", symbol="sigma", lo=0.5, hi=1.0,
+            hi_open=True, flags=("--sigma",)),
+    Setting("smoothing", "the smoothing alpha", "the power on the importance weights in the CE loss", symbol="alpha",
+            lo=0.0, hi=1.0, lo_open=True, flags=("--alpha",)),
+    Setting("metric", "the robustness metric", "the semantics that ranks the rollouts and sets the stage thresholds "
+            "(a failure is always a negative classic robustness)", kind="choice", choices=METRICS, short="metric",
+            owner=RUN, flags=("--metric",),
+            choice_help=(("classic", "the worst step's margin alone"),
+                         ("agm", "every step's normalised margin, so time spent near the bound counts"),
+                         ("smooth-cumulative", "a soft minimum of softplus margins, so every near-worst step counts"))),
+    Setting("seed", "the seed", "seeds the rollouts, the fits, tie-breaking and the proposal's initial weights; the same "
+            "seed gives the same run", kind="int", lo=0, hi=MAX_SEED, hi_words="2^64 - 1", owner=RUN,
+            flags=("--seed",)),
+    Setting("ce_epochs", "the Adam epochs per stage", "the most Adam epochs of a cross-entropy stage's fit", kind="int",
+            short="CE epochs", lo=1, hi=MAX_EPOCHS, flags=("--ce-epochs",)),
+    Setting("pretrain_rollouts", "the pretraining rollouts", "PEM-driven rollouts the first proposal is fitted to",
+            kind="int", short="pretrain rollouts", lo=1),
+    Setting("pretrain_epochs", "the pretraining epochs", "Adam epochs of the first proposal's fit", kind="int",
+            short="pretrain epochs", lo=1, hi=MAX_EPOCHS, flags=("--pretrain-epochs",)),
+    Setting("learning_rate", "the learning rate", "Adam's step size for the proposal", lo=0.0, lo_open=True),
+    Setting("weights", "the importance weights of the fit", "how the CE loss holds the importance weights",
+            kind="choice", choices=WEIGHT_MODES,
+            choice_help=(("frozen", "constants of each fit (the paper's eq. 10-11)"),
+                         ("recomputed", "recomputed from the proposal, with their gradient (the authors' code)"))),
+    Setting("final_estimate", "the final estimate", "which rollouts the estimate weighs", kind="choice",
+            choices=FINAL_MODES,
+            choice_help=(("pooled", "the final rollouts and every stage fitted to failures, each weighted by the "
+                                    "proposal that drew it"),
+                         ("fresh", "the final rollouts alone (the paper)"),
+                         ("last-stage", "the last stage's batch (the authors' code)"))),
+    Setting("pool_weights", "the weights of the pooled stages", "how the pooled estimate counts its stages",
+            kind="choice", choices=POOL_WEIGHTS,
+            choice_help=(("quadratic", "the j-th pooled stage in proportion to j^2 n_j"),
+                         ("linear", "in proportion to j n_j"), ("rollouts", "every rollout alike"))),
+    Setting("uniforms", "the uniforms of a batch", "how the rollouts of a batch draw their detections; every estimate "
+            "keeps its expectation", kind="choice", choices=UNIFORMS, owner=RUN,
+            choice_help=(("array-rqmc", "the rollouts of a block stepped as one array on a randomly shifted lattice"),
+                         ("iid", "one independent uniform per rollout and step (the paper)"))),
+    Setting("pem", "the perception error model", "the PEM the rollouts detect with", kind="pem",
+            short="PEM", owner=RUN, flags=("--pem",)),
+    Setting("sim", "the simulator", "the braking scenario's back-end; a seed gives the same rollouts on both",
+            kind="choice", choices=SIMULATORS, short="simulator", owner=RUN, flags=("--sim",),
+            choice_help=(("highway-env", "one highway-env simulator per rollout"),
+                         ("batched", "all rollouts advanced together in numpy"))),
+    Setting("executor", "the executor", "where rollouts are simulated; a seed gives the same rollouts and estimate, bit "
+            "for bit", kind="choice", choices=EXECUTORS, owner=RUN, flags=("--executor",),
+            choice_help=(("serial", "in this process"),
+                         ("ray", "Ray tasks over blocks of rollouts; a batch of one block runs in this process"))),
+    Setting("ray_address", "the Ray cluster", "the cluster that executor ray uses", kind="text",
+            optional=True, owner=RUN, flags=("--ray-address",)),
+    Setting("proposal_inputs", "the proposal's inputs h(s)", "what the proposal sees", kind="choice",
+            choices=PROPOSAL_INPUTS,
+            choice_help=(("gap", "the gap to the lead car (the paper)"),
+                         ("state", "every observation column of the problem"))),
+    Setting("proposal_window", "the proposal window", "the proposal replaces the PEM only where the detector can matter",
+            kind="bool"),
+    Setting("skip_decided", "the skip of decided steps", "with the window, the proposal also gives way to the PEM where "
+            "the outcome is already decided", kind="bool"),
+    Setting("weights_until_failure", "the weights until failure", "importance weights stop at the step where the "
+            "failure happens", kind="bool", owner=RUN),
+    Setting("smoothing_at_failure", "the smoothing alpha at the failure level", "alpha once the stage threshold has "
+            "reached the failure level (None: the smoothing alpha)", short="alpha at failure", lo=0.0,
+            hi=MAX_SMOOTHING_AT_FAILURE, lo_open=True, optional=True),
+    Setting("final_smoothing", "the smoothing alpha of the last fit", "alpha of the last stage's fit, whose proposal "
+            "draws the final rollouts (None: as the stages before it)", short="final alpha", lo=0.0,
+            hi=MAX_SMOOTHING_AT_FAILURE, lo_open=True, optional=True),
+    Setting("elite_ties", "the elite ties", "which rollouts tied at the stage threshold are elites", kind="choice",
+            choices=ELITE_TIES,
+            choice_help=(("all", "every rollout at or below the threshold (the paper)"),
+                         ("random", "ties drawn at random up to ceil((1 - sigma) N) elites"))),
+    Setting("pretrain_cap", "the pretraining detection cap", "inside the window the pretraining rollouts detect with "
+            "at most this probability (None: the PEM's)", lo=0.0, hi=1.0, lo_open=True, hi_open=True, optional=True),
+    Setting("defensive", "the defensive share eps", "the CE stages draw from (1 - eps) q + eps x 50 % at every step",
+            lo=0.0, hi=1.0, hi_open=True),
+    Setting("target_share", "the target's share", "once the failure level is reached, the share of a stage's rollouts "
+            "drawn from the target p", lo=0.0, hi=1.0),
+    Setting("plain_share", "the plain proposal's share", "the share of a stage's rollouts drawn from the proposal "
+            "without the per-step mixture", lo=0.0, hi=1.0),
+    Setting("fit_all_failures", "the fit to all failures", "each fit uses the failures of every stage since the "
+            "failure level", kind="bool"),
+    Setting("fit_weights", "the weights of the failures in a fit", "how the fits weigh the failures of every stage",
+            kind="choice", choices=FIT_WEIGHTS,
+            choice_help=(("mixture", "by the mixture of the samplers since the failure level"),
+                         ("sampler", "by the sampler that drew each"))),
+    Setting("fit", "the fitting method", "how the proposal is fitted each stage", kind="choice", choices=FITS,
+            choice_help=(("adam", "full-batch Adam, a number of epochs"),
+                         ("lbfgs", "L-BFGS from the previous proposal until converged"))),
+    Setting("fit_max_steps", "the L-BFGS iterations", "the most L-BFGS iterations of one fit", kind="int", lo=1),
+    Setting("fit_rows", "the rows of a fit", "the most steps one fit sees, beyond them a weighted subsample with the "
+            "same expected loss (None: every step)", kind="int", lo=1, optional=True),
+    Setting("fit_tolerance", "the fit tolerance", "a CE stage's Adam fit stops once its loss fell by less than this "
+            "over the last 50 epochs (None: every epoch)", unit="nats per step", lo=0.0, lo_open=True, optional=True),
+    Setting("ams_killed", "the particles killed per iteration k", "particles killed and resampled per AMS iteration "
+            "at least (and every tie at the level); k < N", kind="int", symbol="k", lo=1, owner="ams",
+            flags=("--ams-killed",)),
+    Setting("ams_max_iterations", "the most AMS iterations", "a run stopped by them before the failure level is "
+            "doubtful", kind="int", lo=1, owner="ams"),
+)  # fmt: skip
+"""Every :class:`ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
+
+
+def settings_of(owner: str) -> tuple[str, ...]:
+    """The fields that ``owner`` reads (:attr:`Setting.owner`): :data:`RUN`, ``adaptive`` or ``ams``."""
+    return tuple(name for name, s in SETTINGS.items() if s.owner == owner)
 
 
 @dataclass(frozen=True)
@@ -231,74 +504,26 @@ class ExperimentConfig:
     ams_max_iterations: int = 10_000
 
     def __post_init__(self) -> None:
-        def need(ok: bool, what: str, allowed: str) -> None:
-            if not ok:
-                name = what.split()[0]
-                raise ConfigError(f"{what} = {getattr(self, name)!r} is invalid: {allowed}", name)
+        for setting in SETTINGS.values():  # each setting on its own: its range from SETTINGS
+            value = getattr(self, setting.name)
+            if not setting.accepts(value):
+                verb = "use" if setting.kind == "choice" else f"{setting.words} must be"
+                raise ConfigError(f"{setting.title} = {value!r} is invalid: {verb} {setting.allowed}", setting.name)
 
-        need(self.method in METHODS, "method", f"use one of {', '.join(METHODS)}")
-        need(self.metric in METRICS, "metric", f"use one of {', '.join(METRICS)}")
-        need(self.weights in WEIGHT_MODES, "weights", f"use one of {', '.join(WEIGHT_MODES)}")
-        need(self.sim in SIMULATORS, "sim", f"use one of {', '.join(SIMULATORS)}")
-        need(self.executor in EXECUTORS, "executor", f"use one of {', '.join(EXECUTORS)}")
-        need(
-            self.ray_address is None or (isinstance(self.ray_address, str) and self.ray_address != ""
-                                         and self.executor == "ray"),
-            "ray_address", "give a non-empty Ray address, and only with executor = 'ray'",
-        )  # fmt: skip
-        need(self.final_estimate in FINAL_MODES, "final_estimate", f"use one of {', '.join(FINAL_MODES)}")
-        need(self.pool_weights in POOL_WEIGHTS, "pool_weights", f"use one of {', '.join(POOL_WEIGHTS)}")
-        need(self.uniforms in UNIFORMS, "uniforms", f"use one of {', '.join(UNIFORMS)}")
-        need(_is_real(self.smoothing) and 0.0 < self.smoothing <= 1.0, "smoothing (alpha)", "alpha must be in (0, 1]")
-        need(
-            _is_real(self.quantile_level) and 0.5 <= self.quantile_level < 1.0,
-            "quantile_level (sigma)",
-            "sigma must be in [0.5, 1)",
-        )
-        need(_is_int(self.n_per_stage) and self.n_per_stage >= 2, "n_per_stage (N)", "N must be an integer >= 2")
-        need(_is_int(self.n_stages) and 1 <= self.n_stages <= MAX_STAGES, "n_stages (K)",
-             f"K must be an integer in [1, {MAX_STAGES}]")
-        need(_is_int(self.n_final) and self.n_final >= 1, "n_final (N_e)", "N_e must be an integer >= 1")
-        need(_is_int(self.seed) and 0 <= self.seed <= MAX_SEED, "seed", "seed must be an integer in [0, 2^64 - 1]")
-        for name in ("ce_epochs", "pretrain_epochs"):
-            need(_is_int(getattr(self, name)) and 1 <= getattr(self, name) <= MAX_EPOCHS, name,
-                 f"must be an integer in [1, {MAX_EPOCHS}]")
-        need(_is_int(self.pretrain_rollouts) and self.pretrain_rollouts >= 1, "pretrain_rollouts",
-             "must be an integer >= 1")
-        need(_is_real(self.learning_rate) and self.learning_rate > 0, "learning_rate", "must be > 0")
-        need(self.proposal_inputs in PROPOSAL_INPUTS, "proposal_inputs", f"use one of {', '.join(PROPOSAL_INPUTS)}")
-        need(
-            self.pretrain_cap is None or (_is_real(self.pretrain_cap) and 0.0 < self.pretrain_cap < 1.0),
-            "pretrain_cap", "must be None or in (0, 1)",
-        )  # fmt: skip
-        need(_is_real(self.defensive) and 0.0 <= self.defensive < 1.0, "defensive", "must be in [0, 1)")
-        for name in ("target_share", "plain_share"):
-            need(_is_real(getattr(self, name)) and 0.0 <= getattr(self, name) <= 1.0, name, "must be in [0, 1]")
+        def need(ok: bool, name: str, allowed: str) -> None:  # the settings against each other
+            if not ok:
+                raise ConfigError(f"{SETTINGS[name].title} = {getattr(self, name)!r} is invalid: {allowed}", name)
+
+        need(self.ray_address is None or self.executor == "ray", "ray_address", "give it only with executor = 'ray'")
         need(self.target_share + self.plain_share <= 1.0, "target_share", "target_share + plain_share must be <= 1")
         need(self.method != "adaptive" or self.target_share + self.plain_share == 0.0 or (
             self.weights == "frozen" and (self.weights_until_failure or self.proposal_window)), "target_share",
             "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or proposal_window; "
             "set target_share = plain_share = 0 (preset state-ce-step) for the others")
-        need(self.fit in FITS, "fit", f"use one of {', '.join(FITS)}")
-        need(self.fit_weights in FIT_WEIGHTS, "fit_weights", f"use one of {', '.join(FIT_WEIGHTS)}")
         need(self.fit_weights == "sampler" or self.fit_all_failures, "fit_weights",
              "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it")  # fmt: skip
-        need(_is_int(self.fit_max_steps) and self.fit_max_steps >= 1, "fit_max_steps", "must be an integer >= 1")
-        need(self.fit_rows is None or (_is_int(self.fit_rows) and self.fit_rows >= 1), "fit_rows",
-             "must be None or an integer >= 1")  # fmt: skip
-        need(self.fit_tolerance is None or (_is_real(self.fit_tolerance) and self.fit_tolerance > 0), "fit_tolerance",
-             "must be None or > 0")  # fmt: skip
-        need(_is_int(self.ams_killed) and 1 <= self.ams_killed and (self.method != "ams" or
-             self.ams_killed < self.n_per_stage), "ams_killed (k)", "k must be an integer in [1, N - 1]")  # fmt: skip
-        need(_is_int(self.ams_max_iterations) and self.ams_max_iterations >= 1, "ams_max_iterations",
-             "must be an integer >= 1")  # fmt: skip
-        need(self.elite_ties in ELITE_TIES, "elite_ties", f"use one of {', '.join(ELITE_TIES)}")
-        for name in ("proposal_window", "skip_decided", "weights_until_failure"):
-            need(isinstance(getattr(self, name), bool), name, "must be True or False")
-        for name in ("smoothing_at_failure", "final_smoothing"):
-            alpha = getattr(self, name)
-            need(alpha is None or (_is_real(alpha) and 0.0 < alpha <= MAX_SMOOTHING_AT_FAILURE), name,
-                 f"must be None or in (0, {MAX_SMOOTHING_AT_FAILURE:g}]")  # fmt: skip
+        need(self.method != "ams" or self.ams_killed < self.n_per_stage, "ams_killed",
+             f"{SETTINGS['ams_killed'].words} must be a whole number in [1, N - 1]")
         need(self.final_smoothing is None or self.fit_weights == "mixture", "final_smoothing",
              "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
              "set final_smoothing = None with fit_weights = 'sampler'")  # fmt: skip

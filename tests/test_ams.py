@@ -224,7 +224,7 @@ def test_cli_run_method_ams(tmp_path):
     assert r.returncode == 0, r.stderr
     assert rrd.stat().st_size > 0
     r = run_cli("run", "--method", "ams", "--n", "5", "--no-record")
-    assert r.returncode == 2 and "Traceback" not in r.stderr and "k must be an integer in [1, N - 1]" in r.stderr
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "k must be a whole number in [1, N - 1]" in r.stderr
 
 
 def test_ams_through_snapshots_of_single_simulators_equals_the_vectorised_toy():

@@ -28,6 +28,7 @@ from pemviz.app.form import FIELDS_BY_KEY, parse_number  # noqa: E402
 from pemviz.app.panel import PanelApp  # noqa: E402
 from pemviz.app.runs import scene_positions  # noqa: E402
 from pemviz.app.session import Session  # noqa: E402
+from pemviz.config import SETTINGS  # noqa: E402
 from pemviz.sinks import colours  # noqa: E402
 
 CHROMIUM_ARGS = [
@@ -229,6 +230,17 @@ def test_typed_values_run_exactly_as_typed_and_every_error_shows_on_its_field(ta
         assert parse(f, shown.input_value()) == getattr(cfg, key)
     assert tab.field("alpha").input_value() == "1e-3"  # as typed, not reformatted
     expect(page.get_by_text("settings to fix")).to_have_count(0)
+
+
+def test_every_field_and_dropdown_has_a_hint_each_setting_the_one_its_flag_gives(tab):
+    s = tab.session
+    for key, handle in {**s.fields, **s.choices}.items():
+        assert (handle.label, handle.hint) == (SETTINGS[key].label, SETTINGS[key].hint), key
+    assert s.fields["smoothing"].hint == "smoothing alpha, a number in (0, 1]: the power on the importance weights in " \
+                                         "the CE loss"  # not the weight of a new fit in an update: that is another method
+    metric = s.choices["metric"].hint
+    assert "\n" not in metric and all(f"; {m}: " in metric for m in ("classic", "agm", "smooth-cumulative"))
+    assert all(h.hint for h in (s.preset, s.run_choice, s.rollout_dropdown))
 
 
 def parse(field, text: str):

@@ -1,24 +1,34 @@
-"""ExperimentConfig validation: one clear message naming the setting, the value and what is allowed."""
+"""ExperimentConfig validation: one clear message naming the setting, the value and what is allowed; every setting's
+one home (SETTINGS), which the config, the command line, the panel's form and the estimators read alike."""
 
 from __future__ import annotations
 
-import pytest
+import argparse
+import contextlib
+import dataclasses
+import io
+import math
+import re
 
-from pemviz.config import PRESETS, ConfigError, ExperimentConfig
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pemviz.config import PRESETS, RUN, SETTINGS, ConfigError, ExperimentConfig, settings_of
 
 
 @pytest.mark.parametrize(
     "field, value, message",
     [
-        ("smoothing", 0.0, r"alpha must be in \(0, 1\]"),
-        ("smoothing", 1.5, r"alpha must be in \(0, 1\]"),
-        ("quantile_level", 1.0, r"sigma must be in \[0.5, 1\)"),
-        ("quantile_level", 0.4, r"sigma must be in \[0.5, 1\)"),
-        ("n_per_stage", 1, r"N must be an integer >= 2"),
-        ("n_stages", 0, r"K must be an integer in \[1, 1000\]"),
+        ("smoothing", 0.0, r"alpha must be a number in \(0, 1\]"),
+        ("smoothing", 1.5, r"alpha must be a number in \(0, 1\]"),
+        ("quantile_level", 1.0, r"sigma must be a number in \[0.5, 1\)"),
+        ("quantile_level", 0.4, r"sigma must be a number in \[0.5, 1\)"),
+        ("n_per_stage", 1, r"N must be a whole number >= 2"),
+        ("n_stages", 0, r"K must be a whole number in \[1, 1000\]"),
         ("metric", "robust", r"use one of classic, agm, smooth-cumulative"),
         ("method", "mcmc", r"use one of adaptive, mc, naive50, mixed50"),
-        ("seed", -1, r"seed must be an integer in \[0, 2\^64 - 1\]"),
+        ("seed", -1, r"seed must be a whole number in \[0, 2\^64 - 1\]"),
     ],
 )
 def test_invalid_setting_is_rejected_with_its_name_value_and_range(field, value, message):
@@ -64,3 +74,141 @@ def test_paper_presets_keep_the_full_batch_adam_fit():
     for name in ("paper", "authors-code"):
         cfg = ExperimentConfig(**PRESETS[name])
         assert (cfg.fit, cfg.fit_rows, cfg.fit_tolerance) == ("adam", None, None)
+
+
+# -- one home per setting: SETTINGS, read by the config, the command line, the panel's form and the estimators ----
+
+PAPER_RANGES = {
+    # field: (lo, hi, lo_open, hi_open, whole): Innes & Ramamoorthy (2022) and the docstring of ExperimentConfig,
+    # written here, not read from SETTINGS
+    "smoothing": (0.0, 1.0, True, False, False),
+    "quantile_level": (0.5, 1.0, False, True, False),
+    "n_stages": (1, 1000, False, False, True),
+    "n_per_stage": (2, math.inf, False, False, True),
+    "n_final": (1, math.inf, False, False, True),
+    "seed": (0, 2**64 - 1, False, False, True),
+}
+
+
+def inside(name: str, x: float) -> bool:
+    lo, hi, lo_open, hi_open, whole = PAPER_RANGES[name]
+    return (not whole or float(x).is_integer()) and (x > lo if lo_open else x >= lo) and (x < hi if hi_open else x <= hi)
+
+
+def cli_error(argv: list[str]) -> str:
+    """What ``pemviz run ARGV`` says of its settings before any work, in one line ("" when they are valid)."""
+    from pemviz.cli import build_parser
+    from pemviz.commands import setting_error
+    from pemviz.commands.run import config_from_args
+
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            config_from_args(build_parser().parse_args(["run", *argv]))
+    except SystemExit:  # argparse: a flag's text that is no number of the setting's kind
+        return err.getvalue().strip().splitlines()[-1]
+    except ConfigError as exc:
+        return str(setting_error(exc))
+    return ""
+
+
+def test_every_field_has_exactly_one_setting_in_field_order_and_every_choice_is_explained():
+    assert list(SETTINGS) == [f.name for f in dataclasses.fields(ExperimentConfig)]
+    defaults = ExperimentConfig()
+    for name, s in SETTINGS.items():
+        assert s.name == name and s.owner in (RUN, "adaptive", "ams"), name
+        assert s.accepts(getattr(defaults, name)), name  # the default is inside its own range
+        if s.kind == "choice":
+            assert [v for v, _ in s.choice_help] == list(s.choices), f"{name}: a hint for every choice, in order"
+
+
+def test_help_texts_quote_no_measured_figures_and_no_markup():
+    figures = re.compile(r"\d\.\d|\bmedian\b|\bmeasured\b|relative error|\bRMS\b|``|:(class|func|data):")
+    for s in SETTINGS.values():
+        for text in (s.help, *(what for _, what in s.choice_help)):
+            assert not figures.search(text), f"{s.name}: {text!r}"
+
+
+def test_alpha_means_the_same_in_the_docstring_the_flag_and_the_panel():
+    from pemviz.app.form import FIELDS_BY_KEY
+    from pemviz.cli import build_parser
+
+    meaning = "the power on the importance weights in the CE loss"  # the paper's eq. 10 (not the update's weight)
+    run = next(a for a in build_parser("run", full=False)._subparsers._group_actions[0].choices["run"]._actions
+               if "--alpha" in a.option_strings)
+    assert FIELDS_BY_KEY["smoothing"].hint == f"smoothing alpha, a number in (0, 1]: {meaning}"
+    assert run.help == f"{FIELDS_BY_KEY['smoothing'].hint} (default 0.1)"
+    assert f"smoothing: alpha in (0, 1]: {meaning}." in " ".join(ExperimentConfig.__doc__.split())
+    assert "sigma in [0.5, 1): " + SETTINGS["quantile_level"].help in " ".join(ExperimentConfig.__doc__.split())
+
+
+def test_every_flag_and_panel_field_gives_the_hint_of_its_setting():
+    from pemviz.app.form import NUMBER_FIELDS
+    from pemviz.cli import build_parser
+
+    parser = build_parser()
+    subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    seen = set()
+    for command, p in subparsers.items():
+        for action in p._actions:
+            s = SETTINGS.get(action.dest)
+            # estimate's --pem recomputes log p of logged rollouts, its --weights is another convention's choice
+            if s is not None and (command, action.dest) not in {("estimate", "pem"), ("estimate", "weights")}:
+                assert tuple(action.option_strings) == s.flags, (command, action.dest)
+                assert action.help.replace("%%", "%").startswith(s.hint + " (default "), (command, action.dest)
+                seen.add(action.dest)
+    assert seen == {name for name, s in SETTINGS.items() if s.flags}  # every flag of SETTINGS is on a command
+    assert all(f.hint == SETTINGS[f.name].hint for f in NUMBER_FIELDS)
+
+
+@given(
+    name=st.sampled_from(list(PAPER_RANGES)),
+    x=st.one_of(st.integers(-3, 2000), st.floats(-2, 3, allow_nan=False), st.sampled_from([0.0, 0.5, 1.0, 2**64])),
+)
+def test_a_value_is_refused_alike_by_config_form_and_command_line_with_the_same_allowed_words(name, x):
+    from pemviz.app.form import FIELDS_BY_KEY, parse_number
+
+    s = SETTINGS[name]
+    value = int(x) if PAPER_RANGES[name][4] and float(x).is_integer() else x
+    try:
+        ExperimentConfig(**{name: value})
+        config_error = ""
+    except ConfigError as exc:
+        config_error = str(exc)
+    form_value, form_error = parse_number(FIELDS_BY_KEY[name], str(value))
+    flag_error = cli_error([f"{s.flag}={value}"])
+    if inside(name, float(x)):
+        assert (config_error, form_error, flag_error, form_value) == ("", "", "", value)
+    else:
+        for error in (config_error, form_error, flag_error):
+            assert error.endswith(f"{s.words} must be {s.allowed}"), (error, s.allowed)
+        assert flag_error.startswith((f"{s.flag}: {s.title} = ", f"pemviz run: error: argument {s.flag}"))
+
+
+def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
+    import pemviz.estimators.ams as ams
+    import pemviz.estimators.cross_entropy as ce
+    from pemviz.estimators import AdaptiveMultilevelSplitting, CrossEntropy
+
+    fields = set(SETTINGS) | {"has_final_batch", "n_simulations"}
+    for module, cls, owner in ((ce, CrossEntropy, "adaptive"), (ams, AdaptiveMultilevelSplitting, "ams")):
+        source = open(module.__file__).read()
+        read = set(re.findall(r"\b(?:cfg|config)\.([a-z_]+)\b", source)) & fields
+        read -= {"has_final_batch", "n_simulations"}
+        assert cls.SETTINGS == settings_of(owner) and cls.SETTINGS
+        assert read <= set(cls.SETTINGS) | set(settings_of(RUN)), (owner, read - set(cls.SETTINGS) - set(settings_of(RUN)))
+        assert set(cls.SETTINGS) <= read, (owner, set(cls.SETTINGS) - read)  # no setting claimed and never read
+    assert not set(settings_of("adaptive")) & set(settings_of("ams"))
+
+
+def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with():
+    from pemviz.estimators import AdaptiveMultilevelSplitting, CrossEntropy
+    from pemviz.problems import toy_problem
+    from pemviz.scenarios.toy import ToyParams
+
+    problem = toy_problem(ToyParams(10, 5, 3, 0.9))
+    ce = CrossEntropy(ExperimentConfig(smoothing=0.3, n_stages=4), problem).get_params()
+    assert list(ce) == list(settings_of("adaptive")) and (ce["smoothing"], ce["n_stages"]) == (0.3, 4)
+    assert "seed" not in ce and "ams_killed" not in ce  # run-level, and another estimator's
+    cfg = ExperimentConfig(method="ams", n_per_stage=40, ams_killed=7)
+    assert AdaptiveMultilevelSplitting(cfg, problem).get_params() == {"ams_killed": 7, "ams_max_iterations": 10_000}

@@ -110,11 +110,11 @@ def test_plain_monte_carlo_with_the_pem_finds_nothing_in_10000():
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--alpha", "0"], "alpha must be in (0, 1]"),
-        (["--alpha", "1.01"], "alpha must be in (0, 1]"),
-        (["--sigma", "1"], "sigma must be in [0.5, 1)"),
-        (["--sigma", "0.3"], "sigma must be in [0.5, 1)"),
-        (["--n", "1"], "N must be an integer >= 2"),
+        (["--alpha", "0"], "alpha must be a number in (0, 1]"),
+        (["--alpha", "1.01"], "alpha must be a number in (0, 1]"),
+        (["--sigma", "1"], "sigma must be a number in [0.5, 1)"),
+        (["--sigma", "0.3"], "sigma must be a number in [0.5, 1)"),
+        (["--n", "1"], "N must be a whole number >= 2"),
         (["--metric", "fancy"], "use one of classic, agm, smooth-cumulative"),
         (["--save", "/nonexistent-dir/x.rrd"], "does not exist"),
         (["--save", "out.txt"], "must end in .rrd"),

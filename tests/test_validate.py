@@ -53,6 +53,17 @@ def test_validate_reduced_run_prints_the_table_with_the_truth(tmp_path, capsys):
     assert int(rows["mc"]["simulations"]) == int(rows["adaptive (paper)"]["simulations"]) == 100 + 400 + 100
 
 
+def test_validate_takes_a_shipped_pem_by_name_as_run_does(tmp_path):
+    # `--pem gbt` once answered "no such file" here while `pemviz run --pem gbt` ran; the toy's truth is 1e-3 in
+    # closed form whatever the PEM, and the run records the PEM it was given
+    out = tmp_path / "v"
+    assert cli_main(["validate", "--problems", "toy-1e-3", "--pem", "gbt", "--seeds", "1", "--presets", "",
+                     "--baselines", "mc", "--out", str(out)]) == 0  # fmt: skip
+    (row,) = csv.DictReader((out / "validate.csv").open())
+    assert (row["problem"], row["method"], float(row["truth"])) == ("toy-1e-3", "mc", 1e-3)
+    assert '[\\"pem\\", \\"gbt\\"]' in (out / "runs.jsonl").read_text()
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

@@ -10,96 +10,35 @@ refused, all at once. :func:`run_cost` says what a run will take before it start
 from __future__ import annotations
 
 import dataclasses
-import math
-import re
 from dataclasses import dataclass
 from typing import Any
 
-from pemviz.config import MAX_EPOCHS, MAX_SEED, MAX_STAGES, ConfigError, ExperimentConfig
+from pemviz.config import SETTINGS, ConfigError, ExperimentConfig, Setting
 
 
-@dataclass(frozen=True)
-class NumberField:
-    """A number typed into the form.
+NUMBER_FIELDS: tuple[Setting, ...] = tuple(SETTINGS[name] for name in (
+    "smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed", "ce_epochs", "pretrain_rollouts",
+    "pretrain_epochs", "learning_rate",
+))  # fmt: skip
+"""The numbers the form shows, each with its :class:`~pemviz.config.Setting` (label, words, range, hint)."""
+FIELDS_BY_KEY = {f.name: f for f in NUMBER_FIELDS}
 
-    Attributes:
-        key: the :class:`ExperimentConfig` field.
-        label: the field's label in the panel (the paper's symbol where it has one).
-        words: what it is, in plain words (used in the error messages).
-        integer: whole numbers only.
-        lo, hi: the allowed range; ``lo_open`` / ``hi_open`` exclude the end.
-        hint: the help text beside the field.
-    """
-
-    key: str
-    label: str
-    words: str
-    integer: bool
-    lo: float
-    hi: float = math.inf
-    lo_open: bool = False
-    hi_open: bool = False
-    hint: str = ""
-
-    @property
-    def allowed(self) -> str:
-        if self.integer:
-            lo = int(self.lo)
-            return f"a whole number >= {lo}" if math.isinf(self.hi) else f"a whole number in [{lo}, {int(self.hi)}]"
-        left = "(" if self.lo_open else "["
-        right = ")" if self.hi_open else "]"
-        return f"a number > {self.lo:g}" if math.isinf(self.hi) else f"a number in {left}{self.lo:g}, {self.hi:g}{right}"
-
-
-NUMBER_FIELDS: tuple[NumberField, ...] = (
-    NumberField("smoothing", "alpha", "the smoothing alpha", False, 0.0, 1.0, lo_open=True,
-                hint="smoothing alpha in (0, 1]: the weight of the new fit in each stage's update"),
-    NumberField("quantile_level", "sigma", "the quantile level sigma", False, 0.5, 1.0, hi_open=True,
-                hint="quantile level sigma in [0.5, 1): the elites are the (1 - sigma) least robust"),
-    NumberField("n_stages", "K", "the number of cross-entropy stages K", True, 1, MAX_STAGES,
-                hint="cross-entropy stages"),
-    NumberField("n_per_stage", "N", "the rollouts per stage N", True, 2, hint="rollouts per CE stage"),
-    NumberField("n_final", "N_e", "the rollouts of the final estimate N_e", True, 1, hint="rollouts of the final batch"),
-    NumberField("seed", "seed", "the seed", True, 0, MAX_SEED, hint="random seed: the same seed gives the same run"),
-    NumberField("ce_epochs", "CE epochs", "the Adam epochs per stage", True, 1, MAX_EPOCHS),
-    NumberField("pretrain_rollouts", "pretrain rollouts", "the pretraining rollouts", True, 1),
-    NumberField("pretrain_epochs", "pretrain epochs", "the pretraining epochs", True, 1, MAX_EPOCHS),
-    NumberField("learning_rate", "learning rate", "the learning rate", False, 0.0, lo_open=True),
-)  # fmt: skip
-FIELDS_BY_KEY = {f.key: f for f in NUMBER_FIELDS}
-
-_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
-
-
-def parse_number(field: NumberField, text: str) -> tuple[float | int | None, str]:
+def parse_number(field: Setting, text: str) -> tuple[float | int | None, str]:
     """``(value, "")`` for a valid entry, ``(None, reason)`` otherwise; the reason names the field in words.
 
-    Accepts decimal and scientific notation (``0.2``, ``1e-3``, ``1e5``) with surrounding spaces; whole-number
-    fields accept only values that are whole (``1e5`` yes, ``12.5`` no). Nothing is rounded or clipped.
+    Parsed by :meth:`pemviz.config.Setting.parse` (as the command line's flags are), then checked against the
+    setting's range. Nothing is rounded or clipped.
     """
-    raw = str(text).strip()
-    if raw == "":
-        return None, f"{field.label}: empty; type {field.allowed} ({field.words})"
-    if not _NUMBER.match(raw):
-        return None, f"{field.label}: {raw!r} is not a number; type {field.allowed} ({field.words})"
-    if field.integer and re.fullmatch(r"[+-]?\d+", raw):
-        value: float | int = int(raw)  # exact, also beyond float64's 2^53
-    else:
-        value = float(raw)
-    if not math.isfinite(value):
-        return None, f"{field.label}: {raw!r} is too large; type {field.allowed} ({field.words})"
-    if field.integer and isinstance(value, float):
-        if not value.is_integer():
-            return None, f"{field.label}: {raw} is not a whole number; {field.words} must be {field.allowed}"
-        value = int(value)
-    too_low = value <= field.lo if field.lo_open else value < field.lo
-    too_high = value >= field.hi if field.hi_open else value > field.hi
-    if too_low or too_high:
-        return None, f"{field.label}: {raw} is out of range; {field.words} must be {field.allowed}"
+    try:
+        value = field.parse(text)
+    except ValueError as exc:
+        return None, f"{field.label}: {exc}"
+    if not field.accepts(value):
+        return None, f"{field.label}: {str(text).strip()} is out of range; {field.words} must be {field.allowed}"
     return value, ""
 
 
-def format_number(field: NumberField, value: Any) -> str:
+def format_number(field: Setting, value: Any) -> str:
     """The text a field shows for a config value (``repr`` of floats: ``0.001`` stays ``0.001``)."""
     if field.integer:
         return str(int(value))
@@ -203,16 +142,10 @@ def run_cost(cfg: ExperimentConfig, n_steps: int = 100, stream_above: int | None
     return RunCost(int(sims), int(biggest * n_steps * BYTES_PER_STEP), float(seconds))
 
 
-SHORT_NAMES = {
-    "smoothing": "alpha", "quantile_level": "sigma", "n_stages": "K", "n_per_stage": "N", "n_final": "N_e",
-    "sim": "simulator", "pem": "PEM", "final_estimate": "final", "ce_epochs": "CE epochs",
-    "pretrain_rollouts": "pretrain rollouts", "pretrain_epochs": "pretrain epochs", "learning_rate": "lr",
-}  # fmt: skip
-
-
 def setting_name(key: str) -> str:
-    """The name a setting goes by in labels and the compare table (``smoothing`` -> ``alpha``)."""
-    return SHORT_NAMES.get(key, key.replace("_", " "))
+    """The name a setting goes by in labels and the compare table (``smoothing`` -> ``alpha``): its
+    :attr:`~pemviz.config.Setting.label`."""
+    return SETTINGS[key].label
 
 
 def setting_value(value: Any) -> str:

@@ -38,6 +38,7 @@ class PanelApp:
         recordings_dir: where exports are written (created on the first export).
         config: the form's initial values (default: ``preset``'s settings).
         preset: the preset the form starts with, one of :data:`pemviz.app.runs.PANEL_PRESETS`.
+        pem: the PEM the form starts with (``ExperimentConfig.pem``; None: the shipped default), without ``config``.
         warm_up: import the simulator and run a tiny experiment in the background, so that the first
             Run starts at full speed.
         verbose: let viser print its banner.
@@ -54,13 +55,14 @@ class PanelApp:
         recordings_dir: str | Path = "recordings",
         config: ExperimentConfig | None = None,
         preset: str = DEFAULT_PRESET,
+        pem: str | None = None,
         warm_up: bool = True,
         verbose: bool = False,
     ) -> None:
         if preset not in PANEL_PRESETS:
             raise ValueError(f"preset {preset!r} is invalid: use one of {', '.join(PANEL_PRESETS)}")
         self.preset_name = preset
-        self.config0 = config or ExperimentConfig(**PANEL_PRESETS[preset])
+        self.config0 = config or ExperimentConfig(**PANEL_PRESETS[preset], pem=pem)
         self.recordings_dir = Path(recordings_dir)
         self.params = BrakingParams()
         """The scene every session draws before a run: the panel runs the braking scenario (:func:`problem_for`);
@@ -177,14 +179,15 @@ def serve(
     *,
     recordings_dir: str | Path = "recordings",
     preset: str = DEFAULT_PRESET,
+    pem: str | None = None,
     on_ready: Callable[[PanelApp], None] | None = None,
 ) -> None:
-    """Run the panel until Ctrl-C (what ``pemviz serve`` does).
+    """Run the panel until Ctrl-C (what ``pemviz serve`` does), its form starting at ``preset`` and ``pem``.
 
     Raises:
         ValueError: an unknown ``preset``.
     """
-    app = PanelApp(host, port, recordings_dir=recordings_dir, preset=preset)
+    app = PanelApp(host, port, recordings_dir=recordings_dir, preset=preset, pem=pem)
     try:
         if on_ready is not None:
             on_ready(app)

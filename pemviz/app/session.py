@@ -30,13 +30,22 @@ import viser
 from pemviz.app import plots
 from pemviz.app._viser_compat import resend_value
 from pemviz.app.explain import Explanation, explain
-from pemviz.app.form import NUMBER_FIELDS, FormResult, format_number, parse_form, run_cost, setting_name, setting_value
+from pemviz.app.form import (
+    FIELDS_BY_KEY,
+    NUMBER_FIELDS,
+    FormResult,
+    format_number,
+    parse_form,
+    run_cost,
+    setting_name,
+    setting_value,
+)
 from pemviz.app.runs import PANEL_PRESETS, PanelRun, Trajectory, export_path, export_run, keep_runs, scene_positions
 from pemviz import engine
-from pemviz.config import FINAL_MODES, METHODS, METRICS, SIMULATORS, WEIGHT_MODES, ExperimentConfig
+from pemviz.config import SETTINGS, SIMULATORS, ExperimentConfig
 from pemviz.estimate import format_probability, relative_error
 from pemviz.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
-from pemviz.pem import DEFAULT_PEM_NAME, assets_dir
+from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
 from pemviz.problems import problem_for
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
@@ -326,7 +335,7 @@ class Session:
         gui = self.client.gui
         c0 = self.app.config0
         simulators = SIMULATORS
-        shipped = sorted(p.stem[len("pem_") :] for p in assets_dir().glob("pem_*.pt")) or [DEFAULT_PEM_NAME]
+        shipped = shipped_pems() or [DEFAULT_PEM_NAME]
         self._default_pem = DEFAULT_PEM_NAME if DEFAULT_PEM_NAME in shipped else shipped[0]
         pem_options = list(shipped) + ([c0.pem] if c0.pem and c0.pem not in shipped else [])
 
@@ -339,29 +348,27 @@ class Session:
         self.fields: dict[str, viser.GuiTextHandle] = {}
         self.field_errors: dict[str, viser.GuiHtmlHandle] = {}
 
-        def number(key: str) -> None:
-            f = next(f for f in NUMBER_FIELDS if f.key == key)
-            self.fields[key] = gui.add_text(f.label, format_number(f, getattr(c0, key)), hint=f.hint or f.words)
+        def number(key: str) -> None:  # label, range and hint from the setting (pemviz.config.SETTINGS)
+            f = FIELDS_BY_KEY[key]
+            self.fields[key] = gui.add_text(f.label, format_number(f, getattr(c0, key)), hint=f.hint)
             self.field_errors[key] = gui.add_html("")
 
-        self.choices["metric"] = gui.add_dropdown("metric", METRICS, initial_value=c0.metric, hint="robustness semantics")
+        def dropdown(key: str, options: tuple[str, ...] | None = None, value: str | None = None, **kw: Any) -> None:
+            s = SETTINGS[key]
+            self.choices[key] = gui.add_dropdown(s.label, options or s.choices, initial_value=value or getattr(c0, key),
+                                                 hint=s.hint, **kw)  # fmt: skip
+
+        dropdown("metric")
         for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
             number(key)
-        self.choices["pem"] = gui.add_dropdown(
-            "PEM", tuple(pem_options), initial_value=c0.pem or self._default_pem, hint="shipped PEM (assets/)"
-        )
-        self.choices["sim"] = gui.add_dropdown(
-            "simulator", simulators, initial_value=c0.sim if c0.sim in simulators else simulators[0],
-            disabled=len(simulators) < 2, hint="back-end of the braking scenario",
-        )  # fmt: skip
+        dropdown("pem", tuple(pem_options), c0.pem or self._default_pem)
+        dropdown("sim", simulators, c0.sim if c0.sim in simulators else simulators[0], disabled=len(simulators) < 2)
         with gui.add_folder("advanced", expand_by_default=False):
-            self.choices["method"] = gui.add_dropdown("method", METHODS, initial_value=c0.method)
+            dropdown("method")
             for key in ("ce_epochs", "pretrain_rollouts", "pretrain_epochs", "learning_rate"):
                 number(key)
-            self.choices["weights"] = gui.add_dropdown("weights", WEIGHT_MODES, initial_value=c0.weights)
-            self.choices["final_estimate"] = gui.add_dropdown(
-                "final estimate", FINAL_MODES, initial_value=c0.final_estimate
-            )
+            dropdown("weights")
+            dropdown("final_estimate")
         gui.add_markdown("Changes apply to the next run.")
         for handle in (*self.fields.values(), *self.choices.values()):
             handle.on_update(lambda _: self._validate())
@@ -372,8 +379,8 @@ class Session:
         cfg = ExperimentConfig(**PANEL_PRESETS.get(name, {}))
         with self.client.atomic():
             for f in NUMBER_FIELDS:
-                if f.key in self.fields and f.key != "seed":
-                    self.fields[f.key].value = format_number(f, getattr(cfg, f.key))
+                if f.name in self.fields and f.name != "seed":
+                    self.fields[f.name].value = format_number(f, getattr(cfg, f.name))
             for key in ("weights", "final_estimate"):
                 self.choices[key].value = getattr(cfg, key)
         self._validate()
@@ -399,7 +406,8 @@ class Session:
         gui.add_markdown(
             "Up to 4 runs are kept; a new run drops stopped runs first, then the oldest finished one; pinned runs stay."
         )
-        self.run_choice = gui.add_dropdown("kept run", ("(no run yet)",), initial_value="(no run yet)")
+        self.run_choice = gui.add_dropdown("kept run", ("(no run yet)",), initial_value="(no run yet)",
+                                           hint="the run to pin or export")
         self.pin_button = gui.add_button("Pin", icon=viser.Icon.PIN, disabled=True)
         with gui.add_folder("export to rerun (.rrd)"):
             self.export_name = gui.add_text("export name", "run")

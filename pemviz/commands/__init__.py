@@ -9,9 +9,9 @@ from __future__ import annotations
 import argparse
 import tempfile
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
-from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.config import SETTINGS, ConfigError, ExperimentConfig, Setting
 from pemviz.io.files import check_output_path
 
 
@@ -76,27 +76,83 @@ def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ..
     return items
 
 
+SHOWN_DEFAULTS = {"pem": "ml-nn", "ray_address": "a local one"}
+"""What a setting's None stands for, as the flags' help says it: the shipped default PEM
+(:data:`pemviz.pem.DEFAULT_PEM_NAME`, whose module imports torch; a test keeps the two equal), a local Ray cluster."""
+
+
+def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str, default: Any = None) -> None:
+    """The flag of the :class:`ExperimentConfig` field ``name`` (its flags, type and help from
+    :data:`pemviz.config.SETTINGS`; the help says the default config's value, or what None stands for:
+    :data:`SHOWN_DEFAULTS`).
+
+    ``default`` is what the flag gives when absent (None: leave the field to the preset / the default config).
+    """
+    s = SETTINGS[name]
+    shown = getattr(ExperimentConfig(), name)
+    shown = SHOWN_DEFAULTS.get(name, shown) if shown is None else shown
+    text = f"{s.hint} (default {shown})".replace("%", "%%")  # argparse formats help with %
+    p.add_argument(*s.flags, dest=name, type=_number(s) if s.kind in ("int", "real") else str, default=default,
+                   help=text)
+
+
+def _number(s: Setting) -> Callable[[str], int | float]:
+    """The flag's number, parsed as the panel's field parses it (:meth:`Setting.parse`); its range is checked by
+    the config, in one line."""
+
+    def parse(text: str) -> int | float:
+        try:
+            return s.parse(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    return parse
+
+
+SAMPLER_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ce_epochs", "pretrain_epochs", "pem")
+"""The settings ``validate`` and ``tables`` take from the command line."""
+
+
 def add_sampler_arguments(p: argparse.ArgumentParser) -> None:
     """The sampler sizes shared by ``validate`` and ``tables``: --k, --n, --n-final, --ce-epochs, ..."""
-    d = ExperimentConfig()
-    p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
-    p.add_argument("--n", dest="n_per_stage", type=int, default=None, help=f"rollouts per stage N (default {d.n_per_stage})")
-    p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
-    p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help=f"epochs per stage (default {d.ce_epochs})")
-    p.add_argument("--pretrain-epochs", dest="pretrain_epochs", type=int, default=None,
-                   help=f"pretraining epochs (default {d.pretrain_epochs})")
-    p.add_argument("--pem", default=None, help="PEM weights (default: the shipped one)")
+    for name in SAMPLER_SETTINGS:
+        add_setting(p, name)
+
+
+def setting_error(exc: ConfigError) -> UsageError:
+    """A config's error as the command line says it: ``--alpha: smoothing (alpha) = 2.0 is invalid: ...``."""
+    return UsageError(f"{SETTINGS[exc.field].flag}: {exc}" if exc.field in SETTINGS else str(exc))
 
 
 def base_fields(args: argparse.Namespace) -> dict[str, Any]:
-    """Config fields given on the command line (validated by building a config)."""
-    fields = {k: getattr(args, k) for k in ("n_stages", "n_per_stage", "n_final", "ce_epochs", "pretrain_epochs", "pem")
-              if getattr(args, k, None) is not None}  # fmt: skip
+    """Config fields given on the command line (validated by building a config; ``--pem`` by
+    :func:`pem_argument`).
+
+    Raises:
+        UsageError: a value outside its setting's range, or a ``--pem`` that is neither shipped nor a file.
+    """
+    fields = {k: getattr(args, k) for k in SAMPLER_SETTINGS if getattr(args, k, None) is not None}
     try:
         ExperimentConfig(**fields)
     except ConfigError as exc:
-        raise UsageError(str(exc)) from None
+        raise setting_error(exc) from None
+    pem_argument(fields.get("pem"))
     return fields
+
+
+def pem_argument(value: str | None, flag: str = "--pem") -> str | None:
+    """``--pem VALUE`` checked the same way by every command: a shipped PEM's name (``ml-nn``, ``gbt``) or a PEM
+    file, returned as given (None: the shipped default).
+
+    Raises:
+        UsageError: neither; the message lists the shipped PEMs (:func:`pemviz.pem.store.resolve_pem`).
+    """
+    from pemviz.pem import resolve_pem  # torch: imported when a command runs, not for --help
+
+    try:
+        return resolve_pem(value)
+    except FileNotFoundError as exc:
+        raise UsageError(f"{flag} {exc}") from None
 
 
 def check_save_path(path: Path, overwrite: bool = False) -> Path:

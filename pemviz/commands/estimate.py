@@ -23,8 +23,8 @@ import numpy as np
 import rerun as rr
 
 import pemviz
-from pemviz.commands import COMMANDS, UsageError, check_save_path
-from pemviz.config import METRICS
+from pemviz.commands import COMMANDS, UsageError, add_setting, check_save_path, pem_argument
+from pemviz.config import SETTINGS, ExperimentConfig
 from pemviz.estimate import format_probability
 from pemviz.io.data import sha256_file
 from pemviz.io.files import check_output_folder, free_default_path, write_rrd
@@ -51,14 +51,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("rollouts", metavar="ROLLOUTS.parquet", help="rollout file (its sidecar ROLLOUTS.json beside it)")
     lp = p.add_mutually_exclusive_group()
     lp.add_argument("--pem", default=None, metavar="NAME|PATH",
-                    help="recompute log p from this PEM (default: the log_p column, else the sidecar's PEM)")
+                    help=f"recompute log p from this PEM, {SETTINGS['pem'].allowed} (default: the log_p column, else "
+                    "the sidecar's PEM)")
     lp.add_argument("--log-p-column", action="store_true", help="use the file's log_p column")
     lq = p.add_mutually_exclusive_group()
     lq.add_argument("--proposal", default=None, metavar="CKPT|pem|naive50|mixed50",
                     help="recompute log q from a proposal checkpoint or a named sampler "
                          "(default: the log_q column, else the sidecar's proposal)")
     lq.add_argument("--log-q-column", action="store_true", help="use the file's log_q column")
-    p.add_argument("--metric", default="classic", help=f"robustness metric: {', '.join(METRICS)} (default classic)")
+    add_setting(p, "metric", default=ExperimentConfig().metric)
     p.add_argument("--failure", default="crash", choices=("crash", "metric"),
                    help="failure event: crash = classic robustness < 0 (default); metric = the metric's < 0")
     p.add_argument("--weights", default=None, choices=CONVENTIONS,
@@ -243,8 +244,9 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.metric not in METRICS:
-        raise UsageError(f"--metric {args.metric!r}: use one of {', '.join(METRICS)}")
+    if not SETTINGS["metric"].accepts(args.metric):
+        raise UsageError(f"--metric {args.metric!r}: use {SETTINGS['metric'].allowed}")
+    pem_argument(args.pem)
     rollouts = Path(args.rollouts)
     save_path = None
     if args.save is not None and not args.no_record:

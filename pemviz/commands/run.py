@@ -13,22 +13,26 @@ from urllib.parse import quote, urlsplit
 
 import rerun as rr
 
-from pemviz.commands import COMMANDS, UsageError, check_save_path, interrupted
-from pemviz.config import (
-    DEFAULT_PRESET,
-    EXECUTORS,
-    METHODS,
-    METRICS,
-    PRESETS,
-    SIMULATORS,
-    ConfigError,
-    ExperimentConfig,
+from pemviz.commands import (
+    COMMANDS,
+    UsageError,
+    add_setting,
+    check_save_path,
+    interrupted,
+    pem_argument,
+    setting_error,
 )
+from pemviz.config import DEFAULT_PRESET, PRESETS, ConfigError, ExperimentConfig
 from pemviz.io.files import check_output_folder, free_default_path
 from pemviz.resources import check_run_memory
 
 # The parser needs only the light modules above (and rerun's script flags): torch, the engine, the sinks and pyarrow
 # are imported in main, where a run needs them, so that `pemviz --help` answers at once.
+
+
+RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_level", "smoothing", "metric", "seed",
+                "ce_epochs", "pem", "sim", "executor", "ray_address")
+"""The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "With no recording flag the recording goes to recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd.",
         conflict_handler="resolve",  # lets --connect also take the viewer URL (rerun's --connect --url still works)
     )
-    p.add_argument("--method", default=d.method, help=f"one of {', '.join(METHODS)} (default {d.method})")
+    add_setting(p, "method", default=d.method)
     p.add_argument(
         "--preset", default=DEFAULT_PRESET,
         help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}: the recommended sampler, "
@@ -49,30 +53,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the mixture over whole rollouts; quick: a run in seconds). A preset sets some of the values below; a "
         "flag given here overrides it.",
     )
-    p.add_argument("--k", "--stages", dest="n_stages", type=int, default=None, help=f"stages K (default {d.n_stages})")
-    p.add_argument(
-        "--n", dest="n_per_stage", type=int, default=None,
-        help=f"rollouts per stage N, or the baseline's rollouts (default {d.n_per_stage})",
-    )  # fmt: skip
-    p.add_argument("--n-final", dest="n_final", type=int, default=None, help=f"final rollouts N_e (default {d.n_final})")
-    p.add_argument("--ams-killed", dest="ams_killed", type=int, default=None,
-                   help=f"--method ams: particles killed per iteration k, 1 <= k < N (default {d.ams_killed})")
-    p.add_argument("--sigma", dest="quantile_level", type=float, default=None, help="quantile level sigma in [0.5, 1)")
-    p.add_argument("--alpha", dest="smoothing", type=float, default=None, help="smoothing alpha in (0, 1]")
-    p.add_argument("--metric", default=None, help=f"robustness metric: {', '.join(METRICS)}")
-    p.add_argument("--seed", type=int, default=None, help=f"random seed (default {d.seed})")
-    p.add_argument("--ce-epochs", dest="ce_epochs", type=int, default=None, help="Adam epochs per stage")
-    p.add_argument("--pem", default=None, help="a shipped PEM name (ml-nn, gbt) or a weights file (default ml-nn)")
-    p.add_argument(
-        "--sim", default=None,
-        help=f"scenario back-end: {'|'.join(SIMULATORS)} (default {d.sim}; same rollouts for a seed)",
-    )  # fmt: skip
-    p.add_argument(
-        "--executor", default=None,
-        help=f"where rollouts run: {'|'.join(EXECUTORS)} (default {d.executor}; ray: Ray tasks over blocks of 8,192 "
-        "rollouts, the serial run's rollouts and estimate bit for bit; a batch of one block runs in this process)",
-    )  # fmt: skip
-    p.add_argument("--ray-address", dest="ray_address", default=None, help="Ray cluster (default: start a local one)")
+    for name in RUN_SETTINGS:
+        add_setting(p, name)
     p.add_argument(
         "--save-rollouts", dest="save_rollouts", default=None, metavar="PATH.parquet",
         help="write the rollouts of every stage the estimate uses, each with its stage, sampler component and the "
@@ -92,8 +74,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     if args.preset not in PRESETS:
         raise ConfigError(f"preset = {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     fields = dict(PRESETS[args.preset])
-    for name in ("method", "n_stages", "n_per_stage", "n_final", "quantile_level", "smoothing", "metric", "seed",
-                 "ce_epochs", "pem", "sim", "executor", "ray_address", "ams_killed"):  # fmt: skip
+    for name in ("method", *RUN_SETTINGS):
         value = getattr(args, name)
         if value is not None:
             fields[name] = value
@@ -187,11 +168,6 @@ def web_viewer_url(grpc_url: str, web_port: int) -> str:
     return f"http://127.0.0.1:{web_port}/?url={quote(grpc_url, safe='')}"
 
 
-FLAGS = {"n_stages": "--k", "n_per_stage": "--n", "n_final": "--n-final", "quantile_level": "--sigma",
-         "smoothing": "--alpha", "ce_epochs": "--ce-epochs", "ray_address": "--ray-address"}
-"""Config fields whose flag is not ``--`` + the field name."""
-
-
 def default_recording_path(cfg: ExperimentConfig, preset: str, folder: Path = Path("recordings")) -> Path:
     """``recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd``: the name says what ran; a name
     already taken (two runs in one second) gets ``-2``, ``-3``, ... so a default name never collides."""
@@ -230,13 +206,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:
-        flag = FLAGS.get(exc.field or "", f"--{(exc.field or '').replace('_', '-')}")
-        raise UsageError(f"{flag}: {exc}" if exc.field else str(exc)) from None
-    if args.pem is not None:
-        from pemviz.pem import shipped_pems
-
-        if args.pem not in shipped_pems() and not Path(args.pem).is_file():
-            raise UsageError(f"--pem {args.pem}: neither a shipped PEM ({', '.join(shipped_pems())}) nor a file")
+        raise setting_error(exc) from None
+    pem_argument(cfg.pem)
     if cfg.executor == "ray":
         if importlib.util.find_spec("ray") is None:
             raise UsageError("--executor ray: Ray is not installed (pip install ray)")

@@ -8,7 +8,7 @@ import os
 import socket
 import sys
 
-from pemviz.commands import COMMANDS, UsageError
+from pemviz.commands import COMMANDS, UsageError, add_setting, pem_argument
 from pemviz.config import DEFAULT_PRESET, PRESETS
 
 
@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "serve",
         help=COMMANDS["serve"][1],
         description=(
-            "Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM, run the adaptive "
+            "Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM (--pem: the one it starts with), run the adaptive "
             "sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, compare up to 4 "
             "runs and export them to recordings/*.rrd."
         ),
@@ -26,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
     p.add_argument("--preset", default=DEFAULT_PRESET,
                    help=f"initial settings: {', '.join(PRESETS)} (default {DEFAULT_PRESET})")
+    add_setting(p, "pem")
     p.add_argument("--recordings", default="recordings", help="folder for exported .rrd files (default recordings)")
     p.set_defaults(func=main)
 
@@ -60,6 +61,7 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port {args.port} is invalid: use 0..65535")
+    pem = pem_argument(args.pem)
     if not check_host(args.host):
         print(f"pemviz serve: warning: --host {args.host!r} is reachable from other machines and the panel has no "
               "authentication: anyone who reaches it can run experiments and write recordings", file=sys.stderr)
@@ -69,7 +71,7 @@ def main(args: argparse.Namespace) -> int:
 
     from pemviz.app import panel  # viser and the panel: ~1.9 s to import, paid only by this command
 
-    panel.serve(args.host, args.port, recordings_dir=args.recordings, preset=args.preset, on_ready=ready)
+    panel.serve(args.host, args.port, recordings_dir=args.recordings, preset=args.preset, pem=pem, on_ready=ready)
     print("pemviz serve: stopped", file=sys.stderr)
     if sys.argv[1:2] == ["serve"]:  # the program itself (not pemviz.cli.main called from Python)
         sys.stdout.flush()

@@ -20,7 +20,6 @@ import argparse
 import math
 import sys
 import time
-from pathlib import Path
 
 from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
 from pemviz.config import PRESETS
@@ -74,8 +73,6 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError("--reps must be >= 2 (the standard error needs two repetitions)")
     if args.jobs < 1 or args.mc_large < 1 or args.naive_large < 1:
         raise UsageError("--jobs, --mc-large and --naive-large must be >= 1")
-    if args.pem is not None and not Path(args.pem).is_file():
-        raise UsageError(f"--pem {args.pem}: no such file")
     out = check_output_folder(args.out, ("tables.md", "tables.csv", "tables.rrd"))
     base = base_fields(args)
     out = output_folder(out)

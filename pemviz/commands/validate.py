@@ -71,8 +71,6 @@ def main(args: argparse.Namespace) -> int:
     baselines = split_choices(args.baselines, BASELINES, "baselines") if args.baselines.strip() else ()
     if args.seeds < 1 or args.jobs < 1:
         raise UsageError("--seeds and --jobs must be >= 1")
-    if args.pem is not None and not Path(args.pem).is_file():
-        raise UsageError(f"--pem {args.pem}: no such file")
     out_dir = Path(args.out) if args.out else None
     if out_dir is not None:
         check_output_folder(out_dir, ("validate.md", "validate.csv"))

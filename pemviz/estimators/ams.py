@@ -35,9 +35,9 @@ import numpy as np
 from scipy.special import logsumexp, ndtri
 
 from pemviz import stl
-from pemviz.config import ExperimentConfig
+from pemviz.config import ExperimentConfig, settings_of
 from pemviz.estimate import CI_LEVEL, MIN_FAILURES, Estimate
-from pemviz.estimators.base import Check, StageOutcome, StagePlan, log_p_before_failure
+from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure
 from pemviz.plan import RunPlan
 from pemviz.problems import Problem
 from pemviz.scenarios import RolloutBatch
@@ -207,7 +207,7 @@ def ams_estimate(problem: Problem, particles: RolloutBatch, failed: np.ndarray, 
                     (log_p - half, log_p + half), math.nan, 0.0, verdict, reason)  # fmt: skip
 
 
-class AdaptiveMultilevelSplitting:
+class AdaptiveMultilevelSplitting(OwnsSettings):
     """AMS (module docstring) as an engine estimator (``method = "ams"``).
 
     Stage 0 draws the N = ``n_per_stage`` initial particles from the target; each later stage runs iterations until
@@ -219,6 +219,8 @@ class AdaptiveMultilevelSplitting:
         ValueError: a problem without ``branch`` (no snapshot/restore) or without a ``G[a,b](state predicate)``
             formula: one line.
     """
+
+    SETTINGS = settings_of("ams")
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         if problem.branch is None:

@@ -11,7 +11,7 @@ shown each batch's rollouts (:meth:`Estimator.observe`, possibly chunk by chunk)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Any, Callable, ClassVar, Protocol
 
 import math
 
@@ -19,6 +19,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from pemviz import stl
+from pemviz.config import ExperimentConfig
 from pemviz.detectors import Detector
 from pemviz.estimate import Estimate, estimate
 from pemviz.plan import RunPlan
@@ -73,6 +74,20 @@ class StageOutcome:
     """q(detect | d) on the problem's ``curve_grid`` after the stage, float64 [G] (nan without a proposal)."""
     elite_detect_rate: np.ndarray
     """Elite rollouts' empirical detection rate per bin of the ``curve_grid`` (nan where empty), [G]."""
+
+
+class OwnsSettings:
+    """An estimator that owns its settings, as a scikit-learn estimator owns its parameters: :attr:`SETTINGS` names
+    the :class:`~pemviz.config.ExperimentConfig` fields it reads besides the run-level ones
+    (:func:`pemviz.config.settings_of`; :data:`pemviz.config.SETTINGS` says what each one is), :meth:`get_params`
+    gives their values."""
+
+    SETTINGS: ClassVar[tuple[str, ...]] = ()
+    config: ExperimentConfig
+
+    def get_params(self) -> dict[str, Any]:
+        """This estimator's settings and their values (``name -> value``, in :attr:`SETTINGS` order)."""
+        return {name: getattr(self.config, name) for name in self.SETTINGS}
 
 
 class Estimator(Protocol):

@@ -21,12 +21,13 @@ import numpy as np
 import torch
 from scipy.special import log_expit
 
-from pemviz.config import ExperimentConfig
+from pemviz.config import ExperimentConfig, settings_of
 from pemviz.detectors import Detector, LastAnswer, ScoredTarget, WindowDetector, action_log_prob, logit
 from pemviz.estimate import Estimate, estimate
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
+    OwnsSettings,
     StageOutcome,
     StagePlan,
     StageRollouts,
@@ -489,7 +490,7 @@ def break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng:
     return elite
 
 
-class CrossEntropy:
+class CrossEntropy(OwnsSettings):
     """Algorithm 1 of Innes & Ramamoorthy (2022) as configured by ``config`` (``method = "adaptive"``).
 
     Stages: 0 pretraining (``pretrain_rollouts``), 1..K cross-entropy (``n_per_stage`` each), K+1 the final batch
@@ -505,6 +506,8 @@ class CrossEntropy:
         problem: what to estimate.
         check: called between and inside fits; may raise to abandon the run.
     """
+
+    SETTINGS = settings_of("adaptive")
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         self.config, self.problem = config, problem

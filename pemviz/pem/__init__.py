@@ -38,6 +38,7 @@ from pemviz.pem.store import (
     load_reference_pem,
     pem_path,
     reference_pem_dir,
+    resolve_pem,
     save_pem,
     shipped_pems,
 )
@@ -77,6 +78,7 @@ __all__ = [
     "load_reference_pem",
     "pem_path",
     "reference_pem_dir",
+    "resolve_pem",
     "save_pem",
     "shipped_pems",
     "train_pem",

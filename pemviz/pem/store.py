@@ -116,13 +116,7 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
         FileNotFoundError: no such file (the message lists the shipped PEMs).
         PemFormatError: the file is not a pemviz PEM or is damaged.
     """
-    if path is None:
-        path = DEFAULT_PEM_NAME
-    p = Path(path)
-    if isinstance(path, str) and p.suffix != ".pt" and len(p.parts) == 1:
-        p = pem_path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"PEM file {p} not found; shipped PEMs in {assets_dir()}: {shipped_pems() or 'none'}")
+    p = _pem_file(DEFAULT_PEM_NAME if path is None else path)
     payload = load_tagged(p, FORMAT_TAG, FORMAT_VERSION, "PEM", PemFormatError)
     kind = payload.get("kind", PEM.kind)
     try:
@@ -149,6 +143,32 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise PemFormatError(f"{p}: damaged PEM file ({exc!r})") from None
     raise PemFormatError(f"{p}: unknown PEM kind {kind!r} (known: {PEM.kind}, {TreePEM.kind})")
+
+
+def resolve_pem(ref: str | os.PathLike[str] | None) -> str | os.PathLike[str] | None:
+    """What ``--pem`` takes in every command, checked before any work: the name of a shipped PEM (``ml-nn``,
+    ``gbt``: :func:`shipped_pems`) or a PEM file, returned as given; None (the shipped default) stays None.
+
+    A name (no ``.pt`` suffix, no folder) is looked up among the shipped PEMs, anything else as a file, as
+    :func:`load_pem` does.
+
+    Raises:
+        FileNotFoundError: neither a shipped PEM nor a file; the message lists the shipped PEMs.
+    """
+    if ref is not None:
+        _pem_file(ref)
+    return ref
+
+
+def _pem_file(ref: str | os.PathLike[str]) -> Path:
+    """The file of a shipped PEM's name or of a path (see :func:`resolve_pem`); raises FileNotFoundError."""
+    p = Path(ref)
+    if isinstance(ref, str) and p.suffix != ".pt" and len(p.parts) == 1:
+        p = pem_path(ref)
+    if not p.is_file():
+        raise FileNotFoundError(f"{ref}: neither a PEM file nor one of the shipped PEMs "
+                                f"({', '.join(shipped_pems()) or 'none'}, in {assets_dir()})")  # fmt: skip
+    return p
 
 
 def _pack_trees(pem: TreePEM) -> dict[str, torch.Tensor]:
