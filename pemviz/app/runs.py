@@ -35,6 +35,7 @@ from pemviz.engine import (
     StageResult,
     StageStarted,
 )
+from pemviz.proposal_view import ProposalView, batch_proposal_view
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks.recording import RerunSink
 from pemviz.sinks.scene import car_positions
@@ -44,6 +45,9 @@ MAX_RUNS = 4
 
 N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
+
+GAP_BINS_M = np.linspace(0.0, 13.0, 27)
+"""Gap bins of the marginal proposal view (:mod:`pemviz.proposal_view`): 0.5 m wide, 0 to 13 m."""
 
 QUICK: dict[str, Any] = PRESETS["quick"]
 """The ``quick`` preset (:data:`pemviz.config.PRESETS`): a run of a few seconds on 2 cores, to try the panel."""
@@ -200,6 +204,8 @@ class RunRecord:
         self.trajectories: list[Trajectory] = []
         self.most_likely_failure: Trajectory | None = None
         """The failing rollout with the highest probability under the PEM found so far."""
+        self.proposal_views: dict[int, tuple[str, ProposalView]] = {}
+        """Stage -> (kind, q(detect) of its sampler over the states its rollouts visited, per gap bin)."""
         self.events: list[Event] = []
         self.pinned = False
         """Kept for comparison until unpinned (:func:`keep_runs` never drops it)."""
@@ -254,6 +260,9 @@ class RunRecord:
                     self.sample_s_per_rollout = (time.perf_counter() - self.stage_t0) / max(1, event.batch.n)
                 self.trajectories = least_robust(self.trajectories, event)
                 self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
+                view = batch_proposal_view(event.batch, GAP_BINS_M, BrakingParams().braking_distance_m)
+                if view is not None:
+                    self.proposal_views = {**self.proposal_views, event.stage: (event.kind, view)}
             elif isinstance(event, StageFinished):
                 self.stages = self.stages + [event.result]
             elif isinstance(event, FinalEstimate):
