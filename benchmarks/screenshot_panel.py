@@ -2,13 +2,16 @@
 
     python benchmarks/screenshot_panel.py                        # writes assets/screenshots/viser_panel.png
     python benchmarks/screenshot_panel.py --preset quick --k 6 --out /tmp/panel.png
+    python benchmarks/screenshot_panel.py --preset state-ce --k 10 --metric agm --set alpha=0.2 --set sigma=0.9 \
+        --width 1400 --height 900 --out assets/screenshots/panel_explain.png --live-out assets/screenshots/panel_live.png
 
 What it does: starts the panel (:class:`pemviz.app.PanelApp`, 127.0.0.1, a free port), opens it in
 Chromium (Debian's ``chromium`` driven by Playwright, with ``--headless --no-sandbox --disable-gpu
 --no-first-run --disable-background-networking --disable-component-update --disable-sync``), runs an
 experiment from the browser's form (typing K, pressing Run), waits for the final estimate (the panel then
 chooses the most likely failure found), opens the *Explain* tab, moves playback to the first decisive miss
-(or the crash) and writes the PNG (to a temp file, then ``os.replace``). Every wait is on a condition.
+(or the crash) and writes the PNG (to a temp file, then ``os.replace``); with ``--live-out`` also the *Live* tab
+(what the sampler did over the visited states, the estimate per stage). Every wait is on a condition.
 """
 
 from __future__ import annotations
@@ -41,6 +44,10 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=REPO / "assets" / "screenshots" / "viser_panel.png")
     ap.add_argument("--preset", default="quick", help="the panel's preset (default quick)")
     ap.add_argument("--k", default="8", help="K typed into the form (default 8)")
+    ap.add_argument("--metric", default=None, help="the metric chosen in the form (default: the preset's)")
+    ap.add_argument("--set", action="append", default=[], metavar="LABEL=VALUE",
+                    help="type VALUE into the form's field LABEL (e.g. alpha=0.2); repeatable")
+    ap.add_argument("--live-out", type=Path, default=None, help="also write the Live tab here")
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=1000)
     args = ap.parse_args()
@@ -64,10 +71,16 @@ def main() -> int:
             page.goto(app.url)
             session = app.wait_for_session(known)
             page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
-            k = page.locator("xpath=//label[normalize-space()='K']/ancestor::div[.//input][1]//input").first
-            k.fill(args.k)
-            k.press("Tab")
-            wait_until(lambda: session.fields["n_stages"].value == args.k, 30, "K to reach the server")
+            labels = {h.label: h for h in session.fields.values()}
+            for label, value in [("K", args.k)] + [tuple(kv.split("=", 1)) for kv in args.set]:
+                box = page.locator(f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input").first
+                box.fill(value)
+                box.press("Tab")
+                wait_until(lambda: labels[label].value == value, 30, f"{label} to reach the server")
+            if args.metric:
+                page.get_by_label("metric", exact=True).click()
+                page.get_by_role("option", name=args.metric, exact=True).click()
+                wait_until(lambda: session.choices["metric"].value == args.metric, 30, "the metric to reach the server")
             page.get_by_role("button", name="Run", exact=True).click()
             wait_until(lambda: session.record is not None and session.record.done, 600, "the run to finish")
             wait_until(lambda: session.explanation is not None, 30, "the failure explanation")
@@ -85,6 +98,12 @@ def main() -> int:
             )  # fmt: skip
             page.wait_for_function("() => document.fonts.ready.then(() => true)")
             page.screenshot(path=str(tmp))
+            if args.live_out is not None:
+                page.get_by_role("tab", name="Live").click()
+                page.get_by_text("over the visited states", exact=False).first.wait_for(timeout=30_000)
+                live_tmp = args.live_out.with_name(args.live_out.name + ".partial.png")
+                page.screenshot(path=str(live_tmp))
+                os.replace(live_tmp, args.live_out)
             browser.close()
         os.replace(tmp, args.out)
         print(f"{args.out}: {session.record.label}, {shown.key} at step {step}", flush=True)

@@ -95,7 +95,8 @@ class Tab:
         """Label -> the session's handle of each text field and dropdown of the form."""
         s = self.session
         out = {FIELDS_BY_KEY[k].label: h for k, h in s.fields.items()}
-        out.update({h.label: h for h in (*s.choices.values(), s.preset, s.run_choice)})
+        lists = (s.preset, s.run_choice, s.rollout_dropdown, s.rollout_order)
+        out.update({h.label: h for h in (*s.choices.values(), *lists)})
         return out
 
     def fill_form(self, values: dict[str, str]) -> None:
@@ -293,6 +294,10 @@ def test_finished_runs_survive_stopped_ones_pinned_runs_stay_and_any_kept_run_ex
     tab.button("Pin").click()
     wait_until(lambda: first.pinned, what="run 1 pinned")
     expect(tab.button("Unpin")).to_be_visible()
+    # the run chosen under Runs is the one the Rollouts tab lists and Explain explains
+    wait_until(lambda: s.listed is first and s.shown_record is first, what="Rollouts and Explain to follow run 1")
+    tab.tab("Rollouts")
+    expect(tab.page.get_by_text(f"least robust rollouts of {first.short_label}", exact=False)).to_be_visible()
     # three stopped runs: the first is dropped to make room, never the finished run 2 or the pinned run 1
     stopped = []
     for _ in range(3):
@@ -303,9 +308,13 @@ def test_finished_runs_survive_stopped_ones_pinned_runs_stay_and_any_kept_run_ex
         stopped.append(s.record)
         tab.button("Stop").click()
         wait_until(lambda: not s.running, what="the run to stop")
+        # no view describes a stopped run as going
+        wait_until(lambda: "is going" not in s.explain_html.content + s.scene_html.content, what="'is going' gone")
+        expect(tab.page.get_by_text("is going", exact=False)).to_have_count(0)
     assert s.runs == [first, second, *stopped[1:]]  # the oldest stopped run made room
     # the compare table shows every setting of every kept run
     tab.page.get_by_role("tab", name="Compare").click()
+    expect(tab.page.get_by_text("Reference-state curves", exact=False)).to_be_visible()
     compare = tab.page.locator("table.pemviz-table").last
     for setting in ("seed", "K", "N", "N_e", "simulator", "PEM", "alpha", "sigma", "metric"):
         expect(compare.locator("th", has_text=re.compile(f"^{re.escape(setting)}$"))).to_have_count(1)
@@ -343,8 +352,8 @@ def test_one_stage_numbering_and_plot_axes_follow_the_stages_that_ran(tab):
         assert p["xmax"] == pytest.approx(last + 0.5) and p["axes"][0].startswith("stage (0 pretraining")
         assert p["axes"][1] and "--" not in p["legend"]
     assert tab.plot("log10 mu_hat per stage")["ymax"] > max(v for v in record.stage_series("log10_mu_hat").values())
-    curve = tab.plot(f"{record.short_label}: q(detect | gap) per stage")
-    assert curve["labels"][:3] == ["gap (m)", "PEM", "pretraining"] and curve["labels"][3] == "stage 1"
+    curve = tab.plot(f"{record.short_label}: mean q(detect) over the visited states")
+    assert "PEM" in curve["labels"] and "stage 1" in curve["labels"] and "pretraining" not in curve["labels"]
     assert curve["ymax"] > 1.0  # the top tick "1" is inside the plot
 
 
@@ -372,6 +381,9 @@ def test_the_final_estimate_comes_with_its_interval_verdict_and_a_hint_when_noth
     tab.choose("method", "mc")
     tab.run({"N": "20"})
     expect(tab.page.get_by_text("no failure among 20 rollouts, so mu_hat = 0", exact=False)).to_be_visible()
+    # the advice speaks of what plain Monte Carlo does, not of stages or a proposal it does not have
+    expect(tab.page.get_by_text("plain Monte Carlo draws every rollout from the PEM itself", exact=False)).to_be_visible()
+    assert "More stages (K)" not in tab.session.result_html.content and "proposal" not in tab.session.result_html.content
 
 
 # 7 ------------------------------------------------------------------------------------------------
@@ -431,3 +443,65 @@ def test_progress_shows_elapsed_and_expected_time(tab):
     expect(tab.page.get_by_text(re.compile(r"stopped after \d+ stages \(\d\.\d\d s after Stop\), \d+\.\d s in all"))
            ).to_be_visible(timeout=10_000)  # fmt: skip
     assert tab.session.last_stop_latency_s < 2.0
+
+
+# 10 -----------------------------------------------------------------------------------------------
+def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, app):
+    """A default run (state-ce): the sampler's q(detect) over the visited states inside the 10 m window sits below
+    the PEM's; the mu_hat chart shows the interval and the exact answer; Explain gives the severity, the controller,
+    and for a failure that no single miss decides, its minimal miss set."""
+    from pemviz.scenarios.braking_failures import severity
+
+    s = tab.session
+    tab.choose("preset", "state-ce")
+    record = tab.run({"seed": "0"}, timeout=300)
+    live = tab.plot(f"{record.short_label}: mean q(detect) over the visited states")
+    x = np.array(live["data"][0])
+    pem = np.array(live["data"][live["labels"].index("PEM")], dtype=float)
+    final = np.array(live["data"][live["labels"].index("final batch")], dtype=float)
+    inside = (x > 3.0) & (x < 9.0) & np.isfinite(pem) & np.isfinite(final)
+    assert inside.sum() >= 8 and np.all(final[inside] < pem[inside])
+    assert np.mean(pem[inside] - final[inside]) > 0.2  # the sampler misses far more often than the PEM there
+    assert "median log q(miss)/q(detect)" in tab.plot("log q(miss)/q(detect)")["title"]
+    mu = tab.plot("log10 mu_hat per stage, 95 % interval")
+    assert f"{record.short_label} 95 % low" in mu["labels"] and any(lab.startswith("exact") for lab in mu["labels"])
+
+    # Explain: the most likely failure with its severity in words, what happened, and the controller
+    wait_until(lambda: s.shown is record.most_likely_failure, what="the most likely failure shown")
+    tab.page.get_by_role("tab", name="Explain").click()
+    words = severity(s.shown.gap_m, app.params).short
+    expect(tab.page.get_by_text(words, exact=False).first).to_be_visible(timeout=10_000)
+    expect(tab.page.get_by_text("What happened", exact=False)).to_be_visible()
+    applied = np.flatnonzero(s.explanation.controller.brake_applied).tolist()
+
+    def shown_series(title: str, label: str) -> list[int]:
+        p = tab.plot(title)
+        return shown_at(p["data"][p["labels"].index(label)]) if label in p["labels"] else []
+
+    assert applied
+    wait_until(lambda: shown_series("controller", "brake applied") == applied, what="the brake in the controller chart")
+
+    # a failing rollout that no single miss decides: its minimal miss set, shown and marked
+    label = next(lab for lab, t in s._rollout_labels.items() if t.crashed and t is not record.most_likely_failure
+                 and explain(t.gap_m, t.detected, t.log_p, t.log_q, app.params).decisive.size == 0)  # fmt: skip
+    tab.tab("Rollouts")
+    tab.choose("rollout", label)
+    wait_until(lambda: s.shown is s._rollout_labels[label], what="the rollout shown")
+    cf = s.explanation.counterfactual
+    assert cf.minimal_set.size >= 2 and s.explanation.decisive.size == 0
+    tab.page.get_by_role("tab", name="Explain").click()
+    expect(tab.page.get_by_text(f"{cf.minimal_set.size} misses at", exact=False)).to_be_visible(timeout=10_000)
+    expect(tab.page.get_by_text("none: no single detection saves it", exact=False)).to_be_visible()
+    wait_until(lambda: shown_series("p(detect) under the PEM", "minimal miss set") == cf.minimal_set.tolist(),
+               what="the minimal miss set marked in the strip chart")  # fmt: skip
+
+    # the Rollouts table sorts by severity (the fastest contact first) and filters to failures
+    tab.tab("Rollouts")
+    tab.choose("sort by", "severity")
+    expect(tab.page.get_by_text("by severity", exact=False)).to_be_visible(timeout=10_000)
+    listed = s.ordered_rollouts(record)
+    speeds = [severity(t.gap_m, app.params).contact_speed_mps for t in record.trajectories]
+    assert severity(listed[0].gap_m, app.params).contact_speed_mps == np.nanmax(speeds)
+    tab.page.get_by_label("failures only").check()
+    expect(tab.page.get_by_text("that failed (metric", exact=False)).to_be_visible(timeout=10_000)
+    assert all(t.crashed for t in s.ordered_rollouts(record))

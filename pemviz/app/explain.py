@@ -1,12 +1,13 @@
-"""Explain a failure: what happened at each step of a rollout and which misses decided the crash.
+"""Explain a failure: what happened at each step of a rollout, what the controller did and which misses decided it.
 
 For one rollout (:class:`pemviz.app.runs.Trajectory`): per step the PEM's p(detect) and the proposal's
-q(detect) of the state it was in, the detection taken and the cumulative importance log-weight; and a
-counterfactual: the rollout replayed with each miss flipped to a detection on the deterministic batched
-twin of the simulator (:func:`pemviz.scenarios.batched.replay`, the same arithmetic as highway-env). A
-miss is *decisive* when flipping it alone avoids the crash (the gap stays at or above 2 m). This is the
-"most likely failure and its causes" report of adaptive stress testing (Lee et al. 2020, "Adaptive
-Stress Testing: Finding Likely Failure Events with Reinforcement Learning", JAIR 69).
+q(detect) of the state it was in, the detection taken and the cumulative importance log-weight; the
+controller's signals, the severity of the outcome and the counterfactuals of
+:mod:`pemviz.scenarios.braking_failures`, all replayed on the deterministic batched twin of the simulator
+(:func:`pemviz.scenarios.batched.replay`, the same arithmetic as highway-env). A miss is *decisive* when flipping
+it alone avoids the failure (the gap stays at or above 2 m). This is the "most likely failure and its causes"
+report of adaptive stress testing (Lee et al. 2020, "Adaptive Stress Testing: Finding Likely Failure Events with
+Reinforcement Learning", JAIR 69).
 """
 
 from __future__ import annotations
@@ -15,8 +16,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.scenarios.batched import replay
+from pemviz.proposal_view import prob_detect
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking_failures import (
+    ControllerTrace,
+    Counterfactual,
+    Severity,
+    controller_trace,
+    counterfactual,
+    describe,
+    severity,
+)
+
+__all__ = ["Explanation", "explain", "prob_detect"]
 
 
 @dataclass(frozen=True)
@@ -29,10 +41,14 @@ class Explanation:
         q_detect: float64 [T] q(detect | state) of the detector that sampled it.
         cum_log_weight: float64 [T] sum over steps <= t of log p(a) - log q(a) (nats).
         misses: int [M] steps where the detector missed.
-        decisive: int [D] the misses whose flip to a detection avoids the crash (empty for a safe rollout).
+        decisive: int [D] the misses whose flip to a detection avoids the failure (empty for a safe rollout).
         flipped_min_gap_m: float64 [M] the smallest gap of the replay with that miss flipped (metres).
         crashed: the rollout's gap dropped below ``crash_gap_m``.
         replay_matches: the replay without flips reproduces the recorded gap (the counterfactual is valid).
+        severity: how bad the outcome was (:class:`pemviz.scenarios.braking_failures.Severity`).
+        controller: the controller's signals along the rollout (brake command, brake applied, acceleration).
+        counterfactual: the minimal miss set, the last saving step and the recovery step.
+        sentence: what happened, in plain words (:func:`pemviz.scenarios.braking_failures.describe`).
     """
 
     time_s: np.ndarray
@@ -44,31 +60,34 @@ class Explanation:
     flipped_min_gap_m: np.ndarray
     crashed: bool
     replay_matches: bool
+    severity: Severity
+    controller: ControllerTrace
+    counterfactual: Counterfactual
+    sentence: str
 
     def summary(self) -> str:
-        """One line for the panel: the decisive misses, or why there are none."""
+        """One line for the panel: the decisive misses or the minimal miss set, or why there are none."""
         if not self.crashed:
-            return "no crash: nothing to explain (the gap stayed at or above 2 m)"
+            return "no failure: nothing to explain (the gap stayed at or above 2 m)"
         if not self.replay_matches:
             return "the replay does not reproduce this rollout: no counterfactual"
+        cf, dt = self.counterfactual, float(self.time_s[1] - self.time_s[0]) if self.time_s.size > 1 else 0.05
         if self.decisive.size == 0:
+            if cf.minimal_set.size == 0:
+                return f"even a detection at each of the {self.misses.size} misses does not avoid the failure"
+            size = "smallest" if cf.smallest else "minimal"
             return (
-                f"no single miss decides the crash: flipping any one of the {self.misses.size} misses alone still "
-                "crashes (several misses together cause it)"
+                f"no single miss decides the failure; a {size} set of {cf.minimal_set.size} misses does (steps "
+                f"{', '.join(str(t) for t in cf.minimal_set[:12])}{' ...' if cf.minimal_set.size > 12 else ''}): "
+                "detections at all of them avoid it, leaving any one out does not"
             )
         steps = ", ".join(f"{t} ({self.time_s[t]:.2f} s)" for t in self.decisive[:8])
         more = f" and {self.decisive.size - 8} more" if self.decisive.size > 8 else ""
         return (
-            f"decisive misses at steps {steps}{more}: a detection at any one of them avoids the crash "
-            f"({self.decisive.size} of {self.misses.size} misses)"
+            f"decisive misses at steps {steps}{more}: a detection at any one of them avoids the failure "
+            f"({self.decisive.size} of {self.misses.size} misses; the last saving step is "
+            f"{cf.last_saving_step}, {cf.last_saving_step * dt:.2f} s)"
         )
-
-
-def prob_detect(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:
-    """p(detect) from the log-probability of the action taken, float64 [T]: exp(log p) if detected, else
-    1 - exp(log p) (``-expm1``, exact for small probabilities)."""
-    lp = np.asarray(log_p_action, dtype=np.float64)
-    return np.where(np.asarray(detected, bool), np.exp(lp), -np.expm1(lp))
 
 
 def explain(
@@ -89,24 +108,28 @@ def explain(
     p = params or BrakingParams()
     detected = np.asarray(detected, bool)
     gap = np.asarray(gap_m, dtype=np.float64)
-    t = detected.size
-    misses = np.flatnonzero(~detected)
+    ctrl = controller_trace(detected, p)
+    matches = bool(np.allclose(ctrl.gap_m, gap, rtol=0.0, atol=1e-9))
     crashed = bool(np.min(gap) < p.crash_gap_m)
-    rows = np.repeat(detected[None, :], misses.size + 1, axis=0)
-    rows[np.arange(1, misses.size + 1), misses] = True
-    gaps = replay(p, rows)[:, :, 0]
-    matches = bool(np.allclose(gaps[0], gap, rtol=0.0, atol=1e-9))
-    flipped_min = gaps[1:].min(axis=1) if misses.size else np.zeros(0)
-    decisive = misses[flipped_min >= p.crash_gap_m] if (crashed and matches) else np.zeros(0, int)
+    cf = counterfactual(detected, p)
+    sev = severity(gap, p)
+    decisive = cf.decisive if (crashed and matches) else np.zeros(0, int)
+    sentence = describe(detected, sev, ctrl, cf, p) if matches else (
+        sev.phrase[0].upper() + sev.phrase[1:] + ". The replay does not reproduce this rollout: no counterfactual."
+    )
     lp, lq = np.asarray(log_p, dtype=np.float64), np.asarray(log_q, dtype=np.float64)
     return Explanation(
-        time_s=np.arange(t) * p.dt_s,
+        time_s=np.arange(detected.size) * p.dt_s,
         p_detect=prob_detect(lp, detected),
         q_detect=prob_detect(lq, detected),
         cum_log_weight=np.cumsum(lp - lq),
-        misses=misses,
+        misses=cf.misses,
         decisive=decisive,
-        flipped_min_gap_m=flipped_min,
+        flipped_min_gap_m=cf.flipped_min_gap_m,
         crashed=crashed,
         replay_matches=matches,
+        severity=sev,
+        controller=ctrl,
+        counterfactual=cf,
+        sentence=sentence,
     )

@@ -207,6 +207,8 @@ def fill_strip_plots(
     miss = np.where(traj.detected, np.nan, -0.05)
     decisive = np.full(t.size, np.nan)
     decisive[ex.decisive] = -0.05
+    minimal = np.full(t.size, np.nan)
+    minimal[ex.counterfactual.minimal_set] = -0.05
     t_max = float(t[-1])
     x_scale = up.Scale(time=False, auto=False, range=(0.0, t_max))
     gap_hi = float(np.nanmax(np.concatenate([traj.gap_m, traj.ego_speed_mps, traj.lead_speed_mps, [12.0]])))
@@ -234,9 +236,12 @@ def fill_strip_plots(
         up.Series(label="detected", stroke=css(DETECTED), points=_points(DETECTED, 5), **no_line),
         up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **no_line),
         up.Series(label="decisive miss", stroke=css(CRASH), points=_points(CRASH, 10), **no_line),
+        up.Series(label="minimal miss set", stroke=hex_colour(C.BLACK),
+                  points={"show": True, "size": 13, "fill": "transparent", "stroke": hex_colour(C.BLACK), "width": 1.5},
+                  **no_line),
         up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
-    plots["detect"].data = (t, ex.p_detect, ex.q_detect, det, miss, decisive, marker(ex.p_detect))
+    plots["detect"].data = (t, ex.p_detect, ex.q_detect, det, miss, decisive, minimal, marker(ex.p_detect))
     plots["detect"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))}
 
     lw = ex.cum_log_weight

@@ -35,6 +35,7 @@ from pemviz.events import (
     StageResult,
     StageStarted,
 )
+from pemviz.proposal_view import ProposalView, batch_proposal_view
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.recording import RerunSink
@@ -45,6 +46,9 @@ MAX_RUNS = 4
 
 N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
+
+GAP_BINS_M = np.linspace(0.0, 13.0, 27)
+"""Gap bins of the marginal proposal view (:mod:`pemviz.proposal_view`): 0.5 m wide, 0 to 13 m."""
 
 QUICK: dict[str, Any] = PRESETS["quick"]
 """The ``quick`` preset (:data:`pemviz.config.PRESETS`): a run of a few seconds on 2 cores, to try the panel."""
@@ -205,6 +209,8 @@ class PanelRun(Sink):
         self.trajectories: list[Trajectory] = []
         self.most_likely_failure: Trajectory | None = None
         """The failing rollout with the highest probability under the PEM found so far."""
+        self.proposal_views: dict[int, tuple[str, ProposalView]] = {}
+        """Stage -> (kind, q(detect) of its sampler over the states its rollouts visited, per gap bin)."""
         self.events: list[Event] = []
         self.pinned = False
         """Kept for comparison until unpinned (:func:`keep_runs` never drops it)."""
@@ -251,6 +257,10 @@ class PanelRun(Sink):
         self.sampled_current = True
         self.trajectories = least_robust(self.trajectories, event)
         self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
+        window = self.view.thresholds.window if self.view is not None and self.view.thresholds else None
+        view = batch_proposal_view(event.batch, GAP_BINS_M, window) if window is not None else None
+        if view is not None:
+            self.proposal_views = {**self.proposal_views, event.stage: (event.kind, view)}
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self.stages = self.stages + [event.result]

@@ -9,9 +9,11 @@ Layout: the control panel (right) holds Run / Stop, the cost of the run, the sta
 elapsed time, expected time), the accuracy of the final estimate and the tabs *Experiment* (the form;
 each field shows its own error), *Rollouts* (choose a rollout: the most likely failure found and the
 least-robust ones; 3D playback) and *Runs* (kept runs with their settings, pin / unpin, export). The
-plots panel (left) holds *Live* (proposal per stage, per-stage values of every kept run), *Explain*
-(the chosen rollout step by step, synced with the 3D playback, and its decisive misses) and *Compare*
-(every setting of every kept run and their proposal curves).
+plots panel (left) holds *Live* (what each stage's sampler did over the states its rollouts visited, per-stage
+values of every kept run, mu_hat with its interval and the exact answer), *Explain* (the chosen rollout of the run
+chosen under *Runs* step by step, synced with the 3D playback: its severity, what happened in words, the
+controller's signals, its decisive misses, minimal miss set and last saving step) and *Compare* (every setting of
+every kept run and their reference-state proposal curves).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from typing import Any, Protocol
 import numpy as np
 import viser
 
-from pemviz.app import plots
+from pemviz.app import charts, plots
 from pemviz.app._viser_compat import resend_value
 from pemviz.app.explain import Explanation, explain
 from pemviz.app.form import (
@@ -46,6 +48,7 @@ from pemviz.config import SETTINGS, SIMULATORS, ExperimentConfig
 from pemviz.estimate import format_probability, relative_error
 from pemviz.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
+from pemviz.scenarios.braking_failures import Severity, severity
 from pemviz.problems import problem_for
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
@@ -73,6 +76,8 @@ CAR_HEIGHT_M = 1.5
 CAMERA_OFFSET_M = np.array([-5.0, -20.0, 13.0])
 """Initial camera position relative to the point between the cars (metres; behind-left, above)."""
 NO_ROLLOUT = "(choose a rollout)"
+ROLLOUT_ORDERS = ("robustness", "log p", "severity")
+"""How the Rollouts tab orders its rollouts: least robust, most probable under the PEM, or worst outcome first."""
 TABLE_STYLE = (
     "<style>.pemviz-table{border-collapse:collapse;text-align:right}"
     ".pemviz-table td,.pemviz-table th{padding:0.05em 0.3em}"
@@ -113,16 +118,66 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
             f"{relative_error(e.log_mu_hat, exact):.2g}, {inside} the interval"
         )
     if e.n_failures == 0:
-        lines.append(
-            f"no failure among {e.n} rollouts, so mu_hat = 0: the sampler never reached a crash. More stages (K), "
-            "more rollouts (N) or the state-ce preset move the proposal further towards the failures."
-        )
+        lines.append(f"no failure among {e.n} rollouts, so mu_hat = 0: " + no_failure_advice(record.config.method, e.n))
     lines.append(
         f"failures {e.n_failures}/{e.n} · ESS {plots.finite_or_dash(e.ess, '.1f')} · k-hat "
         f"{plots.finite_or_dash(e.khat, '.2f')} · NLL {plots.finite_or_dash(e.nll_mean, '.1f')} nats · "
         f"{ev.n_simulations:,} simulations in {ev.wall_s:.1f} s"
     )
     return box("<br>".join(lines), colour)
+
+
+def explanation_html(record: PanelRun, traj: Trajectory, ex: Explanation, title: str, dt: float) -> str:
+    """Explain's header: the rollout, its severity, what happened in words, the minimal miss set, the last step at
+    which one detection still saves it, and the counterfactual's summary."""
+    best = record.most_likely_failure
+    what = "the most likely failure found" if traj is best else ("a failure" if traj.crashed else "no failure")
+    cf = ex.counterfactual
+    lines = [
+        f"<b>{html.escape(title)}</b>: {what} · <b>{html.escape(ex.severity.short)}</b> · robustness "
+        f"{traj.robustness:+.4g} ({record.config.metric}) · log p_PEM {traj.log_p_total:.1f} nats · log w "
+        f"{traj.log_weight:.1f} nats",
+        f"<b>What happened</b>: {html.escape(ex.sentence)}",
+    ]
+    if ex.crashed and ex.replay_matches:
+        if cf.minimal_set.size:
+            k = cf.minimal_set.size
+            kind = "smallest" if cf.smallest else "minimal: none can be left out"
+            steps = ", ".join(f"{t * dt:.2f}" for t in cf.minimal_set[:16]) + (" ..." * (k > 16))
+            found = (
+                f"<b>Minimal miss set</b> ({kind}): {k} miss{'es' * (k != 1)} at {steps} s; detected there, the gap "
+                f"stays at or above {cf.minimal_set_min_gap_m:.2f} m"
+            )
+        else:
+            found = "<b>Minimal miss set</b>: none: even a detection at every step fails"
+        saving = (
+            f"{cf.last_saving_step * dt:.2f} s (step {cf.last_saving_step})" if cf.last_saving_step is not None
+            else "none: no single detection saves it"
+        )
+        lines.append(f"{found} · <b>last step at which one detection still saves it</b>: {saving}")
+    lines.append(f"<b>Counterfactual</b> (misses flipped to detections, replayed): {html.escape(ex.summary())}")
+    return box("<br>".join(lines), RED if traj.crashed else GREEN)
+
+
+def no_failure_advice(method: str, n: int) -> str:
+    """What to try after a run without a failure, in the terms of its ``method``."""
+    if method == "adaptive":
+        return (
+            "the sampler never reached a crash. More stages (K), more rollouts (N) or the state-ce preset move the "
+            "proposal further towards the failures."
+        )
+    if method == "mc":
+        return (
+            f"plain Monte Carlo draws every rollout from the PEM itself, so a failure of probability p shows up about "
+            f"once in 1/p rollouts; none in {n:,} only says p is likely below {3.0 / n:.2g}. The adaptive method "
+            "(state-ce preset) reaches failures far rarer than that."
+        )
+    if method == "ams":
+        return "no particle reached a failure: more particles (N) or the adaptive method (state-ce preset)."
+    return (
+        f"this fixed sampler ({method}) reached no crash: more rollouts (N) or the adaptive method (state-ce preset), "
+        "which learns where to miss."
+    )
 
 
 class Session:
@@ -150,6 +205,10 @@ class Session:
         self._confirmed_cost = False
         self.shown: Trajectory | None = None
         self.shown_record: PanelRun | None = None
+        self.listed: PanelRun | None = None
+        """The run whose rollouts the Rollouts tab lists and Explain explains: the one chosen under Runs (a new run
+        chooses itself)."""
+        self._severities: dict[tuple[int, str], Severity] = {}
         self.explanation: Explanation | None = None
         self.shown_step = -1
         self._shown_x: tuple[np.ndarray, np.ndarray] | None = None
@@ -211,6 +270,10 @@ class Session:
             record = PanelRun(self.app.next_run_id(), cfg)
             self.runs = keep_runs(self.runs, record)
             self.record = record
+            self.listed = record
+            with self.client.atomic():
+                self.run_choice.options = tuple(r.label for r in self.runs)
+                self.run_choice.value = record.label
             self._cancel = threading.Event()
             self._stop_requested_at = None
             self._worker = threading.Thread(
@@ -318,13 +381,19 @@ class Session:
 
         panel = gui.add_panel()
         with panel.add_tab("Live", viser.Icon.CHART_LINE):
-            self.proposal_plot = plots.curve_plot(gui, "q(detect | gap) per stage vs the PEM")
+            self.marginal_plots = charts.marginal_plots(gui)
             self.stage_plots = {key: plots.stage_plot(gui, title, y) for key, title, y in plots.STAGE_PLOTS}
         with panel.add_tab("Explain", viser.Icon.ZOOM_QUESTION):
             self.explain_html = gui.add_html(box("Choose a rollout in the Rollouts tab to explain it.", GREY))
             self.strip = plots.strip_plots(gui)
+            self.strip["controller"] = charts.controller_plot(gui, order=self.strip["gap"].order + 0.5)
         with panel.add_tab("Compare", viser.Icon.A_B):
             self.compare_html = gui.add_html("")
+            self.compare_html_ref = gui.add_html(
+                '<div style="margin:0 0.6em; font-size:0.8em; color:#555">Reference-state curves: q(detect | gap) with '
+                "the proposal's other inputs (speeds, pending brake) held at the start state. The Live tab shows what "
+                "each sampler did over the states its rollouts visited.</div>"
+            )
             self.compare_plots = [plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190) for i in range(4)]
         self.plot_panel = panel
         panel.dock_left()
@@ -391,12 +460,19 @@ class Session:
             "rollout", (NO_ROLLOUT,), initial_value=NO_ROLLOUT,
             hint="the most likely failure found, then the least robust (the run's metric)",
         )  # fmt: skip
+        self.rollout_order = gui.add_dropdown(
+            "sort by", ROLLOUT_ORDERS, initial_value=ROLLOUT_ORDERS[0],
+            hint="robustness: least robust first; log p: most probable under the PEM first; severity: worst first",
+        )  # fmt: skip
+        self.failures_only = gui.add_checkbox("failures only", False, hint="list only the rollouts that failed")
         self.rollout_html = gui.add_html(box("No rollouts yet: run an experiment.", GREY))
         self.step_slider = gui.add_slider("step", min=0, max=self.params.n_steps - 1, step=1, initial_value=0)
         self.play_button = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
         self.follow = gui.add_checkbox("follow cars", True, hint="move the camera along with the cars")
         self.scene_html = gui.add_html("")
         self.rollout_dropdown.on_update(lambda _: self._on_rollout_chosen(self.rollout_dropdown.value))
+        for handle in (self.rollout_order, self.failures_only):
+            handle.on_update(lambda _: self._relist())
         self.step_slider.on_update(lambda _: self._render_step(int(self.step_slider.value)))
         self.play_button.on_click(lambda _: self._toggle_play())
 
@@ -465,6 +541,8 @@ class Session:
                 if self._stop_requested_at is not None:
                     self.last_stop_latency_s = time.perf_counter() - self._stop_requested_at
                 self._set_running_ui(False)
+                if record.status in ("cancelled", "failed"):
+                    self._after_run(record)
                 if record.status == "cancelled":
                     latency = self.last_stop_latency_s
                     self._status(
@@ -480,7 +558,7 @@ class Session:
         """Refresh the status line of a running run: stage, what it does, elapsed time, expected time."""
         with self.lock:
             record = self.record
-            if record is None or not self.running or self._stop_requested_at is not None:
+            if record is None or not self.running or record.done or self._stop_requested_at is not None:
                 return
             with record.lock:
                 stage = record.current_stage
@@ -525,15 +603,18 @@ class Session:
             record = self.record
         with self.client.atomic():
             if record is not None:
-                plots.fill_curve_plot(self.proposal_plot, record, f"{record.short_label}: q(detect | gap) per stage")
+                charts.fill_marginal_plots(self.marginal_plots, record)
             for i, plot in enumerate(self.compare_plots):
                 if i < len(runs):
                     r = runs[i]
                     fin = r.final.estimate if r.final is not None else None
                     mu = f", mu_hat {format_probability(fin.log_mu_hat)}" if fin is not None else ""
-                    plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}")
+                    ref = ", reference-state q" if r.config.proposal_inputs == "state" else ""
+                    plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}{ref}")
             for key, plot in self.stage_plots.items():
                 plots.fill_stage_plot(plot, key, runs)
+                if key == "log10_mu_hat":
+                    charts.fill_mu_hat_plot(plot, runs)
 
     def _refresh_runs(self) -> None:
         with self.lock:
@@ -606,6 +687,22 @@ class Session:
         if r is not None:
             self.pin_button.label = "Unpin" if r.pinned else "Pin"
             self.export_name.value = f"run{r.run_id}-{r.config.metric}"
+            self._list_run(r)
+
+    def _list_run(self, record: PanelRun) -> None:
+        """Rollouts and Explain follow ``record`` (the run chosen under Runs): its rollouts, and its most likely
+        failure explained once it has ended."""
+        with self.lock:
+            if record is self.listed:
+                return
+            self.listed = record
+            self._set_rollouts(record)
+            if record.done:
+                self._show_default_rollout(record)
+                if self.shown_record is not record:
+                    self._clear_scene(f"{record.short_label} ({record.status}) has no rollout to show")
+            else:
+                self._clear_scene(f"{record.short_label} is going: its rollouts appear in the Rollouts tab")
 
     def _toggle_pin(self) -> None:
         r = self.chosen_run()
@@ -632,68 +729,123 @@ class Session:
 
     # == rollouts, explanation and the 3D scene =======================================================
     @staticmethod
-    def rollout_label(t: Trajectory, most_likely: bool = False) -> str:
-        """The rollout list entry (no rank in it, so a chosen rollout stays chosen while later stages re-rank)."""
-        crash = " · CRASH" if t.crashed else ""
+    def rollout_label(t: Trajectory, most_likely: bool = False, sev: Severity | None = None) -> str:
+        """The rollout list entry (no rank in it, so a chosen rollout stays chosen while later stages re-rank); the
+        outcome in :attr:`Severity.short`'s words when ``sev`` is given."""
+        outcome = f" · {sev.short}" if sev is not None and (t.crashed or sev.failed) else (" · failed" * t.crashed)
         head = "most likely failure · " if most_likely else ""
         return (
-            f"{head}stage {t.stage} rollout {t.index} · rho {t.robustness:+.4g} · log p {t.log_p_total:.1f}{crash}"
+            f"{head}stage {t.stage} rollout {t.index} · rho {t.robustness:+.4g} · log p {t.log_p_total:.1f}{outcome}"
         )
 
-    def _set_rollouts(self, record: PanelRun) -> None:
+    def severity_of(self, record: PanelRun, t: Trajectory) -> Severity:
+        """The severity of a listed rollout (computed once per rollout)."""
+        key = (record.run_id, t.key)
+        if key not in self._severities:
+            self._severities[key] = severity(t.gap_m, self.params)
+        return self._severities[key]
+
+    def ordered_rollouts(self, record: PanelRun) -> list[Trajectory]:
+        """The run's kept rollouts in the Rollouts tab's order (``sort by``), failures only if ticked."""
         with record.lock:
-            trajectories = list(record.trajectories)
+            kept = list(record.trajectories)
+        if self.failures_only.value:
+            kept = [t for t in kept if t.crashed]
+        order = self.rollout_order.value
+        if order == "log p":
+            return sorted(kept, key=lambda t: -t.log_p_total)
+        if order == "severity":
+            return sorted(kept, key=lambda t: -self.severity_of(record, t).rank)
+        return kept  # kept least robust first
+
+    def _relist(self) -> None:
+        with self.lock:
+            if self.listed is not None:
+                self._set_rollouts(self.listed)
+
+    def _set_rollouts(self, record: PanelRun) -> None:
+        if record is not self.listed:
+            return  # another run is chosen under Runs
+        with record.lock:
             best = record.most_likely_failure
+            n_kept = len(record.trajectories)
+        trajectories = self.ordered_rollouts(record)
         labels = {}
         if best is not None:
-            labels[self.rollout_label(best, True)] = best
-        labels.update({self.rollout_label(t): t for t in trajectories})
+            labels[self.rollout_label(best, True, self.severity_of(record, best))] = best
+        labels.update({self.rollout_label(t, sev=self.severity_of(record, t)): t for t in trajectories})
         self._rollout_labels = labels
         current = self.rollout_dropdown.value
         self.rollout_dropdown.options = (NO_ROLLOUT, *labels)
         if current not in labels:
             self.rollout_dropdown.value = NO_ROLLOUT
-        if not trajectories:
-            self.rollout_html.content = box("No rollouts yet.", GREY)
+        if not n_kept:
+            self.rollout_html.content = box(f"No rollouts of {html.escape(record.short_label)} yet.", GREY)
             return
         best_text = (
             f"Most likely failure found: stage {best.stage} rollout {best.index}, log p_PEM = "
-            f"{best.log_p_total:.1f} nats (the failing rollout most probable under the PEM)."
+            f"{best.log_p_total:.1f} nats (the failing rollout most probable under the PEM), "
+            f"{self.severity_of(record, best).short}."
             if best is not None
             else "No failure found yet."
         )
+
+        def outcome(t: Trajectory) -> str:
+            sev = self.severity_of(record, t)
+            return f"<b style=color:{RED}>{html.escape(sev.short)}</b>" if t.crashed else html.escape(sev.short)
+
         rows = "".join(
             f"<tr><td>{i + 1}</td><td>{t.stage}</td><td>{t.index}</td><td>{t.robustness:+.4g}</td>"
-            f"<td>{t.log_p_total:.1f}</td><td>{'<b style=color:' + RED + '>crash</b>' if t.crashed else 'no'}</td></tr>"
+            f"<td>{t.log_p_total:.1f}</td><td style='text-align:left'>{outcome(t)}</td></tr>"
             for i, t in enumerate(trajectories[:10])
         )
+        which = " that failed" if self.failures_only.value else ""
         self.rollout_html.content = TABLE_STYLE + (
             f'<div style="margin:0 0.6em 0.5em; font-size:0.8em">{html.escape(best_text)}<br>'
-            f"Least robust rollouts of {html.escape(record.short_label)} (metric {record.config.metric}; "
-            "log p: log-probability under the PEM, nats):"
+            f"The {n_kept} least robust rollouts of {html.escape(record.short_label)}{which} (metric "
+            f"{record.config.metric}), by {html.escape(self.rollout_order.value)}; log p: log-probability under the "
+            "PEM, nats:"
             '<table class="pemviz-table" style="width:100%">'
-            "<tr><th>#</th><th>stage</th><th>rollout</th><th>robustness</th><th>log p</th><th>crash</th></tr>"
+            "<tr><th>#</th><th>stage</th><th>rollout</th><th>robustness</th><th>log p</th><th>outcome</th></tr>"
             f"{rows}</table></div>"
         )
 
     def _show_default_rollout(self, record: PanelRun) -> None:
         """After a run: choose its most likely failure (else its least-robust rollout), paused at the start."""
+        if record is not self.listed:
+            return
         for label, t in self._rollout_labels.items():
             if t is record.most_likely_failure or record.most_likely_failure is None:
-                self.rollout_dropdown.value = label
+                if self.rollout_dropdown.value == label:  # the same label (an identical run): no callback
+                    self._on_rollout_chosen(label)
+                else:
+                    self.rollout_dropdown.value = label
                 return
+
+    def _after_run(self, record: PanelRun) -> None:
+        """A run ended without finishing (stopped, failed): explain its most likely failure, or say it ended."""
+        if record is not self.listed or self.shown_record is record:
+            return
+        self._set_rollouts(record)
+        self._show_default_rollout(record)
+        if self.shown_record is not record:
+            self._clear_scene(
+                f"{record.short_label} {'was stopped' if record.status == 'cancelled' else 'failed'} after "
+                f"{len(record.stages)} stages, before any rollout to show"
+            )
 
     def _on_rollout_chosen(self, label: str) -> None:
         traj = self._rollout_labels.get(label)
         if traj is None:
             return
         with self.lock:
-            scene = self.record.view.scene if self.record is not None and self.record.view is not None else None
+            record = self.listed or self.record
+            scene = record.view.scene if record is not None and record.view is not None else None
             if scene is None:  # a problem without a scene: nothing to replay (the panel runs the braking scenario)
                 return
-            self.shown = traj
-            self.shown_record = self.record
             self.explanation = explain(traj.gap_m, traj.detected, traj.log_p, traj.log_q, scene)
+            self.shown = traj
+            self.shown_record = record
             self._shown_x = scene_positions(traj, scene)
             self.step_slider.max = traj.n_steps - 1
             self._set_playing(False)
@@ -710,15 +862,8 @@ class Session:
             return
         title = f"{record.short_label} {traj.key}"
         plots.fill_strip_plots(self.strip, traj, ex, 0, title, record.view.thresholds)
-        best = record.most_likely_failure
-        what = "the most likely failure found" if traj is best else ("a crash" if traj.crashed else "no crash")
-        colour = RED if traj.crashed else GREEN
-        self.explain_html.content = box(
-            f"<b>{html.escape(title)}</b>: {what} · robustness {traj.robustness:+.4g} ({record.config.metric}) · "
-            f"log p_PEM {traj.log_p_total:.1f} nats · log w {traj.log_weight:.1f} nats<br>"
-            f"<b>Counterfactual</b> (each miss flipped to a detection, replayed): {html.escape(ex.summary())}",
-            colour,
-        )
+        charts.fill_controller_plot(self.strip["controller"], ex, 0, title)
+        self.explain_html.content = explanation_html(record, traj, ex, title, record.view.scene.dt_s)
 
     def _toggle_play(self) -> None:
         with self.lock:
@@ -845,11 +990,14 @@ class Session:
                     pass
             mark = {"detected": "detected", "missed": f"<b style='color:rgb{MISSED}'>missed</b>",
                     "missed (decisive)": f"<b style='color:{RED}'>missed (decisive)</b>"}[seen]  # fmt: skip
-            crash = f" · <b style='color:{RED}'>CRASH</b>" if traj.crashed else ""
+            crash = f" · <b style='color:{RED}'>{html.escape(ex.severity.short)}</b>" if traj.crashed else ""
+            c = ex.controller
+            brake = "applied" if c.brake_applied[t] else ("commanded" if c.brake_command[t] else "off")
             self.scene_html.content = box(
                 f"Scene: <b>{html.escape(record.short_label)} {traj.key}</b> (stage {traj.stage}, rollout "
                 f"{traj.index}{crash}) · step {t} (t = {t * p.dt_s:.2f} s) · gap {gap:.2f} m · ego "
-                f"{traj.ego_speed_mps[t]:.2f} m/s · lead {traj.lead_speed_mps[t]:.2f} m/s · detector: {mark}",
+                f"{traj.ego_speed_mps[t]:.2f} m/s · lead {traj.lead_speed_mps[t]:.2f} m/s · detector: {mark} · "
+                f"brake {brake} · acceleration {c.accel_mps2[t]:+.2f} m/s^2",
                 RED if traj.crashed else BLUE,
             )
 

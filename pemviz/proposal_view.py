@@ -1,0 +1,162 @@
+"""What a sampler really did: q(detect) over the states its rollouts visited, per gap bin, beside the PEM's.
+
+A proposal that sees more than the gap (the default ``state`` proposal sees gap, speeds and the pending brake)
+has no single curve q(detect | gap): a curve that varies the gap and holds the other inputs at one reference state
+(:meth:`pemviz.sampling.StateProposal.curve`) can sit near 1 at every gap while the sampler misses the lead most of
+the time in the states it actually reaches. Here the states are those of a stage's rollouts and q is read back
+from the log-probability each rollout's detector gave the action it took (``RolloutBatch.log_q``), so the view
+needs neither the network nor a reference state, and holds for any sampler (a mixture's rollouts each with the
+detector that drew them, the PEM's own rollouts with q = p). Per gap bin: the mean and the quantiles of q(detect)
+and the quantiles of the log-odds of a miss, ``log q(miss) / q(detect)`` (nats), where probabilities near 0 or 1
+differ by orders of magnitude that a 0-1 axis cannot show. The same for the PEM, from ``RolloutBatch.log_p`` at
+the same states.
+
+Marginalising a state-dependent proposal over the visited states is how Rubinstein & Kroese ("The Cross-Entropy
+Method", Springer 2004, Ch. 3) compare a fitted importance density with the optimal one: on the states that matter.
+No I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+QUANTILES = (0.1, 0.9)
+"""The lower and upper quantile of a bin's spread."""
+
+
+def log1mexp(log_x: np.ndarray) -> np.ndarray:
+    """log(1 - exp(a)) for a <= 0, accurate near both ends (Maechler, "Accurately Computing log(1 - exp(-|a|))",
+    the R project, 2012): ``log(-expm1(a))`` above -log 2, ``log1p(-exp(a))`` below. -inf at a = 0."""
+    a = np.asarray(log_x, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return np.where(a > -math.log(2.0), np.log(-np.expm1(np.minimum(a, 0.0))), np.log1p(-np.exp(a)))
+
+
+def prob_detect(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:
+    """p(detect) from the log-probability of the action taken, float64 of the inputs' shape: exp(log p) if
+    detected, else 1 - exp(log p) (``-expm1``, exact for small probabilities)."""
+    lp = np.asarray(log_p_action, dtype=np.float64)
+    return np.where(np.asarray(detected, bool), np.exp(lp), -np.expm1(lp))
+
+
+def miss_log_odds(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:
+    """log p(miss) - log p(detect) (nats) from the log-probability of the action taken, float64 of the inputs'
+    shape: positive where a miss is the likelier outcome."""
+    lp = np.asarray(log_p_action, dtype=np.float64)
+    other = log1mexp(lp)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.asarray(detected, bool), other - lp, lp - other)
+
+
+@dataclass(frozen=True)
+class ProposalView:
+    """q(detect) of the sampler and p(detect) of the PEM over one batch's visited states, per gap bin.
+
+    Attributes:
+        edges_m: float64 [B + 1] the bins' edges (metres); a state is in bin b when edges[b] <= gap < edges[b + 1].
+        centres_m: float64 [B] the bins' centres (metres).
+        n_states: int [B] visited states (rollouts x steps) in each bin.
+        q_mean, q_lo, q_hi: float64 [B] mean, :data:`QUANTILES` of q(detect) over the bin's states (nan: empty).
+        p_mean, p_lo, p_hi: float64 [B] the same of p_PEM(detect).
+        q_log_odds, q_log_odds_lo, q_log_odds_hi: float64 [B] median and :data:`QUANTILES` of
+            log q(miss) / q(detect) (nats).
+        p_log_odds, p_log_odds_lo, p_log_odds_hi: float64 [B] the same of the PEM.
+        window_m: the gap below which :attr:`q_miss_window` and :attr:`p_miss_window` are taken (metres).
+        q_miss_window, p_miss_window: the mean of q(miss) and of p_PEM(miss) over every visited state with a gap
+            below ``window_m`` (nan: none).
+    """
+
+    edges_m: np.ndarray
+    centres_m: np.ndarray
+    n_states: np.ndarray
+    q_mean: np.ndarray
+    q_lo: np.ndarray
+    q_hi: np.ndarray
+    p_mean: np.ndarray
+    p_lo: np.ndarray
+    p_hi: np.ndarray
+    q_log_odds: np.ndarray
+    q_log_odds_lo: np.ndarray
+    q_log_odds_hi: np.ndarray
+    p_log_odds: np.ndarray
+    p_log_odds_lo: np.ndarray
+    p_log_odds_hi: np.ndarray
+    window_m: float
+    q_miss_window: float
+    p_miss_window: float
+
+
+def _by_bin(values: np.ndarray, bins: np.ndarray, n_bins: int, median: bool) -> tuple[np.ndarray, ...]:
+    """(centre, lo, hi) of ``values`` [S] per bin [S] in 0..n_bins-1: the mean (or median) and :data:`QUANTILES`."""
+    out = np.full((3, n_bins), np.nan)
+    order = np.argsort(bins, kind="stable")
+    bounds = np.searchsorted(bins[order], np.arange(n_bins + 1))
+    for b in range(n_bins):
+        v = values[order[bounds[b] : bounds[b + 1]]]
+        v = v[~np.isnan(v)]
+        if v.size:
+            lo, mid, hi = np.quantile(v, (QUANTILES[0], 0.5, QUANTILES[1]))
+            out[:, b] = (mid if median else v.mean(), lo, hi)
+    return tuple(out)
+
+
+def proposal_view(
+    gap_m: np.ndarray,
+    detected: np.ndarray,
+    log_q: np.ndarray,
+    log_p: np.ndarray,
+    edges_m: np.ndarray,
+    window_m: float = 10.0,
+) -> ProposalView:
+    """The sampler's and the PEM's detection probabilities over the states a batch of rollouts visited, by gap.
+
+    Args:
+        gap_m: float64 [N, T] the gap at each visited state (metres).
+        detected: bool [N, T] the action taken there.
+        log_q: float64 [N, T] log q(action) under the detector that drew the rollout (nats).
+        log_p: float64 [N, T] log p_PEM(action) (nats).
+        edges_m: float64 [B + 1] increasing bin edges (metres); states outside them count in no bin.
+        window_m: the gap below which the mean miss probabilities are also taken over all states (metres).
+    Raises:
+        ValueError: arrays of different shapes, or edges not increasing with at least one bin.
+    """
+    gap = np.asarray(gap_m, dtype=np.float64).ravel()
+    d = np.asarray(detected, dtype=bool).ravel()
+    lq, lp = np.asarray(log_q, dtype=np.float64).ravel(), np.asarray(log_p, dtype=np.float64).ravel()
+    edges = np.asarray(edges_m, dtype=np.float64)
+    shape = np.shape(gap_m)
+    if not (np.shape(detected) == np.shape(log_q) == np.shape(log_p) == shape):
+        raise ValueError(
+            f"proposal_view: gap_m, detected, log_q and log_p need one shape [N, T], got {shape}, "
+            f"{np.shape(detected)}, {np.shape(log_q)}, {np.shape(log_p)}"
+        )
+    if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
+        raise ValueError(f"proposal_view: edges_m must be increasing with at least 2 entries, got {edges_m!r}")
+    n_bins = edges.size - 1
+    b = np.searchsorted(edges, gap, side="right") - 1
+    inside = (b >= 0) & (b < n_bins)
+    b, q_det, p_det = b[inside], prob_detect(lq, d)[inside], prob_detect(lp, d)[inside]
+    q_lo_odds, p_lo_odds = miss_log_odds(lq, d)[inside], miss_log_odds(lp, d)[inside]
+    window = gap < window_m
+    return ProposalView(
+        edges,
+        (edges[:-1] + edges[1:]) / 2.0,
+        np.bincount(b, minlength=n_bins),
+        *_by_bin(q_det, b, n_bins, median=False),
+        *_by_bin(p_det, b, n_bins, median=False),
+        *_by_bin(q_lo_odds, b, n_bins, median=True),
+        *_by_bin(p_lo_odds, b, n_bins, median=True),
+        float(window_m),
+        float(prob_detect(lq, ~d)[window].mean()) if window.any() else math.nan,
+        float(prob_detect(lp, ~d)[window].mean()) if window.any() else math.nan,
+    )
+
+
+def batch_proposal_view(batch, edges_m: np.ndarray, window_m: float = 10.0) -> ProposalView | None:
+    """:func:`proposal_view` of a :class:`pemviz.scenarios.RolloutBatch` (None: its rollouts report no ``gap_m``)."""
+    if "gap_m" not in batch.observation_names:
+        return None
+    return proposal_view(batch.gap_m, batch.detected, batch.log_q, batch.log_p, edges_m, window_m)
