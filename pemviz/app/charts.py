@@ -19,7 +19,7 @@ from pemviz.app.explain import Explanation
 from pemviz.app.plots import LEGEND, _points, axes, run_colour
 from pemviz.app.runs import PanelRun
 from pemviz.proposal_view import ProposalView
-from pemviz.sinks.colours import BRAKE_ZONE, CRASH, EGO_SPEED, css, stage_rgb
+from pemviz.sinks.colours import BLACK, BRAKE_ZONE, CRASH, EGO_SPEED, css, hex_colour, stage_rgb
 
 PROB, LOG_ODDS = "prob", "log_odds"
 LOG_ODDS_SPAN = 12.0
@@ -33,13 +33,13 @@ def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 13.0))
     return {
         PROB: gui.add_uplot(
-            data=(x, none), series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke="black")),
+            data=(x, none), series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(BLACK))),
             title="q(detect) over the visited states per stage vs the PEM",
             scales={"x": x_scale, "y": up.Scale(auto=False, range=(0.0, 1.04))},
             axes=axes("gap d (m), 0.5 m bins", "mean q(detect)"), legend=LEGEND, height=230,
         ),
         LOG_ODDS: gui.add_uplot(
-            data=(x, none), series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke="black")),
+            data=(x, none), series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(BLACK))),
             title="log q(miss) / q(detect) over the visited states",
             scales={"x": x_scale, "y": up.Scale(auto=False, range=(-6.0, 2.0))},
             axes=axes("gap d (m), 0.5 m bins", "log-odds (nats)"), legend=LEGEND, height=210,
@@ -94,7 +94,7 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
             up.Series(label="gap (m)"),
             up.Series(label=f"{last_name} 10 %", stroke=colour, width=1, dash=[3, 3]),
             up.Series(label=f"{last_name} 90 %", stroke=colour, width=1, dash=[3, 3]),
-            up.Series(label="PEM", stroke="black", width=2.5),
+            up.Series(label="PEM", stroke=hex_colour(BLACK), width=2.5),
         ]
         data = [x, getattr(last, lo), getattr(last, hi), getattr(last, p_mid)]
         for stage, name, view in stages:
@@ -148,7 +148,7 @@ def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
         bands.append(up.Band(series=(len(series) - 1, len(series) - 2), fill=f"{colour}26"))
     exact = runs[-1].exact_log_p
     if exact is not None and math.isfinite(exact):
-        series.append(up.Series(label=f"exact {exact / ln10:.3f}", stroke="black", width=1.5, dash=[8, 4]))
+        series.append(up.Series(label=f"exact {exact / ln10:.3f}", stroke=hex_colour(BLACK), width=1.5, dash=[8, 4]))
         data.append(np.full(n, exact / ln10))
         values.append(data[-1])
     plot.title = "log10 mu_hat per stage, 95 % interval (band)" + (", exact answer (black)" * (exact is not None))
@@ -189,7 +189,7 @@ def fill_controller_plot(plot: viser.GuiUplotHandle, ex: Explanation, step: int,
         up.Series(label="acceleration (m/s^2)", stroke=css(EGO_SPEED), width=2),
         up.Series(label="brake commanded", stroke=css(BRAKE_ZONE), points=_points(BRAKE_ZONE), **dots),
         up.Series(label="brake applied", stroke=css(CRASH), points=_points(CRASH), **dots),
-        up.Series(label="now", stroke="black", points=_points((0, 0, 0), 9), **dots),
+        up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots),
     )
     plot.data = (t, a, command, applied, now)
     plot.scales = {
