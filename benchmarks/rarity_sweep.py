@@ -43,13 +43,14 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pemviz import truth
-from pemviz.config import METHODS as CONFIG_METHODS, PRESETS, ExperimentConfig
+from pemviz.config import METHODS as CONFIG_METHODS, ExperimentConfig
 from pemviz.detectors import Detector
 from pemviz.engine import Experiment
 from pemviz.estimate import relative_error
 from pemviz.events import RunFinished
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.io.files import atomic_write
+from pemviz.presets import PRESETS
 from pemviz.problems import Problem, ShiftedPEM, braking_problem, toy_problem
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams

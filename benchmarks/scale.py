@@ -43,7 +43,7 @@ def _child(argv: list[str]) -> None:
     sys.path.insert(0, str(REPO))  # this checkout's pemviz, as ``python -m pemviz.cli`` from the repository root
     import pemviz.engine as engine
     import pemviz.problems as problems
-    import pemviz.estimators.cross_entropy as cross_entropy
+    import pemviz.estimators.ce_fit as ce_fit
     from pemviz.cli import main
 
     spent = {"simulation": 0.0, "fit": 0.0, "run": 0.0}
@@ -83,7 +83,7 @@ def _child(argv: list[str]) -> None:
         return dataclasses.replace(pb, simulate=timed("simulation", pb.simulate), stream=stream)
 
     problems.braking_problem = hooked_problem  # problems.problem_for builds the run's problem with it
-    cross_entropy.fit_proposal = timed("fit", cross_entropy.fit_proposal)  # the name the CE stage calls
+    ce_fit.fit_proposal = timed("fit", ce_fit.fit_proposal)  # the name the CE fits call
     engine.Experiment.run = timed("run", engine.Experiment.run)
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     sys.argv = ["pemviz", "run", *argv]

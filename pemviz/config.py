@@ -5,7 +5,7 @@ place, :data:`SETTINGS`: the config's checks, the command line (:mod:`pemviz.com
 (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read it there.
 
 Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.CrossEntropy` (its CE
-stage) and :func:`pemviz.estimators.cross_entropy.ce_update` (the weighted fit). The metric: :class:`pemviz.engine.Experiment`
+stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the weighted fit). The metric: :class:`pemviz.engine.Experiment`
 ranks the rollouts with it (:meth:`pemviz.problems.Problem.robustness`). The seed: the engine's rollout stream and
 the estimator's fit, tie-breaking and initial-weight streams.
 """
@@ -47,7 +47,7 @@ UNIFORMS = ("array-rqmc", "iid")
 """How a batch's rollouts draw their detections (:class:`ExperimentConfig` ``uniforms``)."""
 ELITE_TIES = ("all", "random")
 FITS = ("adam", "lbfgs")
-"""How the proposal is fitted each stage (:func:`pemviz.estimators.cross_entropy.ce_update`): ``adam``, a fixed number of
+"""How the proposal is fitted each stage (:func:`pemviz.estimators.ce_fit.ce_update`): ``adam``, a fixed number of
 full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous
 stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
 Alg. 7.5)."""
@@ -350,7 +350,7 @@ def settings_of(owner: str) -> tuple[str, ...]:
 class ExperimentConfig:
     """One experiment: the sampler of Innes & Ramamoorthy (2022, Algorithm 1) and its baselines.
 
-    The defaults are the recommended sampler (preset :data:`DEFAULT_PRESET`); ``PRESETS["paper"]`` gives the
+    The defaults are the recommended sampler (preset :data:`pemviz.presets.DEFAULT_PRESET`); :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the
     paper's own settings.
 
     Attributes:
@@ -398,7 +398,7 @@ class ExperimentConfig:
         ams_max_iterations: the most AMS iterations; a run stopped by it before its level reached the failure
             threshold gets the verdict ``doubtful``.
 
-    Sampler improvements over the paper (on by default; ``PRESETS["paper"]`` turns them off; each one's effect
+    Sampler improvements over the paper (on by default; :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` turns them off; each one's effect
     is measured against exact answers in ``benchmarks/truth_sampler_improvements.py``):
         proposal_inputs: h(s), one of :data:`PROPOSAL_INPUTS`.
         proposal_window: the proposal replaces the PEM only where the detector can matter (the problem's
@@ -450,7 +450,7 @@ class ExperimentConfig:
             stage's samplers. Once the fitted steps are thinned (more than 20 x ``fit_rows`` of them) the steps
             keep the weights they have.
 
-    Fitting cost (``PRESETS["paper"]`` keeps the paper's: ``adam`` on every step):
+    Fitting cost (:data:`PRESETS["paper"] <pemviz.presets.PRESETS>` keeps the paper's: ``adam`` on every step):
         fit: one of :data:`FITS`; ``adam`` runs ``ce_epochs`` / ``pretrain_epochs`` epochs at ``learning_rate``,
             ``lbfgs`` at most ``fit_max_steps`` iterations per fit, stopping once converged.
         fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).
@@ -545,57 +545,6 @@ class ExperimentConfig:
             return self.n_per_stage
         final = self.n_final if self.has_final_batch else 0
         return self.pretrain_rollouts + self.n_stages * self.n_per_stage + final
-
-
-PAPER: dict[str, Any] = {
-    "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False,
-    "smoothing_at_failure": None, "final_smoothing": None, "elite_ties": "all", "pretrain_cap": None,
-    "defensive": 0.0, "target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
-    "fit": "adam", "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000, "n_final": 100,
-    "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500,
-}
-"""The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal
-fitted on every step by full-batch Adam, weights over T - 1 steps, every tie at gamma an elite, no defensive
-mixture, i.i.d. uniforms."""
-
-DEFAULT_PRESET = "state-ce"
-"""The recommended sampler and the default of ``ExperimentConfig()``, ``pemviz run``, the panel, ``validate`` and
-``tables``: cross-entropy on a state-dependent proposal (see :class:`ExperimentConfig`)."""
-
-PRESETS: dict[str, dict[str, Any]] = {
-    DEFAULT_PRESET: {},
-    "paper": dict(PAPER),
-    "authors-code": {
-        **PAPER, "smoothing": 0.5, "ce_epochs": 1000, "weights": "recomputed", "final_estimate": "last-stage",
-    },
-    "quick": {
-        "n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2,
-    },
-    "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
-                      "pool_weights": "rollouts", "smoothing_at_failure": 1.0, "final_smoothing": None,
-                      "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500, "skip_decided": False,
-                      "fit_rows": 10_000, "fit_tolerance": None},
-}
-"""Named settings, each applied on top of the defaults.
-
-``state-ce`` (the default): cross-entropy on a proposal over the whole observed state, only where the detector
-can matter, weights up to the failure, once the threshold reaches the failure level the weights to the power 1.2
-(the Renyi divergence of order 1.2) and to the power 1 in the last fit, random tie-breaking, a capped pretraining,
-a 20 % per-step defensive mixture, and a mixture over whole rollouts: 45 % of every stage's rollouts from the
-proposal without the per-step cap, and once the failure level is reached 10 % from the target (weights at most 10),
-each fit using every failure since, weighed by the mixture of those stages' samplers, each batch's detections drawn by
-Array-RQMC and the pooled stages counted by j^2 n_j, short warm-started fits (Adam at 1e-2, at most 150 epochs, until
-converged) and the proposal only where a detection can still matter. Against exact answers at 2,100 simulations, 10
-seeds (``benchmarks/rarity_sweep.py``): median relative error <= 0.0035 on toys from 1e-3 to 1e-100 (the per-step
-mixture alone, ``state-ce-step``, found no failure at all on the toys needing 100 and 300 misses in a row),
-0.003-0.019 on the latched scenario from 1e-1.4 to 1e-62, 0.026 and 0.023 on the main braking job at 1e-15 and
-1e-26; on main over seeds 0-99: 0.021, RMS 0.027 (1,200 simulations, seeds 0-199: 0.036, RMS 0.057).
-``state-ce-step``: the default sampler before the mixture over rollouts (per-step defensive mixture only; median
-relative error 0.054 on the main job, 0.087 on latched at 1e-62).
-``paper``: the sampler as published (biased low on the braking job: its estimator is unbiased but so
-right-skewed that its 1,200 simulations almost never see the weights that matter). ``authors-code``: how the
-authors' public code ran it (alpha 0.5, 1000 epochs, weights recomputed through the gradient, the last stage's
-batch as the estimate). ``quick``: the default sampler with fewer, larger Adam steps, a run of a few seconds."""
 
 
 def _is_real(x: object) -> bool:

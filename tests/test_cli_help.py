@@ -46,7 +46,7 @@ def test_run_help_gives_the_real_pem_default() -> None:
 def test_every_command_that_takes_a_preset_accepts_quick() -> None:
     from pemviz.commands.run import config_from_args
     from pemviz.commands import split_choices
-    from pemviz.config import PRESETS
+    from pemviz.presets import PRESETS
 
     parser = build_parser()
     quick = config_from_args(parser.parse_args(["run", "--preset", "quick"]))

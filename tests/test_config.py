@@ -14,7 +14,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pemviz.config import PRESETS, RUN, SETTINGS, ConfigError, ExperimentConfig, settings_of
+from pemviz.config import RUN, SETTINGS, ConfigError, ExperimentConfig, settings_of
+from pemviz.presets import PRESETS
 
 
 @pytest.mark.parametrize(

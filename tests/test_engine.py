@@ -8,9 +8,10 @@ import numpy as np
 
 import pytest
 
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
 from pemviz.events import RolloutsSampled
+from pemviz.presets import PRESETS
 from pemviz.problems import build_problem
 
 nan, inf = math.nan, math.inf

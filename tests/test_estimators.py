@@ -19,8 +19,8 @@ from pemviz.estimators import (
     failure_steps,
     log_weight,
 )
+from pemviz.estimators.ce_fit import ce_update
 from pemviz.problems import build_problem, toy_problem
-from pemviz.estimators.cross_entropy import ce_update
 from pemviz.sampling import Proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.toy import ToyParams
@@ -147,7 +147,7 @@ def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of
 def test_elite_steps_thinned_as_they_come_keep_the_weighted_log_likelihood_in_expectation():
     """Thinning the gathered steps (systematic resampling, repeated as chunks arrive) keeps
     E[sum_s w_s f(h_s, a_s)] for any f: the CE objective's expectation."""
-    from pemviz.estimators.cross_entropy import EliteSteps
+    from pemviz.estimators.ce_fit import EliteSteps
     from pemviz.scenarios import RolloutBatch
 
     rng = np.random.default_rng(0)
@@ -247,7 +247,7 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
     size the reweighted steps obey p / (c_1 q_1 + c_2 q_2) <= p / (c_j q_j) = 2 w_own for the stage j that drew a
     rollout."""
     from pemviz.engine import Experiment
-    from pemviz.estimators import cross_entropy as ce
+    from pemviz.estimators import ce_fit as ce
 
     def in_order(steps):  # the held steps' log-weights, rollout by rollout
         order = np.concatenate([part[0] for part in steps.parts])
@@ -289,7 +289,7 @@ def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monk
     with alpha = 1, so with the same seed the fits before it see the same weights and it sees alpha times theirs (up
     to the constant the held weights are relative to)."""
     from pemviz.engine import Experiment
-    from pemviz.estimators import cross_entropy as ce
+    from pemviz.estimators import ce_fit as ce
 
     def fitted_log_weights(**fields):
         calls = []

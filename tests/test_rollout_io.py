@@ -17,19 +17,20 @@ import pytest
 
 from conftest import run_cli, verify_rrd
 from pemviz.estimate import estimate
+from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
 from pemviz.plan import RunPlan
+from pemviz.presets import PRESETS
 from pemviz.problems import problem_for
 from pemviz import cli
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
 from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.config import ExperimentConfig
 from pemviz.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment
 from pemviz.events import FinalEstimate, RolloutChunk, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
 from pemviz.problems import braking_problem
-from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
 from pemviz.sampling import Proposal, load_proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.sinks.rollouts import RolloutSink

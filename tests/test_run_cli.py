@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from conftest import REPO, run_cli, verify_rrd
+from pemviz.presets import PRESETS
 from pemviz.problems import problem_for
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
 from pemviz.events import FinalEstimate, StageFinished
 

@@ -11,7 +11,7 @@ import torch
 from pemviz.detectors import ConstantDetector, action_log_prob
 from pemviz.estimate import estimate, format_probability
 from pemviz.estimators.base import quantile_threshold
-from pemviz.estimators.cross_entropy import ce_update, pretrain_proposal
+from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
 from pemviz.sampling import Proposal, ProposalFormatError, load_proposal, save_proposal
 from pemviz.scenarios import simulate
 
@@ -142,7 +142,7 @@ def test_training_loops_call_check_every_25_epochs_and_stop_when_it_raises():
 def test_weighted_step_subsample_keeps_the_ce_objective_in_expectation():
     """sum_j w_j f(s_j, a_j) over a systematic subsample of 40 of 600 steps: its mean over 4000 draws equals the
     full sum within 4 standard errors, and every draw carries the total weight exactly."""
-    from pemviz.estimators.cross_entropy import weighted_steps
+    from pemviz.estimators.ce_fit import weighted_steps
 
     rng = np.random.default_rng(3)
     h = rng.normal(size=(30, 20, 2))
@@ -260,7 +260,7 @@ def test_fit_proposal_gives_autograd_and_torch_adams_parameters(state):
 def test_recomputed_weights_objective_matches_autograd():
     """The authors' loss (weights recomputed through the gradient) with its gradient written out must give autograd's
     loss and gradient, and fit what autograd fits on the same loss (to :data:`FIT_TOL`)."""
-    from pemviz.estimators.cross_entropy import recomputed_objective
+    from pemviz.estimators.ce_fit import recomputed_objective
     from pemviz.sampling import fit_proposal
 
     rng = np.random.default_rng(2)

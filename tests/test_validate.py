@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from pemviz.cli import main as cli_main
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
+from pemviz.presets import PRESETS
 from pemviz.problems import toy_problem
 from pemviz.scenarios.toy import ToyParams
 
@@ -103,8 +104,7 @@ def test_improvement_fields_reject_bad_values(field, value):
 
 def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
     import torch
-
-    from pemviz.estimators.cross_entropy import ce_update
+    from pemviz.estimators.ce_fit import ce_update
     from pemviz.sampling import Proposal
 
     rng = np.random.default_rng(0)

@@ -20,7 +20,8 @@ import viser
 from pemviz import engine
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.app.session import Session
-from pemviz.config import DEFAULT_PRESET, ExperimentConfig
+from pemviz.config import ExperimentConfig
+from pemviz.presets import DEFAULT_PRESET
 from pemviz.problems import problem_for
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks.colours import BLUE

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from pemviz.app.form import run_label
-from pemviz.config import PRESETS, ExperimentConfig
+from pemviz.config import ExperimentConfig
 from pemviz.events import (
     Event,
     FinalEstimate,
@@ -35,6 +35,7 @@ from pemviz.events import (
     StageResult,
     StageStarted,
 )
+from pemviz.presets import PRESETS
 from pemviz.proposal_view import ProposalView, batch_proposal_view
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink, StageClock
@@ -51,10 +52,10 @@ GAP_BINS_M = np.linspace(0.0, 13.0, 27)
 """Gap bins of the marginal proposal view (:mod:`pemviz.proposal_view`): 0.5 m wide, 0 to 13 m."""
 
 QUICK: dict[str, Any] = PRESETS["quick"]
-"""The ``quick`` preset (:data:`pemviz.config.PRESETS`): a run of a few seconds on 2 cores, to try the panel."""
+"""The ``quick`` preset (:data:`pemviz.presets.PRESETS`): a run of a few seconds on 2 cores, to try the panel."""
 
 PANEL_PRESETS: dict[str, dict[str, Any]] = PRESETS
-"""Presets offered in the panel: :data:`pemviz.config.PRESETS`."""
+"""Presets offered in the panel: :data:`pemviz.presets.PRESETS`."""
 
 _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")
 

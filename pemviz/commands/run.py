@@ -22,8 +22,9 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
-from pemviz.config import DEFAULT_PRESET, PRESETS, ConfigError, ExperimentConfig
+from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.io.files import check_output_folder, free_default_path
+from pemviz.presets import DEFAULT_PRESET, PRESETS
 from pemviz.resources import check_run_memory
 
 # The parser needs only the light modules above (and rerun's script flags): torch, the engine, the sinks and pyarrow

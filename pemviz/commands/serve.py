@@ -9,7 +9,7 @@ import socket
 import sys
 
 from pemviz.commands import COMMANDS, UsageError, add_setting, pem_argument
-from pemviz.config import DEFAULT_PRESET, PRESETS
+from pemviz.presets import DEFAULT_PRESET, PRESETS
 
 
 def register(sub: argparse._SubParsersAction) -> None:

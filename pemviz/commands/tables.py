@@ -22,9 +22,9 @@ import sys
 import time
 
 from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
-from pemviz.config import PRESETS
 from pemviz.estimate import format_probability
 from pemviz.io.files import check_output_folder, write_text_atomic
+from pemviz.presets import PRESETS
 from pemviz.problems import PROBLEMS, build_problem
 from pemviz.resources import cap_jobs
 from pemviz.studies.paper_tables import (

@@ -18,9 +18,9 @@ import time
 from pathlib import Path
 
 from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
-from pemviz.config import DEFAULT_PRESET, PRESETS
 from pemviz.estimate import format_probability, relative_error
 from pemviz.io.files import check_output_folder, write_text_atomic
+from pemviz.presets import DEFAULT_PRESET, PRESETS
 from pemviz.problems import PROBLEMS
 from pemviz.resources import cap_jobs
 from pemviz.studies.validation import (

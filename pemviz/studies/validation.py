@@ -26,12 +26,13 @@ import numpy as np
 from tqdm import tqdm
 
 from pemviz import truth
-from pemviz.config import METHODS, PRESETS, ExperimentConfig
+from pemviz.config import METHODS, ExperimentConfig
 from pemviz.engine import Experiment
 from pemviz.estimate import format_probability, relative_error
 from pemviz.events import RunFinished
 from pemviz.io.files import atomic_write
 from pemviz.pem import load_pem
+from pemviz.presets import PRESETS
 from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams

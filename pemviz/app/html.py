@@ -1,0 +1,127 @@
+"""The panel's HTML boxes: verdicts, the final estimate's accuracy, a failure's explanation and the advice after a
+run without failures. Plain functions of a run; no viser."""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+
+from pemviz.app import plots
+from pemviz.app.explain import Explanation
+from pemviz.app.runs import PanelRun, Trajectory
+from pemviz.estimate import format_probability, relative_error
+from pemviz.events import FinalEstimate
+from pemviz.sinks import colours as C
+from pemviz.sinks.colours import hex_colour
+
+
+NO_ROLLOUT = "(choose a rollout)"
+"""The rollout dropdown's entry before a rollout is chosen."""
+TABLE_STYLE = (
+    "<style>.pemviz-table{border-collapse:collapse;text-align:right}"
+    ".pemviz-table td,.pemviz-table th{padding:0.05em 0.3em}"
+    ".pemviz-table tr:nth-child(even){background:#0000000a}</style>"
+)
+GREY, BLUE, GREEN, AMBER, RED = (hex_colour(c) for c in (C.GREY, C.BLUE, C.GREEN, C.AMBER, C.RED))
+VERDICT_COLOURS = {"reliable": GREEN, "doubtful": AMBER, "unreliable": RED}
+
+
+def box(text: str, colour: str) -> str:
+    return (
+        f'<div style="margin:0 0.6em 0.5em; padding:0.4em 0.6em; border-radius:4px; font-size:0.85em; '
+        f'border-left:4px solid {colour}; background:{colour}14">{text}</div>'
+    )
+
+
+def field_error(text: str) -> str:
+    """The error line under a field (empty: none)."""
+    if not text:
+        return ""
+    return f'<div style="margin:-0.3em 0.8em 0.4em; color:{RED}; font-size:0.8em">{html.escape(text)}</div>'
+
+
+def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
+    """The final estimate with its 95 % interval, verdict and reason, and the exact answer where known."""
+    e = ev.estimate
+    colour = VERDICT_COLOURS.get(e.verdict, GREY)
+    lines = [
+        f"<b>Final estimate of {html.escape(record.short_label)}</b>: mu_hat = "
+        f"<b>{format_probability(e.log_mu_hat, 4)}</b> &nbsp;(95 % interval {html.escape(e.interval_text())})",
+        f'<b style="color:{colour}">{html.escape(e.verdict)}</b>: {html.escape(e.reason)}',
+    ]
+    exact = record.exact_log_p
+    if exact is not None:
+        inside = "inside" if e.covers(exact) else "<b>outside</b>"
+        lines.append(
+            f"exact answer {format_probability(exact, 4)}: relative error "
+            f"{relative_error(e.log_mu_hat, exact):.2g}, {inside} the interval"
+        )
+    if e.n_failures == 0:
+        lines.append(f"no failure among {e.n} rollouts, so mu_hat = 0: " + no_failure_advice(record.config.method, e.n))
+    lines.append(
+        f"failures {e.n_failures}/{e.n} · ESS {plots.finite_or_dash(e.ess, '.1f')} · k-hat "
+        f"{plots.finite_or_dash(e.khat, '.2f')} · NLL {plots.finite_or_dash(e.nll_mean, '.1f')} nats · "
+        f"{ev.n_simulations:,} simulations in {ev.wall_s:.1f} s"
+    )
+    return box("<br>".join(lines), colour)
+
+
+def explanation_html(record: PanelRun, traj: Trajectory, ex: Explanation, title: str, dt: float) -> str:
+    """Explain's header: the rollout, its severity, what happened in words, the minimal miss set, the last step at
+    which one detection still saves it, and the counterfactual's summary."""
+    best = record.most_likely_failure
+    what = "the most likely failure found" if traj is best else ("a failure" if traj.crashed else "no failure")
+    cf = ex.counterfactual
+    lines = [
+        f"<b>{html.escape(title)}</b>: {what} · <b>{html.escape(ex.severity.short)}</b> · robustness "
+        f"{traj.robustness:+.4g} ({record.config.metric}) · log p_PEM {traj.log_p_total:.1f} nats · log w "
+        f"{traj.log_weight:.1f} nats",
+        f"<b>What happened</b>: {html.escape(ex.sentence)}",
+    ]
+    if ex.crashed and ex.replay_matches:
+        if cf.minimal_set.size:
+            k = cf.minimal_set.size
+            kind = "smallest" if cf.smallest else "minimal: none can be left out"
+            steps = ", ".join(f"{t * dt:.2f}" for t in cf.minimal_set[:16]) + (" ..." * (k > 16))
+            found = (
+                f"<b>Minimal miss set</b> ({kind}): {k} miss{'es' * (k != 1)} at {steps} s; detected there, the gap "
+                f"stays at or above {cf.minimal_set_min_gap_m:.2f} m"
+            )
+        else:
+            found = "<b>Minimal miss set</b>: none: even a detection at every step fails"
+        saving = (
+            f"{cf.last_saving_step * dt:.2f} s (step {cf.last_saving_step})" if cf.last_saving_step is not None
+            else "none: no single detection saves it"
+        )
+        lines.append(f"{found} · <b>last step at which one detection still saves it</b>: {saving}")
+    lines.append(f"<b>Counterfactual</b> (misses flipped to detections, replayed): {html.escape(ex.summary())}")
+    return box("<br>".join(lines), RED if traj.crashed else GREEN)
+
+
+def no_failure_advice(method: str, n: int) -> str:
+    """What to try after a run without a failure, in the terms of its ``method``."""
+    if method == "adaptive":
+        return (
+            "the sampler never reached a crash. More stages (K), more rollouts (N) or the state-ce preset move the "
+            "proposal further towards the failures."
+        )
+    if method == "mc":
+        return (
+            f"plain Monte Carlo draws every rollout from the PEM itself, so a failure of probability p shows up about "
+            f"once in 1/p rollouts; none in {n:,} only says p is likely below {3.0 / n:.2g}. The adaptive method "
+            "(state-ce preset) reaches failures far rarer than that."
+        )
+    if method == "ams":
+        return "no particle reached a failure: more particles (N) or the adaptive method (state-ce preset)."
+    return (
+        f"this fixed sampler ({method}) reached no crash: more rollouts (N) or the adaptive method (state-ce preset), "
+        "which learns where to miss."
+    )
+
+
+def display_path(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)

@@ -1,0 +1,155 @@
+"""The *Rollouts* tab of a :class:`pemviz.app.session.Session`: the chosen run's kept rollouts, sorted and filtered, and
+the explanation of the one chosen."""
+
+from __future__ import annotations
+
+import html
+
+
+from pemviz.app import charts, plots
+from pemviz.app.html import GREY, NO_ROLLOUT, RED, TABLE_STYLE, box, explanation_html
+from pemviz.app.explain import explain
+from pemviz.app.runs import PanelRun, Trajectory, scene_positions
+from pemviz.scenarios.braking_failures import Severity, severity
+
+
+class RolloutsTab:
+    """The *Rollouts* tab's part of a session (a mixin of :class:`pemviz.app.session.Session`)."""
+
+    @staticmethod
+    def rollout_label(t: Trajectory, most_likely: bool = False, sev: Severity | None = None) -> str:
+        """The rollout list entry (no rank in it, so a chosen rollout stays chosen while later stages re-rank); the
+        outcome in :attr:`Severity.short`'s words when ``sev`` is given."""
+        outcome = f" · {sev.short}" if sev is not None and (t.crashed or sev.failed) else (" · failed" * t.crashed)
+        head = "most likely failure · " if most_likely else ""
+        return (
+            f"{head}stage {t.stage} rollout {t.index} · rho {t.robustness:+.4g} · log p {t.log_p_total:.1f}{outcome}"
+        )
+
+    def severity_of(self, record: PanelRun, t: Trajectory) -> Severity:
+        """The severity of a listed rollout (computed once per rollout)."""
+        key = (record.run_id, t.key)
+        if key not in self._severities:
+            self._severities[key] = severity(t.gap_m, self.params)
+        return self._severities[key]
+
+    def ordered_rollouts(self, record: PanelRun) -> list[Trajectory]:
+        """The run's kept rollouts in the Rollouts tab's order (``sort by``), failures only if ticked."""
+        with record.lock:
+            kept = list(record.trajectories)
+        if self.failures_only.value:
+            kept = [t for t in kept if t.crashed]
+        order = self.rollout_order.value
+        if order == "log p":
+            return sorted(kept, key=lambda t: -t.log_p_total)
+        if order == "severity":
+            return sorted(kept, key=lambda t: -self.severity_of(record, t).rank)
+        return kept  # kept least robust first
+
+    def _relist(self) -> None:
+        with self.lock:
+            if self.listed is not None:
+                self._set_rollouts(self.listed)
+
+    def _set_rollouts(self, record: PanelRun) -> None:
+        if record is not self.listed:
+            return  # another run is chosen under Runs
+        with record.lock:
+            best = record.most_likely_failure
+            n_kept = len(record.trajectories)
+        trajectories = self.ordered_rollouts(record)
+        labels = {}
+        if best is not None:
+            labels[self.rollout_label(best, True, self.severity_of(record, best))] = best
+        labels.update({self.rollout_label(t, sev=self.severity_of(record, t)): t for t in trajectories})
+        self._rollout_labels = labels
+        current = self.rollout_dropdown.value
+        self.rollout_dropdown.options = (NO_ROLLOUT, *labels)
+        if current not in labels:
+            self.rollout_dropdown.value = NO_ROLLOUT
+        if not n_kept:
+            self.rollout_html.content = box(f"No rollouts of {html.escape(record.short_label)} yet.", GREY)
+            return
+        best_text = (
+            f"Most likely failure found: stage {best.stage} rollout {best.index}, log p_PEM = "
+            f"{best.log_p_total:.1f} nats (the failing rollout most probable under the PEM), "
+            f"{self.severity_of(record, best).short}."
+            if best is not None
+            else "No failure found yet."
+        )
+
+        def outcome(t: Trajectory) -> str:
+            sev = self.severity_of(record, t)
+            return f"<b style=color:{RED}>{html.escape(sev.short)}</b>" if t.crashed else html.escape(sev.short)
+
+        rows = "".join(
+            f"<tr><td>{i + 1}</td><td>{t.stage}</td><td>{t.index}</td><td>{t.robustness:+.4g}</td>"
+            f"<td>{t.log_p_total:.1f}</td><td style='text-align:left'>{outcome(t)}</td></tr>"
+            for i, t in enumerate(trajectories[:10])
+        )
+        which = " that failed" if self.failures_only.value else ""
+        self.rollout_html.content = TABLE_STYLE + (
+            f'<div style="margin:0 0.6em 0.5em; font-size:0.8em">{html.escape(best_text)}<br>'
+            f"The {n_kept} least robust rollouts of {html.escape(record.short_label)}{which} (metric "
+            f"{record.config.metric}), by {html.escape(self.rollout_order.value)}; log p: log-probability under the "
+            "PEM, nats:"
+            '<table class="pemviz-table" style="width:100%">'
+            "<tr><th>#</th><th>stage</th><th>rollout</th><th>robustness</th><th>log p</th><th>outcome</th></tr>"
+            f"{rows}</table></div>"
+        )
+
+    def _show_default_rollout(self, record: PanelRun) -> None:
+        """After a run: choose its most likely failure (else its least-robust rollout), paused at the start."""
+        if record is not self.listed:
+            return
+        for label, t in self._rollout_labels.items():
+            if t is record.most_likely_failure or record.most_likely_failure is None:
+                if self.rollout_dropdown.value == label:  # the same label (an identical run): no callback
+                    self._on_rollout_chosen(label)
+                else:
+                    self.rollout_dropdown.value = label
+                return
+
+    def _after_run(self, record: PanelRun) -> None:
+        """A run ended without finishing (stopped, failed): explain its most likely failure, or say it ended."""
+        if record is not self.listed or self.shown_record is record:
+            return
+        self._set_rollouts(record)
+        self._show_default_rollout(record)
+        if self.shown_record is not record:
+            self._clear_scene(
+                f"{record.short_label} {'was stopped' if record.status == 'cancelled' else 'failed'} after "
+                f"{len(record.stages)} stages, before any rollout to show"
+            )
+
+    def _on_rollout_chosen(self, label: str) -> None:
+        traj = self._rollout_labels.get(label)
+        if traj is None:
+            return
+        with self.lock:
+            record = self.listed or self.record
+            scene = record.view.scene if record is not None and record.view is not None else None
+            if scene is None:  # a problem without a scene: nothing to replay (the panel runs the braking scenario)
+                return
+            self.explanation = explain(traj.gap_m, traj.detected, traj.log_p, traj.log_q, scene)
+            self.shown = traj
+            self.shown_record = record
+            self._shown_x = scene_positions(traj, scene)
+            self.step_slider.max = traj.n_steps - 1
+            self._set_playing(False)
+            self._fill_explanation()
+            self.shown_step = -1
+            if self.step_slider.value != 0:
+                self.step_slider.value = 0  # renders step 0 through the slider's callback
+            else:
+                self._render_step(0)
+
+    def _fill_explanation(self) -> None:
+        traj, ex, record = self.shown, self.explanation, self.shown_record
+        if traj is None or ex is None or record is None:
+            return
+        title = f"{record.short_label} {traj.key}"
+        plots.fill_strip_plots(self.strip, traj, ex, 0, title, record.view.thresholds)
+        charts.fill_controller_plot(self.strip["controller"], ex, 0, title)
+        self.explain_html.content = explanation_html(record, traj, ex, title, record.view.scene.dt_s)
+

@@ -1,0 +1,415 @@
+"""The cross-entropy fit of the proposal (Innes & Ramamoorthy 2022, Algorithm 1, eq. 10-11): the pretraining fit to the
+target's own actions, the weighted CE update on the elites' steps, the frozen- and recomputed-weight objectives, the
+systematic subsample that bounds a fit's rows, and :class:`EliteSteps`, the elites' fitted steps gathered chunk by
+chunk. :class:`pemviz.estimators.CrossEntropy` runs the stages around them.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Literal
+
+import numpy as np
+import torch
+
+from pemviz.estimators.base import elite_counts
+from pemviz.sampling import Proposal, fit_proposal
+from pemviz.scenarios import RolloutBatch
+
+WeightMode = Literal["frozen", "recomputed"]
+
+
+def weighted_steps(
+    features: np.ndarray,
+    detected: np.ndarray,
+    step_weight: np.ndarray,
+    max_rows: int,
+    rng: np.random.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The steps of positive weight as fitting rows, at most ``max_rows`` of them, and their weights.
+
+    With more than ``max_rows`` weighted steps, ``max_rows`` are drawn by systematic resampling in
+    proportion to the weights (Kitagawa 1996; Douc, Cappe & Moulines 2005): step j is drawn
+    ``c_j`` times with ``E[c_j] = max_rows w_j / W`` (W = sum of weights), and enters with weight
+    ``c_j W / max_rows``, so ``sum_j w_j log q(a_j | s_j)`` keeps its expectation for every q, and a step
+    whose weight exceeds ``W / max_rows`` is always kept. Cost O(N T) numpy, whatever the fit.
+
+    Args:
+        features: float64 [N, T] or [N, T, k] proposal inputs.
+        detected: bool [N, T] actions.
+        step_weight: float64 [N, T] weights >= 0 (0 leaves a step out).
+        max_rows: the most rows returned (>= 1).
+        rng: draws the resampling offset.
+    Returns:
+        (distinct inputs [M] or [M, k] float64 tensor, counts [M, 2] float64 tensor: weight on miss, on
+        detect), M <= ``max_rows``.
+    """
+    w = np.asarray(step_weight, dtype=np.float64).reshape(-1)
+    keep = np.flatnonzero(w > 0)
+    if keep.size > max_rows:
+        cum = np.cumsum(w[keep])
+        total = float(cum[-1])
+        picks = np.searchsorted(cum, (rng.random() + np.arange(max_rows)) * (total / max_rows), side="right")
+        picks, times = np.unique(np.minimum(picks, keep.size - 1), return_counts=True)
+        keep, weight = keep[picks], times * (total / max_rows)
+    else:
+        weight = w[keep]
+    f = np.asarray(features, dtype=np.float64)
+    rows = f.reshape(-1, f.shape[2])[keep] if f.ndim == 3 else f.reshape(-1)[keep]
+    # Steps at the same input share one row (rollouts agree until their first different action).
+    rows, inverse = np.unique(rows, axis=0, return_inverse=True)
+    slot = inverse.reshape(-1) * 2 + np.asarray(detected, dtype=bool).reshape(-1)[keep]
+    counts = np.bincount(slot, weights=weight, minlength=2 * len(rows)).reshape(len(rows), 2)
+    return torch.as_tensor(rows), torch.as_tensor(counts)
+
+
+def _action_counts(
+    gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None, drop_unweighted: bool = False
+):
+    """Distinct proposal inputs and the (weighted) number of misses and detections at each: an exact summary.
+
+    q depends on the gap only, so ``sum_it w_i log q(a_it | d_it) = sum_u W0(u) log q(0|u) + W1(u) log q(1|u)``.
+    Rollouts share most gaps (the detector matters only inside 10 m), so an epoch costs a forward pass
+    over a few hundred distinct gaps instead of N * T.
+
+    Args:
+        gap_m: [N, T] gaps, or [N, T, k] inputs of a :class:`StateProposal` (distinct rows then).
+        row_weight: [N] per rollout, or [N, T] per step (0 leaves a step out), or None (all 1).
+        drop_unweighted: leave out the inputs whose steps all weigh 0 (e.g. outside the proposal's window), so an
+            epoch does not evaluate the network where it cannot change the loss; ``inverse`` is then None.
+    Returns:
+        (uniq [U] (or [U, k]) float64 tensor, counts [U, 2] float64 tensor: weighted misses, detections;
+        inverse [N, T] index of each entry into ``uniq``).
+    """
+    gap_m = np.asarray(gap_m, dtype=np.float64)
+    shape = np.shape(detected)
+    if gap_m.ndim == 3:
+        uniq, inverse = np.unique(gap_m.reshape(-1, gap_m.shape[2]), axis=0, return_inverse=True)
+    else:
+        uniq, inverse = np.unique(gap_m, return_inverse=True)
+    inverse = inverse.reshape(shape)
+    if row_weight is None:
+        w = np.ones(shape)
+    else:
+        row_weight = np.asarray(row_weight, dtype=np.float64)
+        w = np.broadcast_to(row_weight if row_weight.ndim == 2 else row_weight[:, None], shape)
+    slot = inverse * 2 + np.asarray(detected, dtype=np.int64)
+    counts = np.bincount(slot.ravel(), weights=w.ravel(), minlength=2 * len(uniq)).reshape(len(uniq), 2)
+    if drop_unweighted:
+        keep = counts.sum(axis=1) > 0.0
+        return torch.as_tensor(uniq[keep]), torch.as_tensor(counts[keep]), None
+    return torch.as_tensor(uniq), torch.as_tensor(counts), inverse
+
+
+def _summed_fit(fit: str, max_rows: int | None, n_fitted: int) -> bool:
+    """Whether a fit of ``n_fitted`` weighted steps is the paper's: every step, summed over distinct inputs (with a
+    ``tolerance``, a CE stage's such fit stops once converged, as the others do). The other fits (more than
+    ``max_rows`` steps, or L-BFGS) see at most ``max_rows`` steps, with a loss normalised to nats per step, and stop
+    once converged (``tolerance``): their cost is bounded whatever the number of rollouts."""
+    return fit == "adam" and (max_rows is None or n_fitted <= max_rows)
+
+
+def pretrain_proposal(
+    proposal: Proposal,
+    gap_m: np.ndarray,
+    detected: np.ndarray,
+    *,
+    epochs: int = 1000,
+    lr: float = 1e-3,
+    check: Callable[[], None] | None = None,
+    step_mask: np.ndarray | None = None,
+    fit: str = "adam",
+    max_rows: int | None = None,
+    rng: np.random.Generator | None = None,
+    tolerance: float | None = None,
+) -> list[float]:
+    """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
+
+    Args:
+        gap_m: float64 [N, T] gaps of PEM-driven rollouts (metres), or [N, T, k] inputs of a
+            :class:`StateProposal` (``proposal.features(observations)``).
+        detected: bool [N, T] the PEM's detections.
+        epochs: Adam epochs, or the most L-BFGS iterations (``fit``).
+        check: called every :data:`pemviz.sampling.CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
+        step_mask: bool [N, T] or None: only these steps are fitted (e.g. inside the proposal's window).
+        fit: one of :data:`pemviz.config.FITS`.
+        max_rows: None (``adam``: every step, summed over distinct inputs, the paper's fit) or the most steps
+            the fit sees: a uniform systematic subsample of the fitted steps beyond that (:func:`weighted_steps`).
+        rng: draws that subsample (default: seeded 0).
+        tolerance: early stopping of a fit of more than ``max_rows`` steps (nats per step;
+            :func:`pemviz.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps runs every epoch.
+    Returns:
+        the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
+    Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts).
+    """
+    n_fitted = np.size(detected) if step_mask is None else int(np.count_nonzero(step_mask))
+    if _summed_fit(fit, max_rows, n_fitted):
+        if step_mask is None:
+            uniq, counts, _ = _action_counts(gap_m, detected)
+            total = float(np.size(detected))
+        else:
+            step_mask = np.asarray(step_mask, dtype=np.float64)
+            uniq, counts, _ = _action_counts(gap_m, detected, step_mask, drop_unweighted=True)
+            total = max(float(step_mask.sum()), 1.0)
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, per=total)
+    mask = np.ones(np.shape(detected)) if step_mask is None else np.asarray(step_mask, dtype=np.float64)
+    rows, counts = weighted_steps(gap_m, detected, mask, max_rows or mask.size, rng or np.random.default_rng(0))
+    total = max(float(counts.sum()), 1.0)
+    return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
+
+
+def ce_update(
+    proposal: Proposal,
+    gap_m: np.ndarray,
+    detected: np.ndarray,
+    log_p: np.ndarray,
+    log_q: np.ndarray,
+    elite: np.ndarray,
+    *,
+    smoothing: float,
+    epochs: int = 500,
+    lr: float = 1e-3,
+    weights: WeightMode = "frozen",
+    n_factors: int | None = None,
+    check: Callable[[], None] | None = None,
+    step_mask: np.ndarray | None = None,
+    fit: str = "adam",
+    max_rows: int | None = None,
+    rng: np.random.Generator | None = None,
+    tolerance: float | None = None,
+) -> list[float]:
+    """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
+
+    Args:
+        gap_m, detected, log_p, log_q: [N, T] from the stage's rollouts (log_p under the PEM, log_q
+            under the proposal that sampled them; nats).
+        elite: bool [N], robustness <= gamma_kappa.
+        smoothing: alpha in (0, 2], the power on the importance weights.
+        weights: ``"frozen"``: w from the proposal that sampled the batch (textbook CE, paper eq. 10-11);
+            ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
+        n_factors: steps in each weight (default T - 1: the last action affects nothing).
+        check: called every :data:`pemviz.sampling.CHECK_EVERY` epochs; may raise to abandon the update (cancel).
+        step_mask: bool [N, T] or None: steps that count, in the weights and in the fit (False: left out,
+            e.g. outside the proposal's window or after the failure).
+        fit: one of :data:`pemviz.config.FITS`; ``epochs`` are then Adam epochs or the most L-BFGS iterations.
+        max_rows: None (``adam``: every elite step, summed over distinct inputs, the paper's fit) or the most
+            steps the fit sees: beyond that a weighted systematic subsample whose weighted log-likelihood has
+            the same expectation (:func:`weighted_steps`); the loss is then divided by the total weight.
+            ``weights = "recomputed"`` always fits every step.
+        rng: draws that subsample (default: seeded 0).
+        tolerance: early stopping of a fit of more than ``max_rows`` steps, or of ``lbfgs`` (nats per step;
+            :func:`pemviz.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps with ``adam``
+            runs every epoch (the paper's fit).
+    Returns:
+        the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
+        constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
+    Raises:
+        ValueError: if there is no elite rollout.
+    """
+    idx = np.flatnonzero(elite)
+    if idx.size == 0:
+        raise ValueError("ce_update: no elite rollouts (robustness <= gamma) to fit the proposal to")
+    k = detected.shape[1] - 1 if n_factors is None else n_factors
+    mask = np.ones(detected.shape, bool) if step_mask is None else np.asarray(step_mask, dtype=bool)
+    mask = mask[idx]
+    lp = (log_p[idx, :k] * mask[:, :k]).sum(axis=1)
+    frozen_log_w = ((log_p[idx, :k] - log_q[idx, :k]) * mask[:, :k]).sum(axis=1)
+    if weights == "frozen" and step_mask is not None:
+        scaled = smoothing * frozen_log_w
+        rows, actions = gap_m[idx][mask], detected[idx][mask]
+        return fit_elite_steps(proposal, rows, actions, np.broadcast_to(scaled[:, None], mask.shape)[mask],
+                               float(scaled.max()), epochs=epochs, lr=lr, check=check, fit=fit, max_rows=max_rows,
+                               rng=rng, tolerance=tolerance)  # fmt: skip
+    if weights == "frozen":
+        scaled = smoothing * frozen_log_w
+        step_w = np.exp(scaled - scaled.max())[:, None] * mask
+        if not _summed_fit(fit, max_rows, int(np.count_nonzero(step_w))):
+            step_w = np.broadcast_to(step_w, detected[idx].shape)
+            rows, counts = weighted_steps(gap_m[idx], detected[idx], step_w, max_rows or step_w.size,
+                                           rng or np.random.default_rng(0))  # fmt: skip
+            total = float(counts.sum())
+            return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
+        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w[:, 0])
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit)
+    # w depends on q_phi: per-rollout sums of log q over the first k steps, through the gradient.
+    uniq, _, inverse = _action_counts(gap_m[idx], detected[idx])
+    slot = inverse * 2 + detected[idx].astype(np.int64)
+    return fit_proposal(proposal, uniq, recomputed_objective(slot, lp, mask, k, smoothing), epochs, lr, check, fit)
+
+
+def recomputed_objective(
+    slot: np.ndarray, log_p: np.ndarray, mask: np.ndarray, n_factors: int, smoothing: float
+) -> Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
+    """The CE loss with importance weights recomputed from the current proposal (the authors' code), as a
+    :data:`pemviz.sampling.Objective`: ``-sum_i w_i(phi) sum_t m_it log q_phi(a_it | d_it)`` with
+    ``w_i(phi) = exp(alpha (log p_i - sum_{t < k} m_it log q_phi(a_it | d_it)) - c)`` (c: their largest exponent,
+    held constant), and its gradient in log q, which flows through the weights.
+
+    Args:
+        slot: int64 [n, T] where each elite step's log q sits in the flattened log q [M * 2] (input row x 2 + action).
+        log_p: float64 [n] each elite's sum of log p over its first k masked steps (nats).
+        mask: bool [n, T] the steps that count.
+        n_factors: k, the steps in each weight.
+        smoothing: alpha in (0, 2].
+    Returns:
+        log q [M, 2] -> (loss, d loss / d log q [M, 2]): the operations autograd would run, in its order, so a fit
+        gives the same bits as differentiating the loss with autograd (a test checks it).
+    Source: Innes & Ramamoorthy 2022, eq. 10-11, with the weights differentiated as in the authors' code.
+    """
+    slot_t, lp_t = torch.as_tensor(slot), torch.as_tensor(log_p)
+    mask_t = torch.as_tensor(mask, dtype=torch.float64)
+    mask_k = torch.zeros_like(mask_t)
+    mask_k[:, :n_factors] = 1.0
+
+    def loss(log_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        log_q_now = log_q.reshape(-1)[slot_t] * mask_t
+        scaled = smoothing * (lp_t - log_q_now[:, :n_factors].sum(dim=1))
+        w = torch.exp(scaled - scaled.max())
+        per_rollout = log_q_now.sum(dim=1)
+        grad_w_term = per_rollout * w * smoothing  # d loss / d (sum_{t<k} log q) of each rollout
+        grad_now = (-w)[:, None].expand_as(log_q_now) + grad_w_term[:, None] * mask_k
+        grad = torch.zeros(log_q.numel(), dtype=log_q.dtype).index_put_((slot_t,), grad_now * mask_t, accumulate=True)
+        return -(w * per_rollout).sum(), grad.reshape(log_q.shape)
+
+    return loss
+
+
+def fit_elite_steps(
+    proposal: Proposal,
+    rows: np.ndarray,
+    actions: np.ndarray,
+    log_w: np.ndarray,
+    log_w_max: float,
+    *,
+    epochs: int,
+    lr: float,
+    check: Callable[[], None] | None = None,
+    fit: str = "adam",
+    max_rows: int | None = None,
+    rng: np.random.Generator | None = None,
+    tolerance: float | None = None,
+    n_steps: int | None = None,
+) -> list[float]:
+    """The frozen-weight CE fit on the elites' fitted steps: minimise ``-sum_s w_s log q_phi(a_s | h_s)``, in place.
+
+    Args:
+        rows: float64 [S] or [S, k] proposal inputs of the steps that count (the elites', inside the step mask), in
+            the order drawn (rollout by rollout, step by step).
+        actions: bool [S] their detections.
+        log_w: float64 [S] each step's weight in log space (nats): alpha times its rollout's importance log-weight.
+        log_w_max: the largest rollout log-weight (alpha log w_i) of the elites; the weights are divided by its
+            exponential (a constant factor, to which Adam's steps are invariant), so that none overflows.
+        n_steps: the steps these rows stand for (default S; more once they were thinned as they came).
+        epochs, lr, check, fit, max_rows, rng, tolerance: see :func:`ce_update`.
+    Returns:
+        the loss per epoch (per L-BFGS evaluation).
+    Source: Innes & Ramamoorthy 2022, eq. 10-11 (the CE update), summed over distinct inputs.
+    """
+    w = np.exp(np.asarray(log_w, dtype=np.float64) - log_w_max)[None]
+    rows, actions = np.asarray(rows)[None], np.asarray(actions, dtype=bool)[None]
+    if not _summed_fit(fit, max_rows, int(np.count_nonzero(w)) if n_steps is None else n_steps):
+        fitted, counts = weighted_steps(rows, actions, w, max_rows or w.size, rng or np.random.default_rng(0))
+        total = float(counts.sum())
+        return fit_proposal(proposal, fitted, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
+    uniq, counts, _ = _action_counts(rows, actions, w, drop_unweighted=True)
+    if tolerance is None:
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit)
+    # the proposal starts from the last stage's fit (a warm start): stop once the loss per step stops falling
+    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, tolerance, per=float(counts.sum()))
+
+
+class EliteSteps:
+    """The fitted steps of a stage's elites, gathered rollout by rollout as chunks arrive: proposal inputs, actions
+    and log-weights of the steps inside the step mask only, so that a stage of any N holds at most
+    ``thin_above`` steps. Beyond that they are thinned to ``max_rows`` weighted steps by systematic resampling
+    (:func:`weighted_steps`; each thinning keeps the expected weighted log-likelihood, so the fit's objective
+    keeps its expectation). Also the elites' detections per bin of the curve grid.
+
+    Args:
+        grid: the problem's curve grid [G].
+        max_rows: the fit's ``max_rows`` (None: never thinned).
+        rng: draws the thinning.
+        thin_above: steps held before a thinning (default 20 x ``max_rows``).
+        keep_observations: also hold each step's observation, so that :meth:`reweight` can compute new weights
+            (until a thinning).
+    """
+
+    def __init__(self, grid: np.ndarray, max_rows: int | None, rng: np.random.Generator,
+                 thin_above: int | None = None, keep_observations: bool = False) -> None:  # fmt: skip
+        self.grid, self.max_rows, self.rng = grid, max_rows, rng
+        self.thin_above = None if max_rows is None else (thin_above or 20 * max_rows)
+        self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.keep_observations = keep_observations
+        self.observations: list[tuple[np.ndarray, np.ndarray]] = []
+        """With ``keep_observations``, per part: the steps' observations [S, F] and whether each counts in its
+        rollout's weight, bool [S]."""
+        self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
+        self.n_rollouts, self.n_steps, self.held, self.thinned = 0, 0, 0, False
+        self.log_w_max = -np.inf
+
+    def add(self, index: np.ndarray, batch: RolloutBatch, features: np.ndarray, mask: np.ndarray,
+            log_w: np.ndarray, weighted: np.ndarray | None = None) -> None:  # fmt: skip
+        """Elite rollouts ``index`` [m] of the stage: their features [m, T(, k)], step mask bool [m, T],
+        smoothed log-weights alpha log w_i [m] and (``keep_observations``) the steps of ``mask`` that count in
+        the weights, bool [m, T] (None: all)."""
+        if index.size == 0:
+            return
+        c, h = elite_counts(batch, np.ones(batch.n, bool), self.grid)
+        self.counts, self.hits = self.counts + c, self.hits + h
+        order = np.broadcast_to(np.asarray(index)[:, None], mask.shape)[mask]
+        self.parts.append((order, features[mask], batch.detected[mask], np.broadcast_to(log_w[:, None], mask.shape)[mask]))
+        if self.keep_observations:
+            self.observations.append((batch.observations[mask], np.ones(int(mask.sum()), bool) if weighted is None
+                                      else weighted[mask]))  # fmt: skip
+        self.n_rollouts += index.size
+        self.n_steps += int(mask.sum())
+        self.held += int(mask.sum())
+        self.log_w_max = max(self.log_w_max, float(np.max(log_w)))
+        if self.thin_above is not None and self.held > self.thin_above:
+            self._thin()
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rows [S(, k)], actions [S], log-weights [S]) in the order drawn."""
+        order, rows, actions, log_w = (np.concatenate(a) for a in zip(*self.parts))
+        if len(self.parts) > 1 and not self.thinned:
+            by = np.argsort(order, kind="stable")
+            rows, actions, log_w = rows[by], actions[by], log_w[by]
+        return rows, actions, log_w
+
+    def _thin(self) -> None:
+        rows, actions, log_w = self.arrays()
+        top = float(log_w.max())
+        uniq, counts = weighted_steps(rows[None], actions[None], np.exp(log_w - top)[None], self.max_rows, self.rng)
+        uniq, counts = uniq.numpy(), counts.numpy()
+        hit = counts > 0  # [U, 2]: (miss, detect) weights of each distinct input
+        slot, action = np.nonzero(hit)
+        with np.errstate(divide="ignore"):
+            self.parts = [(np.zeros(slot.size, np.int64), uniq[slot], action.astype(bool),
+                           np.log(counts[slot, action]) + top)]  # fmt: skip
+        self.held, self.thinned = slot.size, True
+        self.observations, self.keep_observations = [], False  # the steps no longer belong to rollouts: no reweighting
+
+    def reweight(self, log_weight: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> bool:
+        """Give every held step a new log-weight: ``log_weight(rollout [S], observations [S, F], actions [S],
+        counts [S])`` -> [S] (nats), each step's rollout and whether the step counts in the rollout's weight.
+
+        Returns:
+            False (nothing changed) without ``keep_observations`` or once thinned: the steps then no longer
+            belong to whole rollouts.
+        """
+        if not self.keep_observations or self.thinned or not self.parts:
+            return False
+        order, rows, actions, _ = (np.concatenate(a) for a in zip(*self.parts))
+        obs, counts = (np.concatenate(a) for a in zip(*self.observations))
+        by = np.argsort(order, kind="stable")  # rollout by rollout, step by step: the order drawn
+        order, rows, actions, obs, counts = order[by], rows[by], actions[by], obs[by], counts[by]
+        log_w = np.asarray(log_weight(order, obs, actions, counts), dtype=np.float64)
+        self.parts, self.observations = [(order, rows, actions, log_w)], [(obs, counts)]
+        self.log_w_max = float(np.max(log_w))
+        return True
+
+    def fit(self, proposal: Proposal, **kwargs) -> list[float]:
+        """:func:`fit_elite_steps` on the gathered steps (``kwargs``: epochs, lr, check, fit, max_rows, rng,
+        tolerance)."""
+        rows, actions, log_w = self.arrays()
+        return fit_elite_steps(proposal, rows, actions, log_w, self.log_w_max,
+                               n_steps=self.n_steps if self.thinned else None, **kwargs)  # fmt: skip
