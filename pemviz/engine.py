@@ -29,7 +29,6 @@ import numpy as np
 
 from pemviz.config import METRICS, ExperimentConfig
 from pemviz.detectors import ArrayRQMC, Detector
-from pemviz.estimate import Estimate
 from pemviz.estimators import Estimator, StagePlan, build_estimator
 from pemviz.events import (
     Event,

@@ -388,7 +388,7 @@ def test_the_final_estimate_comes_with_its_interval_verdict_and_a_hint_when_noth
 
 # 7 ------------------------------------------------------------------------------------------------
 def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_overlap(tab, app):
-    from pemviz.sinks import recording
+    from pemviz.sinks import rerun_views as recording  # the recording's colours
 
     before = tab.scene()
     assert tuple(before["color"]) == colours.IDLE  # not green ("detected") before any rollout

@@ -26,13 +26,13 @@ from pemviz.engine import Experiment  # noqa: E402
 from pemviz.events import FinalEstimate, RolloutsSampled, RunStarted, StageFinished  # noqa: E402
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402
-from pemviz.sinks.recording import (  # noqa: E402
+from pemviz.sinks.recording import RerunSink  # noqa: E402
+from pemviz.sinks.rerun_views import (  # noqa: E402
     CRASH_RGBA,
     PROPOSAL_FIG,
     SAFE_RGBA,
     TAG_CRASH_RGBA,
     TAG_RGBA,
-    RerunSink,
     nice_ticks,
 )
 
@@ -326,7 +326,7 @@ def test_the_gap_view_has_the_2_m_and_10_m_lines(runs):
 
 
 def test_large_stages_keep_the_least_robust_failures_and_a_uniform_sample():
-    from pemviz.sinks.recording import ALL_ROLLOUTS_UP_TO, SAMPLED_ROLLOUTS
+    from pemviz.sinks.rerun_views import ALL_ROLLOUTS_UP_TO, SAMPLED_ROLLOUTS
 
     n = 20 * ALL_ROLLOUTS_UP_TO
     rng = np.random.default_rng(0)

@@ -63,7 +63,6 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 import pemviz
 from pemviz.estimate import format_probability, relative_error
@@ -72,17 +71,11 @@ from pemviz.io.files import atomic_write
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
-from pemviz.sinks.rerun_views import (  # noqa: F401  (the recording's look, named here too)
+from pemviz.sinks.rerun_views import (
     ALL_ROLLOUTS_UP_TO,
-    AXIS_RGBA,
-    BRAKE_RGBA,
     CRASH_RGBA,
     DETECTED_RGBA,
-    GRID_RGBA,
     HISTOGRAM_BINS,
-    LEAD_CRASH_RGBA,
-    LEAD_RGBA,
-    MISSED_RGBA,
     PEM_RGBA,
     PROPOSAL_FIG,
     SAFE_RGBA,
@@ -91,12 +84,10 @@ from pemviz.sinks.rerun_views import (  # noqa: F401  (the recording's look, nam
     STAGE_METRICS,
     TAG_CRASH_RGBA,
     TAG_RGBA,
-    Figure,
     default_blueprint,
     intro_markdown,
     log_scene_lane,
     log_thresholds,
-    nice_ticks,
 )
 
 APP_ID = "pemviz"

@@ -435,7 +435,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from pemviz.sinks.recording import Figure
+    from pemviz.sinks.rerun_views import Figure
 
     def colour(name: str) -> tuple[int, int, int, int]:
         return MODEL_RGBA.get(name, rgba(MODEL_OTHER))

@@ -10,7 +10,8 @@ import pytest
 pytest.importorskip("rerun")
 
 from pemviz.events import StageStarted  # noqa: E402
-from pemviz.sinks.recording import DETECTED_RGBA, MISSED_RGBA, RerunSink  # noqa: E402
+from pemviz.sinks.recording import RerunSink  # noqa: E402
+from pemviz.sinks.rerun_views import DETECTED_RGBA, MISSED_RGBA  # noqa: E402
 
 from .synthetic import BRAKING, TOY, batch, finished, run_started, sampled  # noqa: E402
 
