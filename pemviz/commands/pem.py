@@ -123,10 +123,9 @@ def train_main(args: argparse.Namespace) -> int:
         raise UsageError(f"--model {args.model!r}: use one of {', '.join([*PEM_RECIPES, *NOISE_RECIPES])}")
     if args.epochs is not None and args.epochs < 1:
         raise UsageError(f"--epochs {args.epochs}: must be >= 1")
-    if args.model in NOISE_RECIPES:
-        return _train_noise(args)
-    recipe = PEM_RECIPES[args.model]
-    out = Path(args.out) if args.out else pem_path(recipe.name)
+    noise = args.model in NOISE_RECIPES
+    recipe = NOISE_RECIPES[args.model] if noise else PEM_RECIPES[args.model]
+    out = Path(args.out) if args.out else (noise_pem_path if noise else pem_path)(recipe.name)
     _check_out_path(out)
     try:
         data = load_salient_data(args.data_dir)
@@ -134,7 +133,6 @@ def train_main(args: argparse.Namespace) -> int:
         print(f"pemviz pem train: error: {exc}", file=sys.stderr)
         return 1
     seed = recipe.seed if args.seed is None else args.seed
-    print(f"training {recipe.name} ({recipe.description}) on {data.inputs_path} ({len(data)} rows), seed {seed}")
     epochs = recipe.epochs if args.epochs is None else args.epochs
     metadata = {
         "command": f"pemviz pem train --model {recipe.name} --seed {seed} --epochs {epochs}",
@@ -142,9 +140,16 @@ def train_main(args: argparse.Namespace) -> int:
         "data_sha256": sha256_file(data.inputs_path),
         "labels_sha256": sha256_file(data.labels_path),
     }
-    pem = recipe.train(
-        data.inputs, data.labels, seed=seed, epochs=epochs, progress=not args.no_progress, metadata=metadata
-    )
+    train = _train_noise if noise else _train_detection
+    train(recipe, data, seed=seed, epochs=epochs, out=out, progress=not args.no_progress, metadata=metadata)
+    print(f"wrote {out}")
+    return 0
+
+
+def _train_detection(recipe, data, *, seed: int, epochs: int, out: Path, progress: bool, metadata: dict) -> None:
+    """``pem train --model ml-nn | gbt``: a detection PEM on the full file, its BCE and p(detect | gap), saved."""
+    print(f"training {recipe.name} ({recipe.description}) on {data.inputs_path} ({len(data)} rows), seed {seed}")
+    pem = recipe.train(data.inputs, data.labels, seed=seed, epochs=epochs, progress=progress, metadata=metadata)
     bce = bce_from_logits(pem.logit(data.inputs), data.labels)
     gaps = np.array([2.0, 4.0, 6.0, 8.0, 10.0, 12.293, 13.0])
     p = pem.prob_at_gap(gaps)
@@ -159,38 +164,19 @@ def train_main(args: argparse.Namespace) -> int:
         diff = np.abs(pem.prob_at_gap(grid) - ref.prob_at_gap(grid)).max()
         print(f"max |p_pemviz - p_authors| over gaps 2..13 m: {diff:.4f}")
     save_pem(pem, out)
-    print(f"wrote {out}")
-    return 0
 
 
-def _train_noise(args: argparse.Namespace) -> int:
-    """``pem train --model hetero-t``: the noise PEM on the detected obstacles' metric errors of the full file."""
-    recipe = NOISE_RECIPES[args.model]
-    out = Path(args.out) if args.out else noise_pem_path(recipe.name)
-    _check_out_path(out)
-    try:
-        data = load_salient_data(args.data_dir)
-    except (DataError, FileNotFoundError) as exc:
-        print(f"pemviz pem train: error: {exc}", file=sys.stderr)
-        return 1
-    seed = recipe.seed if args.seed is None else args.seed
-    epochs = recipe.epochs if args.epochs is None else args.epochs
+def _train_noise(recipe, data, *, seed: int, epochs: int, out: Path, progress: bool, metadata: dict) -> None:
+    """``pem train --model hetero-t``: the noise PEM on the detected obstacles' metric errors of the full file
+    (z-scored with the full file's statistics, as the detection PEMs), saved."""
     noise = noise_training_data(data.inputs, data.label_table, seed=seed)
     print(f"training {recipe.name} ({recipe.description}) on {noise.rows.size} detected obstacles of "
           f"{data.labels_path} ({len(data)} rows), seed {seed}")  # fmt: skip
-    metadata = {
-        "command": f"pemviz pem train --model {recipe.name} --seed {seed} --epochs {epochs}",
-        "data_file": data.labels_path.name,
-        "data_sha256": sha256_file(data.inputs_path),
-        "labels_sha256": sha256_file(data.labels_path),
-    }
     model = recipe.train(noise.inputs, noise.errors, seed=seed, epochs=epochs, norm=fit_norm_stats(data.inputs),
-                         progress=not args.no_progress, metadata=metadata)  # fmt: skip
+                         progress=progress, metadata=metadata)  # fmt: skip
     print(f"NLL on the full training set: {nll(model, noise.inputs, noise.errors):.4f} nats per obstacle; "
           f"degrees of freedom (range, lateral) {model.df[0]:.2f}, {model.df[1]:.2f}")  # fmt: skip
     save_noise_pem(model, out)
-    print(f"wrote {out}")
-    return 0
 
 
 def _int_list(text: str | None, option: str) -> tuple[int, ...] | None:

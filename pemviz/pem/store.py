@@ -85,8 +85,12 @@ def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
         OSError: the folder is not writable (nothing is left behind).
         TypeError: ``pem`` is not a :class:`PEM` or :class:`TreePEM`.
     """
+    return _save(_pem_payload(pem), path)
+
+
+def _save(payload: dict[str, Any], path: str | os.PathLike[str]) -> Path:
+    """``torch.save`` a payload dict atomically (temporary file in the same folder, then ``os.replace``)."""
     target = Path(path)
-    payload = _pem_payload(pem)
     atomic_write(target, lambda tmp: torch.save(payload, tmp))
     return target
 
@@ -359,10 +363,7 @@ def save_noise_pem(model: NoiseModel, path: str | os.PathLike[str]) -> Path:
         OSError: the folder is not writable (nothing is left behind).
         TypeError: ``model`` is not a :class:`NoisePEM` or :class:`HomoscedasticNoise`.
     """
-    payload = _noise_payload(model)
-    target = Path(path)
-    atomic_write(target, lambda tmp: torch.save(payload, tmp))
-    return target
+    return _save(_noise_payload(model), path)
 
 
 def load_noise_pem(path: str | os.PathLike[str] | None = None) -> NoiseModel:
@@ -384,11 +385,8 @@ def save_noisy_pem(model: NoisyPEM, path: str | os.PathLike[str]) -> Path:
         OSError: the folder is not writable (nothing is left behind).
         TypeError: a head of a kind that cannot be saved.
     """
-    payload = {"format": NOISY_FORMAT_TAG, "version": NOISY_FORMAT_VERSION,
-               "detect": _pem_payload(model.detect), "noise": _noise_payload(model.noise)}  # fmt: skip
-    target = Path(path)
-    atomic_write(target, lambda tmp: torch.save(payload, tmp))
-    return target
+    return _save({"format": NOISY_FORMAT_TAG, "version": NOISY_FORMAT_VERSION,
+                  "detect": _pem_payload(model.detect), "noise": _noise_payload(model.noise)}, path)  # fmt: skip
 
 
 def load_noisy_pem(path: str | os.PathLike[str]) -> NoisyPEM:
