@@ -1,4 +1,5 @@
-"""``pemviz pem train | eval``: (re)train the shipped PEM weights; cross-validate the PEM models (Table I)."""
+"""``pemviz pem train | eval``: (re)train the shipped PEM weights (detection and noise); cross-validate the PEM models
+(Table I) and the noise PEMs against the homoscedastic baseline."""
 
 from __future__ import annotations
 
@@ -11,8 +12,22 @@ import numpy as np
 from pemviz.commands import COMMANDS, UsageError, output_folder
 from pemviz.io.data import DataError, load_salient_data, sha256_file
 from pemviz.io.files import check_output_folder, check_output_path, write_text_atomic
-from pemviz.pem import PEM_RECIPES, bce_from_logits, load_reference_pem, pem_path, save_pem
+from pemviz.pem import (
+    NOISE_RECIPES,
+    PEM_RECIPES,
+    bce_from_logits,
+    fit_norm_stats,
+    load_reference_pem,
+    noise_pem_path,
+    noise_training_data,
+    pem_path,
+    save_noise_pem,
+    save_pem,
+)
+from pemviz.pem.noise import nll
+from pemviz.studies import noise_eval
 from pemviz.studies.pem_eval import (
+    MODEL_NAMES,
     EvalConfig,
     evaluate_pems,
     format_csv,
@@ -20,6 +35,8 @@ from pemviz.studies.pem_eval import (
     summary_lines,
     write_recording,
 )
+
+NOISE_CSV = "pem-noise-eval.csv"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,15 +50,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "train",
         help="train a PEM on the full salient file and write its weights",
         description="Train a named PEM on salient_inputs_no_miscUnknown.txt and write pemviz/assets/pem_<model>.pt "
-        "(or --out).",
+        "(a noise PEM: pemviz/assets/noise_<model>.pt; or --out).",
     )
     t.add_argument(
         "--model",
         default="ml-nn",
-        help=f"one of {', '.join(PEM_RECIPES)} (default ml-nn: the paper's; gbt: the best cross-validated)",
+        help=f"one of {', '.join([*PEM_RECIPES, *NOISE_RECIPES])} (default ml-nn: the paper's; gbt: the best "
+        "cross-validated; hetero-t: the noise PEM of range and lateral errors)",
     )
     t.add_argument(
-        "--epochs", type=int, default=None, help="epochs for ml-nn, trees for gbt (default: the model's, 300 each)"
+        "--epochs",
+        type=int,
+        default=None,
+        help="epochs for ml-nn and hetero-t, trees for gbt (default: the model's, 300, 300, 100)",
     )
     t.add_argument("--seed", type=int, default=None, help="seed (default: the model's shipped seed)")
     t.add_argument("--out", default=None, metavar="PATH", help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)")
@@ -51,19 +72,27 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     e = actions.add_parser(
         "eval",
-        help="5-fold cross-validation of the PEM models (paper Table I) with calibration",
+        help="5-fold cross-validation of the PEM models (paper Table I) and the noise PEMs, with calibration",
         description="Cross-validate ML-NN, LR, Guess-mu, B-NN and pemviz's gradient-boosted trees on the paper's "
-        "5 stratified folds; write a Markdown and a CSV table and a rerun recording (ROC curves, reliability "
-        "diagrams, p(detect | gap) beside the authors' PEM). Needs the KITTI salient files (see pemviz data fetch).",
+        "5 stratified folds, and the noise PEMs (range and lateral errors of detected obstacles, metres) against "
+        "the homoscedastic baseline on the same folds; write a Markdown table of both, a CSV table of each and a "
+        "rerun recording (ROC curves, reliability diagrams, p(detect | gap) beside the authors' PEM). Needs the "
+        "KITTI salient files (see pemviz data fetch).",
     )
-    e.add_argument("--models", default=None, help="comma-separated subset of ml-nn,lr,guess-mu,b-nn,gbt (default all)")
+    e.add_argument(
+        "--models",
+        default=None,
+        help=f"comma-separated subset of {','.join(MODEL_NAMES)} (detection) and "
+        f"{','.join(noise_eval.NOISE_MODEL_NAMES)} (noise); default all",
+    )
     e.add_argument("--folds", default=None, help="comma-separated fold numbers 0..4 (default all)")
     e.add_argument(
         "--quick",
         action="store_true",
-        help="CI size: fold 0 only, 20 ML-NN epochs, 60 trees, 200 B-NN steps, 100 B-NN samples",
+        help="CI size: fold 0 only, 20 ML-NN epochs, 60 trees, 200 B-NN steps, 100 B-NN samples, 15 noise epochs",
     )
     e.add_argument("--epochs", type=int, default=None, help="ML-NN epochs per fold (default 300)")
+    e.add_argument("--noise-epochs", type=int, default=None, help="noise PEM epochs per fold (default 100)")
     e.add_argument("--trees", type=int, default=None, help="boosted trees per fold (default 300)")
     e.add_argument("--bnn-steps", type=int, default=None, help="B-NN SVI steps per fold (default 2000)")
     e.add_argument("--bnn-samples", type=int, default=None, help="B-NN posterior samples (default 800)")
@@ -72,7 +101,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out",
         default="recordings",
         metavar="DIR",
-        help="folder for pem-eval.md, pem-eval.csv and pem-eval.rrd, created if needed (default recordings)",
+        help=f"folder for pem-eval.md, pem-eval.csv, {NOISE_CSV} and pem-eval.rrd, created if needed "
+        "(default recordings)",
     )
     e.add_argument("--save", default=None, metavar="PATH", help="recording path (default <out>/pem-eval.rrd)")
     e.add_argument("--no-record", action="store_true", help="write no rerun recording")
@@ -89,12 +119,13 @@ def _check_out_path(out: Path) -> None:
 
 
 def train_main(args: argparse.Namespace) -> int:
-    if args.model not in PEM_RECIPES:
-        raise UsageError(f"--model {args.model!r}: use one of {', '.join(PEM_RECIPES)}")
+    if args.model not in PEM_RECIPES and args.model not in NOISE_RECIPES:
+        raise UsageError(f"--model {args.model!r}: use one of {', '.join([*PEM_RECIPES, *NOISE_RECIPES])}")
     if args.epochs is not None and args.epochs < 1:
         raise UsageError(f"--epochs {args.epochs}: must be >= 1")
-    recipe = PEM_RECIPES[args.model]
-    out = Path(args.out) if args.out else pem_path(recipe.name)
+    noise = args.model in NOISE_RECIPES
+    recipe = NOISE_RECIPES[args.model] if noise else PEM_RECIPES[args.model]
+    out = Path(args.out) if args.out else (noise_pem_path if noise else pem_path)(recipe.name)
     _check_out_path(out)
     try:
         data = load_salient_data(args.data_dir)
@@ -102,7 +133,6 @@ def train_main(args: argparse.Namespace) -> int:
         print(f"pemviz pem train: error: {exc}", file=sys.stderr)
         return 1
     seed = recipe.seed if args.seed is None else args.seed
-    print(f"training {recipe.name} ({recipe.description}) on {data.inputs_path} ({len(data)} rows), seed {seed}")
     epochs = recipe.epochs if args.epochs is None else args.epochs
     metadata = {
         "command": f"pemviz pem train --model {recipe.name} --seed {seed} --epochs {epochs}",
@@ -110,9 +140,16 @@ def train_main(args: argparse.Namespace) -> int:
         "data_sha256": sha256_file(data.inputs_path),
         "labels_sha256": sha256_file(data.labels_path),
     }
-    pem = recipe.train(
-        data.inputs, data.labels, seed=seed, epochs=epochs, progress=not args.no_progress, metadata=metadata
-    )
+    train = _train_noise if noise else _train_detection
+    train(recipe, data, seed=seed, epochs=epochs, out=out, progress=not args.no_progress, metadata=metadata)
+    print(f"wrote {out}")
+    return 0
+
+
+def _train_detection(recipe, data, *, seed: int, epochs: int, out: Path, progress: bool, metadata: dict) -> None:
+    """``pem train --model ml-nn | gbt``: a detection PEM on the full file, its BCE and p(detect | gap), saved."""
+    print(f"training {recipe.name} ({recipe.description}) on {data.inputs_path} ({len(data)} rows), seed {seed}")
+    pem = recipe.train(data.inputs, data.labels, seed=seed, epochs=epochs, progress=progress, metadata=metadata)
     bce = bce_from_logits(pem.logit(data.inputs), data.labels)
     gaps = np.array([2.0, 4.0, 6.0, 8.0, 10.0, 12.293, 13.0])
     p = pem.prob_at_gap(gaps)
@@ -127,8 +164,19 @@ def train_main(args: argparse.Namespace) -> int:
         diff = np.abs(pem.prob_at_gap(grid) - ref.prob_at_gap(grid)).max()
         print(f"max |p_pemviz - p_authors| over gaps 2..13 m: {diff:.4f}")
     save_pem(pem, out)
-    print(f"wrote {out}")
-    return 0
+
+
+def _train_noise(recipe, data, *, seed: int, epochs: int, out: Path, progress: bool, metadata: dict) -> None:
+    """``pem train --model hetero-t``: the noise PEM on the detected obstacles' metric errors of the full file
+    (z-scored with the full file's statistics, as the detection PEMs), saved."""
+    noise = noise_training_data(data.inputs, data.label_table, seed=seed)
+    print(f"training {recipe.name} ({recipe.description}) on {noise.rows.size} detected obstacles of "
+          f"{data.labels_path} ({len(data)} rows), seed {seed}")  # fmt: skip
+    model = recipe.train(noise.inputs, noise.errors, seed=seed, epochs=epochs, norm=fit_norm_stats(data.inputs),
+                         progress=progress, metadata=metadata)  # fmt: skip
+    print(f"NLL on the full training set: {nll(model, noise.inputs, noise.errors):.4f} nats per obstacle; "
+          f"degrees of freedom (range, lateral) {model.df[0]:.2f}, {model.df[1]:.2f}")  # fmt: skip
+    save_noise_pem(model, out)
 
 
 def _int_list(text: str | None, option: str) -> tuple[int, ...] | None:
@@ -140,16 +188,28 @@ def _int_list(text: str | None, option: str) -> tuple[int, ...] | None:
         raise UsageError(f"{option} {text!r}: give comma-separated integers") from None
 
 
-def eval_config_from_args(args: argparse.Namespace):  # -> pemviz.studies.pem_eval.EvalConfig
-    """The :class:`pemviz.studies.pem_eval.EvalConfig` of the command line; UsageError on bad values."""
+def eval_config_from_args(args: argparse.Namespace) -> tuple[EvalConfig | None, noise_eval.NoiseEvalConfig | None]:
+    """The detection PEMs' :class:`pemviz.studies.pem_eval.EvalConfig` and the noise PEMs'
+    :class:`pemviz.studies.noise_eval.NoiseEvalConfig` of the command line (None where ``--models`` names none of
+    that kind); UsageError on bad values."""
     fields: dict = {"seed": args.seed}
+    noise_fields: dict = {"seed": args.seed}
     if args.quick:
         fields.update(folds=(0,), mlnn_epochs=20, gbt_trees=60, bnn_steps=200, bnn_samples=100)
+        noise_fields.update(folds=(0,), epochs=15)
+    detect_models: tuple[str, ...] = MODEL_NAMES
+    noise_models: tuple[str, ...] = noise_eval.NOISE_MODEL_NAMES
     if args.models is not None:
-        fields["models"] = tuple(m.strip() for m in args.models.split(",") if m.strip())
+        names = tuple(m.strip() for m in args.models.split(",") if m.strip())
+        detect_models = tuple(m for m in names if m not in noise_eval.NOISE_MODEL_NAMES)
+        noise_models = tuple(m for m in names if m in noise_eval.NOISE_MODEL_NAMES)
+        if not names:
+            raise UsageError(f"--models {args.models!r}: name at least one model")
+    fields["models"] = detect_models
+    noise_fields["models"] = noise_models
     folds = _int_list(args.folds, "--folds")
     if folds is not None:
-        fields["folds"] = folds
+        fields["folds"] = noise_fields["folds"] = folds
     for option, name in (
         ("epochs", "mlnn_epochs"),
         ("trees", "gbt_trees"),
@@ -159,22 +219,27 @@ def eval_config_from_args(args: argparse.Namespace):  # -> pemviz.studies.pem_ev
         value = getattr(args, option)
         if value is not None:
             fields[name] = value
+    if args.noise_epochs is not None:
+        noise_fields["epochs"] = args.noise_epochs
     try:
-        return EvalConfig(**fields)
+        # the noise config is checked even when unused, so that a bad --noise-epochs is never silently ignored
+        noise = noise_eval.NoiseEvalConfig(**{**noise_fields, "models": noise_models or noise_eval.NOISE_MODEL_NAMES})
+        detect = EvalConfig(**fields) if detect_models else None
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    return detect, (noise if noise_models else None)
 
 
 def eval_main(args: argparse.Namespace) -> int:
-    config = eval_config_from_args(args)
+    config, noise_config = eval_config_from_args(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: exists and is not a folder")
-    rrd = None if args.no_record else (Path(args.save) if args.save else out / "pem-eval.rrd")
+    rrd = None if args.no_record or config is None else (Path(args.save) if args.save else out / "pem-eval.rrd")
 
     out = output_folder(out)  # created like validate's and tables' --out
     try:  # every output checked before the cross-validation (the reports are regenerated in place)
-        check_output_folder(out, ("pem-eval.md", "pem-eval.csv"))
+        check_output_folder(out, ("pem-eval.md", "pem-eval.csv", NOISE_CSV))
         if rrd is not None:
             check_output_path(rrd, ".rrd", "--save", overwrite=True)
     except ValueError as exc:
@@ -184,6 +249,24 @@ def eval_main(args: argparse.Namespace) -> int:
     except (DataError, FileNotFoundError) as exc:
         print(f"pemviz pem eval: error: {exc}", file=sys.stderr)
         return 1
+    markdown, wrote = [], []
+    if config is not None:
+        result = _eval_detection(data, config)
+        markdown.append(format_markdown(result))
+        wrote.append(write_text_atomic(out / "pem-eval.csv", format_csv(result)))
+        if rrd is not None:
+            wrote.append(write_recording(result, rrd))
+    if noise_config is not None:
+        noise = _eval_noise(data, noise_config)
+        markdown.append(noise_eval.format_markdown(noise))
+        wrote.append(write_text_atomic(out / NOISE_CSV, noise_eval.format_csv(noise)))
+    wrote.insert(0, write_text_atomic(out / "pem-eval.md", "\n".join(markdown)))
+    print(f"wrote {', '.join(str(w) for w in wrote)}")
+    return 0
+
+
+def _eval_detection(data, config: EvalConfig):  # -> pemviz.studies.pem_eval.EvalResult
+    """Table I: the detection PEMs' cross-validation, with its console lines."""
     print(
         f"cross-validating {', '.join(config.models)} on folds {list(config.fold_ids)} of {config.n_splits} "
         f"({len(data)} rows from {data.inputs_path.parent})",
@@ -199,10 +282,21 @@ def eval_main(args: argparse.Namespace) -> int:
 
     result = evaluate_pems(data.inputs, data.labels, config, on_fold=on_fold, data_source=data.inputs_path.name)
     print("\n".join(summary_lines(result)))
-    md = write_text_atomic(out / "pem-eval.md", format_markdown(result))
-    csv = write_text_atomic(out / "pem-eval.csv", format_csv(result))
-    print(f"wrote {md} and {csv}")
-    if rrd is not None:
-        print(f"wrote {write_recording(result, rrd)}")
-    print(f"best by mean BCE: {result.best()}; wall time {result.wall_s:.0f} s")
-    return 0
+    print(f"best by mean BCE: {result.best()}; wall time {result.wall_s:.0f} s", flush=True)
+    return result
+
+
+def _eval_noise(data, config: noise_eval.NoiseEvalConfig) -> noise_eval.NoiseEvalResult:
+    """The noise PEMs' cross-validation against the homoscedastic baseline, with its console lines."""
+    print(f"cross-validating the noise PEMs {', '.join(config.models)} on folds {list(config.fold_ids)} of "
+          f"{config.n_splits} (detected obstacles of {data.labels_path.name})", flush=True)  # fmt: skip
+
+    def on_fold(name, fs) -> None:
+        print(f"  {name:14s} fold {fs.fold}: NLL {fs.nll:.4f}  coverage 95 % {fs.coverage[-1, 0]:.3f} / "
+              f"{fs.coverage[-1, 1]:.3f}  ({fs.fit_s:.1f} s)", flush=True)  # fmt: skip
+
+    result = noise_eval.evaluate_noise_pems(data.inputs, data.label_table, config, on_fold=on_fold,
+                                            data_source=data.labels_path.name)  # fmt: skip
+    print("\n".join(noise_eval.summary_lines(result)))
+    print(f"best noise PEM by mean NLL: {result.best()}; wall time {result.wall_s:.0f} s", flush=True)
+    return result

@@ -12,7 +12,9 @@ pemviz never ships them; it finds them at run time, in this order:
 checks their SHA-256.
 
 Input columns (11): class, truncation, occlusion, alpha, dim_w, dim_l, dim_h, loc_x, loc_y, loc_z, rot_y
-(KITTI camera frame: metres, radians). Label columns (9): detected, bbox cx, cy, w, h, err cx, cy, w, h.
+(KITTI camera frame: metres, radians; the three box dimensions are KITTI's height, width, length in that order, whatever
+the files' header calls them). Label columns (9): detected, the detector's box cx, cy, w, h and its error (detector
+minus ground truth) err cx, cy, w, h, pixels (:func:`load_salient_label_table`).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ __all__ = [
     "find_data_dir",
     "load_salient_data",
     "load_salient_inputs",
+    "load_salient_label_table",
     "load_salient_labels",
     "repo_root",
     "sha256_file",
@@ -306,8 +309,23 @@ def load_salient_labels(path: str | os.PathLike[str]) -> np.ndarray:
     """Detection labels (column 0 of the label file), float64 ``[N]`` with values in {0, 1}.
 
     Raises:
-        DataFormatError: wrong column count (9 expected), non-number, NaN, or a label not in {0, 1}
-            (names file and line).
+        DataFormatError: see :func:`load_salient_label_table`.
+        FileNotFoundError: ``path`` does not exist.
+    """
+    return np.ascontiguousarray(load_salient_label_table(path)[:, 0])
+
+
+def load_salient_label_table(path: str | os.PathLike[str]) -> np.ndarray:
+    """The whole label file, float64 ``[N, 9]`` (columns :data:`LABEL_COLUMNS`; pixels of the original image).
+
+    Column 0 is detected (0 or 1). Columns 1-4 are the *detector's* box (centre x, centre y, width, height) and
+    5-8 its error, detector minus ground truth: the authors' ``saveSalientDataset.py`` writes
+    ``[1, im_cx, im_cy, im_w, im_h, im_cx - tru_cx, ...]`` (the header's "bbox" is the detected box); the ground-truth
+    box is ``box - err``. A missed obstacle's row is all zero.
+
+    Raises:
+        DataFormatError: wrong column count (9 expected), non-number, NaN, a label not in {0, 1}, or a detected row
+            whose detected or ground-truth box has a width or height <= 0 (names file and line).
         FileNotFoundError: ``path`` does not exist.
     """
     path = Path(path)
@@ -317,7 +335,15 @@ def load_salient_labels(path: str | os.PathLike[str]) -> np.ndarray:
     if bad.size:
         line_no = _data_line_numbers(path)[bad[0]]
         raise DataFormatError(f"{path}, line {line_no}: label {detected[bad[0]]:g} is not 0 or 1 (column 0, detected)")
-    return np.ascontiguousarray(detected)
+    size = np.concatenate([table[:, 3:5], table[:, 3:5] - table[:, 7:9]], axis=1)  # detected w, h; true w, h
+    bad = np.flatnonzero((detected == 1.0) & np.any(size <= 0.0, axis=1))
+    if bad.size:
+        line_no = _data_line_numbers(path)[bad[0]]
+        raise DataFormatError(
+            f"{path}, line {line_no}: a detected obstacle's box (w, h) and ground-truth box (w - err w, h - err h) "
+            f"must be > 0 pixels, got {size[bad[0]].tolist()}"
+        )
+    return table
 
 
 def _data_line_numbers(path: Path) -> list[int]:
@@ -333,12 +359,14 @@ def _data_line_numbers(path: Path) -> list[int]:
 
 @dataclass(frozen=True)
 class SalientData:
-    """The salient dataset: ``inputs`` float64 ``[N, 11]``, ``labels`` float64 ``[N]`` in {0, 1}."""
+    """The salient dataset: ``inputs`` float64 ``[N, 11]``, ``labels`` float64 ``[N]`` in {0, 1} (detected), and the
+    whole label file ``label_table`` float64 ``[N, 9]`` (:func:`load_salient_label_table`: boxes and box errors)."""
 
     inputs: np.ndarray
     labels: np.ndarray
     inputs_path: Path
     labels_path: Path
+    label_table: np.ndarray
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -362,9 +390,10 @@ def load_salient_data(
     folder = find_data_dir(names) if data_dir is None else Path(data_dir)
     inputs_path, labels_path = folder / names[0], folder / names[1]
     inputs = load_salient_inputs(inputs_path)
-    labels = load_salient_labels(labels_path)
-    if inputs.shape[0] != labels.shape[0]:
+    table = load_salient_label_table(labels_path)
+    if inputs.shape[0] != table.shape[0]:
         raise DataFormatError(
-            f"{inputs_path} has {inputs.shape[0]} rows but {labels_path} has {labels.shape[0]}; they must match"
+            f"{inputs_path} has {inputs.shape[0]} rows but {labels_path} has {table.shape[0]}; they must match"
         )
-    return SalientData(inputs=inputs, labels=labels, inputs_path=inputs_path, labels_path=labels_path)
+    return SalientData(inputs=inputs, labels=np.ascontiguousarray(table[:, 0]), inputs_path=inputs_path,
+                       labels_path=labels_path, label_table=table)  # fmt: skip

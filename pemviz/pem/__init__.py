@@ -6,8 +6,14 @@ Innes & Ramamoorthy 2022, Sec. IV-A and Table I. Two kinds, one interface (``nam
 - :class:`PEM`: the paper's ML-NN (and wider variants), trained with torch, evaluated in float64 numpy;
 - :class:`TreePEM`: gradient-boosted trees on the same 14 features, the best cross-validated model.
 
+Beyond detection, a noise PEM gives a detected obstacle's measurement error (range, lateral; metres):
+:class:`NoisePEM` (heteroscedastic, the shipped ``hetero-t``) and :class:`HomoscedasticNoise` (the baseline), with
+the interface ``noise_params``, ``log_prob``, ``cdf``, ``interval``, ``sample``; :class:`NoisyPEM` pairs a detection
+head and a noise head.
+
 Modules: ``encoding`` (14-dim input, braking scenario mapping), ``network`` (ML-NN), ``trees`` (boosted
-trees), ``recipes`` (named PEMs of ``pemviz pem train``), ``store`` (files, assets, the authors' PEM).
+trees), ``camera`` (pixel box errors -> metric errors), ``noise`` (noise PEMs), ``perception`` (:class:`NoisyPEM`),
+``recipes`` (named PEMs of ``pemviz pem train``), ``store`` (files, assets, the authors' PEM).
 """
 
 from pemviz.pem.encoding import (
@@ -28,18 +34,46 @@ from pemviz.pem.encoding import (
     encode_salient,
     fit_norm_stats,
 )
+from pemviz.pem.camera import KITTI_FOCAL_PX, MIN_RANGE_M, box_errors_to_metric
 from pemviz.pem.network import MLNN, PEM, PemFormatError, train_pem
-from pemviz.pem.recipes import BEST_PEM_NAME, DEFAULT_PEM_NAME, PEM_RECIPES, PemRecipe, TreeRecipe
+from pemviz.pem.noise import (
+    FAMILIES,
+    NOISE_DIMS,
+    HomoscedasticNoise,
+    NoiseData,
+    NoiseModel,
+    NoisePEM,
+    fit_homoscedastic,
+    noise_training_data,
+    train_noise_pem,
+)
+from pemviz.pem.perception import NoisyPEM
+from pemviz.pem.recipes import (
+    BEST_PEM_NAME,
+    DEFAULT_NOISE_NAME,
+    DEFAULT_PEM_NAME,
+    NOISE_RECIPES,
+    PEM_RECIPES,
+    NoiseRecipe,
+    PemRecipe,
+    TreeRecipe,
+)
 from pemviz.pem.store import (
     ASSETS_DIR_ENV,
     AnyPEM,
     assets_dir,
+    load_noise_pem,
+    load_noisy_pem,
     load_pem,
     load_reference_pem,
+    noise_pem_path,
     pem_path,
     reference_pem_dir,
     resolve_pem,
+    save_noise_pem,
+    save_noisy_pem,
     save_pem,
+    shipped_noise_pems,
     shipped_pems,
 )
 from pemviz.pem.trees import TreePEM, export_hist_gradient_boosting, train_tree_pem
@@ -52,8 +86,14 @@ __all__ = [
     "BRAKING_LOC_Y_M",
     "BRAKING_ROT_Y_RAD",
     "BRAKING_Z_FEATURE",
+    "DEFAULT_NOISE_NAME",
     "DEFAULT_PEM_NAME",
+    "FAMILIES",
+    "KITTI_FOCAL_PX",
+    "MIN_RANGE_M",
     "MLNN",
+    "NOISE_DIMS",
+    "NOISE_RECIPES",
     "N_CLASSES",
     "N_FEATURES",
     "N_OCCLUSIONS",
@@ -61,6 +101,12 @@ __all__ = [
     "PEM_RECIPES",
     "POSE_COLUMNS",
     "AnyPEM",
+    "HomoscedasticNoise",
+    "NoiseData",
+    "NoiseModel",
+    "NoisePEM",
+    "NoiseRecipe",
+    "NoisyPEM",
     "NormStats",
     "PemFormatError",
     "PemRecipe",
@@ -68,19 +114,29 @@ __all__ = [
     "TreeRecipe",
     "assets_dir",
     "bce_from_logits",
+    "box_errors_to_metric",
     "braking_features_at_z",
     "braking_salient_inputs",
     "braking_z_scored",
     "encode_salient",
     "export_hist_gradient_boosting",
+    "fit_homoscedastic",
     "fit_norm_stats",
+    "load_noise_pem",
+    "load_noisy_pem",
     "load_pem",
     "load_reference_pem",
+    "noise_pem_path",
+    "noise_training_data",
     "pem_path",
     "reference_pem_dir",
     "resolve_pem",
+    "save_noise_pem",
+    "save_noisy_pem",
     "save_pem",
+    "shipped_noise_pems",
     "shipped_pems",
+    "train_noise_pem",
     "train_pem",
     "train_tree_pem",
 ]

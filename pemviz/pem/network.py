@@ -42,7 +42,8 @@ class PemFormatError(ValueError):
 
 class MLNN(nn.Module):
     """The paper's ML-NN (and its wider / deeper variants): ``ff_nn`` = [Linear, BatchNorm?, ReLU, Dropout?]
-    per hidden layer, then Linear(h, 1) -> logit ``[N, 1]``.
+    per hidden layer, then Linear(h, out_dim) -> logit ``[N, 1]`` (or the noise PEM's ``[N, 4]``, see
+    :mod:`pemviz.pem.noise`).
 
     With ``hidden=(20, 20)``, ``batch_norm=True``, ``dropout=0`` the state-dict keys are the authors'
     (``ff_nn.{0,1,3,4,6}.*``), so their weights load directly.
@@ -55,6 +56,7 @@ class MLNN(nn.Module):
         *,
         batch_norm: bool = True,
         dropout: float = 0.0,
+        out_dim: int = 1,
     ) -> None:
         super().__init__()
         layers: list[nn.Module] = []
@@ -67,14 +69,14 @@ class MLNN(nn.Module):
             if dropout > 0:
                 layers.append(nn.Dropout(dropout))
             prev = width
-        layers.append(nn.Linear(prev, 1))
+        layers.append(nn.Linear(prev, out_dim))
         self.ff_nn = nn.Sequential(*layers)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.ff_nn(x)
 
 
-def _fold_layers(module: MLNN) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+def fold_layers(module: MLNN) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
     """Affine layers ``(W [out, in], b [out])`` in float64, each BatchNorm (eval mode) folded into the
     Linear before it; a ReLU follows every layer but the last."""
     folded: list[tuple[np.ndarray, np.ndarray]] = []
@@ -96,6 +98,17 @@ def _fold_layers(module: MLNN) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
                 w = scale[:, None] * w
             folded.append((np.ascontiguousarray(w), np.ascontiguousarray(b)))
     return tuple(folded)
+
+
+def mlp_forward(layers: tuple[tuple[np.ndarray, np.ndarray], ...], x: np.ndarray) -> np.ndarray:
+    """Outputs float64 ``[N, out]`` of folded affine layers (:func:`fold_layers`) on inputs ``[N, in]``, ReLU between."""
+    h = x
+    for i, (w, b) in enumerate(layers):
+        h = h @ w.T
+        h += b
+        if i < len(layers) - 1:
+            np.maximum(h, 0.0, out=h)
+    return h
 
 
 def _piecewise_linear_pieces(
@@ -159,7 +172,7 @@ class PEM:
         if not (math.isfinite(self.temperature) and self.temperature > 0):
             raise ValueError(f"PEM temperature must be finite and > 0, got {self.temperature}")
         module = self.to_module()
-        layers = _fold_layers(module)
+        layers = fold_layers(module)
         object.__setattr__(self, "_layers", layers)
         # Braking fast path: only loc_z varies with the gap, so the network is an exactly piecewise-linear
         # function of the gap (ReLU network of one variable); precompute its pieces once.
@@ -225,14 +238,7 @@ class PEM:
     # -- evaluation -----------------------------------------------------------------------------
     def _mlp(self, x: np.ndarray) -> np.ndarray:
         """Logits float64 ``[N]`` of encoded features ``[N, 14]`` (folded layers, ReLU between)."""
-        layers: tuple[tuple[np.ndarray, np.ndarray], ...] = self._layers  # type: ignore[attr-defined]
-        h = x
-        for i, (w, b) in enumerate(layers):
-            h = h @ w.T
-            h += b
-            if i < len(layers) - 1:
-                np.maximum(h, 0.0, out=h)
-        out = h[:, 0]
+        out = mlp_forward(self._layers, x)[:, 0]  # type: ignore[attr-defined]
         return out / self.temperature if self.temperature != 1.0 else out
 
     def features(self, raw_inputs: np.ndarray) -> np.ndarray:
@@ -338,25 +344,21 @@ def train_pem(
     t = torch.as_tensor(y, dtype=torch.float32).unsqueeze(1)
     n = x.shape[0]
 
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # a 20-unit net gains nothing from threads, and one thread is reproducible
-    try:
-        module, last_loss = _fit(
-            x,
-            t,
-            hidden=hidden,
-            batch_norm=batch_norm,
-            dropout=dropout,
-            epochs=epochs,
-            batch_size=batch_size,
-            lr=lr,
-            weight_decay=weight_decay,
-            seed=seed,
-            progress=progress,
-            name=name,
-        )
-    finally:
-        torch.set_num_threads(threads)
+    module, last_loss = fit_network(
+        x,
+        t,
+        loss_fn=nn.BCEWithLogitsLoss(),
+        hidden=hidden,
+        batch_norm=batch_norm,
+        dropout=dropout,
+        epochs=epochs,
+        batch_size=batch_size,
+        lr=lr,
+        weight_decay=weight_decay,
+        seed=seed,
+        progress=progress,
+        name=name,
+    )
     meta = {
         "seed": int(seed),
         "epochs": int(epochs),
@@ -372,10 +374,11 @@ def train_pem(
     return PEM.from_module(module, norm, name=name, hidden=hidden, batch_norm=batch_norm, metadata=meta)
 
 
-def _fit(
+def fit_network(
     x: torch.Tensor,
     t: torch.Tensor,
     *,
+    loss_fn: nn.Module,
     hidden: Sequence[int],
     batch_norm: bool,
     dropout: float,
@@ -386,35 +389,47 @@ def _fit(
     seed: int,
     progress: bool,
     name: str,
+    out_dim: int = 1,
 ) -> tuple[MLNN, float]:
-    """The training loop of :func:`train_pem` on encoded float32 features ``x [N, 14]`` and targets ``t [N, 1]``."""
-    n = x.shape[0]
-    torch.manual_seed(seed)
-    generator = torch.Generator().manual_seed(seed)
-    module = MLNN(N_FEATURES, hidden, batch_norm=batch_norm, dropout=dropout)
-    optimiser = torch.optim.Adam(module.parameters(), lr=lr, weight_decay=weight_decay)
-    loss_fn = nn.BCEWithLogitsLoss()
+    """The training loop of :func:`train_pem` (and of the noise PEM): an :class:`MLNN` with ``out_dim`` outputs on
+    float32 inputs ``x [N, 14]`` and targets ``t [N, ...]``, minimising ``loss_fn(module(x[batch]), t[batch])``.
 
-    epoch_iter: Any = range(epochs)
-    if progress:
-        epoch_iter = tqdm(epoch_iter, desc=f"train {name}", unit="epoch", mininterval=0.5)
-    last_loss = float("nan")
-    module.train()
-    for _ in epoch_iter:
-        perm = torch.randperm(n, generator=generator)
-        total, count = 0.0, 0
-        for start in range(0, n, batch_size):
-            idx = perm[start : start + batch_size]
-            if batch_norm and idx.shape[0] < 2:
-                continue  # BatchNorm cannot train on one row
-            optimiser.zero_grad(set_to_none=True)
-            loss = loss_fn(module(x[idx]), t[idx])
-            loss.backward()
-            optimiser.step()
-            total += float(loss.detach()) * idx.shape[0]
-            count += idx.shape[0]
-        last_loss = total / max(count, 1)
+    Adam (lr, weight_decay) over the network's and the loss's own parameters (e.g. the noise PEM's Student-t degrees
+    of freedom), mini-batches reshuffled every epoch by a generator seeded with ``seed``, initial weights from
+    ``torch.manual_seed(seed)``, one CPU thread (tiny networks gain nothing from threads, and one is reproducible).
+    Returns the module in eval mode and the last epoch's mean training loss.
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        n = x.shape[0]
+        torch.manual_seed(seed)
+        generator = torch.Generator().manual_seed(seed)
+        module = MLNN(N_FEATURES, hidden, batch_norm=batch_norm, dropout=dropout, out_dim=out_dim)
+        optimiser = torch.optim.Adam([*module.parameters(), *loss_fn.parameters()], lr=lr, weight_decay=weight_decay)
+
+        epoch_iter: Any = range(epochs)
         if progress:
-            epoch_iter.set_postfix(bce=f"{last_loss:.4f}", refresh=False)
-    module.eval()
+            epoch_iter = tqdm(epoch_iter, desc=f"train {name}", unit="epoch", mininterval=0.5)
+        last_loss = float("nan")
+        module.train()
+        for _ in epoch_iter:
+            perm = torch.randperm(n, generator=generator)
+            total, count = 0.0, 0
+            for start in range(0, n, batch_size):
+                idx = perm[start : start + batch_size]
+                if batch_norm and idx.shape[0] < 2:
+                    continue  # BatchNorm cannot train on one row
+                optimiser.zero_grad(set_to_none=True)
+                loss = loss_fn(module(x[idx]), t[idx])
+                loss.backward()
+                optimiser.step()
+                total += float(loss.detach()) * idx.shape[0]
+                count += idx.shape[0]
+            last_loss = total / max(count, 1)
+            if progress:
+                epoch_iter.set_postfix(loss=f"{last_loss:.4f}", refresh=False)
+        module.eval()
+    finally:
+        torch.set_num_threads(threads)
     return module, last_loss

@@ -4,6 +4,9 @@
 - ``gbt``: gradient-boosted trees on the same 14 features, the best model of pemviz's 5-fold
   cross-validation, shipped as ``pemviz/assets/pem_gbt.pt``.
 
+- ``hetero-t``: the noise PEM (heteroscedastic Student-t, :mod:`pemviz.pem.noise`), chosen by 5-fold cross-validated
+  NLL against Normal and Laplace heads and the homoscedastic baselines, shipped as ``pemviz/assets/noise_hetero-t.pt``.
+
 ``seed`` is the seed of the shipped weights; ``pemviz/assets/README.md`` says why each was chosen.
 """
 
@@ -17,12 +20,15 @@ import numpy as np
 
 from pemviz.pem.encoding import NormStats
 from pemviz.pem.network import PEM, train_pem
+from pemviz.pem.noise import NoisePEM, train_noise_pem
 from pemviz.pem.trees import TreePEM, train_tree_pem
 
 DEFAULT_PEM_NAME = "ml-nn"
 """The PEM :func:`pemviz.pem.load_pem` loads when given no name."""
 BEST_PEM_NAME = "gbt"
 """The best cross-validated PEM (by 5-fold cross-validated BCE and ROC-AUC)."""
+DEFAULT_NOISE_NAME = "hetero-t"
+"""The noise PEM :func:`pemviz.pem.load_noise_pem` loads when given no name."""
 
 
 @dataclass(frozen=True)
@@ -123,3 +129,57 @@ PEM_RECIPES: dict[str, PemRecipe | TreeRecipe] = {
     ),
 }
 """Named PEMs that ``pemviz pem train --model NAME`` can (re)train."""
+
+
+@dataclass(frozen=True)
+class NoiseRecipe:
+    """A heteroscedastic noise PEM: the family, architecture and optimiser settings passed to :func:`train_noise_pem`."""
+
+    name: str
+    description: str
+    family: str = "student-t"
+    hidden: tuple[int, ...] = (32, 32)
+    epochs: int = 100
+    batch_size: int = 512
+    lr: float = 3e-3
+    weight_decay: float = 0.0
+    seed: int = 0
+
+    def train(
+        self,
+        inputs: np.ndarray,
+        errors: np.ndarray,
+        *,
+        seed: int | None = None,
+        epochs: int | None = None,
+        norm: NormStats | None = None,
+        progress: bool = False,
+        metadata: Mapping[str, Any] | None = None,
+    ) -> NoisePEM:
+        """:func:`train_noise_pem` with this recipe on raw inputs ``[M, 11]`` and metric errors ``[M, 2]`` (metres);
+        ``seed`` / ``epochs`` override the recipe's."""
+        return train_noise_pem(
+            inputs,
+            errors,
+            name=self.name,
+            family=self.family,
+            hidden=self.hidden,
+            epochs=self.epochs if epochs is None else epochs,
+            batch_size=self.batch_size,
+            lr=self.lr,
+            weight_decay=self.weight_decay,
+            seed=self.seed if seed is None else seed,
+            norm=norm,
+            progress=progress,
+            metadata={"recipe": self.name, **dict(metadata or {})},
+        )
+
+
+NOISE_RECIPES: dict[str, NoiseRecipe] = {
+    "hetero-t": NoiseRecipe(
+        name="hetero-t",
+        description="heteroscedastic noise PEM: 14-32-32-4 ReLU network -> Student-t location and log scale per "
+        "dimension (range, lateral), one learned degrees of freedom each; Adam 3e-3, batch 512, 100 epochs",
+    ),
+}
+"""Named noise PEMs that ``pemviz pem train --model NAME`` can (re)train."""

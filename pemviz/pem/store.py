@@ -1,14 +1,18 @@
-"""Store and find PEMs: the shipped ``pemviz/assets/pem_<name>.pt`` files (package data), atomic saves, and the authors' reference PEM.
+"""Store and find PEMs: the shipped ``pemviz/assets/pem_<name>.pt`` and ``noise_<name>.pt`` files (package data),
+atomic saves, and the authors' reference PEM.
 
 A PEM file is a ``torch.save`` of a plain dict that ``torch.load(weights_only=True)`` reads: format tag
 ``pemviz-pem``, version, ``kind`` (``mlp`` for :class:`PEM`, ``gbt`` for :class:`TreePEM`), name, the
-z-score statistics (float64 tensors), the model's tensors and plain-value metadata.
+z-score statistics (float64 tensors), the model's tensors and plain-value metadata. A noise PEM file
+(:func:`save_noise_pem`) is the same with tag ``pemviz-noise-pem``, kind ``mlp`` (:class:`NoisePEM`) or ``linear``
+(:class:`HomoscedasticNoise`), the family and its degrees of freedom. A :class:`NoisyPEM` file
+(:func:`save_noisy_pem`, tag ``pemviz-noisy-pem``) holds the two heads' dicts under ``detect`` and ``noise``.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -19,12 +23,18 @@ from pemviz.io.data import repo_root
 from pemviz.io.files import atomic_write, load_tagged
 from pemviz.pem.encoding import POSE_COLUMNS, NormStats
 from pemviz.pem.network import PEM, PemFormatError
-from pemviz.pem.recipes import DEFAULT_PEM_NAME
+from pemviz.pem.noise import HomoscedasticNoise, NoiseModel, NoisePEM
+from pemviz.pem.perception import NoisyPEM
+from pemviz.pem.recipes import DEFAULT_NOISE_NAME, DEFAULT_PEM_NAME
 from pemviz.pem.trees import TreePEM
 
 ASSETS_DIR_ENV = "PEMVIZ_ASSETS_DIR"
 FORMAT_TAG = "pemviz-pem"
 FORMAT_VERSION = 1
+NOISE_FORMAT_TAG = "pemviz-noise-pem"
+NOISE_FORMAT_VERSION = 1
+NOISY_FORMAT_TAG = "pemviz-noisy-pem"
+NOISY_FORMAT_VERSION = 1
 
 AnyPEM = PEM | TreePEM
 """Every PEM kind: each has ``name``, ``norm``, ``metadata``, ``logit``, ``logit_at_gap``, ``prob_at_gap``."""
@@ -75,13 +85,30 @@ def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
         OSError: the folder is not writable (nothing is left behind).
         TypeError: ``pem`` is not a :class:`PEM` or :class:`TreePEM`.
     """
+    return _save(_pem_payload(pem), path)
+
+
+def _save(payload: dict[str, Any], path: str | os.PathLike[str]) -> Path:
+    """``torch.save`` a payload dict atomically (temporary file in the same folder, then ``os.replace``)."""
     target = Path(path)
+    atomic_write(target, lambda tmp: torch.save(payload, tmp))
+    return target
+
+
+def _norm_payload(norm: NormStats) -> dict[str, torch.Tensor]:
+    return {
+        "norm_mean": torch.as_tensor(norm.mean, dtype=torch.float64),
+        "norm_std": torch.as_tensor(norm.std, dtype=torch.float64),
+    }
+
+
+def _pem_payload(pem: AnyPEM) -> dict[str, Any]:
+    """The plain dict of a PEM file (format tag, version, kind, name, z-score statistics, metadata, model)."""
     payload: dict[str, Any] = {
         "format": FORMAT_TAG,
         "version": FORMAT_VERSION,
         "name": pem.name,
-        "norm_mean": torch.as_tensor(pem.norm.mean, dtype=torch.float64),
-        "norm_std": torch.as_tensor(pem.norm.std, dtype=torch.float64),
+        **_norm_payload(pem.norm),
         "metadata": _plain(pem.metadata),
     }
     if isinstance(pem, PEM):
@@ -98,8 +125,7 @@ def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
         payload.update({"kind": TreePEM.kind, "baseline": float(pem.baseline), "trees": _pack_trees(pem)})
     else:
         raise TypeError(f"cannot save a {type(pem).__name__} as a PEM")
-    atomic_write(target, lambda tmp: torch.save(payload, tmp))
-    return target
+    return payload
 
 
 def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
@@ -117,7 +143,22 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
         PemFormatError: the file is not a pemviz PEM or is damaged.
     """
     p = _pem_file(DEFAULT_PEM_NAME if path is None else path)
-    payload = load_tagged(p, FORMAT_TAG, FORMAT_VERSION, "PEM", PemFormatError)
+    return _pem_from_payload(_load_payload(p, FORMAT_TAG, FORMAT_VERSION, "PEM"), p)
+
+
+def _load_payload(p: Path, tag: str, version: int, what: str) -> dict:
+    """:func:`pemviz.io.files.load_tagged` with a one-line PemFormatError (torch's own message for a file that
+    ``torch.load`` cannot read spans several lines and suggests ``weights_only=False``)."""
+    try:
+        return load_tagged(p, tag, version, what, PemFormatError)
+    except PemFormatError as exc:
+        if "\n" not in str(exc):
+            raise
+    raise PemFormatError(f"{p}: not a readable {what} file (not written by torch.save, or damaged)")
+
+
+def _pem_from_payload(payload: Mapping[str, Any], p: Path) -> AnyPEM:
+    """The PEM of a payload of :func:`_pem_payload` read from ``p`` (named in errors); raises PemFormatError."""
     kind = payload.get("kind", PEM.kind)
     try:
         norm = NormStats(mean=payload["norm_mean"].numpy(), std=payload["norm_std"].numpy())
@@ -162,12 +203,19 @@ def resolve_pem(ref: str | os.PathLike[str] | None) -> str | os.PathLike[str] | 
 
 def _pem_file(ref: str | os.PathLike[str]) -> Path:
     """The file of a shipped PEM's name or of a path (see :func:`resolve_pem`); raises FileNotFoundError."""
+    return _model_file(ref, pem_path, shipped_pems, "PEM")
+
+
+def _model_file(ref: str | os.PathLike[str], path_of: Callable[[str], Path], shipped: Callable[[], list[str]],
+                what: str) -> Path:  # fmt: skip
+    """A name without ``.pt`` suffix and folder -> ``path_of(name)``; anything else a path. Raises FileNotFoundError
+    (listing ``shipped()``) when the file is absent."""
     p = Path(ref)
     if isinstance(ref, str) and p.suffix != ".pt" and len(p.parts) == 1:
-        p = pem_path(ref)
+        p = path_of(ref)
     if not p.is_file():
-        raise FileNotFoundError(f"{ref}: neither a PEM file nor one of the shipped PEMs "
-                                f"({', '.join(shipped_pems()) or 'none'}, in {assets_dir()})")  # fmt: skip
+        raise FileNotFoundError(f"{ref}: neither a {what} file nor one of the shipped {what}s "
+                                f"({', '.join(shipped()) or 'none'}, in {assets_dir()})")  # fmt: skip
     return p
 
 
@@ -243,3 +291,120 @@ def load_reference_pem(folder: str | os.PathLike[str] | None = None) -> PEM:
         state_dict=dict(state),
         metadata={"source": "craigiedon/CarlaStuff models/det_baseline_full/pem_class_train_full"},
     )
+
+
+# ------------------------------------------------------------------------------------------ noise PEMs
+
+
+def noise_pem_path(name: str = DEFAULT_NOISE_NAME) -> Path:
+    """Where the shipped noise PEM called ``name`` lives: ``<assets>/noise_<name>.pt``."""
+    return assets_dir() / f"noise_{name}.pt"
+
+
+def shipped_noise_pems() -> list[str]:
+    """Names of the noise PEM files in :func:`assets_dir` (``noise_<name>.pt``), sorted."""
+    return sorted(f.stem[len("noise_") :] for f in assets_dir().glob("noise_*.pt"))
+
+
+def _noise_payload(model: NoiseModel) -> dict[str, Any]:
+    """The plain dict of a noise PEM file (see the module docstring)."""
+    payload: dict[str, Any] = {
+        "format": NOISE_FORMAT_TAG,
+        "version": NOISE_FORMAT_VERSION,
+        "kind": model.kind,
+        "name": model.name,
+        "family": model.family,
+        "df": None if model.df is None else torch.as_tensor(model.df, dtype=torch.float64),
+        **_norm_payload(model.norm),
+        "metadata": _plain(model.metadata),
+    }
+    if isinstance(model, NoisePEM):
+        payload.update(
+            {
+                "hidden": list(model.hidden),
+                "target_scale": torch.as_tensor(model.target_scale, dtype=torch.float64),
+                "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict.items()},
+            }
+        )
+    elif isinstance(model, HomoscedasticNoise):
+        payload.update({k: torch.as_tensor(getattr(model, k), dtype=torch.float64)
+                        for k in ("coef", "intercept", "log_scale")})  # fmt: skip
+    else:
+        raise TypeError(f"cannot save a {type(model).__name__} as a noise PEM")
+    return payload
+
+
+def _noise_from_payload(payload: Mapping[str, Any], p: Path) -> NoiseModel:
+    """The noise PEM of a payload of :func:`_noise_payload` read from ``p``; raises PemFormatError."""
+    kind = payload.get("kind")
+    try:
+        common = {
+            "name": str(payload["name"]),
+            "norm": NormStats(mean=payload["norm_mean"].numpy(), std=payload["norm_std"].numpy()),
+            "family": str(payload["family"]),
+            "df": None if payload["df"] is None else payload["df"].numpy(),
+            "metadata": dict(payload.get("metadata") or {}),
+        }
+        if kind == NoisePEM.kind:
+            return NoisePEM(**common, state_dict=dict(payload["state_dict"]),
+                            hidden=tuple(int(h) for h in payload["hidden"]),
+                            target_scale=payload["target_scale"].numpy())  # fmt: skip
+        if kind == HomoscedasticNoise.kind:
+            return HomoscedasticNoise(**common, **{k: payload[k].numpy() for k in ("coef", "intercept", "log_scale")})
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise PemFormatError(f"{p}: damaged noise PEM file ({exc!r})") from None
+    raise PemFormatError(f"{p}: unknown noise PEM kind {kind!r} (known: {NoisePEM.kind}, {HomoscedasticNoise.kind})")
+
+
+def save_noise_pem(model: NoiseModel, path: str | os.PathLike[str]) -> Path:
+    """Write a noise PEM atomically (a few KB; ``torch.load(path, weights_only=True)`` reads it).
+
+    Raises:
+        OSError: the folder is not writable (nothing is left behind).
+        TypeError: ``model`` is not a :class:`NoisePEM` or :class:`HomoscedasticNoise`.
+    """
+    return _save(_noise_payload(model), path)
+
+
+def load_noise_pem(path: str | os.PathLike[str] | None = None) -> NoiseModel:
+    """Load a noise PEM saved by :func:`save_noise_pem`: a file path, or the name of a shipped one (``"hetero-t"`` ->
+    ``<assets>/noise_hetero-t.pt``); default :data:`DEFAULT_NOISE_NAME`.
+
+    Raises:
+        FileNotFoundError: no such file (the message lists the shipped noise PEMs).
+        PemFormatError: the file is not a pemviz noise PEM or is damaged.
+    """
+    p = _model_file(DEFAULT_NOISE_NAME if path is None else path, noise_pem_path, shipped_noise_pems, "noise PEM")
+    return _noise_from_payload(_load_payload(p, NOISE_FORMAT_TAG, NOISE_FORMAT_VERSION, "noise PEM"), p)
+
+
+def save_noisy_pem(model: NoisyPEM, path: str | os.PathLike[str]) -> Path:
+    """Write a perception model (detection head and noise head) atomically as one file.
+
+    Raises:
+        OSError: the folder is not writable (nothing is left behind).
+        TypeError: a head of a kind that cannot be saved.
+    """
+    return _save({"format": NOISY_FORMAT_TAG, "version": NOISY_FORMAT_VERSION,
+                  "detect": _pem_payload(model.detect), "noise": _noise_payload(model.noise)}, path)  # fmt: skip
+
+
+def load_noisy_pem(path: str | os.PathLike[str]) -> NoisyPEM:
+    """Load a perception model saved by :func:`save_noisy_pem`.
+
+    Raises:
+        FileNotFoundError: no such file.
+        PemFormatError: the file is not a pemviz perception model, is damaged, or its heads disagree on the encoding.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: no such perception model file")
+    payload = _load_payload(p, NOISY_FORMAT_TAG, NOISY_FORMAT_VERSION, "perception model")
+    detect, noise = payload.get("detect"), payload.get("noise")
+    if not (isinstance(detect, Mapping) and isinstance(noise, Mapping)):
+        raise PemFormatError(f"{p}: damaged perception model file (no detect or noise head)")
+    heads = _pem_from_payload(detect, p), _noise_from_payload(noise, p)
+    try:
+        return NoisyPEM(detect=heads[0], noise=heads[1])
+    except ValueError as exc:
+        raise PemFormatError(f"{p}: {exc}") from None
