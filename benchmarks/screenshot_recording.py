@@ -9,7 +9,8 @@ layout, timeline ``stage``) -> ``assets/screenshots/rerun_recording.png``, ``rol
 ``rerun_recording_step.png``, ``explain`` (timeline ``step``) -> ``rerun_recording_explain.png``; ``all`` makes the
 three. For a tab other than the recording's default the same layout with that tab open and its timeline selected
 (:func:`pemviz.sinks.rerun_blueprint.default_blueprint` with ``tab``, the braking scenario's views and ``--lanes``
-scene lanes) is saved as a blueprint file (``.rbl``) and loaded after the recording, which makes it the active one.
+scene lanes) is saved as a blueprint file (``.rbl``) and shown with a copy of the recording that has no blueprint of
+its own.
 
 What it does: ``rerun --serve-web RRD`` hosts the web viewer bundled with rerun-sdk on localhost (no
 internet needed) and serves the recording over gRPC; Chromium (Debian's ``chromium``, driven by
@@ -147,17 +148,27 @@ OUT = {"stages": SHOTS / "rerun_recording.png", "rollouts": SHOTS / "rerun_recor
 """Where each tab's screenshot goes by default."""
 
 
-def tab_blueprint(tab: str, n_lanes: int, folder: Path) -> Path | None:
-    """The recording's layout with ``tab`` open and its timeline selected, saved as ``folder/TAB.rbl`` (None for the
-    recording's own default, ``stages``)."""
+def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path) -> tuple[Path, Path | None]:
+    """(recording, blueprint) to show ``tab``: the recording itself for its own default (``stages``); else a copy
+    without its blueprint (``folder/data.rrd``, so that no blueprint competes with ours, whatever the order the
+    viewer receives them in) and the recording's layout with ``tab`` open, its timeline selected and paused (so that
+    ``--step`` can place the cursor), saved as ``folder/TAB.rbl``."""
     if tab == "stages":
-        return None
+        return rrd, None
+    from rerun.chunk import RrdReader
+
     from pemviz.sinks.recording import APP_ID
     from pemviz.sinks.rerun_blueprint import default_blueprint
 
+    data = folder / "data.rrd"
+    if not data.exists():
+        reader = RrdReader(rrd)
+        (store,) = reader.recordings()
+        reader.stream(store=store).write_rrd(data, application_id=store.application_id,
+                                             recording_id=store.recording_id)  # fmt: skip
     path = folder / f"{tab}.rbl"
-    default_blueprint(n_lanes, None, tab=tab).save(APP_ID, str(path))
-    return path
+    default_blueprint(n_lanes, None, tab=tab, paused=True).save(APP_ID, str(path))
+    return data, path
 
 
 def main() -> int:
@@ -187,8 +198,8 @@ def main() -> int:
             out = args.out or OUT[tab]
             out.parent.mkdir(parents=True, exist_ok=True)
             step = None if args.step < 0 or TIMELINE[tab] != "step" else args.step
-            blueprint = tab_blueprint(tab, args.lanes, Path(tmp))
-            screenshot(rrd, out, args.width, args.height, args.min_wait, args.max_wait, step, blueprint)
+            shown, blueprint = tab_recording(rrd, tab, args.lanes, Path(tmp))
+            screenshot(shown, out, args.width, args.height, args.min_wait, args.max_wait, step, blueprint)
     return 0
 
 

@@ -155,10 +155,13 @@ def test_every_rollout_gap_trace_has_T_points_equal_to_the_batch(runs):
             trace = np.array([got[t] for t in range(ev.batch.n_steps)]).T  # [N, T]
             np.testing.assert_array_equal(trace, ev.batch.gap_m)
             rows = featured_rows(tables, ev.stage)  # the stage's featured rollouts, ascending
+            gap = ev.batch.gap_m[rows]
+            # marked where a detection still matters: inside 10 m, up to the first step below 2 m
+            matters = (gap < 10.0) & (np.cumsum(gap < 2.0, axis=1) - (gap < 2.0) == 0)
             for key, seen in (("detected", True), ("missed", False)):
                 marks = column(table, f"/rollouts/{key}/stage_{ev.stage:02d}:Scalars:scalars")
                 marks = np.array([m for m in marks if m is not None]).T  # [featured, T]
-                np.testing.assert_array_equal(np.isfinite(marks), ev.batch.detected[rows] == seen)
+                np.testing.assert_array_equal(np.isfinite(marks), (ev.batch.detected[rows] == seen) & matters)
                 np.testing.assert_array_equal(marks[np.isfinite(marks)], ev.batch.gap_m[rows][np.isfinite(marks)])
 
 

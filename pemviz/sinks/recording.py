@@ -36,19 +36,20 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
   inside the sampler window.
 - ``histograms/{robustness,log_weight}``: each stage's histogram of every rollout's robustness (configured
   metric) and importance log-weight (nats), a :class:`rerun.BarChart` on ``stage``.
-- ``rollouts/<column>/stage_KK`` for each observation column (``gap_m``, ``ego_speed_mps``, ...): the kept rollouts
-  of a stage over ``step`` (all of them up to :data:`ALL_ROLLOUTS_UP_TO`, else the least robust, the failures up to
-  :data:`SAMPLED_ROLLOUTS` and a uniform sample), one entity with one series per rollout, one ``send_columns`` each:
-  red = failure (its name says ``contact at ...`` or ``breach ..., no contact`` for the braking scene), grey =
-  safe, yellow and wider = the stage's least-robust rollouts. ``rollouts/<column>/thresholds``: the problem's
-  failure threshold and sampler window (none for a problem without thresholds). ``rollouts/detected/stage_KK``:
-  the first signal at the steps where the detector saw the lead, as points, shown for the tagged rollouts.
-  ``rollouts/summary/stage_KK``: static per-rollout values of the kept rollouts (number, log p under the PEM,
-  robustness under each metric, importance log-weight in nats, failure flag, outcome words, tag).
-- ``rollouts/<column>/stage_KK/rollout_NNN``: the stage's featured rollouts (:meth:`RerunSink.featured`: the
-  least robust and the most likely failures) as entities of their own, one per signal; the first signal's carries
-  the rollout's properties (:class:`rerun.AnyValues`: stage, rollout, role, log p, log-weight, robustness, outcome
-  and, for the braking scene, its severity) and ``.../misses``, its missed steps.
+- ``rollouts/<column>/stage_KK`` for each signal of the problem's view (``gap_m``, ``ego_speed_mps``, ...): the kept
+  rollouts of a stage over ``step`` (:func:`pemviz.sinks.rerun_rollouts.kept_rollouts`: all of them up to 500, else
+  the least robust, the most likely failures, the failures up to 100 and a uniform sample), one entity with one
+  series per rollout, one ``send_columns`` each: red = failure (its name says ``contact at ...`` or ``breach ...,
+  no contact`` for the braking scene), grey = safe, yellow and wider = the stage's least-robust rollouts.
+  ``rollouts/<column>/thresholds``: the problem's failure threshold and sampler window (none for a problem without
+  thresholds). ``rollouts/summary/stage_KK``: static per-rollout values of the kept rollouts (number, log p under
+  the PEM, robustness under each metric, importance log-weight in nats, failure flag, outcome words, tag).
+- ``rollouts/<first column>/stage_KK/rollout_NNN``: the stage's featured rollouts
+  (:func:`pemviz.sinks.rerun_rollouts.featured`: the least robust and the most likely failures) as entities of their
+  own, with the rollout's properties (:class:`rerun.AnyValues`: stage, rollout, role, log p, log-weight, robustness,
+  outcome and, for the braking scene, its severity). ``rollouts/{detected,missed}/stage_KK``: the first signal of
+  the featured rollouts at their detections (shown for the least robust) and misses, where a detection can still
+  change the outcome (:func:`pemviz.sinks.rerun_rollouts.deciding`).
 - ``scene/stage_KK/{lane,label,ego,lead,sight}`` (a problem with a scene only): top-down scene of each stage's
   least-robust rollout, one lane per stage, boxes with the true car sizes, playable on ``step``: the ego is green
   while the detector sees the lead and orange while it misses (the sight line likewise), the lead turns red once
@@ -58,7 +59,7 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
 - ``final``: the final estimate (static :class:`rerun.AnyValues`).
 
 Size: per stage the recording holds summaries, two histograms, the marginal proposal's bars, at most
-``ALL_ROLLOUTS_UP_TO`` rollouts' traces in one entity per signal and a few featured rollouts, so a run of 10^5
+500 rollouts' traces in one entity per signal and a few featured rollouts, so a run of 10^5
 rollouts a stage stays a few MB.
 
 Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed.
@@ -90,13 +91,11 @@ from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
 from pemviz.sinks.rerun_views import (
-    ALL_ROLLOUTS_UP_TO,
     CRASH_RGBA,
     HISTOGRAM_BINS,
     PEM_PLOT_RGBA,
     PEM_RGBA,
     PROPOSAL_FIG,
-    SAMPLED_ROLLOUTS,
     SCENE_PATH,
     STAGE_METRICS,
     intro_markdown,
@@ -119,7 +118,7 @@ class RerunSink(Sink):
     Args:
         stream: where to log (a file sink, a gRPC connection, or memory).
         rollout_traces: log the rollouts' traces and the scene (the bulk of the recording; all rollouts of a
-            stage up to :data:`ALL_ROLLOUTS_UP_TO`, else the least robust and a uniform sample).
+            stage up to :data:`~pemviz.sinks.rerun_views.ALL_ROLLOUTS_UP_TO`, else a sample of them).
         tagged_per_stage: how many least-robust rollouts of each stage are tagged in the traces and featured
             (entities of their own, :func:`pemviz.sinks.rerun_rollouts.featured`).
         likely_per_stage: how many of each stage's most likely failures are featured.

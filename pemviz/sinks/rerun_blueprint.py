@@ -65,7 +65,7 @@ def _stages_tab(view: ProblemView | None) -> rrb.Container:
         rrb.Tabs(
             rrb.BarChartView(origin="/proposal_marginal/log_odds", plot_legend=_NO_LEGEND,
                              name="log-odds of a miss (nats) per gap bin: median, 10-90 % (light), PEM (grey)"),
-            PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM"),
+            PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM", legend_room=0.34),
         ),
     )  # fmt: skip
     histograms = rrb.Horizontal(
@@ -101,9 +101,9 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
     e = f"/{EXPLAIN_PATH}"
     detect = rrb.TimeSeriesView(
         origin=f"{e}/detect", name="p(detect) of the PEM (grey), q(detect) of the sampler (blue); misses below",
-        plot_legend=rrb.PlotLegend(corner="LeftBottom"), axis_y=rrb.ScalarAxis(range=(-0.15, 1.05)),
+        plot_legend=rrb.PlotLegend(corner="LeftBottom"), axis_y=rrb.ScalarAxis(range=(-0.15, 1.08), zoom_lock=True),
     )
-    replays = ": red as recorded, green with the minimal miss set detected, violet with the last saving detection"
+    replays = ": red recorded; replays: green minimal set detected, violet last saving step"
     trace = rrb.TimeSeriesView(
         origin=f"{e}/{first.column}", name=f"{first.name} ({first.unit}){replays if scene else ''}",
         plot_legend=_NO_LEGEND,
@@ -148,13 +148,17 @@ def _rollouts_tab(view: ProblemView | None, n_lanes: int) -> rrb.Container:
     return rrb.Horizontal(traces, rrb.Vertical(*right), column_shares=[1.4, 1.0], name=tab_name("rollouts"))
 
 
-def default_blueprint(n_lanes: int = 12, view: ProblemView | None = None, tab: str = "stages") -> rrb.Blueprint:
+def default_blueprint(
+    n_lanes: int = 12, view: ProblemView | None = None, tab: str = "stages", paused: bool = False
+) -> rrb.Blueprint:
     """The recording's layout: the tabs *Stages*, *Explain* and *Rollouts* with the estimate and the run beside them.
 
     Args:
         n_lanes: lanes of the rollouts' scene (one per stage); sizes its view.
         view: the problem's view (its signals, thresholds and scene); None: the braking scenario's.
         tab: the tab open at start, one of :data:`TABS`; the time panel shows its timeline (:data:`TIMELINE`).
+        paused: start with the time cursor paused (at the timeline's start); else the viewer plays the timeline
+            once on opening and stops at its end (the last stage).
     Raises:
         ValueError: ``tab`` not one of :data:`TABS`.
     """
@@ -170,7 +174,7 @@ def default_blueprint(n_lanes: int = 12, view: ProblemView | None = None, tab: s
             ),
             column_shares=[3.6, 1.0],
         ),
-        rrb.TimePanel(timeline=TIMELINE[tab], state="collapsed", play_state="paused"),
+        rrb.TimePanel(timeline=TIMELINE[tab], state="collapsed", play_state="paused" if paused else None),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         collapse_panels=True,

@@ -120,10 +120,7 @@ def log_explanation(
     _series(s, f"{E}/detect/pem", "p(detect), PEM", PEM_PLOT_RGBA, p_det, indexes)
     _series(s, f"{E}/detect/sampler", "q(detect), sampler", C.rgba(C.BLUE), q_det, indexes)
     _markers(s, f"{E}/detect/misses", "miss", MISSED_RGBA, "cross", misses, np.full(misses.size, MARKER_ROW), indexes)
-    unit = view.signals[0].unit
-    words = "failure"
-    if tale is not None:
-        words = tale.severity.short
+    words = tale.severity.short if tale is not None else "failure"
     _series(s, f"{E}/{col}/recorded", f"as recorded: {words}", CRASH_RGBA[:3] + (255,), trace, indexes, width=2.5)
     log_thresholds(s, view, trace.size, indexes, path=f"{E}/{col}/thresholds")
     _markers(s, f"{E}/{col}/misses", "miss", MISSED_RGBA, "cross", misses, trace[misses], indexes)
@@ -131,29 +128,27 @@ def log_explanation(
     props: dict = dict(stage=stage, stage_name=stage_name, rollout=number, log_p=log_p,
                        log_weight=float(failure.log_weight[0]), robustness=float(failure.robustness[0]),
                        n_failures_compared=n_failures, misses=misses, n_steps=trace.size)  # fmt: skip
-    lines = [
-        f"# Most likely failure: {stage_name}, rollout {number}",
-        "",
+    chosen = (
         f"The failing rollout with the largest log p under the PEM ({log_p:.2f} nats over the first "
         f"{trace.size - 1} steps) among the {n_failures:,} failing rollouts the run reported; robustness "
         f"{float(failure.robustness[0]):.3g}, importance log-weight {float(failure.log_weight[0]):.2f} nats. "
-        f"The detector missed the lead at {misses.size} of {trace.size} steps.",
-    ]
+        f"The detector missed the lead at {misses.size} of {trace.size} steps."
+    )
+    lines = [f"## Most likely failure: {stage_name}, rollout {number}" + (f": {words}" if tale else ""), ""]
     if tale is not None:
-        lines[0] += f": {words}"
-        lines += ["", f"**{tale.sentence}**"]
-        _log_braking(s, view, tale, detected, trace, misses, indexes, props, lines)
+        lines += _log_braking(s, view, tale, detected, trace, misses, indexes, props) + [tale.sentence, ""]
         log_scene_lane(s, f"{E}/scene", 0, failure, 0, scene, indexes)
+    lines.append(chosen)
     s.log(f"{E}/summary", rr.TextDocument("\n".join(lines) + "\n", media_type=rr.MediaType.MARKDOWN), static=True)
     s.log(f"{E}/failure", rr.AnyValues(**props), static=True)
     return tale
 
 
 def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, detected: np.ndarray,
-                 trace: np.ndarray, misses: np.ndarray, indexes: Indexes, props: dict,
-                 lines: list[str]) -> None:  # fmt: skip
-    """The braking scene's part: severity, counterfactual replays, controller and speeds (adds to ``props`` and
-    ``lines``)."""
+                 trace: np.ndarray, misses: np.ndarray, indexes: Indexes, props: dict) -> list[str]:  # fmt: skip
+    """The braking scene's part: severity, counterfactual replays, controller and speeds (adds to ``props``); returns
+    the summary's lines on the minimal miss set and the last saving step."""
+    lines: list[str] = []
     p = view.scene
     sev, cf, ctrl = tale.severity, tale.counterfactual, tale.controller
     col = view.signals[0].column
@@ -167,7 +162,7 @@ def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, d
         _markers(s, f"{E}/{col}/breach", f"{p.crash_gap_m:g} m margin crossed", CRASH_RGBA[:3] + (255,), "down",
                  np.array([sev.breach_step]), trace[[sev.breach_step]], indexes, size=7.0)  # fmt: skip
     if not tale.replay_matches:
-        return
+        return lines
     last = cf.last_saving_step
     props.update(minimal_miss_set=cf.minimal_set, minimal_set_is_smallest=cf.smallest,
                  minimal_set_min_gap_m=cf.minimal_set_min_gap_m, last_saving_step=-1 if last is None else last,
@@ -176,8 +171,8 @@ def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, d
     ms = cf.minimal_set
     if ms.size:
         smallest = "the smallest such set" if cf.smallest else "none of them can be left out"
-        lines += ["", f"**Minimal miss set** ({ms.size} of {misses.size} misses, {smallest}): steps "
-                      f"{_steps_text(ms, dt)}; detected, the min gap is {cf.minimal_set_min_gap_m:.2f} m."]  # fmt: skip
+        lines += [f"**Minimal miss set** ({ms.size} of {misses.size} misses, {smallest}): step{'s' * (ms.size > 1)} "
+                  f"{_steps_text(ms, dt)}; detected, the min gap is {cf.minimal_set_min_gap_m:.2f} m.", ""]  # fmt: skip
         replay = replay_with_detections(detected, ms, p)
         _series(s, f"{E}/{col}/with_minimal_set", f"minimal miss set detected: min gap {replay.gap_m.min():.2f} m",
                 DETECTED_RGBA, replay.gap_m, indexes)  # fmt: skip
@@ -186,17 +181,17 @@ def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, d
         _markers(s, f"{E}/detect/minimal_set", "minimal miss set", CRASH_RGBA[:3] + (255,), "diamond", ms,
                  np.full(ms.size, MARKER_ROW), indexes, size=6.0)  # fmt: skip
     else:
-        lines += ["", "**Minimal miss set**: none; even a detection at every miss does not avoid the failure."]
+        lines += ["**Minimal miss set**: none; even a detection at every miss does not avoid the failure.", ""]
     if last is not None:
-        lines += ["", f"**Last saving step**: {last} ({last * dt:.2f} s): one detection there still avoids the "
-                      f"failure ({cf.decisive.size} of the misses would do alone)."]  # fmt: skip
+        lines += [f"**Last saving step**: {last} ({last * dt:.2f} s): one detection there still avoids the "
+                  f"failure ({cf.decisive.size} of the {misses.size} misses would each do alone).", ""]  # fmt: skip
         replay = replay_with_detections(detected, np.array([last]), p)
         _series(s, f"{E}/{col}/with_last_saving", f"detected at {last * dt:.2f} s: min gap {replay.gap_m.min():.2f} m",
                 C.rgba(C.VIOLET), replay.gap_m, indexes)  # fmt: skip
         _markers(s, f"{E}/detect/last_saving", "last saving step", DETECTED_RGBA, "up", np.array([last]),
                  np.array([MARKER_ROW]), indexes, size=7.0)  # fmt: skip
     else:
-        lines += ["", "**Last saving step**: none; no single detection avoids the failure."]
+        lines += ["**Last saving step**: none; no single detection avoids the failure.", ""]
     a = ctrl.accel_mps2
     top = max(4.0, float(np.max(a)) + 1.0)
     row = 0.07 * (top - min(-4.0, float(np.min(a)) - 1.0))
@@ -209,3 +204,4 @@ def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, d
         _markers(s, f"{E}/controller/{key}", name, rgba, "circle", steps, np.full(steps.size, height), indexes, 3.0)
     _series(s, f"{E}/speed/ego", "ego speed (m/s)", C.rgba(C.EGO_SPEED), ctrl.ego_speed_mps, indexes)
     _series(s, f"{E}/speed/lead", "lead speed (m/s)", C.rgba(C.LEAD_SPEED), ctrl.lead_speed_mps, indexes)
+    return lines

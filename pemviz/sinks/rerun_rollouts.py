@@ -76,6 +76,17 @@ def featured(ev: RolloutsSampled, n_least_robust: int, n_likely: int) -> dict[in
     return roles
 
 
+def deciding(trace: np.ndarray, view: ProblemView) -> np.ndarray:
+    """bool [n, T]: the steps of rollouts with first signal ``trace`` [n, T] where a detection can still change the
+    outcome: inside the sampler window, up to and including the first step below the failure threshold (every step
+    for a problem without thresholds)."""
+    th = view.thresholds
+    if th is None:
+        return np.ones(np.shape(trace), bool)
+    below = trace < th.failure
+    return (trace < th.window) & (np.cumsum(below, axis=1) - below == 0)
+
+
 def rollout_path(column: str, stage: int, number: int) -> str:
     """``rollouts/gap_m/stage_04/rollout_011``: a featured rollout's entity for one signal."""
     return f"rollouts/{column}/stage_{stage:02d}/rollout_{number:03d}"
@@ -93,7 +104,8 @@ class StageRollouts:
 def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: ProblemView, stage_name: str,
                        n_tagged: int, n_likely: int, indexes: Indexes) -> StageRollouts:  # fmt: skip
     """A stage's kept rollouts (:func:`kept_rollouts`): one entity per signal of the view with one series per rollout,
-    the per-rollout values, the featured rollouts' own entities (:func:`featured`) and their detections and misses.
+    the per-rollout values, the featured rollouts' own entities (:func:`featured`), and their misses (and the tagged
+    ones' detections) where a detection can still change the outcome (:func:`deciding`).
 
     Args:
         ev: the stage's rollouts.
@@ -165,7 +177,7 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
         s.log(path, rr.SeriesPoints(colors=[rgba] * rows.size, names=[f"{lb}: {key}" for lb in labels],
                                     markers=[marker] * rows.size, marker_sizes=[size] * rows.size,
                                     visible_series=show), static=True)  # fmt: skip
-        marks = np.where(batch.detected[rows] == mask, trace[rows], np.nan)
+        marks = np.where((batch.detected[rows] == mask) & deciding(trace[rows], view), trace[rows], np.nan)
         s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=marks.T))
     return StageRollouts(keep, words, roles)
 

@@ -129,13 +129,15 @@ class Figure:
             static=True,
         )
 
-    def view(self, name: str) -> rrb.Spatial2DView:
-        """A 2D view of this figure with bounds that fit the frame and labels."""
+    def view(self, name: str, legend_room: float = 0.0) -> rrb.Spatial2DView:
+        """A 2D view of this figure with bounds that fit the frame, the tick labels, the axis titles and
+        ``legend_room`` (a fraction of the width) right of the frame for a legend."""
         w, h = self.width, self.height
         return rrb.Spatial2DView(
             origin=self.path,
             name=name,
-            visual_bounds=rrb.VisualBounds2D(x_range=[-0.14 * w, 1.03 * w], y_range=[-0.12 * h, 1.2 * h]),
+            visual_bounds=rrb.VisualBounds2D(x_range=[-0.16 * w, (1.04 + legend_room) * w],
+                                             y_range=[-0.16 * h, 1.24 * h]),
             background=C.FIGURE_BACKGROUND,
         )
 
