@@ -62,6 +62,7 @@ def main() -> int:
                     plain_cpu.append(cpu)
                     print(f"  run {i + 1} --no-record: {wall:6.1f} s wall {cpu:6.1f} s CPU", flush=True)
                 else:
+                    rrd.unlink(missing_ok=True)  # `pemviz run --save` refuses to replace a file
                     wall, cpu = timed_run([*args.args, "--save", str(rrd)])
                     saved.append(wall)
                     saved_cpu.append(cpu)

@@ -1,7 +1,16 @@
-"""Screenshot of a pemviz recording in rerun's web viewer, in headless Chromium, for the README.
+"""Screenshots of a pemviz recording in rerun's web viewer, in headless Chromium, for the README and the user guide.
 
     python benchmarks/screenshot_recording.py                     # runs `pemviz run` (defaults, seed 0) first
-    python benchmarks/screenshot_recording.py --rrd recordings/x.rrd --out assets/screenshots/rerun_recording.png
+    python benchmarks/screenshot_recording.py --rrd recordings/x.rrd --tab all
+    python benchmarks/screenshot_recording.py --rrd x.rrd --tab explain --out /tmp/explain.png
+
+``--tab`` picks the blueprint tab shown (:data:`pemviz.sinks.rerun_blueprint.TABS`): ``stages`` (the recording's own
+layout, timeline ``stage``) -> ``assets/screenshots/rerun_recording.png``, ``rollouts`` (timeline ``step``) ->
+``rerun_recording_step.png``, ``explain`` (timeline ``step``) -> ``rerun_recording_explain.png``; ``all`` makes the
+three. For a tab other than the recording's default the same layout with that tab open and its timeline selected
+(:func:`pemviz.sinks.rerun_blueprint.default_blueprint` with ``tab``, the braking scenario's views and ``--lanes``
+scene lanes) is saved as a blueprint file (``.rbl``) and shown with a copy of the recording that has no blueprint of
+its own.
 
 What it does: ``rerun --serve-web RRD`` hosts the web viewer bundled with rerun-sdk on localhost (no
 internet needed) and serves the recording over gRPC; Chromium (Debian's ``chromium``, driven by
@@ -67,13 +76,15 @@ def record_default_run(out: Path) -> None:
 
 
 def screenshot(
-    rrd: Path, out: Path, width: int, height: int, min_wait_s: float, max_wait_s: float, step: int | None = None
+    rrd: Path, out: Path, width: int, height: int, min_wait_s: float, max_wait_s: float, step: int | None = None,
+    blueprint: Path | None = None,
 ) -> Path:
     """Serve ``rrd`` with rerun's web viewer and save a PNG of it from headless Chromium.
 
     ``step``: move the time cursor there (0..99) by clicking the collapsed time panel's scrub bar, where
-    rerun 0.41 puts step 0 at x = 238 px and step 99 at ``width`` - 194 px (measured; best effort: if the
-    layout changes the cursor lands elsewhere, the views are the same).
+    rerun 0.41 puts step 0 at x = 334 px and step 99 at ``width`` - 106 px (measured at 1600 px with the timeline
+    ``step`` selected and paused; best effort: if the layout changes the cursor lands elsewhere, the views are the
+    same). ``blueprint``: a ``.rbl`` file loaded after the recording (its layout becomes the active one).
     """
     from playwright.sync_api import sync_playwright
 
@@ -82,7 +93,7 @@ def screenshot(
         raise SystemExit("chromium not found: apt-get install -y chromium")
     web_port, grpc_port = free_port(), free_port()
     rerun_cmd = [
-        "rerun", "--serve-web", str(rrd), "--bind", "127.0.0.1",
+        "rerun", "--serve-web", str(rrd), *([str(blueprint)] if blueprint is not None else []), "--bind", "127.0.0.1",
         "--web-viewer-port", str(web_port), "--port", str(grpc_port),
     ]  # fmt: skip
     env = dict(os.environ, RERUN_ANALYTICS="false")
@@ -110,16 +121,16 @@ def screenshot(
             previous = b""
             while True:
                 time.sleep(3.0)
-                png = page.screenshot()
+                png = page.screenshot(timeout=180_000)
                 elapsed = time.monotonic() - t0
                 if (elapsed >= min_wait_s and png == previous) or elapsed >= max_wait_s:
                     break
                 previous = png
             if step is not None:
-                left, right = 238, width - 194  # step 0 and step 99, measured at 1600 px wide
+                left, right = 334, width - 106  # step 0 and step 99, measured at 1600 px wide
                 page.mouse.click(left + (right - left) * step / 99, height - 14)
                 time.sleep(5.0)
-                png = page.screenshot()
+                png = page.screenshot(timeout=180_000)
             browser.close()
         tmp.write_bytes(png)
         os.replace(tmp, out)
@@ -131,24 +142,64 @@ def screenshot(
         server.wait(timeout=10)
 
 
+SHOTS = REPO / "assets" / "screenshots"
+OUT = {"stages": SHOTS / "rerun_recording.png", "rollouts": SHOTS / "rerun_recording_step.png",
+       "explain": SHOTS / "rerun_recording_explain.png"}  # fmt: skip
+"""Where each tab's screenshot goes by default."""
+
+
+def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path) -> tuple[Path, Path | None]:
+    """(recording, blueprint) to show ``tab``: the recording itself for its own default (``stages``); else a copy
+    without its blueprint (``folder/data.rrd``, so that no blueprint competes with ours, whatever the order the
+    viewer receives them in) and the recording's layout with ``tab`` open, its timeline selected and paused (so that
+    ``--step`` can place the cursor), saved as ``folder/TAB.rbl``."""
+    if tab == "stages":
+        return rrd, None
+    from rerun.chunk import RrdReader
+
+    from pemviz.sinks.recording import APP_ID
+    from pemviz.sinks.rerun_blueprint import default_blueprint
+
+    data = folder / "data.rrd"
+    if not data.exists():
+        reader = RrdReader(rrd)
+        (store,) = reader.recordings()
+        reader.stream(store=store).write_rrd(data, application_id=store.application_id,
+                                             recording_id=store.recording_id)  # fmt: skip
+    path = folder / f"{tab}.rbl"
+    default_blueprint(n_lanes, None, tab=tab, paused=True).save(APP_ID, str(path))
+    return data, path
+
+
 def main() -> int:
+    from pemviz.sinks.rerun_blueprint import TABS, TIMELINE
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rrd", type=Path, default=None, help="recording to show (default: run pemviz's defaults first)")
-    ap.add_argument("--out", type=Path, default=REPO / "assets" / "screenshots" / "rerun_recording.png")
+    ap.add_argument("--tab", choices=(*TABS, "all"), default="stages", help="the tab to show (all: one PNG each)")
+    ap.add_argument("--out", type=Path, default=None, help="PNG to write (one --tab only; default: assets/screenshots)")
+    ap.add_argument("--lanes", type=int, default=12, help="scene lanes of the recording (its stages; default run: 12)")
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=1000)
     ap.add_argument("--min-wait", type=float, default=25.0, help="seconds before the page may count as drawn")
     ap.add_argument("--max-wait", type=float, default=120.0)
-    ap.add_argument("--step", type=int, default=48, help="time cursor on the step timeline (-1: leave it at the end)")
+    ap.add_argument("--step", type=int, default=48,
+                    help="time cursor on the step timeline, for the step tabs (-1: leave it at the end)")  # fmt: skip
     args = ap.parse_args()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tabs = TABS if args.tab == "all" else (args.tab,)
+    if args.out is not None and len(tabs) > 1:
+        ap.error("--out takes one --tab")
     with tempfile.TemporaryDirectory() as tmp:
         rrd = args.rrd
         if rrd is None:
             rrd = Path(tmp) / "default.rrd"
             record_default_run(rrd)
-        step = None if args.step < 0 else args.step
-        screenshot(rrd, args.out, args.width, args.height, args.min_wait, args.max_wait, step)
+        for tab in tabs:
+            out = args.out or OUT[tab]
+            out.parent.mkdir(parents=True, exist_ok=True)
+            step = None if args.step < 0 or TIMELINE[tab] != "step" else args.step
+            shown, blueprint = tab_recording(rrd, tab, args.lanes, Path(tmp))
+            screenshot(shown, out, args.width, args.height, args.min_wait, args.max_wait, step, blueprint)
     return 0
 
 

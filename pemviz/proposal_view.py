@@ -26,6 +26,27 @@ import numpy as np
 QUANTILES = (0.1, 0.9)
 """The lower and upper quantile of a bin's spread."""
 
+N_BINS = 26
+"""Gap bins of a view over a proposal's curve grid (:func:`bins_over`): 0.5 m wide over the braking grid 0-13 m."""
+
+LOG_ODDS_SPAN_NATS = 12.0
+"""A log-odds chart shows at most -12..12 nats (odds of 1:160,000); values beyond are drawn at the edge."""
+
+
+def bins_over(grid: np.ndarray, n_bins: int = N_BINS) -> np.ndarray:
+    """``n_bins`` equal gap bins over the span of a problem's curve grid (:attr:`pemviz.problems.Problem.curve_grid`),
+    float64 [n_bins + 1] edges (the grid's unit: metres for the braking scenario).
+
+    Raises:
+        ValueError: a grid without a positive span, or ``n_bins`` < 1.
+    """
+    g = np.asarray(grid, dtype=np.float64)
+    lo, hi = (float(g.min()), float(g.max())) if g.size else (math.nan, math.nan)
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo) or n_bins < 1:
+        raise ValueError(f"bins_over: need a grid with a positive finite span and n_bins >= 1, got [{lo}, {hi}], "
+                         f"{n_bins}")  # fmt: skip
+    return np.linspace(lo, hi, n_bins + 1)
+
 
 def log1mexp(log_x: np.ndarray) -> np.ndarray:
     """log(1 - exp(a)) for a <= 0, accurate near both ends (Maechler, "Accurately Computing log(1 - exp(-|a|))",

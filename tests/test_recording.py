@@ -99,6 +99,13 @@ def runs(tmp_path_factory):
     }
 
 
+def featured_rows(tables, stage: int) -> list[int]:
+    """Batch rows of a stage's featured rollouts (their own entities under ``/rollouts/gap_m/stage_KK/``), ascending."""
+    prefix = f"/rollouts/gap_m/stage_{stage:02d}/rollout_"
+    numbers = {int(c[len(prefix):].split(":")[0]) for c in tables["static"].column_names if c.startswith(prefix)}
+    return sorted(numbers)
+
+
 def of(events, kind):
     return [e for e in events if isinstance(e, kind)]
 
@@ -147,9 +154,15 @@ def test_every_rollout_gap_trace_has_T_points_equal_to_the_batch(runs):
             assert sorted(got) == list(range(ev.batch.n_steps))  # T points per rollout
             trace = np.array([got[t] for t in range(ev.batch.n_steps)]).T  # [N, T]
             np.testing.assert_array_equal(trace, ev.batch.gap_m)
-            dots = column(table, f"/rollouts/detected/stage_{ev.stage:02d}:Scalars:scalars")
-            dots = np.array([d for d in dots if d is not None]).T
-            np.testing.assert_array_equal(np.isfinite(dots), ev.batch.detected)
+            rows = featured_rows(tables, ev.stage)  # the stage's featured rollouts, ascending
+            gap = ev.batch.gap_m[rows]
+            # marked where a detection still matters: inside 10 m, up to the first step below 2 m
+            matters = (gap < 10.0) & (np.cumsum(gap < 2.0, axis=1) - (gap < 2.0) == 0)
+            for key, seen in (("detected", True), ("missed", False)):
+                marks = column(table, f"/rollouts/{key}/stage_{ev.stage:02d}:Scalars:scalars")
+                marks = np.array([m for m in marks if m is not None]).T  # [featured, T]
+                np.testing.assert_array_equal(np.isfinite(marks), (ev.batch.detected[rows] == seen) & matters)
+                np.testing.assert_array_equal(marks[np.isfinite(marks)], ev.batch.gap_m[rows][np.isfinite(marks)])
 
 
 def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
@@ -164,7 +177,10 @@ def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
             assert c == packed(TAG_CRASH_RGBA if ev.failed[i] else TAG_RGBA) and "least-robust" in name
         else:
             assert c == packed(CRASH_RGBA if ev.failed[i] else SAFE_RGBA) and "least-robust" not in name
-        assert ("crash" in name) == bool(ev.failed[i])
+        # a failure's words: contact (gap at or below 0.7 m, the camera-to-rear gap of a collision) or breach
+        low = ev.batch.gap_m[i].min()
+        said = ("contact at " in name) if low <= 0.7 else (f"breach {low:.2f} m, no contact" in name)
+        assert said == bool(ev.failed[i]) and ("contact" in name or "breach" in name) == bool(ev.failed[i])
     summary = {k: static_value(tables, f"/rollouts/summary/stage_01:{k}") for k in
                ("failed", "least_robust", "log_weight", "robustness_classic", "robustness_agm")}  # fmt: skip
     assert summary["failed"] == ev.failed.tolist()
@@ -339,3 +355,181 @@ def test_large_stages_keep_the_least_robust_failures_and_a_uniform_sample():
     assert {0, n - 1} <= set(keep) and len(keep) <= 2 * SAMPLED_ROLLOUTS + 3
     small = RolloutsSampled(1, "ce", None, r[:50], {}, failed[:50], np.zeros(50))
     assert sink.kept_rollouts(small).tolist() == list(range(50))
+
+
+# -- the Explain tab, the featured rollouts and the marginal proposal, read back -------------------------------------
+
+
+def highway_env_min_gap(detected: np.ndarray) -> float:
+    """The smallest gap (metres) of the braking scenario on highway-env's vehicles with these detections: an
+    independent replay (not the batched twin the explanation searches on)."""
+    sim = BrakingScenario(BrakingParams())
+    low = np.inf
+    for seen in detected:
+        low = min(low, sim.gap_m)
+        sim.step(bool(seen))
+    return low
+
+
+def explained(tables) -> dict:
+    """The most likely failure's properties (``/explain/failure``), name -> value."""
+    prefix = "/explain/failure:"
+    out = {}
+    for c in tables["static"].column_names:
+        if c.startswith(prefix):
+            (value,) = [v for v in column(tables["static"], c) if v is not None]
+            out[c[len(prefix):]] = value[0] if len(value) == 1 else value
+    return out
+
+
+@pytest.mark.parametrize("name", ["naive", "adaptive"])
+def test_the_most_likely_failure_is_read_back_with_a_minimal_miss_set_that_highway_env_confirms(runs, name):
+    events, _, tables, _ = runs[name]
+    # the failing rollout with the largest sum of log p over T - 1 steps, found here from the events
+    best = max(((float(ev.batch.log_p[i, :-1].sum()), ev.stage, int(i)) for ev in of(events, RolloutsSampled)
+                for i in np.flatnonzero(ev.failed)), key=lambda x: x[0])  # fmt: skip
+    log_p, stage, i = best
+    props = explained(tables)
+    assert (props["stage"], props["rollout"]) == (stage, i)
+    assert props["log_p"] == pytest.approx(log_p, abs=1e-9)
+    (ev,) = [e for e in of(events, RolloutsSampled) if e.stage == stage]
+    detected = ev.batch.detected[i]
+    assert highway_env_min_gap(detected) < 2.0  # it fails
+    low = ev.batch.gap_m[i].min()
+    assert props["outcome"] == (f"breach {low:.2f} m, no contact" if low > 0.7 else props["outcome"])
+    assert props["outcome"].startswith("contact at ") == (low <= 0.7)
+    misses = np.flatnonzero(~detected)
+    np.testing.assert_array_equal(np.atleast_1d(props["misses"]), misses)
+    # the minimal miss set: all misses; detecting at them avoids the failure, leaving any one out does not
+    ms = np.atleast_1d(np.asarray(props["minimal_miss_set"], dtype=np.int64))
+    assert ms.size > 0 and set(ms) <= set(misses)
+    fixed = detected.copy()
+    fixed[ms] = True
+    assert highway_env_min_gap(fixed) >= 2.0
+    assert props["minimal_set_min_gap_m"] == pytest.approx(highway_env_min_gap(fixed), abs=1e-6)
+    for j in range(ms.size):
+        partial = detected.copy()
+        partial[np.delete(ms, j)] = True
+        assert highway_env_min_gap(partial) < 2.0
+    # the last saving step: one detection there avoids the failure, one at any later miss does not
+    last = props["last_saving_step"]
+    for t in misses[misses > max(last, -1)]:
+        later = detected.copy()
+        later[t] = True
+        assert highway_env_min_gap(later) < 2.0
+    if last >= 0:
+        saved = detected.copy()
+        saved[last] = True
+        assert highway_env_min_gap(saved) >= 2.0
+    # the summary names it, and the rollout is also an entity of its own with the same words
+    text = static_value(tables, "/explain/summary:TextDocument:text")[0]
+    assert f"rollout {i}" in text and props["outcome"] in text
+    featured = static_value(tables, f"/rollouts/gap_m/stage_{stage:02d}/rollout_{i:03d}:outcome")
+    assert featured == [props["outcome"]]
+
+
+def test_p_and_q_along_the_most_likely_failure_are_its_detectors_probabilities_and_misses_are_marked(runs):
+    events, _, tables, _ = runs["naive"]
+    props = explained(tables)
+    (ev,) = [e for e in of(events, RolloutsSampled) if e.stage == props["stage"]]
+    i = props["rollout"]
+    step = column(tables["step"], "step")
+    series = {k: dict(zip(step, column(tables["step"], f"/explain/detect/{k}:Scalars:scalars")))
+              for k in ("pem", "sampler", "misses")}  # fmt: skip
+    q = np.array([series["sampler"][t][0] for t in range(ev.batch.n_steps)])
+    p = np.array([series["pem"][t][0] for t in range(ev.batch.n_steps)])
+    d = ev.batch.detected[i]
+    # the naive-50 sampler detects with probability 1/2 everywhere; the PEM's p(detect) from its log p
+    np.testing.assert_allclose(q, 0.5, atol=1e-12)
+    np.testing.assert_allclose(np.where(d, p, 1 - p), np.exp(ev.batch.log_p[i]), rtol=1e-12)
+    marked = sorted(t for t, v in series["misses"].items() if v is not None)
+    assert marked == np.flatnonzero(~d).tolist()
+
+
+def test_the_featured_rollouts_are_each_an_entity_with_stage_log_p_robustness_and_severity(runs):
+    events, _, tables, _ = runs["adaptive"]
+    for ev in of(events, RolloutsSampled):
+        rows = featured_rows(tables, ev.stage)
+        least = np.argsort(ev.robustness, kind="stable")[:3]
+        failed = np.flatnonzero(ev.failed)
+        likely = failed[np.argsort(-ev.batch.log_p[failed, :-1].sum(axis=1), kind="stable")[:3]]
+        assert rows == sorted(set(least.tolist()) | set(likely.tolist()))
+        for i in rows:
+            path = f"/rollouts/gap_m/stage_{ev.stage:02d}/rollout_{i:03d}"
+            value = {k: static_value(tables, f"{path}:{k}")[0] for k in ("stage", "log_p", "robustness", "min_gap_m")}
+            assert value["stage"] == ev.stage and value["robustness"] == pytest.approx(ev.robustness[i])
+            assert value["log_p"] == pytest.approx(ev.batch.log_p[i, :-1].sum(), abs=1e-9)
+            assert value["min_gap_m"] == pytest.approx(ev.batch.gap_m[i].min())
+            steps = column(tables["step"], "step")
+            trace = [v for s, v in zip(steps, column(tables["step"], f"{path}:Scalars:scalars")) if v is not None]
+            np.testing.assert_array_equal(np.array(trace)[:, 0], ev.batch.gap_m[i])
+
+
+def test_the_marginal_proposal_shows_q_miss_inside_10_m_above_the_pems(runs):
+    """Per gap bin the mean q(detect) over the visited states, computed here from the rollouts; the final batch's
+    sampler misses inside 10 m far more often than the PEM does (the acceptance of the honest proposal view)."""
+    events, _, tables, _ = runs["adaptive"]
+    table = tables["stage"]
+    stages = column(table, "stage")
+    stats = {k: dict(zip(stages, column(table, f"/proposal_marginal/stats:{k}")))
+             for k in ("edges_m", "q_mean", "p_mean", "q_miss_window", "p_miss_window")}  # fmt: skip
+    bars = dict(zip(stages, column(table, "/proposal_marginal/miss/d_q:BarChart:values")))
+    for ev in of(events, RolloutsSampled):
+        edges = np.asarray(stats["edges_m"][ev.stage])
+        q_mean = np.asarray(stats["q_mean"][ev.stage], dtype=float)
+        gap, d, lq = ev.batch.gap_m.ravel(), ev.batch.detected.ravel(), ev.batch.log_q.ravel()
+        q = np.where(d, np.exp(lq), 1 - np.exp(lq))
+        for b in (5, 15, 19):  # 2.5-3 m, 7.5-8 m, 9.5-10 m
+            inside = (gap >= edges[b]) & (gap < edges[b + 1])
+            if inside.any():
+                assert q_mean[b] == pytest.approx(q[inside].mean(), rel=1e-9)
+        assert np.allclose(np.asarray(bars[ev.stage][0]["buffer"]), np.nan_to_num(1 - q_mean), atol=1e-9)
+    final = max(stats["q_miss_window"])
+    assert stats["q_miss_window"][final][0] > 3 * stats["p_miss_window"][final][0]
+
+
+def test_the_naive_50_samplers_marginal_q_is_one_half_in_every_visited_bin(runs):
+    events, _, tables, _ = runs["naive"]
+    (q_mean,) = [v for v in column(tables["stage"], "/proposal_marginal/stats:q_mean") if v is not None]
+    q_mean = np.asarray(q_mean, dtype=float)
+    assert np.isfinite(q_mean).sum() > 10
+    np.testing.assert_allclose(q_mean[np.isfinite(q_mean)], 0.5, atol=1e-12)
+
+
+def test_every_view_of_each_tab_has_data_on_the_tabs_timeline(runs):
+    """What a user sees: each view of the Stages tab has rows on ``stage`` (or static ones), each of Explain and
+    Rollouts on ``step``, for the layout the recording carries."""
+    import rerun.blueprint as rrb
+
+    from pemviz.sinks.rerun_blueprint import TIMELINE, default_blueprint
+
+    events, _, tables, _ = runs["adaptive"]
+    bp = default_blueprint(5, of(events, RunStarted)[0].problem)
+    tabs = [c for c in bp.root_container.contents if isinstance(c, rrb.Tabs)][0].contents
+
+    def views(part):
+        inner = getattr(part, "contents", None)
+        if isinstance(inner, (list, tuple)) and hasattr(part, "kind"):
+            return [v for child in inner for v in views(child)]
+        return [part]
+
+    for key, tab in zip(("stages", "explain", "rollouts"), tabs):
+        table, static = tables[TIMELINE[key]], tables["static"]
+        filled = [c for c in table.column_names if c.startswith("/") and any(x is not None for x in column(table, c))]
+        temporal_only = ("Scalars", "BarChart", "Series")  # a static style is no data
+        filled += [c for c in static.column_names if c.startswith("/") and not any(k in c for k in temporal_only)]
+        for v in views(tab):
+            queries = [str(v.origin)] + [str(q).lstrip("+ ") for q in (v.contents if isinstance(v.contents, list)
+                                                                       else [])]  # fmt: skip
+            roots = {"/" + q.replace("$origin", str(v.origin)).replace("/**", "").strip("/") for q in queries}
+            shown = [c for c in filled if any(c.startswith(r + "/") or c.startswith(r + ":") for r in roots)]
+            assert shown, f"{v.name} ({key}) shows nothing on {TIMELINE[key]}"
+
+
+def test_the_share_of_failures_with_contact_per_stage(runs):
+    events, _, tables, _ = runs["naive"]
+    (ev,) = of(events, RolloutsSampled)
+    stages = column(tables["stage"], "stage")
+    share = dict(zip(stages, column(tables["stage"], "/stages/contact_share:Scalars:scalars")))
+    low = ev.batch.gap_m[ev.failed].min(axis=1)
+    assert share[ev.stage] == [pytest.approx(np.mean(low <= 0.7))]

@@ -98,6 +98,12 @@ class RolloutBatch:
         k = self.n_steps - 1 if n_factors is None else n_factors
         return (self.log_p[:, :k] - self.log_q[:, :k]).sum(axis=1)
 
+    def log_likelihood(self, n_factors: int | None = None) -> np.ndarray:
+        """``sum_t log p_target(a_t | s_t)`` over the first ``n_factors`` steps (default T - 1, as
+        :meth:`log_weight`), float64 [N] (nats): how likely each rollout's detections are under the PEM."""
+        k = self.n_steps - 1 if n_factors is None else n_factors
+        return self.log_p[:, :k].sum(axis=1)
+
     def select(self, rows: np.ndarray) -> "RolloutBatch":
         """The rollouts ``rows`` (bool [N] mask or int indices), copied: a batch of its own, in their order."""
         parts = None if self.log_q_parts is None else self.log_q_parts[rows]

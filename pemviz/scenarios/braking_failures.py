@@ -436,3 +436,57 @@ def describe(
             f"({clear(cf.recovery_min_gap_m)})."
         )
     return " ".join(lines)
+
+
+# -- one rollout, all of the above ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FailureStory:
+    """Everything above for one recorded rollout (what :func:`story` returns).
+
+    Attributes:
+        severity, controller, counterfactual: :func:`severity` of the recorded gaps, :func:`controller_trace` and
+            :func:`counterfactual` of its detections.
+        replay_matches: the twin's replay of the detections reproduces the recorded gaps (to 1e-9 m); when it does
+            not, the controller and the counterfactual describe another rollout and must not be shown as its.
+        sentence: :func:`describe`, or the outcome and a note that the replay does not reproduce the rollout.
+    """
+
+    severity: Severity
+    controller: ControllerTrace
+    counterfactual: Counterfactual
+    replay_matches: bool
+    sentence: str
+
+
+def story(gap_m: np.ndarray, detected: np.ndarray, params: BrakingParams | None = None) -> FailureStory:
+    """Severity, controller, counterfactual and sentence of one recorded rollout, checked against its replay.
+
+    Args:
+        gap_m: float64 [T] the recorded gap (metres).
+        detected: bool [T] the recorded detections, T <= ``params.n_steps``.
+    Raises:
+        ValueError: the arrays are not 1-D of one length, or longer than the scenario.
+    """
+    p = params or BrakingParams()
+    gap, d = np.asarray(gap_m, dtype=np.float64), np.asarray(detected, dtype=bool)
+    if gap.shape != d.shape:
+        raise ValueError(f"story: gap_m and detected need one shape [T], got {gap.shape} and {d.shape}")
+    ctrl = controller_trace(d, p)
+    matches = bool(np.allclose(ctrl.gap_m, gap, rtol=0.0, atol=1e-9))
+    sev, cf = severity(gap, p), counterfactual(d, p)
+    sentence = describe(d, sev, ctrl, cf, p) if matches else (
+        sev.phrase[0].upper() + sev.phrase[1:] + ". The replay does not reproduce this rollout: no counterfactual."
+    )
+    return FailureStory(sev, ctrl, cf, matches, sentence)
+
+
+def replay_with_detections(
+    detected: np.ndarray, flips: np.ndarray, params: BrakingParams | None = None
+) -> ControllerTrace:
+    """The replay of ``detected`` [T] with the steps ``flips`` (int [k]) turned into detections: a counterfactual
+    rollout, step by step (:func:`controller_trace`)."""
+    d = np.array(detected, dtype=bool)
+    d[np.asarray(flips, dtype=np.int64)] = True
+    return controller_trace(d, params)

@@ -2,52 +2,65 @@
 
 The sink only listens to the engine's events (:mod:`pemviz.events`); it never drives the engine. What it knows of the
 run and the problem comes with :class:`~pemviz.events.RunStarted`: the stages and their names from the run's plan, the
-signals, thresholds and scene from the problem's view. Its look (colours, figures, blueprint, scene lanes) is
-:mod:`pemviz.sinks.rerun_views`'s.
+signals, thresholds and scene from the problem's view. Its look (colours, figures, scene lanes) is
+:mod:`pemviz.sinks.rerun_views`'s, its layout :mod:`pemviz.sinks.rerun_blueprint`'s (three tabs: *Stages* on the
+``stage`` timeline, *Explain* and *Rollouts* on ``step``), the most likely failure's entities
+:mod:`pemviz.sinks.rerun_explain`'s.
 
 Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch: the engine's
 numbering and the plan's names, :func:`pemviz.plan.stage_label`; the default timeline: scrubbing it steps the
-proposal curve, the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout
-traces and the scene play on it) and ``repetition`` (only when the sink is given one). Colours are those of the
-panel (:mod:`pemviz.sinks.colours`): detected green, missed orange, crash red.
+proposal views, the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout
+traces, the most likely failure and the scene play on it) and ``repetition`` (only when the sink is given one).
+Colours are those of the panel (:mod:`pemviz.sinks.colours`): detected green, missed orange, crash red.
 
-Entity paths (``KK`` = stage number, two digits):
+Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in its stage, at least three digits):
 
 - ``estimate``: Markdown of the current estimate with its 95 % interval, k-hat, verdict and the exact
-  answer where known (the blueprint's first view), re-logged static after each stage and at the end.
+  answer where known, re-logged static after each stage and at the end.
 - ``description``: Markdown of the run (what it is, how to read it, its config, the stage table, how it
   ended), re-logged static after each stage.
-- ``proposal/data/pem``, ``proposal/data/stage_KK``: p_PEM(detect | d) and each stage's proposal
-  q(detect | d) after its update (the final batch's repeats stage K's), static :class:`rerun.LineStrips2D`,
-  points ``(d [m], probability)``; ``proposal/data/current``: the same curve on the ``stage`` timeline
-  (thick, so scrubbing steps it); ``proposal/data/elite_KK``: the elite rollouts' empirical detection
-  rate per 0.1 m gap bin (for the final batch the "elites" are its crashes). ``proposal/data`` carries the
-  transform from (metres, probability) to the plot box; ``proposal/axes`` the frame.
+- ``proposal_marginal/{miss,log_odds}/...``: each stage's q(miss) over the states its rollouts visited, per gap bin,
+  beside the PEM's, as bars on ``stage`` (:func:`pemviz.sinks.rerun_views.log_marginal_proposal`), and
+  ``proposal_marginal/stats``: every array of its :class:`~pemviz.proposal_view.ProposalView` (AnyValues).
+- ``proposal/data/pem``, ``proposal/data/stage_KK``: the reference-state curves: p_PEM(detect | d) and each stage's
+  proposal q(detect | d) after its update with the proposal's other inputs held at a reference state (the final
+  batch's repeats stage K's), static :class:`rerun.LineStrips2D`, points ``(d [m], probability)``;
+  ``proposal/data/current``: the same curve on the ``stage`` timeline (thick, so scrubbing steps it);
+  ``proposal/data/elite_KK``: the elite rollouts' empirical detection rate per 0.1 m gap bin (for the final batch
+  the "elites" are its crashes). ``proposal/data`` carries the transform from (metres, probability) to the plot box;
+  ``proposal/axes`` the frame.
 - ``stages/{failure_rate,gamma,log10_mu_hat,ess,nll,khat}``: per-stage values as :class:`rerun.Scalars` on
   ``stage``, styled once (static :class:`rerun.SeriesLines` and :class:`rerun.SeriesPoints`) for rerun's
-  native time-series views (hover values, legends); ``stages/log10_mu_hat/{ci_low,ci_high,exact}``: the
-  95 % interval and the exact answer where known.
+  native time-series views; ``stages/log10_mu_hat/{ci_low,ci_high,exact}``: the 95 % interval and the exact answer
+  where known; ``stages/miss_in_window/{q,pem}``: the mean q(miss) and p_PEM(miss) over the stage's visited states
+  inside the sampler window.
 - ``histograms/{robustness,log_weight}``: each stage's histogram of every rollout's robustness (configured
   metric) and importance log-weight (nats), a :class:`rerun.BarChart` on ``stage``.
-- ``rollouts/<column>/stage_KK`` for each observation column (``gap_m``, ``ego_speed_mps``, ...): the kept rollouts
-  of a stage over ``step``
-  (all of them up to :data:`ALL_ROLLOUTS_UP_TO`, else the least robust and a uniform sample), one entity
-  with one series per rollout, one ``send_columns`` each: red = crash, grey = safe, yellow and wider = the
-  stage's least-robust rollouts (tagged in the series name). ``rollouts/gap_m/thresholds``: the problem's failure
-  threshold and sampler window (the 2 m crash gap and the 10 m braking distance; none for a problem without
-  thresholds). ``rollouts/detected/stage_KK``: the first signal at the steps where the
-  detector saw the lead, as points (NaN where it missed), shown for the tagged rollouts.
-  ``rollouts/summary/stage_KK``: static per-rollout values of the kept rollouts (index, robustness under
-  each metric, importance log-weight in nats, crash flag, tag).
-- ``scene/stage_KK/{lane,ego,lead,sight}`` (a problem with a scene only): top-down scene of each stage's
-  least-robust rollout, one lane
-  per stage, boxes with the true car sizes, playable on ``step``: the ego is green while the detector
-  sees the lead and orange while it misses (the sight line likewise), the lead turns red once the gap is
-  below the crash gap.
+- ``rollouts/<column>/stage_KK`` for each signal of the problem's view (``gap_m``, ``ego_speed_mps``, ...): the kept
+  rollouts of a stage over ``step`` (:func:`pemviz.sinks.rerun_rollouts.kept_rollouts`: all of them up to 500, else
+  the least robust, the most likely failures, the failures up to 100 and a uniform sample), one entity with one
+  series per rollout, one ``send_columns`` each: red = failure (its name says ``contact at ...`` or ``breach ...,
+  no contact`` for the braking scene), grey = safe, yellow and wider = the stage's least-robust rollouts.
+  ``rollouts/<column>/thresholds``: the problem's failure threshold and sampler window (none for a problem without
+  thresholds). ``rollouts/summary/stage_KK``: static per-rollout values of the kept rollouts (number, log p under
+  the PEM, robustness under each metric, importance log-weight in nats, failure flag, outcome words, tag).
+- ``rollouts/<first column>/stage_KK/rollout_NNN``: the stage's featured rollouts
+  (:func:`pemviz.sinks.rerun_rollouts.featured`: the least robust and the most likely failures) as entities of their
+  own, with the rollout's properties (:class:`rerun.AnyValues`: stage, rollout, role, log p, log-weight, robustness,
+  outcome and, for the braking scene, its severity). ``rollouts/{detected,missed}/stage_KK``: the first signal of
+  the featured rollouts at their detections (shown for the least robust) and misses, where a detection can still
+  change the outcome (:func:`pemviz.sinks.rerun_rollouts.deciding`).
+- ``scene/stage_KK/{lane,label,ego,lead,sight}`` (a problem with a scene only): top-down scene of each stage's
+  least-robust rollout, one lane per stage, boxes with the true car sizes, playable on ``step``: the ego is green
+  while the detector sees the lead and orange while it misses (the sight line likewise), the lead turns red once
+  the gap is below the crash gap.
+- ``explain/...``: the most likely failure of the run (:mod:`pemviz.sinks.rerun_explain`), logged once the run
+  ends (final estimate, cancellation or close).
 - ``final``: the final estimate (static :class:`rerun.AnyValues`).
 
-Size: per stage the recording holds summaries, two histograms and at most
-``ALL_ROLLOUTS_UP_TO`` rollouts' traces, so a run of 10^5 rollouts a stage stays a few MB.
+Size: per stage the recording holds summaries, two histograms, the marginal proposal's bars, at most
+500 rollouts' traces in one entity per signal and a few featured rollouts, so a run of 10^5
+rollouts a stage stays a few MB.
 
 Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed.
 The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM) under a unique temporary name and
@@ -59,6 +72,7 @@ from __future__ import annotations
 
 import math
 import os
+from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -68,29 +82,34 @@ import pemviz
 from pemviz.estimate import format_probability, relative_error
 from pemviz.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.io.files import atomic_write
+from pemviz.proposal_view import batch_proposal_view, bins_over
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
+from pemviz.sinks.rerun_blueprint import default_blueprint
+from pemviz.sinks.rerun_explain import log_explanation
+from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
 from pemviz.sinks.rerun_views import (
-    ALL_ROLLOUTS_UP_TO,
     CRASH_RGBA,
-    DETECTED_RGBA,
     HISTOGRAM_BINS,
+    PEM_PLOT_RGBA,
     PEM_RGBA,
     PROPOSAL_FIG,
-    SAFE_RGBA,
-    SAMPLED_ROLLOUTS,
     SCENE_PATH,
     STAGE_METRICS,
-    TAG_CRASH_RGBA,
-    TAG_RGBA,
-    default_blueprint,
     intro_markdown,
+    log_marginal_proposal,
     log_scene_lane,
     log_thresholds,
 )
 
 APP_ID = "pemviz"
+
+FILE_BATCHER = rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=3600), flush_num_bytes=8 << 20, flush_num_rows=4096)
+"""A file recording's batching: the rows an entity gets over the run (one per stage) go into a few chunks rather than
+one each (a chunk costs about 4 kB of file), so a default run's file is ~25 % smaller; a file is written at
+:meth:`RerunSink.close` anyway."""
 
 
 class RerunSink(Sink):
@@ -99,8 +118,10 @@ class RerunSink(Sink):
     Args:
         stream: where to log (a file sink, a gRPC connection, or memory).
         rollout_traces: log the rollouts' traces and the scene (the bulk of the recording; all rollouts of a
-            stage up to :data:`ALL_ROLLOUTS_UP_TO`, else the least robust and a uniform sample).
-        tagged_per_stage: how many least-robust rollouts of each stage are tagged in the traces.
+            stage up to :data:`~pemviz.sinks.rerun_views.ALL_ROLLOUTS_UP_TO`, else a sample of them).
+        tagged_per_stage: how many least-robust rollouts of each stage are tagged in the traces and featured
+            (entities of their own, :func:`pemviz.sinks.rerun_rollouts.featured`).
+        likely_per_stage: how many of each stage's most likely failures are featured.
         scene_per_stage: how many least-robust rollouts of each stage get a lane in the scene (drawn for a problem
             with a scene, :attr:`pemviz.problems.ProblemView.scene`: the braking scenario's car sizes, camera, dt).
         repetition: when set, an index on the ``repetition`` timeline added to every temporal row
@@ -113,12 +134,14 @@ class RerunSink(Sink):
         *,
         rollout_traces: bool = True,
         tagged_per_stage: int = 3,
+        likely_per_stage: int = 3,
         scene_per_stage: int = 1,
         repetition: int | None = None,
     ) -> None:
         self.stream = stream
         self.rollout_traces = rollout_traces
         self.tagged_per_stage = tagged_per_stage
+        self.likely_per_stage = likely_per_stage
         self.scene_per_stage = scene_per_stage
         self.repetition = repetition
         self.plan = None
@@ -128,6 +151,14 @@ class RerunSink(Sink):
         self.scene: BrakingParams | None = None
         """The scene the rollouts are drawn in (the view's), None: no scene."""
         self.grid_m = np.zeros(0)
+        self.bins_m: np.ndarray | None = None
+        """Gap bins of the marginal proposal view (:func:`pemviz.proposal_view.bins_over` of the curve grid)."""
+        self.most_likely: RolloutsSampled | None = None
+        """The most likely failure so far: the failing rollout with the largest log p under the PEM, as a batch of
+        one (:attr:`most_likely_log_p` nats over T - 1 steps)."""
+        self.most_likely_log_p = -math.inf
+        self.n_failures_seen = 0
+        self.explained = False
         self.config_md = ""
         self.intro_md = ""
         self.status_md = ""
@@ -157,7 +188,7 @@ class RerunSink(Sink):
         previous ``path`` untouched, and a write error (disk full, file too large) is an ``OSError`` here, with
         no file left, instead of a stalled writer thread.
         """
-        stream = rr.RecordingStream(APP_ID)
+        stream = rr.RecordingStream(APP_ID, batcher_config=FILE_BATCHER)
         sink = cls(stream, **kw)
         sink._binary = stream.binary_stream()
         sink._path = Path(path)
@@ -206,6 +237,8 @@ class RerunSink(Sink):
             done = len(self.stage_rows)
             self.status_md = f"**Interrupted** after {done} finished stage{'s' * (done != 1)}: no final estimate."
             self._log_description()
+        if commit and self.intro_md:
+            self._explain()
         if self._path is None:
             self.stream.flush()
             self.stream.disconnect()
@@ -232,6 +265,7 @@ class RerunSink(Sink):
         self.finished = True
         self.status_md = f"**Run cancelled** ({event.reason}) after {len(event.stages)} finished stages."
         self._log_description()
+        self._explain()
         self.stream.flush()
 
     # -- helpers ------------------------------------------------------------------------------------
@@ -261,12 +295,14 @@ class RerunSink(Sink):
         )
 
     def _log_proposal_legend(self) -> None:
-        """Legend in the proposal plot (data units: metres, probability): the PEM, the first and last stage."""
+        """Legend right of the reference-state plot (data units: metres, probability): the PEM, the first and last
+        stage's curves."""
         shown = sorted({self.curve_stages[0], self.curve_stages[-1]}) if self.curve_stages else []
         entries = [("PEM", PEM_RGBA)] + [(f"q stage {k}", self._colour(k)) for k in shown]
+        entries.append(("dots: elites", PEM_RGBA))
         x0, x1 = float(self.grid_m.min()), float(self.grid_m.max())
-        x = x1 - 0.1 * (x1 - x0)
-        pos = [[x, 0.75 - j * 0.1] for j in range(len(entries))]
+        x = x1 + 0.13 * (x1 - x0)
+        pos = [[x, 0.9 - j * 0.12] for j in range(len(entries))]
         self.stream.log(
             "proposal/data/legend",
             rr.Points2D(pos, radii=-0.01, colors=[c for _, c in entries], labels=[t for t, _ in entries],
@@ -310,12 +346,20 @@ class RerunSink(Sink):
                                ("exact", "exact answer", C.DETECTED)):  # fmt: skip
             s.log(f"stages/log10_mu_hat/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[1.0]),
                   static=True)  # fmt: skip
+        for key, name, rgba in (("miss_in_window/q", "mean q(miss) of the sampler", C.rgba(C.PROPOSAL)),
+                                ("miss_in_window/pem", "mean p(miss) of the PEM", PEM_PLOT_RGBA),
+                                ("contact_share", "share of failures with contact", C.rgba(C.CRASH))):  # fmt: skip
+            if key == "contact_share" and self.scene is None:
+                continue
+            s.log(f"stages/{key}", rr.SeriesLines(colors=[rgba], names=[name], widths=[2.0]),
+                  rr.SeriesPoints(colors=[rgba], names=[name], marker_sizes=[3.0]), static=True)  # fmt: skip
 
     # -- run started ----------------------------------------------------------------------------------
     def on_run_started(self, ev: RunStarted) -> None:
         cfg = ev.config
         self.plan, self.view, self.scene = ev.plan, ev.problem, ev.problem.scene
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
+        self.bins_m = bins_over(self.grid_m) if np.ptp(self.grid_m) > 0 else None
         self.exact_log_p = ev.exact_log_p
         s = self.stream
         s.send_property(
@@ -381,6 +425,10 @@ class RerunSink(Sink):
             values["log10_mu_hat/ci_high"] = e.log_ci[1] / math.log(10.0)
         if self.exact_log_p is not None and math.isfinite(self.exact_log_p):
             values["log10_mu_hat/exact"] = self.exact_log_p / math.log(10.0)
+        pending = self._pending if self._pending is not None and self._pending.stage == res.stage else None
+        if pending is not None:
+            values.update(self._log_marginal(pending, colour))
+            values.update(self._contact_share(pending))
         for key, value in values.items():
             if math.isfinite(value):
                 s.log(f"stages/{key}", rr.Scalars(value))
@@ -396,20 +444,39 @@ class RerunSink(Sink):
         self._log_description()
         self._log_estimate(res)
 
-        pending = self._pending
-        if pending is not None and pending.stage == res.stage:
+        if pending is not None:
             self._log_histograms(pending)
+            self._track_most_likely(pending)
             if self.rollout_traces:
                 self._log_rollouts(pending)
         self._pending = None
-        s.flush()
+        if self._binary is None:  # a viewer shows the stage now; a file's rows batch into fewer, larger chunks
+            s.flush()
 
-    def _least_robust(self, ev: RolloutsSampled, k: int) -> np.ndarray:
-        """Indices of the ``k`` least-robust rollouts under the configured metric (ties: lower index)."""
-        return np.argsort(ev.robustness, kind="stable")[: min(k, ev.robustness.size)]
+    def _log_marginal(self, ev: RolloutsSampled, colour: tuple[int, ...]) -> dict[str, float]:
+        """The stage's marginal proposal view (bars on ``stage``); returns its mean miss probabilities inside the
+        window for the per-stage series (none when its rollouts report no gap)."""
+        if self.bins_m is None:
+            return {}
+        window = self.view.thresholds.window if self.view.thresholds is not None else float(self.bins_m[-1])
+        pv = batch_proposal_view(ev.batch, self.bins_m, window)
+        if pv is None:
+            return {}
+        log_marginal_proposal(self.stream, pv, colour)
+        return {"miss_in_window/q": pv.q_miss_window, "miss_in_window/pem": pv.p_miss_window}
+
+    def _contact_share(self, ev: RolloutsSampled) -> dict[str, float]:
+        """The share of the stage's failing rollouts that made contact (braking scene; :attr:`Severity.contact
+        <pemviz.scenarios.braking_failures.Severity.contact>`), for the per-stage series."""
+        failed = np.flatnonzero(np.asarray(ev.failed, bool))
+        if self.scene is None or failed.size == 0 or "gap_m" not in ev.batch.observation_names:
+            return {}
+        gap = ev.batch.gap_m
+        return {"contact_share": float(np.mean([severity(gap[i], self.scene).contact for i in failed]))}
 
     def _log_histograms(self, ev: RolloutsSampled) -> None:
-        """Histograms of every rollout's robustness and log-weight at this stage (:class:`rerun.BarChart` on ``stage``)."""
+        """Histograms of every rollout's robustness and log-weight at this stage (:class:`rerun.BarChart` on
+        ``stage``)."""
         every = ev.n_total is not None  # a streamed stage: the sample's rows, every rollout's numbers
         for key, values in (("robustness", ev.stage_robustness if every else ev.robustness),
                             ("log_weight", ev.stage_log_weight if every else ev.log_weight)):  # fmt: skip
@@ -426,79 +493,52 @@ class RerunSink(Sink):
             )
 
     def kept_rollouts(self, ev: RolloutsSampled) -> np.ndarray:
-        """Indices of the rollouts recorded in full, ascending: all up to :data:`ALL_ROLLOUTS_UP_TO`, else the
-        ``tagged_per_stage`` least robust, every failure up to :data:`SAMPLED_ROLLOUTS` of them and a uniform
-        sample of :data:`SAMPLED_ROLLOUTS` (every ``N / SAMPLED_ROLLOUTS``-th rollout); all of the engine's
-        sample of a streamed stage (chosen the same way)."""
-        n = ev.robustness.size
-        if n <= ALL_ROLLOUTS_UP_TO or ev.n_total is not None:
-            return np.arange(n)
-        keep = set(self._least_robust(ev, max(self.tagged_per_stage, self.scene_per_stage)).tolist())
-        keep |= set(np.flatnonzero(np.asarray(ev.failed, bool))[:SAMPLED_ROLLOUTS].tolist())
-        keep |= set(np.linspace(0, n - 1, SAMPLED_ROLLOUTS).astype(int).tolist())
-        return np.array(sorted(keep))
+        """Indices of the rollouts recorded in full (:func:`pemviz.sinks.rerun_rollouts.kept_rollouts`)."""
+        return kept_rollouts(ev, max(self.tagged_per_stage, self.likely_per_stage, self.scene_per_stage))
+
+    def _track_most_likely(self, ev: RolloutsSampled) -> None:
+        """Keep the failing rollout with the largest log p under the PEM so far (ties: the earlier), as a batch of
+        one."""
+        failed = np.flatnonzero(np.asarray(ev.failed, bool))
+        self.n_failures_seen += failed.size
+        if failed.size == 0:
+            return
+        log_p = ev.batch.log_likelihood()[failed]
+        j = int(np.argmax(log_p))
+        if float(log_p[j]) <= self.most_likely_log_p:
+            return
+        i = failed[j : j + 1]
+        self.most_likely_log_p = float(log_p[j])
+        self.most_likely = RolloutsSampled(
+            ev.stage, ev.kind, ev.batch.select(i), ev.robustness[i],
+            {m: np.asarray(v)[i] for m, v in ev.robustness_by_metric.items()}, np.asarray(ev.failed)[i],
+            np.asarray(ev.log_weight)[i], index=ev.rollout_numbers[i],
+        )  # fmt: skip
 
     def _log_rollouts(self, ev: RolloutsSampled) -> None:
-        """The kept traces of a stage (:meth:`kept_rollouts`), one entity per signal with one series per
-        rollout, one ``send_columns`` each, and their per-rollout values."""
+        """The kept traces of a stage and its featured rollouts
+        (:func:`pemviz.sinks.rerun_rollouts.log_stage_rollouts`), the thresholds once, and the scene's lanes."""
         s = self.stream
-        batch = ev.batch
-        t = batch.n_steps
-        keep = self.kept_rollouts(ev)
-        order = self._least_robust(ev, self.tagged_per_stage)
-        rank = {int(i): j for j, i in enumerate(order)}
-        failed = np.asarray(ev.failed, bool)
-        number = ev.rollout_numbers
-        colours, widths, names = [], [], []
-        for i in keep.tolist():
-            tag = rank.get(i)
-            crash = " crash" if failed[i] else ""
-            if tag is None:
-                colours.append(CRASH_RGBA if failed[i] else SAFE_RGBA)
-                widths.append(1.0)
-                names.append(f"s{ev.stage} r{number[i]}{crash}")
-            else:
-                colours.append(TAG_CRASH_RGBA if failed[i] else TAG_RGBA)
-                widths.append(2.5)
-                names.append(f"s{ev.stage} r{number[i]} least-robust #{tag + 1} rho={ev.robustness[i]:.3g}{crash}")
         if not self.thresholds_logged:
-            log_thresholds(s, self.view, t, self._indexes)
+            log_thresholds(s, self.view, ev.batch.n_steps, self._indexes)
             self.thresholds_logged = True
-        index = self._indexes(step=np.arange(t))
-        stage = f"stage_{ev.stage:02d}"
-        for name in batch.observation_names:
-            path = f"rollouts/{name}/{stage}"
-            s.log(path, rr.SeriesLines(colors=colours, widths=widths, names=names), static=True)
-            s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=batch.signal(name)[keep].T))
-        visible = np.isin(keep, order)
-        path = f"rollouts/detected/{stage}"
-        s.log(
-            path,
-            rr.SeriesPoints(
-                colors=[DETECTED_RGBA] * keep.size, names=[f"{nm} detected" for nm in names],
-                marker_sizes=[1.5] * keep.size, visible_series=visible,
-            ),
-            static=True,
-        )  # fmt: skip
-        dots = np.where(batch.detected[keep], batch.signal(self.view.signals[0].column)[keep], np.nan)
-        s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=dots.T))
-        s.log(
-            f"rollouts/summary/{stage}",
-            rr.AnyValues(
-                rollout=number[keep],
-                log_weight=np.asarray(ev.log_weight, np.float64)[keep],
-                failed=failed[keep],
-                least_robust=np.isin(keep, order),
-                **{f"robustness_{m.replace('-', '_')}": np.asarray(v, np.float64)[keep]
-                   for m, v in ev.robustness_by_metric.items()},
-            ),
-            static=True,
-        )  # fmt: skip
-        if self.scene is not None and {"gap_m", "ego_speed_mps"} <= set(batch.observation_names):
-            for i in order[: self.scene_per_stage]:
+        log_stage_rollouts(s, ev, self.view, self.plan.label(ev.stage, ev.kind), self.tagged_per_stage,
+                           self.likely_per_stage, self._indexes)  # fmt: skip
+        if self.scene is not None and {"gap_m", "ego_speed_mps"} <= set(ev.batch.observation_names):
+            for i in least_robust(ev, self.scene_per_stage):
                 path = f"{SCENE_PATH}/stage_{ev.stage:02d}" + (f"_{self.n_lanes}" if self.scene_per_stage > 1 else "")
                 log_scene_lane(s, path, self.n_lanes, ev, int(i), self.scene, self._indexes)
                 self.n_lanes += 1
+
+    def _explain(self) -> None:
+        """Log the most likely failure's entities once (:func:`pemviz.sinks.rerun_explain.log_explanation`)."""
+        if self.explained or self.view is None:
+            return
+        self.explained = True
+        best = self.most_likely
+        name = self.plan.label(best.stage, best.kind) if best is not None else ""
+        log_explanation(self.stream, best, self.most_likely_log_p, self.n_failures_seen, self.view, name,
+                        self._indexes)  # fmt: skip
 
     # -- final --------------------------------------------------------------------------------------
     def _final(self, ev: FinalEstimate) -> None:
@@ -531,4 +571,5 @@ class RerunSink(Sink):
             f"{ev.n_simulations} simulations in {ev.wall_s:.1f} s."
         )
         self._log_description()
+        self._explain()
         s.flush()

@@ -1,5 +1,6 @@
-"""What the rerun recording looks like (:mod:`pemviz.sinks.recording`): colours, figures with axes, the blueprint,
-the run's description and the top-down scene of a problem that has one (:attr:`pemviz.problems.ProblemView.scene`).
+"""What the rerun recording looks like (:mod:`pemviz.sinks.recording`): colours, figures with axes, the marginal
+proposal's bars, the words for a rollout's outcome, the run's description and the top-down scene of a problem that
+has one (:attr:`pemviz.problems.ProblemView.scene`). The layout is :mod:`pemviz.sinks.rerun_blueprint`'s.
 
 Everything here draws into a :class:`rerun.RecordingStream` it is given and keeps no state of a run.
 """
@@ -15,8 +16,10 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from pemviz.events import RolloutsSampled, RunStarted
-from pemviz.problems import BRAKING_SIGNALS, BRAKING_UNITS, ProblemView, SignalView
+from pemviz.problems import ProblemView
+from pemviz.proposal_view import LOG_ODDS_SPAN_NATS, ProposalView
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import colours as C
 from pemviz.sinks.scene import car_positions
 
@@ -24,7 +27,12 @@ CRASH_RGBA = C.rgba(C.CRASH, 170)
 SAFE_RGBA = C.rgba(C.SAFE, 60)
 TAG_RGBA = C.rgba(C.TAGGED)
 TAG_CRASH_RGBA = C.rgba(C.CRASH)
+LIKELY_RGBA = C.rgba(C.BLUE)
+"""The most likely failures of each stage (their own entities, :meth:`pemviz.sinks.recording.RerunSink.featured`)."""
 PEM_RGBA = C.rgba(C.ON_DARK)
+"""The PEM in the figures drawn on their own dark background (:class:`Figure`)."""
+PEM_PLOT_RGBA = C.rgba(C.GREY)
+"""The PEM in rerun's own plots (bar charts, time series), whose background follows the viewer's light or dark theme."""
 AXIS_RGBA = C.rgba(C.AXIS)
 GRID_RGBA = C.rgba(C.GRID, 120)
 DETECTED_RGBA = C.rgba(C.DETECTED)
@@ -38,7 +46,7 @@ rollouts and a uniform sample (:data:`SAMPLED_ROLLOUTS`)."""
 SAMPLED_ROLLOUTS = 100
 HISTOGRAM_BINS = 40
 LANE_SPACING_M = 3.2
-SCENE_X_RANGE_M = (-15.0, 38.0)
+SCENE_X_RANGE_M = (-30.0, 40.0)
 """Top-down scene: lanes ``LANE_SPACING_M`` apart (the cars are 2 m wide), x from the lane labels to
 past the lead's stop."""
 
@@ -121,13 +129,15 @@ class Figure:
             static=True,
         )
 
-    def view(self, name: str) -> rrb.Spatial2DView:
-        """A 2D view of this figure with bounds that fit the frame and labels."""
+    def view(self, name: str, legend_room: float = 0.0) -> rrb.Spatial2DView:
+        """A 2D view of this figure with bounds that fit the frame, the tick labels, the axis titles and
+        ``legend_room`` (a fraction of the width) right of the frame for a legend."""
         w, h = self.width, self.height
         return rrb.Spatial2DView(
             origin=self.path,
             name=name,
-            visual_bounds=rrb.VisualBounds2D(x_range=[-0.14 * w, 1.03 * w], y_range=[-0.12 * h, 1.2 * h]),
+            visual_bounds=rrb.VisualBounds2D(x_range=[-0.16 * w, (1.04 + legend_room) * w],
+                                             y_range=[-0.16 * h, 1.24 * h]),
             background=C.FIGURE_BACKGROUND,
         )
 
@@ -135,67 +145,6 @@ class Figure:
 PROPOSAL_FIG = Figure("proposal", "gap d (m)", "p(detect | d)")
 SCENE_PATH = "scene"
 
-
-def default_blueprint(n_lanes: int = 12, view: ProblemView | None = None) -> rrb.Blueprint:
-    """The estimate and the proposal first, then the per-stage series and histograms, then rollouts and scene.
-
-    The selected timeline is ``stage``: scrubbing it steps the proposal curve, the histograms and the
-    per-stage series; the rollout traces and the scene play on ``step``. One trace view per signal of ``view``
-    (the first with the detections), and the scene, sized for ``n_lanes`` lanes (one per stage), only for a problem
-    with one (``view.scene``; None: the braking scenario's signals and scene).
-    """
-    signals = view.signals if view is not None else BRAKING_SIGNAL_VIEWS
-    stage_views = [
-        rrb.TimeSeriesView(origin=f"/stages/{key}", name=name, plot_legend=rrb.PlotLegend(visible=key == "log10_mu_hat"))
-        for key, name, _ in STAGE_METRICS
-    ]
-    no_legend = rrb.PlotLegend(visible=False)
-    first, rest = signals[0], signals[1:]
-    traces = rrb.Tabs(
-        rrb.TimeSeriesView(name=f"{first.name}: {first.column} ({first.unit}), play on the step timeline",
-                           contents=[f"+ /rollouts/{first.column}/**", "+ /rollouts/detected/**"],
-                           plot_legend=no_legend),
-        *(rrb.TimeSeriesView(name=f"{s.name}: {s.column} ({s.unit})", origin=f"/rollouts/{s.column}",
-                             plot_legend=no_legend) for s in rest),
-    )  # fmt: skip
-    bottom = [traces]
-    if view is None or view.scene is not None:
-        bottom.append(rrb.Spatial2DView(
-            origin=f"/{SCENE_PATH}",
-            name="Scene: play on the step timeline",
-            background=C.FIGURE_BACKGROUND,
-            visual_bounds=rrb.VisualBounds2D(
-                x_range=list(SCENE_X_RANGE_M), y_range=[-0.6 * LANE_SPACING_M, (n_lanes - 0.4) * LANE_SPACING_M]
-            ),
-        ))  # fmt: skip
-    histograms = rrb.Tabs(
-        rrb.BarChartView(origin="/histograms/robustness", name="Robustness histogram"),
-        rrb.BarChartView(origin="/histograms/log_weight", name="Log-weight histogram (nats)"),
-    )
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Horizontal(
-                    rrb.TextDocumentView(origin="/estimate", name="Estimate"),
-                    PROPOSAL_FIG.view("Proposal q(detect | d) vs PEM"),
-                    column_shares=[1.0, 1.5],
-                ),
-                rrb.Horizontal(rrb.Grid(*stage_views, grid_columns=3), histograms, column_shares=[2.0, 1.0]),
-                rrb.Horizontal(*bottom),
-                row_shares=[1.1, 1.0, 0.8],
-            ),
-            rrb.TextDocumentView(origin="/description", name="Run"),
-            column_shares=[3.0, 1.0],
-        ),
-        rrb.TimePanel(timeline="stage", state="collapsed"),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-        collapse_panels=True,
-    )
-
-
-BRAKING_SIGNAL_VIEWS = tuple(SignalView(n, c, BRAKING_UNITS[n]) for n, c in BRAKING_SIGNALS.items())
-"""The braking scenario's signals (the blueprint's traces when no view is given)."""
 
 Indexes = Callable[..., list]
 """``indexes(step=array)``: the time columns of a ``send_columns`` (the sink's, with its repetition)."""
@@ -230,15 +179,16 @@ def intro_markdown(ev: RunStarted) -> str:
     view, cfg = ev.problem, ev.config
     method = method_markdown(ev)
     reading = (
-        "**How to read it.** Stages are numbered as in the console: 0 = pretraining, 1..K = CE stages, "
-        "K+1 = final batch. *Estimate*: mu_hat with its 95 % interval and verdict. *Proposal*: "
-        "q(detect | d) after each stage (blue early, orange late) against the PEM (white); the thick curve "
-        "is the stage selected on the `stage` timeline; dots are the elite rollouts' detection rate per gap "
-        "bin. *Per-stage series* and *histograms* (robustness, importance log-weight) step with the `stage` "
-        "timeline. Switch the timeline to `step` to play the *rollouts*"
+        "**How to read it.** Three tabs, each on the timeline its name gives (choose it in the time panel below). "
+        "*Stages* (`stage`: 0 = pretraining, 1..K = CE stages, K+1 = final batch, as in the console): the sampler's "
+        "q(miss) over the states the stage's rollouts visited, per gap bin, beside the PEM's (grey), as a probability "
+        "and as log-odds; the proposal's reference-state curve; the per-stage series and histograms (robustness, "
+        "importance log-weight). *Explain* (`step`): the most likely failure (the failing rollout with the largest "
+        "log p under the PEM), its p and q along it, its misses and what would have avoided it. *Rollouts* (`step`): "
+        "the kept rollouts of every stage"
     )
     lines = " and ".join(view.thresholds.labels()) if view.thresholds is not None else ""
-    colours = "red = failure, yellow = least robust, green dots = detections"
+    colours = "red = failure, yellow = least robust, blue = most likely failures, orange x = misses"
     traces = f" ({view.signals[0].column} with the lines {lines}; {colours})" if lines else f" ({colours})"
     if view.scene is not None:
         p = view.scene
@@ -248,7 +198,8 @@ def intro_markdown(ev: RunStarted) -> str:
             f"a perception error model (PEM) p(detect | d), sees the lead within {p.braking_distance_m:g} m. A crash "
             f"is the gap d dropping below {p.crash_gap_m:g} m, safety spec `{ev.formula}`; rollouts are ranked "
             f"by **{cfg.metric}** robustness. Method: {method}\n\n"
-            f"{reading}{traces} and the *scene* (ego green = detected, orange = missed).\n"
+            f"{reading}{traces} and the *scene* (ego green = detected, orange = missed). Every failing rollout says "
+            f"whether it made contact or only breached the {p.crash_gap_m:g} m margin.\n"
         )
     return (
         f"# pemviz: failure probability of {view.name}\n\n{view.description}. Failure: classic robustness of the "
@@ -257,13 +208,60 @@ def intro_markdown(ev: RunStarted) -> str:
     )
 
 
-def log_thresholds(stream: rr.RecordingStream, view: ProblemView, n_steps: int, indexes: Indexes) -> None:
+def outcome(gap: np.ndarray, failed: bool, scene: BrakingParams | None) -> str:
+    """A rollout's outcome in the words the console, the panel and the recording share: for a problem with the braking
+    scene, :attr:`pemviz.scenarios.braking_failures.Severity.short` of its gaps ``gap`` [T] (metres; ``contact at
+    3.2 m/s``, ``breach 1.91 m, no contact``, ``safe, min gap 3.41 m``); else ``failure`` or ``safe``."""
+    if scene is not None:
+        return severity(gap, scene).short
+    return "failure" if failed else "safe"
+
+
+MARGINAL_PATH = "proposal_marginal"
+"""Root of the marginal proposal view: ``miss`` and ``log_odds`` bar charts, the view's numbers (``stats``)."""
+
+
+def log_marginal_proposal(stream: rr.RecordingStream, pv: ProposalView, rgb: tuple[int, ...]) -> None:
+    """One stage's :class:`~pemviz.proposal_view.ProposalView` as bars per gap bin, on the current timeline.
+
+    Two charts: ``miss`` (q(miss) = 1 - q(detect), mean over the bin's visited states) and ``log_odds`` (the median
+    of log q(miss) / q(detect), nats, clipped to :data:`~pemviz.proposal_view.LOG_ODDS_SPAN_NATS`). In each bin: the
+    PEM's (grey, left half of the bin) and the sampler's (``rgb``, right half) as a narrow bar, and behind the
+    sampler's two light bars to its 10 % and 90 % quantiles, so the lighter band between them is the spread.
+    Empty bins have no bars. ``stats`` holds every array of the view (:class:`rerun.AnyValues`).
+    """
+    c, w = pv.centres_m, np.diff(pv.edges_m)
+    empty = pv.n_states == 0
+    span = LOG_ODDS_SPAN_NATS
+
+    def bars(path: str, values: np.ndarray, x: np.ndarray, width: np.ndarray, colour) -> None:
+        v = np.where(empty, 0.0, np.nan_to_num(np.asarray(values, dtype=np.float64), nan=0.0))
+        stream.log(path, rr.BarChart(v, abscissa=x, widths=width, color=colour))
+
+    scales = {
+        "miss": (1.0 - pv.p_mean, 1.0 - pv.q_mean, 1.0 - pv.q_hi, 1.0 - pv.q_lo),
+        "log_odds": tuple(np.clip(a, -span, span) for a in (pv.p_log_odds, pv.q_log_odds, pv.q_log_odds_lo,
+                                                              pv.q_log_odds_hi)),
+    }  # fmt: skip
+    light = C.rgba(rgb, 80)
+    for key, (pem, q, q_a, q_b) in scales.items():
+        path = f"{MARGINAL_PATH}/{key}"
+        bars(f"{path}/a_pem", pem, c - w / 4, w * 0.22, PEM_PLOT_RGBA)
+        bars(f"{path}/b_q_quantile_a", q_a, c + w / 4, w * 0.44, light)  # drawn in path order: spread, then q
+        bars(f"{path}/c_q_quantile_b", q_b, c + w / 4, w * 0.44, light)
+        bars(f"{path}/d_q", q, c + w / 4, w * 0.22, C.rgba(rgb))
+    fields = {k: v for k, v in vars(pv).items()}
+    stream.log(f"{MARGINAL_PATH}/stats", rr.AnyValues(**fields))
+
+
+def log_thresholds(stream: rr.RecordingStream, view: ProblemView, n_steps: int, indexes: Indexes,
+                   path: str | None = None) -> None:  # fmt: skip
     """The failure threshold and the sampler window as two lines over ``n_steps`` steps beside the first signal's
-    traces (``rollouts/<column>/thresholds``); nothing for a problem without thresholds."""
+    traces (at ``path``, default ``rollouts/<column>/thresholds``); nothing for a problem without thresholds."""
     th = view.thresholds
     if th is None:
         return
-    path = f"rollouts/{view.signals[0].column}/thresholds"
+    path = path or f"rollouts/{view.signals[0].column}/thresholds"
     stream.log(path, rr.SeriesLines(colors=[CRASH_RGBA[:3] + (255,), BRAKE_RGBA], widths=[2.0, 2.0],
                                     names=list(th.labels())), static=True)  # fmt: skip
     t = np.arange(n_steps)
@@ -274,8 +272,8 @@ def log_thresholds(stream: rr.RecordingStream, view: ProblemView, n_steps: int, 
 def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: RolloutsSampled, i: int,
                    params: BrakingParams, indexes: Indexes) -> None:  # fmt: skip
     """One lane (number ``lane``) of the top-down scene under ``path``: rollout ``i`` of the stage, playable on
-    ``step``; positions (metres along the road) rebuilt from the observations by
-    :func:`pemviz.sinks.scene.car_positions`."""
+    ``step``, labelled with its stage and outcome (:func:`outcome`); positions (metres along the road) rebuilt from
+    the observations by :func:`pemviz.sinks.scene.car_positions`."""
     p, s = params, stream
     batch = ev.batch
     gap = batch.gap_m[i]
@@ -287,9 +285,9 @@ def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: Rollout
     camera_x = ego_x + p.camera_offset_m
     lead_rear = camera_x + gap  # the sight line from the camera to the lead's rear
     ys = np.full(t, y)
-    crash = " crash" if ev.failed[i] else ""
-    label = f"stage {ev.stage}{crash}"
-    detail = f"stage {ev.stage} ({ev.kind}) rollout {ev.rollout_numbers[i]}: robustness {ev.robustness[i]:.3g}{crash}"
+    words = outcome(gap, bool(ev.failed[i]), p)
+    label = f"s{ev.stage}: {words}"
+    detail = f"stage {ev.stage} ({ev.kind}) rollout {ev.rollout_numbers[i]}: robustness {ev.robustness[i]:.3g}, {words}"
     half = LANE_SPACING_M / 2 - 0.1
     x_end = float(max(lead_x.max() + p.lead_length_m, SCENE_X_RANGE_M[1]))
     s.log(
@@ -302,7 +300,7 @@ def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: Rollout
     )  # fmt: skip
     s.log(
         f"{path}/label",
-        rr.Points2D([[-9.0, y]], radii=-0.01, colors=LEAD_CRASH_RGBA if ev.failed[i] else AXIS_RGBA,
+        rr.Points2D([[-16.0, y]], radii=-0.01, colors=LEAD_CRASH_RGBA if ev.failed[i] else AXIS_RGBA,
                     labels=label, show_labels=True),
         static=True,
     )  # fmt: skip

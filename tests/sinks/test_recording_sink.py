@@ -57,6 +57,29 @@ def view_names(part) -> list[str]:
     return [str(part.name)]
 
 
+def tabs(blueprint) -> dict[str, list]:
+    """{tab name: [its views, depth first]} of the blueprint's tab container."""
+    root = blueprint.root_container
+    (container,) = [c for c in root.contents if str(c.kind).endswith("Tabs")]
+
+    def views(part) -> list:
+        inner = getattr(part, "contents", None)
+        if isinstance(inner, (list, tuple)) and hasattr(part, "kind"):
+            return [v for child in inner for v in views(child)]
+        return [part]
+
+    return {str(tab.name): views(tab) for tab in container.contents}
+
+
+def origins(views) -> set[str]:
+    """The first path segment of every view's origin or contents (``/stages/ess`` -> ``stages``)."""
+    out = set()
+    for v in views:
+        paths = [str(v.origin)] + [str(q).lstrip("+ ") for q in (v.contents if isinstance(v.contents, list) else [])]
+        out |= {p.strip("/").split("/")[0] for p in paths if p.strip("/")}
+    return out
+
+
 def threshold_names(stream: Stream) -> list[str]:
     (lines,) = [a for a in stream.logged["rollouts/gap_m/thresholds"] if type(a).__name__ == "SeriesLines"]
     return lines.names.as_arrow_array().to_pylist()
@@ -68,17 +91,53 @@ def test_a_braking_run_draws_the_crash_gap_the_braking_distance_and_a_scene_lane
     assert {"scene/stage_00/lane", "scene/stage_01/ego"} <= set(stream.logged)
     assert "| 1 | CE stage 1/2 | 0.5000 | 1/2 |" in sink.stage_rows[1]
     names = view_names(stream.blueprint)
-    assert "Scene: play on the step timeline" in names and "d: gap_m (m), play on the step timeline" in names
+    assert "Scene: each stage's least robust rollout (play on step)" in names
+    assert "Scene of the most likely failure (play on step)" in names
+    assert "share of failures with contact" in names
+    assert any(n.startswith("d: gap_m (m), kept rollouts") for n in names)
 
 
 def test_a_toy_run_draws_its_own_thresholds_and_no_scene():
     sink, stream = record(TOY)
     assert threshold_names(stream) == ["failure below 3 units", "braking within 5 units"]
-    assert not [p for p in stream.logged if p.startswith("scene")]
+    assert not [p for p in stream.logged if p.startswith("scene") or p.startswith("explain/scene")]
+    assert not [p for p in stream.logged if p.startswith("explain/controller") or p.startswith("stages/contact")]
     names = view_names(stream.blueprint)
-    assert "Scene: play on the step timeline" not in names and "d: gap_m (units), play on the step timeline" in names
+    assert not [n for n in names if "Scene" in n or "Controller" in n or "contact" in n]
+    assert any(n.startswith("d: gap_m (units), kept rollouts") for n in names)
     assert "braking scenario" not in sink.intro_md
     assert "10 m" not in sink.intro_md and "2 m" not in sink.intro_md
+
+
+def test_each_tab_shows_only_entities_of_its_timeline():
+    """Stages: the per-stage entities (``stage`` timeline); Explain and Rollouts: the per-step ones (``step``)."""
+    for view in (BRAKING, TOY):
+        sink, stream = record(view)
+        sink.close()  # an interrupted run: the most likely failure is explained at close
+        by_tab = tabs(stream.blueprint)
+        assert list(by_tab) == ["Stages (timeline: stage)", "Explain: the most likely failure (timeline: step)",
+                                "Rollouts (timeline: step)"]  # fmt: skip
+        stages, explain, rollouts = by_tab.values()
+        assert origins(stages) == {"proposal_marginal", "proposal", "stages", "histograms"}
+        assert origins(explain) == {"explain"}
+        assert origins(rollouts) == ({"rollouts", "scene"} if view.scene else {"rollouts"})
+        # and the sink logged every origin a tab shows
+        logged = {p.split("/")[0] for p in stream.logged}
+        assert origins(stages) | origins(explain) | origins(rollouts) <= logged
+
+
+def test_a_failure_the_replay_does_not_reproduce_is_explained_without_a_counterfactual():
+    """The synthetic crash (gap 12 -> 1 m in 5 steps, every step detected) is no rollout of the braking scenario: the
+    explanation gives its severity and says the replay does not reproduce it, and shows no minimal miss set."""
+    sink, stream = record(BRAKING)
+    sink.close()
+    (doc,) = stream.logged["explain/summary"]
+    text = doc.text.as_arrow_array().to_pylist()[0]
+    assert "breach 1.00 m, no contact" in text and "The replay does not reproduce this rollout" in text
+    assert "explain/gap_m/with_minimal_set" not in stream.logged
+    assert "explain/controller/acceleration" not in stream.logged
+    (props,) = stream.logged["explain/failure"]
+    assert "minimal_miss_set" not in str(props.as_component_batches())
 
 
 def test_stage_colours_run_from_blue_at_stage_0_to_orange_at_the_plans_last_stage():

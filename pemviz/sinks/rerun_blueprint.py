@@ -1,0 +1,181 @@
+"""The layout of a pemviz recording in rerun's viewer (the blueprint sent with it, :mod:`pemviz.sinks.recording`).
+
+rerun shows the data of one timeline at a time (chosen in the time panel), so the layout is three tabs, one per
+question, each holding only views with data on the timeline its name gives, and two text views beside them that
+hold on every timeline:
+
+- **Stages** (timeline ``stage``, open at start): what the sampler learned, stage by stage. The proposal's q(miss)
+  over the states the stage's rollouts visited beside the PEM's, per gap bin, on a probability and a log-odds
+  scale (bar charts; :mod:`pemviz.proposal_view`), the reference-state curve q(detect | d) of the proposal, the
+  per-stage series (log10 mu_hat with its interval and the exact answer, failures / N, gamma, ESS, k-hat, NLL,
+  the mean miss probability inside the sampler window) and the histograms of robustness and log-weight.
+- **Explain** (timeline ``step``): the most likely failure of the run: what happened in words, p(detect) of the
+  PEM and q(detect) of the sampler along it with its misses, its first signal against the thresholds with the
+  counterfactual replays, the controller and its scene (the last two for a problem with a scene).
+- **Rollouts** (timeline ``step``): the kept rollouts of every stage over ``step`` and the scene's lanes.
+- beside the tabs: the **estimate** and the **run**'s description (static text).
+
+Switching the timeline does not switch the tab: each tab's name says its timeline. Everything here builds
+blueprint objects and logs nothing.
+"""
+
+from __future__ import annotations
+
+import rerun.blueprint as rrb
+
+from pemviz.problems import BRAKING_SIGNALS, BRAKING_UNITS, ProblemView, SignalView
+from pemviz.sinks import colours as C
+from pemviz.sinks.rerun_views import LANE_SPACING_M, PROPOSAL_FIG, SCENE_PATH, SCENE_X_RANGE_M, STAGE_METRICS
+
+TABS = ("stages", "explain", "rollouts")
+"""The blueprint's tabs, in order; :func:`default_blueprint` opens the one it is given (``stages`` by default)."""
+
+TIMELINE = {"stages": "stage", "explain": "step", "rollouts": "step"}
+"""The timeline each tab's views are drawn on."""
+
+BRAKING_SIGNAL_VIEWS = tuple(SignalView(n, c, BRAKING_UNITS[n]) for n, c in BRAKING_SIGNALS.items())
+"""The braking scenario's signals (the blueprint's traces when no view is given)."""
+
+EXPLAIN_PATH = "explain"
+"""Root of the most likely failure's entities (:mod:`pemviz.sinks.rerun_explain`)."""
+
+_NO_LEGEND = rrb.PlotLegend(visible=False)
+
+
+def tab_name(tab: str) -> str:
+    """The title of a tab, with its timeline: ``Stages (timeline: stage)``."""
+    words = {"stages": "Stages", "explain": "Explain: the most likely failure", "rollouts": "Rollouts"}[tab]
+    return f"{words} (timeline: {TIMELINE[tab]})"
+
+
+def _stages_tab(view: ProblemView | None) -> rrb.Container:
+    titles = {"log10_mu_hat": "log10 mu_hat, 95 % CI, exact", "nll": "NLL of failures (nats)"}
+    series = [
+        rrb.TimeSeriesView(origin=f"/stages/{key}", name=titles.get(key, name), plot_legend=_NO_LEGEND)
+        for key, name, _ in STAGE_METRICS
+    ]
+    series.append(rrb.TimeSeriesView(origin="/stages/miss_in_window", name="mean miss in window: q, PEM",
+                                     plot_legend=_NO_LEGEND))  # fmt: skip
+    if view is None or view.scene is not None:
+        series.append(rrb.TimeSeriesView(origin="/stages/contact_share", name="share of failures with contact",
+                                         plot_legend=_NO_LEGEND))  # fmt: skip
+    proposal = rrb.Horizontal(
+        rrb.BarChartView(origin="/proposal_marginal/miss", plot_legend=_NO_LEGEND,
+                         name="q(miss) per gap bin over the visited states: mean, 10-90 % (light), PEM (grey)"),
+        rrb.Tabs(
+            rrb.BarChartView(origin="/proposal_marginal/log_odds", plot_legend=_NO_LEGEND,
+                             name="log-odds of a miss (nats) per gap bin: median, 10-90 % (light), PEM (grey)"),
+            PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM", legend_room=0.34),
+        ),
+    )  # fmt: skip
+    histograms = rrb.Horizontal(
+        rrb.BarChartView(origin="/histograms/robustness", name="histogram: robustness of the stage's rollouts",
+                         plot_legend=_NO_LEGEND),
+        rrb.BarChartView(origin="/histograms/log_weight", name="histogram: importance log-weight (nats)",
+                         plot_legend=_NO_LEGEND),
+    )  # fmt: skip
+    return rrb.Vertical(
+        proposal,
+        rrb.Grid(*series, grid_columns=4),
+        histograms,
+        row_shares=[1.0, 1.15, 0.6],
+        name=tab_name("stages"),
+    )
+
+
+def _scene_view(origin: str, name: str, n_lanes: int) -> rrb.Spatial2DView:
+    return rrb.Spatial2DView(
+        origin=origin,
+        name=name,
+        background=C.FIGURE_BACKGROUND,
+        visual_bounds=rrb.VisualBounds2D(
+            x_range=list(SCENE_X_RANGE_M), y_range=[-0.6 * LANE_SPACING_M, (max(n_lanes, 1) - 0.4) * LANE_SPACING_M]
+        ),
+    )
+
+
+def _explain_tab(view: ProblemView | None) -> rrb.Container:
+    signals = view.signals if view is not None else BRAKING_SIGNAL_VIEWS
+    first = signals[0]
+    scene = view is None or view.scene is not None
+    e = f"/{EXPLAIN_PATH}"
+    detect = rrb.TimeSeriesView(
+        origin=f"{e}/detect", name="p(detect) of the PEM (grey), q(detect) of the sampler (blue); misses below",
+        plot_legend=rrb.PlotLegend(corner="LeftBottom"), axis_y=rrb.ScalarAxis(range=(-0.15, 1.08), zoom_lock=True),
+    )
+    replays = ": red recorded; replays: green minimal set detected, violet last saving step"
+    trace = rrb.TimeSeriesView(
+        origin=f"{e}/{first.column}", name=f"{first.name} ({first.unit}){replays if scene else ''}",
+        plot_legend=_NO_LEGEND,
+    )
+    top = [rrb.TextDocumentView(origin=f"{e}/summary", name="What happened")]
+    if scene:
+        top.append(_scene_view(f"{e}/scene", "Scene of the most likely failure (play on step)", 1))
+    bottom: list = [trace]
+    if scene:
+        bottom.append(rrb.Tabs(
+            rrb.TimeSeriesView(origin=f"{e}/controller", name="Controller: acceleration (m/s^2), brake commanded, "
+                               "brake applied", plot_legend=rrb.PlotLegend(corner="LeftBottom")),
+            rrb.TimeSeriesView(origin=f"{e}/speed", name="Speeds (m/s)", plot_legend=rrb.PlotLegend(corner="RightTop")),
+        ))  # fmt: skip
+    return rrb.Vertical(
+        rrb.Horizontal(*top, column_shares=[1.3, 1.0][: len(top)]),
+        detect,
+        rrb.Horizontal(*bottom),
+        row_shares=[0.9, 0.8, 1.1],
+        name=tab_name("explain"),
+    )
+
+
+def _rollouts_tab(view: ProblemView | None, n_lanes: int) -> rrb.Container:
+    signals = view.signals if view is not None else BRAKING_SIGNAL_VIEWS
+    first, rest = signals[0], signals[1:]
+    traces = rrb.TimeSeriesView(
+        name=f"{first.name}: {first.column} ({first.unit}), kept rollouts: red failure, grey safe, yellow least "
+             "robust, blue most likely, x miss",
+        contents=[f"+ /rollouts/{first.column}/**", "+ /rollouts/detected/**", "+ /rollouts/missed/**"],
+        plot_legend=_NO_LEGEND,
+    )  # fmt: skip
+    others = [rrb.TimeSeriesView(name=f"{s.name}: {s.column} ({s.unit})", origin=f"/rollouts/{s.column}",
+                                 plot_legend=_NO_LEGEND) for s in rest]  # fmt: skip
+    right: list = []
+    if others:
+        right.append(rrb.Tabs(*others) if len(others) > 1 else others[0])
+    if view is None or view.scene is not None:
+        right.append(_scene_view(f"/{SCENE_PATH}", "Scene: each stage's least robust rollout (play on step)", n_lanes))
+    if not right:
+        return rrb.Vertical(traces, name=tab_name("rollouts"))
+    return rrb.Horizontal(traces, rrb.Vertical(*right), column_shares=[1.4, 1.0], name=tab_name("rollouts"))
+
+
+def default_blueprint(
+    n_lanes: int = 12, view: ProblemView | None = None, tab: str = "stages", paused: bool = False
+) -> rrb.Blueprint:
+    """The recording's layout: the tabs *Stages*, *Explain* and *Rollouts* with the estimate and the run beside them.
+
+    Args:
+        n_lanes: lanes of the rollouts' scene (one per stage); sizes its view.
+        view: the problem's view (its signals, thresholds and scene); None: the braking scenario's.
+        tab: the tab open at start, one of :data:`TABS`; the time panel shows its timeline (:data:`TIMELINE`).
+        paused: start with the time cursor paused (at the timeline's start); else the viewer plays the timeline
+            once on opening and stops at its end (the last stage).
+    Raises:
+        ValueError: ``tab`` not one of :data:`TABS`.
+    """
+    if tab not in TABS:
+        raise ValueError(f"default_blueprint: tab must be one of {TABS}, got {tab!r}")
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Tabs(_stages_tab(view), _explain_tab(view), _rollouts_tab(view, n_lanes), active_tab=TABS.index(tab)),
+            rrb.Vertical(
+                rrb.TextDocumentView(origin="/estimate", name="Estimate"),
+                rrb.TextDocumentView(origin="/description", name="Run"),
+                row_shares=[1.0, 1.8],
+            ),
+            column_shares=[3.6, 1.0],
+        ),
+        rrb.TimePanel(timeline=TIMELINE[tab], state="collapsed", play_state="paused" if paused else None),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        collapse_panels=True,
+    )

@@ -1,0 +1,207 @@
+"""The recording's *Explain* tab: the most likely failure of a run, logged as entities under ``explain/``.
+
+The most likely failure is the failing rollout with the largest log p under the PEM (:meth:`RolloutBatch.log_likelihood
+<pemviz.scenarios.RolloutBatch.log_likelihood>`, T - 1 steps) among the rollouts the engine reported: the failure
+the sampler found that the real detector is likeliest to produce, the "most likely failure" of adaptive stress
+testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020). For any problem it shows p(detect) of the PEM and
+q(detect) of the sampler along it and its misses (:func:`pemviz.proposal_view.prob_detect`); for a problem with the
+braking scene also its severity, the controller's signals, the minimal set of misses whose flip avoids the failure,
+the last step at which one detection still saves it, replays of those counterfactuals and one paragraph in words,
+all from :func:`pemviz.scenarios.braking_failures.story` (exact replays on the deterministic twin).
+
+Entities (``step`` timeline unless static; ``<col>`` = the problem's first signal, ``gap_m`` for braking):
+
+- ``explain/summary``: Markdown (static): where the rollout comes from, its outcome, the paragraph, the minimal
+  miss set and the last saving step.
+- ``explain/failure``: :class:`rerun.AnyValues` (static): stage, rollout, log p, robustness, misses, and for the
+  braking scene the outcome words, severity, minimal miss set, last saving step, recovery step.
+- ``explain/detect/{pem,sampler}``: p(detect) and q(detect) at each step; ``explain/detect/{misses,minimal_set,
+  last_saving}``: markers below the curves at those steps.
+- ``explain/<col>/{recorded,thresholds,misses,breach}``: the first signal, the problem's thresholds, the misses
+  and (braking) the first step below the crash gap; ``explain/<col>/{with_minimal_set,with_last_saving}``: the
+  replays with those misses detected (braking).
+- ``explain/controller/{acceleration,brake_commanded,brake_applied}``, ``explain/speed/{ego,lead}`` and
+  ``explain/scene`` (braking): the controller, the speeds and one lane of the top-down scene.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import rerun as rr
+
+from pemviz.events import RolloutsSampled
+from pemviz.problems import ProblemView
+from pemviz.proposal_view import prob_detect
+from pemviz.scenarios.braking_failures import FailureStory, replay_with_detections, story
+from pemviz.sinks import colours as C
+from pemviz.sinks.rerun_blueprint import EXPLAIN_PATH
+from pemviz.sinks.rerun_views import (
+    BRAKE_RGBA,
+    CRASH_RGBA,
+    DETECTED_RGBA,
+    MISSED_RGBA,
+    PEM_PLOT_RGBA,
+    Indexes,
+    log_scene_lane,
+    log_thresholds,
+)
+
+E = EXPLAIN_PATH
+MARKER_ROW = -0.06
+"""Height of the miss markers under the p / q curves (probability units, below 0)."""
+
+
+def _series(stream: rr.RecordingStream, path: str, name: str, rgba, values: np.ndarray, indexes: Indexes,
+            steps: np.ndarray | None = None, width: float = 2.0) -> None:  # fmt: skip
+    """A line ``values`` [T] (or at ``steps`` only), named and coloured, on ``step``."""
+    v = np.asarray(values, dtype=np.float64)
+    t = np.arange(v.size) if steps is None else np.asarray(steps, dtype=np.int64)
+    stream.log(path, rr.SeriesLines(colors=[rgba], widths=[width], names=[name]), static=True)
+    stream.send_columns(path, indexes=indexes(step=t), columns=rr.Scalars.columns(scalars=v))
+
+
+def _markers(stream: rr.RecordingStream, path: str, name: str, rgba, marker: str, steps: np.ndarray,
+             values: np.ndarray, indexes: Indexes, size: float = 4.0) -> None:  # fmt: skip
+    """Points at ``steps`` [k] with heights ``values`` [k] (nothing when ``steps`` is empty)."""
+    steps = np.asarray(steps, dtype=np.int64)
+    if steps.size == 0:
+        return
+    stream.log(path, rr.SeriesPoints(colors=[rgba], names=[name], markers=[marker], marker_sizes=[size]), static=True)
+    stream.send_columns(path, indexes=indexes(step=steps),
+                        columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64)))  # fmt: skip
+
+
+def _steps_text(steps: np.ndarray, dt: float | None, most: int = 12) -> str:
+    shown = ", ".join(f"{t}" + (f" ({t * dt:.2f} s)" if dt else "") for t in steps[:most])
+    return shown + (f" and {steps.size - most} more" if steps.size > most else "")
+
+
+def log_explanation(
+    stream: rr.RecordingStream,
+    failure: RolloutsSampled | None,
+    log_p: float,
+    n_failures: int,
+    view: ProblemView,
+    stage_name: str,
+    indexes: Indexes,
+) -> FailureStory | None:
+    """Log the Explain tab's entities for ``failure``, a one-rollout event (its stage, number, batch row).
+
+    Args:
+        failure: the most likely failure as a batch of one rollout; None: the run found no failure (the summary
+            says so and nothing else is logged).
+        log_p: its log p under the PEM over T - 1 steps (nats).
+        n_failures: failing rollouts it was chosen among.
+        view: the problem's view (signals, thresholds; the braking scene gives the counterfactual).
+        stage_name: the plan's name of its stage (``CE stage 4/10``).
+        indexes: the sink's time columns for ``send_columns`` (with its repetition).
+    Returns:
+        the braking scene's :class:`~pemviz.scenarios.braking_failures.FailureStory` of the rollout (None without
+        a scene or a failure).
+    """
+    s = stream
+    if failure is None:
+        s.log(f"{E}/summary", rr.TextDocument("# No failure found\n\nThe run found no failing rollout: nothing to "
+                                              "explain.", media_type=rr.MediaType.MARKDOWN), static=True)  # fmt: skip
+        return None
+    b = failure.batch
+    col = view.signals[0].column
+    trace = b.signal(col)[0]
+    detected = np.asarray(b.detected[0], dtype=bool)
+    misses = np.flatnonzero(~detected)
+    p_det, q_det = prob_detect(b.log_p[0], detected), prob_detect(b.log_q[0], detected)
+    number, stage = int(failure.rollout_numbers[0]), failure.stage
+    scene = view.scene
+    tale = story(trace, detected, scene) if scene is not None else None
+    dt = scene.dt_s if scene is not None else None
+
+    _series(s, f"{E}/detect/pem", "p(detect), PEM", PEM_PLOT_RGBA, p_det, indexes)
+    _series(s, f"{E}/detect/sampler", "q(detect), sampler", C.rgba(C.BLUE), q_det, indexes)
+    _markers(s, f"{E}/detect/misses", "miss", MISSED_RGBA, "cross", misses, np.full(misses.size, MARKER_ROW), indexes)
+    words = tale.severity.short if tale is not None else "failure"
+    _series(s, f"{E}/{col}/recorded", f"as recorded: {words}", CRASH_RGBA[:3] + (255,), trace, indexes, width=2.5)
+    log_thresholds(s, view, trace.size, indexes, path=f"{E}/{col}/thresholds")
+    _markers(s, f"{E}/{col}/misses", "miss", MISSED_RGBA, "cross", misses, trace[misses], indexes)
+
+    props: dict = dict(stage=stage, stage_name=stage_name, rollout=number, log_p=log_p,
+                       log_weight=float(failure.log_weight[0]), robustness=float(failure.robustness[0]),
+                       n_failures_compared=n_failures, misses=misses, n_steps=trace.size)  # fmt: skip
+    chosen = (
+        f"The failing rollout with the largest log p under the PEM ({log_p:.2f} nats over the first "
+        f"{trace.size - 1} steps) among the {n_failures:,} failing rollouts the run reported; robustness "
+        f"{float(failure.robustness[0]):.3g}, importance log-weight {float(failure.log_weight[0]):.2f} nats. "
+        f"The detector missed the lead at {misses.size} of {trace.size} steps."
+    )
+    lines = [f"## Most likely failure: {stage_name}, rollout {number}" + (f": {words}" if tale else ""), ""]
+    if tale is not None:
+        lines += _log_braking(s, view, tale, detected, trace, misses, indexes, props) + [tale.sentence, ""]
+        log_scene_lane(s, f"{E}/scene", 0, failure, 0, scene, indexes)
+    lines.append(chosen)
+    s.log(f"{E}/summary", rr.TextDocument("\n".join(lines) + "\n", media_type=rr.MediaType.MARKDOWN), static=True)
+    s.log(f"{E}/failure", rr.AnyValues(**props), static=True)
+    return tale
+
+
+def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, detected: np.ndarray,
+                 trace: np.ndarray, misses: np.ndarray, indexes: Indexes, props: dict) -> list[str]:  # fmt: skip
+    """The braking scene's part: severity, counterfactual replays, controller and speeds (adds to ``props``); returns
+    the summary's lines on the minimal miss set and the last saving step."""
+    lines: list[str] = []
+    p = view.scene
+    sev, cf, ctrl = tale.severity, tale.counterfactual, tale.controller
+    col = view.signals[0].column
+    dt = p.dt_s
+    breach = sev.breach_step
+    props.update(outcome=sev.short, min_gap_m=sev.min_gap_m, breach_step=-1 if breach is None else breach,
+                 breach_time_s=math.nan if breach is None else breach * dt, breach_closing_mps=sev.breach_closing_mps,
+                 contact=sev.contact, contact_speed_mps=sev.contact_speed_mps,
+                 replay_matches=tale.replay_matches)  # fmt: skip
+    if sev.breach_step is not None:
+        _markers(s, f"{E}/{col}/breach", f"{p.crash_gap_m:g} m margin crossed", CRASH_RGBA[:3] + (255,), "down",
+                 np.array([sev.breach_step]), trace[[sev.breach_step]], indexes, size=7.0)  # fmt: skip
+    if not tale.replay_matches:
+        return lines
+    last = cf.last_saving_step
+    props.update(minimal_miss_set=cf.minimal_set, minimal_set_is_smallest=cf.smallest,
+                 minimal_set_min_gap_m=cf.minimal_set_min_gap_m, last_saving_step=-1 if last is None else last,
+                 decisive_misses=cf.decisive,
+                 recovery_step=-1 if cf.recovery_step is None else cf.recovery_step)  # fmt: skip
+    ms = cf.minimal_set
+    if ms.size:
+        smallest = "the smallest such set" if cf.smallest else "none of them can be left out"
+        lines += [f"**Minimal miss set** ({ms.size} of {misses.size} misses, {smallest}): step{'s' * (ms.size > 1)} "
+                  f"{_steps_text(ms, dt)}; detected, the min gap is {cf.minimal_set_min_gap_m:.2f} m.", ""]  # fmt: skip
+        replay = replay_with_detections(detected, ms, p)
+        _series(s, f"{E}/{col}/with_minimal_set", f"minimal miss set detected: min gap {replay.gap_m.min():.2f} m",
+                DETECTED_RGBA, replay.gap_m, indexes)  # fmt: skip
+        _markers(s, f"{E}/{col}/minimal_set", "minimal miss set", CRASH_RGBA[:3] + (255,), "diamond", ms, trace[ms],
+                 indexes, size=6.0)  # fmt: skip
+        _markers(s, f"{E}/detect/minimal_set", "minimal miss set", CRASH_RGBA[:3] + (255,), "diamond", ms,
+                 np.full(ms.size, MARKER_ROW), indexes, size=6.0)  # fmt: skip
+    else:
+        lines += ["**Minimal miss set**: none; even a detection at every miss does not avoid the failure.", ""]
+    if last is not None:
+        lines += [f"**Last saving step**: {last} ({last * dt:.2f} s): one detection there still avoids the "
+                  f"failure ({cf.decisive.size} of the {misses.size} misses would each do alone).", ""]  # fmt: skip
+        replay = replay_with_detections(detected, np.array([last]), p)
+        _series(s, f"{E}/{col}/with_last_saving", f"detected at {last * dt:.2f} s: min gap {replay.gap_m.min():.2f} m",
+                C.rgba(C.VIOLET), replay.gap_m, indexes)  # fmt: skip
+        _markers(s, f"{E}/detect/last_saving", "last saving step", DETECTED_RGBA, "up", np.array([last]),
+                 np.array([MARKER_ROW]), indexes, size=7.0)  # fmt: skip
+    else:
+        lines += ["**Last saving step**: none; no single detection avoids the failure.", ""]
+    a = ctrl.accel_mps2
+    top = max(4.0, float(np.max(a)) + 1.0)
+    row = 0.07 * (top - min(-4.0, float(np.min(a)) - 1.0))
+    _series(s, f"{E}/controller/acceleration", "acceleration (m/s^2)", C.rgba(C.EGO_SPEED), a, indexes)
+    for key, name, mask, height, rgba in (("brake_commanded", "brake commanded", ctrl.brake_command, top + 2 * row,
+                                           BRAKE_RGBA),
+                                          ("brake_applied", "brake applied", ctrl.brake_applied, top + row,
+                                           CRASH_RGBA[:3] + (255,))):  # fmt: skip
+        steps = np.flatnonzero(mask)
+        _markers(s, f"{E}/controller/{key}", name, rgba, "circle", steps, np.full(steps.size, height), indexes, 3.0)
+    _series(s, f"{E}/speed/ego", "ego speed (m/s)", C.rgba(C.EGO_SPEED), ctrl.ego_speed_mps, indexes)
+    _series(s, f"{E}/speed/lead", "lead speed (m/s)", C.rgba(C.LEAD_SPEED), ctrl.lead_speed_mps, indexes)
+    return lines

@@ -1,0 +1,205 @@
+"""The recording's rollouts (*Rollouts* tab, ``step`` timeline): which of a stage's rollouts are kept, which are
+featured as entities of their own, and how both are logged (:class:`pemviz.sinks.recording.RerunSink` calls these).
+
+A stage's kept rollouts share one entity per signal, one series per rollout (one ``send_columns`` per signal). A few
+of them, the *featured* ones (:func:`featured`: the least robust and the most likely failures), are also entities of
+their own (their first signal, with their properties), so that each can be selected, hidden or read back alone; their
+detections and misses are marked. An entity costs about 8 kB of recording (two chunks: its style and properties, its
+trace) and 0.3-1 ms, so featuring every kept rollout of a default run (about 1,300) would add about 10 MB and a
+second.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import rerun as rr
+
+from pemviz.events import RolloutsSampled
+from pemviz.problems import ProblemView
+from pemviz.scenarios.braking_failures import severity
+from pemviz.sinks.rerun_views import (
+    ALL_ROLLOUTS_UP_TO,
+    CRASH_RGBA,
+    DETECTED_RGBA,
+    LIKELY_RGBA,
+    MISSED_RGBA,
+    SAFE_RGBA,
+    SAMPLED_ROLLOUTS,
+    TAG_CRASH_RGBA,
+    TAG_RGBA,
+    Indexes,
+    outcome,
+)
+
+
+def least_robust(ev: RolloutsSampled, k: int) -> np.ndarray:
+    """Indices of the ``k`` least-robust rollouts under the configured metric, least first (ties: lower index)."""
+    return np.argsort(ev.robustness, kind="stable")[: min(k, ev.robustness.size)]
+
+
+def most_likely_failures(ev: RolloutsSampled, k: int) -> np.ndarray:
+    """Indices of the ``k`` failing rollouts with the largest log p under the PEM (T - 1 steps), likeliest first
+    (ties: lower index); fewer when fewer fail."""
+    failed = np.flatnonzero(np.asarray(ev.failed, bool))
+    if failed.size == 0 or k <= 0:
+        return np.zeros(0, np.int64)
+    log_p = ev.batch.log_likelihood()[failed]
+    return failed[np.argsort(-log_p, kind="stable")[:k]]
+
+
+def kept_rollouts(ev: RolloutsSampled, n_least_robust: int) -> np.ndarray:
+    """Indices of the rollouts recorded in full, ascending: all up to :data:`ALL_ROLLOUTS_UP_TO`, else the
+    ``n_least_robust`` least robust, every failure up to :data:`SAMPLED_ROLLOUTS` of them, the stage's most likely
+    failures (:func:`most_likely_failures`, as many as ``n_least_robust``) and a uniform sample of
+    :data:`SAMPLED_ROLLOUTS` (every ``N / SAMPLED_ROLLOUTS``-th rollout); all of the engine's sample of a streamed
+    stage (chosen the same way)."""
+    n = ev.robustness.size
+    if n <= ALL_ROLLOUTS_UP_TO or ev.n_total is not None:
+        return np.arange(n)
+    keep = set(least_robust(ev, n_least_robust).tolist())
+    keep |= set(np.flatnonzero(np.asarray(ev.failed, bool))[:SAMPLED_ROLLOUTS].tolist())
+    if ev.batch is not None:
+        keep |= set(most_likely_failures(ev, n_least_robust).tolist())
+    keep |= set(np.linspace(0, n - 1, SAMPLED_ROLLOUTS).astype(int).tolist())
+    return np.array(sorted(keep))
+
+
+def featured(ev: RolloutsSampled, n_least_robust: int, n_likely: int) -> dict[int, str]:
+    """The rollouts of a stage that get entities of their own, index -> role: the ``n_least_robust`` least robust
+    (``least robust #1`` ...) and the ``n_likely`` most likely failures (``most likely failure #1 of the stage``
+    ...), in that order; a rollout that is both keeps its first role."""
+    roles = {int(i): f"least robust #{j + 1}" for j, i in enumerate(least_robust(ev, n_least_robust))}
+    for j, i in enumerate(most_likely_failures(ev, n_likely)):
+        roles.setdefault(int(i), f"most likely failure #{j + 1} of the stage")
+    return roles
+
+
+def deciding(trace: np.ndarray, view: ProblemView) -> np.ndarray:
+    """bool [n, T]: the steps of rollouts with first signal ``trace`` [n, T] where a detection can still change the
+    outcome: inside the sampler window, up to and including the first step below the failure threshold (every step
+    for a problem without thresholds)."""
+    th = view.thresholds
+    if th is None:
+        return np.ones(np.shape(trace), bool)
+    below = trace < th.failure
+    return (trace < th.window) & (np.cumsum(below, axis=1) - below == 0)
+
+
+def rollout_path(column: str, stage: int, number: int) -> str:
+    """``rollouts/gap_m/stage_04/rollout_011``: a featured rollout's entity for one signal."""
+    return f"rollouts/{column}/stage_{stage:02d}/rollout_{number:03d}"
+
+
+@dataclass(frozen=True)
+class StageRollouts:
+    """What :func:`log_stage_rollouts` logged of a stage: the kept rows, their outcome words and the featured."""
+
+    keep: np.ndarray
+    outcomes: list[str]
+    featured: dict[int, str]
+
+
+def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: ProblemView, stage_name: str,
+                       n_tagged: int, n_likely: int, indexes: Indexes) -> StageRollouts:  # fmt: skip
+    """A stage's kept rollouts (:func:`kept_rollouts`): one entity per signal of the view with one series per rollout,
+    the per-rollout values, the featured rollouts' own entities (:func:`featured`), and their misses (and the tagged
+    ones' detections) where a detection can still change the outcome (:func:`deciding`).
+
+    Args:
+        ev: the stage's rollouts.
+        view: the problem's view (signals; the braking scene gives each failure its severity words).
+        stage_name: the plan's name of the stage.
+        n_tagged: least-robust rollouts tagged (yellow, wide) and featured.
+        n_likely: most likely failures featured.
+        indexes: the sink's time columns for ``send_columns``.
+    """
+    s, batch = stream, ev.batch
+    t = batch.n_steps
+    keep = kept_rollouts(ev, max(n_tagged, n_likely))
+    order = least_robust(ev, n_tagged)
+    rank = {int(i): j for j, i in enumerate(order)}
+    failed = np.asarray(ev.failed, bool)
+    number = ev.rollout_numbers
+    first = view.signals[0].column
+    trace = batch.signal(first)
+    gap = batch.gap_m if "gap_m" in batch.observation_names else trace
+    words = [outcome(gap[i], bool(failed[i]), view.scene) for i in keep.tolist()]
+    colours, widths, names = [], [], []
+    for i, said in zip(keep.tolist(), words):
+        tag = rank.get(i)
+        what = f": {said}" if failed[i] else ""
+        if tag is None:
+            colours.append(CRASH_RGBA if failed[i] else SAFE_RGBA)
+            widths.append(1.0)
+            names.append(f"s{ev.stage} r{number[i]}{what}")
+        else:
+            colours.append(TAG_CRASH_RGBA if failed[i] else TAG_RGBA)
+            widths.append(2.5)
+            names.append(f"s{ev.stage} r{number[i]} least-robust #{tag + 1} rho={ev.robustness[i]:.3g}{what}")
+    index = indexes(step=np.arange(t))
+    stage = f"stage_{ev.stage:02d}"
+    for sig in view.signals:
+        if sig.column not in batch.observation_names:
+            continue
+        path = f"rollouts/{sig.column}/{stage}"
+        s.log(path, rr.SeriesLines(colors=colours, widths=widths, names=names), static=True)
+        s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=batch.signal(sig.column)[keep].T))
+    log_p = batch.log_likelihood()
+    s.log(
+        f"rollouts/summary/{stage}",
+        rr.AnyValues(
+            rollout=number[keep],
+            log_p=log_p[keep],
+            log_weight=np.asarray(ev.log_weight, np.float64)[keep],
+            failed=failed[keep],
+            outcome=words,
+            least_robust=np.isin(keep, order),
+            **{f"robustness_{m.replace('-', '_')}": np.asarray(v, np.float64)[keep]
+               for m, v in ev.robustness_by_metric.items()},
+        ),
+        static=True,
+    )  # fmt: skip
+    roles = featured(ev, n_tagged, n_likely)
+    said = dict(zip(keep.tolist(), words))
+    rows = np.array(sorted(roles), dtype=np.int64)
+    labels = []
+    for i in rows.tolist():
+        labels.append(_log_featured(s, ev, view, i, roles[i], said[i], float(log_p[i]), stage_name, index))
+    tagged = np.isin(rows, order)
+    marks_of = (("detected", True, DETECTED_RGBA, "circle", 1.5, tagged),
+                ("missed", False, MISSED_RGBA, "cross", 3.0, np.ones_like(tagged)))  # fmt: skip
+    for key, mask, rgba, marker, size, show in marks_of:
+        if rows.size == 0:
+            break
+        path = f"rollouts/{key}/{stage}"
+        s.log(path, rr.SeriesPoints(colors=[rgba] * rows.size, names=[f"{lb}: {key}" for lb in labels],
+                                    markers=[marker] * rows.size, marker_sizes=[size] * rows.size,
+                                    visible_series=show), static=True)  # fmt: skip
+        marks = np.where((batch.detected[rows] == mask) & deciding(trace[rows], view), trace[rows], np.nan)
+        s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=marks.T))
+    return StageRollouts(keep, words, roles)
+
+
+def _log_featured(s: rr.RecordingStream, ev: RolloutsSampled, view: ProblemView, i: int, role: str, said: str,
+                  log_p: float, stage_name: str, index: list) -> str:  # fmt: skip
+    """Rollout ``i``'s first signal as an entity of its own (:func:`rollout_path`) with its properties; returns its
+    label."""
+    batch, n = ev.batch, int(ev.rollout_numbers[i])
+    failed = bool(ev.failed[i])
+    rgba = (LIKELY_RGBA if role.startswith("most likely") else TAG_CRASH_RGBA if failed else TAG_RGBA)
+    label = f"stage {ev.stage} rollout {n} ({role}): {said}"
+    props: dict = dict(stage=ev.stage, stage_name=stage_name, rollout=n, role=role, log_p=log_p,
+                       log_weight=float(ev.log_weight[i]), robustness=float(ev.robustness[i]), failed=failed,
+                       outcome=said)  # fmt: skip
+    props.update({f"robustness_{m.replace('-', '_')}": float(v[i]) for m, v in ev.robustness_by_metric.items()})
+    if view.scene is not None and "gap_m" in batch.observation_names:
+        sev = severity(batch.gap_m[i], view.scene)
+        props.update(min_gap_m=sev.min_gap_m, breach_closing_mps=sev.breach_closing_mps, contact=sev.contact,
+                     contact_speed_mps=sev.contact_speed_mps)  # fmt: skip
+    column = view.signals[0].column
+    path = rollout_path(column, ev.stage, n)
+    s.log(path, rr.SeriesLines(colors=[rgba], widths=[2.5], names=[label]), rr.AnyValues(**props), static=True)
+    s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=batch.signal(column)[i]))
+    return label
