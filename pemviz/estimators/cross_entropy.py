@@ -345,25 +345,29 @@ class CrossEntropy(OwnsSettings):
             check=self.check, step_mask=self.step_mask(batch) if cfg.proposal_window else None,
             fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
-        self._samplers = self._stage_samplers_of(proposal)
-        self.plain_sampler, self.sampler = self._samplers.plain, self._samplers.defensive
+        self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
 
-    def _stage_samplers_of(self, proposal: Detector) -> StageSamplers:
-        """The CE stages' samplers around a proposal (:class:`StageSamplers`): q inside the problem's window and above
-        the gap where the outcome is decided (``proposal_window``, ``skip_decided``; q = p_target where the detector
-        cannot matter), plain and with the per-step defensive mixture (``defensive``), evaluated once per step."""
+    def _samplers_around(self, proposal: Proposal) -> tuple[StageSamplers, Detector, Detector]:
+        """(the CE stages' samplers around a proposal, the plain sampler, the defensive one): q inside the problem's
+        window and above the gap where the outcome is decided (``proposal_window``, ``skip_decided``; q = p_target
+        where the detector cannot matter), plain and with the per-step defensive mixture (``defensive``), evaluated
+        together once per step (:class:`StageSamplers`). Without a window or a defensive share the proposal itself
+        draws (the paper)."""
         cfg, pb = self.config, self.problem
+        eps = float(cfg.defensive)
         if not cfg.proposal_window:  # the proposal everywhere
-            return StageSamplers(proposal, pb.target, eps=float(cfg.defensive))
+            samplers = StageSamplers(proposal, pb.target, eps=eps)
+            return samplers, proposal, proposal if eps == 0.0 else samplers.defensive
         floor = pb.decided_below if cfg.skip_decided else -math.inf  # below it the outcome is decided
-        return StageSamplers(proposal, pb.target, pb.window, floor, float(cfg.defensive))
+        samplers = StageSamplers(proposal, pb.target, pb.window, floor, eps)
+        return samplers, samplers.plain, samplers.defensive
 
     def _around(self, mixture: tuple[tuple[int, Detector], ...],
                 proposal: Proposal) -> tuple[tuple[int, Detector], ...]:  # fmt: skip
         """A stage's (rollouts, sampler) components with the proposal's samplers rebuilt around ``proposal`` (the
         target stays)."""
-        samplers = self._stage_samplers_of(proposal)
-        rebuilt = {id(self.plain_sampler): samplers.plain, id(self.sampler): samplers.defensive}
+        _, plain, sampler = self._samplers_around(proposal)
+        rebuilt = {id(self.plain_sampler): plain, id(self.sampler): sampler}
         return tuple((n, rebuilt.get(id(d), d)) for n, d in mixture)
 
     def _frozen_samplers(self, plan: StagePlan) -> tuple[tuple[int, Detector], ...]:
