@@ -16,8 +16,9 @@ Each N runs in a fresh subprocess (``pemviz run --n N --n-final N``), so that it
 (``ru_maxrss``) is its own. Inside, the time spent simulating (``Problem.simulate`` / ``Problem.stream``,
 detector evaluations included) and fitting the proposal (:func:`pemviz.sampling.fit_proposal`) is summed; "other"
 is the engine's wall time minus both (robustness, weights, elites, estimates, events, sinks). Times are
-wall (``perf_counter``) and CPU (user + system, ``RUSAGE_SELF``); the load average is printed with each row:
-on a machine shared with other jobs compare CPU times. The target (a million rollouts in minutes): at
+wall (``perf_counter``) and CPU (user + system, ``RUSAGE_SELF``; the split by the run's own thread, ``thread_time``:
+the run is single-threaded); the load average is printed with each row: on a machine shared with other jobs compare
+the CPU ratios. The target (a million rollouts in minutes): at
 N >= 10^4 everything but simulation costs at most 2x the simulation time.
 """
 
@@ -46,15 +47,19 @@ def _child(argv: list[str]) -> None:
     import pemviz.estimators.ce_fit as ce_fit
     from pemviz.cli import main
 
-    spent = {"simulation": 0.0, "fit": 0.0, "run": 0.0}
+    spent = {"simulation": 0.0, "fit": 0.0, "run": 0.0, "simulation_cpu": 0.0, "fit_cpu": 0.0, "run_cpu": 0.0}
+
+    def add(key: str, t0: float, c0: float) -> None:
+        spent[key] += time.perf_counter() - t0
+        spent[key + "_cpu"] += time.thread_time() - c0  # the run is single-threaded: robust to other jobs' load
 
     def timed(key, fn):
         def wrapper(*a, **k):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             try:
                 return fn(*a, **k)
             finally:
-                spent[key] += time.perf_counter() - t0
+                add(key, t0, c0)
 
         return wrapper
 
@@ -62,13 +67,13 @@ def _child(argv: list[str]) -> None:
         def wrapper(*a, **k):
             it = iter(fn(*a, **k))
             while True:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.thread_time()
                 try:
                     chunk = next(it)
                 except StopIteration:
-                    spent["simulation"] += time.perf_counter() - t0
+                    add("simulation", t0, c0)
                     return
-                spent["simulation"] += time.perf_counter() - t0
+                add("simulation", t0, c0)
                 yield chunk
 
         return wrapper
@@ -92,13 +97,13 @@ def _child(argv: list[str]) -> None:
     spent["cpu"] = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     spent["peak_rss_mb"] = cpu1.ru_maxrss / 1024
     spent["rc"] = rc
-    spent["twin_us"] = _pure_twin_us(int(argv[argv.index("--n") + 1]) if "--n" in argv else 100)
+    spent["twin_us"], spent["twin_cpu_us"] = _pure_twin_us(int(argv[argv.index("--n") + 1]) if "--n" in argv else 100)
     print("SCALE " + json.dumps(spent), flush=True)
 
 
-def _pure_twin_us(n: int) -> float:
-    """Microseconds per rollout of the pure batched twin: ``min(n, 20,000)`` braking rollouts drawn i.i.d. from the
-    shipped PEM (sampler and target the same detector), the best of three."""
+def _pure_twin_us(n: int) -> tuple[float, float]:
+    """Microseconds per rollout of the pure batched twin, wall and CPU: ``min(n, 20,000)`` braking rollouts drawn
+    i.i.d. from the shipped PEM (sampler and target the same detector), the best of three."""
     import numpy as np
 
     from pemviz.pem import load_pem
@@ -106,12 +111,12 @@ def _pure_twin_us(n: int) -> float:
     from pemviz.scenarios.batched import simulate_batched
 
     m, pem = min(n, 20_000), PEMDetector(load_pem())
-    best = float("inf")
+    best, best_cpu = float("inf"), float("inf")
     for seed in range(3):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         simulate_batched(None, m, pem, pem, np.random.default_rng(seed))
-        best = min(best, time.perf_counter() - t0)
-    return best / m * 1e6
+        best, best_cpu = min(best, time.perf_counter() - t0), min(best_cpu, time.thread_time() - c0)
+    return best / m * 1e6, best_cpu / m * 1e6
 
 
 def main() -> int:
@@ -158,9 +163,13 @@ def main() -> int:
                       f"{size:>7.1f}  {load}", flush=True)  # fmt: skip
                 if not record:
                     ratios[n] = (other + f["fit"]) / max(f["simulation"], 1e-9)
-                    lines.append(f"N = {n}: (other + fit) / simulation = {ratios[n]:.2f}; simulation "
-                                 f"{f['simulation'] * per:.1f} us per rollout = {f['simulation'] * per / f['twin_us']:.2f}"
-                                 f" x the pure twin's {f['twin_us']:.1f} us")  # fmt: skip
+                    other_cpu = f["run_cpu"] - f["simulation_cpu"] - f["fit_cpu"]
+                    ratio_cpu = (other_cpu + f["fit_cpu"]) / max(f["simulation_cpu"], 1e-9)
+                    lines.append(f"N = {n}: (other + fit) / simulation = {ratios[n]:.2f} wall, {ratio_cpu:.2f} CPU; "
+                                 f"simulation {f['simulation'] * per:.1f} us per rollout = "
+                                 f"{f['simulation'] * per / f['twin_us']:.2f} x the pure twin's {f['twin_us']:.1f} us "
+                                 f"wall, {f['simulation_cpu'] * per / f['twin_cpu_us']:.2f} x CPU "
+                                 f"({f['simulation_cpu'] * per:.1f} / {f['twin_cpu_us']:.1f} us)")  # fmt: skip
     print("\n".join(lines))
     if args.check:
         if CHECK_N not in ratios:

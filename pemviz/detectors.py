@@ -91,6 +91,93 @@ class WindowDetector:
         return out
 
 
+def defensive_logit(q_logit: np.ndarray, eps: float) -> np.ndarray:
+    """logit of the defensive mixture (1 - eps) q + eps * 50 % (Hesterberg, "Weighted average importance sampling and
+    defensive mixture distributions", Technometrics 1995): log p_mix(detect) - log p_mix(miss), float64 [N], in log
+    space throughout, from logit q(detect) [N]; both outcomes keep probability >= eps / 2. ``eps`` in (0, 1)."""
+    q_logit = np.asarray(q_logit, dtype=np.float64)
+    a, half = np.log1p(-eps), np.log(eps / 2.0)
+    return np.logaddexp(a + log_expit(q_logit), half) - np.logaddexp(a + log_expit(-q_logit), half)
+
+
+class StageSamplers:
+    """The detectors one proposal gives a cross-entropy stage, evaluated together, once per step.
+
+    The proposal draws only where a detection can matter, ``floor_m <= gap < radius_m`` (a problem's window, above
+    the gap where the outcome is already decided), the target everywhere else: :attr:`plain` is that, and
+    :attr:`defensive` the same with the per-step defensive mixture inside (:func:`defensive_logit`, ``eps`` > 0; with
+    ``eps`` = 0 it is :attr:`plain`). A stage drawn as a mixture over whole rollouts asks its sampler, then its target
+    (:attr:`target`, e.g. inside a :class:`ScoredTarget` that also asks every component) about the same observations
+    at each step: all of them share one evaluation of the target on every row and of the proposal on the window's
+    rows, kept for the last observations asked about (compared by value). Call :meth:`forget` once the proposal
+    changed (a fit). Returned logits are read-only arrays.
+
+    Args:
+        proposal: q, asked only about the window's rows (a network costs per row).
+        target: the target detector p (the PEM), asked about every row.
+        radius_m, floor_m: the window on the gap (metres); the defaults, infinite, make it everywhere.
+        eps: the defensive share (0: none).
+    """
+
+    def __init__(self, proposal: Detector, target: Detector, radius_m: float = math.inf, floor_m: float = -math.inf,
+                 eps: float = 0.0) -> None:  # fmt: skip
+        self.proposal, self.target_detector = proposal, target
+        self.radius_m, self.floor_m, self.eps = float(radius_m), float(floor_m), float(eps)
+        self._obs: np.ndarray | None = None
+        self._logits: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
+        self.target, self.plain = SamplerView(self, 0), SamplerView(self, 1)
+        self.defensive = SamplerView(self, 2) if self.eps > 0.0 else self.plain
+
+    def forget(self) -> None:
+        """Drop the kept evaluation (the proposal changed)."""
+        self._obs = None
+
+    def logits(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(target, plain, defensive) logit p(detect | obs), float64 [N] each, for observations [N, F]."""
+        obs = np.asarray(obs, dtype=np.float64)
+        last = self._obs
+        if last is not None and last.shape == obs.shape and np.array_equal(last, obs):
+            return self._logits
+        p = np.asarray(self.target_detector.detect_logit(obs), dtype=np.float64)
+        gap = obs[:, GAP_COLUMN]
+        near = gap < self.radius_m
+        if self.floor_m > -math.inf:
+            near &= gap >= self.floor_m
+        plain = p.copy()
+        defensive = plain
+        if near.any():
+            z = np.asarray(self.proposal.detect_logit(obs[near]), dtype=np.float64)
+            plain[near] = z
+            if self.eps > 0.0:
+                defensive = p.copy()
+                defensive[near] = defensive_logit(z, self.eps)
+        for a in (p, plain, defensive):
+            a.flags.writeable = False
+        self._obs, self._logits = obs.copy(), (p, plain, defensive)
+        return self._logits
+
+    def describe(self, index: int, proposal: str = "proposal", target: str = "target") -> str:
+        """A short name of one of the detectors (0 target, 1 plain, 2 defensive) for the rollout file's sidecar."""
+        if index == 0:
+            return target
+        inside = proposal if index == 1 or self.eps <= 0.0 else f"(1 - {self.eps:g}) {proposal} + {self.eps:g} x 50 %"
+        if self.radius_m == math.inf:
+            return inside
+        return f"{inside} within {self.radius_m:g} m, {target} beyond"
+
+
+@dataclass(frozen=True, eq=False)
+class SamplerView:
+    """One of a :class:`StageSamplers`' detectors: 0 the target, 1 the plain sampler, 2 the defensive one."""
+
+    samplers: StageSamplers
+    index: int
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        """logit p(detect | obs), float64 [N] (read-only), for observations [N, F]."""
+        return self.samplers.logits(obs)[self.index]
+
+
 @dataclass(frozen=True)
 class ArrayRQMC:
     """``detector``, drawn by Array-RQMC: a simulator stepping rollouts together ranks them by this detector's logit
@@ -117,64 +204,46 @@ def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np
     return u
 
 
-class LastAnswer:
-    """``detector``, remembering its last answer: asked again about the same observations (equal shape and values),
-    it returns the same logits without asking ``detector`` again, e.g. when the sampler of a step and two mixture
-    components around one proposal network are asked about the same rows. :meth:`forget` drops the answer (the
-    detector changed, e.g. a proposal was fitted)."""
-
-    def __init__(self, detector: Detector) -> None:
-        self.detector = detector
-        self._obs: np.ndarray | None = None
-        self._logit = np.empty(0)
-
-    def forget(self) -> None:
-        """Drop the remembered answer."""
-        self._obs = None
-
-    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
-        """logit p(detect | obs), float64 [N], for observations [N, F]."""
-        obs = np.asarray(obs, dtype=np.float64)
-        last = self._obs
-        if last is None or last.shape != obs.shape or not np.array_equal(last, obs):
-            self._logit = np.asarray(self.detector.detect_logit(obs), dtype=np.float64)
-            self._obs = obs.copy()
-        return self._logit.copy()
-
-
 class ScoredTarget:
     """The target detector that also asks ``extras`` about every observation it is asked about and keeps their
-    logits, so that a mixture's component densities come out of the simulation that drew the rollouts instead of a
-    second pass over them (each simulator asks its target once per step about all rollouts it steps together).
+    logits and its own, so that a mixture's component densities come out of the simulation that drew the rollouts
+    instead of a second pass over them (each simulator asks its target once per step about all rollouts it steps
+    together).
 
-    :meth:`take` hands the kept logits over as [K, n, T] for the next ``n`` rollouts of T steps, or None when the
-    asks do not fit that shape (a simulator that asks otherwise, or a remote executor whose copy of this object did
-    the asking): the caller then asks ``extras`` itself.
+    :meth:`take` hands the kept logits over as [K, n, T] (and the target's [n, T]) for the next ``n`` rollouts of T
+    steps, or None when the asks do not fit that shape (a simulator that asks otherwise, or a remote executor whose
+    copy of this object did the asking): the caller then asks ``extras`` itself.
     """
 
     def __init__(self, target: Detector, extras: tuple[Detector, ...]) -> None:
         self.target, self.extras = target, tuple(extras)
-        self._asked: list[np.ndarray] = []
+        self._asked: list[tuple[np.ndarray, ...]] = []
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
-        """The target's logit p(detect | obs), float64 [N]; the extras' logits [K, N] are kept."""
-        self._asked.append(np.stack([np.asarray(d.detect_logit(obs), dtype=np.float64) for d in self.extras]))
-        return self.target.detect_logit(obs)
+        """The target's logit p(detect | obs), float64 [N]; it and the extras' logits (K + 1 arrays [N]) are kept."""
+        extras = tuple(np.asarray(d.detect_logit(obs), dtype=np.float64) for d in self.extras)
+        p = np.asarray(self.target.detect_logit(obs), dtype=np.float64)
+        self._asked.append((p, *extras))
+        return p
 
-    def take(self, n: int, n_steps: int) -> np.ndarray | None:
-        """The extras' logits of the next ``n`` rollouts, float64 [K, n, T], in the order simulated: groups of T asks
-        of equal rows (one group per chunk of rollouts stepped together), or None (all kept logits are dropped) when
-        the asks kept do not start with such groups covering ``n`` rollouts."""
-        asked, parts, used, rows = self._asked, [], 0, 0
+    def take(self, n: int, n_steps: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(the extras' logits float64 [K, n, T], the target's [n, T]) of the next ``n`` rollouts, in the order
+        simulated: groups of T asks of equal rows (one group per chunk of rollouts stepped together), or None (all
+        kept logits are dropped) when the asks kept do not start with such groups covering ``n`` rollouts."""
+        asked, groups, used, rows = self._asked, [], 0, 0
         while rows < n and used + n_steps <= len(asked):
-            group = asked[used:used + n_steps]
-            m = group[0].shape[1]
-            if any(g.shape[1] != m for g in group):
+            m = asked[used][0].shape[0]
+            if any(a[0].shape[0] != m for a in asked[used:used + n_steps]):
                 break
-            parts.append(np.stack(group, axis=2))  # [K, m, T]
+            groups.append((used, rows, m))
             used, rows = used + n_steps, rows + m
         if rows != n:
             self._asked = []
             return None
+        out = np.empty((len(self.extras) + 1, n, n_steps))
+        for first, row, m in groups:
+            for t in range(n_steps):
+                for k, logit in enumerate(asked[first + t]):
+                    out[k, row:row + m, t] = logit
         del asked[:used]
-        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+        return out[1:], out[0]

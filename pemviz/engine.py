@@ -23,7 +23,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from typing import Iterable
+from typing import Iterable, Iterator, Mapping
 
 import numpy as np
 
@@ -62,6 +62,27 @@ SAMPLE_FAILURES = 100
 """The first failures of a streamed stage that listeners see in full."""
 SAMPLE_UNIFORM = 100
 """Evenly spaced rollouts of a streamed stage that listeners see in full."""
+
+
+class RobustnessByMetric(Mapping[str, np.ndarray]):
+    """metric -> robustness [N] of a batch under each semantics of :data:`pemviz.config.METRICS`, each computed when
+    first read (the estimator reads the classic one and the configured one; a listener may read the others)."""
+
+    def __init__(self, problem: Problem, batch: RolloutBatch) -> None:
+        self.problem, self.batch, self._known = problem, batch, {}
+
+    def __getitem__(self, metric: str) -> np.ndarray:
+        if metric not in METRICS:
+            raise KeyError(metric)
+        if metric not in self._known:
+            self._known[metric] = self.problem.robustness(self.batch, metric)
+        return self._known[metric]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(METRICS)
+
+    def __len__(self) -> int:
+        return len(METRICS)
 
 
 class StageSample:
@@ -171,7 +192,7 @@ class Experiment:
                 batches = [executor.simulate(pb, k, d, target, estimator.rng) for k, d in parts]
                 batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
             self._check_cancel()
-            by_metric = {m: pb.robustness(batch, m) for m in METRICS}
+            by_metric = RobustnessByMetric(pb, batch)  # the other metrics only if a listener reads them
             failed = pb.failed(batch, by_metric["classic"])
             log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
             self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target))
@@ -202,7 +223,7 @@ class Experiment:
                                    pb.target))  # fmt: skip
             sample.add(batch, robustness, failed, log_w)
         batch, index = sample.rollouts()
-        by_metric = {m: pb.robustness(batch, m) for m in METRICS}
+        by_metric = RobustnessByMetric(pb, batch)
         self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, sample.failed[index],
                                   sample.log_weight[index], plan.sampler, n_total=plan.n, index=index,
                                   stage_robustness=sample.robustness, stage_log_weight=sample.log_weight))  # fmt: skip

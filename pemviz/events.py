@@ -13,7 +13,7 @@ tested on hand-made events.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Union
+from typing import TYPE_CHECKING, Callable, Mapping, Union
 
 import numpy as np
 
@@ -61,8 +61,8 @@ class RolloutsSampled:
     batch: RolloutBatch
     robustness: np.ndarray
     """[N] under the configured metric."""
-    robustness_by_metric: dict
-    """metric name -> [N] robustness under each semantics of :data:`pemviz.config.METRICS`."""
+    robustness_by_metric: Mapping[str, np.ndarray]
+    """metric name -> [N] robustness under each semantics of :data:`pemviz.config.METRICS` (computed when read)."""
     failed: np.ndarray
     """bool [N]: the problem's failure (:meth:`pemviz.problems.Problem.failed`: classic robustness < 0)."""
     log_weight: np.ndarray

@@ -73,8 +73,13 @@ def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray) -> np.ndarray:
                          f"{key.shape}")
     first = key if key.ndim == 1 else key[:, 0]
     order = np.argsort(first, kind="stable")
-    if key.ndim == 2 and key.shape[1] > 1 and np.any(first[order[1:]] == first[order[:-1]]):  # ties: the next columns
-        order = np.lexsort(key.T[::-1])
+    if key.ndim == 2 and key.shape[1] > 1:
+        ranked = first[order]
+        tied = ranked[1:] == ranked[:-1]
+        # Ties in the first column are broken by the next ones, unless the tied chains agree on them too (e.g. every
+        # chain before its first decisive step): the stable order is then already the lexicographic one.
+        if tied.any() and not np.array_equal(key[order[1:][tied], 1:], key[order[:-1][tied], 1:]):
+            order = np.lexsort(key.T[::-1])
     out = np.empty(u.size)
     out[order] = np.arange(u.size) * GOLDEN + u[0]
     return np.remainder(out, 1.0, out=out)

@@ -27,7 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.special import logsumexp
 
-from pemviz.detectors import ArrayRQMC, ConstantDetector, Detector, WindowDetector, action_log_prob
+from pemviz.detectors import ArrayRQMC, ConstantDetector, Detector, SamplerView, WindowDetector, action_log_prob
 
 CONVENTIONS = ("to-failure", "full")
 """The weight conventions: ``to-failure`` (stopped at the failure step) and ``full`` (every step but the last)."""
@@ -105,6 +105,8 @@ def describe(detector: Any, target: Any = None) -> str:
 
     if detector is target:
         return "target"
+    if isinstance(detector, SamplerView):
+        return detector.samplers.describe(detector.index)
     if isinstance(detector, WindowDetector):
         return (f"{describe(detector.inside, target)} within {detector.radius_m:g} m, "
                 f"{describe(detector.outside, target)} beyond")  # fmt: skip

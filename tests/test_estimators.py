@@ -332,30 +332,6 @@ def test_fit_weights_are_checked():
         ExperimentConfig(final_smoothing=0)
 
 
-def test_last_answer_asks_its_detector_once_per_distinct_observations():
-    from pemviz.detectors import LastAnswer
-
-    class Counting:
-        calls = 0
-
-        def detect_logit(self, obs):
-            Counting.calls += 1
-            return obs[:, 0] * 2.0 - 1.0
-
-    memo = LastAnswer(Counting())
-    obs = np.random.default_rng(0).normal(size=(50, 4))
-    first = memo.detect_logit(obs)
-    again = memo.detect_logit(obs.copy())  # equal bytes, another array
-    assert Counting.calls == 1 and np.array_equal(first, again) and np.array_equal(first, obs[:, 0] * 2.0 - 1.0)
-    first[:] = 0.0  # the caller's copy: the remembered answer is not changed through it
-    np.testing.assert_array_equal(memo.detect_logit(obs), obs[:, 0] * 2.0 - 1.0)
-    changed = obs.copy()
-    changed[7, 3] += 1e-12  # one column the detector does not read: still a new question
-    memo.detect_logit(changed)
-    memo.detect_logit(obs[:49])
-    assert Counting.calls == 3
-
-
 @pytest.mark.parametrize("pool_weights, power", [("quadratic", 2), ("linear", 1), ("rollouts", 0)])
 def test_pool_weights_count_the_jth_pooled_stage_by_j_to_the_power_times_its_rollouts(pool_weights, power):
     # K = 4 stages of 50 and N_e = 100 on main: the pool starts once a stage reaches gamma = 0; the run's mu_hat must

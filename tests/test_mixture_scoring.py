@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import ConstantDetector, LastAnswer, ScoredTarget
+from pemviz.detectors import ConstantDetector, ScoredTarget, StageSamplers, WindowDetector
+from pemviz.estimators import DefensiveDetector
 from pemviz.engine import Experiment
 from pemviz.problems import build_problem
 from pemviz.scenarios import simulate
@@ -36,10 +37,11 @@ def test_scored_target_answers_as_the_target_and_hands_over_the_extras_logits_ch
                for n in (3, 2)]  # two chunks of rollouts, stepped one after the other
     for b in batches:  # the target's log-probabilities: log 0.3 where detected, log 0.7 where missed
         np.testing.assert_allclose(b.log_p, np.where(b.detected, math.log(0.3), math.log(0.7)), rtol=1e-14)
-    kept = scored.take(5, T)
+    kept, target_logit = scored.take(5, T)
     assert kept.shape == (1, 5, T)
     obs = np.concatenate([b.observations for b in batches])
     np.testing.assert_array_equal(kept[0], obs[:, :, 0] / 10.0 - 2.0)  # rollout by rollout, step by step
+    np.testing.assert_array_equal(target_logit, np.full((5, T), ConstantDetector(0.3).detect_logit(np.zeros((1, 1)))[0]))
     assert scored.take(1, T) is None  # nothing left
 
 
@@ -51,17 +53,42 @@ def test_scored_target_refuses_asks_that_do_not_make_whole_rollouts():
     assert scored.take(3, T) is None  # and the unusable asks were dropped
 
 
-def test_last_answer_asks_again_only_for_other_observations_or_after_forget():
-    GapLogit.calls = 0
-    memo = LastAnswer(GapLogit())
-    obs = np.array([[3.0], [7.0]])
-    first = memo.detect_logit(obs)
-    np.testing.assert_array_equal(memo.detect_logit(obs.copy()), first)  # equal values: the same answer
-    assert GapLogit.calls == 1
-    memo.detect_logit(np.array([[3.0], [7.5]]))
-    memo.forget()
-    memo.detect_logit(np.array([[3.0], [7.5]]))
-    assert GapLogit.calls == 3
+class Counting:
+    """A detector that counts the rows it was asked about (a proposal network costs per row)."""
+
+    def __init__(self, detector) -> None:
+        self.detector, self.calls, self.rows = detector, 0, 0
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        self.calls, self.rows = self.calls + 1, self.rows + len(obs)
+        return self.detector.detect_logit(obs)
+
+
+def test_stage_samplers_evaluate_each_detector_once_per_step_and_the_proposal_only_inside_the_window():
+    # gaps 1, 3, 6, 9, 12 m: the proposal draws in [2, 10) m (above the decided 2 m, below the 10 m window), the target
+    # elsewhere; the plain sampler is the old WindowDetector around the proposal, the defensive one around the defensive
+    # mixture, value for value
+    proposal, target = Counting(GapLogit()), Counting(ConstantDetector(0.9))
+    samplers = StageSamplers(proposal, target, radius_m=10.0, floor_m=2.0, eps=0.2)
+    obs = np.array([[1.0], [3.0], [6.0], [9.0], [12.0]])
+    for detector in (samplers.defensive, samplers.target, samplers.plain, samplers.defensive):
+        detector.detect_logit(obs.copy())  # equal values, other arrays: one evaluation
+    assert (proposal.calls, proposal.rows, target.calls, target.rows) == (1, 3, 1, 5)
+    np.testing.assert_array_equal(samplers.target.detect_logit(obs), ConstantDetector(0.9).detect_logit(obs))
+    np.testing.assert_array_equal(samplers.plain.detect_logit(obs),
+                                  WindowDetector(GapLogit(), ConstantDetector(0.9), 10.0, 2.0).detect_logit(obs))
+    np.testing.assert_array_equal(
+        samplers.defensive.detect_logit(obs),
+        WindowDetector(DefensiveDetector(GapLogit(), 0.2), ConstantDetector(0.9), 10.0, 2.0).detect_logit(obs))
+    with pytest.raises(ValueError, match="read-only"):
+        samplers.plain.detect_logit(obs)[0] = 1.0  # the kept answer cannot be changed through a caller
+    samplers.forget()  # the proposal was fitted: asked again
+    samplers.plain.detect_logit(obs)
+    samplers.plain.detect_logit(obs[:4])  # other observations: asked again
+    assert (proposal.calls, target.calls) == (3, 3)
+    assert samplers.describe(2) == "(1 - 0.2) proposal + 0.2 x 50 % within 10 m, target beyond"
+    no_eps = StageSamplers(proposal, target)  # no defensive share: the defensive sampler is the plain one
+    assert no_eps.defensive is no_eps.plain and no_eps.describe(2) == "proposal"
 
 
 def test_a_run_weighs_its_mixture_as_a_second_pass_over_the_rollouts_would(monkeypatch):

@@ -18,10 +18,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.special import log_expit
 
 from pemviz.config import ExperimentConfig, settings_of
-from pemviz.detectors import Detector, LastAnswer, ScoredTarget, WindowDetector, action_log_prob, logit
+from pemviz.detectors import (
+    Detector,
+    ScoredTarget,
+    StageSamplers,
+    WindowDetector,
+    action_log_prob,
+    defensive_logit,
+    logit,
+)
 from pemviz.estimate import Estimate, estimate
 from pemviz.estimators.ce_fit import EliteSteps, ce_update, pretrain_proposal
 from pemviz.estimators.base import (
@@ -67,10 +74,8 @@ class DefensiveDetector:
     eps: float
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
-        """log p_mix(detect) - log p_mix(miss), float64 [N], in log space throughout."""
-        q_logit = np.asarray(self.detector.detect_logit(obs), dtype=np.float64)
-        a, half = np.log1p(-self.eps), np.log(self.eps / 2.0)
-        return np.logaddexp(a + log_expit(q_logit), half) - np.logaddexp(a + log_expit(-q_logit), half)
+        """log p_mix(detect) - log p_mix(miss), float64 [N], in log space throughout (:func:`defensive_logit`)."""
+        return defensive_logit(self.detector.detect_logit(obs), self.eps)
 
 
 def break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng: np.random.Generator,
@@ -146,9 +151,8 @@ class CrossEntropy(OwnsSettings):
         """A CE stage's settled elites as fitted steps (frozen weights with a step mask; else the elites are fitted
         from their rollouts by :func:`ce_update`)."""
         self._last: tuple[int, Estimate] | None = None
-        self._memos: tuple[LastAnswer, ...] = ()
-        """The proposal as both samplers around it ask it (they share its answer about a step's observations), and
-        the two samplers, each remembering its last answer (the mixture's target asks both about every step)."""
+        self._samplers: StageSamplers | None = None
+        """The proposal's samplers and the target, evaluated together once per step (:class:`StageSamplers`)."""
         self._seen = 0
         """Rollouts of the planned stage observed so far."""
         self._scored: ScoredTarget | None = None
@@ -187,12 +191,12 @@ class CrossEntropy(OwnsSettings):
             plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
         else:
             return None
-        for memo in self._memos:
-            memo.forget()  # the proposal was fitted since it last answered
+        if self._samplers is not None:
+            self._samplers.forget()  # the proposal was fitted since it last answered
         self._scored, self._seen = None, 0
         if plan.mixture:
             extras = tuple(dict.fromkeys(d for _, d in plan.mixture if d is not self.problem.target))
-            self._scored = ScoredTarget(self.problem.target, extras)
+            self._scored = ScoredTarget(self._samplers.target, extras)
             plan = dataclasses.replace(plan, target=self._scored)
         self._plan = plan
         self.stages[k] = StageRollouts(self.problem.curve_grid)
@@ -227,10 +231,16 @@ class CrossEntropy(OwnsSettings):
         of its actions under the mixture's proposal components (:attr:`ScoredTarget.extras`), as the simulation asked
         them, or asked again where it could not keep them (Ray tasks; :meth:`_ask_again`)."""
         start, self._seen = self._seen, self._seen + batch.n
-        logits = self._scored.take(batch.n, batch.n_steps)
-        if logits is None:
-            logits = self._ask_again(batch, start)
-        parts = np.stack([action_log_prob(lg, batch.detected) for lg in logits], axis=1)
+        taken = self._scored.take(batch.n, batch.n_steps)
+        logits, target_logit = (self._ask_again(batch, start), None) if taken is None else taken
+        parts = np.empty((batch.n, len(logits), batch.n_steps))
+        for k, lg in enumerate(logits):
+            if target_logit is None:
+                parts[:, k] = action_log_prob(lg, batch.detected)
+            else:  # where a component gives way to the target (outside its window) its density is the target's
+                differ = lg != target_logit
+                parts[:, k] = batch.log_p
+                parts[:, k][differ] = action_log_prob(lg[differ], batch.detected[differ])
         return dataclasses.replace(batch, log_q_parts=parts)
 
     def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
@@ -335,34 +345,28 @@ class CrossEntropy(OwnsSettings):
             check=self.check, step_mask=self.step_mask(batch) if cfg.proposal_window else None,
             fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
-        if cfg.defensive > 0.0:  # two samplers share the proposal's answer about a step: the network runs once a step
-            shared = LastAnswer(proposal)
-            self._memos = (shared, *(LastAnswer(d) for d in self._samplers(shared)))
-            self.plain_sampler, self.sampler = self._memos[1:]
-        else:
-            self.plain_sampler, self.sampler = self._samplers(proposal)
+        self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
 
-    def _samplers(self, proposal: Detector) -> tuple[Detector, Detector]:
-        """(the plain sampler, the CE stages' sampler) around a proposal (or a :class:`LastAnswer` around one): q
-        inside the problem's window (``proposal_window``; q = p_target where the detector cannot matter), and that
-        with the per-step defensive mixture (``defensive``)."""
+    def _samplers_around(self, proposal: Proposal) -> tuple[StageSamplers, Detector, Detector]:
+        """(the CE stages' samplers around a proposal, the plain sampler, the defensive one): q inside the problem's
+        window and above the gap where the outcome is decided (``proposal_window``, ``skip_decided``; q = p_target
+        where the detector cannot matter), plain and with the per-step defensive mixture (``defensive``), evaluated
+        together once per step (:class:`StageSamplers`). Without a window or a defensive share the proposal itself
+        draws (the paper)."""
         cfg, pb = self.config, self.problem
+        eps = float(cfg.defensive)
+        if not cfg.proposal_window:  # the proposal everywhere
+            samplers = StageSamplers(proposal, pb.target, eps=eps)
+            return samplers, proposal, proposal if eps == 0.0 else samplers.defensive
         floor = pb.decided_below if cfg.skip_decided else -math.inf  # below it the outcome is decided
-
-        def windowed(sampler: Detector) -> Detector:
-            return WindowDetector(sampler, pb.target, pb.window, floor) if cfg.proposal_window else sampler
-
-        plain = windowed(proposal)
-        if cfg.defensive > 0.0:  # every outcome keeps probability >= eps / 2 at every step
-            return plain, windowed(DefensiveDetector(proposal, float(cfg.defensive)))
-        return plain, plain
+        samplers = StageSamplers(proposal, pb.target, pb.window, floor, eps)
+        return samplers, samplers.plain, samplers.defensive
 
     def _around(self, mixture: tuple[tuple[int, Detector], ...],
                 proposal: Proposal) -> tuple[tuple[int, Detector], ...]:  # fmt: skip
         """A stage's (rollouts, sampler) components with the proposal's samplers rebuilt around ``proposal`` (the
-        target stays), which remembers its last answer: the plain and the defensive sampler, asked about the same
-        observations, evaluate the network once."""
-        plain, sampler = self._samplers(LastAnswer(proposal))
+        target stays)."""
+        _, plain, sampler = self._samplers_around(proposal)
         rebuilt = {id(self.plain_sampler): plain, id(self.sampler): sampler}
         return tuple((n, rebuilt.get(id(d), d)) for n, d in mixture)
 
