@@ -5,6 +5,7 @@ counterfactual, one stage numbering, export names and files."""
 from __future__ import annotations
 
 import io
+import re
 import math
 
 import numpy as np
@@ -240,8 +241,9 @@ def test_console_progress_names_stages_as_the_panel_and_recording_do(tiny_record
     panel = [tiny_record.plan.label(s.stage, s.kind) for s in tiny_record.stages]
     assert panel == ["pretraining", "CE stage 1/2", "CE stage 2/2", "final batch"]
     text = progress.getvalue().splitlines()
-    assert all("elapsed" in line for line in text) and "this stage ~" not in text[1]  # nothing to go by yet
-    assert "this stage ~" in text[2] and "this stage ~" in text[3]
+    left = [float(re.search(r"run ~(\d+\.\d) s left\)$", line).group(1)) for line in text]
+    assert all("elapsed" in line and "this stage ~" in line for line in text)  # from the plan, before any stage
+    assert left[0] > left[-1] >= 0.0  # the whole run's time left, down to the final batch's own
 
 
 # -- export ---------------------------------------------------------------------------------------

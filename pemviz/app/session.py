@@ -6,7 +6,7 @@ a run or a Stop button. The experiment runs in a worker thread (:class:`pemviz.e
 session listens to its events and stops it through the cancel token.
 
 Layout: the control panel (right) holds Run / Stop, the cost of the run, the status line (stage,
-elapsed time, expected time), the accuracy of the final estimate and the tabs *Experiment* (the form;
+elapsed time, the time left in the stage and in the whole run), the accuracy of the final estimate and the tabs *Experiment* (the form;
 each field shows its own error), *Rollouts* (choose a rollout: the most likely failure found and the
 least-robust ones; 3D playback) and *Runs* (kept runs with their settings, pin / unpin, export). The
 plots panel (left) holds *Live* (what each stage's sampler did over the states its rollouts visited, per-stage
@@ -39,6 +39,7 @@ from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_num
 from pemviz.app.runs import PANEL_PRESETS, PanelRun, Trajectory, export_path, export_run, keep_runs
 from pemviz import engine
 from pemviz.config import SETTINGS, SIMULATORS, ExperimentConfig
+from pemviz.cost import duration
 from pemviz.estimate import format_probability
 from pemviz.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
@@ -134,7 +135,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
     def start_run(self, confirmed: bool = False) -> str | None:
         """Start a run with the form's values; returns why it was refused instead.
 
-        A run whose cost is above the limits (:meth:`pemviz.app.form.RunCost.needs_confirm`) starts only
+        A run whose cost is above the limits (:meth:`pemviz.cost.RunCost.needs_confirm`) starts only
         ``confirmed`` (the *Run anyway* button).
         """
         with self.lock:
@@ -442,7 +443,8 @@ class Session(RunsTab, RolloutsTab, SceneView):
                 self._refresh_plots()
 
     def tick(self) -> None:
-        """Refresh the status line of a running run: stage, what it does, elapsed time, expected time."""
+        """Refresh the status line of a running run: stage, what it does, elapsed time, the time left in the stage and in
+        the whole run (:class:`pemviz.sinks.StageClock`)."""
         with self.lock:
             record = self.record
             if record is None or not self.running or record.done or self._stop_requested_at is not None:
@@ -459,14 +461,17 @@ class Session(RunsTab, RolloutsTab, SceneView):
             elif stage.kind == "pretrain":
                 doing = f"pretraining the proposal ({cfg.pretrain_epochs} epochs)"
             else:
-                doing = f"cross-entropy update ({cfg.ce_epochs} epochs)"
-            in_stage = record.clock.stage_elapsed_s()
-            expected = record.clock.expected_s(stage.kind, stage.n_rollouts)
+                most = "at most " if cfg.fit_tolerance is not None and cfg.fit == "adam" else ""
+                doing = f"cross-entropy update ({most}{cfg.ce_epochs} epochs)"
+            clock = record.clock
+            stage_left, run_left = clock.stage_left_s(), clock.run_left_s()
             eta = ""
-            if math.isfinite(expected):
-                eta = f", about {max(0.0, expected - in_stage):.1f} s left in it" if in_stage < expected else ", nearly done"
+            if math.isfinite(stage_left):
+                eta = f", about {stage_left:.1f} s left in it" if stage_left > 0.05 else ", nearly done"
+            whole = f", about {duration(run_left)} left in all" if math.isfinite(run_left) else ""
             self._status(
-                f"{record.short_label} · {label}: {doing} · stage {in_stage:.1f} s{eta} · run {record.elapsed_s():.1f} s"
+                f"{record.short_label} · {label}: {doing} · stage {clock.stage_elapsed_s():.1f} s{eta} · run "
+                f"{record.elapsed_s():.1f} s{whole}"
             )
             self._set_progress(record)
 
