@@ -5,11 +5,13 @@ The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimator
 
 - simulating a batch of n rollouts of T steps: T x (a fixed cost per step of the batch, larger when a proposal
   network and its mixture decide the detections than when the PEM alone does, + a cost per rollout and step of the
-  simulator), plus a fixed cost per stage (robustness, estimate, listeners);
-- fitting the proposal (pretraining and each cross-entropy stage): epochs x (a fixed cost per Adam epoch + a cost per
-  fitted row and epoch). The rows are the distinct fitted steps, at most ``fit_rows``: per pretraining rollout a
-  fixed number; per CE stage a number that grows slowly with N (the failures pooled since the failure level). A CE
-  fit with ``fit_tolerance`` stops early, on average after a share of ``ce_epochs``.
+  simulator);
+- after the rollouts, a fixed cost per stage (robustness, estimate, listeners) and, in pretraining and each
+  cross-entropy stage, the proposal's fit: epochs x (a fixed cost per Adam epoch + a cost per fitted row and epoch) +
+  a cost per fitted row (gathering and weighing the pool). The rows are the distinct fitted steps, at most
+  ``fit_rows``: per pretraining rollout a fixed number; per CE stage a number that grows slowly with N (the failures
+  pooled since the failure level). A CE fit with ``fit_tolerance`` stops early, on average after a share of
+  ``ce_epochs``.
 
 :data:`COST` holds the constants, measured by ``python benchmarks/calibrate_cost.py`` (which prints the predicted and
 measured seconds of a handful of runs and, with ``--fit``, the constants fitted to them). :class:`StageClock
@@ -43,9 +45,11 @@ class CostConstants:
         pem_step_s: per time step of a batch whose detections the PEM (or a fixed detector) decides, seconds.
         proposal_step_s: per time step of a batch drawn by the proposal (its network and mixture), seconds.
         rollout_step_s: per rollout and time step of each simulator (:data:`pemviz.config.SIMULATORS`), seconds.
-        stage_s: per stage besides simulating and fitting (robustness, estimate, listeners), seconds.
+        proposal_rollout_step_s: per rollout and time step more when a proposal draws the batch, seconds.
+        stage_s: per stage after its rollouts, besides the fit (robustness, estimate, listeners), seconds.
         epoch_s: per Adam epoch of a fit, whatever its rows, seconds.
         row_epoch_s: per fitted row and Adam epoch, seconds.
+        row_s: per fitted row of a fit, outside the epochs (gathering and weighing the failures), seconds.
         pretrain_rows: distinct fitted rows per pretraining rollout, by :data:`pemviz.config.PROPOSAL_INPUTS`.
         ce_rows: distinct fitted rows of a CE stage's fit at N = 100, by proposal inputs.
         ce_rows_exponent: the CE rows grow as (N / 100) to this power.
@@ -57,9 +61,11 @@ class CostConstants:
     pem_step_s: float
     proposal_step_s: float
     rollout_step_s: dict[str, float]
+    proposal_rollout_step_s: float
     stage_s: float
     epoch_s: float
     row_epoch_s: float
+    row_s: float
     pretrain_rows: dict[str, float]
     ce_rows: dict[str, float]
     ce_rows_exponent: float
@@ -69,35 +75,38 @@ class CostConstants:
 
 
 COST = CostConstants(
-    pem_step_s=1.0e-4,
-    proposal_step_s=1.2e-3,
-    rollout_step_s={"batched": 1.2e-6, "highway-env": 8e-5},
-    stage_s=0.02,
-    epoch_s=3e-4,
-    row_epoch_s=1.0e-6,
-    pretrain_rows={"state": 13.0, "gap": 1.0},
-    ce_rows={"state": 2900.0, "gap": 200.0},
-    ce_rows_exponent=0.17,
-    early_stop_share=0.8,
-    measured="placeholder",
+    pem_step_s=9.29e-05,
+    proposal_step_s=0.000204,
+    rollout_step_s={"batched": 3.86e-07, "highway-env": 4.91e-05},
+    proposal_rollout_step_s=7.71e-07,
+    stage_s=0.0016,
+    epoch_s=8.55e-05,
+    row_epoch_s=5.37e-07,
+    row_s=1.29e-05,
+    pretrain_rows={"state": 13.9, "gap": 0.91},
+    ce_rows={"state": 2.75e+03, "gap": 190},
+    ce_rows_exponent=0.209,
+    early_stop_share=0.838,
+    ams_rollouts=5,
+    measured="2026-11-23, benchmarks/calibrate_cost.py --fit --repeat 2, 2 cores, load average 2.1",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
 
 @dataclass(frozen=True)
 class StageCost:
-    """Predicted seconds of one stage: simulating its rollouts (with the stage's bookkeeping) and fitting after."""
+    """Predicted seconds of one stage: simulating its rollouts, and after them (the fit and the stage's bookkeeping)."""
 
     simulate_s: float
-    fit_s: float
+    after_s: float
 
     @property
     def seconds(self) -> float:
-        return self.simulate_s + self.fit_s
+        return self.simulate_s + self.after_s
 
 
 def _fit_s(epochs: float, rows: float, c: CostConstants) -> float:
-    return epochs * (c.epoch_s + c.row_epoch_s * rows)
+    return epochs * (c.epoch_s + c.row_epoch_s * rows) + c.row_s * rows
 
 
 def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS, c: CostConstants = COST) -> StageCost:
@@ -110,21 +119,21 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
     """
     proposal = cfg.method == "adaptive" and kind in ("ce", "final")
     per_step = c.proposal_step_s if proposal else c.pem_step_s
+    per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
     rollouts = n * (c.ams_rollouts if kind == "ams" else 1.0)
-    simulate = n_steps * (per_step + c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) * rollouts)
-    simulate += c.stage_s
+    simulate = n_steps * (per_step + per_rollout * rollouts)
     cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
     inputs = cfg.proposal_inputs
-    fit = 0.0
+    fit = c.stage_s
     if cfg.method == "adaptive" and kind == "pretrain":
-        fit = _fit_s(cfg.pretrain_epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
+        fit += _fit_s(cfg.pretrain_epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
     elif cfg.method == "adaptive" and kind == "ce":
         rows = min(cap, c.ce_rows.get(inputs, 1.0) * (n / 100.0) ** c.ce_rows_exponent)
         if cfg.fit == "lbfgs":
             epochs = float(cfg.fit_max_steps)
         else:
             epochs = cfg.ce_epochs * (c.early_stop_share if cfg.fit_tolerance is not None else 1.0)
-        fit = _fit_s(epochs, rows, c)
+        fit += _fit_s(epochs, rows, c)
     return StageCost(simulate, fit)
 
 

@@ -43,6 +43,7 @@ from pemviz.cost import duration
 from pemviz.estimate import format_probability
 from pemviz.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
+from pemviz.presets import preset_help
 from pemviz.scenarios.braking_failures import Severity
 from pemviz.problems import problem_for
 from pemviz.sampling import torch_threads
@@ -298,8 +299,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
 
         self.preset = gui.add_dropdown(
             "preset", tuple(PANEL_PRESETS), initial_value=self.app.preset_name,
-            hint="state-ce: the recommended sampler; paper: as published; authors-code: as the authors' code ran; "
-                 "quick: a few-second run",
+            hint=f"sampler settings: {preset_help(PANEL_PRESETS)}",
         )  # fmt: skip
         self.choices: dict[str, Any] = {}
         self.fields: dict[str, viser.GuiTextHandle] = {}

@@ -83,17 +83,17 @@ class StageClock(Sink):
     """The wall clock of a run as its events arrive, and the time its stages and the whole run have left (``now``:
     seconds, default ``time.perf_counter``).
 
-    Each stage of the run's plan (:class:`~pemviz.events.RunStarted`) has a predicted time to simulate and to fit
-    (:func:`pemviz.cost.plan_costs`). As stages end the clock measures both (from the stage's start to its
-    :class:`~pemviz.events.RolloutsSampled`, over all of its rollouts, a streamed stage's too; then to its
-    :class:`~pemviz.events.StageFinished`) and scales the predictions of what is left by measured / predicted so far,
-    separately for simulating and fitting.
+    Each stage of the run's plan (:class:`~pemviz.events.RunStarted`) has a predicted time to simulate its rollouts
+    and to finish after them, its fit included (:func:`pemviz.cost.plan_costs`). As stages end the clock measures both
+    (from the stage's start to its :class:`~pemviz.events.RolloutsSampled`, over all of its rollouts, a streamed
+    stage's too; then to its :class:`~pemviz.events.StageFinished`) and scales the predictions of what is left by
+    measured / predicted so far, separately for the two parts.
 
     Attributes:
         t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were sampled
             (None before).
-        simulate_scale, fit_scale: measured / predicted seconds of simulating and fitting over the stages so far (1
-            before any).
+        simulate_scale, after_scale: measured / predicted seconds of simulating, and of what follows (fits), over the
+            stages so far (1 before any).
         done: the finished stages' results.
     """
 
@@ -107,7 +107,7 @@ class StageClock(Sink):
         self.predicted: dict[int, StageCost] = {}
         self.current: StageStarted | None = None
         self.done: list[StageResult] = []
-        self._measured = {"simulate": [0.0, 0.0], "fit": [0.0, 0.0]}  # [measured s, predicted s]
+        self._measured = {"simulate": [0.0, 0.0], "after": [0.0, 0.0]}  # [measured s, predicted s]
 
     def on_run_started(self, event: RunStarted) -> None:
         self.t0 = self.stage_t0 = self.now()
@@ -116,7 +116,7 @@ class StageClock(Sink):
         scene = event.problem.scene
         self._config, self._n_steps = event.config, scene.n_steps if scene is not None else N_STEPS
         self.predicted = plan_costs(event.config, event.plan, self._n_steps, self.constants)
-        self._measured = {"simulate": [0.0, 0.0], "fit": [0.0, 0.0]}
+        self._measured = {"simulate": [0.0, 0.0], "after": [0.0, 0.0]}
 
     def on_stage_started(self, event: StageStarted) -> None:
         self.stage_t0, self.sampled_t, self.current = self.now(), None, event
@@ -130,7 +130,7 @@ class StageClock(Sink):
     def on_stage_finished(self, event: StageFinished) -> None:
         self.done = self.done + [event.result]
         if self.current is not None and self.sampled_t is not None and self.current.stage == event.result.stage:
-            self._add("fit", self.now() - self.sampled_t, self._model(self.current.kind, self.current.n_rollouts).fit_s)
+            self._add("after", self.now() - self.sampled_t, self._model(self.current.kind, self.current.n_rollouts).after_s)
         self.current = None
 
     def _add(self, part: str, measured_s: float, predicted_s: float) -> None:
@@ -148,8 +148,8 @@ class StageClock(Sink):
         return self._scale("simulate")
 
     @property
-    def fit_scale(self) -> float:
-        return self._scale("fit")
+    def after_scale(self) -> float:
+        return self._scale("after")
 
     def _model(self, kind: str, n_rollouts: int) -> StageCost:
         """The model's prediction of a stage of this run (nan before the run starts)."""
@@ -158,10 +158,10 @@ class StageClock(Sink):
         return stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants)
 
     def _scaled(self, cost: StageCost) -> tuple[float, float]:
-        return cost.simulate_s * self.simulate_scale, cost.fit_s * self.fit_scale
+        return cost.simulate_s * self.simulate_scale, cost.after_s * self.after_scale
 
     def expected_s(self, kind: str, n_rollouts: int) -> float:
-        """Expected seconds of a stage of ``kind`` and ``n_rollouts``: its predicted simulating and fitting
+        """Expected seconds of a stage of ``kind`` and ``n_rollouts``: its predicted simulating and what follows
         (:func:`pemviz.cost.stage_cost`), each scaled by what the run measured so far; nan before the run starts."""
         return sum(self._scaled(self._model(kind, n_rollouts)))
 
@@ -169,10 +169,10 @@ class StageClock(Sink):
         """Expected seconds left in the current stage (0 once it has taken longer than expected; nan: none going)."""
         if self.current is None:
             return math.nan
-        simulate, fit = self._scaled(self._model(self.current.kind, self.current.n_rollouts))
+        simulate, after = self._scaled(self._model(self.current.kind, self.current.n_rollouts))
         if self.sampled_t is None:
-            return max(0.0, simulate - (self.now() - self.stage_t0)) + fit
-        return max(0.0, fit - (self.now() - self.sampled_t))
+            return max(0.0, simulate - (self.now() - self.stage_t0)) + after
+        return max(0.0, after - (self.now() - self.sampled_t))
 
     def run_left_s(self) -> float:
         """Expected seconds left in the whole run: the current stage's rest and every later stage of the plan
