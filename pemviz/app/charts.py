@@ -165,7 +165,7 @@ def controller_plot(gui: viser.GuiApi, order: float | None = None) -> viser.GuiU
         data=(t, np.full(2, np.nan)), series=(up.Series(label="t (s)"), up.Series(label="acceleration (m/s^2)")),
         title="controller: brake command, brake applied, acceleration (choose a rollout)",
         scales={"x": up.Scale(time=False, auto=False, range=(0.0, 5.0))}, axes=axes("time (s)", "m/s^2"),
-        legend=LEGEND, height=190, order=order,
+        legend=LEGEND, height=170, order=order,
     )  # fmt: skip
 
 

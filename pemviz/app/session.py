@@ -101,6 +101,8 @@ class Session(RunsTab, RolloutsTab, SceneView):
         self.explanation: Explanation | None = None
         self.shown_step = -1
         self._shown_x: tuple[np.ndarray, np.ndarray] | None = None
+        self._shown_span = 0.0
+        """Metres of road the scene frames for the rollout shown (its cars' longest stretch)."""
         self.playing = False
         self._rollout_labels: dict[str, Trajectory] = {}
         self.last_export: Path | None = None
