@@ -57,6 +57,7 @@ class StageRecord:
     proposal fits inside it as (rows, epochs run, seconds)."""
 
     kind: str
+    stage: int
     n: int
     simulate_s: float = math.nan
     after_s: float = math.nan
@@ -72,7 +73,7 @@ class Recorder(Sink):
 
     def on_stage_started(self, event) -> None:
         self._t0 = CLOCK()
-        self.stages.append(StageRecord(event.kind, event.n_rollouts))
+        self.stages.append(StageRecord(event.kind, event.stage, event.n_rollouts))
 
     def on_rollouts_sampled(self, event) -> None:
         self._t1 = CLOCK()
@@ -174,7 +175,8 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
             x.append([epochs, sum(r * e for r, e, _ in s.fits), rows, 1.0])
             y.append(s.after_s)
     after = _lstsq(np.array(x, float), np.array(y), 1.0 / np.maximum(np.array(y), 1e-2))
-    # the rows of the fits and the share of epochs the early-stopped fits run
+    # the rows of the fits: per pretraining rollout; of CE stage k, P (N / 100)^gamma (1 - exp(-(k - 1) / tau)),
+    # fitted in log space over a grid of gamma and tau; the share of epochs the early-stopped fits run
     pretrain, ce, share = {}, {}, []
     for cfg, rec in runs:
         for s in rec.stages:
@@ -182,21 +184,32 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
                 if s.kind == "pretrain":
                     pretrain.setdefault(cfg.proposal_inputs, []).append(rows / s.n)
                 elif s.kind == "ce":
-                    ce.setdefault(cfg.proposal_inputs, {}).setdefault(s.n, []).append(rows)
+                    if s.stage > 1:
+                        ce.setdefault(cfg.proposal_inputs, []).append((s.stage, s.n, rows))
                     if cfg.fit_tolerance is not None and cfg.fit == "adam":
                         share.append(epochs / cfg.ce_epochs)
-    rows_at = {inputs: {n: float(np.mean(v)) for n, v in by_n.items()} for inputs, by_n in ce.items()}
-    slopes = [math.log(r[max(r)] / r[min(r)]) / math.log(max(r) / min(r)) for r in rows_at.values() if len(r) > 1]
-    exponent = float(np.mean(slopes)) if slopes else c0.ce_rows_exponent
-    ce_rows = {inputs: float(np.mean([v * (100.0 / n) ** exponent for n, v in r.items()])) for inputs, r in
-               rows_at.items()}  # fmt: skip
+    best = (math.inf, c0.ce_rows_exponent, c0.ce_rows_stages)
+    for gamma in np.linspace(0.0, 0.6, 31):
+        for tau in np.linspace(0.3, 10.0, 98):
+            sse = 0.0
+            for points in ce.values():
+                k, n, rows = (np.array(v, float) for v in zip(*points))
+                resid = np.log(rows) - gamma * np.log(n / 100.0) - np.log1p(-np.exp(-(k - 1) / tau))
+                sse += float(np.sum((resid - resid.mean()) ** 2))
+            best = min(best, (sse, float(gamma), float(tau)))
+    _, exponent, tau = best
+    ce_rows = {}
+    for inputs, points in ce.items():
+        k, n, rows = (np.array(v, float) for v in zip(*points))
+        ce_rows[inputs] = float(np.exp(np.mean(np.log(rows) - exponent * np.log(n / 100.0)
+                                               - np.log1p(-np.exp(-(k - 1) / tau)))))  # fmt: skip
     return cost.CostConstants(
         pem_step_s=float(sim[0]), proposal_step_s=float(sim[1]),
         rollout_step_s={**c0.rollout_step_s, **{m: float(b) for m, b in zip(sims, sim[3:])}},
         proposal_rollout_step_s=float(sim[2]),
         stage_s=float(after[3]), epoch_s=float(after[0]), row_epoch_s=float(after[1]), row_s=float(after[2]),
         pretrain_rows={**c0.pretrain_rows, **{k: float(np.mean(v)) for k, v in pretrain.items()}},
-        ce_rows={**c0.ce_rows, **ce_rows}, ce_rows_exponent=exponent,
+        ce_rows={**c0.ce_rows, **ce_rows}, ce_rows_exponent=exponent, ce_rows_stages=tau,
         early_stop_share=float(np.mean(share)) if share else c0.early_stop_share, ams_rollouts=c0.ams_rollouts,
     )  # fmt: skip
 

@@ -9,8 +9,8 @@ The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimator
 - after the rollouts, a fixed cost per stage (robustness, estimate, listeners) and, in pretraining and each
   cross-entropy stage, the proposal's fit: epochs x (a fixed cost per Adam epoch + a cost per fitted row and epoch) +
   a cost per fitted row (gathering and weighing the pool). The rows are the distinct fitted steps, at most
-  ``fit_rows``: per pretraining rollout a fixed number; per CE stage a number that grows slowly with N (the failures
-  pooled since the failure level). A CE fit with ``fit_tolerance`` stops early, on average after a share of
+  ``fit_rows``: per pretraining rollout a fixed number; per CE stage k a number that grows with k towards a plateau,
+  as failures are pooled from the failure level on, and slowly with N. A CE fit with ``fit_tolerance`` stops early, on average after a share of
   ``ce_epochs``.
 
 :data:`COST` holds the constants, measured by ``python benchmarks/calibrate_cost.py`` (which prints the predicted and
@@ -51,8 +51,10 @@ class CostConstants:
         row_epoch_s: per fitted row and Adam epoch, seconds.
         row_s: per fitted row of a fit, outside the epochs (gathering and weighing the failures), seconds.
         pretrain_rows: distinct fitted rows per pretraining rollout, by :data:`pemviz.config.PROPOSAL_INPUTS`.
-        ce_rows: distinct fitted rows of a CE stage's fit at N = 100, by proposal inputs.
+        ce_rows: distinct fitted rows of a late CE stage's fit at N = 100 (the plateau), by proposal inputs.
         ce_rows_exponent: the CE rows grow as (N / 100) to this power.
+        ce_rows_stages: stage k's rows are the plateau times 1 - exp(-(k - 1) / this) (stage 1 fits the few rollouts
+            of pretraining's proposal; the pool of failures grows over the next stages).
         early_stop_share: the mean share of ``ce_epochs`` a CE fit with ``fit_tolerance`` runs before it stops.
         ams_rollouts: rollout-equivalents AMS simulates per particle (its continuations), about.
         measured: when, where and how the constants were measured.
@@ -69,6 +71,7 @@ class CostConstants:
     pretrain_rows: dict[str, float]
     ce_rows: dict[str, float]
     ce_rows_exponent: float
+    ce_rows_stages: float
     early_stop_share: float
     ams_rollouts: float = 5.0
     measured: str = field(default="", compare=False)
@@ -86,6 +89,7 @@ COST = CostConstants(
     pretrain_rows={"state": 13.9, "gap": 0.91},
     ce_rows={"state": 2.75e+03, "gap": 190},
     ce_rows_exponent=0.209,
+    ce_rows_stages=2.5,
     early_stop_share=0.838,
     ams_rollouts=5,
     measured="2026-11-23, benchmarks/calibrate_cost.py --fit --repeat 2, 2 cores, load average 2.1",
@@ -109,13 +113,22 @@ def _fit_s(epochs: float, rows: float, c: CostConstants) -> float:
     return epochs * (c.epoch_s + c.row_epoch_s * rows) + c.row_s * rows
 
 
-def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS, c: CostConstants = COST) -> StageCost:
+def ce_rows(cfg: ExperimentConfig, stage: int, n: int, c: CostConstants = COST) -> float:
+    """The distinct rows CE stage ``stage`` (1..K) of ``n`` rollouts fits, about (at most ``fit_rows``)."""
+    cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
+    ramp = 1.0 - math.exp(-max(0, stage - 1) / max(1e-9, c.ce_rows_stages))
+    return min(cap, max(1.0, c.ce_rows.get(cfg.proposal_inputs, 1.0) * (n / 100.0) ** c.ce_rows_exponent * ramp))
+
+
+def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS, c: CostConstants = COST,
+               stage: int | None = None) -> StageCost:  # fmt: skip
     """Predicted seconds of a stage of ``kind`` (``pretrain`` | ``ce`` | ``final`` | ``ams``) with ``n`` rollouts.
 
     Args:
         cfg: the run's settings (method, simulator, proposal inputs, epochs, fit rows, tolerance).
         n_steps: T, steps per rollout.
         c: the constants (default :data:`COST`).
+        stage: the stage's number, for a CE stage's rows (:func:`ce_rows`); None: the mean over the K stages.
     """
     proposal = cfg.method == "adaptive" and kind in ("ce", "final")
     per_step = c.proposal_step_s if proposal else c.pem_step_s
@@ -128,7 +141,8 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
     if cfg.method == "adaptive" and kind == "pretrain":
         fit += _fit_s(cfg.pretrain_epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
     elif cfg.method == "adaptive" and kind == "ce":
-        rows = min(cap, c.ce_rows.get(inputs, 1.0) * (n / 100.0) ** c.ce_rows_exponent)
+        stages = [stage] if stage is not None else range(1, cfg.n_stages + 1)
+        rows = sum(ce_rows(cfg, k, n, c) for k in stages) / len(stages)
         if cfg.fit == "lbfgs":
             epochs = float(cfg.fit_max_steps)
         else:
@@ -140,7 +154,7 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
 def plan_costs(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS,
                c: CostConstants = COST) -> dict[int, StageCost]:  # fmt: skip
     """Stage number -> :func:`stage_cost` of each stage of ``plan``."""
-    return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c) for s in plan.stages}
+    return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage) for s in plan.stages}
 
 
 @dataclass(frozen=True)

@@ -124,13 +124,14 @@ class StageClock(Sink):
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         self.sampled_t = self.now()
         if self.current is not None and self.current.stage == event.stage:  # all of a streamed stage's rollouts
-            predicted = self._model(event.kind, event.n_rollouts).simulate_s
+            predicted = self._model(event.kind, event.n_rollouts, event.stage).simulate_s
             self._add("simulate", self.sampled_t - self.stage_t0, predicted)
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self.done = self.done + [event.result]
         if self.current is not None and self.sampled_t is not None and self.current.stage == event.result.stage:
-            self._add("after", self.now() - self.sampled_t, self._model(self.current.kind, self.current.n_rollouts).after_s)
+            cost = self._model(self.current.kind, self.current.n_rollouts, self.current.stage)
+            self._add("after", self.now() - self.sampled_t, cost.after_s)
         self.current = None
 
     def _add(self, part: str, measured_s: float, predicted_s: float) -> None:
@@ -151,11 +152,11 @@ class StageClock(Sink):
     def after_scale(self) -> float:
         return self._scale("after")
 
-    def _model(self, kind: str, n_rollouts: int) -> StageCost:
+    def _model(self, kind: str, n_rollouts: int, stage: int | None = None) -> StageCost:
         """The model's prediction of a stage of this run (nan before the run starts)."""
         if self._config is None:
             return StageCost(math.nan, math.nan)
-        return stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants)
+        return stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage)
 
     def _scaled(self, cost: StageCost) -> tuple[float, float]:
         return cost.simulate_s * self.simulate_scale, cost.after_s * self.after_scale
@@ -169,7 +170,7 @@ class StageClock(Sink):
         """Expected seconds left in the current stage (0 once it has taken longer than expected; nan: none going)."""
         if self.current is None:
             return math.nan
-        simulate, after = self._scaled(self._model(self.current.kind, self.current.n_rollouts))
+        simulate, after = self._scaled(self._model(self.current.kind, self.current.n_rollouts, self.current.stage))
         if self.sampled_t is None:
             return max(0.0, simulate - (self.now() - self.stage_t0)) + after
         return max(0.0, after - (self.now() - self.sampled_t))
