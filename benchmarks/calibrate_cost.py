@@ -11,7 +11,8 @@ a warm-up run, and prints per configuration the seconds :func:`pemviz.cost.run_c
 took and their ratio (predicted / measured). With ``--fit`` it also records each stage (simulating: from its start to
 its rollouts; after: the rest) and each proposal fit (its rows, epochs and seconds, by wrapping
 :func:`pemviz.sampling.fit_proposal` where :mod:`pemviz.estimators.ce_fit` calls it), fits every constant of
-:class:`pemviz.cost.CostConstants` by least squares, prints them and the table again with them. The whole takes
+:class:`pemviz.cost.CostConstants` to them by least squares, scales the simulating and the fitting constants so that
+the runs' predicted totals meet the measured ones, and prints the constants and the table again with them. The whole takes
 under 2 minutes on 2 cores. Measure on a quiet machine: `uptime` beside the figures.
 """
 
@@ -174,7 +175,7 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
             epochs = sum(e for _, e, _ in s.fits)
             x.append([epochs, sum(r * e for r, e, _ in s.fits), rows, 1.0])
             y.append(s.after_s)
-    after = _lstsq(np.array(x, float), np.array(y), 1.0 / np.maximum(np.array(y), 1e-2))
+    after = _lstsq(np.array(x, float), np.array(y), 1.0 / np.sqrt(np.maximum(np.array(y), 1e-2)))
     # the rows of the fits: per pretraining rollout; of CE stage k, P (N / 100)^gamma (1 - exp(-(k - 1) / tau)),
     # fitted in log space over a grid of gamma and tau; the share of epochs the early-stopped fits run
     pretrain, ce, share = {}, {}, []
@@ -190,7 +191,7 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
                         share.append(epochs / cfg.ce_epochs)
     best = (math.inf, c0.ce_rows_exponent, c0.ce_rows_stages)
     for gamma in np.linspace(0.0, 0.6, 31):
-        for tau in np.linspace(0.3, 10.0, 98):
+        for tau in np.linspace(0.3, 20.0, 198):
             sse = 0.0
             for points in ce.values():
                 k, n, rows = (np.array(v, float) for v in zip(*points))
@@ -199,10 +200,9 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
             best = min(best, (sse, float(gamma), float(tau)))
     _, exponent, tau = best
     ce_rows = {}
-    for inputs, points in ce.items():
+    for inputs, points in ce.items():  # the plateau that gives the rows' sum (the cost is linear in the rows)
         k, n, rows = (np.array(v, float) for v in zip(*points))
-        ce_rows[inputs] = float(np.exp(np.mean(np.log(rows) - exponent * np.log(n / 100.0)
-                                               - np.log1p(-np.exp(-(k - 1) / tau)))))  # fmt: skip
+        ce_rows[inputs] = float(rows.sum() / np.sum((n / 100.0) ** exponent * -np.expm1(-(k - 1) / tau)))
     return cost.CostConstants(
         pem_step_s=float(sim[0]), proposal_step_s=float(sim[1]),
         rollout_step_s={**c0.rollout_step_s, **{m: float(b) for m, b in zip(sims, sim[3:])}},
@@ -211,6 +211,23 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
         pretrain_rows={**c0.pretrain_rows, **{k: float(np.mean(v)) for k, v in pretrain.items()}},
         ce_rows={**c0.ce_rows, **ce_rows}, ce_rows_exponent=exponent, ce_rows_stages=tau,
         early_stop_share=float(np.mean(share)) if share else c0.early_stop_share, ams_rollouts=c0.ams_rollouts,
+    )  # fmt: skip
+
+
+def scale_to_totals(c: cost.CostConstants, rows: list[tuple[str, ExperimentConfig, float]]) -> cost.CostConstants:
+    """``c`` with its simulating and its after-the-rollouts constants each scaled by the factor (least squares on
+    the relative errors of the runs' totals) that makes the predicted totals of ``rows`` meet the measured ones: the
+    stage-by-stage fits leave the parts' shapes, the totals set their sizes."""
+    parts = []
+    for _, cfg, measured in rows:
+        costs = cost.plan_costs(cfg, run_plan(cfg), c=c).values()
+        parts.append([sum(x.simulate_s for x in costs) / measured, sum(x.after_s for x in costs) / measured])
+    a, b = _lstsq(np.array(parts), np.ones(len(parts)))
+    a, b = (a or 1.0), (b or 1.0)
+    return replace(
+        c, pem_step_s=c.pem_step_s * a, proposal_step_s=c.proposal_step_s * a,
+        rollout_step_s={k: v * a for k, v in c.rollout_step_s.items()}, proposal_rollout_step_s=c.proposal_rollout_step_s * a,
+        stage_s=c.stage_s * b, epoch_s=c.epoch_s * b, row_epoch_s=c.row_epoch_s * b, row_s=c.row_s * b,
     )  # fmt: skip
 
 
@@ -252,7 +269,7 @@ def main() -> int:
               flush=True)  # fmt: skip
     table(rows, cost.COST, "with the constants of pemviz.cost.COST")
     if args.fit:
-        fitted = fit_constants(records)
+        fitted = scale_to_totals(fit_constants(records), rows)
         stamp = time.strftime("%Y-%m-%d")
         measured = (f"{stamp}, benchmarks/calibrate_cost.py --fit --repeat {args.repeat}, {os.cpu_count()} cores, "
                     f"load average {load:.1f}")  # fmt: skip

@@ -78,21 +78,21 @@ class CostConstants:
 
 
 COST = CostConstants(
-    pem_step_s=9.29e-05,
-    proposal_step_s=0.000204,
-    rollout_step_s={"batched": 3.86e-07, "highway-env": 4.91e-05},
-    proposal_rollout_step_s=7.71e-07,
-    stage_s=0.0016,
-    epoch_s=8.55e-05,
-    row_epoch_s=5.37e-07,
-    row_s=1.29e-05,
+    pem_step_s=9.8e-05,
+    proposal_step_s=0.000308,
+    rollout_step_s={"batched": 4.91e-07, "highway-env": 7.24e-05},
+    proposal_rollout_step_s=8.18e-07,
+    stage_s=9.68e-05,
+    epoch_s=0.000122,
+    row_epoch_s=7.43e-07,
+    row_s=1.75e-05,
     pretrain_rows={"state": 13.9, "gap": 0.91},
-    ce_rows={"state": 2.75e+03, "gap": 190},
-    ce_rows_exponent=0.209,
-    ce_rows_stages=2.5,
+    ce_rows={"state": 8e03, "gap": 547},
+    ce_rows_exponent=0.26,
+    ce_rows_stages=10,
     early_stop_share=0.838,
     ams_rollouts=5,
-    measured="2026-11-23, benchmarks/calibrate_cost.py --fit --repeat 2, 2 cores, load average 2.1",
+    measured="2026-11-23, benchmarks/calibrate_cost.py --fit --repeat 2 (CPU seconds), 2 cores, load average 7.5",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
