@@ -12,8 +12,8 @@ took and their ratio (predicted / measured). With ``--fit`` it also records each
 its rollouts; after: the rest) and each proposal fit (its rows, epochs and seconds, by wrapping
 :func:`pemviz.sampling.fit_proposal` where :mod:`pemviz.estimators.ce_fit` calls it), fits every constant of
 :class:`pemviz.cost.CostConstants` to them by least squares, scales the simulating and the fitting constants so that
-the runs' predicted totals meet the measured ones, and prints the constants and the table again with them. The whole takes
-under 2 minutes on 2 cores. Measure on a quiet machine: `uptime` beside the figures.
+the runs' predicted totals meet the measured ones, and prints the constants and the table again with them. The whole
+takes under 2 minutes on 2 cores. Measure on a quiet machine: `uptime` beside the figures.
 """
 
 from __future__ import annotations
@@ -226,7 +226,8 @@ def scale_to_totals(c: cost.CostConstants, rows: list[tuple[str, ExperimentConfi
     a, b = (a or 1.0), (b or 1.0)
     return replace(
         c, pem_step_s=c.pem_step_s * a, proposal_step_s=c.proposal_step_s * a,
-        rollout_step_s={k: v * a for k, v in c.rollout_step_s.items()}, proposal_rollout_step_s=c.proposal_rollout_step_s * a,
+        rollout_step_s={k: v * a for k, v in c.rollout_step_s.items()},
+        proposal_rollout_step_s=c.proposal_rollout_step_s * a,
         stage_s=c.stage_s * b, epoch_s=c.epoch_s * b, row_epoch_s=c.row_epoch_s * b, row_s=c.row_s * b,
     )  # fmt: skip
 

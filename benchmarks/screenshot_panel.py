@@ -3,8 +3,8 @@
     python benchmarks/screenshot_panel.py                        # writes assets/screenshots/viser_panel.png
     python benchmarks/screenshot_panel.py --preset quick --k 6 --out /tmp/panel.png
     python benchmarks/screenshot_panel.py --preset state-ce --k 10 --metric agm --set alpha=0.2 --set sigma=0.9 \
-        --width 1400 --height 900 --out assets/screenshots/panel_explain.png --live-out assets/screenshots/panel_live.png \
-        --scene-out assets/screenshots/panel_scene.png
+        --width 1400 --height 900 --out assets/screenshots/panel_explain.png \
+        --live-out assets/screenshots/panel_live.png --scene-out assets/screenshots/panel_scene.png
 
 What it does: starts the panel (:class:`pemviz.app.PanelApp`, 127.0.0.1, a free port), opens it in
 Chromium (Debian's ``chromium`` driven by Playwright, with ``--headless --no-sandbox --disable-gpu

@@ -10,8 +10,8 @@ The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimator
   cross-entropy stage, the proposal's fit: epochs x (a fixed cost per Adam epoch + a cost per fitted row and epoch) +
   a cost per fitted row (gathering and weighing the pool). The rows are the distinct fitted steps, at most
   ``fit_rows``: per pretraining rollout a fixed number; per CE stage k a number that grows with k towards a plateau,
-  as failures are pooled from the failure level on, and slowly with N. A CE fit with ``fit_tolerance`` stops early, on average after a share of
-  ``ce_epochs``.
+  as failures are pooled from the failure level on, and slowly with N. A CE fit with ``fit_tolerance`` stops early,
+  on average after a share of ``ce_epochs``.
 
 :data:`COST` holds the constants, measured by ``python benchmarks/calibrate_cost.py`` (which prints the predicted and
 measured seconds of a handful of runs and, with ``--fit``, the constants fitted to them). :class:`StageClock
@@ -168,9 +168,8 @@ class RunCost:
     @property
     def needs_confirm(self) -> bool:
         """Above any limit (:data:`CONFIRM_SIMULATIONS`, :data:`CONFIRM_SECONDS`, :data:`CONFIRM_BYTES`)."""
-        return (
-            self.simulations > CONFIRM_SIMULATIONS or self.seconds > CONFIRM_SECONDS or self.memory_bytes > CONFIRM_BYTES
-        )
+        return (self.simulations > CONFIRM_SIMULATIONS or self.seconds > CONFIRM_SECONDS
+                or self.memory_bytes > CONFIRM_BYTES)  # fmt: skip
 
     def text(self) -> str:
         mem = self.memory_bytes / 1024**2

@@ -603,26 +603,26 @@ def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detecti
 
 
 SCENE_JS = """([boxes, names]) => {
-                const m = window.__viserMutable, tree = window.__viserSceneTree.getState();
-                const ego = m.nodeRefFromName['/ego'], V = ego.position.constructor, root = ego.parent;
-                root.updateMatrixWorld(true);  // the scene's frame (+z up) in three.js' world
-                const project = (v, frame) => { v.applyMatrix4(frame.matrixWorld).project(m.camera); return [v.x, v.y]; };
-                const ndc = ps => ps.map(([x, y, z]) => project(new V(x, y, z), root));
-                const anchor = n => project(new V(...m.nodePoseData[n].position),
-                                            m.nodeRefFromName[n.slice(0, n.lastIndexOf('/'))]);
-                const rect = e => { const r = e.getBoundingClientRect(); return [r.left, r.right, r.width, r.height]; };
-                const canvas = Array.from(document.querySelectorAll('canvas')).filter(c => c.width > 300)
-                  .map(rect).sort((a, b) => b[2] - a[2])[0];
-                const charts = Array.from(document.querySelectorAll('.u-wrap')).map(rect);
-                const run = rect(Array.from(document.querySelectorAll('button')).find(b => b.innerText.trim() === 'Run'));
-                const props = n => tree[n]?.message?.props ?? {};
-                return {boxes: ndc(boxes), anchors: names.map(anchor), canvas, left_panel: Math.max(...charts.map(r => r[1])),
-                        run_left: run[0], texts: names.map(n => props(n).text), ruler: Array.from(props('/gap_ruler').points),
-                        gap_text: props('/gap_ruler/label').text, breach_text: props('/breach/label').text,
-                        breach_x: m.nodeRefFromName['/breach'].position.x, breach_visible: tree['/breach'].visibility,
-                        trail: Array.from(props('/trail').points), trail_colours: Array.from(props('/trail').colors),
-                        trail_visible: tree['/trail'].visibility};
-            }"""
+    const m = window.__viserMutable, tree = window.__viserSceneTree.getState();
+    const ego = m.nodeRefFromName['/ego'], V = ego.position.constructor, root = ego.parent;
+    root.updateMatrixWorld(true);  // the scene's frame (+z up) in three.js' world
+    const project = (v, frame) => { v.applyMatrix4(frame.matrixWorld).project(m.camera); return [v.x, v.y]; };
+    const ndc = ps => ps.map(([x, y, z]) => project(new V(x, y, z), root));
+    const parent = n => m.nodeRefFromName[n.slice(0, n.lastIndexOf('/'))];
+    const anchor = n => project(new V(...m.nodePoseData[n].position), parent(n));
+    const rect = e => { const r = e.getBoundingClientRect(); return [r.left, r.right, r.width, r.height]; };
+    const canvas = Array.from(document.querySelectorAll('canvas')).filter(c => c.width > 300)
+      .map(rect).sort((a, b) => b[2] - a[2])[0];
+    const charts = Array.from(document.querySelectorAll('.u-wrap')).map(rect);
+    const run = rect(Array.from(document.querySelectorAll('button')).find(b => b.innerText.trim() === 'Run'));
+    const props = n => tree[n]?.message?.props ?? {};
+    return {boxes: ndc(boxes), anchors: names.map(anchor), canvas, left_panel: Math.max(...charts.map(r => r[1])),
+            run_left: run[0], texts: names.map(n => props(n).text), ruler: Array.from(props('/gap_ruler').points),
+            gap_text: props('/gap_ruler/label').text, breach_text: props('/breach/label').text,
+            breach_x: m.nodeRefFromName['/breach'].position.x, breach_visible: tree['/breach'].visibility,
+            trail: Array.from(props('/trail').points), trail_colours: Array.from(props('/trail').colors),
+            trail_visible: tree['/trail'].visibility};
+}"""
 """What the browser's scene holds: the given world points (the cars) and the named labels' anchors projected by its
-camera to the canvas ([-1, 1] inside), the canvas' and the panels' edges (pixels), the labels' texts, the ruler's points, the breach gate,
-the trail's points and colours."""
+camera to the canvas ([-1, 1] inside), the canvas' and the panels' edges (pixels), the labels' texts, the ruler's
+points, the breach gate, the trail's points and colours."""

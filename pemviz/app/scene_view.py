@@ -1,7 +1,7 @@
 """The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars on the road, played step by step
 in sync with *Explain*: a ruler with the gap in metres between them, the detections so far as a trail on the road
-(green detected, orange missed), a red gate where the 2 m line was crossed, and labels in rows beside the road, clear
-of the cars. The camera frames both cars inside the canvas the browser shows between the panels."""
+(green detected, orange missed), a red gate where the 2 m line was crossed, and labels in columns beside the road,
+clear of the cars. The camera frames both cars inside the canvas the browser shows between the panels."""
 
 from __future__ import annotations
 
@@ -34,9 +34,9 @@ columns of labels beside the road, so that no label covers a car or another labe
 (at the ego), the gap's (at most 6.2 m ahead of the ego's camera) and the zones' (10 m ahead); left, text to the left,
 the breach's alone."""
 FRAMED_Y_M, FRAMED_Z_M = (-8.0, 6.0), (0.0, 3.0)
+"""The lateral and vertical extent the camera keeps in view (metres): the road, the cars, the columns of labels."""
 LABEL_SCALE = 0.85
 """The labels' font, relative to viser's."""
-"""The lateral and vertical extent the camera keeps in view (metres): the road, the cars, their labels' rows."""
 
 
 def camera_pose(x_middle: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:

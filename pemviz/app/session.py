@@ -6,7 +6,8 @@ a run or a Stop button. The experiment runs in a worker thread (:class:`pemviz.e
 session listens to its events and stops it through the cancel token.
 
 Layout: the control panel (right) holds Run / Stop, the cost of the run, the status line (stage,
-elapsed time, the time left in the stage and in the whole run), the accuracy of the final estimate and the tabs *Experiment* (the form;
+elapsed time, the time left in the stage and in the whole run), the accuracy of the final estimate and the tabs
+*Experiment* (the form;
 each field shows its own error), *Rollouts* (choose a rollout: the most likely failure found and the
 least-robust ones; 3D playback) and *Runs* (kept runs with their settings, pin / unpin, export). The
 plots panel (left) holds *Live* (what each stage's sampler did over the states its rollouts visited, per-stage
@@ -445,8 +446,8 @@ class Session(RunsTab, RolloutsTab, SceneView):
                 self._refresh_plots()
 
     def tick(self) -> None:
-        """Refresh the status line of a running run: stage, what it does, elapsed time, the time left in the stage and in
-        the whole run (:class:`pemviz.sinks.StageClock`)."""
+        """Refresh the status line of a running run: stage, what it does, elapsed time, the time left in the stage
+        and in the whole run (:class:`pemviz.sinks.StageClock`)."""
         with self.lock:
             record = self.record
             if record is None or not self.running or record.done or self._stop_requested_at is not None:

@@ -30,7 +30,8 @@ def estimate_cells(e: Estimate) -> str:
     )
 
 
-def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: float, run_left_s: float = math.nan) -> str:
+def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: float,
+                  run_left_s: float = math.nan) -> str:  # fmt: skip
     """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s, run ~8.4 s left)``: the stage's
     expected seconds and the whole run's left (:class:`pemviz.sinks.StageClock`), each left out where unknown."""
     eta = f", this stage ~{expected_s:.1f} s" if math.isfinite(expected_s) else ""

@@ -23,7 +23,8 @@ TOY = ProblemView("toy-1e-3", "toy braking", (SignalView("d", "gap_m", "units"),
                   Thresholds(3.0, 5.0, "units", "failure below", "braking within"), None)  # fmt: skip
 GRID = np.linspace(0.0, 13.0, 14)
 SIMPLE = CostConstants(
-    pem_step_s=0.0, proposal_step_s=0.0, rollout_step_s={"batched": 1e-7}, proposal_rollout_step_s=0.0, stage_s=0.0, epoch_s=1e-3, row_epoch_s=0.0,
+    pem_step_s=0.0, proposal_step_s=0.0, rollout_step_s={"batched": 1e-7}, proposal_rollout_step_s=0.0, stage_s=0.0,
+    epoch_s=1e-3, row_epoch_s=0.0,
     row_s=0.0,
     pretrain_rows={"state": 1.0}, ce_rows={"state": 1.0}, ce_rows_exponent=0.0, ce_rows_stages=1.0,
     early_stop_share=1.0,
