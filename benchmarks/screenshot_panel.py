@@ -3,7 +3,8 @@
     python benchmarks/screenshot_panel.py                        # writes assets/screenshots/viser_panel.png
     python benchmarks/screenshot_panel.py --preset quick --k 6 --out /tmp/panel.png
     python benchmarks/screenshot_panel.py --preset state-ce --k 10 --metric agm --set alpha=0.2 --set sigma=0.9 \
-        --width 1400 --height 900 --out assets/screenshots/panel_explain.png --live-out assets/screenshots/panel_live.png
+        --width 1400 --height 900 --out assets/screenshots/panel_explain.png \
+        --live-out assets/screenshots/panel_live.png --scene-out assets/screenshots/panel_scene.png
 
 What it does: starts the panel (:class:`pemviz.app.PanelApp`, 127.0.0.1, a free port), opens it in
 Chromium (Debian's ``chromium`` driven by Playwright, with ``--headless --no-sandbox --disable-gpu
@@ -11,7 +12,8 @@ Chromium (Debian's ``chromium`` driven by Playwright, with ``--headless --no-san
 experiment from the browser's form (typing K, pressing Run), waits for the final estimate (the panel then
 chooses the most likely failure found), opens the *Explain* tab, moves playback to the first decisive miss
 (or the crash) and writes the PNG (to a temp file, then ``os.replace``); with ``--live-out`` also the *Live* tab
-(what the sampler did over the visited states, the estimate per stage). Every wait is on a condition.
+(what the sampler did over the visited states, the estimate per stage), and with ``--scene-out`` the 3D scene at the
+step the 2 m line is crossed, beside the *Rollouts* tab. Every wait is on a condition.
 """
 
 from __future__ import annotations
@@ -39,6 +41,26 @@ def wait_until(predicate, timeout: float, what: str) -> None:
         time.sleep(0.05)
 
 
+def show_step(page, session, step: int) -> None:
+    """Move the playback to ``step`` and wait until the browser's scene shows it (its ego label) and its fonts."""
+    session.step_slider.value = step
+    label = f"{session.record.short_label} {session.shown.key} t={step * 0.05:.2f}s"
+    wait_until(
+        lambda: page.evaluate(
+            "() => window.__viserSceneTree.getState()['/ego/label']?.message?.props?.text ?? ''"
+        ).startswith(label),
+        30, f"the scene at step {step}",
+    )  # fmt: skip
+    page.wait_for_function("() => document.fonts.ready.then(() => true)")
+
+
+def write(page, path: Path) -> None:
+    """Screenshot the page to ``path`` (through a temp file, then ``os.replace``)."""
+    partial = path.with_name(path.name + ".partial.png")
+    page.screenshot(path=str(partial))
+    os.replace(partial, path)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=REPO / "assets" / "screenshots" / "viser_panel.png")
@@ -48,6 +70,8 @@ def main() -> int:
     ap.add_argument("--set", action="append", default=[], metavar="LABEL=VALUE",
                     help="type VALUE into the form's field LABEL (e.g. alpha=0.2); repeatable")
     ap.add_argument("--live-out", type=Path, default=None, help="also write the Live tab here")
+    ap.add_argument("--scene-out", type=Path, default=None,
+                    help="also write the scene at the breach, beside the Rollouts tab, here")
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=1000)
     args = ap.parse_args()
@@ -88,22 +112,18 @@ def main() -> int:
             page.get_by_text("Counterfactual", exact=False).wait_for(timeout=30_000)
             ex, shown = session.explanation, session.shown
             step = int(ex.decisive[0]) if ex.decisive.size else int((shown.gap_m < 2.0).argmax())
-            session.step_slider.value = step
-            label = f"{session.record.short_label} {shown.key} t={step * 0.05:.2f}s"
-            wait_until(
-                lambda: page.evaluate(
-                    "() => window.__viserSceneTree.getState()['/ego/label']?.message?.props?.text ?? ''"
-                ).startswith(label),
-                30, "the scene at that step",
-            )  # fmt: skip
-            page.wait_for_function("() => document.fonts.ready.then(() => true)")
+            show_step(page, session, step)
             page.screenshot(path=str(tmp))
             if args.live_out is not None:
                 page.get_by_role("tab", name="Live").click()
                 page.get_by_text("over the visited states", exact=False).first.wait_for(timeout=30_000)
-                live_tmp = args.live_out.with_name(args.live_out.name + ".partial.png")
-                page.screenshot(path=str(live_tmp))
-                os.replace(live_tmp, args.live_out)
+                write(page, args.live_out)
+            if args.scene_out is not None and ex.severity.breach_step is not None:
+                page.get_by_role("tab", name="Explain").click()
+                page.get_by_role("tab", name="Rollouts").click()
+                page.get_by_text("Scene:", exact=False).first.wait_for(timeout=30_000)
+                show_step(page, session, ex.severity.breach_step)
+                write(page, args.scene_out)
             browser.close()
         os.replace(tmp, args.out)
         print(f"{args.out}: {session.record.label}, {shown.key} at step {step}", flush=True)

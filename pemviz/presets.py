@@ -56,3 +56,20 @@ relative error 0.054 on the main job, 0.087 on latched at 1e-62).
 right-skewed that its 1,200 simulations almost never see the weights that matter). ``authors-code``: how the
 authors' public code ran it (alpha 0.5, 1000 epochs, weights recomputed through the gradient, the last stage's
 batch as the estimate). ``quick``: the default sampler with fewer, larger Adam steps, a run of a few seconds."""
+
+PRESET_HELP: dict[str, str] = {
+    DEFAULT_PRESET: "the recommended sampler, right against exact answers (the user guide's Validation page)",
+    "paper": "the sampler as published, biased low at the default budget",
+    "authors-code": "as the authors' public code ran it",
+    "quick": "the recommended sampler with fewer, larger Adam steps: a run of a few seconds",
+    "state-ce-step": "the recommended sampler before the mixture over whole rollouts",
+}
+"""What each preset is, in one line without measured figures: the words of ``pemviz run --preset``'s help, the panel's
+preset hint and the user guide."""
+
+
+def preset_help(names=None) -> str:
+    """``state-ce: the recommended sampler ...; paper: ...``: :data:`PRESET_HELP` of ``names`` (default every preset),
+    one clause each."""
+    return "; ".join(f"{name}: {PRESET_HELP[name]}" for name in (names or PRESETS))
+

@@ -60,9 +60,9 @@ def browser():
 class Tab:
     """A browser tab and its server-side session."""
 
-    def __init__(self, browser, app: PanelApp) -> None:
+    def __init__(self, browser, app: PanelApp, viewport: dict | None = None) -> None:
         known = set(app.sessions)
-        self.page = browser.new_page(viewport=VIEWPORT)
+        self.page = browser.new_page(viewport=viewport or VIEWPORT)
         self.page.goto(app.url)
         self.session: Session = app.wait_for_session(known)
         hide_notifications(self.page)
@@ -164,7 +164,7 @@ class Tab:
                 return {x: m['/ego'].position.x, lead_x: m['/lead'].position.x,
                         color: prop('/ego', 'color'), label: prop('/ego/label', 'text'),
                         lead_label: prop('/lead/label', 'text'),
-                        zones: [prop('/ego/brake_zone_10m/label', 'text'), prop('/ego/crash_zone_2m/label', 'text')],
+                        zones: prop('/ego/brake_zone_10m/label', 'text'),
                         miss_zone_colors: [prop('/ego/brake_zone_10m', 'color'), prop('/ego/crash_zone_2m', 'color')]};
             }"""
         )
@@ -392,7 +392,7 @@ def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_ov
 
     before = tab.scene()
     assert tuple(before["color"]) == colours.IDLE  # not green ("detected") before any rollout
-    assert before["lead_label"] == "lead" and all(before["zones"])
+    assert before["lead_label"] == "lead" and "within 10 m" in before["zones"] and "2 m crash" in before["zones"]
     assert recording.MISSED_RGBA == (245, 130, 30, 255) and recording.DETECTED_RGBA == (40, 170, 80, 255)
     assert (colours.MISSED, colours.DETECTED) == ((245, 130, 30), (40, 170, 80))  # the panel's: orange and green
     record = tab.run({**TINY, "K": "3"})
@@ -435,8 +435,8 @@ def test_progress_shows_elapsed_and_expected_time(tab):
     tab.fill_form({**TINY, "K": "40", "CE epochs": "150"})
     tab.button("Run").click()
     status = re.compile(
-        r"CE stage \d+/40: cross-entropy update \(150 epochs\) · stage \d+\.\d s(, about \d+\.\d s left in it|, nearly "
-        r"done) · run \d+\.\d s"
+        r"CE stage \d+/40: cross-entropy update \(at most 150 epochs\) · stage \d+\.\d s(, about \d+\.\d s left in "
+        r"it|, nearly done) · run \d+\.\d s, about \d+ (s|min) left in all"
     )
     expect(tab.page.get_by_text(status)).to_be_visible(timeout=60_000)
     tab.button("Stop").click()
@@ -505,3 +505,124 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     tab.page.get_by_label("failures only").check()
     expect(tab.page.get_by_text("that failed (metric", exact=False)).to_be_visible(timeout=10_000)
     assert all(t.crashed for t in s.ordered_rollouts(record))
+
+
+# 11 -----------------------------------------------------------------------------------------------
+def test_every_dropdown_shows_its_hint_in_the_browser(tab):
+    """Hovering any dropdown of any tab of the control panel shows a non-empty hint, the one its handle holds."""
+    page = tab.page
+    s = tab.session
+    expected = {h.label: h.hint for h in (*s.choices.values(), s.preset, s.run_choice, s.rollout_dropdown,
+                                          s.rollout_order)}  # fmt: skip
+    seen = {}
+    for name in ("Experiment", "Rollouts", "Runs"):
+        tab.tab(name)
+        if name == "Experiment":
+            tab.open_advanced()
+        selects = page.locator("input[aria-haspopup='listbox']:visible")
+        expect(selects.first).to_be_visible()
+        for i in range(selects.count()):
+            select = selects.nth(i)
+            label = select.locator("xpath=ancestor::div[.//label][1]//label").first.inner_text().strip()
+            select.hover()
+            tip = page.get_by_role("tooltip")
+            expect(tip).to_be_visible(timeout=10_000)
+            seen[label] = tip.inner_text().strip()
+            page.mouse.move(1, 1)
+            expect(tip).to_have_count(0, timeout=10_000)
+    assert set(seen) == set(expected), (set(seen), set(expected))  # every dropdown, no other
+    for label, hint in seen.items():
+        assert hint and hint == expected[label].strip(), label
+    assert all(f"{m}: " in seen["metric"] for m in ("classic", "agm", "smooth-cumulative"))  # what each rewards
+    assert all(f"{p}: " in seen["preset"] for p in ("state-ce", "paper", "quick"))
+
+
+# 12 -----------------------------------------------------------------------------------------------
+def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detections_so_far(browser, app):
+    """At 1400 x 900, at the step a failure crosses the 2 m line: the canvas lies between the panels and both cars
+    project inside it; the ruler spans the gap and says it in metres; a red gate stands where the ego's camera crossed
+    the line; the trail holds one square per step so far, green where detected and orange where missed; every label
+    beside the road lies outside both cars on screen, on the side its text runs to."""
+    tab = Tab(browser, app, {"width": 1400, "height": 900})
+    try:
+        record = tab.run({**TINY, "K": "3"})
+        s, p = tab.session, app.params
+        shown = s.shown
+        assert shown is not None and shown.crashed, "the quick preset finds a crash"
+        b = s.explanation.severity.breach_step
+        assert b == int(np.argmax(shown.gap_m < p.crash_gap_m))
+        s.step_slider.value = b
+        wait_until(lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={b * p.dt_s:.2f}s"),
+                   what="the breach step")  # fmt: skip
+        ego_x, lead_x = scene_positions(shown, p)
+        cam, rear = ego_x[b] + p.camera_offset_m, lead_x[b] - p.lead_length_m / 2
+        h = 1.5  # the boxes' height (metres)
+        grid = np.linspace(-0.5, 0.5, 5)
+        boxes = [[x + fx * length, fy * p.vehicle_width_m, (fz + 0.5) * h]
+                 for x, length in ((ego_x[b], p.ego_length_m), (lead_x[b], p.lead_length_m))
+                 for fx in grid for fy in grid for fz in grid]  # fmt: skip
+        labels = {"/ego/label": "right", "/gap_ruler/label": "right", "/ego/brake_zone_10m/label": "right",
+                  "/breach/label": "left"}  # the labels beside the road and the side their text runs to  # fmt: skip
+
+        def read():
+            return tab.page.evaluate(SCENE_JS, [boxes, list(labels)])
+
+        # the camera follows the cars (it may arrive after the scene's step): both cars inside the canvas
+        wait_until(lambda: np.all(np.abs(np.array(read()["boxes"])) < 1.0), what="both cars inside the canvas")
+        got = read()
+        # the canvas is the space between the panels
+        assert got["left_panel"] <= got["canvas"][0] and got["canvas"][1] <= got["run_left"]
+        # the gap ruler: from the ego's camera to the lead's rear, its label the gap in metres
+        ruler = np.array(got["ruler"]).reshape(3, 2, 3)
+        np.testing.assert_allclose(ruler[0, :, 0], [cam, rear], atol=1e-4)
+        assert got["gap_text"] == f"gap {shown.gap_m[b]:.2f} m" and shown.gap_m[b] < p.crash_gap_m
+        # the breach gate where the camera crossed the 2 m line, with its time
+        assert got["breach_visible"] and abs(got["breach_x"] - cam) < 1e-4
+        assert got["breach_text"] == f"{p.crash_gap_m:g} m line crossed\nat {b * p.dt_s:.2f} s"
+        # the trail: a square per step 0..b behind where the ego was, coloured by the detection
+        trail = np.array(got["trail"]).reshape(-1, 3)
+        assert got["trail_visible"] and trail.shape[0] == b + 1
+        np.testing.assert_allclose(trail[:, 0], ego_x[: b + 1] - p.ego_length_m / 2 - 0.35, atol=1e-4)
+        drawn = np.array(got["trail_colours"]).reshape(-1, 3)
+        want = np.where(shown.detected[: b + 1, None], colours.DETECTED, colours.MISSED)
+        np.testing.assert_array_equal(drawn, want)
+        assert not shown.detected[: b + 1].all() and shown.detected[: b + 1].any()  # both colours are drawn
+        # labels beside the road: the rectangle of each one's text (7 px a character, 17 px a line, generously)
+        # holds no point of either car on screen
+        width_px, height_px = got["canvas"][2], got["canvas"][3]
+        cars = np.array(got["boxes"])
+        for (name, side), (ax, ay), text in zip(labels.items(), got["anchors"], got["texts"]):
+            lines = text.split("\n")
+            w, hh = 7 * max(map(len, lines)) / (width_px / 2), 17 * len(lines) / (height_px / 2)
+            x0, x1 = (ax, ax + w) if side == "right" else (ax - w, ax)
+            inside = (cars[:, 0] > x0) & (cars[:, 0] < x1) & (np.abs(cars[:, 1] - ay) < hh / 2)
+            assert not inside.any(), f"{name} ({text!r}) covers a car"
+    finally:
+        tab.session.stop_run()
+        tab.close()
+
+
+SCENE_JS = """([boxes, names]) => {
+    const m = window.__viserMutable, tree = window.__viserSceneTree.getState();
+    const ego = m.nodeRefFromName['/ego'], V = ego.position.constructor, root = ego.parent;
+    root.updateMatrixWorld(true);  // the scene's frame (+z up) in three.js' world
+    const project = (v, frame) => { v.applyMatrix4(frame.matrixWorld).project(m.camera); return [v.x, v.y]; };
+    const ndc = ps => ps.map(([x, y, z]) => project(new V(x, y, z), root));
+    const parent = n => m.nodeRefFromName[n.slice(0, n.lastIndexOf('/'))];
+    const anchor = n => project(new V(...m.nodePoseData[n].position), parent(n));
+    const rect = e => { const r = e.getBoundingClientRect(); return [r.left, r.right, r.width, r.height]; };
+    const canvas = Array.from(document.querySelectorAll('canvas')).filter(c => c.width > 300)
+      .map(rect).sort((a, b) => b[2] - a[2])[0];
+    const charts = Array.from(document.querySelectorAll('.u-wrap')).map(rect);
+    const run = rect(Array.from(document.querySelectorAll('button')).find(b => b.innerText.trim() === 'Run'));
+    const props = n => tree[n]?.message?.props ?? {};
+    return {boxes: ndc(boxes), anchors: names.map(anchor), canvas, left_panel: Math.max(...charts.map(r => r[1])),
+            run_left: run[0], texts: names.map(n => props(n).text), ruler: Array.from(props('/gap_ruler').points),
+            gap_text: props('/gap_ruler/label').text, breach_text: props('/breach/label').text,
+            breach_x: m.nodeRefFromName['/breach'].position.x, breach_visible: tree['/breach'].visibility,
+            trail: Array.from(props('/trail').points), trail_colours: Array.from(props('/trail').colors),
+            trail_visible: tree['/trail'].visibility};
+}"""
+"""What the browser's scene holds: the given world points (the cars) and the named labels' anchors projected by its
+camera to the canvas ([-1, 1] inside), the canvas' and the panels' edges (pixels), the labels' texts, the ruler's
+points, the breach gate, the trail's points and colours."""

@@ -5,6 +5,7 @@ counterfactual, one stage numbering, export names and files."""
 from __future__ import annotations
 
 import io
+import re
 import math
 
 import numpy as np
@@ -240,8 +241,8 @@ def test_console_progress_names_stages_as_the_panel_and_recording_do(tiny_record
     panel = [tiny_record.plan.label(s.stage, s.kind) for s in tiny_record.stages]
     assert panel == ["pretraining", "CE stage 1/2", "CE stage 2/2", "final batch"]
     text = progress.getvalue().splitlines()
-    assert all("elapsed" in line for line in text) and "this stage ~" not in text[1]  # nothing to go by yet
-    assert "this stage ~" in text[2] and "this stage ~" in text[3]
+    # the stage's and the whole run's time left, from the plan before any stage has run
+    assert all(re.search(r"\(elapsed \d+\.\d s, this stage ~\d+\.\d s, run ~\d+\.\d s left\)$", line) for line in text)
 
 
 # -- export ---------------------------------------------------------------------------------------

@@ -1,15 +1,20 @@
-"""MkDocs hook: renders ``pemviz --help`` and every sub-command's help into ``cli.md`` at build time.
+"""MkDocs hook: renders ``pemviz --help`` and every sub-command's help into ``cli.md`` at build time, and the choices
+of a setting where a page asks for them.
 
-The page holds the marker ``<!-- pemviz-cli -->``; it is replaced with one section per command, each the
-exact text ``argparse`` prints, so the reference never drifts from the code.
+The marker ``<!-- pemviz-cli -->`` is replaced with one section per command, each the exact text ``argparse`` prints,
+so the reference never drifts from the code. ``<!-- pemviz-choices NAME -->`` is replaced with a list of the choices
+of setting NAME (:data:`pemviz.config.SETTINGS`; ``preset``: :data:`pemviz.presets.PRESET_HELP`), each with the words
+the panel's hint and ``pemviz run --help`` give it.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 
 MARKER = "<!-- pemviz-cli -->"
+CHOICES = re.compile(r"<!-- pemviz-choices ([a-z_]+) -->")
 
 
 def _parsers(name: str, parser: argparse.ArgumentParser):
@@ -32,7 +37,16 @@ def cli_markdown() -> str:
     return "\n".join(parts)
 
 
+def choices_markdown(name: str) -> str:
+    """``- **classic**: the worst step's margin alone`` for each choice of setting ``name`` (or of ``preset``)."""
+    from pemviz.config import SETTINGS
+    from pemviz.presets import PRESET_HELP
+
+    pairs = PRESET_HELP.items() if name == "preset" else SETTINGS[name].choice_help
+    return "\n".join(f"- **{value}**: {what}" for value, what in pairs)
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
     if MARKER in markdown:
-        return markdown.replace(MARKER, cli_markdown())
-    return markdown
+        markdown = markdown.replace(MARKER, cli_markdown())
+    return CHOICES.sub(lambda m: choices_markdown(m.group(1)), markdown)

@@ -109,7 +109,8 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
             plot.title = f"{record.short_label}: median log q(miss)/q(detect) over the visited states (nats)"
             mids = [getattr(v, mid) for _, _, v in stages] + [getattr(last, p_mid)]
             lo_, hi_ = _padded(mids, -LOG_ODDS_SPAN, LOG_ODDS_SPAN)
-            y = (min(lo_, -6.0), max(hi_, 2.0))  # the medians decide the range; a band or a spike may leave it
+            y = (min(lo_, -6.4), max(hi_, 2.4))  # the medians decide the range (ticks -6 and 2 inside it); a band or
+            # a spike may leave it
         plot.series = tuple(series)
         plot.data = tuple(np.asarray(d, dtype=np.float64) for d in data)
         plot.bands = (up.Band(series=(2, 1), fill=css(stage_rgb(last_stage, n_colour), 0.15)),)
@@ -165,7 +166,7 @@ def controller_plot(gui: viser.GuiApi, order: float | None = None) -> viser.GuiU
         data=(t, np.full(2, np.nan)), series=(up.Series(label="t (s)"), up.Series(label="acceleration (m/s^2)")),
         title="controller: brake command, brake applied, acceleration (choose a rollout)",
         scales={"x": up.Scale(time=False, auto=False, range=(0.0, 5.0))}, axes=axes("time (s)", "m/s^2"),
-        legend=LEGEND, height=190, order=order,
+        legend=LEGEND, height=170, order=order,
     )  # fmt: skip
 
 

@@ -71,7 +71,7 @@ class Explanation:
             return "no failure: nothing to explain (the gap stayed at or above 2 m)"
         if not self.replay_matches:
             return "the replay does not reproduce this rollout: no counterfactual"
-        cf, dt = self.counterfactual, float(self.time_s[1] - self.time_s[0]) if self.time_s.size > 1 else 0.05
+        cf = self.counterfactual
         if self.decisive.size == 0:
             if cf.minimal_set.size == 0:
                 return f"even a detection at each of the {self.misses.size} misses does not avoid the failure"
@@ -81,12 +81,11 @@ class Explanation:
                 f"{', '.join(str(t) for t in cf.minimal_set[:12])}{' ...' if cf.minimal_set.size > 12 else ''}): "
                 "detections at all of them avoid it, leaving any one out does not"
             )
-        steps = ", ".join(f"{t} ({self.time_s[t]:.2f} s)" for t in self.decisive[:8])
-        more = f" and {self.decisive.size - 8} more" if self.decisive.size > 8 else ""
+        times = ", ".join(f"{self.time_s[t]:.2f}" for t in self.decisive[:10])
+        more = f" and {self.decisive.size - 10} more" if self.decisive.size > 10 else ""
         return (
-            f"decisive misses at steps {steps}{more}: a detection at any one of them avoids the failure "
-            f"({self.decisive.size} of {self.misses.size} misses; the last saving step is "
-            f"{cf.last_saving_step}, {cf.last_saving_step * dt:.2f} s)"
+            f"{self.decisive.size} of the {self.misses.size} misses are decisive, at {times} s{more} (steps "
+            f"{self.decisive[0]} to {self.decisive[-1]}): a detection at any one of them avoids the failure"
         )
 
 

@@ -3,7 +3,7 @@
 Numbers are typed into text fields and parsed here, so the form never rounds, rescales or silently
 keeps an earlier value: ``12.5`` in N is an error (N counts rollouts), ``1e-3`` in alpha is 0.001, an
 empty field is an error. :func:`parse_form` returns the config and, per field, the reason it is
-refused, all at once. :func:`run_cost` says what a run will take before it starts, and
+refused, all at once. :func:`run_cost` says what a run will take before it starts (the model of :mod:`pemviz.cost`), and
 :func:`run_label` names a run by the settings that differ from the defaults. No viser here.
 """
 
@@ -13,7 +13,9 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from pemviz import cost
 from pemviz.config import SETTINGS, ConfigError, ExperimentConfig, Setting
+from pemviz.cost import N_STEPS, RunCost
 
 
 NUMBER_FIELDS: tuple[Setting, ...] = tuple(SETTINGS[name] for name in (
@@ -83,63 +85,13 @@ def parse_form(texts: dict[str, str], choices: dict[str, Any], base: ExperimentC
         return FormResult(None, {"": str(exc)})
 
 
-SIM_S_PER_ROLLOUT = {"batched": 3e-5, "highway-env": 4e-3}
-"""Seconds to simulate one 100-step rollout on one core (benchmarks/sim_speed.py, order of magnitude)."""
-EPOCH_S_PER_STEP = 3e-7
-"""Seconds of one Adam epoch of the proposal per rollout step (order of magnitude, 2-core machine)."""
-BYTES_PER_STEP = 3 * 8 + 1 + 8 + 8
-"""A rollout step held in memory: 3 float64 observations, the detection, log p and log q."""
-CONFIRM_SIMULATIONS = 500_000
-CONFIRM_SECONDS = 120.0
-CONFIRM_BYTES = 2 * 1024**3
+def run_cost(cfg: ExperimentConfig, n_steps: int = N_STEPS) -> RunCost:
+    """What ``cfg``'s run will take (:func:`pemviz.cost.run_cost` of the plan its estimator states,
+    :func:`pemviz.estimators.run_plan`): simulations, memory of the largest batch, expected seconds."""
+    from pemviz.engine import STREAM_ABOVE  # the engine and the estimators import torch: only when asked
+    from pemviz.estimators import run_plan
 
-
-@dataclass(frozen=True)
-class RunCost:
-    """What a run will take: simulations, the largest batch in memory (bytes), expected seconds (rough)."""
-
-    simulations: int
-    memory_bytes: int
-    seconds: float
-
-    @property
-    def needs_confirm(self) -> bool:
-        """Above any limit (:data:`CONFIRM_SIMULATIONS`, :data:`CONFIRM_SECONDS`, :data:`CONFIRM_BYTES`)."""
-        return (
-            self.simulations > CONFIRM_SIMULATIONS or self.seconds > CONFIRM_SECONDS or self.memory_bytes > CONFIRM_BYTES
-        )
-
-    def text(self) -> str:
-        mem = self.memory_bytes / 1024**2
-        return (
-            f"{self.simulations:,} simulations, {mem:,.1f} MB per batch, about {_duration(self.seconds)}"
-        )
-
-
-def _duration(seconds: float) -> str:
-    if seconds < 90:
-        return f"{max(1.0, seconds):.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
-def run_cost(cfg: ExperimentConfig, n_steps: int = 100, stream_above: int | None = None) -> RunCost:
-    """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, expected seconds.
-
-    A stage above ``stream_above`` rollouts (default :data:`pemviz.engine.STREAM_ABOVE`) is simulated in chunks, so
-    it does not count in full towards memory.
-    """
-    if stream_above is None:
-        from pemviz.engine import STREAM_ABOVE as stream_above  # the engine imports torch: only when asked
-    sims = cfg.n_simulations
-    biggest = max(min(cfg.n_per_stage, stream_above), min(cfg.n_final, stream_above), cfg.pretrain_rollouts)
-    seconds = sims * SIM_S_PER_ROLLOUT.get(cfg.sim, 4e-3)
-    if cfg.method == "adaptive":
-        seconds += EPOCH_S_PER_STEP * n_steps * (
-            cfg.n_stages * cfg.ce_epochs * cfg.n_per_stage + cfg.pretrain_epochs * cfg.pretrain_rollouts
-        )
-    return RunCost(int(sims), int(biggest * n_steps * BYTES_PER_STEP), float(seconds))
+    return cost.run_cost(cfg, run_plan(cfg), n_steps, STREAM_ABOVE)
 
 
 def setting_name(key: str) -> str:

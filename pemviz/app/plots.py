@@ -166,7 +166,7 @@ def strip_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
         "gap": gui.add_uplot(
             data=(t, none), series=(up.Series(label="t (s)"), up.Series(label="gap (m)")),
             title="gap and speeds (choose a rollout)", scales={"x": x_scale}, axes=axes("time (s)", "m, m/s"),
-            legend=LEGEND, height=210,
+            legend=LEGEND, height=185,
         ),
         "detect": gui.add_uplot(
             data=(t, none), series=(up.Series(label="t (s)"), up.Series(label="p(detect)")),

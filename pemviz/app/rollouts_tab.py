@@ -138,6 +138,7 @@ class RolloutsTab:
             self.step_slider.max = traj.n_steps - 1
             self._set_playing(False)
             self._fill_explanation()
+            self._place_rollout()
             self.shown_step = -1
             if self.step_slider.value != 0:
                 self.step_slider.value = 0  # renders step 0 through the slider's callback

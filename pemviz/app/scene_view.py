@@ -1,9 +1,12 @@
 """The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars on the road, played step by step
-in sync with *Explain*."""
+in sync with *Explain*: a ruler with the gap in metres between them, the detections so far as a trail on the road
+(green detected, orange missed), a red gate where the 2 m line was crossed, and labels in columns beside the road,
+clear of the cars. The camera frames both cars inside the canvas the browser shows between the panels."""
 
 from __future__ import annotations
 
 import html
+import math
 
 import numpy as np
 import viser
@@ -13,10 +16,66 @@ from pemviz.app.html import BLUE, GREY, RED, box
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
 
-
 CAR_HEIGHT_M = 1.5
-CAMERA_OFFSET_M = np.array([-5.0, -20.0, 13.0])
-"""Initial camera position relative to the point between the cars (metres; behind-left, above)."""
+VIEW_DIRECTION = np.array([-1.0, -0.3, 1.2]) / np.linalg.norm([-1.0, -0.3, 1.2])
+"""From the framed point towards the camera: behind the ego, a little to its right and above (unit vector), so that the
+road runs up the canvas, which is taller than wide between the panels."""
+FRAME_MARGIN = 1.05
+"""The framed box, times this, fits the canvas (room for the labels' text beyond their anchors)."""
+DEFAULT_ASPECT, DEFAULT_FOV = 0.6, math.radians(75.0)
+"""The canvas' width / height and vertical field of view (radians) before the browser has reported its own (the
+canvas between the panels at 1400 x 900)."""
+MIN_DISTANCE_M = 10.0
+TRAIL_POINT_M = 0.35
+"""The side of a detection's square in the trail (metres)."""
+ROW_Y_M = {"ruler": -1.6, "right": -2.6, "left": 2.6}
+"""Lateral places (metres; negative: right of the road on screen, positive: left) of the gap ruler and of the two
+columns of labels beside the road, so that no label covers a car or another label: right, text to the right, the ego's
+(at the ego), the gap's (at most 6.2 m ahead of the ego's camera) and the zones' (10 m ahead); left, text to the left,
+the breach's alone."""
+FRAMED_Y_M, FRAMED_Z_M = (-8.0, 6.0), (0.0, 3.0)
+"""The lateral and vertical extent the camera keeps in view (metres): the road, the cars, the columns of labels."""
+LABEL_SCALE = 0.85
+"""The labels' font, relative to viser's."""
+
+
+def camera_pose(x_middle: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(position, look-at point) of the camera ``distance_m`` away along :data:`VIEW_DIRECTION` from the middle of
+    the framed box at ``x_middle`` along the road (metres)."""
+    target = np.array([x_middle, sum(FRAMED_Y_M) / 2, sum(FRAMED_Z_M) / 2])
+    return target + distance_m * VIEW_DIRECTION, target
+
+
+def _inside(points: np.ndarray, position: np.ndarray, target: np.ndarray, aspect: float, fov_rad: float) -> bool:
+    """Whether every point [P, 3] projects inside the canvas shrunk by :data:`FRAME_MARGIN` (a pinhole camera at
+    ``position`` looking at ``target``, +z up, vertical field of view ``fov_rad``)."""
+    forward = (target - position) / np.linalg.norm(target - position)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    rel = points - position
+    depth = rel @ forward
+    if np.any(depth <= 0.1):
+        return False
+    tan_v = math.tan(fov_rad / 2) / FRAME_MARGIN
+    x, y = (rel @ right) / (depth * tan_v * aspect), (rel @ up) / (depth * tan_v)
+    return bool(np.all(np.abs(x) <= 1.0) and np.all(np.abs(y) <= 1.0))
+
+
+def framing_distance(span_m: float, aspect: float, fov_rad: float) -> float:
+    """The least distance (metres, at least :data:`MIN_DISTANCE_M`) at which a box ``span_m`` metres along the road
+    by :data:`FRAMED_Y_M` by :data:`FRAMED_Z_M` fits the canvas (``aspect``: width / height; ``fov_rad``: the
+    vertical field of view), by bisection on the projection of its corners."""
+    corners = np.array([[x, y, z] for x in (-span_m / 2, span_m / 2) for y in FRAMED_Y_M for z in FRAMED_Z_M])
+    lo, hi = MIN_DISTANCE_M, 400.0
+    position, target = camera_pose(0.0, lo)
+    if _inside(corners, position, target, aspect, fov_rad):
+        return lo
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        position, target = camera_pose(0.0, mid)
+        lo, hi = (lo, mid) if _inside(corners, position, target, aspect, fov_rad) else (mid, hi)
+    return hi
 
 
 class SceneView:
@@ -50,17 +109,17 @@ class SceneView:
         scene = self.client.scene
         p = self.params
         scene.set_up_direction("+z")
-        road_len, x0, lane = 90.0, -15.0, 4.0
+        road_len, x0, lane = 240.0, -60.0, 4.0
         scene.add_box(
             "/road", color=C.ROAD, dimensions=(road_len, lane + 1.0, 0.05),
             position=(x0 + road_len / 2, 0.0, -0.03), cast_shadow=False,
         )  # fmt: skip
         edges = np.array(
-            [[[x0, s * lane / 2, 0.0], [x0 + road_len, s * lane / 2, 0.0]] for s in (-1, 1)], dtype=np.float32
-        )
-        scene.add_line_segments("/road/edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
-        ticks = np.array([[[x, -lane / 2, 0.01], [x, -lane / 2 - 0.6, 0.01]] for x in range(0, 75, 10)], np.float32)
-        scene.add_line_segments("/road/ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
+            [[[x0, s * lane / 2, 0.01], [x0 + road_len, s * lane / 2, 0.01]] for s in (-1, 1)], dtype=np.float32
+        )  # world coordinates: not children of /road, whose frame is the box's centre
+        scene.add_line_segments("/road_edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
+        ticks = np.array([[[x, lane / 2, 0.01], [x, lane / 2 + 0.6, 0.01]] for x in range(0, 150, 10)], np.float32)
+        scene.add_line_segments("/road_ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
         size = (p.ego_length_m, p.vehicle_width_m, CAR_HEIGHT_M)
         lead0 = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
         self.ego_box = scene.add_box("/ego", color=IDLE, dimensions=size, position=(0.0, 0, CAR_HEIGHT_M / 2))
@@ -68,33 +127,98 @@ class SceneView:
             "/lead", color=LEAD, dimensions=(p.lead_length_m, p.vehicle_width_m, CAR_HEIGHT_M),
             position=(lead0, 0.0, CAR_HEIGHT_M / 2),
         )  # fmt: skip
-        scene.add_label("/lead/label", "lead", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.5), anchor="bottom-center")
-        # zones ahead of the ego's camera, moving with it
-        zones = (
-            ("brake_zone_10m", p.braking_distance_m, BRAKE_ZONE, f"brakes if the lead is detected within {p.braking_distance_m:g} m"),
-            ("crash_zone_2m", p.crash_gap_m, CRASH, f"crash: gap < {p.crash_gap_m:g} m"),
-        )  # fmt: skip
-        for i, (name, length, rgb, text) in enumerate(zones):
+        scene.add_label("/lead/label", "lead", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2), anchor="bottom-center",
+                        font_screen_scale=LABEL_SCALE)  # fmt: skip
+        # zones ahead of the ego's camera, moving with it; one label for both, in the right column at 10 m
+        for name, length, rgb in (("brake_zone_10m", p.braking_distance_m, BRAKE_ZONE),
+                                  ("crash_zone_2m", p.crash_gap_m, CRASH)):  # fmt: skip
             scene.add_box(
                 f"/ego/{name}", color=rgb, dimensions=(length, p.vehicle_width_m + 0.6, 0.02), opacity=0.35,
                 position=(p.camera_offset_m + length / 2, 0.0, -CAR_HEIGHT_M / 2 + 0.02), cast_shadow=False,
                 receive_shadow=False,
             )  # fmt: skip
-            scene.add_label(
-                f"/ego/{name}/label", text, position=(0.0, -(p.vehicle_width_m / 2 + 0.8 + 1.2 * i), 0.05),
-                anchor="top-center",
-            )  # fmt: skip
-        cam = p.camera_height_m
-        self.gap_line = scene.add_line_segments(
-            "/gap", np.array([[[p.camera_offset_m, 0, cam], [lead0 - p.lead_length_m / 2, 0, cam]]], np.float32),
-            colors=IDLE, thickness=0.08,
+        scene.add_label(
+            "/ego/brake_zone_10m/label", f"yellow: brakes if the lead is\ndetected within {p.braking_distance_m:g} m;"
+            f"\nred: the {p.crash_gap_m:g} m crash margin", position=(p.braking_distance_m / 2, ROW_Y_M["right"], 0.0),
+            anchor="center-left", font_screen_scale=LABEL_SCALE,
+        )  # fmt: skip
+        # the gap ruler: on the road beside the cars, from the ego's camera to the lead's rear, ticks at both ends
+        self.gap_ruler = scene.add_line_segments(
+            "/gap_ruler", self._ruler(p.camera_offset_m, lead0 - p.lead_length_m / 2), colors=C.ROAD_MARKING,
+            thickness=0.08,
+        )  # fmt: skip
+        self.gap_label = scene.add_label(
+            "/gap_ruler/label", f"gap {p.gap0_m:.2f} m", anchor="center-left", font_screen_scale=LABEL_SCALE,
+            position=((p.camera_offset_m + lead0 - p.lead_length_m / 2) / 2, ROW_Y_M["right"], 0.0),
+        )  # fmt: skip
+        # past detections, on the road where the ego's rear was at each step; the breach: a red gate at the place
+        # where the ego's camera crossed the 2 m line
+        self.trail = scene.add_point_cloud(
+            "/trail", np.zeros((1, 3), np.float32), colors=IDLE, point_size=TRAIL_POINT_M, point_shape="square",
+            precision="float32", point_shading="flat", visible=False,
+        )  # fmt: skip
+        self.breach_gate = scene.add_box(
+            "/breach", color=CRASH, dimensions=(0.12, p.vehicle_width_m + 1.0, CAR_HEIGHT_M + 0.7), opacity=0.7,
+            position=(0.0, 0.0, (CAR_HEIGHT_M + 0.7) / 2), cast_shadow=False, receive_shadow=False, visible=False,
+        )  # fmt: skip
+        self.breach_label = scene.add_label(
+            "/breach/label", "", position=(0.0, ROW_Y_M["left"], -(CAR_HEIGHT_M + 0.7) / 2), anchor="center-right",
+            font_screen_scale=LABEL_SCALE,
         )  # fmt: skip
         self.scene_label = scene.add_label(
-            "/ego/label", "ego: no rollout chosen", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 1.2), anchor="bottom-center"
-        )
-        target = np.array([lead0 / 2, 0.0, 0.0])
-        self.client.camera.position = tuple(target + CAMERA_OFFSET_M)
-        self.client.camera.look_at = tuple(target)
+            "/ego/label", "ego: no rollout chosen", position=(0.0, ROW_Y_M["right"], -CAR_HEIGHT_M / 2),
+            anchor="center-left", font_screen_scale=LABEL_SCALE,
+        )  # fmt: skip
+        self._frame(0.0, lead0, self._span(np.zeros(1), np.full(1, lead0)))
+
+    def _ruler(self, x_from: float, x_to: float) -> np.ndarray:
+        """The gap ruler's segments [3, 2, 3]: the line and a tick at each end (metres)."""
+        y, z, tick = ROW_Y_M["ruler"], 0.03, 0.35
+        return np.array(
+            [[[x_from, y, z], [x_to, y, z]], [[x_from, y - tick, z], [x_from, y + tick, z]],
+             [[x_to, y - tick, z], [x_to, y + tick, z]]], np.float32,
+        )  # fmt: skip
+
+    def _span(self, ego_x: np.ndarray, lead_x: np.ndarray) -> float:
+        """The longest stretch of road the scene must show at once (metres): from the ego's rear to the lead's front."""
+        p = self.params
+        return float(np.max(lead_x + p.lead_length_m / 2 - (ego_x - p.ego_length_m / 2)))
+
+    def _frame(self, ego_x: float, lead_x: float, span_m: float) -> None:
+        """Point the camera at the two cars, far enough back that ``span_m`` metres of road fit the visible canvas
+        (its width and field of view as the browser reports them)."""
+        camera = self.client.camera
+        try:
+            aspect, fov = camera.aspect, camera.fov
+        except (AssertionError, ZeroDivisionError):  # the browser has not reported its camera yet
+            aspect, fov = DEFAULT_ASPECT, DEFAULT_FOV
+        if not (math.isfinite(aspect) and aspect > 0 and 0 < fov < math.pi):
+            aspect, fov = DEFAULT_ASPECT, DEFAULT_FOV
+        p = self.params
+        middle = (ego_x - p.ego_length_m / 2 + lead_x + p.lead_length_m / 2) / 2
+        position, look_at = camera_pose(middle, framing_distance(span_m, aspect, fov))
+        try:
+            with self.client.atomic():
+                camera.position = tuple(position)
+                camera.look_at = tuple(look_at)
+        except (AssertionError, ValueError):  # the client has not reported its camera yet
+            pass
+
+    def _place_rollout(self) -> None:
+        """Put the chosen rollout's fixed marks in the scene: the breach gate (a failing rollout) and the framing."""
+        traj, xs, ex = self.shown, self._shown_x, self.explanation
+        if traj is None or xs is None or ex is None:
+            return
+        p = self.params
+        sev = ex.severity
+        self._shown_span = self._span(*xs)
+        with self.client.atomic():
+            if sev.breach_step is not None:
+                b = sev.breach_step
+                self.breach_gate.position = (float(xs[0][b]) + p.camera_offset_m, 0.0, (CAR_HEIGHT_M + 0.7) / 2)
+                self.breach_label.text = f"{p.crash_gap_m:g} m line crossed\nat {b * p.dt_s:.2f} s"
+            self.breach_gate.visible = sev.breach_step is not None
+            self.breach_label.visible = sev.breach_step is not None
 
     def _clear_scene(self, why: str) -> None:
         """Back to the idle scene (no rollout shown): the cars at the start, the ego grey."""
@@ -107,10 +231,14 @@ class SceneView:
             self.ego_box.position = (0.0, 0.0, CAR_HEIGHT_M / 2)
             self.ego_box.color = IDLE
             self.lead_box.position = (lead0, 0.0, CAR_HEIGHT_M / 2)
-            self.gap_line.colors = np.array(IDLE, dtype=np.uint8)
+            self.gap_ruler.points = self._ruler(p.camera_offset_m, lead0 - p.lead_length_m / 2)
+            self.gap_label.text = f"gap {p.gap0_m:.2f} m"
+            self.gap_label.position = ((p.camera_offset_m + lead0 - p.lead_length_m / 2) / 2, ROW_Y_M["right"], 0.0)
+            self.trail.visible = self.breach_gate.visible = self.breach_label.visible = False
             self.scene_label.text = "ego: no rollout chosen"
             self.scene_html.content = box(html.escape(why), GREY)
             self.explain_html.content = box(html.escape(why), GREY)
+        self._frame(0.0, lead0, self._span(np.zeros(1), np.full(1, lead0)))
 
     def _render_step(self, step: int) -> None:
         with self.lock:
@@ -124,27 +252,26 @@ class SceneView:
             detected = bool(traj.detected[t])
             colour = DETECTED if detected else MISSED
             gap = float(traj.gap_m[t])
-            cam = p.camera_height_m
             decisive = t in set(ex.decisive.tolist())
             seen = "detected" if detected else ("missed (decisive)" if decisive else "missed")
+            cam_x, rear_x = ego_x + p.camera_offset_m, lead_x - p.lead_length_m / 2
+            past = np.asarray(xs[0][: t + 1]) - p.ego_length_m / 2 - TRAIL_POINT_M
+            trail = np.stack([past, np.zeros_like(past), np.full_like(past, 0.03)], axis=1).astype(np.float32)
+            trail_colours = np.where(traj.detected[: t + 1, None], DETECTED, MISSED).astype(np.uint8)
             with self.client.atomic():
                 self.ego_box.position = (ego_x, 0.0, CAR_HEIGHT_M / 2)
                 self.ego_box.color = colour
                 self.lead_box.position = (lead_x, 0.0, CAR_HEIGHT_M / 2)
-                self.gap_line.points = np.array(
-                    [[[ego_x + p.camera_offset_m, 0, cam], [lead_x - p.lead_length_m / 2, 0, cam]]], np.float32
-                )
-                self.gap_line.colors = np.array(colour, dtype=np.uint8)  # (3,): one colour (per-vertex shows white)
-                self.scene_label.text = f"{record.short_label} {traj.key} t={t * p.dt_s:.2f}s gap {gap:.2f}m {seen}"
+                self.gap_ruler.points = self._ruler(cam_x, rear_x)
+                self.gap_label.text = f"gap {gap:.2f} m"
+                self.gap_label.position = ((cam_x + rear_x) / 2, ROW_Y_M["right"], 0.0)
+                self.trail.points = trail
+                self.trail.colors = trail_colours
+                self.trail.visible = True
+                self.scene_label.text = f"{record.short_label} {traj.key} t={t * p.dt_s:.2f}s\n{seen}"
                 plots.move_strip_marker(self.strip, t)
             if self.follow.value:
-                target = np.array([(ego_x + lead_x) / 2, 0.0, 0.0])
-                try:
-                    with self.client.atomic():
-                        self.client.camera.position = tuple(target + CAMERA_OFFSET_M)
-                        self.client.camera.look_at = tuple(target)
-                except (AssertionError, ValueError):  # the client has not reported its camera yet
-                    pass
+                self._frame(ego_x, lead_x, self._shown_span)
             mark = {"detected": "detected", "missed": f"<b style='color:rgb{MISSED}'>missed</b>",
                     "missed (decisive)": f"<b style='color:{RED}'>missed (decisive)</b>"}[seen]  # fmt: skip
             crash = f" · <b style='color:{RED}'>{html.escape(ex.severity.short)}</b>" if traj.crashed else ""
@@ -157,5 +284,3 @@ class SceneView:
                 f"brake {brake} · acceleration {c.accel_mps2[t]:+.2f} m/s^2",
                 RED if traj.crashed else BLUE,
             )
-
-

@@ -6,7 +6,8 @@ a run or a Stop button. The experiment runs in a worker thread (:class:`pemviz.e
 session listens to its events and stops it through the cancel token.
 
 Layout: the control panel (right) holds Run / Stop, the cost of the run, the status line (stage,
-elapsed time, expected time), the accuracy of the final estimate and the tabs *Experiment* (the form;
+elapsed time, the time left in the stage and in the whole run), the accuracy of the final estimate and the tabs
+*Experiment* (the form;
 each field shows its own error), *Rollouts* (choose a rollout: the most likely failure found and the
 least-robust ones; 3D playback) and *Runs* (kept runs with their settings, pin / unpin, export). The
 plots panel (left) holds *Live* (what each stage's sampler did over the states its rollouts visited, per-stage
@@ -39,9 +40,11 @@ from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_num
 from pemviz.app.runs import PANEL_PRESETS, PanelRun, Trajectory, export_path, export_run, keep_runs
 from pemviz import engine
 from pemviz.config import SETTINGS, SIMULATORS, ExperimentConfig
+from pemviz.cost import duration
 from pemviz.estimate import format_probability
 from pemviz.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
+from pemviz.presets import preset_help
 from pemviz.scenarios.braking_failures import Severity
 from pemviz.problems import problem_for
 from pemviz.sampling import torch_threads
@@ -99,6 +102,8 @@ class Session(RunsTab, RolloutsTab, SceneView):
         self.explanation: Explanation | None = None
         self.shown_step = -1
         self._shown_x: tuple[np.ndarray, np.ndarray] | None = None
+        self._shown_span = 0.0
+        """Metres of road the scene frames for the rollout shown (its cars' longest stretch)."""
         self.playing = False
         self._rollout_labels: dict[str, Trajectory] = {}
         self.last_export: Path | None = None
@@ -134,7 +139,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
     def start_run(self, confirmed: bool = False) -> str | None:
         """Start a run with the form's values; returns why it was refused instead.
 
-        A run whose cost is above the limits (:meth:`pemviz.app.form.RunCost.needs_confirm`) starts only
+        A run whose cost is above the limits (:meth:`pemviz.cost.RunCost.needs_confirm`) starts only
         ``confirmed`` (the *Run anyway* button).
         """
         with self.lock:
@@ -297,8 +302,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
 
         self.preset = gui.add_dropdown(
             "preset", tuple(PANEL_PRESETS), initial_value=self.app.preset_name,
-            hint="state-ce: the recommended sampler; paper: as published; authors-code: as the authors' code ran; "
-                 "quick: a few-second run",
+            hint=f"sampler settings: {preset_help(PANEL_PRESETS)}",
         )  # fmt: skip
         self.choices: dict[str, Any] = {}
         self.fields: dict[str, viser.GuiTextHandle] = {}
@@ -442,7 +446,8 @@ class Session(RunsTab, RolloutsTab, SceneView):
                 self._refresh_plots()
 
     def tick(self) -> None:
-        """Refresh the status line of a running run: stage, what it does, elapsed time, expected time."""
+        """Refresh the status line of a running run: stage, what it does, elapsed time, the time left in the stage
+        and in the whole run (:class:`pemviz.sinks.StageClock`)."""
         with self.lock:
             record = self.record
             if record is None or not self.running or record.done or self._stop_requested_at is not None:
@@ -459,14 +464,17 @@ class Session(RunsTab, RolloutsTab, SceneView):
             elif stage.kind == "pretrain":
                 doing = f"pretraining the proposal ({cfg.pretrain_epochs} epochs)"
             else:
-                doing = f"cross-entropy update ({cfg.ce_epochs} epochs)"
-            in_stage = record.clock.stage_elapsed_s()
-            expected = record.clock.expected_s(stage.kind, stage.n_rollouts)
+                most = "at most " if cfg.fit_tolerance is not None and cfg.fit == "adam" else ""
+                doing = f"cross-entropy update ({most}{cfg.ce_epochs} epochs)"
+            clock = record.clock
+            stage_left, run_left = clock.stage_left_s(), clock.run_left_s()
             eta = ""
-            if math.isfinite(expected):
-                eta = f", about {max(0.0, expected - in_stage):.1f} s left in it" if in_stage < expected else ", nearly done"
+            if math.isfinite(stage_left):
+                eta = f", about {stage_left:.1f} s left in it" if stage_left > 0.05 else ", nearly done"
+            whole = f", about {duration(run_left)} left in all" if math.isfinite(run_left) else ""
             self._status(
-                f"{record.short_label} · {label}: {doing} · stage {in_stage:.1f} s{eta} · run {record.elapsed_s():.1f} s"
+                f"{record.short_label} · {label}: {doing} · stage {clock.stage_elapsed_s():.1f} s{eta} · run "
+                f"{record.elapsed_s():.1f} s{whole}"
             )
             self._set_progress(record)
 

@@ -24,7 +24,7 @@ from pemviz.commands import (
 )
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.io.files import check_output_folder, free_default_path
-from pemviz.presets import DEFAULT_PRESET, PRESETS
+from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 from pemviz.resources import check_run_memory
 
 # The parser needs only the light modules above (and rerun's script flags): torch, the engine, the sinks and pyarrow
@@ -48,11 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_setting(p, "method", default=d.method)
     p.add_argument(
         "--preset", default=DEFAULT_PRESET,
-        help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}: the recommended sampler, "
-        "right against exact answers (the user guide's Validation page); paper: the published settings, biased "
-        "low at the default budget; authors-code: as the authors' code ran it; state-ce-step: the default before "
-        "the mixture over whole rollouts; quick: a run in seconds). A preset sets some of the values below; a "
-        "flag given here overrides it.",
+        help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}): {preset_help()}. A preset "
+        "sets some of the values below; a flag given here overrides it.",
     )
     for name in RUN_SETTINGS:
         add_setting(p, name)

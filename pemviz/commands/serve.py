@@ -9,7 +9,7 @@ import socket
 import sys
 
 from pemviz.commands import COMMANDS, UsageError, add_setting, pem_argument
-from pemviz.presets import DEFAULT_PRESET, PRESETS
+from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
     p.add_argument("--preset", default=DEFAULT_PRESET,
-                   help=f"initial settings: {', '.join(PRESETS)} (default {DEFAULT_PRESET})")
+                   help=f"the form's initial settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}): "
+                        f"{preset_help()}")
     add_setting(p, "pem")
     p.add_argument("--recordings", default="recordings", help="folder for exported .rrd files (default recordings)")
     p.set_defaults(func=main)

@@ -2,7 +2,7 @@
 
 A sink only listens; it never drives the engine (the viser panel may set the cancel token). :class:`Sink` is their
 base: one method per event of :mod:`pemviz.events` and one dispatch. :class:`StageClock` is the one clock of a run
-that the console and the panel predict a stage's time from.
+that the console and the panel predict a stage's and the whole run's time left from.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import math
 import time
 from typing import Callable
 
+from pemviz.cost import COST, N_STEPS, CostConstants, StageCost, plan_costs, stage_cost
 from pemviz.events import (
     Event,
     FinalEstimate,
@@ -23,6 +24,11 @@ from pemviz.events import (
     StageResult,
     StageStarted,
 )
+from pemviz.plan import RunPlan
+
+MAX_SCALE = 20.0
+"""The most a :class:`StageClock` scales a prediction by (either way): a first stage slowed by a one-off start
+(an import, a warm-up) must not blow up the prediction of the rest."""
 
 HANDLERS: dict[type, str] = {
     RunStarted: "on_run_started",
@@ -73,54 +79,110 @@ class Sink:
         """The run was stopped before its answer."""
 
 
-def expected_stage_s(done: list[StageResult], kind: str, n_rollouts: int,
-                     sample_s_per_rollout: float = math.nan) -> float:  # fmt: skip
-    """Expected seconds of a stage of ``n_rollouts`` rollouts (nan when nothing comparable has run yet).
-
-    A CE stage takes as long as the last CE stage did (sampling plus the proposal update). The final batch
-    only samples: ``n_rollouts`` times the seconds per rollout measured while the last CE stage sampled
-    (``sample_s_per_rollout``). Pretraining predicts neither (its time is the fit of a few rollouts).
-    """
-    if kind == "final":
-        return n_rollouts * sample_s_per_rollout
-    alike = [r for r in done if r.kind == kind]
-    return alike[-1].wall_s if alike else math.nan
-
-
 class StageClock(Sink):
-    """The wall clock of a run as its events arrive (``now``: seconds, default ``time.perf_counter``).
+    """The wall clock of a run as its events arrive, and the time its stages and the whole run have left (``now``:
+    seconds, default ``time.perf_counter``).
+
+    Each stage of the run's plan (:class:`~pemviz.events.RunStarted`) has a predicted time to simulate its rollouts
+    and to finish after them, its fit included (:func:`pemviz.cost.plan_costs`). As stages end the clock measures both
+    (from the stage's start to its :class:`~pemviz.events.RolloutsSampled`, over all of its rollouts, a streamed
+    stage's too; then to its :class:`~pemviz.events.StageFinished`) and scales the predictions of what is left by
+    measured / predicted so far, separately for the two parts.
 
     Attributes:
-        t0: when the run started; stage_t0: when the current stage started.
-        sample_s_per_rollout: seconds per rollout while the last CE stage sampled, from its start to its
-            :class:`~pemviz.events.RolloutsSampled`, over all of its rollouts (``n_rollouts``: a streamed stage's
-            too, not its sample's); it predicts the final batch. nan before.
+        t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were sampled
+            (None before).
+        simulate_scale, after_scale: measured / predicted seconds of simulating, and of what follows (fits), over the
+            stages so far (1 before any).
         done: the finished stages' results.
     """
 
-    def __init__(self, now: Callable[[], float] = time.perf_counter) -> None:
+    def __init__(self, now: Callable[[], float] = time.perf_counter, constants: CostConstants = COST) -> None:
         self.now = now
+        self.constants = constants
         self.t0 = self.stage_t0 = now()
-        self.sample_s_per_rollout = math.nan
+        self.sampled_t: float | None = None
+        self.plan: RunPlan | None = None
+        self._config, self._n_steps = None, N_STEPS
+        self.predicted: dict[int, StageCost] = {}
+        self.current: StageStarted | None = None
         self.done: list[StageResult] = []
+        self._measured = {"simulate": [0.0, 0.0], "after": [0.0, 0.0]}  # [measured s, predicted s]
 
     def on_run_started(self, event: RunStarted) -> None:
         self.t0 = self.stage_t0 = self.now()
-        self.sample_s_per_rollout, self.done = math.nan, []
+        self.sampled_t, self.current, self.done = None, None, []
+        self.plan = event.plan
+        scene = event.problem.scene
+        self._config, self._n_steps = event.config, scene.n_steps if scene is not None else N_STEPS
+        self.predicted = plan_costs(event.config, event.plan, self._n_steps, self.constants)
+        self._measured = {"simulate": [0.0, 0.0], "after": [0.0, 0.0]}
 
     def on_stage_started(self, event: StageStarted) -> None:
-        self.stage_t0 = self.now()
+        self.stage_t0, self.sampled_t, self.current = self.now(), None, event
 
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
-        if event.kind == "ce":
-            self.sample_s_per_rollout = (self.now() - self.stage_t0) / max(1, event.n_rollouts)
+        self.sampled_t = self.now()
+        if self.current is not None and self.current.stage == event.stage:  # all of a streamed stage's rollouts
+            predicted = self._model(event.kind, event.n_rollouts, event.stage).simulate_s
+            self._add("simulate", self.sampled_t - self.stage_t0, predicted)
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self.done = self.done + [event.result]
+        if self.current is not None and self.sampled_t is not None and self.current.stage == event.result.stage:
+            cost = self._model(self.current.kind, self.current.n_rollouts, self.current.stage)
+            self._add("after", self.now() - self.sampled_t, cost.after_s)
+        self.current = None
+
+    def _add(self, part: str, measured_s: float, predicted_s: float) -> None:
+        if predicted_s > 0.0:
+            m = self._measured[part]
+            m[0] += measured_s
+            m[1] += predicted_s
+
+    def _scale(self, part: str) -> float:
+        measured, predicted = self._measured[part]
+        return min(MAX_SCALE, max(1.0 / MAX_SCALE, measured / predicted)) if predicted > 0.0 else 1.0
+
+    @property
+    def simulate_scale(self) -> float:
+        return self._scale("simulate")
+
+    @property
+    def after_scale(self) -> float:
+        return self._scale("after")
+
+    def _model(self, kind: str, n_rollouts: int, stage: int | None = None) -> StageCost:
+        """The model's prediction of a stage of this run (nan before the run starts)."""
+        if self._config is None:
+            return StageCost(math.nan, math.nan)
+        return stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage)
+
+    def _scaled(self, cost: StageCost) -> tuple[float, float]:
+        return cost.simulate_s * self.simulate_scale, cost.after_s * self.after_scale
 
     def expected_s(self, kind: str, n_rollouts: int) -> float:
-        """Expected seconds of a stage (:func:`expected_stage_s` from the stages done and the time per rollout)."""
-        return expected_stage_s(self.done, kind, n_rollouts, self.sample_s_per_rollout)
+        """Expected seconds of a stage of ``kind`` and ``n_rollouts``: its predicted simulating and what follows
+        (:func:`pemviz.cost.stage_cost`), each scaled by what the run measured so far; nan before the run starts."""
+        return sum(self._scaled(self._model(kind, n_rollouts)))
+
+    def stage_left_s(self) -> float:
+        """Expected seconds left in the current stage (0 once it has taken longer than expected; nan: none going)."""
+        if self.current is None:
+            return math.nan
+        simulate, after = self._scaled(self._model(self.current.kind, self.current.n_rollouts, self.current.stage))
+        if self.sampled_t is None:
+            return max(0.0, simulate - (self.now() - self.stage_t0)) + after
+        return max(0.0, after - (self.now() - self.sampled_t))
+
+    def run_left_s(self) -> float:
+        """Expected seconds left in the whole run: the current stage's rest and every later stage of the plan
+        (:meth:`expected_s`); nan for an open-ended plan (AMS) or before the run starts."""
+        if self.plan is None or self.plan.open_ended:
+            return math.nan
+        after = self.current.stage if self.current is not None else (self.done[-1].stage if self.done else -1)
+        left = sum(sum(self._scaled(self.predicted[s.stage])) for s in self.plan.stages if s.stage > after)
+        return left + (self.stage_left_s() if self.current is not None else 0.0)
 
     def elapsed_s(self) -> float:
         """Seconds since the run started."""

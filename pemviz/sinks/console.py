@@ -8,9 +8,9 @@ from typing import TextIO
 
 from pemviz.estimate import Estimate, format_probability
 from pemviz.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
-from pemviz.sinks import Sink, StageClock, expected_stage_s
+from pemviz.sinks import Sink, StageClock
 
-__all__ = ["ConsoleSink", "HEADER", "estimate_cells", "expected_stage_s", "progress_line", "stage_row"]
+__all__ = ["ConsoleSink", "HEADER", "estimate_cells", "progress_line", "stage_row"]
 
 HEADER = (
     f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} "
@@ -30,10 +30,13 @@ def estimate_cells(e: Estimate) -> str:
     )
 
 
-def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: float) -> str:
-    """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s)``."""
+def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: float,
+                  run_left_s: float = math.nan) -> str:  # fmt: skip
+    """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s, run ~8.4 s left)``: the stage's
+    expected seconds and the whole run's left (:class:`pemviz.sinks.StageClock`), each left out where unknown."""
     eta = f", this stage ~{expected_s:.1f} s" if math.isfinite(expected_s) else ""
-    return f"{label}: {n_rollouts} rollouts ... (elapsed {elapsed_s:.1f} s{eta})"
+    left = f", run ~{run_left_s:.1f} s left" if math.isfinite(run_left_s) else ""
+    return f"{label}: {n_rollouts} rollouts ... (elapsed {elapsed_s:.1f} s{eta}{left})"
 
 
 def stage_row(res: StageResult) -> str:
@@ -70,7 +73,7 @@ class ConsoleSink(Sink):
     def on_stage_started(self, event: StageStarted) -> None:
         label = self.plan.label(event.stage, event.kind)
         expected = self.clock.expected_s(event.kind, event.n_rollouts)
-        line = progress_line(label, event.n_rollouts, self.clock.elapsed_s(), expected)
+        line = progress_line(label, event.n_rollouts, self.clock.elapsed_s(), expected, self.clock.run_left_s())
         print(f"  {line}", file=self.progress, flush=True)
 
     def on_stage_finished(self, event: StageFinished) -> None:

@@ -1,5 +1,6 @@
-"""The console sink on hand-made events: the stage names come from the run's plan, the time per rollout from all of a
-stage's rollouts, the header from the problem's view."""
+"""The console sink on hand-made events: the stage names come from the run's plan, the time left of the stage and of
+the whole run from the plan scaled by what was measured (all of a stage's rollouts), the header from the problem's
+view."""
 
 from __future__ import annotations
 
@@ -8,10 +9,11 @@ import io
 import numpy as np
 
 from pemviz.events import FinalEstimate, RunCancelled, StageStarted
+from pemviz.plan import RunPlan
 from pemviz.sinks import StageClock
 from pemviz.sinks.console import ConsoleSink
 
-from .synthetic import PLAN, TOY, batch, finished, run_started, sampled
+from .synthetic import PLAN, SIMPLE, TOY, batch, finished, run_started, sampled
 
 
 class Ticks:
@@ -27,29 +29,38 @@ class Ticks:
 def console():
     out, progress, now = io.StringIO(), io.StringIO(), Ticks()
     sink = ConsoleSink(out, progress)
-    sink.clock = StageClock(now)
+    sink.clock = StageClock(now, SIMPLE)
     return sink, out, progress, now
 
 
-def test_the_progress_names_each_stage_of_the_plan_and_the_final_batch_is_predicted_from_every_rollout():
+def test_the_progress_names_each_stage_and_predicts_it_and_the_whole_run_from_what_was_measured():
     sink, out, progress, now = console()
-    sink(run_started())
-    for stage, kind, n in ((0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 50_000)):
+    plan = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 40_000), (3, "final", 50_000)])
+    sink(run_started(plan=plan))  # 500 pretraining epochs, at most 150 per CE stage
+    for stage, kind, n in plan_rows(plan):
         sink(StageStarted(stage, kind, n))
-        if stage == 2:  # a streamed stage of 40,000 rollouts, shown as a sample of 4, sampled in 4 s
-            now.t += 4.0
-            sink(sampled(stage, kind, batch(np.full((4, 5), 9.0)), n_total=40_000))
-        now.t += 1.0
-        sink(finished(stage, kind, n if kind != "final" else 50, 3))
+        predicted = n * 1e-5
+        now.t += 2.0 * predicted  # every stage simulates and fits in twice the predicted time
+        shown = batch(np.full((4, 5), 9.0))
+        sink(sampled(stage, kind, shown, n_total=n if n > 4 else None))  # a sample of 4 of a streamed stage
+        now.t += 2.0 * {"pretrain": 0.5, "ce": 0.15, "final": 0.0}[kind]
+        sink(finished(stage, kind, n if n < 100 else 50, 3))
     lines = progress.getvalue().splitlines()
     assert [line.split(":")[0].strip() for line in lines] == ["pretraining", "CE stage 1/2", "CE stage 2/2",
                                                                "final batch"]  # fmt: skip
-    # 4 s for 40,000 rollouts: 1e-4 s each, so 50,000 take 5 s (not 4 s / 4 sampled rollouts each: 50,000 s)
-    assert lines[3].endswith("this stage ~5.0 s)")
-    assert "this stage ~1.0 s" in lines[2]  # as long as CE stage 1 (1 s)
+    # before any measurement: the model; pretraining 0.0002 + 0.5 s, then 0.0003 + 0.15, 0.4 + 0.15 and 0.5 s
+    assert lines[0].endswith("this stage ~0.5 s, run ~1.7 s left)")
+    # twice as slow as predicted so far: CE stage 2 takes 2 x 0.55 s, the final batch 2 x 0.5 s (its 50,000
+    # rollouts counted, and stage 2's 40,000, not the 4 shown of them)
+    assert lines[2].endswith("this stage ~1.1 s, run ~2.1 s left)")
+    assert lines[3].endswith("this stage ~1.0 s, run ~1.0 s left)")
     table = out.getvalue().splitlines()
     assert table[0].startswith("pemviz: adaptive on the braking scenario, spec G[0,4](d >= 2)") and "K=2 " in table[0]
     assert table[3].split()[:5] == ["1", "ce", "-", "3/30", "1.000e-01"]  # 3 of 30 fail, each weight 1
+
+
+def plan_rows(plan: RunPlan) -> list[tuple[int, str, int]]:
+    return [(s.stage, s.kind, s.n_rollouts) for s in plan.stages]
 
 
 def test_a_toy_run_is_named_by_its_problem_and_a_cancelled_run_says_after_how_many_stages():

@@ -13,13 +13,13 @@ from pemviz.events import StageStarted  # noqa: E402
 from pemviz.plan import RunPlan  # noqa: E402
 from pemviz.sinks import StageClock  # noqa: E402
 
-from .synthetic import PLAN, TOY, batch, finished, run_started, sampled  # noqa: E402
+from .synthetic import PLAN, SIMPLE, TOY, batch, finished, run_started, sampled  # noqa: E402
 
 
 def test_progress_counts_the_plans_stages_and_the_final_batch_is_predicted_from_every_rollout():
     now = [0.0]
     run = PanelRun(1, run_started().config)
-    run.clock = StageClock(lambda: now[0])
+    run.clock = StageClock(lambda: now[0], SIMPLE)  # simulating n rollouts: n x 1e-5 s
     run(run_started())
     assert run.progress() == (0.0, 0.0) and run.plan is PLAN
     for stage, kind in ((0, "pretrain"), (1, "ce")):
@@ -28,7 +28,8 @@ def test_progress_counts_the_plans_stages_and_the_final_batch_is_predicted_from_
         run(sampled(stage, kind, batch(np.full((5, 5), 9.0)), n_total=20_000))  # 5 shown of 20,000
         run(finished(stage, kind, 30, 1))
     assert run.progress() == (50.0, 100.0)  # 2 of the plan's 4 stages, the current one finished
-    assert run.clock.sample_s_per_rollout == 2.0 / 20_000  # not 2 s / 5 rollouts
+    # 20,000 rollouts predicted 0.2 s took 2 s: 10 x slower (not 2 s for the 5 rollouts shown: 200,000 x slower)
+    assert run.clock.simulate_scale == pytest.approx(10.0)
     assert run.clock.expected_s("final", 50_000) == pytest.approx(5.0)
     run(StageStarted(2, "ce", 30))
     assert run.progress() == (50.0, 5.0)

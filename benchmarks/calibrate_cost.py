@@ -1,0 +1,285 @@
+"""Calibrate the cost model of :mod:`pemviz.cost` (the panel's "about N s", the time left in the console and panel).
+
+    python benchmarks/calibrate_cost.py              # predicted vs measured seconds of each run, and the ratio
+    python benchmarks/calibrate_cost.py --fit        # also the constants fitted to these runs, ready to paste
+    python benchmarks/calibrate_cost.py --repeat 3   # the median of 3 runs of each configuration
+
+What it does: runs a handful of configurations (the default, ``--preset quick``, N = 1000, plain Monte Carlo with
+N = 10,000, ``--preset paper``, the agm run of the panel's screenshots, a small highway-env run) as the panel runs
+them (:class:`pemviz.engine.Experiment` with a :class:`pemviz.app.runs.PanelRun` listener, torch on one thread), after
+a warm-up run, and prints per configuration the seconds :func:`pemviz.cost.run_cost` predicts, the seconds the run
+took and their ratio (predicted / measured). With ``--fit`` it also records each stage (simulating: from its start to
+its rollouts; after: the rest) and each proposal fit (its rows, epochs and seconds, by wrapping
+:func:`pemviz.sampling.fit_proposal` where :mod:`pemviz.estimators.ce_fit` calls it), fits every constant of
+:class:`pemviz.cost.CostConstants` to them by least squares, scales the simulating and the fitting constants so that
+the runs' predicted totals meet the measured ones, and prints the constants and the table again with them. The whole
+takes under 2 minutes on 2 cores. Measure on a quiet machine: `uptime` beside the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pemviz import cost, engine  # noqa: E402
+from pemviz.app.runs import PanelRun  # noqa: E402
+from pemviz.config import ExperimentConfig  # noqa: E402
+from pemviz.estimators import ce_fit, run_plan  # noqa: E402
+from pemviz.presets import PRESETS  # noqa: E402
+from pemviz.problems import problem_for  # noqa: E402
+from pemviz.sampling import torch_threads  # noqa: E402
+from pemviz.sinks import Sink  # noqa: E402
+
+CONFIGS: dict[str, tuple[str, dict]] = {
+    "default": ("state-ce", {}),
+    "quick preset": ("quick", {}),
+    "N = 1000": ("state-ce", {"n_per_stage": 1000}),
+    "method mc N = 10000": ("state-ce", {"method": "mc", "n_per_stage": 10_000}),
+    "paper preset": ("paper", {}),
+    "metric agm alpha 0.2 sigma 0.9": ("state-ce", {"metric": "agm", "smoothing": 0.2, "quantile_level": 0.9}),
+    "highway-env mc N = 100": ("state-ce", {"sim": "highway-env", "method": "mc", "n_per_stage": 100}),
+}
+"""name -> (preset, settings over it): the configurations measured."""
+
+
+@dataclass
+class StageRecord:
+    """One stage as it ran: kind, rollouts, seconds simulating (start to rollouts) and after (to its end), and the
+    proposal fits inside it as (rows, epochs run, seconds)."""
+
+    kind: str
+    stage: int
+    n: int
+    simulate_s: float = math.nan
+    after_s: float = math.nan
+    fits: list[tuple[int, int, float]] = field(default_factory=list)
+
+
+class Recorder(Sink):
+    """Times each stage of a run (see :class:`StageRecord`)."""
+
+    def __init__(self) -> None:
+        self.stages: list[StageRecord] = []
+        self._t0 = self._t1 = 0.0
+
+    def on_stage_started(self, event) -> None:
+        self._t0 = CLOCK()
+        self.stages.append(StageRecord(event.kind, event.stage, event.n_rollouts))
+
+    def on_rollouts_sampled(self, event) -> None:
+        self._t1 = CLOCK()
+        self.stages[-1].n = event.n_rollouts
+        self.stages[-1].simulate_s = self._t1 - self._t0
+
+    def on_stage_finished(self, event) -> None:
+        self.stages[-1].after_s = CLOCK() - self._t1
+
+
+RECORDER: Recorder | None = None
+
+CLOCK = time.process_time
+"""The clock of the measurements: this process's CPU seconds, which other work on a shared machine changes far less
+than the wall clock (on an idle machine the two agree: a run uses one thread)."""
+
+
+def _timed_fit(original):
+    def fit_proposal(proposal, inputs, objective, epochs, *args, **kwargs):
+        t0 = CLOCK()
+        losses = original(proposal, inputs, objective, epochs, *args, **kwargs)
+        if RECORDER is not None and RECORDER.stages:
+            RECORDER.stages[-1].fits.append((int(inputs.shape[0]), len(losses), CLOCK() - t0))
+        return losses
+
+    return fit_proposal
+
+
+ce_fit.fit_proposal = _timed_fit(ce_fit.fit_proposal)
+
+
+def config_of(preset: str, settings: dict) -> ExperimentConfig:
+    return ExperimentConfig(**{**PRESETS[preset], **settings})
+
+
+def measure(cfg: ExperimentConfig) -> tuple[float, float, Recorder]:
+    """CPU and wall seconds of one run as the panel runs it (the problem loaded before the clocks start), and its
+    stage records (CPU seconds)."""
+    global RECORDER
+    problem = problem_for(cfg)
+    RECORDER = Recorder()
+    with torch_threads(1):
+        t0, w0 = CLOCK(), time.perf_counter()
+        engine.Experiment(cfg, [PanelRun(0, cfg), RECORDER], problem=problem).run()
+        seconds, wall = CLOCK() - t0, time.perf_counter() - w0
+    recorder, RECORDER = RECORDER, None
+    return seconds, wall, recorder
+
+
+def predicted_s(cfg: ExperimentConfig, constants: cost.CostConstants) -> float:
+    return cost.run_cost(cfg, run_plan(cfg), c=constants).seconds
+
+
+def table(rows: list[tuple[str, ExperimentConfig, float]], constants: cost.CostConstants, title: str) -> float:
+    """Print config, predicted s, measured s, ratio; returns the largest |ratio - 1|."""
+    print(f"\n{title}")
+    print(f"{'config':<36} {'predicted s':>11} {'measured s':>10} {'ratio':>6}   (measured: CPU seconds)")
+    worst = 0.0
+    for name, cfg, measured in rows:
+        p = predicted_s(cfg, constants)
+        worst = max(worst, abs(p / measured - 1.0))
+        print(f"{name:<36} {p:>11.2f} {measured:>10.2f} {p / measured:>6.2f}")
+    print(f"largest |predicted / measured - 1| = {worst:.2f}")
+    return worst
+
+
+def _lstsq(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Least squares with non-negative results (a negative constant is set to 0 and the rest fitted again)."""
+    w = np.ones(len(y)) if w is None else w
+    keep = np.ones(x.shape[1], bool)
+    while True:
+        beta = np.zeros(x.shape[1])
+        beta[keep] = np.linalg.lstsq(x[:, keep] * w[:, None], y * w, rcond=None)[0]
+        if (beta >= 0).all() or not keep.any():
+            return np.maximum(beta, 0.0)
+        keep &= beta > 0
+
+
+def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = cost.N_STEPS) -> cost.CostConstants:
+    """Every constant of :class:`pemviz.cost.CostConstants` fitted to the stage and fit records of ``runs``."""
+    c0 = cost.COST
+    # simulating: T x (a_pem [the PEM draws] + a_proposal [a proposal draws] + (b_sim + b_proposal [a proposal
+    # draws]) x n)
+    sims = sorted({cfg.sim for cfg, _ in runs})
+    x, y = [], []
+    for cfg, rec in runs:
+        for s in rec.stages:
+            proposal = cfg.method == "adaptive" and s.kind in ("ce", "final")
+            x.append([n_steps * (not proposal), n_steps * proposal, n_steps * s.n * proposal]
+                     + [n_steps * s.n * (cfg.sim == m) for m in sims])  # fmt: skip
+            y.append(s.simulate_s)
+    sim = _lstsq(np.array(x, float), np.array(y), 1.0 / np.maximum(np.array(y), 1e-3))  # relative errors
+    # after the rollouts: epochs x (c + d x rows) + e x rows + f (per stage)
+    x, y = [], []
+    for cfg, rec in runs:
+        for s in rec.stages:
+            rows = sum(r for r, _, _ in s.fits)
+            epochs = sum(e for _, e, _ in s.fits)
+            x.append([epochs, sum(r * e for r, e, _ in s.fits), rows, 1.0])
+            y.append(s.after_s)
+    after = _lstsq(np.array(x, float), np.array(y), 1.0 / np.sqrt(np.maximum(np.array(y), 1e-2)))
+    # the rows of the fits: per pretraining rollout; of CE stage k, P (N / 100)^gamma (1 - exp(-(k - 1) / tau)),
+    # fitted in log space over a grid of gamma and tau; the share of epochs the early-stopped fits run
+    pretrain, ce, share = {}, {}, []
+    for cfg, rec in runs:
+        for s in rec.stages:
+            for rows, epochs, _ in s.fits:
+                if s.kind == "pretrain":
+                    pretrain.setdefault(cfg.proposal_inputs, []).append(rows / s.n)
+                elif s.kind == "ce":
+                    if s.stage > 1:
+                        ce.setdefault(cfg.proposal_inputs, []).append((s.stage, s.n, rows))
+                    if cfg.fit_tolerance is not None and cfg.fit == "adam":
+                        share.append(epochs / cfg.ce_epochs)
+    best = (math.inf, c0.ce_rows_exponent, c0.ce_rows_stages)
+    for gamma in np.linspace(0.0, 0.6, 31):
+        for tau in np.linspace(0.3, 20.0, 198):
+            sse = 0.0
+            for points in ce.values():
+                k, n, rows = (np.array(v, float) for v in zip(*points))
+                resid = np.log(rows) - gamma * np.log(n / 100.0) - np.log1p(-np.exp(-(k - 1) / tau))
+                sse += float(np.sum((resid - resid.mean()) ** 2))
+            best = min(best, (sse, float(gamma), float(tau)))
+    _, exponent, tau = best
+    ce_rows = {}
+    for inputs, points in ce.items():  # the plateau that gives the rows' sum (the cost is linear in the rows)
+        k, n, rows = (np.array(v, float) for v in zip(*points))
+        ce_rows[inputs] = float(rows.sum() / np.sum((n / 100.0) ** exponent * -np.expm1(-(k - 1) / tau)))
+    return cost.CostConstants(
+        pem_step_s=float(sim[0]), proposal_step_s=float(sim[1]),
+        rollout_step_s={**c0.rollout_step_s, **{m: float(b) for m, b in zip(sims, sim[3:])}},
+        proposal_rollout_step_s=float(sim[2]),
+        stage_s=float(after[3]), epoch_s=float(after[0]), row_epoch_s=float(after[1]), row_s=float(after[2]),
+        pretrain_rows={**c0.pretrain_rows, **{k: float(np.mean(v)) for k, v in pretrain.items()}},
+        ce_rows={**c0.ce_rows, **ce_rows}, ce_rows_exponent=exponent, ce_rows_stages=tau,
+        early_stop_share=float(np.mean(share)) if share else c0.early_stop_share, ams_rollouts=c0.ams_rollouts,
+    )  # fmt: skip
+
+
+def scale_to_totals(c: cost.CostConstants, rows: list[tuple[str, ExperimentConfig, float]]) -> cost.CostConstants:
+    """``c`` with its simulating and its after-the-rollouts constants each scaled by the factor (least squares on
+    the relative errors of the runs' totals) that makes the predicted totals of ``rows`` meet the measured ones: the
+    stage-by-stage fits leave the parts' shapes, the totals set their sizes."""
+    parts = []
+    for _, cfg, measured in rows:
+        costs = cost.plan_costs(cfg, run_plan(cfg), c=c).values()
+        parts.append([sum(x.simulate_s for x in costs) / measured, sum(x.after_s for x in costs) / measured])
+    a, b = _lstsq(np.array(parts), np.ones(len(parts)))
+    a, b = (a or 1.0), (b or 1.0)
+    return replace(
+        c, pem_step_s=c.pem_step_s * a, proposal_step_s=c.proposal_step_s * a,
+        rollout_step_s={k: v * a for k, v in c.rollout_step_s.items()},
+        proposal_rollout_step_s=c.proposal_rollout_step_s * a,
+        stage_s=c.stage_s * b, epoch_s=c.epoch_s * b, row_epoch_s=c.row_epoch_s * b, row_s=c.row_s * b,
+    )  # fmt: skip
+
+
+def literal(c: cost.CostConstants, measured: str) -> str:
+    """``COST = CostConstants(...)`` to paste into pemviz/cost.py."""
+
+    def g(v):
+        return "{" + ", ".join(f'"{k}": {g(x)}' for k, x in v.items()) + "}" if isinstance(v, dict) else f"{v:.3g}"
+
+    parts = [f"    {name}={g(getattr(c, name))}," for name in c.__dataclass_fields__ if name != "measured"]
+    return "COST = CostConstants(\n" + "\n".join(parts) + f'\n    measured="{measured}",\n)'
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--fit", action="store_true", help="fit the constants to these runs and print them")
+    ap.add_argument("--repeat", type=int, default=1, help="runs per configuration; the median counts (default 1)")
+    ap.add_argument("--only", default=None, help="comma-separated names of CONFIGS to run (default all)")
+    args = ap.parse_args()
+    names = list(CONFIGS) if args.only is None else [n.strip() for n in args.only.split(",")]
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
+    print(f"pemviz cost model: {len(names)} configurations x {args.repeat}, load average {load:.2f}, "
+          f"{os.cpu_count()} CPUs; constants measured: {cost.COST.measured}")  # fmt: skip
+    for warm in (ExperimentConfig(**{**PRESETS["quick"], "n_stages": 2, "n_per_stage": 40}),
+                 ExperimentConfig(method="mc", sim="highway-env", n_per_stage=4)):  # fmt: skip
+        measure(warm)  # imports, the first network, the first highway-env simulator
+    rows, records = [], []
+    t_all = time.perf_counter()
+    for name in names:
+        cfg = config_of(*CONFIGS[name])
+        times, walls = [], []
+        for _ in range(args.repeat):
+            seconds, wall, rec = measure(cfg)
+            times.append(seconds)
+            walls.append(wall)
+            records.append((cfg, rec))
+        rows.append((name, cfg, statistics.median(times)))
+        print(f"  {name}: CPU {', '.join(f'{t:.2f}' for t in times)} s, wall {', '.join(f'{t:.2f}' for t in walls)} s",
+              flush=True)  # fmt: skip
+    table(rows, cost.COST, "with the constants of pemviz.cost.COST")
+    if args.fit:
+        fitted = scale_to_totals(fit_constants(records), rows)
+        stamp = time.strftime("%Y-%m-%d")
+        measured = (f"{stamp}, benchmarks/calibrate_cost.py --fit --repeat {args.repeat}, {os.cpu_count()} cores, "
+                    f"load average {load:.1f}")  # fmt: skip
+        fitted = replace(fitted, measured=measured)
+        table(rows, fitted, "with the constants fitted to these runs")
+        print("\n" + literal(fitted, measured))
+    print(f"\n{time.perf_counter() - t_all:.0f} s in all (load average now {os.getloadavg()[0]:.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

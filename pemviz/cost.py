@@ -1,0 +1,198 @@
+"""What a run costs: its simulations, its largest batch in memory, and its seconds, before it starts and while it runs.
+
+The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimators.cross_entropy`,
+:mod:`pemviz.estimators.ce_fit`), stage by stage of its :class:`~pemviz.plan.RunPlan`:
+
+- simulating a batch of n rollouts of T steps: T x (a fixed cost per step of the batch, larger when a proposal
+  network and its mixture decide the detections than when the PEM alone does, + a cost per rollout and step of the
+  simulator);
+- after the rollouts, a fixed cost per stage (robustness, estimate, listeners) and, in pretraining and each
+  cross-entropy stage, the proposal's fit: epochs x (a fixed cost per Adam epoch + a cost per fitted row and epoch) +
+  a cost per fitted row (gathering and weighing the pool). The rows are the distinct fitted steps, at most
+  ``fit_rows``: per pretraining rollout a fixed number; per CE stage k a number that grows with k towards a plateau,
+  as failures are pooled from the failure level on, and slowly with N. A CE fit with ``fit_tolerance`` stops early,
+  on average after a share of ``ce_epochs``.
+
+:data:`COST` holds the constants, measured by ``python benchmarks/calibrate_cost.py`` (which prints the predicted and
+measured seconds of a handful of runs and, with ``--fit``, the constants fitted to them). :class:`StageClock
+<pemviz.sinks.StageClock>` scales the prediction by what the run has measured so far, for the whole run's time
+left. No numpy, no torch.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from pemviz.config import ExperimentConfig
+from pemviz.plan import RunPlan
+
+N_STEPS = 100
+"""T of the braking scenario (:attr:`pemviz.scenarios.braking.BrakingParams.n_steps`), the default of the model."""
+
+BYTES_PER_STEP = 3 * 8 + 1 + 8 + 8
+"""A rollout step held in memory: 3 float64 observations, the detection, log p and log q."""
+CONFIRM_SIMULATIONS = 500_000
+CONFIRM_SECONDS = 120.0
+CONFIRM_BYTES = 2 * 1024**3
+
+
+@dataclass(frozen=True)
+class CostConstants:
+    """The seconds of each part of a run, on one core with torch on one thread (as the panel and ``pemviz run`` run).
+
+    Attributes:
+        pem_step_s: per time step of a batch whose detections the PEM (or a fixed detector) decides, seconds.
+        proposal_step_s: per time step of a batch drawn by the proposal (its network and mixture), seconds.
+        rollout_step_s: per rollout and time step of each simulator (:data:`pemviz.config.SIMULATORS`), seconds.
+        proposal_rollout_step_s: per rollout and time step more when a proposal draws the batch, seconds.
+        stage_s: per stage after its rollouts, besides the fit (robustness, estimate, listeners), seconds.
+        epoch_s: per Adam epoch of a fit, whatever its rows, seconds.
+        row_epoch_s: per fitted row and Adam epoch, seconds.
+        row_s: per fitted row of a fit, outside the epochs (gathering and weighing the failures), seconds.
+        pretrain_rows: distinct fitted rows per pretraining rollout, by :data:`pemviz.config.PROPOSAL_INPUTS`.
+        ce_rows: distinct fitted rows of a late CE stage's fit at N = 100 (the plateau), by proposal inputs.
+        ce_rows_exponent: the CE rows grow as (N / 100) to this power.
+        ce_rows_stages: stage k's rows are the plateau times 1 - exp(-(k - 1) / this) (stage 1 fits the few rollouts
+            of pretraining's proposal; the pool of failures grows over the next stages).
+        early_stop_share: the mean share of ``ce_epochs`` a CE fit with ``fit_tolerance`` runs before it stops.
+        ams_rollouts: rollout-equivalents AMS simulates per particle (its continuations), about.
+        measured: when, where and how the constants were measured.
+    """
+
+    pem_step_s: float
+    proposal_step_s: float
+    rollout_step_s: dict[str, float]
+    proposal_rollout_step_s: float
+    stage_s: float
+    epoch_s: float
+    row_epoch_s: float
+    row_s: float
+    pretrain_rows: dict[str, float]
+    ce_rows: dict[str, float]
+    ce_rows_exponent: float
+    ce_rows_stages: float
+    early_stop_share: float
+    ams_rollouts: float = 5.0
+    measured: str = field(default="", compare=False)
+
+
+COST = CostConstants(
+    pem_step_s=9.8e-05,
+    proposal_step_s=0.000308,
+    rollout_step_s={"batched": 4.91e-07, "highway-env": 7.24e-05},
+    proposal_rollout_step_s=8.18e-07,
+    stage_s=9.68e-05,
+    epoch_s=0.000122,
+    row_epoch_s=7.43e-07,
+    row_s=1.75e-05,
+    pretrain_rows={"state": 13.9, "gap": 0.91},
+    ce_rows={"state": 8e03, "gap": 547},
+    ce_rows_exponent=0.26,
+    ce_rows_stages=10,
+    early_stop_share=0.838,
+    ams_rollouts=5,
+    measured="2026-11-23, benchmarks/calibrate_cost.py --fit --repeat 2 (CPU seconds), 2 cores, load average 7.5",
+)
+"""The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
+
+
+@dataclass(frozen=True)
+class StageCost:
+    """Predicted seconds of one stage: simulating its rollouts, and after them (the fit and the stage's bookkeeping)."""
+
+    simulate_s: float
+    after_s: float
+
+    @property
+    def seconds(self) -> float:
+        return self.simulate_s + self.after_s
+
+
+def _fit_s(epochs: float, rows: float, c: CostConstants) -> float:
+    return epochs * (c.epoch_s + c.row_epoch_s * rows) + c.row_s * rows
+
+
+def ce_rows(cfg: ExperimentConfig, stage: int, n: int, c: CostConstants = COST) -> float:
+    """The distinct rows CE stage ``stage`` (1..K) of ``n`` rollouts fits, about (at most ``fit_rows``)."""
+    cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
+    ramp = 1.0 - math.exp(-max(0, stage - 1) / max(1e-9, c.ce_rows_stages))
+    return min(cap, max(1.0, c.ce_rows.get(cfg.proposal_inputs, 1.0) * (n / 100.0) ** c.ce_rows_exponent * ramp))
+
+
+def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS, c: CostConstants = COST,
+               stage: int | None = None) -> StageCost:  # fmt: skip
+    """Predicted seconds of a stage of ``kind`` (``pretrain`` | ``ce`` | ``final`` | ``ams``) with ``n`` rollouts.
+
+    Args:
+        cfg: the run's settings (method, simulator, proposal inputs, epochs, fit rows, tolerance).
+        n_steps: T, steps per rollout.
+        c: the constants (default :data:`COST`).
+        stage: the stage's number, for a CE stage's rows (:func:`ce_rows`); None: the mean over the K stages.
+    """
+    proposal = cfg.method == "adaptive" and kind in ("ce", "final")
+    per_step = c.proposal_step_s if proposal else c.pem_step_s
+    per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
+    rollouts = n * (c.ams_rollouts if kind == "ams" else 1.0)
+    simulate = n_steps * (per_step + per_rollout * rollouts)
+    cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
+    inputs = cfg.proposal_inputs
+    fit = c.stage_s
+    if cfg.method == "adaptive" and kind == "pretrain":
+        fit += _fit_s(cfg.pretrain_epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
+    elif cfg.method == "adaptive" and kind == "ce":
+        stages = [stage] if stage is not None else range(1, cfg.n_stages + 1)
+        rows = sum(ce_rows(cfg, k, n, c) for k in stages) / len(stages)
+        if cfg.fit == "lbfgs":
+            epochs = float(cfg.fit_max_steps)
+        else:
+            epochs = cfg.ce_epochs * (c.early_stop_share if cfg.fit_tolerance is not None else 1.0)
+        fit += _fit_s(epochs, rows, c)
+    return StageCost(simulate, fit)
+
+
+def plan_costs(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS,
+               c: CostConstants = COST) -> dict[int, StageCost]:  # fmt: skip
+    """Stage number -> :func:`stage_cost` of each stage of ``plan``."""
+    return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage) for s in plan.stages}
+
+
+@dataclass(frozen=True)
+class RunCost:
+    """What a run will take: simulations, the largest batch in memory (bytes), expected seconds."""
+
+    simulations: int
+    memory_bytes: int
+    seconds: float
+
+    @property
+    def needs_confirm(self) -> bool:
+        """Above any limit (:data:`CONFIRM_SIMULATIONS`, :data:`CONFIRM_SECONDS`, :data:`CONFIRM_BYTES`)."""
+        return (self.simulations > CONFIRM_SIMULATIONS or self.seconds > CONFIRM_SECONDS
+                or self.memory_bytes > CONFIRM_BYTES)  # fmt: skip
+
+    def text(self) -> str:
+        mem = self.memory_bytes / 1024**2
+        return f"{self.simulations:,} simulations, {mem:,.1f} MB per batch, about {duration(self.seconds)}"
+
+
+def duration(seconds: float) -> str:
+    """``7 s``, ``12 min``, ``1.5 h``: a rough duration in words."""
+    if seconds < 90:
+        return f"{max(1.0, seconds):.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def run_cost(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, stream_above: int = 20_000,
+             c: CostConstants = COST) -> RunCost:  # fmt: skip
+    """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, and the seconds of ``plan``
+    (the sum of :func:`stage_cost`; an open-ended plan counts its first stage only).
+
+    A stage above ``stream_above`` rollouts (:data:`pemviz.engine.STREAM_ABOVE`) is simulated in chunks, so it does
+    not count in full towards memory.
+    """
+    biggest = max([min(s.n_rollouts, stream_above) for s in plan.stages] + [0])
+    seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
+    return RunCost(int(cfg.n_simulations), int(biggest * n_steps * BYTES_PER_STEP), float(seconds))
