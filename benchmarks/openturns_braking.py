@@ -130,7 +130,7 @@ def rollouts(u: np.ndarray, problem: Problem | None = None) -> RolloutBatch:
         logit = pb.target.detect_logit(o)
         detected[:, t] = log_u[:, t] <= log_expit(logit)
         log_p[:, t] = action_log_prob(logit, detected[:, t])
-        sim.step(detected[:, t], o[:, 0])
+        sim.step(detected[:, t])
     return RolloutBatch(obs, detected, log_p, log_p.copy(), OBSERVATION_NAMES)
 
 

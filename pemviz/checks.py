@@ -145,7 +145,7 @@ def _run(make: Callable[[Problem], Any], problem: Problem, metric: str,
             raise _fail(who, f"finish() at stage {plan.stage} must return a StageOutcome with an Estimate, got "
                              f"{type(outcome).__name__}")  # fmt: skip
         drawn.append(plan.stage)
-        detections.append(np.asarray(batch.detected, dtype=bool))
+        detections.append(np.asarray(batch.detected, dtype=bool))  # [N, T, M]
     if not drawn:
         raise _fail(who, "next_stage() planned no batch at all")
     result = estimator.result()

@@ -8,8 +8,9 @@ Both executors give the same rollouts, bit for bit, for the same seed, whatever 
   (:func:`pemviz.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the rollouts
   of a block, and detectors are asked about one block at a time. Each Ray task simulates a run of whole blocks
   (:func:`task_blocks`: as many tasks as the cluster has CPUs by default), one block after another. Every pemviz
-  simulator draws one ``rng.random(n)`` per step (u for rollout i at step t is the ``(t * n + i)``-th uniform of the
-  stream), so the block ``a..b-1`` gets a stand-in for ``rng`` (:class:`ChunkUniforms`) whose k-th ``random(b - a)``
+  simulator draws one ``rng.random(n K)`` per step, K uniforms per rollout (:func:`pemviz.scenarios.draws_per_rollout`:
+  1 for a single-object scenario; u for rollout i at step t is then the ``(t * n + i)``-th uniform of the stream),
+  so the block ``a..b-1`` gets a stand-in for ``rng`` (:class:`ChunkUniforms`) whose k-th ``random((b - a) K)``
   returns slice ``[a, b)`` of the serial run's k-th draw, found by jumping a copy of the PCG64 stream
   (``bit_generator.advance``). Nothing but the generator's state (a few integers) travels with the task, and
   ``rng`` ends where the serial run leaves it. A batch of one block (at most 8,192 rollouts, e.g. every batch of the
@@ -85,12 +86,13 @@ def task_blocks(n: int, n_tasks: int, block: int = RQMC_BLOCK) -> list[list[tupl
 class ChunkUniforms:
     """Stands in for the run's ``np.random.Generator`` inside one chunk of rollouts ``start..stop-1``.
 
-    Its k-th call ``random(stop - start)`` returns ``u[start:stop]`` of the k-th ``rng.random(n)`` the
-    serial run draws from ``state`` (a PCG64 / PCG64DXSM state dict), i.e. the uniforms at positions
-    ``k * n + start .. k * n + stop - 1`` of the stream. ``calls`` counts the draws.
+    Its k-th call ``random((stop - start) K)`` returns the slice of rollouts ``start..stop-1`` of the k-th
+    ``rng.random(n K)`` the serial run draws from ``state`` (a PCG64 / PCG64DXSM state dict): K uniforms per rollout
+    and step (:func:`pemviz.scenarios.draws_per_rollout`; 1 for a single-object scenario), the positions ``k n K +
+    start K .. k n K + stop K - 1`` of the stream. ``calls`` counts the draws.
 
     Raises (from :meth:`random`):
-        RuntimeError: a draw of another size or kind (the simulator does not draw one ``random(n)`` per step).
+        RuntimeError: a draw of another size or kind (the simulator does not draw one ``random(n K)`` per step).
     """
 
     bit_generator = None
@@ -98,19 +100,21 @@ class ChunkUniforms:
 
     def __init__(self, state: dict, n: int, start: int, stop: int) -> None:
         self.state, self.n, self.start, self.stop = state, int(n), int(start), int(stop)
-        self.calls = 0
+        self.calls, self._position, self.per_rollout = 0, 0, 1
 
     def random(self, size: Any = None, dtype: Any = np.float64, out: np.ndarray | None = None) -> np.ndarray:
         m = self.stop - self.start
         shape = (size,) if isinstance(size, (int, np.integer)) else tuple(size) if size is not None else None
-        if shape != (m,) or np.dtype(dtype) != np.float64:
+        if shape is None or len(shape) != 1 or shape[0] < m or shape[0] % m or np.dtype(dtype) != np.float64:
             raise RuntimeError(
                 f"ChunkUniforms: the simulator drew random({size!r}, dtype={np.dtype(dtype)}) in a chunk of {m} "
-                f"rollouts; an executor needs exactly one rng.random(n) float64 draw per step"
+                f"rollouts; an executor needs exactly one rng.random(n K) float64 draw per step"
             )
-        gen = np.random.Generator(bit_generator_at(self.state, self.calls * self.n + self.start))
+        k = self.per_rollout = shape[0] // m
+        gen = np.random.Generator(bit_generator_at(self.state, self._position + self.start * k))
         self.calls += 1
-        return gen.random(m, out=out)
+        self._position += self.n * k
+        return gen.random(shape[0], out=out)
 
     def __getattr__(self, name: str) -> Any:
         if name.startswith("__"):
@@ -141,40 +145,41 @@ def chunk_uniforms(rng_state: dict, n: int, n_steps: int, start: int, stop: int)
 
 def simulate_chunk(
     problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, rng_state: dict
-) -> tuple[RolloutBatch, int]:
+) -> tuple[RolloutBatch, int, int]:
     """Rollouts ``start..stop-1`` of the serial run ``problem.simulate(n, sampler, target, rng)`` from
-    ``rng_state``; returns the batch [stop - start, T] and the number of per-step draws it made (T). The rollouts
+    ``rng_state``; returns the batch [stop - start, T], the number of per-step draws it made (T) and the uniforms
+    per rollout of each (:func:`pemviz.scenarios.draws_per_rollout`). The rollouts
     are the serial run's when ``start..stop-1`` is one block (:func:`pemviz.rng.block_bounds`) or, without
     Array-RQMC and with detectors that give the same bits at any batch size, any range."""
     stream = ChunkUniforms(rng_state, n, start, stop)
     batch = problem.simulate(stop - start, sampler, target, stream)
-    return batch, stream.calls
+    return batch, stream.calls, stream.per_rollout
 
 
 def simulate_blocks(
     problem: Any, n: int, blocks: list[tuple[int, int]], sampler: Detector, target: Detector, rng_state: dict
-) -> list[tuple[RolloutBatch, int]]:
+) -> list[tuple[RolloutBatch, int, int]]:
     """:func:`simulate_chunk` of each block ``(start, stop)`` in turn (one Ray task's work)."""
     return [simulate_chunk(problem, n, a, b, sampler, target, rng_state) for a, b in blocks]
 
 
 def gather_chunks(
-    problem: Any, n: int, rng: np.random.Generator, results: list[tuple[RolloutBatch, int]]
+    problem: Any, n: int, rng: np.random.Generator, results: list[tuple[RolloutBatch, int, int]]
 ) -> RolloutBatch:
-    """Concatenate chunk results in rollout order, check each drew T times, and advance ``rng`` by n * T.
+    """Concatenate chunk results in rollout order, check each drew T times, and advance ``rng`` by n K T.
 
     Raises:
         RuntimeError: a chunk drew another number of times than its rollouts have steps.
     """
-    batches = [b for b, _ in results]
-    n_steps = batches[0].n_steps
-    for batch, calls in results:
+    batches = [b for b, _, _ in results]
+    n_steps, per_rollout = batches[0].n_steps, results[0][2]
+    for batch, calls, _ in results:
         if calls != n_steps or batch.n_steps != n_steps:
             raise RuntimeError(
                 f"executor: problem {getattr(problem, 'name', problem)!r} drew rng.random {calls} times for "
-                f"{batch.n_steps} steps; an executor needs exactly one rng.random(n) per step"
+                f"{batch.n_steps} steps; an executor needs exactly one rng.random(n K) per step"
             )
-    advance(rng, n * n_steps)
+    advance(rng, n * per_rollout * n_steps)
     return batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
 
 

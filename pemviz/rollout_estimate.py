@@ -37,7 +37,7 @@ def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
     """
     out = np.empty((data.n, data.n_steps))
     for t in range(data.n_steps):
-        out[:, t] = action_log_prob(detector.detect_logit(data.observations[:, t]), data.detected[:, t])
+        out[:, t] = action_log_prob(detector.detect_logit(data.observations[:, t]), data.detected[:, t, 0])
     return out
 
 
@@ -52,7 +52,7 @@ def pem_log_prob(data: RolloutData, pem: Any) -> np.ndarray:
     if data.salient is None or np.array_equal(data.salient, braking_salient(gap)):
         return detector_log_prob(data, PEMDetector(pem))
     logit = pem.logit(data.salient.reshape(-1, len(SALIENT_COLUMNS))).reshape(data.n, data.n_steps)
-    return action_log_prob(logit, data.detected)
+    return action_log_prob(logit, data.detected[..., 0])
 
 
 def sampler_detector(name: str, pem: Any, window_m: float = 10.0) -> Detector:

@@ -91,9 +91,9 @@ def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detec
     component = component_of(start, batch.n, sizes)
     if len(parts) <= 1:
         return np.asarray(batch.log_q, dtype=np.float64), component
-    obs = batch.observations.reshape(-1, batch.observations.shape[2])
+    rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
     log_q = [batch.log_p if d is target else
-             action_log_prob(d.detect_logit(obs).reshape(batch.detected.shape), batch.detected)
+             action_log_prob(d.detect_logit(rows).reshape(batch.detected.shape), batch.detected).sum(axis=2)
              for _, d in parts]  # fmt: skip
     return mixture_step_log_q(np.stack(log_q), np.asarray(sizes, dtype=np.float64) / sum(sizes)), component
 

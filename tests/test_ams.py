@@ -165,12 +165,14 @@ def test_snapshot_branching_on_highway_env_equals_the_batched_twin():
     np.testing.assert_array_equal(c.log_p, d.log_p)
 
 
-def test_branch_refuses_a_simulator_without_snapshot():
+def test_branch_replays_a_simulator_without_snapshot_as_the_vectorised_toy_does():
+    # branching replays the parent's detections up to the branching step (the scenario is deterministic given them),
+    # so a simulator without snapshot/restore branches too, and gives the vectorised twin's rollouts bit for bit
     class Plain:
         observation_names = ("gap_m", "stopped")
 
         def __init__(self):
-            self.sim = ToyBraking()
+            self.sim = ToyBraking(ToyParams(10, 5, 3, 0.9))
 
         def reset(self):
             self.sim.reset()
@@ -183,8 +185,12 @@ def test_branch_refuses_a_simulator_without_snapshot():
 
     pb = build_problem("toy-1e-3")
     b = pb.simulate(3, pb.target, pb.target, np.random.default_rng(0))
-    with pytest.raises(ValueError, match="Plain has no snapshot/restore"):
-        branch(Plain, b, np.array([0]), np.array([2]), pb.target, np.random.default_rng(0))
+    parent, at = np.array([0, 2, 2]), np.array([2, 0, 5])
+    replayed = branch(Plain, b, parent, at, pb.target, np.random.default_rng(1))
+    twin = pb.branch(b, parent, at, pb.target, np.random.default_rng(1))
+    np.testing.assert_array_equal(replayed.observations, twin.observations)
+    np.testing.assert_array_equal(replayed.detected, twin.detected)
+    np.testing.assert_array_equal(replayed.detected[0, :2], b.detected[0, :2])  # the replayed prefix
 
 
 # -- wiring ---------------------------------------------------------------------------------------------------

@@ -160,7 +160,7 @@ def test_elite_steps_thinned_as_they_come_keep_the_weighted_log_likelihood_in_ex
     def f(x, a):
         return np.sin(3 * x) + a
 
-    exact = float((np.exp(log_w)[:, None] * mask * f(h, batch.detected)).sum())
+    exact = float((np.exp(log_w)[:, None] * mask * f(h, batch.detected[..., 0])).sum())
     draws = []
     for seed in range(1500):
         steps = EliteSteps(np.linspace(0, 1, 3), max_rows=12, rng=np.random.default_rng(seed), thin_above=30)
@@ -195,7 +195,7 @@ def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on
     batch = RolloutBatch.concatenate([pb.simulate(n, d, pb.target, rng) for n, d in parts])
     mask = weighted_steps_mask(pb, batch, until_failure=True)
     obs = batch.observations.reshape(-1, batch.observations.shape[2])
-    log_q = [(action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected) * mask).sum(axis=1)
+    log_q = [(action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected[..., 0]) * mask).sum(axis=1)
              for _, d in parts]  # fmt: skip
     log_p = (batch.log_p * mask).sum(axis=1)
     w = np.exp(mixture_log_weight(log_p, np.stack(log_q), np.array([0.1, 0.9]))) * pb.failed(batch)

@@ -58,7 +58,7 @@ def test_simulate_with_pre_drawn_uniforms_reproduces_the_serial_rollouts_chunk_b
              for a, b in [(0, 4), (4, 5), (5, 9)]]  # fmt: skip
     for name in ("observations", "detected", "log_p", "log_q"):
         np.testing.assert_array_equal(np.concatenate([getattr(p, name) for p in parts]), getattr(serial, name))
-    with pytest.raises(ValueError, match=r"uniforms must be float64 \[T, n\]"):
+    with pytest.raises(ValueError, match=r"uniforms must be float64 \[T, n K\] = \[11, 9\]"):
         simulate(lambda: ToyBraking(params), 9, sampler, target, None, params.steps, uniforms=u[:, :4])
 
 

@@ -36,12 +36,12 @@ def test_scored_target_answers_as_the_target_and_hands_over_the_extras_logits_ch
     batches = [simulate(lambda: ToyBraking(ToyParams(20, 10, 5, 0.5)), n, ConstantDetector(0.5), scored, rng, T)
                for n in (3, 2)]  # two chunks of rollouts, stepped one after the other
     for b in batches:  # the target's log-probabilities: log 0.3 where detected, log 0.7 where missed
-        np.testing.assert_allclose(b.log_p, np.where(b.detected, math.log(0.3), math.log(0.7)), rtol=1e-14)
+        np.testing.assert_allclose(b.log_p, np.where(b.detected[..., 0], math.log(0.3), math.log(0.7)), rtol=1e-14)
     kept, target_logit = scored.take(5, T)
-    assert kept.shape == (1, 5, T)
+    assert kept.shape == (1, 5, T, 1)  # [K, n, T, M]: one object per step
     obs = np.concatenate([b.observations for b in batches])
-    np.testing.assert_array_equal(kept[0], obs[:, :, 0] / 10.0 - 2.0)  # rollout by rollout, step by step
-    np.testing.assert_array_equal(target_logit, np.full((5, T), ConstantDetector(0.3).detect_logit(np.zeros((1, 1)))[0]))
+    np.testing.assert_array_equal(kept[0, ..., 0], obs[:, :, 0] / 10.0 - 2.0)  # rollout by rollout, step by step
+    np.testing.assert_array_equal(target_logit, np.full((5, T, 1), ConstantDetector(0.3).detect_logit(np.zeros((1, 1)))[0]))
     assert scored.take(1, T) is None  # nothing left
 
 
@@ -97,7 +97,7 @@ def test_a_run_weighs_its_mixture_as_a_second_pass_over_the_rollouts_would(monke
     network gives the same bits, so the runs are the same run (the contract that serial and Ray runs agree)."""
     cfg = ExperimentConfig(n_stages=4, n_per_stage=80, n_final=200, ce_epochs=60, pretrain_epochs=60, seed=3)
     kept = Experiment(cfg, problem=build_problem("main")).run().final.estimate
-    monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps: None)
+    monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1: None)
     again = Experiment(cfg, problem=build_problem("main")).run().final.estimate
     assert kept.n_failures == again.n_failures > 0
     assert kept.log_mu_hat == again.log_mu_hat and kept.ess == again.ess

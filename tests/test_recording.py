@@ -161,7 +161,7 @@ def test_every_rollout_gap_trace_has_T_points_equal_to_the_batch(runs):
             for key, seen in (("detected", True), ("missed", False)):
                 marks = column(table, f"/rollouts/{key}/stage_{ev.stage:02d}:Scalars:scalars")
                 marks = np.array([m for m in marks if m is not None]).T  # [featured, T]
-                np.testing.assert_array_equal(np.isfinite(marks), (ev.batch.detected[rows] == seen) & matters)
+                np.testing.assert_array_equal(np.isfinite(marks), (ev.batch.detected[rows, :, 0] == seen) & matters)
                 np.testing.assert_array_equal(marks[np.isfinite(marks)], ev.batch.gap_m[rows][np.isfinite(marks)])
 
 
@@ -218,7 +218,7 @@ def test_scene_boxes_follow_a_replay_of_the_braking_scenario(runs):
             truth = []
             for t in range(ev.batch.n_steps):
                 truth.append((sim.ego.position[0], sim.lead.position[0]))
-                sim.step(bool(ev.batch.detected[i, t]))
+                sim.step(bool(ev.batch.detected[i, t, 0]))
             logged = [(ego[t][0][0], lead[t][0][0]) for t in range(ev.batch.n_steps)]
             np.testing.assert_allclose(logged, truth, atol=1e-4)  # float32 positions up to ~40 m
             assert half[0][0] == pytest.approx([p.lead_length_m / 2, p.vehicle_width_m / 2])
@@ -393,7 +393,7 @@ def test_the_most_likely_failure_is_read_back_with_a_minimal_miss_set_that_highw
     assert (props["stage"], props["rollout"]) == (stage, i)
     assert props["log_p"] == pytest.approx(log_p, abs=1e-9)
     (ev,) = [e for e in of(events, RolloutsSampled) if e.stage == stage]
-    detected = ev.batch.detected[i]
+    detected = ev.batch.detected[i, :, 0]
     assert highway_env_min_gap(detected) < 2.0  # it fails
     low = ev.batch.gap_m[i].min()
     assert props["outcome"] == (f"breach {low:.2f} m, no contact" if low > 0.7 else props["outcome"])
@@ -438,7 +438,7 @@ def test_p_and_q_along_the_most_likely_failure_are_its_detectors_probabilities_a
               for k in ("pem", "sampler", "misses")}  # fmt: skip
     q = np.array([series["sampler"][t][0] for t in range(ev.batch.n_steps)])
     p = np.array([series["pem"][t][0] for t in range(ev.batch.n_steps)])
-    d = ev.batch.detected[i]
+    d = ev.batch.detected[i, :, 0]
     # the naive-50 sampler detects with probability 1/2 everywhere; the PEM's p(detect) from its log p
     np.testing.assert_allclose(q, 0.5, atol=1e-12)
     np.testing.assert_allclose(np.where(d, p, 1 - p), np.exp(ev.batch.log_p[i]), rtol=1e-12)
@@ -477,7 +477,7 @@ def test_the_marginal_proposal_shows_q_miss_inside_10_m_above_the_pems(runs):
     for ev in of(events, RolloutsSampled):
         edges = np.asarray(stats["edges_m"][ev.stage])
         q_mean = np.asarray(stats["q_mean"][ev.stage], dtype=float)
-        gap, d, lq = ev.batch.gap_m.ravel(), ev.batch.detected.ravel(), ev.batch.log_q.ravel()
+        gap, d, lq = ev.batch.gap_m.ravel(), ev.batch.detected[..., 0].ravel(), ev.batch.log_q.ravel()
         q = np.where(d, np.exp(lq), 1 - np.exp(lq))
         for b in (5, 15, 19):  # 2.5-3 m, 7.5-8 m, 9.5-10 m
             inside = (gap >= edges[b]) & (gap < edges[b + 1])

@@ -94,7 +94,7 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     np.testing.assert_array_equal(pem_log_prob(data, pem), data.log_p)  # the run's numbers, bit for bit
     np.testing.assert_array_equal(detector_log_prob(data, ConstantDetector(0.5)), data.log_q)
     # the PEM on the salient variables the general way agrees to float64 rounding of its pieces
-    general = action_log_prob(pem.logit(data.salient.reshape(-1, 11)).reshape(200, 100), data.detected)
+    general = action_log_prob(pem.logit(data.salient.reshape(-1, 11)).reshape(200, 100), data.detected[..., 0])
     np.testing.assert_allclose(general, data.log_p, rtol=0, atol=1e-12)
     # a copy without log_p / log_q: the sidecar names the PEM and the sampler
     bare = tmp_path / "bare.parquet"
@@ -119,9 +119,9 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     rng = np.random.default_rng(2)
     proposal = Proposal()
     pem_batch = problem.simulate(40, problem.target, problem.target, rng)
-    pretrain_proposal(proposal, pem_batch.gap_m, pem_batch.detected, epochs=100, lr=1e-2)
+    pretrain_proposal(proposal, pem_batch.gap_m, pem_batch.detected[..., 0], epochs=100, lr=1e-2)
     r = problem.robustness(pem_batch, "classic")
-    ce_update(proposal, pem_batch.gap_m, pem_batch.detected, pem_batch.log_p, pem_batch.log_q, r <= np.sort(r)[3],
+    ce_update(proposal, pem_batch.gap_m, pem_batch.detected[..., 0], pem_batch.log_p, pem_batch.log_q, r <= np.sort(r)[3],
               smoothing=0.5, epochs=50, lr=1e-2)  # fmt: skip
     batch = problem.simulate(60, proposal, problem.target, rng)
     failed = problem.failed(batch)
@@ -184,7 +184,7 @@ def test_a_streamed_final_batch_is_written_chunk_by_chunk_and_reads_back_whole(t
                                  and chunks.append(e)], problem=chunked).run()  # fmt: skip
     assert [c.start for c in chunks] == list(range(0, 1000, 128)) and pq.ParquetFile(sink.written).num_row_groups == 8
     data = rio.read_rollouts(sink.written)
-    assert data.detected.shape == (1000, 100)
+    assert data.detected.shape == (1000, 100, 1)
     whole = RolloutBatch.concatenate([c.batch for c in chunks])
     np.testing.assert_array_equal(data.detected, whole.detected)
     np.testing.assert_array_equal(data.log_q, whole.log_q)

@@ -140,7 +140,7 @@ def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
         gap_m=col("gap_m", 0),
         ego_speed_mps=col("ego_speed_mps"),
         lead_speed_mps=col("lead_speed_mps"),
-        detected=np.array(batch.detected[i], dtype=bool),
+        detected=np.array(batch.detected[i, :, 0], dtype=bool),
         log_p=np.array(batch.log_p[i], dtype=np.float64),
         log_q=np.array(batch.log_q[i], dtype=np.float64),
     )

@@ -28,6 +28,8 @@ them without simulation.
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from dataclasses import dataclass, field
 
@@ -65,6 +67,18 @@ def running_score(problem: Problem, batch: RolloutBatch) -> np.ndarray:
     rho[:, : f.start] = np.inf
     rho[:, end + 1 :] = np.inf
     return np.minimum.accumulate(rho, axis=1)
+
+
+def _replaced(batch: RolloutBatch, rows: np.ndarray, new: RolloutBatch) -> RolloutBatch:
+    """A copy of ``batch`` whose rollouts ``rows`` [K] are ``new``'s [K] (every per-rollout array)."""
+    out = {}
+    for name in ("observations", "detected", "log_p", "log_q", "objects", "noise"):
+        a = getattr(batch, name)
+        if a is not None:
+            a = a.copy()
+            a[rows] = getattr(new, name)
+        out[name] = a
+    return dataclasses.replace(batch, log_q_parts=None, **out)
 
 
 @dataclass
@@ -141,9 +155,7 @@ class Splitting:
         new = self.problem.branch(self.particles, parent, at, self.problem.target, self.rng)
         new_running = running_score(self.problem, new)
         b = self.particles
-        obs, det, lp, lq = b.observations.copy(), b.detected.copy(), b.log_p.copy(), b.log_q.copy()
-        obs[killed], det[killed], lp[killed], lq[killed] = new.observations, new.detected, new.log_p, new.log_q
-        self.particles = RolloutBatch(obs, det, lp, lq, b.observation_names)
+        self.particles = _replaced(b, killed, new)
         self.running = self.running.copy()
         self.running[killed] = new_running
         self.eve = self.eve.copy()

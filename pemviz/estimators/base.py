@@ -185,10 +185,10 @@ def log_p_before_failure(problem: Problem, batch: RolloutBatch) -> np.ndarray:
 
 
 def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Steps of the elite rollouts per bin of ``grid`` (nearest grid value of ``obs[:, :, 0]``) and the detections
-    among them, float64 [G] each."""
+    """Object events of the elite rollouts per bin of ``grid`` (nearest grid value of each object row's first
+    column: the braking scenario's gap) and the detections among them, float64 [G] each."""
     edges = np.concatenate([[-np.inf], (grid[1:] + grid[:-1]) / 2, [np.inf]])
-    d = batch.observations[elite][:, :, 0].ravel()
+    d = batch.object_rows[elite][..., 0].ravel()
     a = batch.detected[elite].ravel()
     idx = np.digitize(d, edges) - 1
     counts = np.bincount(idx, minlength=grid.size).astype(float)

@@ -340,7 +340,7 @@ class EliteSteps:
         self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.keep_observations = keep_observations
         self.observations: list[tuple[np.ndarray, np.ndarray]] = []
-        """With ``keep_observations``, per part: the steps' observations [S, F] and whether each counts in its
+        """With ``keep_observations``, per part: the events' object rows [S, G] and whether each counts in its
         rollout's weight, bool [S]."""
         self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
         self.n_rollouts, self.n_steps, self.held, self.thinned = 0, 0, 0, False
@@ -348,17 +348,19 @@ class EliteSteps:
 
     def add(self, index: np.ndarray, batch: RolloutBatch, features: np.ndarray, mask: np.ndarray,
             log_w: np.ndarray, weighted: np.ndarray | None = None) -> None:  # fmt: skip
-        """Elite rollouts ``index`` [m] of the stage: their features [m, T(, k)], step mask bool [m, T],
-        smoothed log-weights alpha log w_i [m] and (``keep_observations``) the steps of ``mask`` that count in
-        the weights, bool [m, T] (None: all)."""
+        """Elite rollouts ``index`` [m] of the stage: the features of their object events [m, S(, k)] (S = T M,
+        :meth:`~pemviz.scenarios.RolloutBatch.events`), the events' mask bool [m, S], smoothed log-weights alpha
+        log w_i [m] and (``keep_observations``) the events of ``mask`` whose steps count in the weights, bool [m, S]
+        (None: all)."""
         if index.size == 0:
             return
         c, h = elite_counts(batch, np.ones(batch.n, bool), self.grid)
         self.counts, self.hits = self.counts + c, self.hits + h
+        rows, detected = batch.events()
         order = np.broadcast_to(np.asarray(index)[:, None], mask.shape)[mask]
-        self.parts.append((order, features[mask], batch.detected[mask], np.broadcast_to(log_w[:, None], mask.shape)[mask]))
+        self.parts.append((order, features[mask], detected[mask], np.broadcast_to(log_w[:, None], mask.shape)[mask]))
         if self.keep_observations:
-            self.observations.append((batch.observations[mask], np.ones(int(mask.sum()), bool) if weighted is None
+            self.observations.append((rows[mask], np.ones(int(mask.sum()), bool) if weighted is None
                                       else weighted[mask]))  # fmt: skip
         self.n_rollouts += index.size
         self.n_steps += int(mask.sum())

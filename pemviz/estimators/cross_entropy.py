@@ -228,29 +228,43 @@ class CrossEntropy(OwnsSettings):
 
     def _with_parts(self, batch: RolloutBatch) -> RolloutBatch:
         """``batch`` (the planned mixture stage's next rollouts) with ``log_q_parts`` [N, K, T]: the log-probabilities
-        of its actions under the mixture's proposal components (:attr:`ScoredTarget.extras`), as the simulation asked
+        of its events under the mixture's proposal components (:attr:`ScoredTarget.extras`), as the simulation asked
         them, or asked again where it could not keep them (Ray tasks; :meth:`_ask_again`)."""
         start, self._seen = self._seen, self._seen + batch.n
-        taken = self._scored.take(batch.n, batch.n_steps)
+        m = batch.n_objects
+        taken = self._scored.take(batch.n, batch.n_steps, m)
         logits, target_logit = (self._ask_again(batch, start), None) if taken is None else taken
+        detected = batch.detected
         parts = np.empty((batch.n, len(logits), batch.n_steps))
-        for k, lg in enumerate(logits):
+        for k, lg in enumerate(logits):  # [N, T, M]
             if target_logit is None:
-                parts[:, k] = action_log_prob(lg, batch.detected)
+                lq = action_log_prob(lg, detected)
             else:  # where a component gives way to the target (outside its window) its density is the target's
                 differ = lg != target_logit
-                parts[:, k] = batch.log_p
-                parts[:, k][differ] = action_log_prob(lg[differ], batch.detected[differ])
+                lq = batch.log_p[..., None].copy() if m == 1 else action_log_prob(target_logit, detected)
+                lq[differ] = action_log_prob(lg[differ], detected[differ])
+            parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
+        if batch.noise is not None:  # every component draws the measurement errors from the target's error model
+            parts += self._target_noise_log_prob(batch)[:, None, :]
         return dataclasses.replace(batch, log_q_parts=parts)
 
+    def _target_noise_log_prob(self, batch: RolloutBatch) -> np.ndarray:
+        """Per step, the target's log density of the detected objects' measurement errors, float64 [N, T] (nats)."""
+        rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
+        noise = batch.noise.reshape(rows.shape[0], -1)
+        log_density = np.asarray(self.problem.target.noise_log_prob(rows, noise), dtype=np.float64)
+        return np.where(batch.detected.reshape(-1), log_density, 0.0).reshape(batch.detected.shape).sum(axis=2)
+
     def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
-        """The extras' logits [K, N, T] of rollouts ``start .. start + N - 1`` of the stage, asked as a simulator asks
-        them: one step at a time about the rollouts of one block (:data:`pemviz.rng.RQMC_BLOCK`) of one mixture
-        component, so that the proposal network sees the same rows and gives the same bits as it gave there."""
-        plan, n, n_steps = self._plan, batch.n, batch.n_steps
+        """The extras' logits [K, N, T, M] of rollouts ``start .. start + N - 1`` of the stage, asked as a simulator
+        asks them: one step at a time about the object rows of one block (:data:`pemviz.rng.RQMC_BLOCK`) of rollouts
+        of one mixture component, so that the proposal network sees the same rows and gives the same bits as it gave
+        there."""
+        plan, n, n_steps, m = self._plan, batch.n, batch.n_steps, batch.n_objects
         rebuilt = dict(zip((id(d) for _, d in plan.mixture), (d for _, d in self._around(plan.mixture, self.proposal))))
         extras = [rebuilt[id(d)] for d in self._scored.extras]
-        logits = np.empty((len(extras), n, n_steps))
+        logits = np.empty((len(extras), n, n_steps, m))
+        object_rows = batch.object_rows
         edges = np.cumsum([0] + [k for k, _ in plan.mixture])
         for lo, hi in zip(edges[:-1], edges[1:]):  # each component's rollouts, drawn one block after another
             for b0 in range(int(lo), int(hi), RQMC_BLOCK):
@@ -259,9 +273,9 @@ class CrossEntropy(OwnsSettings):
                     continue
                 rows = slice(a - start, b - start)
                 for t in range(n_steps):
-                    obs = batch.observations[rows, t]
+                    obs = object_rows[rows, t].reshape((b - a) * m, -1)
                     for j, d in enumerate(extras):
-                        logits[j, rows, t] = d.detect_logit(obs)
+                        logits[j, rows, t] = np.asarray(d.detect_logit(obs)).reshape(b - a, m)
         return logits
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
@@ -339,10 +353,11 @@ class CrossEntropy(OwnsSettings):
         with torch.random.fork_rng(devices=[]):  # the proposal's initial weights, without reseeding the process
             torch.manual_seed(cfg.seed)
             self.proposal = proposal = self._new_proposal(batch)
+        features, detected, mask = self._fit_events(batch, self.step_mask(batch) if cfg.proposal_window else None)
         pretrain_proposal(
-            proposal, proposal.features(batch.observations), batch.detected,
+            proposal, features, detected,
             epochs=cfg.pretrain_epochs if cfg.fit == "adam" else cfg.fit_max_steps, lr=cfg.learning_rate,
-            check=self.check, step_mask=self.step_mask(batch) if cfg.proposal_window else None,
+            check=self.check, step_mask=mask,
             fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
         )  # fmt: skip
         self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
@@ -419,15 +434,18 @@ class CrossEntropy(OwnsSettings):
         return cfg.smoothing if cfg.smoothing_at_failure is None else cfg.smoothing_at_failure
 
     def _add_steps(self, batch: RolloutBatch, index: np.ndarray, gamma: float) -> None:
-        """Reduce elite rollouts to their fitted steps (:class:`EliteSteps`): inputs, actions, alpha log w_i."""
-        mask = self.step_mask(batch, gamma)
-        k = batch.n_steps - 1
+        """Reduce elite rollouts to their fitted object events (:class:`EliteSteps`): inputs, actions, alpha log w_i."""
+        mask = self.step_mask(batch, gamma)  # [N, T, M]
+        counted = np.arange(batch.n_steps) < batch.n_steps - 1
+        steps = mask.any(axis=2) & counted  # the steps whose factors enter each weight
         if self._plan.mixture:
-            frozen_log_w = self._mixture_log_weight(batch, mask & (np.arange(batch.n_steps) < k))
+            frozen_log_w = self._mixture_log_weight(batch, steps)
         else:
-            frozen_log_w = ((batch.log_p[:, :k] - batch.log_q[:, :k]) * mask[:, :k]).sum(axis=1)
-        self._steps.add(index + self._index_offset, batch, self.proposal.features(batch.observations), mask,
-                        self._smoothing(gamma) * frozen_log_w, mask & (np.arange(batch.n_steps) < k))  # fmt: skip
+            frozen_log_w = ((batch.log_p - batch.log_q) * steps).sum(axis=1)
+        rows, _ = batch.events()
+        self._steps.add(index + self._index_offset, batch, self.proposal.features(rows), mask.reshape(batch.n, -1),
+                        self._smoothing(gamma) * frozen_log_w,
+                        (mask & counted[None, :, None]).reshape(batch.n, -1))  # fmt: skip
 
     def _ce_stage(self, batch: RolloutBatch | None, robustness: np.ndarray, index: np.ndarray, gamma: float,
                   n: int) -> tuple[float, int, np.ndarray]:  # fmt: skip
@@ -450,20 +468,25 @@ class CrossEntropy(OwnsSettings):
                 self._steps.reweight(self._pool_log_weight)
             self._steps.fit(proposal, **fit)
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
+        if batch.n_objects != 1:
+            raise ValueError(f"the cross-entropy fit of whole elite rollouts (weights {cfg.weights!r}, without the window "
+                             f"or weights until failure) takes one object per step; this problem perceives "
+                             f"{batch.n_objects}: use the default sampler")  # fmt: skip
+        features, detected, mask = self._fit_events(batch, self.step_mask(batch, gamma))
         ce_update(
-            proposal, proposal.features(batch.observations), batch.detected, batch.log_p, batch.log_q, elite,
-            smoothing=self._smoothing(gamma), weights=cfg.weights, step_mask=self.step_mask(batch, gamma), **fit,
+            proposal, features, detected, batch.log_p, batch.log_q, elite,
+            smoothing=self._smoothing(gamma), weights=cfg.weights, step_mask=mask, **fit,
         )  # fmt: skip
         return gamma, int(elite.sum()), detect_rate(*elite_counts(batch, elite, grid))
 
     def step_mask(self, batch: RolloutBatch, level: float = 0.0) -> np.ndarray | None:
-        """bool [N, T]: the steps whose actions enter the CE fit, or None for all of them.
+        """bool [N, T, M]: the object events whose actions enter the CE fit, or None for all of them.
 
         ``weights_until_failure``: the steps before the rollout reaches the stage's level (failure: the first
         step where the operand of the ``G`` safety formula is violated; with the classic metric and a level
         gamma_kappa > 0, the first step where its robustness is <= gamma_kappa: whether a rollout is an
-        elite is settled there, later actions are not what made it one); ``proposal_window``: the steps
-        inside the problem's window.
+        elite is settled there, later actions are not what made it one); ``proposal_window``: the objects
+        inside the problem's window (their row's first column below it).
         """
         cfg = self.config
         if not (cfg.weights_until_failure or cfg.proposal_window):
@@ -471,17 +494,25 @@ class CrossEntropy(OwnsSettings):
         mask = np.ones(batch.detected.shape, bool)
         if cfg.weights_until_failure:
             level = level if cfg.metric == "classic" else 0.0
-            mask &= np.arange(batch.n_steps)[None, :] < failure_steps(self.problem, batch, level)[:, None]
+            before = np.arange(batch.n_steps)[None, :] < failure_steps(self.problem, batch, level)[:, None]
+            mask &= before[:, :, None]
         if cfg.proposal_window:
-            mask &= batch.gap_m < self.problem.window
+            mask &= batch.object_rows[..., 0] < self.problem.window
         return mask
 
+    def _fit_events(self, batch: RolloutBatch, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray,
+                                                                                 np.ndarray | None]:  # fmt: skip
+        """(the proposal's features of every object event [N, S(, k)], the detections [N, S], ``mask`` [N, S] or None),
+        S = T M, events in order (:meth:`~pemviz.scenarios.RolloutBatch.events`)."""
+        rows, detected = batch.events()
+        return self.proposal.features(rows), detected, None if mask is None else mask.reshape(batch.n, -1)
+
     def _new_proposal(self, pretrain: RolloutBatch) -> Proposal:
-        """The paper's gap-only proposal, or a :class:`StateProposal` over every observation column
-        (``proposal_inputs = "state"``): the gap scaled by the problem's ``h_scale``, the other columns by their
-        largest magnitude in the pretraining rollouts; its curve holds them at the start state."""
+        """The paper's gap-only proposal, or a :class:`StateProposal` over every column of the object rows
+        (``proposal_inputs = "state"``): the first (the gap) scaled by the problem's ``h_scale``, the other columns by
+        their largest magnitude in the pretraining rollouts; its curve holds them at the first row drawn."""
         if self.config.proposal_inputs == "gap":
             return Proposal(self.problem.h_scale)
-        obs = pretrain.observations
-        scales = [self.problem.h_scale] + [float(np.max(np.abs(obs[:, :, j]))) or 1.0 for j in range(1, obs.shape[2])]
-        return StateProposal(tuple(range(obs.shape[2])), tuple(scales), tuple(obs[0, 0]))
+        rows, _ = pretrain.events()
+        scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
+        return StateProposal(tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))

@@ -58,7 +58,7 @@ class RolloutData(RolloutBatch):
 
     Attributes:
         observations: float64 [N, T, F], columns ``observation_names`` (``gap_m`` first).
-        detected: bool [N, T].
+        detected: bool [N, T, 1] (a file holds one object per step).
         log_p, log_q: float64 [N, T] (nats) or None when the file has no such column (:meth:`to_batch` fills them).
         observation_names: the F state columns.
         meta: the sidecar.
@@ -276,7 +276,7 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     """Read and validate a rollout file and its sidecar.
 
     Returns:
-        :class:`RolloutData`: observations [N, T, F], detected [N, T], optional salient [N, T, 11],
+        :class:`RolloutData`: observations [N, T, F], detected [N, T, 1], optional salient [N, T, 11],
         log_p / log_q [N, T] (nats).
     Raises:
         FileNotFoundError: no such file.
@@ -349,6 +349,8 @@ def rollouts_table(
     }
     for k, name in enumerate(batch.observation_names):
         cols[name] = np.ascontiguousarray(batch.observations[:, :, k], dtype=np.float64).reshape(-1)
+    if batch.n_objects != 1:
+        raise ValueError(f"a rollout file holds one object per step; this batch perceives {batch.n_objects}")
     cols["detected"] = np.asarray(batch.detected, dtype=bool).reshape(-1)
     if salient is not None:
         s = np.asarray(salient, dtype=np.float64)

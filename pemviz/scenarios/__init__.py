@@ -1,28 +1,39 @@
-"""Scenarios: black-box simulators that query a detector once per step, and the rollout runner.
+"""Scenarios: black-box simulators stepped by a detector's perception of their objects, and the rollout runner.
 
-A :class:`Simulator` exposes ``reset()``, ``observation()`` (float64 [F], ``gap_m`` first),
-``step(detected)`` and ``params.n_steps``. :func:`simulate` runs N of them in lockstep: each step it
-gathers the N observations, evaluates the sampling detector and the target (PEM) detector on the whole
-batch in one call each, draws the detections, and steps every simulator.
+A :class:`Simulator` reports, at each step, its scene's signals (``observation()``, float64 [F]) and the rows of its M
+objects (``objects()``, float64 [M, G]: each object's salient variables and relative state, the window's column
+first), and is stepped with each object's detection and, for a detector that mislocates, its measurement error
+(``step(detected [M], noise [M, D])``). A single-object simulator needs neither ``objects`` nor the error: its one
+object row is its observation and ``step(detected: bool)`` takes the detection (the braking scenario, the toys).
+A :class:`BatchedSimulator` is the same for n rollouts at once (a leading [n]). :func:`run_batched` is the one rollout
+runner: each step it asks the sampling detector and the target (PEM) about every object row of the batch, draws the
+events (:func:`pemviz.detectors.draw_step`) and steps the simulator; :func:`simulate` runs N black-box simulators in
+lockstep through it (:class:`Lockstep`), and the batched twins (:mod:`pemviz.scenarios.batched`, the toys) run
+through it too, so every simulator draws the same events from the same uniforms.
 
 Optional capability (:class:`Snapshotting`): ``snapshot()`` returns the simulator's whole state at the
-current step and ``restore(state)`` puts it back, so a rollout can be continued from any of its steps
-(:func:`branch`, used by adaptive multilevel splitting, :mod:`pemviz.estimators.ams`).
+current step and ``restore(state)`` puts it back (checked by :func:`pemviz.checks.check_simulator`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable, Protocol, Sequence
+from dataclasses import dataclass, replace
+from typing import Callable, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 
-from pemviz.detectors import Detector, action_log_prob, step_uniforms
-from pemviz.rng import by_blocks
+from pemviz.detectors import Detector, draw_step, noise_names_of
+from pemviz.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 
 
 class Simulator(Protocol):
-    """A black-box scenario stepped by the detector's output; its only randomness is the detector."""
+    """A black-box scenario stepped by the detector's output; its only randomness is the perception.
+
+    Required: ``observation_names``, ``reset()``, ``observation() -> float64 [F]``, ``step(...)``. A scene of several
+    objects also has ``n_objects`` (M), ``object_names`` (G names) and ``objects() -> float64 [M, G]``, and its
+    ``step(detected: bool [M], noise: float64 [M, D] | None)`` takes every object's event; without them the
+    simulator has one object whose row is its observation and ``step(detected: bool)``.
+    """
 
     observation_names: Sequence[str]
 
@@ -45,23 +56,52 @@ class Snapshotting(Simulator, Protocol):
     def restore(self, state: object) -> None: ...
 
 
+class BatchedSimulator(Protocol):
+    """n rollouts of a scenario stepped together: ``observation() -> float64 [n, F]``, ``step(detected: bool [n, M],
+    noise: float64 [n, M, D] | None)``; with several objects also ``n_objects``, ``object_names`` and ``objects() ->
+    float64 [n, M, G]`` (else one object per rollout whose row is its observation)."""
+
+    observation_names: Sequence[str]
+
+    def observation(self) -> np.ndarray: ...
+
+    def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None: ...
+
+
 def can_snapshot(sim: object) -> bool:
     """Whether ``sim`` has the snapshot/restore capability (:class:`Snapshotting`)."""
     return callable(getattr(sim, "snapshot", None)) and callable(getattr(sim, "restore", None))
 
 
+def n_objects_of(sim: object) -> int:
+    """M, the objects a (batched) simulator reports each step (1 without ``n_objects``)."""
+    return int(getattr(sim, "n_objects", 1))
+
+
+def draws_per_rollout(sim: object, target: Detector) -> int:
+    """Uniforms a rollout of ``sim`` draws per step under ``target``: M (1 + D), one per object to detect it and D for
+    its measurement error (1 for a single-object simulator whose detectors only detect)."""
+    return n_objects_of(sim) * (1 + len(noise_names_of(target)))
+
+
 @dataclass(frozen=True)
 class RolloutBatch:
-    """N rollouts of T steps, with the log-probabilities of every detection under both detectors.
+    """N rollouts of T steps of M objects, with the log-probabilities of every step's perception under both detectors.
 
     Attributes:
-        observations: float64 [N, T, F] states reported at each step (``observation_names``).
-        detected: bool [N, T] the detector outputs taken.
-        log_p: float64 [N, T] log p_target(a_t | s_t) (nats), target = the PEM.
-        log_q: float64 [N, T] log q(a_t | s_t) (nats) under the detector that sampled.
+        observations: float64 [N, T, F] the scene's signals at each step (``observation_names``).
+        detected: bool [N, T, M] each object's detection taken (given as [N, T]: one object per step).
+        log_p: float64 [N, T] log p_target(events_t | s_t) (nats): the step's M objects' detections (and measurement
+            errors) together, target = the PEM.
+        log_q: float64 [N, T] the same under the detector that sampled (nats).
         observation_names: names of the F columns.
-        log_q_parts: None, or float64 [N, K, T] log q_k(a_t | s_t) (nats) under each of K other detectors, e.g. the
-            components of a mixture over rollouts, as an estimator asked them while the rollouts were drawn.
+        log_q_parts: None, or float64 [N, K, T] log q_k(events_t | s_t) (nats) under each of K other detectors, e.g.
+            the components of a mixture over rollouts, as an estimator asked them while the rollouts were drawn.
+        objects: float64 [N, T, M, G] each object's row (``object_names``), or None: one object (M = 1) whose row is
+            the observation.
+        object_names: the G names of the object rows (None: ``observation_names``).
+        noise: float64 [N, T, M, D] the measurement errors of the detected objects (0 where missed), or None (D = 0).
+        noise_names: the D names of the errors (e.g. ``("range_err_m", "lateral_err_m")``).
     """
 
     observations: np.ndarray
@@ -70,6 +110,17 @@ class RolloutBatch:
     log_q: np.ndarray
     observation_names: tuple[str, ...]
     log_q_parts: np.ndarray | None = None
+    objects: np.ndarray | None = None
+    object_names: tuple[str, ...] | None = None
+    noise: np.ndarray | None = None
+    noise_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.detected.ndim == 2:  # one object per step
+            object.__setattr__(self, "detected", self.detected[:, :, None])
+        if self.detected.ndim != 3:
+            raise ValueError(f"RolloutBatch: detected must be bool [N, T, M] (or [N, T]: one object), got shape "
+                             f"{self.detected.shape}")
 
     @property
     def n(self) -> int:
@@ -78,6 +129,28 @@ class RolloutBatch:
     @property
     def n_steps(self) -> int:
         return int(self.detected.shape[1])
+
+    @property
+    def n_objects(self) -> int:
+        """M, the objects perceived at each step."""
+        return int(self.detected.shape[2])
+
+    @property
+    def object_rows(self) -> np.ndarray:
+        """float64 [N, T, M, G]: each object's row (the observation itself for a single-object scenario; a view)."""
+        return self.observations[:, :, None, :] if self.objects is None else self.objects
+
+    def events(self) -> tuple[np.ndarray, np.ndarray]:
+        """(object rows float64 [N, T M, G], detections bool [N, T M]): each rollout's object events in order, step by
+        step and the objects of a step together (for a single-object batch, views of the observations and detections
+        [N, T])."""
+        rows = self.object_rows
+        return rows.reshape(self.n, -1, rows.shape[-1]), self.detected.reshape(self.n, -1)
+
+    @property
+    def row_names(self) -> tuple[str, ...]:
+        """The G names of :attr:`object_rows`."""
+        return self.observation_names if self.object_names is None else self.object_names
 
     def signal(self, name: str) -> np.ndarray:
         """One observed signal, float64 [N, T]; raises KeyError naming the known signals."""
@@ -106,22 +179,223 @@ class RolloutBatch:
 
     def select(self, rows: np.ndarray) -> "RolloutBatch":
         """The rollouts ``rows`` (bool [N] mask or int indices), copied: a batch of its own, in their order."""
-        parts = None if self.log_q_parts is None else self.log_q_parts[rows]
-        return RolloutBatch(self.observations[rows], self.detected[rows], self.log_p[rows], self.log_q[rows],
-                            self.observation_names, parts)  # fmt: skip
+
+        def take(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[rows]
+
+        return replace(self, observations=self.observations[rows], detected=self.detected[rows],
+                       log_p=self.log_p[rows], log_q=self.log_q[rows], log_q_parts=take(self.log_q_parts),
+                       objects=take(self.objects), noise=take(self.noise))  # fmt: skip
 
     @staticmethod
     def concatenate(batches: Sequence["RolloutBatch"]) -> "RolloutBatch":
         """Stack batches of equal T along N (``log_q_parts`` too where every batch has them)."""
-        parts = [b.log_q_parts for b in batches]
-        return RolloutBatch(
-            np.concatenate([b.observations for b in batches]),
-            np.concatenate([b.detected for b in batches]),
-            np.concatenate([b.log_p for b in batches]),
-            np.concatenate([b.log_q for b in batches]),
-            batches[0].observation_names,
-            None if any(x is None for x in parts) else np.concatenate(parts),
-        )
+
+        def cat(field: str) -> np.ndarray | None:
+            parts = [getattr(b, field) for b in batches]
+            return None if any(x is None for x in parts) else np.concatenate(parts)
+
+        return replace(batches[0], observations=cat("observations"), detected=cat("detected"), log_p=cat("log_p"),
+                       log_q=cat("log_q"), log_q_parts=cat("log_q_parts"), objects=cat("objects"),
+                       noise=cat("noise"))  # fmt: skip
+
+
+class Lockstep:
+    """N black-box :class:`Simulator` objects stepped together as one :class:`BatchedSimulator`."""
+
+    def __init__(self, sims: Sequence[Simulator]) -> None:
+        self.sims = list(sims)
+        first = self.sims[0]
+        self.observation_names = tuple(first.observation_names)
+        self.multi = hasattr(first, "objects")
+        self.n_objects = n_objects_of(first)
+        self.object_names = tuple(first.object_names) if self.multi else None
+
+    def observation(self) -> np.ndarray:
+        return np.stack([s.observation() for s in self.sims])
+
+    def objects(self) -> np.ndarray:
+        return np.stack([s.objects() for s in self.sims])
+
+    def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
+        if not self.multi:
+            for s, a in zip(self.sims, detected[:, 0]):
+                s.step(bool(a))
+            return
+        for i, s in enumerate(self.sims):
+            s.step(detected[i], None if noise is None else noise[i])
+
+
+def run_batched(
+    sim: BatchedSimulator,
+    n: int,
+    n_steps: int,
+    sampler: Detector,
+    target: Detector,
+    uniforms: Iterable[np.ndarray],
+    forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
+) -> RolloutBatch:
+    """Simulate the ``n`` rollouts of ``sim`` for ``n_steps`` steps, each object's events drawn from ``sampler`` and
+    scored under ``target`` (:func:`pemviz.detectors.draw_step`): the rollout runner of every simulator.
+
+    Args:
+        sim: n rollouts at their start, a :class:`BatchedSimulator`.
+        uniforms: per step, float64 [n K] in [0, 1), rollout by rollout, K = :func:`draws_per_rollout` (object by
+            object: its detection's uniform, then its D errors'); e.g. ``rng.random(n K)`` per step.
+        forced: optional (detected bool [n, T, M], noise [n, T, M, D] or None, until int [n]): rollout i takes these
+            events at its steps before ``until[i]`` (a replayed prefix).
+    Returns:
+        :class:`RolloutBatch` [n, T] (``objects`` when the simulator reports object rows, ``noise`` when the target
+        mislocates).
+    """
+    names = tuple(sim.observation_names)
+    multi = getattr(sim, "object_names", None) is not None  # else one object per rollout: its observation
+    m = n_objects_of(sim)
+    noise_names = noise_names_of(target)
+    d = len(noise_names)
+    # Step-major buffers: each step writes contiguous rows; one transposing copy at the end.
+    obs_t = np.empty((n_steps, n, len(names)))
+    det_t = np.empty((n_steps, n, m), dtype=bool)
+    log_p_t, log_q_t = np.empty((n_steps, n)), np.empty((n_steps, n))
+    objects_t = np.empty((n_steps, n, m, len(sim.object_names))) if multi else None
+    noise_t = np.empty((n_steps, n, m, d)) if d else None
+    for t, u in zip(range(n_steps), uniforms):
+        o = sim.observation()
+        obs_t[t] = o
+        if multi:
+            objects_t[t] = sim.objects()
+            rows = objects_t[t].reshape(n * m, -1)
+        else:
+            rows = obs_t[t]
+        f = None
+        if forced is not None:
+            given = np.repeat(t < forced[2], m)
+            f = (forced[0][:, t].reshape(-1), None if forced[1] is None else forced[1][:, t].reshape(-1, d), given)
+        step = draw_step(sampler, target, rows, np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d),
+                         RQMC_BLOCK * m, f)  # fmt: skip
+        det_t[t] = step.detected.reshape(n, m)
+        if m == 1:
+            log_q_t[t], log_p_t[t] = step.log_q, step.log_p
+        else:  # the step's objects together
+            log_q_t[t], log_p_t[t] = step.log_q.reshape(n, m).sum(axis=1), step.log_p.reshape(n, m).sum(axis=1)
+        if d:
+            noise_t[t] = step.noise.reshape(n, m, d)
+        sim.step(det_t[t], None if not d else noise_t[t])
+    def major(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else np.ascontiguousarray(np.swapaxes(a, 0, 1))
+
+    return RolloutBatch(major(obs_t), major(det_t), major(log_p_t), major(log_q_t), names,
+                        objects=major(objects_t), object_names=tuple(sim.object_names) if multi else None,
+                        noise=major(noise_t), noise_names=noise_names)  # fmt: skip
+
+
+DEFAULT_CHUNK_SIZE = RQMC_BLOCK
+"""Rollouts a batched simulator steps together: one chunk's working set stays in cache-sized arrays (measured fastest
+of 2048..65536 for the braking twin on the 2-core CI machine), one Array-RQMC block."""
+
+
+def check_counts(who: str, **counts: object) -> None:
+    """Raise ValueError unless every ``name=value`` is an integer >= 1 (a rollout count, a chunk size)."""
+    for name, value in counts.items():
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{who}: {name} must be an integer >= 1, got {value!r}")
+
+
+def uniform_chunks(rng: np.random.Generator, n: int, n_steps: int, chunk_size: int,
+                   per_rollout: int = 1) -> Iterator[tuple[int, int, Iterator[np.ndarray]]]:  # fmt: skip
+    """``(start, stop, per-step uniforms [(stop - start) K])`` for each chunk of rollouts, K = ``per_rollout``: the
+    numbers one ``rng.random(n K)`` per step gives rollouts ``start .. stop - 1``, whatever the chunks.
+
+    With one chunk or a generator that cannot jump, the draws come from ``rng`` itself in order (the chunks then draw
+    one after the other). With a PCG64 / PCG64DXSM generator each chunk reads its slice ``[t n K + start K, t n K +
+    stop K)`` of the serial stream from a copy of ``rng``'s state (``bit_generator.advance``), and ``rng`` is finally
+    advanced past all ``n K T`` draws, where the serial run leaves it.
+    """
+    bounds = [(a, min(a + chunk_size, n)) for a in range(0, n, chunk_size)]
+    k = int(per_rollout)
+    bit_gen = rng.bit_generator
+    if len(bounds) == 1 or not isinstance(bit_gen, JUMPABLE):
+        for start, stop in bounds:
+            yield start, stop, (rng.random((stop - start) * k) for _ in range(n_steps))
+        return
+    base = bit_gen.state
+
+    def draws(start: int, stop: int) -> Iterator[np.ndarray]:
+        bg = bit_generator_at(base, start * k)
+        gen = np.random.Generator(bg)
+        for t in range(n_steps):
+            if t:
+                bg.advance((n - (stop - start)) * k)
+            yield gen.random((stop - start) * k)
+
+    for start, stop in bounds:
+        yield start, stop, draws(start, stop)
+    advance(rng, n * k * n_steps)
+
+
+def _coupled(sampler: Detector) -> bool:
+    """Whether ``sampler`` draws by Array-RQMC: its rollouts are then simulated one fixed block of
+    :data:`pemviz.rng.RQMC_BLOCK` at a time, whatever the chunk size (the block's rollouts are coupled)."""
+    return bool(getattr(sampler, "array_rqmc", False))
+
+
+def iter_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int, sampler: Detector, target: Detector,
+                  rng: np.random.Generator, *, chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[RolloutBatch]:  # fmt: skip
+    """Stream ``n`` rollouts of a batched simulator as :class:`RolloutBatch` chunks of at most ``chunk_size`` rollouts
+    (:func:`run_batched` on ``make(m)``, m rollouts at their start), the rollouts of ``rng.random(n K)`` per step
+    (:func:`uniform_chunks`): the same rollouts, bit for bit, for any chunk size. An Array-RQMC sampler's rollouts are
+    simulated one fixed block of :data:`pemviz.rng.RQMC_BLOCK` at a time (its rollouts are coupled) and handed out in
+    chunks of ``chunk_size``.
+
+    Raises:
+        ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
+    """
+    check_counts("iter_rollouts", n=n, chunk_size=chunk_size)
+    n, chunk_size = int(n), int(chunk_size)
+    if _coupled(sampler) and chunk_size != RQMC_BLOCK:  # simulated block by block, handed out chunk by chunk
+        for batch in iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=RQMC_BLOCK):
+            for a in range(0, batch.n, chunk_size):
+                yield batch if batch.n <= chunk_size else batch.select(slice(a, a + chunk_size))
+        return
+    k = draws_per_rollout(make(1), target)
+    for start, stop, uniforms in uniform_chunks(rng, n, n_steps, chunk_size, k):
+        yield run_batched(make(stop - start), stop - start, n_steps, sampler, target, uniforms)
+
+
+def simulate_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int, sampler: Detector,
+                      target: Detector, rng: np.random.Generator, *,
+                      chunk_size: int = DEFAULT_CHUNK_SIZE) -> RolloutBatch:  # fmt: skip
+    """The ``n`` rollouts of :func:`iter_rollouts` as one :class:`RolloutBatch` [n, T] (it holds them all: stream them
+    for very large ``n``).
+
+    Raises:
+        ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
+    """
+    check_counts("simulate_rollouts", n=n, chunk_size=chunk_size)
+    size = RQMC_BLOCK if _coupled(sampler) else int(chunk_size)
+    chunks = list(iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=size))
+    return chunks[0] if len(chunks) == 1 else RolloutBatch.concatenate(chunks)
+
+
+def branch_rollouts(make: Callable[[int], BatchedSimulator], parents: RolloutBatch, parent: np.ndarray,
+                    at: np.ndarray, target: Detector, rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+    """:func:`branch` on a batched simulator (``make(K)``): new rollout i replays parent ``parent[i]``'s events
+    before step ``at[i]`` (the state at a step is a function of the events before it) and draws the rest from
+    ``target``; one ``rng.random(K k)`` per step.
+
+    Returns:
+        :class:`RolloutBatch` [K, T].
+    Raises:
+        ValueError: ``parent`` / ``at`` out of range (:func:`check_branch_args`).
+    """
+    parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
+    check_branch_args(parents, parent, at)
+    sim = make(parent.size)
+    k = draws_per_rollout(sim, target) * parent.size
+    noise = None if parents.noise is None else parents.noise[parent]
+    return run_batched(sim, parent.size, parents.n_steps, target, target,
+                       (rng.random(k) for _ in range(parents.n_steps)),
+                       forced=(parents.detected[parent], noise, at))  # fmt: skip
 
 
 def simulate(
@@ -133,55 +407,41 @@ def simulate(
     n_steps: int,
     uniforms: np.ndarray | None = None,
 ) -> RolloutBatch:
-    """Run ``n`` rollouts in lockstep, detections drawn from ``sampler``, scored under ``target``.
+    """Run ``n`` rollouts in lockstep (:class:`Lockstep`, :func:`run_batched`), each object's events drawn from
+    ``sampler``, scored under ``target``.
 
-    A detection happens iff ``u <= q(detect | s)`` with ``u ~ U(0, 1)`` from ``rng`` (one [n] draw per
-    step), as in the authors' code. The detectors are asked about one fixed block of :data:`pemviz.rng.RQMC_BLOCK`
-    rollouts at a time, and an Array-RQMC sampler couples the rollouts of each block (``uniforms`` must then start at
-    a block boundary of the batch), so that chunks of whole blocks simulated elsewhere give the same bits.
+    A detection happens iff ``u <= q(detect | s)`` with ``u ~ U(0, 1)`` from ``rng`` (one ``rng.random(n K)`` per
+    step, K = :func:`draws_per_rollout`: one ``rng.random(n)`` for a single-object scenario), as in the authors' code.
+    The detectors are asked about one fixed block of :data:`pemviz.rng.RQMC_BLOCK` rollouts at a time, and an
+    Array-RQMC sampler couples the rollouts of each block (``uniforms`` must then start at a block boundary of the
+    batch), so that chunks of whole blocks simulated elsewhere give the same bits.
 
     Args:
         make_simulator: builds a fresh simulator at its start state.
         n: number of rollouts (>= 1).
-        sampler: the detector that draws the actions (proposal q, the PEM, a constant ...).
+        sampler: the detector that draws the events (proposal q, the PEM, a constant ...).
         target: the PEM whose probabilities weight the rollouts (may be ``sampler`` itself).
         rng: numpy Generator; the same seed gives the same batch (unused, may be None, with ``uniforms``).
         n_steps: T, steps per rollout.
-        uniforms: optional float64 [T, n] pre-drawn u's, row t used at step t instead of ``rng.random(n)``.
-            ``rng.random((T, n))`` holds exactly the numbers of T calls ``rng.random(n)``, so a column slice
-            ``[:, a:b]`` of it reproduces rollouts a..b-1 of the serial run elsewhere (pemviz.executors).
+        uniforms: optional float64 [T, n K] pre-drawn u's, row t used at step t instead of ``rng.random(n K)``.
+            ``rng.random((T, n K))`` holds exactly the numbers of T calls ``rng.random(n K)``, so a column slice
+            ``[:, a K:b K]`` of it reproduces rollouts a..b-1 of the serial run elsewhere (pemviz.executors).
     Returns:
         :class:`RolloutBatch` with arrays [n, T].
     Raises:
-        ValueError: ``n < 1``, or ``uniforms`` not of shape [T, n] with values in [0, 1).
+        ValueError: ``n < 1``, or ``uniforms`` not of shape [T, n K] with values in [0, 1).
     """
     if n < 1:
         raise ValueError(f"simulate: n must be >= 1, got {n}")
+    sim = Lockstep([make_simulator() for _ in range(n)])
+    k = draws_per_rollout(sim, target)
     if uniforms is not None:
         uniforms = np.asarray(uniforms, dtype=np.float64)
-        if uniforms.shape != (n_steps, n) or not np.all((uniforms >= 0.0) & (uniforms < 1.0)):
-            raise ValueError(f"simulate: uniforms must be float64 [T, n] = [{n_steps}, {n}] in [0, 1), "
+        if uniforms.shape != (n_steps, n * k) or not np.all((uniforms >= 0.0) & (uniforms < 1.0)):
+            raise ValueError(f"simulate: uniforms must be float64 [T, n K] = [{n_steps}, {n * k}] in [0, 1), "
                              f"got shape {uniforms.shape}")
-    sims = [make_simulator() for _ in range(n)]
-    names = tuple(sims[0].observation_names)
-    obs = np.empty((n, n_steps, len(names)))
-    detected = np.empty((n, n_steps), dtype=bool)
-    log_p = np.empty((n, n_steps))
-    log_q = np.empty((n, n_steps))
-    for t in range(n_steps):
-        o = np.stack([s.observation() for s in sims])
-        q_logit = by_blocks(sampler.detect_logit, o)  # one fixed block at a time, as on every executor
-        p_logit = q_logit if target is sampler else by_blocks(target.detect_logit, o)
-        u = step_uniforms(rng.random(n) if uniforms is None else uniforms[t], sampler, q_logit, o)
-        # u <= sigmoid(logit)  <=>  log u <= log_expit(logit): exact in log-space.
-        a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
-        obs[:, t] = o
-        detected[:, t] = a
-        log_q[:, t] = action_log_prob(q_logit, a)
-        log_p[:, t] = action_log_prob(p_logit, a)
-        for s, a_i in zip(sims, a):
-            s.step(bool(a_i))
-    return RolloutBatch(obs, detected, log_p, log_q, names)
+    draws = uniforms if uniforms is not None else (rng.random(n * k) for _ in range(n_steps))
+    return run_batched(sim, n, n_steps, sampler, target, draws)
 
 
 def branch(
@@ -192,59 +452,25 @@ def branch(
     target: Detector,
     rng: np.random.Generator,
 ) -> RolloutBatch:
-    """Continue rollouts from given steps of earlier ones, detections drawn from ``target``: K new rollouts.
+    """Continue rollouts from given steps of earlier ones, events drawn from ``target``: K new rollouts.
 
-    New rollout i copies rollout ``parent[i]`` of ``parents`` up to step ``at[i]`` (its observations at steps
-    ``0..at[i]`` and its actions at steps ``0..at[i] - 1``) and draws its actions from step ``at[i]`` on from
-    ``target`` (``log_q = log_p``). Each parent is replayed once on one simulator (deterministic: the only
-    randomness is the detector), snapshotted at the steps where its children branch, and every child starts
-    from ``restore(snapshot)`` on a fresh simulator; the children then advance in lockstep, one
-    ``rng.random(K)`` per step 0..T - 1 (rows not yet branched ignore theirs), as the vectorised twins
+    New rollout i takes rollout ``parent[i]`` of ``parents``'s events at its steps ``0..at[i] - 1`` (a replay: the
+    scenario is deterministic given its perception, so it passes through the parent's states) and draws them from
+    ``target`` from step ``at[i]`` on (``log_q = log_p``), in lockstep (:func:`run_batched`): one ``rng.random(K)``
+    per step 0..T - 1 for single-object rollouts (replayed rows ignore theirs), as the vectorised twins
     (:func:`pemviz.scenarios.batched.branch_batched`, :func:`pemviz.scenarios.toy.branch_toy`) draw.
 
     Args:
-        make_simulator: builds a fresh :class:`Snapshotting` simulator at its start state.
+        make_simulator: builds a fresh simulator at its start state.
         parents: the rollouts to branch from, [M, T].
         parent: int [K] row of ``parents`` for each new rollout.
         at: int [K] branching steps, in [0, T - 1].
     Returns:
         :class:`RolloutBatch` [K, T].
     Raises:
-        ValueError: a simulator without snapshot/restore, or ``parent`` / ``at`` out of range.
+        ValueError: ``parent`` / ``at`` out of range.
     """
-    parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
-    n, n_steps = parent.size, parents.n_steps
-    check_branch_args(parents, parent, at)
-    probe = make_simulator()
-    if not can_snapshot(probe):
-        raise ValueError(f"branch: {type(probe).__name__} has no snapshot/restore")
-    sims: list[Snapshotting] = [None] * n  # type: ignore[list-item]
-    for j in np.unique(parent):
-        children = np.flatnonzero(parent == j)
-        sim = probe if j == parent.min() else make_simulator()
-        sim.reset()
-        t = 0
-        for i in children[np.argsort(at[children], kind="stable")]:
-            while t < at[i]:
-                sim.step(bool(parents.detected[j, t]))
-                t += 1
-            sims[i] = make_simulator()
-            sims[i].restore(sim.snapshot())
-    out = parents.select(parent)
-    obs, detected, log_p = out.observations, out.detected, out.log_p
-    rows = np.arange(n)
-    for t in range(n_steps):
-        u = rng.random(n)  # one draw per step, as the vectorised twins draw (the same rollouts for a seed)
-        if t < at.min():
-            continue
-        live = rows[at <= t]
-        o = np.stack([sims[i].observation() for i in live])
-        logit = target.detect_logit(o)
-        a = np.log(u[live]) <= action_log_prob(logit, np.ones(live.size, dtype=bool))
-        obs[live, t], detected[live, t], log_p[live, t] = o, a, action_log_prob(logit, a)
-        for i, a_i in zip(live, a):
-            sims[i].step(bool(a_i))
-    return RolloutBatch(obs, detected, log_p, log_p.copy(), parents.observation_names)
+    return branch_rollouts(lambda k: Lockstep([make_simulator() for _ in range(k)]), parents, parent, at, target, rng)
 
 
 def check_branch_args(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray) -> None:

@@ -39,16 +39,18 @@ from dataclasses import dataclass
 from typing import Callable, Iterator
 
 import numpy as np
-from scipy.special import log_expit
 
-from pemviz.detectors import Detector, step_uniforms
-from pemviz.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
-from pemviz.scenarios import RolloutBatch
+from pemviz.detectors import Detector
+from pemviz.scenarios import (
+    DEFAULT_CHUNK_SIZE,
+    RolloutBatch,
+    branch_rollouts,
+    check_counts,
+    iter_rollouts,
+    simulate_rollouts,
+)
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_step, initial_controller_state, lead_speeds
 
-DEFAULT_CHUNK_SIZE = 8192
-"""Rollouts simulated together: one chunk's working set stays in cache-sized [8192] arrays (measured
-fastest of 2048..65536 on the 2-core CI machine); its outputs are 34 MB at T = 100."""
 
 
 class BatchedBraking:
@@ -77,6 +79,8 @@ class BatchedBraking:
         self.lead_speed_mps = float(p.lead_speed_profile_mps[0])
         self.t = 0
         self._ctrl = initial_controller_state(self.n)
+        self._gap: np.ndarray | None = None
+        """The gap of the last :meth:`observation`, reused by the next :meth:`step` (None: not asked since)."""
 
     @property
     def gap_m(self) -> np.ndarray:
@@ -92,7 +96,7 @@ class BatchedBraking:
             out: optional float64 [N, 4] array to write into (returned).
         """
         o = np.empty((self.n, len(OBSERVATION_NAMES))) if out is None else out
-        o[:, 0] = self.gap_m
+        o[:, 0] = self._gap = self.gap_m
         o[:, 1] = self.ego_speed_mps
         o[:, 2] = self.lead_speed_mps
         o[:, 3] = self._ctrl.pending_brake
@@ -122,25 +126,27 @@ class BatchedBraking:
         self.ego_x_m, self.ego_speed_mps = state["ego_x_m"].copy(), state["ego_speed_mps"].copy()
         self.lead_x_m, self.lead_speed_mps, self.t = state["lead_x_m"], state["lead_speed_mps"], state["t"]
         self._ctrl = type(c)(c.integral_kmh_s.copy(), c.pending_brake.copy())
+        self._gap = None
 
-    def step(self, detected: np.ndarray, gap_m: np.ndarray | None = None) -> None:
+    def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
         """Advance every rollout one step of ``dt`` seconds given the detector outputs.
 
         Args:
-            detected: bool [N], the detector's output at the current states.
-            gap_m: the current :attr:`gap_m` [N] if already computed (saves one pass).
+            detected: bool [N] or [N, 1] (its one object, the lead), the detector's output at the current states.
+            noise: unused (the detector only detects); must be None.
         Raises:
             RuntimeError: if the rollouts are over (``n_steps`` steps taken).
-            ValueError: if ``detected`` is not of shape [N].
+            ValueError: if ``detected`` is not of shape [N] or [N, 1], or a ``noise`` is given.
         """
         p = self.params
         if self.done:
             raise RuntimeError(f"BatchedBraking.step: rollouts over after {p.n_steps} steps; call reset()")
         detected = np.asarray(detected, dtype=bool)
-        if detected.shape != (self.n,):
-            raise ValueError(f"BatchedBraking.step: detected must have shape ({self.n},), got {detected.shape}")
-        gap = self.gap_m if gap_m is None else gap_m
-        speed, self._ctrl = ego_step(p, detected, gap, self.ego_speed_mps, self._ctrl)
+        if detected.shape not in ((self.n,), (self.n, 1)) or noise is not None:
+            raise ValueError(f"BatchedBraking.step: detected must have shape ({self.n},) or ({self.n}, 1) and noise "
+                             f"None, got {detected.shape}")
+        gap = self._gap if self._gap is not None else self.gap_m  # the observation's, when it was just asked
+        speed, self._ctrl = ego_step(p, detected.reshape(self.n), gap, self.ego_speed_mps, self._ctrl)
         dt = p.dt_s
         # highway-env Vehicle.step: position += speed * dt, then speed += acceleration * dt.
         self.ego_x_m = self.ego_x_m + self.ego_speed_mps * dt
@@ -148,6 +154,7 @@ class BatchedBraking:
         self.lead_x_m = self.lead_x_m + self.lead_speed_mps * dt
         self.lead_speed_mps = float(self._lead_speeds[self.t + 1])
         self.t += 1
+        self._gap = None
 
 
 def replay(params: BrakingParams | None, detected: np.ndarray) -> np.ndarray:
@@ -172,118 +179,11 @@ def replay(params: BrakingParams | None, detected: np.ndarray) -> np.ndarray:
     for t in range(n_steps):
         o = sim.observation()
         obs[:, t] = o
-        sim.step(detected[:, t], o[:, 0])
+        sim.step(detected[:, t])
     return obs
 
 
 # -- sampled rollouts ------------------------------------------------------------------------------
-
-
-def _coupled(sampler: Detector) -> bool:
-    """Whether ``sampler`` draws by Array-RQMC: its rollouts are then simulated one fixed block of
-    :data:`pemviz.rng.RQMC_BLOCK` at a time, whatever ``chunk_size`` (the block's rollouts are coupled)."""
-    return bool(getattr(sampler, "array_rqmc", False))
-
-
-def _check_args(who: str, n: object, chunk_size: object) -> None:
-    for name, value in (("n", n), ("chunk_size", chunk_size)):
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-            raise ValueError(f"{who}: {name} must be an integer >= 1, got {value!r}")
-
-
-def _uniform_chunks(
-    rng: np.random.Generator, n: int, n_steps: int, chunk_size: int
-) -> Iterator[tuple[int, int, Iterator[np.ndarray]]]:
-    """``(start, stop, per-step uniforms [stop - start])`` for each chunk; see the module docstring.
-
-    With one chunk or a generator that cannot jump, the draws come from ``rng`` itself in order. With
-    jumps, each chunk reads its slice ``[t * n + start, t * n + stop)`` of the stream ``simulate`` would
-    draw, from a copy of ``rng``'s state, and ``rng`` is finally advanced past all ``n * n_steps`` draws.
-    """
-    bounds = [(s, min(s + chunk_size, n)) for s in range(0, n, chunk_size)]
-    bit_gen = rng.bit_generator
-    if len(bounds) == 1 or not isinstance(bit_gen, JUMPABLE):
-        for start, stop in bounds:
-            yield start, stop, (rng.random(stop - start) for _ in range(n_steps))
-        return
-    base = bit_gen.state
-
-    def draws(start: int, stop: int) -> Iterator[np.ndarray]:
-        bg = bit_generator_at(base, start)
-        gen = np.random.Generator(bg)
-        for t in range(n_steps):
-            if t:
-                bg.advance(n - (stop - start))
-            yield gen.random(stop - start)
-
-    for start, stop in bounds:
-        yield start, stop, draws(start, stop)
-    advance(rng, n * n_steps)
-
-
-def _action_log_prob(logit: np.ndarray, detected: np.ndarray, log_p_detect: np.ndarray | None, out: np.ndarray):
-    """:func:`pemviz.detectors.action_log_prob` into ``out``, bit for bit, reusing ``log_expit(logit)``.
-
-    ``log_expit(+logit)`` where detected (given as ``log_p_detect`` when already computed), ``log_expit(-logit)
-    = -logaddexp(0, logit)`` elsewhere, evaluated only where missed. A hot path, so written out: numpy's
-    ``logaddexp(..., where=missed)`` simulated 20,000 braking rollouts in 0.66 s against 0.74 s for ``log_expit`` on
-    every entry (one run each, loaded 2-core machine), and ``scipy.special.log_expit(..., where=...)`` corrupted the heap (scipy 1.17.1: a segfault a few
-    calls later).
-    """
-    if log_p_detect is None:
-        log_p_detect = log_expit(logit)
-    missed = ~detected
-    np.copyto(out, log_p_detect)
-    np.logaddexp(0.0, logit, out=out, where=missed)
-    np.negative(out, out=out, where=missed)
-    return out
-
-
-def _run_chunk(
-    params: BrakingParams,
-    sampler: Detector,
-    target: Detector,
-    uniforms: Iterator[np.ndarray],
-    obs: np.ndarray,
-    detected: np.ndarray,
-    log_p: np.ndarray,
-    log_q: np.ndarray,
-    forced: tuple[np.ndarray, np.ndarray] | None = None,
-) -> None:
-    """Simulate ``m = len(obs)`` rollouts, writing into obs [m, T, 3], detected / log_p / log_q [m, T].
-
-    Per step, the arithmetic of :func:`pemviz.scenarios.simulate`: one detector call per batch,
-    detect iff ``log u <= log_expit(logit q)``, log-probabilities of the taken actions under q and p.
-    ``forced``: optional (detected bool [m, T], until int [m]): rollout i takes the given actions at the steps
-    before ``until[i]`` (a replayed prefix, :func:`branch_batched`).
-    """
-    m, n_steps = detected.shape
-    sim = BatchedBraking(params, m)
-    # Step-major buffers: each step writes contiguous rows; one transposing copy per chunk at the end.
-    obs_t = np.empty((n_steps, m, len(OBSERVATION_NAMES)))
-    detected_t = np.empty((n_steps, m), dtype=bool)
-    log_p_t = np.empty((n_steps, m))
-    log_q_t = np.empty((n_steps, m))
-    for t, u in zip(range(n_steps), uniforms):
-        o = sim.observation(out=obs_t[t])
-        q_logit = sampler.detect_logit(o)
-        p_logit = q_logit if target is sampler else target.detect_logit(o)
-        u = step_uniforms(u, sampler, q_logit, o)
-        # u <= sigmoid(logit)  <=>  log u <= log_expit(logit) (= action_log_prob(logit, True)).
-        ls_q = log_expit(q_logit)
-        a = np.less_equal(np.log(u, out=u), ls_q, out=detected_t[t])
-        if forced is not None:
-            np.copyto(a, forced[0][:, t], where=t < forced[1])
-        _action_log_prob(q_logit, a, ls_q, out=log_q_t[t])
-        if p_logit is q_logit:
-            log_p_t[t] = log_q_t[t]
-        else:
-            _action_log_prob(p_logit, a, None, out=log_p_t[t])
-        sim.step(a, o[:, 0])
-    obs[...] = obs_t.transpose(1, 0, 2)
-    detected[...] = detected_t.T
-    log_p[...] = log_p_t.T
-    log_q[...] = log_q_t.T
 
 
 def iter_batched(
@@ -303,25 +203,8 @@ def iter_batched(
     Raises:
         ValueError: for ``n`` or ``chunk_size`` not an integer >= 1.
     """
-    _check_args("iter_batched", n, chunk_size)
     p = params or BrakingParams()
-    n_steps = p.n_steps
-    if _coupled(sampler) and chunk_size != RQMC_BLOCK:  # simulated block by block, handed out chunk by chunk
-        for batch in iter_batched(p, n, sampler, target, rng, chunk_size=RQMC_BLOCK):
-            for a in range(0, batch.n, int(chunk_size)):
-                yield batch if batch.n <= chunk_size else batch.select(slice(a, a + int(chunk_size)))
-        return
-    for start, stop, uniforms in _uniform_chunks(rng, int(n), n_steps, int(chunk_size)):
-        m = stop - start
-        batch = RolloutBatch(
-            np.empty((m, n_steps, len(OBSERVATION_NAMES))),
-            np.empty((m, n_steps), dtype=bool),
-            np.empty((m, n_steps)),
-            np.empty((m, n_steps)),
-            OBSERVATION_NAMES,
-        )
-        _run_chunk(p, sampler, target, uniforms, batch.observations, batch.detected, batch.log_p, batch.log_q)
-        yield batch
+    return iter_rollouts(lambda m: BatchedBraking(p, m), n, p.n_steps, sampler, target, rng, chunk_size=chunk_size)
 
 
 def simulate_batched(
@@ -351,18 +234,8 @@ def simulate_batched(
     Raises:
         ValueError: for ``n`` or ``chunk_size`` not an integer >= 1.
     """
-    _check_args("simulate_batched", n, chunk_size)
     p = params or BrakingParams()
-    n, n_steps = int(n), p.n_steps
-    obs = np.empty((n, n_steps, len(OBSERVATION_NAMES)))
-    detected = np.empty((n, n_steps), dtype=bool)
-    log_p = np.empty((n, n_steps))
-    log_q = np.empty((n, n_steps))
-    chunk_size = RQMC_BLOCK if _coupled(sampler) else int(chunk_size)
-    for start, stop, uniforms in _uniform_chunks(rng, n, n_steps, chunk_size):
-        s = slice(start, stop)
-        _run_chunk(p, sampler, target, uniforms, obs[s], detected[s], log_p[s], log_q[s])
-    return RolloutBatch(obs, detected, log_p, log_q, OBSERVATION_NAMES)
+    return simulate_rollouts(lambda m: BatchedBraking(p, m), n, p.n_steps, sampler, target, rng, chunk_size=chunk_size)
 
 
 def branch_batched(
@@ -382,18 +255,9 @@ def branch_batched(
     Raises:
         ValueError: ``parent`` / ``at`` out of range (:func:`pemviz.scenarios.check_branch_args`).
     """
-    from pemviz.scenarios import check_branch_args
 
     p = params or BrakingParams()
-    parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
-    check_branch_args(parents, parent, at)
-    k, n_steps = parent.size, p.n_steps
-    out = RolloutBatch(np.empty((k, n_steps, len(OBSERVATION_NAMES))), np.empty((k, n_steps), dtype=bool),
-                       np.empty((k, n_steps)), np.empty((k, n_steps)), OBSERVATION_NAMES)  # fmt: skip
-    uniforms = (rng.random(k) for _ in range(n_steps))
-    _run_chunk(p, target, target, uniforms, out.observations, out.detected, out.log_p, out.log_q,
-               forced=(parents.detected[parent], at))  # fmt: skip
-    return out
+    return branch_rollouts(lambda m: BatchedBraking(p, m), parents, parent, at, target, rng)
 
 
 @dataclass(frozen=True)
@@ -443,7 +307,7 @@ def summarise_batched(
     Raises:
         ValueError: for ``n`` or ``chunk_size`` not an integer >= 1, or a ``failed`` of the wrong shape.
     """
-    _check_args("summarise_batched", n, chunk_size)
+    check_counts("summarise_batched", n=n, chunk_size=chunk_size)
     p = params or BrakingParams()
     n = int(n)
     log_weight, log_p_total, fail, min_gap = np.empty(n), np.empty(n), np.empty(n, dtype=bool), np.empty(n)

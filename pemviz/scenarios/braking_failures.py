@@ -187,7 +187,7 @@ def controller_trace(detected: np.ndarray, params: BrakingParams | None = None) 
         obs[t] = o[0]
         a, ctrl = ego_acceleration(p, d[t : t + 1], o[:, 0], o[:, 1], ctrl)
         accel[t], command[t] = a[0], ctrl.pending_brake[0]
-        sim.step(d[t : t + 1], o[:, 0])
+        sim.step(d[t : t + 1])
     return ControllerTrace(np.arange(n) * p.dt_s, obs[:, 0], obs[:, 1], obs[:, 2], command, obs[:, 3] > 0.5, accel)
 
 
@@ -208,9 +208,8 @@ def min_gaps(detected: np.ndarray, params: BrakingParams | None = None) -> np.nd
         sim = BatchedBraking(p, rows.shape[0])
         low = np.full(rows.shape[0], np.inf)
         for t in range(rows.shape[1]):
-            gap = sim.gap_m
-            np.minimum(low, gap, out=low)
-            sim.step(rows[:, t], gap)
+            np.minimum(low, sim.gap_m, out=low)
+            sim.step(rows[:, t])
         out[a : a + _CHUNK] = low
     return out
 

@@ -26,9 +26,9 @@ from typing import Callable, Union
 import numpy as np
 from scipy.special import log_expit
 
-from pemviz.detectors import Detector, action_log_prob, step_uniforms
-from pemviz.rng import by_blocks
-from pemviz.scenarios import RolloutBatch, check_branch_args
+from pemviz.detectors import Detector
+
+from pemviz.scenarios import RolloutBatch, check_branch_args, run_batched
 
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")
@@ -150,14 +150,38 @@ class ToyBraking:
             self.distance -= 1
 
 
+class BatchedToy:
+    """n toy rollouts stepped together, a :class:`~pemviz.scenarios.BatchedSimulator`: the vectorised
+    :class:`ToyBraking` (the same states for the same detections)."""
+
+    observation_names = OBSERVATION_NAMES
+
+    def __init__(self, params: ToyParams, n: int) -> None:
+        self.params = params
+        self.distance = np.full(n, float(params.total))
+        self.stopped = np.zeros(n, dtype=bool)
+
+    def observation(self) -> np.ndarray:
+        """float64 [n, 2]: (distance, stopped)."""
+        return np.stack([self.distance, self.stopped.astype(np.float64)], axis=1)
+
+    def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
+        """``detected``: bool [n, 1] (or [n]), the detector's output at each rollout's one object."""
+        p, a = self.params, np.asarray(detected, dtype=bool).reshape(self.distance.size)
+        crashed = self.distance < p.safe
+        self.stopped = self.stopped | crashed | (a & (self.distance <= p.braking))
+        self.distance = np.where(self.stopped, self.distance, self.distance - 1.0)
+
+
 def simulate_toy(
     params: ToyParams, n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
     forced: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> RolloutBatch:
-    """``n`` toy rollouts, vectorised; the same draws and batch as :func:`pemviz.scenarios.simulate` with
-    :class:`ToyBraking` (one ``rng.random(n)`` per step, detect iff ``log u <= log q(detect)``).
+    """``n`` toy rollouts, vectorised (:class:`BatchedToy`, :func:`pemviz.scenarios.run_batched`); the same draws
+    and batch as :func:`pemviz.scenarios.simulate` with :class:`ToyBraking` (one ``rng.random(n)`` per step, detect
+    iff ``log u <= log q(detect)``).
 
-    ``forced``: optional (detected bool [n, T], until int [n]): rollout i takes the given actions at steps
+    ``forced``: optional (detected bool [n, T, 1], until int [n]): rollout i takes the given actions at steps
     before ``until[i]`` instead of drawing them (a replayed prefix, for :func:`branch_toy`).
 
     Returns:
@@ -167,29 +191,9 @@ def simulate_toy(
     """
     if n < 1:
         raise ValueError(f"simulate_toy: n must be >= 1, got {n}")
-    T = params.steps
-    distance = np.full(n, float(params.total))
-    stopped = np.zeros(n, dtype=bool)
-    obs = np.empty((n, T, 2))
-    detected = np.empty((n, T), dtype=bool)
-    log_p = np.empty((n, T))
-    log_q = np.empty((n, T))
-    for t in range(T):
-        o = np.stack([distance, stopped.astype(np.float64)], axis=1)
-        q_logit = by_blocks(sampler.detect_logit, o)  # one fixed block at a time, as on every executor
-        p_logit = q_logit if target is sampler else by_blocks(target.detect_logit, o)
-        u = step_uniforms(rng.random(n), sampler, q_logit, o)
-        a = np.log(u) <= action_log_prob(q_logit, np.ones(n, dtype=bool))
-        if forced is not None:
-            a = np.where(t < forced[1], forced[0][:, t], a)
-        obs[:, t] = o
-        detected[:, t] = a
-        log_q[:, t] = action_log_prob(q_logit, a)
-        log_p[:, t] = action_log_prob(p_logit, a)
-        crashed = distance < params.safe
-        stopped = stopped | crashed | (a & (distance <= params.braking))
-        distance = np.where(stopped, distance, distance - 1.0)
-    return RolloutBatch(obs, detected, log_p, log_q, OBSERVATION_NAMES)
+    uniforms = (rng.random(n) for _ in range(params.steps))
+    given = None if forced is None else (forced[0], None, forced[1])
+    return run_batched(BatchedToy(params, n), n, params.steps, sampler, target, uniforms, forced=given)
 
 
 def branch_toy(

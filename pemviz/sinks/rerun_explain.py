@@ -109,13 +109,12 @@ def log_explanation(
     b = failure.batch
     col = view.signals[0].column
     trace = b.signal(col)[0]
-    detected = np.asarray(b.detected[0], dtype=bool)
+    detected = np.asarray(b.detected[0, :, 0], dtype=bool)
     misses = np.flatnonzero(~detected)
     p_det, q_det = prob_detect(b.log_p[0], detected), prob_detect(b.log_q[0], detected)
     number, stage = int(failure.rollout_numbers[0]), failure.stage
     scene = view.scene
     tale = story(trace, detected, scene) if scene is not None else None
-    dt = scene.dt_s if scene is not None else None
 
     _series(s, f"{E}/detect/pem", "p(detect), PEM", PEM_PLOT_RGBA, p_det, indexes)
     _series(s, f"{E}/detect/sampler", "q(detect), sampler", C.rgba(C.BLUE), q_det, indexes)

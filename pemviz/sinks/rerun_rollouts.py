@@ -177,7 +177,7 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
         s.log(path, rr.SeriesPoints(colors=[rgba] * rows.size, names=[f"{lb}: {key}" for lb in labels],
                                     markers=[marker] * rows.size, marker_sizes=[size] * rows.size,
                                     visible_series=show), static=True)  # fmt: skip
-        marks = np.where((batch.detected[rows] == mask) & deciding(trace[rows], view), trace[rows], np.nan)
+        marks = np.where((batch.detected[rows, :, 0] == mask) & deciding(trace[rows], view), trace[rows], np.nan)
         s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=marks.T))
     return StageRollouts(keep, words, roles)
 

@@ -278,7 +278,7 @@ def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: Rollout
     batch = ev.batch
     gap = batch.gap_m[i]
     v = batch.signal("ego_speed_mps")[i]
-    seen = batch.detected[i]
+    seen = batch.detected[i, :, 0]
     t = gap.size
     y = lane * LANE_SPACING_M
     ego_x, lead_x = car_positions(gap, v, p)
