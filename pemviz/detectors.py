@@ -220,6 +220,20 @@ class SamplerView:
         """logit p(detect | obs), float64 [N] (read-only), for observations [N, F]."""
         return self.samplers.logits(obs)[self.index]
 
+    @property
+    def noise_names(self) -> tuple[str, ...]:
+        """The target's measurement errors (the target view mislocates as the target does; the samplers draw their
+        errors from the target's model: they have none of their own)."""
+        return noise_names_of(self.samplers.target_detector) if self.index == 0 else ()
+
+    def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The target's errors from uniforms (:class:`NoisyDetector`)."""
+        return self.samplers.target_detector.noise_from_uniforms(rows, u)
+
+    def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """The target's log density of the errors (:class:`NoisyDetector`)."""
+        return self.samplers.target_detector.noise_log_prob(rows, noise)
+
 
 @dataclass(frozen=True)
 class ArrayRQMC:
@@ -234,6 +248,19 @@ class ArrayRQMC:
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """``detector``'s logit p(detect | obs), float64 [N], for observations [N, F]."""
         return self.detector.detect_logit(obs)
+
+    @property
+    def noise_names(self) -> tuple[str, ...]:
+        """``detector``'s measurement errors, if it has an error model."""
+        return noise_names_of(self.detector)
+
+    def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``detector``'s errors from uniforms (:class:`NoisyDetector`)."""
+        return self.detector.noise_from_uniforms(rows, u)
+
+    def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """``detector``'s log density of the errors (:class:`NoisyDetector`)."""
+        return self.detector.noise_log_prob(rows, noise)
 
 
 def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np.ndarray,
@@ -266,7 +293,8 @@ class StepDraw:
 
 
 def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarray, block: int = RQMC_BLOCK,
-              forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None) -> StepDraw:  # fmt: skip
+              forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
+              n_objects: int = 1) -> StepDraw:  # fmt: skip
     """Draw one step's perception events for R object rows from ``sampler``, scored under ``target``: the arithmetic
     every simulator's rollouts share (Innes & Ramamoorthy 2022, Algorithm 1: detect iff u <= q(detect | s), as the
     authors' code draws; the importance weight's factor p / q of each event).
@@ -282,6 +310,9 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
             :class:`ArrayRQMC` sampler, :func:`step_uniforms`), columns 1..D the errors.
         block: rows asked about at a time and coupled by Array-RQMC together (the rows of one
             :data:`pemviz.rng.RQMC_BLOCK` of rollouts).
+        n_objects: M, the rows of one rollout (consecutive). Array-RQMC couples single-object rollouts only: one
+            lattice over several objects of a rollout would make their detections depend on each other (their
+            uniforms differ by multiples of the lattice's generator), so rollouts of M > 1 objects draw i.i.d.
         forced: optional (detected bool [R], noise [R, D] or None, given bool [R]): the rows where ``given`` take
             these events instead of drawing them (a replayed prefix).
     Returns:
@@ -296,7 +327,9 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
                          f"target's errors {names}, got shape {u.shape}")
     q_logit = by_blocks(sampler.detect_logit, rows, block)
     p_logit = q_logit if target is sampler else by_blocks(target.detect_logit, rows, block)
-    u_detect = step_uniforms(np.ascontiguousarray(u[:, 0]), sampler, q_logit, rows, block)
+    u_detect = np.ascontiguousarray(u[:, 0])
+    if n_objects == 1:
+        u_detect = step_uniforms(u_detect, sampler, q_logit, rows, block)
     ls_q = log_expit(q_logit)
     detected = np.less_equal(np.log(u_detect, out=u_detect), ls_q)  # u <= sigmoid(logit) <=> log u <= log_expit(logit)
     if forced is not None:
@@ -331,6 +364,19 @@ class ScoredTarget:
     def __init__(self, target: Detector, extras: tuple[Detector, ...]) -> None:
         self.target, self.extras = target, tuple(extras)
         self._asked: list[tuple[np.ndarray, ...]] = []
+
+    @property
+    def noise_names(self) -> tuple[str, ...]:
+        """The target's measurement errors: this object scores as the target does."""
+        return noise_names_of(self.target)
+
+    def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The target's errors from uniforms (:class:`NoisyDetector`)."""
+        return self.target.noise_from_uniforms(rows, u)
+
+    def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """The target's log density of the errors (:class:`NoisyDetector`)."""
+        return self.target.noise_log_prob(rows, noise)
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """The target's logit p(detect | obs), float64 [N]; it and the extras' logits (K + 1 arrays [N]) are kept."""

@@ -21,9 +21,10 @@ from pemviz import stl
 from pemviz.config import SIMULATORS, ExperimentConfig
 from pemviz.detectors import Detector, PEMDetector
 from pemviz.pem import load_pem
-from pemviz.scenarios import RolloutBatch, branch, simulate
+from pemviz.scenarios import RolloutBatch, branch, branch_rollouts, iter_rollouts, simulate, simulate_rollouts
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
 from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
 from pemviz.truth import known_log_failure_probability
 
@@ -260,6 +261,40 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
     )
 
 
+def crowd_problem(params: CrowdParams | None = None, name: str | None = None) -> Problem:
+    """The crowd toy (:mod:`pemviz.scenarios.crowd`) as a :class:`Problem`: M obstacles, each detected and mislocated
+    per step; failure = classic robustness of ``G[0,T-1](d >= safe)`` below 0 on the nearest distance; the proposal
+    reads each obstacle's row (distance first, scaled by ``total``) inside the window where a detection can stop the
+    car; the exact answer is :func:`pemviz.scenarios.crowd.crowd_log_failure_probability`."""
+    p = params or CrowdParams()
+
+    def make(n: int) -> BatchedCrowd:
+        return BatchedCrowd(p, n)
+
+    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
+        return simulate_rollouts(make, n, p.steps, sampler, target, rng)
+
+    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
+        return iter_rollouts(make, n, p.steps, sampler, target, rng)
+
+    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
+               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+        return branch_rollouts(make, parents, parent, at, target, rng)
+
+    far = p.total + max(p.offsets)
+    return Problem(
+        name or f"crowd({p.total},{p.braking},{p.safe},{p.p_detect:g},{len(p.offsets)} obstacles,sd {p.noise_sd:g})",
+        run, CrowdDetector(p), stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})"), signals={"d": "gap_m"},
+        units={"d": "units"}, signal_ranges={"d": (0.0, float(p.total))}, h_scale=float(p.total),
+        curve_grid=np.arange(0.0, far + 1.0), window=p.window, stream=stream, branch=resume,
+        exact_log_p=crowd_log_failure_probability(p),
+        thresholds=Thresholds(float(p.safe), float(p.braking), "units", "failure below", "braking within"),
+        description=(f"toy braking toward {len(p.offsets)} obstacles, each detected with probability {p.p_detect:g} "
+                     f"and its distance measured with an N(0, {p.noise_sd:g}^2) error; braking when one is measured "
+                     f"within {p.braking}, failure closer than {p.safe} to the nearest"),
+    )  # fmt: skip
+
+
 @dataclass(frozen=True)
 class ShiftedPEM:
     """A PEM whose detection logit is moved by ``shift`` (nats) at every gap: ``logit p'(detect | d) = logit
@@ -283,6 +318,8 @@ PROBLEMS: dict[str, str] = {
     "latched": "braking scenario with a latched brake: exact from the deterministic simulator",
     "main": "braking scenario: exact enumeration of detection sequences",
     "toy-1e-3": "toy braking (10, 5, 3, p = 0.9): exact 1e-3 (small; for CI)",
+    "crowd": "toy braking toward 3 obstacles, each detected (p = 0.6) and mislocated (sd 1): exact 3.4e-5",
+    "crowd-1e-12": "the crowd toy from 30 units, braking within 12, p = 0.7: exact 9.6e-13",
 }
 """Named problems with a known exact failure probability (``pemviz validate``, ``pemviz tables``): name ->
 description."""
@@ -293,6 +330,12 @@ TOY_PROBLEMS: dict[str, ToyParams] = {
     "toy-1e-3": ToyParams(10, 5, 3, 0.9),
 }
 """The toys of :data:`PROBLEMS` (:class:`~pemviz.scenarios.toy.ToyParams`: total, braking, safe, p_detect)."""
+
+CROWD_PROBLEMS: dict[str, CrowdParams] = {
+    "crowd": CrowdParams(),
+    "crowd-1e-12": CrowdParams(total=30, braking=12, safe=3, p_detect=0.7),
+}
+"""The crowd toys of :data:`PROBLEMS` (several obstacles, mislocated: :class:`~pemviz.scenarios.crowd.CrowdParams`)."""
 
 
 @functools.cache
@@ -307,6 +350,8 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
     """
     if name in TOY_PROBLEMS:
         return toy_problem(TOY_PROBLEMS[name], name=name)
+    if name in CROWD_PROBLEMS:
+        return crowd_problem(CROWD_PROBLEMS[name], name=name)
     if name in ("latched", "main"):
         return braking_problem(load_pem(pem_path), BrakingParams(latched_brake=name == "latched"), sim="batched")
     raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")

@@ -241,7 +241,10 @@ class CrossEntropy(OwnsSettings):
                 lq = action_log_prob(lg, detected)
             else:  # where a component gives way to the target (outside its window) its density is the target's
                 differ = lg != target_logit
-                lq = batch.log_p[..., None].copy() if m == 1 else action_log_prob(target_logit, detected)
+                # the target's detection densities: its per-step log p when that is all there is (one object, no
+                # measurement error), else each object's
+                lq = batch.log_p[..., None].copy() if m == 1 and batch.noise is None else \
+                    action_log_prob(target_logit, detected)
                 lq[differ] = action_log_prob(lg[differ], detected[differ])
             parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
         if batch.noise is not None:  # every component draws the measurement errors from the target's error model

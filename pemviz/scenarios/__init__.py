@@ -272,7 +272,7 @@ def run_batched(
             given = np.repeat(t < forced[2], m)
             f = (forced[0][:, t].reshape(-1), None if forced[1] is None else forced[1][:, t].reshape(-1, d), given)
         step = draw_step(sampler, target, rows, np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d),
-                         RQMC_BLOCK * m, f)  # fmt: skip
+                         RQMC_BLOCK * m, f, m)  # fmt: skip
         det_t[t] = step.detected.reshape(n, m)
         if m == 1:
             log_q_t[t], log_p_t[t] = step.log_q, step.log_p
