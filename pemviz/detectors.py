@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from scipy import stats
 from scipy.special import log_expit
 
 from pemviz.rng import RQMC_BLOCK, array_rqmc_blocks, by_blocks
@@ -33,18 +34,60 @@ class Detector(Protocol):
 @runtime_checkable
 class NoisyDetector(Detector, Protocol):
     """A detector that also mislocates what it detects: a detected object's measurement error (float64 [D] per row,
-    ``noise_names``, e.g. range and lateral error in metres) has a density given the row.
+    ``noise_names``, e.g. range and lateral error in metres) has a location-scale density given the row.
 
-    ``noise_from_uniforms(rows [R, G], u [R, D])`` draws the errors by inverse CDF from uniforms in (0, 1) (a fixed
-    number of draws per row, so that chunks of rollouts can jump to their draws); ``noise_log_prob(rows, noise [R, D])``
-    is the log density of the errors, float64 [R] (nats).
+    ``noise_params(rows [R, G]) -> (loc [R, D], log_scale [R, D])`` of a standard family ``noise_family`` (one of
+    :data:`NOISE_FAMILIES`; ``noise_df`` [D], the Student-t's degrees of freedom, else None), each error component
+    independent; ``noise_from_uniforms(rows, u [R, D])`` draws the errors by inverse CDF from uniforms in (0, 1) (a
+    fixed number of draws per row, so that chunks of rollouts can jump to their draws) and ``noise_log_prob(rows,
+    noise [R, D])`` is their log density, float64 [R] (nats): :func:`noise_quantile` and :func:`noise_log_density` of
+    those parameters.
     """
 
     noise_names: tuple[str, ...]
+    noise_family: str
+    noise_df: np.ndarray | None
+
+    def noise_params(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
     def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray: ...
 
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray: ...
+
+
+NOISE_FAMILIES = ("normal", "laplace", "student-t")
+"""The location-scale families of measurement errors."""
+
+
+def _standard(family: str, df: np.ndarray | None):
+    if family not in NOISE_FAMILIES:
+        raise ValueError(f"unknown error family {family!r}; use one of {', '.join(NOISE_FAMILIES)}")
+    return {"normal": stats.norm(), "laplace": stats.laplace(), "student-t": None}[family] if family != "student-t" \
+        else stats.t(np.asarray(df, dtype=np.float64))
+
+
+def noise_quantile(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
+                   u: np.ndarray) -> np.ndarray:  # fmt: skip
+    """Errors ``loc + exp(log_scale) F^-1(u)`` of a location-scale family, float64 [R, D] from uniforms [R, D] in (0, 1)
+    (F the standard ``family``'s CDF; Student-t with ``df`` [D]).
+
+    Raises:
+        ValueError: an unknown family.
+    """
+    z = _standard(family, df).ppf(np.asarray(u, dtype=np.float64))
+    return np.asarray(loc, dtype=np.float64) + np.exp(log_scale) * z
+
+
+def noise_log_density(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
+                      noise: np.ndarray) -> np.ndarray:  # fmt: skip
+    """``sum_d log f((e_d - loc_d) / scale_d) - log scale_d``, float64 [R] (nats): the log density of errors [R, D]
+    whose components are independent of a location-scale family.
+
+    Raises:
+        ValueError: an unknown family.
+    """
+    z = (np.asarray(noise, dtype=np.float64) - loc) * np.exp(-np.asarray(log_scale, dtype=np.float64))
+    return (_standard(family, df).logpdf(z) - log_scale).sum(axis=1)
 
 
 def noise_names_of(detector: object) -> tuple[str, ...]:
@@ -168,6 +211,8 @@ class StageSamplers:
         self.radius_m, self.floor_m, self.eps = float(radius_m), float(floor_m), float(eps)
         self._obs: np.ndarray | None = None
         self._logits: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
+        self._near = np.zeros(0, bool)
+        self._noise: tuple[np.ndarray, ...] | None = None
         self.target, self.plain = SamplerView(self, 0), SamplerView(self, 1)
         self.defensive = SamplerView(self, 2) if self.eps > 0.0 else self.plain
 
@@ -196,8 +241,54 @@ class StageSamplers:
                 defensive[near] = defensive_logit(z, self.eps)
         for a in (p, plain, defensive):
             a.flags.writeable = False
-        self._obs, self._logits = obs.copy(), (p, plain, defensive)
+        self._obs, self._logits, self._near, self._noise = obs.copy(), (p, plain, defensive), near, None
         return self._logits
+
+    @property
+    def has_noise(self) -> bool:
+        """Whether the proposal draws the measurement errors from a model of its own (a noisy target and a proposal
+        with an error head, :meth:`pemviz.sampling.Proposal.add_noise_head`)."""
+        return bool(noise_names_of(self.target_detector)) and getattr(self.proposal, "noise_shift", None) is not None
+
+    def noise_params(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(loc_p, log_scale_p, loc_q, log_scale_q), float64 [N, D] each, at observations [N, F]: the target's error
+        parameters and the proposal's, which shift them inside the window
+        (:class:`pemviz.sampling.NoiseShift`), kept with the logits of the same observations."""
+        self.logits(obs)
+        if self._noise is None:
+            loc_p, ls_p = (np.asarray(a, dtype=np.float64) for a in self.target_detector.noise_params(self._obs))
+            loc_q, ls_q = loc_p.copy(), ls_p.copy()
+            near = self._near
+            if near.any():
+                a, b = self.proposal.noise_shift_of(self._obs[near])
+                loc_q[near] += np.exp(ls_p[near]) * a
+                ls_q[near] += b
+            self._noise = (loc_p, ls_p, loc_q, ls_q)
+        return self._noise
+
+    def noise_from_uniforms(self, index: int, obs: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Errors [N, D] of detector ``index`` (1 plain: q's; 2 defensive: (1 - eps) q + eps p, the component chosen by
+        the first uniform, which is then rescaled and reused) from uniforms [N, D]."""
+        t = self.target_detector
+        loc_p, ls_p, loc_q, ls_q = self.noise_params(obs)
+        u = np.asarray(u, dtype=np.float64)
+        if index == 1 or self.eps <= 0.0:
+            return noise_quantile(t.noise_family, t.noise_df, loc_q, ls_q, u)
+        from_p = u[:, 0] < self.eps
+        v = u.copy()
+        v[:, 0] = np.where(from_p, u[:, 0] / self.eps, (u[:, 0] - self.eps) / (1.0 - self.eps))
+        return np.where(from_p[:, None], noise_quantile(t.noise_family, t.noise_df, loc_p, ls_p, v),
+                        noise_quantile(t.noise_family, t.noise_df, loc_q, ls_q, v))  # fmt: skip
+
+    def noise_log_prob(self, index: int, obs: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """log density [N] (nats) of errors [N, D] under detector ``index`` (:meth:`noise_from_uniforms`)."""
+        t = self.target_detector
+        loc_p, ls_p, loc_q, ls_q = self.noise_params(obs)
+        lq = noise_log_density(t.noise_family, t.noise_df, loc_q, ls_q, noise)
+        if index == 1 or self.eps <= 0.0:
+            return lq
+        lp = noise_log_density(t.noise_family, t.noise_df, loc_p, ls_p, noise)
+        return np.logaddexp(np.log1p(-self.eps) + lq, math.log(self.eps) + lp)
 
     def describe(self, index: int, proposal: str = "proposal", target: str = "target") -> str:
         """A short name of one of the detectors (0 target, 1 plain, 2 defensive) for the rollout file's sidecar."""
@@ -222,17 +313,30 @@ class SamplerView:
 
     @property
     def noise_names(self) -> tuple[str, ...]:
-        """The target's measurement errors (the target view mislocates as the target does; the samplers draw their
-        errors from the target's model: they have none of their own)."""
-        return noise_names_of(self.samplers.target_detector) if self.index == 0 else ()
+        """The target's measurement errors for the target view, and for the samplers when the proposal has an error
+        model of its own (:attr:`StageSamplers.has_noise`; else they draw the errors from the target's model)."""
+        s = self.samplers
+        return noise_names_of(s.target_detector) if self.index == 0 or s.has_noise else ()
+
+    @property
+    def noise_family(self) -> str:
+        return self.samplers.target_detector.noise_family
+
+    @property
+    def noise_df(self) -> np.ndarray | None:
+        return self.samplers.target_detector.noise_df
 
     def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """The target's errors from uniforms (:class:`NoisyDetector`)."""
-        return self.samplers.target_detector.noise_from_uniforms(rows, u)
+        """Errors [R, D] from uniforms (:class:`NoisyDetector`): the target's, or the proposal's samplers'."""
+        if self.index == 0:
+            return self.samplers.target_detector.noise_from_uniforms(rows, u)
+        return self.samplers.noise_from_uniforms(self.index, rows, u)
 
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        """The target's log density of the errors (:class:`NoisyDetector`)."""
-        return self.samplers.target_detector.noise_log_prob(rows, noise)
+        """Log density [R] (nats) of errors [R, D] (:class:`NoisyDetector`)."""
+        if self.index == 0:
+            return self.samplers.target_detector.noise_log_prob(rows, noise)
+        return self.samplers.noise_log_prob(self.index, rows, noise)
 
 
 @dataclass(frozen=True)

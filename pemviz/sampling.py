@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
 import os
 from pathlib import Path
 from typing import Callable, Iterator, Union
@@ -40,9 +41,23 @@ class Proposal(nn.Module):
         self.net = nn.Sequential(
             nn.Linear(1, 32), nn.ReLU(), nn.Linear(32, 32), nn.ReLU(), nn.Linear(32, 2), nn.LogSoftmax(dim=-1)
         ).double()
+        self.noise_shift: NoiseShift | None = None
+        """The measurement-error head (:meth:`add_noise_head`; None: the errors are drawn from the target's model)."""
 
     def forward(self, gap_m: torch.Tensor) -> torch.Tensor:
         return self.net(self.inputs(gap_m))
+
+    def add_noise_head(self, n_noise: int) -> None:
+        """Give the proposal a measurement-error model of its own (:class:`NoiseShift`, equal to the target's until
+        fitted) for the D = ``n_noise`` error components a noisy target draws."""
+        self.noise_shift = NoiseShift(self.net[0].in_features, n_noise)
+
+    def noise_shift_of(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(a [N, D], b [N, D]) of the error head at observations (object rows) [N, F] (:class:`NoiseShift`)."""
+        x = np.asarray(obs, dtype=np.float64)[:, self.input_columns()] / self.input_scales().numpy()
+        with torch.no_grad():
+            a, b = self.noise_shift(torch.from_numpy(np.ascontiguousarray(x)))
+        return a.numpy(), b.numpy()
 
     def inputs(self, gap_m: torch.Tensor) -> torch.Tensor:
         """The network's input h(s) of proposal inputs ``gap_m`` [M] (metres): [M, 1], dimensionless."""
@@ -83,6 +98,87 @@ class Proposal(nn.Module):
     def features(self, observations: np.ndarray) -> np.ndarray:
         """The proposal's inputs of rollouts' observations [N, T, F]: the gap, [N, T] (metres)."""
         return np.asarray(observations)[..., GAP_COLUMN]
+
+
+class NoiseShift(nn.Module):
+    """A proposal's measurement-error density relative to the target's: with the target's location and scale
+    (loc_p, s_p) of a row and the head's outputs (a, b) at the row's proposal inputs h,
+
+        loc_q = loc_p + s_p a(h),    log s_q = log s_p + b(h),
+
+    in the target's family (:func:`pemviz.detectors.noise_quantile`). (a, b) are linear in h (Linear(k, 2 D), float64),
+    zero at first: q's errors are p's until a cross-entropy fit moves them toward the failures' errors (Rubinstein &
+    Kroese, "The Cross-Entropy Method", 2004: the CE update of a location-scale family's parameters); a stage's few
+    elites fit so few parameters without overfitting.
+    """
+
+    def __init__(self, n_inputs: int, n_noise: int) -> None:
+        super().__init__()
+        self.n_noise = int(n_noise)
+        self.net = nn.Linear(n_inputs, 2 * n_noise).double()
+        nn.init.zeros_(self.net.weight)
+        nn.init.zeros_(self.net.bias)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(a [R, D], b [R, D]) at the network's inputs x [R, k] (:meth:`Proposal.inputs`)."""
+        out = self.net(x)
+        return out[:, : self.n_noise], out[:, self.n_noise :]
+
+
+def _standard_log_density(family: str, df: np.ndarray | None, z: torch.Tensor) -> torch.Tensor:
+    """log f(z) of the standard family (torch, for the fit's gradient), [R, D]."""
+    if family == "normal":
+        return -0.5 * z * z - 0.5 * math.log(2.0 * math.pi)
+    if family == "laplace":
+        return -z.abs() - math.log(2.0)
+    return torch.distributions.StudentT(torch.as_tensor(df, dtype=torch.float64)).log_prob(z)
+
+
+def fit_noise_shift(proposal: Proposal, obs: np.ndarray, noise: np.ndarray, loc_p: np.ndarray,
+                    log_scale_p: np.ndarray, family: str, df: np.ndarray | None, log_w: np.ndarray, *, epochs: int,
+                    lr: float, max_rows: int | None, rng: np.random.Generator,
+                    check: Callable[[], None] | None = None, tolerance: float | None = None) -> list[float]:  # fmt: skip
+    """The cross-entropy update of the proposal's error head, in place: maximise the weighted log-likelihood
+    ``sum_s w_s log q(e_s | h_s)`` of detected objects' errors (Innes & Ramamoorthy 2022, eq. 10-11, for the errors'
+    density), by Adam on the mean over the weights; returns the loss per epoch (nats per error).
+
+    Args:
+        obs: float64 [S, G] the detected objects' rows; noise: [S, D] their errors; loc_p, log_scale_p: [S, D] the
+            target's parameters at the rows; family, df: the target's family (:data:`pemviz.detectors.NOISE_FAMILIES`).
+        log_w: float64 [S] each error's weight in log space (alpha times its rollout's importance log-weight).
+        max_rows: beyond that many errors, a weighted systematic subsample of them (:func:`pemviz.estimators.ce_fit`'s
+            rule: the expected loss is kept); None: all.
+        tolerance: stop once the loss fell by less than this over :data:`PLATEAU_EPOCHS` epochs.
+    """
+    head = proposal.noise_shift
+    w = np.exp(np.asarray(log_w, dtype=np.float64) - np.max(log_w))
+    if max_rows is not None and w.size > max_rows:  # systematic resampling in proportion to the weights
+        cum = np.cumsum(w)
+        picks = np.searchsorted(cum, (rng.random() + np.arange(max_rows)) * (cum[-1] / max_rows), side="right")
+        picks, times = np.unique(np.minimum(picks, w.size - 1), return_counts=True)
+        obs, noise, loc_p, log_scale_p, w = obs[picks], noise[picks], loc_p[picks], log_scale_p[picks], times * 1.0
+    x = torch.from_numpy(np.ascontiguousarray(np.asarray(obs)[:, proposal.input_columns()]
+                                              / proposal.input_scales().numpy()))  # fmt: skip
+    e, lp, ls = (torch.as_tensor(np.asarray(a, dtype=np.float64)) for a in (noise, loc_p, log_scale_p))
+    weights = torch.as_tensor(w / w.sum())
+    params = list(head.parameters())
+    opt = Adam(params, lr=lr)
+    losses: list[float] = []
+    for epoch in range(epochs):
+        if check is not None and epoch % CHECK_EVERY == 0:
+            check()
+        for p in params:
+            p.grad = None
+        a, b = head(x)
+        log_scale = ls + b
+        z = (e - lp - ls.exp() * a) * torch.exp(-log_scale)
+        loss = -(weights * (_standard_log_density(family, df, z) - log_scale).sum(dim=1)).sum()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+        if tolerance is not None and epoch >= PLATEAU_EPOCHS and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance:
+            break
+    return losses
 
 
 class StateProposal(Proposal):
@@ -306,11 +402,11 @@ def fit_proposal(
     losses: list[float] = []
     if method == "lbfgs":
         opt = torch.optim.LBFGS(
-            proposal.parameters(), lr=1.0, max_iter=CHECK_EVERY, max_eval=10 * CHECK_EVERY, history_size=20,
+            proposal.net.parameters(), lr=1.0, max_iter=CHECK_EVERY, max_eval=10 * CHECK_EVERY, history_size=20,
             line_search_fn="strong_wolfe", tolerance_grad=1e-9,
             tolerance_change=LBFGS_TOLERANCE if tolerance is None else tolerance,
         )  # fmt: skip
-        state = opt.state[next(iter(proposal.parameters()))]
+        state = opt.state[next(iter(proposal.net.parameters()))]
 
         def closure() -> torch.Tensor:
             opt.zero_grad()
@@ -333,7 +429,7 @@ def fit_proposal(
     # one flat tensor for all parameters and one for their gradients (each parameter and gradient a view into it
     # while the fit runs), so that an Adam step is 7 kernel calls, not 7 per parameter: element for element the
     # same arithmetic as parameter by parameter
-    params = list(proposal.parameters())
+    params = list(proposal.net.parameters())  # the detection network (a measurement-error head fits apart)
     sizes = [p.numel() for p in params]
     flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
     flat.grad = torch.zeros_like(flat)

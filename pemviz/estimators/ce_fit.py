@@ -339,9 +339,9 @@ class EliteSteps:
         self.thin_above = None if max_rows is None else (thin_above or 20 * max_rows)
         self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.keep_observations = keep_observations
-        self.observations: list[tuple[np.ndarray, np.ndarray]] = []
-        """With ``keep_observations``, per part: the events' object rows [S, G] and whether each counts in its
-        rollout's weight, bool [S]."""
+        self.observations: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        """With ``keep_observations``, per part: the events' object rows [S, G], whether each counts in its
+        rollout's weight, bool [S], and their measurement errors [S, D] (None: none)."""
         self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
         self.n_rollouts, self.n_steps, self.held, self.thinned = 0, 0, 0, False
         self.log_w_max = -np.inf
@@ -360,8 +360,9 @@ class EliteSteps:
         order = np.broadcast_to(np.asarray(index)[:, None], mask.shape)[mask]
         self.parts.append((order, features[mask], detected[mask], np.broadcast_to(log_w[:, None], mask.shape)[mask]))
         if self.keep_observations:
+            noise = None if batch.noise is None else batch.noise.reshape(batch.n, -1, batch.noise.shape[-1])[mask]
             self.observations.append((rows[mask], np.ones(int(mask.sum()), bool) if weighted is None
-                                      else weighted[mask]))  # fmt: skip
+                                      else weighted[mask], noise))  # fmt: skip
         self.n_rollouts += index.size
         self.n_steps += int(mask.sum())
         self.held += int(mask.sum())
@@ -390,9 +391,10 @@ class EliteSteps:
         self.held, self.thinned = slot.size, True
         self.observations, self.keep_observations = [], False  # the steps no longer belong to rollouts: no reweighting
 
-    def reweight(self, log_weight: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> bool:
+    def reweight(self, log_weight: Callable[..., np.ndarray]) -> bool:
         """Give every held step a new log-weight: ``log_weight(rollout [S], observations [S, F], actions [S],
-        counts [S])`` -> [S] (nats), each step's rollout and whether the step counts in the rollout's weight.
+        counts [S], noise [S, D] or None)`` -> [S] (nats), each step's rollout, whether the step counts in the
+        rollout's weight, and its measurement error.
 
         Returns:
             False (nothing changed) without ``keep_observations`` or once thinned: the steps then no longer
@@ -401,11 +403,13 @@ class EliteSteps:
         if not self.keep_observations or self.thinned or not self.parts:
             return False
         order, rows, actions, _ = (np.concatenate(a) for a in zip(*self.parts))
-        obs, counts = (np.concatenate(a) for a in zip(*self.observations))
+        obs, counts = (np.concatenate([o[i] for o in self.observations]) for i in (0, 1))
+        noise = None if self.observations[0][2] is None else np.concatenate([o[2] for o in self.observations])
         by = np.argsort(order, kind="stable")  # rollout by rollout, step by step: the order drawn
         order, rows, actions, obs, counts = order[by], rows[by], actions[by], obs[by], counts[by]
-        log_w = np.asarray(log_weight(order, obs, actions, counts), dtype=np.float64)
-        self.parts, self.observations = [(order, rows, actions, log_w)], [(obs, counts)]
+        noise = None if noise is None else noise[by]
+        log_w = np.asarray(log_weight(order, obs, actions, counts, noise), dtype=np.float64)
+        self.parts, self.observations = [(order, rows, actions, log_w)], [(obs, counts, noise)]
         self.log_w_max = float(np.max(log_w))
         return True
 

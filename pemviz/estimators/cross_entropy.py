@@ -28,6 +28,7 @@ from pemviz.detectors import (
     action_log_prob,
     defensive_logit,
     logit,
+    noise_names_of,
 )
 from pemviz.estimate import Estimate, estimate
 from pemviz.estimators.ce_fit import EliteSteps, ce_update, pretrain_proposal
@@ -50,7 +51,7 @@ from pemviz.estimators.base import (
 from pemviz.plan import RunPlan
 from pemviz.problems import Problem
 from pemviz.rng import RQMC_BLOCK
-from pemviz.sampling import Proposal, StateProposal
+from pemviz.sampling import Proposal, StateProposal, fit_noise_shift
 from pemviz.scenarios import RolloutBatch
 
 @dataclass(frozen=True)
@@ -151,6 +152,9 @@ class CrossEntropy(OwnsSettings):
         """A CE stage's settled elites as fitted steps (frozen weights with a step mask; else the elites are fitted
         from their rollouts by :func:`ce_update`)."""
         self._last: tuple[int, Estimate] | None = None
+        self._noise_data: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        """The stage's elites' detected objects: (rows [S, G], errors [S, D], alpha log w [S]) for the error head's
+        fit."""
         self._samplers: StageSamplers | None = None
         """The proposal's samplers and the target, evaluated together once per step (:class:`StageSamplers`)."""
         self._seen = 0
@@ -247,15 +251,17 @@ class CrossEntropy(OwnsSettings):
                     action_log_prob(target_logit, detected)
                 lq[differ] = action_log_prob(lg[differ], detected[differ])
             parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
-        if batch.noise is not None:  # every component draws the measurement errors from the target's error model
-            parts += self._target_noise_log_prob(batch)[:, None, :]
+        if batch.noise is not None:  # each component's density of the detected objects' measurement errors
+            for k, d in enumerate(self._scored.extras):
+                parts[:, k] += self._noise_log_prob(batch, d if noise_names_of(d) else self.problem.target)
         return dataclasses.replace(batch, log_q_parts=parts)
 
-    def _target_noise_log_prob(self, batch: RolloutBatch) -> np.ndarray:
-        """Per step, the target's log density of the detected objects' measurement errors, float64 [N, T] (nats)."""
+    @staticmethod
+    def _noise_log_prob(batch: RolloutBatch, detector: Detector) -> np.ndarray:
+        """Per step, ``detector``'s log density of the detected objects' measurement errors, float64 [N, T] (nats)."""
         rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
         noise = batch.noise.reshape(rows.shape[0], -1)
-        log_density = np.asarray(self.problem.target.noise_log_prob(rows, noise), dtype=np.float64)
+        log_density = np.asarray(detector.noise_log_prob(rows, noise), dtype=np.float64)
         return np.where(batch.detected.reshape(-1), log_density, 0.0).reshape(batch.detected.shape).sum(axis=2)
 
     def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
@@ -356,6 +362,8 @@ class CrossEntropy(OwnsSettings):
         with torch.random.fork_rng(devices=[]):  # the proposal's initial weights, without reseeding the process
             torch.manual_seed(cfg.seed)
             self.proposal = proposal = self._new_proposal(batch)
+            if noise_names_of(self.problem.target):  # errors drawn by a model of its own, the target's until fitted
+                proposal.add_noise_head(len(noise_names_of(self.problem.target)))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch) if cfg.proposal_window else None)
         pretrain_proposal(
             proposal, features, detected,
@@ -394,7 +402,7 @@ class CrossEntropy(OwnsSettings):
         return self._around(plan.mixture or ((plan.n, self.sampler),), copy.deepcopy(self.proposal))
 
     def _pool_log_weight(self, rollout: np.ndarray, obs: np.ndarray, actions: np.ndarray,
-                         counts: np.ndarray) -> np.ndarray:  # fmt: skip
+                         counts: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         """alpha log w of each step's rollout [S] (nats) for ``fit_weights = "mixture"``: w = p(x) / sum_j c_j q_j(x)
         over the samplers q_j of every stage in the failure pool, c_j their shares of its rollouts (the balance
         heuristic over all stages, the deterministic-mixture weight of adaptive multiple importance sampling:
@@ -415,6 +423,10 @@ class CrossEntropy(OwnsSettings):
             if todo.any():
                 steps = todo[inverse]
                 step = np.where(counts[steps], action_log_prob(detector.detect_logit(obs[steps]), actions[steps]), 0.0)
+                if noise is not None:  # and its density of the detected objects' errors
+                    errors = detector if noise_names_of(detector) else pb.target
+                    hit = counts[steps] & actions[steps]
+                    step = step + np.where(hit, errors.noise_log_prob(obs[steps], noise[steps]), 0.0)
                 known[ids[todo]] = np.bincount(inverse[steps], weights=step, minlength=ids.size)[todo]
             return known[ids]
 
@@ -445,10 +457,27 @@ class CrossEntropy(OwnsSettings):
             frozen_log_w = self._mixture_log_weight(batch, steps)
         else:
             frozen_log_w = ((batch.log_p - batch.log_q) * steps).sum(axis=1)
-        rows, _ = batch.events()
+        rows, detected = batch.events()
+        smoothed = self._smoothing(gamma) * frozen_log_w
         self._steps.add(index + self._index_offset, batch, self.proposal.features(rows), mask.reshape(batch.n, -1),
-                        self._smoothing(gamma) * frozen_log_w,
-                        (mask & counted[None, :, None]).reshape(batch.n, -1))  # fmt: skip
+                        smoothed, (mask & counted[None, :, None]).reshape(batch.n, -1))  # fmt: skip
+        if batch.noise is not None and self.proposal.noise_shift is not None:  # the detected objects' errors
+            hit = mask.reshape(batch.n, -1) & detected
+            self._noise_data.append((rows[hit], batch.noise.reshape(batch.n, -1, batch.noise.shape[-1])[hit],
+                                     np.broadcast_to(smoothed[:, None], hit.shape)[hit]))  # fmt: skip
+
+    def _fit_noise(self, fit: dict) -> None:
+        """The CE update of the proposal's error head on the errors of the detected objects of this stage's elites
+        (:func:`pemviz.sampling.fit_noise_shift`), weighted as their rollouts in the detection fit."""
+        data, self._noise_data = self._noise_data, []
+        if self.proposal.noise_shift is None or not data or not sum(len(d[0]) for d in data):
+            return
+        rows, noise, log_w = (np.concatenate(a) for a in zip(*data))
+        target = self.problem.target
+        loc_p, log_scale_p = target.noise_params(rows)
+        fit_noise_shift(self.proposal, rows, noise, loc_p, log_scale_p, target.noise_family, target.noise_df, log_w,
+                        epochs=fit["epochs"], lr=fit["lr"], max_rows=fit["max_rows"], rng=self.fit_rng,
+                        check=self.check, tolerance=fit["tolerance"])  # fmt: skip
 
     def _ce_stage(self, batch: RolloutBatch | None, robustness: np.ndarray, index: np.ndarray, gamma: float,
                   n: int) -> tuple[float, int, np.ndarray]:  # fmt: skip
@@ -470,6 +499,7 @@ class CrossEntropy(OwnsSettings):
             if self._steps is self._failure_steps and self.config.fit_weights == "mixture":
                 self._steps.reweight(self._pool_log_weight)
             self._steps.fit(proposal, **fit)
+            self._fit_noise(fit)
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
         if batch.n_objects != 1:
             raise ValueError(f"the cross-entropy fit of whole elite rollouts (weights {cfg.weights!r}, without the window "

@@ -24,9 +24,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import log_ndtr, ndtri
+from scipy.special import log_ndtr
 
-from pemviz.detectors import logit
+from pemviz.detectors import logit, noise_log_density, noise_quantile
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")
 """The scene's signals: the distance to the nearest obstacle (units) and 1.0 once stopped or crashed."""
@@ -79,9 +79,10 @@ class CrowdParams:
 
     @property
     def window(self) -> float:
-        """Where a detection can still stop the car: the measured distance is at most ``braking`` with probability
-        above Phi(-8) only below ``braking + 8 noise_sd`` (units; half a unit beyond ``braking`` without noise)."""
-        return self.braking + max(8.0 * self.noise_sd, 0.5)
+        """Where the proposal may differ from the detector: a detection stops the car with probability above
+        Phi(-3) = 0.13 % only below ``braking + 3 noise_sd`` (units; half a unit beyond ``braking`` without noise);
+        beyond, drawing from the detector itself costs next to nothing and keeps the weights even."""
+        return self.braking + max(3.0 * self.noise_sd, 0.5)
 
 
 @dataclass(frozen=True)
@@ -100,15 +101,21 @@ class CrowdDetector:
         """logit p(detect), float64 [R], for object rows [R, 3]."""
         return np.full(np.shape(rows)[0], logit(self.params.p_detect))
 
+    noise_family = "normal"
+    noise_df = None
+
+    def noise_params(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(loc 0 [R, 1], log scale log(noise_sd) [R, 1]) (units) of the distance error."""
+        r = np.shape(rows)[0]
+        return np.zeros((r, 1)), np.full((r, 1), math.log(self.params.noise_sd))
+
     def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Distance errors float64 [R, 1] (units) from uniforms [R, 1] by the normal's inverse CDF."""
-        return self.params.noise_sd * ndtri(np.asarray(u, dtype=np.float64))
+        return noise_quantile(self.noise_family, None, *self.noise_params(rows), u)
 
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """log N(error; 0, noise_sd^2), float64 [R] (nats), for errors [R, 1]."""
-        sd = self.params.noise_sd
-        e = np.asarray(noise, dtype=np.float64)[:, 0]
-        return -0.5 * (e / sd) ** 2 - math.log(sd) - 0.5 * math.log(2.0 * math.pi)
+        return noise_log_density(self.noise_family, None, *self.noise_params(rows), noise)
 
 
 class BatchedCrowd:
