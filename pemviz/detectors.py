@@ -211,14 +211,14 @@ class StageSamplers:
         self.radius_m, self.floor_m, self.eps = float(radius_m), float(floor_m), float(eps)
         self._obs: np.ndarray | None = None
         self._logits: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
-        self._near = np.zeros(0, bool)
-        self._noise: tuple[np.ndarray, ...] | None = None
+        self._noise_obs: np.ndarray | None = None
+        self._noise: tuple[np.ndarray, ...] = ()
         self.target, self.plain = SamplerView(self, 0), SamplerView(self, 1)
         self.defensive = SamplerView(self, 2) if self.eps > 0.0 else self.plain
 
     def forget(self) -> None:
-        """Drop the kept evaluation (the proposal changed)."""
-        self._obs = None
+        """Drop the kept evaluations (the proposal changed)."""
+        self._obs = self._noise_obs = None
 
     def logits(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(target, plain, defensive) logit p(detect | obs), float64 [N] each, for observations [N, F]."""
@@ -241,7 +241,7 @@ class StageSamplers:
                 defensive[near] = defensive_logit(z, self.eps)
         for a in (p, plain, defensive):
             a.flags.writeable = False
-        self._obs, self._logits, self._near, self._noise = obs.copy(), (p, plain, defensive), near, None
+        self._obs, self._logits = obs.copy(), (p, plain, defensive)
         return self._logits
 
     @property
@@ -251,19 +251,22 @@ class StageSamplers:
         return bool(noise_names_of(self.target_detector)) and getattr(self.proposal, "noise_shift", None) is not None
 
     def noise_params(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(loc_p, log_scale_p, loc_q, log_scale_q), float64 [N, D] each, at observations [N, F]: the target's error
-        parameters and the proposal's, which shift them inside the window
-        (:class:`pemviz.sampling.NoiseShift`), kept with the logits of the same observations."""
-        self.logits(obs)
-        if self._noise is None:
-            loc_p, ls_p = (np.asarray(a, dtype=np.float64) for a in self.target_detector.noise_params(self._obs))
-            loc_q, ls_q = loc_p.copy(), ls_p.copy()
-            near = self._near
-            if near.any():
-                a, b = self.proposal.noise_shift_of(self._obs[near])
-                loc_q[near] += np.exp(ls_p[near]) * a
-                ls_q[near] += b
-            self._noise = (loc_p, ls_p, loc_q, ls_q)
+        """(loc_p, log_scale_p, loc_q, log_scale_q), float64 [N, D] each, at object rows [N, F]: the target's error
+        parameters and the proposal's, which shift them inside the window (:class:`pemviz.sampling.NoiseShift`); the
+        last rows' are kept (a step draws the errors, then weighs them)."""
+        obs = np.asarray(obs, dtype=np.float64)
+        last = self._noise_obs
+        if last is not None and last.shape == obs.shape and np.array_equal(last, obs):
+            return self._noise
+        loc_p, ls_p = (np.asarray(a, dtype=np.float64) for a in self.target_detector.noise_params(obs))
+        loc_q, ls_q = loc_p.copy(), ls_p.copy()
+        gap = obs[:, GAP_COLUMN]
+        near = (gap < self.radius_m) & (gap >= self.floor_m)
+        if near.any():
+            a, b = self.proposal.noise_shift_of(obs[near])
+            loc_q[near] += np.exp(ls_p[near]) * a
+            ls_q[near] += b
+        self._noise_obs, self._noise = obs.copy(), (loc_p, ls_p, loc_q, ls_q)
         return self._noise
 
     def noise_from_uniforms(self, index: int, obs: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -443,14 +446,17 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
     if not names:
         return StepDraw(detected, None, log_q, log_p)
     source = sampler if noise_names_of(sampler) == names else target  # a sampler without an error model draws p's
-    noise = np.asarray(source.noise_from_uniforms(rows, u[:, 1:]), dtype=np.float64)
-    if forced is not None and forced[1] is not None:
-        noise = np.where(forced[2][:, None], forced[1], noise)
-    noise = np.where(detected[:, None], noise, 0.0)
-    lq_noise = np.asarray(source.noise_log_prob(rows, noise), dtype=np.float64)
-    lp_noise = lq_noise if source is target else np.asarray(target.noise_log_prob(rows, noise), dtype=np.float64)
-    log_q += np.where(detected, lq_noise, 0.0)
-    log_p += np.where(detected, lp_noise, 0.0)
+    noise = np.zeros((rows.shape[0], len(names)))
+    if detected.any():  # only a detected object is measured: its error, drawn (or replayed), and its densities
+        hit = detected
+        e = np.asarray(source.noise_from_uniforms(rows[hit], u[hit, 1:]), dtype=np.float64)
+        if forced is not None and forced[1] is not None:
+            e = np.where(forced[2][hit][:, None], forced[1][hit], e)
+        noise[hit] = e
+        lq_noise = np.asarray(source.noise_log_prob(rows[hit], e), dtype=np.float64)
+        log_q[hit] += lq_noise
+        log_p[hit] += lq_noise if source is target else np.asarray(target.noise_log_prob(rows[hit], e),
+                                                                   dtype=np.float64)  # fmt: skip
     return StepDraw(detected, noise, log_q, log_p)
 
 

@@ -12,10 +12,12 @@ measurement, so its error does not enter the likelihood. ``pemviz.pem.store`` sa
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.special import expit, log_expit
 
+from pemviz.detectors import noise_log_density, noise_quantile
 from pemviz.pem.encoding import encode_salient
 from pemviz.pem.network import PEM
 from pemviz.pem.noise import NoiseModel
@@ -97,3 +99,62 @@ class NoisyPEM:
         errors = self.noise.sample(x, rng)
         errors[~detected] = 0.0
         return detected, errors
+
+
+@dataclass(frozen=True, eq=False)
+class SalientDetector:
+    """A PEM as the detector of a scene's objects, reading each object row's 11 KITTI salient variables (raw
+    inputs, :data:`pemviz.io.data.INPUT_COLUMNS`, in the columns ``salient`` of the row), with the noise PEM's
+    measurement errors when ``noise`` is given (a :class:`pemviz.detectors.NoisyDetector`): p(a, e | x) =
+    p_PEM(a | x) p_noise(e | x)^a (:class:`NoisyPEM`). Rows whose ``visible`` column holds 0 (an object the camera
+    cannot see: hidden, outside the image) are never detected (logit -inf), so they add nothing to any weight.
+
+    Args:
+        detect: the detection PEM (:class:`pemviz.pem.PEM` or :class:`pemviz.pem.TreePEM`).
+        salient: the row columns of the 11 raw salient inputs (a slice or indices).
+        noise: the noise PEM (:class:`pemviz.pem.noise.NoiseModel`), or None: detections measure exactly.
+        noise_names: the error components' names (range, lateral), with ``noise``.
+        visible: the row column of the 0/1 visibility flag, or None: every object can be seen.
+    """
+
+    detect: Any
+    salient: Any
+    noise: NoiseModel | None = None
+    noise_names: tuple[str, ...] = ()
+    visible: int | None = None
+
+    def __post_init__(self) -> None:
+        if (self.noise is None) != (not self.noise_names):
+            raise ValueError("SalientDetector: give the noise model and its error names together")
+
+    def _raw(self, rows: np.ndarray) -> np.ndarray:
+        return np.asarray(rows, dtype=np.float64)[:, self.salient]
+
+    def detect_logit(self, rows: np.ndarray) -> np.ndarray:
+        """logit p_PEM(detect | salient variables), float64 [R] (nats; -inf where not visible), for rows [R, G]."""
+        rows = np.asarray(rows, dtype=np.float64)
+        out = np.full(rows.shape[0], -np.inf)
+        seen = np.ones(rows.shape[0], bool) if self.visible is None else rows[:, self.visible] > 0.5
+        if seen.any():
+            out[seen] = self.detect.logit(self._raw(rows[seen]))
+        return out
+
+    @property
+    def noise_family(self) -> str:
+        return self.noise.family
+
+    @property
+    def noise_df(self) -> np.ndarray | None:
+        return self.noise.df
+
+    def noise_params(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(loc [R, D], log_scale [R, D]) of the noise PEM at the rows' salient variables (metres; log metres)."""
+        return self.noise.noise_params(self.noise.features(self._raw(rows)))
+
+    def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Errors [R, D] (metres) from uniforms [R, D] by the noise PEM's inverse CDF."""
+        return noise_quantile(self.noise.family, self.noise.df, *self.noise_params(rows), u)
+
+    def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """log p_noise(errors | salient variables), float64 [R] (nats)."""
+        return noise_log_density(self.noise.family, self.noise.df, *self.noise_params(rows), noise)
