@@ -117,10 +117,15 @@ NOISE_NAMES: tuple[str, ...] = ("range_error_m", "lateral_error_m")
 """Measurement-error components, [D]: measured minus true, along the camera axis and across it (metres), as the
 noise PEM gives them (:data:`pemviz.pem.noise.NOISE_DIMS`)."""
 
-FAILURE_FORMULA = "G(cut_in_recent > 0.5 | safe_margin_m >= 0) & G(clearance_m >= 0)"
+FAILURE_FORMULA = "G(safe_margin_m + 1000 * cut_in_recent >= 0) & G(clearance_m >= 0)"
 """The failure, in pemviz's STL (:func:`pemviz.stl.parse`) over :data:`OBSERVATION_NAMES`: the rollout fails when its
-robustness is negative: at some step the ego is closer to the vehicle in front than the safe distance while that
-vehicle did not cut in within ``cut_in_grace_s`` (R_G1, Maierhofer et al. 2020), or it collides with a vehicle."""
+robustness is negative, i.e. at some step the ego is closer to the vehicle in front than the safe distance while that
+vehicle did not cut in within ``cut_in_grace_s`` (R_G1 of Maierhofer et al. 2020), or it collides with a vehicle.
+
+The first conjunct is R_G1, ``G(cut_in_recent > 0.5 | safe_margin_m >= 0)``, written with arithmetic: both fail on
+the same traces (``|safe_margin_m| < 1000`` m), but this robustness stays the distance in metres by which the rule
+holds, where the disjunction's would stop at 0.5 (the robustness of ``cut_in_recent > 0.5``) during every waiver and
+give a sampler nothing to climb. Robustness in metres (classic semantics)."""
 
 
 @dataclass(frozen=True)
@@ -134,14 +139,15 @@ class OtherVehicle:
 
 
 DEFAULT_TRAFFIC: tuple[OtherVehicle, ...] = (
-    OtherVehicle(lane=1, gap_m=60.0, speed_mps=25.0),  # the lead in the ego's lane
     OtherVehicle(lane=0, gap_m=12.0, speed_mps=27.0),
     OtherVehicle(lane=2, gap_m=45.0, speed_mps=23.0),
     OtherVehicle(lane=0, gap_m=55.0, speed_mps=28.0),
     OtherVehicle(lane=2, gap_m=80.0, speed_mps=24.0),
+    OtherVehicle(lane=1, gap_m=120.0, speed_mps=28.0),
 )
 """The vehicles after the cut-in vehicle, in object order 1, 2, ...; :attr:`CutInParams.n_objects` takes the first
-``n_objects - 1`` of them."""
+``n_objects - 1`` of them. With the default 5 objects the ego's lane is free until the cut-in, so the ACC cruises at
+its set speed whatever the camera reports of the other lanes; the sixth is a lead far ahead in the ego's lane."""
 
 
 @dataclass(frozen=True)
@@ -193,7 +199,7 @@ class CutInParams:
     n_steps: int = 100
     n_objects: int = 5
     ego_speed0_mps: float = 25.0
-    ego_target_speed_mps: float = 30.0
+    ego_target_speed_mps: float = 25.0
     cut_in_lane: int = 2
     cut_in_gap_m: float = 20.0
     cut_in_speed_mps: float = 20.0

@@ -10,8 +10,16 @@ block-diagonal covariance is exactly two 2-state filters. Per step:
   Kirubarajan 2001, *Estimation with Applications to Tracking and Navigation*, Sec. 6.3.3, eq. 6.3.3-4;
   ``filterpy.common.Q_discrete_white_noise(2, dt, sigma_a^2)``);
 - **update** (tracks with a measurement ``z`` of their position, variance ``r``): ``S = P00 + r``,
-  ``K = (P00, P01) / S``, ``x += K (z - position)``, ``P -= K (P00, P01)`` (the standard form; Bar-Shalom et al.
-  2001, Sec. 5.2.3, eq. 5.2.3-9 to 5.2.3-15, with ``H = [1, 0]``);
+  ``K = (P00, P01) / S``, ``x += K (z - position)``, ``P -= K (P00, P01)`` (the Kalman filter's update in its
+  standard form, Bar-Shalom et al. 2001, Ch. 5, with ``H = [1, 0]``);
+- **gate** (the validation region of Bar-Shalom, Daum & Huang 2009, "The probabilistic data association filter",
+  IEEE Control Systems Magazine 29(6)) along the road: a measurement whose normalised innovation squared
+  ``y_x^2 / S_x`` exceeds ``gate_chi2`` (by default the 0.9999 quantile of chi-square with 1 degree of freedom,
+  15.14) is rejected, and the track coasts as if the object had been missed: a heavy-tailed range error
+  (the noise PEM's Student-t) cannot throw the estimate metres away in one step. A track whose last update is
+  ``restart_after_steps`` or more steps old and whose new measurement falls outside its gate is restarted at that
+  measurement (its velocity estimate kept, with the start's variance), so that a track whose prediction diverged
+  from its object does not stay locked out by its own gate;
 - **start** (a detection of an object without a track): position = the measurement with variance ``r``, velocity =
   a prior (the ego's own velocity: traffic moves with the ego) with variance ``sigma_v0^2``;
 - **drop** a track that went ``max_coast_steps`` predictions without an update (its prediction is no longer
@@ -49,6 +57,11 @@ class TrackerParams:
             pixel error back-projects linearly in the range).
         init_speed_std_x_mps, init_speed_std_y_mps: std of the velocity prior of a new track (m/s).
         max_coast_steps: a track not updated for more than this many predictions is dropped.
+        gate_chi2: the validation gate on the normalised innovation squared along the road (1 degree of freedom; the
+            lateral innovation is not gated: a lane change is a manoeuvre the CV model does not foresee, and the
+            camera's lateral error is small); ``inf``: no gate.
+        restart_after_steps: a track whose last update is this many steps old (2: the last step had none) restarts at
+            a measurement outside its gate.
     """
 
     accel_std_x_mps2: float = 3.0
@@ -60,11 +73,13 @@ class TrackerParams:
     init_speed_std_x_mps: float = 5.0
     init_speed_std_y_mps: float = 1.0
     max_coast_steps: int = 10
+    gate_chi2: float = 15.136705226623606  # scipy.stats.chi2(1).ppf(0.9999)
+    restart_after_steps: int = 2
 
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if not (np.isfinite(value) and value >= 0):
+            if not (value >= 0 and (np.isfinite(value) or f.name == "gate_chi2")):
                 raise ValueError(f"TrackerParams.{f.name} must be finite and >= 0, got {value!r}")
         if self.meas_std_x0_m <= 0 or self.meas_std_y0_m <= 0:
             raise ValueError("TrackerParams: meas_std_x0_m and meas_std_y0_m must be > 0 (a measurement is never exact)")
@@ -129,14 +144,12 @@ def _predict_axis(p: np.ndarray, v: np.ndarray, ppp: np.ndarray, ppv: np.ndarray
 
 
 def _update_axis(p: np.ndarray, v: np.ndarray, ppp: np.ndarray, ppv: np.ndarray, pvv: np.ndarray,
-                 z: np.ndarray, r: np.ndarray, gate: np.ndarray) -> tuple[np.ndarray, ...]:  # fmt: skip
-    """One position measurement ``z`` (variance ``r``) on one axis, with the gain multiplied by ``gate`` (float64 1.0
-    where measured, 0.0 elsewhere): where the gain is 0 the state and covariance keep their values
-    (``p + 0 * y == p`` for finite ``y``)."""
-    s = ppp + r
+                 innovation: np.ndarray, s: np.ndarray, gate: np.ndarray) -> tuple[np.ndarray, ...]:  # fmt: skip
+    """One position measurement on one axis, given its innovation ``z - p`` and variance ``s = ppp + r``, with the gain
+    multiplied by ``gate`` (float64 1.0 where accepted, 0.0 elsewhere): where the gain is 0 the state and covariance
+    keep their values (``p + 0 * y == p`` for finite ``y``)."""
     k0 = ppp / s * gate
     k1 = ppv / s * gate
-    innovation = z - p
     return (p + k0 * innovation, v + k1 * innovation, ppp - k0 * ppp, ppv - k0 * ppv, pvv - k1 * ppv)
 
 
@@ -158,7 +171,8 @@ def predict(tracks: Tracks, dt: float, params: TrackerParams) -> Tracks:
 
 def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarray, range_m: np.ndarray,
            ego_speed_mps: np.ndarray, params: TrackerParams) -> Tracks:  # fmt: skip
-    """Fold in this step's position measurements: update the objects that have a track, start one for the others.
+    """Fold in this step's position measurements: update the objects that have a track (measurements inside the gate),
+    start one for the others.
 
     Args:
         tracks: the tracks' predictions for this step (arrays of one shape, e.g. ``[M, N]``).
@@ -170,20 +184,25 @@ def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarra
         ego_speed_mps: float64, broadcastable to the tracks (``[N]``): the ego's speed (m/s), the velocity prior of a
             new track.
     Returns:
-        new :class:`Tracks`: measured objects are active with ``coast = 0``.
+        new :class:`Tracks`: objects whose measurement was accepted, or that start (or restart) a track, have
+        ``coast = 0``; a measurement outside the gate leaves its track as predicted.
     """
     r_x, r_y = params.measurement_variances(range_m)
-    upd = measured & tracks.active
-    new = measured & ~tracks.active
+    y_x, y_y = z_x - tracks.x, z_y - tracks.y
+    s_x, s_y = tracks.pxx + r_x, tracks.pyy + r_y
+    inside = y_x * y_x <= params.gate_chi2 * s_x
+    upd = measured & tracks.active & inside
+    new = measured & ~(tracks.active & (inside | (tracks.coast < params.restart_after_steps)))
     gate = upd.astype(np.float64)
-    x, vx, pxx, pxv, pvvx = _update_axis(tracks.x, tracks.vx, tracks.pxx, tracks.pxv, tracks.pvvx, z_x, r_x, gate)
-    y, vy, pyy, pyv, pvvy = _update_axis(tracks.y, tracks.vy, tracks.pyy, tracks.pyv, tracks.pvvy, z_y, r_y, gate)
-    active = tracks.active | measured
-    coast = np.where(measured, 0, tracks.coast)
-    if not new.any():  # starting no track: np.where(new, ...) would return these very arrays
+    x, vx, pxx, pxv, pvvx = _update_axis(tracks.x, tracks.vx, tracks.pxx, tracks.pxv, tracks.pvvx, y_x, s_x, gate)
+    y, vy, pyy, pyv, pvvy = _update_axis(tracks.y, tracks.vy, tracks.pyy, tracks.pyv, tracks.pvvy, y_y, s_y, gate)
+    active = tracks.active | new
+    coast = np.where(upd | new, 0, tracks.coast)
+    if not new.any():  # starting no track: copying the start values where new would change nothing
         return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, coast)
-    ego_speed = np.broadcast_to(ego_speed_mps, new.shape)
-    for field_value, start in ((x, z_x), (vx, ego_speed), (pxx, r_x), (pxv, 0.0), (pvvx, params.init_speed_std_x_mps**2),
-                               (y, z_y), (vy, 0.0), (pyy, r_y), (pyv, 0.0), (pvvy, params.init_speed_std_y_mps**2)):
+    start_vx = np.where(tracks.active, tracks.vx, ego_speed_mps)  # a restart keeps its velocity estimate
+    start_vy = np.where(tracks.active, tracks.vy, 0.0)
+    for field_value, start in ((x, z_x), (vx, start_vx), (pxx, r_x), (pxv, 0.0), (pvvx, params.init_speed_std_x_mps**2),
+                               (y, z_y), (vy, start_vy), (pyy, r_y), (pyv, 0.0), (pvvy, params.init_speed_std_y_mps**2)):
         np.copyto(field_value, start, where=new)
     return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, coast)
