@@ -8,7 +8,7 @@ draws its measurement error. The rollout fails when the robustness of
 failure fraction with its Clopper-Pearson 95 % interval (:func:`pemviz.estimate.estimate` with unit weights).
 
 Settings (``--setting``): ``default`` (:class:`~pemviz.scenarios.cut_in.CutInParams` as it is), ``moderate`` and
-``rare`` (:data:`SETTINGS`). Run from the repository root, e.g.:
+``rare`` (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`), with ``--set NAME=VALUE`` overrides. Run from the repository root, e.g.:
 
     python benchmarks/cut_in_mc.py --setting moderate --n 1000000
     python benchmarks/cut_in_mc.py --cost            # the twin's cost per rollout (no PEM), N = 4096
@@ -27,15 +27,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pemviz.scenarios.cut_in import FAILURE_FORMULA, OBJECT_NAMES, SALIENT_COLUMNS, CutInParams  # noqa: E402
+from pemviz.scenarios.cut_in import (  # noqa: E402
+    FAILURE_FORMULA,
+    OBJECT_NAMES,
+    RARITY_SETTINGS,
+    SALIENT_COLUMNS,
+    CutInParams,
+)
 from pemviz.scenarios.cut_in_batched import BatchedCutIn, cached_trajectory  # noqa: E402
 
-SETTINGS: dict[str, dict] = {
-    "default": {},
-    "moderate": {"cut_in_gap_m": 12.0, "cut_in_speed_mps": 15.0},
-    "rare": {"cut_in_gap_m": 20.0, "cut_in_speed_mps": 20.0},
-}
-"""Overrides of :class:`CutInParams` per named setting (the rarity knobs: the cut-in vehicle's gap and speed)."""
+SETTINGS: dict[str, dict] = {"default": {}, **RARITY_SETTINGS}
+"""Overrides of :class:`CutInParams` per named setting (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`)."""
 VISIBLE = OBJECT_NAMES.index("visible")
 
 
@@ -54,10 +56,14 @@ def params_for(setting: str, overrides: list[str]) -> CutInParams:
 
 
 def run_chunk(params: CutInParams, n: int, pem, noise_pem, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
-    """``n`` rollouts with detections and errors drawn from the PEMs: (failed bool [n], signals {name: [n, T]})."""
-    from scipy.special import expit
+    """``n`` rollouts with detections and errors drawn from the PEMs: (failed bool [n], signals {name: [n, T]}).
+
+    Per step, as the engine draws (one ``random(n * M)``, then the errors of every row): detected iff
+    ``log u <= log_expit(logit p)`` and the object is visible; errors ``loc + scale * t_df`` per dimension."""
+    from scipy.special import log_expit
 
     from pemviz.pem.encoding import encode_salient
+    from pemviz.stl import robustness
 
     sim = BatchedCutIn(params, n)
     m, n_steps = params.n_objects, params.n_steps
@@ -67,15 +73,12 @@ def run_chunk(params: CutInParams, n: int, pem, noise_pem, rng: np.random.Genera
         sim.observation(out=obs[t])
         rows = sim.objects()
         features = encode_salient(rows[:, :, SALIENT_COLUMNS].reshape(n * m, -1), pem.norm)
-        p_detect = expit(pem.logit_features(features))
-        detected = (rng.random(n * m) < p_detect) & (rows[:, :, VISIBLE].reshape(-1) > 0.5)
+        visible = rows[:, :, VISIBLE].reshape(-1) > 0.5
+        detected = (np.log(rng.random(n * m)) <= log_expit(pem.logit_features(features))) & visible
         loc, log_scale = noise_pem.noise_params(features)
         draws = np.stack([rng.standard_t(df[d], size=n * m) for d in range(2)], axis=1)
-        noise = loc + np.exp(log_scale) * draws
-        sim.step(detected.reshape(n, m), noise.reshape(n, m, 2))
+        sim.step(detected.reshape(n, m), (loc + np.exp(log_scale) * draws).reshape(n, m, 2))
     signals = {name: obs[:, :, k].T for k, name in enumerate(sim.observation_names)}
-    from pemviz.stl import robustness
-
     return robustness(FAILURE_FORMULA, signals) < 0.0, signals
 
 
@@ -107,7 +110,8 @@ def monte_carlo(params: CutInParams, n: int, chunk: int, seed: int) -> None:
     print(f"PEMs: {pem.name} (detection), {noise_pem.name} (noise); seed {seed}")
     print(f"{n} rollouts: {failed.sum()} failures ({collided.sum()} collisions)")
     lo, hi = np.exp(est.log_ci)
-    print(f"p_fail = {np.exp(est.log_mu_hat):.3e}, 95 % interval [{lo:.3e}, {hi:.3e}], {est.verdict}")
+    print(f"p_fail = {np.exp(est.log_mu_hat):.3e}, 95 % interval [{lo:.3e}, {hi:.3e}], ESS {est.ess:.1f}, "
+          f"{est.verdict} ({est.reason})")  # fmt: skip
     print(f"{elapsed:.0f} s ({elapsed / n * 1e6:.0f} us per rollout with both PEMs); {load()}")
 
 

@@ -270,7 +270,7 @@ def object_rows(params: CutInParams, traffic: Traffic, view: CameraView, ego_x_m
     cols[15] = view.occluded_fraction
     cols[16] = view.visible
     cols[17] = traffic.in_ego_lane[:, None]
-    cols[18] = tracks.active
+    cols[18] = tracks.confirmed
     np.multiply(tracks.x - traffic.x_m[:, None], tracks.active, out=cols[19])
     np.multiply(tracks.y - traffic.y_m[:, None], tracks.active, out=cols[20])
     cols[21] = followed == np.arange(m)[:, None]
@@ -318,7 +318,7 @@ def decide(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, ego_speed
            detected: np.ndarray, noise: np.ndarray | None) -> tuple[Tracks, np.ndarray, np.ndarray]:  # fmt: skip
     """The ego's decision at this step: measure the detected visible objects (:func:`measure`), fold the measurements
     into the tracks (:func:`pemviz.scenarios.tracker.update`) and run the ACC on the tracks
-    (:func:`~pemviz.scenarios.cut_in.acc_control`).
+    (:func:`~pemviz.scenarios.cut_in.acc_control`) on the confirmed tracks.
 
     Args:
         tracks: the trackers' predictions for this step ``[M, N]``; detected: bool ``[M, N]``;
@@ -331,5 +331,5 @@ def decide(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, ego_speed
         noise = np.zeros(measured.shape + (2,))
     z_x, z_y, z_range = measure(params, view, ego_x_m, noise, measured)
     tracks = tracker.update(tracks, measured, z_x, z_y, z_range, ego_speed_mps, params.tracker)
-    followed, accel = acc_control(params, tracks.x, tracks.y, tracks.vx, tracks.active, ego_x_m, ego_speed_mps)
+    followed, accel = acc_control(params, tracks.x, tracks.y, tracks.vx, tracks.confirmed, ego_x_m, ego_speed_mps)
     return tracks, followed, accel

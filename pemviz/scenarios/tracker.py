@@ -20,6 +20,9 @@ block-diagonal covariance is exactly two 2-state filters. Per step:
   ``restart_after_steps`` or more steps old and whose new measurement falls outside its gate is restarted at that
   measurement (its velocity estimate kept, with the start's variance), so that a track whose prediction diverged
   from its object does not stay locked out by its own gate;
+- **confirm**: a started (or restarted) track is tentative until a measurement inside its gate updates it; the
+  controller acts on confirmed tracks only (track confirmation, Blackman & Popoli 1999, *Design and Analysis of
+  Modern Tracking Systems*, Artech House, Ch. 6), so one wild measurement cannot put a phantom in the ego's lane;
 - **start** (a detection of an object without a track): position = the measurement with variance ``r``, velocity =
   a prior (the ego's own velocity: traffic moves with the ego) with variance ``sigma_v0^2``;
 - **drop** a track that went ``max_coast_steps`` predictions without an update (its prediction is no longer
@@ -100,6 +103,7 @@ class Tracks:
             (m^2, m^2/s, m^2/s^2).
         y, vy, pyy, pyv, pvvy: the same across the road.
         active: bool, whether the object has a track.
+        confirmed: bool, whether that track has been updated since it started (the controller uses only these).
         coast: int64, predictions since the last update.
     """
 
@@ -114,13 +118,15 @@ class Tracks:
     pyv: np.ndarray
     pvvy: np.ndarray
     active: np.ndarray
+    confirmed: np.ndarray
     coast: np.ndarray
 
     @classmethod
     def empty(cls, shape: tuple[int, ...]) -> "Tracks":
         """No track yet (the float fields are 0), arrays of ``shape``."""
         z = [np.zeros(shape) for _ in range(10)]
-        return cls(*z, active=np.zeros(shape, dtype=bool), coast=np.zeros(shape, dtype=np.int64))
+        return cls(*z, active=np.zeros(shape, dtype=bool), confirmed=np.zeros(shape, dtype=bool),
+                   coast=np.zeros(shape, dtype=np.int64))  # fmt: skip
 
     def copy(self) -> "Tracks":
         return Tracks(*(getattr(self, f.name).copy() for f in fields(self)))
@@ -166,7 +172,8 @@ def predict(tracks: Tracks, dt: float, params: TrackerParams) -> Tracks:
                                           params.accel_std_y_mps2)  # fmt: skip
     coast = tracks.coast + 1
     active = tracks.active & (coast <= params.max_coast_steps)
-    return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, np.where(active, coast, 0))
+    return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, tracks.confirmed & active,
+                  np.where(active, coast, 0))  # fmt: skip
 
 
 def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarray, range_m: np.ndarray,
@@ -184,8 +191,8 @@ def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarra
         ego_speed_mps: float64, broadcastable to the tracks (``[N]``): the ego's speed (m/s), the velocity prior of a
             new track.
     Returns:
-        new :class:`Tracks`: objects whose measurement was accepted, or that start (or restart) a track, have
-        ``coast = 0``; a measurement outside the gate leaves its track as predicted.
+        new :class:`Tracks`: objects whose measurement was accepted (now confirmed), or that start (or restart) a
+        tentative track, have ``coast = 0``; a measurement outside the gate leaves its track as predicted.
     """
     r_x, r_y = params.measurement_variances(range_m)
     y_x, y_y = z_x - tracks.x, z_y - tracks.y
@@ -197,12 +204,13 @@ def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarra
     x, vx, pxx, pxv, pvvx = _update_axis(tracks.x, tracks.vx, tracks.pxx, tracks.pxv, tracks.pvvx, y_x, s_x, gate)
     y, vy, pyy, pyv, pvvy = _update_axis(tracks.y, tracks.vy, tracks.pyy, tracks.pyv, tracks.pvvy, y_y, s_y, gate)
     active = tracks.active | new
+    confirmed = (tracks.confirmed | upd) & ~new
     coast = np.where(upd | new, 0, tracks.coast)
     if not new.any():  # starting no track: copying the start values where new would change nothing
-        return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, coast)
+        return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)
     start_vx = np.where(tracks.active, tracks.vx, ego_speed_mps)  # a restart keeps its velocity estimate
     start_vy = np.where(tracks.active, tracks.vy, 0.0)
     for field_value, start in ((x, z_x), (vx, start_vx), (pxx, r_x), (pxv, 0.0), (pvvx, params.init_speed_std_x_mps**2),
                                (y, z_y), (vy, start_vy), (pyy, r_y), (pyv, 0.0), (pvvy, params.init_speed_std_y_mps**2)):
         np.copyto(field_value, start, where=new)
-    return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, coast)
+    return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)

@@ -104,6 +104,19 @@ def test_a_track_that_missed_a_step_restarts_at_a_measurement_outside_its_gate_k
     assert out.pvvx[0] == params.init_speed_std_x_mps**2 and out.pxv[0] == 0.0
 
 
+def test_a_track_is_tentative_until_a_measurement_inside_its_gate_confirms_it():
+    params = TrackerParams()
+    pred = start_one(params)
+    assert pred.active[0] and not pred.confirmed[0]
+    confirmed = tracker.update(pred, np.array([True]), pred.x.copy(), np.array([4.0]), np.array([20.0]),
+                               np.array([25.0]), params)  # fmt: skip
+    assert confirmed.confirmed[0]
+    coasted = tracker.predict(tracker.predict(confirmed, DT, params), DT, params)
+    restarted = tracker.update(coasted, np.array([True]), coasted.x + 100.0, np.array([4.0]), np.array([20.0]),
+                               np.array([25.0]), params)  # fmt: skip
+    assert restarted.active[0] and not restarted.confirmed[0]  # a restart is tentative again
+
+
 def test_a_track_is_dropped_after_max_coast_steps_and_restarts_at_the_next_detection():
     params = TrackerParams(max_coast_steps=3)
     tracks = start_one(params)
