@@ -193,6 +193,9 @@ class CutInParams:
         ego_a_min_mps2, other_a_min_mps2, reaction_time_s, cut_in_grace_s: R_G1's parameters (:func:`safe_distance`):
             the braking capabilities assumed for the ego (-10.0) and the vehicle in front (-10.5), the ego's
             reaction time (0.3 s) and the time ``t_c`` after a cut-in during which the rule is waived (3 s).
+
+    Raises:
+        ValueError: a value outside its range (the message names the field, what is allowed and what was given).
     """
 
     dt_s: float = 0.1
@@ -286,7 +289,7 @@ costs a factor of about 240 in probability)."""
 
 
 def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mps: np.ndarray) -> np.ndarray:
-    """The safe distance (metres) from the ego to the vehicle in front, elementwise:
+    """The safe distance (metres) from the ego to the vehicle in front, elementwise over speeds ``[...]`` (m/s):
 
         d_safe = v_ego^2 / (2 |a_ego|) - v_front^2 / (2 |a_front|) + v_ego t_react.
 
@@ -297,7 +300,8 @@ def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mp
     ``crmonitor/config.yaml``).
     """
     v, vf = ego_speed_mps, front_speed_mps
-    return v * v / (2.0 * -params.ego_a_min_mps2) - vf * vf / (2.0 * -params.other_a_min_mps2) + v * params.reaction_time_s
+    ego_stop = v * v / (2.0 * -params.ego_a_min_mps2)
+    return ego_stop - vf * vf / (2.0 * -params.other_a_min_mps2) + v * params.reaction_time_s
 
 
 def idm_acceleration(idm: IDMParams, target_speed_mps: float, speed_mps: np.ndarray, distance_m: np.ndarray,
@@ -326,9 +330,10 @@ def idm_acceleration(idm: IDMParams, target_speed_mps: float, speed_mps: np.ndar
 
 
 def acc_control(params: CutInParams, track_x: np.ndarray, track_y: np.ndarray, track_vx: np.ndarray,
-                active: np.ndarray, ego_x_m: np.ndarray, ego_speed_mps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """The ego's ACC on the tracked objects: follow the nearest (confirmed) track whose estimated centre is ahead of the ego's
-    centre and within its lane (``|y - y_ego| < lane width / 2``), with :func:`idm_acceleration` at the estimated
+                active: np.ndarray, ego_x_m: np.ndarray,
+                ego_speed_mps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The ego's ACC on the tracked objects: follow the nearest (confirmed) track whose estimated centre is ahead of the
+    ego's centre and within its lane (``|y - y_ego| < lane width / 2``), with :func:`idm_acceleration` at the estimated
     centre distance and closing speed; the free-road IDM term when none.
 
     Args:

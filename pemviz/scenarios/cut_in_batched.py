@@ -39,7 +39,8 @@ def cached_trajectory(params: CutInParams) -> TrafficTrajectory:
 @dataclass
 class CutInBatchState:
     """The state of N rollouts at one step (what :meth:`BatchedCutIn.snapshot` keeps): the step, the ego's position,
-    speed and last acceleration ``[N]``, the tracks ``[M, N]`` (object-major) and the object the ACC followed ``[N]``."""
+    speed and last acceleration ``[N]``, the tracks ``[M, N]`` (object-major) and the object the ACC followed
+    ``[N]``."""
 
     t: int
     ego_x_m: np.ndarray
@@ -79,8 +80,9 @@ class BatchedCutIn:
     def reset(self) -> None:
         """Every rollout at the start: the ego at x = 0, no tracks."""
         p, n = self.params, self.n
-        self.state = CutInBatchState(0, np.zeros(n), np.full(n, p.ego_speed0_mps), np.zeros(n),
-                                     tracker.Tracks.empty((p.n_objects, n)), np.full(n, -1, dtype=np.int64))  # fmt: skip
+        tracks = tracker.Tracks.empty((p.n_objects, n))
+        self.state = CutInBatchState(0, np.zeros(n), np.full(n, p.ego_speed0_mps), np.zeros(n), tracks,
+                                     np.full(n, -1, dtype=np.int64))  # fmt: skip
         self._view: CameraView | None = None
 
     @property

@@ -65,6 +65,9 @@ class TrackerParams:
             camera's lateral error is small); ``inf``: no gate.
         restart_after_steps: a track whose last update is this many steps old (2: the last step had none) restarts at
             a measurement outside its gate.
+
+    Raises:
+        ValueError: a negative or non-finite value, or a measurement std of 0.
     """
 
     accel_std_x_mps2: float = 3.0
@@ -85,7 +88,8 @@ class TrackerParams:
             if not (value >= 0 and (np.isfinite(value) or f.name == "gate_chi2")):
                 raise ValueError(f"TrackerParams.{f.name} must be finite and >= 0, got {value!r}")
         if self.meas_std_x0_m <= 0 or self.meas_std_y0_m <= 0:
-            raise ValueError("TrackerParams: meas_std_x0_m and meas_std_y0_m must be > 0 (a measurement is never exact)")
+            raise ValueError("TrackerParams: meas_std_x0_m and meas_std_y0_m must be > 0 "
+                             "(a measurement is never exact)")
 
     def measurement_variances(self, range_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(r_x, r_y)``: the variances (m^2) of position measurements taken at range ``range_m`` (m), same shape."""
@@ -210,7 +214,8 @@ def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarra
         return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)
     start_vx = np.where(tracks.active, tracks.vx, ego_speed_mps)  # a restart keeps its velocity estimate
     start_vy = np.where(tracks.active, tracks.vy, 0.0)
-    for field_value, start in ((x, z_x), (vx, start_vx), (pxx, r_x), (pxv, 0.0), (pvvx, params.init_speed_std_x_mps**2),
-                               (y, z_y), (vy, start_vy), (pyy, r_y), (pyv, 0.0), (pvvy, params.init_speed_std_y_mps**2)):
+    sx2, sy2 = params.init_speed_std_x_mps**2, params.init_speed_std_y_mps**2
+    for field_value, start in ((x, z_x), (vx, start_vx), (pxx, r_x), (pxv, 0.0), (pvvx, sx2),
+                               (y, z_y), (vy, start_vy), (pyy, r_y), (pyv, 0.0), (pvvy, sy2)):  # fmt: skip
         np.copyto(field_value, start, where=new)
     return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)

@@ -174,7 +174,8 @@ def test_cut_in_begins_when_the_box_straddles_into_the_ego_lane_and_stays_recent
         tr, memory = traffic_at(P, step, np.array([30.0]), np.array([y]), np.array([h]), np.array([20.0]), memory)
         recent.append(bool(tr.cut_in_recent[0]))
         if step in (0, 1, 2):
-            assert tr.cutting_in[0] == (step == 2)  # the box (heading -0.1) reaches 1.245 m across: at 7.3 m its edge is at 6.055, at 6.5 m past y = 6
+            # the box (heading -0.1) reaches 1.245 m across: at y = 7.3 its edge is at 6.055, at 6.5 past y = 6
+            assert tr.cutting_in[0] == (step == 2)
     assert recent == [False, False] + [True] * 31 + [False] * 12  # steps 2 .. 2 + 30
 
 

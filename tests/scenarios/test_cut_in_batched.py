@@ -103,7 +103,8 @@ def test_restoring_a_snapshot_continues_the_rollouts_bit_for_bit(make):
     sim = make()
     batched = isinstance(sim, BatchedCutIn)
     detected, noise = random_inputs(P, 3, seed=2)
-    inputs = [(d, e) if batched else (d[0], e[0]) for d, e in zip(detected.transpose(1, 0, 2), noise.transpose(1, 0, 2, 3))]
+    per_step = zip(detected.transpose(1, 0, 2), noise.transpose(1, 0, 2, 3))
+    inputs = [(d, e) if batched else (d[0], e[0]) for d, e in per_step]
 
     def run(from_step: int, to_step: int) -> list[np.ndarray]:
         out = []
