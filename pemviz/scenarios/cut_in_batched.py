@@ -53,6 +53,12 @@ class CutInBatchState:
         return CutInBatchState(self.t, self.ego_x_m.copy(), self.ego_speed_mps.copy(), self.ego_accel_mps2.copy(),
                                self.tracks.copy(), self.followed.copy())  # fmt: skip
 
+    def select(self, rows: np.ndarray) -> "CutInBatchState":
+        """The state of rollouts ``rows`` (int indices, repeats allowed, or a bool mask), copied: restore it on a batch
+        of that many rollouts to continue them (branching, as adaptive multilevel splitting does)."""
+        return CutInBatchState(self.t, self.ego_x_m[rows], self.ego_speed_mps[rows], self.ego_accel_mps2[rows],
+                               self.tracks.select(rows), self.followed[rows])  # fmt: skip
+
 
 class BatchedCutIn:
     """N cut-in rollouts in lockstep (module docstring).

@@ -2,16 +2,18 @@
 rows and the scene signals, for N rollouts at once in numpy float64.
 
 The other vehicles' state at a step (:class:`Traffic`, arrays ``[M]``) is the same in every rollout; the ego's
-position along the road (``[N]``) is not, so the view is ``[N, M]``. Both simulators call these functions, the
-highway-env one with N = 1, so their arithmetic is the same element by element.
+position along the road (``[N]``) is not, so the view is ``[M, N]`` (object-major: each object's row is contiguous).
+Both simulators call these functions, the highway-env one with N = 1, so their arithmetic is the same element by
+element.
 
 The camera (pinhole, KITTI's camera 2: :data:`pemviz.pem.camera.KITTI_FOCAL_PX`, principal point and the
 1242 x 375 image) sits ``camera_offset_m`` ahead of the ego's centre, ``camera_height_m`` above the road, looking
 along the road: camera x = road y minus the ego's y (right), camera y = down, camera z = along the road (forward).
 An object's 2D image box is the box around the projections of the 8 corners of its 3D box (Geiger et al. 2013,
-"Vision meets robotics: the KITTI dataset", IJRR, eq. 5): in normalised image coordinates ``u = X / Z`` and
-``v = Y / Z`` it spans ``[min u, max u]`` over its 4 ground corners and ``[(h_cam - H) / Z_far, h_cam / Z_near]``
-vertically. From the boxes:
+"Vision meets robotics: the KITTI dataset", IJRR, eq. 5), the 3D box being the vehicle's axis-aligned bounding box
+on the road (exact for a vehicle driving along the road, a little larger for one changing lanes): in normalised image
+coordinates ``u = X / Z`` and ``v = Y / Z`` it spans ``[min u, max u]`` over its 4 ground corners and
+``[(h_cam - H) / Z_far, h_cam / Z_near]`` vertically. From the boxes:
 
 - **truncation** (KITTI's sense: the share of the object outside the image): ``1 - area(box & image) / area(box)``;
 - **occluded fraction**: ``sum over nearer objects (smaller centre depth) of area(box_i & box) / area(box)``, at most

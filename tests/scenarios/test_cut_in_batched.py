@@ -69,6 +69,17 @@ def test_highway_env_and_batched_twin_give_the_same_bits_for_random_detections_a
     assert (obs_tw[:, :, OBS["followed_index"]] == 0).any(axis=1).sum() >= 12
 
 
+@pytest.mark.parametrize("m", [3, 6])
+def test_three_and_six_objects_are_step_identical_too(m):
+    params = dataclasses.replace(NEAR_MISS, n_objects=m)
+    detected, noise = random_inputs(params, 4, seed=m)
+    obs_he, objs_he = highway_env_replay(params, detected, noise)
+    obs_tw, objs_tw = replay(params, detected, noise)
+    assert objs_tw.shape == (4, params.n_steps, m, len(OBJECT_NAMES))
+    np.testing.assert_array_equal(obs_tw, obs_he)
+    np.testing.assert_array_equal(objs_tw, objs_he)
+
+
 def test_other_traffic_from_highway_env_changes_lanes_once_and_keeps_its_speed():
     traj = cached_trajectory(P).traffic
     assert len(traj) == P.n_steps + 1
@@ -122,6 +133,20 @@ def test_restoring_a_snapshot_continues_the_rollouts_bit_for_bit(make):
     sim.restore(state)
     assert [np.array_equal(a, b) for a, b in zip(first, again)] == [True] * 20
     assert sim.t == 20
+
+
+def test_a_selected_state_continues_the_chosen_rollouts_in_a_batch_of_their_own():
+    detected, noise = random_inputs(NEAR_MISS, 4, seed=5)
+    full = BatchedCutIn(NEAR_MISS, 4)
+    for t in range(15):
+        full.step(detected[:, t], noise[:, t])
+    branch = BatchedCutIn(NEAR_MISS, 3)
+    branch.restore(full.snapshot().select(np.array([2, 0, 2])))
+    for t in range(15, 30):
+        assert np.array_equal(branch.objects(), full.objects()[[2, 0, 2]])
+        full.step(detected[:, t], noise[:, t])
+        branch.step(detected[[2, 0, 2], t], noise[[2, 0, 2], t])
+    assert np.array_equal(branch.observation(), full.observation()[[2, 0, 2]])
 
 
 def test_bad_steps_raise_one_clear_error():
