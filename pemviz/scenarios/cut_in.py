@@ -1,0 +1,357 @@
+"""The cut-in scenario: constants, names, the ego's ACC on tracked objects, and the safe-distance rule R_G1.
+
+A straight three-lane highway (highway-env's ``RoadNetwork.straight_road_network``: lanes 4 m wide at y = 0, 4 and
+8 m, lane 0 the leftmost; x along the road, y to the right). The ego drives in the middle lane with an adaptive
+cruise control (ACC). M other vehicles drive ahead of it: vehicle 0 changes lanes from an adjacent lane into the
+ego's lane in front of it (the **cut-in**) at a scripted time; the others keep their lanes and speeds. None of them
+reacts to the ego, so their trajectories are one deterministic function of the parameters, shared by every rollout.
+
+Each step the ego's camera perceives each object: detected or missed, and, when detected, measured with an error in
+range and lateral position (a perception error model, PEM, draws both). A constant-velocity Kalman tracker per
+object (:mod:`pemviz.scenarios.tracker`) turns the measurements into estimates, and the ACC follows the nearest
+TRACKED vehicle whose ESTIMATED position is ahead in the ego's lane with highway-env's IDM acceleration
+(:func:`idm_acceleration`). A missed or laterally mislocated cut-in is therefore not followed, and the ego closes in.
+
+The failure (:data:`FAILURE_FORMULA`): a collision, or a violation of the safe-distance rule R_G1 of Maierhofer et
+al. 2020 (:func:`safe_distance`) towards the vehicle in front, except during ``cut_in_grace_s`` after that vehicle
+cut in.
+
+Modules: this one (parameters, names, controller, rule); :mod:`pemviz.scenarios.cut_in_scene` (the geometry each
+step: camera view, occlusion, measurements, object rows, scene signals); :mod:`pemviz.scenarios.cut_in_highway` (the
+simulator on highway-env vehicles); :mod:`pemviz.scenarios.cut_in_batched` (the batched twin).
+
+Units: metres, seconds, m/s, m/s^2, radians.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pemviz.io.data import INPUT_COLUMNS
+from pemviz.scenarios.tracker import TrackerParams
+
+LANE_WIDTH_M = 4.0
+"""highway-env's ``StraightLane.DEFAULT_WIDTH`` (the lane width of ``straight_road_network``)."""
+N_LANES = 3
+EGO_LANE = 1
+"""The ego drives in the middle lane; lane ``i`` is centred at ``y = i * LANE_WIDTH_M``, lane 0 the leftmost."""
+NO_VEHICLE_M = 200.0
+"""What distance signals read when there is no vehicle to measure (no front vehicle, no vehicle beside): far enough
+never to bind the rule, finite so that robustness stays finite."""
+ROAD_LENGTH_M = 10000.0
+
+OBSERVATION_NAMES: tuple[str, ...] = (
+    "gap_m",
+    "safe_margin_m",
+    "cut_in_recent",
+    "clearance_m",
+    "ego_speed_mps",
+    "ego_accel_mps2",
+    "front_speed_mps",
+    "front_index",
+    "followed_index",
+    "followed_gap_m",
+    "ego_x_m",
+)
+"""Scene signals, [F], true state unless said otherwise:
+
+- ``gap_m``: from the ego's front bumper to the rear of the front vehicle (the nearest one ahead whose box overlaps
+  the ego's lane), metres; :data:`NO_VEHICLE_M` when there is none;
+- ``safe_margin_m``: ``gap_m`` minus the safe distance of R_G1 (:func:`safe_distance`) to the front vehicle;
+- ``cut_in_recent``: 1.0 if the front vehicle cut in within the last ``cut_in_grace_s`` (R_G1 does not apply), else
+  0.0;
+- ``clearance_m``: the smallest longitudinal separation to a vehicle whose box overlaps the ego's box laterally
+  (negative: the boxes overlap, a collision);
+- ``ego_speed_mps``; ``ego_accel_mps2`` (applied over the last step);
+- ``front_speed_mps``: the front vehicle's velocity along the road (the ego's speed when there is none);
+- ``front_index``: the front vehicle's object index, -1 when none;
+- ``followed_index``: the object the ACC followed at the last step (its tracked estimate in the ego's lane), -1 none;
+- ``followed_gap_m``: the ESTIMATED gap to it (tracked centre minus half a vehicle length minus the ego's front);
+- ``ego_x_m``: the ego's position along the road (centre)."""
+
+SALIENT_NAMES: tuple[str, ...] = tuple(INPUT_COLUMNS)
+"""The 11 KITTI salient variables of an object, in the PEMs' raw-input order (:data:`pemviz.io.data.INPUT_COLUMNS`).
+The three dimension columns hold KITTI's (height, width, length), the order of the KITTI labels and of the salient
+files' values (their header calls them dim_w, dim_l, dim_h)."""
+SALIENT_COLUMNS = slice(1, 1 + len(SALIENT_NAMES))
+"""Where the salient variables sit in an object row: ``rows[..., SALIENT_COLUMNS]`` are a PEM's raw inputs."""
+
+OBJECT_NAMES: tuple[str, ...] = (
+    "range_m",
+    *SALIENT_NAMES,
+    "gap_m",
+    "rel_speed_mps",
+    "lateral_speed_mps",
+    "occluded_fraction",
+    "visible",
+    "in_ego_lane",
+    "tracked",
+    "track_err_x_m",
+    "track_err_y_m",
+    "followed",
+    "ego_speed_mps",
+    "ego_accel_mps2",
+)
+"""Columns of one object row, [G]:
+
+- ``range_m``: distance from the camera to the object's centre in the ground plane, ``sqrt(loc_x^2 + loc_z^2)``;
+- the 11 salient variables (:data:`SALIENT_NAMES`): class 0 (Car), truncation (fraction of the 2D box outside the
+  image), occlusion level (0, 1, 2 from ``occluded_fraction``), alpha, dimensions, camera-frame loc_x (right),
+  loc_y (down: the camera height), loc_z (forward), rot_y (KITTI's camera frame, radians);
+- ``gap_m``: object rear minus ego front along the road (negative when beside or behind);
+- ``rel_speed_mps``: the object's velocity along the road minus the ego's speed; ``lateral_speed_mps``: its
+  velocity across the road (positive to the right);
+- ``occluded_fraction``: the share of its 2D image box covered by nearer objects' boxes;
+- ``visible``: 1.0 if the camera can see it at all (ahead, not wholly outside the image, not hidden), else 0.0: a
+  detection of an invisible object is ignored (a PEM detector should give such rows p(detect) = 0);
+- ``in_ego_lane``: 1.0 if its box overlaps the ego's lane;
+- ``tracked``: 1.0 if the tracker has a confirmed track of it (one the ACC may follow); ``track_err_x_m``,
+  ``track_err_y_m``: the track's predicted position minus the true one (0 without a track);
+- ``followed``: 1.0 if the ACC followed it at the last step;
+- ``ego_speed_mps``, ``ego_accel_mps2``: the ego's state (as in the observation)."""
+
+NOISE_NAMES: tuple[str, ...] = ("range_error_m", "lateral_error_m")
+"""Measurement-error components, [D]: measured minus true, along the camera axis and across it (metres), as the
+noise PEM gives them (:data:`pemviz.pem.noise.NOISE_DIMS`)."""
+
+FAILURE_FORMULA = "G(safe_margin_m + 1000 * cut_in_recent >= 0) & G(clearance_m >= 0)"
+"""The failure, in pemviz's STL (:func:`pemviz.stl.parse`) over :data:`OBSERVATION_NAMES`: the rollout fails when its
+robustness is negative, i.e. at some step the ego is closer to the vehicle in front than the safe distance while that
+vehicle did not cut in within ``cut_in_grace_s`` (R_G1 of Maierhofer et al. 2020), or it collides with a vehicle.
+
+The first conjunct is R_G1, ``G(cut_in_recent > 0.5 | safe_margin_m >= 0)``, written with arithmetic: both fail on
+the same traces (``|safe_margin_m| < 1000`` m), but this robustness stays the distance in metres by which the rule
+holds, where the disjunction's would stop at 0.5 (the robustness of ``cut_in_recent > 0.5``) during every waiver and
+give a sampler nothing to climb. Robustness in metres (classic semantics)."""
+
+
+@dataclass(frozen=True)
+class OtherVehicle:
+    """One vehicle of the traffic at t = 0: its lane (0, 1 or 2), the gap from the ego's front bumper to its rear
+    (metres, along the road) and its speed (m/s). It keeps its lane and speed (highway-env ``ControlledVehicle``)."""
+
+    lane: int
+    gap_m: float
+    speed_mps: float
+
+
+DEFAULT_TRAFFIC: tuple[OtherVehicle, ...] = (
+    OtherVehicle(lane=0, gap_m=12.0, speed_mps=27.0),
+    OtherVehicle(lane=2, gap_m=45.0, speed_mps=23.0),
+    OtherVehicle(lane=0, gap_m=55.0, speed_mps=28.0),
+    OtherVehicle(lane=2, gap_m=80.0, speed_mps=24.0),
+    OtherVehicle(lane=1, gap_m=120.0, speed_mps=28.0),
+)
+"""The vehicles after the cut-in vehicle, in object order 1, 2, ...; :attr:`CutInParams.n_objects` takes the first
+``n_objects - 1`` of them. With the default 5 objects the ego's lane is free until the cut-in, so the ACC cruises at
+its set speed whatever the camera reports of the other lanes; the sixth is a lead far ahead in the ego's lane."""
+
+
+@dataclass(frozen=True)
+class IDMParams:
+    """highway-env's ``IDMVehicle`` constants (``highway_env/vehicle/behavior.py``, 1.12), the ACC's defaults.
+
+    ``distance_wanted_m`` is centre to centre (highway-env: 5 m + a vehicle length); accelerations in m/s^2.
+    """
+
+    comfort_acc_max_mps2: float = 3.0
+    comfort_acc_min_mps2: float = -5.0
+    distance_wanted_m: float = 10.0
+    time_wanted_s: float = 1.5
+    delta: float = 4.0
+    acc_max_mps2: float = 6.0
+
+
+@dataclass(frozen=True)
+class CutInParams:
+    """Every constant of the cut-in scenario.
+
+    Attributes:
+        dt_s, n_steps: the step (s) and the number of steps T of a rollout.
+        n_objects: M, the other vehicles (3 to 6): the cut-in vehicle, then the first ``M - 1`` of ``traffic``.
+        ego_speed0_mps, ego_target_speed_mps: the ego's start speed and its ACC's set speed.
+        cut_in_lane: the lane the cut-in vehicle starts in (0 left or 2 right of the ego's).
+        cut_in_gap_m: the gap from the ego's front bumper to the cut-in vehicle's rear at t = 0.
+        cut_in_speed_mps: its speed (kept through the lane change).
+        cut_in_time_s: when it starts to change lanes.
+        cut_in_lateral_time_s: the time constant of its lateral position controller (highway-env
+            ``ControlledVehicle.TAU_LATERAL``, 0.6 s there): larger is a slower lane change.
+        traffic: the other vehicles (:data:`DEFAULT_TRAFFIC`).
+        vehicle_length_m, vehicle_width_m: every vehicle's box (highway-env ``Vehicle.LENGTH``, ``WIDTH``).
+        vehicle_height_m: their height, for the camera view (a KITTI car is ~1.5 m high).
+        camera_offset_m: the camera ahead of the ego's centre (2.0 m, as in the braking scenario).
+        camera_height_m: the camera above the road (KITTI's camera: 1.65 m).
+        occlusion_partly, occlusion_largely, occlusion_hidden: the occluded fractions of the 2D box from which an
+            object is partly occluded (KITTI level 1), largely occluded (level 2), and hidden (not visible); the
+            bins of the Caltech pedestrian benchmark (Dollar et al. 2012, "Pedestrian Detection: An Evaluation of the
+            State of the Art", IEEE TPAMI 34(4), Sec. 2.2: partial 1-35 %, heavy 35-80 %, full > 80 %).
+        idm: the ACC's IDM constants.
+        tracker: the tracker's noise model and track management.
+        ego_a_min_mps2, other_a_min_mps2, reaction_time_s, cut_in_grace_s: R_G1's parameters (:func:`safe_distance`):
+            the braking capabilities assumed for the ego (-10.0) and the vehicle in front (-10.5), the ego's
+            reaction time (0.3 s) and the time ``t_c`` after a cut-in during which the rule is waived (3 s).
+
+    Raises:
+        ValueError: a value outside its range (the message names the field, what is allowed and what was given).
+    """
+
+    dt_s: float = 0.1
+    n_steps: int = 100
+    n_objects: int = 5
+    ego_speed0_mps: float = 25.0
+    ego_target_speed_mps: float = 25.0
+    cut_in_lane: int = 2
+    cut_in_gap_m: float = 20.0
+    cut_in_speed_mps: float = 17.4
+    cut_in_time_s: float = 1.0
+    cut_in_lateral_time_s: float = 1.0
+    traffic: tuple[OtherVehicle, ...] = DEFAULT_TRAFFIC
+    vehicle_length_m: float = 5.0
+    vehicle_width_m: float = 2.0
+    vehicle_height_m: float = 1.5
+    camera_offset_m: float = 2.0
+    camera_height_m: float = 1.65
+    occlusion_partly: float = 0.01
+    occlusion_largely: float = 0.35
+    occlusion_hidden: float = 0.8
+    idm: IDMParams = field(default_factory=IDMParams)
+    tracker: TrackerParams = field(default_factory=TrackerParams)
+    ego_a_min_mps2: float = -10.0
+    other_a_min_mps2: float = -10.5
+    reaction_time_s: float = 0.3
+    cut_in_grace_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        def bad(what: str, allowed: str, value: object) -> ValueError:
+            return ValueError(f"CutInParams: {what} must be {allowed}, got {value!r}")
+
+        if not (isinstance(self.n_steps, int) and self.n_steps >= 1):
+            raise bad("n_steps", "an integer >= 1", self.n_steps)
+        if not (isinstance(self.n_objects, int) and 3 <= self.n_objects <= 1 + len(self.traffic)):
+            raise bad("n_objects", f"an integer in 3..{min(6, 1 + len(self.traffic))} (the cut-in vehicle and "
+                      "the first n_objects - 1 of traffic)", self.n_objects)  # fmt: skip
+        if self.n_objects > 6:
+            raise bad("n_objects", "at most 6", self.n_objects)
+        if self.cut_in_lane not in (EGO_LANE - 1, EGO_LANE + 1):
+            raise bad("cut_in_lane", f"{EGO_LANE - 1} or {EGO_LANE + 1} (a lane beside the ego's)", self.cut_in_lane)
+        for v in self.traffic:
+            if v.lane not in range(N_LANES):
+                raise bad("traffic lane", f"one of 0..{N_LANES - 1}", v.lane)
+        positive = ("dt_s", "ego_speed0_mps", "ego_target_speed_mps", "cut_in_speed_mps", "cut_in_lateral_time_s",
+                    "vehicle_length_m", "vehicle_width_m", "vehicle_height_m", "camera_height_m", "reaction_time_s")
+        for name in positive:  # fmt: skip
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise bad(name, "finite and > 0", value)
+        if not (0 < self.occlusion_partly < self.occlusion_largely < self.occlusion_hidden <= 1):
+            raise bad("occlusion thresholds", "0 < partly < largely < hidden <= 1",
+                      (self.occlusion_partly, self.occlusion_largely, self.occlusion_hidden))  # fmt: skip
+        if not (self.ego_a_min_mps2 < 0 and self.other_a_min_mps2 < 0):
+            raise bad("ego_a_min_mps2 and other_a_min_mps2", "< 0", (self.ego_a_min_mps2, self.other_a_min_mps2))
+        if not (self.camera_height_m > self.vehicle_height_m):
+            raise bad("camera_height_m", "above vehicle_height_m (the camera sees over the cars' roofs)",
+                      self.camera_height_m)  # fmt: skip
+
+    @property
+    def ego_y_m(self) -> float:
+        """The ego's lateral position: the centre of its lane."""
+        return EGO_LANE * LANE_WIDTH_M
+
+    @property
+    def cut_in_step(self) -> int:
+        """The step at which the cut-in vehicle is told to change lanes: ``round(cut_in_time_s / dt_s)``."""
+        return int(round(self.cut_in_time_s / self.dt_s))
+
+    @property
+    def cut_in_grace_steps(self) -> int:
+        """R_G1's ``t_c`` in steps: ``round(cut_in_grace_s / dt_s)`` (30 at 0.1 s, as in ``once[0, 30]``)."""
+        return int(round(self.cut_in_grace_s / self.dt_s))
+
+    @property
+    def vehicles(self) -> tuple[OtherVehicle, ...]:
+        """The M objects at t = 0, in object order: the cut-in vehicle, then the traffic."""
+        cut_in = OtherVehicle(self.cut_in_lane, self.cut_in_gap_m, self.cut_in_speed_mps)
+        return (cut_in, *self.traffic[: self.n_objects - 1])
+
+
+RARITY_SETTINGS: dict[str, dict[str, float]] = {
+    "moderate": {"cut_in_gap_m": 20.0, "cut_in_speed_mps": 17.4},
+    "rare": {"cut_in_gap_m": 22.5, "cut_in_speed_mps": 17.4},
+}
+"""The rarity knob's two settings (:class:`CutInParams` fields; ``moderate`` is the default): the cut-in vehicle's gap
+to the ego at t = 0 with its speed 7.6 m/s below the ego's. Under the shipped PEMs (ml-nn detection, hetero-t noise)
+the failure probability is 9.1e-5 [7.3e-5, 1.1e-4] at ``moderate`` (plain Monte Carlo, 10^6 rollouts,
+``benchmarks/cut_in_mc.py``) and far below 1e-9 at ``rare`` (``docs/cut-in.md``: each extra 0.76 m of gap needs one
+more step of late reaction, and each step costs a factor of about 260 in probability)."""
+
+
+def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mps: np.ndarray) -> np.ndarray:
+    """The safe distance (metres) from the ego to the vehicle in front, elementwise over speeds ``[...]`` (m/s):
+
+        d_safe = v_ego^2 / (2 |a_ego|) - v_front^2 / (2 |a_front|) + v_ego t_react.
+
+    Keeping at least this gap lets the ego stop behind the vehicle in front if it brakes fully after the ego's
+    reaction time. Source: Maierhofer et al. 2020, "Formalization of Interstate Traffic Rules in Temporal Logic", IEEE
+    IV, the predicate ``keeps_safe_distance_prec`` of rule R_G1; the parameters (a_ego -10.0, a_front -10.5 m/s^2,
+    t_react 0.3 s) are those of the authors' CommonRoad traffic-rule monitor (commonroad-stl-monitor,
+    ``crmonitor/config.yaml``).
+    """
+    v, vf = ego_speed_mps, front_speed_mps
+    ego_stop = v * v / (2.0 * -params.ego_a_min_mps2)
+    return ego_stop - vf * vf / (2.0 * -params.other_a_min_mps2) + v * params.reaction_time_s
+
+
+def idm_acceleration(idm: IDMParams, target_speed_mps: float, speed_mps: np.ndarray, distance_m: np.ndarray,
+                     closing_speed_mps: np.ndarray) -> np.ndarray:  # fmt: skip
+    """The IDM acceleration of highway-env's ``IDMVehicle.acceleration`` and ``desired_gap``, elementwise, clipped to
+    ``+-acc_max`` as ``IDMVehicle.act`` clips it:
+
+        a = a_max (1 - (v / v0)^delta - (d* / d)^2),  d* = d0 + v T + v dv / (2 sqrt(a_max b)),
+
+    with ``d`` the centre-to-centre distance to the vehicle followed (``inf``: none, the free-road term alone), ``dv``
+    the closing speed (ego minus front), ``a_max``/``b`` the comfort acceleration and deceleration. Source: Treiber,
+    Hennecke & Helbing 2000, "Congested traffic states in empirical observations and microscopic simulations", Phys.
+    Rev. E 62, eq. (1)-(2), as highway-env 1.12 writes it (no ``max(0, .)`` on ``d*``; ``d`` at least 0.01 m).
+
+    Args:
+        speed_mps, distance_m, closing_speed_mps: float64 ``[N]`` (m/s, m, m/s).
+    Returns:
+        float64 ``[N]``, m/s^2.
+    """
+    a_max = idm.comfort_acc_max_mps2
+    acc = a_max * (1.0 - np.power(np.maximum(speed_mps, 0.0) / target_speed_mps, idm.delta))
+    ab = -a_max * idm.comfort_acc_min_mps2
+    d_star = idm.distance_wanted_m + speed_mps * idm.time_wanted_s + speed_mps * closing_speed_mps / (2.0 * np.sqrt(ab))
+    acc = acc - a_max * np.power(d_star / np.maximum(distance_m, 0.01), 2)
+    return np.clip(acc, -idm.acc_max_mps2, idm.acc_max_mps2)
+
+
+def acc_control(params: CutInParams, track_x: np.ndarray, track_y: np.ndarray, track_vx: np.ndarray,
+                active: np.ndarray, ego_x_m: np.ndarray,
+                ego_speed_mps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The ego's ACC on the tracked objects: follow the nearest (confirmed) track whose estimated centre is ahead of the
+    ego's centre and within its lane (``|y - y_ego| < lane width / 2``), with :func:`idm_acceleration` at the estimated
+    centre distance and closing speed; the free-road IDM term when none.
+
+    Args:
+        track_x, track_y, track_vx: the tracks' estimates ``[M, N]`` (object-major; m, m, m/s); active: bool ``[M, N]``,
+            the tracks the ACC may follow.
+        ego_x_m, ego_speed_mps: ``[N]``.
+    Returns:
+        (followed int64 ``[N]``: the object followed, -1 when none; acceleration float64 ``[N]``, m/s^2, never below
+        ``-speed / dt`` so that the ego does not reverse).
+    """
+    ahead = track_x - ego_x_m
+    candidate = active & (np.abs(track_y - params.ego_y_m) < LANE_WIDTH_M / 2) & (ahead > 0.0)
+    distance = np.where(candidate, ahead, np.inf)
+    followed = np.argmin(distance, axis=0)
+    rows = np.arange(distance.shape[1])
+    d = distance[followed, rows]
+    has = np.isfinite(d)
+    closing = np.where(has, ego_speed_mps - track_vx[followed, rows], 0.0)
+    accel = idm_acceleration(params.idm, params.ego_target_speed_mps, ego_speed_mps, d, closing)
+    accel = np.maximum(accel, -ego_speed_mps / params.dt_s)
+    return np.where(has, followed, -1), accel

@@ -1,0 +1,203 @@
+"""The cut-in scenario's batched twin: N rollouts advance together in numpy float64.
+
+:class:`~pemviz.scenarios.cut_in_highway.CutInScenario` steps highway-env vehicles one rollout at a time (~0.5 ms a
+step); here the traffic, which never reacts to the ego, is computed once (:func:`cached_trajectory`, with the same
+highway-env vehicles) and shared by every rollout, and the ego, its trackers and its ACC advance for all N rollouts
+with one call of each array function of :mod:`pemviz.scenarios.cut_in_scene` per step.
+
+Same scenario, same arithmetic: the perception, the tracker and the ACC are the very functions the highway-env
+simulator calls with N = 1, and the ego's motion is highway-env ``Vehicle.step``'s explicit Euler update with no
+steering (``x += v dt``, then ``v += a dt``, the acceleration clipped by ``Vehicle.clip_actions``), so for the same
+detections and measurement errors both give the same observations and object rows bit for bit
+(``tests/scenarios/test_cut_in_batched.py``).
+
+Units: metres, seconds, m/s.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from pemviz.scenarios import tracker
+from pemviz.scenarios.cut_in import NOISE_NAMES, OBJECT_NAMES, OBSERVATION_NAMES, CutInParams
+from pemviz.scenarios.cut_in_highway import TrafficTrajectory, traffic_trajectory
+from pemviz.scenarios.cut_in_scene import CameraView, camera_view, decide, object_rows, scene_signals
+
+MAX_SPEED_MPS = 40.0
+"""highway-env's ``Vehicle.MAX_SPEED``: above it ``clip_actions`` caps the acceleration at ``MAX_SPEED - speed``."""
+
+
+@functools.lru_cache(maxsize=8)
+def cached_trajectory(params: CutInParams) -> TrafficTrajectory:
+    """:func:`~pemviz.scenarios.cut_in_highway.traffic_trajectory`, computed once per parameter set."""
+    return traffic_trajectory(params)
+
+
+@dataclass
+class CutInBatchState:
+    """The state of N rollouts at one step (what :meth:`BatchedCutIn.snapshot` keeps): the step, the ego's position,
+    speed and last acceleration ``[N]``, the tracks ``[M, N]`` (object-major) and the object the ACC followed
+    ``[N]``."""
+
+    t: int
+    ego_x_m: np.ndarray
+    ego_speed_mps: np.ndarray
+    ego_accel_mps2: np.ndarray
+    tracks: tracker.Tracks
+    followed: np.ndarray
+
+    def copy(self) -> "CutInBatchState":
+        return CutInBatchState(self.t, self.ego_x_m.copy(), self.ego_speed_mps.copy(), self.ego_accel_mps2.copy(),
+                               self.tracks.copy(), self.followed.copy())  # fmt: skip
+
+    def select(self, rows: np.ndarray) -> "CutInBatchState":
+        """The state of rollouts ``rows`` (int indices, repeats allowed, or a bool mask), copied: restore it on a batch
+        of that many rollouts to continue them (branching, as adaptive multilevel splitting does)."""
+        return CutInBatchState(self.t, self.ego_x_m[rows], self.ego_speed_mps[rows], self.ego_accel_mps2[rows],
+                               self.tracks.select(rows), self.followed[rows])  # fmt: skip
+
+
+class BatchedCutIn:
+    """N cut-in rollouts in lockstep (module docstring).
+
+    Protocol (the batched form of :class:`~pemviz.scenarios.cut_in_highway.CutInScenario`): ``objects()`` float64
+    ``[N, M, G]``, ``observation()`` float64 ``[N, F]``, ``step(detected bool [N, M], noise float64 [N, M, 2] | None)``.
+
+    Raises:
+        ValueError: ``n`` not an integer >= 1.
+    """
+
+    observation_names = OBSERVATION_NAMES
+    object_names = OBJECT_NAMES
+    noise_names = NOISE_NAMES
+
+    def __init__(self, params: CutInParams | None, n: int) -> None:
+        if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
+            raise ValueError(f"BatchedCutIn: n must be an integer >= 1, got {n!r}")
+        self.params = params or CutInParams()
+        self.n = int(n)
+        self.n_objects = self.params.n_objects
+        self._trajectory = cached_trajectory(self.params)
+        self.reset()
+
+    def reset(self) -> None:
+        """Every rollout at the start: the ego at x = 0, no tracks."""
+        p, n = self.params, self.n
+        tracks = tracker.Tracks.empty((p.n_objects, n))
+        self.state = CutInBatchState(0, np.zeros(n), np.full(n, p.ego_speed0_mps), np.zeros(n), tracks,
+                                     np.full(n, -1, dtype=np.int64))  # fmt: skip
+        self._view: CameraView | None = None
+
+    @property
+    def t(self) -> int:
+        return self.state.t
+
+    @property
+    def done(self) -> bool:
+        return self.state.t >= self.params.n_steps
+
+    def view(self) -> CameraView:
+        """The camera's view at this step, ``[M, N]`` arrays (computed once per step)."""
+        if self._view is None:
+            traffic = self._trajectory.traffic[self.state.t]
+            self._view = camera_view(self.params, traffic, self.state.ego_x_m)
+        return self._view
+
+    def objects(self, out: np.ndarray | None = None) -> np.ndarray:
+        """The object rows at this step, float64 ``[N, M, G]``: a view of a column-major array, or ``out`` filled."""
+        s = self.state
+        rows = object_rows(self.params, self._trajectory.traffic[s.t], self.view(), s.ego_x_m, s.ego_speed_mps,
+                           s.ego_accel_mps2, s.tracks, s.followed)  # fmt: skip
+        if out is None:
+            return rows
+        out[...] = rows
+        return out
+
+    def observation(self, out: np.ndarray | None = None) -> np.ndarray:
+        """The scene signals at this step, float64 ``[N, F]`` (into ``out`` when given)."""
+        s = self.state
+        return scene_signals(self.params, self._trajectory.traffic[s.t], s.ego_x_m, s.ego_speed_mps,
+                             s.ego_accel_mps2, s.tracks, s.followed, out=out)  # fmt: skip
+
+    def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
+        """Advance every rollout one step of ``dt`` seconds.
+
+        Args:
+            detected: bool ``[N, M]``; noise: float64 ``[N, M, 2]`` (range, lateral error; metres; read where
+                detected) or None (no error).
+        Raises:
+            RuntimeError: the rollouts are over.
+            ValueError: ``detected`` or ``noise`` of the wrong shape.
+        """
+        p, s = self.params, self.state
+        if self.done:
+            raise RuntimeError(f"BatchedCutIn.step: rollouts over after {p.n_steps} steps; call reset()")
+        detected = np.asarray(detected, dtype=bool)
+        shape = (self.n, p.n_objects)
+        if detected.shape != shape:
+            raise ValueError(f"BatchedCutIn.step: detected must be bool {list(shape)}, got shape {detected.shape}")
+        if noise is not None:
+            noise = np.asarray(noise, dtype=np.float64)
+            if noise.shape != shape + (2,):
+                raise ValueError(f"BatchedCutIn.step: noise must be float64 {list(shape + (2,))} (range, lateral "
+                                 f"error; metres), got shape {noise.shape}")  # fmt: skip
+        tracks, followed, accel = decide(p, self.view(), s.ego_x_m, s.ego_speed_mps, s.tracks, detected.T,
+                                         None if noise is None else noise.transpose(1, 0, 2))  # fmt: skip
+        v = s.ego_speed_mps
+        accel = np.where(v > MAX_SPEED_MPS, np.minimum(accel, MAX_SPEED_MPS - v), accel)  # Vehicle.clip_actions
+        # highway-env Vehicle.step: position += speed * dt, then speed += acceleration * dt.
+        x = s.ego_x_m + v * p.dt_s
+        speed = v + accel * p.dt_s
+        self.state = CutInBatchState(s.t + 1, x, np.maximum(speed, 0.0, out=speed), accel,
+                                     tracker.predict(tracks, p.dt_s, p.tracker), followed)  # fmt: skip
+        self._view = None
+
+    def snapshot(self) -> CutInBatchState:
+        """A copy of the N rollouts' state (the traffic is a function of the step)."""
+        return self.state.copy()
+
+    def restore(self, state: CutInBatchState) -> None:
+        """Put back a :meth:`snapshot` of a batch of the same N (copied again, so it can be restored more than once).
+
+        Raises:
+            ValueError: a snapshot of another batch size.
+        """
+        if state.ego_x_m.shape != (self.n,):
+            raise ValueError(f"BatchedCutIn.restore: snapshot of {state.ego_x_m.shape[0]} rollouts, this batch has "
+                             f"{self.n}")  # fmt: skip
+        self.state = state.copy()
+        self._view = None
+
+
+def replay(params: CutInParams | None, detected: np.ndarray,
+           noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The observations and object rows of rollouts driven by fixed detections and errors (no randomness).
+
+    Args:
+        params: scenario constants (None: :class:`CutInParams` defaults).
+        detected: bool ``[N, T, M]`` with T <= ``params.n_steps``.
+        noise: float64 ``[N, T, M, 2]`` (range, lateral error; metres) or None (no error).
+    Returns:
+        ``(observations float64 [N, T, F], objects float64 [N, T, M, G])``, before each step.
+    Raises:
+        ValueError: shapes other than these.
+    """
+    p = params or CutInParams()
+    detected = np.asarray(detected, dtype=bool)
+    if detected.ndim != 3 or detected.shape[0] < 1 or detected.shape[1] > p.n_steps or detected.shape[2] != p.n_objects:
+        raise ValueError(f"replay: detected must be bool [N >= 1, T <= {p.n_steps}, {p.n_objects}], got shape "
+                         f"{detected.shape}")  # fmt: skip
+    if noise is not None and np.shape(noise) != detected.shape + (2,):
+        raise ValueError(f"replay: noise must be float64 {list(detected.shape + (2,))}, got shape {np.shape(noise)}")
+    n, n_steps, m = detected.shape
+    sim = BatchedCutIn(p, n)
+    obs = np.empty((n, n_steps, len(OBSERVATION_NAMES)))
+    objs = np.empty((n, n_steps, m, len(OBJECT_NAMES)))
+    for t in range(n_steps):
+        obs[:, t] = sim.observation()
+        objs[:, t] = sim.objects()
+        sim.step(detected[:, t], None if noise is None else noise[:, t])
+    return obs, objs
