@@ -31,6 +31,12 @@ SIMULATORS = ("highway-env", "batched")
 """Braking-scenario back-ends (:func:`pemviz.problems.braking_problem`): ``batched`` advances all rollouts together in numpy, ``highway-env`` steps one
 black-box simulator per rollout; the same seed gives the same rollouts on both."""
 
+SCENARIOS = ("braking", "cut-in", "cut-in-rare")
+"""What a run estimates (:func:`pemviz.problems.problem_for`): ``braking``, the paper's scenario (one lead car, a
+closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and measurement
+errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same below 1e-9
+(:mod:`pemviz.scenarios.cut_in`)."""
+
 EXECUTORS = ("serial", "ray")
 """Where rollouts are simulated (:func:`pemviz.executors.get_executor`): ``serial`` in this
 process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same rollouts and estimate, bit for
@@ -280,6 +286,12 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("iid", "one independent uniform per rollout and step (the paper)"))),
     Setting("pem", "the perception error model", "the PEM the rollouts detect with", kind="pem",
             short="PEM", owner=RUN, flags=("--pem",)),
+    Setting("scenario", "the scenario", "what is simulated and whose failure probability is estimated",
+            kind="choice", choices=SCENARIOS, owner=RUN, flags=("--scenario",),
+            choice_help=(("braking", "the paper's: braking behind one lead car, with an exact answer"),
+                         ("cut-in", "a car cutting in on a 3-lane highway, an ACC on a tracker, missed and "
+                                    "mislocated cars; moderately rare"),
+                         ("cut-in-rare", "the same cut-in from further back: far rarer"))),
     Setting("sim", "the simulator", "the braking scenario's back-end; a seed gives the same rollouts on both",
             kind="choice", choices=SIMULATORS, short="simulator", owner=RUN, flags=("--sim",),
             choice_help=(("highway-env", "one highway-env simulator per rollout"),
@@ -390,6 +402,7 @@ class ExperimentConfig:
             The rollouts of a batch are no longer independent: an interval computed as if they were is
             conservative. ``ams`` draws its particles and continuations i.i.d.
         pem: path of PEM weights, or None for the shipped default.
+        scenario: what is simulated, one of :data:`SCENARIOS`.
         sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
         executor: where rollouts are simulated, one of :data:`EXECUTORS`.
         ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
@@ -480,6 +493,7 @@ class ExperimentConfig:
     pool_weights: str = "quadratic"
     uniforms: str = "array-rqmc"
     pem: str | None = None
+    scenario: str = "braking"
     sim: str = "batched"
     executor: str = "serial"
     ray_address: str | None = None
@@ -515,6 +529,8 @@ class ExperimentConfig:
                 raise ConfigError(f"{SETTINGS[name].title} = {getattr(self, name)!r} is invalid: {allowed}", name)
 
         need(self.ray_address is None or self.executor == "ray", "ray_address", "give it only with executor = 'ray'")
+        need(self.scenario == "braking" or self.sim == "batched", "scenario",
+             "the cut-in runs on its batched twin only; use sim = 'batched'")
         need(self.target_share + self.plain_share <= 1.0, "target_share", "target_share + plain_share must be <= 1")
         need(self.method != "adaptive" or self.target_share + self.plain_share == 0.0 or (
             self.weights == "frozen" and (self.weights_until_failure or self.proposal_window)), "target_share",

@@ -228,7 +228,7 @@ class StageSamplers:
             return self._logits
         p = np.asarray(self.target_detector.detect_logit(obs), dtype=np.float64)
         gap = obs[:, GAP_COLUMN]
-        near = gap < self.radius_m
+        near = (gap < self.radius_m) & np.isfinite(p)  # where the target is certain (an unseen object) it decides
         if self.floor_m > -math.inf:
             near &= gap >= self.floor_m
         plain = p.copy()

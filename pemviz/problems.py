@@ -25,6 +25,7 @@ from pemviz.scenarios import RolloutBatch, branch, branch_rollouts, iter_rollout
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
+from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams
 from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
 from pemviz.truth import known_log_failure_probability
 
@@ -135,6 +136,9 @@ class Problem:
         units: STL signal name -> unit, for sinks.
         thresholds: the failure threshold and sampler window that sinks draw (None: none).
         scene: the braking scenario's constants when the rollouts can be drawn as its scene (None: no scene).
+        curve_rows: the object rows at which the target's curve is drawn, ``curve_rows(grid [G]) -> [G, cols]`` with
+            ``grid`` in the first column (None: rows of zeros but for that column, enough for a detector that reads
+            the gap alone).
     """
 
     name: str
@@ -154,6 +158,7 @@ class Problem:
     units: Mapping[str, str] = field(default_factory=lambda: dict(BRAKING_UNITS))
     thresholds: Thresholds | None = None
     scene: BrakingParams | None = None
+    curve_rows: Callable[[np.ndarray], np.ndarray] | None = None
 
     @property
     def view(self) -> ProblemView:
@@ -181,6 +186,8 @@ class Problem:
 
     def target_curve(self) -> np.ndarray:
         """p_target(detect | h) on :attr:`curve_grid`, float64 [G]."""
+        if self.curve_rows is not None:
+            return expit(self.target.detect_logit(self.curve_rows(self.curve_grid)))
         obs = np.zeros((self.curve_grid.size, 1 + max(2, len(self.signals))))
         obs[:, 0] = self.curve_grid
         return expit(self.target.detect_logit(obs))
@@ -295,6 +302,106 @@ def crowd_problem(params: CrowdParams | None = None, name: str | None = None) ->
     )  # fmt: skip
 
 
+CUT_IN_WINDOW_M = 40.0
+"""The cut-in problem's window on an object's range (metres): the proposal replaces the PEMs for the cars nearer
+than this. The ACC of the cut-in scenario reacts within about 2 s at 25 m/s, so a car further away can be seen in
+time whatever the camera does; outside the window, a rollout's objects are drawn from the PEMs themselves."""
+
+CUT_IN_SIGNALS = {"margin": "safe_margin_m", "grace": "cut_in_recent", "clearance": "clearance_m"}
+"""STL signal name -> cut-in rollout observation column (:data:`pemviz.scenarios.cut_in.OBSERVATION_NAMES`)."""
+
+CUT_IN_FORMULA = "G((margin + 1000 * grace >= 0) & (clearance >= 0))"
+"""The cut-in failure over :data:`CUT_IN_SIGNALS`: R_G1 of Maierhofer et al. 2020, waived after a cut-in, and no
+collision; robustness in metres. Under classic semantics it is :data:`pemviz.scenarios.cut_in.FAILURE_FORMULA`
+(``G a & G b`` = ``G (a & b)``), written as one safety formula ``G(state predicate)``, whose first violation stops the
+importance weights and which adaptive multilevel splitting needs."""
+
+
+def cut_in_params(setting: str) -> CutInParams:
+    """The cut-in scenario at a named rarity setting (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`: ``moderate``,
+    ``rare``).
+
+    Raises:
+        ValueError: an unknown setting.
+    """
+    if setting not in RARITY_SETTINGS:
+        raise ValueError(f"unknown cut-in setting {setting!r}; use one of {', '.join(RARITY_SETTINGS)}")
+    return CutInParams(**RARITY_SETTINGS[setting])
+
+
+def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object | None = None,
+                   name: str = "cut-in") -> Problem:  # fmt: skip
+    """The cut-in scenario (:mod:`pemviz.scenarios.cut_in`) as a :class:`Problem` on its batched twin
+    (:class:`~pemviz.scenarios.cut_in_batched.BatchedCutIn`): M cars, each detected by ``pem`` from its 11 KITTI
+    salient variables and, when detected, mislocated in range and laterally by the noise PEM ``noise``
+    (:class:`pemviz.pem.perception.SalientDetector`); a car the camera cannot see is never detected. The failure is
+    a negative classic robustness of :data:`CUT_IN_FORMULA` (Innes & Ramamoorthy, "Adaptive Splitting of Reusable
+    Temporal Monitors for Rare Traffic Violations", arXiv 2405.15771: a cut-in, the rule R_G1). The proposal reads
+    each car's object row (its range first, scaled by 50 m) within :data:`CUT_IN_WINDOW_M`. No exact answer is
+    known; plain Monte Carlo of the same twin gives the reference (``benchmarks/cut_in_mc.py``).
+
+    Args:
+        pem: the detection PEM (``pemviz.pem.load_pem()``).
+        params: the scenario (default: the ``moderate`` setting, about 9e-5).
+        noise: the noise PEM (default: the shipped ``hetero-t``).
+    """
+    from pemviz.pem.perception import SalientDetector
+    from pemviz.pem.store import load_noise_pem
+    from pemviz.scenarios.cut_in import NOISE_NAMES, OBJECT_NAMES, SALIENT_COLUMNS
+    from pemviz.scenarios.cut_in_batched import BatchedCutIn, cached_trajectory
+
+    p = params if params is not None else cut_in_params("moderate")
+    cached_trajectory(p)
+    detector = SalientDetector(pem, SALIENT_COLUMNS, load_noise_pem("hetero-t") if noise is None else noise,
+                               NOISE_NAMES, OBJECT_NAMES.index("visible"))  # fmt: skip
+
+    def make(n: int) -> BatchedCutIn:
+        return BatchedCutIn(p, n)
+
+    ahead = _car_ahead_row(make(1), p)
+
+    def curve_rows(grid: np.ndarray) -> np.ndarray:
+        """The cut-in car straight ahead in the ego's lane, unoccluded, at each range of ``grid`` (metres)."""
+        rows = np.tile(ahead, (np.size(grid), 1))
+        scale = np.asarray(grid, dtype=np.float64) / ahead[0]
+        for name in ("loc_x", "loc_z", "range_m"):
+            rows[:, OBJECT_NAMES.index(name)] *= scale
+        return rows
+
+    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
+        return simulate_rollouts(make, n, p.n_steps, sampler, target, rng)
+
+    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
+        return iter_rollouts(make, n, p.n_steps, sampler, target, rng)
+
+    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
+               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+        return branch_rollouts(make, parents, parent, at, target, rng)
+
+    return Problem(
+        name, run, detector, stl.parse(CUT_IN_FORMULA), signals=dict(CUT_IN_SIGNALS),
+        units={"margin": "m", "grace": "", "clearance": "m"},
+        signal_ranges={"margin": (-60.0, 200.0), "grace": (0.0, 1.0), "clearance": (-10.0, 200.0)},
+        h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
+        stream=stream, branch=resume, curve_rows=curve_rows,
+        description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
+                     f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),
+    )  # fmt: skip
+
+
+def _car_ahead_row(sim: object, p: CutInParams) -> np.ndarray:
+    """Object 0's row [G] once it has cut in (every car detected exactly): the cut-in car ahead in the ego's lane."""
+    from pemviz.scenarios.cut_in import OBJECT_NAMES
+
+    lane = OBJECT_NAMES.index("in_ego_lane")
+    for _ in range(p.n_steps):
+        row = sim.objects()[0, 0]
+        if row[lane] > 0.5 and sim.t > p.cut_in_step + round(p.cut_in_lateral_time_s / p.dt_s):
+            break
+        sim.step(np.ones((1, p.n_objects), bool), np.zeros((1, p.n_objects, 2)))
+    return np.array(row, dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class ShiftedPEM:
     """A PEM whose detection logit is moved by ``shift`` (nats) at every gap: ``logit p'(detect | d) = logit
@@ -358,10 +465,13 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
 
 
 def problem_for(config: ExperimentConfig) -> Problem:
-    """The problem a run of ``config`` estimates: the braking scenario with the PEM ``config.pem`` (None: the shipped
-    one) on the simulator ``config.sim``. Loads the PEM on every call (a changed file is read again).
+    """The problem a run of ``config`` estimates: the scenario ``config.scenario`` (:data:`pemviz.config.SCENARIOS`)
+    with the PEM ``config.pem`` (None: the shipped one); the braking scenario on the simulator ``config.sim``. Loads the PEM on every call (a changed file is read again).
 
     Raises:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
     """
-    return braking_problem(load_pem(config.pem), sim=config.sim)
+    if config.scenario == "braking":
+        return braking_problem(load_pem(config.pem), sim=config.sim)
+    return cut_in_problem(load_pem(config.pem), cut_in_params("rare" if config.scenario == "cut-in-rare" else
+                                                              "moderate"), name=config.scenario)  # fmt: skip

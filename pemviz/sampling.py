@@ -119,10 +119,18 @@ class NoiseShift(nn.Module):
         nn.init.zeros_(self.net.weight)
         nn.init.zeros_(self.net.bias)
 
+    SHIFT_MAX = 4.0
+    """The largest location shift |a| (in the target's scales): a soft bound, ``a = 4 tanh(linear / 4)``."""
+    LOG_SCALE_MAX = 1.5
+    """The largest log-scale change |b| (nats: the scale at most 4.5 times the target's or its 4.5th), soft as ``a``:
+    a few elites must not fit a density that puts errors the target never makes on a row outside their span."""
+
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(a [R, D], b [R, D]) at the network's inputs x [R, k] (:meth:`Proposal.inputs`)."""
+        """(a [R, D], b [R, D]) at the network's inputs x [R, k] (:meth:`Proposal.inputs`), each softly bounded
+        (:attr:`SHIFT_MAX`, :attr:`LOG_SCALE_MAX`)."""
         out = self.net(x)
-        return out[:, : self.n_noise], out[:, self.n_noise :]
+        a, b = out[:, : self.n_noise], out[:, self.n_noise :]
+        return self.SHIFT_MAX * torch.tanh(a / self.SHIFT_MAX), self.LOG_SCALE_MAX * torch.tanh(b / self.LOG_SCALE_MAX)
 
 
 def _standard_log_density(family: str, df: np.ndarray | None, z: torch.Tensor) -> torch.Tensor:

@@ -32,7 +32,7 @@ from pemviz.resources import check_run_memory
 
 
 RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_level", "smoothing", "metric", "seed",
-                "ce_epochs", "pem", "sim", "executor", "ray_address")
+                "ce_epochs", "pem", "scenario", "sim", "executor", "ray_address")
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 

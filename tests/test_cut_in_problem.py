@@ -1,0 +1,95 @@
+"""The cut-in scenario as a problem: its detector (the PEMs on each car's salient variables), its failure formula,
+the samplers' treatment of cars the camera cannot see, and ``pemviz run --scenario cut-in``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import log_expit
+
+from conftest import run_cli
+from pemviz import stl
+from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.detectors import StageSamplers
+from pemviz.pem import load_pem
+from pemviz.pem.store import load_noise_pem
+from pemviz.problems import cut_in_params, cut_in_problem
+from pemviz.scenarios.cut_in import FAILURE_FORMULA, OBJECT_NAMES, OBSERVATION_NAMES, SALIENT_COLUMNS
+
+VISIBLE = OBJECT_NAMES.index("visible")
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return cut_in_problem(load_pem(), cut_in_params("moderate"))
+
+
+@pytest.fixture(scope="module")
+def batch(problem):
+    """200 rollouts under the PEMs themselves (plain Monte Carlo), seed 3."""
+    return problem.simulate(200, problem.target, problem.target, np.random.default_rng(3))
+
+
+def test_the_detector_is_the_pems_on_the_salient_columns_and_blind_to_unseen_cars(problem, batch):
+    rows = batch.objects.reshape(-1, len(OBJECT_NAMES))
+    seen = rows[:, VISIBLE] > 0.5
+    assert seen.any() and (~seen).any()
+    pem, noise = load_pem(), load_noise_pem("hetero-t")
+    logit = problem.target.detect_logit(rows)
+    np.testing.assert_allclose(logit[seen], pem.logit(rows[seen][:, SALIENT_COLUMNS]), rtol=1e-9, atol=1e-12)  # the same network, rows batched differently
+    assert np.all(logit[~seen] == -np.inf)
+    errors = np.random.default_rng(0).standard_normal((seen.sum(), 2)) * 0.3
+    features = noise.features(rows[seen][:, SALIENT_COLUMNS])
+    np.testing.assert_allclose(problem.target.noise_log_prob(rows[seen], errors), noise.log_prob(features, errors),
+                               rtol=1e-9, atol=1e-12)  # fmt: skip
+
+
+def test_under_the_pems_an_unseen_car_is_never_detected_and_the_weights_are_one(problem, batch):
+    seen = batch.objects[..., VISIBLE] > 0.5
+    assert not (batch.detected & ~seen).any()
+    assert batch.noise.shape == batch.detected.shape + (2,)
+    assert np.all(batch.noise[~batch.detected] == 0.0)
+    np.testing.assert_array_equal(batch.log_p, batch.log_q)
+    # log p of a step is the sum over its cars of log p(a | x) and, where detected, log p(errors | x)
+    rows = batch.objects[0, 20]
+    det = batch.detected[0, 20]
+    logit = problem.target.detect_logit(rows)
+    want = np.where(det, log_expit(logit), log_expit(-logit)).sum()
+    if det.any():
+        want += problem.target.noise_log_prob(rows[det], batch.noise[0, 20][det]).sum()
+    assert batch.log_p[0, 20] == pytest.approx(want, rel=1e-12)
+
+
+def test_a_proposal_cannot_detect_where_the_target_is_certain(problem, batch):
+    class Eager:  # a proposal that detects every car with probability 1 - 4.5e-5
+        def detect_logit(self, obs):
+            return np.full(len(obs), 10.0)
+
+    rows = batch.objects.reshape(-1, len(OBJECT_NAMES))
+    samplers = StageSamplers(Eager(), problem.target, radius_m=problem.window)
+    target, plain, _ = samplers.logits(rows)
+    unseen = rows[:, VISIBLE] < 0.5
+    assert np.all(plain[unseen] == -np.inf)
+    near = ~unseen & (rows[:, 0] < problem.window)
+    assert near.any() and np.all(plain[near] == 10.0)
+    np.testing.assert_array_equal(plain[~near], target[~near])
+
+
+def test_the_problem_formula_fails_exactly_where_the_scenarios_formula_does(problem, batch):
+    signals = {name: batch.signal(name) for name in OBSERVATION_NAMES}
+    theirs = stl.robustness(FAILURE_FORMULA, signals, semantics="classic")
+    ours = problem.robustness(batch, "classic")
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-12)
+    assert problem.failed(batch).tolist() == (np.asarray(theirs) < 0).tolist()
+
+
+def test_the_cut_in_runs_on_its_twin_only():
+    with pytest.raises(ConfigError, match="batched twin only"):
+        ExperimentConfig(scenario="cut-in", sim="highway-env")
+
+
+def test_pemviz_run_scenario_cut_in_estimates_and_says_so(tmp_path):
+    proc = run_cli("run", "--scenario", "cut-in", "--method", "mc", "--n", "300", "--seed", "1", "--no-record")
+    assert proc.returncode == 0, proc.stderr
+    assert "mc on the cut-in scenario" in proc.stdout + proc.stderr
+    assert "from 300 simulations" in proc.stdout
