@@ -268,6 +268,24 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
     )
 
 
+def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:
+    """A :class:`Problem`'s ``simulate``, ``stream`` and ``branch`` for a batched simulator ``make(n)`` (n rollouts at
+    their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.scenarios.simulate_rollouts`,
+    :func:`~pemviz.scenarios.iter_rollouts`, :func:`~pemviz.scenarios.branch_rollouts`)."""
+
+    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
+        return simulate_rollouts(make, n, n_steps, sampler, target, rng)
+
+    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
+        return iter_rollouts(make, n, n_steps, sampler, target, rng)
+
+    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
+               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+        return branch_rollouts(make, parents, parent, at, target, rng)
+
+    return run, stream, resume
+
+
 def crowd_problem(params: CrowdParams | None = None, name: str | None = None) -> Problem:
     """The crowd toy (:mod:`pemviz.scenarios.crowd`) as a :class:`Problem`: M obstacles, each detected and mislocated
     per step; failure = classic robustness of ``G[0,T-1](d >= safe)`` below 0 on the nearest distance; the proposal
@@ -278,15 +296,7 @@ def crowd_problem(params: CrowdParams | None = None, name: str | None = None) ->
     def make(n: int) -> BatchedCrowd:
         return BatchedCrowd(p, n)
 
-    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
-        return simulate_rollouts(make, n, p.steps, sampler, target, rng)
-
-    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
-        return iter_rollouts(make, n, p.steps, sampler, target, rng)
-
-    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
-               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
-        return branch_rollouts(make, parents, parent, at, target, rng)
+    run, stream, resume = rollout_functions(make, p.steps)
 
     far = p.total + max(p.offsets)
     return Problem(
@@ -364,19 +374,11 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         """The cut-in car straight ahead in the ego's lane, unoccluded, at each range of ``grid`` (metres)."""
         rows = np.tile(ahead, (np.size(grid), 1))
         scale = np.asarray(grid, dtype=np.float64) / ahead[0]
-        for name in ("loc_x", "loc_z", "range_m"):
-            rows[:, OBJECT_NAMES.index(name)] *= scale
+        for column in ("loc_x", "loc_z", "range_m"):
+            rows[:, OBJECT_NAMES.index(column)] *= scale
         return rows
 
-    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
-        return simulate_rollouts(make, n, p.n_steps, sampler, target, rng)
-
-    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
-        return iter_rollouts(make, n, p.n_steps, sampler, target, rng)
-
-    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
-               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
-        return branch_rollouts(make, parents, parent, at, target, rng)
+    run, stream, resume = rollout_functions(make, p.n_steps)
 
     return Problem(
         name, run, detector, stl.parse(CUT_IN_FORMULA), signals=dict(CUT_IN_SIGNALS),

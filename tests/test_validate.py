@@ -151,3 +151,11 @@ def test_tables_recording_holds_fig4_as_the_mean_of_the_stage_3_curves(tmp_path)
     reps = [series(f"curves/adaptive_100/rep_{r:02d}/stage_03") for r in range(2)]
     np.testing.assert_allclose(series("fig4/classic"), (reps[0] + reps[1]) / 2, rtol=1e-12)
     assert series("fig4/pem").size == reps[0].size == toy_problem(ToyParams(10, 5, 3, 0.9)).curve_grid.size
+
+
+def test_every_named_problem_has_its_exact_answer_for_validate():
+    from pemviz.problems import PROBLEMS, build_problem
+    from pemviz.studies.validation import exact_answer
+
+    for name in PROBLEMS:
+        assert exact_answer(name).log_p_fail == pytest.approx(build_problem(name).exact_log_p, rel=1e-9), name

@@ -33,9 +33,10 @@ from pemviz.events import RunFinished
 from pemviz.io.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.presets import PRESETS
-from pemviz.problems import PROBLEMS, TOY_PROBLEMS, build_problem
+from pemviz.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.crowd import crowd_log_failure_probability
 from pemviz.scenarios.toy import toy_log_failure_probability
 
 DEFAULT_PROBLEMS = ("toy", "toy-1e-30", "latched", "main")
@@ -71,6 +72,10 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
         log_p = toy_log_failure_probability(params)
         q, n = 1 - params.p_detect, params.braking - params.safe + 1
         return ExactAnswer(log_p, f"closed form (1 - p)^(braking - safe + 1) = {q:g}^{n}")
+    if name in CROWD_PROBLEMS:
+        params = CROWD_PROBLEMS[name]
+        return ExactAnswer(crowd_log_failure_probability(params),
+                           f"closed form over {len(params.offsets)} obstacles' independent triggers")  # fmt: skip
     if name not in ("latched", "main"):
         raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")
     pem = load_pem(pem_path)
