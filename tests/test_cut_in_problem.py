@@ -93,3 +93,11 @@ def test_pemviz_run_scenario_cut_in_estimates_and_says_so(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "mc on the cut-in scenario" in proc.stdout + proc.stderr
     assert "from 300 simulations" in proc.stdout
+
+
+def test_save_rollouts_refuses_the_cut_in_before_it_runs(tmp_path):
+    out = tmp_path / "r.parquet"
+    proc = run_cli("run", "--scenario", "cut-in", "--no-record", "--save-rollouts", str(out))
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "one object per step" in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists() and not list(tmp_path.iterdir())
