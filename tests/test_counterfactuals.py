@@ -1,0 +1,73 @@
+"""Counterfactuals of a failing rollout: each perception error undone alone, checked against independent replays
+(the braking scenario's own single flips; the cut-in's highway-env simulator)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pemviz import stl
+from pemviz.counterfactuals import ERROR, MISS, counterfactuals
+from pemviz.detectors import ConstantDetector
+from pemviz.pem import load_pem
+from pemviz.problems import build_problem, cut_in_params, cut_in_problem
+from pemviz.scenarios.braking_failures import counterfactual as braking_counterfactual
+from pemviz.scenarios.cut_in import FAILURE_FORMULA, OBSERVATION_NAMES
+from pemviz.scenarios.cut_in_highway import CutInScenario
+
+
+def test_braking_single_flips_are_the_braking_scenarios_own():
+    problem = build_problem("main")
+    batch = problem.simulate(64, ConstantDetector(0.5), problem.target, np.random.default_rng(11))
+    failed = np.flatnonzero(problem.failed(batch))
+    assert failed.size >= 5
+    seen_decisive = 0
+    for i in failed[:8]:
+        cf = counterfactuals(problem, batch, int(i))
+        theirs = braking_counterfactual(batch.detected[i, :, 0])
+        assert [x.step for x in cf.decisive] == theirs.decisive.tolist()
+        assert all(x.kind == MISS and x.obj == 0 for x in cf.interventions)
+        before = np.flatnonzero(~batch.detected[i, : cf.failure_step, 0])
+        assert [x.step for x in cf.interventions] == before.tolist()
+        seen_decisive += len(cf.decisive)
+    assert seen_decisive > 0  # the comparison covered decisive misses, not only empty sets
+
+
+def test_a_rollout_that_did_not_fail_is_refused():
+    problem = build_problem("main")
+    batch = problem.simulate(8, problem.target, problem.target, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="did not fail"):
+        counterfactuals(problem, batch, 0)
+
+
+@pytest.fixture(scope="module")
+def cut_in_failure():
+    """A failing cut-in rollout drawn with many misses (a 50 % detector) and the PEMs' errors."""
+    problem = cut_in_problem(load_pem(), cut_in_params("moderate"))
+    batch = problem.simulate(64, ConstantDetector(0.5), problem.target, np.random.default_rng(2))
+    failed = np.flatnonzero(problem.failed(batch))
+    assert failed.size
+    return problem, batch, int(failed[0])
+
+
+def test_cut_in_interventions_replayed_on_highway_env_give_the_same_robustness(cut_in_failure):
+    problem, batch, i = cut_in_failure
+    cf = counterfactuals(problem, batch, i)
+    kinds = {x.kind for x in cf.interventions}
+    assert kinds == {MISS, ERROR}
+    sim = CutInScenario(cut_in_params("moderate"))
+    picks = [x for x in cf.interventions if x.decisive][:2] + [x for x in cf.interventions if not x.decisive][:2]
+    for x in picks:
+        detected, noise = batch.detected[i].copy(), batch.noise[i].copy()
+        if x.kind == MISS:
+            detected[x.step, x.obj] = True
+        noise[x.step, x.obj] = 0.0
+        sim.reset()
+        obs = np.empty((batch.n_steps, len(OBSERVATION_NAMES)))
+        for t in range(batch.n_steps):
+            obs[t] = sim.observation()
+            sim.step(detected[t], noise[t])
+        rho = float(stl.robustness(FAILURE_FORMULA, {n: obs[:, k] for k, n in enumerate(OBSERVATION_NAMES)}))
+        assert rho == pytest.approx(x.robustness, abs=1e-9)
+    line = cf.summary(dt_s=0.1)
+    assert f"before the failure at step {cf.failure_step}" in line
