@@ -130,3 +130,24 @@ def counterfactuals(problem, batch: RolloutBatch, index: int, *, max_interventio
     out = tuple(Intervention(t, m, kind, tuple(float(e) for e in one.noise[0, t, m]) if kind == ERROR else (),
                              float(r)) for (t, m, kind), r in zip(candidates, rho_k))  # fmt: skip
     return Counterfactuals(index, rho, t_fail, out)
+
+
+class MostLikelyFailure:
+    """A run's listener that keeps its most likely failure: of every failing rollout the run's events carry
+    (:class:`pemviz.events.RolloutsSampled`), the one with the largest log p under the target (nats, summed over its
+    steps), as a batch of one rollout (``batch``, with ``stage`` and ``log_p``; None until a failure is seen)."""
+
+    def __init__(self) -> None:
+        self.batch: RolloutBatch | None = None
+        self.stage: int | None = None
+        self.log_p = -np.inf
+
+    def __call__(self, event: object) -> None:
+        from pemviz.events import RolloutsSampled
+
+        if not isinstance(event, RolloutsSampled) or not np.any(event.failed):
+            return
+        log_p = np.where(event.failed, event.batch.log_p.sum(axis=1), -np.inf)
+        i = int(np.argmax(log_p))
+        if log_p[i] > self.log_p:
+            self.batch, self.stage, self.log_p = event.batch.select(np.array([i])), event.stage, float(log_p[i])

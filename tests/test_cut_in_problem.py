@@ -101,3 +101,11 @@ def test_save_rollouts_refuses_the_cut_in_before_it_runs(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "one object per step" in proc.stderr and "Traceback" not in proc.stderr
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_a_cut_in_run_says_which_errors_decided_its_most_likely_failure():
+    proc = run_cli("run", "--scenario", "cut-in", "--k", "2", "--n", "100", "--n-final", "200", "--no-record")
+    assert proc.returncode == 0, proc.stderr
+    why = [line for line in proc.stdout.splitlines() if line.startswith("why: the most likely failure")]
+    assert len(why) == 1 and "before the failure at step" in why[0]
+    assert "decisive alone: object 0" in why[0] or "none of them alone decides it" in why[0]

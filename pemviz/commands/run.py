@@ -243,6 +243,7 @@ def main(args: argparse.Namespace) -> int:
         args.url = probe_viewer(args.url)
 
     from pemviz import engine
+    from pemviz.counterfactuals import MostLikelyFailure, counterfactuals
     from pemviz.problems import problem_for
     from pemviz.sampling import torch_threads
     from pemviz.scenarios.braking import BrakingParams
@@ -270,6 +271,9 @@ def main(args: argparse.Namespace) -> int:
     if rollout_sink is not None:
         listeners.append(rollout_sink)
     experiment.listeners[:0] = listeners
+    likely = MostLikelyFailure() if problem.view.scene is None and problem.branch is not None else None
+    if likely is not None:  # a scene without the braking scenario's own explanation: say which errors decided
+        experiment.listeners.append(likely)
     try:
         with torch_threads(1):
             experiment.run()
@@ -288,6 +292,9 @@ def main(args: argparse.Namespace) -> int:
     if rollout_sink is not None and rollout_sink.written is not None:
         for path in rollout_files(rollout_sink.written):
             print(f"rollouts: {path}", file=sys.stderr)
+    if likely is not None and likely.batch is not None and likely.batch.objects is not None:
+        cf = counterfactuals(problem, likely.batch, 0)
+        print(f"why: the most likely failure (stage {likely.stage}, log p {likely.log_p:.1f} nats): {cf.summary()}")
     if target == "serve":
         try:  # entered before the line is printed: a Ctrl-C sent as soon as it is read still ends the serving
             print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
