@@ -148,7 +148,7 @@ OUT = {"stages": SHOTS / "rerun_recording.png", "rollouts": SHOTS / "rerun_recor
 """Where each tab's screenshot goes by default."""
 
 
-def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path) -> tuple[Path, Path | None]:
+def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path, scenario: str = "braking") -> tuple[Path, Path | None]:
     """(recording, blueprint) to show ``tab``: the recording itself for its own default (``stages``); else a copy
     without its blueprint (``folder/data.rrd``, so that no blueprint competes with ours, whatever the order the
     viewer receives them in) and the recording's layout with ``tab`` open, its timeline selected and paused (so that
@@ -167,7 +167,13 @@ def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path) -> tuple[Path
         reader.stream(store=store).write_rrd(data, application_id=store.application_id,
                                              recording_id=store.recording_id)  # fmt: skip
     path = folder / f"{tab}.rbl"
-    default_blueprint(n_lanes, None, tab=tab, paused=True).save(APP_ID, str(path))
+    view = None
+    if scenario != "braking":  # that scenario's views (e.g. the cut-in's objects)
+        from pemviz.config import ExperimentConfig
+        from pemviz.problems import problem_for
+
+        view = problem_for(ExperimentConfig(scenario=scenario)).view
+    default_blueprint(n_lanes, view, tab=tab, paused=True).save(APP_ID, str(path))
     return data, path
 
 
@@ -178,6 +184,7 @@ def main() -> int:
     ap.add_argument("--rrd", type=Path, default=None, help="recording to show (default: run pemviz's defaults first)")
     ap.add_argument("--tab", choices=(*TABS, "all"), default="stages", help="the tab to show (all: one PNG each)")
     ap.add_argument("--out", type=Path, default=None, help="PNG to write (one --tab only; default: assets/screenshots)")
+    ap.add_argument("--scenario", default="braking", help="the recording's scenario (its views; default braking)")
     ap.add_argument("--lanes", type=int, default=12, help="scene lanes of the recording (its stages; default run: 12)")
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=1000)
@@ -198,7 +205,7 @@ def main() -> int:
             out = args.out or OUT[tab]
             out.parent.mkdir(parents=True, exist_ok=True)
             step = None if args.step < 0 or TIMELINE[tab] != "step" else args.step
-            shown, blueprint = tab_recording(rrd, tab, args.lanes, Path(tmp))
+            shown, blueprint = tab_recording(rrd, tab, args.lanes, Path(tmp), args.scenario)
             screenshot(shown, out, args.width, args.height, args.min_wait, args.max_wait, step, blueprint)
     return 0
 

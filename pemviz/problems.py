@@ -94,6 +94,10 @@ class ProblemView:
         thresholds: the failure threshold and the sampler window to draw beside the rollouts, or None (none known).
         scene: the braking scenario's constants (car sizes, camera, dt) to draw its rollouts as a scene, or None:
             the problem has no scene (the toys), and no cars, braking distance or crash gap are drawn.
+        objects_xy: the object-row columns of each object's position seen from the ego (metres: to the right,
+            ahead), to draw a scene of several objects from its rollouts' rows; None: none.
+        noise_xy: the measurement-error components along those two directions (indexes into the noise, metres),
+            to draw where each detected object was measured; None: no errors, or none along them.
     """
 
     name: str
@@ -101,6 +105,8 @@ class ProblemView:
     signals: tuple[SignalView, ...]
     thresholds: Thresholds | None = None
     scene: BrakingParams | None = None
+    objects_xy: tuple[str, str] | None = None
+    noise_xy: tuple[int, int] | None = None
 
     @property
     def signal_names(self) -> tuple[str, ...]:
@@ -136,6 +142,8 @@ class Problem:
         units: STL signal name -> unit, for sinks.
         thresholds: the failure threshold and sampler window that sinks draw (None: none).
         scene: the braking scenario's constants when the rollouts can be drawn as its scene (None: no scene).
+        objects_xy, noise_xy: where sinks find each object's position and its measurement error
+            (:class:`ProblemView`); None: not drawn.
         curve_rows: the object rows at which the target's curve is drawn, ``curve_rows(grid [G]) -> [G, cols]`` with
             ``grid`` in the first column (None: rows of zeros but for that column, enough for a detector that reads
             the gap alone).
@@ -159,12 +167,15 @@ class Problem:
     thresholds: Thresholds | None = None
     scene: BrakingParams | None = None
     curve_rows: Callable[[np.ndarray], np.ndarray] | None = None
+    objects_xy: tuple[str, str] | None = None
+    noise_xy: tuple[int, int] | None = None
 
     @property
     def view(self) -> ProblemView:
         """The problem as sinks show it: name, description, signals with units, thresholds, scene."""
         signals = tuple(SignalView(n, c, self.units.get(n, "")) for n, c in self.signals.items())
-        return ProblemView(self.name, self.description or self.name, signals, self.thresholds, self.scene)
+        return ProblemView(self.name, self.description or self.name, signals, self.thresholds, self.scene,
+                           self.objects_xy, self.noise_xy)  # fmt: skip
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""
@@ -385,7 +396,8 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         units={"margin": "m", "grace": "", "clearance": "m"},
         signal_ranges={"margin": (-60.0, 200.0), "grace": (0.0, 1.0), "clearance": (-10.0, 200.0)},
         h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
-        stream=stream, branch=resume, curve_rows=curve_rows,
+        stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"),
+        noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")),
         description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
                      f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),
     )  # fmt: skip

@@ -29,6 +29,8 @@ from pemviz.sinks.console import ConsoleSink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.rerun_views import (  # noqa: E402
     CRASH_RGBA,
+    DETECTED_RGBA,
+    MISSED_RGBA,
     PROPOSAL_FIG,
     SAFE_RGBA,
     TAG_CRASH_RGBA,
@@ -533,3 +535,25 @@ def test_the_share_of_failures_with_contact_per_stage(runs):
     share = dict(zip(stages, column(tables["stage"], "/stages/contact_share:Scalars:scalars")))
     low = ev.batch.gap_m[ev.failed].min(axis=1)
     assert share[ev.stage] == [pytest.approx(np.mean(low <= 0.7))]
+
+
+def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_where_it_was_measured(tmp_path):
+    from pemviz.scenarios.cut_in import OBJECT_NAMES
+
+    cfg = ExperimentConfig(scenario="cut-in", n_stages=2, n_per_stage=60, n_final=60, ce_epochs=30, pretrain_epochs=50,
+                           pretrain_rollouts=60, seed=1)  # fmt: skip
+    events, _ = record(tmp_path / "cut_in.rrd", cfg)
+    failures = [e for e in events if isinstance(e, RolloutsSampled) and e.failed.any()]
+    assert failures, "the run found no failure to explain"
+    step = read({"c": tmp_path / "cut_in.rrd"})["c"]["step"]
+    true = [p for p in column(step, "/explain/objects/true:Points2D:positions") if p]
+    m = 5
+    assert len(true) == 100 and all(len(p) == m for p in true)
+    measured = [p for p in column(step, "/explain/objects/measured:Points2D:positions") if p is not None]
+    colours = [c for c in column(step, "/explain/objects/true:Points2D:colors") if c]
+    green, orange = packed(DETECTED_RGBA), packed(MISSED_RGBA)
+    n_green = sum(c.count(green) for c in colours)
+    assert n_green == sum(len(p) for p in measured) > 0  # one measurement per detected object and step
+    assert sum(c.count(orange) for c in colours) > 0
+    assert any(c.startswith("/explain/detect/object_4/") for c in step.column_names)
+    assert "visible" in OBJECT_NAMES

@@ -99,10 +99,14 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
     first = signals[0]
     scene = view is None or view.scene is not None
     e = f"/{EXPLAIN_PATH}"
+    several = view is not None and view.objects_xy is not None
     detect = rrb.TimeSeriesView(
         origin=f"{e}/detect", name="p(detect) of the PEM (grey), q(detect) of the sampler (blue); misses below",
         plot_legend=rrb.PlotLegend(corner="LeftBottom"), axis_y=rrb.ScalarAxis(range=(-0.15, 1.08), zoom_lock=True),
-    )
+    ) if not several else rrb.TimeSeriesView(
+        origin=f"{e}/detect", name="each object's events, a row per object (0 at the bottom): green detected, orange "
+        "missed, grey unseen", plot_legend=_NO_LEGEND,
+    )  # fmt: skip
     replays = ": red recorded; replays: green minimal set detected, violet last saving step"
     trace = rrb.TimeSeriesView(
         origin=f"{e}/{first.column}", name=f"{first.name} ({first.unit}){replays if scene else ''}",
@@ -111,6 +115,11 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
     top = [rrb.TextDocumentView(origin=f"{e}/summary", name="What happened")]
     if scene:
         top.append(_scene_view(f"{e}/scene", "Scene of the most likely failure (play on step)", 1))
+    elif view is not None and view.objects_xy is not None:
+        top.append(rrb.Spatial2DView(
+            origin=f"{e}/objects", name="Every object seen from the ego (ahead is up, metres; play on step): green "
+            "detected, orange missed, grey unseen; blue where measured", background=C.FIGURE_BACKGROUND,
+            visual_bounds=rrb.VisualBounds2D(x_range=[-16.0, 16.0], y_range=[-45.0, 5.0])))  # fmt: skip
     bottom: list = [trace]
     if scene:
         bottom.append(rrb.Tabs(

@@ -22,6 +22,9 @@ Entities (``step`` timeline unless static; ``<col>`` = the problem's first signa
   replays with those misses detected (braking).
 - ``explain/controller/{acceleration,brake_commanded,brake_applied}``, ``explain/speed/{ego,lead}`` and
   ``explain/scene`` (braking): the controller, the speeds and one lane of the top-down scene.
+- ``explain/objects/{ego,true,measured,error}`` (a problem with ``objects_xy``, e.g. the cut-in): every object seen
+  from the ego at each step (x to the right, ahead upwards, metres), green where detected, orange where missed, grey
+  where it cannot be seen; where detected, the measured position (blue) and a line from the true one to it.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import rerun as rr
 from pemviz.events import RolloutsSampled
 from pemviz.problems import ProblemView
 from pemviz.proposal_view import prob_detect
+from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking_failures import FailureStory, replay_with_detections, story
 from pemviz.sinks import colours as C
 from pemviz.sinks.rerun_blueprint import EXPLAIN_PATH
@@ -49,6 +53,9 @@ from pemviz.sinks.rerun_views import (
 )
 
 E = EXPLAIN_PATH
+UNSEEN_RGBA = (150, 150, 150, 255)
+"""An object the camera cannot see (its PEM never detects it)."""
+AXIS_LABEL_RGBA = (220, 220, 220, 255)
 MARKER_ROW = -0.06
 """Height of the miss markers under the p / q curves (probability units, below 0)."""
 
@@ -111,14 +118,29 @@ def log_explanation(
     trace = b.signal(col)[0]
     detected = np.asarray(b.detected[0, :, 0], dtype=bool)
     misses = np.flatnonzero(~detected)
+    if view.objects_xy is not None and b.objects is not None:
+        _log_objects(s, view, b, indexes)
     p_det, q_det = prob_detect(b.log_p[0], detected), prob_detect(b.log_q[0], detected)
     number, stage = int(failure.rollout_numbers[0]), failure.stage
     scene = view.scene
     tale = story(trace, detected, scene) if scene is not None else None
 
-    _series(s, f"{E}/detect/pem", "p(detect), PEM", PEM_PLOT_RGBA, p_det, indexes)
-    _series(s, f"{E}/detect/sampler", "q(detect), sampler", C.rgba(C.BLUE), q_det, indexes)
-    _markers(s, f"{E}/detect/misses", "miss", MISSED_RGBA, "cross", misses, np.full(misses.size, MARKER_ROW), indexes)
+    if b.n_objects == 1:
+        _series(s, f"{E}/detect/pem", "p(detect), PEM", PEM_PLOT_RGBA, p_det, indexes)
+        _series(s, f"{E}/detect/sampler", "q(detect), sampler", C.rgba(C.BLUE), q_det, indexes)
+        _markers(s, f"{E}/detect/misses", "miss", MISSED_RGBA, "cross", misses, np.full(misses.size, MARKER_ROW),
+                 indexes)  # fmt: skip
+    else:  # log p sums every object's events and error densities: each object's events instead, a row each
+        names = b.object_names or ()
+        seen = b.objects[0][:, :, names.index("visible")] > 0.5 if "visible" in names else np.ones(b.detected[0].shape,
+                                                                                                   bool)  # fmt: skip
+        for j in range(b.n_objects):
+            d = b.detected[0, :, j]
+            for kind, rgba, steps_j in (("detected", DETECTED_RGBA, np.flatnonzero(d)),
+                                        ("missed", MISSED_RGBA, np.flatnonzero(~d & seen[:, j])),
+                                        ("unseen", UNSEEN_RGBA, np.flatnonzero(~d & ~seen[:, j]))):  # fmt: skip
+                _markers(s, f"{E}/detect/object_{j}/{kind}", f"object {j} {kind}", rgba, "circle", steps_j,
+                         np.full(steps_j.size, float(j)), indexes, size=3.0)  # fmt: skip
     words = tale.severity.short if tale is not None else "failure"
     _series(s, f"{E}/{col}/recorded", f"as recorded: {words}", CRASH_RGBA[:3] + (255,), trace, indexes, width=2.5)
     log_thresholds(s, view, trace.size, indexes, path=f"{E}/{col}/thresholds")
@@ -127,11 +149,14 @@ def log_explanation(
     props: dict = dict(stage=stage, stage_name=stage_name, rollout=number, log_p=log_p,
                        log_weight=float(failure.log_weight[0]), robustness=float(failure.robustness[0]),
                        n_failures_compared=n_failures, misses=misses, n_steps=trace.size)  # fmt: skip
+    missed = (f"The detector missed the lead at {misses.size} of {trace.size} steps." if b.n_objects == 1 else
+              f"The detector missed {int((~b.detected[0]).sum())} of {b.detected[0].size} object-steps of its "
+              f"{b.n_objects} objects (those it cannot see included).")  # fmt: skip
     chosen = (
         f"The failing rollout with the largest log p under the PEM ({log_p:.2f} nats over the first "
         f"{trace.size - 1} steps) among the {n_failures:,} failing rollouts the run reported; robustness "
         f"{float(failure.robustness[0]):.3g}, importance log-weight {float(failure.log_weight[0]):.2f} nats. "
-        f"The detector missed the lead at {misses.size} of {trace.size} steps."
+        + missed
     )
     lines = [f"## Most likely failure: {stage_name}, rollout {number}" + (f": {words}" if tale else ""), ""]
     if tale is not None:
@@ -204,3 +229,44 @@ def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, d
     _series(s, f"{E}/speed/ego", "ego speed (m/s)", C.rgba(C.EGO_SPEED), ctrl.ego_speed_mps, indexes)
     _series(s, f"{E}/speed/lead", "lead speed (m/s)", C.rgba(C.LEAD_SPEED), ctrl.lead_speed_mps, indexes)
     return lines
+
+
+
+
+def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch, indexes: Indexes) -> None:
+    """Every object of rollout 0 of ``b`` at each step, seen from the ego (``explain/objects``)."""
+    names = b.object_names or ()
+    cx, cz = (names.index(c) for c in view.objects_xy)
+    rows = b.objects[0]  # [T, M, G]
+    t_steps, m = rows.shape[:2]
+    x, ahead = rows[:, :, cx], rows[:, :, cz]
+    det = b.detected[0]
+    seen = rows[:, :, names.index("visible")] > 0.5 if "visible" in names else np.ones_like(det)
+    colours = np.where(det[..., None], np.array(DETECTED_RGBA),
+                       np.where(seen[..., None], np.array(MISSED_RGBA), np.array(UNSEEN_RGBA))).astype(np.uint8)
+    labels = [str(j) for j in range(m)] * t_steps
+    steps = indexes(step=np.arange(t_steps))
+    stream.log(f"{E}/objects/ego", rr.Boxes2D(centers=[[0.0, 2.0]], half_sizes=[[1.0, 2.5]], colors=[C.rgba(C.BLUE)],
+                                              labels=["ego"]), static=True)  # fmt: skip
+    where = np.stack([x, -ahead], axis=-1).reshape(-1, 2)
+    stream.send_columns(f"{E}/objects/true", indexes=steps, columns=rr.Points2D.columns(
+        positions=where, colors=colours.reshape(-1, 4), radii=np.full(t_steps * m, 1.0)).partition(np.full(t_steps, m)))
+    stream.send_columns(f"{E}/objects/names", indexes=steps, columns=rr.Points2D.columns(
+        positions=where + [2.5, 0.0], colors=np.tile(np.array(AXIS_LABEL_RGBA, np.uint8), (t_steps * m, 1)),
+        radii=np.full(t_steps * m, 0.01), labels=labels).partition(np.full(t_steps, m)))  # fmt: skip
+    if view.noise_xy is None or b.noise is None:
+        return
+    ix, iz = view.noise_xy
+    k = [np.flatnonzero(det[t]) for t in range(t_steps)]
+    measured = [np.stack([x[t, j] + b.noise[0, t, j, ix], -(ahead[t, j] + b.noise[0, t, j, iz])], axis=-1)
+                for t, j in enumerate(k)]  # fmt: skip
+    truth = [np.stack([x[t, j], -ahead[t, j]], axis=-1) for t, j in enumerate(k)]
+    lengths = np.array([len(j) for j in k])
+    if lengths.sum() == 0:
+        return
+    stream.send_columns(f"{E}/objects/measured", indexes=steps, columns=rr.Points2D.columns(
+        positions=np.concatenate(measured), colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (lengths.sum(), 1)),
+        radii=np.full(lengths.sum(), 0.4)).partition(lengths))  # fmt: skip
+    strips = [[a, c] for t in range(t_steps) for a, c in zip(truth[t], measured[t])]
+    stream.send_columns(f"{E}/objects/error", indexes=steps, columns=rr.LineStrips2D.columns(
+        strips=strips, colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (len(strips), 1))).partition(lengths))
