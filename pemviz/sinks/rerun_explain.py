@@ -53,9 +53,9 @@ from pemviz.sinks.rerun_views import (
 )
 
 E = EXPLAIN_PATH
-UNSEEN_RGBA = (150, 150, 150, 255)
+UNSEEN_RGBA = C.rgba(C.NEUTRAL)
 """An object the camera cannot see (its PEM never detects it)."""
-AXIS_LABEL_RGBA = (220, 220, 220, 255)
+AXIS_LABEL_RGBA = C.rgba(C.ON_DARK)
 MARKER_ROW = -0.06
 """Height of the miss markers under the p / q curves (probability units, below 0)."""
 
