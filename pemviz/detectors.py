@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from scipy import stats
@@ -342,8 +342,44 @@ class SamplerView:
         return self.samplers.noise_log_prob(self.index, rows, noise)
 
 
+class ErrorModelOf:
+    """A wrapper of a detector whose measurement-error model (:class:`NoisyDetector`) is the wrapped one's, named by
+    the class attribute ``_error_model_of``; ``noise_names`` is empty when the wrapped detector only detects."""
+
+    _error_model_of: str
+
+    @property
+    def _errors(self) -> Any:
+        return getattr(self, self._error_model_of)
+
+    @property
+    def noise_names(self) -> tuple[str, ...]:
+        """The wrapped detector's measurement errors, if it has an error model."""
+        return noise_names_of(self._errors)
+
+    @property
+    def noise_family(self) -> str:
+        return self._errors.noise_family
+
+    @property
+    def noise_df(self) -> np.ndarray | None:
+        return self._errors.noise_df
+
+    def noise_params(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The wrapped detector's error parameters (:class:`NoisyDetector`)."""
+        return self._errors.noise_params(rows)
+
+    def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The wrapped detector's errors from uniforms (:class:`NoisyDetector`)."""
+        return self._errors.noise_from_uniforms(rows, u)
+
+    def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """The wrapped detector's log density of the errors (:class:`NoisyDetector`)."""
+        return self._errors.noise_log_prob(rows, noise)
+
+
 @dataclass(frozen=True)
-class ArrayRQMC:
+class ArrayRQMC(ErrorModelOf):
     """``detector``, drawn by Array-RQMC: a simulator stepping rollouts together ranks them by this detector's logit
     at each step and takes their uniforms from :func:`pemviz.rng.array_rqmc_uniforms` (:func:`step_uniforms`).
     Every rollout still follows ``detector`` exactly; a simulator that does not look at ``array_rqmc`` draws i.i.d.
@@ -352,22 +388,11 @@ class ArrayRQMC:
     detector: Detector
     array_rqmc: bool = True
 
+    _error_model_of = "detector"
+
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """``detector``'s logit p(detect | obs), float64 [N], for observations [N, F]."""
         return self.detector.detect_logit(obs)
-
-    @property
-    def noise_names(self) -> tuple[str, ...]:
-        """``detector``'s measurement errors, if it has an error model."""
-        return noise_names_of(self.detector)
-
-    def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``detector``'s errors from uniforms (:class:`NoisyDetector`)."""
-        return self.detector.noise_from_uniforms(rows, u)
-
-    def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        """``detector``'s log density of the errors (:class:`NoisyDetector`)."""
-        return self.detector.noise_log_prob(rows, noise)
 
 
 def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np.ndarray,
@@ -460,7 +485,7 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
     return StepDraw(detected, noise, log_q, log_p)
 
 
-class ScoredTarget:
+class ScoredTarget(ErrorModelOf):
     """The target detector that also asks ``extras`` about every observation it is asked about and keeps their
     logits and its own, so that a mixture's component densities come out of the simulation that drew the rollouts
     instead of a second pass over them (each simulator asks its target once per step about all rollouts it steps
@@ -471,22 +496,11 @@ class ScoredTarget:
     copy of this object did the asking): the caller then asks ``extras`` itself.
     """
 
+    _error_model_of = "target"  # it scores as the target does
+
     def __init__(self, target: Detector, extras: tuple[Detector, ...]) -> None:
         self.target, self.extras = target, tuple(extras)
         self._asked: list[tuple[np.ndarray, ...]] = []
-
-    @property
-    def noise_names(self) -> tuple[str, ...]:
-        """The target's measurement errors: this object scores as the target does."""
-        return noise_names_of(self.target)
-
-    def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """The target's errors from uniforms (:class:`NoisyDetector`)."""
-        return self.target.noise_from_uniforms(rows, u)
-
-    def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        """The target's log density of the errors (:class:`NoisyDetector`)."""
-        return self.target.noise_log_prob(rows, noise)
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """The target's logit p(detect | obs), float64 [N]; it and the extras' logits (K + 1 arrays [N]) are kept."""
