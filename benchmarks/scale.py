@@ -91,8 +91,7 @@ def _child(argv: list[str]) -> None:
     ce_fit.fit_proposal = timed("fit", ce_fit.fit_proposal)  # the name the CE fits call
     engine.Experiment.run = timed("run", engine.Experiment.run)
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
-    sys.argv = ["pemviz", "run", *argv]
-    rc = main()
+    rc = main(["run", *argv])  # with its arguments given, main returns (run as the program, it ends the process)
     cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     spent["cpu"] = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     spent["peak_rss_mb"] = cpu1.ru_maxrss / 1024

@@ -46,8 +46,8 @@ def main(argv: list[str] | None = None) -> int:
 
     0 done; 1 a failure while working (a write error such as a full disk, out of memory), one line; 2 bad
     input, one line, nothing written; 130 Ctrl-C and 143 SIGTERM, one line saying what was finished.
-    ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line. Run as the program (``argv`` None), a signal
-    that comes once the command has ended is ignored, so the interpreter shuts down without a traceback.
+    ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line. Run as the program (``argv`` None), the process
+    ends as soon as the command has (:func:`_exit_now`), and a signal that comes after it is ignored.
     """
     previous = None
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
@@ -56,13 +56,29 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:  # not the main thread (pemviz called from a worker thread): leave it
             pass
     try:
-        return _run(argv)
+        status = _run(argv)
     finally:
         if argv is None:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_IGN)
         elif previous is not None:
             signal.signal(signal.SIGTERM, previous)
+    if argv is None:
+        _exit_now(status)
+    return status
+
+
+def _exit_now(status: int) -> None:
+    """End the program with ``status`` once the command has returned: its files are committed (each written whole
+    and renamed into place) and its recording streams flushed and closed, so nothing is left for the interpreter's
+    shutdown but tearing down torch's and rerun's modules and threads (~0.8 s of a 6 s run). Standard output and
+    error are flushed first; a reader that went away (a closed pipe) changes nothing."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(status)
 
 
 def _interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
@@ -127,8 +143,4 @@ WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACC
 
 
 if __name__ == "__main__":
-    status = main()
-    # the command has finished and committed its files: a Ctrl-C during the interpreter's ~1 s of shutdown (thread
-    # joins, atexit handlers) must not turn its exit status into "killed by SIGINT"
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    sys.exit(status)
+    sys.exit(main())

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-from scipy import stats
 from scipy.special import log_expit
 
 from pemviz.rng import RQMC_BLOCK, array_rqmc_blocks, by_blocks
@@ -62,6 +61,8 @@ NOISE_FAMILIES = ("normal", "laplace", "student-t")
 def _standard(family: str, df: np.ndarray | None):
     if family not in NOISE_FAMILIES:
         raise ValueError(f"unknown error family {family!r}; use one of {', '.join(NOISE_FAMILIES)}")
+    from scipy import stats  # ~0.5 s to import: only for a scene with measurement errors
+
     return {"normal": stats.norm(), "laplace": stats.laplace(), "student-t": None}[family] if family != "student-t" \
         else stats.t(np.asarray(df, dtype=np.float64))
 

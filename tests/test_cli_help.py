@@ -65,22 +65,31 @@ def test_every_command_that_takes_a_preset_accepts_quick() -> None:
 HEAVY = ("torch", "pemviz.engine", "pemviz.estimators", "pemviz.problems")
 
 
-def modules_loaded_by(argv: list[str]) -> set[str]:
-    """The heavy modules (:data:`HEAVY`) that ``pemviz ARGV`` has imported by the time it exits, in a new process."""
+def modules_loaded_by(argv: list[str], heavy: tuple[str, ...] = HEAVY, cwd: str | None = None) -> set[str]:
+    """The modules of ``heavy`` that ``pemviz ARGV`` has imported by the time it exits, in a new process."""
     import subprocess
     import sys
 
     code = ("import contextlib, io, sys\nfrom pemviz.cli import main\n"
-            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):\n"
             f"    try:\n        main({argv!r})\n    except SystemExit:\n        pass\n"
-            f"print(' '.join(m for m in {HEAVY!r} if m in sys.modules))")  # fmt: skip
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+            f"print(' '.join(m for m in {heavy!r} if m in sys.modules))")  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True,
+                          cwd=cwd)  # fmt: skip
     return set(proc.stdout.split())
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["run", "--help"], ["serve", "--help"], ["data", "--help"]])
 def test_help_imports_no_torch_and_no_engine(argv) -> None:
     assert modules_loaded_by(argv) == set()
+
+
+def test_a_braking_run_imports_no_scipy_stats(tmp_path) -> None:
+    """scipy.stats takes ~0.5 s to import: a braking run (no measurement errors) must not pay it, while a run does
+    load the engine (so the check sees a real run)."""
+    loaded = modules_loaded_by(["run", "--preset", "quick", "--no-record"], ("pemviz.engine", "scipy.stats"),
+                               cwd=str(tmp_path))  # fmt: skip
+    assert loaded == {"pemviz.engine"}
 
 
 def test_the_lean_parser_lists_every_command_with_the_help_of_its_own_parser() -> None:

@@ -247,7 +247,7 @@ def test_fit_proposal_gives_autograd_and_torch_adams_parameters(state):
     for per in (None, 417.0):
         ours, ref = make(), make()
         start = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
-        losses = fit_proposal(ours, inputs, counts, 200, 1e-2, per=per)
+        losses = fit_proposal(ours, inputs, counts, 200, 1e-2, per=per, dtype=torch.float64)
         expected = _torch_reference_fit(
             ref, inputs, lambda lq: -(counts * lq).sum() if per is None else -(counts * lq).sum() / per, 200, 1e-2)
         got = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
@@ -255,6 +255,51 @@ def test_fit_proposal_gives_autograd_and_torch_adams_parameters(state):
         torch.testing.assert_close(got, expected, **FIT_TOL)
         assert losses[-1] < losses[0]
         assert all(p.is_contiguous() and p._base is None for p in ours.parameters())  # own storage after the fit
+
+
+FIT32_TOL = dict(rtol=0, atol=1e-5)
+"""How close a float32 fit must come, after 50 steps, to autograd + torch.optim.Adam in float32 on the same network and
+to the float64 fit: each gradient is a float32 sum over 300 rows (~1e-7 relative), carried by Adam's sqrt(v) into
+every step; here they agree to ~1e-6. A wrong gradient moves them by more than 1e-3. Later the paths part: where a
+parameter's gradient is near zero, Adam divides float32 rounding by sqrt(v) ~ eps and takes full steps on it, so
+the float32 and float64 fits end in different, equally good parameters (the test compares their losses)."""
+
+
+def test_a_float32_fit_gives_autograds_float32_parameters_and_keeps_them_float64():
+    """The default fit of a tensor objective runs in float32: it fits what autograd and torch.optim.Adam fit on a
+    float32 copy of the network, stays within a float32 fit's distance of the float64 fit, reaches as low a loss,
+    and leaves the parameters float64."""
+    from pemviz.sampling import StateProposal, fit_proposal
+
+    gen = torch.Generator().manual_seed(5)
+
+    def make():
+        torch.manual_seed(1)
+        return StateProposal((0, 1, 2), (12.0, 8.0, 1.0), (20.0, 8.0, 0.0))
+
+    def params(proposal):
+        return torch.cat([p.detach().reshape(-1) for p in proposal.parameters()])
+
+    inputs = torch.rand(300, 3, generator=gen, dtype=torch.float64) * torch.tensor([12.0, 8.0, 1.0])
+    counts = torch.rand(300, 2, generator=gen, dtype=torch.float64)
+    ours, ref, wide = make(), make(), make()
+    start = params(ours)
+    fit_proposal(ours, inputs, counts, 50, 1e-2, per=417.0)
+    fit_proposal(wide, inputs, counts, 50, 1e-2, per=417.0, dtype=torch.float64)
+    ref.float()
+    ref.scales = ref.scales.float()
+    expected = _torch_reference_fit(ref, inputs.float(), lambda lq: -(counts.float() * lq).sum() / 417.0, 50, 1e-2)
+    got = params(ours)
+    assert got.dtype == torch.float64 and all(p.dtype == torch.float64 for p in ours.parameters())
+    assert all(p.is_contiguous() and p._base is None for p in ours.parameters())  # own storage after the fit
+    assert (got - start).abs().max() > 0.1  # the fit moved the parameters
+    torch.testing.assert_close(got, expected.double(), **FIT32_TOL)
+    torch.testing.assert_close(got, params(wide), **FIT32_TOL)
+    narrow, wide = make(), make()
+    losses = fit_proposal(narrow, inputs, counts, 200, 1e-2, per=417.0)
+    wide_losses = fit_proposal(wide, inputs, counts, 200, 1e-2, per=417.0, dtype=torch.float64)
+    assert losses[-1] < losses[0] - 0.01  # nats per step: it learned
+    assert losses[-1] == pytest.approx(wide_losses[-1], abs=1e-3)
 
 
 def test_recomputed_weights_objective_matches_autograd():

@@ -27,7 +27,6 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from scipy import stats
 from torch import nn
 
 from pemviz.pem.camera import MIN_RANGE_M, box_errors_to_metric
@@ -101,6 +100,7 @@ class NoiseModel:
 
     def distribution(self, features: np.ndarray) -> Any:
         """The predictive distribution as a frozen ``scipy.stats`` distribution of shape ``[R, 2]``."""
+        from scipy import stats  # ~0.5 s to import: not on a braking run's path
         loc, log_scale = self.noise_params(features)
         scale = np.exp(log_scale)
         if self.family == "normal":
@@ -399,6 +399,8 @@ def fit_homoscedastic(
                                   log_scale=0.5 * np.log(np.mean(residual**2, axis=0)))  # fmt: skip
     if linear_mean:
         raise ValueError(f"a linear mean is fitted for the normal family only, not {family!r}")
+    from scipy import stats  # ~0.5 s to import: only when fitting
+
     if family == "laplace":
         params = [stats.laplace.fit(err[:, d]) for d in range(2)]
         loc, scale, df = np.array([p[0] for p in params]), np.array([p[1] for p in params]), None
