@@ -67,16 +67,17 @@ def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     problem, preset, seed = key.split("/")
     if preset == "early-stop":  # the default sampler: every CE fit stops once converged, Adam at 1e-2, decided steps
         # drawn from the PEM
-        return ExperimentConfig(**{**SMALL, "seed": int(seed)}), problem
+        return ExperimentConfig(**{**SMALL, "fit_precision": "float64", "seed": int(seed)}), problem
     if preset == "array-rqmc":  # Array-RQMC uniforms, stages pooled by j^2 n_j, fits of every epoch at 1e-3
         return ExperimentConfig(**{**SMALL, **FIT_RECORDED, "seed": int(seed)}), problem
     return ExperimentConfig(**{**RECORDED, **_pinned_fields(problem, preset), "seed": int(seed)}), problem
 
 
-FIT_RECORDED = {"learning_rate": 1e-3, "fit_tolerance": None, "skip_decided": False, "fit_rows": 10_000}
+FIT_RECORDED = {"learning_rate": 1e-3, "fit_tolerance": None, "skip_decided": False, "fit_rows": 10_000,
+                "fit_precision": "float64"}
 """The defaults before every CE fit stopped once converged (Adam at 1e-3; fits of at most ``fit_rows`` steps, all of
-these, ran every epoch, subsampling above 10,000 steps) and before the proposal gave way to the PEM where the outcome
-is decided."""
+these, ran every epoch, subsampling above 10,000 steps), before the proposal gave way to the PEM where the outcome
+is decided, and before the fits ran in float32."""
 RECORDED = {"uniforms": "iid", "pool_weights": "linear", **FIT_RECORDED}
 """The defaults when the other numbers were recorded: i.i.d. uniforms, the stages pooled by j n_j, the fits above."""
 

@@ -408,3 +408,21 @@ def test_cli_eval_rejects_bad_noise_epochs(tmp_path: Path, capsys) -> None:
     assert cli_main(["pem", "eval", "--quick", "--noise-epochs", "0", "--out", str(tmp_path)]) == 2
     assert "epochs = 0" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("family", ["normal", "laplace", "student-t"])
+def test_the_closed_form_quantile_and_log_density_are_scipy_stats(family):
+    """The error families' quantile and log density in closed form (scipy.special) against scipy.stats' frozen
+    distributions (the oracle), deep into both tails, per component's degrees of freedom."""
+    from scipy import stats
+
+    from pemviz.detectors import standard_log_density, standard_quantile
+
+    df = np.array([2.5, 7.0]) if family == "student-t" else None
+    u = np.array([1e-12, 1e-6, 0.01, 0.3, 0.5, 0.7, 0.99, 1 - 1e-6, 1 - 1e-12])[:, None] * np.ones(2)
+    z = np.array([-40.0, -5.0, -1.0, -0.1, 0.0, 0.3, 2.0, 8.0, 60.0])[:, None] * np.ones(2)
+    oracle = {"normal": stats.norm(), "laplace": stats.laplace(), "student-t": stats.t(df)}[family]
+    np.testing.assert_allclose(standard_quantile(family, df, u), oracle.ppf(u), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(standard_log_density(family, df, z), oracle.logpdf(z), rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="unknown error family 'cauchy'"):
+        standard_quantile("cauchy", None, u)

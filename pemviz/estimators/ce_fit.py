@@ -121,6 +121,7 @@ def pretrain_proposal(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
+    dtype: torch.dtype = torch.float32,
 ) -> list[float]:
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
 
@@ -137,6 +138,7 @@ def pretrain_proposal(
         rng: draws that subsample (default: seeded 0).
         tolerance: early stopping of a fit of more than ``max_rows`` steps (nats per step;
             :func:`pemviz.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps runs every epoch.
+        dtype: the arithmetic of an ``adam`` fit (:func:`pemviz.sampling.fit_proposal`); float64 for the paper's.
     Returns:
         the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
     Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts).
@@ -150,11 +152,11 @@ def pretrain_proposal(
             step_mask = np.asarray(step_mask, dtype=np.float64)
             uniq, counts, _ = _action_counts(gap_m, detected, step_mask, drop_unweighted=True)
             total = max(float(step_mask.sum()), 1.0)
-        return fit_proposal(proposal, uniq, counts, epochs, lr, check, per=total)
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, per=total, dtype=dtype)
     mask = np.ones(np.shape(detected)) if step_mask is None else np.asarray(step_mask, dtype=np.float64)
     rows, counts = weighted_steps(gap_m, detected, mask, max_rows or mask.size, rng or np.random.default_rng(0))
     total = max(float(counts.sum()), 1.0)
-    return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
+    return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
 
 
 def ce_update(
@@ -176,6 +178,7 @@ def ce_update(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
+    dtype: torch.dtype = torch.float32,
 ) -> list[float]:
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
@@ -199,6 +202,7 @@ def ce_update(
         tolerance: early stopping of a fit of more than ``max_rows`` steps, or of ``lbfgs`` (nats per step;
             :func:`pemviz.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps with ``adam``
             runs every epoch (the paper's fit).
+        dtype: the arithmetic of an ``adam`` fit (:func:`pemviz.sampling.fit_proposal`); float64 for the paper's.
     Returns:
         the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
         constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
@@ -218,7 +222,7 @@ def ce_update(
         rows, actions = gap_m[idx][mask], detected[idx][mask]
         return fit_elite_steps(proposal, rows, actions, np.broadcast_to(scaled[:, None], mask.shape)[mask],
                                float(scaled.max()), epochs=epochs, lr=lr, check=check, fit=fit, max_rows=max_rows,
-                               rng=rng, tolerance=tolerance)  # fmt: skip
+                               rng=rng, tolerance=tolerance, dtype=dtype)  # fmt: skip
     if weights == "frozen":
         scaled = smoothing * frozen_log_w
         step_w = np.exp(scaled - scaled.max())[:, None] * mask
@@ -227,9 +231,9 @@ def ce_update(
             rows, counts = weighted_steps(gap_m[idx], detected[idx], step_w, max_rows or step_w.size,
                                            rng or np.random.default_rng(0))  # fmt: skip
             total = float(counts.sum())
-            return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
+            return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
         uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w[:, 0])
-        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit)
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, dtype=dtype)
     # w depends on q_phi: per-rollout sums of log q over the first k steps, through the gradient.
     uniq, _, inverse = _action_counts(gap_m[idx], detected[idx])
     slot = inverse * 2 + detected[idx].astype(np.int64)
@@ -287,6 +291,7 @@ def fit_elite_steps(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
+    dtype: torch.dtype = torch.float32,
     n_steps: int | None = None,
 ) -> list[float]:
     """The frozen-weight CE fit on the elites' fitted steps: minimise ``-sum_s w_s log q_phi(a_s | h_s)``, in place.
@@ -299,7 +304,7 @@ def fit_elite_steps(
         log_w_max: the largest rollout log-weight (alpha log w_i) of the elites; the weights are divided by its
             exponential (a constant factor, to which Adam's steps are invariant), so that none overflows.
         n_steps: the steps these rows stand for (default S; more once they were thinned as they came).
-        epochs, lr, check, fit, max_rows, rng, tolerance: see :func:`ce_update`.
+        epochs, lr, check, fit, max_rows, rng, tolerance, dtype: see :func:`ce_update`.
     Returns:
         the loss per epoch (per L-BFGS evaluation).
     Source: Innes & Ramamoorthy 2022, eq. 10-11 (the CE update), summed over distinct inputs.
@@ -309,12 +314,13 @@ def fit_elite_steps(
     if not _summed_fit(fit, max_rows, int(np.count_nonzero(w)) if n_steps is None else n_steps):
         fitted, counts = weighted_steps(rows, actions, w, max_rows or w.size, rng or np.random.default_rng(0))
         total = float(counts.sum())
-        return fit_proposal(proposal, fitted, counts, epochs, lr, check, fit, tolerance, per=total)  # fmt: skip
+        return fit_proposal(proposal, fitted, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
     uniq, counts, _ = _action_counts(rows, actions, w, drop_unweighted=True)
     if tolerance is None:
-        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit)
+        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, dtype=dtype)
     # the proposal starts from the last stage's fit (a warm start): stop once the loss per step stops falling
-    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, tolerance, per=float(counts.sum()))
+    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, tolerance, per=float(counts.sum()),
+                        dtype=dtype)
 
 
 class EliteSteps:

@@ -163,6 +163,8 @@ class CrossEntropy(OwnsSettings):
         """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
         self.tolerance = config.fit_tolerance if config.fit == "adam" else None
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
+        self.fit_dtype = torch.float32 if config.fit_precision == "float32" else torch.float64
+        """The arithmetic of the Adam fits (``ExperimentConfig.fit_precision``)."""
 
     # -- the interface --------------------------------------------------------------------------------------------
     @staticmethod
@@ -369,7 +371,7 @@ class CrossEntropy(OwnsSettings):
             proposal, features, detected,
             epochs=cfg.pretrain_epochs if cfg.fit == "adam" else cfg.fit_max_steps, lr=cfg.learning_rate,
             check=self.check, step_mask=mask,
-            fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance,
+            fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance, dtype=self.fit_dtype,
         )  # fmt: skip
         self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
 
@@ -492,7 +494,7 @@ class CrossEntropy(OwnsSettings):
         self.check()
         epochs = cfg.ce_epochs if cfg.fit == "adam" else cfg.fit_max_steps
         fit = dict(epochs=epochs, lr=cfg.learning_rate, check=self.check, fit=cfg.fit, max_rows=cfg.fit_rows,
-                   rng=self.fit_rng, tolerance=self.tolerance)  # fmt: skip
+                   rng=self.fit_rng, tolerance=self.tolerance, dtype=self.fit_dtype)  # fmt: skip
         if self._steps is not None:
             if batch is not None and elite.any():
                 self._add_steps(batch.select(elite), index[elite], gamma)
