@@ -5,6 +5,8 @@
     python benchmarks/screenshot_panel.py --preset state-ce --k 10 --metric agm --set alpha=0.2 --set sigma=0.9 \
         --width 1400 --height 900 --out assets/screenshots/panel_explain.png \
         --live-out assets/screenshots/panel_live.png --scene-out assets/screenshots/panel_scene.png
+    python benchmarks/screenshot_panel.py --scenario cut-in --k 3 --set N=60 --set N_e=60 --set seed=1 \
+        --width 1400 --height 900 --out assets/screenshots/panel_cut_in.png
 
 What it does: starts the panel (:class:`pemviz.app.PanelApp`, 127.0.0.1, a free port), opens it in
 Chromium (Debian's ``chromium`` driven by Playwright, with ``--headless --no-sandbox --disable-gpu
@@ -13,7 +15,9 @@ experiment from the browser's form (typing K, pressing Run), waits for the final
 chooses the most likely failure found), opens the *Explain* tab, moves playback to the first decisive miss
 (or the crash) and writes the PNG (to a temp file, then ``os.replace``); with ``--live-out`` also the *Live* tab
 (what the sampler did over the visited states, the estimate per stage), and with ``--scene-out`` the 3D scene at the
-step the 2 m line is crossed, beside the *Rollouts* tab. Every wait is on a condition.
+step the 2 m line is crossed, beside the *Rollouts* tab. With ``--scenario cut-in`` (several cars), *Explain* shows
+every car from above at the first decisive error, with which cars' errors decided the failure. Every wait is on a
+condition.
 """
 
 from __future__ import annotations
@@ -67,6 +71,7 @@ def main() -> int:
     ap.add_argument("--preset", default="quick", help="the panel's preset (default quick)")
     ap.add_argument("--k", default="8", help="K typed into the form (default 8)")
     ap.add_argument("--metric", default=None, help="the metric chosen in the form (default: the preset's)")
+    ap.add_argument("--scenario", default=None, help="the scenario chosen in the form (default: braking)")
     ap.add_argument("--set", action="append", default=[], metavar="LABEL=VALUE",
                     help="type VALUE into the form's field LABEL (e.g. alpha=0.2); repeatable")
     ap.add_argument("--live-out", type=Path, default=None, help="also write the Live tab here")
@@ -101,12 +106,24 @@ def main() -> int:
                 box.fill(value)
                 box.press("Tab")
                 wait_until(lambda: labels[label].value == value, 30, f"{label} to reach the server")
-            if args.metric:
-                page.get_by_label("metric", exact=True).click()
-                page.get_by_role("option", name=args.metric, exact=True).click()
-                wait_until(lambda: session.choices["metric"].value == args.metric, 30, "the metric to reach the server")
+            for key, value in (("metric", args.metric), ("scenario", args.scenario)):
+                if value:
+                    page.get_by_label(key, exact=True).click()
+                    page.get_by_role("option", name=value, exact=True).click()
+                    wait_until(lambda: session.choices[key].value == value, 30, f"the {key} to reach the server")
             page.get_by_role("button", name="Run", exact=True).click()
             wait_until(lambda: session.record is not None and session.record.done, 600, "the run to finish")
+            if args.scenario not in (None, "braking"):
+                wait_until(lambda: session.objects_ex is not None, 60, "the failure explanation")
+                page.get_by_role("tab", name="Explain").click()
+                page.get_by_text("Which errors decided it", exact=False).wait_for(timeout=30_000)
+                step = session.shown_step
+                page.get_by_text(f"From above at step {step}", exact=False).wait_for(timeout=30_000)
+                page.wait_for_function("() => document.fonts.ready.then(() => true)")
+                write(page, args.out)
+                browser.close()
+                print(f"{args.out}: {session.record.label}, {session.shown.key} at step {step}", flush=True)
+                return 0
             wait_until(lambda: session.explanation is not None, 30, "the failure explanation")
             page.get_by_role("tab", name="Explain").click()
             page.get_by_text("Counterfactual", exact=False).wait_for(timeout=30_000)

@@ -626,3 +626,70 @@ SCENE_JS = """([boxes, names]) => {
 """What the browser's scene holds: the given world points (the cars) and the named labels' anchors projected by its
 camera to the canvas ([-1, 1] inside), the canvas' and the panels' edges (pixels), the labels' texts, the ruler's
 points, the breach gate, the trail's points and colours."""
+
+
+# 14 -----------------------------------------------------------------------------------------------
+OBJECTS_JS = """(n) => {
+    const m = window.__viserMutable, tree = window.__viserSceneTree.getState();
+    const cells = Array.from(document.querySelectorAll('svg.pemviz-raster rect[height="10"]')).map(r => r.getAttribute('fill'));
+    const cars = [...Array(n).keys()].map(j => {
+        const name = '/objects/car' + j;
+        return {position: m.nodePoseData[name]?.position, color: tree[name]?.message?.props?.color,
+                visible: tree[name]?.visibility, label: tree[name + '/label']?.message?.props?.text};
+    });
+    const above = Array.from(document.querySelectorAll('div')).map(d => d.textContent)
+        .filter(t => t.startsWith('From above at step')).at(-1) ?? '';
+    return {cells, cars, above, braking_lead: tree['/lead']?.visibility};
+}"""
+"""The Explain raster's cells (fill colours, object by object, step by step), each car of the scene (position,
+colour, visibility, label), the bird's-eye view's heading and the braking scene's lead's visibility."""
+
+
+def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_failure(tab):
+    """The scenario choice runs the cut-in (five cars, missed and mislocated). Explain then shows its most likely
+    failure: the errors that decided it, each car's events step by step as the rollout holds them, and every car in
+    the 3D scene where the rollout has it, coloured by whether it was detected; the playback moves both."""
+    from pemviz.app import objects_view as OV
+
+    s = tab.session
+    tab.choose("scenario", "cut-in")
+    record = tab.run({**TINY, "K": "3", "N": "60", "N_e": "60", "seed": "1"}, timeout=300)
+    assert record.config.scenario == "cut-in"
+    wait_until(lambda: s.objects_ex is not None and s.shown is record.most_likely_failure, timeout=60,
+               what="the most likely failure explained")  # fmt: skip
+    ox, shown = s.objects_ex, s.shown
+    t_steps, m = ox.detected.shape
+    assert m == 5 and shown.crashed and shown.batch.detected.shape == (1, t_steps, m)
+    cf = ox.counterfactuals
+    assert cf is not None and cf.decisive and all(i.robustness >= 0.0 for i in cf.decisive)
+    first = cf.decisive[0]
+    tab.page.get_by_role("tab", name="Explain").click()
+    expect(tab.page.get_by_text("Which errors decided it", exact=False)).to_be_visible(timeout=10_000)
+    expect(tab.page.get_by_text(cf.summary(ox.names), exact=False)).to_be_visible()
+    wait_until(lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {first.step}"),
+               what="Explain at the first decisive error")  # fmt: skip
+    got = tab.page.evaluate(OBJECTS_JS, m)
+    # the raster: one cell per car and step, green detected, orange missed, grey unseen, as the rollout has them
+    want = np.where(ox.detected, OV.GREEN, np.where(ox.seen, OV.ORANGE, OV.UNSEEN))
+    assert got["cells"] == want.T.reshape(-1).tolist()
+    assert ox.detected.any() and (~ox.detected & ox.seen).any()  # both colours are drawn
+
+    def check_cars(t: int, cars: list) -> None:
+        decisive = {obj for obj, _ in ox.decisive_at(t)}
+        for j, car in enumerate(cars):
+            assert car["visible"], f"car {j} hidden at step {t}"
+            np.testing.assert_allclose(car["position"][:2], [ox.ahead_m[t, j], -ox.lateral_m[t, j]], atol=1e-4)
+            det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
+            assert car["color"] == list(colours.DETECTED if det else colours.MISSED if seen else colours.IDLE)
+            state = "detected" if det else ("missed" if seen else "unseen")
+            assert car["label"] == f"car {j}: {state}" + (" (decisive)" if j in decisive else "")
+
+    check_cars(first.step, got["cars"])
+    assert got["braking_lead"] is False  # the braking scene's lead is hidden
+    # the playback moves the scene and the view from above to the failure
+    s.step_slider.value = cf.failure_step
+    wait_until(lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {cf.failure_step}"),
+               what="Explain at the failure step")  # fmt: skip
+    wait_until(lambda: tab.page.evaluate(OBJECTS_JS, m)["cars"][0]["position"][0] == pytest.approx(
+        ox.ahead_m[cf.failure_step, 0], abs=1e-4), what="the scene at the failure step")  # fmt: skip
+    check_cars(cf.failure_step, tab.page.evaluate(OBJECTS_JS, m)["cars"])

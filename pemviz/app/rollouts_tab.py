@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import html
 
+import numpy as np
 
 from pemviz.app import charts, plots
-from pemviz.app.html import GREY, NO_ROLLOUT, RED, TABLE_STYLE, box, explanation_html
+from pemviz.app.html import GREEN, GREY, NO_ROLLOUT, RED, TABLE_STYLE, box, explanation_html
 from pemviz.app.explain import explain
+from pemviz.app import objects_view as OV
+from pemviz.app.objects_view import RobustnessOutcome, explain_objects, objects_summary
 from pemviz.app.runs import PanelRun, Trajectory, scene_positions
 from pemviz.scenarios.braking_failures import Severity, severity
 
@@ -26,11 +29,14 @@ class RolloutsTab:
             f"{head}stage {t.stage} rollout {t.index} · rho {t.robustness:+.4g} · log p {t.log_p_total:.1f}{outcome}"
         )
 
-    def severity_of(self, record: PanelRun, t: Trajectory) -> Severity:
-        """The severity of a listed rollout (computed once per rollout)."""
+    def severity_of(self, record: PanelRun, t: Trajectory) -> Severity | RobustnessOutcome:
+        """The severity of a listed rollout (computed once per rollout): the braking scenario's, else failed or safe
+        by its robustness."""
         key = (record.run_id, t.key)
         if key not in self._severities:
-            self._severities[key] = severity(t.gap_m, self.params)
+            braking = record.view is not None and record.view.scene is not None
+            self._severities[key] = severity(t.gap_m, self.params) if braking else RobustnessOutcome(t.robustness,
+                                                                                                      t.crashed)
         return self._severities[key]
 
     def ordered_rollouts(self, record: PanelRun) -> list[Trajectory]:
@@ -129,8 +135,13 @@ class RolloutsTab:
         with self.lock:
             record = self.listed or self.record
             scene = record.view.scene if record is not None and record.view is not None else None
-            if scene is None:  # a problem without a scene: nothing to replay (the panel runs the braking scenario)
-                return
+            if scene is None:
+                if traj.batch is not None and record.view.objects_xy is not None:  # a scene of several objects
+                    self._show_objects(record, traj)
+                return  # else a problem without a scene (a toy): nothing to replay
+            self.objects_ex = None
+            self._show_strips(True)
+            self._scene_kind(0)
             self.explanation = explain(traj.gap_m, traj.detected, traj.log_p, traj.log_q, scene)
             self.shown = traj
             self.shown_record = record
@@ -144,6 +155,65 @@ class RolloutsTab:
                 self.step_slider.value = 0  # renders step 0 through the slider's callback
             else:
                 self._render_step(0)
+
+    def _show_objects(self, record: PanelRun, traj: Trajectory) -> None:
+        """Explain a rollout of a scene of several objects (:mod:`pemviz.app.objects_view`), paused at its first
+        decisive step (else step 0); the braking scenario's strip charts are hidden meanwhile."""
+        ox = explain_objects(record.problem, record.view, traj.batch, traj.crashed)
+        self.objects_ex, self.explanation = ox, None
+        self.shown, self.shown_record, self._shown_x = traj, record, None
+        self.step_slider.max = traj.n_steps - 1
+        self._set_playing(False)
+        self.shown_step = -1
+        self._show_strips(False)
+        self._scene_kind(ox.detected.shape[1])
+        self._frame_objects()
+        self.scene_html.content = box(
+            f"Scene: {html.escape(record.short_label)} {traj.key}, every car seen from the ego (blue-grey): green "
+            "detected, orange missed, grey unseen. Explain draws them from above with where each was measured.", GREY
+        )
+        decisive = ox.counterfactuals.decisive if ox.counterfactuals is not None else ()
+        first = decisive[0].step if decisive else 0
+        if self.step_slider.value != first:
+            self.step_slider.value = first  # renders it through the slider's callback
+        else:
+            self._render_step(first)
+
+    def _show_strips(self, visible: bool) -> None:
+        for plot in self.strip.values():
+            plot.visible = visible
+
+    def _render_objects(self, step: int) -> None:
+        """*Explain* at ``step`` of the shown rollout of several objects: its header, the decisive errors, every
+        object's events and the scene from above."""
+        traj, ox, record = self.shown, self.objects_ex, self.shown_record
+        if traj is None or ox is None or record is None:
+            return
+        t = int(np.clip(step, 0, traj.n_steps - 1))
+        self.shown_step = t
+        what = ("the most likely failure found" if traj is record.most_likely_failure
+                else ("a failure" if traj.crashed else "no failure"))  # fmt: skip
+        head = (f"<b>{html.escape(record.short_label)} {traj.key}</b>: {what} · robustness {traj.robustness:+.4g} "
+                f"({record.config.metric}) · log p_PEM {traj.log_p_total:.1f} nats (every object's detections and "
+                f"errors)")  # fmt: skip
+        why = f"<b>Which errors decided it</b> (each undone alone, replayed): {html.escape(objects_summary(ox))}"
+        legend = (f"<span style='color:{OV.GREEN}'>&#9632; detected</span> <span style='color:{OV.ORANGE}'>&#9632; "
+                  f"missed</span> <span style='color:{OV.UNSEEN}'>&#9632; unseen</span> <span style='color:{OV.RED}'>"
+                  f"&#9632; decisive</span> <span style='color:{OV.BLUE}'>&#9679; measured; dashed: the noise PEM's "
+                  f"{OV.ELLIPSE_SCALES:g}-scale ellipse</span>")  # fmt: skip
+        body = (
+            box(f"{head}<br>{why}", RED if traj.crashed else GREEN)
+            + TABLE_STYLE
+            + '<div style="margin:0 0.6em; font-size:0.8em">'
+            + OV.decisive_table(ox)
+            + f"<div><b>Every object, step by step</b> · {html.escape(OV.state_counts(ox, t))}</div>"
+            + OV.raster_svg(ox, t)
+            + f"<div><b>From above at step {t}</b> (the road runs right; the ego's right is down)</div>"
+            + OV.birds_eye_svg(ox, t)
+            + f"<div>{legend}</div></div>"
+        )
+        self.explain_html.content = body
+        self._render_objects_scene(ox, t, f"{record.short_label} {traj.key} step {t}\n{OV.state_counts(ox, t)}")
 
     def _fill_explanation(self) -> None:
         traj, ex, record = self.shown, self.explanation, self.shown_record

@@ -37,6 +37,7 @@ from pemviz.events import (
 )
 from pemviz.presets import PRESETS
 from pemviz.proposal_view import ProposalView, batch_proposal_view
+from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.recording import RerunSink
@@ -91,6 +92,8 @@ class Trajectory:
         detected: bool [T], the detector's output at each step.
         log_p, log_q: float64 [T] log-probability of each step's detection under the PEM and under the
             detector that sampled it (nats).
+        batch: the rollout as a batch of one, for a scene of several objects (every object's rows, detections and
+            measurement errors, replayed by *Explain*); None for one object per step (the braking scenario).
     """
 
     stage: int
@@ -104,6 +107,7 @@ class Trajectory:
     detected: np.ndarray
     log_p: np.ndarray
     log_q: np.ndarray
+    batch: RolloutBatch | None = None
 
     @property
     def log_p_total(self) -> float:
@@ -143,6 +147,7 @@ def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
         detected=np.array(batch.detected[i, :, 0], dtype=bool),
         log_p=np.array(batch.log_p[i], dtype=np.float64),
         log_q=np.array(batch.log_q[i], dtype=np.float64),
+        batch=batch.select(np.array([i])) if batch.objects is not None and batch.n_objects > 1 else None,
     )
 
 
@@ -199,6 +204,9 @@ class PanelRun(Sink):
         """The stages the run will draw (:class:`pemviz.plan.RunPlan`), once it started; None before."""
         self.view = None
         """The problem as the panel shows it (:class:`pemviz.problems.ProblemView`), once it started; None before."""
+        self.problem = None
+        """The run's :class:`pemviz.problems.Problem`, set by whoever runs it: *Explain* replays a scene of several
+        objects through it (None: no replays)."""
         self.curve_grid_m = np.zeros(0)
         self.pem_curve = np.zeros(0)
         self.stages: list[StageResult] = []

@@ -37,6 +37,12 @@ FRAMED_Y_M, FRAMED_Z_M = (-8.0, 6.0), (0.0, 3.0)
 """The lateral and vertical extent the camera keeps in view (metres): the road, the cars, the columns of labels."""
 LABEL_SCALE = 0.85
 """The labels' font, relative to viser's."""
+OBJECT_LANE_M = 4.0
+"""A lane's width in the scene of several objects (metres)."""
+CUT_IN_CAR_M = (4.5, 1.8)
+"""Length and width of a car in the scene of several objects (metres)."""
+OBJECTS_FRAME_M = (-10.0, 60.0)
+"""The stretch of road the camera frames in the scene of several objects, from behind the ego to ahead (metres)."""
 
 
 def camera_pose(x_middle: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -110,16 +116,16 @@ class SceneView:
         p = self.params
         scene.set_up_direction("+z")
         road_len, x0, lane = 240.0, -60.0, 4.0
-        scene.add_box(
+        road = scene.add_box(
             "/road", color=C.ROAD, dimensions=(road_len, lane + 1.0, 0.05),
             position=(x0 + road_len / 2, 0.0, -0.03), cast_shadow=False,
         )  # fmt: skip
         edges = np.array(
             [[[x0, s * lane / 2, 0.01], [x0 + road_len, s * lane / 2, 0.01]] for s in (-1, 1)], dtype=np.float32
         )  # world coordinates: not children of /road, whose frame is the box's centre
-        scene.add_line_segments("/road_edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
+        road_edges = scene.add_line_segments("/road_edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
         ticks = np.array([[[x, lane / 2, 0.01], [x, lane / 2 + 0.6, 0.01]] for x in range(0, 150, 10)], np.float32)
-        scene.add_line_segments("/road_ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
+        road_ticks = scene.add_line_segments("/road_ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
         size = (p.ego_length_m, p.vehicle_width_m, CAR_HEIGHT_M)
         lead0 = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
         self.ego_box = scene.add_box("/ego", color=IDLE, dimensions=size, position=(0.0, 0, CAR_HEIGHT_M / 2))
@@ -130,18 +136,19 @@ class SceneView:
         scene.add_label("/lead/label", "lead", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2), anchor="bottom-center",
                         font_screen_scale=LABEL_SCALE)  # fmt: skip
         # zones ahead of the ego's camera, moving with it; one label for both, in the right column at 10 m
+        zones = []
         for name, length, rgb in (("brake_zone_10m", p.braking_distance_m, BRAKE_ZONE),
                                   ("crash_zone_2m", p.crash_gap_m, CRASH)):  # fmt: skip
-            scene.add_box(
+            zones.append(scene.add_box(
                 f"/ego/{name}", color=rgb, dimensions=(length, p.vehicle_width_m + 0.6, 0.02), opacity=0.35,
                 position=(p.camera_offset_m + length / 2, 0.0, -CAR_HEIGHT_M / 2 + 0.02), cast_shadow=False,
                 receive_shadow=False,
-            )  # fmt: skip
-        scene.add_label(
+            ))  # fmt: skip
+        zones.append(scene.add_label(
             "/ego/brake_zone_10m/label", f"yellow: brakes if the lead is\ndetected within {p.braking_distance_m:g} m;"
             f"\nred: the {p.crash_gap_m:g} m crash margin", position=(p.braking_distance_m / 2, ROW_Y_M["right"], 0.0),
             anchor="center-left", font_screen_scale=LABEL_SCALE,
-        )  # fmt: skip
+        ))  # fmt: skip
         # the gap ruler: on the road beside the cars, from the ego's camera to the lead's rear, ticks at both ends
         self.gap_ruler = scene.add_line_segments(
             "/gap_ruler", self._ruler(p.camera_offset_m, lead0 - p.lead_length_m / 2), colors=C.ROAD_MARKING,
@@ -169,7 +176,75 @@ class SceneView:
             "/ego/label", "ego: no rollout chosen", position=(0.0, ROW_Y_M["right"], -CAR_HEIGHT_M / 2),
             anchor="center-left", font_screen_scale=LABEL_SCALE,
         )  # fmt: skip
+        self._braking_nodes = [road, road_edges, road_ticks, self.lead_box, *zones, self.gap_ruler]
+        """What only the braking scenario's scene shows (hidden while a scene of several objects is shown)."""
+        self._object_nodes: list = []
+        """A scene of several objects: its road, its lane lines, then a box and a label per object, made when first
+        shown."""
         self._frame(0.0, lead0, self._span(np.zeros(1), np.full(1, lead0)))
+
+    def _scene_kind(self, objects: int) -> None:
+        """Show the braking scenario's scene (``objects`` 0) or one of ``objects`` cars on a road of three lanes."""
+        scene = self.client.scene
+        if objects and len(self._object_nodes) < 2 + 2 * objects:
+            lanes = 3 * OBJECT_LANE_M
+            for node in self._object_nodes:
+                node.remove()
+            self._object_nodes = [scene.add_box(
+                "/objects/road", color=C.ROAD, dimensions=(240.0, lanes + 1.0, 0.05), position=(60.0, 0.0, -0.03),
+                cast_shadow=False, visible=False)]  # fmt: skip
+            dashes = np.array([[[x, y, 0.01], [x + 3.0, y, 0.01]] for y in (-OBJECT_LANE_M / 2, OBJECT_LANE_M / 2)
+                               for x in np.arange(-60.0, 180.0, 9.0)], np.float32)  # fmt: skip
+            edges = np.array([[[-60.0, y, 0.01], [180.0, y, 0.01]] for y in (-lanes / 2, lanes / 2)], np.float32)
+            self._object_nodes.append(scene.add_line_segments(
+                "/objects/lanes", np.concatenate([dashes, edges]), colors=C.ROAD_MARKING, thickness=0.12,
+                visible=False))  # fmt: skip
+            for j in range(objects):
+                self._object_nodes.append(scene.add_box(
+                    f"/objects/car{j}", color=IDLE, dimensions=(CUT_IN_CAR_M[0], CUT_IN_CAR_M[1], CAR_HEIGHT_M),
+                    position=(0.0, 0.0, CAR_HEIGHT_M / 2), visible=False))  # fmt: skip
+                self._object_nodes.append(scene.add_label(
+                    f"/objects/car{j}/label", f"car {j}", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2),
+                    anchor="bottom-center", font_screen_scale=LABEL_SCALE, visible=False))  # fmt: skip
+        with self.client.atomic():
+            for node in self._braking_nodes:
+                node.visible = not objects
+            for node in self._object_nodes:
+                node.visible = bool(objects)
+            if objects:
+                self.trail.visible = self.breach_gate.visible = self.breach_label.visible = False
+                self.gap_label.visible = False
+            else:
+                self.gap_label.visible = True
+
+    def _render_objects_scene(self, ox, t: int, label: str) -> None:
+        """The cars of an :class:`~pemviz.app.objects_view.ObjectsExplanation` at step ``t``, seen from the ego (which
+        stays at the origin): green detected, orange missed, grey unseen, a label per car saying which (and
+        decisive)."""
+        decisive = {obj for obj, _ in ox.decisive_at(t)}
+        with self.client.atomic():
+            self.ego_box.position = (0.0, 0.0, CAR_HEIGHT_M / 2)
+            self.ego_box.color = C.LEAD
+            for j in range(ox.detected.shape[1]):
+                box_, text = self._object_nodes[2 + 2 * j], self._object_nodes[3 + 2 * j]
+                ahead, lateral = float(ox.ahead_m[t, j]), float(ox.lateral_m[t, j])
+                ok = math.isfinite(ahead) and math.isfinite(lateral)
+                box_.visible = text.visible = ok
+                if not ok:
+                    continue
+                det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
+                box_.position = (ahead, -lateral, CAR_HEIGHT_M / 2)
+                box_.color = DETECTED if det else (MISSED if seen else IDLE)
+                state = "detected" if det else ("missed" if seen else "unseen")
+                text.text = f"car {j}: {state}" + (" (decisive)" if j in decisive else "")
+            for node in self._object_nodes[2 + 2 * ox.detected.shape[1]:]:  # cars of a larger scene shown before
+                node.visible = False
+            self.scene_label.text = label
+
+    def _frame_objects(self) -> None:
+        """Point the camera at :data:`OBJECTS_FRAME_M` of the road of several objects."""
+        lo, hi = OBJECTS_FRAME_M
+        self._frame(lo + self.params.ego_length_m / 2, hi - self.params.lead_length_m / 2, hi - lo)
 
     def _ruler(self, x_from: float, x_to: float) -> np.ndarray:
         """The gap ruler's segments [3, 2, 3]: the line and a tick at each end (metres)."""
@@ -224,6 +299,8 @@ class SceneView:
         """Back to the idle scene (no rollout shown): the cars at the start, the ego grey."""
         p = self.params
         self.shown, self.shown_record, self.explanation, self._shown_x = None, None, None, None
+        self.objects_ex = None
+        self._scene_kind(0)
         self._set_playing(False)
         self.shown_step = -1
         lead0 = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
@@ -241,6 +318,10 @@ class SceneView:
         self._frame(0.0, lead0, self._span(np.zeros(1), np.full(1, lead0)))
 
     def _render_step(self, step: int) -> None:
+        if self.objects_ex is not None:  # a rollout of several objects: Explain draws them
+            with self.lock:
+                self._render_objects(step)
+            return
         with self.lock:
             traj, xs, ex, record = self.shown, self._shown_x, self.explanation, self.shown_record
             if traj is None or xs is None or ex is None or record is None:

@@ -36,6 +36,7 @@ from pemviz.app.runs_tab import RunsTab
 from pemviz.app.scene_view import SceneView
 from pemviz.app._viser_compat import resend_value
 from pemviz.app.explain import Explanation
+from pemviz.app.objects_view import ObjectsExplanation
 from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_number, parse_form, run_cost
 from pemviz.app.runs import PANEL_PRESETS, PanelRun, Trajectory, export_path, export_run, keep_runs
 from pemviz import engine
@@ -100,6 +101,8 @@ class Session(RunsTab, RolloutsTab, SceneView):
         chooses itself)."""
         self._severities: dict[tuple[int, str], Severity] = {}
         self.explanation: Explanation | None = None
+        self.objects_ex: ObjectsExplanation | None = None
+        """The shown rollout's explanation when its scene has several objects (then :attr:`explanation` is None)."""
         self.shown_step = -1
         self._shown_x: tuple[np.ndarray, np.ndarray] | None = None
         self._shown_span = 0.0
@@ -245,8 +248,9 @@ class Session(RunsTab, RolloutsTab, SceneView):
         gui.configure_theme(control_width="large", show_share_button=False, brand_color=C.BLUE)
         gui.set_panel_label("pemviz")
         gui.add_markdown(
-            "**pemviz**: the crash probability of a PEM-driven braking scenario by adaptive importance sampling "
-            "(Innes & Ramamoorthy 2022). Set the experiment, press **Run**; this tab has its own runs."
+            "**pemviz**: the failure probability of a PEM-driven scenario (braking, or a cut-in among several cars) by "
+            "adaptive importance sampling (Innes & Ramamoorthy 2022). Set the experiment, press **Run**; this tab has "
+            "its own runs."
         )
         self.run_button = gui.add_button("Run", color="green", icon=viser.Icon.PLAYER_PLAY)
         self.stop_button = gui.add_button("Stop", color="red", icon=viser.Icon.PLAYER_STOP, disabled=True)
@@ -318,6 +322,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
             self.choices[key] = gui.add_dropdown(s.label, options or s.choices, initial_value=value or getattr(c0, key),
                                                  hint=s.hint, **kw)  # fmt: skip
 
+        dropdown("scenario")
         dropdown("metric")
         for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
             number(key)
@@ -423,6 +428,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
         try:
             with torch_threads(1):
                 problem = problem_for(record.config)
+                record.problem = problem
                 engine.Experiment(record.config, [RunListener(self, record)], cancel, problem=problem).run()
         except Exception as exc:  # a bad PEM file, a simulator error: show it, keep serving
             record.fail(f"{type(exc).__name__}: {exc}")

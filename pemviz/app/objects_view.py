@@ -1,0 +1,247 @@
+"""*Explain a failure* for a scene of several objects (the cut-in): every object at every step, detected, missed or
+unseen, where each detected one was measured beside the noise PEM's error ellipse, and which object's errors, at
+which steps, decided the failure (:func:`pemviz.counterfactuals.counterfactuals`: each miss flipped to an exact
+detection and each measurement error set to zero, one at a time, the rollout replayed). Plain functions of a rollout
+returning HTML with inline SVG; no viser.
+"""
+
+from __future__ import annotations
+
+import html
+from dataclasses import dataclass
+
+import numpy as np
+
+from pemviz.counterfactuals import MISS, Counterfactuals, counterfactuals
+from pemviz.sinks import colours as C
+from pemviz.sinks.colours import hex_colour
+
+GREEN, ORANGE, UNSEEN, BLUE, RED, EGO = (hex_colour(c) for c in (C.DETECTED, C.MISSED, C.IDLE, C.BLUE, C.RED, C.LEAD))
+AHEAD_M = (-25.0, 75.0)
+"""The stretch of road the bird's-eye view shows, from behind the ego to ahead of it (metres)."""
+LATERAL_M = 9.0
+"""The bird's-eye view shows this far to either side of the ego (metres)."""
+CAR_LENGTH_M, CAR_WIDTH_M = 4.5, 1.8
+ELLIPSE_SCALES = 2.0
+"""The error ellipse's half-axes, in the noise PEM's scales of each component."""
+
+
+@dataclass(frozen=True)
+class ObjectsExplanation:
+    """A rollout of a scene of several objects, object by object, and which of its perception errors decided it.
+
+    Attributes:
+        lateral_m, ahead_m: float64 [T, M] each object's true position seen from the ego (metres: to the right,
+            ahead).
+        detected, seen: bool [T, M] detected; visible to the camera at all (an unseen object is never detected).
+        measured: float64 [T, M, 2] where each detected object was measured (lateral, ahead; NaN where not
+            detected), or None: the detector does not mislocate.
+        ellipse: float64 [T, M, 2, 2] the noise PEM's (centre offset, half-axis) along lateral and ahead at each
+            object row (metres), or None.
+        counterfactuals: every single intervention of a failing rollout (None: it did not fail, or the problem
+            cannot replay).
+        names: the objects' names.
+        failed: the rollout failed.
+    """
+
+    lateral_m: np.ndarray
+    ahead_m: np.ndarray
+    detected: np.ndarray
+    seen: np.ndarray
+    measured: np.ndarray | None
+    ellipse: np.ndarray | None
+    counterfactuals: Counterfactuals | None
+    names: tuple[str, ...]
+    failed: bool
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.detected.shape[0])
+
+    def decisive_at(self, step: int) -> set[tuple[int, str]]:
+        """(object, kind) of the decisive interventions at ``step``."""
+        cf = self.counterfactuals
+        return set() if cf is None else {(i.obj, i.kind) for i in cf.decisive if i.step == step}
+
+
+def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
+    """The :class:`ObjectsExplanation` of rollout 0 of ``batch`` (a batch of one rollout with object rows).
+
+    Args:
+        problem: the run's :class:`pemviz.problems.Problem` (its target gives the error ellipses, its ``branch``
+            replays the counterfactuals); None: neither.
+        view: its :class:`pemviz.problems.ProblemView` (``objects_xy``, ``noise_xy``).
+        batch: one rollout, ``objects`` [1, T, M, G] named by ``object_names``.
+        failed: whether the rollout failed (only a failure is explained by counterfactuals).
+    Raises:
+        ValueError: the view has no object positions (``objects_xy``) or the batch no object rows.
+    """
+    if view is None or view.objects_xy is None or batch.objects is None:
+        raise ValueError("explain_objects: the problem's view names no object positions (objects_xy), or the "
+                         "rollout has no object rows")  # fmt: skip
+    names = tuple(batch.object_names or ())
+    rows = batch.objects[0]  # [T, M, G]
+    cx, cz = (names.index(c) for c in view.objects_xy)
+    lateral, ahead = rows[:, :, cx].astype(np.float64), rows[:, :, cz].astype(np.float64)
+    detected = np.asarray(batch.detected[0], bool)
+    seen = rows[:, :, names.index("visible")] > 0.5 if "visible" in names else np.ones_like(detected)
+    measured = ellipse = None
+    if view.noise_xy is not None and batch.noise is not None:
+        ix, iz = view.noise_xy
+        err = batch.noise[0]
+        measured = np.where(detected[..., None], np.stack([lateral + err[..., ix], ahead + err[..., iz]], -1), np.nan)
+        target = getattr(problem, "target", None)
+        if target is not None and hasattr(target, "noise_params"):
+            loc, log_scale = target.noise_params(rows.reshape(-1, rows.shape[-1]))
+            loc, scale = np.asarray(loc).reshape(*detected.shape, -1), np.exp(log_scale).reshape(*detected.shape, -1)
+            ellipse = np.stack([np.stack([loc[..., ix], scale[..., ix]], -1),
+                                np.stack([loc[..., iz], scale[..., iz]], -1)], -2)  # fmt: skip
+    cf = None
+    if failed and problem is not None and getattr(problem, "branch", None) is not None:
+        cf = counterfactuals(problem, batch, 0)
+    return ObjectsExplanation(lateral, ahead, detected, seen, measured, ellipse, cf,
+                              tuple(f"car {j}" for j in range(detected.shape[1])), bool(failed))  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RobustnessOutcome:
+    """The outcome of a rollout of a scene without the braking scenario's severity: failed or not, by its classic
+    robustness (the safety formula's margin; metres for the cut-in's)."""
+
+    robustness: float
+    failed: bool
+
+    @property
+    def short(self) -> str:
+        return f"{'failed' if self.failed else 'safe'}, robustness {self.robustness:+.3g}"
+
+    @property
+    def rank(self) -> float:
+        """Sort key, larger = worse."""
+        return -self.robustness
+
+
+def state_colour(detected: bool, seen: bool) -> str:
+    return GREEN if detected else (ORANGE if seen else UNSEEN)
+
+
+def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: int = 170) -> str:
+    """The scene at ``step`` from above: the ego (blue-grey, at the left third), each object where it truly is
+    (green detected, orange missed, grey unseen; a red outline where its error at this step was decisive), and, for a
+    detected one, where it was measured (a blue dot and a line from the truth) inside the noise PEM's ellipse of
+    :data:`ELLIPSE_SCALES` scales. The road runs to the right; the ego's right is down."""
+    t = int(np.clip(step, 0, ox.n_steps - 1))
+    lo, hi = AHEAD_M
+    sx = width / (hi - lo)
+    sy = (height - 20) / (2 * LATERAL_M)
+
+    def px(ahead: float, lateral: float) -> tuple[float, float]:
+        return (ahead - lo) * sx, 10 + (lateral + LATERAL_M) * sy
+
+    parts = [f'<svg class="pemviz-birds-eye" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+             f'style="background:#f4f4f4;border-radius:4px">']  # fmt: skip
+    for lane in (-6.0, -2.0, 2.0, 6.0):  # 4 m lanes around the ego's
+        y = px(0.0, lane)[1]
+        dash = "" if abs(lane) > 5 else ' stroke-dasharray="6 6"'
+        parts.append(f'<line x1="0" y1="{y:.1f}" x2="{width}" y2="{y:.1f}" stroke="#bbb"{dash}/>')
+    for metres in range(0, int(hi) + 1, 25):
+        x = px(float(metres), 0.0)[0]
+        parts.append(f'<text x="{x:.1f}" y="{height - 3}" font-size="9" fill="#888" text-anchor="middle">'
+                     f'{metres} m</text>')  # fmt: skip
+
+    def car(ahead: float, lateral: float, fill: str, stroke: str = "none", width_px: float = 0.0) -> str:
+        x, y = px(ahead - CAR_LENGTH_M / 2, lateral - CAR_WIDTH_M / 2)
+        return (f'<rect x="{x:.1f}" y="{y:.1f}" width="{CAR_LENGTH_M * sx:.1f}" height="{CAR_WIDTH_M * sy:.1f}" '
+                f'rx="2" fill="{fill}" stroke="{stroke}" stroke-width="{width_px}"/>')  # fmt: skip
+
+    parts.append(car(0.0, 0.0, EGO))
+    ex, ey = px(0.0, 0.0)
+    parts.append(f'<text x="{ex:.1f}" y="{ey + 3:.1f}" font-size="9" fill="white" text-anchor="middle">ego</text>')
+    decisive = ox.decisive_at(t)
+    for j in range(ox.detected.shape[1]):
+        a, lat = float(ox.ahead_m[t, j]), float(ox.lateral_m[t, j])
+        if not (np.isfinite(a) and np.isfinite(lat)) or not (lo <= a <= hi and abs(lat) <= LATERAL_M):
+            continue
+        det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
+        hit = any(obj == j for obj, _ in decisive)
+        parts.append(car(a, lat, state_colour(det, seen), RED if hit else "#333", 3.0 if hit else 0.5))
+        x, y = px(a, lat)
+        parts.append(f'<text x="{x:.1f}" y="{y - CAR_WIDTH_M * sy / 2 - 3:.1f}" font-size="10" fill="#333" '
+                     f'text-anchor="middle">{j}</text>')  # fmt: skip
+        if det and ox.ellipse is not None:
+            (c_lat, r_lat), (c_ahead, r_ahead) = ox.ellipse[t, j]
+            cx, cy = px(a + c_ahead, lat + c_lat)
+            parts.append(f'<ellipse cx="{cx:.1f}" cy="{cy:.1f}" rx="{ELLIPSE_SCALES * r_ahead * sx:.1f}" '
+                         f'ry="{ELLIPSE_SCALES * r_lat * sy:.1f}" fill="none" stroke="{BLUE}" '
+                         f'stroke-dasharray="3 2"/>')  # fmt: skip
+        if det and ox.measured is not None and np.all(np.isfinite(ox.measured[t, j])):
+            mx, my = px(float(ox.measured[t, j, 1]), float(ox.measured[t, j, 0]))
+            parts.append(f'<line x1="{x:.1f}" y1="{y:.1f}" x2="{mx:.1f}" y2="{my:.1f}" stroke="{BLUE}"/>'
+                         f'<circle cx="{mx:.1f}" cy="{my:.1f}" r="3" fill="{BLUE}"/>')  # fmt: skip
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def raster_svg(ox: ObjectsExplanation, step: int, width: int = 430) -> str:
+    """Every object's events, a row per object and a column per step: green detected, orange missed, grey unseen;
+    a red bar under a decisive miss or error; a black line at ``step`` and a red one at the failure."""
+    t_steps, m = ox.detected.shape
+    left, cell_h = 34, 13
+    cw = (width - left - 4) / t_steps
+    height = m * cell_h + 22
+    parts = [f'<svg class="pemviz-raster" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}">']
+    for j in range(m):
+        y = 2 + j * cell_h
+        parts.append(f'<text x="0" y="{y + cell_h - 3}" font-size="10" fill="#333">{html.escape(ox.names[j])}</text>')
+        for t in range(t_steps):
+            colour = state_colour(bool(ox.detected[t, j]), bool(ox.seen[t, j]))
+            parts.append(f'<rect x="{left + t * cw:.2f}" y="{y}" width="{max(cw - 0.3, 0.5):.2f}" '
+                         f'height="{cell_h - 3}" fill="{colour}"/>')  # fmt: skip
+    cf = ox.counterfactuals
+    if cf is not None:
+        for i in cf.decisive:
+            x, y = left + i.step * cw, 2 + i.obj * cell_h + cell_h - 3
+            parts.append(f'<rect x="{x:.2f}" y="{y}" width="{max(cw, 2):.2f}" height="3" fill="{RED}">'
+                         f'<title>decisive: {html.escape(ox.names[i.obj])} {i.kind} at step {i.step}</title></rect>')
+        fx = left + cf.failure_step * cw
+        parts.append(f'<line x1="{fx:.1f}" y1="0" x2="{fx:.1f}" y2="{m * cell_h + 2}" stroke="{RED}"/>')
+    sx = left + (int(step) + 0.5) * cw
+    parts.append(f'<line x1="{sx:.1f}" y1="0" x2="{sx:.1f}" y2="{m * cell_h + 2}" stroke="black" stroke-width="1.5"/>')
+    for t in range(0, t_steps, 20):
+        parts.append(f'<text x="{left + t * cw:.1f}" y="{height - 4}" font-size="9" fill="#888">{t}</text>')
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def decisive_table(ox: ObjectsExplanation) -> str:
+    """The decisive interventions, one row each: object, step, what was undone, the replay's robustness."""
+    cf = ox.counterfactuals
+    if cf is None or not cf.decisive:
+        return ""
+    rows = "".join(
+        f"<tr><td>{html.escape(ox.names[i.obj])}</td><td>{i.step}</td><td style='text-align:left'>"
+        + ("missed: flipped to an exact detection" if i.kind == MISS else
+           "mislocated by " + ", ".join(f"{e:+.2f} m" for e in i.error) + ": error set to zero")
+        + f"</td><td>{i.robustness:+.3f}</td></tr>"
+        for i in cf.decisive[:12]
+    )  # fmt: skip
+    more = f"<div>... and {len(cf.decisive) - 12} more</div>" if len(cf.decisive) > 12 else ""
+    return ('<table class="pemviz-table" style="width:100%;font-size:0.95em"><tr><th>object</th><th>step</th>'
+            f"<th>undone alone</th><th>robustness after</th></tr>{rows}</table>{more}")  # fmt: skip
+
+
+def objects_summary(ox: ObjectsExplanation) -> str:
+    """One line: which objects' errors were decisive, or why there is nothing to say."""
+    cf = ox.counterfactuals
+    if not ox.failed:
+        return "no failure: nothing to explain (the safety formula held)"
+    if cf is None:
+        return "the problem cannot replay its rollouts: no counterfactual"
+    return cf.summary(ox.names)
+
+
+def state_counts(ox: ObjectsExplanation, step: int) -> str:
+    """``step 17: 3 detected, 1 missed, 1 unseen``."""
+    t = int(np.clip(step, 0, ox.n_steps - 1))
+    d, s = ox.detected[t], ox.seen[t]
+    return f"step {t}: {int(d.sum())} detected, {int((~d & s).sum())} missed, {int((~s).sum())} unseen"
