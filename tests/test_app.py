@@ -639,7 +639,8 @@ OBJECTS_JS = """(n) => {
     });
     const above = Array.from(document.querySelectorAll('div')).map(d => d.textContent)
         .filter(t => t.startsWith('From above at step')).at(-1) ?? '';
-    return {cells, cars, above, braking_lead: tree['/lead']?.visibility};
+    const tracks = document.querySelectorAll('svg.pemviz-birds-eye rect.pemviz-track').length;
+    return {cells, cars, above, tracks, braking_lead: tree['/lead']?.visibility};
 }"""
 """The Explain raster's cells (fill colours, object by object, step by step), each car of the scene (position,
 colour, visibility, label), the bird's-eye view's heading and the braking scene's lead's visibility."""
@@ -686,6 +687,10 @@ def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_fail
 
     check_cars(first.step, got["cars"])
     assert got["braking_lead"] is False  # the braking scene's lead is hidden
+    # from above, a dashed box where the tracker places each tracked car drawn (in the view)
+    t = first.step
+    drawn = (ox.ahead_m[t] >= OV.AHEAD_M[0]) & (ox.ahead_m[t] <= OV.AHEAD_M[1]) & (np.abs(ox.lateral_m[t]) <= OV.LATERAL_M)
+    assert got["tracks"] == int((np.isfinite(ox.tracked[t, :, 0]) & drawn).sum()) > 0
     # the playback moves the scene and the view from above to the failure
     s.step_slider.value = cf.failure_step
     wait_until(lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {cf.failure_step}"),

@@ -557,3 +557,18 @@ def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_whe
     assert sum(c.count(orange) for c in colours) > 0
     assert any(c.startswith("/explain/detect/object_4/") for c in step.column_names)
     assert "visible" in OBJECT_NAMES
+    # the tracker's estimate: a box per tracked car and step, where the rollout's rows put it (the true position plus
+    # the track's error along and across the road); the rollout found by its true positions
+    true_xy = np.array(true, dtype=np.float64)  # [T, M, 2]: right, -ahead
+    col = {name: OBJECT_NAMES.index(name) for name in ("loc_x", "loc_z", "tracked", "track_err_x_m", "track_err_y_m")}
+    rows = next(e.batch.objects[i] for e in failures for i in np.flatnonzero(e.failed)
+                if np.allclose(np.stack([e.batch.objects[i][:, :, col["loc_x"]], -e.batch.objects[i][:, :, col["loc_z"]]],
+                                        -1), true_xy, atol=1e-4))  # fmt: skip
+    has = rows[:, :, col["tracked"]] > 0.5
+    want = np.stack([rows[:, :, col["loc_x"]] + rows[:, :, col["track_err_y_m"]],
+                     -(rows[:, :, col["loc_z"]] + rows[:, :, col["track_err_x_m"]])], -1)  # fmt: skip
+    boxes = column(step, "/explain/objects/tracked:Boxes2D:centers")
+    got = [np.array(b, dtype=np.float64).reshape(-1, 2) if b else np.zeros((0, 2)) for b in boxes]
+    assert has.any() and len(got) == 100
+    for t in range(100):
+        np.testing.assert_allclose(got[t], want[t][has[t]], atol=1e-4)

@@ -16,7 +16,8 @@ from pemviz.counterfactuals import MISS, Counterfactuals, counterfactuals
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
-GREEN, ORANGE, UNSEEN, BLUE, RED, EGO = (hex_colour(c) for c in (C.DETECTED, C.MISSED, C.IDLE, C.BLUE, C.RED, C.LEAD))
+GREEN, ORANGE, UNSEEN, BLUE, RED, EGO, TRACK = (hex_colour(c) for c in (C.DETECTED, C.MISSED, C.IDLE, C.BLUE, C.RED,
+                                                                          C.LEAD, C.VIOLET))
 AHEAD_M = (-25.0, 75.0)
 """The stretch of road the bird's-eye view shows, from behind the ego to ahead of it (metres)."""
 LATERAL_M = 9.0
@@ -38,6 +39,9 @@ class ObjectsExplanation:
             detected), or None: the detector does not mislocate.
         ellipse: float64 [T, M, 2, 2] the noise PEM's (centre offset, half-axis) along lateral and ahead at each
             object row (metres), or None.
+        tracked: float64 [T, M, 2] where the tracker placed each car it has a confirmed track of (lateral, ahead;
+            NaN where none), or None: the scene has no tracker.
+        followed: bool [T, M] the car the controller followed at the step (all False without a tracker).
         counterfactuals: every single intervention of a failing rollout (None: it did not fail, or the problem
             cannot replay).
         names: the objects' names.
@@ -50,6 +54,8 @@ class ObjectsExplanation:
     seen: np.ndarray
     measured: np.ndarray | None
     ellipse: np.ndarray | None
+    tracked: np.ndarray | None
+    followed: np.ndarray
     counterfactuals: Counterfactuals | None
     names: tuple[str, ...]
     failed: bool
@@ -96,10 +102,18 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
             loc, scale = np.asarray(loc).reshape(*detected.shape, -1), np.exp(log_scale).reshape(*detected.shape, -1)
             ellipse = np.stack([np.stack([loc[..., ix], scale[..., ix]], -1),
                                 np.stack([loc[..., iz], scale[..., iz]], -1)], -2)  # fmt: skip
+    tracked, followed = None, np.zeros_like(detected)
+    if {"tracked", "track_err_x_m", "track_err_y_m"} <= set(names):  # the tracker's error along and across the road
+        has = rows[:, :, names.index("tracked")] > 0.5
+        est = np.stack([lateral + rows[:, :, names.index("track_err_y_m")],
+                        ahead + rows[:, :, names.index("track_err_x_m")]], -1)  # fmt: skip
+        tracked = np.where(has[..., None], est, np.nan)
+    if "followed" in names:
+        followed = rows[:, :, names.index("followed")] > 0.5
     cf = None
     if failed and problem is not None and getattr(problem, "branch", None) is not None:
         cf = counterfactuals(problem, batch, 0)
-    return ObjectsExplanation(lateral, ahead, detected, seen, measured, ellipse, cf,
+    return ObjectsExplanation(lateral, ahead, detected, seen, measured, ellipse, tracked, followed, cf,
                               tuple(f"car {j}" for j in range(detected.shape[1])), bool(failed))  # fmt: skip
 
 
@@ -127,9 +141,10 @@ def state_colour(detected: bool, seen: bool) -> str:
 
 def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: int = 170) -> str:
     """The scene at ``step`` from above: the ego (blue-grey, at the left third), each object where it truly is
-    (green detected, orange missed, grey unseen; a red outline where its error at this step was decisive), and, for a
-    detected one, where it was measured (a blue dot and a line from the truth) inside the noise PEM's ellipse of
-    :data:`ELLIPSE_SCALES` scales. The road runs to the right; the ego's right is down."""
+    (green detected, orange missed, grey unseen; a red outline where its error at this step was decisive), for a
+    detected one where it was measured (a blue dot and a line from the truth) inside the noise PEM's ellipse of
+    :data:`ELLIPSE_SCALES` scales, and where the tracker places each car it tracks (a dashed violet box, bold with
+    "ACC follows" under the one the controller followed). The road runs to the right; the ego's right is down."""
     t = int(np.clip(step, 0, ox.n_steps - 1))
     lo, hi = AHEAD_M
     sx = width / (hi - lo)
@@ -174,6 +189,15 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
             parts.append(f'<ellipse cx="{cx:.1f}" cy="{cy:.1f}" rx="{ELLIPSE_SCALES * r_ahead * sx:.1f}" '
                          f'ry="{ELLIPSE_SCALES * r_lat * sy:.1f}" fill="none" stroke="{BLUE}" '
                          f'stroke-dasharray="3 2"/>')  # fmt: skip
+        if ox.tracked is not None and np.all(np.isfinite(ox.tracked[t, j])):  # the tracker's estimate, dashed
+            tx, ty = px(float(ox.tracked[t, j, 1]) - CAR_LENGTH_M / 2, float(ox.tracked[t, j, 0]) - CAR_WIDTH_M / 2)
+            follow = bool(ox.followed[t, j])
+            parts.append(f'<rect class="pemviz-track" x="{tx:.1f}" y="{ty:.1f}" width="{CAR_LENGTH_M * sx:.1f}" '
+                         f'height="{CAR_WIDTH_M * sy:.1f}" rx="2" fill="none" stroke="{TRACK}" '
+                         f'stroke-width="{2.0 if follow else 1.2}" stroke-dasharray="4 2"/>')  # fmt: skip
+            if follow:
+                parts.append(f'<text x="{tx + CAR_LENGTH_M * sx / 2:.1f}" y="{ty + CAR_WIDTH_M * sy + 10:.1f}" '
+                             f'font-size="9" fill="{TRACK}" text-anchor="middle">ACC follows</text>')  # fmt: skip
         if det and ox.measured is not None and np.all(np.isfinite(ox.measured[t, j])):
             mx, my = px(float(ox.measured[t, j, 1]), float(ox.measured[t, j, 0]))
             parts.append(f'<line x1="{x:.1f}" y1="{y:.1f}" x2="{mx:.1f}" y2="{my:.1f}" stroke="{BLUE}"/>'

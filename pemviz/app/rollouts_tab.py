@@ -200,7 +200,8 @@ class RolloutsTab:
         legend = (f"<span style='color:{OV.GREEN}'>&#9632; detected</span> <span style='color:{OV.ORANGE}'>&#9632; "
                   f"missed</span> <span style='color:{OV.UNSEEN}'>&#9632; unseen</span> <span style='color:{OV.RED}'>"
                   f"&#9632; decisive</span> <span style='color:{OV.BLUE}'>&#9679; measured; dashed: the noise PEM's "
-                  f"{OV.ELLIPSE_SCALES:g}-scale ellipse</span>")  # fmt: skip
+                  f"{OV.ELLIPSE_SCALES:g}-scale ellipse</span> <span style='color:{OV.TRACK}'>&#9633; the tracker's "
+                  "estimate</span>")  # fmt: skip
         body = (
             box(f"{head}<br>{why}", RED if traj.crashed else GREEN)
             + TABLE_STYLE

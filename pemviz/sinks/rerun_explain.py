@@ -234,7 +234,8 @@ def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, d
 
 
 def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch, indexes: Indexes) -> None:
-    """Every object of rollout 0 of ``b`` at each step, seen from the ego (``explain/objects``)."""
+    """Every object of rollout 0 of ``b`` at each step, seen from the ego (``explain/objects``): where it is, where
+    it was measured, and where the tracker places it (``tracked``, a box per tracked car) when the rows say."""
     names = b.object_names or ()
     cx, cz = (names.index(c) for c in view.objects_xy)
     rows = b.objects[0]  # [T, M, G]
@@ -254,6 +255,15 @@ def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch,
     stream.send_columns(f"{E}/objects/names", indexes=steps, columns=rr.Points2D.columns(
         positions=where + [2.5, 0.0], colors=np.tile(np.array(AXIS_LABEL_RGBA, np.uint8), (t_steps * m, 1)),
         radii=np.full(t_steps * m, 0.01), labels=labels).partition(np.full(t_steps, m)))  # fmt: skip
+    if {"tracked", "track_err_x_m", "track_err_y_m"} <= set(names):  # where the tracker places each tracked car
+        has = rows[:, :, names.index("tracked")] > 0.5
+        est = np.stack([x + rows[:, :, names.index("track_err_y_m")],
+                        -(ahead + rows[:, :, names.index("track_err_x_m")])], -1)  # fmt: skip
+        n_tracked = has.sum(axis=1)
+        if n_tracked.sum():
+            stream.send_columns(f"{E}/objects/tracked", indexes=steps, columns=rr.Boxes2D.columns(
+                centers=est[has], half_sizes=np.tile([0.9, 2.25], (int(n_tracked.sum()), 1)),
+                colors=np.tile(np.array(C.rgba(C.VIOLET), np.uint8), (int(n_tracked.sum()), 1))).partition(n_tracked))
     if view.noise_xy is None or b.noise is None:
         return
     ix, iz = view.noise_xy
