@@ -30,7 +30,7 @@ def test_the_multi_object_guide_example_runs_and_its_interval_holds_the_exact_an
     assert exact == pytest.approx(2.483e-2, rel=1e-3)  # the number the guide quotes
     assert f"exact {exact:.3e}" in printed and "inside the interval" in printed
     assert est.log_ci[0] < problem.exact_log_p < est.log_ci[1]
-    assert exact / 2 < est.mu_hat < 2 * exact
+    assert exact / 1.3 < est.mu_hat < 1.3 * exact
 
 
 def test_the_guides_enumeration_is_what_plain_monte_carlo_of_its_simulator_finds():
