@@ -18,6 +18,8 @@ from pemviz.sinks.colours import hex_colour
 
 GREEN, ORANGE, UNSEEN, BLUE, RED, EGO, TRACK = (hex_colour(c) for c in (C.DETECTED, C.MISSED, C.IDLE, C.BLUE, C.RED,
                                                                           C.LEAD, C.VIOLET))
+BACKGROUND, LANE, TEXT, AXIS_TEXT, ON_EGO, NOW = (hex_colour(c) for c in (C.SKETCH_BACKGROUND, C.SKETCH_LANE, C.DARK,
+                                                                         C.GREY, C.ON_DARK, C.BLACK))
 AHEAD_M = (-25.0, 75.0)
 """The stretch of road the bird's-eye view shows, from behind the ego to ahead of it (metres)."""
 LATERAL_M = 9.0
@@ -154,14 +156,14 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
         return (ahead - lo) * sx, 10 + (lateral + LATERAL_M) * sy
 
     parts = [f'<svg class="pemviz-birds-eye" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-             f'style="background:#f4f4f4;border-radius:4px">']  # fmt: skip
+             f'style="background:{BACKGROUND};border-radius:4px">']  # fmt: skip
     for lane in (-6.0, -2.0, 2.0, 6.0):  # 4 m lanes around the ego's
         y = px(0.0, lane)[1]
         dash = "" if abs(lane) > 5 else ' stroke-dasharray="6 6"'
-        parts.append(f'<line x1="0" y1="{y:.1f}" x2="{width}" y2="{y:.1f}" stroke="#bbb"{dash}/>')
+        parts.append(f'<line x1="0" y1="{y:.1f}" x2="{width}" y2="{y:.1f}" stroke="{LANE}"{dash}/>')
     for metres in range(0, int(hi) + 1, 25):
         x = px(float(metres), 0.0)[0]
-        parts.append(f'<text x="{x:.1f}" y="{height - 3}" font-size="9" fill="#888" text-anchor="middle">'
+        parts.append(f'<text x="{x:.1f}" y="{height - 3}" font-size="9" fill="{AXIS_TEXT}" text-anchor="middle">'
                      f'{metres} m</text>')  # fmt: skip
 
     def car(ahead: float, lateral: float, fill: str, stroke: str = "none", width_px: float = 0.0) -> str:
@@ -171,7 +173,7 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
 
     parts.append(car(0.0, 0.0, EGO))
     ex, ey = px(0.0, 0.0)
-    parts.append(f'<text x="{ex:.1f}" y="{ey + 3:.1f}" font-size="9" fill="white" text-anchor="middle">ego</text>')
+    parts.append(f'<text x="{ex:.1f}" y="{ey + 3:.1f}" font-size="9" fill="{ON_EGO}" text-anchor="middle">ego</text>')
     decisive = ox.decisive_at(t)
     for j in range(ox.detected.shape[1]):
         a, lat = float(ox.ahead_m[t, j]), float(ox.lateral_m[t, j])
@@ -179,9 +181,9 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
             continue
         det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
         hit = any(obj == j for obj, _ in decisive)
-        parts.append(car(a, lat, state_colour(det, seen), RED if hit else "#333", 3.0 if hit else 0.5))
+        parts.append(car(a, lat, state_colour(det, seen), RED if hit else TEXT, 3.0 if hit else 0.5))
         x, y = px(a, lat)
-        parts.append(f'<text x="{x:.1f}" y="{y - CAR_WIDTH_M * sy / 2 - 3:.1f}" font-size="10" fill="#333" '
+        parts.append(f'<text x="{x:.1f}" y="{y - CAR_WIDTH_M * sy / 2 - 3:.1f}" font-size="10" fill="{TEXT}" '
                      f'text-anchor="middle">{j}</text>')  # fmt: skip
         if det and ox.ellipse is not None:
             (c_lat, r_lat), (c_ahead, r_ahead) = ox.ellipse[t, j]
@@ -216,7 +218,7 @@ def raster_svg(ox: ObjectsExplanation, step: int, width: int = 430) -> str:
     parts = [f'<svg class="pemviz-raster" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}">']
     for j in range(m):
         y = 2 + j * cell_h
-        parts.append(f'<text x="0" y="{y + cell_h - 3}" font-size="10" fill="#333">{html.escape(ox.names[j])}</text>')
+        parts.append(f'<text x="0" y="{y + cell_h - 3}" font-size="10" fill="{TEXT}">{html.escape(ox.names[j])}</text>')
         for t in range(t_steps):
             colour = state_colour(bool(ox.detected[t, j]), bool(ox.seen[t, j]))
             parts.append(f'<rect x="{left + t * cw:.2f}" y="{y}" width="{max(cw - 0.3, 0.5):.2f}" '
@@ -230,9 +232,9 @@ def raster_svg(ox: ObjectsExplanation, step: int, width: int = 430) -> str:
         fx = left + cf.failure_step * cw
         parts.append(f'<line x1="{fx:.1f}" y1="0" x2="{fx:.1f}" y2="{m * cell_h + 2}" stroke="{RED}"/>')
     sx = left + (int(step) + 0.5) * cw
-    parts.append(f'<line x1="{sx:.1f}" y1="0" x2="{sx:.1f}" y2="{m * cell_h + 2}" stroke="black" stroke-width="1.5"/>')
+    parts.append(f'<line x1="{sx:.1f}" y1="0" x2="{sx:.1f}" y2="{m * cell_h + 2}" stroke="{NOW}" stroke-width="1.5"/>')
     for t in range(0, t_steps, 20):
-        parts.append(f'<text x="{left + t * cw:.1f}" y="{height - 4}" font-size="9" fill="#888">{t}</text>')
+        parts.append(f'<text x="{left + t * cw:.1f}" y="{height - 4}" font-size="9" fill="{AXIS_TEXT}">{t}</text>')
     parts.append("</svg>")
     return "".join(parts)
 

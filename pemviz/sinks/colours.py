@@ -66,6 +66,10 @@ MODEL_COLOURS = {"ml-nn": (90, 160, 240), "lr": (170, 120, 220), "guess-mu": (15
 MODEL_OTHER = (200, 200, 200)
 REFERENCE_LINE = (110, 110, 110)
 """The chance line and the diagonal of ``pemviz pem eval``'s recording."""
+SKETCH_BACKGROUND = (244, 244, 244)
+"""The background of the panel's drawings of a scene from above (light)."""
+SKETCH_LANE = (187, 187, 187)
+"""Lane lines in those drawings."""
 
 
 def stage_rgb(stage: int, n_stages: int) -> tuple[int, int, int]:
