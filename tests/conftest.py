@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -45,3 +46,13 @@ def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600) -> subpro
         text=True,
         timeout=timeout,
     )
+
+
+def doc_python_block(page: str, heading: str) -> str:
+    """The first python code block under ``heading`` (a whole heading line, e.g. ``## An example``) of the user guide's
+    ``docs/<page>``: the guide's examples are run by tests as written."""
+    text = (REPO / "docs" / page).read_text()
+    assert heading in text, f"docs/{page}: no heading {heading!r}"
+    block = re.search(r"```python\n(.*?)```", text.split(heading, 1)[1], re.S)
+    assert block, f"docs/{page}: no python block under {heading!r}"
+    return block.group(1)

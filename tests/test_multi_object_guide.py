@@ -4,21 +4,14 @@
 from __future__ import annotations
 
 import math
-import re
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-REPO = Path(__file__).resolve().parents[1]
+from conftest import doc_python_block
 
 
 def guide_example() -> str:
-    text = (REPO / "docs" / "multi-object.md").read_text()
-    section = text.split("## An example with an exact answer", 1)[1]
-    block = re.search(r"```python\n(.*?)```", section, re.S)
-    assert block, "docs/multi-object.md: no python block under 'An example with an exact answer'"
-    return block.group(1)
+    return doc_python_block("multi-object.md", "## An example with an exact answer")
 
 
 def test_the_multi_object_guide_example_runs_and_its_interval_holds_the_exact_answer(capsys):

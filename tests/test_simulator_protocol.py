@@ -4,14 +4,13 @@ recovers its exact failure probability; pemviz's own scenarios implement the pro
 from __future__ import annotations
 
 import math
-import re
 from typing import Callable
 
 import numpy as np
 import pytest
 from scipy.special import log_expit
 
-from conftest import REPO
+from conftest import doc_python_block
 from pemviz import stl
 from pemviz.checks import check_simulator
 from pemviz.config import ExperimentConfig
@@ -121,11 +120,7 @@ def test_user_simulator_through_the_protocol_recovers_its_exact_failure_probabil
 
 
 def guide_example() -> str:
-    text = (REPO / "docs" / "own-simulator.md").read_text()
-    section = text.split("## A simulator of your own", 1)[1]
-    block = re.search(r"```python\n(.*?)```", section, re.S)
-    assert block, "docs/own-simulator.md: no python block under 'A simulator of your own'"
-    return block.group(1)
+    return doc_python_block("own-simulator.md", "## A simulator of your own")
 
 
 def test_user_guide_example_is_under_30_lines_runs_and_estimates_its_exact_answer_within_3x(capsys):

@@ -155,8 +155,8 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
     def px(ahead: float, lateral: float) -> tuple[float, float]:
         return (ahead - lo) * sx, 10 + (lateral + LATERAL_M) * sy
 
-    parts = [f'<svg class="pemviz-birds-eye" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-             f'style="background:{BACKGROUND};border-radius:4px">']  # fmt: skip
+    parts = [(f'<svg class="pemviz-birds-eye" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+              f'style="background:{BACKGROUND};border-radius:4px">')]  # fmt: skip
     for lane in (-6.0, -2.0, 2.0, 6.0):  # 4 m lanes around the ego's
         y = px(0.0, lane)[1]
         dash = "" if abs(lane) > 5 else ' stroke-dasharray="6 6"'

@@ -8,9 +8,17 @@ import html
 import numpy as np
 
 from pemviz.app import charts, plots
-from pemviz.app.html import GREEN, GREY, NO_ROLLOUT, RED, TABLE_STYLE, box, explanation_html
-from pemviz.app.explain import explain
 from pemviz.app import objects_view as OV
+from pemviz.app.explain import explain
+from pemviz.app.html import (
+    GREEN,
+    GREY,
+    NO_ROLLOUT,
+    RED,
+    TABLE_STYLE,
+    box,
+    explanation_html,
+)
 from pemviz.app.objects_view import RobustnessOutcome, explain_objects, objects_summary
 from pemviz.app.runs import PanelRun, Trajectory, scene_positions
 from pemviz.scenarios.braking_failures import Severity, severity
