@@ -41,7 +41,7 @@ def _watch_first_stage(app, run_id: int, out: list[float]) -> threading.Thread:
             for session in list(app.sessions.values()):
                 record = session.record
                 if record is not None and record.run_id == run_id and record.stages:
-                    out.append(time.perf_counter() - record.t_start)
+                    out.append(time.perf_counter() - record.clock.t0)
                     return
             time.sleep(0.002)
         out.append(float("nan"))
