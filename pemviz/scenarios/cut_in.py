@@ -283,9 +283,9 @@ RARITY_SETTINGS: dict[str, dict[str, float]] = {
 }
 """The rarity knob's two settings (:class:`CutInParams` fields; ``moderate`` is the default): the cut-in vehicle's gap
 to the ego at t = 0 with its speed 7.6 m/s below the ego's. Under the shipped PEMs (ml-nn detection, hetero-t noise)
-the failure probability is 9.1e-5 [7.3e-5, 1.1e-4] at ``moderate`` (plain Monte Carlo, 10^6 rollouts,
+the failure probability is 8.66e-5 [8.09e-5, 9.26e-5] at ``moderate`` (plain Monte Carlo, 10^7 rollouts,
 ``benchmarks/cut_in_mc.py``) and far below 1e-9 at ``rare`` (``docs/cut-in.md``: each extra 0.76 m of gap needs one
-more step of late reaction, and each step costs a factor of about 260 in probability)."""
+more step of late reaction, and each step costs a factor of about 280 in probability)."""
 
 
 def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mps: np.ndarray) -> np.ndarray:
