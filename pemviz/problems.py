@@ -115,6 +115,59 @@ class ProblemView:
 
 
 @dataclass(frozen=True)
+class ObjectScene:
+    """Rollout 0 of a batch of several objects, as a scene seen from the ego (:func:`object_scene`).
+
+    Attributes:
+        lateral_m, ahead_m: float64 [T, M] each object's true position (metres: to the right, ahead).
+        detected, seen: bool [T, M] detected; visible to the camera at all.
+        measured: float64 [T, M, 2] where each detected object was measured (lateral, ahead; NaN where not detected),
+            or None: no measurement errors along those directions.
+        tracked: float64 [T, M, 2] where the tracker placed each object it has a confirmed track of (lateral, ahead;
+            NaN where none), or None: the rows hold no tracker.
+        followed: bool [T, M] the object the controller followed at the step (all False without that column).
+    """
+
+    lateral_m: np.ndarray
+    ahead_m: np.ndarray
+    detected: np.ndarray
+    seen: np.ndarray
+    measured: np.ndarray | None
+    tracked: np.ndarray | None
+    followed: np.ndarray
+
+
+def object_scene(view: ProblemView, batch: RolloutBatch) -> ObjectScene:
+    """Where every object of rollout 0 of ``batch`` is, was measured and was tracked, from its object rows and the
+    view's ``objects_xy`` / ``noise_xy`` (the one reading of those columns for every sink).
+
+    Raises:
+        ValueError: the view names no object positions or the batch has no object rows.
+    """
+    if view is None or view.objects_xy is None or batch.objects is None:
+        raise ValueError("object_scene: the problem's view names no object positions (objects_xy), or the rollout "
+                         "has no object rows")  # fmt: skip
+    names = tuple(batch.object_names or ())
+    rows = batch.objects[0]  # [T, M, G]
+    cx, cz = (names.index(c) for c in view.objects_xy)
+    lateral, ahead = rows[:, :, cx].astype(np.float64), rows[:, :, cz].astype(np.float64)
+    detected = np.asarray(batch.detected[0], bool)
+    seen = rows[:, :, names.index("visible")] > 0.5 if "visible" in names else np.ones_like(detected)
+    measured = tracked = None
+    if view.noise_xy is not None and batch.noise is not None:
+        ix, iz = view.noise_xy
+        err = batch.noise[0]
+        measured = np.where(detected[..., None], np.stack([lateral + err[..., ix], ahead + err[..., iz]], -1), np.nan)
+    if {"tracked", "track_err_x_m", "track_err_y_m"} <= set(names):  # the track's error along and across the road
+        has = rows[:, :, names.index("tracked")] > 0.5
+        est = np.stack([lateral + rows[:, :, names.index("track_err_y_m")],
+                        ahead + rows[:, :, names.index("track_err_x_m")]], -1)  # fmt: skip
+        tracked = np.where(has[..., None], est, np.nan)
+    followed = rows[:, :, names.index("followed")] > 0.5 if "followed" in names else np.zeros_like(detected)
+    return ObjectScene(lateral, ahead, detected, seen, measured, tracked, followed)
+
+
+@dataclass(frozen=True)
 class Problem:
     """A rare-failure estimation problem: simulator, target detector, safety formula.
 

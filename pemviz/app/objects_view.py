@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz.counterfactuals import MISS, Counterfactuals, counterfactuals
+from pemviz.problems import object_scene
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
@@ -84,39 +85,23 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
     Raises:
         ValueError: the view has no object positions (``objects_xy``) or the batch no object rows.
     """
-    if view is None or view.objects_xy is None or batch.objects is None:
-        raise ValueError("explain_objects: the problem's view names no object positions (objects_xy), or the "
-                         "rollout has no object rows")  # fmt: skip
-    names = tuple(batch.object_names or ())
-    rows = batch.objects[0]  # [T, M, G]
-    cx, cz = (names.index(c) for c in view.objects_xy)
-    lateral, ahead = rows[:, :, cx].astype(np.float64), rows[:, :, cz].astype(np.float64)
-    detected = np.asarray(batch.detected[0], bool)
-    seen = rows[:, :, names.index("visible")] > 0.5 if "visible" in names else np.ones_like(detected)
-    measured = ellipse = None
-    if view.noise_xy is not None and batch.noise is not None:
+    sc = object_scene(view, batch)
+    ellipse = None
+    target = getattr(problem, "target", None)
+    if sc.measured is not None and target is not None and hasattr(target, "noise_params"):
+        rows = batch.objects[0]
         ix, iz = view.noise_xy
-        err = batch.noise[0]
-        measured = np.where(detected[..., None], np.stack([lateral + err[..., ix], ahead + err[..., iz]], -1), np.nan)
-        target = getattr(problem, "target", None)
-        if target is not None and hasattr(target, "noise_params"):
-            loc, log_scale = target.noise_params(rows.reshape(-1, rows.shape[-1]))
-            loc, scale = np.asarray(loc).reshape(*detected.shape, -1), np.exp(log_scale).reshape(*detected.shape, -1)
-            ellipse = np.stack([np.stack([loc[..., ix], scale[..., ix]], -1),
-                                np.stack([loc[..., iz], scale[..., iz]], -1)], -2)  # fmt: skip
-    tracked, followed = None, np.zeros_like(detected)
-    if {"tracked", "track_err_x_m", "track_err_y_m"} <= set(names):  # the tracker's error along and across the road
-        has = rows[:, :, names.index("tracked")] > 0.5
-        est = np.stack([lateral + rows[:, :, names.index("track_err_y_m")],
-                        ahead + rows[:, :, names.index("track_err_x_m")]], -1)  # fmt: skip
-        tracked = np.where(has[..., None], est, np.nan)
-    if "followed" in names:
-        followed = rows[:, :, names.index("followed")] > 0.5
+        loc, log_scale = target.noise_params(rows.reshape(-1, rows.shape[-1]))
+        shape = sc.detected.shape
+        loc, scale = np.asarray(loc).reshape(*shape, -1), np.exp(log_scale).reshape(*shape, -1)
+        ellipse = np.stack([np.stack([loc[..., ix], scale[..., ix]], -1),
+                            np.stack([loc[..., iz], scale[..., iz]], -1)], -2)  # fmt: skip
     cf = None
     if failed and problem is not None and getattr(problem, "branch", None) is not None:
         cf = counterfactuals(problem, batch, 0)
-    return ObjectsExplanation(lateral, ahead, detected, seen, measured, ellipse, tracked, followed, cf,
-                              tuple(f"car {j}" for j in range(detected.shape[1])), bool(failed))  # fmt: skip
+    return ObjectsExplanation(sc.lateral_m, sc.ahead_m, sc.detected, sc.seen, sc.measured, ellipse, sc.tracked,
+                              sc.followed, cf, tuple(f"car {j}" for j in range(sc.detected.shape[1])),
+                              bool(failed))  # fmt: skip
 
 
 @dataclass(frozen=True)

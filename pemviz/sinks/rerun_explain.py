@@ -35,7 +35,7 @@ import numpy as np
 import rerun as rr
 
 from pemviz.events import RolloutsSampled
-from pemviz.problems import ProblemView
+from pemviz.problems import ProblemView, object_scene
 from pemviz.proposal_view import prob_detect
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking_failures import FailureStory, replay_with_detections, story
@@ -236,15 +236,11 @@ def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, d
 def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch, indexes: Indexes) -> None:
     """Every object of rollout 0 of ``b`` at each step, seen from the ego (``explain/objects``): where it is, where
     it was measured, and where the tracker places it (``tracked``, a box per tracked car) when the rows say."""
-    names = b.object_names or ()
-    cx, cz = (names.index(c) for c in view.objects_xy)
-    rows = b.objects[0]  # [T, M, G]
-    t_steps, m = rows.shape[:2]
-    x, ahead = rows[:, :, cx], rows[:, :, cz]
-    det = b.detected[0]
-    seen = rows[:, :, names.index("visible")] > 0.5 if "visible" in names else np.ones_like(det)
+    sc = object_scene(view, b)
+    x, ahead, det = sc.lateral_m, sc.ahead_m, sc.detected
+    t_steps, m = det.shape
     colours = np.where(det[..., None], np.array(DETECTED_RGBA),
-                       np.where(seen[..., None], np.array(MISSED_RGBA), np.array(UNSEEN_RGBA))).astype(np.uint8)
+                       np.where(sc.seen[..., None], np.array(MISSED_RGBA), np.array(UNSEEN_RGBA))).astype(np.uint8)
     labels = [str(j) for j in range(m)] * t_steps
     steps = indexes(step=np.arange(t_steps))
     stream.log(f"{E}/objects/ego", rr.Boxes2D(centers=[[0.0, 2.0]], half_sizes=[[1.0, 2.5]], colors=[C.rgba(C.BLUE)],
@@ -255,28 +251,24 @@ def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch,
     stream.send_columns(f"{E}/objects/names", indexes=steps, columns=rr.Points2D.columns(
         positions=where + [2.5, 0.0], colors=np.tile(np.array(AXIS_LABEL_RGBA, np.uint8), (t_steps * m, 1)),
         radii=np.full(t_steps * m, 0.01), labels=labels).partition(np.full(t_steps, m)))  # fmt: skip
-    if {"tracked", "track_err_x_m", "track_err_y_m"} <= set(names):  # where the tracker places each tracked car
-        has = rows[:, :, names.index("tracked")] > 0.5
-        est = np.stack([x + rows[:, :, names.index("track_err_y_m")],
-                        -(ahead + rows[:, :, names.index("track_err_x_m")])], -1)  # fmt: skip
+    if sc.tracked is not None:  # where the tracker places each tracked car
+        has = np.isfinite(sc.tracked[..., 0])
         n_tracked = has.sum(axis=1)
         if n_tracked.sum():
+            est = np.stack([sc.tracked[..., 0], -sc.tracked[..., 1]], -1)
             stream.send_columns(f"{E}/objects/tracked", indexes=steps, columns=rr.Boxes2D.columns(
                 centers=est[has], half_sizes=np.tile([0.9, 2.25], (int(n_tracked.sum()), 1)),
                 colors=np.tile(np.array(C.rgba(C.VIOLET), np.uint8), (int(n_tracked.sum()), 1))).partition(n_tracked))
-    if view.noise_xy is None or b.noise is None:
+    if sc.measured is None:
         return
-    ix, iz = view.noise_xy
-    k = [np.flatnonzero(det[t]) for t in range(t_steps)]
-    measured = [np.stack([x[t, j] + b.noise[0, t, j, ix], -(ahead[t, j] + b.noise[0, t, j, iz])], axis=-1)
-                for t, j in enumerate(k)]  # fmt: skip
-    truth = [np.stack([x[t, j], -ahead[t, j]], axis=-1) for t, j in enumerate(k)]
-    lengths = np.array([len(j) for j in k])
+    lengths = det.sum(axis=1)
     if lengths.sum() == 0:
         return
+    measured = np.stack([sc.measured[..., 0], -sc.measured[..., 1]], -1)[det]  # step by step, object by object
+    truth = np.stack([x, -ahead], -1)[det]
     stream.send_columns(f"{E}/objects/measured", indexes=steps, columns=rr.Points2D.columns(
-        positions=np.concatenate(measured), colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (lengths.sum(), 1)),
+        positions=measured, colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (lengths.sum(), 1)),
         radii=np.full(lengths.sum(), 0.4)).partition(lengths))  # fmt: skip
-    strips = [[a, c] for t in range(t_steps) for a, c in zip(truth[t], measured[t])]
+    strips = [[a, c] for a, c in zip(truth, measured)]
     stream.send_columns(f"{E}/objects/error", indexes=steps, columns=rr.LineStrips2D.columns(
         strips=strips, colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (len(strips), 1))).partition(lengths))
