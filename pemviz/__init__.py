@@ -1,7 +1,11 @@
 """pemviz: rare-failure estimation for perception-driven controllers with perception error models (PEMs)
 and adaptive importance sampling (Innes & Ramamoorthy 2022), with rerun and viser views."""
 
+import importlib.abc as _abc
+import importlib.machinery as _machinery
+import importlib.util as _util
 import os as _os
+import sys as _sys
 
 __version__ = "0.1.0"
 
@@ -11,9 +15,41 @@ __version__ = "0.1.0"
 # decade; set MKL_CBWR yourself to choose another branch.
 _os.environ.setdefault("MKL_CBWR", "AVX2")
 
-try:  # the gymnasium environment pemviz/Braking-v0, registered by entry-point string (no simulator import)
-    from pemviz.envs import register_envs as _register_envs
-except ImportError:  # gymnasium absent: everything but the environment still works
-    pass
+
+
+def _register_env() -> None:
+    """Register the gymnasium environment pemviz/Braking-v0 by entry-point string (no simulator import)."""
+    try:
+        from pemviz.envs import register_envs
+    except ImportError:  # gymnasium absent: everything but the environment still works
+        return
+    register_envs()
+
+
+class _RegisterWhenGymnasiumLoads(_abc.MetaPathFinder):
+    """Registers the environment right after gymnasium itself is imported, so that ``import pemviz`` does not import
+    gymnasium (~0.1 s, for every command) and ``import pemviz, gymnasium`` still finds pemviz/Braking-v0: a finder
+    that, asked once for gymnasium, takes itself off ``sys.meta_path`` and hands back gymnasium's own spec with its
+    loader's ``exec_module`` followed by the registration."""
+
+    def find_spec(self, name: str, path: object = None, target: object = None) -> _machinery.ModuleSpec | None:
+        if name != "gymnasium":
+            return None
+        _sys.meta_path.remove(self)
+        spec = _util.find_spec(name)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        exec_module = spec.loader.exec_module
+
+        def exec_then_register(module: object) -> None:
+            exec_module(module)
+            _register_env()
+
+        spec.loader.exec_module = exec_then_register  # type: ignore[method-assign]
+        return spec
+
+
+if "gymnasium" in _sys.modules:
+    _register_env()
 else:
-    _register_envs()
+    _sys.meta_path.insert(0, _RegisterWhenGymnasiumLoads())

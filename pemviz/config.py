@@ -522,7 +522,7 @@ class ExperimentConfig:
     fit: str = "adam"
     fit_precision: str = "float32"
     fit_max_steps: int = 200
-    fit_rows: int | None = 10_000
+    fit_rows: int | None = 5_000
     fit_tolerance: float | None = 1e-3
     ams_killed: int = 10
     ams_max_iterations: int = 10_000

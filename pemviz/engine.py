@@ -181,7 +181,9 @@ class Experiment:
         target = pb.target if plan.target is None else plan.target
         parts = plan.parts  # (rollouts, detector) in the order drawn
         if cfg.uniforms == "array-rqmc" and cfg.method != "ams":  # ExperimentConfig.uniforms (ams: i.i.d. particles)
-            parts = [(k, ArrayRQMC(d)) for k, d in parts]
+            # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
+            # almost never fail, so coupling them would reduce no estimate's variance
+            parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
         if plan.draw is None and plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (serial or Ray tasks)

@@ -9,6 +9,8 @@ statistically good algorithms for random number generation"); other bit generato
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 JUMPABLE = (np.random.PCG64, np.random.PCG64DXSM)
@@ -46,12 +48,12 @@ GOLDEN = 0.6180339887498949
 """(sqrt(5) - 1) / 2, the generator of the Kronecker (golden-ratio) lattice of :func:`array_rqmc_uniforms`."""
 
 
-def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray) -> np.ndarray:
+def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray, then: np.ndarray | None = None) -> np.ndarray:
     """One step's uniforms for ``n`` chains simulated together, by Array-RQMC (L'Ecuyer, Lecot & Tuffin, "A
     randomized quasi-Monte Carlo simulation method for Markov chains", Operations Research 56(4), 2008).
 
-    The chains are ranked by ``key`` (lexicographically by its columns, the first column first; chains of equal keys
-    keep their order), and the chain of rank r gets ``(r * GOLDEN + u[0]) mod 1``: the second coordinate of point r
+    The chains are ranked by ``key`` (lexicographically by its columns, the first column first, then by the columns of
+    ``then``; chains of equal keys keep their order), and the chain of rank r gets ``(r * GOLDEN + u[0]) mod 1``: the second coordinate of point r
     of the two-dimensional golden-ratio lattice ``{(r / n, r * GOLDEN)}``, randomly shifted. Given everything before
     this step, ``u[0]`` is uniform and independent of the ranks, so every chain's uniform is exactly U(0, 1) and
     every chain follows its sampler exactly (a mean over chains keeps its expectation); jointly, chains of nearby
@@ -61,28 +63,90 @@ def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray) -> np.ndarray:
     Args:
         u: float64 [n], i.i.d. U(0, 1) draws of this step; only ``u[0]`` is used (the others are drawn so that the
             random stream advances as with i.i.d. uniforms).
-        key: float64 [n] or [n, k], the order of the chains.
+        key: float64 [n] or [n, k], the order of the chains, or integer [n] (e.g. :func:`ranking_key`).
+        then: optional float64 [n, j], further columns of the key, given apart (only chains tied on ``key`` are
+            compared on them).
     Returns:
         float64 [n] in [0, 1), a new array.
     Raises:
-        ValueError: ``u`` not [n] with n >= 1, or ``key`` not [n] or [n, k].
+        ValueError: ``u`` not [n] with n >= 1, ``key`` not [n] or [n, k], or ``then`` not [n, j].
     """
-    u, key = np.asarray(u, dtype=np.float64), np.asarray(key, dtype=np.float64)
+    u, key = np.asarray(u, dtype=np.float64), np.asarray(key)
+    if key.dtype.kind not in "iu":  # integer keys (:func:`ranking_key`) are ranked as they are
+        key = key.astype(np.float64)
     if u.ndim != 1 or u.size < 1 or key.ndim not in (1, 2) or key.shape[0] != u.size:
         raise ValueError(f"array_rqmc_uniforms: u must be [n], n >= 1, and key [n] or [n, k]; got {u.shape} and "
                          f"{key.shape}")
+    rest = [] if key.ndim == 1 else [key[:, 1:]]
+    if then is not None:
+        then = np.asarray(then, dtype=np.float64)
+        if then.ndim != 2 or then.shape[0] != u.size:
+            raise ValueError(f"array_rqmc_uniforms: then must be [n, j] with n = {u.size}, got {then.shape}")
+        rest.append(then)
     first = key if key.ndim == 1 else key[:, 0]
-    order = np.argsort(first, kind="stable")
-    if key.ndim == 2 and key.shape[1] > 1:
-        ranked = first[order]
-        tied = ranked[1:] == ranked[:-1]
-        # Ties in the first column are broken by the next ones, unless the tied chains agree on them too (e.g. every
-        # chain before its first decisive step): the stable order is then already the lexicographic one.
-        if tied.any() and not np.array_equal(key[order[1:][tied], 1:], key[order[:-1][tied], 1:]):
-            order = np.lexsort(key.T[::-1])
+    order = _lexicographic_order(first, rest[0] if len(rest) == 1 else np.column_stack(rest) if rest else None)
     out = np.empty(u.size)
     out[order] = np.arange(u.size) * GOLDEN + u[0]
     return np.remainder(out, 1.0, out=out)
+
+
+def _lexicographic_order(first: np.ndarray, rest: np.ndarray | None) -> np.ndarray:
+    """The stable lexicographic order of the rows ``(first[i], rest[i, 0], rest[i, 1], ...)``, int [n]: ``np.lexsort``'s,
+    computed as a stable sort on ``first`` with only the runs of equal ``first`` whose rows differ in ``rest`` sorted
+    again (e.g. every chain before its first decisive step ties and agrees on all columns: no second sort)."""
+    order = np.argsort(first, kind="stable")
+    if rest is None or rest.shape[1] == 0 or first.size < 2:
+        return order
+    ranked = first[order]
+    tied = ranked[1:] == ranked[:-1]  # position j + 1 continues the run of position j
+    if not tied.any():
+        return order
+    ranked_rest = rest[order]
+    differ = np.zeros(tied.size, dtype=bool)
+    for j in range(rest.shape[1]):  # column by column: contiguous compares, ~2x as fast as gathered rows
+        differ |= ranked_rest[1:, j] != ranked_rest[:-1, j]
+    differ &= tied
+    if not differ.any():
+        return order
+    pairs = np.flatnonzero(differ)
+    run = np.concatenate(([0], np.cumsum(~tied)))  # the run of equal first keys each position is in
+    unsettled = np.zeros(run[-1] + 1, dtype=bool)
+    unsettled[run[pairs]] = True
+    at = np.flatnonzero(unsettled[run])  # the positions of those runs, in order
+    members = order[at]
+    keys = [rest[members, j] for j in range(rest.shape[1] - 1, -1, -1)] + [first[members]]  # np.lexsort: last first
+    order[at] = members[np.lexsort(keys)]
+    return order
+
+
+def ranking_key(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
+    """One sortable integer per chain, uint64 [n], ordered as the pairs (``primary`` rounded to float32,
+    ``secondary`` on 2^32 even levels over its range among these chains): a single stable sort of it ranks the chains
+    lexicographically, about three times as fast as ranking float64 pairs whose first members often tie.
+
+    For Array-RQMC with the sampler's detect logit as ``primary`` and the state's first column (a window's gap,
+    metres) as ``secondary``: chains of equal logits (e.g. a float32 network's, or a constant sampler's) are ordered
+    by their states, which change from step to step, so that no chain keeps its lattice point's neighbourhood (ranked
+    by the logit alone, the uniforms of a toy's chains varied more than i.i.d. ones). NaN ranks last.
+
+    Args:
+        primary, secondary: float [n] each.
+    Raises:
+        ValueError: the two of different shapes or not 1-D.
+    """
+    p, s = np.asarray(primary, dtype=np.float64), np.asarray(secondary, dtype=np.float64)
+    if p.ndim != 1 or p.shape != s.shape:
+        raise ValueError(f"ranking_key: primary and secondary must be [n] each, got {p.shape} and {s.shape}")
+    bits = p.astype(np.float32).view(np.int32).astype(np.int64)
+    high = np.where(bits < 0, -1 - bits, bits + 0x80000000).astype(np.uint64)  # IEEE-754 order as unsigned order
+    lo, hi = (float(s.min()), float(s.max())) if s.size else (0.0, 0.0)
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # infinities and NaN: from the finite range, NaN last
+        finite = np.isfinite(s)
+        lo, hi = (float(s[finite].min()), float(s[finite].max())) if finite.any() else (0.0, 0.0)
+        s = np.where(np.isnan(s), np.inf, s)
+    scaled = np.zeros(s.size) if hi <= lo else (s - lo) * ((2.0**32 - 1.0) / (hi - lo))
+    low = np.clip(scaled, 0.0, 2.0**32 - 1.0).astype(np.uint64)  # truncation toward 0: the floor of these
+    return (high << np.uint64(32)) | low
 
 
 RQMC_BLOCK = 8192

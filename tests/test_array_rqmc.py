@@ -7,12 +7,14 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.detectors import ArrayRQMC, ConstantDetector, WindowDetector
+from pemviz.detectors import ArrayRQMC, ConstantDetector, StageSamplers, WindowDetector, step_uniforms
 from pemviz.estimators.base import weighted_steps_mask
 from pemviz.problems import toy_problem
-from pemviz.rng import GOLDEN, array_rqmc_uniforms
+from pemviz.rng import GOLDEN, array_rqmc_uniforms, ranking_key
 from pemviz.scenarios import simulate
 from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_log_failure_probability
 
@@ -120,3 +122,38 @@ def test_batched_array_rqmc_rollouts_do_not_depend_on_the_chunk_size():
     for other in (small, RolloutBatch.concatenate(chunks)):
         np.testing.assert_array_equal(whole.detected, other.detected)
         np.testing.assert_array_equal(whole.log_q, other.log_q)
+
+
+def test_a_sampler_with_a_window_couples_only_the_chains_inside_it():
+    # a stage's sampler draws from its proposal inside the window (2 m <= gap < 10 m: chains 1, 3, 4) and is the
+    # target outside it: those three are ranked by their logits among themselves and shifted by the first one's
+    # uniform; the others keep their i.i.d. uniforms (where a detection cannot matter, coupling buys nothing)
+    samplers = StageSamplers(ConstantDetector(0.3), ConstantDetector(0.6), radius_m=10.0, floor_m=2.0, eps=0.2)
+    obs = np.array([[1.0], [5.0], [12.0], [7.0], [3.0], [20.0]])
+    u = np.array([0.11, 0.22, 0.33, 0.44, 0.55, 0.66])
+    logit = np.array([5.0, 2.0, 0.0, 2.0, -1.0, 9.0])  # ranks among chains 1, 3, 4: 4 -> 0, then 1 (gap 5) before 3 (7)
+    got = step_uniforms(u, ArrayRQMC(samplers.defensive), logit, obs)
+    inside = np.array([1, 3, 4])
+    np.testing.assert_array_equal(np.delete(got, inside), np.delete(u, inside))
+    np.testing.assert_allclose(got[[4, 1, 3]], np.remainder(u[1] + np.arange(3) * GOLDEN, 1.0), rtol=0, atol=1e-15)
+    # without a window every chain is coupled, ranked by its logit and then its state; an i.i.d. sampler keeps every
+    # uniform
+    np.testing.assert_array_equal(step_uniforms(u, ArrayRQMC(ConstantDetector(0.5)), logit, obs),
+                                  array_rqmc_uniforms(u, np.column_stack([logit, obs])))  # fmt: skip
+    np.testing.assert_array_equal(step_uniforms(u, samplers.defensive, logit, obs), u)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([-np.inf, -3.5, -1e-40, -0.0, 0.0, 2.0, 2.0 + 1e-12, 7.25, np.inf, np.nan]),
+                          st.floats(-50.0, 50.0)), min_size=1, max_size=40))  # fmt: skip
+def test_the_ranking_key_orders_chains_by_their_float32_logit_then_by_their_gap(pairs):
+    # numpy's lexicographic order of (logit rounded to float32, gap) is the order of the packed keys, ties included;
+    # -0.0 ranks before +0.0, and a NaN logit last
+    logit, gap = (np.array(c, dtype=np.float64) for c in zip(*pairs))
+    key = ranking_key(logit, gap)
+    p32 = logit.astype(np.float32).astype(np.float64)
+    sign = np.signbit(p32).astype(float)  # -0.0 before +0.0
+    expected = np.lexsort((gap, -sign, np.nan_to_num(p32, nan=np.inf), np.isnan(p32)))
+    got = np.argsort(key, kind="stable")
+    np.testing.assert_array_equal(key[got], key[expected])  # equal keys may come in either order only where tied
+    np.testing.assert_array_equal(got, np.lexsort((np.arange(gap.size), key)))

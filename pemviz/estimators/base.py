@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Protocol
 
 import math
+import weakref
 
 import numpy as np
 from scipy.special import logsumexp
@@ -130,7 +131,20 @@ def failure_steps(problem: Problem, batch: RolloutBatch, level: float = 0.0) -> 
     Raises:
         ValueError: if the formula is not ``G[a,b](operand)`` with a time-free operand (horizon 0).
     """
-    return stl.first_violation(problem.formula, problem.signal_arrays(batch), level)
+    global _LAST_FAILURE_STEPS
+    known = _LAST_FAILURE_STEPS  # read once: another thread may replace it
+    if known is not None and known[0]() is batch.observations and known[1] is problem and known[2] == level:
+        return known[3]
+    steps = stl.first_violation(problem.formula, problem.signal_arrays(batch), level)
+    steps.flags.writeable = False
+    _LAST_FAILURE_STEPS = (weakref.ref(batch.observations), problem, level, steps)
+    return steps
+
+
+_LAST_FAILURE_STEPS: tuple | None = None
+"""(a weak reference to a batch's observations, the problem, the level, its :func:`failure_steps`): an estimator asks
+for the same rollouts' failure steps two or three times (their weights, their NLL, their fitted steps), and a batch
+given its mixture's densities (``dataclasses.replace``) keeps its observations array."""
 
 
 def log_weight(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np.ndarray:
@@ -187,10 +201,13 @@ def log_p_before_failure(problem: Problem, batch: RolloutBatch) -> np.ndarray:
 def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Object events of the elite rollouts per bin of ``grid`` (nearest grid value of each object row's first
     column: the braking scenario's gap) and the detections among them, float64 [G] each."""
-    edges = np.concatenate([[-np.inf], (grid[1:] + grid[:-1]) / 2, [np.inf]])
-    d = batch.object_rows[elite][..., 0].ravel()
+    d = batch.object_rows[..., 0][elite].ravel()  # the first column, then the elites: no copy of the other columns
     a = batch.detected[elite].ravel()
-    idx = np.digitize(d, edges) - 1
+    step = (grid[-1] - grid[0]) / max(grid.size - 1, 1)
+    if grid.size > 1 and np.allclose(np.diff(grid), step, rtol=1e-12, atol=0.0):  # evenly spaced: by arithmetic
+        idx = np.clip(np.floor((d - grid[0]) / step + 0.5), 0, grid.size - 1).astype(np.int64)
+    else:  # the bin whose midpoints bracket d
+        idx = np.searchsorted((grid[1:] + grid[:-1]) / 2, d, side="right")
     counts = np.bincount(idx, minlength=grid.size).astype(float)
     hits = np.bincount(idx, weights=a.astype(float), minlength=grid.size)
     return counts, hits
@@ -322,6 +339,8 @@ class EliteCandidates:
         if not below:
             return None, np.zeros(0, np.int64)
         self.n_settled += sum(b.n for b, _, _ in below)
+        if len(below) == 1:  # no copy of a part already selected
+            return below[0][0], below[0][2]
         return RolloutBatch.concatenate([b for b, _, _ in below]), np.concatenate([i for _, _, i in below])
 
     def gamma(self) -> float:

@@ -242,15 +242,24 @@ class CrossEntropy(OwnsSettings):
         logits, target_logit = (self._ask_again(batch, start), None) if taken is None else taken
         detected = batch.detected
         parts = np.empty((batch.n, len(logits), batch.n_steps))
+        where: tuple[np.ndarray, np.ndarray] | None = None  # the last component's differing steps, their detections
         for k, lg in enumerate(logits):  # [N, T, M]
             if target_logit is None:
                 lq = action_log_prob(lg, detected)
-            else:  # where a component gives way to the target (outside its window) its density is the target's
+            elif m == 1 and batch.noise is None:  # one object, no measurement error: the target's per-step log p is
+                # its detection's density, and where a component gives way to the target (outside its window) so is
+                # the component's; written in place, the rest computed (the components usually differ on the same
+                # steps, the window's: their detections gathered once)
+                part = parts[:, k]
+                np.copyto(part, batch.log_p)
+                differ = lg[..., 0] != target_logit[..., 0]
+                if where is None or not np.array_equal(where[0], differ):
+                    where = (differ, detected[..., 0][differ])
+                part[differ] = action_log_prob(lg[..., 0][differ], where[1])
+                continue
+            else:  # each object's densities: the target's where the component gives way to it
                 differ = lg != target_logit
-                # the target's detection densities: its per-step log p when that is all there is (one object, no
-                # measurement error), else each object's
-                lq = batch.log_p[..., None].copy() if m == 1 and batch.noise is None else \
-                    action_log_prob(target_logit, detected)
+                lq = action_log_prob(target_logit, detected)
                 lq[differ] = action_log_prob(lg[differ], detected[differ])
             parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
         if batch.noise is not None:  # each component's density of the detected objects' measurement errors
@@ -545,9 +554,14 @@ class CrossEntropy(OwnsSettings):
     def _new_proposal(self, pretrain: RolloutBatch) -> Proposal:
         """The paper's gap-only proposal, or a :class:`StateProposal` over every column of the object rows
         (``proposal_inputs = "state"``): the first (the gap) scaled by the problem's ``h_scale``, the other columns by
-        their largest magnitude in the pretraining rollouts; its curve holds them at the first row drawn."""
+        their largest magnitude in the pretraining rollouts; its curve holds them at the first row drawn. It samples in
+        the fits' precision (:attr:`Proposal.sample_dtype`)."""
         if self.config.proposal_inputs == "gap":
-            return Proposal(self.problem.h_scale)
-        rows, _ = pretrain.events()
-        scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
-        return StateProposal(tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
+            proposal = Proposal(self.problem.h_scale)
+        else:
+            rows, _ = pretrain.events()
+            scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0
+                                               for j in range(1, rows.shape[2])]  # fmt: skip
+            proposal = StateProposal(tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
+        proposal.sample_dtype = self.fit_dtype  # sampled in the arithmetic it is fitted in
+        return proposal
