@@ -58,8 +58,9 @@ full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-W
 stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
 Alg. 7.5)."""
 FIT_PRECISIONS = ("float32", "float64")
-"""The arithmetic of the proposal's Adam fits (:func:`pemviz.sampling.fit_proposal`): ``float32`` runs the network's
-products about 2.7 times as fast on a CPU; the parameters, sampling and every importance weight stay float64."""
+"""The arithmetic of the proposal's Adam fits (:func:`pemviz.sampling.fit_proposal`) and of its network when it samples
+(:attr:`pemviz.sampling.Proposal.sample_dtype`): ``float32`` runs the network's products about 2.7 times as fast on a
+CPU; the parameters and every importance weight stay float64."""
 PROPOSAL_INPUTS = ("gap", "state")
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
@@ -342,8 +343,8 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("fit", "the fitting method", "how the proposal is fitted each stage", kind="choice", choices=FITS,
             choice_help=(("adam", "full-batch Adam, a number of epochs"),
                          ("lbfgs", "L-BFGS from the previous proposal until converged"))),
-    Setting("fit_precision", "the fit's precision", "the arithmetic of the proposal's Adam fits (the parameters, "
-            "sampling and weights stay float64)", kind="choice", choices=FIT_PRECISIONS,
+    Setting("fit_precision", "the fit's precision", "the arithmetic of the proposal's Adam fits and of its network "
+            "when sampling (the parameters and every weight stay float64)", kind="choice", choices=FIT_PRECISIONS,
             choice_help=(("float32", "fast; the default"), ("float64", "as the paper's fits"))),
     Setting("fit_max_steps", "the L-BFGS iterations", "the most L-BFGS iterations of one fit", kind="int", lo=1),
     Setting("fit_rows", "the rows of a fit", "the most steps one fit sees, beyond them a weighted subsample with the "
@@ -399,10 +400,11 @@ class ExperimentConfig:
             unbiased.
         uniforms: how the rollouts of a batch draw their detections, one of :data:`UNIFORMS`: ``iid``, one
             independent U(0, 1) per rollout and step (the paper); ``array-rqmc`` (the default), the rollouts of each
-            fixed block of 8,192 of a batch (of each sampler of a mixture; :data:`pemviz.rng.RQMC_BLOCK`, whatever
-            the executor or chunk size) are stepped as one array, ranked at each step by their sampler's
-            detect logit and given the points of a randomly shifted golden-ratio lattice
-            (:func:`pemviz.rng.array_rqmc_blocks`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008).
+            fixed block of 8,192 of a batch (of each sampler of a mixture but the target's own share;
+            :data:`pemviz.rng.RQMC_BLOCK`, whatever the executor or chunk size) are stepped as one array; at each
+            step those inside the sampler's window are ranked by their sampler's detect logit, then by their state
+            (:func:`pemviz.rng.ranking_key`), and given the points of a randomly shifted golden-ratio lattice
+            (:func:`pemviz.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008).
             Each rollout still follows its sampler exactly, so every estimate keeps its expectation; the batch's
             estimate varies less (~40 % less variance at the default sampler's last stages on the braking job).
             The rollouts of a batch are no longer independent: an interval computed as if they were is
@@ -473,8 +475,10 @@ class ExperimentConfig:
         fit: one of :data:`FITS`; ``adam`` runs ``ce_epochs`` / ``pretrain_epochs`` epochs at ``learning_rate``,
             ``lbfgs`` at most ``fit_max_steps`` iterations per fit, stopping once converged.
         fit_precision: one of :data:`FIT_PRECISIONS`: the arithmetic of the ``adam`` fits of a weighted
-            log-likelihood; the parameters stay float64, and every weight is computed in float64 from the density
-            sampled from, so the precision moves the proposal only, never the estimate's unbiasedness.
+            log-likelihood and of the proposal network's products when it samples
+            (:attr:`pemviz.sampling.Proposal.sample_dtype`); the parameters stay float64, and every weight is
+            computed in float64 from the density sampled from (the logit the sampler drew with), so the precision
+            moves the proposal only, never the estimate's unbiasedness.
         fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).
         fit_rows: None (every fitted step) or the most steps one fit sees: beyond that, a weighted systematic
             subsample with the same expected CE objective, so a stage's fit costs the same at any N (the default

@@ -1,6 +1,7 @@
 """The braking scenario as a gymnasium environment, ``pemviz/Braking-v0``: bring your own controller.
 
-``import pemviz`` registers it (by entry-point string; this module imports only gymnasium and numpy), so::
+``import pemviz`` registers it (by entry-point string; this module imports only gymnasium and numpy) as soon as
+gymnasium is imported, before or after pemviz, so::
 
     import gymnasium as gym
     import pemviz

@@ -28,6 +28,12 @@ GAP_SCALE_M = 12.0
 """The braking proposal's input is gap / 12 m (Innes & Ramamoorthy 2022, the authors' code)."""
 
 
+ROW_MULTIPLE = 8
+"""A float32 :meth:`Proposal.detect_logit` pads its rows to a multiple of this many: the CPU's float32 matrix products
+round the rows of a batch of another size (its tail) differently, and a row's logit must not depend on the rows it is
+asked about with (a stage streamed in chunks gives the rollouts of one whole batch, bit for bit)."""
+
+
 class Proposal(nn.Module):
     """q_phi(a | d): Linear(1,32)-ReLU-Linear(32,32)-ReLU-Linear(32,2)-LogSoftmax, float64 (Innes & Ramamoorthy 2022, Algorithm 1; the authors' ``FFPolicy``).
 
@@ -79,14 +85,24 @@ class Proposal(nn.Module):
         x = torch.from_numpy(obs if columns == list(range(obs.shape[1])) and obs.flags.c_contiguous
                              else obs[:, columns])  # fmt: skip
         w1, b1, w2, b2, w3, b3 = self._sampling_weights()
+        m = x.shape[0]
         with torch.no_grad():
-            a = torch.addmm(b1, x.to(w1.dtype), w1).relu_()
+            x = x.to(w1.dtype)
+            pad = -m % ROW_MULTIPLE if w1.dtype == torch.float32 else 0
+            if pad:  # float32 products round a row alike in any batch of a multiple of 4 rows (MKL's kernels)
+                x = torch.cat((x, x.new_zeros(pad, x.shape[1])))
+            a = torch.addmm(b1, x, w1).relu_()
             a = torch.addmm(b2, a, w2).relu_()
-            return torch.mv(a, w3).add_(b3).to(torch.float64).numpy()
+            return torch.mv(a, w3).add_(b3)[:m].to(torch.float64).numpy()
 
     sample_dtype: torch.dtype = torch.float64
     """The arithmetic of :meth:`detect_logit` (float64, or float32 where the run fits in float32:
     ``ExperimentConfig.fit_precision``); the parameters stay float64."""
+
+    def __getstate__(self) -> dict:
+        """Pickled and copied without the sampling weights' cache (it holds storages; a copy computes its own)."""
+        state = super().__getstate__() if hasattr(super(), "__getstate__") else self.__dict__
+        return {k: v for k, v in state.items() if k != "_sampling_cache"}
 
     def _sampling_weights(self) -> tuple[torch.Tensor, ...]:
         """(W1 [k, 32] with the input scales folded in, b1, W2 [32, 32], b2, w_detect - w_miss [32], b_detect - b_miss)

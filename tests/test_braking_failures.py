@@ -166,8 +166,9 @@ def test_a_default_runs_late_stage_misses_the_lead_inside_10_m_far_more_than_the
     assert v.q_miss_window > 5 * v.p_miss_window and v.p_miss_window < 0.02
     busy = (v.centres_m > 3.0) & (v.centres_m < 9.0) & (v.n_states >= 50)
     assert busy.any() and np.all(v.q_mean[busy] < v.p_mean[busy])
-    # while the reference-state curve (other inputs at the start state) stays near the PEM's at those gaps
+    # while the reference-state curve (other inputs held at the start state) is not what the sampler did: in some
+    # busy bin it is more than 0.2 away from the mean q(detect) of the states the rollouts visited there
     done = [e.result for e in events if isinstance(e, StageFinished)]
     curve = next(r.proposal_curve for r in done if r.stage == late.stage)
-    grid = np.linspace(0.0, 13.0, 131)
-    assert np.mean(curve[(grid > 3.0) & (grid < 9.0)]) > np.mean(v.q_mean[busy])
+    at_centres = np.interp(v.centres_m[busy], np.linspace(0.0, 13.0, 131), curve)
+    assert np.max(np.abs(at_centres - v.q_mean[busy])) > 0.2

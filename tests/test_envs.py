@@ -56,6 +56,14 @@ def test_import_pemviz_registers_the_env_without_importing_the_simulator_or_torc
            "if m in sys.modules), 'pemviz/Braking-v0' in gymnasium.registry)"  # fmt: skip
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.stdout.strip() == "[] True", out.stderr
+    # nor gymnasium itself until it is imported (every command is that much faster), and in either order
+    code = "import sys, pemviz; print('gymnasium' in sys.modules); import gymnasium; " \
+           "print('pemviz/Braking-v0' in gymnasium.registry)"  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.stdout.split() == ["False", "True"], out.stderr
+    code = "import gymnasium, pemviz; print('pemviz/Braking-v0' in gymnasium.registry)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.stdout.strip() == "True", out.stderr
 
 
 def test_env_passes_gymnasium_check_env(pem):

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pemviz.diagnostics import effective_sample_size, pareto_khat
+from pemviz.diagnostics import effective_sample_size, fit_generalized_pareto, pareto_khat
 from pemviz.estimate import CI_LEVEL, KHAT_UNRELIABLE, estimate, relative_error
 
 
@@ -113,3 +113,18 @@ def test_effective_sample_size_counts_equal_weights_and_ignores_the_scale_of_the
     # weights 1, 1, 2 (times e^-900): (1 + 1 + 2)^2 / (1 + 1 + 4) = 16 / 6
     assert effective_sample_size(np.log([1.0, 1.0, 2.0]) - 900.0) == pytest.approx(16.0 / 6.0, rel=1e-12)
     assert effective_sample_size(np.array([0.0, -np.inf, -np.inf])) == 1.0  # zero weights count for nothing
+
+
+@pytest.mark.parametrize("k", [-0.4, 0.0, 0.3, 0.9, 1.6])
+@pytest.mark.parametrize("n", [5, 60, 900])
+def test_the_generalized_pareto_fit_is_pyros(k, n):
+    # pemviz's numpy fit (Zhang & Stephens 2009 with PSIS's prior) against pyro's, the oracle, on GPD(k) samples
+    torch = pytest.importorskip("torch")
+    from pyro.ops.stats import fit_generalized_pareto as pyro_fit
+
+    rng = np.random.default_rng(int(10 * k) + n)
+    u = rng.random(n)
+    x = -np.log1p(-u) if k == 0.0 else ((1.0 - u) ** (-k) - 1.0) / k
+    np.testing.assert_allclose(fit_generalized_pareto(x), pyro_fit(torch.as_tensor(x)), rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="x must be 1-D with at least one value"):
+        fit_generalized_pareto(np.zeros(0))

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from pemviz.detectors import ConstantDetector, action_log_prob
+from pemviz.detectors import ConstantDetector, action_log_prob, defensive_logit
 from pemviz.estimate import estimate, format_probability
 from pemviz.estimators.base import quantile_threshold
 from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
-from pemviz.sampling import Proposal, ProposalFormatError, load_proposal, save_proposal
+from pemviz.sampling import Proposal, ProposalFormatError, StateProposal, load_proposal, save_proposal
 from pemviz.scenarios import simulate
 
 
@@ -355,3 +355,43 @@ def test_a_saved_proposal_loads_with_the_same_curve_and_a_foreign_file_is_refuse
         load_proposal(foreign)
     with pytest.raises(FileNotFoundError, match="proposal checkpoint .* not found"):
         load_proposal(tmp_path / "missing.pt")
+
+
+def test_a_float32_sampler_follows_its_network_and_every_change_of_its_parameters(tmp_path):
+    # detect_logit in float32 is the float64 network's logit difference to float32 rounding (~1e-6 of the logits'
+    # scale), returned in float64; its cached weights follow an update under no_grad, a fit (which swaps each
+    # parameter's storage) and load_state_dict, and a checkpoint keeps the precision it samples in
+    torch.manual_seed(0)
+    q = StateProposal((0, 1, 2, 3), (12.0, 10.0, 10.0, 1.0), (10.0, 8.0, 8.0, 0.0))
+    obs = np.random.default_rng(0).uniform(0.0, 12.0, (500, 4))
+    with torch.no_grad():
+        exact = q.forward(torch.as_tensor(obs))
+    exact = (exact[:, 1] - exact[:, 0]).numpy()
+    np.testing.assert_allclose(q.detect_logit(obs), exact, rtol=0, atol=1e-12)  # float64: to rounding
+    q.sample_dtype = torch.float32
+    z = q.detect_logit(obs)
+    assert z.dtype == np.float64 and np.abs(z - exact).max() < 1e-5 * max(1.0, np.abs(exact).max())
+    with torch.no_grad():
+        q.net[4].bias[1] += 1.0
+    np.testing.assert_allclose(q.detect_logit(obs) - z, 1.0, atol=1e-5)
+    pretrain_proposal(q, obs[:, None, :], np.ones((500, 1), bool), epochs=30, lr=1e-2)  # every row detected
+    fitted = q.detect_logit(obs)
+    assert fitted.mean() > z.mean() + 1.0
+    loaded = load_proposal(save_proposal(Proposal(h_scale=12.0), tmp_path / "q.pt"))
+    assert loaded.sample_dtype == torch.float64
+    p = Proposal(h_scale=12.0)
+    p.sample_dtype = torch.float32
+    assert load_proposal(save_proposal(p, tmp_path / "p.pt")).sample_dtype == torch.float32
+    shift = torch.tensor([0.0, 0.5], dtype=torch.float64)  # the detect unit's bias: the logit moves by 0.5
+    q.load_state_dict({k: v + shift if k == "net.4.bias" else v for k, v in q.state_dict().items()})
+    np.testing.assert_allclose(q.detect_logit(obs) - fitted, 0.5, atol=1e-5)
+
+
+def test_the_defensive_logit_is_the_mixtures_log_odds():
+    # logit of (1 - eps) q + eps / 2 against the log-space formula, over logits from -800 to 800 (both outcomes keep
+    # eps / 2 at least, so nothing under- or overflows)
+    z = np.concatenate([np.linspace(-800.0, 800.0, 2001), [-1e-300, 0.0, 1e-300]])
+    for eps in (0.01, 0.2, 0.9):
+        a, half = math.log1p(-eps), math.log(eps / 2.0)
+        expected = np.logaddexp(a - np.logaddexp(0.0, -z), half) - np.logaddexp(a - np.logaddexp(0.0, z), half)
+        np.testing.assert_allclose(defensive_logit(z, eps), expected, rtol=1e-14, atol=1e-14)
