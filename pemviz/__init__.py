@@ -21,8 +21,8 @@ def _register_env() -> None:
     """Register the gymnasium environment pemviz/Braking-v0 by entry-point string (no simulator import)."""
     try:
         from pemviz.envs import register_envs
-    except ImportError:  # gymnasium absent: everything but the environment still works
-        return
+    except ImportError:  # gymnasium absent (everything but the environment still works), or pemviz.envs is the module
+        return  # importing gymnasium: it registers the environment itself once it is defined
     register_envs()
 
 

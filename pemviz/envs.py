@@ -187,3 +187,6 @@ class BrakingEnv(gym.Env):
             self._crashed, reward = True, -1.0
         obs, info = self._detect()
         return obs, reward, False, sim.done, info
+
+
+register_envs()  # importing this module registers the environment too (``import pemviz`` alone waits for gymnasium)
