@@ -82,15 +82,17 @@ class Proposal(nn.Module):
         """
         obs = np.asarray(obs, dtype=np.float64)
         columns = self.input_columns()
-        x = torch.from_numpy(obs if columns == list(range(obs.shape[1])) and obs.flags.c_contiguous
-                             else obs[:, columns])  # fmt: skip
+        every = columns == list(range(obs.shape[1]))
         w1, b1, w2, b2, w3, b3 = self._sampling_weights()
-        m = x.shape[0]
+        m = obs.shape[0]
+        if w1.dtype == torch.float64:
+            x = torch.from_numpy(obs if every and obs.flags.c_contiguous else obs[:, columns])
+        else:  # float32 products round a row alike in any batch of a multiple of 4 rows (MKL's kernels): the rows are
+            # cast into a zero-padded buffer of a multiple of ROW_MULTIPLE
+            buffer = np.zeros((m + (-m % ROW_MULTIPLE), len(columns)), dtype=np.float32)
+            buffer[:m] = obs if every else obs[:, columns]
+            x = torch.from_numpy(buffer)
         with torch.no_grad():
-            x = x.to(w1.dtype)
-            pad = -m % ROW_MULTIPLE if w1.dtype == torch.float32 else 0
-            if pad:  # float32 products round a row alike in any batch of a multiple of 4 rows (MKL's kernels)
-                x = torch.cat((x, x.new_zeros(pad, x.shape[1])))
             a = torch.addmm(b1, x, w1).relu_()
             a = torch.addmm(b2, a, w2).relu_()
             return torch.mv(a, w3).add_(b3)[:m].to(torch.float64).numpy()
