@@ -78,21 +78,21 @@ class CostConstants:
 
 
 COST = CostConstants(
-    pem_step_s=9.49e-05,
-    proposal_step_s=0.000247,
-    rollout_step_s={"batched": 3.96e-07, "highway-env": 4.74e-05},
-    proposal_rollout_step_s=4.16e-07,
-    stage_s=0,
-    epoch_s=0.00013,
-    row_epoch_s=1.81e-07,
-    row_s=1.11e-05,
-    pretrain_rows={"state": 13.9, "gap": 0.91},
-    ce_rows={"state": 1.38e+04, "gap": 951},
+    pem_step_s=0.000109,
+    proposal_step_s=0.000256,
+    rollout_step_s={"batched": 4.04e-07, "highway-env": 4.94e-05},
+    proposal_rollout_step_s=2.78e-07,
+    stage_s=0.0014,
+    epoch_s=0.000126,
+    row_epoch_s=1.87e-07,
+    row_s=2.07e-06,
+    pretrain_rows={"state": 12.2, "gap": 0.91},
+    ce_rows={"state": 3.36e+03, "gap": 374},
     ce_rows_exponent=0.26,
-    ce_rows_stages=20,
-    early_stop_share=0.799,
+    ce_rows_stages=5.6,
+    early_stop_share=0.833,
     ams_rollouts=5,
-    measured="2026-11-23, benchmarks/calibrate_cost.py --fit --repeat 2 (CPU seconds), 2 cores, other jobs paused",
+    measured="2026-11-24, benchmarks/calibrate_cost.py --fit --repeat 2 (CPU seconds), 2 cores, load average 0.7",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
