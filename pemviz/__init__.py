@@ -16,7 +16,6 @@ __version__ = "0.1.0"
 _os.environ.setdefault("MKL_CBWR", "AVX2")
 
 
-
 def _register_env() -> None:
     """Register the gymnasium environment pemviz/Braking-v0 by entry-point string (no simulator import)."""
     try:

@@ -202,15 +202,21 @@ class WindowDetector:
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """Each detector is asked only about its own rows (a proposal network costs per row)."""
         obs = np.asarray(obs)
-        gap = obs[:, GAP_COLUMN]
-        near = gap < self.radius_m
-        if self.floor_m > -math.inf:
-            near &= gap >= self.floor_m
+        near = window_mask(obs, self.radius_m, self.floor_m)
         out = np.empty(obs.shape[0])
         for rows, detector in ((near, self.inside), (~near, self.outside)):
             if rows.any():
                 out[rows] = detector.detect_logit(obs[rows])
         return out
+
+
+def window_mask(obs: np.ndarray, radius_m: float, floor_m: float = -math.inf) -> np.ndarray:
+    """bool [N]: the observations [N, F] whose gap (first column, metres) lies in ``[floor_m, radius_m)``."""
+    gap = np.asarray(obs)[:, GAP_COLUMN]
+    near = gap < radius_m
+    if floor_m > -math.inf:
+        near &= gap >= floor_m
+    return near
 
 
 def defensive_logit(q_logit: np.ndarray, eps: float) -> np.ndarray:
@@ -299,11 +305,7 @@ class StageSamplers:
         matter (the proposal draws there unless the target is certain)."""
         if obs is self._asked and not obs.flags.writeable:  # the rows just asked about
             return self._window
-        gap = np.asarray(obs)[:, GAP_COLUMN]
-        near = gap < self.radius_m
-        if self.floor_m > -math.inf:
-            near &= gap >= self.floor_m
-        return near
+        return window_mask(obs, self.radius_m, self.floor_m)
 
     @property
     def has_noise(self) -> bool:
@@ -461,26 +463,25 @@ class ArrayRQMC(ErrorModelOf):
 
 
 def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np.ndarray,
-                  block: int = RQMC_BLOCK, coupled: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+                  block: int = RQMC_BLOCK) -> np.ndarray:  # fmt: skip
     """The uniforms a simulator compares with ``sampler``'s detection probabilities at one step: ``u`` (float64 [n],
     i.i.d. U(0, 1)) as drawn, or for an :class:`ArrayRQMC` sampler the Array-RQMC uniforms of the chains ranked by
     ``q_logit`` (float64 [n], the sampler's logits at this step, to float32), then by the first column of their rows
     ``obs`` [n, G] (the window's gap; :func:`pemviz.rng.ranking_key`) and then by the rows, within each fixed block of
-    ``block`` rows
-    (:func:`pemviz.rng.array_rqmc_uniforms`: the rows of :data:`pemviz.rng.RQMC_BLOCK` rollouts; the n rows start at a
-    block boundary).
+    ``block`` rows (:func:`pemviz.rng.array_rqmc_uniforms`: the rows of :data:`pemviz.rng.RQMC_BLOCK` rollouts; the n
+    rows start at a block boundary).
 
     Only the chains inside the sampler's window are coupled when it has one (``window_rows(obs)``, e.g. a
-    cross-entropy stage's sampler: where a detection can matter), or those of ``coupled``
-    (bool [n]) when given: they are ranked among themselves and shifted by their first chain's uniform, and the others
-    keep their i.i.d. uniforms. Each chain's uniform stays U(0, 1) given the past: which chains are coupled, and their
-    ranks, are decided by their states.
+    cross-entropy stage's sampler: where a detection can matter): they are ranked among themselves and shifted by
+    their first chain's uniform, and the others keep their i.i.d. uniforms. Each chain's uniform stays U(0, 1) given
+    the past: which chains are coupled, and their ranks, are decided by their states.
     """
     if not getattr(sampler, "array_rqmc", False) or u.size <= 1:
         return u
+    window_rows = getattr(getattr(sampler, "detector", None), "window_rows", None)
+    coupled = None if window_rows is None else window_rows(obs)
     if coupled is None:
-        window_rows = getattr(getattr(sampler, "detector", None), "window_rows", None)
-        coupled = np.ones(u.size, bool) if window_rows is None else window_rows(obs)
+        coupled = np.ones(u.size, bool)
     out = u.copy()
     for a, b in block_bounds(u.size, block):
         idx = np.flatnonzero(coupled[a:b]) + a

@@ -53,11 +53,11 @@ def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray, then: np.ndarray | None 
     randomized quasi-Monte Carlo simulation method for Markov chains", Operations Research 56(4), 2008).
 
     The chains are ranked by ``key`` (lexicographically by its columns, the first column first, then by the columns of
-    ``then``; chains of equal keys keep their order), and the chain of rank r gets ``(r * GOLDEN + u[0]) mod 1``: the second coordinate of point r
-    of the two-dimensional golden-ratio lattice ``{(r / n, r * GOLDEN)}``, randomly shifted. Given everything before
-    this step, ``u[0]`` is uniform and independent of the ranks, so every chain's uniform is exactly U(0, 1) and
-    every chain follows its sampler exactly (a mean over chains keeps its expectation); jointly, chains of nearby
-    keys get evenly spread uniforms. With the sampler's detect logit and then the state as the key, chains of
+    ``then``; chains of equal keys keep their order), and the chain of rank r gets ``(r * GOLDEN + u[0]) mod 1``: the
+    second coordinate of point r of the two-dimensional golden-ratio lattice ``{(r / n, r * GOLDEN)}``, randomly
+    shifted. Given everything before this step, ``u[0]`` is uniform and independent of the ranks, so every chain's
+    uniform is exactly U(0, 1) and every chain follows its sampler exactly (a mean over chains keeps its
+    expectation); jointly, chains of nearby keys get evenly spread uniforms. With the sampler's detect logit and then the state as the key, chains of
     similar detection probability detect in nearly their expected number, instead of binomially many.
 
     Args:

@@ -103,8 +103,7 @@ class Proposal(nn.Module):
 
     def __getstate__(self) -> dict:
         """Pickled and copied without the sampling weights' cache (it holds storages; a copy computes its own)."""
-        state = super().__getstate__() if hasattr(super(), "__getstate__") else self.__dict__
-        return {k: v for k, v in state.items() if k != "_sampling_cache"}
+        return {k: v for k, v in super().__getstate__().items() if k != "_sampling_cache"}
 
     def _sampling_weights(self) -> tuple[torch.Tensor, ...]:
         """(W1 [k, 32] with the input scales folded in, b1, W2 [32, 32], b2, w_detect - w_miss [32], b_detect - b_miss)

@@ -203,11 +203,7 @@ def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tu
     column: the braking scenario's gap) and the detections among them, float64 [G] each."""
     d = batch.object_rows[..., 0][elite].ravel()  # the first column, then the elites: no copy of the other columns
     a = batch.detected[elite].ravel()
-    step = (grid[-1] - grid[0]) / max(grid.size - 1, 1)
-    if grid.size > 1 and np.allclose(np.diff(grid), step, rtol=1e-12, atol=0.0):  # evenly spaced: by arithmetic
-        idx = np.clip(np.floor((d - grid[0]) / step + 0.5), 0, grid.size - 1).astype(np.int64)
-    else:  # the bin whose midpoints bracket d
-        idx = np.searchsorted((grid[1:] + grid[:-1]) / 2, d, side="right")
+    idx = np.searchsorted((grid[1:] + grid[:-1]) / 2, d, side="right")  # the bin whose midpoints bracket d
     counts = np.bincount(idx, minlength=grid.size).astype(float)
     hits = np.bincount(idx, weights=a.astype(float), minlength=grid.size)
     return counts, hits
