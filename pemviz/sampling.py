@@ -586,8 +586,10 @@ def load_proposal(path: str | os.PathLike[str]) -> Proposal:
     try:
         proposal = Proposal(float(payload["h_scale"]))
         proposal.load_state_dict(payload["state_dict"])
-        proposal.sample_dtype = {"float64": torch.float64, "float32": torch.float32}[payload.get("sample_precision",
-                                                                                                  "float64")]  # fmt: skip
+        precision = payload.get("sample_precision", "float64")
+        if precision not in ("float64", "float32"):
+            raise ValueError(f"sample_precision {precision!r} is neither float64 nor float32")
+        proposal.sample_dtype = getattr(torch, precision)
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise ProposalFormatError(f"{p}: damaged proposal checkpoint ({exc})") from None
     return proposal.eval()

@@ -382,6 +382,10 @@ def test_a_float32_sampler_follows_its_network_and_every_change_of_its_parameter
     p = Proposal(h_scale=12.0)
     p.sample_dtype = torch.float32
     assert load_proposal(save_proposal(p, tmp_path / "p.pt")).sample_dtype == torch.float32
+    payload = torch.load(tmp_path / "p.pt", weights_only=True)
+    torch.save({**payload, "sample_precision": "float16"}, tmp_path / "half.pt")
+    with pytest.raises(ProposalFormatError, match="sample_precision 'float16' is neither float64 nor float32"):
+        load_proposal(tmp_path / "half.pt")
     shift = torch.tensor([0.0, 0.5], dtype=torch.float64)  # the detect unit's bias: the logit moves by 0.5
     q.load_state_dict({k: v + shift if k == "net.4.bias" else v for k, v in q.state_dict().items()})
     np.testing.assert_allclose(q.detect_logit(obs) - fitted, 0.5, atol=1e-5)
