@@ -199,7 +199,7 @@ class Experiment:
             log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
             self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target))
             self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, failed, log_w,
-                                      plan.sampler))  # fmt: skip
+                                      plan.sampler, target=target))  # fmt: skip
         self.n_simulations += plan.n
         out = estimator.finish()
         res = StageResult(plan.stage, plan.kind, out.gamma, out.n_elites, out.estimate, out.proposal_curve,
@@ -228,4 +228,5 @@ class Experiment:
         by_metric = RobustnessByMetric(pb, batch)
         self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, sample.failed[index],
                                   sample.log_weight[index], plan.sampler, n_total=plan.n, index=index,
-                                  stage_robustness=sample.robustness, stage_log_weight=sample.log_weight))  # fmt: skip
+                                  stage_robustness=sample.robustness, stage_log_weight=sample.log_weight,
+                                  target=target))  # fmt: skip

@@ -79,6 +79,9 @@ class RolloutsSampled:
     """[n_total] every rollout's robustness under the configured metric, with ``n_total`` (e.g. for histograms)."""
     stage_log_weight: np.ndarray | None = None
     """[n_total] every rollout's importance log-weight, with ``n_total``."""
+    target: Detector | None = None
+    """The detector that weighs the batch (p, the PEM); with ``sampler``, what each object's p(detect) and q(detect)
+    were (:func:`pemviz.proposal_view.object_detect_probabilities`) while the sampler is still the one that drew."""
 
     @property
     def rollout_numbers(self) -> np.ndarray:

@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import expit
 
 QUANTILES = (0.1, 0.9)
 """The lower and upper quantile of a bin's spread."""
@@ -61,6 +62,27 @@ def prob_detect(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:
     detected, else 1 - exp(log p) (``-expm1``, exact for small probabilities)."""
     lp = np.asarray(log_p_action, dtype=np.float64)
     return np.where(np.asarray(detected, bool), np.exp(lp), -np.expm1(lp))
+
+
+def object_detect_probabilities(batch: object, i: int, sampler: object, target: object) -> tuple[np.ndarray,
+                                                                                              np.ndarray]:  # fmt: skip
+    """Each object's p(detect) under ``target`` (the PEM) and q(detect) under ``sampler`` along rollout ``i`` of a
+    batch of several objects: float64 (p [T, M], q [T, M]), the detectors' logits at the rollout's object rows
+    passed through the logistic function (an object the camera cannot see, logit -inf, has 0). The log-probabilities
+    a batch keeps sum a step's objects, so these are asked of the detectors themselves: call it while ``sampler`` is
+    the one that drew the batch (an estimator refits its proposal in place after each stage).
+
+    Raises:
+        ValueError: ``i`` outside the batch.
+    """
+    if not 0 <= int(i) < batch.n:
+        raise ValueError(f"object_detect_probabilities: rollout {i} outside a batch of {batch.n}")
+    rows = np.ascontiguousarray(batch.object_rows[int(i)], dtype=np.float64)  # [T, M, G]
+    flat = rows.reshape(-1, rows.shape[-1])
+    shape = rows.shape[:2]
+    p = expit(np.asarray(target.detect_logit(flat), dtype=np.float64))
+    q = expit(np.asarray(sampler.detect_logit(flat.copy()), dtype=np.float64))
+    return p.reshape(shape), q.reshape(shape)
 
 
 def miss_log_odds(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:

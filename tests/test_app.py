@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.special import expit
 
 sync_api = pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -640,10 +641,12 @@ OBJECTS_JS = """(n) => {
     const above = Array.from(document.querySelectorAll('div')).map(d => d.textContent)
         .filter(t => t.startsWith('From above at step')).at(-1) ?? '';
     const tracks = document.querySelectorAll('svg.pemviz-birds-eye rect.pemviz-track').length;
-    return {cells, cars, above, tracks, braking_lead: tree['/lead']?.visibility};
+    const detect = Array.from(document.querySelectorAll('svg.pemviz-detect polyline')).map(p => p.getAttribute('points'));
+    return {cells, cars, above, tracks, detect, braking_lead: tree['/lead']?.visibility};
 }"""
 """The Explain raster's cells (fill colours, object by object, step by step), each car of the scene (position,
-colour, visibility, label), the bird's-eye view's heading and the braking scene's lead's visibility."""
+colour, visibility, label), the bird's-eye view's heading, the proposal bands' polylines (each object's p then q) and
+the braking scene's lead's visibility."""
 
 
 def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_failure(tab):
@@ -686,6 +689,18 @@ def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_fail
             assert car["label"] == f"car {j}: {state}" + (" (decisive)" if j in decisive else "")
 
     check_cars(first.step, got["cars"])
+    # each object's proposal band: p(detect) of the PEM, recomputed here at the rollout's rows, and q(detect) of the
+    # sampler as the trajectory kept it, drawn 0 at the band's foot and 1 at 17 px above it
+    rows = shown.batch.objects[0]
+    p_want = expit(record.problem.target.detect_logit(rows.reshape(-1, rows.shape[-1]))).reshape(t_steps, m)
+    np.testing.assert_allclose(shown.object_p, p_want, atol=1e-12)
+    assert shown.object_q.shape == (t_steps, m) and np.all((shown.object_q >= 0) & (shown.object_q <= 1))
+    assert len(got["detect"]) == 2 * m
+    for j in range(m):
+        foot = 2 + (j + 1) * 22 - 3
+        for k, values in enumerate((shown.object_p[:, j], shown.object_q[:, j])):
+            ys = np.array([float(pt.split(",")[1]) for pt in got["detect"][2 * j + k].split()])
+            np.testing.assert_allclose(ys, foot - 17 * values, atol=0.051)
     assert got["braking_lead"] is False  # the braking scene's lead is hidden
     # from above, a dashed box where the tracker places each tracked car drawn (in the view)
     t = first.step

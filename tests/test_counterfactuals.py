@@ -71,3 +71,26 @@ def test_cut_in_interventions_replayed_on_highway_env_give_the_same_robustness(c
         assert rho == pytest.approx(x.robustness, abs=1e-9)
     line = cf.summary(dt_s=0.1)
     assert f"before the failure at step {cf.failure_step}" in line
+
+
+def test_each_objects_p_and_q_of_detection_give_back_the_batchs_own_log_densities():
+    """object_detect_probabilities asks the detectors at the rollout's rows; the sum over a step's objects of the log
+    probability of each action taken, plus the noise PEM's density of the detected objects' errors, must equal the
+    log p the simulator recorded for that step (the batch's own bookkeeping: an independent path)."""
+    from pemviz.proposal_view import object_detect_probabilities
+
+    problem = cut_in_problem(load_pem())
+    batch = problem.simulate(3, problem.target, problem.target, np.random.default_rng(4))
+    for i in range(batch.n):
+        p, q = object_detect_probabilities(batch, i, problem.target, problem.target)
+        d = batch.detected[i]
+        assert p.shape == q.shape == d.shape == (100, 5)
+        np.testing.assert_array_equal(p, q)
+        with np.errstate(divide="ignore"):
+            action = np.where(d, np.log(p), np.log1p(-p)).sum(axis=1)
+        rows = batch.objects[i].reshape(-1, batch.objects.shape[-1])
+        noise = problem.target.noise_log_prob(rows, batch.noise[i].reshape(rows.shape[0], -1)).reshape(d.shape)
+        want = action + np.where(d, noise, 0.0).sum(axis=1)
+        np.testing.assert_allclose(want, batch.log_p[i], rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="outside a batch of 3"):
+        object_detect_probabilities(batch, 3, problem.target, problem.target)

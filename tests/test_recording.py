@@ -572,3 +572,17 @@ def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_whe
     assert has.any() and len(got) == 100
     for t in range(100):
         np.testing.assert_allclose(got[t], want[t][has[t]], atol=1e-4)
+    # each object's p(detect) of the PEM in its row band (j at 0, j + 0.8 at 1), recomputed here from the PEM at the
+    # rollout's rows; q(detect) of the sampler in the same band, and 0 where the camera cannot see the car
+    from scipy.special import expit
+
+    target = problem_for(cfg).target
+    p_want = expit(target.detect_logit(rows.reshape(-1, rows.shape[-1]))).reshape(rows.shape[:2])
+    seen = rows[:, :, OBJECT_NAMES.index("visible")] > 0.5
+    for j in range(m):
+        pem = np.array(column(step, f"/explain/detect/object_{j}/pem:Scalars:scalars"), dtype=object)
+        pem = np.array([v[0] for v in pem if v], dtype=np.float64)
+        np.testing.assert_allclose(pem, j + 0.8 * p_want[:, j], atol=1e-9)
+        q = np.array([v[0] for v in column(step, f"/explain/detect/object_{j}/sampler:Scalars:scalars") if v])
+        assert q.shape == (100,) and np.all((q >= j) & (q <= j + 0.8))
+        assert np.all(q[~seen[:, j]] == j)

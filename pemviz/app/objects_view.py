@@ -224,6 +224,34 @@ def raster_svg(ox: ObjectsExplanation, step: int, width: int = 430) -> str:
     return "".join(parts)
 
 
+def detect_svg(names: tuple[str, ...], p: np.ndarray, q: np.ndarray, step: int, width: int = 430) -> str:
+    """Each object's proposal along the rollout, a band per object in the order of :func:`raster_svg`: q(detect) of
+    the sampler that drew it (blue) and p(detect) of the PEM (grey, dashed) at each step, 0 at the band's foot and 1
+    at its head; a black line at ``step``.
+
+    Args:
+        names: the M objects' labels; p, q: float64 [T, M] (:func:`pemviz.proposal_view.object_detect_probabilities`).
+    """
+    t_steps, m = p.shape
+    left, band = 34, 22
+    cw = (width - left - 4) / t_steps
+    height = m * band + 4
+    parts = [f'<svg class="pemviz-detect" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}">']
+    x = left + (np.arange(t_steps) + 0.5) * cw
+    for j in range(m):
+        foot = 2 + (j + 1) * band - 3
+        parts.append(f'<text x="0" y="{foot - 4}" font-size="10" fill="{TEXT}">{html.escape(names[j])}</text>'
+                     f'<line x1="{left}" y1="{foot}" x2="{width - 4}" y2="{foot}" stroke="{LANE}"/>')  # fmt: skip
+        for values, colour, dash in ((p[:, j], AXIS_TEXT, ' stroke-dasharray="3,2"'), (q[:, j], BLUE, "")):
+            y = foot - (band - 5) * np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0)
+            points = " ".join(f"{a:.1f},{b:.1f}" for a, b in zip(x, y))
+            parts.append(f'<polyline points="{points}" fill="none" stroke="{colour}" stroke-width="1.2"{dash}/>')
+    sx = left + (int(step) + 0.5) * cw
+    parts.append(f'<line x1="{sx:.1f}" y1="0" x2="{sx:.1f}" y2="{height}" stroke="{NOW}" stroke-width="1.5"/>'
+                 "</svg>")  # fmt: skip
+    return "".join(parts)
+
+
 def decisive_table(ox: ObjectsExplanation) -> str:
     """The decisive interventions, one row each: object, step, what was undone, the replay's robustness."""
     cf = ox.counterfactuals

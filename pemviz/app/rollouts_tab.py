@@ -217,6 +217,12 @@ class RolloutsTab:
             + OV.decisive_table(ox)
             + f"<div><b>Every object, step by step</b> · {html.escape(OV.state_counts(ox, t))}</div>"
             + OV.raster_svg(ox, t)
+            + ("" if traj.object_p is None else
+               f"<div><b>Each object's proposal</b>: q(detect) of the sampler (blue), p(detect) of the PEM (grey, "
+               f"dashed), 0 to 1 in its band; at step {t}: "
+               + html.escape(", ".join(f"{ox.names[j]} q {traj.object_q[t, j]:.3g} p {traj.object_p[t, j]:.3g}"
+                                       for j in range(traj.object_p.shape[1])))
+               + "</div>" + OV.detect_svg(ox.names, traj.object_p, traj.object_q, t))
             + f"<div><b>From above at step {t}</b> (the road runs right; the ego's right is down)</div>"
             + OV.birds_eye_svg(ox, t)
             + f"<div>{legend}</div></div>"

@@ -36,7 +36,7 @@ from pemviz.events import (
     StageStarted,
 )
 from pemviz.presets import PRESETS
-from pemviz.proposal_view import ProposalView, batch_proposal_view
+from pemviz.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink, StageClock
@@ -94,6 +94,8 @@ class Trajectory:
             detector that sampled it (nats).
         batch: the rollout as a batch of one, for a scene of several objects (every object's rows, detections and
             measurement errors, replayed by *Explain*); None for one object per step (the braking scenario).
+        object_p, object_q: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that
+            drew the rollout, float64 [T, M] (:func:`pemviz.proposal_view.object_detect_probabilities`); else None.
     """
 
     stage: int
@@ -108,6 +110,8 @@ class Trajectory:
     log_p: np.ndarray
     log_q: np.ndarray
     batch: RolloutBatch | None = None
+    object_p: np.ndarray | None = None
+    object_q: np.ndarray | None = None
 
     @property
     def log_p_total(self) -> float:
@@ -135,6 +139,10 @@ def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
             return np.array(obs[:, names.index(name)], dtype=np.float64)
         return np.array(obs[:, fallback], dtype=np.float64) if fallback is not None else np.full(obs.shape[0], np.nan)
 
+    several = batch.objects is not None and batch.n_objects > 1
+    object_p = object_q = None
+    if several and event.sampler is not None and event.target is not None:
+        object_p, object_q = object_detect_probabilities(batch, int(i), event.sampler, event.target)
     return Trajectory(
         stage=event.stage,
         index=int(i),
@@ -147,7 +155,9 @@ def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
         detected=np.array(batch.detected[i, :, 0], dtype=bool),
         log_p=np.array(batch.log_p[i], dtype=np.float64),
         log_q=np.array(batch.log_q[i], dtype=np.float64),
-        batch=batch.select(np.array([i])) if batch.objects is not None and batch.n_objects > 1 else None,
+        batch=batch.select(np.array([i])) if several else None,
+        object_p=object_p,
+        object_q=object_q,
     )
 
 

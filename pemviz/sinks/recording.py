@@ -82,7 +82,7 @@ import pemviz
 from pemviz.estimate import format_probability, relative_error
 from pemviz.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.io.files import atomic_write
-from pemviz.proposal_view import batch_proposal_view, bins_over
+from pemviz.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import Sink
@@ -157,6 +157,9 @@ class RerunSink(Sink):
         """The most likely failure so far: the failing rollout with the largest log p under the PEM, as a batch of
         one (:attr:`most_likely_log_p` nats over T - 1 steps)."""
         self.most_likely_log_p = -math.inf
+        self.most_likely_detect: tuple[np.ndarray, np.ndarray] | None = None
+        """Each object's p(detect) and q(detect) [T, M] along :attr:`most_likely` (several objects and an event that
+        names its detectors; else None), read while the sampler that drew it was unchanged."""
         self.n_failures_seen = 0
         self.explained = False
         self.config_md = ""
@@ -514,6 +517,9 @@ class RerunSink(Sink):
             {m: np.asarray(v)[i] for m, v in ev.robustness_by_metric.items()}, np.asarray(ev.failed)[i],
             np.asarray(ev.log_weight)[i], index=ev.rollout_numbers[i],
         )  # fmt: skip
+        several = ev.batch.objects is not None and ev.batch.n_objects > 1
+        self.most_likely_detect = (object_detect_probabilities(ev.batch, int(i[0]), ev.sampler, ev.target)
+                                   if several and ev.sampler is not None and ev.target is not None else None)  # fmt: skip
 
     def _log_rollouts(self, ev: RolloutsSampled) -> None:
         """The kept traces of a stage and its featured rollouts
@@ -538,7 +544,7 @@ class RerunSink(Sink):
         best = self.most_likely
         name = self.plan.label(best.stage, best.kind) if best is not None else ""
         log_explanation(self.stream, best, self.most_likely_log_p, self.n_failures_seen, self.view, name,
-                        self._indexes)  # fmt: skip
+                        self._indexes, object_detect=self.most_likely_detect)  # fmt: skip
 
     # -- final --------------------------------------------------------------------------------------
     def _final(self, ev: FinalEstimate) -> None:

@@ -105,7 +105,8 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
         plot_legend=rrb.PlotLegend(corner="LeftBottom"), axis_y=rrb.ScalarAxis(range=(-0.15, 1.08), zoom_lock=True),
     ) if not several else rrb.TimeSeriesView(
         origin=f"{e}/detect", name="each object's events, a row per object (0 at the bottom): green detected, orange "
-        "missed, grey unseen", plot_legend=_NO_LEGEND,
+        "missed, grey unseen; above each row its q(detect) of the sampler (blue) and p(detect) of the PEM (grey), "
+        "0 to 1", plot_legend=_NO_LEGEND,
     )  # fmt: skip
     replays = ": red recorded; replays: green minimal set detected, violet last saving step"
     trace = rrb.TimeSeriesView(

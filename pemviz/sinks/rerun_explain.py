@@ -22,6 +22,9 @@ Entities (``step`` timeline unless static; ``<col>`` = the problem's first signa
   replays with those misses detected (braking).
 - ``explain/controller/{acceleration,brake_commanded,brake_applied}``, ``explain/speed/{ego,lead}`` and
   ``explain/scene`` (braking): the controller, the speeds and one lane of the top-down scene.
+- ``explain/detect/object_<j>/{detected,missed,unseen,pem,sampler}`` (several objects): each object's events on
+  its row j, and its p(detect) of the PEM (grey) and q(detect) of the sampler that drew the rollout (blue) in the
+  band above the row (j at 0, j + 0.8 at 1).
 - ``explain/objects/{ego,true,measured,error}`` (a problem with ``objects_xy``, e.g. the cut-in): every object seen
   from the ego at each step (x to the right, ahead upwards, metres), green where detected, orange where missed, grey
   where it cannot be seen; where detected, the measured position (blue) and a line from the true one to it.
@@ -58,6 +61,8 @@ UNSEEN_RGBA = C.rgba(C.NEUTRAL)
 AXIS_LABEL_RGBA = C.rgba(C.ON_DARK)
 MARKER_ROW = -0.06
 """Height of the miss markers under the p / q curves (probability units, below 0)."""
+OBJECT_BAND = 0.8
+"""Several objects: each object's p(detect) and q(detect) are drawn from its row j (probability 0) to j + 0.8 (1)."""
 
 
 def _series(stream: rr.RecordingStream, path: str, name: str, rgba, values: np.ndarray, indexes: Indexes,
@@ -93,6 +98,7 @@ def log_explanation(
     view: ProblemView,
     stage_name: str,
     indexes: Indexes,
+    object_detect: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> FailureStory | None:
     """Log the Explain tab's entities for ``failure``, a one-rollout event (its stage, number, batch row).
 
@@ -104,6 +110,9 @@ def log_explanation(
         view: the problem's view (signals, thresholds; the braking scene gives the counterfactual).
         stage_name: the plan's name of its stage (``CE stage 4/10``).
         indexes: the sink's time columns for ``send_columns`` (with its repetition).
+        object_detect: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that drew
+            the rollout, float64 [T, M] each (:func:`pemviz.proposal_view.object_detect_probabilities`), drawn in
+            the object's row band; None: not drawn.
     Returns:
         the braking scene's :class:`~pemviz.scenarios.braking_failures.FailureStory` of the rollout (None without
         a scene or a failure).
@@ -141,6 +150,12 @@ def log_explanation(
                                         ("unseen", UNSEEN_RGBA, np.flatnonzero(~d & ~seen[:, j]))):  # fmt: skip
                 _markers(s, f"{E}/detect/object_{j}/{kind}", f"object {j} {kind}", rgba, "circle", steps_j,
                          np.full(steps_j.size, float(j)), indexes, size=3.0)  # fmt: skip
+            if object_detect is not None:  # the object's band: 0 at its row, 1 at OBJECT_BAND above it
+                p_j, q_j = (np.asarray(a[:, j], dtype=np.float64) for a in object_detect)
+                _series(s, f"{E}/detect/object_{j}/pem", f"object {j} p(detect), PEM", PEM_PLOT_RGBA,
+                        j + OBJECT_BAND * p_j, indexes, width=1.0)  # fmt: skip
+                _series(s, f"{E}/detect/object_{j}/sampler", f"object {j} q(detect), sampler", C.rgba(C.BLUE),
+                        j + OBJECT_BAND * q_j, indexes, width=1.5)  # fmt: skip
     words = tale.severity.short if tale is not None else "failure"
     _series(s, f"{E}/{col}/recorded", f"as recorded: {words}", CRASH_RGBA[:3] + (255,), trace, indexes, width=2.5)
     log_thresholds(s, view, trace.size, indexes, path=f"{E}/{col}/thresholds")
