@@ -4,7 +4,10 @@ Problems (each with its exact p_fail):
 - ``toy-m<M>-<p>``: toys whose failure needs M misses in a row at a constant p(detect) (closed form (1 - p)^M);
 - ``latched<shift>``: the latched-brake braking scenario with the PEM's logit moved by ``shift`` nats
   (:class:`pemviz.problems.ShiftedPEM`; exact from the deterministic simulator);
-- ``main<shift>``: the braking scenario itself with the shifted PEM (exact enumeration, :func:`pemviz.truth.braking_truth`).
+- ``main<shift>``: the braking scenario itself with the shifted PEM (exact enumeration, :func:`pemviz.truth.braking_truth`);
+- ``cut-in-moderate``: the cut-in scenario of several cars, missed and mislocated, at its moderate setting (no closed
+  form: its "exact" p is the plain Monte Carlo reference of 10^7 rollouts,
+  :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`, whose own 95 % interval is +-7 %).
 
 Methods (:func:`methods_at`, a list of (label, config fields); add a line for a new method): the default sampler
 ``ExperimentConfig()`` (2,100 simulations; ``--n-final 100``: 1,200), the ``paper`` preset with its final batch
@@ -41,6 +44,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from scipy.stats import binomtest
 
 from pemviz import truth
 from pemviz.config import METHODS as CONFIG_METHODS, ExperimentConfig
@@ -51,9 +55,10 @@ from pemviz.events import RunFinished
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.io.files import atomic_write
 from pemviz.presets import PRESETS
-from pemviz.problems import Problem, ShiftedPEM, braking_problem, toy_problem
+from pemviz.problems import Problem, ShiftedPEM, braking_problem, cut_in_params, cut_in_problem, toy_problem
 from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
 from pemviz.scenarios.toy import ToyParams, ToyValue, toy_log_failure_probability
 from pemviz.studies.validation import all_fields, ams_fields
 
@@ -102,14 +107,15 @@ QUICK_METHODS: list[tuple[str, dict[str, Any] | None]] = [
 
 @dataclass(frozen=True)
 class Spec:
-    """A sweep problem, rebuilt in each worker from these fields: ``kind`` toy | latched | main; a toy needs
-    ``misses`` and ``p_detect``; the braking problems the PEM ``shift`` (nats)."""
+    """A sweep problem, rebuilt in each worker from these fields: ``kind`` toy | latched | main | cut-in; a toy needs
+    ``misses`` and ``p_detect``; the braking problems the PEM ``shift`` (nats); the cut-in its rarity ``setting``."""
 
     name: str
     kind: str
     misses: int = 0
     p_detect: float = 0.0
     shift: float = 0.0
+    setting: str = ""
 
 
 def toy_spec(misses: int, log10_p: float) -> Spec:
@@ -124,8 +130,9 @@ FULL: tuple[Spec, ...] = (
     Spec("latched-6", "latched", shift=-6.0), Spec("latched+0", "latched", shift=0.0),
     Spec("latched+8", "latched", shift=8.0),
     Spec("main+0", "main", shift=0.0), Spec("main+3", "main", shift=3.0),
+    Spec("cut-in-moderate", "cut-in", setting="moderate"),
 )  # fmt: skip
-"""The full sweep's problems (log10 p from -1.4 to -100)."""
+"""The full sweep's problems (log10 p from -1.4 to -100, and the cut-in at -4.1)."""
 
 QUICK: tuple[Spec, ...] = (toy_spec(3, -3), toy_spec(10, -10), Spec("latched-6", "latched", shift=-6.0))
 """The ``--quick`` problems: small and fast."""
@@ -151,6 +158,8 @@ def build(spec: Spec) -> tuple[Problem, Detector | None]:
         params = toy_params(spec)
         problem = toy_problem(params, name=spec.name)
         return problem, ZeroVarianceDetector(problem.target, ToyValue(params).log_value_next)
+    if spec.kind == "cut-in":
+        return cut_in_problem(_pem(), cut_in_params(spec.setting)), None
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
         problem = braking_problem(pem, BrakingParams(latched_brake=True))
@@ -162,6 +171,11 @@ def exact_log_p(spec: Spec) -> tuple[float, str]:
     """The exact log p_fail (nats) of ``spec`` and where it comes from (``main`` shifts: tens of seconds)."""
     if spec.kind == "toy":
         return toy_log_failure_probability(toy_params(spec)), f"closed form (1 - {spec.p_detect:.6g})^{spec.misses}"
+    if spec.kind == "cut-in":
+        failures, rollouts = MONTE_CARLO_REFERENCE[spec.setting]
+        ci = binomtest(failures, rollouts).proportion_ci(0.95)
+        return (math.log(failures / rollouts), f"plain Monte Carlo, {failures} failures in {rollouts:.0e} rollouts "
+                f"(95 % interval [{ci.low:.3g}, {ci.high:.3g}])")  # fmt: skip
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
         return truth.latched_log_failure_probability(pem.logit_at_gap).log_p_fail, "latched closed form"
@@ -224,13 +238,17 @@ def budget_of(methods: Sequence[tuple[str, dict | None]]) -> int:
 
 
 def jobs_for(specs: Sequence[Spec], methods: Sequence[tuple[str, dict | None]], n_seeds: int) -> list[Job]:
-    """Every (problem, method, seed); q* only where the problem has one, at the first method's budget."""
+    """Every (problem, method, seed); q* only where the problem has one, at the first method's budget; on the cut-in
+    (several objects a step) not the methods whose fit takes one object a step (the ``paper`` preset)."""
     budget = budget_of(methods)
     out = []
     for spec in specs:
         for label, fields in methods:
-            if fields is None and spec.kind == "main":
+            if fields is None and spec.kind in ("main", "cut-in"):
                 continue
+            cfg = ExperimentConfig(**(fields or {}))
+            if spec.kind == "cut-in" and not (cfg.weights_until_failure or cfg.proposal_window):
+                continue  # several objects a step: the paper's fit of whole elite rollouts takes one
             f = (("n", budget),) if fields is None else tuple(sorted(fields.items()))
             out += [Job(spec, label, f, seed) for seed in range(n_seeds)]
     return out

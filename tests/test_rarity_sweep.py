@@ -95,3 +95,16 @@ def test_sweep_refuses_a_final_batch_it_cannot_run(sweep, capsys):
         sweep.methods_at(0)
     assert sweep.main(["--n-final", "0", "--out", "unused"]) == 2
     assert "--n-final must be >= 1" in capsys.readouterr().err
+
+
+def test_the_cut_in_joins_the_sweep_against_its_monte_carlo_reference(sweep):
+    """The cut-in's "exact" p is the 10^7-rollout plain Monte Carlo reference: 866 failures, Clopper-Pearson 95 %
+    interval [8.09e-5, 9.26e-5] (as measured, docs/cut-in.md); the paper preset (one object a step) and q* (no V)
+    are not run on it, every other method is."""
+    spec = next(s for s in sweep.FULL if s.kind == "cut-in")
+    log_p, source = sweep.exact_log_p(spec)
+    assert math.exp(log_p) == pytest.approx(8.66e-5, rel=1e-12)
+    assert "[8.09e-05, 9.26e-05]" in source and "866 failures" in source
+    methods = sweep.methods_at()
+    labels = {job.method for job in sweep.jobs_for([spec], methods, 2)}
+    assert labels == {m for m, _ in methods} - {"paper", sweep.Q_STAR}

@@ -287,6 +287,12 @@ the failure probability is 8.66e-5 [8.09e-5, 9.26e-5] at ``moderate`` (plain Mon
 ``benchmarks/cut_in_mc.py``) and far below 1e-9 at ``rare`` (``docs/cut-in.md``: each extra 0.76 m of gap needs one
 more step of late reaction, and each step costs a factor of about 280 in probability)."""
 
+MONTE_CARLO_REFERENCE: dict[str, tuple[int, int]] = {"moderate": (866, 10_000_000)}
+"""The plain Monte Carlo reference of a rarity setting under the shipped PEMs: (failures, rollouts) of the batched
+twin drawn from the PEMs (``benchmarks/cut_in_mc.py``, seeds 11 and 12, 5 x 10^6 rollouts each; every failure a
+collision). The reference p = failures / rollouts with its Clopper-Pearson interval (8.66e-5 [8.09e-5, 9.26e-5] at
+``moderate``); the ``rare`` setting has none (below 1e-9)."""
+
 
 def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mps: np.ndarray) -> np.ndarray:
     """The safe distance (metres) from the ego to the vehicle in front, elementwise over speeds ``[...]`` (m/s):
