@@ -1,4 +1,5 @@
-"""Calibrate the cost model of :mod:`pemviz.cost` (the panel's "about N s", the time left in the console and panel).
+"""Calibrate the cost model of :mod:`pemviz.engine.cost` (the panel's "about N s", the time left in the console
+and panel).
 
     python benchmarks/calibrate_cost.py              # predicted vs measured seconds of each run, and the ratio
     python benchmarks/calibrate_cost.py --fit        # also the constants fitted to these runs, ready to paste
@@ -6,14 +7,14 @@
 
 What it does: runs a handful of configurations (the default, ``--preset quick``, N = 1000, plain Monte Carlo with
 N = 10,000, ``--preset paper``, the agm run of the panel's screenshots, a small highway-env run) as the panel runs
-them (:class:`pemviz.engine.Experiment` with a :class:`pemviz.app.runs.PanelRun` listener, torch on one thread), after
-a warm-up run, and prints per configuration the seconds :func:`pemviz.cost.run_cost` predicts, the seconds the run
-took and their ratio (predicted / measured). With ``--fit`` it also records each stage (simulating: from its start to
-its rollouts; after: the rest) and each proposal fit (its rows, epochs and seconds, by wrapping
-:func:`pemviz.sampling.fit_proposal` where :mod:`pemviz.estimators.ce_fit` calls it), fits every constant of
-:class:`pemviz.cost.CostConstants` to them by least squares, scales the simulating and the fitting constants so that
-the runs' predicted totals meet the measured ones, and prints the constants and the table again with them. The whole
-takes under 2 minutes on 2 cores. Measure on a quiet machine: `uptime` beside the figures.
+them (:class:`pemviz.engine.experiment.Experiment` with a :class:`pemviz.app.runs.PanelRun` listener, torch on one
+thread), after a warm-up run, and prints per configuration the seconds :func:`pemviz.engine.cost.run_cost` predicts, the
+seconds the run took and their ratio (predicted / measured). With ``--fit`` it also records each stage (simulating: from
+its start to its rollouts; after: the rest) and each proposal fit (its rows, epochs and seconds, by wrapping
+:func:`pemviz.core.sampling.fit_proposal` where :mod:`pemviz.estimators.ce_fit` calls it), fits every constant of
+:class:`pemviz.engine.cost.CostConstants` to them by least squares, scales the simulating and the fitting constants so
+that the runs' predicted totals meet the measured ones, and prints the constants and the table again with them. The
+whole takes under 2 minutes on 2 cores. Measure on a quiet machine: `uptime` beside the figures.
 """
 
 from __future__ import annotations
@@ -31,13 +32,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pemviz import cost, engine  # noqa: E402
 from pemviz.app.runs import PanelRun  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
+from pemviz.core.problems import problem_for  # noqa: E402
+from pemviz.core.sampling import torch_threads  # noqa: E402
+from pemviz.engine import cost  # noqa: E402
+from pemviz.engine import experiment as engine  # noqa: E402
 from pemviz.estimators import ce_fit, run_plan  # noqa: E402
 from pemviz.presets import PRESETS  # noqa: E402
-from pemviz.problems import problem_for  # noqa: E402
-from pemviz.sampling import torch_threads  # noqa: E402
 from pemviz.sinks import Sink  # noqa: E402
 
 CONFIGS: dict[str, tuple[str, dict]] = {
@@ -154,7 +156,7 @@ def _lstsq(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None) -> np.ndar
 
 
 def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = cost.N_STEPS) -> cost.CostConstants:
-    """Every constant of :class:`pemviz.cost.CostConstants` fitted to the stage and fit records of ``runs``."""
+    """Every constant of :class:`pemviz.engine.cost.CostConstants` fitted to the stage and fit records of ``runs``."""
     c0 = cost.COST
     # simulating: T x (a_pem [the PEM draws] + a_proposal [a proposal draws] + (b_sim + b_proposal [a proposal
     # draws]) x n)
@@ -233,7 +235,7 @@ def scale_to_totals(c: cost.CostConstants, rows: list[tuple[str, ExperimentConfi
 
 
 def literal(c: cost.CostConstants, measured: str) -> str:
-    """``COST = CostConstants(...)`` to paste into pemviz/cost.py."""
+    """``COST = CostConstants(...)`` to paste into pemviz/engine/cost.py."""
 
     def g(v):
         return "{" + ", ".join(f'"{k}": {g(x)}' for k, x in v.items()) + "}" if isinstance(v, dict) else f"{v:.3g}"
@@ -268,7 +270,7 @@ def main() -> int:
         rows.append((name, cfg, statistics.median(times)))
         print(f"  {name}: CPU {', '.join(f'{t:.2f}' for t in times)} s, wall {', '.join(f'{t:.2f}' for t in walls)} s",
               flush=True)  # fmt: skip
-    table(rows, cost.COST, "with the constants of pemviz.cost.COST")
+    table(rows, cost.COST, "with the constants of pemviz.engine.cost.COST")
     if args.fit:
         fitted = scale_to_totals(fit_constants(records), rows)
         stamp = time.strftime("%Y-%m-%d")

@@ -5,7 +5,7 @@ p(detected | salient variables) of the object row's 11 KITTI columns; the object
 visible; the noise PEM (``pemviz.pem.store.load_noise_pem("hetero-t")``: Student-t range and lateral errors, metres)
 draws its measurement error. The rollout fails when the robustness of
 :data:`pemviz.scenarios.cut_in.FAILURE_FORMULA` is negative (pemviz's STL, classic semantics). The estimate is the
-failure fraction with its Clopper-Pearson 95 % interval (:func:`pemviz.estimate.estimate` with unit weights).
+failure fraction with its Clopper-Pearson 95 % interval (:func:`pemviz.core.estimate.estimate` with unit weights).
 
 Settings (``--setting``): ``default`` (:class:`~pemviz.scenarios.cut_in.CutInParams` as it is), ``moderate`` and
 ``rare`` (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`), with ``--set NAME=VALUE`` overrides. Run from the
@@ -86,7 +86,7 @@ def run_chunk(params: CutInParams, n: int, pem, noise_pem, rng: np.random.Genera
 def monte_carlo(params: CutInParams, n: int, chunk: int, seed: int) -> None:
     import torch
 
-    from pemviz.estimate import estimate
+    from pemviz.core.estimate import estimate
     from pemviz.pem import load_pem
     from pemviz.pem.store import load_noise_pem
 

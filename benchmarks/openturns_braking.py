@@ -1,7 +1,7 @@
 """Why not a general rare-event library? pemviz's braking problem given to OpenTURNS as a black-box limit state.
 
-The braking job (``pemviz.problems.build_problem("main")``: T = 100 steps of 0.05 s, the shipped PEM as the camera's
-detector, failure = the gap drops below 2 m) is written as a limit state g(u) on the unit hypercube U(0, 1)^T:
+The braking job (``pemviz.core.problems.build_problem("main")``: T = 100 steps of 0.05 s, the shipped PEM as the
+camera's detector, failure = the gap drops below 2 m) is written as a limit state g(u) on the unit hypercube U(0, 1)^T:
 
 - step t detects iff ``log u_t <= log_expit(logit p_PEM(state_t))``, i.e. iff u_t <= p_PEM(detect | state_t), in
   log space exactly as pemviz draws its rollouts (:mod:`pemviz.scenarios.batched`), so the same uniforms give the
@@ -9,7 +9,7 @@ detector, failure = the gap drops below 2 m) is written as a limit state g(u) on
   on all of R^T (NAIS's Gaussian kernels put points outside the cube, where the input density and so the weight is 0);
 - the ego reacts through pemviz's batched twin :class:`pemviz.scenarios.batched.BatchedBraking`;
 - g(u) = the classic STL robustness of ``G[0,99](d >= 2)`` of the gap trace (metres), computed by pemviz's own
-  :meth:`pemviz.problems.Problem.robustness` on a :class:`pemviz.scenarios.RolloutBatch`. Failure: g(u) < 0, exact
+  :meth:`pemviz.core.problems.Problem.robustness` on a :class:`pemviz.scenarios.RolloutBatch`. Failure: g(u) < 0, exact
   probability 1.984e-15 (``problem.exact_log_p``, an enumeration of the detection sequences).
 
 OpenTURNS (https://openturns.github.io/openturns/latest/, version 1.27) then gets the event
@@ -74,8 +74,8 @@ from typing import Any
 import numpy as np
 from scipy.special import log_expit, ndtr
 
-from pemviz.detectors import action_log_prob
-from pemviz.problems import Problem, build_problem
+from pemviz.core.detectors import action_log_prob
+from pemviz.core.problems import Problem, build_problem
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.batched import BatchedBraking
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
@@ -276,9 +276,9 @@ def run_isolated(method: str, budget: int, seed: int, timeout_s: float, eval_cap
 def run_pemviz(seed: int) -> Run:
     """pemviz's default sampler (``ExperimentConfig(seed=seed)``) on the braking job."""
     from pemviz.config import ExperimentConfig
+    from pemviz.core.problems import problem_for
     from pemviz.engine import Experiment
-    from pemviz.events import RunFinished
-    from pemviz.problems import problem_for
+    from pemviz.engine.events import RunFinished
 
     cfg = ExperimentConfig(seed=seed)
     t0 = time.perf_counter()

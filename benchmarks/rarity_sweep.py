@@ -3,8 +3,9 @@
 Problems (each with its exact p_fail):
 - ``toy-m<M>-<p>``: toys whose failure needs M misses in a row at a constant p(detect) (closed form (1 - p)^M);
 - ``latched<shift>``: the latched-brake braking scenario with the PEM's logit moved by ``shift`` nats
-  (:class:`pemviz.problems.ShiftedPEM`; exact from the deterministic simulator);
-- ``main<shift>``: the braking scenario itself with the shifted PEM (exact enumeration, :func:`pemviz.truth.braking_truth`);
+  (:class:`pemviz.core.problems.ShiftedPEM`; exact from the deterministic simulator);
+- ``main<shift>``: the braking scenario itself with the shifted PEM (exact enumeration,
+  :func:`pemviz.core.truth.braking_truth`);
 - ``cut-in-moderate``: the cut-in scenario of several cars, missed and mislocated, at its moderate setting (no closed
   form: its "exact" p is the plain Monte Carlo reference of 10^7 rollouts,
   :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`, whose own 95 % interval is +-7 %).
@@ -46,17 +47,17 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.stats import binomtest
 
-from pemviz import truth
+from pemviz.core import truth
 from pemviz.config import METHODS as CONFIG_METHODS, ExperimentConfig
-from pemviz.detectors import Detector
+from pemviz.core.detectors import Detector
 from pemviz.engine import Experiment
-from pemviz.estimate import relative_error
-from pemviz.events import RunFinished
+from pemviz.core.estimate import relative_error
+from pemviz.engine.events import RunFinished
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.io.files import atomic_write
 from pemviz.presets import PRESETS
-from pemviz.problems import Problem, ShiftedPEM, braking_problem, cut_in_params, cut_in_problem, toy_problem
-from pemviz.sampling import torch_threads
+from pemviz.core.problems import Problem, ShiftedPEM, braking_problem, cut_in_params, cut_in_problem, toy_problem
+from pemviz.core.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
 from pemviz.scenarios.toy import ToyParams, ToyValue, toy_log_failure_probability
@@ -415,11 +416,11 @@ def write_rrd(path: str, rows: Sequence[Row], table_md: str) -> None:
 
 def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
     """Var(w 1[fail]) / mu^2 per rollout of the default sampler's final batch (N_e rollouts from its last proposal,
-    the defensive mixture included) on the named problem of :data:`pemviz.problems.PROBLEMS`, one per seed, with the
-    exact mu; returns (log mu, [relative variance per seed]). q* has 0, plain Monte Carlo (1 - mu) / mu."""
-    from pemviz.events import RolloutsSampled
+    the defensive mixture included) on the named problem of :data:`pemviz.core.problems.PROBLEMS`, one per seed, with
+    the exact mu; returns (log mu, [relative variance per seed]). q* has 0, plain Monte Carlo (1 - mu) / mu."""
+    from pemviz.engine.events import RolloutsSampled
     from pemviz.estimators.optimal import relative_variance
-    from pemviz.problems import build_problem
+    from pemviz.core.problems import build_problem
 
     problem = build_problem(name)
     assert problem.exact_log_p is not None
@@ -475,7 +476,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "(comma-separated, e.g. toy,latched,main), printed as a table")  # fmt: skip
     args = ap.parse_args(argv)
     if args.relative_variance:
-        from pemviz.problems import PROBLEMS
+        from pemviz.core.problems import PROBLEMS
 
         names = args.relative_variance.split(",")
         if any(n not in PROBLEMS for n in names):

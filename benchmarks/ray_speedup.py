@@ -23,9 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 
 
 def run(config, problem):
-    import pemviz.executors as executors
+    import pemviz.engine.executors as executors
+    from pemviz.core.sampling import torch_threads
     from pemviz.engine import Experiment
-    from pemviz.sampling import torch_threads
 
     spent = [0.0]
     ex = executors.get_executor(config.executor, config.ray_address)
@@ -55,8 +55,8 @@ def main() -> int:
     import ray
 
     from pemviz.config import ExperimentConfig
-    from pemviz.executors import close_executors
-    from pemviz.problems import problem_for
+    from pemviz.core.problems import problem_for
+    from pemviz.engine.executors import close_executors
 
     base = ExperimentConfig(sim="highway-env", n_stages=args.k, n_per_stage=args.n, n_final=args.n,
                             pretrain_rollouts=args.n, seed=0)  # fmt: skip
@@ -66,7 +66,7 @@ def main() -> int:
     try:  # start the workers (a process each, importing pemviz, torch and highway-env) before timing
         import numpy as np
 
-        from pemviz.executors import get_executor
+        from pemviz.engine.executors import get_executor
 
         t0 = time.perf_counter()
         get_executor("ray").simulate(problem, 2 * args.workers, problem.target, problem.target, np.random.default_rng(0))

@@ -14,7 +14,7 @@ mixture's bookkeeping add to each simulated step. ``--check`` is for people, not
 
 Each N runs in a fresh subprocess (``pemviz run --n N --n-final N``), so that its peak resident memory
 (``ru_maxrss``) is its own. Inside, the time spent simulating (``Problem.simulate`` / ``Problem.stream``,
-detector evaluations included) and fitting the proposal (:func:`pemviz.sampling.fit_proposal`) is summed; "other"
+detector evaluations included) and fitting the proposal (:func:`pemviz.core.sampling.fit_proposal`) is summed; "other"
 is the engine's wall time minus both (robustness, weights, elites, estimates, events, sinks). Times are
 wall (``perf_counter``) and CPU (user + system, ``RUSAGE_SELF``; the split by the run's own thread, ``thread_time``:
 the run is single-threaded); the load average is printed with each row: on a machine shared with other jobs compare
@@ -42,8 +42,8 @@ CHECK_N, CHECK_RATIO = 10_000, 1.0
 def _child(argv: list[str]) -> None:
     """Run one ``pemviz run`` in this process with timing hooks; print one JSON line of figures."""
     sys.path.insert(0, str(REPO))  # this checkout's pemviz, as ``python -m pemviz.cli`` from the repository root
-    import pemviz.engine as engine
-    import pemviz.problems as problems
+    import pemviz.engine.experiment as engine
+    import pemviz.core.problems as problems
     import pemviz.estimators.ce_fit as ce_fit
     from pemviz.cli import main
 
@@ -106,7 +106,7 @@ def _pure_twin_us(n: int) -> tuple[float, float]:
     import numpy as np
 
     from pemviz.pem import load_pem
-    from pemviz.detectors import PEMDetector
+    from pemviz.core.detectors import PEMDetector
     from pemviz.scenarios.batched import simulate_batched
 
     m, pem = min(n, 20_000), PEMDetector(load_pem())

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pemviz.estimate import relative_error
+from pemviz.core.estimate import relative_error
 from pemviz.studies.validation import RUNS_FILE, exact_answer, read_records
 
 DRAWS = 100_000

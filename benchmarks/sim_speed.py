@@ -58,7 +58,7 @@ def rollouts_per_second(n_highway: int, n_batched: int, seed: int) -> None:
     import torch
 
     torch.set_num_threads(1)
-    from pemviz.detectors import PEMDetector
+    from pemviz.core.detectors import PEMDetector
     from pemviz.pem import load_pem
     from pemviz.scenarios import simulate
     from pemviz.scenarios.batched import simulate_batched
@@ -107,8 +107,8 @@ def peak_rss_gib() -> float:
 
 def million_child(n: int, seed: int) -> None:
     """Child process: stream n PEM rollouts, print seconds, failures and peak RSS as JSON."""
+    from pemviz.core.problems import braking_problem
     from pemviz.pem import load_pem
-    from pemviz.problems import braking_problem
     from pemviz.scenarios.batched import summarise_batched
 
     problem = braking_problem(load_pem())
@@ -162,13 +162,13 @@ class Split:
 
 
 def time_split(sim: str) -> None:
+    import pemviz.core.problems as problems
     import pemviz.estimators.cross_entropy as cross_entropy
-    import pemviz.problems as problems
     import pemviz.sinks.console as console
     import pemviz.sinks.recording as recording
     from pemviz import cli
+    from pemviz.core.sampling import Proposal
     from pemviz.pem import PEM
-    from pemviz.sampling import Proposal
 
     split = Split()
     patches = [

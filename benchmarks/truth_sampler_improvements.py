@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from pemviz.estimate import relative_error
+from pemviz.core.estimate import relative_error
 from pemviz.studies.validation import Job, exact_answer, run_jobs
 
 STEPS: tuple[tuple[str, dict], ...] = (

@@ -5,9 +5,10 @@ place, :data:`SETTINGS`: the config's checks, the command line (:mod:`pemviz.com
 (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read it there.
 
 Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.CrossEntropy` (its CE
-stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the weighted fit). The metric: :class:`pemviz.engine.Experiment`
-ranks the rollouts with it (:meth:`pemviz.problems.Problem.robustness`). The seed: the engine's rollout stream and
-the estimator's fit, tie-breaking and initial-weight streams.
+stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the weighted fit). The metric:
+:class:`pemviz.engine.experiment.Experiment` ranks the rollouts with it
+(:meth:`pemviz.core.problems.Problem.robustness`). The seed: the engine's rollout stream and the estimator's fit,
+tie-breaking and initial-weight streams.
 """
 
 from __future__ import annotations
@@ -28,19 +29,19 @@ METRICS = ("classic", "agm", "smooth-cumulative")
 """Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
 
 SIMULATORS = ("highway-env", "batched")
-"""Braking-scenario back-ends (:func:`pemviz.problems.braking_problem`): ``batched`` advances all rollouts together in numpy, ``highway-env`` steps one
-black-box simulator per rollout; the same seed gives the same rollouts on both."""
+"""Braking-scenario back-ends (:func:`pemviz.core.problems.braking_problem`): ``batched`` advances all rollouts together
+in numpy, ``highway-env`` steps one black-box simulator per rollout; the same seed gives the same rollouts on both."""
 
 SCENARIOS = ("braking", "cut-in", "cut-in-rare")
-"""What a run estimates (:func:`pemviz.problems.problem_for`): ``braking``, the paper's scenario (one lead car, a
+"""What a run estimates (:func:`pemviz.core.problems.problem_for`): ``braking``, the paper's scenario (one lead car, a
 closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and measurement
 errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same below 1e-9
 (:mod:`pemviz.scenarios.cut_in`)."""
 
 EXECUTORS = ("serial", "ray")
-"""Where rollouts are simulated (:func:`pemviz.executors.get_executor`): ``serial`` in this
+"""Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``serial`` in this
 process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same rollouts and estimate, bit for
-bit (:mod:`pemviz.executors`)."""
+bit (:mod:`pemviz.engine.executors`)."""
 
 WEIGHT_MODES = ("frozen", "recomputed")
 FINAL_MODES = ("pooled", "fresh", "last-stage")
@@ -58,9 +59,9 @@ full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-W
 stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
 Alg. 7.5)."""
 FIT_PRECISIONS = ("float32", "float64")
-"""The arithmetic of the proposal's Adam fits (:func:`pemviz.sampling.fit_proposal`) and of its network when it samples
-(:attr:`pemviz.sampling.Proposal.sample_dtype`): ``float32`` runs the network's products about 2.7 times as fast on a
-CPU; the parameters and every importance weight stay float64."""
+"""The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`) and of its network when it
+samples (:attr:`pemviz.core.sampling.Proposal.sample_dtype`): ``float32`` runs the network's products about 2.7 times as
+fast on a CPU; the parameters and every importance weight stay float64."""
 PROPOSAL_INPUTS = ("gap", "state")
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
@@ -401,10 +402,10 @@ class ExperimentConfig:
         uniforms: how the rollouts of a batch draw their detections, one of :data:`UNIFORMS`: ``iid``, one
             independent U(0, 1) per rollout and step (the paper); ``array-rqmc`` (the default), the rollouts of each
             fixed block of 8,192 of a batch (of each sampler of a mixture but the target's own share;
-            :data:`pemviz.rng.RQMC_BLOCK`, whatever the executor or chunk size) are stepped as one array; at each
+            :data:`pemviz.core.rng.RQMC_BLOCK`, whatever the executor or chunk size) are stepped as one array; at each
             step those inside the sampler's window are ranked by their sampler's detect logit, then by their state
-            (:func:`pemviz.rng.ranking_key`), and given the points of a randomly shifted golden-ratio lattice
-            (:func:`pemviz.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008).
+            (:func:`pemviz.core.rng.ranking_key`), and given the points of a randomly shifted golden-ratio lattice
+            (:func:`pemviz.core.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008).
             Each rollout still follows its sampler exactly, so every estimate keeps its expectation; the batch's
             estimate varies less (~40 % less variance at the default sampler's last stages on the braking job).
             The rollouts of a batch are no longer independent: an interval computed as if they were is
@@ -476,7 +477,7 @@ class ExperimentConfig:
             ``lbfgs`` at most ``fit_max_steps`` iterations per fit, stopping once converged.
         fit_precision: one of :data:`FIT_PRECISIONS`: the arithmetic of the ``adam`` fits of a weighted
             log-likelihood and of the proposal network's products when it samples
-            (:attr:`pemviz.sampling.Proposal.sample_dtype`); the parameters stay float64, and every weight is
+            (:attr:`pemviz.core.sampling.Proposal.sample_dtype`); the parameters stay float64, and every weight is
             computed in float64 from the density sampled from (the logit the sampler drew with), so the precision
             moves the proposal only, never the estimate's unbiasedness.
         fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).

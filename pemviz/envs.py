@@ -90,7 +90,7 @@ class BrakingEnv(gym.Env):
     """``pemviz/Braking-v0`` (module docstring): the braking scenario with the ego's controller as the agent.
 
     Args:
-        detector: draws the detections (a :class:`pemviz.detectors.Detector`: logit of p(detect) from the
+        detector: draws the detections (a :class:`pemviz.core.detectors.Detector`: logit of p(detect) from the
             observation [M, 3] = (gap_m, ego speed, lead speed)); default the PEM itself.
         pem: the target PEM (name or path, :func:`pemviz.pem.load_pem`; default the shipped one), or a
             :class:`pemviz.pem.PEM`; gives ``info["log_p"]``.
@@ -100,7 +100,7 @@ class BrakingEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, detector: Any = None, pem: Any = None, params: Any = None) -> None:
-        from pemviz.detectors import PEMDetector
+        from pemviz.core.detectors import PEMDetector
         from pemviz.pem import load_pem
         from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 
@@ -120,7 +120,7 @@ class BrakingEnv(gym.Env):
     def _detect(self) -> tuple[np.ndarray, dict[str, Any]]:
         from scipy.special import log_expit
 
-        from pemviz.detectors import action_log_prob
+        from pemviz.core.detectors import action_log_prob
 
         state = self.sim.observation()
         o = state[None, :]

@@ -12,12 +12,12 @@ import pytest
 from conftest import run_cli
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import Experiment
-from pemviz.events import RunFinished
+from pemviz.engine.events import RunFinished
 from pemviz.envs import BrakingEnv
-from pemviz.estimate import relative_error
+from pemviz.core.estimate import relative_error
 from pemviz.estimators import build_estimator
 from pemviz.estimators.ams import run_ams, running_score
-from pemviz.problems import braking_problem, build_problem, toy_problem
+from pemviz.core.problems import braking_problem, build_problem, toy_problem
 from pemviz.scenarios import branch, can_snapshot
 from pemviz.scenarios.batched import BatchedBraking
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
@@ -44,7 +44,7 @@ def test_ams_is_unbiased_on_the_small_toy():
 
 
 def test_ams_is_unbiased_with_a_distance_dependent_detector():
-    """p(d) from 0.95 at the obstacle to 0.5 at the start; exact answer by the product formula (pemviz.truth)."""
+    """p(d) from 0.95 at the obstacle to 0.5 at the start; exact answer by the product formula (pemviz.core.truth)."""
     params = ToyParams(30, 12, 3, lambda d: 0.95 - 0.015 * np.asarray(d))
     pb = toy_problem(params)
     assert pb.exact_log_p == toy_log_failure_probability(params) and pb.exact_log_p < math.log(1e-6)

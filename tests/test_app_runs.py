@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pemviz.problems import problem_for
+from pemviz.core.problems import problem_for
 from pemviz.app.explain import explain
 from pemviz.app.form import FIELDS_BY_KEY, parse_form, parse_number, run_cost, run_label
 from pemviz.app.runs import (
@@ -30,7 +30,7 @@ from pemviz.app.runs import (
 )
 from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
-from pemviz.events import RolloutsSampled, StageFinished, StageStarted
+from pemviz.engine.events import RolloutsSampled, StageFinished, StageStarted
 from pemviz.sinks.console import ConsoleSink
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario

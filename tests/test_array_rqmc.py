@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.detectors import ArrayRQMC, ConstantDetector, StageSamplers, WindowDetector, step_uniforms
+from pemviz.core.detectors import ArrayRQMC, ConstantDetector, StageSamplers, WindowDetector, step_uniforms
+from pemviz.core.problems import toy_problem
+from pemviz.core.rng import GOLDEN, array_rqmc_uniforms, ranking_key
 from pemviz.estimators.base import weighted_steps_mask
-from pemviz.problems import toy_problem
-from pemviz.rng import GOLDEN, array_rqmc_uniforms, ranking_key
 from pemviz.scenarios import simulate
 from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_log_failure_probability
 
@@ -90,7 +90,7 @@ def test_config_names_the_allowed_uniforms():
 
 
 def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_uniform():
-    from pemviz.rng import array_rqmc_blocks, block_bounds, by_blocks
+    from pemviz.core.rng import array_rqmc_blocks, block_bounds, by_blocks
 
     rng = np.random.default_rng(4)
     u, key = rng.random(10), rng.normal(size=(10, 2))
@@ -108,8 +108,8 @@ def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_unifo
 
 
 def test_batched_array_rqmc_rollouts_do_not_depend_on_the_chunk_size():
+    from pemviz.core.problems import braking_problem
     from pemviz.pem import load_pem
-    from pemviz.problems import braking_problem
     from pemviz.scenarios.batched import iter_batched, simulate_batched
     from pemviz.scenarios import RolloutBatch
 

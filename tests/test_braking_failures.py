@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pemviz.proposal_view import miss_log_odds, proposal_view
+from pemviz.core.proposal_view import miss_log_odds, proposal_view
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.braking_failures import controller_trace, counterfactual, describe, severity
 
@@ -154,8 +154,8 @@ def test_proposal_view_by_hand():
 
 def test_a_default_runs_late_stage_misses_the_lead_inside_10_m_far_more_than_the_pem():
     from pemviz.config import ExperimentConfig
+    from pemviz.core.problems import problem_for
     from pemviz.engine import Experiment, RolloutsSampled, StageFinished
-    from pemviz.problems import problem_for
 
     cfg = ExperimentConfig()
     events = []

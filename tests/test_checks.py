@@ -1,4 +1,4 @@
-"""pemviz.checks: a correct simulator and estimator pass; each broken one fails with a message naming its fault."""
+"""pemviz.core.checks: a correct simulator and estimator pass; each broken one fails with a message naming its fault."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import re
 import numpy as np
 import pytest
 
-from pemviz.checks import CheckError, check_estimator, check_simulator
+from pemviz.core.checks import CheckError, check_estimator, check_simulator
 from pemviz.config import ExperimentConfig
 from pemviz.estimators import build_estimator
-from pemviz.problems import toy_problem
+from pemviz.core.problems import toy_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
 from test_simulator_protocol import ParkedCarAEB
 

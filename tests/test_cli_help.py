@@ -62,7 +62,7 @@ def test_every_command_that_takes_a_preset_accepts_quick() -> None:
         assert "quick" in " ".join(dict(all_parsers())[name].format_help().split()), name
 
 
-HEAVY = ("torch", "pemviz.engine", "pemviz.estimators", "pemviz.problems")
+HEAVY = ("torch", "pemviz.engine.experiment", "pemviz.estimators", "pemviz.core.problems")
 
 
 def modules_loaded_by(argv: list[str], heavy: tuple[str, ...] = HEAVY, cwd: str | None = None) -> set[str]:
@@ -87,9 +87,9 @@ def test_help_imports_no_torch_and_no_engine(argv) -> None:
 def test_a_braking_run_imports_no_scipy_stats(tmp_path) -> None:
     """scipy.stats takes ~0.5 s to import: a braking run (no measurement errors) must not pay it, while a run does
     load the engine (so the check sees a real run)."""
-    loaded = modules_loaded_by(["run", "--preset", "quick", "--no-record"], ("pemviz.engine", "scipy.stats"),
+    loaded = modules_loaded_by(["run", "--preset", "quick", "--no-record"], ("pemviz.engine.experiment", "scipy.stats"),
                                cwd=str(tmp_path))  # fmt: skip
-    assert loaded == {"pemviz.engine"}
+    assert loaded == {"pemviz.engine.experiment"}
 
 
 def test_the_lean_parser_lists_every_command_with_the_help_of_its_own_parser() -> None:

@@ -203,8 +203,8 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
 
 
 def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with():
+    from pemviz.core.problems import toy_problem
     from pemviz.estimators import AdaptiveMultilevelSplitting, CrossEntropy
-    from pemviz.problems import toy_problem
     from pemviz.scenarios.toy import ToyParams
 
     problem = toy_problem(ToyParams(10, 5, 3, 0.9))

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from pemviz import stl
-from pemviz.counterfactuals import ERROR, MISS, counterfactuals
-from pemviz.detectors import ConstantDetector
+from pemviz.core.counterfactuals import ERROR, MISS, counterfactuals
+from pemviz.core.detectors import ConstantDetector
+from pemviz.core.problems import build_problem, cut_in_params, cut_in_problem
 from pemviz.pem import load_pem
-from pemviz.problems import build_problem, cut_in_params, cut_in_problem
 from pemviz.scenarios.braking_failures import counterfactual as braking_counterfactual
 from pemviz.scenarios.cut_in import FAILURE_FORMULA, OBSERVATION_NAMES
 from pemviz.scenarios.cut_in_highway import CutInScenario
@@ -77,7 +77,7 @@ def test_each_objects_p_and_q_of_detection_give_back_the_batchs_own_log_densitie
     """object_detect_probabilities asks the detectors at the rollout's rows; the sum over a step's objects of the log
     probability of each action taken, plus the noise PEM's density of the detected objects' errors, must equal the
     log p the simulator recorded for that step (the batch's own bookkeeping: an independent path)."""
-    from pemviz.proposal_view import object_detect_probabilities
+    from pemviz.core.proposal_view import object_detect_probabilities
 
     problem = cut_in_problem(load_pem())
     batch = problem.simulate(3, problem.target, problem.target, np.random.default_rng(4))

@@ -10,10 +10,10 @@ from scipy.special import log_expit
 from conftest import run_cli
 from pemviz import stl
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.detectors import StageSamplers
+from pemviz.core.detectors import StageSamplers
 from pemviz.pem import load_pem
 from pemviz.pem.store import load_noise_pem
-from pemviz.problems import cut_in_params, cut_in_problem
+from pemviz.core.problems import cut_in_params, cut_in_problem
 from pemviz.scenarios.cut_in import FAILURE_FORMULA, OBJECT_NAMES, OBSERVATION_NAMES, SALIENT_COLUMNS
 
 VISIBLE = OBJECT_NAMES.index("visible")

@@ -10,9 +10,9 @@ import pytest
 
 from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
-from pemviz.events import RolloutsSampled
+from pemviz.engine.events import RolloutsSampled
 from pemviz.presets import PRESETS
-from pemviz.problems import build_problem
+from pemviz.core.problems import build_problem
 
 nan, inf = math.nan, math.inf
 
@@ -125,7 +125,7 @@ def test_same_seed_gives_the_estimates_recorded_before_the_estimators_moved(key)
 def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
     import torch
 
-    from pemviz.events import RunStarted
+    from pemviz.engine.events import RunStarted
 
     events: list = []
     threads = torch.get_num_threads()
@@ -147,7 +147,7 @@ def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
 def test_torch_threads_sets_and_restores_the_process_setting():
     import torch
 
-    from pemviz.sampling import torch_threads
+    from pemviz.core.sampling import torch_threads
 
     before = torch.get_num_threads()
     with torch_threads(2):
@@ -162,7 +162,7 @@ def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, uni
     of 8,192, whatever the chunks they are handed out in."""
     import dataclasses
 
-    import pemviz.engine as engine
+    import pemviz.engine.experiment as engine
 
     cfg = ExperimentConfig(**{**SMALL, "n_per_stage": 400, "n_final": 600, "pretrain_rollouts": 300, "seed": 2,
                               "uniforms": uniforms})

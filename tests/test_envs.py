@@ -13,7 +13,7 @@ import pytest
 
 from conftest import REPO
 from pemviz import stl
-from pemviz.detectors import action_log_prob
+from pemviz.core.detectors import action_log_prob
 from pemviz.envs import ENV_ID, MISSED_GAP_M, BasicAgentController, BrakingEnv
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking import BrakingScenario

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from pemviz.diagnostics import effective_sample_size, fit_generalized_pareto, pareto_khat
-from pemviz.estimate import CI_LEVEL, KHAT_UNRELIABLE, estimate, relative_error
+from pemviz.core.diagnostics import effective_sample_size, fit_generalized_pareto, pareto_khat
+from pemviz.core.estimate import CI_LEVEL, KHAT_UNRELIABLE, estimate, relative_error
 
 
 def _is(log_w: np.ndarray, failed: np.ndarray):

@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import ConstantDetector, action_log_prob
+from pemviz.core.detectors import ConstantDetector, action_log_prob
+from pemviz.core.problems import build_problem, toy_problem
+from pemviz.core.sampling import Proposal
 from pemviz.estimators import (
     CrossEntropy,
     DefensiveDetector,
@@ -20,8 +22,6 @@ from pemviz.estimators import (
     log_weight,
 )
 from pemviz.estimators.ce_fit import ce_update
-from pemviz.problems import build_problem, toy_problem
-from pemviz.sampling import Proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.toy import ToyParams
 

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.detectors import ConstantDetector, WindowDetector
+from pemviz.core.detectors import ConstantDetector, WindowDetector
+from pemviz.core.problems import Problem, braking_problem, toy_problem
 from pemviz.engine import Experiment
-from pemviz.events import RolloutsSampled, StageFinished
-from pemviz.executors import (
+from pemviz.engine.events import RolloutsSampled, StageFinished
+from pemviz.engine.executors import (
     ChunkUniforms,
     SerialExecutor,
     chunk_uniforms,
@@ -25,7 +26,6 @@ from pemviz.executors import (
     task_blocks,
 )
 from pemviz.pem import load_pem
-from pemviz.problems import Problem, braking_problem, toy_problem
 from pemviz.scenarios import simulate
 from pemviz.scenarios.toy import ToyBraking, ToyParams
 
@@ -138,7 +138,7 @@ def ray_workers(request):
     """A local Ray cluster of 1 or 2 CPUs for the module's tests; ``--executor ray`` then uses it."""
     import ray
 
-    from pemviz.executors import close_executors
+    from pemviz.engine.executors import close_executors
 
     ray.init(num_cpus=request.param, include_dashboard=False, log_to_driver=False)
     try:
@@ -178,8 +178,8 @@ def test_ray_tasks_of_whole_blocks_give_the_serial_rollouts_and_estimate_bit_for
 
 @ray_missing
 def test_toy_blocks_on_ray_give_the_serial_batch_bit_for_bit(ray_workers):
-    from pemviz.detectors import ArrayRQMC
-    from pemviz.sampling import StateProposal
+    from pemviz.core.detectors import ArrayRQMC
+    from pemviz.core.sampling import StateProposal
 
     problem = toy_problem(ToyParams(10, 5, 3, 0.7))
     proposal = ArrayRQMC(StateProposal((0, 1), (10.0, 1.0), (10.0, 0.0)))  # a torch network: asked block by block

@@ -160,9 +160,9 @@ def test_signal_at_a_random_point_of_estimate_keeps_the_old_recording_or_writes_
 def test_signal_sigterm_mid_run_finishes_the_recording_in_process(tmp_path, capsys, monkeypatch):
     """SIGTERM raised inside the engine (as the handler raises it): one line, exit 143, a recording that
     verifies and is marked interrupted, nothing else in the folder."""
-    from pemviz import engine
     from pemviz.commands import Terminated
-    from pemviz.events import StageFinished
+    from pemviz.engine import experiment as engine
+    from pemviz.engine.events import StageFinished
 
     class TerminatedAfterStage1(engine.Experiment):
         def __init__(self, config, listeners=(), cancel=None, *, problem):
@@ -428,7 +428,7 @@ def test_cli_serve_on_every_interface_warns_that_the_panel_has_no_authentication
 
 
 def test_cli_jobs_beyond_the_cpu_count_are_capped_with_a_message():
-    from pemviz.resources import cap_jobs, usable_cpus
+    from pemviz.engine.resources import cap_jobs, usable_cpus
 
     said: list[str] = []
     assert cap_jobs(1000, said.append) == usable_cpus()

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import ConstantDetector, ScoredTarget, StageSamplers, WindowDetector
+from pemviz.core.detectors import ConstantDetector, ScoredTarget, StageSamplers, WindowDetector
 from pemviz.estimators import DefensiveDetector
 from pemviz.engine import Experiment
-from pemviz.problems import build_problem
+from pemviz.core.problems import build_problem
 from pemviz.scenarios import simulate
 from pemviz.scenarios.toy import ToyBraking, ToyParams
 

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from pemviz import truth
-from pemviz.estimate import relative_error
+from pemviz.core import truth
+from pemviz.core.estimate import relative_error
+from pemviz.core.problems import ShiftedPEM, braking_problem, build_problem, toy_problem
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, relative_variance, rollouts_for
-from pemviz.problems import ShiftedPEM, braking_problem, build_problem, toy_problem
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.toy import ToyBraking, ToyParams, ToyValue
 

@@ -416,7 +416,7 @@ def test_the_closed_form_quantile_and_log_density_are_scipy_stats(family):
     distributions (the oracle), deep into both tails, per component's degrees of freedom."""
     from scipy import stats
 
-    from pemviz.detectors import standard_log_density, standard_quantile
+    from pemviz.core.detectors import standard_log_density, standard_quantile
 
     df = np.array([2.5, 7.0]) if family == "student-t" else None
     u = np.array([1e-12, 1e-6, 0.01, 0.3, 0.5, 0.7, 0.99, 1 - 1e-6, 1 - 1e-12])[:, None] * np.ones(2)

@@ -18,12 +18,12 @@ rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
 
 from conftest import verify_rrd  # noqa: E402
-from pemviz.problems import problem_for
+from pemviz.core.problems import problem_for
 from pemviz import cli  # noqa: E402
-from pemviz import engine  # noqa: E402
+from pemviz.engine import experiment as engine  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
 from pemviz.engine import Experiment  # noqa: E402
-from pemviz.events import FinalEstimate, RolloutsSampled, RunStarted, StageFinished  # noqa: E402
+from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunStarted, StageFinished  # noqa: E402
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402

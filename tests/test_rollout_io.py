@@ -16,22 +16,22 @@ import pyarrow.parquet as pq
 import pytest
 
 from conftest import run_cli, verify_rrd
-from pemviz.estimate import estimate
+from pemviz.core.estimate import estimate
 from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
-from pemviz.plan import RunPlan
+from pemviz.engine.plan import RunPlan
 from pemviz.presets import PRESETS
-from pemviz.problems import problem_for
+from pemviz.core.problems import problem_for
 from pemviz import cli
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
-from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
+from pemviz.estimators.rollout_file import detector_log_prob, estimate_rollouts, pem_log_prob
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import ConstantDetector, action_log_prob
+from pemviz.core.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment
-from pemviz.events import FinalEstimate, RolloutChunk, RolloutsSampled, RunFinished, RunStarted, StageStarted
+from pemviz.engine.events import FinalEstimate, RolloutChunk, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
-from pemviz.problems import braking_problem
-from pemviz.sampling import Proposal, load_proposal
+from pemviz.core.problems import braking_problem
+from pemviz.core.sampling import Proposal, load_proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.sinks.rollouts import RolloutSink
 
@@ -163,7 +163,7 @@ def chunked(pem, monkeypatch):
     """The braking problem with stages above 300 rollouts streamed in chunks of 128."""
     import dataclasses
 
-    import pemviz.engine as engine
+    import pemviz.engine.experiment as engine
     from pemviz.scenarios.batched import iter_batched
 
     monkeypatch.setattr(engine, "STREAM_ABOVE", 300)
@@ -194,7 +194,7 @@ def test_a_streamed_final_batch_is_written_chunk_by_chunk_and_reads_back_whole(t
 def test_a_run_cancelled_while_writing_leaves_no_rollout_file(tmp_path, chunked):
     import threading
 
-    from pemviz.events import RunCancelled
+    from pemviz.engine.events import RunCancelled
 
     cancel = threading.Event()
     sink = RolloutSink(tmp_path / "r.parquet")

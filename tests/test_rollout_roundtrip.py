@@ -18,9 +18,9 @@ from hypothesis import strategies as st
 from scipy.special import logsumexp
 
 from pemviz import cli
+from pemviz.core.weights import component_of, mean_weight, mixture_step_log_q
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
-from pemviz.weights import component_of, mean_weight, mixture_step_log_q
 
 LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
 

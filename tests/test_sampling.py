@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from pemviz.detectors import ConstantDetector, action_log_prob, defensive_logit
-from pemviz.estimate import estimate, format_probability
+from pemviz.core.detectors import ConstantDetector, action_log_prob, defensive_logit
+from pemviz.core.estimate import estimate, format_probability
+from pemviz.core.sampling import Proposal, ProposalFormatError, StateProposal, load_proposal, save_proposal
 from pemviz.estimators.base import quantile_threshold
 from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
-from pemviz.sampling import Proposal, ProposalFormatError, StateProposal, load_proposal, save_proposal
 from pemviz.scenarios import simulate
 
 
@@ -187,7 +187,7 @@ def test_adam_gives_torch_optims_parameters(rows):
     to rounding (:data:`FIT_TOL`: torch may vectorise its element-wise update differently on another CPU)."""
     from torch import nn
 
-    from pemviz.sampling import Adam
+    from pemviz.core.sampling import Adam
 
     fitted, start = [], None
     for make in (lambda ps: torch.optim.Adam(ps, lr=1e-2), lambda ps: Adam(list(ps), lr=1e-2)):
@@ -228,7 +228,7 @@ def test_fit_proposal_gives_autograd_and_torch_adams_parameters(state):
     """fit_proposal backpropagates by hand on one flat parameter tensor; it must fit what autograd and
     torch.optim.Adam fit (to :data:`FIT_TOL`), for the gap-only and the state proposal, the loss divided by a step
     count or not."""
-    from pemviz.sampling import StateProposal, fit_proposal
+    from pemviz.core.sampling import StateProposal, fit_proposal
 
     gen = torch.Generator().manual_seed(5)
     if state:
@@ -269,7 +269,7 @@ def test_a_float32_fit_gives_autograds_float32_parameters_and_keeps_them_float64
     """The default fit of a tensor objective runs in float32: it fits what autograd and torch.optim.Adam fit on a
     float32 copy of the network, stays within a float32 fit's distance of the float64 fit, reaches as low a loss,
     and leaves the parameters float64."""
-    from pemviz.sampling import StateProposal, fit_proposal
+    from pemviz.core.sampling import StateProposal, fit_proposal
 
     gen = torch.Generator().manual_seed(5)
 
@@ -305,8 +305,8 @@ def test_a_float32_fit_gives_autograds_float32_parameters_and_keeps_them_float64
 def test_recomputed_weights_objective_matches_autograd():
     """The authors' loss (weights recomputed through the gradient) with its gradient written out must give autograd's
     loss and gradient, and fit what autograd fits on the same loss (to :data:`FIT_TOL`)."""
+    from pemviz.core.sampling import fit_proposal
     from pemviz.estimators.ce_fit import recomputed_objective
-    from pemviz.sampling import fit_proposal
 
     rng = np.random.default_rng(2)
     n, t_steps, m, k, alpha = 6, 40, 50, 39, 0.5

@@ -12,10 +12,10 @@ from scipy.special import log_expit
 
 from conftest import doc_python_block
 from pemviz import stl
-from pemviz.checks import check_simulator
+from pemviz.core.checks import check_simulator
 from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
-from pemviz.problems import Problem
+from pemviz.core.problems import Problem
 from pemviz.scenarios import simulate
 from pemviz.scenarios.braking import BrakingScenario
 from pemviz.scenarios.toy import ToyBraking, ToyParams

@@ -12,9 +12,9 @@ import pytest
 
 from pemviz.cli import main as cli_main
 from pemviz.config import ExperimentConfig
+from pemviz.core.problems import toy_problem
 from pemviz.engine import Experiment
 from pemviz.presets import PRESETS
-from pemviz.problems import toy_problem
 from pemviz.scenarios.toy import ToyParams
 
 REDUCED = ("--k", "4", "--ce-epochs", "150", "--pretrain-epochs", "300")
@@ -104,8 +104,8 @@ def test_improvement_fields_reject_bad_values(field, value):
 
 def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
     import torch
+    from pemviz.core.sampling import Proposal
     from pemviz.estimators.ce_fit import ce_update
-    from pemviz.sampling import Proposal
 
     rng = np.random.default_rng(0)
     gaps = np.tile(np.linspace(12, 1, 30), (40, 1))
@@ -124,7 +124,7 @@ def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
 def test_state_proposal_reads_its_columns_and_holds_the_rest_for_the_curve():
     import torch
 
-    from pemviz.sampling import StateProposal
+    from pemviz.core.sampling import StateProposal
 
     torch.manual_seed(0)
     q = StateProposal((0, 1), (12.0, 8.0), (12.3, 7.7))
@@ -154,7 +154,7 @@ def test_tables_recording_holds_fig4_as_the_mean_of_the_stage_3_curves(tmp_path)
 
 
 def test_every_named_problem_has_its_exact_answer_for_validate():
-    from pemviz.problems import PROBLEMS, build_problem
+    from pemviz.core.problems import PROBLEMS, build_problem
     from pemviz.studies.validation import exact_answer
 
     for name in PROBLEMS:

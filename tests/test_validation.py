@@ -9,8 +9,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pemviz.config import ExperimentConfig
-from pemviz.estimate import relative_error
-from pemviz.problems import PROBLEMS, build_problem
+from pemviz.core.estimate import relative_error
+from pemviz.core.problems import PROBLEMS, build_problem
 from pemviz.studies.validation import (
     DEFAULT_PROBLEMS,
     ExactAnswer,
@@ -111,8 +111,8 @@ def test_baselines_get_the_first_presets_simulation_budget():
 
 
 def test_the_main_truth_of_a_shipped_pem_is_the_kept_enumeration_not_recomputed():
+    from pemviz.core.truth import KNOWN_BRAKING_LOG_P, pem_fingerprint
     from pemviz.pem import load_pem
-    from pemviz.truth import KNOWN_BRAKING_LOG_P, pem_fingerprint
 
     answer = exact_answer("main")
     assert answer.log_p_fail == KNOWN_BRAKING_LOG_P[pem_fingerprint(load_pem().logit_at_gap)] == -33.85370929668962

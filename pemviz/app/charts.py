@@ -1,7 +1,7 @@
 """uPlot figures of what the sampler really did and of a rollout's controller (viser's ``add_uplot``).
 
 *Live*: q(detect) of each stage's sampler over the states its rollouts visited, per gap bin, beside the PEM's
-(:mod:`pemviz.proposal_view`), on a probability and on a log-odds scale, and the 95 % interval and the exact answer
+(:mod:`pemviz.core.proposal_view`), on a probability and on a log-odds scale, and the 95 % interval and the exact answer
 on the log10 mu_hat chart. *Explain*: the controller's brake command, applied brake and acceleration along a
 rollout. Colours from :mod:`pemviz.sinks.colours`; every range set from the data that exists.
 """
@@ -18,7 +18,7 @@ import viser.uplot as up
 from pemviz.app.explain import Explanation
 from pemviz.app.plots import LEGEND, _points, axes, run_colour
 from pemviz.app.runs import PanelRun
-from pemviz.proposal_view import ProposalView
+from pemviz.core.proposal_view import ProposalView
 from pemviz.sinks.colours import BLACK, BRAKE_ZONE, CRASH, EGO_SPEED, css, hex_colour, stage_rgb
 
 PROB, LOG_ODDS = "prob", "log_odds"

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.proposal_view import prob_detect
+from pemviz.core.proposal_view import prob_detect
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import (
     ControllerTrace,

@@ -3,8 +3,9 @@
 Numbers are typed into text fields and parsed here, so the form never rounds, rescales or silently
 keeps an earlier value: ``12.5`` in N is an error (N counts rollouts), ``1e-3`` in alpha is 0.001, an
 empty field is an error. :func:`parse_form` returns the config and, per field, the reason it is
-refused, all at once. :func:`run_cost` says what a run will take before it starts (the model of :mod:`pemviz.cost`), and
-:func:`run_label` names a run by the settings that differ from the defaults. No viser here.
+refused, all at once. :func:`run_cost` says what a run will take before it starts (the model of
+:mod:`pemviz.engine.cost`), and :func:`run_label` names a run by the settings that differ from the defaults. No
+viser here.
 """
 
 from __future__ import annotations
@@ -13,9 +14,9 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from pemviz import cost
 from pemviz.config import SETTINGS, ConfigError, ExperimentConfig, Setting
-from pemviz.cost import N_STEPS, RunCost
+from pemviz.engine import cost
+from pemviz.engine.cost import N_STEPS, RunCost
 
 
 NUMBER_FIELDS: tuple[Setting, ...] = tuple(SETTINGS[name] for name in (
@@ -86,9 +87,9 @@ def parse_form(texts: dict[str, str], choices: dict[str, Any], base: ExperimentC
 
 
 def run_cost(cfg: ExperimentConfig, n_steps: int = N_STEPS) -> RunCost:
-    """What ``cfg``'s run will take (:func:`pemviz.cost.run_cost` of the plan its estimator states,
+    """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of the plan its estimator states,
     :func:`pemviz.estimators.run_plan`): simulations, memory of the largest batch, expected seconds."""
-    from pemviz.engine import STREAM_ABOVE  # the engine and the estimators import torch: only when asked
+    from pemviz.engine.experiment import STREAM_ABOVE  # the engine and the estimators import torch: only when asked
     from pemviz.estimators import run_plan
 
     return cost.run_cost(cfg, run_plan(cfg), n_steps, STREAM_ABOVE)

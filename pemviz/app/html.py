@@ -10,8 +10,8 @@ from pathlib import Path
 from pemviz.app import plots
 from pemviz.app.explain import Explanation
 from pemviz.app.runs import PanelRun, Trajectory
-from pemviz.estimate import format_probability, relative_error
-from pemviz.events import FinalEstimate
+from pemviz.core.estimate import format_probability, relative_error
+from pemviz.engine.events import FinalEstimate
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 

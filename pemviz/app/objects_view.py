@@ -1,6 +1,6 @@
 """*Explain a failure* for a scene of several objects (the cut-in): every object at every step, detected, missed or
 unseen, where each detected one was measured beside the noise PEM's error ellipse, and which object's errors, at
-which steps, decided the failure (:func:`pemviz.counterfactuals.counterfactuals`: each miss flipped to an exact
+which steps, decided the failure (:func:`pemviz.core.counterfactuals.counterfactuals`: each miss flipped to an exact
 detection and each measurement error set to zero, one at a time, the rollout replayed). Plain functions of a rollout
 returning HTML with inline SVG; no viser.
 """
@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.counterfactuals import MISS, Counterfactuals, counterfactuals
-from pemviz.problems import object_scene
+from pemviz.core.counterfactuals import MISS, Counterfactuals, counterfactuals
+from pemviz.core.problems import object_scene
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
@@ -77,9 +77,9 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
     """The :class:`ObjectsExplanation` of rollout 0 of ``batch`` (a batch of one rollout with object rows).
 
     Args:
-        problem: the run's :class:`pemviz.problems.Problem` (its target gives the error ellipses, its ``branch``
+        problem: the run's :class:`pemviz.core.problems.Problem` (its target gives the error ellipses, its ``branch``
             replays the counterfactuals); None: neither.
-        view: its :class:`pemviz.problems.ProblemView` (``objects_xy``, ``noise_xy``).
+        view: its :class:`pemviz.core.problems.ProblemView` (``objects_xy``, ``noise_xy``).
         batch: one rollout, ``objects`` [1, T, M, G] named by ``object_names``.
         failed: whether the rollout failed (only a failure is explained by counterfactuals).
     Raises:
@@ -230,7 +230,8 @@ def detect_svg(names: tuple[str, ...], p: np.ndarray, q: np.ndarray, step: int, 
     at its head; a black line at ``step``.
 
     Args:
-        names: the M objects' labels; p, q: float64 [T, M] (:func:`pemviz.proposal_view.object_detect_probabilities`).
+        names: the M objects' labels; p, q: float64 [T, M]
+            (:func:`pemviz.core.proposal_view.object_detect_probabilities`).
     """
     t_steps, m = p.shape
     left, band = 34, 22

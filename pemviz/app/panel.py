@@ -17,12 +17,12 @@ from pathlib import Path
 
 import viser
 
-from pemviz import engine
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.app.session import Session
 from pemviz.config import ExperimentConfig
+from pemviz.core.problems import problem_for
+from pemviz.engine import experiment
 from pemviz.presets import DEFAULT_PRESET
-from pemviz.problems import problem_for
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks.colours import BLUE
 
@@ -153,7 +153,7 @@ class PanelApp:
             tiny = ExperimentConfig(
                 n_stages=1, n_per_stage=2, n_final=1, ce_epochs=1, pretrain_rollouts=1, pretrain_epochs=1
             )
-            engine.Experiment(tiny, [], self._closed, problem=problem_for(tiny)).run()
+            experiment.Experiment(tiny, [], self._closed, problem=problem_for(tiny)).run()
         except Exception:  # warming up is best effort; a real run reports its own errors
             pass
 

@@ -32,7 +32,7 @@ from pemviz.sinks.colours import (
 )
 
 if TYPE_CHECKING:
-    from pemviz.problems import Thresholds
+    from pemviz.core.problems import Thresholds
 
 RUN_COLOURS = tuple(hex_colour(c) for c in C.RUN_COLOURS)
 """Series colour of a run: its number modulo 6 (:data:`pemviz.sinks.colours.RUN_COLOURS`)."""
@@ -191,7 +191,7 @@ def fill_strip_plots(
     thresholds: Thresholds | None,
 ) -> None:  # fmt: skip
     """Draw ``traj`` with a marker at ``step`` (the 3D scene's step) in each strip chart, with the problem's failure
-    threshold and sampler window (:attr:`pemviz.problems.ProblemView.thresholds`; None: no such lines)."""
+    threshold and sampler window (:attr:`pemviz.core.problems.ProblemView.thresholds`; None: no such lines)."""
     t = ex.time_s
     now = np.full(t.size, np.nan)
     now_i = int(np.clip(step, 0, t.size - 1))

@@ -24,7 +24,8 @@ import numpy as np
 
 from pemviz.app.form import run_label
 from pemviz.config import ExperimentConfig
-from pemviz.events import (
+from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities
+from pemviz.engine.events import (
     Event,
     FinalEstimate,
     RolloutsSampled,
@@ -36,7 +37,6 @@ from pemviz.events import (
     StageStarted,
 )
 from pemviz.presets import PRESETS
-from pemviz.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink, StageClock
@@ -50,7 +50,7 @@ N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
 
 GAP_BINS_M = np.linspace(0.0, 13.0, 27)
-"""Gap bins of the marginal proposal view (:mod:`pemviz.proposal_view`): 0.5 m wide, 0 to 13 m."""
+"""Gap bins of the marginal proposal view (:mod:`pemviz.core.proposal_view`): 0.5 m wide, 0 to 13 m."""
 
 QUICK: dict[str, Any] = PRESETS["quick"]
 """The ``quick`` preset (:data:`pemviz.presets.PRESETS`): a run of a few seconds on 2 cores, to try the panel."""
@@ -95,7 +95,7 @@ class Trajectory:
         batch: the rollout as a batch of one, for a scene of several objects (every object's rows, detections and
             measurement errors, replayed by *Explain*); None for one object per step (the braking scenario).
         object_p, object_q: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that
-            drew the rollout, float64 [T, M] (:func:`pemviz.proposal_view.object_detect_probabilities`); else None.
+            drew the rollout, float64 [T, M] (:func:`pemviz.core.proposal_view.object_detect_probabilities`); else None.
     """
 
     stage: int
@@ -211,11 +211,12 @@ class PanelRun(Sink):
         self.message = ""
         self.formula = ""
         self.plan = None
-        """The stages the run will draw (:class:`pemviz.plan.RunPlan`), once it started; None before."""
+        """The stages the run will draw (:class:`pemviz.engine.plan.RunPlan`), once it started; None before."""
         self.view = None
-        """The problem as the panel shows it (:class:`pemviz.problems.ProblemView`), once it started; None before."""
+        """The problem as the panel shows it (:class:`pemviz.core.problems.ProblemView`), once it started; None
+        before."""
         self.problem = None
-        """The run's :class:`pemviz.problems.Problem`, set by whoever runs it: *Explain* replays a scene of several
+        """The run's :class:`pemviz.core.problems.Problem`, set by whoever runs it: *Explain* replays a scene of several
         objects through it (None: no replays)."""
         self.curve_grid_m = np.zeros(0)
         self.pem_curve = np.zeros(0)

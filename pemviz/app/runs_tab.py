@@ -13,7 +13,7 @@ from pemviz.app.html import GREEN, RED, TABLE_STYLE, box, display_path
 from pemviz.app.form import setting_name, setting_value
 from pemviz.app.runs import PanelRun
 from pemviz.config import ExperimentConfig
-from pemviz.estimate import format_probability
+from pemviz.core.estimate import format_probability
 
 
 class RunsTab:

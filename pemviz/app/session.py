@@ -2,7 +2,7 @@
 
 A :class:`Session` is made for each client that connects (viser's ``server.on_client_connect``) and
 builds everything in that client's own ``client.gui`` / ``client.scene``: two tabs never share a form,
-a run or a Stop button. The experiment runs in a worker thread (:class:`pemviz.engine.Experiment`); the
+a run or a Stop button. The experiment runs in a worker thread (:class:`pemviz.engine.experiment.Experiment`); the
 session listens to its events and stops it through the cancel token.
 
 Layout: the control panel (right) holds Run / Stop, the cost of the run, the status line (stage,
@@ -39,16 +39,16 @@ from pemviz.app.explain import Explanation
 from pemviz.app.objects_view import ObjectsExplanation
 from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_number, parse_form, run_cost
 from pemviz.app.runs import PANEL_PRESETS, PanelRun, Trajectory, export_path, export_run, keep_runs
-from pemviz import engine
+from pemviz.engine import experiment
 from pemviz.config import SETTINGS, SIMULATORS, ExperimentConfig
-from pemviz.cost import duration
-from pemviz.estimate import format_probability
-from pemviz.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
+from pemviz.engine.cost import duration
+from pemviz.core.estimate import format_probability
+from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
 from pemviz.presets import preset_help
 from pemviz.scenarios.braking_failures import Severity
-from pemviz.problems import problem_for
-from pemviz.sampling import torch_threads
+from pemviz.core.problems import problem_for
+from pemviz.core.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
@@ -142,7 +142,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
     def start_run(self, confirmed: bool = False) -> str | None:
         """Start a run with the form's values; returns why it was refused instead.
 
-        A run whose cost is above the limits (:meth:`pemviz.cost.RunCost.needs_confirm`) starts only
+        A run whose cost is above the limits (:meth:`pemviz.engine.cost.RunCost.needs_confirm`) starts only
         ``confirmed`` (the *Run anyway* button).
         """
         with self.lock:
@@ -429,7 +429,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
             with torch_threads(1):
                 problem = problem_for(record.config)
                 record.problem = problem
-                engine.Experiment(record.config, [RunListener(self, record)], cancel, problem=problem).run()
+                experiment.Experiment(record.config, [RunListener(self, record)], cancel, problem=problem).run()
         except Exception as exc:  # a bad PEM file, a simulator error: show it, keep serving
             record.fail(f"{type(exc).__name__}: {exc}")
             self._status(f"{record.label} failed: {record.message}", RED)

@@ -5,7 +5,7 @@ of :mod:`pemviz.io.rollout_format`. The importance weights need log p_PEM and lo
 the file's ``log_p`` / ``log_q`` columns, or recomputed from a PEM (``--pem``) and from what sampled the
 rollouts (``--proposal``: a proposal checkpoint or ``pem`` / ``naive50`` / ``mixed50``). Without options,
 columns are used when present, else the PEM and proposal the sidecar names. The weights follow the convention the
-sidecar records (``--weights`` overrides it; :mod:`pemviz.weights`), the stages are pooled as the sidecar says, and
+sidecar records (``--weights`` overrides it; :mod:`pemviz.core.weights`), the stages are pooled as the sidecar says, and
 the mean importance weight checks that ``log q`` is the density that drew the rollouts. Everything is read and
 checked before the recording is created: bad input writes nothing.
 """
@@ -25,17 +25,17 @@ import rerun as rr
 import pemviz
 from pemviz.commands import COMMANDS, UsageError, add_setting, check_save_path, pem_argument
 from pemviz.config import SETTINGS, ExperimentConfig
-from pemviz.estimate import format_probability
+from pemviz.core.estimate import format_probability
+from pemviz.core.sampling import load_proposal
+from pemviz.core.weights import CONVENTIONS
+from pemviz.estimators.rollout_file import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
 from pemviz.io.data import sha256_file
 from pemviz.io.files import check_output_folder, free_default_path, write_rrd
 from pemviz.io.rollout_format import SAMPLERS, RolloutFormatError
 from pemviz.io.rollouts import read_rollouts
 from pemviz.pem import load_pem
-from pemviz.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
-from pemviz.sampling import load_proposal
 from pemviz.sinks.colours import FAILED_ROLLOUT, NEUTRAL, rgba
 from pemviz.sinks.console import estimate_cells
-from pemviz.weights import CONVENTIONS
 
 MAX_TRACES = 300
 """Rollouts whose traces go into the recording: the least robust ones (every failure first)."""

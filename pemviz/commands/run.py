@@ -23,9 +23,9 @@ from pemviz.commands import (
     setting_error,
 )
 from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.engine.resources import check_run_memory
 from pemviz.io.files import check_output_folder, free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
-from pemviz.resources import check_run_memory
 
 # The parser needs only the light modules above (and rerun's script flags): torch, the engine, the sinks and pyarrow
 # are imported in main, where a run needs them, so that `pemviz --help` answers at once.
@@ -209,7 +209,7 @@ def main(args: argparse.Namespace) -> int:
     if cfg.executor == "ray":
         if importlib.util.find_spec("ray") is None:
             raise UsageError("--executor ray: Ray is not installed (pip install ray)")
-        from pemviz.executors import probe_ray_address
+        from pemviz.engine.executors import probe_ray_address
 
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
@@ -242,18 +242,18 @@ def main(args: argparse.Namespace) -> int:
     elif target == "connect":
         args.url = probe_viewer(args.url)
 
-    from pemviz import engine
-    from pemviz.counterfactuals import MostLikelyFailure, counterfactuals
-    from pemviz.problems import problem_for
-    from pemviz.sampling import torch_threads
+    from pemviz.core.counterfactuals import MostLikelyFailure, counterfactuals
+    from pemviz.core.problems import problem_for
+    from pemviz.core.sampling import torch_threads
+    from pemviz.engine.experiment import STREAM_ABOVE, Experiment
     from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.recording import RerunSink
 
-    stream_above = engine.STREAM_ABOVE if cfg.executor == "serial" else None
+    stream_above = STREAM_ABOVE if cfg.executor == "serial" else None
     check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above)
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
-    experiment = engine.Experiment(cfg, problem=problem)
+    experiment = Experiment(cfg, problem=problem)
     listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
     recorder = None
     if target != "no-record":

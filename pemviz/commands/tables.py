@@ -10,8 +10,9 @@ Writes ``tables.md``, ``tables.csv`` and ``tables.rrd`` into ``--out``: the reco
 repetition's per-stage proposal curve q(detect | d) (``curves/<row>/rep_RR/stage_KK`` on the ``gap_mm``
 timeline) and the paper's Fig. 4: the curves at stage kappa = 3 averaged over repetitions, per metric
 (``fig4/<metric>``; ``fig4/<preset>/<metric>`` for the ``--extra`` presets), beside the PEM's p(detect | d)
-(``fig4/pem``). A :class:`~pemviz.sampling.StateProposal`'s curve holds its other inputs at the start state. The work is done by
-:mod:`pemviz.studies.paper_tables` and :mod:`pemviz.studies.validation`; this module is its command line.
+(``fig4/pem``). A :class:`~pemviz.core.sampling.StateProposal`'s curve holds its other inputs at the start state. The
+work is done by :mod:`pemviz.studies.paper_tables` and :mod:`pemviz.studies.validation`; this module is its command
+line.
 """
 
 from __future__ import annotations
@@ -22,11 +23,11 @@ import sys
 import time
 
 from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
-from pemviz.estimate import format_probability
+from pemviz.core.estimate import format_probability
+from pemviz.core.problems import PROBLEMS, build_problem
+from pemviz.engine.resources import cap_jobs
 from pemviz.io.files import check_output_folder, write_text_atomic
 from pemviz.presets import PRESETS
-from pemviz.problems import PROBLEMS, build_problem
-from pemviz.resources import cap_jobs
 from pemviz.studies.paper_tables import (
     records_by_row,
     report,

@@ -1,8 +1,8 @@
 """``pemviz validate``: the sampler and the baselines against exact failure probabilities.
 
-Each problem of :data:`pemviz.problems.PROBLEMS` has a known answer: the toy braking model in closed form,
+Each problem of :data:`pemviz.core.problems.PROBLEMS` has a known answer: the toy braking model in closed form,
 the latched-brake scenario from its deterministic simulator, and the main braking scenario by exact
-enumeration of its detection sequences (:mod:`pemviz.truth`). Every method runs on every problem for
+enumeration of its detection sequences (:mod:`pemviz.core.truth`). Every method runs on every problem for
 several seeds at the same simulation budget (the adaptive sampler's: pretraining + K x N + N_e), and the
 table reports, per problem and method: the truth, the median and spread of mu_hat, the median relative
 error |mu_hat - truth| / truth, how many seeds are within a factor 2, failures, ESS, simulations, wall time.
@@ -18,11 +18,11 @@ import time
 from pathlib import Path
 
 from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
-from pemviz.estimate import format_probability, relative_error
+from pemviz.core.estimate import format_probability, relative_error
+from pemviz.core.problems import PROBLEMS
+from pemviz.engine.resources import cap_jobs
 from pemviz.io.files import check_output_folder, write_text_atomic
 from pemviz.presets import DEFAULT_PRESET, PRESETS
-from pemviz.problems import PROBLEMS
-from pemviz.resources import cap_jobs
 from pemviz.studies.validation import (
     BASELINES,
     DEFAULT_PROBLEMS,

@@ -9,6 +9,8 @@
 from __future__ import annotations
 
 from pemviz.config import ExperimentConfig
+from pemviz.core.problems import Problem
+from pemviz.engine.plan import PlannedStage, RunPlan
 from pemviz.estimators.ams import AdaptiveMultilevelSplitting
 from pemviz.estimators.base import (
     Check,
@@ -21,8 +23,6 @@ from pemviz.estimators.base import (
 )
 from pemviz.estimators.cross_entropy import CappedDetector, CrossEntropy, DefensiveDetector, break_ties
 from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
-from pemviz.plan import PlannedStage, RunPlan
-from pemviz.problems import Problem
 
 __all__ = [
     "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator",

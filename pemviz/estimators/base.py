@@ -21,10 +21,10 @@ from scipy.special import logsumexp
 
 from pemviz import stl
 from pemviz.config import ExperimentConfig
-from pemviz.detectors import Detector
-from pemviz.estimate import Estimate, estimate
-from pemviz.plan import RunPlan
-from pemviz.problems import Problem
+from pemviz.core.detectors import Detector
+from pemviz.core.estimate import Estimate, estimate
+from pemviz.engine.plan import RunPlan
+from pemviz.core.problems import Problem
 from pemviz.scenarios import RolloutBatch
 
 Check = Callable[[], None]
@@ -46,7 +46,8 @@ class StagePlan:
             this order; each rollout then weighs p / sum_k (n_k / n) q_k (:func:`mixture_log_weight`); empty: all ``n``
             from ``sampler``.
         target: what the simulator asks for the target's logits: None (the problem's target) or a detector that gives
-            the same logits and keeps more (:class:`pemviz.detectors.ScoredTarget`: the mixture components' logits).
+            the same logits and keeps more (:class:`pemviz.core.detectors.ScoredTarget`: the mixture components'
+            logits).
     """
 
     stage: int

@@ -11,8 +11,8 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
+from pemviz.core.sampling import Proposal, fit_proposal
 from pemviz.estimators.base import elite_counts
-from pemviz.sampling import Proposal, fit_proposal
 from pemviz.scenarios import RolloutBatch
 
 WeightMode = Literal["frozen", "recomputed"]
@@ -130,15 +130,16 @@ def pretrain_proposal(
             :class:`StateProposal` (``proposal.features(observations)``).
         detected: bool [N, T] the PEM's detections.
         epochs: Adam epochs, or the most L-BFGS iterations (``fit``).
-        check: called every :data:`pemviz.sampling.CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
+        check: called every :data:`pemviz.core.sampling.CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
         step_mask: bool [N, T] or None: only these steps are fitted (e.g. inside the proposal's window).
         fit: one of :data:`pemviz.config.FITS`.
         max_rows: None (``adam``: every step, summed over distinct inputs, the paper's fit) or the most steps
             the fit sees: a uniform systematic subsample of the fitted steps beyond that (:func:`weighted_steps`).
         rng: draws that subsample (default: seeded 0).
         tolerance: early stopping of a fit of more than ``max_rows`` steps (nats per step;
-            :func:`pemviz.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps runs every epoch.
-        dtype: the arithmetic of an ``adam`` fit (:func:`pemviz.sampling.fit_proposal`); float64 for the paper's.
+            :func:`pemviz.core.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps runs
+            every epoch.
+        dtype: the arithmetic of an ``adam`` fit (:func:`pemviz.core.sampling.fit_proposal`); float64 for the paper's.
     Returns:
         the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
     Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts).
@@ -190,7 +191,7 @@ def ce_update(
         weights: ``"frozen"``: w from the proposal that sampled the batch (textbook CE, paper eq. 10-11);
             ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
         n_factors: steps in each weight (default T - 1: the last action affects nothing).
-        check: called every :data:`pemviz.sampling.CHECK_EVERY` epochs; may raise to abandon the update (cancel).
+        check: called every :data:`pemviz.core.sampling.CHECK_EVERY` epochs; may raise to abandon the update (cancel).
         step_mask: bool [N, T] or None: steps that count, in the weights and in the fit (False: left out,
             e.g. outside the proposal's window or after the failure).
         fit: one of :data:`pemviz.config.FITS`; ``epochs`` are then Adam epochs or the most L-BFGS iterations.
@@ -200,9 +201,9 @@ def ce_update(
             ``weights = "recomputed"`` always fits every step.
         rng: draws that subsample (default: seeded 0).
         tolerance: early stopping of a fit of more than ``max_rows`` steps, or of ``lbfgs`` (nats per step;
-            :func:`pemviz.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps with ``adam``
-            runs every epoch (the paper's fit).
-        dtype: the arithmetic of an ``adam`` fit (:func:`pemviz.sampling.fit_proposal`); float64 for the paper's.
+            :func:`pemviz.core.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps with
+            ``adam`` runs every epoch (the paper's fit).
+        dtype: the arithmetic of an ``adam`` fit (:func:`pemviz.core.sampling.fit_proposal`); float64 for the paper's.
     Returns:
         the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
         constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
@@ -244,7 +245,7 @@ def recomputed_objective(
     slot: np.ndarray, log_p: np.ndarray, mask: np.ndarray, n_factors: int, smoothing: float
 ) -> Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
     """The CE loss with importance weights recomputed from the current proposal (the authors' code), as a
-    :data:`pemviz.sampling.Objective`: ``-sum_i w_i(phi) sum_t m_it log q_phi(a_it | d_it)`` with
+    :data:`pemviz.core.sampling.Objective`: ``-sum_i w_i(phi) sum_t m_it log q_phi(a_it | d_it)`` with
     ``w_i(phi) = exp(alpha (log p_i - sum_{t < k} m_it log q_phi(a_it | d_it)) - c)`` (c: their largest exponent,
     held constant), and its gradient in log q, which flows through the weights.
 

@@ -6,7 +6,7 @@ the proposal, takes the elites (robustness <= gamma_kappa, the (1 - sigma) quant
 0) and refits the proposal to them with importance weights raised to the power alpha (:func:`ce_update`); a
 final batch of N_e rollouts from the last proposal gives the estimate, alone or pooled with the CE stages drawn
 from proposals fitted to failures. The whole stage lives here: elites, weights, step masks, the fit's data and
-loss (:mod:`pemviz.estimators.ce_fit`; the optimiser and the proposal networks are in :mod:`pemviz.sampling`).
+loss (:mod:`pemviz.estimators.ce_fit`; the optimiser and the proposal networks are in :mod:`pemviz.core.sampling`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from pemviz.config import ExperimentConfig, settings_of
-from pemviz.detectors import (
+from pemviz.core.detectors import (
     Detector,
     ScoredTarget,
     StageSamplers,
@@ -30,7 +30,7 @@ from pemviz.detectors import (
     logit,
     noise_names_of,
 )
-from pemviz.estimate import Estimate, estimate
+from pemviz.core.estimate import Estimate, estimate
 from pemviz.estimators.ce_fit import EliteSteps, ce_update, pretrain_proposal
 from pemviz.estimators.base import (
     Check,
@@ -48,10 +48,10 @@ from pemviz.estimators.base import (
     pooled_estimate,
     weighted_steps_mask,
 )
-from pemviz.plan import RunPlan
-from pemviz.problems import Problem
-from pemviz.rng import RQMC_BLOCK
-from pemviz.sampling import Proposal, StateProposal, fit_noise_shift
+from pemviz.engine.plan import RunPlan
+from pemviz.core.problems import Problem
+from pemviz.core.rng import RQMC_BLOCK
+from pemviz.core.sampling import Proposal, StateProposal, fit_noise_shift
 from pemviz.scenarios import RolloutBatch
 
 @dataclass(frozen=True)
@@ -277,9 +277,9 @@ class CrossEntropy(OwnsSettings):
 
     def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
         """The extras' logits [K, N, T, M] of rollouts ``start .. start + N - 1`` of the stage, asked as a simulator
-        asks them: one step at a time about the object rows of one block (:data:`pemviz.rng.RQMC_BLOCK`) of rollouts
-        of one mixture component, so that the proposal network sees the same rows and gives the same bits as it gave
-        there."""
+        asks them: one step at a time about the object rows of one block (:data:`pemviz.core.rng.RQMC_BLOCK`) of
+        rollouts of one mixture component, so that the proposal network sees the same rows and gives the same bits as it
+        gave there."""
         plan, n, n_steps, m = self._plan, batch.n, batch.n_steps, batch.n_objects
         rebuilt = dict(zip((id(d) for _, d in plan.mixture), (d for _, d in self._around(plan.mixture, self.proposal))))
         extras = [rebuilt[id(d)] for d in self._scored.extras]
@@ -479,7 +479,7 @@ class CrossEntropy(OwnsSettings):
 
     def _fit_noise(self, fit: dict) -> None:
         """The CE update of the proposal's error head on the errors of the detected objects of this stage's elites
-        (:func:`pemviz.sampling.fit_noise_shift`), weighted as their rollouts in the detection fit."""
+        (:func:`pemviz.core.sampling.fit_noise_shift`), weighted as their rollouts in the detection fit."""
         data, self._noise_data = self._noise_data, []
         if self.proposal.noise_shift is None or not data or not sum(len(d[0]) for d in data):
             return

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pemviz.detectors import ConstantDetector, Detector, WindowDetector
-from pemviz.estimate import Estimate
+from pemviz.core.detectors import ConstantDetector, Detector, WindowDetector
+from pemviz.core.estimate import Estimate
+from pemviz.core.problems import Problem
+from pemviz.engine.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts
-from pemviz.plan import RunPlan
-from pemviz.problems import Problem
 from pemviz.scenarios import RolloutBatch
 
 

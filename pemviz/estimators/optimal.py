@@ -13,8 +13,9 @@ advances", Handbooks in OR & MS 13, 2006). For a detector (two actions) the odds
 
     logit q*(detect | s) = logit p(detect | s) + log V(s'_detect) - log V(s'_miss).
 
-V is known in closed form only on small problems (:class:`pemviz.scenarios.toy.ToyValue`, :class:`pemviz.truth.LatchedValue`);
-on the others q* is the limit a learned proposal approaches, and :func:`relative_variance` says how far it is.
+V is known in closed form only on small problems (:class:`pemviz.scenarios.toy.ToyValue`,
+:class:`pemviz.core.truth.LatchedValue`); on the others q* is the limit a learned proposal approaches, and
+:func:`relative_variance` says how far it is.
 """
 
 from __future__ import annotations
@@ -25,10 +26,10 @@ from typing import Callable
 
 import numpy as np
 
-from pemviz.detectors import Detector
-from pemviz.estimate import Estimate
+from pemviz.core.detectors import Detector
+from pemviz.core.estimate import Estimate
+from pemviz.core.problems import Problem
 from pemviz.estimators.fixed import FixedSampler
-from pemviz.problems import Problem
 
 LogValueNext = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """``log_value_next(obs [N, F]) -> (log V after a detection [N], log V after a miss [N])``, float64 nats
@@ -37,7 +38,7 @@ LogValueNext = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 @dataclass(frozen=True)
 class ZeroVarianceDetector:
-    """q* as a :class:`~pemviz.detectors.Detector`: ``logit q* = logit p + log V(s'_detect) - log V(s'_miss)``.
+    """q* as a :class:`~pemviz.core.detectors.Detector`: ``logit q* = logit p + log V(s'_detect) - log V(s'_miss)``.
 
     Where both actions lead to the same V (the action changes nothing, or failure is already certain or
     impossible) q* is p itself.

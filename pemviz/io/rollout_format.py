@@ -25,7 +25,7 @@ signals of the spec           float                        SI     e.g. ``ego_spe
                                                                   the density the rollout was drawn from and
                                                                   weighed with (for a mixture over whole
                                                                   rollouts its per-step conditional,
-                                                                  :func:`pemviz.weights.mixture_step_log_q`)
+                                                                  :func:`pemviz.core.weights.mixture_step_log_q`)
 ``stage``                     integer >= 0                 -      optional (version 2): the stage that drew the
                                                                   rollout, the same on all its rows
 ``component``                 integer >= 0                 -      optional (version 2): which sampler of the
@@ -44,7 +44,7 @@ Floats must be finite; log-probabilities <= 0. Other columns are ignored.
   signal ``[lo, hi]`` for AGM's normalisation; ``observation_columns``: the state columns in the order
   detectors see them (default ``gap_m`` then the signals' columns); ``units``: column -> unit (informative).
 - ``pem``: the PEM ``log_p`` was computed under (a shipped name or a path); ``proposal``: a proposal
-  checkpoint (:func:`pemviz.sampling.save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` /
+  checkpoint (:func:`pemviz.core.sampling.save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` /
   ``mixed50``, what sampled the rollouts; ``window_m``: mixed50's 50 % window (metres, default 10).
 - ``n_rollouts``, ``n_steps``: checked against the table when present.
 - ``weights`` (version 2): the weight convention the writer weighed with, ``to-failure`` (the product of p / q
@@ -81,7 +81,7 @@ import numpy as np
 
 import pemviz
 from pemviz import stl
-from pemviz.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, braking_formula
+from pemviz.core.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, braking_formula
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
 
 FORMAT_TAG = "pemviz-rollouts"
@@ -93,7 +93,7 @@ READ_VERSIONS = (1, 2)
 ``weights``, ``stages``, ``pooling``)."""
 
 WEIGHTS = ("to-failure", "full")
-"""Weight conventions (:mod:`pemviz.weights`)."""
+"""Weight conventions (:mod:`pemviz.core.weights`)."""
 
 KITTI_COLUMNS = ("class", "truncation", "occlusion", "alpha", "dim_w", "dim_l", "dim_h", "loc_x", "loc_y", "loc_z",
                  "rot_y")  # fmt: skip
@@ -351,7 +351,7 @@ def braking_meta(
 ) -> RolloutMeta:
     """The sidecar of braking-scenario rollouts (Innes & Ramamoorthy 2022): dt 0.05 s, signals d / v / vl, units.
 
-    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.problems.braking_formula`.
+    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.core.problems.braking_formula`.
     """
     p = BrakingParams()
     return RolloutMeta(

@@ -34,7 +34,7 @@ from pemviz.io.rollout_format import (
     sidecar_path,
 )
 from pemviz.pem import braking_salient_inputs
-from pemviz.sampling import write_proposal_file
+from pemviz.core.sampling import write_proposal_file
 from pemviz.scenarios import RolloutBatch
 
 def braking_salient(gap_m: np.ndarray) -> np.ndarray:
@@ -450,7 +450,7 @@ class RolloutWriter:
         """Close the table and move the unit into place; returns the Parquet path.
 
         Args:
-            proposal: a :class:`pemviz.sampling.Proposal` that sampled the rollouts, saved as ``NAME.proposal.pt``
+            proposal: a :class:`pemviz.core.sampling.Proposal` that sampled the rollouts, saved as ``NAME.proposal.pt``
                 and named in the sidecar; None: none saved.
             keep_stages: the stages to keep (the others are dropped, row group by row group, before the table moves
                 into place); None: every rollout written.
@@ -547,7 +547,7 @@ def write_rollouts(
         meta: the sidecar (:func:`braking_meta` for the braking scenario).
         rollout_ids, salient, log_probs, stage, component: see :func:`rollouts_table` (``stage`` / ``component`` of
             a version-2 file: ``RolloutData.stage`` / ``.component``).
-        proposal: a :class:`pemviz.sampling.Proposal` that sampled the batch, saved as ``NAME.proposal.pt`` and
+        proposal: a :class:`pemviz.core.sampling.Proposal` that sampled the batch, saved as ``NAME.proposal.pt`` and
             named in the sidecar; None: none saved.
         overwrite: replace existing files of the unit (only ones pemviz wrote).
     Returns:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from scipy.special import expit, log_expit
 
-from pemviz.detectors import noise_log_density, noise_quantile
+from pemviz.core.detectors import noise_log_density, noise_quantile
 from pemviz.pem.encoding import encode_salient
 from pemviz.pem.network import PEM
 from pemviz.pem.noise import NoiseModel
@@ -105,7 +105,7 @@ class NoisyPEM:
 class SalientDetector:
     """A PEM as the detector of a scene's objects, reading each object row's 11 KITTI salient variables (raw
     inputs, :data:`pemviz.io.data.INPUT_COLUMNS`, in the columns ``salient`` of the row), with the noise PEM's
-    measurement errors when ``noise`` is given (a :class:`pemviz.detectors.NoisyDetector`): p(a, e | x) =
+    measurement errors when ``noise`` is given (a :class:`pemviz.core.detectors.NoisyDetector`): p(a, e | x) =
     p_PEM(a | x) p_noise(e | x)^a (:class:`NoisyPEM`). Rows whose ``visible`` column holds 0 (an object the camera
     cannot see: hidden, outside the image) are never detected (logit -inf), so they add nothing to any weight.
 

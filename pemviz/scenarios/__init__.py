@@ -7,12 +7,12 @@ first), and is stepped with each object's detection and, for a detector that mis
 object row is its observation and ``step(detected: bool)`` takes the detection (the braking scenario, the toys).
 A :class:`BatchedSimulator` is the same for n rollouts at once (a leading [n]). :func:`run_batched` is the one rollout
 runner: each step it asks the sampling detector and the target (PEM) about every object row of the batch, draws the
-events (:func:`pemviz.detectors.draw_step`) and steps the simulator; :func:`simulate` runs N black-box simulators in
-lockstep through it (:class:`Lockstep`), and the batched twins (:mod:`pemviz.scenarios.batched`, the toys) run
+events (:func:`pemviz.core.detectors.draw_step`) and steps the simulator; :func:`simulate` runs N black-box simulators
+in lockstep through it (:class:`Lockstep`), and the batched twins (:mod:`pemviz.scenarios.batched`, the toys) run
 through it too, so every simulator draws the same events from the same uniforms.
 
 Optional capability (:class:`Snapshotting`): ``snapshot()`` returns the simulator's whole state at the
-current step and ``restore(state)`` puts it back (checked by :func:`pemviz.checks.check_simulator`).
+current step and ``restore(state)`` puts it back (checked by :func:`pemviz.core.checks.check_simulator`).
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from typing import Callable, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 
-from pemviz.detectors import Detector, draw_step, noise_names_of
-from pemviz.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
+from pemviz.core.detectors import Detector, draw_step, noise_names_of
+from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 
 
 class Simulator(Protocol):
@@ -236,7 +236,7 @@ def run_batched(
     forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
 ) -> RolloutBatch:
     """Simulate the ``n`` rollouts of ``sim`` for ``n_steps`` steps, each object's events drawn from ``sampler`` and
-    scored under ``target`` (:func:`pemviz.detectors.draw_step`): the rollout runner of every simulator.
+    scored under ``target`` (:func:`pemviz.core.detectors.draw_step`): the rollout runner of every simulator.
 
     Args:
         sim: n rollouts at their start, a :class:`BatchedSimulator`.
@@ -336,7 +336,7 @@ def uniform_chunks(rng: np.random.Generator, n: int, n_steps: int, chunk_size: i
 
 def _coupled(sampler: Detector) -> bool:
     """Whether ``sampler`` draws by Array-RQMC: its rollouts are then simulated one fixed block of
-    :data:`pemviz.rng.RQMC_BLOCK` at a time, whatever the chunk size (the block's rollouts are coupled)."""
+    :data:`pemviz.core.rng.RQMC_BLOCK` at a time, whatever the chunk size (the block's rollouts are coupled)."""
     return bool(getattr(sampler, "array_rqmc", False))
 
 
@@ -345,8 +345,8 @@ def iter_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int,
     """Stream ``n`` rollouts of a batched simulator as :class:`RolloutBatch` chunks of at most ``chunk_size`` rollouts
     (:func:`run_batched` on ``make(m)``, m rollouts at their start), the rollouts of ``rng.random(n K)`` per step
     (:func:`uniform_chunks`): the same rollouts, bit for bit, for any chunk size. An Array-RQMC sampler's rollouts are
-    simulated one fixed block of :data:`pemviz.rng.RQMC_BLOCK` at a time (its rollouts are coupled) and handed out in
-    chunks of ``chunk_size``.
+    simulated one fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` at a time (its rollouts are coupled) and handed out
+    in chunks of ``chunk_size``.
 
     Raises:
         ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
@@ -413,7 +413,7 @@ def simulate(
 
     A detection happens iff ``u <= q(detect | s)`` with ``u ~ U(0, 1)`` from ``rng`` (one ``rng.random(n K)`` per
     step, K = :func:`draws_per_rollout`: one ``rng.random(n)`` for a single-object scenario), as in the authors' code.
-    The detectors are asked about one fixed block of :data:`pemviz.rng.RQMC_BLOCK` rollouts at a time, and an
+    The detectors are asked about one fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts at a time, and an
     Array-RQMC sampler couples the rollouts of each block (``uniforms`` must then start at a block boundary of the
     batch), so that chunks of whole blocks simulated elsewhere give the same bits.
 
@@ -426,7 +426,7 @@ def simulate(
         n_steps: T, steps per rollout.
         uniforms: optional float64 [T, n K] pre-drawn u's, row t used at step t instead of ``rng.random(n K)``.
             ``rng.random((T, n K))`` holds exactly the numbers of T calls ``rng.random(n K)``, so a column slice
-            ``[:, a K:b K]`` of it reproduces rollouts a..b-1 of the serial run elsewhere (pemviz.executors).
+            ``[:, a K:b K]`` of it reproduces rollouts a..b-1 of the serial run elsewhere (pemviz.engine.executors).
     Returns:
         :class:`RolloutBatch` with arrays [n, T].
     Raises:

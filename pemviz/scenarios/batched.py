@@ -26,8 +26,8 @@ generator (``np.random.default_rng`` gives PCG64) each chunk jumps to its rollou
 the other (chunk 0's T arrays, then chunk 1's, ...), and the rollouts depend on ``chunk_size``.
 Detectors evaluated in numpy (the PEM, constants, windows) give the same bits at any batch size; a torch
 proposal may differ in the last bit between batch sizes. An Array-RQMC sampler couples the rollouts of each fixed
-block of :data:`pemviz.rng.RQMC_BLOCK` (= :data:`DEFAULT_CHUNK_SIZE`) rollouts, so its rollouts are simulated block by
-block whatever ``chunk_size`` (:func:`iter_batched` hands them out in chunks of ``chunk_size``): the same rollouts,
+block of :data:`pemviz.core.rng.RQMC_BLOCK` (= :data:`DEFAULT_CHUNK_SIZE`) rollouts, so its rollouts are simulated block
+by block whatever ``chunk_size`` (:func:`iter_batched` hands them out in chunks of ``chunk_size``): the same rollouts,
 bit for bit, for any chunk size and on any executor.
 
 Units: metres, seconds, m/s; log-probabilities in nats.
@@ -40,7 +40,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from pemviz.detectors import Detector
+from pemviz.core.detectors import Detector
 from pemviz.scenarios import (
     DEFAULT_CHUNK_SIZE,
     RolloutBatch,
@@ -263,7 +263,7 @@ def branch_batched(
 @dataclass(frozen=True)
 class RolloutSummary:
     """What an estimate needs of N rollouts, without their trajectories (16 + 8 + 1 + 8 bytes a rollout): give
-    ``log_weight``, ``failed`` and ``log_p_total`` to :func:`pemviz.estimate.estimate`.
+    ``log_weight``, ``failed`` and ``log_p_total`` to :func:`pemviz.core.estimate.estimate`.
 
     Attributes:
         log_weight: float64 [N] importance log-weights ``sum_t log p - log q`` over T - 1 steps (nats).
@@ -299,7 +299,7 @@ def summarise_batched(
     the same ``rng``.
 
     Args:
-        failed: the problem's failure event on a chunk, bool [m]: :meth:`pemviz.problems.Problem.failed` (classic
+        failed: the problem's failure event on a chunk, bool [m]: :meth:`pemviz.core.problems.Problem.failed` (classic
             robustness of the safety formula < 0; for the braking problem the gap drops below the crash gap).
         other arguments: as :func:`simulate_batched`.
     Returns:

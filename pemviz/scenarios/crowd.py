@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import log_ndtr
 
-from pemviz.detectors import logit, noise_log_density, noise_quantile
+from pemviz.core.detectors import logit, noise_log_density, noise_quantile
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")
 """The scene's signals: the distance to the nearest obstacle (units) and 1.0 once stopped or crashed."""
@@ -87,8 +87,8 @@ class CrowdParams:
 
 @dataclass(frozen=True)
 class CrowdDetector:
-    """The crowd toy's detector, a :class:`~pemviz.detectors.NoisyDetector`: every obstacle detected with probability
-    ``p_detect``, its distance measured with an N(0, ``noise_sd``^2) error (units)."""
+    """The crowd toy's detector, a :class:`~pemviz.core.detectors.NoisyDetector`: every obstacle detected with
+    probability ``p_detect``, its distance measured with an N(0, ``noise_sd``^2) error (units)."""
 
     params: CrowdParams
 

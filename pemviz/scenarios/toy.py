@@ -26,7 +26,7 @@ from typing import Callable, Union
 import numpy as np
 from scipy.special import log_expit
 
-from pemviz.detectors import Detector
+from pemviz.core.detectors import Detector
 
 from pemviz.scenarios import RolloutBatch, check_branch_args, run_batched
 
@@ -108,7 +108,7 @@ class ToyParams:
 
 @dataclass(frozen=True)
 class ToyDetector:
-    """The toy's detector as a :class:`~pemviz.detectors.Detector`: logit p(detect | distance)."""
+    """The toy's detector as a :class:`~pemviz.core.detectors.Detector`: logit p(detect | distance)."""
 
     params: ToyParams
 

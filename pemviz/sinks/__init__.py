@@ -1,8 +1,8 @@
 """Sinks: listeners of the experiment engine's events (console table, rerun recording, rollout file, viser panel).
 
 A sink only listens; it never drives the engine (the viser panel may set the cancel token). :class:`Sink` is their
-base: one method per event of :mod:`pemviz.events` and one dispatch. :class:`StageClock` is the one clock of a run
-that the console and the panel predict a stage's and the whole run's time left from.
+base: one method per event of :mod:`pemviz.engine.events` and one dispatch. :class:`StageClock` is the one clock of a
+run that the console and the panel predict a stage's and the whole run's time left from.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import math
 import time
 from typing import Callable
 
-from pemviz.cost import COST, N_STEPS, CostConstants, StageCost, plan_costs, stage_cost
-from pemviz.events import (
+from pemviz.engine.cost import COST, N_STEPS, CostConstants, StageCost, plan_costs, stage_cost
+from pemviz.engine.events import (
     Event,
     FinalEstimate,
     RolloutChunk,
@@ -24,7 +24,7 @@ from pemviz.events import (
     StageResult,
     StageStarted,
 )
-from pemviz.plan import RunPlan
+from pemviz.engine.plan import RunPlan
 
 MAX_SCALE = 20.0
 """The most a :class:`StageClock` scales a prediction by (either way): a first stage slowed by a one-off start
@@ -55,7 +55,7 @@ class Sink:
                 return
 
     def on_run_started(self, event: RunStarted) -> None:
-        """The run starts: its config, plan (:class:`~pemviz.plan.RunPlan`) and problem view."""
+        """The run starts: its config, plan (:class:`~pemviz.engine.plan.RunPlan`) and problem view."""
 
     def on_stage_started(self, event: StageStarted) -> None:
         """A stage starts drawing its rollouts."""
@@ -83,11 +83,11 @@ class StageClock(Sink):
     """The wall clock of a run as its events arrive, and the time its stages and the whole run have left (``now``:
     seconds, default ``time.perf_counter``).
 
-    Each stage of the run's plan (:class:`~pemviz.events.RunStarted`) has a predicted time to simulate its rollouts
-    and to finish after them, its fit included (:func:`pemviz.cost.plan_costs`). As stages end the clock measures both
-    (from the stage's start to its :class:`~pemviz.events.RolloutsSampled`, over all of its rollouts, a streamed
-    stage's too; then to its :class:`~pemviz.events.StageFinished`) and scales the predictions of what is left by
-    measured / predicted so far, separately for the two parts.
+    Each stage of the run's plan (:class:`~pemviz.engine.events.RunStarted`) has a predicted time to simulate its
+    rollouts and to finish after them, its fit included (:func:`pemviz.engine.cost.plan_costs`). As stages end the clock
+    measures both (from the stage's start to its :class:`~pemviz.engine.events.RolloutsSampled`, over all of its
+    rollouts, a streamed stage's too; then to its :class:`~pemviz.engine.events.StageFinished`) and scales the
+    predictions of what is left by measured / predicted so far, separately for the two parts.
 
     Attributes:
         t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were sampled
@@ -163,7 +163,8 @@ class StageClock(Sink):
 
     def expected_s(self, kind: str, n_rollouts: int) -> float:
         """Expected seconds of a stage of ``kind`` and ``n_rollouts``: its predicted simulating and what follows
-        (:func:`pemviz.cost.stage_cost`), each scaled by what the run measured so far; nan before the run starts."""
+        (:func:`pemviz.engine.cost.stage_cost`), each scaled by what the run measured so far; nan before the run
+        starts."""
         return sum(self._scaled(self._model(kind, n_rollouts)))
 
     def stage_left_s(self) -> float:

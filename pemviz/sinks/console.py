@@ -6,8 +6,8 @@ import math
 import sys
 from typing import TextIO
 
-from pemviz.estimate import Estimate, format_probability
-from pemviz.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
+from pemviz.core.estimate import Estimate, format_probability
+from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.sinks import Sink, StageClock
 
 __all__ = ["ConsoleSink", "HEADER", "estimate_cells", "progress_line", "stage_row"]
@@ -52,7 +52,7 @@ class ConsoleSink(Sink):
         self.progress = progress or sys.stderr
         self.clock = StageClock()
         self.plan = None
-        """The run's :class:`~pemviz.plan.RunPlan` (from :class:`~pemviz.events.RunStarted`)."""
+        """The run's :class:`~pemviz.engine.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.exact_log_p: float | None = None
 
     def __call__(self, event) -> None:

@@ -1,14 +1,14 @@
 """Rerun sink: writes an experiment's events into a rerun recording (``.rrd`` file, or a live viewer).
 
-The sink only listens to the engine's events (:mod:`pemviz.events`); it never drives the engine. What it knows of the
-run and the problem comes with :class:`~pemviz.events.RunStarted`: the stages and their names from the run's plan, the
-signals, thresholds and scene from the problem's view. Its look (colours, figures, scene lanes) is
+The sink only listens to the engine's events (:mod:`pemviz.engine.events`); it never drives the engine. What it knows of
+the run and the problem comes with :class:`~pemviz.engine.events.RunStarted`: the stages and their names from the run's
+plan, the signals, thresholds and scene from the problem's view. Its look (colours, figures, scene lanes) is
 :mod:`pemviz.sinks.rerun_views`'s, its layout :mod:`pemviz.sinks.rerun_blueprint`'s (three tabs: *Stages* on the
 ``stage`` timeline, *Explain* and *Rollouts* on ``step``), the most likely failure's entities
 :mod:`pemviz.sinks.rerun_explain`'s.
 
 Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch: the engine's
-numbering and the plan's names, :func:`pemviz.plan.stage_label`; the default timeline: scrubbing it steps the
+numbering and the plan's names, :func:`pemviz.engine.plan.stage_label`; the default timeline: scrubbing it steps the
 proposal views, the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout
 traces, the most likely failure and the scene play on it) and ``repetition`` (only when the sink is given one).
 Colours are those of the panel (:mod:`pemviz.sinks.colours`): detected green, missed orange, crash red.
@@ -21,7 +21,7 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
   ended), re-logged static after each stage.
 - ``proposal_marginal/{miss,log_odds}/...``: each stage's q(miss) over the states its rollouts visited, per gap bin,
   beside the PEM's, as bars on ``stage`` (:func:`pemviz.sinks.rerun_views.log_marginal_proposal`), and
-  ``proposal_marginal/stats``: every array of its :class:`~pemviz.proposal_view.ProposalView` (AnyValues).
+  ``proposal_marginal/stats``: every array of its :class:`~pemviz.core.proposal_view.ProposalView` (AnyValues).
 - ``proposal/data/pem``, ``proposal/data/stage_KK``: the reference-state curves: p_PEM(detect | d) and each stage's
   proposal q(detect | d) after its update with the proposal's other inputs held at a reference state (the final
   batch's repeats stage K's), static :class:`rerun.LineStrips2D`, points ``(d [m], probability)``;
@@ -79,10 +79,10 @@ import numpy as np
 import rerun as rr
 
 import pemviz
-from pemviz.estimate import format_probability, relative_error
-from pemviz.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
+from pemviz.core.estimate import format_probability, relative_error
+from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
+from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.io.files import atomic_write
-from pemviz.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import Sink
@@ -123,7 +123,7 @@ class RerunSink(Sink):
             (entities of their own, :func:`pemviz.sinks.rerun_rollouts.featured`).
         likely_per_stage: how many of each stage's most likely failures are featured.
         scene_per_stage: how many least-robust rollouts of each stage get a lane in the scene (drawn for a problem
-            with a scene, :attr:`pemviz.problems.ProblemView.scene`: the braking scenario's car sizes, camera, dt).
+            with a scene, :attr:`pemviz.core.problems.ProblemView.scene`: the braking scenario's car sizes, camera, dt).
         repetition: when set, an index on the ``repetition`` timeline added to every temporal row
             (static figures show the latest repetition).
     """
@@ -145,14 +145,14 @@ class RerunSink(Sink):
         self.scene_per_stage = scene_per_stage
         self.repetition = repetition
         self.plan = None
-        """The run's :class:`~pemviz.plan.RunPlan` (from :class:`~pemviz.events.RunStarted`)."""
+        """The run's :class:`~pemviz.engine.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.view = None
-        """The problem's :class:`~pemviz.problems.ProblemView` (from :class:`~pemviz.events.RunStarted`)."""
+        """The problem's :class:`~pemviz.core.problems.ProblemView` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.scene: BrakingParams | None = None
         """The scene the rollouts are drawn in (the view's), None: no scene."""
         self.grid_m = np.zeros(0)
         self.bins_m: np.ndarray | None = None
-        """Gap bins of the marginal proposal view (:func:`pemviz.proposal_view.bins_over` of the curve grid)."""
+        """Gap bins of the marginal proposal view (:func:`pemviz.core.proposal_view.bins_over` of the curve grid)."""
         self.most_likely: RolloutsSampled | None = None
         """The most likely failure so far: the failing rollout with the largest log p under the PEM, as a batch of
         one (:attr:`most_likely_log_p` nats over T - 1 steps)."""

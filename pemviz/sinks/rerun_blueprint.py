@@ -6,7 +6,7 @@ hold on every timeline:
 
 - **Stages** (timeline ``stage``, open at start): what the sampler learned, stage by stage. The proposal's q(miss)
   over the states the stage's rollouts visited beside the PEM's, per gap bin, on a probability and a log-odds
-  scale (bar charts; :mod:`pemviz.proposal_view`), the reference-state curve q(detect | d) of the proposal, the
+  scale (bar charts; :mod:`pemviz.core.proposal_view`), the reference-state curve q(detect | d) of the proposal, the
   per-stage series (log10 mu_hat with its interval and the exact answer, failures / N, gamma, ESS, k-hat, NLL,
   the mean miss probability inside the sampler window) and the histograms of robustness and log-weight.
 - **Explain** (timeline ``step``): the most likely failure of the run: what happened in words, p(detect) of the
@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import rerun.blueprint as rrb
 
-from pemviz.problems import BRAKING_SIGNALS, BRAKING_UNITS, ProblemView, SignalView
+from pemviz.core.problems import BRAKING_SIGNALS, BRAKING_UNITS, ProblemView, SignalView
 from pemviz.sinks import colours as C
 from pemviz.sinks.rerun_views import LANE_SPACING_M, PROPOSAL_FIG, SCENE_PATH, SCENE_X_RANGE_M, STAGE_METRICS
 

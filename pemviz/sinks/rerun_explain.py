@@ -4,7 +4,7 @@ The most likely failure is the failing rollout with the largest log p under the 
 <pemviz.scenarios.RolloutBatch.log_likelihood>`, T - 1 steps) among the rollouts the engine reported: the failure
 the sampler found that the real detector is likeliest to produce, the "most likely failure" of adaptive stress
 testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020). For any problem it shows p(detect) of the PEM and
-q(detect) of the sampler along it and its misses (:func:`pemviz.proposal_view.prob_detect`); for a problem with the
+q(detect) of the sampler along it and its misses (:func:`pemviz.core.proposal_view.prob_detect`); for a problem with the
 braking scene also its severity, the controller's signals, the minimal set of misses whose flip avoids the failure,
 the last step at which one detection still saves it, replays of those counterfactuals and one paragraph in words,
 all from :func:`pemviz.scenarios.braking_failures.story` (exact replays on the deterministic twin).
@@ -37,9 +37,9 @@ import math
 import numpy as np
 import rerun as rr
 
-from pemviz.events import RolloutsSampled
-from pemviz.problems import ProblemView, object_scene
-from pemviz.proposal_view import prob_detect
+from pemviz.core.problems import ProblemView, object_scene
+from pemviz.core.proposal_view import prob_detect
+from pemviz.engine.events import RolloutsSampled
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking_failures import FailureStory, replay_with_detections, story
 from pemviz.sinks import colours as C
@@ -111,7 +111,7 @@ def log_explanation(
         stage_name: the plan's name of its stage (``CE stage 4/10``).
         indexes: the sink's time columns for ``send_columns`` (with its repetition).
         object_detect: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that drew
-            the rollout, float64 [T, M] each (:func:`pemviz.proposal_view.object_detect_probabilities`), drawn in
+            the rollout, float64 [T, M] each (:func:`pemviz.core.proposal_view.object_detect_probabilities`), drawn in
             the object's row band; None: not drawn.
     Returns:
         the braking scene's :class:`~pemviz.scenarios.braking_failures.FailureStory` of the rollout (None without

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import rerun as rr
 
-from pemviz.events import RolloutsSampled
-from pemviz.problems import ProblemView
+from pemviz.core.problems import ProblemView
+from pemviz.engine.events import RolloutsSampled
 from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks.rerun_views import (
     ALL_ROLLOUTS_UP_TO,

@@ -1,6 +1,6 @@
 """What the rerun recording looks like (:mod:`pemviz.sinks.recording`): colours, figures with axes, the marginal
 proposal's bars, the words for a rollout's outcome, the run's description and the top-down scene of a problem that
-has one (:attr:`pemviz.problems.ProblemView.scene`). The layout is :mod:`pemviz.sinks.rerun_blueprint`'s.
+has one (:attr:`pemviz.core.problems.ProblemView.scene`). The layout is :mod:`pemviz.sinks.rerun_blueprint`'s.
 
 Everything here draws into a :class:`rerun.RecordingStream` it is given and keeps no state of a run.
 """
@@ -15,9 +15,9 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pemviz.events import RolloutsSampled, RunStarted
-from pemviz.problems import ProblemView
-from pemviz.proposal_view import LOG_ODDS_SPAN_NATS, ProposalView
+from pemviz.core.problems import ProblemView
+from pemviz.core.proposal_view import LOG_ODDS_SPAN_NATS, ProposalView
+from pemviz.engine.events import RolloutsSampled, RunStarted
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import colours as C
@@ -222,11 +222,11 @@ MARGINAL_PATH = "proposal_marginal"
 
 
 def log_marginal_proposal(stream: rr.RecordingStream, pv: ProposalView, rgb: tuple[int, ...]) -> None:
-    """One stage's :class:`~pemviz.proposal_view.ProposalView` as bars per gap bin, on the current timeline.
+    """One stage's :class:`~pemviz.core.proposal_view.ProposalView` as bars per gap bin, on the current timeline.
 
     Two charts: ``miss`` (q(miss) = 1 - q(detect), mean over the bin's visited states) and ``log_odds`` (the median
-    of log q(miss) / q(detect), nats, clipped to :data:`~pemviz.proposal_view.LOG_ODDS_SPAN_NATS`). In each bin: the
-    PEM's (grey, left half of the bin) and the sampler's (``rgb``, right half) as a narrow bar, and behind the
+    of log q(miss) / q(detect), nats, clipped to :data:`~pemviz.core.proposal_view.LOG_ODDS_SPAN_NATS`). In each bin:
+    the PEM's (grey, left half of the bin) and the sampler's (``rgb``, right half) as a narrow bar, and behind the
     sampler's two light bars to its 10 % and 90 % quantiles, so the lighter band between them is the spread.
     Empty bins have no bars. ``stats`` holds every array of the view (:class:`rerun.AnyValues`).
     """

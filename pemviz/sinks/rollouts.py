@@ -13,14 +13,14 @@ from typing import Any
 
 import numpy as np
 
-from pemviz.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
+from pemviz.engine.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.estimators.base import pool_stage_weights
 from pemviz.io.rollout_format import braking_meta
 from pemviz.io.rollouts import RolloutWriter, braking_salient, check_rollouts_path
 from pemviz.pem import DEFAULT_PEM_NAME
-from pemviz.sampling import Proposal
+from pemviz.core.sampling import Proposal
 from pemviz.sinks import Sink
-from pemviz.weights import convention, describe, stage_log_q
+from pemviz.core.weights import convention, describe, stage_log_q
 
 STAGES = ("used", "all")
 """Which stages ``--save-rollouts`` writes: those the run's estimate uses, or every stage (pretraining included)."""
@@ -37,10 +37,10 @@ class RolloutSink(Sink):
     file reproduces the run's estimate.
 
     Each rollout is written with its stage, the component of the stage's mixture that drew it, and as ``log_q`` the
-    per-step density the run weighed it with (:func:`pemviz.weights.stage_log_q`: for a mixture over whole rollouts,
-    the mixture's). The sidecar holds the run's weight convention, each stage's components and weight bound, and the
-    pooling rule with its stage weights (:mod:`pemviz.io.rollout_format`). Rollouts are written chunk by chunk as the
-    engine simulates them (:class:`pemviz.events.RolloutChunk`, Parquet row groups of a
+    per-step density the run weighed it with (:func:`pemviz.core.weights.stage_log_q`: for a mixture over whole
+    rollouts, the mixture's). The sidecar holds the run's weight convention, each stage's components and weight bound,
+    and the pooling rule with its stage weights (:mod:`pemviz.io.rollout_format`). Rollouts are written chunk by chunk
+    as the engine simulates them (:class:`pemviz.engine.events.RolloutChunk`, Parquet row groups of a
     :class:`pemviz.io.rollouts.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of a
     chunk whatever N is; the stages the estimate did not use are dropped and the unit is moved into place when the
     run finishes, and nothing is left after a cancelled or failed run. If the file holds one stage drawn by a

@@ -1,9 +1,9 @@
 """Validation of the estimators against exact failure probabilities: jobs, their records, summaries.
 
-A :class:`Job` is one method (a config) on one named problem (:data:`pemviz.problems.PROBLEMS`) for one seed;
+A :class:`Job` is one method (a config) on one named problem (:data:`pemviz.core.problems.PROBLEMS`) for one seed;
 :func:`run_jobs` runs jobs in worker processes and appends every :class:`RunRecord` to a ``runs.jsonl`` file as it
 ends, so an interrupted study resumes; :func:`exact_answer` is each problem's truth (closed form, the
-deterministic latched simulator, or exact enumeration, :mod:`pemviz.truth`); :func:`summarise` groups records into
+deterministic latched simulator, or exact enumeration, :mod:`pemviz.core.truth`); :func:`summarise` groups records into
 table rows. ``pemviz validate`` and ``pemviz tables`` are the command-line layers over this module.
 """
 
@@ -25,16 +25,16 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from pemviz import truth
 from pemviz.config import METHODS, ExperimentConfig
+from pemviz.core import truth
+from pemviz.core.estimate import format_probability, relative_error
+from pemviz.core.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
+from pemviz.core.sampling import torch_threads
 from pemviz.engine import Experiment
-from pemviz.estimate import format_probability, relative_error
-from pemviz.events import RunFinished
+from pemviz.engine.events import RunFinished
 from pemviz.io.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.presets import PRESETS
-from pemviz.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
-from pemviz.sampling import torch_threads
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.crowd import crowd_log_failure_probability
 from pemviz.scenarios.toy import toy_log_failure_probability
@@ -57,7 +57,7 @@ class ExactAnswer:
 
 def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None,
                  recompute: bool = False) -> ExactAnswer:  # fmt: skip
-    """The exact p_fail of a problem of :data:`~pemviz.problems.PROBLEMS` (milliseconds for the toys, the latched
+    """The exact p_fail of a problem of :data:`~pemviz.core.problems.PROBLEMS` (milliseconds for the toys, the latched
     scenario and ``main`` with a shipped PEM, whose answer is kept; 20-40 s of enumeration for ``main`` with another
     PEM or with ``recompute``).
 
@@ -89,7 +89,7 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
 
     known = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams())
     if known is not None and not recompute:  # a shipped PEM: its enumeration (20-40 s) was kept
-        return ExactAnswer(known, "exact enumeration kept for this PEM (pemviz.truth.KNOWN_BRAKING_LOG_P, bracket "
+        return ExactAnswer(known, "exact enumeration kept for this PEM (pemviz.core.truth.KNOWN_BRAKING_LOG_P, bracket "
                                   "width < 0.25 %; tests/test_truth.py recomputes it)", wall_s=time.perf_counter() - t0)
 
     def on_result(r: truth.ExactResult) -> None:
@@ -134,7 +134,7 @@ class RunRecord:
     gammas: tuple[float, ...] = ()
     curves: np.ndarray | None = field(default=None, repr=False)
     log_ci_lo: float = -math.inf
-    """The estimate's 95 % interval as natural logs (:attr:`pemviz.estimate.Estimate.log_ci`)."""
+    """The estimate's 95 % interval as natural logs (:attr:`pemviz.core.estimate.Estimate.log_ci`)."""
     log_ci_hi: float = 0.0
     khat: float = math.nan
     verdict: str = "unreliable"

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from pemviz.problems import problem_for
-from pemviz import problems
+from pemviz.core.problems import problem_for
+from pemviz.core import problems
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.detectors import ArrayRQMC, ConstantDetector, PEMDetector, WindowDetector
+from pemviz.core.detectors import ArrayRQMC, ConstantDetector, PEMDetector, WindowDetector
 from pemviz.scenarios import RolloutBatch, simulate
 from pemviz.scenarios.batched import (
     BatchedBraking,
@@ -114,7 +114,7 @@ def test_replay_first_steps_match_hand_computed_explicit_euler():
 def _detectors(pem):
     target = PEMDetector(pem)
     torch.manual_seed(3)
-    from pemviz.sampling import Proposal
+    from pemviz.core.sampling import Proposal
 
     return {
         "pem (mc)": target,
@@ -180,7 +180,7 @@ def test_summary_keeps_the_weights_failures_and_estimate_of_the_full_batch(pem):
         None, 2000, mixed, problem.target, np.random.default_rng(9), failed=problem.failed, chunk_size=512
     )
     assert np.array_equal(by_stl.failed, failed)
-    from pemviz.estimate import estimate
+    from pemviz.core.estimate import estimate
 
     expected = estimate(full.log_weight(), failed, full.log_p[:, :-1].sum(axis=1))
     assert np.isfinite(expected.log_mu_hat) and expected.log_mu_hat < np.log(1e-3)  # weighted back to the PEM
@@ -229,7 +229,7 @@ def test_run_command_passes_sim_flag_into_the_config():
 
 def test_engine_runs_the_configured_back_end_and_both_give_the_same_estimate(monkeypatch):
     from pemviz.engine import Experiment
-    from pemviz.events import RunFinished
+    from pemviz.engine.events import RunFinished
 
     estimates = {}
     for sim, unused in (("batched", "simulate"), ("highway-env", "simulate_batched")):

@@ -7,7 +7,7 @@ import csv
 import numpy as np
 import pytest
 
-from pemviz.detectors import ConstantDetector, PEMDetector, WindowDetector
+from pemviz.core.detectors import ConstantDetector, PEMDetector, WindowDetector
 from pemviz.scenarios import simulate
 from pemviz.scenarios.braking import LEAD_SPEED_PROFILE_MPS, BrakingParams, BrakingScenario
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 from pemviz.config import ExperimentConfig
-from pemviz.cost import CostConstants
-from pemviz.estimate import estimate
-from pemviz.events import RolloutsSampled, RunStarted, StageFinished, StageResult
-from pemviz.plan import RunPlan
-from pemviz.problems import ProblemView, SignalView, Thresholds
+from pemviz.core.estimate import estimate
+from pemviz.core.problems import ProblemView, SignalView, Thresholds
+from pemviz.engine.cost import CostConstants
+from pemviz.engine.events import RolloutsSampled, RunStarted, StageFinished, StageResult
+from pemviz.engine.plan import RunPlan
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
 

@@ -8,8 +8,8 @@ import io
 
 import numpy as np
 
-from pemviz.events import FinalEstimate, RunCancelled, StageStarted
-from pemviz.plan import RunPlan
+from pemviz.engine.events import FinalEstimate, RunCancelled, StageStarted
+from pemviz.engine.plan import RunPlan
 from pemviz.sinks import StageClock
 from pemviz.sinks.console import ConsoleSink
 

@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("rerun")
 
-from pemviz.events import StageStarted  # noqa: E402
+from pemviz.engine.events import StageStarted  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.rerun_views import DETECTED_RGBA, MISSED_RGBA  # noqa: E402
 

@@ -4,18 +4,19 @@ No printing, no rerun, no viser here: sinks (console table, rerun recording, the
 as listeners ``listener(event) -> None`` and never call back into the engine, except through the
 ``cancel`` token (a :class:`threading.Event`).
 
-The events and their order are :mod:`pemviz.events`'s: :class:`~pemviz.events.RunStarted` (with the estimator's
-:class:`~pemviz.plan.RunPlan` and the problem's :class:`~pemviz.problems.ProblemView`), then per stage
-:class:`~pemviz.events.StageStarted`, :class:`~pemviz.events.RolloutChunk` (one per chunk),
-:class:`~pemviz.events.RolloutsSampled`, :class:`~pemviz.events.StageFinished`, then
-:class:`~pemviz.events.FinalEstimate` and :class:`~pemviz.events.RunFinished` (or :class:`~pemviz.events.RunCancelled`).
-Failure is the problem's (:meth:`pemviz.problems.Problem.failed`), for whole and streamed stages alike.
+The events and their order are :mod:`pemviz.engine.events`'s: :class:`~pemviz.engine.events.RunStarted` (with the
+estimator's :class:`~pemviz.engine.plan.RunPlan` and the problem's :class:`~pemviz.core.problems.ProblemView`), then per
+stage :class:`~pemviz.engine.events.StageStarted`, :class:`~pemviz.engine.events.RolloutChunk` (one per chunk),
+:class:`~pemviz.engine.events.RolloutsSampled`, :class:`~pemviz.engine.events.StageFinished`, then
+:class:`~pemviz.engine.events.FinalEstimate` and :class:`~pemviz.engine.events.RunFinished` (or
+:class:`~pemviz.engine.events.RunCancelled`). Failure is the problem's (:meth:`pemviz.core.problems.Problem.failed`),
+for whole and streamed stages alike.
 
 A stage of more than :data:`STREAM_ABOVE` rollouts on a problem that can stream is simulated chunk by chunk and
 never held whole: the estimator keeps per-rollout numbers and the rollouts that can still matter (e.g. the
-elites), listeners get each chunk as it passes (:class:`~pemviz.events.RolloutChunk`, e.g. to write them to a
-file) and a bounded sample of the stage (:class:`~pemviz.events.RolloutsSampled`): memory stays that of a chunk and a
-few numbers per rollout.
+elites), listeners get each chunk as it passes (:class:`~pemviz.engine.events.RolloutChunk`, e.g. to write them to a
+file) and a bounded sample of the stage (:class:`~pemviz.engine.events.RolloutsSampled`): memory stays that of a chunk
+and a few numbers per rollout.
 """
 
 from __future__ import annotations
@@ -28,9 +29,9 @@ from typing import Iterable, Iterator, Mapping
 import numpy as np
 
 from pemviz.config import METRICS, ExperimentConfig
-from pemviz.detectors import ArrayRQMC, Detector
-from pemviz.estimators import Estimator, StagePlan, build_estimator
-from pemviz.events import (
+from pemviz.core.detectors import ArrayRQMC, Detector
+from pemviz.core.problems import Problem
+from pemviz.engine.events import (
     Event,
     FinalEstimate,
     Listener,
@@ -43,8 +44,8 @@ from pemviz.events import (
     StageResult,
     StageStarted,
 )
-from pemviz.executors import get_executor
-from pemviz.problems import Problem
+from pemviz.engine.executors import get_executor
+from pemviz.estimators import Estimator, StagePlan, build_estimator
 from pemviz.scenarios import RolloutBatch
 
 
@@ -123,7 +124,7 @@ class Experiment:
 
     The estimator of ``config.method`` (:func:`pemviz.estimators.build_estimator`) plans the batches and does the
     arithmetic; the experiment simulates them (on ``config.executor``), computes their robustness, emits the
-    events and checks the cancel token. ``problem``: what to estimate (e.g. :func:`pemviz.problems.problem_for`
+    events and checks the cancel token. ``problem``: what to estimate (e.g. :func:`pemviz.core.problems.problem_for`
     ``(config)``: the braking scenario with ``config.pem``); the engine itself loads nothing.
     """
 

@@ -27,7 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.special import logsumexp
 
-from pemviz.detectors import ArrayRQMC, ConstantDetector, Detector, SamplerView, WindowDetector, action_log_prob
+from pemviz.core.detectors import ArrayRQMC, ConstantDetector, Detector, SamplerView, WindowDetector, action_log_prob
 
 CONVENTIONS = ("to-failure", "full")
 """The weight conventions: ``to-failure`` (stopped at the failure step) and ``full`` (every step but the last)."""
@@ -100,8 +100,8 @@ def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detec
 
 def describe(detector: Any, target: Any = None) -> str:
     """A short name of a sampler for the sidecar: ``target``, ``proposal within 10 m, target beyond`` ..."""
+    from pemviz.core.sampling import Proposal
     from pemviz.estimators.cross_entropy import DefensiveDetector
-    from pemviz.sampling import Proposal
 
     if detector is target:
         return "target"

@@ -15,8 +15,8 @@ from typing import Any, Callable
 import numpy as np
 
 from pemviz.config import METRICS
-from pemviz.estimate import VERDICTS, Estimate
-from pemviz.problems import Problem
+from pemviz.core.estimate import VERDICTS, Estimate
+from pemviz.core.problems import Problem
 from pemviz.scenarios import RolloutBatch
 
 
@@ -164,15 +164,15 @@ def check_estimator(make: Callable[[Problem], Any], problem: Problem, *, metric:
 
     The estimator is run twice, driven as the engine drives it. The rules: every plan asks for n >= 1 rollouts from a
     detector; ``observe`` returns one float64 log-weight per rollout (no NaN); ``finish`` returns the stage's
-    :class:`~pemviz.estimate.Estimate`; ``next_stage`` ends; ``result`` names only stages it drew; the estimate is a
-    consistent :class:`~pemviz.estimate.Estimate` (0 <= failures <= n, interval low <= high, a verdict of
-    :data:`~pemviz.estimate.VERDICTS`); and the two runs agree bit for bit (the estimator seeds every stream it draws
-    from). With ``max_relative_error`` and an exact answer on the problem (``problem.exact_log_p``), the estimate must
-    also be that close to it: a statistical check, so give a tolerance the estimator meets at the chosen seed.
+    :class:`~pemviz.core.estimate.Estimate`; ``next_stage`` ends; ``result`` names only stages it drew; the estimate is
+    a consistent :class:`~pemviz.core.estimate.Estimate` (0 <= failures <= n, interval low <= high, a verdict of
+    :data:`~pemviz.core.estimate.VERDICTS`); and the two runs agree bit for bit (the estimator seeds every stream it
+    draws from). With ``max_relative_error`` and an exact answer on the problem (``problem.exact_log_p``), the estimate
+    must also be that close to it: a statistical check, so give a tolerance the estimator meets at the chosen seed.
 
     Args:
         make: ``make(problem) -> estimator``, e.g. ``lambda pb: build_estimator(config, pb)``.
-        problem: a :class:`~pemviz.problems.Problem` (a small one: the check runs the estimator twice).
+        problem: a :class:`~pemviz.core.problems.Problem` (a small one: the check runs the estimator twice).
         metric: the robustness metric shown to ``observe`` (:data:`pemviz.config.METRICS`).
         max_relative_error: |mu_hat - p| / p allowed against ``problem.exact_log_p``; None: not checked.
         max_stages: stages after which ``next_stage`` is taken never to end.

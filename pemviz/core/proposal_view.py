@@ -2,7 +2,7 @@
 
 A proposal that sees more than the gap (the default ``state`` proposal sees gap, speeds and the pending brake)
 has no single curve q(detect | gap): a curve that varies the gap and holds the other inputs at one reference state
-(:meth:`pemviz.sampling.StateProposal.curve`) can sit near 1 at every gap while the sampler misses the lead most of
+(:meth:`pemviz.core.sampling.StateProposal.curve`) can sit near 1 at every gap while the sampler misses the lead most of
 the time in the states it actually reaches. Here the states are those of a stage's rollouts and q is read back
 from the log-probability each rollout's detector gave the action it took (``RolloutBatch.log_q``), so the view
 needs neither the network nor a reference state, and holds for any sampler (a mixture's rollouts each with the
@@ -35,8 +35,9 @@ LOG_ODDS_SPAN_NATS = 12.0
 
 
 def bins_over(grid: np.ndarray, n_bins: int = N_BINS) -> np.ndarray:
-    """``n_bins`` equal gap bins over the span of a problem's curve grid (:attr:`pemviz.problems.Problem.curve_grid`),
-    float64 [n_bins + 1] edges (the grid's unit: metres for the braking scenario).
+    """``n_bins`` equal gap bins over the span of a problem's curve grid
+    (:attr:`pemviz.core.problems.Problem.curve_grid`), float64 [n_bins + 1] edges (the grid's unit: metres for the
+    braking scenario).
 
     Raises:
         ValueError: a grid without a positive span, or ``n_bins`` < 1.

@@ -4,7 +4,7 @@ The proposal q_phi(detect | h(s)), h(s) = gap / 12, is a small network trained b
 method: each stage keeps the rollouts whose robustness is at or below the stage threshold gamma_kappa
 (the elites) and maximises their weighted log-likelihood under q_phi, with importance weights raised to
 the smoothing power alpha. The failure probability is then estimated with importance weights
-``prod_t p_PEM(a_t | s_t) / q(a_t | s_t)`` in float64 log-space (:mod:`pemviz.estimate`).
+``prod_t p_PEM(a_t | s_t) / q(a_t | s_t)`` in float64 log-space (:mod:`pemviz.core.estimate`).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from pemviz.config import FITS
-from pemviz.detectors import GAP_COLUMN
+from pemviz.core.detectors import GAP_COLUMN
 from pemviz.io.files import atomic_write, load_tagged
 
 GAP_SCALE_M = 12.0
@@ -152,10 +152,10 @@ class NoiseShift(nn.Module):
 
         loc_q = loc_p + s_p a(h),    log s_q = log s_p + b(h),
 
-    in the target's family (:func:`pemviz.detectors.noise_quantile`). (a, b) are linear in h (Linear(k, 2 D), float64),
-    zero at first: q's errors are p's until a cross-entropy fit moves them toward the failures' errors (Rubinstein &
-    Kroese, "The Cross-Entropy Method", 2004: the CE update of a location-scale family's parameters); a stage's few
-    elites fit so few parameters without overfitting.
+    in the target's family (:func:`pemviz.core.detectors.noise_quantile`). (a, b) are linear in h (Linear(k, 2 D),
+    float64), zero at first: q's errors are p's until a cross-entropy fit moves them toward the failures' errors
+    (Rubinstein & Kroese, "The Cross-Entropy Method", 2004: the CE update of a location-scale family's parameters); a
+    stage's few elites fit so few parameters without overfitting.
     """
 
     def __init__(self, n_inputs: int, n_noise: int) -> None:
@@ -198,7 +198,8 @@ def fit_noise_shift(proposal: Proposal, obs: np.ndarray, noise: np.ndarray, loc_
 
     Args:
         obs: float64 [S, G] the detected objects' rows; noise: [S, D] their errors; loc_p, log_scale_p: [S, D] the
-            target's parameters at the rows; family, df: the target's family (:data:`pemviz.detectors.NOISE_FAMILIES`).
+            target's parameters at the rows; family, df: the target's family
+            (:data:`pemviz.core.detectors.NOISE_FAMILIES`).
         log_w: float64 [S] each error's weight in log space (alpha times its rollout's importance log-weight).
         max_rows: beyond that many errors, a weighted systematic subsample of them (:func:`pemviz.estimators.ce_fit`'s
             rule: the expected loss is kept); None: all.

@@ -79,7 +79,7 @@ def counterfactuals(problem, batch: RolloutBatch, index: int, *, max_interventio
     """Undo each perception error of rollout ``index`` of ``batch`` alone and replay it (module docstring).
 
     Args:
-        problem: a :class:`pemviz.problems.Problem` with ``branch`` (its simulator replays given events).
+        problem: a :class:`pemviz.core.problems.Problem` with ``branch`` (its simulator replays given events).
         batch: rollouts of ``problem`` (detected [N, T, M], noise [N, T, M, D] or None).
         index: the failing rollout.
         max_interventions: the most replays (the earliest errors first).
@@ -134,8 +134,8 @@ def counterfactuals(problem, batch: RolloutBatch, index: int, *, max_interventio
 
 class MostLikelyFailure:
     """A run's listener that keeps its most likely failure: of every failing rollout the run's events carry
-    (:class:`pemviz.events.RolloutsSampled`), the one with the largest log p under the target (nats, summed over its
-    steps), as a batch of one rollout (``batch``, with ``stage`` and ``log_p``; None until a failure is seen)."""
+    (:class:`pemviz.engine.events.RolloutsSampled`), the one with the largest log p under the target (nats, summed over
+    its steps), as a batch of one rollout (``batch``, with ``stage`` and ``log_p``; None until a failure is seen)."""
 
     def __init__(self) -> None:
         self.batch: RolloutBatch | None = None
@@ -143,7 +143,7 @@ class MostLikelyFailure:
         self.log_p = -np.inf
 
     def __call__(self, event: object) -> None:
-        from pemviz.events import RolloutsSampled
+        from pemviz.engine.events import RolloutsSampled
 
         if not isinstance(event, RolloutsSampled) or not np.any(event.failed):
             return

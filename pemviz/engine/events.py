@@ -1,7 +1,7 @@
-"""The events the experiment engine (:class:`pemviz.engine.Experiment`) emits, and what they carry.
+"""The events the experiment engine (:class:`pemviz.engine.experiment.Experiment`) emits, and what they carry.
 
-Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.plan.RunPlan` and the problem's
-:class:`~pemviz.problems.ProblemView`); for each stage (0 = pretraining, 1..K = cross-entropy stages, K+1 = final
+Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.engine.plan.RunPlan` and the problem's
+:class:`~pemviz.core.problems.ProblemView`); for each stage (0 = pretraining, 1..K = cross-entropy stages, K+1 = final
 batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one :class:`RolloutsSampled`,
 :class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`).
 
@@ -17,13 +17,13 @@ from typing import TYPE_CHECKING, Callable, Mapping, Union
 
 import numpy as np
 
-from pemviz.plan import RunPlan
+from pemviz.engine.plan import RunPlan
 
 if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.config import ExperimentConfig
-    from pemviz.detectors import Detector
-    from pemviz.estimate import Estimate
-    from pemviz.problems import ProblemView
+    from pemviz.core.detectors import Detector
+    from pemviz.core.estimate import Estimate
+    from pemviz.core.problems import ProblemView
     from pemviz.scenarios import RolloutBatch
 
 
@@ -36,7 +36,7 @@ class RunStarted:
     """p_PEM(detect | d) on ``curve_grid_m``, float64 [G]."""
     problem: ProblemView
     """What the run estimates: the problem's name and description, its signals with their units, its thresholds and
-    its scene (:attr:`pemviz.problems.Problem.view`)."""
+    its scene (:attr:`pemviz.core.problems.Problem.view`)."""
     plan: RunPlan
     """The stages the estimator will run (number, kind, label, rollouts) and its simulations, as it states them
     (:meth:`pemviz.estimators.Estimator.plan`)."""
@@ -64,15 +64,16 @@ class RolloutsSampled:
     robustness_by_metric: Mapping[str, np.ndarray]
     """metric name -> [N] robustness under each semantics of :data:`pemviz.config.METRICS` (computed when read)."""
     failed: np.ndarray
-    """bool [N]: the problem's failure (:meth:`pemviz.problems.Problem.failed`: classic robustness < 0)."""
+    """bool [N]: the problem's failure (:meth:`pemviz.core.problems.Problem.failed`: classic robustness < 0)."""
     log_weight: np.ndarray
     """[N] importance log-weights (nats), T - 1 factors."""
     sampler: Detector | None = None
     """The detector that drew the batch (the proposal is trained in place afterwards: copy it to keep it)."""
     n_total: int | None = None
     """The stage's rollouts when ``batch`` is only a sample of them (a stage streamed in chunks: its
-    :data:`pemviz.engine.SAMPLE_LEAST_ROBUST` least-robust rollouts, its first :data:`pemviz.engine.SAMPLE_FAILURES`
-    failures and :data:`pemviz.engine.SAMPLE_UNIFORM` evenly spaced ones); None: ``batch`` is the whole stage."""
+    :data:`pemviz.engine.experiment.SAMPLE_LEAST_ROBUST` least-robust rollouts, its first
+    :data:`pemviz.engine.experiment.SAMPLE_FAILURES` failures and :data:`pemviz.engine.experiment.SAMPLE_UNIFORM` evenly
+    spaced ones); None: ``batch`` is the whole stage."""
     index: np.ndarray | None = None
     """int [n]: the sampled rollouts' numbers in the stage (0 .. n_total - 1), with ``n_total``."""
     stage_robustness: np.ndarray | None = None
@@ -81,7 +82,8 @@ class RolloutsSampled:
     """[n_total] every rollout's importance log-weight, with ``n_total``."""
     target: Detector | None = None
     """The detector that weighs the batch (p, the PEM); with ``sampler``, what each object's p(detect) and q(detect)
-    were (:func:`pemviz.proposal_view.object_detect_probabilities`) while the sampler is still the one that drew."""
+    were (:func:`pemviz.core.proposal_view.object_detect_probabilities`) while the sampler is still the one that
+    drew."""
 
     @property
     def rollout_numbers(self) -> np.ndarray:
@@ -108,7 +110,7 @@ class RolloutChunk:
     parts: tuple = ()
     """The stage's samplers in the order drawn, ``(rollouts, detector)`` each
     (:attr:`pemviz.estimators.StagePlan.parts`): several for a mixture over whole rollouts, whose rollouts are
-    weighed by the mixture (:func:`pemviz.weights.stage_log_q`)."""
+    weighed by the mixture (:func:`pemviz.core.weights.stage_log_q`)."""
     target: Detector | None = None
     """The problem's target detector (p)."""
 

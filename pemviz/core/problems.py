@@ -19,7 +19,8 @@ from scipy.special import expit
 
 from pemviz import stl
 from pemviz.config import SIMULATORS, ExperimentConfig
-from pemviz.detectors import Detector, PEMDetector
+from pemviz.core.detectors import Detector, PEMDetector
+from pemviz.core.truth import known_log_failure_probability
 from pemviz.pem import load_pem
 from pemviz.scenarios import RolloutBatch, branch, branch_rollouts, iter_rollouts, simulate, simulate_rollouts
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
@@ -27,7 +28,6 @@ from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
 from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams
 from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
-from pemviz.truth import known_log_failure_probability
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
 """``simulate(n, sampler, target, rng) -> RolloutBatch``: n rollouts drawn from ``sampler``."""
@@ -474,7 +474,7 @@ class ShiftedPEM:
     """A PEM whose detection logit is moved by ``shift`` (nats) at every gap: ``logit p'(detect | d) = logit
     p(detect | d) + shift``, so that p'(miss) ~ exp(-shift) p(miss) where misses are rare. A braking problem with it
     (:func:`braking_problem`) is as rare as wanted, and its exact answer comes from the same enumeration
-    (:func:`pemviz.truth.braking_exact` with ``logit_at_gap``)."""
+    (:func:`pemviz.core.truth.braking_exact` with ``logit_at_gap``)."""
 
     pem: object
     shift: float

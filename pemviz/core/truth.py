@@ -36,7 +36,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.special import expit, log_expit, logsumexp
 
-from pemviz.estimate import format_probability
+from pemviz.core.estimate import format_probability
 from pemviz.scenarios.batched import replay  # the latched path: the batched simulator's observations bit for bit
 from pemviz.scenarios.braking import BrakingParams, braking_replay, braking_step, lead_speeds
 

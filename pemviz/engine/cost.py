@@ -1,7 +1,7 @@
 """What a run costs: its simulations, its largest batch in memory, and its seconds, before it starts and while it runs.
 
 The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimators.cross_entropy`,
-:mod:`pemviz.estimators.ce_fit`), stage by stage of its :class:`~pemviz.plan.RunPlan`:
+:mod:`pemviz.estimators.ce_fit`), stage by stage of its :class:`~pemviz.engine.plan.RunPlan`:
 
 - simulating a batch of n rollouts of T steps: T x (a fixed cost per step of the batch, larger when a proposal
   network and its mixture decide the detections than when the PEM alone does, + a cost per rollout and step of the
@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass, field
 
 from pemviz.config import ExperimentConfig
-from pemviz.plan import RunPlan
+from pemviz.engine.plan import RunPlan
 
 N_STEPS = 100
 """T of the braking scenario (:attr:`pemviz.scenarios.braking.BrakingParams.n_steps`), the default of the model."""
@@ -190,8 +190,8 @@ def run_cost(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, strea
     """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, and the seconds of ``plan``
     (the sum of :func:`stage_cost`; an open-ended plan counts its first stage only).
 
-    A stage above ``stream_above`` rollouts (:data:`pemviz.engine.STREAM_ABOVE`) is simulated in chunks, so it does
-    not count in full towards memory.
+    A stage above ``stream_above`` rollouts (:data:`pemviz.engine.experiment.STREAM_ABOVE`) is simulated in chunks, so
+    it does not count in full towards memory.
     """
     biggest = max([min(s.n_rollouts, stream_above) for s in plan.stages] + [0])
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())

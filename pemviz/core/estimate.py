@@ -2,7 +2,7 @@
 
 Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t), computed in
 float64 log-space. :func:`estimate` gives an :class:`Estimate`; its diagnostics (ESS, Pareto k-hat) come from
-:mod:`pemviz.diagnostics`. :func:`format_probability` and :func:`relative_error` print and compare probabilities
+:mod:`pemviz.core.diagnostics`. :func:`format_probability` and :func:`relative_error` print and compare probabilities
 given as natural logs, exact also far below float64's range.
 """
 
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.diagnostics import effective_sample_size, pareto_khat
+from pemviz.core.diagnostics import effective_sample_size, pareto_khat
 
 CI_LEVEL = 0.95
 """Coverage of every interval pemviz reports for mu_hat."""

@@ -4,9 +4,9 @@ The engine asks its executor for every batch (``executor.simulate(problem, n, sa
 Both executors give the same rollouts, bit for bit, for the same seed, whatever the number of workers or tasks:
 
 - ``serial`` calls ``problem.simulate(n, sampler, target, rng)``, exactly what the engine did before.
-- ``ray`` cuts the N rollouts into the fixed blocks of :data:`pemviz.rng.RQMC_BLOCK` rollouts
-  (:func:`pemviz.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the rollouts
-  of a block, and detectors are asked about one block at a time. Each Ray task simulates a run of whole blocks
+- ``ray`` cuts the N rollouts into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts
+  (:func:`pemviz.core.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the
+  rollouts of a block, and detectors are asked about one block at a time. Each Ray task simulates a run of whole blocks
   (:func:`task_blocks`: as many tasks as the cluster has CPUs by default), one block after another. Every pemviz
   simulator draws one ``rng.random(n K)`` per step, K uniforms per rollout (:func:`pemviz.scenarios.draws_per_rollout`:
   1 for a single-object scenario; u for rollout i at step t is then the ``(t * n + i)``-th uniform of the stream),
@@ -34,12 +34,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from pemviz.config import EXECUTORS
-from pemviz.detectors import Detector
-from pemviz.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at, block_bounds
+from pemviz.core.detectors import Detector
+from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at, block_bounds
 from pemviz.scenarios import RolloutBatch
 
 MAX_CHUNK = RQMC_BLOCK
-"""Most rollouts a Ray task simulates in one call: one block (:data:`pemviz.rng.RQMC_BLOCK`), so that the batched
+"""Most rollouts a Ray task simulates in one call: one block (:data:`pemviz.core.rng.RQMC_BLOCK`), so that the batched
 simulator draws one ``random(m)`` per step inside a task."""
 
 
@@ -61,7 +61,8 @@ class SerialExecutor:
     def simulate(
         self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
     ) -> RolloutBatch:
-        """``problem.simulate(n, sampler, target, rng)``: N rollouts [N, T] (see :class:`pemviz.problems.Problem`)."""
+        """``problem.simulate(n, sampler, target, rng)``: N rollouts [N, T] (see
+        :class:`pemviz.core.problems.Problem`)."""
         return problem.simulate(n, sampler, target, rng)
 
     def close(self) -> None:
@@ -69,7 +70,7 @@ class SerialExecutor:
 
 
 def task_blocks(n: int, n_tasks: int, block: int = RQMC_BLOCK) -> list[list[tuple[int, int]]]:
-    """The fixed blocks of ``n`` rollouts (:func:`pemviz.rng.block_bounds`) dealt into at most ``n_tasks`` runs of
+    """The fixed blocks of ``n`` rollouts (:func:`pemviz.core.rng.block_bounds`) dealt into at most ``n_tasks`` runs of
     consecutive blocks, in order, their counts differing by at most one.
 
     Raises:
@@ -149,7 +150,7 @@ def simulate_chunk(
     """Rollouts ``start..stop-1`` of the serial run ``problem.simulate(n, sampler, target, rng)`` from
     ``rng_state``; returns the batch [stop - start, T], the number of per-step draws it made (T) and the uniforms
     per rollout of each (:func:`pemviz.scenarios.draws_per_rollout`). The rollouts
-    are the serial run's when ``start..stop-1`` is one block (:func:`pemviz.rng.block_bounds`) or, without
+    are the serial run's when ``start..stop-1`` is one block (:func:`pemviz.core.rng.block_bounds`) or, without
     Array-RQMC and with detectors that give the same bits at any batch size, any range."""
     stream = ChunkUniforms(rng_state, n, start, stop)
     batch = problem.simulate(stop - start, sampler, target, stream)

@@ -2,9 +2,9 @@
 
 The importance weights need log p_PEM and log q of every logged action: from the file's ``log_p`` / ``log_q``
 columns, or recomputed here under a PEM (:func:`pem_log_prob`) and the detector that sampled the rollouts
-(:func:`sampler_detector`, or a proposal checkpoint read by :func:`pemviz.sampling.load_proposal`).
+(:func:`sampler_detector`, or a proposal checkpoint read by :func:`pemviz.core.sampling.load_proposal`).
 :func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6): per stage, pooled over
-the stages the sidecar names with its stage weights, under either weight convention (:mod:`pemviz.weights`), with
+the stages the sidecar names with its stage weights, under either weight convention (:mod:`pemviz.core.weights`), with
 the mean-weight check of the logged density.
 """
 
@@ -18,15 +18,15 @@ import numpy as np
 
 from pemviz import stl
 from pemviz.config import METRICS
-from pemviz.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
-from pemviz.estimate import Estimate, estimate
+from pemviz.core.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
+from pemviz.core.estimate import Estimate, estimate
+from pemviz.core.problems import Problem
+from pemviz.core.weights import CONVENTIONS, MeanWeight, mean_weight
 from pemviz.estimators import log_p_before_failure, log_weight
 from pemviz.estimators.base import pool
 from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta
 from pemviz.io.rollouts import RolloutData, braking_salient
-from pemviz.problems import Problem
 from pemviz.scenarios import RolloutBatch
-from pemviz.weights import CONVENTIONS, MeanWeight, mean_weight
 
 
 def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
@@ -86,18 +86,18 @@ class RolloutEstimate:
     """The failure-probability estimate from logged rollouts.
 
     Attributes:
-        estimate: mu_hat, failures, NLL, ESS, interval, k-hat, verdict (:class:`pemviz.estimate.Estimate`): pooled over
-            :attr:`pooled` with the sidecar's stage weights, or over every rollout alike.
+        estimate: mu_hat, failures, NLL, ESS, interval, k-hat, verdict (:class:`pemviz.core.estimate.Estimate`): pooled
+            over :attr:`pooled` with the sidecar's stage weights, or over every rollout alike.
         robustness: float64 [N] under ``metric``.
         failed: bool [N].
         log_weight: float64 [N] importance log-weights under :attr:`weights` (nats), before any stage weight.
         metric: the robustness semantics.
         failure: ``crash`` (classic robustness < 0) or ``metric`` (robustness under ``metric`` < 0).
-        weights: the convention used, one of :data:`pemviz.weights.CONVENTIONS`.
+        weights: the convention used, one of :data:`pemviz.core.weights.CONVENTIONS`.
         stages: one row per stage in the file (one row with stage None without a stage column).
         pooled: the stages the estimate pools with the sidecar's rule (empty: every rollout alike).
         rule: the sidecar's pooling rule (``every rollout alike`` without one).
-        check: the mean importance weight over all N rollouts (:func:`pemviz.weights.mean_weight`).
+        check: the mean importance weight over all N rollouts (:func:`pemviz.core.weights.mean_weight`).
     """
 
     estimate: Estimate
@@ -118,7 +118,8 @@ def _no_simulator(n: int, sampler: Detector, target: Detector, rng: np.random.Ge
 
 
 def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
-    """The :class:`~pemviz.problems.Problem` a rollout file poses: the sidecar's formula, signals and signal ranges.
+    """The :class:`~pemviz.core.problems.Problem` a rollout file poses: the sidecar's formula, signals and signal
+    ranges.
 
     Its robustness and failure (classic robustness < 0) are the engine's; it has no simulator (the rollouts are
     given) and no target detector (the logged log-probabilities are).
@@ -141,19 +142,19 @@ def estimate_rollouts(
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
 
     The rollouts go through the engine's code: robustness and failure steps of :func:`file_problem`
-    (:meth:`pemviz.problems.Problem.robustness`, :func:`pemviz.estimators.log_weight`), the estimate of
-    :func:`pemviz.estimate.estimate`, the pool of :func:`pemviz.estimators.base.pool`. ``log w_i = sum_{t < k_i} log p -
-    log q`` with k_i = T - 1 (``weights="full"``: the last action affects nothing) or, with ``"to-failure"`` and
+    (:meth:`pemviz.core.problems.Problem.robustness`, :func:`pemviz.estimators.log_weight`), the estimate of
+    :func:`pemviz.core.estimate.estimate`, the pool of :func:`pemviz.estimators.base.pool`. ``log w_i = sum_{t < k_i}
+    log p - log q`` with k_i = T - 1 (``weights="full"``: the last action affects nothing) or, with ``"to-failure"`` and
     ``failure="crash"``, the step at which rollout i first violates the sidecar's ``G[a,b](...)`` formula (both
-    unbiased: :mod:`pemviz.weights`). Failure = classic robustness of the formula < 0 (``failure="crash"``, the
+    unbiased: :mod:`pemviz.core.weights`). Failure = classic robustness of the formula < 0 (``failure="crash"``, the
     default) or robustness under ``metric`` < 0. The NLL sums log p over the steps before the failure. With a stage
     column and the sidecar's ``pooling``, mu_hat = sum_k lambda_k mu_hat_k over its stages; otherwise the mean over
     every rollout.
 
     Args:
         log_p, log_q: float64 [N, T] (nats).
-        weights: one of :data:`pemviz.weights.CONVENTIONS`; ``to-failure`` with a formula that is not ``G[a,b](state
-            predicate)``, or with ``failure="metric"``, weighs every step but the last (``full``, said in
+        weights: one of :data:`pemviz.core.weights.CONVENTIONS`; ``to-failure`` with a formula that is not
+            ``G[a,b](state predicate)``, or with ``failure="metric"``, weighs every step but the last (``full``, said in
             :attr:`RolloutEstimate.weights`).
     Raises:
         ValueError: an unknown metric, failure mode or convention, arrays of the wrong shape, or a formula the file's

@@ -17,7 +17,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from scipy.special import expit, log_expit
 
-from pemviz.rng import RQMC_BLOCK, array_rqmc_uniforms, block_bounds, by_blocks, ranking_key
+from pemviz.core.rng import RQMC_BLOCK, array_rqmc_uniforms, block_bounds, by_blocks, ranking_key
 
 GAP_COLUMN = 0
 """Index of ``gap_m`` (metres) in every observation vector."""
@@ -310,13 +310,13 @@ class StageSamplers:
     @property
     def has_noise(self) -> bool:
         """Whether the proposal draws the measurement errors from a model of its own (a noisy target and a proposal
-        with an error head, :meth:`pemviz.sampling.Proposal.add_noise_head`)."""
+        with an error head, :meth:`pemviz.core.sampling.Proposal.add_noise_head`)."""
         return bool(noise_names_of(self.target_detector)) and getattr(self.proposal, "noise_shift", None) is not None
 
     def noise_params(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(loc_p, log_scale_p, loc_q, log_scale_q), float64 [N, D] each, at object rows [N, F]: the target's error
-        parameters and the proposal's, which shift them inside the window (:class:`pemviz.sampling.NoiseShift`); the
-        last rows' are kept (a step draws the errors, then weighs them)."""
+        parameters and the proposal's, which shift them inside the window (:class:`pemviz.core.sampling.NoiseShift`);
+        the last rows' are kept (a step draws the errors, then weighs them)."""
         obs = np.asarray(obs, dtype=np.float64)
         last = self._noise_obs
         if last is not None and last.shape == obs.shape and np.array_equal(last, obs):
@@ -448,7 +448,7 @@ class ErrorModelOf:
 @dataclass(frozen=True)
 class ArrayRQMC(ErrorModelOf):
     """``detector``, drawn by Array-RQMC: a simulator stepping rollouts together ranks them by this detector's logit
-    at each step and takes their uniforms from :func:`pemviz.rng.array_rqmc_uniforms` (:func:`step_uniforms`).
+    at each step and takes their uniforms from :func:`pemviz.core.rng.array_rqmc_uniforms` (:func:`step_uniforms`).
     Every rollout still follows ``detector`` exactly; a simulator that does not look at ``array_rqmc`` draws i.i.d.
     uniforms, with the same expectations."""
 
@@ -467,9 +467,9 @@ def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np
     """The uniforms a simulator compares with ``sampler``'s detection probabilities at one step: ``u`` (float64 [n],
     i.i.d. U(0, 1)) as drawn, or for an :class:`ArrayRQMC` sampler the Array-RQMC uniforms of the chains ranked by
     ``q_logit`` (float64 [n], the sampler's logits at this step, to float32), then by the first column of their rows
-    ``obs`` [n, G] (the window's gap; :func:`pemviz.rng.ranking_key`) and then by the rows, within each fixed block of
-    ``block`` rows (:func:`pemviz.rng.array_rqmc_uniforms`: the rows of :data:`pemviz.rng.RQMC_BLOCK` rollouts; the n
-    rows start at a block boundary).
+    ``obs`` [n, G] (the window's gap; :func:`pemviz.core.rng.ranking_key`) and then by the rows, within each fixed block
+    of ``block`` rows (:func:`pemviz.core.rng.array_rqmc_uniforms`: the rows of :data:`pemviz.core.rng.RQMC_BLOCK`
+    rollouts; the n rows start at a block boundary).
 
     Only the chains inside the sampler's window are coupled when it has one (``window_rows(obs)``, e.g. a
     cross-entropy stage's sampler: where a detection can matter): they are ranked among themselves and shifted by
@@ -526,7 +526,7 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
             :class:`ArrayRQMC` sampler, inside the sampler's window where it has one: :func:`step_uniforms`), columns
             1..D the errors.
         block: rows asked about at a time and coupled by Array-RQMC together (the rows of one
-            :data:`pemviz.rng.RQMC_BLOCK` of rollouts).
+            :data:`pemviz.core.rng.RQMC_BLOCK` of rollouts).
         n_objects: M, the rows of one rollout (consecutive). Array-RQMC couples single-object rollouts only: one
             lattice over several objects of a rollout would make their detections depend on each other (their
             uniforms differ by multiples of the lattice's generator), so rollouts of M > 1 objects draw i.i.d.
