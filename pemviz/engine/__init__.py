@@ -4,7 +4,8 @@ With it: the events and what they carry (:mod:`pemviz.engine.events`), the run's
 (:mod:`pemviz.engine.plan`), what a run costs before it starts and while it runs (:mod:`pemviz.engine.cost`), its
 memory and CPUs (:mod:`pemviz.engine.resources`), and where its rollouts are simulated (:mod:`pemviz.engine.executors`).
 
-``from pemviz.engine import Experiment`` (and the other names of :data:`__all__`) imports
+``from pemviz.engine import Experiment`` (and the other names of :data:`__all__`; the events have their one home in
+:mod:`pemviz.engine.events`) imports
 :mod:`pemviz.engine.experiment`, and with it torch, only when asked: the light modules of this package
 (``events``, ``plan``, ``cost``, ``resources``) import neither, so ``pemviz --help`` stays fast. To change one of the
 engine's constants (``STREAM_ABOVE``) set it on :mod:`pemviz.engine.experiment`, which reads it.
@@ -17,9 +18,7 @@ from typing import Any
 
 _EXPERIMENT = ("Experiment", "Cancelled", "RobustnessByMetric", "StageSample", "STREAM_ABOVE", "SAMPLE_LEAST_ROBUST",
                "SAMPLE_FAILURES", "SAMPLE_UNIFORM")  # fmt: skip
-_EVENTS = ("Event", "Listener", "RunStarted", "StageStarted", "RolloutChunk", "RolloutsSampled", "StageResult",
-           "StageFinished", "FinalEstimate", "RunFinished", "RunCancelled")  # fmt: skip
-_HOMES = {**dict.fromkeys(_EXPERIMENT, "experiment"), **dict.fromkeys(_EVENTS, "events")}
+_HOMES = dict.fromkeys(_EXPERIMENT, "experiment")
 __all__ = sorted(_HOMES)
 
 
