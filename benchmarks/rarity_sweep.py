@@ -45,13 +45,12 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from scipy.stats import binomtest
 
 from pemviz.core import truth
 from pemviz.config import METHODS as CONFIG_METHODS, ExperimentConfig
 from pemviz.core.detectors import Detector
 from pemviz.engine import Experiment
-from pemviz.core.estimate import relative_error
+from pemviz.core.estimate import clopper_pearson, relative_error
 from pemviz.engine.events import RunFinished
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.io.files import atomic_write
@@ -174,9 +173,9 @@ def exact_log_p(spec: Spec) -> tuple[float, str]:
         return toy_log_failure_probability(toy_params(spec)), f"closed form (1 - {spec.p_detect:.6g})^{spec.misses}"
     if spec.kind == "cut-in":
         failures, rollouts = MONTE_CARLO_REFERENCE[spec.setting]
-        ci = binomtest(failures, rollouts).proportion_ci(0.95)
+        lo, hi = clopper_pearson(failures, rollouts)
         return (math.log(failures / rollouts), f"plain Monte Carlo, {failures} failures in {rollouts:.0e} rollouts "
-                f"(95 % interval [{ci.low:.3g}, {ci.high:.3g}])")  # fmt: skip
+                f"(95 % interval [{lo:.3g}, {hi:.3g}])")  # fmt: skip
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
         return truth.latched_log_failure_probability(pem.logit_at_gap).log_p_fail, "latched closed form"

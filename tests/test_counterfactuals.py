@@ -94,3 +94,6 @@ def test_each_objects_p_and_q_of_detection_give_back_the_batchs_own_log_densitie
         np.testing.assert_allclose(want, batch.log_p[i], rtol=0, atol=1e-9)
     with pytest.raises(ValueError, match="outside a batch of 3"):
         object_detect_probabilities(batch, 3, problem.target, problem.target)
+    braking = build_problem("main")  # one object a step: its batch's log-probabilities are per object already
+    one = braking.simulate(2, braking.target, braking.target, np.random.default_rng(0))
+    assert object_detect_probabilities(one, 0, braking.target, braking.target) is None

@@ -140,9 +140,7 @@ def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
         return np.array(obs[:, fallback], dtype=np.float64) if fallback is not None else np.full(obs.shape[0], np.nan)
 
     several = batch.objects is not None and batch.n_objects > 1
-    object_p = object_q = None
-    if several and event.sampler is not None and event.target is not None:
-        object_p, object_q = object_detect_probabilities(batch, int(i), event.sampler, event.target)
+    object_p, object_q = object_detect_probabilities(batch, int(i), event.sampler, event.target) or (None, None)
     return Trajectory(
         stage=event.stage,
         index=int(i),

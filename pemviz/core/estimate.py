@@ -132,6 +132,20 @@ def _log_mean_interval(log_y: np.ndarray) -> tuple[float, float, float]:
     return log_mean, log_mean - half, log_mean + half
 
 
+def clopper_pearson(n_failures: int, n: int) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) :data:`CI_LEVEL` interval (lo, hi) of a failure probability from ``n_failures``
+    failures in ``n`` rollouts drawn from the target (``scipy.stats.binomtest``; Clopper & Pearson, Biometrika 26(4),
+    1934).
+
+    Raises:
+        ValueError: ``n`` < 1 or ``n_failures`` outside 0..n.
+    """
+    from scipy.stats import binomtest  # ~0.5 s to import: only for plain Monte Carlo
+
+    ci = binomtest(int(n_failures), int(n)).proportion_ci(confidence_level=CI_LEVEL, method="exact")
+    return float(ci.low), float(ci.high)
+
+
 def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray) -> Estimate:
     """mu_hat = logsumexp(log w over failures) - log N with its interval, diagnostics and verdict.
 
@@ -184,10 +198,8 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
     nll_lme = -(float(logsumexp(lp)) - math.log(nf))
     log_y = np.where(failed, log_weight, -math.inf)
     if plain_mc:
-        from scipy.stats import binomtest  # ~0.5 s to import: only for plain Monte Carlo
-
-        ci = binomtest(nf, n).proportion_ci(confidence_level=CI_LEVEL, method="exact")
-        log_ci = (math.log(ci.low) if ci.low > 0 else -math.inf, math.log(ci.high))
+        lo, hi = clopper_pearson(nf, n)
+        log_ci = (math.log(lo) if lo > 0 else -math.inf, math.log(hi))
         khat = math.nan
     else:
         _, lo, hi = _log_mean_interval(log_y)

@@ -65,25 +65,27 @@ def prob_detect(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:
     return np.where(np.asarray(detected, bool), np.exp(lp), -np.expm1(lp))
 
 
-def object_detect_probabilities(batch: object, i: int, sampler: object, target: object) -> tuple[np.ndarray,
-                                                                                              np.ndarray]:  # fmt: skip
+def object_detect_probabilities(batch: object, i: int, sampler: object | None,
+                                target: object | None) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
     """Each object's p(detect) under ``target`` (the PEM) and q(detect) under ``sampler`` along rollout ``i`` of a
     batch of several objects: float64 (p [T, M], q [T, M]), the detectors' logits at the rollout's object rows
-    passed through the logistic function (an object the camera cannot see, logit -inf, has 0). The log-probabilities
-    a batch keeps sum a step's objects, so these are asked of the detectors themselves: call it while ``sampler`` is
-    the one that drew the batch (an estimator refits its proposal in place after each stage).
+    passed through the logistic function (an object the camera cannot see, logit -inf, has 0); None for a batch of
+    one object a step (its log-probabilities are already per object) or without both detectors. The
+    log-probabilities a batch keeps sum a step's objects, so these are asked of the detectors themselves: call it
+    while ``sampler`` is the one that drew the batch (an estimator refits its proposal in place after each stage).
 
     Raises:
         ValueError: ``i`` outside the batch.
     """
     if not 0 <= int(i) < batch.n:
         raise ValueError(f"object_detect_probabilities: rollout {i} outside a batch of {batch.n}")
-    rows = np.ascontiguousarray(batch.object_rows[int(i)], dtype=np.float64)  # [T, M, G]
+    if batch.objects is None or batch.n_objects < 2 or sampler is None or target is None:
+        return None
+    rows = np.array(batch.object_rows[int(i)], dtype=np.float64)  # [T, M, G], a copy no detector keeps a view of
     flat = rows.reshape(-1, rows.shape[-1])
-    shape = rows.shape[:2]
     p = expit(np.asarray(target.detect_logit(flat), dtype=np.float64))
-    q = expit(np.asarray(sampler.detect_logit(flat.copy()), dtype=np.float64))
-    return p.reshape(shape), q.reshape(shape)
+    q = expit(np.asarray(sampler.detect_logit(flat), dtype=np.float64))
+    return p.reshape(rows.shape[:2]), q.reshape(rows.shape[:2])
 
 
 def miss_log_odds(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:

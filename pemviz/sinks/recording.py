@@ -517,9 +517,7 @@ class RerunSink(Sink):
             {m: np.asarray(v)[i] for m, v in ev.robustness_by_metric.items()}, np.asarray(ev.failed)[i],
             np.asarray(ev.log_weight)[i], index=ev.rollout_numbers[i],
         )  # fmt: skip
-        several = ev.batch.objects is not None and ev.batch.n_objects > 1
-        self.most_likely_detect = (object_detect_probabilities(ev.batch, int(i[0]), ev.sampler, ev.target)
-                                   if several and ev.sampler is not None and ev.target is not None else None)  # fmt: skip
+        self.most_likely_detect = object_detect_probabilities(ev.batch, int(i[0]), ev.sampler, ev.target)
 
     def _log_rollouts(self, ev: RolloutsSampled) -> None:
         """The kept traces of a stage and its featured rollouts
