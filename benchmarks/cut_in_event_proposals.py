@@ -303,6 +303,21 @@ def report(label: str, log_w: np.ndarray, failed: np.ndarray, extra: str = "") -
     return err
 
 
+def describe_failures(u: np.ndarray, decisive: np.ndarray, weight: np.ndarray) -> None:
+    """Print how p_fail splits by the number of decisive events of a failure (weights normalised), and where those
+    events lie (objects, steps, components, tail probabilities: unweighted percentiles over the events)."""
+    bins = bin_index(decisive)
+    count = (bins >= 0).reshape(u.shape[0], -1).sum(1)
+    for k in np.unique(count):
+        share = weight[count == k].sum()
+        print(f"  failures with {k} decisive event(s): {(count == k).sum()}, share of p_fail {share:.3f}")
+    i, t, m, c = np.nonzero(bins >= 0)
+    tail = np.minimum(u[i, t, m, c], 1.0 - u[i, t, m, c])
+    print(f"  decisive events: objects {dict(zip(*np.unique(m, return_counts=True)))}, components (detection, range, "
+          f"lateral) {np.bincount(c, minlength=3).tolist()}, steps 5/50/95 % {np.percentile(t, [5, 50, 95]).tolist()}, "
+          f"tail probability 5/50/95 % {np.percentile(tail, [5, 50, 95]).round(8).tolist()}", flush=True)  # fmt: skip
+
+
 def oracle(n_collect: int, n: int, seed: int) -> None:
     s = Study()
     rng = np.random.default_rng(seed)
@@ -322,6 +337,7 @@ def oracle(n_collect: int, n: int, seed: int) -> None:
     weight = np.exp(log_w - log_w.max())
     weight /= weight.sum()
     decisive = s.decisive(u, np.concatenate(objects), 0.0)
+    describe_failures(u, decisive, weight)
     print(f"fitted to {u.shape[0]} failures ({s.simulations} simulations so far)", flush=True)
     for family in ("product", "events", "both"):
         q = fit(family, decisive, weight, None)
