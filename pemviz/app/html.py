@@ -57,6 +57,9 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
             f"exact answer {format_probability(exact, 4)}: relative error "
             f"{relative_error(e.log_mu_hat, exact):.2g}, {inside} the interval"
         )
+    elif record.reference is not None:
+        text = html.escape(record.reference.comparison(e, outside="OUTSIDE"))
+        lines.append(text.replace("OUTSIDE", "<b>outside</b>"))
     if e.n_failures == 0:
         lines.append(f"no failure among {e.n} rollouts, so mu_hat = 0: " + no_failure_advice(record.config.method, e.n))
     lines.append(

@@ -24,6 +24,7 @@ import numpy as np
 
 from pemviz.app.form import run_label
 from pemviz.config import ExperimentConfig
+from pemviz.core.estimate import Reference
 from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities
 from pemviz.engine.events import (
     Event,
@@ -224,6 +225,8 @@ class PanelRun(Sink):
         self.final: FinalEstimate | None = None
         self.exact_log_p: float | None = None
         """Natural log of the exact failure probability when the engine knows it (``RunStarted.exact_log_p``)."""
+        self.reference: Reference | None = None
+        """The problem's plain Monte Carlo reference where no exact answer is known (``RunStarted.reference``)."""
         self.trajectories: list[Trajectory] = []
         self.most_likely_failure: Trajectory | None = None
         """The failing rollout with the highest probability under the PEM found so far."""
@@ -265,7 +268,7 @@ class PanelRun(Sink):
         self.formula, self.plan, self.view = event.formula, event.plan, event.problem
         self.curve_grid_m = np.asarray(event.curve_grid_m, dtype=np.float64)
         self.pem_curve = np.asarray(event.pem_curve, dtype=np.float64)
-        self.exact_log_p = event.exact_log_p
+        self.exact_log_p, self.reference = event.exact_log_p, event.reference
 
     def on_stage_started(self, event: StageStarted) -> None:
         self.current_stage = event

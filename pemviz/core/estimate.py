@@ -86,8 +86,9 @@ class Estimate:
         lo, hi = self.log_ci
         return f"[{format_probability(lo, 2)}, {format_probability(hi, 2)}]"
 
-    def summary(self, exact_log_p: float | None = None) -> str:
-        """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, the exact answer if known.
+    def summary(self, exact_log_p: float | None = None, reference: "Reference | None" = None) -> str:
+        """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, the exact answer if known, else the
+        reference answer if one is given (:meth:`Reference.comparison`).
 
         e.g. ``mu_hat = 1.795e-15, 95 % CI [1.3e-15, 2.5e-15], ESS 10.2, k-hat 0.41: reliable (96 failures);
         exact 1.984e-15 (relative error 0.095, inside the interval)``.
@@ -103,7 +104,56 @@ class Estimate:
                 f"; exact {format_probability(exact_log_p)} (relative error "
                 f"{relative_error(self.log_mu_hat, exact_log_p):.3g}, {inside} the interval)"
             )
+        elif reference is not None:
+            line += f"; {reference.comparison(self)}"
         return line
+
+
+@dataclass(frozen=True)
+class Reference:
+    """A failure probability known from a separate, much larger plain Monte Carlo run under the same PEMs, with its
+    own Clopper-Pearson :data:`CI_LEVEL` interval: the answer an estimate is shown beside where no exact one is known
+    (e.g. :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`).
+
+    Attributes:
+        n_failures, n: failures among ``n`` rollouts drawn from the PEMs.
+        source: a few words saying where they come from (e.g. ``plain Monte Carlo, benchmarks/cut_in_mc.py``).
+    Raises:
+        ValueError: ``n`` < 1 or ``n_failures`` outside 1..n (a reference without a failure bounds, it does not say).
+    """
+
+    n_failures: int
+    n: int
+    source: str = "plain Monte Carlo"
+
+    def __post_init__(self) -> None:
+        if self.n < 1 or not 1 <= self.n_failures <= self.n:
+            raise ValueError(f"Reference: need 1 <= n_failures <= n, got {self.n_failures} of {self.n}")
+
+    @property
+    def log_p(self) -> float:
+        """Natural log of the reference failure probability, n_failures / n."""
+        return math.log(self.n_failures) - math.log(self.n)
+
+    @property
+    def log_ci(self) -> tuple[float, float]:
+        """The reference's own :data:`CI_LEVEL` interval (:func:`clopper_pearson`) as natural logs."""
+        lo, hi = clopper_pearson(self.n_failures, self.n)
+        return math.log(lo), math.log(hi)
+
+    def text(self) -> str:
+        """e.g. ``8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain Monte Carlo)``."""
+        lo, hi = self.log_ci
+        return (f"{format_probability(self.log_p, 2)} [{format_probability(lo, 2)}, {format_probability(hi, 2)}] "
+                f"({self.n_failures:,} failures in {self.n:,} rollouts, {self.source})")  # fmt: skip
+
+    def comparison(self, e: Estimate, outside: str = "OUTSIDE") -> str:
+        """How ``e`` stands against this reference: its relative error and whether its interval holds the
+        reference, e.g. ``reference 8.66e-05 [...] (...): relative error 1, OUTSIDE the interval``; ``outside`` is
+        the word used when it does not (the panel and the recording emphasise it their way)."""
+        inside = "inside" if e.covers(self.log_p) else outside
+        error = relative_error(e.log_mu_hat, self.log_p)
+        return f"reference {self.text()}: relative error {error:.3g}, {inside} the interval"
 
 
 def relative_error(log_mu_hat: float, log_truth: float) -> float:

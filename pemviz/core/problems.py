@@ -9,6 +9,7 @@ rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
@@ -20,13 +21,14 @@ from scipy.special import expit
 from pemviz import stl
 from pemviz.config import SIMULATORS, ExperimentConfig
 from pemviz.core.detectors import Detector, PEMDetector
+from pemviz.core.estimate import Reference
 from pemviz.core.truth import known_log_failure_probability
-from pemviz.pem import load_pem
+from pemviz.pem import DEFAULT_PEM_NAME, load_pem
 from pemviz.scenarios import RolloutBatch, branch, branch_rollouts, iter_rollouts, simulate, simulate_rollouts
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
-from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams
+from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE, RARITY_SETTINGS, CutInParams
 from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
@@ -191,6 +193,8 @@ class Problem:
             no snapshot/restore), for adaptive multilevel splitting (``method = "ams"``).
         exact_log_p: natural log of the exact failure probability when it is known (closed form, enumeration),
             else None; shown beside every estimate.
+        reference: where no exact answer is known, a plain Monte Carlo reference of the same failure probability
+            under the same PEMs (:class:`pemviz.core.estimate.Reference`), else None; shown beside every estimate.
         description: one line saying what is simulated (for sinks and tables).
         units: STL signal name -> unit, for sinks.
         thresholds: the failure threshold and sampler window that sinks draw (None: none).
@@ -215,6 +219,7 @@ class Problem:
     stream: StreamFn | None = None
     branch: BranchFn | None = None
     exact_log_p: float | None = None
+    reference: Reference | None = None
     description: str = ""
     units: Mapping[str, str] = field(default_factory=lambda: dict(BRAKING_UNITS))
     thresholds: Thresholds | None = None
@@ -533,12 +538,18 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
 
 def problem_for(config: ExperimentConfig) -> Problem:
     """The problem a run of ``config`` estimates: the scenario ``config.scenario`` (:data:`pemviz.config.SCENARIOS`)
-    with the PEM ``config.pem`` (None: the shipped one); the braking scenario on the simulator ``config.sim``. Loads the PEM on every call (a changed file is read again).
+    with the PEM ``config.pem`` (None: the shipped one); the braking scenario on the simulator ``config.sim``. Loads the PEM on every call (a changed file is read again). A cut-in setting with a plain Monte Carlo reference
+    (:data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`) carries it as its :attr:`Problem.reference` when it runs
+    the shipped PEMs, under which the reference was drawn.
 
     Raises:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
     """
     if config.scenario == "braking":
         return braking_problem(load_pem(config.pem), sim=config.sim)
-    return cut_in_problem(load_pem(config.pem), cut_in_params("rare" if config.scenario == "cut-in-rare" else
-                                                              "moderate"), name=config.scenario)  # fmt: skip
+    setting = "rare" if config.scenario == "cut-in-rare" else "moderate"
+    problem = cut_in_problem(load_pem(config.pem), cut_in_params(setting), name=config.scenario)
+    if config.pem in (None, DEFAULT_PEM_NAME) and setting in MONTE_CARLO_REFERENCE:
+        failures, n = MONTE_CARLO_REFERENCE[setting]
+        problem = dataclasses.replace(problem, reference=Reference(failures, n, "plain Monte Carlo, shipped PEMs"))
+    return problem

@@ -22,7 +22,7 @@ from pemviz.engine.plan import RunPlan
 if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.config import ExperimentConfig
     from pemviz.core.detectors import Detector
-    from pemviz.core.estimate import Estimate
+    from pemviz.core.estimate import Estimate, Reference
     from pemviz.core.problems import ProblemView
     from pemviz.scenarios import RolloutBatch
 
@@ -43,6 +43,9 @@ class RunStarted:
     exact_log_p: float | None = None
     """Natural log of the problem's exact failure probability when one is known (closed form, enumeration),
     else None: sinks show it beside every estimate with the relative error."""
+    reference: Reference | None = None
+    """Where no exact answer is known, the problem's plain Monte Carlo reference (:attr:`Problem.reference`), else
+    None: sinks show it beside every estimate the same way."""
 
 
 @dataclass(frozen=True)

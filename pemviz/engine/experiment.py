@@ -157,7 +157,7 @@ class Experiment:
         t_start = time.perf_counter()
         estimator = build_estimator(cfg, pb, self._check_cancel)  # it seeds its streams, the rollouts' included
         self.emit(RunStarted(cfg, str(pb.formula), pb.curve_grid, pb.target_curve(), pb.view, estimator.plan(),
-                             pb.exact_log_p))  # fmt: skip
+                             pb.exact_log_p, pb.reference))  # fmt: skip
         try:
             while (plan := estimator.next_stage()) is not None:
                 self._stage(estimator, plan)

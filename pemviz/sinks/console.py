@@ -6,7 +6,7 @@ import math
 import sys
 from typing import TextIO
 
-from pemviz.core.estimate import Estimate, format_probability
+from pemviz.core.estimate import Estimate, Reference, format_probability
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.sinks import Sink, StageClock
 
@@ -54,6 +54,7 @@ class ConsoleSink(Sink):
         self.plan = None
         """The run's :class:`~pemviz.engine.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.exact_log_p: float | None = None
+        self.reference: Reference | None = None
 
     def __call__(self, event) -> None:
         self.clock(event)
@@ -61,7 +62,7 @@ class ConsoleSink(Sink):
 
     def on_run_started(self, event: RunStarted) -> None:
         cfg = event.config
-        self.exact_log_p, self.plan = event.exact_log_p, event.plan
+        self.exact_log_p, self.reference, self.plan = event.exact_log_p, event.reference, event.plan
         print(
             f"pemviz: {cfg.method} on the {event.problem.name} scenario, spec {event.formula}, metric {cfg.metric}, "
             f"K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.n_final} sigma={cfg.quantile_level} "
@@ -87,7 +88,7 @@ class ConsoleSink(Sink):
             f"from {event.n_simulations} simulations in {event.wall_s:.1f} s",
             file=self.out,
         )
-        print(e.summary(self.exact_log_p), file=self.out, flush=True)
+        print(e.summary(self.exact_log_p, self.reference), file=self.out, flush=True)
 
     def on_run_cancelled(self, event: RunCancelled) -> None:
         print(f"run cancelled after {len(event.stages)} stages: {event.reason}", file=self.out, flush=True)

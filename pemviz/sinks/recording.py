@@ -79,7 +79,7 @@ import numpy as np
 import rerun as rr
 
 import pemviz
-from pemviz.core.estimate import format_probability, relative_error
+from pemviz.core.estimate import Reference, format_probability, relative_error
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.io.files import atomic_write
@@ -167,6 +167,7 @@ class RerunSink(Sink):
         self.status_md = ""
         self.stage_rows: list[str] = []
         self.exact_log_p: float | None = None
+        self.reference: Reference | None = None
         self.estimate_md = ""
         self.n_lanes = 0
         self.thresholds_logged = False
@@ -328,6 +329,8 @@ class RerunSink(Sink):
             inside = "inside" if e.covers(exact) else "**outside**"
             lines += ["", f"exact answer **{format_probability(exact, 4)}**: relative error "
                           f"{relative_error(e.log_mu_hat, exact):.2g}, {inside} the interval"]  # fmt: skip
+        elif self.reference is not None:
+            lines += ["", self.reference.comparison(e, outside="**outside**")]
         if e.n_failures == 0:
             lines += ["", f"No failure among {e.n} rollouts: mu_hat = 0 says only that the sampler found no crash."]
         khat = "-" if math.isnan(e.khat) else f"{e.khat:.2f}"
@@ -363,7 +366,7 @@ class RerunSink(Sink):
         self.plan, self.view, self.scene = ev.plan, ev.problem, ev.problem.scene
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         self.bins_m = bins_over(self.grid_m) if np.ptp(self.grid_m) > 0 else None
-        self.exact_log_p = ev.exact_log_p
+        self.exact_log_p, self.reference = ev.exact_log_p, ev.reference
         s = self.stream
         s.send_property(
             "pemviz",
@@ -428,6 +431,8 @@ class RerunSink(Sink):
             values["log10_mu_hat/ci_high"] = e.log_ci[1] / math.log(10.0)
         if self.exact_log_p is not None and math.isfinite(self.exact_log_p):
             values["log10_mu_hat/exact"] = self.exact_log_p / math.log(10.0)
+        elif self.reference is not None:
+            values["log10_mu_hat/reference"] = self.reference.log_p / math.log(10.0)
         pending = self._pending if self._pending is not None and self._pending.stage == res.stage else None
         if pending is not None:
             values.update(self._log_marginal(pending, colour))
