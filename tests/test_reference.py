@@ -11,7 +11,7 @@ from scipy.stats import beta
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference
 from pemviz.core.problems import problem_for
-from tests.conftest import run_cli
+from conftest import run_cli
 
 
 def an_estimate(mu: float, lo: float, hi: float) -> Estimate:
