@@ -538,7 +538,8 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
 
 def problem_for(config: ExperimentConfig) -> Problem:
     """The problem a run of ``config`` estimates: the scenario ``config.scenario`` (:data:`pemviz.config.SCENARIOS`)
-    with the PEM ``config.pem`` (None: the shipped one); the braking scenario on the simulator ``config.sim``. Loads the PEM on every call (a changed file is read again). A cut-in setting with a plain Monte Carlo reference
+    with the PEM ``config.pem`` (None: the shipped one); the braking scenario on the simulator ``config.sim``. Loads
+    the PEM on every call (a changed file is read again). A cut-in setting with a plain Monte Carlo reference
     (:data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`) carries it as its :attr:`Problem.reference` when it runs
     the shipped PEMs, under which the reference was drawn.
 
