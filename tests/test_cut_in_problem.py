@@ -95,12 +95,13 @@ def test_pemviz_run_scenario_cut_in_estimates_and_says_so(tmp_path):
     assert "from 300 simulations" in proc.stdout
 
 
-def test_save_rollouts_refuses_the_cut_in_before_it_runs(tmp_path):
+def test_save_rollouts_refuses_splitting_on_the_cut_in_before_it_runs(tmp_path):
+    """A cut-in run's rollouts are saved (tests/test_rollout_roundtrip.py); splitting's have no weights to save."""
     out = tmp_path / "r.parquet"
-    proc = run_cli("run", "--scenario", "cut-in", "--no-record", "--save-rollouts", str(out))
+    proc = run_cli("run", "--scenario", "cut-in", "--method", "ams", "--no-record", "--save-rollouts", str(out))
     assert proc.returncode == 2
-    assert proc.stderr.count("\n") == 1 and "one object per step" in proc.stderr and "Traceback" not in proc.stderr
-    assert not out.exists() and not list(tmp_path.iterdir())
+    assert proc.stderr.count("\n") == 1 and "method ams estimates by splitting" in proc.stderr
+    assert "Traceback" not in proc.stderr and not out.exists() and not list(tmp_path.iterdir())
 
 
 def test_a_cut_in_run_says_which_errors_decided_its_most_likely_failure():

@@ -282,7 +282,7 @@ HOSTILE_SIDECARS = {
     "formula-digits": ({"formula": "G[0,5](d >= ２)"}, "unexpected character"),
     "digest-short": ({"table_sha256": "abc"}, "table_sha256 must be a SHA-256"),
     "format-other": ({"format": "other"}, "format is 'other'"),
-    "version-3": ({"version": 3}, "format version 3; this pemviz reads versions 1, 2"),
+    "version-4": ({"version": 4}, "format version 4; this pemviz reads versions 1, 2, 3"),
     "weights-other": ({"weights": "half"}, "weights must be one of to-failure, full"),
     "stages-not-list": ({"stages": {"stage": 1}}, "stages must be a list of objects"),
     "stages-no-n": ({"stages": [{"stage": 1}]}, "stages[0] needs stage (an integer >= 0) and n"),

@@ -380,7 +380,7 @@ def test_sidecar_problems_are_named(small_file, tmp_path):
         ({"formula": "G[0,99](d >= "}, r"formula 'G\[0,99\]\(d >= ' is not valid STL"),
         ({"dt_s": -1}, r"dt_s must be a number of seconds > 0, got -1"),
         ({"n_steps": 50}, r"the sidecar says n_steps = 50 but the table holds 100"),
-        ({"version": 3}, r"format version 3; this pemviz reads versions 1, 2: a newer pemviz wrote the file"),
+        ({"version": 4}, r"format version 4; this pemviz reads versions 1, 2, 3: a newer pemviz wrote the file"),
         ({"signals": {"d": "gap_m", "w": "width_m"}}, r"missing column 'width_m'"),
     ]:
         rollout_format.sidecar_path(bad).write_text(json.dumps({**meta, **change}))

@@ -5,6 +5,8 @@ answer; the mean-weight check of a logged density; the version-2 fields of the f
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import re
@@ -311,7 +313,7 @@ def test_stage_and_component_columns_read_back_and_are_checked_against_the_sidec
                     lambda inner: st.lists(inner, max_size=3) | st.dictionaries(
                         st.sampled_from(["stage", "n", "kind", "components", "sampler", "max_weight", "rule",
                                          "stages", "stage_weights"]), inner, max_size=4), max_leaves=12),
-       st.sampled_from(["stages", "pooling", "weights"]))  # fmt: skip
+       st.sampled_from(["stages", "pooling", "weights", "objects", "noise"]))  # fmt: skip
 def test_any_stages_pooling_or_weights_field_parses_or_is_one_format_error(value, key):
     try:
         meta = rollout_format.RolloutMeta.from_json({"formula": "G[0,2](d >= 2)", "dt_s": 0.1, key: value})
@@ -329,3 +331,66 @@ def test_a_stage_column_that_changes_within_a_rollout_is_named(tmp_path):
     (tmp_path / "x.json").write_text(json.dumps({"formula": "G[0,2](d >= 2)", "dt_s": 0.1}))
     with pytest.raises(rollout_format.RolloutFormatError, match=r"stage = 2 at rollout 1, step 1 \(row 4\) but 1 at its step 0"):
         rio.read_rollouts(tmp_path / "x.parquet")
+
+
+# ------------------------------------------------------------------------- several objects with measurement errors
+
+
+@pytest.fixture(scope="module")
+def cut_in_file(tmp_path_factory):
+    """``pemviz run --scenario cut-in`` (small) with ``--save-rollouts``: (run stdout, estimate stdout, sidecar, path)."""
+    tmp = tmp_path_factory.mktemp("cut_in")
+    path = tmp / "r.parquet"
+    args = ["--scenario", "cut-in", "--n-final", "300"]  # K = 10: its pooled stages are mixtures with the target
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli.main(["run", "--no-record", "--save-rollouts", str(path), *args]) == 0
+    run = out.getvalue()
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli.main(["estimate", str(path), "--no-record"]) == 0
+    return run, out.getvalue(), json.loads(rollout_format.sidecar_path(path).read_text()), path
+
+
+def test_a_cut_in_run_round_trips_each_cars_detections_and_errors(cut_in_file):
+    """Five cars, missed and mislocated (format version 3): the estimate from the file is the run's (1e-12), stage by
+    stage and pooled, though a mixture stage's per-step densities now hold the errors' log densities (> 0 allowed)."""
+    run, est, sidecar, path = cut_in_file
+    assert (sidecar["version"], sidecar["objects"], sidecar["noise"]) == (3, 5, ["range_error_m", "lateral_error_m"])
+    assert sidecar["dt_s"] == 0.1 and sidecar["signals"]["clearance"] == "clearance_m"
+    run_log_mu = float(sidecar["provenance"]["estimate"]["log_mu_hat"])
+    est_log_mu = float(LOG_MU_RE.search(est).group(1))
+    assert math.isfinite(run_log_mu) and abs(math.expm1(est_log_mu - run_log_mu)) <= 1e-12
+    run_final = " ".join(next(ln for ln in run.splitlines() if ln.startswith("  final "))[27:-8].split())
+    cells = estimate_cells(est)
+    assert cells["final"] == run_final
+    by_stage = stage_cells(run)
+    for k in sidecar["pooling"]["stages"]:
+        assert cells[k] == by_stage[k]
+    assert "warning" not in est
+    data = rio.read_rollouts(path)
+    n, t = data.n, data.n_steps
+    assert data.detected.shape == (n, t, 5) and data.noise.shape == (n, t, 5, 2)
+    assert data.noise_names == ("range_error_m", "lateral_error_m")
+    assert (data.noise[~data.detected] == 0.0).all() and (data.noise[data.detected] != 0.0).mean() > 0.99
+    # pooled stages drawn from a mixture with the target: their per-step density of the errors is not clipped at 0
+    assert any(len(sidecar["stages"][i]["components"]) == 3 for i in range(len(sidecar["stages"])))
+
+
+def test_a_cut_in_file_is_refused_a_pem_to_recompute_and_names_a_missing_cars_column(cut_in_file, tmp_path, capsys):
+    _, _, _, path = cut_in_file
+    assert cli.main(["estimate", str(path), "--no-record", "--pem", "ml-nn"]) == 2
+    err = capsys.readouterr().err
+    assert "--pem: " in err and "holds 5 object(s) a step with errors ['range_error_m', 'lateral_error_m']" in err
+    table = pq.read_table(path).drop(["detected_3"])
+    broken = tmp_path / "b.parquet"
+    pq.write_table(table, broken)
+    side = json.loads(rollout_format.sidecar_path(path).read_text())
+    side.pop("table_sha256")
+    rollout_format.sidecar_path(broken).write_text(json.dumps(side))
+    with pytest.raises(rollout_format.RolloutFormatError, match="missing column 'detected_3'"):
+        rio.read_rollouts(broken)
+    side["objects"] = 0
+    rollout_format.sidecar_path(broken).write_text(json.dumps(side))
+    with pytest.raises(rollout_format.RolloutFormatError, match="objects must be an integer >= 1"):
+        rio.read_rollouts(broken)

@@ -98,6 +98,11 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
             pem_cache["pem"] = load_pem(str(_resolve(base, pem_ref)) if from_sidecar else pem_ref)
         return pem_cache["pem"]
 
+    if meta.per_object and (args.pem is not None or args.proposal is not None):
+        flag = "--pem" if args.pem is not None else "--proposal"
+        raise UsageError(f"{flag}: {data.path} holds {meta.objects} object(s) a step with errors "
+                         f"{list(meta.noise)}; it is estimated from its own log_p and log_q (each object's row, "
+                         "what the PEMs read, is not in the file)")  # fmt: skip
     if args.log_p_column and data.log_p is None:
         raise UsageError(f"--log-p-column: {data.path} has no log_p column; give --pem NAME to recompute it")
     if args.pem is None and data.log_p is not None:

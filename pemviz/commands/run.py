@@ -214,9 +214,6 @@ def main(args: argparse.Namespace) -> int:
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
-        if cfg.scenario != "braking":
-            raise UsageError(f"--save-rollouts: the rollout file holds one object per step (the braking scenario); "
-                             f"scenario {cfg.scenario} has several cars with measurement errors")
         if cfg.method == "ams":
             raise UsageError("--save-rollouts: method ams estimates by splitting, without importance weights; its "
                              "rollouts cannot be estimated from again (use an importance-sampling method)")
@@ -269,6 +266,7 @@ def main(args: argparse.Namespace) -> int:
             recorder = serve(args)
         listeners.append(recorder)
     if rollout_sink is not None:
+        rollout_sink.problem = problem  # its sidecar: the scenario's formula, signals and step
         listeners.append(rollout_sink)
     experiment.listeners[:0] = listeners
     likely = MostLikelyFailure() if problem.view.scene is None and problem.branch is not None else None

@@ -575,6 +575,17 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
     return StepDraw(detected, noise, log_q, log_p)
 
 
+def errors_log_density(batch: Any, detector: Detector, target: Detector) -> np.ndarray:
+    """Per step, the log density of the detected objects' measurement errors under the sampler ``detector`` (under
+    ``target`` when ``detector`` has no error model of its own: its errors were drawn from the target's, as
+    :func:`pemviz.core.detectors.draw_step` draws them), float64 [N, T] (nats) for a batch with ``noise``."""
+    source = detector if noise_names_of(detector) else target
+    rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
+    noise = batch.noise.reshape(rows.shape[0], -1)
+    log_density = np.asarray(source.noise_log_prob(rows, noise), dtype=np.float64)
+    return np.where(batch.detected.reshape(-1), log_density, 0.0).reshape(batch.detected.shape).sum(axis=2)
+
+
 class ScoredTarget(ErrorModelOf):
     """The target detector that also asks ``extras`` about every observation it is asked about and keeps their
     logits and its own, so that a mixture's component densities come out of the simulation that drew the rollouts

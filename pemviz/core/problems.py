@@ -195,6 +195,8 @@ class Problem:
             else None; shown beside every estimate.
         reference: where no exact answer is known, a plain Monte Carlo reference of the same failure probability
             under the same PEMs (:class:`pemviz.core.estimate.Reference`), else None; shown beside every estimate.
+        dt_s: seconds per step, for a rollout file's sidecar (None: not known; the braking scenario's is its
+            scene's).
         description: one line saying what is simulated (for sinks and tables).
         units: STL signal name -> unit, for sinks.
         thresholds: the failure threshold and sampler window that sinks draw (None: none).
@@ -220,6 +222,7 @@ class Problem:
     branch: BranchFn | None = None
     exact_log_p: float | None = None
     reference: Reference | None = None
+    dt_s: float | None = None
     description: str = ""
     units: Mapping[str, str] = field(default_factory=lambda: dict(BRAKING_UNITS))
     thresholds: Thresholds | None = None
@@ -454,7 +457,7 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         units={"margin": "m", "grace": "", "clearance": "m"},
         signal_ranges={"margin": (-60.0, 200.0), "grace": (0.0, 1.0), "clearance": (-10.0, 200.0)},
         h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
-        stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"),
+        stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"), dt_s=p.dt_s,
         noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")),
         description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
                      f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),

@@ -27,7 +27,15 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.special import logsumexp
 
-from pemviz.core.detectors import ArrayRQMC, ConstantDetector, Detector, SamplerView, WindowDetector, action_log_prob
+from pemviz.core.detectors import (
+    ArrayRQMC,
+    ConstantDetector,
+    Detector,
+    SamplerView,
+    WindowDetector,
+    action_log_prob,
+    errors_log_density,
+)
 
 CONVENTIONS = ("to-failure", "full")
 """The weight conventions: ``to-failure`` (stopped at the failure step) and ``full`` (every step but the last)."""
@@ -42,7 +50,7 @@ def convention(weights_until_failure: bool) -> str:
     return "to-failure" if weights_until_failure else "full"
 
 
-def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float]) -> np.ndarray:
+def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float], densities: bool = False) -> np.ndarray:
     """Per-step log density of a mixture over whole rollouts, float64 [N, T] (nats).
 
     Rollouts drawn from sum_k c_k q_k(tau) (component k picked once per rollout with probability c_k) have the
@@ -54,8 +62,10 @@ def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float]) -> np.ndarray
     Args:
         log_q: float64 [K, N, T], log q_k(a_t | s_t) of each component (nats).
         shares: c_k > 0, [K], summing to 1.
+        densities: the steps hold log densities (continuous measurement errors), which may be positive; else
+            probabilities, whose conditionals are clipped at 0 (rounding).
     Returns:
-        float64 [N, T], each entry <= 0.
+        float64 [N, T], each entry <= 0 unless ``densities``.
     Raises:
         ValueError: shapes that do not match, or shares not positive.
     """
@@ -65,7 +75,8 @@ def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float]) -> np.ndarray
         raise ValueError(f"mixture_step_log_q: log_q must be [K, N, T] and shares [K] > 0, got {log_q.shape}, {c.shape}")
     running = logsumexp(np.log(c)[:, None, None] + np.cumsum(log_q, axis=2), axis=0)  # M_t, [N, T]
     before = np.concatenate([np.zeros((running.shape[0], 1)), running[:, :-1]], axis=1)
-    return np.minimum(running - before, 0.0)  # a conditional probability: <= 0 up to rounding
+    step = running - before
+    return step if densities else np.minimum(step, 0.0)  # a conditional probability: <= 0 up to rounding
 
 
 def component_of(start: int, n: int, sizes: Sequence[int]) -> np.ndarray:
@@ -85,7 +96,8 @@ def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detec
         target: the target detector (its component's density is ``batch.log_p``), or None.
     Returns:
         (log q float64 [n, T] in nats: ``batch.log_q`` for one sampler, else :func:`mixture_step_log_q` of every
-        sampler's density of the logged actions; component int64 [n]).
+        sampler's density of the logged actions, the measurement errors' included (:func:`errors_log_density`);
+        component int64 [n]).
     """
     sizes = [k for k, _ in parts] or [batch.n]
     component = component_of(start, batch.n, sizes)
@@ -94,8 +106,10 @@ def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detec
     rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
     log_q = [batch.log_p if d is target else
              action_log_prob(d.detect_logit(rows).reshape(batch.detected.shape), batch.detected).sum(axis=2)
+             + (0.0 if batch.noise is None else errors_log_density(batch, d, target))
              for _, d in parts]  # fmt: skip
-    return mixture_step_log_q(np.stack(log_q), np.asarray(sizes, dtype=np.float64) / sum(sizes)), component
+    shares = np.asarray(sizes, dtype=np.float64) / sum(sizes)
+    return mixture_step_log_q(np.stack(log_q), shares, densities=batch.noise is not None), component
 
 
 def describe(detector: Any, target: Any = None) -> str:

@@ -27,6 +27,7 @@ from pemviz.core.detectors import (
     WindowDetector,
     action_log_prob,
     defensive_logit,
+    errors_log_density,
     logit,
     noise_names_of,
 )
@@ -264,16 +265,8 @@ class CrossEntropy(OwnsSettings):
             parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
         if batch.noise is not None:  # each component's density of the detected objects' measurement errors
             for k, d in enumerate(self._scored.extras):
-                parts[:, k] += self._noise_log_prob(batch, d if noise_names_of(d) else self.problem.target)
+                parts[:, k] += errors_log_density(batch, d, self.problem.target)
         return dataclasses.replace(batch, log_q_parts=parts)
-
-    @staticmethod
-    def _noise_log_prob(batch: RolloutBatch, detector: Detector) -> np.ndarray:
-        """Per step, ``detector``'s log density of the detected objects' measurement errors, float64 [N, T] (nats)."""
-        rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
-        noise = batch.noise.reshape(rows.shape[0], -1)
-        log_density = np.asarray(detector.noise_log_prob(rows, noise), dtype=np.float64)
-        return np.where(batch.detected.reshape(-1), log_density, 0.0).reshape(batch.detected.shape).sum(axis=2)
 
     def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
         """The extras' logits [K, N, T, M] of rollouts ``start .. start + N - 1`` of the stage, asked as a simulator

@@ -29,12 +29,20 @@ from pemviz.io.rollouts import RolloutData, braking_salient
 from pemviz.scenarios import RolloutBatch
 
 
+def _one_object(data: RolloutData) -> None:
+    """Refuse to recompute log-probabilities of a file of several objects or with errors (its rows are not in it)."""
+    if data.n_objects > 1 or data.noise is not None:
+        raise ValueError(f"{data.path or 'rollouts'}: {data.n_objects} object(s) a step with errors "
+                         f"{list(data.noise_names)}: log p and log q are the file's own columns, not recomputed")
+
+
 def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
     """``log p(a_t | s_t)`` of the logged actions under a detector, float64 [N, T] (nats).
 
     The detector sees the observations of all N rollouts one step at a time, [N, F], as
     :func:`pemviz.scenarios.simulate` asks it, so the numbers are those of the run that made the file.
     """
+    _one_object(data)
     out = np.empty((data.n, data.n_steps))
     for t in range(data.n_steps):
         out[:, t] = action_log_prob(detector.detect_logit(data.observations[:, t]), data.detected[:, t, 0])
@@ -48,6 +56,7 @@ def pem_log_prob(data: RolloutData, pem: Any) -> np.ndarray:
     gap (:meth:`pemviz.pem.PEM.logit_at_gap`, the braking scenario's gap -> salient mapping) when it has none or
     when they are exactly that mapping of the gap (the same function, evaluated by its exact fast path).
     """
+    _one_object(data)
     gap = data.signal("gap_m")
     if data.salient is None or np.array_equal(data.salient, braking_salient(gap)):
         return detector_log_prob(data, PEMDetector(pem))

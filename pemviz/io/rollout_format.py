@@ -18,6 +18,11 @@ column                        type                         unit   meaning
 ``gap_m``                     float                        m      the gap: h(s) of the proposal (required)
 signals of the spec           float                        SI     e.g. ``ego_speed_mps``, ``lead_speed_mps``
 ``detected``                  bool (or integer 0/1)        -      the detector output a_t taken at step t
+``detected_<m>``, ``<e>_<m>`` bool; float                  -; m   version 3, a scene of M objects or with
+                                                                  measurement errors (the sidecar's ``objects``
+                                                                  and ``noise``): object m's detection and its
+                                                                  error e (0 where missed), m = 0..M-1, in place
+                                                                  of ``detected``
 ``salient_<name>`` (11)       float                        m/rad  optional: the PEM's salient variables, KITTI
                                                                   columns :data:`SALIENT_COLUMNS`
 ``log_p``                     float                        nats   optional: log p_PEM(a_t | s_t)
@@ -33,7 +38,8 @@ signals of the spec           float                        SI     e.g. ``ego_spe
                                                                   sidecar's ``stages[].components``)
 ============================  ===========================  =====  ==========================================
 
-Floats must be finite; log-probabilities <= 0. Other columns are ignored.
+Floats must be finite; log-probabilities <= 0 (with errors, ``log_p`` and ``log_q`` include the errors' log
+densities, which may be positive). Other columns are ignored.
 
 ``NAME.json`` (the sidecar, same name with suffix ``.json``), a JSON object:
 
@@ -57,9 +63,13 @@ Floats must be finite; log-probabilities <= 0. Other columns are ignored.
 - ``pooling`` (version 2): how the writer's estimate combines the stages: ``rule`` (``quadratic``, ``linear``,
   ``rollouts`` or ``single``), ``stages`` (the pooled stages) and ``stage_weights`` (lambda_k >= 0, summing to 1):
   mu_hat = sum_k lambda_k mu_hat_k (absent: every rollout alike).
-- ``format`` (``"pemviz-rollouts"``), ``version`` (2; version 1 files, without ``weights``, ``stages``,
-  ``pooling`` and the two integer columns, are read too), ``pemviz_version``, ``provenance`` (free-form:
-  the run's config, its estimate and its per-stage estimates).
+- ``objects`` (version 3): M, the objects perceived at each step (default 1); ``noise`` (version 3): the names of
+  a detected object's measurement-error components (metres, default none). With M > 1 or any error the table has
+  ``detected_<m>`` and ``<e>_<m>`` columns instead of ``detected``, and must hold ``log_p`` and ``log_q`` (the PEMs'
+  inputs, each object's row, are not in the file, so they cannot be recomputed).
+- ``format`` (``"pemviz-rollouts"``), ``version`` (2, or 3 for a file of several objects or with errors; version 1
+  files, without ``weights``, ``stages``, ``pooling`` and the two integer columns, are read too),
+  ``pemviz_version``, ``provenance`` (free-form: the run's config, its estimate and its per-stage estimates).
 
 Importance weights use at most the first T - 1 steps (the last action affects nothing; Innes & Ramamoorthy 2022,
 Algorithm 1), as the engine does, so an estimate from a file written by ``pemviz run`` equals the run's to float64
@@ -87,10 +97,14 @@ from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
 FORMAT_TAG = "pemviz-rollouts"
 
 FORMAT_VERSION = 2
+"""The version of a file of one object per step without measurement errors (a file of several objects, or with
+errors, is version :data:`OBJECTS_VERSION`)."""
 
-READ_VERSIONS = (1, 2)
-"""Versions this pemviz reads: 1 (one batch, ``log_q`` its sampler's density) and 2 (adds ``stage``, ``component``,
-``weights``, ``stages``, ``pooling``)."""
+OBJECTS_VERSION = 3
+
+READ_VERSIONS = (1, 2, 3)
+"""Versions this pemviz reads: 1 (one batch, ``log_q`` its sampler's density), 2 (adds ``stage``, ``component``,
+``weights``, ``stages``, ``pooling``) and 3 (adds ``objects`` and ``noise``: several objects a step, errors)."""
 
 WEIGHTS = ("to-failure", "full")
 """Weight conventions (:mod:`pemviz.core.weights`)."""
@@ -138,6 +152,8 @@ class RolloutMeta:
         weights: the writer's weight convention, one of :data:`WEIGHTS`, or None (not said).
         stages: per stage in the table: ``{"stage", "kind", "n", "components": [{"sampler", "n"}], "max_weight"}``.
         pooling: ``{"rule", "stages", "stage_weights"}``: how the writer pooled the stages, or None.
+        objects: M, the objects perceived at each step.
+        noise: the names of a detected object's measurement-error components (metres); empty: none.
         version: the file's format version (:data:`READ_VERSIONS`).
     """
 
@@ -159,11 +175,28 @@ class RolloutMeta:
     weights: str | None = None
     stages: tuple[Mapping[str, Any], ...] = ()
     pooling: Mapping[str, Any] | None = None
+    objects: int = 1
+    noise: tuple[str, ...] = ()
     version: int = FORMAT_VERSION
 
     def stage_info(self, stage: int) -> Mapping[str, Any] | None:
         """The sidecar's ``stages`` entry of ``stage``, or None."""
         return next((s for s in self.stages if s["stage"] == stage), None)
+
+    @property
+    def per_object(self) -> bool:
+        """Whether each object's detection and errors have their own columns (several objects, or errors)."""
+        return self.objects > 1 or bool(self.noise)
+
+    @property
+    def detection_columns(self) -> tuple[str, ...]:
+        """The detection columns: ``detected``, or ``detected_0`` .. ``detected_<M-1>`` (:attr:`per_object`)."""
+        return tuple(f"detected_{m}" for m in range(self.objects)) if self.per_object else ("detected",)
+
+    @property
+    def noise_columns(self) -> tuple[tuple[str, ...], ...]:
+        """Per object m, the columns of its errors ``<e>_<m>`` in the order of :attr:`noise`."""
+        return tuple(tuple(f"{e}_{m}" for e in self.noise) for m in range(self.objects))
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -174,7 +207,7 @@ class RolloutMeta:
         """The sidecar as a JSON object."""
         return {
             "format": FORMAT_TAG,
-            "version": FORMAT_VERSION,
+            "version": OBJECTS_VERSION if self.per_object else FORMAT_VERSION,
             "pemviz_version": self.pemviz_version,
             "formula": self.formula,
             "dt_s": self.dt_s,
@@ -191,6 +224,7 @@ class RolloutMeta:
             **({"weights": self.weights} if self.weights else {}),
             **({"stages": [_plain(st) for st in self.stages]} if self.stages else {}),
             **({"pooling": _plain(self.pooling)} if self.pooling else {}),
+            **({"objects": self.objects, "noise": list(self.noise)} if self.per_object else {}),
             **({"table_sha256": self.table_sha256} if self.table_sha256 else {}),
             **({"proposal_sha256": self.proposal_sha256} if self.proposal_sha256 else {}),
         }
@@ -264,6 +298,13 @@ class RolloutMeta:
             raise bad(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
         stages = _parse_stages(obj.get("stages"), bad)
         pooling = _parse_pooling(obj.get("pooling"), bad)
+        objects = obj.get("objects", 1)
+        if not _is_count(objects, 1):
+            raise bad(f"objects must be an integer >= 1 (the objects perceived at each step), got {objects!r}")
+        noise = obj.get("noise") or []
+        if not (isinstance(noise, list) and all(isinstance(e, str) and e for e in noise)
+                and len(set(noise)) == len(noise)):
+            raise bad(f"noise must be a list of distinct error names such as ['range_error_m'], got {noise!r}")
         return cls(
             formula=formula,
             dt_s=float(dt),
@@ -283,6 +324,8 @@ class RolloutMeta:
             weights=weights,
             stages=stages,
             pooling=pooling,
+            objects=objects,
+            noise=tuple(noise),
             version=int(version),
         )
 
@@ -366,6 +409,24 @@ def braking_meta(
         window_m=p.braking_distance_m,
         provenance=dict(provenance or {}),
     )
+
+
+def problem_meta(problem: Any, formula: str | None = None, *, pem: str | None = None, proposal: str | None = None,
+                 provenance: Mapping[str, Any] | None = None) -> RolloutMeta:  # fmt: skip
+    """The sidecar of a problem's rollouts (a :class:`pemviz.core.problems.Problem` that knows its step ``dt_s``,
+    e.g. the cut-in): its formula, signals, signal ranges and units; the objects and errors are filled in by the
+    writer from the rollouts.
+
+    Raises:
+        ValueError: the problem does not know its step (``dt_s`` None).
+    """
+    if problem.dt_s is None:
+        raise ValueError(f"{problem.name}: its step (dt_s) is not known; a rollout file needs it")
+    units = {problem.signals[k]: u for k, u in problem.units.items() if k in problem.signals}
+    return RolloutMeta(formula=formula or str(problem.formula), dt_s=float(problem.dt_s), signals=dict(problem.signals),
+                       signal_ranges=dict(problem.signal_ranges), units={**units, "log_p": "nats", "log_q": "nats"},
+                       pem=pem, proposal=proposal, window_m=float(problem.window) if math.isfinite(problem.window)
+                       else 10.0, provenance=dict(provenance or {}))  # fmt: skip
 
 
 def sidecar_path(path: str | os.PathLike[str]) -> Path:

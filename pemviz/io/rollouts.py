@@ -58,7 +58,7 @@ class RolloutData(RolloutBatch):
 
     Attributes:
         observations: float64 [N, T, F], columns ``observation_names`` (``gap_m`` first).
-        detected: bool [N, T, 1] (a file holds one object per step).
+        detected: bool [N, T, M] (M = the sidecar's ``objects``).
         log_p, log_q: float64 [N, T] (nats) or None when the file has no such column (:meth:`to_batch` fills them).
         observation_names: the F state columns.
         meta: the sidecar.
@@ -66,6 +66,8 @@ class RolloutData(RolloutBatch):
         salient: float64 [N, T, 11] (:data:`SALIENT_COLUMNS`) or None.
         path: the Parquet file (None for data not read from disk).
         stage, component: int64 [N], each rollout's stage and mixture component (version 2), or None.
+        noise, noise_names: float64 [N, T, M, D] each object's measurement errors (metres, 0 where missed) and their
+            D names (version 3, the sidecar's ``noise``), or None and ().
     """
 
     log_p: np.ndarray | None
@@ -95,7 +97,8 @@ class RolloutData(RolloutBatch):
         log_q = self.log_q if log_q is None else log_q
         if log_p is None or log_q is None:
             raise ValueError("to_batch: give log_p and log_q, the file has no such column")
-        return RolloutBatch(self.observations, self.detected, log_p, log_q, self.observation_names)
+        return RolloutBatch(self.observations, self.detected, log_p, log_q, self.observation_names, noise=self.noise,
+                            noise_names=self.noise_names)  # fmt: skip
 
 
 def _first_index(mask: np.ndarray) -> int:
@@ -132,7 +135,8 @@ class _Table:
     def structure(self) -> tuple[np.ndarray, np.ndarray]:
         """Check rollout ids and steps; returns (rollout ids [N], T)."""
         names = self.table.column_names
-        needed = ["rollout", "step", *self.meta.columns, "detected"]
+        needed = ["rollout", "step", *self.meta.columns, *self.meta.detection_columns,
+                  *(c for cols in self.meta.noise_columns for c in cols)]  # fmt: skip
         missing = [c for c in needed if c not in names]
         if missing:
             raise self.error(
@@ -140,6 +144,9 @@ class _Table:
                 f"{', '.join(needed)} (the sidecar's observation_columns / signals name the state columns); "
                 f"present: {', '.join(names)}"
             )
+        if self.meta.per_object and not {"log_p", "log_q"} <= set(names):
+            raise self.error(f"a file of {self.meta.objects} object(s) a step with errors {list(self.meta.noise)} must "
+                             "hold log_p and log_q: the PEMs' inputs (each object's row) are not in it")  # fmt: skip
         partial = [c for c in SALIENT_COLUMNS if c in names]
         if partial and len(partial) != len(SALIENT_COLUMNS):
             absent = [c for c in SALIENT_COLUMNS if c not in names]
@@ -260,16 +267,23 @@ class _Table:
         names = self.table.column_names
         cols = self.meta.columns
         obs = np.stack([self.floats(c) for c in cols], axis=-1).reshape(n, n_steps, len(cols))
-        detected = self.booleans("detected").reshape(n, n_steps)
+        m = self.meta.objects
+        detected = np.stack([self.booleans(c) for c in self.meta.detection_columns], axis=-1).reshape(n, n_steps, m)
+        noise = None
+        if self.meta.noise:
+            noise = np.stack([np.stack([self.floats(c) for c in cols], axis=-1) for cols in self.meta.noise_columns],
+                             axis=1).reshape(n, n_steps, m, len(self.meta.noise))  # fmt: skip
         salient = None
         if SALIENT_COLUMNS[0] in names:
             salient = np.stack([self.floats(c) for c in SALIENT_COLUMNS], axis=-1).reshape(n, n_steps, -1)
-        log_p = self.floats("log_p", log_prob=True).reshape(n, n_steps) if "log_p" in names else None
-        log_q = self.floats("log_q", log_prob=True).reshape(n, n_steps) if "log_q" in names else None
+        probability = not self.meta.noise  # with measurement errors a step's log_p / log_q hold log densities
+        log_p = self.floats("log_p", log_prob=probability).reshape(n, n_steps) if "log_p" in names else None
+        log_q = self.floats("log_q", log_prob=probability).reshape(n, n_steps) if "log_q" in names else None
         stage, component = (self.per_rollout(c, n, n_steps) if c in names else None for c in ("stage", "component"))
         self.stages(stage, component)
-        return RolloutData(obs, detected, log_p, log_q, tuple(cols), meta=self.meta, rollout_ids=ids, salient=salient,
-                           path=path, stage=stage, component=component)
+        return RolloutData(obs, detected, log_p, log_q, tuple(cols), noise=noise, noise_names=self.meta.noise,
+                           meta=self.meta, rollout_ids=ids, salient=salient, path=path, stage=stage,
+                           component=component)  # fmt: skip
 
 
 def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
@@ -326,8 +340,8 @@ def rollouts_table(
     stage: int | np.ndarray | None = None,
     component: np.ndarray | None = None,
 ) -> Any:
-    """The Parquet table of a batch: rollout, step, observations, detected, [salient], [log_p, log_q], [stage,
-    component].
+    """The Parquet table of a batch: rollout, step, observations, detected (or, for several objects or errors, each
+    object's ``detected_<m>`` and ``<error>_<m>``), [salient], [log_p, log_q], [stage, component].
 
     Args:
         batch: N rollouts [N, T].
@@ -349,9 +363,16 @@ def rollouts_table(
     }
     for k, name in enumerate(batch.observation_names):
         cols[name] = np.ascontiguousarray(batch.observations[:, :, k], dtype=np.float64).reshape(-1)
-    if batch.n_objects != 1:
-        raise ValueError(f"a rollout file holds one object per step; this batch perceives {batch.n_objects}")
-    cols["detected"] = np.asarray(batch.detected, dtype=bool).reshape(-1)
+    detected = np.asarray(batch.detected, dtype=bool)
+    if batch.n_objects > 1 or batch.noise is not None:  # each object's detection and errors (format version 3)
+        for m in range(batch.n_objects):
+            cols[f"detected_{m}"] = np.ascontiguousarray(detected[:, :, m]).reshape(-1)
+            for d, name in enumerate(batch.noise_names if batch.noise is not None else ()):
+                cols[f"{name}_{m}"] = np.ascontiguousarray(batch.noise[:, :, m, d], dtype=np.float64).reshape(-1)
+        if salient is not None:
+            raise ValueError("salient variables are written for one object per step without errors only")
+    else:
+        cols["detected"] = detected.reshape(-1)
     if salient is not None:
         s = np.asarray(salient, dtype=np.float64)
         if s.shape != (n, n_steps, len(SALIENT_COLUMNS)):
@@ -395,7 +416,8 @@ class RolloutWriter:
         self.n_rollouts = 0
         self.stage_counts: dict[int, list[int]] = {}
         """Rollouts written per stage and component (chunks appended with a ``stage``)."""
-        self._shape: tuple[int, tuple[str, ...]] | None = None
+        self._shape: tuple[Any, ...] | None = None
+        """(steps, observation names, objects, error names) of the chunks so far."""
         self._stack = contextlib.ExitStack()
         self._tmp = self._stack.enter_context(temp_file(self.path))
         self._writer: Any = None
@@ -420,9 +442,12 @@ class RolloutWriter:
                 positive log-probability ...) naming the rollout and step; nothing of this chunk is written.
         """
         names = tuple(batch.observation_names)
-        if self._shape is not None and self._shape != (batch.n_steps, names):
-            raise ValueError(f"RolloutWriter: a chunk of {batch.n_steps} steps of {names} after chunks of "
-                             f"{self._shape[0]} steps of {self._shape[1]}")  # fmt: skip
+        objects = (batch.n_objects, tuple(batch.noise_names) if batch.noise is not None else ())
+        if self._shape is not None and self._shape != (batch.n_steps, names, *objects):
+            raise ValueError(f"RolloutWriter: a chunk of {batch.n_steps} steps of {names}, {objects[0]} object(s) "
+                             f"with errors {list(objects[1])}, after chunks of {self._shape[0]} steps of "
+                             f"{self._shape[1]}, {self._shape[2]} object(s) with errors {list(self._shape[3])}")  # fmt: skip
+        self.meta = dataclasses.replace(self.meta, objects=objects[0], noise=objects[1])
         meta = dataclasses.replace(self.meta, n_rollouts=None, n_steps=batch.n_steps, observation_columns=names,
                                    stages=(), pooling=None)  # checked against the whole table at commit
         if meta.columns != names:
@@ -435,7 +460,7 @@ class RolloutWriter:
         if self._writer is None:
             self._writer = pq.ParquetWriter(self._tmp, table.schema)
         self._writer.write_table(table)
-        self._shape = (batch.n_steps, names)
+        self._shape = (batch.n_steps, names, *objects)
         self.n_rollouts += batch.n
         if stage is not None:
             stages = np.broadcast_to(np.asarray(stage, dtype=np.int64), (batch.n,))
@@ -465,7 +490,7 @@ class RolloutWriter:
                 raise ValueError(f"{self.path}: no rollouts to write")
             self._writer.close()
             self._writer = None
-            n_steps, names = self._shape
+            n_steps, names = self._shape[:2]
             n_rollouts = self.n_rollouts
             if keep_stages is not None and set(self.stage_counts) - set(keep_stages):
                 n_rollouts = self._keep(set(keep_stages))

@@ -15,7 +15,7 @@ import numpy as np
 
 from pemviz.engine.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.estimators.base import pool_stage_weights
-from pemviz.io.rollout_format import braking_meta
+from pemviz.io.rollout_format import braking_meta, problem_meta
 from pemviz.io.rollouts import RolloutWriter, braking_salient, check_rollouts_path
 from pemviz.pem import DEFAULT_PEM_NAME
 from pemviz.core.sampling import Proposal
@@ -59,6 +59,9 @@ class RolloutSink(Sink):
             raise ValueError(f"stages = {stages!r}: use one of {', '.join(STAGES)}")
         self.path = check_rollouts_path(path, overwrite=overwrite, what="--save-rollouts")
         self.pem, self.overwrite, self.stages = pem, overwrite, stages
+        self.problem: Any = None
+        """The run's :class:`pemviz.core.problems.Problem` for the sidecar of a scenario other than the braking one
+        (:func:`pemviz.io.rollout_format.problem_meta`); None: the braking scenario's sidecar."""
         self.written: Path | None = None
         self._formula: str | None = None
         self._config: Any = None
@@ -111,15 +114,19 @@ class RolloutSink(Sink):
                 self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
         log_q, component = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
         batch = dataclasses.replace(chunk.batch, log_q=log_q)
-        self._writer.append(batch, salient=braking_salient(batch.gap_m), stage=chunk.stage, component=component)
+        one = batch.n_objects == 1 and batch.noise is None  # the braking scenario: its salient variables too
+        self._writer.append(batch, salient=braking_salient(batch.gap_m) if one else None, stage=chunk.stage,
+                            component=component)  # fmt: skip
 
     def _meta(self) -> Any:
         cfg = self._config
         method = getattr(cfg, "method", None)
         proposal = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}.get(method)
         provenance: dict[str, Any] = {} if cfg is None else {"config": dataclasses.asdict(cfg)}
-        return braking_meta(self._formula, pem=self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME,
-                            proposal=proposal, provenance=provenance)  # fmt: skip
+        pem = self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME
+        if self.problem is not None and self.problem.scene is None:  # not the braking scenario
+            return problem_meta(self.problem, self._formula, pem=pem, proposal=proposal, provenance=provenance)
+        return braking_meta(self._formula, pem=pem, proposal=proposal, provenance=provenance)
 
     def write(self, finished: Any) -> Path:
         """Commit the stages the run's estimate used (or all), with the sidecar's weight convention, stages, pooling
