@@ -41,6 +41,9 @@ def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
 
     The detector sees the observations of all N rollouts one step at a time, [N, F], as
     :func:`pemviz.scenarios.simulate` asks it, so the numbers are those of the run that made the file.
+
+    Raises:
+        ValueError: a file of several objects or with measurement errors (their rows are not in it).
     """
     _one_object(data)
     out = np.empty((data.n, data.n_steps))
@@ -55,6 +58,9 @@ def pem_log_prob(data: RolloutData, pem: Any) -> np.ndarray:
     From the file's salient-variable columns (:meth:`pemviz.pem.PEM.logit`) when it has them; from the
     gap (:meth:`pemviz.pem.PEM.logit_at_gap`, the braking scenario's gap -> salient mapping) when it has none or
     when they are exactly that mapping of the gap (the same function, evaluated by its exact fast path).
+
+    Raises:
+        ValueError: a file of several objects or with measurement errors (their rows are not in it).
     """
     _one_object(data)
     gap = data.signal("gap_m")

@@ -290,8 +290,8 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     """Read and validate a rollout file and its sidecar.
 
     Returns:
-        :class:`RolloutData`: observations [N, T, F], detected [N, T, 1], optional salient [N, T, 11],
-        log_p / log_q [N, T] (nats).
+        :class:`RolloutData`: observations [N, T, F], detected [N, T, M], optional salient [N, T, 11] and errors
+        [N, T, M, D], log_p / log_q [N, T] (nats).
     Raises:
         FileNotFoundError: no such file.
         RolloutFormatError: the sidecar or the table breaks the format (module docstring); the message
@@ -401,8 +401,9 @@ class RolloutWriter:
 
     Args:
         path: ``NAME.parquet``, checked at once (:func:`check_rollouts_path`).
-        meta: the sidecar (:func:`braking_meta` for the braking scenario); ``n_rollouts`` / ``n_steps`` /
-            ``observation_columns`` are filled in.
+        meta: the sidecar (:func:`braking_meta` for the braking scenario, :func:`problem_meta` for another
+            problem); ``n_rollouts`` / ``n_steps`` / ``observation_columns`` and ``objects`` / ``noise`` are filled in
+            from the rollouts.
         log_probs: write ``log_p`` and ``log_q``.
         overwrite: replace existing files of the unit (only ones pemviz wrote).
     Raises:
