@@ -348,6 +348,8 @@ def test_one_stage_numbering_and_plot_axes_follow_the_stages_that_ran(tab):
     last = record.stages[-1].stage
     wait_until(lambda: tab.plot("failures / N per stage")["xmax"] < last + 1, what="the x axes to fit the stages")
     for title in ("failures / N per stage", "log10 mu_hat per stage", "gamma per stage, classic (m)"):
+        # each plot gets the last stage's point on its own update, after the status has said it stopped
+        wait_until(lambda: tab.plot(title)["x"] == list(range(last + 1)), what=f"{title}: a point per stage that ran")
         p = tab.plot(title)
         assert p["x"] == list(range(last + 1)), title  # stage numbers as the engine counts them
         assert p["xmax"] == pytest.approx(last + 0.5) and p["axes"][0].startswith("stage (0 pretraining")

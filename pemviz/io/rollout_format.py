@@ -102,7 +102,7 @@ errors, is version :data:`OBJECTS_VERSION`)."""
 
 OBJECTS_VERSION = 3
 
-READ_VERSIONS = (1, 2, 3)
+READ_VERSIONS = (1, FORMAT_VERSION, OBJECTS_VERSION)
 """Versions this pemviz reads: 1 (one batch, ``log_q`` its sampler's density), 2 (adds ``stage``, ``component``,
 ``weights``, ``stages``, ``pooling``) and 3 (adds ``objects`` and ``noise``: several objects a step, errors)."""
 
