@@ -423,10 +423,10 @@ def problem_meta(problem: Any, formula: str | None = None, *, pem: str | None = 
     if problem.dt_s is None:
         raise ValueError(f"{problem.name}: its step (dt_s) is not known; a rollout file needs it")
     units = {problem.signals[k]: u for k, u in problem.units.items() if k in problem.signals}
+    window = {"window_m": float(problem.window)} if math.isfinite(problem.window) else {}
     return RolloutMeta(formula=formula or str(problem.formula), dt_s=float(problem.dt_s), signals=dict(problem.signals),
                        signal_ranges=dict(problem.signal_ranges), units={**units, "log_p": "nats", "log_q": "nats"},
-                       pem=pem, proposal=proposal, window_m=float(problem.window) if math.isfinite(problem.window)
-                       else 10.0, provenance=dict(provenance or {}))  # fmt: skip
+                       pem=pem, proposal=proposal, provenance=dict(provenance or {}), **window)  # fmt: skip
 
 
 def sidecar_path(path: str | os.PathLike[str]) -> Path:

@@ -114,9 +114,13 @@ class RolloutSink(Sink):
                 self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
         log_q, component = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
         batch = dataclasses.replace(chunk.batch, log_q=log_q)
-        one = batch.n_objects == 1 and batch.noise is None  # the braking scenario: its salient variables too
-        self._writer.append(batch, salient=braking_salient(batch.gap_m) if one else None, stage=chunk.stage,
-                            component=component)  # fmt: skip
+        salient = braking_salient(batch.gap_m) if self._braking else None
+        self._writer.append(batch, salient=salient, stage=chunk.stage, component=component)
+
+    @property
+    def _braking(self) -> bool:
+        """Whether the rollouts are the braking scenario's (its sidecar, its salient variables from the gap)."""
+        return self.problem is None or self.problem.scene is not None
 
     def _meta(self) -> Any:
         cfg = self._config
@@ -124,9 +128,9 @@ class RolloutSink(Sink):
         proposal = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}.get(method)
         provenance: dict[str, Any] = {} if cfg is None else {"config": dataclasses.asdict(cfg)}
         pem = self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME
-        if self.problem is not None and self.problem.scene is None:  # not the braking scenario
-            return problem_meta(self.problem, self._formula, pem=pem, proposal=proposal, provenance=provenance)
-        return braking_meta(self._formula, pem=pem, proposal=proposal, provenance=provenance)
+        if self._braking:
+            return braking_meta(self._formula, pem=pem, proposal=proposal, provenance=provenance)
+        return problem_meta(self.problem, self._formula, pem=pem, proposal=proposal, provenance=provenance)
 
     def write(self, finished: Any) -> Path:
         """Commit the stages the run's estimate used (or all), with the sidecar's weight convention, stages, pooling
