@@ -58,10 +58,12 @@ FITS = ("adam", "lbfgs")
 full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous
 stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
 Alg. 7.5)."""
-FIT_PRECISIONS = ("float32", "float64")
-"""The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`) and of its network when it
-samples (:attr:`pemviz.core.sampling.Proposal.sample_dtype`): ``float32`` runs the network's products about 2.7 times as
-fast on a CPU; the parameters and every importance weight stay float64."""
+FIT_PRECISIONS = ("exact", "float32", "float64")
+"""The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`): ``exact`` (the default,
+:func:`pemviz.core.sampling.fit_exact`) gives the same proposal on every CPU; ``float32`` and ``float64`` run torch's
+kernels, whose last bits depend on the CPU's vector unit and BLAS kernel (the paper's fits are float64). The network
+samples in exact arithmetic whatever this is (:meth:`pemviz.core.sampling.Proposal.detect_logit`); the parameters and
+every importance weight stay float64."""
 PROPOSAL_INPUTS = ("gap", "state")
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
@@ -307,6 +309,9 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("ray", "Ray tasks over blocks of rollouts; a batch of one block runs in this process"))),
     Setting("ray_address", "the Ray cluster", "the cluster that executor ray uses", kind="text",
             optional=True, owner=RUN, flags=("--ray-address",)),
+    Setting("chunk_rollouts", "the chunk size", "the most rollouts simulated and scored at a time: a serial stage of "
+            "more streams chunk by chunk; a seed gives the same rollouts and estimate, bit for bit, at any chunk size",
+            kind="int", lo=1, optional=True, owner=RUN, flags=("--chunk",)),
     Setting("proposal_inputs", "the proposal's inputs h(s)", "what the proposal sees", kind="choice",
             choices=PROPOSAL_INPUTS,
             choice_help=(("gap", "the gap to the lead car (the paper)"),
@@ -344,9 +349,11 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("fit", "the fitting method", "how the proposal is fitted each stage", kind="choice", choices=FITS,
             choice_help=(("adam", "full-batch Adam, a number of epochs"),
                          ("lbfgs", "L-BFGS from the previous proposal until converged"))),
-    Setting("fit_precision", "the fit's precision", "the arithmetic of the proposal's Adam fits and of its network "
-            "when sampling (the parameters and every weight stay float64)", kind="choice", choices=FIT_PRECISIONS,
-            choice_help=(("float32", "fast; the default"), ("float64", "as the paper's fits"))),
+    Setting("fit_precision", "the fit's precision", "the arithmetic of the proposal's Adam fits (the parameters and "
+            "every weight stay float64)", kind="choice", choices=FIT_PRECISIONS,
+            choice_help=(("exact", "the same proposal on every CPU; the default"),
+                         ("float32", "torch's float32 kernels: the last bits depend on the CPU"),
+                         ("float64", "torch's float64 kernels, as the paper's fits"))),
     Setting("fit_max_steps", "the L-BFGS iterations", "the most L-BFGS iterations of one fit", kind="int", lo=1),
     Setting("fit_rows", "the rows of a fit", "the most steps one fit sees, beyond them a weighted subsample with the "
             "same expected loss (None: every step)", kind="int", lo=1, optional=True),
@@ -415,6 +422,11 @@ class ExperimentConfig:
         sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
         executor: where rollouts are simulated, one of :data:`EXECUTORS`.
         ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
+        chunk_rollouts: None (serial stages above :data:`pemviz.engine.experiment.STREAM_ABOVE` rollouts stream
+            in chunks of :data:`pemviz.scenarios.DEFAULT_CHUNK_SIZE`) or the most rollouts simulated and scored at a
+            time (memory): a serial stage of more streams chunk by chunk. The rollouts, weights and estimate do not
+            depend on it (detectors give a row the same bits in any batch: :mod:`pemviz.core.exact`; Array-RQMC
+            couples fixed blocks, whatever the chunks).
         ams_killed: k, particles killed and resampled per AMS iteration at least (every tie at the level is killed
             too), 1 <= k < N (``method = "ams"``).
         ams_max_iterations: the most AMS iterations; a run stopped by it before its level reached the failure
@@ -476,10 +488,9 @@ class ExperimentConfig:
         fit: one of :data:`FITS`; ``adam`` runs ``ce_epochs`` / ``pretrain_epochs`` epochs at ``learning_rate``,
             ``lbfgs`` at most ``fit_max_steps`` iterations per fit, stopping once converged.
         fit_precision: one of :data:`FIT_PRECISIONS`: the arithmetic of the ``adam`` fits of a weighted
-            log-likelihood and of the proposal network's products when it samples
-            (:attr:`pemviz.core.sampling.Proposal.sample_dtype`); the parameters stay float64, and every weight is
-            computed in float64 from the density sampled from (the logit the sampler drew with), so the precision
-            moves the proposal only, never the estimate's unbiasedness.
+            log-likelihood; the parameters stay float64, and every weight is computed in float64 from the density
+            sampled from (the logit the sampler drew with), so the precision moves the proposal only, never the
+            estimate's unbiasedness.
         fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).
         fit_rows: None (every fitted step) or the most steps one fit sees: beyond that, a weighted systematic
             subsample with the same expected CE objective, so a stage's fit costs the same at any N (the default
@@ -511,6 +522,7 @@ class ExperimentConfig:
     sim: str = "batched"
     executor: str = "serial"
     ray_address: str | None = None
+    chunk_rollouts: int | None = None
     proposal_inputs: str = "state"
     proposal_window: bool = True
     skip_decided: bool = True
@@ -525,7 +537,7 @@ class ExperimentConfig:
     fit_all_failures: bool = True
     fit_weights: str = "mixture"
     fit: str = "adam"
-    fit_precision: str = "float32"
+    fit_precision: str = "exact"
     fit_max_steps: int = 200
     fit_rows: int | None = 5_000
     fit_tolerance: float | None = 1e-3

@@ -11,7 +11,7 @@ PAPER: dict[str, Any] = {
     "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False,
     "smoothing_at_failure": None, "final_smoothing": None, "elite_ties": "all", "pretrain_cap": None,
     "defensive": 0.0, "target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
-    "fit": "adam", "fit_precision": "float64", "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000,
+    "fit": "adam", "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000,
     "n_final": 100,
     "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500,
 }
@@ -35,7 +35,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
                       "pool_weights": "rollouts", "smoothing_at_failure": 1.0, "final_smoothing": None,
                       "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500, "skip_decided": False,
-                      "fit_rows": 10_000, "fit_tolerance": None, "fit_precision": "float64"},
+                      "fit_rows": 10_000, "fit_tolerance": None},
 }
 """Named settings, each applied on top of the defaults.
 

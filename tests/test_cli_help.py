@@ -43,6 +43,16 @@ def test_run_help_gives_the_real_pem_default() -> None:
     assert f"(default {DEFAULT_PEM_NAME})" in " ".join(run.format_help().split())
 
 
+def test_run_help_gives_the_engines_real_chunks() -> None:
+    from pemviz.commands import SHOWN_DEFAULTS
+    from pemviz.engine.experiment import STREAM_ABOVE
+    from pemviz.scenarios import DEFAULT_CHUNK_SIZE
+
+    run = " ".join(dict(all_parsers())["pemviz run"].format_help().split())
+    assert SHOWN_DEFAULTS["chunk_rollouts"] == f"{DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} rollouts stream"
+    assert f"(default {DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} rollouts stream)" in run
+
+
 def test_every_command_that_takes_a_preset_accepts_quick() -> None:
     from pemviz.commands.run import config_from_args
     from pemviz.commands import split_choices

@@ -28,21 +28,22 @@ SMALL = dict(n_stages=3, n_per_stage=50, n_final=100, ce_epochs=100, pretrain_ep
 # since Array-RQMC couples only the rollouts inside the sampler's window, ranked by one packed key, a mixture's target
 # share draws i.i.d. and a fit sees at most 5,000 steps (before it, ``early-stop``: every CE fit starts from the last
 # one and stops once converged, with Adam at 1e-2, and the proposal gives way to the PEM once the outcome is
-# decided), with float64 fits, bit-identical across two runs): key -> (log mu_hat, failures, N,
+# decided), with float64 fits, bit-identical across two runs; all re-recorded when the proposal's sampling and fits
+# became exact, order-free arithmetic, the same on every CPU): key -> (log mu_hat, failures, N,
 # stages used, simulations, (stage, gamma, elites) per stage). Any change to the rollouts' stream, the weights, the
 # elites, the fits or the pooling moves these numbers.
 PINNED = {
-    "braking/state-ce/0": (-34.004900319844026, 55, 150, (3, 4), 350, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, 0.0, 11), (3, 0.0, 22), (4, nan, 33))),
-    "braking/state-ce/1": (-34.35220324311259, 90, 150, (3, 4), 350, ((0, nan, 0), (1, 2.168889557137515, 3), (2, 0.0, 17), (3, 0.0, 29), (4, nan, 61))),
-    "braking/paper/0": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 3.56102621193034, 3), (2, 3.3385582881688016, 3), (3, 3.076266685477176, 3), (4, nan, 0))),
-    "braking/paper/1": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 3.5808462119303393, 3), (2, 3.320447356948659, 3), (3, 3.0723753044666644, 3), (4, nan, 0))),
-    "braking/authors-code/0": (-inf, 0, 50, (3,), 250, ((0, nan, 0), (1, 3.56102621193034, 3), (2, 3.3385582881688016, 3), (3, 3.3524002318177857, 3))),
-    "braking/authors-code/1": (-inf, 0, 50, (3,), 250, ((0, nan, 0), (1, 3.5808462119303393, 3), (2, 3.405125503487902, 3), (3, 3.097067091344499, 3))),
-    "braking/quick/0": (-35.2918497042498, 116, 150, (3, 4), 300, ((0, nan, 0), (1, 1.3554363731010852, 3), (2, 0.0, 16), (3, 0.0, 31), (4, nan, 85))),
-    "braking/quick/1": (-33.94599965039492, 89, 150, (3, 4), 300, ((0, nan, 0), (1, 1.1221105872045953, 3), (2, 0.0, 15), (3, 0.0, 22), (4, nan, 67))),
-    "toy/state-ce/0": (-48.39480057676526, 10, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 15.0, 3), (3, 4.0, 3), (4, nan, 10))),
-    "toy/state-ce/1": (-48.20519147029259, 12, 100, (4,), 350, ((0, nan, 0), (1, 18.0, 3), (2, 14.0, 3), (3, 1.0, 3), (4, nan, 12))),
-    "toy/paper/0": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 5), (2, 19.0, 3), (3, 20.0, 50), (4, nan, 0))),
+    "braking/state-ce/0": (-33.6501628042221, 80, 150, (3, 4), 350, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, 0.0, 12), (3, 0.0, 15), (4, nan, 65))),
+    "braking/state-ce/1": (-35.27676289960758, 83, 150, (3, 4), 350, ((0, nan, 0), (1, 2.168889557137515, 3), (2, 0.0, 17), (3, 0.0, 29), (4, nan, 54))),
+    "braking/paper/0": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 3.3448187147363484, 3), (2, 3.3357005795923413, 3), (3, 3.170121544617622, 3), (4, nan, 0))),
+    "braking/paper/1": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 3.605276073653105, 3), (2, 3.5078852094923363, 3), (3, 3.082375304466666, 3), (4, nan, 0))),
+    "braking/authors-code/0": (-inf, 0, 50, (3,), 250, ((0, nan, 0), (1, 3.3448187147363484, 3), (2, 3.3357005795923413, 3), (3, 3.511415532719294, 3))),
+    "braking/authors-code/1": (-inf, 0, 50, (3,), 250, ((0, nan, 0), (1, 3.605276073653105, 3), (2, 3.5078852094923363, 3), (3, 3.097067091344499, 3))),
+    "braking/quick/0": (-36.162255820302505, 149, 150, (3, 4), 300, ((0, nan, 0), (1, 1.390010839197359, 3), (2, 0.0, 10), (3, 0.0, 50), (4, nan, 99))),
+    "braking/quick/1": (-36.80117423790563, 110, 150, (3, 4), 300, ((0, nan, 0), (1, 1.1756267103298654, 3), (2, 0.0, 8), (3, 0.0, 44), (4, nan, 66))),
+    "toy/state-ce/0": (-48.33957121992181, 11, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 13.0, 3), (3, 4.0, 3), (4, nan, 11))),
+    "toy/state-ce/1": (-48.21878174082067, 12, 100, (4,), 350, ((0, nan, 0), (1, 18.0, 3), (2, 13.0, 3), (3, 1.0, 3), (4, nan, 12))),
+    "toy/paper/0": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 6), (2, 19.0, 4), (3, 20.0, 50), (4, nan, 0))),
     "braking/mc/0": (-inf, 0, 500, (1,), 500, ((1, nan, 0),)),
     "braking/mc-paper/0": (-inf, 0, 500, (1,), 500, ((1, nan, 0),)),
     "braking/naive50/0": (-61.41067706229729, 367, 500, (1,), 500, ((1, nan, 367),)),
@@ -50,17 +51,17 @@ PINNED = {
     "braking/mixed50/0": (-33.73266933500028, 367, 500, (1,), 500, ((1, nan, 367),)),
     "braking/mixed50-paper/0": (-78.53820890572328, 367, 500, (1,), 500, ((1, nan, 367),)),
     "toy-1e-3/mc/0": (-7.600902459542082, 1, 2000, (1,), 2000, ((1, nan, 1),)),
-    "braking/state-ce-streamed/0": (-33.810465161534694, 23670, 100001, (2,), 100151, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, nan, 23670))),
-    "braking/rollout-mixture/0": (-33.824266815815584, 76, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 53))),
-    "toy/rollout-mixture/0": (-48.382317304914295, 46, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 11.0, 3), (3, 0.0, 6), (4, nan, 46))),
-    "braking/fit-mixture/0": (-33.678619214463474, 75, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 52))),
-    "braking/fit-mixture/1": (-34.919902111021415, 89, 150, (3, 4), 350, ((0, nan, 0), (1, 2.081188287303849, 3), (2, 0.0, 6), (3, 0.0, 39), (4, nan, 56))),
-    "braking/renyi-fit/0": (-33.68657360644383, 75, 150, (3, 4), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.0, 4), (3, 0.0, 27), (4, nan, 52))),
-    "braking/renyi-fit/1": (-34.88511540007149, 87, 150, (3, 4), 350, ((0, nan, 0), (1, 2.081188287303849, 3), (2, 0.0, 6), (3, 0.0, 37), (4, nan, 56))),
-    "braking/array-rqmc/0": (-32.56839624862426, 53, 150, (3, 4), 350, ((0, nan, 0), (1, 2.124224518188786, 3), (2, 0.0, 5), (3, 0.0, 27), (4, nan, 31))),
-    "braking/array-rqmc/1": (-36.13435880117795, 70, 150, (3, 4), 350, ((0, nan, 0), (1, 2.1449127141471287, 3), (2, 0.0, 5), (3, 0.0, 28), (4, nan, 47))),
-    "braking/window-rqmc/0": (-33.28029057454697, 82, 150, (3, 4), 350, ((0, nan, 0), (1, 1.8569760122895076, 3), (2, 0.0, 3), (3, 0.0, 22), (4, nan, 63))),
-    "braking/window-rqmc/1": (-32.06697947854579, 83, 150, (3, 4), 350, ((0, nan, 0), (1, 1.5691016974257614, 3), (2, 0.0, 5), (3, 0.0, 45), (4, nan, 43))),
+    "braking/state-ce-streamed/0": (-33.86618066893059, 25366, 100001, (2,), 100151, ((0, nan, 0), (1, 1.7331782684715016, 3), (2, nan, 25366))),
+    "braking/rollout-mixture/0": (-36.743561993176925, 47, 100, (4,), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47))),
+    "toy/rollout-mixture/0": (-48.40860816702972, 47, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 3), (2, 8.0, 3), (3, 0.0, 19), (4, nan, 47))),
+    "braking/fit-mixture/0": (-36.743561993176925, 47, 100, (4,), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47))),
+    "braking/fit-mixture/1": (-34.94242219824203, 83, 150, (3, 4), 350, ((0, nan, 0), (1, 2.1010082873038485, 3), (2, 0.0, 6), (3, 0.0, 36), (4, nan, 53))),
+    "braking/renyi-fit/0": (-36.743561993176925, 47, 100, (4,), 350, ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47))),
+    "braking/renyi-fit/1": (-34.93184210242251, 82, 150, (3, 4), 350, ((0, nan, 0), (1, 2.1010082873038485, 3), (2, 0.0, 6), (3, 0.0, 35), (4, nan, 53))),
+    "braking/array-rqmc/0": (-37.03650871595938, 84, 150, (3, 4), 350, ((0, nan, 0), (1, 2.1145748565087814, 3), (2, 0.0, 4), (3, 0.0, 29), (4, nan, 59))),
+    "braking/array-rqmc/1": (-33.551592741030014, 63, 150, (3, 4), 350, ((0, nan, 0), (1, 2.0341764480288447, 3), (2, 0.0, 3), (3, 0.0, 26), (4, nan, 40))),
+    "braking/window-rqmc/0": (-35.129977522741626, 90, 150, (3, 4), 350, ((0, nan, 0), (1, 1.3649714792495367, 3), (2, 0.0, 19), (3, 0.0, 44), (4, nan, 65))),
+    "braking/window-rqmc/1": (-34.73174201870015, 105, 150, (3, 4), 350, ((0, nan, 0), (1, 1.9607052156063247, 3), (2, 0.0, 6), (3, 0.0, 36), (4, nan, 75))),
 }  # fmt: skip
 
 
@@ -68,18 +69,17 @@ def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     """The config and problem name of a key of :data:`PINNED`."""
     problem, preset, seed = key.split("/")
     if preset == "window-rqmc":  # the default sampler (every CE fit stops once converged, Adam at 1e-2, decided steps
-        # drawn from the PEM, Array-RQMC inside the window), with float64 fits
-        return ExperimentConfig(**{**SMALL, "fit_precision": "float64", "seed": int(seed)}), problem
+        # drawn from the PEM, Array-RQMC inside the window)
+        return ExperimentConfig(**{**SMALL, "seed": int(seed)}), problem
     if preset == "array-rqmc":  # Array-RQMC uniforms, stages pooled by j^2 n_j, fits of every epoch at 1e-3
         return ExperimentConfig(**{**SMALL, **FIT_RECORDED, "seed": int(seed)}), problem
     return ExperimentConfig(**{**RECORDED, **_pinned_fields(problem, preset), "seed": int(seed)}), problem
 
 
-FIT_RECORDED = {"learning_rate": 1e-3, "fit_tolerance": None, "skip_decided": False, "fit_rows": 10_000,
-                "fit_precision": "float64"}
+FIT_RECORDED = {"learning_rate": 1e-3, "fit_tolerance": None, "skip_decided": False, "fit_rows": 10_000}
 """The defaults before every CE fit stopped once converged (Adam at 1e-3; fits of at most ``fit_rows`` steps, all of
-these, ran every epoch, subsampling above 10,000 steps), before the proposal gave way to the PEM where the outcome
-is decided, and before the fits ran in float32."""
+these, ran every epoch, subsampling above 10,000 steps) and before the proposal gave way to the PEM where the outcome
+is decided."""
 RECORDED = {"uniforms": "iid", "pool_weights": "linear", **FIT_RECORDED}
 """The defaults when the other numbers were recorded: i.i.d. uniforms, the stages pooled by j n_j, the fits above."""
 

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from pemviz.core.diagnostics import effective_sample_size, fit_generalized_pareto, pareto_khat
+import pemviz.core.estimate as estimate_module
 from pemviz.core.estimate import CI_LEVEL, KHAT_UNRELIABLE, estimate, relative_error
 
 
 def _is(log_w: np.ndarray, failed: np.ndarray):
-    return estimate(log_w, failed, np.zeros(log_w.size))
+    """The estimate of distinct rollouts (each its own log p) with these weights."""
+    return estimate(log_w, failed, -np.arange(log_w.size, dtype=float))
 
 
 def test_zero_failures_of_plain_monte_carlo_give_the_rule_of_three_bound():
@@ -48,7 +50,28 @@ def test_equal_weights_interval_is_the_log_scale_t_interval_of_a_binomial_mean()
     assert e.log_ci[0] == pytest.approx(math.log(3e-21) - t975 * rel_se, abs=1e-9)
     assert e.log_ci[1] == pytest.approx(math.log(3e-21) + t975 * rel_se, abs=1e-9)
     assert e.khat == 0.0  # every failure weight equal: a flat tail
-    assert e.verdict == "reliable"
+    assert e.verdict == "reliable"  # 30 distinct rollouts, equal weights: as a zero-variance proposal draws them
+
+
+def test_failures_that_are_few_rollouts_drawn_again_and_again_are_not_reliable():
+    # a proposal collapsed onto 2 paths (the paper's sampler, seed 0): 91 failures, equal weights within each path,
+    # an ESS of 80, k-hat 0 -- and a number 10^9 too low; the weights alone look perfect
+    log_w = np.where(np.arange(100) % 2 == 0, -57.3, -54.9)
+    log_p = np.where(np.arange(100) % 2 == 0, -60.1, -58.2)
+    failed = np.arange(100) < 91
+    e = estimate(log_w, failed, log_p)
+    assert e.ess > 50 and e.khat == 0.0
+    assert e.verdict == "doubtful" and e.reason.startswith("the 91 failures are 2 distinct rollouts")
+    assert estimate_module.distinct_failures(log_w[failed], log_p[failed]) == 2
+    # the same weights on 91 distinct rollouts (their log p differ) are what a good proposal draws
+    assert estimate(log_w, failed, -np.arange(100.0)).verdict == "reliable"
+
+
+def test_a_nan_weight_is_never_reliable():
+    log_w = np.full(100, math.log(1e-20))
+    log_w[5] = math.nan  # -inf x 0: an event the PEM cannot make, masked by a product
+    e = estimate(log_w, np.arange(100) < 40, -np.arange(100.0))
+    assert e.verdict == "unreliable" and "nan" in e.reason
 
 
 def test_interval_covers_a_known_probability_in_about_95_percent_of_repetitions():

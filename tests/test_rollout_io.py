@@ -22,6 +22,7 @@ from pemviz.engine.plan import RunPlan
 from pemviz.presets import PRESETS
 from pemviz.core.problems import problem_for
 from pemviz import cli
+from pemviz.estimators.rollout_file import REESTIMATE_RTOL
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
 from pemviz.estimators.rollout_file import detector_log_prob, estimate_rollouts, pem_log_prob
@@ -57,8 +58,8 @@ def naive_run(tmp_path_factory, pem):
 
 
 def same_mu(log_a: float, log_b: float) -> bool:
-    """mu_hat equal to 1e-12 relative: |mu_a / mu_b - 1| <= 1e-12."""
-    return abs(math.expm1(log_a - log_b)) <= 1e-12
+    """mu_hat equal to REESTIMATE_RTOL (1e-9) relative: |mu_a / mu_b - 1| <= 1e-9."""
+    return abs(math.expm1(log_a - log_b)) <= REESTIMATE_RTOL
 
 
 def estimate_cli(capsys, *args: str) -> tuple[int, str, str]:

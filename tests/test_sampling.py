@@ -10,7 +10,9 @@ import torch
 
 from pemviz.core.detectors import ConstantDetector, action_log_prob, defensive_logit
 from pemviz.core.estimate import estimate, format_probability
-from pemviz.core.sampling import Proposal, ProposalFormatError, StateProposal, load_proposal, save_proposal
+from pemviz.core.sampling import (
+    Proposal, ProposalFormatError, StateProposal, fit_proposal, load_proposal, save_proposal,
+)
 from pemviz.estimators.base import quantile_threshold
 from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
 from pemviz.scenarios import simulate
@@ -357,38 +359,60 @@ def test_a_saved_proposal_loads_with_the_same_curve_and_a_foreign_file_is_refuse
         load_proposal(tmp_path / "missing.pt")
 
 
-def test_a_float32_sampler_follows_its_network_and_every_change_of_its_parameters(tmp_path):
-    # detect_logit in float32 is the float64 network's logit difference to float32 rounding (~1e-6 of the logits'
-    # scale), returned in float64; its cached weights follow an update under no_grad, a fit (which swaps each
-    # parameter's storage) and load_state_dict, and a checkpoint keeps the precision it samples in
-    torch.manual_seed(0)
+def test_the_exact_sampler_follows_its_network_and_every_change_of_its_parameters(tmp_path):
+    # detect_logit is the float64 network's logit difference to the grids' rounding (24 bits: ~1e-6 of the logits'
+    # scale); a row's logit is the same bits alone or in any batch; its cached weights follow an update under
+    # no_grad, a fit (which swaps each parameter's storage) and load_state_dict; a checkpoint says it samples exactly
     q = StateProposal((0, 1, 2, 3), (12.0, 10.0, 10.0, 1.0), (10.0, 8.0, 8.0, 0.0))
+    q.initialise(np.random.default_rng(0))
     obs = np.random.default_rng(0).uniform(0.0, 12.0, (500, 4))
     with torch.no_grad():
-        exact = q.forward(torch.as_tensor(obs))
-    exact = (exact[:, 1] - exact[:, 0]).numpy()
-    np.testing.assert_allclose(q.detect_logit(obs), exact, rtol=0, atol=1e-12)  # float64: to rounding
-    q.sample_dtype = torch.float32
+        net = q.forward(torch.as_tensor(obs))
+    net = (net[:, 1] - net[:, 0]).numpy()
     z = q.detect_logit(obs)
-    assert z.dtype == np.float64 and np.abs(z - exact).max() < 1e-5 * max(1.0, np.abs(exact).max())
+    assert z.dtype == np.float64 and np.abs(z - net).max() < 1e-5 * max(1.0, np.abs(net).max())
+    alone = np.concatenate([q.detect_logit(obs[i : i + 1]) for i in range(0, 500, 7)])
+    np.testing.assert_array_equal(alone, z[::7])  # bit for bit: no row depends on the others
+    np.testing.assert_array_equal(q.detect_logit(obs[::-1])[::-1], z)
     with torch.no_grad():
         q.net[4].bias[1] += 1.0
     np.testing.assert_allclose(q.detect_logit(obs) - z, 1.0, atol=1e-5)
     pretrain_proposal(q, obs[:, None, :], np.ones((500, 1), bool), epochs=30, lr=1e-2)  # every row detected
     fitted = q.detect_logit(obs)
     assert fitted.mean() > z.mean() + 1.0
-    loaded = load_proposal(save_proposal(Proposal(h_scale=12.0), tmp_path / "q.pt"))
-    assert loaded.sample_dtype == torch.float64
-    p = Proposal(h_scale=12.0)
-    p.sample_dtype = torch.float32
-    assert load_proposal(save_proposal(p, tmp_path / "p.pt")).sample_dtype == torch.float32
-    payload = torch.load(tmp_path / "p.pt", weights_only=True)
+    save_proposal(Proposal(h_scale=12.0), tmp_path / "q.pt")
+    payload = torch.load(tmp_path / "q.pt", weights_only=True)
+    assert payload["sample_precision"] == "exact"
+    for old in ("float32", "float64"):  # written before sampling was exact: read, and sampled exactly
+        torch.save({**payload, "sample_precision": old}, tmp_path / f"{old}.pt")
+        load_proposal(tmp_path / f"{old}.pt")
     torch.save({**payload, "sample_precision": "float16"}, tmp_path / "half.pt")
-    with pytest.raises(ProposalFormatError, match="sample_precision 'float16' is neither float64 nor float32"):
+    with pytest.raises(ProposalFormatError, match="sample_precision 'float16' is none of exact, float64, float32"):
         load_proposal(tmp_path / "half.pt")
     shift = torch.tensor([0.0, 0.5], dtype=torch.float64)  # the detect unit's bias: the logit moves by 0.5
     q.load_state_dict({k: v + shift if k == "net.4.bias" else v for k, v in q.state_dict().items()})
     np.testing.assert_allclose(q.detect_logit(obs) - fitted, 0.5, atol=1e-5)
+
+
+def test_an_exact_fit_follows_autograds_float64_fit_and_repeats_bit_for_bit():
+    # the exact fit's hand-written gradients against torch's float64 autograd fit of the same weighted
+    # log-likelihood: after 40 Adam epochs the parameters agree to the grids' precision, and a second fit from the
+    # same start gives the same bits
+    rng = np.random.default_rng(1)
+    obs = rng.uniform(0.0, 12.0, (700, 3))
+    counts = torch.as_tensor(rng.uniform(0.0, 4.0, (700, 2)) * (rng.random((700, 1)) < 0.8))
+    fits = []
+    for dtype in ("exact", torch.float64, "exact"):
+        q = StateProposal((0, 1, 2), (12.0, 10.0, 10.0), (10.0, 8.0, 8.0))
+        q.initialise(np.random.default_rng(0))
+        losses = fit_proposal(q, torch.as_tensor(obs), counts, 40, 1e-2, per=700.0, dtype=dtype)
+        fits.append((losses, torch.cat([p.detach().reshape(-1) for p in q.parameters()]).numpy()))
+    (exact_losses, exact_params), (ref_losses, ref_params), (again_losses, again_params) = fits
+    np.testing.assert_allclose(exact_losses, ref_losses, rtol=1e-5)
+    np.testing.assert_allclose(exact_params, ref_params, rtol=0, atol=1e-4)
+    assert exact_losses[-1] < exact_losses[0] - 0.01  # it learnt something
+    np.testing.assert_array_equal(again_params, exact_params)
+    assert again_losses == exact_losses
 
 
 def test_the_defensive_logit_is_the_mixtures_log_odds():

@@ -76,9 +76,12 @@ def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ..
     return items
 
 
-SHOWN_DEFAULTS = {"pem": "ml-nn", "ray_address": "a local one"}
+SHOWN_DEFAULTS = {"pem": "ml-nn", "ray_address": "a local one",
+                  "chunk_rollouts": "8192, and only stages above 20000 rollouts stream"}
 """What a setting's None stands for, as the flags' help says it: the shipped default PEM
-(:data:`pemviz.pem.DEFAULT_PEM_NAME`, whose module imports torch; a test keeps the two equal), a local Ray cluster."""
+(:data:`pemviz.pem.DEFAULT_PEM_NAME`, whose module imports torch; a test keeps the two equal), a local Ray cluster,
+the engine's chunks (:data:`pemviz.scenarios.DEFAULT_CHUNK_SIZE`, :data:`pemviz.engine.experiment.STREAM_ABOVE`; a
+test keeps them equal)."""
 
 
 def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str, default: Any = None) -> None:

@@ -32,7 +32,7 @@ from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 
 RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_level", "smoothing", "metric", "seed",
-                "ce_epochs", "pem", "scenario", "sim", "executor", "ray_address")
+                "ce_epochs", "pem", "scenario", "sim", "executor", "ray_address", "chunk_rollouts")
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 
@@ -247,7 +247,7 @@ def main(args: argparse.Namespace) -> int:
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.recording import RerunSink
 
-    stream_above = STREAM_ABOVE if cfg.executor == "serial" else None
+    stream_above = (cfg.chunk_rollouts or STREAM_ABOVE) if cfg.executor == "serial" else None
     check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above)
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     experiment = Experiment(cfg, problem=problem)

@@ -24,6 +24,17 @@ VERDICTS = ("reliable", "doubtful", "unreliable")
 MIN_FAILURES = 10
 """Fewer failing rollouts than this: the estimate rests on too few weights (verdict ``doubtful``)."""
 
+def distinct_failures(log_weight: np.ndarray, log_p_total: np.ndarray) -> int:
+    """The distinct failing rollouts among ``log_weight`` [F] and ``log_p_total`` [F] (nats) of the failures: the
+    distinct (log w, log p) pairs. Repeats of one rollout carry the same pair, bit for bit; a proposal that has
+    collapsed onto a few paths draws them again and again, and their ESS counts every repeat although the
+    estimate then knows only those paths' probability (Rubinstein & Kroese, "The Cross-Entropy Method", 2004,
+    Sec. 3.5: degenerate CE solutions)."""
+    if log_weight.size == 0:
+        return 0
+    return int(np.unique(np.stack([log_weight, log_p_total]), axis=1).shape[1])
+
+
 MAX_MEAN_WEIGHT = 20.0
 """The mean of N importance weights has expectation 1 when the weights belong to the proposal that drew the
 rollouts, so by Markov's inequality it exceeds 20 with probability <= 0.05: a larger mean says the weights (the
@@ -209,7 +220,9 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
     :data:`KHAT_UNRELIABLE` and an ESS below 2 :data:`MIN_FAILURES` (above it: ``doubtful``), or when the mean importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do
     not belong to the proposal that drew the rollouts); ``doubtful`` with fewer than :data:`MIN_FAILURES` failures,
     an ESS below it, or k-hat above the sample-size threshold min(1 - 1 / log10 S, 0.7) of Vehtari et al. (2024);
-    else ``reliable``.
+    ``doubtful`` too when the failures are fewer than :data:`MIN_FAILURES` distinct rollouts (:func:`distinct_failures`:
+    a collapsed proposal; a failure event of so few paths is rare), ``unreliable`` when a weight is nan; else
+    ``reliable``.
 
     Args:
         log_weight: float64 [N] importance log-weights sum_t (log p - log q) (nats).
@@ -255,15 +268,19 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
         _, lo, hi = _log_mean_interval(log_y)
         log_ci = (lo, hi)
         khat = pareto_khat(log_y)
-    verdict, reason = _verdict(n, nf, ess, khat, log_weight, plain_mc)
+    distinct = nf if plain_mc else distinct_failures(lw, lp)
+    verdict, reason = _verdict(n, nf, ess, khat, log_weight, plain_mc, distinct)
     return Estimate(n, nf, log_sum - math.log(n), float(-lp.mean()), nll_lme, ess, log_ci, khat, log_mean_w,
                     verdict, reason)  # fmt: skip
 
 
-def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, plain_mc: bool) -> tuple[str, str]:
+def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, plain_mc: bool,
+             distinct: int) -> tuple[str, str]:  # fmt: skip
     """The verdict and its one-line reason (see :func:`estimate`)."""
     from scipy.special import logsumexp
 
+    if not plain_mc and not (math.isfinite(ess) and not math.isnan(khat) and np.all(~np.isnan(log_weight))):
+        return "unreliable", "the weights hold nan: a proposal drew what the PEM cannot"  # nan compares False
     if not plain_mc:
         if khat > KHAT_UNRELIABLE and ess < 2 * MIN_FAILURES:
             return "unreliable", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: a few weights dominate"
@@ -275,6 +292,9 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
             )
     if nf < MIN_FAILURES:
         return "doubtful", f"only {nf} failure{'s' if nf != 1 else ''}"
+    if distinct < MIN_FAILURES:
+        return "doubtful", (f"the {nf} failures are {distinct} distinct rollout{'s' if distinct != 1 else ''} "
+                              "drawn again and again: the proposal has collapsed onto them")
     if not plain_mc:
         if ess < MIN_FAILURES:
             return "doubtful", f"ESS {ess:.1f} < {MIN_FAILURES}: a few weights carry the estimate"

@@ -24,7 +24,9 @@ from pemviz.core.detectors import Detector, PEMDetector
 from pemviz.core.estimate import Reference
 from pemviz.core.truth import known_log_failure_probability
 from pemviz.pem import DEFAULT_PEM_NAME, load_pem
-from pemviz.scenarios import RolloutBatch, branch, branch_rollouts, iter_rollouts, simulate, simulate_rollouts
+from pemviz.scenarios import (
+    DEFAULT_CHUNK_SIZE, RolloutBatch, branch, branch_rollouts, iter_rollouts, simulate, simulate_rollouts,
+)
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
@@ -38,8 +40,9 @@ BranchFn = Callable[[RolloutBatch, np.ndarray, np.ndarray, Detector, np.random.G
 """``branch(parents, parent, at, target, rng)``: K rollouts continuing rollout ``parent[i]`` of ``parents`` from step
 ``at[i]`` on with ``target``'s detections (:func:`pemviz.scenarios.branch`; needs snapshot/restore)."""
 
-StreamFn = Callable[[int, Detector, Detector, np.random.Generator], Iterator[RolloutBatch]]
-"""``stream(n, sampler, target, rng)``: the rollouts of ``simulate`` with the same arguments, in chunks."""
+StreamFn = Callable[..., Iterator[RolloutBatch]]
+"""``stream(n, sampler, target, rng, chunk_size=DEFAULT_CHUNK_SIZE)``: the rollouts of ``simulate`` with the same
+arguments, in chunks of at most ``chunk_size`` rollouts (the rollouts do not depend on it)."""
 
 BRAKING_SIGNALS = {"d": "gap_m", "v": "ego_speed_mps", "vl": "lead_speed_mps"}
 """STL signal name -> braking rollout observation column (metres, m/s)."""
@@ -286,8 +289,9 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
             return simulate_batched(p, n, sampler, target, rng)
         return simulate(lambda: BrakingScenario(p), n, sampler, target, rng, p.n_steps)
 
-    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
-        return iter_batched(p, n, sampler, target, rng)
+    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
+               chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[RolloutBatch]:  # fmt: skip
+        return iter_batched(p, n, sampler, target, rng, chunk_size=chunk_size)
 
     def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
                rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
@@ -348,8 +352,9 @@ def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[Simu
     def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
         return simulate_rollouts(make, n, n_steps, sampler, target, rng)
 
-    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> Iterator[RolloutBatch]:
-        return iter_rollouts(make, n, n_steps, sampler, target, rng)
+    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
+               chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[RolloutBatch]:  # fmt: skip
+        return iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=chunk_size)
 
     def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
                rng: np.random.Generator) -> RolloutBatch:  # fmt: skip

@@ -21,17 +21,12 @@ import torch
 from torch import nn
 
 from pemviz.config import FITS
+from pemviz.core import exact
 from pemviz.core.detectors import GAP_COLUMN
 from pemviz.io.files import atomic_write, load_tagged
 
 GAP_SCALE_M = 12.0
 """The braking proposal's input is gap / 12 m (Innes & Ramamoorthy 2022, the authors' code)."""
-
-
-ROW_MULTIPLE = 8
-"""A float32 :meth:`Proposal.detect_logit` pads its rows to a multiple of this many: the CPU's float32 matrix products
-round the rows of a batch of another size (its tail) differently, and a row's logit must not depend on the rows it is
-asked about with (a stage streamed in chunks gives the rollouts of one whole batch, bit for bit)."""
 
 
 class Proposal(nn.Module):
@@ -53,6 +48,17 @@ class Proposal(nn.Module):
     def forward(self, gap_m: torch.Tensor) -> torch.Tensor:
         return self.net(self.inputs(gap_m))
 
+    def initialise(self, rng: np.random.Generator) -> None:
+        """Draw every layer's weights and biases i.i.d. U(-1/sqrt(fan_in), 1/sqrt(fan_in)), as torch's ``nn.Linear``
+        initialises them (He et al., "Delving deep into rectifiers", 2015, with a = sqrt(5)), from ``rng`` (numpy's
+        PCG64: the same numbers on every CPU, where torch's ``uniform_`` rounds by the CPU's vector unit)."""
+        with torch.no_grad():
+            for layer in self.net:
+                if isinstance(layer, nn.Linear):
+                    bound = 1.0 / math.sqrt(layer.in_features)
+                    for p in (layer.weight, layer.bias):
+                        p.copy_(torch.from_numpy(rng.uniform(-bound, bound, tuple(p.shape))))
+
     def add_noise_head(self, n_noise: int) -> None:
         """Give the proposal a measurement-error model of its own (:class:`NoiseShift`, equal to the target's until
         fitted) for the D = ``n_noise`` error components a noisy target draws."""
@@ -73,57 +79,50 @@ class Proposal(nn.Module):
         """Detector interface: logit q(detect | obs) = log q(detect) - log q(miss), float64 [N] for observations
         [N, F] (nats).
 
-        The network of :meth:`forward` evaluated for sampling, in :attr:`sample_dtype`: matrix products with the input
-        scales folded into the first layer's weights and the two output units into one, ``(w_detect - w_miss) . a +
-        (b_detect - b_miss)`` (the log-softmax cancels in the difference), so in float64 equal to ``forward``'s
-        ``log q[:, 1] - log q[:, 0]`` up to rounding (~1e-16 relative) at a third of its cost, and in float32 within
-        ~1e-6 of it at another third. The logit is returned in float64: sampling and every importance weight use this
-        path, so each rollout is weighed by the density it was drawn from, whatever the precision of the products.
+        The network of :meth:`forward` in exact, order-free arithmetic (:mod:`pemviz.core.exact`): each layer's
+        product on power-of-two grids of about float32's precision (the input scales folded into the first layer's
+        weights, the two output units into one, ``(w_detect - w_miss) . a + (b_detect - b_miss)``: the log-softmax
+        cancels in the difference), so within ~1e-6 of ``forward``'s ``log q[:, 1] - log q[:, 0]``, and the same bits
+        for a row whatever rows it is asked about with, whatever the CPU. Sampling and every importance weight use
+        this logit, so each rollout is weighed by the density it was drawn from.
         """
         obs = np.asarray(obs, dtype=np.float64)
         columns = self.input_columns()
-        every = columns == list(range(obs.shape[1]))
+        x = obs if columns == list(range(obs.shape[1])) else obs[:, columns]
         w1, b1, w2, b2, w3, b3 = self._sampling_weights()
-        m = obs.shape[0]
-        if w1.dtype == torch.float64:
-            x = torch.from_numpy(obs if every and obs.flags.c_contiguous else obs[:, columns])
-        else:  # float32 products round a row alike in any batch of a multiple of 4 rows (MKL's kernels): the rows are
-            # cast into a zero-padded buffer of a multiple of ROW_MULTIPLE
-            buffer = np.zeros((m + (-m % ROW_MULTIPLE), len(columns)), dtype=np.float32)
-            buffer[:m] = obs if every else obs[:, columns]
-            x = torch.from_numpy(buffer)
-        with torch.no_grad():
-            a = torch.addmm(b1, x, w1).relu_()
-            a = torch.addmm(b2, a, w2).relu_()
-            return torch.mv(a, w3).add_(b3)[:m].to(torch.float64).numpy()
-
-    sample_dtype: torch.dtype = torch.float64
-    """The arithmetic of :meth:`detect_logit` (float64, or float32 where the run fits in float32:
-    ``ExperimentConfig.fit_precision``); the parameters stay float64."""
+        if x.shape[0] == 0:
+            return np.zeros(0)
+        a = np.maximum(exact.matmul(x, None, w1) + b1, 0.0)
+        a = np.maximum(exact.matmul(a, None, w2, nonneg=True) + b2, 0.0)
+        return exact.matmul(a, None, w3, nonneg=True)[:, 0] + b3
 
     def __getstate__(self) -> dict:
         """Pickled and copied without the sampling weights' cache (it holds storages; a copy computes its own)."""
         return {k: v for k, v in super().__getstate__().items() if k != "_sampling_cache"}
 
-    def _sampling_weights(self) -> tuple[torch.Tensor, ...]:
-        """(W1 [k, 32] with the input scales folded in, b1, W2 [32, 32], b2, w_detect - w_miss [32], b_detect - b_miss)
-        in :attr:`sample_dtype`, kept while no parameter changed: neither its storage (a fit swaps it in, ``p.data =
-        ...``; the storages seen are held, so no new one can take an old one's address) nor its version (bumped by
-        every in-place update through the parameter itself, as optimisers and ``load_state_dict`` make them). An update
-        through ``p.data`` in place leaves no trace: change parameters under ``torch.no_grad()`` instead."""
+    def _sampling_weights(self) -> tuple:
+        """The weights of :meth:`detect_logit`, each layer's on its grid (:func:`pemviz.core.exact.on_grid`, per
+        output unit): (W1 [k, 32] with the input scales folded in, b1 [32], W2 [32, 32], b2, w_detect - w_miss
+        [32, 1], b_detect - b_miss), kept while no parameter changed: neither its storage (a fit swaps it in, ``p.data
+        = ...``; the storages seen are held, so no new one can take an old one's address) nor its version (bumped by
+        every in-place update through the parameter itself, as optimisers and ``load_state_dict`` make them). An
+        update through ``p.data`` in place leaves no trace: change parameters under ``torch.no_grad()`` instead."""
         cached = self.__dict__.get("_sampling_cache")
         params = cached[2] if cached is not None else tuple(self.net.parameters())  # the Parameters: they follow
-        key = (self.sample_dtype, tuple(self.input_scales().tolist()),  # a fit's storage swaps, a detached copy does not
+        key = (tuple(self.input_scales().tolist()),  # a fit's storage swaps, a detached copy does not
                tuple((p.data_ptr(), p._version) for p in params))  # fmt: skip
         if cached is not None and cached[0] == key:
             return cached[1]
         lin1, _, lin2, _, lin3, _ = self.net
-        dt = self.sample_dtype
         with torch.no_grad():
+            w1 = (lin1.weight.t() / self.input_scales()[:, None]).numpy()
+            w2 = lin2.weight.t().numpy()
             w, b = lin3.weight, lin3.bias
-            weights = ((lin1.weight / self.input_scales()).t().to(dt), lin1.bias.detach().to(dt),
-                       lin2.weight.detach().t().to(dt), lin2.bias.detach().to(dt), (w[1] - w[0]).to(dt),
-                       (b[1] - b[0]).to(dt))  # fmt: skip
+            w3 = (w[1] - w[0]).numpy()[:, None]
+            b1, b2, b3 = lin1.bias.numpy().copy(), lin2.bias.numpy().copy(), float(b[1] - b[0])
+        weights = (exact.on_grid(w1, exact.grid_bits(w1.shape[0]), 0), b1,
+                   exact.on_grid(w2, exact.grid_bits(w2.shape[0]), 0), b2,
+                   exact.on_grid(w3, exact.grid_bits(w3.shape[0]), 0), b3)  # fmt: skip
         self.__dict__["_sampling_cache"] = (key, weights, params, tuple(p.untyped_storage() for p in params))
         return weights
 
@@ -424,6 +423,120 @@ Objective = Union[torch.Tensor, Callable[[torch.Tensor], "tuple[torch.Tensor, to
 detections), or a function of log q returning the scalar loss and its gradient d loss / d log q [M, 2]."""
 
 
+EXACT = "exact"
+COUNT_BITS = 24
+"""The bits an exact fit keeps of its weighted counts, relative to the largest (:func:`fit_exact`)."""
+"""The arithmetic of an ``adam`` fit (``dtype`` of :func:`fit_proposal`) that gives the same parameters on every
+CPU, whatever its vector unit or BLAS kernel (:func:`fit_exact`)."""
+
+
+def fit_exact(proposal: Proposal, inputs: torch.Tensor, counts: torch.Tensor, epochs: int, lr: float,
+              check: Callable[[], None] | None = None, tolerance: float | None = None,
+              per: float | None = None) -> list[float]:  # fmt: skip
+    """Full-batch Adam on the weighted log-likelihood ``-sum(C * log q) / per`` (:data:`Objective`, a tensor C), in
+    place, in exact order-free arithmetic (:mod:`pemviz.core.exact`): the same parameters, bit for bit, on every CPU.
+
+    Forward and backward passes are written out (Rumelhart, Hinton & Williams 1986): every operand of a matrix
+    product rounded once to a power-of-two grid of ``grid_bits(max(M, 32))`` bits of its largest entry
+    (:func:`pemviz.core.exact.to_grid`; 21 bits for M = 2,000), so that the products over the 32 units and over the
+    M inputs, and each bias gradient, are exact sums of integers; the log-softmax of the two outputs as
+    ``log q(miss) = -softplus(d)``, ``log q(detect) = -softplus(-d)`` with d = z_detect - z_miss and its derivative
+    ``d loss / d d = ((C_miss + C_detect) sigmoid(d) - C_detect) / per``, and Adam (Kingma & Ba 2015, Algorithm 1,
+    torch's defaults: betas (0.9, 0.999), eps 1e-8) in elementwise float64. Precision is about float32's. The
+    weighted counts C / per are first rounded to a grid of :data:`COUNT_BITS` bits of the largest, so that counts
+    that differ in their last bits (float64 weights computed by another CPU's libm) give the same fit unless one of
+    M x 2 counts lies within an ulp of a rounding boundary (probability about 2^-29 each).
+
+    Args:
+        inputs: float64 [M] or [M, k] (:meth:`Proposal.forward`); counts: C float64 [M, 2] (miss, detect).
+        epochs, lr, check, tolerance, per: as :func:`fit_proposal`.
+    Returns:
+        the loss per epoch (nats, divided by ``per``).
+    """
+    lin1, _, lin2, _, lin3, _ = proposal.net
+    with torch.no_grad():
+        h = np.ascontiguousarray(proposal.inputs(torch.as_tensor(inputs, dtype=torch.float64)).numpy())
+        c = np.asarray(counts.detach().numpy() if isinstance(counts, torch.Tensor) else counts, dtype=np.float64)
+        params = [lin1.weight, lin1.bias, lin2.weight, lin2.bias, lin3.weight, lin3.bias]
+        flat = np.concatenate([p.detach().numpy().reshape(-1) for p in params]).astype(np.float64)
+    shapes = [tuple(p.shape) for p in params]
+    sizes = [p.numel() for p in params]
+    offsets = np.cumsum([0, *sizes])
+    views = [flat[a:b].reshape(shape) for a, b, shape in zip(offsets[:-1], offsets[1:], shapes)]
+    w1, b1, w2, b2, w3, b3 = views
+    grad = np.zeros_like(flat)
+    g_w1, g_b1, g_w2, g_b2, g_w3, g_b3 = (grad[a:b].reshape(shape)
+                                          for a, b, shape in zip(offsets[:-1], offsets[1:], shapes))  # fmt: skip
+    # the weighted counts come from float64 weights whose last bits may depend on the CPU's libm (exp, log): on a
+    # grid of COUNT_BITS bits they are the same numbers unless one lies within an ulp of a grid point's midpoint
+    ci, ec = exact.on_grid(c * (1.0 if per is None else 1.0 / per), COUNT_BITS, None)
+    c_miss, c_detect = np.ldexp(ci[:, 0], ec[0]), np.ldexp(ci[:, 1], ec[0])
+    c_both = c_miss + c_detect
+    m_rows = h.shape[0]
+    bits = exact.grid_bits(max(m_rows, 32))  # each operand's bits, for the products over 32 units and over M rows
+    hi, sh = exact.to_grid(h, bits)  # the inputs are fixed: on their grid once
+    beta1, beta2, eps = 0.9, 0.999, 1e-8
+    beta1_t = beta2_t = 1.0
+    exp_avg, exp_avg_sq = np.zeros_like(flat), np.zeros_like(flat)
+    losses: list[float] = []
+    for epoch in range(epochs):
+        if check is not None and epoch % CHECK_EVERY == 0:
+            check()  # may raise to stop the run (a cancel token)
+        w1i, s1 = exact.to_grid(w1.T, bits)
+        a1 = hi @ w1i
+        a1 *= sh * s1
+        a1 += b1
+        np.maximum(a1, 0.0, out=a1)
+        a1i, sa1 = exact.to_grid(a1, bits, nonneg=True)
+        w2i, s2 = exact.to_grid(w2, bits)
+        a2 = a1i @ w2i.T
+        a2 *= sa1 * s2
+        a2 += b2
+        np.maximum(a2, 0.0, out=a2)
+        a2i, sa2 = exact.to_grid(a2, bits, nonneg=True)
+        w_diff = w3[1] - w3[0]
+        wdi, sd = exact.to_grid(w_diff, bits)
+        d = a2i @ wdi
+        d *= sa2 * sd
+        d += b3[1] - b3[0]
+        softplus, sigmoid = exact.softplus_and_sigmoid(d)
+        # -(C_miss log q(miss) + C_detect log q(detect)), log q(detect) = -softplus(-d) = d - softplus(d)
+        losses.append(float(exact.exact_sum((c_both * softplus - c_detect * d)[:, None], 0)[0]))
+        ddi, sdd = exact.to_grid(c_both * sigmoid - c_detect, bits)  # d loss / d d
+        g_w3[1] = (ddi @ a2i) * (sdd * sa2)
+        np.negative(g_w3[1], out=g_w3[0])
+        g_b3[1] = ddi.sum() * sdd  # integers below 2^53: exact in any order
+        g_b3[0] = -g_b3[1]
+        dz2 = ddi[:, None] * wdi[None, :]  # exact products of integers, scaled by sdd * sd
+        dz2 *= a2 > 0
+        dz2i, sz2 = exact.to_grid(dz2, bits)
+        sz2 *= sdd * sd
+        g_w2[...] = (dz2i.T @ a1i) * (sz2 * sa1)
+        g_b2[...] = dz2i.sum(axis=0) * sz2
+        dz1 = dz2i @ w2i
+        dz1 *= a1 > 0
+        dz1i, sz1 = exact.to_grid(dz1, bits)
+        sz1 *= sz2 * s2
+        g_w1[...] = (dz1i.T @ hi) * (sz1 * sh)
+        g_b1[...] = dz1i.sum(axis=0) * sz1
+        beta1_t *= beta1
+        beta2_t *= beta2
+        exp_avg *= beta1
+        exp_avg += (1.0 - beta1) * grad
+        exp_avg_sq *= beta2
+        exp_avg_sq += (1.0 - beta2) * (grad * grad)
+        denom = np.sqrt(exp_avg_sq)
+        denom /= math.sqrt(1.0 - beta2_t)
+        denom += eps
+        flat -= (lr / (1.0 - beta1_t)) * (exp_avg / denom)
+        if tolerance is not None and epoch >= PLATEAU_EPOCHS and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance:
+            break  # converged: the loss has stopped falling
+    with torch.no_grad():
+        for p, view in zip(params, views):
+            p.copy_(torch.from_numpy(view.copy()))
+    return losses
+
+
 def fit_proposal(
     proposal: Proposal,
     inputs: torch.Tensor,
@@ -434,7 +547,7 @@ def fit_proposal(
     method: str = "adam",
     tolerance: float | None = None,
     per: float | None = None,
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | str = EXACT,
 ) -> list[float]:
     """Minimise the ``objective`` of log q_phi(. | ``inputs``) over the proposal's parameters, in place; returns the
     loss per step.
@@ -446,11 +559,12 @@ def fit_proposal(
             ``tolerance`` in nats per step means the same at any N); None: not divided.
         epochs, lr: Adam steps and step size, or the most L-BFGS iterations.
         check: called every :data:`CHECK_EVERY` steps; may raise (a cancel token) to abandon the fit.
-        dtype: the arithmetic of an ``adam`` fit of a tensor objective: float32 (default) runs the network's
-            products about 2.7 times as fast as float64 on a CPU. The parameters stay float64 and every weight of
-            the estimate is computed in float64 from the density sampled from (:meth:`Proposal.detect_logit`), so
-            the precision of the fit only moves the proposal, never the estimate's unbiasedness. A function
-            objective (the authors' recomputed weights) and ``lbfgs`` always fit in float64.
+        dtype: the arithmetic of an ``adam`` fit of a tensor objective: :data:`EXACT` (default, :func:`fit_exact`:
+            the same parameters on every CPU), or torch's float32 (the fastest) or float64 kernels, whose last bits
+            depend on the CPU's vector unit and BLAS kernel. The parameters stay float64 and every weight of the
+            estimate is computed in float64 from the density sampled from (:meth:`Proposal.detect_logit`), so the
+            precision of the fit only moves the proposal, never the estimate's unbiasedness. A function objective
+            (the authors' recomputed weights) and ``lbfgs`` always fit in torch's float64.
         method: one of :data:`pemviz.config.FITS`.
         tolerance: ``adam``: early stopping once the loss fell by less than this over the last :data:`PLATEAU_EPOCHS`
             epochs (None: every epoch); ``lbfgs``: its tolerance on a change of the loss (default
@@ -461,7 +575,7 @@ def fit_proposal(
         ValueError: for an unknown ``method``.
 
     ``adam`` (Kingma & Ba 2015, :class:`Adam`) backpropagates through the network by hand
-    (:class:`Backprop`); ``lbfgs`` (Nocedal 1980; torch's, history 20, strong-Wolfe line search,
+    (:func:`fit_exact`, or :class:`Backprop` in torch's kernels); ``lbfgs`` (Nocedal 1980; torch's, history 20, strong-Wolfe line search,
     unit step) backpropagates the objective's gradient with autograd.
     """
     if method not in FITS:
@@ -502,7 +616,9 @@ def fit_proposal(
             if state.get("n_iter", 0) - before < opt.param_groups[0]["max_iter"]:  # converged: stop
                 break
         return losses
-    dtype = dtype if linear else torch.float64
+    if linear and dtype == EXACT:
+        return fit_exact(proposal, inputs, objective, epochs, lr, check, tolerance, per)
+    dtype = dtype if linear and dtype != EXACT else torch.float64
     h = proposal.inputs(torch.as_tensor(inputs)).to(dtype)
     if linear:
         grad_linear = grad_linear.to(dtype)  # the loss itself is summed in float64 (its log q cast up)
@@ -538,6 +654,9 @@ def fit_proposal(
 
 PROPOSAL_FORMAT_TAG = "pemviz-proposal"
 PROPOSAL_FORMAT_VERSION = 1
+SAMPLE_PRECISIONS = ("exact", "float64", "float32")
+"""A checkpoint's ``sample_precision``: ``exact`` (written now); ``float64`` and ``float32`` (written before sampling
+became exact, read and sampled exactly)."""
 
 
 class ProposalFormatError(ValueError):
@@ -550,15 +669,16 @@ def write_proposal_file(proposal: Proposal, path: str | os.PathLike[str]) -> Non
     :func:`save_proposal`).
 
     The checkpoint is a plain dict: format tag, version, ``h_scale`` (metres), a copy of the ``state_dict`` and the
-    arithmetic it samples in (``sample_precision``: ``float64`` or ``float32``; ``float64`` when absent), so
-    that ``torch.load(weights_only=True)`` reads it and later training of ``proposal`` does not change it.
+    arithmetic it samples in (``sample_precision``: ``exact``, :meth:`Proposal.detect_logit`; checkpoints of
+    pemviz's earlier versions say ``float64`` or ``float32``, and are now sampled exactly), so that
+    ``torch.load(weights_only=True)`` reads it and later training of ``proposal`` does not change it.
     """
     payload = {
         "format": PROPOSAL_FORMAT_TAG,
         "version": PROPOSAL_FORMAT_VERSION,
         "h_scale": float(proposal.h_scale),
         "state_dict": {k: v.detach().cpu().clone() for k, v in proposal.state_dict().items()},
-        "sample_precision": str(proposal.sample_dtype).removeprefix("torch."),
+        "sample_precision": "exact",
     }
     torch.save(payload, path)
 
@@ -588,9 +708,8 @@ def load_proposal(path: str | os.PathLike[str]) -> Proposal:
         proposal = Proposal(float(payload["h_scale"]))
         proposal.load_state_dict(payload["state_dict"])
         precision = payload.get("sample_precision", "float64")
-        if precision not in ("float64", "float32"):
-            raise ValueError(f"sample_precision {precision!r} is neither float64 nor float32")
-        proposal.sample_dtype = getattr(torch, precision)
+        if precision not in SAMPLE_PRECISIONS:
+            raise ValueError(f"sample_precision {precision!r} is none of {', '.join(SAMPLE_PRECISIONS)}")
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise ProposalFormatError(f"{p}: damaged proposal checkpoint ({exc})") from None
     return proposal.eval()

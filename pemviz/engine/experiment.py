@@ -185,7 +185,8 @@ class Experiment:
             # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
             # almost never fail, so coupling them would reduce no estimate's variance
             parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
-        if plan.draw is None and plan.n > STREAM_ABOVE and pb.stream is not None and cfg.executor == "serial":
+        stream_above = STREAM_ABOVE if cfg.chunk_rollouts is None else cfg.chunk_rollouts
+        if plan.draw is None and plan.n > stream_above and pb.stream is not None and cfg.executor == "serial":
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
@@ -211,12 +212,13 @@ class Experiment:
 
     def _streamed(self, estimator: Estimator, plan: StagePlan, parts: list[tuple[int, Detector]],
                   target: Detector) -> None:  # fmt: skip
-        """Simulate a stage chunk by chunk (:data:`STREAM_ABOVE`), ``parts`` = (rollouts, detector) in order, scored
+        """Simulate a stage chunk by chunk (:data:`STREAM_ABOVE`, or ``ExperimentConfig.chunk_rollouts``), ``parts`` = (rollouts, detector) in order, scored
         under ``target``: the estimator and the listeners see each chunk once, then the listeners a
         :class:`StageSample` of the stage."""
         pb, cfg = self.problem, self.config
         sample = StageSample(plan.n)
-        chunks = itertools.chain.from_iterable(pb.stream(k, d, target, estimator.rng) for k, d in parts)
+        size = {} if cfg.chunk_rollouts is None else {"chunk_size": cfg.chunk_rollouts}
+        chunks = itertools.chain.from_iterable(pb.stream(k, d, target, estimator.rng, **size) for k, d in parts)
         for batch in chunks:
             self._check_cancel()
             robustness = pb.robustness(batch, cfg.metric)

@@ -158,7 +158,9 @@ def log_weight(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np
     """
     if not until_failure:
         return batch.log_weight()
-    return ((batch.log_p - batch.log_q) * weighted_steps_mask(problem, batch, until_failure)).sum(axis=1)
+    mask = weighted_steps_mask(problem, batch, until_failure)
+    with np.errstate(invalid="ignore"):  # -inf - -inf after the failure, where the mask drops it (never multiplied)
+        return np.where(mask, batch.log_p - batch.log_q, 0.0).sum(axis=1)
 
 
 def weighted_steps_mask(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np.ndarray:
@@ -196,7 +198,7 @@ def log_p_before_failure(problem: Problem, batch: RolloutBatch) -> np.ndarray:
         k = np.minimum(failure_steps(problem, batch), batch.n_steps - 1)
     except ValueError:
         k = np.full(batch.n, batch.n_steps - 1)
-    return (batch.log_p * (np.arange(batch.n_steps)[None, :] < k[:, None])).sum(axis=1)
+    return np.where(np.arange(batch.n_steps)[None, :] < k[:, None], batch.log_p, 0.0).sum(axis=1)  # -inf after
 
 
 def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,7 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
-from pemviz.core.sampling import Proposal, fit_proposal
+from pemviz.core.sampling import EXACT, Proposal, fit_proposal
 from pemviz.estimators.base import elite_counts
 from pemviz.scenarios import RolloutBatch
 
@@ -121,7 +121,7 @@ def pretrain_proposal(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | str = EXACT,
 ) -> list[float]:
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
 
@@ -179,7 +179,7 @@ def ce_update(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | str = EXACT,
 ) -> list[float]:
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
@@ -292,7 +292,7 @@ def fit_elite_steps(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | str = EXACT,
     n_steps: int | None = None,
 ) -> list[float]:
     """The frozen-weight CE fit on the elites' fitted steps: minimise ``-sum_s w_s log q_phi(a_s | h_s)``, in place.

@@ -52,7 +52,7 @@ from pemviz.estimators.base import (
 from pemviz.engine.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.core.rng import RQMC_BLOCK
-from pemviz.core.sampling import Proposal, StateProposal, fit_noise_shift
+from pemviz.core.sampling import EXACT, Proposal, StateProposal, fit_noise_shift
 from pemviz.scenarios import RolloutBatch
 
 @dataclass(frozen=True)
@@ -164,7 +164,7 @@ class CrossEntropy(OwnsSettings):
         """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
         self.tolerance = config.fit_tolerance if config.fit == "adam" else None
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
-        self.fit_dtype = torch.float32 if config.fit_precision == "float32" else torch.float64
+        self.fit_dtype = {"float32": torch.float32, "float64": torch.float64}.get(config.fit_precision, EXACT)
         """The arithmetic of the Adam fits (``ExperimentConfig.fit_precision``)."""
 
     # -- the interface --------------------------------------------------------------------------------------------
@@ -363,11 +363,10 @@ class CrossEntropy(OwnsSettings):
     def _pretrain(self, batch: RolloutBatch) -> None:
         """A new proposal fitted to the pretraining rollouts' actions; the CE stages' sampler around it."""
         cfg = self.config
-        with torch.random.fork_rng(devices=[]):  # the proposal's initial weights, without reseeding the process
-            torch.manual_seed(cfg.seed)
-            self.proposal = proposal = self._new_proposal(batch)
-            if noise_names_of(self.problem.target):  # errors drawn by a model of its own, the target's until fitted
-                proposal.add_noise_head(len(noise_names_of(self.problem.target)))
+        self.proposal = proposal = self._new_proposal(batch)
+        proposal.initialise(np.random.default_rng(cfg.seed))  # the initial weights: the same on every CPU
+        if noise_names_of(self.problem.target):  # errors drawn by a model of its own, the target's until fitted
+            proposal.add_noise_head(len(noise_names_of(self.problem.target)))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch) if cfg.proposal_window else None)
         pretrain_proposal(
             proposal, features, detected,
@@ -548,7 +547,7 @@ class CrossEntropy(OwnsSettings):
         """The paper's gap-only proposal, or a :class:`StateProposal` over every column of the object rows
         (``proposal_inputs = "state"``): the first (the gap) scaled by the problem's ``h_scale``, the other columns by
         their largest magnitude in the pretraining rollouts; its curve holds them at the first row drawn. It samples in
-        the fits' precision (:attr:`Proposal.sample_dtype`)."""
+        exact arithmetic (:meth:`Proposal.detect_logit`), whatever the fits' precision."""
         if self.config.proposal_inputs == "gap":
             proposal = Proposal(self.problem.h_scale)
         else:
@@ -556,5 +555,4 @@ class CrossEntropy(OwnsSettings):
             scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0
                                                for j in range(1, rows.shape[2])]  # fmt: skip
             proposal = StateProposal(tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
-        proposal.sample_dtype = self.fit_dtype  # sampled in the arithmetic it is fitted in
         return proposal

@@ -28,6 +28,11 @@ from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatErr
 from pemviz.io.rollouts import RolloutData, braking_salient
 from pemviz.scenarios import RolloutBatch
 
+REESTIMATE_RTOL = 1e-9
+"""A rollout file re-estimates to its run's mu_hat within this relative error, and prints the run's rows and verdict:
+the file's weights are summed in another grouping than the run's, so their float64 sums agree to the last bits only
+(seen: 1.5e-11 at 2,100 rollouts, 1.5e-10 at 10^5 rollouts streamed in chunks)."""
+
 
 def _one_object(data: RolloutData) -> None:
     """Refuse to recompute log-probabilities of a file of several objects or with errors (its rows are not in it)."""

@@ -1,0 +1,69 @@
+"""Same seed, same run: the default braking and cut-in runs at chunk sizes 64, 1,000 and whole batches, serial and on
+a local Ray cluster, and the default braking run under every kernel-dispatch setting of
+:data:`pemviz.studies.reproducibility.DISPATCH_SETTINGS`; prints one row per run and whether the contract holds.
+
+    python benchmarks/reproducibility.py            # about 3 min on 2 cores
+    python benchmarks/reproducibility.py --quick    # the braking rows only
+
+Each run is a fresh process (``python -m pemviz.studies.reproducibility``), as a user's would be. Exit 1 when a run
+breaks the contract (:func:`pemviz.studies.reproducibility.compare`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from pemviz.studies import reproducibility as rp
+
+CASES = {
+    "braking": [],
+    "braking, N_e 20,000": ["--n-final", "20000"],  # a final batch of 3 blocks of 8,192: Ray splits it into tasks
+    "cut-in": ["--scenario", "cut-in"],
+}
+
+
+def row(label: str, fp: dict, seconds: float, problems: list[str]) -> str:
+    verdict = "same" if not problems else "DIFFERENT: " + "; ".join(problems)
+    return (f"| {label} | {fp['log_mu_hat']!r} | {fp['failures']}/{fp['n']} | {fp['ess']:.1f} | {fp['chunks']} "
+            f"| {fp['rollouts'][:12]} | {seconds:.1f} | {verdict} |")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="the braking default run only")
+    a = p.parse_args()
+    print("| run | log mu_hat | failures | ESS | chunks | rollouts sha256 | wall s | against the first |")
+    print("|---|---|---|---|---|---|---|---|")
+    bad = 0
+    for name, args in CASES.items():
+        if a.quick and name != "braking":
+            continue
+        first = None
+        for executor in ("serial", "ray"):
+            for chunk in (None, 64, 1000):
+                if executor == "ray" and chunk is not None:
+                    continue  # Ray deals whole blocks of 8,192 rollouts into tasks; --chunk streams serial stages
+                t0 = time.perf_counter()
+                fp = rp.fingerprint_in_subprocess(
+                    [*args, "--executor", executor, *([] if chunk is None else ["--chunk", str(chunk)])], {}, 900)
+                problems = [] if first is None else rp.compare(first, fp, same_machine=True)
+                first = first or fp
+                bad += bool(problems)
+                print(row(f"{name}, {executor}, chunk {chunk or 'whole'}", fp, time.perf_counter() - t0, problems),
+                      flush=True)
+    first = None
+    for setting, env in rp.DISPATCH_SETTINGS.items():
+        t0 = time.perf_counter()
+        fp = rp.fingerprint_in_subprocess([], env)
+        problems = [] if first is None else rp.compare(first, fp, same_machine=False)
+        first = first or fp
+        bad += bool(problems)
+        print(row(f"braking, {setting}", fp, time.perf_counter() - t0, problems), flush=True)
+    print(f"\n{bad} run(s) break the contract" if bad else "\nevery run keeps the contract")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

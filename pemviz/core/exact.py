@@ -1,0 +1,156 @@
+"""Order-free arithmetic: results that cannot depend on the CPU, its vector unit, the BLAS kernel or the batch.
+
+A sampler draws ``detect iff u <= q``, so a last-bit change of q flips a draw, and a fit trained on the rollouts
+follows it. The proposal network's products and fits therefore use arithmetic whose every result is fixed by the
+IEEE 754 standard alone:
+
+- **Matrix products on grids** (:func:`matmul`): each row of the left operand and each column of the right one is
+  rounded to an integer multiple of a power of two (block floating point; Wilkinson, "Rounding Errors in Algebraic
+  Processes", 1963) with so few significant bits that every product and every partial sum of the float64 product of
+  the integers is an integer below 2^53, hence exact. An exact sum has no order: any BLAS kernel, any blocking, any
+  number of rows and any CPU give the same bits, and a row's result depends on that row alone. Rounding to
+  ``bits`` bits of the row's (column's) largest magnitude keeps about float32's precision (24 bits for an inner
+  dimension of 32).
+- **Elementwise arithmetic** in float64 numpy ufuncs of one operation each (``+ - * /``, sqrt, max, rint, ldexp),
+  which IEEE 754 rounds correctly on every vector unit: no fused multiply-add, no reduction.
+- **Transcendentals** (:func:`exp`, :func:`log1p`, :func:`softplus`, :func:`sigmoid`, :func:`tanh`) written from
+  those operations (Cody & Waite range reduction and fixed polynomials; Muller, "Elementary Functions", 2016),
+  instead of libm's or the vector libraries' (SVML, SLEEF), whose last bits differ between CPUs.
+- **Sums** (:func:`exact_sum`) of values rounded to a grid: integers below 2^53, exact in any order.
+
+Every function takes and returns float64 numpy arrays.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+MANTISSA_BITS = 53
+"""float64's significand: integers of at most this many bits are exact."""
+
+
+def grid_bits(inner: int) -> int:
+    """The bits each operand of a product summed ``inner`` times may keep so that every partial sum stays an exact
+    integer: ``(53 - ceil(log2 inner)) // 2`` (24 for ``inner`` = 32, 20 for 3,000).
+
+    Raises:
+        ValueError: ``inner`` < 1.
+    """
+    if inner < 1:
+        raise ValueError(f"grid_bits: inner dimension must be >= 1, got {inner}")
+    return (MANTISSA_BITS - (inner - 1).bit_length()) // 2
+
+
+def on_grid(x: np.ndarray, bits: int, axis: int | None, nonneg: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``x`` rounded to integers times powers of two: ``x ~ xi * 2^e``, ``|xi| <= 2^bits`` integer-valued float64.
+
+    Args:
+        x: float64 [m, n], finite.
+        bits: significant bits kept of the largest magnitude of each slice.
+        axis: 1: one power of two per row (e [m, 1]); 0: per column (e [1, n]); None: one for all (e [1, 1]).
+        nonneg: ``x`` >= 0 (skips an absolute value).
+    Returns:
+        (xi [m, n], e int) with e broadcastable to xi. Rounding is to nearest, ties to even (``np.rint``).
+    """
+    magnitude = x if nonneg else np.abs(x)
+    largest = np.max(magnitude, axis=axis, keepdims=True) if x.size else np.zeros((1, 1))
+    _, e = np.frexp(largest)  # largest < 2^e (0 -> 0)
+    shift = bits - e
+    xi = np.ldexp(x, shift)  # a power of two: exact
+    np.rint(xi, out=xi)
+    return xi, -shift
+
+
+def to_grid(x: np.ndarray, bits: int, nonneg: bool = False) -> tuple[np.ndarray, float]:
+    """``x`` rounded on one grid for the whole array: ``x ~ xi * scale``, ``|xi| <= 2^bits`` integer-valued float64
+    [...], ``scale`` a power of two (:func:`on_grid` with ``axis`` None, faster: two whole-array reductions and one
+    multiply). A product of two such arrays summed k times is exact when their bits add to at most
+    ``53 - ceil(log2 k)``."""
+    largest = float(x.max()) if nonneg else max(float(x.max()), -float(x.min())) if x.size else 0.0
+    if largest == 0.0:
+        return np.zeros_like(x), 1.0
+    shift = bits - math.frexp(largest)[1]
+    xi = np.ldexp(x, shift) if shift > 1000 else x * math.ldexp(1.0, shift)  # a power of two: exact
+    np.rint(xi, out=xi)
+    return xi, math.ldexp(1.0, -shift)
+
+
+def matmul(a: np.ndarray, b: np.ndarray, b_grid: tuple[np.ndarray, np.ndarray] | None = None,
+           nonneg: bool = False) -> np.ndarray:  # fmt: skip
+    """``a @ b`` of ``a`` rounded per row and ``b`` per column to :func:`grid_bits` (k) bits, computed exactly.
+
+    The result is the exact product of the rounded operands, rounded once to float64 by the power-of-two scaling:
+    row i depends on ``a[i]`` and ``b`` alone, and on no kernel, order, batch or CPU.
+
+    Args:
+        a: float64 [m, k]; b: float64 [k, n] (ignored when ``b_grid`` is given).
+        b_grid: ``b`` already on its grid (:func:`on_grid` with ``grid_bits(k)`` bits and ``axis`` 0), e.g. a
+            network's weights rounded once.
+        nonneg: ``a`` >= 0 (e.g. after a ReLU).
+    Returns:
+        float64 [m, n].
+    """
+    bits = grid_bits(a.shape[1])
+    ai, ea = on_grid(a, bits, 1, nonneg)
+    bi, eb = on_grid(b, bits, 0) if b_grid is None else b_grid
+    return np.ldexp(ai @ bi, ea + eb)
+
+
+def exact_sum(x: np.ndarray, axis: int) -> np.ndarray:
+    """The sum of ``x`` [m, n] along ``axis`` (0: per column, 1: per row) of its values rounded to a grid per
+    summed slice with ``53 - ceil(log2 length)`` bits: integers whose sum is exact in any order. float64 [n] or [m]."""
+    length = x.shape[axis]
+    xi, e = on_grid(x, MANTISSA_BITS - (max(length, 1) - 1).bit_length(), axis)
+    return np.ldexp(xi.sum(axis=axis), e.reshape(-1))
+
+
+_INV_LN2 = 1.4426950408889634
+_LN2_HI = 6.93147180369123816490e-01  # fdlibm's split of log 2: the high part has 21 trailing zero bits, so that
+_LN2_LO = 1.90821492927058770002e-10  # k * _LN2_HI is exact for |k| < 2^21
+_EXP_TAYLOR = tuple(1.0 / math.factorial(n) for n in range(14))  # |r| <= log(2) / 2: r^14 / 14! < 1e-17
+_ATANH_TERMS = tuple(1.0 / (2 * n + 1) for n in range(18))  # s <= 1/3: s^37 / 37 < 1e-19
+
+
+def exp(x: np.ndarray) -> np.ndarray:
+    """e^x, float64 [...], to about 1 ulp, from correctly rounded operations alone (Cody & Waite, "Software
+    Manual for the Elementary Functions", 1980: x = k log 2 + r, e^r by its Taylor polynomial of degree 13,
+    times 2^k). Below -745.2 it is 0, above 709.7 inf."""
+    x = np.clip(np.asarray(x, dtype=np.float64), -745.2, 709.8)
+    k = np.rint(x * _INV_LN2)
+    r = (x - k * _LN2_HI) - k * _LN2_LO
+    p = np.full_like(r, _EXP_TAYLOR[13])
+    for c in _EXP_TAYLOR[12::-1]:
+        p *= r
+        p += c
+    return np.ldexp(p, k.astype(np.int32))
+
+
+def log1p(t: np.ndarray) -> np.ndarray:
+    """log(1 + t) for t in [0, 1], float64 [...], to 3 ulp, from correctly rounded operations alone:
+    ``2 atanh(s)``, s = t / (2 + t) <= 1/3, by its series to s^35 (Abramowitz & Stegun 4.1.29)."""
+    t = np.asarray(t, dtype=np.float64)
+    s = t / (2.0 + t)
+    s2 = s * s
+    p = np.full_like(s, _ATANH_TERMS[17])
+    for c in _ATANH_TERMS[16::-1]:
+        p *= s2
+        p += c
+    return 2.0 * s * p
+
+
+def softplus_and_sigmoid(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(log(1 + e^d), 1 / (1 + e^-d)), float64 [...] each, from one :func:`exp` of -|d|: ``softplus(-d) =
+    softplus(d) - d`` and ``sigmoid(-d) = 1 - sigmoid(d)`` give the other sign."""
+    t = exp(-np.abs(d))
+    softplus = np.maximum(d, 0.0) + log1p(t)
+    sigmoid = np.where(d >= 0.0, 1.0 / (1.0 + t), t / (1.0 + t))
+    return softplus, sigmoid
+
+
+def tanh(x: np.ndarray) -> np.ndarray:
+    """tanh x = sign(x) (1 - e^-2|x|) / (1 + e^-2|x|), float64 [...], from :func:`exp`."""
+    x = np.asarray(x, dtype=np.float64)
+    t = exp(-2.0 * np.abs(x))
+    return np.copysign((1.0 - t) / (1.0 + t), x)

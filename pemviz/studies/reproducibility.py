@@ -1,0 +1,147 @@
+"""What a seed reproduces, and where: a run's fingerprint under the CPU's vector-dispatch settings, chunk sizes and
+executors.
+
+A detection is drawn as ``u <= q``, so a last-bit change of q can flip a draw, and every later fit and rollout follows
+it. pemviz therefore computes every number that decides a draw or a fit in arithmetic whose result is fixed by
+IEEE 754 alone (:mod:`pemviz.core.exact`): the proposal network's logits and its Adam fits, its initial weights (numpy's
+PCG64). The PEM's own logits (float64 products) and the weights' transcendentals (libm, numpy's and scipy's vector
+loops) may differ in their last bit between CPUs; a last-bit change of a float64 p flips a draw with probability about
+1e-16, and the weights enter the fits on a grid of 24 bits (:data:`pemviz.core.sampling.COUNT_BITS`).
+
+The contract this module checks (:func:`compare`):
+
+- **one machine**: any chunk size (``ExperimentConfig.chunk_rollouts``) and executor (serial or Ray) give the same
+  fingerprint, bit for bit;
+- **any x86-64 CPU, any dispatch setting** (:data:`DISPATCH_SETTINGS`): the same rollouts (every stage's detections
+  and failures, hashed), the same thresholds and elites, the same printed numbers; log mu_hat within
+  :data:`LOG_MU_RTOL` relative (the weights' last bits).
+
+``python -m pemviz.studies.reproducibility [--scenario S] [--k K] [--n N] [--n-final N_e] [--chunk C]
+[--executor E] [--seed S]`` prints one run's fingerprint as JSON; ``benchmarks/reproducibility.py`` runs the matrix.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import subprocess
+import sys
+from typing import Any
+
+DISPATCH_SETTINGS: dict[str, dict[str, str]] = {
+    "as found": {},
+    "torch without AVX-512": {"ATEN_CPU_CAPABILITY": "avx2"},
+    "torch scalar": {"ATEN_CPU_CAPABILITY": "default"},
+    "MKL SSE4.2": {"MKL_ENABLE_INSTRUCTIONS": "SSE4_2", "MKL_CBWR": "COMPATIBLE"},
+    "MKL AVX2": {"MKL_ENABLE_INSTRUCTIONS": "AVX2"},
+    "numpy without AVX-512": {"NPY_DISABLE_CPU_FEATURES": "AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL "
+                                                          "AVX512_ICL AVX512_SPR"},
+    "OpenBLAS Haswell": {"OPENBLAS_CORETYPE": "Haswell"},
+    "all at their lowest": {"ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2",
+                            "MKL_CBWR": "COMPATIBLE", "OPENBLAS_CORETYPE": "Sandybridge",
+                            "NPY_DISABLE_CPU_FEATURES": "AVX2 FMA3 AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL "
+                                                        "AVX512_ICL AVX512_SPR"},
+}
+"""Settings of torch's (``ATEN_CPU_CAPABILITY``), MKL's, numpy's and OpenBLAS's kernel dispatch that any x86-64 CPU
+with AVX2 runs: each picks the kernels (and so the rounding) of another CPU. numpy ignores, with a warning, a
+feature the CPU lacks."""
+
+LOG_MU_RTOL = 1e-12
+"""log mu_hat's relative tolerance across dispatch settings: the last bits of the weights' exp and log."""
+
+
+def fingerprint(config: Any) -> dict[str, Any]:
+    """Run ``config`` (an :class:`pemviz.config.ExperimentConfig`) and return what identifies the run: ``rollouts``
+    (sha256 of every stage's detections and failures, in rollout order), ``stages`` ([stage, repr(gamma), elites,
+    failures]), ``log_mu_hat`` (nats), ``failures``, ``n``, ``ess``, ``summary`` (the printed verdict line) and
+    ``chunks`` (how many chunks the run's stages came in)."""
+    import numpy as np
+
+    from pemviz.core.problems import problem_for
+    from pemviz.engine import Experiment
+    from pemviz.engine.events import RolloutChunk, RolloutsSampled
+
+    digest = hashlib.sha256()
+    chunks = [0]
+
+    def listen(event: Any) -> None:
+        if isinstance(event, RolloutChunk):
+            chunks[0] += 1
+            digest.update(np.ascontiguousarray(event.batch.detected).tobytes())
+        elif isinstance(event, RolloutsSampled):
+            digest.update(np.ascontiguousarray(event.failed if event.index is None
+                                               else event.stage_robustness < 0).tobytes())  # fmt: skip
+
+    problem = problem_for(config)
+    result = Experiment(config, [listen], problem=problem).run()
+    e = result.final.estimate
+    return {
+        "rollouts": digest.hexdigest(),
+        "stages": [[s.stage, repr(s.gamma), int(s.n_elites), int(s.estimate.n_failures)] for s in result.stages],
+        "log_mu_hat": e.log_mu_hat, "failures": e.n_failures, "n": e.n, "ess": e.ess,
+        "summary": e.summary(problem.exact_log_p, problem.reference), "chunks": chunks[0],
+    }  # fmt: skip
+
+
+def fingerprint_in_subprocess(args: list[str], env: dict[str, str], timeout_s: float = 300.0) -> dict[str, Any]:
+    """:func:`fingerprint` of ``python -m pemviz.studies.reproducibility ARGS`` run with ``env`` added to this
+    process's environment.
+
+    Raises:
+        RuntimeError: the run failed or printed no fingerprint (the message holds its stderr's tail).
+        subprocess.TimeoutExpired: it ran past ``timeout_s`` seconds.
+    """
+    proc = subprocess.run([sys.executable, "-m", "pemviz.studies.reproducibility", *args], capture_output=True,
+                          text=True, env={**os.environ, **env}, timeout=timeout_s)  # fmt: skip
+    lines = proc.stdout.strip().splitlines()
+    if proc.returncode != 0 or not lines:
+        raise RuntimeError(f"reproducibility run {args} under {env} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    return json.loads(lines[-1])
+
+
+def compare(a: dict[str, Any], b: dict[str, Any], same_machine: bool) -> list[str]:
+    """What differs between two fingerprints beyond the contract (module docstring): an empty list when it holds.
+    ``same_machine``: every field bit for bit (but the chunk count); otherwise log mu_hat within
+    :data:`LOG_MU_RTOL` and ESS within 1e-9 relative."""
+    out = [f"{k}: {a[k]!r} != {b[k]!r}" for k in ("rollouts", "stages", "failures", "n", "summary") if a[k] != b[k]]
+    if same_machine:
+        out += [f"{k}: {a[k]!r} != {b[k]!r}" for k in ("log_mu_hat", "ess") if a[k] != b[k]]
+    else:
+        if not math.isclose(a["log_mu_hat"], b["log_mu_hat"], rel_tol=LOG_MU_RTOL, abs_tol=0.0):
+            out.append(f"log_mu_hat: {a['log_mu_hat']!r} vs {b['log_mu_hat']!r} beyond {LOG_MU_RTOL:g} relative")
+        if not math.isclose(a["ess"], b["ess"], rel_tol=1e-9):
+            out.append(f"ess: {a['ess']!r} vs {b['ess']!r}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Print one run's :func:`fingerprint` as JSON (the module docstring's command line)."""
+    from pemviz.config import ExperimentConfig
+
+    p = argparse.ArgumentParser(prog="python -m pemviz.studies.reproducibility", description=__doc__.split("\n")[0])
+    p.add_argument("--scenario", default="braking")
+    p.add_argument("--k", type=int, default=None, help="cross-entropy stages K (default: the default config's)")
+    p.add_argument("--n", type=int, default=None, help="rollouts per stage N")
+    p.add_argument("--n-final", type=int, default=None, help="rollouts of the final estimate N_e")
+    p.add_argument("--pretrain", type=int, default=None, help="pretraining rollouts")
+    p.add_argument("--chunk", type=int, default=None, help="ExperimentConfig.chunk_rollouts")
+    p.add_argument("--executor", default="serial")
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    fields = {"n_stages": a.k, "n_per_stage": a.n, "n_final": a.n_final, "pretrain_rollouts": a.pretrain,
+              "chunk_rollouts": a.chunk}  # fmt: skip
+    cfg = ExperimentConfig(scenario=a.scenario, executor=a.executor, seed=a.seed,
+                           **{k: v for k, v in fields.items() if v is not None})  # fmt: skip
+    try:
+        print(json.dumps(fingerprint(cfg)))
+    finally:
+        from pemviz.engine.executors import close_executors
+
+        close_executors()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""Order-free arithmetic (pemviz.core.exact) against exact rational arithmetic and the standard library."""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pemviz.core import exact
+
+
+def exact_product(a: np.ndarray, b: np.ndarray) -> list[list[Fraction]]:
+    """a @ b in rational arithmetic: the truth a float64 kernel can only round."""
+    fa = [[Fraction(v) for v in row] for row in a]
+    fb = [[Fraction(v) for v in row] for row in b]
+    return [[sum((fa[i][k] * fb[k][j] for k in range(a.shape[1])), Fraction(0)) for j in range(b.shape[1])]
+            for i in range(a.shape[0])]  # fmt: skip
+
+
+def test_grid_bits_keep_every_partial_sum_below_two_to_the_53():
+    assert (exact.grid_bits(1), exact.grid_bits(4), exact.grid_bits(32), exact.grid_bits(3000)) == (26, 25, 24, 20)
+    for inner in (1, 2, 3, 31, 32, 33, 1000, 10**5):
+        assert 2 * exact.grid_bits(inner) + math.ceil(math.log2(inner)) <= 53
+    with pytest.raises(ValueError, match="inner dimension must be >= 1"):
+        exact.grid_bits(0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 40), st.integers(1, 5), st.integers(0, 2**32 - 1), st.floats(-30, 30))
+def test_a_product_on_grids_is_the_rational_product_of_the_rounded_operands(m, k, n, seed, log_scale):
+    # each row of a and column of b rounded to grid_bits(k) bits of its largest magnitude; then the float64 kernel's
+    # result equals the exact rational product of the rounded operands (no rounding left), and row i is the same
+    # bits computed alone
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(m, k)) * math.exp(log_scale) * (rng.random((m, k)) < 0.8)
+    b = rng.normal(size=(k, n)) * rng.choice([1e-3, 1.0, 1e3], size=(1, n))
+    bits = exact.grid_bits(k)
+    ai, ea = exact.on_grid(a, bits, 1)
+    bi, eb = exact.on_grid(b, bits, 0)
+    assert np.all(np.abs(ai) <= 2.0**bits) and np.all(ai == np.rint(ai)) and np.all(bi == np.rint(bi))
+    assert np.all(np.abs(np.ldexp(ai, ea) - a) <= np.ldexp(0.5, ea))  # to nearest: half a step of the row's grid
+    got = exact.matmul(a, b)
+    truth = exact_product(np.ldexp(ai, ea), np.ldexp(bi, eb))
+    assert [[Fraction(v) for v in row] for row in got] == truth
+    for i in range(m):
+        np.testing.assert_array_equal(exact.matmul(a[i : i + 1], b), got[i : i + 1])
+
+
+def test_a_sum_on_a_grid_is_exact_in_any_order():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(5000, 3)) * np.array([1e-8, 1.0, 1e8])
+    s = exact.exact_sum(x, 0)
+    xi, e = exact.on_grid(x, 53 - math.ceil(math.log2(5000)), 0)
+    for j in range(3):
+        truth = sum(Fraction(v) for v in np.ldexp(xi[:, j], e[0, j]))
+        assert Fraction(s[j]) == truth
+        assert exact.exact_sum(x[::-1], 0)[j] == s[j]
+        assert abs(s[j] - math.fsum(x[:, j])) <= 5000 * 2.0**-41 * np.abs(x[:, j]).max()  # half a step per term
+
+
+def test_the_transcendentals_agree_with_the_standard_library_to_a_few_ulp():
+    x = np.concatenate([-np.logspace(-300, np.log10(745), 4000), np.linspace(-40, 40, 4001), [0.0, -0.0, 709.0]])
+    ulp = np.spacing(np.abs(np.array([math.exp(v) for v in x]))) + 5e-324
+    assert np.all(np.abs(exact.exp(x) - [math.exp(v) for v in x]) <= 2 * ulp)
+    assert exact.exp(np.array([-800.0]))[0] == 0.0
+    t = np.concatenate([np.linspace(0.0, 1.0, 5001), np.logspace(-300, 0, 2000)])
+    want = np.array([math.log1p(v) for v in t])
+    assert np.all(np.abs(exact.log1p(t) - want) <= 3 * np.spacing(want) + 5e-324)  # measured: 3 ulp at most
+    d = np.linspace(-50, 50, 2001)
+    softplus, sigmoid = exact.softplus_and_sigmoid(d)
+    np.testing.assert_allclose(softplus, np.logaddexp(0.0, d), rtol=1e-15, atol=1e-300)
+    np.testing.assert_allclose(sigmoid, 1.0 / (1.0 + np.exp(-d)), rtol=1e-15)
+    np.testing.assert_allclose(exact.tanh(d / 10), np.tanh(d / 10), rtol=1e-14, atol=1e-16)

@@ -1,0 +1,66 @@
+"""A seed gives the same run whatever the chunk size, the executor and the CPU's kernel dispatch (the contract of
+pemviz.studies.reproducibility, which the user guide's Reproducibility section states)."""
+
+from __future__ import annotations
+
+import platform
+
+import pytest
+
+from pemviz.config import ExperimentConfig
+from pemviz.studies import reproducibility as rp
+
+SMALL = ["--k", "3", "--n", "100", "--n-final", "300"]
+"""A short default run: pretraining, 3 CE stages of 100, a final batch of 300 (the default sampler)."""
+SMALL_CUT_IN = ["--scenario", "cut-in", "--k", "2", "--n", "150", "--n-final", "200", "--pretrain", "100"]
+
+
+def small(scenario: str = "braking", **fields) -> ExperimentConfig:
+    base = dict(n_stages=3, n_per_stage=100, n_final=300) if scenario == "braking" else \
+        dict(n_stages=2, n_per_stage=150, n_final=200, pretrain_rollouts=100)  # fmt: skip
+    return ExperimentConfig(scenario=scenario, **{**base, **fields})
+
+
+@pytest.mark.parametrize("scenario", ["braking", "cut-in"])
+def test_any_chunk_size_gives_the_run_of_whole_batches_bit_for_bit(scenario):
+    whole = rp.fingerprint(small(scenario))
+    for chunk in (64, 1000):
+        got = rp.fingerprint(small(scenario, chunk_rollouts=chunk))
+        assert rp.compare(whole, got, same_machine=True) == []
+        stages = len(got["stages"])
+        # chunks of 64 really cut every stage of more than 64 rollouts; 1,000 cuts none of these stages
+        assert got["chunks"] > stages if chunk == 64 else got["chunks"] == whole["chunks"]
+    assert whole["failures"] > 0  # the runs found failures: the fingerprints hash real draws
+
+
+def test_the_comparison_names_what_differs():
+    a = {"rollouts": "x", "stages": [[1, "0.0", 3, 3]], "failures": 3, "n": 10, "summary": "s", "log_mu_hat": -30.0,
+         "ess": 5.0}
+    assert rp.compare(a, dict(a), same_machine=True) == []
+    b = {**a, "log_mu_hat": -30.0 * (1 + 5e-13)}
+    assert rp.compare(a, b, same_machine=True) == [f"log_mu_hat: -30.0 != {b['log_mu_hat']!r}"]
+    assert rp.compare(a, b, same_machine=False) == []
+    c = {**a, "log_mu_hat": -30.0 * (1 + 5e-12), "rollouts": "y"}
+    assert [d.split(":")[0] for d in rp.compare(a, c, same_machine=False)] == ["rollouts", "log_mu_hat"]
+
+
+x86 = pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"),
+                         reason="the dispatch settings name x86-64 kernels")  # fmt: skip
+
+
+@x86
+@pytest.mark.parametrize(("args", "settings"), [
+    (SMALL, list(rp.DISPATCH_SETTINGS)),
+    (SMALL_CUT_IN, ["torch scalar", "MKL SSE4.2", "all at their lowest"]),
+], ids=["braking", "cut-in"])  # fmt: skip
+def test_every_dispatch_setting_gives_the_same_rollouts_and_printed_numbers(args, settings):
+    # each setting picks the kernels another x86-64 CPU would run (AVX2 without AVX-512, scalar torch, MKL's SSE4.2
+    # path, OpenBLAS's Haswell or Sandybridge kernels, numpy without its AVX-512 loops): the same rollouts, elites,
+    # thresholds and printed line; log mu_hat to 1e-12 relative
+    found = rp.fingerprint_in_subprocess(args, {})
+    assert found["failures"] > 0
+    for name in settings:
+        if name == "as found":
+            continue
+        got = rp.fingerprint_in_subprocess(args, rp.DISPATCH_SETTINGS[name])
+        assert rp.compare(found, got, same_machine=False) == [], name
