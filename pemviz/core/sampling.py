@@ -357,14 +357,23 @@ CHECK_EVERY = 25
 
 
 @contextlib.contextmanager
-def torch_threads(n: int = 1) -> Iterator[None]:
-    """Run the block with torch on ``n`` threads, then restore the process's setting (a process-wide setting:
-    for the command layer, around a whole run). The proposal is tiny, and on 2 cores a second thread only adds
-    synchronisation (measured 7.7 ms vs 74 ms per Adam epoch under load)."""
+def torch_threads(n: int = 1, blas: int | None = None) -> Iterator[None]:
+    """Run the block with torch on ``n`` threads, and with ``blas`` given the BLAS libraries too (numpy's OpenBLAS,
+    MKL, OpenMP: ``threadpoolctl``), then restore the process's settings (process-wide: for the command layer, around
+    a whole run). The proposal is tiny, and on 2 cores a second torch thread only adds synchronisation (measured
+    7.7 ms vs 74 ms per Adam epoch under load). The exact fits' products (:func:`fit_exact`) run in numpy's BLAS,
+    which gains from a second core in one run (default run 1.6 s against 2.4 s on one thread) but whose idle threads
+    spin: give ``blas=1`` where runs go side by side (``pemviz validate --jobs 2``: 10-25 s a run otherwise)."""
+    from threadpoolctl import threadpool_limits
+
     before = torch.get_num_threads()
     torch.set_num_threads(n)
     try:
-        yield
+        if blas is None:
+            yield
+        else:
+            with threadpool_limits(blas):
+                yield
     finally:
         torch.set_num_threads(before)
 

@@ -162,7 +162,7 @@ def run_job(job: Job) -> RunRecord:
     problem = build_problem(job.problem, job.pem_path)
     cfg = ExperimentConfig(**dict(job.fields), seed=job.seed)
     t0 = time.perf_counter()
-    with torch_threads(1):
+    with torch_threads(1, blas=1):  # runs go side by side: a BLAS thread each
         res = Experiment(cfg, problem=problem).run()
     if not isinstance(res, RunFinished):  # pragma: no cover - no cancel token here
         raise RuntimeError(f"{job.method} on {job.problem} seed {job.seed} did not finish")
