@@ -40,9 +40,21 @@ def test_the_summary_compares_the_estimate_with_the_reference_when_no_exact_answ
         "; reference 8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain Monte Carlo): "
         "relative error 0.0393, inside the interval")  # |9.0 - 8.66| / 8.66 = 0.03926
     far = an_estimate(1.455e-16, 2.08e-17, 1.02e-15)
-    assert far.summary(None, r).endswith("relative error 1, OUTSIDE the interval")
+    assert far.summary(None, r).endswith("11.8 orders of magnitude too low, OUTSIDE the interval")  # 8.66e-5 / 1.455e-16
     # an exact answer, where known, is the one shown
     assert "reference" not in near.summary(math.log(8.66e-5), r) and "exact 8.660e-05" in near.summary(math.log(8.66e-5), r)
+
+
+def test_an_estimate_far_off_says_by_how_much():
+    from pemviz.core.estimate import error_text
+
+    truth = math.log(2e-15)
+    assert error_text(math.log(2.05e-15), truth) == "relative error 0.025"
+    assert error_text(math.log(3.9e-15), truth) == "relative error 0.95"  # within x2: a relative error
+    assert error_text(math.log(8e-15), truth) == "4 times too high"
+    assert error_text(math.log(2e-16), truth) == "1.0 orders of magnitude too low"
+    assert error_text(math.log(2e-24), truth) == "9.0 orders of magnitude too low"
+    assert error_text(-math.inf, truth) == "no failure seen"
 
 
 def test_only_the_moderate_cut_in_with_the_shipped_pems_carries_the_reference():
@@ -61,4 +73,4 @@ def test_a_cut_in_run_prints_its_estimate_beside_the_reference():
     last = proc.stdout.strip().splitlines()[-1]
     assert last.startswith("mu_hat = 0, 95% CI [0, 1.50e-02]")  # no failure in 200 rollouts: the rule of three
     assert last.endswith("; reference 8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain "
-                         "Monte Carlo, shipped PEMs): relative error 1, inside the interval")  # fmt: skip
+                         "Monte Carlo, shipped PEMs): no failure seen, inside the interval")  # fmt: skip

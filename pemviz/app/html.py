@@ -10,7 +10,7 @@ from pathlib import Path
 from pemviz.app import plots
 from pemviz.app.explain import Explanation
 from pemviz.app.runs import PanelRun, Trajectory
-from pemviz.core.estimate import format_probability, relative_error
+from pemviz.core.estimate import error_text, format_probability
 from pemviz.engine.events import FinalEstimate
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
@@ -54,8 +54,7 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
     if exact is not None:
         inside = "inside" if e.covers(exact) else "<b>outside</b>"
         lines.append(
-            f"exact answer {format_probability(exact, 4)}: relative error "
-            f"{relative_error(e.log_mu_hat, exact):.2g}, {inside} the interval"
+            f"exact answer {format_probability(exact, 4)}: {error_text(e.log_mu_hat, exact)}, {inside} the interval"
         )
     elif record.reference is not None:
         text = html.escape(record.reference.comparison(e, outside="OUTSIDE"))

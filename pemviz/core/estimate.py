@@ -111,10 +111,8 @@ class Estimate:
         )
         if exact_log_p is not None:
             inside = "inside" if self.covers(exact_log_p) else "OUTSIDE"
-            line += (
-                f"; exact {format_probability(exact_log_p)} (relative error "
-                f"{relative_error(self.log_mu_hat, exact_log_p):.3g}, {inside} the interval)"
-            )
+            error = error_text(self.log_mu_hat, exact_log_p)
+            line += f"; exact {format_probability(exact_log_p)} ({error}, {inside} the interval)"
         elif reference is not None:
             line += f"; {reference.comparison(self)}"
         return line
@@ -160,11 +158,26 @@ class Reference:
 
     def comparison(self, e: Estimate, outside: str = "OUTSIDE") -> str:
         """How ``e`` stands against this reference: its relative error and whether its interval holds the
-        reference, e.g. ``reference 8.66e-05 [...] (...): relative error 1, OUTSIDE the interval``; ``outside`` is
+        reference, e.g. ``reference 8.66e-05 [...] (...): 11.8 orders of magnitude too low, OUTSIDE the interval``
+        (:func:`error_text`); ``outside`` is
         the word used when it does not (the panel and the recording emphasise it their way)."""
         inside = "inside" if e.covers(self.log_p) else outside
-        error = relative_error(e.log_mu_hat, self.log_p)
-        return f"reference {self.text()}: relative error {error:.3g}, {inside} the interval"
+        return f"reference {self.text()}: {error_text(e.log_mu_hat, self.log_p)}, {inside} the interval"
+
+
+def error_text(log_mu_hat: float, log_truth: float) -> str:
+    """How far mu_hat is from the truth, in words: ``relative error 0.0242`` within a factor of 2, else the factor
+    (``3.4 times too high``) or, from 10 on, the orders of magnitude (``9.2 orders of magnitude too low``); ``no
+    failure seen`` for mu_hat = 0 (natural logs in, exact far below float64's range)."""
+    if log_mu_hat == -math.inf:
+        return "no failure seen"
+    ratio = log_mu_hat - log_truth
+    if abs(ratio) <= math.log(2.0):
+        return f"relative error {relative_error(log_mu_hat, log_truth):.3g}"
+    way = "high" if ratio > 0 else "low"
+    if abs(ratio) < math.log(10.0):
+        return f"{math.exp(abs(ratio)):.2g} times too {way}"
+    return f"{abs(ratio) / math.log(10.0):.1f} orders of magnitude too {way}"
 
 
 def relative_error(log_mu_hat: float, log_truth: float) -> float:

@@ -79,7 +79,7 @@ import numpy as np
 import rerun as rr
 
 import pemviz
-from pemviz.core.estimate import Reference, format_probability, relative_error
+from pemviz.core.estimate import Reference, error_text, format_probability
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.io.files import atomic_write
@@ -327,8 +327,8 @@ class RerunSink(Sink):
         exact = self.exact_log_p
         if exact is not None:
             inside = "inside" if e.covers(exact) else "**outside**"
-            lines += ["", f"exact answer **{format_probability(exact, 4)}**: relative error "
-                          f"{relative_error(e.log_mu_hat, exact):.2g}, {inside} the interval"]  # fmt: skip
+            lines += ["", f"exact answer **{format_probability(exact, 4)}**: {error_text(e.log_mu_hat, exact)}, "
+                          f"{inside} the interval"]  # fmt: skip
         elif self.reference is not None:
             lines += ["", self.reference.comparison(e, outside="**outside**")]
         if e.n_failures == 0:
