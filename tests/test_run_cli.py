@@ -52,6 +52,41 @@ def test_default_run_is_within_x2_of_the_exact_answer_with_its_interval_and_verd
     assert float(summary.group(4)) == pytest.approx(abs(math.exp(log_mu) / 1.9837e-15 - 1), abs=2e-3)
 
 
+def readme_sample_lines() -> list[str]:
+    """The README's sample output of ``pemviz run``: its lines but the elision (``...``)."""
+    text = (REPO / "README.md").read_text()
+    block = re.search(r"```text\n(pemviz: adaptive on the braking scenario.*?)```", text, re.S)
+    assert block, "README.md has no sample output of pemviz run"
+    return [ln for ln in block.group(1).splitlines() if ln.strip() != "..."]
+
+
+def without_times(line: str) -> str:
+    """A printed line without what depends on the machine's speed: a stage row's last column (wall s) and the
+    'in 1.6 s' of the mu_hat line."""
+    if re.match(r"^\s+(\d+|final)\s", line):
+        return line.rsplit(None, 1)[0]
+    return re.sub(r" in [\d.]+ s$", "", line)
+
+
+def test_the_readme_sample_output_is_what_the_command_prints(default_run):
+    # every line the README shows (stage rows, the final row, both mu_hat lines), to the printed precision, but the
+    # wall times: the same seed gives the same run on any CPU (pemviz.studies.reproducibility)
+    proc, _ = default_run
+    printed = [without_times(ln) for ln in proc.stdout.splitlines()]
+    shown = readme_sample_lines()
+    assert len(shown) >= 10
+    missing = [ln for ln in shown if without_times(ln) not in printed]
+    assert missing == [], "README lines the run does not print:\n" + "\n".join(missing)
+
+
+def test_the_readme_sample_check_fails_on_a_changed_digit():
+    shown = readme_sample_lines()
+    row = next(ln for ln in shown if re.match(r"^\s+10\s+ce\s", ln))
+    changed = re.sub(r"(\d)(e-15)", lambda m: str((int(m.group(1)) + 1) % 10) + m.group(2), row, count=1)
+    assert changed != row and without_times(changed) != without_times(row)
+    assert without_times(row.rsplit(None, 1)[0] + "   99.99") == without_times(row)  # the wall time alone may differ
+
+
 def test_paper_preset_reproduces_the_published_sampler_bit_for_bit():
     # seed 0 of the paper's settings (Innes & Ramamoorthy 2022, Algorithm 1), in exact arithmetic: the proposal
     # collapses onto 2 paths, 91/100 crashes, 1.2264e-24 -- 10^9 below the exact answer with an ESS of 88 and k-hat 0,
