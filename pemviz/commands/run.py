@@ -243,6 +243,7 @@ def main(args: argparse.Namespace) -> int:
     from pemviz.core.problems import problem_for
     from pemviz.core.sampling import torch_threads
     from pemviz.engine.experiment import STREAM_ABOVE, Experiment
+    from pemviz.estimators import check_runnable
     from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.recording import RerunSink
@@ -250,6 +251,10 @@ def main(args: argparse.Namespace) -> int:
     stream_above = (cfg.chunk_rollouts or STREAM_ABOVE) if cfg.executor == "serial" else None
     check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above)
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
+    try:
+        check_runnable(cfg, problem)  # a sampler that cannot run on this scenario: before any output or rollout
+    except ValueError as exc:
+        raise UsageError(f"--preset / --scenario: {exc}") from None
     experiment = Experiment(cfg, problem=problem)
     listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
     recorder = None

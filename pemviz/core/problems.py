@@ -206,6 +206,8 @@ class Problem:
         scene: the braking scenario's constants when the rollouts can be drawn as its scene (None: no scene).
         objects_xy, noise_xy: where sinks find each object's position and its measurement error
             (:class:`ProblemView`); None: not drawn.
+        n_objects: the objects the detector sees each step (M; 1: one object a step), known before any rollout so
+            that a sampler that fits one object a step is refused at once.
         curve_rows: the object rows at which the target's curve is drawn, ``curve_rows(grid [G]) -> [G, cols]`` with
             ``grid`` in the first column (None: rows of zeros but for that column, enough for a detector that reads
             the gap alone).
@@ -231,6 +233,7 @@ class Problem:
     thresholds: Thresholds | None = None
     scene: BrakingParams | None = None
     curve_rows: Callable[[np.ndarray], np.ndarray] | None = None
+    n_objects: int = 1
     objects_xy: tuple[str, str] | None = None
     noise_xy: tuple[int, int] | None = None
 
@@ -381,7 +384,7 @@ def crowd_problem(params: CrowdParams | None = None, name: str | None = None) ->
         run, CrowdDetector(p), stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})"), signals={"d": "gap_m"},
         units={"d": "units"}, signal_ranges={"d": (0.0, float(p.total))}, h_scale=float(p.total),
         curve_grid=np.arange(0.0, far + 1.0), window=p.window, stream=stream, branch=resume,
-        exact_log_p=crowd_log_failure_probability(p),
+        exact_log_p=crowd_log_failure_probability(p), n_objects=len(p.offsets),
         thresholds=Thresholds(float(p.safe), float(p.braking), "units", "failure below", "braking within"),
         description=(f"toy braking toward {len(p.offsets)} obstacles, each detected with probability {p.p_detect:g} "
                      f"and its distance measured with an N(0, {p.noise_sd:g}^2) error; braking when one is measured "
@@ -463,6 +466,7 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         signal_ranges={"margin": (-60.0, 200.0), "grace": (0.0, 1.0), "clearance": (-10.0, 200.0)},
         h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
         stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"), dt_s=p.dt_s,
+        n_objects=p.n_objects,
         noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")),
         description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
                      f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),

@@ -21,12 +21,15 @@ from pemviz.estimators.base import (
     log_p_before_failure,
     log_weight,
 )
-from pemviz.estimators.cross_entropy import CappedDetector, CrossEntropy, DefensiveDetector, break_ties
+from pemviz.estimators.cross_entropy import (
+    CappedDetector, CrossEntropy, DefensiveDetector, break_ties, check_runnable,
+)
 from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
 
 __all__ = [
     "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator",
     "FixedSampler", "PlannedStage", "RunPlan", "StageOutcome", "StagePlan", "break_ties", "build_estimator",
+    "check_runnable",
     "failure_steps", "log_p_before_failure", "log_weight", "mixed50", "monte_carlo", "naive50", "run_plan",
 ]  # fmt: skip
 

@@ -55,6 +55,30 @@ from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.sampling import EXACT, Proposal, StateProposal, fit_noise_shift
 from pemviz.scenarios import RolloutBatch
 
+def fits_whole_rollouts(config: ExperimentConfig) -> bool:
+    """Whether the first cross-entropy stage fits whole elite rollouts, one object a step (:func:`ce_update`): the
+    weights are not frozen, or neither the window nor the weights until failure mark the steps that count."""
+    return not (config.weights == "frozen" and (config.weights_until_failure or config.proposal_window))
+
+
+def whole_rollout_fit_refusal(config: ExperimentConfig, n_objects: int) -> str:
+    """The one line refusing :func:`fits_whole_rollouts` on a problem of ``n_objects`` objects a step."""
+    return (f"the cross-entropy fit of whole elite rollouts (weights {config.weights!r}, without the window or weights "
+            f"until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler")
+
+
+def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
+    """Refuse, before any rollout or output, a ``config`` whose estimator cannot run on ``problem``: the
+    cross-entropy fit of whole elite rollouts (:func:`fits_whole_rollouts`, the ``paper`` preset's) on a problem of
+    several objects a step.
+
+    Raises:
+        ValueError: one line naming what cannot run and what to use instead.
+    """
+    if config.method == "adaptive" and problem.n_objects != 1 and fits_whole_rollouts(config):
+        raise ValueError(whole_rollout_fit_refusal(config, problem.n_objects))
+
+
 @dataclass(frozen=True)
 class CappedDetector:
     """``logit min(p_detector, cap)``: the detector, never more sure to detect than the cap (``pretrain_cap``)."""
@@ -166,6 +190,7 @@ class CrossEntropy(OwnsSettings):
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
         self.fit_dtype = {"float32": torch.float32, "float64": torch.float64}.get(config.fit_precision, EXACT)
         """The arithmetic of the Adam fits (``ExperimentConfig.fit_precision``)."""
+        check_runnable(config, problem)  # refused before any rollout, not after the pretraining
 
     # -- the interface --------------------------------------------------------------------------------------------
     @staticmethod
@@ -505,9 +530,7 @@ class CrossEntropy(OwnsSettings):
             self._fit_noise(fit)
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
         if batch.n_objects != 1:
-            raise ValueError(f"the cross-entropy fit of whole elite rollouts (weights {cfg.weights!r}, without the window "
-                             f"or weights until failure) takes one object per step; this problem perceives "
-                             f"{batch.n_objects}: use the default sampler")  # fmt: skip
+            raise ValueError(whole_rollout_fit_refusal(cfg, batch.n_objects))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch, gamma))
         ce_update(
             proposal, features, detected, batch.log_p, batch.log_q, elite,
