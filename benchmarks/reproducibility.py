@@ -26,16 +26,19 @@ CASES = {
 
 def row(label: str, fp: dict, seconds: float, problems: list[str]) -> str:
     verdict = "same" if not problems else "DIFFERENT: " + "; ".join(problems)
-    return (f"| {label} | {fp['log_mu_hat']!r} | {fp['failures']}/{fp['n']} | {fp['ess']:.1f} | {fp['chunks']} "
-            f"| {fp['rollouts'][:12]} | {seconds:.1f} | {verdict} |")
+    d = fp["dispatch"]
+    kernels = f"{d['torch']} / {' '.join(d['numpy']) or 'baseline'} / {' '.join(d['openblas'])}"
+    return (f"| {label} | {kernels} | {fp['log_mu_hat']!r} | {fp['failures']}/{fp['n']} | {fp['ess']:.1f} "
+            f"| {fp['chunks']} | {fp['rollouts'][:12]} | {seconds:.1f} | {verdict} |")
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="the braking default run only")
     a = p.parse_args()
-    print("| run | log mu_hat | failures | ESS | chunks | rollouts sha256 | wall s | against the first |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| run | kernels: torch / numpy / OpenBLAS | log mu_hat | failures | ESS | chunks | rollouts sha256 | wall s "
+          "| against the first |")
+    print("|---|---|---|---|---|---|---|---|---|")
     bad = 0
     for name, args in CASES.items():
         if a.quick and name != "braking":

@@ -62,5 +62,29 @@ def test_every_dispatch_setting_gives_the_same_rollouts_and_printed_numbers(args
     for name in settings:
         if name == "as found":
             continue
-        got = rp.fingerprint_in_subprocess(args, rp.DISPATCH_SETTINGS[name])
+        env = rp.DISPATCH_SETTINGS[name]
+        got = rp.fingerprint_in_subprocess(args, env)
+        assert_took_effect(env, found["dispatch"], got["dispatch"])
         assert rp.compare(found, got, same_machine=False) == [], name
+
+
+def assert_took_effect(env: dict[str, str], before: dict, after: dict) -> None:
+    """The setting changed the kernels it names (a setting that took no effect would test nothing): torch runs the
+    capability asked for (or a lower one the CPU lacks a higher of), numpy none of the targets disabled, OpenBLAS the
+    core type asked for."""
+    if "ATEN_CPU_CAPABILITY" in env:
+        asked = env["ATEN_CPU_CAPABILITY"].upper()
+        assert after["torch"] == asked or (asked == "AVX2" and before["torch"] == after["torch"] != "AVX512"), after
+    for target in env.get("NPY_DISABLE_CPU_FEATURES", "").split():
+        assert target not in after["numpy"], (target, after)
+    if "OPENBLAS_CORETYPE" in env:
+        assert after["openblas"] == [env["OPENBLAS_CORETYPE"]] or not before["openblas"], after
+
+
+def test_the_numpy_settings_name_what_this_numpy_dispatches():
+    dispatch, in_use = rp.numpy_dispatch()
+    assert set(in_use) <= set(dispatch)
+    lowest = rp.DISPATCH_SETTINGS["all at their lowest"]["NPY_DISABLE_CPU_FEATURES"].split()
+    assert lowest == dispatch  # every dispatched target off: numpy's baseline loops alone
+    without = rp.DISPATCH_SETTINGS["numpy without AVX-512"]["NPY_DISABLE_CPU_FEATURES"].split()
+    assert set(without) <= set(dispatch) and not any("AVX2" in n or n == "X86_V3" for n in without)

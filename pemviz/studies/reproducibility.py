@@ -31,23 +31,53 @@ import subprocess
 import sys
 from typing import Any
 
+def numpy_dispatch() -> tuple[list[str], list[str]]:
+    """(the SIMD targets this numpy build dispatches to at run time, those this process uses): e.g. ``(['X86_V3',
+    'X86_V4', 'AVX512_ICL', 'AVX512_SPR'], ['X86_V3'])`` under ``NPY_DISABLE_CPU_FEATURES="X86_V4 AVX512_ICL
+    AVX512_SPR"``. numpy names its targets by version (``AVX512F``, ``AVX512_SKX`` before 2.4; ``X86_V4`` since),
+    and ignores, with a warning, a name it does not dispatch."""
+    from numpy._core import _multiarray_umath as umath
+
+    dispatch = list(getattr(umath, "__cpu_dispatch__", []))
+    return dispatch, [name for name in dispatch if umath.__cpu_features__.get(name, False)]
+
+
+def _numpy_without(keep: str) -> str:
+    """``NPY_DISABLE_CPU_FEATURES`` for this numpy: every dispatched target beyond AVX2 (``keep="avx2"``), or every one
+    (``keep="baseline"``)."""
+    dispatch, _ = numpy_dispatch()
+    avx512 = [n for n in dispatch if "AVX512" in n or n in ("X86_V4", "AVX10")]
+    return " ".join(avx512 if keep == "avx2" else dispatch)
+
+
 DISPATCH_SETTINGS: dict[str, dict[str, str]] = {
     "as found": {},
     "torch without AVX-512": {"ATEN_CPU_CAPABILITY": "avx2"},
     "torch scalar": {"ATEN_CPU_CAPABILITY": "default"},
     "MKL SSE4.2": {"MKL_ENABLE_INSTRUCTIONS": "SSE4_2", "MKL_CBWR": "COMPATIBLE"},
     "MKL AVX2": {"MKL_ENABLE_INSTRUCTIONS": "AVX2"},
-    "numpy without AVX-512": {"NPY_DISABLE_CPU_FEATURES": "AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL "
-                                                          "AVX512_ICL AVX512_SPR"},
+    "numpy without AVX-512": {"NPY_DISABLE_CPU_FEATURES": _numpy_without("avx2")},
     "OpenBLAS Haswell": {"OPENBLAS_CORETYPE": "Haswell"},
     "all at their lowest": {"ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2",
                             "MKL_CBWR": "COMPATIBLE", "OPENBLAS_CORETYPE": "Sandybridge",
-                            "NPY_DISABLE_CPU_FEATURES": "AVX2 FMA3 AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL "
-                                                        "AVX512_ICL AVX512_SPR"},
+                            "NPY_DISABLE_CPU_FEATURES": _numpy_without("baseline")},
 }
-"""Settings of torch's (``ATEN_CPU_CAPABILITY``), MKL's, numpy's and OpenBLAS's kernel dispatch that any x86-64 CPU
-with AVX2 runs: each picks the kernels (and so the rounding) of another CPU. numpy ignores, with a warning, a
-feature the CPU lacks."""
+"""Settings of torch's (``ATEN_CPU_CAPABILITY``), MKL's, numpy's (``NPY_DISABLE_CPU_FEATURES``, named by the installed
+numpy's own dispatch targets: :func:`numpy_dispatch`) and OpenBLAS's kernel dispatch that any x86-64 CPU with AVX2
+runs: each picks the kernels (and so the rounding) of another CPU. A fingerprint records what torch, numpy and
+OpenBLAS then used (its ``dispatch``), so that a setting that took no effect shows."""
+
+
+def dispatch_in_use() -> dict[str, Any]:
+    """What this process's kernels dispatch to: torch's CPU capability, numpy's SIMD targets in use
+    (:func:`numpy_dispatch`) and each OpenBLAS's core type (``threadpoolctl``)."""
+    import torch
+    from threadpoolctl import threadpool_info
+
+    return {"torch": torch.backends.cpu.get_cpu_capability(), "numpy": numpy_dispatch()[1],
+            "openblas": sorted({str(i.get("architecture")) for i in threadpool_info()
+                                if i.get("internal_api") == "openblas"})}  # fmt: skip
+
 
 LOG_MU_RTOL = 1e-12
 """log mu_hat's relative tolerance across dispatch settings: the last bits of the weights' exp and log."""
@@ -57,7 +87,7 @@ def fingerprint(config: Any) -> dict[str, Any]:
     """Run ``config`` (an :class:`pemviz.config.ExperimentConfig`) and return what identifies the run: ``rollouts``
     (sha256 of every stage's detections and failures, in rollout order), ``stages`` ([stage, repr(gamma), elites,
     failures]), ``log_mu_hat`` (nats), ``failures``, ``n``, ``ess``, ``summary`` (the printed verdict line) and
-    ``chunks`` (how many chunks the run's stages came in)."""
+    ``chunks`` (how many chunks the run's stages came in), ``dispatch`` (:func:`dispatch_in_use`)."""
     import numpy as np
 
     from pemviz.core.problems import problem_for
@@ -83,6 +113,7 @@ def fingerprint(config: Any) -> dict[str, Any]:
         "stages": [[s.stage, repr(s.gamma), int(s.n_elites), int(s.estimate.n_failures)] for s in result.stages],
         "log_mu_hat": e.log_mu_hat, "failures": e.n_failures, "n": e.n, "ess": e.ess,
         "summary": e.summary(problem.exact_log_p, problem.reference), "chunks": chunks[0],
+        "dispatch": dispatch_in_use(),
     }  # fmt: skip
 
 
