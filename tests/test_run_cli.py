@@ -90,14 +90,17 @@ def test_the_readme_sample_check_fails_on_a_changed_digit():
 def test_paper_preset_reproduces_the_published_sampler_bit_for_bit():
     # seed 0 of the paper's settings (Innes & Ramamoorthy 2022, Algorithm 1), in exact arithmetic: the proposal
     # collapses onto 2 paths, 91/100 crashes, 1.2264e-24 -- 10^9 below the exact answer with an ESS of 88 and k-hat 0,
-    # which the verdict must not call reliable
+    # which the verdict must not call reliable: it is below the 3.22e-24 of the failures the run itself drew
     cfg = ExperimentConfig(**PRESETS["paper"], seed=0)
     res = Experiment(cfg, problem=problem_for(cfg)).run()
     e = res.final.estimate
     assert (e.n_failures, e.n) == (91, 100)
     assert e.log_mu_hat == pytest.approx(-55.05794, abs=5e-5)
     assert e.verdict != "reliable" and not e.covers(math.log(1.9839e-15))
-    assert e.reason.startswith("the 91 failures are 2 distinct rollouts")
+    assert e.verdict == "unreliable" and e.reason.startswith("mu_hat is below 3.220e-24, the probability of the "
+                                                             "failures this run drew")
+    assert res.final.log_p_seen == pytest.approx(math.log(3.220e-24), abs=2e-3)
+    assert e.log_mu_hat < res.final.log_p_seen < math.log(1.9839e-15)  # a bound: never above the exact answer
 
 
 def test_default_recording_verifies_and_holds_the_printed_estimate(default_run):

@@ -35,6 +35,10 @@ def distinct_failures(log_weight: np.ndarray, log_p_total: np.ndarray) -> int:
     return int(np.unique(np.stack([log_weight, log_p_total]), axis=1).shape[1])
 
 
+SEEN_TOLERANCE = 1e-9
+"""nats: how far below the probability of the failures seen mu_hat must be to be called too low
+(:meth:`Estimate.below_seen`): the two are sums of the same logs in another order."""
+
 MAX_MEAN_WEIGHT = 20.0
 """The mean of N importance weights has expectation 1 when the weights belong to the proposal that drew the
 rollouts, so by Markov's inequality it exceeds 20 with probability <= 0.05: a larger mean says the weights (the
@@ -96,6 +100,19 @@ class Estimate:
         """``[1.2e-15, 2.6e-15]``: the interval as probabilities."""
         lo, hi = self.log_ci
         return f"[{format_probability(lo, 2)}, {format_probability(hi, 2)}]"
+
+    def below_seen(self, log_p_seen: float | None) -> "Estimate":
+        """This estimate, or, when mu_hat is below ``log_p_seen`` (nats: the probability of the distinct failures the
+        run has drawn, a lower bound of p: :class:`pemviz.estimators.base.SeenFailures`), the same numbers with the
+        verdict ``unreliable``: mu_hat is then certainly too low, whatever its weights look like (a proposal collapsed
+        onto a few unlikely paths draws weights that pass every other check)."""
+        if log_p_seen is None or not self.log_mu_hat < log_p_seen - SEEN_TOLERANCE:
+            return self
+        from dataclasses import replace
+
+        reason = (f"mu_hat is below {format_probability(log_p_seen)}, the probability of the failures this run drew: "
+                  "it misses most of them")  # fmt: skip
+        return replace(self, verdict="unreliable", reason=reason)
 
     def summary(self, exact_log_p: float | None = None, reference: "Reference | None" = None) -> str:
         """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, the exact answer if known, else the

@@ -146,6 +146,10 @@ class FinalEstimate:
     wall_s: float
     stages_used: tuple[int, ...] = ()
     """The stages whose rollouts the estimate uses (e.g. CE stages 4..10 and the final batch 11 when pooled)."""
+    log_p_seen: float | None = None
+    """log of the probability of the distinct failures the run drew in any stage (nats), a lower bound of p
+    (:class:`pemviz.estimators.base.SeenFailures`; None: none, or the scene has measurement errors): a mu_hat below
+    it is called unreliable (:meth:`pemviz.core.estimate.Estimate.below_seen`)."""
 
 
 @dataclass(frozen=True)

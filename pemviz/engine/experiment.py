@@ -46,6 +46,7 @@ from pemviz.engine.events import (
 )
 from pemviz.engine.executors import get_executor
 from pemviz.estimators import Estimator, StagePlan, build_estimator
+from pemviz.estimators.base import SeenFailures
 from pemviz.scenarios import RolloutBatch
 
 
@@ -142,6 +143,8 @@ class Experiment:
         self.problem = problem
         self.stages: list[StageResult] = []
         self.n_simulations = 0
+        self.seen_failures = SeenFailures()
+        """The probability of the distinct failures drawn in any stage: a lower bound the final verdict checks."""
 
     def emit(self, event: Event) -> None:
         for listener in self.listeners:
@@ -167,7 +170,8 @@ class Experiment:
             return event
         est, used = estimator.result()
         n_sim = getattr(estimator, "n_simulations", self.n_simulations)  # AMS counts rollout-equivalents
-        final = FinalEstimate(est, n_sim, time.perf_counter() - t_start, used)
+        seen = self.seen_failures.log_p
+        final = FinalEstimate(est.below_seen(seen), n_sim, time.perf_counter() - t_start, used, seen)
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)
@@ -198,6 +202,7 @@ class Experiment:
             self._check_cancel()
             by_metric = RobustnessByMetric(pb, batch)  # the other metrics only if a listener reads them
             failed = pb.failed(batch, by_metric["classic"])
+            self.seen_failures.add(pb, batch, failed)
             log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
             self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target))
             self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, failed, log_w,
@@ -223,6 +228,7 @@ class Experiment:
             self._check_cancel()
             robustness = pb.robustness(batch, cfg.metric)
             failed = pb.failed(batch, robustness if cfg.metric == "classic" else None)
+            self.seen_failures.add(pb, batch, failed)
             log_w = estimator.observe(batch, failed, robustness)
             self.emit(RolloutChunk(plan.stage, plan.kind, sample.seen, batch, log_w, plan.sampler, tuple(plan.parts),
                                    pb.target))  # fmt: skip

@@ -201,6 +201,57 @@ def log_p_before_failure(problem: Problem, batch: RolloutBatch) -> np.ndarray:
     return np.where(np.arange(batch.n_steps)[None, :] < k[:, None], batch.log_p, 0.0).sum(axis=1)  # -inf after
 
 
+class SeenFailures:
+    """The probability of the distinct failures a run has drawn: a lower bound of p, whatever the samplers.
+
+    Where the detections are a rollout's only randomness (no measurement errors) and its start is fixed, the
+    detections before the failure step decide the failure: the event "the first t_f detections are these" has
+    probability prod_{t < t_f} p(a_t | s_t) under the PEM and implies the failure, and two distinct failing prefixes
+    are disjoint events (neither is a prefix of the other: the shorter would have failed the longer rollout earlier).
+    So p >= the sum over the distinct failing prefixes drawn, under any proposal. At most :data:`KEEP` of the most
+    likely prefixes are kept (a sum over fewer is still a bound).
+    """
+
+    KEEP: ClassVar[int] = 20_000
+
+    def __init__(self) -> None:
+        self._log_p: dict[bytes, float] = {}
+        self.applies = True
+        """False once a batch has measurement errors or a formula without a failure step: no bound then."""
+
+    def add(self, problem: Problem, batch: RolloutBatch, failed: np.ndarray) -> None:
+        """Record the failing rollouts of ``batch`` (``failed`` bool [N])."""
+        if not self.applies or not failed.any():
+            return
+        if batch.noise is not None:
+            self.applies = False
+            return
+        try:
+            steps = failure_steps(problem, batch)
+        except ValueError:
+            self.applies = False
+            return
+        rows = np.flatnonzero(failed)
+        log_p = log_p_before_failure(problem, batch)[rows]
+        k = steps[rows]
+        detected = batch.detected.reshape(batch.n, batch.n_steps, -1)[rows]
+        detected = detected & (np.arange(batch.n_steps)[None, :, None] < k[:, None, None])  # the prefix before t_f
+        keys = np.concatenate([np.packbits(detected.reshape(rows.size, -1), axis=1),
+                               k.astype("<u4").view(np.uint8).reshape(-1, 4)], axis=1)  # fmt: skip
+        _, first = np.unique(keys, axis=0, return_index=True)  # each prefix once per batch
+        self._log_p.update(zip((keys[i].tobytes() for i in first), log_p[first].tolist()))
+        if len(self._log_p) > 2 * self.KEEP:
+            kept = sorted(self._log_p.items(), key=lambda kv: kv[1], reverse=True)[: self.KEEP]
+            self._log_p = dict(kept)
+
+    @property
+    def log_p(self) -> float | None:
+        """log of the sum of p over the distinct failing prefixes seen (nats), or None: none seen, or no bound."""
+        if not self.applies or not self._log_p:
+            return None
+        return float(logsumexp(np.fromiter(self._log_p.values(), float)))
+
+
 def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Object events of the elite rollouts per bin of ``grid`` (nearest grid value of each object row's first
     column: the braking scenario's gap) and the detections among them, float64 [G] each."""

@@ -23,7 +23,7 @@ from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.problems import Problem
 from pemviz.core.weights import CONVENTIONS, MeanWeight, mean_weight
 from pemviz.estimators import log_p_before_failure, log_weight
-from pemviz.estimators.base import pool
+from pemviz.estimators.base import SeenFailures, pool
 from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta
 from pemviz.io.rollouts import RolloutData, braking_salient
 from pemviz.scenarios import RolloutBatch
@@ -157,7 +157,7 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
 
 def estimate_rollouts(
     data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
-    weights: str = "to-failure",
+    weights: str = "to-failure", log_p_seen: float | None = None,
 ) -> RolloutEstimate:
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
 
@@ -176,6 +176,9 @@ def estimate_rollouts(
         weights: one of :data:`pemviz.core.weights.CONVENTIONS`; ``to-failure`` with a formula that is not
             ``G[a,b](state predicate)``, or with ``failure="metric"``, weighs every step but the last (``full``, said in
             :attr:`RolloutEstimate.weights`).
+        log_p_seen: the probability of the failures the run drew (nats; the sidecar's, for the run's own log p):
+            with the file's own failures' (:class:`pemviz.estimators.base.SeenFailures`, ``failure="crash"``), the
+            bound below which the verdict is unreliable (:meth:`pemviz.core.estimate.Estimate.below_seen`).
     Raises:
         ValueError: an unknown metric, failure mode or convention, arrays of the wrong shape, or a formula the file's
             signals cannot evaluate (a RolloutFormatError naming the file).
@@ -216,6 +219,11 @@ def estimate_rollouts(
                 f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
             )
     est, rows, pooled, rule = _pooled(data, log_w, failed, log_p_total)
+    if failure == "crash":
+        seen = SeenFailures()
+        seen.add(problem, batch, failed)
+        bounds = [b for b in (seen.log_p, log_p_seen) if b is not None]
+        est = est.below_seen(max(bounds) if bounds else None)
     bound = None
     if data.stage is not None and data.meta.stages:
         b = {s["stage"]: s["max_weight"] for s in data.meta.stages}

@@ -143,7 +143,8 @@ class RolloutSink(Sink):
         lam = None if rule == "single" else pool_stage_weights(rule, sizes)
         lam = np.asarray(sizes, dtype=np.float64) / sum(sizes) if lam is None else lam
         provenance = dict(writer.meta.provenance or {})
-        provenance["estimate"] = {**_estimate_json(finished.final.estimate), "stages_used": used}
+        provenance["estimate"] = {**_estimate_json(finished.final.estimate), "stages_used": used,
+                                  "log_p_seen": finished.final.log_p_seen}  # the verdict's bound: pemviz estimate
         provenance["stage_estimates"] = {str(k): v for k, v in sorted(self._results.items())}
         writer.meta = dataclasses.replace(
             writer.meta, provenance=provenance, weights=convention(getattr(cfg, "weights_until_failure", True)),
