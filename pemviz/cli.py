@@ -13,16 +13,25 @@ import importlib
 import os
 import signal
 import sys
+from typing import NoReturn
 
 from pemviz import __version__
 from pemviz.commands import COMMANDS, Terminated, UsageError
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, ``pemviz run: error: argument --k: 'abc' is not a number; ...``,
+    exit status 2, without the usage block argparse prints before it (``--help`` still shows the usage)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def build_parser(command: str | None = None, *, full: bool = True) -> argparse.ArgumentParser:
     """The ``pemviz`` parser. With ``full`` every command's parser is built (the user guide's reference, the tests);
     without, only ``command``'s, the others listed by their help alone, so that a command imports no other command's
     module and ``pemviz --help`` imports none."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="pemviz",
         description=__doc__.split("\n\n")[0].replace("\n", " "),
         epilog="`pemviz COMMAND --help` describes a command; the user guide is in docs/ (mkdocs serve).",

@@ -159,6 +159,8 @@ def test_plain_monte_carlo_with_the_pem_finds_nothing_in_10000():
         (["--metric", "fancy"], "use one of classic, agm, smooth-cumulative"),
         (["--save", "/nonexistent-dir/x.rrd"], "does not exist"),
         (["--save", "out.txt"], "must end in .rrd"),
+        (["--k", "abc"], "argument --k/--stages: 'abc' is not a number"),  # argparse's error alone, no usage block
+        (["--preset", "nope"], "--preset 'nope' is invalid: use one of state-ce, paper"),
         # the paper's fit takes one object a step: refused before any rollout (was: after 20 s of pretraining)
         (["--preset", "paper", "--scenario", "cut-in"], "takes one object per step; this problem perceives 5"),
     ],

@@ -16,7 +16,7 @@ from pemviz.io.files import check_output_path
 
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "run": ("pemviz.commands.run", "estimate the crash probability of the braking scenario"),
+    "run": ("pemviz.commands.run", "estimate a scenario's failure probability (braking, cut-in) and record the run"),
     "data": ("pemviz.commands.data", "fetch or locate the KITTI salient-variable files"),
     "pem": ("pemviz.commands.pem", "train or evaluate the perception error model (PEM)"),
     "serve": ("pemviz.commands.serve", "open the interactive panel in the browser (viser)"),

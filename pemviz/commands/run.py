@@ -70,7 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     """Build and validate the config; raises ConfigError with a one-line message."""
     if args.preset not in PRESETS:
-        raise ConfigError(f"preset = {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
+        raise ConfigError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     fields = dict(PRESETS[args.preset])
     for name in ("method", *RUN_SETTINGS):
         value = getattr(args, name)
