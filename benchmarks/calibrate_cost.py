@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pemviz.app.runs import PanelRun  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
 from pemviz.core.problems import problem_for  # noqa: E402
-from pemviz.core.sampling import torch_threads  # noqa: E402
+from pemviz.engine.resources import torch_threads  # noqa: E402
 from pemviz.engine import cost  # noqa: E402
 from pemviz.engine import experiment as engine  # noqa: E402
 from pemviz.estimators import ce_fit, run_plan  # noqa: E402

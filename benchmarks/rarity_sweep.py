@@ -56,7 +56,7 @@ from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts
 from pemviz.io.files import atomic_write
 from pemviz.presets import PRESETS
 from pemviz.core.problems import Problem, ShiftedPEM, braking_problem, cut_in_params, cut_in_problem, toy_problem
-from pemviz.core.sampling import torch_threads
+from pemviz.engine.resources import torch_threads
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
 from pemviz.scenarios.toy import ToyParams, ToyValue, toy_log_failure_probability

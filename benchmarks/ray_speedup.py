@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 
 def run(config, problem):
     import pemviz.engine.executors as executors
-    from pemviz.core.sampling import torch_threads
+    from pemviz.engine.resources import torch_threads
     from pemviz.engine import Experiment
 
     spent = [0.0]

@@ -60,7 +60,7 @@ stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright,
 Alg. 7.5)."""
 FIT_PRECISIONS = ("exact", "float32", "float64")
 """The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`): ``exact`` (the default,
-:func:`pemviz.core.sampling.fit_exact`) gives the same proposal on every CPU; ``float32`` and ``float64`` run torch's
+:func:`pemviz.core.exact_fit.fit_exact`) gives the same proposal on every CPU; ``float32`` and ``float64`` run torch's
 kernels, whose last bits depend on the CPU's vector unit and BLAS kernel (the paper's fits are float64). The network
 samples in exact arithmetic whatever this is (:meth:`pemviz.core.sampling.Proposal.detect_logit`); the parameters and
 every importance weight stay float64."""

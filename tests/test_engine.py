@@ -147,7 +147,7 @@ def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
 def test_torch_threads_sets_and_restores_the_process_setting():
     import torch
 
-    from pemviz.core.sampling import torch_threads
+    from pemviz.engine.resources import torch_threads
 
     before = torch.get_num_threads()
     with torch_threads(2):

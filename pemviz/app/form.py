@@ -89,10 +89,10 @@ def parse_form(texts: dict[str, str], choices: dict[str, Any], base: ExperimentC
 def run_cost(cfg: ExperimentConfig, n_steps: int = N_STEPS) -> RunCost:
     """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of the plan its estimator states,
     :func:`pemviz.estimators.run_plan`): simulations, memory of the largest batch, expected seconds."""
-    from pemviz.engine.experiment import STREAM_ABOVE  # the engine and the estimators import torch: only when asked
+    from pemviz.engine.experiment import stream_above  # the engine and the estimators import torch: only when asked
     from pemviz.estimators import run_plan
 
-    return cost.run_cost(cfg, run_plan(cfg), n_steps, STREAM_ABOVE)
+    return cost.run_cost(cfg, run_plan(cfg), n_steps, stream_above(cfg))
 
 
 def setting_name(key: str) -> str:

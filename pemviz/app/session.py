@@ -48,7 +48,7 @@ from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
 from pemviz.presets import preset_help
 from pemviz.scenarios.braking_failures import Severity
 from pemviz.core.problems import problem_for
-from pemviz.core.sampling import torch_threads
+from pemviz.engine.resources import torch_threads
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C

@@ -241,15 +241,15 @@ def main(args: argparse.Namespace) -> int:
 
     from pemviz.core.counterfactuals import MostLikelyFailure, counterfactuals
     from pemviz.core.problems import problem_for
-    from pemviz.core.sampling import torch_threads
-    from pemviz.engine.experiment import STREAM_ABOVE, Experiment
+    from pemviz.engine.resources import torch_threads
+    from pemviz.engine.experiment import Experiment, stream_above
     from pemviz.estimators import check_runnable
     from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.recording import RerunSink
 
-    stream_above = (cfg.chunk_rollouts or STREAM_ABOVE) if cfg.executor == "serial" else None
-    check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above)
+    serial = cfg.executor == "serial"
+    check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above(cfg) if serial else None)
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     try:
         check_runnable(cfg, problem)  # a sampler that cannot run on this scenario: before any output or rollout

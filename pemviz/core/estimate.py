@@ -9,6 +9,7 @@ given as natural logs, exact also far below float64's range.
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,11 +109,9 @@ class Estimate:
         onto a few unlikely paths draws weights that pass every other check)."""
         if log_p_seen is None or not self.log_mu_hat < log_p_seen - SEEN_TOLERANCE:
             return self
-        from dataclasses import replace
-
         reason = (f"mu_hat is below {format_probability(log_p_seen)}, the probability of the failures this run drew: "
                   "it misses most of them")  # fmt: skip
-        return replace(self, verdict="unreliable", reason=reason)
+        return dataclasses.replace(self, verdict="unreliable", reason=reason)
 
     def summary(self, exact_log_p: float | None = None, reference: "Reference | None" = None) -> str:
         """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, the exact answer if known, else the

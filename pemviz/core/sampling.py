@@ -9,12 +9,11 @@ the smoothing power alpha. The failure probability is then estimated with import
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import math
 import os
 from pathlib import Path
-from typing import Callable, Iterator, Union
+from typing import Callable, Union
 
 import numpy as np
 import torch
@@ -22,6 +21,7 @@ from torch import nn
 
 from pemviz.config import FITS
 from pemviz.core import exact
+from pemviz.core.exact_fit import fit_exact
 from pemviz.core.detectors import GAP_COLUMN
 from pemviz.io.files import atomic_write, load_tagged
 
@@ -356,28 +356,6 @@ CHECK_EVERY = 25
 """Epochs between two calls of a training loop's ``check`` callback (e.g. the engine's cancel check)."""
 
 
-@contextlib.contextmanager
-def torch_threads(n: int = 1, blas: int | None = None) -> Iterator[None]:
-    """Run the block with torch on ``n`` threads, and with ``blas`` given the BLAS libraries too (numpy's OpenBLAS,
-    MKL, OpenMP: ``threadpoolctl``), then restore the process's settings (process-wide: for the command layer, around
-    a whole run). The proposal is tiny, and on 2 cores a second torch thread only adds synchronisation (measured
-    7.7 ms vs 74 ms per Adam epoch under load). The exact fits' products (:func:`fit_exact`) run in numpy's BLAS,
-    which gains from a second core in one run (default run 1.6 s against 2.4 s on one thread) but whose idle threads
-    spin: give ``blas=1`` where runs go side by side (``pemviz validate --jobs 2``: 10-25 s a run otherwise)."""
-    from threadpoolctl import threadpool_limits
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        if blas is None:
-            yield
-        else:
-            with threadpool_limits(blas):
-                yield
-    finally:
-        torch.set_num_threads(before)
-
-
 PLATEAU_EPOCHS = 50
 """Adam with a tolerance stops once the loss fell by less than it over this many epochs (early stopping)."""
 
@@ -433,117 +411,8 @@ detections), or a function of log q returning the scalar loss and its gradient d
 
 
 EXACT = "exact"
-COUNT_BITS = 24
-"""The bits an exact fit keeps of its weighted counts, relative to the largest (:func:`fit_exact`)."""
 """The arithmetic of an ``adam`` fit (``dtype`` of :func:`fit_proposal`) that gives the same parameters on every
-CPU, whatever its vector unit or BLAS kernel (:func:`fit_exact`)."""
-
-
-def fit_exact(proposal: Proposal, inputs: torch.Tensor, counts: torch.Tensor, epochs: int, lr: float,
-              check: Callable[[], None] | None = None, tolerance: float | None = None,
-              per: float | None = None) -> list[float]:  # fmt: skip
-    """Full-batch Adam on the weighted log-likelihood ``-sum(C * log q) / per`` (:data:`Objective`, a tensor C), in
-    place, in exact order-free arithmetic (:mod:`pemviz.core.exact`): the same parameters, bit for bit, on every CPU.
-
-    Forward and backward passes are written out (Rumelhart, Hinton & Williams 1986): every operand of a matrix
-    product rounded once to a power-of-two grid of ``grid_bits(max(M, 32))`` bits of its largest entry
-    (:func:`pemviz.core.exact.to_grid`; 21 bits for M = 2,000), so that the products over the 32 units and over the
-    M inputs, and each bias gradient, are exact sums of integers; the log-softmax of the two outputs as
-    ``log q(miss) = -softplus(d)``, ``log q(detect) = -softplus(-d)`` with d = z_detect - z_miss and its derivative
-    ``d loss / d d = ((C_miss + C_detect) sigmoid(d) - C_detect) / per``, and Adam (Kingma & Ba 2015, Algorithm 1,
-    torch's defaults: betas (0.9, 0.999), eps 1e-8) in elementwise float64. Precision is about float32's. The
-    weighted counts C / per are first rounded to a grid of :data:`COUNT_BITS` bits of the largest, so that counts
-    that differ in their last bits (float64 weights computed by another CPU's libm) give the same fit unless one of
-    M x 2 counts lies within an ulp of a rounding boundary (probability about 2^-29 each).
-
-    Args:
-        inputs: float64 [M] or [M, k] (:meth:`Proposal.forward`); counts: C float64 [M, 2] (miss, detect).
-        epochs, lr, check, tolerance, per: as :func:`fit_proposal`.
-    Returns:
-        the loss per epoch (nats, divided by ``per``).
-    """
-    lin1, _, lin2, _, lin3, _ = proposal.net
-    with torch.no_grad():
-        h = np.ascontiguousarray(proposal.inputs(torch.as_tensor(inputs, dtype=torch.float64)).numpy())
-        c = np.asarray(counts.detach().numpy() if isinstance(counts, torch.Tensor) else counts, dtype=np.float64)
-        params = [lin1.weight, lin1.bias, lin2.weight, lin2.bias, lin3.weight, lin3.bias]
-        flat = np.concatenate([p.detach().numpy().reshape(-1) for p in params]).astype(np.float64)
-    shapes = [tuple(p.shape) for p in params]
-    sizes = [p.numel() for p in params]
-    offsets = np.cumsum([0, *sizes])
-    views = [flat[a:b].reshape(shape) for a, b, shape in zip(offsets[:-1], offsets[1:], shapes)]
-    w1, b1, w2, b2, w3, b3 = views
-    grad = np.zeros_like(flat)
-    g_w1, g_b1, g_w2, g_b2, g_w3, g_b3 = (grad[a:b].reshape(shape)
-                                          for a, b, shape in zip(offsets[:-1], offsets[1:], shapes))  # fmt: skip
-    # the weighted counts come from float64 weights whose last bits may depend on the CPU's libm (exp, log): on a
-    # grid of COUNT_BITS bits they are the same numbers unless one lies within an ulp of a grid point's midpoint
-    ci, ec = exact.on_grid(c * (1.0 if per is None else 1.0 / per), COUNT_BITS, None)
-    c_miss, c_detect = np.ldexp(ci[:, 0], ec[0]), np.ldexp(ci[:, 1], ec[0])
-    c_both = c_miss + c_detect
-    m_rows = h.shape[0]
-    bits = exact.grid_bits(max(m_rows, 32))  # each operand's bits, for the products over 32 units and over M rows
-    hi, sh = exact.to_grid(h, bits)  # the inputs are fixed: on their grid once
-    beta1, beta2, eps = 0.9, 0.999, 1e-8
-    beta1_t = beta2_t = 1.0
-    exp_avg, exp_avg_sq = np.zeros_like(flat), np.zeros_like(flat)
-    losses: list[float] = []
-    for epoch in range(epochs):
-        if check is not None and epoch % CHECK_EVERY == 0:
-            check()  # may raise to stop the run (a cancel token)
-        w1i, s1 = exact.to_grid(w1.T, bits)
-        a1 = hi @ w1i
-        a1 *= sh * s1
-        a1 += b1
-        np.maximum(a1, 0.0, out=a1)
-        a1i, sa1 = exact.to_grid(a1, bits, nonneg=True)
-        w2i, s2 = exact.to_grid(w2, bits)
-        a2 = a1i @ w2i.T
-        a2 *= sa1 * s2
-        a2 += b2
-        np.maximum(a2, 0.0, out=a2)
-        a2i, sa2 = exact.to_grid(a2, bits, nonneg=True)
-        w_diff = w3[1] - w3[0]
-        wdi, sd = exact.to_grid(w_diff, bits)
-        d = a2i @ wdi
-        d *= sa2 * sd
-        d += b3[1] - b3[0]
-        softplus, sigmoid = exact.softplus_and_sigmoid(d)
-        # -(C_miss log q(miss) + C_detect log q(detect)), log q(detect) = -softplus(-d) = d - softplus(d)
-        losses.append(float(exact.exact_sum((c_both * softplus - c_detect * d)[:, None], 0)[0]))
-        ddi, sdd = exact.to_grid(c_both * sigmoid - c_detect, bits)  # d loss / d d
-        g_w3[1] = (ddi @ a2i) * (sdd * sa2)
-        np.negative(g_w3[1], out=g_w3[0])
-        g_b3[1] = ddi.sum() * sdd  # integers below 2^53: exact in any order
-        g_b3[0] = -g_b3[1]
-        dz2 = ddi[:, None] * wdi[None, :]  # exact products of integers, scaled by sdd * sd
-        dz2 *= a2 > 0
-        dz2i, sz2 = exact.to_grid(dz2, bits)
-        sz2 *= sdd * sd
-        g_w2[...] = (dz2i.T @ a1i) * (sz2 * sa1)
-        g_b2[...] = dz2i.sum(axis=0) * sz2
-        dz1 = dz2i @ w2i
-        dz1 *= a1 > 0
-        dz1i, sz1 = exact.to_grid(dz1, bits)
-        sz1 *= sz2 * s2
-        g_w1[...] = (dz1i.T @ hi) * (sz1 * sh)
-        g_b1[...] = dz1i.sum(axis=0) * sz1
-        beta1_t *= beta1
-        beta2_t *= beta2
-        exp_avg *= beta1
-        exp_avg += (1.0 - beta1) * grad
-        exp_avg_sq *= beta2
-        exp_avg_sq += (1.0 - beta2) * (grad * grad)
-        denom = np.sqrt(exp_avg_sq)
-        denom /= math.sqrt(1.0 - beta2_t)
-        denom += eps
-        flat -= (lr / (1.0 - beta1_t)) * (exp_avg / denom)
-        if tolerance is not None and epoch >= PLATEAU_EPOCHS and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance:
-            break  # converged: the loss has stopped falling
-    with torch.no_grad():
-        for p, view in zip(params, views):
-            p.copy_(torch.from_numpy(view.copy()))
-    return losses
+CPU, whatever its vector unit or BLAS kernel (:func:`pemviz.core.exact_fit.fit_exact`)."""
 
 
 def fit_proposal(
@@ -568,8 +437,8 @@ def fit_proposal(
             ``tolerance`` in nats per step means the same at any N); None: not divided.
         epochs, lr: Adam steps and step size, or the most L-BFGS iterations.
         check: called every :data:`CHECK_EVERY` steps; may raise (a cancel token) to abandon the fit.
-        dtype: the arithmetic of an ``adam`` fit of a tensor objective: :data:`EXACT` (default, :func:`fit_exact`:
-            the same parameters on every CPU), or torch's float32 (the fastest) or float64 kernels, whose last bits
+        dtype: the arithmetic of an ``adam`` fit of a tensor objective: :data:`EXACT` (default,
+            :func:`pemviz.core.exact_fit.fit_exact`: the same parameters on every CPU), or torch's float32 (the fastest) or float64 kernels, whose last bits
             depend on the CPU's vector unit and BLAS kernel. The parameters stay float64 and every weight of the
             estimate is computed in float64 from the density sampled from (:meth:`Proposal.detect_logit`), so the
             precision of the fit only moves the proposal, never the estimate's unbiasedness. A function objective
@@ -584,7 +453,8 @@ def fit_proposal(
         ValueError: for an unknown ``method``.
 
     ``adam`` (Kingma & Ba 2015, :class:`Adam`) backpropagates through the network by hand
-    (:func:`fit_exact`, or :class:`Backprop` in torch's kernels); ``lbfgs`` (Nocedal 1980; torch's, history 20, strong-Wolfe line search,
+    (:func:`pemviz.core.exact_fit.fit_exact`, or :class:`Backprop` in torch's kernels); ``lbfgs`` (Nocedal 1980;
+    torch's, history 20, strong-Wolfe line search,
     unit step) backpropagates the objective's gradient with autograd.
     """
     if method not in FITS:
@@ -626,7 +496,8 @@ def fit_proposal(
                 break
         return losses
     if linear and dtype == EXACT:
-        return fit_exact(proposal, inputs, objective, epochs, lr, check, tolerance, per)
+        return fit_exact(proposal, inputs, objective, epochs, lr, check, tolerance, per, check_every=CHECK_EVERY,
+                         plateau_epochs=PLATEAU_EPOCHS)
     dtype = dtype if linear and dtype != EXACT else torch.float64
     h = proposal.inputs(torch.as_tensor(inputs)).to(dtype)
     if linear:

@@ -58,6 +58,12 @@ STREAM_ABOVE = 20_000
 """Stages of more rollouts than this are simulated chunk by chunk when the problem can stream
 (``Problem.stream``) and the executor is serial, and kept only as per-rollout numbers and a bounded sample: a
 [10^5, 100] batch with its robustness and masks holds ~1 GB, a chunk of 8,192 rollouts ~80 MB."""
+def stream_above(config: ExperimentConfig) -> int:
+    """Rollouts above which a serial stage streams chunk by chunk: ``config.chunk_rollouts``, or
+    :data:`STREAM_ABOVE` when it is None."""
+    return STREAM_ABOVE if config.chunk_rollouts is None else config.chunk_rollouts
+
+
 SAMPLE_LEAST_ROBUST = 20
 """Least-robust rollouts of a streamed stage that listeners see in full."""
 SAMPLE_FAILURES = 100
@@ -189,8 +195,7 @@ class Experiment:
             # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
             # almost never fail, so coupling them would reduce no estimate's variance
             parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
-        stream_above = STREAM_ABOVE if cfg.chunk_rollouts is None else cfg.chunk_rollouts
-        if plan.draw is None and plan.n > stream_above and pb.stream is not None and cfg.executor == "serial":
+        if plan.draw is None and plan.n > stream_above(cfg) and pb.stream is not None and cfg.executor == "serial":
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
@@ -217,7 +222,7 @@ class Experiment:
 
     def _streamed(self, estimator: Estimator, plan: StagePlan, parts: list[tuple[int, Detector]],
                   target: Detector) -> None:  # fmt: skip
-        """Simulate a stage chunk by chunk (:data:`STREAM_ABOVE`, or ``ExperimentConfig.chunk_rollouts``), ``parts`` = (rollouts, detector) in order, scored
+        """Simulate a stage chunk by chunk (:func:`stream_above`), ``parts`` = (rollouts, detector) in order, scored
         under ``target``: the estimator and the listeners see each chunk once, then the listeners a
         :class:`StageSample` of the stage."""
         pb, cfg = self.problem, self.config

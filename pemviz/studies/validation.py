@@ -29,7 +29,7 @@ from pemviz.config import METHODS, ExperimentConfig
 from pemviz.core import truth
 from pemviz.core.estimate import format_probability, relative_error
 from pemviz.core.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
-from pemviz.core.sampling import torch_threads
+from pemviz.engine.resources import torch_threads
 from pemviz.engine import Experiment
 from pemviz.engine.events import RunFinished
 from pemviz.io.files import atomic_write
