@@ -25,6 +25,9 @@ mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table I
 splitting of PEM rollouts on their robustness, no importance weights (Cerou & Guyader 2007; Brehier et al. 2016;
 :mod:`pemviz.estimators.ams`)."""
 
+DEFAULT_MAX_SIMS = 1_000_000
+"""The most simulations of a run with a target relative error (``rel_error``) and no ``max_sims``."""
+
 METRICS = ("classic", "agm", "smooth-cumulative")
 """Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
 
@@ -37,6 +40,16 @@ SCENARIOS = ("braking", "cut-in", "cut-in-rare")
 closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and measurement
 errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same below 1e-9
 (:mod:`pemviz.scenarios.cut_in`)."""
+
+SCENE_DEFAULTS: dict[str, dict[str, Any]] = {
+    "cut-in": {"method": "mc", "n_per_stage": 20_000},
+    "cut-in-rare": {"method": "mc", "n_per_stage": 20_000},
+}
+"""The method and budget a scenario runs with when neither a method nor a preset is asked for (``pemviz run
+--scenario``, the panel): on the cut-in scenes the adaptive sampler's estimates are orders of magnitude low (the user
+guide's Validation page), so they default to plain Monte Carlo, whose Clopper-Pearson interval holds p in at least
+95 % of runs at any budget (a wide interval, or with no failure the bound p < 3 / N, but an honest one). Scenarios not
+named here use :class:`ExperimentConfig`'s defaults."""
 
 EXECUTORS = ("serial", "ray")
 """Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``serial`` in this
@@ -312,6 +325,15 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("chunk_rollouts", "the chunk size", "the most rollouts simulated and scored at a time: a serial stage of "
             "more streams chunk by chunk; a seed gives the same rollouts and estimate, bit for bit, at any chunk size",
             kind="int", lo=1, optional=True, owner=RUN, flags=("--chunk",)),
+    Setting("rel_error", "the target relative error", "sample more until the 95 % interval's half-width is at most "
+            "this share of the estimate, or a cap (--max-sims, --max-time) is hit (None: the planned budget only)",
+            lo=0.0, hi=10.0, lo_open=True, optional=True, owner=RUN, short="rel. error", flags=("--rel-error",)),
+    Setting("max_sims", "the most simulations", "with a precision target (--rel-error): the run stops adding rollouts at this "
+            f"many simulations in all (None: {DEFAULT_MAX_SIMS:,})", kind="int", lo=1, optional=True, owner=RUN,
+            short="max sims", flags=("--max-sims",)),
+    Setting("max_time_s", "the most wall-clock time", "with a precision target (--rel-error): no more rollouts once the run has "
+            "taken this long; where the run stops then depends on the machine (None: no time cap)", unit="s", lo=0.0,
+            lo_open=True, optional=True, owner=RUN, short="max time", flags=("--max-time",)),
     Setting("proposal_inputs", "the proposal's inputs h(s)", "what the proposal sees", kind="choice",
             choices=PROPOSAL_INPUTS,
             choice_help=(("gap", "the gap to the lead car (the paper)"),
@@ -427,6 +449,14 @@ class ExperimentConfig:
             time (memory): a serial stage of more streams chunk by chunk. The rollouts, weights and estimate do not
             depend on it (detectors give a row the same bits in any batch: :mod:`pemviz.core.exact`; Array-RQMC
             couples fixed blocks, whatever the chunks).
+        rel_error: None (the planned budget) or R, a precision target: after the planned stages the run adds final
+            batches from the same sampler, pooled with the first, until the 95 % interval's relative half-width
+            (:attr:`pemviz.core.estimate.Estimate.rel_half_width`) is at most R or a cap is hit
+            (:class:`pemviz.estimators.precision.PrecisionTarget`).
+        max_sims: with ``rel_error``, the most simulations in all (None: :data:`DEFAULT_MAX_SIMS`); at least the
+            planned ones.
+        max_time_s: with ``rel_error``, no batch is started after this many seconds of the run, and none is sized to
+            end past it (None: no time cap); seconds.
         ams_killed: k, particles killed and resampled per AMS iteration at least (every tie at the level is killed
             too), 1 <= k < N (``method = "ams"``).
         ams_max_iterations: the most AMS iterations; a run stopped by it before its level reached the failure
@@ -523,6 +553,9 @@ class ExperimentConfig:
     executor: str = "serial"
     ray_address: str | None = None
     chunk_rollouts: int | None = None
+    rel_error: float | None = None
+    max_sims: int | None = None
+    max_time_s: float | None = None
     proposal_inputs: str = "state"
     proposal_window: bool = True
     skip_decided: bool = True
@@ -567,6 +600,16 @@ class ExperimentConfig:
              "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it")  # fmt: skip
         need(self.method != "ams" or self.ams_killed < self.n_per_stage, "ams_killed",
              f"{SETTINGS['ams_killed'].words} must be a whole number in [1, N - 1]")
+        need(self.rel_error is None or self.method != "ams", "rel_error",
+             "adaptive multilevel splitting has no final batch to add to; use it with method adaptive, mc, naive50 "
+             "or mixed50")
+        need(self.rel_error is None or self.method != "adaptive" or self.final_estimate != "last-stage", "rel_error",
+             "a precision target adds final batches; final_estimate = 'last-stage' has none (use pooled or fresh)")
+        for cap in ("max_sims", "max_time_s"):
+            need(getattr(self, cap) is None or self.rel_error is not None, cap,
+                 "a cap on the rollouts added for a target relative error: give it with rel_error (--rel-error)")
+        need(self.max_sims is None or self.max_sims >= self.n_simulations, "max_sims",
+             f"{SETTINGS['max_sims'].words} must be at least the run's planned {self.n_simulations:,} simulations")
         need(self.final_smoothing is None or self.fit_weights == "mixture", "final_smoothing",
              "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
              "set final_smoothing = None with fit_weights = 'sampler'")  # fmt: skip

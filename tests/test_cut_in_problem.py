@@ -105,8 +105,55 @@ def test_save_rollouts_refuses_splitting_on_the_cut_in_before_it_runs(tmp_path):
 
 
 def test_a_cut_in_run_says_which_errors_decided_its_most_likely_failure():
-    proc = run_cli("run", "--scenario", "cut-in", "--k", "2", "--n", "100", "--n-final", "200", "--no-record")
+    proc = run_cli("run", "--scenario", "cut-in", "--method", "adaptive", "--k", "2", "--n", "100", "--n-final", "200", "--no-record")
     assert proc.returncode == 0, proc.stderr
     why = [line for line in proc.stdout.splitlines() if line.startswith("why: the most likely failure")]
     assert len(why) == 1 and "before the failure at step" in why[0]
     assert "decisive alone: object 0" in why[0] or "none of them alone decides it" in why[0]
+
+
+class PerCall:
+    """The cut-in detector asked the plain way: each head on a fresh writable copy of the rows (nothing is kept from
+    one call to the next) and no ``noise_draw``, so that :func:`pemviz.core.detectors.draw_step` asks the noise head
+    for the draw and for each density separately."""
+
+    def __init__(self, detector):
+        self.detector = detector
+        self.noise_names = detector.noise_names
+        self.noise_family, self.noise_df = detector.noise_family, detector.noise_df
+
+    def detect_logit(self, rows):
+        return self.detector.detect_logit(np.array(rows))
+
+    def noise_from_uniforms(self, rows, u):
+        return self.detector.noise_from_uniforms(np.array(rows), u)
+
+    def noise_log_prob(self, rows, noise):
+        return self.detector.noise_log_prob(np.array(rows), noise)
+
+
+def test_the_heads_evaluated_once_per_step_give_the_per_call_rollouts_bit_for_bit(problem, monkeypatch):
+    from pemviz.core.detectors import ArrayRQMC, ConstantDetector
+    from pemviz.pem.noise import NoisePEM
+    from pemviz.scenarios import RolloutBatch
+
+    asked = []
+    noise_params = NoisePEM.noise_params
+    monkeypatch.setattr(NoisePEM, "noise_params", lambda self, x: asked.append(len(x)) or noise_params(self, x))
+    fields = ("detected", "noise", "observations", "object_rows", "log_p", "log_q")
+    target = problem.target
+    plain = PerCall(target)
+    for sampler, plain_sampler in ((target, plain), (ArrayRQMC(target), ArrayRQMC(PerCall(target))),
+                                   (ConstantDetector(0.7), ConstantDetector(0.7))):  # fmt: skip
+        for chunk in (150, 64):
+            asked.clear()
+            fast = RolloutBatch.concatenate(list(problem.stream(150, sampler, target, np.random.default_rng(11),
+                                                               chunk_size=chunk)))  # fmt: skip
+            once = len(asked)
+            slow = RolloutBatch.concatenate(list(problem.stream(150, plain_sampler, plain, np.random.default_rng(11),
+                                                               chunk_size=chunk)))  # fmt: skip
+            for f in fields:
+                assert np.array_equal(getattr(fast, f), getattr(slow, f)), (sampler, chunk, f)
+            chunks = -(-150 // chunk)
+            assert once <= chunks * fast.n_steps  # the noise head once per step ...
+            assert len(asked) - once >= 2 * once  # ... and two or three times per step asked per call

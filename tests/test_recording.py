@@ -39,7 +39,7 @@ from pemviz.sinks.rerun_views import (  # noqa: E402
 )
 
 SMALL = dict(n_stages=3, n_per_stage=20, n_final=20, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=20, seed=5)
-MU_RE = re.compile(r"mu_hat = (\S+) \(log mu_hat = (\S+) nats\)")
+MU_RE = re.compile(r"(?:mu_hat = (\S+)|no failure seen) \(log mu_hat = (\S+) nats\)")
 CURVE_RE = re.compile(r"/proposal/data/stage_\d\d:LineStrips2D:strips")
 
 

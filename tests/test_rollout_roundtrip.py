@@ -56,14 +56,19 @@ def estimate_cells(est_out: str) -> dict[object, str]:
     return out
 
 
+def summary_line(out: str) -> str:
+    """The verdict line: the last line but the advice after it (``stop:``, ``next:``)."""
+    return [ln for ln in out.strip().splitlines() if not ln.startswith(("stop: ", "next: "))][-1]
+
+
 def assert_round_trip(run: str, est: str, sidecar: dict) -> None:
     """The estimate prints the run's final row and verdict line, its stage rows, and mu_hat to REESTIMATE_RTOL."""
     run_final = " ".join(next(ln for ln in run.splitlines() if ln.startswith("  final "))[27:-8].split())
     cells = estimate_cells(est)
     final = cells.get("final", cells.get(sidecar["pooling"]["stages"][0]))
     assert final == run_final
-    verdict = run.strip().splitlines()[-1].split("; exact")[0]
-    assert est.strip().splitlines()[-1] == verdict
+    verdict = summary_line(run).split("; exact")[0]
+    assert summary_line(est) == verdict
     by_stage = stage_cells(run)
     for k in sidecar["pooling"]["stages"]:
         assert cells[k] == by_stage[k]
@@ -101,12 +106,18 @@ def test_default_run_round_trips_all_its_pooled_stages_and_its_mean_weight_is_on
     ("--method", "mc", "--n", "2000"),
     ("--method", "naive50", "--n", "300"),
     ("--method", "mixed50", "--n", "300"),
-], ids=["state-ce-step", "paper", "authors-code", "mc", "naive50", "mixed50"])  # fmt: skip
+    ("--rel-error", "0.05"),
+    ("--method", "mixed50", "--n", "300", "--rel-error", "0.3", "--max-sims", "3000"),
+], ids=["state-ce-step", "paper", "authors-code", "mc", "naive50", "mixed50", "rel-error", "mixed50-rel-error"])  # fmt: skip
 def test_every_preset_and_method_round_trips(tmp_path, capsys, run_args):
     run, est, sidecar = run_and_estimate(capsys, tmp_path, *run_args)
     assert_round_trip(run, est, sidecar)
     paper_like = "paper" in run_args or "authors-code" in run_args
     assert sidecar["weights"] == ("full" if paper_like else "to-failure")
+    if "--rel-error" in run_args:  # final batches added after the planned ones, pooled as the run pooled them
+        planned_last = 1 if "mixed50" in run_args else 11
+        assert run.count("stop: ") == 1 and max(sidecar["pooling"]["stages"]) > planned_last
+        assert sidecar["pooling"]["rule"] == ("rollouts" if "mixed50" in run_args else "quadratic")
     if "authors-code" in run_args:  # the last CE stage's batch is the estimate
         assert sidecar["pooling"] == {"rule": "single", "stages": [10], "stage_weights": [1.0]}
         assert (tmp_path / "r.proposal.pt").is_file()  # one stage drawn by the proposal: its checkpoint
@@ -342,7 +353,7 @@ def cut_in_file(tmp_path_factory):
     """``pemviz run --scenario cut-in`` (small) with ``--save-rollouts``: (run stdout, estimate stdout, sidecar, path)."""
     tmp = tmp_path_factory.mktemp("cut_in")
     path = tmp / "r.parquet"
-    args = ["--scenario", "cut-in", "--n-final", "300"]  # K = 10: its pooled stages are mixtures with the target
+    args = ["--scenario", "cut-in", "--method", "adaptive", "--n-final", "300"]  # K = 10: its pooled stages are mixtures with the target
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert cli.main(["run", "--no-record", "--save-rollouts", str(path), *args]) == 0

@@ -17,7 +17,7 @@ from pemviz.engine import Experiment
 from pemviz.engine.events import FinalEstimate, StageFinished
 
 FINAL_RE = re.compile(r"^\s*final\s+(\d+)/(\d+)\s+(\S+)", re.M)
-MU_RE = re.compile(r"mu_hat = (\S+) \(log mu_hat = (\S+) nats\) from (\d+) simulations")
+MU_RE = re.compile(r"(?:mu_hat = (\S+)|no failure seen) \(log mu_hat = (\S+) nats\) from (\d+) simulations")
 
 
 def parse_final(stdout: str) -> tuple[int, int, float, int]:
@@ -145,7 +145,8 @@ def test_plain_monte_carlo_with_the_pem_finds_nothing_in_10000():
     assert proc.returncode == 0, proc.stderr
     failures, n, log_mu, _ = parse_final(proc.stdout)
     assert (failures, n, log_mu) == (0, 10000, -math.inf)
-    assert re.search(r"^mu_hat = 0 ", proc.stdout, re.M)
+    assert re.search(r"^no failure seen \(log mu_hat = -inf nats\) from 10000 simulations", proc.stdout, re.M)
+    assert re.search(r"^no failure seen in 10000 rollouts: p < 3.00e-04 \(95%, rule of three", proc.stdout, re.M)
 
 
 @pytest.mark.parametrize(

@@ -21,7 +21,7 @@ from pemviz.engine.cost import N_STEPS, RunCost
 
 NUMBER_FIELDS: tuple[Setting, ...] = tuple(SETTINGS[name] for name in (
     "smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed", "ce_epochs", "pretrain_rollouts",
-    "pretrain_epochs", "learning_rate",
+    "pretrain_epochs", "learning_rate", "rel_error", "max_sims", "max_time_s",
 ))  # fmt: skip
 """The numbers the form shows, each with its :class:`~pemviz.config.Setting` (label, words, range, hint)."""
 FIELDS_BY_KEY = {f.name: f for f in NUMBER_FIELDS}
@@ -32,6 +32,8 @@ def parse_number(field: Setting, text: str) -> tuple[float | int | None, str]:
     Parsed by :meth:`pemviz.config.Setting.parse` (as the command line's flags are), then checked against the
     setting's range. Nothing is rounded or clipped.
     """
+    if field.optional and str(text).strip() == "":  # an optional setting left empty: its default (None)
+        return None, ""
     try:
         value = field.parse(text)
     except ValueError as exc:
@@ -42,7 +44,9 @@ def parse_number(field: Setting, text: str) -> tuple[float | int | None, str]:
 
 
 def format_number(field: Setting, value: Any) -> str:
-    """The text a field shows for a config value (``repr`` of floats: ``0.001`` stays ``0.001``)."""
+    """The text a field shows for a config value (``repr`` of floats: ``0.001`` stays ``0.001``; empty for None)."""
+    if value is None:
+        return ""
     if field.integer:
         return str(int(value))
     return repr(float(value))

@@ -40,7 +40,7 @@ from pemviz.app.objects_view import ObjectsExplanation
 from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_number, parse_form, run_cost
 from pemviz.app.runs import PANEL_PRESETS, PanelRun, Trajectory, export_path, export_run, keep_runs
 from pemviz.engine import experiment
-from pemviz.config import SETTINGS, SIMULATORS, ExperimentConfig
+from pemviz.config import SCENE_DEFAULTS, SETTINGS, SIMULATORS, ExperimentConfig
 from pemviz.engine.cost import duration
 from pemviz.core.estimate import format_probability
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
@@ -330,7 +330,8 @@ class Session(RunsTab, RolloutsTab, SceneView):
         dropdown("sim", simulators, c0.sim if c0.sim in simulators else simulators[0], disabled=len(simulators) < 2)
         with gui.add_folder("advanced", expand_by_default=False):
             dropdown("method")
-            for key in ("ce_epochs", "pretrain_rollouts", "pretrain_epochs", "learning_rate"):
+            for key in ("rel_error", "max_sims", "max_time_s", "ce_epochs", "pretrain_rollouts", "pretrain_epochs",
+                        "learning_rate"):
                 number(key)
             dropdown("weights")
             dropdown("final_estimate")
@@ -338,6 +339,17 @@ class Session(RunsTab, RolloutsTab, SceneView):
         for handle in (*self.fields.values(), *self.choices.values()):
             handle.on_update(lambda _: self._validate())
         self.preset.on_update(lambda _: self._apply_preset(self.preset.value))
+        self.choices["scenario"].on_update(lambda _: self._apply_scene(self.choices["scenario"].value))
+
+    def _apply_scene(self, scenario: str) -> None:
+        """Set the method and N to ``scenario``'s own defaults (:data:`pemviz.config.SCENE_DEFAULTS`) where it has
+        them, and back to the preset's where it has none."""
+        fields = SCENE_DEFAULTS.get(scenario) or {
+            "method": "adaptive", "n_per_stage": ExperimentConfig(**PANEL_PRESETS.get(self.preset.value, {})).n_per_stage}
+        with self.client.atomic():
+            self.choices["method"].value = fields["method"]
+            self.fields["n_per_stage"].value = format_number(FIELDS_BY_KEY["n_per_stage"], fields["n_per_stage"])
+        self._validate()
 
     def _apply_preset(self, name: str) -> None:
         """Set the fields to ``name``'s settings (metric, seed, PEM, simulator and method stay)."""

@@ -22,7 +22,7 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
-from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.config import SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
 from pemviz.io.files import check_output_folder, free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
@@ -32,7 +32,8 @@ from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 
 RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_level", "smoothing", "metric", "seed",
-                "ce_epochs", "pem", "scenario", "sim", "executor", "ray_address", "chunk_rollouts")
+                "ce_epochs", "pem", "scenario", "sim", "executor", "ray_address", "chunk_rollouts", "rel_error",
+                "max_sims", "max_time_s")
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 
@@ -45,9 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "With no recording flag the recording goes to recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd.",
         conflict_handler="resolve",  # lets --connect also take the viewer URL (rerun's --connect --url still works)
     )
-    add_setting(p, "method", default=d.method)
+    add_setting(p, "method")
     p.add_argument(
-        "--preset", default=DEFAULT_PRESET,
+        "--preset", default=None,
         help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}): {preset_help()}. A preset "
         "sets some of the values below; a flag given here overrides it.",
     )
@@ -68,10 +69,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
-    """Build and validate the config; raises ConfigError with a one-line message."""
-    if args.preset not in PRESETS:
-        raise ConfigError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
-    fields = dict(PRESETS[args.preset])
+    """Build and validate the config; raises ConfigError with a one-line message.
+
+    With neither ``--method`` nor ``--preset``, a scenario of :data:`pemviz.config.SCENE_DEFAULTS` runs its own
+    default method and budget (flags given still override them)."""
+    preset = DEFAULT_PRESET if args.preset is None else args.preset
+    if preset not in PRESETS:
+        raise ConfigError(f"--preset {preset!r} is invalid: use one of {', '.join(PRESETS)}")
+    fields = dict(PRESETS[preset])
+    if args.method is None and args.preset is None:
+        fields.update(SCENE_DEFAULTS.get(args.scenario or ExperimentConfig().scenario, {}))
     for name in ("method", *RUN_SETTINGS):
         value = getattr(args, name)
         if value is not None:
@@ -229,7 +236,7 @@ def main(args: argparse.Namespace) -> int:
     save_path = None
     if target == "save":
         if args.save is None:  # recordings/ is made once every check has passed
-            save_path = default_recording_path(cfg, args.preset)
+            save_path = default_recording_path(cfg, args.preset or DEFAULT_PRESET)
             try:
                 check_output_folder(save_path.parent, (save_path.name,), "recording folder")
             except ValueError as exc:

@@ -93,6 +93,16 @@ class Estimate:
     def log10_mu_hat(self) -> float:
         return self.log_mu_hat / math.log(10.0)
 
+    @property
+    def rel_half_width(self) -> float:
+        """The interval's half-width relative to mu_hat, (hi - lo) / (2 mu_hat), computed in log space: what a
+        precision target (``--rel-error``) bounds; inf with no failure."""
+        lo, hi = self.log_ci
+        if not (self.log_mu_hat > -math.inf and math.isfinite(hi)):
+            return math.inf
+        low = math.exp(lo - self.log_mu_hat) if lo > -math.inf else 0.0
+        return 0.5 * (math.exp(hi - self.log_mu_hat) - low)
+
     def covers(self, log_p: float) -> bool:
         """Whether the interval holds the probability whose natural log is ``log_p``."""
         return self.log_ci[0] <= log_p <= self.log_ci[1]
@@ -121,10 +131,16 @@ class Estimate:
         exact 1.984e-15 (relative error 0.095, inside the interval)``.
         """
         khat = "-" if math.isnan(self.khat) else f"{self.khat:.2f}"
-        line = (
-            f"mu_hat = {format_probability(self.log_mu_hat)}, {CI_LEVEL:.0%} CI {self.interval_text()}, "
-            f"ESS {self.ess:.1f}, k-hat {khat}: {self.verdict} ({self.reason})"
-        )
+        if self.n_failures == 0:  # no point estimate: the bound, if the rollouts give one
+            hi = self.log_ci[1]
+            bound = (f"p < {format_probability(hi, 2)} ({CI_LEVEL:.0%}, rule of three: 3 / {self.n} rollouts of the "
+                     "PEM itself)" if hi < 0.0 else "under importance sampling this bounds nothing")  # fmt: skip
+            line = f"no failure seen in {self.n} rollouts: {bound}: {self.verdict} as an estimate"
+        else:
+            line = (
+                f"mu_hat = {format_probability(self.log_mu_hat)}, {CI_LEVEL:.0%} CI {self.interval_text()}, "
+                f"ESS {self.ess:.1f}, k-hat {khat}: {self.verdict} ({self.reason})"
+            )
         if exact_log_p is not None:
             inside = "inside" if self.covers(exact_log_p) else "OUTSIDE"
             error = error_text(self.log_mu_hat, exact_log_p)
@@ -284,6 +300,15 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
             reason = "0 failures under importance sampling: this bounds nothing"
         return Estimate(n, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, bound), math.nan, log_mean_w,
                         "unreliable", reason)  # fmt: skip
+    with np.errstate(invalid="ignore", over="ignore"):  # an inf or nan weight gives nan numbers: unreliable below
+        return _estimate(n, lw, nf, log_weight, failed, log_p_total, log_mean_w, plain_mc)
+
+
+def _estimate(n: int, lw: np.ndarray, nf: int, log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray,
+              log_mean_w: float, plain_mc: bool) -> Estimate:  # fmt: skip
+    """The rest of :func:`estimate`, with at least one failure."""
+    from scipy.special import logsumexp
+
     lp = log_p_total[failed]
     log_sum = float(logsumexp(lw))
     ess = effective_sample_size(lw)
@@ -299,6 +324,9 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
         khat = pareto_khat(log_y)
     distinct = nf if plain_mc else distinct_failures(lw, lp)
     verdict, reason = _verdict(n, nf, ess, khat, log_weight, plain_mc, distinct)
+    numbers = (log_sum, ess, log_ci[1], log_mean_w)
+    if verdict == "reliable" and not all(math.isfinite(x) for x in numbers):  # a claim each number must back
+        verdict, reason = "unreliable", "an estimate, interval bound, ESS or mean weight is not a finite number"
     return Estimate(n, nf, log_sum - math.log(n), float(-lp.mean()), nll_lme, ess, log_ci, khat, log_mean_w,
                     verdict, reason)  # fmt: skip
 

@@ -150,6 +150,13 @@ class FinalEstimate:
     """log of the probability of the distinct failures the run drew in any stage (nats), a lower bound of p
     (:class:`pemviz.estimators.base.SeenFailures`; None: none, or the scene has measurement errors): a mu_hat below
     it is called unreliable (:meth:`pemviz.core.estimate.Estimate.below_seen`)."""
+    pooling: tuple[str, tuple[float, ...]] | None = None
+    """How the estimate pools :attr:`stages_used` when the estimator says so itself (final batches added for a
+    precision target): (the rule, ``rollouts`` for every rollout alike; lambda_k of each stage, summing to 1), as the
+    rollout file's sidecar states it (:func:`pemviz.estimators.base.pool`); None: one stage, or the config's rule."""
+    stop: str | None = None
+    """With a target relative error (``ExperimentConfig.rel_error``): why the run stopped adding rollouts, one line
+    (the target reached, or which cap); None without one."""
 
 
 @dataclass(frozen=True)

@@ -177,7 +177,9 @@ class Experiment:
         est, used = estimator.result()
         n_sim = getattr(estimator, "n_simulations", self.n_simulations)  # AMS counts rollout-equivalents
         seen = self.seen_failures.log_p
-        final = FinalEstimate(est.below_seen(seen), n_sim, time.perf_counter() - t_start, used, seen)
+        pooling = getattr(estimator, "pooling", None)
+        final = FinalEstimate(est.below_seen(seen), n_sim, time.perf_counter() - t_start, used, seen,
+                              pooling() if callable(pooling) else None, getattr(estimator, "stop", None))  # fmt: skip
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)

@@ -4,6 +4,7 @@
 - :class:`CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022) with pemviz's improvements.
 - :class:`FixedSampler` (``mc``, ``naive50``, ``mixed50``): one importance-weighted batch from a fixed detector.
 - :class:`AdaptiveMultilevelSplitting` (``ams``): splitting of target rollouts on their robustness, no weights.
+- :class:`PrecisionTarget` (``rel_error``): any of the first two, with final batches added until a relative precision.
 """
 
 from __future__ import annotations
@@ -25,10 +26,11 @@ from pemviz.estimators.cross_entropy import (
     CappedDetector, CrossEntropy, DefensiveDetector, break_ties, check_runnable,
 )
 from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
+from pemviz.estimators.precision import PrecisionTarget
 
 __all__ = [
     "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator",
-    "FixedSampler", "PlannedStage", "RunPlan", "StageOutcome", "StagePlan", "break_ties", "build_estimator",
+    "FixedSampler", "PlannedStage", "PrecisionTarget", "RunPlan", "StageOutcome", "StagePlan", "break_ties", "build_estimator",
     "check_runnable",
     "failure_steps", "log_p_before_failure", "log_weight", "mixed50", "monte_carlo", "naive50", "run_plan",
 ]  # fmt: skip
@@ -40,19 +42,20 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
     The baselines draw ``config.n_per_stage`` rollouts and stop their weights at the failure step with
     ``config.weights_until_failure``, like the adaptive sampler's.
     """
-    if config.method == "adaptive":
-        return CrossEntropy(config, problem, check)
     if config.method == "ams":
         return AdaptiveMultilevelSplitting(config, problem, check)
-    baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
-    return baseline(problem, config.n_per_stage, config.weights_until_failure, config.seed)
+    if config.method == "adaptive":
+        inner: CrossEntropy | FixedSampler = CrossEntropy(config, problem, check)
+    else:
+        baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
+        inner = baseline(problem, config.n_per_stage, config.weights_until_failure, config.seed)
+    return inner if config.rel_error is None else PrecisionTarget(inner, config)
 
 
 def run_plan(config: ExperimentConfig) -> RunPlan:
     """The :class:`RunPlan` the estimator of ``config.method`` states (:meth:`Estimator.plan`), without building it:
     e.g. to check a run's memory before its problem is loaded."""
-    if config.method == "adaptive":
-        return CrossEntropy.run_plan(config)
     if config.method == "ams":
         return AdaptiveMultilevelSplitting.run_plan(config)
-    return FixedSampler.run_plan(config.n_per_stage)
+    plan = CrossEntropy.run_plan(config) if config.method == "adaptive" else FixedSampler.run_plan(config.n_per_stage)
+    return plan if config.rel_error is None else RunPlan(plan.stages, open_ended=True)

@@ -177,6 +177,9 @@ class CrossEntropy(OwnsSettings):
         """A CE stage's settled elites as fitted steps (frozen weights with a step mask; else the elites are fitted
         from their rollouts by :func:`ce_update`)."""
         self._last: tuple[int, Estimate] | None = None
+        self._added: list[int] = []
+        """Final batches added after the first (:meth:`extend`), by stage."""
+        self._pooling: tuple[str, tuple[float, ...]] | None = None
         self._noise_data: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         """The stage's elites' detected objects: (rows [S, G], errors [S, D], alpha log w [S]) for the error head's
         fit."""
@@ -223,6 +226,28 @@ class CrossEntropy(OwnsSettings):
             plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
         else:
             return None
+        return self._open(plan)
+
+    def extend(self, n: int) -> StagePlan:
+        """``n`` more rollouts from the final batch's sampler and mixture (the proposal is not refitted), as the next
+        stage; :meth:`result` pools them with the final batch, every final rollout alike.
+
+        Raises:
+            RuntimeError: before the final batch, or with ``final_estimate = "last-stage"`` (no final batch).
+        """
+        final = self.config.n_stages + 1
+        if self._plan is None or self._plan.stage < final or final not in self.stages:
+            raise RuntimeError("CrossEntropy.extend: the final batch has not been drawn")
+        self._added.append(self._plan.stage + 1)
+        return self._open(StagePlan(self._plan.stage + 1, "final", int(n), self.sampler, mixture=self._mixture(int(n))))
+
+    def final_rollouts(self) -> int:
+        """The final batch's rollouts and the added ones (:meth:`extend`)."""
+        return sum(self.stages[k].n for k in (self.config.n_stages + 1, *self._added) if k in self.stages)
+
+    def _open(self, plan: StagePlan) -> StagePlan:
+        """Make ``plan`` the stage being drawn: its mixture's scoring target, its per-rollout numbers."""
+        k = plan.stage
         if self._samplers is not None:
             self._samplers.forget()  # the proposal was fitted since it last answered
         self._scored, self._seen = None, 0
@@ -369,12 +394,34 @@ class CrossEntropy(OwnsSettings):
         more (weighting the stages of adaptive importance sampling: Portier & Delyon, "Asymptotic optimality of
         adaptive importance sampling", NeurIPS 2018).
         """
+        est, used = self._result()
+        if not self.reached_failures and est.verdict == "reliable":  # a proposal fitted to no failure: no claim
+            est = dataclasses.replace(est, verdict="doubtful", reason=(
+                "no stage's threshold reached the failure level: the proposal was never fitted to a failure"))
+        return est, used
+
+    def _result(self) -> tuple[Estimate, tuple[int, ...]]:
         stage, est = self._last
-        if self.config.final_estimate == "pooled" and self.reached_failures and self.pooled:
-            used = (*self.pooled, stage)
-            stages = [self.stages[k] for k in used]
-            return pooled_estimate(stages, pool_stage_weights(self.config.pool_weights, [s.n for s in stages])), used
-        return est, (stage,)
+        finals = [k for k in (self.config.n_stages + 1, *self._added) if k in self.stages]
+        pooled = self.config.final_estimate == "pooled" and self.reached_failures and self.pooled
+        if not pooled and len(finals) <= 1:
+            self._pooling = None
+            return est, (stage,)
+        front = list(self.pooled) if pooled else []
+        sizes = [self.stages[k].n for k in front] + [sum(self.stages[k].n for k in finals)]
+        rule = pool_stage_weights(self.config.pool_weights, sizes) if pooled else None  # None: every rollout alike
+        lam = np.asarray(sizes, dtype=np.float64) / sum(sizes) if rule is None else rule
+        # the final batches share the final's lambda, every final rollout alike
+        share = np.array([self.stages[k].n for k in finals], dtype=np.float64) / sizes[-1]
+        weights = np.concatenate([lam[:-1], lam[-1] * share])
+        used = (*front, *finals)
+        self._pooling = ("rollouts" if rule is None else self.config.pool_weights, tuple(float(x) for x in weights))
+        return pooled_estimate([self.stages[k] for k in used], None if rule is None else weights), used
+
+    def pooling(self) -> tuple[str, tuple[float, ...]] | None:
+        """How :meth:`result` pooled the stages it used: (the rule, ``rollouts`` for every rollout alike; lambda_k of
+        each), or None: one stage alone."""
+        return self._pooling
 
     # -- the algorithm --------------------------------------------------------------------------------------------
     def _pretrain_sampler(self) -> Detector:

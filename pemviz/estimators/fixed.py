@@ -9,7 +9,7 @@ from pemviz.core.detectors import ConstantDetector, Detector, WindowDetector
 from pemviz.core.estimate import Estimate
 from pemviz.core.problems import Problem
 from pemviz.engine.plan import RunPlan
-from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts
+from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts, pooled_estimate
 from pemviz.scenarios import RolloutBatch
 
 
@@ -29,8 +29,9 @@ class FixedSampler:
     def __init__(self, problem: Problem, sampler: Detector, n: int, weights_until_failure: bool, seed: int = 0) -> None:
         self.problem, self.sampler, self.n, self.until_failure = problem, sampler, n, weights_until_failure
         self.rng = np.random.default_rng(seed)
-        self.rollouts = StageRollouts(problem.curve_grid)
-        self._planned = False
+        self.stages: dict[int, StageRollouts] = {}
+        """Each batch drawn: the planned one (stage 1) and the added ones (:meth:`extend`), pooled in :meth:`result`."""
+        self._stage: int | None = None
         self._outcome: StageOutcome | None = None
 
     @staticmethod
@@ -42,21 +43,43 @@ class FixedSampler:
         return self.run_plan(self.n)
 
     def next_stage(self) -> StagePlan | None:
-        if self._planned:
+        if self._stage is not None:
             return None
-        self._planned = True
-        return StagePlan(self.plan().last_stage, "final", self.n, self.sampler)
+        return self._open(self.plan().last_stage, self.n)
+
+    def extend(self, n: int) -> StagePlan:
+        """``n`` more rollouts from the same detector as the next stage, pooled with the others in :meth:`result`
+        (every rollout alike: they are i.i.d. draws of the same q)."""
+        return self._open(self._stage + 1, int(n))
+
+    def _open(self, stage: int, n: int) -> StagePlan:
+        self._stage = stage
+        self.stages[stage] = StageRollouts(self.problem.curve_grid)
+        return StagePlan(stage, "final", n, self.sampler)
+
+    def final_rollouts(self) -> int:
+        """The rollouts drawn so far."""
+        return sum(s.n for s in self.stages.values())
+
+    def pooling(self) -> tuple[str, tuple[float, ...]] | None:
+        """How :meth:`result` pools the stages drawn: every rollout alike, lambda_k = n_k / N (None: one stage)."""
+        if len(self.stages) < 2:
+            return None
+        sizes = np.array([s.n for s in self.stages.values()], dtype=np.float64)
+        return "rollouts", tuple(float(x) for x in sizes / sizes.sum())
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
-        return self.rollouts.add(self.problem, batch, failed, self.until_failure)
+        return self.stages[self._stage].add(self.problem, batch, failed, self.until_failure)
 
     def finish(self) -> StageOutcome:
-        self._outcome = self.rollouts.failures_outcome(np.full(self.problem.curve_grid.size, np.nan))
+        self._outcome = self.stages[self._stage].failures_outcome(np.full(self.problem.curve_grid.size, np.nan))
         return self._outcome
 
     def result(self) -> tuple[Estimate, tuple[int, ...]]:
         assert self._outcome is not None, "result() before the batch was finished"
-        return self._outcome.estimate, (1,)
+        if len(self.stages) == 1:
+            return self._outcome.estimate, (self._stage,)
+        return pooled_estimate(list(self.stages.values())), tuple(self.stages)
 
 
 def monte_carlo(problem: Problem, n: int, weights_until_failure: bool = False, seed: int = 0) -> FixedSampler:

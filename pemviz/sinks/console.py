@@ -10,7 +10,7 @@ from pemviz.core.estimate import Estimate, Reference, format_probability
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.sinks import Sink, StageClock
 
-__all__ = ["ConsoleSink", "HEADER", "estimate_cells", "progress_line", "stage_row"]
+__all__ = ["ConsoleSink", "HEADER", "estimate_cells", "next_step", "progress_line", "stage_row"]
 
 HEADER = (
     f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} "
@@ -44,6 +44,42 @@ def stage_row(res: StageResult) -> str:
     return f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {estimate_cells(res.estimate)} {res.wall_s:>7.2f}"
 
 
+NOT_RARE = 1e-5
+"""A failure probability at or above this is not rare: plain Monte Carlo sees 100 failures in 10^7 rollouts."""
+
+
+MC_AFFORDABLE = 10**8
+"""The most rollouts :func:`next_step` suggests plain Monte Carlo for."""
+
+
+def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: Reference | None = None) -> str | None:
+    """What to do after a run whose verdict is not ``reliable``, in one line (None for a reliable one): plain Monte
+    Carlo with a precision target where p is not rare (:data:`NOT_RARE`, judged from the exact answer, the reference,
+    or the estimate), else more budget or a precision target (``--rel-error``)."""
+    if e.verdict == "reliable" or config is None:
+        return None
+    known = exact_log_p if exact_log_p is not None else (reference.log_p if reference is not None else None)
+    guess = known if known is not None else (e.log_mu_hat if e.n_failures else None)
+    method = getattr(config, "method", "adaptive")
+    if method == "mc":
+        if guess is not None and guess > -math.inf:
+            need = math.ceil(1.96**2 / (0.2**2 * math.exp(guess)))  # 20 % relative half-width: ~96 failures
+            if need > MC_AFFORDABLE:
+                return (f"p ~ {format_probability(guess, 2)} is too rare for plain Monte Carlo (about {need:.1e} "
+                        "rollouts for a 20 % interval): an importance-sampling method (--method adaptive), with its "
+                        "verdict")  # fmt: skip
+            return (f"more rollouts: --rel-error 0.2 samples until the interval is within 20 % (about {need:,} "
+                    "rollouts at this p; cap them with --max-sims or --max-time)")  # fmt: skip
+        return (f"more rollouts (--n {10 * e.n}) lower the bound ten-fold; where p is rare, an importance-sampling "
+                "method (--method adaptive) with its verdict")  # fmt: skip
+    if guess is not None and guess >= math.log(NOT_RARE):
+        return (f"p ~ {format_probability(guess, 2)} is not rare: plain Monte Carlo gets it right, e.g. --method mc "
+                "--rel-error 0.2 --max-time 600")  # fmt: skip
+    n = getattr(config, "n_per_stage", 100)
+    return (f"more budget (--n {4 * n}) or a precision target (--rel-error 0.1 --max-sims 100000: final batches are "
+            "added until the interval is within 10 %); the verdict says whether to trust the result")
+
+
 class ConsoleSink(Sink):
     """Prints a line when each stage starts (progress, to ``progress``) and the table rows (to ``out``)."""
 
@@ -53,6 +89,7 @@ class ConsoleSink(Sink):
         self.clock = StageClock()
         self.plan = None
         """The run's :class:`~pemviz.engine.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
+        self.config = None
         self.exact_log_p: float | None = None
         self.reference: Reference | None = None
 
@@ -61,7 +98,7 @@ class ConsoleSink(Sink):
         super().__call__(event)
 
     def on_run_started(self, event: RunStarted) -> None:
-        cfg = event.config
+        cfg = self.config = event.config
         self.exact_log_p, self.reference, self.plan = event.exact_log_p, event.reference, event.plan
         print(
             f"pemviz: {cfg.method} on the {event.problem.name} scenario, spec {event.formula}, metric {cfg.metric}, "
@@ -83,12 +120,15 @@ class ConsoleSink(Sink):
     def on_final_estimate(self, event: FinalEstimate) -> None:
         e = event.estimate
         print(f"{'final':>7} {'':>8} {'':>9} {estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
-        print(
-            f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat:.4f} nats) "
-            f"from {event.n_simulations} simulations in {event.wall_s:.1f} s",
-            file=self.out,
-        )
-        print(e.summary(self.exact_log_p, self.reference), file=self.out, flush=True)
+        point = "no failure seen" if e.n_failures == 0 else f"mu_hat = {format_probability(e.log_mu_hat, 4)}"
+        print(f"{point} (log mu_hat = {e.log_mu_hat:.4f} nats) from {event.n_simulations} simulations in {event.wall_s:.1f} s", file=self.out)
+        print(e.summary(self.exact_log_p, self.reference), file=self.out)
+        if event.stop is not None:
+            print(f"stop: {event.stop}", file=self.out)
+        advice = next_step(e, self.config, self.exact_log_p, self.reference)
+        if advice is not None:
+            print(f"next: {advice}", file=self.out)
+        self.out.flush()
 
     def on_run_cancelled(self, event: RunCancelled) -> None:
         print(f"run cancelled after {len(event.stages)} stages: {event.reason}", file=self.out, flush=True)

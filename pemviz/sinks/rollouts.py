@@ -140,7 +140,11 @@ class RolloutSink(Sink):
         keep = sorted(self._infos) if self.stages == "all" else used
         sizes = [self._infos[k]["n"] for k in used]
         rule = "single" if len(used) == 1 else getattr(cfg, "pool_weights", "rollouts")
-        lam = None if rule == "single" else pool_stage_weights(rule, sizes)
+        given = finished.final.pooling  # the estimator's own (added final batches), else the config's rule
+        if given is not None and len(given[1]) == len(used) and len(used) > 1:
+            rule, lam = given[0], np.asarray(given[1], dtype=np.float64)
+        else:
+            lam = None if rule == "single" else pool_stage_weights(rule, sizes)
         lam = np.asarray(sizes, dtype=np.float64) / sum(sizes) if lam is None else lam
         provenance = dict(writer.meta.provenance or {})
         provenance["estimate"] = {**_estimate_json(finished.final.estimate), "stages_used": used,

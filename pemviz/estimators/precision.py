@@ -1,0 +1,153 @@
+"""A precision target for any estimator with a final batch: sample until the interval is as narrow as asked.
+
+Reliability tools let a user ask for a coefficient of variation and let the run decide its size; here the target is
+the relative half-width of the 95 % interval, (hi - lo) / (2 mu_hat) (:attr:`pemviz.core.estimate.Estimate.
+rel_half_width`). After the estimator's planned stages, :class:`PrecisionTarget` asks it for more final batches
+(:meth:`Extensible.extend`: fresh rollouts from the same sampler, pooled with the first final batch, every rollout of
+the final batches alike) until the target holds or a cap (simulations, seconds) is hit, and says which.
+
+For plain Monte Carlo this is a sequential stop on the Clopper-Pearson interval; for importance sampling the
+final proposal is fixed before any added batch is drawn, so each added rollout is an unbiased term of the same mean.
+Stopping on the data (when the interval first looks narrow enough) is optional stopping: the benchmark
+``benchmarks/honest_numbers.py`` measures the coverage it keeps.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Protocol
+
+import numpy as np
+
+from pemviz.config import DEFAULT_MAX_SIMS, ExperimentConfig
+from pemviz.core.estimate import Estimate
+from pemviz.engine.plan import RunPlan
+from pemviz.estimators.base import StageOutcome, StagePlan
+from pemviz.scenarios import RolloutBatch
+
+GROWTH = 4.0
+"""An added batch is at most this many times the final rollouts so far: the interval's width is itself noisy, so the
+run grows in steps and looks again rather than trusting one extrapolation."""
+MARGIN = 1.2
+"""An added batch aims at this many times the rollouts the 1 / sqrt(n) law says the target needs."""
+MIN_BATCH = 100
+"""The fewest rollouts of an added batch."""
+
+
+class Extensible(Protocol):
+    """An estimator whose final batch can grow: :meth:`extend` plans ``n`` more rollouts from the final sampler,
+    drawn as a new stage (the next stage number, kind ``final``) and pooled with the final batch in :meth:`result`."""
+
+    rng: np.random.Generator
+
+    def plan(self) -> RunPlan: ...
+
+    def next_stage(self) -> StagePlan | None: ...
+
+    def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray: ...
+
+    def finish(self) -> StageOutcome: ...
+
+    def result(self) -> tuple[Estimate, tuple[int, ...]]: ...
+
+    def extend(self, n: int) -> StagePlan: ...
+
+    def final_rollouts(self) -> int: ...
+
+
+def added_batch_size(est: Estimate, n_final: int, target: float) -> int:
+    """Rollouts of the next added batch: enough, by the 1 / sqrt(n) law, for the interval's relative half-width to
+    fall from ``est.rel_half_width`` to ``target`` (times :data:`MARGIN`), as many again as the final rollouts so far
+    where it is unknown (no failure yet), between :data:`MIN_BATCH` and :data:`GROWTH` times ``n_final``."""
+    width = est.rel_half_width
+    if not math.isfinite(width):
+        need = n_final
+    else:
+        need = math.ceil(n_final * ((width / target) ** 2 - 1.0) * MARGIN)
+    return int(min(max(need, MIN_BATCH), max(GROWTH * n_final, MIN_BATCH)))
+
+
+class PrecisionTarget:
+    """Runs ``inner`` as planned, then adds final batches until the estimate's relative half-width is at most
+    ``config.rel_error``, or ``config.max_sims`` simulations (default :data:`pemviz.config.DEFAULT_MAX_SIMS`) or
+    ``config.max_time_s`` seconds are reached. :attr:`stop` says why it stopped, in one line.
+
+    Args:
+        inner: the estimator (:class:`Extensible`).
+        config: the run's settings (``rel_error`` set).
+        clock: seconds, monotonic (tests pass their own).
+    Raises:
+        ValueError: ``config.rel_error`` is None.
+    """
+
+    def __init__(self, inner: Extensible, config: ExperimentConfig,
+                 clock: Callable[[], float] = time.perf_counter) -> None:  # fmt: skip
+        if config.rel_error is None:
+            raise ValueError("PrecisionTarget: the config has no rel_error")
+        self.inner, self.config, self.clock = inner, config, clock
+        self.rng = inner.rng
+        self.max_sims = config.max_sims if config.max_sims is not None else DEFAULT_MAX_SIMS
+        self.t0 = clock()
+        self.n_simulations = 0
+        """Rollouts drawn so far."""
+        self.stop: str | None = None
+        self._planned = True
+        self._current: StagePlan | None = None
+
+    def __getattr__(self, name: str):  # the inner estimator's other attributes (its proposal, its stages, pooling)
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    def plan(self) -> RunPlan:
+        """The inner plan, open-ended: added batches follow until the target or a cap."""
+        inner = self.inner.plan()
+        return RunPlan(inner.stages, open_ended=True)
+
+    def next_stage(self) -> StagePlan | None:
+        if self._planned:
+            plan = self.inner.next_stage()
+            if plan is not None:
+                self._current = plan
+                return plan
+            self._planned = False
+        if self.stop is not None:
+            return None
+        est, _ = self.inner.result()
+        target, width = self.config.rel_error, est.rel_half_width
+        elapsed = self.clock() - self.t0
+        if width <= target:
+            self.stop = (f"target reached: the interval's relative half-width {width:.3g} <= {target:g} after "
+                         f"{self.n_simulations:,} simulations")  # fmt: skip
+            return None
+        left = self.max_sims - self.n_simulations
+        n = min(added_batch_size(est, self.inner.final_rollouts(), target), left)
+        cap = None
+        if left <= 0:
+            cap = f"--max-sims {self.max_sims:,} reached"
+        elif self.config.max_time_s is not None:
+            time_left = self.config.max_time_s - elapsed
+            rate = self.n_simulations / elapsed if elapsed > 0 else math.inf
+            if time_left <= 0 or rate * time_left < 1:
+                cap = f"--max-time {self.config.max_time_s:g} s reached"
+            else:
+                n = int(min(n, max(1, math.floor(rate * time_left))))
+        if cap is not None:
+            shown = "no failure yet" if not math.isfinite(width) else f"relative half-width {width:.3g} > {target:g}"
+            self.stop = (f"stopped at a cap, not at the target: {cap} ({shown} after {self.n_simulations:,} "
+                         "simulations)")  # fmt: skip
+            return None
+        self._current = self.inner.extend(int(n))
+        return self._current
+
+    def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
+        return self.inner.observe(batch, failed, robustness)
+
+    def finish(self) -> StageOutcome:
+        if self._current is not None:
+            self.n_simulations += self._current.n
+        return self.inner.finish()
+
+    def result(self) -> tuple[Estimate, tuple[int, ...]]:
+        return self.inner.result()

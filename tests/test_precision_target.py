@@ -1,0 +1,116 @@
+"""A precision target (``--rel-error``): final batches are added until the interval is as narrow as asked, or a cap
+is hit; the estimate pools them as the rollout file says; refusals come before any work."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.core.estimate import Estimate, clopper_pearson, estimate
+from pemviz.core.problems import build_problem
+from pemviz.engine import Experiment
+from pemviz.estimators import PrecisionTarget, build_estimator
+from pemviz.estimators.base import pool
+from pemviz.estimators.precision import GROWTH, MIN_BATCH, added_batch_size
+
+TOY = "toy-1e-3"
+"""Exact p = 1e-3: plain Monte Carlo reaches a 20 % interval in about 10^5 rollouts, a second."""
+
+
+def run(problem_name: str = TOY, **fields):
+    problem = build_problem(problem_name)
+    return problem, Experiment(ExperimentConfig(**fields), problem=problem).run()
+
+
+def test_plain_monte_carlo_samples_until_the_clopper_pearson_interval_is_within_the_target():
+    problem, done = run(method="mc", n_per_stage=1000, rel_error=0.2, seed=3)
+    final = done.final
+    e = final.estimate
+    lo, hi = clopper_pearson(e.n_failures, e.n)  # the interval of every rollout pooled, recomputed independently
+    assert math.isclose(math.exp(e.log_ci[1]), hi, rel_tol=1e-12)
+    assert (hi - lo) / (2 * e.n_failures / e.n) <= 0.2 < e.rel_half_width * 1.5
+    assert final.stop.startswith("target reached") and final.n_simulations == e.n > 1000
+    assert final.stages_used == tuple(range(1, len(final.stages_used) + 1)) and len(final.stages_used) > 1
+    assert final.pooling[0] == "rollouts" and math.isclose(sum(final.pooling[1]), 1.0)
+    assert e.covers(problem.exact_log_p)
+
+
+def test_a_cap_on_simulations_stops_the_run_and_says_so():
+    _, done = run(method="mc", n_per_stage=1000, rel_error=0.01, max_sims=5000)
+    assert done.final.n_simulations == 5000
+    assert done.final.stop.startswith("stopped at a cap, not at the target: --max-sims 5,000 reached")
+
+
+def test_a_cap_on_time_stops_adding_batches():
+    cfg = ExperimentConfig(method="mc", n_per_stage=1000, rel_error=0.01, max_time_s=10.0)
+    problem = build_problem(TOY)
+    ticks = iter([0.0, 100.0, 100.0, 100.0])  # the run starts, then every look at the clock is past the cap
+    inner = build_estimator(cfg.replace(rel_error=None, max_time_s=None), problem)
+    est = PrecisionTarget(inner, cfg, clock=lambda: next(ticks))
+    plan = est.next_stage()
+    assert plan.n == 1000
+    rng = np.random.default_rng(0)
+    batch = problem.simulate(plan.n, plan.sampler, problem.target, rng)
+    failed = problem.failed(batch, problem.robustness(batch, "classic"))
+    est.observe(batch, failed, None)
+    est.finish()
+    assert est.next_stage() is None
+    assert est.stop.startswith("stopped at a cap, not at the target: --max-time 10 s reached")
+
+
+def test_an_adaptive_run_pools_the_added_batches_with_the_final_one_as_its_rollout_file_would():
+    """The pool: the CE stages after the failure level with their quadratic lambda, the final batch's lambda shared by
+    the final batches in proportion to their rollouts; pooled again here from the stages' own arrays."""
+    problem, done = run("main", rel_error=0.05, seed=1)
+    final, k_final = done.final, ExperimentConfig().n_stages + 1
+    assert final.stop.startswith("target reached") and final.estimate.rel_half_width <= 0.05
+    used = final.stages_used
+    assert k_final in used and used[-1] > k_final  # batches were added after the final one
+    rule, lam = final.pooling
+    assert rule == "quadratic" and len(lam) == len(used) and math.isclose(sum(lam), 1.0)
+    sizes = {s.stage: s.estimate.n for s in done.stages}
+    finals = [k for k in used if k >= k_final]
+    n_finals = sum(sizes[k] for k in finals)
+    ratios = [lam[used.index(k)] / sizes[k] for k in finals]  # every final rollout alike
+    assert max(ratios) == pytest.approx(min(ratios), rel=1e-12)
+    assert sum(lam[used.index(k)] for k in finals) == pytest.approx(lam[used.index(k_final)] * n_finals
+                                                                    / sizes[k_final], rel=1e-12)  # fmt: skip
+    assert final.estimate.covers(problem.exact_log_p)
+
+
+def test_the_added_batch_follows_the_square_root_law_within_its_bounds():
+    def est(width: float) -> Estimate:  # mu_hat 1e-3 with a symmetric interval of relative half-width ``width``
+        mu = 1e-3
+        return Estimate(1000, 10, math.log(mu), 1.0, 1.0, 10.0, (math.log(mu * (1 - width)), math.log(mu * (1 + width))))
+
+    assert est(0.4).rel_half_width == pytest.approx(0.4)
+    assert added_batch_size(est(0.4), 1000, 0.2) in (3600, 3601)  # 1.2 x ((0.4 / 0.2)^2 - 1) = 3.6 times more
+    assert added_batch_size(est(0.9), 1000, 0.1) == GROWTH * 1000  # at most GROWTH times the final rollouts
+    assert added_batch_size(est(0.201), 1000, 0.2) == MIN_BATCH
+    no_failure = estimate(np.zeros(500), np.zeros(500, bool), np.zeros(500))
+    assert no_failure.rel_half_width == math.inf and added_batch_size(no_failure, 500, 0.2) == 500
+
+
+@pytest.mark.parametrize("fields, message", [
+    (dict(method="ams", rel_error=0.1), "rel_error = 0.1 is invalid: adaptive multilevel splitting has no final batch"),
+    (dict(max_sims=10_000), "max_sims = 10000 is invalid: a cap on the rollouts added for a target relative error"),
+    (dict(max_time_s=60.0), "max_time_s = 60.0 is invalid: a cap on the rollouts added"),
+    (dict(rel_error=0.1, max_sims=1000), "the most simulations must be at least the run's planned 2,100 simulations"),
+    (dict(rel_error=0.1, final_estimate="last-stage"), "final_estimate = 'last-stage' has none"),
+    (dict(rel_error=0.0), "the target relative error must be None or a number in (0, 10]"),
+])  # fmt: skip
+def test_settings_that_cannot_run_are_refused_by_the_config(fields, message):
+    with pytest.raises(ConfigError, match=None) as info:
+        ExperimentConfig(**fields)
+    assert message in str(info.value)
+
+
+def test_pool_of_equal_shares_is_the_pool_of_every_rollout_alike():
+    rng = np.random.default_rng(0)
+    parts = [(rng.normal(size=n), rng.random(n) < 0.3, rng.normal(size=n)) for n in (100, 250, 50)]
+    lam = np.array([100, 250, 50], dtype=np.float64) / 400
+    alike, shared = pool(parts, None), pool(parts, lam)
+    assert shared.log_mu_hat == pytest.approx(alike.log_mu_hat, rel=1e-13)

@@ -1,0 +1,93 @@
+"""Each verdict case built by hand: what the run prints and what it advises. "reliable" is a claim every check must
+back; nan, no failure, a level never reached, one dominating weight and a reference far away never make it."""
+
+from __future__ import annotations
+
+import math
+import types
+
+import numpy as np
+import pytest
+
+from pemviz.config import ExperimentConfig
+from pemviz.core.estimate import Estimate, Reference, estimate
+from pemviz.estimators import CrossEntropy
+from pemviz.sinks.console import next_step
+
+CUT_IN_REFERENCE = Reference(866, 10_000_000, "plain Monte Carlo, shipped PEMs")
+
+
+def distinct(log_w: np.ndarray, failed: np.ndarray) -> Estimate:
+    """The estimate of distinct rollouts (each its own log p) with these importance log-weights."""
+    return estimate(log_w, failed, -np.arange(log_w.size, dtype=float))
+
+
+def test_nan_or_inf_weights_are_unreliable_and_the_summary_shows_no_reliable_word():
+    failed = np.ones(200, bool)
+    for bad in (math.nan, math.inf):
+        log_w = np.full(200, -10.0)
+        log_w[7] = bad
+        e = distinct(log_w, failed)
+        assert e.verdict == "unreliable", bad
+        assert ": reliable" not in e.summary()
+
+
+def test_no_failure_prints_a_bound_in_place_of_a_point_estimate():
+    mc = estimate(np.zeros(2000), np.zeros(2000, bool), np.zeros(2000))
+    assert mc.summary().startswith("no failure seen in 2000 rollouts: p < 1.50e-03 (95%, rule of three: 3 / 2000 "
+                                   "rollouts of the PEM itself): unreliable as an estimate")  # fmt: skip
+    weighted = estimate(np.full(2000, -3.0), np.zeros(2000, bool), np.zeros(2000))
+    assert weighted.summary().startswith("no failure seen in 2000 rollouts: under importance sampling this bounds "
+                                         "nothing: unreliable")  # fmt: skip
+    assert "mu_hat" not in mc.summary() and "mu_hat" not in weighted.summary()
+
+
+def test_a_single_dominating_weight_is_not_reliable():
+    log_w = np.full(1000, -40.0)
+    failed = np.zeros(1000, bool)
+    failed[:60] = True
+    log_w[0] = -20.0  # one weight e^20 times every other: ESS ~ 1
+    e = distinct(log_w, failed)
+    assert e.ess == pytest.approx(1.0, abs=1e-6)
+    assert e.verdict != "reliable"
+
+
+def test_a_run_whose_stages_never_reached_the_failure_level_is_never_reliable():
+    good = distinct(np.full(400, -5.0) + np.random.default_rng(0).normal(0, 0.1, 400), np.ones(400, bool))
+    assert good.verdict == "reliable"  # the numbers alone would pass every check
+    ce = types.SimpleNamespace(reached_failures=False, _result=lambda: (good, (11,)))
+    est, used = CrossEntropy.result(ce)
+    assert used == (11,) and est.verdict == "doubtful"
+    assert est.reason.startswith("no stage's threshold reached the failure level")
+    ce.reached_failures = True
+    assert CrossEntropy.result(ce)[0].verdict == "reliable"
+
+
+def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():
+    log_mu = math.log(6.6e-15)
+    e = Estimate(2100, 40, log_mu, 30.0, 30.0, 2.0, (log_mu - 0.5, log_mu + 0.5), 0.9, 0.0, "unreliable", "k-hat")
+    line = e.summary(reference=CUT_IN_REFERENCE)
+    assert "10.1 orders of magnitude too low, OUTSIDE the interval" in line
+    cfg = ExperimentConfig(scenario="cut-in")
+    assert next_step(e, cfg, reference=CUT_IN_REFERENCE).startswith(
+        "p ~ 8.66e-05 is not rare: plain Monte Carlo gets it right, e.g. --method mc --rel-error 0.2")
+
+
+@pytest.mark.parametrize("method, failures, n, start", [
+    ("mc", 0, 20_000, "more rollouts (--n 200000) lower the bound ten-fold"),
+    ("mc", 2, 20_000, "more rollouts: --rel-error 0.2 samples until the interval is within 20 % (about 1,109,"),
+    ("adaptive", 3, 2100, "more budget (--n 400) or a precision target (--rel-error 0.1 --max-sims 100000"),
+])  # fmt: skip
+def test_each_unreliable_or_doubtful_run_gets_one_line_of_advice(method, failures, n, start):
+    log_w, failed = np.zeros(n), np.zeros(n, bool)
+    failed[:failures] = True
+    e = estimate(log_w if method == "mc" else log_w - 30.0, failed, np.zeros(n))
+    assert e.verdict != "reliable"
+    reference = CUT_IN_REFERENCE if method == "mc" and failures else None  # p known: how many rollouts it needs
+    advice = next_step(e, ExperimentConfig(method=method, n_per_stage=n if method == "mc" else 100), None, reference)
+    assert advice.startswith(start) and "\n" not in advice
+
+
+def test_a_reliable_run_gets_no_advice():
+    e = distinct(np.full(400, -5.0), np.ones(400, bool))
+    assert e.verdict == "reliable" and next_step(e, ExperimentConfig(), math.log(2e-15)) is None
