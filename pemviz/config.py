@@ -41,6 +41,10 @@ closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with sever
 errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same below 1e-9
 (:mod:`pemviz.scenarios.cut_in`)."""
 
+SCENARIO_OBJECTS = {"braking": 1, "cut-in": 5, "cut-in-rare": 5}
+"""The objects each scenario perceives per step (its problem's ``n_objects``; a test keeps the two equal): what the
+config checks a sampler against before anything is loaded."""
+
 SCENE_DEFAULTS: dict[str, dict[str, Any]] = {
     "cut-in": {"method": "mc", "n_per_stage": 20_000},
     "cut-in-rare": {"method": "mc", "n_per_stage": 20_000},
@@ -600,6 +604,9 @@ class ExperimentConfig:
              "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it")  # fmt: skip
         need(self.method != "ams" or self.ams_killed < self.n_per_stage, "ams_killed",
              f"{SETTINGS['ams_killed'].words} must be a whole number in [1, N - 1]")
+        n_objects = SCENARIO_OBJECTS[self.scenario]
+        need(self.method != "adaptive" or n_objects == 1 or not self.fits_whole_rollouts, "scenario",
+             whole_rollout_fit_refusal(self, n_objects))
         need(self.rel_error is None or self.method != "ams", "rel_error",
              "adaptive multilevel splitting has no final batch to add to; use it with method adaptive, mc, naive50 "
              "or mixed50")
@@ -619,6 +626,13 @@ class ExperimentConfig:
         return dataclasses.replace(self, **changes)
 
     @property
+    def fits_whole_rollouts(self) -> bool:
+        """Whether the first cross-entropy stage fits whole elite rollouts, one object a step
+        (:func:`pemviz.estimators.ce_fit.ce_update`): the weights are not frozen, or neither the window nor the weights
+        until failure mark the steps that count (the ``paper`` preset)."""
+        return not (self.weights == "frozen" and (self.weights_until_failure or self.proposal_window))
+
+    @property
     def has_final_batch(self) -> bool:
         """Whether the run ends with N_e fresh rollouts from the final proposal (not with ``last-stage``)."""
         return self.method == "adaptive" and self.final_estimate != "last-stage"
@@ -631,6 +645,13 @@ class ExperimentConfig:
             return self.n_per_stage
         final = self.n_final if self.has_final_batch else 0
         return self.pretrain_rollouts + self.n_stages * self.n_per_stage + final
+
+
+def whole_rollout_fit_refusal(config: ExperimentConfig, n_objects: int) -> str:
+    """The one line refusing :attr:`ExperimentConfig.fits_whole_rollouts` on a problem of ``n_objects`` objects a
+    step."""
+    return (f"the cross-entropy fit of whole elite rollouts (weights {config.weights!r}, without the window or weights "
+            f"until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler")
 
 
 def _is_real(x: object) -> bool:

@@ -74,3 +74,11 @@ def test_a_cut_in_run_prints_its_estimate_beside_the_reference():
     assert last.startswith("no failure seen in 200 rollouts: p < 1.50e-02 (95%, rule of three")  # no point estimate
     assert last.endswith("; reference 8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain "
                          "Monte Carlo, shipped PEMs): no failure seen, inside the interval")  # fmt: skip
+
+
+def test_the_config_knows_how_many_objects_each_scenario_perceives():
+    from pemviz.config import SCENARIO_OBJECTS, SCENARIOS
+
+    assert set(SCENARIO_OBJECTS) == set(SCENARIOS)
+    for scenario in SCENARIOS:
+        assert problem_for(ExperimentConfig(scenario=scenario)).n_objects == SCENARIO_OBJECTS[scenario], scenario

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pemviz.config import ExperimentConfig, settings_of
+from pemviz.config import ExperimentConfig, settings_of, whole_rollout_fit_refusal
 from pemviz.core.detectors import (
     Detector,
     ScoredTarget,
@@ -55,27 +55,15 @@ from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.sampling import EXACT, Proposal, StateProposal, fit_noise_shift
 from pemviz.scenarios import RolloutBatch
 
-def fits_whole_rollouts(config: ExperimentConfig) -> bool:
-    """Whether the first cross-entropy stage fits whole elite rollouts, one object a step (:func:`ce_update`): the
-    weights are not frozen, or neither the window nor the weights until failure mark the steps that count."""
-    return not (config.weights == "frozen" and (config.weights_until_failure or config.proposal_window))
-
-
-def whole_rollout_fit_refusal(config: ExperimentConfig, n_objects: int) -> str:
-    """The one line refusing :func:`fits_whole_rollouts` on a problem of ``n_objects`` objects a step."""
-    return (f"the cross-entropy fit of whole elite rollouts (weights {config.weights!r}, without the window or weights "
-            f"until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler")
-
-
 def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
     """Refuse, before any rollout or output, a ``config`` whose estimator cannot run on ``problem``: the
-    cross-entropy fit of whole elite rollouts (:func:`fits_whole_rollouts`, the ``paper`` preset's) on a problem of
+    cross-entropy fit of whole elite rollouts (:attr:`~pemviz.config.ExperimentConfig.fits_whole_rollouts`, the ``paper`` preset's) on a problem of
     several objects a step.
 
     Raises:
         ValueError: one line naming what cannot run and what to use instead.
     """
-    if config.method == "adaptive" and problem.n_objects != 1 and fits_whole_rollouts(config):
+    if config.method == "adaptive" and problem.n_objects != 1 and config.fits_whole_rollouts:
         raise ValueError(whole_rollout_fit_refusal(config, problem.n_objects))
 
 
