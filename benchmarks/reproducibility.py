@@ -20,7 +20,7 @@ from pemviz.studies import reproducibility as rp
 CASES = {
     "braking": [],
     "braking, N_e 20,000": ["--n-final", "20000"],  # a final batch of 3 blocks of 8,192: Ray splits it into tasks
-    "cut-in": ["--scenario", "cut-in", "--method", "adaptive"],
+    "cut-in": ["--scenario", "cut-in"],
 }
 
 

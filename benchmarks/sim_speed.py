@@ -10,13 +10,19 @@ Prints, in one run:
    STL, recording, console, other), measured by wrapping those functions from the outside;
 4. wall-clock (and CPU) seconds of the ``pemviz run`` command itself (target <= 10 s with ``--sim batched``) and
    of ``pemviz run --method mc --n 1000000 --sim batched --no-record`` (target <= 60 s), with the peak
-   resident memory of each command.
+   resident memory of each command;
+5. plain Monte Carlo on the cut-in scenario against the braking scenario: rollouts per second of ``pemviz run
+   --scenario cut-in --method mc --n 20000 --no-record`` and of ``pemviz run --method mc --n 200000 --no-record``
+   (each from its "from N simulations in S s" line), run back to back, and their ratio braking / cut-in (target
+   <= 14); with ``--before TREE`` (a git worktree of older code, e.g. ``git worktree add /tmp/before HEAD``) the
+   same for that code, run by this Python with ``PYTHONPATH=TREE``.
 
 The machine may be shared: the 1-minute load average is printed before and after; re-measure when it
 is low (``uptime``). Run from the repository root:
 
     python benchmarks/sim_speed.py              # everything (~2-3 minutes)
     python benchmarks/sim_speed.py --quick      # parts 1-3 with the highway-env split skipped
+    python benchmarks/sim_speed.py --cut-in [--before /tmp/before] [--repeat 2]   # part 5 only (~1-2 minutes)
 """
 
 from __future__ import annotations
@@ -40,6 +46,11 @@ TARGET_RATIO = 100.0
 TARGET_MILLION_S = 60.0
 TARGET_RSS_GIB = 4.0
 TARGET_RUN_S = 10.0
+TARGET_CUT_IN_RATIO = 14.0
+"""Part 5: braking's plain Monte Carlo rollouts/s over the cut-in's, at most (about 69 before the cut-in's detector
+evaluated each head once per step)."""
+CUT_IN_MC = ["run", "--scenario", "cut-in", "--method", "mc", "--n", "20000", "--no-record"]
+BRAKING_MC = ["run", "--method", "mc", "--n", "200000", "--no-record"]
 
 
 def load() -> str:
@@ -252,6 +263,46 @@ def commands(mc_million: bool) -> None:
                   f"exit {rc}{goal}")  # fmt: skip
 
 
+# -- 5. plain Monte Carlo: the cut-in against the braking scenario ----------------------------------------
+
+
+def mc_rate(args: list[str], tree: Path | None = None) -> tuple[float, int, float]:
+    """(rollouts per second, rollouts, seconds) of ``python -m pemviz.cli ARGS`` in a fresh process, read from its
+    "from N simulations in S s" line; ``tree``: run the code of that directory (``PYTHONPATH``) instead of this one.
+
+    Raises:
+        RuntimeError: the command failed or printed no such line.
+    """
+    import re
+
+    env = dict(os.environ, RERUN_ANALYTICS="false")
+    if tree is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(tree), *filter(None, [env.get("PYTHONPATH")])])
+    out = subprocess.run([sys.executable, "-m", "pemviz.cli", *args], capture_output=True, text=True,
+                         cwd=tree or REPO, env=env)  # fmt: skip
+    found = re.search(r"from ([\d,]+) simulations in ([\d.]+) s", out.stdout)
+    if out.returncode != 0 or found is None:
+        raise RuntimeError(f"pemviz {' '.join(args)} (exit {out.returncode}) printed no 'from N simulations in S s' "
+                           f"line:\n{out.stdout[-2000:]}{out.stderr[-2000:]}")  # fmt: skip
+    n, seconds = int(found.group(1).replace(",", "")), float(found.group(2))
+    return n / seconds, n, seconds
+
+
+def cut_in_vs_braking(before: Path | None, repeat: int) -> None:
+    """Print part 5 for this code (and ``before``'s): each repeat runs braking's then the cut-in's command."""
+    print(f"5. plain Monte Carlo, cut-in against braking, fresh processes ({load()})")
+    trees = [("after", None)] if before is None else [("before", before), ("after", None)]
+    for r in range(repeat):
+        for label, tree in trees:
+            braking, nb, sb = mc_rate(BRAKING_MC, tree)
+            cut_in, nc, sc = mc_rate(CUT_IN_MC, tree)
+            ratio = braking / cut_in
+            print(f"   {label:<6} cut-in {cut_in:>8,.0f} rollouts/s ({nc:,} in {sc:.1f} s)  braking {braking:>8,.0f} "
+                  f"rollouts/s ({nb:,} in {sb:.1f} s)  ratio {ratio:5.1f} (target <= {TARGET_CUT_IN_RATIO:.0f}): "
+                  f"{verdict(ratio <= TARGET_CUT_IN_RATIO)}")  # fmt: skip
+    print(f"   ({load()})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--highway-rollouts", type=int, default=200, help="rollouts timed on highway-env")
@@ -260,6 +311,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="skip the highway-env split and part 4")
     parser.add_argument("--no-mc-million", action="store_true", help="skip `pemviz run --method mc --n 1000000`")
+    parser.add_argument("--cut-in", action="store_true", help="part 5 only: cut-in vs braking plain Monte Carlo")
+    parser.add_argument("--before", type=Path, default=None,
+                        help="part 5 also for the code of this directory (a git worktree), run first")
+    parser.add_argument("--repeat", type=int, default=1, help="part 5's measurements per code")
     parser.add_argument("--million-child", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.million_child is not None:
@@ -267,12 +322,17 @@ def main() -> None:
         return
     os.environ.setdefault("RERUN_ANALYTICS", "false")
     print(f"start: {load()}")
+    if args.cut_in:
+        cut_in_vs_braking(args.before, args.repeat)
+        print(f"end: {load()}")
+        return
     rollouts_per_second(args.highway_rollouts, args.batched_rollouts, args.seed)
     million(args.million, args.seed)
     for sim in ("batched",) if args.quick else ("batched", "highway-env"):
         time_split(sim)
     if not args.quick:
         commands(not args.no_mc_million)
+    cut_in_vs_braking(args.before, args.repeat)
     print(f"end: {load()}")
 
 

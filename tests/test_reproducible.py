@@ -12,7 +12,7 @@ from pemviz.studies import reproducibility as rp
 
 SMALL = ["--k", "3", "--n", "100", "--n-final", "300"]
 """A short default run: pretraining, 3 CE stages of 100, a final batch of 300 (the default sampler)."""
-SMALL_CUT_IN = ["--scenario", "cut-in", "--method", "adaptive", "--k", "2", "--n", "150", "--n-final", "200", "--pretrain", "100"]
+SMALL_CUT_IN = ["--scenario", "cut-in", "--k", "2", "--n", "150", "--n-final", "200", "--pretrain", "100"]
 
 
 def small(scenario: str = "braking", **fields) -> ExperimentConfig:

@@ -131,6 +131,35 @@ def noise_names_of(detector: object) -> tuple[str, ...]:
     return tuple(getattr(detector, "noise_names", ()) or ())
 
 
+def draw_noise(detector: Any, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The measurement errors of the rows ``hit`` drawn from ``detector``'s error model (:class:`NoisyDetector`) and
+    their log density: ``e = noise_from_uniforms(rows[hit], u)`` and ``noise_log_prob(rows[hit], e)``, or, bit for bit
+    the same, ``detector.noise_draw(rows, u, hit)`` where the detector has it (one evaluation of its error model, e.g.
+    :meth:`pemviz.pem.perception.SalientDetector.noise_draw`).
+
+    Args:
+        rows: float64 [R, G] object rows; u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order;
+        hit: bool [R].
+    Returns:
+        (errors float64 [H, D], log density float64 [H] in nats).
+    """
+    combined = getattr(detector, "noise_draw", None)
+    if combined is not None:
+        errors, log_density = combined(rows, u, hit)
+        return np.asarray(errors, dtype=np.float64), np.asarray(log_density, dtype=np.float64)
+    picked = rows[hit]
+    errors = np.asarray(detector.noise_from_uniforms(picked, u), dtype=np.float64)
+    return errors, np.asarray(detector.noise_log_prob(picked, errors), dtype=np.float64)
+
+
+def error_model_of(detector: object) -> object:
+    """The detector whose error model ``detector`` uses: itself, or behind :class:`ErrorModelOf` wrappers (e.g.
+    :class:`ArrayRQMC`, :class:`ScoredTarget`) the wrapped one, whose densities theirs are."""
+    while isinstance(detector, ErrorModelOf):
+        detector = detector._errors
+    return detector
+
+
 def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
     """``log p(a | s)`` of the taken actions: log_expit(+logit) if detected else log_expit(-logit).
 
@@ -408,6 +437,14 @@ class SamplerView:
             return self.samplers.target_detector.noise_log_prob(rows, noise)
         return self.samplers.noise_log_prob(self.index, rows, noise)
 
+    def noise_draw(self, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Errors [H, D] of the rows ``hit`` and their log density [H] (nats) (:func:`draw_noise`)."""
+        if self.index == 0:
+            return draw_noise(self.samplers.target_detector, rows, u, hit)
+        picked = rows[hit]
+        errors = np.asarray(self.noise_from_uniforms(picked, u), dtype=np.float64)
+        return errors, np.asarray(self.noise_log_prob(picked, errors), dtype=np.float64)
+
 
 class ErrorModelOf:
     """A wrapper of a detector whose measurement-error model (:class:`NoisyDetector`) is the wrapped one's, named by
@@ -443,6 +480,10 @@ class ErrorModelOf:
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """The wrapped detector's log density of the errors (:class:`NoisyDetector`)."""
         return self._errors.noise_log_prob(rows, noise)
+
+    def noise_draw(self, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The wrapped detector's errors of the rows ``hit`` and their log density (:func:`draw_noise`)."""
+        return draw_noise(self._errors, rows, u, hit)
 
 
 @dataclass(frozen=True)
@@ -517,7 +558,9 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
 
     A row is detected iff ``log u <= log_expit(logit q)`` (exact in log space). With errors (the target is a
     :class:`NoisyDetector`), a detected row's error is drawn by inverse CDF from its other uniforms under the
-    sampler's error model (the target's when the sampler has none) and both densities add its log density; a missed
+    sampler's error model (the target's when the sampler has none) and both densities add its log density (one
+    evaluation of the error model for the draw and its density where the detector has ``noise_draw``, and one density
+    for both when the sampler's error model is the target's: :func:`draw_noise`, :func:`error_model_of`); a missed
     row's error is 0 and adds nothing.
 
     Args:
@@ -564,14 +607,18 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
     noise = np.zeros((rows.shape[0], len(names)))
     if detected.any():  # only a detected object is measured: its error, drawn (or replayed), and its densities
         hit = detected
-        e = np.asarray(source.noise_from_uniforms(rows[hit], u[hit, 1:]), dtype=np.float64)
-        if forced is not None and forced[1] is not None:
+        if forced is not None and forced[1] is not None:  # a replayed error's density is at the replayed error
+            e = np.asarray(source.noise_from_uniforms(rows[hit], u[hit, 1:]), dtype=np.float64)
             e = np.where(forced[2][hit][:, None], forced[1][hit], e)
+            lq_noise = np.asarray(source.noise_log_prob(rows[hit], e), dtype=np.float64)
+        else:  # the error model evaluated once for the draw and its density
+            e, lq_noise = draw_noise(source, rows, u[hit, 1:], hit)
         noise[hit] = e
-        lq_noise = np.asarray(source.noise_log_prob(rows[hit], e), dtype=np.float64)
         log_q[hit] += lq_noise
-        log_p[hit] += lq_noise if source is target else np.asarray(target.noise_log_prob(rows[hit], e),
-                                                                   dtype=np.float64)  # fmt: skip
+        if source is target or error_model_of(source) is error_model_of(target):  # one error model: one density
+            log_p[hit] += lq_noise
+        else:
+            log_p[hit] += np.asarray(target.noise_log_prob(rows[hit], e), dtype=np.float64)
     return StepDraw(detected, noise, log_q, log_p)
 
 

@@ -350,18 +350,31 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
 def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:
     """A :class:`Problem`'s ``simulate``, ``stream`` and ``branch`` for a batched simulator ``make(n)`` (n rollouts at
     their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.scenarios.simulate_rollouts`,
-    :func:`~pemviz.scenarios.iter_rollouts`, :func:`~pemviz.scenarios.branch_rollouts`)."""
+    :func:`~pemviz.scenarios.iter_rollouts`, :func:`~pemviz.scenarios.branch_rollouts`).
+
+    The rollouts are simulated on one BLAS thread (``threadpoolctl``): a PEM network's float64 products of many rows
+    round differently when OpenBLAS splits them over threads, so the same seed would give other rollouts on a machine
+    with another number of cores (and a second thread only slows these small products down under load)."""
+    from threadpoolctl import threadpool_limits
 
     def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
-        return simulate_rollouts(make, n, n_steps, sampler, target, rng)
+        with threadpool_limits(1, user_api="blas"):
+            return simulate_rollouts(make, n, n_steps, sampler, target, rng)
 
     def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
                chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[RolloutBatch]:  # fmt: skip
-        return iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=chunk_size)
+        chunks = iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=chunk_size)
+        while True:  # one thread while a chunk is simulated, whatever the consumer does between chunks
+            with threadpool_limits(1, user_api="blas"):
+                batch = next(chunks, None)
+            if batch is None:
+                return
+            yield batch
 
     def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
                rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
-        return branch_rollouts(make, parents, parent, at, target, rng)
+        with threadpool_limits(1, user_api="blas"):
+            return branch_rollouts(make, parents, parent, at, target, rng)
 
     return run, stream, resume
 

@@ -58,10 +58,13 @@ STREAM_ABOVE = 20_000
 """Stages of more rollouts than this are simulated chunk by chunk when the problem can stream
 (``Problem.stream``) and the executor is serial, and kept only as per-rollout numbers and a bounded sample: a
 [10^5, 100] batch with its robustness and masks holds ~1 GB, a chunk of 8,192 rollouts ~80 MB."""
-def stream_above(config: ExperimentConfig) -> int:
+def stream_above(config: ExperimentConfig, n_objects: int = 1) -> int:
     """Rollouts above which a serial stage streams chunk by chunk: ``config.chunk_rollouts``, or
-    :data:`STREAM_ABOVE` when it is None."""
-    return STREAM_ABOVE if config.chunk_rollouts is None else config.chunk_rollouts
+    :data:`STREAM_ABOVE` divided by the objects a rollout perceives (``n_objects``: a rollout of M objects holds M
+    object rows a step, so the same memory) when it is None."""
+    if config.chunk_rollouts is not None:
+        return config.chunk_rollouts
+    return STREAM_ABOVE // max(1, n_objects)
 
 
 SAMPLE_LEAST_ROBUST = 20
@@ -197,7 +200,8 @@ class Experiment:
             # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
             # almost never fail, so coupling them would reduce no estimate's variance
             parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
-        if plan.draw is None and plan.n > stream_above(cfg) and pb.stream is not None and cfg.executor == "serial":
+        if (plan.draw is None and plan.n > stream_above(cfg, pb.n_objects) and pb.stream is not None
+                and cfg.executor == "serial"):
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)

@@ -109,21 +109,24 @@ def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:
             integer in 0..2 (the message names the first bad row, 0-based).
     """
     raw = _check_raw(raw_inputs)
-    if not np.all(np.isfinite(raw)):
+    if not np.isfinite(raw).all():
         row = int(np.flatnonzero(~np.all(np.isfinite(raw), axis=1))[0])
         raise ValueError(f"raw salient inputs: non-finite value in row {row}")
-    cls = raw[:, CLASS_COLUMN]
-    occ = raw[:, OCCLUSION_COLUMN]
-    for what, values, n in (("class", cls, N_CLASSES), ("occlusion", occ, N_OCCLUSIONS)):
-        bad = (values != np.round(values)) | (values < 0) | (values > n - 1)
-        if np.any(bad):
-            row = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"raw salient inputs: {what} {values[row]:g} in row {row} is not an integer in 0..{n - 1}")
     n_rows = raw.shape[0]
     out = np.zeros((n_rows, N_FEATURES), dtype=np.float64)
     rows = np.arange(n_rows)
-    out[rows, cls.astype(np.int64)] = 1.0
-    out[rows, N_CLASSES + occ.astype(np.int64)] = 1.0
+    for what, column, first, n in (("class", CLASS_COLUMN, 0, N_CLASSES),
+                                   ("occlusion", OCCLUSION_COLUMN, N_CLASSES, N_OCCLUSIONS)):  # fmt: skip
+        values = raw[:, column]
+        with np.errstate(invalid="ignore"):  # a value out of int64's range converts to some other number: bad below
+            level = values.astype(np.int64)
+        # the level of an integral value equals it; a level in 0..n - 1 that equals the value is that integer
+        bad = level != values
+        bad |= level.view(np.uint64) > n - 1  # a negative level wraps to a huge unsigned one
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"raw salient inputs: {what} {values[row]:g} in row {row} is not an integer in 0..{n - 1}")
+        out[rows, first + level] = 1.0
     out[:, N_CLASSES + N_OCCLUSIONS :] = (raw[:, POSE_COLUMNS] - norm.mean) / norm.std
     return out
 

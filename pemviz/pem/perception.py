@@ -126,18 +126,60 @@ class SalientDetector:
     def __post_init__(self) -> None:
         if (self.noise is None) != (not self.noise_names):
             raise ValueError("SalientDetector: give the noise model and its error names together")
+        object.__setattr__(self, "_step", None)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """The fields without the kept step (a copy sent to another process starts with none)."""
+        return {k: v for k, v in self.__dict__.items() if k != "_step"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        object.__setattr__(self, "_step", None)
 
     def _raw(self, rows: np.ndarray) -> np.ndarray:
         return np.asarray(rows, dtype=np.float64)[:, self.salient]
 
-    def detect_logit(self, rows: np.ndarray) -> np.ndarray:
-        """logit p_PEM(detect | salient variables), float64 [R] (nats; -inf where not visible), for rows [R, G]."""
+    def _encodes(self) -> bool:
+        """Whether the detection PEM is one of pemviz's (:class:`pemviz.pem.PEM`, :class:`pemviz.pem.TreePEM`), whose
+        logit of raw inputs is ``logit_features(encode_salient(raw, norm))``: its encoding can then be kept and shared
+        with the noise head."""
+        return type(self.detect) in (PEM, TreePEM)
+
+    def _shares_encoding(self) -> bool:
+        """Whether the noise head encodes the salient variables as the detection PEM does (same z-score statistics)."""
+        a, b = self.detect.norm, self.noise.norm
+        return a is b or (np.array_equal(a.mean, b.mean) and np.array_equal(a.std, b.std))
+
+    def _evaluate(self, rows: np.ndarray) -> _Step:
+        """The detection head's work on rows [R, G]: which rows can be seen, their encoded features (when
+        :meth:`_encodes`) and the logits. Kept for a read-only ``rows`` (:func:`pemviz.core.detectors.draw_step`
+        hands each step's rows to every detector as a new read-only view), recognised by identity when asked again
+        (by the sampler, then the target, then the noise head) within the step."""
+        kept = self._step
+        if kept is not None and kept.rows is rows:
+            return kept
+        rows_in = rows
         rows = np.asarray(rows, dtype=np.float64)
         out = np.full(rows.shape[0], -np.inf)
         seen = np.ones(rows.shape[0], bool) if self.visible is None else rows[:, self.visible] > 0.5
+        features = None
         if seen.any():
-            out[seen] = self.detect.logit(self._raw(rows[seen]))
-        return out
+            raw = self._raw(rows)[seen]  # the salient columns, then the seen rows: a copy of those only
+            if self._encodes():
+                features = encode_salient(raw, self.detect.norm)
+                out[seen] = self.detect.logit_features(features)
+            else:
+                out[seen] = self.detect.logit(raw)
+        step = _Step(rows_in, seen, features, out)
+        if isinstance(rows_in, np.ndarray) and not rows_in.flags.writeable:
+            out.flags.writeable = False
+            object.__setattr__(self, "_step", step)
+        return step
+
+    def detect_logit(self, rows: np.ndarray) -> np.ndarray:
+        """logit p_PEM(detect | salient variables), float64 [R] (nats; -inf where not visible), for rows [R, G]."""
+        logits = self._evaluate(rows).logits
+        return logits.copy() if not logits.flags.writeable else logits
 
     @property
     def noise_family(self) -> str:
@@ -158,3 +200,38 @@ class SalientDetector:
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """log p_noise(errors | salient variables), float64 [R] (nats)."""
         return noise_log_density(self.noise.family, self.noise.df, *self.noise_params(rows), noise)
+
+    def noise_draw(self, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The errors of the rows ``hit`` and their log density, the noise head evaluated once: exactly
+        ``e = noise_from_uniforms(rows[hit], u)`` and ``noise_log_prob(rows[hit], e)``.
+
+        The rows' encoded features are reused when the detection head just encoded these rows (the same read-only
+        array, every row of ``hit`` visible) with the noise head's z-score statistics.
+
+        Args:
+            rows: float64 [R, G] object rows; u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order;
+            hit: bool [R], the rows measured (detected).
+        Returns:
+            (errors float64 [H, D] in metres, log density float64 [H] in nats).
+        """
+        kept = self._step
+        if (kept is not None and kept.rows is rows and kept.features is not None and self._shares_encoding()
+                and np.all(kept.seen[hit])):  # fmt: skip
+            features = kept.features[hit[kept.seen]]
+        else:
+            features = self.noise.features(self._raw(rows)[hit])
+        loc, log_scale = self.noise.noise_params(features)
+        errors = noise_quantile(self.noise.family, self.noise.df, loc, log_scale, u)
+        return errors, noise_log_density(self.noise.family, self.noise.df, loc, log_scale, errors)
+
+
+@dataclass(frozen=True)
+class _Step:
+    """What :meth:`SalientDetector._evaluate` kept of one array of rows [R, G]: the array itself, ``seen`` bool [R]
+    (visible rows), the encoded features float64 [S, 14] of the S seen rows (None: not encoded, or none seen) and the
+    logits float64 [R] (read-only)."""
+
+    rows: Any
+    seen: np.ndarray
+    features: np.ndarray | None
+    logits: np.ndarray
