@@ -201,7 +201,7 @@ def _final_lines(seed: int, executor: str) -> tuple[str, str]:
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert cli.main([*RUN_ARGS, "--seed", str(seed), "--executor", executor]) == 0
-    lines = out.getvalue().splitlines()
+    lines = [ln for ln in out.getvalue().splitlines() if not ln.startswith(("next: ", "stop: "))]  # the advice after
     return lines[-1], lines[-2].split(" from ")[0]
 
 

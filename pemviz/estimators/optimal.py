@@ -87,7 +87,7 @@ def draw_fixed(problem: Problem, sampler: Detector, n: int, seed: int = 0, weigh
     batch = problem.simulate(plan.n, plan.sampler, problem.target, est.rng)
     est.observe(batch, problem.failed(batch), None)
     estimate = est.finish().estimate
-    log_w, failed, _ = est.rollouts.arrays()
+    log_w, failed, _ = est.stages[plan.stage].arrays()
     return Draw(estimate, log_w, failed)
 
 
