@@ -28,3 +28,59 @@ def test_user_guide_builds_strict_with_every_command_in_the_cli_reference(tmp_pa
         assert f"pemviz {command}" in cli, command
     assert "--grpc-port" in cli and "&lt;!-- pemviz-cli --&gt;" not in cli and "<!-- pemviz-cli -->" not in cli
     assert "Any Python simulator plugs into the sampler" in (tmp_path / "site" / "own-simulator" / "index.html").read_text()
+
+
+NUMBER_WORDS = {w: i for i, w in enumerate("zero one two three four five six seven eight nine ten eleven twelve".split())}
+COUNTED = r"(presets?|methods?|scenarios?|scenes?|metrics?|commands?|tests?|skips?|skipped)"
+
+
+def counts_in_docs() -> list[tuple[str, int, str]]:
+    """Every "<number> <noun>" of :data:`COUNTED` in the README and the user guide (the changelog aside): (file, n,
+    noun). "one method" in a sentence such as "one method per file" is a count too, and must be true."""
+    import re
+
+    pattern = re.compile(rf"\b({'|'.join(NUMBER_WORDS)}|\d+)\s+(?:\w+\s+)?{COUNTED}\b", re.I)
+    found = []
+    for path in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]:
+        if path.name == "changelog.md":
+            continue
+        for m in pattern.finditer(path.read_text()):
+            word = m.group(1).lower()
+            found.append((path.name, NUMBER_WORDS.get(word, int(word) if word.isdigit() else -1), m.group(0)))
+    return found
+
+
+def test_every_count_in_the_docs_is_the_code_s_or_absent() -> None:
+    """Counts of presets, methods, scenarios, metrics and commands agree with the registries; counts of tests or
+    skips, which change with every test added, are not written in the docs at all (``pytest -rs`` lists skips)."""
+    from pemviz.commands import COMMANDS
+    from pemviz.config import SETTINGS
+    from pemviz.presets import PRESETS
+
+    truth = {"preset": len(PRESETS), "method": len(SETTINGS["method"].choices),
+             "scenario": len(SETTINGS["scenario"].choices), "scene": len(SETTINGS["scenario"].choices),
+             "metric": len(SETTINGS["metric"].choices), "command": len(COMMANDS)}  # fmt: skip
+    wrong = []
+    for name, n, text in counts_in_docs():
+        noun = text.split()[-1].lower().rstrip("s").replace("skipped", "skip")
+        if noun in ("test", "skip"):
+            wrong.append(f"{name}: {text!r}: a test count goes stale; say how to list them instead")
+        elif n > 1 and n != truth[noun]:  # "one X" is a phrase ("one method per file"), not a total
+            wrong.append(f"{name}: {text!r}, but the code has {truth[noun]}")
+    assert not wrong, wrong
+
+
+def test_the_count_check_finds_a_wrong_count(tmp_path, monkeypatch) -> None:
+    """The check above fails on a stale count: a copy of the docs with "16 tests skip" and "4 presets" in it."""
+    import shutil
+
+    import test_docs
+
+    (tmp_path / "docs").mkdir()
+    shutil.copy(REPO / "README.md", tmp_path / "README.md")
+    (tmp_path / "docs" / "x.md").write_text("Without the files 16 tests skip. There are 4 presets and 5 methods.\n")
+    monkeypatch.setattr(test_docs, "REPO", tmp_path)
+    with pytest.raises(AssertionError) as err:
+        test_docs.test_every_count_in_the_docs_is_the_code_s_or_absent()
+    assert "'16 tests skip'" in str(err.value) and "'4 presets', but the code has 5" in str(err.value)
+    assert "5 methods" not in str(err.value)

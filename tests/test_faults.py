@@ -39,7 +39,10 @@ OLD_RRD = b"RRF2" + b"old recording" * 10
 
 
 def cli_line(capsys, *args: str) -> tuple[int, str]:
-    code = cli.main(list(args))
+    try:
+        code = cli.main(list(args))
+    except SystemExit as exc:  # argparse's own errors (a wrong type) exit from the parser
+        code = exc.code
     err = capsys.readouterr().err.strip()
     return code, err
 
@@ -389,14 +392,25 @@ def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, 
         (["run", "--executor", "ray", "--ray-address", "nonsense", "--no-record"], "use HOST:PORT"),
         (["serve", "--host", "999.1.1.1", "--port", "8791"], "--host '999.1.1.1': not an address or a name"),
         (["serve", "--host", "8.8.8.8", "--port", "8791"], "not an address of this machine"),
+        (["estimate", "{tmp}/run.rrd", "--no-record"], "run.rrd: a rerun recording, not a rollout file; `pemviz "
+         "estimate` reads the Parquet rollout file that `pemviz run --save-rollouts NAME.parquet` writes"),
+        (["estimate", "{tmp}/renamed.parquet", "--no-record"], "renamed.parquet: a rerun recording, not a rollout file"),
+        (["run", "--sigma", "high", "--no-record"], "argument --sigma: 'high' is not a number"),
+        (["run", "--metric", "best", "--no-record"], "--metric: metric = 'best' is invalid: use one of classic, agm"),
+        (["run", "--rel-error", "0", "--no-record"], "--rel-error: rel_error = 0.0 is invalid"),
+        (["run", "--max-time", "5", "--no-record"], "--max-time: max_time_s = 5.0 is invalid: a cap on the rollouts "
+         "added for a target relative error: give it with rel_error (--rel-error)"),
     ],
     ids=["json-folder", "name-240", "proposal-name", "pem-eval-proc", "pem-train-proc", "validate-proc",
          "tables-proc", "validate-file", "n-1e12", "n-final-1e12", "k-1e12", "epochs-1e12", "ray-refused", "ray-bad",
-         "host-999", "host-foreign"],
+         "host-999", "host-foreign", "estimate-rrd", "estimate-rrd-renamed", "sigma-word", "metric-bad",
+         "rel-error-0", "max-time-alone"],
 )  # fmt: skip
 def test_cli_bad_output_or_resource_is_one_line_before_any_work(tmp_path, capsys, args, message):
     (tmp_path / "X.json").mkdir()
     (tmp_path / "file.txt").write_text("x")
+    for name in ("run.rrd", "renamed.parquet"):  # what a rerun recording starts with
+        (tmp_path / name).write_bytes(b"RRF2\x00\x29\x00\x00")
     if "ray" in args and __import__("importlib").util.find_spec("ray") is None:
         pytest.skip("Ray is not installed")
     before = sorted(p.name for p in tmp_path.iterdir())

@@ -286,6 +286,29 @@ class _Table:
                            component=component)  # fmt: skip
 
 
+RECORDING_MAGIC = b"RRF"
+"""The first bytes of a rerun recording (``.rrd``): ``RRF2`` today, ``RRF0`` / ``RRF1`` in older rerun versions."""
+
+
+def check_not_a_recording(path: Path) -> None:
+    """Refuse a rerun recording given where a rollout file is expected, saying how to write a rollout file.
+
+    Raises:
+        RolloutFormatError: ``path`` ends in ``.rrd`` or starts with :data:`RECORDING_MAGIC`.
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(RECORDING_MAGIC))
+    except OSError:
+        head = b""
+    if path.suffix.lower() == ".rrd" or head == RECORDING_MAGIC:
+        raise RolloutFormatError(
+            f"{path}: a rerun recording, not a rollout file; `pemviz estimate` reads the Parquet rollout file that "
+            "`pemviz run --save-rollouts NAME.parquet` writes (with its sidecar NAME.json), and `rerun "
+            f"{path.name}` opens the recording"
+        )
+
+
 def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     """Read and validate a rollout file and its sidecar.
 
@@ -300,6 +323,7 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"rollout file {p} not found")
+    check_not_a_recording(p)
     meta = read_sidecar(p)
     try:
         table = pq.read_table(p)
