@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rerun as rr
 
 import pemviz
 from pemviz.commands import COMMANDS, UsageError, add_setting, check_save_path, pem_argument
@@ -216,6 +215,8 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
     Raises:
         OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``.
     """
+    import rerun as rr  # only when a recording is asked for
+
     def log(stream: rr.RecordingStream) -> None:
         stream.send_recording_name(f"pemviz estimate {data.path.name if data.path else ''}")
         e = result.estimate

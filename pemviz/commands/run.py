@@ -11,8 +11,6 @@ from datetime import datetime
 from pathlib import Path
 from urllib.parse import quote, urlsplit
 
-import rerun as rr
-
 from pemviz.commands import (
     COMMANDS,
     UsageError,
@@ -27,8 +25,9 @@ from pemviz.engine.resources import check_run_memory
 from pemviz.io.files import check_output_folder, free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
-# The parser needs only the light modules above (and rerun's script flags): torch, the engine, the sinks and pyarrow
-# are imported in main, where a run needs them, so that `pemviz --help` answers at once.
+# The parser needs only the light modules above: torch, rerun, the engine, the sinks and pyarrow are imported in
+# main, where a run needs them (rerun only when it records), so that `pemviz --help` answers at once and
+# `pemviz run --no-record` never loads rerun.
 
 
 RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_level", "smoothing", "metric", "seed",
@@ -87,10 +86,12 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
 
 
 def add_recording_args(p: argparse.ArgumentParser) -> None:
-    """rerun's standard script flags (``rr.script_add_args``: --save, --serve, --connect, --url, --stdout,
-    --headless) plus ``--no-record`` and the ports of ``--serve``."""
+    """rerun's standard script flags (those of ``rerun.script_add_args``: --save, --serve, --connect, --url, --stdout,
+    --headless, defined here so that the parser needs no rerun import) plus ``--no-record`` and the ports of
+    ``--serve``."""
     rec = p.add_argument_group("recording (rerun's standard script flags; at most one of them)")
-    rr.script_add_args(rec)
+    rec.add_argument("--stdout", action="store_true",
+                     help="write the recording to standard output, to be piped into a rerun viewer (... | rerun -)")
     rec.add_argument(
         "--save", default=None, metavar="PATH.rrd",
         help="write the recording to this file (default recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd)",
@@ -196,6 +197,8 @@ def rollout_files(parquet: Path) -> list[Path]:
 
 def serve(args: argparse.Namespace):
     """A sink serving gRPC on ``--grpc-port`` and rerun's web viewer on ``--web-port``; prints both addresses."""
+    import rerun as rr
+
     from pemviz.sinks.recording import RerunSink
 
     sink = RerunSink.to_grpc(serve=True, grpc_port=args.grpc_port)
@@ -253,7 +256,6 @@ def main(args: argparse.Namespace) -> int:
     from pemviz.estimators import check_runnable
     from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
-    from pemviz.sinks.recording import RerunSink
 
     serial = cfg.executor == "serial"
     check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above(cfg) if serial else None)
@@ -266,6 +268,8 @@ def main(args: argparse.Namespace) -> int:
     listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
     recorder = None
     if target != "no-record":
+        from pemviz.sinks.recording import RerunSink  # rerun, and pandas through pyarrow: only for a recording
+
         if target == "save":
             save_path.parent.mkdir(parents=True, exist_ok=True)
             recorder = RerunSink.to_file(save_path, overwrite=args.overwrite)
@@ -308,7 +312,7 @@ def main(args: argparse.Namespace) -> int:
     if target == "serve":
         try:  # entered before the line is printed: a Ctrl-C sent as soon as it is read still ends the serving
             print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
-            rr.script_teardown(args)  # waits for Ctrl-C
+            __import__("rerun").script_teardown(args)  # waits for Ctrl-C
         except KeyboardInterrupt:
             pass
     if recorder is not None:
