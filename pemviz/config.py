@@ -19,6 +19,8 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
+from pemviz.core.requirement import RequirementError, parse_requirement
+
 METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams")
 """adaptive: Algorithm 1; mc: rollouts with the PEM itself; naive50: a 50 % detector at every step;
 mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table II); ams: adaptive multilevel
@@ -332,10 +334,14 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("rel_error", "the target relative error", "sample more until the 95 % interval's half-width is at most "
             "this share of the estimate, or a cap (--max-sims, --max-time) is hit (None: the planned budget only)",
             lo=0.0, hi=10.0, lo_open=True, optional=True, owner=RUN, short="rel. error", flags=("--rel-error",)),
-    Setting("max_sims", "the most simulations", "with a precision target (--rel-error): the run stops adding rollouts at this "
+    Setting("require", "the requirement", "a requirement on p, e.g. 'p < 1e-9': sample more until the interval lies "
+            "wholly on one side of the threshold (a sequential test whose error stays at most 5 % over every look), or "
+            "a cap (--max-sims, --max-time) is hit; pemviz run exits 0 met, 1 violated, 3 undecided", kind="text",
+            optional=True, owner=RUN, flags=("--require",)),
+    Setting("max_sims", "the most simulations", "with a precision target (--rel-error) or a requirement (--require): the run stops adding rollouts at this "
             f"many simulations in all (None: {DEFAULT_MAX_SIMS:,})", kind="int", lo=1, optional=True, owner=RUN,
             short="max sims", flags=("--max-sims",)),
-    Setting("max_time_s", "the most wall-clock time", "with a precision target (--rel-error): no more rollouts once the run has "
+    Setting("max_time_s", "the most wall-clock time", "with --rel-error or --require: no more rollouts once the run has "
             "taken this long; where the run stops then depends on the machine (None: no time cap)", unit="s", lo=0.0,
             lo_open=True, optional=True, owner=RUN, short="max time", flags=("--max-time",)),
     Setting("proposal_inputs", "the proposal's inputs h(s)", "what the proposal sees", kind="choice",
@@ -457,6 +463,9 @@ class ExperimentConfig:
             batches from the same sampler, pooled with the first, until the 95 % interval's relative half-width
             (:attr:`pemviz.core.estimate.Estimate.rel_half_width`) is at most R or a cap is hit
             (:class:`pemviz.estimators.precision.PrecisionTarget`).
+        require: None or a requirement ``"p < T"`` (``<``, ``<=``, ``>``, ``>=``; T in (0, 1)): after the planned
+            stages the run adds final batches as for ``rel_error`` until the interval of an alpha-spending sequential
+            test lies wholly on one side of T (:mod:`pemviz.core.requirement`) or a cap is hit.
         max_sims: with ``rel_error``, the most simulations in all (None: :data:`DEFAULT_MAX_SIMS`); at least the
             planned ones.
         max_time_s: with ``rel_error``, no batch is started after this many seconds of the run, and none is sized to
@@ -558,6 +567,7 @@ class ExperimentConfig:
     ray_address: str | None = None
     chunk_rollouts: int | None = None
     rel_error: float | None = None
+    require: str | None = None
     max_sims: int | None = None
     max_time_s: float | None = None
     proposal_inputs: str = "state"
@@ -607,14 +617,23 @@ class ExperimentConfig:
         n_objects = SCENARIO_OBJECTS[self.scenario]
         need(self.method != "adaptive" or n_objects == 1 or not self.fits_whole_rollouts, "scenario",
              whole_rollout_fit_refusal(self, n_objects))
-        need(self.rel_error is None or self.method != "ams", "rel_error",
+        if self.require is not None:
+            try:
+                parse_requirement(self.require)
+            except RequirementError as exc:
+                need(False, "require", str(exc))
+        need(self.require is None or self.rel_error is None, "require",
+             "give one stop rule: a requirement (--require) or a precision target (--rel-error)")
+        rule = "require" if self.require is not None else "rel_error"
+        need(self.stop_rule is None or self.method != "ams", rule,
              "adaptive multilevel splitting has no final batch to add to; use it with method adaptive, mc, naive50 "
              "or mixed50")
-        need(self.rel_error is None or self.method != "adaptive" or self.final_estimate != "last-stage", "rel_error",
-             "a precision target adds final batches; final_estimate = 'last-stage' has none (use pooled or fresh)")
+        need(self.stop_rule is None or self.method != "adaptive" or self.final_estimate != "last-stage", rule,
+             "a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled or fresh)")
         for cap in ("max_sims", "max_time_s"):
-            need(getattr(self, cap) is None or self.rel_error is not None, cap,
-                 "a cap on the rollouts added for a target relative error: give it with rel_error (--rel-error)")
+            need(getattr(self, cap) is None or self.stop_rule is not None, cap,
+                 "a cap on the rollouts added for a target relative error or a requirement: give it with rel_error "
+                 "(--rel-error) or require (--require)")
         need(self.max_sims is None or self.max_sims >= self.n_simulations, "max_sims",
              f"{SETTINGS['max_sims'].words} must be at least the run's planned {self.n_simulations:,} simulations")
         need(self.final_smoothing is None or self.fit_weights == "mixture", "final_smoothing",
@@ -624,6 +643,12 @@ class ExperimentConfig:
     def replace(self, **changes: Any) -> "ExperimentConfig":
         """A copy with some fields changed, validated again."""
         return dataclasses.replace(self, **changes)
+
+    @property
+    def stop_rule(self) -> str | None:
+        """``rel_error`` or ``require`` when the run adds final batches until a precision target or a decision
+        (:class:`pemviz.estimators.precision.PrecisionTarget`), else None."""
+        return "rel_error" if self.rel_error is not None else "require" if self.require is not None else None
 
     @property
     def fits_whole_rollouts(self) -> bool:

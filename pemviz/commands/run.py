@@ -22,7 +22,7 @@ from pemviz.commands import (
 )
 from pemviz.config import SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
-from pemviz.io.files import check_output_folder, free_default_path
+from pemviz.io.files import check_output_folder, check_output_path, free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 # The parser needs only the light modules above: torch, rerun, the engine, the sinks and pyarrow are imported in
@@ -32,7 +32,7 @@ from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_level", "smoothing", "metric", "seed",
                 "ce_epochs", "pem", "scenario", "sim", "executor", "ray_address", "chunk_rollouts", "rel_error",
-                "max_sims", "max_time_s")
+                "require", "max_sims", "max_time_s")
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 
@@ -61,8 +61,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument("--rollout-stages", dest="rollout_stages", default="used", choices=("used", "all"),
                    help="--save-rollouts: the stages the estimate uses (default), or all of them")
+    p.add_argument("--json", dest="json_path", default=None, metavar="PATH.json",
+                   help="write the result as one JSON document: estimate, interval, verdict, requirement outcome, "
+                   "settings, seed, version, the recording's path (format: pemviz.io.result; schema: the user "
+                   "guide's 'pemviz in CI')")
+    p.add_argument("--junit", dest="junit_path", default=None, metavar="PATH.xml",
+                   help="with --require: write the requirement as a JUnit XML test case (passed, failure when "
+                   "violated, error when undecided) for CI dashboards")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace existing --save / --save-rollouts files (only files pemviz wrote)")
+                   help="replace existing --save / --save-rollouts / --json / --junit files (only files pemviz wrote)")
     add_recording_args(p)
     p.set_defaults(func=main)
 
@@ -210,6 +217,43 @@ def serve(args: argparse.Namespace):
     return sink
 
 
+def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path | None, Path | None]:
+    """The ``--json`` and ``--junit`` paths, checked before any work (nothing is created).
+
+    Raises:
+        UsageError: a path that cannot be written, or ``--junit`` without ``--require``.
+    """
+    paths = []
+    for flag, value, suffix in (("--json", args.json_path, ".json"), ("--junit", args.junit_path, ".xml")):
+        if value is None:
+            paths.append(None)
+            continue
+        if flag == "--junit" and cfg.require is None:
+            raise UsageError("--junit writes a requirement as a test case: give one with --require, e.g. "
+                             "--require 'p < 1e-9'")  # fmt: skip
+        try:
+            paths.append(check_output_path(value, suffix, flag, overwrite=args.overwrite))
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+    return paths[0], paths[1]
+
+
+def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, final, recording: str | None,
+                  json_path: Path | None, junit_path: Path | None) -> None:  # fmt: skip
+    """Write ``--json`` and ``--junit`` (atomically) and say where."""
+    from pemviz.io.result import result_document, write_junit, write_result_json
+
+    doc = result_document(cfg, final, exact_log_p=problem.exact_log_p, reference=problem.reference,
+                          recording=recording, command=" ".join(["pemviz", *sys.argv[1:]]))  # fmt: skip
+    console = final.estimate.summary(problem.exact_log_p, problem.reference)
+    if final.stop is not None:
+        console += f"\nstop: {final.stop}"
+    if json_path is not None:
+        print(f"result: {write_result_json(json_path, doc, overwrite=args.overwrite)}", file=sys.stderr)
+    if junit_path is not None:
+        print(f"junit: {write_junit(junit_path, doc, console, overwrite=args.overwrite)}", file=sys.stderr)
+
+
 def main(args: argparse.Namespace) -> int:
     try:
         cfg = config_from_args(args)
@@ -235,6 +279,7 @@ def main(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
 
+    json_path, junit_path = result_paths(args, cfg)
     target = recording_target(args)
     save_path = None
     if target == "save":
@@ -290,7 +335,7 @@ def main(args: argparse.Namespace) -> int:
         experiment.listeners.append(likely)
     try:
         with torch_threads(1):
-            experiment.run()
+            done = experiment.run()
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
         where = recorder.close() if recorder is not None else None
         done = f"{len(experiment.stages)} stage(s) finished"
@@ -315,8 +360,16 @@ def main(args: argparse.Namespace) -> int:
             __import__("rerun").script_teardown(args)  # waits for Ctrl-C
         except KeyboardInterrupt:
             pass
+    where = None
     if recorder is not None:
         where = recorder.close()
         if where is not None:
             print(f"recording: {where}", file=sys.stderr)
+    final = getattr(done, "final", None)
+    if final is not None and (json_path is not None or junit_path is not None):
+        write_results(args, cfg, problem, final, str(where) if where is not None else None, json_path, junit_path)
+    if cfg.require is not None and final is not None and final.decision is not None:
+        from pemviz.core.requirement import EXIT_CODES
+
+        return EXIT_CODES[final.decision.outcome]
     return 0

@@ -24,6 +24,7 @@ if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.core.detectors import Detector
     from pemviz.core.estimate import Estimate, Reference
     from pemviz.core.problems import ProblemView
+    from pemviz.core.requirement import Decision
     from pemviz.scenarios import RolloutBatch
 
 
@@ -155,8 +156,11 @@ class FinalEstimate:
     precision target): (the rule, ``rollouts`` for every rollout alike; lambda_k of each stage, summing to 1), as the
     rollout file's sidecar states it (:func:`pemviz.estimators.base.pool`); None: one stage, or the config's rule."""
     stop: str | None = None
-    """With a target relative error (``ExperimentConfig.rel_error``): why the run stopped adding rollouts, one line
-    (the target reached, or which cap); None without one."""
+    """With a target relative error or a requirement (``ExperimentConfig.rel_error``, ``require``): why the run
+    stopped adding rollouts, one line (the target reached, the requirement decided, or which cap); None without one."""
+    decision: Decision | None = None
+    """With a requirement (``ExperimentConfig.require``): the last look's decision, its outcome ``met``,
+    ``violated`` or ``undecided`` (:mod:`pemviz.core.requirement`); None without one."""
 
 
 @dataclass(frozen=True)

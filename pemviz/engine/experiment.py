@@ -182,7 +182,8 @@ class Experiment:
         seen = self.seen_failures.log_p
         pooling = getattr(estimator, "pooling", None)
         final = FinalEstimate(est.below_seen(seen), n_sim, time.perf_counter() - t_start, used, seen,
-                              pooling() if callable(pooling) else None, getattr(estimator, "stop", None))  # fmt: skip
+                              pooling() if callable(pooling) else None, getattr(estimator, "stop", None),
+                              getattr(estimator, "decision", None))  # fmt: skip
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)

@@ -4,7 +4,8 @@
 - :class:`CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022) with pemviz's improvements.
 - :class:`FixedSampler` (``mc``, ``naive50``, ``mixed50``): one importance-weighted batch from a fixed detector.
 - :class:`AdaptiveMultilevelSplitting` (``ams``): splitting of target rollouts on their robustness, no weights.
-- :class:`PrecisionTarget` (``rel_error``): any of the first two, with final batches added until a relative precision.
+- :class:`PrecisionTarget` (``rel_error``, ``require``): any of the first two, with final batches added until a
+  relative precision or a decision on a requirement.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
     else:
         baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
         inner = baseline(problem, config.n_per_stage, config.weights_until_failure, config.seed)
-    return inner if config.rel_error is None else PrecisionTarget(inner, config)
+    return inner if config.stop_rule is None else PrecisionTarget(inner, config)
 
 
 def run_plan(config: ExperimentConfig) -> RunPlan:
@@ -58,4 +59,4 @@ def run_plan(config: ExperimentConfig) -> RunPlan:
     if config.method == "ams":
         return AdaptiveMultilevelSplitting.run_plan(config)
     plan = CrossEntropy.run_plan(config) if config.method == "adaptive" else FixedSampler.run_plan(config.n_per_stage)
-    return plan if config.rel_error is None else RunPlan(plan.stages, open_ended=True)
+    return plan if config.stop_rule is None else RunPlan(plan.stages, open_ended=True)

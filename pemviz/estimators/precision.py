@@ -22,6 +22,7 @@ import numpy as np
 
 from pemviz.config import DEFAULT_MAX_SIMS, ExperimentConfig
 from pemviz.core.estimate import Estimate
+from pemviz.core.requirement import Decision, decide, parse_requirement
 from pemviz.engine.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan
 from pemviz.scenarios import RolloutBatch
@@ -68,10 +69,20 @@ def added_batch_size(est: Estimate, n_final: int, target: float) -> int:
     return int(min(max(need, MIN_BATCH), max(GROWTH * n_final, MIN_BATCH)))
 
 
+def decision_batch_size(est: Estimate, n_final: int, log_threshold: float) -> int:
+    """Rollouts of the next added batch for a requirement: enough, by the 1 / sqrt(n) law, for the interval's relative
+    half-width to fall below the estimate's relative distance to the threshold (two thirds of it: the interval of the
+    next look is wider), within the bounds of :func:`added_batch_size`."""
+    distance = abs(math.expm1(log_threshold - est.log_mu_hat)) if math.isfinite(est.log_mu_hat) else math.nan
+    return added_batch_size(est, n_final, max(distance / 1.5, 1e-3) if math.isfinite(distance) else 1.0)
+
+
 class PrecisionTarget:
     """Runs ``inner`` as planned, then adds final batches until the estimate's relative half-width is at most
-    ``config.rel_error``, or ``config.max_sims`` simulations (default :data:`pemviz.config.DEFAULT_MAX_SIMS`) or
-    ``config.max_time_s`` seconds are reached. :attr:`stop` says why it stopped, in one line.
+    ``config.rel_error`` (a precision target) or a requirement ``config.require`` is decided
+    (:func:`pemviz.core.requirement.decide`, one look after each batch), or ``config.max_sims`` simulations (default
+    :data:`pemviz.config.DEFAULT_MAX_SIMS`) or ``config.max_time_s`` seconds are reached. :attr:`stop` says why it
+    stopped, in one line; :attr:`decision` is the last look's :class:`pemviz.core.requirement.Decision`.
 
     Args:
         inner: the estimator (:class:`Extensible`).
@@ -83,8 +94,8 @@ class PrecisionTarget:
 
     def __init__(self, inner: Extensible, config: ExperimentConfig,
                  clock: Callable[[], float] = time.perf_counter) -> None:  # fmt: skip
-        if config.rel_error is None:
-            raise ValueError("PrecisionTarget: the config has no rel_error")
+        if config.stop_rule is None:
+            raise ValueError("PrecisionTarget: the config has neither rel_error nor require")
         self.inner, self.config, self.clock = inner, config, clock
         self.rng = inner.rng
         self.max_sims = config.max_sims if config.max_sims is not None else DEFAULT_MAX_SIMS
@@ -92,6 +103,9 @@ class PrecisionTarget:
         self.n_simulations = 0
         """Rollouts drawn so far."""
         self.stop: str | None = None
+        self.requirement = None if config.require is None else parse_requirement(config.require)
+        self.decision: Decision | None = None
+        """With a requirement: the last look's decision (None before the first look)."""
         self._planned = True
         self._current: StagePlan | None = None
 
@@ -115,14 +129,24 @@ class PrecisionTarget:
         if self.stop is not None:
             return None
         est, _ = self.inner.result()
-        target, width = self.config.rel_error, est.rel_half_width
         elapsed = self.clock() - self.t0
-        if width <= target:
-            self.stop = (f"target reached: the interval's relative half-width {width:.3g} <= {target:g} after "
-                         f"{self.n_simulations:,} simulations")  # fmt: skip
-            return None
+        if self.requirement is not None:
+            look = 1 if self.decision is None else self.decision.look + 1
+            self.decision = decide(est, self.requirement, look, plain_mc=self.config.method == "mc")
+            if self.decision.outcome != "undecided":
+                self.stop = (f"requirement {self.decision.outcome}: {self.decision.why}, after "
+                             f"{self.n_simulations:,} simulations")  # fmt: skip
+                return None
+            want = decision_batch_size(est, self.inner.final_rollouts(), self.requirement.log_threshold)
+        else:
+            target, width = self.config.rel_error, est.rel_half_width
+            if width <= target:
+                self.stop = (f"target reached: the interval's relative half-width {width:.3g} <= {target:g} after "
+                             f"{self.n_simulations:,} simulations")  # fmt: skip
+                return None
+            want = added_batch_size(est, self.inner.final_rollouts(), target)
         left = self.max_sims - self.n_simulations
-        n = min(added_batch_size(est, self.inner.final_rollouts(), target), left)
+        n = min(want, left)
         cap = None
         if left <= 0:
             cap = f"--max-sims {self.max_sims:,} reached"
@@ -134,6 +158,11 @@ class PrecisionTarget:
             else:
                 n = int(min(n, max(1, math.floor(rate * time_left))))
         if cap is not None:
+            if self.decision is not None:
+                self.stop = (f"requirement undecided within budget: {cap} ({self.decision.why}, after "
+                             f"{self.n_simulations:,} simulations)")  # fmt: skip
+                return None
+            width = est.rel_half_width
             shown = "no failure yet" if not math.isfinite(width) else f"relative half-width {width:.3g} > {target:g}"
             self.stop = (f"stopped at a cap, not at the target: {cap} ({shown} after {self.n_simulations:,} "
                          "simulations)")  # fmt: skip

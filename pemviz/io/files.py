@@ -173,8 +173,8 @@ def written_by_pemviz(path: Path) -> bool:
         return False
     if path.suffix in MAGIC:
         return head.startswith(MAGIC[path.suffix])
-    if path.suffix == ".json":
-        return b'"pemviz-rollouts"' in head
+    if path.suffix == ".json":  # a rollout sidecar or a run's result (pemviz run --json)
+        return b'"pemviz-rollouts"' in head or b'"pemviz-result"' in head
     return True
 
 

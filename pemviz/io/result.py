@@ -1,0 +1,150 @@
+"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``) and a JUnit XML test case for a
+requirement (``pemviz run --junit``).
+
+The JSON document (format tag ``pemviz-result``, :data:`RESULT_VERSION`) holds the estimate with its 95 % interval,
+ESS, k-hat and verdict, the exact answer or reference where one is known, the requirement's outcome, the settings and
+seed, the pemviz version and the recording's path. Probabilities are given both as numbers and as natural logs (a
+probability below float64's range is 0 as a number, finite as a log); a value that is not finite is ``null``. Its JSON
+Schema is in the user guide ("pemviz in CI"), and a test validates a run's document against it.
+
+The JUnit file (the format of Ant's JUnit task, which CI dashboards read) holds one test case named after the
+requirement: passed when met, ``<failure>`` when violated, ``<error type="undecided">`` when undecided within the
+budget.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+from xml.etree import ElementTree as ET
+
+from pemviz.io.files import atomic_write
+
+RESULT_FORMAT = "pemviz-result"
+RESULT_VERSION = 1
+
+
+def _number(x: float | None) -> float | None:
+    """A float for JSON: None for None, nan and +-inf."""
+    return None if x is None or not math.isfinite(float(x)) else float(x)
+
+
+def _probability(log_p: float | None) -> dict[str, float | None]:
+    return {"p": None if log_p is None or math.isnan(log_p) else math.exp(log_p), "log_p": _number(log_p)}
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, float):
+        return _number(value)
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    return value if value is None or isinstance(value, (bool, int, str)) else str(value)
+
+
+def result_document(config: Any, final: Any, *, exact_log_p: float | None = None, reference: Any = None,
+                    recording: str | None = None, command: str | None = None) -> dict[str, Any]:  # fmt: skip
+    """The JSON document of a finished run.
+
+    Args:
+        config: the run's :class:`pemviz.config.ExperimentConfig`.
+        final: its :class:`pemviz.engine.events.FinalEstimate`.
+        exact_log_p: the exact log p where the problem has one (nats); reference: its
+            :class:`pemviz.core.estimate.Reference`, or None.
+        recording: where the recording went (a path or a URL), or None.
+        command: the command line, for the record.
+    """
+    import pemviz
+
+    e = final.estimate
+    lo, hi = e.log_ci
+    doc: dict[str, Any] = {
+        "format": RESULT_FORMAT,
+        "version": RESULT_VERSION,
+        "pemviz_version": pemviz.__version__,
+        "command": command,
+        "scenario": config.scenario,
+        "method": config.method,
+        "seed": config.seed,
+        "estimate": {
+            **_probability(e.log_mu_hat),
+            "ci95": [_probability(lo)["p"], _probability(hi)["p"]],
+            "log_ci95": [_number(lo), _number(hi)],
+            "ess": _number(e.ess),
+            "k_hat": _number(e.khat),
+            "n_failures": int(e.n_failures),
+            "n": int(e.n),
+            "verdict": e.verdict,
+            "reason": e.reason,
+        },
+        "n_simulations": int(final.n_simulations),
+        "wall_s": _number(final.wall_s),
+        "exact": None if exact_log_p is None else _probability(exact_log_p),
+        "reference": None if reference is None else {**_probability(reference.log_p), "source": reference.source},
+        "requirement": None,
+        "stop": final.stop,
+        "recording": recording,
+        "settings": _plain(dataclasses.asdict(config)),
+    }
+    d = getattr(final, "decision", None)
+    if config.require is not None and d is not None:
+        from pemviz.core.requirement import EXIT_CODES, parse_requirement
+
+        req = parse_requirement(config.require)
+        doc["requirement"] = {
+            "text": str(req), "op": req.op, "threshold": req.threshold, "outcome": d.outcome,
+            "exit_code": EXIT_CODES[d.outcome], "look": d.look, "level": d.level,
+            "ci": [_probability(d.log_ci[0])["p"], _probability(d.log_ci[1])["p"]], "why": d.why,
+        }  # fmt: skip
+    return doc
+
+
+def write_result_json(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite: bool = False) -> Path:
+    """Write ``doc`` (:func:`result_document`) atomically as JSON.
+
+    Raises:
+        OSError: the file could not be written (nothing is left); OutputExists: ``path`` exists, no ``overwrite``.
+    """
+    text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text), overwrite=overwrite)
+
+
+def junit_xml(doc: dict[str, Any], console: str = "") -> bytes:
+    """One JUnit test suite with one test case, the requirement of ``doc`` (:func:`result_document`).
+
+    Raises:
+        ValueError: ``doc`` has no requirement.
+    """
+    req = doc.get("requirement")
+    if req is None:
+        raise ValueError("a JUnit test case needs a requirement (--require)")
+    outcome = req["outcome"]
+    wall = f"{doc['wall_s'] or 0.0:.3f}"
+    suite = ET.Element("testsuite", name="pemviz", tests="1", failures=str(int(outcome == "violated")),
+                       errors=str(int(outcome == "undecided")), skipped="0", time=wall)  # fmt: skip
+    case = ET.SubElement(suite, "testcase", classname=f"pemviz.{doc['scenario']}", name=req["text"], time=wall)
+    message = f"requirement {outcome}: {req['why']}"
+    if outcome == "violated":
+        ET.SubElement(case, "failure", type="violated", message=message).text = message
+    elif outcome == "undecided":
+        ET.SubElement(case, "error", type="undecided", message=message).text = doc.get("stop") or message
+    ET.SubElement(case, "system-out").text = console
+    root = ET.Element("testsuites")
+    root.append(suite)
+    return ET.tostring(root, encoding="utf-8", xml_declaration=True)
+
+
+def write_junit(path: str | os.PathLike[str], doc: dict[str, Any], console: str = "", *,
+                overwrite: bool = False) -> Path:  # fmt: skip
+    """Write :func:`junit_xml` atomically.
+
+    Raises:
+        ValueError: ``doc`` has no requirement; OSError, OutputExists: as :func:`write_result_json`.
+    """
+    data = junit_xml(doc, console)
+    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data), overwrite=overwrite)
