@@ -9,6 +9,7 @@ import types
 import numpy as np
 import pytest
 
+from conftest import run_cli
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference, estimate
 from pemviz.estimators import CrossEntropy
@@ -55,12 +56,39 @@ def test_a_single_dominating_weight_is_not_reliable():
 def test_a_run_whose_stages_never_reached_the_failure_level_is_never_reliable():
     good = distinct(np.full(400, -5.0) + np.random.default_rng(0).normal(0, 0.1, 400), np.ones(400, bool))
     assert good.verdict == "reliable"  # the numbers alone would pass every check
-    ce = types.SimpleNamespace(reached_failures=False, _result=lambda: (good, (11,)))
-    est, used = CrossEntropy.result(ce)
+    cfg = ExperimentConfig()  # the default sampler: frozen weights, window, weights until failure
+
+    def result(reached: bool, config: ExperimentConfig = cfg) -> tuple:
+        ce = types.SimpleNamespace(reached_failures=reached, config=config, _result=lambda: (good, (11,)))
+        ce.verdict_cap = CrossEntropy.verdict_cap.fget(ce)
+        return CrossEntropy.result(ce)
+
+    est, used = result(False)
     assert used == (11,) and est.verdict == "doubtful"
     assert est.reason.startswith("no stage's threshold reached the failure level")
-    ce.reached_failures = True
-    assert CrossEntropy.result(ce)[0].verdict == "reliable"
+    assert result(True)[0].verdict == "reliable"
+
+
+@pytest.mark.parametrize("preset", ["paper", "authors-code"])
+def test_the_paper_s_whole_rollout_fit_never_claims_reliable(preset):
+    """The paper's fit of whole elite rollouts can settle on one failure mode: `--preset authors-code --n 100 --seed 1`
+    said "reliable" at 4.6e-18 [2.8e-18, 7.6e-18] (ESS 13.8, k-hat 0.32) against the exact 1.984e-15."""
+    from pemviz.presets import PRESETS
+
+    good = distinct(np.full(400, -5.0) + np.random.default_rng(0).normal(0, 0.1, 400), np.ones(400, bool))
+    cfg = ExperimentConfig(**PRESETS[preset])
+    ce = types.SimpleNamespace(reached_failures=True, config=cfg, _result=lambda: (good, (10,)))
+    ce.verdict_cap = CrossEntropy.verdict_cap.fget(ce)
+    est = CrossEntropy.result(ce)[0]
+    assert est.verdict == "doubtful" and "whole elite rollouts" in est.reason
+    assert est.log_mu_hat == good.log_mu_hat and est.log_ci == good.log_ci  # the numbers stay
+
+
+def test_the_verdict_cap_reaches_the_console(tmp_path):
+    proc = run_cli("run", "--preset", "authors-code", "--n", "100", "--seed", "1", "--no-record", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("mu_hat = 4.620e-18"))
+    assert ": doubtful (the paper's fit of whole elite rollouts" in line and "OUTSIDE the interval" in line
 
 
 def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():

@@ -266,9 +266,12 @@ def main(args: argparse.Namespace) -> int:
     data = read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
     weights, why = weights_convention(data.meta, args.weights)
-    seen = ((data.meta.provenance or {}).get("estimate") or {}).get("log_p_seen") if data.meta else None
+    run_estimate = ((data.meta.provenance or {}).get("estimate") or {}) if data.meta else {}
+    own = p_src == "column log_p"  # the run's PEM: its bound and its sampler's cap apply
+    cap = run_estimate.get("verdict_cap")
     result = estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure, weights=weights,
-                               log_p_seen=seen if p_src == "column log_p" else None)  # the run's PEM only
+                               log_p_seen=run_estimate.get("log_p_seen") if own else None,
+                               verdict_cap=tuple(cap) if own and isinstance(cap, list) and len(cap) == 2 else None)
     if result.weights != weights:
         why = f"{weights} needs a crash of a G[a,b](state predicate) formula; every step but the last instead"
     check_plausible(result.estimate, q_src)

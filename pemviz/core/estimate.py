@@ -123,6 +123,14 @@ class Estimate:
                   "it misses most of them")  # fmt: skip
         return dataclasses.replace(self, verdict="unreliable", reason=reason)
 
+    def at_most(self, cap: tuple[str, str] | None) -> "Estimate":
+        """This estimate with its verdict no better than ``cap`` = (verdict, reason): what the sampler knows and the
+        weights cannot show (e.g. a proposal never fitted to a failure). None, or a verdict already as bad: unchanged.
+        """
+        if cap is None or VERDICTS.index(self.verdict) >= VERDICTS.index(cap[0]):
+            return self
+        return dataclasses.replace(self, verdict=cap[0], reason=cap[1])
+
     def summary(self, exact_log_p: float | None = None, reference: "Reference | None" = None) -> str:
         """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, the exact answer if known, else the
         reference answer if one is given (:meth:`Reference.comparison`).

@@ -158,6 +158,9 @@ class FinalEstimate:
     stop: str | None = None
     """With a target relative error or a requirement (``ExperimentConfig.rel_error``, ``require``): why the run
     stopped adding rollouts, one line (the target reached, the requirement decided, or which cap); None without one."""
+    verdict_cap: tuple[str, str] | None = None
+    """The best verdict the sampler lets its estimate claim, whatever the weights show (verdict, reason), or None
+    (:attr:`pemviz.estimators.CrossEntropy.verdict_cap`): the rollout file keeps it for ``pemviz estimate``."""
     decision: Decision | None = None
     """With a requirement (``ExperimentConfig.require``): the last look's decision, its outcome ``met``,
     ``violated`` or ``undecided`` (:mod:`pemviz.core.requirement`); None without one."""

@@ -183,7 +183,7 @@ class Experiment:
         pooling = getattr(estimator, "pooling", None)
         final = FinalEstimate(est.below_seen(seen), n_sim, time.perf_counter() - t_start, used, seen,
                               pooling() if callable(pooling) else None, getattr(estimator, "stop", None),
-                              getattr(estimator, "decision", None))  # fmt: skip
+                              getattr(estimator, "verdict_cap", None), getattr(estimator, "decision", None))  # fmt: skip
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)

@@ -383,10 +383,23 @@ class CrossEntropy(OwnsSettings):
         adaptive importance sampling", NeurIPS 2018).
         """
         est, used = self._result()
-        if not self.reached_failures and est.verdict == "reliable":  # a proposal fitted to no failure: no claim
-            est = dataclasses.replace(est, verdict="doubtful", reason=(
-                "no stage's threshold reached the failure level: the proposal was never fitted to a failure"))
-        return est, used
+        return est.at_most(self.verdict_cap), used
+
+    @property
+    def verdict_cap(self) -> tuple[str, str] | None:
+        """(verdict, reason): the best verdict this sampler's estimate can claim, whatever its weights show, or None.
+
+        ``doubtful`` when no stage's threshold reached the failure level (a proposal never fitted to a failure), and
+        when the first fit takes whole elite rollouts (:attr:`pemviz.config.ExperimentConfig.fits_whole_rollouts`,
+        the paper's own fit): such a proposal can settle on one failure mode and miss others, which no diagnostic of
+        its weights can see (the user guide's Validation page: "reliable" with the exact answer far outside the
+        interval in 1 of 200 seeds of the ``paper`` preset and 1 of 10 of ``authors-code`` at N = 100)."""
+        if not self.reached_failures:
+            return "doubtful", "no stage's threshold reached the failure level: the proposal was never fitted to a failure"
+        if self.config.fits_whole_rollouts:
+            return "doubtful", ("the paper's fit of whole elite rollouts can settle on one failure mode and miss "
+                                "others its weights cannot show (the Validation page); use the default sampler")
+        return None
 
     def _result(self) -> tuple[Estimate, tuple[int, ...]]:
         stage, est = self._last

@@ -157,7 +157,7 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
 
 def estimate_rollouts(
     data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
-    weights: str = "to-failure", log_p_seen: float | None = None,
+    weights: str = "to-failure", log_p_seen: float | None = None, verdict_cap: tuple[str, str] | None = None,
 ) -> RolloutEstimate:
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
 
@@ -179,6 +179,8 @@ def estimate_rollouts(
         log_p_seen: the probability of the failures the run drew (nats; the sidecar's, for the run's own log p):
             with the file's own failures' (:class:`pemviz.estimators.base.SeenFailures`, ``failure="crash"``), the
             bound below which the verdict is unreliable (:meth:`pemviz.core.estimate.Estimate.below_seen`).
+        verdict_cap: the best verdict the run's sampler let it claim (the sidecar's; :meth:`pemviz.core.estimate.
+            Estimate.at_most`), for the run's own log p.
     Raises:
         ValueError: an unknown metric, failure mode or convention, arrays of the wrong shape, or a formula the file's
             signals cannot evaluate (a RolloutFormatError naming the file).
@@ -224,6 +226,7 @@ def estimate_rollouts(
         seen.add(problem, batch, failed)
         bounds = [b for b in (seen.log_p, log_p_seen) if b is not None]
         est = est.below_seen(max(bounds) if bounds else None)
+    est = est.at_most(verdict_cap)
     bound = None
     if data.stage is not None and data.meta.stages:
         b = {s["stage"]: s["max_weight"] for s in data.meta.stages}

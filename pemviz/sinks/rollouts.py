@@ -147,8 +147,9 @@ class RolloutSink(Sink):
             lam = None if rule == "single" else pool_stage_weights(rule, sizes)
         lam = np.asarray(sizes, dtype=np.float64) / sum(sizes) if lam is None else lam
         provenance = dict(writer.meta.provenance or {})
+        cap = finished.final.verdict_cap  # the verdict's bound and cap: pemviz estimate applies them as the run did
         provenance["estimate"] = {**_estimate_json(finished.final.estimate), "stages_used": used,
-                                  "log_p_seen": finished.final.log_p_seen}  # the verdict's bound: pemviz estimate
+                                  "log_p_seen": finished.final.log_p_seen, "verdict_cap": list(cap) if cap else None}
         provenance["stage_estimates"] = {str(k): v for k, v in sorted(self._results.items())}
         writer.meta = dataclasses.replace(
             writer.meta, provenance=provenance, weights=convention(getattr(cfg, "weights_until_failure", True)),
