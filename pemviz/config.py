@@ -338,6 +338,15 @@ SETTINGS: dict[str, Setting] = _settings(
             "wholly on one side of the threshold (a sequential test whose error stays at most 5 % over every look), or "
             "a cap (--max-sims, --max-time) is hit; pemviz run exits 0 met, 1 violated, 3 undecided", kind="text",
             optional=True, owner=RUN, flags=("--require",)),
+    Setting("margin", "the crash gap", "braking: a failure is the gap dropping below this many metres (None: the "
+            "scenario's 2 m); 0 targets contact, the severity curve's last point, which a run at 2 m rarely reaches",
+            unit="m", lo=0.0, hi=10.0, optional=True, owner=RUN, flags=("--margin",)),
+    Setting("pem_uncertainty", "the PEM's uncertainty", "re-weight the run's rollouts under each member of the "
+            "PEM's bootstrap ensemble and under its logits shifted by a half and a whole unit either way: the spread "
+            "of p over plausible PEMs, with no new simulation", kind="bool", owner=RUN, short="PEM uncertainty", flags=("--pem-uncertainty",)),
+    Setting("pem_shift", "the PEM's logit shift", "re-weight the run's rollouts under the PEM with every logit "
+            "shifted by D (log-odds): a camera that misses more (D < 0) or less often than the PEM says",
+            lo=-10.0, hi=10.0, optional=True, owner=RUN, short="PEM shift", flags=("--pem-shift",)),
     Setting("max_sims", "the most simulations", "with a precision target (--rel-error) or a requirement (--require): the run stops adding rollouts at this "
             f"many simulations in all (None: {DEFAULT_MAX_SIMS:,})", kind="int", lo=1, optional=True, owner=RUN,
             short="max sims", flags=("--max-sims",)),
@@ -466,6 +475,12 @@ class ExperimentConfig:
         require: None or a requirement ``"p < T"`` (``<``, ``<=``, ``>``, ``>=``; T in (0, 1)): after the planned
             stages the run adds final batches as for ``rel_error`` until the interval of an alpha-spending sequential
             test lies wholly on one side of T (:mod:`pemviz.core.requirement`) or a cap is hit.
+        margin: None or the braking scenario's crash gap in metres (``BrakingParams.crash_gap_m``, default 2): a
+            failure is the gap dropping below it; 0 is contact (the severity curve's last point,
+            :mod:`pemviz.core.severity`).
+        pem_uncertainty: re-weight the rollouts under every member of the PEM's bootstrap ensemble and under the
+            logit shifts :data:`pemviz.core.problems.PEM_SHIFTS` (:mod:`pemviz.core.reweight`).
+        pem_shift: None or D: re-weight the rollouts under the PEM with every logit shifted by D (log-odds).
         max_sims: with ``rel_error``, the most simulations in all (None: :data:`DEFAULT_MAX_SIMS`); at least the
             planned ones.
         max_time_s: with ``rel_error``, no batch is started after this many seconds of the run, and none is sized to
@@ -568,6 +583,9 @@ class ExperimentConfig:
     chunk_rollouts: int | None = None
     rel_error: float | None = None
     require: str | None = None
+    margin: float | None = None
+    pem_uncertainty: bool = False
+    pem_shift: float | None = None
     max_sims: int | None = None
     max_time_s: float | None = None
     proposal_inputs: str = "state"
@@ -617,6 +635,8 @@ class ExperimentConfig:
         n_objects = SCENARIO_OBJECTS[self.scenario]
         need(self.method != "adaptive" or n_objects == 1 or not self.fits_whole_rollouts, "scenario",
              whole_rollout_fit_refusal(self, n_objects))
+        need(self.margin is None or self.scenario == "braking", "margin",
+             "the crash gap is the braking scenario's; the cut-in's failure is its safe distance (R_G1)")
         if self.require is not None:
             try:
                 parse_requirement(self.require)

@@ -201,8 +201,10 @@ def _final_lines(seed: int, executor: str) -> tuple[str, str]:
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert cli.main([*RUN_ARGS, "--seed", str(seed), "--executor", executor]) == 0
-    lines = [ln for ln in out.getvalue().splitlines() if not ln.startswith(("next: ", "stop: "))]  # the advice after
-    return lines[-1], lines[-2].split(" from ")[0]
+    lines = out.getvalue().splitlines()
+    verdict = next(ln for ln in lines if ln.startswith("mu_hat = ") and "CI" in ln)
+    log_line = next(ln for ln in lines if ln.startswith("mu_hat = ") and "(log mu_hat" in ln)
+    return verdict, log_line.split(" from ")[0]
 
 
 @ray_missing

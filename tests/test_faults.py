@@ -399,12 +399,21 @@ def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, 
         (["run", "--metric", "best", "--no-record"], "--metric: metric = 'best' is invalid: use one of classic, agm"),
         (["run", "--rel-error", "0", "--no-record"], "--rel-error: rel_error = 0.0 is invalid"),
         (["run", "--max-time", "5", "--no-record"], "--max-time: max_time_s = 5.0 is invalid: a cap on the rollouts "
-         "added for a target relative error: give it with rel_error (--rel-error)"),
+         "added for a target relative error or a requirement: give it with rel_error (--rel-error) or require "
+         "(--require)"),
+        (["run", "--margin", "-1", "--no-record"], "--margin: margin = -1.0 is invalid: the crash gap must be None or a "
+         "number in [0, 10]"),
+        (["run", "--scenario", "cut-in", "--margin", "1", "--no-record"], "--margin: margin = 1.0 is invalid: the "
+         "crash gap is the braking scenario's"),
+        (["run", "--pem", "gbt", "--pem-uncertainty", "--no-record"], "ensemble_gbt.pt: no PEM ensemble there"),
+        (["run", "--pem-shift", "11", "--no-record"], "--pem-shift: pem_shift = 11.0 is invalid"),
+        (["report", "{tmp}/file.txt"], "file.txt: not a readable JSON file"),
     ],
     ids=["json-folder", "name-240", "proposal-name", "pem-eval-proc", "pem-train-proc", "validate-proc",
          "tables-proc", "validate-file", "n-1e12", "n-final-1e12", "k-1e12", "epochs-1e12", "ray-refused", "ray-bad",
          "host-999", "host-foreign", "estimate-rrd", "estimate-rrd-renamed", "sigma-word", "metric-bad",
-         "rel-error-0", "max-time-alone"],
+         "rel-error-0", "max-time-alone", "margin-negative", "margin-cut-in", "no-ensemble", "pem-shift-11",
+         "report-not-json"],
 )  # fmt: skip
 def test_cli_bad_output_or_resource_is_one_line_before_any_work(tmp_path, capsys, args, message):
     (tmp_path / "X.json").mkdir()

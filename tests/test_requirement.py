@@ -212,7 +212,9 @@ def test_the_ci_page_s_job_runs_as_written(tmp_path):
         argv = [sys.executable, "-m", "pemviz.cli", *shlex.split(command)[1:]]
         proc = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stderr[-2000:]
-    for name in ("gate.rrd", "gate.json", "gate.xml"):
+    artifacts = re.search(r"path: \|\n((?:\s+\S+\n)+)", job).group(1).split()
+    assert artifacts == ["gate.rrd", "gate.json", "gate.xml", "gate.html", "gate.md"]
+    for name in artifacts:  # every artifact the job keeps was written
         assert (tmp_path / name).stat().st_size > 0, name
     doc = json.loads((tmp_path / "gate.json").read_text())
     jsonschema.validate(doc, schema())

@@ -57,8 +57,9 @@ def estimate_cells(est_out: str) -> dict[object, str]:
 
 
 def summary_line(out: str) -> str:
-    """The verdict line: the last line but the advice after it (``stop:``, ``next:``)."""
-    return [ln for ln in out.strip().splitlines() if not ln.startswith(("stop: ", "next: "))][-1]
+    """The verdict line: the last line that gives mu_hat with its interval (or says no failure was seen)."""
+    return [ln for ln in out.strip().splitlines() if ln.startswith(("mu_hat = ", "no failure seen in"))
+            and ("CI" in ln or "no failure seen in" in ln)][-1]
 
 
 def assert_round_trip(run: str, est: str, sidecar: dict) -> None:

@@ -66,6 +66,13 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
         f"{plots.finite_or_dash(e.khat, '.2f')} · NLL {plots.finite_or_dash(e.nll_mean, '.1f')} nats · "
         f"{ev.n_simulations:,} simulations in {ev.wall_s:.1f} s"
     )
+    curve = getattr(ev, "severity", None)
+    if curve is not None and len(curve.points) > 1:
+        lines.append(f"<b>{html.escape(curve.title())}</b>")
+        lines.extend(f"{html.escape(label)}: {html.escape(text)}" for label, text in curve.rows())
+    spread = getattr(ev, "pem_spread", None)
+    if spread is not None:
+        lines.extend(html.escape(line) for line in spread.lines())
     return box("<br>".join(lines), colour)
 
 

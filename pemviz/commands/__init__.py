@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "estimate": ("pemviz.commands.estimate", "estimate the failure probability from logged rollouts (Parquet)"),
     "validate": ("pemviz.commands.validate", "judge the sampler and the baselines against exact failure probabilities"),
     "tables": ("pemviz.commands.tables", "reproduce the paper's Tables II and III with repetitions and the exact answer"),
+    "report": ("pemviz.commands.report", "write a safety-case report (HTML and Markdown) from a run's result document"),
 }
 """Each command: (its module, its one-line help). ``pemviz --help`` lists them without importing any command module."""
 
@@ -95,6 +96,9 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
     shown = getattr(ExperimentConfig(), name)
     shown = SHOWN_DEFAULTS.get(name, shown) if shown is None else shown
     text = f"{s.hint} (default {shown})".replace("%", "%%")  # argparse formats help with %
+    if s.kind == "bool":  # a switch: present sets True, absent leaves the config's value
+        p.add_argument(*s.flags, dest=name, action="store_const", const=True, default=default, help=text)
+        return
     p.add_argument(*s.flags, dest=name, type=_number(s) if s.kind in ("int", "real") else str, default=default,
                    help=text)
 

@@ -65,6 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="importance weights: to-failure = prod p/q over the steps before the failure step (pemviz's "
                         "sampler); full = over every step but the last (the paper's eq. 6); both unbiased. Default: the "
                         "convention the sidecar records, else to-failure")
+    add_setting(p, "pem_uncertainty")
+    add_setting(p, "pem_shift")
     rec = p.add_argument_group("recording (rerun)")
     rec.add_argument("--save", default=None, metavar="PATH.rrd",
                      help="write the recording here (default recordings/estimate-<name>-<time>.rrd)")
@@ -207,6 +209,55 @@ def check_plausible(e: Any, q_src: str) -> None:
         )
 
 
+def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np.ndarray, weights: str,
+                     cap: Any) -> list[str]:  # fmt: skip
+    """``--pem-uncertainty`` / ``--pem-shift``: the file's rollouts re-weighted under every member of the PEM's ensemble
+    and the logit shifts (:mod:`pemviz.core.reweight`), each estimated as the file's own log p is, printed as ``pemviz
+    run`` prints them.
+
+    Raises:
+        UsageError: a file of several objects or with measurement errors (its rows are not in it), a PEM without a
+            shipped ensemble, or a PEM that cannot be read.
+    """
+    from pemviz.core.detectors import PEMDetector
+    from pemviz.core.problems import PEM_SHIFTS, braking_formula
+    from pemviz.core.reweight import Alternative, PemSpread, ShiftedDetector
+    from pemviz.core.truth import known_log_failure_probability
+    from pemviz.pem.ensemble import ensemble_for, load_ensemble
+
+    if data.n_objects > 1 or data.noise is not None:
+        raise UsageError(f"--pem-uncertainty: {data.path} holds {data.n_objects} objects a step with measurement "
+                         "errors, whose salient rows are not in the file; re-weight in the run instead (pemviz run "
+                         "--pem-uncertainty)")  # fmt: skip
+    name = args.pem or (data.meta.pem if data.meta else None) or "ml-nn"
+    try:
+        pem = load_pem(name)
+        members = load_ensemble(ensemble_for(name)) if args.pem_uncertainty else []
+    except (FileNotFoundError, ValueError) as exc:
+        raise UsageError(f"--pem-uncertainty: {exc}") from None
+    braking = data.meta is not None and data.meta.formula == str(braking_formula())  # the default scene's truth
+    shifts = list(PEM_SHIFTS) if args.pem_uncertainty else []
+    if args.pem_shift is not None and args.pem_shift not in shifts:
+        shifts.append(float(args.pem_shift))
+    cap = tuple(cap) if isinstance(cap, list) and len(cap) == 2 else None
+
+    def estimate_under(log_p_k: np.ndarray, logit_fn: Any) -> tuple[Any, float | None]:
+        est = estimate_rollouts(data, log_p_k, log_q, metric=args.metric, failure=args.failure, weights=weights,
+                                verdict_cap=cap).estimate  # fmt: skip
+        return est, known_log_failure_probability(logit_fn) if braking else None
+
+    made = [Alternative(f"member {k}", *estimate_under(pem_log_prob(data, m), m.logit_at_gap))
+            for k, m in enumerate(members)]  # fmt: skip
+    moved = []
+    for d in sorted(shifts):
+        def shifted(g, d=d):
+            return np.asarray(pem.logit_at_gap(g), dtype=np.float64) + d
+
+        moved.append(Alternative(f"{d:+g}", *estimate_under(detector_log_prob(data, ShiftedDetector(PEMDetector(pem), d)),
+                                                             shifted)))  # fmt: skip
+    return PemSpread(result.estimate, tuple(made), tuple(moved), ensemble_for(name).name if members else "").lines()
+
+
 def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, overwrite: bool = False) -> Path:
     """A rerun recording of the estimate: description, estimate values, the least-robust rollouts' traces
     over ``step`` (red = failure), and robustness against importance log-weight. Encoded in memory, written
@@ -276,6 +327,8 @@ def main(args: argparse.Namespace) -> int:
         why = f"{weights} needs a crash of a G[a,b](state predicate) formula; every step but the last instead"
     check_plausible(result.estimate, q_src)
     lines = summary_lines(data, result, p_src, q_src, why)
+    if args.pem_uncertainty or args.pem_shift is not None:
+        lines += pem_spread_lines(data, args, result, log_q, weights, cap if own else None)
     print("\n".join(lines), flush=True)
     if save_path is not None:
         save_path.parent.mkdir(exist_ok=True)  # the default folder, as pemviz run makes it

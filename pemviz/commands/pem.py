@@ -65,6 +65,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="epochs for ml-nn and hetero-t, trees for gbt (default: the model's, 300, 300, 100)",
     )
     t.add_argument("--seed", type=int, default=None, help="seed (default: the model's shipped seed)")
+    t.add_argument("--ensemble", type=int, default=None, metavar="M",
+                   help="train M bootstrap refits of a detection PEM instead (its epistemic uncertainty, for pemviz "
+                   "run --pem-uncertainty) and write pemviz/assets/ensemble_<model>.pt (or --out; beside a PEM file "
+                   "X.pt, pemviz looks for X.ensemble.pt)")
     t.add_argument("--out", default=None, metavar="PATH", help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)")
     t.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -125,7 +129,16 @@ def train_main(args: argparse.Namespace) -> int:
         raise UsageError(f"--epochs {args.epochs}: must be >= 1")
     noise = args.model in NOISE_RECIPES
     recipe = NOISE_RECIPES[args.model] if noise else PEM_RECIPES[args.model]
-    out = Path(args.out) if args.out else (noise_pem_path if noise else pem_path)(recipe.name)
+    ensemble = getattr(args, "ensemble", None)
+    if ensemble is not None and (noise or not hasattr(recipe, "hidden") or ensemble < 2):
+        raise UsageError(f"--ensemble {ensemble}: give M >= 2 with a network detection PEM "
+                         f"({', '.join(n for n, r in PEM_RECIPES.items() if hasattr(r, 'hidden'))})")  # fmt: skip
+    if ensemble is not None:
+        from pemviz.pem.ensemble import ensemble_path
+
+        out = Path(args.out) if args.out else ensemble_path(recipe.name)
+    else:
+        out = Path(args.out) if args.out else (noise_pem_path if noise else pem_path)(recipe.name)
     _check_out_path(out)
     try:
         data = load_salient_data(args.data_dir)
@@ -140,8 +153,13 @@ def train_main(args: argparse.Namespace) -> int:
         "data_sha256": sha256_file(data.inputs_path),
         "labels_sha256": sha256_file(data.labels_path),
     }
-    train = _train_noise if noise else _train_detection
-    train(recipe, data, seed=seed, epochs=epochs, out=out, progress=not args.no_progress, metadata=metadata)
+    if ensemble is not None:
+        metadata["command"] = f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} --epochs {epochs}"
+        _train_ensemble(recipe, data, ensemble, seed=seed, epochs=epochs, out=out, progress=not args.no_progress,
+                        metadata=metadata)  # fmt: skip
+    else:
+        train = _train_noise if noise else _train_detection
+        train(recipe, data, seed=seed, epochs=epochs, out=out, progress=not args.no_progress, metadata=metadata)
     print(f"wrote {out}")
     return 0
 
@@ -164,6 +182,20 @@ def _train_detection(recipe, data, *, seed: int, epochs: int, out: Path, progres
         diff = np.abs(pem.prob_at_gap(grid) - ref.prob_at_gap(grid)).max()
         print(f"max |p_pemviz - p_authors| over gaps 2..13 m: {diff:.4f}")
     save_pem(pem, out)
+
+
+def _train_ensemble(recipe, data, m: int, *, seed: int, epochs: int, out: Path, progress: bool, metadata: dict) -> None:
+    """``pem train --ensemble M``: M bootstrap refits of a detection PEM (:mod:`pemviz.pem.ensemble`), each one's BCE
+    on the full file and p(detect | 4 m), saved as one ensemble file."""
+    from pemviz.pem.ensemble import save_ensemble, train_ensemble
+
+    print(f"training {m} bootstrap refits of {recipe.name} on {data.inputs_path} ({len(data)} rows), seed {seed}")
+    members = train_ensemble(recipe, data.inputs, data.labels, m, seed=seed, epochs=epochs, progress=progress,
+                             metadata=metadata)  # fmt: skip
+    for k, pem in enumerate(members):
+        bce = bce_from_logits(pem.logit(data.inputs), data.labels)
+        print(f"member {k}: BCE on the full file {bce:.4f} nats, p(detect | 4 m) {pem.prob_at_gap(np.array([4.0]))[0]:.4f}")
+    save_ensemble(members, out, recipe.name, metadata)
 
 
 def _train_noise(recipe, data, *, seed: int, epochs: int, out: Path, progress: bool, metadata: dict) -> None:

@@ -32,7 +32,7 @@ from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_level", "smoothing", "metric", "seed",
                 "ce_epochs", "pem", "scenario", "sim", "executor", "ray_address", "chunk_rollouts", "rel_error",
-                "require", "max_sims", "max_time_s")
+                "require", "margin", "pem_uncertainty", "pem_shift", "max_sims", "max_time_s")
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 
@@ -68,8 +68,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--junit", dest="junit_path", default=None, metavar="PATH.xml",
                    help="with --require: write the requirement as a JUnit XML test case (passed, failure when "
                    "violated, error when undecided) for CI dashboards")
+    p.add_argument("--report", dest="report_path", default=None, metavar="PATH.html",
+                   help="write a safety-case report: one self-contained HTML page (and PATH.md, its Markdown twin) "
+                   "with the estimate, verdict, severity, scenario, PEM, settings and the sha256 of the inputs")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace existing --save / --save-rollouts / --json / --junit files (only files pemviz wrote)")
+                   help="replace existing --save / --save-rollouts / --json / --junit / --report files (only files "
+                   "pemviz wrote)")
     add_recording_args(p)
     p.set_defaults(func=main)
 
@@ -217,14 +221,25 @@ def serve(args: argparse.Namespace):
     return sink
 
 
-def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path | None, Path | None]:
-    """The ``--json`` and ``--junit`` paths, checked before any work (nothing is created).
+def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path | None, Path | None, Path | None]:
+    """The ``--json``, ``--junit`` and ``--report`` paths (the report's Markdown twin checked too), checked before
+    any work (nothing is created).
 
     Raises:
         UsageError: a path that cannot be written, or ``--junit`` without ``--require``.
     """
+    from pemviz.io.report import markdown_twin
+
     paths = []
-    for flag, value, suffix in (("--json", args.json_path, ".json"), ("--junit", args.junit_path, ".xml")):
+    report = getattr(args, "report_path", None)
+    if report is not None:
+        try:
+            check_output_path(markdown_twin(Path(report)), ".md", "--report (its Markdown twin)",
+                              overwrite=args.overwrite)  # fmt: skip
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+    for flag, value, suffix in (("--json", args.json_path, ".json"), ("--junit", args.junit_path, ".xml"),
+                                ("--report", report, ".html")):  # fmt: skip
         if value is None:
             paths.append(None)
             continue
@@ -235,23 +250,44 @@ def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path 
             paths.append(check_output_path(value, suffix, flag, overwrite=args.overwrite))
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-    return paths[0], paths[1]
+    return paths[0], paths[1], paths[2]
+
+
+def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
+    """The files a run reads, each ``{"what", "path", "sha256"}``: the detection PEM, and the noise PEM on a scene
+    with measurement errors (the cut-in)."""
+    from pemviz.io.data import sha256_file
+    from pemviz.pem import DEFAULT_PEM_NAME
+    from pemviz.pem.store import _pem_file, noise_pem_path
+
+    files = [("detection PEM", _pem_file(cfg.pem or DEFAULT_PEM_NAME))]
+    if cfg.scenario != "braking":
+        files.append(("noise PEM", noise_pem_path()))
+    return [{"what": what, "path": str(path), "sha256": sha256_file(path)} for what, path in files]
 
 
 def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, final, recording: str | None,
-                  json_path: Path | None, junit_path: Path | None) -> None:  # fmt: skip
-    """Write ``--json`` and ``--junit`` (atomically) and say where."""
+                  paths: tuple[Path | None, Path | None, Path | None], why: str | None = None) -> None:  # fmt: skip
+    """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where."""
     from pemviz.io.result import result_document, write_junit, write_result_json
 
+    json_path, junit_path, report_path = paths
+    from pemviz.sinks.console import final_lines
+
+    lines = final_lines(final, cfg, problem.exact_log_p, problem.reference) + ([why] if why is not None else [])
     doc = result_document(cfg, final, exact_log_p=problem.exact_log_p, reference=problem.reference,
-                          recording=recording, command=" ".join(["pemviz", *sys.argv[1:]]))  # fmt: skip
-    console = final.estimate.summary(problem.exact_log_p, problem.reference)
-    if final.stop is not None:
-        console += f"\nstop: {final.stop}"
+                          recording=recording, command=" ".join(["pemviz", *sys.argv[1:]]), problem=problem,
+                          console=lines, inputs=input_files(cfg))  # fmt: skip
     if json_path is not None:
         print(f"result: {write_result_json(json_path, doc, overwrite=args.overwrite)}", file=sys.stderr)
     if junit_path is not None:
+        console = "\n".join(line for line in lines[1:] if line.startswith(("mu_hat", "no failure", "stop:")))
         print(f"junit: {write_junit(junit_path, doc, console, overwrite=args.overwrite)}", file=sys.stderr)
+    if report_path is not None:
+        from pemviz.io.report import write_report
+
+        page, twin = write_report(report_path, doc, overwrite=args.overwrite)
+        print(f"report: {page} (and {twin})", file=sys.stderr)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -279,7 +315,7 @@ def main(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
 
-    json_path, junit_path = result_paths(args, cfg)
+    result_files = result_paths(args, cfg)
     target = recording_target(args)
     save_path = None
     if target == "save":
@@ -351,9 +387,11 @@ def main(args: argparse.Namespace) -> int:
     if rollout_sink is not None and rollout_sink.written is not None:
         for path in rollout_files(rollout_sink.written):
             print(f"rollouts: {path}", file=sys.stderr)
+    why = None
     if likely is not None and likely.batch is not None and likely.batch.objects is not None:
         cf = counterfactuals(problem, likely.batch, 0)
-        print(f"why: the most likely failure (stage {likely.stage}, log p {likely.log_p:.1f} nats): {cf.summary()}")
+        why = f"why: the most likely failure (stage {likely.stage}, log p {likely.log_p:.1f} nats): {cf.summary()}"
+        print(why)
     if target == "serve":
         try:  # entered before the line is printed: a Ctrl-C sent as soon as it is read still ends the serving
             print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
@@ -366,8 +404,8 @@ def main(args: argparse.Namespace) -> int:
         if where is not None:
             print(f"recording: {where}", file=sys.stderr)
     final = getattr(done, "final", None)
-    if final is not None and (json_path is not None or junit_path is not None):
-        write_results(args, cfg, problem, final, str(where) if where is not None else None, json_path, junit_path)
+    if final is not None and any(path is not None for path in result_files):
+        write_results(args, cfg, problem, final, str(where) if where is not None else None, result_files, why)
     if cfg.require is not None and final is not None and final.decision is not None:
         from pemviz.core.requirement import EXIT_CODES
 

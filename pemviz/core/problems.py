@@ -22,6 +22,8 @@ from pemviz import stl
 from pemviz.config import SIMULATORS, ExperimentConfig
 from pemviz.core.detectors import Detector, PEMDetector
 from pemviz.core.estimate import Reference
+from pemviz.core.reweight import AlternativeTarget
+from pemviz.core.severity import SeverityScale
 from pemviz.core.truth import known_log_failure_probability
 from pemviz.pem import DEFAULT_PEM_NAME, load_pem
 from pemviz.scenarios import (
@@ -211,6 +213,11 @@ class Problem:
         curve_rows: the object rows at which the target's curve is drawn, ``curve_rows(grid [G]) -> [G, cols]`` with
             ``grid`` in the first column (None: rows of zeros but for that column, enough for a detector that reads
             the gap alone).
+        severity: the signal and levels of the run's exceedance curve (:class:`pemviz.core.severity.SeverityScale`;
+            None: no curve).
+        severity_exact: level -> the exact log P(failure and min s < level) (nats), where known.
+        alternatives: other targets the rollouts are re-weighted under (PEM ensemble members, shifted PEMs:
+            :class:`pemviz.core.reweight.AlternativeTarget`); alternatives_source: where the members come from.
     """
 
     name: str
@@ -236,6 +243,10 @@ class Problem:
     n_objects: int = 1
     objects_xy: tuple[str, str] | None = None
     noise_xy: tuple[int, int] | None = None
+    severity: SeverityScale | None = None
+    severity_exact: Mapping[float, float] = field(default_factory=dict)
+    alternatives: tuple[AlternativeTarget, ...] = ()
+    alternatives_source: str = ""
 
     @property
     def view(self) -> ProblemView:
@@ -277,6 +288,10 @@ def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":
     return stl.parse(f"G[0,{p.n_steps - 1}](d >= {p.crash_gap_m:g})")
 
 
+BRAKING_SEVERITY_LEVELS_M = (1.5, 1.0, 0.5, 0.0)
+"""Gaps (metres) of the braking scenario's exceedance curve below its crash gap: 0 is contact."""
+
+
 def braking_problem(pem: object, params: BrakingParams | None = None, sim: str = "batched") -> Problem:
     """The automated-braking scenario of Innes & Ramamoorthy (2022) with the given PEM as target detector.
 
@@ -302,8 +317,16 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
             return branch_batched(p, parents, parent, at, target, rng)
         return branch(lambda: BrakingScenario(p), parents, parent, at, target, rng)
 
+    scale = SeverityScale("d", "gap", "m", tuple(x for x in BRAKING_SEVERITY_LEVELS_M if x < p.crash_gap_m),
+                          margin=p.crash_gap_m, target_flag="margin")  # fmt: skip
+    exact = {}
+    if hasattr(pem, "logit_at_gap"):
+        known = {x: known_log_failure_probability(pem.logit_at_gap, dataclasses.replace(p, crash_gap_m=x))
+                 for x in scale.levels}  # fmt: skip
+        exact = {x: v for x, v in known.items() if v is not None}
     return Problem(
         "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m, decided_below=p.crash_gap_m,
+        severity=scale, severity_exact=exact,
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"), scene=p,
@@ -420,6 +443,11 @@ collision; robustness in metres. Under classic semantics it is :data:`pemviz.sce
 importance weights and which adaptive multilevel splitting needs."""
 
 
+CUT_IN_SEVERITY_LEVELS_M = (2.0, 1.0, 0.0)
+"""Clearances (metres, bumper to bumper) of the cut-in's exceedance curve: failures that also come this close; 0 is a
+collision."""
+
+
 def cut_in_params(setting: str) -> CutInParams:
     """The cut-in scenario at a named rarity setting (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`: ``moderate``,
     ``rare``).
@@ -477,6 +505,7 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         name, run, detector, stl.parse(CUT_IN_FORMULA), signals=dict(CUT_IN_SIGNALS),
         units={"margin": "m", "grace": "", "clearance": "m"},
         signal_ranges={"margin": (-60.0, 200.0), "grace": (0.0, 1.0), "clearance": (-10.0, 200.0)},
+        severity=SeverityScale("clearance", "clearance", "m", CUT_IN_SEVERITY_LEVELS_M),
         h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
         stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"), dt_s=p.dt_s,
         n_objects=p.n_objects,
@@ -572,10 +601,57 @@ def problem_for(config: ExperimentConfig) -> Problem:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
     """
     if config.scenario == "braking":
-        return braking_problem(load_pem(config.pem), sim=config.sim)
+        params = None if config.margin is None else BrakingParams(crash_gap_m=float(config.margin))
+        return with_alternatives(braking_problem(load_pem(config.pem), params, sim=config.sim), config)
     setting = "rare" if config.scenario == "cut-in-rare" else "moderate"
     problem = cut_in_problem(load_pem(config.pem), cut_in_params(setting), name=config.scenario)
     if config.pem in (None, DEFAULT_PEM_NAME) and setting in MONTE_CARLO_REFERENCE:
         failures, n = MONTE_CARLO_REFERENCE[setting]
         problem = dataclasses.replace(problem, reference=Reference(failures, n, "plain Monte Carlo, shipped PEMs"))
-    return problem
+    return with_alternatives(problem, config)
+
+
+PEM_SHIFTS = (-1.0, -0.5, 0.5, 1.0)
+"""The logit shifts (log-odds) ``--pem-uncertainty`` sweeps besides the ensemble: a camera that misses more often
+(negative) or less often than the PEM says."""
+
+
+def with_alternatives(problem: Problem, config: ExperimentConfig) -> Problem:
+    """``problem`` with the alternative targets ``config`` asks for (:mod:`pemviz.core.reweight`): with
+    ``pem_uncertainty`` every member of the PEM's ensemble (:func:`pemviz.pem.ensemble.ensemble_for`) and the shifts
+    :data:`PEM_SHIFTS`, and ``pem_shift`` D; each with its exact answer where the truth knows it (the braking
+    scenario's PEM fingerprints, :func:`pemviz.core.truth.known_log_failure_probability`).
+
+    Raises:
+        FileNotFoundError, pemviz.pem.network.PemFormatError: no ensemble for the PEM, or a damaged one.
+    """
+    from pemviz.core.reweight import ShiftedDetector, with_pem
+
+    shifts = list(PEM_SHIFTS) if config.pem_uncertainty else []
+    if config.pem_shift is not None and config.pem_shift not in shifts:
+        shifts.append(float(config.pem_shift))
+    if not shifts and not config.pem_uncertainty:
+        return problem
+    target = problem.target
+    scene = problem.scene if problem.name == "braking" else None
+
+    def exact(logit_at_gap) -> float | None:
+        return known_log_failure_probability(logit_at_gap, scene) if scene is not None else None
+
+    alternatives, source = [], ""
+    if config.pem_uncertainty:
+        from pemviz.pem.ensemble import ensemble_for, load_ensemble
+
+        path = ensemble_for(config.pem)
+        members = load_ensemble(path)
+        source = path.name
+        for k, member in enumerate(members):
+            alternatives.append(AlternativeTarget("member", f"member {k}", with_pem(target, member),
+                                                  exact(member.logit_at_gap)))  # fmt: skip
+    pem = getattr(target, "pem", None)
+    for d in sorted(shifts):
+        known = None
+        if pem is not None:
+            known = exact(lambda g, d=d: np.asarray(pem.logit_at_gap(g), dtype=np.float64) + d)
+        alternatives.append(AlternativeTarget("shift", f"{d:+g}", ShiftedDetector(target, d), known))
+    return dataclasses.replace(problem, alternatives=tuple(alternatives), alternatives_source=source)

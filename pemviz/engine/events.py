@@ -25,6 +25,8 @@ if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.core.estimate import Estimate, Reference
     from pemviz.core.problems import ProblemView
     from pemviz.core.requirement import Decision
+    from pemviz.core.reweight import PemSpread
+    from pemviz.core.severity import SeverityCurve
     from pemviz.scenarios import RolloutBatch
 
 
@@ -164,6 +166,13 @@ class FinalEstimate:
     decision: Decision | None = None
     """With a requirement (``ExperimentConfig.require``): the last look's decision, its outcome ``met``,
     ``violated`` or ``undecided`` (:mod:`pemviz.core.requirement`); None without one."""
+    severity: SeverityCurve | None = None
+    """The exceedance curve P(failure and min s < x) over the problem's severity levels, from the same rollouts
+    (:func:`pemviz.estimators.base.severity_curve`); None where the problem has no severity scale or the estimator keeps
+    no per-stage rollouts."""
+    pem_spread: PemSpread | None = None
+    """p under the PEM ensemble's members and the shifted PEMs, re-weighted from the same rollouts
+    (:func:`pemviz.estimators.base.pem_spread`); None without ``pem_uncertainty`` or ``pem_shift``."""
 
 
 @dataclass(frozen=True)

@@ -46,7 +46,7 @@ from pemviz.engine.events import (
 )
 from pemviz.engine.executors import get_executor
 from pemviz.estimators import Estimator, StagePlan, build_estimator
-from pemviz.estimators.base import SeenFailures
+from pemviz.estimators.base import SeenFailures, pem_spread, severity_curve
 from pemviz.scenarios import RolloutBatch
 
 
@@ -181,9 +181,13 @@ class Experiment:
         n_sim = getattr(estimator, "n_simulations", self.n_simulations)  # AMS counts rollout-equivalents
         seen = self.seen_failures.log_p
         pooling = getattr(estimator, "pooling", None)
-        final = FinalEstimate(est.below_seen(seen), n_sim, time.perf_counter() - t_start, used, seen,
-                              pooling() if callable(pooling) else None, getattr(estimator, "stop", None),
-                              getattr(estimator, "verdict_cap", None), getattr(estimator, "decision", None))  # fmt: skip
+        pooled = pooling() if callable(pooling) else None
+        cap = getattr(estimator, "verdict_cap", None)
+        est = est.below_seen(seen)
+        final = FinalEstimate(est, n_sim, time.perf_counter() - t_start, used, seen, pooled,
+                              getattr(estimator, "stop", None), cap, getattr(estimator, "decision", None),
+                              severity_curve(pb, estimator, est, used, pooled, cap),
+                              pem_spread(pb, estimator, est, used, pooled, cap))  # fmt: skip
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)

@@ -11,7 +11,7 @@ shown each batch's rollouts (:meth:`Estimator.observe`, possibly chunk by chunk)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Protocol
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Protocol
 
 import math
 import weakref
@@ -26,6 +26,10 @@ from pemviz.core.estimate import Estimate, estimate
 from pemviz.engine.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.scenarios import RolloutBatch
+
+if TYPE_CHECKING:
+    from pemviz.core.reweight import PemSpread
+    from pemviz.core.severity import SeverityCurve
 
 Check = Callable[[], None]
 """Called between and inside fits; raises to abandon the run (the engine's cancel token)."""
@@ -269,22 +273,103 @@ def detect_rate(counts: np.ndarray, hits: np.ndarray) -> np.ndarray:
         return np.where(counts > 0, hits / np.maximum(counts, 1), np.nan)
 
 
+Weigh = Callable[[np.ndarray], np.ndarray]
+"""``weigh(mask)``: the importance log-weights [N] (nats) of a batch over the steps of ``mask`` (bool [N, T]), e.g. a
+mixture's (:func:`mixture_log_weight`); None where the weights are sum (log p - log q) over the masked steps."""
+
+
+def severity_arrays(problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
+                    log_w: np.ndarray, weigh: Weigh | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
+    """Per severity level of ``problem.severity`` (:class:`pemviz.core.severity.SeverityScale`): each rollout's
+    importance log-weight up to the step its event is decided, the event, and log p over the same steps.
+
+    A rollout that reaches level x (:func:`pemviz.core.severity.level_events`) is weighed over its actions before the
+    step tau_x at which that is decided (with ``until_failure``; else over the first T - 1, like the run's weights);
+    the others keep ``log_w``, the run's own weights (they do not enter the level's sum, only its diagnostics).
+
+    Returns:
+        (log-weights, events, log p), float64 / bool / float64 [L, N] (nats), or None: no severity scale, the
+        signal missing from the batch, or a formula without a failure step.
+    """
+    scale = problem.severity
+    if scale is None or not scale.levels:
+        return None
+    signal = problem.signal_arrays(batch).get(scale.signal)
+    if signal is None:
+        return None
+    try:
+        fail_step = failure_steps(problem, batch)
+    except ValueError:
+        return None
+    from pemviz.core.severity import level_events
+
+    hit, step = level_events(signal, failed, fail_step, np.asarray(scale.levels))
+    n_steps = batch.n_steps
+    last = np.minimum(step, n_steps - 1) if until_failure else np.full(step.shape, n_steps - 1)
+    steps = np.arange(n_steps)[None, :]
+    base_lp = log_p_before_failure(problem, batch)
+    out_w, out_p = np.repeat(log_w[None, :], hit.shape[0], axis=0), np.repeat(base_lp[None, :], hit.shape[0], axis=0)
+    for level, rows in enumerate(hit):
+        rows = np.flatnonzero(rows)
+        if rows.size == 0:
+            continue
+        mask = steps < last[level, rows][:, None]  # [n_hit, T]
+        if weigh is not None:
+            full = np.zeros((batch.n, n_steps), bool)
+            full[rows] = mask
+            out_w[level, rows] = weigh(full)[rows]
+        else:
+            with np.errstate(invalid="ignore"):  # -inf - -inf outside the mask, where it is never summed
+                out_w[level, rows] = np.where(mask, batch.log_p[rows] - batch.log_q[rows], 0.0).sum(axis=1)
+        out_p[level, rows] = np.where(mask, batch.log_p[rows], 0.0).sum(axis=1)
+    return out_w, hit, out_p
+
+
+def alternative_log_weights(problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
+                            log_w: np.ndarray) -> np.ndarray | None:  # fmt: skip
+    """Each failing rollout's importance log-weight under each of ``problem.alternatives`` (other PEMs, shifted PEMs:
+    :mod:`pemviz.core.reweight`), float64 [K, N] (nats), or None without alternatives: ``log_w`` plus the detections'
+    log-likelihood ratio over the same steps (:func:`pemviz.core.reweight.detection_log_ratios`). A rollout that does
+    not fail keeps ``log_w``: it enters no estimate's sum, only the mean-weight check of its verdict."""
+    alternatives = problem.alternatives
+    if not alternatives:
+        return None
+    from pemviz.core.reweight import detection_log_ratios
+
+    out = np.repeat(np.asarray(log_w, dtype=np.float64)[None, :], len(alternatives), axis=0)
+    rows = np.flatnonzero(failed)
+    if rows.size:
+        mask = weighted_steps_mask(problem, batch, until_failure)[rows]
+        detected = batch.detected.reshape(batch.n, batch.n_steps, -1)[rows]
+        ratios = detection_log_ratios(problem.target, [a.detector for a in alternatives], batch.object_rows[rows],
+                                      detected, mask)  # fmt: skip
+        out[:, rows] = out[:, rows] + ratios
+    return out
+
+
 class StageRollouts:
     """The per-rollout numbers of one stage, gathered chunk by chunk: log-weights, failures, log p before the
-    failure ([N] each), and the failures' detections per bin of the curve grid."""
+    failure ([N] each), the same per severity level where the problem has a scale ([L, N] each;
+    :func:`severity_arrays`), the log-weights under the problem's alternative PEMs ([K, N];
+    :func:`alternative_log_weights`), and the failures' detections per bin of the curve grid."""
 
     def __init__(self, grid: np.ndarray) -> None:
         self.grid = grid
         self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.severity_parts: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
+        self.alternative_parts: list[np.ndarray | None] = []
         self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
 
     def add(self, problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
-            count_failures: bool = True, log_w: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+            count_failures: bool = True, log_w: np.ndarray | None = None, weigh: Weigh | None = None) -> np.ndarray:  # fmt: skip
         """Add a chunk (``count_failures``: bin its failures' detections too); returns its log-weights [N]
-        (``log_w``: given, e.g. by a mixture, :func:`mixture_log_weight`; None: :func:`log_weight`)."""
+        (``log_w``: given, e.g. by a mixture, :func:`mixture_log_weight`, with ``weigh`` the same over any steps;
+        None: :func:`log_weight`)."""
         if log_w is None:
             log_w = log_weight(problem, batch, until_failure)
         self.parts.append((log_w, failed, log_p_before_failure(problem, batch)))
+        self.severity_parts.append(severity_arrays(problem, batch, failed, until_failure, log_w, weigh))
+        self.alternative_parts.append(alternative_log_weights(problem, batch, failed, until_failure, log_w))
         if count_failures:
             c, h = elite_counts(batch, failed, self.grid)
             self.counts, self.hits = self.counts + c, self.hits + h
@@ -300,6 +385,25 @@ class StageRollouts:
         if len(self.parts) == 1:
             return self.parts[0]
         return tuple(np.concatenate(a) for a in zip(*self.parts))  # type: ignore[return-value]
+
+    def severity_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(log-weights, events, log p), [L, N] each over every chunk (:func:`severity_arrays`), or None where a chunk
+        has none."""
+        if not self.severity_parts or any(part is None for part in self.severity_parts):
+            return None
+        if len(self.severity_parts) == 1:
+            return self.severity_parts[0]
+        return tuple(np.concatenate(a, axis=1) for a in zip(*self.severity_parts))  # type: ignore[return-value]
+
+    def alternative_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(log-weights under each alternative [K, N], failed [K, N], log p before the failure [K, N]) over every
+        chunk (:func:`alternative_log_weights`), or None where a chunk has none."""
+        if not self.alternative_parts or any(part is None for part in self.alternative_parts):
+            return None
+        log_w = np.concatenate(self.alternative_parts, axis=1)
+        _, failed, log_p = self.arrays()
+        k = log_w.shape[0]
+        return log_w, np.repeat(failed[None, :], k, axis=0), np.repeat(log_p[None, :], k, axis=0)
 
     def failures_outcome(self, proposal_curve: np.ndarray) -> StageOutcome:
         """A batch drawn only to be weighed: its failures are its elites, no threshold."""
@@ -433,6 +537,67 @@ def pool(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], stage_weights: 
         parts = [(lw + c, f, lp) for (lw, f, lp), c in zip(parts, shift)]
     log_w, failed, log_p = (np.concatenate(a) for a in zip(*parts))
     return estimate(log_w, failed, log_p)
+
+
+def severity_curve(problem: Problem, estimator: object, final: Estimate, used: tuple[int, ...],
+                   pooling: tuple[str, tuple[float, ...]] | None,
+                   cap: tuple[str, str] | None = None) -> "SeverityCurve | None":  # fmt: skip
+    """The run's exceedance curve (:mod:`pemviz.core.severity`): ``final`` (the run's estimate) as its first point,
+    then P(failure and min s < x) for each level x of ``problem.severity``, pooled over the stages ``used`` as the run's
+    estimate is (``pooling``'s lambda_k, :func:`pool`; None: every rollout alike), each capped at ``cap`` (the sampler's
+    best verdict, :meth:`pemviz.core.estimate.Estimate.at_most`).
+
+    Returns:
+        The curve, or None: no scale, or an estimator that keeps no per-stage rollouts (``stages``), e.g. AMS.
+    """
+    from pemviz.core.severity import SeverityCurve, SeverityPoint
+
+    scale = problem.severity
+    if scale is None:
+        return None
+    points = [SeverityPoint(scale.margin, final, problem.exact_log_p)]
+    if not scale.levels:
+        return SeverityCurve(scale, tuple(points))
+    estimates = pooled_rows(estimator, used, pooling, "severity_arrays", cap)
+    if estimates is None:
+        return None
+    for x, est in zip(scale.levels, estimates):
+        points.append(SeverityPoint(x, est, problem.severity_exact.get(x)))
+    return SeverityCurve(scale, tuple(points))
+
+
+def pooled_rows(estimator: object, used: tuple[int, ...], pooling: tuple[str, tuple[float, ...]] | None, arrays: str,
+                cap: tuple[str, str] | None = None) -> list[Estimate] | None:  # fmt: skip
+    """One estimate per row of the [R, N] arrays that each used stage's :class:`StageRollouts` gives by its method
+    ``arrays`` (``severity_arrays``, ``alternative_arrays``: log-weights, events, log p), pooled over the stages
+    ``used`` as the run's estimate is (``pooling``'s lambda_k, :func:`pool`; None or ``rollouts``: every rollout
+    alike), each capped at ``cap``; None where the estimator keeps no such arrays."""
+    stages = getattr(estimator, "stages", None)
+    if not isinstance(stages, dict) or any(k not in stages for k in used):
+        return None
+    parts = [getattr(stages[k], arrays)() for k in used]
+    if any(part is None for part in parts):
+        return None
+    lam = None if pooling is None or pooling[0] == "rollouts" else np.asarray(pooling[1], dtype=np.float64)
+    return [pool([(w[r], hit[r], lp[r]) for w, hit, lp in parts], lam).at_most(cap) for r in range(parts[0][0].shape[0])]
+
+
+def pem_spread(problem: Problem, estimator: object, final: Estimate, used: tuple[int, ...],
+               pooling: tuple[str, tuple[float, ...]] | None, cap: tuple[str, str] | None = None) -> "PemSpread | None":  # fmt: skip
+    """p under each of ``problem.alternatives`` from the run's own rollouts (:mod:`pemviz.core.reweight`), pooled as
+    the run's estimate: the members of a PEM ensemble and the shifted PEMs; None without alternatives or where the
+    estimator keeps no per-stage rollouts."""
+    from pemviz.core.reweight import Alternative, PemSpread
+
+    if not problem.alternatives:
+        return None
+    estimates = pooled_rows(estimator, used, pooling, "alternative_arrays", cap)
+    if estimates is None:
+        return None
+    made = [Alternative(a.label, est, a.exact_log_p) for a, est in zip(problem.alternatives, estimates)]
+    members = tuple(m for m, a in zip(made, problem.alternatives) if a.kind == "member")
+    shifts = tuple(m for m, a in zip(made, problem.alternatives) if a.kind == "shift")
+    return PemSpread(final, members, shifts, problem.alternatives_source)
 
 
 def pool_stage_weights(rule: str, sizes: list[int]) -> np.ndarray | None:

@@ -342,9 +342,10 @@ class CrossEntropy(OwnsSettings):
                 if settled is not None:
                     self._add_steps(settled, index, self._elites.floor)
         until = self.config.weights_until_failure
-        log_w = self._mixture_log_weight(batch, weighted_steps_mask(self.problem, batch, until)) if plan.mixture else None
+        weigh = (lambda mask: self._mixture_log_weight(batch, mask)) if plan.mixture else None
+        log_w = weigh(weighted_steps_mask(self.problem, batch, until)) if weigh is not None else None
         return self.stages[plan.stage].add(self.problem, batch, failed, until, count_failures=plan.kind == "final",
-                                           log_w=log_w)  # fmt: skip
+                                           log_w=log_w, weigh=weigh)  # fmt: skip
 
     def finish(self) -> StageOutcome:
         plan, grid = self._plan, self.problem.curve_grid

@@ -48,7 +48,8 @@ def _plain(value: Any) -> Any:
 
 
 def result_document(config: Any, final: Any, *, exact_log_p: float | None = None, reference: Any = None,
-                    recording: str | None = None, command: str | None = None) -> dict[str, Any]:  # fmt: skip
+                    recording: str | None = None, command: str | None = None, problem: Any = None,
+                    console: list[str] | None = None, inputs: list[dict[str, str]] | None = None) -> dict[str, Any]:  # fmt: skip
     """The JSON document of a finished run.
 
     Args:
@@ -58,6 +59,9 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
             :class:`pemviz.core.estimate.Reference`, or None.
         recording: where the recording went (a path or a URL), or None.
         command: the command line, for the record.
+        problem: the run's :class:`pemviz.core.problems.Problem` (its name, description and formula go in), or None.
+        console: the lines the console printed after the table (the estimate, severity, stop, advice), or None.
+        inputs: the files the run read, ``{"what", "path", "sha256"}`` each (the PEMs), or None.
     """
     import pemviz
 
@@ -91,6 +95,23 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
         "recording": recording,
         "settings": _plain(dataclasses.asdict(config)),
     }
+    if problem is not None:
+        doc["problem"] = {"name": problem.name, "description": problem.description, "formula": str(problem.formula)}
+    if console is not None:
+        doc["console"] = list(console)
+    if inputs is not None:
+        doc["inputs"] = list(inputs)
+    curve = getattr(final, "severity", None)
+    if curve is not None:
+        doc["severity"] = {
+            "signal": curve.scale.signal, "label": curve.scale.label, "unit": curve.scale.unit, "title": curve.title(),
+            "points": [{
+                "level": pt.level, "text": curve.point_text(pt), **_probability(pt.estimate.log_mu_hat),
+                "ci95": [_probability(x)["p"] for x in pt.estimate.log_ci], "ess": _number(pt.estimate.ess),
+                "n_events": int(pt.estimate.n_failures), "verdict": pt.estimate.verdict,
+                "exact": None if pt.exact_log_p is None else _probability(pt.exact_log_p),
+            } for pt in curve.points],
+        }  # fmt: skip
     d = getattr(final, "decision", None)
     if config.require is not None and d is not None:
         from pemviz.core.requirement import EXIT_CODES, parse_requirement

@@ -67,6 +67,13 @@ MODEL_OTHER = (200, 200, 200)
 REFERENCE_LINE = (110, 110, 110)
 """The chance line and the diagonal of ``pemviz pem eval``'s recording."""
 SKETCH_BACKGROUND = (244, 244, 244)
+"""(also the report's headline, table heads and console block)"""
+PAGE = (255, 255, 255)
+"""The report's page and chart background."""
+TEXT = (34, 34, 34)
+"""The report's text."""
+RULE = (204, 204, 204)
+"""The report's table rules and chart grid."""
 """The background of the panel's drawings of a scene from above (light)."""
 SKETCH_LANE = (187, 187, 187)
 """Lane lines in those drawings."""

@@ -10,7 +10,7 @@ from pemviz.core.estimate import Estimate, Reference, format_probability
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.sinks import Sink, StageClock
 
-__all__ = ["ConsoleSink", "HEADER", "estimate_cells", "next_step", "progress_line", "stage_row"]
+__all__ = ["ConsoleSink", "HEADER", "estimate_cells", "final_lines", "next_step", "progress_line", "stage_row"]
 
 HEADER = (
     f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} "
@@ -80,6 +80,27 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
             "added until the interval is within 10 %); the verdict says whether to trust the result")
 
 
+def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = None,
+                reference: Reference | None = None) -> list[str]:  # fmt: skip
+    """The lines under the table: mu_hat with its log and the run's size, the estimate's summary with the exact answer
+    or reference, the severity curve, why the run stopped and what to do next (the console's, ``--junit``'s and
+    ``--report``'s)."""
+    e = event.estimate
+    point = "no failure seen" if e.n_failures == 0 else f"mu_hat = {format_probability(e.log_mu_hat, 4)}"
+    lines = [f"{point} (log mu_hat = {e.log_mu_hat:.4f} nats) from {event.n_simulations} simulations in "
+             f"{event.wall_s:.1f} s", e.summary(exact_log_p, reference)]  # fmt: skip
+    if event.severity is not None and len(event.severity.points) > 1:
+        lines += event.severity.lines()
+    if event.pem_spread is not None:
+        lines += event.pem_spread.lines()
+    if event.stop is not None:
+        lines.append(f"stop: {event.stop}")
+    advice = next_step(e, config, exact_log_p, reference)
+    if advice is not None:
+        lines.append(f"next: {advice}")
+    return lines
+
+
 class ConsoleSink(Sink):
     """Prints a line when each stage starts (progress, to ``progress``) and the table rows (to ``out``)."""
 
@@ -120,14 +141,7 @@ class ConsoleSink(Sink):
     def on_final_estimate(self, event: FinalEstimate) -> None:
         e = event.estimate
         print(f"{'final':>7} {'':>8} {'':>9} {estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
-        point = "no failure seen" if e.n_failures == 0 else f"mu_hat = {format_probability(e.log_mu_hat, 4)}"
-        print(f"{point} (log mu_hat = {e.log_mu_hat:.4f} nats) from {event.n_simulations} simulations in {event.wall_s:.1f} s", file=self.out)
-        print(e.summary(self.exact_log_p, self.reference), file=self.out)
-        if event.stop is not None:
-            print(f"stop: {event.stop}", file=self.out)
-        advice = next_step(e, self.config, self.exact_log_p, self.reference)
-        if advice is not None:
-            print(f"next: {advice}", file=self.out)
+        print("\n".join(final_lines(event, self.config, self.exact_log_p, self.reference)), file=self.out)
         self.out.flush()
 
     def on_run_cancelled(self, event: RunCancelled) -> None:

@@ -579,6 +579,14 @@ class RerunSink(Sink):
             f"{e.log_mu_hat:.4f} nats; {e.n_failures}/{e.n} failures, ESS {e.ess:.2f}) from "
             f"{ev.n_simulations} simulations in {ev.wall_s:.1f} s."
         )
+        if ev.severity is not None and len(ev.severity.points) > 1:
+            self.status_md += "\n\n" + ev.severity.markdown()
+            levels = [pt.level if pt.level is not None else math.nan for pt in ev.severity.points]
+            s.log("final/severity", rr.AnyValues(level=levels, log_p=[pt.estimate.log_mu_hat for pt in ev.severity.points],
+                                                 verdict=[pt.estimate.verdict for pt in ev.severity.points]),
+                  static=True)  # fmt: skip
+        if ev.pem_spread is not None:
+            self.status_md += "\n\n```text\n" + "\n".join(ev.pem_spread.lines()) + "\n```\n"
         self._log_description()
         self._explain()
         s.flush()

@@ -1,0 +1,90 @@
+"""The exceedance curve P(min gap < x) of the braking scenario against its exact points.
+
+Prints, for the default ``pemviz run`` on braking over ``--seeds`` seeds, each point of the curve the run reports
+(``reached``: verdict ``reliable``) against the exact answer where one is known (``pemviz.core.truth``:
+:data:`KNOWN_BRAKING_MARGIN_LOG_P`, the enumeration with ``BrakingParams(crash_gap_m=x)``): the ratio to it, whether
+the interval holds it, and how many seeds reach the point at all; then the same for runs that target a level
+(``--margin x``). With ``--exact`` it first recomputes the exact points (``braking_truth``, 1-2 minutes each).
+
+    python benchmarks/severity.py                    # 20 seeds of the default run, 5 of each targeted run (~3 min)
+    python benchmarks/severity.py --seeds 5 --exact  # and the enumeration
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+from pemviz.config import ExperimentConfig
+from pemviz.core.problems import problem_for
+from pemviz.engine.experiment import Experiment
+
+TARGET_RATIO = 1.5
+"""Every point a run reports lies within this factor of the exact answer (and its interval holds it)."""
+
+
+def curve(config: ExperimentConfig):
+    return Experiment(config, problem=problem_for(config)).run().final.severity
+
+
+def table(label: str, configs: list[ExperimentConfig]) -> bool:
+    rows: dict[str, list] = {}
+    exact: dict[str, float | None] = {}
+    t0 = time.perf_counter()
+    for cfg in configs:
+        c = curve(cfg)
+        for pt in c.points:
+            key = c.point_text(pt)
+            exact[key] = pt.exact_log_p
+            rows.setdefault(key, []).append(pt)
+    print(f"\n{label}: {len(configs)} seeds, {time.perf_counter() - t0:.0f} s")
+    print(f"{'point':<30} {'reached':>8} {'median p':>10} {'exact':>10} {'worst ratio':>12} {'covers':>8} {'median ESS':>11}")
+    ok = True
+    for key, pts in rows.items():
+        reached = [p for p in pts if p.reached]
+        med = float(np.median([p.estimate.log_mu_hat for p in reached])) if reached else -math.inf
+        ex = exact[key]
+        if ex is not None and reached:
+            ratios = [math.exp(abs(p.estimate.log_mu_hat - ex)) for p in reached]
+            covers = sum(p.estimate.covers(ex) for p in reached)
+            worst, cov = f"{max(ratios):.3f}", f"{covers}/{len(reached)}"
+            ok &= max(ratios) <= TARGET_RATIO and covers == len(reached)
+        else:
+            worst = cov = "-"
+        ess = f"{np.median([p.estimate.ess for p in reached]):.1f}" if reached else "-"
+        print(f"{key:<30} {len(reached):>4}/{len(pts):<3} {math.exp(med) if reached else 0:>10.3e} "
+              f"{'-' if ex is None else format(math.exp(ex), '.3e'):>10} {worst:>12} {cov:>8} {ess:>11}")
+    return ok
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--targeted-seeds", type=int, default=5)
+    ap.add_argument("--exact", action="store_true", help="recompute the exact points first")
+    a = ap.parse_args()
+    if a.exact:
+        from pemviz.core.truth import braking_truth
+        from pemviz.pem import load_pem
+        from pemviz.scenarios.braking import BrakingParams
+
+        pem = load_pem()
+        for m in (1.5, 1.0):
+            t = time.perf_counter()
+            r = braking_truth(pem.logit_at_gap, BrakingParams(crash_gap_m=m),
+                              log_prunes=(-46.0, -50.0, -54.0, -58.0, -62.0, -66.0, -70.0, -80.0, -90.0, -100.0, -110.0))
+            print(f"exact P(min gap < {m:g} m) = {math.exp(r.log_p_fail):.4e} (log {r.log_p_fail!r}), bracket width "
+                  f"{r.final.relative_width:.2e}, {time.perf_counter() - t:.0f} s")
+    ok = table("default run (pemviz run)", [ExperimentConfig(seed=s) for s in range(a.seeds)])
+    for m in (1.0, 0.5, 0.0):
+        table(f"targeted run (pemviz run --margin {m:g})",
+              [ExperimentConfig(seed=s, margin=m) for s in range(a.targeted_seeds)])
+    print(f"\nevery reported point of the default run within x{TARGET_RATIO} of the exact one and inside its interval: "
+          f"{'MET' if ok else 'MISSED'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""``pemviz report RESULT.json``: a safety-case report of a run, one self-contained HTML page and its Markdown twin.
+
+The run's result document (``pemviz run --json RESULT.json``) holds every number the report shows
+(:mod:`pemviz.io.report`); ``pemviz run --report PAGE.html`` writes the same page at the end of a run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from pemviz.commands import COMMANDS, UsageError
+from pemviz.io.files import check_output_path
+from pemviz.io.report import markdown_twin, write_report
+from pemviz.io.result import RESULT_FORMAT
+
+REQUIRED = ("format", "scenario", "method", "seed", "estimate", "n_simulations")
+"""The fields a result document must have for a report (the rest is shown where present)."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help=COMMANDS["report"][1],
+        description="Write a safety-case report of a run from its result document (pemviz run --json RESULT.json): "
+        "one self-contained HTML page, readable offline, and its Markdown twin (PAGE.md).",
+    )
+    p.add_argument("result", metavar="RESULT.json", help="the run's result document (pemviz run --json)")
+    p.add_argument("--out", default=None, metavar="PAGE.html",
+                   help="where the page goes (default: RESULT.html beside the result; its twin PAGE.md)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing page and its twin")
+    p.set_defaults(func=main)
+
+
+def read_result(path: Path) -> dict:
+    """The result document at ``path``.
+
+    Raises:
+        UsageError: not a readable JSON file, or not a pemviz result document (one line saying what it is).
+    """
+    if path.suffix == ".rrd" or path.suffix == ".parquet":
+        raise UsageError(f"{path}: a {'recording' if path.suffix == '.rrd' else 'rollout file'}, not a result "
+                         "document; `pemviz report` reads the JSON that `pemviz run --json RESULT.json` writes "
+                         "(or give --report PAGE.html to pemviz run)")  # fmt: skip
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UsageError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise UsageError(f"{path}: not a readable JSON file ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
+        raise UsageError(f"{path}: not a pemviz result document (format {RESULT_FORMAT!r}); write one with "
+                         "pemviz run --json RESULT.json")  # fmt: skip
+    missing = [k for k in REQUIRED if k not in doc]
+    if missing or not isinstance(doc.get("estimate"), dict):
+        raise UsageError(f"{path}: a result document without {', '.join(missing) or 'an estimate'}")
+    return doc
+
+
+def main(args: argparse.Namespace) -> int:
+    src = Path(args.result)
+    doc = read_result(src)
+    out = Path(args.out) if args.out is not None else src.with_suffix(".html")
+    try:
+        check_output_path(out, ".html", "--out", overwrite=args.overwrite)
+        check_output_path(markdown_twin(out), ".md", "--out (its Markdown twin)", overwrite=args.overwrite)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    try:
+        page, twin = write_report(out, doc, overwrite=args.overwrite)
+    except KeyError as exc:
+        raise UsageError(f"{src}: a result document without the field {exc}") from None
+    print(f"report: {page} (and {twin})", file=sys.stderr)
+    return 0

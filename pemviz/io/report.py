@@ -1,0 +1,243 @@
+"""A safety-case report of one run: one self-contained HTML page and its Markdown twin, from the run's result document.
+
+The page needs no network and no script: its styles are inline and its one chart (the severity curve, log scale) is
+an inline SVG drawn here. It holds the estimate with its interval, ESS, verdict and the exact answer or reference;
+the severity curve; the scenario, its specification and the PEM; the lines the console printed; the settings, seed,
+pemviz version and command; and the sha256 of every input file and of the result document itself.
+
+The document is :func:`pemviz.io.result.result_document`'s (``pemviz run --json``), so ``pemviz report RESULT.json``
+and ``pemviz run --report PAGE.html`` write the same page.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import html
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from pemviz.io.files import atomic_write
+from pemviz.sinks import colours as C
+from pemviz.sinks.colours import hex_colour
+
+VERDICT_COLOURS = {"reliable": hex_colour(C.GREEN), "doubtful": hex_colour(C.AMBER), "unreliable": hex_colour(C.RED)}
+WHITE, PANEL, TEXT, RULE, MUTED = (hex_colour(c) for c in (C.PAGE, C.SKETCH_BACKGROUND, C.TEXT, C.RULE, C.GREY))
+
+
+def _p(x: float | None) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "-"
+    return "0" if x == 0 else f"{x:.3e}"
+
+
+def _num(x: float | None, fmt: str = ".1f") -> str:
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, fmt)
+
+
+def document_sha256(doc: dict[str, Any]) -> str:
+    """sha256 of the result document as canonical JSON (sorted keys, no spaces): the report's fingerprint of its
+    numbers."""
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def _estimate_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
+    e = doc["estimate"]
+    rows = [
+        ("failure probability p (mu_hat)", _p(e["p"])),
+        ("95 % interval", f"[{_p(e['ci95'][0])}, {_p(e['ci95'][1])}]"),
+        ("verdict", f"{e['verdict']}: {e['reason']}"),
+        ("effective sample size (ESS)", _num(e["ess"])),
+        ("Pareto k-hat", _num(e["k_hat"], ".2f")),
+        ("failures / rollouts used", f"{e['n_failures']:,} / {e['n']:,}"),
+        ("simulations", f"{doc['n_simulations']:,} in {_num(doc['wall_s'])} s"),
+    ]
+    if doc.get("exact"):
+        rows.append(("exact answer", _p(doc["exact"]["p"])))
+    if doc.get("reference"):
+        ref = doc["reference"]
+        rows.append(("reference", f"{_p(ref['p'])} ({ref.get('source', '')})"))
+    if doc.get("requirement"):
+        r = doc["requirement"]
+        rows.append(("requirement", f"{r['text']}: {r['outcome']} ({r['why']})"))
+    if doc.get("stop"):
+        rows.append(("stop", doc["stop"]))
+    return rows
+
+
+def _severity_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str, str]]:
+    out = []
+    for pt in (doc.get("severity") or {}).get("points", []):
+        exact = _p(pt["exact"]["p"]) if pt.get("exact") else "-"
+        out.append((pt["text"], _p(pt["p"]), f"[{_p(pt['ci95'][0])}, {_p(pt['ci95'][1])}]", _num(pt["ess"]),
+                    pt["verdict"], exact))  # fmt: skip
+    return out
+
+
+def severity_svg(doc: dict[str, Any], width: int = 560, height: int = 300) -> str:
+    """The severity curve as an inline SVG: log10 p against the level (the scale's unit), each point with its 95 %
+    interval, filled where the verdict is ``reliable`` and hollow otherwise, the exact answers as crosses; an empty
+    string without a curve or without a positive estimate."""
+    sev = doc.get("severity") or {}
+    pts = [pt for pt in sev.get("points", []) if pt.get("level") is not None]
+    shown = [pt for pt in pts if pt.get("p")]
+    if len(pts) < 2 or not shown:
+        return ""
+    values = [math.log10(v) for pt in shown for v in (pt["p"], *(c for c in pt["ci95"] if c))]
+    values += [math.log10(pt["exact"]["p"]) for pt in pts if pt.get("exact") and pt["exact"]["p"]]
+    lo, hi = math.floor(min(values)), math.ceil(max(values))
+    hi = hi if hi > lo else lo + 1
+    levels = [pt["level"] for pt in pts]
+    x0, x1 = min(levels), max(levels)
+    x1 = x1 if x1 > x0 else x0 + 1
+    left, right, top, bottom = 70, 20, 20, 45
+
+    def sx(x: float) -> float:  # larger levels on the left: the curve falls as the failures get worse
+        return left + (x1 - x) / (x1 - x0) * (width - left - right)
+
+    def sy(log10p: float) -> float:
+        return top + (hi - log10p) / (hi - lo) * (height - top - bottom)
+
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" role="img" '
+             f'aria-label="severity curve">', f'<rect width="{width}" height="{height}" fill="{WHITE}"/>']  # fmt: skip
+    step = max(1, (hi - lo) // 6)
+    for k in range(lo, hi + 1, step):
+        y = sy(k)
+        parts.append(f'<line x1="{left}" x2="{width - right}" y1="{y:.1f}" y2="{y:.1f}" stroke="{RULE}"/>')
+        parts.append(f'<text x="{left - 6}" y="{y + 4:.1f}" font-size="11" text-anchor="end">1e{k}</text>')
+    for x in levels:
+        parts.append(f'<text x="{sx(x):.1f}" y="{height - bottom + 16}" font-size="11" text-anchor="middle">'
+                     f'{x:g}</text>')  # fmt: skip
+    unit = html.escape(sev.get("unit", ""))
+    parts.append(f'<text x="{(left + width - right) / 2:.1f}" y="{height - 8}" font-size="12" text-anchor="middle">'
+                 f'{html.escape(sev.get("label", "level"))} below x ({unit})</text>')  # fmt: skip
+    parts.append(f'<text x="14" y="{(top + height - bottom) / 2:.1f}" font-size="12" text-anchor="middle" '
+                 f'transform="rotate(-90 14 {(top + height - bottom) / 2:.1f})">probability</text>')  # fmt: skip
+    for pt in pts:
+        x = sx(pt["level"])
+        if pt.get("exact") and pt["exact"]["p"]:
+            y = sy(math.log10(pt["exact"]["p"]))
+            parts.append(f'<path d="M{x - 5:.1f},{y - 5:.1f}L{x + 5:.1f},{y + 5:.1f}M{x - 5:.1f},{y + 5:.1f}'
+                         f'L{x + 5:.1f},{y - 5:.1f}" stroke="{MUTED}" stroke-width="1.5"/>')  # fmt: skip
+        if not pt.get("p"):
+            continue
+        colour = VERDICT_COLOURS.get(pt["verdict"], MUTED)
+        a, b = pt["ci95"]
+        if a and b:
+            parts.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{sy(math.log10(b)):.1f}" y2="{sy(math.log10(a)):.1f}" '
+                         f'stroke="{colour}" stroke-width="2"/>')  # fmt: skip
+        fill = colour if pt["verdict"] == "reliable" else WHITE
+        parts.append(f'<circle cx="{x:.1f}" cy="{sy(math.log10(pt["p"])):.1f}" r="4.5" fill="{fill}" '
+                     f'stroke="{colour}" stroke-width="2"><title>{html.escape(pt["text"])}: {_p(pt["p"])} '
+                     f'({pt["verdict"]})</title></circle>')  # fmt: skip
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _table_html(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _table_md(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> str:
+    def cell(c: Any) -> str:
+        return str(c).replace("|", "\\|").replace("\n", " ")
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]]:
+    """(title, lead text, table header, rows) of each section both twins show."""
+    problem = doc.get("problem") or {}
+    scene = [("scenario", f"{doc['scenario']}: {problem.get('description', '')}".rstrip(": ")),
+             ("specification (STL)", problem.get("formula", "-")), ("method", doc["method"]),
+             ("seed", str(doc["seed"]))]  # fmt: skip
+    inputs = [(i["what"], i["path"], i["sha256"]) for i in doc.get("inputs") or []]
+    settings = sorted((k, json.dumps(v)) for k, v in (doc.get("settings") or {}).items())
+    prov = [("pemviz version", doc.get("pemviz_version", "-")), ("command", doc.get("command") or "-"),
+            ("recording", doc.get("recording") or "-"), ("sha256 of the result document", document_sha256(doc))]  # fmt: skip
+    sections = [("Estimate", "", ("quantity", "value"), _estimate_rows(doc))]
+    if doc.get("severity"):
+        title = doc["severity"].get("title", "severity: P(min signal < x), from the same rollouts")
+        sections.append(("Severity", f"{title.removeprefix('severity: ')}: how deep the failures go.",
+                         ("level", "p", "95 % interval", "ESS", "verdict", "exact"), _severity_rows(doc)))  # fmt: skip
+    sections += [
+        ("Scenario, specification and PEM", "", ("item", "value"), scene),
+        ("Inputs", "sha256 of every file the run read.", ("input", "path", "sha256"), inputs),
+        ("Settings", "", ("setting", "value"), settings),
+        ("Provenance", "", ("item", "value"), prov),
+    ]
+    return sections
+
+
+def _title(doc: dict[str, Any]) -> str:
+    return f"pemviz report: {doc['scenario']}, {doc['method']}, seed {doc['seed']}"
+
+
+def _headline(doc: dict[str, Any]) -> str:
+    e = doc["estimate"]
+    return (f"p = {_p(e['p'])}, 95 % interval [{_p(e['ci95'][0])}, {_p(e['ci95'][1])}], ESS {_num(e['ess'])}: "
+            f"{e['verdict']}")  # fmt: skip
+
+
+def report_html(doc: dict[str, Any]) -> str:
+    """The report as one self-contained HTML page (no script, no external resource).
+
+    Raises:
+        KeyError: a document without the result's required fields (see the docs page "pemviz in CI").
+    """
+    e = doc["estimate"]
+    colour = VERDICT_COLOURS.get(e["verdict"], MUTED)
+    body = [f"<h1>{html.escape(_title(doc))}</h1>",
+            f'<p class="headline" style="border-left:6px solid {colour}">{html.escape(_headline(doc))}</p>']  # fmt: skip
+    for title, lead, header, rows in _sections(doc):
+        body.append(f"<h2>{html.escape(title)}</h2>")
+        if lead:
+            body.append(f"<p>{html.escape(lead)}</p>")
+        if title == "Severity":
+            body.append(severity_svg(doc))
+        body.append(_table_html(header, rows))
+    if doc.get("console"):
+        body.append("<h2>What the console printed</h2>")
+        body.append(f"<pre>{html.escape(chr(10).join(doc['console']))}</pre>")
+    style = (f"body{{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:{TEXT};"
+             f"background:{WHITE}}}table{{border-collapse:collapse;margin:.5em 0 1.5em}}td,th{{border:1px solid {RULE};"
+             f"padding:4px 8px;text-align:left;vertical-align:top;font-size:14px}}th{{background:{PANEL}}}"
+             f".headline{{font-size:18px;padding:.4em .8em;background:{PANEL}}}pre{{background:{PANEL};padding:1em;"
+             "overflow-x:auto;font-size:12px}")  # fmt: skip
+    return (f'<!doctype html>\n<html lang="en"><head><meta charset="utf-8"><title>{html.escape(_title(doc))}</title>'
+            f"<style>{style}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")
+
+
+def report_markdown(doc: dict[str, Any]) -> str:
+    """The report's Markdown twin: the same sections and numbers as :func:`report_html`, without the chart."""
+    out = [f"# {_title(doc)}", "", f"**{_headline(doc)}**", ""]
+    for title, lead, header, rows in _sections(doc):
+        out += [f"## {title}", ""] + ([lead, ""] if lead else []) + [_table_md(header, rows), ""]
+    if doc.get("console"):
+        out += ["## What the console printed", "", "```text", *doc["console"], "```", ""]
+    return "\n".join(out)
+
+
+def markdown_twin(path: Path) -> Path:
+    """Where the Markdown twin of the report ``path`` goes: the same name with ``.md``."""
+    return path.with_suffix(".md")
+
+
+def write_report(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite: bool = False) -> tuple[Path, Path]:
+    """Write the report (``path``, HTML) and its Markdown twin (:func:`markdown_twin`), each atomically.
+
+    Raises:
+        FileExistsError: a file there and not ``overwrite``; OSError: it cannot be written.
+    """
+    path = Path(path)
+    page, text = report_html(doc), report_markdown(doc)
+    written = atomic_write(path, lambda tmp: Path(tmp).write_text(page, encoding="utf-8"), overwrite=overwrite)
+    twin = atomic_write(markdown_twin(path), lambda tmp: Path(tmp).write_text(text, encoding="utf-8"),
+                        overwrite=overwrite)  # fmt: skip
+    return Path(written), Path(twin)

@@ -1,0 +1,111 @@
+"""The safety-case report: ``pemviz run --report`` and ``pemviz report RESULT.json`` write the same self-contained
+page, which opens in headless Chromium with the network cut and holds the numbers the console printed."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import re
+import shutil
+
+import pytest
+
+from pemviz.cli import main
+from pemviz.io.report import document_sha256, report_html, severity_svg
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync"]  # fmt: skip
+
+RUNS = {
+    "braking": ["run", "--no-record"],
+    "cut-in": ["run", "--scenario", "cut-in", "--n", "3000", "--no-record"],
+}
+
+
+@pytest.fixture(scope="module", params=sorted(RUNS))
+def reported(request, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp(f"report-{request.param}")
+    page, result = tmp / "page.html", tmp / "result.json"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*RUNS[request.param], "--json", str(result), "--report", str(page)]) == 0
+    return request.param, out.getvalue(), page, result
+
+
+def _console_numbers(stdout: str) -> list[str]:
+    """The lines under the table that carry the estimate and the severity curve."""
+    return [line.strip() for line in stdout.splitlines()
+            if line.startswith(("mu_hat = ", "no failure seen in", "severity:", "  gap <", "  clearance <",
+                                "  the spec's failure"))]  # fmt: skip
+
+
+def test_the_report_holds_every_line_the_console_printed(reported):
+    scene, stdout, page, result = reported
+    lines = _console_numbers(stdout)
+    assert len(lines) >= 4, stdout  # the estimate, the curve's title and its points
+    text = page.with_suffix(".md").read_text()
+    for line in lines:
+        assert line in text, line
+    doc = json.loads(result.read_text())
+    assert doc["problem"]["formula"] and doc["inputs"][0]["what"] == "detection PEM"
+    assert re.fullmatch(r"[0-9a-f]{64}", doc["inputs"][0]["sha256"])
+    assert document_sha256(doc) in page.read_text()
+    if scene == "cut-in":
+        assert [i["what"] for i in doc["inputs"]] == ["detection PEM", "noise PEM"]
+
+
+def test_pemviz_report_from_the_result_writes_the_same_page(reported, tmp_path):
+    _, _, page, result = reported
+    again = tmp_path / "again.html"
+    assert main(["report", str(result), "--out", str(again)]) == 0
+    assert again.read_text() == page.read_text()
+    assert again.with_suffix(".md").read_text() == page.with_suffix(".md").read_text()
+
+
+def test_the_page_opens_offline_in_chromium_and_shows_the_estimate(reported):
+    sync_api = pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
+    if not os.path.exists(CHROMIUM):
+        pytest.skip("Debian's chromium is not installed (apt-get install chromium)")
+    scene, stdout, page, result = reported
+    doc = json.loads(result.read_text())
+    requests: list[str] = []
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        context = browser.new_context(offline=True)
+        tab = context.new_page()
+        tab.on("request", lambda r: requests.append(r.url))
+        tab.goto(page.as_uri())
+        tab.get_by_role("heading", name="Estimate").wait_for()
+        body = tab.inner_text("body")
+        if doc["severity"]["points"][0]["p"]:
+            assert tab.locator("svg[aria-label='severity curve']").count() == (1 if severity_svg(doc) else 0)
+        browser.close()
+    assert requests == [page.as_uri()]  # nothing but the page itself: no font, script or image from anywhere
+    assert f"{scene}" in body and doc["estimate"]["verdict"] in body
+    first = _console_numbers(stdout)[0]
+    assert first in body
+
+
+def test_a_report_of_a_bad_source_is_one_line(tmp_path, capsys):
+    (tmp_path / "run.rrd").write_bytes(b"RRF2")
+    (tmp_path / "other.json").write_text('{"format": "pemviz-rollouts"}')
+    (tmp_path / "broken.json").write_text("{")
+    cases = [
+        (tmp_path / "run.rrd", "a recording, not a result document"),
+        (tmp_path / "other.json", "not a pemviz result document"),
+        (tmp_path / "broken.json", "not a readable JSON file"),
+        (tmp_path / "absent.json", "no such file"),
+    ]
+    for path, message in cases:
+        code = main(["report", str(path)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and message in err and len(err.splitlines()) == 1, err
+    assert not list(tmp_path.glob("*.html"))
+
+
+def test_report_html_needs_the_result_fields():
+    with pytest.raises(KeyError):
+        report_html({"format": "pemviz-result"})

@@ -1,0 +1,139 @@
+"""The exceedance curve P(min gap < x): hand-computed events, the braking scenario's exact points, a run that targets a
+level, the miss bound the exact points rest on, and what the console and the JSON say."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pemviz.config import ExperimentConfig
+from pemviz.core import truth
+from pemviz.core.problems import problem_for
+from pemviz.core.severity import SeverityScale, level_events
+from pemviz.engine.events import RolloutsSampled
+from pemviz.engine.experiment import Experiment
+from pemviz.pem import load_pem
+from pemviz.scenarios.braking import BrakingParams, braking_step, lead_speeds
+
+EXACT_1_5 = 2.9992e-17
+"""P(min gap < 1.5 m) of the braking scenario under the shipped PEM, by enumeration (``benchmarks/severity.py
+--exact``: bracket width 0.09 %)."""
+EXACT_1_0 = 4.6704e-19
+"""P(min gap < 1 m), the same way (bracket width 0.11 %)."""
+
+
+def test_level_events_by_hand():
+    # three rollouts of 5 steps: one fails at step 1 and reaches 1 m at step 3, one fails at step 2 and stays above
+    # 1 m, one never fails although its signal goes below 1.5 (the event needs the failure too)
+    s = np.array([[3.0, 1.9, 1.6, 0.9, 0.5],
+                  [3.0, 2.5, 1.8, 1.2, 1.1],
+                  [3.0, 1.4, 3.0, 3.0, 3.0]])  # fmt: skip
+    failed = np.array([True, True, False])
+    fail_step = np.array([1, 2, 5])
+    hit, step = level_events(s, failed, fail_step, np.array([1.5, 1.0, 0.0]))
+    assert hit.tolist() == [[True, True, False], [True, False, False], [False, False, False]]
+    # decided at the later of the failure step and the first step below the level
+    assert step.tolist() == [[3, 3, 5], [3, 5, 5], [5, 5, 5]]
+
+
+def test_severity_scale_refuses_levels_out_of_order():
+    with pytest.raises(ValueError, match="strictly descending"):
+        SeverityScale("d", "gap", "m", (1.0, 1.5))
+
+
+def test_the_known_points_come_from_the_enumeration_at_that_crash_gap():
+    pem = load_pem()
+    for gap, p in ((1.5, EXACT_1_5), (1.0, EXACT_1_0)):
+        log_p = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=gap))
+        assert log_p is not None and math.exp(log_p) == pytest.approx(p, rel=1e-4)
+    assert truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=0.5)) is None
+
+
+@pytest.fixture(scope="module")
+def default_curve():
+    cfg = ExperimentConfig(seed=0)
+    return Experiment(cfg, problem=problem_for(cfg)).run().final
+
+
+def test_the_default_run_reports_each_known_point_within_x1_5_inside_its_interval(default_curve):
+    final = default_curve
+    curve = final.severity
+    assert [pt.level for pt in curve.points] == [2.0, 1.5, 1.0, 0.5, 0.0]
+    assert curve.points[0].estimate is final.estimate  # the margin's point is the run's own estimate
+    for pt, exact in zip(curve.points[1:3], (EXACT_1_5, EXACT_1_0)):
+        assert pt.reached, pt.estimate.reason
+        assert abs(pt.estimate.log_mu_hat - math.log(exact)) < math.log(1.5)
+        assert pt.estimate.covers(math.log(exact))
+    # deeper points have fewer events: the curve never rises
+    counts = [pt.estimate.n_failures for pt in curve.points]
+    assert counts == sorted(counts, reverse=True) and counts[-1] == 0
+    assert not curve.points[-1].reached  # contact: no rollout of the default run touches the lead
+
+
+def test_a_run_that_targets_1_m_agrees_with_the_enumeration():
+    # an independent estimate of the 1 m point: its own proposal, fitted to the 1 m failures
+    cfg = ExperimentConfig(seed=1, margin=1.0)
+    final = Experiment(cfg, problem=problem_for(cfg)).run().final
+    assert final.estimate.verdict == "reliable"
+    assert final.estimate.covers(math.log(EXACT_1_0))
+    assert abs(final.estimate.log_mu_hat - math.log(EXACT_1_0)) < math.log(1.5)
+
+
+def _remaining_misses_against_bound(margin: float) -> tuple[int, int]:
+    """(rollout-steps where the miss bound exceeds the misses a sampled failure still made, rollout-steps checked)
+    over the failures of a run that targets ``margin``."""
+    cfg = ExperimentConfig(seed=0, margin=margin, n_final=300)
+    pb = problem_for(cfg)
+    got = []
+    Experiment(cfg, [lambda e: got.append(e) if isinstance(e, RolloutsSampled) and e.kind == "final" else None],
+               problem=pb).run()  # fmt: skip
+    ev = got[-1]
+    p = BrakingParams(crash_gap_m=margin)
+    start, vl = truth.branching_start(p), lead_speeds(p)
+    bound = truth.miss_bound(p, start)
+    rows = np.flatnonzero(ev.failed)
+    gap = pb.signal_arrays(ev.batch)["d"][rows]
+    det = ev.batch.detected.reshape(ev.batch.n, ev.batch.n_steps, -1)[rows, :, 0]
+    fail = np.argmax(gap < margin, axis=1)
+    miss = ~det & (gap < p.braking_distance_m)
+    after = np.concatenate([np.cumsum(miss[:, ::-1], axis=1)[:, ::-1], np.zeros((rows.size, 1), int)], axis=1)
+    left_at_fail = np.take_along_axis(after, fail[:, None], axis=1)[:, 0]
+    g, v, i, b = (np.full(rows.size, x, dtype=float) for x in (start.gap_m, start.speed_mps, start.integral, 0))
+    b = np.full(rows.size, start.pending)
+    bad = checked = 0
+    for t in range(start.step, int(fail.max())):
+        live = t < fail
+        bad += int((live & (bound(t, g, v, b) > after[:, t] - left_at_fail)).sum())
+        checked += int(live.sum())
+        g, v, i, b = braking_step(p, vl[t], g, v, i, b, det[:, t])
+    return bad, checked
+
+
+def test_the_miss_bound_never_asks_more_misses_than_a_sampled_failure_made_at_1_m():
+    bad, checked = _remaining_misses_against_bound(1.0)
+    assert checked > 1000 and bad == 0
+
+
+def test_the_miss_bound_is_refused_below_1_m_where_failures_break_it():
+    p = BrakingParams(crash_gap_m=0.5)
+    with pytest.raises(ValueError, match="not a bound"):
+        truth.miss_bound(p, truth.branching_start(p))
+
+
+def test_console_and_json_show_the_curve(tmp_path, capsys):
+    from pemviz.cli import main
+
+    out = tmp_path / "r.json"
+    assert main(["run", "--no-record", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "severity: P(min gap < x), from the same rollouts" in text
+    assert "gap < 1.5 m" in text and "exact 2.999e-17" in text
+    assert "gap < 0 m (contact)           not reached by this run (0 of 1,800 rollouts): pemviz run --margin 0 targets it" in text
+    doc = json.loads(out.read_text())
+    points = doc["severity"]["points"]
+    assert [p["level"] for p in points] == [2.0, 1.5, 1.0, 0.5, 0.0]
+    assert points[0]["p"] == doc["estimate"]["p"] and points[1]["exact"]["p"] == pytest.approx(EXACT_1_5, rel=1e-4)
+    assert points[-1]["n_events"] == 0 and points[-1]["p"] == 0.0
