@@ -190,6 +190,7 @@ def test_cli_eval_writes_tables_and_recording(salient, tmp_path: Path, capsys) -
         (["--folds", "0,9"], "folds"),
         (["--folds", "a"], "--folds"),
         (["--save", "x.txt"], ".rrd"),
+        (["--ensemble", "1"], "--ensemble 1"),
     ],
 )
 def test_cli_eval_bad_values_exit_2_and_write_nothing(tmp_path: Path, capsys, argv, message) -> None:
@@ -197,3 +198,25 @@ def test_cli_eval_bad_values_exit_2_and_write_nothing(tmp_path: Path, capsys, ar
     assert cli_main(["pem", "eval", "--quick", "--out", str(tmp_path), *argv]) == 2
     assert message in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_eval_cross_validates_the_ensemble_members_beside_the_nominal(salient, tmp_path: Path, capsys) -> None:
+    from pemviz.pem.ensemble import bootstrap_rows
+    from pemviz.pem.recipes import PEM_RECIPES
+    from pemviz.studies.pem_eval import _member_fold, stratified_folds
+
+    rc = cli_main(["pem", "eval", "--quick", "--models", "ml-nn", "--ensemble", "2", "--no-record", "--out",
+                   str(tmp_path)])  # fmt: skip
+    assert rc == 0
+    text = (tmp_path / "pem-eval-ensemble.md").read_text()
+    assert "| ml-nn (nominal) |" in text and "| member 0 |" in text and "| member 1 |" in text
+    # member 1's fold-0 row: the same fit by hand (bootstrap rows of the training fold, the recipe's seed + 2)
+    raw, y = salient.inputs.astype(float), salient.labels.astype(float)
+    train, test = stratified_folds(y)[0]
+    from pemviz.pem.encoding import fit_norm_stats
+
+    k, fold, bce, auc = _member_fold((1, 0, raw[train], y[train], raw[test], y[test], fit_norm_stats(raw),
+                                      PEM_RECIPES["ml-nn"].seed, 20, 15))  # fmt: skip
+    assert f"| member 1 | {bce:.4f} | {auc:.4f} |" in text
+    assert 0.2 < bce < 0.3 and 0.6 < auc < 0.9
+    assert len(set(bootstrap_rows(len(train), 2, 1))) < len(train)

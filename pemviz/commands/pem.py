@@ -101,6 +101,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--bnn-steps", type=int, default=None, help="B-NN SVI steps per fold (default 2000)")
     e.add_argument("--bnn-samples", type=int, default=None, help="B-NN posterior samples (default 800)")
     e.add_argument("--seed", type=int, default=0, help="seed of every model (default 0)")
+    e.add_argument("--ensemble", type=int, default=None, metavar="M",
+                   help="also cross-validate M bootstrap members of the ML-NN (as pemviz pem train --ensemble M builds "
+                   "them) beside the nominal one, on the same folds (pem-eval-ensemble.md)")
+    e.add_argument("--jobs", type=int, default=1, help="worker processes for --ensemble (default 1)")
     e.add_argument(
         "--out",
         default="recordings",
@@ -264,6 +268,8 @@ def eval_config_from_args(args: argparse.Namespace) -> tuple[EvalConfig | None, 
 
 def eval_main(args: argparse.Namespace) -> int:
     config, noise_config = eval_config_from_args(args)
+    if getattr(args, "ensemble", None) is not None and (args.ensemble < 2 or args.jobs < 1):
+        raise UsageError(f"--ensemble {args.ensemble} --jobs {args.jobs}: give M >= 2 members and at least 1 job")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: exists and is not a folder")
@@ -271,7 +277,7 @@ def eval_main(args: argparse.Namespace) -> int:
 
     out = output_folder(out)  # created like validate's and tables' --out
     try:  # every output checked before the cross-validation (the reports are regenerated in place)
-        check_output_folder(out, ("pem-eval.md", "pem-eval.csv", NOISE_CSV))
+        check_output_folder(out, ("pem-eval.md", "pem-eval.csv", NOISE_CSV, "pem-eval-ensemble.md"))
         if rrd is not None:
             check_output_path(rrd, ".rrd", "--save", overwrite=True)
     except ValueError as exc:
@@ -288,6 +294,8 @@ def eval_main(args: argparse.Namespace) -> int:
         wrote.append(write_text_atomic(out / "pem-eval.csv", format_csv(result)))
         if rrd is not None:
             wrote.append(write_recording(result, rrd))
+    if getattr(args, "ensemble", None) is not None:
+        wrote.append(_eval_ensemble(data, args, config, result if config is not None else None, out))
     if noise_config is not None:
         noise = _eval_noise(data, noise_config)
         markdown.append(noise_eval.format_markdown(noise))
@@ -316,6 +324,27 @@ def _eval_detection(data, config: EvalConfig):  # -> pemviz.studies.pem_eval.Eva
     print("\n".join(summary_lines(result)))
     print(f"best by mean BCE: {result.best()}; wall time {result.wall_s:.0f} s", flush=True)
     return result
+
+
+def _eval_ensemble(data, args: argparse.Namespace, config, result, out: Path) -> Path:
+    """``--ensemble M``: the bootstrap members' cross-validation beside the nominal ML-NN's (when it ran), printed and
+    written to ``pem-eval-ensemble.md``."""
+    from pemviz.studies.pem_eval import evaluate_ensemble, format_ensemble_markdown
+
+    config = config or EvalConfig(models=("ml-nn",), seed=args.seed)
+    print(f"cross-validating {args.ensemble} bootstrap members of ml-nn on folds {list(config.fold_ids)} "
+          f"({args.jobs} worker(s))", flush=True)  # fmt: skip
+
+    def on_fit(k: int, fold: int, bce: float, auc: float) -> None:
+        print(f"  member {k:2d} fold {fold}: BCE {bce:.4f}  AUC {auc:.4f}", flush=True)
+
+    ev = evaluate_ensemble(data.inputs, data.labels, args.ensemble, config, jobs=args.jobs, on_fit=on_fit)
+    nominal = None
+    if result is not None and "ml-nn" in config.models:
+        nominal = result.model("ml-nn")
+    text = format_ensemble_markdown(ev, nominal)
+    print(text)
+    return write_text_atomic(out / "pem-eval-ensemble.md", text)
 
 
 def _eval_noise(data, config: noise_eval.NoiseEvalConfig) -> noise_eval.NoiseEvalResult:
