@@ -57,6 +57,9 @@ class CostConstants:
             of pretraining's proposal; the pool of failures grows over the next stages).
         early_stop_share: the mean share of ``ce_epochs`` a CE fit with ``fit_tolerance`` runs before it stops.
         ams_rollouts: rollout-equivalents AMS simulates per particle (its continuations), about.
+        scene_rollout_factor: per scenario (:data:`pemviz.config.SCENARIOS`), how many times a braking rollout step
+            one of its rollout steps costs (the cut-in's five cars, their salient variables, measurement errors and
+            tracker); 1 where absent.
         measured: when, where and how the constants were measured.
     """
 
@@ -74,6 +77,7 @@ class CostConstants:
     ce_rows_stages: float
     early_stop_share: float
     ams_rollouts: float = 5.0
+    scene_rollout_factor: dict[str, float] = field(default_factory=dict)
     measured: str = field(default="", compare=False)
 
 
@@ -92,6 +96,7 @@ COST = CostConstants(
     ce_rows_stages=5.6,
     early_stop_share=0.833,
     ams_rollouts=5,
+    scene_rollout_factor={"cut-in": 21.0, "cut-in-rare": 21.0},  # 20,000 cut-in rollouts in 17.0 s, 2026-11-25
     measured="2026-11-24, benchmarks/calibrate_cost.py --fit --repeat 2 (CPU seconds), 2 cores, load average 0.7",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
@@ -133,6 +138,7 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
     proposal = cfg.method == "adaptive" and kind in ("ce", "final")
     per_step = c.proposal_step_s if proposal else c.pem_step_s
     per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
+    per_rollout *= c.scene_rollout_factor.get(cfg.scenario, 1.0)
     rollouts = n * (c.ams_rollouts if kind == "ams" else 1.0)
     simulate = n_steps * (per_step + per_rollout * rollouts)
     cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
