@@ -203,7 +203,8 @@ def test_cli_eval_bad_values_exit_2_and_write_nothing(tmp_path: Path, capsys, ar
 def test_cli_eval_cross_validates_the_ensemble_members_beside_the_nominal(salient, tmp_path: Path, capsys) -> None:
     from pemviz.pem.ensemble import bootstrap_rows
     from pemviz.pem.recipes import PEM_RECIPES
-    from pemviz.studies.pem_eval import _member_fold, stratified_folds
+    from pemviz.studies.ensemble_eval import _member_fold
+    from pemviz.studies.pem_eval import stratified_folds
 
     rc = cli_main(["pem", "eval", "--quick", "--models", "ml-nn", "--ensemble", "2", "--no-record", "--out",
                    str(tmp_path)])  # fmt: skip

@@ -329,7 +329,7 @@ def _eval_detection(data, config: EvalConfig):  # -> pemviz.studies.pem_eval.Eva
 def _eval_ensemble(data, args: argparse.Namespace, config, result, out: Path) -> Path:
     """``--ensemble M``: the bootstrap members' cross-validation beside the nominal ML-NN's (when it ran), printed and
     written to ``pem-eval-ensemble.md``."""
-    from pemviz.studies.pem_eval import evaluate_ensemble, format_ensemble_markdown
+    from pemviz.studies.ensemble_eval import evaluate_ensemble, format_ensemble_markdown
 
     config = config or EvalConfig(models=("ml-nn",), seed=args.seed)
     print(f"cross-validating {args.ensemble} bootstrap members of ml-nn on folds {list(config.fold_ids)} "

@@ -279,13 +279,15 @@ mixture's (:func:`mixture_log_weight`); None where the weights are sum (log p - 
 
 
 def severity_arrays(problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
-                    log_w: np.ndarray, weigh: Weigh | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
+                    log_w: np.ndarray, weigh: Weigh | None = None,
+                    log_p: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
     """Per severity level of ``problem.severity`` (:class:`pemviz.core.severity.SeverityScale`): each rollout's
     importance log-weight up to the step its event is decided, the event, and log p over the same steps.
 
     A rollout that reaches level x (:func:`pemviz.core.severity.level_events`) is weighed over its actions before the
     step tau_x at which that is decided (with ``until_failure``; else over the first T - 1, like the run's weights);
-    the others keep ``log_w``, the run's own weights (they do not enter the level's sum, only its diagnostics).
+    the others keep ``log_w``, the run's own weights (they do not enter the level's sum, only its diagnostics), and
+    ``log_p``, their log p before the failure (None: :func:`log_p_before_failure`).
 
     Returns:
         (log-weights, events, log p), float64 / bool / float64 [L, N] (nats), or None: no severity scale, the
@@ -307,7 +309,7 @@ def severity_arrays(problem: Problem, batch: RolloutBatch, failed: np.ndarray, u
     n_steps = batch.n_steps
     last = np.minimum(step, n_steps - 1) if until_failure else np.full(step.shape, n_steps - 1)
     steps = np.arange(n_steps)[None, :]
-    base_lp = log_p_before_failure(problem, batch)
+    base_lp = log_p_before_failure(problem, batch) if log_p is None else log_p
     out_w, out_p = np.repeat(log_w[None, :], hit.shape[0], axis=0), np.repeat(base_lp[None, :], hit.shape[0], axis=0)
     for level, rows in enumerate(hit):
         rows = np.flatnonzero(rows)
@@ -367,8 +369,9 @@ class StageRollouts:
         None: :func:`log_weight`)."""
         if log_w is None:
             log_w = log_weight(problem, batch, until_failure)
-        self.parts.append((log_w, failed, log_p_before_failure(problem, batch)))
-        self.severity_parts.append(severity_arrays(problem, batch, failed, until_failure, log_w, weigh))
+        log_p = log_p_before_failure(problem, batch)
+        self.parts.append((log_w, failed, log_p))
+        self.severity_parts.append(severity_arrays(problem, batch, failed, until_failure, log_w, weigh, log_p))
         self.alternative_parts.append(alternative_log_weights(problem, batch, failed, until_failure, log_w))
         if count_failures:
             c, h = elite_counts(batch, failed, self.grid)
