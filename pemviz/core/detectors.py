@@ -18,6 +18,7 @@ import numpy as np
 from scipy.special import expit, log_expit
 
 from pemviz.core.rng import RQMC_BLOCK, array_rqmc_uniforms, block_bounds, by_blocks, ranking_key
+from pemviz.core.t_quantile import student_t_quantile
 
 GAP_COLUMN = 0
 """Index of ``gap_m`` (metres) in every observation vector."""
@@ -66,7 +67,9 @@ def _check_family(family: str) -> None:
 def standard_quantile(family: str, df: np.ndarray | None, u: np.ndarray) -> np.ndarray:
     """F^-1(u) of the standard ``family`` (Student-t with ``df`` degrees of freedom, broadcast against ``u``), float64,
     in closed form with scipy.special (what ``scipy.stats``' frozen distributions compute, without their ~0.6 ms of
-    construction per call; a test checks them against ``scipy.stats``).
+    construction per call; a test checks them against ``scipy.stats``). Student-t quantiles with df >= 1 (a scalar,
+    or one per column of ``u``) come from :func:`pemviz.core.t_quantile.student_t_quantile`, within 2e-12 of
+    ``scipy.special.stdtrit`` (relative) and about ten times faster; other df from ``stdtrit``.
 
     Raises:
         ValueError: an unknown family.
@@ -80,7 +83,17 @@ def standard_quantile(family: str, df: np.ndarray | None, u: np.ndarray) -> np.n
     if family == "laplace":  # log 2u below the median, -log 2(1 - u) above: no cancellation in either tail
         with np.errstate(divide="ignore"):
             return np.where(u < 0.5, np.log(2.0 * u), -np.log(2.0 * (1.0 - u)))
-    return stdtrit(np.asarray(df, dtype=np.float64), u)
+    nu = np.asarray(df, dtype=np.float64)
+    if not (np.all(np.isfinite(nu)) and np.all(nu >= 1.0)):
+        return stdtrit(nu, u)
+    if nu.ndim == 0:
+        return student_t_quantile(float(nu), u)
+    if nu.ndim == 1 and u.ndim >= 1 and u.shape[-1] == nu.size:  # one df per column (a noise PEM's components)
+        out = np.empty(u.shape)
+        for j, v in enumerate(nu):
+            out[..., j] = student_t_quantile(float(v), u[..., j])
+        return out
+    return stdtrit(nu, u)
 
 
 def standard_log_density(family: str, df: np.ndarray | None, z: np.ndarray) -> np.ndarray:

@@ -385,8 +385,8 @@ def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[Simu
             return simulate_rollouts(make, n, n_steps, sampler, target, rng)
 
     def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
-               chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[RolloutBatch]:  # fmt: skip
-        chunks = iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=chunk_size)
+               chunk_size: int = DEFAULT_CHUNK_SIZE, keep_rows: bool = True) -> Iterator[RolloutBatch]:  # fmt: skip
+        chunks = iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=chunk_size, keep_rows=keep_rows)
         while True:  # one thread while a chunk is simulated, whatever the consumer does between chunks
             with threadpool_limits(1, user_api="blas"):
                 batch = next(chunks, None)
@@ -399,6 +399,7 @@ def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[Simu
         with threadpool_limits(1, user_api="blas"):
             return branch_rollouts(make, parents, parent, at, target, rng)
 
+    stream.elides_rows = True  # type: ignore[attr-defined]  # it takes keep_rows=False (Experiment)
     return run, stream, resume
 
 

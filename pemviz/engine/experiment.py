@@ -24,7 +24,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from typing import Iterable, Iterator, Mapping
+from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
@@ -238,7 +238,9 @@ class Experiment:
         :class:`StageSample` of the stage."""
         pb, cfg = self.problem, self.config
         sample = StageSample(plan.n)
-        size = {} if cfg.chunk_rollouts is None else {"chunk_size": cfg.chunk_rollouts}
+        size: dict[str, Any] = {} if cfg.chunk_rollouts is None else {"chunk_size": cfg.chunk_rollouts}
+        if getattr(pb.stream, "elides_rows", False) and not getattr(estimator, "needs_chunk_rows", True):
+            size["keep_rows"] = False  # a chunk's object rows, rebuilt by replay for the few rollouts read
         chunks = itertools.chain.from_iterable(pb.stream(k, d, target, estimator.rng, **size) for k, d in parts)
         for batch in chunks:
             self._check_cancel()
@@ -250,6 +252,7 @@ class Experiment:
                                    pb.target))  # fmt: skip
             sample.add(batch, robustness, failed, log_w)
         batch, index = sample.rollouts()
+        batch = batch.with_rows()  # the listeners' sample holds its rows
         by_metric = RobustnessByMetric(pb, batch)
         self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, sample.failed[index],
                                   sample.log_weight[index], plan.sampler, n_total=plan.n, index=index,

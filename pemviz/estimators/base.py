@@ -259,7 +259,10 @@ class SeenFailures:
 def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Object events of the elite rollouts per bin of ``grid`` (nearest grid value of each object row's first
     column: the braking scenario's gap) and the detections among them, float64 [G] each."""
-    d = batch.object_rows[..., 0][elite].ravel()  # the first column, then the elites: no copy of the other columns
+    if batch.rows_elided:  # rebuild the elites' rows only
+        d = batch.object_rows_of(elite)[..., 0].ravel()
+    else:
+        d = batch.object_rows[..., 0][elite].ravel()  # the first column, then the elites: no copy of the other columns
     a = batch.detected[elite].ravel()
     idx = np.searchsorted((grid[1:] + grid[:-1]) / 2, d, side="right")  # the bin whose midpoints bracket d
     counts = np.bincount(idx, minlength=grid.size).astype(float)
@@ -343,7 +346,7 @@ def alternative_log_weights(problem: Problem, batch: RolloutBatch, failed: np.nd
     if rows.size:
         mask = weighted_steps_mask(problem, batch, until_failure)[rows]
         detected = batch.detected.reshape(batch.n, batch.n_steps, -1)[rows]
-        ratios = detection_log_ratios(problem.target, [a.detector for a in alternatives], batch.object_rows[rows],
+        ratios = detection_log_ratios(problem.target, [a.detector for a in alternatives], batch.object_rows_of(rows),
                                       detected, mask)  # fmt: skip
         out[:, rows] = out[:, rows] + ratios
     return out

@@ -26,6 +26,10 @@ class FixedSampler:
         seed: the rollouts' stream, ``numpy.random.default_rng(seed)``.
     """
 
+    needs_chunk_rows = False
+    """A streamed stage's chunks may come without their object rows (:attr:`pemviz.scenarios.RolloutBatch.replay`):
+    this estimator reads the rows of failures only."""
+
     def __init__(self, problem: Problem, sampler: Detector, n: int, weights_until_failure: bool, seed: int = 0) -> None:
         self.problem, self.sampler, self.n, self.until_failure = problem, sampler, n, weights_until_failure
         self.rng = np.random.default_rng(seed)

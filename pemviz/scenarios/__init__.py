@@ -17,8 +17,9 @@ current step and ``restore(state)`` puts it back (checked by :func:`pemviz.core.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import Callable, Iterable, Iterator, Protocol, Sequence
+import functools
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 
@@ -102,6 +103,12 @@ class RolloutBatch:
         object_names: the G names of the object rows (None: ``observation_names``).
         noise: float64 [N, T, M, D] the measurement errors of the detected objects (0 where missed), or None (D = 0).
         noise_names: the D names of the errors (e.g. ``("range_err_m", "lateral_err_m")``).
+        replay: None, or a function ``(detected [K, T, M], noise [K, T, M, D] | None) -> objects [K, T, M, G]``
+            that rebuilds the object rows of rollouts by replaying their events (:func:`replay_rows`). A batch
+            simulated without its object rows (``objects`` None, ``replay`` given: :func:`run_batched` with
+            ``keep_rows=False``) rebuilds them when ``objects`` is first read, for the rollouts it holds then: select
+            the few rollouts whose rows are wanted first (:meth:`select`, :meth:`object_rows_of`). The rows are bit for
+            bit those of the simulation (a state is a function of the events before it).
     """
 
     observations: np.ndarray
@@ -114,6 +121,35 @@ class RolloutBatch:
     object_names: tuple[str, ...] | None = None
     noise: np.ndarray | None = None
     noise_names: tuple[str, ...] = ()
+    replay: Callable[[np.ndarray, np.ndarray | None], np.ndarray] | None = field(default=None, compare=False)
+
+    def __getattribute__(self, name: str) -> Any:
+        if name != "objects":
+            return object.__getattribute__(self, name)
+        rows = object.__getattribute__(self, "objects")
+        if rows is None:
+            replay = object.__getattribute__(self, "replay")
+            if replay is not None:  # rebuilt once, from this batch's events
+                rows = replay(self.detected, self.noise)
+                object.__setattr__(self, "objects", rows)
+                object.__setattr__(self, "replay", None)
+        return rows
+
+    @property
+    def rows_elided(self) -> bool:
+        """Whether the object rows were not kept and would be rebuilt by replay when read (:attr:`replay`)."""
+        return object.__getattribute__(self, "objects") is None and self.replay is not None
+
+    def with_rows(self) -> "RolloutBatch":
+        """This batch with its object rows held (rebuilt by replay where they were not kept: :attr:`rows_elided`)."""
+        return replace(self, objects=self.objects, replay=None) if self.rows_elided else self
+
+    def object_rows_of(self, rows: np.ndarray) -> np.ndarray:
+        """``object_rows[rows]`` (bool [N] mask or int indices), float64 [K, T, M, G]; a batch without its rows
+        (:attr:`rows_elided`) rebuilds those K rollouts' rows only."""
+        if self.rows_elided:
+            return self.select(rows).object_rows
+        return self.object_rows[rows]
 
     def __post_init__(self) -> None:
         if self.detected.ndim == 2:  # one object per step
@@ -183,9 +219,11 @@ class RolloutBatch:
         def take(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[rows]
 
+        objects = object.__getattribute__(self, "objects")  # rows not kept stay so: the selection replays its own
         return replace(self, observations=self.observations[rows], detected=self.detected[rows],
                        log_p=self.log_p[rows], log_q=self.log_q[rows], log_q_parts=take(self.log_q_parts),
-                       objects=take(self.objects), noise=take(self.noise))  # fmt: skip
+                       objects=take(objects), noise=take(self.noise),
+                       replay=self.replay if objects is None else None)  # fmt: skip
 
     @staticmethod
     def concatenate(batches: Sequence["RolloutBatch"]) -> "RolloutBatch":
@@ -195,9 +233,10 @@ class RolloutBatch:
             parts = [getattr(b, field) for b in batches]
             return None if any(x is None for x in parts) else np.concatenate(parts)
 
+        lazy = all(b.rows_elided for b in batches)  # else every batch's rows, rebuilt where not kept
         return replace(batches[0], observations=cat("observations"), detected=cat("detected"), log_p=cat("log_p"),
-                       log_q=cat("log_q"), log_q_parts=cat("log_q_parts"), objects=cat("objects"),
-                       noise=cat("noise"))  # fmt: skip
+                       log_q=cat("log_q"), log_q_parts=cat("log_q_parts"), objects=None if lazy else cat("objects"),
+                       noise=cat("noise"), replay=batches[0].replay if lazy else None)  # fmt: skip
 
 
 class Lockstep:
@@ -234,6 +273,7 @@ def run_batched(
     target: Detector,
     uniforms: Iterable[np.ndarray],
     forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
+    keep_rows: bool = True,
 ) -> RolloutBatch:
     """Simulate the ``n`` rollouts of ``sim`` for ``n_steps`` steps, each object's events drawn from ``sampler`` and
     scored under ``target`` (:func:`pemviz.core.detectors.draw_step`): the rollout runner of every simulator.
@@ -244,9 +284,11 @@ def run_batched(
             object: its detection's uniform, then its D errors'); e.g. ``rng.random(n K)`` per step.
         forced: optional (detected bool [n, T, M], noise [n, T, M, D] or None, until int [n]): rollout i takes these
             events at its steps before ``until[i]`` (a replayed prefix).
+        keep_rows: False: a simulator with object rows does not keep them (``objects`` None; the caller attaches a
+            :attr:`RolloutBatch.replay`): float64 [n, T, M, G] is most of a multi-object batch's memory.
     Returns:
-        :class:`RolloutBatch` [n, T] (``objects`` when the simulator reports object rows, ``noise`` when the target
-        mislocates).
+        :class:`RolloutBatch` [n, T] (``objects`` when the simulator reports object rows and ``keep_rows``, ``noise``
+        when the target mislocates).
     """
     names = tuple(sim.observation_names)
     multi = getattr(sim, "object_names", None) is not None  # else one object per rollout: its observation
@@ -257,15 +299,16 @@ def run_batched(
     obs = np.empty((n, n_steps, len(names)))
     det = np.empty((n, n_steps, m), dtype=bool)
     log_p, log_q = np.empty((n, n_steps)), np.empty((n, n_steps))
-    objects = np.empty((n, n_steps, m, len(sim.object_names))) if multi else None
+    objects = np.empty((n, n_steps, m, len(sim.object_names))) if multi and keep_rows else None
     noise = np.empty((n, n_steps, m, d)) if d else None
     for t, u in zip(range(n_steps), uniforms):
         o = np.asarray(sim.observation(), dtype=np.float64)
         obs[:, t] = o
         if multi:
-            rows = np.ascontiguousarray(sim.objects(), dtype=np.float64)
-            objects[:, t] = rows
-            rows = rows.reshape(n * m, -1)
+            rows = np.asarray(sim.objects(), dtype=np.float64)
+            if objects is not None:
+                objects[:, t] = rows
+            rows = rows.reshape(n * m, -1)  # a view where the simulator's layout allows (the cut-in's: column-major)
         else:
             rows = o
         f = None
@@ -288,6 +331,21 @@ def run_batched(
     return RolloutBatch(obs, det, log_p, log_q, names, objects=objects,
                         object_names=tuple(sim.object_names) if multi else None, noise=noise,
                         noise_names=noise_names)  # fmt: skip
+
+
+def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray,
+                noise: np.ndarray | None) -> np.ndarray:  # fmt: skip
+    """The object rows float64 [K, T, M, G] of K rollouts of the batched simulator ``make(K)`` that took the events
+    ``detected`` bool [K, T, M] and ``noise`` float64 [K, T, M, D] (or None): the simulator stepped with those events,
+    no detector asked. Bit for bit the rows :func:`run_batched` saw (a state is a function of the events before it,
+    and a batched simulator's arithmetic is row by row)."""
+    k, n_steps = detected.shape[:2]
+    sim = make(max(k, 1))  # no rollout: the rows' shape only
+    out = np.empty((k, n_steps, n_objects_of(sim), len(sim.object_names)))
+    for t in range(n_steps if k else 0):
+        out[:, t] = sim.objects()
+        sim.step(detected[:, t], None if noise is None else noise[:, t])
+    return out
 
 
 DEFAULT_CHUNK_SIZE = RQMC_BLOCK
@@ -341,12 +399,14 @@ def _coupled(sampler: Detector) -> bool:
 
 
 def iter_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int, sampler: Detector, target: Detector,
-                  rng: np.random.Generator, *, chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[RolloutBatch]:  # fmt: skip
+                  rng: np.random.Generator, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
+                  keep_rows: bool = True) -> Iterator[RolloutBatch]:  # fmt: skip
     """Stream ``n`` rollouts of a batched simulator as :class:`RolloutBatch` chunks of at most ``chunk_size`` rollouts
     (:func:`run_batched` on ``make(m)``, m rollouts at their start), the rollouts of ``rng.random(n K)`` per step
     (:func:`uniform_chunks`): the same rollouts, bit for bit, for any chunk size. An Array-RQMC sampler's rollouts are
     simulated one fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` at a time (its rollouts are coupled) and handed out
-    in chunks of ``chunk_size``.
+    in chunks of ``chunk_size``. With ``keep_rows=False`` a simulator's object rows are not kept: a chunk rebuilds
+    the rows it is asked for by replay (:attr:`RolloutBatch.replay`, :func:`replay_rows`).
 
     Raises:
         ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
@@ -354,13 +414,16 @@ def iter_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int,
     check_counts("iter_rollouts", n=n, chunk_size=chunk_size)
     n, chunk_size = int(n), int(chunk_size)
     if _coupled(sampler) and chunk_size != RQMC_BLOCK:  # simulated block by block, handed out chunk by chunk
-        for batch in iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=RQMC_BLOCK):
+        for batch in iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=RQMC_BLOCK, keep_rows=keep_rows):
             for a in range(0, batch.n, chunk_size):
                 yield batch if batch.n <= chunk_size else batch.select(slice(a, a + chunk_size))
         return
     k = draws_per_rollout(make(1), target)
+    replay = None if keep_rows else functools.partial(replay_rows, make)
     for start, stop, uniforms in uniform_chunks(rng, n, n_steps, chunk_size, k):
-        yield run_batched(make(stop - start), stop - start, n_steps, sampler, target, uniforms)
+        batch = run_batched(make(stop - start), stop - start, n_steps, sampler, target, uniforms, keep_rows=keep_rows)
+        elided = replay is not None and batch.object_names is not None and object.__getattribute__(batch, "objects") is None
+        yield replace(batch, replay=replay) if elided else batch
 
 
 def simulate_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int, sampler: Detector,

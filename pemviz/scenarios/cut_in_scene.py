@@ -244,14 +244,15 @@ def object_rows(params: CutInParams, traffic: Traffic, view: CameraView, ego_x_m
                 ego_speed_mps: np.ndarray, ego_accel_mps2: np.ndarray, tracks: Tracks,
                 followed: np.ndarray) -> np.ndarray:  # fmt: skip
     """The object rows at this step, float64 ``[N, M, G]`` (:data:`~pemviz.scenarios.cut_in.OBJECT_NAMES`): a
-    transposed view of a column-major ``[G, M, N]`` array (each column written in one pass).
+    transposed view of a ``[G, N, M]`` array (each column written in one pass), so that its ``reshape(N M, G)``, the
+    rows of every rollout's objects together, is a view too.
 
     Args:
         ego_x_m, ego_speed_mps, ego_accel_mps2: ``[N]``; tracks: the trackers' predictions ``[M, N]`` for this step;
         followed: int ``[N]``, the object the ACC followed at the last step (-1 none).
     """
     m, n = view.loc_z_m.shape
-    cols = np.empty((len(OBJECT_NAMES), m, n))
+    cols = np.empty((len(OBJECT_NAMES), n, m)).transpose(0, 2, 1)  # [G, M, N] views of [N, M] columns
     loc_x, loc_z = view.loc_x_m, view.loc_z_m
     cols[0] = np.sqrt(loc_x * loc_x + loc_z * loc_z)
     cols[1] = 0.0  # class: Car

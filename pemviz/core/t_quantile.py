@@ -1,0 +1,101 @@
+"""Student-t quantiles from a table: ``F^-1(u)`` of Student's t with nu degrees of freedom for many uniforms at once,
+about ten times faster than ``scipy.special.stdtrit`` and within 2e-12 of it (relative, checked by a test).
+
+The noise PEM draws every detected object's range and lateral errors by inverse CDF (a heavy-tailed Student-t per
+component, :mod:`pemviz.pem.noise`); ``stdtrit`` solves each quantile iteratively (cdflib's root finder), and on the
+cut-in scene that was a third of plain Monte Carlo's time. Here each binade ``[2^(e-1), 2^e)`` of ``u < 1/2`` holds a
+cubic Hermite interpolant of ``Q(u) = F^-1(u)`` on :data:`KNOTS_PER_BINADE` equal steps of the mantissa, whose knot
+values are ``stdtrit``'s and whose slopes are ``dQ/du = 1 / f(Q)`` (f the t density); ``u > 1/2`` uses ``Q(u) =
+-Q(1 - u)`` (``1 - u`` is exact there). Locating a uniform is exact bit arithmetic (``numpy.frexp``), and the
+interpolant is a fixed sequence of float64 multiplications and additions (no vector library): the same bits on every CPU
+from the same table (built once per df from stdtrit and libm's scalar lgamma, exp and log1p). Uniforms outside
+the table (``u < 2^-64``, 0, 1/2, non-finite) go to ``stdtrit`` itself.
+
+Error: a cubic Hermite interpolant on steps h of the mantissa is off by at most ``h^4 / 384 max |Q''''|``
+(de Boor, *A Practical Guide to Splines*, 2001, ch. II); with h = 1/1024 and the tail's ``Q ~ -c u^(-1/nu)`` that is
+below 2e-12 relative for nu >= 1 (measured: 2e-13 at the noise PEM's nu, 1.1e-12 at nu = 1). An error drawn from the
+table's quantile has its density evaluated exactly where it lands, so importance weights stay exact; the draw's own
+distribution is F to that relative tolerance. Measured on 10^5 uniforms: 2.3 ms against stdtrit's 26 ms.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+KNOTS_PER_BINADE = 512
+"""Interpolation steps per binade of u (a power of two: locating u in the table is then exact)."""
+
+LOWEST_EXPONENT = -64
+"""The table covers ``2^(LOWEST_EXPONENT - 1) <= u < 1/2`` (64 binades; ``numpy.random.Generator.random`` never draws
+a positive u below 2^-53)."""
+
+TOLERANCE = 2e-12
+"""The table's quantiles are within ``TOLERANCE * (1 + |Q|)`` of ``scipy.special.stdtrit``'s (tested)."""
+
+
+def _log_density(nu: float, z: float) -> float:
+    """log f(z) of Student's t with ``nu`` degrees of freedom (nats), in scalar libm arithmetic."""
+    return (math.lgamma((nu + 1.0) / 2.0) - math.lgamma(nu / 2.0) - 0.5 * math.log(nu * math.pi)
+            - (nu + 1.0) / 2.0 * math.log1p(z * z / nu))  # fmt: skip
+
+
+@functools.lru_cache(maxsize=16)
+def _table(nu: float) -> np.ndarray:
+    """Cubic coefficients float64 [B * K, 4] (``c0 + t (c1 + t (c2 + t c3))`` for t in [0, 1)), row ``b K + j`` for
+    binade ``e = -1 - b`` and mantissa step j."""
+    from scipy.special import stdtrit
+
+    k = KNOTS_PER_BINADE
+    n_binades = -LOWEST_EXPONENT
+    mantissa = 0.5 + np.arange(k + 1) / (2.0 * k)  # [K + 1] knots of [0.5, 1]
+    exponents = -1 - np.arange(n_binades)  # e = -1, -2, ...
+    u = np.ldexp(mantissa[None, :], exponents[:, None])  # [B, K + 1], exact
+    q = stdtrit(nu, u)
+    slope = np.array([[math.ldexp(1.0, int(e)) / (2.0 * k) * math.exp(-_log_density(nu, float(z))) for z in row]
+                      for e, row in zip(exponents, q)])  # fmt: skip  # dQ/dt = (du/dt) / f(Q), t the step's coordinate
+    y0, y1, d0, d1 = q[:, :-1], q[:, 1:], slope[:, :-1], slope[:, 1:]
+    coef = np.stack([y0, d0, 3.0 * (y1 - y0) - 2.0 * d0 - d1, 2.0 * (y0 - y1) + d0 + d1], axis=-1)
+    out = np.ascontiguousarray(coef.reshape(n_binades * k, 4))
+    out.flags.writeable = False
+    return out
+
+
+def student_t_quantile(df: float, u: np.ndarray) -> np.ndarray:
+    """``F^-1(u)`` of Student's t with ``df`` degrees of freedom, float64 (u's shape), to :data:`TOLERANCE` of
+    ``scipy.special.stdtrit(df, u)`` (cubic Hermite interpolation per binade; see the module docstring).
+
+    Args:
+        df: degrees of freedom, a float >= 1.
+        u: float64 uniforms, any shape (0 gives -inf, 1 gives inf, outside [0, 1] nan, as ``stdtrit``).
+    Raises:
+        ValueError: ``df`` below 1 or not finite.
+    """
+    from scipy.special import stdtrit
+
+    nu = float(df)
+    if not (math.isfinite(nu) and nu >= 1.0):
+        raise ValueError(f"student_t_quantile: df must be a finite number >= 1, got {df!r}")
+    u = np.asarray(u, dtype=np.float64)
+    w = np.minimum(u, 1.0 - u)  # Q(u) = -Q(1 - u); 1 - u is exact for u >= 1/2 (Sterbenz)
+    mantissa, exponent = np.frexp(w)  # w = m 2^e, m in [0.5, 1)
+    inside = (w > 0.0) & (w < 0.5) & (exponent >= LOWEST_EXPONENT)
+    x = (mantissa - 0.5) * (2.0 * KNOTS_PER_BINADE)  # exact: [0, K)
+    with np.errstate(invalid="ignore"):  # nan rows (outside the table) are recomputed below
+        step = np.minimum(x.astype(np.int64), KNOTS_PER_BINADE - 1)
+    t = x - step
+    row = (-1 - exponent.astype(np.int64)) * KNOTS_PER_BINADE + step
+    row[~inside] = 0
+    c = np.take(_table(nu), row, axis=0)  # [..., 4]
+    q = c[..., 3] * t
+    q += c[..., 2]
+    q *= t
+    q += c[..., 1]
+    q *= t
+    q += c[..., 0]
+    np.negative(q, out=q, where=u > 0.5)
+    if not inside.all():  # the rare uniform outside the table: stdtrit itself
+        q = np.where(inside, q, stdtrit(nu, u))
+    return q
