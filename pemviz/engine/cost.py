@@ -82,22 +82,22 @@ class CostConstants:
 
 
 COST = CostConstants(
-    pem_step_s=0.000109,
-    proposal_step_s=0.000256,
-    rollout_step_s={"batched": 4.04e-07, "highway-env": 4.94e-05},
-    proposal_rollout_step_s=2.78e-07,
-    stage_s=0.0014,
-    epoch_s=0.000126,
-    row_epoch_s=1.87e-07,
-    row_s=2.07e-06,
+    pem_step_s=8.68e-05,
+    proposal_step_s=0.000195,
+    rollout_step_s={"batched": 4.52e-07, "highway-env": 4.25e-05},
+    proposal_rollout_step_s=3.62e-07,
+    stage_s=0.0003,
+    epoch_s=8.3e-05,
+    row_epoch_s=4.37e-07,
+    row_s=9.75e-06,
     pretrain_rows={"state": 12.2, "gap": 0.91},
-    ce_rows={"state": 3.36e+03, "gap": 374},
-    ce_rows_exponent=0.26,
-    ce_rows_stages=5.6,
-    early_stop_share=0.833,
+    ce_rows={"state": 2.21e+03, "gap": 130},
+    ce_rows_exponent=0.32,
+    ce_rows_stages=3.4,
+    early_stop_share=0.88,
     ams_rollouts=5,
-    scene_rollout_factor={"cut-in": 21.0, "cut-in-rare": 21.0},  # 20,000 cut-in rollouts in 17.0 s, 2026-11-25
-    measured="2026-11-24, benchmarks/calibrate_cost.py --fit --repeat 2 (CPU seconds), 2 cores, load average 0.7",
+    scene_rollout_factor={"cut-in": 8.2, "cut-in-rare": 8.2},  # 20,000 cut-in rollouts in 7.4 s, 2026-11-25
+    measured="2026-11-25, benchmarks/calibrate_cost.py --fit --repeat 2 (wall seconds), 2 cores, load average 0.8",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 

@@ -29,6 +29,9 @@ from pemviz.engine.plan import RunPlan
 MAX_SCALE = 20.0
 """The most a :class:`StageClock` scales a prediction by (either way): a first stage slowed by a one-off start
 (an import, a warm-up) must not blow up the prediction of the rest."""
+SCALE_PRIOR = 0.25
+"""The model's prediction counts as this share of the whole plan's predicted seconds measured at the model's speed:
+the first, short stages move the scale of what is left only as far as their share of the run warrants."""
 
 HANDLERS: dict[type, str] = {
     RunStarted: "on_run_started",
@@ -87,13 +90,15 @@ class StageClock(Sink):
     rollouts and to finish after them, its fit included (:func:`pemviz.engine.cost.plan_costs`). As stages end the clock
     measures both (from the stage's start to its :class:`~pemviz.engine.events.RolloutsSampled`, over all of its
     rollouts, a streamed stage's too; then to its :class:`~pemviz.engine.events.StageFinished`) and scales the
-    predictions of what is left by measured / predicted so far, separately for the two parts.
+    predictions of what is left by measured / predicted so far, separately for the two parts: simulating over every
+    stage (the machine's speed), what follows per kind of stage (a pretraining fit says little of a CE stage's, which
+    grows with the pool of failures), a kind not yet measured by the simulating scale.
 
     Attributes:
         t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were sampled
             (None before).
-        simulate_scale, after_scale: measured / predicted seconds of simulating, and of what follows (fits), over the
-            stages so far (1 before any).
+        simulate_scale: measured / predicted seconds of simulating over the stages so far (1 before any);
+            :meth:`after_scale` the same of what follows (fits), per kind of stage.
         done: the finished stages' results.
     """
 
@@ -107,7 +112,8 @@ class StageClock(Sink):
         self.predicted: dict[int, StageCost] = {}
         self.current: StageStarted | None = None
         self.done: list[StageResult] = []
-        self._measured = {"simulate": [0.0, 0.0], "after": [0.0, 0.0]}  # [measured s, predicted s]
+        self._measured: dict[str, list[float]] = {}  # part ("simulate", or "after:" + kind) -> [measured, predicted s]
+        self._planned: dict[str, float] = {}  # part ("simulate", "after") -> the plan's predicted seconds
 
     def on_run_started(self, event: RunStarted) -> None:
         self.t0 = self.stage_t0 = self.now()
@@ -116,7 +122,9 @@ class StageClock(Sink):
         scene = event.problem.scene
         self._config, self._n_steps = event.config, scene.n_steps if scene is not None else N_STEPS
         self.predicted = plan_costs(event.config, event.plan, self._n_steps, self.constants)
-        self._measured = {"simulate": [0.0, 0.0], "after": [0.0, 0.0]}
+        self._measured = {}
+        self._planned = {"simulate": sum(c.simulate_s for c in self.predicted.values()),
+                         "after": sum(c.after_s for c in self.predicted.values())}  # fmt: skip
 
     def on_stage_started(self, event: StageStarted) -> None:
         self.stage_t0, self.sampled_t, self.current = self.now(), None, event
@@ -131,26 +139,32 @@ class StageClock(Sink):
         self.done = self.done + [event.result]
         if self.current is not None and self.sampled_t is not None and self.current.stage == event.result.stage:
             cost = self._model(self.current.kind, self.current.n_rollouts, self.current.stage)
-            self._add("after", self.now() - self.sampled_t, cost.after_s)
+            self._add("after:" + self.current.kind, self.now() - self.sampled_t, cost.after_s)
         self.current = None
 
     def _add(self, part: str, measured_s: float, predicted_s: float) -> None:
         if predicted_s > 0.0:
-            m = self._measured[part]
+            m = self._measured.setdefault(part, [0.0, 0.0])
             m[0] += measured_s
             m[1] += predicted_s
 
-    def _scale(self, part: str) -> float:
-        measured, predicted = self._measured[part]
-        return min(MAX_SCALE, max(1.0 / MAX_SCALE, measured / predicted)) if predicted > 0.0 else 1.0
+    def _scale(self, part: str) -> float | None:
+        measured, predicted = self._measured.get(part, (0.0, 0.0))
+        if predicted <= 0.0:
+            return None
+        prior = SCALE_PRIOR * self._planned.get(part.split(":")[0], 0.0)  # pseudo-seconds at the model's own speed
+        return min(MAX_SCALE, max(1.0 / MAX_SCALE, (measured + prior) / (predicted + prior)))
 
     @property
     def simulate_scale(self) -> float:
-        return self._scale("simulate")
+        scale = self._scale("simulate")
+        return 1.0 if scale is None else scale
 
-    @property
-    def after_scale(self) -> float:
-        return self._scale("after")
+    def after_scale(self, kind: str) -> float:
+        """Measured / predicted seconds after the rollouts of the stages of ``kind`` so far (the simulating scale
+        before one)."""
+        scale = self._scale("after:" + kind)
+        return self.simulate_scale if scale is None else scale
 
     def _model(self, kind: str, n_rollouts: int, stage: int | None = None) -> StageCost:
         """The model's prediction of a stage of this run (nan before the run starts)."""
@@ -158,20 +172,21 @@ class StageClock(Sink):
             return StageCost(math.nan, math.nan)
         return stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage)
 
-    def _scaled(self, cost: StageCost) -> tuple[float, float]:
-        return cost.simulate_s * self.simulate_scale, cost.after_s * self.after_scale
+    def _scaled(self, cost: StageCost, kind: str) -> tuple[float, float]:
+        return cost.simulate_s * self.simulate_scale, cost.after_s * self.after_scale(kind)
 
     def expected_s(self, kind: str, n_rollouts: int) -> float:
         """Expected seconds of a stage of ``kind`` and ``n_rollouts``: its predicted simulating and what follows
         (:func:`pemviz.engine.cost.stage_cost`), each scaled by what the run measured so far; nan before the run
         starts."""
-        return sum(self._scaled(self._model(kind, n_rollouts)))
+        return sum(self._scaled(self._model(kind, n_rollouts), kind))
 
     def stage_left_s(self) -> float:
         """Expected seconds left in the current stage (0 once it has taken longer than expected; nan: none going)."""
         if self.current is None:
             return math.nan
-        simulate, after = self._scaled(self._model(self.current.kind, self.current.n_rollouts, self.current.stage))
+        cost = self._model(self.current.kind, self.current.n_rollouts, self.current.stage)
+        simulate, after = self._scaled(cost, self.current.kind)
         if self.sampled_t is None:
             return max(0.0, simulate - (self.now() - self.stage_t0)) + after
         return max(0.0, after - (self.now() - self.sampled_t))
@@ -182,7 +197,7 @@ class StageClock(Sink):
         if self.plan is None or self.plan.open_ended:
             return math.nan
         after = self.current.stage if self.current is not None else (self.done[-1].stage if self.done else -1)
-        left = sum(sum(self._scaled(self.predicted[s.stage])) for s in self.plan.stages if s.stage > after)
+        left = sum(sum(self._scaled(self.predicted[s.stage], s.kind)) for s in self.plan.stages if s.stage > after)
         return left + (self.stage_left_s() if self.current is not None else 0.0)
 
     def elapsed_s(self) -> float:

@@ -50,10 +50,13 @@ def test_the_progress_names_each_stage_and_predicts_it_and_the_whole_run_from_wh
                                                                "final batch"]  # fmt: skip
     # before any measurement: the model; pretraining 0.0002 + 0.5 s, then 0.0003 + 0.15, 0.4 + 0.15 and 0.5 s
     assert lines[0].endswith("this stage ~0.5 s, run ~1.7 s left)")
-    # twice as slow as predicted so far: CE stage 2 takes 2 x 0.55 s, the final batch 2 x 0.5 s (its 50,000
-    # rollouts counted, and stage 2's 40,000, not the 4 shown of them)
-    assert lines[2].endswith("this stage ~1.1 s, run ~2.1 s left)")
-    assert lines[3].endswith("this stage ~1.0 s, run ~1.0 s left)")
+    # twice as slow as predicted so far, each scale shrunk by a prior worth a quarter of the plan's predicted seconds
+    # (simulating 0.9005 s, after 0.8 s): CE stage 2 = 0.4 x (0.001 + 0.2251) / (0.0005 + 0.2251) + 0.15 x (0.3 + 0.2)
+    # / (0.15 + 0.2) = 0.615 s, then the final batch 0.5 x 1.0022 s
+    assert lines[2].endswith("this stage ~0.6 s, run ~1.1 s left)")
+    # after stage 2's 40,000 rollouts (not the 4 shown of them) took 0.8 s for 0.4: the final batch's 50,000 rollouts
+    # 0.5 x (0.801 + 0.2251) / (0.4005 + 0.2251) = 0.82 s
+    assert lines[3].endswith("this stage ~0.8 s, run ~0.8 s left)")
     table = out.getvalue().splitlines()
     assert table[0].startswith("pemviz: adaptive on the braking scenario, spec G[0,4](d >= 2)") and "K=2 " in table[0]
     assert table[3].split()[:5] == ["1", "ce", "-", "3/30", "1.000e-01"]  # 3 of 30 fail, each weight 1
