@@ -422,7 +422,7 @@ def iter_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int,
     replay = None if keep_rows else functools.partial(replay_rows, make)
     for start, stop, uniforms in uniform_chunks(rng, n, n_steps, chunk_size, k):
         batch = run_batched(make(stop - start), stop - start, n_steps, sampler, target, uniforms, keep_rows=keep_rows)
-        elided = replay is not None and batch.object_names is not None and object.__getattribute__(batch, "objects") is None
+        elided = replay is not None and batch.object_names is not None  # a multi-object batch without its rows
         yield replace(batch, replay=replay) if elided else batch
 
 
