@@ -144,7 +144,12 @@ def ranking_key(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
         finite = np.isfinite(s)
         lo, hi = (float(s[finite].min()), float(s[finite].max())) if finite.any() else (0.0, 0.0)
         s = np.where(np.isnan(s), np.inf, s)
-    scaled = np.zeros(s.size) if hi <= lo else (s - lo) * ((2.0**32 - 1.0) / (hi - lo))
+    if hi <= lo:
+        scaled = np.zeros(s.size)
+    elif math.isfinite(factor := (2.0**32 - 1.0) / (hi - lo)):
+        scaled = (s - lo) * factor
+    else:  # a range so narrow (below 2^32 of the smallest normal) that the factor overflows: divide first
+        scaled = (s - lo) / (hi - lo) * (2.0**32 - 1.0)
     low = np.clip(scaled, 0.0, 2.0**32 - 1.0).astype(np.uint64)  # truncation toward 0: the floor of these
     return (high << np.uint64(32)) | low
 
