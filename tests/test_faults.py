@@ -434,7 +434,7 @@ def test_cli_a_folder_named_like_an_old_temp_file_does_not_block_a_run(tmp_path,
     (tmp_path / "f.rrd.partial").mkdir()
     code, err = cli_line(capsys, *SMALL_RUN, "--save", str(tmp_path / "f.rrd"))
     assert code == 0, err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.rrd", "f.rrd.partial"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.result.json", "f.rrd", "f.rrd.partial"]
 
 
 def test_cli_serve_on_every_interface_warns_that_the_panel_has_no_authentication(capsys, monkeypatch):

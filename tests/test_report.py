@@ -1,5 +1,6 @@
-"""The safety-case report: ``pemviz run --report`` and ``pemviz report RESULT.json`` write the same self-contained
-page, which opens in headless Chromium with the network cut and holds the numbers the console printed."""
+"""The safety-case report: ``pemviz run --report``, ``pemviz report RESULT.json`` and ``pemviz report RUN.rrd`` (the
+result document a run writes beside its recording) write the same self-contained page, which opens in headless
+Chromium with the network cut and holds the numbers the console printed."""
 
 from __future__ import annotations
 
@@ -20,18 +21,18 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"
                  "--disable-component-update", "--disable-sync"]  # fmt: skip
 
 RUNS = {
-    "braking": ["run", "--no-record"],
-    "cut-in": ["run", "--scenario", "cut-in", "--n", "3000", "--no-record"],
+    "braking": ["run"],
+    "cut-in": ["run", "--scenario", "cut-in", "--n", "3000"],
 }
 
 
 @pytest.fixture(scope="module", params=sorted(RUNS))
 def reported(request, tmp_path_factory):
     tmp = tmp_path_factory.mktemp(f"report-{request.param}")
-    page, result = tmp / "page.html", tmp / "result.json"
+    page, result, recording = tmp / "page.html", tmp / "result.json", tmp / "run.rrd"
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
-        assert main([*RUNS[request.param], "--json", str(result), "--report", str(page)]) == 0
+        assert main([*RUNS[request.param], "--save", str(recording), "--json", str(result), "--report", str(page)]) == 0
     return request.param, out.getvalue(), page, result
 
 
@@ -65,6 +66,31 @@ def test_pemviz_report_from_the_result_writes_the_same_page(reported, tmp_path):
     assert again.with_suffix(".md").read_text() == page.with_suffix(".md").read_text()
 
 
+def test_pemviz_report_from_the_recording_writes_the_same_page(reported, tmp_path):
+    """A run that saves its recording writes its result document beside it (run.rrd -> run.result.json): the report
+    of the recording is the report of the run."""
+    _, stdout, page, result = reported
+    recording = result.parent / "run.rrd"
+    beside = result.parent / "run.result.json"
+    assert recording.stat().st_size > 0 and beside.read_text() == result.read_text()
+    assert json.loads(beside.read_text())["recording"] == str(recording)
+    again = tmp_path / "from-recording.html"
+    assert main(["report", str(recording), "--out", str(again)]) == 0
+    assert again.read_text() == page.read_text()
+    for line in _console_numbers(stdout):
+        assert line in again.with_suffix(".md").read_text(), line
+    assert main(["report", str(recording), "--out", str(again)]) == 2  # an existing page is kept without --overwrite
+
+
+def test_a_result_document_in_the_way_of_a_recording_is_refused_before_any_work(tmp_path, capsys):
+    (tmp_path / "run.result.json").write_text("{}")
+    code = main(["run", "--n", "100", "--save", str(tmp_path / "run.rrd")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "run.result.json" in err and len(err.splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.result.json"]
+    assert (tmp_path / "run.result.json").read_text() == "{}"
+
+
 def test_the_page_opens_offline_in_chromium_and_shows_the_estimate(reported):
     sync_api = pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
     if not os.path.exists(CHROMIUM):
@@ -94,7 +120,7 @@ def test_a_report_of_a_bad_source_is_one_line(tmp_path, capsys):
     (tmp_path / "other.json").write_text('{"format": "pemviz-rollouts"}')
     (tmp_path / "broken.json").write_text("{")
     cases = [
-        (tmp_path / "run.rrd", "a recording, not a result document"),
+        (tmp_path / "run.rrd", "a recording without its result document beside it (run.result.json)"),
         (tmp_path / "other.json", "not a pemviz result document"),
         (tmp_path / "broken.json", "not a readable JSON file"),
         (tmp_path / "absent.json", "no such file"),

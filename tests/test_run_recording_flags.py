@@ -111,10 +111,13 @@ def test_default_recording_name_says_what_ran_and_every_written_file_is_printed(
     proc = pemviz("run", "--preset", "paper", *small, "--metric", "agm", "--seed", "3", "--save-rollouts", "r.parquet",
                   cwd=tmp_path)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
-    (rrd,) = (tmp_path / "recordings").iterdir()
+    assert len(list((tmp_path / "recordings").iterdir())) == 2  # the recording and its result document
+    (rrd,) = (tmp_path / "recordings").glob("*.rrd")
     assert rrd.name.startswith("adaptive-paper-agm-batched-seed3-") and rrd.suffix == ".rrd"
-    printed = {line.split(": ", 1)[1] for line in proc.stderr.splitlines() if line.startswith(("recording: ", "rollouts: "))}
-    assert printed == {"recordings/" + rrd.name, "r.parquet", "r.json", "r.proposal.pt"}
+    printed = {line.split(": ", 1)[1] for line in proc.stderr.splitlines()
+               if line.startswith(("recording: ", "rollouts: ", "result: "))}  # fmt: skip
+    beside = "recordings/" + rrd.name.removesuffix(".rrd") + ".result.json"  # the run's result document
+    assert printed == {"recordings/" + rrd.name, beside, "r.parquet", "r.json", "r.proposal.pt"}
     written = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file()}
     assert written == printed
 

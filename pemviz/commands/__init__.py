@@ -23,7 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "estimate": ("pemviz.commands.estimate", "estimate the failure probability from logged rollouts (Parquet)"),
     "validate": ("pemviz.commands.validate", "judge the sampler and the baselines against exact failure probabilities"),
     "tables": ("pemviz.commands.tables", "reproduce the paper's Tables II and III with repetitions and the exact answer"),
-    "report": ("pemviz.commands.report", "write a safety-case report (HTML and Markdown) from a run's result document"),
+    "report": ("pemviz.commands.report", "write a safety-case report (HTML and Markdown) from a run's result document or recording"),
 }
 """Each command: (its module, its one-line help). ``pemviz --help`` lists them without importing any command module."""
 

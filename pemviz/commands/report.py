@@ -1,7 +1,9 @@
-"""``pemviz report RESULT.json``: a safety-case report of a run, one self-contained HTML page and its Markdown twin.
+"""``pemviz report RUN``: a safety-case report of a run, one self-contained HTML page and its Markdown twin.
 
-The run's result document (``pemviz run --json RESULT.json``) holds every number the report shows
-(:mod:`pemviz.io.report`); ``pemviz run --report PAGE.html`` writes the same page at the end of a run.
+The run's result document holds every number the report shows (:mod:`pemviz.io.report`): ``pemviz run --json
+RESULT.json`` writes it where asked, and a run that saves a recording writes it beside the recording (``run.rrd`` ->
+``run.result.json``), so ``pemviz report run.rrd`` reports that run. ``pemviz run --report PAGE.html`` writes the same
+page at the end of a run.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from pathlib import Path
 from pemviz.commands import COMMANDS, UsageError
 from pemviz.io.files import check_output_path
 from pemviz.io.report import markdown_twin, write_report
-from pemviz.io.result import RESULT_FORMAT
+from pemviz.io.result import RESULT_BESIDE_SUFFIX, RESULT_FORMAT, result_beside
 
 REQUIRED = ("format", "scenario", "method", "seed", "estimate", "n_simulations")
 """The fields a result document must have for a report (the rest is shown where present)."""
@@ -24,12 +26,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "report",
         help=COMMANDS["report"][1],
-        description="Write a safety-case report of a run from its result document (pemviz run --json RESULT.json): "
-        "one self-contained HTML page, readable offline, and its Markdown twin (PAGE.md).",
+        description="Write a safety-case report of a run from its result document (pemviz run --json RESULT.json, "
+        "or the one a run writes beside its recording: give the recording RUN.rrd): one self-contained HTML page, "
+        "readable offline, and its Markdown twin (PAGE.md).",
     )
-    p.add_argument("result", metavar="RESULT.json", help="the run's result document (pemviz run --json)")
+    p.add_argument("result", metavar="RUN", help="the run's result document (pemviz run --json), or its recording")
     p.add_argument("--out", default=None, metavar="PAGE.html",
-                   help="where the page goes (default: RESULT.html beside the result; its twin PAGE.md)")
+                   help="where the page goes (default: RUN.html beside the source; its twin PAGE.md)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing page and its twin")
     p.set_defaults(func=main)
 
@@ -40,10 +43,17 @@ def read_result(path: Path) -> dict:
     Raises:
         UsageError: not a readable JSON file, or not a pemviz result document (one line saying what it is).
     """
-    if path.suffix == ".rrd" or path.suffix == ".parquet":
-        raise UsageError(f"{path}: a {'recording' if path.suffix == '.rrd' else 'rollout file'}, not a result "
-                         "document; `pemviz report` reads the JSON that `pemviz run --json RESULT.json` writes "
-                         "(or give --report PAGE.html to pemviz run)")  # fmt: skip
+    if path.suffix == ".rrd":
+        beside = result_beside(path)
+        if not beside.exists():
+            raise UsageError(f"{path}: a recording without its result document beside it ({beside.name}): a run "
+                             "stopped before its estimate, or a recording pemviz did not save; report a finished "
+                             "run's recording, or the JSON of pemviz run --json RESULT.json")  # fmt: skip
+        return read_result(beside)
+    if path.suffix == ".parquet":
+        raise UsageError(f"{path}: a rollout file, not a result document; `pemviz report` reads the JSON that "
+                         "`pemviz run --json RESULT.json` writes, or a saved recording (or give --report PAGE.html "
+                         "to pemviz run)")  # fmt: skip
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -62,7 +72,8 @@ def read_result(path: Path) -> dict:
 def main(args: argparse.Namespace) -> int:
     src = Path(args.result)
     doc = read_result(src)
-    out = Path(args.out) if args.out is not None else src.with_suffix(".html")
+    name = src.name[: -len(RESULT_BESIDE_SUFFIX)] if src.name.endswith(RESULT_BESIDE_SUFFIX) else src.stem
+    out = Path(args.out) if args.out is not None else src.with_name(name + ".html")
     try:
         check_output_path(out, ".html", "--out", overwrite=args.overwrite)
         check_output_path(markdown_twin(out), ".md", "--out (its Markdown twin)", overwrite=args.overwrite)

@@ -267,9 +267,11 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
 
 
 def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, final, recording: str | None,
-                  paths: tuple[Path | None, Path | None, Path | None], why: str | None = None) -> None:  # fmt: skip
-    """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where."""
-    from pemviz.io.result import result_document, write_junit, write_result_json
+                  paths: tuple[Path | None, Path | None, Path | None], why: str | None = None,
+                  saved: Path | None = None) -> None:  # fmt: skip
+    """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where; with a ``saved`` recording its
+    result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads)."""
+    from pemviz.io.result import result_beside, result_document, write_junit, write_result_json
 
     json_path, junit_path, report_path = paths
     from pemviz.sinks.console import final_lines
@@ -280,6 +282,8 @@ def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, fina
                           console=lines, inputs=input_files(cfg))  # fmt: skip
     if json_path is not None:
         print(f"result: {write_result_json(json_path, doc, overwrite=args.overwrite)}", file=sys.stderr)
+    if saved is not None:
+        print(f"result: {write_result_json(result_beside(saved), doc, overwrite=args.overwrite)}", file=sys.stderr)
     if junit_path is not None:
         console = "\n".join(line for line in lines[1:] if line.startswith(("mu_hat", "no failure", "stop:")))
         print(f"junit: {write_junit(junit_path, doc, console, overwrite=args.overwrite)}", file=sys.stderr)
@@ -319,14 +323,22 @@ def main(args: argparse.Namespace) -> int:
     target = recording_target(args)
     save_path = None
     if target == "save":
+        from pemviz.io.result import result_beside  # the recording's result document, written beside it at the end
+
         if args.save is None:  # recordings/ is made once every check has passed
             save_path = default_recording_path(cfg, args.preset or DEFAULT_PRESET)
             try:
-                check_output_folder(save_path.parent, (save_path.name,), "recording folder")
+                check_output_folder(save_path.parent, (save_path.name, result_beside(save_path).name),
+                                    "recording folder")  # fmt: skip
             except ValueError as exc:
                 raise UsageError(str(exc)) from None
         else:
             save_path = check_save_path(Path(args.save), args.overwrite)
+            try:
+                check_output_path(result_beside(save_path), ".json", "--save (the recording's result document)",
+                                  overwrite=args.overwrite)  # fmt: skip
+            except ValueError as exc:
+                raise UsageError(str(exc)) from None
     elif target == "connect":
         args.url = probe_viewer(args.url)
 
@@ -404,8 +416,9 @@ def main(args: argparse.Namespace) -> int:
         if where is not None:
             print(f"recording: {where}", file=sys.stderr)
     final = getattr(done, "final", None)
-    if final is not None and any(path is not None for path in result_files):
-        write_results(args, cfg, problem, final, str(where) if where is not None else None, result_files, why)
+    saved = Path(where) if where is not None and target == "save" else None
+    if final is not None and (saved is not None or any(path is not None for path in result_files)):
+        write_results(args, cfg, problem, final, str(where) if where is not None else None, result_files, why, saved)
     if cfg.require is not None and final is not None and final.decision is not None:
         from pemviz.core.requirement import EXIT_CODES
 

@@ -125,6 +125,17 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
     return doc
 
 
+RESULT_BESIDE_SUFFIX = ".result.json"
+"""A recording's result document lies beside it: ``run.rrd`` -> ``run.result.json`` (:func:`result_beside`)."""
+
+
+def result_beside(recording: str | os.PathLike[str]) -> Path:
+    """Where a saved recording's result document goes (``pemviz run`` writes it at the end of a run that saves a
+    recording; ``pemviz report RUN.rrd`` reads it): the recording's name with ``.result.json`` for ``.rrd``."""
+    path = Path(recording)
+    return path.with_name(path.stem + RESULT_BESIDE_SUFFIX)
+
+
 def write_result_json(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite: bool = False) -> Path:
     """Write ``doc`` (:func:`result_document`) atomically as JSON.
 
