@@ -72,3 +72,12 @@ def test_standard_quantile_takes_one_df_per_column_and_falls_back_below_one():
 def test_df_outside_the_table_s_range_is_one_clear_error(df):
     with pytest.raises(ValueError, match="df must be a finite number >= 1"):
         student_t_quantile(df, np.array([0.3]))
+
+
+def test_one_df_per_column_reads_each_column_s_own_table():
+    u = uniforms(2)[:20_000].reshape(10_000, 2)
+    both = student_t_quantile(np.array(NOISE_PEM_DF), u)
+    for j, df in enumerate(NOISE_PEM_DF):
+        np.testing.assert_array_equal(both[:, j], student_t_quantile(df, np.ascontiguousarray(u[:, j])))
+    with pytest.raises(ValueError, match="one df per column of u, got 2 for u of shape"):
+        student_t_quantile(np.array(NOISE_PEM_DF), u[:, :1])

@@ -89,10 +89,7 @@ def standard_quantile(family: str, df: np.ndarray | None, u: np.ndarray) -> np.n
     if nu.ndim == 0:
         return student_t_quantile(float(nu), u)
     if nu.ndim == 1 and u.ndim >= 1 and u.shape[-1] == nu.size:  # one df per column (a noise PEM's components)
-        out = np.empty(u.shape)
-        for j, v in enumerate(nu):
-            out[..., j] = student_t_quantile(float(v), u[..., j])
-        return out
+        return student_t_quantile(nu, u)
     return stdtrit(nu, u)
 
 

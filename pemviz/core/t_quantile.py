@@ -63,22 +63,33 @@ def _table(nu: float) -> np.ndarray:
     return out
 
 
-def student_t_quantile(df: float, u: np.ndarray) -> np.ndarray:
+@functools.lru_cache(maxsize=16)
+def _stacked(nus: tuple[float, ...]) -> np.ndarray:
+    """The tables of several degrees of freedom, one after the other: float64 [D * B * K, 4]."""
+    out = np.ascontiguousarray(np.concatenate([_table(nu) for nu in nus]))
+    out.flags.writeable = False
+    return out
+
+
+def student_t_quantile(df: float | np.ndarray, u: np.ndarray) -> np.ndarray:
     """``F^-1(u)`` of Student's t with ``df`` degrees of freedom, float64 (u's shape), to :data:`TOLERANCE` of
     ``scipy.special.stdtrit(df, u)`` (cubic Hermite interpolation per binade; see the module docstring).
 
     Args:
-        df: degrees of freedom, a float >= 1.
+        df: degrees of freedom, a float >= 1, or float [D] >= 1: one per column of ``u`` [..., D].
         u: float64 uniforms, any shape (0 gives -inf, 1 gives inf, outside [0, 1] nan, as ``stdtrit``).
     Raises:
-        ValueError: ``df`` below 1 or not finite.
+        ValueError: ``df`` below 1 or not finite, or one per column that does not match ``u``'s last axis.
     """
     from scipy.special import stdtrit
 
-    nu = float(df)
-    if not (math.isfinite(nu) and nu >= 1.0):
+    nus = tuple(float(v) for v in np.ravel(df))
+    if not all(math.isfinite(nu) and nu >= 1.0 for nu in nus):
         raise ValueError(f"student_t_quantile: df must be a finite number >= 1, got {df!r}")
     u = np.asarray(u, dtype=np.float64)
+    per_column = np.ndim(df) > 0
+    if per_column and (u.ndim == 0 or u.shape[-1] != len(nus)):
+        raise ValueError(f"student_t_quantile: one df per column of u, got {len(nus)} for u of shape {u.shape}")
     w = np.minimum(u, 1.0 - u)  # Q(u) = -Q(1 - u); 1 - u is exact for u >= 1/2 (Sterbenz)
     mantissa, exponent = np.frexp(w)  # w = m 2^e, m in [0.5, 1)
     inside = (w > 0.0) & (w < 0.5) & (exponent >= LOWEST_EXPONENT)
@@ -87,8 +98,10 @@ def student_t_quantile(df: float, u: np.ndarray) -> np.ndarray:
         step = np.minimum(x.astype(np.int64), KNOTS_PER_BINADE - 1)
     t = x - step
     row = (-1 - exponent.astype(np.int64)) * KNOTS_PER_BINADE + step
+    if per_column:  # column j reads the j-th table
+        row += np.arange(len(nus)) * (-LOWEST_EXPONENT * KNOTS_PER_BINADE)
     row[~inside] = 0
-    c = np.take(_table(nu), row, axis=0)  # [..., 4]
+    c = np.take(_stacked(nus), row, axis=0)  # [..., 4]
     q = c[..., 3] * t
     q += c[..., 2]
     q *= t
@@ -97,5 +110,5 @@ def student_t_quantile(df: float, u: np.ndarray) -> np.ndarray:
     q += c[..., 0]
     np.negative(q, out=q, where=u > 0.5)
     if not inside.all():  # the rare uniform outside the table: stdtrit itself
-        q = np.where(inside, q, stdtrit(nu, u))
+        q = np.where(inside, q, stdtrit(np.array(nus) if per_column else nus[0], u))
     return q
