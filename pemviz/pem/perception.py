@@ -162,20 +162,15 @@ class SalientDetector:
         rows = np.asarray(rows, dtype=np.float64)
         out = np.full(rows.shape[0], -np.inf)
         seen = np.ones(rows.shape[0], bool) if self.visible is None else rows[:, self.visible] > 0.5
-        features, inverse = None, None
+        features = None
         if seen.any():
             raw = self._raw(rows)[seen]  # the salient columns, then the seen rows: a copy of those only
-            groups = repeated_rows(raw)
-            if groups is not None:  # many rollouts in the same state: each distinct row asked once
-                first, inverse = groups
-                raw = raw[first]
             if self._encodes():
                 features = encode_salient(raw, self.detect.norm)
-                logits = self.detect.logit_features(features)
+                out[seen] = self.detect.logit_features(features)
             else:
-                logits = self.detect.logit(raw)
-            out[seen] = logits if inverse is None else logits[inverse]
-        step = _Step(rows_in, seen, features, out, inverse)
+                out[seen] = self.detect.logit(raw)
+        step = _Step(rows_in, seen, features, out)
         if isinstance(rows_in, np.ndarray) and not rows_in.flags.writeable:
             out.flags.writeable = False
             object.__setattr__(self, "_step", step)
@@ -222,13 +217,10 @@ class SalientDetector:
         kept = self._step
         if (kept is not None and kept.rows is rows and kept.features is not None and self._shares_encoding()
                 and np.all(kept.seen[hit])):  # fmt: skip
-            if kept.inverse is None:
-                loc, log_scale = self.noise.noise_params(kept.features[hit[kept.seen]])
-            else:  # the distinct rows' parameters, then each hit row's
-                which = kept.inverse[hit[kept.seen]]
-                loc, log_scale = (a[which] for a in self.noise.noise_params(kept.features))
+            features = kept.features[hit[kept.seen]]
         else:
-            loc, log_scale = self.noise.noise_params(self.noise.features(self._raw(rows)[hit]))
+            features = self.noise.features(self._raw(rows)[hit])
+        loc, log_scale = self.noise.noise_params(features)
         errors = noise_quantile(self.noise.family, self.noise.df, loc, log_scale, u)
         return errors, noise_log_density(self.noise.family, self.noise.df, loc, log_scale, errors)
 
@@ -243,53 +235,3 @@ class _Step:
     seen: np.ndarray
     features: np.ndarray | None
     logits: np.ndarray
-    inverse: np.ndarray | None = None
-    """None, or int [S]: seen row i's features are ``features[inverse[i]]`` (the D distinct rows, :func:`repeated_rows`)."""
-
-
-PROBE_ROWS = 256
-"""Rows at fixed positions that :func:`repeated_rows` looks at first."""
-PROBE_DISTINCT = 128
-"""At most this many distinct rows among the probe: deduplicating pays (the first steps of a cut-in run, before the
-rollouts' perceptions have set their egos apart, ask about a few hundred distinct rows of 40,960)."""
-
-
-def repeated_rows(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(first [D], inverse [S])`` with ``raw[first][inverse] == raw`` row for row (exact equality) when the rows
-    [S, K] hold few distinct ones, else None (they are evaluated as they are).
-
-    Cheap when it declines: :data:`PROBE_ROWS` rows at fixed positions are looked at first, and more than
-    :data:`PROBE_DISTINCT` distinct ones among them decline. Otherwise rows are grouped by a float64 key (a fixed
-    combination of their columns, elementwise: no BLAS) and every row is checked equal to its group's first row; a
-    key shared by unequal rows declines. A row's answer then comes from the network asked about the distinct rows
-    only: equal to its own to about 1e-15 (a float64 product of a smaller batch rounds its remainder rows differently).
-    """
-    s = raw.shape[0]
-    if s < 4 * PROBE_ROWS:
-        return None
-    probe = raw[:: s // PROBE_ROWS][:PROBE_ROWS]
-    if np.unique(_row_keys(probe)).size > PROBE_DISTINCT:
-        return None
-    keys = _row_keys(raw)
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    if first.size > s // 4 or not np.array_equal(np.take(raw[first], inverse, axis=0), raw):
-        return None
-    return first, inverse
-
-
-KEY_COLUMNS = (7, 9, 10, 3, 8, 1, 2)
-"""The columns of 11 raw salient variables a row's key reads (loc_x, loc_z, rot_y, alpha, loc_y, truncation, occlusion:
-what tells two objects of a step apart; rows equal in these but not in the others are caught by the check)."""
-
-
-def _row_keys(raw: np.ndarray) -> np.ndarray:
-    """float64 [S]: sum_k raw[:, c_k] w_k over :data:`KEY_COLUMNS` (all columns for rows of other widths) for fixed
-    weights w, elementwise in a fixed order (equal rows, equal keys)."""
-    columns = KEY_COLUMNS if raw.shape[1] == 11 else tuple(range(raw.shape[1]))
-    key = raw[:, columns[0]].copy()
-    term = np.empty_like(key)
-    for k, c in enumerate(columns[1:], start=1):
-        np.multiply(raw[:, c], 1.0 + k * 0.6180339887498949, out=term)
-        key += term
-    return key
-
