@@ -113,7 +113,7 @@ def test_default_recording_name_says_what_ran_and_every_written_file_is_printed(
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert len(list((tmp_path / "recordings").iterdir())) == 2  # the recording and its result document
     (rrd,) = (tmp_path / "recordings").glob("*.rrd")
-    assert rrd.name.startswith("adaptive-paper-agm-batched-seed3-") and rrd.suffix == ".rrd"
+    assert rrd.name.startswith("braking-adaptive-paper-agm-batched-seed3-") and rrd.suffix == ".rrd"
     printed = {line.split(": ", 1)[1] for line in proc.stderr.splitlines()
                if line.startswith(("recording: ", "rollouts: ", "result: "))}  # fmt: skip
     beside = "recordings/" + rrd.name.removesuffix(".rrd") + ".result.json"  # the run's result document
@@ -128,4 +128,5 @@ def test_default_recording_names_never_collide(tmp_path: Path) -> None:
     first.write_bytes(b"x")
     second = default_recording_path(cfg, "state-ce", tmp_path)
     assert second != first and second.name.endswith("-2.rrd")
-    assert first.name.startswith(f"adaptive-state-ce-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-{datetime.now():%Y%m%d}")
+    stamp = f"{datetime.now():%Y%m%d}"
+    assert first.name.startswith(f"braking-adaptive-state-ce-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-{stamp}")

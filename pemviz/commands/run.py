@@ -42,7 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "run",
         help=COMMANDS["run"][1],
         description="Run the PEM + adaptive importance sampling pipeline (or a baseline) and record it. "
-        "With no recording flag the recording goes to recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd.",
+        "With no recording flag the recording goes to "
+        "recordings/<scenario>-<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd.",
         conflict_handler="resolve",  # lets --connect also take the viewer URL (rerun's --connect --url still works)
     )
     add_setting(p, "method")
@@ -105,7 +106,8 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
                      help="write the recording to standard output, to be piped into a rerun viewer (... | rerun -)")
     rec.add_argument(
         "--save", default=None, metavar="PATH.rrd",
-        help="write the recording to this file (default recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd)",
+        help="write the recording to this file "
+             "(default recordings/<scenario>-<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd)",
     )  # fmt: skip
     rec.add_argument(
         "--serve", action="store_true",
@@ -186,9 +188,10 @@ def web_viewer_url(grpc_url: str, web_port: int) -> str:
 
 
 def default_recording_path(cfg: ExperimentConfig, preset: str, folder: Path = Path("recordings")) -> Path:
-    """``recordings/<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd``: the name says what ran; a name
+    """``recordings/<scenario>-<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd``: the name says what ran; a name
     already taken (two runs in one second) gets ``-2``, ``-3``, ... so a default name never collides."""
-    return free_default_path(folder, f"{cfg.method}-{preset}-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-{datetime.now():%Y%m%d-%H%M%S}")
+    return free_default_path(folder, f"{cfg.scenario}-{cfg.method}-{preset}-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-"
+                                     f"{datetime.now():%Y%m%d-%H%M%S}")  # fmt: skip
 
 
 def rollout_files(parquet: Path) -> list[Path]:
