@@ -63,3 +63,11 @@ def test_plain_monte_carlo_shows_its_listeners_the_sample_with_its_rows():
     whole = RolloutBatch.concatenate(list(pb.stream(4500, pb.target, pb.target, np.random.default_rng(3))))
     np.testing.assert_array_equal(event.batch.objects, whole.objects[event.index])
     np.testing.assert_array_equal(event.batch.observations, whole.observations[event.index])
+
+
+def test_a_change_of_another_field_keeps_the_rows_unbuilt():
+    (chunk,) = cut_in_chunks(False, n=40, chunk=40)
+    changed = chunk.with_changes(log_q=chunk.log_q * 0.0)
+    assert changed.rows_elided and chunk.rows_elided and not changed.log_q.any()
+    (kept,) = cut_in_chunks(True, n=40, chunk=40)
+    np.testing.assert_array_equal(changed.objects, kept.objects)  # rebuilt when read, all the same

@@ -140,6 +140,13 @@ class RolloutBatch:
         """Whether the object rows were not kept and would be rebuilt by replay when read (:attr:`replay`)."""
         return object.__getattribute__(self, "objects") is None and self.replay is not None
 
+    def with_changes(self, **changes: Any) -> "RolloutBatch":
+        """``dataclasses.replace(self, **changes)``, except that object rows not kept stay so (``replace`` reads every
+        field, and reading ``objects`` rebuilds them: :attr:`rows_elided`)."""
+        if self.rows_elided and "objects" not in changes:
+            changes = {"objects": None, "replay": self.replay, **changes}
+        return replace(self, **changes)
+
     def with_rows(self) -> "RolloutBatch":
         """This batch with its object rows held (rebuilt by replay where they were not kept: :attr:`rows_elided`)."""
         return replace(self, objects=self.objects, replay=None) if self.rows_elided else self

@@ -113,7 +113,7 @@ class RolloutSink(Sink):
             if isinstance(chunk.sampler, Proposal):  # trained in place afterwards: keep the one that sampled
                 self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
         log_q, component = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
-        batch = dataclasses.replace(chunk.batch, log_q=log_q)
+        batch = chunk.batch.with_changes(log_q=log_q)  # the file holds no object rows: none rebuilt for it
         salient = braking_salient(batch.gap_m) if self._braking else None
         self._writer.append(batch, salient=salient, stage=chunk.stage, component=component)
 
