@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -56,3 +57,14 @@ def doc_python_block(page: str, heading: str) -> str:
     block = re.search(r"```python\n(.*?)```", text.split(heading, 1)[1], re.S)
     assert block, f"docs/{page}: no python block under {heading!r}"
     return block.group(1)
+
+
+def float64_network(layers, x):
+    """Folded affine layers ``(W [out, in], b [out])`` in plain float64 products, ReLU between: the reference the
+    PEMs' order-free grid form (pemviz.pem.network.GridMLP) is compared with. float64 [N, out] of inputs [N, in]."""
+    h = x
+    for i, (w, b) in enumerate(layers):
+        h = h @ w.T + b
+        if i < len(layers) - 1:
+            h = np.maximum(h, 0.0)
+    return h

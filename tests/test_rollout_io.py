@@ -94,9 +94,9 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     assert data.salient is not None
     np.testing.assert_array_equal(pem_log_prob(data, pem), data.log_p)  # the run's numbers, bit for bit
     np.testing.assert_array_equal(detector_log_prob(data, ConstantDetector(0.5)), data.log_q)
-    # the PEM on the salient variables the general way agrees to float64 rounding of its pieces
+    # the PEM on the salient variables the general way (order-free grid products, float32's precision) agrees
     general = action_log_prob(pem.logit(data.salient.reshape(-1, 11)).reshape(200, 100), data.detected[..., 0])
-    np.testing.assert_allclose(general, data.log_p, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(general, data.log_p, rtol=0, atol=1e-5)
     # a copy without log_p / log_q: the sidecar names the PEM and the sampler
     bare = tmp_path / "bare.parquet"
     rio.write_rollouts(bare, data.to_batch(), data.meta, salient=data.salient, log_probs=False, stage=data.stage,

@@ -127,6 +127,19 @@ def test_ce_update_refuses_an_empty_elite_set():
         ce_update(Proposal(), z, z > 0, z, z, np.zeros(3, bool), smoothing=0.1)
 
 
+def test_an_elite_set_with_no_step_to_fit_leaves_the_proposal_as_it_was():
+    # the elites never entered the step mask (a small cut-in run whose CE stage found none inside the window):
+    # nothing to fit, and no division by the zero steps
+    from pemviz.estimators.ce_fit import fit_elite_steps
+
+    q = Proposal()
+    before = q.curve(np.array([1.0, 6.0, 11.0]))
+    losses = fit_elite_steps(q, np.zeros(0), np.zeros(0, bool), np.zeros(0), -np.inf, epochs=50, lr=1e-2,
+                             tolerance=1e-4)  # fmt: skip
+    assert losses == []
+    np.testing.assert_array_equal(q.curve(np.array([1.0, 6.0, 11.0])), before)
+
+
 def test_training_loops_call_check_every_25_epochs_and_stop_when_it_raises():
     calls = []
 

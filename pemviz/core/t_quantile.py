@@ -108,7 +108,7 @@ def student_t_quantile(df: float | np.ndarray, u: np.ndarray) -> np.ndarray:
     q += c[..., 1]
     q *= t
     q += c[..., 0]
-    np.negative(q, out=q, where=u > 0.5)
+    np.copysign(q, u - 0.5, out=q)  # Q(w) < 0 for w < 1/2: the sign of u - 1/2 is the quantile's
     if not inside.all():  # the rare uniform outside the table: stdtrit itself
         q = np.where(inside, q, stdtrit(np.array(nus) if per_column else nus[0], u))
     return q

@@ -308,8 +308,11 @@ def fit_elite_steps(
         epochs, lr, check, fit, max_rows, rng, tolerance, dtype: see :func:`ce_update`.
     Returns:
         the loss per epoch (per L-BFGS evaluation).
-    Source: Innes & Ramamoorthy 2022, eq. 10-11 (the CE update), summed over distinct inputs.
+    Source: Innes & Ramamoorthy 2022, eq. 10-11 (the CE update), summed over distinct inputs. With no step to fit
+    (the elites never entered the step mask) the proposal stays as it is and the loss list is empty.
     """
+    if np.shape(actions)[0] == 0:
+        return []
     w = np.exp(np.asarray(log_w, dtype=np.float64) - log_w_max)[None]
     rows, actions = np.asarray(rows)[None], np.asarray(actions, dtype=bool)[None]
     if not _summed_fit(fit, max_rows, int(np.count_nonzero(w)) if n_steps is None else n_steps):

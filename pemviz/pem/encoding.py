@@ -93,6 +93,56 @@ def check_training_data(inputs: np.ndarray, labels: np.ndarray) -> tuple[np.ndar
     return raw, y
 
 
+ONE_HOT_GROUPS = (tuple(range(N_CLASSES)), tuple(range(N_CLASSES, N_CLASSES + N_OCCLUSIONS)))
+"""The encoding's one-hot column groups: the class's, then the occlusion's."""
+
+
+@dataclass(frozen=True)
+class SalientCodes:
+    """The 14-dim encoding of N rows held compactly: ``pose`` float64 ``[N, 4]`` (the z-scored loc_x, loc_y, loc_z,
+    rot_y) and ``code`` int64 ``[N]`` = class x 3 + occlusion, the one-hot columns' combination
+    (:data:`ONE_HOT_GROUPS`)."""
+
+    pose: np.ndarray
+    code: np.ndarray
+
+    def features(self) -> np.ndarray:
+        """The encoding float64 ``[N, 14]`` (:func:`encode_salient`)."""
+        n_rows = self.code.shape[0]
+        out = np.zeros((n_rows, N_FEATURES), dtype=np.float64)
+        rows = np.arange(n_rows)
+        out[rows, self.code // N_OCCLUSIONS] = 1.0
+        out[rows, N_CLASSES + self.code % N_OCCLUSIONS] = 1.0
+        out[:, N_CLASSES + N_OCCLUSIONS :] = self.pose
+        return out
+
+    def take(self, index: np.ndarray) -> SalientCodes:
+        """The codes of rows ``index`` (int indices or a bool mask)."""
+        return SalientCodes(self.pose[index], self.code[index])
+
+
+def salient_codes(raw_inputs: np.ndarray, norm: NormStats) -> SalientCodes:
+    """:func:`encode_salient`'s encoding as :class:`SalientCodes` (its checks and errors, the same z-scores bit for
+    bit)."""
+    raw = _check_raw(raw_inputs)
+    if not np.isfinite(raw).all():
+        row = int(np.flatnonzero(~np.all(np.isfinite(raw), axis=1))[0])
+        raise ValueError(f"raw salient inputs: non-finite value in row {row}")
+    levels = []
+    for what, column, n in (("class", CLASS_COLUMN, N_CLASSES), ("occlusion", OCCLUSION_COLUMN, N_OCCLUSIONS)):
+        values = raw[:, column]
+        with np.errstate(invalid="ignore"):  # a value out of int64's range converts to some other number: bad below
+            level = values.astype(np.int64)
+        # the level of an integral value equals it; a level in 0..n - 1 that equals the value is that integer
+        bad = level != values
+        bad |= level.view(np.uint64) > n - 1  # a negative level wraps to a huge unsigned one
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"raw salient inputs: {what} {values[row]:g} in row {row} is not an integer in 0..{n - 1}")
+        levels.append(level)
+    return SalientCodes((raw[:, POSE_COLUMNS] - norm.mean) / norm.std, levels[0] * N_OCCLUSIONS + levels[1])
+
+
 def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:
     """The 14-dim PEM input: one-hot class (7), one-hot occlusion (3), z-scored x, y, z, rot_y.
 
@@ -108,27 +158,7 @@ def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:
         ValueError: wrong shape, non-finite values, a class not an integer in 0..6 or an occlusion not an
             integer in 0..2 (the message names the first bad row, 0-based).
     """
-    raw = _check_raw(raw_inputs)
-    if not np.isfinite(raw).all():
-        row = int(np.flatnonzero(~np.all(np.isfinite(raw), axis=1))[0])
-        raise ValueError(f"raw salient inputs: non-finite value in row {row}")
-    n_rows = raw.shape[0]
-    out = np.zeros((n_rows, N_FEATURES), dtype=np.float64)
-    rows = np.arange(n_rows)
-    for what, column, first, n in (("class", CLASS_COLUMN, 0, N_CLASSES),
-                                   ("occlusion", OCCLUSION_COLUMN, N_CLASSES, N_OCCLUSIONS)):  # fmt: skip
-        values = raw[:, column]
-        with np.errstate(invalid="ignore"):  # a value out of int64's range converts to some other number: bad below
-            level = values.astype(np.int64)
-        # the level of an integral value equals it; a level in 0..n - 1 that equals the value is that integer
-        bad = level != values
-        bad |= level.view(np.uint64) > n - 1  # a negative level wraps to a huge unsigned one
-        if bad.any():
-            row = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"raw salient inputs: {what} {values[row]:g} in row {row} is not an integer in 0..{n - 1}")
-        out[rows, first + level] = 1.0
-    out[:, N_CLASSES + N_OCCLUSIONS :] = (raw[:, POSE_COLUMNS] - norm.mean) / norm.std
-    return out
+    return salient_codes(raw_inputs, norm).features()
 
 
 def braking_salient_inputs(gap_m: np.ndarray) -> np.ndarray:

@@ -30,8 +30,8 @@ import torch
 from torch import nn
 
 from pemviz.pem.camera import MIN_RANGE_M, box_errors_to_metric
-from pemviz.pem.encoding import N_FEATURES, NormStats, encode_salient, fit_norm_stats
-from pemviz.pem.network import MLNN, PemFormatError, fit_network, fold_layers, mlp_forward
+from pemviz.pem.encoding import N_FEATURES, ONE_HOT_GROUPS, NormStats, SalientCodes, encode_salient, fit_norm_stats
+from pemviz.pem.network import MLNN, GridMLP, PemFormatError, fit_network, fold_layers
 
 NOISE_DIMS = ("range", "lateral")
 """The error dimensions, in column order: range error dZ (along camera z) and lateral error dX (along x), metres."""
@@ -93,6 +93,10 @@ class NoiseModel:
             ValueError: features not of shape ``[R, 14]``.
         """
         raise NotImplementedError
+
+    def noise_params_codes(self, codes: SalientCodes) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`noise_params` of ``codes.features()`` (:func:`pemviz.pem.encoding.salient_codes`), bit for bit."""
+        return self.noise_params(codes.features())
 
     def features(self, raw_inputs: np.ndarray) -> np.ndarray:
         """The 14 encoded features float64 ``[R, 14]`` of raw salient inputs ``[R, 11]`` (:func:`encode_salient`)."""
@@ -177,9 +181,15 @@ class NoisePEM(NoiseModel):
         gain = np.concatenate([scale, np.ones(2)])
         layers[-1] = (w * gain[:, None], b * gain + np.concatenate([np.zeros(2), np.log(scale)]))
         object.__setattr__(self, "_layers", tuple(layers))
+        object.__setattr__(self, "_grid", GridMLP.of(layers))
+        object.__setattr__(self, "_one_hot", self._grid.one_hot(ONE_HOT_GROUPS))
 
     def noise_params(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out = mlp_forward(self._layers, _check_features(features))  # type: ignore[attr-defined]
+        out = self._grid(_check_features(features))  # type: ignore[attr-defined]
+        return out[:, :2], out[:, 2:]
+
+    def noise_params_codes(self, codes: SalientCodes) -> tuple[np.ndarray, np.ndarray]:
+        out = self._grid.of_codes(codes, self._one_hot)  # type: ignore[attr-defined]
         return out[:, :2], out[:, 2:]
 
 
@@ -201,10 +211,11 @@ class HomoscedasticNoise(NoiseModel):
             if value.shape != shape or not np.all(np.isfinite(value)):
                 raise ValueError(f"homoscedastic noise {name} must be finite of shape {shape}, got {value.shape}")
             object.__setattr__(self, name, value)
+        object.__setattr__(self, "_grid", GridMLP.of(((self.coef.T, self.intercept),)))
 
     def noise_params(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = _check_features(features)
-        return x @ self.coef + self.intercept, np.broadcast_to(self.log_scale, (x.shape[0], 2)).copy()
+        return self._grid(x), np.broadcast_to(self.log_scale, (x.shape[0], 2)).copy()  # type: ignore[attr-defined]
 
 
 # ------------------------------------------------------------------------------------------------ data

@@ -18,9 +18,9 @@ import numpy as np
 from scipy.special import expit, log_expit
 
 from pemviz.core.detectors import noise_log_density, noise_quantile
-from pemviz.pem.encoding import encode_salient
+from pemviz.pem.encoding import SalientCodes, encode_salient, salient_codes
 from pemviz.pem.network import PEM
-from pemviz.pem.noise import NoiseModel
+from pemviz.pem.noise import NoiseModel, NoisePEM
 from pemviz.pem.trees import TreePEM
 
 
@@ -151,10 +151,13 @@ class SalientDetector:
         return a is b or (np.array_equal(a.mean, b.mean) and np.array_equal(a.std, b.std))
 
     def _evaluate(self, rows: np.ndarray) -> _Step:
-        """The detection head's work on rows [R, G]: which rows can be seen, their encoded features (when
-        :meth:`_encodes`) and the logits. Kept for a read-only ``rows`` (:func:`pemviz.core.detectors.draw_step`
-        hands each step's rows to every detector as a new read-only view), recognised by identity when asked again
-        (by the sampler, then the target, then the noise head) within the step."""
+        """The detection head's work on rows [R, G]: which rows can be seen, their encoding (when :meth:`_encodes`)
+        and the logits. Kept for a read-only ``rows`` (:func:`pemviz.core.detectors.draw_step` hands each step's rows
+        to every detector as a new read-only view), recognised by identity when asked again (by the sampler, then the
+        target, then the noise head) within the step.
+
+        Rows that repeat (many rollouts in one state: :func:`repeated_rows`) are asked about once. A row's answer is
+        the same bit for bit: pemviz's PEMs compute each row on its own (:class:`pemviz.pem.network.GridMLP`)."""
         kept = self._step
         if kept is not None and kept.rows is rows:
             return kept
@@ -162,15 +165,23 @@ class SalientDetector:
         rows = np.asarray(rows, dtype=np.float64)
         out = np.full(rows.shape[0], -np.inf)
         seen = np.ones(rows.shape[0], bool) if self.visible is None else rows[:, self.visible] > 0.5
-        features = None
+        codes, inverse = None, None
         if seen.any():
             raw = self._raw(rows)[seen]  # the salient columns, then the seen rows: a copy of those only
             if self._encodes():
-                features = encode_salient(raw, self.detect.norm)
-                out[seen] = self.detect.logit_features(features)
+                groups = repeated_rows(raw)
+                if groups is not None:  # many rollouts in the same state: each distinct row asked once
+                    first, inverse = groups
+                    raw = raw[first]
+                codes = salient_codes(raw, self.detect.norm)
+                if type(self.detect) is PEM:
+                    logits = self.detect.logit_codes(codes)
+                else:
+                    logits = self.detect.logit_features(codes.features())
+                out[seen] = logits if inverse is None else logits[inverse]
             else:
                 out[seen] = self.detect.logit(raw)
-        step = _Step(rows_in, seen, features, out)
+        step = _Step(rows_in, seen, codes, out, inverse)
         if isinstance(rows_in, np.ndarray) and not rows_in.flags.writeable:
             out.flags.writeable = False
             object.__setattr__(self, "_step", step)
@@ -192,6 +203,11 @@ class SalientDetector:
     def noise_params(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(loc [R, D], log_scale [R, D]) of the noise PEM at the rows' salient variables (metres; log metres)."""
         return self.noise.noise_params(self.noise.features(self._raw(rows)))
+
+    def _noise_params(self, codes: SalientCodes) -> tuple[np.ndarray, np.ndarray]:
+        if type(self.noise) is NoisePEM:
+            return self.noise.noise_params_codes(codes)
+        return self.noise.noise_params(codes.features())
 
     def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Errors [R, D] (metres) from uniforms [R, D] by the noise PEM's inverse CDF."""
@@ -215,12 +231,20 @@ class SalientDetector:
             (errors float64 [H, D] in metres, log density float64 [H] in nats).
         """
         kept = self._step
-        if (kept is not None and kept.rows is rows and kept.features is not None and self._shares_encoding()
+        if (kept is not None and kept.rows is rows and kept.codes is not None and self._shares_encoding()
                 and np.all(kept.seen[hit])):  # fmt: skip
-            features = kept.features[hit[kept.seen]]
+            which = np.flatnonzero(hit[kept.seen])  # the hit rows among the seen ones
+            if kept.inverse is not None:  # among the distinct ones: each asked once
+                which = kept.inverse[which]
+                needed = np.zeros(kept.codes.code.shape[0], bool)
+                needed[which] = True
+                ask = np.flatnonzero(needed)
+                position = np.cumsum(needed) - 1
+                loc, log_scale = (a[position[which]] for a in self._noise_params(kept.codes.take(ask)))
+            else:
+                loc, log_scale = self._noise_params(kept.codes.take(which))
         else:
-            features = self.noise.features(self._raw(rows)[hit])
-        loc, log_scale = self.noise.noise_params(features)
+            loc, log_scale = self.noise.noise_params(self.noise.features(self._raw(rows)[hit]))
         errors = noise_quantile(self.noise.family, self.noise.df, loc, log_scale, u)
         return errors, noise_log_density(self.noise.family, self.noise.df, loc, log_scale, errors)
 
@@ -228,10 +252,58 @@ class SalientDetector:
 @dataclass(frozen=True)
 class _Step:
     """What :meth:`SalientDetector._evaluate` kept of one array of rows [R, G]: the array itself, ``seen`` bool [R]
-    (visible rows), the encoded features float64 [S, 14] of the S seen rows (None: not encoded, or none seen) and the
-    logits float64 [R] (read-only)."""
+    (visible rows), the encoding of the S seen rows (None: not encoded, or none seen; of the D distinct ones when
+    ``inverse`` is given), the logits float64 [R] (read-only) and ``inverse``: None, or int [S], seen row i's encoding
+    is ``codes.take(inverse)[i]`` (:func:`repeated_rows`)."""
 
     rows: Any
     seen: np.ndarray
-    features: np.ndarray | None
+    codes: SalientCodes | None
     logits: np.ndarray
+    inverse: np.ndarray | None = None
+
+
+PROBE_ROWS = 256
+"""Rows at fixed positions that :func:`repeated_rows` looks at first."""
+PROBE_DISTINCT = 128
+"""At most this many distinct rows among the probe: grouping pays (the first steps of a cut-in run, before the
+rollouts' perceptions have set their egos apart, ask about a few hundred distinct rows of 40,960)."""
+
+
+def repeated_rows(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(first [D], inverse [S])`` with ``raw[first][inverse] == raw`` row for row (exact equality) when the rows
+    [S, K] hold few distinct ones, else None (they are asked about as they are).
+
+    Cheap when it declines: :data:`PROBE_ROWS` rows at fixed positions are looked at first, and more than
+    :data:`PROBE_DISTINCT` distinct ones among them decline. Otherwise rows are grouped by a float64 key (a fixed
+    combination of their columns, elementwise: no BLAS) and every row is checked equal to its group's first row; a
+    key shared by unequal rows declines.
+    """
+    s = raw.shape[0]
+    if s < 4 * PROBE_ROWS:
+        return None
+    probe = raw[:: s // PROBE_ROWS][:PROBE_ROWS]
+    if np.unique(_row_keys(probe)).size > PROBE_DISTINCT:
+        return None
+    keys = _row_keys(raw)
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    if first.size > s // 4 or not np.array_equal(np.take(raw[first], inverse, axis=0), raw):
+        return None
+    return first, inverse
+
+
+KEY_COLUMNS = (7, 9, 10, 3, 8, 1, 2)
+"""The columns of 11 raw salient variables a row's key reads (loc_x, loc_z, rot_y, alpha, loc_y, truncation, occlusion:
+what tells two objects of a step apart; rows equal in these but not in the others are caught by the check)."""
+
+
+def _row_keys(raw: np.ndarray) -> np.ndarray:
+    """float64 [S]: sum_k raw[:, c_k] w_k over :data:`KEY_COLUMNS` (all columns for rows of other widths) for fixed
+    weights w, elementwise in a fixed order (equal rows, equal keys)."""
+    columns = KEY_COLUMNS if raw.shape[1] == 11 else tuple(range(raw.shape[1]))
+    key = raw[:, columns[0]].copy()
+    term = np.empty_like(key)
+    for k, c in enumerate(columns[1:], start=1):
+        np.multiply(raw[:, c], 1.0 + k * 0.6180339887498949, out=term)
+        key += term
+    return key
