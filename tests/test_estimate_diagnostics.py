@@ -40,6 +40,15 @@ def test_plain_monte_carlo_interval_is_clopper_pearson():
     assert e.verdict == "doubtful" and e.reason == "only 5 failures"
 
 
+def test_clopper_pearson_bad_counts_are_one_clear_error():
+    from pemviz.core.estimate import clopper_pearson
+
+    for k, n, level in ((-1, 10, 0.95), (11, 10, 0.95), (0, 0, 0.95), (1, 10, 1.0)):
+        with pytest.raises(ValueError, match="clopper_pearson: need n >= 1"):
+            clopper_pearson(k, n, level)
+    assert clopper_pearson(0, 10) == (0.0, pytest.approx(0.30849710781876, rel=1e-12))  # 1 - 0.025^(1/10)
+
+
 def test_equal_weights_interval_is_the_log_scale_t_interval_of_a_binomial_mean():
     # y_i = w 1[fail_i], 30 failures in 100 with weight 1e-20: mean 3e-21, sd/mean = sqrt((1 - 0.3) / 0.3 * 100 / 99)
     failed = np.arange(100) < 30

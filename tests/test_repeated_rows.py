@@ -15,25 +15,21 @@ from pemviz.pem.perception import PROBE_ROWS, repeated_rows
 
 def test_few_distinct_rows_are_grouped_exactly_and_many_are_declined():
     rng = np.random.default_rng(0)
-    distinct = rng.normal(size=(7, 11))
-    raw = distinct[rng.integers(0, 7, 4 * PROBE_ROWS + 3)]
-    first, inverse = repeated_rows(raw)
+    distinct = rng.normal(size=(6, 7))  # 7 rows of 6 values, feature by feature
+    columns = distinct[:, rng.integers(0, 7, 4 * PROBE_ROWS + 3)]
+    first, inverse = repeated_rows(columns)
     assert first.size == 7
-    np.testing.assert_array_equal(raw[first][inverse], raw)
-    assert repeated_rows(rng.normal(size=(4 * PROBE_ROWS, 11))) is None  # all distinct: the probe declines
-    assert repeated_rows(raw[: 4 * PROBE_ROWS - 1]) is None  # too few rows to pay
+    np.testing.assert_array_equal(columns[:, first][:, inverse], columns)
+    assert repeated_rows(rng.normal(size=(6, 4 * PROBE_ROWS))) is None  # all distinct: the probe declines
+    assert repeated_rows(columns[:, : 4 * PROBE_ROWS - 1]) is None  # too few rows to pay
 
 
 def test_two_different_rows_with_one_key_are_declined():
-    w1 = 1.0 + 0.6180339887498949  # the key's second weight: loc_x = w1 and loc_z = 1 share a key
-    a, b = np.zeros(11), np.zeros(11)
-    a[perception.KEY_COLUMNS[0]], b[perception.KEY_COLUMNS[1]] = w1, 1.0
-    raw = np.array([a, b] * (2 * PROBE_ROWS))
-    assert perception._row_keys(raw[:2])[0] == perception._row_keys(raw[:2])[1]
-    assert repeated_rows(raw) is None
-    c = a.copy()
-    c[0] = 1.0  # a class the key does not read: equal keys, unequal rows
-    assert repeated_rows(np.array([a, c] * (2 * PROBE_ROWS))) is None
+    w1 = 1.0 + 0.6180339887498949  # the key's second weight: (w1, 0) and (0, 1) share a key
+    a, b = np.array([w1, 0.0, 2.0]), np.array([0.0, 1.0, 2.0])
+    columns = np.array([a, b] * (2 * PROBE_ROWS)).T
+    assert perception._row_keys(columns[:, :2])[0] == perception._row_keys(columns[:, :2])[1]
+    assert repeated_rows(columns) is None
 
 
 @pytest.fixture(scope="module")
@@ -48,8 +44,8 @@ def cut_in_rows():
 def test_a_detector_answers_the_same_with_and_without_grouping(cut_in_rows, t, monkeypatch):
     detector, by_step = cut_in_rows
     rows = np.array(by_step[t])
-    seen = rows[:, list(detector.salient) if not isinstance(detector.salient, slice) else detector.salient]
-    grouped = repeated_rows(np.ascontiguousarray(seen[rows[:, detector.visible] > 0.5]))
+    columns = rows[rows[:, detector.visible] > 0.5][:, detector._code_columns(rows.shape[1])].T  # what it reads
+    grouped = repeated_rows(np.ascontiguousarray(columns))
     assert (grouped is not None) == (t == 5)  # at step 5 the egos still share their states
     u = np.random.default_rng(2).random((rows.shape[0], 2))
     hit = rows[:, detector.visible] > 0.5

@@ -51,7 +51,7 @@ x86 = pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"),
 @x86
 @pytest.mark.parametrize(("args", "settings"), [
     (SMALL, list(rp.DISPATCH_SETTINGS)),
-    (SMALL_CUT_IN, ["torch scalar", "MKL SSE4.2", "all at their lowest"]),
+    (SMALL_CUT_IN, list(rp.DISPATCH_SETTINGS)),
 ], ids=["braking", "cut-in"])  # fmt: skip
 def test_every_dispatch_setting_gives_the_same_rollouts_and_printed_numbers(args, settings):
     # each setting picks the kernels another x86-64 CPU would run (AVX2 without AVX-512, scalar torch, MKL's SSE4.2

@@ -10,6 +10,7 @@ step's detections and errors and their log-probabilities, the one home of that a
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -17,6 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from scipy.special import expit, log_expit
 
+from pemviz.core.exact import row_sum
 from pemviz.core.rng import RQMC_BLOCK, array_rqmc_uniforms, block_bounds, by_blocks, ranking_key
 from pemviz.core.t_quantile import student_t_quantile
 
@@ -99,8 +101,6 @@ def standard_log_density(family: str, df: np.ndarray | None, z: np.ndarray) -> n
     Raises:
         ValueError: an unknown family.
     """
-    from scipy.special import gammaln
-
     _check_family(family)
     z = np.asarray(z, dtype=np.float64)
     if family == "normal":
@@ -108,8 +108,19 @@ def standard_log_density(family: str, df: np.ndarray | None, z: np.ndarray) -> n
     if family == "laplace":
         return -np.abs(z) - math.log(2.0)
     nu = np.asarray(df, dtype=np.float64)
-    return (gammaln((nu + 1.0) / 2.0) - gammaln(nu / 2.0) - 0.5 * np.log(nu * math.pi)
-            - (nu + 1.0) / 2.0 * np.log1p(z * z / nu))  # fmt: skip
+    return _t_log_constant(nu.tobytes(), nu.shape) - (nu + 1.0) / 2.0 * np.log1p(z * z / nu)
+
+
+@functools.lru_cache(maxsize=64)
+def _t_log_constant(nu_bytes: bytes, shape: tuple[int, ...]) -> np.ndarray:
+    """``log Gamma((nu + 1) / 2) - log Gamma(nu / 2) - log(nu pi) / 2`` of the Student-t degrees of freedom given as
+    float64 bytes (read-only), computed once per df."""
+    from scipy.special import gammaln
+
+    nu = np.frombuffer(nu_bytes, dtype=np.float64).reshape(shape)
+    out = gammaln((nu + 1.0) / 2.0) - gammaln(nu / 2.0) - 0.5 * np.log(nu * math.pi)
+    out.flags.writeable = False
+    return out
 
 
 def noise_quantile(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
@@ -133,7 +144,7 @@ def noise_log_density(family: str, df: np.ndarray | None, loc: np.ndarray, log_s
         ValueError: an unknown family.
     """
     z = (np.asarray(noise, dtype=np.float64) - loc) * np.exp(-np.asarray(log_scale, dtype=np.float64))
-    return (standard_log_density(family, df, z) - log_scale).sum(axis=1)
+    return row_sum(standard_log_density(family, df, z) - log_scale)
 
 
 def noise_names_of(detector: object) -> tuple[str, ...]:

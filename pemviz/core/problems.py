@@ -375,9 +375,9 @@ def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[Simu
     their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.scenarios.simulate_rollouts`,
     :func:`~pemviz.scenarios.iter_rollouts`, :func:`~pemviz.scenarios.branch_rollouts`).
 
-    The rollouts are simulated on one BLAS thread (``threadpoolctl``): a PEM network's float64 products of many rows
-    round differently when OpenBLAS splits them over threads, so the same seed would give other rollouts on a machine
-    with another number of cores (and a second thread only slows these small products down under load)."""
+    The rollouts are simulated on one BLAS thread (``threadpoolctl``): pemviz's PEM products are exact
+    (:class:`pemviz.pem.network.GridMLP`), so threads change no bit of them, but a second thread only slows these small
+    products down under load, and a PEM of one's own in float64 products would round by the thread count."""
     from threadpoolctl import threadpool_limits
 
     def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:

@@ -109,29 +109,16 @@ def interval_at_level(est: Estimate, level: float, plain_mc: bool) -> tuple[floa
     """
     from scipy.special import stdtrit
 
-    from pemviz.core.estimate import CI_LEVEL
+    from pemviz.core.estimate import CI_LEVEL, clopper_pearson
 
     if plain_mc:
-        lo, hi = clopper_pearson_at(int(est.n_failures), int(est.n), level)
+        lo, hi = clopper_pearson(int(est.n_failures), int(est.n), level)
         return (math.log(lo) if lo > 0 else -math.inf), math.log(hi) if hi > 0 else -math.inf
     if est.n_failures == 0 or est.n < 2 or not math.isfinite(est.log_mu_hat):
         return -math.inf, 0.0
     lo, hi = est.log_ci
     scale = float(stdtrit(est.n - 1, 0.5 + level / 2.0)) / float(stdtrit(est.n - 1, 0.5 + CI_LEVEL / 2.0))
     return est.log_mu_hat - (est.log_mu_hat - lo) * scale, est.log_mu_hat + (hi - est.log_mu_hat) * scale
-
-
-def clopper_pearson_at(k: int, n: int, level: float) -> tuple[float, float]:
-    """The Clopper-Pearson interval (lo, hi) of k failures in n at confidence ``level``, from the beta quantiles
-    ``B^-1(a/2; k, n - k + 1)`` and ``B^-1(1 - a/2; k + 1, n - k)`` (Clopper & Pearson, Biometrika 26(4), 1934), with
-    ``scipy.special.betaincinv`` (what ``scipy.stats.binomtest(...).proportion_ci(method="exact")`` computes, without
-    importing scipy.stats)."""
-    from scipy.special import betaincinv
-
-    a = 1.0 - level
-    lo = 0.0 if k == 0 else float(betaincinv(k, n - k + 1, a / 2.0))
-    hi = 1.0 if k == n else float(betaincinv(k + 1, n - k, 1.0 - a / 2.0))
-    return lo, hi
 
 
 @dataclass(frozen=True)

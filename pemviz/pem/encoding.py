@@ -99,11 +99,11 @@ ONE_HOT_GROUPS = (tuple(range(N_CLASSES)), tuple(range(N_CLASSES, N_CLASSES + N_
 
 @dataclass(frozen=True)
 class SalientCodes:
-    """The 14-dim encoding of N rows held compactly: ``pose`` float64 ``[N, 4]`` (the z-scored loc_x, loc_y, loc_z,
-    rot_y) and ``code`` int64 ``[N]`` = class x 3 + occlusion, the one-hot columns' combination
+    """The 14-dim encoding of N rows held compactly: ``pose_t`` float64 ``[4, N]`` (the z-scored loc_x, loc_y, loc_z,
+    rot_y, feature by feature) and ``code`` int64 ``[N]`` = class x 3 + occlusion, the one-hot columns' combination
     (:data:`ONE_HOT_GROUPS`)."""
 
-    pose: np.ndarray
+    pose_t: np.ndarray
     code: np.ndarray
 
     def features(self) -> np.ndarray:
@@ -113,24 +113,32 @@ class SalientCodes:
         rows = np.arange(n_rows)
         out[rows, self.code // N_OCCLUSIONS] = 1.0
         out[rows, N_CLASSES + self.code % N_OCCLUSIONS] = 1.0
-        out[:, N_CLASSES + N_OCCLUSIONS :] = self.pose
+        out[:, N_CLASSES + N_OCCLUSIONS :] = self.pose_t.T
         return out
 
     def take(self, index: np.ndarray) -> SalientCodes:
         """The codes of rows ``index`` (int indices or a bool mask)."""
-        return SalientCodes(self.pose[index], self.code[index])
+        return SalientCodes(self.pose_t[:, index], self.code[index])
 
 
-def salient_codes(raw_inputs: np.ndarray, norm: NormStats) -> SalientCodes:
-    """:func:`encode_salient`'s encoding as :class:`SalientCodes` (its checks and errors, the same z-scores bit for
-    bit)."""
-    raw = _check_raw(raw_inputs)
-    if not np.isfinite(raw).all():
-        row = int(np.flatnonzero(~np.all(np.isfinite(raw), axis=1))[0])
+CODE_COLUMNS = (CLASS_COLUMN, OCCLUSION_COLUMN, *POSE_COLUMNS)
+"""The raw input columns the encoding reads (class, occlusion, loc_x, loc_y, loc_z, rot_y); the others (truncation,
+alpha, the box's dimensions) do not enter it."""
+
+
+def codes_of_columns(columns: np.ndarray, norm: NormStats) -> SalientCodes:
+    """:class:`SalientCodes` of raw columns :data:`CODE_COLUMNS` given feature by feature, float64 ``[6, N]``: the
+    z-scores of :func:`encode_salient` bit for bit.
+
+    Raises:
+        ValueError: a non-finite value, a class not an integer in 0..6 or an occlusion not an integer in 0..2 (the
+            message names the first bad row, 0-based).
+    """
+    if not np.isfinite(columns).all():
+        row = int(np.flatnonzero(~np.all(np.isfinite(columns), axis=0))[0])
         raise ValueError(f"raw salient inputs: non-finite value in row {row}")
     levels = []
-    for what, column, n in (("class", CLASS_COLUMN, N_CLASSES), ("occlusion", OCCLUSION_COLUMN, N_OCCLUSIONS)):
-        values = raw[:, column]
+    for what, values, n in (("class", columns[0], N_CLASSES), ("occlusion", columns[1], N_OCCLUSIONS)):
         with np.errstate(invalid="ignore"):  # a value out of int64's range converts to some other number: bad below
             level = values.astype(np.int64)
         # the level of an integral value equals it; a level in 0..n - 1 that equals the value is that integer
@@ -140,7 +148,18 @@ def salient_codes(raw_inputs: np.ndarray, norm: NormStats) -> SalientCodes:
             row = int(np.flatnonzero(bad)[0])
             raise ValueError(f"raw salient inputs: {what} {values[row]:g} in row {row} is not an integer in 0..{n - 1}")
         levels.append(level)
-    return SalientCodes((raw[:, POSE_COLUMNS] - norm.mean) / norm.std, levels[0] * N_OCCLUSIONS + levels[1])
+    pose_t = (columns[2:] - norm.mean[:, None]) / norm.std[:, None]
+    return SalientCodes(pose_t, levels[0] * N_OCCLUSIONS + levels[1])
+
+
+def salient_codes(raw_inputs: np.ndarray, norm: NormStats) -> SalientCodes:
+    """:func:`encode_salient`'s encoding as :class:`SalientCodes` (its checks and errors, the same z-scores bit for
+    bit)."""
+    raw = _check_raw(raw_inputs)
+    if not np.isfinite(raw).all():
+        row = int(np.flatnonzero(~np.all(np.isfinite(raw), axis=1))[0])
+        raise ValueError(f"raw salient inputs: non-finite value in row {row}")
+    return codes_of_columns(raw[:, CODE_COLUMNS].T, norm)
 
 
 def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:

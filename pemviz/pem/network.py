@@ -1,11 +1,12 @@
-"""The paper's ML-NN PEM (and wider variants): training, and exact float64 evaluation.
+"""The paper's ML-NN PEM (and wider variants): training, and evaluation that no CPU or batch rounds differently.
 
 Innes & Ramamoorthy 2022, Sec. IV-A: Linear(14,20)-BatchNorm-ReLU-Linear(20,20)-BatchNorm-ReLU-Linear(20,1) -> logit, BCE with
 logits, Adam lr 1e-3, batch 1024, 300 epochs, eval mode (the authors' ``PEMClass_Deterministic`` and
 ``train_tp_pem_det.py``).
 
-A :class:`PEM` evaluates its network in float64 numpy with each BatchNorm folded into the linear layer
-before it (exact algebra: ``gamma * (W x + b - mean) / sqrt(var + eps) + beta``). Along the braking
+A :class:`PEM` evaluates its network in numpy with each BatchNorm folded into the linear layer before it (exact
+algebra: ``gamma * (W x + b - mean) / sqrt(var + eps) + beta``), any salient variables in order-free arithmetic
+(:class:`GridMLP`: a row's logit depends on that row alone, within about 1e-5 of float64 products). Along the braking
 scenario only the gap varies, so the ReLU network is an exactly piecewise-linear function of the gap; its
 pieces are computed once, and :meth:`PEM.logit_at_gap` (the simulator's hot path) is one ``searchsorted``
 and one multiply-add.
@@ -165,7 +166,7 @@ class GridMLP:
         without building or multiplying the one-hot columns."""
         out = np.empty((codes.code.shape[0], self.n_out))
         for a in range(0, codes.code.shape[0], MLP_BLOCK):
-            zt = codes.pose[a : a + MLP_BLOCK].T.copy()  # a copy, even of one row: forward_t overwrites it
+            zt = codes.pose_t[:, a : a + MLP_BLOCK].copy()  # forward_t overwrites it
             largest = np.maximum(np.abs(zt).max(axis=0), 1.0)  # the ones of the one-hot columns count
             out[a : a + MLP_BLOCK] = self.forward_t(zt, largest, (columns, codes.code[a : a + MLP_BLOCK])).T
         return out
@@ -393,7 +394,8 @@ class PEM:
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
         """Logit of p(detect) of the lead car at a gap (the braking scenario's lead car).
 
-        Equal to ``self.logit(braking_salient_inputs(gap_m))`` to float64 rounding (tested to 1e-9): with
+        Equal to the folded network's float64 products on ``braking_salient_inputs(gap_m)`` to 1e-9 (tested, also at
+        the pieces' ends), and to :meth:`logit`'s grid form of them within 1e-5 (float32's precision): with
         only the gap varying, the ReLU network is an exactly piecewise-linear function of the gap, whose
         pieces are computed once at construction (:func:`_piecewise_linear_pieces`); a call is one
         ``searchsorted`` and one multiply-add (~20 us for 1,000 gaps).

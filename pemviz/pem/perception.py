@@ -18,7 +18,7 @@ import numpy as np
 from scipy.special import expit, log_expit
 
 from pemviz.core.detectors import noise_log_density, noise_quantile
-from pemviz.pem.encoding import SalientCodes, encode_salient, salient_codes
+from pemviz.pem.encoding import CODE_COLUMNS, SalientCodes, codes_of_columns, encode_salient
 from pemviz.pem.network import PEM
 from pemviz.pem.noise import NoiseModel, NoisePEM
 from pemviz.pem.trees import TreePEM
@@ -145,6 +145,11 @@ class SalientDetector:
         with the noise head."""
         return type(self.detect) in (PEM, TreePEM)
 
+    def _code_columns(self, width: int) -> np.ndarray:
+        """The row columns of the raw inputs the encoding reads (:data:`~pemviz.pem.encoding.CODE_COLUMNS`), for rows
+        of ``width`` columns."""
+        return np.arange(width)[self.salient][list(CODE_COLUMNS)]
+
     def _shares_encoding(self) -> bool:
         """Whether the noise head encodes the salient variables as the detection PEM does (same z-score statistics)."""
         a, b = self.detect.norm, self.noise.norm
@@ -167,20 +172,22 @@ class SalientDetector:
         seen = np.ones(rows.shape[0], bool) if self.visible is None else rows[:, self.visible] > 0.5
         codes, inverse = None, None
         if seen.any():
-            raw = self._raw(rows)[seen]  # the salient columns, then the seen rows: a copy of those only
-            if self._encodes():
-                groups = repeated_rows(raw)
+            if self._encodes():  # the columns the encoding reads, feature by feature, of the seen rows
+                columns = np.empty((len(CODE_COLUMNS), int(np.count_nonzero(seen))))
+                for k, c in enumerate(self._code_columns(rows.shape[1])):
+                    np.compress(seen, rows[:, c], out=columns[k])
+                groups = repeated_rows(columns)
                 if groups is not None:  # many rollouts in the same state: each distinct row asked once
                     first, inverse = groups
-                    raw = raw[first]
-                codes = salient_codes(raw, self.detect.norm)
+                    columns = columns[:, first]
+                codes = codes_of_columns(columns, self.detect.norm)
                 if type(self.detect) is PEM:
                     logits = self.detect.logit_codes(codes)
                 else:
                     logits = self.detect.logit_features(codes.features())
                 out[seen] = logits if inverse is None else logits[inverse]
             else:
-                out[seen] = self.detect.logit(raw)
+                out[seen] = self.detect.logit(self._raw(rows)[seen])
         step = _Step(rows_in, seen, codes, out, inverse)
         if isinstance(rows_in, np.ndarray) and not rows_in.flags.writeable:
             out.flags.writeable = False
@@ -270,40 +277,33 @@ PROBE_DISTINCT = 128
 rollouts' perceptions have set their egos apart, ask about a few hundred distinct rows of 40,960)."""
 
 
-def repeated_rows(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(first [D], inverse [S])`` with ``raw[first][inverse] == raw`` row for row (exact equality) when the rows
-    [S, K] hold few distinct ones, else None (they are asked about as they are).
+def repeated_rows(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(first [D], inverse [S])`` with ``columns[:, first][:, inverse] == columns`` (exact equality) when the S rows
+    given feature by feature, float64 ``[K, S]``, hold few distinct ones, else None (they are asked about as they are).
 
     Cheap when it declines: :data:`PROBE_ROWS` rows at fixed positions are looked at first, and more than
     :data:`PROBE_DISTINCT` distinct ones among them decline. Otherwise rows are grouped by a float64 key (a fixed
-    combination of their columns, elementwise: no BLAS) and every row is checked equal to its group's first row; a
+    combination of their values, elementwise: no BLAS) and every row is checked equal to its group's first row; a
     key shared by unequal rows declines.
     """
-    s = raw.shape[0]
+    s = columns.shape[1]
     if s < 4 * PROBE_ROWS:
         return None
-    probe = raw[:: s // PROBE_ROWS][:PROBE_ROWS]
+    probe = columns[:, :: s // PROBE_ROWS][:, :PROBE_ROWS]
     if np.unique(_row_keys(probe)).size > PROBE_DISTINCT:
         return None
-    keys = _row_keys(raw)
+    keys = _row_keys(columns)
     _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    if first.size > s // 4 or not np.array_equal(np.take(raw[first], inverse, axis=0), raw):
+    if first.size > s // 4 or not np.array_equal(columns[:, first][:, inverse.reshape(-1)], columns):
         return None
-    return first, inverse
+    return first, inverse.reshape(-1)
 
 
-KEY_COLUMNS = (7, 9, 10, 3, 8, 1, 2)
-"""The columns of 11 raw salient variables a row's key reads (loc_x, loc_z, rot_y, alpha, loc_y, truncation, occlusion:
-what tells two objects of a step apart; rows equal in these but not in the others are caught by the check)."""
-
-
-def _row_keys(raw: np.ndarray) -> np.ndarray:
-    """float64 [S]: sum_k raw[:, c_k] w_k over :data:`KEY_COLUMNS` (all columns for rows of other widths) for fixed
-    weights w, elementwise in a fixed order (equal rows, equal keys)."""
-    columns = KEY_COLUMNS if raw.shape[1] == 11 else tuple(range(raw.shape[1]))
-    key = raw[:, columns[0]].copy()
+def _row_keys(columns: np.ndarray) -> np.ndarray:
+    """float64 [S]: sum_k columns[k] w_k for fixed weights w, elementwise in a fixed order (equal rows, equal keys)."""
+    key = columns[0].copy()
     term = np.empty_like(key)
-    for k, c in enumerate(columns[1:], start=1):
-        np.multiply(raw[:, c], 1.0 + k * 0.6180339887498949, out=term)
+    for k in range(1, columns.shape[0]):
+        np.multiply(columns[k], 1.0 + k * 0.6180339887498949, out=term)
         key += term
     return key

@@ -24,6 +24,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 import numpy as np
 
 from pemviz.core.detectors import Detector, draw_step, noise_names_of
+from pemviz.core.exact import row_sum
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 
 
@@ -329,7 +330,7 @@ def run_batched(
         if m == 1:
             log_q[:, t], log_p[:, t] = step.log_q, step.log_p
         else:  # the step's objects together
-            log_q[:, t], log_p[:, t] = step.log_q.reshape(n, m).sum(axis=1), step.log_p.reshape(n, m).sum(axis=1)
+            log_q[:, t], log_p[:, t] = row_sum(step.log_q.reshape(n, m)), row_sum(step.log_p.reshape(n, m))
         errors = None
         if d:
             errors = step.noise.reshape(n, m, d)

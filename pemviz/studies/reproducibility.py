@@ -4,9 +4,10 @@ executors.
 A detection is drawn as ``u <= q``, so a last-bit change of q can flip a draw, and every later fit and rollout follows
 it. pemviz therefore computes every number that decides a draw or a fit in arithmetic whose result is fixed by
 IEEE 754 alone (:mod:`pemviz.core.exact`): the proposal network's logits and its Adam fits, its initial weights (numpy's
-PCG64). The PEM's own logits (float64 products) and the weights' transcendentals (libm, numpy's and scipy's vector
-loops) may differ in their last bit between CPUs; a last-bit change of a float64 p flips a draw with probability about
-1e-16, and the weights enter the fits on a grid of 24 bits (:data:`pemviz.core.exact_fit.COUNT_BITS`).
+PCG64), and the PEM networks' outputs (:class:`pemviz.pem.network.GridMLP`). The weights' and the errors'
+transcendentals (libm, numpy's and scipy's vector loops) may differ in their last bit between CPUs; a last-bit change
+of a float64 p flips a draw with probability about 1e-16, and the weights enter the fits on a grid of 24 bits
+(:data:`pemviz.core.exact_fit.COUNT_BITS`).
 
 The contract this module checks (:func:`compare`):
 
