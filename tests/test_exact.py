@@ -75,3 +75,14 @@ def test_the_transcendentals_agree_with_the_standard_library_to_a_few_ulp():
     np.testing.assert_allclose(softplus, np.logaddexp(0.0, d), rtol=1e-15, atol=1e-300)
     np.testing.assert_allclose(sigmoid, 1.0 / (1.0 + np.exp(-d)), rtol=1e-15)
     np.testing.assert_allclose(exact.tanh(d / 10), np.tanh(d / 10), rtol=1e-14, atol=1e-16)
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5, 7, 8, 12])
+def test_row_sum_is_numpy_s_row_sum_bit_for_bit(k):
+    # left to right below 8 columns (numpy's order there); numpy's pairwise sum from 8 on
+    rng = np.random.default_rng(k)
+    x = rng.normal(size=(5000, k)) * 10.0 ** rng.integers(-8, 8, size=(5000, k))
+    np.testing.assert_array_equal(exact.row_sum(x), x.sum(axis=1))
+    if k == 3:  # by hand: (a + b) + c, where a + (b + c) rounds otherwise
+        y = np.array([[1.0, 2.0**-53, 2.0**-53]])
+        assert exact.row_sum(y)[0] == (1.0 + 2.0**-53) + 2.0**-53 == 1.0 != 1.0 + (2.0**-53 + 2.0**-53)

@@ -11,6 +11,8 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from conftest import float64_network
 
 from pemviz.pem import load_pem
@@ -100,3 +102,31 @@ def test_a_single_layer_is_an_affine_map_on_grids():
     x = np.array([[1.0, 2.0], [0.5, -4.0], [0.0, 0.0], [1e-3, 0.0]])
     np.testing.assert_array_equal(grid(x)[:, 0], [3.0 - 1.0 + 0.25, 1.5 + 2.0 + 0.25, 0.25,
                                                   np.rint(1e-3 * 2.0**35) * 2.0**-35 * 3.0 + 0.25])  # fmt: skip
+
+
+@settings(max_examples=200, deadline=None)
+@given(cls=st.lists(st.sampled_from([0.0, 3.0, 6.0, 7.0, -1.0, 2.5, np.nan, 1e30]), min_size=1, max_size=12),
+       occ=st.sampled_from([0.0, 1.0, 2.0, 3.0, 0.5]),
+       pose=st.floats(-1e6, 1e6, allow_nan=False))  # fmt: skip
+def test_the_compact_encoding_reads_what_the_one_hot_rows_hold_or_names_the_first_bad_row(cls, occ, pose):
+    norm = load_pem().norm
+    n = len(cls)
+    raw = np.zeros((n, 11))
+    raw[:, 0], raw[:, 2], raw[:, 7:] = cls, occ, [pose, 1.7, 20.0 + pose, 0.1]
+    nan_rows = [i for i, c in enumerate(cls) if np.isnan(c)]
+    bad_class = [i for i, c in enumerate(cls) if c not in (0.0, 3.0, 6.0)]
+    if nan_rows:  # non-finite values are named first
+        with pytest.raises(ValueError, match=f"non-finite value in row {nan_rows[0]}$"):
+            salient_codes(raw, norm)
+    elif bad_class:
+        with pytest.raises(ValueError, match=f"class .* in row {bad_class[0]} is not an integer in 0..6"):
+            salient_codes(raw, norm)
+    elif occ not in (0.0, 1.0, 2.0):
+        with pytest.raises(ValueError, match="occlusion .* in row 0 is not an integer in 0..2"):
+            salient_codes(raw, norm)
+    else:  # by hand: the class's and the occlusion's one-hot columns, then the z-scored pose
+        want = np.zeros((n, 14))
+        want[np.arange(n), np.array(cls, dtype=int)] = 1.0
+        want[:, 7 + int(occ)] = 1.0
+        want[:, 10:] = (raw[:, 7:] - norm.mean) / norm.std
+        np.testing.assert_array_equal(salient_codes(raw, norm).features(), want)
