@@ -159,9 +159,30 @@ def weights_convention(meta: Any, requested: str | None) -> tuple[str, str]:
     return "to-failure", "pemviz's default; the sidecar names none"
 
 
-def summary_lines(data: Any, result: Any, p_src: str, q_src: str, why: str = "") -> list[str]:
+def known_answer(data: Any, failure: str, own: bool) -> tuple[float | None, Any]:
+    """The exact log failure probability (nats) or the plain Monte Carlo reference that the run which wrote the file
+    printed (its problem, :func:`pemviz.core.problems.problem_for` of the scenario, PEM, margin and simulator its
+    sidecar records), when the file is estimated as that run estimated it: under the run's own log p (``own``) and with
+    a crash of its specification as the failure. ``(None, None)`` otherwise, or when the sidecar records no run."""
+    config = ((data.meta.provenance or {}).get("config") if data.meta else None) or {}
+    if not own or failure != "crash" or not isinstance(config, dict) or "scenario" not in config:
+        return None, None
+    from pemviz.config import ConfigError
+    from pemviz.core.problems import problem_for
+
+    try:
+        fields = {k: config[k] for k in ("scenario", "pem", "margin", "sim") if k in config}
+        problem = problem_for(ExperimentConfig(**fields))
+    except (ConfigError, OSError, ValueError, TypeError):  # a run of another version or a PEM no longer there
+        return None, None
+    return problem.exact_log_p, problem.reference
+
+
+def summary_lines(data: Any, result: Any, p_src: str, q_src: str, why: str = "",
+                  known: tuple[float | None, Any] = (None, None)) -> list[str]:  # fmt: skip
     """The printed report: the file, the weight convention, the sources of log p / log q, one row per stage, the
-    pooled estimate and which stages it pools, the mean-weight check (and its warning), the verdict line."""
+    pooled estimate and which stages it pools, the mean-weight check (and its warning), the verdict line with the
+    exact answer or reference ``known`` (:func:`known_answer`)."""
     e = result.estimate
     failure = "crash (classic robustness < 0)" if result.failure == "crash" else f"{result.metric} robustness < 0"
     lines = [
@@ -189,7 +210,7 @@ def summary_lines(data: Any, result: Any, p_src: str, q_src: str, why: str = "")
     lines.append(result.check.line())
     if result.check.warning():
         lines.append(result.check.warning())
-    lines.append(e.summary())
+    lines.append(e.summary(*known))
     return lines
 
 
@@ -326,7 +347,7 @@ def main(args: argparse.Namespace) -> int:
     if result.weights != weights:
         why = f"{weights} needs a crash of a G[a,b](state predicate) formula; every step but the last instead"
     check_plausible(result.estimate, q_src)
-    lines = summary_lines(data, result, p_src, q_src, why)
+    lines = summary_lines(data, result, p_src, q_src, why, known_answer(data, args.failure, own))
     if args.pem_uncertainty or args.pem_shift is not None:
         lines += pem_spread_lines(data, args, result, log_q, weights, cap if own else None)
     print("\n".join(lines), flush=True)
