@@ -14,6 +14,9 @@ Prints, as markdown tables (the figures of the CHANGELOG and the user guide's Va
 4. ``cut-in-mc``: ``pemviz run --scenario cut-in --method mc --rel-error 0.2 --max-time 600``: where it stops, and
    whether mu_hat is within x1.5 of the reference.
 5. ``refusal``: the seconds ``pemviz run --preset paper --scenario cut-in`` takes to refuse (target < 2 s).
+6. ``speed``: the cut-in's plain Monte Carlo throughput as the ratio to braking's, both in fresh processes run back to
+   back, three times (``benchmarks/sim_speed.py --cut-in``; target <= 14, about 69 before the cut-in was batched);
+   measure on a quiet machine (the load average is printed).
 
 Exit 1 if any run prints nan or inf or says "reliable" when wrong. Run from the repository root:
 
@@ -39,7 +42,7 @@ SCENES = ("braking", "cut-in")
 PRESET_RUNS = ("state-ce", "paper", "authors-code", "quick", "state-ce-step")
 METHOD_RUNS = ("mc", "naive50", "mixed50", "ams")
 BUDGETS = (100, 1000)
-PARTS = ("matrix", "defaults", "rel-error", "cut-in-mc", "refusal")
+PARTS = ("matrix", "defaults", "rel-error", "cut-in-mc", "refusal", "speed")
 
 
 def config(scene: str, seed: int, preset: str | None = None, method: str | None = None, **fields):
@@ -145,6 +148,12 @@ def main() -> int:
             s, rc, line = refusal_seconds()
             print(f"`pemviz run --preset paper --scenario cut-in`: exit {rc} after {s:.2f} s (target < 2 s): {line}")
             bad += rc != 2 or s >= 2.0
+            continue
+        if part == "speed":
+            sys.path.insert(0, str(REPO / "benchmarks"))
+            from sim_speed import cut_in_vs_braking
+
+            bad += not all(ratio <= 14.0 for ratio in cut_in_vs_braking(None, 3))
             continue
         t0 = time.perf_counter()
         with ProcessPoolExecutor(a.jobs) as ex:

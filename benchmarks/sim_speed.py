@@ -288,19 +288,23 @@ def mc_rate(args: list[str], tree: Path | None = None) -> tuple[float, int, floa
     return n / seconds, n, seconds
 
 
-def cut_in_vs_braking(before: Path | None, repeat: int) -> None:
-    """Print part 5 for this code (and ``before``'s): each repeat runs braking's then the cut-in's command."""
+def cut_in_vs_braking(before: Path | None, repeat: int) -> list[float]:
+    """Print part 5 for this code (and ``before``'s): each repeat runs braking's then the cut-in's command. Returns
+    this code's ratios (braking's rollouts/s over the cut-in's), one per repeat."""
     print(f"5. plain Monte Carlo, cut-in against braking, fresh processes ({load()})")
     trees = [("after", None)] if before is None else [("before", before), ("after", None)]
+    ratios = []
     for r in range(repeat):
         for label, tree in trees:
             braking, nb, sb = mc_rate(BRAKING_MC, tree)
             cut_in, nc, sc = mc_rate(CUT_IN_MC, tree)
             ratio = braking / cut_in
+            ratios += [ratio] if tree is None else []
             print(f"   {label:<6} cut-in {cut_in:>8,.0f} rollouts/s ({nc:,} in {sc:.1f} s)  braking {braking:>8,.0f} "
                   f"rollouts/s ({nb:,} in {sb:.1f} s)  ratio {ratio:5.1f} (target <= {TARGET_CUT_IN_RATIO:.0f}): "
                   f"{verdict(ratio <= TARGET_CUT_IN_RATIO)}")  # fmt: skip
     print(f"   ({load()})")
+    return ratios
 
 
 def main() -> None:
