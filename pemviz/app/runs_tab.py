@@ -8,7 +8,7 @@ import html
 
 import viser
 
-from pemviz.app import plots
+from pemviz.app import compare, plots
 from pemviz.app.html import GREEN, RED, TABLE_STYLE, box, display_path
 from pemviz.app.form import setting_name, setting_value
 from pemviz.app.runs import PanelRun
@@ -69,7 +69,8 @@ class RunsTab:
         )  # fmt: skip
         with self.client.atomic():
             self.runs_html.content = block
-            self.compare_html.content = block
+            notes = compare.fill_estimate_plot(self.compare_estimates, runs)
+            self.compare_html.content = compare.compare_html(runs, notes)
             options = tuple(r.label for r in runs)
             current = self.run_choice.value
             self.run_choice.options = options

@@ -13,8 +13,9 @@ least-robust ones; 3D playback) and *Runs* (kept runs with their settings, pin /
 plots panel (left) holds *Live* (what each stage's sampler did over the states its rollouts visited, per-stage
 values of every kept run, mu_hat with its interval and the exact answer), *Explain* (the chosen rollout of the run
 chosen under *Runs* step by step, synced with the 3D playback: its severity, what happened in words, the
-controller's signals, its decisive misses, minimal miss set and last saving step) and *Compare* (every setting of
-every kept run and their reference-state proposal curves).
+controller's signals, its decisive misses, minimal miss set and last saving step) and *Compare* (each kept run's
+final estimate with its 95 % interval on a log10 chart beside the exact answer or reference, the settings that differ
+between the kept runs, and their reference-state proposal curves).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from typing import Any, Protocol
 import numpy as np
 import viser
 
-from pemviz.app import charts, plots
+from pemviz.app import charts, compare, plots
 from pemviz.app.html import AMBER, BLUE, GREEN, GREY, NO_ROLLOUT, RED, accuracy_html, box, field_error
 from pemviz.app.rollouts_tab import RolloutsTab
 from pemviz.app.runs_tab import RunsTab
@@ -284,6 +285,7 @@ class Session(RunsTab, RolloutsTab, SceneView):
             self.strip = plots.strip_plots(gui)
             self.strip["controller"] = charts.controller_plot(gui, order=self.strip["gap"].order + 0.5)
         with panel.add_tab("Compare", viser.Icon.A_B):
+            self.compare_estimates = compare.estimate_plot(gui)
             self.compare_html = gui.add_html("")
             self.compare_html_ref = gui.add_html(
                 '<div style="margin:0 0.6em; font-size:0.8em; color:#555">Reference-state curves: q(detect | gap) with '
