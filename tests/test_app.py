@@ -9,6 +9,7 @@ condition. Chromium is Debian's (``apt-get install chromium``; ``.ci/run`` insta
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import shutil
@@ -484,7 +485,9 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     assert applied
     wait_until(lambda: shown_series("controller", "brake applied") == applied, what="the brake in the controller chart")
 
-    # a failing rollout that no single miss decides: its minimal miss set, shown and marked
+    # a failing rollout that no single miss decides (among the least robust): its minimal miss set, shown and marked
+    tab.tab("Rollouts")
+    tab.choose("sort by", "robustness")
     label = next(lab for lab, t in s._rollout_labels.items() if t.crashed and t is not record.most_likely_failure
                  and explain(t.gap_m, t.detected, t.log_p, t.log_q, app.params).decisive.size == 0)  # fmt: skip
     tab.tab("Rollouts")
@@ -498,16 +501,43 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     wait_until(lambda: shown_series("p(detect) under the PEM", "minimal miss set") == cf.minimal_set.tolist(),
                what="the minimal miss set marked in the strip chart")  # fmt: skip
 
-    # the Rollouts table sorts by severity (the fastest contact first) and filters to failures
+    # the Rollouts table lists every failure of the final estimate, the largest importance weight first, and groups
+    # them by their last saving detection, the groups' shares adding up to 1
     tab.tab("Rollouts")
+    tab.choose("sort by", "importance weight")
+    pop, final = record.population, record.final
+    n = final.estimate.n_failures
+    expect(tab.page.get_by_text(f"Every failure of the final estimate of {record.short_label}: {n:,}",
+                                exact=False)).to_be_visible(timeout=10_000)  # fmt: skip
+    expect(tab.page.get_by_text("by importance weight", exact=False)).to_be_visible(timeout=10_000)
+    assert pop.shares.n == n and sum(t is not None for t in pop.rollouts) == n
+    first = tab.page.evaluate("""() => {
+        const t = [...document.querySelectorAll('table.pemviz-table')].find(x => x.textContent.includes('share of p')
+                                                                          && x.textContent.includes('outcome'));
+        return [...t.querySelectorAll('tr')[1].querySelectorAll('td')].map(td => td.textContent);}""")
+    best = int(np.argmax(pop.shares.log_weight))  # the estimate's own weights: w lambda_k N / n_k
+    assert best == 0 and first[1:3] == [str(pop.shares.stage[0]), str(pop.shares.index[0])], first
+    from scipy.special import logsumexp
+
+    assert math.isclose(float(logsumexp(pop.shares.log_weight)) - math.log(final.estimate.n),
+                        final.estimate.log_mu_hat, rel_tol=1e-12)  # fmt: skip
+    assert math.isclose(sum(g.share for g in pop.groups), 1.0, rel_tol=1e-12) and len(pop.groups) >= 2
+    expect(tab.page.get_by_text(pop.groups[0].label, exact=False).first).to_be_visible()
+    if os.environ.get("PEMVIZ_SCREENSHOTS") == "1":  # the Rollouts tab as the user guide shows it
+        shot = Path(__file__).resolve().parents[1] / "assets" / "screenshots" / "panel_rollouts.png"
+        tab.page.get_by_text("share of p", exact=True).last.scroll_into_view_if_needed()
+        tab.page.screenshot(path=str(shot.with_name(shot.name + ".partial.png")))
+        os.replace(shot.with_name(shot.name + ".partial.png"), shot)
+
+    # sorted by severity (the fastest contact first), then filtered to failures
     tab.choose("sort by", "severity")
     expect(tab.page.get_by_text("by severity", exact=False)).to_be_visible(timeout=10_000)
     listed = s.ordered_rollouts(record)
-    speeds = [severity(t.gap_m, app.params).contact_speed_mps for t in record.trajectories]
+    speeds = [severity(t.gap_m, app.params).contact_speed_mps for t in [*pop.rollouts, *record.trajectories]]
     assert severity(listed[0].gap_m, app.params).contact_speed_mps == np.nanmax(speeds)
     tab.page.get_by_label("failures only").check()
-    expect(tab.page.get_by_text("that failed (metric", exact=False)).to_be_visible(timeout=10_000)
-    assert all(t.crashed for t in s.ordered_rollouts(record))
+    wait_until(lambda: all(t.crashed for t in s.ordered_rollouts(record)), what="only failures listed")
+    expect(tab.page.get_by_text("least robust rollouts outside it, by severity", exact=False)).to_be_visible()
 
 
 # 11 -----------------------------------------------------------------------------------------------

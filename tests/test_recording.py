@@ -8,6 +8,7 @@ replay of the braking scenario.
 from __future__ import annotations
 
 import io
+import math
 import re
 import threading
 
@@ -592,3 +593,20 @@ def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_whe
         q = np.array([v[0] for v in column(step, f"/explain/detect/object_{j}/sampler:Scalars:scalars") if v])
         assert q.shape == (100,) and np.all((q >= j) & (q <= j + 0.8))
         assert np.all(q[~seen[:, j]] == j)
+
+
+def test_the_recording_lists_every_failure_of_the_estimate_by_share_and_its_groups(runs):
+    """``final/failures``: one entry per failure of the final estimate, the largest share first, the shares adding up
+    to 1 and their log-weights giving the run's log mu_hat; ``failures``: the groups in Markdown."""
+    from scipy.special import logsumexp
+
+    events, _, tables, _ = runs["adaptive"]
+    final = next(e for e in events if isinstance(e, FinalEstimate))
+    share = np.array(static_value(tables, "/final/failures:share"))
+    log_w = np.array(static_value(tables, "/final/failures:log_weight"))
+    assert share.size == final.estimate.n_failures > 0
+    assert np.all(np.diff(share) <= 0) and math.isclose(share.sum(), 1.0, rel_tol=1e-12)
+    n = final.estimate.n
+    assert math.isclose(float(logsumexp(log_w)) - math.log(n), final.estimate.log_mu_hat, rel_tol=1e-12)
+    text = static_value(tables, "/failures:TextDocument:text")[0]
+    assert f"## Failures of the final estimate: {share.size:,}" in text and "last saving detection" in text

@@ -20,21 +20,61 @@ from pemviz.app.html import (
     explanation_html,
 )
 from pemviz.app.objects_view import RobustnessOutcome, explain_objects, objects_summary
+from pemviz.app.population import Population
 from pemviz.app.runs import PanelRun, Trajectory, scene_positions
 from pemviz.scenarios.braking_failures import Severity, severity
+
+
+MAX_LISTED = 100
+"""Rollouts offered in the rollout list (the table below it lists every one)."""
+
+MAX_ROWS = 200
+"""Rows of the rollouts table (a larger table slows every update of the page; the groups cover every failure)."""
+
+SAVING = "last saving detection at "
+"""Dropped from a group's label in the rollouts table (its column says it: ``last saving detection``)."""
+
+MAX_GROUPS = 8
+"""Groups of failures shown, largest share first (the rest summed in one row)."""
+
+
+def format_share(share: float | None) -> str:
+    """A share of p as a percentage with three significant digits, ``-`` for none."""
+    return "-" if share is None else f"{100 * share:.3g} %"
+
+
+def groups_html(pop: Population | None) -> str:
+    """The groups of failures, largest share of p first (at most :data:`MAX_GROUPS`, the rest in one row), with what
+    they share; empty without a population."""
+    if pop is None or not pop.groups:
+        return ""
+    shown, rest = pop.groups[:MAX_GROUPS], pop.groups[MAX_GROUPS:]
+    rows = "".join(f"<tr><td style='text-align:left'>{html.escape(g.label)}</td><td>{g.count:,}</td>"
+                   f"<td>{format_share(g.share)}</td></tr>" for g in shown)  # fmt: skip
+    if rest:
+        rows += (f"<tr><td style='text-align:left'>{len(rest)} more groups</td><td>{sum(g.count for g in rest):,}</td>"
+                 f"<td>{format_share(sum(g.share for g in rest))}</td></tr>")  # fmt: skip
+    return (
+        f"<b>Groups of failures</b> by {html.escape(pop.basis)} ({len(pop.groups)} groups; shares add up to 100 %):"
+        '<table class="pemviz-table" style="width:100%"><tr><th>group</th><th>failures</th><th>share of p</th></tr>'
+        f"{rows}</table>"
+    )
 
 
 class RolloutsTab:
     """The *Rollouts* tab's part of a session (a mixin of :class:`pemviz.app.session.Session`)."""
 
     @staticmethod
-    def rollout_label(t: Trajectory, most_likely: bool = False, sev: Severity | None = None) -> str:
+    def rollout_label(t: Trajectory, most_likely: bool = False, sev: Severity | None = None,
+                      share: float | None = None) -> str:  # fmt: skip
         """The rollout list entry (no rank in it, so a chosen rollout stays chosen while later stages re-rank); the
-        outcome in :attr:`Severity.short`'s words when ``sev`` is given."""
+        outcome in :attr:`Severity.short`'s words when ``sev`` is given; a failure's share of p when known."""
         outcome = f" · {sev.short}" if sev is not None and (t.crashed or sev.failed) else (" · failed" * t.crashed)
         head = "most likely failure · " if most_likely else ""
+        part = f" · {share:.3g} of p" if share is not None else ""
         return (
-            f"{head}stage {t.stage} rollout {t.index} · rho {t.robustness:+.4g} · log p {t.log_p_total:.1f}{outcome}"
+            f"{head}stage {t.stage} rollout {t.index}{part} · rho {t.robustness:+.4g} · log p {t.log_p_total:.1f}"
+            f"{outcome}"
         )
 
     def severity_of(self, record: PanelRun, t: Trajectory) -> Severity | RobustnessOutcome:
@@ -47,10 +87,26 @@ class RolloutsTab:
                                                                                                       t.crashed)
         return self._severities[key]
 
+    @staticmethod
+    def shares_of(record: PanelRun) -> dict[str, float]:
+        """Rollout key -> the share of p it carries, for every failure of the run's final estimate (empty before)."""
+        pop = record.population
+        if pop is None:
+            return {}
+        share = pop.shares.share()
+        return {t.key: float(share[rank]) for rank, t in enumerate(pop.rollouts) if t is not None}
+
     def ordered_rollouts(self, record: PanelRun) -> list[Trajectory]:
-        """The run's kept rollouts in the Rollouts tab's order (``sort by``), failures only if ticked."""
+        """The rollouts the Rollouts tab lists, in its order (``sort by``), failures only if ticked: once the run has
+        its final estimate, every failure of it (:attr:`PanelRun.population`) and the kept least-robust rollouts of
+        other stages; before, the kept least-robust rollouts. ``importance weight``: the largest share of p first (the
+        rollouts outside the estimate, which carry none, last, least robust first)."""
         with record.lock:
-            kept = list(record.trajectories)
+            kept, pop = list(record.trajectories), record.population
+        if pop is not None:
+            failures = [t for t in pop.rollouts if t is not None]
+            listed = {t.key for t in failures}
+            kept = failures + sorted((t for t in kept if t.key not in listed), key=lambda t: t.robustness)
         if self.failures_only.value:
             kept = [t for t in kept if t.crashed]
         order = self.rollout_order.value
@@ -58,7 +114,9 @@ class RolloutsTab:
             return sorted(kept, key=lambda t: -t.log_p_total)
         if order == "severity":
             return sorted(kept, key=lambda t: -self.severity_of(record, t).rank)
-        return kept  # kept least robust first
+        if order == "robustness" or pop is None:
+            return sorted(kept, key=lambda t: t.robustness)  # sorted() is stable: kept order on ties
+        return kept  # importance weight: the population's order, then the safe ones least robust first
 
     def _relist(self) -> None:
         with self.lock:
@@ -71,17 +129,20 @@ class RolloutsTab:
         with record.lock:
             best = record.most_likely_failure
             n_kept = len(record.trajectories)
+            pop = record.population
         trajectories = self.ordered_rollouts(record)
+        shares = self.shares_of(record)
         labels = {}
         if best is not None:
-            labels[self.rollout_label(best, True, self.severity_of(record, best))] = best
-        labels.update({self.rollout_label(t, sev=self.severity_of(record, t)): t for t in trajectories})
+            labels[self.rollout_label(best, True, self.severity_of(record, best), shares.get(best.key))] = best
+        labels.update({self.rollout_label(t, sev=self.severity_of(record, t), share=shares.get(t.key)): t
+                       for t in trajectories[:MAX_LISTED]})  # fmt: skip
         self._rollout_labels = labels
         current = self.rollout_dropdown.value
         self.rollout_dropdown.options = (NO_ROLLOUT, *labels)
         if current not in labels:
             self.rollout_dropdown.value = NO_ROLLOUT
-        if not n_kept:
+        if not n_kept and pop is None:
             self.rollout_html.content = box(f"No rollouts of {html.escape(record.short_label)} yet.", GREY)
             return
         best_text = (
@@ -96,20 +157,38 @@ class RolloutsTab:
             sev = self.severity_of(record, t)
             return f"<b style=color:{RED}>{html.escape(sev.short)}</b>" if t.crashed else html.escape(sev.short)
 
+        group = {} if pop is None else {t.key: pop.group_label(r) for r, t in enumerate(pop.rollouts) if t is not None}
         rows = "".join(
-            f"<tr><td>{i + 1}</td><td>{t.stage}</td><td>{t.index}</td><td>{t.robustness:+.4g}</td>"
-            f"<td>{t.log_p_total:.1f}</td><td style='text-align:left'>{outcome(t)}</td></tr>"
-            for i, t in enumerate(trajectories[:10])
+            f"<tr><td>{i + 1}</td><td>{t.stage}</td><td>{t.index}</td>"
+            f"<td>{format_share(shares.get(t.key))}</td><td>{t.robustness:+.4g}</td>"
+            f"<td>{t.log_p_total:.1f}</td><td style='text-align:left'>{outcome(t)}</td>"
+            f"<td style='text-align:left'>{html.escape(group.get(t.key, '-').replace(SAVING, ''))}</td></tr>"
+            for i, t in enumerate(trajectories[:MAX_ROWS])
         )
         which = " that failed" if self.failures_only.value else ""
+        if pop is None:
+            what = (f"The {n_kept} least robust rollouts of {html.escape(record.short_label)}{which} (metric "
+                    f"{record.config.metric}; every failure of the estimate is listed once the run has "
+                    "it)")  # fmt: skip
+        else:
+            n_pop = pop.shares.n
+            listed = sum(t is not None for t in pop.rollouts)
+            safe = f", then the run's {n_kept} least robust rollouts outside it"
+            missing = f" ({n_pop - listed} not kept by a streamed stage)" if listed < n_pop else ""
+            what = (f"Every failure of the final estimate of {html.escape(record.short_label)}: {n_pop:,}{missing}"
+                    f"{safe}")  # fmt: skip
         self.rollout_html.content = TABLE_STYLE + (
             f'<div style="margin:0 0.6em 0.5em; font-size:0.8em">{html.escape(best_text)}<br>'
-            f"The {n_kept} least robust rollouts of {html.escape(record.short_label)}{which} (metric "
-            f"{record.config.metric}), by {html.escape(self.rollout_order.value)}; log p: log-probability under the "
-            "PEM, nats:"
-            '<table class="pemviz-table" style="width:100%">'
-            "<tr><th>#</th><th>stage</th><th>rollout</th><th>robustness</th><th>log p</th><th>outcome</th></tr>"
-            f"{rows}</table></div>"
+            + groups_html(pop)
+            + f"{what}, by {html.escape(self.rollout_order.value)}; share: the fraction of p the failure carries "
+            "(its importance weight over the failures'); log p: log-probability under the PEM, nats"
+            + (f"; the list above holds the first {MAX_LISTED}" if len(trajectories) > MAX_LISTED else "")
+            + (f"; the table the first {MAX_ROWS:,} of {len(trajectories):,} (the groups cover every failure)"
+               if len(trajectories) > MAX_ROWS else "")
+            + ':<div style="max-height:22em; overflow-y:auto"><table class="pemviz-table" style="width:100%">'
+            "<tr><th>#</th><th>stage</th><th>rollout</th><th>share of p</th><th>robustness</th><th>log p</th>"
+            f"<th>outcome</th><th>{'last saving detection' if record.view and record.view.scene else 'group'}</th></tr>"
+            f"{rows}</table></div></div>"
         )
 
     def _show_default_rollout(self, record: PanelRun) -> None:

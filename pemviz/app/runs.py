@@ -233,6 +233,12 @@ class PanelRun(Sink):
         self.proposal_views: dict[int, tuple[str, ProposalView]] = {}
         """Stage -> (kind, q(detect) of its sampler over the states its rollouts visited, per gap bin)."""
         self.events: list[Event] = []
+        self.sampled: dict[int, RolloutsSampled] = {}
+        """Stage -> its :class:`RolloutsSampled` (the batch, or a sample of a streamed stage)."""
+        self.population = None
+        """Every failure of the final estimate with its share of p and its group
+        (:class:`pemviz.app.population.Population`), once the run has its final estimate; None before or where the
+        estimator keeps no per-stage rollouts."""
         self.pinned = False
         """Kept for comparison until unpinned (:func:`keep_runs` never drops it)."""
         self.clock = StageClock()
@@ -276,6 +282,7 @@ class PanelRun(Sink):
 
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         self.sampled_current = True
+        self.sampled = {**self.sampled, event.stage: event}
         self.trajectories = least_robust(self.trajectories, event)
         self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
         window = self.view.thresholds.window if self.view is not None and self.view.thresholds else None
@@ -287,6 +294,10 @@ class PanelRun(Sink):
         self.stages = self.stages + [event.result]
 
     def on_final_estimate(self, event: FinalEstimate) -> None:
+        from pemviz.app.population import population_of  # it builds on this module's Trajectory
+
+        self.population = population_of(event.failures, self.sampled, self.view.scene if self.view else None,
+                                        self.problem)  # fmt: skip
         self.final = event
 
     def on_run_finished(self, event: RunFinished) -> None:

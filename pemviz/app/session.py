@@ -70,7 +70,7 @@ class PanelHost(Protocol):
 
     def wait_warm(self) -> None: ...
 
-ROLLOUT_ORDERS = ("robustness", "log p", "severity")
+ROLLOUT_ORDERS = ("importance weight", "robustness", "log p", "severity")
 """How the Rollouts tab orders its rollouts: least robust, most probable under the PEM, or worst outcome first."""
 class Session(RunsTab, RolloutsTab, SceneView):
     """The panel of one browser client (see the module docstring).
@@ -368,11 +368,12 @@ class Session(RunsTab, RolloutsTab, SceneView):
         gui = self.client.gui
         self.rollout_dropdown = gui.add_dropdown(
             "rollout", (NO_ROLLOUT,), initial_value=NO_ROLLOUT,
-            hint="the most likely failure found, then the least robust (the run's metric)",
+            hint="the most likely failure found, then the rollouts in the order of sort by (the first 100)",
         )  # fmt: skip
         self.rollout_order = gui.add_dropdown(
             "sort by", ROLLOUT_ORDERS, initial_value=ROLLOUT_ORDERS[0],
-            hint="robustness: least robust first; log p: most probable under the PEM first; severity: worst first",
+            hint="importance weight: the largest share of p first; robustness: least robust first; log p: most "
+                 "probable under the PEM first; severity: worst first",
         )  # fmt: skip
         self.failures_only = gui.add_checkbox("failures only", False, hint="list only the rollouts that failed")
         self.rollout_html = gui.add_html(box("No rollouts yet: run an experiment.", GREY))
@@ -564,6 +565,7 @@ class RunListener(Sink):
 
     def on_final_estimate(self, event: FinalEstimate) -> None:
         self.session.result_html.content = accuracy_html(self.record, event)
+        self.session._set_rollouts(self.record)  # every failure of the estimate, by its share of p
         self._refresh()
 
     def _refresh(self) -> None:

@@ -25,6 +25,7 @@ if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.core.estimate import Estimate, Reference
     from pemviz.core.problems import ProblemView
     from pemviz.core.requirement import Decision
+    from pemviz.core.population import FailureShares
     from pemviz.core.reweight import PemSpread
     from pemviz.core.severity import SeverityCurve
     from pemviz.scenarios import RolloutBatch
@@ -173,6 +174,9 @@ class FinalEstimate:
     pem_spread: PemSpread | None = None
     """p under the PEM ensemble's members and the shifted PEMs, re-weighted from the same rollouts
     (:func:`pemviz.estimators.base.pem_spread`); None without ``pem_uncertainty`` or ``pem_shift``."""
+    failures: FailureShares | None = None
+    """The estimate's failing rollouts (stage, rollout number) with the share of mu_hat each carries, largest first
+    (:func:`pemviz.estimators.base.failure_population`); None where the estimator keeps no per-stage rollouts."""
 
 
 @dataclass(frozen=True)

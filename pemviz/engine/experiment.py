@@ -46,7 +46,7 @@ from pemviz.engine.events import (
 )
 from pemviz.engine.executors import get_executor
 from pemviz.estimators import Estimator, StagePlan, build_estimator
-from pemviz.estimators.base import SeenFailures, pem_spread, severity_curve
+from pemviz.estimators.base import SeenFailures, failure_population, pem_spread, severity_curve
 from pemviz.scenarios import RolloutBatch
 
 
@@ -187,7 +187,8 @@ class Experiment:
         final = FinalEstimate(est, n_sim, time.perf_counter() - t_start, used, seen, pooled,
                               getattr(estimator, "stop", None), cap, getattr(estimator, "decision", None),
                               severity_curve(pb, estimator, est, used, pooled, cap),
-                              pem_spread(pb, estimator, est, used, pooled, cap))  # fmt: skip
+                              pem_spread(pb, estimator, est, used, pooled, cap),
+                              failure_population(estimator, used, pooled))  # fmt: skip
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)

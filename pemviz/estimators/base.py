@@ -588,6 +588,20 @@ def pooled_rows(estimator: object, used: tuple[int, ...], pooling: tuple[str, tu
     return [pool([(w[r], hit[r], lp[r]) for w, hit, lp in parts], lam).at_most(cap) for r in range(parts[0][0].shape[0])]
 
 
+def failure_population(estimator: object, used: tuple[int, ...],
+                       pooling: tuple[str, tuple[float, ...]] | None) -> "FailureShares | None":  # fmt: skip
+    """The failures of the run's estimate with the share of mu_hat each carries (:mod:`pemviz.core.population`),
+    pooled over the stages ``used`` as the estimate is (``pooling``'s lambda_k, :func:`pool`; None or ``rollouts``:
+    every rollout alike); None where the estimator keeps no per-stage rollouts (``stages``), e.g. AMS."""
+    from pemviz.core.population import failure_shares
+
+    stages = getattr(estimator, "stages", None)
+    if not isinstance(stages, dict) or not used or any(k not in stages for k in used):
+        return None
+    lam = None if pooling is None or pooling[0] == "rollouts" else np.asarray(pooling[1], dtype=np.float64)
+    return failure_shares([(k, *stages[k].arrays()) for k in used], lam)
+
+
 def pem_spread(problem: Problem, estimator: object, final: Estimate, used: tuple[int, ...],
                pooling: tuple[str, tuple[float, ...]] | None, cap: tuple[str, str] | None = None) -> "PemSpread | None":  # fmt: skip
     """p under each of ``problem.alternatives`` from the run's own rollouts (:mod:`pemviz.core.reweight`), pooled as

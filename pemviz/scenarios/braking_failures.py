@@ -353,6 +353,45 @@ def counterfactual(detected: np.ndarray, params: BrakingParams | None = None) ->
 # -- in words ---------------------------------------------------------------------------------------
 
 
+def last_saving_steps(detected: np.ndarray, params: BrakingParams | None = None) -> np.ndarray:
+    """The last step at which one detection alone still saves each rollout, as
+    :attr:`Counterfactual.last_saving_step` (the latest decisive miss), for many rollouts in one batch of replays.
+
+    Only the misses before a rollout's first breach of the margin are flipped: a detection at or after it cannot
+    undo the breach.
+
+    Args:
+        detected: bool [F, T] the rollouts' detections, T <= ``params.n_steps``.
+    Returns:
+        int [F]: the step, -1 where no single detection saves the rollout or where it does not fail.
+    Raises:
+        ValueError: ``detected`` not 2-D or longer than the scenario.
+    """
+    p = params or BrakingParams()
+    d = np.asarray(detected, dtype=bool)
+    if d.ndim != 2 or d.shape[1] > p.n_steps:
+        raise ValueError(f"last_saving_steps: detected must be bool [F, T <= {p.n_steps}], got shape {d.shape}")
+    out = np.full(d.shape[0], -1, dtype=np.int64)
+    if d.size == 0:
+        return out
+    breach = np.full(d.shape[0], d.shape[1], dtype=np.int64)
+    sim, low = BatchedBraking(p, d.shape[0]), np.full(d.shape[0], np.inf)
+    for t in range(d.shape[1]):  # the first step whose gap is below the margin (the recorded rollout)
+        below = (sim.gap_m < p.crash_gap_m) & (breach == d.shape[1])
+        breach[below] = t
+        np.minimum(low, sim.gap_m, out=low)
+        sim.step(d[:, t])
+    rollout, step = np.nonzero(~d & (np.arange(d.shape[1])[None, :] < breach[:, None]))
+    if rollout.size == 0:
+        return out
+    rows = d[rollout].copy()
+    rows[np.arange(rollout.size), step] = True
+    saved = min_gaps(rows, p) >= p.crash_gap_m
+    np.maximum.at(out, rollout[saved], step[saved])
+    out[low >= p.crash_gap_m] = -1
+    return out
+
+
 def _times(steps: np.ndarray, dt: float, most: int = 4) -> str:
     """``2.30-2.65, 2.75 and 3.10-4.80 s``: steps as times, runs of consecutive steps as ranges (at most ``most``)."""
     runs = np.split(steps, np.flatnonzero(np.diff(steps) != 1) + 1) if steps.size else []

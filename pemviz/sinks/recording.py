@@ -87,6 +87,7 @@ from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
+from pemviz.sinks.population import group_failures, population_markdown
 from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
@@ -174,6 +175,8 @@ class RerunSink(Sink):
         self.curve_stages: list[int] = []
         self.finished = False
         self._pending: RolloutsSampled | None = None
+        self._sampled: dict[int, RolloutsSampled] = {}
+        """Stage -> its sampled rollouts: the final estimate's failures are found in them (``failures``)."""
         self.serve_url: str | None = None
         self._path: Path | None = None
         self._binary: rr.BinaryStream | None = None
@@ -258,6 +261,7 @@ class RerunSink(Sink):
     # -- events -------------------------------------------------------------------------------------
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         self._pending = event
+        self._sampled[event.stage] = event
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self._stage_finished(event.result)
@@ -587,6 +591,15 @@ class RerunSink(Sink):
                   static=True)  # fmt: skip
         if ev.pem_spread is not None:
             self.status_md += "\n\n```text\n" + "\n".join(ev.pem_spread.lines()) + "\n```\n"
+        if ev.failures is not None:
+            grouping = group_failures(ev.failures, self._sampled, self.scene)
+            s.log("failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN),
+                  static=True)  # fmt: skip
+            s.log("final/failures", rr.AnyValues(stage=ev.failures.stage, rollout=ev.failures.index,
+                                                 share=ev.failures.share(), log_weight=ev.failures.log_weight,
+                                                 log_p=ev.failures.log_p, group=[str(k) for k in grouping.keys]),
+                  static=True)  # fmt: skip
+        self._sampled = {}
         self._log_description()
         self._explain()
         s.flush()

@@ -13,7 +13,8 @@ hold on every timeline:
   PEM and q(detect) of the sampler along it with its misses, its first signal against the thresholds with the
   counterfactual replays, the controller and its scene (the last two for a problem with a scene).
 - **Rollouts** (timeline ``step``): the kept rollouts of every stage over ``step`` and the scene's lanes.
-- beside the tabs: the **estimate** and the **run**'s description (static text).
+- beside the tabs: the **estimate**, and the **run**'s description and the final estimate's **failures** (every group
+  of failures and the failures with the largest shares of p) in two tabs (static text).
 
 Switching the timeline does not switch the tab: each tab's name says its timeline. Everything here builds
 blueprint objects and logs nothing.
@@ -161,7 +162,8 @@ def _rollouts_tab(view: ProblemView | None, n_lanes: int) -> rrb.Container:
 def default_blueprint(
     n_lanes: int = 12, view: ProblemView | None = None, tab: str = "stages", paused: bool = False
 ) -> rrb.Blueprint:
-    """The recording's layout: the tabs *Stages*, *Explain* and *Rollouts* with the estimate and the run beside them.
+    """The recording's layout: the tabs *Stages*, *Explain* and *Rollouts* with the estimate, the run and the
+    failures beside them.
 
     Args:
         n_lanes: lanes of the rollouts' scene (one per stage); sizes its view.
@@ -179,7 +181,10 @@ def default_blueprint(
             rrb.Tabs(_stages_tab(view), _explain_tab(view), _rollouts_tab(view, n_lanes), active_tab=TABS.index(tab)),
             rrb.Vertical(
                 rrb.TextDocumentView(origin="/estimate", name="Estimate"),
-                rrb.TextDocumentView(origin="/description", name="Run"),
+                rrb.Tabs(
+                    rrb.TextDocumentView(origin="/description", name="Run"),
+                    rrb.TextDocumentView(origin="/failures", name="Failures by share of p, in groups"),
+                ),
                 row_shares=[1.0, 1.8],
             ),
             column_shares=[3.6, 1.0],
