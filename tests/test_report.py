@@ -135,3 +135,23 @@ def test_a_report_of_a_bad_source_is_one_line(tmp_path, capsys):
 def test_report_html_needs_the_result_fields():
     with pytest.raises(KeyError):
         report_html({"format": "pemviz-result"})
+
+
+def test_the_report_groups_the_failures_and_their_shares_add_up_to_one(reported):
+    """The result document's failures: groups whose shares add up to 1 and counts that add up to the estimate's
+    failures, the largest failure first; the page lists the groups."""
+    import math
+
+    scene, _, page, result = reported
+    doc = json.loads(result.read_text())
+    f = doc["failures"]
+    assert f["n"] == doc["estimate"]["n_failures"] == sum(g["count"] for g in f["groups"])
+    if f["n"] == 0:
+        return
+    assert math.isclose(sum(g["share"] for g in f["groups"]), 1.0, rel_tol=1e-12)
+    shares = [x["share"] for x in f["largest"]]
+    assert shares == sorted(shares, reverse=True)
+    text = page.with_suffix(".md").read_text()
+    assert "## Failures by share of p" in text and f["groups"][0]["label"] in text
+    if scene == "braking":
+        assert f["basis"].startswith("the last step at which one detection") and len(f["groups"]) >= 2

@@ -271,9 +271,10 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
 
 def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, final, recording: str | None,
                   paths: tuple[Path | None, Path | None, Path | None], why: str | None = None,
-                  saved: Path | None = None) -> None:  # fmt: skip
+                  saved: Path | None = None, failures: dict | None = None) -> None:  # fmt: skip
     """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where; with a ``saved`` recording its
-    result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads)."""
+    result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads);
+    ``failures``: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`)."""
     from pemviz.io.result import result_beside, result_document, write_junit, write_result_json
 
     json_path, junit_path, report_path = paths
@@ -282,7 +283,8 @@ def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, fina
     lines = final_lines(final, cfg, problem.exact_log_p, problem.reference) + ([why] if why is not None else [])
     doc = result_document(cfg, final, exact_log_p=problem.exact_log_p, reference=problem.reference,
                           recording=recording, command=" ".join(["pemviz", *sys.argv[1:]]), problem=problem,
-                          console=lines, inputs=input_files(cfg))  # fmt: skip
+                          console=lines, inputs=input_files(cfg),
+                          failures=failures)  # fmt: skip
     if json_path is not None:
         print(f"result: {write_result_json(json_path, doc, overwrite=args.overwrite)}", file=sys.stderr)
     if saved is not None:
@@ -352,6 +354,7 @@ def main(args: argparse.Namespace) -> int:
     from pemviz.estimators import check_runnable
     from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
+    from pemviz.sinks.population import FailureGroups, grouping_document
 
     serial = cfg.executor == "serial"
     check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above(cfg) if serial else None)
@@ -381,6 +384,8 @@ def main(args: argparse.Namespace) -> int:
         rollout_sink.problem = problem  # its sidecar: the scenario's formula, signals and step
         listeners.append(rollout_sink)
     experiment.listeners[:0] = listeners
+    groups = FailureGroups(problem.view.scene, problem)  # the failures' groups for the result document
+    experiment.listeners.append(groups)
     likely = MostLikelyFailure() if problem.view.scene is None and problem.branch is not None else None
     if likely is not None:  # a scene without the braking scenario's own explanation: say which errors decided
         experiment.listeners.append(likely)
@@ -421,7 +426,9 @@ def main(args: argparse.Namespace) -> int:
     final = getattr(done, "final", None)
     saved = Path(where) if where is not None and target == "save" else None
     if final is not None and (saved is not None or any(path is not None for path in result_files)):
-        write_results(args, cfg, problem, final, str(where) if where is not None else None, result_files, why, saved)
+        failures = grouping_document(groups.grouping) if groups.grouping is not None else None
+        write_results(args, cfg, problem, final, str(where) if where is not None else None, result_files, why, saved,
+                      failures)
     if cfg.require is not None and final is not None and final.decision is not None:
         from pemviz.core.requirement import EXIT_CODES
 

@@ -151,6 +151,10 @@ def _table_md(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> str:
     return "\n".join(lines)
 
 
+MAX_GROUPS = 12
+"""Groups of failures the report lists, largest share first (the rest in one row)."""
+
+
 def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]]:
     """(title, lead text, table header, rows) of each section both twins show."""
     problem = doc.get("problem") or {}
@@ -166,6 +170,22 @@ def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list
         title = doc["severity"].get("title", "severity: P(min signal < x), from the same rollouts")
         sections.append(("Severity", f"{title.removeprefix('severity: ')}: how deep the failures go.",
                          ("level", "p", "95 % interval", "ESS", "verdict", "exact"), _severity_rows(doc)))  # fmt: skip
+    failures = doc.get("failures")
+    if failures and failures.get("groups"):
+        shown = failures["groups"][:MAX_GROUPS]
+        rows = [(g["label"], f"{g['count']:,}", f"{100 * g['share']:.3g} %") for g in shown]
+        rest = failures["groups"][MAX_GROUPS:]
+        if rest:
+            rows.append((f"{len(rest)} more groups", f"{sum(g['count'] for g in rest):,}",
+                         f"{100 * sum(g['share'] for g in rest):.3g} %"))  # fmt: skip
+        top = failures["largest"][0] if failures.get("largest") else None
+        largest = (f" The failure carrying the largest share: stage {top['stage']} rollout {top['rollout']}, "
+                   f"{100 * top['share']:.3g} % of p, log p {_num(top['log_p'], '.2f')} nats ({top['group']})."
+                   if top else "")  # fmt: skip
+        sections.append(("Failures by share of p", f"The {failures['n']:,} failures of the estimate in "
+                         f"{len(failures['groups'])} groups by {failures['basis']}: each group's share of p (its "
+                         f"failures' importance weights over all the failures'; the shares add up to 100 %).{largest}",
+                         ("group", "failures", "share of p"), rows))  # fmt: skip
     sections += [
         ("Scenario, specification and PEM", "", ("item", "value"), scene),
         ("Inputs", "sha256 of every file the run read.", ("input", "path", "sha256"), inputs),

@@ -49,7 +49,8 @@ def _plain(value: Any) -> Any:
 
 def result_document(config: Any, final: Any, *, exact_log_p: float | None = None, reference: Any = None,
                     recording: str | None = None, command: str | None = None, problem: Any = None,
-                    console: list[str] | None = None, inputs: list[dict[str, str]] | None = None) -> dict[str, Any]:  # fmt: skip
+                    console: list[str] | None = None, inputs: list[dict[str, str]] | None = None,
+                    failures: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
     """The JSON document of a finished run.
 
     Args:
@@ -62,6 +63,8 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
         problem: the run's :class:`pemviz.core.problems.Problem` (its name, description and formula go in), or None.
         console: the lines the console printed after the table (the estimate, severity, stop, advice), or None.
         inputs: the files the run read, ``{"what", "path", "sha256"}`` each (the PEMs), or None.
+        failures: the final estimate's failures in groups with their shares of p
+            (:func:`pemviz.sinks.population.grouping_document`), or None.
     """
     import pemviz
 
@@ -101,6 +104,8 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
         doc["console"] = list(console)
     if inputs is not None:
         doc["inputs"] = list(inputs)
+    if failures is not None:
+        doc["failures"] = _plain(failures)
     curve = getattr(final, "severity", None)
     if curve is not None:
         doc["severity"] = {

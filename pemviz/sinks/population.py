@@ -9,6 +9,7 @@ came at the same step. Elsewhere, with the run's problem at hand, the step at wh
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
 
@@ -132,3 +133,50 @@ def population_markdown(g: FailureGrouping, most: int = MAX_LISTED) -> str:
         "| group | failures | share of p |\n|---|---:|---:|\n" + groups + "\n\n"
         f"The failures, the largest share first{f' (the first {most:,})' if n > most else ''}:\n\n" + head + rows + more
     )
+
+
+class FailureGroups:
+    """A listener that keeps each stage's sampled rollouts and, at the final estimate, groups its failures
+    (:func:`group_failures`); :attr:`grouping` is None before, or where the estimator keeps no per-stage rollouts.
+
+    Args:
+        scene: the braking scenario's constants (``ProblemView.scene``), or None.
+        problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step elsewhere), or None.
+    """
+
+    def __init__(self, scene: object = None, problem: object = None) -> None:
+        self.scene, self.problem = scene, problem
+        self.sampled: dict[int, RolloutsSampled] = {}
+        self.grouping: FailureGrouping | None = None
+
+    def __call__(self, event: object) -> None:
+        from pemviz.engine.events import FinalEstimate
+
+        if isinstance(event, RolloutsSampled):  # its failures only: a batch of several objects is large
+            rows = np.flatnonzero(np.asarray(event.failed, dtype=bool))
+            index = np.arange(event.batch.n) if event.index is None else np.asarray(event.index)
+            self.sampled[event.stage] = dataclasses.replace(
+                event, batch=event.batch.select(rows), robustness=np.asarray(event.robustness)[rows],
+                robustness_by_metric={}, failed=np.ones(rows.size, dtype=bool),
+                log_weight=np.asarray(event.log_weight)[rows], n_total=event.n_total or event.batch.n,
+                index=index[rows], stage_robustness=None, stage_log_weight=None, sampler=None, target=None,
+            )  # fmt: skip
+        elif isinstance(event, FinalEstimate):
+            if event.failures is not None:
+                self.grouping = group_failures(event.failures, self.sampled, self.scene, self.problem)
+            self.sampled = {}  # the batches are no longer needed
+
+
+def grouping_document(g: FailureGrouping, most: int = 20) -> dict:
+    """The groups (every one, largest share first) and the ``most`` failures with the largest shares, as plain
+    numbers for a result document: ``{"basis", "n", "groups": [{"label", "count", "share"}], "largest": [{"stage",
+    "rollout", "share", "log_p", "group"}]}`` (shares are fractions of mu_hat; log p in nats)."""
+    share = g.shares.share()
+    return {
+        "basis": g.basis,
+        "n": g.shares.n,
+        "groups": [{"label": x.label, "count": x.count, "share": float(x.share)} for x in g.groups],
+        "largest": [{"stage": int(g.shares.stage[r]), "rollout": int(g.shares.index[r]), "share": float(share[r]),
+                     "log_p": float(g.shares.log_p[r]), "group": g.group_label(r)}
+                    for r in range(min(most, g.shares.n))],
+    }  # fmt: skip
