@@ -20,8 +20,7 @@ from pemviz.app.html import (
     explanation_html,
 )
 from pemviz.app.objects_view import RobustnessOutcome, explain_objects, objects_summary
-from pemviz.app.population import Population
-from pemviz.app.runs import PanelRun, Trajectory, scene_positions
+from pemviz.app.runs import PanelRun, Population, Trajectory, scene_positions
 from pemviz.scenarios.braking_failures import Severity, severity
 
 

@@ -16,6 +16,7 @@ import math
 import os
 import re
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ import numpy as np
 from pemviz.app.form import run_label
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Reference
+from pemviz.core.population import FailureShares
 from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities
 from pemviz.engine.events import (
     Event,
@@ -41,6 +43,7 @@ from pemviz.presets import PRESETS
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink, StageClock
+from pemviz.sinks.population import FailureGrouping, group_failures
 from pemviz.sinks.recording import RerunSink
 from pemviz.sinks.scene import car_positions
 
@@ -188,6 +191,44 @@ def least_robust(kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJ
     return merged[:n]
 
 
+@dataclass(frozen=True)
+class Population:
+    """Every failure of a run's final estimate, largest share first.
+
+    Attributes:
+        grouping: the failures, where each lies in the kept batches, their groups.
+        rollouts: per rank, the failure as a :class:`Trajectory`, or None where its stage kept only a sample.
+    """
+
+    grouping: FailureGrouping
+    rollouts: tuple[Trajectory | None, ...]
+
+    @property
+    def shares(self) -> FailureShares:
+        return self.grouping.shares
+
+    @property
+    def groups(self):
+        return self.grouping.groups
+
+    @property
+    def basis(self) -> str:
+        return self.grouping.basis
+
+    def group_label(self, rank: int) -> str:
+        return self.grouping.group_label(rank)
+
+
+def population_of(shares: FailureShares | None, sampled: Mapping[int, RolloutsSampled], scene: object,
+                  problem: object = None) -> Population | None:  # fmt: skip
+    """The panel's :class:`Population` of a run (arguments as :func:`pemviz.sinks.population.group_failures`); None
+    when ``shares`` is None (the estimator keeps no per-stage rollouts)."""
+    if shares is None:
+        return None
+    g = group_failures(shares, sampled, scene, problem)
+    return Population(g, tuple(trajectory(*f) if f is not None else None for f in g.found))
+
+
 def scene_positions(traj: Trajectory, params: BrakingParams | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Centre x of the ego and of the lead at every step of ``traj``, float64 [T] each (metres; ego starts at 0):
     :func:`pemviz.sinks.scene.car_positions` of its gaps and ego speeds."""
@@ -236,8 +277,7 @@ class PanelRun(Sink):
         self.sampled: dict[int, RolloutsSampled] = {}
         """Stage -> its :class:`RolloutsSampled` (the batch, or a sample of a streamed stage)."""
         self.population = None
-        """Every failure of the final estimate with its share of p and its group
-        (:class:`pemviz.app.population.Population`), once the run has its final estimate; None before or where the
+        """Every failure of the final estimate with its share of p and its group (:class:`Population`), once the run has its final estimate; None before or where the
         estimator keeps no per-stage rollouts."""
         self.pinned = False
         """Kept for comparison until unpinned (:func:`keep_runs` never drops it)."""
@@ -294,8 +334,6 @@ class PanelRun(Sink):
         self.stages = self.stages + [event.result]
 
     def on_final_estimate(self, event: FinalEstimate) -> None:
-        from pemviz.app.population import population_of  # it builds on this module's Trajectory
-
         self.population = population_of(event.failures, self.sampled, self.view.scene if self.view else None,
                                         self.problem)  # fmt: skip
         self.final = event
