@@ -3,7 +3,9 @@
 *Live*: q(detect) of each stage's sampler over the states its rollouts visited, per gap bin, beside the PEM's
 (:mod:`pemviz.core.proposal_view`), on a probability and on a log-odds scale, and the 95 % interval and the exact answer
 on the log10 mu_hat chart. *Explain*: the controller's brake command, applied brake and acceleration along a
-rollout. Colours from :mod:`pemviz.sinks.colours`; every range set from the data that exists.
+rollout. Colours from :mod:`pemviz.sinks.colours`; every range set from the data that exists, by
+:func:`pemviz.app.plots.robust_range`: values far from the rest are drawn at the edge, ringed, and counted in the title.
+A gap bin with fewer than :data:`MIN_BIN_STATES` visited states is not joined into its stage's line.
 """
 
 from __future__ import annotations
@@ -16,14 +18,39 @@ import viser
 import viser.uplot as up
 
 from pemviz.app.explain import Explanation
-from pemviz.app.plots import LEGEND, _points, axes, run_colour
+from pemviz.app.plots import (
+    LEGEND,
+    _points,
+    _ring,
+    axes,
+    off_scale_series,
+    robust_range,
+    run_colour,
+    run_series,
+    stage_values,
+)
 from pemviz.app.runs import PanelRun
 from pemviz.core.proposal_view import ProposalView
-from pemviz.sinks.colours import BLACK, BRAKE_ZONE, CRASH, EGO_SPEED, css, hex_colour, stage_rgb
+from pemviz.engine.events import RolloutsSampled
+from pemviz.sinks.colours import BLACK, BRAKE_ZONE, CRASH, EGO_SPEED, GREY, css, hex_colour, stage_rgb
 
 PROB, LOG_ODDS = "prob", "log_odds"
 LOG_ODDS_SPAN = 12.0
-"""The log-odds chart shows at most -12..12 nats (odds of 1:160,000); values beyond leave the chart."""
+"""The log-odds chart shows at most -12..12 nats (odds of 1:160,000); medians beyond are drawn at the edge."""
+MIN_BIN_STATES = 20
+"""A gap bin with fewer visited states than this is not joined into its stage's line: the standard error of a mean of
+values in [0, 1] can reach 0.5 / sqrt(n), over 0.1 below 20 states. The newest stage's such bins are drawn as
+hollow rings at their value and counted in the title."""
+CROWDED_BIN = 3.0
+"""A gap bin holding more than this many times the median bin's states (of the bins with at least
+:data:`MIN_BIN_STATES`), most of them standing (:func:`standing_bins`), is ringed in the q(detect) chart and named in
+its title with its count."""
+CONTROLLER_RULE: dict[str, Any] = {"min_gap": 10.0, "min_pad": 1.0, "at_least": (-4.0, 4.0)}
+""":func:`pemviz.app.plots.robust_range` settings of the controller chart (m/s^2): an acceleration more than 10 m/s^2
+(and twice the others' spread) from the others is off scale; at least 1 m/s^2 of room each side, -4..4 always shown."""
+MU_HAT_RULE: dict[str, Any] = {"min_gap": 3.0, "min_pad": 0.05}
+""":func:`pemviz.app.plots.robust_range` settings of the log10 mu_hat chart (log10 probability), as
+:data:`pemviz.app.plots.STAGE_RULES`."""
 
 
 def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
@@ -47,14 +74,41 @@ def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
     }  # fmt: skip
 
 
-def _padded(values: list[np.ndarray], lo: float = -math.inf, hi: float = math.inf) -> tuple[float, float]:
-    v = np.concatenate([np.ravel(a) for a in values]) if values else np.zeros(0)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return (-1.0, 1.0)
-    a, b = float(v.min()), float(v.max())
-    pad = max(0.3, 0.06 * (b - a))
-    return (max(lo, a - pad), min(hi, b + pad))
+def unchanged_gap_share(gap_m: np.ndarray, edges_m: np.ndarray) -> np.ndarray:
+    """Per gap bin (``edges_m``, metres, as :func:`pemviz.core.proposal_view.proposal_view` bins), the share of the
+    visited states ``gap_m`` [N, T] (metres) whose gap equals the same rollout's gap one step before: both cars at
+    rest (or moving together), one state counted again each step. float64 [B]; nan for an empty bin; a first step
+    counts as changed."""
+    gap = np.asarray(gap_m, dtype=np.float64)
+    edges = np.asarray(edges_m, dtype=np.float64)
+    same = np.zeros(gap.shape, bool)
+    same[:, 1:] = gap[:, 1:] == gap[:, :-1]
+    n_bins = edges.size - 1
+    b = np.searchsorted(edges, gap.ravel(), side="right") - 1
+    inside = (b >= 0) & (b < n_bins)
+    n = np.bincount(b[inside], minlength=n_bins).astype(np.float64)
+    k = np.bincount(b[inside], weights=same.ravel()[inside].astype(np.float64), minlength=n_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, k / n, np.nan)
+
+
+def standing_bins(n_states: np.ndarray, unchanged_share: np.ndarray) -> np.ndarray:
+    """Indices of the bins crowded with standing states: more than :data:`CROWDED_BIN` times the median count of the
+    bins with at least :data:`MIN_BIN_STATES` states, more than half of them with the gap unchanged since the step
+    before (``unchanged_share``, :func:`unchanged_gap_share`). int, ascending; none without full bins."""
+    n = np.asarray(n_states)
+    share = np.asarray(unchanged_share, dtype=np.float64)
+    full = n[n >= MIN_BIN_STATES]
+    if full.size == 0:
+        return np.zeros(0, dtype=int)
+    return np.flatnonzero((n > CROWDED_BIN * float(np.median(full))) & (np.nan_to_num(share) > 0.5))
+
+
+def _stage_batch(record: PanelRun, stage: int) -> Any:
+    """The rollouts of ``stage`` (the newest :class:`RolloutsSampled` of it that ``record`` kept), None without."""
+    with record.lock:
+        events = list(record.events)
+    return next((e.batch for e in reversed(events) if isinstance(e, RolloutsSampled) and e.stage == stage), None)
 
 
 def _view_stages(record: PanelRun) -> list[tuple[int, str, ProposalView]]:
@@ -71,8 +125,19 @@ def _view_stages(record: PanelRun) -> list[tuple[int, str, ProposalView]]:
 
 
 def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun) -> None:
-    """Each stage's mean q(detect) and median log-odds of a miss over its visited states, per gap bin, the PEM's at
-    the newest stage's states, and the newest stage's 10-90 % spread as a band."""
+    """Each stage's mean q(detect) and median log-odds of a miss (nats) over its visited states, per 0.5 m gap bin,
+    the PEM's at the newest stage's states, and the newest stage's 10-90 % spread as a band.
+
+    A bin with fewer than :data:`MIN_BIN_STATES` states is left out of every line (its mean is mostly noise); the
+    newest stage's such bins are drawn as hollow rings at their value and the title counts them. The newest stage's
+    bins crowded with standing states (:func:`standing_bins`) are ringed in grey on the probability chart and its
+    title gives each one's count and share of standing states: their value is real, not noise. In the braking
+    scenario the 6.0-6.5 m bin of the default run's final batch holds 6,048 states, 3.4x its neighbours, 77 %
+    of them a car that stopped in time standing behind the stopped lead for the rest of the episode, where the
+    sampler does not steer and its q(detect) is the PEM's 0.993: the bin's mean q is 0.90 against 0.47-0.51 beside
+    it (0.56 over its moving states). The log-odds chart's range is :func:`pemviz.app.plots.robust_range` of the
+    medians of the bins with enough states, at most -12..12 nats; a median beyond is drawn at the edge.
+    """
     stages = _view_stages(record)
     if not stages:
         return
@@ -85,58 +150,98 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
         f"mean q(miss) below {last.window_m:g} m {last.q_miss_window:.3g} vs the PEM's {last.p_miss_window:.3g} "
         f"({last_name})"
     )
+    sparse = (last.n_states > 0) & (last.n_states < MIN_BIN_STATES)
+    n_sparse = int(sparse.sum())
+    few = f"; {n_sparse} bin{'s' * (n_sparse != 1)} of under {MIN_BIN_STATES} states hollow" if n_sparse else ""
+    standing = np.zeros(0, dtype=int)
+    if np.any(last.n_states > CROWDED_BIN * MIN_BIN_STATES):  # else no bin can be crowded: skip the batch
+        batch = _stage_batch(record, last_stage)
+        if batch is not None and "gap_m" in batch.observation_names:
+            share = unchanged_gap_share(batch.gap_m, last.edges_m)
+            standing = standing_bins(last.n_states, share)
+    crowd = "" if standing.size == 0 else "; ringed: mostly standing states (the gap unchanged since the step " \
+        "before, one state counted each step) " + ", ".join(
+            f"{last.edges_m[b]:g}-{last.edges_m[b + 1]:g} m {share[b]:.0%} of {int(last.n_states[b]):,}"
+            for b in standing)  # fmt: skip
+
+    def enough(view: ProposalView, values: np.ndarray) -> np.ndarray:
+        return np.where(view.n_states >= MIN_BIN_STATES, np.asarray(values, dtype=np.float64), np.nan)
+
     for key, (mid, lo, hi, p_mid) in {
         PROB: ("q_mean", "q_lo", "q_hi", "p_mean"),
         LOG_ODDS: ("q_log_odds", "q_log_odds_lo", "q_log_odds_hi", "p_log_odds"),
     }.items():
         colour = css(stage_rgb(last_stage, n_colour))
+        lines = [enough(last, getattr(last, p_mid))] + [enough(view, getattr(view, mid)) for _, _, view in stages]
+        if key == PROB:
+            title = f"{record.short_label}: mean q(detect) over the visited states · {who}{few}{crowd}"
+            rng = robust_range(np.zeros(0), at_least=(0.0, 1.04))  # probabilities: always 0..1 (tick 1 inside)
+        else:
+            title = f"{record.short_label}: median log q(miss)/q(detect) over the visited states (nats){few}"
+            # the medians of the bins with enough states decide the range (ticks -6 and 2 inside it); a band may
+            # leave it, a median beyond is drawn at the edge
+            rng = robust_range(np.concatenate(lines), min_pad=0.3, pad_frac=0.06, at_least=(-6.4, 2.4),
+                               limits=(-LOG_ODDS_SPAN, LOG_ODDS_SPAN))  # fmt: skip
+            title += rng.note("median", ".1f", " nats")
         series: list[Any] = [
             up.Series(label="gap (m)"),
             up.Series(label=f"{last_name} 10 %", stroke=colour, width=1, dash=[3, 3]),
             up.Series(label=f"{last_name} 90 %", stroke=colour, width=1, dash=[3, 3]),
             up.Series(label="PEM", stroke=hex_colour(BLACK), width=2.5),
         ]
-        data = [x, getattr(last, lo), getattr(last, hi), getattr(last, p_mid)]
-        for stage, name, view in stages:
+        data = [x, enough(last, getattr(last, lo)), enough(last, getattr(last, hi)), rng.drawn(lines[0])]
+        for (stage, name, view), line in zip(stages, lines[1:]):
             width = 2 if view is last else 1.5
             series.append(up.Series(label=name, stroke=css(stage_rgb(stage, n_colour)), width=width))
-            data.append(getattr(view, mid))
+            data.append(rng.drawn(line))
+        if sparse.any():
+            series.append(up.Series(label=f"{last_name}, bins under {MIN_BIN_STATES} states", stroke=colour,
+                                    points=_ring(stage_rgb(last_stage, n_colour), 8), width=0))  # fmt: skip
+            data.append(rng.drawn(np.where(sparse, getattr(last, mid), np.nan)))
+        if key == PROB and standing.size:
+            mark = np.full(x.size, np.nan)
+            mark[standing] = getattr(last, mid)[standing]
+            series.append(up.Series(label=f"{last_name}, mostly standing states", stroke=hex_colour(GREY),
+                                    points=_ring(GREY, 14), width=0))  # fmt: skip
+            data.append(mark)
+        extra_series, extra_data = off_scale_series(x, rng, lines)
         plot = plots[key]
-        if key == PROB:
-            plot.title = f"{record.short_label}: mean q(detect) over the visited states · {who}"
-            y = (0.0, 1.04)
-        else:
-            plot.title = f"{record.short_label}: median log q(miss)/q(detect) over the visited states (nats)"
-            mids = [getattr(v, mid) for _, _, v in stages] + [getattr(last, p_mid)]
-            lo_, hi_ = _padded(mids, -LOG_ODDS_SPAN, LOG_ODDS_SPAN)
-            y = (min(lo_, -6.4), max(hi_, 2.4))  # the medians decide the range (ticks -6 and 2 inside it); a band or
-            # a spike may leave it
-        plot.series = tuple(series)
-        plot.data = tuple(np.asarray(d, dtype=np.float64) for d in data)
+        plot.title = title
+        plot.series = tuple(series + extra_series)
+        plot.data = tuple(np.asarray(d, dtype=np.float64) for d in data + extra_data)
         plot.bands = (up.Band(series=(2, 1), fill=css(stage_rgb(last_stage, n_colour), 0.15)),)
-        plot.scales = {"x": up.Scale(time=False, auto=False, range=(0.0, 13.0)), "y": up.Scale(auto=False, range=y)}
+        plot.scales = {"x": up.Scale(time=False, auto=False, range=(0.0, 13.0)), "y": up.Scale(auto=False,
+                                                                                             range=rng.range)}
 
 
 def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
-    """Add to the log10 mu_hat chart (already filled by :func:`pemviz.app.plots.fill_stage_plot`) each run's 95 %
-    interval per stage as a band between dashed lines and the exact answer as a black line where the run knows it."""
-    data = list(plot.data)
-    series = list(plot.series)
-    if not runs or len(data) < 2:
+    """The log10 mu_hat chart (log10 probability) with each run's 95 % interval per stage as a band between dashed
+    lines and the exact answer as a black line where the run knows it. Drawn after (and over)
+    :func:`pemviz.app.plots.fill_stage_plot`'s chart, whose runs and stages it keeps.
+
+    The y range is :func:`pemviz.app.plots.robust_range` (:data:`MU_HAT_RULE`) of the estimates and the interval
+    bounds of the stages with at least one failure, widened to the exact answer: a stage without failures has the
+    upper bound log10 1 = 0 (the interval says nothing), drawn at the top edge, ringed, and counted in the title.
+    """
+    if not runs:
         return
-    x = np.asarray(data[0], dtype=np.float64)
+    _, shown, x, ys = stage_values("log10_mu_hat", runs)
     n = x.size
-    values = [np.asarray(d, dtype=np.float64) for d in data[1:]]
+    series: list[Any] = [up.Series(label="stage"), *(run_series(r) for r in shown)]
+    lines = list(ys)
+    matters = [np.isfinite(y) for y in ys]
     bands = []
     ln10 = math.log(10.0)
     for r in runs:
         lo, hi = np.full(n, np.nan), np.full(n, np.nan)
+        failed = np.zeros(n, bool)
         with r.lock:
             stages = list(r.stages)
         for s in stages:
             if 0 <= s.stage < n:
                 a, b = s.estimate.log_ci
                 lo[s.stage], hi[s.stage] = a / ln10, b / ln10
+                failed[s.stage] = s.estimate.n_failures > 0
         lo[~np.isfinite(lo)] = np.nan
         hi[~np.isfinite(hi)] = np.nan
         if np.all(np.isnan(hi)):
@@ -144,19 +249,28 @@ def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
         colour = run_colour(r.run_id)
         series += [up.Series(label=f"{r.short_label} 95 % low", stroke=colour, width=1, dash=[4, 3]),
                    up.Series(label=f"{r.short_label} 95 % high", stroke=colour, width=1, dash=[4, 3])]  # fmt: skip
-        data += [lo, hi]
-        values += [lo, hi]
+        lines += [lo, hi]
+        matters += [failed, failed]
         bands.append(up.Band(series=(len(series) - 1, len(series) - 2), fill=f"{colour}26"))
     exact = runs[-1].exact_log_p
-    if exact is not None and math.isfinite(exact):
-        series.append(up.Series(label=f"exact {exact / ln10:.3f}", stroke=hex_colour(BLACK), width=1.5, dash=[8, 4]))
+    known = exact is not None and math.isfinite(exact)
+    rng = robust_range(np.concatenate(lines), np.concatenate(matters), **MU_HAT_RULE,
+                       at_least=(exact / ln10, exact / ln10) if known else None)  # fmt: skip
+    data = [x, *(rng.drawn(y) for y in lines)]
+    if known:
+        series.append(up.Series(label=f"exact answer {exact / ln10:.3f}", stroke=hex_colour(BLACK), width=1.5,
+                                dash=[8, 4]))  # fmt: skip
         data.append(np.full(n, exact / ln10))
-        values.append(data[-1])
-    plot.title = "log10 mu_hat per stage, 95 % interval (band)" + (", exact answer (black)" * (exact is not None))
-    plot.series = tuple(series)
-    plot.data = tuple(data)
+    extra_series, extra_data = off_scale_series(x, rng, lines)
+    plot.title = ("log10 mu_hat per stage, 95 % interval (band)" + (", exact answer (black)" * known)
+                  + rng.note("point", ".1f"))  # fmt: skip
+    plot.series = tuple(series + extra_series)
+    plot.data = tuple(data + extra_data)
     plot.bands = tuple(bands)
-    plot.scales = {"x": plot.scales["x"], "y": up.Scale(auto=False, range=_padded(values))}
+    plot.scales = {
+        "x": up.Scale(time=False, auto=False, range=(-0.5, float(x[-1]) + 0.5)),
+        "y": up.Scale(auto=False, range=rng.range),
+    }
 
 
 def controller_plot(gui: viser.GuiApi, order: float | None = None) -> viser.GuiUplotHandle:
@@ -171,31 +285,51 @@ def controller_plot(gui: viser.GuiApi, order: float | None = None) -> viser.GuiU
 
 
 def fill_controller_plot(plot: viser.GuiUplotHandle, ex: Explanation, step: int, title: str) -> None:
-    """The ego's acceleration, and as rows of dots above it the steps at which the emergency brake was commanded
-    (the lead detected within the braking distance) and applied (one step later); a marker at ``step``."""
+    """The ego's acceleration (m/s^2), and as rows of dots above it the steps at which the emergency brake was
+    commanded (the lead detected within the braking distance) and applied (one step later); a marker at ``step``.
+
+    The y range is :func:`pemviz.app.plots.robust_range` of the acceleration (:data:`CONTROLLER_RULE`) over the steps
+    before contact: a step off it is drawn at the edge, ringed, and the title gives its value and time. The one
+    that flattened the chart is the contact step: where the gap is at most ``contact_gap_m`` (0.7 m)
+    :func:`pemviz.scenarios.braking.ego_acceleration` stops the ego within one step, a = -v / dt (-5.76 m/s /
+    0.05 s = -115 m/s^2 at 3.10 s in the default run's crash), a collision rather than the controller's braking
+    (at most 27.5 m/s^2, drawn at its place).
+    """
     c = ex.controller
     t = c.time_s
-    a = c.accel_mps2
-    top = max(4.0, float(np.max(a)) + 1.0)
-    bottom = min(-4.0, float(np.min(a)) - 1.0)
+    a = np.asarray(c.accel_mps2, dtype=np.float64)
+    # in contact (gap <= contact_gap_m) the simulator stops the ego within one step (a = -v / dt): a collision, not
+    # the controller's braking; those steps do not set the range
+    contact = np.asarray(c.gap_m, dtype=np.float64) <= ex.severity.contact_gap_m
+    rng = robust_range(a, ~contact, **CONTROLLER_RULE)
+    top, bottom = rng.hi, rng.lo
     row = 0.07 * (top - bottom)  # two rows of dots above the curve, apart at any scale
     command = np.where(c.brake_command, top + 2 * row, np.nan)
     applied = np.where(c.brake_applied, top + row, np.nan)
+    drawn = rng.drawn(a)  # the now marker (pemviz.app.plots.move_strip_marker) follows this series: on the chart
     now = np.full(t.size, np.nan)
-    now[int(np.clip(step, 0, t.size - 1))] = a[int(np.clip(step, 0, t.size - 1))]
+    now[int(np.clip(step, 0, t.size - 1))] = drawn[int(np.clip(step, 0, t.size - 1))]
     dots = {"width": 0}
-    plot.title = f"{title}: controller"
+    off = np.flatnonzero(rng.below(a) | rng.above(a))
+    why = {True: " (contact: the ego stops within one step)", False: ""}
+    note = "" if off.size == 0 else (
+        f"; {off.size} step{'s' * (off.size != 1)} off scale, drawn at the edge: "
+        + ", ".join(f"{a[i]:.1f} m/s^2 at {t[i]:.2f} s{why[bool(contact[i])]}" for i in off[:3])
+        + (" ..." if off.size > 3 else "")
+    )  # fmt: skip
+    plot.title = f"{title}: controller{note}"
     plot.series = (
         up.Series(label="t (s)"),
         up.Series(label="acceleration (m/s^2)", stroke=css(EGO_SPEED), width=2),
         up.Series(label="brake commanded", stroke=css(BRAKE_ZONE), points=_points(BRAKE_ZONE), **dots),
         up.Series(label="brake applied", stroke=css(CRASH), points=_points(CRASH), **dots),
-        up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots),
+        *([up.Series(label=f"acceleration off scale ({off.size})", stroke=hex_colour(BLACK), points=_ring(BLACK),
+                     **dots)] if off.size else []),  # fmt: skip
+        up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots),  # the last series
     )
-    plot.data = (t, a, command, applied, now)
+    ring = np.where(rng.below(a) | rng.above(a), drawn, np.nan)
+    plot.data = (t, drawn, command, applied, *([ring] if off.size else []), now)
     plot.scales = {
         "x": up.Scale(time=False, auto=False, range=(0.0, float(t[-1]))),
         "y": up.Scale(auto=False, range=(bottom, top + 3 * row)),
     }
-
-

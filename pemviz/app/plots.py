@@ -2,12 +2,15 @@
 
 Every figure names its axes, keeps its legend to the series' names (no live values, so no ``--``
 placeholders), leaves room for long tick labels (``-14.75``) and sets its ranges from the data that
-exists, never from what a run planned. Colours come from :mod:`pemviz.sinks.colours`.
+exists, never from what a run planned. Where a few values lie far from the rest (a stage estimated orders of
+magnitude off, an acceleration spike at contact), :func:`robust_range` fits the axis to the rest and the
+figure draws those few at the edge, ringed, and says so in its title. Colours come from :mod:`pemviz.sinks.colours`.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -56,17 +59,169 @@ def axes(x_label: str, y_label: str) -> tuple[up.Axis, up.Axis]:
     return (up.Axis(label=x_label, size=36), up.Axis(label=y_label, size=62, gap=4))
 
 
-def y_range(key: str, series: list[np.ndarray]) -> tuple[float, float]:
-    """A padded y range covering the finite values of ``series`` ((0, 1) for rates or without values)."""
+@dataclass(frozen=True)
+class AxisRange:
+    """A chart's y range and the values it leaves off scale (:func:`robust_range`).
+
+    Attributes:
+        lo, hi: the range, in the chart's unit (lo < hi).
+        n_below, n_above: finite values below ``lo`` / above ``hi``: off scale, drawn at that edge.
+        lowest, highest: the smallest and largest finite value of all (nan without one), to name an off-scale
+            extreme.
+    """
+
+    lo: float
+    hi: float
+    n_below: int = 0
+    n_above: int = 0
+    lowest: float = math.nan
+    highest: float = math.nan
+
+    @property
+    def range(self) -> tuple[float, float]:
+        return (self.lo, self.hi)
+
+    @property
+    def n_off(self) -> int:
+        """Values off scale, both edges."""
+        return self.n_below + self.n_above
+
+    def drawn(self, values: np.ndarray) -> np.ndarray:
+        """Where ``values`` are drawn, float64 of their shape: a value inside the range at its place, one below or
+        above it at that edge (clamped), nan and +-inf (no value) as nan."""
+        v = np.asarray(values, dtype=np.float64)
+        return np.where(np.isfinite(v), np.clip(v, self.lo, self.hi), np.nan)
+
+    def below(self, values: np.ndarray) -> np.ndarray:
+        """bool of ``values``' shape: finite and below ``lo`` (drawn at the bottom edge)."""
+        v = np.asarray(values, dtype=np.float64)
+        return np.isfinite(v) & (v < self.lo)
+
+    def above(self, values: np.ndarray) -> np.ndarray:
+        """bool of ``values``' shape: finite and above ``hi`` (drawn at the top edge)."""
+        v = np.asarray(values, dtype=np.float64)
+        return np.isfinite(v) & (v > self.hi)
+
+    def note(self, what: str = "point", spec: str = ".1f", unit: str = "") -> str:
+        """``'; 2 points off scale, drawn at the edge (lowest -40.0)'`` for a title; ``''`` when none is."""
+        if not self.n_off:
+            return ""
+        ends = ([f"lowest {self.lowest:{spec}}{unit}"] if self.n_below else []) + (
+            [f"highest {self.highest:{spec}}{unit}"] if self.n_above else []
+        )
+        return f"; {self.n_off} {what}{'s' * (self.n_off != 1)} off scale, drawn at the edge ({', '.join(ends)})"
+
+
+def robust_range(
+    values: np.ndarray,
+    matters: np.ndarray | None = None,
+    *,
+    min_gap: float = math.inf,
+    factor: float = 2.0,
+    pad_frac: float = 0.08,
+    min_pad: float = 0.0,
+    at_least: tuple[float, float] | None = None,
+    limits: tuple[float, float] = (-math.inf, math.inf),
+    empty: tuple[float, float] = (-0.05, 1.05),
+) -> AxisRange:
+    """The y range of a chart fitted to the values that matter, and what it leaves off scale.
+
+    The rule, in the chart's unit (log10 probability, m/s^2, nats):
+
+    1. The candidates are the finite ``values`` where ``matters`` is true (every finite value without ``matters``).
+    2. Start from the candidates' median (the lower one of an even count) and take in the nearest remaining
+       candidate, below or above, one at a time. Once more than half of the candidates are in, stop at the first
+       whose gap to those taken is wider than both ``min_gap`` and ``factor`` times their span: it and everything
+       beyond it, on either side, is off scale. A group of values far from the rest leaves the axis only when the
+       rest is a majority; ``min_gap = inf`` never leaves anything out (the range of every candidate).
+    3. The range is [min, max] of the values taken, padded on each side by max(``pad_frac`` * span, ``min_pad``)
+       (0.5 or a tenth of the value where both are 0), widened to cover ``at_least`` and cut to ``limits``; never
+       without width.
+    4. Off scale are all finite values outside the range (those left out in 2, those that do not matter, those
+       beyond ``limits``): a figure draws them at the nearer edge (:meth:`AxisRange.drawn`) and says how many
+       (:meth:`AxisRange.note`). Every value inside the range is drawn at its place.
+
+    Without any candidate the range is ``at_least`` (a single value of it padded as in 3) or ``empty``.
+    """
+    v = np.asarray(values, dtype=np.float64).ravel()
+    ok = np.isfinite(v)
+    finite = v[ok]
+    c = np.sort(v[ok & (np.ones(v.size, bool) if matters is None else np.asarray(matters, bool).ravel())])
+    if c.size == 0 and at_least is None:
+        lo, hi = empty
+    elif c.size == 0:  # only at_least to cover; one value of it (an exact answer before any failure) padded as in 3
+        lo, hi = float(at_least[0]), float(at_least[1])
+        if not hi > lo:
+            pad = min_pad if min_pad > 0.0 else max(0.5, 0.1 * abs(lo))
+            lo, hi = lo - pad, hi + pad
+    else:
+        i = j = (c.size - 1) // 2  # the taken candidates are c[i..j]
+        while i > 0 or j < c.size - 1:
+            down = c[i] - c[i - 1] if i > 0 else math.inf
+            up_ = c[j + 1] - c[j] if j < c.size - 1 else math.inf
+            gap = min(down, up_)
+            if j - i + 1 > c.size / 2 and gap > min_gap and gap > factor * (c[j] - c[i]):
+                break
+            i, j = (i - 1, j) if down <= up_ else (i, j + 1)
+        lo, hi = float(c[i]), float(c[j])
+        pad = max(pad_frac * (hi - lo), min_pad)
+        if pad <= 0.0:
+            pad = max(0.5, 0.1 * abs(lo))
+        lo, hi = lo - pad, hi + pad
+        if at_least is not None:
+            lo, hi = min(lo, at_least[0]), max(hi, at_least[1])
+    lo, hi = max(lo, limits[0]), min(hi, limits[1])
+    if not hi > lo:  # never a range without width (uPlot cannot draw one): values cut to a single limit
+        lo, hi = (lo - 0.5, lo + 0.5) if math.isfinite(lo) else empty
+    return AxisRange(
+        float(lo), float(hi), int(np.sum(finite < lo)), int(np.sum(finite > hi)),
+        float(finite.min()) if finite.size else math.nan, float(finite.max()) if finite.size else math.nan,
+    )  # fmt: skip
+
+
+STAGE_RULES: dict[str, dict[str, float]] = {
+    "log10_mu_hat": {"min_gap": 3.0, "min_pad": 0.05},
+    "gamma": {},
+    "nll": {},
+}
+""":func:`robust_range` settings of the per-stage charts. log10 mu_hat: a stage more than 3 orders of magnitude (and
+twice the others' spread) from the others is off scale, at least 0.05 (log10 probability) of room each side;
+gamma and NLL keep every value (their fall over the stages is what they show)."""
+
+
+def stage_range(key: str, series: list[np.ndarray], matters: list[np.ndarray] | None = None) -> AxisRange:
+    """The y range of a per-stage chart (:data:`STAGE_PLOTS`) over the runs' ``series``: failures / N is always
+    -0.05..1.05; the others follow :func:`robust_range` with :data:`STAGE_RULES`."""
     if key == "failure_rate":
-        return (-0.05, 1.05)
-    values = np.concatenate([np.asarray(s, dtype=np.float64).ravel() for s in series]) if series else np.zeros(0)
-    values = values[np.isfinite(values)]
-    if values.size == 0:
-        return (-0.05, 1.05)
-    lo, hi = float(values.min()), float(values.max())
-    pad = 0.08 * (hi - lo) if hi > lo else max(0.5, 0.1 * abs(lo))
-    return (lo - pad, hi + pad)
+        return AxisRange(-0.05, 1.05)
+    flat = [np.asarray(s, dtype=np.float64).ravel() for s in series]
+    values = np.concatenate(flat) if flat else np.zeros(0)
+    mask = None if matters is None else np.concatenate([np.asarray(m, bool).ravel() for m in matters])
+    return robust_range(values, mask, **STAGE_RULES.get(key, {}))
+
+
+def y_range(key: str, series: list[np.ndarray]) -> tuple[float, float]:
+    """(lo, hi) of :func:`stage_range` ((-0.05, 1.05) for rates or without values)."""
+    return stage_range(key, series).range
+
+
+def off_scale_series(x: np.ndarray, rng: AxisRange, ys: list[np.ndarray]) -> tuple[list[Any], list[np.ndarray]]:
+    """Black rings at the bottom / top edge where any of ``ys`` (each [x.size]) is below / above ``rng``: the
+    series and data to append to a chart (none for an edge with nothing off scale). The labels say how many."""
+    series: list[Any] = []
+    data: list[np.ndarray] = []
+    for edge, side, name in ((rng.lo, rng.below, "below"), (rng.hi, rng.above, "above")):
+        hits = np.zeros(np.shape(x), bool)
+        n = 0
+        for y in ys:
+            m = side(y)
+            hits |= m
+            n += int(m.sum())
+        if n:
+            series.append(up.Series(label=f"{n} {name} the scale (at the edge)", stroke=hex_colour(C.BLACK),
+                                    points=_ring(C.BLACK), width=0))  # fmt: skip
+            data.append(np.where(hits, edge, np.nan))
+    return series, data
 
 
 def curve_plot(gui: viser.GuiApi, title: str, height: int = 230) -> viser.GuiUplotHandle:
@@ -106,24 +261,20 @@ def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHan
         data=(np.arange(2, dtype=np.float64), np.full(2, np.nan)),
         series=(up.Series(label="stage"), up.Series(label="no run yet", stroke=hex_colour(C.GREY))),
         title=title,
-        scales={"x": up.Scale(time=False, auto=False, range=(-0.5, 1.5)), "y": up.Scale(auto=False, range=(-0.05, 1.05))},
+        scales={"x": up.Scale(time=False, auto=False, range=(-0.5, 1.5)),
+                "y": up.Scale(auto=False, range=(-0.05, 1.05))},
         axes=axes("stage (0 pretraining, K+1 final batch)", y_label),
         legend=LEGEND,
         height=150,
     )
 
 
-def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) -> None:
-    """One series per run over the stages finished so far (x from 0 to the last finished stage).
-
-    ``gamma`` has a unit that depends on the metric (metres for classic, none for AGM): only runs with the
-    newest run's metric are drawn, and the title says the unit and how many runs are left out.
-    """
-    if not runs:
-        return
+def stage_values(key: str, runs: list[PanelRun]) -> tuple[str, list[PanelRun], np.ndarray, list[np.ndarray]]:
+    """(title, the runs drawn, stages 0..last float64, each drawn run's value per stage float64 [stages], nan where
+    it has none) of a per-stage chart (:data:`STAGE_PLOTS`). ``gamma`` draws only the newest run's metric."""
     title = dict((k, t) for k, t, _ in STAGE_PLOTS)[key]
     shown = runs
-    if key == "gamma":
+    if key == "gamma" and runs:
         metric = runs[-1].config.metric
         shown = [r for r in runs if r.config.metric == metric]
         left_out = len(runs) - len(shown)
@@ -133,24 +284,41 @@ def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) 
     values = [r.stage_series(key) for r in shown]
     last = max([max(v) for v in values if v] + [1])
     x = np.arange(last + 1, dtype=np.float64)
-    series: list[Any] = [up.Series(label="stage")]
-    data = [x]
-    for r, v in zip(shown, values):
+    ys = []
+    for v in values:
         y = np.full(x.size, np.nan)
         for stage, value in v.items():
             y[stage] = value
-        colour = run_colour(r.run_id)
-        series.append(
-            up.Series(label=r.short_label, stroke=colour, width=2, points={"show": True, "size": 5, "fill": colour})
-        )
-        data.append(y)
-    plot.title = title
-    plot.series = tuple(series)
-    plot.data = tuple(data)
+        ys.append(y)
+    return title, shown, x, ys
+
+
+def run_series(r: PanelRun) -> up.Series:
+    """A run's line with dots, in its colour, labelled with its short label."""
+    colour = run_colour(r.run_id)
+    return up.Series(label=r.short_label, stroke=colour, width=2, points={"show": True, "size": 5, "fill": colour})
+
+
+def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) -> None:
+    """One series per run over the stages finished so far (x from 0 to the last finished stage).
+
+    ``gamma`` has a unit that depends on the metric (metres for classic, none for AGM): only runs with the
+    newest run's metric are drawn, and the title says the unit and how many runs are left out. The y range is
+    :func:`stage_range`'s: log10 mu_hat (log10 probability) fits the stages that agree, a stage orders of magnitude
+    off is drawn at the edge, ringed, and the title counts it.
+    """
+    if not runs:
+        return
+    title, shown, x, ys = stage_values(key, runs)
+    rng = stage_range(key, ys)
+    extra_series, extra_data = off_scale_series(x, rng, ys)
+    plot.title = title + rng.note()
+    plot.series = (up.Series(label="stage"), *(run_series(r) for r in shown), *extra_series)
+    plot.data = (x, *(rng.drawn(y) for y in ys), *extra_data)
     # uPlot's auto-range breaks on NaN (stages without a value): give both ranges explicitly
     plot.scales = {
-        "x": up.Scale(time=False, auto=False, range=(-0.5, last + 0.5)),
-        "y": up.Scale(auto=False, range=y_range(key, data[1:])),
+        "x": up.Scale(time=False, auto=False, range=(-0.5, float(x[-1]) + 0.5)),
+        "y": up.Scale(auto=False, range=rng.range),
     }
 
 
@@ -184,6 +352,11 @@ def strip_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
 
 def _points(colour: tuple[int, int, int], size: float = 6) -> dict[str, Any]:
     return {"show": True, "size": size, "fill": css(colour), "stroke": css(colour)}
+
+
+def _ring(colour: tuple[int, int, int], size: float = 11) -> dict[str, Any]:
+    """Hollow points: a value drawn at the edge of its chart (off scale) or a bin of too few states."""
+    return {"show": True, "size": size, "fill": "transparent", "stroke": css(colour), "width": 1.5}
 
 
 def fill_strip_plots(
@@ -227,7 +400,8 @@ def fill_strip_plots(
         t, traj.gap_m, traj.ego_speed_mps, traj.lead_speed_mps, *(np.full(t.size, v) for v in levels),
         marker(traj.gap_m),
     )  # fmt: skip
-    plots["gap"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(min(0.0, float(np.min(traj.gap_m))), gap_hi * 1.05))}
+    gap_lo = min(0.0, float(np.min(traj.gap_m)))
+    plots["gap"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(gap_lo, gap_hi * 1.05))}
 
     plots["detect"].series = (
         up.Series(label="t (s)"),
