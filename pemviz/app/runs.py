@@ -171,7 +171,7 @@ def most_likely_failure(best: Trajectory | None, event: RolloutsSampled) -> Traj
     failed = np.flatnonzero(np.asarray(event.failed, bool))
     if failed.size == 0:
         return best
-    log_p = event.batch.log_p[failed, : event.batch.n_steps - 1].sum(axis=1)
+    log_p = event.batch.log_likelihood()[failed]
     j = int(failed[int(np.argmax(log_p))])
     if best is not None and best.log_p_total >= float(log_p.max()):
         return best

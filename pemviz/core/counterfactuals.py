@@ -134,8 +134,10 @@ def counterfactuals(problem, batch: RolloutBatch, index: int, *, max_interventio
 
 class MostLikelyFailure:
     """A run's listener that keeps its most likely failure: of every failing rollout the run's events carry
-    (:class:`pemviz.engine.events.RolloutsSampled`), the one with the largest log p under the target (nats, summed over
-    its steps), as a batch of one rollout (``batch``, with ``stage`` and ``log_p``; None until a failure is seen)."""
+    (:class:`pemviz.engine.events.RolloutsSampled`), the one with the largest log p under the target (nats, over its
+    first T - 1 steps as its weight: :meth:`pemviz.scenarios.RolloutBatch.log_likelihood`, the value the panel and the
+    recording show), as a batch of one rollout (``batch``, with ``stage`` and ``log_p``; None until a failure is
+    seen)."""
 
     def __init__(self) -> None:
         self.batch: RolloutBatch | None = None
@@ -147,7 +149,7 @@ class MostLikelyFailure:
 
         if not isinstance(event, RolloutsSampled) or not np.any(event.failed):
             return
-        log_p = np.where(event.failed, event.batch.log_p.sum(axis=1), -np.inf)
+        log_p = np.where(event.failed, event.batch.log_likelihood(), -np.inf)  # T - 1 steps, as the weights
         i = int(np.argmax(log_p))
         if log_p[i] > self.log_p:
             self.batch, self.stage, self.log_p = event.batch.select(np.array([i])), event.stage, float(log_p[i])
