@@ -33,6 +33,19 @@ def test_nan_or_inf_weights_are_unreliable_and_the_summary_shows_no_reliable_wor
         assert ": reliable" not in e.summary()
 
 
+def test_too_few_failures_for_k_hat_are_doubtful_and_not_called_nan_weights():
+    # 15 distinct failures of equal-ish weight among 200: ESS about 15 >= 10, but k-hat needs 25 tail values (nan)
+    rng = np.random.default_rng(4)
+    failed = np.zeros(200, bool)
+    failed[:15] = True
+    e = distinct(np.where(failed, -10.0 + 0.01 * rng.standard_normal(200), -5.0), failed)
+    assert math.isnan(e.khat) and e.ess >= 10
+    assert (e.verdict, e.reason) == ("doubtful", "k-hat needs 25 failures to fit the weights' tail (15 here): more "
+                                                 "rollouts needed")  # fmt: skip
+    two = distinct(np.where(np.arange(200) < 2, -10.0, -5.0), np.arange(200) < 2)
+    assert two.verdict == "doubtful" and "nan" not in two.reason, two.reason  # was "the weights hold nan"
+
+
 def test_no_failure_prints_a_bound_in_place_of_a_point_estimate():
     mc = estimate(np.zeros(2000), np.zeros(2000, bool), np.zeros(2000))
     assert mc.summary().startswith("no failure seen in 2000 rollouts: p < 1.50e-03 (95%, rule of three: 3 / 2000 "

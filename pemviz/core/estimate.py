@@ -352,8 +352,10 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
     """The verdict and its one-line reason (see :func:`estimate`)."""
     from scipy.special import logsumexp
 
-    if not plain_mc and not (math.isfinite(ess) and not math.isnan(khat) and np.all(~np.isnan(log_weight))):
-        return "unreliable", "the weights hold nan: a proposal drew what the PEM cannot"  # nan compares False
+    if not plain_mc and np.any(np.isnan(log_weight)):  # nan compares False: every check below would pass it
+        return "unreliable", "the weights hold nan: a proposal drew what the PEM cannot"
+    if not plain_mc and not math.isfinite(ess):
+        return "unreliable", "the ESS is not a finite number"
     if not plain_mc:
         if khat > KHAT_UNRELIABLE and ess < 2 * MIN_FAILURES:
             return "unreliable", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: a few weights dominate"
@@ -373,6 +375,8 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
             return "doubtful", f"ESS {ess:.1f} < {MIN_FAILURES}: a few weights carry the estimate"
         if khat > KHAT_UNRELIABLE:  # with a large ESS: clustered weights, or a tail the ESS does not see yet
             return "doubtful", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: the weights' tail is heavy or clustered"
+        if math.isnan(khat):  # fewer than 25 failures: no tail to fit, and "reliable" needs one (nan compares False)
+            return "doubtful", f"k-hat needs 25 failures to fit the weights' tail ({nf} here): more rollouts needed"
         threshold = min(1.0 - 1.0 / math.log10(n), KHAT_UNRELIABLE) if n > 10 else 0.0
         if khat > threshold:
             return "doubtful", f"k-hat {khat:.2f} > {threshold:.2f}: more rollouts needed"
