@@ -10,6 +10,7 @@ A gap bin with fewer than :data:`MIN_BIN_STATES` visited states is not joined in
 
 from __future__ import annotations
 
+import html
 import math
 from typing import Any
 
@@ -18,6 +19,8 @@ import viser
 import viser.uplot as up
 
 from pemviz.app.explain import Explanation
+from pemviz.app.html import GREY as GREY_BOX
+from pemviz.app.html import box
 from pemviz.app.plots import (
     LEGEND,
     _points,
@@ -32,7 +35,20 @@ from pemviz.app.plots import (
 from pemviz.app.runs import PanelRun
 from pemviz.core.proposal_view import ProposalView
 from pemviz.engine.events import RolloutsSampled
-from pemviz.sinks.colours import BLACK, BRAKE_ZONE, CRASH, EGO_SPEED, GREY, css, hex_colour, stage_rgb
+from pemviz.scenarios.cut_in import LANE_WIDTH_M
+from pemviz.sinks.colours import (
+    BLACK,
+    BLUE,
+    BRAKE_ZONE,
+    CRASH,
+    EGO_SPEED,
+    GREY,
+    MISSED,
+    VIOLET,
+    css,
+    hex_colour,
+    stage_rgb,
+)
 
 PROB, LOG_ODDS = "prob", "log_odds"
 LOG_ODDS_SPAN = 12.0
@@ -54,7 +70,8 @@ MU_HAT_RULE: dict[str, Any] = {"min_gap": 3.0, "min_pad": 0.05}
 
 
 def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
-    """The two empty charts of the sampler's q(detect) over visited states: probability and log-odds of a miss."""
+    """The two empty charts of the sampler's q(detect) over visited states: probability and log-odds of a miss, hidden
+    until a run has a view to draw (:func:`fill_marginal_plots`)."""
     x = np.linspace(0.0, 13.0, 2)
     none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 13.0))
@@ -63,13 +80,13 @@ def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
             data=(x, none), series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(BLACK))),
             title="q(detect) over the visited states per stage vs the PEM",
             scales={"x": x_scale, "y": up.Scale(auto=False, range=(0.0, 1.04))},
-            axes=axes("gap d (m), 0.5 m bins", "mean q(detect)"), legend=LEGEND, height=230,
+            axes=axes("gap d (m), 0.5 m bins", "mean q(detect)"), legend=LEGEND, height=230, visible=False,
         ),
         LOG_ODDS: gui.add_uplot(
             data=(x, none), series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(BLACK))),
             title="log q(miss) / q(detect) over the visited states",
             scales={"x": x_scale, "y": up.Scale(auto=False, range=(-6.0, 2.0))},
-            axes=axes("gap d (m), 0.5 m bins", "log-odds (nats)"), legend=LEGEND, height=210,
+            axes=axes("gap d (m), 0.5 m bins", "log-odds (nats)"), legend=LEGEND, height=210, visible=False,
         ),
     }  # fmt: skip
 
@@ -124,9 +141,28 @@ def _view_stages(record: PanelRun) -> list[tuple[int, str, ProposalView]]:
     return out
 
 
-def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun) -> None:
-    """Each stage's mean q(detect) and median log-odds of a miss (nats) over its visited states, per 0.5 m gap bin,
-    the PEM's at the newest stage's states, and the newest stage's 10-90 % spread as a band.
+def marginal_note(record: PanelRun | None) -> str:
+    """Why the q(detect) charts of *Live* are hidden (HTML; empty when ``record`` has a view to draw)."""
+    if record is None:
+        why = "no run yet"
+    elif _view_stages(record):
+        return ""
+    elif record.view is not None and record.view.thresholds is None and record.view.objects_xy is None:
+        why = (f"{html.escape(record.short_label)}: its problem reports neither a gap nor the rows of several objects, "
+               "so no detection probability can be binned")  # fmt: skip
+    else:
+        why = (f"{html.escape(record.short_label)}: no stage drawn by a proposal yet (pretraining draws from the PEM "
+               "itself, q = p)")  # fmt: skip
+    return box(f"q(detect) over the visited states: {why}.", GREY_BOX)
+
+
+def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun,
+                        note: viser.GuiHtmlHandle | None = None) -> None:  # fmt: skip
+    """Each stage's mean q(detect) and median log-odds of a miss (nats) over its visited states, per bin of the view's
+    axis (:attr:`pemviz.app.runs.PanelRun.proposal_axis`: the braking scenario's gap in 0.5 m bins, or the cut-in
+    car's gap ahead in 1 m bins over the states where the camera sees it, :func:`pemviz.app.runs.object_proposal_view`),
+    the PEM's at the newest stage's states, and the newest stage's 10-90 % spread as a band. Without a view to draw
+    both charts are hidden and ``note`` says why (:func:`marginal_note`).
 
     A bin with fewer than :data:`MIN_BIN_STATES` states is left out of every line (its mean is mostly noise); the
     newest stage's such bins are drawn as hollow rings at their value and the title counts them. The newest stage's
@@ -139,22 +175,29 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
     medians of the bins with enough states, at most -12..12 nats; a median beyond is drawn at the edge.
     """
     stages = _view_stages(record)
+    if note is not None:
+        note.content = marginal_note(record)
+    for plot in plots.values():
+        plot.visible = bool(stages)
     if not stages:
         return
     cfg = record.config
+    axis = record.proposal_axis
     last_stage, last_name, last = stages[-1]
     n_colour = max(1, cfg.n_stages + 1 if cfg.method == "adaptive" else 1)
     x = last.centres_m
+    x_range = (float(last.edges_m[0]), float(last.edges_m[-1]))
     plain_mc = cfg.method == "mc"
+    whose = "" if axis.standing else f" of {axis.subject}"
     who = "plain Monte Carlo: the rollouts are the PEM's own (q = p)" if plain_mc else (
-        f"mean q(miss) below {last.window_m:g} m {last.q_miss_window:.3g} vs the PEM's {last.p_miss_window:.3g} "
-        f"({last_name})"
+        f"mean q(miss) {axis.window_name} {last.window_m:g} m {last.q_miss_window:.3g} vs the PEM's "
+        f"{last.p_miss_window:.3g} ({last_name})"
     )
     sparse = (last.n_states > 0) & (last.n_states < MIN_BIN_STATES)
     n_sparse = int(sparse.sum())
     few = f"; {n_sparse} bin{'s' * (n_sparse != 1)} of under {MIN_BIN_STATES} states hollow" if n_sparse else ""
     standing = np.zeros(0, dtype=int)
-    if np.any(last.n_states > CROWDED_BIN * MIN_BIN_STATES):  # else no bin can be crowded: skip the batch
+    if axis.standing and np.any(last.n_states > CROWDED_BIN * MIN_BIN_STATES):  # else no bin can be crowded
         batch = _stage_batch(record, last_stage)
         if batch is not None and "gap_m" in batch.observation_names:
             share = unchanged_gap_share(batch.gap_m, last.edges_m)
@@ -174,17 +217,18 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
         colour = css(stage_rgb(last_stage, n_colour))
         lines = [enough(last, getattr(last, p_mid))] + [enough(view, getattr(view, mid)) for _, _, view in stages]
         if key == PROB:
-            title = f"{record.short_label}: mean q(detect) over the visited states · {who}{few}{crowd}"
+            title = f"{record.short_label}: mean q(detect){whose} over the visited states · {who}{few}{crowd}"
             rng = robust_range(np.zeros(0), at_least=(0.0, 1.04))  # probabilities: always 0..1 (tick 1 inside)
         else:
-            title = f"{record.short_label}: median log q(miss)/q(detect) over the visited states (nats){few}"
+            title = (f"{record.short_label}: median log q(miss)/q(detect){whose} over the visited states "
+                     f"(nats){few}")  # fmt: skip
             # the medians of the bins with enough states decide the range (ticks -6 and 2 inside it); a band may
             # leave it, a median beyond is drawn at the edge
             rng = robust_range(np.concatenate(lines), min_pad=0.3, pad_frac=0.06, at_least=(-6.4, 2.4),
                                limits=(-LOG_ODDS_SPAN, LOG_ODDS_SPAN))  # fmt: skip
             title += rng.note("median", ".1f", " nats")
         series: list[Any] = [
-            up.Series(label="gap (m)"),
+            up.Series(label="gap (m)" if axis.standing else "car 0's gap (m)"),
             up.Series(label=f"{last_name} 10 %", stroke=colour, width=1, dash=[3, 3]),
             up.Series(label=f"{last_name} 90 %", stroke=colour, width=1, dash=[3, 3]),
             up.Series(label="PEM", stroke=hex_colour(BLACK), width=2.5),
@@ -210,8 +254,9 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
         plot.series = tuple(series + extra_series)
         plot.data = tuple(np.asarray(d, dtype=np.float64) for d in data + extra_data)
         plot.bands = (up.Band(series=(2, 1), fill=css(stage_rgb(last_stage, n_colour), 0.15)),)
-        plot.scales = {"x": up.Scale(time=False, auto=False, range=(0.0, 13.0)), "y": up.Scale(auto=False,
-                                                                                             range=rng.range)}
+        plot.scales = {"x": up.Scale(time=False, auto=False, range=x_range), "y": up.Scale(auto=False,
+                                                                                         range=rng.range)}
+        plot.axes = axes(axis.label, "mean q(detect)" if key == PROB else "log-odds (nats)")
 
 
 def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
@@ -333,3 +378,155 @@ def fill_controller_plot(plot: viser.GuiUplotHandle, ex: Explanation, step: int,
         "x": up.Scale(time=False, auto=False, range=(0.0, float(t[-1]))),
         "y": up.Scale(auto=False, range=(bottom, top + 3 * row)),
     }
+
+
+# -- Explain: a cut-in rollout -------------------------------------------------------------------------
+TRACK_GAP, TRACK_LATERAL, ACC = "track_gap", "track_lateral", "acc"
+"""Keys of the cut-in Explain's charts (:func:`object_plots`)."""
+TRACK_RULE: dict[str, Any] = {"min_gap": 10.0, "min_pad": 0.5}
+""":func:`pemviz.app.plots.robust_range` settings of the tracker charts (metres): a measurement more than 10 m (and
+twice the others' spread) from the rest, a heavy tail of the noise PEM, is drawn at the edge."""
+
+
+def object_plots(gui: viser.GuiApi, order: float | None = None) -> dict[str, viser.GuiUplotHandle]:
+    """The three empty charts of *Explain* for a cut-in rollout, hidden until one is shown
+    (:func:`fill_object_plots`): the cut-in car's gap ahead and lateral offset, truth against the tracker's estimate,
+    and the ACC's acceleration with the car it follows."""
+    t = np.linspace(0, 10, 2)
+    none = np.full(2, np.nan)
+    x_scale = up.Scale(time=False, auto=False, range=(0.0, 10.0))
+    made = {}
+    for i, (key, title, y, height) in enumerate((
+        (TRACK_GAP, "car 0's gap ahead: truth and the tracker", "gap (m)", 190),
+        (TRACK_LATERAL, "car 0's lateral offset: truth and the tracker", "m, right +", 180),
+        (ACC, "ACC: acceleration and the car it follows", "m/s^2", 180),
+    )):  # fmt: skip
+        made[key] = gui.add_uplot(
+            data=(t, none), series=(up.Series(label="t (s)"), up.Series(label=y)), title=title, scales={"x": x_scale},
+            axes=axes("time (s)", y), legend=LEGEND, height=height, visible=False,
+            order=None if order is None else order + 0.01 * i,
+        )  # fmt: skip
+    return made
+
+
+def _at(values: np.ndarray, step: int | None) -> np.ndarray:
+    """nan everywhere but ``step`` (None: everywhere), where ``values`` holds."""
+    out = np.full(np.shape(values), np.nan)
+    if step is not None and 0 <= step < out.size:
+        out[step] = values[step]
+    return out
+
+
+def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int, title: str) -> None:
+    """Draw the cut-in car (object 0) of ``ox`` (:class:`pemviz.app.objects_view.ObjectsExplanation` with a story) in
+    the charts of :func:`object_plots`, with a marker at ``step`` (the 3D scene's step, the last series of each chart):
+
+    - its gap ahead (its rear minus the ego's front bumper, metres) as it truly was (black), where the tracker's
+      confirmed track placed it (violet: the true gap plus the track's error along the road), where the camera
+      measured it when detected (blue dots: plus the measurement's range error) and the steps it was missed (orange
+      dots, on the truth), with the contact line at 0 m (red, dashed) and the failure step (a red dot);
+    - its lateral offset from the centre of the ego's lane (metres, to the right; it cuts in from +4 m) in the same
+      colours, with the lane's edges at +-2 m (yellow, dashed): the ACC follows a track whose estimated centre lies
+      inside them (:func:`pemviz.scenarios.cut_in.acc_control`);
+    - the ACC's acceleration at each decision (m/s^2, applied over the next step; IDM clipped to +-6 m/s^2), with two
+      rows of dots above it: the steps it followed car 0's track (violet; another car's: grey) and the steps car 0's
+      box overlapped the ego's lane (yellow).
+
+    Sources: the rows of :mod:`pemviz.scenarios.cut_in_scene` (``gap_m``, ``loc_x``, ``track_err_x_m``,
+    ``track_err_y_m``, ``followed``, ``ego_accel_mps2``) and :mod:`pemviz.scenarios.cut_in_story`. The y ranges are
+    :func:`pemviz.app.plots.robust_range`'s (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`): a value off them is drawn
+    at the edge and the title counts it.
+    """
+    st = ox.story
+    t = np.asarray(ox.time_s, dtype=np.float64)
+    i = int(np.clip(step, 0, t.size - 1))
+    fail = st.severity.failure_step
+    x_scale = up.Scale(time=False, auto=False, range=(0.0, float(t[-1])))
+    dots = {"width": 0}
+    det, seen = ox.detected[:, 0], ox.seen[:, 0]
+    missed = seen & ~det
+    failure_series = [] if fail is None else [
+        up.Series(label=f"failure at {fail * st.severity.dt_s:.2f} s", stroke=css(CRASH), points=_points(CRASH, 10),
+                  **dots)]  # fmt: skip
+
+    def chart(key: str, what: str, unit_label: str, truth: np.ndarray, track: np.ndarray, measured: np.ndarray,
+              levels: list[tuple[str, float, tuple[int, ...]]], at_least: tuple[float, float]) -> None:  # fmt: skip
+        values = [truth, track, measured]
+        rng = robust_range(np.concatenate(values), **TRACK_RULE,
+                           at_least=(min(at_least[0], *(v for _, v, _ in levels)),
+                                     max(at_least[1], *(v for _, v, _ in levels))))  # fmt: skip
+        drawn = [rng.drawn(v) for v in values]
+        extra_series, extra_data = off_scale_series(t, rng, values)
+        plot = plots[key]
+        plot.title = f"{title}: car 0's {what}, truth and the tracker{rng.note('value', '.1f', ' m')}"
+        plot.series = (
+            up.Series(label="t (s)"),
+            up.Series(label="truth", stroke=hex_colour(BLACK), width=2),
+            up.Series(label="measured (detected)", stroke=css(BLUE), points=_points(BLUE, 4), **dots),
+            up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **dots),
+            up.Series(label="tracker (confirmed track)", stroke=css(VIOLET), width=2),  # over the dots
+            *(up.Series(label=label, stroke=css(colour), width=1.5, dash=[6, 4]) for label, _, colour in levels),
+            *failure_series,
+            *extra_series,
+            up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots),  # the last series
+        )
+        plot.data = (t, drawn[0], drawn[2], np.where(missed, drawn[0], np.nan), drawn[1],
+                     *(np.full(t.size, v) for _, v, _ in levels),
+                     *([_at(drawn[0], fail)] if failure_series else []), *extra_data, _at(drawn[0], i))  # fmt: skip
+        plot.scales = {"x": x_scale, "y": up.Scale(auto=False, range=rng.range)}
+        plot.axes = axes("time (s)", unit_label)
+        plot.visible = True
+
+    gap = ox.gap_m[:, 0]
+    nan = np.full(t.size, np.nan)
+    along = (ox.tracked[:, 0, 1] - ox.ahead_m[:, 0]) if ox.tracked is not None else nan
+    meas_along = (ox.measured[:, 0, 1] - ox.ahead_m[:, 0]) if ox.measured is not None else np.where(det, 0.0, np.nan)
+    chart(TRACK_GAP, "gap ahead", "gap (m)", gap, gap + along, gap + meas_along, [("contact 0 m", 0.0, CRASH)],
+          (0.0, 5.0))  # fmt: skip
+    half = LANE_WIDTH_M / 2
+    chart(TRACK_LATERAL, "lateral offset from the ego's lane centre", "m, right +", ox.lateral_m[:, 0],
+          ox.tracked[:, 0, 0] if ox.tracked is not None else nan,
+          ox.measured[:, 0, 0] if ox.measured is not None else np.where(det, ox.lateral_m[:, 0], np.nan),
+          [(f"ego's lane edge +{half:g} m", half, BRAKE_ZONE), (f"ego's lane edge -{half:g} m", -half, BRAKE_ZONE)],
+          (-half, half))  # fmt: skip
+
+    acc = st.acc
+    ta, a = acc.time_s, acc.accel_mps2
+    rng = robust_range(a, **CONTROLLER_RULE)
+    row = 0.07 * (rng.hi - rng.lo)
+    follows = np.where(acc.followed == 0, rng.hi + 2 * row, np.nan)
+    other = np.where(acc.followed > 0, rng.hi + 2 * row, np.nan)
+    in_lane = np.where(st.in_lane[: ta.size], rng.hi + row, np.nan)
+    drawn = rng.drawn(a)
+    ia = int(np.clip(step, 0, ta.size - 1))
+    off = np.flatnonzero(rng.below(a) | rng.above(a))
+    note = "" if off.size == 0 else f"; {off.size} step{'s' * (off.size != 1)} off scale, drawn at the edge"
+    pairs: list[tuple[Any, np.ndarray]] = [
+        (up.Series(label="acceleration (m/s^2)", stroke=css(EGO_SPEED), width=2), drawn),
+        (up.Series(label="follows car 0", stroke=css(VIOLET), points=_points(VIOLET), **dots), follows),
+    ]
+    if np.isfinite(other).any():
+        pairs.append((up.Series(label="follows another car", stroke=hex_colour(GREY), points=_points(GREY), **dots),
+                      other))  # fmt: skip
+    pairs.append((up.Series(label="car 0 in the ego's lane", stroke=css(BRAKE_ZONE), points=_points(BRAKE_ZONE),
+                            **dots), in_lane))  # fmt: skip
+    if fail is not None and fail < ta.size:
+        pairs.append((failure_series[0], _at(drawn, fail)))
+    if off.size:
+        pairs.append((up.Series(label=f"acceleration off scale ({off.size})", stroke=hex_colour(BLACK),
+                                points=_ring(BLACK), **dots), np.where(rng.below(a) | rng.above(a), drawn, np.nan)))
+    pairs.append((up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots),
+                  _at(drawn, ia)))  # the last series  # fmt: skip
+    plot = plots[ACC]
+    plot.title = f"{title}: ACC acceleration (IDM on the followed track){note}"
+    plot.series = (up.Series(label="t (s)"), *(series for series, _ in pairs))
+    plot.data = (ta, *(values for _, values in pairs))
+    plot.scales = {"x": x_scale, "y": up.Scale(auto=False, range=(rng.lo, rng.hi + 3 * row))}
+    plot.axes = axes("time (s)", "m/s^2")
+    plot.visible = True
+
+
+def hide_object_plots(plots: dict[str, viser.GuiUplotHandle]) -> None:
+    """Hide the cut-in Explain's charts (another kind of rollout is shown, or none)."""
+    for plot in plots.values():
+        plot.visible = False

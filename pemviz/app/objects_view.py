@@ -14,6 +14,8 @@ import numpy as np
 
 from pemviz.core.counterfactuals import MISS, Counterfactuals, counterfactuals
 from pemviz.core.problems import object_scene
+from pemviz.scenarios.cut_in import CutInParams
+from pemviz.scenarios.cut_in_story import CutInStory, cut_in_story, has_story_columns
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
@@ -49,6 +51,11 @@ class ObjectsExplanation:
             cannot replay).
         names: the objects' names.
         failed: the rollout failed.
+        time_s: float64 [T] the time of each step (seconds).
+        gap_m: float64 [T, M] each object's gap ahead (its rear minus the ego's front bumper along the road, metres;
+            negative beside or behind), or None: the rows hold no ``gap_m``.
+        story: what happened, in words, and the severity (:func:`pemviz.scenarios.cut_in_story.cut_in_story`), or
+            None: the rollout is not the cut-in's (its rows lack the columns the story reads).
     """
 
     lateral_m: np.ndarray
@@ -62,6 +69,9 @@ class ObjectsExplanation:
     counterfactuals: Counterfactuals | None
     names: tuple[str, ...]
     failed: bool
+    time_s: np.ndarray | None = None
+    gap_m: np.ndarray | None = None
+    story: CutInStory | None = None
 
     @property
     def n_steps(self) -> int:
@@ -82,6 +92,11 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
         view: its :class:`pemviz.core.problems.ProblemView` (``objects_xy``, ``noise_xy``).
         batch: one rollout, ``objects`` [1, T, M, G] named by ``object_names``.
         failed: whether the rollout failed (only a failure is explained by counterfactuals).
+
+    The times are the problem's ``dt_s`` seconds per step (the cut-in's 0.1 s when it gives none); the story and the
+    severity are told where the rows hold the cut-in's columns
+    (:func:`pemviz.scenarios.cut_in_story.has_story_columns`).
+
     Raises:
         ValueError: the view has no object positions (``objects_xy``) or the batch no object rows.
     """
@@ -99,9 +114,17 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
     cf = None
     if failed and problem is not None and getattr(problem, "branch", None) is not None:
         cf = counterfactuals(problem, batch, 0)
+    names = tuple(f"car {j}" for j in range(sc.detected.shape[1]))
+    dt_s = getattr(problem, "dt_s", None) or CutInParams().dt_s
+    object_names = tuple(batch.object_names or ())
+    gap = batch.objects[0][:, :, object_names.index("gap_m")].astype(np.float64) if "gap_m" in object_names else None
+    story = None
+    if has_story_columns(tuple(batch.observation_names), object_names):
+        story = cut_in_story(batch.observations[0], tuple(batch.observation_names), batch.objects[0], object_names,
+                             batch.detected[0], dt_s, 0, names[0])  # fmt: skip
     return ObjectsExplanation(sc.lateral_m, sc.ahead_m, sc.detected, sc.seen, sc.measured, ellipse, sc.tracked,
-                              sc.followed, cf, tuple(f"car {j}" for j in range(sc.detected.shape[1])),
-                              bool(failed))  # fmt: skip
+                              sc.followed, cf, names, bool(failed), np.arange(sc.detected.shape[0]) * float(dt_s), gap,
+                              story)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -268,6 +291,15 @@ def decisive_table(ox: ObjectsExplanation) -> str:
     more = f"<div>... and {len(cf.decisive) - 12} more</div>" if len(cf.decisive) > 12 else ""
     return ('<table class="pemviz-table" style="width:100%;font-size:0.95em"><tr><th>object</th><th>step</th>'
             f"<th>undone alone</th><th>robustness after</th></tr>{rows}</table>{more}")  # fmt: skip
+
+
+def story_html(ox: ObjectsExplanation) -> str:
+    """*What happened* to the cut-in car and the ego, in words, and the **severity** (minimum clearance in metres, the
+    closing speed in m/s at contact), as HTML lines (:mod:`pemviz.scenarios.cut_in_story`); empty without a story."""
+    st = ox.story
+    if st is None:
+        return ""
+    return (f"<b>Severity</b>: {html.escape(st.severity.short)}<br><b>What happened</b>: {html.escape(st.text)}")
 
 
 def objects_summary(ox: ObjectsExplanation) -> str:

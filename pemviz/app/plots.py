@@ -224,7 +224,7 @@ def off_scale_series(x: np.ndarray, rng: AxisRange, ys: list[np.ndarray]) -> tup
     return series, data
 
 
-def curve_plot(gui: viser.GuiApi, title: str, height: int = 230) -> viser.GuiUplotHandle:
+def curve_plot(gui: viser.GuiApi, title: str, height: int = 230, visible: bool = True) -> viser.GuiUplotHandle:
     """An empty q(detect | gap) plot: gap 0..13 m, probability 0..1 (the top tick 1 included)."""
     return gui.add_uplot(
         data=(np.linspace(0, 13, 2), np.full(2, np.nan)),
@@ -234,18 +234,31 @@ def curve_plot(gui: viser.GuiApi, title: str, height: int = 230) -> viser.GuiUpl
         axes=axes("gap d (m)", "p(detect | d)"),
         legend=LEGEND,
         height=height,
+        visible=visible,
     )
 
 
+CURVE_AXES = {
+    "gap": "gap d (m)",
+    "objects": "range r (m) of car 0, straight ahead in the ego's lane",
+}
+"""The x axis of a proposal's reference-state curve: the braking scenario's gap to the lead, or, in a scene of several
+objects, the range from the camera to the cut-in car placed straight ahead in the ego's lane, unoccluded
+(:func:`pemviz.core.problems.cut_in_problem`'s ``curve_rows``), metres."""
+
+
 def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) -> None:
-    """The PEM and the proposal after each stage (blue early, orange late) of ``record``."""
+    """The PEM and the proposal after each stage (blue early, orange late) of ``record``, over the run's curve grid
+    (metres: 0-13 m of gap for the braking scenario, 0-50 m of range for the cut-in: :data:`CURVE_AXES`)."""
     with record.lock:
         grid, pem = record.curve_grid_m, record.pem_curve
         stages = [s for s in record.stages if not np.all(np.isnan(s.proposal_curve)) and s.kind != "final"]
     if grid.size == 0:
         return
+    objects = record.view is not None and record.view.scene is None and record.view.objects_xy is not None
     n_colour = max(1, record.plan.n_ce if record.plan is not None else 1)  # blue (stage 0) to orange (stage K)
-    series = [up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(C.BLACK), width=2)]
+    series = [up.Series(label="range (m)" if objects else "gap (m)"),
+              up.Series(label="PEM", stroke=hex_colour(C.BLACK), width=2)]  # fmt: skip
     data = [grid, pem]
     for s in stages:  # the final batch samples from the last stage's proposal: the same curve
         name = "pretraining" if s.kind == "pretrain" else f"stage {s.stage}"  # short: uPlot's legend is narrow
@@ -254,6 +267,9 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) ->
     plot.title = title
     plot.series = tuple(series)
     plot.data = tuple(data)
+    plot.scales = {"x": up.Scale(time=False, auto=False, range=(float(np.min(grid)), float(np.max(grid)))),
+                   "y": up.Scale(auto=False, range=(0.0, 1.04))}  # fmt: skip
+    plot.axes = axes(CURVE_AXES["objects" if objects else "gap"], "p(detect | d)" if not objects else "p(detect | r)")
 
 
 def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHandle:

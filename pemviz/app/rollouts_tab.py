@@ -244,7 +244,8 @@ class RolloutsTab:
 
     def _show_objects(self, record: PanelRun, traj: Trajectory) -> None:
         """Explain a rollout of a scene of several objects (:mod:`pemviz.app.objects_view`), paused at its first
-        decisive step (else step 0); the braking scenario's strip charts are hidden meanwhile."""
+        decisive step (else step 0); the braking scenario's strip charts are hidden meanwhile, the cut-in's tracker
+        and ACC charts (:func:`pemviz.app.charts.fill_object_plots`) shown where the rollout tells its story."""
         ox = explain_objects(record.problem, record.view, traj.batch, traj.crashed)
         self.objects_ex, self.explanation = ox, None
         self.shown, self.shown_record, self._shown_x = traj, record, None
@@ -252,6 +253,8 @@ class RolloutsTab:
         self._set_playing(False)
         self.shown_step = -1
         self._show_strips(False)
+        if ox.story is not None:
+            charts.fill_object_plots(self.object_plots, ox, 0, f"{record.short_label} {traj.key}")
         self._scene_kind(ox.detected.shape[1])
         self._frame_objects()
         self.scene_html.content = box(
@@ -266,8 +269,13 @@ class RolloutsTab:
             self._render_step(first)
 
     def _show_strips(self, visible: bool) -> None:
+        """Show the braking scenario's strip charts (a braking rollout) or hide them (several objects); the cut-in's
+        charts and details are hidden with a braking rollout and until a rollout of several objects fills them."""
         for plot in self.strip.values():
             plot.visible = visible
+        charts.hide_object_plots(self.object_plots)
+        if visible:
+            self.objects_html.content = ""
 
     def _render_objects(self, step: int) -> None:
         """*Explain* at ``step`` of the shown rollout of several objects: its header, the decisive errors, every
@@ -283,14 +291,15 @@ class RolloutsTab:
                 f"({record.config.metric}) · log p_PEM {traj.log_p_total:.1f} nats (every object's detections and "
                 f"errors)")  # fmt: skip
         why = f"<b>Which errors decided it</b> (each undone alone, replayed): {html.escape(objects_summary(ox))}"
+        story = OV.story_html(ox) or ("No story: this scene's rows hold none of the cut-in's tracker and ACC columns, "
+                                      "so neither its tracker nor its controller is charted.")  # fmt: skip
         legend = (f"<span style='color:{OV.GREEN}'>&#9632; detected</span> <span style='color:{OV.ORANGE}'>&#9632; "
                   f"missed</span> <span style='color:{OV.UNSEEN}'>&#9632; unseen</span> <span style='color:{OV.RED}'>"
                   f"&#9632; decisive</span> <span style='color:{OV.BLUE}'>&#9679; measured; dashed: the noise PEM's "
                   f"{OV.ELLIPSE_SCALES:g}-scale ellipse</span> <span style='color:{OV.TRACK}'>&#9633; the tracker's "
                   "estimate</span>")  # fmt: skip
         body = (
-            box(f"{head}<br>{why}", RED if traj.crashed else GREEN)
-            + TABLE_STYLE
+            TABLE_STYLE
             + '<div style="margin:0 0.6em; font-size:0.8em">'
             + OV.decisive_table(ox)
             + f"<div><b>Every object, step by step</b> · {html.escape(OV.state_counts(ox, t))}</div>"
@@ -305,7 +314,11 @@ class RolloutsTab:
             + OV.birds_eye_svg(ox, t)
             + f"<div>{legend}</div></div>"
         )
-        self.explain_html.content = body
+        with self.client.atomic():
+            self.explain_html.content = box(f"{head}<br>{story}<br>{why}", RED if traj.crashed else GREEN)
+            self.objects_html.content = body
+            if ox.story is not None:
+                plots.move_strip_marker(self.object_plots, t)
         self._render_objects_scene(ox, t, f"{record.short_label} {traj.key} step {t}\n{OV.state_counts(ox, t)}")
 
     def _fill_explanation(self) -> None:

@@ -27,7 +27,7 @@ from pemviz.app.form import run_label
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Reference
 from pemviz.core.population import FailureShares
-from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities
+from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities, proposal_view
 from pemviz.engine.events import (
     Event,
     FinalEstimate,
@@ -55,6 +55,80 @@ N_TRAJECTORIES = 20
 
 GAP_BINS_M = np.linspace(0.0, 13.0, 27)
 """Gap bins of the marginal proposal view (:mod:`pemviz.core.proposal_view`): 0.5 m wide, 0 to 13 m."""
+
+OBJECT_GAP_BINS_M = np.linspace(0.0, 40.0, 41)
+"""Bins of the proposal view of a scene of several objects (:func:`object_proposal_view`): the cut-in car's gap ahead
+(its rear minus the ego's front bumper, metres), 1 m wide, 0 to 40 m (the cut-in starts 20 m ahead; the proposal reads
+cars within 40 m, :data:`pemviz.core.problems.CUT_IN_WINDOW_M`)."""
+
+VIEW_OBJECT = 0
+"""The object whose detections the proposal view of a scene of several objects follows: the cut-in car (object 0 of
+:attr:`pemviz.scenarios.cut_in.CutInParams.vehicles`)."""
+
+MAX_VIEW_ROLLOUTS = 1000
+"""At most this many rollouts of a stage (evenly spaced) make its proposal view of a scene of several objects: the
+detectors are asked again for each state (a batch keeps only each step's sum over objects), the 100,000 states of
+1,000 cut-in rollouts in about 0.2 s on one core."""
+
+
+@dataclass(frozen=True)
+class ViewAxis:
+    """What the x axis of a run's proposal view (:attr:`PanelRun.proposal_views`) is.
+
+    Attributes:
+        label: the axis title, with its unit.
+        subject: whose detections the view holds (``the lead``, ``car 0 (the cut-in car)``).
+        standing: the bins are of the scene's own gap (the braking scenario's), whose standing states
+            (:func:`pemviz.app.charts.standing_bins`) the chart rings.
+        window_name: what the mean q(miss) of the title is taken over.
+    """
+
+    label: str
+    subject: str
+    standing: bool
+    window_name: str
+
+
+GAP_AXIS = ViewAxis("gap d (m), 0.5 m bins", "the lead", True, "below")
+"""The braking scenario's view: the gap to the lead (metres)."""
+OBJECT_AXIS = ViewAxis("car 0's gap ahead (m), 1 m bins", "car 0 (the cut-in car)", False, "within")
+"""A scene of several objects: the cut-in car's gap ahead (metres), over the states where the camera can see it."""
+
+
+def object_proposal_view(event: RolloutsSampled, obj: int = VIEW_OBJECT, edges_m: np.ndarray = OBJECT_GAP_BINS_M,
+                         max_rollouts: int = MAX_VIEW_ROLLOUTS) -> ProposalView | None:  # fmt: skip
+    """q(detect) of the sampler and p(detect) of the PEM for object ``obj`` over the states a batch of several objects
+    visited where the camera can see it (``visible``), binned by its gap ahead (the row's ``gap_m``, metres), as
+    :func:`pemviz.core.proposal_view.proposal_view` bins the braking scenario's gap; the mean q(miss) over every such
+    state below the last edge. The batch keeps each step's log-probabilities summed over its objects, so the detectors
+    are asked for the object's logit at its rows (:func:`pemviz.core.proposal_view.object_detect_probabilities`: call
+    it while ``event.sampler`` is the one that drew the batch); at most ``max_rollouts`` rollouts, evenly spaced.
+
+    Returns None for a batch of one object a step, without the object's ``gap_m`` / ``visible`` columns, without both
+    detectors, or without a visible state.
+    """
+    batch = event.batch
+    names = tuple(batch.object_names or ())
+    if (batch.objects is None or batch.n_objects < 2 or event.sampler is None or event.target is None
+            or not {"gap_m", "visible"} <= set(names) or batch.n == 0):  # fmt: skip
+        return None
+    pick = np.unique(np.linspace(0, batch.n - 1, min(batch.n, max_rollouts)).round().astype(np.int64))
+    rows = np.asarray(batch.objects[pick, :, obj, :], dtype=np.float64)  # [n, T, G]
+    seen = rows[..., names.index("visible")] > 0.5
+    if not seen.any():
+        return None
+    flat = rows[seen]  # [S, G]
+    detected = np.asarray(batch.detected[pick, :, obj], bool)[seen]
+    sign = np.where(detected, 1.0, -1.0)  # log sigma(l) for a detection, log sigma(-l) for a miss
+
+    def log_action(detector: object) -> np.ndarray:
+        logit = np.asarray(detector.detect_logit(flat), dtype=np.float64)
+        return -np.logaddexp(0.0, -sign * logit)
+
+    gap = flat[:, names.index("gap_m")]
+    return proposal_view(gap[None], detected[None], log_action(event.sampler)[None], log_action(event.target)[None],
+                         edges_m, float(edges_m[-1]))  # fmt: skip
+
 
 QUICK: dict[str, Any] = PRESETS["quick"]
 """The ``quick`` preset (:data:`pemviz.presets.PRESETS`): a run of a few seconds on 2 cores, to try the panel."""
@@ -273,6 +347,9 @@ class PanelRun(Sink):
         """The failing rollout with the highest probability under the PEM found so far."""
         self.proposal_views: dict[int, tuple[str, ProposalView]] = {}
         """Stage -> (kind, q(detect) of its sampler over the states its rollouts visited, per gap bin)."""
+        self.proposal_axis: ViewAxis = GAP_AXIS
+        """What the views' bins are: the braking scenario's gap (:data:`GAP_AXIS`) or the cut-in car's
+        (:data:`OBJECT_AXIS`)."""
         self.events: list[Event] = []
         self.sampled: dict[int, RolloutsSampled] = {}
         """Stage -> its :class:`RolloutsSampled` (the batch, or a sample of a streamed stage)."""
@@ -327,6 +404,9 @@ class PanelRun(Sink):
         self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
         window = self.view.thresholds.window if self.view is not None and self.view.thresholds else None
         view = batch_proposal_view(event.batch, GAP_BINS_M, window) if window is not None else None
+        if view is None and event.batch.objects is not None and event.batch.n_objects > 1:
+            view = object_proposal_view(event)  # the cut-in car's q(detect) and p(detect) by its gap ahead
+            self.proposal_axis = OBJECT_AXIS
         if view is not None:
             self.proposal_views = {**self.proposal_views, event.stage: (event.kind, view)}
 

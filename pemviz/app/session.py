@@ -278,21 +278,28 @@ class Session(RunsTab, RolloutsTab, SceneView):
 
         panel = gui.add_panel()
         with panel.add_tab("Live", viser.Icon.CHART_LINE):
+            self.marginal_note = gui.add_html(charts.marginal_note(None))  # why the q(detect) charts are hidden
             self.marginal_plots = charts.marginal_plots(gui)
             self.stage_plots = {key: plots.stage_plot(gui, title, y) for key, title, y in plots.STAGE_PLOTS}
         with panel.add_tab("Explain", viser.Icon.ZOOM_QUESTION):
             self.explain_html = gui.add_html(box("Choose a rollout in the Rollouts tab to explain it.", GREY))
             self.strip = plots.strip_plots(gui)
             self.strip["controller"] = charts.controller_plot(gui, order=self.strip["gap"].order + 0.5)
+            # a cut-in rollout: the cut-in car's gap and lateral offset, truth and tracker, and the ACC (hidden until
+            # one is shown), then the decisive errors, every car's events and the scene from above
+            self.object_plots = charts.object_plots(gui)
+            self.objects_html = gui.add_html("")
         with panel.add_tab("Compare", viser.Icon.A_B):
             self.compare_estimates = compare.estimate_plot(gui)
             self.compare_html = gui.add_html("")
             self.compare_html_ref = gui.add_html(
                 '<div style="margin:0 0.6em; font-size:0.8em; color:#555">Reference-state curves: q(detect | gap) with '
-                "the proposal's other inputs (speeds, pending brake) held at the start state. The Live tab shows what "
-                "each sampler did over the states its rollouts visited.</div>"
+                "the proposal's other inputs (speeds, pending brake) held at the start state; for the cut-in, "
+                "q(detect | range) of car 0 straight ahead in the ego's lane. The Live tab shows what each sampler "
+                "did over the states its rollouts visited. One chart per kept run.</div>"
             )
-            self.compare_plots = [plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190) for i in range(4)]
+            self.compare_plots = [plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190, visible=False)
+                                  for i in range(4)]  # fmt: skip
         self.plot_panel = panel
         panel.dock_left()
         panel.set_width(460)
@@ -517,10 +524,15 @@ class Session(RunsTab, RolloutsTab, SceneView):
         with self.lock:
             runs = list(self.runs)
             record = self.record
+            if self.objects_ex is None:  # no cut-in rollout explained (cleared for a new run): none of its charts
+                with self.client.atomic():
+                    charts.hide_object_plots(self.object_plots)
+                    self.objects_html.content = ""
         with self.client.atomic():
             if record is not None:
-                charts.fill_marginal_plots(self.marginal_plots, record)
+                charts.fill_marginal_plots(self.marginal_plots, record, self.marginal_note)
             for i, plot in enumerate(self.compare_plots):
+                plot.visible = i < len(runs) and runs[i].curve_grid_m.size > 0  # a slot without a run is hidden
                 if i < len(runs):
                     r = runs[i]
                     fin = r.final.estimate if r.final is not None else None

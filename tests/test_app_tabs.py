@@ -1,0 +1,220 @@
+"""Every tab of the panel after a run, in headless Chromium, for the braking scenario and the cut-in: every uPlot chart
+shown has data (at least one finite point beside its x values), and a cut-in's *Live* and *Explain* are at the braking
+scenario's level: q(detect) of the cut-in car per bin of its gap ahead beside the PEM's, what happened in words, the
+severity, the tracker's estimate of the cut-in car against the truth and the ACC's acceleration.
+
+Uses the browser, server and tab helpers of ``tests/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the tests also write
+``assets/screenshots/panel_<scene>_<tab>.png`` (braking and cut_in; live, explain, compare, rollouts, runs,
+experiment) at 1400 x 1300.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.special import expit
+
+from test_app import TINY, Tab, app, browser, expect, wait_until  # noqa: F401  (app, browser: the module's fixtures)
+
+from pemviz.app import charts
+from pemviz.app.runs import OBJECT_GAP_BINS_M, VIEW_OBJECT
+
+SCREENSHOTS = Path(__file__).resolve().parents[1] / "assets" / "screenshots"
+VIEWPORT = {"width": 1400, "height": 1300}
+TABS = ("Live", "Explain", "Compare", "Rollouts", "Runs", "Experiment")
+"""The plot panel's tabs (left: Live, Explain, Compare) and the control panel's (right); the left panel keeps its tab
+while the right one changes, so every chart shown is checked under each."""
+CHARTS_PER_TAB = {"braking": {"Live": 6, "Explain": 4, "Compare": 2}, "cut_in": {"Live": 6, "Explain": 3, "Compare": 2}}
+"""Charts each left tab shows after one run: Live the two q(detect) charts and the four per-stage charts; Explain the
+braking scenario's four strip charts or the cut-in's three (tracker gap, tracker lateral offset, ACC); Compare the
+estimates and the run's reference-state curve."""
+
+CHARTS_JS = """() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(u => ({
+    title: u.chart.root.querySelector('.u-title')?.textContent ?? '',
+    visible: u.chart.root.checkVisibility(),
+    labels: u.chart.series.map(s => s.label),
+    finite: u.chart.data.slice(1).map(d => Array.from(d ?? []).filter(v => v != null && Number.isFinite(v)).length),
+    data: u.chart.data.map(d => Array.from(d ?? []).map(v => v ?? null))}))"""
+"""Every uPlot chart of the page: its title, whether it is shown, its series' labels, each y series' count of finite
+values and its data."""
+
+
+def shown_charts(tab: Tab) -> list[dict]:
+    return [c for c in tab.page.evaluate(CHARTS_JS) if c["visible"]]
+
+
+def empty(chart: dict) -> bool:
+    """No y series of the chart has a finite value."""
+    return sum(chart["finite"]) == 0
+
+
+def check_every_tab(tab: Tab, scene: str) -> dict[str, list[dict]]:
+    """Open each tab; every chart shown has a finite point and each left tab shows its charts; with
+    ``PEMVIZ_SCREENSHOTS=1`` the tab is written to ``panel_<scene>_<tab>.png``. The charts shown per tab."""
+    seen = {}
+    for name in TABS:
+        tab.tab(name)
+        n = CHARTS_PER_TAB[scene].get(name, 1)
+        wait_until(lambda: len(shown_charts(tab)) >= n and not any(empty(c) for c in shown_charts(tab)),
+                   what=f"{scene} {name}: {n} charts shown, each with data")  # fmt: skip
+        shown = shown_charts(tab)
+        assert not [c["title"] for c in shown if empty(c)], f"{scene} {name}: empty charts shown"
+        seen[name] = shown
+        if os.environ.get("PEMVIZ_SCREENSHOTS") == "1":
+            tab.page.wait_for_function("() => document.fonts.ready.then(() => true)")
+            path = SCREENSHOTS / f"panel_{scene}_{name.lower()}.png"
+            partial = path.with_name(path.stem + ".partial.png")
+            tab.page.screenshot(path=str(partial))
+            os.replace(partial, path)
+    for name, n in CHARTS_PER_TAB[scene].items():
+        assert len(seen[name]) == n, (name, [c["title"] for c in seen[name]])
+    return seen
+
+
+def chart(charts_shown: list[dict], title_part: str) -> dict:
+    found = [c for c in charts_shown if title_part in c["title"]]
+    assert found, f"no chart titled *{title_part}* in {[c['title'] for c in charts_shown]}"
+    return found[0]
+
+
+def series(c: dict, label: str) -> np.ndarray:
+    assert label in c["labels"], f"no series {label!r} in {c['labels']}"
+    return np.array([math.nan if v is None else v for v in c["data"][c["labels"].index(label)]], dtype=np.float64)
+
+
+@pytest.fixture
+def wide_tab(browser, app):  # noqa: F811  (pytest's fixtures, imported above)
+    t = Tab(browser, app, viewport=VIEWPORT)
+    yield t
+    t.session.stop_run()
+    t.session.wait_for_run(10.0)
+    t.close()
+
+
+def test_every_braking_tab_shows_only_charts_with_data(wide_tab):
+    tab = wide_tab
+    record = tab.run()
+    wait_until(lambda: tab.session.shown_record is record and tab.session.explanation is not None, timeout=30,
+               what="the run's rollout explained")  # fmt: skip
+    seen = check_every_tab(tab, "braking")
+    live = chart(seen["Live"], "mean q(detect) over the visited states")
+    assert "PEM" in live["labels"] and np.isfinite(series(live, "PEM")).any()
+    assert chart(seen["Explain"], "controller")["finite"][0] > 0
+    # the Compare tab shows one reference-state chart per kept run, no empty slot
+    assert not any(c["title"].startswith("slot ") for c in seen["Compare"])
+
+
+def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and_the_acc(wide_tab):
+    tab = wide_tab
+    s = tab.session
+    tab.choose("scenario", "cut-in")
+    wait_until(lambda: s.choices["method"].value == "mc", what="the cut-in's default method")
+    s.choices["method"].value = "adaptive"  # a few stages of 60 rollouts find failures in a few seconds
+    record = tab.run({**TINY, "K": "3", "N": "60", "N_e": "60", "seed": "1"}, timeout=120)
+    assert record.config.scenario == "cut-in" and record.most_likely_failure is not None
+    wait_until(lambda: s.objects_ex is not None and s.shown is record.most_likely_failure, timeout=60,
+               what="the most likely failure explained")  # fmt: skip
+    ox, shown = s.objects_ex, s.shown
+    st = ox.story
+    assert st is not None and st.severity.failed
+    # the story's failure step is the safety formula's first violation, as the counterfactuals replay it
+    assert st.severity.failure_step == ox.counterfactuals.failure_step
+
+    seen = check_every_tab(tab, "cut_in")
+
+    # Live: q(detect) and p(detect) of the cut-in car per 1 m bin of its gap ahead, every stage drawn by a proposal
+    live = chart(seen["Live"], "mean q(detect) of car 0 (the cut-in car) over the visited states")
+    assert {"PEM", "stage 1", "final batch"} <= set(live["labels"]) and "pretraining" not in live["labels"]
+    x = np.array(live["data"][0])
+    np.testing.assert_allclose(x, (OBJECT_GAP_BINS_M[:-1] + OBJECT_GAP_BINS_M[1:]) / 2)
+    pem, final = series(live, "PEM"), series(live, "final batch")
+    assert np.isfinite(pem).sum() >= 10 and np.isfinite(final).sum() >= 10
+    # the PEM's line is the mean p(detect) of car 0 over the final batch's states where the camera sees it
+    stage = max(record.sampled)
+    batch = record.sampled[stage].batch
+    names = batch.object_names
+    rows = batch.objects[:, :, VIEW_OBJECT, :]
+    visible = rows[..., names.index("visible")] > 0.5
+    p = expit(record.problem.target.detect_logit(rows[visible]))
+    b = np.searchsorted(OBJECT_GAP_BINS_M, rows[visible][:, names.index("gap_m")], side="right") - 1
+    full = [k for k in range(x.size) if np.sum(b == k) >= charts.MIN_BIN_STATES]
+    assert len(full) >= 10
+    np.testing.assert_allclose(pem[full], [p[b == k].mean() for k in full], rtol=1e-9)
+    assert chart(seen["Live"], "median log q(miss)/q(detect) of car 0")["finite"][0] > 0
+
+    # Explain: what happened in words, the severity, the tracker against the truth, the ACC
+    page = tab.page
+    tab.tab("Explain")
+    expect(page.get_by_text("What happened", exact=False)).to_be_visible(timeout=10_000)
+    expect(page.get_by_text(st.severity.short, exact=False).first).to_be_visible()
+    expect(page.get_by_text("minimum clearance", exact=False).first).to_be_visible()
+    expect(page.get_by_text(st.sentences[1], exact=False).first).to_be_visible()  # the lane entry, in words
+    explain = seen["Explain"]
+    gap = chart(explain, "car 0's gap ahead, truth and the tracker")
+    truth, track = series(gap, "truth"), series(gap, "tracker (confirmed track)")
+    lo, hi = min(v for v in truth if np.isfinite(v)), max(v for v in truth if np.isfinite(v))
+    inside = np.isfinite(ox.gap_m[:, 0]) & (ox.gap_m[:, 0] >= lo) & (ox.gap_m[:, 0] <= hi)
+    np.testing.assert_allclose(truth[inside], ox.gap_m[inside, 0])
+    assert np.isfinite(track).sum() > 10 and np.isfinite(series(gap, "measured (detected)")).any()
+    lateral = chart(explain, "car 0's lateral offset from the ego's lane centre, truth and the tracker")
+    np.testing.assert_allclose(series(lateral, "truth"), ox.lateral_m[:, 0], atol=1e-9)
+    assert np.isfinite(series(lateral, "tracker (confirmed track)")).sum() > 10
+    acc = chart(explain, "ACC acceleration")
+    a = series(acc, "acceleration (m/s^2)")
+    np.testing.assert_allclose(a, np.clip(st.acc.accel_mps2, np.nanmin(a), np.nanmax(a)))
+    assert np.isfinite(series(acc, "follows car 0")).any()  # the ACC followed the cut-in car at some step
+    assert a.min() < 0.0  # and braked
+    # the braking scenario's strip charts are hidden, never shown empty
+    assert not any("gap and speeds" in c["title"] or "cumulative importance" in c["title"] for c in explain)
+
+
+def test_the_cut_in_story_tells_a_hand_made_rollout_step_by_step():
+    """Six steps of 0.1 s by hand: car 0 moves across from step 1, enters the ego's lane at step 2 (missed there, its
+    track 2.5 m off laterally, outside the lane), the ACC follows it and brakes from the decision at step 3, contact
+    at step 4 at 3.0 m/s closing speed (the row before: car 0 3.0 m/s slower than the ego)."""
+    from pemviz.scenarios.cut_in import OBJECT_NAMES, OBSERVATION_NAMES
+    from pemviz.scenarios.cut_in_story import cut_in_story
+
+    t = 6
+    obs = np.zeros((t, len(OBSERVATION_NAMES)))
+    rows = np.zeros((t, 2, len(OBJECT_NAMES)))
+
+    def o(name, values):
+        obs[:, OBSERVATION_NAMES.index(name)] = values
+
+    def r(name, values):
+        rows[:, 0, OBJECT_NAMES.index(name)] = values
+
+    o("safe_margin_m", 200.0)
+    o("cut_in_recent", [0, 0, 1, 1, 1, 1])
+    o("clearance_m", [200, 200, 5, 1, -0.5, -0.3])
+    o("front_index", [-1, -1, 0, 0, 0, 0])
+    o("followed_index", [-1, -1, -1, -1, 0, 0])  # the decision of the step before
+    o("ego_accel_mps2", [0, 0, 0, 0, -6, -6])
+    r("lateral_speed_mps", [0, -1, -1, -1, 0, 0])
+    r("in_ego_lane", [0, 0, 1, 1, 1, 1])
+    r("gap_m", [20, 15, 10, 5, -0.5, -0.3])
+    r("rel_speed_mps", [-7.6, -7.6, -7.6, -3.0, -2.0, -1.0])
+    r("tracked", [0, 1, 1, 1, 1, 1])
+    r("loc_x", [4, 4, 1.5, 0.5, 0, 0])
+    r("track_err_y_m", [0, 0, 2.5, 0, 0, 0])
+    detected = np.ones((t, 2), bool)
+    detected[2, 0] = False
+    st = cut_in_story(obs, OBSERVATION_NAMES, rows, OBJECT_NAMES, detected, 0.1)
+    sev = st.severity
+    assert (sev.failure_step, sev.contact_step, sev.collision, sev.min_clearance_step) == (4, 4, True, 4)
+    assert sev.closing_speed_mps == pytest.approx(3.0) and sev.min_clearance_m == -0.5
+    assert (st.lane_change_step, st.lane_entry_step, st.first_detected_step, st.track_step) == (1, 2, 0, 1)
+    assert (st.follow_step, st.brake_step, st.misses_after_entry, st.steps_after_entry) == (3, 3, 1, 1)
+    assert st.outside_steps == 1 and st.worst_track_error_m == 2.5
+    assert sev.short == ("contact at 3.0 m/s closing speed at 0.40 s · minimum clearance -0.50 m at 0.40 s (the "
+                         "boxes overlap)")
+    assert st.acc.accel_mps2.tolist() == [0, 0, 0, -6, -6] and st.acc.followed.tolist() == [-1, -1, -1, 0, 0]
+    assert "Its box entered the ego's lane at 0.20 s (step 2), 10.0 m ahead." in st.text
+    assert "it was missed at 1" in st.text and "lateral error up to 2.50 m" in st.text
+    assert "The ACC first followed it at 0.30 s, 0.10 s after it entered the lane." in st.text
+    assert "Contact at 0.40 s (step 4) at a closing speed of 3.0 m/s" in st.text
