@@ -299,7 +299,8 @@ def test_finished_runs_survive_stopped_ones_pinned_runs_stay_and_any_kept_run_ex
     # the run chosen under Runs is the one the Rollouts tab lists and Explain explains
     wait_until(lambda: s.listed is first and s.shown_record is first, what="Rollouts and Explain to follow run 1")
     tab.tab("Rollouts")
-    expect(tab.page.get_by_text(f"least robust rollouts of {first.short_label}", exact=False)).to_be_visible()
+    expect(tab.page.get_by_text(f"Every failure of the final estimate of {first.short_label}",
+                                exact=False)).to_be_visible()  # fmt: skip
     # three stopped runs: the first is dropped to make room, never the finished run 2 or the pinned run 1
     stopped = []
     for _ in range(3):
