@@ -26,6 +26,7 @@ from pemviz.config import ExperimentConfig  # noqa: E402
 from pemviz.engine import Experiment  # noqa: E402
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunStarted, StageFinished  # noqa: E402
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario  # noqa: E402
+from pemviz.scenarios.braking_failures import severity  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.rerun_views import (  # noqa: E402
@@ -51,13 +52,14 @@ def packed(rgba) -> int:
 
 
 def record(path, cfg: ExperimentConfig, extra_listeners=(), cancel=None):
-    """Run ``cfg`` with a console sink (to a string), the rerun sink and an event log."""
+    """Run ``cfg`` with a console sink (to a string), the rerun sink (with the run's problem) and an event log."""
     events: list = []
     out = io.StringIO()
-    sink = RerunSink.to_file(path)
+    problem = problem_for(cfg)
+    sink = RerunSink.to_file(path, problem=problem)
     try:
         Experiment(cfg, [ConsoleSink(out, io.StringIO()), sink, events.append, *extra_listeners], cancel,
-                   problem=problem_for(cfg)).run()
+                   problem=problem).run()
     finally:
         sink.close()
     return events, out.getvalue()
@@ -610,3 +612,22 @@ def test_the_recording_lists_every_failure_of_the_estimate_by_share_and_its_grou
     assert math.isclose(float(logsumexp(log_w)) - math.log(n), final.estimate.log_mu_hat, rel_tol=1e-12)
     text = static_value(tables, "/failures:TextDocument:text")[0]
     assert f"## Failures of the final estimate: {share.size:,}" in text and "last saving detection" in text
+    # each failure's severity, aligned with the shares: its rollout's severity() in the stage's batch
+    stage = static_value(tables, "/final/failures:stage")
+    rollout = static_value(tables, "/final/failures:rollout")
+    dist = np.array(static_value(tables, "/final/failures:min_distance"), dtype=np.float64)
+    speed = np.array(static_value(tables, "/final/failures:impact_speed"), dtype=np.float64)
+    batches = {e.stage: e.batch for e in events if isinstance(e, RolloutsSampled)}
+    want = [severity(batches[k].gap_m[i]) for k, i in zip(stage, rollout)]
+    np.testing.assert_array_equal(dist, [w.min_gap_m for w in want])
+    np.testing.assert_array_equal(speed, [w.contact_speed_mps for w in want])
+    # p(severity | failure): the shares of p of no contact, 0-2, 2-5 and > 5 m/s, as bars adding up to 1
+    (tensor,) = static_value(tables, "/final/severity_of_failures:BarChart:values")
+    bars = np.asarray(tensor["buffer"], dtype=np.float64)
+    by_hand = [share[np.isnan(speed)].sum(), share[speed < 2].sum(), share[(speed >= 2) & (speed < 5)].sum(),
+               share[speed >= 5].sum()]  # fmt: skip
+    np.testing.assert_allclose(bars, by_hand, rtol=1e-9, atol=1e-300)
+    assert bars.sum() == pytest.approx(1.0, rel=1e-12)
+    assert static_value(tables, "/final/severity_of_failures:bin") == ["no contact", "0-2 m/s", "2-5 m/s", "> 5 m/s"]
+    assert static_value(tables, "/final/severity_of_failures:bin_failures") == [
+        int(np.isnan(speed).sum()), *np.histogram(speed, [0, 2, 5, np.inf])[0].tolist()]

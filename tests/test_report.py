@@ -155,3 +155,28 @@ def test_the_report_groups_the_failures_and_their_shares_add_up_to_one(reported)
     assert "## Failures by share of p" in text and f["groups"][0]["label"] in text
     if scene == "braking":
         assert f["basis"].startswith("the last step at which one detection") and len(f["groups"]) >= 2
+
+
+def test_the_report_shows_the_failures_severity_by_share_as_the_console_printed_it(reported):
+    """p(severity | failure) in the result document: bins whose shares add up to 1 and whose counts add up to the
+    failures, each of the largest failures with its min distance and impact speed; the page's table and the
+    console's line."""
+    import math
+
+    scene, stdout, page, result = reported
+    doc = json.loads(result.read_text())
+    f = doc["failures"]
+    if f["n"] == 0:
+        return
+    sev = f["severity"]
+    assert sev["label"] == {"braking": "gap", "cut-in": "clearance"}[scene]
+    assert sev["contact"] == {"braking": 0.7, "cut-in": 0.0}[scene]
+    assert sev["n"] == sev["n_kept"] == f["n"] == sum(b["count"] for b in sev["bins"]) and sev["covered"] == 1.0
+    assert math.isclose(sum(b["share"] for b in sev["bins"]), 1.0, rel_tol=1e-12)
+    assert [b["label"] for b in sev["bins"]] == ["no contact", "0-2 m/s", "2-5 m/s", "> 5 m/s"]
+    for x in f["largest"]:
+        assert x["min_distance"] is not None and (x["impact_speed"] is None or x["impact_speed"] > 0)
+    assert sev["text"] in stdout.splitlines() and sev["text"] in doc["console"]
+    text = page.with_suffix(".md").read_text()
+    assert "## Severity of the failures" in text and "| impact speed | failures | share of p |" in text
+    assert f"median min {sev['label']}: {sev['median_min_distance']:.2f} m" in text

@@ -32,6 +32,8 @@ from pemviz.engine import Experiment
 from pemviz.engine.events import FinalEstimate, RolloutChunk, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
 from pemviz.core.problems import braking_problem
+from pemviz.core.severity import rollout_severity
+from pemviz.scenarios.braking_failures import severity
 from pemviz.core.sampling import Proposal, load_proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.sinks.rollouts import RolloutSink
@@ -86,6 +88,20 @@ def test_run_rollouts_read_back_with_their_columns_give_the_runs_mu_hat_to_1e_12
     assert meta["provenance"]["estimate"]["log_mu_hat"] == run_estimate.log_mu_hat
 
 
+def test_each_rollout_carries_its_severity_as_the_braking_scene_s_severity_gives_it(naive_run):
+    # min gap and impact speed (closing speed into a gap <= 0.7 m; null where no contact), one value per rollout
+    path, _ = naive_run
+    data = rio.read_rollouts(path)
+    want = [severity(data.gap_m[i]) for i in range(data.n)]
+    np.testing.assert_array_equal(data.min_distance, [w.min_gap_m for w in want])
+    np.testing.assert_array_equal(data.impact_speed, [w.contact_speed_mps for w in want])
+    contact = np.isfinite(data.impact_speed)
+    assert 0 < contact.sum() < data.n and (data.impact_speed[contact] > 0).all()
+    table = pq.read_table(path, columns=list(rio.SEVERITY_COLUMNS))
+    assert table.column("impact_speed_mps").null_count == (~contact).sum() * data.n_steps
+    assert table.column("min_distance_m").null_count == 0
+
+
 def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_give_the_same_mu_hat(
     naive_run, pem, tmp_path, capsys
 ):
@@ -102,6 +118,9 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     rio.write_rollouts(bare, data.to_batch(), data.meta, salient=data.salient, log_probs=False, stage=data.stage,
                        component=data.component)  # fmt: skip
     assert "log_p" not in pq.read_schema(bare).names
+    assert not set(rio.SEVERITY_COLUMNS) & set(pq.read_schema(bare).names)  # a file as before the severity columns
+    old = rio.read_rollouts(bare)
+    assert old.min_distance is None and old.impact_speed is None
     for args in ([str(bare)], [str(path), "--pem", "ml-nn", "--proposal", "naive50"]):
         code, out, err = estimate_cli(capsys, *args, "--no-record")
         assert code == 0, err
@@ -269,7 +288,7 @@ def small_file(tmp_path_factory, pem):
     batch = problem.simulate(6, ConstantDetector(0.5), problem.target, np.random.default_rng(0))
     path = tmp_path_factory.mktemp("small") / "small.parquet"
     rio.write_rollouts(path, batch, rollout_format.braking_meta(pem="ml-nn", proposal="naive50"),
-                       salient=rio.braking_salient(batch.gap_m))  # fmt: skip
+                       salient=rio.braking_salient(batch.gap_m), severity=rollout_severity(problem, batch))  # fmt: skip
     return path
 
 
@@ -329,6 +348,18 @@ def _null_speed(t):
     return _set(t, "lead_speed_mps", pa.array(v, mask=mask))
 
 
+def _changed_min_distance(t):
+    d = _values(t, "min_distance_m")
+    d[_row(1, 5)] += 1.0
+    return _set(t, "min_distance_m", pa.array(d))
+
+
+def _negative_impact_speed(t):
+    v = _values(t, "impact_speed_mps")
+    v[_row(4, 0)] = -1.0
+    return _set(t, "impact_speed_mps", pa.array(v))
+
+
 def _float_steps(t):
     return _set(t, "step", pa.array(_values(t, "step").astype(np.float64)))
 
@@ -348,6 +379,12 @@ MALFORMED = {
     "detected-not-boolean": (_detected_two, r"detected = 2 at rollout 1, step 5 \(row 105\)"),
     "positive-log-p": (_positive_log_p, r"log_p = 0\.5 > 0 at rollout 0, step 3 \(row 3\)"),
     "null-value": (_null_speed, r"column 'lead_speed_mps' is missing a value \(null\) at rollout 2, step 7"),
+    "severity-half": (lambda t: t.drop_columns(["impact_speed_mps"]), r"severity columns incomplete: "
+                                                                       r"'min_distance_m' without 'impact_speed_mps'"),
+    "severity-changes": (_changed_min_distance, r"min_distance_m = \S+ at rollout 1, step 5 \(row 105\) but \S+ at "
+                                                r"its step 0; a rollout has one min_distance_m"),
+    "impact-speed-negative": (_negative_impact_speed, r"impact_speed_mps = -1\.0 at rollout 4, step 0 \(row 400\): an "
+                                                      r"impact speed is a positive number"),
 }  # fmt: skip
 
 

@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from scipy.special import logsumexp
 
 from pemviz import cli
+from pemviz.core.severity import severity_of_signal
 from pemviz.core.weights import component_of, mean_weight, mixture_step_log_q
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
@@ -98,6 +99,12 @@ def test_default_run_round_trips_all_its_pooled_stages_and_its_mean_weight_is_on
     assert f"<- stages {', '.join(map(str, pooling['stages']))} pooled (quadratic)" in est
     m = re.search(r"mean importance weight (\S+) \(SE (\S+)\) over (\d+) rollouts", est)
     assert abs(float(m.group(1)) - 1.0) < 4 * float(m.group(2)) and int(m.group(3)) == sum(n)
+    # each rollout's severity: its min gap, and its closing speed into a gap <= 0.7 m (NaN: no contact)
+    data = rio.read_rollouts(tmp_path / "r.parquet")
+    dist, speed = severity_of_signal(data.gap_m, 0.7, 0.05)
+    np.testing.assert_array_equal(data.min_distance, dist)
+    np.testing.assert_array_equal(data.impact_speed, speed)
+    assert np.isfinite(speed).any() and sidecar["version"] == 2  # the format version stays
 
 
 @pytest.mark.parametrize("run_args", [
@@ -386,6 +393,10 @@ def test_a_cut_in_run_round_trips_each_cars_detections_and_errors(cut_in_file):
     assert data.detected.shape == (n, t, 5) and data.noise.shape == (n, t, 5, 2)
     assert data.noise_names == ("range_error_m", "lateral_error_m")
     assert (data.noise[~data.detected] == 0.0).all() and (data.noise[data.detected] != 0.0).mean() > 0.99
+    # each rollout's severity: its min clearance, and its closing speed into a clearance <= 0 (NaN: no contact)
+    clearance = data.signal("clearance_m")
+    np.testing.assert_array_equal(data.min_distance, clearance.min(axis=1))
+    np.testing.assert_array_equal(data.impact_speed, severity_of_signal(clearance, 0.0, 0.1)[1])
     # pooled stages drawn from a mixture with the target: their per-step density of the errors is not clipped at 0
     assert any(len(sidecar["stages"][i]["components"]) == 3 for i in range(len(sidecar["stages"])))
 

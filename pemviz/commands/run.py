@@ -271,16 +271,18 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
 
 def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, final, recording: str | None,
                   paths: tuple[Path | None, Path | None, Path | None], why: str | None = None,
-                  saved: Path | None = None, failures: dict | None = None) -> None:  # fmt: skip
+                  saved: Path | None = None, failures: dict | None = None, severity=None) -> None:  # fmt: skip
     """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where; with a ``saved`` recording its
     result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads);
-    ``failures``: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`)."""
+    ``failures``: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`);
+    ``severity``: their :class:`pemviz.core.severity.FailureSeverity`, for the console's lines (None: none)."""
     from pemviz.io.result import result_beside, result_document, write_junit, write_result_json
 
     json_path, junit_path, report_path = paths
     from pemviz.sinks.console import final_lines
 
-    lines = final_lines(final, cfg, problem.exact_log_p, problem.reference) + ([why] if why is not None else [])
+    lines = final_lines(final, cfg, problem.exact_log_p, problem.reference,
+                        severity) + ([why] if why is not None else [])  # fmt: skip
     doc = result_document(cfg, final, exact_log_p=problem.exact_log_p, reference=problem.reference,
                           recording=recording, command=" ".join(["pemviz", *sys.argv[1:]]), problem=problem,
                           console=lines, inputs=input_files(cfg),
@@ -364,7 +366,10 @@ def main(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--preset / --scenario: {exc}") from None
     experiment = Experiment(cfg, problem=problem)
-    listeners = [ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()]
+    groups = FailureGroups(problem.view.scene, problem)  # the failures' groups and severity: console, result document
+    console = ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()
+    console.failures = groups  # prints the failures' severity, which groups (heard first) reads at the final estimate
+    listeners = [groups, console]
     recorder = None
     if target != "no-record":
         from pemviz.sinks.recording import RerunSink  # rerun, and pandas through pyarrow: only for a recording
@@ -379,13 +384,12 @@ def main(args: argparse.Namespace) -> int:
             print(f"recording: streaming to {args.url}", file=sys.stderr)
         else:
             recorder = serve(args)
+        recorder.problem = problem  # the failures' severity (final/failures, final/severity_of_failures)
         listeners.append(recorder)
     if rollout_sink is not None:
         rollout_sink.problem = problem  # its sidecar: the scenario's formula, signals and step
         listeners.append(rollout_sink)
     experiment.listeners[:0] = listeners
-    groups = FailureGroups(problem.view.scene, problem)  # the failures' groups for the result document
-    experiment.listeners.append(groups)
     likely = MostLikelyFailure() if problem.view.scene is None and problem.branch is not None else None
     if likely is not None:  # a scene without the braking scenario's own explanation: say which errors decided
         experiment.listeners.append(likely)
@@ -428,7 +432,7 @@ def main(args: argparse.Namespace) -> int:
     if final is not None and (saved is not None or any(path is not None for path in result_files)):
         failures = grouping_document(groups.grouping) if groups.grouping is not None else None
         write_results(args, cfg, problem, final, str(where) if where is not None else None, result_files, why, saved,
-                      failures)
+                      failures, getattr(groups.grouping, "severity", None))
     if cfg.require is not None and final is not None and final.decision is not None:
         from pemviz.core.requirement import EXIT_CODES
 

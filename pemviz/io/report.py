@@ -19,6 +19,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from pemviz.core.severity import share_text
 from pemviz.io.files import atomic_write
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
@@ -151,6 +152,23 @@ def _table_md(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> str:
     return "\n".join(lines)
 
 
+def _share(x: float | None) -> str:
+    """A share of p in words (:func:`pemviz.core.severity.share_text`; ``-`` for null)."""
+    return "-" if x is None else share_text(float(x))
+
+
+def _failure_severity_lead(sev: dict[str, Any]) -> str:
+    """The lead of the failures' severity table: what a bin's share is, contact, the median min distance and how
+    much of p the table covers."""
+    unit, label = sev.get("unit", "m"), sev.get("label", "distance")
+    median = sev.get("median_min_distance")
+    kept = (f" It covers the {sev['n_kept']:,} failures whose rollouts were kept, {_share(sev.get('covered'))} of p."
+            if sev.get("n_kept") != sev.get("n") else "")  # fmt: skip
+    return (f"p(severity | failure): the failures' share of p by impact speed, the closing speed into contact "
+            f"(contact: {label} <= {sev.get('contact', 0):g} {unit}; the shares add up to 100 %). Share-weighted "
+            f"median min {label}: {'-' if median is None else f'{median:.2f} {unit}'}.{kept}")
+
+
 MAX_GROUPS = 12
 """Groups of failures the report lists, largest share first (the rest in one row)."""
 
@@ -186,6 +204,11 @@ def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list
                          f"{len(failures['groups'])} groups by {failures['basis']}: each group's share of p (its "
                          f"failures' importance weights over all the failures'; the shares add up to 100 %).{largest}",
                          ("group", "failures", "share of p"), rows))  # fmt: skip
+    severity = (failures or {}).get("severity")
+    if severity and severity.get("bins") and severity.get("n_kept"):
+        sections.append(("Severity of the failures", _failure_severity_lead(severity),
+                         ("impact speed", "failures", "share of p"),
+                         [(b["label"], f"{b['count']:,}", _share(b["share"])) for b in severity["bins"]]))  # fmt: skip
     sections += [
         ("Scenario, specification and PEM", "", ("item", "value"), scene),
         ("Inputs", "sha256 of every file the run read.", ("input", "path", "sha256"), inputs),

@@ -3,7 +3,8 @@ requirement (``pemviz run --junit``).
 
 The JSON document (format tag ``pemviz-result``, :data:`RESULT_VERSION`) holds the estimate with its 95 % interval,
 ESS, k-hat and verdict, the exact answer or reference where one is known, the requirement's outcome, the settings and
-seed, the pemviz version and the recording's path. Probabilities are given both as numbers and as natural logs (a
+seed, the pemviz version and the recording's path; the failures by their shares of p, in groups and by severity
+(p(severity | failure) over impact-speed bins). Probabilities are given both as numbers and as natural logs (a
 probability below float64's range is 0 as a number, finite as a log); a value that is not finite is ``null``. Its JSON
 Schema is in the user guide ("pemviz in CI"), and a test validates a run's document against it.
 
@@ -63,8 +64,9 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
         problem: the run's :class:`pemviz.core.problems.Problem` (its name, description and formula go in), or None.
         console: the lines the console printed after the table (the estimate, severity, stop, advice), or None.
         inputs: the files the run read, ``{"what", "path", "sha256"}`` each (the PEMs), or None.
-        failures: the final estimate's failures in groups with their shares of p
-            (:func:`pemviz.sinks.population.grouping_document`), or None.
+        failures: the final estimate's failures in groups with their shares of p and, where the problem has a
+            severity signal, p(severity | failure): their shares by impact speed and each listed failure's min
+            distance and impact speed (:func:`pemviz.sinks.population.grouping_document`), or None.
     """
     import pemviz
 

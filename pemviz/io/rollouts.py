@@ -4,6 +4,15 @@
 The format (the Parquet table's columns, the JSON sidecar's fields, the units) is :mod:`pemviz.io.rollout_format`'s.
 Bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError`: one message naming the file, the column, and
 the rollout and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
+
+Two optional columns carry each rollout's severity, the same value on all its rows (:data:`SEVERITY_COLUMNS`,
+:func:`pemviz.core.severity.rollout_severity`; ``pemviz run --save-rollouts`` writes them): ``min_distance_m`` (float,
+metres, finite: the smallest value of the problem's severity signal, the braking gap or the cut-in clearance) and
+``impact_speed_mps`` (float, m/s, > 0: the closing speed over the step into contact; null where the rollout never
+reaches contact, and a NaN is read alike). Give both or neither. They are a record, not an input: estimates do not read them, and a file
+without them (every file before them) reads as before, with :attr:`RolloutData.min_distance` and
+:attr:`RolloutData.impact_speed` None; readers that ignore other columns read a file with them unchanged, so the
+format version stays.
 """
 
 from __future__ import annotations
@@ -37,6 +46,11 @@ from pemviz.pem import braking_salient_inputs
 from pemviz.core.sampling import write_proposal_file
 from pemviz.scenarios import RolloutBatch
 
+SEVERITY_COLUMNS = ("min_distance_m", "impact_speed_mps")
+"""The optional per-rollout severity columns (module docstring): min distance (m), impact speed (m/s, null: no
+contact)."""
+
+
 def braking_salient(gap_m: np.ndarray) -> np.ndarray:
     """The PEM's salient variables of the lead at each gap, float64 [N, T, 11] for gaps [N, T] (metres).
 
@@ -68,6 +82,9 @@ class RolloutData(RolloutBatch):
         stage, component: int64 [N], each rollout's stage and mixture component (version 2), or None.
         noise, noise_names: float64 [N, T, M, D] each object's measurement errors (metres, 0 where missed) and their
             D names (version 3, the sidecar's ``noise``), or None and ().
+        min_distance, impact_speed: float64 [N] each rollout's min distance (metres) and impact speed (m/s; NaN
+            exactly where the file says no contact, a null), or None where the file has no such columns
+            (:data:`SEVERITY_COLUMNS`).
     """
 
     log_p: np.ndarray | None
@@ -78,6 +95,8 @@ class RolloutData(RolloutBatch):
     path: Path | None = None
     stage: np.ndarray | None = None
     component: np.ndarray | None = None
+    min_distance: np.ndarray | None = None
+    impact_speed: np.ndarray | None = None
 
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:
         """:meth:`pemviz.scenarios.RolloutBatch.log_weight` of the file's columns, float64 [N] (nats).
@@ -235,6 +254,40 @@ class _Table:
                              f"a rollout has one {name}")
         return per[:, 0].copy()
 
+    def severity(self, n: int, n_steps: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The per-rollout severity columns (:data:`SEVERITY_COLUMNS`) as float64 [N] each, or (None, None) without
+        them: the min distance finite, the impact speed > 0 or null (or NaN: no contact, read as NaN), each the same
+        on all of a rollout's rows."""
+        names = self.table.column_names
+        present = [c for c in SEVERITY_COLUMNS if c in names]
+        if not present:
+            return None, None
+        if len(present) != len(SEVERITY_COLUMNS):
+            absent = [c for c in SEVERITY_COLUMNS if c not in names]
+            raise self.error(f"severity columns incomplete: {present[0]!r} without {absent[0]!r} (give both or "
+                             "neither)")  # fmt: skip
+        dist = self.floats(SEVERITY_COLUMNS[0])
+        col = self.table.column(SEVERITY_COLUMNS[1])
+        if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
+            raise self._type_error(SEVERITY_COLUMNS[1], "numbers (float64, null: no contact)", located=True)
+        speed = col.to_numpy(zero_copy_only=False).astype(np.float64)  # a null reads as NaN: no contact
+        bad = np.isinf(speed) | (speed <= 0)
+        if bad.any():
+            row = _first_index(bad)
+            raise self.error(f"{SEVERITY_COLUMNS[1]} = {float(speed[row])!r} at {self.at(row)}: an impact speed is a "
+                             "positive number of m/s, or null where the rollout makes no contact")  # fmt: skip
+        out = []
+        for name, x in zip(SEVERITY_COLUMNS, (dist, speed)):
+            per = x.reshape(n, n_steps)
+            differs = ~((per == per[:, :1]) | (np.isnan(per) & np.isnan(per[:, :1]))).all(axis=1)
+            if differs.any():
+                i = _first_index(differs)
+                t = _first_index(~((per[i] == per[i, 0]) | (np.isnan(per[i]) & np.isnan(per[i, 0]))))
+                raise self.error(f"{name} = {per[i, t]} at {self.at(i * n_steps + t)} but {per[i, 0]} at its step 0; "
+                                 f"a rollout has one {name}")  # fmt: skip
+            out.append(per[:, 0].copy())
+        return out[0], out[1]
+
     def stages(self, stage: np.ndarray | None, component: np.ndarray | None) -> None:
         """Check the stage / component columns against the sidecar's ``stages`` and ``pooling``."""
         if stage is None:
@@ -281,9 +334,10 @@ class _Table:
         log_q = self.floats("log_q", log_prob=probability).reshape(n, n_steps) if "log_q" in names else None
         stage, component = (self.per_rollout(c, n, n_steps) if c in names else None for c in ("stage", "component"))
         self.stages(stage, component)
+        min_distance, impact_speed = self.severity(n, n_steps)
         return RolloutData(obs, detected, log_p, log_q, tuple(cols), noise=noise, noise_names=self.meta.noise,
                            meta=self.meta, rollout_ids=ids, salient=salient, path=path, stage=stage,
-                           component=component)  # fmt: skip
+                           component=component, min_distance=min_distance, impact_speed=impact_speed)  # fmt: skip
 
 
 RECORDING_MAGIC = b"RRF"
@@ -363,9 +417,11 @@ def rollouts_table(
     log_probs: bool = True,
     stage: int | np.ndarray | None = None,
     component: np.ndarray | None = None,
+    severity: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Any:
     """The Parquet table of a batch: rollout, step, observations, detected (or, for several objects or errors, each
-    object's ``detected_<m>`` and ``<error>_<m>``), [salient], [log_p, log_q], [stage, component].
+    object's ``detected_<m>`` and ``<error>_<m>``), [salient], [log_p, log_q], [stage, component], [min_distance_m,
+    impact_speed_mps].
 
     Args:
         batch: N rollouts [N, T].
@@ -374,6 +430,8 @@ def rollouts_table(
         log_probs: include ``log_p`` and ``log_q``.
         stage: the stage of all N rollouts, or int [N] each rollout's, or None (no stage column).
         component: int [N] each rollout's mixture component (with ``stage``; default 0).
+        severity: (min distance float64 [N] in metres, impact speed float64 [N] in m/s, NaN: no contact), written as
+            :data:`SEVERITY_COLUMNS` (the impact speed null where NaN), or None: not written.
     Raises:
         ValueError: arrays of the wrong shape.
     """
@@ -412,6 +470,13 @@ def rollouts_table(
             raise ValueError(f"component must have shape ({n},), got {comp.shape}")
         cols["stage"] = np.repeat(np.broadcast_to(np.asarray(stage, dtype=np.int64), (n,)), n_steps)
         cols["component"] = np.repeat(comp, n_steps)
+    if severity is not None:
+        dist, speed = (np.asarray(x, dtype=np.float64) for x in severity)
+        if dist.shape != (n,) or speed.shape != (n,):
+            raise ValueError(f"severity must be two arrays of shape ({n},), got {dist.shape} and {speed.shape}")
+        cols[SEVERITY_COLUMNS[0]] = np.repeat(dist, n_steps)
+        speed = np.repeat(speed, n_steps)
+        cols[SEVERITY_COLUMNS[1]] = pa.array(speed, type=pa.float64(), mask=np.isnan(speed))  # null: no contact
     return pa.table(cols)
 
 
@@ -455,13 +520,14 @@ class RolloutWriter:
 
     def append(self, batch: RolloutBatch, *, rollout_ids: np.ndarray | None = None,
                salient: np.ndarray | None = None, stage: int | np.ndarray | None = None,
-               component: np.ndarray | None = None) -> None:  # fmt: skip
+               component: np.ndarray | None = None,
+               severity: tuple[np.ndarray, np.ndarray] | None = None) -> None:  # fmt: skip
         """Validate and write the next rollouts (default ids: continuing from the last chunk's).
 
         Args:
             batch: rollouts [n, T] with the same T and observation columns as the chunks before.
-            rollout_ids, salient, stage, component: see :func:`rollouts_table` (give ``stage`` for every chunk or
-                for none).
+            rollout_ids, salient, stage, component, severity: see :func:`rollouts_table` (give ``stage`` and
+                ``severity`` for every chunk or for none).
         Raises:
             ValueError: wrong shapes, a batch unlike the earlier ones, or a :class:`RolloutFormatError` (NaN, a
                 positive log-probability ...) naming the rollout and step; nothing of this chunk is written.
@@ -480,7 +546,7 @@ class RolloutWriter:
         if rollout_ids is None:
             rollout_ids = np.arange(self.n_rollouts, self.n_rollouts + batch.n, dtype=np.int64)
         table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=self.log_probs, stage=stage,
-                               component=component)  # fmt: skip
+                               component=component, severity=severity)  # fmt: skip
         _Table(table, meta, f"{self.path} (not written)").parse(None)
         if self._writer is None:
             self._writer = pq.ParquetWriter(self._tmp, table.schema)
@@ -584,6 +650,7 @@ def write_rollouts(
     overwrite: bool = False,
     stage: int | np.ndarray | None = None,
     component: np.ndarray | None = None,
+    severity: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Path:
     """Write ``NAME.parquet``, its sidecar ``NAME.json`` and (with ``proposal``) ``NAME.proposal.pt`` as one unit
     (a :class:`RolloutWriter` with one chunk).
@@ -595,8 +662,9 @@ def write_rollouts(
         path: ``NAME.parquet``.
         batch: N rollouts [N, T] (observations, detected, log_p, log_q in nats).
         meta: the sidecar (:func:`braking_meta` for the braking scenario).
-        rollout_ids, salient, log_probs, stage, component: see :func:`rollouts_table` (``stage`` / ``component`` of
-            a version-2 file: ``RolloutData.stage`` / ``.component``).
+        rollout_ids, salient, log_probs, stage, component, severity: see :func:`rollouts_table` (``stage`` /
+            ``component`` of a version-2 file: ``RolloutData.stage`` / ``.component``; ``severity``: the optional
+            :data:`SEVERITY_COLUMNS`).
         proposal: a :class:`pemviz.core.sampling.Proposal` that sampled the batch, saved as ``NAME.proposal.pt`` and
             named in the sidecar; None: none saved.
         overwrite: replace existing files of the unit (only ones pemviz wrote).
@@ -609,5 +677,6 @@ def write_rollouts(
         OSError: the folder is not writable, the disk is full (nothing is left behind).
     """
     with RolloutWriter(path, meta, log_probs=log_probs, overwrite=overwrite) as writer:
-        writer.append(batch, rollout_ids=rollout_ids, salient=salient, stage=stage, component=component)
+        writer.append(batch, rollout_ids=rollout_ids, salient=salient, stage=stage, component=component,
+                      severity=severity)  # fmt: skip
         return writer.commit(proposal)

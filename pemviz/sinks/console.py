@@ -7,6 +7,7 @@ import sys
 from typing import TextIO
 
 from pemviz.core.estimate import Estimate, Reference, format_probability
+from pemviz.core.severity import FailureSeverity
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.sinks import Sink, StageClock
 
@@ -80,17 +81,20 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
             "added until the interval is within 10 %); the verdict says whether to trust the result")
 
 
-def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = None,
-                reference: Reference | None = None) -> list[str]:  # fmt: skip
+def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = None, reference: Reference | None = None,
+                failure_severity: FailureSeverity | None = None) -> list[str]:  # fmt: skip
     """The lines under the table: mu_hat with its log and the run's size, the estimate's summary with the exact answer
-    or reference, the severity curve, why the run stopped and what to do next (the console's, ``--junit``'s and
-    ``--report``'s)."""
+    or reference, the severity curve and, with ``failure_severity``, the failures by impact speed with their shares of
+    p (:meth:`pemviz.core.severity.FailureSeverity.line`), why the run stopped and what to do next (the console's,
+    ``--junit``'s and ``--report``'s)."""
     e = event.estimate
     point = "no failure seen" if e.n_failures == 0 else f"mu_hat = {format_probability(e.log_mu_hat, 4)}"
     lines = [f"{point} (log mu_hat = {e.log_mu_hat:.4f} nats) from {event.n_simulations} simulations in "
              f"{event.wall_s:.1f} s", e.summary(exact_log_p, reference)]  # fmt: skip
     if event.severity is not None and len(event.severity.points) > 1:
         lines += event.severity.lines()
+    if failure_severity is not None and failure_severity.n_failures:
+        lines.append(failure_severity.line())
     if event.pem_spread is not None:
         lines += event.pem_spread.lines()
     if event.stop is not None:
@@ -113,6 +117,10 @@ class ConsoleSink(Sink):
         self.config = None
         self.exact_log_p: float | None = None
         self.reference: Reference | None = None
+        self.failures = None
+        """A listener that has grouped the final estimate's failures before this sink hears of it
+        (:class:`pemviz.sinks.population.FailureGroups`, run before it): its grouping's severity is printed
+        (:func:`final_lines`); None: not printed."""
 
     def __call__(self, event) -> None:
         self.clock(event)
@@ -141,7 +149,9 @@ class ConsoleSink(Sink):
     def on_final_estimate(self, event: FinalEstimate) -> None:
         e = event.estimate
         print(f"{'final':>7} {'':>8} {'':>9} {estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
-        print("\n".join(final_lines(event, self.config, self.exact_log_p, self.reference)), file=self.out)
+        grouping = getattr(self.failures, "grouping", None)
+        severity = getattr(grouping, "severity", None)
+        print("\n".join(final_lines(event, self.config, self.exact_log_p, self.reference, severity)), file=self.out)
         self.out.flush()
 
     def on_run_cancelled(self, event: RunCancelled) -> None:

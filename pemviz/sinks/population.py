@@ -5,6 +5,10 @@ Groups: on the braking scenario, the last step at which one detection alone stil
 its deterministic twin, :func:`pemviz.scenarios.braking_failures.last_saving_steps`): the failures whose last chance
 came at the same step. Elsewhere, with the run's problem at hand, the step at which the rollout fails
 (:func:`pemviz.estimators.base.failure_steps`), which the labels say; without it, one group. No I/O.
+
+Severity: with the run's problem at hand (and its severity scale), each located failure's min distance and impact
+speed (:func:`pemviz.core.severity.rollout_severity`), weighed by the shares into p(severity | failure)
+(:class:`pemviz.core.severity.FailureSeverity`, :func:`failures_severity`).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz.core.population import FailureGroup, FailureShares, failure_groups
+from pemviz.core.severity import FailureSeverity, contact_level, failure_severity, rollout_severity
 from pemviz.engine.events import RolloutsSampled
 
 NOT_KEPT = "not kept"
@@ -36,6 +41,8 @@ class FailureGrouping:
         keys: per rank, its group key.
         groups: the groups, largest share first (their shares add up to 1).
         basis: what the groups share, in words.
+        severity: each failure's min distance and impact speed in the order of ``shares``, and their distribution
+            by share (:func:`failures_severity`); None without the run's problem, or where it has no severity scale.
     """
 
     shares: FailureShares
@@ -43,6 +50,7 @@ class FailureGrouping:
     keys: tuple[Hashable, ...]
     groups: tuple[FailureGroup, ...]
     basis: str
+    severity: FailureSeverity | None = None
 
     def group_label(self, rank: int) -> str:
         """The label of the group of the failure at ``rank``."""
@@ -59,21 +67,64 @@ def _row(event: RolloutsSampled, index: int) -> int | None:
     return int(hit[0]) if hit.size else None
 
 
-def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled], scene: object = None,
-                   problem: object = None) -> FailureGrouping:  # fmt: skip
-    """Locate and group the failures of an estimate.
-
-    Args:
-        shares: the final estimate's failures (``FinalEstimate.failures``).
-        sampled: stage -> the stage's :class:`RolloutsSampled` (its batch, or a sample of it when streamed).
-        scene: the braking scenario's constants (``ProblemView.scene``), or None: not the braking scenario.
-        problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step), or None.
-    """
+def locate(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]) -> list[tuple[RolloutsSampled, int] | None]:
+    """Per failure (in ``shares`` order), its stage's :class:`RolloutsSampled` and its row in the batch, or None where
+    the stage was not kept or kept only a sample without it."""
     found: list[tuple[RolloutsSampled, int] | None] = []
     for stage, index in zip(shares.stage.tolist(), shares.index.tolist()):
         event = sampled.get(stage)
         row = _row(event, index) if event is not None else None
         found.append((event, row) if row is not None else None)
+    return found
+
+
+def failures_severity(shares: FailureShares,
+                      found: list[tuple[RolloutsSampled, int] | None] | Mapping[int, RolloutsSampled],
+                      problem: object) -> FailureSeverity | None:  # fmt: skip
+    """Each failure's min distance and impact speed (:func:`pemviz.core.severity.rollout_severity`, read from the
+    rollout in its stage's batch) and their distribution by share of p.
+
+    Args:
+        shares: the final estimate's failures.
+        found: their rollouts (:func:`locate`), or stage -> :class:`RolloutsSampled` to locate them in.
+        problem: the run's :class:`pemviz.core.problems.Problem`.
+    Returns:
+        The distribution (failures not located are left out of it, their values NaN), or None where ``problem`` is
+        None or has no severity scale.
+    Raises:
+        ValueError: a rollout in contact at its first step (:func:`pemviz.core.severity.severity_of_signal`).
+    """
+    if problem is None or getattr(problem, "severity", None) is None:
+        return None
+    if isinstance(found, Mapping):
+        found = locate(shares, found)
+    dist, speed = np.full(shares.n, np.nan), np.full(shares.n, np.nan)
+    by_stage: dict[int, tuple[RolloutsSampled, list[int], list[int]]] = {}
+    for rank, f in enumerate(found):
+        if f is not None:
+            by_stage.setdefault(f[0].stage, (f[0], [], []))[1].append(rank)
+            by_stage[f[0].stage][2].append(f[1])
+    for event, ranks, rows in by_stage.values():
+        dist[ranks], speed[ranks] = rollout_severity(problem, event.batch.select(np.asarray(rows)))
+    kept = np.array([f is not None for f in found], dtype=bool)
+    return failure_severity(problem.severity, contact_level(problem), shares.log_share, dist, speed, kept)
+
+
+def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled], scene: object = None,
+                   problem: object = None) -> FailureGrouping:  # fmt: skip
+    """Locate and group the failures of an estimate, and with ``problem`` read their severity
+    (:func:`failures_severity`).
+
+    Args:
+        shares: the final estimate's failures (``FinalEstimate.failures``).
+        sampled: stage -> the stage's :class:`RolloutsSampled` (its batch, or a sample of it when streamed).
+        scene: the braking scenario's constants (``ProblemView.scene``), or None: not the braking scenario.
+        problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step; the failures' severity), or
+            None.
+    Raises:
+        ValueError: a failure in contact at its first step (:func:`failures_severity`).
+    """
+    found = locate(shares, sampled)
     keys: list[Hashable] = [NOT_KEPT] * shares.n
     kept = [rank for rank, f in enumerate(found) if f is not None]
     labels: dict[Hashable, str] = {NOT_KEPT: "not kept (a streamed stage keeps a sample of its rollouts)"}
@@ -107,7 +158,8 @@ def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]
     if basis.startswith("nothing"):
         keys = ["all"] * shares.n
         labels["all"] = "every failure"
-    return FailureGrouping(shares, tuple(found), tuple(keys), tuple(failure_groups(shares, keys, labels)), basis)
+    return FailureGrouping(shares, tuple(found), tuple(keys), tuple(failure_groups(shares, keys, labels)), basis,
+                           failures_severity(shares, found, problem))  # fmt: skip
 
 
 def population_markdown(g: FailureGrouping, most: int = MAX_LISTED) -> str:
@@ -170,13 +222,47 @@ class FailureGroups:
 def grouping_document(g: FailureGrouping, most: int = 20) -> dict:
     """The groups (every one, largest share first) and the ``most`` failures with the largest shares, as plain
     numbers for a result document: ``{"basis", "n", "groups": [{"label", "count", "share"}], "largest": [{"stage",
-    "rollout", "share", "log_p", "group"}]}`` (shares are fractions of mu_hat; log p in nats)."""
+    "rollout", "share", "log_p", "group"}]}`` (shares are fractions of mu_hat; log p in nats); with the failures'
+    severity (:attr:`FailureGrouping.severity`) each of ``largest`` adds ``min_distance`` (metres, null where not kept)
+    and ``impact_speed`` (m/s, null: no contact or not kept), and ``"severity"`` holds their distribution
+    (:func:`severity_document`; absent without failures)."""
     share = g.shares.share()
-    return {
+    sev = g.severity
+    largest = []
+    for r in range(min(most, g.shares.n)):
+        row = {"stage": int(g.shares.stage[r]), "rollout": int(g.shares.index[r]), "share": float(share[r]),
+               "log_p": float(g.shares.log_p[r]), "group": g.group_label(r)}  # fmt: skip
+        if sev is not None:
+            row["min_distance"] = _finite(sev.min_distance[r])
+            row["impact_speed"] = _finite(sev.impact_speed[r])
+        largest.append(row)
+    doc = {
         "basis": g.basis,
         "n": g.shares.n,
         "groups": [{"label": x.label, "count": x.count, "share": float(x.share)} for x in g.groups],
-        "largest": [{"stage": int(g.shares.stage[r]), "rollout": int(g.shares.index[r]), "share": float(share[r]),
-                     "log_p": float(g.shares.log_p[r]), "group": g.group_label(r)}
-                    for r in range(min(most, g.shares.n))],
+        "largest": largest,
+    }
+    if sev is not None and sev.n_failures:
+        doc["severity"] = severity_document(sev)
+    return doc
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def severity_document(sev: FailureSeverity) -> dict:
+    """p(severity | failure) as plain numbers: ``{"signal", "label", "unit", "contact", "n", "n_kept", "covered",
+    "median_min_distance", "text", "bins": [{"label", "lo", "hi", "count", "share"}]}``: the distance signal and its
+    contact level (metres), the failures and those whose rollout was kept, the share of p these carry, their
+    share-weighted median min distance (metres; null without a kept failure), the console's line, and per
+    impact-speed bin (``lo`` / ``hi`` in m/s, null for "no contact" and the open end) the kept failures and their share
+    of the kept failures' p (the shares add up to 1)."""
+    bounds, counts, shares = sev.bounds(), sev.counts(), sev.shares()
+    return {
+        "signal": sev.scale.signal, "label": sev.scale.label, "unit": sev.scale.unit, "contact": sev.contact,
+        "n": sev.n_failures, "n_kept": sev.n, "covered": sev.covered,
+        "median_min_distance": sev.median_min_distance() if sev.n else None, "text": sev.line(),
+        "bins": [{"label": label, "lo": lo, "hi": hi, "count": int(c), "share": float(x)}
+                 for label, (lo, hi), c, x in zip(sev.labels(), bounds, counts, shares)],
     }  # fmt: skip

@@ -57,6 +57,12 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
 - ``explain/...``: the most likely failure of the run (:mod:`pemviz.sinks.rerun_explain`), logged once the run
   ends (final estimate, cancellation or close).
 - ``final``: the final estimate (static :class:`rerun.AnyValues`).
+- ``final/failures``: every failure of the final estimate, the largest share of p first: stage, rollout, share,
+  log-weight, log p, group and, with the run's problem (:attr:`RerunSink.problem`), its min distance (metres; NaN
+  where its rollout was not kept) and impact speed (m/s; NaN: no contact); ``final/severity_of_failures``: p(severity
+  | failure), the failures' share of p per impact-speed bin (no contact, 0-2, 2-5, > 5 m/s) as a static
+  :class:`rerun.BarChart`, with the bins' words, counts, shares and the share-weighted median min distance
+  (:class:`pemviz.core.severity.FailureSeverity`).
 
 Size: per stage the recording holds summaries, two histograms, the marginal proposal's bars, at most
 500 rollouts' traces in one entity per signal and a few featured rollouts, so a run of 10^5
@@ -81,13 +87,14 @@ import rerun as rr
 import pemviz
 from pemviz.core.estimate import Reference, error_text, format_probability
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
+from pemviz.core.severity import FailureSeverity
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.io.files import atomic_write
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
-from pemviz.sinks.population import group_failures, population_markdown
+from pemviz.sinks.population import failures_severity, group_failures, population_markdown
 from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
@@ -127,6 +134,9 @@ class RerunSink(Sink):
             with a scene, :attr:`pemviz.core.problems.ProblemView.scene`: the braking scenario's car sizes, camera, dt).
         repetition: when set, an index on the ``repetition`` timeline added to every temporal row
             (static figures show the latest repetition).
+        problem: the run's :class:`pemviz.core.problems.Problem` (also settable as :attr:`problem` before the run),
+            for the failures' severity (``final/failures``' min distance and impact speed,
+            ``final/severity_of_failures``); None: not logged.
     """
 
     def __init__(
@@ -138,8 +148,10 @@ class RerunSink(Sink):
         likely_per_stage: int = 3,
         scene_per_stage: int = 1,
         repetition: int | None = None,
+        problem: object = None,
     ) -> None:
         self.stream = stream
+        self.problem = problem
         self.rollout_traces = rollout_traces
         self.tagged_per_stage = tagged_per_stage
         self.likely_per_stage = likely_per_stage
@@ -554,6 +566,20 @@ class RerunSink(Sink):
                         self._indexes, object_detect=self.most_likely_detect)  # fmt: skip
 
     # -- final --------------------------------------------------------------------------------------
+    def _log_failure_severity(self, sev: FailureSeverity) -> None:
+        """``final/severity_of_failures``: p(severity | failure) as bars, one per impact-speed bin (no contact first),
+        each the bin's share of the failures' p, and (AnyValues) the bins' words (``bin``), failures
+        (``bin_failures``) and shares (``bin_share``), the share-weighted median min distance (metres), the contact
+        level (metres), the share of p the kept failures carry (``kept_share``) and the distance's name; the
+        console's line in the description."""
+        shares = sev.shares()
+        self.stream.log("final/severity_of_failures", rr.BarChart(shares, color=C.rgba(C.CRASH)),
+                        rr.AnyValues(bin=sev.labels(), bin_failures=sev.counts(), bin_share=shares,
+                                     median_min_distance=sev.median_min_distance(), contact_level=sev.contact,
+                                     kept_share=sev.covered, distance=f"min {sev.scale.label} ({sev.scale.unit})"),
+                        static=True)  # fmt: skip
+        self.status_md += "\n\n" + sev.line()
+
     def _final(self, ev: FinalEstimate) -> None:
         e = ev.estimate
         s = self.stream
@@ -595,10 +621,15 @@ class RerunSink(Sink):
             grouping = group_failures(ev.failures, self._sampled, self.scene)
             s.log("failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN),
                   static=True)  # fmt: skip
+            sev = failures_severity(ev.failures, list(grouping.found), self.problem)
+            aligned = {} if sev is None else {"min_distance": sev.min_distance, "impact_speed": sev.impact_speed}
             s.log("final/failures", rr.AnyValues(stage=ev.failures.stage, rollout=ev.failures.index,
                                                  share=ev.failures.share(), log_weight=ev.failures.log_weight,
-                                                 log_p=ev.failures.log_p, group=[str(k) for k in grouping.keys]),
+                                                 log_p=ev.failures.log_p, group=[str(k) for k in grouping.keys],
+                                                 **aligned),
                   static=True)  # fmt: skip
+            if sev is not None and sev.n:
+                self._log_failure_severity(sev)
         self._sampled = {}
         self._log_description()
         self._explain()

@@ -19,6 +19,8 @@ from pemviz.io.rollout_format import braking_meta, problem_meta
 from pemviz.io.rollouts import RolloutWriter, braking_salient, check_rollouts_path
 from pemviz.pem import DEFAULT_PEM_NAME
 from pemviz.core.sampling import Proposal
+from pemviz.core.severity import rollout_severity, severity_of_signal
+from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink
 from pemviz.core.weights import convention, describe, stage_log_q
 
@@ -36,7 +38,8 @@ class RolloutSink(Sink):
     "used"``: the stages it pooled, or its one batch) or every stage (``"all"``), so that ``pemviz estimate`` on the
     file reproduces the run's estimate.
 
-    Each rollout is written with its stage, the component of the stage's mixture that drew it, and as ``log_q`` the
+    Each rollout is written with its stage, the component of the stage's mixture that drew it, its severity (min
+    distance and impact speed, :data:`pemviz.io.rollouts.SEVERITY_COLUMNS`), and as ``log_q`` the
     per-step density the run weighed it with (:func:`pemviz.core.weights.stage_log_q`: for a mixture over whole
     rollouts, the mixture's). The sidecar holds the run's weight convention, each stage's components and weight bound,
     and the pooling rule with its stage weights (:mod:`pemviz.io.rollout_format`). Rollouts are written chunk by chunk
@@ -115,7 +118,19 @@ class RolloutSink(Sink):
         log_q, component = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
         batch = chunk.batch.with_changes(log_q=log_q)  # the file holds no object rows: none rebuilt for it
         salient = braking_salient(batch.gap_m) if self._braking else None
-        self._writer.append(batch, salient=salient, stage=chunk.stage, component=component)
+        self._writer.append(batch, salient=salient, stage=chunk.stage, component=component,
+                            severity=self._severity(batch))  # fmt: skip
+
+    def _severity(self, batch: Any) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each rollout's min distance (m) and impact speed (m/s, NaN: no contact) for the file's severity columns
+        (:func:`pemviz.core.severity.rollout_severity`; without a problem, the braking scene's gap, contact gap and
+        step, as its sidecar assumes); None for a problem without a severity scale."""
+        if self.problem is None:
+            p = BrakingParams()
+            return severity_of_signal(batch.gap_m, p.contact_gap_m, p.dt_s)
+        if getattr(self.problem, "severity", None) is None:
+            return None
+        return rollout_severity(self.problem, batch)
 
     @property
     def _braking(self) -> bool:
