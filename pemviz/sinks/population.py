@@ -266,3 +266,38 @@ def severity_document(sev: FailureSeverity) -> dict:
         "bins": [{"label": label, "lo": lo, "hi": hi, "count": int(c), "share": float(x)}
                  for label, (lo, hi), c, x in zip(sev.labels(), bounds, counts, shares)],
     }  # fmt: skip
+
+
+def log_failures(stream: object, grouping: FailureGrouping, problem: object = None) -> str:
+    """Log a run's failures to its recording (static): ``failures`` (Markdown, :func:`population_markdown`),
+    ``final/failures`` (every failure, in share order: stage, rollout, share, log-weight, log p, group, and where the
+    problem gives them its min distance and impact speed) and ``final/severity_of_failures``: p(severity | failure)
+    as bars, one per impact-speed bin (no contact first), each the bin's share of the failures' p, with (AnyValues)
+    the bins' words (``bin``), failures (``bin_failures``) and shares (``bin_share``), the share-weighted median min
+    distance (metres), the contact level (metres), the share of p the kept failures carry (``kept_share``) and the
+    distance's name.
+
+    Returns:
+        The console's severity line for the run's description (``"\n\n" + line``), or ``""`` without one.
+    """
+    import rerun as rr  # a recording only: the command line's other outputs need no rerun
+
+    from pemviz.sinks import colours as C
+
+    f = grouping.shares
+    stream.log("failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN),
+               static=True)  # fmt: skip
+    sev = failures_severity(f, list(grouping.found), problem)
+    aligned = {} if sev is None else {"min_distance": sev.min_distance, "impact_speed": sev.impact_speed}
+    stream.log("final/failures", rr.AnyValues(stage=f.stage, rollout=f.index, share=f.share(), log_weight=f.log_weight,
+                                              log_p=f.log_p, group=[str(k) for k in grouping.keys], **aligned),
+               static=True)  # fmt: skip
+    if sev is None or not sev.n:
+        return ""
+    shares = sev.shares()
+    stream.log("final/severity_of_failures", rr.BarChart(shares, color=C.rgba(C.CRASH)),
+               rr.AnyValues(bin=sev.labels(), bin_failures=sev.counts(), bin_share=shares,
+                            median_min_distance=sev.median_min_distance(), contact_level=sev.contact,
+                            kept_share=sev.covered, distance=f"min {sev.scale.label} ({sev.scale.unit})"),
+               static=True)  # fmt: skip
+    return "\n\n" + sev.line()

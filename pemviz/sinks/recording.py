@@ -34,6 +34,9 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
   native time-series views; ``stages/log10_mu_hat/{ci_low,ci_high,exact}``: the 95 % interval and the exact answer
   where known; ``stages/miss_in_window/{q,pem}``: the mean q(miss) and p_PEM(miss) over the stage's visited states
   inside the sampler window.
+- ``stage_figures/<series>``: the per-stage series again as static figures (:mod:`pemviz.sinks.rerun_stage_figures`),
+  shown on every timeline; the bar charts of ``proposal_marginal`` and ``histograms`` carry ``step`` 0 as well, so
+  that ``step`` shows the last stage's.
 - ``histograms/{robustness,log_weight}``: each stage's histogram of every rollout's robustness (configured
   metric) and importance log-weight (nats), a :class:`rerun.BarChart` on ``stage``.
 - ``rollouts/<column>/stage_KK`` for each signal of the problem's view (``gap_m``, ``ego_speed_mps``, ...): the kept
@@ -87,25 +90,21 @@ import rerun as rr
 import pemviz
 from pemviz.core.estimate import Reference, error_text, format_probability
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
-from pemviz.core.severity import FailureSeverity
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.io.files import atomic_write
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
-from pemviz.sinks.population import failures_severity, group_failures, population_markdown
+from pemviz.sinks.population import FailureGroups, log_failures
 from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
+from pemviz.sinks.rerun_stage_figures import StageFigures, log_histograms, log_series_styles
 from pemviz.sinks.rerun_views import (
-    CRASH_RGBA,
-    HISTOGRAM_BINS,
-    PEM_PLOT_RGBA,
     PEM_RGBA,
     PROPOSAL_FIG,
     SCENE_PATH,
-    STAGE_METRICS,
     intro_markdown,
     log_marginal_proposal,
     log_scene_lane,
@@ -187,8 +186,11 @@ class RerunSink(Sink):
         self.curve_stages: list[int] = []
         self.finished = False
         self._pending: RolloutsSampled | None = None
-        self._sampled: dict[int, RolloutsSampled] = {}
-        """Stage -> its sampled rollouts: the final estimate's failures are found in them (``failures``)."""
+        self.figures: StageFigures | None = None
+        """The per-stage series as static figures (:mod:`pemviz.sinks.rerun_stage_figures`), from the run's start."""
+        self._groups = FailureGroups()
+        """Each stage's failing rollouts, in which the final estimate's failures are found and grouped (``failures``);
+        its scene and problem are set when the run starts."""
         self.serve_url: str | None = None
         self._path: Path | None = None
         self._binary: rr.BinaryStream | None = None
@@ -273,7 +275,7 @@ class RerunSink(Sink):
     # -- events -------------------------------------------------------------------------------------
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         self._pending = event
-        self._sampled[event.stage] = event
+        self._groups(event)
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self._stage_finished(event.result)
@@ -357,29 +359,11 @@ class RerunSink(Sink):
         self.estimate_md = "\n".join(lines) + "\n"
         self.stream.log("estimate", rr.TextDocument(self.estimate_md, media_type=rr.MediaType.MARKDOWN), static=True)
 
-    def _log_series_styles(self) -> None:
-        """Static styling of the per-stage series (names, colours, markers) for the time-series views."""
-        s = self.stream
-        for key, name, rgb in STAGE_METRICS:
-            s.log(f"stages/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[2.0]),
-                  rr.SeriesPoints(colors=[C.rgba(rgb)], names=[name], marker_sizes=[3.0]), static=True)  # fmt: skip
-        for key, name, rgb in (("ci_low", "95 % interval, low", C.INTERVAL),
-                               ("ci_high", "95 % interval, high", C.INTERVAL),
-                               ("exact", "exact answer", C.DETECTED)):  # fmt: skip
-            s.log(f"stages/log10_mu_hat/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[1.0]),
-                  static=True)  # fmt: skip
-        for key, name, rgba in (("miss_in_window/q", "mean q(miss) of the sampler", C.rgba(C.PROPOSAL)),
-                                ("miss_in_window/pem", "mean p(miss) of the PEM", PEM_PLOT_RGBA),
-                                ("contact_share", "share of failures with contact", C.rgba(C.CRASH))):  # fmt: skip
-            if key == "contact_share" and self.scene is None:
-                continue
-            s.log(f"stages/{key}", rr.SeriesLines(colors=[rgba], names=[name], widths=[2.0]),
-                  rr.SeriesPoints(colors=[rgba], names=[name], marker_sizes=[3.0]), static=True)  # fmt: skip
-
     # -- run started ----------------------------------------------------------------------------------
     def on_run_started(self, ev: RunStarted) -> None:
         cfg = ev.config
         self.plan, self.view, self.scene = ev.plan, ev.problem, ev.problem.scene
+        self._groups.scene, self._groups.problem = self.scene, self.problem
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         self.bins_m = bins_over(self.grid_m) if np.ptp(self.grid_m) > 0 else None
         self.exact_log_p, self.reference = ev.exact_log_p, ev.reference
@@ -401,7 +385,11 @@ class RerunSink(Sink):
         rows = "\n".join(f"| {k} | `{v}` |" for k, v in vars(cfg).items())
         self.config_md = f"\n## Config\n\n| setting | value |\n|---|---|\n{rows}\n"
         self._log_description()
-        self._log_series_styles()
+        log_series_styles(s, self.scene is not None)
+        known = ev.exact_log_p if ev.exact_log_p is not None and math.isfinite(ev.exact_log_p) else (
+            ev.reference.log_p if ev.reference is not None else None)
+        self.figures = StageFigures(s, self.plan.last_stage, None if known is None else known / math.log(10.0),
+                                    self.scene is not None)  # fmt: skip
         PROPOSAL_FIG.draw_axes(s, (float(self.grid_m.min()), float(self.grid_m.max())), (0.0, 1.0))
         s.log(
             "proposal/data/pem",
@@ -456,6 +444,8 @@ class RerunSink(Sink):
         for key, value in values.items():
             if math.isfinite(value):
                 s.log(f"stages/{key}", rr.Scalars(value))
+        if self.figures is not None:
+            self.figures.add(res.stage, values)  # the same series as static figures: shown on every timeline
 
         def num(x: float, fmt: str) -> str:
             return format(x, fmt) if math.isfinite(x) else "-"
@@ -469,7 +459,7 @@ class RerunSink(Sink):
         self._log_estimate(res)
 
         if pending is not None:
-            self._log_histograms(pending)
+            log_histograms(self.stream, pending)
             self._track_most_likely(pending)
             if self.rollout_traces:
                 self._log_rollouts(pending)
@@ -486,7 +476,9 @@ class RerunSink(Sink):
         pv = batch_proposal_view(ev.batch, self.bins_m, window)
         if pv is None:
             return {}
+        self.stream.set_time("step", sequence=0)  # on step, the last stage's bars (each stage's on stage)
         log_marginal_proposal(self.stream, pv, colour)
+        self.stream.disable_timeline("step")
         return {"miss_in_window/q": pv.q_miss_window, "miss_in_window/pem": pv.p_miss_window}
 
     def _contact_share(self, ev: RolloutsSampled) -> dict[str, float]:
@@ -497,24 +489,6 @@ class RerunSink(Sink):
             return {}
         gap = ev.batch.gap_m
         return {"contact_share": float(np.mean([severity(gap[i], self.scene).contact for i in failed]))}
-
-    def _log_histograms(self, ev: RolloutsSampled) -> None:
-        """Histograms of every rollout's robustness and log-weight at this stage (:class:`rerun.BarChart` on
-        ``stage``)."""
-        every = ev.n_total is not None  # a streamed stage: the sample's rows, every rollout's numbers
-        for key, values in (("robustness", ev.stage_robustness if every else ev.robustness),
-                            ("log_weight", ev.stage_log_weight if every else ev.log_weight)):  # fmt: skip
-            v = np.asarray(values, dtype=np.float64)
-            v = v[np.isfinite(v)]
-            if v.size == 0:
-                continue
-            counts, edges = np.histogram(v, bins=HISTOGRAM_BINS if np.ptp(v) > 0 else 1)
-            colour = CRASH_RGBA[:3] + (255,) if key == "robustness" else C.rgba(C.LOG_WEIGHT)
-            self.stream.log(
-                f"histograms/{key}",
-                rr.BarChart(counts.astype(np.float64), abscissa=(edges[:-1] + edges[1:]) / 2, widths=np.diff(edges),
-                            color=colour),
-            )
 
     def kept_rollouts(self, ev: RolloutsSampled) -> np.ndarray:
         """Indices of the rollouts recorded in full (:func:`pemviz.sinks.rerun_rollouts.kept_rollouts`)."""
@@ -566,20 +540,6 @@ class RerunSink(Sink):
                         self._indexes, object_detect=self.most_likely_detect)  # fmt: skip
 
     # -- final --------------------------------------------------------------------------------------
-    def _log_failure_severity(self, sev: FailureSeverity) -> None:
-        """``final/severity_of_failures``: p(severity | failure) as bars, one per impact-speed bin (no contact first),
-        each the bin's share of the failures' p, and (AnyValues) the bins' words (``bin``), failures
-        (``bin_failures``) and shares (``bin_share``), the share-weighted median min distance (metres), the contact
-        level (metres), the share of p the kept failures carry (``kept_share``) and the distance's name; the
-        console's line in the description."""
-        shares = sev.shares()
-        self.stream.log("final/severity_of_failures", rr.BarChart(shares, color=C.rgba(C.CRASH)),
-                        rr.AnyValues(bin=sev.labels(), bin_failures=sev.counts(), bin_share=shares,
-                                     median_min_distance=sev.median_min_distance(), contact_level=sev.contact,
-                                     kept_share=sev.covered, distance=f"min {sev.scale.label} ({sev.scale.unit})"),
-                        static=True)  # fmt: skip
-        self.status_md += "\n\n" + sev.line()
-
     def _final(self, ev: FinalEstimate) -> None:
         e = ev.estimate
         s = self.stream
@@ -617,20 +577,9 @@ class RerunSink(Sink):
                   static=True)  # fmt: skip
         if ev.pem_spread is not None:
             self.status_md += "\n\n```text\n" + "\n".join(ev.pem_spread.lines()) + "\n```\n"
-        if ev.failures is not None:
-            grouping = group_failures(ev.failures, self._sampled, self.scene)
-            s.log("failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN),
-                  static=True)  # fmt: skip
-            sev = failures_severity(ev.failures, list(grouping.found), self.problem)
-            aligned = {} if sev is None else {"min_distance": sev.min_distance, "impact_speed": sev.impact_speed}
-            s.log("final/failures", rr.AnyValues(stage=ev.failures.stage, rollout=ev.failures.index,
-                                                 share=ev.failures.share(), log_weight=ev.failures.log_weight,
-                                                 log_p=ev.failures.log_p, group=[str(k) for k in grouping.keys],
-                                                 **aligned),
-                  static=True)  # fmt: skip
-            if sev is not None and sev.n:
-                self._log_failure_severity(sev)
-        self._sampled = {}
+        self._groups(ev)  # the final estimate's failures, grouped (FailureGroups keeps each stage's failing rows)
+        if ev.failures is not None and self._groups.grouping is not None:
+            self.status_md += log_failures(s, self._groups.grouping, self.problem)
         self._log_description()
         self._explain()
         s.flush()

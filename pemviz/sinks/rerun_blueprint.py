@@ -1,14 +1,16 @@
 """The layout of a pemviz recording in rerun's viewer (the blueprint sent with it, :mod:`pemviz.sinks.recording`).
 
-rerun shows the data of one timeline at a time (chosen in the time panel), so the layout is three tabs, one per
-question, each holding only views with data on the timeline its name gives, and two text views beside them that
-hold on every timeline:
+rerun shows the data of one timeline at a time (chosen in the time panel; a view cannot choose its own,
+rerun-io/rerun#6828), so the recording opens on ``step`` and every tab has content there. The layout is three tabs,
+one per question, and text views beside them that hold on every timeline:
 
-- **Stages** (timeline ``stage``, open at start): what the sampler learned, stage by stage. The proposal's q(miss)
-  over the states the stage's rollouts visited beside the PEM's, per gap bin, on a probability and a log-odds
-  scale (bar charts; :mod:`pemviz.core.proposal_view`), the reference-state curve q(detect | d) of the proposal, the
-  per-stage series (log10 mu_hat with its interval and the exact answer, failures / N, gamma, ESS, k-hat, NLL,
-  the mean miss probability inside the sampler window) and the histograms of robustness and log-weight.
+- **Stages** (open at start): what the sampler learned, stage by stage. The proposal's q(miss) over the states the
+  stage's rollouts visited beside the PEM's, per gap bin, on a probability and a log-odds scale (bar charts;
+  :mod:`pemviz.core.proposal_view`: the last stage's on ``step``, each stage's when scrubbing ``stage``), the
+  reference-state curve q(detect | d) of each stage's proposal, the per-stage series as static figures
+  (:mod:`pemviz.sinks.rerun_stage_figures`: log10 mu_hat with its interval and the exact answer, failures / N,
+  gamma, ESS, k-hat, NLL, the mean miss probability inside the sampler window) and the histograms of robustness and
+  log-weight.
 - **Explain** (timeline ``step``): the most likely failure of the run: what happened in words, p(detect) of the
   PEM and q(detect) of the sampler along it with its misses, its first signal against the thresholds with the
   counterfactual replays, the controller and its scene (the last two for a problem with a scene).
@@ -16,8 +18,7 @@ hold on every timeline:
 - beside the tabs: the **estimate**, and the **run**'s description and the final estimate's **failures** (every group
   of failures and the failures with the largest shares of p) in two tabs (static text).
 
-Switching the timeline does not switch the tab: each tab's name says its timeline. Everything here builds
-blueprint objects and logs nothing.
+Everything here builds blueprint objects and logs nothing.
 """
 
 from __future__ import annotations
@@ -26,13 +27,16 @@ import rerun.blueprint as rrb
 
 from pemviz.core.problems import BRAKING_SIGNALS, BRAKING_UNITS, ProblemView, SignalView
 from pemviz.sinks import colours as C
-from pemviz.sinks.rerun_views import LANE_SPACING_M, PROPOSAL_FIG, SCENE_PATH, SCENE_X_RANGE_M, STAGE_METRICS
+from pemviz.sinks.rerun_stage_figures import figure, figure_titles
+from pemviz.sinks.rerun_views import LANE_SPACING_M, PROPOSAL_FIG, SCENE_PATH, SCENE_X_RANGE_M
 
 TABS = ("stages", "explain", "rollouts")
 """The blueprint's tabs, in order; :func:`default_blueprint` opens the one it is given (``stages`` by default)."""
 
-TIMELINE = {"stages": "stage", "explain": "step", "rollouts": "step"}
-"""The timeline each tab's views are drawn on."""
+TIMELINE = {"stages": "step", "explain": "step", "rollouts": "step"}
+"""The timeline the viewer opens on with each tab: ``step`` for all three, so that every tab has content as opened
+(the Stages tab's figures are static and its bar charts carry ``step`` 0 too: the last stage's on ``step``, each
+stage's on ``stage``). rerun draws every view on one timeline (a view cannot choose its own: rerun-io/rerun#6828)."""
 
 BRAKING_SIGNAL_VIEWS = tuple(SignalView(n, c, BRAKING_UNITS[n]) for n, c in BRAKING_SIGNALS.items())
 """The braking scenario's signals (the blueprint's traces when no view is given)."""
@@ -45,21 +49,14 @@ _NO_LEGEND = rrb.PlotLegend(visible=False)
 
 def tab_name(tab: str) -> str:
     """The title of a tab, with its timeline: ``Stages (timeline: stage)``."""
-    words = {"stages": "Stages", "explain": "Explain: the most likely failure", "rollouts": "Rollouts"}[tab]
-    return f"{words} (timeline: {TIMELINE[tab]})"
+    words = {"stages": "Stages (any timeline; on stage, scrub its bars)", "explain": "Explain: the most likely failure",
+             "rollouts": "Rollouts"}[tab]
+    return words if tab == "stages" else f"{words} (timeline: {TIMELINE[tab]})"
 
 
 def _stages_tab(view: ProblemView | None) -> rrb.Container:
-    titles = {"log10_mu_hat": "log10 mu_hat, 95 % CI, exact", "nll": "NLL of failures (nats)"}
-    series = [
-        rrb.TimeSeriesView(origin=f"/stages/{key}", name=titles.get(key, name), plot_legend=_NO_LEGEND)
-        for key, name, _ in STAGE_METRICS
-    ]
-    series.append(rrb.TimeSeriesView(origin="/stages/miss_in_window", name="mean miss in window: q, PEM",
-                                     plot_legend=_NO_LEGEND))  # fmt: skip
-    if view is None or view.scene is not None:
-        series.append(rrb.TimeSeriesView(origin="/stages/contact_share", name="share of failures with contact",
-                                         plot_legend=_NO_LEGEND))  # fmt: skip
+    scene = view is None or view.scene is not None
+    series = [figure(key).view(title) for key, title in figure_titles(scene)]
     proposal = rrb.Horizontal(
         rrb.BarChartView(origin="/proposal_marginal/miss", plot_legend=_NO_LEGEND,
                          name="q(miss) per gap bin over the visited states: mean, 10-90 % (light), PEM (grey)"),

@@ -92,8 +92,10 @@ class Figure:
         x_range: tuple[float, float],
         y_range: tuple[float, float],
         x_ticks: np.ndarray | None = None,
+        n_y_ticks: int = 5,
     ) -> None:
-        """Log (static) the data transform, the frame, grid lines and tick labels for these ranges."""
+        """Log (static) the data transform, the frame, grid lines and tick labels for these ranges (about
+        ``n_y_ticks`` round values on the y axis)."""
         (x0, x1), (y0, y1) = x_range, y_range
         if y1 <= y0:
             y0, y1 = y0 - 0.5, y1 + 0.5
@@ -105,7 +107,7 @@ class Figure:
         )
         w, h = self.width, self.height
         xt = nice_ticks(x0, x1, 6) if x_ticks is None else np.asarray(x_ticks, dtype=np.float64)
-        yt = nice_ticks(y0, y1, 5)
+        yt = nice_ticks(y0, y1, n_y_ticks)
         xt = xt[(xt >= x0) & (xt <= x1)]
         yt = yt[(yt >= y0) & (yt <= y1)]
         X = (xt - x0) * sx
@@ -179,11 +181,13 @@ def intro_markdown(ev: RunStarted) -> str:
     view, cfg = ev.problem, ev.config
     method = method_markdown(ev)
     reading = (
-        "**How to read it.** Three tabs, each on the timeline its name gives (choose it in the time panel below). "
-        "*Stages* (`stage`: 0 = pretraining, 1..K = CE stages, K+1 = final batch, as in the console): the sampler's "
-        "q(miss) over the states the stage's rollouts visited, per gap bin, beside the PEM's (grey), as a probability "
-        "and as log-odds; the proposal's reference-state curve; the per-stage series and histograms (robustness, "
-        "importance log-weight). *Explain* (`step`): the most likely failure (the failing rollout with the largest "
+        "**How to read it.** Three tabs; the recording opens on the `step` timeline, where each has content. "
+        "*Stages* (0 = pretraining, 1..K = CE stages, K+1 = final batch, as in the console): the per-stage series "
+        "(static figures), the sampler's q(miss) over the states the last stage's rollouts visited, per gap bin, "
+        "beside the PEM's (grey), as a probability and as log-odds, and the histograms of robustness and importance "
+        "log-weight (choose the `stage` timeline in the time panel below and scrub it to see each stage's); the "
+        "proposal's reference-state curves. *Explain* (`step`): the most likely failure (the failing rollout with the "
+        "largest "
         "log p under the PEM), its p and q along it, its misses and what would have avoided it. *Rollouts* (`step`): "
         "the kept rollouts of every stage"
     )

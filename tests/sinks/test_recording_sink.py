@@ -93,7 +93,7 @@ def test_a_braking_run_draws_the_crash_gap_the_braking_distance_and_a_scene_lane
     names = view_names(stream.blueprint)
     assert "Scene: each stage's least robust rollout (play on step)" in names
     assert "Scene of the most likely failure (play on step)" in names
-    assert "share of failures with contact" in names
+    assert "share of the stage's failures with contact" in names
     assert any(n.startswith("d: gap_m (m), kept rollouts") for n in names)
 
 
@@ -110,15 +110,16 @@ def test_a_toy_run_draws_its_own_thresholds_and_no_scene():
 
 
 def test_each_tab_shows_only_entities_of_its_timeline():
-    """Stages: the per-stage entities (``stage`` timeline); Explain and Rollouts: the per-step ones (``step``)."""
+    """Stages: the per-stage entities (static figures, bars on ``stage`` and ``step``); Explain and Rollouts: the
+    per-step ones (``step``)."""
     for view in (BRAKING, TOY):
         sink, stream = record(view)
         sink.close()  # an interrupted run: the most likely failure is explained at close
         by_tab = tabs(stream.blueprint)
-        assert list(by_tab) == ["Stages (timeline: stage)", "Explain: the most likely failure (timeline: step)",
-                                "Rollouts (timeline: step)"]  # fmt: skip
+        assert list(by_tab) == ["Stages (any timeline; on stage, scrub its bars)",
+                                "Explain: the most likely failure (timeline: step)", "Rollouts (timeline: step)"]  # fmt: skip
         stages, explain, rollouts = by_tab.values()
-        assert origins(stages) == {"proposal_marginal", "proposal", "stages", "histograms"}
+        assert origins(stages) == {"proposal_marginal", "proposal", "stage_figures", "histograms"}
         assert origins(explain) == {"explain"}
         assert origins(rollouts) == ({"rollouts", "scene"} if view.scene else {"rollouts"})
         # and the sink logged every origin a tab shows
