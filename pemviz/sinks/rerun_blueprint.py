@@ -15,8 +15,9 @@ one per question, and text views beside them that hold on every timeline:
   PEM and q(detect) of the sampler along it with its misses, its first signal against the thresholds with the
   counterfactual replays, the controller and its scene (the last two for a problem with a scene).
 - **Rollouts** (timeline ``step``): the kept rollouts of every stage over ``step`` and the scene's lanes.
-- beside the tabs: the **estimate**, and the **run**'s description and the final estimate's **failures** (every group
-  of failures and the failures with the largest shares of p) in two tabs (static text).
+- beside the tabs: the **estimate**, and in tabs the **run**'s description, the final estimate's **failures** (every
+  group of failures and the failures with the largest shares of p) and, for a scene with contact, p(severity |
+  failure) per impact-speed bin (static).
 
 Everything here builds blueprint objects and logs nothing.
 """
@@ -181,6 +182,9 @@ def default_blueprint(
                 rrb.Tabs(
                     rrb.TextDocumentView(origin="/description", name="Run"),
                     rrb.TextDocumentView(origin="/failures", name="Failures by share of p, in groups"),
+                    *([rrb.BarChartView(origin="/final/severity_of_failures", plot_legend=_NO_LEGEND,
+                                        name="p(severity | failure): share of p per impact speed, no contact first")]
+                      if view is None or view.scene is not None or view.objects_xy is not None else []),
                 ),
                 row_shares=[1.0, 1.8],
             ),
