@@ -366,7 +366,8 @@ def main(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--preset / --scenario: {exc}") from None
     experiment = Experiment(cfg, problem=problem)
-    groups = FailureGroups(problem.view.scene, problem)  # the failures' groups and severity: console, result document
+    wanted = target != "no-record" or any(path is not None for path in result_files)  # files that show the groups
+    groups = FailureGroups(problem.view.scene, problem, keys=wanted)  # the failures' severity (console), groups
     console = ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()
     console.failures = groups  # prints the failures' severity, which groups (heard first) reads at the final estimate
     listeners = [groups, console]
@@ -385,6 +386,7 @@ def main(args: argparse.Namespace) -> int:
         else:
             recorder = serve(args)
         recorder.problem = problem  # the failures' severity (final/failures, final/severity_of_failures)
+        recorder.share_failure_groups(groups)  # grouped once for the console, the recording and the result files
         listeners.append(recorder)
     if rollout_sink is not None:
         rollout_sink.problem = problem  # its sidecar: the scenario's formula, signals and step

@@ -357,8 +357,8 @@ def last_saving_steps(detected: np.ndarray, params: BrakingParams | None = None)
     """The last step at which one detection alone still saves each rollout, as
     :attr:`Counterfactual.last_saving_step` (the latest decisive miss), for many rollouts in one batch of replays.
 
-    Only the misses before a rollout's first breach of the margin are flipped: a detection at or after it cannot
-    undo the breach.
+    Only the misses before a rollout's first breach of the margin and inside the braking distance are flipped: a
+    detection at or after the breach cannot undo it, and one outside the braking distance commands no brake.
 
     Args:
         detected: bool [F, T] the rollouts' detections, T <= ``params.n_steps``.
@@ -376,12 +376,14 @@ def last_saving_steps(detected: np.ndarray, params: BrakingParams | None = None)
         return out
     breach = np.full(d.shape[0], d.shape[1], dtype=np.int64)
     sim, low = BatchedBraking(p, d.shape[0]), np.full(d.shape[0], np.inf)
+    inside = np.zeros(d.shape, dtype=bool)  # a detection acts only within the braking distance
     for t in range(d.shape[1]):  # the first step whose gap is below the margin (the recorded rollout)
         below = (sim.gap_m < p.crash_gap_m) & (breach == d.shape[1])
         breach[below] = t
         np.minimum(low, sim.gap_m, out=low)
+        inside[:, t] = sim.gap_m < p.braking_distance_m
         sim.step(d[:, t])
-    rollout, step = np.nonzero(~d & (np.arange(d.shape[1])[None, :] < breach[:, None]))
+    rollout, step = np.nonzero(~d & inside & (np.arange(d.shape[1])[None, :] < breach[:, None]))
     if rollout.size == 0:
         return out
     rows = d[rollout].copy()

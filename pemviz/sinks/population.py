@@ -22,6 +22,7 @@ import numpy as np
 from pemviz.core.population import FailureGroup, FailureShares, failure_groups
 from pemviz.core.severity import FailureSeverity, contact_level, failure_severity, rollout_severity
 from pemviz.engine.events import RolloutsSampled
+from pemviz.scenarios import RolloutBatch
 
 NOT_KEPT = "not kept"
 """Group key of failures whose stage was streamed and kept only a sample of its rollouts for the listeners."""
@@ -58,23 +59,17 @@ class FailureGrouping:
         return next((g.label for g in self.groups if g.key == key), str(key))
 
 
-def _row(event: RolloutsSampled, index: int) -> int | None:
-    """The row of rollout ``index`` of the stage in ``event``'s batch, or None where the batch is a sample without
-    it."""
-    if event.index is None:
-        return index if index < event.batch.n else None
-    hit = np.flatnonzero(np.asarray(event.index) == index)
-    return int(hit[0]) if hit.size else None
-
-
 def locate(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]) -> list[tuple[RolloutsSampled, int] | None]:
     """Per failure (in ``shares`` order), its stage's :class:`RolloutsSampled` and its row in the batch, or None where
-    the stage was not kept or kept only a sample without it."""
+    the stage was not kept or kept only a sample without it (one dictionary per stage: linear in the failures)."""
+    rows_of: dict[int, dict[int, int]] = {}
+    for stage, event in sampled.items():
+        index = np.arange(event.batch.n) if event.index is None else np.asarray(event.index)
+        rows_of[stage] = dict(zip(index.tolist(), range(index.size)))
     found: list[tuple[RolloutsSampled, int] | None] = []
     for stage, index in zip(shares.stage.tolist(), shares.index.tolist()):
-        event = sampled.get(stage)
-        row = _row(event, index) if event is not None else None
-        found.append((event, row) if row is not None else None)
+        row = rows_of.get(stage, {}).get(index)
+        found.append((sampled[stage], row) if row is not None else None)
     return found
 
 
@@ -111,7 +106,7 @@ def failures_severity(shares: FailureShares,
 
 
 def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled], scene: object = None,
-                   problem: object = None) -> FailureGrouping:  # fmt: skip
+                   problem: object = None, keys_wanted: bool = True) -> FailureGrouping:  # fmt: skip
     """Locate and group the failures of an estimate, and with ``problem`` read their severity
     (:func:`failures_severity`).
 
@@ -121,6 +116,8 @@ def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]
         scene: the braking scenario's constants (``ProblemView.scene``), or None: not the braking scenario.
         problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step; the failures' severity), or
             None.
+        keys_wanted: False: one group (``basis`` says so), no replays; the severity is read all the same (a run's
+            console prints it, its groups go only to its files).
     Raises:
         ValueError: a failure in contact at its first step (:func:`failures_severity`).
     """
@@ -129,7 +126,9 @@ def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]
     kept = [rank for rank, f in enumerate(found) if f is not None]
     labels: dict[Hashable, str] = {NOT_KEPT: "not kept (a streamed stage keeps a sample of its rollouts)"}
     basis = "nothing: this problem has no scene to replay"
-    if scene is not None:
+    if not keys_wanted:
+        basis = "nothing: not asked for"
+    elif scene is not None:
         from pemviz.scenarios.braking_failures import last_saving_steps
 
         basis = "the last step at which one detection alone still saves the rollout (exact replays)"
@@ -187,6 +186,31 @@ def population_markdown(g: FailureGrouping, most: int = MAX_LISTED) -> str:
     )
 
 
+def compact_failures(event: RolloutsSampled, problem: object = None) -> RolloutsSampled:
+    """The failing rollouts of ``event`` with only what :func:`group_failures` and :func:`failures_severity` read: the
+    detections and the observation columns of the problem's signals and severity signal (every column without a
+    problem); no log p, log q or object rows (a stage of 10,000 braking rollouts keeps about 1 MB, not 40 MB)."""
+    rows = np.flatnonzero(np.asarray(event.failed, dtype=bool))
+    b = event.batch
+    names = b.observation_names
+    if problem is not None:
+        wanted = set(getattr(problem, "signals", {}).values())
+        scale = getattr(problem, "severity", None)
+        if scale is not None:
+            wanted.add(problem.signals.get(scale.signal, scale.signal))
+        names = tuple(c for c in b.observation_names if c in wanted)
+    cols = [b.observation_names.index(c) for c in names]
+    batch = RolloutBatch(b.observations[rows][:, :, cols], b.detected[rows], np.zeros((rows.size, 0)),
+                         np.zeros((rows.size, 0)), names)  # fmt: skip
+    index = np.arange(b.n) if event.index is None else np.asarray(event.index)
+    return dataclasses.replace(
+        event, batch=batch, robustness=np.asarray(event.robustness)[rows], robustness_by_metric={},
+        failed=np.ones(rows.size, dtype=bool), log_weight=np.asarray(event.log_weight)[rows],
+        n_total=event.n_total or b.n, index=index[rows], stage_robustness=None, stage_log_weight=None, sampler=None,
+        target=None,
+    )  # fmt: skip
+
+
 class FailureGroups:
     """A listener that keeps each stage's sampled rollouts and, at the final estimate, groups its failures
     (:func:`group_failures`); :attr:`grouping` is None before, or where the estimator keeps no per-stage rollouts.
@@ -194,28 +218,27 @@ class FailureGroups:
     Args:
         scene: the braking scenario's constants (``ProblemView.scene``), or None.
         problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step elsewhere), or None.
+        keys: group the failures (False: only their severity, without the braking scenario's replays, whose cost
+            grows with the failures: 2 s for the 70,000 of ``pemviz run --n 10000``).
     """
 
-    def __init__(self, scene: object = None, problem: object = None) -> None:
-        self.scene, self.problem = scene, problem
+    def __init__(self, scene: object = None, problem: object = None, keys: bool = True) -> None:
+        self.scene, self.problem, self.keys = scene, problem, keys
         self.sampled: dict[int, RolloutsSampled] = {}
         self.grouping: FailureGrouping | None = None
+        self._last: object = None
 
     def __call__(self, event: object) -> None:
         from pemviz.engine.events import FinalEstimate
 
-        if isinstance(event, RolloutsSampled):  # its failures only: a batch of several objects is large
-            rows = np.flatnonzero(np.asarray(event.failed, dtype=bool))
-            index = np.arange(event.batch.n) if event.index is None else np.asarray(event.index)
-            self.sampled[event.stage] = dataclasses.replace(
-                event, batch=event.batch.select(rows), robustness=np.asarray(event.robustness)[rows],
-                robustness_by_metric={}, failed=np.ones(rows.size, dtype=bool),
-                log_weight=np.asarray(event.log_weight)[rows], n_total=event.n_total or event.batch.n,
-                index=index[rows], stage_robustness=None, stage_log_weight=None, sampler=None, target=None,
-            )  # fmt: skip
+        if event is self._last:  # a listener shared by two sinks hears each event once
+            return
+        self._last = event
+        if isinstance(event, RolloutsSampled):  # its failures only, and only what grouping and severity read
+            self.sampled[event.stage] = compact_failures(event, self.problem)
         elif isinstance(event, FinalEstimate):
             if event.failures is not None:
-                self.grouping = group_failures(event.failures, self.sampled, self.scene, self.problem)
+                self.grouping = group_failures(event.failures, self.sampled, self.scene, self.problem, self.keys)
             self.sampled = {}  # the batches are no longer needed
 
 

@@ -273,6 +273,11 @@ class RerunSink(Sink):
         return atomic_write(self._path, lambda tmp: Path(tmp).write_bytes(data), overwrite=self._overwrite)
 
     # -- events -------------------------------------------------------------------------------------
+    def share_failure_groups(self, groups: FailureGroups) -> None:
+        """Use ``groups`` (a listener of the same run, heard before or after this sink) for the final estimate's
+        failures instead of grouping them again."""
+        self._groups = groups
+
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         self._pending = event
         self._groups(event)
@@ -363,7 +368,8 @@ class RerunSink(Sink):
     def on_run_started(self, ev: RunStarted) -> None:
         cfg = ev.config
         self.plan, self.view, self.scene = ev.plan, ev.problem, ev.problem.scene
-        self._groups.scene, self._groups.problem = self.scene, self.problem
+        if self._groups.problem is None:  # its own; a shared one knows the run's problem already
+            self._groups.scene, self._groups.problem = self.scene, self.problem
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         self.bins_m = bins_over(self.grid_m) if np.ptp(self.grid_m) > 0 else None
         self.exact_log_p, self.reference = ev.exact_log_p, ev.reference
