@@ -192,13 +192,18 @@ def wait_until(predicate, timeout: float = 15.0, what: str = "condition") -> Non
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
-@pytest.fixture
-def tab(browser, app):
-    t = Tab(browser, app)
+def open_tab(browser, app, viewport: dict | None = None):
+    """A fixture's body: a :class:`Tab` (``viewport``: its size), its run stopped and the tab closed afterwards."""
+    t = Tab(browser, app, viewport)
     yield t
     t.session.stop_run()
     t.session.wait_for_run(10.0)
     t.close()
+
+
+@pytest.fixture
+def tab(browser, app):
+    yield from open_tab(browser, app)
 
 
 # 1 ------------------------------------------------------------------------------------------------

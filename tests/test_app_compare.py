@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from test_app import TINY, Tab, app, browser, expect, wait_until  # noqa: F401  (app, browser: the module's fixtures)
+from test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 from pemviz.app import compare
 from pemviz.config import ExperimentConfig
@@ -32,11 +32,7 @@ def drawn(values: list) -> list[tuple[int, float]]:
 
 @pytest.fixture
 def wide_tab(browser, app):  # noqa: F811  (pytest's fixtures, imported above)
-    t = Tab(browser, app, viewport={"width": 1400, "height": 900})
-    yield t
-    t.session.stop_run()
-    t.session.wait_for_run(10.0)
-    t.close()
+    yield from open_tab(browser, app, {"width": 1400, "height": 900})
 
 
 def test_compare_charts_each_runs_estimate_interval_and_exact_answer_and_lists_only_differing_settings(wide_tab):

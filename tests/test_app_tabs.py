@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from scipy.special import expit
 
-from test_app import TINY, Tab, app, browser, expect, wait_until  # noqa: F401  (app, browser: the module's fixtures)
+from test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 from pemviz.app import charts
 from pemviz.app.runs import OBJECT_GAP_BINS_M, VIEW_OBJECT
@@ -88,11 +88,7 @@ def series(c: dict, label: str) -> np.ndarray:
 
 @pytest.fixture
 def wide_tab(browser, app):  # noqa: F811  (pytest's fixtures, imported above)
-    t = Tab(browser, app, viewport=VIEWPORT)
-    yield t
-    t.session.stop_run()
-    t.session.wait_for_run(10.0)
-    t.close()
+    yield from open_tab(browser, app, VIEWPORT)
 
 
 def test_every_braking_tab_shows_only_charts_with_data(wide_tab):
