@@ -501,7 +501,7 @@ def test_the_naive_50_samplers_marginal_q_is_one_half_in_every_visited_bin(runs)
     np.testing.assert_allclose(q_mean[np.isfinite(q_mean)], 0.5, atol=1e-12)
 
 
-def test_every_view_of_each_tab_has_data_on_the_tabs_timeline(runs):
+def assert_every_view_has_data(events: list, tables: dict) -> None:
     """What a user sees as the recording opens (on ``step``, for every tab): each view has rows on ``step`` or static
     ones (a figure of the Stages tab: its data or its note, not only its axes), for the layout the recording
     carries."""
@@ -509,7 +509,6 @@ def test_every_view_of_each_tab_has_data_on_the_tabs_timeline(runs):
 
     from pemviz.sinks.rerun_blueprint import TIMELINE, default_blueprint
 
-    events, _, tables, _ = runs["adaptive"]
     bp = default_blueprint(5, of(events, RunStarted)[0].problem)
     tabs = [c for c in bp.root_container.contents if isinstance(c, rrb.Tabs)][0].contents
 
@@ -534,6 +533,11 @@ def test_every_view_of_each_tab_has_data_on_the_tabs_timeline(runs):
             assert shown, f"{v.name} ({key}) shows nothing on {TIMELINE[key]}"
 
 
+def test_every_view_of_each_tab_has_data_on_the_timeline_the_recording_opens_with(runs):
+    events, _, tables, _ = runs["adaptive"]
+    assert_every_view_has_data(events, tables)
+
+
 def test_the_share_of_failures_with_contact_per_stage(runs):
     events, _, tables, _ = runs["naive"]
     (ev,) = of(events, RolloutsSampled)
@@ -552,6 +556,7 @@ def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_whe
     failures = [e for e in events if isinstance(e, RolloutsSampled) and e.failed.any()]
     assert failures, "the run found no failure to explain"
     tables = read({"c": tmp_path / "cut_in.rrd"})["c"]
+    assert_every_view_has_data(events, tables)  # the cut-in's layout as opened, too
     step = tables["step"]
     # no exact answer: the estimate stands beside the plain Monte Carlo reference, in words and as a series
     text = static_value(tables, "/estimate:TextDocument:text")[0]

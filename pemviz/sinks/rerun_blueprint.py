@@ -57,8 +57,10 @@ def tab_name(tab: str) -> str:
 
 def _stages_tab(view: ProblemView | None) -> rrb.Container:
     scene = view is None or view.scene is not None
-    series = [figure(key).view(title) for key, title in figure_titles(scene)]
-    proposal = rrb.Horizontal(
+    several = view is not None and view.objects_xy is not None  # no gap bins: the reference-state curve alone
+    series = [figure(key).view(title) for key, title in figure_titles(scene, window=not several)]
+    proposal = PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM",
+                                 legend_room=0.34) if several else rrb.Horizontal(
         rrb.BarChartView(origin="/proposal_marginal/miss", plot_legend=_NO_LEGEND,
                          name="q(miss) per gap bin over the visited states: mean, 10-90 % (light), PEM (grey)"),
         rrb.Tabs(

@@ -49,12 +49,14 @@ def stage_ticks(last_stage: int) -> np.ndarray:
     return np.arange(0, last_stage + 1, step)
 
 
-def figure_titles(scene: bool) -> list[tuple[str, str]]:
-    """(key, title) of every figure, in the Stages tab's order; ``contact_share`` only for a scene with contact."""
+def figure_titles(scene: bool, window: bool = True) -> list[tuple[str, str]]:
+    """(key, title) of every figure, in the Stages tab's order; ``contact_share`` only for a scene with contact,
+    ``miss_in_window`` only with a sampler window over one object's gap (``window``)."""
     titles = {"log10_mu_hat": "log10 mu_hat per stage: 95 % interval (bars), exact or reference (line)",
               "nll": "NLL of the failures (nats)"}  # fmt: skip
     out = [(key, titles.get(key, name)) for key, name, _ in STAGE_METRICS]
-    out += [(key, title) for key, title, _ in EXTRA_SERIES if scene or key != "contact_share"]
+    out += [(key, title) for key, title, _ in EXTRA_SERIES
+            if (scene or key != "contact_share") and (window or key != "miss_in_window")]
     return out
 
 
