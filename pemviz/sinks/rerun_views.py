@@ -180,16 +180,16 @@ def intro_markdown(ev: RunStarted) -> str:
     """The head of the recording's description: what the run estimates (from its problem view) and how to read it."""
     view, cfg = ev.problem, ev.config
     method = method_markdown(ev)
+    bins = ("" if view.objects_xy is not None else "the sampler's q(miss) over the states the last stage's rollouts "
+            "visited, per gap bin, beside the PEM's (grey), as a probability and as log-odds, ")
     reading = (
         "**How to read it.** Three tabs; the recording opens on the `step` timeline, where each has content. "
         "*Stages* (0 = pretraining, 1..K = CE stages, K+1 = final batch, as in the console): the per-stage series "
-        "(static figures), the sampler's q(miss) over the states the last stage's rollouts visited, per gap bin, "
-        "beside the PEM's (grey), as a probability and as log-odds, and the histograms of robustness and importance "
-        "log-weight (choose the `stage` timeline in the time panel below and scrub it to see each stage's); the "
-        "proposal's reference-state curves. *Explain* (`step`): the most likely failure (the failing rollout with the "
-        "largest "
-        "log p under the PEM), its p and q along it, its misses and what would have avoided it. *Rollouts* (`step`): "
-        "the kept rollouts of every stage"
+        f"(static figures), {bins}the histograms of robustness and importance log-weight (choose the `stage` "
+        "timeline in the time panel below and scrub it to see each stage's) and the proposal's reference-state "
+        "curves. *Explain* (`step`): the most likely failure (the failing rollout with the largest log p under the "
+        "PEM), its p and q along it, its misses and what would have avoided it. *Rollouts* (`step`): the kept "
+        "rollouts of every stage"
     )
     lines = " and ".join(view.thresholds.labels()) if view.thresholds is not None else ""
     colours = "red = failure, yellow = least robust, blue = most likely failures, orange x = misses"
