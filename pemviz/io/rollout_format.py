@@ -36,6 +36,10 @@ signals of the spec           float                        SI     e.g. ``ego_spe
 ``component``                 integer >= 0                 -      optional (version 2): which sampler of the
                                                                   stage's mixture drew it (index into the
                                                                   sidecar's ``stages[].components``)
+``min_distance_m``,            float64                      m;     optional, both or neither: the rollout's
+``impact_speed_mps``                                         m/s    severity, the same on all its rows (its
+                                                                  minimum distance; its closing speed at
+                                                                  contact, null without contact)
 ============================  ===========================  =====  ==========================================
 
 Floats must be finite; log-probabilities <= 0 (with errors, ``log_p`` and ``log_q`` include the errors' log
