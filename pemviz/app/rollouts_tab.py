@@ -20,7 +20,7 @@ from pemviz.app.html import (
     explanation_html,
 )
 from pemviz.app.objects_view import RobustnessOutcome, explain_objects, objects_summary
-from pemviz.app.runs import PanelRun, Population, Trajectory, scene_positions
+from pemviz.app.runs import MAX_POPULATION, PanelRun, Population, Trajectory, scene_positions
 from pemviz.scenarios.braking_failures import Severity, severity
 
 
@@ -173,7 +173,8 @@ class RolloutsTab:
             n_pop = pop.shares.n
             listed = sum(t is not None for t in pop.rollouts)
             safe = f", then the run's {n_kept} least robust rollouts outside it"
-            missing = f" ({n_pop - listed} not kept by a streamed stage)" if listed < n_pop else ""
+            missing = (f" (the {listed:,} with the largest shares listed; a streamed stage keeps a sample, and the "
+                       f"panel at most {MAX_POPULATION:,})" if listed < n_pop else "")  # fmt: skip
             what = (f"Every failure of the final estimate of {html.escape(record.short_label)}: {n_pop:,}{missing}"
                     f"{safe}")  # fmt: skip
         self.rollout_html.content = TABLE_STYLE + (

@@ -50,6 +50,10 @@ from pemviz.sinks.scene import car_positions
 MAX_RUNS = 4
 """Runs kept side by side for comparison (:func:`keep_runs` decides which go when a fifth starts)."""
 
+MAX_POPULATION = 5_000
+"""Failures of a run's estimate the panel keeps as rollouts to list, largest share first (about 4 KB each; a run of
+N = 10,000 per stage has some 60,000 failures). The groups cover every failure."""
+
 N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
 
@@ -295,12 +299,14 @@ class Population:
 
 def population_of(shares: FailureShares | None, sampled: Mapping[int, RolloutsSampled], scene: object,
                   problem: object = None) -> Population | None:  # fmt: skip
-    """The panel's :class:`Population` of a run (arguments as :func:`pemviz.sinks.population.group_failures`); None
-    when ``shares`` is None (the estimator keeps no per-stage rollouts)."""
+    """The panel's :class:`Population` of a run (arguments as :func:`pemviz.sinks.population.group_failures`): the
+    :data:`MAX_POPULATION` failures with the largest shares as rollouts (every failure in the groups); None when
+    ``shares`` is None (the estimator keeps no per-stage rollouts)."""
     if shares is None:
         return None
     g = group_failures(shares, sampled, scene, problem)
-    return Population(g, tuple(trajectory(*f) if f is not None else None for f in g.found))
+    return Population(g, tuple(trajectory(*f) if f is not None and rank < MAX_POPULATION else None
+                               for rank, f in enumerate(g.found)))  # fmt: skip
 
 
 def scene_positions(traj: Trajectory, params: BrakingParams | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -354,8 +360,8 @@ class PanelRun(Sink):
         self.sampled: dict[int, RolloutsSampled] = {}
         """Stage -> its :class:`RolloutsSampled` (the batch, or a sample of a streamed stage)."""
         self.population = None
-        """Every failure of the final estimate with its share of p and its group (:class:`Population`), once the run has its final estimate; None before or where the
-        estimator keeps no per-stage rollouts."""
+        """Every failure of the final estimate with its share of p and its group (:class:`Population`), once the run
+        has its final estimate; None before or where the estimator keeps no per-stage rollouts."""
         self.pinned = False
         """Kept for comparison until unpinned (:func:`keep_runs` never drops it)."""
         self.clock = StageClock()

@@ -12,11 +12,25 @@ No I/O, no scene: keys come from the caller. Units: nats for every log; shares a
 
 from __future__ import annotations
 
+import math
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import logsumexp
+
+
+def pooling_shifts(stage_weights: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """log(lambda_k N / n_k) of each of K pooled stages (nats, float64 [K]): what a stage's log-weights gain when the
+    estimate pools the stages with weights lambda_k (N = sum n_k; -inf for lambda_k = 0).
+
+    Args:
+        stage_weights: lambda_k >= 0, [K], summing to 1.
+        sizes: n_k, the stages' rollouts, [K].
+    """
+    n = np.asarray(sizes, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return np.log(np.asarray(stage_weights, dtype=np.float64)) + math.log(n.sum()) - np.log(n)
 
 
 @dataclass(frozen=True)
@@ -71,16 +85,14 @@ def failure_shares(parts: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray
     if stage_weights is not None and len(stage_weights) != len(parts):
         raise ValueError(f"failure_shares: {len(stage_weights)} stage weights for {len(parts)} stages")
     sizes = np.array([np.size(lw) for _, lw, _, _ in parts], dtype=np.float64)
+    shifts = np.zeros(len(parts)) if stage_weights is None else pooling_shifts(stage_weights, sizes)
     stage, index, log_w, log_p = [], [], [], []
     for k, (number, lw, failed, lp) in enumerate(parts):
         lw, failed, lp = np.asarray(lw, np.float64), np.asarray(failed, bool), np.asarray(lp, np.float64)
         if not lw.shape == failed.shape == lp.shape:
             raise ValueError(f"failure_shares: stage {number} has arrays of shapes {lw.shape}, {failed.shape}, "
                              f"{lp.shape}; they must be equal")  # fmt: skip
-        shift = 0.0
-        if stage_weights is not None:
-            with np.errstate(divide="ignore"):
-                shift = float(np.log(stage_weights[k]) + np.log(sizes.sum()) - np.log(sizes[k]))
+        shift = float(shifts[k])
         rows = np.flatnonzero(failed & np.isfinite(lw))
         stage.append(np.full(rows.size, number, dtype=np.int64))
         index.append(rows.astype(np.int64))

@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, ClassVar, Protocol
 
-import math
 import weakref
 
 import numpy as np
@@ -23,6 +22,7 @@ from pemviz import stl
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import Detector
 from pemviz.core.estimate import Estimate, estimate
+from pemviz.core.population import FailureShares, failure_shares, pooling_shifts
 from pemviz.engine.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.scenarios import RolloutBatch
@@ -537,9 +537,7 @@ def pool(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], stage_weights: 
         stage_weights: lambda_k >= 0, [K], summing to 1; None: n_k / N (every rollout alike).
     """
     if stage_weights is not None:
-        n = np.array([lw.size for lw, _, _ in parts], dtype=np.float64)
-        with np.errstate(divide="ignore"):
-            shift = np.log(np.asarray(stage_weights, dtype=np.float64)) + math.log(n.sum()) - np.log(n)
+        shift = pooling_shifts(stage_weights, np.array([lw.size for lw, _, _ in parts], dtype=np.float64))
         parts = [(lw + c, f, lp) for (lw, f, lp), c in zip(parts, shift)]
     log_w, failed, log_p = (np.concatenate(a) for a in zip(*parts))
     return estimate(log_w, failed, log_p)
@@ -572,6 +570,12 @@ def severity_curve(problem: Problem, estimator: object, final: Estimate, used: t
     return SeverityCurve(scale, tuple(points))
 
 
+def stage_weights_of(pooling: tuple[str, tuple[float, ...]] | None) -> np.ndarray | None:
+    """lambda_k of a run's ``pooling`` (``FinalEstimate.pooling``) as :func:`pool` takes them; None for one stage or
+    ``rollouts`` (every rollout alike)."""
+    return None if pooling is None or pooling[0] == "rollouts" else np.asarray(pooling[1], dtype=np.float64)
+
+
 def pooled_rows(estimator: object, used: tuple[int, ...], pooling: tuple[str, tuple[float, ...]] | None, arrays: str,
                 cap: tuple[str, str] | None = None) -> list[Estimate] | None:  # fmt: skip
     """One estimate per row of the [R, N] arrays that each used stage's :class:`StageRollouts` gives by its method
@@ -584,22 +588,19 @@ def pooled_rows(estimator: object, used: tuple[int, ...], pooling: tuple[str, tu
     parts = [getattr(stages[k], arrays)() for k in used]
     if any(part is None for part in parts):
         return None
-    lam = None if pooling is None or pooling[0] == "rollouts" else np.asarray(pooling[1], dtype=np.float64)
+    lam = stage_weights_of(pooling)
     return [pool([(w[r], hit[r], lp[r]) for w, hit, lp in parts], lam).at_most(cap) for r in range(parts[0][0].shape[0])]
 
 
 def failure_population(estimator: object, used: tuple[int, ...],
-                       pooling: tuple[str, tuple[float, ...]] | None) -> "FailureShares | None":  # fmt: skip
+                       pooling: tuple[str, tuple[float, ...]] | None) -> FailureShares | None:  # fmt: skip
     """The failures of the run's estimate with the share of mu_hat each carries (:mod:`pemviz.core.population`),
     pooled over the stages ``used`` as the estimate is (``pooling``'s lambda_k, :func:`pool`; None or ``rollouts``:
     every rollout alike); None where the estimator keeps no per-stage rollouts (``stages``), e.g. AMS."""
-    from pemviz.core.population import failure_shares
-
     stages = getattr(estimator, "stages", None)
     if not isinstance(stages, dict) or not used or any(k not in stages for k in used):
         return None
-    lam = None if pooling is None or pooling[0] == "rollouts" else np.asarray(pooling[1], dtype=np.float64)
-    return failure_shares([(k, *stages[k].arrays()) for k in used], lam)
+    return failure_shares([(k, *stages[k].arrays()) for k in used], stage_weights_of(pooling))
 
 
 def pem_spread(problem: Problem, estimator: object, final: Estimate, used: tuple[int, ...],

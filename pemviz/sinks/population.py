@@ -14,6 +14,7 @@ speed (:func:`pemviz.core.severity.rollout_severity`), weighed by the shares int
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
 
@@ -53,10 +54,15 @@ class FailureGrouping:
     basis: str
     severity: FailureSeverity | None = None
 
+    @functools.cached_property
+    def labels(self) -> dict[Hashable, str]:
+        """Group key -> its label."""
+        return {g.key: g.label for g in self.groups}
+
     def group_label(self, rank: int) -> str:
         """The label of the group of the failure at ``rank``."""
         key = self.keys[rank]
-        return next((g.label for g in self.groups if g.key == key), str(key))
+        return self.labels.get(key, str(key))
 
 
 def locate(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]) -> list[tuple[RolloutsSampled, int] | None]:
