@@ -365,7 +365,7 @@ class StageSamplers:
 
     def noise_params(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(loc_p, log_scale_p, loc_q, log_scale_q), float64 [N, D] each, at object rows [N, F]: the target's error
-        parameters and the proposal's, which shift them inside the window (:class:`pemviz.core.sampling.NoiseShift`);
+        parameters and the proposal's, which shift them inside the window (:class:`pemviz.core.torch_fits.NoiseShift`);
         the last rows' are kept (a step draws the errors, then weighs them)."""
         obs = np.asarray(obs, dtype=np.float64)
         last = self._noise_obs

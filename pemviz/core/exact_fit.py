@@ -7,7 +7,6 @@ import math
 from typing import Any, Callable
 
 import numpy as np
-import torch
 
 from pemviz.core import exact
 
@@ -15,7 +14,7 @@ COUNT_BITS = 24
 """The bits an exact fit keeps of its weighted counts, relative to the largest (:func:`fit_exact`)."""
 
 
-def fit_exact(proposal: Any, inputs: torch.Tensor, counts: torch.Tensor | np.ndarray, epochs: int, lr: float,
+def fit_exact(proposal: Any, inputs: np.ndarray, counts: np.ndarray, epochs: int, lr: float,
               check: Callable[[], None] | None = None, tolerance: float | None = None, per: float | None = None, *,
               check_every: int, plateau_epochs: int) -> list[float]:  # fmt: skip
     """Full-batch Adam on the weighted log-likelihood ``-sum(C * log q) / per`` (:data:`Objective`, a tensor C), in
@@ -42,14 +41,12 @@ def fit_exact(proposal: Any, inputs: torch.Tensor, counts: torch.Tensor | np.nda
     Returns:
         the loss per epoch (nats, divided by ``per``).
     """
-    lin1, _, lin2, _, lin3, _ = proposal.net
-    with torch.no_grad():
-        h = np.ascontiguousarray(proposal.inputs(torch.as_tensor(inputs, dtype=torch.float64)).numpy())
-        c = np.asarray(counts.detach().numpy() if isinstance(counts, torch.Tensor) else counts, dtype=np.float64)
-        params = [lin1.weight, lin1.bias, lin2.weight, lin2.bias, lin3.weight, lin3.bias]
-        flat = np.concatenate([p.detach().numpy().reshape(-1) for p in params]).astype(np.float64)
+    h = np.ascontiguousarray(proposal.input_array(inputs))
+    c = np.asarray(counts, dtype=np.float64)
+    params = proposal.parameter_arrays()
+    flat = np.concatenate([p.reshape(-1) for p in params]).astype(np.float64)
     shapes = [tuple(p.shape) for p in params]
-    sizes = [p.numel() for p in params]
+    sizes = [p.size for p in params]
     offsets = np.cumsum([0, *sizes])
     views = [flat[a:b].reshape(shape) for a, b, shape in zip(offsets[:-1], offsets[1:], shapes)]
     w1, b1, w2, b2, w3, b3 = views
@@ -120,7 +117,5 @@ def fit_exact(proposal: Any, inputs: torch.Tensor, counts: torch.Tensor | np.nda
         flat -= (lr / (1.0 - beta1_t)) * (exp_avg / denom)
         if tolerance is not None and epoch >= plateau_epochs and losses[-plateau_epochs - 1] - losses[-1] < tolerance:
             break  # converged: the loss has stopped falling
-    with torch.no_grad():
-        for p, view in zip(params, views):
-            p.copy_(torch.from_numpy(view.copy()))
+    proposal.set_parameter_arrays(views)
     return losses

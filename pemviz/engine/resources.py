@@ -113,12 +113,19 @@ def torch_threads(n: int = 1, blas: int | None = None) -> Iterator[None]:
     a whole run). The proposal is tiny, and on 2 cores a second torch thread only adds synchronisation (measured
     7.7 ms vs 74 ms per Adam epoch under load). The exact fits' products (:func:`pemviz.core.exact_fit.fit_exact`)
     run in numpy's BLAS, which gains from a second core in one run (default run 1.6 s against 2.4 s on one thread) but whose idle threads
-    spin: give ``blas=1`` where runs go side by side (``pemviz validate --jobs 2``: 10-25 s a run otherwise)."""
-    import torch
+    spin: give ``blas=1`` where runs go side by side (``pemviz validate --jobs 2``: 10-25 s a run otherwise). torch is
+    not imported for this: a run that never needs it never imports it (:mod:`pemviz.core.torch_use`)."""
     from threadpoolctl import threadpool_limits
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
+    from pemviz.core import torch_use
+
+    if torch_use.imported():
+        torch = torch_use.torch_module()
+        before: int | None = torch.get_num_threads()
+        torch.set_num_threads(n)
+    else:  # torch is imported only if a fit needs it (pemviz.core.torch_use): n is applied then
+        before = None
+        torch_use.want_threads(n)
     try:
         if blas is None:
             yield
@@ -126,4 +133,7 @@ def torch_threads(n: int = 1, blas: int | None = None) -> Iterator[None]:
             with threadpool_limits(blas):
                 yield
     finally:
-        torch.set_num_threads(before)
+        if before is None:
+            before = torch_use.settle()
+        if before is not None:
+            torch_use.torch_module().set_num_threads(before)

@@ -6,14 +6,16 @@ chunk. :class:`pemviz.estimators.CrossEntropy` runs the stages around them.
 
 from __future__ import annotations
 
-from typing import Callable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import numpy as np
-import torch
 
 from pemviz.core.sampling import EXACT, Proposal, fit_proposal
 from pemviz.estimators.base import elite_counts
 from pemviz.scenarios import RolloutBatch
+
+if TYPE_CHECKING:
+    import torch
 
 WeightMode = Literal["frozen", "recomputed"]
 
@@ -24,7 +26,7 @@ def weighted_steps(
     step_weight: np.ndarray,
     max_rows: int,
     rng: np.random.Generator,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[np.ndarray, np.ndarray]:
     """The steps of positive weight as fitting rows, at most ``max_rows`` of them, and their weights.
 
     With more than ``max_rows`` weighted steps, ``max_rows`` are drawn by systematic resampling in
@@ -40,7 +42,7 @@ def weighted_steps(
         max_rows: the most rows returned (>= 1).
         rng: draws the resampling offset.
     Returns:
-        (distinct inputs [M] or [M, k] float64 tensor, counts [M, 2] float64 tensor: weight on miss, on
+        (distinct inputs [M] or [M, k] float64, counts [M, 2] float64: weight on miss, on
         detect), M <= ``max_rows``.
     """
     w = np.asarray(step_weight, dtype=np.float64).reshape(-1)
@@ -59,7 +61,7 @@ def weighted_steps(
     rows, inverse = np.unique(rows, axis=0, return_inverse=True)
     slot = inverse.reshape(-1) * 2 + np.asarray(detected, dtype=bool).reshape(-1)[keep]
     counts = np.bincount(slot, weights=weight, minlength=2 * len(rows)).reshape(len(rows), 2)
-    return torch.as_tensor(rows), torch.as_tensor(counts)
+    return rows, counts
 
 
 def _action_counts(
@@ -77,7 +79,7 @@ def _action_counts(
         drop_unweighted: leave out the inputs whose steps all weigh 0 (e.g. outside the proposal's window), so an
             epoch does not evaluate the network where it cannot change the loss; ``inverse`` is then None.
     Returns:
-        (uniq [U] (or [U, k]) float64 tensor, counts [U, 2] float64 tensor: weighted misses, detections;
+        (uniq [U] (or [U, k]) float64, counts [U, 2] float64: weighted misses, detections;
         inverse [N, T] index of each entry into ``uniq``).
     """
     gap_m = np.asarray(gap_m, dtype=np.float64)
@@ -96,8 +98,8 @@ def _action_counts(
     counts = np.bincount(slot.ravel(), weights=w.ravel(), minlength=2 * len(uniq)).reshape(len(uniq), 2)
     if drop_unweighted:
         keep = counts.sum(axis=1) > 0.0
-        return torch.as_tensor(uniq[keep]), torch.as_tensor(counts[keep]), None
-    return torch.as_tensor(uniq), torch.as_tensor(counts), inverse
+        return uniq[keep], counts[keep], None
+    return uniq, counts, inverse
 
 
 def _summed_fit(fit: str, max_rows: int | None, n_fitted: int) -> bool:
@@ -121,7 +123,7 @@ def pretrain_proposal(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
-    dtype: torch.dtype | str = EXACT,
+    dtype: Any = EXACT,
 ) -> list[float]:
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
 
@@ -179,7 +181,7 @@ def ce_update(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
-    dtype: torch.dtype | str = EXACT,
+    dtype: Any = EXACT,
 ) -> list[float]:
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
@@ -260,6 +262,9 @@ def recomputed_objective(
         gives the same bits as differentiating the loss with autograd (a test checks it).
     Source: Innes & Ramamoorthy 2022, eq. 10-11, with the weights differentiated as in the authors' code.
     """
+    from pemviz.core.torch_use import torch_module
+
+    torch = torch_module()
     slot_t, lp_t = torch.as_tensor(slot), torch.as_tensor(log_p)
     mask_t = torch.as_tensor(mask, dtype=torch.float64)
     mask_k = torch.zeros_like(mask_t)
@@ -292,7 +297,7 @@ def fit_elite_steps(
     max_rows: int | None = None,
     rng: np.random.Generator | None = None,
     tolerance: float | None = None,
-    dtype: torch.dtype | str = EXACT,
+    dtype: Any = EXACT,
     n_steps: int | None = None,
 ) -> list[float]:
     """The frozen-weight CE fit on the elites' fitted steps: minimise ``-sum_s w_s log q_phi(a_s | h_s)``, in place.
@@ -392,7 +397,6 @@ class EliteSteps:
         rows, actions, log_w = self.arrays()
         top = float(log_w.max())
         uniq, counts = weighted_steps(rows[None], actions[None], np.exp(log_w - top)[None], self.max_rows, self.rng)
-        uniq, counts = uniq.numpy(), counts.numpy()
         hit = counts > 0  # [U, 2]: (miss, detect) weights of each distinct input
         slot, action = np.nonzero(hit)
         with np.errstate(divide="ignore"):

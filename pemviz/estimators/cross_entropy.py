@@ -17,7 +17,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from pemviz.config import ExperimentConfig, settings_of, whole_rollout_fit_refusal
 from pemviz.core.detectors import (
@@ -52,7 +51,7 @@ from pemviz.estimators.base import (
 from pemviz.engine.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.core.rng import RQMC_BLOCK
-from pemviz.core.sampling import EXACT, Proposal, StateProposal, fit_noise_shift
+from pemviz.core.sampling import EXACT, Proposal, StateProposal
 from pemviz.scenarios import RolloutBatch
 
 def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
@@ -117,8 +116,8 @@ class CrossEntropy(OwnsSettings):
 
     Random streams, one per purpose, all from ``config.seed``: the rollouts' detections (:attr:`rng`, which the
     engine draws from); the fits' subsamples
-    (``(seed, 1)``); tie-breaking (``(seed, 2)``); the proposal's initial weights (torch, seeded in a fork of the
-    process's generator), so turning one option on leaves the other streams as they were.
+    (``(seed, 1)``); tie-breaking (``(seed, 2)``); the proposal's initial weights (numpy's generator seeded
+    with ``seed``, :meth:`pemviz.core.sampling.Proposal.initialise`), so turning one option on leaves the other streams as they were.
 
     Args:
         config: the sampler's settings.
@@ -179,7 +178,7 @@ class CrossEntropy(OwnsSettings):
         """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
         self.tolerance = config.fit_tolerance if config.fit == "adam" else None
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
-        self.fit_dtype = {"float32": torch.float32, "float64": torch.float64}.get(config.fit_precision, EXACT)
+        self.fit_dtype = config.fit_precision if config.fit_precision in ("float32", "float64") else EXACT
         """The arithmetic of the Adam fits (``ExperimentConfig.fit_precision``)."""
         check_runnable(config, problem)  # refused before any rollout, not after the pretraining
 
@@ -545,10 +544,12 @@ class CrossEntropy(OwnsSettings):
 
     def _fit_noise(self, fit: dict) -> None:
         """The CE update of the proposal's error head on the errors of the detected objects of this stage's elites
-        (:func:`pemviz.core.sampling.fit_noise_shift`), weighted as their rollouts in the detection fit."""
+        (:func:`pemviz.core.torch_fits.fit_noise_shift`), weighted as their rollouts in the detection fit."""
         data, self._noise_data = self._noise_data, []
         if self.proposal.noise_shift is None or not data or not sum(len(d[0]) for d in data):
             return
+        from pemviz.core.torch_fits import fit_noise_shift  # torch: a noisy target's runs only
+
         rows, noise, log_w = (np.concatenate(a) for a in zip(*data))
         target = self.problem.target
         loc_p, log_scale_p = target.noise_params(rows)

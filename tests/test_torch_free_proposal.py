@@ -1,0 +1,107 @@
+"""A proposal keeps its parameters in numpy until something needs torch: the same draws, weights, fits and estimates as
+a proposal in torch, bit for bit (the seed contract), and torch's own state left alone when it moves there."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import pemviz.core.sampling as sampling
+from pemviz.config import ExperimentConfig
+from pemviz.core import torch_use
+from pemviz.core.problems import build_problem
+from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
+from pemviz.engine import Experiment
+
+
+@pytest.fixture
+def numpy_first(monkeypatch):
+    """New proposals start in numpy, as in a process that has not imported torch."""
+    monkeypatch.setattr(sampling, "torch_imported", lambda: False)
+
+
+def _pair(make, seed: int = 3):
+    """(a proposal in numpy, one in torch), both initialised from ``seed``."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(sampling, "torch_imported", lambda: False)
+        in_numpy = make()
+    in_torch = make()
+    in_numpy.initialise(np.random.default_rng(seed))
+    in_torch.initialise(np.random.default_rng(seed))
+    assert in_numpy._module is None and in_torch._module is not None
+    return in_numpy, in_torch
+
+
+MAKERS = {"gap": lambda: Proposal(12.0),
+          "state": lambda: StateProposal((0, 1, 2), (12.0, 8.0, 1.0), (20.0, 8.0, 0.0))}  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", MAKERS)
+def test_a_proposal_in_numpy_samples_curves_and_fits_as_one_in_torch(kind):
+    """Sampling logits and exact fits: the same bits in numpy as in torch; the curve within float64 rounding of
+    torch's log-softmax (it is drawn, not sampled from)."""
+    a, b = _pair(MAKERS[kind])
+    rng = np.random.default_rng(0)
+    obs = np.column_stack([rng.uniform(0, 30, 500), rng.uniform(0, 8, 500), rng.uniform(0, 1, 500)])
+    np.testing.assert_array_equal(a.detect_logit(obs), b.detect_logit(obs))
+    inputs = obs[:200, : a.n_inputs].reshape(200, -1).squeeze(-1) if kind == "gap" else obs[:200]
+    counts = rng.uniform(0, 3, (200, 2))
+    la = fit_proposal(a, inputs, counts, 60, 1e-2, per=300.0)
+    lb = fit_proposal(b, torch.as_tensor(inputs), torch.as_tensor(counts), 60, 1e-2, per=300.0)
+    assert la == lb and a._module is None  # the exact fit never moved it into torch
+    for pa, pb in zip(a.parameter_arrays(), b.parameter_arrays()):
+        np.testing.assert_array_equal(pa, pb)
+    np.testing.assert_array_equal(a.detect_logit(obs), b.detect_logit(obs))  # the cache followed the fit
+    grid = np.linspace(0.0, 40.0, 81)
+    with torch.no_grad():
+        h = torch.as_tensor(b._curve_inputs(grid))
+        torch_curve = b.forward(h)[:, 1].exp().numpy()
+    np.testing.assert_allclose(a.curve(grid), torch_curve, rtol=1e-13, atol=1e-300)
+    assert 0.0 < a.curve(grid).min() and a.curve(grid).max() < 1.0
+
+
+def test_moving_into_torch_keeps_the_parameters_and_torchs_random_state():
+    a, _ = _pair(MAKERS["state"])
+    before = [p.copy() for p in a.parameter_arrays()]
+    state = torch.random.get_rng_state()
+    net = a.net
+    assert torch.equal(torch.random.get_rng_state(), state)  # its own weights: torch's generator untouched
+    assert a._module is not None and a._arrays is None
+    for p, q in zip(net.parameters(), before):
+        assert p.dtype == torch.float64
+        np.testing.assert_array_equal(p.detach().numpy(), q)
+    assert set(a.state_dict()) == {f"net.{i}.{k}" for i in (0, 2, 4) for k in ("weight", "bias")}
+
+
+def test_parameters_of_the_wrong_shape_are_refused(numpy_first):
+    q = Proposal()
+    with pytest.raises(ValueError, match="expected"):
+        q.set_parameter_arrays([np.zeros((32, 2))] + [np.zeros(s) for s in q.layer_shapes()[1:]])
+
+
+def test_a_run_in_numpy_is_the_run_in_torch(numpy_first, monkeypatch):
+    """The seed contract: a default-settings braking run whose proposals never enter torch gives the estimate, stage
+    by stage, of the same run in torch."""
+    problem = build_problem("main")
+    cfg = ExperimentConfig(n_per_stage=60, n_stages=3, n_final=200, seed=4)
+    in_numpy = Experiment(cfg, problem=problem).run()
+    monkeypatch.setattr(sampling, "torch_imported", lambda: True)
+    in_torch = Experiment(cfg, problem=problem).run()
+    a, b = in_numpy.final.estimate, in_torch.final.estimate
+    assert a.n_failures > 0 and (a.log_mu_hat, a.n_failures, a.ess) == (b.log_mu_hat, b.n_failures, b.ess)
+    for sa, sb in zip(in_numpy.stages, in_torch.stages):
+        assert sa.estimate.log_mu_hat == sb.estimate.log_mu_hat or (np.isnan(sa.estimate.log_mu_hat)
+                                                                     and np.isnan(sb.estimate.log_mu_hat))  # fmt: skip
+        np.testing.assert_allclose(sa.proposal_curve, sb.proposal_curve, rtol=1e-13)
+
+
+def test_a_pending_thread_count_applies_when_torch_is_first_asked_for():
+    before = torch.get_num_threads()
+    try:
+        torch_use.want_threads(1)
+        assert torch_use.torch_module() is torch and torch.get_num_threads() == 1
+        assert torch_use.settle() == before  # what to restore
+        assert torch_use.settle() is None
+    finally:
+        torch.set_num_threads(before)
