@@ -268,21 +268,30 @@ def check_free_name(path: Path, what: str, *, overwrite: bool = False, kind: str
         raise ValueError(f"{what} {path}: exists and is not a {kind} pemviz wrote; not replacing it")
 
 
-def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Exception]) -> dict:
-    """``torch.load(path, weights_only=True)`` of a pemviz payload dict, checked for its format tag and version.
+def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Exception], *,
+                as_numpy: bool = False) -> dict:  # fmt: skip
+    """A pemviz payload dict written by ``torch.save``, checked for its format tag and version.
 
     Args:
         path: an existing file.
         tag, version: the expected ``payload["format"]`` and ``payload["version"]``.
         what: how messages name the file (``PEM``, ``proposal checkpoint``).
         error: the exception type raised for an unreadable or foreign file.
+        as_numpy: tensors as numpy arrays, read without importing torch for the files pemviz writes
+            (:func:`pemviz.io.torch_payload.load_payload`, which falls back to torch for any other file); else
+            ``torch.load(path, weights_only=True)``'s tensors.
     Raises:
         ``error``: damaged file, missing tag, or another format version.
     """
-    import torch  # ~4.6 s to import: only when a checkpoint is read (see write_rrd's rerun)
-
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        if as_numpy:
+            from pemviz.io.torch_payload import load_payload
+
+            payload = load_payload(path)
+        else:
+            import torch  # ~1 s to import: only when a checkpoint is read (see write_rrd's rerun)
+
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for damaged files
         raise error(f"{path}: not a readable {what} file ({exc})") from None
     if not isinstance(payload, dict) or payload.get("format") != tag:

@@ -13,7 +13,12 @@ head and a noise head.
 
 Modules: ``encoding`` (14-dim input, braking scenario mapping), ``network`` (ML-NN), ``trees`` (boosted
 trees), ``camera`` (pixel box errors -> metric errors), ``noise`` (noise PEMs), ``perception`` (:class:`NoisyPEM`),
-``recipes`` (named PEMs of ``pemviz pem train``), ``store`` (files, assets, the authors' PEM).
+``recipes`` (named PEMs of ``pemviz pem train``), ``store`` (files, assets, the authors' PEM), ``modules`` (the torch
+modules for training: :class:`MLNN`, the noise loss).
+
+Importing this package, loading a PEM and evaluating it do not import torch (about 1 s): the files are read into
+numpy arrays (:mod:`pemviz.io.torch_payload`). ``MLNN`` is imported from :mod:`pemviz.pem.modules`, with torch, when
+first named; training and :meth:`PEM.to_module` import torch.
 """
 
 from pemviz.pem.encoding import (
@@ -35,7 +40,7 @@ from pemviz.pem.encoding import (
     fit_norm_stats,
 )
 from pemviz.pem.camera import KITTI_FOCAL_PX, MIN_RANGE_M, box_errors_to_metric
-from pemviz.pem.network import MLNN, PEM, PemFormatError, train_pem
+from pemviz.pem.network import PEM, PemFormatError, train_pem
 from pemviz.pem.noise import (
     FAMILIES,
     NOISE_DIMS,
@@ -77,6 +82,16 @@ from pemviz.pem.store import (
     shipped_pems,
 )
 from pemviz.pem.trees import TreePEM, export_hist_gradient_boosting, train_tree_pem
+
+
+def __getattr__(name: str) -> object:
+    """``MLNN``, the torch module, imported when first named (torch takes about 1 s to import)."""
+    if name == "MLNN":
+        from pemviz.pem.modules import MLNN
+
+        return MLNN
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "ASSETS_DIR_ENV",

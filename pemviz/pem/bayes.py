@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-import torch
 from scipy.special import expit, log_expit, logsumexp
 from tqdm.auto import tqdm
 
@@ -125,6 +124,7 @@ def train_bnn_pem(
     """
     import pyro
     import pyro.distributions as dist
+    import torch
     from pyro.infer import SVI, Trace_ELBO
     from pyro.infer.autoguide import AutoLowRankMultivariateNormal
 

@@ -10,20 +10,22 @@ algebra: ``gamma * (W x + b - mean) / sqrt(var + eps) + beta``), any salient var
 scenario only the gap varies, so the ReLU network is an exactly piecewise-linear function of the gap; its
 pieces are computed once, and :meth:`PEM.logit_at_gap` (the simulator's hot path) is one ``searchsorted``
 and one multiply-add.
+
+Loading and evaluating a PEM does not import torch (about 1 s): its weights are numpy arrays, folded here
+(:func:`fold_state_dict`). Training (:func:`train_pem`, :func:`fit_network`), :meth:`PEM.to_module` and the torch
+module :class:`MLNN` (in :mod:`pemviz.pem.modules`, imported when first named) import it.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-import torch
 from scipy.special import expit
-from torch import nn
-from tqdm.auto import tqdm
 
 from pemviz.pem.encoding import (
     BRAKING_CAMERA_TO_LEAD_CENTRE_M,
@@ -38,50 +40,131 @@ from pemviz.pem.encoding import (
     fit_norm_stats,
 )
 
+if TYPE_CHECKING:  # annotations only: these import torch
+    import torch
+
+    from pemviz.pem.modules import MLNN
+
+
+def __getattr__(name: str) -> Any:
+    """``MLNN``, the torch module, imported when first named (torch takes about 1 s to import)."""
+    if name == "MLNN":
+        from pemviz.pem.modules import MLNN
+
+        return MLNN
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 class PemFormatError(ValueError):
     """A PEM weights file is not in pemviz's format (or is damaged)."""
 
 
-class MLNN(nn.Module):
-    """The paper's ML-NN (and its wider / deeper variants): ``ff_nn`` = [Linear, BatchNorm?, ReLU, Dropout?]
-    per hidden layer, then Linear(h, out_dim) -> logit ``[N, 1]`` (or the noise PEM's ``[N, 4]``, see
-    :mod:`pemviz.pem.noise`).
+BATCH_NORM_EPS = 1e-5
+"""The ``eps`` of :class:`MLNN`'s BatchNorm layers (``torch.nn.BatchNorm1d``'s default): ``var + eps`` is under the
+square root of the fold (:func:`fold_state_dict`)."""
 
-    With ``hidden=(20, 20)``, ``batch_norm=True``, ``dropout=0`` the state-dict keys are the authors'
-    (``ff_nn.{0,1,3,4,6}.*``), so their weights load directly.
+
+def mlnn_shapes(hidden: Sequence[int], *, batch_norm: bool = True, in_dim: int = N_FEATURES,
+                out_dim: int = 1) -> dict[str, tuple[int, ...]]:  # fmt: skip
+    """The state-dict keys of an :class:`MLNN` without dropout, in its order, with their shapes: per hidden layer of
+    width ``h`` a Linear (``ff_nn.{i}.weight [h, prev]``, ``.bias [h]``), with ``batch_norm`` a BatchNorm1d
+    (``ff_nn.{i+1}.weight``, ``.bias``, ``.running_mean``, ``.running_var`` ``[h]``, ``.num_batches_tracked []``) and a
+    ReLU (no weights); then the output Linear ``[out_dim, prev]``, ``[out_dim]``."""
+    shapes: dict[str, tuple[int, ...]] = {}
+    index, prev = 0, int(in_dim)
+    for width in (int(h) for h in hidden):
+        shapes[f"ff_nn.{index}.weight"], shapes[f"ff_nn.{index}.bias"] = (width, prev), (width,)
+        index += 1
+        if batch_norm:
+            for name in ("weight", "bias", "running_mean", "running_var"):
+                shapes[f"ff_nn.{index}.{name}"] = (width,)
+            shapes[f"ff_nn.{index}.num_batches_tracked"] = ()
+            index += 1
+        index += 1  # the ReLU
+        prev = width
+    shapes[f"ff_nn.{index}.weight"], shapes[f"ff_nn.{index}.bias"] = (int(out_dim), prev), (int(out_dim),)
+    return shapes
+
+
+def as_arrays(state: Mapping[str, Any]) -> dict[str, Any]:
+    """A state dict with its torch tensors (if any; torch is not imported for this) and numpy arrays copied into
+    numpy arrays of the same dtype and shape; other values as they are (:func:`fold_state_dict` refuses them)."""
+    torch_module = sys.modules.get("torch")
+    out: dict[str, Any] = {}
+    for key, value in state.items():
+        if torch_module is not None and isinstance(value, torch_module.Tensor):
+            value = value.detach().cpu().numpy()
+        out[key] = np.array(value, copy=True) if isinstance(value, np.ndarray) else value
+    return out
+
+
+def state_problem(state: Mapping[str, Any], shapes: Mapping[str, tuple[int, ...]]) -> str | None:
+    """Why ``state`` does not load into a module whose state-dict shapes are ``shapes`` (as torch's strict
+    ``load_state_dict`` would refuse it: missing or unexpected keys, a value that is not an array, another shape; a
+    0-d entry may come as shape ``[1]``), or None when it does."""
+    problems = []
+    missing = [k for k in shapes if k not in state]
+    unexpected = [k for k in state if k not in shapes]
+    if missing:
+        problems.append(f"missing keys {missing}")
+    if unexpected:
+        problems.append(f"unexpected keys {unexpected}")
+    for key, shape in shapes.items():
+        if key not in state:
+            continue
+        value = state[key]
+        if not isinstance(value, np.ndarray):
+            problems.append(f"{key} is a {type(value).__name__}, not an array")
+        elif value.shape != shape and not (shape == () and value.shape == (1,)):
+            problems.append(f"{key} has shape {list(value.shape)}, needs {list(shape)}")
+    return "; ".join(problems) or None
+
+
+def fold_state_dict(state: Mapping[str, np.ndarray], hidden: Sequence[int], *, batch_norm: bool = True,
+                    in_dim: int = N_FEATURES, out_dim: int = 1) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """:func:`fold_layers` of the :class:`MLNN` with this state, computed in numpy, bit for bit: affine layers
+    ``(W float64 [out, in], b float64 [out])``, each BatchNorm (eval mode, ``eps`` :data:`BATCH_NORM_EPS`) folded
+    into the Linear before it, ``gamma * (W x + b - mean) / sqrt(var + eps) + beta``; a ReLU follows every layer but
+    the last.
+
+    The weights are first rounded to float32, as loading them into the module's float32 parameters does, then widened
+    to float64 (exact), and the fold takes the same float64 operations in the same order as :func:`fold_layers`.
+
+    Args:
+        state: numpy arrays under :func:`mlnn_shapes`'s keys (e.g. :func:`as_arrays` of a module's ``state_dict()``).
+        hidden, batch_norm, in_dim, out_dim: the architecture.
+
+    Raises:
+        ValueError: the state does not fit the architecture (:func:`state_problem`'s reason).
     """
+    shapes = mlnn_shapes(hidden, batch_norm=batch_norm, in_dim=in_dim, out_dim=out_dim)
+    problem = state_problem(state, shapes)
+    if problem is not None:
+        raise ValueError(problem)
 
-    def __init__(
-        self,
-        in_dim: int = N_FEATURES,
-        hidden: Sequence[int] = (20, 20),
-        *,
-        batch_norm: bool = True,
-        dropout: float = 0.0,
-        out_dim: int = 1,
-    ) -> None:
-        super().__init__()
-        layers: list[nn.Module] = []
-        prev = in_dim
-        for width in hidden:
-            layers.append(nn.Linear(prev, width))
-            if batch_norm:
-                layers.append(nn.BatchNorm1d(width))
-            layers.append(nn.ReLU())
-            if dropout > 0:
-                layers.append(nn.Dropout(dropout))
-            prev = width
-        layers.append(nn.Linear(prev, out_dim))
-        self.ff_nn = nn.Sequential(*layers)
+    def f64(key: str) -> np.ndarray:
+        return np.asarray(state[key]).astype(np.float32).astype(np.float64)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.ff_nn(x)
+    linears = [k[: -len(".weight")] for k in shapes if k.endswith(".weight") and len(shapes[k]) == 2]
+    folded: list[tuple[np.ndarray, np.ndarray]] = []
+    for prefix in linears:
+        w, b = f64(f"{prefix}.weight"), f64(f"{prefix}.bias")
+        bn = f"ff_nn.{int(prefix.rsplit('.', 1)[1]) + 1}"
+        if f"{bn}.running_var" in shapes:
+            scale = f64(f"{bn}.weight") / np.sqrt(f64(f"{bn}.running_var") + BATCH_NORM_EPS)
+            b = scale * (b - f64(f"{bn}.running_mean")) + f64(f"{bn}.bias")
+            w = scale[:, None] * w
+        folded.append((np.ascontiguousarray(w), np.ascontiguousarray(b)))
+    return tuple(folded)
 
 
 def fold_layers(module: MLNN) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-    """Affine layers ``(W [out, in], b [out])`` in float64, each BatchNorm (eval mode) folded into the
-    Linear before it; a ReLU follows every layer but the last."""
+    """Affine layers ``(W [out, in], b [out])`` in float64 of a torch :class:`MLNN`, each BatchNorm (eval mode)
+    folded into the Linear before it; a ReLU follows every layer but the last. (The numpy form of the same, which
+    pemviz uses: :func:`fold_state_dict`.)"""
+    import torch
+    from torch import nn
+
     folded: list[tuple[np.ndarray, np.ndarray]] = []
     mods = list(module.ff_nn)
     for i, mod in enumerate(mods):
@@ -110,7 +193,7 @@ stay in the CPU's cache between the layers. Speed only: a row's result is the sa
 
 @dataclass(frozen=True, eq=False)
 class GridMLP:
-    """Folded affine layers (:func:`fold_layers`, ReLU between) evaluated in order-free arithmetic: a row's outputs
+    """Folded affine layers (:func:`fold_state_dict`, ReLU between) evaluated in order-free arithmetic: a row's outputs
     depend on that row alone, never on the batch it came in, the BLAS kernel, the vector unit or the CPU.
 
     Each layer's input row is rounded to ``bits`` = :func:`pemviz.core.exact.grid_bits` (K) significant bits of its
@@ -270,16 +353,21 @@ class PEM:
     """A trained PEM: network weights, z-score statistics, name and provenance.
 
     Build with :func:`train_pem`, :func:`load_pem`, :func:`load_reference_pem` or :meth:`from_module`.
-    Attributes ``state_dict`` (torch tensors as trained), ``hidden``, ``batch_norm``, ``temperature``
-    (logits are divided by it; 1.0 for the paper's ML-NN) and ``metadata`` (plain values) are stored by
-    :func:`save_pem`.
+    Attributes ``state_dict`` (the :class:`MLNN` weights as trained, float32 numpy arrays under
+    :func:`mlnn_shapes`'s keys; torch tensors given are copied into numpy arrays), ``hidden``, ``batch_norm``,
+    ``temperature`` (logits are divided by it; 1.0 for the paper's ML-NN) and ``metadata`` (plain values) are stored
+    by :func:`save_pem`.
+
+    Raises:
+        ValueError: a temperature not finite and > 0; PemFormatError: weights that do not fit ``hidden`` and
+            ``batch_norm``.
     """
 
     kind: ClassVar[str] = "mlp"
 
     name: str
     norm: NormStats
-    state_dict: Mapping[str, torch.Tensor]
+    state_dict: Mapping[str, np.ndarray]
     hidden: tuple[int, ...] = (20, 20)
     batch_norm: bool = True
     temperature: float = 1.0
@@ -288,8 +376,12 @@ class PEM:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.temperature) and self.temperature > 0):
             raise ValueError(f"PEM temperature must be finite and > 0, got {self.temperature}")
-        module = self.to_module()
-        layers = fold_layers(module)
+        object.__setattr__(self, "state_dict", as_arrays(self.state_dict))
+        try:
+            layers = fold_state_dict(self.state_dict, self.hidden, batch_norm=self.batch_norm)
+        except ValueError as exc:
+            raise PemFormatError(f"PEM {self.name!r}: weights do not fit hidden={self.hidden}, "
+                                 f"batch_norm={self.batch_norm}: {exc}") from None  # fmt: skip
         object.__setattr__(self, "_layers", layers)
         object.__setattr__(self, "_grid", GridMLP.of(layers))
         object.__setattr__(self, "_one_hot", self._grid.one_hot(ONE_HOT_GROUPS))
@@ -319,12 +411,11 @@ class PEM:
         temperature: float = 1.0,
         metadata: Mapping[str, Any] | None = None,
     ) -> PEM:
-        """Wrap a trained :class:`MLNN` (its weights are copied)."""
-        state = {k: v.detach().clone().cpu() for k, v in module.state_dict().items()}
+        """Wrap a trained :class:`MLNN` (its weights are copied into numpy arrays)."""
         return cls(
             name=name,
             norm=norm,
-            state_dict=state,
+            state_dict=module.state_dict(),
             hidden=tuple(int(h) for h in hidden),
             batch_norm=batch_norm,
             temperature=float(temperature),
@@ -332,10 +423,15 @@ class PEM:
         )
 
     def to_module(self) -> MLNN:
-        """A fresh torch :class:`MLNN` in eval mode with these weights (float32, as trained; no temperature)."""
+        """A fresh torch :class:`MLNN` in eval mode with these weights (float32, as trained; no temperature). Imports
+        torch."""
+        import torch
+
+        from pemviz.pem.modules import MLNN
+
         module = MLNN(N_FEATURES, self.hidden, batch_norm=self.batch_norm)
         try:
-            module.load_state_dict(dict(self.state_dict))
+            module.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in self.state_dict.items()})
         except RuntimeError as exc:
             raise PemFormatError(
                 f"PEM {self.name!r}: weights do not fit hidden={self.hidden}, " f"batch_norm={self.batch_norm}: {exc}"
@@ -462,6 +558,9 @@ def train_pem(
     Raises:
         ValueError: mismatched lengths, labels not in {0, 1}, bad encodings, epochs < 1 or batch_size < 2.
     """
+    import torch
+    from torch import nn
+
     raw, y = check_training_data(inputs, labels)
     if epochs < 1 or batch_size < 2:
         raise ValueError(f"need epochs >= 1 and batch_size >= 2, got {epochs}, {batch_size}")
@@ -504,7 +603,7 @@ def fit_network(
     x: torch.Tensor,
     t: torch.Tensor,
     *,
-    loss_fn: nn.Module,
+    loss_fn: torch.nn.Module,
     hidden: Sequence[int],
     batch_norm: bool,
     dropout: float,
@@ -525,6 +624,11 @@ def fit_network(
     ``torch.manual_seed(seed)``, one CPU thread (tiny networks gain nothing from threads, and one is reproducible).
     Returns the module in eval mode and the last epoch's mean training loss.
     """
+    import torch
+    from tqdm.auto import tqdm
+
+    from pemviz.pem.modules import MLNN
+
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

@@ -10,7 +10,8 @@ with ``g`` a standard normal, Laplace or Student-t (``nu_d`` degrees of freedom,
 ``x`` the 14-dim encoding of the salient variables (:func:`pemviz.pem.encode_salient`). Two kinds:
 
 - :class:`NoisePEM`: heteroscedastic; ``(m(x), log s(x))`` from a small ReLU network (an :class:`MLNN` with 4
-  outputs), trained by maximum likelihood (``torch.distributions``) and evaluated in float64 numpy;
+  outputs), trained by maximum likelihood (``torch.distributions``) and evaluated in float64 numpy (loading one does
+  not import torch; training does, and :class:`NoiseNLL`, the loss, is in :mod:`pemviz.pem.modules`);
 - :class:`HomoscedasticNoise`: the baseline; a linear mean (or a constant) and one scale per dimension.
 
 Both evaluate densities, CDFs and samples with ``scipy.stats`` on their parameters; ``log_prob`` is in nats,
@@ -26,12 +27,10 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-import torch
-from torch import nn
 
 from pemviz.pem.camera import MIN_RANGE_M, box_errors_to_metric
 from pemviz.pem.encoding import N_FEATURES, ONE_HOT_GROUPS, NormStats, SalientCodes, encode_salient, fit_norm_stats
-from pemviz.pem.network import MLNN, GridMLP, PemFormatError, fit_network, fold_layers
+from pemviz.pem.network import GridMLP, PemFormatError, as_arrays, fit_network, fold_state_dict
 
 NOISE_DIMS = ("range", "lateral")
 """The error dimensions, in column order: range error dZ (along camera z) and lateral error dX (along x), metres."""
@@ -39,6 +38,15 @@ FAMILIES = ("normal", "laplace", "student-t")
 """Location-scale families of the noise PEM (``scipy.stats`` ``norm``, ``laplace``, ``t``)."""
 DF_MIN = 1.0
 """Lower bound of the Student-t degrees of freedom (``nu = DF_MIN + softplus(raw)``): above it the mean exists."""
+
+
+def __getattr__(name: str) -> Any:
+    """``NoiseNLL``, the training loss (a torch module), imported when first named (torch takes about 1 s)."""
+    if name == "NoiseNLL":
+        from pemviz.pem.modules import NoiseNLL
+
+        return NoiseNLL
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _check_features(features: np.ndarray) -> np.ndarray:
@@ -155,13 +163,18 @@ class NoiseModel:
 class NoisePEM(NoiseModel):
     """The heteroscedastic noise PEM: an :class:`MLNN` (ReLU, no BatchNorm) with 4 outputs ``(m_range, m_lateral,
     log s_range, log s_lateral)`` in units of ``target_scale`` (float64 ``[2]``, metres: the training errors' std per
-    dimension). ``state_dict`` holds the torch weights as trained; :meth:`noise_params` evaluates the network in
-    float64 numpy with the target scale folded into its last layer.
+    dimension). ``state_dict`` holds the weights as trained (float32 numpy arrays under
+    :func:`pemviz.pem.network.mlnn_shapes`'s keys; torch tensors given are copied into numpy arrays);
+    :meth:`noise_params` evaluates the network in float64 numpy with the target scale folded into its last layer.
+
+    Raises:
+        ValueError: a target scale not 2 finite values > 0, or a bad family; PemFormatError: weights that do not fit
+            ``hidden``.
     """
 
     kind: ClassVar[str] = "mlp"
 
-    state_dict: Mapping[str, torch.Tensor]
+    state_dict: Mapping[str, np.ndarray]
     hidden: tuple[int, ...]
     target_scale: np.ndarray
 
@@ -171,12 +184,11 @@ class NoisePEM(NoiseModel):
         if scale.shape != (2,) or not np.all(np.isfinite(scale) & (scale > 0)):
             raise ValueError(f"target_scale must be 2 finite values > 0, got {self.target_scale}")
         object.__setattr__(self, "target_scale", scale)
-        module = MLNN(N_FEATURES, self.hidden, batch_norm=False, out_dim=4)
+        object.__setattr__(self, "state_dict", as_arrays(self.state_dict))
         try:
-            module.load_state_dict(dict(self.state_dict))
-        except RuntimeError as exc:
+            layers = list(fold_state_dict(self.state_dict, self.hidden, batch_norm=False, out_dim=4))
+        except ValueError as exc:
             raise PemFormatError(f"noise PEM {self.name!r}: weights do not fit hidden={self.hidden}: {exc}") from None
-        layers = list(fold_layers(module))
         w, b = layers[-1]  # outputs in target units: loc * scale, log_scale + log(scale)
         gain = np.concatenate([scale, np.ones(2)])
         layers[-1] = (w * gain[:, None], b * gain + np.concatenate([np.zeros(2), np.log(scale)]))
@@ -267,33 +279,6 @@ def noise_training_data(inputs: np.ndarray, label_table: np.ndarray, *, seed: in
 # -------------------------------------------------------------------------------------------- training
 
 
-class NoiseNLL(nn.Module):
-    """Mean negative log-likelihood (nats per obstacle, summed over the 2 dimensions) of targets ``[B, 2]`` under the
-    network's outputs ``[B, 4]`` = (loc, log scale), with ``torch.distributions`` (``Normal``, ``Laplace``, ``StudentT``;
-    the Student-t's 2 degrees of freedom ``DF_MIN + softplus(df_raw)`` are trained with the network)."""
-
-    def __init__(self, family: str) -> None:
-        super().__init__()
-        _check_family(family, np.full(2, 2.0))
-        self.family = family
-        self.df_raw = nn.Parameter(torch.zeros(2)) if family == "student-t" else None
-
-    def df(self) -> torch.Tensor:
-        assert self.df_raw is not None
-        return DF_MIN + nn.functional.softplus(self.df_raw)
-
-    def forward(self, out: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        loc, scale = out[:, :2], torch.exp(out[:, 2:])
-        dist: torch.distributions.Distribution
-        if self.family == "normal":
-            dist = torch.distributions.Normal(loc, scale)
-        elif self.family == "laplace":
-            dist = torch.distributions.Laplace(loc, scale)
-        else:
-            dist = torch.distributions.StudentT(self.df(), loc, scale)
-        return -dist.log_prob(target).sum(dim=1).mean()
-
-
 def train_noise_pem(
     inputs: np.ndarray,
     errors: np.ndarray,
@@ -327,6 +312,10 @@ def train_noise_pem(
         ValueError: shapes other than ``[M, 11]`` / ``[M, 2]``, non-finite errors, an unknown family, fewer than 2
             rows, epochs < 1 or batch_size < 1.
     """
+    import torch
+
+    from pemviz.pem.modules import NoiseNLL
+
     raw = np.asarray(inputs, dtype=np.float64)
     norm = norm if norm is not None else fit_norm_stats(raw)
     x = encode_salient(raw, norm)
@@ -366,9 +355,8 @@ def train_noise_pem(
         "torch_version": str(torch.__version__),
         **dict(metadata or {}),
     }
-    state = {k: v.detach().clone() for k, v in module.state_dict().items()}
-    return NoisePEM(name=name, norm=norm, family=family, df=df, state_dict=state, hidden=tuple(int(h) for h in hidden),
-                    target_scale=target_scale, metadata=meta)  # fmt: skip
+    return NoisePEM(name=name, norm=norm, family=family, df=df, state_dict=module.state_dict(),
+                    hidden=tuple(int(h) for h in hidden), target_scale=target_scale, metadata=meta)  # fmt: skip
 
 
 def fit_homoscedastic(
@@ -434,7 +422,6 @@ __all__ = [
     "HomoscedasticNoise",
     "NoiseData",
     "NoiseModel",
-    "NoiseNLL",
     "NoisePEM",
     "fit_homoscedastic",
     "noise_training_data",

@@ -7,6 +7,9 @@ z-score statistics (float64 tensors), the model's tensors and plain-value metada
 (:func:`save_noise_pem`) is the same with tag ``pemviz-noise-pem``, kind ``mlp`` (:class:`NoisePEM`) or ``linear``
 (:class:`HomoscedasticNoise`), the family and its degrees of freedom. A :class:`NoisyPEM` file
 (:func:`save_noisy_pem`, tag ``pemviz-noisy-pem``) holds the two heads' dicts under ``detect`` and ``noise``.
+
+Loading does not import torch: :func:`pemviz.io.torch_payload.load_payload` reads the ``torch.save`` archive into
+numpy arrays (and asks torch only for a file it does not understand). Saving imports torch (``torch.save``).
 """
 
 from __future__ import annotations
@@ -15,10 +18,10 @@ import os
 from collections.abc import Callable, Mapping
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
+
 from pemviz.io.data import repo_root
 from pemviz.io.files import atomic_write, load_tagged
 from pemviz.pem.encoding import POSE_COLUMNS, NormStats
@@ -27,6 +30,9 @@ from pemviz.pem.noise import HomoscedasticNoise, NoiseModel, NoisePEM
 from pemviz.pem.perception import NoisyPEM
 from pemviz.pem.recipes import DEFAULT_NOISE_NAME, DEFAULT_PEM_NAME
 from pemviz.pem.trees import TreePEM
+
+if TYPE_CHECKING:  # annotations only: torch takes about 1 s to import, and only saving needs it
+    import torch
 
 ASSETS_DIR_ENV = "PEMVIZ_ASSETS_DIR"
 FORMAT_TAG = "pemviz-pem"
@@ -90,12 +96,35 @@ def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
 
 def _save(payload: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     """``torch.save`` a payload dict atomically (temporary file in the same folder, then ``os.replace``)."""
+    import torch
+
     target = Path(path)
     atomic_write(target, lambda tmp: torch.save(payload, tmp))
     return target
 
 
+def _tensor(value: Any, dtype: Any = None) -> torch.Tensor:
+    """A torch tensor of a numpy array (or of what ``numpy.asarray`` takes), a copy of its own, C order, for
+    ``torch.save``; ``dtype`` a numpy dtype, or the array's own."""
+    import torch
+
+    return torch.from_numpy(np.array(value, dtype=dtype, order="C", copy=True))
+
+
+def _array(value: Any) -> np.ndarray:
+    """A payload's tensor, read as a numpy array (:func:`pemviz.io.torch_payload.load_payload`).
+
+    Raises:
+        TypeError: anything else (the file is damaged).
+    """
+    if not isinstance(value, np.ndarray):
+        raise TypeError(f"a {type(value).__name__} where an array belongs")
+    return value
+
+
 def _norm_payload(norm: NormStats) -> dict[str, torch.Tensor]:
+    import torch
+
     return {
         "norm_mean": torch.as_tensor(norm.mean, dtype=torch.float64),
         "norm_std": torch.as_tensor(norm.std, dtype=torch.float64),
@@ -118,7 +147,7 @@ def _pem_payload(pem: AnyPEM) -> dict[str, Any]:
                 "hidden": list(pem.hidden),
                 "batch_norm": bool(pem.batch_norm),
                 "temperature": float(pem.temperature),
-                "state_dict": {k: v.detach().cpu().clone() for k, v in pem.state_dict.items()},
+                "state_dict": {k: _tensor(v) for k, v in pem.state_dict.items()},
             }
         )
     elif isinstance(pem, TreePEM):
@@ -147,10 +176,10 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
 
 
 def _load_payload(p: Path, tag: str, version: int, what: str) -> dict:
-    """:func:`pemviz.io.files.load_tagged` with a one-line PemFormatError (torch's own message for a file that
-    ``torch.load`` cannot read spans several lines and suggests ``weights_only=False``)."""
+    """:func:`pemviz.io.files.load_tagged`, tensors as numpy arrays, with a one-line PemFormatError (torch's own
+    message for a file that ``torch.load`` cannot read spans several lines and suggests ``weights_only=False``)."""
     try:
-        return load_tagged(p, tag, version, what, PemFormatError)
+        return load_tagged(p, tag, version, what, PemFormatError, as_numpy=True)
     except PemFormatError as exc:
         if "\n" not in str(exc):
             raise
@@ -161,7 +190,7 @@ def _pem_from_payload(payload: Mapping[str, Any], p: Path) -> AnyPEM:
     """The PEM of a payload of :func:`_pem_payload` read from ``p`` (named in errors); raises PemFormatError."""
     kind = payload.get("kind", PEM.kind)
     try:
-        norm = NormStats(mean=payload["norm_mean"].numpy(), std=payload["norm_std"].numpy())
+        norm = NormStats(mean=_array(payload["norm_mean"]), std=_array(payload["norm_std"]))
         meta = dict(payload.get("metadata") or {})
         if kind == PEM.kind:
             return PEM(
@@ -225,19 +254,24 @@ def _pack_trees(pem: TreePEM) -> dict[str, torch.Tensor]:
     if pem.feature.size and int(pem.feature[internal].max(initial=0)) > 127:
         raise ValueError("feature index does not fit int8")
     return {
-        "is_leaf": torch.from_numpy(pem.is_leaf.copy()),
-        "feature": torch.from_numpy(pem.feature[internal].astype(np.int8)),
-        "threshold": torch.from_numpy(pem.threshold[internal].copy()),
-        "left": torch.from_numpy(pem.left[internal].astype(np.int32)),
-        "right": torch.from_numpy(pem.right[internal].astype(np.int32)),
-        "value": torch.from_numpy(pem.value[pem.is_leaf].copy()),
-        "roots": torch.from_numpy(pem.roots.astype(np.int32)),
+        "is_leaf": _tensor(pem.is_leaf),
+        "feature": _tensor(pem.feature[internal], np.int8),
+        "threshold": _tensor(pem.threshold[internal]),
+        "left": _tensor(pem.left[internal], np.int32),
+        "right": _tensor(pem.right[internal], np.int32),
+        "value": _tensor(pem.value[pem.is_leaf]),
+        "roots": _tensor(pem.roots, np.int32),
     }
 
 
-def _unpack_trees(packed: Mapping[str, torch.Tensor]) -> dict[str, np.ndarray]:
-    """Inverse of :func:`_pack_trees`: full-length node arrays (leaves get feature 0, threshold 0, children -1)."""
-    is_leaf = packed["is_leaf"].numpy().astype(bool)
+def _unpack_trees(packed: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Inverse of :func:`_pack_trees` on the arrays read back: full-length node arrays (leaves get feature 0,
+    threshold 0, children -1).
+
+    Raises:
+        KeyError, TypeError, ValueError: a field missing, not an array, or of another length (a damaged file).
+    """
+    is_leaf = _array(packed["is_leaf"]).astype(bool)
     internal = ~is_leaf
     m = is_leaf.shape[0]
     out = {
@@ -247,13 +281,13 @@ def _unpack_trees(packed: Mapping[str, torch.Tensor]) -> dict[str, np.ndarray]:
         "left": np.full(m, -1, dtype=np.int64),
         "right": np.full(m, -1, dtype=np.int64),
         "value": np.zeros(m, dtype=np.float64),
-        "roots": packed["roots"].numpy().astype(np.int64),
+        "roots": _array(packed["roots"]).astype(np.int64),
     }
-    out["feature"][internal] = packed["feature"].numpy()
-    out["threshold"][internal] = packed["threshold"].numpy()
-    out["left"][internal] = packed["left"].numpy()
-    out["right"][internal] = packed["right"].numpy()
-    out["value"][is_leaf] = packed["value"].numpy()
+    out["feature"][internal] = _array(packed["feature"])
+    out["threshold"][internal] = _array(packed["threshold"])
+    out["left"][internal] = _array(packed["left"])
+    out["right"][internal] = _array(packed["right"])
+    out["value"][is_leaf] = _array(packed["value"])
     return out
 
 
@@ -271,7 +305,9 @@ def load_reference_pem(folder: str | os.PathLike[str] | None = None) -> PEM:
     """The authors' ML-NN (CarlaStuff ``models/det_baseline_full/pem_class_train_full`` with
     ``norm_stats_mu.pt`` / ``norm_stats_std.pt``) as a :class:`PEM` named ``authors``.
 
-    Their stats are float32 over all 11 columns; the pose columns 7..10 are used.
+    Their stats are float32 over all 11 columns; the pose columns 7..10 are used. The files are read as
+    ``torch.load(weights_only=True)`` reads them (:func:`pemviz.io.torch_payload.load_payload`: without torch when
+    it understands them).
 
     Raises:
         FileNotFoundError: the folder or one of its three files is missing.
@@ -281,9 +317,11 @@ def load_reference_pem(folder: str | os.PathLike[str] | None = None) -> PEM:
     missing = [str(f) for f in files if not f.is_file()]
     if missing:
         raise FileNotFoundError(f"authors' PEM files missing: {', '.join(missing)}")
-    state = torch.load(files[0], map_location="cpu", weights_only=True)
-    mu = torch.load(files[1], map_location="cpu", weights_only=True).to(torch.float64).numpy()
-    sd = torch.load(files[2], map_location="cpu", weights_only=True).to(torch.float64).numpy()
+    from pemviz.io.torch_payload import load_payload
+
+    state = load_payload(files[0])
+    mu = np.asarray(load_payload(files[1]), dtype=np.float64)
+    sd = np.asarray(load_payload(files[2]), dtype=np.float64)
     cols = list(POSE_COLUMNS)
     return PEM(
         name="authors",
@@ -314,7 +352,7 @@ def _noise_payload(model: NoiseModel) -> dict[str, Any]:
         "kind": model.kind,
         "name": model.name,
         "family": model.family,
-        "df": None if model.df is None else torch.as_tensor(model.df, dtype=torch.float64),
+        "df": None if model.df is None else _tensor(model.df, np.float64),
         **_norm_payload(model.norm),
         "metadata": _plain(model.metadata),
     }
@@ -322,13 +360,12 @@ def _noise_payload(model: NoiseModel) -> dict[str, Any]:
         payload.update(
             {
                 "hidden": list(model.hidden),
-                "target_scale": torch.as_tensor(model.target_scale, dtype=torch.float64),
-                "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict.items()},
+                "target_scale": _tensor(model.target_scale, np.float64),
+                "state_dict": {k: _tensor(v) for k, v in model.state_dict.items()},
             }
         )
     elif isinstance(model, HomoscedasticNoise):
-        payload.update({k: torch.as_tensor(getattr(model, k), dtype=torch.float64)
-                        for k in ("coef", "intercept", "log_scale")})  # fmt: skip
+        payload.update({k: _tensor(getattr(model, k), np.float64) for k in ("coef", "intercept", "log_scale")})
     else:
         raise TypeError(f"cannot save a {type(model).__name__} as a noise PEM")
     return payload
@@ -340,17 +377,17 @@ def _noise_from_payload(payload: Mapping[str, Any], p: Path) -> NoiseModel:
     try:
         common = {
             "name": str(payload["name"]),
-            "norm": NormStats(mean=payload["norm_mean"].numpy(), std=payload["norm_std"].numpy()),
+            "norm": NormStats(mean=_array(payload["norm_mean"]), std=_array(payload["norm_std"])),
             "family": str(payload["family"]),
-            "df": None if payload["df"] is None else payload["df"].numpy(),
+            "df": None if payload["df"] is None else _array(payload["df"]),
             "metadata": dict(payload.get("metadata") or {}),
         }
         if kind == NoisePEM.kind:
             return NoisePEM(**common, state_dict=dict(payload["state_dict"]),
                             hidden=tuple(int(h) for h in payload["hidden"]),
-                            target_scale=payload["target_scale"].numpy())  # fmt: skip
+                            target_scale=_array(payload["target_scale"]))  # fmt: skip
         if kind == HomoscedasticNoise.kind:
-            return HomoscedasticNoise(**common, **{k: payload[k].numpy() for k in ("coef", "intercept", "log_scale")})
+            return HomoscedasticNoise(**common, **{k: _array(payload[k]) for k in ("coef", "intercept", "log_scale")})
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise PemFormatError(f"{p}: damaged noise PEM file ({exc!r})") from None
     raise PemFormatError(f"{p}: unknown noise PEM kind {kind!r} (known: {NoisePEM.kind}, {HomoscedasticNoise.kind})")
