@@ -50,7 +50,7 @@ STORAGE_DTYPES: dict[str, np.dtype] = {
 """The typed storage classes of ``torch`` (``torch.storage._dtype_to_storage_type_map``) this reader turns into
 numpy dtypes; the others (``BFloat16Storage``, the quantised ones) have none and are left to torch."""
 
-FORMAT_VERSIONS = (1, 2, 3)
+FORMAT_VERSIONS = range(1, 4)
 """Archive format versions read here (``version`` record; torch 2.x writes 3); another is left to torch."""
 
 
