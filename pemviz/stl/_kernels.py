@@ -6,14 +6,28 @@ smooth-cumulative, over the window offsets (each step vectorised over traces x o
 
 from __future__ import annotations
 
+import sys
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-try:  # torch is a hard dependency of pemviz, but keep this module importable without it
-    import torch
-except ImportError:  # pragma: no cover
-    torch = None  # type: ignore[assignment]
+
+class _Torch:
+    """torch, imported at its first use (about 1 s): numpy inputs never import it."""
+
+    def __getattr__(self, name: str) -> Any:
+        import torch as module
+
+        return getattr(module, name)
+
+
+torch: Any = _Torch()
+
+
+def is_tensor(x: Any) -> bool:
+    """Whether ``x`` is a torch tensor (never imports torch: without it imported, nothing is one)."""
+    module = sys.modules.get("torch")
+    return module is not None and isinstance(x, module.Tensor)
 
 Array = Any  # np.ndarray | torch.Tensor
 

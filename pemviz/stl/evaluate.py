@@ -48,11 +48,7 @@ from pemviz.stl.formula import (
 )
 from pemviz.stl.parser import parse
 from pemviz.stl.semantics import DEFAULT_TEMPERATURE, SEMANTICS, Semantics, _col, semantics_from_name
-
-try:
-    import torch
-except ImportError:  # pragma: no cover
-    torch = None  # type: ignore[assignment]
+from pemviz.stl._kernels import torch
 
 __all__ = ["TRACE_END", "robustness", "robustness_signal", "first_violation"]
 
@@ -174,7 +170,7 @@ def _signal_positions(formula: Formula) -> dict[str, int | None]:
 
 
 def _is_torch(x: Any) -> bool:
-    return torch is not None and isinstance(x, torch.Tensor)
+    return K.is_tensor(x)
 
 
 class _Job:
