@@ -105,3 +105,19 @@ def test_a_pending_thread_count_applies_when_torch_is_first_asked_for():
         assert torch_use.settle() is None
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("scenario", ["braking", "cut-in"])
+def test_a_default_run_with_its_recording_never_imports_torch(tmp_path, scenario):
+    """torch (about 1 s to import) is not needed by a run whose fits are exact: the PEM, the proposal, the STL
+    robustness, the estimate and the recording all run without it. A small run of each scene, in a new process."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from pemviz.cli import main; "
+            f"status = main(['run', '--scenario', {scenario!r}, '--k', '2', '--n', '40', '--n-final', '60', "
+            f"'--save', {str(tmp_path / 'run.rrd')!r}]); "
+            "print('exit', status, 'torch imported', 'torch' in sys.modules)")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.stdout.strip().endswith("exit 0 torch imported False"), out.stdout[-500:] + out.stderr[-2000:]
+    assert (tmp_path / "run.rrd").stat().st_size > 0
