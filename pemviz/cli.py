@@ -46,6 +46,11 @@ def build_parser(command: str | None = None, *, full: bool = True) -> argparse.A
     return parser
 
 
+AS_PROGRAM = False
+"""Whether this process is the ``pemviz`` program (:func:`main` called without ``argv``), not a library user: only
+then does a command change process-wide state (:mod:`pemviz.commands.process`)."""
+
+
 def _raise_terminated(signum: int, frame: object) -> None:
     raise Terminated()
 
@@ -58,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line. Run as the program (``argv`` None), the process
     ends as soon as the command has (:func:`_exit_now`), and a signal that comes after it is ignored.
     """
+    global AS_PROGRAM
+    AS_PROGRAM = AS_PROGRAM or argv is None
     previous = None
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         try:

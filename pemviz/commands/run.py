@@ -328,6 +328,12 @@ def main(args: argparse.Namespace) -> int:
 
     result_files = result_paths(args, cfg)
     target = recording_target(args)
+    from pemviz import cli
+
+    if cli.AS_PROGRAM and target != "no-record" and cfg.executor == "serial":
+        from pemviz.commands.process import settle_pyarrow_without_pandas
+
+        settle_pyarrow_without_pandas()
     save_path = None
     if target == "save":
         from pemviz.io.result import result_beside  # the recording's result document, written beside it at the end

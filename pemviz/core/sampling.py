@@ -268,7 +268,16 @@ class Proposal:
         return self._to_torch().state_dict()
 
     def load_state_dict(self, state: dict) -> None:
-        """Load a ``state_dict`` of torch tensors or numpy arrays (imports torch)."""
+        """Load a ``state_dict`` of torch tensors or numpy arrays: into numpy while the parameters live there and it
+        holds the network alone, else into torch (imports torch).
+
+        Raises:
+            ValueError: a numpy load of the wrong shapes; RuntimeError: torch's, for wrong keys or shapes.
+        """
+        keys = [f"net.{i}.{k}" for i in (0, 2, 4) for k in ("weight", "bias")]
+        if self._module is None and set(state) == set(keys):
+            self.set_parameter_arrays([np.asarray(state[k], dtype=np.float64) for k in keys])
+            return
         from pemviz.core.torch_use import torch_module
 
         torch = torch_module()
@@ -455,7 +464,8 @@ def load_proposal(path: str | os.PathLike[str]) -> Proposal:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"proposal checkpoint {p} not found")
-    payload = load_tagged(p, PROPOSAL_FORMAT_TAG, PROPOSAL_FORMAT_VERSION, "proposal checkpoint", ProposalFormatError)
+    payload = load_tagged(p, PROPOSAL_FORMAT_TAG, PROPOSAL_FORMAT_VERSION, "proposal checkpoint", ProposalFormatError,
+                          as_numpy=True)  # fmt: skip
     try:
         proposal = Proposal(float(payload["h_scale"]))
         proposal.load_state_dict(payload["state_dict"])

@@ -1,5 +1,6 @@
-"""A proposal keeps its parameters in numpy until something needs torch: the same draws, weights, fits and estimates as
-a proposal in torch, bit for bit (the seed contract), and torch's own state left alone when it moves there."""
+"""What a run imports. A proposal keeps its parameters in numpy until something needs torch: the same draws, weights,
+fits and estimates as a proposal in torch, bit for bit (the seed contract), and torch's own state left alone when it
+moves there. A default run imports neither torch nor, as the program, pandas."""
 
 from __future__ import annotations
 
@@ -108,16 +109,63 @@ def test_a_pending_thread_count_applies_when_torch_is_first_asked_for():
 
 
 @pytest.mark.parametrize("scenario", ["braking", "cut-in"])
-def test_a_default_run_with_its_recording_never_imports_torch(tmp_path, scenario):
+def test_a_default_run_with_its_recording_imports_neither_torch_nor_pandas(tmp_path, scenario):
     """torch (about 1 s to import) is not needed by a run whose fits are exact: the PEM, the proposal, the STL
-    robustness, the estimate and the recording all run without it. A small run of each scene, in a new process."""
+    robustness, the estimate and the recording all run without it; nor is pandas (0.2 s) by the program's recording
+    (:func:`pemviz.commands.process.settle_pyarrow_without_pandas`). A small run of each scene, as the program, in a
+    new process (its exit hook prints what was imported). The cut-in's traffic comes from highway-env, which imports
+    pandas itself."""
     import subprocess
     import sys
 
-    code = ("import sys; from pemviz.cli import main; "
-            f"status = main(['run', '--scenario', {scenario!r}, '--k', '2', '--n', '40', '--n-final', '60', "
-            f"'--save', {str(tmp_path / 'run.rrd')!r}]); "
-            "print('exit', status, 'torch imported', 'torch' in sys.modules)")  # fmt: skip
+    code = ("import os, sys; import pemviz.cli as cli; "
+            "exit_now = lambda status: print('exit', status, 'torch', 'torch' in sys.modules, "
+            "'pandas', 'pandas' in sys.modules, flush=True) or os._exit(status); cli._exit_now = exit_now; "
+            f"sys.argv = ['pemviz', 'run', '--scenario', {scenario!r}, '--k', '2', '--n', '40', '--n-final', '60', "
+            f"'--save', {str(tmp_path / 'run.rrd')!r}]; cli.main()")  # fmt: skip
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert out.stdout.strip().endswith("exit 0 torch imported False"), out.stdout[-500:] + out.stderr[-2000:]
+    pandas = scenario != "braking"
+    assert out.stdout.strip().endswith(f"exit 0 torch False pandas {pandas}"), out.stdout[-500:] + out.stderr[-2000:]
     assert (tmp_path / "run.rrd").stat().st_size > 0
+
+
+def test_the_pandas_settle_is_the_programs_alone(tmp_path, monkeypatch):
+    """pemviz called as a library (``main(argv)``) leaves pyarrow as it found it."""
+    import pemviz.commands.process as process
+    from pemviz.cli import main
+
+    def refuse() -> bool:
+        raise AssertionError("a library call changed pyarrow's process-wide state")
+
+    monkeypatch.setattr(process, "settle_pyarrow_without_pandas", refuse)
+    assert main(["run", "--k", "1", "--n", "20", "--n-final", "20", "--save", str(tmp_path / "r.rrd")]) == 0
+
+
+def test_after_the_settle_pandas_imports_and_converts_as_before():
+    """The settle refuses nothing afterwards: pandas imports, and pyarrow converts its frames (a new process, where
+    pandas was not imported)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from pemviz.commands.process import settle_pyarrow_without_pandas as settle; "
+            "print(settle(), 'pandas' in sys.modules); import pandas as pd, pyarrow as pa; "
+            "t = pa.Table.from_pandas(pd.DataFrame({'x': [1.5, None]})); print(t.column('x').to_pylist(), settle())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stdout.split("\n")[:2] == ["True False", "[1.5, None] False"], out.stdout + out.stderr[-2000:]
+
+
+def test_a_checkpoint_loads_into_numpy_with_the_same_weights(tmp_path, numpy_first):
+    """A proposal checkpoint (torch's file format) is read without torch into a proposal in numpy: the same
+    parameters and sampling logits as the proposal saved."""
+    from pemviz.core.sampling import load_proposal, save_proposal
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(sampling, "torch_imported", lambda: True)
+        saved = Proposal(7.5)
+    saved.initialise(np.random.default_rng(11))
+    loaded = load_proposal(save_proposal(saved, tmp_path / "q.proposal.pt"))
+    assert loaded._module is None and not loaded.training and loaded.h_scale == 7.5
+    for a, b in zip(loaded.parameter_arrays(), saved.parameter_arrays()):
+        np.testing.assert_array_equal(a, b)
+    obs = np.random.default_rng(1).uniform(0, 30, (200, 3))
+    np.testing.assert_array_equal(loaded.detect_logit(obs), saved.detect_logit(obs))
