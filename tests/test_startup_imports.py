@@ -114,18 +114,22 @@ def test_a_default_run_with_its_recording_imports_neither_torch_nor_pandas(tmp_p
     robustness, the estimate and the recording all run without it; nor is pandas (0.2 s) by the program's recording
     (:func:`pemviz.commands.process.settle_pyarrow_without_pandas`). A small run of each scene, as the program, in a
     new process (its exit hook prints what was imported). The cut-in's traffic comes from highway-env, which imports
-    pandas itself."""
+    pandas itself. A braking run loads neither the cut-in's modules, nor splitting's, nor the report's."""
     import subprocess
     import sys
 
     code = ("import os, sys; import pemviz.cli as cli; "
-            "exit_now = lambda status: print('exit', status, 'torch', 'torch' in sys.modules, "
-            "'pandas', 'pandas' in sys.modules, flush=True) or os._exit(status); cli._exit_now = exit_now; "
+            "others = ('pemviz.scenarios.cut_in', 'pemviz.estimators.ams', 'pemviz.io.report'); "
+            "exit_now = lambda status: print('unused', [m for m in others if m in sys.modules], 'exit', status, "
+            "'torch', 'torch' in sys.modules, 'pandas', 'pandas' in sys.modules, flush=True) or os._exit(status); "
+            "cli._exit_now = exit_now; "
             f"sys.argv = ['pemviz', 'run', '--scenario', {scenario!r}, '--k', '2', '--n', '40', '--n-final', '60', "
             f"'--save', {str(tmp_path / 'run.rrd')!r}]; cli.main()")  # fmt: skip
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     pandas = scenario != "braking"
     assert out.stdout.strip().endswith(f"exit 0 torch False pandas {pandas}"), out.stdout[-500:] + out.stderr[-2000:]
+    if scenario == "braking":  # nor the other scene's, method's or command's modules
+        assert "unused [] exit" in out.stdout
     assert (tmp_path / "run.rrd").stat().st_size > 0
 
 

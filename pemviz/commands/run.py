@@ -231,11 +231,11 @@ def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path 
     Raises:
         UsageError: a path that cannot be written, or ``--junit`` without ``--require``.
     """
-    from pemviz.io.report import markdown_twin
-
     paths = []
     report = getattr(args, "report_path", None)
     if report is not None:
+        from pemviz.io.report import markdown_twin
+
         try:
             check_output_path(markdown_twin(Path(report)), ".md", "--report (its Markdown twin)",
                               overwrite=args.overwrite)  # fmt: skip

@@ -13,7 +13,7 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Callable, Iterator, Mapping
 
 import numpy as np
 from scipy.special import expit
@@ -32,8 +32,10 @@ from pemviz.scenarios import (
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
-from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE, RARITY_SETTINGS, CutInParams
 from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
+
+if TYPE_CHECKING:
+    from pemviz.scenarios.cut_in import CutInParams
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
 """``simulate(n, sampler, target, rng) -> RolloutBatch``: n rollouts drawn from ``sampler``."""
@@ -456,6 +458,8 @@ def cut_in_params(setting: str) -> CutInParams:
     Raises:
         ValueError: an unknown setting.
     """
+    from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams  # the cut-in's modules: for its runs only
+
     if setting not in RARITY_SETTINGS:
         raise ValueError(f"unknown cut-in setting {setting!r}; use one of {', '.join(RARITY_SETTINGS)}")
     return CutInParams(**RARITY_SETTINGS[setting])
@@ -604,6 +608,8 @@ def problem_for(config: ExperimentConfig) -> Problem:
     if config.scenario == "braking":
         params = None if config.margin is None else BrakingParams(crash_gap_m=float(config.margin))
         return with_alternatives(braking_problem(load_pem(config.pem), params, sim=config.sim), config)
+    from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
+
     setting = "rare" if config.scenario == "cut-in-rare" else "moderate"
     problem = cut_in_problem(load_pem(config.pem), cut_in_params(setting), name=config.scenario)
     if config.pem in (None, DEFAULT_PEM_NAME) and setting in MONTE_CARLO_REFERENCE:

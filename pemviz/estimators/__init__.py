@@ -13,7 +13,6 @@ from __future__ import annotations
 from pemviz.config import ExperimentConfig
 from pemviz.core.problems import Problem
 from pemviz.engine.plan import PlannedStage, RunPlan
-from pemviz.estimators.ams import AdaptiveMultilevelSplitting
 from pemviz.estimators.base import (
     Check,
     Estimator,
@@ -44,6 +43,8 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
     ``config.weights_until_failure``, like the adaptive sampler's.
     """
     if config.method == "ams":
+        from pemviz.estimators.ams import AdaptiveMultilevelSplitting
+
         return AdaptiveMultilevelSplitting(config, problem, check)
     if config.method == "adaptive":
         inner: CrossEntropy | FixedSampler = CrossEntropy(config, problem, check)
@@ -57,6 +58,17 @@ def run_plan(config: ExperimentConfig) -> RunPlan:
     """The :class:`RunPlan` the estimator of ``config.method`` states (:meth:`Estimator.plan`), without building it:
     e.g. to check a run's memory before its problem is loaded."""
     if config.method == "ams":
+        from pemviz.estimators.ams import AdaptiveMultilevelSplitting
+
         return AdaptiveMultilevelSplitting.run_plan(config)
     plan = CrossEntropy.run_plan(config) if config.method == "adaptive" else FixedSampler.run_plan(config.n_per_stage)
     return plan if config.stop_rule is None else RunPlan(plan.stages, open_ended=True)
+
+
+def __getattr__(name: str) -> object:
+    """:class:`AdaptiveMultilevelSplitting`, imported when first named (a run of another method never loads it)."""
+    if name == "AdaptiveMultilevelSplitting":
+        from pemviz.estimators.ams import AdaptiveMultilevelSplitting
+
+        return AdaptiveMultilevelSplitting
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
