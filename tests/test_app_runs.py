@@ -187,7 +187,12 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     cfg = ExperimentConfig(n_stages=3, n_per_stage=50, n_final=70, pretrain_rollouts=20)
     cost = run_cost(cfg)
     assert cost.simulations == 20 + 3 * 50 + 70 and not cost.needs_confirm
-    assert cost.memory_bytes == 70 * 100 * (3 * 8 + 1 + 8 + 8)
+    from pemviz.engine.resources import BASE_BYTES, BYTES_PER_ROLLOUT_STEP, run_memory
+    from pemviz.estimators import run_plan
+
+    assert cost.memory_bytes == 70 * 100 * BYTES_PER_ROLLOUT_STEP  # the largest batch, T = 100 steps
+    plan = run_plan(cfg)  # the memory check's model, less the process's own
+    assert cost.memory_bytes == run_memory(plan, 100, cfg.quantile_level, stream_above=20_000) - BASE_BYTES
     assert run_cost(cfg.replace(n_stages=1000, n_per_stage=1000)).needs_confirm
     assert parse_number(FIELDS_BY_KEY["n_stages"], "100000")[1].startswith("K: 100000 is out of range")
     assert parse_number(FIELDS_BY_KEY["seed"], str(2**64 - 1)) == (2**64 - 1, "")

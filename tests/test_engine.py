@@ -192,3 +192,14 @@ def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, uni
     np.testing.assert_array_equal(last.robustness, last.stage_robustness[last.index])
     least = np.argsort(last.stage_robustness, kind="stable")[: engine.SAMPLE_LEAST_ROBUST]
     assert set(least) <= set(last.index.tolist())
+
+
+@pytest.mark.parametrize("name", ["toy", "crowd", "main", "cut-in"])
+def test_a_problems_horizon_is_the_steps_of_its_rollouts(name):
+    """``Problem.n_steps`` (and its view's), the one horizon the memory check, the cost model and the sinks read, is
+    the number of steps its simulator draws."""
+    from pemviz.core.problems import problem_for
+
+    problem = problem_for(ExperimentConfig(scenario="cut-in")) if name == "cut-in" else build_problem(name)
+    batch = problem.simulate(3, problem.target, problem.target, np.random.default_rng(0))
+    assert problem.n_steps == problem.view.n_steps == batch.n_steps > 1

@@ -48,6 +48,7 @@ from pemviz.sinks.colours import (
     css,
     hex_colour,
     stage_rgb,
+    stage_span,
 )
 
 PROB, LOG_ODDS = "prob", "log_odds"
@@ -184,7 +185,7 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
     cfg = record.config
     axis = record.proposal_axis
     last_stage, last_name, last = stages[-1]
-    n_colour = max(1, cfg.n_stages + 1 if cfg.method == "adaptive" else 1)
+    n_colour = stage_span(record.plan)
     x = last.centres_m
     x_range = (float(last.edges_m[0]), float(last.edges_m[-1]))
     plain_mc = cfg.method == "mc"

@@ -256,7 +256,7 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) ->
     if grid.size == 0:
         return
     objects = record.view is not None and record.view.scene is None and record.view.objects_xy is not None
-    n_colour = max(1, record.plan.n_ce if record.plan is not None else 1)  # blue (stage 0) to orange (stage K)
+    n_colour = C.stage_span(record.plan)  # blue (stage 0) to orange (the last stage)
     series = [up.Series(label="range (m)" if objects else "gap (m)"),
               up.Series(label="PEM", stroke=hex_colour(C.BLACK), width=2)]  # fmt: skip
     data = [grid, pem]

@@ -357,16 +357,16 @@ def main(args: argparse.Namespace) -> int:
 
     from pemviz.core.counterfactuals import MostLikelyFailure, counterfactuals
     from pemviz.core.problems import problem_for
+    from pemviz.engine.cost import N_STEPS
     from pemviz.engine.resources import torch_threads
     from pemviz.engine.experiment import Experiment, stream_above
     from pemviz.estimators import check_runnable
-    from pemviz.scenarios.braking import BrakingParams
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.population import FailureGroups, grouping_document
 
     serial = cfg.executor == "serial"
-    check_run_memory(cfg, BrakingParams().n_steps, stream_above=stream_above(cfg) if serial else None)
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
+    check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg) if serial else None)
     try:
         check_runnable(cfg, problem)  # a sampler that cannot run on this scenario: before any output or rollout
     except ValueError as exc:

@@ -107,6 +107,7 @@ class ProblemView:
             ahead), to draw a scene of several objects from its rollouts' rows; None: none.
         noise_xy: the measurement-error components along those two directions (indexes into the noise, metres),
             to draw where each detected object was measured; None: no errors, or none along them.
+        n_steps: T, the steps of a rollout (:attr:`Problem.n_steps`; None: not known).
     """
 
     name: str
@@ -116,6 +117,7 @@ class ProblemView:
     scene: BrakingParams | None = None
     objects_xy: tuple[str, str] | None = None
     noise_xy: tuple[int, int] | None = None
+    n_steps: int | None = None
 
     @property
     def signal_names(self) -> tuple[str, ...]:
@@ -220,6 +222,8 @@ class Problem:
         severity_exact: level -> the exact log P(failure and min s < level) (nats), where known.
         alternatives: other targets the rollouts are re-weighted under (PEM ensemble members, shifted PEMs:
             :class:`pemviz.core.reweight.AlternativeTarget`); alternatives_source: where the members come from.
+        n_steps: T, the steps of a rollout (None: not known, e.g. a rollout file's problem): the one horizon the
+            memory check, the cost model and the sinks read.
     """
 
     name: str
@@ -249,13 +253,14 @@ class Problem:
     severity_exact: Mapping[float, float] = field(default_factory=dict)
     alternatives: tuple[AlternativeTarget, ...] = ()
     alternatives_source: str = ""
+    n_steps: int | None = None
 
     @property
     def view(self) -> ProblemView:
         """The problem as sinks show it: name, description, signals with units, thresholds, scene."""
         signals = tuple(SignalView(n, c, self.units.get(n, "")) for n, c in self.signals.items())
         return ProblemView(self.name, self.description or self.name, signals, self.thresholds, self.scene,
-                           self.objects_xy, self.noise_xy)  # fmt: skip
+                           self.objects_xy, self.noise_xy, self.n_steps)  # fmt: skip
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""
@@ -332,6 +337,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"), scene=p,
+        n_steps=p.n_steps,
         description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
                      f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
                      f"the gap drops below {p.crash_gap_m:g} m"),
@@ -365,6 +371,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
         h_scale=float(p.total),
         curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),
         window=float(p.braking) + 0.5,
+        n_steps=p.steps,
         exact_log_p=toy_log_failure_probability(p),
         branch=branch,
         description=(f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
@@ -423,7 +430,7 @@ def crowd_problem(params: CrowdParams | None = None, name: str | None = None) ->
         run, CrowdDetector(p), stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})"), signals={"d": "gap_m"},
         units={"d": "units"}, signal_ranges={"d": (0.0, float(p.total))}, h_scale=float(p.total),
         curve_grid=np.arange(0.0, far + 1.0), window=p.window, stream=stream, branch=resume,
-        exact_log_p=crowd_log_failure_probability(p), n_objects=len(p.offsets),
+        exact_log_p=crowd_log_failure_probability(p), n_objects=len(p.offsets), n_steps=p.steps,
         thresholds=Thresholds(float(p.safe), float(p.braking), "units", "failure below", "braking within"),
         description=(f"toy braking toward {len(p.offsets)} obstacles, each detected with probability {p.p_detect:g} "
                      f"and its distance measured with an N(0, {p.noise_sd:g}^2) error; braking when one is measured "
@@ -513,7 +520,7 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         severity=SeverityScale("clearance", "clearance", "m", CUT_IN_SEVERITY_LEVELS_M),
         h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
         stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"), dt_s=p.dt_s,
-        n_objects=p.n_objects,
+        n_objects=p.n_objects, n_steps=p.n_steps,
         noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")),
         description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
                      f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),

@@ -26,12 +26,11 @@ from dataclasses import dataclass, field
 
 from pemviz.config import ExperimentConfig
 from pemviz.engine.plan import RunPlan
+from pemviz.engine.resources import BASE_BYTES, run_memory
 
 N_STEPS = 100
 """T of the braking scenario (:attr:`pemviz.scenarios.braking.BrakingParams.n_steps`), the default of the model."""
 
-BYTES_PER_STEP = 3 * 8 + 1 + 8 + 8
-"""A rollout step held in memory: 3 float64 observations, the detection, log p and log q."""
 CONFIRM_SIMULATIONS = 500_000
 CONFIRM_SECONDS = 120.0
 CONFIRM_BYTES = 2 * 1024**3
@@ -197,8 +196,10 @@ def run_cost(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, strea
     (the sum of :func:`stage_cost`; an open-ended plan counts its first stage only).
 
     A stage above ``stream_above`` rollouts (:data:`pemviz.engine.experiment.STREAM_ABOVE`) is simulated in chunks, so
-    it does not count in full towards memory.
+    it does not count in full towards memory. The memory is the run's memory check's model
+    (:func:`pemviz.engine.resources.run_memory`, :data:`pemviz.engine.resources.BYTES_PER_ROLLOUT_STEP`) without the
+    process's own :data:`pemviz.engine.resources.BASE_BYTES`: one model of a step's bytes for both.
     """
-    biggest = max([min(s.n_rollouts, stream_above) for s in plan.stages] + [0])
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
-    return RunCost(int(cfg.n_simulations), int(biggest * n_steps * BYTES_PER_STEP), float(seconds))
+    batch = run_memory(plan, n_steps, cfg.quantile_level, stream_above=stream_above) - BASE_BYTES
+    return RunCost(int(cfg.n_simulations), int(batch), float(seconds))

@@ -19,7 +19,8 @@ three metrics and the masks (measured: 79 B from the peak RSS of ``mc`` runs of 
 BYTES_PER_STREAMED_ROLLOUT = 70
 """Bytes kept per rollout of a stage streamed in chunks (failure flag, log-weight, log p total, robustness)."""
 BASE_BYTES = 400 * 2**20
-"""The process before any batch: Python, numpy, torch, the PEM (measured ~250 MB resident, with margin)."""
+"""The process before any batch: Python, numpy, rerun, the PEM, torch where a fit needs it (measured ~100 MB resident
+without torch, ~250 MB with it; with margin)."""
 
 
 def available_memory() -> int | None:

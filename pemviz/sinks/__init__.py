@@ -119,8 +119,7 @@ class StageClock(Sink):
         self.t0 = self.stage_t0 = self.now()
         self.sampled_t, self.current, self.done = None, None, []
         self.plan = event.plan
-        scene = event.problem.scene
-        self._config, self._n_steps = event.config, scene.n_steps if scene is not None else N_STEPS
+        self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
         self.predicted = plan_costs(event.config, event.plan, self._n_steps, self.constants)
         self._measured = {}
         self._planned = {"simulate": sum(c.simulate_s for c in self.predicted.values()),

@@ -85,6 +85,13 @@ def stage_rgb(stage: int, n_stages: int) -> tuple[int, int, int]:
     return (int(40 + 215 * f), int(110 + 40 * f), int(230 - 200 * f))
 
 
+def stage_span(plan: object | None) -> int:
+    """The stage drawn orange by :func:`stage_rgb`: the last one a run plans (its
+    :attr:`~pemviz.engine.plan.RunPlan.last_stage`; 1 without a plan). The recording, the panel's charts and its
+    proposal curves colour stages with it alike."""
+    return max(1, int(getattr(plan, "last_stage", 1) or 1))
+
+
 def stage_rgba(stage: int, n_stages: int) -> tuple[int, int, int, int]:
     """:func:`stage_rgb` opaque, for rerun: the curves and points of stage ``stage`` in the recordings."""
     return rgba(stage_rgb(stage, n_stages))

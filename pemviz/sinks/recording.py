@@ -305,7 +305,7 @@ class RerunSink(Sink):
 
     def _colour(self, stage: int) -> tuple[int, int, int, int]:
         """A stage's colour, blue (stage 0) to orange (the plan's last stage)."""
-        return C.stage_rgba(stage, self.plan.last_stage)
+        return C.stage_rgba(stage, C.stage_span(self.plan))
 
     def _log_description(self) -> None:
         table = ""

@@ -182,14 +182,21 @@ Indexes = Callable[..., list]
 """``indexes(step=array)``: the time columns of a ``send_columns`` (the sink's, with its repetition)."""
 
 
+DESCRIBED_METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams")
+"""The methods :func:`method_markdown` describes in words; any other is described by its plan's stages."""
+
+
 def method_markdown(ev: RunStarted) -> str:
     """One sentence on the run's method, its stages and sizes from the run's plan."""
     cfg, plan = ev.config, ev.plan
+    if cfg.method not in DESCRIBED_METHODS:  # a method added since these words were written: its plan
+        stages = ", ".join(f"{s.label} ({s.n_rollouts} rollouts)" for s in plan.stages)
+        return f"method **{cfg.method}**: {stages or 'no stage planned'}."
     window = ev.problem.thresholds.labels()[1] if ev.problem.thresholds is not None else "the sampler window"
     n_final = plan.stages[-1].n_rollouts if plan.has_final_batch else None
     final = (f"a final batch of N_e = {n_final} rollouts gives the estimate" if n_final is not None
              else "the last stages give the estimate")  # fmt: skip
-    return {
+    known = {
         "adaptive": (
             f"**adaptive importance sampling** (cross-entropy method, Innes & Ramamoorthy 2022): "
             f"{plan.stages[0].n_rollouts} rollouts of the target pretrain the proposal q(detect | d) (stage 0), "
@@ -203,7 +210,8 @@ def method_markdown(ev: RunStarted) -> str:
         "ams": (f"**adaptive multilevel splitting** on robustness (Cerou & Guyader 2007): N = {cfg.n_per_stage} "
                 f"PEM rollouts, the k = {cfg.ams_killed} highest killed per iteration and branched from survivors; "
                 "each stage shows the particles after about N resamplings."),
-    }[cfg.method]
+    }
+    return known[cfg.method]
 
 
 def intro_markdown(ev: RunStarted) -> str:

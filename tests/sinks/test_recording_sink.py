@@ -149,3 +149,18 @@ def test_stage_colours_run_from_blue_at_stage_0_to_orange_at_the_plans_last_stag
 
 def test_the_detection_colours_are_green_and_orange():
     assert DETECTED_RGBA == (40, 170, 80, 255) and MISSED_RGBA == (245, 130, 30, 255)
+
+
+def test_a_method_the_recording_does_not_know_is_described_by_its_plan():
+    """A method added after the recording's words were written: its description lists the planned stages (was a
+    KeyError that stopped the run)."""
+    from types import SimpleNamespace
+
+    from pemviz.engine.plan import RunPlan
+    from pemviz.sinks.rerun_views import method_markdown
+
+    plan = RunPlan.of([(0, "pretrain", 50), (1, "ce", 80), (2, "final", 300)])
+    ev = SimpleNamespace(config=SimpleNamespace(method="tilt", n_per_stage=80), plan=plan,
+                         problem=SimpleNamespace(thresholds=None))  # fmt: skip
+    text = method_markdown(ev)
+    assert text.startswith("method **tilt**:") and "pretraining (50 rollouts)" in text and "(300 rollouts)" in text
