@@ -22,12 +22,15 @@ by 50 % from 201 x 201 (``benchmarks/truth_braking.py`` prints both tables).
 The braking dynamics are the scenario's own, written on the gap instead of positions
 (:func:`pemviz.scenarios.braking.braking_step`). Probabilities are natural logs (nats) in float64 and sums are
 log-sum-exps.
+
+This module holds the main scenario's enumeration (3.); the latched scenario's closed form and value function (2.)
+are :mod:`pemviz.core.truth_latched`'s, the answers kept for the shipped PEMs :mod:`pemviz.core.truth_known`'s, and
+every name of both is importable from here.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -37,11 +40,21 @@ import numpy as np
 from scipy.special import expit, log_expit, logsumexp
 
 from pemviz.core.estimate import format_probability
-from pemviz.scenarios.batched import replay  # the latched path: the batched simulator's observations bit for bit
-from pemviz.scenarios.braking import BrakingParams, braking_replay, braking_step, lead_speeds
-
-LogitFn = Callable[[np.ndarray], np.ndarray]
-"""``logit p(detect | gap_m)``: gaps in metres, any shape -> float64 of the same shape (e.g. ``PEM.logit_at_gap``)."""
+from pemviz.core.truth_known import (  # noqa: F401 (re-exported: importable from here as before)
+    FINGERPRINT_GRID_M,
+    KNOWN_BRAKING_LOG_P,
+    KNOWN_BRAKING_MARGIN_LOG_P,
+    known_log_failure_probability,
+    pem_fingerprint,
+)
+from pemviz.core.truth_latched import (  # noqa: F401 (re-exported: importable from here as before)
+    LatchedTruth,
+    LatchedValue,
+    LogitFn,
+    latched_log_failure_probability,
+    latched_value,
+)
+from pemviz.scenarios.braking import BrakingParams, braking_step, lead_speeds
 
 
 @dataclass(frozen=True)
@@ -72,191 +85,6 @@ def branching_start(params: BrakingParams) -> BrakingStart:
             return BrakingStart(t, float(g[0]), float(v[0]), float(i[0]), bool(b[0]))
         g, v, i, b = braking_step(params, vl[t], g, v, i, b, np.zeros(1, bool))
     raise ValueError("branching_start: the gap never drops below the braking distance; p_fail is 0 or 1")
-
-
-# -- 2. latched brake -------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class LatchedTruth:
-    """Exact p_fail of the latched-brake scenario and where it comes from.
-
-    Attributes:
-        log_p_fail: log p_fail (nats).
-        first_step, last_step: the window of steps whose detection (the first one) still avoids the
-            crash: p_fail = prod over this window of (1 - p_PEM(d_t)) when the crash set is exactly
-            "no detection in the window" (``window_exact``).
-        window_exact: True if the sum over first-detection steps reduces to that single product.
-        crash_step: first step with d < 2 when nothing is ever detected (None if never).
-    """
-
-    log_p_fail: float
-    first_step: int
-    last_step: int
-    window_exact: bool
-    crash_step: int | None
-
-    @property
-    def p_fail(self) -> float:
-        return math.exp(self.log_p_fail)
-
-
-@dataclass(frozen=True)
-class _LatchedPath:
-    """The all-miss path of the latched scenario: gaps [T] (m), crash step c (None: never), the effective steps E
-    (gap < braking distance, before c) and crash_after [len(E)]: whether a first detection at that step still
-    ends in a crash (the rest is deterministic)."""
-
-    gaps: np.ndarray
-    crash_step: int | None
-    effective: list[int]
-    crash_after: np.ndarray
-
-
-def _latched_path(p: BrakingParams) -> _LatchedPath:
-    T = p.n_steps
-    all_miss = braking_replay(p, np.zeros((1, T), bool))[0]
-    crashed = np.flatnonzero(all_miss < p.crash_gap_m)
-    c = int(crashed[0]) if crashed.size else None
-    end = c if c is not None else T - 1  # the last action (step T - 1) affects nothing
-    eff = [t for t in range(end) if all_miss[t] < p.braking_distance_m]
-    det = np.zeros((len(eff), T), bool)
-    for k, t in enumerate(eff):
-        det[k, t] = True
-    crash_after = (braking_replay(p, det) < p.crash_gap_m).any(axis=1) if eff else np.zeros(0, bool)
-    return _LatchedPath(all_miss, c, eff, crash_after)
-
-
-def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> LatchedTruth:
-    """Exact p_fail of the latched-brake braking scenario.
-
-    Before the first effective detection (one at gap < braking distance) the ego follows the all-miss
-    path; after it the brake never releases and the rest is deterministic. So, with ``E`` the effective
-    steps of the all-miss path before its crash step c,
-
-        p_fail = sum_{t in E} [prod_{s in E, s < t} (1 - p_s)] p_t crash(t) + prod_{s in E} (1 - p_s) [c exists]
-
-    where crash(t) is the deterministic outcome of a first detection at step t; every term is evaluated in
-    log-space.
-
-    Args:
-        logit_at_gap: logit p_PEM(detect | gap) (e.g. ``pem.logit_at_gap``).
-        params: braking parameters; ``latched_brake`` is forced to True.
-    """
-    p = BrakingParams(latched_brake=True) if params is None else dataclasses.replace(params, latched_brake=True)
-    path = _latched_path(p)
-    all_miss, c, eff, crash_after = path.gaps, path.crash_step, path.effective, path.crash_after
-    if not eff:
-        return LatchedTruth(0.0 if c is not None else -math.inf, -1, -1, True, c)
-    logit = np.asarray(logit_at_gap(all_miss[eff]), dtype=np.float64)
-    log_miss = log_expit(-logit)
-    log_hit = log_expit(logit)
-    log_prefix = np.concatenate([[0.0], np.cumsum(log_miss)])  # P(miss at all effective steps before k)
-    terms = [log_prefix[k] + log_hit[k] for k in range(len(eff)) if crash_after[k]]
-    if c is not None:
-        terms.append(log_prefix[-1])
-    log_p = float(logsumexp(terms)) if terms else -math.inf
-    # the window: effective steps whose first detection avoids the crash
-    safe = [t for t, cr in zip(eff, crash_after) if not cr]
-    first, last = (safe[0], safe[-1]) if safe else (-1, -1)
-    window_exact = c is not None and bool(safe) and all(
-        (not cr) == (first <= t <= last) for t, cr in zip(eff, crash_after)
-    ) and first == eff[0]
-    return LatchedTruth(float(log_p), first, last, bool(window_exact), c)
-
-
-# -- exact value functions: the zero-variance sampler ------------------------------------------------------------
-#
-# V(s) = P(failure | s) gives the zero-variance importance sampler q*(a | s) = p(a | s) V(s'_a) / V(s) (L'Ecuyer,
-# Mandjes & Tuffin, "Importance sampling in rare event simulation", in Rare Event Simulation using Monte Carlo
-# Methods, 2009, Sec. 2.3; :class:`pemviz.estimators.optimal.ZeroVarianceDetector`). Each class below gives, for the
-# observations a detector is asked about, log V of the state after a detection and after a miss (nats).
-
-
-@dataclass(frozen=True)
-class LatchedValue:
-    """V of the latched-brake scenario along its all-miss path.
-
-    Before the first effective detection the ego follows the all-miss path; a detection at effective step t
-    latches the brake, after which everything is deterministic: V = crash(t) in {0, 1} from then on, so the action
-    matters only on the all-miss path. There ``V_t = p_t crash(t) + (1 - p_t) V_{t+1}`` at effective steps and
-    ``V_t = V_{t+1}`` elsewhere, with ``V = 1`` from the crash step of the all-miss path on (0 at the last step
-    when it never crashes); ``V_0`` is :func:`latched_log_failure_probability`.
-
-    A state is recognised as on the all-miss path by its observation: within ``tolerance`` of the all-miss
-    rollout's observation at some step (every column; the batched simulator replays it bit for bit). Off the
-    path both actions give the same V. One step after a detection the observation is still the all-miss one
-    (the brake acts one step late, and the observation does not show a pending brake); :func:`latched_value`
-    checks that q* = p there wherever a rollout can reach such a state, so that q* read from the observation is
-    still the zero-variance sampler.
-
-    Attributes:
-        observations: the all-miss rollout's observations, float64 [T, F] (gap m, ego speed m/s, lead speed m/s).
-        log_v_detect, log_v_miss: log V after a detection / a miss at step t of the all-miss path, [T] (nats).
-        log_v0: log V at the start (= log p_fail).
-        tolerance: the largest difference per column that still counts as the same state.
-    """
-
-    observations: np.ndarray = field(repr=False)
-    log_v_detect: np.ndarray = field(repr=False)
-    log_v_miss: np.ndarray = field(repr=False)
-    log_v0: float
-    tolerance: float = 1e-9
-
-    def path_step(self, obs: np.ndarray) -> np.ndarray:
-        """The all-miss step whose observation each row equals (within ``tolerance``), int [N] (-1: off the path)."""
-        obs = np.asarray(obs, dtype=np.float64)
-        same = np.all(np.abs(obs[:, None, :] - self.observations[None, :, :]) <= self.tolerance, axis=2)  # [N, T]
-        return np.where(same.any(axis=1), np.argmax(same, axis=1), -1)
-
-    def log_value_next(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(log V after a detection, log V after a miss), float64 [N] each, for observations [N, F]; equal (0, 0)
-        off the all-miss path, where the action changes nothing."""
-        k = self.path_step(obs)
-        on = k >= 0
-        kk = np.maximum(k, 0)
-        return np.where(on, self.log_v_detect[kk], 0.0), np.where(on, self.log_v_miss[kk], 0.0)
-
-
-def latched_value(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> LatchedValue:
-    """:class:`LatchedValue` of the latched-brake scenario with ``logit_at_gap`` as the detector.
-
-    Raises:
-        ValueError: if two steps of the all-miss path look the same but have different V, or if a state one step
-            after a detection that q* can draw looks like an all-miss state where q* differs from p (then the
-            observation does not carry enough state for q*).
-    """
-    p = BrakingParams(latched_brake=True) if params is None else dataclasses.replace(params, latched_brake=True)
-    T = p.n_steps
-    path = _latched_path(p)
-    c = path.crash_step
-    logit = np.asarray(logit_at_gap(path.gaps), dtype=np.float64)
-    log_v = np.zeros(T + 1)  # V before the action of step t; V = 1 from the crash step on
-    end = c if c is not None else T - 1
-    log_v[end:] = 0.0 if c is not None else -math.inf
-    crash_after = dict(zip(path.effective, path.crash_after))
-    log_v_detect = np.empty(T)
-    for t in range(T - 1, -1, -1):
-        if t >= end or t not in crash_after:
-            log_v_detect[t] = log_v[t + 1] if t < end else log_v[t]
-            log_v[t] = log_v[t + 1] if t < end else log_v[t]
-            continue
-        log_v_detect[t] = 0.0 if crash_after[t] else -math.inf
-        if log_v_detect[t] == log_v[t + 1]:  # both actions lead to the same V (exactly, not p + (1 - p) rounded)
-            log_v[t] = log_v[t + 1]
-        else:
-            log_v[t] = np.logaddexp(log_expit(logit[t]) + log_v_detect[t], log_expit(-logit[t]) + log_v[t + 1])
-    log_v_miss = np.where(np.arange(T) < end, log_v[1:], log_v[:T])
-    value = LatchedValue(replay(p, np.zeros((1, T), bool))[0], log_v_detect, log_v_miss, float(log_v[0]))
-    same_v = (log_v_detect == log_v_miss) | (np.isneginf(log_v_detect) & np.isneginf(log_v_miss))
-    k = value.path_step(value.observations)
-    if np.any((log_v_detect != log_v_detect[k]) | (log_v_miss != log_v_miss[k])):
-        raise ValueError("latched_value: two states of the all-miss path look alike but have different V")
-    if p.actuation_lag_steps == 1:
-        reachable = [t for t in path.effective if crash_after[t] and logit[t] > -np.inf]  # q*(detect at t) > 0
-        if any(t + 1 < T and not same_v[t + 1] for t in reachable):
-            raise ValueError("latched_value: a state one step after a detection looks like an all-miss state where "
-                             "q* differs from p: the observation does not show the pending brake q* needs")  # fmt: skip
-    return value
-
 
 # -- 3. main scenario: exact enumeration with a rigorous bound ---------------------------------------------------
 #
@@ -495,8 +323,8 @@ def braking_exact(
     pruned = np.concatenate(pruned_terms) if pruned_terms else np.zeros(0)
     m0 = int(bound(start.step, np.array([start.gap_m]), np.array([start.speed_mps]), np.array([start.pending]))[0])
     return ExactResult(
-        float(logsumexp(crashes)), float(logsumexp(pruned)), float(log_prune), m0, int(max_live), int(crashes.size), start,
-        time.perf_counter() - t_start,
+        float(logsumexp(crashes)), float(logsumexp(pruned)), float(log_prune), m0, int(max_live), int(crashes.size),
+        start, time.perf_counter() - t_start,
     )  # fmt: skip
 
 
@@ -577,79 +405,3 @@ def braking_truth(
         if stop_when_converged and r.relative_width < tolerance and len(results) >= 2:
             break
     return Refinement(tuple(results), tolerance)
-
-
-# -- exact answers known without computing ---------------------------------------------------------------------
-
-FINGERPRINT_GRID_M = np.linspace(0.0, 15.0, 151)
-"""Gaps (metres) at which a PEM's logit identifies it for :data:`KNOWN_BRAKING_LOG_P`."""
-
-KNOWN_BRAKING_LOG_P: dict[str, float] = {
-    "915fec568bb72b65": -33.85370929668962,  # shipped ml-nn: 1.9839e-15, bracket [1.9839, 1.9852]e-15
-    "a849e1ba0edc2286": -36.44958177841474,  # shipped gbt: 1.4796e-16, bracket width 0.23 %
-    # the shipped ml-nn's bootstrap ensemble (pemviz/assets/ensemble_ml-nn.pt) and logit shifts; benchmarks/pem_uncertainty.py --exact
-    "f250e328566c1bdc": -26.519035882869872,  # member 0: 3.0404e-12, bracket width 0.24%, 112 s
-    "bf4c1c809687fa3e": -24.582823139469383,  # member 1: 2.1077e-11, bracket width 2.25%, 108 s
-    "6679d181a4ad1065": -40.692820684632736,  # member 2: 2.1249e-18, bracket width 0.12%, 2 s
-    "f45a54aef268e592": -42.37336213762117,  # member 3: 3.9581e-19, bracket width 0.26%, 2 s
-    "2865f802c0e34a9f": -36.450254643064305,  # member 4: 1.4786e-16, bracket width 0.22%, 2 s
-    "cb10a4aec0e39b49": -25.8995843144133,  # member 5: 5.6488e-12, bracket width 0.17%, 133 s
-    "17c9d9e78cf0ea1a": -37.71154936352811,  # member 6: 4.1887e-17, bracket width 0.42%, 3 s
-    "d5b31a4e3ebb6a5d": -33.24577332499537,  # member 7: 3.6437e-15, bracket width 0.18%, 68 s
-    "a42a3cdf14f209d4": -41.92471722195736,  # member 8: 6.1991e-19, bracket width 0.19%, 2 s
-    "3c7bd1e6da0399ee": -44.36087067152231,  # member 9: 5.4240e-20, bracket width 0.31%, 2 s
-    "1cddd061cfb4d9e2": -29.767082073020156,  # member 10: 1.1812e-13, bracket width 0.28%, 159 s
-    "16e916a13b0af486": -30.656530336175717,  # member 11: 4.8533e-14, bracket width 0.16%, 60 s
-    "727704a288081421": -37.96782366082595,  # member 12: 3.2418e-17, bracket width 0.20%, 3 s
-    "8b39c597fff0f664": -32.122059772812484,  # member 13: 1.1209e-14, bracket width 0.35%, 4 s
-    "9b09e347d2bbab11": -31.441655465664738,  # member 14: 2.2134e-14, bracket width 0.46%, 4 s
-    "d98a860c5776b2e6": -38.14790467801863,  # member 15: 2.7075e-17, bracket width 0.31%, 3 s
-    "c9771b412341fea0": -38.96919470956119,  # member 16: 1.1910e-17, bracket width 0.15%, 98 s
-    "e250c21d5239ba55": -27.581581652581,  # member 17: 1.0507e-12, bracket width 0.15%, 62 s
-    "e9a4ecf850268631": -30.77471271309537,  # member 18: 4.3123e-14, bracket width 0.08%, 41 s
-    "e50861e616900537": -33.80379754946193,  # member 19: 2.0854e-15, bracket width 0.04%, 31 s
-    "105acd0b9e59722b": -25.0012741796926,  # shift -1: 1.3870e-11, bracket width 0.41%, 297 s
-    "771895e45f856b43": -29.409057940104958,  # shift -0.5: 1.6897e-13, bracket width 0.22%, 71 s
-    "164ec23e6f625d90": -38.32218323907766,  # shift +0.5: 2.2745e-17, bracket width 0.32%, 2 s
-    "45816c12490d672f": -42.8015576615671,  # shift +1: 2.5794e-19, bracket width 0.14%, 1 s
-}
-"""PEM fingerprint (:func:`pem_fingerprint`) -> natural log of the exact crash probability of the main braking
-scenario (default :class:`BrakingParams`), from :func:`braking_truth` (bracket width < 0.1 %): the enumeration
-takes 20-40 s, so the answers for the shipped PEMs are kept here (``tests/test_truth.py`` recomputes them), and those
-of the shipped PEM's ensemble members and logit shifts, for ``pemviz run --pem-uncertainty`` (from
-:func:`braking_exact` with drop thresholds below each one's p, bracket widths 0.04-2.3 %;
-``benchmarks/pem_uncertainty.py --exact`` recomputes them)."""
-
-
-KNOWN_BRAKING_MARGIN_LOG_P: dict[tuple[str, float], float] = {
-    ("915fec568bb72b65", 1.5): -38.045588630879486,  # shipped ml-nn: 2.9992e-17, bracket width 0.09 %
-    ("915fec568bb72b65", 1.0): -42.20786245180999,  # 4.6704e-19, bracket width 0.11 %
-}
-"""(PEM fingerprint, crash gap in metres) -> natural log of the exact probability that the gap of the main braking
-scenario drops below that crash gap (the points of the exceedance curve, :mod:`pemviz.core.severity`), from
-:func:`braking_truth` with ``BrakingParams(crash_gap_m=...)`` and drop thresholds down to -110 nats
-(``benchmarks/severity.py`` recomputes them)."""
-
-
-def pem_fingerprint(logit_at_gap: LogitFn) -> str:
-    """A short hash of a PEM's detection curve: its logits on :data:`FINGERPRINT_GRID_M` rounded to 1e-6."""
-    values = np.round(np.asarray(logit_at_gap(FINGERPRINT_GRID_M), dtype=np.float64), 6) + 0.0  # no -0.0
-    return hashlib.sha256(values.tobytes()).hexdigest()[:16]
-
-
-def known_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> float | None:
-    """The exact log p_fail (nats) of a braking problem when it is cheap to know, else None.
-
-    The latched-brake scenario is computed (:func:`latched_log_failure_probability`, milliseconds); the main
-    scenario with default parameters is looked up in :data:`KNOWN_BRAKING_LOG_P` by the PEM's fingerprint, and with
-    another crash gap in :data:`KNOWN_BRAKING_MARGIN_LOG_P`.
-    """
-    p = params or BrakingParams()
-    if p.latched_brake:
-        return latched_log_failure_probability(logit_at_gap, p).log_p_fail
-    default = BrakingParams()
-    if dataclasses.replace(p, crash_gap_m=default.crash_gap_m) != default:
-        return None
-    if p.crash_gap_m == default.crash_gap_m:
-        return KNOWN_BRAKING_LOG_P.get(pem_fingerprint(logit_at_gap))
-    return KNOWN_BRAKING_MARGIN_LOG_P.get((pem_fingerprint(logit_at_gap), float(p.crash_gap_m)))

@@ -1,0 +1,394 @@
+"""The settings table: what each :class:`pemviz.config.ExperimentConfig` field is, in one place.
+
+Each field's symbol, words, allowed range, unit, help, command-line flag and owner (the estimator that reads it) is a
+:class:`Setting` in :data:`SETTINGS`: the config's checks (:mod:`pemviz.config`), the command line
+(:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read
+it here. The allowed values of the choices (:data:`METHODS`, :data:`METRICS`, ...) and the numeric limits
+(:data:`MAX_SEED`, :data:`MAX_STAGES`, ...) live beside it. :mod:`pemviz.config` re-exports every name.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+
+METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams")
+"""adaptive: Algorithm 1; mc: rollouts with the PEM itself; naive50: a 50 % detector at every step;
+mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table II); ams: adaptive multilevel
+splitting of PEM rollouts on their robustness, no importance weights (Cerou & Guyader 2007; Brehier et al. 2016;
+:mod:`pemviz.estimators.ams`)."""
+
+DEFAULT_MAX_SIMS = 1_000_000
+"""The most simulations of a run with a target relative error (``rel_error``) and no ``max_sims``."""
+
+METRICS = ("classic", "agm", "smooth-cumulative")
+"""Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
+
+SIMULATORS = ("highway-env", "batched")
+"""Braking-scenario back-ends (:func:`pemviz.core.problems.braking_problem`): ``batched`` advances all rollouts together
+in numpy, ``highway-env`` steps one black-box simulator per rollout; the same seed gives the same rollouts on both."""
+
+SCENARIOS = ("braking", "cut-in", "cut-in-rare")
+"""What a run estimates (:func:`pemviz.core.problems.problem_for`): ``braking``, the paper's scenario (one lead car, a
+closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and measurement
+errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same below 1e-9
+(:mod:`pemviz.scenarios.cut_in`)."""
+
+
+EXECUTORS = ("serial", "ray")
+"""Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``serial`` in this
+process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same rollouts and estimate, bit for
+bit (:mod:`pemviz.engine.executors`)."""
+
+WEIGHT_MODES = ("frozen", "recomputed")
+FINAL_MODES = ("pooled", "fresh", "last-stage")
+FIT_WEIGHTS = ("mixture", "sampler")
+"""How the CE fits weigh the failures of every stage since the failure level (:class:`~pemviz.config.ExperimentConfig`
+``fit_weights``)."""
+POOL_WEIGHTS = ("quadratic", "linear", "rollouts")
+"""How ``final_estimate = "pooled"`` weighs its stages (:class:`~pemviz.config.ExperimentConfig` ``pool_weights``)."""
+UNIFORMS = ("array-rqmc", "iid")
+"""How a batch's rollouts draw their detections (:class:`~pemviz.config.ExperimentConfig` ``uniforms``)."""
+ELITE_TIES = ("all", "random")
+FITS = ("adam", "lbfgs")
+"""How the proposal is fitted each stage (:func:`pemviz.estimators.ce_fit.ce_update`): ``adam``, a fixed number of
+full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous
+stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
+Alg. 7.5)."""
+FIT_PRECISIONS = ("exact", "float32", "float64")
+"""The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`): ``exact`` (the default,
+:func:`pemviz.core.exact_fit.fit_exact`) gives the same proposal on every CPU; ``float32`` and ``float64`` run torch's
+kernels, whose last bits depend on the CPU's vector unit and BLAS kernel (the paper's fits are float64). The network
+samples in exact arithmetic whatever this is (:meth:`pemviz.core.sampling.Proposal.detect_logit`); the parameters and
+every importance weight stay float64."""
+PROPOSAL_INPUTS = ("gap", "state")
+"""h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
+e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
+
+
+MAX_SEED = 2**64 - 1
+"""Largest seed: torch's generator takes a 64-bit unsigned seed."""
+MAX_STAGES = 1_000
+"""Largest K: the paper uses 10; past a few dozen stages the proposal has long converged."""
+MAX_SMOOTHING_AT_FAILURE = 2.0
+"""Largest alpha once the failure level is reached: 2 is the variance-minimisation program; beyond it the weights'
+tail decides the fit."""
+MAX_EPOCHS = 100_000
+"""Largest Adam epochs per stage (paper 500, authors' code 1000; 10^5 epochs take ~10 min a stage)."""
+
+RUN = "run"
+"""The owner of a setting that the run itself reads, whatever its method (the engine, the problem, the seed)."""
+
+
+@dataclass(frozen=True)
+class Setting:
+    """What one :class:`~pemviz.config.ExperimentConfig` field is, in the one place every reader takes it from: the
+    config's own check and its :class:`~pemviz.config.ConfigError` messages, the command line's flags
+    (:mod:`pemviz.commands`), the panel's form and its hints and the run labels (:mod:`pemviz.app.form`), and the
+    estimators that read it (:func:`settings_of`).
+
+    Attributes:
+        name: the :class:`~pemviz.config.ExperimentConfig` field.
+        words: what it is, as a noun in plain words with its symbol (``"the smoothing alpha"``); error messages say
+            ``<words> must be <allowed>``.
+        help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
+        kind: ``int``, ``real``, ``choice``, ``bool``, ``text`` or ``pem`` (a shipped PEM name or a file, checked
+            where it is loaded: the config does no I/O).
+        symbol: the paper's symbol (``alpha``, ``sigma``, ``K``, ``N``, ``N_e``; ``k`` of AMS), or None.
+        short: the name in the panel and the run labels when it is neither the symbol nor the field's words.
+        unit: the unit of a physical quantity (``""``: a count, a probability or a name).
+        lo, hi, lo_open, hi_open: the allowed range of a number; ``lo_open`` / ``hi_open`` exclude the end.
+        hi_words: how the upper end is written (``2^64 - 1`` rather than its 20 digits).
+        optional: None is allowed too.
+        choices: the allowed values of a ``choice``.
+        choice_help: (value, what it does) for each choice: the rest of the help, and the panel dropdown's hint.
+        flags: the command-line flags, the first the one error messages name (empty: no flag).
+        owner: who reads it: :data:`RUN` (every method) or the method whose estimator reads it (``adaptive``:
+            :class:`pemviz.estimators.CrossEntropy`; ``ams``: :class:`pemviz.estimators.AdaptiveMultilevelSplitting`).
+    """
+
+    name: str
+    words: str
+    help: str
+    kind: str = "real"
+    symbol: str | None = None
+    short: str | None = None
+    unit: str = ""
+    lo: float = -math.inf
+    hi: float = math.inf
+    lo_open: bool = False
+    hi_open: bool = False
+    hi_words: str | None = None
+    optional: bool = False
+    choices: tuple[str, ...] = ()
+    choice_help: tuple[tuple[str, str], ...] = ()
+    flags: tuple[str, ...] = ()
+    owner: str = "adaptive"
+
+    @property
+    def label(self) -> str:
+        """The name in the panel, the run labels and the compare table (``smoothing`` -> ``alpha``)."""
+        return self.short or self.symbol or self.name.replace("_", " ")
+
+    @property
+    def integer(self) -> bool:
+        return self.kind == "int"
+
+    @property
+    def flag(self) -> str:
+        """The command-line flag that sets it (``--alpha``), or ``--`` + the field's name where it has none."""
+        return self.flags[0] if self.flags else "--" + self.name.replace("_", "-")
+
+    @property
+    def allowed(self) -> str:
+        """The allowed values in words, the same in the config's, the command line's and the form's messages:
+        ``a number in (0, 1]``, ``a whole number >= 2``, ``one of classic, agm, smooth-cumulative``."""
+        if self.kind == "choice":
+            text = f"one of {', '.join(self.choices)}"
+        elif self.kind == "bool":
+            text = "True or False"
+        elif self.kind == "text":
+            text = "a non-empty address"
+        elif self.kind == "pem":
+            text = "a shipped PEM name or a PEM file"
+        elif self.integer:
+            lo = int(self.lo)
+            hi = self.hi_words or (None if math.isinf(self.hi) else int(self.hi))
+            text = f"a whole number >= {lo}" if hi is None else f"a whole number in [{lo}, {hi}]"
+        elif math.isinf(self.hi):
+            text = f"a number {'>' if self.lo_open else '>='} {self.lo:g}"
+        else:
+            text = f"a number in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+        return f"None or {text}" if self.optional else text
+
+    @property
+    def hint(self) -> str:
+        """The flag's help and the panel's hint: ``smoothing alpha, a number in (0, 1]: the power on ...``."""
+        noun = self.words.removeprefix("the ") + (f" in {self.unit}" if self.unit else "")
+        text = f"{noun}, {self.allowed}: {self.help}"
+        return "; ".join((text, *(f"{value}: {what}" for value, what in self.choice_help)))
+
+    def accepts(self, value: object) -> bool:
+        """Whether ``value`` is allowed on its own (the config also checks settings against each other)."""
+        if self.kind == "pem":  # a name or a file: checked where it is loaded (no I/O here)
+            return True
+        if value is None:
+            return self.optional
+        if self.kind == "choice":
+            return isinstance(value, str) and value in self.choices
+        if self.kind == "bool":
+            return isinstance(value, bool)
+        if self.kind == "text":
+            return isinstance(value, str) and value != ""
+        if not (_is_int(value) if self.integer else _is_real(value)):
+            return False
+        too_low = value <= self.lo if self.lo_open else value < self.lo
+        too_high = value >= self.hi if self.hi_open else value > self.hi
+        return not (too_low or too_high)
+
+    def parse(self, text: str) -> int | float:
+        """The number typed as ``text`` (the panel's fields, the command line's flags), its range not checked.
+
+        Decimal and scientific notation (``0.2``, ``1e-3``, ``1e5``) with surrounding spaces; a whole-number
+        setting takes only whole values (``1e5`` yes, ``12.5`` no), exactly beyond float64's 2^53. Nothing is
+        rounded.
+
+        Raises:
+            ValueError: empty, not a number, not finite, or not whole where it must be; the message says what
+                to type, in :attr:`allowed`'s words.
+        """
+        raw = str(text).strip()
+        if raw == "":
+            raise ValueError(f"empty; type {self.allowed} ({self.words})")
+        if not _NUMBER.match(raw):
+            raise ValueError(f"{raw!r} is not a number; type {self.allowed} ({self.words})")
+        value: float | int = int(raw) if self.integer and re.fullmatch(r"[+-]?\d+", raw) else float(raw)
+        if not math.isfinite(value):
+            raise ValueError(f"{raw!r} is too large; type {self.allowed} ({self.words})")
+        if self.integer and isinstance(value, float):
+            if not value.is_integer():
+                raise ValueError(f"{raw} is not a whole number; {self.words} must be {self.allowed}")
+            value = int(value)
+        return value
+
+    @property
+    def title(self) -> str:
+        """``smoothing (alpha)``: the field and its symbol, as the config's messages name it."""
+        return f"{self.name} ({self.symbol})" if self.symbol else self.name
+
+
+_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
+
+
+def _settings(*settings: Setting) -> dict[str, Setting]:
+    return {s.name: s for s in settings}
+
+
+SETTINGS: dict[str, Setting] = _settings(
+    Setting("method", "the method", "the estimator", kind="choice", choices=METHODS, owner=RUN, flags=("--method",),
+            choice_help=(("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1)"),
+                         ("mc", "rollouts with the PEM itself"), ("naive50", "a 50 % detector at every step"),
+                         ("mixed50", "50 % inside the window and the PEM outside"),
+                         ("ams", "adaptive multilevel splitting on the robustness, no importance weights"))),
+    Setting("n_stages", "the number of cross-entropy stages K",
+            "stages of N rollouts, the proposal refitted after each", kind="int", symbol="K", lo=1, hi=MAX_STAGES,
+            flags=("--k", "--stages")),
+    Setting("n_per_stage", "the rollouts per stage N",
+            "rollouts of each stage; of mc, naive50 and mixed50 all their rollouts; of ams its particles",
+            kind="int", symbol="N", lo=2, owner=RUN, flags=("--n",)),
+    Setting("n_final", "the rollouts of the final estimate N_e",
+            "fresh rollouts from the final proposal for the estimate", kind="int", symbol="N_e", lo=1,
+            flags=("--n-final",)),
+    Setting("quantile_level", "the quantile level sigma",
+            "the stage threshold is the (1 - sigma) quantile of robustness", symbol="sigma", lo=0.5, hi=1.0,
+            hi_open=True, flags=("--sigma",)),
+    Setting("smoothing", "the smoothing alpha", "the power on the importance weights in the CE loss", symbol="alpha",
+            lo=0.0, hi=1.0, lo_open=True, flags=("--alpha",)),
+    Setting("metric", "the robustness metric", "the semantics that ranks the rollouts and sets the stage thresholds "
+            "(a failure is always a negative classic robustness)", kind="choice", choices=METRICS, short="metric",
+            owner=RUN, flags=("--metric",),
+            choice_help=(("classic", "the worst step's margin alone"),
+                         ("agm", "every step's normalised margin, so time spent near the bound counts"),
+                         ("smooth-cumulative", "a soft minimum of softplus margins, so every near-worst step counts"))),
+    Setting("seed", "the seed", "seeds the rollouts, the fits, tie-breaking and the proposal's initial weights; the "
+            "same seed gives the same run", kind="int", lo=0, hi=MAX_SEED, hi_words="2^64 - 1", owner=RUN,
+            flags=("--seed",)),
+    Setting("ce_epochs", "the Adam epochs per stage", "the most Adam epochs of a cross-entropy stage's fit", kind="int",
+            short="CE epochs", lo=1, hi=MAX_EPOCHS, flags=("--ce-epochs",)),
+    Setting("pretrain_rollouts", "the pretraining rollouts", "PEM-driven rollouts the first proposal is fitted to",
+            kind="int", short="pretrain rollouts", lo=1),
+    Setting("pretrain_epochs", "the pretraining epochs", "Adam epochs of the first proposal's fit", kind="int",
+            short="pretrain epochs", lo=1, hi=MAX_EPOCHS, flags=("--pretrain-epochs",)),
+    Setting("learning_rate", "the learning rate", "Adam's step size for the proposal", lo=0.0, lo_open=True),
+    Setting("weights", "the importance weights of the fit", "how the CE loss holds the importance weights",
+            kind="choice", choices=WEIGHT_MODES,
+            choice_help=(("frozen", "constants of each fit (the paper's eq. 10-11)"),
+                         ("recomputed", "recomputed from the proposal, with their gradient (the authors' code)"))),
+    Setting("final_estimate", "the final estimate", "which rollouts the estimate weighs", kind="choice",
+            choices=FINAL_MODES,
+            choice_help=(("pooled", "the final rollouts and every stage fitted to failures, each weighted by the "
+                                    "proposal that drew it"),
+                         ("fresh", "the final rollouts alone (the paper)"),
+                         ("last-stage", "the last stage's batch (the authors' code)"))),
+    Setting("pool_weights", "the weights of the pooled stages", "how the pooled estimate counts its stages",
+            kind="choice", choices=POOL_WEIGHTS,
+            choice_help=(("quadratic", "the j-th pooled stage in proportion to j^2 n_j"),
+                         ("linear", "in proportion to j n_j"), ("rollouts", "every rollout alike"))),
+    Setting("uniforms", "the uniforms of a batch", "how the rollouts of a batch draw their detections; every estimate "
+            "keeps its expectation", kind="choice", choices=UNIFORMS, owner=RUN,
+            choice_help=(("array-rqmc", "the rollouts of a block stepped as one array on a randomly shifted lattice"),
+                         ("iid", "one independent uniform per rollout and step (the paper)"))),
+    Setting("pem", "the perception error model", "the PEM the rollouts detect with", kind="pem",
+            short="PEM", owner=RUN, flags=("--pem",)),
+    Setting("scenario", "the scenario", "what is simulated and whose failure probability is estimated",
+            kind="choice", choices=SCENARIOS, owner=RUN, flags=("--scenario",),
+            choice_help=(("braking", "the paper's: braking behind one lead car, with an exact answer"),
+                         ("cut-in", "a car cutting in on a 3-lane highway, an ACC on a tracker, missed and "
+                                    "mislocated cars; moderately rare"),
+                         ("cut-in-rare", "the same cut-in from further back: far rarer"))),
+    Setting("sim", "the simulator", "the braking scenario's back-end; a seed gives the same rollouts on both",
+            kind="choice", choices=SIMULATORS, short="simulator", owner=RUN, flags=("--sim",),
+            choice_help=(("highway-env", "one highway-env simulator per rollout"),
+                         ("batched", "all rollouts advanced together in numpy"))),
+    Setting("executor", "the executor", "where rollouts are simulated; a seed gives the same rollouts and estimate, "
+            "bit for bit", kind="choice", choices=EXECUTORS, owner=RUN, flags=("--executor",),
+            choice_help=(("serial", "in this process"),
+                         ("ray", "Ray tasks over blocks of rollouts; a batch of one block runs in this process"))),
+    Setting("ray_address", "the Ray cluster", "the cluster that executor ray uses", kind="text",
+            optional=True, owner=RUN, flags=("--ray-address",)),
+    Setting("chunk_rollouts", "the chunk size", "the most rollouts simulated and scored at a time: a serial stage of "
+            "more streams chunk by chunk; a seed gives the same rollouts and estimate, bit for bit, at any chunk size",
+            kind="int", lo=1, optional=True, owner=RUN, flags=("--chunk",)),
+    Setting("rel_error", "the target relative error", "sample more until the 95 % interval's half-width is at most "
+            "this share of the estimate, or a cap (--max-sims, --max-time) is hit (None: the planned budget only)",
+            lo=0.0, hi=10.0, lo_open=True, optional=True, owner=RUN, short="rel. error", flags=("--rel-error",)),
+    Setting("require", "the requirement", "a requirement on p, e.g. 'p < 1e-9': sample more until the interval lies "
+            "wholly on one side of the threshold (a sequential test whose error stays at most 5 % over every look), or "
+            "a cap (--max-sims, --max-time) is hit; pemviz run exits 0 met, 1 violated, 3 undecided", kind="text",
+            optional=True, owner=RUN, flags=("--require",)),
+    Setting("margin", "the crash gap", "braking: a failure is the gap dropping below this many metres (None: the "
+            "scenario's 2 m); 0 targets contact, the severity curve's last point, which a run at 2 m rarely reaches",
+            unit="m", lo=0.0, hi=10.0, optional=True, owner=RUN, flags=("--margin",)),
+    Setting("pem_uncertainty", "the PEM's uncertainty", "re-weight the run's rollouts under each member of the "
+            "PEM's bootstrap ensemble and under its logits shifted by a half and a whole unit either way: the spread "
+            "of p over plausible PEMs, with no new simulation", kind="bool", owner=RUN, short="PEM uncertainty",
+            flags=("--pem-uncertainty",)),
+    Setting("pem_shift", "the PEM's logit shift", "re-weight the run's rollouts under the PEM with every logit "
+            "shifted by D (log-odds): a camera that misses more (D < 0) or less often than the PEM says",
+            lo=-10.0, hi=10.0, optional=True, owner=RUN, short="PEM shift", flags=("--pem-shift",)),
+    Setting("max_sims", "the most simulations", "with a precision target (--rel-error) or a requirement (--require): "
+            "the run stops adding rollouts at this "
+            f"many simulations in all (None: {DEFAULT_MAX_SIMS:,})", kind="int", lo=1, optional=True, owner=RUN,
+            short="max sims", flags=("--max-sims",)),
+    Setting("max_time_s", "the most wall-clock time", "with --rel-error or --require: no more rollouts once the run "
+            "has taken this long; where the run stops then depends on the machine (None: no time cap)", unit="s",
+            lo=0.0, lo_open=True, optional=True, owner=RUN, short="max time", flags=("--max-time",)),
+    Setting("proposal_inputs", "the proposal's inputs h(s)", "what the proposal sees", kind="choice",
+            choices=PROPOSAL_INPUTS,
+            choice_help=(("gap", "the gap to the lead car (the paper)"),
+                         ("state", "every observation column of the problem"))),
+    Setting("proposal_window", "the proposal window",
+            "the proposal replaces the PEM only where the detector can matter", kind="bool"),
+    Setting("skip_decided", "the skip of decided steps", "with the window, the proposal also gives way to the PEM "
+            "where the outcome is already decided", kind="bool"),
+    Setting("weights_until_failure", "the weights until failure", "importance weights stop at the step where the "
+            "failure happens", kind="bool", owner=RUN),
+    Setting("smoothing_at_failure", "the smoothing alpha at the failure level", "alpha once the stage threshold has "
+            "reached the failure level (None: the smoothing alpha)", short="alpha at failure", lo=0.0,
+            hi=MAX_SMOOTHING_AT_FAILURE, lo_open=True, optional=True),
+    Setting("final_smoothing", "the smoothing alpha of the last fit", "alpha of the last stage's fit, whose proposal "
+            "draws the final rollouts (None: as the stages before it)", short="final alpha", lo=0.0,
+            hi=MAX_SMOOTHING_AT_FAILURE, lo_open=True, optional=True),
+    Setting("elite_ties", "the elite ties", "which rollouts tied at the stage threshold are elites", kind="choice",
+            choices=ELITE_TIES,
+            choice_help=(("all", "every rollout at or below the threshold (the paper)"),
+                         ("random", "ties drawn at random up to ceil((1 - sigma) N) elites"))),
+    Setting("pretrain_cap", "the pretraining detection cap", "inside the window the pretraining rollouts detect with "
+            "at most this probability (None: the PEM's)", lo=0.0, hi=1.0, lo_open=True, hi_open=True, optional=True),
+    Setting("defensive", "the defensive share eps", "the CE stages draw from (1 - eps) q + eps x 50 % at every step",
+            lo=0.0, hi=1.0, hi_open=True),
+    Setting("target_share", "the target's share", "once the failure level is reached, the share of a stage's rollouts "
+            "drawn from the target p", lo=0.0, hi=1.0),
+    Setting("plain_share", "the plain proposal's share", "the share of a stage's rollouts drawn from the proposal "
+            "without the per-step mixture", lo=0.0, hi=1.0),
+    Setting("fit_all_failures", "the fit to all failures", "each fit uses the failures of every stage since the "
+            "failure level", kind="bool"),
+    Setting("fit_weights", "the weights of the failures in a fit", "how the fits weigh the failures of every stage",
+            kind="choice", choices=FIT_WEIGHTS,
+            choice_help=(("mixture", "by the mixture of the samplers since the failure level"),
+                         ("sampler", "by the sampler that drew each"))),
+    Setting("fit", "the fitting method", "how the proposal is fitted each stage", kind="choice", choices=FITS,
+            choice_help=(("adam", "full-batch Adam, a number of epochs"),
+                         ("lbfgs", "L-BFGS from the previous proposal until converged"))),
+    Setting("fit_precision", "the fit's precision", "the arithmetic of the proposal's Adam fits (the parameters and "
+            "every weight stay float64)", kind="choice", choices=FIT_PRECISIONS,
+            choice_help=(("exact", "the same proposal on every CPU; the default"),
+                         ("float32", "torch's float32 kernels: the last bits depend on the CPU"),
+                         ("float64", "torch's float64 kernels, as the paper's fits"))),
+    Setting("fit_max_steps", "the L-BFGS iterations", "the most L-BFGS iterations of one fit", kind="int", lo=1),
+    Setting("fit_rows", "the rows of a fit", "the most steps one fit sees, beyond them a weighted subsample with the "
+            "same expected loss (None: every step)", kind="int", lo=1, optional=True),
+    Setting("fit_tolerance", "the fit tolerance", "a CE stage's Adam fit stops once its loss fell by less than this "
+            "over the last 50 epochs (None: every epoch)", unit="nats per step", lo=0.0, lo_open=True, optional=True),
+    Setting("ams_killed", "the particles killed per iteration k", "particles killed and resampled per AMS iteration "
+            "at least (and every tie at the level); k < N", kind="int", symbol="k", lo=1, owner="ams",
+            flags=("--ams-killed",)),
+    Setting("ams_max_iterations", "the most AMS iterations", "a run stopped by them before the failure level is "
+            "doubtful", kind="int", lo=1, owner="ams"),
+)  # fmt: skip
+"""Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
+
+
+def settings_of(owner: str) -> tuple[str, ...]:
+    """The fields that ``owner`` reads (:attr:`Setting.owner`): :data:`RUN`, ``adaptive`` or ``ams``."""
+    return tuple(name for name, s in SETTINGS.items() if s.owner == owner)
+
+
+def _is_real(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x
+
+
+def _is_int(x: object) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
