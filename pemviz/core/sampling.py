@@ -274,7 +274,7 @@ class Proposal:
         Raises:
             ValueError: a numpy load of the wrong shapes; RuntimeError: torch's, for wrong keys or shapes.
         """
-        keys = [f"net.{i}.{k}" for i in (0, 2, 4) for k in ("weight", "bias")]
+        keys = [f"net.{i}.{k}" for i in range(0, 6, 2) for k in ("weight", "bias")]  # the three Linear layers
         if self._module is None and set(state) == set(keys):
             self.set_parameter_arrays([np.asarray(state[k], dtype=np.float64) for k in keys])
             return

@@ -40,7 +40,8 @@ from pemviz.pem.encoding import (
     fit_norm_stats,
 )
 from pemviz.pem.camera import KITTI_FOCAL_PX, MIN_RANGE_M, box_errors_to_metric
-from pemviz.pem.network import PEM, PemFormatError, train_pem
+from pemviz.pem.network import PEM, PemFormatError
+from pemviz.pem.training import train_pem
 from pemviz.pem.noise import (
     FAMILIES,
     NOISE_DIMS,

@@ -67,7 +67,7 @@ def train_ensemble(recipe: Any, inputs: np.ndarray, labels: np.ndarray, m: int, 
         inputs, labels: the training file, raw salient inputs [N, 11] and detected [N] in {0, 1}.
         m: members, at least 2.
     Raises:
-        ValueError: m < 2, or what :func:`pemviz.pem.network.train_pem` raises.
+        ValueError: m < 2, or what :func:`pemviz.pem.training.train_pem` raises.
     """
     if m < 2:
         raise ValueError(f"an ensemble needs at least 2 members, got {m}")

@@ -30,7 +30,8 @@ import numpy as np
 
 from pemviz.pem.camera import MIN_RANGE_M, box_errors_to_metric
 from pemviz.pem.encoding import N_FEATURES, ONE_HOT_GROUPS, NormStats, SalientCodes, encode_salient, fit_norm_stats
-from pemviz.pem.network import GridMLP, PemFormatError, as_arrays, fit_network, fold_state_dict
+from pemviz.pem.network import GridMLP, PemFormatError, as_arrays, fold_state_dict
+from pemviz.pem.training import fit_network
 
 NOISE_DIMS = ("range", "lateral")
 """The error dimensions, in column order: range error dZ (along camera z) and lateral error dX (along x), metres."""
@@ -296,7 +297,7 @@ def train_noise_pem(
     metadata: Mapping[str, Any] | None = None,
 ) -> NoisePEM:
     """Fit the heteroscedastic noise PEM by maximum likelihood (:class:`NoiseNLL`; the training loop of the ML-NN,
-    :func:`pemviz.pem.network.fit_network`: Adam, reshuffled mini-batches, float32, one thread, seeded).
+    :func:`pemviz.pem.training.fit_network`: Adam, reshuffled mini-batches, float32, one thread, seeded).
 
     The targets are divided by their std per dimension (``target_scale``) for training; :class:`NoisePEM` folds it
     back. The same seed gives the same weights on the same torch build.

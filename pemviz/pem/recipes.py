@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from pemviz.pem.encoding import NormStats
-from pemviz.pem.network import PEM, train_pem
+from pemviz.pem.network import PEM
+from pemviz.pem.training import train_pem
 from pemviz.pem.noise import NoisePEM, train_noise_pem
 from pemviz.pem.trees import TreePEM, train_tree_pem
 
@@ -33,7 +34,7 @@ DEFAULT_NOISE_NAME = "hetero-t"
 
 @dataclass(frozen=True)
 class PemRecipe:
-    """An ML-NN-style PEM: the architecture and optimiser settings passed to :func:`train_pem`."""
+    """An ML-NN-style PEM: the architecture and optimiser settings passed to :func:`pemviz.pem.training.train_pem`."""
 
     name: str
     description: str
@@ -57,7 +58,7 @@ class PemRecipe:
         progress: bool = False,
         metadata: Mapping[str, Any] | None = None,
     ) -> PEM:
-        """:func:`train_pem` with this recipe (``seed`` / ``epochs`` override the recipe's)."""
+        """:func:`pemviz.pem.training.train_pem` with this recipe (``seed`` / ``epochs`` override the recipe's)."""
         return train_pem(
             inputs,
             labels,
