@@ -119,6 +119,11 @@ class ExperimentConfig:
             conservative. ``ams`` draws its particles and continuations i.i.d.
         pem: path of PEM weights, or None for the shipped default.
         scenario: what is simulated, one of :data:`SCENARIOS`.
+        scenario_params: ``(name, value)`` pairs setting the scenario's parameters (``pemviz run --param
+            NAME=VALUE``): scalar fields of its dataclass, each name once, each value of its field's type (float, int,
+            bool) and in the dataclass's range (:mod:`pemviz.scenarios.parameters`; units in the names: ``_m``
+            metres, ``_mps`` m/s, ``_s`` seconds); ``()``: the scenario's defaults. The braking scenario's crash gap
+            is also ``margin``: give it once.
         sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
         executor: where rollouts are simulated, one of :data:`EXECUTORS`.
         ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
@@ -236,6 +241,7 @@ class ExperimentConfig:
     uniforms: str = "array-rqmc"
     pem: str | None = None
     scenario: str = "braking"
+    scenario_params: tuple[tuple[str, float | int | bool], ...] = ()
     sim: str = "batched"
     executor: str = "serial"
     ray_address: str | None = None
@@ -279,6 +285,15 @@ class ExperimentConfig:
             if not ok:
                 raise ConfigError(f"{SETTINGS[name].title} = {getattr(self, name)!r} is invalid: {allowed}", name)
 
+        if self.scenario_params:  # the names, kinds and ranges of the scenario's own dataclass
+            from pemviz.scenarios.parameters import ParameterError, check_pairs
+
+            try:
+                check_pairs(self.scenario, self.scenario_params)
+            except ParameterError as exc:
+                need(False, "scenario_params", str(exc))
+        need(self.margin is None or "crash_gap_m" not in dict(self.scenario_params), "margin",
+             "the crash gap is also the parameter crash_gap_m: give it once (--margin or --param crash_gap_m=...)")
         need(self.ray_address is None or self.executor == "ray", "ray_address", "give it only with executor = 'ray'")
         need(self.scenario == "braking" or self.sim == "batched", "scenario",
              "the cut-in runs on its batched twin only; use sim = 'batched'")
@@ -291,7 +306,7 @@ class ExperimentConfig:
              "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it")  # fmt: skip
         need(self.method != "ams" or self.ams_killed < self.n_per_stage, "ams_killed",
              f"{SETTINGS['ams_killed'].words} must be a whole number in [1, N - 1]")
-        n_objects = SCENARIO_OBJECTS[self.scenario]
+        n_objects = dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS[self.scenario])
         need(self.method != "adaptive" or n_objects == 1 or not self.fits_whole_rollouts, "scenario",
              whole_rollout_fit_refusal(self, n_objects))
         need(self.margin is None or self.scenario == "braking", "margin",

@@ -94,8 +94,9 @@ class Setting:
         words: what it is, as a noun in plain words with its symbol (``"the smoothing alpha"``); error messages say
             ``<words> must be <allowed>``.
         help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
-        kind: ``int``, ``real``, ``choice``, ``bool``, ``text`` or ``pem`` (a shipped PEM name or a file, checked
-            where it is loaded: the config does no I/O).
+        kind: ``int``, ``real``, ``choice``, ``bool``, ``text``, ``pem`` (a shipped PEM name or a file, checked
+            where it is loaded: the config does no I/O) or ``params`` (``(name, value)`` pairs of the scenario's
+            parameters, :mod:`pemviz.scenarios.parameters`, checked against the scenario by the config).
         symbol: the paper's symbol (``alpha``, ``sigma``, ``K``, ``N``, ``N_e``; ``k`` of AMS), or None.
         short: the name in the panel and the run labels when it is neither the symbol nor the field's words.
         unit: the unit of a physical quantity (``""``: a count, a probability or a name).
@@ -153,6 +154,8 @@ class Setting:
             text = "a non-empty address"
         elif self.kind == "pem":
             text = "a shipped PEM name or a PEM file"
+        elif self.kind == "params":
+            text = "NAME=VALUE, a parameter of the scenario and its value"
         elif self.integer:
             lo = int(self.lo)
             hi = self.hi_words or (None if math.isinf(self.hi) else int(self.hi))
@@ -182,6 +185,9 @@ class Setting:
             return isinstance(value, bool)
         if self.kind == "text":
             return isinstance(value, str) and value != ""
+        if self.kind == "params":  # the names and values are checked against the scenario by the config
+            return isinstance(value, tuple) and all(
+                isinstance(x, tuple) and len(x) == 2 and isinstance(x[0], str) for x in value)
         if not (_is_int(value) if self.integer else _is_real(value)):
             return False
         too_low = value <= self.lo if self.lo_open else value < self.lo
@@ -288,6 +294,9 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("cut-in", "a car cutting in on a 3-lane highway, an ACC on a tracker, missed and "
                                     "mislocated cars; moderately rare"),
                          ("cut-in-rare", "the same cut-in from further back: far rarer"))),
+    Setting("scenario_params", "the scenario's parameters", "set one of the scenario's parameters, e.g. "
+            "cut_in_gap_m=25 (repeatable; the names, units and defaults: the user guide's command-line page)",
+            kind="params", short="scenario parameters", owner=RUN, flags=("--param",)),
     Setting("sim", "the simulator", "the braking scenario's back-end; a seed gives the same rollouts on both",
             kind="choice", choices=SIMULATORS, short="simulator", owner=RUN, flags=("--sim",),
             choice_help=(("highway-env", "one highway-env simulator per rollout"),

@@ -96,6 +96,10 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
     shown = getattr(ExperimentConfig(), name)
     shown = SHOWN_DEFAULTS.get(name, shown) if shown is None else shown
     text = f"{s.hint} (default {shown})".replace("%", "%%")  # argparse formats help with %
+    if s.kind == "params":  # NAME=VALUE, repeatable: the texts, parsed once the scenario is known
+        p.add_argument(*s.flags, dest=name, action="append", metavar="NAME=VALUE", default=default,
+                       help=f"{s.hint} (default none: the scenario's own values)".replace("%", "%%"))
+        return
     if s.kind == "bool":  # a switch: present sets True, absent leaves the config's value
         p.add_argument(*s.flags, dest=name, action="store_const", const=True, default=default, help=text)
         return

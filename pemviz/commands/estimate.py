@@ -161,17 +161,21 @@ def weights_convention(meta: Any, requested: str | None) -> tuple[str, str]:
 
 def known_answer(data: Any, failure: str, own: bool) -> tuple[float | None, Any]:
     """The exact log failure probability (nats) or the plain Monte Carlo reference that the run which wrote the file
-    printed (its problem, :func:`pemviz.core.problems.problem_for` of the scenario, PEM, margin and simulator its
-    sidecar records), when the file is estimated as that run estimated it: under the run's own log p (``own``) and with
-    a crash of its specification as the failure. ``(None, None)`` otherwise, or when the sidecar records no run."""
+    printed (its problem, :func:`pemviz.core.problems.problem_for` of the scenario, its parameters, PEM, margin and
+    simulator its sidecar records), when the file is estimated as that run estimated it: under the run's own log p
+    (``own``) and with a crash of its specification as the failure. ``(None, None)`` otherwise, or when the sidecar
+    records no run."""
     config = ((data.meta.provenance or {}).get("config") if data.meta else None) or {}
     if not own or failure != "crash" or not isinstance(config, dict) or "scenario" not in config:
         return None, None
     from pemviz.config import ConfigError
     from pemviz.core.problems import problem_for
+    from pemviz.scenarios.parameters import as_pairs
 
     try:
         fields = {k: config[k] for k in ("scenario", "pem", "margin", "sim") if k in config}
+        if "scenario_params" in config:  # a JSON list of [name, value] lists
+            fields["scenario_params"] = as_pairs(config["scenario_params"])
         problem = problem_for(ExperimentConfig(**fields))
     except (ConfigError, OSError, ValueError, TypeError):  # a run of another version or a PEM no longer there
         return None, None
@@ -256,7 +260,9 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
         members = load_ensemble(ensemble_for(name)) if args.pem_uncertainty else []
     except (FileNotFoundError, ValueError) as exc:
         raise UsageError(f"--pem-uncertainty: {exc}") from None
-    braking = data.meta is not None and data.meta.formula == str(braking_formula())  # the default scene's truth
+    config = ((data.meta.provenance or {}).get("config") if data.meta else None) or {}
+    changed = isinstance(config, dict) and bool(config.get("scenario_params"))  # another scene: no kept truth
+    braking = data.meta is not None and data.meta.formula == str(braking_formula()) and not changed
     shifts = list(PEM_SHIFTS) if args.pem_uncertainty else []
     if args.pem_shift is not None and args.pem_shift not in shifts:
         shifts.append(float(args.pem_shift))

@@ -20,7 +20,7 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
-from pemviz.config import SCENE_DEFAULTS, ConfigError, ExperimentConfig
+from pemviz.config import SCENARIOS, SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
 from pemviz.io.files import check_output_folder, check_output_path, free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
@@ -31,8 +31,8 @@ from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 
 RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_level", "smoothing", "metric", "seed",
-                "ce_epochs", "pem", "scenario", "sim", "executor", "ray_address", "chunk_rollouts", "rel_error",
-                "require", "margin", "pem_uncertainty", "pem_shift", "max_sims", "max_time_s")
+                "ce_epochs", "pem", "scenario", "scenario_params", "sim", "executor", "ray_address", "chunk_rollouts",
+                "rel_error", "require", "margin", "pem_uncertainty", "pem_shift", "max_sims", "max_time_s")
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 
@@ -94,7 +94,29 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         value = getattr(args, name)
         if value is not None:
             fields[name] = value
+    if fields.get("scenario_params") is not None:  # --param NAME=VALUE: parsed by the scenario's field types
+        fields["scenario_params"] = scenario_params(fields.get("scenario", ExperimentConfig().scenario),
+                                                    fields["scenario_params"])  # fmt: skip
     return ExperimentConfig(**fields)
+
+
+def scenario_params(scenario: str, texts: list[str]) -> tuple[tuple[str, float | int | bool], ...]:
+    """The ``(name, value)`` pairs of ``--param NAME=VALUE`` flags (:mod:`pemviz.scenarios.parameters`): each value
+    parsed by its field's type and the scenario's dataclass built from them (its range check).
+
+    Raises:
+        ConfigError: an unknown scenario, a text that is not NAME=VALUE, a name that is not one of the scenario's
+            parameters (the message lists them), a value not of its type or outside the dataclass's range, a name
+            given twice; one line.
+    """
+    from pemviz.scenarios.parameters import ParameterError, parse_assignments
+
+    if scenario not in SCENARIOS:  # the config refuses the scenario first
+        return tuple(texts)
+    try:
+        return parse_assignments(scenario, texts)
+    except ParameterError as exc:
+        raise ConfigError(str(exc), "scenario_params") from None
 
 
 def add_recording_args(p: argparse.ArgumentParser) -> None:

@@ -604,22 +604,32 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
 
 def problem_for(config: ExperimentConfig) -> Problem:
     """The problem a run of ``config`` estimates: the scenario ``config.scenario`` (:data:`pemviz.config.SCENARIOS`)
-    with the PEM ``config.pem`` (None: the shipped one); the braking scenario on the simulator ``config.sim``. Loads
-    the PEM on every call (a changed file is read again). A cut-in setting with a plain Monte Carlo reference
-    (:data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`) carries it as its :attr:`Problem.reference` when it runs
-    the shipped PEMs, under which the reference was drawn.
+    with its parameters ``config.scenario_params`` (:mod:`pemviz.scenarios.parameters`; the braking scenario's crash
+    gap also ``config.margin``) and the PEM ``config.pem`` (None: the shipped one); the braking scenario on the
+    simulator ``config.sim``. Loads the PEM on every call (a changed file is read again). A cut-in setting with a plain
+    Monte Carlo reference (:data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`) carries it as its
+    :attr:`Problem.reference` only when it runs the shipped PEMs at the setting's own parameters, under which the
+    reference was drawn; the braking scenario's exact answer is known for its default parameters (or another crash
+    gap, or the latched brake) only (:func:`pemviz.core.truth.known_log_failure_probability`).
 
     Raises:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
+        ValueError: parameters the scenario's dataclass refuses (the config checks them first).
     """
+    overrides = dict(config.scenario_params)
     if config.scenario == "braking":
-        params = None if config.margin is None else BrakingParams(crash_gap_m=float(config.margin))
+        if config.margin is not None:
+            overrides["crash_gap_m"] = float(config.margin)
+        params = BrakingParams(**overrides) if overrides else None
         return with_alternatives(braking_problem(load_pem(config.pem), params, sim=config.sim), config)
     from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
+    from pemviz.scenarios.parameters import CUT_IN_SETTINGS, apply_parameters
 
-    setting = "rare" if config.scenario == "cut-in-rare" else "moderate"
-    problem = cut_in_problem(load_pem(config.pem), cut_in_params(setting), name=config.scenario)
-    if config.pem in (None, DEFAULT_PEM_NAME) and setting in MONTE_CARLO_REFERENCE:
+    setting = CUT_IN_SETTINGS[config.scenario]
+    params = apply_parameters(config.scenario, overrides)
+    problem = cut_in_problem(load_pem(config.pem), params, name=config.scenario)
+    own = params == cut_in_params(setting)  # the reference holds for the setting's own scene only
+    if config.pem in (None, DEFAULT_PEM_NAME) and setting in MONTE_CARLO_REFERENCE and own:
         failures, n = MONTE_CARLO_REFERENCE[setting]
         problem = dataclasses.replace(problem, reference=Reference(failures, n, "plain Monte Carlo, shipped PEMs"))
     return with_alternatives(problem, config)

@@ -22,6 +22,7 @@ Units: metres, seconds, m/s.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,9 @@ class BrakingParams:
     """Every constant of the braking scenario, fitted to the CARLA logs.
 
     Distances in metres, speeds in m/s, accelerations in m/s^2, time in seconds.
+
+    Raises:
+        ValueError: a value outside its range (the message names the field, what is allowed and what was given).
     """
 
     dt_s: float = 0.05
@@ -78,13 +82,28 @@ class BrakingParams:
     latched_brake: bool = False
 
     def __post_init__(self) -> None:
-        if len(self.lead_speed_profile_mps) < self.n_steps:
-            raise ValueError(
-                f"BrakingParams: lead_speed_profile_mps has {len(self.lead_speed_profile_mps)} values, "
-                f"needs at least n_steps = {self.n_steps}"
-            )
+        def bad(what: str, allowed: str, value: object) -> ValueError:
+            return ValueError(f"BrakingParams: {what} must be {allowed}, got {value!r}")
+
+        if not (isinstance(self.n_steps, int) and 1 <= self.n_steps <= len(self.lead_speed_profile_mps)):
+            raise bad("n_steps", f"an integer in 1..{len(self.lead_speed_profile_mps)} (the values of "
+                      "lead_speed_profile_mps)", self.n_steps)  # fmt: skip
         if self.actuation_lag_steps not in (0, 1):
-            raise ValueError("BrakingParams: actuation_lag_steps must be 0 or 1")
+            raise bad("actuation_lag_steps", "0 or 1", self.actuation_lag_steps)
+        ranges = (
+            ("dt_s gap0_m lead_length_m ego_length_m vehicle_width_m camera_height_m target_speed_kmh", "> 0",
+             lambda x: x > 0),
+            ("ego_speed0_mps braking_distance_m crash_gap_m contact_gap_m kp ki kd throttle_accel0_mps2 "
+             "throttle_accel_slope_per_s", ">= 0", lambda x: x >= 0),
+            ("max_throttle emergency_brake", "in (0, 1]", lambda x: 0 < x <= 1),
+            ("max_pid_brake integral_leak", "in [0, 1]", lambda x: 0 <= x <= 1),
+            ("camera_offset_m", "any number", lambda x: True),
+        )
+        for names, allowed, ok in ranges:
+            for name in names.split():
+                value = getattr(self, name)
+                if not (isinstance(value, (int, float)) and math.isfinite(value) and ok(value)):
+                    raise bad(name, f"finite and {allowed}" if allowed != "any number" else "finite", value)
 
     @property
     def lead_accel_mps2(self) -> np.ndarray:

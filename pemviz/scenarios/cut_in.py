@@ -165,6 +165,10 @@ class IDMParams:
     acc_max_mps2: float = 6.0
 
 
+MAX_STEPS = 10_000
+"""The most steps T of a cut-in rollout (1,000 s at the default 0.1 s step)."""
+
+
 @dataclass(frozen=True)
 class CutInParams:
     """Every constant of the cut-in scenario.
@@ -228,8 +232,8 @@ class CutInParams:
         def bad(what: str, allowed: str, value: object) -> ValueError:
             return ValueError(f"CutInParams: {what} must be {allowed}, got {value!r}")
 
-        if not (isinstance(self.n_steps, int) and self.n_steps >= 1):
-            raise bad("n_steps", "an integer >= 1", self.n_steps)
+        if not (isinstance(self.n_steps, int) and 1 <= self.n_steps <= MAX_STEPS):
+            raise bad("n_steps", f"an integer in 1..{MAX_STEPS}", self.n_steps)
         if not (isinstance(self.n_objects, int) and 3 <= self.n_objects <= 1 + len(self.traffic)):
             raise bad("n_objects", f"an integer in 3..{min(6, 1 + len(self.traffic))} (the cut-in vehicle and "
                       "the first n_objects - 1 of traffic)", self.n_objects)  # fmt: skip
@@ -246,11 +250,19 @@ class CutInParams:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise bad(name, "finite and > 0", value)
+        for name in ("cut_in_gap_m", "cut_in_time_s", "cut_in_grace_s"):  # fmt: skip
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise bad(name, "finite and >= 0", value)
+        if not math.isfinite(self.camera_offset_m):
+            raise bad("camera_offset_m", "finite", self.camera_offset_m)
         if not (0 < self.occlusion_partly < self.occlusion_largely < self.occlusion_hidden <= 1):
             raise bad("occlusion thresholds", "0 < partly < largely < hidden <= 1",
                       (self.occlusion_partly, self.occlusion_largely, self.occlusion_hidden))  # fmt: skip
-        if not (self.ego_a_min_mps2 < 0 and self.other_a_min_mps2 < 0):
-            raise bad("ego_a_min_mps2 and other_a_min_mps2", "< 0", (self.ego_a_min_mps2, self.other_a_min_mps2))
+        if not (self.ego_a_min_mps2 < 0 and self.other_a_min_mps2 < 0 and math.isfinite(self.ego_a_min_mps2)
+                and math.isfinite(self.other_a_min_mps2)):
+            raise bad("ego_a_min_mps2 and other_a_min_mps2", "finite and < 0",
+                      (self.ego_a_min_mps2, self.other_a_min_mps2))  # fmt: skip
         if not (self.camera_height_m > self.vehicle_height_m):
             raise bad("camera_height_m", "above vehicle_height_m (the camera sees over the cars' roofs)",
                       self.camera_height_m)  # fmt: skip

@@ -81,6 +81,18 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
             "added until the interval is within 10 %); the verdict says whether to trust the result")
 
 
+def scenario_params_text(cfg) -> str:
+    """`` (cut_in_gap_m=19.5 m)``: the scenario's parameters that differ from its defaults, as the header line gives
+    them after the scenario's name (``""``: none)."""
+    pairs = getattr(cfg, "scenario_params", ())
+    if not pairs:
+        return ""
+    from pemviz.scenarios.parameters import changed_parameters, parameters_text
+
+    changed = changed_parameters(cfg.scenario, pairs)
+    return f" ({parameters_text(cfg.scenario, changed)})" if changed else ""
+
+
 def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = None, reference: Reference | None = None,
                 failure_severity: FailureSeverity | None = None) -> list[str]:  # fmt: skip
     """The lines under the table: mu_hat with its log and the run's size, the estimate's summary with the exact answer
@@ -130,9 +142,9 @@ class ConsoleSink(Sink):
         cfg = self.config = event.config
         self.exact_log_p, self.reference, self.plan = event.exact_log_p, event.reference, event.plan
         print(
-            f"pemviz: {cfg.method} on the {event.problem.name} scenario, spec {event.formula}, metric {cfg.metric}, "
-            f"K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.n_final} sigma={cfg.quantile_level} "
-            f"alpha={cfg.smoothing} seed={cfg.seed}",
+            f"pemviz: {cfg.method} on the {event.problem.name} scenario{scenario_params_text(cfg)}, spec "
+            f"{event.formula}, metric {cfg.metric}, K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.n_final} "
+            f"sigma={cfg.quantile_level} alpha={cfg.smoothing} seed={cfg.seed}",
             file=self.out,
         )
         print(HEADER, file=self.out)

@@ -71,7 +71,8 @@ Size: per stage the recording holds summaries, two histograms, the marginal prop
 500 rollouts' traces in one entity per signal and a few featured rollouts, so a run of 10^5
 rollouts a stage stays a few MB.
 
-Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed.
+Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed, scenario and its
+parameters (``scenario_params``: ``name=value, ...`` as the run set them; ``""``: the scenario's defaults).
 The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM) under a unique temporary name and
 moved to ``PATH``, so a recording is never half-written, keeps every finished stage, and a kill leaves an
 existing ``PATH`` as it was.
@@ -383,6 +384,8 @@ class RerunSink(Sink):
                 metric=cfg.metric,
                 formula=ev.formula,
                 seed=cfg.seed,
+                scenario=cfg.scenario,
+                scenario_params=", ".join(f"{name}={value!r}" for name, value in cfg.scenario_params),
             ),
         )
         s.send_recording_name(f"pemviz {cfg.method} {cfg.metric} seed {cfg.seed}")

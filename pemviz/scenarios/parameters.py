@@ -1,0 +1,251 @@
+"""Scenario parameters a user can set (``pemviz run --param NAME=VALUE``), derived from each scenario's dataclass.
+
+A scenario's parameters are the scalar fields (float, int, bool) of its params dataclass
+(:class:`pemviz.scenarios.braking.BrakingParams`, :class:`pemviz.scenarios.cut_in.CutInParams`), each with its
+default (the scenario's own: ``cut-in-rare`` starts its cut-in vehicle further back, ``RARITY_SETTINGS["rare"]``), its
+type and its unit (read from the name's suffix: ``_m`` metres, ``_mps`` m/s, ``_mps2`` m/s^2, ``_s`` seconds, ...).
+The range of a value is the dataclass's own check (its ``__post_init__``): :func:`apply_parameters` builds the
+dataclass and passes its one-line message on. Fields that are not scalars (the cut-in's traffic, IDM and tracker
+constants, the braking scenario's lead speed profile and brake curve) are not parameters.
+
+The run's parameters travel in :attr:`pemviz.config.ExperimentConfig.scenario_params` as ``(name, value)`` pairs;
+:func:`pemviz.core.problems.problem_for` builds the scenario from them. This module imports the two scenario
+dataclasses and nothing heavier (no PEM, no torch; the cut-in's only for a cut-in): the config checks the pairs here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import re
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable, Mapping, Union
+
+from pemviz.scenarios.braking import BrakingParams
+from pemviz.settings import SCENARIOS
+
+if TYPE_CHECKING:
+    from pemviz.scenarios.cut_in import CutInParams
+
+Value = Union[float, int, bool]
+"""A parameter's value: a float, an int or a bool (the field's type)."""
+
+CUT_IN_SETTINGS: dict[str, str] = {"cut-in": "moderate", "cut-in-rare": "rare"}
+"""The cut-in scenarios and the rarity setting each starts from (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`)."""
+
+UNIT_SUFFIXES: tuple[tuple[str, str], ...] = (
+    ("_mps2", "m/s^2"), ("_mps", "m/s"), ("_kmh", "km/h"), ("_per_s", "1/s"), ("_steps", "steps"), ("_m", "m"),
+    ("_s", "s"),
+)  # fmt: skip
+"""A field name's suffix -> the unit of its value (the first suffix that matches)."""
+
+KINDS = {"float": "a number", "int": "a whole number", "bool": "true or false"}
+"""A parameter's kind -> what its value must be, in words."""
+
+_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
+_WHOLE = re.compile(r"^[+-]?\d{1,18}$")
+_TRUE, _FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+
+
+class ParameterError(ValueError):
+    """A scenario parameter that cannot be set: an unknown name (the message lists the scenario's names), a value that
+    is not of the field's kind, or one outside its range (the dataclass's own message). One line."""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One parameter of a scenario.
+
+    Attributes:
+        name: the dataclass field (``cut_in_gap_m``).
+        kind: ``float``, ``int`` or ``bool`` (the field's type).
+        default: the scenario's value when the parameter is not set.
+        unit: of the value (``m``, ``m/s``, ``s``, ``m/s^2``, ...; ``""``: a count, a flag or a fraction).
+    """
+
+    name: str
+    kind: str
+    default: Value
+    unit: str
+
+    def parse(self, text: str) -> Value:
+        """The value written as ``text``: a decimal or scientific number (``float``), digits (``int``), ``true`` /
+        ``false`` (also yes / no, on / off, 1 / 0; ``bool``); surrounding spaces are ignored. Its range is not checked
+        here (:func:`apply_parameters`).
+
+        Raises:
+            ParameterError: ``text`` is not a value of :attr:`kind` (not finite, not whole, not a truth value).
+        """
+        raw = str(text).strip()
+        if self.kind == "bool":
+            if raw.lower() in _TRUE + _FALSE:
+                return raw.lower() in _TRUE
+        elif self.kind == "int":
+            if _WHOLE.match(raw):
+                return int(raw)
+        elif _NUMBER.match(raw) and math.isfinite(float(raw)):
+            return float(raw)
+        return self._refuse(text)
+
+    def check(self, value: object) -> Value:
+        """``value`` if it is of :attr:`kind` (an int for a float too, as float; a finite number), else
+        :class:`ParameterError`."""
+        if self.kind == "bool" and isinstance(value, bool):
+            return value
+        if self.kind == "int" and isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if self.kind == "float" and isinstance(value, (int, float)) and not isinstance(value, bool):
+            if math.isfinite(value):
+                return float(value)
+        return self._refuse(value)
+
+    def _refuse(self, value: object) -> Value:
+        unit = f" in {self.unit}" if self.unit else ""
+        raise ParameterError(f"{self.name}={value!r} is not {KINDS[self.kind]}: {self.name} takes {KINDS[self.kind]}"
+                             f"{unit} (default {self.default!r})")  # fmt: skip
+
+
+def unit_of(name: str) -> str:
+    """The unit of the field ``name`` from its suffix (:data:`UNIT_SUFFIXES`); ``""`` when none matches."""
+    return next((unit for suffix, unit in UNIT_SUFFIXES if name.endswith(suffix)), "")
+
+
+def default_params(scenario: str) -> BrakingParams | CutInParams:
+    """The params dataclass of ``scenario`` (one of :data:`pemviz.config.SCENARIOS`) at its defaults.
+
+    Raises:
+        ParameterError: an unknown scenario.
+    """
+    if scenario == "braking":
+        return BrakingParams()
+    if scenario in CUT_IN_SETTINGS:
+        from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams  # the cut-in's modules: for its runs only
+
+        return CutInParams(**RARITY_SETTINGS[CUT_IN_SETTINGS[scenario]])
+    raise ParameterError(f"unknown scenario {scenario!r}; use one of {', '.join(SCENARIOS)}")
+
+
+@functools.cache
+def scenario_parameters(scenario: str) -> tuple[Parameter, ...]:
+    """The parameters of ``scenario``, in the dataclass's field order: every float, int and bool field, with the
+    scenario's default and the unit of :func:`unit_of`.
+
+    Raises:
+        ParameterError: an unknown scenario.
+    """
+    params = default_params(scenario)
+    return tuple(Parameter(f.name, f.type, getattr(params, f.name), unit_of(f.name))
+                 for f in dataclasses.fields(params) if f.type in KINDS)  # fmt: skip
+
+
+def parameter(scenario: str, name: str) -> Parameter:
+    """The parameter ``name`` of ``scenario``.
+
+    Raises:
+        ParameterError: not one of the scenario's; the message lists them all.
+    """
+    found = {p.name: p for p in scenario_parameters(scenario)}
+    if name not in found:
+        raise ParameterError(f"{name!r} is not a parameter of the {scenario} scenario; use one of "
+                             f"{', '.join(found)}")  # fmt: skip
+    return found[name]
+
+
+def parse_assignment(scenario: str, text: str) -> tuple[str, Value]:
+    """``(name, value)`` of ``NAME=VALUE`` (``cut_in_gap_m=19.5``), the value parsed by the field's kind
+    (:meth:`Parameter.parse`); its range is checked by :func:`apply_parameters`.
+
+    Raises:
+        ParameterError: no ``=``, an unknown name (the message lists the allowed ones) or a value not of its kind.
+    """
+    name, sep, value = str(text).partition("=")
+    if not sep:
+        names = ", ".join(p.name for p in scenario_parameters(scenario))
+        raise ParameterError(f"{text!r} is not NAME=VALUE; the {scenario} scenario's names: {names}")
+    p = parameter(scenario, name.strip())
+    return p.name, p.parse(value)
+
+
+def parse_assignments(scenario: str, texts: Iterable[str]) -> tuple[tuple[str, Value], ...]:
+    """The pairs of every ``NAME=VALUE`` of ``texts`` (:func:`parse_assignment`), in the order given.
+
+    Raises:
+        ParameterError: one of them is not valid, or a name given twice.
+    """
+    pairs = tuple(parse_assignment(scenario, text) for text in texts)
+    check_pairs(scenario, pairs)
+    return pairs
+
+
+def check_pairs(scenario: str, pairs: object) -> tuple[tuple[str, Value], ...]:
+    """``pairs`` if it is a tuple of ``(name, value)`` pairs of parameters of ``scenario``, each name once, each value
+    of its kind and the dataclass built from them valid (:func:`apply_parameters`).
+
+    Raises:
+        ParameterError: the first thing wrong, in one line.
+    """
+    if not isinstance(pairs, tuple) or not all(isinstance(x, tuple) and len(x) == 2 for x in pairs):
+        raise ParameterError(f"{pairs!r} is not a tuple of (name, value) pairs")
+    seen = set()
+    for name, _ in pairs:
+        if name in seen:
+            raise ParameterError(f"{name} is given twice; give each parameter once")
+        seen.add(name)
+    apply_parameters(scenario, dict(pairs))
+    return pairs
+
+
+def apply_parameters(scenario: str, values: Mapping[str, object]) -> BrakingParams | CutInParams:
+    """The params dataclass of ``scenario`` with ``values`` (name -> value) replacing its defaults.
+
+    Raises:
+        ParameterError: an unknown name (the message lists the allowed ones), a value not of its field's kind, or a
+            value the dataclass refuses (its message: the field, what is allowed and what was given).
+    """
+    changes = {}
+    for name, value in values.items():
+        if not isinstance(name, str):
+            raise ParameterError(f"{name!r} is not a parameter name")
+        changes[name] = parameter(scenario, name).check(value)
+    try:
+        return dataclasses.replace(default_params(scenario), **changes)
+    except ValueError as exc:
+        raise ParameterError(str(exc).replace("\n", " ")) from None
+
+
+def changed_parameters(scenario: str, pairs: Iterable[tuple[str, Value]]) -> tuple[tuple[str, Value], ...]:
+    """The pairs of ``pairs`` whose value differs from the scenario's default, in the order given."""
+    defaults = {p.name: p.default for p in scenario_parameters(scenario)}
+    return tuple((name, value) for name, value in pairs if name in defaults and value != defaults[name])
+
+
+def parameters_text(scenario: str, pairs: Iterable[tuple[str, Value]]) -> str:
+    """``cut_in_gap_m=19.5 m, n_objects=4``: the pairs with their units, as the console's header line prints them
+    (``""``: none)."""
+    units = {p.name: p.unit for p in scenario_parameters(scenario)}
+    return ", ".join(f"{name}={value!r}" + (f" {units[name]}" if units.get(name) else "") for name, value in pairs)
+
+
+def as_pairs(value: object) -> tuple[tuple[str, Value], ...]:
+    """A recorded ``scenario_params`` (a JSON document's list of ``[name, value]`` lists, or the config's tuple) as
+    the config's tuple of pairs; anything else as it is, for the config to refuse."""
+    if isinstance(value, list) and all(isinstance(x, list) and len(x) == 2 for x in value):
+        return tuple((str(x[0]), x[1]) for x in value)
+    return value  # type: ignore[return-value]
+
+
+def parameter_table() -> str:
+    """The Markdown table of every scenario's parameters (the user guide's, ``docs/cli.md``, which a test keeps
+    equal): one row per name, its kind and unit, and its default in each scenario (``-``: not one of its)."""
+    rows: dict[str, dict[str, Parameter]] = {}
+    for scenario in SCENARIOS:
+        for p in scenario_parameters(scenario):
+            rows.setdefault(p.name, {})[scenario] = p
+    head = "| parameter | type | unit | " + " | ".join(SCENARIOS) + " |"
+    lines = [head, "|---|---|---|" + "---:|" * len(SCENARIOS)]
+    for name, by in rows.items():
+        first = next(iter(by.values()))
+        cells = [f"`{by[s].default!r}`" if s in by else "-" for s in SCENARIOS]
+        lines.append(f"| `{name}` | {first.kind} | {first.unit or '-'} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
