@@ -40,7 +40,8 @@ def test_the_schema_is_the_dataclass_s_scalar_fields_with_the_scenario_s_default
     gap = cut_in["cut_in_gap_m"]
     assert (gap.kind, gap.unit, gap.default) == ("float", "m", CutInParams().cut_in_gap_m)
     assert by_name("cut-in-rare")["cut_in_gap_m"].default == RARITY_SETTINGS["rare"]["cut_in_gap_m"]
-    assert (cut_in["cut_in_speed_mps"].unit, cut_in["dt_s"].unit, cut_in["ego_a_min_mps2"].unit) == ("m/s", "s", "m/s^2")
+    units = (cut_in["cut_in_speed_mps"].unit, cut_in["dt_s"].unit, cut_in["ego_a_min_mps2"].unit)
+    assert units == ("m/s", "s", "m/s^2")
     assert (cut_in["n_objects"].kind, cut_in["n_objects"].default) == ("int", 5)
     assert "traffic" not in cut_in and "idm" not in cut_in and "tracker" not in cut_in  # not scalars
     braking = by_name("braking")
