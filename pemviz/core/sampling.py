@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from pemviz.config import FITS
-from pemviz.core import exact
+from pemviz.core import exact, torch_use
 from pemviz.core.exact_fit import fit_exact
 from pemviz.core.fit_settings import CHECK_EVERY, EXACT, LBFGS_TOLERANCE, PLATEAU_EPOCHS, Objective  # noqa: F401
 from pemviz.core.detectors import GAP_COLUMN
@@ -28,8 +27,9 @@ if TYPE_CHECKING:
     import torch
 
 def torch_imported() -> bool:
-    """Whether a new :class:`Proposal` starts in torch: whether torch is imported already."""
-    return "torch" in sys.modules
+    """Whether a new :class:`Proposal` starts in torch: whether torch is imported already
+    (:func:`pemviz.core.torch_use.imported`)."""
+    return torch_use.imported()
 
 
 GAP_SCALE_M = 12.0
