@@ -494,8 +494,13 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     # a failing rollout that no single miss decides (among the least robust): its minimal miss set, shown and marked
     tab.tab("Rollouts")
     tab.choose("sort by", "robustness")
-    label = next(lab for lab, t in s._rollout_labels.items() if t.crashed and t is not record.most_likely_failure
-                 and explain(t.gap_m, t.detected, t.log_p, t.log_q, app.params).decisive.size == 0)  # fmt: skip
+
+    def undecided() -> list[str]:  # the panel refills its rollout list after the sort: wait for one, never sleep
+        return [lab for lab, t in list(s._rollout_labels.items()) if t.crashed and t is not record.most_likely_failure
+                and explain(t.gap_m, t.detected, t.log_p, t.log_q, app.params).decisive.size == 0]  # fmt: skip
+
+    wait_until(lambda: bool(undecided()), what="a failing rollout no single miss decides, listed after the sort")
+    label = undecided()[0]
     tab.tab("Rollouts")
     tab.choose("rollout", label)
     wait_until(lambda: s.shown is s._rollout_labels[label], what="the rollout shown")
