@@ -10,7 +10,6 @@ step's detections and errors and their log-probabilities, the one home of that a
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -18,9 +17,18 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from scipy.special import expit, log_expit
 
-from pemviz.core.exact import row_sum
+from pemviz.core.detector_noise import (  # noqa: F401 (the error models, re-exported: importable from here as before)
+    NOISE_FAMILIES as NOISE_FAMILIES,
+    ErrorModelOf as ErrorModelOf,
+    draw_noise as draw_noise,
+    error_model_of as error_model_of,
+    noise_log_density as noise_log_density,
+    noise_names_of as noise_names_of,
+    noise_quantile as noise_quantile,
+    standard_log_density as standard_log_density,
+    standard_quantile as standard_quantile,
+)
 from pemviz.core.rng import RQMC_BLOCK, array_rqmc_uniforms, block_bounds, by_blocks, ranking_key
-from pemviz.core.t_quantile import student_t_quantile
 
 GAP_COLUMN = 0
 """Index of ``gap_m`` (metres) in every observation vector."""
@@ -55,130 +63,6 @@ class NoisyDetector(Detector, Protocol):
     def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray: ...
 
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray: ...
-
-
-NOISE_FAMILIES = ("normal", "laplace", "student-t")
-"""The location-scale families of measurement errors."""
-
-
-def _check_family(family: str) -> None:
-    if family not in NOISE_FAMILIES:
-        raise ValueError(f"unknown error family {family!r}; use one of {', '.join(NOISE_FAMILIES)}")
-
-
-def standard_quantile(family: str, df: np.ndarray | None, u: np.ndarray) -> np.ndarray:
-    """F^-1(u) of the standard ``family`` (Student-t with ``df`` degrees of freedom, broadcast against ``u``), float64,
-    in closed form with scipy.special (what ``scipy.stats``' frozen distributions compute, without their ~0.6 ms of
-    construction per call; a test checks them against ``scipy.stats``). Student-t quantiles with df >= 1 (a scalar,
-    or one per column of ``u``) come from :func:`pemviz.core.t_quantile.student_t_quantile`, within 2e-12 of
-    ``scipy.special.stdtrit`` (relative) and about ten times faster; other df from ``stdtrit``.
-
-    Raises:
-        ValueError: an unknown family.
-    """
-    from scipy.special import ndtri, stdtrit
-
-    _check_family(family)
-    u = np.asarray(u, dtype=np.float64)
-    if family == "normal":
-        return ndtri(u)
-    if family == "laplace":  # log 2u below the median, -log 2(1 - u) above: no cancellation in either tail
-        with np.errstate(divide="ignore"):
-            return np.where(u < 0.5, np.log(2.0 * u), -np.log(2.0 * (1.0 - u)))
-    nu = np.asarray(df, dtype=np.float64)
-    if not (np.all(np.isfinite(nu)) and np.all(nu >= 1.0)):
-        return stdtrit(nu, u)
-    if nu.ndim == 0:
-        return student_t_quantile(float(nu), u)
-    if nu.ndim == 1 and u.ndim >= 1 and u.shape[-1] == nu.size:  # one df per column (a noise PEM's components)
-        return student_t_quantile(nu, u)
-    return stdtrit(nu, u)
-
-
-def standard_log_density(family: str, df: np.ndarray | None, z: np.ndarray) -> np.ndarray:
-    """log f(z) of the standard ``family`` (nats), float64, in closed form (see :func:`standard_quantile`).
-
-    Raises:
-        ValueError: an unknown family.
-    """
-    _check_family(family)
-    z = np.asarray(z, dtype=np.float64)
-    if family == "normal":
-        return -0.5 * z * z - 0.5 * math.log(2.0 * math.pi)
-    if family == "laplace":
-        return -np.abs(z) - math.log(2.0)
-    nu = np.asarray(df, dtype=np.float64)
-    return _t_log_constant(nu.tobytes(), nu.shape) - (nu + 1.0) / 2.0 * np.log1p(z * z / nu)
-
-
-@functools.lru_cache(maxsize=64)
-def _t_log_constant(nu_bytes: bytes, shape: tuple[int, ...]) -> np.ndarray:
-    """``log Gamma((nu + 1) / 2) - log Gamma(nu / 2) - log(nu pi) / 2`` of the Student-t degrees of freedom given as
-    float64 bytes (read-only), computed once per df."""
-    from scipy.special import gammaln
-
-    nu = np.frombuffer(nu_bytes, dtype=np.float64).reshape(shape)
-    out = gammaln((nu + 1.0) / 2.0) - gammaln(nu / 2.0) - 0.5 * np.log(nu * math.pi)
-    out.flags.writeable = False
-    return out
-
-
-def noise_quantile(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
-                   u: np.ndarray) -> np.ndarray:  # fmt: skip
-    """Errors ``loc + exp(log_scale) F^-1(u)`` of a location-scale family, float64 [R, D] from uniforms [R, D] in (0, 1)
-    (F the standard ``family``'s CDF; Student-t with ``df`` [D]).
-
-    Raises:
-        ValueError: an unknown family.
-    """
-    z = standard_quantile(family, df, u)
-    return np.asarray(loc, dtype=np.float64) + np.exp(log_scale) * z
-
-
-def noise_log_density(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
-                      noise: np.ndarray) -> np.ndarray:  # fmt: skip
-    """``sum_d log f((e_d - loc_d) / scale_d) - log scale_d``, float64 [R] (nats): the log density of errors [R, D]
-    whose components are independent of a location-scale family.
-
-    Raises:
-        ValueError: an unknown family.
-    """
-    z = (np.asarray(noise, dtype=np.float64) - loc) * np.exp(-np.asarray(log_scale, dtype=np.float64))
-    return row_sum(standard_log_density(family, df, z) - log_scale)
-
-
-def noise_names_of(detector: object) -> tuple[str, ...]:
-    """The measurement-error components a detector draws (``()``: it only detects)."""
-    return tuple(getattr(detector, "noise_names", ()) or ())
-
-
-def draw_noise(detector: Any, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The measurement errors of the rows ``hit`` drawn from ``detector``'s error model (:class:`NoisyDetector`) and
-    their log density: ``e = noise_from_uniforms(rows[hit], u)`` and ``noise_log_prob(rows[hit], e)``, or, bit for bit
-    the same, ``detector.noise_draw(rows, u, hit)`` where the detector has it (one evaluation of its error model, e.g.
-    :meth:`pemviz.pem.perception.SalientDetector.noise_draw`).
-
-    Args:
-        rows: float64 [R, G] object rows; u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order;
-        hit: bool [R].
-    Returns:
-        (errors float64 [H, D], log density float64 [H] in nats).
-    """
-    combined = getattr(detector, "noise_draw", None)
-    if combined is not None:
-        errors, log_density = combined(rows, u, hit)
-        return np.asarray(errors, dtype=np.float64), np.asarray(log_density, dtype=np.float64)
-    picked = rows[hit]
-    errors = np.asarray(detector.noise_from_uniforms(picked, u), dtype=np.float64)
-    return errors, np.asarray(detector.noise_log_prob(picked, errors), dtype=np.float64)
-
-
-def error_model_of(detector: object) -> object:
-    """The detector whose error model ``detector`` uses: itself, or behind :class:`ErrorModelOf` wrappers (e.g.
-    :class:`ArrayRQMC`, :class:`ScoredTarget`) the wrapped one, whose densities theirs are."""
-    while isinstance(detector, ErrorModelOf):
-        detector = detector._errors
-    return detector
 
 
 def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
@@ -465,46 +349,6 @@ class SamplerView:
         picked = rows[hit]
         errors = np.asarray(self.noise_from_uniforms(picked, u), dtype=np.float64)
         return errors, np.asarray(self.noise_log_prob(picked, errors), dtype=np.float64)
-
-
-class ErrorModelOf:
-    """A wrapper of a detector whose measurement-error model (:class:`NoisyDetector`) is the wrapped one's, named by
-    the class attribute ``_error_model_of``; ``noise_names`` is empty when the wrapped detector only detects."""
-
-    _error_model_of: str
-
-    @property
-    def _errors(self) -> Any:
-        return getattr(self, self._error_model_of)
-
-    @property
-    def noise_names(self) -> tuple[str, ...]:
-        """The wrapped detector's measurement errors, if it has an error model."""
-        return noise_names_of(self._errors)
-
-    @property
-    def noise_family(self) -> str:
-        return self._errors.noise_family
-
-    @property
-    def noise_df(self) -> np.ndarray | None:
-        return self._errors.noise_df
-
-    def noise_params(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The wrapped detector's error parameters (:class:`NoisyDetector`)."""
-        return self._errors.noise_params(rows)
-
-    def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """The wrapped detector's errors from uniforms (:class:`NoisyDetector`)."""
-        return self._errors.noise_from_uniforms(rows, u)
-
-    def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        """The wrapped detector's log density of the errors (:class:`NoisyDetector`)."""
-        return self._errors.noise_log_prob(rows, noise)
-
-    def noise_draw(self, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The wrapped detector's errors of the rows ``hit`` and their log density (:func:`draw_noise`)."""
-        return draw_noise(self._errors, rows, u, hit)
 
 
 @dataclass(frozen=True)
