@@ -5,8 +5,9 @@ Stage 0 pretrains the proposal on rollouts of the target detector (the PEM); eac
 the proposal, takes the elites (robustness <= gamma_kappa, the (1 - sigma) quantile, floored at the failure level
 0) and refits the proposal to them with importance weights raised to the power alpha (:func:`ce_update`); a
 final batch of N_e rollouts from the last proposal gives the estimate, alone or pooled with the CE stages drawn
-from proposals fitted to failures. The whole stage lives here: elites, weights, step masks, the fit's data and
-loss (:mod:`pemviz.estimators.ce_fit`; the optimiser and the proposal networks are in :mod:`pemviz.core.sampling`).
+from proposals fitted to failures. The whole stage lives here: elites, weights (a mixture's in
+:mod:`pemviz.estimators.ce_mixture`), step masks, the fit's data and loss (:mod:`pemviz.estimators.ce_fit`; the
+optimiser and the proposal networks are in :mod:`pemviz.core.sampling`).
 """
 
 from __future__ import annotations
@@ -24,14 +25,13 @@ from pemviz.core.detectors import (
     ScoredTarget,
     StageSamplers,
     WindowDetector,
-    action_log_prob,
     defensive_logit,
-    errors_log_density,
     logit,
     noise_names_of,
 )
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.estimators.ce_fit import EliteSteps, ce_update, pretrain_proposal
+from pemviz.estimators.ce_mixture import MixtureWeights
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
@@ -43,14 +43,12 @@ from pemviz.estimators.base import (
     elite_count,
     elite_counts,
     failure_steps,
-    mixture_log_weight,
     pool_stage_weights,
     pooled_estimate,
     weighted_steps_mask,
 )
 from pemviz.engine.plan import RunPlan
 from pemviz.core.problems import Problem
-from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.sampling import EXACT, Proposal, StateProposal
 from pemviz.scenarios import RolloutBatch
 
@@ -108,7 +106,7 @@ def break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng:
     return elite
 
 
-class CrossEntropy(OwnsSettings):
+class CrossEntropy(OwnsSettings, MixtureWeights):
     """Algorithm 1 of Innes & Ramamoorthy (2022) as configured by ``config`` (``method = "adaptive"``).
 
     Stages: 0 pretraining (``pretrain_rollouts``), 1..K cross-entropy (``n_per_stage`` each), K+1 the final batch
@@ -259,75 +257,6 @@ class CrossEntropy(OwnsSettings):
         n_q = min(n_q, n - n_p)
         return ((n_p, self.problem.target), (n_q, self.plain_sampler), (n - n_p - n_q, self.sampler))
 
-    def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
-        """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]) for rollouts of the planned
-        stage's mixture (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] (nats), from the
-        components' log-probabilities the batch carries (:meth:`_with_parts`)."""
-        plan, pb = self._plan, self.problem
-        log_p = (batch.log_p * mask).sum(axis=1)
-        extras = self._scored.extras
-        log_q = [log_p if d is pb.target else (batch.log_q_parts[:, extras.index(d)] * mask).sum(axis=1)
-                 for _, d in plan.mixture]  # fmt: skip
-        return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
-
-    def _with_parts(self, batch: RolloutBatch) -> RolloutBatch:
-        """``batch`` (the planned mixture stage's next rollouts) with ``log_q_parts`` [N, K, T]: the log-probabilities
-        of its events under the mixture's proposal components (:attr:`ScoredTarget.extras`), as the simulation asked
-        them, or asked again where it could not keep them (Ray tasks; :meth:`_ask_again`)."""
-        start, self._seen = self._seen, self._seen + batch.n
-        m = batch.n_objects
-        taken = self._scored.take(batch.n, batch.n_steps, m)
-        logits, target_logit = (self._ask_again(batch, start), None) if taken is None else taken
-        detected = batch.detected
-        parts = np.empty((batch.n, len(logits), batch.n_steps))
-        where: tuple[np.ndarray, np.ndarray] | None = None  # the last component's differing steps, their detections
-        for k, lg in enumerate(logits):  # [N, T, M]
-            if target_logit is None:
-                lq = action_log_prob(lg, detected)
-            elif m == 1 and batch.noise is None:  # one object, no measurement error: the target's per-step log p is
-                # its detection's density, and where a component gives way to the target (outside its window) so is
-                # the component's; written in place, the rest computed (the components usually differ on the same
-                # steps, the window's: their detections gathered once)
-                part = parts[:, k]
-                np.copyto(part, batch.log_p)
-                differ = lg[..., 0] != target_logit[..., 0]
-                if where is None or not np.array_equal(where[0], differ):
-                    where = (differ, detected[..., 0][differ])
-                part[differ] = action_log_prob(lg[..., 0][differ], where[1])
-                continue
-            else:  # each object's densities: the target's where the component gives way to it
-                differ = lg != target_logit
-                lq = action_log_prob(target_logit, detected)
-                lq[differ] = action_log_prob(lg[differ], detected[differ])
-            parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
-        if batch.noise is not None:  # each component's density of the detected objects' measurement errors
-            for k, d in enumerate(self._scored.extras):
-                parts[:, k] += errors_log_density(batch, d, self.problem.target)
-        return dataclasses.replace(batch, log_q_parts=parts)
-
-    def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
-        """The extras' logits [K, N, T, M] of rollouts ``start .. start + N - 1`` of the stage, asked as a simulator
-        asks them: one step at a time about the object rows of one block (:data:`pemviz.core.rng.RQMC_BLOCK`) of
-        rollouts of one mixture component, so that the proposal network sees the same rows and gives the same bits as it
-        gave there."""
-        plan, n, n_steps, m = self._plan, batch.n, batch.n_steps, batch.n_objects
-        rebuilt = dict(zip((id(d) for _, d in plan.mixture), (d for _, d in self._around(plan.mixture, self.proposal))))
-        extras = [rebuilt[id(d)] for d in self._scored.extras]
-        logits = np.empty((len(extras), n, n_steps, m))
-        object_rows = batch.object_rows
-        edges = np.cumsum([0] + [k for k, _ in plan.mixture])
-        for lo, hi in zip(edges[:-1], edges[1:]):  # each component's rollouts, drawn one block after another
-            for b0 in range(int(lo), int(hi), RQMC_BLOCK):
-                a, b = max(b0, start), min(b0 + RQMC_BLOCK, int(hi), start + n)
-                if a >= b:
-                    continue
-                rows = slice(a - start, b - start)
-                for t in range(n_steps):
-                    obs = object_rows[rows, t].reshape((b - a) * m, -1)
-                    for j, d in enumerate(extras):
-                        logits[j, rows, t] = np.asarray(d.detect_logit(obs)).reshape(b - a, m)
-        return logits
-
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         plan = self._plan
         if plan.mixture:
@@ -476,43 +405,6 @@ class CrossEntropy(OwnsSettings):
         """A CE stage's samplers, (rollouts, detector) each, around a copy of the current proposal (later fits
         change the proposal in place)."""
         return self._around(plan.mixture or ((plan.n, self.sampler),), copy.deepcopy(self.proposal))
-
-    def _pool_log_weight(self, rollout: np.ndarray, obs: np.ndarray, actions: np.ndarray,
-                         counts: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
-        """alpha log w of each step's rollout [S] (nats) for ``fit_weights = "mixture"``: w = p(x) / sum_j c_j q_j(x)
-        over the samplers q_j of every stage in the failure pool, c_j their shares of its rollouts (the balance
-        heuristic over all stages, the deterministic-mixture weight of adaptive multiple importance sampling:
-        Cornuet, Marin, Mira & Robert, "Adaptive multiple importance sampling", Scand. J. Stat. 39(4), 2012;
-        Owen & Zhou, "Safe and effective importance sampling", JASA 2000), over the steps that count (``counts``).
-        Arguments as :meth:`EliteSteps.reweight` passes them."""
-        pb = self.problem
-        ids, inverse = np.unique(rollout, return_inverse=True)
-
-        def log_prob(key: object, detector: Detector) -> np.ndarray:
-            """Per rollout, over the steps that count; each (sampler, rollout) computed once (a rollout's steps do
-            not change once held)."""
-            known = self._pool_log_q.get(key, np.empty(0))
-            if known.size <= ids[-1]:
-                known = np.concatenate([known, np.full(ids[-1] + 1 - known.size, np.nan)])
-                self._pool_log_q[key] = known
-            todo = np.isnan(known[ids])
-            if todo.any():
-                steps = todo[inverse]
-                step = np.where(counts[steps], action_log_prob(detector.detect_logit(obs[steps]), actions[steps]), 0.0)
-                if noise is not None:  # and its density of the detected objects' errors
-                    errors = detector if noise_names_of(detector) else pb.target
-                    hit = counts[steps] & actions[steps]
-                    step = step + np.where(hit, errors.noise_log_prob(obs[steps], noise[steps]), 0.0)
-                known[ids[todo]] = np.bincount(inverse[steps], weights=step, minlength=ids.size)[todo]
-            return known[ids]
-
-        log_p = log_prob("target", pb.target)
-        parts = [(k, i, n, d) for k in range(self._pool_start, self._plan.stage + 1)
-                 for i, (n, d) in enumerate(self._stage_samplers[k])]  # fmt: skip
-        log_q = np.stack([log_p if d is pb.target else log_prob((k, i), d) for k, i, _, d in parts])
-        shares = np.array([n for _, _, n, _ in parts], dtype=np.float64)
-        log_w = mixture_log_weight(log_p, log_q, shares / shares.sum())
-        return (self._smoothing(0.0) * log_w)[inverse]
 
     def _smoothing(self, gamma: float) -> float:
         """alpha of a stage at threshold gamma: ``smoothing_at_failure`` once gamma reached the failure level, and
