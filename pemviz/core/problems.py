@@ -22,6 +22,10 @@ from pemviz import stl
 from pemviz.config import SIMULATORS, ExperimentConfig
 from pemviz.core.detectors import Detector, PEMDetector
 from pemviz.core.estimate import Reference
+from pemviz.core.problem_view import (  # noqa: F401 (what sinks see of a problem, re-exported: importable from here)
+    ObjectScene as ObjectScene, ProblemView as ProblemView, SignalView as SignalView, Thresholds as Thresholds,
+    object_scene as object_scene,
+)
 from pemviz.core.reweight import AlternativeTarget
 from pemviz.core.severity import SeverityScale
 from pemviz.core.truth import known_log_failure_probability
@@ -58,124 +62,6 @@ in the authors' code. Gaps above 15 m never occur in the scenario (it starts at 
 
 BRAKING_UNITS = {"d": "m", "v": "m/s", "vl": "m/s"}
 """STL signal name -> unit of the braking rollouts' signals."""
-
-
-@dataclass(frozen=True)
-class Thresholds:
-    """Levels of the rollouts' first observation (the proposal's input: the gap) that sinks draw beside them.
-
-    Attributes:
-        failure: below it the rollout has failed (the braking scenario's 2 m crash gap).
-        window: the sampler window, where the detector can change the outcome (the braking scenario's 10 m).
-        unit: of both (``m``).
-        failure_name, window_name: what they are called in legends (``crash gap``, ``braking distance``).
-    """
-
-    failure: float
-    window: float
-    unit: str
-    failure_name: str = "failure below"
-    window_name: str = "sampler window"
-
-    def labels(self) -> tuple[str, str]:
-        """``("crash gap 2 m", "braking distance 10 m")``: the failure threshold's and the window's legend."""
-        return (f"{self.failure_name} {self.failure:g} {self.unit}".strip(),
-                f"{self.window_name} {self.window:g} {self.unit}".strip())  # fmt: skip
-
-
-@dataclass(frozen=True)
-class SignalView:
-    """One signal of a problem's rollouts: its STL name, the observation column it is read from, its unit."""
-
-    name: str
-    column: str
-    unit: str
-
-
-@dataclass(frozen=True)
-class ProblemView:
-    """What a sink needs to show a problem it knows nothing else about (the run's first event carries it).
-
-    Attributes:
-        name: short label.
-        description: one line, e.g. ``automated braking behind a lead car 12.3 m ahead, ...``.
-        signals: the safety formula's signals with their observation columns and units.
-        thresholds: the failure threshold and the sampler window to draw beside the rollouts, or None (none known).
-        scene: the braking scenario's constants (car sizes, camera, dt) to draw its rollouts as a scene, or None:
-            the problem has no scene (the toys), and no cars, braking distance or crash gap are drawn.
-        objects_xy: the object-row columns of each object's position seen from the ego (metres: to the right,
-            ahead), to draw a scene of several objects from its rollouts' rows; None: none.
-        noise_xy: the measurement-error components along those two directions (indexes into the noise, metres),
-            to draw where each detected object was measured; None: no errors, or none along them.
-        n_steps: T, the steps of a rollout (:attr:`Problem.n_steps`; None: not known).
-    """
-
-    name: str
-    description: str
-    signals: tuple[SignalView, ...]
-    thresholds: Thresholds | None = None
-    scene: BrakingParams | None = None
-    objects_xy: tuple[str, str] | None = None
-    noise_xy: tuple[int, int] | None = None
-    n_steps: int | None = None
-
-    @property
-    def signal_names(self) -> tuple[str, ...]:
-        """The STL signal names, e.g. ``("d", "v", "vl")``."""
-        return tuple(s.name for s in self.signals)
-
-
-@dataclass(frozen=True)
-class ObjectScene:
-    """Rollout 0 of a batch of several objects, as a scene seen from the ego (:func:`object_scene`).
-
-    Attributes:
-        lateral_m, ahead_m: float64 [T, M] each object's true position (metres: to the right, ahead).
-        detected, seen: bool [T, M] detected; visible to the camera at all.
-        measured: float64 [T, M, 2] where each detected object was measured (lateral, ahead; NaN where not detected),
-            or None: no measurement errors along those directions.
-        tracked: float64 [T, M, 2] where the tracker placed each object it has a confirmed track of (lateral, ahead;
-            NaN where none), or None: the rows hold no tracker.
-        followed: bool [T, M] the object the controller followed at the step (all False without that column).
-    """
-
-    lateral_m: np.ndarray
-    ahead_m: np.ndarray
-    detected: np.ndarray
-    seen: np.ndarray
-    measured: np.ndarray | None
-    tracked: np.ndarray | None
-    followed: np.ndarray
-
-
-def object_scene(view: ProblemView, batch: RolloutBatch) -> ObjectScene:
-    """Where every object of rollout 0 of ``batch`` is, was measured and was tracked, from its object rows and the
-    view's ``objects_xy`` / ``noise_xy`` (the one reading of those columns for every sink).
-
-    Raises:
-        ValueError: the view names no object positions or the batch has no object rows.
-    """
-    if view is None or view.objects_xy is None or batch.objects is None:
-        raise ValueError("object_scene: the problem's view names no object positions (objects_xy), or the rollout "
-                         "has no object rows")  # fmt: skip
-    names = tuple(batch.object_names or ())
-    rows = batch.objects[0]  # [T, M, G]
-    cx, cz = (names.index(c) for c in view.objects_xy)
-    lateral, ahead = rows[:, :, cx].astype(np.float64), rows[:, :, cz].astype(np.float64)
-    detected = np.asarray(batch.detected[0], bool)
-    seen = rows[:, :, names.index("visible")] > 0.5 if "visible" in names else np.ones_like(detected)
-    measured = tracked = None
-    if view.noise_xy is not None and batch.noise is not None:
-        ix, iz = view.noise_xy
-        err = batch.noise[0]
-        measured = np.where(detected[..., None], np.stack([lateral + err[..., ix], ahead + err[..., iz]], -1), np.nan)
-    if {"tracked", "track_err_x_m", "track_err_y_m"} <= set(names):  # the track's error along and across the road
-        has = rows[:, :, names.index("tracked")] > 0.5
-        est = np.stack([lateral + rows[:, :, names.index("track_err_y_m")],
-                        ahead + rows[:, :, names.index("track_err_x_m")]], -1)  # fmt: skip
-        tracked = np.where(has[..., None], est, np.nan)
-    followed = rows[:, :, names.index("followed")] > 0.5 if "followed" in names else np.zeros_like(detected)
-    return ObjectScene(lateral, ahead, detected, seen, measured, tracked, followed)
 
 
 @dataclass(frozen=True)
