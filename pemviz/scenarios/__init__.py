@@ -13,6 +13,10 @@ through it too, so every simulator draws the same events from the same uniforms.
 
 Optional capability (:class:`Snapshotting`): ``snapshot()`` returns the simulator's whole state at the
 current step and ``restore(state)`` puts it back (checked by :func:`pemviz.core.checks.check_simulator`).
+
+The scenarios by name (:mod:`pemviz.scenarios.registry`): :func:`registered` lists them, :func:`get_scenario` returns
+one's record and :func:`register` adds one of one's own (imported when first named: ``from pemviz.scenarios import
+registered``); :func:`pemviz.testing.check_scenario` checks any of them.
 """
 
 from __future__ import annotations
@@ -551,3 +555,17 @@ def check_branch_args(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray)
         raise ValueError(f"branch: parent and at must be int [K >= 1] of one shape, got {parent.shape}, {at.shape}")
     if parent.min() < 0 or parent.max() >= parents.n or at.min() < 0 or at.max() >= parents.n_steps:
         raise ValueError(f"branch: parent must be in [0, {parents.n - 1}] and at in [0, {parents.n_steps - 1}]")
+
+
+_REGISTRY_NAMES = {"registered": "registered", "register": "register", "get_scenario": "get", "Scenario": "Scenario"}
+"""The names this package lends from :mod:`pemviz.scenarios.registry` (the name here -> the name there)."""
+
+
+def __getattr__(name: str) -> Any:
+    """:func:`registered`, :func:`register`, :func:`get_scenario` (the registry's ``get``) and :class:`Scenario` of
+    :mod:`pemviz.scenarios.registry`, imported when first named (importing this package loads no registry)."""
+    if name in _REGISTRY_NAMES:
+        from pemviz.scenarios import registry
+
+        return getattr(registry, _REGISTRY_NAMES[name])
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

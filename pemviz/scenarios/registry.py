@@ -1,0 +1,256 @@
+"""The scenario registry: every scenario pemviz can build a problem for, by name (as Gymnasium's ``gymnasium.register``
+and ``gymnasium.make`` name environments).
+
+A :class:`Scenario` is a small record: its name, a one-line description, the dataclass of its parameters, a factory
+that builds its :class:`pemviz.core.problems.Problem`, whether that problem carries an exact answer, and optionally the
+single black-box simulator its batched twin must match. :func:`register` adds one, :func:`registered` lists the
+names, :func:`get` returns the record. The kit of :mod:`pemviz.testing` (``check_scenario(name)``) checks any
+registered scenario, so a scenario of one's own is checked by the same tests as pemviz's.
+
+The built-in scenarios are the run scenarios of :data:`pemviz.settings.SCENARIOS` (``braking``, ``cut-in``,
+``cut-in-rare``) and the two toys with closed-form answers that ``pemviz validate`` uses (``toy``, ``crowd``).
+
+A factory, a parameters dataclass or a simulator may be given as an object or, as Gymnasium's ``entry_point``, as the
+text ``"package.module:name"``, imported when it is first used: this module imports no problem or simulator (the
+problems' module imports :mod:`pemviz.scenarios`, which re-exports :func:`registered`, :func:`register` and
+:func:`get_scenario` from here), so listing the scenarios loads no PEM, no simulator and no torch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
+
+from pemviz.scenarios.parameters import (
+    KINDS, Parameter, ParameterError, apply_parameters, default_params, scenario_parameters, unit_of,
+)
+from pemviz.settings import SCENARIOS
+
+Ref = Any
+"""An object, or the text ``"package.module:name"`` that names it (imported when first used)."""
+
+
+def resolve(ref: Ref) -> Any:
+    """The object ``ref`` names: ``ref`` itself, or for the text ``"package.module:attr.attr"`` that attribute of
+    that module (imported now).
+
+    Raises:
+        ValueError: a text that is not ``module:name``.
+        ImportError, AttributeError: no such module or name.
+    """
+    if not isinstance(ref, str):
+        return ref
+    module, sep, attr = ref.partition(":")
+    if not sep or not module or not attr:
+        raise ValueError(f"{ref!r} is not 'package.module:name'")
+    obj: Any = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _kind(field: dataclasses.Field) -> str:
+    """``float``, ``int`` or ``bool`` for a scalar field of a dataclass (its annotation, as text or a type), else
+    ``""``."""
+    kind = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", "")
+    return kind if kind in KINDS else ""
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One scenario of the registry.
+
+    Attributes:
+        name: the registry's key (``braking``, ``toy``, ``my-robot``).
+        description: one line saying what is simulated and what a failure is.
+        params: the dataclass of its parameters (a frozen dataclass whose ``__post_init__`` raises ValueError for a
+            value outside its range), or None: the scenario has no parameters. A :data:`Ref`.
+        factory: ``factory(config, params) -> Problem``: the :class:`pemviz.core.problems.Problem` of a run of
+            ``config`` (a :class:`pemviz.config.ExperimentConfig`: its PEM, simulator back-end) with the parameters
+            ``params`` (an instance of :attr:`params`, or None without them). For a scenario of
+            :data:`pemviz.settings.SCENARIOS` the config also carries the parameters (``scenario_params``). A
+            :data:`Ref`.
+        exact: whether its problem carries an exact answer (``Problem.exact_log_p``) at its default parameters.
+        simulator: optional, ``simulator(params) -> Simulator``: the single black-box simulator (one rollout, the
+            :class:`pemviz.scenarios.Simulator` protocol) whose rollouts the problem's batched twin must reproduce
+            bit for bit; None: no separate simulator. A :data:`Ref`.
+        defaults: optional, ``defaults() -> params``: the parameters at the scenario's defaults (None: ``params()``;
+            ``cut-in-rare`` starts from another gap than the dataclass's). A :data:`Ref`.
+    """
+
+    name: str
+    description: str
+    params: Ref
+    factory: Ref
+    exact: bool = False
+    simulator: Ref = None
+    defaults: Ref = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
+            raise ValueError(f"Scenario: name must be a non-empty text without surrounding spaces, got {self.name!r}")
+        if not isinstance(self.description, str) or "\n" in self.description:
+            raise ValueError(f"Scenario {self.name}: description must be one line of text")
+        if self.factory is None:
+            raise ValueError(f"Scenario {self.name}: a factory (config, params) -> Problem is needed")
+
+    @property
+    def runnable(self) -> bool:
+        """Whether ``pemviz run --scenario NAME`` runs it (one of :data:`pemviz.settings.SCENARIOS`): its parameters
+        travel in :attr:`pemviz.config.ExperimentConfig.scenario_params`."""
+        return self.name in SCENARIOS
+
+    def params_class(self) -> type | None:
+        """The dataclass of the parameters (:attr:`params` imported), or None."""
+        return resolve(self.params)
+
+    def default_params(self) -> Any:
+        """The parameters at the scenario's defaults (an instance of :meth:`params_class`), or None without them."""
+        if self.runnable:
+            return default_params(self.name)
+        if self.defaults is not None:
+            return resolve(self.defaults)()
+        cls = self.params_class()
+        return None if cls is None else cls()
+
+    def parameters(self) -> tuple[Parameter, ...]:
+        """The parameters a user can set: every float, int and bool field of the dataclass, in field order, with the
+        scenario's default and the unit its name's suffix says (:mod:`pemviz.scenarios.parameters`); ``()`` without
+        a dataclass."""
+        if self.runnable:
+            return scenario_parameters(self.name)
+        params = self.default_params()
+        if params is None:
+            return ()
+        return tuple(Parameter(f.name, _kind(f), getattr(params, f.name), unit_of(f.name))
+                     for f in dataclasses.fields(params) if _kind(f))  # fmt: skip
+
+    def build_params(self, values: Mapping[str, object] | None = None) -> Any:
+        """The parameters with ``values`` (name -> value) replacing the scenario's defaults; None without a dataclass
+        (then ``values`` must be empty).
+
+        Raises:
+            ParameterError: a ValueError: an unknown name (the message lists the scenario's), a value not of its
+                field's kind, or a value the dataclass refuses (its own message: the field and its range).
+        """
+        values = dict(values or {})
+        if self.runnable:
+            return apply_parameters(self.name, values)
+        found = {p.name: p for p in self.parameters()}
+        changes = {}
+        for name, value in values.items():
+            if name not in found:
+                allowed = ", ".join(found) or "none"
+                raise ParameterError(f"{name!r} is not a parameter of the {self.name} scenario; use one of {allowed}")
+            changes[name] = found[name].check(value)
+        params = self.default_params()
+        if params is None:
+            return None
+        try:
+            return dataclasses.replace(params, **changes)
+        except ValueError as exc:
+            raise ParameterError(str(exc).replace("\n", " ")) from None
+
+    def problem(self, config: Any = None, params: Mapping[str, object] | None = None) -> Any:
+        """The :class:`pemviz.core.problems.Problem` of this scenario for ``config`` (a
+        :class:`pemviz.config.ExperimentConfig`; None: the defaults) with the parameters ``params`` (name -> value;
+        None: the config's, else the scenario's defaults).
+
+        Raises:
+            ValueError: ``config`` names another scenario of :data:`pemviz.settings.SCENARIOS`, or parameters the
+                scenario refuses (:class:`pemviz.scenarios.parameters.ParameterError`,
+                :class:`pemviz.config.ConfigError`).
+            pemviz.pem.network.PemFormatError, OSError: the config's PEM cannot be read.
+        """
+        from pemviz.config import ExperimentConfig  # the config module reads this package's parameters
+
+        if self.runnable:
+            cfg = config if config is not None else ExperimentConfig(scenario=self.name)
+            if cfg.scenario != self.name:
+                raise ValueError(f"the config is one of the {cfg.scenario} scenario, not of {self.name}")
+            if params:
+                merged = {**dict(cfg.scenario_params), **dict(params)}
+                cfg = dataclasses.replace(cfg, scenario_params=tuple(merged.items()))
+            built = self.build_params(dict(cfg.scenario_params))
+        else:
+            cfg = config if config is not None else ExperimentConfig()
+            built = self.build_params(params)
+        return resolve(self.factory)(cfg, built)
+
+    def single_simulator(self, params: Any = None) -> Any:
+        """A new single black-box simulator of the scenario at ``params`` (None: its defaults), or None when it has
+        none (:attr:`simulator`)."""
+        if self.simulator is None:
+            return None
+        return resolve(self.simulator)(self.default_params() if params is None else params)
+
+
+_REGISTRY: dict[str, Scenario] = {}
+
+
+def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
+    """Add ``scenario`` to the registry under its name; returns it.
+
+    Raises:
+        TypeError: not a :class:`Scenario`.
+        ValueError: the name is taken and ``replace`` is not given.
+    """
+    if not isinstance(scenario, Scenario):
+        raise TypeError(f"register: a Scenario is needed, got {type(scenario).__name__}")
+    if scenario.name in _REGISTRY and not replace:
+        raise ValueError(f"register: a scenario named {scenario.name!r} is registered already (replace=True to "
+                         "replace it)")  # fmt: skip
+    _REGISTRY[scenario.name] = scenario
+    return scenario
+
+
+def unregister(name: str) -> None:
+    """Remove the scenario ``name`` from the registry (e.g. one a test registered).
+
+    Raises:
+        KeyError: no scenario of that name.
+    """
+    if name not in _REGISTRY:
+        raise KeyError(f"unregister: no scenario named {name!r}; registered: {', '.join(_REGISTRY)}")
+    del _REGISTRY[name]
+
+
+def registered() -> tuple[str, ...]:
+    """The names of every registered scenario, built-in ones first, in the order they were registered."""
+    return tuple(_REGISTRY)
+
+
+def get(name: str) -> Scenario:
+    """The scenario registered as ``name``.
+
+    Raises:
+        KeyError: no scenario of that name (the message lists the registered ones).
+    """
+    if name not in _REGISTRY:
+        raise KeyError(f"no scenario named {name!r}; registered: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+_CUT_IN = ("ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "
+           "or the safe distance of rule R_G1")  # fmt: skip
+
+for _scenario in (
+    Scenario("braking", "automated braking behind a lead car, the PEM as the camera's detector; failure: the gap "
+             "drops below the crash gap", "pemviz.scenarios.braking:BrakingParams",
+             "pemviz.scenarios.builtin:run_problem", exact=True,
+             simulator="pemviz.scenarios.braking:BrakingScenario"),
+    Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in:CutInParams",
+             "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario"),
+    Scenario("cut-in-rare", _CUT_IN.format("rare (below 1e-9)"), "pemviz.scenarios.cut_in:CutInParams",
+             "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario"),
+    Scenario("toy", "toy braking: a car from an obstacle, a detection within the braking range stops it; failure: "
+             "closer than the safe distance (closed-form answer)", "pemviz.scenarios.toy:ToyParams",
+             "pemviz.scenarios.builtin:toy", exact=True, simulator="pemviz.scenarios.toy:ToyBraking"),
+    Scenario("crowd", "toy braking toward several obstacles, each detected and its distance mislocated; failure: "
+             "closer than the safe distance to the nearest (closed-form answer)", "pemviz.scenarios.crowd:CrowdParams",
+             "pemviz.scenarios.builtin:crowd", exact=True),
+):  # fmt: skip
+    register(_scenario)
+del _scenario

@@ -1,0 +1,244 @@
+"""The scenario registry and the conformance kit (pemviz.testing): every registered scenario and every method of
+METHODS passes the kit (a new one is checked without a new test), and each of the kit's checks fails, naming itself,
+on something broken on purpose."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import subprocess
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from conftest import doc_python_block
+from pemviz.config import METHODS, SCENARIOS
+from pemviz.core.problems import build_problem
+from pemviz.estimators.fixed import FixedSampler
+from pemviz.scenarios import builtin, get_scenario, register, registered
+from pemviz.scenarios.registry import Scenario, unregister
+from pemviz.scenarios.toy import ToyBraking
+from pemviz.testing import ConformanceError, check_estimator, check_scenario
+
+KNOWN_FAILURES = {
+    name: r"^check_scenario\('" + name + r"'\): rollout-file: the rollout sink raised RolloutFormatError at "
+          r"RolloutChunk: .* log_p is -inf at rollout \d+, step \d+"
+    for name in ("cut-in", "cut-in-rare")
+}  # fmt: skip
+"""Scenarios the kit finds at fault, with the failure it reports. A naive50 run of a cut-in draws detections of cars
+the camera cannot see (log p = -inf: an impossible event under the PEM, weight 0), and a rollout file refuses a
+log_p that is not finite, so ``pemviz run --scenario cut-in --method naive50 --save-rollouts`` stops with this
+error. Once files hold such rollouts, the kit passes and this test says so (the expected failure is not raised)."""
+
+
+# -- the registry ---------------------------------------------------------------------------------------------------
+
+
+def test_the_registry_holds_the_run_scenarios_and_the_toys_and_refuses_a_second_of_a_name():
+    assert {*SCENARIOS, "toy", "crowd"} <= set(registered())
+    toy = get_scenario("toy")
+    assert toy.exact and get_scenario("crowd").exact and not get_scenario("cut-in").exact
+    assert [p.name for p in toy.parameters()] == ["total", "braking", "safe"]
+    assert toy.problem().exact_log_p == build_problem("toy").exact_log_p
+    assert toy.problem(params={"total": 10, "braking": 5, "safe": 3}).exact_log_p == pytest.approx(math.log(1e-3))
+    assert get_scenario("crowd").problem().exact_log_p == build_problem("crowd").exact_log_p
+    assert get_scenario("cut-in-rare").default_params().cut_in_gap_m == 22.5  # the rare setting, not the dataclass's
+    with pytest.raises(ValueError, match="'no_such' is not a parameter of the toy scenario; use one of total"):
+        toy.build_params({"no_such": 1})
+    with pytest.raises(ValueError, match="need 1 <= safe <= braking < total"):
+        toy.problem(params={"safe": 60})
+    with pytest.raises(KeyError, match="no scenario named 'nope'; registered: braking"):
+        get_scenario("nope")
+    with pytest.raises(ValueError, match="a scenario named 'toy' is registered already"):
+        register(toy)
+    mine = register(dataclasses.replace(toy, name="my-toy"))
+    try:
+        assert registered()[-1] == "my-toy" and get_scenario("my-toy") is mine
+    finally:
+        unregister("my-toy")
+    assert "my-toy" not in registered()
+
+
+def test_listing_the_scenarios_loads_no_problem_pem_or_torch():
+    code = ("import sys; from pemviz.scenarios import registered; print(','.join(registered())); "
+            "print([m for m in ('torch', 'pemviz.core.problems', 'pemviz.pem') if m in sys.modules])")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
+    assert out[0].split(",")[:5] == ["braking", "cut-in", "cut-in-rare", "toy", "crowd"] and out[1] == "[]"
+
+
+# -- everything pemviz has passes ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", registered())
+def test_every_registered_scenario_passes_the_kit(name, tmp_path):
+    if name in KNOWN_FAILURES:
+        with pytest.raises(ConformanceError, match=KNOWN_FAILURES[name]):
+            check_scenario(name)
+        pytest.xfail(f"{name}: a rollout file refuses the -inf log p of a car the camera cannot see")
+    report = check_scenario(name, folder=tmp_path)
+    twin = () if get_scenario(name).simulator is None else ("twin",)
+    assert report.passed == ("schema", "problem", "determinism", *twin, "rollout-file", "recording")
+    assert (tmp_path / f"{name}-naive50.parquet").is_file() or (tmp_path / f"{name}-adaptive.parquet").is_file()
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_method_passes_the_kit(method):
+    report = check_estimator(method)
+    weighted = method != "ams"  # splitting keeps no importance weights: no rollout file to estimate from
+    assert report.passed == ("interface", "unbiased", "verdicts", *(("rollout-file",) * weighted), "recording")
+    assert [name for name, _ in report.skipped] == ([] if weighted else ["rollout-file"])
+    assert weighted or "without importance weights" in report.skipped[0][1]
+
+
+def test_the_user_guide_s_kit_examples_run_as_written(capsys):
+    exec(doc_python_block("own-simulator.md", "## The conformance kit"), {"__name__": "guide"})
+    try:
+        exec(doc_python_block("own-simulator.md", "### A scenario of your own in the registry"), {"__name__": "guide"})
+    finally:
+        if "short-toy" in registered():
+            unregister("short-toy")
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "scenario braking: 6 checks passed (schema, problem, determinism, twin, rollout-file, recording)"
+    assert out[1] == "estimator adaptive: 5 checks passed (interface, unbiased, verdicts, rollout-file, recording)"
+    assert out[2].startswith("scenario short-toy: 6 checks passed") and len(out) == 3
+
+
+# -- each check fails on something broken ----------------------------------------------------------------------------
+
+TOY = get_scenario("toy")
+
+
+@dataclass(frozen=True)
+class Unchecked:
+    """A parameters dataclass without a range check."""
+
+    speed_mps: float = 1.0
+
+
+def unchecked_toy(config, params):
+    return builtin.toy(config, None)
+
+
+def noisy_toy(config, params):
+    """The toy, whose rollouts move by a number the seed does not decide."""
+    problem, own = builtin.toy(config, params), np.random.default_rng()
+
+    def simulate(n, sampler, target, rng):
+        batch = problem.simulate(n, sampler, target, rng)
+        return batch.with_changes(observations=batch.observations + own.random(batch.observations.shape))
+
+    return dataclasses.replace(problem, simulate=simulate)
+
+
+def failing_factory(config, params):
+    raise RuntimeError("no road")
+
+
+class LateToy(ToyBraking):
+    """A single toy simulator that brakes one unit later than the batched twin."""
+
+    def step(self, detected: bool) -> None:
+        super().step(detected and self.distance < self.params.braking)
+
+
+@pytest.mark.parametrize("changes, message", [
+    (dict(params=Unchecked, factory=unchecked_toy, simulator=None),
+     r"schema: no far value of any parameter \(speed_mps: -1e12, 1e12\) is refused"),
+    (dict(factory=failing_factory), r"problem: the factory raised RuntimeError: no road"),
+    (dict(factory=noisy_toy), r"determinism: seed 0, rollouts drawn by the target \(PEM\): the same seed again gives "
+                              r"other rollouts: observations\[0, 0, 0\] \(rollout 0, step 0\)"),
+    (dict(simulator=LateToy), r"twin: rollouts drawn by the target \(PEM\): the single simulator, then the batched "
+                              r"twin: observations\[\d+, 51, 0\] \(rollout \d+, step 51\): 49\.0 then 50\.0"),
+], ids=["schema", "problem", "determinism", "twin"])  # fmt: skip
+def test_each_scenario_check_fails_on_a_broken_scenario(changes, message):
+    broken = dataclasses.replace(TOY, name="broken-toy", **changes)
+    with pytest.raises(ConformanceError, match=r"^check_scenario\('broken-toy'\): " + message):
+        check_scenario(broken)
+
+
+def reestimated_off(monkeypatch):
+    """The rollout file's estimate 1e-6 (relative) off the run's."""
+    from pemviz.estimators import rollout_file
+
+    original = rollout_file.estimate_rollouts
+
+    def off(*args, **kwargs):
+        result = original(*args, **kwargs)
+        est = dataclasses.replace(result.estimate, log_mu_hat=result.estimate.log_mu_hat + 1e-6)
+        return dataclasses.replace(result, estimate=est)
+
+    monkeypatch.setattr(rollout_file, "estimate_rollouts", off)
+
+
+def recording_fails(monkeypatch):
+    """The recording sink raises at the run's answer."""
+    from pemviz.sinks.recording import RerunSink
+
+    def broken(self, event):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(RerunSink, "on_final_estimate", broken)
+
+
+@pytest.mark.parametrize("break_it, message", [
+    (reestimated_off, r"rollout-file: re-estimated from toy-adaptive\.parquet: log mu_hat = "),
+    (recording_fails, r"recording: the recording sink raised OSError at FinalEstimate: disk full"),
+], ids=["rollout-file", "recording"])  # fmt: skip
+def test_each_file_check_of_a_scenario_fails_on_a_broken_file(break_it, message, monkeypatch):
+    break_it(monkeypatch)
+    with pytest.raises(ConformanceError, match=r"^check_scenario\('toy'\): " + message):
+        check_scenario("toy")
+
+
+def short_weights(monkeypatch):
+    original = FixedSampler.observe
+    monkeypatch.setattr(FixedSampler, "observe", lambda self, *args: original(self, *args)[:-1])
+
+
+def doubled(monkeypatch):
+    """mu_hat twice the estimator's (plain Monte Carlo's spread on the toy is below 1 %)."""
+    original = FixedSampler.result
+
+    def result(self):
+        est, used = original(self)
+        return dataclasses.replace(est, log_mu_hat=est.log_mu_hat + math.log(2.0)), used
+
+    monkeypatch.setattr(FixedSampler, "result", result)
+
+
+def always_reliable(monkeypatch):
+    """Every final estimate called reliable, whatever it is."""
+    original = FixedSampler.result
+
+    def result(self):
+        est, used = original(self)
+        return dataclasses.replace(est, verdict="reliable"), used
+
+    monkeypatch.setattr(FixedSampler, "result", result)
+
+
+@pytest.mark.parametrize("break_it, message", [
+    (short_weights, r"interface: check_estimator: observe\(\) at stage 1 must return float64 \[2000\]"),
+    (doubled, r"unbiased: the mean of 8 estimates \(seeds 0\.\.7\) is 2 times the exact 0\.001 "
+              r"\(\|log mean - log p\| = 0\.693 nats\); allowed 1 \+- 0\.2"),
+    (always_reliable, r"verdicts: an estimate with 0 failures of 2000 and log mu_hat = -inf is called reliable"),
+    (reestimated_off, r"rollout-file: re-estimated from mc-seed0\.parquet: log mu_hat = -6\.9\d+ \(2 failures of "
+                      r"2000\); the run's own: -6\.9\d+ \(2 of 2000\); allowed \|mu / mu_run - 1\| <= 1e-09"),
+    (recording_fails, r"recording: the recording sink raised OSError at FinalEstimate: disk full"),
+], ids=["interface", "unbiased", "verdicts", "rollout-file", "recording"])  # fmt: skip
+def test_each_estimator_check_fails_on_a_broken_estimator(break_it, message, monkeypatch):
+    break_it(monkeypatch)
+    with pytest.raises(ConformanceError, match=r"^check_estimator\('mc'\): " + message):
+        check_estimator("mc")
+
+
+def test_the_kit_refuses_what_it_cannot_check():
+    with pytest.raises(ValueError, match="unknown method 'bogus'"):
+        check_estimator("bogus")
+    never = dataclasses.replace(build_problem("toy-1e-3"), exact_log_p=None)
+    with pytest.raises(ValueError, match="has no exact answer"):
+        check_estimator("mc", problem=never)
+    with pytest.raises(KeyError, match="no scenario named 'nope'"):
+        check_scenario("nope")
