@@ -158,5 +158,7 @@ def _failure(name: str, exc: Exception) -> int:
 WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # python -m pemviz.cli: the program is pemviz.cli's main, whose AS_PROGRAM the commands read
+    from pemviz.cli import main as program
+
+    sys.exit(program())

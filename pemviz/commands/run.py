@@ -352,7 +352,7 @@ def main(args: argparse.Namespace) -> int:
     target = recording_target(args)
     from pemviz import cli
 
-    if cli.AS_PROGRAM and target != "no-record" and cfg.executor == "serial":
+    if cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.executor == "serial":  # "save": the child's
         from pemviz.commands.process import settle_pyarrow_without_pandas
 
         settle_pyarrow_without_pandas()
@@ -376,7 +376,23 @@ def main(args: argparse.Namespace) -> int:
                 raise UsageError(str(exc)) from None
     elif target == "connect":
         args.url = probe_viewer(args.url)
+    early = None
+    if target == "save" and cli.AS_PROGRAM and cfg.executor == "serial":
+        from pemviz.sinks.recording_process import RecordingProcess  # rerun imported beside the run, not before it
 
+        save_path.parent.mkdir(parents=True, exist_ok=True)
+        early = RecordingProcess(save_path, overwrite=args.overwrite)
+    try:
+        return _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_files)
+    except BaseException:
+        if early is not None:
+            early.close(commit=False)  # idempotent: closed already where the run got that far
+        raise
+
+
+def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_files) -> int:
+    """The run itself, its listeners and its files (:func:`run`); ``early``: the recording process started before
+    the problem was built, or None."""
     from pemviz.core.counterfactuals import MostLikelyFailure, counterfactuals
     from pemviz.core.problems import problem_for
     from pemviz.engine.cost import N_STEPS
@@ -400,7 +416,9 @@ def main(args: argparse.Namespace) -> int:
     console.failures = groups  # prints the failures' severity, which groups (heard first) reads at the final estimate
     listeners = [groups, console]
     recorder = None
-    if target != "no-record":
+    if early is not None:
+        recorder = early
+    elif target != "no-record":
         from pemviz.sinks.recording import RerunSink  # rerun, and pandas through pyarrow: only for a recording
 
         if target == "save":
@@ -414,8 +432,9 @@ def main(args: argparse.Namespace) -> int:
         else:
             recorder = serve(args)
         recorder.problem = problem  # the failures' severity (final/failures, final/severity_of_failures)
+    if recorder is not None:
         recorder.share_failure_groups(groups)  # grouped once for the console, the recording and the result files
-        listeners.append(recorder)
+        listeners.insert(0 if recorder is early else len(listeners), recorder)  # the child hears the end first
     if rollout_sink is not None:
         rollout_sink.problem = problem  # its sidecar: the scenario's formula, signals and step
         listeners.append(rollout_sink)
@@ -424,7 +443,7 @@ def main(args: argparse.Namespace) -> int:
     if likely is not None:  # a scene without the braking scenario's own explanation: say which errors decided
         experiment.listeners.append(likely)
     try:
-        with torch_threads(1):
+        with torch_threads(1, blas=1):
             done = experiment.run()
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
         where = recorder.close() if recorder is not None else None

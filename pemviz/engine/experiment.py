@@ -86,8 +86,15 @@ class RobustnessByMetric(Mapping[str, np.ndarray]):
         if metric not in METRICS:
             raise KeyError(metric)
         if metric not in self._known:
+            if self.problem is None:
+                raise KeyError(f"{metric}: not computed before this mapping was pickled, and it has no problem")
             self._known[metric] = self.problem.robustness(self.batch, metric)
         return self._known[metric]
+
+    def __getstate__(self) -> dict:
+        """Pickled without the problem (its simulator need not pickle): the metrics read so far travel, and a
+        metric not read yet needs :attr:`problem` set again (:mod:`pemviz.sinks.recording_process` sets its own)."""
+        return {"problem": None, "batch": self.batch, "_known": dict(self._known)}
 
     def __iter__(self) -> Iterator[str]:
         return iter(METRICS)

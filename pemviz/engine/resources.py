@@ -113,8 +113,10 @@ def torch_threads(n: int = 1, blas: int | None = None) -> Iterator[None]:
     MKL, OpenMP: ``threadpoolctl``), then restore the process's settings (process-wide: for the command layer, around
     a whole run). The proposal is tiny, and on 2 cores a second torch thread only adds synchronisation (measured
     7.7 ms vs 74 ms per Adam epoch under load). The exact fits' products (:func:`pemviz.core.exact_fit.fit_exact`)
-    run in numpy's BLAS, which gains from a second core in one run (default run 1.6 s against 2.4 s on one thread) but whose idle threads
-    spin: give ``blas=1`` where runs go side by side (``pemviz validate --jobs 2``: 10-25 s a run otherwise). torch is
+    run in numpy's BLAS, whose idle threads spin: ``blas=1`` where runs go side by side (``pemviz validate --jobs 2``:
+    10-25 s a run otherwise) and for ``pemviz run``, whose recording process needs the second core (a default run
+    without a recording: 2.0 s wall and 1.9 s of CPU on one BLAS thread, 2.15 s wall and 3.7 s of CPU on two, on 2
+    cores). The thread count changes no number: a seed gives the same run either way. torch is
     not imported for this: a run that never needs it never imports it (:mod:`pemviz.core.torch_use`)."""
     from threadpoolctl import threadpool_limits
 

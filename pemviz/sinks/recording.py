@@ -586,9 +586,9 @@ class RerunSink(Sink):
                   static=True)  # fmt: skip
         if ev.pem_spread is not None:
             self.status_md += "\n\n```text\n" + "\n".join(ev.pem_spread.lines()) + "\n```\n"
+        self._explain()  # before the grouping, which a shared listener may still be computing
         self._groups(ev)  # the final estimate's failures, grouped (FailureGroups keeps each stage's failing rows)
         if ev.failures is not None and self._groups.grouping is not None:
             self.status_md += log_failures(s, self._groups.grouping, self.problem)
         self._log_description()
-        self._explain()
         s.flush()
