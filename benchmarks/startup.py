@@ -5,8 +5,10 @@
 
 Prints:
 
-1. each heavy import's cumulative time (``python -X importtime``, one run): torch, rerun, viser, scipy.stats,
-   pyarrow, and the others named in :data:`HEAVY`; a module the run never imports is listed as "not imported";
+1. each heavy import's cumulative time (``python -X importtime``, one run) in the run's own process: torch, rerun,
+   viser, scipy.stats, pyarrow, and the others named in :data:`HEAVY`; a module the run never imports is listed as
+   "not imported" (a recording's rerun and pyarrow are imported by its recording process, beside the run:
+   :mod:`pemviz.sinks.recording_process`);
 2. per run: the seconds from the process's start to its first stage (the first progress line on stderr), the
    estimate's own time (the console's ``from N simulations in S s``: the experiment from the estimator's set-up to
    the final estimate) and the whole process's wall time; then their medians and the ratio wall / estimate.
