@@ -22,15 +22,10 @@ from pemviz.scenarios.registry import Scenario, unregister
 from pemviz.scenarios.toy import ToyBraking
 from pemviz.testing import ConformanceError, check_estimator, check_scenario
 
-KNOWN_FAILURES = {
-    name: r"^check_scenario\('" + name + r"'\): rollout-file: the rollout sink raised RolloutFormatError at "
-          r"RolloutChunk: .* log_p is -inf at rollout \d+, step \d+"
-    for name in ("cut-in", "cut-in-rare")
-}  # fmt: skip
-"""Scenarios the kit finds at fault, with the failure it reports. A naive50 run of a cut-in draws detections of cars
-the camera cannot see (log p = -inf: an impossible event under the PEM, weight 0), and a rollout file refuses a
-log_p that is not finite, so ``pemviz run --scenario cut-in --method naive50 --save-rollouts`` stops with this
-error. Once files hold such rollouts, the kit passes and this test says so (the expected failure is not raised)."""
+KNOWN_FAILURES: dict[str, str] = {}
+"""Scenarios the kit finds at fault, with the failure it reports (none now). A naive50 run of a cut-in draws
+detections of cars the camera cannot see (log p = -inf: an impossible event under the PEM, weight 0); its rollout
+file holds them and re-estimates to the run's numbers, so the cut-in scenarios pass the kit."""
 
 
 # -- the registry ---------------------------------------------------------------------------------------------------
@@ -76,7 +71,7 @@ def test_every_registered_scenario_passes_the_kit(name, tmp_path):
     if name in KNOWN_FAILURES:
         with pytest.raises(ConformanceError, match=KNOWN_FAILURES[name]):
             check_scenario(name)
-        pytest.xfail(f"{name}: a rollout file refuses the -inf log p of a car the camera cannot see")
+        pytest.xfail(f"{name}: the kit finds it at fault, as KNOWN_FAILURES says")
     report = check_scenario(name, folder=tmp_path)
     twin = () if get_scenario(name).simulator is None else ("twin",)
     assert report.passed == ("schema", "problem", "determinism", *twin, "rollout-file", "recording")

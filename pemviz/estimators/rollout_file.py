@@ -11,7 +11,7 @@ the mean-weight check of the logged density.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -213,8 +213,9 @@ def estimate_rollouts(
         log_p_total = log_p_before_failure(problem, batch)
     k = data.n_steps - 1
     for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
-        if not np.isfinite(x).all():
-            i = int(np.flatnonzero(~np.isfinite(x))[0])
+        bad = np.isnan(x) | (x == np.inf)  # -inf: an action the PEM cannot take, weight 0 (as in the run)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
             raise RolloutFormatError(
                 f"{where}: rollout {data.rollout_ids[i]}: the {name} over its {k} steps is beyond "
                 f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
@@ -232,7 +233,15 @@ def estimate_rollouts(
         b = {s["stage"]: s["max_weight"] for s in data.meta.stages}
         bound = np.array([math.nan if b.get(int(k)) is None else b[int(k)] for k in data.stage])
     return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure, weights, rows, pooled, rule,
-                           mean_weight(log_w, bound))  # fmt: skip
+                           _mean_weight(log_w, bound))  # fmt: skip
+
+
+def _mean_weight(log_w: np.ndarray, bound: np.ndarray | None) -> MeanWeight:
+    """:func:`pemviz.core.weights.mean_weight` of log-weights [N] (nats), where every weight may be 0 (log w = -inf:
+    each rollout took an action the PEM cannot take): then the mean is 0 with standard error 0."""
+    if np.max(log_w) > -np.inf:
+        return mean_weight(log_w, bound)
+    return replace(mean_weight(np.zeros_like(log_w), bound), log_mean=-math.inf, se=0.0)
 
 
 def _pooled(data: RolloutData, log_w: np.ndarray, failed: np.ndarray,

@@ -43,7 +43,9 @@ signals of the spec           float                        SI     e.g. ``ego_spe
 ============================  ===========================  =====  ==========================================
 
 Floats must be finite; log-probabilities <= 0 (with errors, ``log_p`` and ``log_q`` include the errors' log
-densities, which may be positive). Other columns are ignored.
+densities, which may be positive). ``log_p`` may also be -inf: an action the PEM cannot take (p = 0), which gives
+its rollout importance weight 0; ``log_q`` stays finite (a proposal drew each action, so q > 0). Other columns are
+ignored.
 
 ``NAME.json`` (the sidecar, same name with suffix ``.json``), a JSON object:
 

@@ -6,7 +6,9 @@ The reader (:func:`pemviz.io.rollouts.read_rollouts`) and the writer (:mod:`pemv
 every chunk before it writes it) validate with the same checks, so a file pemviz writes is one pemviz reads. Bad
 input raises :class:`~pemviz.io.rollout_format.RolloutFormatError`: one message naming the file, the column, and the
 rollout and step where the problem is. The format itself (columns, sidecar, units) is
-:mod:`pemviz.io.rollout_format`'s.
+:mod:`pemviz.io.rollout_format`'s. Floats must be finite, except ``log_p``, which may be -inf: an action the PEM
+cannot take (p = 0, so the rollout's importance weight is 0; a 50 % sampler detects cars the camera cannot see).
+``log_q`` stays finite: a proposal drew each action, so q > 0.
 
 Two optional columns carry each rollout's severity, the same value on all its rows (:data:`SEVERITY_COLUMNS`,
 :func:`pemviz.core.severity.rollout_severity`; ``pemviz run --save-rollouts`` writes them): ``min_distance_m`` (float,
@@ -66,7 +68,8 @@ class RolloutData(RolloutBatch):
     Attributes:
         observations: float64 [N, T, F], columns ``observation_names`` (``gap_m`` first).
         detected: bool [N, T, M] (M = the sidecar's ``objects``).
-        log_p, log_q: float64 [N, T] (nats) or None when the file has no such column (:meth:`to_batch` fills them).
+        log_p, log_q: float64 [N, T] (nats) or None when the file has no such column (:meth:`to_batch` fills them);
+            ``log_p`` is -inf at an action the PEM cannot take (the rollout's importance weight is 0), ``log_q`` finite.
         observation_names: the F state columns.
         meta: the sidecar.
         rollout_ids: int64 [N], in file order.
@@ -211,18 +214,33 @@ class _Table:
                 raise self.error(f"the sidecar says {key} = {declared} but the table holds {value}")
         return seg_ids, n_0
 
-    def floats(self, name: str, *, log_prob: bool = False) -> np.ndarray:
-        """A numeric column as float64 [rows]: finite (and <= 0 for log-probabilities)."""
+    def floats(self, name: str, *, log_prob: bool = False, impossible: bool = False) -> np.ndarray:
+        """A numeric column as float64 [rows]: finite (and <= 0 for log-probabilities).
+
+        Args:
+            name: the column.
+            log_prob: a log-probability column (nats): a value > 0 is refused (a log density may be > 0: False).
+            impossible: ``log_p``: -inf is allowed too, an action the PEM cannot take (p = 0, importance weight 0);
+                NaN and +inf are still refused.
+        Raises:
+            RolloutFormatError: a wrong type, a null, a value that is not allowed, in one line naming the column,
+                rollout and step.
+        """
         col = self.table.column(name)
         if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
             raise self._type_error(name, "numbers (float64)", located=True)
         self._nulls(name, located=True)
         x = col.to_numpy().astype(np.float64)
-        bad = ~np.isfinite(x)
+        ok = np.isfinite(x)
+        if impossible:
+            ok |= x == -np.inf
+        bad = ~ok
         if bad.any():
             row = _first_index(bad)
             what = "NaN" if np.isnan(x[row]) else str(x[row])
-            raise self.error(f"{name} is {what} at {self.at(row)}; values must be finite numbers")
+            allowed = ("finite numbers or -inf (an action the PEM cannot take: weight 0)" if impossible else
+                       "finite numbers (a proposal drew each action: q > 0)" if name == "log_q" else "finite numbers")
+            raise self.error(f"{name} is {what} at {self.at(row)}; values must be {allowed}")
         if log_prob and (x > 0).any():
             row = _first_index(x > 0)
             raise self.error(f"{name} = {float(x[row])!r} > 0 at {self.at(row)}: a log-probability (nats) must be <= 0")
@@ -323,7 +341,8 @@ class _Table:
         if SALIENT_COLUMNS[0] in names:
             salient = np.stack([self.floats(c) for c in SALIENT_COLUMNS], axis=-1).reshape(n, n_steps, -1)
         probability = not self.meta.noise  # with measurement errors a step's log_p / log_q hold log densities
-        log_p = self.floats("log_p", log_prob=probability).reshape(n, n_steps) if "log_p" in names else None
+        log_p = (self.floats("log_p", log_prob=probability, impossible=True).reshape(n, n_steps) if "log_p" in names
+                 else None)  # fmt: skip
         log_q = self.floats("log_q", log_prob=probability).reshape(n, n_steps) if "log_q" in names else None
         stage, component = (self.per_rollout(c, n, n_steps) if c in names else None for c in ("stage", "component"))
         self.stages(stage, component)
