@@ -25,6 +25,8 @@ import numpy as np
 
 from pemviz.app.form import run_label
 from pemviz.config import ExperimentConfig
+from pemviz.core.counterfactuals import LikelyFailure
+from pemviz.core.counterfactuals import most_likely_failure as pick_most_likely
 from pemviz.core.estimate import Reference
 from pemviz.core.population import FailureShares
 from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities, proposal_view
@@ -166,7 +168,8 @@ class Trajectory:
 
     Attributes:
         stage: the stage that sampled it (0 = pretraining, K+1 = final batch).
-        index: its row in that stage's batch.
+        index: its number in the stage (:attr:`pemviz.engine.events.RolloutsSampled.rollout_numbers`: its row in the
+            stage's batch, except in a streamed stage, whose batch is a sample of the stage's rollouts).
         robustness: under the run's metric (classic: metres; AGM: [-1, 1]).
         log_weight: importance log-weight log p_PEM - log q over T - 1 steps (nats).
         crashed: classic robustness < 0 (the gap dropped below 2 m).
@@ -211,7 +214,7 @@ class Trajectory:
 
 
 def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
-    """Rollout ``i`` of a sampled batch as a :class:`Trajectory`."""
+    """Row ``i`` of a sampled batch as a :class:`Trajectory`."""
     batch = event.batch
     names = batch.observation_names
     obs = batch.observations[i]
@@ -225,7 +228,7 @@ def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
     object_p, object_q = object_detect_probabilities(batch, int(i), event.sampler, event.target) or (None, None)
     return Trajectory(
         stage=event.stage,
-        index=int(i),
+        index=int(event.rollout_numbers[i]),
         robustness=float(event.robustness[i]),
         log_weight=float(event.log_weight[i]),
         crashed=bool(event.failed[i]),
@@ -242,18 +245,12 @@ def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
 
 
 def most_likely_failure(best: Trajectory | None, event: RolloutsSampled) -> Trajectory | None:
-    """The failing rollout with the highest log p_PEM (T - 1 steps) among ``best`` and this batch's failures.
-
-    Ties keep ``best`` (the earlier one), then the lower index.
-    """
-    failed = np.flatnonzero(np.asarray(event.failed, bool))
-    if failed.size == 0:
-        return best
-    log_p = event.batch.log_likelihood()[failed]
-    j = int(failed[int(np.argmax(log_p))])
-    if best is not None and best.log_p_total >= float(log_p.max()):
-        return best
-    return trajectory(event, j)
+    """The failing rollout with the highest log p_PEM (T - 1 steps) among ``best`` and this batch's failures
+    (:func:`pemviz.core.counterfactuals.most_likely_failure`). Ties keep ``best`` (the earlier one), then the lower
+    row. :class:`PanelRun` keeps the chosen :class:`~pemviz.core.counterfactuals.LikelyFailure` beside it."""
+    prior = None if best is None else LikelyFailure(best.stage, -1, best.index, best.log_p_total)
+    likely = pick_most_likely(event, prior)
+    return best if likely is prior else trajectory(event, likely.row)
 
 
 def least_robust(kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJECTORIES) -> list[Trajectory]:
@@ -349,8 +346,11 @@ class PanelRun(Sink):
         self.reference: Reference | None = None
         """The problem's plain Monte Carlo reference where no exact answer is known (``RunStarted.reference``)."""
         self.trajectories: list[Trajectory] = []
+        self.likely: LikelyFailure | None = None
+        """The run's most likely failure so far (:func:`pemviz.core.counterfactuals.most_likely_failure`: the failing
+        rollout with the largest log p under the PEM; its stage, row, rollout number and log p), None before one."""
         self.most_likely_failure: Trajectory | None = None
-        """The failing rollout with the highest probability under the PEM found so far."""
+        """:attr:`likely` as a :class:`Trajectory`."""
         self.proposal_views: dict[int, tuple[str, ProposalView]] = {}
         """Stage -> (kind, q(detect) of its sampler over the states its rollouts visited, per gap bin)."""
         self.proposal_axis: ViewAxis = GAP_AXIS
@@ -407,7 +407,9 @@ class PanelRun(Sink):
         self.sampled_current = True
         self.sampled = {**self.sampled, event.stage: event}
         self.trajectories = least_robust(self.trajectories, event)
-        self.most_likely_failure = most_likely_failure(self.most_likely_failure, event)
+        likely = pick_most_likely(event, self.likely)
+        if likely is not self.likely:
+            self.likely, self.most_likely_failure = likely, trajectory(event, likely.row)
         window = self.view.thresholds.window if self.view is not None and self.view.thresholds else None
         view = batch_proposal_view(event.batch, GAP_BINS_M, window) if window is not None else None
         if view is None and event.batch.objects is not None and event.batch.n_objects > 1:

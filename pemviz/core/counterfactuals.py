@@ -132,24 +132,91 @@ def counterfactuals(problem, batch: RolloutBatch, index: int, *, max_interventio
     return Counterfactuals(index, rho, t_fail, out)
 
 
+@dataclass(frozen=True)
+class LikelyFailure:
+    """Which failing rollout is the most likely failure, and how likely.
+
+    Attributes:
+        stage: the stage of the :class:`pemviz.engine.events.RolloutsSampled` that carried it (0 = pretraining).
+        row: its row in that event's batch.
+        rollout: its number in the stage (``event.rollout_numbers[row]``: the row, except in a streamed stage,
+            whose listeners see a sample of its rollouts).
+        log_p: its log p under the PEM (nats; :func:`failure_log_p`).
+    """
+
+    stage: int
+    row: int
+    rollout: int
+    log_p: float
+
+
+def failure_log_p(batch: RolloutBatch, failed: np.ndarray) -> np.ndarray:
+    """The log p under the PEM (the target) of each failing rollout, float64 [N] (nats), -inf where ``failed`` [N]
+    is False: the sum of ``log p_target(a_t | s_t)`` over the rollout's first T - 1 steps, the steps its importance
+    weight multiplies (:meth:`pemviz.scenarios.RolloutBatch.log_likelihood`; the last action changes nothing). The
+    one log p by which the console, the panel and the recording choose and state the most likely failure.
+
+    Raises:
+        ValueError: ``failed`` is not of shape [N].
+    """
+    failed = np.asarray(failed, dtype=bool)
+    if failed.shape != (batch.n,):
+        raise ValueError(f"failure_log_p: failed needs shape ({batch.n},), got {failed.shape}")
+    return np.where(failed, batch.log_likelihood(), -np.inf)
+
+
+def likeliest_failures(batch: RolloutBatch, failed: np.ndarray, k: int) -> np.ndarray:
+    """Rows of the ``k`` failing rollouts (``failed``: bool [N]) with the largest :func:`failure_log_p`, int64
+    [min(k, failures)], likeliest first (ties: the lower row); empty when none fails or ``k`` <= 0."""
+    rows = np.flatnonzero(np.asarray(failed, dtype=bool))
+    if rows.size == 0 or k <= 0:
+        return np.zeros(0, np.int64)
+    log_p = failure_log_p(batch, failed)[rows]
+    return rows[np.argsort(-log_p, kind="stable")[:k]].astype(np.int64)
+
+
+def most_likely_failure(event, best: LikelyFailure | None = None) -> LikelyFailure | None:
+    """The most likely failure of a run after ``event``: ``best`` (the run's so far, or None) or the failing rollout
+    of ``event`` (a :class:`pemviz.engine.events.RolloutsSampled`) with the largest :func:`failure_log_p`, whichever
+    has the larger log p. Ties keep the earlier: ``best``, then the lower row. Returns ``best`` itself (the same
+    object) when the event has no likelier failure; None while no failure has been seen."""
+    rows = likeliest_failures(event.batch, event.failed, 1)
+    if rows.size == 0:
+        return best
+    row = int(rows[0])
+    log_p = float(failure_log_p(event.batch, event.failed)[row])
+    if best is not None and best.log_p >= log_p:
+        return best
+    return LikelyFailure(int(event.stage), row, int(event.rollout_numbers[row]), log_p)
+
+
 class MostLikelyFailure:
-    """A run's listener that keeps its most likely failure: of every failing rollout the run's events carry
-    (:class:`pemviz.engine.events.RolloutsSampled`), the one with the largest log p under the target (nats, over its
-    first T - 1 steps as its weight: :meth:`pemviz.scenarios.RolloutBatch.log_likelihood`, the value the panel and the
-    recording show), as a batch of one rollout (``batch``, with ``stage`` and ``log_p``; None until a failure is
-    seen)."""
+    """A run's listener that keeps its most likely failure (:func:`most_likely_failure`, log p in nats over T - 1
+    steps: :func:`failure_log_p`) for the console's *why* line: ``best`` (None until a failure is seen), its ``stage``,
+    ``rollout`` number and ``log_p`` (-inf until then), and ``batch``, the rollout as a batch of one."""
 
     def __init__(self) -> None:
+        self.best: LikelyFailure | None = None
         self.batch: RolloutBatch | None = None
         self.stage: int | None = None
+        self.rollout: int | None = None
         self.log_p = -np.inf
 
     def __call__(self, event: object) -> None:
         from pemviz.engine.events import RolloutsSampled
 
-        if not isinstance(event, RolloutsSampled) or not np.any(event.failed):
+        if not isinstance(event, RolloutsSampled):
             return
-        log_p = np.where(event.failed, event.batch.log_likelihood(), -np.inf)  # T - 1 steps, as the weights
-        i = int(np.argmax(log_p))
-        if log_p[i] > self.log_p:
-            self.batch, self.stage, self.log_p = event.batch.select(np.array([i])), event.stage, float(log_p[i])
+        best = most_likely_failure(event, self.best)
+        if best is not self.best:
+            self.best, self.batch = best, event.batch.select(np.array([best.row]))
+            self.stage, self.rollout, self.log_p = best.stage, best.rollout, best.log_p
+
+    def why(self, problem) -> str | None:
+        """The console's line saying which perception errors decided the most likely failure
+        (:func:`counterfactuals`, replayed through ``problem``); None before a failure or for rollouts without
+        object rows."""
+        if self.batch is None or self.batch.objects is None:
+            return None
+        cf = counterfactuals(problem, self.batch, 0)
+        return f"why: the most likely failure (stage {self.stage}, log p {self.log_p:.1f} nats): {cf.summary()}"

@@ -89,6 +89,7 @@ import numpy as np
 import rerun as rr
 
 import pemviz
+from pemviz.core.counterfactuals import LikelyFailure, most_likely_failure
 from pemviz.core.estimate import Reference, error_text, format_probability
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
@@ -166,10 +167,13 @@ class RerunSink(Sink):
         self.grid_m = np.zeros(0)
         self.bins_m: np.ndarray | None = None
         """Gap bins of the marginal proposal view (:func:`pemviz.core.proposal_view.bins_over` of the curve grid)."""
+        self.likely: LikelyFailure | None = None
+        """The most likely failure so far (:func:`pemviz.core.counterfactuals.most_likely_failure`: its stage, row,
+        rollout number and log p), None before a failure."""
         self.most_likely: RolloutsSampled | None = None
-        """The most likely failure so far: the failing rollout with the largest log p under the PEM, as a batch of
-        one (:attr:`most_likely_log_p` nats over T - 1 steps)."""
+        """:attr:`likely` as an event of one rollout."""
         self.most_likely_log_p = -math.inf
+        """:attr:`likely`'s log p under the PEM (nats over T - 1 steps), -inf before a failure."""
         self.most_likely_detect: tuple[np.ndarray, np.ndarray] | None = None
         """Each object's p(detect) and q(detect) [T, M] along :attr:`most_likely` (several objects and an event that
         names its detectors; else None), read while the sampler that drew it was unchanged."""
@@ -504,24 +508,20 @@ class RerunSink(Sink):
         return kept_rollouts(ev, max(self.tagged_per_stage, self.likely_per_stage, self.scene_per_stage))
 
     def _track_most_likely(self, ev: RolloutsSampled) -> None:
-        """Keep the failing rollout with the largest log p under the PEM so far (ties: the earlier), as a batch of
-        one."""
-        failed = np.flatnonzero(np.asarray(ev.failed, bool))
-        self.n_failures_seen += failed.size
-        if failed.size == 0:
+        """Keep the run's most likely failure so far (:func:`pemviz.core.counterfactuals.most_likely_failure`, ties:
+        the earlier) as an event of one rollout."""
+        self.n_failures_seen += int(np.count_nonzero(ev.failed))
+        likely = most_likely_failure(ev, self.likely)
+        if likely is self.likely:
             return
-        log_p = ev.batch.log_likelihood()[failed]
-        j = int(np.argmax(log_p))
-        if float(log_p[j]) <= self.most_likely_log_p:
-            return
-        i = failed[j : j + 1]
-        self.most_likely_log_p = float(log_p[j])
+        self.likely, self.most_likely_log_p = likely, likely.log_p
+        i = np.array([likely.row])
         self.most_likely = RolloutsSampled(
             ev.stage, ev.kind, ev.batch.select(i), ev.robustness[i],
             {m: np.asarray(v)[i] for m, v in ev.robustness_by_metric.items()}, np.asarray(ev.failed)[i],
             np.asarray(ev.log_weight)[i], index=ev.rollout_numbers[i],
         )  # fmt: skip
-        self.most_likely_detect = object_detect_probabilities(ev.batch, int(i[0]), ev.sampler, ev.target)
+        self.most_likely_detect = object_detect_probabilities(ev.batch, likely.row, ev.sampler, ev.target)
 
     def _log_rollouts(self, ev: RolloutsSampled) -> None:
         """The kept traces of a stage and its featured rollouts

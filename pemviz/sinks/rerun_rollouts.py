@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import rerun as rr
 
+from pemviz.core.counterfactuals import likeliest_failures
 from pemviz.core.problems import ProblemView
 from pemviz.engine.events import RolloutsSampled
 from pemviz.scenarios.braking_failures import severity
@@ -41,12 +42,8 @@ def least_robust(ev: RolloutsSampled, k: int) -> np.ndarray:
 
 def most_likely_failures(ev: RolloutsSampled, k: int) -> np.ndarray:
     """Indices of the ``k`` failing rollouts with the largest log p under the PEM (T - 1 steps), likeliest first
-    (ties: lower index); fewer when fewer fail."""
-    failed = np.flatnonzero(np.asarray(ev.failed, bool))
-    if failed.size == 0 or k <= 0:
-        return np.zeros(0, np.int64)
-    log_p = ev.batch.log_likelihood()[failed]
-    return failed[np.argsort(-log_p, kind="stable")[:k]]
+    (ties: lower index); fewer when fewer fail (:func:`pemviz.core.counterfactuals.likeliest_failures`)."""
+    return likeliest_failures(ev.batch, ev.failed, k)
 
 
 def kept_rollouts(ev: RolloutsSampled, n_least_robust: int) -> np.ndarray:
