@@ -278,7 +278,7 @@ class ExperimentConfig:
         for setting in SETTINGS.values():  # each setting on its own: its range from SETTINGS
             value = getattr(self, setting.name)
             if not setting.accepts(value):
-                verb = "use" if setting.kind == "choice" else f"{setting.words} must be"
+                verb = "use" if setting.kind in ("choice", "scenario") else f"{setting.words} must be"
                 raise ConfigError(f"{setting.title} = {value!r} is invalid: {verb} {setting.allowed}", setting.name)
 
         def need(ok: bool, name: str, allowed: str) -> None:  # the settings against each other
@@ -306,7 +306,7 @@ class ExperimentConfig:
              "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it")  # fmt: skip
         need(self.method != "ams" or self.ams_killed < self.n_per_stage, "ams_killed",
              f"{SETTINGS['ams_killed'].words} must be a whole number in [1, N - 1]")
-        n_objects = dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS[self.scenario])
+        n_objects = dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS.get(self.scenario, 1))
         need(self.method != "adaptive" or n_objects == 1 or not self.fits_whole_rollouts, "scenario",
              whole_rollout_fit_refusal(self, n_objects))
         need(self.margin is None or self.scenario == "braking", "margin",

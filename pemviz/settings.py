@@ -94,7 +94,9 @@ class Setting:
         words: what it is, as a noun in plain words with its symbol (``"the smoothing alpha"``); error messages say
             ``<words> must be <allowed>``.
         help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
-        kind: ``int``, ``real``, ``choice``, ``bool``, ``text``, ``pem`` (a shipped PEM name or a file, checked
+        kind: ``int``, ``real``, ``choice``, ``scenario`` (a name of the scenario registry,
+            :func:`pemviz.scenarios.registry.registered`: the built-in :attr:`choices` and any plugin's), ``bool``,
+            ``text``, ``pem`` (a shipped PEM name or a file, checked
             where it is loaded: the config does no I/O) or ``params`` (``(name, value)`` pairs of the scenario's
             parameters, :mod:`pemviz.scenarios.parameters`, checked against the scenario by the config).
         symbol: the paper's symbol (``alpha``, ``sigma``, ``K``, ``N``, ``N_e``; ``k`` of AMS), or None.
@@ -148,6 +150,8 @@ class Setting:
         ``a number in (0, 1]``, ``a whole number >= 2``, ``one of classic, agm, smooth-cumulative``."""
         if self.kind == "choice":
             text = f"one of {', '.join(self.choices)}"
+        elif self.kind == "scenario":
+            text = f"one of {', '.join(_scenario_names())}"
         elif self.kind == "bool":
             text = "True or False"
         elif self.kind == "text":
@@ -181,6 +185,12 @@ class Setting:
             return self.optional
         if self.kind == "choice":
             return isinstance(value, str) and value in self.choices
+        if self.kind == "scenario":  # a built-in one, or one of the registry's (plugins loaded when first asked)
+            if not isinstance(value, str) or value in self.choices:
+                return isinstance(value, str)
+            from pemviz.scenarios import registry  # a plugin that cannot be loaded raises its own one line here
+
+            return value in registry.registered()
         if self.kind == "bool":
             return isinstance(value, bool)
         if self.kind == "text":
@@ -289,7 +299,7 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("pem", "the perception error model", "the PEM the rollouts detect with", kind="pem",
             short="PEM", owner=RUN, flags=("--pem",)),
     Setting("scenario", "the scenario", "what is simulated and whose failure probability is estimated",
-            kind="choice", choices=SCENARIOS, owner=RUN, flags=("--scenario",),
+            kind="scenario", choices=SCENARIOS, owner=RUN, flags=("--scenario",),
             choice_help=(("braking", "the paper's: braking behind one lead car, with an exact answer"),
                          ("cut-in", "a car cutting in on a 3-lane highway, an ACC on a tracker, missed and "
                                     "mislocated cars; moderately rare"),
@@ -397,6 +407,17 @@ def settings_of(owner: str) -> tuple[str, ...]:
 
 def _is_real(x: object) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x
+
+
+def _scenario_names() -> tuple[str, ...]:
+    """Every registered scenario's name (:func:`pemviz.scenarios.registry.registered`; the built-in ones where a plugin
+    cannot be loaded: the run that names one says why)."""
+    from pemviz.scenarios import registry  # the registry reads this module's SCENARIOS
+
+    try:
+        return registry.registered()
+    except registry.ScenarioPluginError:
+        return SCENARIOS
 
 
 def _is_int(x: object) -> bool:

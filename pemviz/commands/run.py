@@ -20,7 +20,7 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
-from pemviz.config import SCENARIOS, SCENE_DEFAULTS, ConfigError, ExperimentConfig
+from pemviz.config import SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
 from pemviz.io.files import check_output_folder, check_output_path, free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
@@ -110,8 +110,13 @@ def scenario_params(scenario: str, texts: list[str]) -> tuple[tuple[str, float |
             given twice; one line.
     """
     from pemviz.scenarios.parameters import ParameterError, parse_assignments
+    from pemviz.settings import SETTINGS
 
-    if scenario not in SCENARIOS:  # the config refuses the scenario first
+    try:
+        known = SETTINGS["scenario"].accepts(scenario)
+    except ValueError:  # a plugin that cannot be loaded: the config says so, in one line
+        known = False
+    if not known:  # the config refuses the scenario first
         return tuple(texts)
     try:
         return parse_assignments(scenario, texts)
@@ -393,12 +398,12 @@ def main(args: argparse.Namespace) -> int:
 def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_files) -> int:
     """The run itself, its listeners and its files (:func:`run`); ``early``: the recording process started before
     the problem was built, or None."""
-    from pemviz.core.counterfactuals import MostLikelyFailure, counterfactuals
-    from pemviz.core.problems import problem_for
+    from pemviz.core.counterfactuals import MostLikelyFailure
     from pemviz.engine.cost import N_STEPS
     from pemviz.engine.resources import torch_threads
     from pemviz.engine.experiment import Experiment, stream_above
     from pemviz.estimators import check_runnable
+    from pemviz.scenarios.registry import problem_for  # any registered scenario: the built-in ones and plugins
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.population import FailureGroups, grouping_document
 
@@ -460,10 +465,8 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
     if rollout_sink is not None and rollout_sink.written is not None:
         for path in rollout_files(rollout_sink.written):
             print(f"rollouts: {path}", file=sys.stderr)
-    why = None
-    if likely is not None and likely.batch is not None and likely.batch.objects is not None:
-        cf = counterfactuals(problem, likely.batch, 0)
-        why = f"why: the most likely failure (stage {likely.stage}, log p {likely.log_p:.1f} nats): {cf.summary()}"
+    why = likely.why(problem) if likely is not None else None  # the errors that decided the most likely failure
+    if why is not None:
         print(why)
     if target == "serve":
         try:  # entered before the line is printed: a Ctrl-C sent as soon as it is read still ends the serving

@@ -31,11 +31,13 @@ from pemviz.studies.validation import (
     RunRecord,
     exact_answer,
     methods_for,
+    problem_description,
     report,
     run_jobs,
     study_jobs,
     summaries_csv,
     summarise,
+    validation_problems,
 )
 
 
@@ -48,7 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "error, failures, ESS, simulations and wall time.",
     )
     p.add_argument("--problems", default=",".join(DEFAULT_PROBLEMS),
-                   help=f"comma-separated, from {', '.join(PROBLEMS)} (default {','.join(DEFAULT_PROBLEMS)})")
+                   help=f"comma-separated, from {', '.join(PROBLEMS)} or a registered scenario with an exact answer "
+                   f"(default {','.join(DEFAULT_PROBLEMS)})")
     p.add_argument("--presets", default=f"{DEFAULT_PRESET},paper",
                    help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} (default {DEFAULT_PRESET},paper)")
     p.add_argument("--baselines", default="mc,naive50,ams",
@@ -66,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    problems = split_choices(args.problems, PROBLEMS, "problems")
+    problems = split_choices(args.problems, validation_problems(), "problems")
     presets = split_choices(args.presets, PRESETS, "presets") if args.presets.strip() else ()
     baselines = split_choices(args.baselines, BASELINES, "baselines") if args.baselines.strip() else ()
     if args.seeds < 1 or args.jobs < 1:
@@ -87,7 +90,7 @@ def main(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     truths: dict[str, ExactAnswer] = {}
     for name in problems:
-        say(f"{name}: {PROBLEMS[name]}")
+        say(f"{name}: {problem_description(name)}")
         truths[name] = exact_answer(name, args.pem, progress=say)
         say(f"  truth {math.exp(truths[name].log_p_fail):.6g} ({truths[name].source})")
     jobs = study_jobs(problems, methods, args.seeds, args.pem)

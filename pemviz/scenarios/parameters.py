@@ -112,7 +112,8 @@ def unit_of(name: str) -> str:
 
 
 def default_params(scenario: str) -> BrakingParams | CutInParams:
-    """The params dataclass of ``scenario`` (one of :data:`pemviz.config.SCENARIOS`) at its defaults.
+    """The params dataclass of ``scenario`` (one of :data:`pemviz.config.SCENARIOS`, or another registered one:
+    :mod:`pemviz.scenarios.registry`) at its defaults; None for a registered scenario without parameters.
 
     Raises:
         ParameterError: an unknown scenario.
@@ -123,7 +124,11 @@ def default_params(scenario: str) -> BrakingParams | CutInParams:
         from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams  # the cut-in's modules: for its runs only
 
         return CutInParams(**RARITY_SETTINGS[CUT_IN_SETTINGS[scenario]])
-    raise ParameterError(f"unknown scenario {scenario!r}; use one of {', '.join(SCENARIOS)}")
+    from pemviz.scenarios import registry  # a scenario of the registry (a plugin's, a toy): its own dataclass
+
+    if scenario in registry.registered():
+        return registry.get(scenario).default_params()
+    raise ParameterError(f"unknown scenario {scenario!r}; use one of {', '.join(registry.registered())}")
 
 
 @functools.cache
@@ -135,8 +140,12 @@ def scenario_parameters(scenario: str) -> tuple[Parameter, ...]:
         ParameterError: an unknown scenario.
     """
     params = default_params(scenario)
-    return tuple(Parameter(f.name, f.type, getattr(params, f.name), unit_of(f.name))
-                 for f in dataclasses.fields(params) if f.type in KINDS)  # fmt: skip
+    if params is None:  # a registered scenario without parameters
+        return ()
+    kinds = {f.name: f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
+             for f in dataclasses.fields(params)}  # an annotation as text (postponed) or as the type itself
+    return tuple(Parameter(f.name, kinds[f.name], getattr(params, f.name), unit_of(f.name))
+                 for f in dataclasses.fields(params) if kinds[f.name] in KINDS)  # fmt: skip
 
 
 def parameter(scenario: str, name: str) -> Parameter:

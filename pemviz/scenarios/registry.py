@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import os
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
@@ -98,8 +99,10 @@ class Scenario:
 
     @property
     def runnable(self) -> bool:
-        """Whether ``pemviz run --scenario NAME`` runs it (one of :data:`pemviz.settings.SCENARIOS`): its parameters
-        travel in :attr:`pemviz.config.ExperimentConfig.scenario_params`."""
+        """Whether it is one of the built-in run scenarios (:data:`pemviz.settings.SCENARIOS`), whose parameters
+        :mod:`pemviz.scenarios.parameters` builds and whose problem :func:`pemviz.core.problems.problem_for` builds.
+        Every registered scenario runs (``pemviz run --scenario NAME``, :func:`problem_for`); its parameters travel
+        in :attr:`pemviz.config.ExperimentConfig.scenario_params`."""
         return self.name in SCENARIOS
 
     def params_class(self) -> type | None:
@@ -175,8 +178,9 @@ class Scenario:
                 cfg = dataclasses.replace(cfg, scenario_params=tuple(merged.items()))
             built = self.build_params(dict(cfg.scenario_params))
         else:
-            cfg = config if config is not None else ExperimentConfig()
-            built = self.build_params(params)
+            cfg = config if config is not None else ExperimentConfig()  # the PEM and back-end: the defaults
+            given = dict(cfg.scenario_params) if cfg.scenario == self.name else {}
+            built = self.build_params({**given, **dict(params or {})})
         return resolve(self.factory)(cfg, built)
 
     def single_simulator(self, params: Any = None) -> Any:
@@ -217,20 +221,108 @@ def unregister(name: str) -> None:
     del _REGISTRY[name]
 
 
+ENTRY_POINTS = "pemviz.scenarios"
+"""The entry-point group through which an installed package adds its scenarios (as pytest's plugins do): in its
+``pyproject.toml``, ``[project.entry-points."pemviz.scenarios"] my-robot = "my_robot.scenario:register_all"``; the
+object named is a :class:`Scenario` (registered as it is) or a callable that registers its scenarios."""
+
+PLUGIN_VARIABLE = "PEMVIZ_SCENARIOS"
+"""The environment variable naming modules to import (comma-separated, ``my_robot.scenario``) before the registry is
+read, each registering its scenarios when imported: a scenario of one's own without installing a package."""
+
+
+class ScenarioPluginError(ValueError):
+    """A scenario plugin (an entry point of :data:`ENTRY_POINTS` or a module of :data:`PLUGIN_VARIABLE`) that cannot
+    be loaded: which, and why, in one line."""
+
+
+_PLUGINS_LOADED = False
+
+
+def load_plugins() -> None:
+    """Register the scenarios of the installed packages' entry points (:data:`ENTRY_POINTS`) and of the modules named
+    by :data:`PLUGIN_VARIABLE`, once per process (:func:`registered` and :func:`get` call it).
+
+    Raises:
+        ScenarioPluginError: a plugin that cannot be imported or that raised while registering (the next call tries
+            again).
+    """
+    global _PLUGINS_LOADED
+    if _PLUGINS_LOADED:
+        return
+    _PLUGINS_LOADED = True
+    try:
+        for module in (m.strip() for m in os.environ.get(PLUGIN_VARIABLE, "").split(",")):
+            if module:
+                _load(f"{PLUGIN_VARIABLE} module {module}", lambda module=module: importlib.import_module(module))
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group=ENTRY_POINTS):
+            _load(f"entry point {ep.name} ({ep.value}) of group {ENTRY_POINTS}",
+                  lambda ep=ep: _register_object(ep.load()))
+    except ScenarioPluginError:
+        _PLUGINS_LOADED = False
+        raise
+
+
+def _load(what: str, action: Callable[[], object]) -> None:
+    try:
+        action()
+    except ScenarioPluginError:
+        raise
+    except Exception as exc:  # a plugin's own failure: one line naming it
+        raise ScenarioPluginError(f"scenario plugin {what}: {type(exc).__name__}: {exc}") from None
+
+
+def _register_object(obj: object) -> None:
+    """An entry point's object: a :class:`Scenario` (registered, replacing none) or a callable that registers."""
+    if isinstance(obj, Scenario):
+        if obj.name not in _REGISTRY:
+            register(obj)
+    elif callable(obj):
+        obj()
+    else:
+        raise TypeError(f"expected a Scenario or a callable that registers scenarios, got {type(obj).__name__}")
+
+
 def registered() -> tuple[str, ...]:
-    """The names of every registered scenario, built-in ones first, in the order they were registered."""
+    """The names of every registered scenario, built-in ones first, in the order they were registered (plugins
+    loaded first: :func:`load_plugins`).
+
+    Raises:
+        ScenarioPluginError: a plugin that cannot be loaded.
+    """
+    load_plugins()
     return tuple(_REGISTRY)
 
 
 def get(name: str) -> Scenario:
-    """The scenario registered as ``name``.
+    """The scenario registered as ``name`` (plugins loaded first: :func:`load_plugins`).
 
     Raises:
         KeyError: no scenario of that name (the message lists the registered ones).
+        ScenarioPluginError: a plugin that cannot be loaded.
     """
+    load_plugins()
     if name not in _REGISTRY:
         raise KeyError(f"no scenario named {name!r}; registered: {', '.join(_REGISTRY)}")
     return _REGISTRY[name]
+
+
+def problem_for(config: Any) -> Any:
+    """The :class:`pemviz.core.problems.Problem` a run of ``config`` estimates, for any registered scenario
+    (``config.scenario``): the built-in ones through :func:`pemviz.core.problems.problem_for`, a plugin's through its
+    factory with the config's parameters (:meth:`Scenario.problem`).
+
+    Raises:
+        KeyError: an unregistered scenario; ScenarioPluginError: a plugin that cannot be loaded; what
+            :meth:`Scenario.problem` raises (parameters refused, a PEM that cannot be read).
+    """
+    if config.scenario in SCENARIOS:
+        from pemviz.core.problems import problem_for as built_in
+
+        return built_in(config)
+    return get(config.scenario).problem(config)
 
 
 _CUT_IN = ("ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "

@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
             continue  # keep reading, so that the run never blocks on a full pipe
         try:
             if isinstance(payload, RunStarted):
-                from pemviz.core.problems import problem_for
+                from pemviz.scenarios.registry import problem_for  # any registered scenario
 
                 sink.problem = problem_for(payload.config)
             if isinstance(payload, RolloutsSampled) and isinstance(payload.robustness_by_metric, RobustnessByMetric):

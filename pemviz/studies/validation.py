@@ -77,7 +77,9 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
         return ExactAnswer(crowd_log_failure_probability(params),
                            f"closed form over {len(params.offsets)} obstacles' independent triggers")  # fmt: skip
     if name not in ("latched", "main"):
-        raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")
+        problem = validation_problem(name, pem_path)  # a registered scenario that carries its exact answer
+        return ExactAnswer(problem.exact_log_p, f"the {name} scenario's own exact answer",
+                           wall_s=time.perf_counter() - t0)
     pem = load_pem(pem_path)
     if name == "latched":
         lt = truth.latched_log_failure_probability(pem.logit_at_gap, BrakingParams(latched_brake=True))
@@ -107,6 +109,47 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
         ref.table(),
         time.perf_counter() - t0,
     )
+
+
+def validation_problems() -> tuple[str, ...]:
+    """The problems ``pemviz validate`` can run: :data:`~pemviz.core.problems.PROBLEMS`, then every registered
+    scenario with an exact answer (:attr:`pemviz.scenarios.registry.Scenario.exact`; plugins included) not named
+    there."""
+    from pemviz.scenarios import registry
+
+    extra = [n for n in registry.registered() if n not in PROBLEMS and registry.get(n).exact]
+    return (*PROBLEMS, *extra)
+
+
+def problem_description(name: str) -> str:
+    """What the problem ``name`` is, one line: its entry of :data:`~pemviz.core.problems.PROBLEMS`, else the registered
+    scenario's description (:attr:`pemviz.scenarios.registry.Scenario.description`)."""
+    if name in PROBLEMS:
+        return PROBLEMS[name]
+    from pemviz.scenarios import registry
+
+    return registry.get(name).description
+
+
+def validation_problem(name: str, pem_path: str | None = None):
+    """The :class:`~pemviz.core.problems.Problem` of ``name``: one of :data:`~pemviz.core.problems.PROBLEMS`
+    (:func:`~pemviz.core.problems.build_problem`), else a registered scenario at its defaults with ``pem_path``'s PEM
+    (:mod:`pemviz.scenarios.registry`).
+
+    Raises:
+        ValueError: an unknown name, or a registered scenario whose problem carries no exact answer.
+    """
+    if name in PROBLEMS:
+        return build_problem(name, pem_path)
+    from pemviz.config import ExperimentConfig
+    from pemviz.scenarios import registry
+
+    if name not in registry.registered():
+        raise ValueError(f"unknown problem {name!r}; use one of {', '.join(validation_problems())}")
+    problem = registry.get(name).problem(ExperimentConfig(scenario=name, pem=pem_path))
+    if problem.exact_log_p is None:
+        raise ValueError(f"the {name} scenario carries no exact answer: pemviz validate needs one")
+    return problem
 
 
 # -- one run ----------------------------------------------------------------------------------------------------
@@ -159,7 +202,7 @@ class Job:
 
 def run_job(job: Job) -> RunRecord:
     """Run one :class:`Job` (in this process) and summarise it."""
-    problem = build_problem(job.problem, job.pem_path)
+    problem = validation_problem(job.problem, job.pem_path)
     cfg = ExperimentConfig(**dict(job.fields), seed=job.seed)
     t0 = time.perf_counter()
     with torch_threads(1, blas=1):  # runs go side by side: a BLAS thread each
@@ -384,7 +427,8 @@ def report(problems: Sequence[str], truths: dict[str, ExactAnswer], summaries: S
     the table of :func:`markdown_table`, the refinement tables of the enumerated truths, the wall time (seconds)."""
     md = [f"# pemviz validate: {n_seeds} seeds, equal budgets ({summaries[0].n_simulations:,} simulations)", ""]
     for name in problems:
-        md.append(f"- **{name}**: {PROBLEMS[name]}; truth {math.exp(truths[name].log_p_fail):.6g}: {truths[name].source}")
+        truth = truths[name]
+        md.append(f"- **{name}**: {problem_description(name)}; truth {math.exp(truth.log_p_fail):.6g}: {truth.source}")
     md += ["", markdown_table(summaries), ""]
     for name in problems:
         if truths[name].table:
