@@ -543,11 +543,11 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     # sorted by severity (the fastest contact first), then filtered to failures
     tab.choose("sort by", "severity")
     expect(tab.page.get_by_text("by severity", exact=False)).to_be_visible(timeout=10_000)
-    listed = s.ordered_rollouts(record)
+    listed = s.rollouts_tab.ordered_rollouts(record)
     speeds = [severity(t.gap_m, app.params).contact_speed_mps for t in [*pop.rollouts, *record.trajectories]]
     assert severity(listed[0].gap_m, app.params).contact_speed_mps == np.nanmax(speeds)
     tab.page.get_by_label("failures only").check()
-    wait_until(lambda: all(t.crashed for t in s.ordered_rollouts(record)), what="only failures listed")
+    wait_until(lambda: all(t.crashed for t in s.rollouts_tab.ordered_rollouts(record)), what="only failures listed")
     expect(tab.page.get_by_text("least robust rollouts outside it, by severity", exact=False)).to_be_visible()
 
 

@@ -1,28 +1,23 @@
 """The *Rollouts* tab of a :class:`pemviz.app.session.Session`: the chosen run's kept rollouts, sorted and filtered, and
-the explanation of the one chosen."""
+the one chosen, shown in the 3D scene and explained."""
 
 from __future__ import annotations
 
 import html
+import threading
 
-import numpy as np
+import viser
 
-from pemviz.app import charts, plots
-from pemviz.app import objects_view as OV
-from pemviz.app.explain import explain
-from pemviz.app.html import (
-    GREEN,
-    GREY,
-    NO_ROLLOUT,
-    RED,
-    TABLE_STYLE,
-    box,
-    explanation_html,
-)
-from pemviz.app.objects_view import RobustnessOutcome, explain_objects, objects_summary
-from pemviz.app.runs import MAX_POPULATION, PanelRun, Population, Trajectory, scene_positions
+from pemviz.app.html import GREY, NO_ROLLOUT, RED, TABLE_STYLE, box
+from pemviz.app.objects_view import RobustnessOutcome
+from pemviz.app.runs import MAX_POPULATION, PanelRun, Population, Trajectory
+from pemviz.app.scene_view import SceneView
+from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import Severity, severity
 
+
+ROLLOUT_ORDERS = ("importance weight", "robustness", "log p", "severity")
+"""How the Rollouts tab orders its rollouts: least robust, most probable under the PEM, or worst outcome first."""
 
 MAX_LISTED = 100
 """Rollouts offered in the rollout list (the table below it lists every one)."""
@@ -61,7 +56,43 @@ def groups_html(pop: Population | None) -> str:
 
 
 class RolloutsTab:
-    """The *Rollouts* tab's part of a session (a mixin of :class:`pemviz.app.session.Session`)."""
+    """The *Rollouts* tab: owns its list, order, filter and table, the run it lists (:attr:`listed`, the one chosen
+    under *Runs*), its rollouts' labels and severities; a chosen rollout goes to the :class:`pemviz.app.scene_view
+    .SceneView` it is given.
+
+    Args:
+        client: the viser client the tab draws into.
+        params: the braking scenario's constants (a braking rollout's severity).
+        lock: the session's lock.
+        scene: the 3D scene that shows the chosen rollout.
+    """
+
+    def __init__(self, client: viser.ClientHandle, params: BrakingParams, lock: threading.RLock,
+                 scene: SceneView) -> None:  # fmt: skip
+        self.client, self.params, self.lock, self.scene = client, params, lock, scene
+        self.listed: PanelRun | None = None
+        """The run whose rollouts the Rollouts tab lists and Explain explains: the one chosen under Runs (a new run
+        chooses itself)."""
+        self._severities: dict[tuple[int, str], Severity] = {}
+        self._rollout_labels: dict[str, Trajectory] = {}
+
+    def build(self) -> None:
+        """Add the list, its order and filter and the table to the tab open in ``client.gui``."""
+        gui = self.client.gui
+        self.rollout_dropdown = gui.add_dropdown(
+            "rollout", (NO_ROLLOUT,), initial_value=NO_ROLLOUT,
+            hint="the most likely failure found, then the rollouts in the order of sort by (the first 100)",
+        )  # fmt: skip
+        self.rollout_order = gui.add_dropdown(
+            "sort by", ROLLOUT_ORDERS, initial_value=ROLLOUT_ORDERS[0],
+            hint="importance weight: the largest share of p first; robustness: least robust first; log p: most "
+                 "probable under the PEM first; severity: worst first",
+        )  # fmt: skip
+        self.failures_only = gui.add_checkbox("failures only", False, hint="list only the rollouts that failed")
+        self.rollout_html = gui.add_html(box("No rollouts yet: run an experiment.", GREY))
+        self.rollout_dropdown.on_update(lambda _: self._on_rollout_chosen(self.rollout_dropdown.value))
+        for handle in (self.rollout_order, self.failures_only):
+            handle.on_update(lambda _: self._relist())
 
     @staticmethod
     def rollout_label(t: Trajectory, most_likely: bool = False, sev: Severity | None = None,
@@ -120,9 +151,25 @@ class RolloutsTab:
     def _relist(self) -> None:
         with self.lock:
             if self.listed is not None:
-                self._set_rollouts(self.listed)
+                self.set_rollouts(self.listed)
 
-    def _set_rollouts(self, record: PanelRun) -> None:
+    def list_run(self, record: PanelRun) -> None:
+        """Rollouts and Explain follow ``record`` (the run chosen under Runs): its rollouts, and its most likely
+        failure explained once it has ended."""
+        with self.lock:
+            if record is self.listed:
+                return
+            self.listed = record
+            self.set_rollouts(record)
+            if record.done:
+                self.show_default_rollout(record)
+                if self.scene.shown_record is not record:
+                    self.scene.clear(f"{record.short_label} ({record.status}) has no rollout to show")
+            else:
+                self.scene.clear(f"{record.short_label} is going: its rollouts appear in the Rollouts tab")
+
+    def set_rollouts(self, record: PanelRun) -> None:
+        """List ``record``'s rollouts (when it is the run listed): the dropdown and the table."""
         if record is not self.listed:
             return  # another run is chosen under Runs
         with record.lock:
@@ -191,7 +238,7 @@ class RolloutsTab:
             f"{rows}</table></div></div>"
         )
 
-    def _show_default_rollout(self, record: PanelRun) -> None:
+    def show_default_rollout(self, record: PanelRun) -> None:
         """After a run: choose its most likely failure (else its least-robust rollout), paused at the start."""
         if record is not self.listed:
             return
@@ -203,14 +250,14 @@ class RolloutsTab:
                     self.rollout_dropdown.value = label
                 return
 
-    def _after_run(self, record: PanelRun) -> None:
+    def after_run(self, record: PanelRun) -> None:
         """A run ended without finishing (stopped, failed): explain its most likely failure, or say it ended."""
-        if record is not self.listed or self.shown_record is record:
+        if record is not self.listed or self.scene.shown_record is record:
             return
-        self._set_rollouts(record)
-        self._show_default_rollout(record)
-        if self.shown_record is not record:
-            self._clear_scene(
+        self.set_rollouts(record)
+        self.show_default_rollout(record)
+        if self.scene.shown_record is not record:
+            self.scene.clear(
                 f"{record.short_label} {'was stopped' if record.status == 'cancelled' else 'failed'} after "
                 f"{len(record.stages)} stages, before any rollout to show"
             )
@@ -220,114 +267,4 @@ class RolloutsTab:
         if traj is None:
             return
         with self.lock:
-            record = self.listed or self.record
-            scene = record.view.scene if record is not None and record.view is not None else None
-            if scene is None:
-                if traj.batch is not None and record.view.objects_xy is not None:  # a scene of several objects
-                    self._show_objects(record, traj)
-                return  # else a problem without a scene (a toy): nothing to replay
-            self.objects_ex = None
-            self._show_strips(True)
-            self._scene_kind(0)
-            self.explanation = explain(traj.gap_m, traj.detected, traj.log_p, traj.log_q, scene)
-            self.shown = traj
-            self.shown_record = record
-            self._shown_x = scene_positions(traj, scene)
-            self.step_slider.max = traj.n_steps - 1
-            self._set_playing(False)
-            self._fill_explanation()
-            self._place_rollout()
-            self.shown_step = -1
-            if self.step_slider.value != 0:
-                self.step_slider.value = 0  # renders step 0 through the slider's callback
-            else:
-                self._render_step(0)
-
-    def _show_objects(self, record: PanelRun, traj: Trajectory) -> None:
-        """Explain a rollout of a scene of several objects (:mod:`pemviz.app.objects_view`), paused at its first
-        decisive step (else step 0); the braking scenario's strip charts are hidden meanwhile, the cut-in's tracker
-        and ACC charts (:func:`pemviz.app.charts.fill_object_plots`) shown where the rollout tells its story."""
-        ox = explain_objects(record.problem, record.view, traj.batch, traj.crashed)
-        self.objects_ex, self.explanation = ox, None
-        self.shown, self.shown_record, self._shown_x = traj, record, None
-        self.step_slider.max = traj.n_steps - 1
-        self._set_playing(False)
-        self.shown_step = -1
-        self._show_strips(False)
-        if ox.story is not None:
-            charts.fill_object_plots(self.object_plots, ox, 0, f"{record.short_label} {traj.key}")
-        self._scene_kind(ox.detected.shape[1])
-        self._frame_objects()
-        self.scene_html.content = box(
-            f"Scene: {html.escape(record.short_label)} {traj.key}, every car seen from the ego (blue-grey): green "
-            "detected, orange missed, grey unseen. Explain draws them from above with where each was measured.", GREY
-        )
-        decisive = ox.counterfactuals.decisive if ox.counterfactuals is not None else ()
-        first = decisive[0].step if decisive else 0
-        if self.step_slider.value != first:
-            self.step_slider.value = first  # renders it through the slider's callback
-        else:
-            self._render_step(first)
-
-    def _show_strips(self, visible: bool) -> None:
-        """Show the braking scenario's strip charts (a braking rollout) or hide them (several objects); the cut-in's
-        charts and details are hidden with a braking rollout and until a rollout of several objects fills them."""
-        for plot in self.strip.values():
-            plot.visible = visible
-        charts.hide_object_plots(self.object_plots)
-        if visible:
-            self.objects_html.content = ""
-
-    def _render_objects(self, step: int) -> None:
-        """*Explain* at ``step`` of the shown rollout of several objects: its header, the decisive errors, every
-        object's events and the scene from above."""
-        traj, ox, record = self.shown, self.objects_ex, self.shown_record
-        if traj is None or ox is None or record is None:
-            return
-        t = int(np.clip(step, 0, traj.n_steps - 1))
-        self.shown_step = t
-        what = ("the most likely failure found" if traj is record.most_likely_failure
-                else ("a failure" if traj.crashed else "no failure"))  # fmt: skip
-        head = (f"<b>{html.escape(record.short_label)} {traj.key}</b>: {what} · robustness {traj.robustness:+.4g} "
-                f"({record.config.metric}) · log p_PEM {traj.log_p_total:.1f} nats (every object's detections and "
-                f"errors)")  # fmt: skip
-        why = f"<b>Which errors decided it</b> (each undone alone, replayed): {html.escape(objects_summary(ox))}"
-        story = OV.story_html(ox) or ("No story: this scene's rows hold none of the cut-in's tracker and ACC columns, "
-                                      "so neither its tracker nor its controller is charted.")  # fmt: skip
-        legend = (f"<span style='color:{OV.GREEN}'>&#9632; detected</span> <span style='color:{OV.ORANGE}'>&#9632; "
-                  f"missed</span> <span style='color:{OV.UNSEEN}'>&#9632; unseen</span> <span style='color:{OV.RED}'>"
-                  f"&#9632; decisive</span> <span style='color:{OV.BLUE}'>&#9679; measured; dashed: the noise PEM's "
-                  f"{OV.ELLIPSE_SCALES:g}-scale ellipse</span> <span style='color:{OV.TRACK}'>&#9633; the tracker's "
-                  "estimate</span>")  # fmt: skip
-        body = (
-            TABLE_STYLE
-            + '<div style="margin:0 0.6em; font-size:0.8em">'
-            + OV.decisive_table(ox)
-            + f"<div><b>Every object, step by step</b> · {html.escape(OV.state_counts(ox, t))}</div>"
-            + OV.raster_svg(ox, t)
-            + ("" if traj.object_p is None else
-               f"<div><b>Each object's proposal</b>: q(detect) of the sampler (blue), p(detect) of the PEM (grey, "
-               f"dashed), 0 to 1 in its band; at step {t}: "
-               + html.escape(", ".join(f"{ox.names[j]} q {traj.object_q[t, j]:.3g} p {traj.object_p[t, j]:.3g}"
-                                       for j in range(traj.object_p.shape[1])))
-               + "</div>" + OV.detect_svg(ox.names, traj.object_p, traj.object_q, t))
-            + f"<div><b>From above at step {t}</b> (the road runs right; the ego's right is down)</div>"
-            + OV.birds_eye_svg(ox, t)
-            + f"<div>{legend}</div></div>"
-        )
-        with self.client.atomic():
-            self.explain_html.content = box(f"{head}<br>{story}<br>{why}", RED if traj.crashed else GREEN)
-            self.objects_html.content = body
-            if ox.story is not None:
-                plots.move_strip_marker(self.object_plots, t)
-        self._render_objects_scene(ox, t, f"{record.short_label} {traj.key} step {t}\n{OV.state_counts(ox, t)}")
-
-    def _fill_explanation(self) -> None:
-        traj, ex, record = self.shown, self.explanation, self.shown_record
-        if traj is None or ex is None or record is None:
-            return
-        title = f"{record.short_label} {traj.key}"
-        plots.fill_strip_plots(self.strip, traj, ex, 0, title, record.view.thresholds)
-        charts.fill_controller_plot(self.strip["controller"], ex, 0, title)
-        self.explain_html.content = explanation_html(record, traj, ex, title, record.view.scene.dt_s)
-
+            self.scene.show(self.listed, traj)

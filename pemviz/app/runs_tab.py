@@ -5,21 +5,94 @@ from __future__ import annotations
 
 import dataclasses
 import html
+import threading
+from pathlib import Path
 
 import viser
 
-from pemviz.app import compare, plots
-from pemviz.app.html import GREEN, RED, TABLE_STYLE, box, display_path
+from pemviz.app import plots
 from pemviz.app.form import setting_name, setting_value
-from pemviz.app.runs import PanelRun
+from pemviz.app.host import PanelHost
+from pemviz.app.html import GREEN, GREY, RED, TABLE_STYLE, box, display_path
+from pemviz.app.plots_panel import PlotsPanel
+from pemviz.app.rollouts_tab import RolloutsTab
+from pemviz.app.runs import PanelRun, export_path, export_run, keep_runs
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability
 
 
 class RunsTab:
-    """The *Runs* tab's part of a session (a mixin of :class:`pemviz.app.session.Session`)."""
+    """The *Runs* tab: owns the kept runs (:attr:`runs`, oldest first), its table, the run chosen (which *Rollouts*
+    lists, through the :class:`pemviz.app.rollouts_tab.RolloutsTab` it is given), pin / unpin and the export of a
+    run; refreshing it refreshes the *Compare* tab's estimates (:class:`pemviz.app.plots_panel.PlotsPanel`).
 
-    def _refresh_runs(self) -> None:
+    Args:
+        client: the viser client the tab draws into.
+        app: the server (the recordings folder).
+        lock: the session's lock.
+        rollouts_tab: the *Rollouts* tab, which lists the run chosen here.
+        plots_panel: the plots panel, whose *Compare* tab shows the kept runs.
+    """
+
+    def __init__(self, client: viser.ClientHandle, app: PanelHost, lock: threading.RLock, rollouts_tab: RolloutsTab,
+                 plots_panel: PlotsPanel) -> None:  # fmt: skip
+        self.client, self.app, self.lock, self.rollouts_tab = client, app, lock, rollouts_tab
+        self.plots_panel = plots_panel
+        self.runs: list[PanelRun] = []
+        """The kept runs (at most 4; :func:`pemviz.app.runs.keep_runs`)."""
+        self.last_export: Path | None = None
+
+    def build(self) -> None:
+        """Add the table, the run chosen, Pin and the export to the tab open in ``client.gui``."""
+        gui = self.client.gui
+        self.runs_html = gui.add_html(box("No runs yet.", GREY))
+        gui.add_markdown(
+            "Up to 4 runs are kept; a new run drops stopped runs first, then the oldest finished one; pinned runs stay."
+        )
+        self.run_choice = gui.add_dropdown("kept run", ("(no run yet)",), initial_value="(no run yet)",
+                                           hint="the run to pin or export")
+        self.pin_button = gui.add_button("Pin", icon=viser.Icon.PIN, disabled=True)
+        with gui.add_folder("export to rerun (.rrd)"):
+            self.export_name = gui.add_text("export name", "run")
+            self.export_button = gui.add_button("Export chosen run", icon=viser.Icon.DOWNLOAD, disabled=True)
+            self.export_html = gui.add_html("")
+        self.run_choice.on_update(lambda _: self._on_run_choice())
+        self.pin_button.on_click(lambda _: self._toggle_pin())
+        self.export_button.on_click(self._on_export)
+
+    def keep(self, record: PanelRun) -> None:
+        """Keep a new run (dropping the runs :func:`pemviz.app.runs.keep_runs` drops) and choose it."""
+        self.runs = keep_runs(self.runs, record)
+        with self.client.atomic():
+            self.run_choice.options = tuple(r.label for r in self.runs)
+            self.run_choice.value = record.label
+
+    def kept_run(self, run_id: int) -> PanelRun:
+        for r in self.runs:
+            if r.run_id == run_id:
+                return r
+        raise ValueError(f"run {run_id} is not kept in this tab")
+
+    def set_pinned(self, run_id: int, pinned: bool) -> None:
+        self.kept_run(run_id).pinned = pinned
+        self.refresh()
+
+    def export(self, run_id: int, name: str) -> Path:
+        """Write a kept run to ``recordings_dir / <sanitised name>.rrd``.
+
+        Raises:
+            ValueError: the run is not kept or has no events, or an unusable name.
+        """
+        record = self.kept_run(run_id)
+        if not record.events:
+            raise ValueError(f"{record.short_label} has nothing to export yet")
+        path = export_path(self.app.recordings_dir, name)
+        export_run(record, path)
+        self.last_export = path
+        return path
+
+    def refresh(self) -> None:
+        """Redraw the table of kept runs, the *Compare* tab's estimates and the list of runs to choose from."""
         with self.lock:
             runs = list(self.runs)
         if not runs:
@@ -69,8 +142,7 @@ class RunsTab:
         )  # fmt: skip
         with self.client.atomic():
             self.runs_html.content = block
-            notes = compare.fill_estimate_plot(self.compare_estimates, runs)
-            self.compare_html.content = compare.compare_html(runs, notes)
+            self.plots_panel.fill_compare(runs)
             options = tuple(r.label for r in runs)
             current = self.run_choice.value
             self.run_choice.options = options
@@ -91,22 +163,7 @@ class RunsTab:
         if r is not None:
             self.pin_button.label = "Unpin" if r.pinned else "Pin"
             self.export_name.value = f"run{r.run_id}-{r.config.metric}"
-            self._list_run(r)
-
-    def _list_run(self, record: PanelRun) -> None:
-        """Rollouts and Explain follow ``record`` (the run chosen under Runs): its rollouts, and its most likely
-        failure explained once it has ended."""
-        with self.lock:
-            if record is self.listed:
-                return
-            self.listed = record
-            self._set_rollouts(record)
-            if record.done:
-                self._show_default_rollout(record)
-                if self.shown_record is not record:
-                    self._clear_scene(f"{record.short_label} ({record.status}) has no rollout to show")
-            else:
-                self._clear_scene(f"{record.short_label} is going: its rollouts appear in the Rollouts tab")
+            self.rollouts_tab.list_run(r)
 
     def _toggle_pin(self) -> None:
         r = self.chosen_run()
@@ -130,5 +187,3 @@ class RunsTab:
             GREEN,
         )
         self.client.send_file_download(path.name, path.read_bytes(), save_immediately=False)
-
-    # == rollouts, explanation and the 3D scene =======================================================

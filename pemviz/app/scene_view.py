@@ -7,12 +7,16 @@ from __future__ import annotations
 
 import html
 import math
+import threading
 
 import numpy as np
 import viser
 
-from pemviz.app import plots
+from pemviz.app import objects_view as OV
+from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.html import BLUE, GREY, RED, box
+from pemviz.app.runs import PanelRun, Trajectory, scene_positions
+from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
 
@@ -85,7 +89,84 @@ def framing_distance(span_m: float, aspect: float, fov_rad: float) -> float:
 
 
 class SceneView:
-    """The 3D scene's part of a session (a mixin of :class:`pemviz.app.session.Session`)."""
+    """The 3D scene and its playback: owns the scene's nodes, the playback controls under *Rollouts* (step slider,
+    Play, follow cars, the scene's caption), the rollout shown (:attr:`shown` of :attr:`shown_record`, its cars'
+    positions and the step shown) and whether it plays; the :class:`pemviz.app.explain_tab.ExplainTab` it is given
+    explains that rollout in step with it.
+
+    Args:
+        client: the viser client the scene draws into.
+        params: the braking scenario's constants (the idle scene, car sizes, dt).
+        lock: the session's lock (GUI callbacks run in a thread pool, the run in a worker thread).
+        explain: the *Explain* tab that follows the rollout shown.
+    """
+
+    def __init__(self, client: viser.ClientHandle, params: BrakingParams, lock: threading.RLock,
+                 explain: ExplainTab) -> None:  # fmt: skip
+        self.client, self.params, self.lock, self.explain = client, params, lock, explain
+        self.shown: Trajectory | None = None
+        """The rollout shown (None: the idle scene)."""
+        self.shown_record: PanelRun | None = None
+        """The run of :attr:`shown`."""
+        self.shown_step = -1
+        self._shown_x: tuple[np.ndarray, np.ndarray] | None = None
+        self._shown_span = 0.0
+        """Metres of road the scene frames for the rollout shown (its cars' longest stretch)."""
+        self.playing = False
+
+    def build_controls(self) -> None:
+        """Add the playback controls to the tab open in ``client.gui`` (the *Rollouts* tab, below its list)."""
+        gui = self.client.gui
+        self.step_slider = gui.add_slider("step", min=0, max=self.params.n_steps - 1, step=1, initial_value=0)
+        self.play_button = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
+        self.follow = gui.add_checkbox("follow cars", True, hint="move the camera along with the cars")
+        self.scene_html = gui.add_html("")
+        self.step_slider.on_update(lambda _: self.render_step(int(self.step_slider.value)))
+        self.play_button.on_click(lambda _: self._toggle_play())
+
+    def show(self, record: PanelRun | None, traj: Trajectory) -> None:
+        """Show ``traj`` of ``record`` (a rollout chosen under *Rollouts*), paused at its start; a rollout of several
+        objects at its first decisive step; nothing for a problem without a scene (a toy)."""
+        with self.lock:
+            scene = record.view.scene if record is not None and record.view is not None else None
+            if scene is None:
+                if traj.batch is not None and record.view.objects_xy is not None:  # a scene of several objects
+                    self._show_objects(record, traj)
+                return  # else a problem without a scene (a toy): nothing to replay
+            self.explain.explain_braking(traj, scene)
+            self._scene_kind(0)
+            self.shown = traj
+            self.shown_record = record
+            self._shown_x = scene_positions(traj, scene)
+            self.step_slider.max = traj.n_steps - 1
+            self._set_playing(False)
+            self.explain.fill(record, traj)
+            self._place_rollout()
+            self.shown_step = -1
+            if self.step_slider.value != 0:
+                self.step_slider.value = 0  # renders step 0 through the slider's callback
+            else:
+                self.render_step(0)
+
+    def _show_objects(self, record: PanelRun, traj: Trajectory) -> None:
+        """Show a rollout of a scene of several objects, paused at its first decisive step (else step 0)."""
+        ox = self.explain.explain_objects(record, traj)
+        self.shown, self.shown_record, self._shown_x = traj, record, None
+        self.step_slider.max = traj.n_steps - 1
+        self._set_playing(False)
+        self.shown_step = -1
+        self._scene_kind(ox.detected.shape[1])
+        self._frame_objects()
+        self.scene_html.content = box(
+            f"Scene: {html.escape(record.short_label)} {traj.key}, every car seen from the ego (blue-grey): green "
+            "detected, orange missed, grey unseen. Explain draws them from above with where each was measured.", GREY
+        )
+        decisive = ox.counterfactuals.decisive if ox.counterfactuals is not None else ()
+        first = decisive[0].step if decisive else 0
+        if self.step_slider.value != first:
+            self.step_slider.value = first  # renders it through the slider's callback
+        else:
+            self.render_step(first)
 
     def _toggle_play(self) -> None:
         with self.lock:
@@ -111,7 +192,8 @@ class SceneView:
                 return
             self.step_slider.value = step
 
-    def _build_scene(self) -> None:
+    def build_scene(self) -> None:
+        """Add the road, the cars, the zones, the gap ruler, the trail and the breach gate to ``client.scene``."""
         scene = self.client.scene
         p = self.params
         scene.set_up_direction("+z")
@@ -281,7 +363,7 @@ class SceneView:
 
     def _place_rollout(self) -> None:
         """Put the chosen rollout's fixed marks in the scene: the breach gate (a failing rollout) and the framing."""
-        traj, xs, ex = self.shown, self._shown_x, self.explanation
+        traj, xs, ex = self.shown, self._shown_x, self.explain.explanation
         if traj is None or xs is None or ex is None:
             return
         p = self.params
@@ -295,11 +377,11 @@ class SceneView:
             self.breach_gate.visible = sev.breach_step is not None
             self.breach_label.visible = sev.breach_step is not None
 
-    def _clear_scene(self, why: str) -> None:
-        """Back to the idle scene (no rollout shown): the cars at the start, the ego grey."""
+    def clear(self, why: str) -> None:
+        """Back to the idle scene (no rollout shown): the cars at the start, the ego grey; ``why`` says so under the
+        scene and in *Explain*."""
         p = self.params
-        self.shown, self.shown_record, self.explanation, self._shown_x = None, None, None, None
-        self.objects_ex = None
+        self.shown, self.shown_record, self._shown_x = None, None, None
         self._scene_kind(0)
         self._set_playing(False)
         self.shown_step = -1
@@ -314,16 +396,24 @@ class SceneView:
             self.trail.visible = self.breach_gate.visible = self.breach_label.visible = False
             self.scene_label.text = "ego: no rollout chosen"
             self.scene_html.content = box(html.escape(why), GREY)
-            self.explain_html.content = box(html.escape(why), GREY)
+            self.explain.clear(why)
         self._frame(0.0, lead0, self._span(np.zeros(1), np.full(1, lead0)))
 
-    def _render_step(self, step: int) -> None:
-        if self.objects_ex is not None:  # a rollout of several objects: Explain draws them
+    def render_step(self, step: int) -> None:
+        """Draw ``step`` of the rollout shown, in the scene and in *Explain*."""
+        if self.explain.objects_ex is not None:  # a rollout of several objects: Explain draws them
             with self.lock:
-                self._render_objects(step)
+                traj, ox, record = self.shown, self.explain.objects_ex, self.shown_record
+                if traj is None or ox is None or record is None:
+                    return
+                t = int(np.clip(step, 0, traj.n_steps - 1))
+                self.shown_step = t
+                self.explain.render_objects(record, traj, t)
+                label = f"{record.short_label} {traj.key} step {t}\n{OV.state_counts(ox, t)}"
+                self._render_objects_scene(ox, t, label)
             return
         with self.lock:
-            traj, xs, ex, record = self.shown, self._shown_x, self.explanation, self.shown_record
+            traj, xs, ex, record = self.shown, self._shown_x, self.explain.explanation, self.shown_record
             if traj is None or xs is None or ex is None or record is None:
                 return
             t = int(np.clip(step, 0, traj.n_steps - 1))
@@ -350,7 +440,7 @@ class SceneView:
                 self.trail.colors = trail_colours
                 self.trail.visible = True
                 self.scene_label.text = f"{record.short_label} {traj.key} t={t * p.dt_s:.2f}s\n{seen}"
-                plots.move_strip_marker(self.strip, t)
+                self.explain.move_marker(t)
             if self.follow.value:
                 self._frame(ego_x, lead_x, self._shown_span)
             mark = {"detected": "detected", "missed": f"<b style='color:rgb{MISSED}'>missed</b>",

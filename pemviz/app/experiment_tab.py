@@ -1,0 +1,137 @@
+"""The *Experiment* tab of a :class:`pemviz.app.session.Session`: the form of the next run, each field with its own
+error line; a preset or a scenario sets the fields it has settings for."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import viser
+
+from pemviz.app._viser_compat import resend_value
+from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_number, parse_form
+from pemviz.app.host import PanelHost
+from pemviz.app.html import field_error
+from pemviz.app.runs import PANEL_PRESETS
+from pemviz.config import SCENE_DEFAULTS, SETTINGS, SIMULATORS, ExperimentConfig
+from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
+from pemviz.presets import preset_help
+
+
+class ExperimentTab:
+    """The *Experiment* tab: owns the form's fields (:attr:`fields`: text, :attr:`choices`: dropdowns, :attr:`preset`)
+    and their error lines, and the form as last checked (:attr:`parsed`); whoever builds it is told of each change.
+
+    Args:
+        client: the viser client the tab draws into.
+        app: the server (the form's first values and preset).
+    """
+
+    def __init__(self, client: viser.ClientHandle, app: PanelHost) -> None:
+        self.client, self.app = client, app
+        self.parsed = FormResult(None, {})
+        """The form as last checked (:meth:`show_errors`)."""
+        self._on_change: Callable[[], None] = lambda: None
+
+    def build(self, on_change: Callable[[], None]) -> None:
+        """Add the form to the tab open in ``client.gui``; ``on_change`` is called after every change to it."""
+        self._on_change = on_change
+        gui = self.client.gui
+        c0 = self.app.config0
+        simulators = SIMULATORS
+        shipped = shipped_pems() or [DEFAULT_PEM_NAME]
+        self._default_pem = DEFAULT_PEM_NAME if DEFAULT_PEM_NAME in shipped else shipped[0]
+        pem_options = list(shipped) + ([c0.pem] if c0.pem and c0.pem not in shipped else [])
+
+        self.preset = gui.add_dropdown(
+            "preset", tuple(PANEL_PRESETS), initial_value=self.app.preset_name,
+            hint=f"sampler settings: {preset_help(PANEL_PRESETS)}",
+        )  # fmt: skip
+        self.choices: dict[str, Any] = {}
+        self.fields: dict[str, viser.GuiTextHandle] = {}
+        self.field_errors: dict[str, viser.GuiHtmlHandle] = {}
+
+        def number(key: str) -> None:  # label, range and hint from the setting (pemviz.config.SETTINGS)
+            f = FIELDS_BY_KEY[key]
+            self.fields[key] = gui.add_text(f.label, format_number(f, getattr(c0, key)), hint=f.hint)
+            self.field_errors[key] = gui.add_html("")
+
+        def dropdown(key: str, options: tuple[str, ...] | None = None, value: str | None = None, **kw: Any) -> None:
+            s = SETTINGS[key]
+            self.choices[key] = gui.add_dropdown(s.label, options or s.choices, initial_value=value or getattr(c0, key),
+                                                 hint=s.hint, **kw)  # fmt: skip
+
+        dropdown("scenario")
+        dropdown("metric")
+        for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
+            number(key)
+        dropdown("pem", tuple(pem_options), c0.pem or self._default_pem)
+        dropdown("sim", simulators, c0.sim if c0.sim in simulators else simulators[0], disabled=len(simulators) < 2)
+        with gui.add_folder("advanced", expand_by_default=False):
+            dropdown("method")
+            for key in ("rel_error", "max_sims", "max_time_s", "ce_epochs", "pretrain_rollouts", "pretrain_epochs",
+                        "learning_rate"):
+                number(key)
+            dropdown("weights")
+            dropdown("final_estimate")
+        gui.add_markdown("Changes apply to the next run.")
+        for handle in (*self.fields.values(), *self.choices.values()):
+            handle.on_update(lambda _: self._on_change())
+        self.preset.on_update(lambda _: self._apply_preset(self.preset.value))
+        self.choices["scenario"].on_update(lambda _: self._apply_scene(self.choices["scenario"].value))
+
+    def field_texts(self) -> dict[str, str]:
+        return {key: handle.value for key, handle in self.fields.items()}
+
+    def choice_values(self) -> dict[str, Any]:
+        values = {key: handle.value for key, handle in self.choices.items()}
+        if values.get("pem") == self._default_pem:
+            values["pem"] = self.app.config0.pem
+        return values
+
+    def read_form(self) -> FormResult:
+        """Parse what the form holds now (every field, every error)."""
+        name = self.preset.value
+        base = self.app.config0 if name == self.app.preset_name else ExperimentConfig(**PANEL_PRESETS[name])
+        return parse_form(self.field_texts(), self.choice_values(), base)
+
+    def show_errors(self, form: FormResult) -> None:
+        """Keep ``form`` as :attr:`parsed` and show each field's error under it (none: an empty line)."""
+        self.parsed = form
+        for key, handle in self.field_errors.items():
+            handle.content = field_error(form.errors.get(key, ""))
+
+    def echo(self) -> None:
+        """Send every field's value as the server has it back to the browser, so the form shows what runs.
+
+        viser's browser client sends GUI updates through one 50 ms throttle shared by all inputs and buttons:
+        of several messages inside one window only the last goes out, so a value typed just before pressing
+        Run (or before typing into the next field) can be lost on the way. Echoing makes such a field show
+        the value the run really uses instead of what the browser alone remembers.
+        """
+        with self.client.atomic():
+            for handle in (*self.fields.values(), *self.choices.values(), self.preset):
+                resend_value(handle)
+
+    def _apply_scene(self, scenario: str) -> None:
+        """Set the method and N to ``scenario``'s own defaults (:data:`pemviz.config.SCENE_DEFAULTS`) where it has
+        them, and back to the preset's where it has none."""
+        fields = SCENE_DEFAULTS.get(scenario)
+        if not fields:
+            preset = ExperimentConfig(**PANEL_PRESETS.get(self.preset.value, {}))
+            fields = {"method": "adaptive", "n_per_stage": preset.n_per_stage}
+        with self.client.atomic():
+            self.choices["method"].value = fields["method"]
+            self.fields["n_per_stage"].value = format_number(FIELDS_BY_KEY["n_per_stage"], fields["n_per_stage"])
+        self._on_change()
+
+    def _apply_preset(self, name: str) -> None:
+        """Set the fields to ``name``'s settings (metric, seed, PEM, simulator and method stay)."""
+        cfg = ExperimentConfig(**PANEL_PRESETS.get(name, {}))
+        with self.client.atomic():
+            for f in NUMBER_FIELDS:
+                if f.name in self.fields and f.name != "seed":
+                    self.fields[f.name].value = format_number(f, getattr(cfg, f.name))
+            for key in ("weights", "final_estimate"):
+                self.choices[key].value = getattr(cfg, key)
+        self._on_change()

@@ -1,0 +1,76 @@
+"""The plots panel (left) of a :class:`pemviz.app.session.Session`: *Live* (what each stage's sampler did over the
+states its rollouts visited, per-stage values of every kept run, mu_hat with its interval and the exact answer),
+*Explain* (:class:`pemviz.app.explain_tab.ExplainTab`) and *Compare* (each kept run's final estimate with its 95 %
+interval on a log10 chart beside the exact answer or reference, the settings that differ between the kept runs, and
+their reference-state proposal curves)."""
+
+from __future__ import annotations
+
+import viser
+
+from pemviz.app import charts, compare, plots
+from pemviz.app.explain_tab import ExplainTab
+from pemviz.app.runs import PanelRun
+from pemviz.core.estimate import format_probability
+
+
+class PlotsPanel:
+    """The plots panel: owns the panel, its *Live* and *Compare* charts and HTML; its *Explain* tab is the
+    :class:`pemviz.app.explain_tab.ExplainTab` it is given.
+
+    Args:
+        client: the viser client the panel draws into.
+        explain: the *Explain* tab, built in the panel's middle tab.
+    """
+
+    def __init__(self, client: viser.ClientHandle, explain: ExplainTab) -> None:
+        self.client, self.explain = client, explain
+
+    def build(self) -> None:
+        """Add the panel, docked left, with its three tabs to ``client.gui``."""
+        gui = self.client.gui
+        panel = gui.add_panel()
+        with panel.add_tab("Live", viser.Icon.CHART_LINE):
+            self.marginal_note = gui.add_html(charts.marginal_note(None))  # why the q(detect) charts are hidden
+            self.marginal_plots = charts.marginal_plots(gui)
+            self.stage_plots = {key: plots.stage_plot(gui, title, y) for key, title, y in plots.STAGE_PLOTS}
+        with panel.add_tab("Explain", viser.Icon.ZOOM_QUESTION):
+            self.explain.build()
+        with panel.add_tab("Compare", viser.Icon.A_B):
+            self.compare_estimates = compare.estimate_plot(gui)
+            self.compare_html = gui.add_html("")
+            self.compare_html_ref = gui.add_html(
+                '<div style="margin:0 0.6em; font-size:0.8em; color:#555">Reference-state curves: q(detect | gap) with '
+                "the proposal's other inputs (speeds, pending brake) held at the start state; for the cut-in, "
+                "q(detect | range) of car 0 straight ahead in the ego's lane. The Live tab shows what each sampler "
+                "did over the states its rollouts visited. One chart per kept run.</div>"
+            )
+            self.compare_plots = [plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190, visible=False)
+                                  for i in range(4)]  # fmt: skip
+        self.panel = panel
+        panel.dock_left()
+        panel.set_width(460)
+
+    def fill(self, runs: list[PanelRun], record: PanelRun | None) -> None:
+        """Redraw *Live* for ``record`` (the newest run) and ``runs`` (the kept ones) and *Compare*'s proposal curves
+        of ``runs``."""
+        with self.client.atomic():
+            if record is not None:
+                charts.fill_marginal_plots(self.marginal_plots, record, self.marginal_note)
+            for i, plot in enumerate(self.compare_plots):
+                plot.visible = i < len(runs) and runs[i].curve_grid_m.size > 0  # a slot without a run is hidden
+                if i < len(runs):
+                    r = runs[i]
+                    fin = r.final.estimate if r.final is not None else None
+                    mu = f", mu_hat {format_probability(fin.log_mu_hat)}" if fin is not None else ""
+                    ref = ", reference-state q" if r.config.proposal_inputs == "state" else ""
+                    plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}{ref}")
+            for key, plot in self.stage_plots.items():
+                plots.fill_stage_plot(plot, key, runs)
+                if key == "log10_mu_hat":
+                    charts.fill_mu_hat_plot(plot, runs)
+
+    def fill_compare(self, runs: list[PanelRun]) -> None:
+        """Redraw *Compare*'s estimates and settings of the kept ``runs``."""
+        notes = compare.fill_estimate_plot(self.compare_estimates, runs)
+        self.compare_html.content = compare.compare_html(runs, notes)
