@@ -37,6 +37,18 @@ errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same b
 (:mod:`pemviz.scenarios.cut_in`)."""
 
 
+REGISTERED_SCENARIOS: list[str] = []
+"""The scenarios registered in this process besides :data:`SCENARIOS` (:func:`pemviz.scenarios.registry.register` adds
+each name, ``unregister`` removes it): the built-in toys ``toy`` and ``crowd`` once the registry is imported, and the
+plugins' scenarios once they are loaded (:func:`pemviz.scenarios.registry.load_plugins`; the commands load them before
+they read a config). The settings sit below the registry: they read this list and never import it."""
+
+
+def scenario_names() -> tuple[str, ...]:
+    """The scenarios a config may name: :data:`SCENARIOS`, then :data:`REGISTERED_SCENARIOS` in registration order."""
+    return (*SCENARIOS, *(n for n in REGISTERED_SCENARIOS if n not in SCENARIOS))
+
+
 EXECUTORS = ("serial", "ray")
 """Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``serial`` in this
 process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same rollouts and estimate, bit for
@@ -94,8 +106,8 @@ class Setting:
         words: what it is, as a noun in plain words with its symbol (``"the smoothing alpha"``); error messages say
             ``<words> must be <allowed>``.
         help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
-        kind: ``int``, ``real``, ``choice``, ``scenario`` (a name of the scenario registry,
-            :func:`pemviz.scenarios.registry.registered`: the built-in :attr:`choices` and any plugin's), ``bool``,
+        kind: ``int``, ``real``, ``choice``, ``scenario`` (the built-in :attr:`choices` or a name the scenario
+            registry has registered in this process: :func:`scenario_names`), ``bool``,
             ``text``, ``pem`` (a shipped PEM name or a file, checked
             where it is loaded: the config does no I/O) or ``params`` (``(name, value)`` pairs of the scenario's
             parameters, :mod:`pemviz.scenarios.parameters`, checked against the scenario by the config).
@@ -151,7 +163,7 @@ class Setting:
         if self.kind == "choice":
             text = f"one of {', '.join(self.choices)}"
         elif self.kind == "scenario":
-            text = f"one of {', '.join(_scenario_names())}"
+            text = f"one of {', '.join(scenario_names())}"
         elif self.kind == "bool":
             text = "True or False"
         elif self.kind == "text":
@@ -185,12 +197,8 @@ class Setting:
             return self.optional
         if self.kind == "choice":
             return isinstance(value, str) and value in self.choices
-        if self.kind == "scenario":  # a built-in one, or one of the registry's (plugins loaded when first asked)
-            if not isinstance(value, str) or value in self.choices:
-                return isinstance(value, str)
-            from pemviz.scenarios import registry  # a plugin that cannot be loaded raises its own one line here
-
-            return value in registry.registered()
+        if self.kind == "scenario":  # a built-in one, or one the registry has registered in this process
+            return isinstance(value, str) and value in scenario_names()
         if self.kind == "bool":
             return isinstance(value, bool)
         if self.kind == "text":
@@ -407,17 +415,6 @@ def settings_of(owner: str) -> tuple[str, ...]:
 
 def _is_real(x: object) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x
-
-
-def _scenario_names() -> tuple[str, ...]:
-    """Every registered scenario's name (:func:`pemviz.scenarios.registry.registered`; the built-in ones where a plugin
-    cannot be loaded: the run that names one says why)."""
-    from pemviz.scenarios import registry  # the registry reads this module's SCENARIOS
-
-    try:
-        return registry.registered()
-    except registry.ScenarioPluginError:
-        return SCENARIOS
 
 
 def _is_int(x: object) -> bool:

@@ -20,7 +20,7 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
-from pemviz.config import SCENE_DEFAULTS, ConfigError, ExperimentConfig
+from pemviz.config import SCENARIOS, SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
 from pemviz.io.files import check_output_folder, check_output_path, free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
@@ -83,7 +83,15 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     """Build and validate the config; raises ConfigError with a one-line message.
 
     With neither ``--method`` nor ``--preset``, a scenario of :data:`pemviz.config.SCENE_DEFAULTS` runs its own
-    default method and budget (flags given still override them)."""
+    default method and budget (flags given still override them). The scenario registry, its plugins included, is
+    loaded first (:func:`pemviz.scenarios.registry.load_plugins`: a plugin that cannot be loaded is its one line).
+
+    Raises:
+        ConfigError: a setting, preset or parameter refused; ScenarioPluginError: a plugin that cannot be loaded."""
+    if args.scenario is not None and args.scenario not in SCENARIOS:  # another registered scenario: load the registry
+        from pemviz.scenarios.registry import load_plugins
+
+        load_plugins()
     preset = DEFAULT_PRESET if args.preset is None else args.preset
     if preset not in PRESETS:
         raise ConfigError(f"--preset {preset!r} is invalid: use one of {', '.join(PRESETS)}")
@@ -112,11 +120,7 @@ def scenario_params(scenario: str, texts: list[str]) -> tuple[tuple[str, float |
     from pemviz.scenarios.parameters import ParameterError, parse_assignments
     from pemviz.settings import SETTINGS
 
-    try:
-        known = SETTINGS["scenario"].accepts(scenario)
-    except ValueError:  # a plugin that cannot be loaded: the config says so, in one line
-        known = False
-    if not known:  # the config refuses the scenario first
+    if not SETTINGS["scenario"].accepts(scenario):  # the config refuses the scenario first
         return tuple(texts)
     try:
         return parse_assignments(scenario, texts)

@@ -20,10 +20,10 @@ import functools
 import math
 import re
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable, Mapping, Union
+from typing import TYPE_CHECKING, Callable, Iterable, Mapping, Union
 
 from pemviz.scenarios.braking import BrakingParams
-from pemviz.settings import SCENARIOS
+from pemviz.settings import SCENARIOS, scenario_names
 
 if TYPE_CHECKING:
     from pemviz.scenarios.cut_in import CutInParams
@@ -124,11 +124,22 @@ def default_params(scenario: str) -> BrakingParams | CutInParams:
         from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams  # the cut-in's modules: for its runs only
 
         return CutInParams(**RARITY_SETTINGS[CUT_IN_SETTINGS[scenario]])
-    from pemviz.scenarios import registry  # a scenario of the registry (a plugin's, a toy): its own dataclass
+    if scenario in _REGISTERED_DEFAULTS:  # a scenario of the registry (a plugin's, a toy): its own dataclass
+        return _REGISTERED_DEFAULTS[scenario]()
+    raise ParameterError(f"unknown scenario {scenario!r}; use one of {', '.join(scenario_names())}")
 
-    if scenario in registry.registered():
-        return registry.get(scenario).default_params()
-    raise ParameterError(f"unknown scenario {scenario!r}; use one of {', '.join(registry.registered())}")
+
+_REGISTERED_DEFAULTS: dict[str, Callable[[], object]] = {}
+"""Scenario name -> its parameters at their defaults, for the registry's scenarios besides :data:`SCENARIOS` (filled by
+:func:`pemviz.scenarios.registry.register` through :func:`register_defaults`: this module sits below the registry)."""
+
+
+def register_defaults(scenario: str, defaults: Callable[[], object] | None) -> None:
+    """Let :func:`default_params` of ``scenario`` call ``defaults()`` (None: forget the scenario)."""
+    if defaults is None:
+        _REGISTERED_DEFAULTS.pop(scenario, None)
+    else:
+        _REGISTERED_DEFAULTS[scenario] = defaults
 
 
 @functools.cache

@@ -25,9 +25,10 @@ from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
 from pemviz.scenarios.parameters import (
-    KINDS, Parameter, ParameterError, apply_parameters, default_params, scenario_parameters, unit_of,
+    KINDS, Parameter, ParameterError, apply_parameters, default_params, register_defaults, scenario_parameters,
+    unit_of,
 )
-from pemviz.settings import SCENARIOS
+from pemviz.settings import REGISTERED_SCENARIOS, SCENARIOS
 
 Ref = Any
 """An object, or the text ``"package.module:name"`` that names it (imported when first used)."""
@@ -207,6 +208,10 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
         raise ValueError(f"register: a scenario named {scenario.name!r} is registered already (replace=True to "
                          "replace it)")  # fmt: skip
     _REGISTRY[scenario.name] = scenario
+    if not scenario.runnable:  # the settings and parameters below the registry learn of it
+        if scenario.name not in REGISTERED_SCENARIOS:
+            REGISTERED_SCENARIOS.append(scenario.name)
+        register_defaults(scenario.name, scenario.default_params)
     return scenario
 
 
@@ -219,6 +224,9 @@ def unregister(name: str) -> None:
     if name not in _REGISTRY:
         raise KeyError(f"unregister: no scenario named {name!r}; registered: {', '.join(_REGISTRY)}")
     del _REGISTRY[name]
+    if name in REGISTERED_SCENARIOS:
+        REGISTERED_SCENARIOS.remove(name)
+    register_defaults(name, None)
 
 
 ENTRY_POINTS = "pemviz.scenarios"
