@@ -16,6 +16,7 @@ from pemviz.app.runs import PANEL_PRESETS
 from pemviz.config import SCENE_DEFAULTS, SETTINGS, SIMULATORS, ExperimentConfig
 from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
 from pemviz.presets import preset_help
+from pemviz.scenarios.registry import registered
 
 
 class ExperimentTab:
@@ -61,7 +62,7 @@ class ExperimentTab:
             self.choices[key] = gui.add_dropdown(s.label, options or s.choices, initial_value=value or getattr(c0, key),
                                                  hint=s.hint, **kw)  # fmt: skip
 
-        dropdown("scenario")
+        dropdown("scenario", registered())  # every registered scenario, plugins included
         dropdown("metric")
         for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
             number(key)

@@ -22,7 +22,7 @@ from pemviz.app.rollouts_tab import RolloutsTab
 from pemviz.app.runs import PanelRun
 from pemviz.app.runs_tab import RunsTab
 from pemviz.app.scene_view import SceneView
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.registry import problem_for
 from pemviz.engine import experiment
 from pemviz.engine.cost import duration
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted

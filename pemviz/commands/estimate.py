@@ -169,7 +169,7 @@ def known_answer(data: Any, failure: str, own: bool) -> tuple[float | None, Any]
     if not own or failure != "crash" or not isinstance(config, dict) or "scenario" not in config:
         return None, None
     from pemviz.config import ConfigError
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.registry import problem_for
     from pemviz.scenarios.parameters import as_pairs
 
     try:

@@ -1,0 +1,39 @@
+"""The panel runs a scenario of one's own: the user guide's ``my_car_scenario`` module, imported (so registered)
+before a browser tab opens, is in the scenario choice, and a run of it stands beside its exact answer, in headless
+Chromium. Uses the browser, server and tab helpers of ``tests/test_app.py``."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import pytest
+
+from conftest import doc_python_block
+from test_app import TINY, app, browser, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
+from test_scenario_plugin import HEADING
+
+
+@pytest.fixture
+def my_car(tmp_path, monkeypatch):
+    """The guide's module saved by a user and imported: ``my-car`` registered for this test only."""
+    (tmp_path / "my_car_scenario.py").write_text(doc_python_block("own-simulator.md", HEADING))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("my_car_scenario", None)
+    from pemviz.scenarios import registry
+
+    __import__("my_car_scenario")
+    yield
+    registry.unregister("my-car")
+    sys.modules.pop("my_car_scenario", None)
+
+
+def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, browser, app):  # noqa: F811
+    for tab in open_tab(browser, app):
+        assert "my-car" in tab.session.choices["scenario"].options
+        tab.choose("scenario", "my-car")
+        record = tab.run(TINY, timeout=120)
+        assert record.config.scenario == "my-car"
+        assert math.exp(record.exact_log_p) == pytest.approx(2.8576e-5, rel=1e-3)
+        wait_until(lambda: "exact answer 2.8576e-05" in tab.page.inner_text("body"),
+                   what="the final estimate beside the scenario's exact answer")  # fmt: skip
