@@ -17,7 +17,7 @@ import numpy as np
 from pemviz.config import METRICS
 from pemviz.core.estimate import VERDICTS, Estimate
 from pemviz.core.problems import Problem
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 
 
 class CheckError(ValueError):

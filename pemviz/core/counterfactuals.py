@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 
 MISS = "miss"
 """An object missed at a step, flipped to a detection measured exactly."""
@@ -153,7 +153,7 @@ class LikelyFailure:
 def failure_log_p(batch: RolloutBatch, failed: np.ndarray) -> np.ndarray:
     """The log p under the PEM (the target) of each failing rollout, float64 [N] (nats), -inf where ``failed`` [N]
     is False: the sum of ``log p_target(a_t | s_t)`` over the rollout's first T - 1 steps, the steps its importance
-    weight multiplies (:meth:`pemviz.scenarios.RolloutBatch.log_likelihood`; the last action changes nothing). The
+    weight multiplies (:meth:`pemviz.core.rollouts.RolloutBatch.log_likelihood`; the last action changes nothing). The
     one log p by which the console, the panel and the recording choose and state the most likely failure.
 
     Raises:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # annotations only, never imported at run time
-    from pemviz.scenarios import RolloutBatch
+    from pemviz.core.rollouts import RolloutBatch
     from pemviz.scenarios.braking import BrakingParams
 
 

@@ -22,17 +22,16 @@ from pemviz import stl
 from pemviz.config import SIMULATORS, ExperimentConfig
 from pemviz.core.detectors import Detector, PEMDetector
 from pemviz.core.estimate import Reference
+from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch, branch_rollouts, iter_rollouts, simulate, simulate_rollouts
 from pemviz.core.problem_view import (  # noqa: F401 (what sinks see of a problem, re-exported: importable from here)
     ObjectScene as ObjectScene, ProblemView as ProblemView, SignalView as SignalView, Thresholds as Thresholds,
     object_scene as object_scene,
 )
 from pemviz.core.reweight import AlternativeTarget
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import SeverityScale
 from pemviz.core.truth import known_log_failure_probability
 from pemviz.pem import DEFAULT_PEM_NAME, load_pem
-from pemviz.scenarios import (
-    DEFAULT_CHUNK_SIZE, RolloutBatch, branch, branch_rollouts, iter_rollouts, simulate, simulate_rollouts,
-)
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
@@ -46,7 +45,7 @@ SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBat
 
 BranchFn = Callable[[RolloutBatch, np.ndarray, np.ndarray, Detector, np.random.Generator], RolloutBatch]
 """``branch(parents, parent, at, target, rng)``: K rollouts continuing rollout ``parent[i]`` of ``parents`` from step
-``at[i]`` on with ``target``'s detections (:func:`pemviz.scenarios.branch`; needs snapshot/restore)."""
+``at[i]`` on with ``target``'s detections (:func:`pemviz.core.lockstep.branch`; needs snapshot/restore)."""
 
 StreamFn = Callable[..., Iterator[RolloutBatch]]
 """``stream(n, sampler, target, rng, chunk_size=DEFAULT_CHUNK_SIZE)``: the rollouts of ``simulate`` with the same
@@ -267,8 +266,8 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
 
 def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:
     """A :class:`Problem`'s ``simulate``, ``stream`` and ``branch`` for a batched simulator ``make(n)`` (n rollouts at
-    their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.scenarios.simulate_rollouts`,
-    :func:`~pemviz.scenarios.iter_rollouts`, :func:`~pemviz.scenarios.branch_rollouts`).
+    their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.core.lockstep.simulate_rollouts`,
+    :func:`~pemviz.core.lockstep.iter_rollouts`, :func:`~pemviz.core.lockstep.branch_rollouts`).
 
     The rollouts are simulated on one BLAS thread (``threadpoolctl``): pemviz's PEM products are exact
     (:class:`pemviz.pem.network.GridMLP`), so threads change no bit of them, but a second thread only slows these small

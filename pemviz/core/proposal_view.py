@@ -202,7 +202,7 @@ def proposal_view(
 
 
 def batch_proposal_view(batch, edges_m: np.ndarray, window_m: float = 10.0) -> ProposalView | None:
-    """:func:`proposal_view` of a :class:`pemviz.scenarios.RolloutBatch` (None: its rollouts report no ``gap_m``, or
+    """:func:`proposal_view` of a :class:`pemviz.core.rollouts.RolloutBatch` (None: its rollouts report no ``gap_m``, or
     perceive several objects, whose densities the batch holds only per step)."""
     if "gap_m" not in batch.observation_names or batch.n_objects != 1:
         return None

@@ -21,7 +21,7 @@ from pemviz.core import exact, torch_use
 from pemviz.core.exact_fit import fit_exact
 from pemviz.core.fit_settings import CHECK_EVERY, EXACT, LBFGS_TOLERANCE, PLATEAU_EPOCHS, Objective  # noqa: F401
 from pemviz.core.detectors import GAP_COLUMN
-from pemviz.io.files import atomic_write, load_tagged
+from pemviz.core.files import atomic_write, load_tagged
 
 if TYPE_CHECKING:
     import torch
@@ -449,7 +449,7 @@ def save_proposal(proposal: Proposal, path: str | os.PathLike[str], *, overwrite
 
     Raises:
         OSError: the folder is missing or not writable, the disk is full (nothing is left behind).
-        pemviz.io.files.OutputExists: ``path`` exists and ``overwrite`` is False.
+        pemviz.core.files.OutputExists: ``path`` exists and ``overwrite`` is False.
     """
     return atomic_write(path, lambda tmp: write_proposal_file(proposal, tmp), overwrite=overwrite)
 

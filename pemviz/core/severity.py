@@ -258,7 +258,7 @@ def rollout_severity(problem: object, batch: object) -> tuple[np.ndarray, np.nda
 
     Args:
         problem: a :class:`pemviz.core.problems.Problem` with a severity scale.
-        batch: N rollouts (:class:`pemviz.scenarios.RolloutBatch`) with the signal's column.
+        batch: N rollouts (:class:`pemviz.core.rollouts.RolloutBatch`) with the signal's column.
     Returns:
         ``(min_distance, impact_speed)``: float64 [N] each, metres and m/s; the impact speed is NaN exactly where the
         rollout never reaches contact.

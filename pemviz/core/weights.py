@@ -91,7 +91,7 @@ def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detec
     """The per-step log density the rollouts of a stage were weighed with, and each rollout's component.
 
     Args:
-        batch: rollouts ``start .. start + n - 1`` of the stage (a :class:`~pemviz.scenarios.RolloutBatch`, [n, T]).
+        batch: rollouts ``start .. start + n - 1`` of the stage (a :class:`~pemviz.core.rollouts.RolloutBatch`, [n, T]).
         parts: the stage's samplers in the order drawn, ``(rollouts, detector)`` each (one: no mixture).
         target: the target detector (its component's density is ``batch.log_p``), or None.
     Returns:

@@ -27,8 +27,8 @@ if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.core.requirement import Decision
     from pemviz.core.population import FailureShares
     from pemviz.core.reweight import PemSpread
+    from pemviz.core.rollouts import RolloutBatch
     from pemviz.core.severity import SeverityCurve
-    from pemviz.scenarios import RolloutBatch
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,9 @@ Both executors give the same rollouts, bit for bit, for the same seed, whatever 
   (:func:`pemviz.core.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the
   rollouts of a block, and detectors are asked about one block at a time. Each Ray task simulates a run of whole blocks
   (:func:`task_blocks`: as many tasks as the cluster has CPUs by default), one block after another. Every pemviz
-  simulator draws one ``rng.random(n K)`` per step, K uniforms per rollout (:func:`pemviz.scenarios.draws_per_rollout`:
-  1 for a single-object scenario; u for rollout i at step t is then the ``(t * n + i)``-th uniform of the stream),
+  simulator draws one ``rng.random(n K)`` per step, K uniforms per rollout
+  (:func:`pemviz.core.rollouts.draws_per_rollout`: 1 for a single-object scenario; u for rollout i at step t is then
+  the ``(t * n + i)``-th uniform of the stream),
   so the block ``a..b-1`` gets a stand-in for ``rng`` (:class:`ChunkUniforms`) whose k-th ``random((b - a) K)``
   returns slice ``[a, b)`` of the serial run's k-th draw, found by jumping a copy of the PCG64 stream
   (``bit_generator.advance``). Nothing but the generator's state (a few integers) travels with the task, and
@@ -20,10 +21,10 @@ Requirements for ``ray``: Ray installed (``pip install ray``; pemviz's ``test`` 
 pemviz importable on every worker, the problem picklable by cloudpickle (pemviz's problems are),
 a PCG64 / PCG64DXSM generator (``np.random.default_rng`` gives one; any other runs serially, with the
 same result), and a ``problem.simulate`` that draws one ``rng.random(n)`` per step (pemviz's simulators
-and :func:`pemviz.scenarios.simulate` do; anything else raises a RuntimeError naming the problem).
+and :func:`pemviz.core.lockstep.simulate` do; anything else raises a RuntimeError naming the problem).
 
 :func:`chunk_uniforms` gives the u's of rollouts ``a..b-1`` as a [T, b - a] array for
-:func:`pemviz.scenarios.simulate` (``uniforms=``), to run blocks on any other infrastructure.
+:func:`pemviz.core.lockstep.simulate` (``uniforms=``), to run blocks on any other infrastructure.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ import numpy as np
 from pemviz.config import EXECUTORS
 from pemviz.core.detectors import Detector
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at, block_bounds
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 
 MAX_CHUNK = RQMC_BLOCK
 """Most rollouts a Ray task simulates in one call: one block (:data:`pemviz.core.rng.RQMC_BLOCK`), so that the batched
@@ -89,7 +90,7 @@ class ChunkUniforms:
 
     Its k-th call ``random((stop - start) K)`` returns the slice of rollouts ``start..stop-1`` of the k-th
     ``rng.random(n K)`` the serial run draws from ``state`` (a PCG64 / PCG64DXSM state dict): K uniforms per rollout
-    and step (:func:`pemviz.scenarios.draws_per_rollout`; 1 for a single-object scenario), the positions ``k n K +
+    and step (:func:`pemviz.core.rollouts.draws_per_rollout`; 1 for a single-object scenario), the positions ``k n K +
     start K .. k n K + stop K - 1`` of the stream. ``calls`` counts the draws.
 
     Raises (from :meth:`random`):
@@ -131,7 +132,7 @@ def chunk_uniforms(rng_state: dict, n: int, n_steps: int, start: int, stop: int)
 
     Equal to ``np.random.Generator(bg).random((T, n))[:, start:stop]`` for the bit generator ``bg`` in
     ``rng_state`` (``rng.bit_generator.state``, PCG64 or PCG64DXSM), without drawing the other columns;
-    pass it to :func:`pemviz.scenarios.simulate` as ``uniforms``.
+    pass it to :func:`pemviz.core.lockstep.simulate` as ``uniforms``.
 
     Raises:
         ValueError: a bit generator that cannot jump, or ``0 <= start < stop <= n`` violated.
@@ -149,7 +150,7 @@ def simulate_chunk(
 ) -> tuple[RolloutBatch, int, int]:
     """Rollouts ``start..stop-1`` of the serial run ``problem.simulate(n, sampler, target, rng)`` from
     ``rng_state``; returns the batch [stop - start, T], the number of per-step draws it made (T) and the uniforms
-    per rollout of each (:func:`pemviz.scenarios.draws_per_rollout`). The rollouts
+    per rollout of each (:func:`pemviz.core.rollouts.draws_per_rollout`). The rollouts
     are the serial run's when ``start..stop-1`` is one block (:func:`pemviz.core.rng.block_bounds`) or, without
     Array-RQMC and with detectors that give the same bits at any batch size, any range."""
     stream = ChunkUniforms(rng_state, n, start, stop)

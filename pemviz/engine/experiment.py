@@ -31,6 +31,7 @@ import numpy as np
 from pemviz.config import METRICS, ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, Detector
 from pemviz.core.problems import Problem
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import (
     Event,
     FinalEstimate,
@@ -47,7 +48,6 @@ from pemviz.engine.events import (
 from pemviz.engine.executors import get_executor
 from pemviz.estimators import Estimator, StagePlan, build_estimator
 from pemviz.estimators.base import SeenFailures, failure_population, pem_spread, severity_curve
-from pemviz.scenarios import RolloutBatch
 
 
 class Cancelled(Exception):

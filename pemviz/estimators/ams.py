@@ -39,10 +39,10 @@ from scipy.special import logsumexp, ndtri
 from pemviz import stl
 from pemviz.config import ExperimentConfig, settings_of
 from pemviz.core.estimate import CI_LEVEL, MIN_FAILURES, Estimate
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure
 from pemviz.engine.plan import RunPlan
 from pemviz.core.problems import Problem
-from pemviz.scenarios import RolloutBatch
 
 
 def no_branch_message(problem: Problem) -> str:

@@ -22,6 +22,7 @@ from pemviz import stl
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import Detector
 from pemviz.core.estimate import Estimate, estimate
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.estimators.pooling import (  # noqa: F401 (the stages' pooling, re-exported: importable from here as before)
@@ -33,7 +34,6 @@ from pemviz.estimators.pooling import (  # noqa: F401 (the stages' pooling, re-e
     severity_curve as severity_curve,
     stage_weights_of as stage_weights_of,
 )
-from pemviz.scenarios import RolloutBatch
 
 Check = Callable[[], None]
 """Called between and inside fits; raises to abandon the run (the engine's cancel token)."""

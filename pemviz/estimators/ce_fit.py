@@ -10,9 +10,9 @@ from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import numpy as np
 
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import EXACT, Proposal, fit_proposal
 from pemviz.estimators.base import elite_counts
-from pemviz.scenarios import RolloutBatch
 
 if TYPE_CHECKING:
     import torch
@@ -364,7 +364,7 @@ class EliteSteps:
     def add(self, index: np.ndarray, batch: RolloutBatch, features: np.ndarray, mask: np.ndarray,
             log_w: np.ndarray, weighted: np.ndarray | None = None) -> None:  # fmt: skip
         """Elite rollouts ``index`` [m] of the stage: the features of their object events [m, S(, k)] (S = T M,
-        :meth:`~pemviz.scenarios.RolloutBatch.events`), the events' mask bool [m, S], smoothed log-weights alpha
+        :meth:`~pemviz.core.rollouts.RolloutBatch.events`), the events' mask bool [m, S], smoothed log-weights alpha
         log w_i [m] and (``keep_observations``) the events of ``mask`` whose steps count in the weights, bool [m, S]
         (None: all)."""
         if index.size == 0:

@@ -30,6 +30,7 @@ from pemviz.core.detectors import (
     noise_names_of,
 )
 from pemviz.core.estimate import Estimate, estimate
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.ce_fit import EliteSteps, ce_update, pretrain_proposal
 from pemviz.estimators.ce_mixture import MixtureWeights
 from pemviz.estimators.base import (
@@ -50,7 +51,6 @@ from pemviz.estimators.base import (
 from pemviz.engine.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.core.sampling import EXACT, Proposal, StateProposal
-from pemviz.scenarios import RolloutBatch
 
 def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
     """Refuse, before any rollout or output, a ``config`` whose estimator cannot run on ``problem``: the
@@ -504,7 +504,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     def _fit_events(self, batch: RolloutBatch, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray,
                                                                                  np.ndarray | None]:  # fmt: skip
         """(the proposal's features of every object event [N, S(, k)], the detections [N, S], ``mask`` [N, S] or None),
-        S = T M, events in order (:meth:`~pemviz.scenarios.RolloutBatch.events`)."""
+        S = T M, events in order (:meth:`~pemviz.core.rollouts.RolloutBatch.events`)."""
         rows, detected = batch.events()
         return self.proposal.features(rows), detected, None if mask is None else mask.reshape(batch.n, -1)
 

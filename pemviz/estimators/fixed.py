@@ -8,9 +8,9 @@ import numpy as np
 from pemviz.core.detectors import ConstantDetector, Detector, WindowDetector
 from pemviz.core.estimate import Estimate
 from pemviz.core.problems import Problem
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts, pooled_estimate
-from pemviz.scenarios import RolloutBatch
 
 
 class FixedSampler:
@@ -27,7 +27,7 @@ class FixedSampler:
     """
 
     needs_chunk_rows = False
-    """A streamed stage's chunks may come without their object rows (:attr:`pemviz.scenarios.RolloutBatch.replay`):
+    """A streamed stage's chunks may come without their object rows (:attr:`pemviz.core.rollouts.RolloutBatch.replay`):
     this estimator reads the rows of failures only."""
 
     def __init__(self, problem: Problem, sampler: Detector, n: int, weights_until_failure: bool, seed: int = 0) -> None:

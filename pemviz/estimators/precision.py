@@ -23,9 +23,9 @@ import numpy as np
 from pemviz.config import DEFAULT_MAX_SIMS, ExperimentConfig
 from pemviz.core.estimate import Estimate
 from pemviz.core.requirement import Decision, decide, parse_requirement
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan
-from pemviz.scenarios import RolloutBatch
 
 GROWTH = 4.0
 """An added batch is at most this many times the final rollouts so far: the interval's width is itself noisy, so the

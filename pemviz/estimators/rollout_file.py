@@ -21,12 +21,12 @@ from pemviz.config import METRICS
 from pemviz.core.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.problems import Problem
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.weights import CONVENTIONS, MeanWeight, mean_weight
 from pemviz.estimators import log_p_before_failure, log_weight
 from pemviz.estimators.base import SeenFailures, pool
 from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta
 from pemviz.io.rollouts import RolloutData, braking_salient
-from pemviz.scenarios import RolloutBatch
 
 REESTIMATE_RTOL = 1e-9
 """A rollout file re-estimates to its run's mu_hat within this relative error, and prints the run's rows and verdict:
@@ -45,7 +45,7 @@ def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
     """``log p(a_t | s_t)`` of the logged actions under a detector, float64 [N, T] (nats).
 
     The detector sees the observations of all N rollouts one step at a time, [N, F], as
-    :func:`pemviz.scenarios.simulate` asks it, so the numbers are those of the run that made the file.
+    :func:`pemviz.core.lockstep.simulate` asks it, so the numbers are those of the run that made the file.
 
     Raises:
         ValueError: a file of several objects or with measurement errors (their rows are not in it).

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pemviz.core.files import repo_root as repo_root  # noqa: F401 (re-exported: importable from here as before)
 from pemviz.io.files import atomic_write
 
 __all__ = [
@@ -112,11 +113,6 @@ class ChecksumError(DataError, ValueError):
 
 
 # --------------------------------------------------------------------------------------------- locate
-
-
-def repo_root() -> Path:
-    """The folder holding the ``pemviz`` package folder (the repository root in a checkout)."""
-    return Path(__file__).resolve().parents[2]  # pemviz/io/data.py -> the repository
 
 
 def user_cache_dir() -> Path:

@@ -1,4 +1,9 @@
-"""Writing files safely: never a half-written file, and bad output paths refused before any work."""
+"""Writing files safely: never a half-written file, and bad output paths refused before any work.
+
+The atomic write itself (:func:`atomic_write`, :class:`OutputExists`) and the tagged checkpoints (:func:`load_tagged`)
+live in :mod:`pemviz.core.files`, where the core and the PEMs save and load their own models; they are re-exported
+here with the checks of output paths and the writers of the commands' files.
+"""
 
 from __future__ import annotations
 
@@ -10,12 +15,13 @@ import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-
-def default_file_mode() -> int:
-    """0o666 minus the process umask (what ``open()`` gives; ``mkstemp`` gives 0o600)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
+from pemviz.core.files import (  # noqa: F401 (the core's file writing, re-exported: importable from here as before)
+    OutputExists as OutputExists,
+    _commit,
+    atomic_write as atomic_write,
+    default_file_mode as default_file_mode,
+    load_tagged as load_tagged,
+)
 
 
 TEMP_NAME_EXTRA = 14
@@ -24,54 +30,6 @@ TEMP_NAME_EXTRA = 14
 MAGIC = {".rrd": b"RRF", ".parquet": b"PAR1", ".pt": b"PK\x03\x04"}
 """Leading bytes of the files pemviz writes, by suffix: a file without them was not written by pemviz and is
 never replaced (rerun recording, Parquet table, ``torch.save`` zip archive)."""
-
-
-class OutputExists(ValueError):
-    """The output file exists (or appeared while the work ran) and replacing it was not asked for."""
-
-
-def _commit(tmp: str, target: Path, overwrite: bool) -> None:
-    """Move the finished ``tmp`` onto ``target``: ``os.replace`` with ``overwrite``, else a hard link that fails
-    when ``target`` exists (atomic create-if-absent, so a concurrent writer is never silently replaced)."""
-    if overwrite:
-        os.replace(tmp, target)
-        return
-    try:
-        os.link(tmp, target)
-    except FileExistsError:
-        raise OutputExists(f"{target}: appeared while this run worked (another writer?); not replaced, "
-                           "give --overwrite to replace it") from None
-    except OSError:  # a file system without hard links: check, then replace
-        if target.exists():
-            raise OutputExists(f"{target}: exists; give --overwrite to replace it") from None
-        os.replace(tmp, target)
-
-
-def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None], *, overwrite: bool = True) -> Path:
-    """``write(tmp)`` into a temporary file of a unique name beside ``path``, then move it onto ``path``.
-
-    The temporary file is removed whatever happens (an exception, Ctrl-C, SIGTERM, a full disk), so a failure
-    leaves neither a partial ``path`` nor a stray file, and an existing ``path`` is untouched until the new file
-    is complete. Two writers to one path never share a temporary file. Returns ``path``.
-
-    Args:
-        overwrite: replace an existing ``path``; when False, :class:`OutputExists` if one exists at the end.
-    Raises:
-        OSError: the folder is missing or not writable, the disk is full, the file is too large;
-            whatever ``write`` raises.
-        OutputExists: ``overwrite`` is False and ``path`` exists.
-    """
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, default_file_mode())
-        _commit(tmp, target, overwrite)
-    finally:
-        if os.path.lexists(tmp):
-            os.unlink(tmp)
-    return target
 
 
 @contextlib.contextmanager
@@ -266,39 +224,6 @@ def check_free_name(path: Path, what: str, *, overwrite: bool = False, kind: str
         raise OutputExists(f"{what} {path}: exists; give --overwrite to replace it")
     if not written_by_pemviz(path):
         raise ValueError(f"{what} {path}: exists and is not a {kind} pemviz wrote; not replacing it")
-
-
-def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Exception], *,
-                as_numpy: bool = False) -> dict:  # fmt: skip
-    """A pemviz payload dict written by ``torch.save``, checked for its format tag and version.
-
-    Args:
-        path: an existing file.
-        tag, version: the expected ``payload["format"]`` and ``payload["version"]``.
-        what: how messages name the file (``PEM``, ``proposal checkpoint``).
-        error: the exception type raised for an unreadable or foreign file.
-        as_numpy: tensors as numpy arrays, read without importing torch for the files pemviz writes
-            (:func:`pemviz.pem.torch_payload.load_payload`, which falls back to torch for any other file); else
-            ``torch.load(path, weights_only=True)``'s tensors.
-    Raises:
-        ``error``: damaged file, missing tag, or another format version.
-    """
-    try:
-        if as_numpy:
-            from pemviz.pem.torch_payload import load_payload
-
-            payload = load_payload(path)
-        else:
-            import torch  # ~1 s to import: only when a checkpoint is read (see write_rrd's rerun)
-
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for damaged files
-        raise error(f"{path}: not a readable {what} file ({exc})") from None
-    if not isinstance(payload, dict) or payload.get("format") != tag:
-        raise error(f"{path}: not a pemviz {what} file (missing format tag {tag!r})")
-    if payload.get("version") != version:
-        raise error(f"{path}: {what} format version {payload.get('version')}, this pemviz reads {version}")
-    return payload
 
 
 def free_default_path(folder: Path, stem: str, suffix: str = ".rrd") -> Path:

@@ -22,8 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pemviz.io.data import repo_root
-from pemviz.io.files import atomic_write, load_tagged
+from pemviz.core.files import atomic_write, load_tagged, repo_root
 from pemviz.pem.encoding import POSE_COLUMNS, NormStats
 from pemviz.pem.network import PEM, PemFormatError
 from pemviz.pem.noise import HomoscedasticNoise, NoiseModel, NoisePEM
@@ -176,7 +175,7 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
 
 
 def _load_payload(p: Path, tag: str, version: int, what: str) -> dict:
-    """:func:`pemviz.io.files.load_tagged`, tensors as numpy arrays, with a one-line PemFormatError (torch's own
+    """:func:`pemviz.core.files.load_tagged`, tensors as numpy arrays, with a one-line PemFormatError (torch's own
     message for a file that ``torch.load`` cannot read spans several lines and suggests ``weights_only=False``)."""
     try:
         return load_tagged(p, tag, version, what, PemFormatError, as_numpy=True)

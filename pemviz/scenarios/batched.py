@@ -41,14 +41,8 @@ from typing import Callable, Iterator
 import numpy as np
 
 from pemviz.core.detectors import Detector
-from pemviz.scenarios import (
-    DEFAULT_CHUNK_SIZE,
-    RolloutBatch,
-    branch_rollouts,
-    check_counts,
-    iter_rollouts,
-    simulate_rollouts,
-)
+from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, check_counts, iter_rollouts, simulate_rollouts
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_step, initial_controller_state, lead_speeds
 
 

@@ -27,8 +27,8 @@ import numpy as np
 from scipy.special import log_expit
 
 from pemviz.core.detectors import Detector
-
-from pemviz.scenarios import RolloutBatch, check_branch_args, run_batched
+from pemviz.core.lockstep import check_branch_args, run_batched
+from pemviz.core.rollouts import RolloutBatch
 
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")

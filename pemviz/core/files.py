@@ -1,0 +1,107 @@
+"""The files the lower layers write and read themselves: atomic writes, tagged checkpoints, the repository's folder.
+
+A model saved by the core (a proposal checkpoint, :func:`pemviz.core.sampling.save_proposal`) or by
+:mod:`pemviz.pem.store` is written through :func:`atomic_write` (never a half-written file) and read back through
+:func:`load_tagged` (its format tag and version checked). :mod:`pemviz.io.files` re-exports them with the checks of
+output paths made before a run's work, and :mod:`pemviz.io.data` re-exports :func:`repo_root`.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+
+def default_file_mode() -> int:
+    """0o666 minus the process umask (what ``open()`` gives; ``mkstemp`` gives 0o600)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+class OutputExists(ValueError):
+    """The output file exists (or appeared while the work ran) and replacing it was not asked for."""
+
+
+def _commit(tmp: str, target: Path, overwrite: bool) -> None:
+    """Move the finished ``tmp`` onto ``target``: ``os.replace`` with ``overwrite``, else a hard link that fails
+    when ``target`` exists (atomic create-if-absent, so a concurrent writer is never silently replaced)."""
+    if overwrite:
+        os.replace(tmp, target)
+        return
+    try:
+        os.link(tmp, target)
+    except FileExistsError:
+        raise OutputExists(f"{target}: appeared while this run worked (another writer?); not replaced, "
+                           "give --overwrite to replace it") from None
+    except OSError:  # a file system without hard links: check, then replace
+        if target.exists():
+            raise OutputExists(f"{target}: exists; give --overwrite to replace it") from None
+        os.replace(tmp, target)
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None], *, overwrite: bool = True) -> Path:
+    """``write(tmp)`` into a temporary file of a unique name beside ``path``, then move it onto ``path``.
+
+    The temporary file is removed whatever happens (an exception, Ctrl-C, SIGTERM, a full disk), so a failure
+    leaves neither a partial ``path`` nor a stray file, and an existing ``path`` is untouched until the new file
+    is complete. Two writers to one path never share a temporary file. Returns ``path``.
+
+    Args:
+        overwrite: replace an existing ``path``; when False, :class:`OutputExists` if one exists at the end.
+    Raises:
+        OSError: the folder is missing or not writable, the disk is full, the file is too large;
+            whatever ``write`` raises.
+        OutputExists: ``overwrite`` is False and ``path`` exists.
+    """
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.chmod(tmp, default_file_mode())
+        _commit(tmp, target, overwrite)
+    finally:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+    return target
+
+
+def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Exception], *,
+                as_numpy: bool = False) -> dict:  # fmt: skip
+    """A pemviz payload dict written by ``torch.save``, checked for its format tag and version.
+
+    Args:
+        path: an existing file.
+        tag, version: the expected ``payload["format"]`` and ``payload["version"]``.
+        what: how messages name the file (``PEM``, ``proposal checkpoint``).
+        error: the exception type raised for an unreadable or foreign file.
+        as_numpy: tensors as numpy arrays, read without importing torch for the files pemviz writes
+            (:func:`pemviz.pem.torch_payload.load_payload`, which falls back to torch for any other file); else
+            ``torch.load(path, weights_only=True)``'s tensors.
+    Raises:
+        ``error``: damaged file, missing tag, or another format version.
+    """
+    try:
+        if as_numpy:
+            from pemviz.pem.torch_payload import load_payload
+
+            payload = load_payload(path)
+        else:
+            import torch  # ~1 s to import: only when a checkpoint is read (see pemviz.io.files.write_rrd's rerun)
+
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for damaged files
+        raise error(f"{path}: not a readable {what} file ({exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != tag:
+        raise error(f"{path}: not a pemviz {what} file (missing format tag {tag!r})")
+    if payload.get("version") != version:
+        raise error(f"{path}: {what} format version {payload.get('version')}, this pemviz reads {version}")
+    return payload
+
+
+def repo_root() -> Path:
+    """The folder holding the ``pemviz`` package folder (the repository root in a checkout)."""
+    return Path(__file__).resolve().parents[2]  # pemviz/core/files.py -> the repository

@@ -1,0 +1,329 @@
+"""The one rollout runner: every simulator's rollouts drawn, scored and stepped through :func:`run_batched`.
+
+:func:`run_batched` asks, each step, the sampling detector and the target (PEM) about every object row of a batch
+(:class:`pemviz.core.rollouts.BatchedSimulator`), draws the events (:func:`pemviz.core.detectors.draw_step`) and steps
+the simulator; :func:`simulate` runs N black-box simulators in lockstep through it (:class:`Lockstep`), and the
+batched twins (:mod:`pemviz.scenarios.batched`, the toys) run through it too, so every simulator draws the same events
+from the same uniforms. :func:`iter_rollouts` / :func:`simulate_rollouts` stream or gather a batched simulator's
+rollouts in chunks (:func:`uniform_chunks`: the same rollouts, bit for bit, for any chunk size), :func:`branch` /
+:func:`branch_rollouts` continue rollouts from given steps of earlier ones. Re-exported by :mod:`pemviz.scenarios`.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import replace
+from typing import Callable, Iterable, Iterator, Sequence
+
+import numpy as np
+
+from pemviz.core.detectors import Detector, draw_step, noise_names_of
+from pemviz.core.exact import row_sum
+from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
+from pemviz.core.rollouts import BatchedSimulator, RolloutBatch, Simulator, draws_per_rollout, n_objects_of
+
+
+class Lockstep:
+    """N black-box :class:`Simulator` objects stepped together as one :class:`BatchedSimulator`."""
+
+    def __init__(self, sims: Sequence[Simulator]) -> None:
+        self.sims = list(sims)
+        first = self.sims[0]
+        self.observation_names = tuple(first.observation_names)
+        self.multi = hasattr(first, "objects")
+        self.n_objects = n_objects_of(first)
+        self.object_names = tuple(first.object_names) if self.multi else None
+
+    def observation(self) -> np.ndarray:
+        return np.stack([s.observation() for s in self.sims])
+
+    def objects(self) -> np.ndarray:
+        return np.stack([s.objects() for s in self.sims])
+
+    def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
+        if not self.multi:
+            for s, a in zip(self.sims, detected[:, 0]):
+                s.step(bool(a))
+            return
+        for i, s in enumerate(self.sims):
+            s.step(detected[i], None if noise is None else noise[i])
+
+
+def run_batched(
+    sim: BatchedSimulator,
+    n: int,
+    n_steps: int,
+    sampler: Detector,
+    target: Detector,
+    uniforms: Iterable[np.ndarray],
+    forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
+    keep_rows: bool = True,
+) -> RolloutBatch:
+    """Simulate the ``n`` rollouts of ``sim`` for ``n_steps`` steps, each object's events drawn from ``sampler`` and
+    scored under ``target`` (:func:`pemviz.core.detectors.draw_step`): the rollout runner of every simulator.
+
+    Args:
+        sim: n rollouts at their start, a :class:`BatchedSimulator`.
+        uniforms: per step, float64 [n K] in [0, 1), rollout by rollout, K = :func:`draws_per_rollout` (object by
+            object: its detection's uniform, then its D errors'); e.g. ``rng.random(n K)`` per step.
+        forced: optional (detected bool [n, T, M], noise [n, T, M, D] or None, until int [n]): rollout i takes these
+            events at its steps before ``until[i]`` (a replayed prefix).
+        keep_rows: False: a simulator with object rows does not keep them (``objects`` None; the caller attaches a
+            :attr:`RolloutBatch.replay`): float64 [n, T, M, G] is most of a multi-object batch's memory.
+    Returns:
+        :class:`RolloutBatch` [n, T] (``objects`` when the simulator reports object rows and ``keep_rows``, ``noise``
+        when the target mislocates).
+    """
+    names = tuple(sim.observation_names)
+    multi = getattr(sim, "object_names", None) is not None  # else one object per rollout: its observation
+    m = n_objects_of(sim)
+    noise_names = noise_names_of(target)
+    d = len(noise_names)
+    # Rollout-major arrays written a step (a column) at a time: ~2x as fast as step-major buffers transposed at the end
+    obs = np.empty((n, n_steps, len(names)))
+    det = np.empty((n, n_steps, m), dtype=bool)
+    log_p, log_q = np.empty((n, n_steps)), np.empty((n, n_steps))
+    objects = np.empty((n, n_steps, m, len(sim.object_names))) if multi and keep_rows else None
+    noise = np.empty((n, n_steps, m, d)) if d else None
+    for t, u in zip(range(n_steps), uniforms):
+        o = np.asarray(sim.observation(), dtype=np.float64)
+        obs[:, t] = o
+        if multi:
+            rows = np.asarray(sim.objects(), dtype=np.float64)
+            if objects is not None:
+                objects[:, t] = rows
+            rows = rows.reshape(n * m, -1)  # a view where the simulator's layout allows (the cut-in's: column-major)
+        else:
+            rows = o
+        f = None
+        if forced is not None:
+            given = np.repeat(t < forced[2], m)
+            f = (forced[0][:, t].reshape(-1), None if forced[1] is None else forced[1][:, t].reshape(-1, d), given)
+        step = draw_step(sampler, target, rows, np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d),
+                         RQMC_BLOCK * m, f, m)  # fmt: skip
+        detected = step.detected.reshape(n, m)
+        det[:, t] = detected
+        if m == 1:
+            log_q[:, t], log_p[:, t] = step.log_q, step.log_p
+        else:  # the step's objects together
+            log_q[:, t], log_p[:, t] = row_sum(step.log_q.reshape(n, m)), row_sum(step.log_p.reshape(n, m))
+        errors = None
+        if d:
+            errors = step.noise.reshape(n, m, d)
+            noise[:, t] = errors
+        sim.step(detected, errors)
+    return RolloutBatch(obs, det, log_p, log_q, names, objects=objects,
+                        object_names=tuple(sim.object_names) if multi else None, noise=noise,
+                        noise_names=noise_names)  # fmt: skip
+
+
+def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray,
+                noise: np.ndarray | None) -> np.ndarray:  # fmt: skip
+    """The object rows float64 [K, T, M, G] of K rollouts of the batched simulator ``make(K)`` that took the events
+    ``detected`` bool [K, T, M] and ``noise`` float64 [K, T, M, D] (or None): the simulator stepped with those events,
+    no detector asked. Bit for bit the rows :func:`run_batched` saw (a state is a function of the events before it,
+    and a batched simulator's arithmetic is row by row)."""
+    k, n_steps = detected.shape[:2]
+    sim = make(max(k, 1))  # no rollout: the rows' shape only
+    out = np.empty((k, n_steps, n_objects_of(sim), len(sim.object_names)))
+    for t in range(n_steps if k else 0):
+        out[:, t] = sim.objects()
+        sim.step(detected[:, t], None if noise is None else noise[:, t])
+    return out
+
+
+DEFAULT_CHUNK_SIZE = RQMC_BLOCK
+"""Rollouts a batched simulator steps together: one chunk's working set stays in cache-sized arrays (measured fastest
+of 2048..65536 for the braking twin on the 2-core CI machine), one Array-RQMC block."""
+
+
+def check_counts(who: str, **counts: object) -> None:
+    """Raise ValueError unless every ``name=value`` is an integer >= 1 (a rollout count, a chunk size)."""
+    for name, value in counts.items():
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{who}: {name} must be an integer >= 1, got {value!r}")
+
+
+def uniform_chunks(rng: np.random.Generator, n: int, n_steps: int, chunk_size: int,
+                   per_rollout: int = 1) -> Iterator[tuple[int, int, Iterator[np.ndarray]]]:  # fmt: skip
+    """``(start, stop, per-step uniforms [(stop - start) K])`` for each chunk of rollouts, K = ``per_rollout``: the
+    numbers one ``rng.random(n K)`` per step gives rollouts ``start .. stop - 1``, whatever the chunks.
+
+    With one chunk or a generator that cannot jump, the draws come from ``rng`` itself in order (the chunks then draw
+    one after the other). With a PCG64 / PCG64DXSM generator each chunk reads its slice ``[t n K + start K, t n K +
+    stop K)`` of the serial stream from a copy of ``rng``'s state (``bit_generator.advance``), and ``rng`` is finally
+    advanced past all ``n K T`` draws, where the serial run leaves it.
+    """
+    bounds = [(a, min(a + chunk_size, n)) for a in range(0, n, chunk_size)]
+    k = int(per_rollout)
+    bit_gen = rng.bit_generator
+    if len(bounds) == 1 or not isinstance(bit_gen, JUMPABLE):
+        for start, stop in bounds:
+            yield start, stop, (rng.random((stop - start) * k) for _ in range(n_steps))
+        return
+    base = bit_gen.state
+
+    def draws(start: int, stop: int) -> Iterator[np.ndarray]:
+        bg = bit_generator_at(base, start * k)
+        gen = np.random.Generator(bg)
+        for t in range(n_steps):
+            if t:
+                bg.advance((n - (stop - start)) * k)
+            yield gen.random((stop - start) * k)
+
+    for start, stop in bounds:
+        yield start, stop, draws(start, stop)
+    advance(rng, n * k * n_steps)
+
+
+def _coupled(sampler: Detector) -> bool:
+    """Whether ``sampler`` draws by Array-RQMC: its rollouts are then simulated one fixed block of
+    :data:`pemviz.core.rng.RQMC_BLOCK` at a time, whatever the chunk size (the block's rollouts are coupled)."""
+    return bool(getattr(sampler, "array_rqmc", False))
+
+
+def iter_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int, sampler: Detector, target: Detector,
+                  rng: np.random.Generator, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
+                  keep_rows: bool = True) -> Iterator[RolloutBatch]:  # fmt: skip
+    """Stream ``n`` rollouts of a batched simulator as :class:`RolloutBatch` chunks of at most ``chunk_size`` rollouts
+    (:func:`run_batched` on ``make(m)``, m rollouts at their start), the rollouts of ``rng.random(n K)`` per step
+    (:func:`uniform_chunks`): the same rollouts, bit for bit, for any chunk size. An Array-RQMC sampler's rollouts are
+    simulated one fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` at a time (its rollouts are coupled) and handed out
+    in chunks of ``chunk_size``. With ``keep_rows=False`` a simulator's object rows are not kept: a chunk rebuilds
+    the rows it is asked for by replay (:attr:`RolloutBatch.replay`, :func:`replay_rows`).
+
+    Raises:
+        ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
+    """
+    check_counts("iter_rollouts", n=n, chunk_size=chunk_size)
+    n, chunk_size = int(n), int(chunk_size)
+    if _coupled(sampler) and chunk_size != RQMC_BLOCK:  # simulated block by block, handed out chunk by chunk
+        for batch in iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=RQMC_BLOCK, keep_rows=keep_rows):
+            for a in range(0, batch.n, chunk_size):
+                yield batch if batch.n <= chunk_size else batch.select(slice(a, a + chunk_size))
+        return
+    k = draws_per_rollout(make(1), target)
+    replay = None if keep_rows else functools.partial(replay_rows, make)
+    for start, stop, uniforms in uniform_chunks(rng, n, n_steps, chunk_size, k):
+        batch = run_batched(make(stop - start), stop - start, n_steps, sampler, target, uniforms, keep_rows=keep_rows)
+        elided = replay is not None and batch.object_names is not None  # a multi-object batch without its rows
+        yield replace(batch, replay=replay) if elided else batch
+
+
+def simulate_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int, sampler: Detector,
+                      target: Detector, rng: np.random.Generator, *,
+                      chunk_size: int = DEFAULT_CHUNK_SIZE) -> RolloutBatch:  # fmt: skip
+    """The ``n`` rollouts of :func:`iter_rollouts` as one :class:`RolloutBatch` [n, T] (it holds them all: stream them
+    for very large ``n``).
+
+    Raises:
+        ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
+    """
+    check_counts("simulate_rollouts", n=n, chunk_size=chunk_size)
+    size = RQMC_BLOCK if _coupled(sampler) else int(chunk_size)
+    chunks = list(iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=size))
+    return chunks[0] if len(chunks) == 1 else RolloutBatch.concatenate(chunks)
+
+
+def branch_rollouts(make: Callable[[int], BatchedSimulator], parents: RolloutBatch, parent: np.ndarray,
+                    at: np.ndarray, target: Detector, rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+    """:func:`branch` on a batched simulator (``make(K)``): new rollout i replays parent ``parent[i]``'s events
+    before step ``at[i]`` (the state at a step is a function of the events before it) and draws the rest from
+    ``target``; one ``rng.random(K k)`` per step.
+
+    Returns:
+        :class:`RolloutBatch` [K, T].
+    Raises:
+        ValueError: ``parent`` / ``at`` out of range (:func:`check_branch_args`).
+    """
+    parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
+    check_branch_args(parents, parent, at)
+    sim = make(parent.size)
+    k = draws_per_rollout(sim, target) * parent.size
+    noise = None if parents.noise is None else parents.noise[parent]
+    return run_batched(sim, parent.size, parents.n_steps, target, target,
+                       (rng.random(k) for _ in range(parents.n_steps)),
+                       forced=(parents.detected[parent], noise, at))  # fmt: skip
+
+
+def simulate(
+    make_simulator: Callable[[], Simulator],
+    n: int,
+    sampler: Detector,
+    target: Detector,
+    rng: np.random.Generator | None,
+    n_steps: int,
+    uniforms: np.ndarray | None = None,
+) -> RolloutBatch:
+    """Run ``n`` rollouts in lockstep (:class:`Lockstep`, :func:`run_batched`), each object's events drawn from
+    ``sampler``, scored under ``target``.
+
+    A detection happens iff ``u <= q(detect | s)`` with ``u ~ U(0, 1)`` from ``rng`` (one ``rng.random(n K)`` per
+    step, K = :func:`draws_per_rollout`: one ``rng.random(n)`` for a single-object scenario), as in the authors' code.
+    The detectors are asked about one fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts at a time, and an
+    Array-RQMC sampler couples the rollouts of each block (``uniforms`` must then start at a block boundary of the
+    batch), so that chunks of whole blocks simulated elsewhere give the same bits.
+
+    Args:
+        make_simulator: builds a fresh simulator at its start state.
+        n: number of rollouts (>= 1).
+        sampler: the detector that draws the events (proposal q, the PEM, a constant ...).
+        target: the PEM whose probabilities weight the rollouts (may be ``sampler`` itself).
+        rng: numpy Generator; the same seed gives the same batch (unused, may be None, with ``uniforms``).
+        n_steps: T, steps per rollout.
+        uniforms: optional float64 [T, n K] pre-drawn u's, row t used at step t instead of ``rng.random(n K)``.
+            ``rng.random((T, n K))`` holds exactly the numbers of T calls ``rng.random(n K)``, so a column slice
+            ``[:, a K:b K]`` of it reproduces rollouts a..b-1 of the serial run elsewhere (pemviz.engine.executors).
+    Returns:
+        :class:`RolloutBatch` with arrays [n, T].
+    Raises:
+        ValueError: ``n < 1``, or ``uniforms`` not of shape [T, n K] with values in [0, 1).
+    """
+    if n < 1:
+        raise ValueError(f"simulate: n must be >= 1, got {n}")
+    sim = Lockstep([make_simulator() for _ in range(n)])
+    k = draws_per_rollout(sim, target)
+    if uniforms is not None:
+        uniforms = np.asarray(uniforms, dtype=np.float64)
+        if uniforms.shape != (n_steps, n * k) or not np.all((uniforms >= 0.0) & (uniforms < 1.0)):
+            raise ValueError(f"simulate: uniforms must be float64 [T, n K] = [{n_steps}, {n * k}] in [0, 1), "
+                             f"got shape {uniforms.shape}")
+    draws = uniforms if uniforms is not None else (rng.random(n * k) for _ in range(n_steps))
+    return run_batched(sim, n, n_steps, sampler, target, draws)
+
+
+def branch(
+    make_simulator: Callable[[], Simulator],
+    parents: RolloutBatch,
+    parent: np.ndarray,
+    at: np.ndarray,
+    target: Detector,
+    rng: np.random.Generator,
+) -> RolloutBatch:
+    """Continue rollouts from given steps of earlier ones, events drawn from ``target``: K new rollouts.
+
+    New rollout i takes rollout ``parent[i]`` of ``parents``'s events at its steps ``0..at[i] - 1`` (a replay: the
+    scenario is deterministic given its perception, so it passes through the parent's states) and draws them from
+    ``target`` from step ``at[i]`` on (``log_q = log_p``), in lockstep (:func:`run_batched`): one ``rng.random(K)``
+    per step 0..T - 1 for single-object rollouts (replayed rows ignore theirs), as the vectorised twins
+    (:func:`pemviz.scenarios.batched.branch_batched`, :func:`pemviz.scenarios.toy.branch_toy`) draw.
+
+    Args:
+        make_simulator: builds a fresh simulator at its start state.
+        parents: the rollouts to branch from, [M, T].
+        parent: int [K] row of ``parents`` for each new rollout.
+        at: int [K] branching steps, in [0, T - 1].
+    Returns:
+        :class:`RolloutBatch` [K, T].
+    Raises:
+        ValueError: ``parent`` / ``at`` out of range.
+    """
+    return branch_rollouts(lambda k: Lockstep([make_simulator() for _ in range(k)]), parents, parent, at, target, rng)
+
+
+def check_branch_args(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray) -> None:
+    """Raise ValueError unless ``parent`` and ``at`` are int [K >= 1] rows of ``parents`` and steps in [0, T - 1]."""
+    if parent.ndim != 1 or parent.size < 1 or at.shape != parent.shape:
+        raise ValueError(f"branch: parent and at must be int [K >= 1] of one shape, got {parent.shape}, {at.shape}")
+    if parent.min() < 0 or parent.max() >= parents.n or at.min() < 0 or at.max() >= parents.n_steps:
+        raise ValueError(f"branch: parent must be in [0, {parents.n - 1}] and at in [0, {parents.n_steps - 1}]")
