@@ -37,3 +37,7 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
         assert math.exp(record.exact_log_p) == pytest.approx(2.8576e-5, rel=1e-3)
         wait_until(lambda: "exact answer 2.8576e-05" in tab.page.inner_text("body"),
                    what="the final estimate beside the scenario's exact answer")  # fmt: skip
+        scene = tab.session.scene
+        wait_until(lambda: "the my-car scenario draws no scene" in scene.scene_html.content, timeout=60,
+                   what="the 3D view saying the scenario draws no scene (no braking road for it)")  # fmt: skip
+        assert not scene.lead_box.visible and not scene.ego_box.visible

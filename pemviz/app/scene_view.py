@@ -132,7 +132,12 @@ class SceneView:
             if scene is None:
                 if traj.batch is not None and record.view.objects_xy is not None:  # a scene of several objects
                     self._show_objects(record, traj)
-                return  # else a problem without a scene (a toy): nothing to replay
+                elif record is not None:  # a problem that draws no scene (a toy, a scenario of one's own)
+                    self._scene_kind(None)
+                    self.scene_html.content = box(html.escape(
+                        f"the {record.view.name} scenario draws no scene: its rollouts are under Rollouts and "
+                        "Live"), GREY)  # fmt: skip
+                return
             self.explain.explain_braking(traj, scene)
             self._scene_kind(0)
             self.shown = traj
@@ -265,8 +270,9 @@ class SceneView:
         shown."""
         self._frame(0.0, lead0, self._span(np.zeros(1), np.full(1, lead0)))
 
-    def _scene_kind(self, objects: int) -> None:
-        """Show the braking scenario's scene (``objects`` 0) or one of ``objects`` cars on a road of three lanes."""
+    def _scene_kind(self, objects: int | None) -> None:
+        """Show the braking scenario's scene (``objects`` 0), one of ``objects`` cars on a road of three lanes, or no
+        scene (None: a problem that draws none)."""
         scene = self.client.scene
         if objects and len(self._object_nodes) < 2 + 2 * objects:
             lanes = 3 * OBJECT_LANE_M
@@ -290,10 +296,11 @@ class SceneView:
                     anchor="bottom-center", font_screen_scale=LABEL_SCALE, visible=False))  # fmt: skip
         with self.client.atomic():
             for node in self._braking_nodes:
-                node.visible = not objects
+                node.visible = objects == 0
             for node in self._object_nodes:
                 node.visible = bool(objects)
-            if objects:
+            self.ego_box.visible = self.scene_label.visible = objects is not None
+            if objects != 0:
                 self.trail.visible = self.breach_gate.visible = self.breach_label.visible = False
                 self.gap_label.visible = False
             else:
