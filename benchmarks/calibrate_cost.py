@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.app.runs import PanelRun  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
-from pemviz.core.problems import problem_for  # noqa: E402
+from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz.engine.resources import torch_threads  # noqa: E402
 from pemviz.engine import cost  # noqa: E402
 from pemviz.engine import experiment as engine  # noqa: E402

@@ -53,7 +53,7 @@ from scipy.special import expit, ndtri
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
-from pemviz.core.problems import cut_in_params, cut_in_problem  # noqa: E402
+from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E402
 from pemviz.scenarios import run_batched  # noqa: E402
 from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
 from pemviz.scenarios.cut_in_batched import BatchedCutIn  # noqa: E402

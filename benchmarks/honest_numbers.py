@@ -61,7 +61,7 @@ def config(scene: str, seed: int, preset: str | None = None, method: str | None 
 def one(job: dict) -> dict:
     """One run of ``job`` (``scene``, ``seed``, optional ``preset`` / ``method`` / config fields), summarised."""
     from pemviz.config import ConfigError
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
     from pemviz.engine import Experiment
     from pemviz.engine.resources import torch_threads
 

@@ -1,6 +1,6 @@
 """Why not a general rare-event library? pemviz's braking problem given to OpenTURNS as a black-box limit state.
 
-The braking job (``pemviz.core.problems.build_problem("main")``: T = 100 steps of 0.05 s, the shipped PEM as the
+The braking job (``pemviz.scenarios.problems.build_problem("main")``: T = 100 steps of 0.05 s, the shipped PEM as the
 camera's detector, failure = the gap drops below 2 m) is written as a limit state g(u) on the unit hypercube U(0, 1)^T:
 
 - step t detects iff ``log u_t <= log_expit(logit p_PEM(state_t))``, i.e. iff u_t <= p_PEM(detect | state_t), in
@@ -75,7 +75,8 @@ import numpy as np
 from scipy.special import log_expit, ndtr
 
 from pemviz.core.detectors import action_log_prob
-from pemviz.core.problems import Problem, build_problem
+from pemviz.core.problems import Problem
+from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.batched import BatchedBraking
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
@@ -276,7 +277,7 @@ def run_isolated(method: str, budget: int, seed: int, timeout_s: float, eval_cap
 def run_pemviz(seed: int) -> Run:
     """pemviz's default sampler (``ExperimentConfig(seed=seed)``) on the braking job."""
     from pemviz.config import ExperimentConfig
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
     from pemviz.engine import Experiment
     from pemviz.engine.events import RunFinished
 

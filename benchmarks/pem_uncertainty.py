@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from pemviz.config import ExperimentConfig
-from pemviz.core.problems import PEM_SHIFTS, problem_for
+from pemviz.scenarios.problems import PEM_SHIFTS, problem_for
 from pemviz.core.truth import braking_exact, branching_start, miss_bound, pem_fingerprint
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem

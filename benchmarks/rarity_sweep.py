@@ -55,7 +55,8 @@ from pemviz.engine.events import RunFinished
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.io.files import atomic_write
 from pemviz.presets import PRESETS
-from pemviz.core.problems import Problem, ShiftedPEM, braking_problem, cut_in_params, cut_in_problem, toy_problem
+from pemviz.core.problems import Problem, ShiftedPEM
+from pemviz.scenarios.problems import braking_problem, cut_in_params, cut_in_problem, toy_problem
 from pemviz.engine.resources import torch_threads
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
@@ -415,11 +416,11 @@ def write_rrd(path: str, rows: Sequence[Row], table_md: str) -> None:
 
 def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
     """Var(w 1[fail]) / mu^2 per rollout of the default sampler's final batch (N_e rollouts from its last proposal,
-    the defensive mixture included) on the named problem of :data:`pemviz.core.problems.PROBLEMS`, one per seed, with
-    the exact mu; returns (log mu, [relative variance per seed]). q* has 0, plain Monte Carlo (1 - mu) / mu."""
+    the defensive mixture included) on the named problem of :data:`pemviz.scenarios.problems.PROBLEMS`, one per seed,
+    with the exact mu; returns (log mu, [relative variance per seed]). q* has 0, plain Monte Carlo (1 - mu) / mu."""
     from pemviz.engine.events import RolloutsSampled
     from pemviz.estimators.optimal import relative_variance
-    from pemviz.core.problems import build_problem
+    from pemviz.scenarios.problems import build_problem
 
     problem = build_problem(name)
     assert problem.exact_log_p is not None
@@ -475,7 +476,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "(comma-separated, e.g. toy,latched,main), printed as a table")  # fmt: skip
     args = ap.parse_args(argv)
     if args.relative_variance:
-        from pemviz.core.problems import PROBLEMS
+        from pemviz.scenarios.problems import PROBLEMS
 
         names = args.relative_variance.split(",")
         if any(n not in PROBLEMS for n in names):

@@ -55,7 +55,7 @@ def main() -> int:
     import ray
 
     from pemviz.config import ExperimentConfig
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
     from pemviz.engine.executors import close_executors
 
     base = ExperimentConfig(sim="highway-env", n_stages=args.k, n_per_stage=args.n, n_final=args.n,

@@ -43,7 +43,7 @@ def _child(argv: list[str]) -> None:
     """Run one ``pemviz run`` in this process with timing hooks; print one JSON line of figures."""
     sys.path.insert(0, str(REPO))  # this checkout's pemviz, as ``python -m pemviz.cli`` from the repository root
     import pemviz.engine.experiment as engine
-    import pemviz.core.problems as problems
+    import pemviz.scenarios.problems as problems
     import pemviz.estimators.ce_fit as ce_fit
     from pemviz.cli import main
 

@@ -170,7 +170,7 @@ def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path, scenario: str
     view = None
     if scenario != "braking":  # that scenario's views (e.g. the cut-in's objects)
         from pemviz.config import ExperimentConfig
-        from pemviz.core.problems import problem_for
+        from pemviz.scenarios.problems import problem_for
 
         view = problem_for(ExperimentConfig(scenario=scenario)).view
     default_blueprint(n_lanes, view, tab=tab, paused=True).save(APP_ID, str(path))

@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from pemviz.config import ExperimentConfig
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz.engine.experiment import Experiment
 
 TARGET_RATIO = 1.5

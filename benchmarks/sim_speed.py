@@ -118,7 +118,7 @@ def peak_rss_gib() -> float:
 
 def million_child(n: int, seed: int) -> None:
     """Child process: stream n PEM rollouts, print seconds, failures and peak RSS as JSON."""
-    from pemviz.core.problems import braking_problem
+    from pemviz.scenarios.problems import braking_problem
     from pemviz.pem import load_pem
     from pemviz.scenarios.batched import summarise_batched
 
@@ -173,7 +173,7 @@ class Split:
 
 
 def time_split(sim: str) -> None:
-    import pemviz.core.problems as problems
+    import pemviz.scenarios.problems as problems
     import pemviz.estimators.cross_entropy as cross_entropy
     import pemviz.sinks.console as console
     import pemviz.sinks.recording as recording

@@ -143,7 +143,7 @@ class ExperimentConfig:
             failure is the gap dropping below it; 0 is contact (the severity curve's last point,
             :mod:`pemviz.core.severity`).
         pem_uncertainty: re-weight the rollouts under every member of the PEM's bootstrap ensemble and under the
-            logit shifts :data:`pemviz.core.problems.PEM_SHIFTS` (:mod:`pemviz.core.reweight`).
+            logit shifts :data:`pemviz.scenarios.problems.PEM_SHIFTS` (:mod:`pemviz.core.reweight`).
         pem_shift: None or D: re-weight the rollouts under the PEM with every logit shifted by D (log-odds).
         max_sims: with ``rel_error``, the most simulations in all (None: :data:`DEFAULT_MAX_SIMS`); at least the
             planned ones.

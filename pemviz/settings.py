@@ -27,13 +27,14 @@ METRICS = ("classic", "agm", "smooth-cumulative")
 """Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
 
 SIMULATORS = ("highway-env", "batched")
-"""Braking-scenario back-ends (:func:`pemviz.core.problems.braking_problem`): ``batched`` advances all rollouts together
-in numpy, ``highway-env`` steps one black-box simulator per rollout; the same seed gives the same rollouts on both."""
+"""Braking-scenario back-ends (:func:`pemviz.scenarios.problems.braking_problem`): ``batched`` advances all rollouts
+together in numpy, ``highway-env`` steps one black-box simulator per rollout; the same seed gives the same rollouts on
+both."""
 
 SCENARIOS = ("braking", "cut-in", "cut-in-rare")
-"""What a run estimates (:func:`pemviz.core.problems.problem_for`): ``braking``, the paper's scenario (one lead car, a
-closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and measurement
-errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same below 1e-9
+"""What a run estimates (:func:`pemviz.scenarios.problems.problem_for`): ``braking``, the paper's scenario (one lead
+car, a closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and
+measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same below 1e-9
 (:mod:`pemviz.scenarios.cut_in`)."""
 
 

@@ -42,7 +42,7 @@ RUN_ROLLOUTS = 500
 
 ESTIMATOR_PROBLEM = "toy-1e-3"
 """The problem :func:`check_estimator` estimates: the toy braking model (10, 5, 3, p = 0.9), exact p = 1e-3
-(:data:`pemviz.core.problems.PROBLEMS`); its rollouts are 9 steps, so thousands cost milliseconds."""
+(:data:`pemviz.scenarios.problems.PROBLEMS`); its rollouts are 9 steps, so thousands cost milliseconds."""
 
 ESTIMATOR_SEEDS = 8
 """Seeds 0 .. K - 1 whose estimates :func:`check_estimator` averages."""
@@ -508,8 +508,8 @@ def check_estimator(method: str, *, problem: Any = None, folder: str | Path | No
     from pemviz.config import METHODS
     from pemviz.core.checks import CheckError
     from pemviz.core.checks import check_estimator as check_interface
-    from pemviz.core.problems import build_problem
     from pemviz.estimators import build_estimator
+    from pemviz.scenarios.problems import build_problem
 
     if method not in METHODS:
         raise ValueError(f"check_estimator: unknown method {method!r}; use one of {', '.join(METHODS)}")

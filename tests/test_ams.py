@@ -17,7 +17,7 @@ from pemviz.envs import BrakingEnv
 from pemviz.core.estimate import relative_error
 from pemviz.estimators import build_estimator
 from pemviz.estimators.ams import run_ams, running_score
-from pemviz.core.problems import braking_problem, build_problem, toy_problem
+from pemviz.scenarios.problems import braking_problem, build_problem, toy_problem
 from pemviz.scenarios import branch, can_snapshot
 from pemviz.scenarios.batched import BatchedBraking
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz.app.explain import explain
 from pemviz.app.form import FIELDS_BY_KEY, parse_form, parse_number, run_cost, run_label
 from pemviz.app.runs import (

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, StageSamplers, WindowDetector, step_uniforms
-from pemviz.core.problems import toy_problem
+from pemviz.scenarios.problems import toy_problem
 from pemviz.core.rng import GOLDEN, array_rqmc_uniforms, ranking_key
 from pemviz.estimators.base import weighted_steps_mask
 from pemviz.scenarios import simulate
@@ -108,7 +108,7 @@ def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_unifo
 
 
 def test_batched_array_rqmc_rollouts_do_not_depend_on_the_chunk_size():
-    from pemviz.core.problems import braking_problem
+    from pemviz.scenarios.problems import braking_problem
     from pemviz.pem import load_pem
     from pemviz.scenarios.batched import iter_batched, simulate_batched
     from pemviz.scenarios import RolloutBatch

@@ -154,7 +154,7 @@ def test_proposal_view_by_hand():
 
 def test_a_default_runs_late_stage_misses_the_lead_inside_10_m_far_more_than_the_pem():
     from pemviz.config import ExperimentConfig
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
     from pemviz.engine import Experiment
     from pemviz.engine.events import RolloutsSampled, StageFinished
 

@@ -11,7 +11,7 @@ import pytest
 from pemviz.core.checks import CheckError, check_estimator, check_simulator
 from pemviz.config import ExperimentConfig
 from pemviz.estimators import build_estimator
-from pemviz.core.problems import toy_problem
+from pemviz.scenarios.problems import toy_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
 from test_simulator_protocol import ParkedCarAEB
 

@@ -204,7 +204,7 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
 
 
 def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with():
-    from pemviz.core.problems import toy_problem
+    from pemviz.scenarios.problems import toy_problem
     from pemviz.estimators import AdaptiveMultilevelSplitting, CrossEntropy
     from pemviz.scenarios.toy import ToyParams
 

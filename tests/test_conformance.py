@@ -15,7 +15,7 @@ import pytest
 
 from conftest import doc_python_block
 from pemviz.config import METHODS, SCENARIOS
-from pemviz.core.problems import build_problem
+from pemviz.scenarios.problems import build_problem
 from pemviz.estimators.fixed import FixedSampler
 from pemviz.scenarios import builtin, get_scenario, register, registered
 from pemviz.scenarios.registry import Scenario, unregister
@@ -58,7 +58,8 @@ def test_the_registry_holds_the_run_scenarios_and_the_toys_and_refuses_a_second_
 
 def test_listing_the_scenarios_loads_no_problem_pem_or_torch():
     code = ("import sys; from pemviz.scenarios import registered; print(','.join(registered())); "
-            "print([m for m in ('torch', 'pemviz.core.problems', 'pemviz.pem') if m in sys.modules])")  # fmt: skip
+            "print([m for m in ('torch', 'pemviz.core.problems', 'pemviz.scenarios.problems', 'pemviz.pem') "
+            "if m in sys.modules])")  # fmt: skip
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
     assert out[0].split(",")[:5] == ["braking", "cut-in", "cut-in-rare", "toy", "crowd"] and out[1] == "[]"
 

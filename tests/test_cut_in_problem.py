@@ -13,7 +13,7 @@ from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import StageSamplers
 from pemviz.pem import load_pem
 from pemviz.pem.store import load_noise_pem
-from pemviz.core.problems import cut_in_params, cut_in_problem
+from pemviz.scenarios.problems import cut_in_params, cut_in_problem
 from pemviz.scenarios.cut_in import FAILURE_FORMULA, OBJECT_NAMES, OBSERVATION_NAMES, SALIENT_COLUMNS
 
 VISIBLE = OBJECT_NAMES.index("visible")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from pemviz.config import ExperimentConfig
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz.engine import Experiment
 from pemviz.engine.events import RolloutsSampled
 from pemviz.scenarios import RolloutBatch

@@ -12,7 +12,7 @@ from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
 from pemviz.engine.events import RolloutsSampled
 from pemviz.presets import PRESETS
-from pemviz.core.problems import build_problem
+from pemviz.scenarios.problems import build_problem
 
 nan, inf = math.nan, math.inf
 
@@ -198,7 +198,7 @@ def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, uni
 def test_a_problems_horizon_is_the_steps_of_its_rollouts(name):
     """``Problem.n_steps`` (and its view's), the one horizon the memory check, the cost model and the sinks read, is
     the number of steps its simulator draws."""
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
 
     problem = problem_for(ExperimentConfig(scenario="cut-in")) if name == "cut-in" else build_problem(name)
     batch = problem.simulate(3, problem.target, problem.target, np.random.default_rng(0))

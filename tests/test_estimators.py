@@ -10,7 +10,7 @@ import torch
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, action_log_prob
-from pemviz.core.problems import build_problem, toy_problem
+from pemviz.scenarios.problems import build_problem, toy_problem
 from pemviz.core.sampling import Proposal
 from pemviz.estimators import (
     CrossEntropy,

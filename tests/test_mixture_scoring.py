@@ -12,7 +12,7 @@ from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, ScoredTarget, StageSamplers, WindowDetector
 from pemviz.estimators import DefensiveDetector
 from pemviz.engine import Experiment
-from pemviz.core.problems import build_problem
+from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios import simulate
 from pemviz.scenarios.toy import ToyBraking, ToyParams
 

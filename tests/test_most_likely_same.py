@@ -24,7 +24,7 @@ from pemviz.core.counterfactuals import (  # noqa: E402
     likeliest_failures,
     most_likely_failure,
 )
-from pemviz.core.problems import problem_for  # noqa: E402
+from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz.engine.events import RolloutsSampled  # noqa: E402
 from pemviz.engine.experiment import Experiment  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402

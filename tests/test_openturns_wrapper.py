@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pemviz.core.problems import build_problem
+from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.batched import simulate_batched
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "openturns_braking.py"

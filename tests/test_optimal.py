@@ -10,7 +10,8 @@ import pytest
 
 from pemviz.core import truth
 from pemviz.core.estimate import relative_error
-from pemviz.core.problems import ShiftedPEM, braking_problem, build_problem, toy_problem
+from pemviz.core.problems import ShiftedPEM
+from pemviz.scenarios.problems import braking_problem, build_problem, toy_problem
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, relative_variance, rollouts_for
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.toy import ToyBraking, ToyParams, ToyValue

@@ -12,7 +12,7 @@ from scipy.special import logit
 
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ConstantDetector
-from pemviz.core.problems import PEM_SHIFTS, braking_problem, problem_for, with_alternatives
+from pemviz.scenarios.problems import PEM_SHIFTS, braking_problem, problem_for, with_alternatives
 from pemviz.core.reweight import ShiftedDetector, detection_log_ratios, with_pem
 from pemviz.core.truth import latched_log_failure_probability
 from pemviz.engine.experiment import Experiment

@@ -10,7 +10,7 @@ import pytest
 
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.estimate import Estimate, clopper_pearson, estimate
-from pemviz.core.problems import build_problem
+from pemviz.scenarios.problems import build_problem
 from pemviz.engine import Experiment
 from pemviz.estimators import PrecisionTarget, build_estimator
 from pemviz.estimators.base import pool

@@ -19,7 +19,7 @@ rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
 
 from conftest import verify_rrd  # noqa: E402
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz import cli  # noqa: E402
 from pemviz.engine import experiment as engine  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402

@@ -10,7 +10,7 @@ from scipy.stats import beta
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from conftest import run_cli
 
 

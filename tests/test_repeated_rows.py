@@ -9,7 +9,7 @@ import pytest
 
 import pemviz.pem.perception as perception
 from pemviz.config import ExperimentConfig
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz.pem.perception import PROBE_ROWS, repeated_rows
 
 

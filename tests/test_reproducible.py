@@ -97,7 +97,7 @@ def test_cut_in_chunks_of_1000_give_the_default_chunk_s_rollouts_bit_for_bit():
     products, chunks of 1,000 gave other last bits."""
     import numpy as np
 
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
     from pemviz.scenarios import RolloutBatch
 
     pb = problem_for(ExperimentConfig(scenario="cut-in"))

@@ -20,7 +20,7 @@ from pemviz.core.estimate import estimate
 from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
 from pemviz.engine.plan import RunPlan
 from pemviz.presets import PRESETS
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz import cli
 from pemviz.estimators.rollout_file import REESTIMATE_RTOL
 from pemviz.io import rollout_format
@@ -31,7 +31,7 @@ from pemviz.core.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment
 from pemviz.engine.events import FinalEstimate, RolloutChunk, RolloutsSampled, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
-from pemviz.core.problems import braking_problem
+from pemviz.scenarios.problems import braking_problem
 from pemviz.core.severity import rollout_severity
 from pemviz.scenarios.braking_failures import severity
 from pemviz.core.sampling import Proposal, load_proposal

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from pemviz.config import ExperimentConfig
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz.core.severity import (
     FailureSeverity,
     SeverityScale,
@@ -89,7 +89,7 @@ def test_braking_rollouts_agree_with_the_scene_s_severity_number_for_number(brak
 def test_cut_in_impact_speed_is_the_ego_s_closing_speed_on_the_car_it_meets():
     # the cut-in car missed for a while: contact is a clearance <= 0 (the boxes meet); the closing speed over the
     # step into it is the ego's speed minus the front car's at the step before, to 0.1 m/s (the cut-in car turns)
-    from pemviz.core.problems import cut_in_params
+    from pemviz.scenarios.problems import cut_in_params
     from pemviz.scenarios.cut_in import OBSERVATION_NAMES as NAMES
     from pemviz.scenarios.cut_in_batched import replay as replay_cut_in
 

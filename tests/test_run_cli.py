@@ -11,7 +11,7 @@ import pytest
 
 from conftest import REPO, run_cli, verify_rrd
 from pemviz.presets import PRESETS
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
 from pemviz.engine.events import FinalEstimate, StageFinished

@@ -92,7 +92,7 @@ def test_a_json_document_s_pairs_make_the_same_config():
 
 
 def test_the_problem_has_the_gap_and_no_reference_of_the_default_scene():
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
 
     default = problem_for(ExperimentConfig(scenario="cut-in"))
     moved = problem_for(ExperimentConfig(scenario="cut-in", scenario_params=(("cut_in_gap_m", 19.5),)))
@@ -104,7 +104,7 @@ def test_the_problem_has_the_gap_and_no_reference_of_the_default_scene():
 
 
 def test_the_braking_exact_answer_is_dropped_or_recomputed_for_changed_parameters():
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
     from pemviz.core.truth import latched_log_failure_probability
     from pemviz.pem import load_pem
 

@@ -10,7 +10,7 @@ import pytest
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import estimate
-from pemviz.core.problems import build_problem
+from pemviz.scenarios.problems import build_problem
 from pemviz.engine import Experiment
 from pemviz.estimators.base import SeenFailures, failure_steps, log_p_before_failure
 
@@ -65,7 +65,7 @@ def test_an_estimate_below_the_failures_seen_is_unreliable_and_one_above_keeps_i
 
 
 def test_a_scene_with_measurement_errors_gives_no_bound():
-    from pemviz.core.problems import problem_for
+    from pemviz.scenarios.problems import problem_for
 
     cfg = ExperimentConfig(scenario="cut-in", method="naive50", n_per_stage=200, seed=3)
     res = Experiment(cfg, problem=problem_for(cfg)).run()

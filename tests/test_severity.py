@@ -11,7 +11,7 @@ import pytest
 
 from pemviz.config import ExperimentConfig
 from pemviz.core import truth
-from pemviz.core.problems import problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz.core.severity import SeverityScale, level_events
 from pemviz.engine.events import RolloutsSampled
 from pemviz.engine.experiment import Experiment

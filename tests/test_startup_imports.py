@@ -11,7 +11,7 @@ import torch
 import pemviz.core.sampling as sampling
 from pemviz.config import ExperimentConfig
 from pemviz.core import torch_use
-from pemviz.core.problems import build_problem
+from pemviz.scenarios.problems import build_problem
 from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
 from pemviz.engine import Experiment
 

@@ -12,7 +12,7 @@ import pytest
 
 from pemviz.cli import main as cli_main
 from pemviz.config import ExperimentConfig
-from pemviz.core.problems import toy_problem
+from pemviz.scenarios.problems import toy_problem
 from pemviz.engine import Experiment
 from pemviz.presets import PRESETS
 from pemviz.scenarios.toy import ToyParams
@@ -154,7 +154,7 @@ def test_tables_recording_holds_fig4_as_the_mean_of_the_stage_3_curves(tmp_path)
 
 
 def test_every_named_problem_has_its_exact_answer_for_validate():
-    from pemviz.core.problems import PROBLEMS, build_problem
+    from pemviz.scenarios.problems import PROBLEMS, build_problem
     from pemviz.studies.validation import exact_answer
 
     for name in PROBLEMS:

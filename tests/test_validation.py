@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import relative_error
-from pemviz.core.problems import PROBLEMS, build_problem
+from pemviz.scenarios.problems import PROBLEMS, build_problem
 from pemviz.studies.validation import (
     DEFAULT_PROBLEMS,
     ExactAnswer,

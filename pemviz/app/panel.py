@@ -20,10 +20,10 @@ import viser
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.app.session import Session
 from pemviz.config import ExperimentConfig
-from pemviz.core.problems import problem_for
 from pemviz.engine import experiment
 from pemviz.presets import DEFAULT_PRESET
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.problems import problem_for
 from pemviz.sinks.colours import BLUE
 
 STATUS_EVERY_S = 0.5

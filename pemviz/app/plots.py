@@ -244,7 +244,7 @@ CURVE_AXES = {
 }
 """The x axis of a proposal's reference-state curve: the braking scenario's gap to the lead, or, in a scene of several
 objects, the range from the camera to the cut-in car placed straight ahead in the ego's lane, unoccluded
-(:func:`pemviz.core.problems.cut_in_problem`'s ``curve_rows``), metres."""
+(:func:`pemviz.scenarios.problems.cut_in_problem`'s ``curve_rows``), metres."""
 
 
 def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) -> None:

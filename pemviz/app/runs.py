@@ -65,7 +65,7 @@ GAP_BINS_M = np.linspace(0.0, 13.0, 27)
 OBJECT_GAP_BINS_M = np.linspace(0.0, 40.0, 41)
 """Bins of the proposal view of a scene of several objects (:func:`object_proposal_view`): the cut-in car's gap ahead
 (its rear minus the ego's front bumper, metres), 1 m wide, 0 to 40 m (the cut-in starts 20 m ahead; the proposal reads
-cars within 40 m, :data:`pemviz.core.problems.CUT_IN_WINDOW_M`)."""
+cars within 40 m, :data:`pemviz.scenarios.problems.CUT_IN_WINDOW_M`)."""
 
 VIEW_OBJECT = 0
 """The object whose detections the proposal view of a scene of several objects follows: the cut-in car (object 0 of

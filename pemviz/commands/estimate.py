@@ -161,7 +161,7 @@ def weights_convention(meta: Any, requested: str | None) -> tuple[str, str]:
 
 def known_answer(data: Any, failure: str, own: bool) -> tuple[float | None, Any]:
     """The exact log failure probability (nats) or the plain Monte Carlo reference that the run which wrote the file
-    printed (its problem, :func:`pemviz.core.problems.problem_for` of the scenario, its parameters, PEM, margin and
+    printed (its problem, :func:`pemviz.scenarios.problems.problem_for` of the scenario, its parameters, PEM, margin and
     simulator its sidecar records), when the file is estimated as that run estimated it: under the run's own log p
     (``own``) and with a crash of its specification as the failure. ``(None, None)`` otherwise, or when the sidecar
     records no run."""
@@ -245,10 +245,10 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
             shipped ensemble, or a PEM that cannot be read.
     """
     from pemviz.core.detectors import PEMDetector
-    from pemviz.core.problems import PEM_SHIFTS, braking_formula
     from pemviz.core.reweight import Alternative, PemSpread, ShiftedDetector
     from pemviz.core.truth import known_log_failure_probability
     from pemviz.pem.ensemble import ensemble_for, load_ensemble
+    from pemviz.scenarios.problems import PEM_SHIFTS, braking_formula
 
     if data.n_objects > 1 or data.noise is not None:
         raise UsageError(f"--pem-uncertainty: {data.path} holds {data.n_objects} objects a step with measurement "

@@ -24,10 +24,10 @@ import time
 
 from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
 from pemviz.core.estimate import format_probability
-from pemviz.core.problems import PROBLEMS, build_problem
 from pemviz.engine.resources import cap_jobs
 from pemviz.io.files import check_output_folder, write_text_atomic
 from pemviz.presets import PRESETS
+from pemviz.scenarios.problems import PROBLEMS, build_problem
 from pemviz.studies.paper_tables import (
     records_by_row,
     report,

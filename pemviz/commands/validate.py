@@ -1,6 +1,6 @@
 """``pemviz validate``: the sampler and the baselines against exact failure probabilities.
 
-Each problem of :data:`pemviz.core.problems.PROBLEMS` has a known answer: the toy braking model in closed form,
+Each problem of :data:`pemviz.scenarios.problems.PROBLEMS` has a known answer: the toy braking model in closed form,
 the latched-brake scenario from its deterministic simulator, and the main braking scenario by exact
 enumeration of its detection sequences (:mod:`pemviz.core.truth`). Every method runs on every problem for
 several seeds at the same simulation budget (the adaptive sampler's: pretraining + K x N + N_e), and the
@@ -19,10 +19,10 @@ from pathlib import Path
 
 from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
 from pemviz.core.estimate import format_probability, relative_error
-from pemviz.core.problems import PROBLEMS
 from pemviz.engine.resources import cap_jobs
 from pemviz.io.files import check_output_folder, write_text_atomic
 from pemviz.presets import DEFAULT_PRESET, PRESETS
+from pemviz.scenarios.problems import PROBLEMS
 from pemviz.studies.validation import (
     BASELINES,
     DEFAULT_PROBLEMS,

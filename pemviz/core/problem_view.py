@@ -1,7 +1,7 @@
 """What a sink sees of a problem: the problem's view (:class:`ProblemView`: its name, description, signals with their
 units, the failure threshold and the sampler window to draw, the braking scene, where the objects and their errors are
 in the object rows) and the scene of a batch's first rollout of several objects read through it (:func:`object_scene`).
-Plain data, no simulator: :mod:`pemviz.core.problems` imports every name here too.
+Plain data, no simulator and no scenario: :mod:`pemviz.core.problems` imports every name here too.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import numpy as np
 
 if TYPE_CHECKING:  # annotations only, never imported at run time
     from pemviz.core.rollouts import RolloutBatch
-    from pemviz.scenarios.braking import BrakingParams
 
 
 @dataclass(frozen=True)
@@ -57,8 +56,9 @@ class ProblemView:
         description: one line, e.g. ``automated braking behind a lead car 12.3 m ahead, ...``.
         signals: the safety formula's signals with their observation columns and units.
         thresholds: the failure threshold and the sampler window to draw beside the rollouts, or None (none known).
-        scene: the braking scenario's constants (car sizes, camera, dt) to draw its rollouts as a scene, or None:
-            the problem has no scene (the toys), and no cars, braking distance or crash gap are drawn.
+        scene: the braking scenario's constants (car sizes, camera, dt: a
+            :class:`pemviz.scenarios.braking.BrakingParams`) to draw its rollouts as a scene, or None: the problem has
+            no scene (the toys), and no cars, braking distance or crash gap are drawn.
         objects_xy: the object-row columns of each object's position seen from the ego (metres: to the right,
             ahead), to draw a scene of several objects from its rollouts' rows; None: none.
         noise_xy: the measurement-error components along those two directions (indexes into the noise, metres),
@@ -70,7 +70,7 @@ class ProblemView:
     description: str
     signals: tuple[SignalView, ...]
     thresholds: Thresholds | None = None
-    scene: BrakingParams | None = None
+    scene: object | None = None
     objects_xy: tuple[str, str] | None = None
     noise_xy: tuple[int, int] | None = None
     n_steps: int | None = None

@@ -97,8 +97,9 @@ import numpy as np
 
 import pemviz
 from pemviz import stl
-from pemviz.core.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, braking_formula
+from pemviz.core.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
+from pemviz.scenarios.problems import braking_formula
 
 FORMAT_TAG = "pemviz-rollouts"
 
@@ -400,7 +401,7 @@ def braking_meta(
 ) -> RolloutMeta:
     """The sidecar of braking-scenario rollouts (Innes & Ramamoorthy 2022): dt 0.05 s, signals d / v / vl, units.
 
-    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.core.problems.braking_formula`.
+    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.scenarios.problems.braking_formula`.
     """
     p = BrakingParams()
     return RolloutMeta(

@@ -9,7 +9,7 @@ dataclass and passes its one-line message on. Fields that are not scalars (the c
 constants, the braking scenario's lead speed profile and brake curve) are not parameters.
 
 The run's parameters travel in :attr:`pemviz.config.ExperimentConfig.scenario_params` as ``(name, value)`` pairs;
-:func:`pemviz.core.problems.problem_for` builds the scenario from them. This module imports the two scenario
+:func:`pemviz.scenarios.problems.problem_for` builds the scenario from them. This module imports the two scenario
 dataclasses and nothing heavier (no PEM, no torch; the cut-in's only for a cut-in): the config checks the pairs here.
 """
 

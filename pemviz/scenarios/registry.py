@@ -101,9 +101,9 @@ class Scenario:
     @property
     def runnable(self) -> bool:
         """Whether it is one of the built-in run scenarios (:data:`pemviz.settings.SCENARIOS`), whose parameters
-        :mod:`pemviz.scenarios.parameters` builds and whose problem :func:`pemviz.core.problems.problem_for` builds.
-        Every registered scenario runs (``pemviz run --scenario NAME``, :func:`problem_for`); its parameters travel
-        in :attr:`pemviz.config.ExperimentConfig.scenario_params`."""
+        :mod:`pemviz.scenarios.parameters` builds and whose problem :func:`pemviz.scenarios.problems.problem_for`
+        builds. Every registered scenario runs (``pemviz run --scenario NAME``, :func:`problem_for`); its parameters
+        travel in :attr:`pemviz.config.ExperimentConfig.scenario_params`."""
         return self.name in SCENARIOS
 
     def params_class(self) -> type | None:
@@ -319,15 +319,15 @@ def get(name: str) -> Scenario:
 
 def problem_for(config: Any) -> Any:
     """The :class:`pemviz.core.problems.Problem` a run of ``config`` estimates, for any registered scenario
-    (``config.scenario``): the built-in ones through :func:`pemviz.core.problems.problem_for`, a plugin's through its
-    factory with the config's parameters (:meth:`Scenario.problem`).
+    (``config.scenario``): the built-in ones through :func:`pemviz.scenarios.problems.problem_for`, a plugin's through
+    its factory with the config's parameters (:meth:`Scenario.problem`).
 
     Raises:
         KeyError: an unregistered scenario; ScenarioPluginError: a plugin that cannot be loaded; what
             :meth:`Scenario.problem` raises (parameters refused, a PEM that cannot be read).
     """
     if config.scenario in SCENARIOS:
-        from pemviz.core.problems import problem_for as built_in
+        from pemviz.scenarios.problems import problem_for as built_in
 
         return built_in(config)
     return get(config.scenario).problem(config)

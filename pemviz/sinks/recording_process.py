@@ -6,10 +6,10 @@ interpreter's lock, so a thread cannot take them off the run's path; a second pr
 afterwards is recorded as it was when it drew) and a writer thread feeds them to ``python -m
 pemviz.sinks.recording_process PATH OVERWRITE``, whose :func:`main` hands them, in order, to a
 :class:`pemviz.sinks.recording.RerunSink` writing ``PATH`` (the same entities, the same file). The child rebuilds
-the run's problem from :class:`~pemviz.engine.events.RunStarted`'s config (:func:`pemviz.core.problems.problem_for`)
-for what it computes from it: robustness under the metrics the run did not compute, and the failures' severity. The
-final estimate's failures come grouped by the run (:meth:`RecordingProcess.share_failure_groups`), which groups them
-while the child logs the last stage.
+the run's problem from :class:`~pemviz.engine.events.RunStarted`'s config
+(:func:`pemviz.scenarios.problems.problem_for`) for what it computes from it: robustness under the metrics the run did
+not compute, and the failures' severity. The final estimate's failures come grouped by the run
+(:meth:`RecordingProcess.share_failure_groups`), which groups them while the child logs the last stage.
 
 What the sink promises holds across the two processes:
 

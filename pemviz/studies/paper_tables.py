@@ -24,8 +24,8 @@ from pemviz.config import METRICS, ExperimentConfig
 from pemviz.core.estimate import format_probability
 from pemviz.io.files import write_rrd
 from pemviz.presets import PRESETS
+from pemviz.scenarios.problems import PROBLEMS
 from pemviz.sinks.colours import DARK, METRIC_COLOURS, OTHER, rgba, stage_rgba
-from pemviz.core.problems import PROBLEMS
 from pemviz.studies.validation import ExactAnswer, Job, RunRecord, ams_fields
 
 FIG4_STAGE = 3

@@ -91,9 +91,9 @@ def fingerprint(config: Any) -> dict[str, Any]:
     ``chunks`` (how many chunks the run's stages came in), ``dispatch`` (:func:`dispatch_in_use`)."""
     import numpy as np
 
-    from pemviz.core.problems import problem_for
     from pemviz.engine import Experiment
     from pemviz.engine.events import RolloutChunk, RolloutsSampled
+    from pemviz.scenarios.problems import problem_for
 
     digest = hashlib.sha256()
     chunks = [0]

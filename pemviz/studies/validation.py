@@ -1,6 +1,6 @@
 """Validation of the estimators against exact failure probabilities: jobs, their records, summaries.
 
-A :class:`Job` is one method (a config) on one named problem (:data:`pemviz.core.problems.PROBLEMS`) for one seed;
+A :class:`Job` is one method (a config) on one named problem (:data:`pemviz.scenarios.problems.PROBLEMS`) for one seed;
 :func:`run_jobs` runs jobs in worker processes and appends every :class:`RunRecord` to a ``runs.jsonl`` file as it
 ends, so an interrupted study resumes; :func:`exact_answer` is each problem's truth (closed form, the
 deterministic latched simulator, or exact enumeration, :mod:`pemviz.core.truth`); :func:`summarise` groups records into
@@ -28,7 +28,6 @@ from tqdm import tqdm
 from pemviz.config import METHODS, ExperimentConfig
 from pemviz.core import truth
 from pemviz.core.estimate import format_probability, relative_error
-from pemviz.core.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
 from pemviz.engine.resources import torch_threads
 from pemviz.engine import Experiment
 from pemviz.engine.events import RunFinished
@@ -37,6 +36,7 @@ from pemviz.pem import load_pem
 from pemviz.presets import PRESETS
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.crowd import crowd_log_failure_probability
+from pemviz.scenarios.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
 from pemviz.scenarios.toy import toy_log_failure_probability
 
 DEFAULT_PROBLEMS = ("toy", "toy-1e-30", "latched", "main")
@@ -57,9 +57,9 @@ class ExactAnswer:
 
 def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None,
                  recompute: bool = False) -> ExactAnswer:  # fmt: skip
-    """The exact p_fail of a problem of :data:`~pemviz.core.problems.PROBLEMS` (milliseconds for the toys, the latched
-    scenario and ``main`` with a shipped PEM, whose answer is kept; 20-40 s of enumeration for ``main`` with another
-    PEM or with ``recompute``).
+    """The exact p_fail of a problem of :data:`~pemviz.scenarios.problems.PROBLEMS` (milliseconds for the toys, the
+    latched scenario and ``main`` with a shipped PEM, whose answer is kept; 20-40 s of enumeration for ``main`` with
+    another PEM or with ``recompute``).
 
     ``progress`` receives a line per refinement of the enumeration (``main``).
 
@@ -112,7 +112,7 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
 
 
 def validation_problems() -> tuple[str, ...]:
-    """The problems ``pemviz validate`` can run: :data:`~pemviz.core.problems.PROBLEMS`, then every registered
+    """The problems ``pemviz validate`` can run: :data:`~pemviz.scenarios.problems.PROBLEMS`, then every registered
     scenario with an exact answer (:attr:`pemviz.scenarios.registry.Scenario.exact`; plugins included) not named
     there."""
     from pemviz.scenarios import registry
@@ -122,8 +122,8 @@ def validation_problems() -> tuple[str, ...]:
 
 
 def problem_description(name: str) -> str:
-    """What the problem ``name`` is, one line: its entry of :data:`~pemviz.core.problems.PROBLEMS`, else the registered
-    scenario's description (:attr:`pemviz.scenarios.registry.Scenario.description`)."""
+    """What the problem ``name`` is, one line: its entry of :data:`~pemviz.scenarios.problems.PROBLEMS`, else the
+    registered scenario's description (:attr:`pemviz.scenarios.registry.Scenario.description`)."""
     if name in PROBLEMS:
         return PROBLEMS[name]
     from pemviz.scenarios import registry
@@ -132,9 +132,9 @@ def problem_description(name: str) -> str:
 
 
 def validation_problem(name: str, pem_path: str | None = None):
-    """The :class:`~pemviz.core.problems.Problem` of ``name``: one of :data:`~pemviz.core.problems.PROBLEMS`
-    (:func:`~pemviz.core.problems.build_problem`), else a registered scenario at its defaults with ``pem_path``'s PEM
-    (:mod:`pemviz.scenarios.registry`).
+    """The :class:`~pemviz.core.problems.Problem` of ``name``: one of :data:`~pemviz.scenarios.problems.PROBLEMS`
+    (:func:`~pemviz.scenarios.problems.build_problem`), else a registered scenario at its defaults with
+    ``pem_path``'s PEM (:mod:`pemviz.scenarios.registry`).
 
     Raises:
         ValueError: an unknown name, or a registered scenario whose problem carries no exact answer.

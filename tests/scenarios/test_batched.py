@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from pemviz.core.problems import problem_for
-from pemviz.core import problems
+from pemviz.scenarios.problems import problem_for
+from pemviz.scenarios import problems
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, PEMDetector, WindowDetector
 from pemviz.scenarios import RolloutBatch, simulate
