@@ -48,7 +48,7 @@ def build_parser(command: str | None = None, *, full: bool = True) -> argparse.A
 
 AS_PROGRAM = False
 """Whether this process is the ``pemviz`` program (:func:`main` called without ``argv``), not a library user: only
-then does a command change process-wide state (:mod:`pemviz.commands.process`)."""
+then does a command change process-wide state (:mod:`pemviz.sinks.process`)."""
 
 
 def _raise_terminated(signum: int, frame: object) -> None:

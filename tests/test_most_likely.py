@@ -9,7 +9,7 @@ import pytest
 
 from pemviz.app.runs import PanelRun
 from pemviz.config import ExperimentConfig
-from pemviz.core.counterfactuals import MostLikelyFailure
+from pemviz.sinks.most_likely import MostLikelyFailure
 from pemviz.scenarios.problems import problem_for
 from pemviz.engine.experiment import Experiment
 from pemviz.sinks.recording import RerunSink

@@ -19,11 +19,11 @@ from pemviz.app.runs import PanelRun  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
 from pemviz.core.counterfactuals import (  # noqa: E402
     LikelyFailure,
-    MostLikelyFailure,
     failure_log_p,
     likeliest_failures,
     most_likely_failure,
 )
+from pemviz.sinks.most_likely import MostLikelyFailure  # noqa: E402
 from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz.engine.events import RolloutsSampled  # noqa: E402
 from pemviz.engine.experiment import Experiment  # noqa: E402

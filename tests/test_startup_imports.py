@@ -112,7 +112,7 @@ def test_a_pending_thread_count_applies_when_torch_is_first_asked_for():
 def test_a_default_run_with_its_recording_imports_neither_torch_nor_pandas(tmp_path, scenario):
     """torch (about 1 s to import) is not needed by a run whose fits are exact: the PEM, the proposal, the STL
     robustness, the estimate and the recording all run without it; nor is pandas (0.2 s) by the program's recording
-    (:func:`pemviz.commands.process.settle_pyarrow_without_pandas`). A small run of each scene, as the program, in a
+    (:func:`pemviz.sinks.process.settle_pyarrow_without_pandas`). A small run of each scene, as the program, in a
     new process (its exit hook prints what was imported). The cut-in's traffic comes from highway-env, which imports
     pandas itself. A braking run loads neither the cut-in's modules, nor splitting's, nor the report's."""
     import subprocess
@@ -135,7 +135,7 @@ def test_a_default_run_with_its_recording_imports_neither_torch_nor_pandas(tmp_p
 
 def test_the_pandas_settle_is_the_programs_alone(tmp_path, monkeypatch):
     """pemviz called as a library (``main(argv)``) leaves pyarrow as it found it."""
-    import pemviz.commands.process as process
+    import pemviz.sinks.process as process
     from pemviz.cli import main
 
     def refuse() -> bool:
@@ -151,7 +151,7 @@ def test_after_the_settle_pandas_imports_and_converts_as_before():
     import subprocess
     import sys
 
-    code = ("import sys; from pemviz.commands.process import settle_pyarrow_without_pandas as settle; "
+    code = ("import sys; from pemviz.sinks.process import settle_pyarrow_without_pandas as settle; "
             "print(settle(), 'pandas' in sys.modules); import pandas as pd, pyarrow as pa; "
             "t = pa.Table.from_pandas(pd.DataFrame({'x': [1.5, None]})); print(t.column('x').to_pylist(), settle())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -1,4 +1,4 @@
-"""pemviz.pem.torch_payload: the torch-free reader of ``torch.save`` archives, against ``torch.load(weights_only=True)``;
+"""pemviz.core.torch_payload: the torch-free reader of ``torch.save`` archives, against ``torch.load(weights_only=True)``;
 loading a PEM without torch, and the numpy fold of the weights, bit for bit the torch module's."""
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 
 from pemviz import pem
 from pemviz.io.files import load_tagged
-from pemviz.pem.torch_payload import UnsupportedPayload, load_payload, read_payload
+from pemviz.core.torch_payload import UnsupportedPayload, load_payload, read_payload
 from pemviz.pem import network, noise, store
 from pemviz.pem.ensemble import ensemble_for, load_ensemble
 

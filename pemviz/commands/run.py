@@ -362,7 +362,7 @@ def main(args: argparse.Namespace) -> int:
     from pemviz import cli
 
     if cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.executor == "serial":  # "save": the child's
-        from pemviz.commands.process import settle_pyarrow_without_pandas
+        from pemviz.sinks.process import settle_pyarrow_without_pandas
 
         settle_pyarrow_without_pandas()
     save_path = None
@@ -402,7 +402,7 @@ def main(args: argparse.Namespace) -> int:
 def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_files) -> int:
     """The run itself, its listeners and its files (:func:`run`); ``early``: the recording process started before
     the problem was built, or None."""
-    from pemviz.core.counterfactuals import MostLikelyFailure
+    from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.engine.cost import N_STEPS
     from pemviz.engine.resources import torch_threads
     from pemviz.engine.experiment import Experiment, stream_above

@@ -188,35 +188,3 @@ def most_likely_failure(event, best: LikelyFailure | None = None) -> LikelyFailu
     if best is not None and best.log_p >= log_p:
         return best
     return LikelyFailure(int(event.stage), row, int(event.rollout_numbers[row]), log_p)
-
-
-class MostLikelyFailure:
-    """A run's listener that keeps its most likely failure (:func:`most_likely_failure`, log p in nats over T - 1
-    steps: :func:`failure_log_p`) for the console's *why* line: ``best`` (None until a failure is seen), its ``stage``,
-    ``rollout`` number and ``log_p`` (-inf until then), and ``batch``, the rollout as a batch of one."""
-
-    def __init__(self) -> None:
-        self.best: LikelyFailure | None = None
-        self.batch: RolloutBatch | None = None
-        self.stage: int | None = None
-        self.rollout: int | None = None
-        self.log_p = -np.inf
-
-    def __call__(self, event: object) -> None:
-        from pemviz.engine.events import RolloutsSampled
-
-        if not isinstance(event, RolloutsSampled):
-            return
-        best = most_likely_failure(event, self.best)
-        if best is not self.best:
-            self.best, self.batch = best, event.batch.select(np.array([best.row]))
-            self.stage, self.rollout, self.log_p = best.stage, best.rollout, best.log_p
-
-    def why(self, problem) -> str | None:
-        """The console's line saying which perception errors decided the most likely failure
-        (:func:`counterfactuals`, replayed through ``problem``); None before a failure or for rollouts without
-        object rows."""
-        if self.batch is None or self.batch.objects is None:
-            return None
-        cf = counterfactuals(problem, self.batch, 0)
-        return f"why: the most likely failure (stage {self.stage}, log p {self.log_p:.1f} nats): {cf.summary()}"

@@ -79,14 +79,14 @@ def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Excep
         what: how messages name the file (``PEM``, ``proposal checkpoint``).
         error: the exception type raised for an unreadable or foreign file.
         as_numpy: tensors as numpy arrays, read without importing torch for the files pemviz writes
-            (:func:`pemviz.pem.torch_payload.load_payload`, which falls back to torch for any other file); else
+            (:func:`pemviz.core.torch_payload.load_payload`, which falls back to torch for any other file); else
             ``torch.load(path, weights_only=True)``'s tensors.
     Raises:
         ``error``: damaged file, missing tag, or another format version.
     """
     try:
         if as_numpy:
-            from pemviz.pem.torch_payload import load_payload
+            from pemviz.core.torch_payload import load_payload
 
             payload = load_payload(path)
         else:

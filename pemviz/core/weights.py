@@ -27,15 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.special import logsumexp
 
-from pemviz.core.detectors import (
-    ArrayRQMC,
-    ConstantDetector,
-    Detector,
-    SamplerView,
-    WindowDetector,
-    action_log_prob,
-    errors_log_density,
-)
+from pemviz.core.detectors import Detector, action_log_prob, errors_log_density
 
 CONVENTIONS = ("to-failure", "full")
 """The weight conventions: ``to-failure`` (stopped at the failure step) and ``full`` (every step but the last)."""
@@ -110,30 +102,6 @@ def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detec
              for _, d in parts]  # fmt: skip
     shares = np.asarray(sizes, dtype=np.float64) / sum(sizes)
     return mixture_step_log_q(np.stack(log_q), shares, densities=batch.noise is not None), component
-
-
-def describe(detector: Any, target: Any = None) -> str:
-    """A short name of a sampler for the sidecar: ``target``, ``proposal within 10 m, target beyond`` ..."""
-    from pemviz.core.sampling import Proposal
-    from pemviz.estimators.cross_entropy import DefensiveDetector
-
-    if detector is target:
-        return "target"
-    if isinstance(detector, SamplerView):
-        return detector.samplers.describe(detector.index)
-    if isinstance(detector, WindowDetector):
-        return (f"{describe(detector.inside, target)} within {detector.radius_m:g} m, "
-                f"{describe(detector.outside, target)} beyond")  # fmt: skip
-    if isinstance(detector, DefensiveDetector):
-        return f"(1 - {detector.eps:g}) {describe(detector.detector, target)} + {detector.eps:g} x 50 %"
-    if isinstance(detector, ConstantDetector):
-        return f"{detector.p_detect:g} everywhere"
-    if isinstance(detector, Proposal):
-        return "proposal"
-    if isinstance(detector, ArrayRQMC):
-        return describe(detector.detector, target)
-    inner = getattr(detector, "detector", None)
-    return type(detector).__name__ + ("" if inner is None else f" of {describe(inner, target)}")
 
 
 @dataclass(frozen=True)

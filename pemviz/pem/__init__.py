@@ -17,7 +17,7 @@ trees), ``camera`` (pixel box errors -> metric errors), ``noise`` (noise PEMs), 
 modules for training: :class:`MLNN`, the noise loss).
 
 Importing this package, loading a PEM and evaluating it do not import torch (about 1 s): the files are read into
-numpy arrays (:mod:`pemviz.pem.torch_payload`). ``MLNN`` is imported from :mod:`pemviz.pem.modules`, with torch, when
+numpy arrays (:mod:`pemviz.core.torch_payload`). ``MLNN`` is imported from :mod:`pemviz.pem.modules`, with torch, when
 first named; training and :meth:`PEM.to_module` import torch.
 """
 

@@ -8,7 +8,7 @@ z-score statistics (float64 tensors), the model's tensors and plain-value metada
 (:class:`HomoscedasticNoise`), the family and its degrees of freedom. A :class:`NoisyPEM` file
 (:func:`save_noisy_pem`, tag ``pemviz-noisy-pem``) holds the two heads' dicts under ``detect`` and ``noise``.
 
-Loading does not import torch: :func:`pemviz.pem.torch_payload.load_payload` reads the ``torch.save`` archive into
+Loading does not import torch: :func:`pemviz.core.torch_payload.load_payload` reads the ``torch.save`` archive into
 numpy arrays (and asks torch only for a file it does not understand). Saving imports torch (``torch.save``).
 """
 
@@ -111,7 +111,7 @@ def _tensor(value: Any, dtype: Any = None) -> torch.Tensor:
 
 
 def _array(value: Any) -> np.ndarray:
-    """A payload's tensor, read as a numpy array (:func:`pemviz.pem.torch_payload.load_payload`).
+    """A payload's tensor, read as a numpy array (:func:`pemviz.core.torch_payload.load_payload`).
 
     Raises:
         TypeError: anything else (the file is damaged).
@@ -305,7 +305,7 @@ def load_reference_pem(folder: str | os.PathLike[str] | None = None) -> PEM:
     ``norm_stats_mu.pt`` / ``norm_stats_std.pt``) as a :class:`PEM` named ``authors``.
 
     Their stats are float32 over all 11 columns; the pose columns 7..10 are used. The files are read as
-    ``torch.load(weights_only=True)`` reads them (:func:`pemviz.pem.torch_payload.load_payload`: without torch when
+    ``torch.load(weights_only=True)`` reads them (:func:`pemviz.core.torch_payload.load_payload`: without torch when
     it understands them).
 
     Raises:
@@ -316,7 +316,7 @@ def load_reference_pem(folder: str | os.PathLike[str] | None = None) -> PEM:
     missing = [str(f) for f in files if not f.is_file()]
     if missing:
         raise FileNotFoundError(f"authors' PEM files missing: {', '.join(missing)}")
-    from pemviz.pem.torch_payload import load_payload
+    from pemviz.core.torch_payload import load_payload
 
     state = load_payload(files[0])
     mu = np.asarray(load_payload(files[1]), dtype=np.float64)

@@ -18,11 +18,12 @@ from pemviz.estimators.base import pool_stage_weights
 from pemviz.io.rollout_format import braking_meta, problem_meta
 from pemviz.io.rollouts import RolloutWriter, braking_salient, check_rollouts_path
 from pemviz.pem import DEFAULT_PEM_NAME
+from pemviz.core.detectors import ArrayRQMC, ConstantDetector, SamplerView, WindowDetector
 from pemviz.core.sampling import Proposal
 from pemviz.core.severity import rollout_severity, severity_of_signal
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink
-from pemviz.core.weights import convention, describe, stage_log_q
+from pemviz.core.weights import convention, stage_log_q
 
 STAGES = ("used", "all")
 """Which stages ``--save-rollouts`` writes: those the run's estimate uses, or every stage (pretraining included)."""
@@ -183,3 +184,26 @@ class RolloutSink(Sink):
         if self._writer is not None:
             self._writer.abort()
             self._writer = None
+
+
+def describe(detector: Any, target: Any = None) -> str:
+    """A short name of a sampler for the sidecar: ``target``, ``proposal within 10 m, target beyond`` ..."""
+    from pemviz.estimators.cross_entropy import DefensiveDetector  # the sampler classes above the core
+
+    if detector is target:
+        return "target"
+    if isinstance(detector, SamplerView):
+        return detector.samplers.describe(detector.index)
+    if isinstance(detector, WindowDetector):
+        return (f"{describe(detector.inside, target)} within {detector.radius_m:g} m, "
+                f"{describe(detector.outside, target)} beyond")  # fmt: skip
+    if isinstance(detector, DefensiveDetector):
+        return f"(1 - {detector.eps:g}) {describe(detector.detector, target)} + {detector.eps:g} x 50 %"
+    if isinstance(detector, ConstantDetector):
+        return f"{detector.p_detect:g} everywhere"
+    if isinstance(detector, Proposal):
+        return "proposal"
+    if isinstance(detector, ArrayRQMC):
+        return describe(detector.detector, target)
+    inner = getattr(detector, "detector", None)
+    return type(detector).__name__ + ("" if inner is None else f" of {describe(inner, target)}")

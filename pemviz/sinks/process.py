@@ -1,4 +1,5 @@
-"""What the ``pemviz`` program sets in its own process, never when pemviz is imported as a library.
+"""What the ``pemviz`` program sets in its own process (or its recording process), never when pemviz is imported as a
+library.
 
 :func:`settle_pyarrow_without_pandas`: a recording run never hands pyarrow a pandas object, so it need not pay pandas'
 import (about 0.2 s of a default run's 3 s) for pyarrow to learn there is none.
