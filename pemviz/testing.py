@@ -194,7 +194,7 @@ def _run_with_files(config: Any, problem: Any, folder: Path, stem: str) -> _Run:
 
 def _check_files(checks: _Checks, run: _Run) -> None:
     """The rollout file re-estimates to the run's own estimate; the recording was written and is not empty."""
-    from pemviz.estimators.rollout_file import REESTIMATE_RTOL, estimate_rollouts
+    from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
     from pemviz.io.rollouts import read_rollouts
 
     name = "rollout-file"
@@ -327,8 +327,8 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
       Skipped without one.
     - ``rollout-file``: a ``naive50`` run of :data:`RUN_ROLLOUTS` (a small adaptive run if it sees no failure) saved by
       :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file
-      (:func:`pemviz.estimators.rollout_file.estimate_rollouts`) to the run's own mu_hat within
-      :data:`pemviz.estimators.rollout_file.REESTIMATE_RTOL` (1e-9, relative), with its failures, rollouts and verdict.
+      (:func:`pemviz.io.rollout_estimate.estimate_rollouts`) to the run's own mu_hat within
+      :data:`pemviz.io.rollout_estimate.REESTIMATE_RTOL` (1e-9, relative), with its failures, rollouts and verdict.
     - ``recording``: the same run recorded by :meth:`pemviz.sinks.recording.RerunSink.to_file` writes a non-empty
       file without error.
 

@@ -44,7 +44,8 @@ def test_ams_is_unbiased_on_the_small_toy():
 
 
 def test_ams_is_unbiased_with_a_distance_dependent_detector():
-    """p(d) from 0.95 at the obstacle to 0.5 at the start; exact answer by the product formula (pemviz.core.truth)."""
+    """p(d) from 0.95 at the obstacle to 0.5 at the start; exact answer by the product formula
+    (pemviz.scenarios.truth)."""
     params = ToyParams(30, 12, 3, lambda d: 0.95 - 0.015 * np.asarray(d))
     pb = toy_problem(params)
     assert pb.exact_log_p == toy_log_failure_probability(params) and pb.exact_log_p < math.log(1e-6)

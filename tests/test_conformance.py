@@ -156,16 +156,16 @@ def test_each_scenario_check_fails_on_a_broken_scenario(changes, message):
 
 def reestimated_off(monkeypatch):
     """The rollout file's estimate 1e-6 (relative) off the run's."""
-    from pemviz.estimators import rollout_file
+    from pemviz.io import rollout_estimate
 
-    original = rollout_file.estimate_rollouts
+    original = rollout_estimate.estimate_rollouts
 
     def off(*args, **kwargs):
         result = original(*args, **kwargs)
         est = dataclasses.replace(result.estimate, log_mu_hat=result.estimate.log_mu_hat + 1e-6)
         return dataclasses.replace(result, estimate=est)
 
-    monkeypatch.setattr(rollout_file, "estimate_rollouts", off)
+    monkeypatch.setattr(rollout_estimate, "estimate_rollouts", off)
 
 
 def recording_fails(monkeypatch):

@@ -22,10 +22,10 @@ from pemviz.engine.plan import RunPlan
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import problem_for
 from pemviz import cli
-from pemviz.estimators.rollout_file import REESTIMATE_RTOL
+from pemviz.io.rollout_estimate import REESTIMATE_RTOL
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
-from pemviz.estimators.rollout_file import detector_log_prob, estimate_rollouts, pem_log_prob
+from pemviz.io.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment

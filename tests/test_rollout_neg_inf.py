@@ -19,7 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pemviz import cli
-from pemviz.estimators.rollout_file import REESTIMATE_RTOL, estimate_rollouts
+from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
 from pemviz.scenarios import RolloutBatch

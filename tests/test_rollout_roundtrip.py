@@ -24,7 +24,7 @@ from pemviz.core.severity import severity_of_signal
 from pemviz.core.weights import component_of, mean_weight, mixture_step_log_q
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
-from pemviz.estimators.rollout_file import REESTIMATE_RTOL
+from pemviz.io.rollout_estimate import REESTIMATE_RTOL
 
 LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
 

@@ -41,7 +41,7 @@ def test_default_run_is_within_x2_of_the_exact_answer_with_its_interval_and_verd
     proc, _ = default_run
     failures, n, log_mu, sims = parse_final(proc.stdout)
     assert n > 1000 and failures >= 300  # the final batch pooled with the CE stages drawn from failure proposals
-    assert abs(log_mu - math.log(1.9837e-15)) < math.log(1.2)  # the exact answer (pemviz.core.truth): seed 0 is 4 % off
+    assert abs(log_mu - math.log(1.9837e-15)) < math.log(1.2)  # the exact answer (scenarios.truth): seed 0 is 4 % off
     assert sims == 100 + 10 * 100 + 1000  # pretraining, K = 10 stages of N = 100, N_e = 1000
     assert len(re.findall(r"^\s+\d+\s+ce\s", proc.stdout, re.M)) == 10  # one row per stage
     summary = re.search(r"^mu_hat = \S+, 95% CI \[(\S+), (\S+)\], ESS \S+, k-hat \S+: (\w+) \(.+\); "

@@ -1,4 +1,5 @@
-"""Exact answers (pemviz.core.truth) against independent truth: brute-force enumeration, highway-env, Monte Carlo."""
+"""Exact answers (pemviz.scenarios.truth) against independent truth: brute-force enumeration, highway-env,
+Monte Carlo."""
 
 from __future__ import annotations
 
@@ -12,10 +13,12 @@ from scipy.special import log_expit
 from pemviz.core.detectors import ConstantDetector, WindowDetector
 from pemviz.core.estimate import estimate
 from pemviz.scenarios.problems import toy_problem
-from pemviz.core.truth import _relaxed_step, braking_exact, branching_start, latched_log_failure_probability, miss_bound
 from pemviz.scenarios import simulate
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario, braking_replay, braking_step, lead_speeds
 from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_log_failure_probability
+from pemviz.scenarios.truth import (
+    _relaxed_step, braking_exact, branching_start, latched_log_failure_probability, miss_bound,
+)
 
 
 @pytest.fixture(scope="module")

@@ -27,9 +27,9 @@ from pemviz.config import SETTINGS, ExperimentConfig
 from pemviz.core.estimate import format_probability
 from pemviz.core.sampling import load_proposal
 from pemviz.core.weights import CONVENTIONS
-from pemviz.estimators.rollout_file import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
 from pemviz.io.data import sha256_file
 from pemviz.io.files import check_output_folder, free_default_path, write_rrd
+from pemviz.io.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
 from pemviz.io.rollout_format import SAMPLERS, RolloutFormatError
 from pemviz.io.rollouts import read_rollouts
 from pemviz.pem import load_pem
@@ -246,7 +246,7 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
     """
     from pemviz.core.detectors import PEMDetector
     from pemviz.core.reweight import Alternative, PemSpread, ShiftedDetector
-    from pemviz.core.truth import known_log_failure_probability
+    from pemviz.scenarios.truth import known_log_failure_probability
     from pemviz.pem.ensemble import ensemble_for, load_ensemble
     from pemviz.scenarios.problems import PEM_SHIFTS, braking_formula
 

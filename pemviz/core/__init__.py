@@ -1,7 +1,7 @@
 """The core: the small typed pieces every run is made of, with no I/O beyond saving and loading its own models.
 
 A problem (:mod:`pemviz.core.problems`: simulator + target PEM + safety formula; the built-in scenarios' problems are
-in :mod:`pemviz.scenarios.problems`) with the braking scenarios' exact answers (:mod:`pemviz.core.truth`); the
+in :mod:`pemviz.scenarios.problems`, the braking scenarios' exact answers in :mod:`pemviz.scenarios.truth`); the
 simulator protocols and the rollouts they give (:mod:`pemviz.core.rollouts`), drawn by the one rollout runner
 (:mod:`pemviz.core.lockstep`); the detectors that draw a rollout's perception events (:mod:`pemviz.core.detectors`)
 and the random streams behind them (:mod:`pemviz.core.rng`); the proposal networks and their fits

@@ -208,7 +208,7 @@ class ShiftedPEM:
     """A PEM whose detection logit is moved by ``shift`` (nats) at every gap: ``logit p'(detect | d) = logit
     p(detect | d) + shift``, so that p'(miss) ~ exp(-shift) p(miss) where misses are rare. A braking problem with it
     (:func:`pemviz.scenarios.problems.braking_problem`) is as rare as wanted, and its exact answer comes from the same
-    enumeration (:func:`pemviz.core.truth.braking_exact` with ``logit_at_gap``)."""
+    enumeration (:func:`pemviz.scenarios.truth.braking_exact` with ``logit_at_gap``)."""
 
     pem: object
     shift: float

@@ -27,12 +27,12 @@ from pemviz.core.problems import Problem, rollout_functions
 from pemviz.core.reweight import AlternativeTarget
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import SeverityScale
-from pemviz.core.truth import known_log_failure_probability
 from pemviz.pem import DEFAULT_PEM_NAME, load_pem
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
 from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
+from pemviz.scenarios.truth import known_log_failure_probability
 
 if TYPE_CHECKING:
     from pemviz.scenarios.cut_in import CutInParams
@@ -311,7 +311,7 @@ def problem_for(config: ExperimentConfig) -> Problem:
     Monte Carlo reference (:data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`) carries it as its
     :attr:`Problem.reference` only when it runs the shipped PEMs at the setting's own parameters, under which the
     reference was drawn; the braking scenario's exact answer is known for its default parameters (or another crash
-    gap, or the latched brake) only (:func:`pemviz.core.truth.known_log_failure_probability`).
+    gap, or the latched brake) only (:func:`pemviz.scenarios.truth.known_log_failure_probability`).
 
     Raises:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
@@ -345,7 +345,7 @@ def with_alternatives(problem: Problem, config: ExperimentConfig) -> Problem:
     """``problem`` with the alternative targets ``config`` asks for (:mod:`pemviz.core.reweight`): with
     ``pem_uncertainty`` every member of the PEM's ensemble (:func:`pemviz.pem.ensemble.ensemble_for`) and the shifts
     :data:`PEM_SHIFTS`, and ``pem_shift`` D; each with its exact answer where the truth knows it (the braking
-    scenario's PEM fingerprints, :func:`pemviz.core.truth.known_log_failure_probability`).
+    scenario's PEM fingerprints, :func:`pemviz.scenarios.truth.known_log_failure_probability`).
 
     Raises:
         FileNotFoundError, pemviz.pem.network.PemFormatError: no ensemble for the PEM, or a damaged one.

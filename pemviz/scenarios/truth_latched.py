@@ -1,11 +1,11 @@
 """The latched-brake braking scenario's exact answer: its failure probability in closed form
-(:func:`latched_log_failure_probability`) and its value function V, the zero-variance sampler's
-(:func:`latched_value`); and :data:`LogitFn`, the detector curve every exact answer of :mod:`pemviz.core.truth` takes.
+(:func:`latched_log_failure_probability`) and its value function V, the zero-variance sampler's (:func:`latched_value`);
+and :data:`LogitFn`, the detector curve every exact answer of :mod:`pemviz.scenarios.truth` takes.
 
 With a latched brake the first effective detection decides everything, so p_fail is a finite sum over the step of
 the first detection, each term from the deterministic simulator (:func:`pemviz.scenarios.braking.braking_replay`).
-Probabilities are natural logs (nats) in float64 and sums are log-sum-exps. :mod:`pemviz.core.truth` re-exports every
-name.
+Probabilities are natural logs (nats) in float64 and sums are log-sum-exps. :mod:`pemviz.scenarios.truth` re-exports
+every name.
 """
 
 from __future__ import annotations
