@@ -79,3 +79,70 @@ def test_a_folder_that_is_no_package_or_does_not_parse_is_refused(tmp_path, caps
     root = package(tmp_path, {"__init__.py": "", "bad.py": "def (:\n"})
     assert ic.main(["--root", str(root)]) == 2
     assert "bad.py:1" in capsys.readouterr().err
+
+
+LOWER = ("core", "engine", "estimators", "stl", "pem")
+"""The folders that know no scenario, file, sink, panel or command."""
+UPPER = ("scenarios", "io", "sinks", "app", "commands")
+
+
+def folder_imports(root: Path) -> dict[tuple[str, str], list[str]]:
+    """(folder, folder it imports) -> the ``file:line`` of each import statement (lazy, TYPE_CHECKING and indented
+    ones included), read from the source of the package at ``root``."""
+    import ast
+
+    found: dict[tuple[str, str], list[str]] = {}
+    for f in sorted(root.rglob("*.py")):
+        parts = f.relative_to(root).parts
+        if len(parts) < 2:
+            continue
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                p = name.split(".")
+                if p[0] == root.name and len(p) > 1 and (root / p[1]).is_dir() and p[1] != parts[0]:
+                    found.setdefault((parts[0], p[1]), []).append(f"{f.relative_to(root)}:{node.lineno}")
+    return found
+
+
+def folder_circles(edges) -> list[set[str]]:
+    """The sets of folders that import one another in a circle (strongly connected, more than one)."""
+    graph: dict[str, set[str]] = {}
+    for a, b in edges:
+        graph.setdefault(a, set()).add(b)
+    reach = {a: set() for a in graph}
+    for a in graph:
+        todo = list(graph[a])
+        while todo:
+            b = todo.pop()
+            if b not in reach[a]:
+                reach[a].add(b)
+                todo.extend(graph.get(b, ()))
+    circles = {frozenset({a} | {b for b in reach[a] if a in reach.get(b, ())}) for a in graph if a in reach[a]}
+    return [set(c) for c in circles]
+
+
+def test_the_lower_layers_import_no_scenario_file_sink_panel_or_command():
+    found = folder_imports(REPO / "pemviz")
+    upward = {k: v for k, v in found.items() if k[0] in LOWER and k[1] in UPPER}
+    assert upward == {}, upward
+
+
+def test_the_folders_import_one_another_in_no_circle():
+    assert folder_circles(folder_imports(REPO / "pemviz")) == []
+
+
+def test_an_upward_import_and_a_folder_circle_are_found(tmp_path):
+    root = tmp_path / "pemviz"
+    for name, text in {"core/a.py": "def f():\n    from pemviz.sinks import b\n", "sinks/b.py": "import pemviz.core.a\n",
+                       "stl/c.py": "x = 1\n"}.items():  # fmt: skip
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text)
+    found = folder_imports(root)
+    assert found == {("core", "sinks"): ["core/a.py:2"], ("sinks", "core"): ["sinks/b.py:1"]}
+    assert folder_circles(found) == [{"core", "sinks"}]

@@ -14,7 +14,7 @@ import shutil
 import pytest
 
 from pemviz.cli import main
-from pemviz.io.report import document_sha256, report_html, severity_svg
+from pemviz.sinks.report import document_sha256, report_html, severity_svg
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",

@@ -18,7 +18,7 @@ import pytest
 from conftest import run_cli, verify_rrd
 from pemviz.core.estimate import estimate
 from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import problem_for
 from pemviz import cli

@@ -119,7 +119,7 @@ def test_a_default_run_with_its_recording_imports_neither_torch_nor_pandas(tmp_p
     import sys
 
     code = ("import os, sys; import pemviz.cli as cli; "
-            "others = ('pemviz.scenarios.cut_in', 'pemviz.estimators.ams', 'pemviz.io.report'); "
+            "others = ('pemviz.scenarios.cut_in', 'pemviz.estimators.ams', 'pemviz.sinks.report'); "
             "exit_now = lambda status: print('unused', [m for m in others if m in sys.modules], 'exit', status, "
             "'torch', 'torch' in sys.modules, 'pandas', 'pandas' in sys.modules, flush=True) or os._exit(status); "
             "cli._exit_now = exit_now; "

@@ -328,7 +328,7 @@ class PanelRun(Sink):
         self.message = ""
         self.formula = ""
         self.plan = None
-        """The stages the run will draw (:class:`pemviz.engine.plan.RunPlan`), once it started; None before."""
+        """The stages the run will draw (:class:`pemviz.core.plan.RunPlan`), once it started; None before."""
         self.view = None
         """The problem as the panel shows it (:class:`pemviz.core.problems.ProblemView`), once it started; None
         before."""

@@ -1,6 +1,6 @@
 """``pemviz report RUN``: a safety-case report of a run, one self-contained HTML page and its Markdown twin.
 
-The run's result document holds every number the report shows (:mod:`pemviz.io.report`): ``pemviz run --json
+The run's result document holds every number the report shows (:mod:`pemviz.sinks.report`): ``pemviz run --json
 RESULT.json`` writes it where asked, and a run that saves a recording writes it beside the recording (``run.rrd`` ->
 ``run.result.json``), so ``pemviz report run.rrd`` reports that run. ``pemviz run --report PAGE.html`` writes the same
 page at the end of a run.
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from pemviz.commands import COMMANDS, UsageError
 from pemviz.io.files import check_output_path
-from pemviz.io.report import markdown_twin, write_report
+from pemviz.sinks.report import markdown_twin, write_report
 from pemviz.io.result import RESULT_BESIDE_SUFFIX, RESULT_FORMAT, result_beside
 
 REQUIRED = ("format", "scenario", "method", "seed", "estimate", "n_simulations")

@@ -265,7 +265,7 @@ def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path 
     paths = []
     report = getattr(args, "report_path", None)
     if report is not None:
-        from pemviz.io.report import markdown_twin
+        from pemviz.sinks.report import markdown_twin
 
         try:
             check_output_path(markdown_twin(Path(report)), ".md", "--report (its Markdown twin)",
@@ -326,7 +326,7 @@ def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, fina
         console = "\n".join(line for line in lines[1:] if line.startswith(("mu_hat", "no failure", "stop:")))
         print(f"junit: {write_junit(junit_path, doc, console, overwrite=args.overwrite)}", file=sys.stderr)
     if report_path is not None:
-        from pemviz.io.report import write_report
+        from pemviz.sinks.report import write_report
 
         page, twin = write_report(report_path, doc, overwrite=args.overwrite)
         print(f"report: {page} (and {twin})", file=sys.stderr)

@@ -1,13 +1,13 @@
 """The engine: runs an estimator's stages on a problem and emits events (:mod:`pemviz.engine.experiment`).
 
-With it: the events and what they carry (:mod:`pemviz.engine.events`), the run's plan of stages
-(:mod:`pemviz.engine.plan`), what a run costs before it starts and while it runs (:mod:`pemviz.engine.cost`), its
+With it: the events and what they carry (:mod:`pemviz.engine.events`; the run's plan of stages is the core's,
+:mod:`pemviz.core.plan`), what a run costs before it starts and while it runs (:mod:`pemviz.engine.cost`), its
 memory and CPUs (:mod:`pemviz.engine.resources`), and where its rollouts are simulated (:mod:`pemviz.engine.executors`).
 
 ``from pemviz.engine import Experiment`` (and the other names of :data:`__all__`; the events have their one home in
 :mod:`pemviz.engine.events`) imports
 :mod:`pemviz.engine.experiment`, and with it torch, only when asked: the light modules of this package
-(``events``, ``plan``, ``cost``, ``resources``) import neither, so ``pemviz --help`` stays fast. To change one of the
+(``events``, ``cost``, ``resources``) import neither, so ``pemviz --help`` stays fast. To change one of the
 engine's constants (``STREAM_ABOVE``) set it on :mod:`pemviz.engine.experiment`, which reads it.
 """
 

@@ -1,7 +1,7 @@
 """What a run costs: its simulations, its largest batch in memory, and its seconds, before it starts and while it runs.
 
 The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimators.cross_entropy`,
-:mod:`pemviz.estimators.ce_fit`), stage by stage of its :class:`~pemviz.engine.plan.RunPlan`:
+:mod:`pemviz.estimators.ce_fit`), stage by stage of its :class:`~pemviz.core.plan.RunPlan`:
 
 - simulating a batch of n rollouts of T steps: T x (a fixed cost per step of the batch, larger when a proposal
   network and its mixture decide the detections than when the PEM alone does, + a cost per rollout and step of the
@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass, field
 
 from pemviz.config import ExperimentConfig
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 from pemviz.engine.resources import BASE_BYTES, run_memory
 
 N_STEPS = 100

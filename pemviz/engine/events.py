@@ -1,6 +1,6 @@
 """The events the experiment engine (:class:`pemviz.engine.experiment.Experiment`) emits, and what they carry.
 
-Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.engine.plan.RunPlan` and the problem's
+Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.core.plan.RunPlan` and the problem's
 :class:`~pemviz.core.problems.ProblemView`); for each stage (0 = pretraining, 1..K = cross-entropy stages, K+1 = final
 batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one :class:`RolloutsSampled`,
 :class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`).
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Callable, Mapping, Union
 
 import numpy as np
 
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 
 if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.config import ExperimentConfig

@@ -5,7 +5,7 @@ as listeners ``listener(event) -> None`` and never call back into the engine, ex
 ``cancel`` token (a :class:`threading.Event`).
 
 The events and their order are :mod:`pemviz.engine.events`'s: :class:`~pemviz.engine.events.RunStarted` (with the
-estimator's :class:`~pemviz.engine.plan.RunPlan` and the problem's :class:`~pemviz.core.problems.ProblemView`), then per
+estimator's :class:`~pemviz.core.plan.RunPlan` and the problem's :class:`~pemviz.core.problems.ProblemView`), then per
 stage :class:`~pemviz.engine.events.StageStarted`, :class:`~pemviz.engine.events.RolloutChunk` (one per chunk),
 :class:`~pemviz.engine.events.RolloutsSampled`, :class:`~pemviz.engine.events.StageFinished`, then
 :class:`~pemviz.engine.events.FinalEstimate` and :class:`~pemviz.engine.events.RunFinished` (or

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Iterator
 from pemviz.config import ExperimentConfig
 
 if TYPE_CHECKING:
-    from pemviz.engine.plan import RunPlan
+    from pemviz.core.plan import RunPlan
 
 BYTES_PER_ROLLOUT_STEP = 100
 """Peak bytes per (rollout, step) of a batch: observations [N, T, 3], detected, log p, log q, robustness under
@@ -41,7 +41,7 @@ def available_memory() -> int | None:
 
 def run_memory(plan: RunPlan, n_steps: int, quantile_level: float = 0.0, *, stream_above: int | None = None,
                chunk: int = 8192) -> int:  # fmt: skip
-    """Peak bytes a run of ``plan`` (:class:`~pemviz.engine.plan.RunPlan`) needs for batches of ``n_steps`` steps.
+    """Peak bytes a run of ``plan`` (:class:`~pemviz.core.plan.RunPlan`) needs for batches of ``n_steps`` steps.
 
     The largest stage held at once, each [N, T] whole or, above ``stream_above`` rollouts, one chunk plus
     :data:`BYTES_PER_STREAMED_ROLLOUT` a rollout and, for a CE stage, its elites ((1 - sigma) N rollouts,

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.problems import Problem
-from pemviz.engine.plan import PlannedStage, RunPlan
+from pemviz.core.plan import PlannedStage, RunPlan
 from pemviz.estimators.base import (
     Check,
     Estimator,

@@ -41,7 +41,7 @@ from pemviz.config import ExperimentConfig, settings_of
 from pemviz.core.estimate import CI_LEVEL, MIN_FAILURES, Estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
 
 

@@ -23,7 +23,7 @@ from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import Detector
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.estimators.pooling import (  # noqa: F401 (the stages' pooling, re-exported: importable from here as before)
     failure_population as failure_population,

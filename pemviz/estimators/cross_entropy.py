@@ -48,7 +48,7 @@ from pemviz.estimators.base import (
     pooled_estimate,
     weighted_steps_mask,
 )
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.core.sampling import EXACT, Proposal, StateProposal
 

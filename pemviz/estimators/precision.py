@@ -24,7 +24,7 @@ from pemviz.config import DEFAULT_MAX_SIMS, ExperimentConfig
 from pemviz.core.estimate import Estimate
 from pemviz.core.requirement import Decision, decide, parse_requirement
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan
 
 GROWTH = 4.0

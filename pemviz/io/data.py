@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 from pemviz.core.files import repo_root as repo_root  # noqa: F401 (re-exported: importable from here as before)
+from pemviz.pem.encoding import INPUT_COLUMNS as INPUT_COLUMNS  # noqa: F401 (the PEM's raw inputs; re-exported)
 from pemviz.io.files import atomic_write
 
 __all__ = [
@@ -78,19 +79,6 @@ ORIGIN_COMMIT = "0544b1899417eaca808f2094853262a656f0f34d"
 ORIGIN_BASE_URL = f"https://raw.githubusercontent.com/{ORIGIN_REPO}/{ORIGIN_COMMIT}/salient_dataset"
 """Public origin of the files; ``<ORIGIN_BASE_URL>/<file name>``."""
 
-INPUT_COLUMNS = (
-    "class",
-    "truncation",
-    "occlusion",
-    "alpha",
-    "dim_w",
-    "dim_l",
-    "dim_h",
-    "loc_x",
-    "loc_y",
-    "loc_z",
-    "rot_y",
-)
 LABEL_COLUMNS = ("detected", "bbox_cx", "bbox_cy", "bbox_w", "bbox_h", "err_cx", "err_cy", "err_w", "err_h")
 
 FETCH_COMMAND = "pemviz data fetch"

@@ -19,6 +19,23 @@ N_OCCLUSIONS = 3
 """KITTI occlusion levels without 'unknown': 0 fully visible, 1 partly occluded, 2 largely occluded."""
 CLASS_COLUMN = 0
 OCCLUSION_COLUMN = 2
+INPUT_COLUMNS = (
+    "class",
+    "truncation",
+    "occlusion",
+    "alpha",
+    "dim_w",
+    "dim_l",
+    "dim_h",
+    "loc_x",
+    "loc_y",
+    "loc_z",
+    "rot_y",
+)
+"""A PEM's 11 raw inputs, the KITTI salient variables, in column order (``class`` an index, ``truncation`` and
+``occlusion`` codes, angles in radians, sizes and positions in metres): the data files' columns
+(:mod:`pemviz.io.data` reads them) and every scene's object rows."""
+
 POSE_COLUMNS = (7, 8, 9, 10)
 """Raw input columns z-scored into the encoding: loc_x, loc_y, loc_z (metres), rot_y (radians)."""
 N_FEATURES = N_CLASSES + N_OCCLUSIONS + len(POSE_COLUMNS)

@@ -473,7 +473,7 @@ class PEM:
         """Logit of p(detect) for raw salient inputs.
 
         Args:
-            raw_inputs: float ``[N, 11]``, KITTI column layout (:data:`pemviz.io.data.INPUT_COLUMNS`).
+            raw_inputs: float ``[N, 11]``, KITTI column layout (:data:`pemviz.pem.encoding.INPUT_COLUMNS`).
 
         Returns:
             float64 ``[N]``, nats (log-odds); ``log p = -softplus(-logit)``, ``log(1-p) = -softplus(logit)``.

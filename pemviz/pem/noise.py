@@ -255,7 +255,7 @@ def noise_training_data(inputs: np.ndarray, label_table: np.ndarray, *, seed: in
     :func:`pemviz.pem.camera.box_errors_to_metric`.
 
     Args:
-        inputs: raw salient inputs ``[N, 11]`` (:data:`pemviz.io.data.INPUT_COLUMNS`).
+        inputs: raw salient inputs ``[N, 11]`` (:data:`pemviz.pem.encoding.INPUT_COLUMNS`).
         label_table: the label file ``[N, 9]`` (:func:`pemviz.io.data.load_salient_label_table`).
         seed: seed of the dequantisation noise.
 

@@ -104,7 +104,7 @@ class NoisyPEM:
 @dataclass(frozen=True, eq=False)
 class SalientDetector:
     """A PEM as the detector of a scene's objects, reading each object row's 11 KITTI salient variables (raw
-    inputs, :data:`pemviz.io.data.INPUT_COLUMNS`, in the columns ``salient`` of the row), with the noise PEM's
+    inputs, :data:`pemviz.pem.encoding.INPUT_COLUMNS`, in the columns ``salient`` of the row), with the noise PEM's
     measurement errors when ``noise`` is given (a :class:`pemviz.core.detectors.NoisyDetector`): p(a, e | x) =
     p_PEM(a | x) p_noise(e | x)^a (:class:`NoisyPEM`). Rows whose ``visible`` column holds 0 (an object the camera
     cannot see: hidden, outside the image) are never detected (logit -inf), so they add nothing to any weight.

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pemviz.io.data import INPUT_COLUMNS
+from pemviz.pem.encoding import INPUT_COLUMNS
 from pemviz.scenarios.tracker import TrackerParams
 
 LANE_WIDTH_M = 4.0
@@ -73,7 +73,7 @@ OBSERVATION_NAMES: tuple[str, ...] = (
 - ``ego_x_m``: the ego's position along the road (centre)."""
 
 SALIENT_NAMES: tuple[str, ...] = tuple(INPUT_COLUMNS)
-"""The 11 KITTI salient variables of an object, in the PEMs' raw-input order (:data:`pemviz.io.data.INPUT_COLUMNS`).
+"""The 11 KITTI salient variables of an object, in the PEMs' raw-input order (:data:`pemviz.pem.encoding.INPUT_COLUMNS`).
 The three dimension columns hold KITTI's (height, width, length), the order of the KITTI labels and of the salient
 files' values (their header calls them dim_w, dim_l, dim_h)."""
 SALIENT_COLUMNS = slice(1, 1 + len(SALIENT_NAMES))

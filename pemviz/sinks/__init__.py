@@ -24,7 +24,7 @@ from pemviz.engine.events import (
     StageResult,
     StageStarted,
 )
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 
 MAX_SCALE = 20.0
 """The most a :class:`StageClock` scales a prediction by (either way): a first stage slowed by a one-off start
@@ -58,7 +58,7 @@ class Sink:
                 return
 
     def on_run_started(self, event: RunStarted) -> None:
-        """The run starts: its config, plan (:class:`~pemviz.engine.plan.RunPlan`) and problem view."""
+        """The run starts: its config, plan (:class:`~pemviz.core.plan.RunPlan`) and problem view."""
 
     def on_stage_started(self, event: StageStarted) -> None:
         """A stage starts drawing its rollouts."""

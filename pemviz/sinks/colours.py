@@ -87,7 +87,7 @@ def stage_rgb(stage: int, n_stages: int) -> tuple[int, int, int]:
 
 def stage_span(plan: object | None) -> int:
     """The stage drawn orange by :func:`stage_rgb`: the last one a run plans (its
-    :attr:`~pemviz.engine.plan.RunPlan.last_stage`; 1 without a plan). The recording, the panel's charts and its
+    :attr:`~pemviz.core.plan.RunPlan.last_stage`; 1 without a plan). The recording, the panel's charts and its
     proposal curves colour stages with it alike."""
     return max(1, int(getattr(plan, "last_stage", 1) or 1))
 

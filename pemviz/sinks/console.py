@@ -125,7 +125,7 @@ class ConsoleSink(Sink):
         self.progress = progress or sys.stderr
         self.clock = StageClock()
         self.plan = None
-        """The run's :class:`~pemviz.engine.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
+        """The run's :class:`~pemviz.core.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.config = None
         self.exact_log_p: float | None = None
         self.reference: Reference | None = None

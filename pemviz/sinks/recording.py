@@ -8,7 +8,7 @@ plan, the signals, thresholds and scene from the problem's view. Its look (colou
 :mod:`pemviz.sinks.rerun_explain`'s.
 
 Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch: the engine's
-numbering and the plan's names, :func:`pemviz.engine.plan.stage_label`; the default timeline: scrubbing it steps the
+numbering and the plan's names, :func:`pemviz.core.plan.stage_label`; the default timeline: scrubbing it steps the
 proposal views, the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout
 traces, the most likely failure and the scene play on it) and ``repetition`` (only when the sink is given one).
 Colours are those of the panel (:mod:`pemviz.sinks.colours`): detected green, missed orange, crash red.
@@ -159,7 +159,7 @@ class RerunSink(Sink):
         self.scene_per_stage = scene_per_stage
         self.repetition = repetition
         self.plan = None
-        """The run's :class:`~pemviz.engine.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
+        """The run's :class:`~pemviz.core.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.view = None
         """The problem's :class:`~pemviz.core.problems.ProblemView` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.scene: BrakingParams | None = None

@@ -9,7 +9,7 @@ from pemviz.core.estimate import estimate
 from pemviz.core.problems import ProblemView, SignalView, Thresholds
 from pemviz.engine.cost import CostConstants
 from pemviz.engine.events import RolloutsSampled, RunStarted, StageFinished, StageResult
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
 

@@ -9,7 +9,7 @@ import io
 import numpy as np
 
 from pemviz.engine.events import FinalEstimate, RunCancelled, StageStarted
-from pemviz.engine.plan import RunPlan
+from pemviz.core.plan import RunPlan
 from pemviz.sinks import StageClock
 from pemviz.sinks.console import ConsoleSink
 

@@ -156,7 +156,7 @@ def test_a_method_the_recording_does_not_know_is_described_by_its_plan():
     KeyError that stopped the run)."""
     from types import SimpleNamespace
 
-    from pemviz.engine.plan import RunPlan
+    from pemviz.core.plan import RunPlan
     from pemviz.sinks.rerun_views import method_markdown
 
     plan = RunPlan.of([(0, "pretrain", 50), (1, "ce", 80), (2, "final", 300)])

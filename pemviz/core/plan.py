@@ -35,7 +35,7 @@ class PlannedStage:
     Attributes:
         stage: the engine's number (0 = pretraining, 1..K = CE stages, K+1 = the final batch).
         kind: ``pretrain`` | ``ce`` | ``final`` | ``ams``.
-        label: its one name in the console, panel and recording (:func:`pemviz.engine.plan.stage_label`).
+        label: its one name in the console, panel and recording (:func:`pemviz.core.plan.stage_label`).
         n_rollouts: rollouts it simulates.
     """
 
@@ -61,7 +61,7 @@ class RunPlan:
 
     @classmethod
     def of(cls, stages: Iterable[tuple[int, str, int]], open_ended: bool = False) -> "RunPlan":
-        """The plan of ``(stage, kind, rollouts)`` triples, each labelled by :func:`pemviz.engine.plan.stage_label`."""
+        """The plan of ``(stage, kind, rollouts)`` triples, each labelled by :func:`pemviz.core.plan.stage_label`."""
         stages = tuple(stages)
         k = sum(kind == "ce" for _, kind, _ in stages)
         return cls(tuple(PlannedStage(s, kind, stage_label(s, kind, k), n) for s, kind, n in stages), open_ended)
