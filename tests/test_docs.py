@@ -51,14 +51,16 @@ def counts_in_docs() -> list[tuple[str, int, str]]:
 
 
 def test_every_count_in_the_docs_is_the_code_s_or_absent() -> None:
-    """Counts of presets, methods, scenarios, metrics and commands agree with the registries; counts of tests or
-    skips, which change with every test added, are not written in the docs at all (``pytest -rs`` lists skips)."""
+    """Counts of presets, methods, scenarios (the scenario registry's), metrics and commands agree with the
+    registries; counts of tests or skips, which change with every test added, are not written in the docs at all
+    (``pytest -rs`` lists skips)."""
     from pemviz.commands import COMMANDS
     from pemviz.config import SETTINGS
     from pemviz.presets import PRESETS
+    from pemviz.scenarios.registry import registered
 
     truth = {"preset": len(PRESETS), "method": len(SETTINGS["method"].choices),
-             "scenario": len(SETTINGS["scenario"].choices), "scene": len(SETTINGS["scenario"].choices),
+             "scenario": len(registered()), "scene": len(registered()),
              "metric": len(SETTINGS["metric"].choices), "command": len(COMMANDS)}  # fmt: skip
     wrong = []
     for name, n, text in counts_in_docs():
