@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from pemviz.config import METRICS
+from pemviz.settings import METRICS
 from pemviz.core.estimate import VERDICTS, Estimate
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch

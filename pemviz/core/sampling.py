@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from pemviz.config import FITS
+from pemviz.settings import FITS
 from pemviz.core import exact, torch_use
 from pemviz.core.exact_fit import fit_exact
 from pemviz.core.fit_settings import CHECK_EVERY, EXACT, LBFGS_TOLERANCE, PLATEAU_EPOCHS, Objective  # noqa: F401
