@@ -354,7 +354,7 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
     name = "problem"
     try:
         built = sc.build_params(params)
-        problem = sc.problem(params=params)
+        problem = sc.problem(_default_config(sc), params=params)
     except Exception as exc:
         raise checks.fail(name, f"the factory raised {type(exc).__name__}: {exc}") from None
     for attr in ("simulate", "target", "formula", "robustness"):
@@ -367,7 +367,7 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
 
     name = "determinism"
     first = {}
-    rebuilt = sc.problem(params=params)
+    rebuilt = sc.problem(_default_config(sc), params=params)
     for label, sampler in _samplers(problem):
         batch = problem.simulate(SIMULATED_ROLLOUTS, sampler, problem.target, np.random.default_rng(seed))
         first[label] = batch
@@ -416,6 +416,14 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
                 break
         _check_files(checks, run)
     return checks.report()
+
+
+def _default_config(sc: Any) -> Any:
+    """The config :func:`check_scenario` builds a scenario's problem with: the run scenario's own
+    (``ExperimentConfig(scenario=name)``), else the defaults (the shipped PEM, the batched back-end)."""
+    from pemviz.config import ExperimentConfig
+
+    return ExperimentConfig(scenario=sc.name) if sc.runnable else ExperimentConfig()
 
 
 def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -> list[Any]:

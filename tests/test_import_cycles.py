@@ -88,13 +88,15 @@ UPPER = ("scenarios", "io", "sinks", "app", "commands")
 
 def folder_imports(root: Path) -> dict[tuple[str, str], list[str]]:
     """(folder, folder it imports) -> the ``file:line`` of each import statement (lazy, TYPE_CHECKING and indented
-    ones included), read from the source of the package at ``root``."""
+    ones included), read from the source of the package at ``root``; a module at the top of the package (the
+    config, the settings) counts as a folder of its own."""
     import ast
 
     found: dict[tuple[str, str], list[str]] = {}
     for f in sorted(root.rglob("*.py")):
         parts = f.relative_to(root).parts
-        if len(parts) < 2:
+        here = parts[0] if len(parts) > 1 else parts[0].removesuffix(".py")
+        if here == "__init__":
             continue
         for node in ast.walk(ast.parse(f.read_text())):
             if isinstance(node, ast.ImportFrom) and node.module:
@@ -105,8 +107,9 @@ def folder_imports(root: Path) -> dict[tuple[str, str], list[str]]:
                 continue
             for name in names:
                 p = name.split(".")
-                if p[0] == root.name and len(p) > 1 and (root / p[1]).is_dir() and p[1] != parts[0]:
-                    found.setdefault((parts[0], p[1]), []).append(f"{f.relative_to(root)}:{node.lineno}")
+                known = (root / p[1]).is_dir() or (root / f"{p[1]}.py").is_file() if len(p) > 1 else False
+                if p[0] == root.name and known and p[1] not in (here, "__init__"):
+                    found.setdefault((here, p[1]), []).append(f"{f.relative_to(root)}:{node.lineno}")
     return found
 
 
@@ -140,9 +143,11 @@ def test_the_folders_import_one_another_in_no_circle():
 def test_an_upward_import_and_a_folder_circle_are_found(tmp_path):
     root = tmp_path / "pemviz"
     for name, text in {"core/a.py": "def f():\n    from pemviz.sinks import b\n", "sinks/b.py": "import pemviz.core.a\n",
-                       "stl/c.py": "x = 1\n"}.items():  # fmt: skip
+                       "stl/c.py": "from pemviz.config import X\n", "config.py": "from pemviz.stl.c import y\n"
+                       }.items():  # fmt: skip
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         (root / name).write_text(text)
     found = folder_imports(root)
-    assert found == {("core", "sinks"): ["core/a.py:2"], ("sinks", "core"): ["sinks/b.py:1"]}
-    assert folder_circles(found) == [{"core", "sinks"}]
+    assert found == {("core", "sinks"): ["core/a.py:2"], ("sinks", "core"): ["sinks/b.py:1"],
+                     ("stl", "config"): ["stl/c.py:1"], ("config", "stl"): ["config.py:1"]}  # fmt: skip
+    assert sorted(folder_circles(found), key=sorted) == [{"config", "stl"}, {"core", "sinks"}]

@@ -6,28 +6,27 @@ from __future__ import annotations
 
 from typing import Any
 
-from pemviz.config import ExperimentConfig
 from pemviz.core.problems import Problem
 from pemviz.scenarios.crowd import CrowdParams
 from pemviz.scenarios.problems import crowd_problem, problem_for, toy_problem
 from pemviz.scenarios.toy import ToyParams
 
 
-def run_problem(config: ExperimentConfig, params: Any = None) -> Problem:
+def run_problem(config: Any, params: Any = None) -> Problem:
     """The problem of a run scenario (:data:`pemviz.settings.SCENARIOS`):
     :func:`pemviz.scenarios.problems.problem_for` ``(config)``, whose ``scenario_params`` hold the parameters
     (``params`` is the dataclass built from them)."""
     return problem_for(config)
 
 
-def toy(config: ExperimentConfig, params: ToyParams | None = None) -> Problem:
+def toy(config: Any, params: ToyParams | None = None) -> Problem:
     """The toy braking model (:func:`pemviz.scenarios.problems.toy_problem`; named ``toy`` at its defaults, as
     ``pemviz validate``'s); the config is not read (the toy's detector is its own)."""
     p = params if params is not None else ToyParams()
     return toy_problem(p, name="toy" if p == ToyParams() else None)
 
 
-def crowd(config: ExperimentConfig, params: CrowdParams | None = None) -> Problem:
+def crowd(config: Any, params: CrowdParams | None = None) -> Problem:
     """The crowd toy (:func:`pemviz.scenarios.problems.crowd_problem`; named ``crowd`` at its defaults); the config
     is not read."""
     p = params if params is not None else CrowdParams()

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 
 from pemviz import stl
-from pemviz.config import SIMULATORS, ExperimentConfig
+from pemviz.settings import SIMULATORS
 from pemviz.core.detectors import Detector, PEMDetector
 from pemviz.core.estimate import Reference
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch, simulate
@@ -303,7 +303,7 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
     raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")
 
 
-def problem_for(config: ExperimentConfig) -> Problem:
+def problem_for(config: Any) -> Problem:
     """The problem a run of ``config`` estimates: the scenario ``config.scenario`` (:data:`pemviz.config.SCENARIOS`)
     with its parameters ``config.scenario_params`` (:mod:`pemviz.scenarios.parameters`; the braking scenario's crash
     gap also ``config.margin``) and the PEM ``config.pem`` (None: the shipped one); the braking scenario on the
@@ -341,7 +341,7 @@ PEM_SHIFTS = (-1.0, -0.5, 0.5, 1.0)
 (negative) or less often than the PEM says."""
 
 
-def with_alternatives(problem: Problem, config: ExperimentConfig) -> Problem:
+def with_alternatives(problem: Problem, config: Any) -> Problem:
     """``problem`` with the alternative targets ``config`` asks for (:mod:`pemviz.core.reweight`): with
     ``pem_uncertainty`` every member of the PEM's ensemble (:func:`pemviz.pem.ensemble.ensemble_for`) and the shifts
     :data:`PEM_SHIFTS`, and ``pem_shift`` D; each with its exact answer where the truth knows it (the braking

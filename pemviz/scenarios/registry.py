@@ -70,8 +70,9 @@ class Scenario:
         params: the dataclass of its parameters (a frozen dataclass whose ``__post_init__`` raises ValueError for a
             value outside its range), or None: the scenario has no parameters. A :data:`Ref`.
         factory: ``factory(config, params) -> Problem``: the :class:`pemviz.core.problems.Problem` of a run of
-            ``config`` (a :class:`pemviz.config.ExperimentConfig`: its PEM, simulator back-end) with the parameters
-            ``params`` (an instance of :attr:`params`, or None without them). For a scenario of
+            ``config`` (a :class:`pemviz.config.ExperimentConfig`: its PEM, simulator back-end; None where a caller
+            gives none: the defaults) with the parameters ``params`` (an instance of :attr:`params`, or None without
+            them). For a scenario of
             :data:`pemviz.settings.SCENARIOS` the config also carries the parameters (``scenario_params``). A
             :data:`Ref`.
         exact: whether its problem carries an exact answer (``Problem.exact_log_p``) at its default parameters.
@@ -159,28 +160,31 @@ class Scenario:
 
     def problem(self, config: Any = None, params: Mapping[str, object] | None = None) -> Any:
         """The :class:`pemviz.core.problems.Problem` of this scenario for ``config`` (a
-        :class:`pemviz.config.ExperimentConfig`; None: the defaults) with the parameters ``params`` (name -> value;
-        None: the config's, else the scenario's defaults).
+        :class:`pemviz.config.ExperimentConfig`: its PEM, back-end and parameters; None, for a scenario outside
+        :data:`pemviz.settings.SCENARIOS` only: the factory's own defaults) with the parameters ``params`` (name ->
+        value; None: the config's, else the scenario's defaults). The registry sits below the config: it takes one
+        and never makes one.
 
         Raises:
-            ValueError: ``config`` names another scenario of :data:`pemviz.settings.SCENARIOS`, or parameters the
-                scenario refuses (:class:`pemviz.scenarios.parameters.ParameterError`,
+            ValueError: ``config`` names another scenario of :data:`pemviz.settings.SCENARIOS`, a run scenario without a
+                config, or parameters the scenario refuses (:class:`pemviz.scenarios.parameters.ParameterError`,
                 :class:`pemviz.config.ConfigError`).
             pemviz.pem.network.PemFormatError, OSError: the config's PEM cannot be read.
         """
-        from pemviz.config import ExperimentConfig  # the config module reads this package's parameters
-
         if self.runnable:
-            cfg = config if config is not None else ExperimentConfig(scenario=self.name)
-            if cfg.scenario != self.name:
-                raise ValueError(f"the config is one of the {cfg.scenario} scenario, not of {self.name}")
+            if config is None:
+                raise ValueError(f"the {self.name} scenario's problem needs a config (ExperimentConfig(scenario="
+                                 f"{self.name!r})): its PEM, back-end and parameters")  # fmt: skip
+            if config.scenario != self.name:
+                raise ValueError(f"the config is one of the {config.scenario} scenario, not of {self.name}")
+            cfg = config
             if params:
                 merged = {**dict(cfg.scenario_params), **dict(params)}
                 cfg = dataclasses.replace(cfg, scenario_params=tuple(merged.items()))
             built = self.build_params(dict(cfg.scenario_params))
         else:
-            cfg = config if config is not None else ExperimentConfig()  # the PEM and back-end: the defaults
-            given = dict(cfg.scenario_params) if cfg.scenario == self.name else {}
+            cfg = config
+            given = dict(cfg.scenario_params) if cfg is not None and cfg.scenario == self.name else {}
             built = self.build_params({**given, **dict(params or {})})
         return resolve(self.factory)(cfg, built)
 
