@@ -142,9 +142,9 @@ def test_the_folders_import_one_another_in_no_circle():
 
 def test_an_upward_import_and_a_folder_circle_are_found(tmp_path):
     root = tmp_path / "pemviz"
-    for name, text in {"core/a.py": "def f():\n    from pemviz.sinks import b\n", "sinks/b.py": "import pemviz.core.a\n",
-                       "stl/c.py": "from pemviz.config import X\n", "config.py": "from pemviz.stl.c import y\n"
-                       }.items():  # fmt: skip
+    planted = {"core/a.py": "def f():\n    from pemviz.sinks import b\n", "sinks/b.py": "import pemviz.core.a\n",
+               "stl/c.py": "from pemviz.config import X\n", "config.py": "from pemviz.stl.c import y\n"}
+    for name, text in planted.items():
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         (root / name).write_text(text)
     found = folder_imports(root)
