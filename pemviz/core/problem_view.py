@@ -64,6 +64,9 @@ class ProblemView:
         noise_xy: the measurement-error components along those two directions (indexes into the noise, metres),
             to draw where each detected object was measured; None: no errors, or none along them.
         n_steps: T, the steps of a rollout (:attr:`pemviz.core.problems.Problem.n_steps`; None: not known).
+        drawing: the scenario's drawing object (:attr:`pemviz.core.problems.Problem.drawing`): what the recording
+            and the panel draw of its rollouts (its scene, its outcome words, its explanation), from the scenario's
+            own package; None: the problem has no scene of its own, and sinks draw only its signals.
     """
 
     name: str
@@ -74,6 +77,7 @@ class ProblemView:
     objects_xy: tuple[str, str] | None = None
     noise_xy: tuple[int, int] | None = None
     n_steps: int | None = None
+    drawing: object | None = None
 
     @property
     def signal_names(self) -> tuple[str, ...]:

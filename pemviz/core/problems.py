@@ -105,6 +105,8 @@ class Problem:
             :class:`pemviz.core.reweight.AlternativeTarget`); alternatives_source: where the members come from.
         n_steps: T, the steps of a rollout (None: not known, e.g. a rollout file's problem): the one horizon the
             memory check, the cost model and the sinks read.
+        drawing: the scenario's drawing object (what the recording and the panel draw of its rollouts, from the
+            scenario's own package; :class:`ProblemView`), or None: only the signals are drawn.
     """
 
     name: str
@@ -135,13 +137,14 @@ class Problem:
     alternatives: tuple[AlternativeTarget, ...] = ()
     alternatives_source: str = ""
     n_steps: int | None = None
+    drawing: object | None = None
 
     @property
     def view(self) -> ProblemView:
         """The problem as sinks show it: name, description, signals with units, thresholds, scene."""
         signals = tuple(SignalView(n, c, self.units.get(n, "")) for n, c in self.signals.items())
         return ProblemView(self.name, self.description or self.name, signals, self.thresholds, self.scene,
-                           self.objects_xy, self.noise_xy, self.n_steps)  # fmt: skip
+                           self.objects_xy, self.noise_xy, self.n_steps, self.drawing)  # fmt: skip
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""

@@ -119,6 +119,14 @@ class CutInSeverity:
             head = "no failure, no contact"
         return f"{head} · {self.clearance_text}"
 
+    @property
+    def rank(self) -> float:
+        """Sort key, larger = worse: the closing speed above 1000 for contacts (1000 beside the ego), else the
+        negated smallest clearance (metres)."""
+        if self.contact:
+            return 1000.0 + (self.closing_speed_mps if math.isfinite(self.closing_speed_mps) else 0.0)
+        return -self.min_clearance_m
+
 
 @dataclass(frozen=True)
 class CutInStory:

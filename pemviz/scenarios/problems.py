@@ -30,6 +30,7 @@ from pemviz.core.severity import SeverityScale
 from pemviz.pem import DEFAULT_PEM_NAME, load_pem
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+from pemviz.scenarios.braking_drawing import BrakingDrawing
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
 from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
 from pemviz.scenarios.truth import known_log_failure_probability
@@ -86,7 +87,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"), scene=p,
-        n_steps=p.n_steps,
+        drawing=BrakingDrawing(p), n_steps=p.n_steps,
         description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
                      f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
                      f"the gap drops below {p.crash_gap_m:g} m"),
@@ -208,6 +209,7 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
     from pemviz.pem.store import load_noise_pem
     from pemviz.scenarios.cut_in import NOISE_NAMES, OBJECT_NAMES, SALIENT_COLUMNS
     from pemviz.scenarios.cut_in_batched import BatchedCutIn, cached_trajectory
+    from pemviz.scenarios.cut_in_drawing import CutInDrawing
 
     p = params if params is not None else cut_in_params("moderate")
     cached_trajectory(p)
@@ -236,7 +238,7 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         severity=SeverityScale("clearance", "clearance", "m", CUT_IN_SEVERITY_LEVELS_M),
         h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
         stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"), dt_s=p.dt_s,
-        n_objects=p.n_objects, n_steps=p.n_steps,
+        n_objects=p.n_objects, n_steps=p.n_steps, drawing=CutInDrawing(p),
         noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")),
         description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
                      f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),

@@ -81,6 +81,9 @@ class Scenario:
             bit for bit; None: no separate simulator. A :data:`Ref`.
         defaults: optional, ``defaults() -> params``: the parameters at the scenario's defaults (None: ``params()``;
             ``cut-in-rare`` starts from another gap than the dataclass's). A :data:`Ref`.
+        drawing: optional, ``drawing(params) -> object``: the scenario's drawing object
+            (:class:`pemviz.core.drawing.Drawing`, also :attr:`pemviz.core.problems.Problem.drawing`), which the panel
+            draws before any run; None: the scenario has no scene of its own. A :data:`Ref`.
     """
 
     name: str
@@ -90,6 +93,7 @@ class Scenario:
     exact: bool = False
     simulator: Ref = None
     defaults: Ref = None
+    drawing: Ref = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -194,6 +198,13 @@ class Scenario:
         if self.simulator is None:
             return None
         return resolve(self.simulator)(self.default_params() if params is None else params)
+
+    def drawing_object(self, params: Any = None) -> Any:
+        """The scenario's drawing object at ``params`` (None: its defaults), or None when it has none
+        (:attr:`drawing`)."""
+        if self.drawing is None:
+            return None
+        return resolve(self.drawing)(self.default_params() if params is None else params)
 
 
 _REGISTRY: dict[str, Scenario] = {}
@@ -344,11 +355,13 @@ for _scenario in (
     Scenario("braking", "automated braking behind a lead car, the PEM as the camera's detector; failure: the gap "
              "drops below the crash gap", "pemviz.scenarios.braking:BrakingParams",
              "pemviz.scenarios.builtin:run_problem", exact=True,
-             simulator="pemviz.scenarios.braking:BrakingScenario"),
+             simulator="pemviz.scenarios.braking:BrakingScenario", drawing="pemviz.scenarios.braking_drawing:BrakingDrawing"),
     Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in:CutInParams",
-             "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario"),
+             "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario",
+             drawing="pemviz.scenarios.cut_in_drawing:CutInDrawing"),
     Scenario("cut-in-rare", _CUT_IN.format("rare (below 1e-9)"), "pemviz.scenarios.cut_in:CutInParams",
-             "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario"),
+             "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario",
+             drawing="pemviz.scenarios.cut_in_drawing:CutInDrawing"),
     Scenario("toy", "toy braking: a car from an obstacle, a detection within the braking range stops it; failure: "
              "closer than the safe distance (closed-form answer)", "pemviz.scenarios.toy:ToyParams",
              "pemviz.scenarios.builtin:toy", exact=True, simulator="pemviz.scenarios.toy:ToyBraking"),

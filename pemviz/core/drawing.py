@@ -1,0 +1,59 @@
+"""What the recording and the panel ask of a scenario's drawing object (:attr:`pemviz.core.problems.Problem.drawing`):
+the scene-neutral words of a rollout's outcome. Each scenario's package implements the drawing (its scene, its
+outcome words, its explanation); the sinks and the panel call it and name no scene themselves, as a Gymnasium
+environment's ``render`` draws itself for any wrapper.
+
+Plain protocols, no I/O: the recording's hooks are :class:`pemviz.sinks.drawing.RecordingDrawing`, the panel's
+:class:`pemviz.app.drawing.PanelDrawing`; a drawing object implements both and this one.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+if TYPE_CHECKING:  # annotations only
+    from pemviz.core.rollouts import RolloutBatch
+
+
+@runtime_checkable
+class Outcome(Protocol):
+    """How bad one rollout's outcome was, in the words every sink shares.
+
+    Attributes:
+        failed: the safety formula is violated (classic robustness below 0).
+        contact: the objects touched (a collision), not only the margin breached.
+        short: one line, e.g. ``contact at 3.2 m/s`` or ``safe, min gap 3.41 m``.
+        rank: sort key, larger = worse.
+    """
+
+    @property
+    def failed(self) -> bool: ...
+
+    @property
+    def contact(self) -> bool: ...
+
+    @property
+    def short(self) -> str: ...
+
+    @property
+    def rank(self) -> float: ...
+
+
+@runtime_checkable
+class Drawing(Protocol):
+    """The part of a scenario's drawing object that both the recording and the panel use.
+
+    Attributes:
+        dt_s: seconds per step (a rollout's step ``t`` is at ``t * dt_s``).
+    """
+
+    @property
+    def dt_s(self) -> float: ...
+
+    def outcome(self, batch: RolloutBatch, i: int) -> Outcome:
+        """The outcome of rollout ``i`` of ``batch`` (observations [N, T, K], object rows where the scene has them).
+
+        Raises:
+            ValueError: the batch lacks the columns the scenario reads (not its rollouts).
+        """
+        ...

@@ -1,0 +1,45 @@
+"""The braking scenario's drawing object (:class:`pemviz.core.drawing.Drawing`): what the recording
+(:class:`~pemviz.scenarios.braking_recording.BrakingRecording`) and the panel
+(:class:`~pemviz.scenarios.braking_panel.BrakingPanel`) draw of its rollouts: two cars on one lane, the ego's
+braking distance and crash margin, the outcome in words (:func:`pemviz.scenarios.braking_failures.severity`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking_panel import BrakingPanel
+from pemviz.scenarios.braking_recording import BrakingRecording
+
+if TYPE_CHECKING:
+    from pemviz.core.rollouts import RolloutBatch
+    from pemviz.scenarios.braking_failures import Severity
+
+
+@dataclass(frozen=True)
+class BrakingDrawing(BrakingRecording, BrakingPanel):
+    """The braking scenario's drawing object.
+
+    Attributes:
+        params: the scenario's constants (car sizes, camera offset, thresholds, dt).
+    """
+
+    params: BrakingParams = field(default_factory=BrakingParams)
+
+    @property
+    def dt_s(self) -> float:
+        return float(self.params.dt_s)
+
+    def outcome(self, batch: RolloutBatch, i: int) -> Severity:
+        """The :class:`~pemviz.scenarios.braking_failures.Severity` of rollout ``i`` of ``batch`` (from its gaps,
+        metres).
+
+        Raises:
+            ValueError: the batch has no ``gap_m`` column.
+        """
+        from pemviz.scenarios.braking_failures import severity
+
+        if "gap_m" not in batch.observation_names:
+            raise ValueError(f"BrakingDrawing.outcome: the rollouts have no gap_m column ({batch.observation_names})")
+        return severity(batch.signal("gap_m")[i], self.params)

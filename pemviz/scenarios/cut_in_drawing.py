@@ -1,0 +1,47 @@
+"""The cut-in scenario's drawing object (:class:`pemviz.core.drawing.Drawing`): what the recording
+(:class:`~pemviz.scenarios.cut_in_recording.CutInRecording`) and the panel
+(:class:`~pemviz.scenarios.cut_in_panel.CutInPanel`) draw of its rollouts: several cars on a three-lane road, the
+story of the car that cuts in and the ACC, the outcome in words (:func:`pemviz.scenarios.cut_in_story.cut_in_severity`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from pemviz.scenarios.cut_in import CutInParams
+from pemviz.scenarios.cut_in_panel import CutInPanel
+from pemviz.scenarios.cut_in_recording import CutInRecording
+
+if TYPE_CHECKING:
+    from pemviz.core.rollouts import RolloutBatch
+    from pemviz.scenarios.cut_in_story import CutInSeverity
+
+
+@dataclass(frozen=True)
+class CutInDrawing(CutInRecording, CutInPanel):
+    """The cut-in scenario's drawing object.
+
+    Attributes:
+        params: the scenario's constants (cars, lanes, dt).
+    """
+
+    params: CutInParams = field(default_factory=CutInParams)
+
+    @property
+    def dt_s(self) -> float:
+        return float(self.params.dt_s)
+
+    def outcome(self, batch: RolloutBatch, i: int) -> CutInSeverity:
+        """The :class:`~pemviz.scenarios.cut_in_story.CutInSeverity` of rollout ``i`` of ``batch`` (its scene
+        signals and object rows).
+
+        Raises:
+            ValueError: the rollouts lack the columns the story reads.
+        """
+        from pemviz.scenarios.cut_in_story import cut_in_severity, has_story_columns
+
+        names = tuple(batch.observation_names)
+        object_names = tuple(batch.object_names or ())
+        if batch.objects is None or not has_story_columns(names, object_names):
+            raise ValueError("CutInDrawing.outcome: the rollouts lack the scene columns its severity reads")
+        return cut_in_severity(batch.observations[i], names, batch.objects[i], object_names, self.params.dt_s)
