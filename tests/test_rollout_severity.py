@@ -162,7 +162,7 @@ def test_a_small_run_s_failures_by_share_match_a_hand_computation(braking):
     # each bin's share the sum of its failures' shares; the console prints the line under the severity curve
     cfg = ExperimentConfig(n_stages=3, n_per_stage=60, n_final=200, ce_epochs=30, pretrain_epochs=50,
                            pretrain_rollouts=40, seed=4)  # fmt: skip
-    groups = FailureGroups(braking.view.scene, braking)
+    groups = FailureGroups(braking.drawing, braking)
     console = ConsoleSink(io.StringIO(), io.StringIO())
     console.failures = groups
     sampled, finals = {}, []

@@ -47,7 +47,7 @@ from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.population import FailureGrouping, group_failures
 from pemviz.sinks.recording import RerunSink
-from pemviz.sinks.scene import car_positions
+from pemviz.scenarios.braking_drawing import car_positions
 
 MAX_RUNS = 4
 """Runs kept side by side for comparison (:func:`keep_runs` decides which go when a fifth starts)."""
@@ -294,21 +294,21 @@ class Population:
         return self.grouping.group_label(rank)
 
 
-def population_of(shares: FailureShares | None, sampled: Mapping[int, RolloutsSampled], scene: object,
+def population_of(shares: FailureShares | None, sampled: Mapping[int, RolloutsSampled], drawing: object,
                   problem: object = None) -> Population | None:  # fmt: skip
     """The panel's :class:`Population` of a run (arguments as :func:`pemviz.sinks.population.group_failures`): the
     :data:`MAX_POPULATION` failures with the largest shares as rollouts (every failure in the groups); None when
     ``shares`` is None (the estimator keeps no per-stage rollouts)."""
     if shares is None:
         return None
-    g = group_failures(shares, sampled, scene, problem)
+    g = group_failures(shares, sampled, drawing, problem)
     return Population(g, tuple(trajectory(*f) if f is not None and rank < MAX_POPULATION else None
                                for rank, f in enumerate(g.found)))  # fmt: skip
 
 
 def scene_positions(traj: Trajectory, params: BrakingParams | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Centre x of the ego and of the lead at every step of ``traj``, float64 [T] each (metres; ego starts at 0):
-    :func:`pemviz.sinks.scene.car_positions` of its gaps and ego speeds."""
+    :func:`pemviz.scenarios.braking_drawing.car_positions` of its gaps and ego speeds."""
     return car_positions(traj.gap_m, traj.ego_speed_mps, params)
 
 
@@ -422,7 +422,7 @@ class PanelRun(Sink):
         self.stages = self.stages + [event.result]
 
     def on_final_estimate(self, event: FinalEstimate) -> None:
-        self.population = population_of(event.failures, self.sampled, self.view.scene if self.view else None,
+        self.population = population_of(event.failures, self.sampled, self.view.drawing if self.view else None,
                                         self.problem)  # fmt: skip
         self.final = event
 

@@ -420,7 +420,7 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
         raise UsageError(f"--preset / --scenario: {exc}") from None
     experiment = Experiment(cfg, problem=problem)
     wanted = target != "no-record" or any(path is not None for path in result_files)  # files that show the groups
-    groups = FailureGroups(problem.view.scene, problem, keys=wanted)  # the failures' severity (console), groups
+    groups = FailureGroups(problem.drawing, problem, keys=wanted)  # the failures' severity (console), groups
     console = ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()
     console.failures = groups  # prints the failures' severity, which groups (heard first) reads at the final estimate
     listeners = [groups, console]

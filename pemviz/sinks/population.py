@@ -111,7 +111,7 @@ def failures_severity(shares: FailureShares,
     return failure_severity(problem.severity, contact_level(problem), shares.log_share, dist, speed, kept)
 
 
-def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled], scene: object = None,
+def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled], drawing: object = None,
                    problem: object = None, keys_wanted: bool = True) -> FailureGrouping:  # fmt: skip
     """Locate and group the failures of an estimate, and with ``problem`` read their severity
     (:func:`failures_severity`).
@@ -119,7 +119,9 @@ def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]
     Args:
         shares: the final estimate's failures (``FinalEstimate.failures``).
         sampled: stage -> the stage's :class:`RolloutsSampled` (its batch, or a sample of it when streamed).
-        scene: the braking scenario's constants (``ProblemView.scene``), or None: not the braking scenario.
+        drawing: the scenario's drawing object (``ProblemView.drawing``): with ``failure_keys(detected [F, T]) ->
+            (basis, keys, labels)`` it groups the failures (e.g. by the last step one detection still saves them),
+            else they are grouped by the step they fail at.
         problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step; the failures' severity), or
             None.
         keys_wanted: False: one group (``basis`` says so), no replays; the severity is read all the same (a run's
@@ -134,17 +136,13 @@ def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]
     basis = "nothing: this problem has no scene to replay"
     if not keys_wanted:
         basis = "nothing: not asked for"
-    elif scene is not None:
-        from pemviz.scenarios.braking_failures import last_saving_steps
-
-        basis = "the last step at which one detection alone still saves the rollout (exact replays)"
-        if kept:
-            detected = np.stack([found[r][0].batch.detected[found[r][1], :, 0] for r in kept])
-            for rank, s in zip(kept, last_saving_steps(detected, scene).tolist()):
-                keys[rank] = s
-        dt = float(getattr(scene, "dt_s", 0.1))
-        labels.update({k: (f"last saving detection at step {k} ({k * dt:.2f} s)" if k >= 0
-                           else "no single detection saves it") for k in set(keys) if isinstance(k, int)})  # fmt: skip
+    elif drawing is not None and hasattr(drawing, "failure_keys"):
+        rows = [found[r][0].batch.detected[found[r][1], :, 0] for r in kept]
+        detected = np.stack(rows) if rows else np.zeros((0, 0), dtype=bool)
+        basis, found_keys, found_labels = drawing.failure_keys(detected)
+        for rank, k in zip(kept, found_keys):
+            keys[rank] = k
+        labels.update({k: v for k, v in found_labels.items() if k in set(keys)})
     elif problem is not None:
         from pemviz.estimators.base import failure_steps
 
@@ -222,14 +220,14 @@ class FailureGroups:
     (:func:`group_failures`); :attr:`grouping` is None before, or where the estimator keeps no per-stage rollouts.
 
     Args:
-        scene: the braking scenario's constants (``ProblemView.scene``), or None.
+        drawing: the scenario's drawing object (``ProblemView.drawing``), or None.
         problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step elsewhere), or None.
         keys: group the failures (False: only their severity, without the braking scenario's replays, whose cost
             grows with the failures: 2 s for the 70,000 of ``pemviz run --n 10000``).
     """
 
-    def __init__(self, scene: object = None, problem: object = None, keys: bool = True) -> None:
-        self.scene, self.problem, self.keys = scene, problem, keys
+    def __init__(self, drawing: object = None, problem: object = None, keys: bool = True) -> None:
+        self.drawing, self.problem, self.keys = drawing, problem, keys
         self.sampled: dict[int, RolloutsSampled] = {}
         self.grouping: FailureGrouping | None = None
         self._last: object = None
@@ -244,7 +242,7 @@ class FailureGroups:
             self.sampled[event.stage] = compact_failures(event, self.problem)
         elif isinstance(event, FinalEstimate):
             if event.failures is not None:
-                self.grouping = group_failures(event.failures, self.sampled, self.scene, self.problem, self.keys)
+                self.grouping = group_failures(event.failures, self.sampled, self.drawing, self.problem, self.keys)
             self.sampled = {}  # the batches are no longer needed
 
 

@@ -374,7 +374,7 @@ class RerunSink(Sink):
         cfg = ev.config
         self.plan, self.view, self.scene = ev.plan, ev.problem, ev.problem.scene
         if self._groups.problem is None:  # its own; a shared one knows the run's problem already
-            self._groups.scene, self._groups.problem = self.scene, self.problem
+            self._groups.drawing, self._groups.problem = ev.problem.drawing, self.problem
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
         self.bins_m = bins_over(self.grid_m) if np.ptp(self.grid_m) > 0 else None
         self.exact_log_p, self.reference = ev.exact_log_p, ev.reference

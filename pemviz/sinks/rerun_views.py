@@ -21,7 +21,7 @@ from pemviz.engine.events import RolloutsSampled, RunStarted
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import colours as C
-from pemviz.sinks.scene import car_positions
+from pemviz.scenarios.braking_drawing import car_positions
 
 
 def _pyarrow_without_pandas() -> None:
@@ -315,7 +315,7 @@ def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: Rollout
                    params: BrakingParams, indexes: Indexes) -> None:  # fmt: skip
     """One lane (number ``lane``) of the top-down scene under ``path``: rollout ``i`` of the stage, playable on
     ``step``, labelled with its stage and outcome (:func:`outcome`); positions (metres along the road) rebuilt from
-    the observations by :func:`pemviz.sinks.scene.car_positions`."""
+    the observations by :func:`pemviz.scenarios.braking_drawing.car_positions`."""
     p, s = params, stream
     batch = ev.batch
     gap = batch.gap_m[i]
