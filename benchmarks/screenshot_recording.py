@@ -167,12 +167,10 @@ def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path, scenario: str
         reader.stream(store=store).write_rrd(data, application_id=store.application_id,
                                              recording_id=store.recording_id)  # fmt: skip
     path = folder / f"{tab}.rbl"
-    view = None
-    if scenario != "braking":  # that scenario's views (e.g. the cut-in's objects)
-        from pemviz.config import ExperimentConfig
-        from pemviz.scenarios.problems import problem_for
+    from pemviz.config import ExperimentConfig
+    from pemviz.scenarios.problems import problem_for
 
-        view = problem_for(ExperimentConfig(scenario=scenario)).view
+    view = problem_for(ExperimentConfig(scenario=scenario)).view  # that scenario's views (e.g. the cut-in's objects)
     default_blueprint(n_lanes, view, tab=tab, paused=True).save(APP_ID, str(path))
     return data, path
 

@@ -2,10 +2,10 @@
 draws with is named here (HTML takes :func:`css` or :func:`hex_colour` of one, rerun :func:`rgba`).
 
 A detection is green and a miss orange at every step, in the 3D scene, the recording's scene and the
-strip charts; a crash (gap below 2 m) and the 2 m line are red; the 10 m braking distance is yellow;
-the lead is blue-grey; a car before any step (idle) is neutral grey; stages go from blue (early) to
-orange (late). The panel's text (status, verdicts) uses :data:`BLUE`, :data:`GREEN`, :data:`AMBER`, :data:`RED`
-and :data:`GREY`; kept runs take :data:`RUN_COLOURS` in turn.
+strip charts; a failure (e.g. a gap below the crash gap) and the failure threshold are red; the sampler window (e.g.
+the braking distance) is yellow; the object the ego reacts to is blue-grey; a car before any step (idle) is neutral
+grey; stages go from blue (early) to orange (late). The panel's text (status, verdicts) uses :data:`BLUE`,
+:data:`GREEN`, :data:`AMBER`, :data:`RED` and :data:`GREY`; kept runs take :data:`RUN_COLOURS` in turn.
 """
 
 from __future__ import annotations
@@ -14,10 +14,13 @@ DETECTED = (40, 170, 80)
 MISSED = (245, 130, 30)
 CRASH = (214, 50, 40)
 SAFE = (150, 150, 150)
-LEAD = (95, 125, 190)
+OBJECT = (95, 125, 190)
+"""The object the ego reacts to (e.g. the car ahead), in the scenes."""
+LEAD = OBJECT
+"""Alias of :data:`OBJECT` (the panel's older name)."""
 IDLE = (190, 190, 195)
 BRAKE_ZONE = (240, 200, 40)
-"""The 10 m braking distance: the controller brakes only for a lead detected inside it."""
+"""The sampler window, e.g. the distance inside which the controller reacts to a detection."""
 TAGGED = (250, 210, 60)
 """The least-robust rollouts of a stage, highlighted."""
 BLUE = (31, 111, 209)
@@ -38,7 +41,10 @@ BLACK = (0, 0, 0)
 INTERVAL = (120, 160, 230)
 """The bounds of mu_hat's interval in the recordings."""
 EGO_SPEED = BLUE
-LEAD_SPEED = VIOLET
+OBJECT_SPEED = VIOLET
+"""The speed of the object the ego reacts to."""
+LEAD_SPEED = OBJECT_SPEED
+"""Alias of :data:`OBJECT_SPEED` (the panel's older name)."""
 PROPOSAL = BLUE
 LOG_WEIGHT = VIOLET
 RUN_COLOURS = (BLUE, RED, GREEN, (138, 79, 209), AMBER, (26, 163, 163))

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import rerun.blueprint as rrb
 
-from pemviz.core.problems import BRAKING_SIGNALS, BRAKING_UNITS, ProblemView, SignalView
+from pemviz.core.problems import ProblemView, SignalView
 from pemviz.sinks import colours as C
 from pemviz.sinks.rerun_stage_figures import figure, figure_titles
 from pemviz.sinks.rerun_views import LANE_SPACING_M, PROPOSAL_FIG, SCENE_PATH, SCENE_X_RANGE_M
@@ -39,13 +39,20 @@ TIMELINE = {"stages": "step", "explain": "step", "rollouts": "step"}
 (the Stages tab's figures are static and its bar charts carry ``step`` 0 too: the last stage's on ``step``, each
 stage's on ``stage``). rerun draws every view on one timeline (a view cannot choose its own: rerun-io/rerun#6828)."""
 
-BRAKING_SIGNAL_VIEWS = tuple(SignalView(n, c, BRAKING_UNITS[n]) for n, c in BRAKING_SIGNALS.items())
-"""The braking scenario's signals (the blueprint's traces when no view is given)."""
-
 EXPLAIN_PATH = "explain"
 """Root of the most likely failure's entities (:mod:`pemviz.sinks.rerun_explain`)."""
 
 _NO_LEGEND = rrb.PlotLegend(visible=False)
+
+
+def _signals(view: ProblemView | None) -> tuple[SignalView, ...]:
+    """The signals the view draws (none without a view)."""
+    return tuple(view.signals) if view is not None else ()
+
+
+def _has_scene(view: ProblemView | None) -> bool:
+    """Whether the problem's rollouts are drawn as a scene from above (with a controller and contact)."""
+    return view is not None and view.scene is not None
 
 
 def tab_name(tab: str) -> str:
@@ -56,7 +63,7 @@ def tab_name(tab: str) -> str:
 
 
 def _stages_tab(view: ProblemView | None) -> rrb.Container:
-    scene = view is None or view.scene is not None
+    scene = _has_scene(view)
     several = view is not None and view.objects_xy is not None  # no gap bins: the reference-state curve alone
     series = [figure(key).view(title) for key, title in figure_titles(scene, window=not several)]
     proposal = PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM",
@@ -96,9 +103,8 @@ def _scene_view(origin: str, name: str, n_lanes: int) -> rrb.Spatial2DView:
 
 
 def _explain_tab(view: ProblemView | None) -> rrb.Container:
-    signals = view.signals if view is not None else BRAKING_SIGNAL_VIEWS
-    first = signals[0]
-    scene = view is None or view.scene is not None
+    signals = _signals(view)
+    scene = _has_scene(view)
     e = f"/{EXPLAIN_PATH}"
     several = view is not None and view.objects_xy is not None
     detect = rrb.TimeSeriesView(
@@ -110,10 +116,10 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
         "0 to 1", plot_legend=_NO_LEGEND,
     )  # fmt: skip
     replays = ": red recorded; replays: green minimal set detected, violet last saving step"
-    trace = rrb.TimeSeriesView(
+    traces = [rrb.TimeSeriesView(
         origin=f"{e}/{first.column}", name=f"{first.name} ({first.unit}){replays if scene else ''}",
         plot_legend=_NO_LEGEND,
-    )
+    ) for first in signals[:1]]  # fmt: skip
     top = [rrb.TextDocumentView(origin=f"{e}/summary", name="What happened")]
     if scene:
         top.append(_scene_view(f"{e}/scene", "Scene of the most likely failure (play on step)", 1))
@@ -122,7 +128,7 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
             origin=f"{e}/objects", name="Every object seen from the ego (ahead is up, metres; play on step): green "
             "detected, orange missed, grey unseen; blue where measured", background=C.FIGURE_BACKGROUND,
             visual_bounds=rrb.VisualBounds2D(x_range=[-16.0, 16.0], y_range=[-45.0, 5.0])))  # fmt: skip
-    bottom: list = [trace]
+    bottom: list = traces
     if scene:
         bottom.append(rrb.Tabs(
             rrb.TimeSeriesView(origin=f"{e}/controller", name="Controller: acceleration (m/s^2), brake commanded, "
@@ -139,20 +145,20 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
 
 
 def _rollouts_tab(view: ProblemView | None, n_lanes: int) -> rrb.Container:
-    signals = view.signals if view is not None else BRAKING_SIGNAL_VIEWS
-    first, rest = signals[0], signals[1:]
+    signals = _signals(view)
+    rest = signals[1:]
+    colours = "kept rollouts: red failure, grey safe, yellow least robust, blue most likely, x miss"
     traces = rrb.TimeSeriesView(
-        name=f"{first.name}: {first.column} ({first.unit}), kept rollouts: red failure, grey safe, yellow least "
-             "robust, blue most likely, x miss",
-        contents=[f"+ /rollouts/{first.column}/**", "+ /rollouts/detected/**", "+ /rollouts/missed/**"],
-        plot_legend=_NO_LEGEND,
-    )  # fmt: skip
+        name=f"{signals[0].name}: {signals[0].column} ({signals[0].unit}), {colours}", plot_legend=_NO_LEGEND,
+        contents=[f"+ /rollouts/{signals[0].column}/**", "+ /rollouts/detected/**", "+ /rollouts/missed/**"],
+    ) if signals else rrb.TimeSeriesView(name=colours.capitalize(), contents=["+ /rollouts/**"],
+                                         plot_legend=_NO_LEGEND)  # fmt: skip
     others = [rrb.TimeSeriesView(name=f"{s.name}: {s.column} ({s.unit})", origin=f"/rollouts/{s.column}",
                                  plot_legend=_NO_LEGEND) for s in rest]  # fmt: skip
     right: list = []
     if others:
         right.append(rrb.Tabs(*others) if len(others) > 1 else others[0])
-    if view is None or view.scene is not None:
+    if _has_scene(view):
         right.append(_scene_view(f"/{SCENE_PATH}", "Scene: each stage's least robust rollout (play on step)", n_lanes))
     if not right:
         return rrb.Vertical(traces, name=tab_name("rollouts"))
@@ -167,7 +173,7 @@ def default_blueprint(
 
     Args:
         n_lanes: lanes of the rollouts' scene (one per stage); sizes its view.
-        view: the problem's view (its signals, thresholds and scene); None: the braking scenario's.
+        view: the problem's view (its signals, thresholds and drawing); None: no signal and no scene are known.
         tab: the tab open at start, one of :data:`TABS`; the time panel shows its timeline (:data:`TIMELINE`).
         paused: start with the time cursor paused (at the timeline's start); else the viewer plays the timeline
             once on opening and stops at its end (the last stage).
@@ -186,7 +192,7 @@ def default_blueprint(
                     rrb.TextDocumentView(origin="/failures", name="Failures by share of p, in groups"),
                     *([rrb.BarChartView(origin="/final/severity_of_failures", plot_legend=_NO_LEGEND,
                                         name="p(severity | failure): share of p per impact speed, no contact first")]
-                      if view is None or view.scene is not None or view.objects_xy is not None else []),
+                      if _has_scene(view) or view is not None and view.objects_xy is not None else []),
                 ),
                 row_shares=[1.0, 1.8],
             ),
