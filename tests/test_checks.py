@@ -27,7 +27,16 @@ class Car(ParkedCarAEB):
 
 
 class SpeedFirst(Car):
+    """The first column is the window's, whatever its name: a simulator whose first column is not a gap passes."""
+
     observation_names = ("speed_mps", "gap_m")
+
+    def observation(self) -> np.ndarray:
+        return super().observation()[::-1].copy()
+
+
+class SameNameTwice(Car):
+    observation_names = ("gap_m", "gap_m")
 
 
 class Float32(Car):
@@ -64,16 +73,17 @@ class Crashes(Car):
 def test_correct_simulators_pass():
     check_simulator(Car, 40)
     check_simulator(lambda: ToyBraking(ToyParams(10, 5, 3, 0.9)), 10)
+    check_simulator(SpeedFirst, 40)
 
 
 @pytest.mark.parametrize("make, message", [
-    (SpeedFirst, "observation_names[0] must be 'gap_m'"),
+    (SameNameTwice, "observation_names must be distinct (a signal reads its column by name), got 'gap_m' more"),
     (Float32, "observation() at the start must be a float64 numpy array of shape (2,)"),
     (NoReset, "reset() does not go back to the start"),
     (Noisy, "not deterministic: the same detections give observation"),
     (ShallowSnapshot, "restore(snapshot()) taken at step 20"),
     (Crashes, r"step\((True|False)\) at step 9 raised IndexError: no road left"),
-], ids=["gap-not-first", "float32", "no-reset", "random", "snapshot", "raises"])  # fmt: skip
+], ids=["same-name-twice", "float32", "no-reset", "random", "snapshot", "raises"])  # fmt: skip
 def test_broken_simulators_fail_with_the_rule_they_break(make, message):
     pattern = message if message.startswith("step") else re.escape(message)  # the gap first drops below 12 m at step 9
     with pytest.raises(CheckError, match="^check_simulator: " + pattern):

@@ -54,7 +54,8 @@ def _trace(sim: Any, names: tuple[str, ...], detections: np.ndarray, start: int 
 def check_simulator(make: Callable[[], Any], n_steps: int, *, seed: int = 0) -> None:
     """Check a simulator against the ``Simulator`` protocol (:mod:`pemviz.scenarios`).
 
-    The rules: ``observation_names`` is a tuple of names with ``gap_m`` first (the proposal's input, metres);
+    The rules: ``observation_names`` is a tuple of distinct names (the first column, whatever its name, is the one the
+    problem's window, the proposal's input and the curves read);
     ``observation()`` is a finite float64 array [F] with F = ``len(observation_names)``; ``step(detected: bool)``
     advances one step for ``n_steps`` steps; ``reset()`` goes back to the start state; the same detections give the
     same observations (the simulator is deterministic given the detector's outputs); and a simulator with
@@ -65,7 +66,7 @@ def check_simulator(make: Callable[[], Any], n_steps: int, *, seed: int = 0) -> 
         n_steps: the rollout length T the simulator is run for (>= 1).
         seed: seed of the random detection pattern the checks use.
     Raises:
-        CheckError: the first rule broken, e.g. ``check_simulator: observation_names[0] must be 'gap_m' ...``.
+        CheckError: the first rule broken, e.g. ``check_simulator: observation_names must be distinct ...``.
         ValueError: ``n_steps`` < 1.
     """
     if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
@@ -79,9 +80,10 @@ def check_simulator(make: Callable[[], Any], n_steps: int, *, seed: int = 0) -> 
     if not isinstance(names, (tuple, list)) or not names or not all(isinstance(n, str) for n in names):
         raise _fail("check_simulator", f"observation_names must be a tuple of column names, got {names!r}")
     names = tuple(names)
-    if names[0] != "gap_m":
-        raise _fail("check_simulator", f"observation_names[0] must be 'gap_m' (the gap in metres, the proposal's "
-                                       f"input), got {names[0]!r}")  # fmt: skip
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise _fail("check_simulator", f"observation_names must be distinct (a signal reads its column by name), "
+                                       f"got {', '.join(map(repr, twice))} more than once in {names!r}")  # fmt: skip
     detections = np.random.default_rng(seed).random(n_steps) < 0.5
     start = _observation(sim, names, "at the start")
     trace = _trace(sim, names, detections)

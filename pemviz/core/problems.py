@@ -3,15 +3,14 @@
 A :class:`Problem` bundles a black-box simulation (``simulate(n, sampler, target, rng)``), the target
 detector whose probabilities weight the rollouts (the PEM), the safety requirement as an STL formula
 over named signals, and the proposal's input scale. The failure event is always classic robustness
-of the formula below 0 (for the braking spec: the gap drops below 2 m); the chosen metric only ranks
+of the formula below 0 (e.g. for the braking scenario's spec: the gap drops below 2 m); the chosen metric only ranks
 rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV).
 
 This module holds the scene-neutral parts: :class:`Problem` with its function types (:data:`SimulateFn`,
-:data:`BranchFn`, :data:`StreamFn`), the braking signals it defaults to (:data:`BRAKING_SIGNALS`,
-:data:`BRAKING_SIGNAL_RANGES`, :data:`BRAKING_UNITS`: plain data), a problem's functions for any batched simulator
-(:func:`rollout_functions`) and a PEM with a shifted logit (:class:`ShiftedPEM`). The built-in scenarios' problems
-(``braking_problem``, ``cut_in_problem``, ``toy_problem``, ``crowd_problem``, the named ``PROBLEMS`` of
-``build_problem``, a run's ``problem_for``) are in :mod:`pemviz.scenarios.problems`.
+:data:`BranchFn`, :data:`StreamFn`), a problem's functions for any batched simulator (:func:`rollout_functions`) and a
+PEM with a shifted logit (:class:`ShiftedPEM`). A problem states its own signals, ranges and units: the core defaults
+to no scenario's. The built-in scenarios' problems (the named ``PROBLEMS`` of ``build_problem``, a run's
+``problem_for``) and their signals are in :mod:`pemviz.scenarios.problems` and the scenarios' own modules.
 """
 
 from __future__ import annotations
@@ -47,15 +46,13 @@ StreamFn = Callable[..., Iterator[RolloutBatch]]
 arguments, in chunks of at most ``chunk_size`` rollouts (the rollouts do not depend on it)."""
 
 BRAKING_SIGNALS = {"d": "gap_m", "v": "ego_speed_mps", "vl": "lead_speed_mps"}
-"""STL signal name -> braking rollout observation column (metres, m/s)."""
+"""Deprecated: :data:`pemviz.scenarios.braking.BRAKING_SIGNALS` (kept until no sink reads it here)."""
 
 BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0), "v": (0.0, 10.0), "vl": (0.0, 10.0)}
-"""Signal ranges for AGM's normalisation of predicates into [-1, 1]: ``d >= 2`` becomes (d - 2) / 13 as
-in the authors' code. Gaps above 15 m never occur in the scenario (it starts at 12.3 m)."""
-
+"""Deprecated: :data:`pemviz.scenarios.braking.BRAKING_SIGNAL_RANGES` (kept until no sink reads it here)."""
 
 BRAKING_UNITS = {"d": "m", "v": "m/s", "vl": "m/s"}
-"""STL signal name -> unit of the braking rollouts' signals."""
+"""Deprecated: :data:`pemviz.scenarios.braking.BRAKING_UNITS` (kept until no sink reads it here)."""
 
 
 @dataclass(frozen=True)
@@ -67,15 +64,18 @@ class Problem:
         simulate: draws rollouts (see :data:`SimulateFn`).
         target: the detector the failure probability is defined under (the PEM).
         formula: the safety requirement; failure = classic robustness < 0.
-        signals: STL signal name -> observation column of the rollouts.
-        signal_ranges: per-signal (lo, hi) for AGM's predicate normalisation.
-        h_scale: the proposal's input is ``obs[:, 0] / h_scale`` (gap / 12 m for braking).
+        signals: STL signal name -> observation column of the rollouts, for every signal of the formula (required:
+            the core assumes no scenario's columns); a signal whose column a batch lacks makes :meth:`robustness` raise
+            ValueError.
+        signal_ranges: per-signal (lo, hi) for AGM's predicate normalisation (default none: a problem run under the
+            ``agm`` metric states them).
+        h_scale: the proposal's input is ``obs[:, 0] / h_scale`` (e.g. the braking scenario's gap / 12 m).
         curve_grid: values of ``obs[:, 0]`` where proposal and target curves are reported [G].
-        window: where the detector can change the outcome: ``obs[:, 0] < window`` (the braking scenario's 10 m).
+        window: where the detector can change the outcome: ``obs[:, 0] < window`` (e.g. the braking scenario's 10 m).
             The proposal replaces the target only there (``proposal_window``) and the mixed-50 baseline detects
             with 50 % there; the default, infinity, is everywhere.
-        decided_below: where the outcome is already decided: ``obs[:, 0] < decided_below`` (the braking scenario's
-            2 m crash gap: the safety formula is violated for good). With ``skip_decided`` the proposal gives way to
+        decided_below: where the outcome is already decided: ``obs[:, 0] < decided_below`` (e.g. the braking
+            scenario's 2 m crash gap: the safety formula is violated for good). With ``skip_decided`` the proposal gives way to
             the target there too; the default, minus infinity, is nowhere.
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
         branch: optional, continues rollouts from one of their steps (:data:`BranchFn`; None: the simulator has
@@ -84,20 +84,20 @@ class Problem:
             else None; shown beside every estimate.
         reference: where no exact answer is known, a plain Monte Carlo reference of the same failure probability
             under the same PEMs (:class:`pemviz.core.estimate.Reference`), else None; shown beside every estimate.
-        dt_s: seconds per step, for a rollout file's sidecar (None: not known; the braking scenario's is its
-            scene's).
+        dt_s: seconds per step, for a rollout file's sidecar and the impact speed of a failure (None: not known, e.g.
+            the toys, whose steps are units of travel).
         description: one line saying what is simulated (for sinks and tables).
-        units: STL signal name -> unit, for sinks.
+        units: STL signal name -> unit, for sinks (default none: every unit blank).
         thresholds: the failure threshold and sampler window that sinks draw (None: none).
-        scene: the braking scenario's constants (a :class:`pemviz.scenarios.braking.BrakingParams`) when the
-            rollouts can be drawn as its scene (None: no scene).
+        scene: the scenario's constants when the rollouts can be drawn as its scene (None: no scene); being
+            replaced by :attr:`drawing`.
         objects_xy, noise_xy: where sinks find each object's position and its measurement error
             (:class:`ProblemView`); None: not drawn.
         n_objects: the objects the detector sees each step (M; 1: one object a step), known before any rollout so
             that a sampler that fits one object a step is refused at once.
         curve_rows: the object rows at which the target's curve is drawn, ``curve_rows(grid [G]) -> [G, cols]`` with
             ``grid`` in the first column (None: rows of zeros but for that column, enough for a detector that reads
-            the gap alone).
+            the first observation column alone).
         severity: the signal and levels of the run's exceedance curve (:class:`pemviz.core.severity.SeverityScale`;
             None: no curve).
         severity_exact: level -> the exact log P(failure and min s < level) (nats), where known.
@@ -113,8 +113,8 @@ class Problem:
     simulate: SimulateFn
     target: Detector
     formula: "stl.Formula"
-    signals: Mapping[str, str] = field(default_factory=lambda: dict(BRAKING_SIGNALS))
-    signal_ranges: Mapping[str, tuple[float, float]] = field(default_factory=lambda: dict(BRAKING_SIGNAL_RANGES))
+    signals: Mapping[str, str]
+    signal_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     h_scale: float = 12.0
     curve_grid: np.ndarray = field(default_factory=lambda: np.linspace(0.0, 13.0, 131))
     window: float = math.inf
@@ -125,7 +125,7 @@ class Problem:
     reference: Reference | None = None
     dt_s: float | None = None
     description: str = ""
-    units: Mapping[str, str] = field(default_factory=lambda: dict(BRAKING_UNITS))
+    units: Mapping[str, str] = field(default_factory=dict)
     thresholds: Thresholds | None = None
     scene: object | None = None
     curve_rows: Callable[[np.ndarray], np.ndarray] | None = None
@@ -208,15 +208,15 @@ def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[Simu
 
 @dataclass(frozen=True)
 class ShiftedPEM:
-    """A PEM whose detection logit is moved by ``shift`` (nats) at every gap: ``logit p'(detect | d) = logit
-    p(detect | d) + shift``, so that p'(miss) ~ exp(-shift) p(miss) where misses are rare. A braking problem with it
-    (:func:`pemviz.scenarios.problems.braking_problem`) is as rare as wanted, and its exact answer comes from the same
-    enumeration (:func:`pemviz.scenarios.truth.braking_exact` with ``logit_at_gap``)."""
+    """A PEM whose detection logit is moved by ``shift`` (nats) at every distance: ``logit p'(detect | d) = logit
+    p(detect | d) + shift``, so that p'(miss) ~ exp(-shift) p(miss) where misses are rare. A problem with it is as rare
+    as wanted, and where the PEM's exact answer is known by enumeration over ``logit_at_gap`` (e.g. the braking
+    scenario's, :mod:`pemviz.scenarios.truth`), so is the shifted one's."""
 
     pem: object
     shift: float
 
-    def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
-        """logit p'(detect | gap), float64 of the shape of ``gap_m`` (metres)."""
-        return np.asarray(self.pem.logit_at_gap(gap_m), dtype=np.float64) + self.shift
+    def logit_at_gap(self, distance: np.ndarray) -> np.ndarray:
+        """logit p'(detect | distance), float64 of the shape of ``distance`` (metres)."""
+        return np.asarray(self.pem.logit_at_gap(distance), dtype=np.float64) + self.shift
 

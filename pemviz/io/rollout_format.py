@@ -97,8 +97,7 @@ import numpy as np
 
 import pemviz
 from pemviz import stl
-from pemviz.core.problems import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS
-from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
+from pemviz.scenarios.braking import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, OBSERVATION_NAMES, BrakingParams
 from pemviz.scenarios.problems import braking_formula
 
 FORMAT_TAG = "pemviz-rollouts"

@@ -40,6 +40,16 @@ the gap; ``brake_pending`` (1.0 or 0.0: the emergency brake commanded at the las
 the actuation lag) is the controller's memory that decides this step's deceleration, so that a proposal over
 the observation sees the Markov state that matters (the PID integral moves slowly with the speed)."""
 
+BRAKING_SIGNALS = {"d": "gap_m", "v": "ego_speed_mps", "vl": "lead_speed_mps"}
+"""STL signal name -> braking rollout observation column (metres, m/s): the braking problem's ``signals``."""
+
+BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0), "v": (0.0, 10.0), "vl": (0.0, 10.0)}
+"""Signal ranges for AGM's normalisation of predicates into [-1, 1]: ``d >= 2`` becomes (d - 2) / 13 as
+in the authors' code. Gaps above 15 m never occur in the scenario (it starts at 12.3 m)."""
+
+BRAKING_UNITS = {"d": "m", "v": "m/s", "vl": "m/s"}
+"""STL signal name -> unit of the braking rollouts' signals."""
+
 
 @dataclass(frozen=True)
 class BrakingParams:

@@ -29,7 +29,9 @@ from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import SeverityScale
 from pemviz.pem import DEFAULT_PEM_NAME, load_pem
 from pemviz.scenarios.batched import branch_batched, iter_batched, simulate_batched
-from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+from pemviz.scenarios.braking import (
+    BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, BRAKING_UNITS, BrakingParams, BrakingScenario,
+)
 from pemviz.scenarios.braking_drawing import BrakingDrawing
 from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
 from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
@@ -82,8 +84,9 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
                  for x in scale.levels}  # fmt: skip
         exact = {x: v for x, v in known.items() if v is not None}
     return Problem(
-        "braking", run, PEMDetector(pem), braking_formula(p), window=p.braking_distance_m, decided_below=p.crash_gap_m,
-        severity=scale, severity_exact=exact,
+        "braking", run, PEMDetector(pem), braking_formula(p), signals=dict(BRAKING_SIGNALS),
+        signal_ranges=dict(BRAKING_SIGNAL_RANGES), units=dict(BRAKING_UNITS), window=p.braking_distance_m,
+        decided_below=p.crash_gap_m, severity=scale, severity_exact=exact,
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"), scene=p,
