@@ -75,8 +75,8 @@ class Problem:
             The proposal replaces the target only there (``proposal_window``) and the mixed-50 baseline detects
             with 50 % there; the default, infinity, is everywhere.
         decided_below: where the outcome is already decided: ``obs[:, 0] < decided_below`` (e.g. the braking
-            scenario's 2 m crash gap: the safety formula is violated for good). With ``skip_decided`` the proposal gives way to
-            the target there too; the default, minus infinity, is nowhere.
+            scenario's 2 m crash gap: the safety formula is violated for good). With ``skip_decided`` the proposal
+            gives way to the target there too; the default, minus infinity, is nowhere.
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
         branch: optional, continues rollouts from one of their steps (:data:`BranchFn`; None: the simulator has
             no snapshot/restore), for adaptive multilevel splitting (``method = "ams"``).

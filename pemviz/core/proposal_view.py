@@ -1,12 +1,13 @@
-"""What a sampler really did: q(detect) over the states its rollouts visited, per gap bin, beside the PEM's.
+"""What a sampler really did: q(detect) over the states its rollouts visited, per bin of the first observation column
+(the window's, e.g. the braking scenario's gap), beside the PEM's.
 
-A proposal that sees more than the gap (the default ``state`` proposal sees gap, speeds and the pending brake)
-has no single curve q(detect | gap): a curve that varies the gap and holds the other inputs at one reference state
-(:meth:`pemviz.core.sampling.StateProposal.curve`) can sit near 1 at every gap while the sampler misses the lead most of
-the time in the states it actually reaches. Here the states are those of a stage's rollouts and q is read back
+A proposal that sees more than that column (the default ``state`` proposal sees every column of the observation)
+has no single curve q(detect | column): a curve that varies the column and holds the other inputs at one reference
+state (:meth:`pemviz.core.sampling.StateProposal.curve`) can sit near 1 everywhere while the sampler misses the object
+most of the time in the states it actually reaches. Here the states are those of a stage's rollouts and q is read back
 from the log-probability each rollout's detector gave the action it took (``RolloutBatch.log_q``), so the view
 needs neither the network nor a reference state, and holds for any sampler (a mixture's rollouts each with the
-detector that drew them, the PEM's own rollouts with q = p). Per gap bin: the mean and the quantiles of q(detect)
+detector that drew them, the PEM's own rollouts with q = p). Per bin: the mean and the quantiles of q(detect)
 and the quantiles of the log-odds of a miss, ``log q(miss) / q(detect)`` (nats), where probabilities near 0 or 1
 differ by orders of magnitude that a 0-1 axis cannot show. The same for the PEM, from ``RolloutBatch.log_p`` at
 the same states.
@@ -28,16 +29,17 @@ QUANTILES = (0.1, 0.9)
 """The lower and upper quantile of a bin's spread."""
 
 N_BINS = 26
-"""Gap bins of a view over a proposal's curve grid (:func:`bins_over`): 0.5 m wide over the braking grid 0-13 m."""
+"""Bins of a view over a proposal's curve grid (:func:`bins_over`): e.g. 0.5 m wide over the braking scenario's
+grid 0-13 m."""
 
 LOG_ODDS_SPAN_NATS = 12.0
 """A log-odds chart shows at most -12..12 nats (odds of 1:160,000); values beyond are drawn at the edge."""
 
 
 def bins_over(grid: np.ndarray, n_bins: int = N_BINS) -> np.ndarray:
-    """``n_bins`` equal gap bins over the span of a problem's curve grid
-    (:attr:`pemviz.core.problems.Problem.curve_grid`), float64 [n_bins + 1] edges (the grid's unit: metres for the
-    braking scenario).
+    """``n_bins`` equal bins over the span of a problem's curve grid
+    (:attr:`pemviz.core.problems.Problem.curve_grid`), float64 [n_bins + 1] edges in the grid's unit (the first
+    observation column's, e.g. metres).
 
     Raises:
         ValueError: a grid without a positive span, or ``n_bins`` < 1.
@@ -150,33 +152,35 @@ def _by_bin(values: np.ndarray, bins: np.ndarray, n_bins: int, median: bool) -> 
 
 
 def proposal_view(
-    gap_m: np.ndarray,
+    inputs: np.ndarray,
     detected: np.ndarray,
     log_q: np.ndarray,
     log_p: np.ndarray,
     edges_m: np.ndarray,
     window_m: float = 10.0,
 ) -> ProposalView:
-    """The sampler's and the PEM's detection probabilities over the states a batch of rollouts visited, by gap.
+    """The sampler's and the PEM's detection probabilities over the states a batch of rollouts visited, by the first
+    observation column (the proposal's input).
 
     Args:
-        gap_m: float64 [N, T] the gap at each visited state (metres).
+        inputs: float64 [N, T] the first observation column at each visited state (the edges' unit, e.g. metres).
         detected: bool [N, T] the action taken there.
         log_q: float64 [N, T] log q(action) under the detector that drew the rollout (nats).
         log_p: float64 [N, T] log p_PEM(action) (nats).
-        edges_m: float64 [B + 1] increasing bin edges (metres); states outside them count in no bin.
-        window_m: the gap below which the mean miss probabilities are also taken over all states (metres).
+        edges_m: float64 [B + 1] increasing bin edges (e.g. metres); states outside them count in no bin.
+        window_m: the input below which the mean miss probabilities are also taken over all states (the problem's
+            window, in the same unit).
     Raises:
         ValueError: arrays of different shapes, or edges not increasing with at least one bin.
     """
-    gap = np.asarray(gap_m, dtype=np.float64).ravel()
+    gap = np.asarray(inputs, dtype=np.float64).ravel()
     d = np.asarray(detected, dtype=bool).ravel()
     lq, lp = np.asarray(log_q, dtype=np.float64).ravel(), np.asarray(log_p, dtype=np.float64).ravel()
     edges = np.asarray(edges_m, dtype=np.float64)
-    shape = np.shape(gap_m)
+    shape = np.shape(inputs)
     if not (np.shape(detected) == np.shape(log_q) == np.shape(log_p) == shape):
         raise ValueError(
-            f"proposal_view: gap_m, detected, log_q and log_p need one shape [N, T], got {shape}, "
+            f"proposal_view: inputs, detected, log_q and log_p need one shape [N, T], got {shape}, "
             f"{np.shape(detected)}, {np.shape(log_q)}, {np.shape(log_p)}"
         )
     if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
@@ -202,8 +206,9 @@ def proposal_view(
 
 
 def batch_proposal_view(batch, edges_m: np.ndarray, window_m: float = 10.0) -> ProposalView | None:
-    """:func:`proposal_view` of a :class:`pemviz.core.rollouts.RolloutBatch` (None: its rollouts report no ``gap_m``, or
-    perceive several objects, whose densities the batch holds only per step)."""
-    if "gap_m" not in batch.observation_names or batch.n_objects != 1:
+    """:func:`proposal_view` of a :class:`pemviz.core.rollouts.RolloutBatch` by its first observation column (None: its
+    rollouts perceive several objects, whose densities the batch holds only per step)."""
+    if batch.n_objects != 1:
         return None
-    return proposal_view(batch.gap_m, batch.detected[..., 0], batch.log_q, batch.log_p, edges_m, window_m)
+    return proposal_view(batch.observations[:, :, 0], batch.detected[..., 0], batch.log_q, batch.log_p, edges_m,
+                         window_m)

@@ -33,15 +33,16 @@ def torch_imported() -> bool:
 
 
 GAP_SCALE_M = 12.0
-"""The braking proposal's input is gap / 12 m (Innes & Ramamoorthy 2022, the authors' code)."""
+"""The default input scale of a proposal: its input is the first observation column / 12 (e.g. the braking
+scenario's gap / 12 m: Innes & Ramamoorthy 2022, the authors' code)."""
 
 
 class Proposal:
     """q_phi(a | d): Linear(1,32)-ReLU-Linear(32,32)-ReLU-Linear(32,2)-LogSoftmax, float64 (Innes & Ramamoorthy 2022,
     Algorithm 1; the authors' ``FFPolicy``).
 
-    ``forward(gap_m [M]) -> [M, 2]`` log-probabilities (nats) of (miss, detect); the network sees
-    ``h(s) = gap_m / h_scale``.
+    ``forward(values [M]) -> [M, 2]`` log-probabilities (nats) of (miss, detect) at proposal inputs (the first
+    observation column); the network sees ``h(s) = values / h_scale``.
 
     Its parameters live in numpy (float64, torch's layout: weight [out, in], bias [out]) until something needs them
     in torch (:attr:`net`: an L-BFGS or float32 / float64 fit, a measurement-error head, a checkpoint): then they move,
@@ -138,9 +139,9 @@ class Proposal:
             for p, a in zip(self._module.net.parameters(), arrays):
                 p.copy_(torch.from_numpy(a))
 
-    def forward(self, gap_m):
-        """log q [M, 2] (nats, torch float64) at proposal inputs ``gap_m`` [M] (a torch tensor; imports torch)."""
-        return self.net(self.inputs(gap_m))
+    def forward(self, values):
+        """log q [M, 2] (nats, torch float64) at proposal inputs ``values`` [M] (a torch tensor; imports torch)."""
+        return self.net(self.inputs(values))
 
     __call__ = forward
 
@@ -171,13 +172,14 @@ class Proposal:
             a, b = self.noise_shift(torch.from_numpy(np.ascontiguousarray(x)))
         return a.numpy(), b.numpy()
 
-    def inputs(self, gap_m):
-        """The network's input h(s) of proposal inputs ``gap_m`` [M] (metres, a torch tensor): [M, 1], dimensionless."""
-        return (gap_m / self.h_scale).reshape(-1, 1)
+    def inputs(self, values):
+        """The network's input h(s) of proposal inputs ``values`` [M] (the first observation column's unit, a torch
+        tensor): [M, 1], dimensionless."""
+        return (values / self.h_scale).reshape(-1, 1)
 
-    def input_array(self, gap_m: np.ndarray) -> np.ndarray:
-        """:meth:`inputs` in numpy: float64 [M, k] of proposal inputs [M] or [M, k] (the same bits)."""
-        return np.asarray(gap_m, dtype=np.float64).reshape(-1, self.n_inputs) / self.input_scales()
+    def input_array(self, values: np.ndarray) -> np.ndarray:
+        """:meth:`inputs` in numpy: float64 [M, k] of proposal inputs ``values`` [M] or [M, k] (the same bits)."""
+        return np.asarray(values, dtype=np.float64).reshape(-1, self.n_inputs) / self.input_scales()
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """Detector interface: logit q(detect | obs) = log q(detect) - log q(miss), float64 [N] for observations

@@ -65,16 +65,17 @@ def weighted_steps(
 
 
 def _action_counts(
-    gap_m: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None, drop_unweighted: bool = False
+    inputs: np.ndarray, detected: np.ndarray, row_weight: np.ndarray | None = None, drop_unweighted: bool = False
 ):
     """Distinct proposal inputs and the (weighted) number of misses and detections at each: an exact summary.
 
-    q depends on the gap only, so ``sum_it w_i log q(a_it | d_it) = sum_u W0(u) log q(0|u) + W1(u) log q(1|u)``.
-    Rollouts share most gaps (the detector matters only inside 10 m), so an epoch costs a forward pass
-    over a few hundred distinct gaps instead of N * T.
+    q depends on its input only, so ``sum_it w_i log q(a_it | d_it) = sum_u W0(u) log q(0|u) + W1(u) log q(1|u)``.
+    Rollouts share most inputs (the detector matters only inside the problem's window), so an epoch costs a forward
+    pass over a few hundred distinct inputs instead of N * T.
 
     Args:
-        gap_m: [N, T] gaps, or [N, T, k] inputs of a :class:`StateProposal` (distinct rows then).
+        inputs: [N, T] proposal inputs (the first observation column), or [N, T, k] inputs of a
+            :class:`StateProposal` (distinct rows then).
         row_weight: [N] per rollout, or [N, T] per step (0 leaves a step out), or None (all 1).
         drop_unweighted: leave out the inputs whose steps all weigh 0 (e.g. outside the proposal's window), so an
             epoch does not evaluate the network where it cannot change the loss; ``inverse`` is then None.
@@ -82,12 +83,12 @@ def _action_counts(
         (uniq [U] (or [U, k]) float64, counts [U, 2] float64: weighted misses, detections;
         inverse [N, T] index of each entry into ``uniq``).
     """
-    gap_m = np.asarray(gap_m, dtype=np.float64)
+    inputs = np.asarray(inputs, dtype=np.float64)
     shape = np.shape(detected)
-    if gap_m.ndim == 3:
-        uniq, inverse = np.unique(gap_m.reshape(-1, gap_m.shape[2]), axis=0, return_inverse=True)
+    if inputs.ndim == 3:
+        uniq, inverse = np.unique(inputs.reshape(-1, inputs.shape[2]), axis=0, return_inverse=True)
     else:
-        uniq, inverse = np.unique(gap_m, return_inverse=True)
+        uniq, inverse = np.unique(inputs, return_inverse=True)
     inverse = inverse.reshape(shape)
     if row_weight is None:
         w = np.ones(shape)
@@ -112,7 +113,7 @@ def _summed_fit(fit: str, max_rows: int | None, n_fitted: int) -> bool:
 
 def pretrain_proposal(
     proposal: Proposal,
-    gap_m: np.ndarray,
+    inputs: np.ndarray,
     detected: np.ndarray,
     *,
     epochs: int = 1000,
@@ -128,8 +129,8 @@ def pretrain_proposal(
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
 
     Args:
-        gap_m: float64 [N, T] gaps of PEM-driven rollouts (metres), or [N, T, k] inputs of a
-            :class:`StateProposal` (``proposal.features(observations)``).
+        inputs: float64 [N, T] proposal inputs of PEM-driven rollouts (the first observation column), or [N, T, k]
+            inputs of a :class:`StateProposal` (``proposal.features(observations)``).
         detected: bool [N, T] the PEM's detections.
         epochs: Adam epochs, or the most L-BFGS iterations (``fit``).
         check: called every :data:`pemviz.core.sampling.CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
@@ -149,22 +150,22 @@ def pretrain_proposal(
     n_fitted = np.size(detected) if step_mask is None else int(np.count_nonzero(step_mask))
     if _summed_fit(fit, max_rows, n_fitted):
         if step_mask is None:
-            uniq, counts, _ = _action_counts(gap_m, detected)
+            uniq, counts, _ = _action_counts(inputs, detected)
             total = float(np.size(detected))
         else:
             step_mask = np.asarray(step_mask, dtype=np.float64)
-            uniq, counts, _ = _action_counts(gap_m, detected, step_mask, drop_unweighted=True)
+            uniq, counts, _ = _action_counts(inputs, detected, step_mask, drop_unweighted=True)
             total = max(float(step_mask.sum()), 1.0)
         return fit_proposal(proposal, uniq, counts, epochs, lr, check, per=total, dtype=dtype)
     mask = np.ones(np.shape(detected)) if step_mask is None else np.asarray(step_mask, dtype=np.float64)
-    rows, counts = weighted_steps(gap_m, detected, mask, max_rows or mask.size, rng or np.random.default_rng(0))
+    rows, counts = weighted_steps(inputs, detected, mask, max_rows or mask.size, rng or np.random.default_rng(0))
     total = max(float(counts.sum()), 1.0)
     return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
 
 
 def ce_update(
     proposal: Proposal,
-    gap_m: np.ndarray,
+    inputs: np.ndarray,
     detected: np.ndarray,
     log_p: np.ndarray,
     log_q: np.ndarray,
@@ -186,7 +187,7 @@ def ce_update(
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
     Args:
-        gap_m, detected, log_p, log_q: [N, T] from the stage's rollouts (log_p under the PEM, log_q
+        inputs, detected, log_p, log_q: [N, T] from the stage's rollouts (log_p under the PEM, log_q
             under the proposal that sampled them; nats).
         elite: bool [N], robustness <= gamma_kappa.
         smoothing: alpha in (0, 2], the power on the importance weights.
@@ -222,7 +223,7 @@ def ce_update(
     frozen_log_w = ((log_p[idx, :k] - log_q[idx, :k]) * mask[:, :k]).sum(axis=1)
     if weights == "frozen" and step_mask is not None:
         scaled = smoothing * frozen_log_w
-        rows, actions = gap_m[idx][mask], detected[idx][mask]
+        rows, actions = inputs[idx][mask], detected[idx][mask]
         return fit_elite_steps(proposal, rows, actions, np.broadcast_to(scaled[:, None], mask.shape)[mask],
                                float(scaled.max()), epochs=epochs, lr=lr, check=check, fit=fit, max_rows=max_rows,
                                rng=rng, tolerance=tolerance, dtype=dtype)  # fmt: skip
@@ -231,14 +232,14 @@ def ce_update(
         step_w = np.exp(scaled - scaled.max())[:, None] * mask
         if not _summed_fit(fit, max_rows, int(np.count_nonzero(step_w))):
             step_w = np.broadcast_to(step_w, detected[idx].shape)
-            rows, counts = weighted_steps(gap_m[idx], detected[idx], step_w, max_rows or step_w.size,
+            rows, counts = weighted_steps(inputs[idx], detected[idx], step_w, max_rows or step_w.size,
                                            rng or np.random.default_rng(0))  # fmt: skip
             total = float(counts.sum())
             return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
-        uniq, counts, _ = _action_counts(gap_m[idx], detected[idx], step_w[:, 0])
+        uniq, counts, _ = _action_counts(inputs[idx], detected[idx], step_w[:, 0])
         return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, dtype=dtype)
     # w depends on q_phi: per-rollout sums of log q over the first k steps, through the gradient.
-    uniq, _, inverse = _action_counts(gap_m[idx], detected[idx])
+    uniq, _, inverse = _action_counts(inputs[idx], detected[idx])
     slot = inverse * 2 + detected[idx].astype(np.int64)
     return fit_proposal(proposal, uniq, recomputed_objective(slot, lp, mask, k, smoothing), epochs, lr, check, fit)
 
