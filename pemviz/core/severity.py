@@ -1,7 +1,8 @@
 """Severity: how deep the failures go, as an exceedance curve P(failure and min_t s_t < x) over levels x of a signal.
 
 A failure of ``G(d >= 2)`` mixes grazes of the 2 m margin with contact. The exceedance curve splits them: for a
-signal s (the braking gap, metres) and levels x from the spec's margin down to contact (x = 0), the probability that
+signal s (e.g. the braking scenario's gap, metres) and levels x from the spec's margin down to contact (x = 0), the
+probability that
 a rollout fails and its signal drops below x: the exceedance curve that severity and fragility analyses read.
 
 Each point is estimated from the same importance-weighted rollouts as the failure probability: with E_x the event
@@ -35,14 +36,18 @@ class SeverityScale:
     """Which signal measures a failure's severity and at which levels the curve is estimated.
 
     Attributes:
-        signal: the STL signal name (e.g. ``d``, the braking gap).
+        signal: the STL signal name (e.g. ``d``, the braking scenario's gap).
         label: what the signal is, for people (``gap``, ``clearance``).
         unit: its unit (``m``).
         levels: the levels x below the failure itself, descending (metres for a distance); the event at x is
             "failure and min_t s_t < x".
-        margin: the level at which the spec itself fails on this signal (the braking scenario's crash gap, 2 m), or
-            None where the failure is not a level of this signal (the cut-in fails on its safe distance).
-        contact: the level of contact (0: the cars touch).
+        margin: the level at which the spec itself fails on this signal (e.g. the braking scenario's crash gap, 2 m),
+            or None where the failure is not a level of this signal (a failure of another signal, e.g. a safe
+            distance).
+        contact: the level of contact on the curve (0: the objects touch).
+        contact_at: the distance at or below which a rollout counts as in contact for its own severity (its impact
+            speed, :func:`contact_level`): where the scene stops its objects short of 0 (e.g. the braking scenario's
+            0.7 m, where the scene stops the ego as CARLA's collision does); None: :attr:`contact`.
         target_flag: the ``pemviz run`` flag that makes a level the failure itself (``margin``: a run that targets
             it), or None.
     """
@@ -54,6 +59,7 @@ class SeverityScale:
     margin: float | None = None
     contact: float = 0.0
     target_flag: str | None = None
+    contact_at: float | None = None
 
     def __post_init__(self) -> None:
         if any(b >= a for a, b in zip(self.levels, self.levels[1:])):
@@ -195,8 +201,8 @@ def severity_of_signal(signal: np.ndarray, contact: float, dt_s: float) -> tuple
     ``x += v dt``), so this is the relative speed (ego minus the car it meets) with which the cars reached contact,
     the delta-v of crash-severity practice for a collision with a car ahead (Evans, "Driver injury and fatality risk in
     two-car crashes versus mass ratio inferred using Newtonian mechanics", Accident Analysis & Prevention 26(5), 1994;
-    Gabauer & Gabler, "Comparison of roadside crash injury metrics using event data recorders", AAP 40(2), 2008). On
-    the braking scene it is :attr:`pemviz.scenarios.braking_failures.Severity.contact_speed_mps`, number for number.
+    Gabauer & Gabler, "Comparison of roadside crash injury metrics using event data recorders", AAP 40(2), 2008). A
+    scenario's own severity agrees with it number for number (e.g. the braking scenario's ``contact_speed_mps``).
 
     Args:
         signal: s_t of each rollout, float64 [N, T] (metres), T >= 1.
@@ -232,9 +238,9 @@ def severity_of_signal(signal: np.ndarray, contact: float, dt_s: float) -> tuple
 
 
 def contact_level(problem: object) -> float:
-    """The distance at or below which a problem's cars touch (metres): its scene's ``contact_gap_m`` where it has a
-    scene (the braking scene stops the ego there, as CARLA's collision does: 0.7 m), else its severity scale's
-    contact (the cut-in's clearance 0 m: the boxes meet).
+    """The distance at or below which a problem's objects touch (metres), as its severity scale states it:
+    :attr:`SeverityScale.contact_at` where the scene stops its objects short of 0 (e.g. the braking scenario's 0.7 m),
+    else :attr:`SeverityScale.contact` (0: the boxes meet).
 
     Raises:
         ValueError: a problem without a severity scale.
@@ -242,19 +248,17 @@ def contact_level(problem: object) -> float:
     scale = getattr(problem, "severity", None)
     if scale is None:
         raise ValueError(f"problem {getattr(problem, 'name', problem)!r} has no severity scale")
-    scene = getattr(problem, "scene", None)
-    return float(getattr(scene, "contact_gap_m", scale.contact))
+    return float(scale.contact if scale.contact_at is None else scale.contact_at)
 
 
 def rollout_severity(problem: object, batch: object) -> tuple[np.ndarray, np.ndarray]:
     """Each rollout's severity, whatever the scene: its minimum distance and its impact speed.
 
-    The distance is the problem's severity signal (:attr:`SeverityScale.signal`: the braking gap ``d``, the cut-in's
-    ``clearance``, metres); contact is that distance at or below :func:`contact_level` (braking: 0.7 m, where the
-    scene stops the ego as CARLA's collision does; cut-in: a clearance <= 0, the boxes meet); the impact speed is
-    the closing speed over the step into contact (:func:`severity_of_signal`). On the cut-in the clearance is to the
-    nearest car beside the ego, and the difference is the ego's speed minus the front car's at the step before contact
-    to within 0.1 m/s on replayed contacts (the cut-in car's along-road speed changes a little as it turns in).
+    The distance is the problem's severity signal (:attr:`SeverityScale.signal`, metres); contact is that distance at
+    or below :func:`contact_level` (where the scene stops its objects, or 0: the boxes meet); the impact speed is the
+    closing speed over the step into contact (:func:`severity_of_signal`). Where the distance is a clearance to the
+    nearest object, the impact speed is the ego's speed minus that object's at the step before contact, to within the
+    change of the object's along-road speed over the step (e.g. 0.1 m/s for a car that turns in).
 
     Args:
         problem: a :class:`pemviz.core.problems.Problem` with a severity scale.
@@ -263,13 +267,13 @@ def rollout_severity(problem: object, batch: object) -> tuple[np.ndarray, np.nda
         ``(min_distance, impact_speed)``: float64 [N] each, metres and m/s; the impact speed is NaN exactly where the
         rollout never reaches contact.
     Raises:
-        ValueError: a problem without a severity scale or a step (``dt_s``, or its scene's), a rollout in contact at
+        ValueError: a problem without a severity scale or a step (``dt_s``), a rollout in contact at
             step 0 (:func:`severity_of_signal`); KeyError: the batch lacks the signal's column.
     """
     contact = contact_level(problem)
     scale = problem.severity
     column = problem.signals.get(scale.signal, scale.signal)
-    dt = getattr(problem, "dt_s", None) or getattr(getattr(problem, "scene", None), "dt_s", None)
+    dt = getattr(problem, "dt_s", None)
     if dt is None:
         raise ValueError(f"problem {problem.name!r} states no step (dt_s): the impact speed cannot be read")
     return severity_of_signal(batch.signal(column), contact, float(dt))

@@ -77,7 +77,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         return branch(lambda: BrakingScenario(p), parents, parent, at, target, rng)
 
     scale = SeverityScale("d", "gap", "m", tuple(x for x in BRAKING_SEVERITY_LEVELS_M if x < p.crash_gap_m),
-                          margin=p.crash_gap_m, target_flag="margin")  # fmt: skip
+                          margin=p.crash_gap_m, target_flag="margin", contact_at=p.contact_gap_m)  # fmt: skip
     exact = {}
     if hasattr(pem, "logit_at_gap"):
         known = {x: known_log_failure_probability(pem.logit_at_gap, dataclasses.replace(p, crash_gap_m=x))
@@ -90,7 +90,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"), scene=p,
-        drawing=BrakingDrawing(p), n_steps=p.n_steps,
+        drawing=BrakingDrawing(p), n_steps=p.n_steps, dt_s=p.dt_s,
         description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
                      f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
                      f"the gap drops below {p.crash_gap_m:g} m"),
