@@ -45,6 +45,13 @@ plugins' scenarios once they are loaded (:func:`pemviz.scenarios.registry.load_p
 they read a config). The settings sit below the registry: they read this list and never import it."""
 
 
+SCENARIO_COST_FACTORS: dict[str, float] = {}
+"""Scenario name -> how many times the cost model's reference rollout step one of its rollout steps costs
+(:attr:`pemviz.scenarios.registry.Scenario.cost_factor`, which :func:`pemviz.scenarios.registry.register` writes here
+for every scenario it registers and ``unregister`` removes): what :func:`pemviz.engine.cost.stage_cost` scales a
+scenario's simulation seconds by, reading this table and never the registry (1 for a name not here)."""
+
+
 def scenario_names() -> tuple[str, ...]:
     """The scenarios a config may name: :data:`SCENARIOS`, then :data:`REGISTERED_SCENARIOS` in registration order."""
     return (*SCENARIOS, *(n for n in REGISTERED_SCENARIOS if n not in SCENARIOS))

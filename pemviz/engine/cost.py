@@ -5,7 +5,7 @@ The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimator
 
 - simulating a batch of n rollouts of T steps: T x (a fixed cost per step of the batch, larger when a proposal
   network and its mixture decide the detections than when the PEM alone does, + a cost per rollout and step of the
-  simulator);
+  simulator, times the cost factor the scenario declares: :data:`pemviz.settings.SCENARIO_COST_FACTORS`);
 - after the rollouts, a fixed cost per stage (robustness, estimate, listeners) and, in pretraining and each
   cross-entropy stage, the proposal's fit: epochs x (a fixed cost per Adam epoch + a cost per fitted row and epoch) +
   a cost per fitted row (gathering and weighing the pool). The rows are the distinct fitted steps, at most
@@ -27,9 +27,11 @@ from dataclasses import dataclass, field
 from pemviz.config import ExperimentConfig
 from pemviz.core.plan import RunPlan
 from pemviz.engine.resources import BASE_BYTES, run_memory
+from pemviz.settings import SCENARIO_COST_FACTORS
 
 N_STEPS = 100
-"""T of the braking scenario (:attr:`pemviz.scenarios.braking.BrakingParams.n_steps`), the default of the model."""
+"""T, the steps of a rollout, where the caller states no problem's horizon: the default of the model (e.g. the braking
+scenario's 100 steps, on which the constants were measured)."""
 
 CONFIRM_SIMULATIONS = 500_000
 CONFIRM_SECONDS = 120.0
@@ -56,9 +58,6 @@ class CostConstants:
             of pretraining's proposal; the pool of failures grows over the next stages).
         early_stop_share: the mean share of ``ce_epochs`` a CE fit with ``fit_tolerance`` runs before it stops.
         ams_rollouts: rollout-equivalents AMS simulates per particle (its continuations), about.
-        scene_rollout_factor: per scenario (:data:`pemviz.config.SCENARIOS`), how many times a braking rollout step
-            one of its rollout steps costs (the cut-in's five cars, their salient variables, measurement errors and
-            tracker); 1 where absent.
         measured: when, where and how the constants were measured.
     """
 
@@ -76,7 +75,6 @@ class CostConstants:
     ce_rows_stages: float
     early_stop_share: float
     ams_rollouts: float = 5.0
-    scene_rollout_factor: dict[str, float] = field(default_factory=dict)
     measured: str = field(default="", compare=False)
 
 
@@ -95,7 +93,6 @@ COST = CostConstants(
     ce_rows_stages=3.4,
     early_stop_share=0.88,
     ams_rollouts=5,
-    scene_rollout_factor={"cut-in": 6.7, "cut-in-rare": 6.7},  # 9.5 x 5.6 s / 7.9 s: the cut-in 1.4x faster, 2026-11-25
     measured="2026-11-25, benchmarks/calibrate_cost.py --fit --repeat 2 (wall seconds), 2 cores, load average 0.8",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
@@ -129,7 +126,9 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
     """Predicted seconds of a stage of ``kind`` (``pretrain`` | ``ce`` | ``final`` | ``ams``) with ``n`` rollouts.
 
     Args:
-        cfg: the run's settings (method, simulator, proposal inputs, epochs, fit rows, tolerance).
+        cfg: the run's settings (method, simulator, scenario, proposal inputs, epochs, fit rows, tolerance); the
+            per-rollout seconds scale by the cost factor the scenario declares
+            (:data:`pemviz.settings.SCENARIO_COST_FACTORS`, 1 for one that declares none).
         n_steps: T, steps per rollout.
         c: the constants (default :data:`COST`).
         stage: the stage's number, for a CE stage's rows (:func:`ce_rows`); None: the mean over the K stages.
@@ -137,7 +136,7 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
     proposal = cfg.method == "adaptive" and kind in ("ce", "final")
     per_step = c.proposal_step_s if proposal else c.pem_step_s
     per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
-    per_rollout *= c.scene_rollout_factor.get(cfg.scenario, 1.0)
+    per_rollout *= SCENARIO_COST_FACTORS.get(cfg.scenario, 1.0)  # what the scenario declares (1: none)
     rollouts = n * (c.ams_rollouts if kind == "ams" else 1.0)
     simulate = n_steps * (per_step + per_rollout * rollouts)
     cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)

@@ -28,7 +28,7 @@ from pemviz.scenarios.parameters import (
     KINDS, Parameter, ParameterError, apply_parameters, default_params, register_defaults, scenario_parameters,
     unit_of,
 )
-from pemviz.settings import REGISTERED_SCENARIOS, SCENARIOS
+from pemviz.settings import REGISTERED_SCENARIOS, SCENARIO_COST_FACTORS, SCENARIOS
 
 Ref = Any
 """An object, or the text ``"package.module:name"`` that names it (imported when first used)."""
@@ -84,6 +84,9 @@ class Scenario:
         drawing: optional, ``drawing(params) -> object``: the scenario's drawing object
             (:class:`pemviz.core.drawing.Drawing`, also :attr:`pemviz.core.problems.Problem.drawing`), which the panel
             draws before any run; None: the scenario has no scene of its own. A :data:`Ref`.
+        cost_factor: how many times the cost model's reference rollout step (:mod:`pemviz.engine.cost`, measured on
+            the braking scenario's batched twin) one rollout step of this scenario costs, > 0 (default 1): the run's
+            predicted seconds scale by it (:data:`pemviz.settings.SCENARIO_COST_FACTORS`).
     """
 
     name: str
@@ -94,6 +97,7 @@ class Scenario:
     simulator: Ref = None
     defaults: Ref = None
     drawing: Ref = None
+    cost_factor: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -102,6 +106,9 @@ class Scenario:
             raise ValueError(f"Scenario {self.name}: description must be one line of text")
         if self.factory is None:
             raise ValueError(f"Scenario {self.name}: a factory (config, params) -> Problem is needed")
+        factor = self.cost_factor
+        if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not 0.0 < factor < float("inf"):
+            raise ValueError(f"Scenario {self.name}: cost_factor must be a finite number > 0, got {factor!r}")
 
     @property
     def runnable(self) -> bool:
@@ -223,6 +230,7 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
         raise ValueError(f"register: a scenario named {scenario.name!r} is registered already (replace=True to "
                          "replace it)")  # fmt: skip
     _REGISTRY[scenario.name] = scenario
+    SCENARIO_COST_FACTORS[scenario.name] = float(scenario.cost_factor)  # the engine's cost model reads it there
     if not scenario.runnable:  # the settings and parameters below the registry learn of it
         if scenario.name not in REGISTERED_SCENARIOS:
             REGISTERED_SCENARIOS.append(scenario.name)
@@ -239,6 +247,7 @@ def unregister(name: str) -> None:
     if name not in _REGISTRY:
         raise KeyError(f"unregister: no scenario named {name!r}; registered: {', '.join(_REGISTRY)}")
     del _REGISTRY[name]
+    SCENARIO_COST_FACTORS.pop(name, None)
     if name in REGISTERED_SCENARIOS:
         REGISTERED_SCENARIOS.remove(name)
     register_defaults(name, None)
@@ -348,6 +357,10 @@ def problem_for(config: Any) -> Any:
     return get(config.scenario).problem(config)
 
 
+_CUT_IN_COST_FACTOR = 6.7
+"""A cut-in rollout step costs 6.7 braking ones (its five cars, their salient variables, measurement errors and
+tracker): 9.5 x 5.6 s / 7.9 s, the cut-in 1.4x faster, measured 2026-11-25 (``benchmarks/calibrate_cost.py``)."""
+
 _CUT_IN = ("ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "
            "or the safe distance of rule R_G1")  # fmt: skip
 
@@ -358,10 +371,10 @@ for _scenario in (
              simulator="pemviz.scenarios.braking:BrakingScenario", drawing="pemviz.scenarios.braking_drawing:BrakingDrawing"),
     Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in:CutInParams",
              "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario",
-             drawing="pemviz.scenarios.cut_in_drawing:CutInDrawing"),
+             drawing="pemviz.scenarios.cut_in_drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
     Scenario("cut-in-rare", _CUT_IN.format("rare (below 1e-9)"), "pemviz.scenarios.cut_in:CutInParams",
              "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario",
-             drawing="pemviz.scenarios.cut_in_drawing:CutInDrawing"),
+             drawing="pemviz.scenarios.cut_in_drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
     Scenario("toy", "toy braking: a car from an obstacle, a detection within the braking range stops it; failure: "
              "closer than the safe distance (closed-form answer)", "pemviz.scenarios.toy:ToyParams",
              "pemviz.scenarios.builtin:toy", exact=True, simulator="pemviz.scenarios.toy:ToyBraking"),
