@@ -2,9 +2,9 @@
 draws with is named here (HTML takes :func:`css` or :func:`hex_colour` of one, rerun :func:`rgba`).
 
 A detection is green and a miss orange at every step, in the 3D scene, the recording's scene and the
-strip charts; a failure (e.g. a gap below the crash gap) and the failure threshold are red; the sampler window (e.g.
-the braking distance) is yellow; the object the ego reacts to is blue-grey; a car before any step (idle) is neutral
-grey; stages go from blue (early) to orange (late). The panel's text (status, verdicts) uses :data:`BLUE`,
+strip charts; a failure (e.g. a gap below the crash gap) and the failure threshold are red; the sampler window
+(e.g. the braking distance) is yellow; the object the ego reacts to is blue-grey; a car before any step (idle) is
+neutral grey; stages go from blue (early) to orange (late). The panel's text (status, verdicts) uses :data:`BLUE`,
 :data:`GREEN`, :data:`AMBER`, :data:`RED` and :data:`GREY`; kept runs take :data:`RUN_COLOURS` in turn.
 """
 

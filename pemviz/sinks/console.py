@@ -82,8 +82,8 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
 
 
 def scenario_params_text(cfg) -> str:
-    """`` (cut_in_gap_m=19.5 m)``: the scenario's parameters that differ from its defaults, as the header line gives
-    them after the scenario's name (``""``: none)."""
+    """The scenario's parameters that differ from its defaults, as the header line gives them after the scenario's
+    name: e.g. `` (cut_in_gap_m=19.5 m)``; ``""``: none."""
     pairs = getattr(cfg, "scenario_params", ())
     if not pairs:
         return ""

@@ -1,9 +1,9 @@
 """Groups of the failures of a run's final estimate (:mod:`pemviz.core.population`) for the listeners that show them:
 which rollout of which stage's kept batch each failure is, and the key of the decisive events it shares with others.
 
-Groups: on the braking scenario, the last step at which one detection alone still saves the rollout (exact replays on
-its deterministic twin, :func:`pemviz.scenarios.braking_failures.last_saving_steps`): the failures whose last chance
-came at the same step. Elsewhere, with the run's problem at hand, the step at which the rollout fails
+Groups: the keys the scenario's drawing object gives its failures (``failure_keys``; e.g. for the braking
+scenario the last step at which one detection alone still saves the rollout, from exact replays on its deterministic
+twin). Without one, with the run's problem at hand, the step at which the rollout fails
 (:func:`pemviz.estimators.base.failure_steps`), which the labels say; without it, one group. No I/O.
 
 Severity: with the run's problem at hand (and its severity scale), each located failure's min distance and impact
@@ -193,7 +193,7 @@ def population_markdown(g: FailureGrouping, most: int = MAX_LISTED) -> str:
 def compact_failures(event: RolloutsSampled, problem: object = None) -> RolloutsSampled:
     """The failing rollouts of ``event`` with only what :func:`group_failures` and :func:`failures_severity` read: the
     detections and the observation columns of the problem's signals and severity signal (every column without a
-    problem); no log p, log q or object rows (a stage of 10,000 braking rollouts keeps about 1 MB, not 40 MB)."""
+    problem); no log p, log q or object rows (e.g. a stage of 10,000 braking rollouts keeps about 1 MB, not 40 MB)."""
     rows = np.flatnonzero(np.asarray(event.failed, dtype=bool))
     b = event.batch
     names = b.observation_names
@@ -222,8 +222,9 @@ class FailureGroups:
     Args:
         drawing: the scenario's drawing object (``ProblemView.drawing``), or None.
         problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step elsewhere), or None.
-        keys: group the failures (False: only their severity, without the braking scenario's replays, whose cost
-            grows with the failures: 2 s for the 70,000 of ``pemviz run --n 10000``).
+        keys: group the failures (False: only their severity, without the drawing object's keys, whose cost may
+            grow with the failures: e.g. the braking scenario's replays take 2 s for the 70,000 of ``pemviz run --n
+            10000``).
     """
 
     def __init__(self, drawing: object = None, problem: object = None, keys: bool = True) -> None:

@@ -39,24 +39,26 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
   that ``step`` shows the last stage's.
 - ``histograms/{robustness,log_weight}``: each stage's histogram of every rollout's robustness (configured
   metric) and importance log-weight (nats), a :class:`rerun.BarChart` on ``stage``.
-- ``rollouts/<column>/stage_KK`` for each signal of the problem's view (``gap_m``, ``ego_speed_mps``, ...): the kept
+- ``rollouts/<column>/stage_KK`` for each signal of the problem's view (e.g. ``gap_m``, ``ego_speed_mps``): the kept
   rollouts of a stage over ``step`` (:func:`pemviz.sinks.rerun_rollouts.kept_rollouts`: all of them up to 500, else
   the least robust, the most likely failures, the failures up to 100 and a uniform sample), one entity with one
-  series per rollout, one ``send_columns`` each: red = failure (its name says ``contact at ...`` or ``breach ...,
-  no contact`` for the braking scene), grey = safe, yellow and wider = the stage's least-robust rollouts.
+  series per rollout, one ``send_columns`` each: red = failure (its name says the outcome in the drawing object's
+  words, e.g. ``contact at ...``), grey = safe, yellow and wider = the stage's least-robust rollouts.
   ``rollouts/<column>/thresholds``: the problem's failure threshold and sampler window (none for a problem without
   thresholds). ``rollouts/summary/stage_KK``: static per-rollout values of the kept rollouts (number, log p under
   the PEM, robustness under each metric, importance log-weight in nats, failure flag, outcome words, tag).
 - ``rollouts/<first column>/stage_KK/rollout_NNN``: the stage's featured rollouts
   (:func:`pemviz.sinks.rerun_rollouts.featured`: the least robust and the most likely failures) as entities of their
   own, with the rollout's properties (:class:`rerun.AnyValues`: stage, rollout, role, log p, log-weight, robustness,
-  outcome and, for the braking scene, its severity). ``rollouts/{detected,missed}/stage_KK``: the first signal of
+  outcome and the drawing object's numbers of it, e.g. a severity). ``rollouts/{detected,missed}/stage_KK``: the
+  first signal of
   the featured rollouts at their detections (shown for the least robust) and misses, where a detection can still
   change the outcome (:func:`pemviz.sinks.rerun_rollouts.deciding`).
-- ``scene/stage_KK/{lane,label,ego,lead,sight}`` (a problem with a scene only): top-down scene of each stage's
-  least-robust rollout, one lane per stage, boxes with the true car sizes, playable on ``step``: the ego is green
-  while the detector sees the lead and orange while it misses (the sight line likewise), the lead turns red once
-  the gap is below the crash gap.
+- ``scene/stage_KK/{lane,label,<object>...,sight}`` (a drawing object that draws a scene only,
+  :class:`pemviz.sinks.drawing.RecordingDrawing`): top-down scene of each stage's least-robust rollout, one lane per
+  stage, a box per object the drawing names (e.g. ``ego`` and ``lead``), playable on ``step``: the ego is green
+  while the detector sees and orange while it misses (the sight line likewise), an object turns red where the
+  drawing raises its alarm (e.g. the gap below the crash gap).
 - ``explain/...``: the most likely failure of the run (:mod:`pemviz.sinks.rerun_explain`), logged once the run
   ends (final estimate, cancellation or close).
 - ``final``: the final estimate (static :class:`rerun.AnyValues`).
@@ -94,8 +96,6 @@ from pemviz.core.estimate import Reference, error_text, format_probability
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.io.files import atomic_write
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
 from pemviz.sinks.population import FailureGroups, log_failures
@@ -111,6 +111,7 @@ from pemviz.sinks.rerun_views import (
     log_marginal_proposal,
     log_scene_lane,
     log_thresholds,
+    outcome_values,
 )
 
 APP_ID = "pemviz"
@@ -131,8 +132,8 @@ class RerunSink(Sink):
         tagged_per_stage: how many least-robust rollouts of each stage are tagged in the traces and featured
             (entities of their own, :func:`pemviz.sinks.rerun_rollouts.featured`).
         likely_per_stage: how many of each stage's most likely failures are featured.
-        scene_per_stage: how many least-robust rollouts of each stage get a lane in the scene (drawn for a problem
-            with a scene, :attr:`pemviz.core.problems.ProblemView.scene`: the braking scenario's car sizes, camera, dt).
+        scene_per_stage: how many least-robust rollouts of each stage get a lane in the scene (drawn where the
+            problem's drawing object draws one, :attr:`pemviz.sinks.drawing.RecordingDrawing.draws_scene`).
         repetition: when set, an index on the ``repetition`` timeline added to every temporal row
             (static figures show the latest repetition).
         problem: the run's :class:`pemviz.core.problems.Problem` (also settable as :attr:`problem` before the run),
@@ -162,8 +163,8 @@ class RerunSink(Sink):
         """The run's :class:`~pemviz.core.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.view = None
         """The problem's :class:`~pemviz.core.problems.ProblemView` (from :class:`~pemviz.engine.events.RunStarted`)."""
-        self.scene: BrakingParams | None = None
-        """The scene the rollouts are drawn in (the view's), None: no scene."""
+        self.drawing: object = None
+        """The scenario's drawing object (the view's, :class:`pemviz.sinks.drawing.RecordingDrawing`), None: none."""
         self.grid_m = np.zeros(0)
         self.bins_m: np.ndarray | None = None
         """Gap bins of the marginal proposal view (:func:`pemviz.core.proposal_view.bins_over` of the curve grid)."""
@@ -372,7 +373,7 @@ class RerunSink(Sink):
     # -- run started ----------------------------------------------------------------------------------
     def on_run_started(self, ev: RunStarted) -> None:
         cfg = ev.config
-        self.plan, self.view, self.scene = ev.plan, ev.problem, ev.problem.scene
+        self.plan, self.view, self.drawing = ev.plan, ev.problem, ev.problem.drawing
         if self._groups.problem is None:  # its own; a shared one knows the run's problem already
             self._groups.drawing, self._groups.problem = ev.problem.drawing, self.problem
         self.grid_m = np.asarray(ev.curve_grid_m, dtype=np.float64)
@@ -398,11 +399,11 @@ class RerunSink(Sink):
         rows = "\n".join(f"| {k} | `{v}` |" for k, v in vars(cfg).items())
         self.config_md = f"\n## Config\n\n| setting | value |\n|---|---|\n{rows}\n"
         self._log_description()
-        log_series_styles(s, self.scene is not None)
+        log_series_styles(s, self._draws_scene)
         known = ev.exact_log_p if ev.exact_log_p is not None and math.isfinite(ev.exact_log_p) else (
             ev.reference.log_p if ev.reference is not None else None)
         self.figures = StageFigures(s, self.plan.last_stage, None if known is None else known / math.log(10.0),
-                                    self.scene is not None)  # fmt: skip
+                                    self._draws_scene)  # fmt: skip
         PROPOSAL_FIG.draw_axes(s, (float(self.grid_m.min()), float(self.grid_m.max())), (0.0, 1.0))
         s.log(
             "proposal/data/pem",
@@ -494,14 +495,23 @@ class RerunSink(Sink):
         self.stream.disable_timeline("step")
         return {"miss_in_window/q": pv.q_miss_window, "miss_in_window/pem": pv.p_miss_window}
 
+    @property
+    def _draws_scene(self) -> bool:
+        """Whether the drawing object draws a scene with contact (:attr:`pemviz.sinks.drawing.RecordingDrawing.
+        draws_scene`)."""
+        return bool(getattr(self.drawing, "draws_scene", False))
+
     def _contact_share(self, ev: RolloutsSampled) -> dict[str, float]:
-        """The share of the stage's failing rollouts that made contact (braking scene; :attr:`Severity.contact
-        <pemviz.scenarios.braking_failures.Severity.contact>`), for the per-stage series."""
+        """The share of the stage's failing rollouts that made contact (the ``contact`` of the drawing object's
+        :meth:`~pemviz.sinks.drawing.RecordingDrawing.outcome_values`), for the per-stage series; none where the
+        drawing says nothing of contact."""
         failed = np.flatnonzero(np.asarray(ev.failed, bool))
-        if self.scene is None or failed.size == 0 or "gap_m" not in ev.batch.observation_names:
+        if not self._draws_scene or failed.size == 0:
             return {}
-        gap = ev.batch.gap_m
-        return {"contact_share": float(np.mean([severity(gap[i], self.scene).contact for i in failed]))}
+        told = [outcome_values(self.drawing, ev.batch, int(i)) for i in failed]
+        if any(t is None for t in told):
+            return {}
+        return {"contact_share": float(np.mean([bool(t["contact"]) for t in told]))}
 
     def kept_rollouts(self, ev: RolloutsSampled) -> np.ndarray:
         """Indices of the rollouts recorded in full (:func:`pemviz.sinks.rerun_rollouts.kept_rollouts`)."""
@@ -532,10 +542,11 @@ class RerunSink(Sink):
             self.thresholds_logged = True
         log_stage_rollouts(s, ev, self.view, self.plan.label(ev.stage, ev.kind), self.tagged_per_stage,
                            self.likely_per_stage, self._indexes)  # fmt: skip
-        if self.scene is not None and {"gap_m", "ego_speed_mps"} <= set(ev.batch.observation_names):
+        if self._draws_scene:
             for i in least_robust(ev, self.scene_per_stage):
                 path = f"{SCENE_PATH}/stage_{ev.stage:02d}" + (f"_{self.n_lanes}" if self.scene_per_stage > 1 else "")
-                log_scene_lane(s, path, self.n_lanes, ev, int(i), self.scene, self._indexes)
+                if not log_scene_lane(s, path, self.n_lanes, ev, int(i), self.drawing, self._indexes):
+                    break
                 self.n_lanes += 1
 
     def _explain(self) -> None:

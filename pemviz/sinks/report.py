@@ -157,8 +157,8 @@ def _share(x: float | None) -> str:
     return "-" if x is None else share_text(float(x))
 
 
-def _failure_severity_lead(sev: dict[str, Any]) -> str:
-    """The lead of the failures' severity table: what a bin's share is, contact, the median min distance and how
+def _failure_severity_intro(sev: dict[str, Any]) -> str:
+    """The text above the failures' severity table: what a bin's share is, contact, the median min distance and how
     much of p the table covers."""
     unit, label = sev.get("unit", "m"), sev.get("label", "distance")
     median = sev.get("median_min_distance")
@@ -174,7 +174,7 @@ MAX_GROUPS = 12
 
 
 def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]]:
-    """(title, lead text, table header, rows) of each section both twins show."""
+    """(title, intro text, table header, rows) of each section both twins show."""
     problem = doc.get("problem") or {}
     scene = [("scenario", f"{doc['scenario']}: {problem.get('description', '')}".rstrip(": ")),
              ("specification (STL)", problem.get("formula", "-")), ("method", doc["method"]),
@@ -206,7 +206,7 @@ def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list
                          ("group", "failures", "share of p"), rows))  # fmt: skip
     severity = (failures or {}).get("severity")
     if severity and severity.get("bins") and severity.get("n_kept"):
-        sections.append(("Severity of the failures", _failure_severity_lead(severity),
+        sections.append(("Severity of the failures", _failure_severity_intro(severity),
                          ("impact speed", "failures", "share of p"),
                          [(b["label"], f"{b['count']:,}", _share(b["share"])) for b in severity["bins"]]))  # fmt: skip
     sections += [
@@ -238,10 +238,10 @@ def report_html(doc: dict[str, Any]) -> str:
     colour = VERDICT_COLOURS.get(e["verdict"], MUTED)
     body = [f"<h1>{html.escape(_title(doc))}</h1>",
             f'<p class="headline" style="border-left:6px solid {colour}">{html.escape(_headline(doc))}</p>']  # fmt: skip
-    for title, lead, header, rows in _sections(doc):
+    for title, intro, header, rows in _sections(doc):
         body.append(f"<h2>{html.escape(title)}</h2>")
-        if lead:
-            body.append(f"<p>{html.escape(lead)}</p>")
+        if intro:
+            body.append(f"<p>{html.escape(intro)}</p>")
         if title == "Severity":
             body.append(severity_svg(doc))
         body.append(_table_html(header, rows))
@@ -260,8 +260,8 @@ def report_html(doc: dict[str, Any]) -> str:
 def report_markdown(doc: dict[str, Any]) -> str:
     """The report's Markdown twin: the same sections and numbers as :func:`report_html`, without the chart."""
     out = [f"# {_title(doc)}", "", f"**{_headline(doc)}**", ""]
-    for title, lead, header, rows in _sections(doc):
-        out += [f"## {title}", ""] + ([lead, ""] if lead else []) + [_table_md(header, rows), ""]
+    for title, intro, header, rows in _sections(doc):
+        out += [f"## {title}", ""] + ([intro, ""] if intro else []) + [_table_md(header, rows), ""]
     if doc.get("console"):
         out += ["## What the console printed", "", "```text", *doc["console"], "```", ""]
     return "\n".join(out)

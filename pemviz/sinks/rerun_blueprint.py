@@ -51,8 +51,9 @@ def _signals(view: ProblemView | None) -> tuple[SignalView, ...]:
 
 
 def _has_scene(view: ProblemView | None) -> bool:
-    """Whether the problem's rollouts are drawn as a scene from above (with a controller and contact)."""
-    return view is not None and view.scene is not None
+    """Whether the problem's drawing object draws its rollouts as a scene seen from above, with a controller and
+    contact (:attr:`pemviz.sinks.drawing.RecordingDrawing.draws_scene`)."""
+    return view is not None and bool(getattr(view.drawing, "draws_scene", False))
 
 
 def tab_name(tab: str) -> str:

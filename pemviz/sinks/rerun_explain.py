@@ -4,24 +4,22 @@ The most likely failure is the failing rollout with the largest log p under the 
 <pemviz.scenarios.RolloutBatch.log_likelihood>`, T - 1 steps) among the rollouts the engine reported: the failure
 the sampler found that the real detector is likeliest to produce, the "most likely failure" of adaptive stress
 testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020). For any problem it shows p(detect) of the PEM and
-q(detect) of the sampler along it and its misses (:func:`pemviz.core.proposal_view.prob_detect`); for a problem with the
-braking scene also its severity, the controller's signals, the minimal set of misses whose flip avoids the failure,
-the last step at which one detection still saves it, replays of those counterfactuals and one paragraph in words,
-all from :func:`pemviz.scenarios.braking_failures.story` (exact replays on the deterministic twin).
+q(detect) of the sampler along it and its misses (:func:`pemviz.core.proposal_view.prob_detect`); where the problem's
+drawing object explains it (:meth:`pemviz.sinks.drawing.RecordingDrawing.explanation`, e.g. the braking scenario's
+exact replays on its deterministic twin) also its outcome in words, the series and markers the drawing gives (e.g.
+the controller's signals, the minimal set of misses whose flip avoids the failure, the last step at which one
+detection still saves it and replays of those counterfactuals), one paragraph in words and one lane of its scene.
 
-Entities (``step`` timeline unless static; ``<col>`` = the problem's first signal, ``gap_m`` for braking):
+Entities (``step`` timeline unless static; ``<col>`` = the problem's first signal):
 
-- ``explain/summary``: Markdown (static): where the rollout comes from, its outcome, the paragraph, the minimal
-  miss set and the last saving step.
-- ``explain/failure``: :class:`rerun.AnyValues` (static): stage, rollout, log p, robustness, misses, and for the
-  braking scene the outcome words, severity, minimal miss set, last saving step, recovery step.
-- ``explain/detect/{pem,sampler}``: p(detect) and q(detect) at each step; ``explain/detect/{misses,minimal_set,
-  last_saving}``: markers below the curves at those steps.
-- ``explain/<col>/{recorded,thresholds,misses,breach}``: the first signal, the problem's thresholds, the misses
-  and (braking) the first step below the crash gap; ``explain/<col>/{with_minimal_set,with_last_saving}``: the
-  replays with those misses detected (braking).
-- ``explain/controller/{acceleration,brake_commanded,brake_applied}``, ``explain/speed/{ego,lead}`` and
-  ``explain/scene`` (braking): the controller, the speeds and one lane of the top-down scene.
+- ``explain/summary``: Markdown (static): where the rollout comes from, its outcome and the drawing's lines.
+- ``explain/failure``: :class:`rerun.AnyValues` (static): stage, rollout, log p, robustness, misses, and the
+  drawing's properties of the failure (e.g. the outcome words, severity, minimal miss set, last saving step).
+- ``explain/detect/{pem,sampler}``: p(detect) and q(detect) at each step; ``explain/detect/misses``: markers below
+  the curves at the misses.
+- ``explain/<col>/{recorded,thresholds,misses}``: the first signal, the problem's thresholds and the misses.
+- ``explain/<key>``: each series and marker of the drawing's explanation (e.g. ``explain/<col>/with_minimal_set``,
+  ``explain/controller/acceleration``, ``explain/speed/ego``) and ``explain/scene``, one lane of its scene.
 - ``explain/detect/object_<j>/{detected,missed,unseen,pem,sampler}`` (several objects): each object's events on
   its row j, and its p(detect) of the PEM (grey) and q(detect) of the sampler that drew the rollout (blue) in the
   band above the row (j at 0, j + 0.8 at 1).
@@ -32,7 +30,7 @@ Entities (``step`` timeline unless static; ``<col>`` = the problem's first signa
 
 from __future__ import annotations
 
-import math
+from typing import Any, Mapping
 
 import numpy as np
 import rerun as rr
@@ -41,7 +39,6 @@ from pemviz.core.problems import ProblemView, object_scene
 from pemviz.core.proposal_view import prob_detect
 from pemviz.engine.events import RolloutsSampled
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.braking_failures import FailureStory, replay_with_detections, story
 from pemviz.sinks import colours as C
 from pemviz.sinks.rerun_blueprint import EXPLAIN_PATH
 from pemviz.sinks.rerun_views import (
@@ -63,6 +60,16 @@ MARKER_ROW = -0.06
 """Height of the miss markers under the p / q curves (probability units, below 0)."""
 OBJECT_BAND = 0.8
 """Several objects: each object's p(detect) and q(detect) are drawn from its row j (probability 0) to j + 0.8 (1)."""
+ROLE_RGBA = {
+    "failure": CRASH_RGBA[:3] + (255,),
+    "detected": DETECTED_RGBA,
+    "missed": MISSED_RGBA,
+    "window": BRAKE_RGBA,
+    "replay": C.rgba(C.VIOLET),
+    "ego_speed": C.rgba(C.EGO_SPEED),
+    "object_speed": C.rgba(C.OBJECT_SPEED),
+}
+"""The colour of each role a drawing's explanation names (:data:`pemviz.sinks.drawing.ROLES`)."""
 
 
 def _series(stream: rr.RecordingStream, path: str, name: str, rgba, values: np.ndarray, indexes: Indexes,
@@ -85,11 +92,6 @@ def _markers(stream: rr.RecordingStream, path: str, name: str, rgba, marker: str
                         columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64)))  # fmt: skip
 
 
-def _steps_text(steps: np.ndarray, dt: float | None, most: int = 12) -> str:
-    shown = ", ".join(f"{t}" + (f" ({t * dt:.2f} s)" if dt else "") for t in steps[:most])
-    return shown + (f" and {steps.size - most} more" if steps.size > most else "")
-
-
 def log_explanation(
     stream: rr.RecordingStream,
     failure: RolloutsSampled | None,
@@ -99,7 +101,7 @@ def log_explanation(
     stage_name: str,
     indexes: Indexes,
     object_detect: tuple[np.ndarray, np.ndarray] | None = None,
-) -> FailureStory | None:
+) -> Mapping[str, Any] | None:
     """Log the Explain tab's entities for ``failure``, a one-rollout event (its stage, number, batch row).
 
     Args:
@@ -107,15 +109,15 @@ def log_explanation(
             says so and nothing else is logged).
         log_p: its log p under the PEM over T - 1 steps (nats).
         n_failures: failing rollouts it was chosen among.
-        view: the problem's view (signals, thresholds; the braking scene gives the counterfactual).
+        view: the problem's view (signals, thresholds; its drawing object explains the failure).
         stage_name: the plan's name of its stage (``CE stage 4/10``).
         indexes: the sink's time columns for ``send_columns`` (with its repetition).
         object_detect: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that drew
             the rollout, float64 [T, M] each (:func:`pemviz.core.proposal_view.object_detect_probabilities`), drawn in
             the object's row band; None: not drawn.
     Returns:
-        the braking scene's :class:`~pemviz.scenarios.braking_failures.FailureStory` of the rollout (None without
-        a scene or a failure).
+        the drawing object's explanation of the rollout (:meth:`pemviz.sinks.drawing.RecordingDrawing.explanation`;
+        None without one or without a failure).
     """
     s = stream
     if failure is None:
@@ -131,8 +133,8 @@ def log_explanation(
         _log_objects(s, view, b, indexes)
     p_det, q_det = prob_detect(b.log_p[0], detected), prob_detect(b.log_q[0], detected)
     number, stage = int(failure.rollout_numbers[0]), failure.stage
-    scene = view.scene
-    tale = story(trace, detected, scene) if scene is not None else None
+    drawing = view.drawing
+    tale = drawing.explanation(b, 0) if drawing is not None else None
 
     if b.n_objects == 1:
         _series(s, f"{E}/detect/pem", "p(detect), PEM", PEM_PLOT_RGBA, p_det, indexes)
@@ -156,7 +158,7 @@ def log_explanation(
                         j + OBJECT_BAND * p_j, indexes, width=1.0)  # fmt: skip
                 _series(s, f"{E}/detect/object_{j}/sampler", f"object {j} q(detect), sampler", C.rgba(C.BLUE),
                         j + OBJECT_BAND * q_j, indexes, width=1.5)  # fmt: skip
-    words = tale.severity.short if tale is not None else "failure"
+    words = str(tale["words"]) if tale is not None else "failure"
     _series(s, f"{E}/{col}/recorded", f"as recorded: {words}", CRASH_RGBA[:3] + (255,), trace, indexes, width=2.5)
     log_thresholds(s, view, trace.size, indexes, path=f"{E}/{col}/thresholds")
     _markers(s, f"{E}/{col}/misses", "miss", MISSED_RGBA, "cross", misses, trace[misses], indexes)
@@ -164,7 +166,8 @@ def log_explanation(
     props: dict = dict(stage=stage, stage_name=stage_name, rollout=number, log_p=log_p,
                        log_weight=float(failure.log_weight[0]), robustness=float(failure.robustness[0]),
                        n_failures_compared=n_failures, misses=misses, n_steps=trace.size)  # fmt: skip
-    missed = (f"The detector missed the lead at {misses.size} of {trace.size} steps." if b.n_objects == 1 else
+    thing = drawing.object_words if drawing is not None else "the object"
+    missed = (f"The detector missed {thing} at {misses.size} of {trace.size} steps." if b.n_objects == 1 else
               f"The detector missed {int((~b.detected[0]).sum())} of {b.detected[0].size} object-steps of its "
               f"{b.n_objects} objects (those it cannot see included).")  # fmt: skip
     chosen = (
@@ -175,77 +178,24 @@ def log_explanation(
     )
     lines = [f"## Most likely failure: {stage_name}, rollout {number}" + (f": {words}" if tale else ""), ""]
     if tale is not None:
-        lines += _log_braking(s, view, tale, detected, trace, misses, indexes, props) + [tale.sentence, ""]
-        log_scene_lane(s, f"{E}/scene", 0, failure, 0, scene, indexes)
+        lines += _log_drawn(s, tale, indexes, props)
+        log_scene_lane(s, f"{E}/scene", 0, failure, 0, drawing, indexes)
     lines.append(chosen)
     s.log(f"{E}/summary", rr.TextDocument("\n".join(lines) + "\n", media_type=rr.MediaType.MARKDOWN), static=True)
     s.log(f"{E}/failure", rr.AnyValues(**props), static=True)
     return tale
 
 
-def _log_braking(s: rr.RecordingStream, view: ProblemView, tale: FailureStory, detected: np.ndarray,
-                 trace: np.ndarray, misses: np.ndarray, indexes: Indexes, props: dict) -> list[str]:  # fmt: skip
-    """The braking scene's part: severity, counterfactual replays, controller and speeds (adds to ``props``); returns
-    the summary's lines on the minimal miss set and the last saving step."""
-    lines: list[str] = []
-    p = view.scene
-    sev, cf, ctrl = tale.severity, tale.counterfactual, tale.controller
-    col = view.signals[0].column
-    dt = p.dt_s
-    breach = sev.breach_step
-    props.update(outcome=sev.short, min_gap_m=sev.min_gap_m, breach_step=-1 if breach is None else breach,
-                 breach_time_s=math.nan if breach is None else breach * dt, breach_closing_mps=sev.breach_closing_mps,
-                 contact=sev.contact, contact_speed_mps=sev.contact_speed_mps,
-                 replay_matches=tale.replay_matches)  # fmt: skip
-    if sev.breach_step is not None:
-        _markers(s, f"{E}/{col}/breach", f"{p.crash_gap_m:g} m margin crossed", CRASH_RGBA[:3] + (255,), "down",
-                 np.array([sev.breach_step]), trace[[sev.breach_step]], indexes, size=7.0)  # fmt: skip
-    if not tale.replay_matches:
-        return lines
-    last = cf.last_saving_step
-    props.update(minimal_miss_set=cf.minimal_set, minimal_set_is_smallest=cf.smallest,
-                 minimal_set_min_gap_m=cf.minimal_set_min_gap_m, last_saving_step=-1 if last is None else last,
-                 decisive_misses=cf.decisive,
-                 recovery_step=-1 if cf.recovery_step is None else cf.recovery_step)  # fmt: skip
-    ms = cf.minimal_set
-    if ms.size:
-        smallest = "the smallest such set" if cf.smallest else "none of them can be left out"
-        lines += [f"**Minimal miss set** ({ms.size} of {misses.size} misses, {smallest}): step{'s' * (ms.size > 1)} "
-                  f"{_steps_text(ms, dt)}; detected, the min gap is {cf.minimal_set_min_gap_m:.2f} m.", ""]  # fmt: skip
-        replay = replay_with_detections(detected, ms, p)
-        _series(s, f"{E}/{col}/with_minimal_set", f"minimal miss set detected: min gap {replay.gap_m.min():.2f} m",
-                DETECTED_RGBA, replay.gap_m, indexes)  # fmt: skip
-        _markers(s, f"{E}/{col}/minimal_set", "minimal miss set", CRASH_RGBA[:3] + (255,), "diamond", ms, trace[ms],
-                 indexes, size=6.0)  # fmt: skip
-        _markers(s, f"{E}/detect/minimal_set", "minimal miss set", CRASH_RGBA[:3] + (255,), "diamond", ms,
-                 np.full(ms.size, MARKER_ROW), indexes, size=6.0)  # fmt: skip
-    else:
-        lines += ["**Minimal miss set**: none; even a detection at every miss does not avoid the failure.", ""]
-    if last is not None:
-        lines += [f"**Last saving step**: {last} ({last * dt:.2f} s): one detection there still avoids the "
-                  f"failure ({cf.decisive.size} of the {misses.size} misses would each do alone).", ""]  # fmt: skip
-        replay = replay_with_detections(detected, np.array([last]), p)
-        _series(s, f"{E}/{col}/with_last_saving", f"detected at {last * dt:.2f} s: min gap {replay.gap_m.min():.2f} m",
-                C.rgba(C.VIOLET), replay.gap_m, indexes)  # fmt: skip
-        _markers(s, f"{E}/detect/last_saving", "last saving step", DETECTED_RGBA, "up", np.array([last]),
-                 np.array([MARKER_ROW]), indexes, size=7.0)  # fmt: skip
-    else:
-        lines += ["**Last saving step**: none; no single detection avoids the failure.", ""]
-    a = ctrl.accel_mps2
-    top = max(4.0, float(np.max(a)) + 1.0)
-    row = 0.07 * (top - min(-4.0, float(np.min(a)) - 1.0))
-    _series(s, f"{E}/controller/acceleration", "acceleration (m/s^2)", C.rgba(C.EGO_SPEED), a, indexes)
-    for key, name, mask, height, rgba in (("brake_commanded", "brake commanded", ctrl.brake_command, top + 2 * row,
-                                           BRAKE_RGBA),
-                                          ("brake_applied", "brake applied", ctrl.brake_applied, top + row,
-                                           CRASH_RGBA[:3] + (255,))):  # fmt: skip
-        steps = np.flatnonzero(mask)
-        _markers(s, f"{E}/controller/{key}", name, rgba, "circle", steps, np.full(steps.size, height), indexes, 3.0)
-    _series(s, f"{E}/speed/ego", "ego speed (m/s)", C.rgba(C.EGO_SPEED), ctrl.ego_speed_mps, indexes)
-    _series(s, f"{E}/speed/lead", "lead speed (m/s)", C.rgba(C.LEAD_SPEED), ctrl.lead_speed_mps, indexes)
-    return lines
-
-
+def _log_drawn(s: rr.RecordingStream, tale: Mapping[str, Any], indexes: Indexes, props: dict) -> list[str]:
+    """The drawing object's explanation: its series and markers under ``explain/`` (markers without heights on the
+    row under the p(detect) curves), its properties added to ``props``; returns its summary lines."""
+    props.update(tale["props"])
+    for key, name, role, values in tale["series"]:
+        _series(s, f"{E}/{key}", name, ROLE_RGBA[role], values, indexes)
+    for key, name, role, marker, steps, values, size in tale["markers"]:
+        heights = np.full(np.size(steps), MARKER_ROW) if values is None else values
+        _markers(s, f"{E}/{key}", name, ROLE_RGBA[role], marker, steps, heights, indexes, size=size)
+    return list(tale["lines"])
 
 
 def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch, indexes: Indexes) -> None:

@@ -19,7 +19,6 @@ import rerun as rr
 from pemviz.core.counterfactuals import likeliest_failures
 from pemviz.core.problems import ProblemView
 from pemviz.engine.events import RolloutsSampled
-from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks.rerun_views import (
     ALL_ROLLOUTS_UP_TO,
     CRASH_RGBA,
@@ -31,7 +30,7 @@ from pemviz.sinks.rerun_views import (
     TAG_CRASH_RGBA,
     TAG_RGBA,
     Indexes,
-    outcome,
+    outcome_values,
 )
 
 
@@ -85,7 +84,7 @@ def deciding(trace: np.ndarray, view: ProblemView) -> np.ndarray:
 
 
 def rollout_path(column: str, stage: int, number: int) -> str:
-    """``rollouts/gap_m/stage_04/rollout_011``: a featured rollout's entity for one signal."""
+    """A featured rollout's entity for one signal, e.g. ``rollouts/gap_m/stage_04/rollout_011``."""
     return f"rollouts/{column}/stage_{stage:02d}/rollout_{number:03d}"
 
 
@@ -106,7 +105,7 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
 
     Args:
         ev: the stage's rollouts.
-        view: the problem's view (signals; the braking scene gives each failure its severity words).
+        view: the problem's view (signals; its drawing object gives each rollout its outcome words, e.g. a severity).
         stage_name: the plan's name of the stage.
         n_tagged: least-robust rollouts tagged (yellow, wide) and featured.
         n_likely: most likely failures featured.
@@ -121,8 +120,8 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
     number = ev.rollout_numbers
     first = view.signals[0].column
     trace = batch.signal(first)
-    gap = batch.gap_m if "gap_m" in batch.observation_names else trace
-    words = [outcome(gap[i], bool(failed[i]), view.scene) for i in keep.tolist()]
+    told = {i: outcome_values(view.drawing, batch, i) for i in keep.tolist()}
+    words = [str(v["outcome"]) if v is not None else "failure" if failed[i] else "safe" for i, v in told.items()]
     colours, widths, names = [], [], []
     for i, said in zip(keep.tolist(), words):
         tag = rank.get(i)
@@ -163,7 +162,7 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
     rows = np.array(sorted(roles), dtype=np.int64)
     labels = []
     for i in rows.tolist():
-        labels.append(_log_featured(s, ev, view, i, roles[i], said[i], float(log_p[i]), stage_name, index))
+        labels.append(_log_featured(s, ev, view, i, roles[i], said[i], told[i], float(log_p[i]), stage_name, index))
     tagged = np.isin(rows, order)
     marks_of = (("detected", True, DETECTED_RGBA, "circle", 1.5, tagged),
                 ("missed", False, MISSED_RGBA, "cross", 3.0, np.ones_like(tagged)))  # fmt: skip
@@ -180,9 +179,9 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
 
 
 def _log_featured(s: rr.RecordingStream, ev: RolloutsSampled, view: ProblemView, i: int, role: str, said: str,
-                  log_p: float, stage_name: str, index: list) -> str:  # fmt: skip
-    """Rollout ``i``'s first signal as an entity of its own (:func:`rollout_path`) with its properties; returns its
-    label."""
+                  told: dict | None, log_p: float, stage_name: str, index: list) -> str:  # fmt: skip
+    """Rollout ``i``'s first signal as an entity of its own (:func:`rollout_path`) with its properties (with the
+    drawing object's numbers of its outcome, ``told``, where it has them); returns its label."""
     batch, n = ev.batch, int(ev.rollout_numbers[i])
     failed = bool(ev.failed[i])
     rgba = (LIKELY_RGBA if role.startswith("most likely") else TAG_CRASH_RGBA if failed else TAG_RGBA)
@@ -191,10 +190,8 @@ def _log_featured(s: rr.RecordingStream, ev: RolloutsSampled, view: ProblemView,
                        log_weight=float(ev.log_weight[i]), robustness=float(ev.robustness[i]), failed=failed,
                        outcome=said)  # fmt: skip
     props.update({f"robustness_{m.replace('-', '_')}": float(v[i]) for m, v in ev.robustness_by_metric.items()})
-    if view.scene is not None and "gap_m" in batch.observation_names:
-        sev = severity(batch.gap_m[i], view.scene)
-        props.update(min_gap_m=sev.min_gap_m, breach_closing_mps=sev.breach_closing_mps, contact=sev.contact,
-                     contact_speed_mps=sev.contact_speed_mps)  # fmt: skip
+    if told is not None:
+        props.update(told)
     column = view.signals[0].column
     path = rollout_path(column, ev.stage, n)
     s.log(path, rr.SeriesLines(colors=[rgba], widths=[2.5], names=[label]), rr.AnyValues(**props), static=True)

@@ -1,6 +1,7 @@
 """What the rerun recording looks like (:mod:`pemviz.sinks.recording`): colours, figures with axes, the marginal
-proposal's bars, the words for a rollout's outcome, the run's description and the top-down scene of a problem that
-has one (:attr:`pemviz.core.problems.ProblemView.scene`). The layout is :mod:`pemviz.sinks.rerun_blueprint`'s.
+proposal's bars, the words for a rollout's outcome, the run's description and the top-down scene of a problem whose
+drawing object draws one (:class:`pemviz.sinks.drawing.RecordingDrawing`). The layout is
+:mod:`pemviz.sinks.rerun_blueprint`'s.
 
 Everything here draws into a :class:`rerun.RecordingStream` it is given and keeps no state of a run.
 """
@@ -17,11 +18,9 @@ import rerun.blueprint as rrb
 
 from pemviz.core.problems import ProblemView
 from pemviz.core.proposal_view import LOG_ODDS_SPAN_NATS, ProposalView
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import RolloutsSampled, RunStarted
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.braking_failures import severity
 from pemviz.sinks import colours as C
-from pemviz.scenarios.braking_drawing import car_positions
 
 
 def _pyarrow_without_pandas() -> None:
@@ -67,8 +66,8 @@ AXIS_RGBA = C.rgba(C.AXIS)
 GRID_RGBA = C.rgba(C.GRID, 120)
 DETECTED_RGBA = C.rgba(C.DETECTED)
 MISSED_RGBA = C.rgba(C.MISSED)
-LEAD_RGBA = C.rgba(C.LEAD)
-LEAD_CRASH_RGBA = C.rgba(C.CRASH)
+OBJECT_RGBA = C.rgba(C.OBJECT)
+OBJECT_CRASH_RGBA = C.rgba(C.CRASH)
 BRAKE_RGBA = C.rgba(C.BRAKE_ZONE)
 ALL_ROLLOUTS_UP_TO = 500
 """Stages of at most this many rollouts are recorded rollout by rollout; larger ones keep the least-robust
@@ -77,8 +76,8 @@ SAMPLED_ROLLOUTS = 100
 HISTOGRAM_BINS = 40
 LANE_SPACING_M = 3.2
 SCENE_X_RANGE_M = (-30.0, 40.0)
-"""Top-down scene: lanes ``LANE_SPACING_M`` apart (the cars are 2 m wide), x from the lane labels to
-past the lead's stop."""
+"""Top-down scene: lanes ``LANE_SPACING_M`` apart (e.g. cars 2 m wide), x from the lane labels to past where the
+objects stop (a lane reaches further where its drawing asks)."""
 
 STAGE_METRICS = (
     ("log10_mu_hat", "log10 mu_hat", C.BLUE),
@@ -232,17 +231,11 @@ def intro_markdown(ev: RunStarted) -> str:
     lines = " and ".join(view.thresholds.labels()) if view.thresholds is not None else ""
     colours = "red = failure, yellow = least robust, blue = most likely failures, orange x = misses"
     traces = f" ({view.signals[0].column} with the lines {lines}; {colours})" if lines else f" ({colours})"
-    if view.scene is not None:
-        p = view.scene
-        return (
-            f"# pemviz: crash probability of the braking scenario\n\n"
-            f"A car follows a lead that brakes for a red light; the ego brakes only when its detector, "
-            f"a perception error model (PEM) p(detect | d), sees the lead within {p.braking_distance_m:g} m. A crash "
-            f"is the gap d dropping below {p.crash_gap_m:g} m, safety spec `{ev.formula}`; rollouts are ranked "
-            f"by **{cfg.metric}** robustness. Method: {method}\n\n"
-            f"{reading}{traces} and the *scene* (ego green = detected, orange = missed). Every failing rollout says "
-            f"whether it made contact or only breached the {p.crash_gap_m:g} m margin.\n"
-        )
+    drawing = view.drawing
+    told = drawing.intro(ev.formula, cfg.metric, method) if drawing is not None else None
+    if told is not None:
+        head, scene = told
+        return f"{head}\n\n{reading}{traces}{scene}\n"
     return (
         f"# pemviz: failure probability of {view.name}\n\n{view.description}. Failure: classic robustness of the "
         f"safety spec `{ev.formula}` below 0; rollouts are ranked by **{cfg.metric}** robustness. Method: {method}\n\n"
@@ -250,12 +243,21 @@ def intro_markdown(ev: RunStarted) -> str:
     )
 
 
-def outcome(gap: np.ndarray, failed: bool, scene: BrakingParams | None) -> str:
-    """A rollout's outcome in the words the console, the panel and the recording share: for a problem with the braking
-    scene, :attr:`pemviz.scenarios.braking_failures.Severity.short` of its gaps ``gap`` [T] (metres; ``contact at
-    3.2 m/s``, ``breach 1.91 m, no contact``, ``safe, min gap 3.41 m``); else ``failure`` or ``safe``."""
-    if scene is not None:
-        return severity(gap, scene).short
+def outcome_values(drawing: object, batch: RolloutBatch, i: int) -> dict | None:
+    """Rollout ``i``'s outcome as the recording's properties (:meth:`pemviz.sinks.drawing.RecordingDrawing.
+    outcome_values`: ``outcome`` words, ``contact`` and the scenario's numbers), None without a drawing object or
+    where it has none."""
+    values = drawing.outcome_values(batch, i) if drawing is not None else None
+    return dict(values) if values is not None else None
+
+
+def outcome(drawing: object, batch: RolloutBatch, i: int, failed: bool) -> str:
+    """A rollout's outcome in the words the console, the panel and the recording share: the drawing object's
+    (:func:`outcome_values`, e.g. ``contact at 3.2 m/s``, ``breach 1.91 m, no contact``, ``safe, min gap 3.41 m``),
+    else ``failure`` or ``safe``."""
+    values = outcome_values(drawing, batch, i)
+    if values is not None:
+        return str(values["outcome"])
     return "failure" if failed else "safe"
 
 
@@ -312,26 +314,25 @@ def log_thresholds(stream: rr.RecordingStream, view: ProblemView, n_steps: int, 
 
 
 def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: RolloutsSampled, i: int,
-                   params: BrakingParams, indexes: Indexes) -> None:  # fmt: skip
-    """One lane (number ``lane``) of the top-down scene under ``path``: rollout ``i`` of the stage, playable on
-    ``step``, labelled with its stage and outcome (:func:`outcome`); positions (metres along the road) rebuilt from
-    the observations by :func:`pemviz.scenarios.braking_drawing.car_positions`."""
-    p, s = params, stream
-    batch = ev.batch
-    gap = batch.gap_m[i]
-    v = batch.signal("ego_speed_mps")[i]
+                   drawing: object, indexes: Indexes) -> bool:  # fmt: skip
+    """One lane (number ``lane``) of the top-down scene under ``path``: rollout ``i`` of the stage as the drawing
+    object draws it (:meth:`pemviz.sinks.drawing.RecordingDrawing.scene_lane`: its objects as boxes, ``path/<name>``,
+    and a sight line, ``path/sight``, metres along the road), playable on ``step``, labelled with its stage and
+    outcome (:func:`outcome`); returns False (nothing logged) where the drawing draws no lane of it."""
+    s, batch = stream, ev.batch
+    drawn = drawing.scene_lane(batch, i) if drawing is not None else None
+    if drawn is None:
+        return False
+    boxes, sight_x, end_m = drawn
     seen = batch.detected[i, :, 0]
-    t = gap.size
+    t = seen.size
     y = lane * LANE_SPACING_M
-    ego_x, lead_x = car_positions(gap, v, p)
-    camera_x = ego_x + p.camera_offset_m
-    lead_rear = camera_x + gap  # the sight line from the camera to the lead's rear
     ys = np.full(t, y)
-    words = outcome(gap, bool(ev.failed[i]), p)
+    words = outcome(drawing, batch, i, bool(ev.failed[i]))
     label = f"s{ev.stage}: {words}"
     detail = f"stage {ev.stage} ({ev.kind}) rollout {ev.rollout_numbers[i]}: robustness {ev.robustness[i]:.3g}, {words}"
     half = LANE_SPACING_M / 2 - 0.1
-    x_end = float(max(lead_x.max() + p.lead_length_m, SCENE_X_RANGE_M[1]))
+    x_end = float(max(end_m, SCENE_X_RANGE_M[1]))
     s.log(
         f"{path}/lane",
         rr.LineStrips2D(
@@ -342,33 +343,28 @@ def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: Rollout
     )  # fmt: skip
     s.log(
         f"{path}/label",
-        rr.Points2D([[-16.0, y]], radii=-0.01, colors=LEAD_CRASH_RGBA if ev.failed[i] else AXIS_RGBA,
+        rr.Points2D([[-16.0, y]], radii=-0.01, colors=OBJECT_CRASH_RGBA if ev.failed[i] else AXIS_RGBA,
                     labels=label, show_labels=True),
         static=True,
     )  # fmt: skip
     index = indexes(step=np.arange(t))
-    ego_half = np.tile([p.ego_length_m / 2, p.vehicle_width_m / 2], (t, 1))
-    lead_half = np.tile([p.lead_length_m / 2, p.vehicle_width_m / 2], (t, 1))
     det_col = np.where(seen[:, None], np.array(DETECTED_RGBA), np.array(MISSED_RGBA)).astype(np.uint8)
-    lead_col = np.where((gap < p.crash_gap_m)[:, None], np.array(LEAD_CRASH_RGBA), np.array(LEAD_RGBA))
-    s.send_columns(
-        f"{path}/ego",
-        indexes=index,
-        columns=rr.Boxes2D.columns(
-            centers=np.column_stack([ego_x, ys]), half_sizes=ego_half, colors=det_col, radii=np.full(t, -2.0)
-        ),
-    )
-    s.send_columns(
-        f"{path}/lead",
-        indexes=index,
-        columns=rr.Boxes2D.columns(
-            centers=np.column_stack([lead_x, ys]), half_sizes=lead_half, colors=lead_col.astype(np.uint8),
-            radii=np.full(t, -2.0),
-        ),
-    )
-    sight = np.stack([np.column_stack([camera_x, ys]), np.column_stack([lead_rear, ys])], axis=1)
-    s.send_columns(
-        f"{path}/sight",
-        indexes=index,
-        columns=rr.LineStrips2D.columns(strips=sight, colors=det_col, radii=np.full(t, -1.5)),
-    )
+    for name, centre_x, half_size, alarm in boxes:
+        colours = det_col if alarm is None else np.where(np.asarray(alarm, bool)[:, None], np.array(OBJECT_CRASH_RGBA),
+                                                         np.array(OBJECT_RGBA)).astype(np.uint8)  # fmt: skip
+        s.send_columns(
+            f"{path}/{name}",
+            indexes=index,
+            columns=rr.Boxes2D.columns(
+                centers=np.column_stack([centre_x, ys]), half_sizes=np.tile(list(half_size), (t, 1)), colors=colours,
+                radii=np.full(t, -2.0),
+            ),
+        )  # fmt: skip
+    if sight_x is not None:
+        sight = np.stack([np.column_stack([sight_x[0], ys]), np.column_stack([sight_x[1], ys])], axis=1)
+        s.send_columns(
+            f"{path}/sight",
+            indexes=index,
+            columns=rr.LineStrips2D.columns(strips=sight, colors=det_col, radii=np.full(t, -1.5)),
+        )
+    return True

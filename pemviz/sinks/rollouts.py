@@ -15,13 +15,11 @@ import numpy as np
 
 from pemviz.engine.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.estimators.base import pool_stage_weights
-from pemviz.io.rollout_format import braking_meta, problem_meta
-from pemviz.io.rollouts import RolloutWriter, braking_salient, check_rollouts_path
+from pemviz.io.rollouts import RolloutWriter, check_rollouts_path
+from pemviz.io.run_rollouts import run_meta, run_salient, run_severity
 from pemviz.pem import DEFAULT_PEM_NAME
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, SamplerView, WindowDetector
 from pemviz.core.sampling import Proposal
-from pemviz.core.severity import rollout_severity, severity_of_signal
-from pemviz.scenarios.braking import BrakingParams
 from pemviz.sinks import Sink
 from pemviz.core.weights import convention, stage_log_q
 
@@ -64,8 +62,8 @@ class RolloutSink(Sink):
         self.path = check_rollouts_path(path, overwrite=overwrite, what="--save-rollouts")
         self.pem, self.overwrite, self.stages = pem, overwrite, stages
         self.problem: Any = None
-        """The run's :class:`pemviz.core.problems.Problem` for the sidecar of a scenario other than the braking one
-        (:func:`pemviz.io.rollout_format.problem_meta`); None: the braking scenario's sidecar."""
+        """The run's :class:`pemviz.core.problems.Problem`: its sidecar, salient variables and severity columns
+        (:mod:`pemviz.io.run_rollouts`); None: not known (that module says which file it writes then)."""
         self.written: Path | None = None
         self._formula: str | None = None
         self._config: Any = None
@@ -118,25 +116,8 @@ class RolloutSink(Sink):
                 self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
         log_q, component = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
         batch = chunk.batch.with_changes(log_q=log_q)  # the file holds no object rows: none rebuilt for it
-        salient = braking_salient(batch.gap_m) if self._braking else None
-        self._writer.append(batch, salient=salient, stage=chunk.stage, component=component,
-                            severity=self._severity(batch))  # fmt: skip
-
-    def _severity(self, batch: Any) -> tuple[np.ndarray, np.ndarray] | None:
-        """Each rollout's min distance (m) and impact speed (m/s, NaN: no contact) for the file's severity columns
-        (:func:`pemviz.core.severity.rollout_severity`; without a problem, the braking scene's gap, contact gap and
-        step, as its sidecar assumes); None for a problem without a severity scale."""
-        if self.problem is None:
-            p = BrakingParams()
-            return severity_of_signal(batch.gap_m, p.contact_gap_m, p.dt_s)
-        if getattr(self.problem, "severity", None) is None:
-            return None
-        return rollout_severity(self.problem, batch)
-
-    @property
-    def _braking(self) -> bool:
-        """Whether the rollouts are the braking scenario's (its sidecar, its salient variables from the gap)."""
-        return self.problem is None or self.problem.scene is not None
+        self._writer.append(batch, salient=run_salient(self.problem, batch), stage=chunk.stage, component=component,
+                            severity=run_severity(self.problem, batch))  # fmt: skip
 
     def _meta(self) -> Any:
         cfg = self._config
@@ -144,9 +125,7 @@ class RolloutSink(Sink):
         proposal = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}.get(method)
         provenance: dict[str, Any] = {} if cfg is None else {"config": dataclasses.asdict(cfg)}
         pem = self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME
-        if self._braking:
-            return braking_meta(self._formula, pem=pem, proposal=proposal, provenance=provenance)
-        return problem_meta(self.problem, self._formula, pem=pem, proposal=proposal, provenance=provenance)
+        return run_meta(self.problem, self._formula, pem=pem, proposal=proposal, provenance=provenance)
 
     def write(self, finished: Any) -> Path:
         """Commit the stages the run's estimate used (or all), with the sidecar's weight convention, stages, pooling

@@ -12,13 +12,15 @@ from pemviz.engine.events import RolloutsSampled, RunStarted, StageFinished, Sta
 from pemviz.core.plan import RunPlan
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking_drawing import BrakingDrawing
 
 PLAN = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 50)])
 """Pretraining, K = 2 CE stages, the final batch: 130 simulations."""
 
 BRAKING = ProblemView("braking", "a lead car ahead",
                       (SignalView("d", "gap_m", "m"), SignalView("v", "ego_speed_mps", "m/s")),
-                      Thresholds(2.0, 10.0, "m", "crash gap", "braking distance"), BrakingParams())  # fmt: skip
+                      Thresholds(2.0, 10.0, "m", "crash gap", "braking distance"), BrakingParams(),
+                      drawing=BrakingDrawing(BrakingParams()))  # fmt: skip
 TOY = ProblemView("toy-1e-3", "toy braking", (SignalView("d", "gap_m", "units"),),
                   Thresholds(3.0, 5.0, "units", "failure below", "braking within"), None)  # fmt: skip
 GRID = np.linspace(0.0, 13.0, 14)

@@ -43,7 +43,7 @@ def record(view):
     gaps = np.array([[12.0, 8.0, 4.0, 1.5, 1.0], [12.0, 9.0, 6.0, 4.0, 3.0]])  # the first crashes (gap < 2 m)
     for stage, kind in ((0, "pretrain"), (1, "ce")):
         sink(StageStarted(stage, kind, 2))
-        sink(sampled(stage, kind, batch(gaps, ("gap_m", "ego_speed_mps") if view.scene else ("gap_m",))))
+        sink(sampled(stage, kind, batch(gaps, ("gap_m", "ego_speed_mps") if view.drawing else ("gap_m",))))
         sink(finished(stage, kind, 2, 1, gamma=0.5))
     return sink, stream
 
@@ -121,7 +121,7 @@ def test_each_tab_shows_only_entities_of_its_timeline():
         stages, explain, rollouts = by_tab.values()
         assert origins(stages) == {"proposal_marginal", "proposal", "stage_figures", "histograms"}
         assert origins(explain) == {"explain"}
-        assert origins(rollouts) == ({"rollouts", "scene"} if view.scene else {"rollouts"})
+        assert origins(rollouts) == ({"rollouts", "scene"} if view.drawing else {"rollouts"})
         # and the sink logged every origin a tab shows
         logged = {p.split("/")[0] for p in stream.logged}
         assert origins(stages) | origins(explain) | origins(rollouts) <= logged

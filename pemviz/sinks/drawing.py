@@ -1,0 +1,98 @@
+"""What the recording (:mod:`pemviz.sinks.recording`) asks of a scenario's drawing object
+(:attr:`pemviz.core.problems.ProblemView.drawing`), on top of the outcome every sink shares
+(:class:`pemviz.core.drawing.Drawing`).
+
+The hooks return data (words, numbers, arrays, names of entities, Markdown), never rerun objects: the sinks draw it
+with their colours and name no scene themselves. A scenario's package implements them
+(e.g. :class:`pemviz.scenarios.braking_recording.BrakingRecording`); a hook returns None where the scenario has
+nothing of that kind to draw, and the recording then draws only the problem's signals, as for a problem without a
+drawing object.
+
+Colours are named by role, as words the recording maps onto :mod:`pemviz.sinks.colours` (:data:`ROLES`).
+
+Shapes of what the hooks return (T = the rollout's steps):
+
+- a scene lane (:meth:`RecordingDrawing.scene_lane`): ``(boxes, sight, end_m)``. ``boxes``: one
+  ``(name, centre_x, half_size, alarm)`` per object, drawn in that order as an entity ``<lane>/<name>``:
+  ``centre_x`` float64 [T] metres along the road, ``half_size`` (half length, half width) in metres, ``alarm`` bool
+  [T] (the object turns red where True, else :data:`pemviz.sinks.colours.OBJECT`) or None (the object is green
+  while detected, orange while missed: the ego). ``sight``: ``(from_x, to_x)`` float64 [T] each, a line of sight
+  coloured like the ego, or None. ``end_m``: where the lane must reach (metres, e.g. past the last object's front).
+- an explanation (:meth:`RecordingDrawing.explanation`): a mapping with ``words`` (str: the outcome in a few words),
+  ``props`` (dict: values added to the failure's properties, in order), ``lines`` (list of Markdown lines for the
+  summary), ``series`` (tuple of ``(key, name, role, values [T])``: a line on ``step`` at ``explain/<key>``) and
+  ``markers`` (tuple of ``(key, name, role, marker, steps [k], values [k] or None, size)``: points at those steps;
+  values None: on the row under the p(detect) curves).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Mapping, Protocol, runtime_checkable
+
+from pemviz.core.drawing import Drawing
+
+if TYPE_CHECKING:  # annotations only
+    import numpy as np
+
+    from pemviz.core.rollouts import RolloutBatch
+
+ROLES = ("failure", "detected", "missed", "window", "replay", "ego_speed", "object_speed")
+"""The colour roles a hook may name: the failure red, the detection green, the miss orange, the sampler window's
+yellow, a replay's violet, the ego's and the object's speeds."""
+
+SceneBox = tuple[str, "np.ndarray", tuple[float, float], "np.ndarray | None"]
+"""``(name, centre_x [T] metres, (half length, half width) metres, alarm bool [T] or None)``: one object of a lane."""
+
+SceneLane = tuple[tuple[SceneBox, ...], "tuple[np.ndarray, np.ndarray] | None", float]
+"""``(boxes, sight (from_x [T], to_x [T]) or None, end_m)``: one rollout drawn as a lane seen from above."""
+
+
+@runtime_checkable
+class RecordingDrawing(Drawing, Protocol):
+    """The recording's hooks of a scenario's drawing object.
+
+    Attributes:
+        draws_scene: the recording draws each stage's least robust rollouts as lanes of a scene seen from above
+            (:meth:`scene_lane`), explains the most likely failure with replays, a controller and speeds
+            (:meth:`explanation`) and charts the failures' share of contact (e.g. True for the braking scenario,
+            False where the scene is drawn from the rollouts' object rows instead).
+        object_words: the object the detector looks for, as a sentence names it (e.g. ``the car ahead``), for a
+            rollout of one object.
+    """
+
+    @property
+    def draws_scene(self) -> bool: ...
+
+    @property
+    def object_words(self) -> str: ...
+
+    def intro(self, formula: str, metric: str, method: str) -> tuple[str, str] | None:
+        """The head of the recording's description, or None (the recording's own, from the problem's name and
+        description).
+
+        Args:
+            formula: the safety specification (STL).
+            metric: the robustness metric the rollouts are ranked by.
+            method: one sentence on the run's method (Markdown).
+        Returns:
+            (the title and the paragraph on the scenario, in Markdown; what the scene adds to the paragraph on how
+            to read the recording, a phrase that starts with `` and``).
+        """
+        ...
+
+    def outcome_values(self, batch: RolloutBatch, i: int) -> Mapping[str, Any] | None:
+        """The outcome of rollout ``i`` of ``batch`` as the recording's properties of it: ``outcome`` (words, e.g.
+        ``contact at 3.2 m/s``), ``contact`` (bool) and the scenario's numbers (e.g. the min distance, metres);
+        None: the recording says only ``failure`` or ``safe`` (also where the batch lacks the columns read)."""
+        ...
+
+    def scene_lane(self, batch: RolloutBatch, i: int) -> SceneLane | None:
+        """Rollout ``i`` of ``batch`` as one lane of the scene seen from above (:data:`SceneLane`); None: not drawn
+        (no scene, or the batch lacks the columns read)."""
+        ...
+
+    def explanation(self, batch: RolloutBatch, i: int) -> Mapping[str, Any] | None:
+        """What the recording's *Explain* tab adds for the failing rollout ``i`` of ``batch`` (the module's
+        explanation mapping: words, properties, summary lines, series and markers); None: nothing beyond the
+        signals, p(detect) and the misses."""
+        ...
