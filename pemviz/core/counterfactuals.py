@@ -5,8 +5,8 @@ errors. For each one before the failure (later events cannot change it), the rol
 alone changed: the miss flipped to a detection measured exactly, or the measurement error set to zero. An event is
 **decisive** when its replay no longer fails. All replays run as one batch through the problem's ``branch``, which
 replays given events exactly (the simulators are deterministic functions of the events); nothing is drawn. Any
-scene, any number of objects; the braking scenario's misses-only case is
-:func:`pemviz.scenarios.braking_failures.counterfactual`'s single flips.
+scene, any number of objects; a scenario's own misses-only flips (e.g. the braking scenario's ``counterfactual``)
+agree with it.
 
 Source: counterfactual explanation by single interventions, as in Innes & Ramamoorthy, "Adaptive Splitting of
 Reusable Temporal Monitors for Rare Traffic Violations" (arXiv 2405.15771), which asks which perception errors of a

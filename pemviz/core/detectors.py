@@ -1,7 +1,7 @@
 """Detectors: what the scenario asks each step about each object. Each gives the logit of p(detect | object row).
 
 A detector maps object rows (float64 [R, G], one row per object of a rollout at a step, columns named by the
-scenario, the window's column first: the braking scenario's one object row is its observation, ``gap_m`` first) to
+scenario, the window's column first: e.g. the braking scenario's one object row is its observation, gap first) to
 ``logit p(detect)`` float64 [R]. Working with logits keeps every log-probability exact: ``log p(detect) =
 log_expit(logit)``, ``log p(miss) = log_expit(-logit)`` (``scipy.special.log_expit``). A detector that also mislocates
 (:class:`NoisyDetector`) gives the density of a detected object's measurement error; :func:`draw_step` draws one
@@ -31,7 +31,7 @@ from pemviz.core.detector_noise import (  # noqa: F401 (the error models, re-exp
 from pemviz.core.rng import RQMC_BLOCK, array_rqmc_uniforms, block_bounds, by_blocks, ranking_key
 
 GAP_COLUMN = 0
-"""Index of ``gap_m`` (metres) in every observation vector."""
+"""Index of the window's column (the proposal's input, e.g. a distance in metres) in every observation vector."""
 
 
 @runtime_checkable
@@ -83,9 +83,10 @@ def action_log_prob_into(logit: np.ndarray, detected: np.ndarray, log_p_detect: 
     """:func:`action_log_prob` into ``out``, bit for bit, reusing ``log_expit(logit)`` when given (``log_p_detect``).
 
     ``log_expit(+logit)`` where detected, ``log_expit(-logit) = -logaddexp(0, logit)`` elsewhere, evaluated only where
-    missed. A hot path, so written out: numpy's ``logaddexp(..., where=missed)`` simulated 20,000 braking rollouts in
-    0.66 s against 0.74 s for ``log_expit`` on every entry (one run each, loaded 2-core machine), and
-    ``scipy.special.log_expit(..., where=...)`` corrupted the heap (scipy 1.17.1: a segfault a few calls later).
+    missed. A hot path, so written out: numpy's ``logaddexp(..., where=missed)`` simulated 20,000 rollouts
+    (e.g. the braking scenario's) in 0.66 s against 0.74 s for ``log_expit`` on every entry (one run each, loaded
+    2-core machine), and ``scipy.special.log_expit(..., where=...)`` corrupted the heap (scipy 1.17.1: a segfault a
+    few calls later).
     """
     if log_p_detect is None:
         log_p_detect = log_expit(logit)

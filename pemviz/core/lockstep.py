@@ -92,7 +92,7 @@ def run_batched(
             rows = np.asarray(sim.objects(), dtype=np.float64)
             if objects is not None:
                 objects[:, t] = rows
-            rows = rows.reshape(n * m, -1)  # a view where the simulator's layout allows (the cut-in's: column-major)
+            rows = rows.reshape(n * m, -1)  # a view where the simulator's layout allows (e.g. cut-in: column-major)
         else:
             rows = o
         f = None
@@ -134,7 +134,7 @@ def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray,
 
 DEFAULT_CHUNK_SIZE = RQMC_BLOCK
 """Rollouts a batched simulator steps together: one chunk's working set stays in cache-sized arrays (measured fastest
-of 2048..65536 for the braking twin on the 2-core CI machine), one Array-RQMC block."""
+of 2048..65536 on the 2-core CI machine, e.g. for the braking scenario's batched twin), one Array-RQMC block."""
 
 
 def check_counts(who: str, **counts: object) -> None:

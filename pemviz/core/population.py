@@ -4,8 +4,9 @@ mu_hat = (1/N) sum_i 1[fail_i] w_i over the N rollouts the estimate uses (pooled
 rollout of stage k then counts w_i lambda_k N / n_k). The share of p that failure i carries is its term over the sum of
 the failures' terms, its self-normalised importance weight among the failures (Owen, "Monte Carlo theory, methods and
 examples", 2013, Sec. 9.2): shares are positive and add up to 1, and the failures sorted by share are the ones a
-safety engineer reads first. Failures that share their decisive events (a key the scene gives, e.g. the last step at
-which one detection still saved the braking rollout) form groups whose shares are the sums of their members'.
+safety engineer reads first. Failures that share their decisive events (a key the scene gives: e.g. for the braking
+scenario, the last step at which one detection still saved the rollout) form groups whose shares are the sums of their
+members'.
 
 No I/O, no scene: keys come from the caller. Units: nats for every log; shares are fractions of mu_hat.
 """

@@ -1,7 +1,8 @@
 """What a sink sees of a problem: the problem's view (:class:`ProblemView`: its name, description, signals with their
-units, the failure threshold and the sampler window to draw, the braking scene, where the objects and their errors are
-in the object rows) and the scene of a batch's first rollout of several objects read through it (:func:`object_scene`).
-Plain data, no simulator and no scenario: :mod:`pemviz.core.problems` imports every name here too.
+units, the failure threshold and the sampler window to draw, the scene's constants, where the objects and their errors
+are in the object rows) and the scene of a batch's first rollout of several objects read through it
+(:func:`object_scene`). Plain data, no simulator and no scenario: :mod:`pemviz.core.problems` imports every name here
+too.
 """
 
 from __future__ import annotations
@@ -17,13 +18,14 @@ if TYPE_CHECKING:  # annotations only, never imported at run time
 
 @dataclass(frozen=True)
 class Thresholds:
-    """Levels of the rollouts' first observation (the proposal's input: the gap) that sinks draw beside them.
+    """Levels of the rollouts' first observation (the proposal's input, the window's column) that sinks draw beside
+    them.
 
     Attributes:
-        failure: below it the rollout has failed (the braking scenario's 2 m crash gap).
-        window: the sampler window, where the detector can change the outcome (the braking scenario's 10 m).
-        unit: of both (``m``).
-        failure_name, window_name: what they are called in legends (``crash gap``, ``braking distance``).
+        failure: the failure threshold: below it the rollout has failed (e.g. the braking scenario's 2 m crash gap).
+        window: the sampler window, where the detector can change the outcome (e.g. the braking scenario's 10 m).
+        unit: of both (e.g. ``m``).
+        failure_name, window_name: what they are called in legends (e.g. ``crash gap``, ``braking distance``).
     """
 
     failure: float
@@ -33,7 +35,7 @@ class Thresholds:
     window_name: str = "sampler window"
 
     def labels(self) -> tuple[str, str]:
-        """``("crash gap 2 m", "braking distance 10 m")``: the failure threshold's and the window's legend."""
+        """The failure threshold's and the window's legend, e.g. ``("crash gap 2 m", "braking distance 10 m")``."""
         return (f"{self.failure_name} {self.failure:g} {self.unit}".strip(),
                 f"{self.window_name} {self.window:g} {self.unit}".strip())  # fmt: skip
 
@@ -53,12 +55,12 @@ class ProblemView:
 
     Attributes:
         name: short label.
-        description: one line, e.g. ``automated braking behind a lead car 12.3 m ahead, ...``.
+        description: one line saying what is simulated (e.g. the braking scenario's ``automated braking ...``).
         signals: the safety formula's signals with their observation columns and units.
         thresholds: the failure threshold and the sampler window to draw beside the rollouts, or None (none known).
-        scene: the braking scenario's constants (car sizes, camera, dt: a
-            :class:`pemviz.scenarios.braking.BrakingParams`) to draw its rollouts as a scene, or None: the problem has
-            no scene (the toys), and no cars, braking distance or crash gap are drawn.
+        scene: the scenario's constants (object sizes, camera, dt) to draw its rollouts as a scene, or None: the
+            problem has no scene (the toys), and no objects, window or failure threshold are drawn as a scene; being
+            replaced by :attr:`drawing`.
         objects_xy: the object-row columns of each object's position seen from the ego (metres: to the right,
             ahead), to draw a scene of several objects from its rollouts' rows; None: none.
         noise_xy: the measurement-error components along those two directions (indexes into the noise, metres),

@@ -45,15 +45,6 @@ StreamFn = Callable[..., Iterator[RolloutBatch]]
 """``stream(n, sampler, target, rng, chunk_size=DEFAULT_CHUNK_SIZE)``: the rollouts of ``simulate`` with the same
 arguments, in chunks of at most ``chunk_size`` rollouts (the rollouts do not depend on it)."""
 
-BRAKING_SIGNALS = {"d": "gap_m", "v": "ego_speed_mps", "vl": "lead_speed_mps"}
-"""Deprecated: :data:`pemviz.scenarios.braking.BRAKING_SIGNALS` (kept until no sink reads it here)."""
-
-BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0), "v": (0.0, 10.0), "vl": (0.0, 10.0)}
-"""Deprecated: :data:`pemviz.scenarios.braking.BRAKING_SIGNAL_RANGES` (kept until no sink reads it here)."""
-
-BRAKING_UNITS = {"d": "m", "v": "m/s", "vl": "m/s"}
-"""Deprecated: :data:`pemviz.scenarios.braking.BRAKING_UNITS` (kept until no sink reads it here)."""
-
 
 @dataclass(frozen=True)
 class Problem:

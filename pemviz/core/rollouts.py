@@ -4,7 +4,7 @@ A :class:`Simulator` reports, at each step, its scene's signals (``observation()
 objects (``objects()``, float64 [M, G]: each object's salient variables and relative state, the window's column
 first), and is stepped with each object's detection and, for a detector that mislocates, its measurement error
 (``step(detected [M], noise [M, D])``). A single-object simulator needs neither ``objects`` nor the error: its one
-object row is its observation and ``step(detected: bool)`` takes the detection (the braking scenario, the toys).
+object row is its observation and ``step(detected: bool)`` takes the detection (e.g. the braking scenario, the toys).
 A :class:`BatchedSimulator` is the same for n rollouts at once (a leading [n]).
 
 Optional capability (:class:`Snapshotting`): ``snapshot()`` returns the simulator's whole state at the
@@ -202,6 +202,7 @@ class RolloutBatch:
 
     @property
     def gap_m(self) -> np.ndarray:
+        """Deprecated: the column of that name, float64 [N, T]; read :meth:`signal` (kept while sinks read it)."""
         return self.signal("gap_m")
 
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:

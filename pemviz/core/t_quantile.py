@@ -2,14 +2,14 @@
 about ten times faster than ``scipy.special.stdtrit`` and within 2e-12 of it (relative, checked by a test).
 
 The noise PEM draws every detected object's range and lateral errors by inverse CDF (a heavy-tailed Student-t per
-component, :mod:`pemviz.pem.noise`); ``stdtrit`` solves each quantile iteratively (cdflib's root finder), and on the
-cut-in scene that was a third of plain Monte Carlo's time. Here each binade ``[2^(e-1), 2^e)`` of ``u < 1/2`` holds a
-cubic Hermite interpolant of ``Q(u) = F^-1(u)`` on :data:`KNOTS_PER_BINADE` equal steps of the mantissa, whose knot
-values are ``stdtrit``'s and whose slopes are ``dQ/du = 1 / f(Q)`` (f the t density); ``u > 1/2`` uses ``Q(u) =
--Q(1 - u)`` (``1 - u`` is exact there). Locating a uniform is exact bit arithmetic (``numpy.frexp``), and the
-interpolant is a fixed sequence of float64 multiplications and additions (no vector library): the same bits on every CPU
-from the same table (built once per df from stdtrit and libm's scalar lgamma, exp and log1p). Uniforms outside
-the table (``u < 2^-64``, 0, 1/2, non-finite) go to ``stdtrit`` itself.
+component, :mod:`pemviz.pem.noise`); ``stdtrit`` solves each quantile iteratively (cdflib's root finder), and in a scene
+of several objects (e.g. the cut-in) that was a third of plain Monte Carlo's time. Here each binade ``[2^(e-1), 2^e)``
+of ``u < 1/2`` holds a cubic Hermite interpolant of ``Q(u) = F^-1(u)`` on :data:`KNOTS_PER_BINADE` equal steps of the
+mantissa, whose knot values are ``stdtrit``'s and whose slopes are ``dQ/du = 1 / f(Q)`` (f the t density); ``u > 1/2``
+uses ``Q(u) = -Q(1 - u)`` (``1 - u`` is exact there). Locating a uniform is exact bit arithmetic (``numpy.frexp``), and
+the interpolant is a fixed sequence of float64 multiplications and additions (no vector library): the same bits on every
+CPU from the same table (built once per df from stdtrit and libm's scalar lgamma, exp and log1p). Uniforms outside the
+table (``u < 2^-64``, 0, 1/2, non-finite) go to ``stdtrit`` itself.
 
 Error: a cubic Hermite interpolant on steps h of the mantissa is off by at most ``h^4 / 384 max |Q''''|``
 (de Boor, *A Practical Guide to Splines*, 2001, ch. II); with h = 1/1024 and the tail's ``Q ~ -c u^(-1/nu)`` that is

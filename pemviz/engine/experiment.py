@@ -141,9 +141,9 @@ class Experiment:
 
     The estimator of ``config.method`` (:func:`pemviz.estimators.build_estimator`) plans the batches and does the
     arithmetic; the experiment simulates them (on ``config.executor``), computes their robustness, emits the
-    events and checks the cancel token. ``problem``: what to estimate (e.g.
-    :func:`pemviz.scenarios.problems.problem_for` ``(config)``: the braking scenario with ``config.pem``); the engine
-    itself loads nothing.
+    events and checks the cancel token. ``problem``: what to estimate (a :class:`Problem`, e.g. the one
+    :func:`pemviz.scenarios.problems.problem_for` ``(config)`` builds for the config's scenario); the engine itself
+    loads nothing.
     """
 
     def __init__(

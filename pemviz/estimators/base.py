@@ -262,7 +262,7 @@ class SeenFailures:
 
 def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Object events of the elite rollouts per bin of ``grid`` (nearest grid value of each object row's first
-    column: the braking scenario's gap) and the detections among them, float64 [G] each."""
+    column, the window's: e.g. the braking scenario's gap) and the detections among them, float64 [G] each."""
     if batch.rows_elided:  # rebuild the elites' rows only
         d = batch.object_rows_of(elite)[..., 0].ravel()
     else:

@@ -40,7 +40,7 @@ LogValueNext = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 class ZeroVarianceDetector:
     """q* as a :class:`~pemviz.core.detectors.Detector`: ``logit q* = logit p + log V(s'_detect) - log V(s'_miss)``.
 
-    Where both actions lead to the same V (the action changes nothing, or failure is already certain or
+    Where both actions give the same V (the action changes nothing, or failure is already certain or
     impossible) q* is p itself.
 
     Attributes:
@@ -52,7 +52,7 @@ class ZeroVarianceDetector:
     log_value_next: LogValueNext
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
-        """logit q*(detect | obs), float64 [N] (``-inf`` / ``+inf`` where one action cannot lead to a failure)."""
+        """logit q*(detect | obs), float64 [N] (``-inf`` / ``+inf`` where one action cannot end in a failure)."""
         logit = np.asarray(self.target.detect_logit(obs), dtype=np.float64)
         log_v_detect, log_v_miss = self.log_value_next(obs)
         with np.errstate(invalid="ignore"):  # inf - inf where both are -inf: handled by the equality
