@@ -177,7 +177,7 @@ class _GivenGroups:
     here; at the final estimate it waits for the run's grouping, the message that follows it on ``source``."""
 
     problem = True  # "knows the run's problem": the run's groups read it
-    scene = None
+    drawing = None
 
     def __init__(self, source: _Messages) -> None:
         self.source, self.grouping = source, None
