@@ -23,7 +23,7 @@ import numpy as np
 from pemviz.core.population import FailureGroup, FailureShares, failure_groups
 from pemviz.core.severity import FailureSeverity, contact_level, failure_severity, rollout_severity
 from pemviz.engine.events import RolloutsSampled
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 
 NOT_KEPT = "not kept"
 """Group key of failures whose stage was streamed and kept only a sample of its rollouts for the listeners."""

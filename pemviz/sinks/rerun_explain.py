@@ -38,7 +38,7 @@ import rerun as rr
 from pemviz.core.problems import ProblemView, object_scene
 from pemviz.core.proposal_view import prob_detect
 from pemviz.engine.events import RolloutsSampled
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.sinks import colours as C
 from pemviz.sinks.rerun_blueprint import EXPLAIN_PATH
 from pemviz.sinks.rerun_views import (
