@@ -49,7 +49,7 @@ def batch(gaps: np.ndarray, columns: tuple[str, ...] = ("gap_m", "ego_speed_mps"
 
 def sampled(stage: int, kind: str, b: RolloutBatch, n_total: int | None = None) -> RolloutsSampled:
     """The batch's rollouts with robustness min gap - 2 m (failure below 0), log-weights 0."""
-    r = b.gap_m.min(axis=1) - 2.0
+    r = b.signal("gap_m").min(axis=1) - 2.0
     index = None if n_total is None else np.arange(b.n)
     return RolloutsSampled(stage, kind, b, r, {"classic": r}, r < 0, np.zeros(b.n), n_total=n_total, index=index)
 
