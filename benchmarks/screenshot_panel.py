@@ -128,7 +128,7 @@ def main() -> int:
             page.get_by_role("tab", name="Explain").click()
             page.get_by_text("Counterfactual", exact=False).wait_for(timeout=30_000)
             ex, shown = session.explanation, session.shown
-            step = int(ex.decisive[0]) if ex.decisive.size else int((shown.gap_m < 2.0).argmax())
+            step = int(ex.decisive[0]) if ex.decisive.size else int((shown.signal("gap_m") < 2.0).argmax())
             show_step(page, session, step)
             page.screenshot(path=str(tmp))
             if args.live_out is not None:

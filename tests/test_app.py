@@ -25,12 +25,11 @@ CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 if not os.path.exists(CHROMIUM):
     pytest.skip("Debian's chromium is not installed (apt-get install chromium)", allow_module_level=True)
 
-from pemviz.app.explain import explain  # noqa: E402
 from pemviz.app.form import FIELDS_BY_KEY, parse_number  # noqa: E402
 from pemviz.app.panel import PanelApp  # noqa: E402
-from pemviz.app.runs import scene_positions  # noqa: E402
 from pemviz.app.session import Session  # noqa: E402
 from pemviz.config import SETTINGS  # noqa: E402
+from pemviz.scenarios.braking_panel import explain  # noqa: E402
 from pemviz.sinks import colours  # noqa: E402
 
 CHROMIUM_ARGS = [
@@ -266,17 +265,17 @@ def test_the_scene_and_strip_chart_follow_the_newest_run_and_name_it(tab, app):
     wait_until(lambda: tab.session.shown_record is second, what="the scene to switch to run 2")
     shown = tab.session.shown
     assert shown is second.most_likely_failure or second.most_likely_failure is None
-    ego_x, _ = scene_positions(shown, app.params)
+    ego_x, _ = app.drawing.lane_positions(shown.batch, 0)[:2]
     wait_until(lambda: tab.scene()["label"].startswith(f"{second.short_label} {shown.key} t=0.00s"),
                what="the browser's scene label to name run 2")  # fmt: skip
     assert abs(tab.scene()["x"] - ego_x[0]) < 1e-3
 
     # the explanation: strip chart of that rollout, its decisive misses as the counterfactual finds them
-    ex = explain(shown.gap_m, shown.detected, shown.log_p, shown.log_q, app.params)
+    ex = explain(shown.signal("gap_m"), shown.detected, shown.log_p, shown.log_q, app.drawing.params)
     tab.page.get_by_role("tab", name="Explain").click()
     expect(tab.page.get_by_text("Counterfactual", exact=False)).to_be_visible(timeout=10_000)
     gap = tab.plot(f"{second.short_label} {shown.key}: gap and speeds")
-    assert np.allclose(gap["data"][1], shown.gap_m)
+    assert np.allclose(gap["data"][1], shown.signal("gap_m"))
     assert set(gap["labels"]) >= {"crash gap 2 m", "braking distance 10 m", "gap (m)"}
     detect = tab.plot("p(detect) under the PEM")
     decisive = shown_at(detect["data"][detect["labels"].index("decisive miss")])
@@ -408,13 +407,13 @@ def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_ov
     record = tab.run({**TINY, "K": "3"})
     shown = tab.session.shown
     assert shown is not None and shown.crashed, "the quick preset finds a crash"
-    t_crash = int(np.argmax(shown.gap_m < app.params.crash_gap_m))
+    t_crash = int(np.argmax(shown.signal("gap_m") < app.drawing.params.crash_gap_m))
     tab.session.step_slider.value = t_crash
     wait_until(lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={t_crash * 0.05:.2f}s"),
                what="the crash step")  # fmt: skip
     s = tab.scene()
     assert tuple(s["color"]) == (colours.DETECTED if shown.detected[t_crash] else colours.MISSED)
-    p = app.params
+    p = app.drawing.params
     assert s["lead_x"] - p.lead_length_m / 2 >= s["x"] + p.ego_length_m / 2 - 1e-6  # lead rear ahead of ego front
 
 
@@ -479,7 +478,7 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     # Explain: the most likely failure with its severity in words, what happened, and the controller
     wait_until(lambda: s.shown is record.most_likely_failure, what="the most likely failure shown")
     tab.page.get_by_role("tab", name="Explain").click()
-    words = severity(s.shown.gap_m, app.params).short
+    words = severity(s.shown.signal("gap_m"), app.drawing.params).short
     expect(tab.page.get_by_text(words, exact=False).first).to_be_visible(timeout=10_000)
     expect(tab.page.get_by_text("What happened", exact=False)).to_be_visible()
     applied = np.flatnonzero(s.explanation.controller.brake_applied).tolist()
@@ -497,7 +496,7 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
 
     def undecided() -> list[str]:  # the panel refills its rollout list after the sort: wait for one, never sleep
         return [lab for lab, t in list(s._rollout_labels.items()) if t.crashed and t is not record.most_likely_failure
-                and explain(t.gap_m, t.detected, t.log_p, t.log_q, app.params).decisive.size == 0]  # fmt: skip
+                and app.drawing.lane_explanation(t.batch, 0).decisive.size == 0]  # fmt: skip
 
     wait_until(lambda: bool(undecided()), what="a failing rollout no single miss decides, listed after the sort")
     label = undecided()[0]
@@ -544,8 +543,9 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     tab.choose("sort by", "severity")
     expect(tab.page.get_by_text("by severity", exact=False)).to_be_visible(timeout=10_000)
     listed = s.rollouts_tab.ordered_rollouts(record)
-    speeds = [severity(t.gap_m, app.params).contact_speed_mps for t in [*pop.rollouts, *record.trajectories]]
-    assert severity(listed[0].gap_m, app.params).contact_speed_mps == np.nanmax(speeds)
+    speeds = [severity(t.signal("gap_m"), app.drawing.params).contact_speed_mps
+              for t in [*pop.rollouts, *record.trajectories]]
+    assert severity(listed[0].signal("gap_m"), app.drawing.params).contact_speed_mps == np.nanmax(speeds)
     tab.page.get_by_label("failures only").check()
     wait_until(lambda: all(t.crashed for t in s.rollouts_tab.ordered_rollouts(record)), what="only failures listed")
     expect(tab.page.get_by_text("least robust rollouts outside it, by severity", exact=False)).to_be_visible()
@@ -590,15 +590,15 @@ def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detecti
     tab = Tab(browser, app, {"width": 1400, "height": 900})
     try:
         record = tab.run({**TINY, "K": "3"})
-        s, p = tab.session, app.params
+        s, p = tab.session, app.drawing.params
         shown = s.shown
         assert shown is not None and shown.crashed, "the quick preset finds a crash"
         b = s.explanation.severity.breach_step
-        assert b == int(np.argmax(shown.gap_m < p.crash_gap_m))
+        assert b == int(np.argmax(shown.signal("gap_m") < p.crash_gap_m))
         s.step_slider.value = b
         wait_until(lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={b * p.dt_s:.2f}s"),
                    what="the breach step")  # fmt: skip
-        ego_x, lead_x = scene_positions(shown, p)
+        ego_x, lead_x = app.drawing.lane_positions(shown.batch, 0)[:2]
         cam, rear = ego_x[b] + p.camera_offset_m, lead_x[b] - p.lead_length_m / 2
         h = 1.5  # the boxes' height (metres)
         grid = np.linspace(-0.5, 0.5, 5)
@@ -619,7 +619,8 @@ def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detecti
         # the gap ruler: from the ego's camera to the lead's rear, its label the gap in metres
         ruler = np.array(got["ruler"]).reshape(3, 2, 3)
         np.testing.assert_allclose(ruler[0, :, 0], [cam, rear], atol=1e-4)
-        assert got["gap_text"] == f"gap {shown.gap_m[b]:.2f} m" and shown.gap_m[b] < p.crash_gap_m
+        gap_b = shown.signal("gap_m")[b]
+        assert got["gap_text"] == f"gap {gap_b:.2f} m" and gap_b < p.crash_gap_m
         # the breach gate where the camera crossed the 2 m line, with its time
         assert got["breach_visible"] and abs(got["breach_x"] - cam) < 1e-4
         assert got["breach_text"] == f"{p.crash_gap_m:g} m line crossed\nat {b * p.dt_s:.2f} s"

@@ -40,4 +40,4 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
         scene = tab.session.scene
         wait_until(lambda: "the my-car scenario draws no scene" in scene.scene_html.content, timeout=60,
                    what="the 3D view saying the scenario draws no scene (no braking road for it)")  # fmt: skip
-        assert not scene.lead_box.visible and not scene.ego_box.visible
+        assert not scene.object_box.visible and not scene.ego_box.visible

@@ -15,32 +15,32 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pemviz.scenarios.problems import problem_for
-from pemviz.app.explain import explain
 from pemviz.app.form import FIELDS_BY_KEY, parse_form, parse_number, run_cost, run_label
 from pemviz.app.runs import (
     PanelRun,
-    Trajectory,
     export_path,
     export_run,
     keep_runs,
     least_robust,
     most_likely_failure,
     sanitize_export_name,
-    scene_positions,
 )
 from pemviz.config import ExperimentConfig
 from pemviz.engine import Experiment
 from pemviz.engine.events import RolloutsSampled, StageFinished, StageStarted
 from pemviz.sinks.console import ConsoleSink
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, BrakingScenario
+from pemviz.scenarios.braking_drawing import BrakingDrawing
+from pemviz.scenarios.braking_panel import explain
 
 TINY = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=20, ce_epochs=20, pretrain_rollouts=10, pretrain_epochs=20)
 
 
 # -- scene geometry -------------------------------------------------------------------------------
-def test_scene_positions_reproduce_the_highway_env_vehicles_positions():
-    """Both cars' centres, rebuilt from the recorded (gap, speeds), equal highway-env's own positions."""
+def test_the_lane_positions_reproduce_the_highway_env_vehicles_positions():
+    """Both cars' centres, rebuilt by the drawing's panel hook from the recorded (gap, speeds), equal highway-env's own
+    positions."""
     params = BrakingParams()
     sim = BrakingScenario(params)
     detections = np.ones(params.n_steps, dtype=bool)
@@ -52,9 +52,10 @@ def test_scene_positions_reproduce_the_highway_env_vehicles_positions():
         lead_x.append(float(sim.lead.position[0]))
         sim.step(bool(a))
     obs = np.array(obs)
-    zeros = np.zeros(params.n_steps)
-    traj = Trajectory(0, 0, 0.0, 0.0, False, obs[:, 0], obs[:, 1], obs[:, 2], detections, zeros, zeros)
-    got_ego, got_lead = scene_positions(traj, params)
+    zeros = np.zeros((1, params.n_steps))
+    batch = RolloutBatch(obs[None], detections[None], zeros, zeros, tuple(OBSERVATION_NAMES))
+    got_ego, got_lead, gap = BrakingDrawing(params).lane_positions(batch, 0)
+    np.testing.assert_array_equal(gap, obs[:, 0])
     np.testing.assert_allclose(got_ego, ego_x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got_lead, lead_x, rtol=0, atol=1e-9)
     assert got_ego[-1] > 20.0  # the ego really moved (not a trivially-zero comparison)
@@ -80,7 +81,7 @@ def test_least_robust_keeps_the_n_smallest_over_all_stages_least_first():
     assert [(t.stage, t.index, t.robustness) for t in kept] == [(1, 1, -2.0), (0, 1, -1.0), (0, 3, 0.5)]
     assert [t.crashed for t in kept] == [True, True, False]
     assert [t.log_weight for t in kept] == [-1.0, -1.0, -3.0]
-    assert kept[2].gap_m[0] == 8.0  # rollout 3's own row
+    assert kept[2].signal("gap_m")[0] == 8.0  # rollout 3's own row
     assert kept[0].key == "s1r1"
 
 

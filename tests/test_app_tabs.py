@@ -21,7 +21,8 @@ from scipy.special import expit
 from test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 from pemviz.app import charts
-from pemviz.app.runs import OBJECT_GAP_BINS_M, VIEW_OBJECT
+from pemviz.scenarios.cut_in_panel import GAP_BINS_M as OBJECT_GAP_BINS_M
+from pemviz.scenarios.cut_in_panel import VIEW_OBJECT
 
 SCREENSHOTS = Path(__file__).resolve().parents[1] / "assets" / "screenshots"
 VIEWPORT = {"width": 1400, "height": 1300}
@@ -153,8 +154,8 @@ def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and
     gap = chart(explain, "car 0's gap ahead, truth and the tracker")
     truth, track = series(gap, "truth"), series(gap, "tracker (confirmed track)")
     lo, hi = min(v for v in truth if np.isfinite(v)), max(v for v in truth if np.isfinite(v))
-    inside = np.isfinite(ox.gap_m[:, 0]) & (ox.gap_m[:, 0] >= lo) & (ox.gap_m[:, 0] <= hi)
-    np.testing.assert_allclose(truth[inside], ox.gap_m[inside, 0])
+    inside = np.isfinite(ox.gap_ahead[:, 0]) & (ox.gap_ahead[:, 0] >= lo) & (ox.gap_ahead[:, 0] <= hi)
+    np.testing.assert_allclose(truth[inside], ox.gap_ahead[inside, 0])
     assert np.isfinite(track).sum() > 10 and np.isfinite(series(gap, "measured (detected)")).any()
     lateral = chart(explain, "car 0's lateral offset from the ego's lane centre, truth and the tracker")
     np.testing.assert_allclose(series(lateral, "truth"), ox.lateral_m[:, 0], atol=1e-9)

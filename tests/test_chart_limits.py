@@ -16,11 +16,13 @@ from hypothesis import strategies as st
 
 from pemviz.app import charts, plots
 from pemviz.app.plots import STAGE_RULES, AxisRange, robust_range
-from pemviz.app.runs import GAP_BINS_M, PanelRun
+from pemviz.app.runs import PanelRun
 from pemviz.config import ExperimentConfig
 from pemviz.core.proposal_view import proposal_view
 from pemviz.engine.events import RolloutsSampled
 from pemviz.scenarios import RolloutBatch
+from pemviz.scenarios.braking_drawing import BrakingDrawing
+from pemviz.scenarios.braking_panel import GAP_BINS_M
 
 LN10 = math.log(10.0)
 
@@ -202,15 +204,15 @@ def test_an_exact_answer_far_from_the_estimates_stays_on_the_axis():
 
 # -- the controller chart ----------------------------------------------------------------------------
 def controller_explanation(accel: np.ndarray, gap: np.ndarray, command=None, applied=None) -> SimpleNamespace:
-    """What :func:`charts.fill_controller_plot` reads of an Explanation: the controller's signals and the severity's
-    contact gap (0.7 m, the braking scenario's)."""
+    """What :func:`charts.fill_controller_plot` reads of an explanation: the controller's signals and the steps in
+    contact (a gap of at most 0.7 m, the braking scenario's contact gap)."""
     n = accel.size
     none = np.zeros(n, bool)
     controller = SimpleNamespace(
         time_s=np.arange(n) * 0.05, accel_mps2=accel, gap_m=gap,
         brake_command=none if command is None else command, brake_applied=none if applied is None else applied,
     )  # fmt: skip
-    return SimpleNamespace(controller=controller, severity=SimpleNamespace(contact_gap_m=0.7))
+    return SimpleNamespace(controller=controller, contact=np.asarray(gap) <= 0.7)
 
 
 def test_the_contact_steps_acceleration_is_drawn_at_the_edge_and_named():
@@ -286,6 +288,7 @@ def view_record(gap: np.ndarray, q_detect: np.ndarray, stage: int = 1) -> tuple[
     batch = RolloutBatch(obs, detected, log_p, log_q, ("gap_m", "ego_speed_mps", "lead_speed_mps"))
     r = np.ones(n)
     record = PanelRun(1, ExperimentConfig())
+    record.proposal_axis = BrakingDrawing().proposal_axis()  # the gap's bins, standing states checked
     record.events = [RolloutsSampled(stage, "ce", batch, r, {"classic": r}, r < 0, np.zeros(n))]
     record.proposal_views = {stage: ("ce", view)}
     return record, view
@@ -325,7 +328,7 @@ def test_a_bin_crowded_with_standing_states_keeps_its_value_and_says_why():
     q = np.full((n, t), 0.5)
     gap[:20, 30:] = 6.2  # half the rollouts stand at 6.2 m from step 30 on
     q[:20, 31:] = 0.993
-    share = charts.unchanged_gap_share(gap, GAP_BINS_M)
+    share = charts.unchanged_share(gap, GAP_BINS_M)
     b = 12  # 6.0-6.5 m
     in_bin = (gap >= 6.0) & (gap < 6.5)
     assert share[b] == pytest.approx(20 * 29 / in_bin.sum())  # all but the first standing step repeat

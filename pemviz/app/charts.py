@@ -18,7 +18,7 @@ import numpy as np
 import viser
 import viser.uplot as up
 
-from pemviz.app.explain import Explanation
+from pemviz.app.drawing import LaneExplanation
 from pemviz.app.html import GREY as GREY_BOX
 from pemviz.app.html import box
 from pemviz.app.plots import (
@@ -35,7 +35,6 @@ from pemviz.app.plots import (
 from pemviz.app.runs import PanelRun
 from pemviz.core.proposal_view import ProposalView
 from pemviz.engine.events import RolloutsSampled
-from pemviz.scenarios.cut_in import LANE_WIDTH_M
 from pemviz.sinks.colours import (
     BLACK,
     BLUE,
@@ -92,12 +91,12 @@ def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
     }  # fmt: skip
 
 
-def unchanged_gap_share(gap_m: np.ndarray, edges_m: np.ndarray) -> np.ndarray:
-    """Per gap bin (``edges_m``, metres, as :func:`pemviz.core.proposal_view.proposal_view` bins), the share of the
-    visited states ``gap_m`` [N, T] (metres) whose gap equals the same rollout's gap one step before: both cars at
-    rest (or moving together), one state counted again each step. float64 [B]; nan for an empty bin; a first step
-    counts as changed."""
-    gap = np.asarray(gap_m, dtype=np.float64)
+def unchanged_share(values: np.ndarray, edges_m: np.ndarray) -> np.ndarray:
+    """Per bin (``edges_m``, metres, as :func:`pemviz.core.proposal_view.proposal_view` bins), the share of the
+    visited states ``values`` [N, T] (metres, e.g. the gap) whose value equals the same rollout's one step before:
+    both cars at rest (or moving together), one state counted again each step. float64 [B]; nan for an empty bin; a
+    first step counts as changed."""
+    gap = np.asarray(values, dtype=np.float64)
     edges = np.asarray(edges_m, dtype=np.float64)
     same = np.zeros(gap.shape, bool)
     same[:, 1:] = gap[:, 1:] == gap[:, :-1]
@@ -113,7 +112,7 @@ def unchanged_gap_share(gap_m: np.ndarray, edges_m: np.ndarray) -> np.ndarray:
 def standing_bins(n_states: np.ndarray, unchanged_share: np.ndarray) -> np.ndarray:
     """Indices of the bins crowded with standing states: more than :data:`CROWDED_BIN` times the median count of the
     bins with at least :data:`MIN_BIN_STATES` states, more than half of them with the gap unchanged since the step
-    before (``unchanged_share``, :func:`unchanged_gap_share`). int, ascending; none without full bins."""
+    before (``unchanged_share``, :func:`unchanged_share`). int, ascending; none without full bins."""
     n = np.asarray(n_states)
     share = np.asarray(unchanged_share, dtype=np.float64)
     full = n[n >= MIN_BIN_STATES]
@@ -160,20 +159,22 @@ def marginal_note(record: PanelRun | None) -> str:
 def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun,
                         note: viser.GuiHtmlHandle | None = None) -> None:  # fmt: skip
     """Each stage's mean q(detect) and median log-odds of a miss (nats) over its visited states, per bin of the view's
-    axis (:attr:`pemviz.app.runs.PanelRun.proposal_axis`: the braking scenario's gap in 0.5 m bins, or the cut-in
-    car's gap ahead in 1 m bins over the states where the camera sees it, :func:`pemviz.app.runs.object_proposal_view`),
+    axis (:attr:`pemviz.app.runs.PanelRun.proposal_axis`: e.g. the gap in 0.5 m bins of a scene of one object a
+    step, or one car's gap ahead among several in 1 m bins over the states where the camera sees it,
+    :func:`pemviz.app.runs.object_proposal_view`),
     the PEM's at the newest stage's states, and the newest stage's 10-90 % spread as a band. Without a view to draw
     both charts are hidden and ``note`` says why (:func:`marginal_note`).
 
     A bin with fewer than :data:`MIN_BIN_STATES` states is left out of every line (its mean is mostly noise); the
     newest stage's such bins are drawn as hollow rings at their value and the title counts them. The newest stage's
     bins crowded with standing states (:func:`standing_bins`) are ringed in grey on the probability chart and its
-    title gives each one's count and share of standing states: their value is real, not noise. In the braking
-    scenario the 6.0-6.5 m bin of the default run's final batch holds 6,048 states, 3.4x its neighbours, 77 %
-    of them a car that stopped in time standing behind the stopped lead for the rest of the episode, where the
-    sampler does not steer and its q(detect) is the PEM's 0.993: the bin's mean q is 0.90 against 0.47-0.51 beside
-    it (0.56 over its moving states). The log-odds chart's range is :func:`pemviz.app.plots.robust_range` of the
-    medians of the bins with enough states, at most -12..12 nats; a median beyond is drawn at the edge.
+    title gives each one's count and share of standing states: their value is real, not noise. For example, the
+    6.0-6.5 m bin of the default run's final batch (for example, of the braking scenario) holds 6,048 states, 3.4x its
+    neighbours, 77 % of them a car that stopped in time standing behind the stopped object ahead for the rest of the
+    episode, where the sampler does not steer and its q(detect) is the PEM's 0.993: the bin's mean q is 0.90 against
+    0.47-0.51 beside it (0.56 over its moving states). The log-odds chart's range is
+    :func:`pemviz.app.plots.robust_range` of the medians of the bins with enough states, at most -12..12 nats; a
+    median beyond is drawn at the edge.
     """
     stages = _view_stages(record)
     if note is not None:
@@ -189,7 +190,8 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
     x = last.centres_m
     x_range = (float(last.edges_m[0]), float(last.edges_m[-1]))
     plain_mc = cfg.method == "mc"
-    whose = "" if axis.standing else f" of {axis.subject}"
+    standing_signal = axis.standing_signal
+    whose = "" if standing_signal is not None else f" of {axis.subject}"
     who = "plain Monte Carlo: the rollouts are the PEM's own (q = p)" if plain_mc else (
         f"mean q(miss) {axis.window_name} {last.window_m:g} m {last.q_miss_window:.3g} vs the PEM's "
         f"{last.p_miss_window:.3g} ({last_name})"
@@ -198,10 +200,10 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
     n_sparse = int(sparse.sum())
     few = f"; {n_sparse} bin{'s' * (n_sparse != 1)} of under {MIN_BIN_STATES} states hollow" if n_sparse else ""
     standing = np.zeros(0, dtype=int)
-    if axis.standing and np.any(last.n_states > CROWDED_BIN * MIN_BIN_STATES):  # else no bin can be crowded
+    if standing_signal is not None and np.any(last.n_states > CROWDED_BIN * MIN_BIN_STATES):  # else none is crowded
         batch = _stage_batch(record, last_stage)
-        if batch is not None and "gap_m" in batch.observation_names:
-            share = unchanged_gap_share(batch.gap_m, last.edges_m)
+        if batch is not None and standing_signal in batch.observation_names:
+            share = unchanged_share(batch.signal(standing_signal), last.edges_m)
             standing = standing_bins(last.n_states, share)
     crowd = "" if standing.size == 0 else "; ringed: mostly standing states (the gap unchanged since the step " \
         "before, one state counted each step) " + ", ".join(
@@ -229,7 +231,7 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
                                limits=(-LOG_ODDS_SPAN, LOG_ODDS_SPAN))  # fmt: skip
             title += rng.note("median", ".1f", " nats")
         series: list[Any] = [
-            up.Series(label="gap (m)" if axis.standing else "car 0's gap (m)"),
+            up.Series(label=axis.series_label),
             up.Series(label=f"{last_name} 10 %", stroke=colour, width=1, dash=[3, 3]),
             up.Series(label=f"{last_name} 90 %", stroke=colour, width=1, dash=[3, 3]),
             up.Series(label="PEM", stroke=hex_colour(BLACK), width=2.5),
@@ -330,23 +332,22 @@ def controller_plot(gui: viser.GuiApi, order: float | None = None) -> viser.GuiU
     )  # fmt: skip
 
 
-def fill_controller_plot(plot: viser.GuiUplotHandle, ex: Explanation, step: int, title: str) -> None:
+def fill_controller_plot(plot: viser.GuiUplotHandle, ex: LaneExplanation, step: int, title: str) -> None:
     """The ego's acceleration (m/s^2), and as rows of dots above it the steps at which the emergency brake was
-    commanded (the lead detected within the braking distance) and applied (one step later); a marker at ``step``.
+    commanded (the object detected within the window) and applied (one step later); a marker at ``step``.
 
     The y range is :func:`pemviz.app.plots.robust_range` of the acceleration (:data:`CONTROLLER_RULE`) over the steps
-    before contact: a step off it is drawn at the edge, ringed, and the title gives its value and time. The one
-    that flattened the chart is the contact step: where the gap is at most ``contact_gap_m`` (0.7 m)
-    :func:`pemviz.scenarios.braking.ego_acceleration` stops the ego within one step, a = -v / dt (-5.76 m/s /
-    0.05 s = -115 m/s^2 at 3.10 s in the default run's crash), a collision rather than the controller's braking
-    (at most 27.5 m/s^2, drawn at its place).
+    before contact (``ex.contact``): a step off it is drawn at the edge, ringed, and the title gives its value and
+    time. The one that flattened the chart is the contact step, where the simulator stops the ego within one step
+    (for example a = -v / dt = -5.76 m/s / 0.05 s = -115 m/s^2 at 3.10 s in the braking scenario's default crash), a
+    collision rather than the controller's doing (at most 27.5 m/s^2 there, drawn at its place).
     """
     c = ex.controller
     t = c.time_s
     a = np.asarray(c.accel_mps2, dtype=np.float64)
-    # in contact (gap <= contact_gap_m) the simulator stops the ego within one step (a = -v / dt): a collision, not
-    # the controller's braking; those steps do not set the range
-    contact = np.asarray(c.gap_m, dtype=np.float64) <= ex.severity.contact_gap_m
+    # in contact the simulator stops the ego within one step (a = -v / dt): a collision, not the controller's doing;
+    # those steps do not set the range
+    contact = np.asarray(ex.contact, bool)
     rng = robust_range(a, ~contact, **CONTROLLER_RULE)
     top, bottom = rng.hi, rng.lo
     row = 0.07 * (top - bottom)  # two rows of dots above the curve, apart at any scale
@@ -381,18 +382,18 @@ def fill_controller_plot(plot: viser.GuiUplotHandle, ex: Explanation, step: int,
     }
 
 
-# -- Explain: a cut-in rollout -------------------------------------------------------------------------
+# -- Explain: a rollout of several objects with a story ----------------------------------------------
 TRACK_GAP, TRACK_LATERAL, ACC = "track_gap", "track_lateral", "acc"
-"""Keys of the cut-in Explain's charts (:func:`object_plots`)."""
+"""Keys of the charts of *Explain* for a rollout of several objects (:func:`object_plots`)."""
 TRACK_RULE: dict[str, Any] = {"min_gap": 10.0, "min_pad": 0.5}
 """:func:`pemviz.app.plots.robust_range` settings of the tracker charts (metres): a measurement more than 10 m (and
 twice the others' spread) from the rest, a heavy tail of the noise PEM, is drawn at the edge."""
 
 
 def object_plots(gui: viser.GuiApi, order: float | None = None) -> dict[str, viser.GuiUplotHandle]:
-    """The three empty charts of *Explain* for a cut-in rollout, hidden until one is shown
-    (:func:`fill_object_plots`): the cut-in car's gap ahead and lateral offset, truth against the tracker's estimate,
-    and the ACC's acceleration with the car it follows."""
+    """The three empty charts of *Explain* for a rollout of several objects, hidden until one whose drawing tells its
+    story is shown (:func:`fill_object_plots`): car 0's gap ahead and lateral offset, truth against the tracker's
+    estimate, and the ACC's acceleration with the car it follows."""
     t = np.linspace(0, 10, 2)
     none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 10.0))
@@ -419,24 +420,25 @@ def _at(values: np.ndarray, step: int | None) -> np.ndarray:
 
 
 def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int, title: str) -> None:
-    """Draw the cut-in car (object 0) of ``ox`` (:class:`pemviz.app.objects_view.ObjectsExplanation` with a story) in
-    the charts of :func:`object_plots`, with a marker at ``step`` (the 3D scene's step, the last series of each chart):
+    """Draw object 0 of ``ox`` (:class:`pemviz.app.objects_view.ObjectsExplanation` with a story, e.g. the car that
+    cuts in) in the charts of :func:`object_plots`, with a marker at ``step`` (the 3D scene's step, the last series of
+    each chart):
 
     - its gap ahead (its rear minus the ego's front bumper, metres) as it truly was (black), where the tracker's
       confirmed track placed it (violet: the true gap plus the track's error along the road), where the camera
       measured it when detected (blue dots: plus the measurement's range error) and the steps it was missed (orange
       dots, on the truth), with the contact line at 0 m (red, dashed) and the failure step (a red dot);
-    - its lateral offset from the centre of the ego's lane (metres, to the right; it cuts in from +4 m) in the same
-      colours, with the lane's edges at +-2 m (yellow, dashed): the ACC follows a track whose estimated centre lies
-      inside them (:func:`pemviz.scenarios.cut_in.acc_control`);
+    - its lateral offset from the centre of the ego's lane (metres, to the right) in the same colours, with the lane's
+      edges at +-half its width (``ox.lane_width_m``; yellow, dashed): the ACC follows a track whose estimated centre
+      lies inside them;
     - the ACC's acceleration at each decision (m/s^2, applied over the next step; IDM clipped to +-6 m/s^2), with two
       rows of dots above it: the steps it followed car 0's track (violet; another car's: grey) and the steps car 0's
       box overlapped the ego's lane (yellow).
 
-    Sources: the rows of :mod:`pemviz.scenarios.cut_in_scene` (``gap_m``, ``loc_x``, ``track_err_x_m``,
-    ``track_err_y_m``, ``followed``, ``ego_accel_mps2``) and :mod:`pemviz.scenarios.cut_in_story`. The y ranges are
-    :func:`pemviz.app.plots.robust_range`'s (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`): a value off them is drawn
-    at the edge and the title counts it.
+    Sources: ``ox``'s positions, detections, measurements, tracks and gaps ahead, and its story (``severity``,
+    ``acc``: the ACC's decisions, ``in_lane``: the steps object 0 overlapped the ego's lane),
+    e.g. :class:`pemviz.scenarios.cut_in_story.CutInStory`. The y ranges are :func:`pemviz.app.plots.robust_range`'s
+    (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`): a value off them is drawn at the edge and the title counts it.
     """
     st = ox.story
     t = np.asarray(ox.time_s, dtype=np.float64)
@@ -478,13 +480,13 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
         plot.axes = axes("time (s)", unit_label)
         plot.visible = True
 
-    gap = ox.gap_m[:, 0]
+    gap = ox.gap_ahead[:, 0]
     nan = np.full(t.size, np.nan)
     along = (ox.tracked[:, 0, 1] - ox.ahead_m[:, 0]) if ox.tracked is not None else nan
     meas_along = (ox.measured[:, 0, 1] - ox.ahead_m[:, 0]) if ox.measured is not None else np.where(det, 0.0, np.nan)
     chart(TRACK_GAP, "gap ahead", "gap (m)", gap, gap + along, gap + meas_along, [("contact 0 m", 0.0, CRASH)],
           (0.0, 5.0))  # fmt: skip
-    half = LANE_WIDTH_M / 2
+    half = ox.lane_width_m / 2
     chart(TRACK_LATERAL, "lateral offset from the ego's lane centre", "m, right +", ox.lateral_m[:, 0],
           ox.tracked[:, 0, 0] if ox.tracked is not None else nan,
           ox.measured[:, 0, 0] if ox.measured is not None else np.where(det, ox.lateral_m[:, 0], np.nan),
@@ -528,6 +530,6 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
 
 
 def hide_object_plots(plots: dict[str, viser.GuiUplotHandle]) -> None:
-    """Hide the cut-in Explain's charts (another kind of rollout is shown, or none)."""
+    """Hide the charts of *Explain* for a rollout of several objects (another kind of rollout is shown, or none)."""
     for plot in plots.values():
         plot.visible = False

@@ -1,8 +1,9 @@
 """The *Explain* tab of a :class:`pemviz.app.session.Session` (plots panel, left): the rollout shown in the 3D scene,
-step by step. A braking rollout: its severity, what happened in words, the strip charts of its gap, detections and
-proposal, the controller's signals, its decisive misses, minimal miss set and last saving step. A rollout of several
-objects (the cut-in): the decisive errors, every object's events, the tracker and ACC charts and the scene from
-above."""
+step by step. A rollout of a lane scene (:class:`pemviz.app.drawing.LanePanel`, e.g. the braking scenario's): its
+severity, what happened in words, the strip charts of its distance, detections and proposal, the controller's
+signals, its decisive misses, minimal miss set and last saving step. A rollout of several objects
+(:class:`pemviz.app.drawing.ObjectsPanel`): the decisive errors, every object's events, the tracker and controller
+charts where its drawing tells a story, and the scene from above."""
 
 from __future__ import annotations
 
@@ -12,16 +13,15 @@ import viser
 
 from pemviz.app import charts, plots
 from pemviz.app import objects_view as OV
-from pemviz.app.explain import Explanation, explain
+from pemviz.app.drawing import LaneExplanation, LanePanel
 from pemviz.app.html import GREEN, GREY, RED, TABLE_STYLE, box, explanation_html
 from pemviz.app.objects_view import ObjectsExplanation, explain_objects, objects_summary
 from pemviz.app.runs import PanelRun, Trajectory
-from pemviz.scenarios.braking import BrakingParams
 
 
 class ExplainTab:
     """The *Explain* tab: owns its charts and HTML and the explanation of the rollout shown, :attr:`explanation` (a
-    braking rollout) or :attr:`objects_ex` (a scene of several objects); the 3D scene (:class:`pemviz.app.scene_view
+    lane scene) or :attr:`objects_ex` (a scene of several objects); the 3D scene (:class:`pemviz.app.scene_view
     .SceneView`) chooses the rollout and the step.
 
     Args:
@@ -30,8 +30,8 @@ class ExplainTab:
 
     def __init__(self, client: viser.ClientHandle) -> None:
         self.client = client
-        self.explanation: Explanation | None = None
-        """The shown braking rollout's explanation (None: none shown, or one of several objects)."""
+        self.explanation: LaneExplanation | None = None
+        """The shown rollout's explanation in a lane scene (None: none shown, or one of several objects)."""
         self.objects_ex: ObjectsExplanation | None = None
         """The shown rollout's explanation when its scene has several objects (then :attr:`explanation` is None)."""
 
@@ -41,22 +41,23 @@ class ExplainTab:
         self.explain_html = gui.add_html(box("Choose a rollout in the Rollouts tab to explain it.", GREY))
         self.strip = plots.strip_plots(gui)
         self.strip["controller"] = charts.controller_plot(gui, order=self.strip["gap"].order + 0.5)
-        # a cut-in rollout: the cut-in car's gap and lateral offset, truth and tracker, and the ACC (hidden until
-        # one is shown), then the decisive errors, every car's events and the scene from above
+        # a rollout of several objects: car 0's gap and lateral offset, truth and tracker, and the controller (hidden
+        # until one with a story is shown), then the decisive errors, every car's events and the scene from above
         self.object_plots = charts.object_plots(gui)
         self.objects_html = gui.add_html("")
 
-    def explain_braking(self, traj: Trajectory, scene: BrakingParams) -> Explanation:
-        """Explain a braking rollout (its strip charts shown, the cut-in's hidden); fill them with :meth:`fill`."""
+    def explain_lane(self, traj: Trajectory, drawing: LanePanel) -> LaneExplanation:
+        """Explain a rollout of a lane scene (its strip charts shown, those of several objects hidden); fill them with
+        :meth:`fill`."""
         self.objects_ex = None
         self.show_strips(True)
-        self.explanation = explain(traj.gap_m, traj.detected, traj.log_p, traj.log_q, scene)
+        self.explanation = drawing.lane_explanation(traj.batch, 0)
         return self.explanation
 
     def explain_objects(self, record: PanelRun, traj: Trajectory) -> ObjectsExplanation:
-        """Explain a rollout of a scene of several objects (:mod:`pemviz.app.objects_view`): the braking scenario's
-        strip charts are hidden meanwhile, the cut-in's tracker and ACC charts (:func:`pemviz.app.charts
-        .fill_object_plots`) shown where the rollout tells its story."""
+        """Explain a rollout of a scene of several objects (:mod:`pemviz.app.objects_view`): the lane scene's strip
+        charts are hidden meanwhile, the tracker and controller charts (:func:`pemviz.app.charts.fill_object_plots`)
+        shown where the drawing tells the rollout's story."""
         ox = explain_objects(record.problem, record.view, traj.batch, traj.crashed)
         self.objects_ex, self.explanation = ox, None
         self.show_strips(False)
@@ -65,8 +66,8 @@ class ExplainTab:
         return ox
 
     def show_strips(self, visible: bool) -> None:
-        """Show the braking scenario's strip charts (a braking rollout) or hide them (several objects); the cut-in's
-        charts and details are hidden with a braking rollout and until a rollout of several objects fills them."""
+        """Show the lane scene's strip charts or hide them (several objects); the charts and details of several objects
+        are hidden with a lane scene's rollout and until a rollout of several objects fills them."""
         for plot in self.strip.values():
             plot.visible = visible
         charts.hide_object_plots(self.object_plots)
@@ -74,24 +75,25 @@ class ExplainTab:
             self.objects_html.content = ""
 
     def hide_unused(self) -> None:
-        """Hide the cut-in's charts and details while no rollout of several objects is explained."""
+        """Hide the charts and details of several objects while no rollout of several objects is explained."""
         if self.objects_ex is None:
             with self.client.atomic():
                 charts.hide_object_plots(self.object_plots)
                 self.objects_html.content = ""
 
-    def fill(self, record: PanelRun, traj: Trajectory) -> None:
-        """Fill the strip charts, the controller's chart and the text of the braking rollout explained."""
+    def fill(self, record: PanelRun, traj: Trajectory, drawing: LanePanel) -> None:
+        """Fill the strip charts, the controller's chart and the text of the lane scene's rollout explained."""
         ex = self.explanation
         if ex is None:
             return
         title = f"{record.short_label} {traj.key}"
-        plots.fill_strip_plots(self.strip, traj, ex, 0, title, record.view.thresholds)
+        plots.fill_strip_plots(self.strip, drawing.strip_series(traj.batch, 0), traj.detected, ex, 0, title,
+                               record.view.thresholds)  # fmt: skip
         charts.fill_controller_plot(self.strip["controller"], ex, 0, title)
-        self.explain_html.content = explanation_html(record, traj, ex, title, record.view.scene.dt_s)
+        self.explain_html.content = explanation_html(record, traj, ex, title, drawing.dt_s)
 
     def move_marker(self, step: int) -> None:
-        """Move the strip charts' marker to ``step`` of the braking rollout shown."""
+        """Move the strip charts' marker to ``step`` of the lane scene's rollout shown."""
         plots.move_strip_marker(self.strip, step)
 
     def render_objects(self, record: PanelRun, traj: Trajectory, t: int) -> None:
@@ -106,8 +108,8 @@ class ExplainTab:
                 f"({record.config.metric}) · log p_PEM {traj.log_p_total:.1f} nats (every object's detections and "
                 f"errors)")  # fmt: skip
         why = f"<b>Which errors decided it</b> (each undone alone, replayed): {html.escape(objects_summary(ox))}"
-        story = OV.story_html(ox) or ("No story: this scene's rows hold none of the cut-in's tracker and ACC columns, "
-                                      "so neither its tracker nor its controller is charted.")  # fmt: skip
+        story = OV.story_html(ox) or ("No story: this scene's drawing tells none of this rollout, so neither its "
+                                      "tracker nor its controller is charted.")  # fmt: skip
         legend = (f"<span style='color:{OV.GREEN}'>&#9632; detected</span> <span style='color:{OV.ORANGE}'>&#9632; "
                   f"missed</span> <span style='color:{OV.UNSEEN}'>&#9632; unseen</span> <span style='color:{OV.RED}'>"
                   f"&#9632; decisive</span> <span style='color:{OV.BLUE}'>&#9679; measured; dashed: the noise PEM's "

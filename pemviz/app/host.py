@@ -5,15 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Protocol
 
+from pemviz.app.drawing import LanePanel
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.braking import BrakingParams
 
 
 class PanelHost(Protocol):
     """What a session needs of the server that owns it (:class:`pemviz.app.panel.PanelApp`)."""
 
-    params: BrakingParams
-    """The scenario's constants."""
+    drawing: LanePanel
+    """The drawing object of the idle scene (before a run)."""
     config0: ExperimentConfig
     """The configuration the panel opened with."""
     preset_name: str

@@ -8,7 +8,7 @@ from pathlib import Path
 
 
 from pemviz.app import plots
-from pemviz.app.explain import Explanation
+from pemviz.app.drawing import LaneExplanation
 from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.core.estimate import error_text, format_probability
 from pemviz.engine.events import FinalEstimate
@@ -76,7 +76,7 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
     return box("<br>".join(lines), colour)
 
 
-def explanation_html(record: PanelRun, traj: Trajectory, ex: Explanation, title: str, dt: float) -> str:
+def explanation_html(record: PanelRun, traj: Trajectory, ex: LaneExplanation, title: str, dt: float) -> str:
     """Explain's header: the rollout, its severity, what happened in words, the minimal miss set, the last step at
     which one detection still saves it, and the counterfactual's summary."""
     best = record.most_likely_failure
@@ -94,8 +94,8 @@ def explanation_html(record: PanelRun, traj: Trajectory, ex: Explanation, title:
             kind = "smallest" if cf.smallest else "minimal: none can be left out"
             steps = ", ".join(f"{t * dt:.2f}" for t in cf.minimal_set[:16]) + (" ..." * (k > 16))
             found = (
-                f"<b>Minimal miss set</b> ({kind}): {k} miss{'es' * (k != 1)} at {steps} s; detected there, the gap "
-                f"stays at or above {cf.minimal_set_min_gap_m:.2f} m"
+                f"<b>Minimal miss set</b> ({kind}): {k} miss{'es' * (k != 1)} at {steps} s; detected there, "
+                f"{html.escape(ex.minimal_set_outcome)}"
             )
         else:
             found = "<b>Minimal miss set</b>: none: even a detection at every step fails"

@@ -1,4 +1,4 @@
-"""*Explain a failure* for a scene of several objects (the cut-in): every object at every step, detected, missed or
+"""*Explain a failure* for a scene of several objects (e.g. the cut-in): every object at every step, detected, missed or
 unseen, where each detected one was measured beside the noise PEM's error ellipse, and which object's errors, at
 which steps, decided the failure (:func:`pemviz.core.counterfactuals.counterfactuals`: each miss flipped to an exact
 detection and each measurement error set to zero, one at a time, the rollout replayed). Plain functions of a rollout
@@ -12,15 +12,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from typing import Any
+
+from pemviz.app.drawing import objects_panel
 from pemviz.core.counterfactuals import MISS, Counterfactuals, counterfactuals
 from pemviz.core.problems import object_scene
-from pemviz.scenarios.cut_in import CutInParams
-from pemviz.scenarios.cut_in_story import CutInStory, cut_in_story, has_story_columns
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
 GREEN, ORANGE, UNSEEN, BLUE, RED, EGO, TRACK = (hex_colour(c) for c in (C.DETECTED, C.MISSED, C.IDLE, C.BLUE, C.RED,
-                                                                          C.LEAD, C.VIOLET))
+                                                                          C.OBJECT, C.VIOLET))
 BACKGROUND, LANE, TEXT, AXIS_TEXT, ON_EGO, NOW = (hex_colour(c) for c in (C.SKETCH_BACKGROUND, C.SKETCH_LANE, C.DARK,
                                                                          C.GREY, C.ON_DARK, C.BLACK))
 AHEAD_M = (-25.0, 75.0)
@@ -29,6 +30,8 @@ LATERAL_M = 9.0
 """The bird's-eye view shows this far to either side of the ego (metres)."""
 CAR_LENGTH_M, CAR_WIDTH_M = 4.5, 1.8
 ELLIPSE_SCALES = 2.0
+DEFAULT_DT_S, DEFAULT_LANE_M = 0.1, 4.0
+"""Seconds per step and a lane's width (metres) where neither the problem nor its drawing gives them."""
 """The error ellipse's half-axes, in the noise PEM's scales of each component."""
 
 
@@ -52,10 +55,13 @@ class ObjectsExplanation:
         names: the objects' names.
         failed: the rollout failed.
         time_s: float64 [T] the time of each step (seconds).
-        gap_m: float64 [T, M] each object's gap ahead (its rear minus the ego's front bumper along the road, metres;
-            negative beside or behind), or None: the rows hold no ``gap_m``.
-        story: what happened, in words, and the severity (:func:`pemviz.scenarios.cut_in_story.cut_in_story`), or
-            None: the rollout is not the cut-in's (its rows lack the columns the story reads).
+        gap_ahead: float64 [T, M] each object's gap ahead (its rear minus the ego's front bumper along the road,
+            metres; negative beside or behind), or None: the rows hold no such column (the scene's
+            :attr:`~pemviz.scenarios.panel_data.ObjectsScene.distance_column`).
+        story: what happened, in words, and the severity (the drawing's
+            :meth:`~pemviz.app.drawing.ObjectsPanel.objects_story`), or None: the scene tells none;
+            e.g. :class:`pemviz.scenarios.cut_in_story.CutInStory`.
+        lane_width_m: a lane's width (metres).
     """
 
     lateral_m: np.ndarray
@@ -70,8 +76,9 @@ class ObjectsExplanation:
     names: tuple[str, ...]
     failed: bool
     time_s: np.ndarray | None = None
-    gap_m: np.ndarray | None = None
-    story: CutInStory | None = None
+    gap_ahead: np.ndarray | None = None
+    story: Any | None = None
+    lane_width_m: float = 4.0
 
     @property
     def n_steps(self) -> int:
@@ -89,13 +96,13 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
     Args:
         problem: the run's :class:`pemviz.core.problems.Problem` (its target gives the error ellipses, its ``branch``
             replays the counterfactuals); None: neither.
-        view: its :class:`pemviz.core.problems.ProblemView` (``objects_xy``, ``noise_xy``).
+        view: its :class:`pemviz.core.problems.ProblemView` (``objects_xy``, ``noise_xy``, ``drawing``: an
+            :class:`pemviz.app.drawing.ObjectsPanel`, which tells the story and gives the lanes).
         batch: one rollout, ``objects`` [1, T, M, G] named by ``object_names``.
         failed: whether the rollout failed (only a failure is explained by counterfactuals).
 
-    The times are the problem's ``dt_s`` seconds per step (the cut-in's 0.1 s when it gives none); the story and the
-    severity are told where the rows hold the cut-in's columns
-    (:func:`pemviz.scenarios.cut_in_story.has_story_columns`).
+    The times are the problem's ``dt_s`` seconds per step (else the drawing's, else 0.1 s); the story and the severity
+    are told where the drawing tells them (:meth:`pemviz.app.drawing.ObjectsPanel.objects_story`).
 
     Raises:
         ValueError: the view has no object positions (``objects_xy``) or the batch no object rows.
@@ -115,22 +122,22 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
     if failed and problem is not None and getattr(problem, "branch", None) is not None:
         cf = counterfactuals(problem, batch, 0)
     names = tuple(f"car {j}" for j in range(sc.detected.shape[1]))
-    dt_s = getattr(problem, "dt_s", None) or CutInParams().dt_s
+    drawing = objects_panel(getattr(view, "drawing", None))
+    scene = drawing.panel_scene() if drawing is not None else None
+    dt_s = getattr(problem, "dt_s", None) or (drawing.dt_s if drawing is not None else DEFAULT_DT_S)
     object_names = tuple(batch.object_names or ())
-    gap = batch.objects[0][:, :, object_names.index("gap_m")].astype(np.float64) if "gap_m" in object_names else None
-    story = None
-    if has_story_columns(tuple(batch.observation_names), object_names):
-        story = cut_in_story(batch.observations[0], tuple(batch.observation_names), batch.objects[0], object_names,
-                             batch.detected[0], dt_s, 0, names[0])  # fmt: skip
+    column = scene.distance_column if scene is not None else ""
+    gap = batch.objects[0][:, :, object_names.index(column)].astype(np.float64) if column in object_names else None
+    story = drawing.objects_story(batch, names) if drawing is not None else None
     return ObjectsExplanation(sc.lateral_m, sc.ahead_m, sc.detected, sc.seen, sc.measured, ellipse, sc.tracked,
                               sc.followed, cf, names, bool(failed), np.arange(sc.detected.shape[0]) * float(dt_s), gap,
-                              story)  # fmt: skip
+                              story, scene.lane_width_m if scene is not None else DEFAULT_LANE_M)  # fmt: skip
 
 
 @dataclass(frozen=True)
 class RobustnessOutcome:
-    """The outcome of a rollout of a scene without the braking scenario's severity: failed or not, by its classic
-    robustness (the safety formula's margin; metres for the cut-in's)."""
+    """The outcome of a rollout of a problem without a drawing's outcome: failed or not, by its classic robustness
+    (the safety formula's margin, e.g. metres)."""
 
     robustness: float
     failed: bool
@@ -294,8 +301,9 @@ def decisive_table(ox: ObjectsExplanation) -> str:
 
 
 def story_html(ox: ObjectsExplanation) -> str:
-    """*What happened* to the cut-in car and the ego, in words, and the **severity** (minimum clearance in metres, the
-    closing speed in m/s at contact), as HTML lines (:mod:`pemviz.scenarios.cut_in_story`); empty without a story."""
+    """*What happened* to the objects and the ego, in words, and the **severity** (e.g. the minimum clearance in
+    metres, the closing speed in m/s at contact), as HTML lines (the story's ``severity.short`` and ``text``); empty
+    without a story."""
     st = ox.story
     if st is None:
         return ""

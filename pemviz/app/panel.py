@@ -22,13 +22,31 @@ from pemviz.app.session import Session
 from pemviz.config import ExperimentConfig
 from pemviz.engine import experiment
 from pemviz.presets import DEFAULT_PRESET
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.app.drawing import LanePanel, lane_panel
+from pemviz.scenarios import registry
 from pemviz.scenarios.problems import problem_for
 from pemviz.sinks.colours import BLUE
 
 STATUS_EVERY_S = 0.5
 """How often a running run's status line (elapsed, expected time) is refreshed."""
 
+
+
+def idle_drawing(scenario: str) -> LanePanel:
+    """The drawing object of the scene every session shows before a run: ``scenario``'s at its defaults where it draws a
+    lane scene (:func:`pemviz.app.drawing.lane_panel`), else the first registered scenario's that does.
+
+    Raises:
+        ValueError: no registered scenario draws a lane scene.
+    """
+    for name in (scenario, *registry.registered()):
+        try:
+            drawing = registry.get(name).drawing_object()
+        except KeyError:
+            continue
+        if lane_panel(drawing) is not None:
+            return drawing
+    raise ValueError(f"no registered scenario draws a lane scene for the panel's idle scene ({scenario!r} does not)")
 
 class PanelApp:
     """The ``pemviz serve`` application: a viser server and one session per connected client.
@@ -65,9 +83,9 @@ class PanelApp:
         self.preset_name = preset
         self.config0 = config or ExperimentConfig(**PANEL_PRESETS[preset], pem=pem)
         self.recordings_dir = Path(recordings_dir)
-        self.params = BrakingParams()
-        """The scene every session draws before a run: the panel runs the braking scenario (:func:`problem_for`);
-        each run's own scene, thresholds and stages come with its first event (:class:`pemviz.app.runs.PanelRun`)."""
+        self.drawing: LanePanel = idle_drawing(self.config0.scenario)
+        """The scene every session draws before a run (:func:`idle_drawing`); each run's own scene, thresholds and
+        stages come with its first event (:class:`pemviz.app.runs.PanelRun`)."""
         self.host = host
         self.lock = threading.RLock()
         self.sessions: dict[int, Session] = {}
@@ -158,7 +176,7 @@ class PanelApp:
             pass
 
     def _play_loop(self) -> None:
-        dt = self.params.dt_s
+        dt = self.drawing.dt_s
         every = max(1, round(STATUS_EVERY_S / dt))
         for tick in itertools.count():
             if self._closed.wait(dt):

@@ -17,15 +17,15 @@ import numpy as np
 import viser
 import viser.uplot as up
 
-from pemviz.app.explain import Explanation
-from pemviz.app.runs import PanelRun, Trajectory
+from pemviz.app.drawing import LaneExplanation, Series
+from pemviz.app.runs import PanelRun
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import (
     BRAKE_ZONE,
     CRASH,
     DETECTED,
     EGO_SPEED,
-    LEAD_SPEED,
+    OBJECT_SPEED,
     LOG_WEIGHT,
     MISSED,
     PROPOSAL,
@@ -48,6 +48,12 @@ STAGE_PLOTS = (
 )
 GAMMA_UNITS = {"classic": "m", "agm": "unitless", "smooth-cumulative": "m"}
 LEGEND = up.Legend(show=True, live=False)
+SERIES_STYLE: dict[str, dict[str, Any]] = {
+    "main": {"stroke": hex_colour(C.BLACK), "width": 2},
+    "ego": {"stroke": css(EGO_SPEED), "width": 1.5},
+    "object": {"stroke": css(OBJECT_SPEED), "width": 1.5},
+}
+"""The strip chart's line of each :attr:`pemviz.app.drawing.Series.role`: colour and width."""
 
 
 def run_colour(run_id: int) -> str:
@@ -242,14 +248,14 @@ CURVE_AXES = {
     "gap": "gap d (m)",
     "objects": "range r (m) of car 0, straight ahead in the ego's lane",
 }
-"""The x axis of a proposal's reference-state curve: the braking scenario's gap to the lead, or, in a scene of several
-objects, the range from the camera to the cut-in car placed straight ahead in the ego's lane, unoccluded
-(:func:`pemviz.scenarios.problems.cut_in_problem`'s ``curve_rows``), metres."""
+"""The x axis of a proposal's reference-state curve (metres): the gap to the object ahead, or, in a scene of several
+objects, the range from the camera to car 0 placed straight ahead in the ego's lane, unoccluded (the problem's
+``curve_rows``)."""
 
 
 def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) -> None:
     """The PEM and the proposal after each stage (blue early, orange late) of ``record``, over the run's curve grid
-    (metres: 0-13 m of gap for the braking scenario, 0-50 m of range for the cut-in: :data:`CURVE_AXES`)."""
+    (metres, e.g. 0-13 m of gap in the braking scenario, 0-50 m of range in the cut-in: :data:`CURVE_AXES`)."""
     with record.lock:
         grid, pem = record.curve_grid_m, record.pem_curve
         stages = [s for s in record.stages if not np.all(np.isnan(s.proposal_curve)) and s.kind != "final"]
@@ -376,11 +382,18 @@ def _ring(colour: tuple[int, int, int], size: float = 11) -> dict[str, Any]:
 
 
 def fill_strip_plots(
-    plots: dict[str, viser.GuiUplotHandle], traj: Trajectory, ex: Explanation, step: int, title: str,
-    thresholds: Thresholds | None,
+    plots: dict[str, viser.GuiUplotHandle], lines: tuple[Series, ...], detected: np.ndarray, ex: LaneExplanation,
+    step: int, title: str, thresholds: Thresholds | None,
 ) -> None:  # fmt: skip
-    """Draw ``traj`` with a marker at ``step`` (the 3D scene's step) in each strip chart, with the problem's failure
-    threshold and sampler window (:attr:`pemviz.core.problems.ProblemView.thresholds`; None: no such lines)."""
+    """Draw a rollout with a marker at ``step`` (the 3D scene's step) in each strip chart, with the problem's failure
+    threshold and sampler window (:attr:`pemviz.core.problems.ProblemView.thresholds`; None: no such lines).
+
+    Args:
+        lines: the first chart's lines (:meth:`pemviz.app.drawing.LanePanel.strip_series`), the ``main`` one first:
+            the marker follows it; float64 [T] each.
+        detected: bool [T] the detections taken.
+        ex: the rollout explained (:meth:`pemviz.app.drawing.LanePanel.lane_explanation`).
+    """
     t = ex.time_s
     now = np.full(t.size, np.nan)
     now_i = int(np.clip(step, 0, t.size - 1))
@@ -392,31 +405,28 @@ def fill_strip_plots(
         return m
 
     # detections as a row of dots just above 1 and misses just below 0, clear of the probability curves
-    det = np.where(traj.detected, 1.05, np.nan)
-    miss = np.where(traj.detected, np.nan, -0.05)
+    det = np.where(detected, 1.05, np.nan)
+    miss = np.where(detected, np.nan, -0.05)
     decisive = np.full(t.size, np.nan)
     decisive[ex.decisive] = -0.05
     minimal = np.full(t.size, np.nan)
     minimal[ex.counterfactual.minimal_set] = -0.05
     t_max = float(t[-1])
     x_scale = up.Scale(time=False, auto=False, range=(0.0, t_max))
-    gap_hi = float(np.nanmax(np.concatenate([traj.gap_m, traj.ego_speed_mps, traj.lead_speed_mps, [12.0]])))
+    values = [np.asarray(s.values, dtype=np.float64) for s in lines]
+    main = values[0]
+    gap_hi = float(np.nanmax(np.concatenate([*values, [12.0]])))
     plots["gap"].title = f"{title}: gap and speeds"
     plots["gap"].series = (
         up.Series(label="t (s)"),
-        up.Series(label="gap (m)", stroke=hex_colour(C.BLACK), width=2),
-        up.Series(label="ego speed (m/s)", stroke=css(EGO_SPEED), width=1.5),
-        up.Series(label="lead speed (m/s)", stroke=css(LEAD_SPEED), width=1.5),
+        *(up.Series(label=s.label, **SERIES_STYLE[s.role]) for s in lines),
         *(up.Series(label=label, stroke=css(colour), width=1.5, dash=[6, 4])
           for label, colour in zip(thresholds.labels() if thresholds else (), (CRASH, BRAKE_ZONE))),
         up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
     levels = (thresholds.failure, thresholds.window) if thresholds else ()
-    plots["gap"].data = (
-        t, traj.gap_m, traj.ego_speed_mps, traj.lead_speed_mps, *(np.full(t.size, v) for v in levels),
-        marker(traj.gap_m),
-    )  # fmt: skip
-    gap_lo = min(0.0, float(np.min(traj.gap_m)))
+    plots["gap"].data = (t, *values, *(np.full(t.size, v) for v in levels), marker(main))
+    gap_lo = min(0.0, float(np.min(main)))
     plots["gap"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(gap_lo, gap_hi * 1.05))}
 
     plots["detect"].series = (

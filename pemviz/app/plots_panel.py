@@ -41,9 +41,9 @@ class PlotsPanel:
             self.compare_html = gui.add_html("")
             self.compare_html_ref = gui.add_html(
                 '<div style="margin:0 0.6em; font-size:0.8em; color:#555">Reference-state curves: q(detect | gap) with '
-                "the proposal's other inputs (speeds, pending brake) held at the start state; for the cut-in, "
-                "q(detect | range) of car 0 straight ahead in the ego's lane. The Live tab shows what each sampler "
-                "did over the states its rollouts visited. One chart per kept run.</div>"
+                "the proposal's other inputs (speeds, pending brake) held at the start state; in a scene of several "
+                "objects, q(detect | range) of car 0 straight ahead in the ego's lane. The Live tab shows what each "
+                "sampler did over the states its rollouts visited. One chart per kept run.</div>"
             )
             self.compare_plots = [plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190, visible=False)
                                   for i in range(4)]  # fmt: skip

@@ -8,12 +8,12 @@ import threading
 
 import viser
 
+from pemviz.app.drawing import lane_panel
 from pemviz.app.html import GREY, NO_ROLLOUT, RED, TABLE_STYLE, box
 from pemviz.app.objects_view import RobustnessOutcome
 from pemviz.app.runs import MAX_POPULATION, PanelRun, Population, Trajectory
 from pemviz.app.scene_view import SceneView
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.braking_failures import Severity, severity
+from pemviz.core.drawing import Outcome
 
 
 ROLLOUT_ORDERS = ("importance weight", "robustness", "log p", "severity")
@@ -25,9 +25,6 @@ MAX_LISTED = 100
 MAX_ROWS = 200
 """Rows of the rollouts table (a larger table slows every update of the page; the groups cover every failure)."""
 
-SAVING = "last saving detection at "
-"""Dropped from a group's label in the rollouts table (its column says it: ``last saving detection``)."""
-
 MAX_GROUPS = 8
 """Groups of failures shown, largest share first (the rest summed in one row)."""
 
@@ -35,6 +32,18 @@ MAX_GROUPS = 8
 def format_share(share: float | None) -> str:
     """A share of p as a percentage with three significant digits, ``-`` for none."""
     return "-" if share is None else f"{100 * share:.3g} %"
+
+
+def group_heading(record: PanelRun) -> tuple[str, str]:
+    """The rollouts table's group column of ``record``: (heading, the start of each group's label that the heading
+    says), from its drawing (:meth:`pemviz.app.drawing.PanelDrawing.group_heading`); else ``group``."""
+    heading = getattr(record.view.drawing if record.view is not None else None, "group_heading", None)
+    return heading() if callable(heading) else ("group", "")
+
+
+def _unsaid(label: str, said: str) -> str:
+    """``label`` without ``said``, which its column's heading says."""
+    return label.replace(said, "") if said else label
 
 
 def groups_html(pop: Population | None) -> str:
@@ -62,18 +71,16 @@ class RolloutsTab:
 
     Args:
         client: the viser client the tab draws into.
-        params: the braking scenario's constants (a braking rollout's severity).
         lock: the session's lock.
         scene: the 3D scene that shows the chosen rollout.
     """
 
-    def __init__(self, client: viser.ClientHandle, params: BrakingParams, lock: threading.RLock,
-                 scene: SceneView) -> None:  # fmt: skip
-        self.client, self.params, self.lock, self.scene = client, params, lock, scene
+    def __init__(self, client: viser.ClientHandle, lock: threading.RLock, scene: SceneView) -> None:
+        self.client, self.lock, self.scene = client, lock, scene
         self.listed: PanelRun | None = None
         """The run whose rollouts the Rollouts tab lists and Explain explains: the one chosen under Runs (a new run
         chooses itself)."""
-        self._severities: dict[tuple[int, str], Severity] = {}
+        self._severities: dict[tuple[int, str], Outcome] = {}
         self._rollout_labels: dict[str, Trajectory] = {}
 
     def build(self) -> None:
@@ -95,10 +102,11 @@ class RolloutsTab:
             handle.on_update(lambda _: self._relist())
 
     @staticmethod
-    def rollout_label(t: Trajectory, most_likely: bool = False, sev: Severity | None = None,
+    def rollout_label(t: Trajectory, most_likely: bool = False, sev: Outcome | None = None,
                       share: float | None = None) -> str:  # fmt: skip
         """The rollout list entry (no rank in it, so a chosen rollout stays chosen while later stages re-rank); the
-        outcome in :attr:`Severity.short`'s words when ``sev`` is given; a failure's share of p when known."""
+        outcome in :attr:`pemviz.core.drawing.Outcome.short`'s words when ``sev`` is given; a failure's share of p
+        when known."""
         outcome = f" · {sev.short}" if sev is not None and (t.crashed or sev.failed) else (" · failed" * t.crashed)
         head = "most likely failure · " if most_likely else ""
         part = f" · {share:.3g} of p" if share is not None else ""
@@ -107,14 +115,14 @@ class RolloutsTab:
             f"{outcome}"
         )
 
-    def severity_of(self, record: PanelRun, t: Trajectory) -> Severity | RobustnessOutcome:
-        """The severity of a listed rollout (computed once per rollout): the braking scenario's, else failed or safe
-        by its robustness."""
+    def severity_of(self, record: PanelRun, t: Trajectory) -> Outcome:
+        """The severity of a listed rollout (computed once per rollout): the outcome of a lane scene's drawing
+        (:meth:`pemviz.core.drawing.Drawing.outcome`), else failed or safe by its robustness."""
         key = (record.run_id, t.key)
         if key not in self._severities:
-            braking = record.view is not None and record.view.scene is not None
-            self._severities[key] = severity(t.gap_m, self.params) if braking else RobustnessOutcome(t.robustness,
-                                                                                                      t.crashed)
+            lane = lane_panel(record.view.drawing if record.view is not None else None)
+            self._severities[key] = (lane.outcome(t.batch, 0) if lane is not None
+                                     else RobustnessOutcome(t.robustness, t.crashed))  # fmt: skip
         return self._severities[key]
 
     @staticmethod
@@ -203,12 +211,13 @@ class RolloutsTab:
             sev = self.severity_of(record, t)
             return f"<b style=color:{RED}>{html.escape(sev.short)}</b>" if t.crashed else html.escape(sev.short)
 
+        heading, said = group_heading(record)
         group = {} if pop is None else {t.key: pop.group_label(r) for r, t in enumerate(pop.rollouts) if t is not None}
         rows = "".join(
             f"<tr><td>{i + 1}</td><td>{t.stage}</td><td>{t.index}</td>"
             f"<td>{format_share(shares.get(t.key))}</td><td>{t.robustness:+.4g}</td>"
             f"<td>{t.log_p_total:.1f}</td><td style='text-align:left'>{outcome(t)}</td>"
-            f"<td style='text-align:left'>{html.escape(group.get(t.key, '-').replace(SAVING, ''))}</td></tr>"
+            f"<td style='text-align:left'>{html.escape(_unsaid(group.get(t.key, '-'), said))}</td></tr>"
             for i, t in enumerate(trajectories[:MAX_ROWS])
         )
         which = " that failed" if self.failures_only.value else ""
@@ -234,7 +243,7 @@ class RolloutsTab:
                if len(trajectories) > MAX_ROWS else "")
             + ':<div style="max-height:22em; overflow-y:auto"><table class="pemviz-table" style="width:100%">'
             "<tr><th>#</th><th>stage</th><th>rollout</th><th>share of p</th><th>robustness</th><th>log p</th>"
-            f"<th>outcome</th><th>{'last saving detection' if record.view and record.view.scene else 'group'}</th></tr>"
+            f"<th>outcome</th><th>{html.escape(heading)}</th></tr>"
             f"{rows}</table></div></div>"
         )
 

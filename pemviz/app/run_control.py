@@ -260,7 +260,7 @@ class RunControl:
         with self.lock:
             runs = list(self.runs_tab.runs)
             record = self.record
-            self.explain.hide_unused()  # no cut-in rollout explained (cleared for a new run): none of its charts
+            self.explain.hide_unused()  # no rollout of several objects explained (cleared for a new run): no charts
         self.plots_panel.fill(runs, record)
 
 

@@ -5,9 +5,9 @@ problem view (from its first event), the stage results, the proposal curves, the
 rollouts of the whole run (:class:`Trajectory`) and the
 event log for the ``.rrd`` export, and the most likely failure found (the failing rollout with the
 highest probability under the PEM). :func:`keep_runs` decides which runs stay for comparison (pinned and
-finished ones before stopped ones). :func:`scene_positions` turns a rollout's observations back into the
-two cars' positions for the 3D scene, and :func:`export_path` / :func:`export_run` write a run into
-``recordings/`` without letting a name from the browser escape that folder.
+finished ones before stopped ones). :func:`object_proposal_view` bins one object's detections among several by its
+distance ahead, and :func:`export_path` / :func:`export_run` write a run into ``recordings/`` without letting a name
+from the browser escape that folder.
 """
 
 from __future__ import annotations
@@ -43,84 +43,55 @@ from pemviz.engine.events import (
 )
 from pemviz.presets import PRESETS
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.panel_data import ViewAxis
 from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.population import FailureGrouping, group_failures
 from pemviz.sinks.recording import RerunSink
-from pemviz.scenarios.braking_drawing import car_positions
 
 MAX_RUNS = 4
 """Runs kept side by side for comparison (:func:`keep_runs` decides which go when a fifth starts)."""
 
 MAX_POPULATION = 5_000
-"""Failures of a run's estimate the panel keeps as rollouts to list, largest share first (about 4 KB each; a run of
+"""Failures of a run's estimate the panel keeps as rollouts to list, largest share first (about 5 KB each; a run of
 N = 10,000 per stage has some 60,000 failures). The groups cover every failure."""
 
 N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
 
-GAP_BINS_M = np.linspace(0.0, 13.0, 27)
-"""Gap bins of the marginal proposal view (:mod:`pemviz.core.proposal_view`): 0.5 m wide, 0 to 13 m."""
-
-OBJECT_GAP_BINS_M = np.linspace(0.0, 40.0, 41)
-"""Bins of the proposal view of a scene of several objects (:func:`object_proposal_view`): the cut-in car's gap ahead
-(its rear minus the ego's front bumper, metres), 1 m wide, 0 to 40 m (the cut-in starts 20 m ahead; the proposal reads
-cars within 40 m, :data:`pemviz.scenarios.problems.CUT_IN_WINDOW_M`)."""
-
-VIEW_OBJECT = 0
-"""The object whose detections the proposal view of a scene of several objects follows: the cut-in car (object 0 of
-:attr:`pemviz.scenarios.cut_in.CutInParams.vehicles`)."""
-
 MAX_VIEW_ROLLOUTS = 1000
 """At most this many rollouts of a stage (evenly spaced) make its proposal view of a scene of several objects: the
 detectors are asked again for each state (a batch keeps only each step's sum over objects), the 100,000 states of
-1,000 cut-in rollouts in about 0.2 s on one core."""
+1,000 rollouts of five objects in about 0.2 s on one core."""
 
 
-@dataclass(frozen=True)
-class ViewAxis:
-    """What the x axis of a run's proposal view (:attr:`PanelRun.proposal_views`) is.
-
-    Attributes:
-        label: the axis title, with its unit.
-        subject: whose detections the view holds (``the lead``, ``car 0 (the cut-in car)``).
-        standing: the bins are of the scene's own gap (the braking scenario's), whose standing states
-            (:func:`pemviz.app.charts.standing_bins`) the chart rings.
-        window_name: what the mean q(miss) of the title is taken over.
-    """
-
-    label: str
-    subject: str
-    standing: bool
-    window_name: str
+DEFAULT_AXIS = ViewAxis("gap d (m), 0.5 m bins", "the object", None, "below", np.linspace(0.0, 13.0, 27),
+                        "gap (m)")
+"""The proposal view's axis of a problem whose drawing gives none (a toy): its own distance signal in 0.5 m bins,
+0 to 13 m (:func:`pemviz.core.proposal_view.batch_proposal_view`)."""
 
 
-GAP_AXIS = ViewAxis("gap d (m), 0.5 m bins", "the lead", True, "below")
-"""The braking scenario's view: the gap to the lead (metres)."""
-OBJECT_AXIS = ViewAxis("car 0's gap ahead (m), 1 m bins", "car 0 (the cut-in car)", False, "within")
-"""A scene of several objects: the cut-in car's gap ahead (metres), over the states where the camera can see it."""
-
-
-def object_proposal_view(event: RolloutsSampled, obj: int = VIEW_OBJECT, edges_m: np.ndarray = OBJECT_GAP_BINS_M,
+def object_proposal_view(event: RolloutsSampled, axis: ViewAxis,
                          max_rollouts: int = MAX_VIEW_ROLLOUTS) -> ProposalView | None:  # fmt: skip
-    """q(detect) of the sampler and p(detect) of the PEM for object ``obj`` over the states a batch of several objects
-    visited where the camera can see it (``visible``), binned by its gap ahead (the row's ``gap_m``, metres), as
-    :func:`pemviz.core.proposal_view.proposal_view` bins the braking scenario's gap; the mean q(miss) over every such
-    state below the last edge. The batch keeps each step's log-probabilities summed over its objects, so the detectors
-    are asked for the object's logit at its rows (:func:`pemviz.core.proposal_view.object_detect_probabilities`: call
-    it while ``event.sampler`` is the one that drew the batch); at most ``max_rollouts`` rollouts, evenly spaced.
+    """q(detect) of the sampler and p(detect) of the PEM for the object ``axis.view_object`` over the states a batch of
+    several objects visited where the sensor can see it (its row's ``axis.visible_column``), binned by its distance
+    ahead (``axis.distance_column``, metres; bins ``axis.edges``), as :func:`pemviz.core.proposal_view.proposal_view`
+    bins a batch of one object a step; the mean q(miss) over every such state below the last edge. The batch keeps
+    each step's log-probabilities summed over its objects, so the detectors are asked for the object's logit at its
+    rows (:func:`pemviz.core.proposal_view.object_detect_probabilities`: call it while ``event.sampler`` is the one
+    that drew the batch); at most ``max_rollouts`` rollouts, evenly spaced.
 
-    Returns None for a batch of one object a step, without the object's ``gap_m`` / ``visible`` columns, without both
-    detectors, or without a visible state.
+    Returns None for a batch of one object a step, without the axis' columns, without both detectors, or without a
+    visible state.
     """
     batch = event.batch
     names = tuple(batch.object_names or ())
-    if (batch.objects is None or batch.n_objects < 2 or event.sampler is None or event.target is None
-            or not {"gap_m", "visible"} <= set(names) or batch.n == 0):  # fmt: skip
+    obj, edges_m = axis.view_object, np.asarray(axis.edges, dtype=np.float64)
+    if (obj is None or batch.objects is None or batch.n_objects < 2 or event.sampler is None or event.target is None
+            or not {axis.distance_column, axis.visible_column} <= set(names) or batch.n == 0):  # fmt: skip
         return None
     pick = np.unique(np.linspace(0, batch.n - 1, min(batch.n, max_rollouts)).round().astype(np.int64))
     rows = np.asarray(batch.objects[pick, :, obj, :], dtype=np.float64)  # [n, T, G]
-    seen = rows[..., names.index("visible")] > 0.5
+    seen = rows[..., names.index(axis.visible_column)] > 0.5
     if not seen.any():
         return None
     flat = rows[seen]  # [S, G]
@@ -131,9 +102,9 @@ def object_proposal_view(event: RolloutsSampled, obj: int = VIEW_OBJECT, edges_m
         logit = np.asarray(detector.detect_logit(flat), dtype=np.float64)
         return -np.logaddexp(0.0, -sign * logit)
 
-    gap = flat[:, names.index("gap_m")]
-    return proposal_view(gap[None], detected[None], log_action(event.sampler)[None], log_action(event.target)[None],
-                         edges_m, float(edges_m[-1]))  # fmt: skip
+    distance = flat[:, names.index(axis.distance_column)]
+    return proposal_view(distance[None], detected[None], log_action(event.sampler)[None],
+                         log_action(event.target)[None], edges_m, float(edges_m[-1]))  # fmt: skip
 
 
 QUICK: dict[str, Any] = PRESETS["quick"]
@@ -172,13 +143,12 @@ class Trajectory:
             stage's batch, except in a streamed stage, whose batch is a sample of the stage's rollouts).
         robustness: under the run's metric (classic: metres; AGM: [-1, 1]).
         log_weight: importance log-weight log p_PEM - log q over T - 1 steps (nats).
-        crashed: classic robustness < 0 (the gap dropped below 2 m).
-        gap_m, ego_speed_mps, lead_speed_mps: float64 [T] observations (metres, m/s).
-        detected: bool [T], the detector's output at each step.
+        crashed: classic robustness < 0 (the safety formula is violated).
+        detected: bool [T], the detector's output at each step (of the first object where there are several).
         log_p, log_q: float64 [T] log-probability of each step's detection under the PEM and under the
             detector that sampled it (nats).
-        batch: the rollout as a batch of one, for a scene of several objects (every object's rows, detections and
-            measurement errors, replayed by *Explain*); None for one object per step (the braking scenario).
+        batch: the rollout as a batch of one (its observations and, in a scene of several objects, every object's
+            rows, detections and measurement errors, replayed by *Explain*): what the drawing's hooks read.
         object_p, object_q: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that
             drew the rollout, float64 [T, M] (:func:`pemviz.core.proposal_view.object_detect_probabilities`); else None.
     """
@@ -188,13 +158,10 @@ class Trajectory:
     robustness: float
     log_weight: float
     crashed: bool
-    gap_m: np.ndarray
-    ego_speed_mps: np.ndarray
-    lead_speed_mps: np.ndarray
     detected: np.ndarray
     log_p: np.ndarray
     log_q: np.ndarray
-    batch: RolloutBatch | None = None
+    batch: RolloutBatch
     object_p: np.ndarray | None = None
     object_q: np.ndarray | None = None
 
@@ -210,35 +177,41 @@ class Trajectory:
 
     @property
     def n_steps(self) -> int:
-        return int(self.gap_m.shape[0])
+        return int(self.detected.shape[0])
+
+    @property
+    def several(self) -> bool:
+        """The rollout's scene has several objects a step (rows per object)."""
+        return self.batch.objects is not None and self.batch.n_objects > 1
+
+    def signal(self, name: str) -> np.ndarray:
+        """float64 [T] the observation ``name`` of the rollout.
+
+        Raises:
+            ValueError: the rollout has no such observation.
+        """
+        names = tuple(self.batch.observation_names)
+        if name not in names:
+            raise ValueError(f"the rollout has no observation {name!r} ({', '.join(names)})")
+        return np.array(self.batch.observations[0, :, names.index(name)], dtype=np.float64)
 
 
 def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
-    """Row ``i`` of a sampled batch as a :class:`Trajectory`."""
+    """Row ``i`` of a sampled batch as a :class:`Trajectory` (its detections and log-probabilities are views of its
+    batch of one)."""
     batch = event.batch
-    names = batch.observation_names
-    obs = batch.observations[i]
-
-    def col(name: str, fallback: int | None = None) -> np.ndarray:
-        if name in names:
-            return np.array(obs[:, names.index(name)], dtype=np.float64)
-        return np.array(obs[:, fallback], dtype=np.float64) if fallback is not None else np.full(obs.shape[0], np.nan)
-
-    several = batch.objects is not None and batch.n_objects > 1
     object_p, object_q = object_detect_probabilities(batch, int(i), event.sampler, event.target) or (None, None)
+    one = batch.select(np.array([int(i)]))
     return Trajectory(
         stage=event.stage,
         index=int(event.rollout_numbers[i]),
         robustness=float(event.robustness[i]),
         log_weight=float(event.log_weight[i]),
         crashed=bool(event.failed[i]),
-        gap_m=col("gap_m", 0),
-        ego_speed_mps=col("ego_speed_mps"),
-        lead_speed_mps=col("lead_speed_mps"),
-        detected=np.array(batch.detected[i, :, 0], dtype=bool),
-        log_p=np.array(batch.log_p[i], dtype=np.float64),
-        log_q=np.array(batch.log_q[i], dtype=np.float64),
-        batch=batch.select(np.array([i])) if several else None,
+        detected=np.asarray(one.detected[0, :, 0], dtype=bool),
+        log_p=np.asarray(one.log_p[0], dtype=np.float64),
+        log_q=np.asarray(one.log_q[0], dtype=np.float64),
+        batch=one,
         object_p=object_p,
         object_q=object_q,
     )
@@ -306,12 +279,6 @@ def population_of(shares: FailureShares | None, sampled: Mapping[int, RolloutsSa
                                for rank, f in enumerate(g.found)))  # fmt: skip
 
 
-def scene_positions(traj: Trajectory, params: BrakingParams | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Centre x of the ego and of the lead at every step of ``traj``, float64 [T] each (metres; ego starts at 0):
-    :func:`pemviz.scenarios.braking_drawing.car_positions` of its gaps and ego speeds."""
-    return car_positions(traj.gap_m, traj.ego_speed_mps, params)
-
-
 class PanelRun(Sink):
     """One run as the panel shows it; an engine listener (call it with each event).
 
@@ -353,9 +320,9 @@ class PanelRun(Sink):
         """:attr:`likely` as a :class:`Trajectory`."""
         self.proposal_views: dict[int, tuple[str, ProposalView]] = {}
         """Stage -> (kind, q(detect) of its sampler over the states its rollouts visited, per gap bin)."""
-        self.proposal_axis: ViewAxis = GAP_AXIS
-        """What the views' bins are: the braking scenario's gap (:data:`GAP_AXIS`) or the cut-in car's
-        (:data:`OBJECT_AXIS`)."""
+        self.proposal_axis: ViewAxis = DEFAULT_AXIS
+        """What the views' bins are: the drawing's :meth:`~pemviz.app.drawing.PanelDrawing.proposal_axis` once the
+        run started (:data:`DEFAULT_AXIS` for a problem whose drawing gives none)."""
         self.events: list[Event] = []
         self.sampled: dict[int, RolloutsSampled] = {}
         """Stage -> its :class:`RolloutsSampled` (the batch, or a sample of a streamed stage)."""
@@ -398,6 +365,8 @@ class PanelRun(Sink):
         self.curve_grid_m = np.asarray(event.curve_grid_m, dtype=np.float64)
         self.pem_curve = np.asarray(event.pem_curve, dtype=np.float64)
         self.exact_log_p, self.reference = event.exact_log_p, event.reference
+        axis = getattr(getattr(self.view, "drawing", None), "proposal_axis", None)
+        self.proposal_axis = axis() if callable(axis) else DEFAULT_AXIS
 
     def on_stage_started(self, event: StageStarted) -> None:
         self.current_stage = event
@@ -411,10 +380,11 @@ class PanelRun(Sink):
         if likely is not self.likely:
             self.likely, self.most_likely_failure = likely, trajectory(event, likely.row)
         window = self.view.thresholds.window if self.view is not None and self.view.thresholds else None
-        view = batch_proposal_view(event.batch, GAP_BINS_M, window) if window is not None else None
-        if view is None and event.batch.objects is not None and event.batch.n_objects > 1:
-            view = object_proposal_view(event)  # the cut-in car's q(detect) and p(detect) by its gap ahead
-            self.proposal_axis = OBJECT_AXIS
+        axis = self.proposal_axis
+        if axis.view_object is None:  # one object a step: the batch's own distance signal
+            view = batch_proposal_view(event.batch, axis.edges, window) if window is not None else None
+        else:  # one object among several, by its distance ahead
+            view = object_proposal_view(event, axis)
         if view is not None:
             self.proposal_views = {**self.proposal_views, event.stage: (event.kind, view)}
 

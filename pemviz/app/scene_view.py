@@ -1,7 +1,9 @@
 """The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars on the road, played step by step
-in sync with *Explain*: a ruler with the gap in metres between them, the detections so far as a trail on the road
-(green detected, orange missed), a red gate where the 2 m line was crossed, and labels in columns beside the road,
-clear of the cars. The camera frames both cars inside the canvas the browser shows between the panels."""
+in sync with *Explain*, as its drawing object gives them (:mod:`pemviz.app.drawing`). A lane scene: the ego and the
+object ahead, the zones ahead of the ego's sensor, a ruler with the distance in metres from the sensor to the object,
+the detections so far as a trail on the road (green detected, orange missed), a red gate where the failure margin was
+breached, and labels in columns beside the road, clear of the cars; the camera frames both cars inside the canvas the
+browser shows between the panels. A scene of several objects: every car seen from the ego on a road of lanes."""
 
 from __future__ import annotations
 
@@ -15,10 +17,10 @@ import viser
 from pemviz.app import objects_view as OV
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.html import BLUE, GREY, RED, box
-from pemviz.app.runs import PanelRun, Trajectory, scene_positions
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.app.drawing import LanePanel, LaneScene, ObjectsScene, lane_panel, panel_scene
+from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.sinks import colours as C
-from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, LEAD, MISSED
+from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, MISSED, OBJECT
 
 CAR_HEIGHT_M = 1.5
 VIEW_DIRECTION = np.array([-1.0, -0.3, 1.2]) / np.linalg.norm([-1.0, -0.3, 1.2])
@@ -33,18 +35,20 @@ MIN_DISTANCE_M = 10.0
 TRAIL_POINT_M = 0.35
 """The side of a detection's square in the trail (metres)."""
 ROW_Y_M = {"ruler": -1.6, "right": -2.6, "left": 2.6}
-"""Lateral places (metres; negative: right of the road on screen, positive: left) of the gap ruler and of the two
+"""Lateral places (metres; negative: right of the road on screen, positive: left) of the ruler and of the two
 columns of labels beside the road, so that no label covers a car or another label: right, text to the right, the ego's
-(at the ego), the gap's (at most 6.2 m ahead of the ego's camera) and the zones' (10 m ahead); left, text to the left,
-the breach's alone."""
+(at the ego), the ruler's (e.g. at most 6.2 m ahead of the ego's camera) and the zones' (e.g. 10 m ahead); left, text
+to the left, the breach's alone."""
 FRAMED_Y_M, FRAMED_Z_M = (-8.0, 6.0), (0.0, 3.0)
 """The lateral and vertical extent the camera keeps in view (metres): the road, the cars, the columns of labels."""
 LABEL_SCALE = 0.85
 """The labels' font, relative to viser's."""
-OBJECT_LANE_M = 4.0
-"""A lane's width in the scene of several objects (metres)."""
-CUT_IN_CAR_M = (4.5, 1.8)
-"""Length and width of a car in the scene of several objects (metres)."""
+ZONE_COLOURS = {"window": BRAKE_ZONE, "margin": CRASH}
+"""The colour of a zone of each :attr:`pemviz.app.drawing.Zone.role`."""
+ZONE_COLOUR_NAMES = {"window": "yellow", "margin": "red"}
+"""The colours' names in the zones' label."""
+DEFAULT_OBJECTS = ObjectsScene(4.5, 1.8, 4.0, 3, "", 0)
+"""The scene of several objects of a problem whose drawing gives none: cars 4.5 m by 1.8 m on three 4 m lanes."""
 OBJECTS_FRAME_M = (-10.0, 60.0)
 """The stretch of road the camera frames in the scene of several objects, from behind the ego to ahead (metres)."""
 
@@ -96,20 +100,32 @@ class SceneView:
 
     Args:
         client: the viser client the scene draws into.
-        params: the braking scenario's constants (the idle scene, car sizes, dt).
+        drawing: the idle scene's drawing object (a :class:`pemviz.app.drawing.LanePanel`: the road, the car sizes,
+            the zones, drawn before any rollout is chosen).
         lock: the session's lock (GUI callbacks run in a thread pool, the run in a worker thread).
         explain: the *Explain* tab that follows the rollout shown.
+
+    Raises:
+        ValueError: ``drawing`` draws no lane scene.
     """
 
-    def __init__(self, client: viser.ClientHandle, params: BrakingParams, lock: threading.RLock,
+    def __init__(self, client: viser.ClientHandle, drawing: LanePanel, lock: threading.RLock,
                  explain: ExplainTab) -> None:  # fmt: skip
-        self.client, self.params, self.lock, self.explain = client, params, lock, explain
+        lane = panel_scene(drawing)
+        if not isinstance(lane, LaneScene):
+            raise ValueError(f"the idle scene's drawing {type(drawing).__name__} draws no lane scene")
+        self.client, self.drawing, self.lock, self.explain = client, drawing, lock, explain
+        self.lane: LaneScene = lane
+        """The idle scene's constants: the road's cars, zones and labels (their sizes stay for every rollout)."""
+        self.shown_drawing: LanePanel | None = None
+        """The drawing of the rollout shown in a lane scene (None: none, or one of several objects)."""
         self.shown: Trajectory | None = None
         """The rollout shown (None: the idle scene)."""
         self.shown_record: PanelRun | None = None
         """The run of :attr:`shown`."""
         self.shown_step = -1
-        self._shown_x: tuple[np.ndarray, np.ndarray] | None = None
+        self._shown_x: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        """The rollout shown in a lane scene: the ego's and the object's centres and the ruler's length, [T] each."""
         self._shown_span = 0.0
         """Metres of road the scene frames for the rollout shown (its cars' longest stretch)."""
         self.playing = False
@@ -117,7 +133,7 @@ class SceneView:
     def build_controls(self) -> None:
         """Add the playback controls to the tab open in ``client.gui`` (the *Rollouts* tab, below its list)."""
         gui = self.client.gui
-        self.step_slider = gui.add_slider("step", min=0, max=self.params.n_steps - 1, step=1, initial_value=0)
+        self.step_slider = gui.add_slider("step", min=0, max=self.lane.n_steps - 1, step=1, initial_value=0)
         self.play_button = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
         self.follow = gui.add_checkbox("follow cars", True, hint="move the camera along with the cars")
         self.scene_html = gui.add_html("")
@@ -128,9 +144,10 @@ class SceneView:
         """Show ``traj`` of ``record`` (a rollout chosen under *Rollouts*), paused at its start; a rollout of several
         objects at its first decisive step; nothing for a problem without a scene (a toy)."""
         with self.lock:
-            scene = record.view.scene if record is not None and record.view is not None else None
-            if scene is None:
-                if traj.batch is not None and record.view.objects_xy is not None:  # a scene of several objects
+            drawing = record.view.drawing if record is not None and record.view is not None else None
+            lane = lane_panel(drawing)
+            if lane is None:
+                if traj.several and record.view.objects_xy is not None:  # a scene of several objects
                     self._show_objects(record, traj)
                 elif record is not None:  # a problem that draws no scene (a toy, a scenario of one's own)
                     self._scene_kind(None)
@@ -138,14 +155,15 @@ class SceneView:
                         f"the {record.view.name} scenario draws no scene: its rollouts are under Rollouts and "
                         "Live"), GREY)  # fmt: skip
                 return
-            self.explain.explain_braking(traj, scene)
+            self.explain.explain_lane(traj, lane)
             self._scene_kind(0)
             self.shown = traj
             self.shown_record = record
-            self._shown_x = scene_positions(traj, scene)
+            self.shown_drawing = lane
+            self._shown_x = lane.lane_positions(traj.batch, 0)
             self.step_slider.max = traj.n_steps - 1
             self._set_playing(False)
-            self.explain.fill(record, traj)
+            self.explain.fill(record, traj, lane)
             self._place_rollout()
             self.shown_step = -1
             if self.step_slider.value != 0:
@@ -156,11 +174,12 @@ class SceneView:
     def _show_objects(self, record: PanelRun, traj: Trajectory) -> None:
         """Show a rollout of a scene of several objects, paused at its first decisive step (else step 0)."""
         ox = self.explain.explain_objects(record, traj)
-        self.shown, self.shown_record, self._shown_x = traj, record, None
+        self.shown, self.shown_record, self._shown_x, self.shown_drawing = traj, record, None, None
         self.step_slider.max = traj.n_steps - 1
         self._set_playing(False)
         self.shown_step = -1
-        self._scene_kind(ox.detected.shape[1])
+        scene = panel_scene(record.view.drawing)
+        self._scene_kind(ox.detected.shape[1], scene if isinstance(scene, ObjectsScene) else DEFAULT_OBJECTS)
         self._frame_objects()
         self.scene_html.content = box(
             f"Scene: {html.escape(record.short_label)} {traj.key}, every car seen from the ego (blue-grey): green "
@@ -198,9 +217,10 @@ class SceneView:
             self.step_slider.value = step
 
     def build_scene(self) -> None:
-        """Add the road, the cars, the zones, the gap ruler, the trail and the breach gate to ``client.scene``."""
+        """Add the road, the cars, the zones, the ruler, the trail and the breach gate of the idle lane scene to
+        ``client.scene``."""
         scene = self.client.scene
-        p = self.params
+        p = self.lane
         scene.set_up_direction("+z")
         road_len, x0, lane = 240.0, -60.0, 4.0
         road = scene.add_box(
@@ -213,46 +233,48 @@ class SceneView:
         road_edges = scene.add_line_segments("/road_edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
         ticks = np.array([[[x, lane / 2, 0.01], [x, lane / 2 + 0.6, 0.01]] for x in range(0, 150, 10)], np.float32)
         road_ticks = scene.add_line_segments("/road_ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
-        size = (p.ego_length_m, p.vehicle_width_m, CAR_HEIGHT_M)
-        lead0 = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
+        size = (p.ego_length_m, p.width_m, CAR_HEIGHT_M)
+        object0 = p.object_start_x
         self.ego_box = scene.add_box("/ego", color=IDLE, dimensions=size, position=(0.0, 0, CAR_HEIGHT_M / 2))
-        self.lead_box = scene.add_box(
-            "/lead", color=LEAD, dimensions=(p.lead_length_m, p.vehicle_width_m, CAR_HEIGHT_M),
-            position=(lead0, 0.0, CAR_HEIGHT_M / 2),
+        self.object_box = scene.add_box(
+            f"/{p.object_name}", color=OBJECT, dimensions=(p.object_length_m, p.width_m, CAR_HEIGHT_M),
+            position=(object0, 0.0, CAR_HEIGHT_M / 2),
         )  # fmt: skip
-        scene.add_label("/lead/label", "lead", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2), anchor="bottom-center",
-                        font_screen_scale=LABEL_SCALE)  # fmt: skip
-        # zones ahead of the ego's camera, moving with it; one label for both, in the right column at 10 m
+        scene.add_label(f"/{p.object_name}/label", p.object_name, position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2),
+                        anchor="bottom-center", font_screen_scale=LABEL_SCALE)  # fmt: skip
+        # zones ahead of the ego's sensor, moving with it; one label for all, in the right column at the middle of the
+        # first
         zones = []
-        for name, length, rgb in (("brake_zone_10m", p.braking_distance_m, BRAKE_ZONE),
-                                  ("crash_zone_2m", p.crash_gap_m, CRASH)):  # fmt: skip
+        for zone in p.zones:
             zones.append(scene.add_box(
-                f"/ego/{name}", color=rgb, dimensions=(length, p.vehicle_width_m + 0.6, 0.02), opacity=0.35,
-                position=(p.camera_offset_m + length / 2, 0.0, -CAR_HEIGHT_M / 2 + 0.02), cast_shadow=False,
-                receive_shadow=False,
+                f"/ego/{zone.name}", color=ZONE_COLOURS[zone.role], dimensions=(zone.length_m, p.width_m + 0.6, 0.02),
+                opacity=0.35, position=(p.sensor_offset_m + zone.length_m / 2, 0.0, -CAR_HEIGHT_M / 2 + 0.02),
+                cast_shadow=False, receive_shadow=False,
             ))  # fmt: skip
-        zones.append(scene.add_label(
-            "/ego/brake_zone_10m/label", f"yellow: brakes if the lead is\ndetected within {p.braking_distance_m:g} m;"
-            f"\nred: the {p.crash_gap_m:g} m crash margin", position=(p.braking_distance_m / 2, ROW_Y_M["right"], 0.0),
-            anchor="center-left", font_screen_scale=LABEL_SCALE,
-        ))  # fmt: skip
-        # the gap ruler: on the road beside the cars, from the ego's camera to the lead's rear, ticks at both ends
+        if p.zones:
+            legend = ";\n".join(f"{ZONE_COLOUR_NAMES[zone.role]}: {zone.legend}" for zone in p.zones)
+            zones.append(scene.add_label(
+                f"/ego/{p.zones[0].name}/label", legend, position=(p.zones[0].length_m / 2, ROW_Y_M["right"], 0.0),
+                anchor="center-left", font_screen_scale=LABEL_SCALE,
+            ))  # fmt: skip
+        # the ruler: on the road beside the cars, from the ego's sensor to the object's rear, ticks at both ends
         self.gap_ruler = scene.add_line_segments(
-            "/gap_ruler", self._ruler(p.camera_offset_m, lead0 - p.lead_length_m / 2), colors=C.ROAD_MARKING,
+            "/gap_ruler", self._ruler(p.sensor_offset_m, object0 - p.object_length_m / 2), colors=C.ROAD_MARKING,
             thickness=0.08,
         )  # fmt: skip
         self.gap_label = scene.add_label(
-            "/gap_ruler/label", f"gap {p.gap0_m:.2f} m", anchor="center-left", font_screen_scale=LABEL_SCALE,
-            position=((p.camera_offset_m + lead0 - p.lead_length_m / 2) / 2, ROW_Y_M["right"], 0.0),
+            "/gap_ruler/label", f"{p.ruler_label} {p.start_distance_m:.2f} m", anchor="center-left",
+            font_screen_scale=LABEL_SCALE,
+            position=((p.sensor_offset_m + object0 - p.object_length_m / 2) / 2, ROW_Y_M["right"], 0.0),
         )  # fmt: skip
         # past detections, on the road where the ego's rear was at each step; the breach: a red gate at the place
-        # where the ego's camera crossed the 2 m line
+        # where the ego's sensor breached the failure margin
         self.trail = scene.add_point_cloud(
             "/trail", np.zeros((1, 3), np.float32), colors=IDLE, point_size=TRAIL_POINT_M, point_shape="square",
             precision="float32", point_shading="flat", visible=False,
         )  # fmt: skip
         self.breach_gate = scene.add_box(
-            "/breach", color=CRASH, dimensions=(0.12, p.vehicle_width_m + 1.0, CAR_HEIGHT_M + 0.7), opacity=0.7,
+            "/breach", color=CRASH, dimensions=(0.12, p.width_m + 1.0, CAR_HEIGHT_M + 0.7), opacity=0.7,
             position=(0.0, 0.0, (CAR_HEIGHT_M + 0.7) / 2), cast_shadow=False, receive_shadow=False, visible=False,
         )  # fmt: skip
         self.breach_label = scene.add_label(
@@ -263,25 +285,27 @@ class SceneView:
             "/ego/label", "ego: no rollout chosen", position=(0.0, ROW_Y_M["right"], -CAR_HEIGHT_M / 2),
             anchor="center-left", font_screen_scale=LABEL_SCALE,
         )  # fmt: skip
-        self._braking_nodes = [road, road_edges, road_ticks, self.lead_box, *zones, self.gap_ruler]
-        """What only the braking scenario's scene shows (hidden while a scene of several objects is shown)."""
+        self._lane_nodes = [road, road_edges, road_ticks, self.object_box, *zones, self.gap_ruler]
+        """What only the lane scene shows (hidden while a scene of several objects is shown)."""
         self._object_nodes: list = []
         """A scene of several objects: its road, its lane lines, then a box and a label per object, made when first
         shown."""
-        self._frame(0.0, lead0, self._span(np.zeros(1), np.full(1, lead0)))
+        self._frame(0.0, object0, self._span(np.zeros(1), np.full(1, object0)))
 
-    def _scene_kind(self, objects: int | None) -> None:
-        """Show the braking scenario's scene (``objects`` 0), one of ``objects`` cars on a road of three lanes, or no
-        scene (None: a problem that draws none)."""
+    def _scene_kind(self, objects: int | None, layout: ObjectsScene = DEFAULT_OBJECTS) -> None:
+        """Show the lane scene (``objects`` 0), one of ``objects`` cars on a road of ``layout``'s lanes, or no scene
+        (None: a problem that draws none)."""
         scene = self.client.scene
         if objects and len(self._object_nodes) < 2 + 2 * objects:
-            lanes = 3 * OBJECT_LANE_M
+            lane_m = layout.lane_width_m
+            lanes = layout.n_lanes * lane_m
             for node in self._object_nodes:
                 node.remove()
             self._object_nodes = [scene.add_box(
                 "/objects/road", color=C.ROAD, dimensions=(240.0, lanes + 1.0, 0.05), position=(60.0, 0.0, -0.03),
                 cast_shadow=False, visible=False)]  # fmt: skip
-            dashes = np.array([[[x, y, 0.01], [x + 3.0, y, 0.01]] for y in (-OBJECT_LANE_M / 2, OBJECT_LANE_M / 2)
+            lines_y = [(k - layout.n_lanes / 2) * lane_m for k in range(1, layout.n_lanes)]  # between the lanes
+            dashes = np.array([[[x, y, 0.01], [x + 3.0, y, 0.01]] for y in lines_y
                                for x in np.arange(-60.0, 180.0, 9.0)], np.float32)  # fmt: skip
             edges = np.array([[[-60.0, y, 0.01], [180.0, y, 0.01]] for y in (-lanes / 2, lanes / 2)], np.float32)
             self._object_nodes.append(scene.add_line_segments(
@@ -289,13 +313,13 @@ class SceneView:
                 visible=False))  # fmt: skip
             for j in range(objects):
                 self._object_nodes.append(scene.add_box(
-                    f"/objects/car{j}", color=IDLE, dimensions=(CUT_IN_CAR_M[0], CUT_IN_CAR_M[1], CAR_HEIGHT_M),
+                    f"/objects/car{j}", color=IDLE, dimensions=(layout.car_length_m, layout.car_width_m, CAR_HEIGHT_M),
                     position=(0.0, 0.0, CAR_HEIGHT_M / 2), visible=False))  # fmt: skip
                 self._object_nodes.append(scene.add_label(
                     f"/objects/car{j}/label", f"car {j}", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2),
                     anchor="bottom-center", font_screen_scale=LABEL_SCALE, visible=False))  # fmt: skip
         with self.client.atomic():
-            for node in self._braking_nodes:
+            for node in self._lane_nodes:
                 node.visible = objects == 0
             for node in self._object_nodes:
                 node.visible = bool(objects)
@@ -313,7 +337,7 @@ class SceneView:
         decisive = {obj for obj, _ in ox.decisive_at(t)}
         with self.client.atomic():
             self.ego_box.position = (0.0, 0.0, CAR_HEIGHT_M / 2)
-            self.ego_box.color = C.LEAD
+            self.ego_box.color = OBJECT
             for j in range(ox.detected.shape[1]):
                 box_, text = self._object_nodes[2 + 2 * j], self._object_nodes[3 + 2 * j]
                 ahead, lateral = float(ox.ahead_m[t, j]), float(ox.lateral_m[t, j])
@@ -333,22 +357,23 @@ class SceneView:
     def _frame_objects(self) -> None:
         """Point the camera at :data:`OBJECTS_FRAME_M` of the road of several objects."""
         lo, hi = OBJECTS_FRAME_M
-        self._frame(lo + self.params.ego_length_m / 2, hi - self.params.lead_length_m / 2, hi - lo)
+        self._frame(lo + self.lane.ego_length_m / 2, hi - self.lane.object_length_m / 2, hi - lo)
 
     def _ruler(self, x_from: float, x_to: float) -> np.ndarray:
-        """The gap ruler's segments [3, 2, 3]: the line and a tick at each end (metres)."""
+        """The ruler's segments [3, 2, 3]: the line and a tick at each end (metres)."""
         y, z, tick = ROW_Y_M["ruler"], 0.03, 0.35
         return np.array(
             [[[x_from, y, z], [x_to, y, z]], [[x_from, y - tick, z], [x_from, y + tick, z]],
              [[x_to, y - tick, z], [x_to, y + tick, z]]], np.float32,
         )  # fmt: skip
 
-    def _span(self, ego_x: np.ndarray, lead_x: np.ndarray) -> float:
-        """The longest stretch of road the scene must show at once (metres): from the ego's rear to the lead's front."""
-        p = self.params
-        return float(np.max(lead_x + p.lead_length_m / 2 - (ego_x - p.ego_length_m / 2)))
+    def _span(self, ego_x: np.ndarray, object_x: np.ndarray) -> float:
+        """The longest stretch of road the scene must show at once (metres): from the ego's rear to the object's
+        front."""
+        p = self.lane
+        return float(np.max(object_x + p.object_length_m / 2 - (ego_x - p.ego_length_m / 2)))
 
-    def _frame(self, ego_x: float, lead_x: float, span_m: float) -> None:
+    def _frame(self, ego_x: float, object_x: float, span_m: float) -> None:
         """Point the camera at the two cars, far enough back that ``span_m`` metres of road fit the visible canvas
         (its width and field of view as the browser reports them)."""
         camera = self.client.camera
@@ -358,8 +383,8 @@ class SceneView:
             aspect, fov = DEFAULT_ASPECT, DEFAULT_FOV
         if not (math.isfinite(aspect) and aspect > 0 and 0 < fov < math.pi):
             aspect, fov = DEFAULT_ASPECT, DEFAULT_FOV
-        p = self.params
-        middle = (ego_x - p.ego_length_m / 2 + lead_x + p.lead_length_m / 2) / 2
+        p = self.lane
+        middle = (ego_x - p.ego_length_m / 2 + object_x + p.object_length_m / 2) / 2
         position, look_at = camera_pose(middle, framing_distance(span_m, aspect, fov))
         try:
             with self.client.atomic():
@@ -370,41 +395,42 @@ class SceneView:
 
     def _place_rollout(self) -> None:
         """Put the chosen rollout's fixed marks in the scene: the breach gate (a failing rollout) and the framing."""
-        traj, xs, ex = self.shown, self._shown_x, self.explain.explanation
-        if traj is None or xs is None or ex is None:
+        traj, xs, ex, drawing = self.shown, self._shown_x, self.explain.explanation, self.shown_drawing
+        if traj is None or xs is None or ex is None or drawing is None:
             return
-        p = self.params
+        p = self.lane
         sev = ex.severity
-        self._shown_span = self._span(*xs)
+        self._shown_span = self._span(xs[0], xs[1])
         with self.client.atomic():
             if sev.breach_step is not None:
                 b = sev.breach_step
-                self.breach_gate.position = (float(xs[0][b]) + p.camera_offset_m, 0.0, (CAR_HEIGHT_M + 0.7) / 2)
-                self.breach_label.text = f"{p.crash_gap_m:g} m line crossed\nat {b * p.dt_s:.2f} s"
+                self.breach_gate.position = (float(xs[0][b]) + p.sensor_offset_m, 0.0, (CAR_HEIGHT_M + 0.7) / 2)
+                self.breach_label.text = f"{drawing.panel_scene().breach_label}\nat {b * drawing.dt_s:.2f} s"
             self.breach_gate.visible = sev.breach_step is not None
             self.breach_label.visible = sev.breach_step is not None
 
     def clear(self, why: str) -> None:
         """Back to the idle scene (no rollout shown): the cars at the start, the ego grey; ``why`` says so under the
         scene and in *Explain*."""
-        p = self.params
-        self.shown, self.shown_record, self._shown_x = None, None, None
+        p = self.lane
+        self.shown, self.shown_record, self._shown_x, self.shown_drawing = None, None, None, None
         self._scene_kind(0)
         self._set_playing(False)
         self.shown_step = -1
-        lead0 = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2
+        object0 = p.object_start_x
         with self.client.atomic():
             self.ego_box.position = (0.0, 0.0, CAR_HEIGHT_M / 2)
             self.ego_box.color = IDLE
-            self.lead_box.position = (lead0, 0.0, CAR_HEIGHT_M / 2)
-            self.gap_ruler.points = self._ruler(p.camera_offset_m, lead0 - p.lead_length_m / 2)
-            self.gap_label.text = f"gap {p.gap0_m:.2f} m"
-            self.gap_label.position = ((p.camera_offset_m + lead0 - p.lead_length_m / 2) / 2, ROW_Y_M["right"], 0.0)
+            self.object_box.position = (object0, 0.0, CAR_HEIGHT_M / 2)
+            self.gap_ruler.points = self._ruler(p.sensor_offset_m, object0 - p.object_length_m / 2)
+            self.gap_label.text = f"{p.ruler_label} {p.start_distance_m:.2f} m"
+            self.gap_label.position = ((p.sensor_offset_m + object0 - p.object_length_m / 2) / 2, ROW_Y_M["right"],
+                                       0.0)  # fmt: skip
             self.trail.visible = self.breach_gate.visible = self.breach_label.visible = False
             self.scene_label.text = "ego: no rollout chosen"
             self.scene_html.content = box(html.escape(why), GREY)
             self.explain.clear(why)
-        self._frame(0.0, lead0, self._span(np.zeros(1), np.full(1, lead0)))
+        self._frame(0.0, object0, self._span(np.zeros(1), np.full(1, object0)))
 
     def render_step(self, step: int) -> None:
         """Draw ``step`` of the rollout shown, in the scene and in *Explain*."""
@@ -421,44 +447,44 @@ class SceneView:
             return
         with self.lock:
             traj, xs, ex, record = self.shown, self._shown_x, self.explain.explanation, self.shown_record
-            if traj is None or xs is None or ex is None or record is None:
+            drawing = self.shown_drawing
+            if traj is None or xs is None or ex is None or record is None or drawing is None:
                 return
             t = int(np.clip(step, 0, traj.n_steps - 1))
             self.shown_step = t
-            p = self.params
-            ego_x, lead_x = float(xs[0][t]), float(xs[1][t])
+            p, dt = self.lane, drawing.dt_s
+            ego_x, object_x = float(xs[0][t]), float(xs[1][t])
             detected = bool(traj.detected[t])
             colour = DETECTED if detected else MISSED
-            gap = float(traj.gap_m[t])
+            distance = float(xs[2][t])
+            ruler_label = drawing.panel_scene().ruler_label
             decisive = t in set(ex.decisive.tolist())
             seen = "detected" if detected else ("missed (decisive)" if decisive else "missed")
-            cam_x, rear_x = ego_x + p.camera_offset_m, lead_x - p.lead_length_m / 2
+            cam_x, rear_x = ego_x + p.sensor_offset_m, object_x - p.object_length_m / 2
             past = np.asarray(xs[0][: t + 1]) - p.ego_length_m / 2 - TRAIL_POINT_M
             trail = np.stack([past, np.zeros_like(past), np.full_like(past, 0.03)], axis=1).astype(np.float32)
             trail_colours = np.where(traj.detected[: t + 1, None], DETECTED, MISSED).astype(np.uint8)
             with self.client.atomic():
                 self.ego_box.position = (ego_x, 0.0, CAR_HEIGHT_M / 2)
                 self.ego_box.color = colour
-                self.lead_box.position = (lead_x, 0.0, CAR_HEIGHT_M / 2)
+                self.object_box.position = (object_x, 0.0, CAR_HEIGHT_M / 2)
                 self.gap_ruler.points = self._ruler(cam_x, rear_x)
-                self.gap_label.text = f"gap {gap:.2f} m"
+                self.gap_label.text = f"{ruler_label} {distance:.2f} m"
                 self.gap_label.position = ((cam_x + rear_x) / 2, ROW_Y_M["right"], 0.0)
                 self.trail.points = trail
                 self.trail.colors = trail_colours
                 self.trail.visible = True
-                self.scene_label.text = f"{record.short_label} {traj.key} t={t * p.dt_s:.2f}s\n{seen}"
+                self.scene_label.text = f"{record.short_label} {traj.key} t={t * dt:.2f}s\n{seen}"
                 self.explain.move_marker(t)
             if self.follow.value:
-                self._frame(ego_x, lead_x, self._shown_span)
+                self._frame(ego_x, object_x, self._shown_span)
             mark = {"detected": "detected", "missed": f"<b style='color:rgb{MISSED}'>missed</b>",
                     "missed (decisive)": f"<b style='color:{RED}'>missed (decisive)</b>"}[seen]  # fmt: skip
             crash = f" · <b style='color:{RED}'>{html.escape(ex.severity.short)}</b>" if traj.crashed else ""
-            c = ex.controller
-            brake = "applied" if c.brake_applied[t] else ("commanded" if c.brake_command[t] else "off")
+            before, after = drawing.step_caption(traj.batch, 0, ex, t)
             self.scene_html.content = box(
                 f"Scene: <b>{html.escape(record.short_label)} {traj.key}</b> (stage {traj.stage}, rollout "
-                f"{traj.index}{crash}) · step {t} (t = {t * p.dt_s:.2f} s) · gap {gap:.2f} m · ego "
-                f"{traj.ego_speed_mps[t]:.2f} m/s · lead {traj.lead_speed_mps[t]:.2f} m/s · detector: {mark} · "
-                f"brake {brake} · acceleration {c.accel_mps2[t]:+.2f} m/s^2",
+                f"{traj.index}{crash}) · step {t} (t = {t * dt:.2f} s) · {html.escape(before)} · detector: "
+                f"{mark} · {html.escape(after)}",
                 RED if traj.crashed else BLUE,
             )

@@ -27,7 +27,7 @@ from pathlib import Path
 import viser
 
 from pemviz.app.experiment_tab import ExperimentTab
-from pemviz.app.explain import Explanation
+from pemviz.app.drawing import LaneExplanation
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.host import PanelHost
 from pemviz.app.objects_view import ObjectsExplanation
@@ -62,12 +62,13 @@ class Session:
     def __init__(self, app: PanelHost, client: viser.ClientHandle) -> None:
         self.app = app
         self.client = client
-        self.params = app.params
+        self.drawing = app.drawing
+        """The idle scene's drawing object (:attr:`pemviz.app.panel.PanelApp.drawing`)."""
         self.lock = threading.RLock()
         """One lock for every part: GUI callbacks run in a thread pool, the run in a worker thread."""
         self.explain = ExplainTab(client)
-        self.scene = SceneView(client, self.params, self.lock, self.explain)
-        self.rollouts_tab = RolloutsTab(client, self.params, self.lock, self.scene)
+        self.scene = SceneView(client, self.drawing, self.lock, self.explain)
+        self.rollouts_tab = RolloutsTab(client, self.lock, self.scene)
         self.plots_panel = PlotsPanel(client, self.explain)
         self.runs_tab = RunsTab(client, app, self.lock, self.rollouts_tab, self.plots_panel)
         self.form = ExperimentTab(client, app)
@@ -88,9 +89,9 @@ class Session:
         gui.configure_theme(control_width="large", show_share_button=False, brand_color=C.BLUE)
         gui.set_panel_label("pemviz")
         gui.add_markdown(
-            "**pemviz**: the failure probability of a PEM-driven scenario (braking, or a cut-in among several cars) by "
-            "adaptive importance sampling (Innes & Ramamoorthy 2022). Set the experiment, press **Run**; this tab has "
-            "its own runs."
+            "**pemviz**: the failure probability of a PEM-driven scenario (one car ahead of the ego, or several around "
+            "it) by adaptive importance sampling (Innes & Ramamoorthy 2022). Set the experiment, press **Run**; this "
+            "tab has its own runs."
         )
         self.control.build()
         tabs = gui.add_tab_group()
@@ -160,7 +161,7 @@ class Session:
         return self.scene.shown_step
 
     @property
-    def explanation(self) -> Explanation | None:
+    def explanation(self) -> LaneExplanation | None:
         return self.explain.explanation
 
     @property
