@@ -64,6 +64,7 @@ def test_the_braking_drawing_gives_a_lane_scene_of_its_constants():
         == (p.ego_length_m, p.lead_length_m, p.vehicle_width_m, p.camera_offset_m, p.gap0_m)
     assert [(z.role, z.length_m) for z in scene.zones] == [("window", p.braking_distance_m), ("margin", p.crash_gap_m)]
     assert scene.n_steps == d.n_steps == p.n_steps and scene.object_start_x == p.camera_offset_m + p.gap0_m + 2.48
+    assert scene.strip_title == "gap and speeds" and d.curve_axis().label == "gap d (m)"
     # a rollout's hooks: positions, the strip chart's lines, the explanation, the caption, the outcome
     t = p.n_steps
     obs = np.zeros((1, t, len(OBSERVATION_NAMES)))
@@ -91,6 +92,7 @@ def test_the_cut_in_drawing_gives_a_scene_of_several_objects():
     assert isinstance(scene, ObjectsScene) and scene.lane_width_m == LANE_WIDTH_M and scene.n_lanes == 3
     axis = d.proposal_axis()
     assert axis.view_object == 0 and axis.standing_signal is None and axis.edges[-1] == 40.0
+    assert d.curve_axis().y_label == "p(detect | r)" and d.group_heading() == ("group", "")
 
 
 def test_the_idle_scene_is_the_configured_scenarios_else_the_first_that_draws_one_lane():

@@ -13,13 +13,13 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import numpy as np
 
 from pemviz.core.drawing import Drawing
-from pemviz.scenarios.panel_data import LaneScene, ObjectsScene, Series, ViewAxis, Zone
+from pemviz.scenarios.panel_data import CurveAxis, LaneScene, ObjectsScene, Series, ViewAxis, Zone
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
 
-__all__ = ["LaneExplanation", "LanePanel", "LaneScene", "ObjectsPanel", "ObjectsScene", "PanelDrawing", "Series",
-           "ViewAxis", "Zone", "lane_panel", "objects_panel", "panel_scene"]  # fmt: skip
+__all__ = ["CurveAxis", "LaneExplanation", "LanePanel", "LaneScene", "ObjectsPanel", "ObjectsScene", "PanelDrawing",
+           "Series", "ViewAxis", "Zone", "lane_panel", "objects_panel", "panel_scene"]
 
 
 class LaneExplanation(Protocol):
@@ -80,6 +80,10 @@ class PanelDrawing(Drawing, Protocol):
 
     def proposal_axis(self) -> ViewAxis:
         """The x axis and bins of the run's proposal view (*Live*)."""
+        ...
+
+    def curve_axis(self) -> CurveAxis:
+        """The x axis of the proposals' reference-state curves (*Compare*)."""
         ...
 
     def group_heading(self) -> tuple[str, str]:

@@ -26,10 +26,12 @@ class ExplainTab:
 
     Args:
         client: the viser client the tab draws into.
+        strip_title: the first strip chart's title before a rollout is shown (the idle scene's
+            :attr:`pemviz.app.drawing.LaneScene.strip_title`).
     """
 
-    def __init__(self, client: viser.ClientHandle) -> None:
-        self.client = client
+    def __init__(self, client: viser.ClientHandle, strip_title: str = "distance and speeds") -> None:
+        self.client, self.strip_title = client, strip_title
         self.explanation: LaneExplanation | None = None
         """The shown rollout's explanation in a lane scene (None: none shown, or one of several objects)."""
         self.objects_ex: ObjectsExplanation | None = None
@@ -39,7 +41,7 @@ class ExplainTab:
         """Add the tab's HTML and charts to the tab open in ``client.gui``."""
         gui = self.client.gui
         self.explain_html = gui.add_html(box("Choose a rollout in the Rollouts tab to explain it.", GREY))
-        self.strip = plots.strip_plots(gui)
+        self.strip = plots.strip_plots(gui, self.strip_title)
         self.strip["controller"] = charts.controller_plot(gui, order=self.strip["gap"].order + 0.5)
         # a rollout of several objects: car 0's gap and lateral offset, truth and tracker, and the controller (hidden
         # until one with a story is shown), then the decisive errors, every car's events and the scene from above
@@ -88,7 +90,7 @@ class ExplainTab:
             return
         title = f"{record.short_label} {traj.key}"
         plots.fill_strip_plots(self.strip, drawing.strip_series(traj.batch, 0), traj.detected, ex, 0, title,
-                               record.view.thresholds)  # fmt: skip
+                               record.view.thresholds, drawing.panel_scene().strip_title)  # fmt: skip
         charts.fill_controller_plot(self.strip["controller"], ex, 0, title)
         self.explain_html.content = explanation_html(record, traj, ex, title, drawing.dt_s)
 

@@ -17,7 +17,7 @@ import numpy as np
 import viser
 import viser.uplot as up
 
-from pemviz.app.drawing import LaneExplanation, Series
+from pemviz.app.drawing import CurveAxis, LaneExplanation, Series
 from pemviz.app.runs import PanelRun
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import (
@@ -244,26 +244,24 @@ def curve_plot(gui: viser.GuiApi, title: str, height: int = 230, visible: bool =
     )
 
 
-CURVE_AXES = {
-    "gap": "gap d (m)",
-    "objects": "range r (m) of car 0, straight ahead in the ego's lane",
-}
-"""The x axis of a proposal's reference-state curve (metres): the gap to the object ahead, or, in a scene of several
-objects, the range from the camera to car 0 placed straight ahead in the ego's lane, unoccluded (the problem's
-``curve_rows``)."""
+DEFAULT_CURVE_AXIS = CurveAxis("gap (m)", "gap d (m)", "p(detect | d)")
+"""The x axis of a proposal's reference-state curve where the problem's drawing gives none
+(:meth:`pemviz.app.drawing.PanelDrawing.curve_axis`): the distance to the object ahead (metres)."""
 
 
 def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) -> None:
     """The PEM and the proposal after each stage (blue early, orange late) of ``record``, over the run's curve grid
-    (metres, e.g. 0-13 m of gap in the braking scenario, 0-50 m of range in the cut-in: :data:`CURVE_AXES`)."""
+    (metres, e.g. 0-13 m of gap in the braking scenario, 0-50 m of range in the cut-in), its axis the drawing's
+    (:meth:`pemviz.app.drawing.PanelDrawing.curve_axis`, else :data:`DEFAULT_CURVE_AXIS`)."""
     with record.lock:
         grid, pem = record.curve_grid_m, record.pem_curve
         stages = [s for s in record.stages if not np.all(np.isnan(s.proposal_curve)) and s.kind != "final"]
     if grid.size == 0:
         return
-    objects = record.view is not None and record.view.scene is None and record.view.objects_xy is not None
+    hook = getattr(record.view.drawing if record.view is not None else None, "curve_axis", None)
+    axis = hook() if callable(hook) else DEFAULT_CURVE_AXIS
     n_colour = C.stage_span(record.plan)  # blue (stage 0) to orange (the last stage)
-    series = [up.Series(label="range (m)" if objects else "gap (m)"),
+    series = [up.Series(label=axis.series_label),
               up.Series(label="PEM", stroke=hex_colour(C.BLACK), width=2)]  # fmt: skip
     data = [grid, pem]
     for s in stages:  # the final batch samples from the last stage's proposal: the same curve
@@ -275,7 +273,7 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) ->
     plot.data = tuple(data)
     plot.scales = {"x": up.Scale(time=False, auto=False, range=(float(np.min(grid)), float(np.max(grid)))),
                    "y": up.Scale(auto=False, range=(0.0, 1.04))}  # fmt: skip
-    plot.axes = axes(CURVE_AXES["objects" if objects else "gap"], "p(detect | d)" if not objects else "p(detect | r)")
+    plot.axes = axes(axis.label, axis.y_label)
 
 
 def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHandle:
@@ -347,15 +345,16 @@ def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) 
 # -- the strip chart of one rollout ---------------------------------------------------------------
 
 
-def strip_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
-    """The three strip charts of *Explain*: gap and speeds, p / q of detect, cumulative log-weight."""
+def strip_plots(gui: viser.GuiApi, title: str = "distance and speeds") -> dict[str, viser.GuiUplotHandle]:
+    """The three strip charts of *Explain*: the rollout's distance and speeds (``title``, e.g. the idle scene's
+    :attr:`pemviz.app.drawing.LaneScene.strip_title`), p / q of detect, cumulative log-weight."""
     t = np.linspace(0, 5, 2)
     none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 5.0))
     return {
         "gap": gui.add_uplot(
             data=(t, none), series=(up.Series(label="t (s)"), up.Series(label="gap (m)")),
-            title="gap and speeds (choose a rollout)", scales={"x": x_scale}, axes=axes("time (s)", "m, m/s"),
+            title=f"{title} (choose a rollout)", scales={"x": x_scale}, axes=axes("time (s)", "m, m/s"),
             legend=LEGEND, height=185,
         ),
         "detect": gui.add_uplot(
@@ -383,7 +382,7 @@ def _ring(colour: tuple[int, int, int], size: float = 11) -> dict[str, Any]:
 
 def fill_strip_plots(
     plots: dict[str, viser.GuiUplotHandle], lines: tuple[Series, ...], detected: np.ndarray, ex: LaneExplanation,
-    step: int, title: str, thresholds: Thresholds | None,
+    step: int, title: str, thresholds: Thresholds | None, what: str = "distance and speeds",
 ) -> None:  # fmt: skip
     """Draw a rollout with a marker at ``step`` (the 3D scene's step) in each strip chart, with the problem's failure
     threshold and sampler window (:attr:`pemviz.core.problems.ProblemView.thresholds`; None: no such lines).
@@ -393,6 +392,7 @@ def fill_strip_plots(
             the marker follows it; float64 [T] each.
         detected: bool [T] the detections taken.
         ex: the rollout explained (:meth:`pemviz.app.drawing.LanePanel.lane_explanation`).
+        what: the first chart's title after the rollout's (:attr:`pemviz.app.drawing.LaneScene.strip_title`).
     """
     t = ex.time_s
     now = np.full(t.size, np.nan)
@@ -416,7 +416,7 @@ def fill_strip_plots(
     values = [np.asarray(s.values, dtype=np.float64) for s in lines]
     main = values[0]
     gap_hi = float(np.nanmax(np.concatenate([*values, [12.0]])))
-    plots["gap"].title = f"{title}: gap and speeds"
+    plots["gap"].title = f"{title}: {what}"
     plots["gap"].series = (
         up.Series(label="t (s)"),
         *(up.Series(label=s.label, **SERIES_STYLE[s.role]) for s in lines),

@@ -66,7 +66,7 @@ class Session:
         """The idle scene's drawing object (:attr:`pemviz.app.panel.PanelApp.drawing`)."""
         self.lock = threading.RLock()
         """One lock for every part: GUI callbacks run in a thread pool, the run in a worker thread."""
-        self.explain = ExplainTab(client)
+        self.explain = ExplainTab(client, self.drawing.panel_scene().strip_title)
         self.scene = SceneView(client, self.drawing, self.lock, self.explain)
         self.rollouts_tab = RolloutsTab(client, self.lock, self.scene)
         self.plots_panel = PlotsPanel(client, self.explain)

@@ -28,7 +28,7 @@ from pemviz.scenarios.braking_failures import (
     describe,
     severity,
 )
-from pemviz.scenarios.panel_data import LaneScene, Series, ViewAxis, Zone
+from pemviz.scenarios.panel_data import CurveAxis, LaneScene, Series, ViewAxis, Zone
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
@@ -183,11 +183,16 @@ class BrakingPanel:
             Zone("crash_zone_2m", p.crash_gap_m, "margin", f"the {p.crash_gap_m:g} m crash margin"),
         )  # fmt: skip
         return LaneScene(p.ego_length_m, p.lead_length_m, p.vehicle_width_m, p.camera_offset_m, p.gap0_m, "lead",
-                         zones, "gap", f"{p.crash_gap_m:g} m line crossed", int(p.n_steps))  # fmt: skip
+                         zones, "gap", f"{p.crash_gap_m:g} m line crossed", int(p.n_steps),
+                         "gap and speeds")  # fmt: skip
 
     def proposal_axis(self) -> ViewAxis:
         """The proposal view's bins: the gap to the lead, 0.5 m wide (:data:`GAP_BINS_M`)."""
         return ViewAxis("gap d (m), 0.5 m bins", "the lead", "gap_m", "below", GAP_BINS_M, "gap (m)")
+
+    def curve_axis(self) -> CurveAxis:
+        """The reference-state curves' x axis: the gap to the lead."""
+        return CurveAxis("gap (m)", "gap d (m)", "p(detect | d)")
 
     def group_heading(self) -> tuple[str, str]:
         """The rollouts table's group column: its heading, and the start of each group's label that it says."""

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pemviz.scenarios.panel_data import ObjectsScene, ViewAxis
+from pemviz.scenarios.panel_data import CurveAxis, ObjectsScene, ViewAxis
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
@@ -51,6 +51,11 @@ class CutInPanel:
         the camera sees it."""
         return ViewAxis("car 0's gap ahead (m), 1 m bins", "car 0 (the cut-in car)", None, "within", GAP_BINS_M,
                         "car 0's gap (m)", VIEW_OBJECT, "gap_m", "visible")  # fmt: skip
+
+    def curve_axis(self) -> CurveAxis:
+        """The reference-state curves' x axis: the range from the camera to the cut-in car placed straight ahead in the
+        ego's lane, unoccluded (:func:`pemviz.scenarios.problems.cut_in_problem`'s ``curve_rows``)."""
+        return CurveAxis("range (m)", "range r (m) of car 0, straight ahead in the ego's lane", "p(detect | r)")
 
     def group_heading(self) -> tuple[str, str]:
         """The rollouts table's group column: its heading, and the start of each group's label that it says."""

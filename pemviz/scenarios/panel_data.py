@@ -44,6 +44,7 @@ class LaneScene:
         ruler_label: what the ruler measures, before its value (``<label> 3.20 m``).
         breach_label: the breach gate's label, before its time.
         n_steps: T, the steps of a rollout.
+        strip_title: the title of the first strip chart of a rollout (its :class:`Series`).
     """
 
     ego_length_m: float
@@ -56,6 +57,7 @@ class LaneScene:
     ruler_label: str
     breach_label: str
     n_steps: int
+    strip_title: str = "distance and speeds"
 
     @property
     def object_start_x(self) -> float:
@@ -98,6 +100,21 @@ class Series:
     label: str
     values: np.ndarray
     role: str
+
+
+@dataclass(frozen=True)
+class CurveAxis:
+    """The x axis of a proposal's reference-state curve (the problem's ``curve_grid``, metres).
+
+    Attributes:
+        series_label: the legend of the x values.
+        label: the axis title, with its unit.
+        y_label: the y axis' title (``p(detect | d)``).
+    """
+
+    series_label: str
+    label: str
+    y_label: str
 
 
 @dataclass(frozen=True)
