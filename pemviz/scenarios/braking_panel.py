@@ -28,6 +28,7 @@ from pemviz.scenarios.braking_failures import (
     describe,
     severity,
 )
+from pemviz.scenarios.braking_recording import car_positions
 from pemviz.scenarios.panel_data import CurveAxis, LaneScene, Series, ViewAxis, Zone
 
 if TYPE_CHECKING:
@@ -200,17 +201,11 @@ class BrakingPanel:
 
     def lane_positions(self, batch: RolloutBatch, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rollout ``i`` of ``batch`` on the road, float64 [T] each (metres): the ego's centre (0 at the start), the
-        lead's centre and the gap (the ruler's length).
-
-        The ego moves by explicit Euler on its recorded speed, as highway-env's ``Vehicle.step`` does
-        (``x[t+1] = x[t] + v[t] * dt``, a speed of NaN counts as 0); the lead's rear is the camera plus the gap, as
-        :func:`pemviz.scenarios.braking_drawing.car_positions` places them.
-        """
-        p = self.params
+        lead's centre (:func:`pemviz.scenarios.braking_recording.car_positions`, as the recording places them) and the
+        gap (the ruler's length)."""
         gap = _column(batch, i, "gap_m", 0)
-        v = np.nan_to_num(_column(batch, i, "ego_speed_mps"), nan=0.0)
-        ego_x = p.dt_s * np.concatenate([[0.0], np.cumsum(v[:-1])])
-        return ego_x, ego_x + p.camera_offset_m + gap + p.lead_length_m / 2, gap
+        ego_x, lead_x = car_positions(gap, _column(batch, i, "ego_speed_mps"), self.params)
+        return ego_x, lead_x, gap
 
     def lane_explanation(self, batch: RolloutBatch, i: int) -> BrakingExplanation:
         """Rollout ``i`` of ``batch`` explained (:func:`explain`)."""
