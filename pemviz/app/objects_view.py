@@ -172,9 +172,9 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
 
     parts = [(f'<svg class="pemviz-birds-eye" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
               f'style="background:{BACKGROUND};border-radius:4px">')]  # fmt: skip
-    for lane in (-6.0, -2.0, 2.0, 6.0):  # 4 m lanes around the ego's
-        y = px(0.0, lane)[1]
-        dash = "" if abs(lane) > 5 else ' stroke-dasharray="6 6"'
+    for k in (-1.5, -0.5, 0.5, 1.5):  # the lines of three lanes, the ego's in the middle: dashed between lanes
+        y = px(0.0, k * ox.lane_width_m)[1]
+        dash = "" if abs(k) > 1 else ' stroke-dasharray="6 6"'
         parts.append(f'<line x1="0" y1="{y:.1f}" x2="{width}" y2="{y:.1f}" stroke="{LANE}"{dash}/>')
     for metres in range(0, int(hi) + 1, 25):
         x = px(float(metres), 0.0)[0]
