@@ -78,7 +78,7 @@ def test_running_score_is_the_running_min_of_the_operand():
     pb = build_problem("main")
     b = pb.simulate(5, pb.target, pb.target, np.random.default_rng(0))
     s = running_score(pb, b)
-    np.testing.assert_allclose(s, np.minimum.accumulate(b.gap_m - 2.0, axis=1))
+    np.testing.assert_allclose(s, np.minimum.accumulate(b.signal("gap_m") - 2.0, axis=1))
 
 
 # -- snapshot / restore ---------------------------------------------------------------------------------------

@@ -1,14 +1,9 @@
-"""The panel names no scenario: it draws what a scenario's drawing object gives it (:mod:`pemviz.app.drawing`). The
-built-in drawings have the panel's hooks, their data are the scenarios' constants, the panel's code (identifiers and
-strings) holds no scene word and its docstrings and comments name a scene only as an example."""
+"""The panel draws what a scenario's drawing object gives it (:mod:`pemviz.app.drawing`): the built-in drawings have
+the panel's hooks, and their data are the scenarios' constants (that the panel's code names no scene is
+``tests/test_scene_words.py``'s)."""
 
 from __future__ import annotations
 
-import ast
-import io
-import re
-import tokenize
-from pathlib import Path
 
 import numpy as np
 
@@ -20,39 +15,6 @@ from pemviz.scenarios.braking_drawing import BrakingDrawing
 from pemviz.scenarios.braking_failures import severity
 from pemviz.scenarios.cut_in import LANE_WIDTH_M, CutInParams
 from pemviz.scenarios.cut_in_drawing import CutInDrawing
-
-APP = Path(__file__).resolve().parents[1] / "pemviz" / "app"
-SCENE_WORDS = re.compile(r"braking|gap_m|\blead\b|cut[-_]in|BrakingParams|CutInParams", re.IGNORECASE)
-"""The words that name a built-in scene or its columns."""
-EXAMPLE = re.compile(r"\be\.g\.|\bfor example\b", re.IGNORECASE)
-"""A docstring or comment line that names a scene as an example (allowed)."""
-
-
-def forbidden_scene_words(path: Path) -> list[str]:
-    """``file:line: text`` of each scene word of ``path`` in code (an identifier or a string that is not a docstring),
-    and of each in a docstring or comment on a line that does not name it as an example (``e.g.``, ``for example``)."""
-    src = path.read_text()
-    lines = src.splitlines()
-    docs = set()
-    for node in ast.walk(ast.parse(src)):
-        body = getattr(node, "body", None)
-        for st in body if isinstance(body, list) else []:
-            if isinstance(st, ast.Expr) and isinstance(st.value, ast.Constant) and isinstance(st.value.value, str):
-                docs.update(range(st.lineno, st.end_lineno + 1))
-    found = []
-    for tok in tokenize.generate_tokens(io.StringIO(src).readline):
-        for k, part in enumerate(tok.string.split("\n")):
-            line = tok.start[0] + k
-            in_code = tok.type != tokenize.COMMENT and line not in docs
-            if SCENE_WORDS.search(part) and (in_code or not EXAMPLE.search(lines[line - 1])):
-                found.append(f"{path.name}:{line}: {lines[line - 1].strip()}")
-    return found
-
-
-def test_the_panels_code_names_no_scenario_and_its_docstrings_only_as_an_example():
-    found = [hit for path in sorted(APP.glob("*.py")) for hit in forbidden_scene_words(path)]
-    assert found == []
-
 
 def test_the_braking_drawing_gives_a_lane_scene_of_its_constants():
     p = BrakingParams()

@@ -133,7 +133,7 @@ def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
     first = events[0]
     assert isinstance(first, RunStarted) and first.problem.name == "toy-1e-3" and first.problem.signal_names == ("d",)
     assert "toy braking" in first.problem.description and torch.get_num_threads() == threads
-    assert first.problem.scene is None and first.problem.thresholds.labels() == ("failure below 3 units",
+    assert first.problem.drawing is None and first.problem.thresholds.labels() == ("failure below 3 units",
                                                                                  "braking within 5 units")
     assert [(s.stage, s.kind, s.label, s.n_rollouts) for s in first.plan.stages] == [(1, "final", "final batch", 50)]
     assert first.plan.n_simulations == 50 and first.plan.has_final_batch
@@ -141,7 +141,7 @@ def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
     assert view.name == "braking" and view.signal_names == ("d", "v", "vl") and "braking" in view.description
     assert [(s.column, s.unit) for s in view.signals] == [("gap_m", "m"), ("ego_speed_mps", "m/s"),
                                                           ("lead_speed_mps", "m/s")]
-    assert view.thresholds.labels() == ("crash gap 2 m", "braking distance 10 m") and view.scene.n_steps == 100
+    assert view.thresholds.labels() == ("crash gap 2 m", "braking distance 10 m") and view.drawing.params.n_steps == 100
 
 
 def test_torch_threads_sets_and_restores_the_process_setting():

@@ -158,16 +158,16 @@ def test_every_rollout_gap_trace_has_T_points_equal_to_the_batch(runs):
             got = {s: v for s, v in zip(steps, rows) if v is not None}
             assert sorted(got) == list(range(ev.batch.n_steps))  # T points per rollout
             trace = np.array([got[t] for t in range(ev.batch.n_steps)]).T  # [N, T]
-            np.testing.assert_array_equal(trace, ev.batch.gap_m)
+            np.testing.assert_array_equal(trace, ev.batch.signal("gap_m"))
             rows = featured_rows(tables, ev.stage)  # the stage's featured rollouts, ascending
-            gap = ev.batch.gap_m[rows]
+            gap = ev.batch.signal("gap_m")[rows]
             # marked where a detection still matters: inside 10 m, up to the first step below 2 m
             matters = (gap < 10.0) & (np.cumsum(gap < 2.0, axis=1) - (gap < 2.0) == 0)
             for key, seen in (("detected", True), ("missed", False)):
                 marks = column(table, f"/rollouts/{key}/stage_{ev.stage:02d}:Scalars:scalars")
                 marks = np.array([m for m in marks if m is not None]).T  # [featured, T]
                 np.testing.assert_array_equal(np.isfinite(marks), (ev.batch.detected[rows, :, 0] == seen) & matters)
-                np.testing.assert_array_equal(marks[np.isfinite(marks)], ev.batch.gap_m[rows][np.isfinite(marks)])
+                np.testing.assert_array_equal(marks[np.isfinite(marks)], ev.batch.signal("gap_m")[rows][np.isfinite(marks)])
 
 
 def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
@@ -183,7 +183,7 @@ def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
         else:
             assert c == packed(CRASH_RGBA if ev.failed[i] else SAFE_RGBA) and "least-robust" not in name
         # a failure's words: contact (gap at or below 0.7 m, the camera-to-rear gap of a collision) or breach
-        low = ev.batch.gap_m[i].min()
+        low = ev.batch.signal("gap_m")[i].min()
         said = ("contact at " in name) if low <= 0.7 else (f"breach {low:.2f} m, no contact" in name)
         assert said == bool(ev.failed[i]) and ("contact" in name or "breach" in name) == bool(ev.failed[i])
     summary = {k: static_value(tables, f"/rollouts/summary/stage_01:{k}") for k in
@@ -400,7 +400,7 @@ def test_the_most_likely_failure_is_read_back_with_a_minimal_miss_set_that_highw
     (ev,) = [e for e in of(events, RolloutsSampled) if e.stage == stage]
     detected = ev.batch.detected[i, :, 0]
     assert highway_env_min_gap(detected) < 2.0  # it fails
-    low = ev.batch.gap_m[i].min()
+    low = ev.batch.signal("gap_m")[i].min()
     assert props["outcome"] == (f"breach {low:.2f} m, no contact" if low > 0.7 else props["outcome"])
     assert props["outcome"].startswith("contact at ") == (low <= 0.7)
     misses = np.flatnonzero(~detected)
@@ -464,10 +464,10 @@ def test_the_featured_rollouts_are_each_an_entity_with_stage_log_p_robustness_an
             value = {k: static_value(tables, f"{path}:{k}")[0] for k in ("stage", "log_p", "robustness", "min_gap_m")}
             assert value["stage"] == ev.stage and value["robustness"] == pytest.approx(ev.robustness[i])
             assert value["log_p"] == pytest.approx(ev.batch.log_p[i, :-1].sum(), abs=1e-9)
-            assert value["min_gap_m"] == pytest.approx(ev.batch.gap_m[i].min())
+            assert value["min_gap_m"] == pytest.approx(ev.batch.signal("gap_m")[i].min())
             steps = column(tables["step"], "step")
             trace = [v for s, v in zip(steps, column(tables["step"], f"{path}:Scalars:scalars")) if v is not None]
-            np.testing.assert_array_equal(np.array(trace)[:, 0], ev.batch.gap_m[i])
+            np.testing.assert_array_equal(np.array(trace)[:, 0], ev.batch.signal("gap_m")[i])
 
 
 def test_the_marginal_proposal_shows_q_miss_inside_10_m_above_the_pems(runs):
@@ -482,7 +482,7 @@ def test_the_marginal_proposal_shows_q_miss_inside_10_m_above_the_pems(runs):
     for ev in of(events, RolloutsSampled):
         edges = np.asarray(stats["edges_m"][ev.stage])
         q_mean = np.asarray(stats["q_mean"][ev.stage], dtype=float)
-        gap, d, lq = ev.batch.gap_m.ravel(), ev.batch.detected[..., 0].ravel(), ev.batch.log_q.ravel()
+        gap, d, lq = ev.batch.signal("gap_m").ravel(), ev.batch.detected[..., 0].ravel(), ev.batch.log_q.ravel()
         q = np.where(d, np.exp(lq), 1 - np.exp(lq))
         for b in (5, 15, 19):  # 2.5-3 m, 7.5-8 m, 9.5-10 m
             inside = (gap >= edges[b]) & (gap < edges[b + 1])
@@ -543,7 +543,7 @@ def test_the_share_of_failures_with_contact_per_stage(runs):
     (ev,) = of(events, RolloutsSampled)
     stages = column(tables["stage"], "stage")
     share = dict(zip(stages, column(tables["stage"], "/stages/contact_share:Scalars:scalars")))
-    low = ev.batch.gap_m[ev.failed].min(axis=1)
+    low = ev.batch.signal("gap_m")[ev.failed].min(axis=1)
     assert share[ev.stage] == [pytest.approx(np.mean(low <= 0.7))]
 
 
@@ -626,7 +626,7 @@ def test_the_recording_lists_every_failure_of_the_estimate_by_share_and_its_grou
     dist = np.array(static_value(tables, "/final/failures:min_distance"), dtype=np.float64)
     speed = np.array(static_value(tables, "/final/failures:impact_speed"), dtype=np.float64)
     batches = {e.stage: e.batch for e in events if isinstance(e, RolloutsSampled)}
-    want = [severity(batches[k].gap_m[i]) for k, i in zip(stage, rollout)]
+    want = [severity(batches[k].signal("gap_m")[i]) for k, i in zip(stage, rollout)]
     np.testing.assert_array_equal(dist, [w.min_gap_m for w in want])
     np.testing.assert_array_equal(speed, [w.contact_speed_mps for w in want])
     # p(severity | failure): the shares of p of no contact, 0-2, 2-5 and > 5 m/s, as bars adding up to 1

@@ -92,7 +92,7 @@ def test_each_rollout_carries_its_severity_as_the_braking_scene_s_severity_gives
     # min gap and impact speed (closing speed into a gap <= 0.7 m; null where no contact), one value per rollout
     path, _ = naive_run
     data = rio.read_rollouts(path)
-    want = [severity(data.gap_m[i]) for i in range(data.n)]
+    want = [severity(data.signal("gap_m")[i]) for i in range(data.n)]
     np.testing.assert_array_equal(data.min_distance, [w.min_gap_m for w in want])
     np.testing.assert_array_equal(data.impact_speed, [w.contact_speed_mps for w in want])
     contact = np.isfinite(data.impact_speed)
@@ -139,9 +139,9 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     rng = np.random.default_rng(2)
     proposal = Proposal()
     pem_batch = problem.simulate(40, problem.target, problem.target, rng)
-    pretrain_proposal(proposal, pem_batch.gap_m, pem_batch.detected[..., 0], epochs=100, lr=1e-2)
+    pretrain_proposal(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], epochs=100, lr=1e-2)
     r = problem.robustness(pem_batch, "classic")
-    ce_update(proposal, pem_batch.gap_m, pem_batch.detected[..., 0], pem_batch.log_p, pem_batch.log_q, r <= np.sort(r)[3],
+    ce_update(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], pem_batch.log_p, pem_batch.log_q, r <= np.sort(r)[3],
               smoothing=0.5, epochs=50, lr=1e-2)  # fmt: skip
     batch = problem.simulate(60, proposal, problem.target, rng)
     failed = problem.failed(batch)
@@ -288,7 +288,7 @@ def small_file(tmp_path_factory, pem):
     batch = problem.simulate(6, ConstantDetector(0.5), problem.target, np.random.default_rng(0))
     path = tmp_path_factory.mktemp("small") / "small.parquet"
     rio.write_rollouts(path, batch, rollout_format.braking_meta(pem="ml-nn", proposal="naive50"),
-                       salient=rio.braking_salient(batch.gap_m), severity=rollout_severity(problem, batch))  # fmt: skip
+                       salient=rio.braking_salient(batch.signal("gap_m")), severity=rollout_severity(problem, batch))  # fmt: skip
     return path
 
 

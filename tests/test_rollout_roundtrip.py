@@ -101,7 +101,7 @@ def test_default_run_round_trips_all_its_pooled_stages_and_its_mean_weight_is_on
     assert abs(float(m.group(1)) - 1.0) < 4 * float(m.group(2)) and int(m.group(3)) == sum(n)
     # each rollout's severity: its min gap, and its closing speed into a gap <= 0.7 m (NaN: no contact)
     data = rio.read_rollouts(tmp_path / "r.parquet")
-    dist, speed = severity_of_signal(data.gap_m, 0.7, 0.05)
+    dist, speed = severity_of_signal(data.signal("gap_m"), 0.7, 0.05)
     np.testing.assert_array_equal(data.min_distance, dist)
     np.testing.assert_array_equal(data.impact_speed, speed)
     assert np.isfinite(speed).any() and sidecar["version"] == 2  # the format version stays

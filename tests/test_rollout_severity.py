@@ -78,7 +78,7 @@ def test_braking_rollouts_agree_with_the_scene_s_severity_number_for_number(brak
     detected = rng.random((300, p.n_steps)) < rng.uniform(0.0, 0.9, (300, 1))
     batch = braking_batch(detected)
     dist, speed = rollout_severity(braking, batch)
-    want = [severity(batch.gap_m[i], p) for i in range(batch.n)]
+    want = [severity(batch.signal("gap_m")[i], p) for i in range(batch.n)]
     np.testing.assert_array_equal(dist, [w.min_gap_m for w in want])
     np.testing.assert_array_equal(speed, [w.contact_speed_mps for w in want])  # NaN where no contact, alike
     assert contact_level(braking) == p.contact_gap_m == 0.7
@@ -178,7 +178,7 @@ def test_a_small_run_s_failures_by_share_match_a_hand_computation(braking):
     shares = finals[0].failures
     assert isinstance(sev, FailureSeverity) and sev.n == sev.n_failures == shares.n > 20
     assert sev.counts()[0] > 20 and sev.counts()[1:].sum() >= 5  # failures with and without contact
-    want = [severity(sampled[s].batch.gap_m[i], braking.scene) for s, i in zip(shares.stage, shares.index)]
+    want = [severity(sampled[s].batch.signal("gap_m")[i], braking.drawing.params) for s, i in zip(shares.stage, shares.index)]
     np.testing.assert_array_equal(sev.min_distance, [w.min_gap_m for w in want])
     np.testing.assert_array_equal(sev.impact_speed, [w.contact_speed_mps for w in want])
     share = np.exp(shares.log_share)

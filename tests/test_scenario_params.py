@@ -114,10 +114,10 @@ def test_the_braking_exact_answer_is_dropped_or_recomputed_for_changed_parameter
     moved = problem_for(ExperimentConfig(pem_shift=0.5, scenario_params=(("gap0_m", 12.0),)))
     assert moved.exact_log_p is None and not moved.severity_exact  # kept for the default scene only
     assert moved.alternatives[0].exact_log_p is None
-    assert moved.scene == dataclasses.replace(BrakingParams(), gap0_m=12.0)
+    assert moved.drawing.params == dataclasses.replace(BrakingParams(), gap0_m=12.0)
     margin = problem_for(ExperimentConfig(margin=1.5))
     param = problem_for(ExperimentConfig(scenario_params=(("crash_gap_m", 1.5),)))
-    assert param.exact_log_p == margin.exact_log_p is not None and param.scene == margin.scene
+    assert param.exact_log_p == margin.exact_log_p is not None and param.drawing == margin.drawing
     latched = problem_for(ExperimentConfig(scenario_params=(("latched_brake", True), ("gap0_m", 12.0))))
     truth = latched_log_failure_probability(load_pem(None).logit_at_gap,
                                             BrakingParams(latched_brake=True, gap0_m=12.0)).log_p_fail  # fmt: skip

@@ -181,7 +181,7 @@ def test_enumerated_main_truth_agrees_with_importance_sampling(pem):
         latched_log_failure_probability(pem.logit_at_gap).log_p_fail, abs=1e-12
     )
     batch = pb.simulate(40000, WindowDetector(ConstantDetector(0.6), pb.target, 10.0), pb.target, np.random.default_rng(0))
-    crash = batch.gap_m < 2.0
+    crash = batch.signal("gap_m") < 2.0
     first = np.where(crash.any(axis=1), crash.argmax(axis=1), batch.n_steps - 1)
     upto = np.arange(batch.n_steps)[None, :] < first[:, None]
     log_w = ((batch.log_p - batch.log_q) * upto).sum(axis=1)

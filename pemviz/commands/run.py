@@ -448,8 +448,9 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
         rollout_sink.problem = problem  # its sidecar: the scenario's formula, signals and step
         listeners.append(rollout_sink)
     experiment.listeners[:0] = listeners
-    likely = MostLikelyFailure() if problem.view.scene is None and problem.branch is not None else None
-    if likely is not None:  # a scene without the braking scenario's own explanation: say which errors decided
+    likely = (MostLikelyFailure() if not getattr(problem.drawing, "draws_scene", False) and problem.branch is not None
+              else None)
+    if likely is not None:  # a drawing that explains no failure itself: say which errors decided
         experiment.listeners.append(likely)
     try:
         with torch_threads(1, blas=1):

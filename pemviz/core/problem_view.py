@@ -58,9 +58,6 @@ class ProblemView:
         description: one line saying what is simulated (e.g. the braking scenario's ``automated braking ...``).
         signals: the safety formula's signals with their observation columns and units.
         thresholds: the failure threshold and the sampler window to draw beside the rollouts, or None (none known).
-        scene: the scenario's constants (object sizes, camera, dt) to draw its rollouts as a scene, or None: the
-            problem has no scene (the toys), and no objects, window or failure threshold are drawn as a scene; being
-            replaced by :attr:`drawing`.
         objects_xy: the object-row columns of each object's position seen from the ego (metres: to the right,
             ahead), to draw a scene of several objects from its rollouts' rows; None: none.
         noise_xy: the measurement-error components along those two directions (indexes into the noise, metres),
@@ -75,7 +72,6 @@ class ProblemView:
     description: str
     signals: tuple[SignalView, ...]
     thresholds: Thresholds | None = None
-    scene: object | None = None
     objects_xy: tuple[str, str] | None = None
     noise_xy: tuple[int, int] | None = None
     n_steps: int | None = None

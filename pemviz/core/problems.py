@@ -80,8 +80,6 @@ class Problem:
         description: one line saying what is simulated (for sinks and tables).
         units: STL signal name -> unit, for sinks (default none: every unit blank).
         thresholds: the failure threshold and sampler window that sinks draw (None: none).
-        scene: the scenario's constants when the rollouts can be drawn as its scene (None: no scene); being
-            replaced by :attr:`drawing`.
         objects_xy, noise_xy: where sinks find each object's position and its measurement error
             (:class:`ProblemView`); None: not drawn.
         n_objects: the objects the detector sees each step (M; 1: one object a step), known before any rollout so
@@ -118,7 +116,6 @@ class Problem:
     description: str = ""
     units: Mapping[str, str] = field(default_factory=dict)
     thresholds: Thresholds | None = None
-    scene: object | None = None
     curve_rows: Callable[[np.ndarray], np.ndarray] | None = None
     n_objects: int = 1
     objects_xy: tuple[str, str] | None = None
@@ -134,7 +131,7 @@ class Problem:
     def view(self) -> ProblemView:
         """The problem as sinks show it: name, description, signals with units, thresholds, scene."""
         signals = tuple(SignalView(n, c, self.units.get(n, "")) for n, c in self.signals.items())
-        return ProblemView(self.name, self.description or self.name, signals, self.thresholds, self.scene,
+        return ProblemView(self.name, self.description or self.name, signals, self.thresholds,
                            self.objects_xy, self.noise_xy, self.n_steps, self.drawing)  # fmt: skip
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:

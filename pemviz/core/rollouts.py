@@ -200,11 +200,6 @@ class RolloutBatch:
         except ValueError:
             raise KeyError(f"unknown signal {name!r}; this batch has {self.observation_names}") from None
 
-    @property
-    def gap_m(self) -> np.ndarray:
-        """Deprecated: the column of that name, float64 [N, T]; read :meth:`signal` (kept while sinks read it)."""
-        return self.signal("gap_m")
-
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:
         """Importance log-weights ``sum_t log p - log q`` over the first ``n_factors`` steps, float64 [N].
 

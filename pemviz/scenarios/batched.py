@@ -312,7 +312,7 @@ def summarise_batched(
         k = batch.n_steps - 1
         log_weight[s] = batch.log_weight(k)
         log_p_total[s] = batch.log_p[:, :k].sum(axis=1)
-        min_gap[s] = batch.gap_m.min(axis=1)
+        min_gap[s] = batch.signal("gap_m").min(axis=1)
         f = np.asarray(failed(batch), dtype=bool)
         if f.shape != (batch.n,):
             raise ValueError(f"summarise_batched: failed(batch) must be bool [{batch.n}], got shape {f.shape}")

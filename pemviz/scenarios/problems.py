@@ -89,7 +89,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         decided_below=p.crash_gap_m, severity=scale, severity_exact=exact,
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
-        thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"), scene=p,
+        thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"),
         drawing=BrakingDrawing(p), n_steps=p.n_steps, dt_s=p.dt_s,
         description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
                      f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
@@ -363,7 +363,7 @@ def with_alternatives(problem: Problem, config: Any) -> Problem:
     if not shifts and not config.pem_uncertainty:
         return problem
     target = problem.target
-    scene = problem.scene if problem.name == "braking" else None
+    scene = problem.drawing.params if problem.name == "braking" else None
 
     def exact(logit_at_gap) -> float | None:
         return known_log_failure_probability(logit_at_gap, scene) if scene is not None else None

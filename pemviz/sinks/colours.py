@@ -16,8 +16,6 @@ CRASH = (214, 50, 40)
 SAFE = (150, 150, 150)
 OBJECT = (95, 125, 190)
 """The object the ego reacts to (e.g. the car ahead), in the scenes."""
-LEAD = OBJECT
-"""Alias of :data:`OBJECT` (the panel's older name)."""
 IDLE = (190, 190, 195)
 BRAKE_ZONE = (240, 200, 40)
 """The sampler window, e.g. the distance inside which the controller reacts to a detection."""
@@ -43,8 +41,6 @@ INTERVAL = (120, 160, 230)
 EGO_SPEED = BLUE
 OBJECT_SPEED = VIOLET
 """The speed of the object the ego reacts to."""
-LEAD_SPEED = OBJECT_SPEED
-"""Alias of :data:`OBJECT_SPEED` (the panel's older name)."""
 PROPOSAL = BLUE
 LOG_WEIGHT = VIOLET
 RUN_COLOURS = (BLUE, RED, GREEN, (138, 79, 209), AMBER, (26, 163, 163))

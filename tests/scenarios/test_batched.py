@@ -136,7 +136,7 @@ def test_same_seed_gives_identical_rollout_batch_on_both_backends(pem, name):
     assert_same_batch(a, b)
     assert rng_a.random() == rng_b.random()  # both consumed T draws of size n
     if name.startswith("mixed50"):
-        assert 0 < (a.gap_m.min(axis=1) < 2.0).sum() < 60  # some crash, some do not
+        assert 0 < (a.signal("gap_m").min(axis=1) < 2.0).sum() < 60  # some crash, some do not
 
 
 def test_chunks_read_the_same_uniforms_as_one_batch_and_leave_the_rng_where_simulate_does(pem):
@@ -170,12 +170,12 @@ def test_summary_keeps_the_weights_failures_and_estimate_of_the_full_batch(pem):
     full = simulate_batched(None, 2000, mixed, problem.target, np.random.default_rng(9))
     summary = summarise_batched(None, 2000, mixed, problem.target, np.random.default_rng(9), failed=problem.failed,
                                 chunk_size=300)  # fmt: skip
-    failed = full.gap_m.min(axis=1) < 2.0  # the gap drops below the 2 m crash gap: G[0,99](d >= 2) violated
+    failed = full.signal("gap_m").min(axis=1) < 2.0  # the gap drops below the 2 m crash gap: G[0,99](d >= 2) violated
     assert 1000 < failed.sum() < 1600  # mixed-50 crashes in ~65-75 % of rollouts
     assert np.array_equal(summary.failed, failed)
     assert np.array_equal(summary.log_weight, full.log_weight())
     assert np.array_equal(summary.log_p_total, full.log_p[:, :-1].sum(axis=1))
-    assert np.array_equal(summary.min_gap_m, full.gap_m.min(axis=1))
+    assert np.array_equal(summary.min_gap_m, full.signal("gap_m").min(axis=1))
     by_stl = summarise_batched(
         None, 2000, mixed, problem.target, np.random.default_rng(9), failed=problem.failed, chunk_size=512
     )

@@ -79,13 +79,13 @@ def pem_detector():
 def test_mixed50_crash_rate_matches_carla_74_8_percent(pem_detector):
     mixed = WindowDetector(ConstantDetector(0.5), pem_detector, 10.0)
     batch = simulate(BrakingScenario, 1000, mixed, pem_detector, np.random.default_rng(1), 100)
-    rate = float((batch.gap_m.min(axis=1) < 2.0).mean())
+    rate = float((batch.signal("gap_m").min(axis=1) < 2.0).mean())
     assert 0.65 <= rate <= 0.85, rate
 
 
 def test_pem_driven_rollouts_never_crash_in_1000(pem_detector):
     batch = simulate(BrakingScenario, 1000, pem_detector, pem_detector, np.random.default_rng(2), 100)
-    min_gap = batch.gap_m.min(axis=1)
+    min_gap = batch.signal("gap_m").min(axis=1)
     assert (min_gap < 2.0).sum() == 0
     # CARLA: min gap over PEM-driven rollouts has mean 5.93, range 3.96 .. 6.71
     assert 5.5 <= min_gap.mean() <= 6.3, min_gap.mean()

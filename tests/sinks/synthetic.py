@@ -19,10 +19,10 @@ PLAN = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final
 
 BRAKING = ProblemView("braking", "a lead car ahead",
                       (SignalView("d", "gap_m", "m"), SignalView("v", "ego_speed_mps", "m/s")),
-                      Thresholds(2.0, 10.0, "m", "crash gap", "braking distance"), BrakingParams(),
+                      Thresholds(2.0, 10.0, "m", "crash gap", "braking distance"),
                       drawing=BrakingDrawing(BrakingParams()))  # fmt: skip
 TOY = ProblemView("toy-1e-3", "toy braking", (SignalView("d", "gap_m", "units"),),
-                  Thresholds(3.0, 5.0, "units", "failure below", "braking within"), None)  # fmt: skip
+                  Thresholds(3.0, 5.0, "units", "failure below", "braking within"))  # fmt: skip
 GRID = np.linspace(0.0, 13.0, 14)
 SIMPLE = CostConstants(
     pem_step_s=0.0, proposal_step_s=0.0, rollout_step_s={"batched": 1e-7}, proposal_rollout_step_s=0.0, stage_s=0.0,

@@ -49,4 +49,4 @@ def test_an_open_ended_plan_never_reports_a_finished_run_before_it_ends():
 def test_a_toy_run_keeps_its_view_without_a_scene():
     run = PanelRun(3, run_started().config)
     run(run_started(TOY))
-    assert run.view.scene is None and run.view.thresholds.labels()[0] == "failure below 3 units"
+    assert run.view.drawing is None and run.view.thresholds.labels()[0] == "failure below 3 units"
