@@ -107,11 +107,12 @@ from pemviz.sinks.rerun_views import (
     PEM_RGBA,
     PROPOSAL_FIG,
     SCENE_PATH,
+    contact_share,
+    draws_scene,
     intro_markdown,
     log_marginal_proposal,
     log_scene_lane,
     log_thresholds,
-    outcome_values,
 )
 
 APP_ID = "pemviz"
@@ -399,11 +400,11 @@ class RerunSink(Sink):
         rows = "\n".join(f"| {k} | `{v}` |" for k, v in vars(cfg).items())
         self.config_md = f"\n## Config\n\n| setting | value |\n|---|---|\n{rows}\n"
         self._log_description()
-        log_series_styles(s, self._draws_scene)
+        log_series_styles(s, draws_scene(self.drawing))
         known = ev.exact_log_p if ev.exact_log_p is not None and math.isfinite(ev.exact_log_p) else (
             ev.reference.log_p if ev.reference is not None else None)
         self.figures = StageFigures(s, self.plan.last_stage, None if known is None else known / math.log(10.0),
-                                    self._draws_scene)  # fmt: skip
+                                    draws_scene(self.drawing))  # fmt: skip
         PROPOSAL_FIG.draw_axes(s, (float(self.grid_m.min()), float(self.grid_m.max())), (0.0, 1.0))
         s.log(
             "proposal/data/pem",
@@ -454,7 +455,7 @@ class RerunSink(Sink):
         pending = self._pending if self._pending is not None and self._pending.stage == res.stage else None
         if pending is not None:
             values.update(self._log_marginal(pending, colour))
-            values.update(self._contact_share(pending))
+            values.update(contact_share(self.drawing, pending.batch, pending.failed))
         for key, value in values.items():
             if math.isfinite(value):
                 s.log(f"stages/{key}", rr.Scalars(value))
@@ -495,24 +496,6 @@ class RerunSink(Sink):
         self.stream.disable_timeline("step")
         return {"miss_in_window/q": pv.q_miss_window, "miss_in_window/pem": pv.p_miss_window}
 
-    @property
-    def _draws_scene(self) -> bool:
-        """Whether the drawing object draws a scene with contact (:attr:`pemviz.sinks.drawing.RecordingDrawing.
-        draws_scene`)."""
-        return bool(getattr(self.drawing, "draws_scene", False))
-
-    def _contact_share(self, ev: RolloutsSampled) -> dict[str, float]:
-        """The share of the stage's failing rollouts that made contact (the ``contact`` of the drawing object's
-        :meth:`~pemviz.sinks.drawing.RecordingDrawing.outcome_values`), for the per-stage series; none where the
-        drawing says nothing of contact."""
-        failed = np.flatnonzero(np.asarray(ev.failed, bool))
-        if not self._draws_scene or failed.size == 0:
-            return {}
-        told = [outcome_values(self.drawing, ev.batch, int(i)) for i in failed]
-        if any(t is None for t in told):
-            return {}
-        return {"contact_share": float(np.mean([bool(t["contact"]) for t in told]))}
-
     def kept_rollouts(self, ev: RolloutsSampled) -> np.ndarray:
         """Indices of the rollouts recorded in full (:func:`pemviz.sinks.rerun_rollouts.kept_rollouts`)."""
         return kept_rollouts(ev, max(self.tagged_per_stage, self.likely_per_stage, self.scene_per_stage))
@@ -542,7 +525,7 @@ class RerunSink(Sink):
             self.thresholds_logged = True
         log_stage_rollouts(s, ev, self.view, self.plan.label(ev.stage, ev.kind), self.tagged_per_stage,
                            self.likely_per_stage, self._indexes)  # fmt: skip
-        if self._draws_scene:
+        if draws_scene(self.drawing):
             for i in least_robust(ev, self.scene_per_stage):
                 path = f"{SCENE_PATH}/stage_{ev.stage:02d}" + (f"_{self.n_lanes}" if self.scene_per_stage > 1 else "")
                 if not log_scene_lane(s, path, self.n_lanes, ev, int(i), self.drawing, self._indexes):

@@ -251,6 +251,25 @@ def outcome_values(drawing: object, batch: RolloutBatch, i: int) -> dict | None:
     return dict(values) if values is not None else None
 
 
+def draws_scene(drawing: object) -> bool:
+    """Whether the drawing object draws a scene with contact (:attr:`pemviz.sinks.drawing.RecordingDrawing.draws_scene`;
+    False for None or a drawing without it)."""
+    return bool(getattr(drawing, "draws_scene", False))
+
+
+def contact_share(drawing: object, batch: RolloutBatch, failed: np.ndarray) -> dict[str, float]:
+    """``{"contact_share": s}``: the share of the failing rollouts of ``batch`` (``failed``: bool [N]) that made
+    contact (the ``contact`` of :func:`outcome_values`), for the recording's per-stage series; ``{}`` where the drawing
+    draws no scene, says nothing of contact, or no rollout failed."""
+    rows = np.flatnonzero(np.asarray(failed, bool))
+    if not draws_scene(drawing) or rows.size == 0:
+        return {}
+    told = [outcome_values(drawing, batch, int(i)) for i in rows]
+    if any(t is None for t in told):
+        return {}
+    return {"contact_share": float(np.mean([bool(t["contact"]) for t in told]))}
+
+
 def outcome(drawing: object, batch: RolloutBatch, i: int, failed: bool) -> str:
     """A rollout's outcome in the words the console, the panel and the recording share: the drawing object's
     (:func:`outcome_values`, e.g. ``contact at 3.2 m/s``, ``breach 1.91 m, no contact``, ``safe, min gap 3.41 m``),
