@@ -4,10 +4,10 @@ The braking job (``pemviz.scenarios.problems.build_problem("main")``: T = 100 st
 camera's detector, failure = the gap drops below 2 m) is written as a limit state g(u) on the unit hypercube U(0, 1)^T:
 
 - step t detects iff ``log u_t <= log_expit(logit p_PEM(state_t))``, i.e. iff u_t <= p_PEM(detect | state_t), in
-  log space exactly as pemviz draws its rollouts (:mod:`pemviz.scenarios.batched`), so the same uniforms give the
-  same detections bit for bit; u_t <= 0 counts as log u_t = -inf (detect), u_t >= 1 never detects, so g is defined
+  log space exactly as pemviz draws its rollouts (:mod:`pemviz.scenarios.braking.batched`), so the same uniforms give
+  the same detections bit for bit; u_t <= 0 counts as log u_t = -inf (detect), u_t >= 1 never detects, so g is defined
   on all of R^T (NAIS's Gaussian kernels put points outside the cube, where the input density and so the weight is 0);
-- the ego reacts through pemviz's batched twin :class:`pemviz.scenarios.batched.BatchedBraking`;
+- the ego reacts through pemviz's batched twin :class:`pemviz.scenarios.braking.batched.BatchedBraking`;
 - g(u) = the classic STL robustness of ``G[0,99](d >= 2)`` of the gap trace (metres), computed by pemviz's own
   :meth:`pemviz.core.problems.Problem.robustness` on a :class:`pemviz.scenarios.RolloutBatch`. Failure: g(u) < 0, exact
   probability 1.984e-15 (``problem.exact_log_p``, an enumeration of the detection sequences).
@@ -78,7 +78,7 @@ from pemviz.core.detectors import action_log_prob
 from pemviz.core.problems import Problem
 from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.batched import BatchedBraking
+from pemviz.scenarios.braking.batched import BatchedBraking
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
 
 T = 100
@@ -112,8 +112,8 @@ def rollouts(u: np.ndarray, problem: Problem | None = None) -> RolloutBatch:
         problem: the braking problem (None: :func:`braking`).
     Returns:
         :class:`RolloutBatch` [n, T] with observations (gap m, ego and lead speeds m/s, brake pending), detections,
-        and log p = log q = log p_PEM(a_t | s_t) (nats), as :func:`pemviz.scenarios.batched.simulate_batched` with the
-        PEM as sampler fills it.
+        and log p = log q = log p_PEM(a_t | s_t) (nats), as :func:`pemviz.scenarios.braking.batched.simulate_batched`
+        with the PEM as sampler fills it.
     """
     pb = problem or braking()
     u = np.asarray(u, dtype=np.float64)

@@ -1,10 +1,10 @@
 """p under the PEM's own uncertainty on braking: re-weighted estimates against the exact answer of every member.
 
 For each member of the shipped ensemble (``pemviz/assets/ensemble_ml-nn.pt``) and each logit shift D in {-1, -0.5,
-0.5, 1}, the exact p of the braking scenario under that PEM (``pemviz.scenarios.truth.braking_truth``, 30-90 s each;
-``--exact`` recomputes them and prints the lines of ``KNOWN_BRAKING_LOG_P`` to keep), then ``--seeds`` default runs
-with ``--pem-uncertainty``: per member the share of seeds whose re-weighted estimate lies within x1.5 of the exact p_k
-and whose interval holds it, the spread printed against the exact spread, and the wall time with and without.
+0.5, 1}, the exact p of the braking scenario under that PEM (``pemviz.scenarios.braking.truth.braking_truth``, 30-90 s
+each; ``--exact`` recomputes them and prints the lines of ``KNOWN_BRAKING_LOG_P`` to keep), then ``--seeds`` default
+runs with ``--pem-uncertainty``: per member the share of seeds whose re-weighted estimate lies within x1.5 of the exact
+p_k and whose interval holds it, the spread printed against the exact spread, and the wall time with and without.
 
     python benchmarks/pem_uncertainty.py                 # 5 seeds (~1 min; the exact answers from the table)
     python benchmarks/pem_uncertainty.py --exact         # recompute the exact answers first (~20 min)
@@ -20,7 +20,7 @@ import numpy as np
 
 from pemviz.config import ExperimentConfig
 from pemviz.scenarios.problems import PEM_SHIFTS, problem_for
-from pemviz.scenarios.truth import braking_exact, branching_start, miss_bound, pem_fingerprint
+from pemviz.scenarios.braking.truth import braking_exact, branching_start, miss_bound, pem_fingerprint
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
 from pemviz.pem.ensemble import ensemble_path, load_ensemble

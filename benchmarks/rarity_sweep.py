@@ -5,7 +5,7 @@ Problems (each with its exact p_fail):
 - ``latched<shift>``: the latched-brake braking scenario with the PEM's logit moved by ``shift`` nats
   (:class:`pemviz.core.problems.ShiftedPEM`; exact from the deterministic simulator);
 - ``main<shift>``: the braking scenario itself with the shifted PEM (exact enumeration,
-  :func:`pemviz.scenarios.truth.braking_truth`);
+  :func:`pemviz.scenarios.braking.truth.braking_truth`);
 - ``cut-in-moderate``: the cut-in scenario of several cars, missed and mislocated, at its moderate setting (no closed
   form: its "exact" p is the plain Monte Carlo reference of 10^7 rollouts,
   :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`, whose own 95 % interval is +-7 %).
@@ -46,7 +46,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from pemviz.scenarios import truth
+from pemviz.scenarios.braking import truth
 from pemviz.config import METHODS as CONFIG_METHODS, ExperimentConfig
 from pemviz.core.detectors import Detector
 from pemviz.engine import Experiment

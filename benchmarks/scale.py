@@ -9,7 +9,7 @@ peak memory and recording size, for N = 10^2 .. 10^5 rollouts per stage (default
 Besides the table, one line per N gives the two ratios to watch: (other + fit) / simulation (what the sampler costs
 beyond simulating; at most 1.0 at N = 10,000), and the experiment's simulation cost per rollout against the pure
 batched twin's, measured in the same process (the braking scenario's N rollouts drawn i.i.d. from the PEM with no
-proposal and no mixture, :func:`pemviz.scenarios.batched.simulate_batched`): what the proposal network and the
+proposal and no mixture, :func:`pemviz.scenarios.braking.batched.simulate_batched`): what the proposal network and the
 mixture's bookkeeping add to each simulated step. ``--check`` is for people, not CI: timings depend on the machine.
 
 Each N runs in a fresh subprocess (``pemviz run --n N --n-final N``), so that its peak resident memory
@@ -107,7 +107,7 @@ def _pure_twin_us(n: int) -> tuple[float, float]:
 
     from pemviz.pem import load_pem
     from pemviz.core.detectors import PEMDetector
-    from pemviz.scenarios.batched import simulate_batched
+    from pemviz.scenarios.braking.batched import simulate_batched
 
     m, pem = min(n, 20_000), PEMDetector(load_pem())
     best, best_cpu = float("inf"), float("inf")

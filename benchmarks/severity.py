@@ -1,7 +1,7 @@
 """The exceedance curve P(min gap < x) of the braking scenario against its exact points.
 
 Prints, for the default ``pemviz run`` on braking over ``--seeds`` seeds, each point of the curve the run reports
-(``reached``: verdict ``reliable``) against the exact answer where one is known (``pemviz.scenarios.truth``:
+(``reached``: verdict ``reliable``) against the exact answer where one is known (``pemviz.scenarios.braking.truth``:
 :data:`KNOWN_BRAKING_MARGIN_LOG_P`, the enumeration with ``BrakingParams(crash_gap_m=x)``): the ratio to it, whether
 the interval holds it, and how many seeds reach the point at all; then the same for runs that target a level
 (``--margin x``). With ``--exact`` it first recomputes the exact points (``braking_truth``, 1-2 minutes each).
@@ -67,7 +67,7 @@ def main() -> None:
     ap.add_argument("--exact", action="store_true", help="recompute the exact points first")
     a = ap.parse_args()
     if a.exact:
-        from pemviz.scenarios.truth import braking_truth
+        from pemviz.scenarios.braking.truth import braking_truth
         from pemviz.pem import load_pem
         from pemviz.scenarios.braking import BrakingParams
 

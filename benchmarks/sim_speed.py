@@ -72,7 +72,7 @@ def rollouts_per_second(n_highway: int, n_batched: int, seed: int) -> None:
     from pemviz.core.detectors import PEMDetector
     from pemviz.pem import load_pem
     from pemviz.scenarios import simulate
-    from pemviz.scenarios.batched import simulate_batched
+    from pemviz.scenarios.braking.batched import simulate_batched
     from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 
     p = BrakingParams()
@@ -120,7 +120,7 @@ def million_child(n: int, seed: int) -> None:
     """Child process: stream n PEM rollouts, print seconds, failures and peak RSS as JSON."""
     from pemviz.scenarios.problems import braking_problem
     from pemviz.pem import load_pem
-    from pemviz.scenarios.batched import summarise_batched
+    from pemviz.scenarios.braking.batched import summarise_batched
 
     problem = braking_problem(load_pem())
     pem = problem.target

@@ -3,8 +3,8 @@
 Prints
 1. the latched-brake scenario's exact p_fail (closed form over the deterministic simulator) and the
    enumeration's bracket for it (two independent algorithms, they must agree);
-2. the refinement table of the main scenario's exact enumeration (pemviz.scenarios.truth.braking_truth), down to a
-   drop threshold where the bracket is far below 2 %;
+2. the refinement table of the main scenario's exact enumeration (pemviz.scenarios.braking.truth.braking_truth), down to
+   a drop threshold where the bracket is far below 2 %;
 3. the refinement table of a classical grid DP (backward value iteration on (gap, speed, integral) x pending
    with multilinear interpolation, the method first planned for issue 6) on both problems, to show why
    pemviz does not use it: V is a sum of step functions of the state, interpolation smears its jumps, and
@@ -28,7 +28,7 @@ from scipy.special import log_expit
 
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking import BrakingParams, braking_step, lead_speeds
-from pemviz.scenarios.truth import (
+from pemviz.scenarios.braking.truth import (
     BrakingStart, LogitFn, braking_truth, branching_start, latched_log_failure_probability,
 )
 

@@ -19,7 +19,7 @@ from pemviz.estimators import build_estimator
 from pemviz.estimators.ams import run_ams, running_score
 from pemviz.scenarios.problems import braking_problem, build_problem, toy_problem
 from pemviz.scenarios import branch, can_snapshot
-from pemviz.scenarios.batched import BatchedBraking
+from pemviz.scenarios.braking.batched import BatchedBraking
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
 from pemviz.scenarios.toy import ToyBraking, ToyParams, toy_log_failure_probability
 
@@ -45,7 +45,7 @@ def test_ams_is_unbiased_on_the_small_toy():
 
 def test_ams_is_unbiased_with_a_distance_dependent_detector():
     """p(d) from 0.95 at the obstacle to 0.5 at the start; exact answer by the product formula
-    (pemviz.scenarios.truth)."""
+    (pemviz.scenarios.braking.truth)."""
     params = ToyParams(30, 12, 3, lambda d: 0.95 - 0.015 * np.asarray(d))
     pb = toy_problem(params)
     assert pb.exact_log_p == toy_log_failure_probability(params) and pb.exact_log_p < math.log(1e-6)

@@ -29,7 +29,7 @@ from pemviz.app.form import FIELDS_BY_KEY, parse_number  # noqa: E402
 from pemviz.app.panel import PanelApp  # noqa: E402
 from pemviz.app.session import Session  # noqa: E402
 from pemviz.config import SETTINGS  # noqa: E402
-from pemviz.scenarios.braking_panel import explain  # noqa: E402
+from pemviz.scenarios.braking.panel import explain  # noqa: E402
 from pemviz.sinks import colours  # noqa: E402
 
 CHROMIUM_ARGS = [
@@ -459,7 +459,7 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     """A default run (state-ce): the sampler's q(detect) over the visited states inside the 10 m window sits below
     the PEM's; the mu_hat chart shows the interval and the exact answer; Explain gives the severity, the controller,
     and for a failure that no single miss decides, its minimal miss set."""
-    from pemviz.scenarios.braking_failures import severity
+    from pemviz.scenarios.braking.failures import severity
 
     s = tab.session
     tab.choose("preset", "state-ce")

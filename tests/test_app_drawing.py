@@ -11,8 +11,8 @@ from pemviz.app.drawing import LanePanel, LaneScene, ObjectsPanel, ObjectsScene,
 from pemviz.app.panel import idle_drawing
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
-from pemviz.scenarios.braking_drawing import BrakingDrawing
-from pemviz.scenarios.braking_failures import severity
+from pemviz.scenarios.braking.drawing import BrakingDrawing
+from pemviz.scenarios.braking.failures import severity
 from pemviz.scenarios.cut_in import LANE_WIDTH_M, CutInParams
 from pemviz.scenarios.cut_in_drawing import CutInDrawing
 

@@ -31,8 +31,8 @@ from pemviz.engine.events import RolloutsSampled, StageFinished, StageStarted
 from pemviz.sinks.console import ConsoleSink
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, BrakingScenario
-from pemviz.scenarios.braking_drawing import BrakingDrawing
-from pemviz.scenarios.braking_panel import explain
+from pemviz.scenarios.braking.drawing import BrakingDrawing
+from pemviz.scenarios.braking.panel import explain
 
 TINY = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=20, ce_epochs=20, pretrain_rollouts=10, pretrain_epochs=20)
 

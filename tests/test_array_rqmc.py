@@ -110,7 +110,7 @@ def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_unifo
 def test_batched_array_rqmc_rollouts_do_not_depend_on_the_chunk_size():
     from pemviz.scenarios.problems import braking_problem
     from pemviz.pem import load_pem
-    from pemviz.scenarios.batched import iter_batched, simulate_batched
+    from pemviz.scenarios.braking.batched import iter_batched, simulate_batched
     from pemviz.scenarios import RolloutBatch
 
     pb = braking_problem(load_pem())

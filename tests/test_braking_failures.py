@@ -10,7 +10,7 @@ import pytest
 
 from pemviz.core.proposal_view import miss_log_odds, proposal_view
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario
-from pemviz.scenarios.braking_failures import controller_trace, counterfactual, describe, severity
+from pemviz.scenarios.braking.failures import controller_trace, counterfactual, describe, severity
 
 P = BrakingParams()
 

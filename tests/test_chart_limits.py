@@ -21,8 +21,8 @@ from pemviz.config import ExperimentConfig
 from pemviz.core.proposal_view import proposal_view
 from pemviz.engine.events import RolloutsSampled
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.braking_drawing import BrakingDrawing
-from pemviz.scenarios.braking_panel import GAP_BINS_M
+from pemviz.scenarios.braking.drawing import BrakingDrawing
+from pemviz.scenarios.braking.panel import GAP_BINS_M
 
 LN10 = math.log(10.0)
 

@@ -174,7 +174,7 @@ def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, uni
             batch = problem.simulate(n, sampler, target, rng)
             return (batch.select(np.arange(a, min(a + 64, n))) for a in range(0, n, 64))
     else:
-        from pemviz.scenarios.batched import iter_batched
+        from pemviz.scenarios.braking.batched import iter_batched
 
         def stream(n, sampler, target, rng):
             return iter_batched(None, n, sampler, target, rng, chunk_size=64)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from pemviz.scenarios.problems import build_problem
-from pemviz.scenarios.batched import simulate_batched
+from pemviz.scenarios.braking.batched import simulate_batched
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "openturns_braking.py"
 
@@ -40,7 +40,7 @@ def test_wrapper_matches_pemviz_rollouts_bit_for_bit(seed):
     pb = build_problem("main")
     n = 4000
     # simulate_batched with the PEM as sampler: rollout i at step t uses the (t * n + i)-th uniform of the stream,
-    # i.e. rng.random((T, n))[t, i] (pemviz/scenarios/batched.py, module docstring; one chunk since n <= 8192).
+    # i.e. rng.random((T, n))[t, i] (pemviz/scenarios/braking/batched.py, module docstring; one chunk since n <= 8192).
     batch = simulate_batched(None, n, pb.target, pb.target, np.random.default_rng(seed))
     u = np.random.default_rng(seed).random((bench.T, n)).T
     mine = bench.rollouts(u, pb)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pemviz.scenarios import truth
+from pemviz.scenarios.braking import truth
 from pemviz.core.estimate import relative_error
 from pemviz.core.problems import ShiftedPEM
 from pemviz.scenarios.problems import braking_problem, build_problem, toy_problem

@@ -10,7 +10,7 @@ import pytest
 
 from pemviz.core.population import failure_groups, failure_shares
 from pemviz.estimators.base import pool
-from pemviz.scenarios.braking_failures import counterfactual, last_saving_steps
+from pemviz.scenarios.braking.failures import counterfactual, last_saving_steps
 
 
 def test_shares_by_hand_one_stage():

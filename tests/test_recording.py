@@ -26,7 +26,7 @@ from pemviz.config import ExperimentConfig  # noqa: E402
 from pemviz.engine import Experiment  # noqa: E402
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunStarted, StageFinished  # noqa: E402
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario  # noqa: E402
-from pemviz.scenarios.braking_failures import severity  # noqa: E402
+from pemviz.scenarios.braking.failures import severity  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.rerun_views import (  # noqa: E402

@@ -33,7 +33,7 @@ from pemviz.engine.events import FinalEstimate, RolloutChunk, RolloutsSampled, R
 from pemviz.pem import load_pem, save_pem
 from pemviz.scenarios.problems import braking_problem
 from pemviz.core.severity import rollout_severity
-from pemviz.scenarios.braking_failures import severity
+from pemviz.scenarios.braking.failures import severity
 from pemviz.core.sampling import Proposal, load_proposal
 from pemviz.scenarios import RolloutBatch
 from pemviz.sinks.rollouts import RolloutSink
@@ -184,7 +184,7 @@ def chunked(pem, monkeypatch):
     import dataclasses
 
     import pemviz.engine.experiment as engine
-    from pemviz.scenarios.batched import iter_batched
+    from pemviz.scenarios.braking.batched import iter_batched
 
     monkeypatch.setattr(engine, "STREAM_ABOVE", 300)
     return dataclasses.replace(braking_problem(pem), stream=lambda n, sampler, target, rng: iter_batched(

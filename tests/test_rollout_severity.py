@@ -24,9 +24,9 @@ from pemviz.core.severity import (
 from pemviz.engine import Experiment
 from pemviz.engine.events import FinalEstimate
 from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.batched import replay
+from pemviz.scenarios.braking.batched import replay
 from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
-from pemviz.scenarios.braking_failures import severity
+from pemviz.scenarios.braking.failures import severity
 from pemviz.sinks.console import ConsoleSink, final_lines
 from pemviz.sinks.population import FailureGroups, grouping_document
 

@@ -105,7 +105,7 @@ def test_the_problem_has_the_gap_and_no_reference_of_the_default_scene():
 
 def test_the_braking_exact_answer_is_dropped_or_recomputed_for_changed_parameters():
     from pemviz.scenarios.problems import problem_for
-    from pemviz.scenarios.truth import latched_log_failure_probability
+    from pemviz.scenarios.braking.truth import latched_log_failure_probability
     from pemviz.pem import load_pem
 
     default = problem_for(ExperimentConfig(pem_shift=0.5))

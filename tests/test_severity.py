@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios import truth
+from pemviz.scenarios.braking import truth
 from pemviz.scenarios.problems import problem_for
 from pemviz.core.severity import SeverityScale, level_events
 from pemviz.engine.events import RolloutsSampled

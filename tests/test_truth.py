@@ -1,4 +1,4 @@
-"""Exact answers (pemviz.scenarios.truth) against independent truth: brute-force enumeration, highway-env,
+"""Exact answers (pemviz.scenarios.braking.truth) against independent truth: brute-force enumeration, highway-env,
 Monte Carlo."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pemviz.scenarios.problems import toy_problem
 from pemviz.scenarios import simulate
 from pemviz.scenarios.braking import BrakingParams, BrakingScenario, braking_replay, braking_step, lead_speeds
 from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_log_failure_probability
-from pemviz.scenarios.truth import (
+from pemviz.scenarios.braking.truth import (
     _relaxed_step, braking_exact, branching_start, latched_log_failure_probability, miss_bound,
 )
 

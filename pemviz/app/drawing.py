@@ -24,7 +24,7 @@ __all__ = ["CurveAxis", "LaneExplanation", "LanePanel", "LaneScene", "ObjectsPan
 
 class LaneExplanation(Protocol):
     """A rollout of a :class:`~pemviz.scenarios.panel_data.LaneScene` explained step by step, e.g.
-    :class:`pemviz.scenarios.braking_panel.BrakingExplanation` (e.g. of the braking scenario).
+    :class:`pemviz.scenarios.braking.panel.BrakingExplanation` (e.g. of the braking scenario).
 
     Attributes:
         time_s: float64 [T] time of each step (seconds).

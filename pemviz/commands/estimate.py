@@ -246,7 +246,7 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
     """
     from pemviz.core.detectors import PEMDetector
     from pemviz.core.reweight import Alternative, PemSpread, ShiftedDetector
-    from pemviz.scenarios.truth import known_log_failure_probability
+    from pemviz.scenarios.braking.truth import known_log_failure_probability
     from pemviz.pem.ensemble import ensemble_for, load_ensemble
     from pemviz.scenarios.problems import PEM_SHIFTS, braking_formula
 

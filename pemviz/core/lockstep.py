@@ -3,8 +3,8 @@
 :func:`run_batched` asks, each step, the sampling detector and the target (PEM) about every object row of a batch
 (:class:`pemviz.core.rollouts.BatchedSimulator`), draws the events (:func:`pemviz.core.detectors.draw_step`) and steps
 the simulator; :func:`simulate` runs N black-box simulators in lockstep through it (:class:`Lockstep`), and the
-batched twins (:mod:`pemviz.scenarios.batched`, the toys) run through it too, so every simulator draws the same events
-from the same uniforms. :func:`iter_rollouts` / :func:`simulate_rollouts` stream or gather a batched simulator's
+batched twins (e.g. :mod:`pemviz.scenarios.braking.batched`, the toys) run through it too, so every simulator draws
+the same events from the same uniforms. :func:`iter_rollouts` / :func:`simulate_rollouts` stream or gather a batched simulator's
 rollouts in chunks (:func:`uniform_chunks`: the same rollouts, bit for bit, for any chunk size), :func:`branch` /
 :func:`branch_rollouts` continue rollouts from given steps of earlier ones. Re-exported by :mod:`pemviz.scenarios`.
 """
@@ -306,7 +306,7 @@ def branch(
     scenario is deterministic given its perception, so it passes through the parent's states) and draws them from
     ``target`` from step ``at[i]`` on (``log_q = log_p``), in lockstep (:func:`run_batched`): one ``rng.random(K)``
     per step 0..T - 1 for single-object rollouts (replayed rows ignore theirs), as the vectorised twins
-    (:func:`pemviz.scenarios.batched.branch_batched`, :func:`pemviz.scenarios.toy.branch_toy`) draw.
+    (e.g. :func:`pemviz.scenarios.braking.batched.branch_batched`, :func:`pemviz.scenarios.toy.branch_toy`) draw.
 
     Args:
         make_simulator: builds a fresh simulator at its start state.

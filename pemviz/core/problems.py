@@ -199,7 +199,7 @@ class ShiftedPEM:
     """A PEM whose detection logit is moved by ``shift`` (nats) at every distance: ``logit p'(detect | d) = logit
     p(detect | d) + shift``, so that p'(miss) ~ exp(-shift) p(miss) where misses are rare. A problem with it is as rare
     as wanted, and where the PEM's exact answer is known by enumeration over ``logit_at_gap`` (e.g. the braking
-    scenario's, :mod:`pemviz.scenarios.truth`), so is the shifted one's."""
+    scenario's, e.g. :mod:`pemviz.scenarios.braking.truth`), so is the shifted one's."""
 
     pem: object
     shift: float

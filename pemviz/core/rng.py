@@ -1,10 +1,10 @@
 """Jumps along a PCG64 stream: where the k-th float64 draw of a generator is, without drawing the ones before it.
 
-Chunks of rollouts (in this process, :mod:`pemviz.scenarios.batched`, or in workers, :mod:`pemviz.engine.executors`)
-read their slice of the uniforms one ``rng.random(n)`` per step would give, so the rollouts do not depend on how
-they are split. ``Generator.random`` takes one 64-bit output per float64, and PCG64 / PCG64DXSM can
-``advance`` by any number of outputs in O(log n) (O'Neill 2014, "PCG: a family of simple fast space-efficient
-statistically good algorithms for random number generation"); other bit generators cannot jump.
+Chunks of rollouts (in this process, e.g. :mod:`pemviz.scenarios.braking.batched`, or in workers,
+:mod:`pemviz.engine.executors`) read their slice of the uniforms one ``rng.random(n)`` per step would give, so the
+rollouts do not depend on how they are split. ``Generator.random`` takes one 64-bit output per float64, and PCG64 /
+PCG64DXSM can ``advance`` by any number of outputs in O(log n) (O'Neill 2014, "PCG: a family of simple fast
+space-efficient statistically good algorithms for random number generation"); other bit generators cannot jump.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from pemviz.io.rollout_table import braking_salient
 def braking_file(problem: Any) -> bool:
     """Whether the rollouts of ``problem`` (a :class:`pemviz.core.problems.Problem`, or None: not known) go into a
     braking scenario's file: its problem (its drawing object is the braking scenario's), or none known."""
-    from pemviz.scenarios.braking_drawing import BrakingDrawing
+    from pemviz.scenarios.braking.drawing import BrakingDrawing
 
     return problem is None or isinstance(getattr(problem, "drawing", None), BrakingDrawing)
 

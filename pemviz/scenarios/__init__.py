@@ -6,8 +6,8 @@ The simulator protocols (:class:`Simulator`, :class:`BatchedSimulator`, the opti
 the core, the engine and the estimators need no scenario. This package re-exports them, and holds the scenarios
 themselves (the braking scenario and its batched twin, the cut-in scene, the toys, the crowd), their parameters,
 their problems (:mod:`pemviz.scenarios.problems`: ``problem_for``, ``build_problem``, ``braking_problem`` ...) and the
-braking scenarios' exact answers (:mod:`pemviz.scenarios.truth`, with :mod:`~pemviz.scenarios.truth_latched` and
-:mod:`~pemviz.scenarios.truth_known`).
+braking scenarios' exact answers (:mod:`pemviz.scenarios.braking.truth`, with
+:mod:`~pemviz.scenarios.braking.truth_latched` and :mod:`~pemviz.scenarios.braking.truth_known`).
 
 The scenarios by name (:mod:`pemviz.scenarios.registry`): :func:`registered` lists them, :func:`get_scenario` returns
 one's record and :func:`register` adds one of one's own (imported when first named: ``from pemviz.scenarios import

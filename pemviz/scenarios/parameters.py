@@ -22,7 +22,7 @@ import re
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Iterable, Mapping, Union
 
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.settings import SCENARIOS, scenario_names
 
 if TYPE_CHECKING:

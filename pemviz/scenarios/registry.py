@@ -368,7 +368,7 @@ for _scenario in (
     Scenario("braking", "automated braking behind a lead car, the PEM as the camera's detector; failure: the gap "
              "drops below the crash gap", "pemviz.scenarios.braking:BrakingParams",
              "pemviz.scenarios.builtin:run_problem", exact=True,
-             simulator="pemviz.scenarios.braking:BrakingScenario", drawing="pemviz.scenarios.braking_drawing:BrakingDrawing"),
+             simulator="pemviz.scenarios.braking:BrakingScenario", drawing="pemviz.scenarios.braking.drawing:BrakingDrawing"),
     Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in:CutInParams",
              "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in_highway:CutInScenario",
              drawing="pemviz.scenarios.cut_in_drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),

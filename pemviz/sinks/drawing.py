@@ -4,7 +4,7 @@
 
 The hooks return data (words, numbers, arrays, names of entities, Markdown), never rerun objects: the sinks draw it
 with their colours and name no scene themselves. A scenario's package implements them
-(e.g. :class:`pemviz.scenarios.braking_recording.BrakingRecording`); a hook returns None where the scenario has
+(e.g. :class:`pemviz.scenarios.braking.recording.BrakingRecording`); a hook returns None where the scenario has
 nothing of that kind to draw, and the recording then draws only the problem's signals, as for a problem without a
 drawing object.
 

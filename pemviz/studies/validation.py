@@ -3,8 +3,8 @@
 A :class:`Job` is one method (a config) on one named problem (:data:`pemviz.scenarios.problems.PROBLEMS`) for one seed;
 :func:`run_jobs` runs jobs in worker processes and appends every :class:`RunRecord` to a ``runs.jsonl`` file as it
 ends, so an interrupted study resumes; :func:`exact_answer` is each problem's truth (closed form, the
-deterministic latched simulator, or exact enumeration, :mod:`pemviz.scenarios.truth`); :func:`summarise` groups records
-into table rows. ``pemviz validate`` and ``pemviz tables`` are the command-line layers over this module.
+deterministic latched simulator, or exact enumeration, :mod:`pemviz.scenarios.braking.truth`); :func:`summarise` groups
+records into table rows. ``pemviz validate`` and ``pemviz tables`` are the command-line layers over this module.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from pemviz.engine.events import RunFinished
 from pemviz.io.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.presets import PRESETS
-from pemviz.scenarios import truth
+from pemviz.scenarios.braking import truth
 from pemviz.scenarios.braking import BrakingParams
 from pemviz.scenarios.crowd import crowd_log_failure_probability
 from pemviz.scenarios.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
@@ -91,8 +91,9 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
 
     known = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams())
     if known is not None and not recompute:  # a shipped PEM: its enumeration (20-40 s) was kept
-        return ExactAnswer(known, "exact enumeration kept for this PEM (pemviz.scenarios.truth.KNOWN_BRAKING_LOG_P, "
-                                  "bracket width < 0.25 %; tests/test_truth.py recomputes it)",
+        return ExactAnswer(known, "exact enumeration kept for this PEM "
+                                  "(pemviz.scenarios.braking.truth.KNOWN_BRAKING_LOG_P, bracket width < 0.25 %; "
+                                  "tests/test_truth.py recomputes it)",
                            wall_s=time.perf_counter() - t0)
 
     def on_result(r: truth.ExactResult) -> None:

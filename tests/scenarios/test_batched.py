@@ -13,10 +13,11 @@ import torch
 
 from pemviz.scenarios.problems import problem_for
 from pemviz.scenarios import problems
+from pemviz.scenarios.braking import problem as braking_problem_module
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, PEMDetector, WindowDetector
 from pemviz.scenarios import RolloutBatch, simulate
-from pemviz.scenarios.batched import (
+from pemviz.scenarios.braking.batched import (
     BatchedBraking,
     iter_batched,
     replay,
@@ -238,7 +239,7 @@ def test_engine_runs_the_configured_back_end_and_both_give_the_same_estimate(mon
             raise AssertionError(f"sim={sim} ran {unused}")
 
         with monkeypatch.context() as patch:
-            patch.setattr(problems, unused, must_not_run)
+            patch.setattr(braking_problem_module, unused, must_not_run)
             cfg = ExperimentConfig(method="mixed50", n_per_stage=40, seed=1, sim=sim)
             done = Experiment(cfg, problem=problem_for(cfg)).run()
         assert isinstance(done, RunFinished)

@@ -12,7 +12,7 @@ from pemviz.engine.events import RolloutsSampled, RunStarted, StageFinished, Sta
 from pemviz.core.plan import RunPlan
 from pemviz.scenarios import RolloutBatch
 from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.braking_drawing import BrakingDrawing
+from pemviz.scenarios.braking.drawing import BrakingDrawing
 
 PLAN = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 50)])
 """Pretraining, K = 2 CE stages, the final batch: 130 simulations."""

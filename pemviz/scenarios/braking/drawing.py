@@ -1,7 +1,7 @@
 """The braking scenario's drawing object (:class:`pemviz.core.drawing.Drawing`): what the recording
-(:class:`~pemviz.scenarios.braking_recording.BrakingRecording`) and the panel
-(:class:`~pemviz.scenarios.braking_panel.BrakingPanel`) draw of its rollouts: two cars on one lane, the ego's
-braking distance and crash margin, the outcome in words (:func:`pemviz.scenarios.braking_failures.severity`)."""
+(:class:`~pemviz.scenarios.braking.recording.BrakingRecording`) and the panel
+(:class:`~pemviz.scenarios.braking.panel.BrakingPanel`) draw of its rollouts: two cars on one lane, the ego's
+braking distance and crash margin, the outcome in words (:func:`pemviz.scenarios.braking.failures.severity`)."""
 
 from __future__ import annotations
 
@@ -10,15 +10,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.braking_panel import BrakingPanel
-from pemviz.scenarios.braking_recording import BrakingRecording, car_positions
+from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.scenarios.braking.panel import BrakingPanel
+from pemviz.scenarios.braking.recording import BrakingRecording, car_positions
 
 __all__ = ["BrakingDrawing", "car_positions"]
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
-    from pemviz.scenarios.braking_failures import Severity
+    from pemviz.scenarios.braking.failures import Severity
 
 
 @dataclass(frozen=True)
@@ -36,13 +36,13 @@ class BrakingDrawing(BrakingRecording, BrakingPanel):
         return float(self.params.dt_s)
 
     def outcome(self, batch: RolloutBatch, i: int) -> Severity:
-        """The :class:`~pemviz.scenarios.braking_failures.Severity` of rollout ``i`` of ``batch`` (from its gaps,
+        """The :class:`~pemviz.scenarios.braking.failures.Severity` of rollout ``i`` of ``batch`` (from its gaps,
         metres).
 
         Raises:
             ValueError: the batch has no ``gap_m`` column.
         """
-        from pemviz.scenarios.braking_failures import severity
+        from pemviz.scenarios.braking.failures import severity
 
         if "gap_m" not in batch.observation_names:
             raise ValueError(f"BrakingDrawing.outcome: the rollouts have no gap_m column ({batch.observation_names})")
@@ -50,14 +50,14 @@ class BrakingDrawing(BrakingRecording, BrakingPanel):
 
     def failure_keys(self, detected: np.ndarray) -> tuple[str, list[int], dict[int, str]]:
         """Group failures by the last step at which one detection alone still saves the rollout (exact replays on
-        the deterministic twin, :func:`pemviz.scenarios.braking_failures.last_saving_steps`).
+        the deterministic twin, :func:`pemviz.scenarios.braking.failures.last_saving_steps`).
 
         Args:
             detected: bool [F, T] the failures' detections.
         Returns:
             (what the groups are, one key per failure (the step; -1: no single detection saves it), key -> label).
         """
-        from pemviz.scenarios.braking_failures import last_saving_steps
+        from pemviz.scenarios.braking.failures import last_saving_steps
 
         keys = last_saving_steps(detected, self.params).tolist() if len(detected) else []
         dt = self.dt_s

@@ -43,7 +43,9 @@ import numpy as np
 from pemviz.core.detectors import Detector
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, check_counts, iter_rollouts, simulate_rollouts
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, ego_step, initial_controller_state, lead_speeds
+from pemviz.scenarios.braking.simulator import (
+    OBSERVATION_NAMES, BrakingParams, ego_step, initial_controller_state, lead_speeds,
+)
 
 
 

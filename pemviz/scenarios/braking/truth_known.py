@@ -3,8 +3,8 @@ PEMs (:data:`KNOWN_BRAKING_LOG_P`, :data:`KNOWN_BRAKING_MARGIN_LOG_P`), kept by 
 (:func:`pem_fingerprint`), and :func:`known_log_failure_probability`, which gives them (or the latched scenario's
 closed form) where they are cheap to know.
 
-The kept answers come from :func:`pemviz.scenarios.truth.braking_truth` (20-40 s each); ``tests/test_truth.py`` and
-the benchmarks named beside each table recompute them. :mod:`pemviz.scenarios.truth` re-exports every name.
+The kept answers come from :func:`pemviz.scenarios.braking.truth.braking_truth` (20-40 s each); ``tests/test_truth.py``
+and the benchmarks named beside each table recompute them. :mod:`pemviz.scenarios.braking.truth` re-exports every name.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import hashlib
 
 import numpy as np
 
-from pemviz.scenarios.truth_latched import LogitFn, latched_log_failure_probability
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking.truth_latched import LogitFn, latched_log_failure_probability
+from pemviz.scenarios.braking.simulator import BrakingParams
 
 
 FINGERPRINT_GRID_M = np.linspace(0.0, 15.0, 151)
@@ -52,11 +52,11 @@ KNOWN_BRAKING_LOG_P: dict[str, float] = {
     "45816c12490d672f": -42.8015576615671,  # shift +1: 2.5794e-19, bracket width 0.14%, 1 s
 }
 """PEM fingerprint (:func:`pem_fingerprint`) -> natural log of the exact crash probability of the main braking
-scenario (default :class:`BrakingParams`), from :func:`~pemviz.scenarios.truth.braking_truth` (bracket width < 0.1 %):
-the enumeration takes 20-40 s, so the answers for the shipped PEMs are kept here (``tests/test_truth.py`` recomputes
-them), and those of the shipped PEM's ensemble members and logit shifts, for ``pemviz run --pem-uncertainty`` (from
-:func:`~pemviz.scenarios.truth.braking_exact` with drop thresholds below each one's p, bracket widths 0.04-2.3 %;
-``benchmarks/pem_uncertainty.py --exact`` recomputes them)."""
+scenario (default :class:`BrakingParams`), from :func:`~pemviz.scenarios.braking.truth.braking_truth` (bracket width <
+0.1 %): the enumeration takes 20-40 s, so the answers for the shipped PEMs are kept here (``tests/test_truth.py``
+recomputes them), and those of the shipped PEM's ensemble members and logit shifts, for ``pemviz run --pem-uncertainty``
+(from :func:`~pemviz.scenarios.braking.truth.braking_exact` with drop thresholds below each one's p, bracket widths
+0.04-2.3 %; ``benchmarks/pem_uncertainty.py --exact`` recomputes them)."""
 
 
 KNOWN_BRAKING_MARGIN_LOG_P: dict[tuple[str, float], float] = {
@@ -65,8 +65,8 @@ KNOWN_BRAKING_MARGIN_LOG_P: dict[tuple[str, float], float] = {
 }
 """(PEM fingerprint, crash gap in metres) -> natural log of the exact probability that the gap of the main braking
 scenario drops below that crash gap (the points of the exceedance curve, :mod:`pemviz.core.severity`), from
-:func:`~pemviz.scenarios.truth.braking_truth` with ``BrakingParams(crash_gap_m=...)`` and drop thresholds down to
--110 nats (``benchmarks/severity.py`` recomputes them)."""
+:func:`~pemviz.scenarios.braking.truth.braking_truth` with ``BrakingParams(crash_gap_m=...)`` and drop thresholds down
+to -110 nats (``benchmarks/severity.py`` recomputes them)."""
 
 
 def pem_fingerprint(logit_at_gap: LogitFn) -> str:

@@ -24,8 +24,8 @@ The braking dynamics are the scenario's own, written on the gap instead of posit
 log-sum-exps.
 
 This module holds the main scenario's enumeration (3.); the latched scenario's closed form and value function (2.)
-are :mod:`pemviz.scenarios.truth_latched`'s, the answers kept for the shipped PEMs
-:mod:`pemviz.scenarios.truth_known`'s, and every name of both is importable from here.
+are :mod:`pemviz.scenarios.braking.truth_latched`'s, the answers kept for the shipped PEMs
+:mod:`pemviz.scenarios.braking.truth_known`'s, and every name of both is importable from here.
 """
 
 from __future__ import annotations
@@ -40,15 +40,15 @@ import numpy as np
 from scipy.special import expit, log_expit, logsumexp
 
 from pemviz.core.estimate import format_probability
-from pemviz.scenarios.braking import BrakingParams, braking_step, lead_speeds
-from pemviz.scenarios.truth_known import (  # noqa: F401 (re-exported: importable from here as before)
+from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
+from pemviz.scenarios.braking.truth_known import (  # noqa: F401 (re-exported: importable from here as before)
     FINGERPRINT_GRID_M,
     KNOWN_BRAKING_LOG_P,
     KNOWN_BRAKING_MARGIN_LOG_P,
     known_log_failure_probability,
     pem_fingerprint,
 )
-from pemviz.scenarios.truth_latched import (  # noqa: F401 (re-exported: importable from here as before)
+from pemviz.scenarios.braking.truth_latched import (  # noqa: F401 (re-exported: importable from here as before)
     LatchedTruth,
     LatchedValue,
     LogitFn,

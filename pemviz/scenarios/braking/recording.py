@@ -1,7 +1,7 @@
 """The braking scenario's hooks of the recording (:class:`pemviz.sinks.drawing.RecordingDrawing`), mixed into
-:class:`pemviz.scenarios.braking_drawing.BrakingDrawing`: the run's description, each rollout's severity in words and
-numbers (:func:`pemviz.scenarios.braking_failures.severity`), a rollout as a lane of two cars seen from above, and the
-most likely failure's story (:func:`pemviz.scenarios.braking_failures.story`: the controller, the speeds and the exact
+:class:`pemviz.scenarios.braking.drawing.BrakingDrawing`: the run's description, each rollout's severity in words and
+numbers (:func:`pemviz.scenarios.braking.failures.severity`), a rollout as a lane of two cars seen from above, and the
+most likely failure's story (:func:`pemviz.scenarios.braking.failures.story`: the controller, the speeds and the exact
 replays with the minimal miss set or the last saving detection). Plain data, no rerun: the recording draws it."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking.simulator import BrakingParams
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
@@ -73,7 +73,7 @@ class BrakingRecording:
         return head, tail
 
     def outcome_values(self, batch: RolloutBatch, i: int) -> dict[str, Any] | None:
-        """Rollout ``i``'s :class:`~pemviz.scenarios.braking_failures.Severity`: ``outcome`` (its words),
+        """Rollout ``i``'s :class:`~pemviz.scenarios.braking.failures.Severity`: ``outcome`` (its words),
         ``min_gap_m`` (metres), ``breach_closing_mps``, ``contact``, ``contact_speed_mps`` (m/s; NaN: none); None
         without a ``gap_m`` column."""
         if "gap_m" not in batch.observation_names:
@@ -85,7 +85,7 @@ class BrakingRecording:
     def scene_lane(self, batch: RolloutBatch, i: int) -> tuple | None:
         """Rollout ``i`` as a lane: the ego (green while it detects the lead, orange while it misses) and the lead
         (red once the gap is below the crash gap), boxes of the true car sizes centred where
-        :func:`pemviz.scenarios.braking_drawing.car_positions` puts them (metres along the road), the sight line
+        :func:`pemviz.scenarios.braking.drawing.car_positions` puts them (metres along the road), the sight line
         from the camera to the lead's rear; None without ``gap_m`` and ``ego_speed_mps`` columns."""
         if not {"gap_m", "ego_speed_mps"} <= set(batch.observation_names):
             return None
@@ -98,11 +98,11 @@ class BrakingRecording:
         return boxes, (camera_x, camera_x + gap), float(lead_x.max() + p.lead_length_m)
 
     def explanation(self, batch: RolloutBatch, i: int) -> dict[str, Any] | None:
-        """The failing rollout ``i``'s story (:func:`pemviz.scenarios.braking_failures.story`): its severity, the
+        """The failing rollout ``i``'s story (:func:`pemviz.scenarios.braking.failures.story`): its severity, the
         step it crosses the crash gap and, where the replay reproduces it, the minimal miss set and the last saving
         step with their replays (gap, metres), the controller's acceleration (m/s^2) and brakes, the speeds (m/s);
         None without a ``gap_m`` column."""
-        from pemviz.scenarios.braking_failures import replay_with_detections, story
+        from pemviz.scenarios.braking.failures import replay_with_detections, story
 
         if "gap_m" not in batch.observation_names:
             return None

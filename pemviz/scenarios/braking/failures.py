@@ -1,8 +1,8 @@
 """Why did a braking rollout fail: its severity, the controller's signals, the misses that decide it, in words.
 
 Everything here is a function of one rollout's detection sequence on the deterministic batched twin of the
-braking scenario (:func:`pemviz.scenarios.batched.replay`: the same arithmetic as highway-env, bit for bit), so a
-counterfactual "had the detector seen the lead at these steps" is an exact replay, not a model of it. This is the
+braking scenario (:func:`pemviz.scenarios.braking.batched.replay`: the same arithmetic as highway-env, bit for bit), so
+a counterfactual "had the detector seen the lead at these steps" is an exact replay, not a model of it. This is the
 "most likely failure and its causes" report of adaptive stress testing (Lee et al., "Adaptive Stress Testing:
 Finding Likely Failure Events with Reinforcement Learning", JAIR 69, 2020), with the search for a minimal cause of
 delta debugging (Zeller & Hildebrandt, "Simplifying and Isolating Failure-Inducing Input", IEEE TSE 28(2), 2002).
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.scenarios.batched import BatchedBraking
-from pemviz.scenarios.braking import BrakingParams, ego_acceleration, initial_controller_state
+from pemviz.scenarios.braking.batched import BatchedBraking
+from pemviz.scenarios.braking.simulator import BrakingParams, ego_acceleration, initial_controller_state
 
 EXACT_MAX_SIZE = 3
 """The minimal miss set is searched exhaustively up to this many misses (then greedily, :func:`minimal_miss_set`)."""

@@ -1,14 +1,14 @@
 """The braking scenario's hooks of the panel (:class:`pemviz.app.drawing.PanelDrawing`), mixed into
-:class:`pemviz.scenarios.braking_drawing.BrakingDrawing`: its scene (two cars on one lane, the braking distance and
+:class:`pemviz.scenarios.braking.drawing.BrakingDrawing`: its scene (two cars on one lane, the braking distance and
 the crash margin ahead of the ego's camera), the explanation of a rollout (:class:`BrakingExplanation`: what happened
 at each step, what the controller did and which misses decided it), its strip charts and captions. Plain data, no
 viser (:mod:`pemviz.scenarios.panel_data`).
 
 The explanation replays the rollout on the deterministic batched twin of the simulator
-(:func:`pemviz.scenarios.batched.replay`, the same arithmetic as highway-env). A miss is *decisive* when flipping it
-alone avoids the failure (the gap stays at or above 2 m). This is the "most likely failure and its causes" report of
-adaptive stress testing (Lee et al. 2020, "Adaptive Stress Testing: Finding Likely Failure Events with Reinforcement
-Learning", JAIR 69).
+(:func:`pemviz.scenarios.braking.batched.replay`, the same arithmetic as highway-env). A miss is *decisive* when
+flipping it alone avoids the failure (the gap stays at or above 2 m). This is the "most likely failure and its causes"
+report of adaptive stress testing (Lee et al. 2020, "Adaptive Stress Testing: Finding Likely Failure Events with
+Reinforcement Learning", JAIR 69).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pemviz.core.proposal_view import prob_detect
-from pemviz.scenarios.braking_failures import (
+from pemviz.scenarios.braking.failures import (
     ControllerTrace,
     Counterfactual,
     Severity,
@@ -28,12 +28,12 @@ from pemviz.scenarios.braking_failures import (
     describe,
     severity,
 )
-from pemviz.scenarios.braking_recording import car_positions
+from pemviz.scenarios.braking.recording import car_positions
 from pemviz.scenarios.panel_data import CurveAxis, LaneScene, Series, ViewAxis, Zone
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
-    from pemviz.scenarios.braking import BrakingParams
+    from pemviz.scenarios.braking.simulator import BrakingParams
 
 GAP_BINS_M = np.linspace(0.0, 13.0, 27)
 """Gap bins of the proposal view (:mod:`pemviz.core.proposal_view`): 0.5 m wide, 0 to 13 m."""
@@ -53,10 +53,10 @@ class BrakingExplanation:
         flipped_min_gap_m: float64 [M] the smallest gap of the replay with that miss flipped (metres).
         crashed: the rollout's gap dropped below ``crash_gap_m``.
         replay_matches: the replay without flips reproduces the recorded gap (the counterfactual is valid).
-        severity: how bad the outcome was (:class:`pemviz.scenarios.braking_failures.Severity`).
+        severity: how bad the outcome was (:class:`pemviz.scenarios.braking.failures.Severity`).
         controller: the controller's signals along the rollout (brake command, brake applied, acceleration).
         counterfactual: the minimal miss set, the last saving step and the recovery step.
-        sentence: what happened, in plain words (:func:`pemviz.scenarios.braking_failures.describe`).
+        sentence: what happened, in plain words (:func:`pemviz.scenarios.braking.failures.describe`).
     """
 
     time_s: np.ndarray
@@ -123,7 +123,7 @@ def explain(
         log_p, log_q: float64 [T] log-probability of each action under the PEM and the sampler (nats).
         params: the scenario's constants (crash gap, dt; default :class:`~pemviz.scenarios.braking.BrakingParams`).
     """
-    from pemviz.scenarios.braking import BrakingParams
+    from pemviz.scenarios.braking.simulator import BrakingParams
 
     p = params or BrakingParams()
     detected = np.asarray(detected, bool)
@@ -201,7 +201,7 @@ class BrakingPanel:
 
     def lane_positions(self, batch: RolloutBatch, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rollout ``i`` of ``batch`` on the road, float64 [T] each (metres): the ego's centre (0 at the start), the
-        lead's centre (:func:`pemviz.scenarios.braking_recording.car_positions`, as the recording places them) and the
+        lead's centre (:func:`pemviz.scenarios.braking.recording.car_positions`, as the recording places them) and the
         gap (the ruler's length)."""
         gap = _column(batch, i, "gap_m", 0)
         ego_x, lead_x = car_positions(gap, _column(batch, i, "ego_speed_mps"), self.params)

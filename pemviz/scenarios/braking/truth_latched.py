@@ -1,11 +1,11 @@
 """The latched-brake braking scenario's exact answer: its failure probability in closed form
 (:func:`latched_log_failure_probability`) and its value function V, the zero-variance sampler's (:func:`latched_value`);
-and :data:`LogitFn`, the detector curve every exact answer of :mod:`pemviz.scenarios.truth` takes.
+and :data:`LogitFn`, the detector curve every exact answer of :mod:`pemviz.scenarios.braking.truth` takes.
 
 With a latched brake the first effective detection decides everything, so p_fail is a finite sum over the step of
 the first detection, each term from the deterministic simulator (:func:`pemviz.scenarios.braking.braking_replay`).
-Probabilities are natural logs (nats) in float64 and sums are log-sum-exps. :mod:`pemviz.scenarios.truth` re-exports
-every name.
+Probabilities are natural logs (nats) in float64 and sums are log-sum-exps. :mod:`pemviz.scenarios.braking.truth`
+re-exports every name.
 """
 
 from __future__ import annotations
@@ -18,8 +18,9 @@ from typing import Callable
 import numpy as np
 from scipy.special import log_expit, logsumexp
 
-from pemviz.scenarios.batched import replay  # the latched path: the batched simulator's observations bit for bit
-from pemviz.scenarios.braking import BrakingParams, braking_replay
+# the latched path: the batched simulator's observations bit for bit
+from pemviz.scenarios.braking.batched import replay
+from pemviz.scenarios.braking.simulator import BrakingParams, braking_replay
 
 LogitFn = Callable[[np.ndarray], np.ndarray]
 """``logit p(detect | gap_m)``: gaps in metres, any shape -> float64 of the same shape (e.g. ``PEM.logit_at_gap``)."""

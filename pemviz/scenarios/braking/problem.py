@@ -1,0 +1,81 @@
+"""The braking scenario's problem: :func:`braking_problem` (the scenario as a :class:`pemviz.core.problems.Problem`
+on its batched twin or on highway-env vehicles) and its safety formula :func:`braking_formula`
+(:mod:`pemviz.scenarios.problems` re-exports both)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Iterator
+
+import numpy as np
+
+from pemviz import stl
+from pemviz.settings import SIMULATORS
+from pemviz.core.detectors import Detector, PEMDetector
+from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch, simulate
+from pemviz.core.problem_view import Thresholds
+from pemviz.core.problems import Problem
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.core.severity import SeverityScale
+from pemviz.scenarios.braking.batched import branch_batched, iter_batched, simulate_batched
+from pemviz.scenarios.braking.drawing import BrakingDrawing
+from pemviz.scenarios.braking.simulator import (
+    BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, BRAKING_UNITS, BrakingParams, BrakingScenario,
+)
+from pemviz.scenarios.braking.truth import known_log_failure_probability
+
+
+def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":
+    """``G[0,T-1](d >= 2)``: the gap never drops below the crash gap (Innes & Ramamoorthy (2022))."""
+    p = params or BrakingParams()
+    return stl.parse(f"G[0,{p.n_steps - 1}](d >= {p.crash_gap_m:g})")
+
+
+BRAKING_SEVERITY_LEVELS_M = (1.5, 1.0, 0.5, 0.0)
+"""Gaps (metres) of the braking scenario's exceedance curve below its crash gap: 0 is contact."""
+
+
+def braking_problem(pem: object, params: BrakingParams | None = None, sim: str = "batched") -> Problem:
+    """The automated-braking scenario of Innes & Ramamoorthy (2022) with the given PEM as target detector.
+
+    Raises:
+        ValueError: for an unknown ``sim`` (allowed: :data:`SIMULATORS`).
+    """
+    p = params or BrakingParams()
+    if sim not in SIMULATORS:
+        raise ValueError(f"unknown simulator {sim!r}; use one of {', '.join(SIMULATORS)}")
+
+    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
+        if sim == "batched":
+            return simulate_batched(p, n, sampler, target, rng)
+        return simulate(lambda: BrakingScenario(p), n, sampler, target, rng, p.n_steps)
+
+    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
+               chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[RolloutBatch]:  # fmt: skip
+        return iter_batched(p, n, sampler, target, rng, chunk_size=chunk_size)
+
+    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
+               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+        if sim == "batched":
+            return branch_batched(p, parents, parent, at, target, rng)
+        return branch(lambda: BrakingScenario(p), parents, parent, at, target, rng)
+
+    scale = SeverityScale("d", "gap", "m", tuple(x for x in BRAKING_SEVERITY_LEVELS_M if x < p.crash_gap_m),
+                          margin=p.crash_gap_m, target_flag="margin", contact_at=p.contact_gap_m)  # fmt: skip
+    exact = {}
+    if hasattr(pem, "logit_at_gap"):
+        known = {x: known_log_failure_probability(pem.logit_at_gap, dataclasses.replace(p, crash_gap_m=x))
+                 for x in scale.levels}  # fmt: skip
+        exact = {x: v for x, v in known.items() if v is not None}
+    return Problem(
+        "braking", run, PEMDetector(pem), braking_formula(p), signals=dict(BRAKING_SIGNALS),
+        signal_ranges=dict(BRAKING_SIGNAL_RANGES), units=dict(BRAKING_UNITS), window=p.braking_distance_m,
+        decided_below=p.crash_gap_m, severity=scale, severity_exact=exact,
+        stream=stream if sim == "batched" else None, branch=resume,
+        exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
+        thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"),
+        drawing=BrakingDrawing(p), n_steps=p.n_steps, dt_s=p.dt_s,
+        description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
+                     f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
+                     f"the gap drops below {p.crash_gap_m:g} m"),
+    )  # fmt: skip
