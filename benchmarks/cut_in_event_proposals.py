@@ -63,7 +63,7 @@ from pemviz.core.estimate import estimate  # noqa: E402
 from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E402
 from pemviz.scenarios import run_batched  # noqa: E402
 from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
-from pemviz.scenarios.cut_in_batched import BatchedCutIn  # noqa: E402
+from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 

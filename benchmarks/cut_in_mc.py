@@ -35,7 +35,7 @@ from pemviz.scenarios.cut_in import (  # noqa: E402
     SALIENT_COLUMNS,
     CutInParams,
 )
-from pemviz.scenarios.cut_in_batched import BatchedCutIn, cached_trajectory  # noqa: E402
+from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory  # noqa: E402
 
 SETTINGS: dict[str, dict] = {"default": {}, **RARITY_SETTINGS}
 """Overrides of :class:`CutInParams` per named setting (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`)."""

@@ -14,7 +14,7 @@ from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.failures import severity
 from pemviz.scenarios.cut_in import LANE_WIDTH_M, CutInParams
-from pemviz.scenarios.cut_in_drawing import CutInDrawing
+from pemviz.scenarios.cut_in.drawing import CutInDrawing
 
 def test_the_braking_drawing_gives_a_lane_scene_of_its_constants():
     p = BrakingParams()

@@ -21,8 +21,8 @@ from scipy.special import expit
 from test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 from pemviz.app import charts
-from pemviz.scenarios.cut_in_panel import GAP_BINS_M as OBJECT_GAP_BINS_M
-from pemviz.scenarios.cut_in_panel import VIEW_OBJECT
+from pemviz.scenarios.cut_in.panel import GAP_BINS_M as OBJECT_GAP_BINS_M
+from pemviz.scenarios.cut_in.panel import VIEW_OBJECT
 
 SCREENSHOTS = Path(__file__).resolve().parents[1] / "assets" / "screenshots"
 VIEWPORT = {"width": 1400, "height": 1300}
@@ -174,7 +174,7 @@ def test_the_cut_in_story_tells_a_hand_made_rollout_step_by_step():
     track 2.5 m off laterally, outside the lane), the ACC follows it and brakes from the decision at step 3, contact
     at step 4 at 3.0 m/s closing speed (the row before: car 0 3.0 m/s slower than the ego)."""
     from pemviz.scenarios.cut_in import OBJECT_NAMES, OBSERVATION_NAMES
-    from pemviz.scenarios.cut_in_story import cut_in_story
+    from pemviz.scenarios.cut_in.story import cut_in_story
 
     t = 6
     obs = np.zeros((t, len(OBSERVATION_NAMES)))

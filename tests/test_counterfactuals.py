@@ -13,7 +13,7 @@ from pemviz.scenarios.problems import build_problem, cut_in_params, cut_in_probl
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking.failures import counterfactual as braking_counterfactual
 from pemviz.scenarios.cut_in import FAILURE_FORMULA, OBSERVATION_NAMES
-from pemviz.scenarios.cut_in_highway import CutInScenario
+from pemviz.scenarios.cut_in.highway import CutInScenario
 
 
 def test_braking_single_flips_are_the_braking_scenarios_own():

@@ -91,7 +91,7 @@ def test_cut_in_impact_speed_is_the_ego_s_closing_speed_on_the_car_it_meets():
     # step into it is the ego's speed minus the front car's at the step before, to 0.1 m/s (the cut-in car turns)
     from pemviz.scenarios.problems import cut_in_params
     from pemviz.scenarios.cut_in import OBSERVATION_NAMES as NAMES
-    from pemviz.scenarios.cut_in_batched import replay as replay_cut_in
+    from pemviz.scenarios.cut_in.batched import replay as replay_cut_in
 
     problem = problem_for(ExperimentConfig(scenario="cut-in"))
     p = cut_in_params("moderate")

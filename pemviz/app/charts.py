@@ -437,7 +437,7 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
 
     Sources: ``ox``'s positions, detections, measurements, tracks and gaps ahead, and its story (``severity``,
     ``acc``: the ACC's decisions, ``in_lane``: the steps object 0 overlapped the ego's lane),
-    e.g. :class:`pemviz.scenarios.cut_in_story.CutInStory`. The y ranges are :func:`pemviz.app.plots.robust_range`'s
+    e.g. :class:`pemviz.scenarios.cut_in.story.CutInStory`. The y ranges are :func:`pemviz.app.plots.robust_range`'s
     (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`): a value off them is drawn at the edge and the title counts it.
     """
     st = ox.story

@@ -121,7 +121,7 @@ class ObjectsPanel(PanelDrawing, Protocol):
 
     def objects_story(self, batch: RolloutBatch, names: tuple[str, ...]) -> Any | None:
         """What happened in rollout 0 of ``batch`` (``text``, ``severity``, ``acc``, ``in_lane``), or None: the scene
-        tells none; e.g. a :class:`pemviz.scenarios.cut_in_story.CutInStory`."""
+        tells none; e.g. a :class:`pemviz.scenarios.cut_in.story.CutInStory`."""
         ...
 
 

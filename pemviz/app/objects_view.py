@@ -60,7 +60,7 @@ class ObjectsExplanation:
             :attr:`~pemviz.scenarios.panel_data.ObjectsScene.distance_column`).
         story: what happened, in words, and the severity (the drawing's
             :meth:`~pemviz.app.drawing.ObjectsPanel.objects_story`), or None: the scene tells none;
-            e.g. :class:`pemviz.scenarios.cut_in_story.CutInStory`.
+            e.g. :class:`pemviz.scenarios.cut_in.story.CutInStory`.
         lane_width_m: a lane's width (metres).
     """
 

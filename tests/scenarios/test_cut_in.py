@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pemviz.pem.encoding import encode_salient
-from pemviz.scenarios import tracker
+from pemviz.scenarios.cut_in import tracker
 from pemviz.scenarios.cut_in import (
     FAILURE_FORMULA,
     OBJECT_NAMES,
@@ -21,7 +21,7 @@ from pemviz.scenarios.cut_in import (
     idm_acceleration,
     safe_distance,
 )
-from pemviz.scenarios.cut_in_scene import CutInMemory, camera_view, measure, object_rows, traffic_at
+from pemviz.scenarios.cut_in.scene import CutInMemory, camera_view, measure, object_rows, traffic_at
 from pemviz.stl import robustness
 
 P = CutInParams()

@@ -16,8 +16,8 @@ from pemviz.scenarios.cut_in import (
     OBSERVATION_NAMES,
     CutInParams,
 )
-from pemviz.scenarios.cut_in_batched import BatchedCutIn, cached_trajectory, replay
-from pemviz.scenarios.cut_in_highway import CutInScenario
+from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory, replay
+from pemviz.scenarios.cut_in.highway import CutInScenario
 from pemviz.stl import robustness
 
 P = CutInParams()

@@ -9,8 +9,8 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
 from scipy.linalg import block_diag
 
-from pemviz.scenarios import tracker
-from pemviz.scenarios.tracker import TrackerParams, Tracks
+from pemviz.scenarios.cut_in import tracker
+from pemviz.scenarios.cut_in.tracker import TrackerParams, Tracks
 
 DT = 0.1
 

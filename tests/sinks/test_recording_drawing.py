@@ -16,7 +16,7 @@ pytest.importorskip("rerun")
 from pemviz.core.problems import ProblemView, SignalView, Thresholds  # noqa: E402
 from pemviz.engine.events import StageStarted  # noqa: E402
 from pemviz.scenarios.braking.drawing import BrakingDrawing  # noqa: E402
-from pemviz.scenarios.cut_in_drawing import CutInDrawing  # noqa: E402
+from pemviz.scenarios.cut_in.drawing import CutInDrawing  # noqa: E402
 from pemviz.sinks.drawing import ROLES, RecordingDrawing  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.rerun_explain import ROLE_RGBA  # noqa: E402

@@ -1,9 +1,9 @@
 """The cut-in scenario's batched twin: N rollouts advance together in numpy float64.
 
-:class:`~pemviz.scenarios.cut_in_highway.CutInScenario` steps highway-env vehicles one rollout at a time (~0.5 ms a
+:class:`~pemviz.scenarios.cut_in.highway.CutInScenario` steps highway-env vehicles one rollout at a time (~0.5 ms a
 step); here the traffic, which never reacts to the ego, is computed once (:func:`cached_trajectory`, with the same
 highway-env vehicles) and shared by every rollout, and the ego, its trackers and its ACC advance for all N rollouts
-with one call of each array function of :mod:`pemviz.scenarios.cut_in_scene` per step.
+with one call of each array function of :mod:`pemviz.scenarios.cut_in.scene` per step.
 
 Same scenario, same arithmetic: the perception, the tracker and the ACC are the very functions the highway-env
 simulator calls with N = 1, and the ego's motion is highway-env ``Vehicle.step``'s explicit Euler update with no
@@ -21,10 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.scenarios import tracker
-from pemviz.scenarios.cut_in import NOISE_NAMES, OBJECT_NAMES, OBSERVATION_NAMES, CutInParams
-from pemviz.scenarios.cut_in_highway import TrafficTrajectory, traffic_trajectory
-from pemviz.scenarios.cut_in_scene import CameraView, camera_view, decide, object_rows, scene_signals
+from pemviz.scenarios.cut_in import tracker
+from pemviz.scenarios.cut_in.scenario import NOISE_NAMES, OBJECT_NAMES, OBSERVATION_NAMES, CutInParams
+from pemviz.scenarios.cut_in.highway import TrafficTrajectory, traffic_trajectory
+from pemviz.scenarios.cut_in.scene import CameraView, camera_view, decide, object_rows, scene_signals
 
 MAX_SPEED_MPS = 40.0
 """highway-env's ``Vehicle.MAX_SPEED``: above it ``clip_actions`` caps the acceleration at ``MAX_SPEED - speed``."""
@@ -32,7 +32,7 @@ MAX_SPEED_MPS = 40.0
 
 @functools.lru_cache(maxsize=8)
 def cached_trajectory(params: CutInParams) -> TrafficTrajectory:
-    """:func:`~pemviz.scenarios.cut_in_highway.traffic_trajectory`, computed once per parameter set."""
+    """:func:`~pemviz.scenarios.cut_in.highway.traffic_trajectory`, computed once per parameter set."""
     return traffic_trajectory(params)
 
 
@@ -63,7 +63,7 @@ class CutInBatchState:
 class BatchedCutIn:
     """N cut-in rollouts in lockstep (module docstring).
 
-    Protocol (the batched form of :class:`~pemviz.scenarios.cut_in_highway.CutInScenario`): ``objects()`` float64
+    Protocol (the batched form of :class:`~pemviz.scenarios.cut_in.highway.CutInScenario`): ``objects()`` float64
     ``[N, M, G]``, ``observation()`` float64 ``[N, F]``, ``step(detected bool [N, M], noise float64 [N, M, 2] | None)``.
 
     Raises:

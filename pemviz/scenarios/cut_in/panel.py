@@ -1,6 +1,6 @@
 """The cut-in scenario's hooks of the panel (:class:`pemviz.app.drawing.PanelDrawing`), mixed into
-:class:`pemviz.scenarios.cut_in_drawing.CutInDrawing`: its scene (every car on a road of three lanes, seen from the
-ego), the proposal view of the car that cuts in and the story of a rollout (:mod:`pemviz.scenarios.cut_in_story`).
+:class:`pemviz.scenarios.cut_in.drawing.CutInDrawing`: its scene (every car on a road of three lanes, seen from the
+ego), the proposal view of the car that cuts in and the story of a rollout (:mod:`pemviz.scenarios.cut_in.story`).
 Plain data, no viser (:mod:`pemviz.scenarios.panel_data`)."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from pemviz.scenarios.panel_data import CurveAxis, ObjectsScene, ViewAxis
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
-    from pemviz.scenarios.cut_in import CutInParams
-    from pemviz.scenarios.cut_in_story import CutInStory
+    from pemviz.scenarios.cut_in.scenario import CutInParams
+    from pemviz.scenarios.cut_in.story import CutInStory
 
 CAR_M = (4.5, 1.8)
 """Length and width of a car as the panel draws it (metres)."""
@@ -23,7 +23,7 @@ N_LANES = 3
 GAP_BINS_M = np.linspace(0.0, 40.0, 41)
 """Bins of the proposal view: the cut-in car's gap ahead (its rear minus the ego's front bumper, metres), 1 m wide, 0
 to 40 m (the cut-in starts 20 m ahead; the proposal reads cars within 40 m,
-:data:`pemviz.scenarios.problems.CUT_IN_WINDOW_M`)."""
+:data:`pemviz.scenarios.cut_in.problem.CUT_IN_WINDOW_M`)."""
 VIEW_OBJECT = 0
 """The object whose detections the proposal view follows: the cut-in car (object 0 of
 :attr:`pemviz.scenarios.cut_in.CutInParams.vehicles`)."""
@@ -42,7 +42,7 @@ class CutInPanel:
 
     def panel_scene(self) -> ObjectsScene:
         """The scene's constants: the cars' boxes, the lanes, the object rows' gap column."""
-        from pemviz.scenarios.cut_in import LANE_WIDTH_M
+        from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M
 
         return ObjectsScene(CAR_M[0], CAR_M[1], LANE_WIDTH_M, N_LANES, "gap_m", int(self.params.n_steps))
 
@@ -54,7 +54,7 @@ class CutInPanel:
 
     def curve_axis(self) -> CurveAxis:
         """The reference-state curves' x axis: the range from the camera to the cut-in car placed straight ahead in the
-        ego's lane, unoccluded (:func:`pemviz.scenarios.problems.cut_in_problem`'s ``curve_rows``)."""
+        ego's lane, unoccluded (:func:`pemviz.scenarios.cut_in.problem.cut_in_problem`'s ``curve_rows``)."""
         return CurveAxis("range (m)", "range r (m) of car 0, straight ahead in the ego's lane", "p(detect | r)")
 
     def group_heading(self) -> tuple[str, str]:
@@ -62,9 +62,9 @@ class CutInPanel:
         return "group", ""
 
     def objects_story(self, batch: RolloutBatch, names: tuple[str, ...]) -> CutInStory | None:
-        """What happened in rollout 0 of ``batch`` (:func:`pemviz.scenarios.cut_in_story.cut_in_story`, the cut-in
+        """What happened in rollout 0 of ``batch`` (:func:`pemviz.scenarios.cut_in.story.cut_in_story`, the cut-in
         car named ``names[0]``), or None: its rows lack the columns the story reads."""
-        from pemviz.scenarios.cut_in_story import cut_in_story, has_story_columns
+        from pemviz.scenarios.cut_in.story import cut_in_story, has_story_columns
 
         object_names = tuple(batch.object_names or ())
         if batch.objects is None or not has_story_columns(tuple(batch.observation_names), object_names):

@@ -1,20 +1,21 @@
 """The cut-in scenario's drawing object (:class:`pemviz.core.drawing.Drawing`): what the recording
-(:class:`~pemviz.scenarios.cut_in_recording.CutInRecording`) and the panel
-(:class:`~pemviz.scenarios.cut_in_panel.CutInPanel`) draw of its rollouts: several cars on a three-lane road, the
-story of the car that cuts in and the ACC, the outcome in words (:func:`pemviz.scenarios.cut_in_story.cut_in_severity`)."""
+(:class:`~pemviz.scenarios.cut_in.recording.CutInRecording`) and the panel
+(:class:`~pemviz.scenarios.cut_in.panel.CutInPanel`) draw of its rollouts: several cars on a three-lane road, the
+story of the car that cuts in and the ACC, the outcome in words
+(:func:`pemviz.scenarios.cut_in.story.cut_in_severity`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from pemviz.scenarios.cut_in import CutInParams
-from pemviz.scenarios.cut_in_panel import CutInPanel
-from pemviz.scenarios.cut_in_recording import CutInRecording
+from pemviz.scenarios.cut_in.scenario import CutInParams
+from pemviz.scenarios.cut_in.panel import CutInPanel
+from pemviz.scenarios.cut_in.recording import CutInRecording
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
-    from pemviz.scenarios.cut_in_story import CutInSeverity
+    from pemviz.scenarios.cut_in.story import CutInSeverity
 
 
 @dataclass(frozen=True)
@@ -32,13 +33,13 @@ class CutInDrawing(CutInRecording, CutInPanel):
         return float(self.params.dt_s)
 
     def outcome(self, batch: RolloutBatch, i: int) -> CutInSeverity:
-        """The :class:`~pemviz.scenarios.cut_in_story.CutInSeverity` of rollout ``i`` of ``batch`` (its scene
+        """The :class:`~pemviz.scenarios.cut_in.story.CutInSeverity` of rollout ``i`` of ``batch`` (its scene
         signals and object rows).
 
         Raises:
             ValueError: the rollouts lack the columns the story reads.
         """
-        from pemviz.scenarios.cut_in_story import cut_in_severity, has_story_columns
+        from pemviz.scenarios.cut_in.story import cut_in_severity, has_story_columns
 
         names = tuple(batch.observation_names)
         object_names = tuple(batch.object_names or ())

@@ -10,8 +10,8 @@ response: collisions are read from the geometry (``clearance_m``).
 
 Each step: :meth:`CutInScenario.objects` (the M object rows) and :meth:`CutInScenario.observation` (the scene
 signals), then :meth:`CutInScenario.step` with the detections and measurement errors. The perception, the tracker
-and the ACC are the array functions of :mod:`pemviz.scenarios.cut_in_scene` with N = 1, so the batched twin
-(:mod:`pemviz.scenarios.cut_in_batched`) gives the same bits.
+and the ACC are the array functions of :mod:`pemviz.scenarios.cut_in.scene` with N = 1, so the batched twin
+(:mod:`pemviz.scenarios.cut_in.batched`) gives the same bits.
 
 Units: metres, seconds, m/s.
 """
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.scenarios import tracker
-from pemviz.scenarios.cut_in import (
+from pemviz.scenarios.cut_in import tracker
+from pemviz.scenarios.cut_in.scenario import (
     EGO_LANE,
     LANE_WIDTH_M,
     N_LANES,
@@ -34,7 +34,7 @@ from pemviz.scenarios.cut_in import (
     ROAD_LENGTH_M,
     CutInParams,
 )
-from pemviz.scenarios.cut_in_scene import (
+from pemviz.scenarios.cut_in.scene import (
     CameraView,
     CutInMemory,
     Traffic,
@@ -102,7 +102,7 @@ class TrafficTrajectory:
 
 def traffic_trajectory(params: CutInParams) -> TrafficTrajectory:
     """The traffic's states at steps 0..T from highway-env vehicles on a road without the ego (they never react to
-    it), with the geometry of :func:`pemviz.scenarios.cut_in_scene.traffic_at` at each step."""
+    it), with the geometry of :func:`pemviz.scenarios.cut_in.scene.traffic_at` at each step."""
     _, _, others = build_road(params, with_ego=False)
     memory = CutInMemory.initial(len(others))
     out = []

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz.pem.camera import KITTI_FOCAL_PX, KITTI_PRINCIPAL_POINT_PX, MIN_RANGE_M
-from pemviz.scenarios import tracker
-from pemviz.scenarios.cut_in import (
+from pemviz.scenarios.cut_in import tracker
+from pemviz.scenarios.cut_in.scenario import (
     LANE_WIDTH_M,
     NO_VEHICLE_M,
     OBJECT_NAMES,
@@ -48,7 +48,7 @@ from pemviz.scenarios.cut_in import (
     acc_control,
     safe_distance,
 )
-from pemviz.scenarios.tracker import Tracks
+from pemviz.scenarios.cut_in.tracker import Tracks
 
 KITTI_IMAGE_SIZE_PX = (1242, 375)
 """Width and height of KITTI's camera-2 images, pixels (the KITTI object benchmark's left colour images)."""
@@ -320,7 +320,7 @@ def scene_signals(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray, eg
 def decide(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, ego_speed_mps: np.ndarray, tracks: Tracks,
            detected: np.ndarray, noise: np.ndarray | None) -> tuple[Tracks, np.ndarray, np.ndarray]:  # fmt: skip
     """The ego's decision at this step: measure the detected visible objects (:func:`measure`), fold the measurements
-    into the tracks (:func:`pemviz.scenarios.tracker.update`) and run the ACC on the tracks
+    into the tracks (:func:`pemviz.scenarios.cut_in.tracker.update`) and run the ACC on the tracks
     (:func:`~pemviz.scenarios.cut_in.acc_control`) on the confirmed tracks.
 
     Args:

@@ -8,7 +8,7 @@ reacts to the ego, so their trajectories are one deterministic function of the p
 
 Each step the ego's camera perceives each object: detected or missed, and, when detected, measured with an error in
 range and lateral position (a perception error model, PEM, draws both). A constant-velocity Kalman tracker per
-object (:mod:`pemviz.scenarios.tracker`) turns the measurements into estimates, and the ACC follows the nearest
+object (:mod:`pemviz.scenarios.cut_in.tracker`) turns the measurements into estimates, and the ACC follows the nearest
 TRACKED vehicle whose ESTIMATED position is ahead in the ego's lane with highway-env's IDM acceleration
 (:func:`idm_acceleration`). A missed or laterally mislocated cut-in is therefore not followed, and the ego closes in.
 
@@ -16,9 +16,9 @@ The failure (:data:`FAILURE_FORMULA`): a collision, or a violation of the safe-d
 al. 2020 (:func:`safe_distance`) towards the vehicle in front, except during ``cut_in_grace_s`` after that vehicle
 cut in.
 
-Modules: this one (parameters, names, controller, rule); :mod:`pemviz.scenarios.cut_in_scene` (the geometry each
-step: camera view, occlusion, measurements, object rows, scene signals); :mod:`pemviz.scenarios.cut_in_highway` (the
-simulator on highway-env vehicles); :mod:`pemviz.scenarios.cut_in_batched` (the batched twin).
+Modules: this one (parameters, names, controller, rule); :mod:`pemviz.scenarios.cut_in.scene` (the geometry each
+step: camera view, occlusion, measurements, object rows, scene signals); :mod:`pemviz.scenarios.cut_in.highway` (the
+simulator on highway-env vehicles); :mod:`pemviz.scenarios.cut_in.batched` (the batched twin).
 
 Units: metres, seconds, m/s, m/s^2, radians.
 """
@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pemviz.pem.encoding import INPUT_COLUMNS
-from pemviz.scenarios.tracker import TrackerParams
+from pemviz.scenarios.cut_in.tracker import TrackerParams
 
 LANE_WIDTH_M = 4.0
 """highway-env's ``StraightLane.DEFAULT_WIDTH`` (the lane width of ``straight_road_network``)."""

@@ -12,7 +12,7 @@ waiver, Maierhofer et al. 2020) at its first step, and the severity: the smalles
 negative: the boxes overlap) and, at contact, the closing speed (m/s).
 
 The rows' ``followed`` and ``ego_accel_mps2`` at step t are the ACC's decision at step t - 1 (applied over the step
-before the row, :mod:`pemviz.scenarios.cut_in_scene`): :class:`AccTrace` shifts them back to the step of the decision.
+before the row, :mod:`pemviz.scenarios.cut_in.scene`): :class:`AccTrace` shifts them back to the step of the decision.
 
 Units: metres, seconds, m/s, m/s^2.
 """
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.scenarios.cut_in import LANE_WIDTH_M, NO_VEHICLE_M
+from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, NO_VEHICLE_M
 
 CUT_IN_OBJECT = 0
 """The cut-in car's object index (the first of :attr:`pemviz.scenarios.cut_in.CutInParams.vehicles`)."""

@@ -1,5 +1,5 @@
 """The cut-in scenario's hooks of the recording (:class:`pemviz.sinks.drawing.RecordingDrawing`), mixed into
-:class:`pemviz.scenarios.cut_in_drawing.CutInDrawing`. The recording draws the cut-in's scene from the rollouts'
+:class:`pemviz.scenarios.cut_in.drawing.CutInDrawing`. The recording draws the cut-in's scene from the rollouts'
 object rows (:attr:`pemviz.core.problems.ProblemView.objects_xy`), so these add nothing: no lanes, no story, the
 run's description and each rollout's words are the recording's own."""
 
