@@ -17,13 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from pemviz import stl
-from pemviz.core.detectors import Detector
 from pemviz.core.estimate import Reference
-from pemviz.core.problem_view import Thresholds
-from pemviz.core.problems import Problem, rollout_functions
+from pemviz.core.problems import Problem
 from pemviz.core.reweight import AlternativeTarget
-from pemviz.core.severity import SeverityScale
 from pemviz.pem import DEFAULT_PEM_NAME, load_pem
 from pemviz.scenarios.braking.problem import (  # noqa: F401 (re-exported: importable from here as before)
     BRAKING_SEVERITY_LEVELS_M as BRAKING_SEVERITY_LEVELS_M,
@@ -32,8 +28,10 @@ from pemviz.scenarios.braking.problem import (  # noqa: F401 (re-exported: impor
 )
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.braking.truth import known_log_failure_probability
-from pemviz.scenarios.crowd import BatchedCrowd, CrowdDetector, CrowdParams, crowd_log_failure_probability
-from pemviz.scenarios.toy import ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability
+from pemviz.scenarios.crowd.problem import crowd_problem
+from pemviz.scenarios.crowd.simulator import CrowdParams
+from pemviz.scenarios.toy.problem import toy_problem
+from pemviz.scenarios.toy.simulator import ToyParams
 
 _CUT_IN_NAMES = ("CUT_IN_WINDOW_M", "CUT_IN_SIGNALS", "CUT_IN_FORMULA", "CUT_IN_SEVERITY_LEVELS_M", "cut_in_params",
                  "cut_in_problem")  # fmt: skip
@@ -49,67 +47,6 @@ def __getattr__(name: str) -> Any:
 
         return getattr(problem, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Problem:
-    """The toy as a :class:`Problem`: failure = classic robustness of
-    ``G[0,T-1](d >= safe)`` below 0; the proposal sees h(s) = distance / total (as the authors'
-    ``FFPolicy`` norm); curves are reported at the integer distances ``safe - 1 .. total``.
-    """
-    p = params or ToyParams()
-    formula = stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})")
-
-    def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator):
-        return simulate_toy(p, n, sampler, target, rng)
-
-    def branch(parents, parent, at, target: Detector, rng: np.random.Generator):
-        return branch_toy(p, parents, parent, at, target, rng)
-
-    p_label = f"{p.p_detect:g}" if not callable(p.p_detect) else "p(d)"
-    return Problem(
-        name or f"toy({p.total},{p.braking},{p.safe},{p_label})",
-        run,
-        ToyDetector(p),
-        formula,
-        signals={"d": "gap_m"},
-        units={"d": "units"},
-        thresholds=Thresholds(float(p.safe), float(p.braking), "units", "failure below", "braking within"),
-        signal_ranges={"d": (0.0, float(p.total))},
-        h_scale=float(p.total),
-        curve_grid=np.arange(max(p.safe - 1, 0), p.total + 1, dtype=np.float64),
-        window=float(p.braking) + 0.5,
-        n_steps=p.steps,
-        exact_log_p=toy_log_failure_probability(p),
-        branch=branch,
-        description=(f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
-                     f"closer than {p.safe}; detection probability {p_label}"),
-    )
-
-
-def crowd_problem(params: CrowdParams | None = None, name: str | None = None) -> Problem:
-    """The crowd toy (:mod:`pemviz.scenarios.crowd`) as a :class:`Problem`: M obstacles, each detected and mislocated
-    per step; failure = classic robustness of ``G[0,T-1](d >= safe)`` below 0 on the nearest distance; the proposal
-    reads each obstacle's row (distance first, scaled by ``total``) inside the window where a detection can stop the
-    car; the exact answer is :func:`pemviz.scenarios.crowd.crowd_log_failure_probability`."""
-    p = params or CrowdParams()
-
-    def make(n: int) -> BatchedCrowd:
-        return BatchedCrowd(p, n)
-
-    run, stream, resume = rollout_functions(make, p.steps)
-
-    far = p.total + max(p.offsets)
-    return Problem(
-        name or f"crowd({p.total},{p.braking},{p.safe},{p.p_detect:g},{len(p.offsets)} obstacles,sd {p.noise_sd:g})",
-        run, CrowdDetector(p), stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})"), signals={"d": "gap_m"},
-        units={"d": "units"}, signal_ranges={"d": (0.0, float(p.total))}, h_scale=float(p.total),
-        curve_grid=np.arange(0.0, far + 1.0), window=p.window, stream=stream, branch=resume,
-        exact_log_p=crowd_log_failure_probability(p), n_objects=len(p.offsets), n_steps=p.steps,
-        thresholds=Thresholds(float(p.safe), float(p.braking), "units", "failure below", "braking within"),
-        description=(f"toy braking toward {len(p.offsets)} obstacles, each detected with probability {p.p_detect:g} "
-                     f"and its distance measured with an N(0, {p.noise_sd:g}^2) error; braking when one is measured "
-                     f"within {p.braking}, failure closer than {p.safe} to the nearest"),
-    )  # fmt: skip
 
 
 # -- named problems -----------------------------------------------------------------------------------------------
