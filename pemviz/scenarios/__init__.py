@@ -4,10 +4,11 @@ The simulator protocols (:class:`Simulator`, :class:`BatchedSimulator`, the opti
 :class:`RolloutBatch` live in :mod:`pemviz.core.rollouts`, the rollout runner (:func:`run_batched`, :func:`simulate`,
 :class:`Lockstep`, :func:`iter_rollouts`, :func:`branch` ...) in :mod:`pemviz.core.lockstep`: scene-neutral, so that
 the core, the engine and the estimators need no scenario. This package re-exports them, and holds the scenarios
-themselves (the braking scenario and its batched twin, the cut-in scene, the toys, the crowd), their parameters,
-their problems (:mod:`pemviz.scenarios.problems`: ``problem_for``, ``build_problem``, ``braking_problem`` ...) and the
-braking scenarios' exact answers (:mod:`pemviz.scenarios.braking.truth`, with
-:mod:`~pemviz.scenarios.braking.truth_latched` and :mod:`~pemviz.scenarios.braking.truth_known`).
+themselves, one package each: :mod:`pemviz.scenarios.braking` (the braking scenario, its batched twin, its problem and
+its exact answers, :mod:`pemviz.scenarios.braking.truth`), :mod:`pemviz.scenarios.cut_in` (the cut-in scene),
+:mod:`pemviz.scenarios.toy` and :mod:`pemviz.scenarios.crowd` (the toys); beside them, what they share: their
+parameters (:mod:`pemviz.scenarios.parameters`) and their problems by name (:mod:`pemviz.scenarios.problems`:
+``problem_for``, ``build_problem``, ``braking_problem`` ...).
 
 The scenarios by name (:mod:`pemviz.scenarios.registry`): :func:`registered` lists them, :func:`get_scenario` returns
 one's record and :func:`register` adds one of one's own (imported when first named: ``from pemviz.scenarios import

@@ -5,7 +5,10 @@ The braking scenario of Innes & Ramamoorthy (2022) (:func:`braking_problem`, its
 (:func:`cut_in_problem` at a named setting :func:`cut_in_params`); the named problems with a known exact answer
 (:data:`PROBLEMS`, :data:`TOY_PROBLEMS`, :data:`CROWD_PROBLEMS`, built by :func:`build_problem`), the problem a run of
 a config estimates (:func:`problem_for`) and its alternative targets (:func:`with_alternatives`, :data:`PEM_SHIFTS`).
-The scene-neutral :class:`~pemviz.core.problems.Problem` and :func:`~pemviz.core.problems.rollout_functions` are in
+Each scenario's problem lives in its package (:mod:`pemviz.scenarios.braking.problem`,
+:mod:`pemviz.scenarios.cut_in.problem`, :mod:`pemviz.scenarios.toy.problem`, :mod:`pemviz.scenarios.crowd.problem`);
+this module re-exports them (the cut-in's imported when first named). The scene-neutral
+:class:`~pemviz.core.problems.Problem` and :func:`~pemviz.core.problems.rollout_functions` are in
 :mod:`pemviz.core.problems`.
 """
 
