@@ -10,13 +10,15 @@ also writes ``assets/screenshots/panel_params.png``.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from pemviz.app.form import format_param, param_key, parse_form, parse_params, run_label
-from pemviz.app.params_form import label
+from pemviz.app.params_form import ScenarioParamsForm, label
 from pemviz.config import ExperimentConfig
 from pemviz.scenarios.registry import get
 
@@ -82,6 +84,70 @@ def test_a_field_is_labelled_with_its_name_and_unit_and_shows_its_value_by_kind(
     assert parse_params("no-such-scenario", {"x": "1"}) == ((), {})
     assert parse_params("braking", {"nope": "1"})[1] == {param_key("nope"): "'nope' is not a parameter of the "
                                                                               "braking scenario"}  # fmt: skip
+
+
+class FakeHandle(SimpleNamespace):
+    """A GUI handle as the folder uses it: a label, a value, removal and an update callback."""
+
+    removed = False
+
+    def remove(self) -> None:
+        assert not self.removed
+        self.removed = True
+
+    def on_update(self, callback) -> None:
+        self.callback = callback
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+
+class FakeGui:
+    """The part of viser's ``client.gui`` the folder calls, keeping every handle made."""
+
+    def __init__(self) -> None:
+        self.made: list[FakeHandle] = []
+
+    def _make(self, **kw) -> FakeHandle:
+        self.made.append(FakeHandle(**kw))
+        return self.made[-1]
+
+    def add_folder(self, label, expand_by_default=True):
+        return self._make(label=label, expanded=expand_by_default)
+
+    def add_text(self, label, initial_value, hint=None):
+        return self._make(label=label, value=initial_value, hint=hint)
+
+    def add_html(self, content):
+        return self._make(content=content)
+
+    def add_markdown(self, content):
+        return self._make(content=content)
+
+
+def test_the_folder_starts_collapsed_at_the_starting_configs_values_and_rebuilds_with_the_scenario():
+    gui = FakeGui()
+    client = SimpleNamespace(gui=gui, atomic=contextlib.nullcontext)
+    config0 = ExperimentConfig(**CUT_IN, scenario_params=(("cut_in_gap_m", 19.5),))
+    changes = []
+    form = ScenarioParamsForm(client, config0)
+    form.build("cut-in", lambda: changes.append(1))
+    assert (form.folder.label, form.folder.expanded) == ("scenario parameters", False)
+    first = dict(form.fields)
+    assert form.texts("cut-in") == {**default_texts("cut-in"), "cut_in_gap_m": "19.5"}
+    assert first["cut_in_gap_m"].label == "cut_in_gap_m (m)" and "default 20.0" in first["cut_in_gap_m"].hint
+    first["n_objects"].callback(None)
+    assert changes == [1]
+    assert form.texts("braking") == {}  # another scenario's fields are not read as its own
+    form.show("cut-in-rare")  # the same names, the other scenario's defaults: the starting config is a cut-in's
+    assert all(h.removed for h in first.values()) and form.texts("cut-in-rare") == default_texts("cut-in-rare")
+    form.show_errors({param_key("n_objects"): "n_objects: bad"})
+    assert "n_objects: bad" in form.field_errors["n_objects"].content and form.field_errors["dt_s"].content == ""
+    form.show("toy")
+    assert set(form.fields) == {p.name for p in get("toy").parameters()}
 
 
 # -- in the browser ---------------------------------------------------------------------------------
