@@ -1,5 +1,6 @@
 """The *Experiment* tab of a :class:`pemviz.app.session.Session`: the form of the next run, each field with its own
-error line; a preset or a scenario sets the fields it has settings for."""
+error line; a preset or a scenario sets the fields it has settings for, and the folder *scenario parameters*
+(:class:`pemviz.app.params_form.ScenarioParamsForm`) holds the chosen scenario's parameters."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from pemviz.app._viser_compat import resend_value
 from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_number, parse_form
 from pemviz.app.host import PanelHost
 from pemviz.app.html import field_error
+from pemviz.app.params_form import ScenarioParamsForm
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.config import SCENE_DEFAULTS, SETTINGS, SIMULATORS, ExperimentConfig
 from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
@@ -21,7 +23,8 @@ from pemviz.scenarios.registry import registered
 
 class ExperimentTab:
     """The *Experiment* tab: owns the form's fields (:attr:`fields`: text, :attr:`choices`: dropdowns, :attr:`preset`)
-    and their error lines, and the form as last checked (:attr:`parsed`); whoever builds it is told of each change.
+    and their error lines, the scenario's parameters (:attr:`params`) and the form as last checked (:attr:`parsed`);
+    whoever builds it is told of each change.
 
     Args:
         client: the viser client the tab draws into.
@@ -33,6 +36,8 @@ class ExperimentTab:
         self.parsed = FormResult(None, {})
         """The form as last checked (:meth:`show_errors`)."""
         self._on_change: Callable[[], None] = lambda: None
+        self.params = ScenarioParamsForm(client, app.config0)
+        """The folder of the chosen scenario's parameters."""
 
     def build(self, on_change: Callable[[], None]) -> None:
         """Add the form to the tab open in ``client.gui``; ``on_change`` is called after every change to it."""
@@ -68,6 +73,7 @@ class ExperimentTab:
             number(key)
         dropdown("pem", tuple(pem_options), c0.pem or self._default_pem)
         dropdown("sim", simulators, c0.sim if c0.sim in simulators else simulators[0], disabled=len(simulators) < 2)
+        self.params.build(self.choices["scenario"].value, lambda: self._on_change())
         with gui.add_folder("advanced", expand_by_default=False):
             dropdown("method")
             for key in ("rel_error", "max_sims", "max_time_s", "ce_epochs", "pretrain_rollouts", "pretrain_epochs",
@@ -94,13 +100,15 @@ class ExperimentTab:
         """Parse what the form holds now (every field, every error)."""
         name = self.preset.value
         base = self.app.config0 if name == self.app.preset_name else ExperimentConfig(**PANEL_PRESETS[name])
-        return parse_form(self.field_texts(), self.choice_values(), base)
+        choices = self.choice_values()
+        return parse_form(self.field_texts(), choices, base, self.params.texts(choices["scenario"]))
 
     def show_errors(self, form: FormResult) -> None:
         """Keep ``form`` as :attr:`parsed` and show each field's error under it (none: an empty line)."""
         self.parsed = form
         for key, handle in self.field_errors.items():
             handle.content = field_error(form.errors.get(key, ""))
+        self.params.show_errors(form.errors)
 
     def echo(self) -> None:
         """Send every field's value as the server has it back to the browser, so the form shows what runs.
@@ -111,12 +119,12 @@ class ExperimentTab:
         the value the run really uses instead of what the browser alone remembers.
         """
         with self.client.atomic():
-            for handle in (*self.fields.values(), *self.choices.values(), self.preset):
+            for handle in (*self.fields.values(), *self.choices.values(), self.preset, *self.params.handles()):
                 resend_value(handle)
 
     def _apply_scene(self, scenario: str) -> None:
         """Set the method and N to ``scenario``'s own defaults (:data:`pemviz.config.SCENE_DEFAULTS`) where it has
-        them, and back to the preset's where it has none."""
+        them, and back to the preset's where it has none; show its parameters."""
         fields = SCENE_DEFAULTS.get(scenario)
         if not fields:
             preset = ExperimentConfig(**PANEL_PRESETS.get(self.preset.value, {}))
@@ -124,6 +132,7 @@ class ExperimentTab:
         with self.client.atomic():
             self.choices["method"].value = fields["method"]
             self.fields["n_per_stage"].value = format_number(FIELDS_BY_KEY["n_per_stage"], fields["n_per_stage"])
+        self.params.show(scenario)
         self._on_change()
 
     def _apply_preset(self, name: str) -> None:

@@ -3,20 +3,23 @@
 Numbers are typed into text fields and parsed here, so the form never rounds, rescales or silently
 keeps an earlier value: ``12.5`` in N is an error (N counts rollouts), ``1e-3`` in alpha is 0.001, an
 empty field is an error. :func:`parse_form` returns the config and, per field, the reason it is
-refused, all at once. :func:`run_cost` says what a run will take before it starts (the model of
-:mod:`pemviz.engine.cost`), and :func:`run_label` names a run by the settings that differ from the defaults. No
-viser here.
+refused, all at once; a scenario's parameters are parsed by their own kind (:func:`parse_params`) and only those
+changed from the scenario's defaults go into the run's ``scenario_params``. :func:`run_cost` says what a run will
+take before it starts (the model of :mod:`pemviz.engine.cost`), and :func:`run_label` names a run by the settings
+that differ from the defaults. No viser here.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Mapping
 
 from pemviz.config import SETTINGS, ConfigError, ExperimentConfig, Setting
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
+from pemviz.scenarios.parameters import Parameter, ParameterError, Value
+from pemviz.scenarios.registry import get
 
 
 NUMBER_FIELDS: tuple[Setting, ...] = tuple(SETTINGS[name] for name in (
@@ -52,9 +55,70 @@ def format_number(field: Setting, value: Any) -> str:
     return repr(float(value))
 
 
+PARAM_KEY = "param:"
+"""The prefix of a scenario parameter's key among a form's errors (``param:`` and the parameter's name)."""
+
+
+def param_key(name: str) -> str:
+    """The key of the scenario parameter ``name`` in :attr:`FormResult.errors`."""
+    return PARAM_KEY + name
+
+
+def format_param(p: Parameter, value: Value) -> str:
+    """The text a parameter's field shows for ``value``: ``repr`` of a float (``20.0``), digits for an int,
+    ``true`` / ``false`` for a bool."""
+    if p.kind == "bool":
+        return "true" if value else "false"
+    return str(int(value)) if p.kind == "int" else repr(float(value))
+
+
+def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[str, Value], ...], dict[str, str]]:
+    """The changed parameters of ``scenario`` and the errors of its parameter fields.
+
+    Each text is parsed by its parameter's kind (:meth:`pemviz.scenarios.parameters.Parameter.parse`); a value equal
+    to the scenario's default is left out, any other is checked on its own by the scenario
+    (:meth:`pemviz.scenarios.registry.Scenario.build_params`: its range), then the changed ones together.
+
+    Args:
+        scenario: a registered scenario's name.
+        texts: parameter name -> the text typed into its field.
+    Returns:
+        ``(pairs, errors)``: the ``(name, value)`` pairs that differ from the defaults, in the order of ``texts``
+        (the run's ``scenario_params``), and the errors, by :func:`param_key` of the field (one line each), or under
+        ``""`` for values each valid alone but refused together. An unknown scenario gives no pairs and no errors
+        (the config refuses it).
+    """
+    try:
+        found = get(scenario)
+    except KeyError:
+        return (), {}
+    params = {p.name: p for p in found.parameters()}
+    pairs: list[tuple[str, Value]] = []
+    errors: dict[str, str] = {}
+    for name, text in texts.items():
+        try:
+            if name not in params:
+                raise ParameterError(f"{name!r} is not a parameter of the {scenario} scenario")
+            value = params[name].parse(text)
+            if value == params[name].default:
+                continue
+            found.build_params({name: value})
+        except ParameterError as exc:
+            errors[param_key(name)] = str(exc)
+            continue
+        pairs.append((name, value))
+    if pairs and not errors:
+        try:
+            found.build_params(dict(pairs))
+        except ParameterError as exc:
+            errors[""] = str(exc)
+    return tuple(pairs), errors
+
+
 @dataclass(frozen=True)
 class FormResult:
-    """What the form describes: the config, or the errors (field key -> message; ``""`` for cross-field ones)."""
+    """What the form describes: the config, or the errors (field key -> message; :func:`param_key` of a scenario
+    parameter; ``""`` for cross-field ones)."""
 
     config: ExperimentConfig | None
     errors: dict[str, str]
@@ -64,13 +128,16 @@ class FormResult:
         return self.config is not None
 
 
-def parse_form(texts: dict[str, str], choices: dict[str, Any], base: ExperimentConfig | None = None) -> FormResult:
+def parse_form(texts: dict[str, str], choices: dict[str, Any], base: ExperimentConfig | None = None,
+               params: Mapping[str, str] | None = None) -> FormResult:
     """Parse every number field and build the config; every error at once.
 
     Args:
         texts: field key -> the text typed (keys of :data:`NUMBER_FIELDS`).
         choices: field key -> value for the dropdowns (metric, pem, sim, method, ...).
         base: settings the form does not show (default: :class:`ExperimentConfig`'s defaults).
+        params: the chosen scenario's parameter fields, name -> the text typed (:func:`parse_params`): the config's
+            ``scenario_params`` are the changed ones (``()``: none changed). None: ``base``'s are kept.
     """
     errors: dict[str, str] = {}
     values: dict[str, Any] = {}
@@ -82,6 +149,10 @@ def parse_form(texts: dict[str, str], choices: dict[str, Any], base: ExperimentC
             values[key] = value
     known = {f.name for f in dataclasses.fields(ExperimentConfig)}
     values.update({k: (None if k == "pem" and v in ("", None) else v) for k, v in choices.items() if k in known})
+    if params is not None:
+        pairs, param_errors = parse_params(values.get("scenario", (base or ExperimentConfig()).scenario), params)
+        errors.update(param_errors)
+        values["scenario_params"] = pairs
     if errors:
         return FormResult(None, errors)
     try:
@@ -106,15 +177,22 @@ def setting_name(key: str) -> str:
 
 
 def setting_value(value: Any) -> str:
+    """The text of a setting's value in labels and tables: ``0.2`` (``:g`` of a float), ``default`` for None, and
+    ``cut_in_gap_m=19.5, n_objects=4`` for scenario parameters (``(name, value)`` pairs, e.g. a cut-in's; none:
+    ``default``)."""
     if value is None:
         return "default"
+    if isinstance(value, tuple) and all(isinstance(x, tuple) and len(x) == 2 for x in value):
+        texts = (f"{name}={str(v).lower() if isinstance(v, bool) else setting_value(v)}" for name, v in value)
+        return ", ".join(texts) or "default"
     if isinstance(value, float):
         return f"{value:g}"
     return str(value)
 
 
 def run_label(run_id: int, cfg: ExperimentConfig, defaults: ExperimentConfig | None = None) -> str:
-    """``run 3 · agm, alpha 0.2, K 8``: the run number, the metric and every setting that differs from ``defaults``."""
+    """``run 3 · agm, alpha 0.2, K 8``: the run number, the metric and every setting that differs from ``defaults``;
+    scenario parameters by name and value (``scenario cut-in, cut_in_gap_m=19.5``, e.g. a cut-in's)."""
     base = defaults or ExperimentConfig()
     parts = [cfg.metric]
     for f in dataclasses.fields(ExperimentConfig):
@@ -122,5 +200,8 @@ def run_label(run_id: int, cfg: ExperimentConfig, defaults: ExperimentConfig | N
             continue
         value = getattr(cfg, f.name)
         if value != getattr(base, f.name):
-            parts.append(f"{setting_name(f.name)} {setting_value(value)}")
+            if f.name == "scenario_params":
+                parts.append(setting_value(value) if value else f"{setting_name(f.name)} {setting_value(value)}")
+            else:
+                parts.append(f"{setting_name(f.name)} {setting_value(value)}")
     return f"run {run_id} · " + ", ".join(parts)
