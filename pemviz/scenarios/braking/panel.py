@@ -19,15 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pemviz.core.proposal_view import prob_detect
-from pemviz.scenarios.braking.failures import (
-    ControllerTrace,
-    Counterfactual,
-    Severity,
-    controller_trace,
-    counterfactual,
-    describe,
-    severity,
-)
+from pemviz.scenarios.braking.failures import ControllerTrace, Counterfactual, Severity, story
 from pemviz.scenarios.braking.recording import car_positions
 from pemviz.scenarios.panel_data import CurveAxis, LaneScene, Series, ViewAxis, Zone
 
@@ -115,28 +107,26 @@ def explain(
     log_q: np.ndarray,
     params: BrakingParams | None = None,
 ) -> BrakingExplanation:
-    """Explain one braking rollout.
+    """Explain one braking rollout: its :func:`~pemviz.scenarios.braking.failures.story` (severity, controller,
+    counterfactual, sentence) with the probabilities and the importance weight of each step.
 
     Args:
         gap_m: float64 [T] recorded gap (metres).
         detected: bool [T] the detections taken.
         log_p, log_q: float64 [T] log-probability of each action under the PEM and the sampler (nats).
         params: the scenario's constants (crash gap, dt; default :class:`~pemviz.scenarios.braking.BrakingParams`).
+    Raises:
+        ValueError: ``gap_m`` and ``detected`` not of one shape [T], or longer than the scenario.
     """
     from pemviz.scenarios.braking.simulator import BrakingParams
 
     p = params or BrakingParams()
     detected = np.asarray(detected, bool)
     gap = np.asarray(gap_m, dtype=np.float64)
-    ctrl = controller_trace(detected, p)
-    matches = bool(np.allclose(ctrl.gap_m, gap, rtol=0.0, atol=1e-9))
+    told = story(gap, detected, p)
+    cf = told.counterfactual
     crashed = bool(np.min(gap) < p.crash_gap_m)
-    cf = counterfactual(detected, p)
-    sev = severity(gap, p)
-    decisive = cf.decisive if (crashed and matches) else np.zeros(0, int)
-    sentence = describe(detected, sev, ctrl, cf, p) if matches else (
-        sev.phrase[0].upper() + sev.phrase[1:] + ". The replay does not reproduce this rollout: no counterfactual."
-    )
+    decisive = cf.decisive if (crashed and told.replay_matches) else np.zeros(0, int)
     lp, lq = np.asarray(log_p, dtype=np.float64), np.asarray(log_q, dtype=np.float64)
     return BrakingExplanation(
         time_s=np.arange(detected.size) * p.dt_s,
@@ -147,11 +137,11 @@ def explain(
         decisive=decisive,
         flipped_min_gap_m=cf.flipped_min_gap_m,
         crashed=crashed,
-        replay_matches=matches,
-        severity=sev,
-        controller=ctrl,
+        replay_matches=told.replay_matches,
+        severity=told.severity,
+        controller=told.controller,
         counterfactual=cf,
-        sentence=sentence,
+        sentence=told.sentence,
     )
 
 
