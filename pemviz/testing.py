@@ -25,7 +25,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-SCENARIO_CHECKS = ("schema", "problem", "determinism", "twin", "rollout-file", "recording")
+SCENARIO_CHECKS = ("schema", "problem", "determinism", "twin", "drawing", "rollout-file", "recording")
 """The checks of :func:`check_scenario`, in the order they run."""
 
 ESTIMATOR_CHECKS = ("interface", "unbiased", "verdicts", "rollout-file", "recording")
@@ -325,6 +325,12 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
       :func:`pemviz.core.checks.check_simulator` (single-object ones), and :data:`TWIN_ROLLOUTS` of it in lockstep
       (:func:`pemviz.scenarios.simulate`) are those of the problem's batched twin, step by step, bit for bit.
       Skipped without one.
+    - ``drawing``: where the problem has a drawing object (:attr:`pemviz.core.problems.Problem.drawing`), it is the
+      registry's (:meth:`pemviz.scenarios.registry.Scenario.drawing_object` of the same parameters, equal), it
+      survives pickling (the recording runs in a second process), and its ``outcome(batch, i)``
+      (:class:`pemviz.core.drawing.Outcome`) says failed for exactly the rollouts the problem's failure event
+      (:meth:`pemviz.core.problems.Problem.failed`) says failed, on the rollouts drawn by the PEM and by a 50 %
+      detector. Skipped without one.
     - ``rollout-file``: a ``naive50`` run of :data:`RUN_ROLLOUTS` (a small adaptive run if it sees no failure) saved by
       :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file
       (:func:`pemviz.io.rollout_estimate.estimate_rollouts`) to the run's own mu_hat within
@@ -408,6 +414,8 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
                                                        f"batched twin: {diff}")  # fmt: skip
         checks.passed.append(name)
 
+    _check_drawing(checks, sc, built, problem, first)
+
     with _folder(folder) as where:
         run = None
         for config in _scenario_configs(sc, params, seed):
@@ -416,6 +424,32 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
                 break
         _check_files(checks, run)
     return checks.report()
+
+
+def _check_drawing(checks: _Checks, sc: Any, built: Any, problem: Any, batches: Mapping[str, Any]) -> None:
+    """The ``drawing`` check of :func:`check_scenario` on the rollouts ``batches`` (label -> batch)."""
+    import pickle
+
+    from pemviz.core.drawing import Outcome
+
+    drawing = problem.drawing
+    if drawing is None:
+        checks.skipped.append(("drawing", "the problem has no drawing object: only its signals are drawn"))
+        return
+    given = sc.drawing_object(built)
+    checks.require(given == drawing, "drawing", lambda: f"the registry's drawing {given!r:.80} is not the problem's")
+    try:
+        checks.require(pickle.loads(pickle.dumps(drawing)) == drawing, "drawing", "not itself after pickling")
+    except pickle.PicklingError as exc:
+        raise checks.fail("drawing", f"it cannot be pickled ({exc}); the recording runs in a process of its own")
+    for label, batch in batches.items():
+        failed = np.asarray(problem.failed(batch), dtype=bool)
+        for i in range(batch.n):
+            told = drawing.outcome(batch, i)
+            checks.require(isinstance(told, Outcome) and bool(told.failed) == failed[i], "drawing",
+                           lambda: f"rollout {i} drawn by {label}: outcome(batch, {i}) is {told!r:.80}, the "
+                                   f"problem's failure event says failed={bool(failed[i])}")  # fmt: skip
+    checks.passed.append("drawing")
 
 
 def _default_config(sc: Any) -> Any:

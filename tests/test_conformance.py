@@ -75,7 +75,8 @@ def test_every_registered_scenario_passes_the_kit(name, tmp_path):
         pytest.xfail(f"{name}: the kit finds it at fault, as KNOWN_FAILURES says")
     report = check_scenario(name, folder=tmp_path)
     twin = () if get_scenario(name).simulator is None else ("twin",)
-    assert report.passed == ("schema", "problem", "determinism", *twin, "rollout-file", "recording")
+    drawing = () if get_scenario(name).drawing is None else ("drawing",)
+    assert report.passed == ("schema", "problem", "determinism", *twin, *drawing, "rollout-file", "recording")
     assert (tmp_path / f"{name}-naive50.parquet").is_file() or (tmp_path / f"{name}-adaptive.parquet").is_file()
 
 
@@ -96,9 +97,11 @@ def test_the_user_guide_s_kit_examples_run_as_written(capsys):
         if "short-toy" in registered():
             unregister("short-toy")
     out = capsys.readouterr().out.splitlines()
-    assert out[0] == "scenario braking: 6 checks passed (schema, problem, determinism, twin, rollout-file, recording)"
+    assert out[0] == ("scenario braking: 7 checks passed (schema, problem, determinism, twin, drawing, rollout-file, "
+                      "recording)")
     assert out[1] == "estimator adaptive: 5 checks passed (interface, unbiased, verdicts, rollout-file, recording)"
-    assert out[2].startswith("scenario short-toy: 6 checks passed") and len(out) == 3
+    assert out[2].startswith("scenario short-toy: 6 checks passed") and len(out) == 4
+    assert out[3] == "  skipped drawing: the problem has no drawing object: only its signals are drawn"
 
 
 # -- each check fails on something broken ----------------------------------------------------------------------------
@@ -139,6 +142,35 @@ class LateToy(ToyBraking):
         super().step(detected and self.distance < self.params.braking)
 
 
+@dataclass(frozen=True)
+class Told:
+    """An outcome (:class:`pemviz.core.drawing.Outcome`)."""
+
+    failed: bool
+    contact: bool = False
+    short: str = "failed"
+    rank: float = 0.0
+
+
+@dataclass(frozen=True)
+class AlwaysFailed:
+    """A drawing object whose outcome says every rollout failed."""
+
+    dt_s: float = 1.0
+
+    def outcome(self, batch, i):
+        return Told(True)
+
+
+def always_failed(params):
+    return AlwaysFailed()
+
+
+def drawn_toy(config, params):
+    """The toy, drawn by :class:`AlwaysFailed`."""
+    return dataclasses.replace(builtin.toy(config, params), drawing=AlwaysFailed())
+
+
 @pytest.mark.parametrize("changes, message", [
     (dict(params=Unchecked, factory=unchecked_toy, simulator=None),
      r"schema: no far value of any parameter \(speed_mps: -1e12, 1e12\) is refused"),
@@ -147,7 +179,10 @@ class LateToy(ToyBraking):
                               r"other rollouts: observations\[0, 0, 0\] \(rollout 0, step 0\)"),
     (dict(simulator=LateToy), r"twin: rollouts drawn by the target \(PEM\): the single simulator, then the batched "
                               r"twin: observations\[\d+, 51, 0\] \(rollout \d+, step 51\): 49\.0 then 50\.0"),
-], ids=["schema", "problem", "determinism", "twin"])  # fmt: skip
+    (dict(factory=drawn_toy, drawing=always_failed),
+     r"drawing: rollout 0 drawn by the target \(PEM\): outcome\(batch, 0\) is Told\(failed=True.*failure event says "
+     r"failed=False"),
+], ids=["schema", "problem", "determinism", "twin", "drawing"])  # fmt: skip
 def test_each_scenario_check_fails_on_a_broken_scenario(changes, message):
     broken = dataclasses.replace(TOY, name="broken-toy", **changes)
     with pytest.raises(ConformanceError, match=r"^check_scenario\('broken-toy'\): " + message):
