@@ -8,7 +8,6 @@ import threading
 
 import viser
 
-from pemviz.app.drawing import lane_panel
 from pemviz.app.html import GREY, NO_ROLLOUT, RED, TABLE_STYLE, box
 from pemviz.app.objects_view import RobustnessOutcome
 from pemviz.app.runs import MAX_POPULATION, PanelRun, Population, Trajectory
@@ -116,13 +115,19 @@ class RolloutsTab:
         )
 
     def severity_of(self, record: PanelRun, t: Trajectory) -> Outcome:
-        """The severity of a listed rollout (computed once per rollout): the outcome of a lane scene's drawing
-        (:meth:`pemviz.core.drawing.Drawing.outcome`), else failed or safe by its robustness."""
+        """The severity of a listed rollout (computed once per rollout): the outcome of its scenario's drawing object
+        (:meth:`pemviz.core.drawing.Drawing.outcome`, the words the recording shows), else (no drawing, or rows
+        without the columns it reads) failed or safe by its robustness."""
         key = (record.run_id, t.key)
         if key not in self._severities:
-            lane = lane_panel(record.view.drawing if record.view is not None else None)
-            self._severities[key] = (lane.outcome(t.batch, 0) if lane is not None
-                                     else RobustnessOutcome(t.robustness, t.crashed))  # fmt: skip
+            drawing = record.view.drawing if record.view is not None else None
+            told: Outcome = RobustnessOutcome(t.robustness, t.crashed)
+            if drawing is not None:
+                try:
+                    told = drawing.outcome(t.batch, 0)
+                except ValueError:  # not the scenario's own columns (a rollout file of another problem)
+                    pass
+            self._severities[key] = told
         return self._severities[key]
 
     @staticmethod

@@ -111,3 +111,26 @@ def test_every_role_has_a_colour_and_the_built_in_drawings_implement_the_hooks()
         assert pickle.loads(pickle.dumps(drawing)) == drawing
     assert BrakingDrawing().draws_scene and not CutInDrawing().draws_scene
     assert CutInDrawing().intro("G(d >= 2)", "classic", "mc") is None
+
+
+def test_the_cut_ins_outcome_values_are_its_severity_and_every_failure_is_said_failed():
+    from pemviz.config import ExperimentConfig
+    from pemviz.core.detectors import ConstantDetector
+    from pemviz.core.rollouts import RolloutBatch
+    from pemviz.scenarios.cut_in.story import cut_in_severity
+    from pemviz.scenarios.problems import problem_for
+
+    problem = problem_for(ExperimentConfig(scenario="cut-in"))
+    b = RolloutBatch.concatenate([
+        problem.simulate(12, ConstantDetector(p), problem.target, np.random.default_rng(3)) for p in (0.5, 0.02)
+    ])  # the cut-in car seen half the time (safe), or almost never (failures)
+    failed = problem.failed(b)
+    assert 0 < failed.sum() < b.n  # both kinds
+    names, object_names = tuple(b.observation_names), tuple(b.object_names)
+    for i in range(b.n):
+        told = problem.drawing.outcome_values(b, i)
+        want = cut_in_severity(b.observations[i], names, b.objects[i], object_names, 0.1)
+        assert told["outcome"] == want.short and told["contact"] == want.contact
+        assert told["min_clearance_m"] == want.min_clearance_m
+        assert told["outcome"].startswith("no failure") != bool(failed[i])
+    assert CutInDrawing().outcome_values(batch(np.full((2, 5), 9.0)), 0) is None  # rows without its columns

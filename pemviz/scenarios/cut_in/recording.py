@@ -1,7 +1,8 @@
 """The cut-in scenario's hooks of the recording (:class:`pemviz.sinks.drawing.RecordingDrawing`), mixed into
 :class:`pemviz.scenarios.cut_in.drawing.CutInDrawing`. The recording draws the cut-in's scene from the rollouts'
-object rows (:attr:`pemviz.core.problems.ProblemView.objects_xy`), so these add nothing: no lanes, no story, the
-run's description and each rollout's words are the recording's own."""
+object rows (:attr:`pemviz.core.problems.ProblemView.objects_xy`), so these add no lanes and no story, and the
+run's description is the recording's own; each rollout's outcome is the cut-in's severity
+(:func:`pemviz.scenarios.cut_in.story.cut_in_severity`), in the words the panel shows too."""
 
 from __future__ import annotations
 
@@ -26,9 +27,19 @@ class CutInRecording:
         """None: the recording's own description (the problem's name and description)."""
         return None
 
-    def outcome_values(self, batch: RolloutBatch, i: int) -> None:
-        """None: the recording says ``failure`` or ``safe``."""
-        return None
+    def outcome_values(self, batch: RolloutBatch, i: int) -> dict[str, Any] | None:
+        """Rollout ``i``'s :class:`~pemviz.scenarios.cut_in.story.CutInSeverity`: ``outcome`` (its words, e.g.
+        ``contact at 2.8 m/s closing speed at 3.10 s · minimum clearance -0.66 m ...``), ``min_clearance_m``
+        (metres; negative: the boxes overlap), ``contact``, ``closing_speed_mps`` (m/s; NaN: no contact, or none in
+        front); None where the rollouts lack the scene columns the severity reads."""
+        from pemviz.scenarios.cut_in.story import has_story_columns
+
+        names, object_names = tuple(batch.observation_names), tuple(batch.object_names or ())
+        if batch.objects is None or not has_story_columns(names, object_names):
+            return None
+        sev = self.outcome(batch, i)
+        return dict(outcome=sev.short, min_clearance_m=sev.min_clearance_m, contact=sev.contact,
+                    closing_speed_mps=sev.closing_speed_mps)  # fmt: skip
 
     def scene_lane(self, batch: RolloutBatch, i: int) -> None:
         """None: no lane (the scene is drawn from the object rows)."""
