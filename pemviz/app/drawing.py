@@ -3,7 +3,8 @@ of :class:`PanelDrawing`, which return plain data (:mod:`pemviz.scenarios.panel_
 viser and its colours. The panel names no scenario: a drawing whose :meth:`~PanelDrawing.panel_scene` is a
 :class:`~pemviz.scenarios.panel_data.LaneScene` is drawn as the ego and one object ahead of it (hooks of
 :class:`LanePanel`), one whose scene is an :class:`~pemviz.scenarios.panel_data.ObjectsScene` as several objects
-around the ego (hooks of :class:`ObjectsPanel`). A problem without a drawing (a toy) draws no scene.
+around the ego (hooks of :class:`ObjectsPanel`). A problem without a drawing (a toy) draws no scene. Before any
+rollout is shown the panel draws the idle scene of the scenario chosen for the next run (:func:`scenario_drawing`).
 """
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import numpy as np
 
 from pemviz.core.drawing import Drawing
+from pemviz.scenarios import registry
 from pemviz.scenarios.panel_data import CurveAxis, LaneScene, ObjectsScene, Series, ViewAxis, Zone
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
 
 __all__ = ["CurveAxis", "LaneExplanation", "LanePanel", "LaneScene", "ObjectsPanel", "ObjectsScene", "PanelDrawing",
-           "Series", "ViewAxis", "Zone", "lane_panel", "objects_panel", "panel_scene"]
+           "Series", "ViewAxis", "Zone", "lane_panel", "objects_panel", "panel_scene", "scenario_drawing"]
 
 
 class LaneExplanation(Protocol):
@@ -139,3 +141,14 @@ def lane_panel(drawing: object) -> LanePanel | None:
 def objects_panel(drawing: object) -> ObjectsPanel | None:
     """``drawing`` where it draws an :class:`~pemviz.scenarios.panel_data.ObjectsScene`, else None."""
     return drawing if isinstance(panel_scene(drawing), ObjectsScene) else None  # type: ignore[return-value]
+
+
+def scenario_drawing(name: str) -> object | None:
+    """The drawing object of the registered scenario ``name`` at its default parameters
+    (:meth:`pemviz.scenarios.registry.Scenario.drawing_object`), or None: no scenario of that name, or it has no
+    drawing (a toy)."""
+    try:
+        scenario = registry.get(name)
+    except KeyError:
+        return None
+    return scenario.drawing_object()

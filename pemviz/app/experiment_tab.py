@@ -1,6 +1,7 @@
 """The *Experiment* tab of a :class:`pemviz.app.session.Session`: the form of the next run, each field with its own
 error line; a preset or a scenario sets the fields it has settings for, and the folder *scenario parameters*
-(:class:`pemviz.app.params_form.ScenarioParamsForm`) holds the chosen scenario's parameters."""
+(:class:`pemviz.app.params_form.ScenarioParamsForm`) holds the chosen scenario's parameters. Whoever builds the tab is
+told of the scenario chosen (the 3D view draws its idle scene)."""
 
 from __future__ import annotations
 
@@ -36,12 +37,15 @@ class ExperimentTab:
         self.parsed = FormResult(None, {})
         """The form as last checked (:meth:`show_errors`)."""
         self._on_change: Callable[[], None] = lambda: None
+        self._on_scenario: Callable[[str], None] = lambda _: None
         self.params = ScenarioParamsForm(client, app.config0)
         """The folder of the chosen scenario's parameters."""
 
-    def build(self, on_change: Callable[[], None]) -> None:
-        """Add the form to the tab open in ``client.gui``; ``on_change`` is called after every change to it."""
+    def build(self, on_change: Callable[[], None], on_scenario: Callable[[str], None] | None = None) -> None:
+        """Add the form to the tab open in ``client.gui``; ``on_change`` is called after every change to it,
+        ``on_scenario`` (if given) with the scenario's name after each choice of a scenario."""
         self._on_change = on_change
+        self._on_scenario = on_scenario or (lambda _: None)
         gui = self.client.gui
         c0 = self.app.config0
         simulators = SIMULATORS
@@ -124,7 +128,7 @@ class ExperimentTab:
 
     def _apply_scene(self, scenario: str) -> None:
         """Set the method and N to ``scenario``'s own defaults (:data:`pemviz.config.SCENE_DEFAULTS`) where it has
-        them, and back to the preset's where it has none; show its parameters."""
+        them, and back to the preset's where it has none; show its parameters; tell whoever built the tab."""
         fields = SCENE_DEFAULTS.get(scenario)
         if not fields:
             preset = ExperimentConfig(**PANEL_PRESETS.get(self.preset.value, {}))
@@ -134,6 +138,7 @@ class ExperimentTab:
             self.fields["n_per_stage"].value = format_number(FIELDS_BY_KEY["n_per_stage"], fields["n_per_stage"])
         self.params.show(scenario)
         self._on_change()
+        self._on_scenario(scenario)
 
     def _apply_preset(self, name: str) -> None:
         """Set the fields to ``name``'s settings (metric, seed, PEM, simulator and method stay)."""

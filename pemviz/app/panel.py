@@ -33,8 +33,10 @@ STATUS_EVERY_S = 0.5
 
 
 def idle_drawing(scenario: str) -> LanePanel:
-    """The drawing object of the scene every session shows before a run: ``scenario``'s at its defaults where it draws a
-    lane scene (:func:`pemviz.app.drawing.lane_panel`), else the first registered scenario's that does.
+    """The drawing object of the lane scene every session builds first: ``scenario``'s at its defaults where it draws a
+    lane scene (:func:`pemviz.app.drawing.lane_panel`), else the first registered scenario's that does. Each session
+    then shows the idle scene of the scenario chosen in its form (:meth:`pemviz.app.scene_view.SceneView
+    .choose_scenario`): this lane scene, another's, several objects or none.
 
     Raises:
         ValueError: no registered scenario draws a lane scene.
@@ -84,8 +86,9 @@ class PanelApp:
         self.config0 = config or ExperimentConfig(**PANEL_PRESETS[preset], pem=pem)
         self.recordings_dir = Path(recordings_dir)
         self.drawing: LanePanel = idle_drawing(self.config0.scenario)
-        """The scene every session draws before a run (:func:`idle_drawing`); each run's own scene, thresholds and
-        stages come with its first event (:class:`pemviz.app.runs.PanelRun`)."""
+        """The lane scene every session builds first (:func:`idle_drawing`), before it draws the chosen scenario's
+        idle scene; each run's own scene, thresholds and stages come with its first event
+        (:class:`pemviz.app.runs.PanelRun`)."""
         self.host = host
         self.lock = threading.RLock()
         self.sessions: dict[int, Session] = {}

@@ -3,7 +3,9 @@ in sync with *Explain*, as its drawing object gives them (:mod:`pemviz.app.drawi
 object ahead, the zones ahead of the ego's sensor, a ruler with the distance in metres from the sensor to the object,
 the detections so far as a trail on the road (green detected, orange missed), a red gate where the failure margin was
 breached, and labels in columns beside the road, clear of the cars; the camera frames both cars inside the canvas the
-browser shows between the panels. A scene of several objects: every car seen from the ego on a road of lanes."""
+browser shows between the panels. A scene of several objects: every car seen from the ego on a road of lanes. Before
+any rollout is shown, the idle scene of the scenario chosen for the next run: its lane scene at the start, its cars at
+their start seen from the ego, or no scene for a scenario that draws none (a toy)."""
 
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import viser
 from pemviz.app import objects_view as OV
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.html import BLUE, GREY, RED, box
-from pemviz.app.drawing import LanePanel, LaneScene, ObjectsScene, lane_panel, panel_scene
+from pemviz.app.drawing import LanePanel, LaneScene, ObjectsScene, lane_panel, panel_scene, scenario_drawing
 from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, MISSED, OBJECT
@@ -92,6 +94,68 @@ def framing_distance(span_m: float, aspect: float, fov_rad: float) -> float:
     return hi
 
 
+def _ruler(x_from: float, x_to: float) -> np.ndarray:
+    """The ruler's segments [3, 2, 3]: the line and a tick at each end (metres)."""
+    y, z, tick = ROW_Y_M["ruler"], 0.03, 0.35
+    return np.array(
+        [[[x_from, y, z], [x_to, y, z]], [[x_from, y - tick, z], [x_from, y + tick, z]],
+         [[x_to, y - tick, z], [x_to, y + tick, z]]], np.float32,
+    )  # fmt: skip
+
+
+def add_lane_nodes(scene: viser.SceneApi, p: LaneScene) -> tuple[list, viser.BoxHandle, viser.LineSegmentsHandle,
+                                                                 viser.LabelHandle]:  # fmt: skip
+    """Add the nodes of the lane scene ``p`` at its start to ``scene``: the road, its edges and 10 m ticks, the object
+    and its label, the zones ahead of the ego's sensor (children of ``/ego``, which must exist) with their label, the
+    ruler and its label.
+
+    Returns:
+        (every node made, in the order made; the object's box; the ruler; the ruler's label).
+    """
+    road_len, x0, lane = 240.0, -60.0, 4.0
+    road = scene.add_box(
+        "/road", color=C.ROAD, dimensions=(road_len, lane + 1.0, 0.05),
+        position=(x0 + road_len / 2, 0.0, -0.03), cast_shadow=False,
+    )  # fmt: skip
+    edges = np.array(
+        [[[x0, s * lane / 2, 0.01], [x0 + road_len, s * lane / 2, 0.01]] for s in (-1, 1)], dtype=np.float32
+    )  # world coordinates: not children of /road, whose frame is the box's centre
+    road_edges = scene.add_line_segments("/road_edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
+    ticks = np.array([[[x, lane / 2, 0.01], [x, lane / 2 + 0.6, 0.01]] for x in range(0, 150, 10)], np.float32)
+    road_ticks = scene.add_line_segments("/road_ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
+    object0 = p.object_start_x
+    object_box = scene.add_box(
+        f"/{p.object_name}", color=OBJECT, dimensions=(p.object_length_m, p.width_m, CAR_HEIGHT_M),
+        position=(object0, 0.0, CAR_HEIGHT_M / 2),
+    )  # fmt: skip
+    object_label = scene.add_label(f"/{p.object_name}/label", p.object_name, anchor="bottom-center",
+                                   position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2), font_screen_scale=LABEL_SCALE)
+    # zones ahead of the ego's sensor, moving with it; one label for all, in the right column at the middle of the first
+    zones = []
+    for zone in p.zones:
+        zones.append(scene.add_box(
+            f"/ego/{zone.name}", color=ZONE_COLOURS[zone.role], dimensions=(zone.length_m, p.width_m + 0.6, 0.02),
+            opacity=0.35, position=(p.sensor_offset_m + zone.length_m / 2, 0.0, -CAR_HEIGHT_M / 2 + 0.02),
+            cast_shadow=False, receive_shadow=False,
+        ))  # fmt: skip
+    if p.zones:
+        legend = ";\n".join(f"{ZONE_COLOUR_NAMES[zone.role]}: {zone.legend}" for zone in p.zones)
+        zones.append(scene.add_label(
+            f"/ego/{p.zones[0].name}/label", legend, position=(p.zones[0].length_m / 2, ROW_Y_M["right"], 0.0),
+            anchor="center-left", font_screen_scale=LABEL_SCALE,
+        ))  # fmt: skip
+    # the ruler: on the road beside the cars, from the ego's sensor to the object's rear, ticks at both ends
+    rear = object0 - p.object_length_m / 2
+    gap_ruler = scene.add_line_segments("/gap_ruler", _ruler(p.sensor_offset_m, rear), colors=C.ROAD_MARKING,
+                                        thickness=0.08)  # fmt: skip
+    gap_label = scene.add_label(
+        "/gap_ruler/label", f"{p.ruler_label} {p.start_distance_m:.2f} m", anchor="center-left",
+        font_screen_scale=LABEL_SCALE, position=((p.sensor_offset_m + rear) / 2, ROW_Y_M["right"], 0.0),
+    )  # fmt: skip
+    nodes = [road, road_edges, road_ticks, object_box, object_label, *zones, gap_ruler, gap_label]
+    return nodes, object_box, gap_ruler, gap_label
+
+
 class SceneView:
     """The 3D scene and its playback: owns the scene's nodes, the playback controls under *Rollouts* (step slider,
     Play, follow cars, the scene's caption), the rollout shown (:attr:`shown` of :attr:`shown_record`, its cars'
@@ -100,8 +164,8 @@ class SceneView:
 
     Args:
         client: the viser client the scene draws into.
-        drawing: the idle scene's drawing object (a :class:`pemviz.app.drawing.LanePanel`: the road, the car sizes,
-            the zones, drawn before any rollout is chosen).
+        drawing: the drawing object of the lane scene drawn first (a :class:`pemviz.app.drawing.LanePanel`: the road,
+            the car sizes, the zones), until :meth:`choose_scenario` or a rollout of another lane scene.
         lock: the session's lock (GUI callbacks run in a thread pool, the run in a worker thread).
         explain: the *Explain* tab that follows the rollout shown.
 
@@ -116,7 +180,12 @@ class SceneView:
             raise ValueError(f"the idle scene's drawing {type(drawing).__name__} draws no lane scene")
         self.client, self.drawing, self.lock, self.explain = client, drawing, lock, explain
         self.lane: LaneScene = lane
-        """The idle scene's constants: the road's cars, zones and labels (their sizes stay for every rollout)."""
+        """The constants of the lane scene drawn: the road's cars, zones and labels (the idle scene's, else the lane
+        rollout's shown)."""
+        self.idle_name = ""
+        """The scenario chosen for the next run (:meth:`choose_scenario`; empty: none chosen yet)."""
+        self.idle_drawing: object | None = drawing
+        """Its drawing object, whose scene is the idle one (None: it draws none)."""
         self.shown_drawing: LanePanel | None = None
         """The drawing of the rollout shown in a lane scene (None: none, or one of several objects)."""
         self.shown: Trajectory | None = None
@@ -156,6 +225,7 @@ class SceneView:
                         "Live"), GREY)  # fmt: skip
                 return
             self.explain.explain_lane(traj, lane)
+            self._use_lane(lane.panel_scene())
             self._scene_kind(0)
             self.shown = traj
             self.shown_record = record
@@ -179,6 +249,7 @@ class SceneView:
         self._set_playing(False)
         self.shown_step = -1
         scene = panel_scene(record.view.drawing)
+        self.ego_box.color = OBJECT
         self._scene_kind(ox.detected.shape[1], scene if isinstance(scene, ObjectsScene) else DEFAULT_OBJECTS)
         self._frame_objects()
         self.scene_html.content = box(
@@ -217,56 +288,21 @@ class SceneView:
             self.step_slider.value = step
 
     def build_scene(self) -> None:
-        """Add the road, the cars, the zones, the ruler, the trail and the breach gate of the idle lane scene to
-        ``client.scene``."""
+        """Add the scene's nodes to ``client.scene``: the road, the cars, the zones and the ruler of the lane scene of
+        :attr:`lane` (:func:`add_lane_nodes`), the ego, the trail, the breach gate and the ego's label."""
         scene = self.client.scene
         p = self.lane
         scene.set_up_direction("+z")
-        road_len, x0, lane = 240.0, -60.0, 4.0
-        road = scene.add_box(
-            "/road", color=C.ROAD, dimensions=(road_len, lane + 1.0, 0.05),
-            position=(x0 + road_len / 2, 0.0, -0.03), cast_shadow=False,
-        )  # fmt: skip
-        edges = np.array(
-            [[[x0, s * lane / 2, 0.01], [x0 + road_len, s * lane / 2, 0.01]] for s in (-1, 1)], dtype=np.float32
-        )  # world coordinates: not children of /road, whose frame is the box's centre
-        road_edges = scene.add_line_segments("/road_edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
-        ticks = np.array([[[x, lane / 2, 0.01], [x, lane / 2 + 0.6, 0.01]] for x in range(0, 150, 10)], np.float32)
-        road_ticks = scene.add_line_segments("/road_ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
-        size = (p.ego_length_m, p.width_m, CAR_HEIGHT_M)
-        object0 = p.object_start_x
-        self.ego_box = scene.add_box("/ego", color=IDLE, dimensions=size, position=(0.0, 0, CAR_HEIGHT_M / 2))
-        self.object_box = scene.add_box(
-            f"/{p.object_name}", color=OBJECT, dimensions=(p.object_length_m, p.width_m, CAR_HEIGHT_M),
-            position=(object0, 0.0, CAR_HEIGHT_M / 2),
-        )  # fmt: skip
-        scene.add_label(f"/{p.object_name}/label", p.object_name, position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2),
-                        anchor="bottom-center", font_screen_scale=LABEL_SCALE)  # fmt: skip
-        # zones ahead of the ego's sensor, moving with it; one label for all, in the right column at the middle of the
-        # first
-        zones = []
-        for zone in p.zones:
-            zones.append(scene.add_box(
-                f"/ego/{zone.name}", color=ZONE_COLOURS[zone.role], dimensions=(zone.length_m, p.width_m + 0.6, 0.02),
-                opacity=0.35, position=(p.sensor_offset_m + zone.length_m / 2, 0.0, -CAR_HEIGHT_M / 2 + 0.02),
-                cast_shadow=False, receive_shadow=False,
-            ))  # fmt: skip
-        if p.zones:
-            legend = ";\n".join(f"{ZONE_COLOUR_NAMES[zone.role]}: {zone.legend}" for zone in p.zones)
-            zones.append(scene.add_label(
-                f"/ego/{p.zones[0].name}/label", legend, position=(p.zones[0].length_m / 2, ROW_Y_M["right"], 0.0),
-                anchor="center-left", font_screen_scale=LABEL_SCALE,
-            ))  # fmt: skip
-        # the ruler: on the road beside the cars, from the ego's sensor to the object's rear, ticks at both ends
-        self.gap_ruler = scene.add_line_segments(
-            "/gap_ruler", self._ruler(p.sensor_offset_m, object0 - p.object_length_m / 2), colors=C.ROAD_MARKING,
-            thickness=0.08,
-        )  # fmt: skip
-        self.gap_label = scene.add_label(
-            "/gap_ruler/label", f"{p.ruler_label} {p.start_distance_m:.2f} m", anchor="center-left",
-            font_screen_scale=LABEL_SCALE,
-            position=((p.sensor_offset_m + object0 - p.object_length_m / 2) / 2, ROW_Y_M["right"], 0.0),
-        )  # fmt: skip
+        self.ego_box = scene.add_box("/ego", color=IDLE, dimensions=(p.ego_length_m, p.width_m, CAR_HEIGHT_M),
+                                     position=(0.0, 0, CAR_HEIGHT_M / 2))  # fmt: skip
+        self._lane_nodes: list = []
+        """What only the lane scene shows (hidden while a scene of several objects is shown), last made last."""
+        self._object_nodes: list = []
+        """A scene of several objects: its road, its lane lines, then a box and a label per object, made when first
+        shown."""
+        self._objects_road: tuple = ()
+        """The car sizes and lanes of :attr:`_object_nodes` (they are made again for other ones)."""
+        self._use_lane(p, force=True)
         # past detections, on the road where the ego's rear was at each step; the breach: a red gate at the place
         # where the ego's sensor breached the failure margin
         self.trail = scene.add_point_cloud(
@@ -285,18 +321,27 @@ class SceneView:
             "/ego/label", "ego: no rollout chosen", position=(0.0, ROW_Y_M["right"], -CAR_HEIGHT_M / 2),
             anchor="center-left", font_screen_scale=LABEL_SCALE,
         )  # fmt: skip
-        self._lane_nodes = [road, road_edges, road_ticks, self.object_box, *zones, self.gap_ruler]
-        """What only the lane scene shows (hidden while a scene of several objects is shown)."""
-        self._object_nodes: list = []
-        """A scene of several objects: its road, its lane lines, then a box and a label per object, made when first
-        shown."""
+        object0 = p.object_start_x
         self._frame(0.0, object0, self._span(np.zeros(1), np.full(1, object0)))
 
-    def _scene_kind(self, objects: int | None, layout: ObjectsScene = DEFAULT_OBJECTS) -> None:
-        """Show the lane scene (``objects`` 0), one of ``objects`` cars on a road of ``layout``'s lanes, or no scene
-        (None: a problem that draws none)."""
+    def _use_lane(self, lane: LaneScene, force: bool = False) -> None:
+        """Draw lane scenes at ``lane``'s constants from now on (:attr:`lane`): its road, object, zones and ruler are
+        made again where they differ from those drawn (``force``: made in any case)."""
+        if lane == self.lane and not force:
+            return
+        for node in reversed(self._lane_nodes):  # children before their parents
+            node.remove()
+        self.lane = lane
+        self._lane_nodes, self.object_box, self.gap_ruler, self.gap_label = add_lane_nodes(self.client.scene, lane)
+        self.ego_box.dimensions = (lane.ego_length_m, lane.width_m, CAR_HEIGHT_M)
+
+    def _scene_kind(self, objects: int | None, layout: ObjectsScene | None = None) -> None:
+        """Show the lane scene (``objects`` 0, no ``layout``), a road of ``layout``'s lanes with its first ``objects``
+        cars, or no scene (``objects`` None: a problem that draws none)."""
         scene = self.client.scene
-        if objects and len(self._object_nodes) < 2 + 2 * objects:
+        road = None if layout is None else (layout.car_length_m, layout.car_width_m, layout.lane_width_m,
+                                            layout.n_lanes)  # fmt: skip
+        if road is not None and (road != self._objects_road or len(self._object_nodes) < 2 + 2 * (objects or 0)):
             lane_m = layout.lane_width_m
             lanes = layout.n_lanes * lane_m
             for node in self._object_nodes:
@@ -311,61 +356,60 @@ class SceneView:
             self._object_nodes.append(scene.add_line_segments(
                 "/objects/lanes", np.concatenate([dashes, edges]), colors=C.ROAD_MARKING, thickness=0.12,
                 visible=False))  # fmt: skip
-            for j in range(objects):
+            for j in range(objects or 0):
                 self._object_nodes.append(scene.add_box(
                     f"/objects/car{j}", color=IDLE, dimensions=(layout.car_length_m, layout.car_width_m, CAR_HEIGHT_M),
                     position=(0.0, 0.0, CAR_HEIGHT_M / 2), visible=False))  # fmt: skip
                 self._object_nodes.append(scene.add_label(
                     f"/objects/car{j}/label", f"car {j}", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2),
                     anchor="bottom-center", font_screen_scale=LABEL_SCALE, visible=False))  # fmt: skip
+            self._objects_road = road
+        lane = objects == 0 and layout is None
         with self.client.atomic():
             for node in self._lane_nodes:
-                node.visible = objects == 0
-            for node in self._object_nodes:
-                node.visible = bool(objects)
+                node.visible = lane
+            for k, node in enumerate(self._object_nodes):  # the road and its lines, then each car and its label
+                node.visible = road is not None and (k < 2 or (k - 2) // 2 < (objects or 0))
             self.ego_box.visible = self.scene_label.visible = objects is not None
-            if objects != 0:
+            if not lane:
                 self.trail.visible = self.breach_gate.visible = self.breach_label.visible = False
-                self.gap_label.visible = False
-            else:
-                self.gap_label.visible = True
+
+    def _place_objects(self, xy: list[tuple[float, float] | None], colours: list, texts: list[str], label: str) -> None:
+        """Put car ``j`` of the scene of several objects at ``xy[j]`` (to the right, ahead of the ego, metres; None:
+        hidden) in ``colours[j]`` with the label ``texts[j]``, the ego at the origin, hide the cars beyond them and
+        write ``label`` beside the ego."""
+        with self.client.atomic():
+            self.ego_box.position = (0.0, 0.0, CAR_HEIGHT_M / 2)
+            for j, place in enumerate(xy):
+                box_, text = self._object_nodes[2 + 2 * j], self._object_nodes[3 + 2 * j]
+                box_.visible = text.visible = place is not None
+                if place is not None:
+                    box_.position = (place[1], -place[0], CAR_HEIGHT_M / 2)
+                    box_.color = colours[j]
+                    text.text = texts[j]
+            for node in self._object_nodes[2 + 2 * len(xy):]:  # cars of a larger scene shown before
+                node.visible = False
+            self.scene_label.text = label
 
     def _render_objects_scene(self, ox, t: int, label: str) -> None:
         """The cars of an :class:`~pemviz.app.objects_view.ObjectsExplanation` at step ``t``, seen from the ego (which
         stays at the origin): green detected, orange missed, grey unseen, a label per car saying which (and
         decisive)."""
         decisive = {obj for obj, _ in ox.decisive_at(t)}
-        with self.client.atomic():
-            self.ego_box.position = (0.0, 0.0, CAR_HEIGHT_M / 2)
-            self.ego_box.color = OBJECT
-            for j in range(ox.detected.shape[1]):
-                box_, text = self._object_nodes[2 + 2 * j], self._object_nodes[3 + 2 * j]
-                ahead, lateral = float(ox.ahead_m[t, j]), float(ox.lateral_m[t, j])
-                ok = math.isfinite(ahead) and math.isfinite(lateral)
-                box_.visible = text.visible = ok
-                if not ok:
-                    continue
-                det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
-                box_.position = (ahead, -lateral, CAR_HEIGHT_M / 2)
-                box_.color = DETECTED if det else (MISSED if seen else IDLE)
-                state = "detected" if det else ("missed" if seen else "unseen")
-                text.text = f"car {j}: {state}" + (" (decisive)" if j in decisive else "")
-            for node in self._object_nodes[2 + 2 * ox.detected.shape[1]:]:  # cars of a larger scene shown before
-                node.visible = False
-            self.scene_label.text = label
+        xy, colours, texts = [], [], []
+        for j in range(ox.detected.shape[1]):
+            ahead, lateral = float(ox.ahead_m[t, j]), float(ox.lateral_m[t, j])
+            xy.append((lateral, ahead) if math.isfinite(ahead) and math.isfinite(lateral) else None)
+            det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
+            colours.append(DETECTED if det else (MISSED if seen else IDLE))
+            state = "detected" if det else ("missed" if seen else "unseen")
+            texts.append(f"car {j}: {state}" + (" (decisive)" if j in decisive else ""))
+        self._place_objects(xy, colours, texts, label)
 
     def _frame_objects(self) -> None:
         """Point the camera at :data:`OBJECTS_FRAME_M` of the road of several objects."""
         lo, hi = OBJECTS_FRAME_M
         self._frame(lo + self.lane.ego_length_m / 2, hi - self.lane.object_length_m / 2, hi - lo)
-
-    def _ruler(self, x_from: float, x_to: float) -> np.ndarray:
-        """The ruler's segments [3, 2, 3]: the line and a tick at each end (metres)."""
-        y, z, tick = ROW_Y_M["ruler"], 0.03, 0.35
-        return np.array(
-            [[[x_from, y, z], [x_to, y, z]], [[x_from, y - tick, z], [x_from, y + tick, z]],
-             [[x_to, y - tick, z], [x_to, y + tick, z]]], np.float32,
-        )  # fmt: skip
 
     def _span(self, ego_x: np.ndarray, object_x: np.ndarray) -> float:
         """The longest stretch of road the scene must show at once (metres): from the ego's rear to the object's
@@ -409,27 +453,60 @@ class SceneView:
             self.breach_gate.visible = sev.breach_step is not None
             self.breach_label.visible = sev.breach_step is not None
 
-    def clear(self, why: str) -> None:
-        """Back to the idle scene (no rollout shown): the cars at the start, the ego grey; ``why`` says so under the
-        scene and in *Explain*."""
-        p = self.lane
+    def choose_scenario(self, name: str) -> None:
+        """``name`` is the scenario chosen for the next run (the *Experiment* tab's choice): its idle scene
+        (:func:`pemviz.app.drawing.scenario_drawing`) is drawn now where no rollout is shown, else when none is
+        (:meth:`clear`)."""
+        with self.lock:
+            self.idle_name, self.idle_drawing = name, scenario_drawing(name)
+            if self.shown is None:
+                self.clear(None)
+
+    def clear(self, why: str | None) -> None:
+        """Back to the idle scene (no rollout shown) of the scenario chosen for the next run: a lane scene at its
+        constants with its cars at the start, the ego grey; a road of lanes with its cars at their start seen from the
+        ego (grey); no scene for a scenario that draws none. ``why`` says so under the scene and in *Explain* (None:
+        the idle scene's own caption under the scene, *Explain* left as it is)."""
         self.shown, self.shown_record, self._shown_x, self.shown_drawing = None, None, None, None
-        self._scene_kind(0)
         self._set_playing(False)
         self.shown_step = -1
-        object0 = p.object_start_x
+        scene, name = panel_scene(self.idle_drawing), self.idle_name or "chosen"
         with self.client.atomic():
             self.ego_box.position = (0.0, 0.0, CAR_HEIGHT_M / 2)
             self.ego_box.color = IDLE
+        if isinstance(scene, ObjectsScene):
+            starts = scene.start_xy_m
+            self._scene_kind(len(starts), scene)
+            self._place_objects(list(starts), [OBJECT] * len(starts), [f"car {j}" for j in range(len(starts))],
+                                "ego: no rollout chosen")  # fmt: skip
+            self._frame_objects()
+            caption = (f"No rollout chosen: the {name} scenario's {len(starts)} cars at their start, seen from the ego "
+                       "(grey).")  # fmt: skip
+        elif isinstance(scene, LaneScene):
+            self._idle_lane(scene)
+            caption = f"No rollout chosen: the {name} scenario's cars at their start."
+        else:
+            self._scene_kind(None)
+            caption = f"The {name} scenario draws no scene: its rollouts are under Rollouts and Live."
+        self.scene_html.content = box(html.escape(caption if why is None else f"{why}. {caption}"), GREY)
+        if why is not None:
+            self.explain.clear(why)
+
+    def _idle_lane(self, lane: LaneScene) -> None:
+        """The lane scene at ``lane``'s constants at its start: the object where it starts, the ruler at its starting
+        length, no trail, no breach."""
+        self._use_lane(lane)
+        self._scene_kind(0)
+        p = self.lane
+        object0 = p.object_start_x
+        with self.client.atomic():
             self.object_box.position = (object0, 0.0, CAR_HEIGHT_M / 2)
-            self.gap_ruler.points = self._ruler(p.sensor_offset_m, object0 - p.object_length_m / 2)
+            self.gap_ruler.points = _ruler(p.sensor_offset_m, object0 - p.object_length_m / 2)
             self.gap_label.text = f"{p.ruler_label} {p.start_distance_m:.2f} m"
             self.gap_label.position = ((p.sensor_offset_m + object0 - p.object_length_m / 2) / 2, ROW_Y_M["right"],
                                        0.0)  # fmt: skip
             self.trail.visible = self.breach_gate.visible = self.breach_label.visible = False
             self.scene_label.text = "ego: no rollout chosen"
-            self.scene_html.content = box(html.escape(why), GREY)
-            self.explain.clear(why)
         self._frame(0.0, object0, self._span(np.zeros(1), np.full(1, object0)))
 
     def render_step(self, step: int) -> None:
@@ -468,7 +545,7 @@ class SceneView:
                 self.ego_box.position = (ego_x, 0.0, CAR_HEIGHT_M / 2)
                 self.ego_box.color = colour
                 self.object_box.position = (object_x, 0.0, CAR_HEIGHT_M / 2)
-                self.gap_ruler.points = self._ruler(cam_x, rear_x)
+                self.gap_ruler.points = _ruler(cam_x, rear_x)
                 self.gap_label.text = f"{ruler_label} {distance:.2f} m"
                 self.gap_label.position = ((cam_x + rear_x) / 2, ROW_Y_M["right"], 0.0)
                 self.trail.points = trail

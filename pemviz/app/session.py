@@ -63,7 +63,8 @@ class Session:
         self.app = app
         self.client = client
         self.drawing = app.drawing
-        """The idle scene's drawing object (:attr:`pemviz.app.panel.PanelApp.drawing`)."""
+        """The drawing object of the lane scene built first (:attr:`pemviz.app.panel.PanelApp.drawing`); the 3D view
+        then draws the idle scene of the scenario chosen under *Experiment* (:meth:`SceneView.choose_scenario`)."""
         self.lock = threading.RLock()
         """One lock for every part: GUI callbacks run in a thread pool, the run in a worker thread."""
         self.explain = ExplainTab(client, self.drawing.panel_scene().strip_title)
@@ -77,6 +78,7 @@ class Session:
                                   plots_panel=self.plots_panel)  # fmt: skip
         self._build_gui()
         self.scene.build_scene()
+        self.scene.choose_scenario(self.form.choices["scenario"].value)  # its idle scene
         self.control.validate()
         self.fields, self.choices, self.preset = self.form.fields, self.form.choices, self.form.preset
         self.run_choice, self.result_html = self.runs_tab.run_choice, self.control.result_html
@@ -96,7 +98,7 @@ class Session:
         self.control.build()
         tabs = gui.add_tab_group()
         with tabs.add_tab("Experiment", viser.Icon.SETTINGS):
-            self.form.build(on_change=self.control.validate)
+            self.form.build(on_change=self.control.validate, on_scenario=self.scene.choose_scenario)
         with tabs.add_tab("Rollouts", viser.Icon.CAR):
             self.rollouts_tab.build()
             self.scene.build_controls()

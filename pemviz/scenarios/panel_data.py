@@ -76,6 +76,9 @@ class ObjectsScene:
         distance_column: the object rows' column holding each object's distance ahead of the ego's front (metres),
             for the story's charts.
         n_steps: T, the steps of a rollout.
+        start_xy_m: each object at the start (step 0), seen from the ego as a rollout's object positions place it
+            (:attr:`pemviz.core.problems.ProblemView.objects_xy`): (to the right, ahead) in metres, one pair per object
+            in object order; the idle scene draws them before any rollout is chosen (empty: the road alone).
     """
 
     car_length_m: float
@@ -84,6 +87,7 @@ class ObjectsScene:
     n_lanes: int
     distance_column: str
     n_steps: int
+    start_xy_m: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)

@@ -41,10 +41,12 @@ class CutInPanel:
         return int(self.params.n_steps)
 
     def panel_scene(self) -> ObjectsScene:
-        """The scene's constants: the cars' boxes, the lanes, the object rows' gap column."""
+        """The scene's constants: the cars' boxes, the lanes, the object rows' gap column and every car at the start
+        seen from the ego (:func:`start_positions`)."""
         from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M
 
-        return ObjectsScene(CAR_M[0], CAR_M[1], LANE_WIDTH_M, N_LANES, "gap_m", int(self.params.n_steps))
+        return ObjectsScene(CAR_M[0], CAR_M[1], LANE_WIDTH_M, N_LANES, "gap_m", int(self.params.n_steps),
+                            start_positions(self.params))  # fmt: skip
 
     def proposal_axis(self) -> ViewAxis:
         """The proposal view's bins: the cut-in car's gap ahead, 1 m wide (:data:`GAP_BINS_M`), over the states where
@@ -71,3 +73,23 @@ class CutInPanel:
             return None
         return cut_in_story(batch.observations[0], tuple(batch.observation_names), batch.objects[0], object_names,
                             batch.detected[0], float(self.params.dt_s), VIEW_OBJECT, names[0])  # fmt: skip
+
+
+def start_positions(params: CutInParams) -> tuple[tuple[float, float], ...]:
+    """Each of the M cars at step 0 seen from the ego's camera, in object order (the cut-in car first): (to the right,
+    ahead) in metres, the object rows' ``loc_x`` and ``loc_z`` (the problem's ``objects_xy``) at the start of every
+    rollout. The scenario's own geometry (:func:`pemviz.scenarios.cut_in.scene.traffic_at` and
+    :func:`~pemviz.scenarios.cut_in.scene.camera_view`) at the start, each car placed as
+    :func:`pemviz.scenarios.cut_in.highway.build_road` places it (its rear ``gap_m`` ahead of the ego's front, the ego's
+    centre at 0, its lane's centre, heading along the road), without highway-env."""
+    from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M
+    from pemviz.scenarios.cut_in.scene import CutInMemory, camera_view, traffic_at
+
+    cars = params.vehicles
+    length = params.vehicle_length_m
+    x = np.array([length / 2 + v.gap_m + length / 2 for v in cars])
+    y = np.array([v.lane * LANE_WIDTH_M for v in cars], dtype=np.float64)
+    speed = np.array([v.speed_mps for v in cars], dtype=np.float64)
+    traffic, _ = traffic_at(params, 0, x, y, np.zeros(len(cars)), speed, CutInMemory.initial(len(cars)))
+    view = camera_view(params, traffic, np.zeros(1))
+    return tuple((float(view.loc_x_m[j, 0]), float(view.loc_z_m[j, 0])) for j in range(len(cars)))
