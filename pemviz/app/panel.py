@@ -22,7 +22,7 @@ from pemviz.app.session import Session
 from pemviz.config import ExperimentConfig
 from pemviz.engine import experiment
 from pemviz.presets import DEFAULT_PRESET
-from pemviz.app.drawing import LanePanel, lane_panel
+from pemviz.app.drawing import LanePanel, lane_panel, scenario_drawing
 from pemviz.scenarios import registry
 from pemviz.scenarios.problems import problem_for
 from pemviz.sinks.colours import BLUE
@@ -42,10 +42,7 @@ def idle_drawing(scenario: str) -> LanePanel:
         ValueError: no registered scenario draws a lane scene.
     """
     for name in (scenario, *registry.registered()):
-        try:
-            drawing = registry.get(name).drawing_object()
-        except KeyError:
-            continue
+        drawing = scenario_drawing(name)
         if lane_panel(drawing) is not None:
             return drawing
     raise ValueError(f"no registered scenario draws a lane scene for the panel's idle scene ({scenario!r} does not)")
