@@ -193,12 +193,32 @@ def test_a_close_threshold_is_undecided_at_a_cap_and_the_junit_file_says_so(tmp_
     (["--require", "p < 1e-9", "--method", "ams"], "adaptive multilevel splitting has no final batch"),
     (["--junit", "x.xml"], "--junit writes a requirement as a test case: give one with --require"),
     (["--json", "x.txt"], "--json"),
+    (["--save-rollouts", "b.parquet", "--json", "b.json"], "--json and --save-rollouts (its sidecar) both write b.json"),
+    (["--save", "r.rrd", "--json", "r.result.json"], "--json and --save (its result document) both write"),
 ])  # fmt: skip
 def test_bad_requirement_flags_are_one_line(tmp_path, args, message):
-    proc = run_cli("run", *args, "--no-record", cwd=tmp_path)
+    proc = run_cli("run", *args, *([] if "--save" in args else ["--no-record"]), cwd=tmp_path)
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert message in proc.stderr, proc.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_distinct_outputs_pass_and_a_clash_names_both_flags(tmp_path):
+    """Every output a run can write, with distinct names, passes; the same file reached by two flags (a report's
+    Markdown twin given as --json's name would need a .json twin, so a recording's result document is used) fails."""
+    import argparse
+
+    from pemviz.commands import UsageError
+    from pemviz.commands.run import distinct_outputs
+
+    sink = argparse.Namespace(path=tmp_path / "b.parquet")
+    files = (tmp_path / "r.json", tmp_path / "r.xml", tmp_path / "r.html")
+    distinct_outputs(argparse.Namespace(), tmp_path / "r.rrd", sink, files)  # r.result.json, b.json, r.md: all apart
+    with pytest.raises(UsageError, match=r"--json and --save \(its result document\) both write .*r.result.json"):
+        distinct_outputs(argparse.Namespace(), tmp_path / "r.rrd", None, (tmp_path / "r.result.json", None, None))
+    with pytest.raises(UsageError, match=r"--json and --save-rollouts \(its sidecar\) both write"):
+        distinct_outputs(argparse.Namespace(), None, argparse.Namespace(path=tmp_path / "x" / ".." / "b.parquet"),
+                         (tmp_path / "b.json", None, None))  # fmt: skip
 
 
 def test_the_ci_page_s_job_runs_as_written(tmp_path):

@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import os
 import socket
 import sys
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 from urllib.parse import quote, urlsplit
 
 from pemviz.commands import (
@@ -287,6 +289,40 @@ def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path 
     return paths[0], paths[1], paths[2]
 
 
+def distinct_outputs(args: argparse.Namespace, save_path: Path | None, rollout_sink: Any,
+                     result_files: tuple[Path | None, Path | None, Path | None]) -> None:  # fmt: skip
+    """Refuse, before any work, two outputs of one run that name the same file (e.g. ``--save-rollouts b.parquet``,
+    whose sidecar is ``b.json``, with ``--json b.json``): the second would replace the first at the end of the run.
+
+    Raises:
+        UsageError: naming both flags and the file.
+    """
+    from pemviz.io.result import result_beside
+    from pemviz.io.rollout_format import proposal_path, sidecar_path
+
+    named: list[tuple[str, Path]] = []
+    if save_path is not None:
+        named += [("--save", save_path), ("--save (its result document)", result_beside(save_path))]
+    if rollout_sink is not None:
+        path = rollout_sink.path
+        named += [("--save-rollouts", path), ("--save-rollouts (its sidecar)", sidecar_path(path)),
+                  ("--save-rollouts (its proposal checkpoint)", proposal_path(path))]  # fmt: skip
+    json_path, junit_path, report_path = result_files
+    for flag, path in (("--json", json_path), ("--junit", junit_path), ("--report", report_path)):
+        if path is not None:
+            named.append((flag, path))
+    if report_path is not None:
+        from pemviz.sinks.report import markdown_twin
+
+        named.append(("--report (its Markdown twin)", markdown_twin(report_path)))
+    seen: dict[Path, str] = {}
+    for flag, path in named:
+        key = Path(os.path.abspath(path))
+        if key in seen:
+            raise UsageError(f"{flag} and {seen[key]} both write {path}: give each output its own name")
+        seen[key] = flag
+
+
 def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
     """The files a run reads, each ``{"what", "path", "sha256"}``: the detection PEM, and the noise PEM on a scene
     with measurement errors (the cut-in)."""
@@ -385,6 +421,7 @@ def main(args: argparse.Namespace) -> int:
                 raise UsageError(str(exc)) from None
     elif target == "connect":
         args.url = probe_viewer(args.url)
+    distinct_outputs(args, save_path, rollout_sink, result_files)
     early = None
     if target == "save" and cli.AS_PROGRAM and cfg.executor == "serial":
         from pemviz.sinks.recording_process import RecordingProcess  # rerun imported beside the run, not before it
