@@ -333,6 +333,12 @@ def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, fina
 
 
 def main(args: argparse.Namespace) -> int:
+    from pemviz import cli
+
+    if cli.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules
+        from pemviz.sinks.process import import_scipy_special_lean
+
+        import_scipy_special_lean()
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:
@@ -359,8 +365,6 @@ def main(args: argparse.Namespace) -> int:
 
     result_files = result_paths(args, cfg)
     target = recording_target(args)
-    from pemviz import cli
-
     if cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.executor == "serial":  # "save": the child's
         from pemviz.sinks.process import settle_pyarrow_without_pandas
 
