@@ -547,6 +547,21 @@ def test_the_share_of_failures_with_contact_per_stage(runs):
     assert share[ev.stage] == [pytest.approx(np.mean(low <= 0.7))]
 
 
+def test_the_braking_drawing_says_which_rollouts_made_contact_at_once_as_each_rollouts_outcome_does(runs):
+    """``contacts`` (the drawing object's optional hook, :func:`pemviz.sinks.rerun_views.contact_share`) equals the
+    ``contact`` of each rollout's outcome values, failing and safe rollouts alike, and the share is the same."""
+    from pemviz.sinks.rerun_views import contact_share, outcome_values
+
+    events, _, _, _ = runs["naive"]
+    (ev,) = of(events, RolloutsSampled)
+    drawing = of(events, RunStarted)[0].problem.drawing
+    rows = np.arange(ev.batch.n)
+    each = [bool(outcome_values(drawing, ev.batch, int(i))["contact"]) for i in rows]
+    assert drawing.contacts(ev.batch, rows).tolist() == each and any(each)
+    failing = np.flatnonzero(ev.failed)
+    assert contact_share(drawing, ev.batch, ev.failed) == {"contact_share": float(np.mean([each[i] for i in failing]))}
+
+
 def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_where_it_was_measured(tmp_path):
     from pemviz.scenarios.cut_in import OBJECT_NAMES
 

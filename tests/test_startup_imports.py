@@ -173,3 +173,45 @@ def test_a_checkpoint_loads_into_numpy_with_the_same_weights(tmp_path, numpy_fir
         np.testing.assert_array_equal(a, b)
     obs = np.random.default_rng(1).uniform(0, 30, (200, 3))
     np.testing.assert_array_equal(loaded.detect_logit(obs), saved.detect_logit(obs))
+
+
+def test_the_program_imports_scipy_special_without_numpys_unused_submodules():
+    """scipy's array-API shim copies numpy's namespace when scipy.special is imported; as the program, numpy.f2py
+    and numpy.testing are left out meanwhile (:func:`pemviz.sinks.process.import_scipy_special_lean`): the shim has
+    every name it has otherwise, numpy's among them (read from numpy when first read), numpy's own ``__all__`` and
+    ``dir`` are as before, and scipy.special computes as before (new processes)."""
+    import json
+    import subprocess
+    import sys
+
+    probe = ("import json, sys, numpy as np; {setup}; import scipy.special as sp; "
+             "import scipy._lib.array_api_compat.numpy as shim; "
+             "loaded = [m for m in ('numpy.f2py', 'numpy.testing') if m in sys.modules]; "
+             "x = np.linspace(-30.0, 30.0, 61); "
+             "print(json.dumps({{'loaded': loaded, 'all': sorted(shim.__all__), 'dir': sorted(dir(shim)), "
+             "'np_all': sorted(np.__all__), 'np_dir': sorted(dir(np)), "
+             "'values': [float(sp.logsumexp(x)), sp.softmax(x).tolist(), sp.expit(x).tolist()], "
+             "'same': [getattr(shim, n) is getattr(np, n) for n in ('testing', 'f2py', 'ma', 'random')]}}))")
+    lean = "from pemviz.sinks.process import import_scipy_special_lean as lean; assert lean()"
+    docs = [json.loads(subprocess.run([sys.executable, "-c", probe.format(setup=setup)], capture_output=True, text=True,
+                                      timeout=120, check=True).stdout)
+            for setup in (lean, "pass")]  # fmt: skip
+    assert docs[0]["loaded"] == [] and docs[1]["loaded"] == ["numpy.f2py", "numpy.testing"]
+    for key in ("all", "dir", "np_all", "np_dir", "values", "same"):
+        assert docs[0][key] == docs[1][key], key
+    assert docs[0]["same"] == [True] * 4
+
+
+def test_a_default_braking_run_imports_neither_f2py_nor_numpys_test_helpers(tmp_path):
+    """The program's run (its recording process aside) never imports numpy.f2py or numpy.testing."""
+    import subprocess
+    import sys
+
+    code = ("import os, sys; import pemviz.cli as cli; "
+            "cli._exit_now = lambda status: print('unused', [m for m in ('numpy.f2py', 'numpy.testing') "
+            "if m in sys.modules], 'exit', status, flush=True) or os._exit(status); "
+            f"sys.argv = ['pemviz', 'run', '--k', '2', '--n', '40', '--n-final', '60', "
+            f"'--save', {str(tmp_path / 'run.rrd')!r}]; cli.main()")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.stdout.strip().endswith("unused [] exit 0"), out.stdout[-500:] + out.stderr[-2000:]
+    assert (tmp_path / "run.rrd").stat().st_size > 0

@@ -336,24 +336,51 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
     return [{"what": what, "path": str(path), "sha256": sha256_file(path)} for what, path in files]
 
 
-def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, final, recording: str | None,
-                  paths: tuple[Path | None, Path | None, Path | None], why: str | None = None,
-                  saved: Path | None = None, failures: dict | None = None, severity=None) -> None:  # fmt: skip
-    """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where; with a ``saved`` recording its
-    result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads);
-    ``failures``: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`);
-    ``severity``: their :class:`pemviz.core.severity.FailureSeverity`, for the console's lines (None: none)."""
-    from pemviz.io.result import result_beside, result_document, write_junit, write_result_json
+def result_lines(cfg: ExperimentConfig, problem, final, why: str | None = None, failures: dict | None = None,
+                 severity=None) -> tuple[list[str], dict]:  # fmt: skip
+    """The console's lines after the table and the result document of a finished run (its ``recording`` None:
+    :func:`write_results` sets it), built before the recording is closed, so that they are made while the recording
+    process writes the file.
 
-    json_path, junit_path, report_path = paths
+    Args:
+        cfg: the run's config; problem: its :class:`pemviz.core.problems.Problem`; final: its
+            :class:`pemviz.engine.events.FinalEstimate`.
+        why: the errors that decided the most likely failure (a line), or None.
+        failures: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`), or
+            None.
+        severity: their :class:`pemviz.core.severity.FailureSeverity`, for the console's lines (None: none).
+
+    Returns:
+        ``(lines, document)``: the lines as :func:`pemviz.sinks.console.final_lines` says them (and ``why``), and
+        :func:`pemviz.io.result.result_document` of the run (the PEMs' sha256 included).
+    """
+    from pemviz.io.result import result_document
     from pemviz.sinks.console import final_lines
 
     lines = final_lines(final, cfg, problem.exact_log_p, problem.reference,
                         severity) + ([why] if why is not None else [])  # fmt: skip
     doc = result_document(cfg, final, exact_log_p=problem.exact_log_p, reference=problem.reference,
-                          recording=recording, command=" ".join(["pemviz", *sys.argv[1:]]), problem=problem,
+                          recording=None, command=" ".join(["pemviz", *sys.argv[1:]]), problem=problem,
                           console=lines, inputs=input_files(cfg),
                           failures=failures)  # fmt: skip
+    return lines, doc
+
+
+def write_results(args: argparse.Namespace, lines: list[str], doc: dict, recording: str | None,
+                  paths: tuple[Path | None, Path | None, Path | None], saved: Path | None = None) -> None:
+    """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where; with a ``saved`` recording its
+    result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads).
+
+    ``lines`` and ``doc``: :func:`result_lines`'; ``recording``: where the recording went (a path or a URL; None:
+    nowhere), set as the document's ``recording``; ``paths``: :func:`result_paths`'.
+
+    Raises:
+        OSError, pemviz.io.files.OutputExists: a file that could not be written (nothing partial is left).
+    """
+    from pemviz.io.result import result_beside, write_junit, write_result_json
+
+    json_path, junit_path, report_path = paths
+    doc["recording"] = recording
     if json_path is not None:
         print(f"result: {write_result_json(json_path, doc, overwrite=args.overwrite)}", file=sys.stderr)
     if saved is not None:
@@ -369,6 +396,12 @@ def write_results(args: argparse.Namespace, cfg: ExperimentConfig, problem, fina
 
 
 def main(args: argparse.Namespace) -> int:
+    from pemviz import cli
+
+    if cli.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules
+        from pemviz.sinks.process import import_scipy_special_lean
+
+        import_scipy_special_lean()
     try:
         cfg = config_from_args(args)
     except ConfigError as exc:
@@ -395,8 +428,6 @@ def main(args: argparse.Namespace) -> int:
 
     result_files = result_paths(args, cfg)
     target = recording_target(args)
-    from pemviz import cli
-
     if cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.executor == "serial":  # "save": the child's
         from pemviz.sinks.process import settle_pyarrow_without_pandas
 
@@ -516,17 +547,24 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
             __import__("rerun").script_teardown(args)  # waits for Ctrl-C
         except KeyboardInterrupt:
             pass
+    final = getattr(done, "final", None)
+    results = None  # the result files' lines and document, made while the recording process writes the file
+    if final is not None and (target == "save" or any(path is not None for path in result_files)):
+        try:
+            failures = grouping_document(groups.grouping) if groups.grouping is not None else None
+            results = result_lines(cfg, problem, final, why, failures, getattr(groups.grouping, "severity", None))
+        except BaseException:  # a run that fails here writes nothing, as one that fails in a stage
+            if recorder is not None:
+                recorder.close(commit=False)
+            raise
     where = None
     if recorder is not None:
         where = recorder.close()
         if where is not None:
             print(f"recording: {where}", file=sys.stderr)
-    final = getattr(done, "final", None)
     saved = Path(where) if where is not None and target == "save" else None
-    if final is not None and (saved is not None or any(path is not None for path in result_files)):
-        failures = grouping_document(groups.grouping) if groups.grouping is not None else None
-        write_results(args, cfg, problem, final, str(where) if where is not None else None, result_files, why, saved,
-                      failures, getattr(groups.grouping, "severity", None))
+    if results is not None and (saved is not None or any(path is not None for path in result_files)):
+        write_results(args, *results, str(where) if where is not None else None, result_files, saved)
     if cfg.require is not None and final is not None and final.decision is not None:
         from pemviz.core.requirement import EXIT_CODES
 

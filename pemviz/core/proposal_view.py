@@ -137,11 +137,19 @@ class ProposalView:
     p_miss_window: float
 
 
-def _by_bin(values: np.ndarray, bins: np.ndarray, n_bins: int, median: bool) -> tuple[np.ndarray, ...]:
-    """(centre, lo, hi) of ``values`` [S] per bin [S] in 0..n_bins-1: the mean (or median) and :data:`QUANTILES`."""
-    out = np.full((3, n_bins), np.nan)
+def _bin_order(bins: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(order, bounds)``: the states [S] sorted by their bin (``bins`` [S] in 0..n_bins-1; stable: within a bin in
+    their own order) and where each bin starts and ends in that order (int [n_bins + 1]), for :func:`_by_bin`."""
     order = np.argsort(bins, kind="stable")
-    bounds = np.searchsorted(bins[order], np.arange(n_bins + 1))
+    return order, np.searchsorted(bins[order], np.arange(n_bins + 1))
+
+
+def _by_bin(values: np.ndarray, sorted_bins: tuple[np.ndarray, np.ndarray], n_bins: int,
+            median: bool) -> tuple[np.ndarray, ...]:  # fmt: skip
+    """(centre, lo, hi) of ``values`` [S] per bin in 0..n_bins-1 (``sorted_bins``: :func:`_bin_order` of the states'
+    bins): the mean (or median) and :data:`QUANTILES`."""
+    out = np.full((3, n_bins), np.nan)
+    order, bounds = sorted_bins
     for b in range(n_bins):
         v = values[order[bounds[b] : bounds[b + 1]]]
         v = v[~np.isnan(v)]
@@ -191,14 +199,15 @@ def proposal_view(
     b, q_det, p_det = b[inside], prob_detect(lq, d)[inside], prob_detect(lp, d)[inside]
     q_lo_odds, p_lo_odds = miss_log_odds(lq, d)[inside], miss_log_odds(lp, d)[inside]
     window = gap < window_m
+    sorted_bins = _bin_order(b, n_bins)  # once for the four series
     return ProposalView(
         edges,
         (edges[:-1] + edges[1:]) / 2.0,
         np.bincount(b, minlength=n_bins),
-        *_by_bin(q_det, b, n_bins, median=False),
-        *_by_bin(p_det, b, n_bins, median=False),
-        *_by_bin(q_lo_odds, b, n_bins, median=True),
-        *_by_bin(p_lo_odds, b, n_bins, median=True),
+        *_by_bin(q_det, sorted_bins, n_bins, median=False),
+        *_by_bin(p_det, sorted_bins, n_bins, median=False),
+        *_by_bin(q_lo_odds, sorted_bins, n_bins, median=True),
+        *_by_bin(p_lo_odds, sorted_bins, n_bins, median=True),
         float(window_m),
         float(prob_detect(lq, ~d)[window].mean()) if window.any() else math.nan,
         float(prob_detect(lp, ~d)[window].mean()) if window.any() else math.nan,

@@ -23,6 +23,11 @@ Shapes of what the hooks return (T = the rollout's steps):
   summary), ``series`` (tuple of ``(key, name, role, values [T])``: a line on ``step`` at ``explain/<key>``) and
   ``markers`` (tuple of ``(key, name, role, marker, steps [k], values [k] or None, size)``: points at those steps;
   values None: on the row under the p(detect) curves).
+
+One hook is optional (read with ``getattr``): ``contacts(batch, rows)``, whether each of the rollouts ``rows``
+(int [k]) made contact, bool [k] (the ``contact`` of :meth:`RecordingDrawing.outcome_values` for all of them at once;
+None: ask :meth:`RecordingDrawing.outcome_values` rollout by rollout), for the failures' share of contact
+(:func:`pemviz.sinks.rerun_views.contact_share`).
 """
 
 from __future__ import annotations

@@ -223,7 +223,9 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)  # the run decides: it closes the sink, and the child then writes
     path, overwrite = (sys.argv[1:] if argv is None else argv)[:2]
-    from pemviz.sinks.process import settle_pyarrow_without_pandas
+    from pemviz.sinks.process import import_scipy_special_lean, settle_pyarrow_without_pandas
+
+    import_scipy_special_lean()  # before the engine's and the sink's modules import it
     from pemviz.engine.experiment import RobustnessByMetric
     from pemviz.io.files import OutputExists
     from pemviz.sinks.recording import RerunSink

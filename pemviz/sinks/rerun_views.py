@@ -259,15 +259,20 @@ def draws_scene(drawing: object) -> bool:
 
 def contact_share(drawing: object, batch: RolloutBatch, failed: np.ndarray) -> dict[str, float]:
     """``{"contact_share": s}``: the share of the failing rollouts of ``batch`` (``failed``: bool [N]) that made
-    contact (the ``contact`` of :func:`outcome_values`), for the recording's per-stage series; ``{}`` where the drawing
+    contact (the ``contact`` of :func:`outcome_values`; the drawing object's optional ``contacts(batch, rows)``, bool
+    [k] or None, answers for all of them at once), for the recording's per-stage series; ``{}`` where the drawing
     draws no scene, says nothing of contact, or no rollout failed."""
     rows = np.flatnonzero(np.asarray(failed, bool))
     if not draws_scene(drawing) or rows.size == 0:
         return {}
-    told = [outcome_values(drawing, batch, int(i)) for i in rows]
-    if any(t is None for t in told):
-        return {}
-    return {"contact_share": float(np.mean([bool(t["contact"]) for t in told]))}
+    contacts = getattr(drawing, "contacts", None)  # all rows at once, where the drawing object can
+    made = contacts(batch, rows) if contacts is not None else None
+    if made is None:
+        told = [outcome_values(drawing, batch, int(i)) for i in rows]
+        if any(t is None for t in told):
+            return {}
+        made = [bool(t["contact"]) for t in told]
+    return {"contact_share": float(np.mean(made))}
 
 
 def outcome(drawing: object, batch: RolloutBatch, i: int, failed: bool) -> str:

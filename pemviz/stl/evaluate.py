@@ -27,8 +27,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -50,6 +49,9 @@ from pemviz.stl.parser import parse
 from pemviz.stl.semantics import DEFAULT_TEMPERATURE, SEMANTICS, Semantics, _col, semantics_from_name
 from pemviz.stl._kernels import torch
 
+if TYPE_CHECKING:
+    from concurrent.futures import ThreadPoolExecutor
+
 __all__ = ["TRACE_END", "robustness", "robustness_signal", "first_violation"]
 
 TRACE_END = ("truncate", "error")
@@ -60,11 +62,15 @@ _pool: ThreadPoolExecutor | None = None
 
 
 def _thread_pool() -> ThreadPoolExecutor | None:
+    """The pool that evaluates a long batch's chunks side by side (None on one CPU); made, and
+    :mod:`concurrent.futures` (with :mod:`logging`, about 10 ms) imported, when a batch first needs it."""
     global _pool
     workers = min(os.cpu_count() or 1, 8)
     if workers <= 1:
         return None
     if _pool is None:
+        from concurrent.futures import ThreadPoolExecutor
+
         _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="pemviz-stl")
     return _pool
 

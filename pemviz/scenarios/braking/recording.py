@@ -82,6 +82,15 @@ class BrakingRecording:
         return dict(outcome=sev.short, min_gap_m=sev.min_gap_m, breach_closing_mps=sev.breach_closing_mps,
                     contact=sev.contact, contact_speed_mps=sev.contact_speed_mps)  # fmt: skip
 
+    def contacts(self, batch: RolloutBatch, rows: np.ndarray) -> np.ndarray | None:
+        """Whether each of the rollouts ``rows`` (int [k]) made contact, bool [k]: the ``contact`` of
+        :meth:`outcome_values` for all of them at once (the gap, in float64 metres, at or below ``contact_gap_m`` at
+        some step: :func:`~pemviz.scenarios.braking.failures.severity`); None without a ``gap_m`` column."""
+        if "gap_m" not in batch.observation_names:
+            return None
+        gap = np.asarray(batch.signal("gap_m")[np.asarray(rows)], dtype=np.float64)
+        return np.any(gap <= self.params.contact_gap_m, axis=1)
+
     def scene_lane(self, batch: RolloutBatch, i: int) -> tuple | None:
         """Rollout ``i`` as a lane: the ego (green while it detects the lead, orange while it misses) and the lead
         (red once the gap is below the crash gap), boxes of the true car sizes centred where
