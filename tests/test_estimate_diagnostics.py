@@ -145,6 +145,17 @@ def test_effective_sample_size_counts_equal_weights_and_ignores_the_scale_of_the
     # weights 1, 1, 2 (times e^-900): (1 + 1 + 2)^2 / (1 + 1 + 4) = 16 / 6
     assert effective_sample_size(np.log([1.0, 1.0, 2.0]) - 900.0) == pytest.approx(16.0 / 6.0, rel=1e-12)
     assert effective_sample_size(np.array([0.0, -np.inf, -np.inf])) == 1.0  # zero weights count for nothing
+    assert effective_sample_size(np.full(3, -np.inf)) == 0.0  # no weight: nothing counts (was nan)
+    assert math.isnan(effective_sample_size(np.array([0.0, np.nan])))
+
+
+def test_failures_that_all_weigh_zero_are_unreliable_with_ess_0_and_the_reason():
+    from pemviz.core.estimate import estimate
+
+    log_w = np.array([-np.inf, -np.inf, 0.0, -1.0])
+    e = estimate(log_w, np.array([True, True, False, False]), np.full(4, -np.inf))
+    assert e.ess == 0.0 and e.mu_hat == 0.0 and e.n_failures == 2
+    assert e.verdict == "unreliable" and e.reason.startswith("every one of the 2 failures weighs 0")
 
 
 @pytest.mark.parametrize("k", [-0.4, 0.0, 0.3, 0.9, 1.6])

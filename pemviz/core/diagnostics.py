@@ -18,9 +18,12 @@ def effective_sample_size(log_weights: np.ndarray) -> float:
 
     Computed from the weights relative to the largest, so finite whatever the scale of the logs (Kong, Liu & Wong,
     "Sequential imputations and Bayesian missing data problems", JASA 89(425), 1994; Owen, "Monte Carlo theory,
-    methods and examples", 2013, Sec. 9.3). Returns a value in [1, S]; nan when every weight is 0 (-inf).
+    methods and examples", 2013, Sec. 9.3). Returns a value in [1, S]; 0 when every weight is 0 (-inf: no sample
+    counts); nan when a weight is nan or +inf.
     """
     lw = np.asarray(log_weights, dtype=np.float64)
+    if lw.size and np.all(lw == -np.inf):
+        return 0.0
     rel = np.exp(lw - lw.max())  # weights relative to the largest: finite whatever the scale of the logs
     return float(rel.sum() ** 2 / np.square(rel).sum())
 

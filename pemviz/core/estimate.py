@@ -356,6 +356,9 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
         return "unreliable", "the weights hold nan: a proposal drew what the PEM cannot"
     if not plain_mc and not math.isfinite(ess):
         return "unreliable", "the ESS is not a finite number"
+    if not plain_mc and ess == 0.0:
+        return "unreliable", (f"every one of the {nf} failures weighs 0: the proposal drew only failures the PEM "
+                              "cannot produce (p = 0)")  # fmt: skip
     if not plain_mc:
         if khat > KHAT_UNRELIABLE and ess < 2 * MIN_FAILURES:
             return "unreliable", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: a few weights dominate"

@@ -33,8 +33,12 @@ class MostLikelyFailure(Sink):
     def why(self, problem) -> str | None:
         """The console's line saying which perception errors decided the most likely failure
         (:func:`pemviz.core.counterfactuals.counterfactuals`, replayed through ``problem``); None before a failure or
-        for rollouts without object rows."""
+        for rollouts without object rows. Where every failure drawn has probability 0 under the PEM (log p = -inf),
+        the line says so instead of calling one of them the most likely."""
         if self.batch is None or self.batch.objects is None:
             return None
         cf = counterfactuals(problem, self.batch, 0)
+        if not np.isfinite(self.log_p):  # every failure drawn holds an event the PEM cannot produce
+            return (f"why: every failure drawn has probability 0 under the PEM (log p = -inf), so none is likely; "
+                    f"one of them (stage {self.stage}): {cf.summary()}")  # fmt: skip
         return f"why: the most likely failure (stage {self.stage}, log p {self.log_p:.1f} nats): {cf.summary()}"
