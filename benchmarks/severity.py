@@ -4,10 +4,14 @@ Prints, for the default ``pemviz run`` on braking over ``--seeds`` seeds, each p
 (``reached``: verdict ``reliable``) against the exact answer where one is known (``pemviz.scenarios.braking.truth``:
 :data:`KNOWN_BRAKING_MARGIN_LOG_P`, the enumeration with ``BrakingParams(crash_gap_m=x)``): the ratio to it, whether
 the interval holds it, and how many seeds reach the point at all; then the same for runs that target a level
-(``--margin x``). With ``--exact`` it first recomputes the exact points (``braking_truth``, 1-2 minutes each).
+(``--margin x``). With ``--exact`` it first recomputes the exact points (``braking_truth``: 1.5 m and 1 m on the
+node bound, 0.5 m and 0 m (contact) on the cell bound, 0.5-2 minutes each, 5 GB at 0.5 m). With ``--contact-seeds K``
+it ends with the mean of K targeted contact runs at a larger budget (``--margin 0 --n 1000 --n-final 20000``): each
+run's estimate is unbiased, so their mean is an independent check of the exact contact point.
 
     python benchmarks/severity.py                    # 20 seeds of the default run, 5 of each targeted run (~3 min)
     python benchmarks/severity.py --seeds 5 --exact  # and the enumeration
+    python benchmarks/severity.py --seeds 0 --targeted-seeds 0 --contact-seeds 20   # ~2 min
 """
 
 from __future__ import annotations
@@ -65,6 +69,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--targeted-seeds", type=int, default=5)
     ap.add_argument("--exact", action="store_true", help="recompute the exact points first")
+    ap.add_argument("--contact-seeds", type=int, default=0, help="mean of this many larger contact runs at the end")
     a = ap.parse_args()
     if a.exact:
         from pemviz.scenarios.braking.truth import braking_truth
@@ -72,18 +77,41 @@ def main() -> None:
         from pemviz.scenarios.braking import BrakingParams
 
         pem = load_pem()
-        for m in (1.5, 1.0):
+        for m in (1.5, 1.0, 0.5, 0.0):
             t = time.perf_counter()
             r = braking_truth(pem.logit_at_gap, BrakingParams(crash_gap_m=m),
                               log_prunes=(-46.0, -50.0, -54.0, -58.0, -62.0, -66.0, -70.0, -80.0, -90.0, -100.0, -110.0))
             print(f"exact P(min gap < {m:g} m) = {math.exp(r.log_p_fail):.4e} (log {r.log_p_fail!r}), bracket width "
                   f"{r.final.relative_width:.2e}, {time.perf_counter() - t:.0f} s")
-    ok = table("default run (pemviz run)", [ExperimentConfig(seed=s) for s in range(a.seeds)])
+    ok = table("default run (pemviz run)", [ExperimentConfig(seed=s) for s in range(a.seeds)]) if a.seeds else True
+    targeted_ok = True
     for m in (1.0, 0.5, 0.0):
-        table(f"targeted run (pemviz run --margin {m:g})",
-              [ExperimentConfig(seed=s, margin=m) for s in range(a.targeted_seeds)])
+        if a.targeted_seeds:
+            targeted_ok &= table(f"targeted run (pemviz run --margin {m:g})",
+                                 [ExperimentConfig(seed=s, margin=m) for s in range(a.targeted_seeds)])
     print(f"\nevery reported point of the default run within x{TARGET_RATIO} of the exact one and inside its interval: "
-          f"{'MET' if ok else 'MISSED'}")
+          f"{'MET' if ok else 'MISSED'}; of the targeted runs: {'MET' if targeted_ok else 'MISSED'}")
+    if a.contact_seeds:
+        contact_mean(a.contact_seeds)
+
+
+def contact_mean(seeds: int) -> None:
+    """The mean of ``seeds`` targeted contact runs at a larger budget against the exact contact point."""
+    t0 = time.perf_counter()
+    runs = []
+    for s in range(seeds):
+        cfg = ExperimentConfig(seed=1000 + s, margin=0.0, n_per_stage=1000, n_final=20000)
+        pt = curve(cfg).points[0]
+        runs.append(pt)
+    ex = runs[0].exact_log_p
+    mus = np.array([math.exp(p.estimate.log_mu_hat) for p in runs])
+    reliable = [p for p in runs if p.reached]
+    good = sum(math.exp(abs(p.estimate.log_mu_hat - ex)) <= TARGET_RATIO and p.estimate.covers(ex) for p in reliable)
+    se = mus.std(ddof=1) / math.sqrt(seeds)
+    print(f"\ncontact, {seeds} runs of pemviz run --margin 0 --n 1000 --n-final 20000 "
+          f"({time.perf_counter() - t0:.0f} s): mean {mus.mean():.3e} +- {se:.2e} (standard error), "
+          f"median {np.median(mus):.3e}, exact {math.exp(ex):.3e}; {len(reliable)} reliable, {good} of them "
+          f"within x{TARGET_RATIO} with the exact answer inside the interval")
 
 
 if __name__ == "__main__":

@@ -23,6 +23,10 @@ EXACT_1_5 = 2.9992e-17
 --exact``: bracket width 0.09 %)."""
 EXACT_1_0 = 4.6704e-19
 """P(min gap < 1 m), the same way (bracket width 0.11 %)."""
+EXACT_0_5 = 5.0523e-21
+"""P(min gap < 0.5 m), the same way on the cell bound (``truth_cells.cell_miss_bound``; bracket width 0.02 %)."""
+EXACT_CONTACT = 8.0581e-33
+"""P(min gap < 0 m), contact, the same way (bracket width < 1e-9)."""
 
 
 def test_level_events_by_hand():
@@ -46,10 +50,21 @@ def test_severity_scale_refuses_levels_out_of_order():
 
 def test_the_known_points_come_from_the_enumeration_at_that_crash_gap():
     pem = load_pem()
-    for gap, p in ((1.5, EXACT_1_5), (1.0, EXACT_1_0)):
+    for gap, p in ((1.5, EXACT_1_5), (1.0, EXACT_1_0), (0.5, EXACT_0_5), (0.0, EXACT_CONTACT)):
         log_p = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=gap))
         assert log_p is not None and math.exp(log_p) == pytest.approx(p, rel=1e-4)
-    assert truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=0.5)) is None
+    assert truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=0.25)) is None
+
+
+@pytest.mark.parametrize("gap, log_prune", [(0.5, -62.0), (0.0, -90.0)])
+def test_the_kept_points_below_1_m_lie_in_a_coarser_enumeration_s_bracket(gap, log_prune):
+    # the kept answers come from 2,000 x 400 cells and drop thresholds to -70 / -100 nats; a bound on 800 x 160 cells
+    # and a higher threshold is another enumeration (other sequences dropped) whose bracket must hold them
+    pem = load_pem()
+    ex = truth.braking_exact(pem.logit_at_gap, BrakingParams(crash_gap_m=gap), log_prune=log_prune, bound_grid=161)
+    kept = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=gap))
+    assert ex.log_p_fail <= kept <= ex.log_p_fail_upper
+    assert ex.relative_width < 0.5
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +97,16 @@ def test_a_run_that_targets_1_m_agrees_with_the_enumeration():
     assert abs(final.estimate.log_mu_hat - math.log(EXACT_1_0)) < math.log(1.5)
 
 
+def test_a_run_that_targets_0_5_m_agrees_with_the_enumeration_on_the_cell_bound():
+    cfg = ExperimentConfig(seed=1, margin=0.5)
+    final = Experiment(cfg, problem=problem_for(cfg)).run().final
+    assert final.estimate.verdict == "reliable"
+    assert final.estimate.covers(math.log(EXACT_0_5))
+    assert abs(final.estimate.log_mu_hat - math.log(EXACT_0_5)) < math.log(1.5)
+    contact = final.severity.points[-1]
+    assert contact.level == 0.0 and contact.exact_log_p == pytest.approx(math.log(EXACT_CONTACT), abs=1e-4)
+
+
 def _remaining_misses_against_bound(margin: float) -> tuple[int, int]:
     """(rollout-steps where the miss bound exceeds the misses a sampled failure still made, rollout-steps checked)
     over the failures of a run that targets ``margin``."""
@@ -93,7 +118,7 @@ def _remaining_misses_against_bound(margin: float) -> tuple[int, int]:
     ev = got[-1]
     p = BrakingParams(crash_gap_m=margin)
     start, vl = truth.branching_start(p), lead_speeds(p)
-    bound = truth.miss_bound(p, start)
+    bound = truth.exact_bound(p, start, 401 if margin >= truth.MISS_BOUND_MIN_GAP_M else 161)
     rows = np.flatnonzero(ev.failed)
     gap = pb.signal_arrays(ev.batch)["d"][rows]
     det = ev.batch.detected.reshape(ev.batch.n, ev.batch.n_steps, -1)[rows, :, 0]
@@ -112,9 +137,11 @@ def _remaining_misses_against_bound(margin: float) -> tuple[int, int]:
     return bad, checked
 
 
-def test_the_miss_bound_never_asks_more_misses_than_a_sampled_failure_made_at_1_m():
-    bad, checked = _remaining_misses_against_bound(1.0)
-    assert checked > 1000 and bad == 0
+@pytest.mark.parametrize("margin", [1.0, 0.5, 0.0])
+def test_the_miss_bound_never_asks_more_misses_than_a_sampled_failure_made(margin):
+    # at 1 m the node table (miss_bound), below it the cell bound (cell_miss_bound), where the node table fails
+    bad, checked = _remaining_misses_against_bound(margin)
+    assert checked > (1000 if margin > 0 else 500) and bad == 0  # contact: 585 rollout-steps
 
 
 def test_the_miss_bound_is_refused_below_1_m_where_failures_break_it():

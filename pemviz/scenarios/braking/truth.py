@@ -12,7 +12,9 @@ Three problems with a known answer judge the sampler:
    sequence exactly from the first step inside the braking distance (no grid, no merging) and drops a
    sequence only when a rigorous bound on all it could still contribute is below a threshold; the bound is
    a dynamic program on a (gap, speed) grid of the least number of misses that can still lead to a crash
-   (:func:`miss_bound`). The result is a bracket [enumerated, enumerated + dropped bound], refined by
+   (:func:`miss_bound`; below a 1 m crash gap, where its order argument fails at the contact gap, the same
+   program over cells, :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`; :func:`exact_bound`
+   picks). The result is a bracket [enumerated, enumerated + dropped bound], refined by
    lowering the threshold until it is narrower than the tolerance (:func:`braking_truth`).
 
 Why not a grid DP of the value function with interpolation: V is a sum of step functions of the state and
@@ -25,7 +27,9 @@ log-sum-exps.
 
 This module holds the main scenario's enumeration (3.); the latched scenario's closed form and value function (2.)
 are :mod:`pemviz.scenarios.braking.truth_latched`'s, the answers kept for the shipped PEMs
-:mod:`pemviz.scenarios.braking.truth_known`'s, and every name of both is importable from here.
+:mod:`pemviz.scenarios.braking.truth_known`'s, the cell bound :mod:`pemviz.scenarios.braking.truth_cells`'s, and
+every name of the first two and the cell bound's :class:`CellMissBound` and :func:`cell_miss_bound` are importable
+from here.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ from pemviz.scenarios.braking.truth_known import (  # noqa: F401 (re-exported: i
     known_log_failure_probability,
     pem_fingerprint,
 )
+from pemviz.scenarios.braking.truth_cells import CellMissBound, cell_miss_bound  # noqa: F401 (re-exported)
 from pemviz.scenarios.braking.truth_latched import (  # noqa: F401 (re-exported: importable from here as before)
     LatchedTruth,
     LatchedValue,
@@ -145,11 +150,14 @@ class MissBound:
 
 
 MISS_BOUND_MIN_GAP_M = 1.0
-"""The smallest crash gap (metres) for which :func:`miss_bound` is checked: at 0.5 m and 0 m the failures of a
-targeted run (``pemviz run --margin 0.5``) pass states where the ego is already braking hard and stops within a
-step, and there the relaxed controller is not monotone in the speed, so the table is too high (85 and 466 of the
-rollout-steps of seed 0's final failures); at 1 m, 1.5 m and 2 m none of 2,542 failures violates it
-(``tests/test_severity.py`` checks 1 m)."""
+"""The smallest crash gap (metres) for which :func:`miss_bound` is valid; below it :func:`exact_bound` takes
+:func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`. A crash gap below the contact gap (0.7 m, where the
+scene stops the ego) breaks the order the table rests on: a state just above 0.7 m that stops there is safer than
+one further back or slower that arrives faster, so rounding to a smaller gap or a larger speed can raise the bound.
+At 0.5 m and 0 m the failures of targeted runs (``pemviz run --margin 0.5``) need fewer misses than it says (85 and
+466 of the rollout-steps of seed 0's final failures), and so do 25 and 23 of 2,000 random states 8 steps before
+the end against all 256 detection sequences (201-node grid; ``tests/test_truth_cells.py``); at 1 m, 1.5 m and 2 m none of 2,542
+failures violates it (``tests/test_severity.py`` checks 1 m)."""
 
 
 def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) -> MissBound:
@@ -168,7 +176,7 @@ def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) ->
     if params.crash_gap_m < MISS_BOUND_MIN_GAP_M:
         raise ValueError(
             f"miss_bound: crash gap {params.crash_gap_m:g} m is below {MISS_BOUND_MIN_GAP_M:g} m, where the bound is "
-            "not a bound (sampled failures at 0.5 m and 0 m need fewer misses than it says)"
+            "not a bound (sampled failures at 0.5 m and 0 m need fewer misses than it says); use cell_miss_bound"
         )
     vl = lead_speeds(params)
     T, dt = params.n_steps, params.dt_s
@@ -193,6 +201,27 @@ def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) ->
                 best = np.minimum(best, m)
             table[t, b] = np.minimum(best, MissBound.NO_CRASH).reshape(n_grid, n_grid)
     return bound
+
+
+CELL_GAP_REFINE = 5
+"""Gap cells per speed cell of :func:`exact_bound`'s cell bound: a cell's next states touch the cell below nearly
+every step (the box is a cell wide), so the bound loses up to a gap cell per step and needs finer gap cells than
+the node table; at 2,000 x 400 cells its 1 m table equals :func:`miss_bound`'s at the start (9 misses)."""
+
+
+def exact_bound(params: BrakingParams, start: BrakingStart, bound_grid: int = 401) -> MissBound | CellMissBound:
+    """The miss bound the enumeration uses for ``params``: :func:`miss_bound` on a ``bound_grid`` x ``bound_grid``
+    grid where it is valid (crash gap >= :data:`MISS_BOUND_MIN_GAP_M`), else
+    :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound` on ``CELL_GAP_REFINE * (bound_grid - 1)`` gap
+    cells by ``bound_grid - 1`` speed cells (about 20 s and 0.3 GB at the default 401).
+
+    Raises:
+        ValueError: see :func:`miss_bound` and :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`.
+    """
+    if params.crash_gap_m >= MISS_BOUND_MIN_GAP_M:
+        return miss_bound(params, start, bound_grid)
+    cells = max(bound_grid - 1, 1)
+    return cell_miss_bound(params, start, n_gap=CELL_GAP_REFINE * cells, n_speed=cells)
 
 
 def _log_binomial_tail(n_max: int, q: float) -> np.ndarray:
@@ -251,7 +280,7 @@ def braking_exact(
     *,
     log_prune: float = -54.0,
     bound_grid: int = 401,
-    bound: MissBound | None = None,
+    bound: MissBound | CellMissBound | None = None,
     max_paths: int = 20_000_000,
 ) -> ExactResult:
     """p_fail of the braking scenario (latched or not) by enumerating detection sequences.
@@ -260,16 +289,17 @@ def braking_exact(
     detection (probabilities 1 - p and p, p = sigmoid(logit_at_gap(gap)), in log-space) and stepped exactly
     with :func:`braking_step`; a sequence whose next gap is below the crash gap adds its probability to
     p_fail and ends. A live sequence of log-probability L at step t is dropped when
-    ``L + log P(Binomial(n_left, q_max) >= m) < log_prune``, where m is the :class:`MissBound` of its
-    state, n_left the actions still to come and q_max the largest miss probability inside the braking
-    distance; that quantity bounds every crash it could still lead to, and the bounds of all dropped
+    ``L + log P(Binomial(n_left, q_max) >= m) < log_prune``, where m is the miss bound of its
+    state (:func:`exact_bound`), n_left the actions still to come and q_max the largest miss probability inside
+    the braking distance; that quantity bounds every crash it could still lead to, and the bounds of all dropped
     sequences add up to ``log_pruned_bound``. No state is merged or rounded.
 
     Args:
         logit_at_gap: logit p_PEM(detect | gap) (e.g. ``pem.logit_at_gap``).
         params: the scenario (default :class:`BrakingParams`).
         log_prune: drop threshold (nats); lower = tighter bracket, more sequences.
-        bound_grid: points per axis of the miss-bound grid; ``bound`` reuses one already computed.
+        bound_grid: points per axis of the miss-bound grid (:func:`exact_bound`); ``bound`` reuses one already
+            computed.
         max_paths: refuse to go on beyond this many live sequences (memory).
     Returns:
         :class:`ExactResult`: p_fail in [exp(log_p_fail), exp(log_p_fail_upper)].
@@ -279,7 +309,7 @@ def braking_exact(
     t_start = time.perf_counter()
     p = params or BrakingParams()
     start = branching_start(p)
-    bound = bound or miss_bound(p, start, bound_grid)
+    bound = bound or exact_bound(p, start, bound_grid)
     vl = lead_speeds(p)
     T = p.n_steps
     gap_probe = np.linspace(p.crash_gap_m, p.braking_distance_m, 20001)
@@ -389,13 +419,15 @@ def braking_truth(
     """Refine :func:`braking_exact` over ``log_prunes`` until (upper - lower) / lower < ``tolerance``.
 
     The default 0.5 % stops the main scenario at -58 nats: a bracket of
-    0.07 % in ~20-40 s and ~3.4 million live sequences (a few hundred MB) at most. The miss bound is
-    computed once and shared. Returns every step of the refinement (its table is the
+    0.07 % in ~20-40 s and ~3.4 million live sequences (a few hundred MB) at most; P(min gap < 0.5 m)
+    (``crash_gap_m=0.5``) stops at -70 nats (bracket 0.02 %, 96 s, 14.8 million live sequences, 5 GB), contact
+    (``crash_gap_m=0``) at -90 nats (0.03 %, 37 s, most of it the cell bound). The miss bound
+    (:func:`exact_bound`) is computed once and shared. Returns every step of the refinement (its table is the
     "refinement table"). ``converged`` is False if the thresholds ran out first.
     """
     p = params or BrakingParams()
     start = branching_start(p)
-    bound = miss_bound(p, start, bound_grid)
+    bound = exact_bound(p, start, bound_grid)
     results: list[ExactResult] = []
     for log_prune in log_prunes:
         r = braking_exact(logit_at_gap, p, log_prune=log_prune, bound=bound)

@@ -62,11 +62,15 @@ recomputes them), and those of the shipped PEM's ensemble members and logit shif
 KNOWN_BRAKING_MARGIN_LOG_P: dict[tuple[str, float], float] = {
     ("915fec568bb72b65", 1.5): -38.045588630879486,  # shipped ml-nn: 2.9992e-17, bracket width 0.09 %
     ("915fec568bb72b65", 1.0): -42.20786245180999,  # 4.6704e-19, bracket width 0.11 %
+    # below 1 m on the cell bound (truth_cells.cell_miss_bound, 2,000 x 400 cells, ~20 s of the times)
+    ("915fec568bb72b65", 0.5): -46.73444328937785,  # 5.0523e-21, bracket [5.0523, 5.0534]e-21 (0.02 %), 96 s, 5 GB
+    ("915fec568bb72b65", 0.0): -73.89863599760004,  # contact: 8.0581e-33, bracket width < 1e-9 at -100 nats, 36 s
 }
 """(PEM fingerprint, crash gap in metres) -> natural log of the exact probability that the gap of the main braking
-scenario drops below that crash gap (the points of the exceedance curve, :mod:`pemviz.core.severity`), from
-:func:`~pemviz.scenarios.braking.truth.braking_truth` with ``BrakingParams(crash_gap_m=...)`` and drop thresholds down
-to -110 nats (``benchmarks/severity.py`` recomputes them)."""
+scenario drops below that crash gap (the points of the exceedance curve, :mod:`pemviz.core.severity`; 0 m is
+contact), from :func:`~pemviz.scenarios.braking.truth.braking_truth` with ``BrakingParams(crash_gap_m=...)`` and drop
+thresholds down to -110 nats (``benchmarks/severity.py --exact`` recomputes them; ``tests/test_severity.py`` checks
+the 0.5 m and 0 m ones against coarser brackets)."""
 
 
 def pem_fingerprint(logit_at_gap: LogitFn) -> str:
