@@ -101,7 +101,8 @@ def test_the_verdict_cap_reaches_the_console(tmp_path):
     proc = run_cli("run", "--preset", "authors-code", "--n", "100", "--seed", "1", "--no-record", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("mu_hat = 4.620e-18"))
-    assert ": doubtful (the paper's fit of whole elite rollouts" in line and "OUTSIDE the interval" in line
+    # its ESS (13.8 < 20) already makes it doubtful, before the cap (which test_the_paper_s_whole_rollout_fit_... checks)
+    assert ": doubtful (ESS 13.8 < 20: too few effective failures" in line and "OUTSIDE the interval" in line
 
 
 def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():
@@ -132,3 +133,19 @@ def test_each_unreliable_or_doubtful_run_gets_one_line_of_advice(method, failure
 def test_a_reliable_run_gets_no_advice():
     e = distinct(np.full(400, -5.0), np.ones(400, bool))
     assert e.verdict == "reliable" and next_step(e, ExperimentConfig(), math.log(2e-15)) is None
+
+
+def test_an_ess_below_20_is_never_reliable_under_importance_sampling():
+    """Targeted contact runs on braking (`pemviz run --margin 0 --n 1000 --n-final 20000`) said "reliable" at ESS
+    11-14 and k-hat 0.44-0.61 while 2.2-4.1 times below the exact 8.058e-33, outside their intervals (seeds 20, 21,
+    24: ESS 11.1, 11.8, 13.9). The same numbers are doubtful now; ESS 20 with them is reliable."""
+    from pemviz.core.estimate import MIN_ESS_RELIABLE, _verdict
+
+    log_w = np.full(20_000, -80.0)
+    for ess, khat, verdict in ((11.1, 0.45, "doubtful"), (11.8, 0.61, "doubtful"), (13.9, 0.44, "doubtful"),
+                               (19.9, 0.44, "doubtful"), (MIN_ESS_RELIABLE, 0.44, "reliable")):  # fmt: skip
+        got, reason = _verdict(20_000, 61, ess, khat, log_w, False, 61)
+        assert got == verdict, (ess, got, reason)
+        if verdict == "doubtful":
+            assert reason == f"ESS {ess:.1f} < 20: too few effective failures to judge the weights' tail"
+    assert _verdict(20_000, 61, 11.1, 0.45, np.zeros(20_000), True, 61)[0] == "reliable"  # plain Monte Carlo: no ESS rule
