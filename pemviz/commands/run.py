@@ -39,7 +39,6 @@ RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "quantile_le
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    d = ExperimentConfig()
     p = sub.add_parser(
         "run",
         help=COMMANDS["run"][1],

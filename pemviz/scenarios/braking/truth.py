@@ -52,7 +52,11 @@ from pemviz.scenarios.braking.truth_known import (  # noqa: F401 (re-exported: i
     known_log_failure_probability,
     pem_fingerprint,
 )
-from pemviz.scenarios.braking.truth_cells import CellMissBound, cell_miss_bound  # noqa: F401 (re-exported)
+from pemviz.scenarios.braking.truth_cells import (  # noqa: F401 (CellMissBound, cell_miss_bound re-exported)
+    CellMissBound,
+    cell_miss_bound,
+    largest_gap_after,
+)
 from pemviz.scenarios.braking.truth_latched import (  # noqa: F401 (re-exported: importable from here as before)
     LatchedTruth,
     LatchedValue,
@@ -179,13 +183,8 @@ def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) ->
             "not a bound (sampled failures at 0.5 m and 0 m need fewer misses than it says); use cell_miss_bound"
         )
     vl = lead_speeds(params)
-    T, dt = params.n_steps, params.dt_s
-    gap_hi = start.gap_m + dt * float(np.sum(vl[start.step :]))  # the ego never reverses
-    if gap_hi >= params.braking_distance_m:
-        raise ValueError(
-            f"miss_bound: the gap can return to {gap_hi:.2f} m >= the braking distance after step {start.step}; "
-            "the exact enumeration needs the lead to stay stopped once the ego is inside the braking distance"
-        )
+    T = params.n_steps
+    gap_hi = largest_gap_after(params, start.step, start.gap_m, "miss_bound")
     speed_hi = max(start.speed_mps, params.target_speed_kmh / 3.6) + 1.5
     gap_axis = np.linspace(params.crash_gap_m, gap_hi, n_grid)
     speed_axis = np.linspace(0.0, speed_hi, n_grid)

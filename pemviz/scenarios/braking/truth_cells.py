@@ -46,6 +46,24 @@ _EPS = 1e-9
 """Every box is widened by this much (metres, m/s) on each side, which covers float64 rounding in the cell indices."""
 
 
+def largest_gap_after(params: BrakingParams, step: int, gap_m: float, who: str) -> float:
+    """The largest gap (metres) the scenario can reach after ``step``, where the gap is ``gap_m`` (a branching start,
+    :func:`pemviz.scenarios.braking.truth.branching_start`): that gap plus every later step's lead travel (the ego
+    never reverses), the upper end of a miss bound's gap axis.
+
+    Raises:
+        ValueError: naming ``who``, if that gap reaches the braking distance (then a miss is not always a cost and
+            the order argument of the bounds fails).
+    """
+    gap_hi = gap_m + params.dt_s * float(np.sum(lead_speeds(params)[step:]))
+    if gap_hi >= params.braking_distance_m:
+        raise ValueError(
+            f"{who}: the gap can return to {gap_hi:.2f} m >= the braking distance after step {step}; "
+            "the exact enumeration needs the lead to stay stopped once the ego is inside the braking distance"
+        )
+    return gap_hi
+
+
 def integral_range(params: BrakingParams, start_integral: float, speed_top_mps: float) -> tuple[float, float]:
     """The PID integral's reachable range (km/h s) from a start with ``start_integral`` while the speed stays in
     [0, ``speed_top_mps``].
@@ -244,12 +262,7 @@ def cell_miss_bound(params: BrakingParams, start, n_gap: int = 2000, n_speed: in
         raise ValueError(f"cell_miss_bound: n_gap and n_speed must be >= 2, got {n_gap}, {n_speed}")
     vl = lead_speeds(p)
     T, dt = p.n_steps, p.dt_s
-    gap_hi = start.gap_m + dt * float(np.sum(vl[start.step :]))  # the ego never reverses
-    if gap_hi >= p.braking_distance_m:
-        raise ValueError(
-            f"cell_miss_bound: the gap can return to {gap_hi:.2f} m >= the braking distance after step {start.step}; "
-            "the exact enumeration needs the lead to stay stopped once the ego is inside the braking distance"
-        )
+    gap_hi = largest_gap_after(p, start.step, start.gap_m, "cell_miss_bound")
     floor_gap = max(p.crash_gap_m, p.contact_gap_m)
     zone = p.crash_gap_m <= p.contact_gap_m  # gaps at or below the contact gap can be reached without a crash
     speed_top = max(start.speed_mps, p.target_speed_kmh / 3.6) + speed_margin_mps
