@@ -149,3 +149,31 @@ def test_an_ess_below_20_is_never_reliable_under_importance_sampling():
         if verdict == "doubtful":
             assert reason == f"ESS {ess:.1f} < 20: too few effective failures to judge the weights' tail"
     assert _verdict(20_000, 61, 11.1, 0.45, np.zeros(20_000), True, 61)[0] == "reliable"  # plain Monte Carlo: no ESS rule
+
+
+def test_a_braking_failure_below_the_never_detected_stop_is_never_reliable(tmp_path):
+    """Every miss brings the ego to 0.08 m (the scene stops it at its 0.7 m contact gap and its last step carries it
+    on): a failure below that (contact, 0 m) needs detections at the right steps, which the proposal draws only in
+    part. `pemviz run --margin 0 --n 400 --seed 0` said "reliable" (ESS 23.4, k-hat 0.23) at 3.6e-33 against the
+    exact 8.058e-33, outside its interval; now it is doubtful, and margins above 0.08 m keep no cap."""
+    import dataclasses
+
+    from pemviz.scenarios.braking.problem import never_detected_min_gap_m, verdict_cap
+    from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
+
+    p = BrakingParams()
+    sim, gaps = BrakingScenario(p), []  # the highway-env simulator, one step at a time: an independent path
+    for _ in range(p.n_steps):
+        gaps.append(float(sim.observation()[0]))
+        sim.step(False)
+    assert never_detected_min_gap_m(p) == pytest.approx(min(gaps), abs=1e-9)
+    assert 0.05 < min(gaps) < 0.1
+    for margin, capped in ((2.0, False), (1.0, False), (0.5, False), (0.1, False), (0.0, True)):
+        cap = verdict_cap(dataclasses.replace(p, crash_gap_m=margin))
+        assert (cap is not None) == capped, margin
+    assert verdict_cap(dataclasses.replace(p, crash_gap_m=0.0))[0] == "doubtful"
+    proc = run_cli("run", "--margin", "0", "--n", "400", "--seed", "0", "--no-record", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("mu_hat = 3.594e-33"))
+    assert ": doubtful (a gap below 0.08 m (where the ego ends when it never detects the lead)" in line
+    assert "OUTSIDE the interval" in line

@@ -96,6 +96,9 @@ class Problem:
             memory check, the cost model and the sinks read.
         drawing: the scenario's drawing object (what the recording and the panel draw of its rollouts, from the
             scenario's own package; :class:`ProblemView`), or None: only the signals are drawn.
+        verdict_cap: (verdict, reason): the best verdict the adaptive sampler's estimate may claim on this problem,
+            whatever its weights show, where the scenario knows that the sampler's proposal misses part of the
+            failures (:meth:`pemviz.core.estimate.Estimate.at_most`); None: no cap.
     """
 
     name: str
@@ -126,6 +129,7 @@ class Problem:
     alternatives_source: str = ""
     n_steps: int | None = None
     drawing: object | None = None
+    verdict_cap: tuple[str, str] | None = None
 
     @property
     def view(self) -> ProblemView:

@@ -322,13 +322,14 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         when the first fit takes whole elite rollouts (:attr:`pemviz.config.ExperimentConfig.fits_whole_rollouts`,
         the paper's own fit): such a proposal can settle on one failure mode and miss others, which no diagnostic of
         its weights can see (the user guide's Validation page: "reliable" with the exact answer far outside the
-        interval in 1 of 200 seeds of the ``paper`` preset and 1 of 10 of ``authors-code`` at N = 100)."""
+        interval in 1 of 200 seeds of the ``paper`` preset and 1 of 10 of ``authors-code`` at N = 100); else the
+        problem's own cap (:attr:`pemviz.core.problems.Problem.verdict_cap`)."""
         if not self.reached_failures:
             return "doubtful", "no stage's threshold reached the failure level: the proposal was never fitted to a failure"
         if self.config.fits_whole_rollouts:
             return "doubtful", ("the paper's fit of whole elite rollouts can settle on one failure mode and miss "
                                 "others its weights cannot show (the Validation page); use the default sampler")
-        return None
+        return self.problem.verdict_cap  # what the scenario knows its proposal misses (Problem.verdict_cap)
 
     def _result(self) -> tuple[Estimate, tuple[int, ...]]:
         stage, est = self._last
