@@ -72,7 +72,8 @@ def test_a_run_whose_stages_never_reached_the_failure_level_is_never_reliable():
     cfg = ExperimentConfig()  # the default sampler: frozen weights, window, weights until failure
 
     def result(reached: bool, config: ExperimentConfig = cfg) -> tuple:
-        ce = types.SimpleNamespace(reached_failures=reached, config=config, _result=lambda: (good, (11,)))
+        ce = types.SimpleNamespace(reached_failures=reached, config=config, _result=lambda: (good, (11,)),
+                                   problem=types.SimpleNamespace(verdict_cap=None))  # fmt: skip
         ce.verdict_cap = CrossEntropy.verdict_cap.fget(ce)
         return CrossEntropy.result(ce)
 
