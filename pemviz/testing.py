@@ -192,7 +192,7 @@ def _run_with_files(config: Any, problem: Any, folder: Path, stem: str) -> _Run:
     return run
 
 
-def _check_files(checks: _Checks, run: _Run) -> None:
+def _check_files(checks: _Checks, run: _Run, problem: Any = None) -> None:
     """The rollout file re-estimates to the run's own estimate; the recording was written and is not empty."""
     from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
     from pemviz.io.rollouts import read_rollouts
@@ -210,7 +210,9 @@ def _check_files(checks: _Checks, run: _Run) -> None:
         cap = said.get("verdict_cap")
         again = estimate_rollouts(data, data.log_p, data.log_q, weights=data.meta.weights or "to-failure",
                                   log_p_seen=said.get("log_p_seen"),
-                                  verdict_cap=tuple(cap) if isinstance(cap, list) and len(cap) == 2 else None).estimate
+                                  verdict_cap=tuple(cap) if isinstance(cap, list) and len(cap) == 2 else None,
+                                  look_ahead=getattr(problem, "look_ahead", None) if said.get("look_ahead") else None,
+                                  ).estimate  # fmt: skip
         own = run.final.estimate
         a, b = again.log_mu_hat, own.log_mu_hat
         close = a == b or (math.isfinite(a) and math.isfinite(b) and abs(math.expm1(a - b)) <= REESTIMATE_RTOL)
@@ -422,7 +424,7 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
             run = _run_with_files(config, problem, where, f"{sc.name}-{config.method}")
             if run.final.estimate.n_failures > 0:
                 break
-        _check_files(checks, run)
+        _check_files(checks, run, problem)
     return checks.report()
 
 
@@ -594,5 +596,5 @@ def check_estimator(method: str, *, problem: Any = None, folder: str | Path | No
         checks.require(got.n_failures == 0, name, f"a run where no rollout can fail reports {got.n_failures} failures")
         checks.passed.append(name)
 
-        _check_files(checks, runs[0])
+        _check_files(checks, runs[0], pb)
     return checks.report()

@@ -153,8 +153,8 @@ def test_inconsistent_arrays_and_speeds_are_refused():
 
 
 def test_share_text_never_rounds_a_share_to_0_or_100_percent():
-    assert [share_text(x) for x in (0.0, 1.0, 0.5, 0.972, 0.99998, 2.24e-8)] == [
-        "0 %", "100 %", "50 %", "97.2 %", "99.998 %", "2.24e-06 %"]  # fmt: skip
+    assert [share_text(x) for x in (0.0, 1.0, 0.5, 0.972, 0.99998, 2.24e-8, 1 - 3e-16, 1 - 1e-9)] == [
+        "0 %", "100 %", "50 %", "97.2 %", "99.998 %", "2.24e-06 %", "100 %", "99.9999999 %"]  # fmt: skip
 
 
 def test_a_small_run_s_failures_by_share_match_a_hand_computation(braking):

@@ -149,13 +149,13 @@ def test_a_run_with_a_parameter_prints_and_records_it(tmp_path, capsys):
     assert doc["settings"]["scenario_params"] == [["cut_in_gap_m", 19.5]]
     assert doc["reference"] is None and doc["exact"] is None
     assert "cutting in 19.5 m ahead" in doc["problem"]["description"]
-    from pemviz.commands.estimate import known_answer
+    from pemviz.commands.estimate import known_answer, run_problem
     from pemviz.io.rollout_format import sidecar_path
     from pemviz.io.rollouts import read_rollouts
 
     sidecar = json.loads(sidecar_path(rollouts).read_text())
     assert sidecar["provenance"]["config"]["scenario_params"] == [["cut_in_gap_m", 19.5]]
-    assert known_answer(read_rollouts(rollouts), "crash", True) == (None, None)  # no reference of another scene
+    assert known_answer(run_problem(read_rollouts(rollouts), "crash", True)) == (None, None)  # no reference of another scene
 
 
 def test_a_parameter_at_its_default_is_not_named_in_the_header(capsys):

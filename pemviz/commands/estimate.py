@@ -159,15 +159,14 @@ def weights_convention(meta: Any, requested: str | None) -> tuple[str, str]:
     return "to-failure", "pemviz's default; the sidecar names none"
 
 
-def known_answer(data: Any, failure: str, own: bool) -> tuple[float | None, Any]:
-    """The exact log failure probability (nats) or the plain Monte Carlo reference that the run which wrote the file
-    printed (its problem, :func:`pemviz.scenarios.problems.problem_for` of the scenario, its parameters, PEM, margin and
-    simulator its sidecar records), when the file is estimated as that run estimated it: under the run's own log p
-    (``own``) and with a crash of its specification as the failure. ``(None, None)`` otherwise, or when the sidecar
-    records no run."""
+def run_problem(data: Any, failure: str, own: bool) -> Any:
+    """The problem of the run that wrote the file (:func:`pemviz.scenarios.problems.problem_for` of the scenario, its
+    parameters, PEM, margin and simulator its sidecar records), when the file is estimated as that run estimated it:
+    under the run's own log p (``own``) and with a crash of its specification as the failure; None otherwise, when the
+    sidecar records no run, or for a run of another version or a PEM no longer there."""
     config = ((data.meta.provenance or {}).get("config") if data.meta else None) or {}
     if not own or failure != "crash" or not isinstance(config, dict) or "scenario" not in config:
-        return None, None
+        return None
     from pemviz.config import ConfigError
     from pemviz.scenarios.registry import problem_for
     from pemviz.scenarios.parameters import as_pairs
@@ -176,10 +175,15 @@ def known_answer(data: Any, failure: str, own: bool) -> tuple[float | None, Any]
         fields = {k: config[k] for k in ("scenario", "pem", "margin", "sim") if k in config}
         if "scenario_params" in config:  # a JSON list of [name, value] lists
             fields["scenario_params"] = as_pairs(config["scenario_params"])
-        problem = problem_for(ExperimentConfig(**fields))
-    except (ConfigError, OSError, ValueError, TypeError):  # a run of another version or a PEM no longer there
-        return None, None
-    return problem.exact_log_p, problem.reference
+        return problem_for(ExperimentConfig(**fields))
+    except (ConfigError, OSError, ValueError, TypeError):
+        return None
+
+
+def known_answer(problem: Any) -> tuple[float | None, Any]:
+    """The exact log failure probability (nats) or the plain Monte Carlo reference that the run which wrote the file
+    printed: those of its problem (:func:`run_problem`); ``(None, None)`` without one."""
+    return (None, None) if problem is None else (problem.exact_log_p, problem.reference)
 
 
 def summary_lines(data: Any, result: Any, p_src: str, q_src: str, why: str = "",
@@ -347,13 +351,20 @@ def main(args: argparse.Namespace) -> int:
     run_estimate = ((data.meta.provenance or {}).get("estimate") or {}) if data.meta else {}
     own = p_src == "column log_p"  # the run's PEM: its bound and its sampler's cap apply
     cap = run_estimate.get("verdict_cap")
+    problem = run_problem(data, args.failure, own)
+    look_ahead = problem.look_ahead if problem is not None and run_estimate.get("look_ahead") is True else None
+    if run_estimate.get("look_ahead") is True and own and args.failure == "crash" and look_ahead is None:
+        raise UsageError(f"{rollouts}: the run that wrote it weighed its rollouts with an exact look-ahead that this "
+                         "pemviz cannot rebuild (its scenario, parameters or PEM); estimate it with the version "
+                         "that wrote it")  # fmt: skip
     result = estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure, weights=weights,
                                log_p_seen=run_estimate.get("log_p_seen") if own else None,
-                               verdict_cap=tuple(cap) if own and isinstance(cap, list) and len(cap) == 2 else None)
+                               verdict_cap=tuple(cap) if own and isinstance(cap, list) and len(cap) == 2 else None,
+                               look_ahead=look_ahead)
     if result.weights != weights:
         why = f"{weights} needs a crash of a G[a,b](state predicate) formula; every step but the last instead"
     check_plausible(result.estimate, q_src)
-    lines = summary_lines(data, result, p_src, q_src, why, known_answer(data, args.failure, own))
+    lines = summary_lines(data, result, p_src, q_src, why, known_answer(problem))
     if args.pem_uncertainty or args.pem_shift is not None:
         lines += pem_spread_lines(data, args, result, log_q, weights, cap if own else None)
     print("\n".join(lines), flush=True)

@@ -37,6 +37,12 @@ from pemviz.core.severity import SeverityScale
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
 """``simulate(n, sampler, target, rng) -> RolloutBatch``: n rollouts drawn from ``sampler``."""
 
+LookAheadFn = Callable[[RolloutBatch], tuple[np.ndarray, np.ndarray]]
+"""``look_ahead(batch) -> (start int [N], log V float64 [N])``: for each rollout a step ``start`` (a stopping time: it
+depends on the steps up to it; T: none) and log P(failure | the rollout's state at that step) in nats, computed exactly
+(e.g. by enumerating the detections after it; -inf: no failure possible): the estimate then weighs each rollout by its
+importance weight over the steps before ``start`` times V (conditional Monte Carlo)."""
+
 BranchFn = Callable[[RolloutBatch, np.ndarray, np.ndarray, Detector, np.random.Generator], RolloutBatch]
 """``branch(parents, parent, at, target, rng)``: K rollouts continuing rollout ``parent[i]`` of ``parents`` from step
 ``at[i]`` on with ``target``'s detections (:func:`pemviz.core.lockstep.branch`; needs snapshot/restore)."""
@@ -99,6 +105,10 @@ class Problem:
         verdict_cap: (verdict, reason): the best verdict the adaptive sampler's estimate may claim on this problem,
             whatever its weights show, where the scenario knows that the sampler's proposal misses part of the
             failures (:meth:`pemviz.core.estimate.Estimate.at_most`); None: no cap.
+        look_ahead: where the scenario can compute the failure probability exactly from a state on (:data:`LookAheadFn`),
+            the estimators' estimates weigh each rollout up to that state and multiply by it: unbiased, with the
+            variance of the steps after it removed (conditional Monte Carlo: Asmussen & Glynn, Stochastic Simulation,
+            Springer 2007, V.4); None: the failure indicator itself.
     """
 
     name: str
@@ -130,6 +140,7 @@ class Problem:
     n_steps: int | None = None
     drawing: object | None = None
     verdict_cap: tuple[str, str] | None = None
+    look_ahead: LookAheadFn | None = None
 
     @property
     def view(self) -> ProblemView:

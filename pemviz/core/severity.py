@@ -286,8 +286,9 @@ about 5 m/s, Gabauer & Gabler 2008)."""
 
 
 def share_text(x: float) -> str:
-    """A share of p as a percentage, ``97.2 %``; never ``100 %`` for a share below 1, nor ``0 %`` above 0."""
-    if x <= 0.0 or x >= 1.0:
+    """A share of p as a percentage, ``97.2 %``; never ``100 %`` for a share below 1, nor ``0 %`` above 0, but a share
+    within 1e-12 of 1 (the rounding of a sum of shares) is 100 %."""
+    if x <= 0.0 or x >= 1.0 - 1e-12:
         return f"{100 * max(0.0, min(1.0, x)):g} %"
     p = 100.0 * x
     if p < 99.5:

@@ -177,6 +177,9 @@ class FinalEstimate:
     failures: FailureShares | None = None
     """The estimate's failing rollouts (stage, rollout number) with the share of mu_hat each carries, largest first
     (:func:`pemviz.estimators.base.failure_population`); None where the estimator keeps no per-stage rollouts."""
+    look_ahead: bool = False
+    """The estimate weighs each rollout up to a state and multiplies by the exact failure probability from it (the
+    problem's :attr:`~pemviz.core.problems.Problem.look_ahead`): the rollout file says so, for ``pemviz estimate``."""
 
 
 @dataclass(frozen=True)

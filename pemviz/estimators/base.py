@@ -180,6 +180,26 @@ def weighted_steps_mask(problem: Problem, batch: RolloutBatch, until_failure: bo
     return np.arange(batch.n_steps)[None, :] < k[:, None]
 
 
+def look_ahead_weights(problem: Problem, batch: RolloutBatch,
+                       weigh: Weigh | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
+    """The conditional Monte Carlo weights of the problem's look-ahead (:attr:`pemviz.core.problems.Problem.look_ahead`;
+    None where it has none): (log w_i + log V_i where V_i > 0, else log w_i; V_i > 0, bool; log w_i), [N] each, in nats,
+    w_i the importance weight over the steps before rollout i's start (``weigh(mask)`` for a mixture, else the sum of
+    log p - log q), V_i = P(failure | its state there). E_q[w V] = p whatever the proposal after the start, and E_q[w] =
+    1 (the check that the weights belong to the proposal)."""
+    if problem.look_ahead is None:
+        return None
+    start, log_v = problem.look_ahead(batch)
+    mask = np.arange(batch.n_steps)[None, :] < np.minimum(start, batch.n_steps - 1)[:, None]
+    if weigh is not None:
+        log_w = weigh(mask)
+    else:
+        with np.errstate(invalid="ignore"):  # -inf - -inf at steps the mask drops (never summed)
+            log_w = np.where(mask, batch.log_p - batch.log_q, 0.0).sum(axis=1)
+    reach = np.isfinite(log_v)
+    return np.where(reach, log_w + np.where(reach, log_v, 0.0), log_w), reach, log_w
+
+
 def mixture_log_weight(log_p: np.ndarray, log_q: np.ndarray, shares: np.ndarray) -> np.ndarray:
     """Importance log-weights of rollouts drawn from a mixture of K samplers, float64 [N] (nats):
     ``log p(x) - log sum_k c_k q_k(x)``. With fixed shares (n_k of the N rollouts from q_k, c_k = n_k / N) this is the
@@ -377,7 +397,8 @@ class StageRollouts:
         if log_w is None:
             log_w = log_weight(problem, batch, until_failure)
         log_p = log_p_before_failure(problem, batch)
-        self.parts.append((log_w, failed, log_p))
+        conditional = look_ahead_weights(problem, batch, weigh)
+        self.parts.append((log_w, failed, log_p) if conditional is None else (*conditional[:2], log_p))
         self.severity_parts.append(severity_arrays(problem, batch, failed, until_failure, log_w, weigh, log_p))
         self.alternative_parts.append(alternative_log_weights(problem, batch, failed, until_failure, log_w))
         if count_failures:

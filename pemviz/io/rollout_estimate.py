@@ -20,11 +20,11 @@ from pemviz import stl
 from pemviz.config import METRICS
 from pemviz.core.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.core.estimate import Estimate, estimate
-from pemviz.core.problems import Problem
+from pemviz.core.problems import LookAheadFn, Problem
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.weights import CONVENTIONS, MeanWeight, mean_weight
 from pemviz.estimators import log_p_before_failure, log_weight
-from pemviz.estimators.base import SeenFailures, pool
+from pemviz.estimators.base import SeenFailures, look_ahead_weights, pool
 from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta
 from pemviz.io.rollouts import RolloutData, braking_salient
 
@@ -158,6 +158,7 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
 def estimate_rollouts(
     data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
     weights: str = "to-failure", log_p_seen: float | None = None, verdict_cap: tuple[str, str] | None = None,
+    look_ahead: LookAheadFn | None = None,
 ) -> RolloutEstimate:
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
 
@@ -181,6 +182,9 @@ def estimate_rollouts(
             bound below which the verdict is unreliable (:meth:`pemviz.core.estimate.Estimate.below_seen`).
         verdict_cap: the best verdict the run's sampler let it claim (the sidecar's; :meth:`pemviz.core.estimate.
             Estimate.at_most`), for the run's own log p.
+        look_ahead: the run's problem's look-ahead (the sidecar says the run used one), for the run's own log p and
+            failure: each rollout weighs up to its start times the exact failure probability from there
+            (:func:`pemviz.estimators.base.look_ahead_weights`, as the run weighed it).
     Raises:
         ValueError: an unknown metric, failure mode or convention, arrays of the wrong shape, or a formula the file's
             signals cannot evaluate (a RolloutFormatError naming the file).
@@ -221,6 +225,9 @@ def estimate_rollouts(
                 f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
                 f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
             )
+    checked = log_w  # the weights whose mean should be 1
+    if look_ahead is not None and failure == "crash":
+        log_w, failed, checked = look_ahead_weights(replace(problem, look_ahead=look_ahead), batch)
     est, rows, pooled, rule = _pooled(data, log_w, failed, log_p_total)
     if failure == "crash":
         seen = SeenFailures()
@@ -233,7 +240,7 @@ def estimate_rollouts(
         b = {s["stage"]: s["max_weight"] for s in data.meta.stages}
         bound = np.array([math.nan if b.get(int(k)) is None else b[int(k)] for k in data.stage])
     return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure, weights, rows, pooled, rule,
-                           _mean_weight(log_w, bound))  # fmt: skip
+                           _mean_weight(checked, bound))  # fmt: skip
 
 
 def _mean_weight(log_w: np.ndarray, bound: np.ndarray | None) -> MeanWeight:

@@ -103,6 +103,10 @@ def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = N
     point = "no failure seen" if e.n_failures == 0 else f"mu_hat = {format_probability(e.log_mu_hat, 4)}"
     lines = [f"{point} (log mu_hat = {e.log_mu_hat:.4f} nats) from {event.n_simulations} simulations in "
              f"{event.wall_s:.1f} s", e.summary(exact_log_p, reference)]  # fmt: skip
+    if event.look_ahead:
+        lines.append("look-ahead: each rollout weighs up to the state from which the scenario computes the failure "
+                     "probability exactly, times that probability (conditional Monte Carlo); the failures counted are "
+                     "the rollouts that can still fail there")  # fmt: skip
     if event.severity is not None and len(event.severity.points) > 1:
         lines += event.severity.lines()
     if failure_severity is not None and failure_severity.n_failures:

@@ -144,7 +144,8 @@ class RolloutSink(Sink):
         provenance = dict(writer.meta.provenance or {})
         cap = finished.final.verdict_cap  # the verdict's bound and cap: pemviz estimate applies them as the run did
         provenance["estimate"] = {**_estimate_json(finished.final.estimate), "stages_used": used,
-                                  "log_p_seen": finished.final.log_p_seen, "verdict_cap": list(cap) if cap else None}
+                                  "log_p_seen": finished.final.log_p_seen, "verdict_cap": list(cap) if cap else None,
+                                  **({"look_ahead": True} if finished.final.look_ahead else {})}
         provenance["stage_estimates"] = {str(k): v for k, v in sorted(self._results.items())}
         writer.meta = dataclasses.replace(
             writer.meta, provenance=provenance, weights=convention(getattr(cfg, "weights_until_failure", True)),
