@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import re
 
 import numpy as np
 import pytest
@@ -70,6 +71,9 @@ def test_a_run_that_targets_contact_is_right_and_its_file_re_estimates_to_it(tmp
     assert exact == pytest.approx(np.log(8.0581e-33), abs=1e-4)
     assert abs(log_mu - exact) < np.log(1.5) and lo <= exact <= hi
     assert doc["estimate"]["verdict"] == "doubtful"
+    # no stage's row claims more: stage 5 of seed 1 said reliable at x0.68 with the exact answer outside its interval
+    rows = [ln for ln in proc.stdout.splitlines() if re.match(r"\s+\d+\s+(pretrain|ce|final)\s", ln)]
+    assert len(rows) == 12 and not any(re.search(r"\sreliable\s+[0-9.]+$", ln) for ln in rows), rows
     assert "look-ahead: each rollout weighs up to the state" in proc.stdout
     again = run_cli("estimate", str(out), "--no-record", cwd=tmp_path)
     assert again.returncode == 0, again.stderr[-2000:]

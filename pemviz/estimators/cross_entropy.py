@@ -295,6 +295,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 self._elites = self._steps = None
             log_w, failed, log_p = self.stages[plan.stage].arrays()
             outcome = StageOutcome(gamma, n_elites, estimate(log_w, failed, log_p), self.proposal.curve(grid), rate)
+        if self.problem.verdict_cap is not None:  # each stage's row too: its weights miss what the final one's do
+            outcome = dataclasses.replace(outcome, estimate=outcome.estimate.at_most(self.problem.verdict_cap))
         self._last = (plan.stage, outcome.estimate)
         return outcome
 
