@@ -80,3 +80,14 @@ def test_a_run_that_targets_contact_is_right_and_its_file_re_estimates_to_it(tmp
     line = next(ln for ln in again.stdout.splitlines() if ln.startswith("mu_hat = ") and "CI" in ln)
     run_line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("mu_hat = ") and "CI" in ln)
     assert line.split(",")[0] == run_line.split(",")[0]
+
+
+def test_rollouts_of_another_scene_are_refused():
+    p = BrakingParams(crash_gap_m=0.0)
+    detected = np.zeros((2, p.n_steps), dtype=bool)
+    start = np.array([52, p.n_steps])
+    gap = replay(p, detected)[:, :, 0]
+    logit = load_pem().logit_at_gap
+    log_exceedance_after(p, logit, detected, start, 0.0, observed_gap_m=gap[[0, 1], [52, 99]])  # its own: accepted
+    with pytest.raises(ValueError, match="not of this scene's parameters"):
+        log_exceedance_after(p, logit, detected, start, 0.0, observed_gap_m=gap[[0, 1], [52, 99]] + 0.01)

@@ -74,6 +74,7 @@ def log_exceedance_after(
     start: np.ndarray,
     level_m: float,
     prune_nats: float = PRUNE_NATS,
+    observed_gap_m: np.ndarray | None = None,
 ) -> np.ndarray:
     """log P(min gap < ``level_m`` over the steps from ``start[i]`` on | rollout i's state at ``start[i]``), float64
     [N] (nats; -inf where no detection sequence fails, or ``start[i]`` = T), by enumerating every detection of the
@@ -86,8 +87,11 @@ def log_exceedance_after(
         start: int [N] the step each rollout is continued from (:func:`start_steps`).
         level_m: the failure's gap (metres): a failure is a gap below it at a step 0..T-1.
         prune_nats: see :data:`PRUNE_NATS`.
+        observed_gap_m: float64 [N] the gap each rollout reported at its start (metres), or None: checked against the
+            replayed one, so that rollouts of another scene are refused rather than weighed wrongly.
     Raises:
-        ValueError: ``detected`` not [N, T] with T = ``params.n_steps``, or ``start`` not [N] in [0, T].
+        ValueError: ``detected`` not [N, T] with T = ``params.n_steps``, ``start`` not [N] in [0, T], or a replayed gap
+            more than 1e-6 m from ``observed_gap_m``.
         RuntimeError: more than :data:`MAX_BRANCHES` branches at once (a start gap or level whose branches cannot be
             dropped: e.g. a level above the contact gap, where no speed bound applies).
     """
@@ -103,16 +107,25 @@ def log_exceedance_after(
     group = 100
     for lo in range(0, detected.shape[0], group):
         sl = slice(lo, lo + group)
-        out[sl] = _enumerate(p, logit_at_gap, detected[sl], start[sl], level_m, prune_nats)
+        gap = None if observed_gap_m is None else np.asarray(observed_gap_m, dtype=np.float64)[sl]
+        out[sl] = _enumerate(p, logit_at_gap, detected[sl], start[sl], level_m, prune_nats, gap)
     return out
 
 
 def _enumerate(p: BrakingParams, logit_at_gap: Callable[[np.ndarray], np.ndarray], detected: np.ndarray,
-               start: np.ndarray, level: float, prune_nats: float) -> np.ndarray:  # fmt: skip
+               start: np.ndarray, level: float, prune_nats: float,
+               observed_gap_m: np.ndarray | None) -> np.ndarray:  # fmt: skip
     n, n_steps, dt = detected.shape[0], p.n_steps, p.dt_s
     vlead = lead_speeds(p)
     lead_travel = np.concatenate([np.cumsum(vlead[::-1])[::-1] * dt, [0.0]])  # [T + 2]: metres from step t on
     g0, v0, i0, p0 = _replay_states(p, detected, start)
+    if observed_gap_m is not None:
+        off = np.flatnonzero((start < n_steps) & ~(np.abs(g0 - observed_gap_m) <= 1e-6))
+        if off.size:
+            i = int(off[0])
+            raise ValueError(f"the braking look-ahead replays a gap of {g0[i]:.6g} m at step {start[i]} of a rollout "
+                             f"that reported {observed_gap_m[i]:.6g} m: its rollouts are not of this scene's "
+                             "parameters")  # fmt: skip
     total = np.full(n, -np.inf)
     owner = np.empty(0, dtype=np.int64)
     g = v = integ = log_path = np.empty(0)
@@ -173,8 +186,11 @@ def braking_look_ahead(params: BrakingParams, logit_at_gap: Callable[[np.ndarray
     column = OBSERVATION_NAMES.index("gap_m")
 
     def look_ahead(batch) -> tuple[np.ndarray, np.ndarray]:
-        start = start_steps(batch.observations[..., column], start_gap_m)
+        gap = batch.observations[..., column]
+        start = start_steps(gap, start_gap_m)
         detected = np.asarray(batch.detected).reshape(batch.n, batch.n_steps)
-        return start, log_exceedance_after(params, logit_at_gap, detected, start, params.crash_gap_m)
+        seen = gap[np.arange(batch.n), np.minimum(start, batch.n_steps - 1)]
+        return start, log_exceedance_after(params, logit_at_gap, detected, start, params.crash_gap_m,
+                                           observed_gap_m=seen)  # fmt: skip
 
     return look_ahead
