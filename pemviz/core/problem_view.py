@@ -66,6 +66,8 @@ class ProblemView:
         drawing: the scenario's drawing object (:attr:`pemviz.core.problems.Problem.drawing`): what the recording
             and the panel draw of its rollouts (its scene, its outcome words, its explanation), from the scenario's
             own package; None: the problem has no scene of its own, and sinks draw only its signals.
+        look_ahead_s: seconds per rollout that the problem's look-ahead adds to a stage, about
+            (:attr:`pemviz.core.problems.Problem.look_ahead_s`): time estimates add it; 0: none.
     """
 
     name: str
@@ -76,6 +78,7 @@ class ProblemView:
     noise_xy: tuple[int, int] | None = None
     n_steps: int | None = None
     drawing: object | None = None
+    look_ahead_s: float = 0.0
 
     @property
     def signal_names(self) -> tuple[str, ...]:

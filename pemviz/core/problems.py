@@ -109,6 +109,7 @@ class Problem:
             the estimators' estimates weigh each rollout up to that state and multiply by it: unbiased, with the
             variance of the steps after it removed (conditional Monte Carlo: Asmussen & Glynn, Stochastic Simulation,
             Springer 2007, V.4); None: the failure indicator itself.
+        look_ahead_s: the seconds per rollout the look-ahead takes, about, for time estimates (0: none).
     """
 
     name: str
@@ -141,13 +142,14 @@ class Problem:
     drawing: object | None = None
     verdict_cap: tuple[str, str] | None = None
     look_ahead: LookAheadFn | None = None
+    look_ahead_s: float = 0.0
 
     @property
     def view(self) -> ProblemView:
         """The problem as sinks show it: name, description, signals with units, thresholds, scene."""
         signals = tuple(SignalView(n, c, self.units.get(n, "")) for n, c in self.signals.items())
         return ProblemView(self.name, self.description or self.name, signals, self.thresholds,
-                           self.objects_xy, self.noise_xy, self.n_steps, self.drawing)  # fmt: skip
+                           self.objects_xy, self.noise_xy, self.n_steps, self.drawing, self.look_ahead_s)  # fmt: skip
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""

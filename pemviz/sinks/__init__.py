@@ -108,7 +108,7 @@ class StageClock(Sink):
         self.t0 = self.stage_t0 = now()
         self.sampled_t: float | None = None
         self.plan: RunPlan | None = None
-        self._config, self._n_steps = None, N_STEPS
+        self._config, self._n_steps, self._look_ahead_s = None, N_STEPS, 0.0
         self.predicted: dict[int, StageCost] = {}
         self.current: StageStarted | None = None
         self.done: list[StageResult] = []
@@ -120,7 +120,8 @@ class StageClock(Sink):
         self.sampled_t, self.current, self.done = None, None, []
         self.plan = event.plan
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
-        self.predicted = plan_costs(event.config, event.plan, self._n_steps, self.constants)
+        self._look_ahead_s = float(getattr(event.problem, "look_ahead_s", 0.0))
+        self.predicted = {s.stage: self._model(s.kind, s.n_rollouts, s.stage) for s in event.plan.stages}
         self._measured = {}
         self._planned = {"simulate": sum(c.simulate_s for c in self.predicted.values()),
                          "after": sum(c.after_s for c in self.predicted.values())}  # fmt: skip
@@ -169,7 +170,10 @@ class StageClock(Sink):
         """The model's prediction of a stage of this run (nan before the run starts)."""
         if self._config is None:
             return StageCost(math.nan, math.nan)
-        return stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage)
+        cost = stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage)
+        if self._look_ahead_s > 0.0:  # the problem's look-ahead: the estimator weighs the rollouts before they are out
+            cost = StageCost(cost.simulate_s + n_rollouts * self._look_ahead_s, cost.after_s)
+        return cost
 
     def _scaled(self, cost: StageCost, kind: str) -> tuple[float, float]:
         return cost.simulate_s * self.simulate_scale, cost.after_s * self.after_scale(kind)

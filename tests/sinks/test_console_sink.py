@@ -81,3 +81,20 @@ def test_the_final_line_gives_the_estimate_and_the_simulations():
     e = finished(3, "final", 50, 5).result.estimate
     sink(FinalEstimate(e, PLAN.n_simulations, 2.0, (3,)))
     assert "mu_hat = 1.0000e-01 (log mu_hat = -2.3026 nats) from 130 simulations in 2.0 s" in out.getvalue()
+
+
+def test_a_problem_s_look_ahead_seconds_count_in_each_stage_s_prediction():
+    # a look-ahead of 0.01 s a rollout, before the stage's rollouts are out: pretraining 20 x 0.01 + 0.0002 + 0.5 s
+    # (its fit), then 0.3003 + 0.15, 0.3003 + 0.15 and 0.5005 s: 2.1 s in all, 130 x 0.01 s more than without
+    import dataclasses
+
+    from .synthetic import BRAKING
+
+    sink, out, progress, now = console()
+    sink(run_started(view=dataclasses.replace(BRAKING, look_ahead_s=0.01)))
+    sink(StageStarted(0, "pretrain", 20))
+    assert progress.getvalue().splitlines()[0].endswith("this stage ~0.7 s, run ~2.1 s left)")
+    sink, out, progress, now = console()
+    sink(run_started())
+    sink(StageStarted(0, "pretrain", 20))
+    assert progress.getvalue().splitlines()[0].endswith("this stage ~0.5 s, run ~0.8 s left)")

@@ -32,6 +32,10 @@ relative error 0.074, 37 of 40 intervals hold the exact answer, about 7 s a run 
 branch steps a rollout, each one step of the scene's dynamics); from 5 m, 0.149 and 32 of 40, 2 s;
 from 2 m the weights stay heavy (ESS 8 of 1,000), from 7 m a run takes about a minute."""
 
+LOOK_AHEAD_ROLLOUT_S = 3.5e-3
+"""Seconds per rollout of the look-ahead from :data:`LOOK_AHEAD_GAP_M` targeting contact, about (2-core developer
+machine: 3 s for a final batch of 1,000, 0.3-0.5 s for a CE stage of 100), for the run's time estimates."""
+
 PRUNE_NATS = 40.0
 """A branch whose probability is this far (nats) below the failure probability found from its rollout is dropped."""
 

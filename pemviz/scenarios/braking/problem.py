@@ -19,7 +19,7 @@ from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import SeverityScale
 from pemviz.scenarios.braking.batched import OBSERVATION_NAMES, branch_batched, iter_batched, replay, simulate_batched
 from pemviz.scenarios.braking.drawing import BrakingDrawing
-from pemviz.scenarios.braking.lookahead import braking_look_ahead
+from pemviz.scenarios.braking.lookahead import LOOK_AHEAD_ROLLOUT_S, braking_look_ahead
 from pemviz.scenarios.braking.simulator import (
     BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, BRAKING_UNITS, BrakingParams, BrakingScenario,
 )
@@ -96,7 +96,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         look_ahead = braking_look_ahead(p, pem.logit_at_gap)
     return Problem(
         "braking", run, PEMDetector(pem), braking_formula(p), signals=dict(BRAKING_SIGNALS), verdict_cap=verdict_cap(p),
-        look_ahead=look_ahead,
+        look_ahead=look_ahead, look_ahead_s=LOOK_AHEAD_ROLLOUT_S if look_ahead is not None else 0.0,
         signal_ranges=dict(BRAKING_SIGNAL_RANGES), units=dict(BRAKING_UNITS), window=p.braking_distance_m,
         decided_below=p.crash_gap_m, severity=scale, severity_exact=exact,
         stream=stream if sim == "batched" else None, branch=resume,
