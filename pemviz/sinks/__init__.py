@@ -11,7 +11,7 @@ import math
 import time
 from typing import Callable
 
-from pemviz.engine.cost import COST, N_STEPS, CostConstants, StageCost, plan_costs, stage_cost
+from pemviz.engine.cost import COST, N_STEPS, CostConstants, StageCost, stage_cost
 from pemviz.engine.events import (
     Event,
     FinalEstimate,
@@ -87,7 +87,8 @@ class StageClock(Sink):
     seconds, default ``time.perf_counter``).
 
     Each stage of the run's plan (:class:`~pemviz.engine.events.RunStarted`) has a predicted time to simulate its
-    rollouts and to finish after them, its fit included (:func:`pemviz.engine.cost.plan_costs`). As stages end the clock
+    rollouts and to finish after them, its fit included (:func:`pemviz.engine.cost.plan_costs`; the problem's look-ahead,
+    :attr:`~pemviz.core.problem_view.ProblemView.look_ahead_s` a rollout, counts as simulating). As stages end the clock
     measures both (from the stage's start to its :class:`~pemviz.engine.events.RolloutsSampled`, over all of its
     rollouts, a streamed stage's too; then to its :class:`~pemviz.engine.events.StageFinished`) and scales the
     predictions of what is left by measured / predicted so far, separately for the two parts: simulating over every
