@@ -19,6 +19,10 @@ The importance weight is 1 / q(U), exactly, and every factor is at most 1 / (1 -
   error) by one EM step of the cross-entropy method on the first batch's failures weighted by their importance weights
   (clipped to [``--eps-min``, ``--eps-max``]), then the second batch. Cost = both batches.
 
+- ``amis``: adaptive multiple importance sampling (Cornuet, Marin, Mira & Robert 2012, Scand. J. Stat. 39(4)):
+  batches of ``--n`` (default 2,000, 3,000, 4,000, 4,000), after each eps refitted as in ``ce`` on every rollout so far,
+  each weighed by the deterministic mixture of all the batches' proposals (:meth:`TailMixtures.log_q`: the balance
+  heuristic, Veach & Guibas 1995); the estimate uses all of them, so no batch is spent only on the refit.
 - ``ams``: a ``fixed`` batch (``--n``, default 3,000) trains a learned committor V(s) = P(failure | the cut-in car's
   row and the step) (:func:`fit_committor`), and adaptive multilevel splitting (:mod:`pemviz.estimators.ams`, N =
   ``--ams-n``, k = ``--ams-k``) ranks prefixes by -log V instead of the robustness (whose levels tie). Cost = the
@@ -58,7 +62,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.special import expit
+from scipy.special import expit, logsumexp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -136,6 +140,23 @@ class TailMixtures:
         """The one-sided log-uniform tail density at u, float64 [k] (side 0: the lower tail, 1: the upper)."""
         m = u if side == 0 else 1.0 - u
         return np.where((m >= self.m_min) & (m <= self.m_max), 1.0 / (m * self.log_range), 0.0)
+
+    def log_q(self, eps: np.ndarray, kept: np.ndarray, p_kept: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """log q(U) of rollouts' uniforms under the mixtures ``eps`` [W, 5] (nats, [n]; ``kept``, ``p_kept``, ``seen`` as
+        :meth:`simulate` returns them): the sum over the window's visible steps of the detection's and, for a detected
+        car, both errors' mixture densities (the PEMs' own density is 1, so log w = -log q)."""
+        out = np.zeros(kept.shape[0])
+        with np.errstate(divide="ignore", invalid="ignore"):  # p = 1 where the car is not visible (masked)
+            for j in range(eps.shape[0]):
+                u, p, e = kept[:, self.window[0] + j], p_kept[:, j], eps[j, 0]
+                miss = u[:, 0] > p
+                term = np.log((1.0 - e) + np.where(miss, e / (1.0 - p), 0.0))
+                for c in range(2):
+                    lo, hi = eps[j, 1 + 2 * c], eps[j, 2 + 2 * c]
+                    g = (1.0 - lo - hi) + lo * self.tail_density(u[:, 1 + c], 0) + hi * self.tail_density(u[:, 1 + c], 1)
+                    term = term + np.where(miss, 0.0, np.log(g))
+                out += np.where(seen[:, j], term, 0.0)
+        return out
 
     def simulate(self, n: int, eps: np.ndarray, rng: np.random.Generator):
         """(failed bool [n], log w [n] (nats), object 0's uniforms [n, T, 3], its p(detect) [n, W], visible [n, W],
@@ -230,12 +251,12 @@ def events_text(kept: np.ndarray, detected: np.ndarray) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--mode", choices=("fixed", "ce", "ams"), default="fixed")
+    ap.add_argument("--mode", choices=("fixed", "ce", "amis", "ams"), default="fixed")
     ap.add_argument("--ams-n", type=int, default=1000)
     ap.add_argument("--ams-k", type=int, default=100)
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--n", type=int, nargs="+", default=None, help="rollouts per batch (fixed: 13000; ce: 4000 9000)")
+    ap.add_argument("--n", type=int, nargs="+", default=None, help="rollouts per batch (fixed: 13000; ce: 4000 9000; amis: 2000 3000 4000 4000)")
     ap.add_argument("--window", type=int, nargs=2, default=(10, 26), help="steps whose uniforms are mixed")
     ap.add_argument("--eps", type=float, nargs=2, default=(0.02, 0.02), help="miss share, each error's tail share")
     ap.add_argument("--mmin", type=float, default=1e-8)
@@ -244,7 +265,7 @@ def main() -> None:
     ap.add_argument("--eps-max", type=float, default=0.25)
     ap.add_argument("--diag", type=int, default=0, help="print the K heaviest failures of the last seed")
     args = ap.parse_args()
-    sizes = args.n or {"fixed": [13000], "ce": [4000, 9000], "ams": [3000]}[args.mode]
+    sizes = args.n or {"fixed": [13000], "ce": [4000, 9000], "amis": [2000, 3000, 4000, 4000], "ams": [3000]}[args.mode]
     study = TailMixtures(tuple(args.window), args.mmin, args.mmax)
     width = args.window[1] - args.window[0]
     print(f"cut-in, moderate setting (reference {REFERENCE:.3g}); mode {args.mode}, window {args.window}, eps "
@@ -256,9 +277,17 @@ def main() -> None:
         t0 = time.perf_counter()
         eps = np.empty((width, 5))
         eps[:, 0], eps[:, 1:] = args.eps[0], args.eps[1] / 2
+        pool: list[tuple] = []  # amis: every batch's (failed, kept, p_kept, seen) and its eps
         for i, n in enumerate(sizes):
             out = study.simulate(n, eps, rng)
             failed, log_w = out[0], out[1]
+            if args.mode == "amis":
+                pool.append((out[0], out[2], out[3], out[4], out[5], eps.copy()))
+                failed, kept, p_kept, seen, detected = (np.concatenate([b[k] for b in pool]) for k in range(5))
+                shares = np.log(np.array(sizes[: i + 1], dtype=np.float64) / failed.size)
+                log_w = -logsumexp(shares[:, None] + np.stack([study.log_q(b[5], kept, p_kept, seen) for b in pool]),
+                                   axis=0)  # fmt: skip
+                out = (failed, log_w, kept, p_kept, seen, detected)
             if i < len(sizes) - 1:
                 eps = study.refit(eps, *out[:5], args.eps_min, args.eps_max)
         cost = sum(sizes)
@@ -274,7 +303,7 @@ def main() -> None:
                 ams.running_score = plain
             est, cost = splitting.estimate(), cost + splitting.n_simulations
         else:
-            est = estimate(log_w, failed, np.zeros(sizes[-1]))
+            est = estimate(log_w, failed, np.zeros(failed.size))
         ratios.append(est.mu_hat / REFERENCE)
         holds = est.covers(float(np.log(REFERENCE)))
         print(f"  seed {seed}: {est.mu_hat:.3e} {est.interval_text()} x{ratios[-1]:.2f} of the reference "
