@@ -10,8 +10,9 @@ average: the estimator stays unbiased (a conditional expectation given the state
 Stochastic Simulation, Springer 2007, V.4, conditional Monte Carlo), and only the weights before the start gap vary.
 
 Rigour of the enumeration: a branch is dropped only (1) when it cannot fail any more, by a speed bound (a failure
-below the contact gap needs the ego faster than (contact gap - level) / (2 dt) at its last steps, and the throttle
-accelerates it by at most ``throttle_accel0_mps2``), (2) once the ego is stopped in contact behind a stopped lead (its
+below the contact gap needs the ego faster than (contact gap - level) / (2 dt) at its last steps before contact, and
+the throttle accelerates it by at most ``throttle_accel0_mps2``; the bound is not used with a negative
+``throttle_accel_slope_per_s``), (2) once the ego is stopped in contact behind a stopped lead (its
 gap is final), or (3) when its probability is ``prune_nats`` below the failure probability found so far from the
 same rollout's state (the bias is at most e^-prune_nats times the number of dropped branches, relative: below 1e-12 at
 the default 40 nats).
@@ -153,10 +154,11 @@ def _enumerate(p: BrakingParams, logit_at_gap: Callable[[np.ndarray], np.ndarray
         fails_next = contact & (nxt < level) & (t + 1 < n_steps)
         np.logaddexp.at(total, owner[fails_next], log_path[fails_next])
         keep &= ~contact
-        if level < p.contact_gap_m:  # too slow to reach the speed a failure below the contact gap needs
+        if level < p.contact_gap_m and p.throttle_accel_slope_per_s >= 0:  # the throttle then accelerates <= a_max
+            # too slow to reach the speed a failure below the contact gap needs, before it enters contact
             travel = np.maximum(g - p.contact_gap_m, 0.0) + lead_travel[t]
             reach = np.sqrt(v**2 + 2 * a_max * travel + (n_steps - t) * (a_max * dt) ** 2) + a_max * dt
-            keep &= reach > v_need
+            keep &= (g <= p.contact_gap_m) | (reach > v_need)
         keep &= log_path >= total[owner] - prune_nats
         owner, g, v, integ, pend, log_path = (x[keep] for x in (owner, g, v, integ, pend, log_path))
         if owner.size == 0:
