@@ -88,21 +88,23 @@ def test_the_default_run_reports_each_known_point_within_x1_5_inside_its_interva
     assert not curve.points[-1].reached  # contact: no rollout of the default run touches the lead
 
 
-def test_a_run_that_targets_1_m_agrees_with_the_enumeration():
-    # an independent estimate of the 1 m point: its own proposal, fitted to the 1 m failures
-    cfg = ExperimentConfig(seed=1, margin=1.0)
+def targeted_run_agrees(margin: float, exact: float):
+    """A run of seed 1 that targets ``margin`` (its own proposal, fitted to those failures): reliable, within x1.5 of
+    the enumeration's ``exact`` with its interval holding it; returns its final event."""
+    cfg = ExperimentConfig(seed=1, margin=margin)
     final = Experiment(cfg, problem=problem_for(cfg)).run().final
     assert final.estimate.verdict == "reliable"
-    assert final.estimate.covers(math.log(EXACT_1_0))
-    assert abs(final.estimate.log_mu_hat - math.log(EXACT_1_0)) < math.log(1.5)
+    assert final.estimate.covers(math.log(exact))
+    assert abs(final.estimate.log_mu_hat - math.log(exact)) < math.log(1.5)
+    return final
+
+
+def test_a_run_that_targets_1_m_agrees_with_the_enumeration():
+    targeted_run_agrees(1.0, EXACT_1_0)
 
 
 def test_a_run_that_targets_0_5_m_agrees_with_the_enumeration_on_the_cell_bound():
-    cfg = ExperimentConfig(seed=1, margin=0.5)
-    final = Experiment(cfg, problem=problem_for(cfg)).run().final
-    assert final.estimate.verdict == "reliable"
-    assert final.estimate.covers(math.log(EXACT_0_5))
-    assert abs(final.estimate.log_mu_hat - math.log(EXACT_0_5)) < math.log(1.5)
+    final = targeted_run_agrees(0.5, EXACT_0_5)
     contact = final.severity.points[-1]
     assert contact.level == 0.0 and contact.exact_log_p == pytest.approx(math.log(EXACT_CONTACT), abs=1e-4)
 

@@ -352,8 +352,9 @@ def main(args: argparse.Namespace) -> int:
     own = p_src == "column log_p"  # the run's PEM: its bound and its sampler's cap apply
     cap = run_estimate.get("verdict_cap")
     problem = run_problem(data, args.failure, own)
-    look_ahead = problem.look_ahead if problem is not None and run_estimate.get("look_ahead") is True else None
-    if run_estimate.get("look_ahead") is True and own and args.failure == "crash" and look_ahead is None:
+    said = run_estimate.get("look_ahead") is True  # the run weighed with its problem's look-ahead
+    look_ahead = problem.look_ahead if problem is not None and said else None
+    if said and own and args.failure == "crash" and look_ahead is None:
         raise UsageError(f"{rollouts}: the run that wrote it weighed its rollouts with an exact look-ahead that this "
                          "pemviz cannot rebuild (its scenario, parameters or PEM); estimate it with the version "
                          "that wrote it")  # fmt: skip

@@ -166,8 +166,13 @@ def log_weight(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np
     """
     if not until_failure:
         return batch.log_weight()
-    mask = weighted_steps_mask(problem, batch, until_failure)
-    with np.errstate(invalid="ignore"):  # -inf - -inf after the failure, where the mask drops it (never multiplied)
+    return masked_log_weight(batch, weighted_steps_mask(problem, batch, until_failure))
+
+
+def masked_log_weight(batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
+    """sum_t log p - log q over the steps of ``mask`` (bool [N, T]), float64 [N] (nats); a step the mask drops may
+    hold -inf - -inf (an action after the failure), never summed."""
+    with np.errstate(invalid="ignore"):
         return np.where(mask, batch.log_p - batch.log_q, 0.0).sum(axis=1)
 
 
@@ -191,11 +196,7 @@ def look_ahead_weights(problem: Problem, batch: RolloutBatch,
         return None
     start, log_v = problem.look_ahead(batch)
     mask = np.arange(batch.n_steps)[None, :] < np.minimum(start, batch.n_steps - 1)[:, None]
-    if weigh is not None:
-        log_w = weigh(mask)
-    else:
-        with np.errstate(invalid="ignore"):  # -inf - -inf at steps the mask drops (never summed)
-            log_w = np.where(mask, batch.log_p - batch.log_q, 0.0).sum(axis=1)
+    log_w = weigh(mask) if weigh is not None else masked_log_weight(batch, mask)
     reach = np.isfinite(log_v)
     return np.where(reach, log_w + np.where(reach, log_v, 0.0), log_w), reach, log_w
 

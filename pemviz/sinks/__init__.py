@@ -121,7 +121,7 @@ class StageClock(Sink):
         self.sampled_t, self.current, self.done = None, None, []
         self.plan = event.plan
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
-        self._look_ahead_s = float(getattr(event.problem, "look_ahead_s", 0.0))
+        self._look_ahead_s = float(event.problem.look_ahead_s)
         self.predicted = {s.stage: self._model(s.kind, s.n_rollouts, s.stage) for s in event.plan.stages}
         self._measured = {}
         self._planned = {"simulate": sum(c.simulate_s for c in self.predicted.values()),
