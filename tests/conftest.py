@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 import subprocess
@@ -13,6 +14,16 @@ import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def load_script(path: Path):
+    """The Python file ``path`` (a benchmark or a script outside the package) imported as a module named after its
+    stem, registered in ``sys.modules`` (dataclasses look their module up there while a class is built)."""
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
 SHARED = REPO.parent / "shared"
 
 os.environ.setdefault("RERUN_ANALYTICS", "false")

@@ -3,25 +3,17 @@ exact, the premise of every figure of that study (docs/cut-in.md, "What 5,000 si
 
 from __future__ import annotations
 
-import importlib.util
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import REPO as ROOT, load_script
 SHAPE = (4, 2)  # T steps, M objects
 
 
 @pytest.fixture(scope="module")
 def study():
-    spec = importlib.util.spec_from_file_location("cut_in_event_proposals",
-                                                  ROOT / "benchmarks" / "cut_in_event_proposals.py")  # fmt: skip
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["cut_in_event_proposals"] = module
-    spec.loader.exec_module(module)
-    yield module
+    yield load_script(ROOT / "benchmarks" / "cut_in_event_proposals.py")
     del sys.modules["cut_in_event_proposals"]
 
 

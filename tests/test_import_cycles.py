@@ -2,22 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
 
-from conftest import REPO
+from conftest import REPO, load_script
 
 SCRIPT = REPO / "scripts" / "import_cycles.py"
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("import_cycles", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(module)
-    return module
 
 
 def package(root: Path, files: dict[str, str]) -> Path:
@@ -36,7 +29,7 @@ def test_pemviz_has_no_import_circle_of_any_kind():
 
 
 def test_a_module_level_circle_is_found_and_fails(tmp_path, capsys):
-    ic = load_script()
+    ic = load_script(SCRIPT)
     root = package(tmp_path, {
         "__init__.py": "",
         "a.py": "from pkg import b\n",
@@ -53,7 +46,7 @@ def test_a_module_level_circle_is_found_and_fails(tmp_path, capsys):
 
 
 def test_function_level_and_type_checking_circles_are_reported_apart(tmp_path, capsys):
-    ic = load_script()
+    ic = load_script(SCRIPT)
     root = package(tmp_path, {
         "__init__.py": "",
         "a.py": "import pkg.b\n",
@@ -73,7 +66,7 @@ def test_function_level_and_type_checking_circles_are_reported_apart(tmp_path, c
 
 
 def test_a_folder_that_is_no_package_or_does_not_parse_is_refused(tmp_path, capsys):
-    ic = load_script()
+    ic = load_script(SCRIPT)
     assert ic.main(["--root", str(tmp_path)]) == 2
     assert "is not a package folder" in capsys.readouterr().err
     root = package(tmp_path, {"__init__.py": "", "bad.py": "def (:\n"})

@@ -6,12 +6,12 @@ detections, observations, log-probabilities and classic robustness. Needs no ope
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_script
 
 from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.braking.batched import simulate_batched
@@ -19,15 +19,7 @@ from pemviz.scenarios.braking.batched import simulate_batched
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "openturns_braking.py"
 
 
-def _load_benchmark():
-    spec = importlib.util.spec_from_file_location("openturns_braking", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = _load_benchmark()
+bench = load_script(_PATH)
 
 
 def test_module_imports_without_openturns():

@@ -3,23 +3,19 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import math
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def sweep():
-    spec = importlib.util.spec_from_file_location("rarity_sweep", ROOT / "benchmarks" / "rarity_sweep.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["rarity_sweep"] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    yield module
+    yield load_script(ROOT / "benchmarks" / "rarity_sweep.py")
     del sys.modules["rarity_sweep"]
 
 

@@ -1,0 +1,83 @@
+"""benchmarks/cut_in_lookahead_tilt.py: its per-step proposal over the cut-in car's uniforms weighs every draw so that
+each event keeps its PEM probability, whatever the committor Q it is tilted by (a deliberately poor one here): the
+premise of every figure of that study (docs/cut-in.md, "Approximate zero-variance sampling with a look-ahead")."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+from conftest import REPO, load_script
+
+
+@pytest.fixture(scope="module")
+def study():
+    yield load_script(REPO / "benchmarks" / "cut_in_lookahead_tilt.py")
+    del sys.modules["cut_in_lookahead_tilt"]
+
+
+def poor_proposal(study, grid, p0):
+    """The study's proposal with a random Q (log Q uniform on [-30, 0] per branch): no relation to any failure."""
+    tilt = object.__new__(study.LookAheadTilt)
+    tilt.grid, tilt.eps = grid, 0.3
+    log_qb = np.random.default_rng(5).uniform(-30.0, 0.0, size=(p0.size, grid.nbranch))
+    return tilt.proposal(p0, log_qb)
+
+
+@pytest.mark.parametrize("grid_name", ["fine", "coarse"])
+def test_a_tilted_draw_is_weighed_so_that_every_event_keeps_its_pem_probability(study, grid_name):
+    """Uniforms drawn class by class from the proposal and weighed p / q of the class they fall in: E[w] = 1, E[w 1{miss}]
+    = 1 - p(detect), and E[w 1{u < m}] = p(detect) m for tail masses m inside bins (so a draw that were not uniform in
+    its bin would show), within 5 standard errors of 200,000 draws."""
+    grid = study.Grid(np.array(study.GRIDS[grid_name]))
+    n = 200_000
+    p0 = np.full(n, 0.985)
+    pc, qc = (a[0] for a in poor_proposal(study, grid, p0[:1]))
+    assert pc.sum() == pytest.approx(1.0) and qc.sum() == pytest.approx(1.0)
+    rng = np.random.default_rng(7)
+    cum = np.cumsum(qc)
+    cls = np.minimum(np.searchsorted(cum, rng.random(n) * cum[-1], side="right"), cum.size - 1)
+    u = grid.draw(cls, p0, rng.random((n, 3)))
+    assert (u >= 0).all() and (u < 1).all()
+    assert np.array_equal(grid.classify(u, p0), cls)
+    w = pc[cls] / qc[cls]
+
+    def check(values, expected):
+        assert abs(values.mean() - expected) < 5 * values.std() / np.sqrt(n) + 1e-12, expected
+
+    check(w, 1.0)
+    check(w * (u[:, 0] > p0), 1.0 - p0[0])
+    detected = u[:, 0] <= p0
+    for c, mass in [(1, 3e-3), (1, 0.2), (2, 0.05), (2, 7e-4)]:
+        check(w * (detected & (u[:, c] < mass)), p0[0] * mass)
+        check(w * (detected & (u[:, c] > 1.0 - mass)), p0[0] * mass)
+
+
+def test_the_tilt_follows_q_and_the_pems_keep_their_share(study):
+    """A class whose Q is e^30 times another's is drawn far more often, and every class keeps at least eps p."""
+    grid = study.Grid(np.array(study.GRIDS["coarse"]))
+    p0 = np.array([0.99])
+    log_qb = np.full((1, grid.nbranch), -30.0)
+    log_qb[0, 0] = 0.0  # a miss fails: Q = 1
+    tilt = object.__new__(study.LookAheadTilt)
+    tilt.grid, tilt.eps = grid, 0.3
+    pc, qc = tilt.proposal(p0, log_qb)
+    assert qc[0, 0] > 0.69 and pc[0, 0] == pytest.approx(0.01)
+    assert (qc >= 0.3 * pc - 1e-15).all()
+
+
+def test_a_continuations_level_counts_the_steps_of_late_braking_it_can_still_take(study):
+    """Level 0 fails; 0.10 m (one step late at the moderate setting) is 1; 0.86 m (on time) 2; capped at LMAX."""
+    r = np.array([-0.66, -1e-9, 0.0, 0.10, 0.75, 0.86, 1.62, 100.0])
+    assert study.level(r).tolist() == [0, 0, 1, 1, 1, 2, 3, study.LMAX]
+
+
+def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys, monkeypatch):
+    """--help lists them (the docs' commands run these routes)."""
+    monkeypatch.setattr(sys, "argv", ["cut_in_lookahead_tilt.py", "--help"])
+    with pytest.raises(SystemExit):
+        study.main()
+    out = capsys.readouterr().out
+    for option in ("--n", "--graded", "--q-model", "--grid", "--skip-doomed", "--mc-failures", "--window"):
+        assert option in out
