@@ -24,7 +24,7 @@ unbiased whatever Q is. Q comes from a **look-ahead**:
   window's end, and a gradient-boosted regression of log V on the branch's next state (the cut-in car's track, the
   ego, the level, the step, the parent state's one-step value; ``--graded``: also the continuation's follow step and
   the track's lateral margin there) is fitted by ``--iterations`` of fitted value iteration on every visited state's
-  one-step value log sum_c p(c) Q(s, c);
+  one-step value log sum_c p(c) Q(s, c) (``--v-large``: 600 trees of 63 leaves instead of 200 of 31);
 - ``--q-model``: the last stage runs no look-ahead: a regression of log Q on the state and the event's tail masses,
   fitted on every look-ahead branch so far, gives Q (1 rollout-equivalent a rollout).
 
@@ -38,6 +38,7 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
 - ``--n 1000 1000 --graded`` (88,300 a run): x0.80, 0.60, 0.68, 0.74 of the reference, 1 of 4 intervals hold it,
   three say ``reliable``; without ``--graded``: x0.66, 0.80, 0.79, 0.83, 2 of 4 hold it;
 - ``--n 3000 1000 --graded`` (176,000): x0.97, 0.84, 0.69, 1.33, 3 of 4 hold it;
+- ``--n 1000 1000 --graded --v-large --iterations 20`` (88,200): x0.76, 0.90 (seeds 0, 1; 4 minutes a seed);
 - ``--n 1000 4000 --graded --q-model`` (48,000): x0.66, 0.77, ESS 119-126 of 4,000;
   ``--n 400 5000 --graded --q-model --grid coarse --skip-doomed`` (15,250): x0.54, 0.71;
 - ``--window 14 24 --n 1000 1000``: x0.66, 0.63, 3.50; the heaviest failure of the last (log w -1.4) had its state
@@ -52,6 +53,7 @@ Usage::
 
     python benchmarks/cut_in_lookahead_tilt.py --seeds 4 --n 1000 1000 --graded
     python benchmarks/cut_in_lookahead_tilt.py --seeds 4 --n 3000 1000 --graded
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 2 --n 1000 1000 --graded --v-large --iterations 20
     python benchmarks/cut_in_lookahead_tilt.py --seeds 2 --n 1000 4000 --graded --q-model
     python benchmarks/cut_in_lookahead_tilt.py --seeds 2 --n 400 5000 --graded --q-model --grid coarse --skip-doomed
     python benchmarks/cut_in_lookahead_tilt.py --seeds 1 --n 1000 1000 --mc-failures 600000
@@ -226,6 +228,8 @@ class LookAheadTilt:
         self.grid = Grid(np.array(GRIDS[args.grid]))
         self.window, self.end, self.eps, self.a = tuple(args.window), args.end, args.eps, args.a
         self.graded, self.skip_doomed = args.graded, args.skip_doomed
+        self.v_size = (dict(max_iter=600, max_leaf_nodes=63, min_samples_leaf=5, early_stopping=False) if args.v_large
+                       else dict(max_iter=200, max_leaf_nodes=31, min_samples_leaf=10))  # fmt: skip
         self.reset()
 
     def reset(self) -> None:
@@ -438,8 +442,7 @@ class LookAheadTilt:
         for _ in range(iterations):
             y = np.concatenate([logsumexp(np.log(s.pc) + self.grid.class_values(self.log_q_hat(s.r, s.bfeat, s.t, ps)),
                                           axis=1) for s, ps in zip(steps, pss)])  # fmt: skip
-            self.model = HistGradientBoostingRegressor(max_iter=200, learning_rate=0.1, max_leaf_nodes=31,
-                                                       min_samples_leaf=10, random_state=0).fit(x, y)
+            self.model = HistGradientBoostingRegressor(learning_rate=0.1, random_state=0, **self.v_size).fit(x, y)
 
     def fit_q_model(self) -> None:
         """log Q(s, event) on the state, the step and the event (:func:`event_descriptor`), on every look-ahead branch
@@ -481,6 +484,7 @@ def main() -> None:
     ap.add_argument("--graded", action="store_true", help="the continuation's follow step and lateral margins as inputs")
     ap.add_argument("--skip-doomed", action="store_true", help="no look-ahead after a class whose edges both fail")
     ap.add_argument("--q-model", action="store_true", help="the last stage without look-ahead (a learned Q)")
+    ap.add_argument("--v-large", action="store_true", help="V: 600 trees of 63 leaves (else 200 of 31)")
     ap.add_argument("--mc-failures", type=int, default=0, help="replay the failures of N plain Monte Carlo rollouts")
     ap.add_argument("--setting", default="moderate")
     args = ap.parse_args()
