@@ -89,7 +89,8 @@ GRIDS = {
              6.3e-2, 0.1, 0.16, 0.25),
     "coarse": (1e-8, 1e-6, 1e-5, 1e-4, 3e-4, 1e-3, 2.5e-3, 6.3e-3, 1.6e-2, 4e-2, 0.1, 0.25),
 }
-"""Tail masses (ascending) of the bin edges of each error, on either side; the central bin lies between the last ones."""
+"""Tail masses (ascending) of the bin edges of each error, on either side; the central bin lies between the last
+ones."""
 LMAX = 6
 STEP_M = 0.76
 """What one step of late braking costs in closest approach at the moderate setting (the 7.6 m/s closing speed x dt)."""
@@ -278,7 +279,8 @@ class LookAheadTilt:
             a = np.maximum(a, -v / p.dt_s)
             a = np.where(v > MAX_SPEED_MPS, np.minimum(a, MAX_SPEED_MPS - v), a)
             x, v = x + v * p.dt_s, np.maximum(v + a * p.dt_s, 0.0)
-            lo[rows] = np.minimum(lo[rows], operand(scene_signals(p, self.traj[t + 1], x, v, a, st.tracks, st.followed)))
+            obs = scene_signals(p, self.traj[t + 1], x, v, a, st.tracks, st.followed)
+            lo[rows] = np.minimum(lo[rows], operand(obs))
             self.extrap_steps += rows.size
 
     def look_ahead(self, sim: BatchedCutIn, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
@@ -481,7 +483,7 @@ def main() -> None:
     ap.add_argument("--a", type=float, default=4e-3, help="the first stage's Q = a^L")
     ap.add_argument("--eps", type=float, default=0.3, help="the PEMs' share of each step's proposal")
     ap.add_argument("--iterations", type=int, default=10, help="fitted value iterations")
-    ap.add_argument("--graded", action="store_true", help="the continuation's follow step and lateral margins as inputs")
+    ap.add_argument("--graded", action="store_true", help="the continuation's follow step, lateral margins as inputs")
     ap.add_argument("--skip-doomed", action="store_true", help="no look-ahead after a class whose edges both fail")
     ap.add_argument("--q-model", action="store_true", help="the last stage without look-ahead (a learned Q)")
     ap.add_argument("--v-large", action="store_true", help="V: 600 trees of 63 leaves (else 200 of 31)")

@@ -27,9 +27,9 @@ def poor_proposal(study, grid, p0):
 
 @pytest.mark.parametrize("grid_name", ["fine", "coarse"])
 def test_a_tilted_draw_is_weighed_so_that_every_event_keeps_its_pem_probability(study, grid_name):
-    """Uniforms drawn class by class from the proposal and weighed p / q of the class they fall in: E[w] = 1, E[w 1{miss}]
-    = 1 - p(detect), and E[w 1{u < m}] = p(detect) m for tail masses m inside bins (so a draw that were not uniform in
-    its bin would show), within 5 standard errors of 200,000 draws."""
+    """Uniforms drawn class by class from the proposal and weighed p / q of the class they fall in: E[w] = 1,
+    E[w 1{miss}] = 1 - p(detect), and E[w 1{u < m}] = p(detect) m for tail masses m inside bins (so a draw that were
+    not uniform in its bin would show), within 5 standard errors of 200,000 draws."""
     grid = study.Grid(np.array(study.GRIDS[grid_name]))
     n = 200_000
     p0 = np.full(n, 0.985)
