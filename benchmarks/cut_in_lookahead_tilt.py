@@ -162,6 +162,13 @@ class Grid:
         out[:, 1:] = np.maximum(qr[:, :, None], ql[:, None, :]).reshape(q.shape[0], -1)
         return np.log(np.maximum(out, 1e-300))
 
+    def proposal(self, p0: np.ndarray, log_qb: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+        """(p(class), q(class)) [k, 1 + NB^2]: the tilt p Q (Q from the branches' log Q [k, NBRANCH]) normalised,
+        mixed with ``eps`` of p."""
+        pc = self.p_class(p0)
+        log_t = np.log(pc) + self.class_values(log_qb)
+        return pc, (1.0 - eps) * np.exp(log_t - logsumexp(log_t, axis=1, keepdims=True)) + eps * pc
+
     def level_dist(self, r: np.ndarray) -> np.ndarray:
         """Each class's distribution of levels [k, 1 + NB^2, LMAX + 1] (a bin: half each edge's; a joint class: the
         error whose mean level is lower)."""
@@ -289,7 +296,8 @@ class LookAheadTilt:
         target, m, g = self.problem.target, self.params.n_objects, self.grid
         k, kk = idx.size, g.nbranch
         r_rows = rows[idx].reshape(k * m, -1)
-        det = (u[idx, :, 0] <= expit(target.detect_logit(r_rows)).reshape(k, m)).reshape(-1)
+        p_detect = expit(target.detect_logit(r_rows)).reshape(k, m)
+        det = (u[idx, :, 0] <= p_detect).reshape(-1)
         noise = np.zeros((k * m, 2))
         if det.any():
             noise[det] = target.noise_from_uniforms(r_rows[det], u[idx].reshape(k * m, 3)[det, 1:])
@@ -297,7 +305,7 @@ class LookAheadTilt:
         noise_b = np.repeat(noise.reshape(k, m, 2), kk, axis=0)
         rb = np.tile(g.reps, (k, 1))
         rows0 = np.repeat(rows[idx, 0, :], kk, axis=0)
-        det_b[:, 0] = rb[:, 0] <= expit(target.detect_logit(rows0))
+        det_b[:, 0] = rb[:, 0] <= np.repeat(p_detect[:, 0], kk)  # a branch's detection uniform is 0 or 1
         noise_b[:, 0] = 0.0
         hit = det_b[:, 0]
         noise_b[hit, 0] = target.noise_from_uniforms(rows0[hit], rb[hit, 1:])
@@ -340,12 +348,6 @@ class LookAheadTilt:
         return np.concatenate([np.repeat(sfeat[:, None, :14], kk, axis=1), np.full((k, kk, 1), float(t)),
                                np.broadcast_to(self.grid.desc, (k, kk, 3))], axis=2).reshape(k * kk, -1)  # fmt: skip
 
-    def proposal(self, p0: np.ndarray, log_qb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(p(class), q(class)) [k, 1 + NB^2]: the tilt p Q normalised, mixed with eps of p."""
-        pc = self.grid.p_class(p0)
-        log_t = np.log(pc) + self.grid.class_values(log_qb)
-        return pc, (1.0 - self.eps) * np.exp(log_t - logsumexp(log_t, axis=1, keepdims=True)) + self.eps * pc
-
     def simulate(self, n: int, rng: np.random.Generator, given: np.ndarray | None = None):
         """One stage of n rollouts: (failed bool [n], log w [n], cost in rollout-equivalents, kinematic steps / T).
         ``given`` [T, n, M, 3]: replay these uniforms (their classes scored, nothing drawn)."""
@@ -377,7 +379,7 @@ class LookAheadTilt:
                             lqb = self.log_q_hat(r, bfeat, t, ps)
                             step = Step(t, idx, None, r, None, bfeat, sfeat, ps, parent[idx].copy())
                             parent[idx] = ps
-                        pc, qc = self.proposal(p0, lqb)
+                        pc, qc = g.proposal(p0, lqb, self.eps)
                         if given is None:
                             cum = np.cumsum(qc, axis=1)
                             cls = np.minimum((cum < rng.random(idx.size)[:, None] * cum[:, -1:]).sum(axis=1),

@@ -19,10 +19,8 @@ def study():
 
 def poor_proposal(study, grid, p0):
     """The study's proposal with a random Q (log Q uniform on [-30, 0] per branch): no relation to any failure."""
-    tilt = object.__new__(study.LookAheadTilt)
-    tilt.grid, tilt.eps = grid, 0.3
     log_qb = np.random.default_rng(5).uniform(-30.0, 0.0, size=(p0.size, grid.nbranch))
-    return tilt.proposal(p0, log_qb)
+    return grid.proposal(p0, log_qb, 0.3)
 
 
 @pytest.mark.parametrize("grid_name", ["fine", "coarse"])
@@ -60,9 +58,7 @@ def test_the_tilt_follows_q_and_the_pems_keep_their_share(study):
     p0 = np.array([0.99])
     log_qb = np.full((1, grid.nbranch), -30.0)
     log_qb[0, 0] = 0.0  # a miss fails: Q = 1
-    tilt = object.__new__(study.LookAheadTilt)
-    tilt.grid, tilt.eps = grid, 0.3
-    pc, qc = tilt.proposal(p0, log_qb)
+    pc, qc = grid.proposal(p0, log_qb, 0.3)
     assert qc[0, 0] > 0.69 and pc[0, 0] == pytest.approx(0.01)
     assert (qc >= 0.3 * pc - 1e-15).all()
 
