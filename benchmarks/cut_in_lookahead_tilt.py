@@ -295,6 +295,8 @@ class LookAheadTilt:
         self.window, self.end, self.eps, self.a = tuple(args.window), args.end, args.eps, args.a
         self.graded, self.skip_doomed, self.one_car = args.graded, args.skip_doomed, args.one_car
         self.check_one_car, self.agree = args.check_one_car, []
+        if self.check_one_car and not self.graded:
+            raise SystemExit("--check-one-car needs --graded (it compares the continuations' follow steps)")
         self.v_size = (dict(max_iter=600, max_leaf_nodes=63, min_samples_leaf=5, early_stopping=False) if args.v_large
                        else dict(max_iter=200, max_leaf_nodes=31, min_samples_leaf=10))  # fmt: skip
         self.reset()
