@@ -37,6 +37,11 @@ rollout step drawn from the PEMs (2-core machine, 20,000 rollouts a batch). Ever
 plain Monte Carlo rollouts (measured at its start): plain Monte Carlo needs 1.3 x 10^5 of them for a median relative
 error of 0.2.
 
+``--train-once SEED`` fits V once on every stage of ``--n`` but the last (with that seed), then runs only the last
+stage for each seed: the runs of a V that a cache keeps. ``--v-cache PATH`` writes that V (written whole, then
+renamed) and reads it back in a later run whose scene, grid, window and training settings match (else it stops with
+one line); the cost of fitting it is then not the run's.
+
 ``--mc-failures N`` draws N plain Monte Carlo rollouts, keeps the failures' uniforms, and replays them through the
 last fitted proposal: their log weights log p / q, which a zero-variance proposal would make all equal to log p_fail
 (-9.35), show where the proposal under-draws failures (those with log w far above it).
@@ -57,8 +62,14 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
   88,000-93,000); ``--n 3000 1000`` x0.75, 0.78 (155-158 s); ``--n 1000 1000 --a 0.03 --eps 0.5``, seeds 0-5: x0.74,
   1.00, 0.84, 0.73, 0.68, 0.57, 4 of 6 intervals hold it, 2 of 4 ``reliable`` wrong (43-56 s, 70,000-119,000);
   ``--n 400 5000 --q-model --grid coarse --skip-doomed --a 0.03 --eps 0.5`` x0.65, 0.63 (32-33 s, 94,000-97,000).
-  The fitted V's predictions take 25 of 57 s of a 1,000 + 1,000 run: on the clock, no configuration is cheaper
-  than plain Monte Carlo's 1.3 x 10^5 rollouts for a median relative error of 0.2;
+  The fitted V's predictions take 25 of 57 s of a 1,000 + 1,000 run: on the clock, no configuration that fits V
+  in the run is cheaper than plain Monte Carlo's 1.3 x 10^5 rollouts for a median relative error of 0.2;
+  ``--errors``: x0.74, 0.92, 0.63, 0.62, 0.69, 0.63; ``--window 10 31 --end 40``: x0.77, 0.78, 2.02, 0.75;
+- a V fitted once and cached (``--train-once 1000 --v-cache PATH --graded --one-car --a 0.03 --eps 0.5``):
+  ``--n 5000 1000`` (271 s to fit), 1,000 rollouts a run in 9 s: x0.73, 0.56, 1.93, 0.75, 0.75, 0.92, 1.04, 0.94;
+  ``--n 10000 1000`` (668 s to fit), 7-8 s a run (about 19,000 plain Monte Carlo rollouts): x0.78, 0.62, 0.71, 0.76,
+  1.14, 0.67, 0.81, 0.78, 0.81, 0.83, median relative error 0.22, 4 of 8 ``reliable`` verdicts wrong; with
+  ``--mc-failures 600000``, 14 of the 45 failures replayed have log w above -5 (18 with the 1,000-rollout V);
 - ``--n 1000 1000 --mc-failures 600000``: 45 failures; under the proposal fitted on the first 1,000 rollouts, 18 of
   them have log w above -5 (a zero-variance proposal: -9.35 each): drawn at least 80 times too rarely. In them an
   error in the 1-20 % tails at steps 16-18 decides, from states that moderate errors at steps 10-16 brought close to
@@ -74,6 +85,8 @@ Usage::
     python benchmarks/cut_in_lookahead_tilt.py --seeds 1 --n 1000 1000 --mc-failures 600000
     python benchmarks/cut_in_lookahead_tilt.py --seeds 1 --n 300 --graded --check-one-car
     python benchmarks/cut_in_lookahead_tilt.py --seeds 6 --n 1000 1000 --graded --one-car --a 0.03 --eps 0.5
+    python benchmarks/cut_in_lookahead_tilt.py --train-once 1000 --v-cache v10k.pkl --seeds 10 --n 10000 1000 \
+        --graded --one-car --a 0.03 --eps 0.5
 """
 
 from __future__ import annotations
@@ -81,6 +94,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import pickle
 import sys
 import time
 from dataclasses import dataclass
@@ -128,13 +142,17 @@ def operand(obs: np.ndarray) -> np.ndarray:
     return np.minimum(obs[:, MARGIN] + 1000.0 * obs[:, RECENT], obs[:, CLEAR])
 
 
-def features(state, traffic) -> np.ndarray:
-    """The cut-in car's track and the ego at a state, float64 [N, 14]."""
+def features(state, traffic, errors: bool = False) -> np.ndarray:
+    """The cut-in car's track and the ego at a state, float64 [N, 14] (``errors``: [N, 18], with the track's position
+    and velocity errors against the car's true state along and across the road)."""
     tr = state.tracks
-    return np.column_stack([tr.x[0] - state.ego_x_m, tr.vx[0], np.log(tr.pxx[0] + 1e-6), np.log(tr.pvvx[0] + 1e-6),
-                            tr.y[0], tr.vy[0], np.log(tr.pyy[0] + 1e-6), np.log(tr.pvvy[0] + 1e-6), tr.active[0],
-                            tr.confirmed[0], tr.coast[0], traffic.x_m[0] - state.ego_x_m, state.ego_speed_mps,
-                            state.followed == 0])  # fmt: skip
+    cols = [tr.x[0] - state.ego_x_m, tr.vx[0], np.log(tr.pxx[0] + 1e-6), np.log(tr.pvvx[0] + 1e-6), tr.y[0], tr.vy[0],
+            np.log(tr.pyy[0] + 1e-6), np.log(tr.pvvy[0] + 1e-6), tr.active[0], tr.confirmed[0], tr.coast[0],
+            traffic.x_m[0] - state.ego_x_m, state.ego_speed_mps, state.followed == 0]
+    if errors:
+        cols += [tr.x[0] - traffic.x_m[0], tr.vx[0] - traffic.vx_mps[0], tr.y[0] - traffic.y_m[0],
+                 tr.vy[0] - traffic.vy_mps[0]]
+    return np.column_stack(cols)
 
 
 class OneCar(BatchedCutIn):
@@ -295,6 +313,8 @@ class LookAheadTilt:
         self.window, self.end, self.eps, self.a = tuple(args.window), args.end, args.eps, args.a
         self.graded, self.skip_doomed, self.one_car = args.graded, args.skip_doomed, args.one_car
         self.check_one_car, self.agree = args.check_one_car, []
+        self.errors = args.errors
+        self.n_state = 18 if args.errors else 14
         if self.check_one_car and not self.graded:
             raise SystemExit("--check-one-car needs --graded (it compares the continuations' follow steps)")
         self.v_size = (dict(max_iter=600, max_leaf_nodes=63, min_samples_leaf=5, early_stopping=False) if args.v_large
@@ -393,7 +413,7 @@ class LookAheadTilt:
             bsim.restore(start)
             bsim.step(det_b, noise_b)
         self.count(bsim, k * kk)
-        feats = features(bsim.state, self.traj[bsim.t])
+        feats = features(bsim.state, self.traj[bsim.t], self.errors)
         lo = np.repeat(prefix_min[idx], kk)
         graded = self.continue_nominal(bsim, lo)
         if self.graded:
@@ -423,9 +443,9 @@ class LookAheadTilt:
         return np.where(lv == 0, table, np.minimum(pred, 0.0))
 
     def q_inputs(self, sfeat: np.ndarray, t: int) -> np.ndarray:
-        """The Q model's inputs at every branch event [k NBRANCH, 18]: the state, the step, the event."""
+        """The Q model's inputs at every branch event [k NBRANCH, n_state + 4]: the state, the step, the event."""
         k, kk = sfeat.shape[0], self.grid.nbranch
-        return np.concatenate([np.repeat(sfeat[:, None, :14], kk, axis=1), np.full((k, kk, 1), float(t)),
+        return np.concatenate([np.repeat(sfeat[:, None, :self.n_state], kk, axis=1), np.full((k, kk, 1), float(t)),
                                np.broadcast_to(self.grid.desc, (k, kk, 3))], axis=2).reshape(k * kk, -1)  # fmt: skip
 
     def simulate(self, n: int, rng: np.random.Generator, given: np.ndarray | None = None):
@@ -446,7 +466,7 @@ class LookAheadTilt:
                     rows = np.ascontiguousarray(sim.objects())
                     idx = np.flatnonzero((rows[:, 0, VISIBLE] > 0.5) & (prefix_min >= 0.0) & ~doomed)
                     if idx.size:
-                        sfeat = features(sim.state.select(idx), self.traj[t])
+                        sfeat = features(sim.state.select(idx), self.traj[t], self.errors)
                         p0 = expit(target.detect_logit(rows[idx, 0]))
                         if self.q_model is not None:
                             step = None
@@ -586,6 +606,11 @@ def main() -> None:
     ap.add_argument("--one-car", action="store_true", help="look ahead on the cut-in car alone (the OneCar twin)")
     ap.add_argument("--check-one-car", action="store_true",
                     help="run every look-ahead both ways; print how often the levels and follow steps agree")
+    ap.add_argument("--errors", action="store_true", help="V and Q also read the track's errors against the truth")
+    ap.add_argument("--train-once", type=int, default=None, metavar="SEED",
+                    help="fit V on every stage but the last once, with this seed; then only the last stage per seed")
+    ap.add_argument("--v-cache", default=None, metavar="PATH",
+                    help="with --train-once: read the fitted V from PATH if it exists, else fit it and write it there")
     ap.add_argument("--mc-failures", type=int, default=0, help="replay the failures of N plain Monte Carlo rollouts")
     ap.add_argument("--setting", default="moderate")
     args = ap.parse_args()
@@ -596,25 +621,64 @@ def main() -> None:
     print(f"a plain Monte Carlo rollout takes {t_mc * 1e3:.2f} ms here (4,000 from the PEMs); plain Monte Carlo's "
           f"median relative error 0.2 (1.3e5 rollouts) takes {1.3e5 * t_mc:.0f} s")  # fmt: skip
     ratios = []
-    for seed in range(args.first_seed, args.first_seed + args.seeds):
-        t0 = time.perf_counter()
-        rng = np.random.default_rng(seed)
-        study.reset()
+
+    def stages(ns: list[int], rng: np.random.Generator, fit_last: bool) -> tuple:
+        """Run stages ``ns``, fitting after each but (unless ``fit_last``) the last: (failed, log w, cost,
+        kinematic, (the last stage's cost, seconds))."""
         cost = extra = 0.0
-        for i, n in enumerate(args.n):
+        for i, n in enumerate(ns):
+            t_last = time.perf_counter()
             failed, log_w, c, e = study.simulate(n, rng)
-            cost, extra = cost + c, extra + e
-            if i < len(args.n) - 1:
+            cost, extra, last = cost + c, extra + e, (c, time.perf_counter() - t_last)
+            if i < len(ns) - 1 or fit_last:
                 study.fit(args.iterations)
                 if args.q_model and i == len(args.n) - 2:
                     study.fit_q_model()
+        return failed, log_w, cost, extra, last
+
+    if args.train_once is not None:  # V fitted once (a cached V), then only the last stage per seed
+        t0 = time.perf_counter()
+        study.reset()
+        cache = Path(args.v_cache) if args.v_cache else None
+        key = (args.setting, args.grid, tuple(args.window), args.graded, args.errors, args.one_car, args.q_model,
+               args.a, tuple(args.n[:-1]), args.train_once, args.iterations, args.v_large)
+        if cache is not None and cache.exists():
+            with cache.open("rb") as f:
+                cached_key, study.v_table, study.model, study.q_model = pickle.load(f)
+            if cached_key != key:
+                raise SystemExit(f"--v-cache {cache}: fitted for {cached_key} (setting, grid, window, graded, errors, "
+                                 f"one-car, q-model, a, training stages, seed, iterations, v-large), not {key}")
+            print(f"  V read from {cache} (trained before; its cost is not this run's)")
+        else:
+            *_, cost, extra, _ = stages(args.n[:-1], np.random.default_rng(args.train_once), True)
+            study.traces.clear()
+            wall = time.perf_counter() - t0
+            print(f"  V trained once (seed {args.train_once}, stages {args.n[:-1]}): cost {cost:,.0f} (+{extra:,.0f} "
+                  f"kinematic), {wall:.0f} s = {wall / t_mc:,.0f} plain Monte Carlo rollouts")  # fmt: skip
+            if cache is not None:  # written whole, then renamed: never half a file
+                part = cache.with_name(cache.name + ".part")
+                with part.open("wb") as f:
+                    pickle.dump((key, study.v_table, study.model, study.q_model), f)
+                part.replace(cache)
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
+        t0 = time.perf_counter()
+        rng = np.random.default_rng(seed)
+        if args.train_once is None:
+            study.reset()
+            failed, log_w, cost, extra, last = stages(args.n, rng, False)
+        else:
+            study.branch_steps = study.one_steps = study.extrap_steps = 0
+            failed, log_w, cost, extra, last = stages(args.n[-1:], rng, False)
+            study.traces.pop()
         wall = time.perf_counter() - t0
         est = estimate(log_w, failed, np.zeros(failed.size))
         ratios.append(est.mu_hat / REFERENCE)
         print(f"  seed {seed}: {est.mu_hat:.3e} {est.interval_text()} x{ratios[-1]:.2f} "
               f"({'holds' if est.covers(float(np.log(REFERENCE))) else 'misses'} the reference), {est.n_failures} "
               f"failures, ESS {est.ess:.1f}, k-hat {est.khat:.2f}, {est.verdict}; cost {cost:,.0f} (+{extra:,.0f} "
-              f"kinematic), {wall:.0f} s = {wall / t_mc:,.0f} plain Monte Carlo rollouts", flush=True)  # fmt: skip
+              f"kinematic), {wall:.0f} s = {wall / t_mc:,.0f} plain Monte Carlo rollouts; the last stage alone (V "
+              f"fitted before it): cost {last[0]:,.0f}, {last[1]:.0f} s = {last[1] / t_mc:,.0f}",
+              flush=True)  # fmt: skip
     r = np.array(ratios)
     print(f"median relative error {np.median(np.abs(r - 1)):.2f} (target <= 0.2); within x2 in "
           f"{int(np.sum((r >= 0.5) & (r <= 2)))} of {r.size}")  # fmt: skip

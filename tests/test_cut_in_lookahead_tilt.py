@@ -76,7 +76,7 @@ def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys
         study.main()
     out = capsys.readouterr().out
     for option in ("--n", "--graded", "--q-model", "--grid", "--skip-doomed", "--mc-failures", "--window", "--one-car",
-                   "--check-one-car", "--a", "--eps"):
+                   "--check-one-car", "--a", "--eps", "--train-once", "--errors"):
         assert option in out
 
 
@@ -105,3 +105,26 @@ def test_the_cut_in_car_alone_drives_the_ego_as_the_whole_twin_does(study):
         alone.step(det[:, :1], noise[:, :1])
     np.testing.assert_allclose(alone.state.ego_speed_mps, whole.state.ego_speed_mps, rtol=0, atol=1e-9)
     assert (whole.state.followed == 0).mean() > 0.5  # the ACC follows the cut-in car in most rollouts by step 40
+
+
+def test_a_cached_v_gives_the_run_it_was_fitted_for_and_refuses_another_setting(study, capsys, monkeypatch, tmp_path):
+    """--v-cache writes the V fitted by --train-once whole; read back, the same seed gives the same estimate; a cache
+    fitted with another grid stops the run with one line and leaves the file as it was."""
+    cache = tmp_path / "v.pkl"
+    base = ["cut_in_lookahead_tilt.py", "--train-once", "5", "--v-cache", str(cache), "--n", "40", "40", "--seeds", "1",
+            "--one-car", "--grid", "coarse", "--graded"]  # fmt: skip
+
+    def run(*extra):
+        monkeypatch.setattr(sys, "argv", base + list(extra))
+        study.main()
+        return [line for line in capsys.readouterr().out.splitlines() if line.startswith("  ")]
+
+    fitted = run()
+    assert "V trained once" in fitted[0] and cache.exists() and not list(tmp_path.glob("*.part"))
+    before = cache.read_bytes()
+    again = run()
+    assert "V read from" in again[0]
+    assert again[1].split("; cost")[0] == fitted[1].split("; cost")[0]  # estimate, interval, ESS and verdict
+    with pytest.raises(SystemExit, match="fitted for"):
+        run("--grid", "fine")
+    assert cache.read_bytes() == before
