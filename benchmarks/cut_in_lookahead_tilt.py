@@ -94,6 +94,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import functools
 import pickle
 import sys
 import time
@@ -169,19 +170,16 @@ class OneCar(BatchedCutIn):
         self.reset()
 
 
-_ONE_CAR: dict = {}
-
-
+@functools.lru_cache(maxsize=8)
 def one_car_trajectory(params) -> TrafficTrajectory:
     """The traffic of every step with the cut-in car (object 0) alone, computed once per parameter set."""
-    if params not in _ONE_CAR:
-        def alone(tr):
-            arrays = {f.name: getattr(tr, f.name)[:1] for f in dataclasses.fields(tr)
-                      if isinstance(getattr(tr, f.name), np.ndarray)}  # fmt: skip
-            return dataclasses.replace(tr, occluder_pairs=(), **arrays)
 
-        _ONE_CAR[params] = TrafficTrajectory(tuple(alone(tr) for tr in cached_trajectory(params).traffic))
-    return _ONE_CAR[params]
+    def alone(tr):
+        arrays = {f.name: getattr(tr, f.name)[:1] for f in dataclasses.fields(tr)
+                  if isinstance(getattr(tr, f.name), np.ndarray)}  # fmt: skip
+        return dataclasses.replace(tr, occluder_pairs=(), **arrays)
+
+    return TrafficTrajectory(tuple(alone(tr) for tr in cached_trajectory(params).traffic))
 
 
 def one_car_state(st: CutInBatchState) -> CutInBatchState:
@@ -369,9 +367,8 @@ class LookAheadTilt:
         rows = live[done]
         # the operand depends on the ego's (x, v) at the follow step alone: one extrapolation per distinct pair
         # (most branches follow from the ego's cruising state of that step)
-        pairs, inverse = np.unique(np.column_stack([st.ego_x_m, st.ego_speed_mps]), axis=0, return_inverse=True)
-        first = np.zeros(pairs.shape[0], dtype=np.int64)
-        first[inverse.ravel()[::-1]] = np.arange(rows.size)[::-1]
+        pairs, first, inverse = np.unique(np.column_stack([st.ego_x_m, st.ego_speed_mps]), axis=0, return_index=True,
+                                          return_inverse=True)  # fmt: skip
         tracks, followed = st.tracks.select(first), st.followed[first]
         x, v, low = pairs[:, 0].copy(), pairs[:, 1].copy(), np.full(pairs.shape[0], np.inf)
         for t in range(st.t, self.end):
@@ -667,7 +664,6 @@ def main() -> None:
             study.reset()
             failed, log_w, cost, extra, last = stages(args.n, rng, False)
         else:
-            study.branch_steps = study.one_steps = study.extrap_steps = 0
             failed, log_w, cost, extra, last = stages(args.n[-1:], rng, False)
             study.traces.pop()
         wall = time.perf_counter() - t0
