@@ -42,6 +42,13 @@ stage for each seed: the runs of a V that a cache keeps. ``--v-cache PATH`` writ
 renamed) and reads it back in a later run whose scene, grid, window and training settings match (else it stops with
 one line); the cost of fitting it is then not the run's.
 
+``--dp``: no pilot, no fit: Q is U_t(G, k), the committor of a chain solved on the nominal path
+(:meth:`LookAheadTilt.solve_dp`, :class:`LevelChain`): G the continuation's level made continuous (L - 1 plus how deep
+inside the lane the track was when the ACC followed, in lateral steps of the track: :func:`continuous_level`), k the
+track's regime (confirmed, coasting, its lateral velocity variance against the nominal path's), each step's events
+shifting G and moving k as the look-ahead from each regime's likeliest state on the nominal path measures;
+``--continuous``: Q = ``a`` ^ G instead of ``a`` ^ L in the first stage.
+
 ``--mc-failures N`` draws N plain Monte Carlo rollouts, keeps the failures' uniforms, and replays them through the
 last fitted proposal: their log weights log p / q, which a zero-variance proposal would make all equal to log p_fail
 (-9.35), show where the proposal under-draws failures (those with log w far above it).
@@ -70,6 +77,13 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
   ``--n 10000 1000`` (668 s to fit), 7-8 s a run (about 19,000 plain Monte Carlo rollouts): x0.78, 0.62, 0.71, 0.76,
   1.14, 0.67, 0.81, 0.78, 0.81, 0.83, median relative error 0.22, 4 of 8 ``reliable`` verdicts wrong; with
   ``--mc-failures 600000``, 14 of the 45 failures replayed have log w above -5 (18 with the 1,000-rollout V);
+- ``--dp`` (``--graded --one-car``; the chain solved in 4 s, 540 rollout-equivalents, once; its own p_fail 1.2e-5,
+  x0.14 of the reference): ``--n 1000`` seeds 0-19 (5 s a run, 9,400-13,800 plain Monte Carlo rollouts): x5.97, 0.61,
+  0.80, 1.13, 0.84, 1.08, 0.60, 0.67, 0.62, 0.85, 1.92, 0.72, 0.74, 0.95, 0.93, 0.69, 1.36, 1.63, 0.80, 0.59, median
+  relative error 0.30, 19 of 20 within x2, 12 of 20 intervals hold it, 1 ``reliable`` (x0.85); ``--n 2000`` seeds
+  0-5 (11-12 s): x0.71, 0.56, 1.00, 0.83, 0.76, 0.82; ``--n 300`` seeds 0-7: x0.48 (``reliable``: wrong), 1.46,
+  0.66, 2.11, 1.29, 0.91, 0.92, 3.28; ``--n 1000 1000`` (V fitted on the chain's stage): x0.69, 0.71, both
+  ``reliable``; ``--continuous --n 2000 --a 0.004``: x0.64, 0.71;
 - ``--n 1000 1000 --mc-failures 600000``: 45 failures; under the proposal fitted on the first 1,000 rollouts, 18 of
   them have log w above -5 (a zero-variance proposal: -9.35 each): drawn at least 80 times too rarely. In them an
   error in the 1-20 % tails at steps 16-18 decides, from states that moderate errors at steps 10-16 brought close to
@@ -87,6 +101,7 @@ Usage::
     python benchmarks/cut_in_lookahead_tilt.py --seeds 6 --n 1000 1000 --graded --one-car --a 0.03 --eps 0.5
     python benchmarks/cut_in_lookahead_tilt.py --train-once 1000 --v-cache v10k.pkl --seeds 10 --n 10000 1000 \
         --graded --one-car --a 0.03 --eps 0.5
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 1000 --graded --one-car --dp
 """
 
 from __future__ import annotations
@@ -119,6 +134,9 @@ from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E40
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 VISIBLE = OBJECT_NAMES.index("visible")
+COAST = 10
+"""The column of :func:`features` that counts the predictions since the cut-in car's track's last update (1 after an
+updated step: the state is predicted)."""
 MARGIN, RECENT, CLEAR, FOLLOWED = (OBSERVATION_NAMES.index(k) for k in
                                    ("safe_margin_m", "cut_in_recent", "clearance_m", "followed_index"))  # fmt: skip
 GRIDS = {
@@ -136,6 +154,15 @@ STEP_M = 0.76
 def level(r: np.ndarray) -> np.ndarray:
     """A continuation's level from its robustness r (metres): 0 when it fails, else 1 + floor(r / STEP_M), capped."""
     return np.where(r < 0.0, 0, np.minimum(1 + np.floor(np.maximum(r, 0.0) / STEP_M), LMAX)).astype(np.int64)
+
+
+def continuous_level(lv: np.ndarray, inside_m: np.ndarray, step_m: np.ndarray) -> np.ndarray:
+    """The level made continuous: L - 1 + how deep inside the lane the continuation's track was when the ACC
+    followed, in lateral steps of the track (capped at 1; 0 where L = 0). ``inside_m``: the track's margin outside
+    the lane's 2 m band at the follow step (<= 0), ``step_m``: its lateral speed times dt there (metres)."""
+    d = np.maximum(-inside_m, 0.0)
+    frac = np.clip(d / np.maximum(step_m, 1e-9), 0.0, 1.0)
+    return np.where(lv == 0, 0.0, lv - 1.0 + frac)
 
 
 def operand(obs: np.ndarray) -> np.ndarray:
@@ -283,6 +310,60 @@ def event_descriptor(u: np.ndarray, p0: np.ndarray) -> np.ndarray:
     return out
 
 
+DP_DEPTH = 5
+"""How many steps back the event sequences of :meth:`LookAheadTilt.solve_dp` reach."""
+REGIME_RATIOS = (1.2, 1.5, 2.0, 3.0, 5.0, 10.0)
+"""The bounds of the ratio of the track's lateral velocity variance to the nominal path's that separate its
+regimes (a restarted track starts from its velocity prior)."""
+
+
+class LevelChain:
+    """U_t(g, k): the probability of failure from continuous level g (:func:`continuous_level`) at step t, the track
+    in regime k (:meth:`LookAheadTilt.regime`), solved on a grid of g (step ``h``): each step's events shift g by
+    their effect on regime k's representative state, the range and lateral errors' effects added, and move it to the
+    regime their branch ends in (a joint class: its range error's); a regime without a representative takes regime
+    0's; a step without effects leaves both as they are."""
+
+    def __init__(self, grid: Grid, window, p0s: dict, effects: dict, nexts: dict, nreg: int, h: float,
+                 gmax: float) -> None:  # fmt: skip
+        self.g = np.arange(0.0, gmax + h, h)
+        self.window = window
+        w0, w1 = window
+        outer = np.array([np.flatnonzero(grid.maps[0][row])[0] for row in range(grid.nb)])  # each range bin's branch
+        u = np.tile((self.g <= 1e-9).astype(float), (nreg, 1))
+        self.log_table = {w1: np.log(np.maximum(u, 1e-300))}
+        for t in range(w1 - 1, w0 - 1, -1):
+            if t in effects:
+                new = np.empty_like(u)
+                pc = grid.p_class(np.array([p0s[t]]))[0]
+                for k in range(nreg):
+                    e, nxt = effects[t].get(k, effects[t][0]), nexts[t].get(k, nexts[t][0])
+                    dr, dl = (mp @ e / np.maximum(mp.sum(axis=1), 1e-12) for mp in grid.maps)
+                    delta = np.concatenate([[e[0]], (dr[:, None] + dl[None, :]).ravel()])
+                    cls_reg = np.concatenate([[nxt[0]], np.repeat(np.where(np.arange(grid.nb) == grid.central,
+                                                                           nxt[1], nxt[outer]), grid.nb)])
+                    acc = np.zeros(self.g.size)
+                    for k2 in np.unique(cls_reg):
+                        sel = np.flatnonzero(cls_reg == k2)
+                        shifted = np.interp(self.g[None, :] + delta[sel, None], self.g, u[k2], left=1.0,
+                                            right=u[k2, -1])  # fmt: skip
+                        acc += pc[sel] @ shifted
+                    new[k] = acc
+                u = new
+            self.log_table[t] = np.log(np.maximum(u, 1e-300))
+
+    def log_u(self, t: int, gl: np.ndarray, regime: np.ndarray | None = None) -> np.ndarray:
+        """log U_t at continuous levels ``gl`` (any shape), in regimes ``regime`` (int, the same shape; None: 0);
+        steps past the window take the window's end."""
+        table = self.log_table[min(max(t, self.window[0]), self.window[1])]
+        if regime is None:
+            return np.interp(gl, self.g, table[0])
+        out = np.empty(np.shape(gl))
+        for k in np.unique(regime):
+            out[regime == k] = np.interp(gl[regime == k], self.g, table[k])
+        return out
+
+
 @dataclass
 class Step:
     """One look-ahead step of a batch: the rollouts, the drawn classes, the branches' robustness and next states."""
@@ -312,6 +393,10 @@ class LookAheadTilt:
         self.graded, self.skip_doomed, self.one_car = args.graded, args.skip_doomed, args.one_car
         self.check_one_car, self.agree = args.check_one_car, []
         self.errors = args.errors
+        self.continuous = args.continuous or args.dp
+        self.dp = None
+        if self.continuous and not self.graded:
+            raise SystemExit("--continuous needs --graded (it reads the continuations' lateral margins)")
         self.n_state = 18 if args.errors else 14
         if self.check_one_car and not self.graded:
             raise SystemExit("--check-one-car needs --graded (it compares the continuations' follow steps)")
@@ -324,6 +409,67 @@ class LookAheadTilt:
         self.v_table = self.model = self.q_model = None
         self.traces: list = []
 
+    def regime(self, feats: np.ndarray, t: int) -> np.ndarray:
+        """The track's regime (int [...]) at step t from :func:`features` rows [..., F]: confirmed or not, coasting
+        or not, and the bucket of its lateral velocity variance over the nominal path's (:data:`REGIME_RATIOS`)."""
+        ratio = np.exp(feats[..., 7] - self.pvvy_nom[min(t, max(self.pvvy_nom))])
+        nb = len(REGIME_RATIOS) + 1
+        return ((feats[..., 9] < 0.5) * 2 + (feats[..., COAST] > 1)) * nb + np.searchsorted(np.array(REGIME_RATIOS),
+                                                                                           ratio)
+
+    def solve_dp(self, h: float = 0.01, gmax: float = LMAX) -> "LevelChain":
+        """The committor as a function of the continuous level and the track's regime, U_t(G, k), solved on the
+        nominal path (no pilot): at each step of the window, the states that every sequence of :data:`DP_DEPTH`
+        events (none, a miss, an extreme range error low or high: a rejected measurement, or after a coast a restart)
+        before it leaves are sorted into regimes (:meth:`regime`); the look-ahead from the likeliest state of each
+        regime (the fewest events, then the fewest extreme ones) gives every grid event's effect on G and the regime
+        after it (:class:`LevelChain`). 13-15 regime states a step, 54,000 continuation steps (540 rollout-equivalents),
+        about 4 s here; :attr:`dp_states` keeps the count of each step."""
+        p, target, g = self.params, self.problem.target, self.grid
+        depth = DP_DEPTH
+        seqs = np.array(np.meshgrid(*[range(4)] * depth, indexing="ij")).reshape(depth, -1).T  # [4^depth, depth]
+        rank = (seqs > 0).sum(axis=1) * 10 + (seqs > 1).sum(axis=1)
+        order = np.argsort(rank, kind="stable")
+        event_branch = np.array([1, 0, 2, 2 + g.ng])  # none, a miss, the extreme low and high range errors
+        sim = BatchedCutIn(p, 1)
+        history, self.pvvy_nom, self.dp_states = [], {}, {}
+        p0s, effects, nexts, g_nom = {}, {}, {}, {}
+        nreg = 4 * (len(REGIME_RATIOS) + 1)
+        for t in range(self.window[1] + 1):
+            self.pvvy_nom[t] = float(features(sim.state, self.traj[t])[0, 7])
+            if self.window[0] <= t < self.window[1] and sim.objects()[0, 0, VISIBLE] > 0.5:
+                cand = BatchedCutIn(p, seqs.shape[0])
+                cand.restore(history[-depth].select(np.zeros(seqs.shape[0], dtype=np.int64)))
+                for j in range(depth):
+                    prow = np.ascontiguousarray(cand.objects())
+                    det = prow[:, :, VISIBLE] > 0.5
+                    rep = event_branch[seqs[:, j]]
+                    det[:, 0] &= rep != 0
+                    noise = np.zeros((seqs.shape[0], p.n_objects, 2))
+                    noise[det[:, 0], 0] = target.noise_from_uniforms(prow[det[:, 0], 0], g.reps[rep[det[:, 0]], 1:])
+                    cand.step(det, noise)
+                reg = self.regime(features(cand.state, self.traj[t]), t)
+                chosen = {}
+                for i in order:
+                    chosen.setdefault(int(reg[i]), int(i))
+                self.dp_states[t] = len(chosen)
+                effects[t], nexts[t] = {}, {}
+                rows = np.ascontiguousarray(cand.objects())
+                u = np.tile([0.0, 0.5, 0.5], (seqs.shape[0], p.n_objects, 1))
+                for k, i in chosen.items():
+                    r, bfeat = self.look_ahead(cand, np.array([i]), u, rows, np.full(seqs.shape[0], np.inf))
+                    gl = continuous_level(level(r[0]), bfeat[0, :, -2], bfeat[0, :, -1])
+                    effects[t][k], nexts[t][k] = gl - gl[1], self.regime(bfeat[0], t + 1)
+                    if k == 0 and i == order[0]:
+                        g_nom[t] = float(gl[1])
+                p0s[t] = float(expit(target.detect_logit(rows[:1, 0]))[0])
+            history.append(sim.snapshot())
+            if t < p.n_steps:
+                sim.step(sim.objects()[:, :, VISIBLE] > 0.5, None)
+        chain = LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax)
+        chain.g_nom = g_nom
+        return chain
+
     def count(self, bsim: BatchedCutIn, steps: int) -> None:
         """Count ``steps`` rollout-steps of a look-ahead on ``bsim`` (the whole twin or the cut-in car alone)."""
         if isinstance(bsim, OneCar):
@@ -331,19 +477,29 @@ class LookAheadTilt:
         else:
             self.branch_steps += steps
 
-    def continue_nominal(self, bsim: BatchedCutIn, lo: np.ndarray) -> np.ndarray:
+    def margin(self, tr: tracker.Tracks) -> np.ndarray:
+        """The cut-in car's track's lateral margin outside the lane's 2 m band [N] (metres; 5 without a track); with
+        ``--continuous``, of the track as the last step's update left it (the predicted position less vy dt): the
+        estimate the ACC decided on."""
+        y = tr.y[0] - tr.vy[0] * self.params.dt_s if self.continuous else tr.y[0]
+        return np.where(tr.active[0], np.abs(y - self.params.ego_y_m) - LANE_WIDTH_M / 2, 5.0)
+
+    def continue_nominal(self, bsim: BatchedCutIn, lo: np.ndarray, before: np.ndarray | None = None) -> np.ndarray:
         """Continue every rollout of ``bsim`` with nominal perception until the ACC follows the cut-in car, then by
         :meth:`extrap`, lowering ``lo`` [N] to the operand's minimum; returns (follow step, the track's lateral margin
-        outside the lane there and a step before) [N, 3]."""
+        outside the lane there and a step before) [N, 3] (``before`` [N]: the margin a step before the first, else
+        5 m)."""
         n = lo.size
         live = np.arange(n)
         graded = np.tile([float(self.end), 5.0, 5.0], (n, 1))
+        if before is not None:
+            graded[:, 1] = before
         while live.size and bsim.t < self.end:
             obs = bsim.observation()
             lo[live] = np.minimum(lo[live], operand(obs))
             tr = bsim.state.tracks
-            graded[live, 2] = graded[live, 1]
-            graded[live, 1] = np.where(tr.active[0], np.abs(tr.y[0] - self.params.ego_y_m) - LANE_WIDTH_M / 2, 5.0)
+            graded[live, 2] = np.abs(tr.vy[0]) * self.params.dt_s if self.continuous else graded[live, 1]
+            graded[live, 1] = self.margin(tr)
             done = obs[:, FOLLOWED] == 0
             graded[live[done], 0] = bsim.t
             if done.any():
@@ -412,15 +568,24 @@ class LookAheadTilt:
         self.count(bsim, k * kk)
         feats = features(bsim.state, self.traj[bsim.t], self.errors)
         lo = np.repeat(prefix_min[idx], kk)
-        graded = self.continue_nominal(bsim, lo)
+        before = None
+        if self.continuous:  # the margin of the state the branches start from
+            before = self.margin(start.tracks)
+        graded = self.continue_nominal(bsim, lo, before)
         if self.graded:
             feats = np.column_stack([feats, graded[:, 0] - sim.t, graded[:, 1:]])
         return lo.reshape(k, kk), feats.reshape(k, kk, -1)
 
-    def log_q_table(self, r: np.ndarray, t: int) -> np.ndarray:
-        """log V(level, t + 1) of the branches [k, NBRANCH] from the level table (``a`` ^ L before the first fit)."""
+    def log_q_table(self, r: np.ndarray, t: int, feats: np.ndarray | None = None) -> np.ndarray:
+        """log V(level, t + 1) of the branches [k, NBRANCH] from the level table (``a`` ^ L before the first fit;
+        ``--continuous`` with ``feats``: ``a`` ^ G, :func:`continuous_level`)."""
         lv = level(r)
         if self.v_table is None:
+            if self.continuous and feats is not None:
+                gl = continuous_level(lv, feats[..., -2], feats[..., -1])
+                if self.dp is not None:
+                    return self.dp.log_u(t + 1, gl, self.regime(feats, t + 1))
+                return gl * np.log(self.a)
             return lv * np.log(self.a)
         return np.log(self.v_table[lv, t + 1 - self.window[0]])
 
@@ -430,7 +595,7 @@ class LookAheadTilt:
 
     def log_q_hat(self, r: np.ndarray, feats: np.ndarray, t: int, ps: np.ndarray) -> np.ndarray:
         """log Q(s, branch) [k, NBRANCH] of the branches' next states at step t + 1 (ps: the state's one-step value)."""
-        table = self.log_q_table(r, t)
+        table = self.log_q_table(r, t, feats)
         if self.model is None or t + 1 >= self.window[1]:
             return table
         lv = level(r)
@@ -597,6 +762,8 @@ def main() -> None:
     ap.add_argument("--eps", type=float, default=0.3, help="the PEMs' share of each step's proposal")
     ap.add_argument("--iterations", type=int, default=10, help="fitted value iterations")
     ap.add_argument("--graded", action="store_true", help="the continuation's follow step, lateral margins as inputs")
+    ap.add_argument("--continuous", action="store_true", help="Q = a^G before a fit, G the level made continuous")
+    ap.add_argument("--dp", action="store_true", help="Q = U_t(G), the level chain solved on the nominal path")
     ap.add_argument("--skip-doomed", action="store_true", help="no look-ahead after a class whose edges both fail")
     ap.add_argument("--q-model", action="store_true", help="the last stage without look-ahead (a learned Q)")
     ap.add_argument("--v-large", action="store_true", help="V: 600 trees of 63 leaves (else 200 of 31)")
@@ -612,6 +779,16 @@ def main() -> None:
     ap.add_argument("--setting", default="moderate")
     args = ap.parse_args()
     study = LookAheadTilt(args)
+    if args.dp:
+        t0 = time.perf_counter()
+        study.dp = study.solve_dp()
+        u_nom = {t: float(np.exp(study.dp.log_u(t, np.array(g)))) for t, g in study.dp.g_nom.items()}
+        steps, states = study.one_steps + study.branch_steps, study.dp_states.values()
+        print(f"level chain solved on the nominal path in {time.perf_counter() - t0:.1f} s ({min(states)}-"
+              f"{max(states)} regime states a step, {steps:,} continuation steps = {steps / study.params.n_steps:,.0f} "
+              f"rollout-equivalents); its own p_fail "
+              f"{u_nom[min(u_nom)]:.2e} (x{u_nom[min(u_nom)] / REFERENCE:.2f} of the reference); U at the nominal "
+              f"state of steps " + ", ".join(f"{t}: {v:.1e}" for t, v in u_nom.items()))  # fmt: skip
     print(f"cut-in, {args.setting} setting (reference {REFERENCE:.3g}); stages {args.n}, window {args.window}, grid "
           f"{args.grid} ({study.grid.nbranch} branches), eps {args.eps}" + (", Q model" if args.q_model else ""))
     t_mc = mc_rollout_seconds(study)
@@ -638,13 +815,14 @@ def main() -> None:
         study.reset()
         cache = Path(args.v_cache) if args.v_cache else None
         key = (args.setting, args.grid, tuple(args.window), args.graded, args.errors, args.one_car, args.q_model,
-               args.a, tuple(args.n[:-1]), args.train_once, args.iterations, args.v_large)
+               args.a, tuple(args.n[:-1]), args.train_once, args.iterations, args.v_large, args.continuous, args.dp)
         if cache is not None and cache.exists():
             with cache.open("rb") as f:
                 cached_key, study.v_table, study.model, study.q_model = pickle.load(f)
             if cached_key != key:
                 raise SystemExit(f"--v-cache {cache}: fitted for {cached_key} (setting, grid, window, graded, errors, "
-                                 f"one-car, q-model, a, training stages, seed, iterations, v-large), not {key}")
+                                 f"one-car, q-model, a, training stages, seed, iterations, v-large, continuous, dp), "
+                                 f"not {key}")
             print(f"  V read from {cache} (trained before; its cost is not this run's)")
         else:
             *_, cost, extra, _ = stages(args.n[:-1], np.random.default_rng(args.train_once), True)

@@ -69,6 +69,26 @@ def test_a_continuations_level_counts_the_steps_of_late_braking_it_can_still_tak
     assert study.level(r).tolist() == [0, 0, 1, 1, 1, 2, 3, study.LMAX]
 
 
+def test_the_continuous_level_adds_how_deep_inside_the_lane_the_track_followed(study):
+    """L - 1 + depth / lateral step, the depth capped at one step: hand-computed cases (a failing branch stays 0)."""
+    lv = np.array([0, 1, 1, 2, 2, 3])
+    inside = np.array([-0.1, -0.1, 0.0, -0.3, 0.2, -0.05])
+    step = np.array([0.2, 0.2, 0.2, 0.2, 0.2, 0.25])
+    assert study.continuous_level(lv, inside, step) == pytest.approx([0.0, 0.5, 0.0, 2.0, 1.0, 2.2])
+
+
+@pytest.mark.parametrize("miss_shift, expected", [(-2.0, 1 - 0.9 * 0.8), (-1.0, 0.1 * 0.2), (-0.5, 0.0)])
+def test_the_level_chain_gives_the_closed_form_probability_of_enough_misses(study, miss_shift, expected):
+    """Two steps whose only event that moves the continuous level is a miss (p 0.1, then 0.2): from g = 1.5, a miss
+    that lowers g by 2 fails alone (1 - 0.9 x 0.8), by 1 needs both (0.1 x 0.2), by 0.5 cannot fail (g stays 0.5)."""
+    grid = study.Grid(np.array(study.GRIDS["coarse"]))
+    effects = {t: {0: np.r_[miss_shift, np.zeros(grid.nbranch - 1)]} for t in range(2)}
+    nexts = {t: {0: np.zeros(grid.nbranch, dtype=np.int64)} for t in range(2)}
+    chain = study.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, effects, nexts, 1, 0.01, 6.0)
+    assert np.exp(chain.log_u(0, np.array(1.5))) == pytest.approx(expected, abs=1e-12)
+    assert np.exp(chain.log_u(2, np.array([0.0, 0.3]))) == pytest.approx([1.0, 0.0], abs=1e-12)
+
+
 def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys, monkeypatch):
     """--help lists them (the docs' commands run these routes)."""
     monkeypatch.setattr(sys, "argv", ["cut_in_lookahead_tilt.py", "--help"])
@@ -76,7 +96,7 @@ def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys
         study.main()
     out = capsys.readouterr().out
     for option in ("--n", "--graded", "--q-model", "--grid", "--skip-doomed", "--mc-failures", "--window", "--one-car",
-                   "--check-one-car", "--a", "--eps", "--train-once", "--errors"):
+                   "--check-one-car", "--a", "--eps", "--train-once", "--errors", "--continuous", "--dp"):
         assert option in out
 
 
