@@ -396,7 +396,10 @@ class LookAheadTilt:
         self.continuous = args.continuous or args.dp
         self.dp = None
         if self.continuous and not self.graded:
-            raise SystemExit("--continuous needs --graded (it reads the continuations' lateral margins)")
+            raise SystemExit("--continuous and --dp need --graded (they read the continuations' lateral margins)")
+        if args.dp and self.window[0] < DP_DEPTH:
+            raise SystemExit(f"--dp needs the window to start at step {DP_DEPTH} or later (its event sequences reach "
+                             f"{DP_DEPTH} steps back), got --window {self.window[0]} {self.window[1]}")
         self.n_state = 18 if args.errors else 14
         if self.check_one_car and not self.graded:
             raise SystemExit("--check-one-car needs --graded (it compares the continuations' follow steps)")
