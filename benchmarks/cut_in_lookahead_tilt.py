@@ -77,7 +77,7 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
   ``--n 10000 1000`` (668 s to fit), 7-8 s a run (about 19,000 plain Monte Carlo rollouts): x0.78, 0.62, 0.71, 0.76,
   1.14, 0.67, 0.81, 0.78, 0.81, 0.83, median relative error 0.22, 4 of 8 ``reliable`` verdicts wrong; with
   ``--mc-failures 600000``, 14 of the 45 failures replayed have log w above -5 (18 with the 1,000-rollout V);
-- ``--dp`` (``--graded --one-car``; the chain solved in 4 s, 540 rollout-equivalents, once; its own p_fail 1.2e-5,
+- ``--dp`` (``--graded --one-car``; the chain solved in 3-4 s, 540 rollout-equivalents, once; its own p_fail 1.2e-5,
   x0.14 of the reference): ``--n 1000`` seeds 0-19 (5 s a run, 9,400-13,800 plain Monte Carlo rollouts): x5.97, 0.61,
   0.80, 1.13, 0.84, 1.08, 0.60, 0.67, 0.62, 0.85, 1.92, 0.72, 0.74, 0.95, 0.93, 0.69, 1.36, 1.63, 0.80, 0.59, median
   relative error 0.30, 19 of 20 within x2, 12 of 20 intervals hold it, 1 ``reliable`` (x0.85); ``--n 2000`` seeds
@@ -134,9 +134,9 @@ from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E40
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 VISIBLE = OBJECT_NAMES.index("visible")
-COAST = 10
-"""The column of :func:`features` that counts the predictions since the cut-in car's track's last update (1 after an
-updated step: the state is predicted)."""
+LOG_PVVY, CONFIRMED, COAST = 7, 9, 10
+"""Columns of :func:`features`: the log of the cut-in car's track's lateral velocity variance, whether it is
+confirmed, and the predictions since its last update (1 after an updated step: the state is predicted)."""
 MARGIN, RECENT, CLEAR, FOLLOWED = (OBSERVATION_NAMES.index(k) for k in
                                    ("safe_margin_m", "cut_in_recent", "clearance_m", "followed_index"))  # fmt: skip
 GRIDS = {
@@ -324,10 +324,11 @@ class LevelChain:
     regime their branch ends in (a joint class: its range error's); a regime without a representative takes regime
     0's; a step without effects leaves both as they are."""
 
-    def __init__(self, grid: Grid, window, p0s: dict, effects: dict, nexts: dict, nreg: int, h: float,
-                 gmax: float) -> None:  # fmt: skip
+    def __init__(self, grid: Grid, window, p0s: dict, effects: dict, nexts: dict, nreg: int, h: float, gmax: float,
+                 g_nom: dict | None = None, states: dict | None = None) -> None:  # fmt: skip
         self.g = np.arange(0.0, gmax + h, h)
         self.window = window
+        self.g_nom, self.states = g_nom or {}, states or {}  # the nominal path's G and regime states, per step
         w0, w1 = window
         outer = np.array([np.flatnonzero(grid.maps[0][row])[0] for row in range(grid.nb)])  # each range bin's branch
         u = np.tile((self.g <= 1e-9).astype(float), (nreg, 1))
@@ -379,6 +380,24 @@ class Step:
     parent: np.ndarray
 
 
+def check_options(args: argparse.Namespace, n_steps: int) -> None:
+    """Stop with one line (SystemExit) on options the study cannot run with, before anything is loaded."""
+    w0, w1 = args.window
+    if min(args.n) < 1 or not 0.0 < args.eps <= 1.0 or not 0.0 < args.a <= 1.0:
+        raise SystemExit(f"--n {' '.join(map(str, args.n))} --eps {args.eps} --a {args.a}: need every stage's "
+                         f"rollouts >= 1, 0 < eps <= 1 (the PEMs' share) and 0 < a <= 1 (a probability)")
+    if not 0 <= w0 < w1 <= args.end <= n_steps:
+        raise SystemExit(f"--window {w0} {w1} --end {args.end}: need 0 <= window start < window end <= end <= "
+                         f"{n_steps} (the scene's steps)")
+    if (args.continuous or args.dp) and not args.graded:
+        raise SystemExit("--continuous and --dp need --graded (they read the continuations' lateral margins)")
+    if args.dp and w0 < DP_DEPTH:
+        raise SystemExit(f"--dp needs the window to start at step {DP_DEPTH} or later (its event sequences reach "
+                         f"{DP_DEPTH} steps back), got --window {w0} {w1}")
+    if args.check_one_car and not args.graded:
+        raise SystemExit("--check-one-car needs --graded (it compares the continuations' follow steps)")
+
+
 class LookAheadTilt:
     """The study (module docstring): one setting, grid, window and mixture; :meth:`simulate` runs a stage."""
 
@@ -386,6 +405,7 @@ class LookAheadTilt:
         from pemviz.pem import load_pem
 
         self.params = cut_in_params(args.setting)
+        check_options(args, self.params.n_steps)
         self.problem = cut_in_problem(load_pem(), self.params)
         self.traj = cached_trajectory(self.params).traffic
         self.grid = Grid(np.array(GRIDS[args.grid]))
@@ -395,14 +415,7 @@ class LookAheadTilt:
         self.errors = args.errors
         self.continuous = args.continuous or args.dp
         self.dp = None
-        if self.continuous and not self.graded:
-            raise SystemExit("--continuous and --dp need --graded (they read the continuations' lateral margins)")
-        if args.dp and self.window[0] < DP_DEPTH:
-            raise SystemExit(f"--dp needs the window to start at step {DP_DEPTH} or later (its event sequences reach "
-                             f"{DP_DEPTH} steps back), got --window {self.window[0]} {self.window[1]}")
         self.n_state = 18 if args.errors else 14
-        if self.check_one_car and not self.graded:
-            raise SystemExit("--check-one-car needs --graded (it compares the continuations' follow steps)")
         self.v_size = (dict(max_iter=600, max_leaf_nodes=63, min_samples_leaf=5, early_stopping=False) if args.v_large
                        else dict(max_iter=200, max_leaf_nodes=31, min_samples_leaf=10))  # fmt: skip
         self.reset()
@@ -415,10 +428,9 @@ class LookAheadTilt:
     def regime(self, feats: np.ndarray, t: int) -> np.ndarray:
         """The track's regime (int [...]) at step t from :func:`features` rows [..., F]: confirmed or not, coasting
         or not, and the bucket of its lateral velocity variance over the nominal path's (:data:`REGIME_RATIOS`)."""
-        ratio = np.exp(feats[..., 7] - self.pvvy_nom[min(t, max(self.pvvy_nom))])
-        nb = len(REGIME_RATIOS) + 1
-        return ((feats[..., 9] < 0.5) * 2 + (feats[..., COAST] > 1)) * nb + np.searchsorted(np.array(REGIME_RATIOS),
-                                                                                           ratio)
+        ratio = np.exp(feats[..., LOG_PVVY] - self.pvvy_nom[min(t, max(self.pvvy_nom))])
+        bucket = np.searchsorted(np.array(REGIME_RATIOS), ratio)
+        return ((feats[..., CONFIRMED] < 0.5) * 2 + (feats[..., COAST] > 1)) * (len(REGIME_RATIOS) + 1) + bucket
 
     def solve_dp(self, h: float = 0.01, gmax: float = LMAX) -> "LevelChain":
         """The committor as a function of the continuous level and the track's regime, U_t(G, k), solved on the
@@ -427,7 +439,7 @@ class LookAheadTilt:
         before it leaves are sorted into regimes (:meth:`regime`); the look-ahead from the likeliest state of each
         regime (the fewest events, then the fewest extreme ones) gives every grid event's effect on G and the regime
         after it (:class:`LevelChain`). 13-15 regime states a step, 54,000 continuation steps (540 rollout-equivalents),
-        about 4 s here; :attr:`dp_states` keeps the count of each step."""
+        3-4 s here."""
         p, target, g = self.params, self.problem.target, self.grid
         depth = DP_DEPTH
         seqs = np.array(np.meshgrid(*[range(4)] * depth, indexing="ij")).reshape(depth, -1).T  # [4^depth, depth]
@@ -435,11 +447,11 @@ class LookAheadTilt:
         order = np.argsort(rank, kind="stable")
         event_branch = np.array([1, 0, 2, 2 + g.ng])  # none, a miss, the extreme low and high range errors
         sim = BatchedCutIn(p, 1)
-        history, self.pvvy_nom, self.dp_states = [], {}, {}
-        p0s, effects, nexts, g_nom = {}, {}, {}, {}
+        history, self.pvvy_nom = [], {}
+        p0s, effects, nexts, g_nom, states = {}, {}, {}, {}, {}
         nreg = 4 * (len(REGIME_RATIOS) + 1)
         for t in range(self.window[1] + 1):
-            self.pvvy_nom[t] = float(features(sim.state, self.traj[t])[0, 7])
+            self.pvvy_nom[t] = float(features(sim.state, self.traj[t])[0, LOG_PVVY])
             if self.window[0] <= t < self.window[1] and sim.objects()[0, 0, VISIBLE] > 0.5:
                 cand = BatchedCutIn(p, seqs.shape[0])
                 cand.restore(history[-depth].select(np.zeros(seqs.shape[0], dtype=np.int64)))
@@ -453,25 +465,21 @@ class LookAheadTilt:
                     cand.step(det, noise)
                 reg = self.regime(features(cand.state, self.traj[t]), t)
                 chosen = {}
-                for i in order:
+                for i in order:  # the likeliest state of each regime; order[0]: no event, the nominal path itself
                     chosen.setdefault(int(reg[i]), int(i))
-                self.dp_states[t] = len(chosen)
-                effects[t], nexts[t] = {}, {}
-                rows = np.ascontiguousarray(cand.objects())
+                idx = np.array(list(chosen.values()))
                 u = np.tile([0.0, 0.5, 0.5], (seqs.shape[0], p.n_objects, 1))
-                for k, i in chosen.items():
-                    r, bfeat = self.look_ahead(cand, np.array([i]), u, rows, np.full(seqs.shape[0], np.inf))
-                    gl = continuous_level(level(r[0]), bfeat[0, :, -2], bfeat[0, :, -1])
-                    effects[t][k], nexts[t][k] = gl - gl[1], self.regime(bfeat[0], t + 1)
-                    if k == 0 and i == order[0]:
-                        g_nom[t] = float(gl[1])
-                p0s[t] = float(expit(target.detect_logit(rows[:1, 0]))[0])
+                r, bfeat = self.look_ahead(cand, idx, u, np.ascontiguousarray(cand.objects()),
+                                           np.full(seqs.shape[0], np.inf))  # fmt: skip
+                gl = continuous_level(level(r), bfeat[..., -2], bfeat[..., -1])
+                effects[t] = dict(zip(chosen, gl - gl[:, 1:2]))
+                nexts[t] = dict(zip(chosen, self.regime(bfeat, t + 1)))
+                g_nom[t], states[t] = float(gl[0, 1]), idx.size
+                p0s[t] = float(expit(target.detect_logit(np.ascontiguousarray(sim.objects())[:1, 0]))[0])
             history.append(sim.snapshot())
             if t < p.n_steps:
                 sim.step(sim.objects()[:, :, VISIBLE] > 0.5, None)
-        chain = LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax)
-        chain.g_nom = g_nom
-        return chain
+        return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, states)
 
     def count(self, bsim: BatchedCutIn, steps: int) -> None:
         """Count ``steps`` rollout-steps of a look-ahead on ``bsim`` (the whole twin or the cut-in car alone)."""
@@ -786,7 +794,7 @@ def main() -> None:
         t0 = time.perf_counter()
         study.dp = study.solve_dp()
         u_nom = {t: float(np.exp(study.dp.log_u(t, np.array(g)))) for t, g in study.dp.g_nom.items()}
-        steps, states = study.one_steps + study.branch_steps, study.dp_states.values()
+        steps, states = study.one_steps + study.branch_steps, study.dp.states.values()
         print(f"level chain solved on the nominal path in {time.perf_counter() - t0:.1f} s ({min(states)}-"
               f"{max(states)} regime states a step, {steps:,} continuation steps = {steps / study.params.n_steps:,.0f} "
               f"rollout-equivalents); its own p_fail "

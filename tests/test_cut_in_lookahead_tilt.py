@@ -89,6 +89,24 @@ def test_the_level_chain_gives_the_closed_form_probability_of_enough_misses(stud
     assert np.exp(chain.log_u(2, np.array([0.0, 0.3]))) == pytest.approx([1.0, 0.0], abs=1e-12)
 
 
+@pytest.mark.parametrize("options, words", [
+    (["--window", "10", "5"], "need 0 <= window start < window end <= end <= 100"),
+    (["--window", "10", "200"], "need 0 <= window start < window end <= end <= 100"),
+    (["--n", "0"], "rollouts >= 1"),
+    (["--eps", "0"], "0 < eps <= 1"),
+    (["--a", "2"], "0 < a <= 1"),
+    (["--dp"], "--continuous and --dp need --graded"),
+    (["--dp", "--graded", "--window", "3", "24"], "--dp needs the window to start at step 5"),
+])  # fmt: skip
+def test_options_the_study_cannot_run_with_stop_it_with_one_line(study, monkeypatch, options, words):
+    """Each refusal names the options and what is allowed, before the PEMs are loaded (no traceback)."""
+    monkeypatch.setattr(sys, "argv", ["cut_in_lookahead_tilt.py", *options])
+    with pytest.raises(SystemExit) as stop:
+        study.main()
+    message = str(stop.value.code)
+    assert words in message and "\n" not in message
+
+
 def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys, monkeypatch):
     """--help lists them (the docs' commands run these routes)."""
     monkeypatch.setattr(sys, "argv", ["cut_in_lookahead_tilt.py", "--help"])
