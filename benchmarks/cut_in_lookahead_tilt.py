@@ -46,8 +46,15 @@ one line); the cost of fitting it is then not the run's.
 (:meth:`LookAheadTilt.solve_dp`, :class:`LevelChain`): G the continuation's level made continuous (L - 1 plus how deep
 inside the lane the track was when the ACC followed, in lateral steps of the track: :func:`continuous_level`), k the
 track's regime (confirmed, coasting, its lateral velocity variance against the nominal path's), each step's events
-shifting G and moving k as the look-ahead from each regime's likeliest state on the nominal path measures;
-``--continuous``: Q = ``a`` ^ G instead of ``a`` ^ L in the first stage.
+shifting G and moving k as the look-ahead from each regime's likeliest state on the nominal path measures (its event
+sequences' range errors at the grid edge nearest ``--dp-mass``, by default 1e-3: beyond the tracker's gate);
+``--continuous``: Q = ``a`` ^ G instead of ``a`` ^ L in the first stage. ``--beam WIDTH``: the chain's cells are
+(regime, bin of G), their representatives found by a beam over the cut-in car's events (:meth:`LookAheadTilt.
+solve_beam`). ``--chain-effects``: no branches: one continuation a step gives the state's own G, and every event's
+shift of G and next regime come from the chain (1.5 rollout-equivalents a rollout instead of 18-44). ``--beta``: q
+proportional to p Q^beta. ``--grid lean``: 8 tail masses a side (34 branches instead of the fine grid's 82). The
+chain's solve counts every step it simulates (its event sequences' too) and is printed apart: like a cached V, it is
+solved once per scene.
 
 ``--mc-failures N`` draws N plain Monte Carlo rollouts, keeps the failures' uniforms, and replays them through the
 last fitted proposal: their log weights log p / q, which a zero-variance proposal would make all equal to log p_fail
@@ -77,13 +84,21 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
   ``--n 10000 1000`` (668 s to fit), 7-8 s a run (about 19,000 plain Monte Carlo rollouts): x0.78, 0.62, 0.71, 0.76,
   1.14, 0.67, 0.81, 0.78, 0.81, 0.83, median relative error 0.22, 4 of 8 ``reliable`` verdicts wrong; with
   ``--mc-failures 600000``, 14 of the 45 failures replayed have log w above -5 (18 with the 1,000-rollout V);
-- ``--dp`` (``--graded --one-car``; the chain solved in 3-4 s, 540 rollout-equivalents, once; its own p_fail 1.2e-5,
-  x0.14 of the reference): ``--n 1000`` seeds 0-19 (5 s a run, 9,400-13,800 plain Monte Carlo rollouts): x5.97, 0.61,
+- ``--dp --dp-mass 1e-10`` (``--graded --one-car``; the chain solved in 3-4 s, 1,258 rollout-equivalents, once (542
+  counted then, without its event sequences' steps); its own p_fail 1.2e-5, x0.14 of the reference): ``--n 1000``
+  seeds 0-19 (5 s a run, 9,400-13,800 plain Monte Carlo rollouts): x5.97, 0.61,
   0.80, 1.13, 0.84, 1.08, 0.60, 0.67, 0.62, 0.85, 1.92, 0.72, 0.74, 0.95, 0.93, 0.69, 1.36, 1.63, 0.80, 0.59, median
   relative error 0.30, 19 of 20 within x2, 12 of 20 intervals hold it, 1 ``reliable`` (x0.85); ``--n 2000`` seeds
   0-5 (11-12 s): x0.71, 0.56, 1.00, 0.83, 0.76, 0.82; ``--n 300`` seeds 0-7: x0.48 (``reliable``: wrong), 1.46,
   0.66, 2.11, 1.29, 0.91, 0.92, 3.28; ``--n 1000 1000`` (V fitted on the chain's stage): x0.69, 0.71, both
   ``reliable``; ``--continuous --n 2000 --a 0.004``: x0.64, 0.71;
+- seeds 0-19, ``--graded --one-car --dp`` (``--dp-mass 1e-3``), cost a run (+ the chain's, once): ``--n 1000``
+  44,200 (+1,175): median relative error 0.24, 9 of 20 intervals hold the reference, 14 ``reliable`` (11 of them
+  missing it, x0.65-0.76); ``--grid lean --n 650`` 11,900 (+902): 0.36, 13 of 20 hold, ``reliable`` x0.47 once;
+  ``--grid lean --chain-effects --n 8000`` 12,050 (+902), 5 s a run: 0.29, 8 of 20 hold, 20 of 20 within x2;
+  ``--grid lean --beam 0.25 --n 600`` 10,900 (+1,236): 0.29, 14 of 20 hold; with ``--eps 0.5``: 0.26, 15 of 20,
+  17 within x2, 19 ``unreliable``; ``--grid lean --beam 0.25 --chain-effects --n 7500`` 11,280 (+1,236): 0.29, 10 of
+  20 hold (docs/cut-in.md has every estimate);
 - ``--n 1000 1000 --mc-failures 600000``: 45 failures; under the proposal fitted on the first 1,000 rollouts, 18 of
   them have log w above -5 (a zero-variance proposal: -9.35 each): drawn at least 80 times too rarely. In them an
   error in the 1-20 % tails at steps 16-18 decides, from states that moderate errors at steps 10-16 brought close to
@@ -101,7 +116,9 @@ Usage::
     python benchmarks/cut_in_lookahead_tilt.py --seeds 6 --n 1000 1000 --graded --one-car --a 0.03 --eps 0.5
     python benchmarks/cut_in_lookahead_tilt.py --train-once 1000 --v-cache v10k.pkl --seeds 10 --n 10000 1000 \
         --graded --one-car --a 0.03 --eps 0.5
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 1000 --graded --one-car --dp
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 1000 --graded --one-car --dp --dp-mass 1e-10
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 8000 --graded --one-car --dp --grid lean --chain-effects
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 600 --graded --one-car --dp --grid lean --beam 0.25
 """
 
 from __future__ import annotations
@@ -134,7 +151,7 @@ from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E40
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 VISIBLE = OBJECT_NAMES.index("visible")
-LOG_PVVY, CONFIRMED, COAST = 7, 9, 10
+LOG_PVVY, CONFIRMED, COAST, VX_ERROR, VY_ERROR = 7, 9, 10, 15, 17
 """Columns of :func:`features`: the log of the cut-in car's track's lateral velocity variance, whether it is
 confirmed, and the predictions since its last update (1 after an updated step: the state is predicted)."""
 MARGIN, RECENT, CLEAR, FOLLOWED = (OBSERVATION_NAMES.index(k) for k in
@@ -143,6 +160,8 @@ GRIDS = {
     "fine": (1e-10, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 3e-4, 1e-3, 1.6e-3, 2.5e-3, 4e-3, 6.3e-3, 1e-2, 1.6e-2, 2.5e-2, 4e-2,
              6.3e-2, 0.1, 0.16, 0.25),
     "coarse": (1e-8, 1e-6, 1e-5, 1e-4, 3e-4, 1e-3, 2.5e-3, 6.3e-3, 1.6e-2, 4e-2, 0.1, 0.25),
+    "lean": (1e-7, 1e-5, 1e-4, 1e-3, 4e-3, 1.6e-2, 6.3e-2, 0.25),
+    "min": (1e-6, 1e-4, 1e-3, 1e-2, 0.1),
 }
 """Tail masses (ascending) of the bin edges of each error, on either side; the central bin lies between the last
 ones."""
@@ -312,6 +331,10 @@ def event_descriptor(u: np.ndarray, p0: np.ndarray) -> np.ndarray:
 
 DP_DEPTH = 5
 """How many steps back the event sequences of :meth:`LookAheadTilt.solve_dp` reach."""
+BEAM_SIZE = 400
+"""The most representatives a step of :meth:`LookAheadTilt.solve_beam` keeps."""
+BEAM_MODERATE = 1.6e-2
+"""The tail mass of the moderate errors a beam representative's children take."""
 REGIME_RATIOS = (1.2, 1.5, 2.0, 3.0, 5.0, 10.0)
 """The bounds of the ratio of the track's lateral velocity variance to the nominal path's that separate its
 regimes (a restarted track starts from its velocity prior)."""
@@ -320,38 +343,74 @@ regimes (a restarted track starts from its velocity prior)."""
 class LevelChain:
     """U_t(g, k): the probability of failure from continuous level g (:func:`continuous_level`) at step t, the track
     in regime k (:meth:`LookAheadTilt.regime`), solved on a grid of g (step ``h``): each step's events shift g by
-    their effect on regime k's representative state, the range and lateral errors' effects added, and move it to the
-    regime their branch ends in (a joint class: its range error's); a regime without a representative takes regime
-    0's; a step without effects leaves both as they are."""
+    their effect on the representative state of the cell (regime k, and with ``bin_width`` the bin of g) nearest to
+    it, the range and lateral errors' effects added, and move it to the regime their branch ends in (a joint class:
+    its range error's). A cell without a representative takes its regime's nearest bin's, a regime without any the
+    nominal path's (the first cell of ``effects[t]``); a step without effects leaves g and k as they are.
+    ``effects[t]``, ``nexts[t]``: each cell's (k x bins + bin) branch shifts of G and next regimes [NBRANCH]."""
 
     def __init__(self, grid: Grid, window, p0s: dict, effects: dict, nexts: dict, nreg: int, h: float, gmax: float,
-                 g_nom: dict | None = None, states: dict | None = None) -> None:  # fmt: skip
+                 g_nom: dict | None = None, states: dict | None = None,
+                 bin_width: float | None = None) -> None:  # fmt: skip
         self.g = np.arange(0.0, gmax + h, h)
-        self.window = window
-        self.g_nom, self.states = g_nom or {}, states or {}  # the nominal path's G and regime states, per step
+        self.window, self.nbranch = window, grid.nbranch
+        self.g_nom, self.states = g_nom or {}, states or {}  # the nominal path's G and representative states, per step
+        self.bin_width = bin_width or 2.0 * (gmax + h)  # None: one bin
+        self.nbins = int(np.ceil((gmax + h) / self.bin_width))
+        g_bin = self.bin_of(self.g)
         w0, w1 = window
         outer = np.array([np.flatnonzero(grid.maps[0][row])[0] for row in range(grid.nb)])  # each range bin's branch
         u = np.tile((self.g <= 1e-9).astype(float), (nreg, 1))
         self.log_table = {w1: np.log(np.maximum(u, 1e-300))}
+        self.effects, self.nexts = {}, {}  # per step: each cell's shifts of G [nreg, nbins, NBRANCH], next regimes
         for t in range(w1 - 1, w0 - 1, -1):
             if t in effects:
-                new = np.empty_like(u)
+                new = np.zeros_like(u)
                 pc = grid.p_class(np.array([p0s[t]]))[0]
+                keys = self.nearest_cells(list(effects[t]), nreg)
+                self.effects[t] = np.array([[effects[t][c] for c in row] for row in keys])
+                self.nexts[t] = np.array([[nexts[t][c] for c in row] for row in keys])
                 for k in range(nreg):
-                    e, nxt = effects[t].get(k, effects[t][0]), nexts[t].get(k, nexts[t][0])
-                    dr, dl = (mp @ e / np.maximum(mp.sum(axis=1), 1e-12) for mp in grid.maps)
-                    delta = np.concatenate([[e[0]], (dr[:, None] + dl[None, :]).ravel()])
-                    cls_reg = np.concatenate([[nxt[0]], np.repeat(np.where(np.arange(grid.nb) == grid.central,
-                                                                           nxt[1], nxt[outer]), grid.nb)])
-                    acc = np.zeros(self.g.size)
-                    for k2 in np.unique(cls_reg):
-                        sel = np.flatnonzero(cls_reg == k2)
-                        shifted = np.interp(self.g[None, :] + delta[sel, None], self.g, u[k2], left=1.0,
-                                            right=u[k2, -1])  # fmt: skip
-                        acc += pc[sel] @ shifted
-                    new[k] = acc
+                    for cell in np.unique(keys[k]):
+                        gsel = np.flatnonzero(keys[k][g_bin] == cell)
+                        e, nxt = effects[t][cell], nexts[t][cell]
+                        dr, dl = (mp @ e / np.maximum(mp.sum(axis=1), 1e-12) for mp in grid.maps)
+                        delta = np.concatenate([[e[0]], (dr[:, None] + dl[None, :]).ravel()])
+                        cls_reg = np.concatenate([[nxt[0]], np.repeat(np.where(np.arange(grid.nb) == grid.central,
+                                                                               nxt[1], nxt[outer]), grid.nb)])
+                        for k2 in np.unique(cls_reg):
+                            sel = np.flatnonzero(cls_reg == k2)
+                            shifted = np.interp(self.g[None, gsel] + delta[sel, None], self.g, u[k2], left=1.0,
+                                                right=u[k2, -1])  # fmt: skip
+                            new[k, gsel] += pc[sel] @ shifted
                 u = new
             self.log_table[t] = np.log(np.maximum(u, 1e-300))
+
+    def bin_of(self, g: np.ndarray) -> np.ndarray:
+        """The bin of continuous levels g (int, the same shape)."""
+        return np.clip((np.asarray(g) / self.bin_width).astype(np.int64), 0, self.nbins - 1)
+
+    def nearest_cells(self, cells: list, nreg: int) -> np.ndarray:
+        """For every regime and bin, the cell of ``cells`` (k x nbins + bin; the first is the nominal path's) whose
+        effects it takes [nreg, nbins]: its own, else its regime's nearest bin, else the nominal regime's nearest."""
+        have = np.array(cells)
+        out = np.empty((nreg, self.nbins), dtype=np.int64)
+        bins = np.arange(self.nbins)
+        for k in range(nreg):
+            own = have[have // self.nbins == k]
+            pool = own if own.size else have[have // self.nbins == have[0] // self.nbins]
+            out[k] = pool[np.argmin(np.abs(pool[None, :] % self.nbins - bins[:, None]), axis=1)]
+        return out
+
+    def log_q_branches(self, t: int, g0: np.ndarray, regime: np.ndarray) -> np.ndarray:
+        """log U_{t+1} after each branch [k, NBRANCH] of states at step t whose continuous level is ``g0`` [k] and
+        regime ``regime`` (int [k]): every branch's shift of G and next regime read from the chain (its cell's
+        representative state), no look-ahead; a step without effects leaves both as they are."""
+        if t not in self.effects:
+            return np.repeat(self.log_u(t + 1, g0, regime)[:, None], self.nbranch, axis=1)
+        b = self.bin_of(g0)
+        gl = g0[:, None] + self.effects[t][regime, b]
+        return self.log_u(t + 1, gl, self.nexts[t][regime, b])
 
     def log_u(self, t: int, gl: np.ndarray, regime: np.ndarray | None = None) -> np.ndarray:
         """log U_t at continuous levels ``gl`` (any shape), in regimes ``regime`` (int, the same shape; None: 0);
@@ -383,14 +442,25 @@ class Step:
 def check_options(args: argparse.Namespace, n_steps: int) -> None:
     """Stop with one line (SystemExit) on options the study cannot run with, before anything is loaded."""
     w0, w1 = args.window
-    if min(args.n) < 1 or not 0.0 < args.eps <= 1.0 or not 0.0 < args.a <= 1.0:
-        raise SystemExit(f"--n {' '.join(map(str, args.n))} --eps {args.eps} --a {args.a}: need every stage's "
-                         f"rollouts >= 1, 0 < eps <= 1 (the PEMs' share) and 0 < a <= 1 (a probability)")
+    if min(args.n) < 1 or not 0.0 < args.eps <= 1.0 or not 0.0 < args.a <= 1.0 or not 0.0 < args.beta <= 1.0:
+        raise SystemExit(f"--n {' '.join(map(str, args.n))} --eps {args.eps} --a {args.a} --beta {args.beta}: need "
+                         f"every stage's rollouts >= 1, 0 < eps <= 1 (the PEMs' share), 0 < a <= 1 (a probability) "
+                         f"and 0 < beta <= 1 (the tilt's power)")
     if not 0 <= w0 < w1 <= args.end <= n_steps:
         raise SystemExit(f"--window {w0} {w1} --end {args.end}: need 0 <= window start < window end <= end <= "
                          f"{n_steps} (the scene's steps)")
     if (args.continuous or args.dp) and not args.graded:
         raise SystemExit("--continuous and --dp need --graded (they read the continuations' lateral margins)")
+    buckets = {"--vx-buckets": args.vx_buckets, "--vy-buckets": args.vy_buckets}
+    unsorted = any(sorted(b) != b for b in buckets.values())
+    if not 0.0 < args.dp_mass < 0.5 or not 0.0 <= args.dp_lateral < 0.5 or unsorted:
+        raise SystemExit(f"--dp-mass {args.dp_mass} --dp-lateral {args.dp_lateral} "
+                         + " ".join(f"{k} {' '.join(map(str, b))}" for k, b in buckets.items())
+                         + ": need 0 < dp-mass < 0.5 and 0 <= dp-lateral < 0.5 (tail masses; 0: no lateral events) and "
+                         "the buckets' bounds ascending")
+    if (args.chain_effects or args.beam) and not args.dp or args.beam < 0:
+        raise SystemExit(f"--chain-effects and --beam {args.beam} need --dp (they read or build its chain), and the "
+                         f"beam's bin width must be > 0")
     if args.dp and w0 < DP_DEPTH:
         raise SystemExit(f"--dp needs the window to start at step {DP_DEPTH} or later (its event sequences reach "
                          f"{DP_DEPTH} steps back), got --window {w0} {w1}")
@@ -414,6 +484,12 @@ class LookAheadTilt:
         self.check_one_car, self.agree = args.check_one_car, []
         self.errors = args.errors
         self.continuous = args.continuous or args.dp
+        self.chain_effects = args.chain_effects
+        self.dp_mass, self.dp_lateral = args.dp_mass, args.dp_lateral
+        self.error_buckets = [(c, tuple(b)) for c, b in ((VX_ERROR, args.vx_buckets), (VY_ERROR, args.vy_buckets)) if b]
+        self.beta = args.beta
+        if self.error_buckets:
+            self.errors = True
         self.dp = None
         self.n_state = 18 if args.errors else 14
         self.v_size = (dict(max_iter=600, max_leaf_nodes=63, min_samples_leaf=5, early_stopping=False) if args.v_large
@@ -427,29 +503,45 @@ class LookAheadTilt:
 
     def regime(self, feats: np.ndarray, t: int) -> np.ndarray:
         """The track's regime (int [...]) at step t from :func:`features` rows [..., F]: confirmed or not, coasting
-        or not, and the bucket of its lateral velocity variance over the nominal path's (:data:`REGIME_RATIOS`)."""
-        ratio = np.exp(feats[..., LOG_PVVY] - self.pvvy_nom[min(t, max(self.pvvy_nom))])
+        or not, the bucket of its lateral velocity variance over the nominal path's (:data:`REGIME_RATIOS`) and, with
+        ``--vy-buckets``, of its lateral velocity error against the car (m/s; the rows need ``errors``)."""
+        tn = min(t, max(self.pvvy_nom))
+        ratio = np.exp(feats[..., LOG_PVVY] - self.pvvy_nom[tn])
         bucket = np.searchsorted(np.array(REGIME_RATIOS), ratio)
-        return ((feats[..., CONFIRMED] < 0.5) * 2 + (feats[..., COAST] > 1)) * (len(REGIME_RATIOS) + 1) + bucket
+        base = ((feats[..., CONFIRMED] < 0.5) * 2 + (feats[..., COAST] > 1)) * (len(REGIME_RATIOS) + 1) + bucket
+        for col, bounds in self.error_buckets:
+            base = base * (len(bounds) + 1) + np.searchsorted(np.array(bounds), feats[..., col])
+        return base
+
+    def n_regimes(self) -> int:
+        """How many regimes :meth:`regime` tells apart."""
+        return int(4 * (len(REGIME_RATIOS) + 1) * np.prod([len(b) + 1 for _, b in self.error_buckets]))
 
     def solve_dp(self, h: float = 0.01, gmax: float = LMAX) -> "LevelChain":
         """The committor as a function of the continuous level and the track's regime, U_t(G, k), solved on the
         nominal path (no pilot): at each step of the window, the states that every sequence of :data:`DP_DEPTH`
-        events (none, a miss, an extreme range error low or high: a rejected measurement, or after a coast a restart)
-        before it leaves are sorted into regimes (:meth:`regime`); the look-ahead from the likeliest state of each
-        regime (the fewest events, then the fewest extreme ones) gives every grid event's effect on G and the regime
-        after it (:class:`LevelChain`). 13-15 regime states a step, 54,000 continuation steps (540 rollout-equivalents),
-        3-4 s here."""
+        events (none, a miss, a range error low or high at the grid edge nearest ``--dp-mass``: beyond the tracker's
+        gate, a rejected measurement, or after a coast a restart; with ``--dp-lateral``, also a lateral error low or
+        high) before it leaves are sorted into regimes (:meth:`regime`); the look-ahead from the likeliest state of
+        each regime (the fewest events, then the fewest errors) gives every grid event's effect on G and the regime
+        after it (:class:`LevelChain`). Fine grid, ``--dp-mass 1e-3``: 7-12 regime states a step, 46,000 continuation
+        steps (460 rollout-equivalents), 3 s here; lean grid: 185 rollout-equivalents, under 1 s."""
         p, target, g = self.params, self.problem.target, self.grid
         depth = DP_DEPTH
-        seqs = np.array(np.meshgrid(*[range(4)] * depth, indexing="ij")).reshape(depth, -1).T  # [4^depth, depth]
+        nev = 6 if self.dp_lateral else 4
+        seqs = np.array(np.meshgrid(*[range(nev)] * depth, indexing="ij")).reshape(depth, -1).T  # [4^depth, depth]
         rank = (seqs > 0).sum(axis=1) * 10 + (seqs > 1).sum(axis=1)
         order = np.argsort(rank, kind="stable")
-        event_branch = np.array([1, 0, 2, 2 + g.ng])  # none, a miss, the extreme low and high range errors
+        j = int(np.argmin(np.abs(np.log(g.masses / self.dp_mass))))  # the range errors' edge
+        event_branch = [1, 0, 2 + j, 2 + g.ng + j]  # none, a miss, a range error low and high
+        if self.dp_lateral:
+            jl = int(np.argmin(np.abs(np.log(g.masses / self.dp_lateral))))
+            event_branch += [2 + 2 * g.ng + jl, 2 + 3 * g.ng + jl]
+        event_branch = np.array(event_branch)
         sim = BatchedCutIn(p, 1)
         history, self.pvvy_nom = [], {}
         p0s, effects, nexts, g_nom, states = {}, {}, {}, {}, {}
-        nreg = 4 * (len(REGIME_RATIOS) + 1)
+        nreg = self.n_regimes()
         for t in range(self.window[1] + 1):
             self.pvvy_nom[t] = float(features(sim.state, self.traj[t])[0, LOG_PVVY])
             if self.window[0] <= t < self.window[1] and sim.objects()[0, 0, VISIBLE] > 0.5:
@@ -463,7 +555,8 @@ class LookAheadTilt:
                     noise = np.zeros((seqs.shape[0], p.n_objects, 2))
                     noise[det[:, 0], 0] = target.noise_from_uniforms(prow[det[:, 0], 0], g.reps[rep[det[:, 0]], 1:])
                     cand.step(det, noise)
-                reg = self.regime(features(cand.state, self.traj[t]), t)
+                    self.count(cand, seqs.shape[0])
+                reg = self.regime(features(cand.state, self.traj[t], self.errors), t)
                 chosen = {}
                 for i in order:  # the likeliest state of each regime; order[0]: no event, the nominal path itself
                     chosen.setdefault(int(reg[i]), int(i))
@@ -480,6 +573,75 @@ class LookAheadTilt:
             if t < p.n_steps:
                 sim.step(sim.objects()[:, :, VISIBLE] > 0.5, None)
         return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, states)
+
+    def solve_beam(self, width: float, beam: int = BEAM_SIZE, h: float = 0.01, gmax: float = LMAX) -> "LevelChain":
+        """:class:`LevelChain` on cells of (regime, bin of G of ``width``), its representatives found by a beam over
+        the cut-in car's events instead of event sequences replayed from the nominal path: from step window start -
+        :data:`DP_DEPTH` on, every representative is looked ahead with every grid event (its effects, when inside the
+        window); its branches for the events of :meth:`beam_events` are the next step's candidates, the likeliest
+        of each cell kept (at most ``beam``, the likeliest; a failed branch ends). Every look-ahead step counts.
+        Raises SystemExit when the look-ahead is not on the cut-in car alone (``--one-car``)."""
+        if not self.one_car:
+            raise SystemExit("--beam needs --one-car (its representatives are states of the cut-in car alone)")
+        p, target, g = self.params, self.problem.target, self.grid
+        w0, w1 = self.window
+        nb = int(np.ceil((gmax + h) / width))
+        sim = BatchedCutIn(p, 1)
+        self.pvvy_nom, p0s, nominal = {}, {}, {}
+        for t in range(w1 + 1):  # the nominal path: its variances (the regimes' reference) and p(detect)
+            self.pvvy_nom[t] = float(features(sim.state, self.traj[t])[0, LOG_PVVY])
+            p0s[t] = float(expit(target.detect_logit(np.ascontiguousarray(sim.objects())[:1, 0]))[0])
+            nominal[t] = (sim.snapshot(), sim.objects()[0, 0, VISIBLE] > 0.5)
+            if t < p.n_steps:
+                sim.step(sim.objects()[:, :, VISIBLE] > 0.5, None)
+        ev, log_pe = self.beam_events()
+        states, logp = one_car_state(nominal[w0 - DP_DEPTH][0]), np.zeros(1)
+        effects, nexts, g_nom, counts = {}, {}, {}, {}
+        nreg = self.n_regimes()
+        for t in range(w0 - DP_DEPTH, w1):
+            bsim = OneCar(p, logp.size)
+            bsim.restore(states)
+            if not nominal[t][1]:  # the car is not visible: every representative steps on, no event
+                bsim.step(np.zeros((logp.size, 1), dtype=bool), None)
+                self.count(bsim, logp.size)
+                states = bsim.snapshot()
+                continue
+            rows = np.ascontiguousarray(bsim.objects())
+            n = logp.size
+            r, bfeat = self.look_ahead(bsim, np.arange(n), np.zeros((n, 1, 3)), rows, np.full(n, np.inf))
+            gl = continuous_level(level(r), bfeat[..., -2], bfeat[..., -1])  # [n, NBRANCH]
+            reg = self.regime(features(bsim.state, self.traj[t], self.errors), t)
+            if t >= w0:
+                cells = reg * nb + np.clip((gl[:, 1] / width).astype(np.int64), 0, nb - 1)
+                effects[t] = {int(c): gl[i] - gl[i, 1] for i, c in enumerate(cells)}  # the nominal's first (i = 0)
+                nexts[t] = {int(c): self.regime(bfeat[i], t + 1) for i, c in enumerate(cells)}
+                g_nom[t], counts[t] = float(gl[0, 1]), n
+            p0 = expit(target.detect_logit(rows[:, 0]))
+            lp = logp[:, None] + np.where(ev == 0, np.log1p(-p0)[:, None], np.log(p0)[:, None] + log_pe[None, :])
+            creg = self.regime(bfeat[:, ev], t + 1)
+            cell = creg * nb + np.clip((gl[:, ev] / width).astype(np.int64), 0, nb - 1)
+            alive = (gl[:, ev] > 0).ravel()
+            flat = np.flatnonzero(alive)[np.argsort(-lp.ravel()[alive], kind="stable")]
+            _, first = np.unique(cell.ravel()[flat], return_index=True)
+            keep = flat[np.sort(first)][:beam]  # the likeliest child of each cell, likeliest first
+            parent, j = np.divmod(keep, ev.size)
+            states, logp = self.branch_states.select(parent * g.nbranch + ev[j]), lp.ravel()[keep]
+        self.beam_counts = counts
+        return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, counts, width)
+
+    def beam_events(self) -> tuple[np.ndarray, np.ndarray]:
+        """The branches a beam representative's children take (none, a miss, a range error low and high at the grid
+        edge nearest ``--dp-mass``, and each error low and high at :data:`BEAM_MODERATE`) and the log of each one's
+        probability given a detection (0 for the central draw; the miss's is the state's own)."""
+        g = self.grid
+
+        def edge(mass: float) -> int:
+            return int(np.argmin(np.abs(np.log(g.masses / mass))))
+
+        j, jm = edge(self.dp_mass), edge(BEAM_MODERATE)
+        ev = np.array([1, 0, 2 + j, 2 + g.ng + j, 2 + jm, 2 + g.ng + jm, 2 + 2 * g.ng + jm, 2 + 3 * g.ng + jm])
+        mass = np.array([1.0, 1.0, g.masses[j], g.masses[j]] + [g.masses[jm]] * 4)
+        return ev, np.log(mass)
 
     def count(self, bsim: BatchedCutIn, steps: int) -> None:
         """Count ``steps`` rollout-steps of a look-ahead on ``bsim`` (the whole twin or the cut-in car alone)."""
@@ -549,10 +711,12 @@ class LookAheadTilt:
         lo[rows] = np.minimum(lo[rows], low[inverse.ravel()])
 
     def look_ahead(self, sim: BatchedCutIn, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
-                   prefix_min: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-        """Each branch's robustness [k, NBRANCH] and next-state features [k, NBRANCH, F] for the rollouts ``idx``."""
-        target, m, g = self.problem.target, self.params.n_objects, self.grid
-        k, kk = idx.size, g.nbranch
+                   prefix_min: np.ndarray, reps: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Each branch's robustness [k, B] and next-state features [k, B, F] for the rollouts ``idx``; the branches
+        ``reps`` [B, 3] (uniforms of the cut-in car; None: the grid's NBRANCH)."""
+        target, m, g = self.problem.target, rows.shape[1], self.grid
+        reps = g.reps if reps is None else reps
+        k, kk = idx.size, reps.shape[0]
         r_rows = rows[idx].reshape(k * m, -1)
         p_detect = expit(target.detect_logit(r_rows)).reshape(k, m)
         det = (u[idx, :, 0] <= p_detect).reshape(-1)
@@ -561,7 +725,7 @@ class LookAheadTilt:
             noise[det] = target.noise_from_uniforms(r_rows[det], u[idx].reshape(k * m, 3)[det, 1:])
         det_b = np.repeat(det.reshape(k, m), kk, axis=0)
         noise_b = np.repeat(noise.reshape(k, m, 2), kk, axis=0)
-        rb = np.tile(g.reps, (k, 1))
+        rb = np.tile(reps, (k, 1))
         rows0 = np.repeat(rows[idx, 0, :], kk, axis=0)
         det_b[:, 0] = rb[:, 0] <= np.repeat(p_detect[:, 0], kk)  # a branch's detection uniform is 0 or 1
         noise_b[:, 0] = 0.0
@@ -577,6 +741,7 @@ class LookAheadTilt:
             bsim.restore(start)
             bsim.step(det_b, noise_b)
         self.count(bsim, k * kk)
+        self.branch_states = bsim.snapshot()  # the branches' states after their step (for solve_beam)
         feats = features(bsim.state, self.traj[bsim.t], self.errors)
         lo = np.repeat(prefix_min[idx], kk)
         before = None
@@ -644,6 +809,11 @@ class LookAheadTilt:
                         if self.q_model is not None:
                             step = None
                             lqb = np.minimum(self.q_model.predict(self.q_inputs(sfeat, t)).reshape(idx.size, -1), 0.0)
+                        elif self.chain_effects:  # one continuation (the state's own G); the events' from the chain
+                            step = None
+                            r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min, g.reps[1:2])
+                            g0 = continuous_level(level(r[:, 0]), bfeat[:, 0, -2], bfeat[:, 0, -1])
+                            lqb = self.dp.log_q_branches(t, g0, self.regime(sfeat, t))
                         else:
                             r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min)
                             if self.check_one_car:  # the same branches on the cut-in car alone
@@ -658,7 +828,7 @@ class LookAheadTilt:
                             lqb = self.log_q_hat(r, bfeat, t, ps)
                             step = Step(t, idx, None, r, None, bfeat, sfeat, ps, parent[idx].copy())
                             parent[idx] = ps
-                        pc, qc = g.proposal(p0, lqb, self.eps)
+                        pc, qc = g.proposal(p0, self.beta * lqb, self.eps)
                         if given is None:
                             cum = np.cumsum(qc, axis=1)
                             cls = np.minimum((cum < rng.random(idx.size)[:, None] * cum[:, -1:]).sum(axis=1),
@@ -775,6 +945,15 @@ def main() -> None:
     ap.add_argument("--graded", action="store_true", help="the continuation's follow step, lateral margins as inputs")
     ap.add_argument("--continuous", action="store_true", help="Q = a^G before a fit, G the level made continuous")
     ap.add_argument("--dp", action="store_true", help="Q = U_t(G), the level chain solved on the nominal path")
+    ap.add_argument("--chain-effects", action="store_true",
+                    help="with --dp: one continuation a step; every event's effect and next regime from the chain")
+    ap.add_argument("--beam", type=float, default=0.0, metavar="WIDTH",
+                    help="with --dp: the chain's cells are (regime, bin of G of WIDTH), found by a beam of events")
+    ap.add_argument("--dp-mass", type=float, default=1e-3, help="tail mass of the chain's range errors")
+    ap.add_argument("--beta", type=float, default=1.0, help="the tilt's power: q proportional to p Q^beta")
+    ap.add_argument("--dp-lateral", type=float, default=0.0, help="tail mass of the chain's lateral errors (0: none)")
+    ap.add_argument("--vx-buckets", type=float, nargs="*", default=[], help="regime bounds of the track's vx error")
+    ap.add_argument("--vy-buckets", type=float, nargs="*", default=[], help="regime bounds of the track's vy error")
     ap.add_argument("--skip-doomed", action="store_true", help="no look-ahead after a class whose edges both fail")
     ap.add_argument("--q-model", action="store_true", help="the last stage without look-ahead (a learned Q)")
     ap.add_argument("--v-large", action="store_true", help="V: 600 trees of 63 leaves (else 200 of 31)")
@@ -792,7 +971,7 @@ def main() -> None:
     study = LookAheadTilt(args)
     if args.dp:
         t0 = time.perf_counter()
-        study.dp = study.solve_dp()
+        study.dp = study.solve_beam(args.beam) if args.beam else study.solve_dp()
         u_nom = {t: float(np.exp(study.dp.log_u(t, np.array(g)))) for t, g in study.dp.g_nom.items()}
         steps, states = study.one_steps + study.branch_steps, study.dp.states.values()
         print(f"level chain solved on the nominal path in {time.perf_counter() - t0:.1f} s ({min(states)}-"
@@ -826,13 +1005,15 @@ def main() -> None:
         study.reset()
         cache = Path(args.v_cache) if args.v_cache else None
         key = (args.setting, args.grid, tuple(args.window), args.graded, args.errors, args.one_car, args.q_model,
-               args.a, tuple(args.n[:-1]), args.train_once, args.iterations, args.v_large, args.continuous, args.dp)
+               args.a, tuple(args.n[:-1]), args.train_once, args.iterations, args.v_large, args.continuous, args.dp,
+               args.chain_effects)
         if cache is not None and cache.exists():
             with cache.open("rb") as f:
                 cached_key, study.v_table, study.model, study.q_model = pickle.load(f)
             if cached_key != key:
                 raise SystemExit(f"--v-cache {cache}: fitted for {cached_key} (setting, grid, window, graded, errors, "
-                                 f"one-car, q-model, a, training stages, seed, iterations, v-large, continuous, dp), "
+                                 f"one-car, q-model, a, training stages, seed, iterations, v-large, continuous, dp, "
+                                 f"chain-effects), "
                                  f"not {key}")
             print(f"  V read from {cache} (trained before; its cost is not this run's)")
         else:
@@ -876,7 +1057,9 @@ def main() -> None:
         failed, log_w, _, _ = study.simulate(u.shape[1], rng, given=u)
         print(f"{u.shape[1]} failures in {args.mc_failures:,} plain Monte Carlo rollouts, replayed through the last "
               f"proposal: log w (zero variance: {np.log(REFERENCE):.2f} each) {np.round(np.sort(log_w)[::-1], 1)}; "
-              f"{int(np.sum(log_w > -5.0))} above -5")  # fmt: skip
+              f"{int(np.sum(log_w > -5.0))} above -5; the proposal's relative variance a rollout, E_p[w | fail] / p - "
+              f"1 from them: {np.exp(log_w).mean() / REFERENCE - 1:,.0f} (plain Monte Carlo: 1 / p - 1 = "
+              f"{1 / REFERENCE - 1:,.0f})")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -89,12 +89,69 @@ def test_the_level_chain_gives_the_closed_form_probability_of_enough_misses(stud
     assert np.exp(chain.log_u(2, np.array([0.0, 0.3]))) == pytest.approx([1.0, 0.0], abs=1e-12)
 
 
+@pytest.mark.parametrize("miss_shift, miss_q, other_q", [(-2.0, 1.0, 0.2), (-1.0, 0.2, 0.0)])
+def test_the_chain_gives_each_branch_the_value_of_the_level_its_event_leads_to(study, miss_shift, miss_q, other_q):
+    """--chain-effects: from g = 1.5 at step 0 of the two-step chain above, a miss leads to g = 1.5 + shift and any
+    detection keeps g = 1.5, so the branches' Q is U_1 there: 1 and 1 - 0.8 (shift -2: a second miss fails too), or
+    0.2 and 0 (shift -1); and sum_c p(c) Q(c) gives back U_0(1.5) (1 - 0.9 x 0.8, or 0.1 x 0.2)."""
+    grid = study.Grid(np.array(study.GRIDS["lean"]))
+    effects = {t: {0: np.r_[miss_shift, np.zeros(grid.nbranch - 1)]} for t in range(2)}
+    nexts = {t: {0: np.zeros(grid.nbranch, dtype=np.int64)} for t in range(2)}
+    chain = study.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, effects, nexts, 1, 0.01, 6.0)
+    q = np.exp(chain.log_q_branches(0, np.array([1.5]), np.array([0])))
+    assert q.shape == (1, grid.nbranch)
+    assert q[0, 0] == pytest.approx(miss_q, abs=1e-12) and q[0, 1:] == pytest.approx(other_q, abs=1e-12)
+    pc = grid.p_class(np.array([0.9]))
+    u0 = (pc * np.exp(grid.class_values(chain.log_q_branches(0, np.array([1.5]), np.array([0]))))).sum()
+    assert u0 == pytest.approx(np.exp(chain.log_u(0, np.array(1.5))), abs=1e-12)
+
+
+def test_a_chain_with_bins_of_g_takes_each_bins_effect_and_the_nearest_where_a_bin_has_none(study):
+    """--beam's cells: a miss lowers g by 0.6 at g >= 1 and by 2 below (bins 1 wide; bins 2-6 have no representative
+    and take bin 1's). From g = 1.5, two misses (p 0.1, then 0.2) fail: 0.1 x 0.2; one alone leaves g at 0.9. With
+    one bin, the misses' -0.6 each never fail (0.3 left). Regime 1, without any representative, takes the nominal
+    regime's (the first cell)."""
+    grid = study.Grid(np.array(study.GRIDS["lean"]))
+
+    def shift(d):
+        return np.r_[d, np.zeros(grid.nbranch - 1)]
+
+    nexts0 = np.zeros(grid.nbranch, dtype=np.int64)
+    binned = study.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, {t: {1: shift(-0.6), 0: shift(-2.0)} for t in range(2)},
+                              {t: {1: nexts0, 0: nexts0} for t in range(2)}, 2, 0.01, 6.0, bin_width=1.0)  # fmt: skip
+    one = study.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, {t: {0: shift(-0.6)} for t in range(2)},
+                           {t: {0: nexts0} for t in range(2)}, 2, 0.01, 6.0)  # fmt: skip
+    assert binned.nbins == 7 and binned.nearest_cells([1, 0], 2).tolist() == [[0, 1, 1, 1, 1, 1, 1]] * 2
+    assert np.exp(binned.log_u(0, np.array([1.5, 1.5]), np.array([0, 1]))) == pytest.approx([0.02, 0.02], abs=1e-12)
+    assert np.exp(one.log_u(0, np.array(1.5))) == pytest.approx(0.0, abs=1e-12)
+    q = np.exp(binned.log_q_branches(0, np.array([1.5, 0.5]), np.array([0, 0])))
+    assert q[0, 0] == pytest.approx(0.2, abs=1e-12) and q[0, 1] == pytest.approx(0.0, abs=1e-12)
+    assert q[1, 0] == pytest.approx(1.0, abs=1e-12) and q[1, 1] == pytest.approx(0.2, abs=1e-12)
+
+
+def test_the_beams_events_are_the_grid_branches_they_name(study):
+    """A beam representative's children: the central draw, a miss, a range error at the gate (the lean grid's 1e-3
+    edge) low and high, and each error at 1.6e-2 low and high; their log probabilities given a detection."""
+    self = type("S", (), {"grid": study.Grid(np.array(study.GRIDS["lean"])), "dp_mass": 1e-3})()
+    ev, log_pe = study.LookAheadTilt.beam_events(self)
+    reps = self.grid.reps[ev]
+    expected = [(0, 0.5, 0.5), (1, 0.5, 0.5), (0, 1e-3, 0.5), (0, 1 - 1e-3, 0.5), (0, 1.6e-2, 0.5),
+                (0, 1 - 1.6e-2, 0.5), (0, 0.5, 1.6e-2), (0, 0.5, 1 - 1.6e-2)]  # fmt: skip
+    assert reps == pytest.approx(np.array(expected, dtype=float))
+    assert np.exp(log_pe) == pytest.approx([1, 1, 1e-3, 1e-3] + [1.6e-2] * 4)
+
+
 @pytest.mark.parametrize("options, words", [
     (["--window", "10", "5"], "need 0 <= window start < window end <= end <= 100"),
     (["--window", "10", "200"], "need 0 <= window start < window end <= end <= 100"),
     (["--n", "0"], "rollouts >= 1"),
     (["--eps", "0"], "0 < eps <= 1"),
     (["--a", "2"], "0 < a <= 1"),
+    (["--beta", "0"], "0 < beta <= 1"),
+    (["--chain-effects", "--graded"], "--chain-effects and --beam 0.0 need --dp"),
+    (["--beam", "0.25", "--graded"], "--chain-effects and --beam 0.25 need --dp"),
+    (["--dp-mass", "0.7"], "need 0 < dp-mass < 0.5"),
+    (["--vy-buckets", "0.3", "-0.3"], "the buckets' bounds ascending"),
     (["--dp"], "--continuous and --dp need --graded"),
     (["--dp", "--graded", "--window", "3", "24"], "--dp needs the window to start at step 5"),
 ])  # fmt: skip
@@ -114,7 +171,8 @@ def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys
         study.main()
     out = capsys.readouterr().out
     for option in ("--n", "--graded", "--q-model", "--grid", "--skip-doomed", "--mc-failures", "--window", "--one-car",
-                   "--check-one-car", "--a", "--eps", "--train-once", "--errors", "--continuous", "--dp"):
+                   "--check-one-car", "--a", "--eps", "--train-once", "--errors", "--continuous", "--dp",
+                   "--chain-effects", "--beta", "--dp-mass"):
         assert option in out
 
 
