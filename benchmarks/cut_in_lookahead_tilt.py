@@ -1,5 +1,5 @@
 """Approximate zero-variance importance sampling on the cut-in's moderate setting with a look-ahead committor: a study
-of issue 55's design (reference 8.66e-5 from 10^7 plain Monte Carlo rollouts,
+of the design (reference 8.66e-5 from 10^7 plain Monte Carlo rollouts,
 :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`). No sampler of pemviz changes.
 
 For a Markov chain the zero-variance change of measure draws each step's events x from q(x | s) = p(x | s) Q(s, x) /
@@ -84,7 +84,7 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
   ``--n 10000 1000`` (668 s to fit), 7-8 s a run (about 19,000 plain Monte Carlo rollouts): x0.78, 0.62, 0.71, 0.76,
   1.14, 0.67, 0.81, 0.78, 0.81, 0.83, median relative error 0.22, 4 of 8 ``reliable`` verdicts wrong; with
   ``--mc-failures 600000``, 14 of the 45 failures replayed have log w above -5 (18 with the 1,000-rollout V);
-- ``--dp --dp-mass 1e-10`` (``--graded --one-car``; the chain solved in 3-4 s, 1,258 rollout-equivalents, once (542
+- ``--dp --dp-mass 1e-10`` (``--graded --one-car``; the chain solved in 3-4 s, 733 rollout-equivalents, once (542
   counted then, without its event sequences' steps); its own p_fail 1.2e-5, x0.14 of the reference): ``--n 1000``
   seeds 0-19 (5 s a run, 9,400-13,800 plain Monte Carlo rollouts): x5.97, 0.61,
   0.80, 1.13, 0.84, 1.08, 0.60, 0.67, 0.62, 0.85, 1.92, 0.72, 0.74, 0.95, 0.93, 0.69, 1.36, 1.63, 0.80, 0.59, median
@@ -93,12 +93,17 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
   0.66, 2.11, 1.29, 0.91, 0.92, 3.28; ``--n 1000 1000`` (V fitted on the chain's stage): x0.69, 0.71, both
   ``reliable``; ``--continuous --n 2000 --a 0.004``: x0.64, 0.71;
 - seeds 0-19, ``--graded --one-car --dp`` (``--dp-mass 1e-3``), cost a run (+ the chain's, once): ``--n 1000``
-  44,200 (+1,175): median relative error 0.24, 9 of 20 intervals hold the reference, 14 ``reliable`` (11 of them
-  missing it, x0.65-0.76); ``--grid lean --n 650`` 11,900 (+902): 0.36, 13 of 20 hold, ``reliable`` x0.47 once;
-  ``--grid lean --chain-effects --n 8000`` 12,050 (+902), 5 s a run: 0.29, 8 of 20 hold, 20 of 20 within x2;
+  44,200 (+649): median relative error 0.24, 9 of 20 intervals hold the reference, 14 ``reliable`` (11 of them
+  missing it, x0.65-0.76); ``--grid lean --n 650`` 11,900 (+376): 0.36, 13 of 20 hold, ``reliable`` x0.47 once;
+  ``--grid lean --chain-effects --n 8000`` 12,050 (+376), 5 s a run: 0.29, 8 of 20 hold, 20 of 20 within x2;
   ``--grid lean --beam 0.25 --n 600`` 10,900 (+1,236): 0.29, 14 of 20 hold; with ``--eps 0.5``: 0.26, 15 of 20,
   17 within x2, 19 ``unreliable``; ``--grid lean --beam 0.25 --chain-effects --n 7500`` 11,280 (+1,236): 0.29, 10 of
-  20 hold (docs/cut-in.md has every estimate);
+  20 hold;
+- the window to step 31 (``--window 10 32 --end 40 --grid lean``; 185 plain Monte Carlo failures replayed show that
+  a window ending at step 23 leaves four of them at log w +6, their decisive events after it): ``--chain-effects
+  --beta 0.5 --n 7900`` 12,494 (+510), 5 s a run: median relative error 0.24, 19 of 20 within x2, 16 of 20 hold, no
+  ``reliable``; ``--beam 0.25 --n 550`` 11,450-11,500 (+1,464), 1-5 s: 0.23, 18 of 20 within x2, 16 of 20 hold, 19
+  ``unreliable`` (docs/cut-in.md has every estimate and the routes tried);
 - ``--n 1000 1000 --mc-failures 600000``: 45 failures; under the proposal fitted on the first 1,000 rollouts, 18 of
   them have log w above -5 (a zero-variance proposal: -9.35 each): drawn at least 80 times too rarely. In them an
   error in the 1-20 % tails at steps 16-18 decides, from states that moderate errors at steps 10-16 brought close to
@@ -117,8 +122,12 @@ Usage::
     python benchmarks/cut_in_lookahead_tilt.py --train-once 1000 --v-cache v10k.pkl --seeds 10 --n 10000 1000 \
         --graded --one-car --a 0.03 --eps 0.5
     python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 1000 --graded --one-car --dp --dp-mass 1e-10
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 8000 --graded --one-car --dp --grid lean --chain-effects
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 600 --graded --one-car --dp --grid lean --beam 0.25
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 7900 --graded --one-car --dp --grid lean --chain-effects \
+        --beta 0.5 --window 10 32 --end 40
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 550 --graded --one-car --dp --grid lean --beam 0.25 \
+        --window 10 32 --end 40
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 1 --n 7900 --graded --one-car --dp --grid lean --chain-effects \
+        --beta 0.5 --window 10 32 --end 40 --mc-failures 2200000
 """
 
 from __future__ import annotations
@@ -524,12 +533,13 @@ class LookAheadTilt:
         gate, a rejected measurement, or after a coast a restart; with ``--dp-lateral``, also a lateral error low or
         high) before it leaves are sorted into regimes (:meth:`regime`); the look-ahead from the likeliest state of
         each regime (the fewest events, then the fewest errors) gives every grid event's effect on G and the regime
-        after it (:class:`LevelChain`). Fine grid, ``--dp-mass 1e-3``: 7-12 regime states a step, 46,000 continuation
-        steps (460 rollout-equivalents), 3 s here; lean grid: 185 rollout-equivalents, under 1 s."""
+        after it (:class:`LevelChain`). The sequences are simulated as a tree (each state of a level takes every
+        event), and every step counts. Fine grid, ``--dp-mass 1e-3``: 7-12 regime states a step, 64,880 steps (649
+        rollout-equivalents), 3 s here; lean grid: 376, under 1 s."""
         p, target, g = self.params, self.problem.target, self.grid
         depth = DP_DEPTH
         nev = 6 if self.dp_lateral else 4
-        seqs = np.array(np.meshgrid(*[range(nev)] * depth, indexing="ij")).reshape(depth, -1).T  # [4^depth, depth]
+        seqs = np.array(np.meshgrid(*[range(nev)] * depth, indexing="ij")).reshape(depth, -1).T  # [nev^depth, depth]
         rank = (seqs > 0).sum(axis=1) * 10 + (seqs > 1).sum(axis=1)
         order = np.argsort(rank, kind="stable")
         j = int(np.argmin(np.abs(np.log(g.masses / self.dp_mass))))  # the range errors' edge
@@ -545,17 +555,21 @@ class LookAheadTilt:
         for t in range(self.window[1] + 1):
             self.pvvy_nom[t] = float(features(sim.state, self.traj[t])[0, LOG_PVVY])
             if self.window[0] <= t < self.window[1] and sim.objects()[0, 0, VISIBLE] > 0.5:
-                cand = BatchedCutIn(p, seqs.shape[0])
-                cand.restore(history[-depth].select(np.zeros(seqs.shape[0], dtype=np.int64)))
-                for j in range(depth):
+                cand = BatchedCutIn(p, 1)
+                cand.restore(history[-depth])
+                for j in range(depth):  # a tree: each state of the last level takes every event (prefix order)
+                    size = nev ** (j + 1)
+                    state = cand.snapshot().select(np.repeat(np.arange(size // nev), nev))
+                    cand = BatchedCutIn(p, size)
+                    cand.restore(state)
                     prow = np.ascontiguousarray(cand.objects())
                     det = prow[:, :, VISIBLE] > 0.5
-                    rep = event_branch[seqs[:, j]]
+                    rep = event_branch[np.tile(np.arange(nev), size // nev)]
                     det[:, 0] &= rep != 0
-                    noise = np.zeros((seqs.shape[0], p.n_objects, 2))
+                    noise = np.zeros((size, p.n_objects, 2))
                     noise[det[:, 0], 0] = target.noise_from_uniforms(prow[det[:, 0], 0], g.reps[rep[det[:, 0]], 1:])
                     cand.step(det, noise)
-                    self.count(cand, seqs.shape[0])
+                    self.count(cand, size)
                 reg = self.regime(features(cand.state, self.traj[t], self.errors), t)
                 chosen = {}
                 for i in order:  # the likeliest state of each regime; order[0]: no event, the nominal path itself
