@@ -51,7 +51,9 @@ sequences' range errors at the grid edge nearest ``--dp-mass``, by default 1e-3:
 ``--continuous``: Q = ``a`` ^ G instead of ``a`` ^ L in the first stage. ``--beam WIDTH``: the chain's cells are
 (regime, bin of G), their representatives found by a beam over the cut-in car's events (:meth:`LookAheadTilt.
 solve_beam`). ``--chain-effects``: no branches: one continuation a step gives the state's own G, and every event's
-shift of G and next regime come from the chain (1.5 rollout-equivalents a rollout instead of 18-44). ``--beta``: q
+shift of G and next regime come from the chain (1.5 rollout-equivalents a rollout instead of 18-44);
+``--effect-model`` (with ``--beam``): each event's shift of G at the rollout's own state comes from a multi-output
+regression fitted on the beam's look-aheads (scikit-learn ``ExtraTreesRegressor``; no simulation). ``--beta``: q
 proportional to p Q^beta. ``--grid lean``: 8 tail masses a side (34 branches instead of the fine grid's 82). The
 chain's solve counts every step it simulates (its event sequences' too) and is printed apart: like a cached V, it is
 solved once per scene.
@@ -104,6 +106,10 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
   --beta 0.5 --n 7900`` 12,494 (+510), 5 s a run: median relative error 0.24, 19 of 20 within x2, 16 of 20 hold, no
   ``reliable``; ``--beam 0.25 --n 550`` 11,450-11,500 (+1,464), 1-5 s: 0.23, 18 of 20 within x2, 16 of 20 hold, 19
   ``unreliable`` (docs/cut-in.md has every estimate and the routes tried);
+- the effect model (``--window 10 32 --end 40 --grid lean --chain-effects --beam 0.25 --effect-model --beta 0.7
+  --n 7280``; 11,530 a run + 1,464 for the chain, 12,994 in all; 6-7 s a run): seeds 0-19 median relative error
+  0.18, 19 of 20 within x2, 16 of 20 intervals hold the reference; seeds 20-39: 0.18, 19 of 20, 17 of 20; no
+  ``reliable`` verdict; over the 40, mean x0.95;
 - ``--n 1000 1000 --mc-failures 600000``: 45 failures; under the proposal fitted on the first 1,000 rollouts, 18 of
   them have log w above -5 (a zero-variance proposal: -9.35 each): drawn at least 80 times too rarely. In them an
   error in the 1-20 % tails at steps 16-18 decides, from states that moderate errors at steps 10-16 brought close to
@@ -128,6 +134,8 @@ Usage::
         --window 10 32 --end 40
     python benchmarks/cut_in_lookahead_tilt.py --seeds 1 --n 7900 --graded --one-car --dp --grid lean --chain-effects \
         --beta 0.5 --window 10 32 --end 40 --mc-failures 2200000
+    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 7280 --graded --one-car --dp --grid lean --chain-effects \
+        --beam 0.25 --effect-model --beta 0.7 --window 10 32 --end 40
 """
 
 from __future__ import annotations
@@ -467,6 +475,9 @@ def check_options(args: argparse.Namespace, n_steps: int) -> None:
                          + " ".join(f"{k} {' '.join(map(str, b))}" for k, b in buckets.items())
                          + ": need 0 < dp-mass < 0.5 and 0 <= dp-lateral < 0.5 (tail masses; 0: no lateral events) and "
                          "the buckets' bounds ascending")
+    if args.effect_model and not (args.beam and args.chain_effects):
+        raise SystemExit("--effect-model needs --beam and --chain-effects (it is fitted on the beam's look-aheads and "
+                         "gives the effects --chain-effects reads)")
     if (args.chain_effects or args.beam) and not args.dp or args.beam < 0:
         raise SystemExit(f"--chain-effects and --beam {args.beam} need --dp (they read or build its chain), and the "
                          f"beam's bin width must be > 0")
@@ -497,6 +508,7 @@ class LookAheadTilt:
         self.dp_mass, self.dp_lateral = args.dp_mass, args.dp_lateral
         self.error_buckets = [(c, tuple(b)) for c, b in ((VX_ERROR, args.vx_buckets), (VY_ERROR, args.vy_buckets)) if b]
         self.beta = args.beta
+        self.effect_model_on, self.effect_model = args.effect_model, None
         if self.error_buckets:
             self.errors = True
         self.dp = None
@@ -611,6 +623,7 @@ class LookAheadTilt:
         ev, log_pe = self.beam_events()
         states, logp = one_car_state(nominal[w0 - DP_DEPTH][0]), np.zeros(1)
         effects, nexts, g_nom, counts = {}, {}, {}, {}
+        self.effect_rows = []
         nreg = self.n_regimes()
         for t in range(w0 - DP_DEPTH, w1):
             bsim = OneCar(p, logp.size)
@@ -630,6 +643,7 @@ class LookAheadTilt:
                 effects[t] = {int(c): gl[i] - gl[i, 1] for i, c in enumerate(cells)}  # the nominal's first (i = 0)
                 nexts[t] = {int(c): self.regime(bfeat[i], t + 1) for i, c in enumerate(cells)}
                 g_nom[t], counts[t] = float(gl[0, 1]), n
+                self.effect_rows.append((self.effect_inputs(bsim.state, t, gl[:, 1]), gl - gl[:, 1:2]))
             p0 = expit(target.detect_logit(rows[:, 0]))
             lp = logp[:, None] + np.where(ev == 0, np.log1p(-p0)[:, None], np.log(p0)[:, None] + log_pe[None, :])
             creg = self.regime(bfeat[:, ev], t + 1)
@@ -641,7 +655,16 @@ class LookAheadTilt:
             parent, j = np.divmod(keep, ev.size)
             states, logp = self.branch_states.select(parent * g.nbranch + ev[j]), lp.ravel()[keep]
         self.beam_counts = counts
+        if self.effect_model_on:
+            from sklearn.ensemble import ExtraTreesRegressor
+
+            x, y = (np.concatenate(a) for a in zip(*self.effect_rows))
+            self.effect_model = ExtraTreesRegressor(n_estimators=100, min_samples_leaf=1, random_state=0).fit(x, y)
         return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, counts, width)
+
+    def effect_inputs(self, state, t: int, g0: np.ndarray) -> np.ndarray:
+        """The effect model's inputs [N, 21]: the track and the ego with the track's errors, G, the step."""
+        return np.column_stack([features(state, self.traj[t], True), g0, np.full(g0.size, float(t))])
 
     def beam_events(self) -> tuple[np.ndarray, np.ndarray]:
         """The branches a beam representative's children take (none, a miss, a range error low and high at the grid
@@ -828,6 +851,10 @@ class LookAheadTilt:
                             r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min, g.reps[1:2])
                             g0 = continuous_level(level(r[:, 0]), bfeat[:, 0, -2], bfeat[:, 0, -1])
                             lqb = self.dp.log_q_branches(t, g0, self.regime(sfeat, t))
+                            if self.effect_model is not None and t in self.dp.effects:
+                                eff = self.effect_model.predict(self.effect_inputs(sim.state.select(idx), t, g0))
+                                reg, b = self.regime(sfeat, t), self.dp.bin_of(g0)
+                                lqb = self.dp.log_u(t + 1, g0[:, None] + eff, self.dp.nexts[t][reg, b])
                         else:
                             r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min)
                             if self.check_one_car:  # the same branches on the cut-in car alone
@@ -961,6 +988,8 @@ def main() -> None:
     ap.add_argument("--dp", action="store_true", help="Q = U_t(G), the level chain solved on the nominal path")
     ap.add_argument("--chain-effects", action="store_true",
                     help="with --dp: one continuation a step; every event's effect and next regime from the chain")
+    ap.add_argument("--effect-model", action="store_true",
+                    help="with --beam --chain-effects: each event's effect from a model of the beam's look-aheads")
     ap.add_argument("--beam", type=float, default=0.0, metavar="WIDTH",
                     help="with --dp: the chain's cells are (regime, bin of G of WIDTH), found by a beam of events")
     ap.add_argument("--dp-mass", type=float, default=1e-3, help="tail mass of the chain's range errors")

@@ -150,6 +150,7 @@ def test_the_beams_events_are_the_grid_branches_they_name(study):
     (["--beta", "0"], "0 < beta <= 1"),
     (["--chain-effects", "--graded"], "--chain-effects and --beam 0.0 need --dp"),
     (["--beam", "0.25", "--graded"], "--chain-effects and --beam 0.25 need --dp"),
+    (["--effect-model", "--dp", "--graded", "--chain-effects"], "--effect-model needs --beam and --chain-effects"),
     (["--dp-mass", "0.7"], "need 0 < dp-mass < 0.5"),
     (["--vy-buckets", "0.3", "-0.3"], "the buckets' bounds ascending"),
     (["--dp"], "--continuous and --dp need --graded"),
@@ -172,7 +173,7 @@ def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys
     out = capsys.readouterr().out
     for option in ("--n", "--graded", "--q-model", "--grid", "--skip-doomed", "--mc-failures", "--window", "--one-car",
                    "--check-one-car", "--a", "--eps", "--train-once", "--errors", "--continuous", "--dp",
-                   "--chain-effects", "--beta", "--dp-mass"):
+                   "--chain-effects", "--beta", "--dp-mass", "--beam", "--effect-model"):
         assert option in out
 
 
