@@ -178,7 +178,6 @@ GRIDS = {
              6.3e-2, 0.1, 0.16, 0.25),
     "coarse": (1e-8, 1e-6, 1e-5, 1e-4, 3e-4, 1e-3, 2.5e-3, 6.3e-3, 1.6e-2, 4e-2, 0.1, 0.25),
     "lean": (1e-7, 1e-5, 1e-4, 1e-3, 4e-3, 1.6e-2, 6.3e-2, 0.25),
-    "min": (1e-6, 1e-4, 1e-3, 1e-2, 0.1),
 }
 """Tail masses (ascending) of the bin edges of each error, on either side; the central bin lies between the last
 ones."""
@@ -283,6 +282,11 @@ class Grid:
                     mp[row, br[b]] += 0.5
             self.maps.append(mp)
 
+    def edge(self, mass: float) -> int:
+        """The index into :attr:`masses` of the edge nearest tail mass ``mass`` (in log): its low branch is 2 + the
+        index, its high branch 2 + NG + the index (range errors; lateral errors 2 NG further)."""
+        return int(np.argmin(np.abs(np.log(self.masses / mass))))
+
     def p_class(self, p0: np.ndarray) -> np.ndarray:
         """p(class) under the PEMs [k, 1 + NB^2] for the cut-in car's p(detect) p0 [k]."""
         out = np.empty((p0.size, 1 + self.nb * self.nb))
@@ -357,6 +361,11 @@ REGIME_RATIOS = (1.2, 1.5, 2.0, 3.0, 5.0, 10.0)
 regimes (a restarted track starts from its velocity prior)."""
 
 
+def g_bin(g: np.ndarray, width: float, nbins: int) -> np.ndarray:
+    """The bin of continuous levels g (int, the same shape) among ``nbins`` bins ``width`` wide, the last open."""
+    return np.clip((np.asarray(g) / width).astype(np.int64), 0, nbins - 1)
+
+
 class LevelChain:
     """U_t(g, k): the probability of failure from continuous level g (:func:`continuous_level`) at step t, the track
     in regime k (:meth:`LookAheadTilt.regime`), solved on a grid of g (step ``h``): each step's events shift g by
@@ -405,7 +414,7 @@ class LevelChain:
 
     def bin_of(self, g: np.ndarray) -> np.ndarray:
         """The bin of continuous levels g (int, the same shape)."""
-        return np.clip((np.asarray(g) / self.bin_width).astype(np.int64), 0, self.nbins - 1)
+        return g_bin(g, self.bin_width, self.nbins)
 
     def nearest_cells(self, cells: list, nreg: int) -> np.ndarray:
         """For every regime and bin, the cell of ``cells`` (k x nbins + bin; the first is the nominal path's) whose
@@ -419,14 +428,16 @@ class LevelChain:
             out[k] = pool[np.argmin(np.abs(pool[None, :] % self.nbins - bins[:, None]), axis=1)]
         return out
 
-    def log_q_branches(self, t: int, g0: np.ndarray, regime: np.ndarray) -> np.ndarray:
+    def log_q_branches(self, t: int, g0: np.ndarray, regime: np.ndarray,
+                       shifts: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         """log U_{t+1} after each branch [k, NBRANCH] of states at step t whose continuous level is ``g0`` [k] and
-        regime ``regime`` (int [k]): every branch's shift of G and next regime read from the chain (its cell's
-        representative state), no look-ahead; a step without effects leaves both as they are."""
+        regime ``regime`` (int [k]): every branch's shift of G (``shifts`` [k, NBRANCH] where given, else the cell's
+        representative state's) and next regime (the representative's) read from the chain, no look-ahead; a step
+        without effects leaves both as they are."""
         if t not in self.effects:
             return np.repeat(self.log_u(t + 1, g0, regime)[:, None], self.nbranch, axis=1)
         b = self.bin_of(g0)
-        gl = g0[:, None] + self.effects[t][regime, b]
+        gl = g0[:, None] + (self.effects[t][regime, b] if shifts is None else shifts)
         return self.log_u(t + 1, gl, self.nexts[t][regime, b])
 
     def log_u(self, t: int, gl: np.ndarray, regime: np.ndarray | None = None) -> np.ndarray:
@@ -554,10 +565,10 @@ class LookAheadTilt:
         seqs = np.array(np.meshgrid(*[range(nev)] * depth, indexing="ij")).reshape(depth, -1).T  # [nev^depth, depth]
         rank = (seqs > 0).sum(axis=1) * 10 + (seqs > 1).sum(axis=1)
         order = np.argsort(rank, kind="stable")
-        j = int(np.argmin(np.abs(np.log(g.masses / self.dp_mass))))  # the range errors' edge
-        event_branch = [1, 0, 2 + j, 2 + g.ng + j]  # none, a miss, a range error low and high
+        jr = g.edge(self.dp_mass)
+        event_branch = [1, 0, 2 + jr, 2 + g.ng + jr]  # none, a miss, a range error low and high
         if self.dp_lateral:
-            jl = int(np.argmin(np.abs(np.log(g.masses / self.dp_lateral))))
+            jl = g.edge(self.dp_lateral)
             event_branch += [2 + 2 * g.ng + jl, 2 + 3 * g.ng + jl]
         event_branch = np.array(event_branch)
         sim = BatchedCutIn(p, 1)
@@ -635,11 +646,12 @@ class LookAheadTilt:
                 continue
             rows = np.ascontiguousarray(bsim.objects())
             n = logp.size
-            r, bfeat = self.look_ahead(bsim, np.arange(n), np.zeros((n, 1, 3)), rows, np.full(n, np.inf))
+            r, bfeat = self.look_ahead(bsim, np.arange(n), np.zeros((n, 1, 3)), rows, np.full(n, np.inf),
+                                       keep_states=True)  # fmt: skip
             gl = continuous_level(level(r), bfeat[..., -2], bfeat[..., -1])  # [n, NBRANCH]
             reg = self.regime(features(bsim.state, self.traj[t], self.errors), t)
             if t >= w0:
-                cells = reg * nb + np.clip((gl[:, 1] / width).astype(np.int64), 0, nb - 1)
+                cells = reg * nb + g_bin(gl[:, 1], width, nb)
                 effects[t] = {int(c): gl[i] - gl[i, 1] for i, c in enumerate(cells)}  # the nominal's first (i = 0)
                 nexts[t] = {int(c): self.regime(bfeat[i], t + 1) for i, c in enumerate(cells)}
                 g_nom[t], counts[t] = float(gl[0, 1]), n
@@ -647,7 +659,7 @@ class LookAheadTilt:
             p0 = expit(target.detect_logit(rows[:, 0]))
             lp = logp[:, None] + np.where(ev == 0, np.log1p(-p0)[:, None], np.log(p0)[:, None] + log_pe[None, :])
             creg = self.regime(bfeat[:, ev], t + 1)
-            cell = creg * nb + np.clip((gl[:, ev] / width).astype(np.int64), 0, nb - 1)
+            cell = creg * nb + g_bin(gl[:, ev], width, nb)
             alive = (gl[:, ev] > 0).ravel()
             flat = np.flatnonzero(alive)[np.argsort(-lp.ravel()[alive], kind="stable")]
             _, first = np.unique(cell.ravel()[flat], return_index=True)
@@ -671,11 +683,7 @@ class LookAheadTilt:
         edge nearest ``--dp-mass``, and each error low and high at :data:`BEAM_MODERATE`) and the log of each one's
         probability given a detection (0 for the central draw; the miss's is the state's own)."""
         g = self.grid
-
-        def edge(mass: float) -> int:
-            return int(np.argmin(np.abs(np.log(g.masses / mass))))
-
-        j, jm = edge(self.dp_mass), edge(BEAM_MODERATE)
+        j, jm = g.edge(self.dp_mass), g.edge(BEAM_MODERATE)
         ev = np.array([1, 0, 2 + j, 2 + g.ng + j, 2 + jm, 2 + g.ng + jm, 2 + 2 * g.ng + jm, 2 + 3 * g.ng + jm])
         mass = np.array([1.0, 1.0, g.masses[j], g.masses[j]] + [g.masses[jm]] * 4)
         return ev, np.log(mass)
@@ -748,9 +756,11 @@ class LookAheadTilt:
         lo[rows] = np.minimum(lo[rows], low[inverse.ravel()])
 
     def look_ahead(self, sim: BatchedCutIn, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
-                   prefix_min: np.ndarray, reps: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   prefix_min: np.ndarray, reps: np.ndarray | None = None,
+                   keep_states: bool = False) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         """Each branch's robustness [k, B] and next-state features [k, B, F] for the rollouts ``idx``; the branches
-        ``reps`` [B, 3] (uniforms of the cut-in car; None: the grid's NBRANCH)."""
+        ``reps`` [B, 3] (uniforms of the cut-in car; None: the grid's NBRANCH). ``keep_states``: the branches' states
+        after their step are left in :attr:`branch_states` (row i B + b: rollout ``idx[i]``, branch b)."""
         target, m, g = self.problem.target, rows.shape[1], self.grid
         reps = g.reps if reps is None else reps
         k, kk = idx.size, reps.shape[0]
@@ -778,7 +788,8 @@ class LookAheadTilt:
             bsim.restore(start)
             bsim.step(det_b, noise_b)
         self.count(bsim, k * kk)
-        self.branch_states = bsim.snapshot()  # the branches' states after their step (for solve_beam)
+        if keep_states:
+            self.branch_states = bsim.snapshot()
         feats = features(bsim.state, self.traj[bsim.t], self.errors)
         lo = np.repeat(prefix_min[idx], kk)
         before = None
@@ -850,11 +861,10 @@ class LookAheadTilt:
                             step = None
                             r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min, g.reps[1:2])
                             g0 = continuous_level(level(r[:, 0]), bfeat[:, 0, -2], bfeat[:, 0, -1])
-                            lqb = self.dp.log_q_branches(t, g0, self.regime(sfeat, t))
+                            shifts = None
                             if self.effect_model is not None and t in self.dp.effects:
-                                eff = self.effect_model.predict(self.effect_inputs(sim.state.select(idx), t, g0))
-                                reg, b = self.regime(sfeat, t), self.dp.bin_of(g0)
-                                lqb = self.dp.log_u(t + 1, g0[:, None] + eff, self.dp.nexts[t][reg, b])
+                                shifts = self.effect_model.predict(self.effect_inputs(sim.state.select(idx), t, g0))
+                            lqb = self.dp.log_q_branches(t, g0, self.regime(sfeat, t), shifts)
                         else:
                             r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min)
                             if self.check_one_car:  # the same branches on the cut-in car alone
