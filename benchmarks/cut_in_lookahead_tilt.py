@@ -467,6 +467,12 @@ class Step:
     parent: np.ndarray
 
 
+CACHE_KEY = ("setting", "grid", "window", "end", "graded", "errors", "one_car", "q_model", "a", "eps", "train_once",
+             "iterations", "v_large", "continuous", "dp", "chain_effects", "dp_mass", "dp_lateral", "vx_buckets",
+             "vy_buckets", "beam", "effect_model", "beta")
+"""The options a V fitted by ``--train-once`` depends on: a ``--v-cache`` fitted with others is refused."""
+
+
 def check_options(args: argparse.Namespace, n_steps: int) -> None:
     """Stop with one line (SystemExit) on options the study cannot run with, before anything is loaded."""
     w0, w1 = args.window
@@ -495,6 +501,8 @@ def check_options(args: argparse.Namespace, n_steps: int) -> None:
     if args.dp and w0 < DP_DEPTH:
         raise SystemExit(f"--dp needs the window to start at step {DP_DEPTH} or later (its event sequences reach "
                          f"{DP_DEPTH} steps back), got --window {w0} {w1}")
+    if args.beam and not args.one_car:
+        raise SystemExit("--beam needs --one-car (its representatives are states of the cut-in car alone)")
     if args.check_one_car and not args.graded:
         raise SystemExit("--check-one-car needs --graded (it compares the continuations' follow steps)")
 
@@ -616,10 +624,8 @@ class LookAheadTilt:
         the cut-in car's events instead of event sequences replayed from the nominal path: from step window start -
         :data:`DP_DEPTH` on, every representative is looked ahead with every grid event (its effects, when inside the
         window); its branches for the events of :meth:`beam_events` are the next step's candidates, the likeliest
-        of each cell kept (at most ``beam``, the likeliest; a failed branch ends). Every look-ahead step counts.
-        Raises SystemExit when the look-ahead is not on the cut-in car alone (``--one-car``)."""
-        if not self.one_car:
-            raise SystemExit("--beam needs --one-car (its representatives are states of the cut-in car alone)")
+        of each cell kept (at most ``beam``, the likeliest; a failed branch ends). Every look-ahead step counts. The
+        look-ahead must run on the cut-in car alone (``--one-car``; :func:`check_options` refuses it otherwise)."""
         p, target, g = self.params, self.problem.target, self.grid
         w0, w1 = self.window
         nb = int(np.ceil((gmax + h) / width))
@@ -1057,17 +1063,21 @@ def main() -> None:
         t0 = time.perf_counter()
         study.reset()
         cache = Path(args.v_cache) if args.v_cache else None
-        key = (args.setting, args.grid, tuple(args.window), args.graded, args.errors, args.one_car, args.q_model,
-               args.a, tuple(args.n[:-1]), args.train_once, args.iterations, args.v_large, args.continuous, args.dp,
-               args.chain_effects)
+        key = tuple((name, repr(tuple(v) if isinstance(v, list) else v))
+                    for name, v in [(k, getattr(args, k)) for k in CACHE_KEY] + [("training stages", args.n[:-1])])
         if cache is not None and cache.exists():
-            with cache.open("rb") as f:
-                cached_key, study.v_table, study.model, study.q_model = pickle.load(f)
+            try:
+                with cache.open("rb") as f:
+                    cached_key, study.v_table, study.model, study.q_model = pickle.load(f)
+            except (OSError, EOFError, ValueError, TypeError, pickle.UnpicklingError) as err:
+                raise SystemExit(f"--v-cache {cache}: not a V this study wrote ({type(err).__name__}); give another "
+                                 f"path, or remove it to fit V again") from None
             if cached_key != key:
-                raise SystemExit(f"--v-cache {cache}: fitted for {cached_key} (setting, grid, window, graded, errors, "
-                                 f"one-car, q-model, a, training stages, seed, iterations, v-large, continuous, dp, "
-                                 f"chain-effects), "
-                                 f"not {key}")
+                mine = dict(key)
+                other = dict(cached_key) if isinstance(cached_key[0], tuple) else {"format": "an older study"}
+                diff = ", ".join(f"{k} {other.get(k, '-')} (here {mine.get(k, '-')})"
+                                 for k in dict.fromkeys([*other, *mine]) if other.get(k) != mine.get(k))
+                raise SystemExit(f"--v-cache {cache}: fitted for other settings: {diff}")
             print(f"  V read from {cache} (trained before; its cost is not this run's)")
         else:
             *_, cost, extra, _ = stages(args.n[:-1], np.random.default_rng(args.train_once), True)

@@ -151,6 +151,7 @@ def test_the_beams_events_are_the_grid_branches_they_name(study):
     (["--chain-effects", "--graded"], "--chain-effects and --beam 0.0 need --dp"),
     (["--beam", "0.25", "--graded"], "--chain-effects and --beam 0.25 need --dp"),
     (["--effect-model", "--dp", "--graded", "--chain-effects"], "--effect-model needs --beam and --chain-effects"),
+    (["--beam", "0.25", "--dp", "--graded"], "--beam needs --one-car"),
     (["--dp-mass", "0.7"], "need 0 < dp-mass < 0.5"),
     (["--vy-buckets", "0.3", "-0.3"], "the buckets' bounds ascending"),
     (["--dp"], "--continuous and --dp need --graded"),
@@ -225,3 +226,7 @@ def test_a_cached_v_gives_the_run_it_was_fitted_for_and_refuses_another_setting(
     with pytest.raises(SystemExit, match="fitted for"):
         run("--grid", "fine")
     assert cache.read_bytes() == before
+    cache.write_text("not a pickle")
+    with pytest.raises(SystemExit, match="not a V this study wrote"):
+        run()
+    assert cache.read_text() == "not a pickle"
