@@ -141,9 +141,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import copy
-import dataclasses
-import functools
 import pickle
 import sys
 import time
@@ -157,299 +154,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
 from pemviz.scenarios import run_batched  # noqa: E402
-from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE, OBJECT_NAMES, OBSERVATION_NAMES  # noqa: E402
-from pemviz.scenarios.cut_in import tracker  # noqa: E402
-from pemviz.scenarios.cut_in.batched import (MAX_SPEED_MPS, BatchedCutIn, CutInBatchState,  # noqa: E402
-                                              cached_trajectory)
-from pemviz.scenarios.cut_in.highway import TrafficTrajectory  # noqa: E402
-from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, idm_acceleration  # noqa: E402
-from pemviz.scenarios.cut_in.scene import scene_signals  # noqa: E402
+from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE  # noqa: E402
+from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
+from pemviz.scenarios.cut_in.committor import GRIDS, LMAX, LevelChain, continuous_level, level  # noqa: E402
+from pemviz.scenarios.cut_in.lookahead import (DP_DEPTH, LOG_PVVY, VISIBLE, VX_ERROR, VY_ERROR,  # noqa: E402
+                                               features)
+from pemviz.scenarios.cut_in.tilt import CutInTilt  # noqa: E402
 from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
-VISIBLE = OBJECT_NAMES.index("visible")
-LOG_PVVY, CONFIRMED, COAST, VX_ERROR, VY_ERROR = 7, 9, 10, 15, 17
-"""Columns of :func:`features`: the log of the cut-in car's track's lateral velocity variance, whether it is
-confirmed, and the predictions since its last update (1 after an updated step: the state is predicted)."""
-MARGIN, RECENT, CLEAR, FOLLOWED = (OBSERVATION_NAMES.index(k) for k in
-                                   ("safe_margin_m", "cut_in_recent", "clearance_m", "followed_index"))  # fmt: skip
-GRIDS = {
-    "fine": (1e-10, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 3e-4, 1e-3, 1.6e-3, 2.5e-3, 4e-3, 6.3e-3, 1e-2, 1.6e-2, 2.5e-2, 4e-2,
-             6.3e-2, 0.1, 0.16, 0.25),
-    "coarse": (1e-8, 1e-6, 1e-5, 1e-4, 3e-4, 1e-3, 2.5e-3, 6.3e-3, 1.6e-2, 4e-2, 0.1, 0.25),
-    "lean": (1e-7, 1e-5, 1e-4, 1e-3, 4e-3, 1.6e-2, 6.3e-2, 0.25),
-}
-"""Tail masses (ascending) of the bin edges of each error, on either side; the central bin lies between the last
-ones."""
-LMAX = 6
-STEP_M = 0.76
-"""What one step of late braking costs in closest approach at the moderate setting (the 7.6 m/s closing speed x dt)."""
-
-
-def level(r: np.ndarray) -> np.ndarray:
-    """A continuation's level from its robustness r (metres): 0 when it fails, else 1 + floor(r / STEP_M), capped."""
-    return np.where(r < 0.0, 0, np.minimum(1 + np.floor(np.maximum(r, 0.0) / STEP_M), LMAX)).astype(np.int64)
-
-
-def continuous_level(lv: np.ndarray, inside_m: np.ndarray, step_m: np.ndarray) -> np.ndarray:
-    """The level made continuous: L - 1 + how deep inside the lane the continuation's track was when the ACC
-    followed, in lateral steps of the track (capped at 1; 0 where L = 0). ``inside_m``: the track's margin outside
-    the lane's 2 m band at the follow step (<= 0), ``step_m``: its lateral speed times dt there (metres)."""
-    d = np.maximum(-inside_m, 0.0)
-    frac = np.clip(d / np.maximum(step_m, 1e-9), 0.0, 1.0)
-    return np.where(lv == 0, 0.0, lv - 1.0 + frac)
-
-
-def operand(obs: np.ndarray) -> np.ndarray:
-    """The failure formula's operand at one step [N] (metres): min(safe margin + 1000 x cut-in grace, clearance)."""
-    return np.minimum(obs[:, MARGIN] + 1000.0 * obs[:, RECENT], obs[:, CLEAR])
-
-
-def features(state, traffic, errors: bool = False) -> np.ndarray:
-    """The cut-in car's track and the ego at a state, float64 [N, 14] (``errors``: [N, 18], with the track's position
-    and velocity errors against the car's true state along and across the road)."""
-    tr = state.tracks
-    cols = [tr.x[0] - state.ego_x_m, tr.vx[0], np.log(tr.pxx[0] + 1e-6), np.log(tr.pvvx[0] + 1e-6), tr.y[0], tr.vy[0],
-            np.log(tr.pyy[0] + 1e-6), np.log(tr.pvvy[0] + 1e-6), tr.active[0], tr.confirmed[0], tr.coast[0],
-            traffic.x_m[0] - state.ego_x_m, state.ego_speed_mps, state.followed == 0]
-    if errors:
-        cols += [tr.x[0] - traffic.x_m[0], tr.vx[0] - traffic.vx_mps[0], tr.y[0] - traffic.y_m[0],
-                 tr.vy[0] - traffic.vy_mps[0]]
-    return np.column_stack(cols)
-
-
-class OneCar(BatchedCutIn):
-    """The twin with the cut-in car alone (every other car and its track dropped): the ``--one-car`` look-ahead's
-    simulator. With the default traffic no other car is ever in the ego's lane, so with nominal perception the ACC
-    acts on the cut-in car's track alone; the outcome differs only where another car would have hidden the cut-in car
-    (checked: ``--check-one-car``)."""
-
-    def __init__(self, params, n: int) -> None:  # noqa: D107 (no super().__init__: its parameters check M >= 3)
-        one = copy.copy(params)
-        object.__setattr__(one, "n_objects", 1)
-        self.params, self.n, self.n_objects = one, int(n), 1
-        self._trajectory = one_car_trajectory(params)
-        self.reset()
-
-
-@functools.lru_cache(maxsize=8)
-def one_car_trajectory(params) -> TrafficTrajectory:
-    """The traffic of every step with the cut-in car (object 0) alone, computed once per parameter set."""
-
-    def alone(tr):
-        arrays = {f.name: getattr(tr, f.name)[:1] for f in dataclasses.fields(tr)
-                  if isinstance(getattr(tr, f.name), np.ndarray)}  # fmt: skip
-        return dataclasses.replace(tr, occluder_pairs=(), **arrays)
-
-    return TrafficTrajectory(tuple(alone(tr) for tr in cached_trajectory(params).traffic))
-
-
-def one_car_state(st: CutInBatchState) -> CutInBatchState:
-    """A state of the twin cut down to the cut-in car's track (a followed other car becomes none)."""
-    tracks = tracker.Tracks(*(getattr(st.tracks, f.name)[:1] for f in dataclasses.fields(st.tracks)))
-    return CutInBatchState(st.t, st.ego_x_m, st.ego_speed_mps, st.ego_accel_mps2, tracks,
-                           np.where(st.followed > 0, -1, st.followed))  # fmt: skip
-
-
-@dataclass
-class Grid:
-    """The event classes of one step: class 0 a miss, 1 + i NB + j a detection with the range error in bin i and the
-    lateral error in bin j of :attr:`edges`; branches: 0 a miss, 1 the central draw, then each error's low and high
-    edges (the other error central)."""
-
-    masses: np.ndarray
-
-    def __post_init__(self) -> None:
-        g = self.ng = self.masses.size
-        self.edges = np.concatenate([[0.0], self.masses, 1.0 - self.masses[::-1], [1.0]])
-        self.nb, self.central, self.nbranch = self.edges.size - 1, g, 2 + 4 * g
-        self.width = np.diff(self.edges)
-        reps = [(1.0, 0.5, 0.5), (0.0, 0.5, 0.5)]
-        for c in range(2):
-            for side in (self.masses, 1.0 - self.masses):
-                reps += [(0.0, v, 0.5) if c == 0 else (0.0, 0.5, v) for v in side]
-        self.reps = np.array(reps)
-        self.desc = event_descriptor(self.reps, np.full(len(reps), 0.5))
-        self.maps = []  # [NB, NBRANCH] per error: a bin's value is the mean of its edges' values
-        for c in range(2):
-            mp = np.zeros((self.nb, self.nbranch))
-            mp[g, 1] = 1.0
-            for side in range(2):
-                br = 2 + 2 * c * g + side * g + np.arange(g)
-                for b in range(g):
-                    row = b if side == 0 else self.nb - 1 - b
-                    mp[row, br[max(b - 1, 0)]] += 0.5
-                    mp[row, br[b]] += 0.5
-            self.maps.append(mp)
-
-    def edge(self, mass: float) -> int:
-        """The index into :attr:`masses` of the edge nearest tail mass ``mass`` (in log): its low branch is 2 + the
-        index, its high branch 2 + NG + the index (range errors; lateral errors 2 NG further)."""
-        return int(np.argmin(np.abs(np.log(self.masses / mass))))
-
-    def p_class(self, p0: np.ndarray) -> np.ndarray:
-        """p(class) under the PEMs [k, 1 + NB^2] for the cut-in car's p(detect) p0 [k]."""
-        out = np.empty((p0.size, 1 + self.nb * self.nb))
-        out[:, 0] = 1.0 - p0
-        out[:, 1:] = p0[:, None] * np.outer(self.width, self.width).reshape(1, -1)
-        return out
-
-    def class_values(self, log_qb: np.ndarray) -> np.ndarray:
-        """log Q per class [k, 1 + NB^2] from the branches' log Q [k, NBRANCH]."""
-        q = np.exp(log_qb)
-        qr, ql = q @ self.maps[0].T, q @ self.maps[1].T
-        out = np.empty((q.shape[0], 1 + self.nb * self.nb))
-        out[:, 0] = q[:, 0]
-        out[:, 1:] = np.maximum(qr[:, :, None], ql[:, None, :]).reshape(q.shape[0], -1)
-        return np.log(np.maximum(out, 1e-300))
-
-    def proposal(self, p0: np.ndarray, log_qb: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
-        """(p(class), q(class)) [k, 1 + NB^2]: the tilt p Q (Q from the branches' log Q [k, NBRANCH]) normalised,
-        mixed with ``eps`` of p."""
-        pc = self.p_class(p0)
-        log_t = np.log(pc) + self.class_values(log_qb)
-        return pc, (1.0 - eps) * np.exp(log_t - logsumexp(log_t, axis=1, keepdims=True)) + eps * pc
-
-    def level_dist(self, r: np.ndarray) -> np.ndarray:
-        """Each class's distribution of levels [k, 1 + NB^2, LMAX + 1] (a bin: half each edge's; a joint class: the
-        error whose mean level is lower)."""
-        oh = np.eye(LMAX + 1)[level(r)]
-        dr, dl = (np.einsum("nb,kbl->knl", mp, oh) for mp in self.maps)
-        el = np.arange(LMAX + 1)
-        use_r = (dr @ el)[:, :, None] <= (dl @ el)[:, None, :]
-        k = r.shape[0]
-        out = np.empty((k, 1 + self.nb * self.nb, LMAX + 1))
-        out[:, 0] = oh[:, 0]
-        out[:, 1:] = np.where(use_r[..., None], dr[:, :, None, :], dl[:, None, :, :]).reshape(k, -1, LMAX + 1)
-        return out
-
-    def classify(self, u: np.ndarray, p0: np.ndarray) -> np.ndarray:
-        """The class of uniforms u [k, 3] (int [k])."""
-        bi, bj = (np.clip(np.searchsorted(self.edges, u[:, c], side="right") - 1, 0, self.nb - 1) for c in (1, 2))
-        return np.where(u[:, 0] > p0, 0, 1 + bi * self.nb + bj)
-
-    def draw(self, cls: np.ndarray, p0: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """Uniforms [k, 3] uniform inside each class ``cls`` from fresh uniforms x [k, 3]."""
-        miss = cls == 0
-        i, j = np.divmod(np.maximum(cls - 1, 0), self.nb)
-        e = self.edges
-        ud = np.where(miss, p0 + x[:, 0] * (1.0 - p0), x[:, 0] * p0)
-        ur = np.where(miss, x[:, 1], e[i] + x[:, 1] * (e[i + 1] - e[i]))
-        ul = np.where(miss, x[:, 2], e[j] + x[:, 2] * (e[j + 1] - e[j]))
-        return np.column_stack([ud, ur, ul])
-
-
-def event_descriptor(u: np.ndarray, p0: np.ndarray) -> np.ndarray:
-    """An event as numbers [k, 3]: a miss; each error's signed -log10 tail mass (0 at the median)."""
-    miss = u[:, 0] > p0
-    out = np.zeros((u.shape[0], 3))
-    out[:, 0] = miss
-    for c in range(2):
-        mass = np.minimum(u[:, 1 + c], 1.0 - u[:, 1 + c])
-        out[:, 1 + c] = np.where(miss, 0.0, np.sign(u[:, 1 + c] - 0.5) * -np.log10(np.maximum(mass, 1e-300)))
-    return out
-
-
-DP_DEPTH = 5
-"""How many steps back the event sequences of :meth:`LookAheadTilt.solve_dp` reach."""
-BEAM_SIZE = 400
-"""The most representatives a step of :meth:`LookAheadTilt.solve_beam` keeps."""
-BEAM_MODERATE = 1.6e-2
-"""The tail mass of the moderate errors a beam representative's children take."""
-REGIME_RATIOS = (1.2, 1.5, 2.0, 3.0, 5.0, 10.0)
-"""The bounds of the ratio of the track's lateral velocity variance to the nominal path's that separate its
-regimes (a restarted track starts from its velocity prior)."""
-
-
-def g_bin(g: np.ndarray, width: float, nbins: int) -> np.ndarray:
-    """The bin of continuous levels g (int, the same shape) among ``nbins`` bins ``width`` wide, the last open."""
-    return np.clip((np.asarray(g) / width).astype(np.int64), 0, nbins - 1)
-
-
-class LevelChain:
-    """U_t(g, k): the probability of failure from continuous level g (:func:`continuous_level`) at step t, the track
-    in regime k (:meth:`LookAheadTilt.regime`), solved on a grid of g (step ``h``): each step's events shift g by
-    their effect on the representative state of the cell (regime k, and with ``bin_width`` the bin of g) nearest to
-    it, the range and lateral errors' effects added, and move it to the regime their branch ends in (a joint class:
-    its range error's). A cell without a representative takes its regime's nearest bin's, a regime without any the
-    nominal path's (the first cell of ``effects[t]``); a step without effects leaves g and k as they are.
-    ``effects[t]``, ``nexts[t]``: each cell's (k x bins + bin) branch shifts of G and next regimes [NBRANCH]."""
-
-    def __init__(self, grid: Grid, window, p0s: dict, effects: dict, nexts: dict, nreg: int, h: float, gmax: float,
-                 g_nom: dict | None = None, states: dict | None = None,
-                 bin_width: float | None = None) -> None:  # fmt: skip
-        self.g = np.arange(0.0, gmax + h, h)
-        self.window, self.nbranch = window, grid.nbranch
-        self.g_nom, self.states = g_nom or {}, states or {}  # the nominal path's G and representative states, per step
-        self.bin_width = bin_width or 2.0 * (gmax + h)  # None: one bin
-        self.nbins = int(np.ceil((gmax + h) / self.bin_width))
-        g_bin = self.bin_of(self.g)
-        w0, w1 = window
-        outer = np.array([np.flatnonzero(grid.maps[0][row])[0] for row in range(grid.nb)])  # each range bin's branch
-        u = np.tile((self.g <= 1e-9).astype(float), (nreg, 1))
-        self.log_table = {w1: np.log(np.maximum(u, 1e-300))}
-        self.effects, self.nexts = {}, {}  # per step: each cell's shifts of G [nreg, nbins, NBRANCH], next regimes
-        for t in range(w1 - 1, w0 - 1, -1):
-            if t in effects:
-                new = np.zeros_like(u)
-                pc = grid.p_class(np.array([p0s[t]]))[0]
-                keys = self.nearest_cells(list(effects[t]), nreg)
-                self.effects[t] = np.array([[effects[t][c] for c in row] for row in keys])
-                self.nexts[t] = np.array([[nexts[t][c] for c in row] for row in keys])
-                for k in range(nreg):
-                    for cell in np.unique(keys[k]):
-                        gsel = np.flatnonzero(keys[k][g_bin] == cell)
-                        e, nxt = effects[t][cell], nexts[t][cell]
-                        dr, dl = (mp @ e / np.maximum(mp.sum(axis=1), 1e-12) for mp in grid.maps)
-                        delta = np.concatenate([[e[0]], (dr[:, None] + dl[None, :]).ravel()])
-                        cls_reg = np.concatenate([[nxt[0]], np.repeat(np.where(np.arange(grid.nb) == grid.central,
-                                                                               nxt[1], nxt[outer]), grid.nb)])
-                        for k2 in np.unique(cls_reg):
-                            sel = np.flatnonzero(cls_reg == k2)
-                            shifted = np.interp(self.g[None, gsel] + delta[sel, None], self.g, u[k2], left=1.0,
-                                                right=u[k2, -1])  # fmt: skip
-                            new[k, gsel] += pc[sel] @ shifted
-                u = new
-            self.log_table[t] = np.log(np.maximum(u, 1e-300))
-
-    def bin_of(self, g: np.ndarray) -> np.ndarray:
-        """The bin of continuous levels g (int, the same shape)."""
-        return g_bin(g, self.bin_width, self.nbins)
-
-    def nearest_cells(self, cells: list, nreg: int) -> np.ndarray:
-        """For every regime and bin, the cell of ``cells`` (k x nbins + bin; the first is the nominal path's) whose
-        effects it takes [nreg, nbins]: its own, else its regime's nearest bin, else the nominal regime's nearest."""
-        have = np.array(cells)
-        out = np.empty((nreg, self.nbins), dtype=np.int64)
-        bins = np.arange(self.nbins)
-        for k in range(nreg):
-            own = have[have // self.nbins == k]
-            pool = own if own.size else have[have // self.nbins == have[0] // self.nbins]
-            out[k] = pool[np.argmin(np.abs(pool[None, :] % self.nbins - bins[:, None]), axis=1)]
-        return out
-
-    def log_q_branches(self, t: int, g0: np.ndarray, regime: np.ndarray,
-                       shifts: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
-        """log U_{t+1} after each branch [k, NBRANCH] of states at step t whose continuous level is ``g0`` [k] and
-        regime ``regime`` (int [k]): every branch's shift of G (``shifts`` [k, NBRANCH] where given, else the cell's
-        representative state's) and next regime (the representative's) read from the chain, no look-ahead; a step
-        without effects leaves both as they are."""
-        if t not in self.effects:
-            return np.repeat(self.log_u(t + 1, g0, regime)[:, None], self.nbranch, axis=1)
-        b = self.bin_of(g0)
-        gl = g0[:, None] + (self.effects[t][regime, b] if shifts is None else shifts)
-        return self.log_u(t + 1, gl, self.nexts[t][regime, b])
-
-    def log_u(self, t: int, gl: np.ndarray, regime: np.ndarray | None = None) -> np.ndarray:
-        """log U_t at continuous levels ``gl`` (any shape), in regimes ``regime`` (int, the same shape; None: 0);
-        steps past the window take the window's end."""
-        table = self.log_table[min(max(t, self.window[0]), self.window[1])]
-        if regime is None:
-            return np.interp(gl, self.g, table[0])
-        out = np.empty(np.shape(gl))
-        for k in np.unique(regime):
-            out[regime == k] = np.interp(gl[regime == k], self.g, table[k])
-        return out
 
 
 @dataclass
@@ -507,55 +220,36 @@ def check_options(args: argparse.Namespace, n_steps: int) -> None:
         raise SystemExit("--check-one-car needs --graded (it compares the continuations' follow steps)")
 
 
-class LookAheadTilt:
-    """The study (module docstring): one setting, grid, window and mixture; :meth:`simulate` runs a stage."""
+class LookAheadTilt(CutInTilt):
+    """The study (module docstring): one setting, grid, window and mixture; :meth:`simulate` runs a stage. Its
+    look-aheads, beam and tilted stage are pemviz's (:class:`pemviz.scenarios.cut_in.tilt.CutInTilt`); the routes
+    that lost (look-ahead branches, fitted V, Q model, event sequences) are the study's own."""
 
     def __init__(self, args: argparse.Namespace) -> None:
         from pemviz.pem import load_pem
 
-        self.params = cut_in_params(args.setting)
-        check_options(args, self.params.n_steps)
-        self.problem = cut_in_problem(load_pem(), self.params)
-        self.traj = cached_trajectory(self.params).traffic
-        self.grid = Grid(np.array(GRIDS[args.grid]))
-        self.window, self.end, self.eps, self.a = tuple(args.window), args.end, args.eps, args.a
-        self.graded, self.skip_doomed, self.one_car = args.graded, args.skip_doomed, args.one_car
+        params = cut_in_params(args.setting)
+        check_options(args, params.n_steps)
+        self.problem = cut_in_problem(load_pem(), params)
+        buckets = tuple((c, tuple(b)) for c, b in ((VX_ERROR, args.vx_buckets), (VY_ERROR, args.vy_buckets)) if b)
+        super().__init__(params, self.problem.target, args.grid, tuple(args.window), args.end, args.beam or None,
+                         args.beta, args.eps, one_car=args.one_car, graded=args.graded,
+                         continuous=args.continuous or args.dp, errors=args.errors, error_buckets=buckets,
+                         dp_mass=args.dp_mass, effect_model=args.effect_model)  # fmt: skip
+        self.a, self.skip_doomed = args.a, args.skip_doomed
         self.check_one_car, self.agree = args.check_one_car, []
-        self.errors = args.errors
-        self.continuous = args.continuous or args.dp
-        self.chain_effects = args.chain_effects
-        self.dp_mass, self.dp_lateral = args.dp_mass, args.dp_lateral
-        self.error_buckets = [(c, tuple(b)) for c, b in ((VX_ERROR, args.vx_buckets), (VY_ERROR, args.vy_buckets)) if b]
-        self.beta = args.beta
-        self.effect_model_on, self.effect_model = args.effect_model, None
-        if self.error_buckets:
-            self.errors = True
-        self.dp = None
+        self.chain_effects, self.dp_lateral = args.chain_effects, args.dp_lateral
         self.n_state = 18 if args.errors else 14
         self.v_size = (dict(max_iter=600, max_leaf_nodes=63, min_samples_leaf=5, early_stopping=False) if args.v_large
                        else dict(max_iter=200, max_leaf_nodes=31, min_samples_leaf=10))  # fmt: skip
         self.reset()
+
 
     def reset(self) -> None:
         self.branch_steps = self.one_steps = self.extrap_steps = 0
         self.v_table = self.model = self.q_model = None
         self.traces: list = []
 
-    def regime(self, feats: np.ndarray, t: int) -> np.ndarray:
-        """The track's regime (int [...]) at step t from :func:`features` rows [..., F]: confirmed or not, coasting
-        or not, the bucket of its lateral velocity variance over the nominal path's (:data:`REGIME_RATIOS`) and, with
-        ``--vy-buckets``, of its lateral velocity error against the car (m/s; the rows need ``errors``)."""
-        tn = min(t, max(self.pvvy_nom))
-        ratio = np.exp(feats[..., LOG_PVVY] - self.pvvy_nom[tn])
-        bucket = np.searchsorted(np.array(REGIME_RATIOS), ratio)
-        base = ((feats[..., CONFIRMED] < 0.5) * 2 + (feats[..., COAST] > 1)) * (len(REGIME_RATIOS) + 1) + bucket
-        for col, bounds in self.error_buckets:
-            base = base * (len(bounds) + 1) + np.searchsorted(np.array(bounds), feats[..., col])
-        return base
-
-    def n_regimes(self) -> int:
-        """How many regimes :meth:`regime` tells apart."""
-        return int(4 * (len(REGIME_RATIOS) + 1) * np.prod([len(b) + 1 for _, b in self.error_buckets]))
 
     def solve_dp(self, h: float = 0.01, gmax: float = LMAX) -> "LevelChain":
         """The committor as a function of the continuous level and the track's regime, U_t(G, k), solved on the
@@ -619,192 +313,6 @@ class LookAheadTilt:
                 sim.step(sim.objects()[:, :, VISIBLE] > 0.5, None)
         return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, states)
 
-    def solve_beam(self, width: float, beam: int = BEAM_SIZE, h: float = 0.01, gmax: float = LMAX) -> "LevelChain":
-        """:class:`LevelChain` on cells of (regime, bin of G of ``width``), its representatives found by a beam over
-        the cut-in car's events instead of event sequences replayed from the nominal path: from step window start -
-        :data:`DP_DEPTH` on, every representative is looked ahead with every grid event (its effects, when inside the
-        window); its branches for the events of :meth:`beam_events` are the next step's candidates, the likeliest
-        of each cell kept (at most ``beam``, the likeliest; a failed branch ends). Every look-ahead step counts. The
-        look-ahead must run on the cut-in car alone (``--one-car``; :func:`check_options` refuses it otherwise)."""
-        p, target, g = self.params, self.problem.target, self.grid
-        w0, w1 = self.window
-        nb = int(np.ceil((gmax + h) / width))
-        sim = BatchedCutIn(p, 1)
-        self.pvvy_nom, p0s, nominal = {}, {}, {}
-        for t in range(w1 + 1):  # the nominal path: its variances (the regimes' reference) and p(detect)
-            self.pvvy_nom[t] = float(features(sim.state, self.traj[t])[0, LOG_PVVY])
-            p0s[t] = float(expit(target.detect_logit(np.ascontiguousarray(sim.objects())[:1, 0]))[0])
-            nominal[t] = (sim.snapshot(), sim.objects()[0, 0, VISIBLE] > 0.5)
-            if t < p.n_steps:
-                sim.step(sim.objects()[:, :, VISIBLE] > 0.5, None)
-        ev, log_pe = self.beam_events()
-        states, logp = one_car_state(nominal[w0 - DP_DEPTH][0]), np.zeros(1)
-        effects, nexts, g_nom, counts = {}, {}, {}, {}
-        self.effect_rows = []
-        nreg = self.n_regimes()
-        for t in range(w0 - DP_DEPTH, w1):
-            bsim = OneCar(p, logp.size)
-            bsim.restore(states)
-            if not nominal[t][1]:  # the car is not visible: every representative steps on, no event
-                bsim.step(np.zeros((logp.size, 1), dtype=bool), None)
-                self.count(bsim, logp.size)
-                states = bsim.snapshot()
-                continue
-            rows = np.ascontiguousarray(bsim.objects())
-            n = logp.size
-            r, bfeat = self.look_ahead(bsim, np.arange(n), np.zeros((n, 1, 3)), rows, np.full(n, np.inf),
-                                       keep_states=True)  # fmt: skip
-            gl = continuous_level(level(r), bfeat[..., -2], bfeat[..., -1])  # [n, NBRANCH]
-            reg = self.regime(features(bsim.state, self.traj[t], self.errors), t)
-            if t >= w0:
-                cells = reg * nb + g_bin(gl[:, 1], width, nb)
-                effects[t] = {int(c): gl[i] - gl[i, 1] for i, c in enumerate(cells)}  # the nominal's first (i = 0)
-                nexts[t] = {int(c): self.regime(bfeat[i], t + 1) for i, c in enumerate(cells)}
-                g_nom[t], counts[t] = float(gl[0, 1]), n
-                self.effect_rows.append((self.effect_inputs(bsim.state, t, gl[:, 1]), gl - gl[:, 1:2]))
-            p0 = expit(target.detect_logit(rows[:, 0]))
-            lp = logp[:, None] + np.where(ev == 0, np.log1p(-p0)[:, None], np.log(p0)[:, None] + log_pe[None, :])
-            creg = self.regime(bfeat[:, ev], t + 1)
-            cell = creg * nb + g_bin(gl[:, ev], width, nb)
-            alive = (gl[:, ev] > 0).ravel()
-            flat = np.flatnonzero(alive)[np.argsort(-lp.ravel()[alive], kind="stable")]
-            _, first = np.unique(cell.ravel()[flat], return_index=True)
-            keep = flat[np.sort(first)][:beam]  # the likeliest child of each cell, likeliest first
-            parent, j = np.divmod(keep, ev.size)
-            states, logp = self.branch_states.select(parent * g.nbranch + ev[j]), lp.ravel()[keep]
-        self.beam_counts = counts
-        if self.effect_model_on:
-            from sklearn.ensemble import ExtraTreesRegressor
-
-            x, y = (np.concatenate(a) for a in zip(*self.effect_rows))
-            self.effect_model = ExtraTreesRegressor(n_estimators=100, min_samples_leaf=1, random_state=0).fit(x, y)
-        return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, counts, width)
-
-    def effect_inputs(self, state, t: int, g0: np.ndarray) -> np.ndarray:
-        """The effect model's inputs [N, 21]: the track and the ego with the track's errors, G, the step."""
-        return np.column_stack([features(state, self.traj[t], True), g0, np.full(g0.size, float(t))])
-
-    def beam_events(self) -> tuple[np.ndarray, np.ndarray]:
-        """The branches a beam representative's children take (none, a miss, a range error low and high at the grid
-        edge nearest ``--dp-mass``, and each error low and high at :data:`BEAM_MODERATE`) and the log of each one's
-        probability given a detection (0 for the central draw; the miss's is the state's own)."""
-        g = self.grid
-        j, jm = g.edge(self.dp_mass), g.edge(BEAM_MODERATE)
-        ev = np.array([1, 0, 2 + j, 2 + g.ng + j, 2 + jm, 2 + g.ng + jm, 2 + 2 * g.ng + jm, 2 + 3 * g.ng + jm])
-        mass = np.array([1.0, 1.0, g.masses[j], g.masses[j]] + [g.masses[jm]] * 4)
-        return ev, np.log(mass)
-
-    def count(self, bsim: BatchedCutIn, steps: int) -> None:
-        """Count ``steps`` rollout-steps of a look-ahead on ``bsim`` (the whole twin or the cut-in car alone)."""
-        if isinstance(bsim, OneCar):
-            self.one_steps += steps
-        else:
-            self.branch_steps += steps
-
-    def margin(self, tr: tracker.Tracks) -> np.ndarray:
-        """The cut-in car's track's lateral margin outside the lane's 2 m band [N] (metres; 5 without a track); with
-        ``--continuous``, of the track as the last step's update left it (the predicted position less vy dt): the
-        estimate the ACC decided on."""
-        y = tr.y[0] - tr.vy[0] * self.params.dt_s if self.continuous else tr.y[0]
-        return np.where(tr.active[0], np.abs(y - self.params.ego_y_m) - LANE_WIDTH_M / 2, 5.0)
-
-    def continue_nominal(self, bsim: BatchedCutIn, lo: np.ndarray, before: np.ndarray | None = None) -> np.ndarray:
-        """Continue every rollout of ``bsim`` with nominal perception until the ACC follows the cut-in car, then by
-        :meth:`extrap`, lowering ``lo`` [N] to the operand's minimum; returns (follow step, the track's lateral margin
-        outside the lane there and a step before) [N, 3] (``before`` [N]: the margin a step before the first, else
-        5 m)."""
-        n = lo.size
-        live = np.arange(n)
-        graded = np.tile([float(self.end), 5.0, 5.0], (n, 1))
-        if before is not None:
-            graded[:, 1] = before
-        while live.size and bsim.t < self.end:
-            obs = bsim.observation()
-            lo[live] = np.minimum(lo[live], operand(obs))
-            tr = bsim.state.tracks
-            graded[live, 2] = np.abs(tr.vy[0]) * self.params.dt_s if self.continuous else graded[live, 1]
-            graded[live, 1] = self.margin(tr)
-            done = obs[:, FOLLOWED] == 0
-            graded[live[done], 0] = bsim.t
-            if done.any():
-                self.extrap(bsim, live, done, lo)
-                live = live[~done]
-                if not live.size:
-                    break
-                state = bsim.snapshot().select(np.flatnonzero(~done))
-                bsim = type(bsim)(self.params, live.size)
-                bsim.restore(state)
-            bsim.step(bsim.objects()[:, :, VISIBLE] > 0.5, None)
-            self.count(bsim, live.size)
-        if live.size:
-            lo[live] = np.minimum(lo[live], operand(bsim.observation()))
-        return graded
-
-    def extrap(self, bsim: BatchedCutIn, live: np.ndarray, done: np.ndarray, lo: np.ndarray) -> None:
-        """The ego behind the cut-in car to step ``end`` with the IDM on its true distance and speed."""
-        p = self.params
-        st = bsim.state.select(np.flatnonzero(done))
-        rows = live[done]
-        # the operand depends on the ego's (x, v) at the follow step alone: one extrapolation per distinct pair
-        # (most branches follow from the ego's cruising state of that step)
-        pairs, first, inverse = np.unique(np.column_stack([st.ego_x_m, st.ego_speed_mps]), axis=0, return_index=True,
-                                          return_inverse=True)  # fmt: skip
-        tracks, followed = st.tracks.select(first), st.followed[first]
-        x, v, low = pairs[:, 0].copy(), pairs[:, 1].copy(), np.full(pairs.shape[0], np.inf)
-        for t in range(st.t, self.end):
-            tr = self.traj[t]
-            a = idm_acceleration(p.idm, p.ego_target_speed_mps, v, tr.x_m[0] - x, v - tr.vx_mps[0])
-            a = np.maximum(a, -v / p.dt_s)
-            a = np.where(v > MAX_SPEED_MPS, np.minimum(a, MAX_SPEED_MPS - v), a)
-            x, v = x + v * p.dt_s, np.maximum(v + a * p.dt_s, 0.0)
-            low = np.minimum(low, operand(scene_signals(p, self.traj[t + 1], x, v, a, tracks, followed)))
-            self.extrap_steps += rows.size
-        lo[rows] = np.minimum(lo[rows], low[inverse.ravel()])
-
-    def look_ahead(self, sim: BatchedCutIn, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
-                   prefix_min: np.ndarray, reps: np.ndarray | None = None,
-                   keep_states: bool = False) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-        """Each branch's robustness [k, B] and next-state features [k, B, F] for the rollouts ``idx``; the branches
-        ``reps`` [B, 3] (uniforms of the cut-in car; None: the grid's NBRANCH). ``keep_states``: the branches' states
-        after their step are left in :attr:`branch_states` (row i B + b: rollout ``idx[i]``, branch b)."""
-        target, m, g = self.problem.target, rows.shape[1], self.grid
-        reps = g.reps if reps is None else reps
-        k, kk = idx.size, reps.shape[0]
-        r_rows = rows[idx].reshape(k * m, -1)
-        p_detect = expit(target.detect_logit(r_rows)).reshape(k, m)
-        det = (u[idx, :, 0] <= p_detect).reshape(-1)
-        noise = np.zeros((k * m, 2))
-        if det.any():
-            noise[det] = target.noise_from_uniforms(r_rows[det], u[idx].reshape(k * m, 3)[det, 1:])
-        det_b = np.repeat(det.reshape(k, m), kk, axis=0)
-        noise_b = np.repeat(noise.reshape(k, m, 2), kk, axis=0)
-        rb = np.tile(reps, (k, 1))
-        rows0 = np.repeat(rows[idx, 0, :], kk, axis=0)
-        det_b[:, 0] = rb[:, 0] <= np.repeat(p_detect[:, 0], kk)  # a branch's detection uniform is 0 or 1
-        noise_b[:, 0] = 0.0
-        hit = det_b[:, 0]
-        noise_b[hit, 0] = target.noise_from_uniforms(rows0[hit], rb[hit, 1:])
-        start = sim.snapshot().select(np.repeat(idx, kk))
-        if self.one_car:
-            bsim = OneCar(self.params, k * kk)
-            bsim.restore(one_car_state(start))
-            bsim.step(det_b[:, :1], noise_b[:, :1])
-        else:
-            bsim = BatchedCutIn(self.params, k * kk)
-            bsim.restore(start)
-            bsim.step(det_b, noise_b)
-        self.count(bsim, k * kk)
-        if keep_states:
-            self.branch_states = bsim.snapshot()
-        feats = features(bsim.state, self.traj[bsim.t], self.errors)
-        lo = np.repeat(prefix_min[idx], kk)
-        before = None
-        if self.continuous:  # the margin of the state the branches start from
-            before = self.margin(start.tracks)
-        graded = self.continue_nominal(bsim, lo, before)
-        if self.graded:
-            feats = np.column_stack([feats, graded[:, 0] - sim.t, graded[:, 1:]])
-        return lo.reshape(k, kk), feats.reshape(k, kk, -1)
 
     def log_q_table(self, r: np.ndarray, t: int, feats: np.ndarray | None = None) -> np.ndarray:
         """log V(level, t + 1) of the branches [k, NBRANCH] from the level table (``a`` ^ L before the first fit;
@@ -813,8 +321,8 @@ class LookAheadTilt:
         if self.v_table is None:
             if self.continuous and feats is not None:
                 gl = continuous_level(lv, feats[..., -2], feats[..., -1])
-                if self.dp is not None:
-                    return self.dp.log_u(t + 1, gl, self.regime(feats, t + 1))
+                if self.chain is not None:
+                    return self.chain.log_u(t + 1, gl, self.regime(feats, t + 1))
                 return gl * np.log(self.a)
             return lv * np.log(self.a)
         return np.log(self.v_table[lv, t + 1 - self.window[0]])
@@ -840,75 +348,51 @@ class LookAheadTilt:
         return np.concatenate([np.repeat(sfeat[:, None, :self.n_state], kk, axis=1), np.full((k, kk, 1), float(t)),
                                np.broadcast_to(self.grid.desc, (k, kk, 3))], axis=2).reshape(k * kk, -1)  # fmt: skip
 
+
+    def branch_log_q(self, sim: BatchedCutIn, t: int, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
+                     prefix_min: np.ndarray, sfeat: np.ndarray, p0: np.ndarray) -> np.ndarray:  # fmt: skip
+        """log Q of the branches [k, NBRANCH] by the study's route: a Q model, the chain's effects (pemviz's), or a
+        look-ahead of every branch scored by the chain, the level table or the fitted V (its step kept for the fit)."""
+        self._step = None
+        if self.q_model is not None:
+            return np.minimum(self.q_model.predict(self.q_inputs(sfeat, t)).reshape(idx.size, -1), 0.0)
+        if self.chain_effects:  # one continuation (the state's own G); the events' from the chain
+            return super().branch_log_q(sim, t, idx, u, rows, prefix_min, sfeat, p0)
+        r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min)
+        if self.check_one_car:  # the same branches on the cut-in car alone
+            self.one_car = True
+            r1, b1 = self.look_ahead(sim, idx, u, rows, prefix_min)
+            self.one_car = False
+            self.agree.append(np.column_stack([level(r).ravel() == level(r1).ravel(),
+                                               bfeat[..., -3].ravel() == b1[..., -3].ravel()]))
+        if self.graded:
+            sfeat = np.column_stack([sfeat, bfeat[:, 1, -3:]])
+        ps = self.one_step(self.grid.p_class(p0), r, t)
+        self._step = Step(t, idx, None, r, None, bfeat, sfeat, ps, self.parent[idx].copy())
+        self.parent[idx] = ps
+        return self.log_q_hat(r, bfeat, t, ps)
+
+    def drawn(self, t: int, idx: np.ndarray, cls: np.ndarray, pc: np.ndarray) -> None:
+        """Keep a look-ahead step for the fit; with ``--skip-doomed``, no look-ahead after a class whose edges both
+        fail."""
+        step = self._step
+        if step is not None:
+            step.cls, step.pc = cls, pc
+            self._trace.append(step)
+            if self.skip_doomed:
+                self.doomed[idx] = self.grid.level_dist(step.r)[np.arange(idx.size), cls, 0] > 0.99
+
     def simulate(self, n: int, rng: np.random.Generator, given: np.ndarray | None = None):
         """One stage of n rollouts: (failed bool [n], log w [n], cost in rollout-equivalents, kinematic steps / T).
         ``given`` [T, n, M, 3]: replay these uniforms (their classes scored, nothing drawn)."""
-        params, target, m, g = self.params, self.problem.target, self.params.n_objects, self.grid
-        sim = BatchedCutIn(params, n)
-        log_w, prefix_min = np.zeros(n), np.full(n, np.inf)
-        parent, doomed = np.full(n, np.nan), np.zeros(n, dtype=bool)
-        trace: list[Step] = []
-        b0, o0, e0 = self.branch_steps, self.one_steps, self.extrap_steps
-
-        def uniforms():
-            for t in range(params.n_steps):
-                u = rng.random((n, m, 3)) if given is None else given[t].copy()
-                prefix_min[:] = np.minimum(prefix_min, operand(sim.observation()))
-                if self.window[0] <= t < self.window[1]:
-                    rows = np.ascontiguousarray(sim.objects())
-                    idx = np.flatnonzero((rows[:, 0, VISIBLE] > 0.5) & (prefix_min >= 0.0) & ~doomed)
-                    if idx.size:
-                        sfeat = features(sim.state.select(idx), self.traj[t], self.errors)
-                        p0 = expit(target.detect_logit(rows[idx, 0]))
-                        if self.q_model is not None:
-                            step = None
-                            lqb = np.minimum(self.q_model.predict(self.q_inputs(sfeat, t)).reshape(idx.size, -1), 0.0)
-                        elif self.chain_effects:  # one continuation (the state's own G); the events' from the chain
-                            step = None
-                            r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min, g.reps[1:2])
-                            g0 = continuous_level(level(r[:, 0]), bfeat[:, 0, -2], bfeat[:, 0, -1])
-                            shifts = None
-                            if self.effect_model is not None and t in self.dp.effects:
-                                shifts = self.effect_model.predict(self.effect_inputs(sim.state.select(idx), t, g0))
-                            lqb = self.dp.log_q_branches(t, g0, self.regime(sfeat, t), shifts)
-                        else:
-                            r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min)
-                            if self.check_one_car:  # the same branches on the cut-in car alone
-                                self.one_car = True
-                                r1, b1 = self.look_ahead(sim, idx, u, rows, prefix_min)
-                                self.one_car = False
-                                self.agree.append(np.column_stack([level(r).ravel() == level(r1).ravel(),
-                                                                   bfeat[..., -3].ravel() == b1[..., -3].ravel()]))
-                            if self.graded:
-                                sfeat = np.column_stack([sfeat, bfeat[:, 1, -3:]])
-                            ps = self.one_step(g.p_class(p0), r, t)
-                            lqb = self.log_q_hat(r, bfeat, t, ps)
-                            step = Step(t, idx, None, r, None, bfeat, sfeat, ps, parent[idx].copy())
-                            parent[idx] = ps
-                        pc, qc = g.proposal(p0, self.beta * lqb, self.eps)
-                        if given is None:
-                            cum = np.cumsum(qc, axis=1)
-                            cls = np.minimum((cum < rng.random(idx.size)[:, None] * cum[:, -1:]).sum(axis=1),
-                                             pc.shape[1] - 1)  # fmt: skip
-                            u[idx, 0] = g.draw(cls, p0, rng.random((idx.size, 3)))
-                        else:
-                            cls = g.classify(u[idx, 0], p0)
-                        rr = np.arange(idx.size)
-                        log_w[idx] += np.log(pc[rr, cls]) - np.log(qc[rr, cls])
-                        if step is not None:
-                            step.cls, step.pc = cls, pc
-                            trace.append(step)
-                            if self.skip_doomed:  # both edges of the drawn class fail: no look-ahead after it
-                                doomed[idx] = g.level_dist(r)[rr, cls, 0] > 0.99
-                yield u.reshape(-1)
-
-        with np.errstate(divide="ignore"):
-            batch = run_batched(sim, n, params.n_steps, target, target, uniforms(), keep_rows=False)
+        self.parent, self._trace = np.full(n, np.nan), []
+        e0 = self.extrap_steps
+        batch, log_w, steps = self.stage(n, rng, given)
         failed = self.problem.failed(batch, self.problem.robustness(batch, "classic"))
         if given is None:
-            self.traces.append((n, trace, failed))
-        cost = n + (self.branch_steps - b0 + self.one_steps - o0) / params.n_steps
-        return failed, log_w, cost, (self.extrap_steps - e0) / params.n_steps
+            self.traces.append((n, self._trace, failed))
+        return failed, log_w, n + steps / self.params.n_steps, (self.extrap_steps - e0) / self.params.n_steps
+
 
     def fit(self, iterations: int) -> None:
         """V(L, t) from the level kernel of every stage so far, then log V on the branches' next states by fitted value
@@ -1030,9 +514,9 @@ def main() -> None:
     study = LookAheadTilt(args)
     if args.dp:
         t0 = time.perf_counter()
-        study.dp = study.solve_beam(args.beam) if args.beam else study.solve_dp()
-        u_nom = {t: float(np.exp(study.dp.log_u(t, np.array(g)))) for t, g in study.dp.g_nom.items()}
-        steps, states = study.one_steps + study.branch_steps, study.dp.states.values()
+        study.chain = study.solve_beam(args.beam) if args.beam else study.solve_dp()
+        u_nom = {t: float(np.exp(study.chain.log_u(t, np.array(g)))) for t, g in study.chain.g_nom.items()}
+        steps, states = study.one_steps + study.branch_steps, study.chain.states.values()
         print(f"level chain solved on the nominal path in {time.perf_counter() - t0:.1f} s ({min(states)}-"
               f"{max(states)} regime states a step, {steps:,} continuation steps = {steps / study.params.n_steps:,.0f} "
               f"rollout-equivalents); its own p_fail "

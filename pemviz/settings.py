@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass
 
 
-METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams")
+METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt")
 """adaptive: Algorithm 1; mc: rollouts with the PEM itself; naive50: a 50 % detector at every step;
 mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table II); ams: adaptive multilevel
 splitting of PEM rollouts on their robustness, no importance weights (Cerou & Guyader 2007; Brehier et al. 2016;
@@ -263,7 +263,9 @@ SETTINGS: dict[str, Setting] = _settings(
             choice_help=(("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1)"),
                          ("mc", "rollouts with the PEM itself"), ("naive50", "a 50 % detector at every step"),
                          ("mixed50", "50 % inside the window and the PEM outside"),
-                         ("ams", "adaptive multilevel splitting on the robustness, no importance weights"))),
+                         ("ams", "adaptive multilevel splitting on the robustness, no importance weights"),
+                         ("tilt", "the scenario's own proposal: each step's events tilted by an approximate "
+                                  "probability of failure after them (the cut-in)"))),
     Setting("n_stages", "the number of cross-entropy stages K",
             "stages of N rollouts, the proposal refitted after each", kind="int", symbol="K", lo=1, hi=MAX_STAGES,
             flags=("--k", "--stages")),

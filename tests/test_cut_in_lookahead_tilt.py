@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 from conftest import REPO, load_script
 
+from pemviz.scenarios.cut_in import committor, lookahead
+
 
 @pytest.fixture(scope="module")
 def study():
@@ -28,7 +30,7 @@ def test_a_tilted_draw_is_weighed_so_that_every_event_keeps_its_pem_probability(
     """Uniforms drawn class by class from the proposal and weighed p / q of the class they fall in: E[w] = 1,
     E[w 1{miss}] = 1 - p(detect), and E[w 1{u < m}] = p(detect) m for tail masses m inside bins (so a draw that were
     not uniform in its bin would show), within 5 standard errors of 200,000 draws."""
-    grid = study.Grid(np.array(study.GRIDS[grid_name]))
+    grid = committor.Grid(np.array(committor.GRIDS[grid_name]))
     n = 200_000
     p0 = np.full(n, 0.985)
     pc, qc = (a[0] for a in poor_proposal(study, grid, p0[:1]))
@@ -54,7 +56,7 @@ def test_a_tilted_draw_is_weighed_so_that_every_event_keeps_its_pem_probability(
 
 def test_the_tilt_follows_q_and_the_pems_keep_their_share(study):
     """A class whose Q is e^30 times another's is drawn far more often, and every class keeps at least eps p."""
-    grid = study.Grid(np.array(study.GRIDS["coarse"]))
+    grid = committor.Grid(np.array(committor.GRIDS["coarse"]))
     p0 = np.array([0.99])
     log_qb = np.full((1, grid.nbranch), -30.0)
     log_qb[0, 0] = 0.0  # a miss fails: Q = 1
@@ -66,7 +68,7 @@ def test_the_tilt_follows_q_and_the_pems_keep_their_share(study):
 def test_a_continuations_level_counts_the_steps_of_late_braking_it_can_still_take(study):
     """Level 0 fails; 0.10 m (one step late at the moderate setting) is 1; 0.86 m (on time) 2; capped at LMAX."""
     r = np.array([-0.66, -1e-9, 0.0, 0.10, 0.75, 0.86, 1.62, 100.0])
-    assert study.level(r).tolist() == [0, 0, 1, 1, 1, 2, 3, study.LMAX]
+    assert committor.level(r).tolist() == [0, 0, 1, 1, 1, 2, 3, committor.LMAX]
 
 
 def test_the_continuous_level_adds_how_deep_inside_the_lane_the_track_followed(study):
@@ -74,17 +76,17 @@ def test_the_continuous_level_adds_how_deep_inside_the_lane_the_track_followed(s
     lv = np.array([0, 1, 1, 2, 2, 3])
     inside = np.array([-0.1, -0.1, 0.0, -0.3, 0.2, -0.05])
     step = np.array([0.2, 0.2, 0.2, 0.2, 0.2, 0.25])
-    assert study.continuous_level(lv, inside, step) == pytest.approx([0.0, 0.5, 0.0, 2.0, 1.0, 2.2])
+    assert committor.continuous_level(lv, inside, step) == pytest.approx([0.0, 0.5, 0.0, 2.0, 1.0, 2.2])
 
 
 @pytest.mark.parametrize("miss_shift, expected", [(-2.0, 1 - 0.9 * 0.8), (-1.0, 0.1 * 0.2), (-0.5, 0.0)])
 def test_the_level_chain_gives_the_closed_form_probability_of_enough_misses(study, miss_shift, expected):
     """Two steps whose only event that moves the continuous level is a miss (p 0.1, then 0.2): from g = 1.5, a miss
     that lowers g by 2 fails alone (1 - 0.9 x 0.8), by 1 needs both (0.1 x 0.2), by 0.5 cannot fail (g stays 0.5)."""
-    grid = study.Grid(np.array(study.GRIDS["coarse"]))
+    grid = committor.Grid(np.array(committor.GRIDS["coarse"]))
     effects = {t: {0: np.r_[miss_shift, np.zeros(grid.nbranch - 1)]} for t in range(2)}
     nexts = {t: {0: np.zeros(grid.nbranch, dtype=np.int64)} for t in range(2)}
-    chain = study.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, effects, nexts, 1, 0.01, 6.0)
+    chain = committor.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, effects, nexts, 1, 0.01, 6.0)
     assert np.exp(chain.log_u(0, np.array(1.5))) == pytest.approx(expected, abs=1e-12)
     assert np.exp(chain.log_u(2, np.array([0.0, 0.3]))) == pytest.approx([1.0, 0.0], abs=1e-12)
 
@@ -94,10 +96,10 @@ def test_the_chain_gives_each_branch_the_value_of_the_level_its_event_leads_to(s
     """--chain-effects: from g = 1.5 at step 0 of the two-step chain above, a miss leads to g = 1.5 + shift and any
     detection keeps g = 1.5, so the branches' Q is U_1 there: 1 and 1 - 0.8 (shift -2: a second miss fails too), or
     0.2 and 0 (shift -1); and sum_c p(c) Q(c) gives back U_0(1.5) (1 - 0.9 x 0.8, or 0.1 x 0.2)."""
-    grid = study.Grid(np.array(study.GRIDS["lean"]))
+    grid = committor.Grid(np.array(committor.GRIDS["lean"]))
     effects = {t: {0: np.r_[miss_shift, np.zeros(grid.nbranch - 1)]} for t in range(2)}
     nexts = {t: {0: np.zeros(grid.nbranch, dtype=np.int64)} for t in range(2)}
-    chain = study.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, effects, nexts, 1, 0.01, 6.0)
+    chain = committor.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, effects, nexts, 1, 0.01, 6.0)
     q = np.exp(chain.log_q_branches(0, np.array([1.5]), np.array([0])))
     assert q.shape == (1, grid.nbranch)
     assert q[0, 0] == pytest.approx(miss_q, abs=1e-12) and q[0, 1:] == pytest.approx(other_q, abs=1e-12)
@@ -111,15 +113,15 @@ def test_a_chain_with_bins_of_g_takes_each_bins_effect_and_the_nearest_where_a_b
     and take bin 1's). From g = 1.5, two misses (p 0.1, then 0.2) fail: 0.1 x 0.2; one alone leaves g at 0.9. With
     one bin, the misses' -0.6 each never fail (0.3 left). Regime 1, without any representative, takes the nominal
     regime's (the first cell)."""
-    grid = study.Grid(np.array(study.GRIDS["lean"]))
+    grid = committor.Grid(np.array(committor.GRIDS["lean"]))
 
     def shift(d):
         return np.r_[d, np.zeros(grid.nbranch - 1)]
 
     nexts0 = np.zeros(grid.nbranch, dtype=np.int64)
-    binned = study.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, {t: {1: shift(-0.6), 0: shift(-2.0)} for t in range(2)},
+    binned = committor.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, {t: {1: shift(-0.6), 0: shift(-2.0)} for t in range(2)},
                               {t: {1: nexts0, 0: nexts0} for t in range(2)}, 2, 0.01, 6.0, bin_width=1.0)  # fmt: skip
-    one = study.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, {t: {0: shift(-0.6)} for t in range(2)},
+    one = committor.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, {t: {0: shift(-0.6)} for t in range(2)},
                            {t: {0: nexts0} for t in range(2)}, 2, 0.01, 6.0)  # fmt: skip
     assert binned.nbins == 7 and binned.nearest_cells([1, 0], 2).tolist() == [[0, 1, 1, 1, 1, 1, 1]] * 2
     assert np.exp(binned.log_u(0, np.array([1.5, 1.5]), np.array([0, 1]))) == pytest.approx([0.02, 0.02], abs=1e-12)
@@ -132,7 +134,7 @@ def test_a_chain_with_bins_of_g_takes_each_bins_effect_and_the_nearest_where_a_b
 def test_the_beams_events_are_the_grid_branches_they_name(study):
     """A beam representative's children: the central draw, a miss, a range error at the gate (the lean grid's 1e-3
     edge) low and high, and each error at 1.6e-2 low and high; their log probabilities given a detection."""
-    self = type("S", (), {"grid": study.Grid(np.array(study.GRIDS["lean"])), "dp_mass": 1e-3})()
+    self = type("S", (), {"grid": committor.Grid(np.array(committor.GRIDS["lean"])), "dp_mass": 1e-3})()
     ev, log_pe = study.LookAheadTilt.beam_events(self)
     reps = self.grid.reps[ev]
     expected = [(0, 0.5, 0.5), (1, 0.5, 0.5), (0, 1e-3, 0.5), (0, 1 - 1e-3, 0.5), (0, 1.6e-2, 0.5),
@@ -188,12 +190,12 @@ def test_the_cut_in_car_alone_drives_the_ego_as_the_whole_twin_does(study):
 
     params = cut_in_params("moderate")
     n, rng = 300, np.random.default_rng(3)
-    whole, alone = BatchedCutIn(params, n), study.OneCar(params, n)
-    visible = study.VISIBLE
+    whole, alone = BatchedCutIn(params, n), lookahead.OneCar(params, n)
+    visible = lookahead.VISIBLE
     for _ in range(40):
         obs, obs1 = whole.observation(), alone.observation()
-        np.testing.assert_allclose(study.operand(obs1), study.operand(obs), rtol=0, atol=1e-9)
-        assert np.array_equal(obs1[:, study.FOLLOWED], obs[:, study.FOLLOWED])
+        np.testing.assert_allclose(lookahead.operand(obs1), lookahead.operand(obs), rtol=0, atol=1e-9)
+        assert np.array_equal(obs1[:, lookahead.FOLLOWED], obs[:, lookahead.FOLLOWED])
         det = whole.objects()[:, :, visible] > 0.5
         det[:, 0] &= rng.random(n) > 0.2
         noise = np.zeros((n, params.n_objects, 2))

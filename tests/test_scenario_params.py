@@ -143,7 +143,7 @@ def test_a_run_with_a_parameter_prints_and_records_it(tmp_path, capsys):
                           "--save-rollouts", str(rollouts)], capsys)  # fmt: skip
     assert code == 0, err
     header = out.splitlines()[0]
-    assert header.startswith("pemviz: mc on the cut-in scenario (cut_in_gap_m=19.5 m), spec "), header
+    assert header.startswith("pemviz: tilt on the cut-in scenario (cut_in_gap_m=19.5 m), spec "), header
     assert "reference" not in out  # the moderate setting's reference is for its own scene
     doc = json.loads(result.read_text())
     assert doc["settings"]["scenario_params"] == [["cut_in_gap_m", 19.5]]
@@ -161,7 +161,7 @@ def test_a_run_with_a_parameter_prints_and_records_it(tmp_path, capsys):
 def test_a_parameter_at_its_default_is_not_named_in_the_header(capsys):
     code, out, err = run(["--scenario", "cut-in", "--param", "cut_in_gap_m=20", *SMALL], capsys)
     assert code == 0, err
-    assert out.splitlines()[0].startswith("pemviz: mc on the cut-in scenario, spec "), out.splitlines()[0]
+    assert out.splitlines()[0].startswith("pemviz: tilt on the cut-in scenario, spec "), out.splitlines()[0]
 
 
 @pytest.mark.parametrize("param, words", [

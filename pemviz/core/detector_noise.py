@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from pemviz.core import exact
 from pemviz.core.exact import row_sum
 from pemviz.core.t_quantile import student_t_quantile
 
@@ -85,13 +86,14 @@ def _t_log_constant(nu_bytes: bytes, shape: tuple[int, ...]) -> np.ndarray:
 def noise_quantile(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
                    u: np.ndarray) -> np.ndarray:  # fmt: skip
     """Errors ``loc + exp(log_scale) F^-1(u)`` of a location-scale family, float64 [R, D] from uniforms [R, D] in (0, 1)
-    (F the standard ``family``'s CDF; Student-t with ``df`` [D]).
+    (F the standard ``family``'s CDF; Student-t with ``df`` [D]); the scale from :func:`pemviz.core.exact.exp`, so
+    that an error is the same on every CPU (numpy's vector exp rounds its last bit by the CPU).
 
     Raises:
         ValueError: an unknown family.
     """
     z = standard_quantile(family, df, u)
-    return np.asarray(loc, dtype=np.float64) + np.exp(log_scale) * z
+    return np.asarray(loc, dtype=np.float64) + exact.exp(np.asarray(log_scale, dtype=np.float64)) * z
 
 
 def noise_log_density(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
@@ -102,7 +104,7 @@ def noise_log_density(family: str, df: np.ndarray | None, loc: np.ndarray, log_s
     Raises:
         ValueError: an unknown family.
     """
-    z = (np.asarray(noise, dtype=np.float64) - loc) * np.exp(-np.asarray(log_scale, dtype=np.float64))
+    z = (np.asarray(noise, dtype=np.float64) - loc) * exact.exp(-np.asarray(log_scale, dtype=np.float64))
     return row_sum(standard_log_density(family, df, z) - log_scale)
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Iterator, Mapping
+from typing import Callable, Iterator, Mapping, Protocol
 
 import numpy as np
 from scipy.special import expit
@@ -50,6 +50,19 @@ BranchFn = Callable[[RolloutBatch, np.ndarray, np.ndarray, Detector, np.random.G
 StreamFn = Callable[..., Iterator[RolloutBatch]]
 """``stream(n, sampler, target, rng, chunk_size=DEFAULT_CHUNK_SIZE)``: the rollouts of ``simulate`` with the same
 arguments, in chunks of at most ``chunk_size`` rollouts (the rollouts do not depend on it)."""
+
+
+class TiltSampler(Protocol):
+    """A scenario's own importance sampler (``method = "tilt"``, :class:`pemviz.estimators.tilt.CommittorTilt`): each
+    step's events drawn in proportion to p(event) times an approximate probability of failure after it.
+
+    ``solve()`` prepares it once a run and returns the rollout-steps it simulated; ``draw(n, rng)`` returns ``n``
+    rollouts (a :class:`RolloutBatch` whose ``log_q`` is the proposal's, so that log p - log q is each step's log
+    importance weight) and the rollout-steps its look-aheads simulated besides."""
+
+    def solve(self) -> int: ...
+
+    def draw(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, int]: ...
 
 
 @dataclass(frozen=True)
@@ -110,6 +123,8 @@ class Problem:
             variance of the steps after it removed (conditional Monte Carlo: Asmussen & Glynn, Stochastic Simulation,
             Springer 2007, V.4); None: the failure indicator itself.
         look_ahead_s: the seconds per rollout the look-ahead takes, about, for time estimates (0: none).
+        tilt: the scenario's own importance sampler, made once a run (``tilt() ->`` :class:`TiltSampler`), for
+            ``method = "tilt"``; None: the scenario has none.
     """
 
     name: str
@@ -143,6 +158,7 @@ class Problem:
     verdict_cap: tuple[str, str] | None = None
     look_ahead: LookAheadFn | None = None
     look_ahead_s: float = 0.0
+    tilt: Callable[[], TiltSampler] | None = None
 
     @property
     def view(self) -> ProblemView:

@@ -342,6 +342,8 @@ class FailureSeverity:
     @property
     def covered(self) -> float:
         """The share of mu_hat the kept failures carry (1 when all were kept; 0 when none)."""
+        if self.n == self.n_failures:  # every failure kept: 1 exactly, not a sum of shares rounded by the CPU
+            return 1.0
         return min(1.0, float(np.exp(logsumexp(self.log_share[self.kept])))) if self.n else 0.0
 
     def own_log_share(self) -> np.ndarray:

@@ -58,6 +58,9 @@ class CostConstants:
             of pretraining's proposal; the pool of failures grows over the next stages).
         early_stop_share: the mean share of ``ce_epochs`` a CE fit with ``fit_tolerance`` runs before it stops.
         ams_rollouts: rollout-equivalents AMS simulates per particle (its continuations), about.
+        tilt_rollouts: the seconds of a rollout of ``method = "tilt"`` in plain rollouts' (its look-ahead and the
+            proposal's arithmetic), about.
+        tilt_solve_s: the seconds of the tilt's solve, once a run, about.
         measured: when, where and how the constants were measured.
     """
 
@@ -75,6 +78,8 @@ class CostConstants:
     ce_rows_stages: float
     early_stop_share: float
     ams_rollouts: float = 5.0
+    tilt_rollouts: float = 6.0
+    tilt_solve_s: float = 4.0
     measured: str = field(default="", compare=False)
 
 
@@ -137,8 +142,9 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
     per_step = c.proposal_step_s if proposal else c.pem_step_s
     per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
     per_rollout *= SCENARIO_COST_FACTORS.get(cfg.scenario, 1.0)  # what the scenario declares (1: none)
-    rollouts = n * (c.ams_rollouts if kind == "ams" else 1.0)
-    simulate = n_steps * (per_step + per_rollout * rollouts)
+    tilt = cfg.method == "tilt"
+    rollouts = n * (c.ams_rollouts if kind == "ams" else c.tilt_rollouts if tilt else 1.0)
+    simulate = n_steps * (per_step + per_rollout * rollouts) + (c.tilt_solve_s if tilt and stage == 1 else 0.0)
     cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
     inputs = cfg.proposal_inputs
     fit = c.stage_s

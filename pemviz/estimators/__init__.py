@@ -4,6 +4,7 @@
 - :class:`CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022) with pemviz's improvements.
 - :class:`FixedSampler` (``mc``, ``naive50``, ``mixed50``): one importance-weighted batch from a fixed detector.
 - :class:`AdaptiveMultilevelSplitting` (``ams``): splitting of target rollouts on their robustness, no weights.
+- :class:`~pemviz.estimators.tilt.CommittorTilt` (``tilt``): the scenario's own tilted proposal, one weighted batch.
 - :class:`PrecisionTarget` (``rel_error``, ``require``): any of the first two, with final batches added until a
   relative precision or a decision on a requirement.
 """
@@ -48,6 +49,10 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
         return AdaptiveMultilevelSplitting(config, problem, check)
     if config.method == "adaptive":
         inner: CrossEntropy | FixedSampler = CrossEntropy(config, problem, check)
+    elif config.method == "tilt":
+        from pemviz.estimators.tilt import CommittorTilt
+
+        inner = CommittorTilt(problem, config.n_per_stage, config.weights_until_failure, config.seed)
     else:
         baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
         inner = baseline(problem, config.n_per_stage, config.weights_until_failure, config.seed)

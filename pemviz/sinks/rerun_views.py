@@ -181,7 +181,7 @@ Indexes = Callable[..., list]
 """``indexes(step=array)``: the time columns of a ``send_columns`` (the sink's, with its repetition)."""
 
 
-DESCRIBED_METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams")
+DESCRIBED_METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt")
 """The methods :func:`method_markdown` describes in words; any other is described by its plan's stages."""
 
 
@@ -209,6 +209,10 @@ def method_markdown(ev: RunStarted) -> str:
         "ams": (f"**adaptive multilevel splitting** on robustness (Cerou & Guyader 2007): N = {cfg.n_per_stage} "
                 f"PEM rollouts, the k = {cfg.ams_killed} highest killed per iteration and branched from survivors; "
                 "each stage shows the particles after about N resamplings."),
+        "tilt": (f"**approximate zero-variance importance sampling** (L'Ecuyer & Tuffin 2008): {cfg.n_per_stage} "
+                 "rollouts, each step's events drawn in proportion to their PEM probability times the scenario's "
+                 "approximate probability of failure after them, mixed with the PEM; the simulations count the "
+                 "look-aheads' steps too."),
     }
     return known[cfg.method]
 

@@ -441,7 +441,7 @@ def report(problems: Sequence[str], truths: dict[str, ExactAnswer], summaries: S
 
 # -- methods at equal budgets -------------------------------------------------------------------------------------
 
-BASELINES = tuple(m for m in METHODS if m != "adaptive")
+BASELINES = tuple(m for m in METHODS if m not in ("adaptive", "tilt"))
 """The baseline methods a study can compare the adaptive sampler with."""
 
 

@@ -160,7 +160,8 @@ def test_a_method_the_recording_does_not_know_is_described_by_its_plan():
     from pemviz.sinks.rerun_views import method_markdown
 
     plan = RunPlan.of([(0, "pretrain", 50), (1, "ce", 80), (2, "final", 300)])
-    ev = SimpleNamespace(config=SimpleNamespace(method="tilt", n_per_stage=80), plan=plan,
+    ev = SimpleNamespace(config=SimpleNamespace(method="splitting-2030", n_per_stage=80), plan=plan,
                          problem=SimpleNamespace(thresholds=None))  # fmt: skip
     text = method_markdown(ev)
-    assert text.startswith("method **tilt**:") and "pretraining (50 rollouts)" in text and "(300 rollouts)" in text
+    assert text.startswith("method **splitting-2030**:")
+    assert "pretraining (50 rollouts)" in text and "(300 rollouts)" in text

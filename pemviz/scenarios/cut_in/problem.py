@@ -88,6 +88,11 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
 
     run, stream, resume = rollout_functions(make, p.n_steps)
 
+    def tilt() -> object:
+        from pemviz.scenarios.cut_in.tilt import CutInTilt
+
+        return CutInTilt(p, detector)
+
     return Problem(
         name, run, detector, stl.parse(CUT_IN_FORMULA), signals=dict(CUT_IN_SIGNALS),
         units={"margin": "m", "grace": "", "clearance": "m"},
@@ -96,7 +101,7 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
         stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"), dt_s=p.dt_s,
         n_objects=p.n_objects, n_steps=p.n_steps, drawing=CutInDrawing(p),
-        noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")),
+        noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")), tilt=tilt,
         description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
                      f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),
     )  # fmt: skip

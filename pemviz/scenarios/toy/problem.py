@@ -28,6 +28,11 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
     def branch(parents, parent, at, target: Detector, rng: np.random.Generator):
         return branch_toy(p, parents, parent, at, target, rng)
 
+    def tilt() -> object:
+        from pemviz.scenarios.toy.tilt import ToyTilt
+
+        return ToyTilt(p)
+
     p_label = f"{p.p_detect:g}" if not callable(p.p_detect) else "p(d)"
     return Problem(
         name or f"toy({p.total},{p.braking},{p.safe},{p_label})",
@@ -44,6 +49,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
         n_steps=p.steps,
         exact_log_p=toy_log_failure_probability(p),
         branch=branch,
+        tilt=tilt,
         description=(f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
                      f"closer than {p.safe}; detection probability {p_label}"),
     )

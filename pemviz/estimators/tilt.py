@@ -1,0 +1,70 @@
+"""Approximate zero-variance importance sampling with the scenario's own proposal (``method = "tilt"``): each step's
+events drawn in proportion to p(event) times an approximate committor (the probability of failure after the event),
+mixed defensively with the PEMs, every weight p / q exact.
+
+The scenario supplies the proposal (:attr:`pemviz.core.problems.Problem.tilt`, a :class:`~pemviz.core.problems.
+TiltSampler`: e.g. :class:`pemviz.scenarios.cut_in.tilt.CutInTilt`); this estimator solves it once, draws its batches
+and pools them like plain Monte Carlo's: every rollout alike, weighed by p / q (Kollman, Baggerly, Cox & Picard 1999,
+Ann. Appl. Probab. 9(2); L'Ecuyer & Tuffin 2008, "Approximate zero-variance simulation", WSC). The estimate is
+unbiased whatever the committor's errors, which cost variance only.
+
+The run's simulations are rollout-equivalents: the rollouts plus every step the proposal's look-aheads simulate (its
+solve included), divided by the rollout's T steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+
+from pemviz.core.problems import Problem, TiltSampler
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.estimators.base import StagePlan
+from pemviz.estimators.fixed import FixedSampler
+
+
+class CommittorTilt(FixedSampler):
+    """N rollouts from the problem's tilted proposal (module docstring), weighed by their batch's log p - log q.
+
+    Args:
+        problem: what to estimate; its ``tilt`` makes the proposal.
+        n: rollouts.
+        weights_until_failure: importance weights stop at the failure step.
+        seed: the rollouts' stream, ``numpy.random.default_rng(seed)``.
+
+    Raises:
+        ValueError: a problem without a tilted proposal.
+    """
+
+    def __init__(self, problem: Problem, n: int, weights_until_failure: bool, seed: int = 0) -> None:
+        if problem.tilt is None:
+            raise ValueError(f"method tilt: the {problem.name} problem has no tilted proposal of its own; use adaptive "
+                             f"or mc")
+        super().__init__(problem, problem.target, n, weights_until_failure, seed)
+        self.sampler_of_scene: TiltSampler | None = None
+        self.look_ahead_steps = 0
+        """Rollout-steps the proposal's look-aheads simulated, its solve included."""
+
+    def _open(self, stage: int, n: int) -> StagePlan:
+        return dataclasses.replace(super()._open(stage, n), draw=functools.partial(self._draw, n))
+
+    def _draw(self, n: int, rng: np.random.Generator) -> RolloutBatch:
+        """``n`` rollouts of the tilted proposal (solved first, once a run), on one BLAS thread (as the problems'
+        own rollouts: :func:`pemviz.core.problems.rollout_functions`)."""
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):
+            if self.sampler_of_scene is None:
+                assert self.problem.tilt is not None
+                self.sampler_of_scene = self.problem.tilt()
+                self.look_ahead_steps += self.sampler_of_scene.solve()
+            batch, steps = self.sampler_of_scene.draw(n, rng)
+        self.look_ahead_steps += steps
+        return batch
+
+    @property
+    def n_simulations(self) -> int:
+        """The rollout-equivalents simulated so far: the rollouts plus the look-aheads' steps over T."""
+        return self.final_rollouts() + round(self.look_ahead_steps / max(1, self.problem.n_steps or 1))

@@ -1,0 +1,63 @@
+"""The toy's tilted proposal (``method = "tilt"``) with a deliberately poor committor: the check that the tilted
+estimator is unbiased whatever its V (:func:`pemviz.testing.check_estimator`).
+
+The toy's exact committor of a moving car at distance d is V(d) = prod_{d' = safe}^{min(d, braking)} (1 - p(d')), and a
+detection within the braking distance stops the car for good (V = 0 after it), so the zero-variance proposal misses
+every time inside the window (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2)). :class:`ToyTilt` tilts by
+a V that is wrong on purpose: p(detect) guessed as :data:`P_GUESS` instead of the toy's, and a stopped car's V taken
+as :data:`STOPPED_V` instead of 0, mixed with a share :data:`EPS` of the PEM (Hesterberg 1995, Technometrics 37(2)). Its
+weights p / q are exact, so its estimates average to the exact answer all the same; they only vary more.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.scenarios.toy.simulator import ToyDetector, ToyParams, simulate_toy
+
+P_GUESS = 0.5
+"""The poor V's p(detect) at every distance."""
+STOPPED_V = 0.05
+"""The poor V's probability of failure after a detection that stops the car (the truth: 0)."""
+EPS = 0.2
+"""The PEM's share of each step's proposal."""
+
+
+@dataclass(frozen=True)
+class ToyTiltDetector:
+    """q(detect | distance, stopped) of the toy's tilt, a :class:`~pemviz.core.detectors.Detector`: inside the window
+    (a moving car at safe <= d <= braking), q(miss) = (1 - eps) (1 - p) V(d - 1) / ((1 - p) V(d - 1) + p
+    :data:`STOPPED_V`) + eps (1 - p) with the poor V(d) = (1 - :data:`P_GUESS`)^(min(d, braking) - safe + 1);
+    elsewhere the PEM's own p."""
+
+    params: ToyParams
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        p_par = self.params
+        d, stopped = np.asarray(obs, dtype=np.float64)[:, 0], np.asarray(obs)[:, 1] > 0.5
+        p = p_par.detect_probability(d)
+        inside = ~stopped & (d >= p_par.safe) & (d <= p_par.braking)
+        v_next = (1.0 - P_GUESS) ** np.clip(np.minimum(d - 1.0, p_par.braking) - p_par.safe + 1.0, 0.0, None)
+        miss = (1.0 - p) * v_next
+        q_miss = (1.0 - EPS) * miss / (miss + p * STOPPED_V) + EPS * (1.0 - p)
+        q = np.where(inside, 1.0 - q_miss, p)
+        return np.log(q) - np.log1p(-q)
+
+
+class ToyTilt:
+    """The toy's :class:`pemviz.core.problems.TiltSampler`: rollouts from :class:`ToyTiltDetector`, nothing to
+    solve, no look-ahead."""
+
+    def __init__(self, params: ToyParams) -> None:
+        self.params = params
+
+    def solve(self) -> int:
+        """Nothing to prepare: 0 steps."""
+        return 0
+
+    def draw(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, int]:
+        """``n`` rollouts drawn from :class:`ToyTiltDetector`, scored under the toy's PEM; no look-ahead steps."""
+        return simulate_toy(self.params, n, ToyTiltDetector(self.params), ToyDetector(self.params), rng), 0
