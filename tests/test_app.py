@@ -701,8 +701,8 @@ def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_fail
 
     s = tab.session
     tab.choose("scenario", "cut-in")
-    # the scene's own default is plain Monte Carlo (its adaptive estimates are not yet right): N and method follow
-    wait_until(lambda: s.choices["method"].value == "mc" and s.fields["n_per_stage"].value == "20000",
+    # the scene's own default is its tilted proposal (its adaptive estimates are not right): N and method follow
+    wait_until(lambda: s.choices["method"].value == "tilt" and s.fields["n_per_stage"].value == "7280",
                what="the cut-in's default method and N")  # fmt: skip
     s.choices["method"].value = "adaptive"  # the sampler whose failure this test explains
     record = tab.run({**TINY, "K": "3", "N": "60", "N_e": "60", "seed": "1"}, timeout=300)

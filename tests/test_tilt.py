@@ -91,6 +91,9 @@ def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads():
     final = Experiment(small, problem=problem).run().final
     assert final.n_simulations > 60 + 1_000  # the solve alone is about 1,464 rollout-equivalents
     assert est.n_simulations == 0  # a fresh estimator has simulated nothing
+    capped = small.replace(rel_error=0.01, max_sims=100)  # a precision target, capped below the first batch's cost
+    with_target = Experiment(capped, problem=problem).run().final
+    assert with_target.n_simulations == final.n_simulations  # it counts the look-aheads too, and adds no batch
 
 
 def test_a_scenario_without_a_tilt_is_refused():

@@ -120,6 +120,7 @@ def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():
     ("mc", 0, 20_000, "more rollouts (--n 200000) lower the bound ten-fold"),
     ("mc", 2, 20_000, "more rollouts: --rel-error 0.2 samples until the interval is within 20 % (about 1,109,"),
     ("adaptive", 3, 2100, "more budget (--n 400) or a precision target (--rel-error 0.1 --max-sims 100000"),
+    ("tilt", 3, 2100, "more rollouts: --rel-error 0.2 adds tilted batches until the interval is within 20 %"),
 ])  # fmt: skip
 def test_each_unreliable_or_doubtful_run_gets_one_line_of_advice(method, failures, n, start):
     log_w, failed = np.zeros(n), np.zeros(n, bool)

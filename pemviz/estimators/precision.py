@@ -101,7 +101,7 @@ class PrecisionTarget:
         self.max_sims = config.max_sims if config.max_sims is not None else DEFAULT_MAX_SIMS
         self.t0 = clock()
         self.n_simulations = 0
-        """Rollouts drawn so far."""
+        """Rollouts drawn so far (rollout-equivalents where the inner estimator counts them: ``tilt``'s look-aheads)."""
         self.stop: str | None = None
         self.requirement = None if config.require is None else parse_requirement(config.require)
         self.decision: Decision | None = None
@@ -176,6 +176,9 @@ class PrecisionTarget:
     def finish(self) -> StageOutcome:
         if self._current is not None:
             self.n_simulations += self._current.n
+        own = getattr(self.inner, "n_simulations", None)  # an inner that counts rollout-equivalents (the tilt's)
+        if isinstance(own, int):
+            self.n_simulations = own
         return self.inner.finish()
 
     def result(self) -> tuple[Estimate, tuple[int, ...]]:

@@ -73,6 +73,10 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
                     "rollouts at this p; cap them with --max-sims or --max-time)")  # fmt: skip
         return (f"more rollouts (--n {10 * e.n}) lower the bound ten-fold; where p is rare, an importance-sampling "
                 "method (--method adaptive) with its verdict")  # fmt: skip
+    if method == "tilt":  # the scene's own proposal: more of its batches, pooled alike
+        return ("more rollouts: --rel-error 0.2 adds tilted batches until the interval is within 20 % (cap them with "
+                "--max-sims or --max-time); heavy-tailed weights (k-hat > 0.7) can still hide a rare large weight, so "
+                "compare with plain Monte Carlo (--method mc --rel-error 0.2) where p is not rare")
     if guess is not None and guess >= math.log(NOT_RARE):
         return (f"p ~ {format_probability(guess, 2)} is not rare: plain Monte Carlo gets it right, e.g. --method mc "
                 "--rel-error 0.2 --max-time 600")  # fmt: skip
