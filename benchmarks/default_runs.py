@@ -5,11 +5,16 @@ proposal, :mod:`pemviz.scenarios.cut_in.tilt`) and its acceptance.
 Each seed runs what the command runs (its settings parsed by the command's own parser, the same engine and estimator;
 no recording), and prints its estimate, 95 % interval, whether that holds the answer, ESS, k-hat, verdict, its
 simulations (rollout-equivalents: the tilt's look-aheads and solve counted) and its wall time. The summary gives the
-median and RMS relative error, the runs within x2, the intervals holding the answer, and every ``reliable`` verdict
-whose estimate is off by more than x2 or whose interval misses the answer (a verdict that claims too much), and nan.
+median and RMS relative error, the runs within x2, the intervals holding the answer, the ``reliable`` verdicts whose
+estimate is off by more than x2 (a verdict that claims too much) or whose interval misses the answer, and nan; then
+the seeds' spread against the intervals they give, the work-normalised relative variance (relvar x simulations), and
+for the failures' importance weights, how far they are from a zero-variance proposal's (all equal to p).
 
-``--toy``: the tilted estimator on the toy braking model with a deliberately poor committor
-(:mod:`pemviz.scenarios.toy.tilt`) against its exact answer 1e-3, ``--toy-seeds`` seeds of ``--toy-n`` rollouts.
+- ``--flags '...'`` adds flags to the command (``--flags '--method tilt --n 7280'`` on ``--scenario cut-in-rare``).
+- ``--mc-reference N`` compares with a plain Monte Carlo reference of N rollouts drawn first (a setting without one).
+- ``--toy``: the tilted estimator on the toy braking model with a deliberately poor committor
+  (:mod:`pemviz.scenarios.toy.tilt`) against its exact answer 1e-3, ``--toy-seeds`` seeds of ``--toy-n`` rollouts.
+- ``--heaviest SEED N K``: the cut-in's tilt on N rollouts of SEED, its K heaviest failures step by step.
 
 Measured (2-core developer machine; cut-in reference 8.66e-5 [8.09e-5, 9.26e-5]):
 
@@ -19,7 +24,12 @@ Usage::
 
     python benchmarks/default_runs.py --scenario cut-in --seeds 20
     python benchmarks/default_runs.py --scenario cut-in --seeds 20 --first-seed 20
+    python benchmarks/default_runs.py --scenario braking --seeds 200
+    python benchmarks/default_runs.py --scenario cut-in-rare --seeds 10 --flags '--method tilt --n 7280'
+    python benchmarks/default_runs.py --scenario cut-in --seeds 5 --flags '--param cut_in_gap_m=19.5' \\
+        --mc-reference 200000
     python benchmarks/default_runs.py --toy --toy-seeds 200
+    python benchmarks/default_runs.py --heaviest 7 4000 8
 """
 
 from __future__ import annotations
@@ -35,42 +45,96 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def default_config(scenario: str, seed: int):  # noqa: ANN201 (an ExperimentConfig)
-    """The settings of ``pemviz run --scenario SCENARIO --seed SEED``, parsed by the command's own parser."""
+def default_config(scenario: str, seed: int, flags: tuple[str, ...] = ()):  # noqa: ANN201 (an ExperimentConfig)
+    """The settings of ``pemviz run --scenario SCENARIO --seed SEED [FLAGS]``, parsed by the command's own parser."""
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
 
-    return config_from_args(build_parser("run").parse_args(["run", "--scenario", scenario, "--seed", str(seed)]))
+    argv = ["run", "--scenario", scenario, "--seed", str(seed), *flags]
+    return config_from_args(build_parser("run").parse_args(argv))
 
 
 def summary(ratios: np.ndarray, holds: np.ndarray, verdicts: list[str], logs: np.ndarray) -> str:
-    """The seeds' summary line (``ratios``: estimate / answer; ``holds``: the interval holds the answer)."""
+    """The seeds' summary line (``ratios``: estimate / answer; ``holds``: the interval holds the answer): a
+    ``reliable`` verdict beyond x2 is a wrong claim; one whose 95 % interval misses the answer is counted apart (such
+    intervals miss 1 run in 20 by design)."""
     rel = np.abs(ratios - 1.0)
     off = (ratios < 0.5) | (ratios > 2.0)
-    claims = [v == "reliable" and (o or not h) for v, o, h in zip(verdicts, off, holds)]
-    return (f"median relative error {np.median(rel):.2f}, RMS {np.sqrt(np.mean(rel ** 2)):.2f}, mean x"
-            f"{np.mean(ratios):.2f}; within x2 in {int(np.sum(~off))} of {ratios.size}; intervals holding the answer "
-            f"{int(np.sum(holds))} of {ratios.size}; verdicts " + ", ".join(f"{verdicts.count(v)} {v}" for v in
-                                                                          dict.fromkeys(verdicts)) +
-            f"; 'reliable' with the answer outside its interval or beyond x2: {sum(claims)}; nan: "
-            f"{int(np.sum(np.isnan(logs)))}")  # fmt: skip
+    reliable = np.array([v == "reliable" for v in verdicts])
+    return (f"median relative error {np.median(rel):.3f}, RMS {np.sqrt(np.mean(rel ** 2)):.3f}, mean x"
+            f"{np.mean(ratios):.3f}; within x2 in {int(np.sum(~off))} of {ratios.size}; intervals holding the answer "
+            f"{int(np.sum(holds))} of {ratios.size} ({np.mean(holds):.1%}); verdicts " +
+            ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts)) +
+            f"; 'reliable' beyond x2: {int(np.sum(reliable & off))}, 'reliable' with the answer outside its interval: "
+            f"{int(np.sum(reliable & ~holds))}; nan: {int(np.sum(np.isnan(logs)))}")  # fmt: skip
 
 
-def scenario_runs(scenario: str, seeds: range) -> None:
-    """The default command of ``scenario`` at each seed (module docstring)."""
+def spread(logs: np.ndarray, half_widths: np.ndarray, sims: np.ndarray) -> str:
+    """How the seeds' spread compares with the intervals they give: the standard deviation of the log estimates
+    against the mean 95 % half-width in logs over 1.96, and the work-normalised relative variance (the estimates'
+    relative variance times the mean simulations a run; 1 / p - 1 for plain Monte Carlo, 0 at zero variance)."""
+    if logs.size < 2:
+        return "spread of the seeds: one run"
+    p = np.exp(logs)
+    relvar = float(np.var(p, ddof=1) / np.mean(p) ** 2)
+    return (f"spread of the seeds: sd of the log estimates {np.std(logs, ddof=1):.3f} against the intervals' mean "
+            f"half-width in logs / 1.96 = {np.mean(half_widths) / 1.96:.3f}; relvar x simulations "
+            f"{relvar * float(np.mean(sims)):.3g} (relvar {relvar:.3g}, {np.mean(sims):,.0f} simulations a run; "
+            f"{logs.size} runs)")  # fmt: skip
+
+
+def weight_profile(log_weights: list[np.ndarray], truth: float) -> str:
+    """Where the seeds' estimates come from: the failures' importance log-weights (nats, one array a run) against the
+    answer's log ``truth``. A zero-variance proposal gives every failure the weight p, so the spread says how far the
+    proposal is from it: the failures it over-draws weigh far below p, those it under-draws far above."""
+    runs = [lw for lw in log_weights if lw.size]
+    if not runs:
+        return "failures' weights: no failure"
+    top1 = np.mean([np.sort(np.exp(lw - lw.max()))[::-1][: max(1, lw.size // 100)].sum() / np.exp(lw - lw.max()).sum()
+                    for lw in runs])  # fmt: skip
+    lw = np.concatenate(runs) - truth
+    w = np.exp(lw - lw.max())
+    low, high = lw < -math.log(1000.0), lw > 0
+    return (f"failures' weights over p (zero variance: all 1), {len(runs)} runs pooled: quantiles 10/50/90 % "
+            f"{', '.join(f'{math.exp(q):.2g}' for q in np.quantile(lw, [0.1, 0.5, 0.9]))}; below p / 1000: "
+            f"{low.mean():.0%} of the failures, carrying {w[low].sum() / w.sum():.2%} of the estimates; above p: "
+            f"{high.mean():.1%}, carrying {w[high].sum() / w.sum():.0%}; the heaviest 1 % of a run's failures carry "
+            f"{top1:.0%} of its estimate (mean over the runs)")  # fmt: skip
+
+
+def mc_reference(cfg, problem, n: int) -> tuple[float, str]:  # noqa: ANN001 (an ExperimentConfig, a Problem)
+    """A plain Monte Carlo reference of ``problem`` (the run's scene and parameters): log p (nats; nan without a
+    failure) of ``n`` rollouts of the PEMs (seed 12345), and its text with the Clopper-Pearson interval."""
+    from pemviz.engine import Experiment
+
+    e = Experiment(cfg.replace(method="mc", n_per_stage=n, seed=12345), problem=problem).run().final.estimate
+    text = f"plain Monte Carlo reference {e.mu_hat:.4g} {e.interval_text()} ({e.n_failures} failures in {n:,} rollouts)"
+    return (e.log_mu_hat if e.n_failures else math.nan), text
+
+
+def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: int = 0) -> None:
+    """The default command of ``scenario`` at each seed (module docstring), with ``flags`` added, against the scene's
+    exact answer or reference, or with ``mc`` > 0 a plain Monte Carlo reference of ``mc`` rollouts drawn here; without
+    any, the seeds' spread only."""
     from pemviz.engine import Experiment
     from pemviz.scenarios.problems import problem_for
 
-    ratios, holds, verdicts, logs = [], [], [], []
-    problem = None
+    ratios, holds, verdicts, logs, halves, sims, weights = [], [], [], [], [], [], []
+    problem, truth = None, math.nan
     for seed in seeds:
-        cfg = default_config(scenario, seed)
+        cfg = default_config(scenario, seed, flags)
         if problem is None:
             problem = problem_for(cfg)
-            truth = problem.exact_log_p if problem.exact_log_p is not None else problem.reference.log_p
-            what = "exact answer" if problem.exact_log_p is not None else "reference"
-            print(f"pemviz run --scenario {scenario}: method {cfg.method}, N {cfg.n_per_stage}; {what} "
-                  f"{math.exp(truth):.4g}", flush=True)  # fmt: skip
+            if mc:
+                truth, what = mc_reference(cfg, problem, mc)
+            elif problem.exact_log_p is not None:
+                truth, what = problem.exact_log_p, f"exact answer {math.exp(problem.exact_log_p):.4g}"
+            elif problem.reference is not None:
+                truth, what = problem.reference.log_p, f"reference {math.exp(problem.reference.log_p):.4g}"
+            else:
+                what = "no exact answer or reference"
+            command = " ".join(["pemviz run --scenario", scenario, *flags])
+            print(f"{command}: method {cfg.method}, N {cfg.n_per_stage}; {what}", flush=True)
         t0 = time.perf_counter()
         final = Experiment(cfg, problem=problem).run().final
         wall = time.perf_counter() - t0
@@ -79,10 +143,64 @@ def scenario_runs(scenario: str, seeds: range) -> None:
         holds.append(e.covers(truth))
         verdicts.append(e.verdict)
         logs.append(e.log_mu_hat)
-        print(f"  seed {seed}: {math.exp(e.log_mu_hat):.3e} {e.interval_text()} x{ratios[-1]:.2f} "
-              f"({'holds' if holds[-1] else 'misses'} the {what}), {e.n_failures} failures, ESS {e.ess:.1f}, k-hat "
-              f"{e.khat:.2f}, {e.verdict}; {final.n_simulations:,} simulations, {wall:.1f} s", flush=True)  # fmt: skip
-    print(summary(np.array(ratios), np.array(holds), verdicts, np.array(logs)))
+        halves.append(0.5 * (e.log_ci[1] - e.log_ci[0]))
+        sims.append(final.n_simulations)
+        if final.failures is not None:
+            weights.append(final.failures.log_weight)
+        against = "" if math.isnan(truth) else f" x{ratios[-1]:.3f} ({'holds' if holds[-1] else 'misses'} it)"
+        print(f"  seed {seed}: {math.exp(e.log_mu_hat):.3e} {e.interval_text()}{against}, {e.n_failures} failures, "
+              f"ESS {e.ess:.1f}, k-hat {e.khat:.2f}, {e.verdict}; {final.n_simulations:,} simulations, {wall:.1f} s",
+              flush=True)  # fmt: skip
+    if not math.isnan(truth):
+        print(summary(np.array(ratios), np.array(holds), verdicts, np.array(logs)))
+    print(spread(np.array(logs), np.array(halves), np.array(sims)))
+    if weights and not math.isnan(truth):
+        print(weight_profile(weights, truth))
+
+
+def heaviest_failures(seed: int, n: int, k: int) -> None:
+    """The cut-in's tilted proposal (its default settings) on ``n`` rollouts of ``seed``: the ``k`` failures of the
+    largest importance weight, each tilted step off the central class (or whose log p / q is beyond +-1 nats) with its
+    class, log p / q, log Q of the class drawn and log V = log sum_c p(c) Q(c) of the state (nats). Under a
+    zero-variance proposal each step's log p / q is log V - log Q, and every failure's log weight log p."""
+    from pemviz.core import exact
+    from pemviz.pem import load_pem
+    from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
+    from pemviz.scenarios.cut_in.tilt import CutInTilt
+    from pemviz.scenarios.problems import cut_in_params, cut_in_problem
+
+    class Traced(CutInTilt):
+        def branch_log_q(self, sim, t, idx, u, rows, prefix_min, sfeat, p0):  # noqa: ANN001, ANN202
+            self.last = super().branch_log_q(sim, t, idx, u, rows, prefix_min, sfeat, p0), p0
+            return self.last[0]
+
+        def drawn(self, t: int, idx: np.ndarray, cls: np.ndarray, pc: np.ndarray) -> None:
+            lqb, p0 = self.last
+            _, qc = self.grid.proposal(p0, self.beta * lqb, self.eps)
+            log_q_cls, rr = self.grid.class_values(lqb), np.arange(idx.size)
+            self.trace[idx, t] = np.column_stack([cls, exact.log(pc[rr, cls]) - exact.log(qc[rr, cls]),
+                                                  log_q_cls[rr, cls], np.log((pc * np.exp(log_q_cls)).sum(axis=1))])
+
+    params = cut_in_params("moderate")
+    problem = cut_in_problem(load_pem(), params)
+    tilt = Traced(params, problem.target)
+    tilt.solve()
+    tilt.trace = np.full((n, params.n_steps, 4), np.nan)
+    batch, log_w, _ = tilt.stage(n, np.random.default_rng(seed))
+    failed = problem.failed(batch, problem.robustness(batch, "classic"))
+    failures, rollouts = MONTE_CARLO_REFERENCE["moderate"]
+    nb, central = tilt.grid.nb, f"r{tilt.grid.nb // 2}l{tilt.grid.nb // 2}"
+    print(f"seed {seed}, {n} rollouts: {int(failed.sum())} failures, mu_hat {np.mean(np.exp(log_w) * failed):.3e}; "
+          f"log p of the reference {math.log(failures / rollouts):.2f}; class rIlJ: range error bin I, lateral bin J "
+          f"of {nb} (central {central})")  # fmt: skip
+    for i in np.argsort(-np.where(failed, log_w, -np.inf))[:k]:
+        steps = []
+        for t in np.flatnonzero(~np.isnan(tilt.trace[i, :, 0])):
+            c, lr, lq, lv = tilt.trace[i, t]
+            name = "miss" if c == 0 else "r{}l{}".format(*divmod(int(c) - 1, nb))
+            if name != central or abs(lr) > 1.0:
+                steps.append(f"{t}:{name}({lr:+.1f}, Q {lq:.1f}, V {lv:.1f})")
+        print(f"  log w {log_w[i]:.2f}: " + " ".join(steps))
 
 
 def toy_runs(n_seeds: int, n: int) -> None:
@@ -112,16 +230,24 @@ def main() -> None:
     ap.add_argument("--scenario", default=None, help="run this scenario's default command (e.g. cut-in, braking)")
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--flags", default="", help="flags added to the command, e.g. '--method tilt --n 7280'")
+    ap.add_argument("--mc-reference", type=int, default=0, metavar="N",
+                    help="compare with a plain Monte Carlo reference of N rollouts drawn here (another setting)")
+    ap.add_argument("--heaviest", type=int, nargs=3, metavar=("SEED", "N", "K"),
+                    help="the cut-in's tilt on N rollouts of SEED: the K heaviest failures, step by step")
     ap.add_argument("--toy", action="store_true", help="the tilted estimator on the toy with a poor committor")
     ap.add_argument("--toy-seeds", type=int, default=200)
     ap.add_argument("--toy-n", type=int, default=2000)
     args = ap.parse_args()
-    if args.scenario is None and not args.toy:
-        raise SystemExit("give --scenario NAME and/or --toy")
+    if args.scenario is None and not args.toy and args.heaviest is None:
+        raise SystemExit("give --scenario NAME, --toy or --heaviest SEED N K")
+    if args.heaviest is not None:
+        heaviest_failures(*args.heaviest)
     if args.toy:
         toy_runs(args.toy_seeds, args.toy_n)
     if args.scenario is not None:
-        scenario_runs(args.scenario, range(args.first_seed, args.first_seed + args.seeds))
+        seeds = range(args.first_seed, args.first_seed + args.seeds)
+        scenario_runs(args.scenario, seeds, tuple(args.flags.split()), args.mc_reference)
 
 
 if __name__ == "__main__":

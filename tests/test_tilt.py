@@ -53,6 +53,9 @@ def cut_in():
     from pemviz.pem import load_pem
     from pemviz.scenarios.problems import cut_in_problem
 
+    from pemviz.scenarios.cut_in import tilt as tilt_module
+
+    tilt_module._SOLVED.clear()  # solved here, not reused from another test's run
     problem = cut_in_problem(load_pem())
     tilt = problem.tilt()
     solve_steps = tilt.solve()
@@ -76,24 +79,36 @@ def test_a_cut_in_tilt_batch_carries_its_weights(cut_in):
 
 def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads():
     """``pemviz run --scenario cut-in``'s settings name the tilt; a small run's simulations are its rollouts plus its
-    look-aheads' steps over T (the solve's included)."""
+    look-aheads' steps over T, the solve's included; a second run of the same scene and PEMs in the process reuses the
+    solved proposal, says so, gives the same estimate bit for bit and counts no solve."""
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
+    from pemviz.scenarios.cut_in import tilt as tilt_module
 
     cfg = config_from_args(build_parser("run").parse_args(["run", "--scenario", "cut-in"]))
     assert cfg.method == "tilt" and cfg.n_per_stage == SCENE_DEFAULTS["cut-in"]["n_per_stage"]
     from pemviz.estimators import build_estimator
     from pemviz.scenarios.problems import problem_for
 
+    tilt_module._SOLVED.clear()
     small = cfg.replace(n_per_stage=60)
     problem = problem_for(small)
     est = build_estimator(small, problem)
     final = Experiment(small, problem=problem).run().final
     assert final.n_simulations > 60 + 1_000  # the solve alone is about 1,464 rollout-equivalents
     assert est.n_simulations == 0  # a fresh estimator has simulated nothing
-    capped = small.replace(rel_error=0.01, max_sims=100)  # a precision target, capped below the first batch's cost
+    assert final.prepared.startswith("the scenario's proposal solved by this run (1,")
+    again = Experiment(small, problem=problem_for(small)).run().final  # the PEMs loaded again: the same weights
+    assert again.prepared.startswith("the scenario's proposal reused")
+    assert again.estimate == final.estimate
+    solve = final.n_simulations - again.n_simulations
+    assert 1_000 < solve < 2_000
+    capped = small.replace(rel_error=0.01, max_sims=61)  # a precision target, capped below the first batch's cost
     with_target = Experiment(capped, problem=problem).run().final
-    assert with_target.n_simulations == final.n_simulations  # it counts the look-aheads too, and adds no batch
+    assert with_target.n_simulations == again.n_simulations  # it counts the look-aheads too, and adds no batch
+    other = small.replace(scenario_params=(("cut_in_gap_m", 19.0),))
+    assert Experiment(other, problem=problem_for(other)).run().final.prepared.startswith("the scenario's proposal "
+                                                                                          "solved")
 
 
 def test_a_scenario_without_a_tilt_is_refused():
@@ -110,3 +125,14 @@ def test_pemviz_run_refuses_the_tilt_on_braking_in_one_line(capsys):
     err = capsys.readouterr().err.strip()
     assert err == ("pemviz run: error: method tilt: the braking problem has no tilted proposal of its own; use "
                    "adaptive or mc")
+
+
+def test_the_console_names_the_cross_entropy_settings_only_for_a_method_with_stages(capsys):
+    from pemviz.cli import main
+
+    assert main(["run", "--method", "mc", "--n", "40", "--no-record"]) == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    assert header.endswith("metric classic, N=40 seed=0") and "sigma" not in header
+    assert main(["run", "--n", "20", "--n-final", "40", "--stages", "1", "--no-record"]) == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    assert header.endswith("metric classic, K=1 N=20 N_e=40 sigma=0.95 alpha=0.1 seed=0")

@@ -56,11 +56,12 @@ class TiltSampler(Protocol):
     """A scenario's own importance sampler (``method = "tilt"``, :class:`pemviz.estimators.tilt.CommittorTilt`): each
     step's events drawn in proportion to p(event) times an approximate probability of failure after it.
 
-    ``solve()`` prepares it once a run and returns the rollout-steps it simulated; ``draw(n, rng)`` returns ``n``
+    ``solve()`` prepares it once a run and returns the rollout-steps it simulated, or None when it was prepared before
+    (by an earlier run of the same scene and PEMs, reused); ``draw(n, rng)`` returns ``n``
     rollouts (a :class:`RolloutBatch` whose ``log_q`` is the proposal's, so that log p - log q is each step's log
     importance weight) and the rollout-steps its look-aheads simulated besides."""
 
-    def solve(self) -> int: ...
+    def solve(self) -> int | None: ...
 
     def draw(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, int]: ...
 

@@ -180,6 +180,9 @@ class FinalEstimate:
     look_ahead: bool = False
     """The estimate weighs each rollout up to a state and multiplies by the exact failure probability from it (the
     problem's :attr:`~pemviz.core.problems.Problem.look_ahead`): the rollout file says so, for ``pemviz estimate``."""
+    prepared: str | None = None
+    """How the estimator's proposal was prepared, one line (the tilt's: solved by this run, or reused from an earlier
+    run of the same scene, PEMs and options); None: nothing to say."""
 
 
 @dataclass(frozen=True)

@@ -196,7 +196,8 @@ class Experiment:
                               getattr(estimator, "stop", None), cap, getattr(estimator, "decision", None),
                               severity_curve(pb, estimator, est, used, pooled, cap),
                               pem_spread(pb, estimator, est, used, pooled, cap),
-                              failure_population(estimator, used, pooled), pb.look_ahead is not None)  # fmt: skip
+                              failure_population(estimator, used, pooled), pb.look_ahead is not None,
+                              getattr(estimator, "prepared", None))  # fmt: skip
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)

@@ -230,6 +230,10 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         """The final batch's rollouts and the added ones (:meth:`extend`)."""
         return sum(self.stages[k].n for k in (self.config.n_stages + 1, *self._added) if k in self.stages)
 
+    def simulations_counted(self) -> int | None:
+        """None: the rollouts planned are the simulations (:class:`pemviz.estimators.precision.Extensible`)."""
+        return None
+
     def _open(self, plan: StagePlan) -> StagePlan:
         """Make ``plan`` the stage being drawn: its mixture's scoring target, its per-rollout numbers."""
         k = plan.stage

@@ -65,6 +65,10 @@ class FixedSampler:
         """The rollouts drawn so far."""
         return sum(s.n for s in self.stages.values())
 
+    def simulations_counted(self) -> int | None:
+        """None: the rollouts planned are the simulations (:class:`pemviz.estimators.precision.Extensible`)."""
+        return None
+
     def pooling(self) -> tuple[str, tuple[float, ...]] | None:
         """How :meth:`result` pools the stages drawn: every rollout alike, lambda_k = n_k / N (None: one stage)."""
         if len(self.stages) < 2:

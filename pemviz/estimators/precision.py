@@ -56,6 +56,11 @@ class Extensible(Protocol):
 
     def final_rollouts(self) -> int: ...
 
+    def simulations_counted(self) -> int | None:
+        """The rollout-equivalents the estimator counts itself (the tilt's look-aheads included), or None: the
+        rollouts planned are its simulations."""
+
+
 
 def added_batch_size(est: Estimate, n_final: int, target: float) -> int:
     """Rollouts of the next added batch: enough, by the 1 / sqrt(n) law, for the interval's relative half-width to
@@ -176,8 +181,8 @@ class PrecisionTarget:
     def finish(self) -> StageOutcome:
         if self._current is not None:
             self.n_simulations += self._current.n
-        own = getattr(self.inner, "n_simulations", None)  # an inner that counts rollout-equivalents (the tilt's)
-        if isinstance(own, int):
+        own = self.inner.simulations_counted()
+        if own is not None:
             self.n_simulations = own
         return self.inner.finish()
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 
 import numpy as np
 
@@ -46,6 +47,9 @@ class CommittorTilt(FixedSampler):
         self.sampler_of_scene: TiltSampler | None = None
         self.look_ahead_steps = 0
         """Rollout-steps the proposal's look-aheads simulated, its solve included."""
+        self.prepared: str | None = None
+        """How the proposal was prepared, one line: solved by this run (at what cost) or reused from an earlier run of
+        the same scene, PEMs and options (:attr:`pemviz.engine.events.FinalEstimate.prepared`)."""
 
     def _open(self, stage: int, n: int) -> StagePlan:
         return dataclasses.replace(super()._open(stage, n), draw=functools.partial(self._draw, n))
@@ -59,10 +63,25 @@ class CommittorTilt(FixedSampler):
             if self.sampler_of_scene is None:
                 assert self.problem.tilt is not None
                 self.sampler_of_scene = self.problem.tilt()
-                self.look_ahead_steps += self.sampler_of_scene.solve()
+                t0 = time.perf_counter()
+                solve_steps = self.sampler_of_scene.solve()
+                same = "the same scene, PEMs and options"
+                if solve_steps is None:
+                    self.prepared = (f"the scenario's proposal reused from an earlier run of {same} in this process "
+                                     "(no solve counted)")  # fmt: skip
+                elif solve_steps > 0:
+                    self.look_ahead_steps += solve_steps
+                    eq = solve_steps / max(1, self.problem.n_steps or 1)
+                    self.prepared = (f"the scenario's proposal solved by this run ({eq:,.0f} rollout-equivalents, "
+                                     f"{time.perf_counter() - t0:.1f} s; a later run of {same} in this process reuses "
+                                     "it)")  # fmt: skip
             batch, steps = self.sampler_of_scene.draw(n, rng)
         self.look_ahead_steps += steps
         return batch
+
+    def simulations_counted(self) -> int:
+        """:attr:`n_simulations` (:class:`pemviz.estimators.precision.Extensible`)."""
+        return self.n_simulations
 
     @property
     def n_simulations(self) -> int:

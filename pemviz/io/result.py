@@ -97,6 +97,7 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
         "reference": None if reference is None else {**_probability(reference.log_p), "source": reference.source},
         "requirement": None,
         "stop": final.stop,
+        "proposal_prepared": final.prepared,
         "recording": recording,
         "settings": _plain(dataclasses.asdict(config)),
     }

@@ -119,6 +119,8 @@ def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = N
         lines += event.pem_spread.lines()
     if event.stop is not None:
         lines.append(f"stop: {event.stop}")
+    if event.prepared is not None:
+        lines.append(f"proposal: {event.prepared}")
     advice = next_step(e, config, exact_log_p, reference)
     if advice is not None:
         lines.append(f"next: {advice}")
@@ -151,8 +153,9 @@ class ConsoleSink(Sink):
         self.exact_log_p, self.reference, self.plan = event.exact_log_p, event.reference, event.plan
         print(
             f"pemviz: {cfg.method} on the {event.problem.name} scenario{scenario_params_text(cfg)}, spec "
-            f"{event.formula}, metric {cfg.metric}, K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.n_final} "
-            f"sigma={cfg.quantile_level} alpha={cfg.smoothing} seed={cfg.seed}",
+            f"{event.formula}, metric {cfg.metric}, " + (
+                f"K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.n_final} sigma={cfg.quantile_level} "
+                f"alpha={cfg.smoothing}" if self.plan.n_ce else f"N={cfg.n_per_stage}") + f" seed={cfg.seed}",
             file=self.out,
         )
         print(HEADER, file=self.out)

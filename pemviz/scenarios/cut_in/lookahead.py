@@ -359,6 +359,9 @@ class CutInLookAhead:
             flat = np.flatnonzero(alive)[np.argsort(-lp.ravel()[alive], kind="stable")]
             _, first = np.unique(cell.ravel()[flat], return_index=True)
             keep = flat[np.sort(first)][:beam]  # the likeliest child of each cell, likeliest first
+            if keep.size == 0:  # every child failed (a scene that fails easily): go on from the nominal path
+                states, logp = one_car_state(nominal[t + 1][0]), np.zeros(1)
+                continue
             parent, j = np.divmod(keep, ev.size)
             states, logp = self.branch_states.select(parent * g.nbranch + ev[j]), lp.ravel()[keep]
         self.beam_counts = counts

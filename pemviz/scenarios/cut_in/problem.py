@@ -89,9 +89,9 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
     run, stream, resume = rollout_functions(make, p.n_steps)
 
     def tilt() -> object:
-        from pemviz.scenarios.cut_in.tilt import CutInTilt
+        from pemviz.scenarios.cut_in.tilt import solved_tilt
 
-        return CutInTilt(p, detector)
+        return solved_tilt(p, detector)
 
     return Problem(
         name, run, detector, stl.parse(CUT_IN_FORMULA), signals=dict(CUT_IN_SIGNALS),

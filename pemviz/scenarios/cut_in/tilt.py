@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+import pickle
 from typing import Any
 
 import numpy as np
@@ -46,6 +48,36 @@ TILT_BETA = 0.7
 """The tilt's power: q proportional to p Q^beta."""
 TILT_EPS = 0.3
 """The PEMs' share of each tilted step's proposal (the defensive mixture)."""
+
+_SOLVED: dict[tuple, "CutInTilt"] = {}
+"""This process's solved proposals by :func:`solved_key`, the :data:`SOLVED_KEPT` latest: a later run of the same
+scene, PEMs and options reuses one (its chain and effect model) instead of solving it again."""
+SOLVED_KEPT = 4
+"""How many solved proposals a process keeps (each holds its beam's look-aheads and effect model)."""
+
+
+def solved_key(params: CutInParams, target: Any, options: dict[str, Any]) -> tuple | None:
+    """What a solved :class:`CutInTilt` depends on: the scene's parameters, the PEMs (the sha256 of the pickled
+    detector: its networks' weights and settings) and the proposal's options; None for PEMs that cannot be pickled
+    (their proposal is not kept)."""
+    try:
+        pems = hashlib.sha256(pickle.dumps(target)).hexdigest()
+    except (pickle.PicklingError, TypeError, AttributeError):
+        return None
+    return params, pems, tuple(sorted(options.items()))
+
+
+def solved_tilt(params: CutInParams, target: Any, **options: Any) -> "CutInTilt":
+    """The :class:`CutInTilt` of ``params`` and ``target`` (keyword ``options`` as its constructor's), the one this
+    process solved before when the scene, the PEMs and the options match (:func:`solved_key`), else a new one that
+    :meth:`CutInTilt.solve` solves and keeps for the next run."""
+    key = solved_key(params, target, options)
+    found = None if key is None else _SOLVED.get(key)
+    if found is not None:
+        return found
+    tilt = CutInTilt(params, target, **options)
+    tilt.cache_key = key
+    return tilt
 
 
 class CutInTilt(CutInLookAhead):
@@ -75,14 +107,23 @@ class CutInTilt(CutInLookAhead):
         self.beam_width, self.beta, self.eps = beam_width, beta, eps
         self.chain: LevelChain | None = None
         self.solve_steps = 0
+        self.cache_key: tuple | None = None
+        """Where :meth:`solve` keeps the solved proposal for later runs (:func:`solved_tilt`); None: not kept."""
         self.doomed = np.zeros(0, dtype=bool)
 
-    def solve(self) -> int:
+    def solve(self) -> int | None:
         """Solve the chain (and fit the effect model) on the nominal path, :attr:`chain`; returns the rollout-steps
-        simulated (also :attr:`solve_steps`)."""
+        simulated (also :attr:`solve_steps`), None when it was solved before (a proposal reused:
+        :func:`solved_tilt`)."""
+        if self.chain is not None:
+            return None
         before = self.steps
         self.chain = self.solve_beam(self.beam_width)
         self.solve_steps = self.steps - before
+        if self.cache_key is not None:
+            while len(_SOLVED) >= SOLVED_KEPT:
+                _SOLVED.pop(next(iter(_SOLVED)))
+            _SOLVED[self.cache_key] = self
         return self.solve_steps
 
     def draw(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, int]:
