@@ -61,7 +61,6 @@ class Extensible(Protocol):
         rollouts planned are its simulations."""
 
 
-
 def added_batch_size(est: Estimate, n_final: int, target: float) -> int:
     """Rollouts of the next added batch: enough, by the 1 / sqrt(n) law, for the interval's relative half-width to
     fall from ``est.rel_half_width`` to ``target`` (times :data:`MARGIN`), as many again as the final rollouts so far

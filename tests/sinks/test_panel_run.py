@@ -50,3 +50,16 @@ def test_a_toy_run_keeps_its_view_without_a_scene():
     run = PanelRun(3, run_started().config)
     run(run_started(TOY))
     assert run.view.drawing is None and run.view.thresholds.labels()[0] == "failure below 3 units"
+
+
+def test_the_accuracy_box_says_how_a_tilted_proposal_was_prepared():
+    from pemviz.app.html import accuracy_html
+    from pemviz.core.estimate import Estimate
+    from pemviz.engine.events import FinalEstimate
+
+    run = PanelRun(4, run_started().config)
+    est = Estimate(1000, 10, -9.0, 20.0, 20.0, 5.0, (-9.5, -8.5), 0.5, 0.0, "doubtful", "few failures")
+    line = "the scenario's proposal reused from an earlier run of the same scene, PEMs and options in this process"
+    shown = accuracy_html(run, FinalEstimate(est, 1200, 1.0, prepared=line))
+    assert f"proposal: {line}".replace("'", "&#x27;") in shown  # escaped as HTML
+    assert "proposal:" not in accuracy_html(run, FinalEstimate(est, 1200, 1.0))
