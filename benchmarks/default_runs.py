@@ -90,8 +90,8 @@ def weight_profile(log_weights: list[np.ndarray], truth: float) -> str:
     runs = [lw for lw in log_weights if lw.size]
     if not runs:
         return "failures' weights: no failure"
-    top1 = np.mean([np.sort(np.exp(lw - lw.max()))[::-1][: max(1, lw.size // 100)].sum() / np.exp(lw - lw.max()).sum()
-                    for lw in runs])  # fmt: skip
+    heaviest = [np.sort(np.exp(lw - lw.max()))[::-1] for lw in runs]  # each run's weights, largest first
+    top1 = np.mean([w[: max(1, w.size // 100)].sum() / w.sum() for w in heaviest])
     lw = np.concatenate(runs) - truth
     w = np.exp(lw - lw.max())
     low, high = lw < -math.log(1000.0), lw > 0

@@ -126,23 +126,23 @@ class Grid:
     def class_values(self, log_qb: np.ndarray) -> np.ndarray:
         """log Q per class [k, 1 + NB^2] (nats) from the branches' log Q [k, NBRANCH]: a bin's Q is the mean of its
         two edges' Q; a joint class (both errors off the centre) takes the larger of its two errors' Q."""
-        q = exact.exp(log_qb)
+        return exact.log(np.maximum(self._per_class(exact.exp(log_qb)), 1e-300))
+
+    def _per_class(self, q: np.ndarray) -> np.ndarray:
+        """Each class's value [k, 1 + NB^2] from the branches' values ``q`` [k, NBRANCH] (linear): the miss's own, a
+        bin's the mean of its two edges' (exact: halves), a joint class the larger of its two errors'."""
         qr, ql = q @ self.maps[0].T, q @ self.maps[1].T
         out = np.empty((q.shape[0], 1 + self.nb * self.nb))
         out[:, 0] = q[:, 0]
         out[:, 1:] = np.maximum(qr[:, :, None], ql[:, None, :]).reshape(q.shape[0], -1)
-        return exact.log(np.maximum(out, 1e-300))
+        return out
 
     def proposal(self, p0: np.ndarray, log_qb: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
         """(p(class), q(class)), float64 [k, 1 + NB^2] each: the tilt p Q normalised (Q from the branches' log Q
         [k, NBRANCH]), mixed with a share ``eps`` of p itself (a defensive mixture: Hesterberg 1995, Technometrics
         37(2)), so that every weight p / q is at most 1 / eps."""
         pc = self.p_class(p0)
-        q = exact.exp(log_qb - np.max(log_qb, axis=1, keepdims=True))  # Q over its largest branch's, in (0, 1]
-        qr, ql = q @ self.maps[0].T, q @ self.maps[1].T  # each bin the mean of its two edges' (exact: halves)
-        t = np.empty_like(pc)
-        t[:, 0] = q[:, 0]
-        t[:, 1:] = np.maximum(qr[:, :, None], ql[:, None, :]).reshape(q.shape[0], -1)
+        t = self._per_class(exact.exp(log_qb - np.max(log_qb, axis=1, keepdims=True)))  # Q over its largest's
         t *= pc
         total = np.cumsum(t, axis=1)[:, -1:]  # summed in one order (a vector reduction's would depend on the CPU)
         return pc, (1.0 - eps) * (t / total) + eps * pc

@@ -328,7 +328,7 @@ class CutInLookAhead:
         effects: dict[int, dict] = {}
         nexts: dict[int, dict] = {}
         g_nom, counts = {}, {}
-        self.effect_rows = []
+        effect_rows = []
         nreg = self.n_regimes()
         for t in range(w0 - DP_DEPTH, w1):
             bsim = OneCar(p, logp.size)
@@ -349,7 +349,7 @@ class CutInLookAhead:
                 effects[t] = {int(c): gl[i] - gl[i, 1] for i, c in enumerate(cells)}  # the nominal's first (i = 0)
                 nexts[t] = {int(c): self.regime(bfeat[i], t + 1) for i, c in enumerate(cells)}
                 g_nom[t], counts[t] = float(gl[0, 1]), n
-                self.effect_rows.append((self.effect_inputs(bsim.state, t, gl[:, 1]), gl - gl[:, 1:2]))
+                effect_rows.append((self.effect_inputs(bsim.state, t, gl[:, 1]), gl - gl[:, 1:2]))
             p0 = p_detect_of(target.detect_logit(rows[:, 0]))
             log_p0, log_miss = exact.log(p0)[:, None], exact.log(1.0 - p0)[:, None]
             lp = logp[:, None] + np.where(ev == 0, log_miss, log_p0 + log_pe[None, :])
@@ -364,11 +364,10 @@ class CutInLookAhead:
                 continue
             parent, j = np.divmod(keep, ev.size)
             states, logp = self.branch_states.select(parent * g.nbranch + ev[j]), lp.ravel()[keep]
-        self.beam_counts = counts
         if self.effect_model_on:
             from sklearn.ensemble import ExtraTreesRegressor
 
-            x, y = (np.concatenate(a) for a in zip(*self.effect_rows))
+            x, y = (np.concatenate(a) for a in zip(*effect_rows))
             self.effect_model = ExtraTreesRegressor(n_estimators=100, min_samples_leaf=1, random_state=0).fit(x, y)
         return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, counts, width)
 
