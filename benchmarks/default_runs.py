@@ -11,6 +11,9 @@ the seeds' spread against the intervals they give, the work-normalised relative 
 for the failures' importance weights, how far they are from a zero-variance proposal's (all equal to p).
 
 - ``--flags '...'`` adds flags to the command (``--flags '--method tilt --n 7280'`` on ``--scenario cut-in-rare``).
+- ``--against '...'`` runs the command with other flags on the same seeds too and says how the two agree
+  (``--flags '--method tilt --n 7280' --against '--method ams --ams-score committor --n 1000 --ams-killed 100'``:
+  the cut-in's tilt against splitting scored by the same committor).
 - ``--mc-reference N`` compares with a plain Monte Carlo reference of N rollouts drawn first (a setting without one).
 - ``--toy``: the tilted estimator on the toy braking model with a deliberately poor committor
   (:mod:`pemviz.scenarios.toy.tilt`) against its exact answer 1e-3, ``--toy-seeds`` seeds of ``--toy-n`` rollouts.
@@ -25,7 +28,8 @@ Usage::
     python benchmarks/default_runs.py --scenario cut-in --seeds 20
     python benchmarks/default_runs.py --scenario cut-in --seeds 20 --first-seed 20
     python benchmarks/default_runs.py --scenario braking --seeds 200
-    python benchmarks/default_runs.py --scenario cut-in-rare --seeds 10 --flags '--method tilt --n 7280'
+    python benchmarks/default_runs.py --scenario cut-in-rare --seeds 10 --flags '--method tilt --n 7280' \\
+        --against '--method ams --ams-score committor --n 1000 --ams-killed 100'
     python benchmarks/default_runs.py --scenario cut-in --seeds 5 --flags '--param cut_in_gap_m=19.5' \\
         --mc-reference 200000
     python benchmarks/default_runs.py --toy --toy-seeds 200
@@ -77,10 +81,14 @@ def spread(logs: np.ndarray, half_widths: np.ndarray, sims: np.ndarray) -> str:
         return "spread of the seeds: one run"
     p = np.exp(logs)
     relvar = float(np.var(p, ddof=1) / np.mean(p) ** 2)
+    from pemviz.core.estimate import markov_lower_bound
+
+    bound = markov_lower_bound(logs)
     return (f"spread of the seeds: sd of the log estimates {np.std(logs, ddof=1):.3f} against the intervals' mean "
             f"half-width in logs / 1.96 = {np.mean(half_widths) / 1.96:.3f}; relvar x simulations "
             f"{relvar * float(np.mean(sims)):.3g} (relvar {relvar:.3g}, {np.mean(sims):,.0f} simulations a run; "
-            f"{logs.size} runs)")  # fmt: skip
+            f"{logs.size} runs); geometric mean {math.exp(np.mean(logs)):.3g}, so p >= {math.exp(bound):.3g} at 95 % "
+            f"(Markov's inequality on the product of the runs, which needs only their unbiasedness)")  # fmt: skip
 
 
 def weight_profile(log_weights: list[np.ndarray], truth: float) -> str:
@@ -112,14 +120,15 @@ def mc_reference(cfg, problem, n: int) -> tuple[float, str]:  # noqa: ANN001 (an
     return (e.log_mu_hat if e.n_failures else math.nan), text
 
 
-def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: int = 0) -> None:
+def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (),
+                  mc: int = 0) -> list[tuple[float, tuple[float, float]]]:  # fmt: skip
     """The default command of ``scenario`` at each seed (module docstring), with ``flags`` added, against the scene's
     exact answer or reference, or with ``mc`` > 0 a plain Monte Carlo reference of ``mc`` rollouts drawn here; without
-    any, the seeds' spread only."""
+    any, the seeds' spread only. Returns each seed's log estimate and log interval (nats)."""
     from pemviz.engine import Experiment
     from pemviz.scenarios.problems import problem_for
 
-    ratios, holds, verdicts, logs, halves, sims, weights = [], [], [], [], [], [], []
+    ratios, holds, verdicts, logs, halves, sims, weights, cis = [], [], [], [], [], [], [], []
     problem, truth = None, math.nan
     for seed in seeds:
         cfg = default_config(scenario, seed, flags)
@@ -144,6 +153,7 @@ def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: 
         verdicts.append(e.verdict)
         logs.append(e.log_mu_hat)
         halves.append(0.5 * (e.log_ci[1] - e.log_ci[0]))
+        cis.append(e.log_ci)
         sims.append(final.n_simulations)
         if final.failures is not None:
             weights.append(final.failures.log_weight)
@@ -156,6 +166,20 @@ def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: 
     print(spread(np.array(logs), np.array(halves), np.array(sims)))
     if weights and not math.isnan(truth):
         print(weight_profile(weights, truth))
+    return list(zip(logs, cis))
+
+
+def agreement(a: list[tuple[float, tuple[float, float]]], b: list[tuple[float, tuple[float, float]]]) -> str:
+    """How two estimators' runs on the same seeds agree (each run: log estimate and log 95 % interval, nats): the
+    seeds whose two intervals overlap, the ratio of their geometric means with the standard error of its log from the
+    seeds' spread, and whether each one's geometric mean lies inside the other's mean interval."""
+    la, lb = np.array([x[0] for x in a]), np.array([x[0] for x in b])
+    overlap = sum(max(x[1][0], y[1][0]) <= min(x[1][1], y[1][1]) for x, y in zip(a, b))
+    diff = la.mean() - lb.mean()
+    se = math.sqrt(la.var(ddof=1) / la.size + lb.var(ddof=1) / lb.size) if min(la.size, lb.size) > 1 else math.nan
+    return (f"agreement over {len(a)} seeds: the two intervals overlap in {overlap}; geometric means "
+            f"{math.exp(la.mean()):.3g} and {math.exp(lb.mean()):.3g}, ratio x{math.exp(diff):.2f} (log ratio "
+            f"{diff:+.2f} nats, standard error {se:.2f} from the seeds' spread: {abs(diff) / se:.1f} SE)")
 
 
 def heaviest_failures(seed: int, n: int, k: int) -> None:
@@ -231,6 +255,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--flags", default="", help="flags added to the command, e.g. '--method tilt --n 7280'")
+    ap.add_argument("--against", default=None, metavar="FLAGS",
+                    help="run the command with these flags instead on the same seeds too, and compare the two")
     ap.add_argument("--mc-reference", type=int, default=0, metavar="N",
                     help="compare with a plain Monte Carlo reference of N rollouts drawn here (another setting)")
     ap.add_argument("--heaviest", type=int, nargs=3, metavar=("SEED", "N", "K"),
@@ -247,7 +273,9 @@ def main() -> None:
         toy_runs(args.toy_seeds, args.toy_n)
     if args.scenario is not None:
         seeds = range(args.first_seed, args.first_seed + args.seeds)
-        scenario_runs(args.scenario, seeds, tuple(args.flags.split()), args.mc_reference)
+        first = scenario_runs(args.scenario, seeds, tuple(args.flags.split()), args.mc_reference)
+        if args.against is not None:
+            print(agreement(first, scenario_runs(args.scenario, seeds, tuple(args.against.split()), args.mc_reference)))
 
 
 if __name__ == "__main__":

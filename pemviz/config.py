@@ -57,8 +57,9 @@ SCENE_DEFAULTS: dict[str, dict[str, Any]] = {
 """The method and budget a scenario runs with when neither a method nor a preset is asked for (``pemviz run
 --scenario``, the panel). On the cut-in scenes the adaptive sampler's estimates are orders of magnitude low (the user
 guide's Validation page). The cut-in runs its own tilted proposal (``tilt``: :mod:`pemviz.scenarios.cut_in.tilt`) on
-7,280 rollouts, about 13,000 rollout-equivalents with its look-aheads. The rare cut-in, where that proposal is not
-checked, runs plain Monte Carlo, whose Clopper-Pearson interval holds p in at least 95 % of runs at any budget (a wide
+7,280 rollouts, about 13,000 rollout-equivalents with its look-aheads. The rare cut-in (about 1e-7), where that
+proposal's intervals are too narrow (its seeds spread 1.8 times what they say) and no reference exists, runs plain
+Monte Carlo, whose Clopper-Pearson interval holds p in at least 95 % of runs at any budget (a wide
 interval, or with no failure the bound p < 3 / N, but an honest one). Scenarios not named here use
 :class:`ExperimentConfig`'s defaults."""
 
@@ -155,6 +156,8 @@ class ExperimentConfig:
             too), 1 <= k < N (``method = "ams"``).
         ams_max_iterations: the most AMS iterations; a run stopped by it before its level reached the failure
             threshold gets the verdict ``doubtful``.
+        ams_score: what ranks the AMS particles: ``robustness`` (the formula's classic robustness) or ``committor``
+            (-log of the scenario's learned probability of failure, where it has one: the cut-in).
 
     Sampler improvements over the paper (on by default; :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` turns them
     off; each one's effect is measured against exact answers in ``benchmarks/truth_sampler_improvements.py``):
@@ -275,6 +278,7 @@ class ExperimentConfig:
     fit_tolerance: float | None = 1e-3
     ams_killed: int = 10
     ams_max_iterations: int = 10_000
+    ams_score: str = "robustness"
 
     def __post_init__(self) -> None:
         for setting in SETTINGS.values():  # each setting on its own: its range from SETTINGS

@@ -34,7 +34,7 @@ both."""
 SCENARIOS = ("braking", "cut-in", "cut-in-rare")
 """What a run estimates (:func:`pemviz.scenarios.problems.problem_for`): ``braking``, the paper's scenario (one lead
 car, a closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and
-measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same below 1e-9
+measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same at about 1e-7
 (:mod:`pemviz.scenarios.cut_in`)."""
 
 
@@ -83,6 +83,10 @@ FIT_PRECISIONS = ("exact", "float32", "float64")
 kernels, whose last bits depend on the CPU's vector unit and BLAS kernel (the paper's fits are float64). The network
 samples in exact arithmetic whatever this is (:meth:`pemviz.core.sampling.Proposal.detect_logit`); the parameters and
 every importance weight stay float64."""
+AMS_SCORES = ("robustness", "committor")
+"""What ranks the AMS particles (:class:`~pemviz.config.ExperimentConfig` ``ams_score``,
+:mod:`pemviz.estimators.ams`): the formula's classic robustness, or -log of the scenario's learned committor
+(:mod:`pemviz.scenarios.cut_in.splitting`)."""
 PROPOSAL_INPUTS = ("gap", "state")
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
@@ -415,6 +419,10 @@ SETTINGS: dict[str, Setting] = _settings(
             flags=("--ams-killed",)),
     Setting("ams_max_iterations", "the most AMS iterations", "a run stopped by them before the failure level is "
             "doubtful", kind="int", lo=1, owner="ams"),
+    Setting("ams_score", "the AMS score", "what ranks the AMS particles", kind="choice", choices=AMS_SCORES,
+            owner="ams", flags=("--ams-score",),
+            choice_help=(("robustness", "the formula's classic robustness"),
+                         ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
 )  # fmt: skip
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
 

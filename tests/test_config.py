@@ -217,4 +217,5 @@ def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with()
     assert ExperimentConfig(**ce) == config
     assert "seed" not in ce and "ams_killed" not in ce  # run-level, and another estimator's
     cfg = ExperimentConfig(method="ams", n_per_stage=40, ams_killed=7)
-    assert AdaptiveMultilevelSplitting(cfg, problem).get_params() == {"ams_killed": 7, "ams_max_iterations": 10_000}
+    assert AdaptiveMultilevelSplitting(cfg, problem).get_params() == {"ams_killed": 7, "ams_max_iterations": 10_000,
+                                                                      "ams_score": "robustness"}

@@ -171,3 +171,26 @@ def test_the_generalized_pareto_fit_is_pyros(k, n):
     np.testing.assert_allclose(fit_generalized_pareto(x), pyro_fit(torch.as_tensor(x)), rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match="x must be 1-D with at least one value"):
         fit_generalized_pareto(np.zeros(0))
+
+
+def test_markov_lower_bound_by_hand_and_its_coverage_under_a_heavy_tail():
+    """One run of 20 p gives p >= 0.05 x 20 = 1 (hand); two runs alpha^(1/2) x their geometric mean. Over 20,000
+    replicates of 10 runs of a lognormal estimator of mean 1 whose sd of logs is 2.5 (heavy: a few runs carry the
+    mean), the bound exceeds the true mean 1 in at most 5 % (Markov's inequality makes it conservative: measured in
+    none of the 20,000), while a normal interval on the same runs misses the mean in 60 %."""
+    from pemviz.core.estimate import markov_lower_bound
+
+    assert markov_lower_bound(np.log([20.0])) == pytest.approx(0.0, abs=1e-12)  # log 1
+    assert markov_lower_bound(np.log([2.0, 8.0])) == pytest.approx(math.log(math.sqrt(0.05) * 4.0), rel=1e-12)
+    assert markov_lower_bound(np.array([-1.0, -np.inf])) == -math.inf and markov_lower_bound(np.array([])) == -math.inf
+    with pytest.raises(ValueError, match="alpha must be in"):
+        markov_lower_bound(np.zeros(2), alpha=1.0)
+    rng = np.random.default_rng(0)
+    s = 2.5
+    logs = rng.normal(-s * s / 2, s, size=(20_000, 10))  # E[exp] = 1
+    bounds = np.array([markov_lower_bound(row) for row in logs])
+    assert np.mean(bounds > 0.0) <= 0.05
+    x = np.exp(logs)
+    lower = x.mean(axis=1) - 1.96 * x.std(axis=1, ddof=1) / math.sqrt(10)
+    upper = x.mean(axis=1) + 1.96 * x.std(axis=1, ddof=1) / math.sqrt(10)
+    assert np.mean((lower > 1.0) | (upper < 1.0)) > 0.2  # the normal interval does not hold here

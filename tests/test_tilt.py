@@ -77,6 +77,26 @@ def test_a_cut_in_tilt_batch_carries_its_weights(cut_in):
     assert np.array_equal(again.detected, batch.detected) and np.array_equal(log_w2, log_w)
 
 
+def test_the_cut_ins_committor_ranks_splitting_particles_as_a_function_of_the_state(cut_in):
+    """``ams_score = "committor"`` on the cut-in: two AMS iterations of 30 particles ranked by -log V of the tilt
+    solved above (reused: no solve counted, its look-aheads counted); every particle's prefix scores, its branch's
+    included, equal those of its events replayed and scored afresh, bit for bit; V is scored in the tilt's window
+    only, and lies in (0, 1]."""
+    from pemviz.estimators.ams import SCORE_FLOOR, run_ams, running_score
+
+    problem, tilt, _ = cut_in
+    sp = run_ams(problem, 30, 10, seed=0, max_iterations=2, score="committor")
+    scorer = sp.scorer
+    assert scorer.reused and scorer.solve_steps == 0 and scorer.steps > 0
+    assert sp.iterations == 2 and sp.n_simulations > 30 + 20
+    graded = scorer.rescore(sp.particles)
+    np.testing.assert_array_equal(running_score(problem, sp.particles, graded), sp.running)
+    w0, w1 = tilt.window
+    assert np.isinf(graded[:, :w0]).all() and np.isinf(graded[:, w1:]).all()
+    scored = graded[np.isfinite(graded)]
+    assert scored.size > 30 and (scored >= 0.0).all() and (sp.running[:, -1] >= SCORE_FLOOR).sum() >= 25
+
+
 def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads():
     """``pemviz run --scenario cut-in``'s settings name the tilt; a small run's simulations are its rollouts plus its
     look-aheads' steps over T, the solve's included; a second run of the same scene and PEMs in the process reuses the

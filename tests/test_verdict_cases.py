@@ -51,8 +51,8 @@ def test_no_failure_prints_a_bound_in_place_of_a_point_estimate():
     assert mc.summary().startswith("no failure seen in 2000 rollouts: p < 1.50e-03 (95%, rule of three: 3 / 2000 "
                                    "rollouts of the PEM itself): unreliable as an estimate")  # fmt: skip
     weighted = estimate(np.full(2000, -3.0), np.zeros(2000, bool), np.zeros(2000))
-    assert weighted.summary().startswith("no failure seen in 2000 rollouts: under importance sampling this bounds "
-                                         "nothing: unreliable")  # fmt: skip
+    assert weighted.summary().startswith("no failure seen in 2000 rollouts: 0 failures under importance sampling: "
+                                         "this bounds nothing: unreliable")  # fmt: skip
     assert "mu_hat" not in mc.summary() and "mu_hat" not in weighted.summary()
 
 

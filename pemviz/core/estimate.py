@@ -151,7 +151,7 @@ class Estimate:
         if self.n_failures == 0:  # no point estimate: the bound, if the rollouts give one
             hi = self.log_ci[1]
             bound = (f"p < {format_probability(hi, 2)} ({CI_LEVEL:.0%}, rule of three: 3 / {self.n} rollouts of the "
-                     "PEM itself)" if hi < 0.0 else "under importance sampling this bounds nothing")  # fmt: skip
+                     "PEM itself)" if hi < 0.0 else self.reason or "this bounds nothing")  # fmt: skip
             line = f"no failure seen in {self.n} rollouts: {bound}: {self.verdict} as an estimate"
         else:
             line = (
@@ -412,3 +412,23 @@ def format_probability(log_p: float, digits: int = 3) -> str:
     if round(mantissa, digits) >= 10:
         mantissa, exponent = mantissa / 10, exponent + 1
     return f"{mantissa:.{digits}f}e{exponent:+03d}"
+
+
+def markov_lower_bound(log_estimates: np.ndarray, alpha: float = 1.0 - CI_LEVEL) -> float:
+    """A lower confidence bound of p at level 1 - ``alpha``, log (nats), from n independent runs of unbiased,
+    non-negative estimators of p (importance sampling with exact weights, splitting), their log estimates
+    ``log_estimates`` float64 [n] (nats): (log alpha + sum of the logs) / n, i.e. alpha^(1/n) times their geometric
+    mean. It needs no variance estimate and holds however heavy the weights' tail: E[prod X_i] = p^n, so
+    P(prod X_i >= t) <= p^n / t (Markov's inequality), and a p below the bound would make the product the runs gave
+    less likely than alpha. -inf when a run gave 0 or there is none. There is no such upper bound: an unbiased
+    estimator may miss most of p in every run.
+
+    Raises:
+        ValueError: alpha outside (0, 1).
+    """
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"markov_lower_bound: alpha must be in (0, 1), got {alpha}")
+    logs = np.asarray(log_estimates, dtype=np.float64)
+    if logs.size == 0 or np.any(np.isneginf(logs)):
+        return -math.inf
+    return float((math.log(alpha) + math.fsum(logs.tolist())) / logs.size)

@@ -20,10 +20,17 @@ so stopping early at a fixed iteration budget keeps it unbiased for the failure 
 level used); Innes & Ramamoorthy, "Adaptive Splitting of Reusable Temporal Monitors for Rare Traffic Violations",
 arXiv 2405.15771, 2024 (AMS with STL robustness as the score, by the authors of the PEM sampler).
 
+A graded score (``ams_score = "committor"``, :class:`GradedScore`) ranks the particles by -log of a scenario's
+learned probability of failure V(s) instead: the robustness of a scene such as the cut-in sits on one plateau in most
+rollouts, so its levels tie, where V takes a continuum of values. The failure threshold stays the robustness's: a
+prefix scores the running minimum of the graded score at the steps that do not fail (at least :data:`SCORE_FLOOR`)
+and of the robustness (< 0) at those that do. Any score that is a function of the state and the step keeps p_hat
+unbiased (Brehier et al. 2016 above); a poor one costs variance (more ties, fewer families).
+
 Cost: the N initial rollouts (N T steps) plus, per iteration, the continuations' steps sum_i (T - branch step_i).
 ``n_simulations`` counts rollout-equivalents, ceil(simulated steps / T), so that budgets compare with the
-cross-entropy sampler's rollouts (its default spends 2,100). Replayed prefixes are not counted: a snapshot restores
-them without simulation.
+cross-entropy sampler's rollouts (its default spends 2,100), with a graded score's look-ahead and preparation steps.
+Replayed prefixes are not counted: a snapshot restores them without simulation.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ import dataclasses
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from scipy.special import logsumexp, ndtri
@@ -50,10 +58,30 @@ def no_branch_message(problem: Problem) -> str:
     return f"method ams needs a simulator with snapshot/restore; {problem.name} has none"
 
 
-def running_score(problem: Problem, batch: RolloutBatch) -> np.ndarray:
-    """The score of every prefix, float64 [N, T]: the running minimum over ``t' <= t`` of the operand's classic
-    robustness of the problem's ``G[a,b](operand)`` formula, counted only for ``t'`` in [a, b] (+inf before a).
-    The last column is the formula's classic robustness (failure: < 0).
+SCORE_FLOOR = 1e-12
+"""The least graded score of a prefix that has not failed: a state whose committor rounds to 1 stays above the failure
+threshold 0."""
+
+
+class GradedScore(Protocol):
+    """A graded AMS score that a scenario computes while it simulates (e.g. -log of a learned committor V,
+    :class:`pemviz.scenarios.cut_in.splitting.CommittorScore`): ``simulate(n, rng)`` draws n rollouts from the target,
+    ``branch(parents, parent, at, rng)`` continues parents' rollouts from the steps ``at`` as ``Problem.branch`` does;
+    each returns the rollouts [K, T] and the score at every step, float64 [K, T] (lower = closer to failure; +inf at
+    steps not scored, and up to ``at`` for a branch). ``steps`` counts the rollout-steps simulated besides the
+    rollouts (its look-aheads, its preparation)."""
+
+    steps: int
+
+    def simulate(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]: ...
+
+    def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
+               rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]: ...  # fmt: skip
+
+
+def step_robustness(problem: Problem, batch: RolloutBatch) -> np.ndarray:
+    """The classic robustness of the operand of the problem's ``G[a,b](operand)`` formula at every step, float64
+    [N, T], +inf outside [a, b].
 
     Raises:
         ValueError: a formula that is not ``G[a,b](state predicate)`` (cf. :func:`pemviz.stl.first_violation`).
@@ -66,7 +94,28 @@ def running_score(problem: Problem, batch: RolloutBatch) -> np.ndarray:
     end = rho.shape[1] - 1 if f.end is None else min(f.end, rho.shape[1] - 1)
     rho[:, : f.start] = np.inf
     rho[:, end + 1 :] = np.inf
-    return np.minimum.accumulate(rho, axis=1)
+    return rho
+
+
+def running_score(problem: Problem, batch: RolloutBatch, graded: np.ndarray | None = None,
+                  prefix: np.ndarray | None = None, at: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """The score of every prefix, float64 [N, T]: the running minimum over ``t' <= t`` of the operand's classic
+    robustness (:func:`step_robustness`), or with ``graded`` [N, T] (a :class:`GradedScore`'s) of the graded score
+    (at least :data:`SCORE_FLOOR`) at steps that do not fail and the robustness (< 0) at those that do. The last
+    column is below 0 exactly when the rollout fails.
+
+    Args:
+        prefix, at: a branch's parents' running scores [N, T] and its branching steps int [N]: the score up to and
+            including ``at`` is the parent's (the same state).
+    Raises:
+        ValueError: a formula that is not ``G[a,b](state predicate)``.
+    """
+    score = step_robustness(problem, batch)
+    if graded is not None:
+        score = np.where(score < 0.0, score, np.maximum(graded, SCORE_FLOOR))
+    if prefix is not None and at is not None:
+        score = np.where(np.arange(score.shape[1])[None, :] <= at[:, None], prefix, score)
+    return np.minimum.accumulate(score, axis=1)
 
 
 def _replaced(batch: RolloutBatch, rows: np.ndarray, new: RolloutBatch) -> RolloutBatch:
@@ -90,6 +139,8 @@ class Splitting:
         killed: k, the particles killed per iteration at least (ties at the level add to it), 1 <= k < N.
         max_iterations: stop after this many iterations even if the level has not reached 0.
         rng: the detections of the continuations; pick_rng: which survivor each killed particle copies.
+        scorer: a graded score that simulates the particles itself (None: the robustness, and the problem's
+            ``simulate`` / ``branch``).
     """
 
     problem: Problem
@@ -97,6 +148,7 @@ class Splitting:
     max_iterations: int
     rng: np.random.Generator
     pick_rng: np.random.Generator
+    scorer: GradedScore | None = None
     particles: RolloutBatch | None = None
     running: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
     """float64 [N, T] prefix scores (:func:`running_score`)."""
@@ -124,12 +176,15 @@ class Splitting:
 
     @property
     def n_simulations(self) -> int:
-        """Rollout-equivalents simulated: ceil(steps / T)."""
-        return -(-self.steps // max(self.particles.n_steps, 1)) if self.particles is not None else 0
+        """Rollout-equivalents simulated: ceil(steps / T), the scorer's steps included."""
+        if self.particles is None:
+            return 0
+        steps = self.steps + (self.scorer.steps if self.scorer is not None else 0)
+        return -(-steps // max(self.particles.n_steps, 1))
 
-    def start(self, batch: RolloutBatch) -> None:
-        """Take the N initial rollouts of the target detector."""
-        self.particles, self.running = batch, running_score(self.problem, batch)
+    def start(self, batch: RolloutBatch, graded: np.ndarray | None = None) -> None:
+        """Take the N initial rollouts of the target detector (and their graded scores [N, T], with a scorer)."""
+        self.particles, self.running = batch, running_score(self.problem, batch, graded)
         self.eve = np.arange(batch.n)
         self.steps += batch.n * batch.n_steps
         self._check_stop()
@@ -152,8 +207,12 @@ class Splitting:
         survivors = np.flatnonzero(score < self.level)
         parent = survivors[self.pick_rng.integers(survivors.size, size=killed.size)]
         at = np.argmax(self.running[parent] < self.level, axis=1)  # first step strictly below the level
-        new = self.problem.branch(self.particles, parent, at, self.problem.target, self.rng)
-        new_running = running_score(self.problem, new)
+        if self.scorer is None:
+            new = self.problem.branch(self.particles, parent, at, self.problem.target, self.rng)
+            new_running = running_score(self.problem, new)
+        else:
+            new, graded = self.scorer.branch(self.particles, parent, at, self.rng)
+            new_running = running_score(self.problem, new, graded, self.running[parent], at)
         b = self.particles
         self.particles = _replaced(b, killed, new)
         self.running = self.running.copy()
@@ -227,9 +286,12 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
     (``StagePlan.draw``). ``gamma`` of a stage is the level reached. Streams from ``config.seed``: the detections
     (:attr:`rng`) and the survivor choice (``(seed, 1)``).
 
+    With ``ams_score = "committor"`` the particles are ranked by the problem's learned committor instead (its tilted
+    proposal's :class:`GradedScore`, ``problem.tilt().splitting_score(problem)``), which also simulates them.
+
     Raises:
         ValueError: a problem without ``branch`` (no snapshot/restore) or without a ``G[a,b](state predicate)``
-            formula: one line.
+            formula, or a committor score asked of a problem without one: one line.
     """
 
     SETTINGS = settings_of("ams")
@@ -244,9 +306,10 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         self.check: Check = check or (lambda: None)
         self.rng = np.random.default_rng(config.seed)
         self.ams = Splitting(problem, config.ams_killed, config.ams_max_iterations, self.rng,
-                             np.random.default_rng((config.seed, 1)))  # fmt: skip
+                             np.random.default_rng((config.seed, 1)), committor_score(problem, config.ams_score))
         self._stage = -1
         self._initial: list[RolloutBatch] = []
+        self._graded: np.ndarray | None = None
 
     @property
     def n_simulations(self) -> int:
@@ -266,7 +329,17 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
             return None
         self._stage += 1
         n = self.config.n_per_stage
-        return StagePlan(self._stage, "ams", n, self.problem.target, None if self._stage == 0 else self._iterate)
+        first = None if self.ams.scorer is None else self._initial_scored
+        return StagePlan(self._stage, "ams", n, self.problem.target, first if self._stage == 0 else self._iterate)
+
+    def _initial_scored(self, rng: np.random.Generator) -> RolloutBatch:
+        """The N initial particles drawn by the graded score (their scores kept for :meth:`finish`)."""
+        assert self.ams.scorer is not None
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):
+            batch, self._graded = self.ams.scorer.simulate(self.config.n_per_stage, rng)
+        return batch
 
     def _iterate(self, rng: np.random.Generator) -> RolloutBatch:
         """Iterations until N particles were resampled or the run stops; the particles after them [N, T]."""
@@ -283,8 +356,9 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
 
     def finish(self) -> StageOutcome:
         if self._stage == 0:
-            self.ams.start(RolloutBatch.concatenate(self._initial) if len(self._initial) > 1 else self._initial[0])
-            self._initial = []
+            self.ams.start(RolloutBatch.concatenate(self._initial) if len(self._initial) > 1 else self._initial[0],
+                           self._graded)
+            self._initial, self._graded = [], None
         nan = np.full(self.problem.curve_grid.size, np.nan)
         failed = self.ams.score < 0.0
         return StageOutcome(self.ams.level, int(failed.sum()), self.ams.estimate(), nan, nan)
@@ -293,17 +367,41 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         return self.ams.estimate(), (self._stage,)
 
 
-def run_ams(problem: Problem, n: int, killed: int, seed: int = 0, max_iterations: int = 100_000) -> Splitting:
+def committor_score(problem: Problem, score: str) -> GradedScore | None:
+    """The graded score ``ams_score`` names: None for ``robustness``; for ``committor`` the problem's tilted
+    proposal's (solved, or reused from an earlier run of the process).
+
+    Raises:
+        ValueError: ``committor`` for a problem whose scenario has no learned committor: one line.
+    """
+    if score == "robustness":
+        return None
+    tilt = problem.tilt() if problem.tilt is not None else None
+    if tilt is None or not hasattr(tilt, "splitting_score"):
+        raise ValueError(f"ams_score committor needs a scenario with a learned committor (the cut-in's); "
+                         f"{problem.name} has none: use ams_score robustness")  # fmt: skip
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="blas"):
+        return tilt.splitting_score(problem)
+
+
+def run_ams(problem: Problem, n: int, killed: int, seed: int = 0, max_iterations: int = 100_000,
+            score: str = "robustness") -> Splitting:  # fmt: skip
     """One whole AMS run without the engine (for studies and tests): N particles from ``problem.target``, seeded
-    like ``method = "ams"`` with ``seed``; returns the finished :class:`Splitting` (``.estimate()``, ``.steps``).
+    like ``method = "ams"`` with ``seed`` and ranked by ``score`` (``ams_score``); returns the finished
+    :class:`Splitting` (``.estimate()``, ``.n_simulations``).
 
     Raises:
         ValueError: as :class:`AdaptiveMultilevelSplitting`.
     """
     cfg = ExperimentConfig(method="ams", n_per_stage=n, ams_killed=killed, ams_max_iterations=max_iterations,
-                           seed=seed)  # fmt: skip
+                           seed=seed, ams_score=score)  # fmt: skip
     est = AdaptiveMultilevelSplitting(cfg, problem)
-    est.ams.start(problem.simulate(n, problem.target, problem.target, est.rng))
+    if est.ams.scorer is not None:
+        est.ams.start(*est.ams.scorer.simulate(n, est.rng))
+    else:
+        est.ams.start(problem.simulate(n, problem.target, problem.target, est.rng))
     while not est.ams.stop:
         est.ams.iterate()
     return est.ams

@@ -372,7 +372,7 @@ for _scenario in (
     Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in:CutInParams",
              "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
              drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
-    Scenario("cut-in-rare", _CUT_IN.format("rare (below 1e-9)"), "pemviz.scenarios.cut_in:CutInParams",
+    Scenario("cut-in-rare", _CUT_IN.format("rare (about 1e-7)"), "pemviz.scenarios.cut_in:CutInParams",
              "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
              drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
     Scenario("toy", "toy braking: a car from an obstacle, a detection within the braking range stops it; failure: "

@@ -181,6 +181,8 @@ Indexes = Callable[..., list]
 """``indexes(step=array)``: the time columns of a ``send_columns`` (the sink's, with its repetition)."""
 
 
+AMS_SCORE_WORDS = {"robustness": "robustness", "committor": "-log of the scenario's learned committor"}
+"""What ranks the AMS particles, in the recording's description of the run."""
 DESCRIBED_METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt")
 """The methods :func:`method_markdown` describes in words; any other is described by its plan's stages."""
 
@@ -206,7 +208,8 @@ def method_markdown(ev: RunStarted) -> str:
         "mc": f"plain **Monte Carlo** with the PEM: {cfg.n_per_stage} rollouts.",
         "naive50": f"a **50 % detector** at every step, weighted by the PEM: {cfg.n_per_stage} rollouts.",
         "mixed50": f"a **50 % detector inside the window** ({window}), the PEM outside: {cfg.n_per_stage} rollouts.",
-        "ams": (f"**adaptive multilevel splitting** on robustness (Cerou & Guyader 2007): N = {cfg.n_per_stage} "
+        "ams": (f"**adaptive multilevel splitting** on {AMS_SCORE_WORDS.get(cfg.ams_score, cfg.ams_score)} (Cerou & "
+                f"Guyader 2007): N = {cfg.n_per_stage} "
                 f"PEM rollouts, the k = {cfg.ams_killed} highest killed per iteration and branched from survivors; "
                 "each stage shows the particles after about N resamplings."),
         "tilt": (f"**approximate zero-variance importance sampling** (L'Ecuyer & Tuffin 2008): {cfg.n_per_stage} "

@@ -296,14 +296,15 @@ RARITY_SETTINGS: dict[str, dict[str, float]] = {
 """The rarity knob's two settings (:class:`CutInParams` fields; ``moderate`` is the default): the cut-in vehicle's gap
 to the ego at t = 0 with its speed 7.6 m/s below the ego's. Under the shipped PEMs (ml-nn detection, hetero-t noise)
 the failure probability is 8.66e-5 [8.09e-5, 9.26e-5] at ``moderate`` (plain Monte Carlo, 10^7 rollouts,
-``benchmarks/cut_in_mc.py``) and far below 1e-9 at ``rare`` (``docs/cut-in.md``: each extra 0.76 m of gap needs one
-more step of late reaction, and each step costs a factor of about 280 in probability)."""
+``benchmarks/cut_in_mc.py``) and about 1e-7 at ``rare``: 10 runs of the tilted proposal give a geometric mean of
+1.8e-7 and, being unbiased, p >= 1.3e-7 at 95 % (Markov's inequality: :func:`pemviz.core.estimate.markov_lower_bound`);
+splitting ranked by the same committor gives 8.8e-8 (``docs/cut-in.md``)."""
 
 MONTE_CARLO_REFERENCE: dict[str, tuple[int, int]] = {"moderate": (866, 10_000_000)}
 """The plain Monte Carlo reference of a rarity setting under the shipped PEMs: (failures, rollouts) of the batched
 twin drawn from the PEMs (``benchmarks/cut_in_mc.py``, seeds 11 and 12, 5 x 10^6 rollouts each; every failure a
 collision). The reference p = failures / rollouts with its Clopper-Pearson interval (8.66e-5 [8.09e-5, 9.26e-5] at
-``moderate``); the ``rare`` setting has none (below 1e-9)."""
+``moderate``); the ``rare`` setting has none (about 1e-7: plain Monte Carlo would need some 10^9 rollouts)."""
 
 
 def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mps: np.ndarray) -> np.ndarray:

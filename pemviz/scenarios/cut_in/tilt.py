@@ -126,6 +126,13 @@ class CutInTilt(CutInLookAhead):
             _SOLVED[self.cache_key] = self
         return self.solve_steps
 
+    def splitting_score(self, problem: Any) -> Any:
+        """This proposal's committor as the score of adaptive multilevel splitting, for ``problem`` (the cut-in
+        problem of the same scene and PEMs): :class:`pemviz.scenarios.cut_in.splitting.CommittorScore`."""
+        from pemviz.scenarios.cut_in.splitting import CommittorScore
+
+        return CommittorScore(self, problem)
+
     def draw(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, int]:
         """``n`` rollouts of the tilted proposal and the look-ahead steps simulated (:meth:`stage`; the
         :class:`pemviz.core.problems.TiltSampler` interface)."""

@@ -12,6 +12,7 @@ weights p / q are exact, so its estimates average to the exact answer all the sa
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -24,6 +25,18 @@ STOPPED_V = 0.05
 """The poor V's probability of failure after a detection that stops the car (the truth: 0)."""
 EPS = 0.2
 """The PEM's share of each step's proposal."""
+SCORE_STOPPED_V = 0.4
+"""The splitting score's V of a stopped car (the truth: 0): above the poor V of a moving car at every distance but
+the last one, so a stopped car, which can never fail, ranks as close to failure."""
+
+
+def poor_committor(params: ToyParams, d: np.ndarray, stopped: np.ndarray,
+                   stopped_v: float = STOPPED_V) -> np.ndarray:  # fmt: skip
+    """The poor V, float64 [N]: a moving car at distance ``d`` [N] (units) fails with probability (1 -
+    :data:`P_GUESS`)^(min(d, braking) - safe + 1) (1 below ``safe``), a stopped one (``stopped`` bool [N]) with
+    ``stopped_v`` (the truths: prod (1 - p(d')) over the distances left in the window, and 0)."""
+    moving = (1.0 - P_GUESS) ** np.clip(np.minimum(d, params.braking) - params.safe + 1.0, 0.0, None)
+    return np.where(stopped, stopped_v, moving)
 
 
 @dataclass(frozen=True)
@@ -40,8 +53,7 @@ class ToyTiltDetector:
         d, stopped = np.asarray(obs, dtype=np.float64)[:, 0], np.asarray(obs)[:, 1] > 0.5
         p = p_par.detect_probability(d)
         inside = ~stopped & (d >= p_par.safe) & (d <= p_par.braking)
-        v_next = (1.0 - P_GUESS) ** np.clip(np.minimum(d - 1.0, p_par.braking) - p_par.safe + 1.0, 0.0, None)
-        miss = (1.0 - p) * v_next
+        miss = (1.0 - p) * poor_committor(p_par, d - 1.0, np.zeros(d.shape, dtype=bool))
         q_miss = (1.0 - EPS) * miss / (miss + p * STOPPED_V) + EPS * (1.0 - p)
         q = np.where(inside, 1.0 - q_miss, p)
         return np.log(q) - np.log1p(-q)
@@ -61,3 +73,37 @@ class ToyTilt:
     def draw(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, int]:
         """``n`` rollouts drawn from :class:`ToyTiltDetector`, scored under the toy's PEM; no look-ahead steps."""
         return simulate_toy(self.params, n, ToyTiltDetector(self.params), ToyDetector(self.params), rng), 0
+
+    def splitting_score(self, problem: Any) -> "ToyCommittorScore":
+        """The poor V as the score of adaptive multilevel splitting (``ams_score = "committor"``)."""
+        return ToyCommittorScore(self.params, problem)
+
+
+class ToyCommittorScore:
+    """-log of a poor V (:func:`poor_committor`, a stopped car's :data:`SCORE_STOPPED_V`) at every step as a graded
+    AMS score
+    (:class:`pemviz.estimators.ams.GradedScore`): the check that committor-scored splitting is unbiased whatever its
+    score (Brehier, Gazeau, Goudenege, Lelievre & Rousset, Ann. Appl. Probab. 26(6), 2016). The rollouts are the
+    problem's own (``simulate`` / ``branch`` under its PEM); the score reads the state off them, no look-ahead."""
+
+    steps = 0
+
+    def __init__(self, params: ToyParams, problem: Any) -> None:
+        self.params, self.problem = params, problem
+
+    def simulate(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:
+        """``n`` rollouts of the toy's PEM and their scores, float64 [n, T] (nats)."""
+        batch = self.problem.simulate(n, self.problem.target, self.problem.target, rng)
+        return batch, self._graded(batch)
+
+    def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
+               rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:  # fmt: skip
+        """``parents``' rollouts ``parent`` continued from the steps ``at`` (the problem's ``branch``) and their
+        scores [K, T]."""
+        batch = self.problem.branch(parents, parent, at, self.problem.target, rng)
+        return batch, self._graded(batch)
+
+    def _graded(self, batch: RolloutBatch) -> np.ndarray:
+        obs = batch.observations
+        v = poor_committor(self.params, obs[..., 0], obs[..., 1] > 0.5, SCORE_STOPPED_V)
+        return -np.log(v)
