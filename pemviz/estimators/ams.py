@@ -21,8 +21,8 @@ level used); Innes & Ramamoorthy, "Adaptive Splitting of Reusable Temporal Monit
 arXiv 2405.15771, 2024 (AMS with STL robustness as the score, by the authors of the PEM sampler).
 
 A graded score (``ams_score = "committor"``, :class:`GradedScore`) ranks the particles by -log of a scenario's
-learned probability of failure V(s) instead: the robustness of a scene such as the cut-in sits on one plateau in most
-rollouts, so its levels tie, where V takes a continuum of values. The failure threshold stays the robustness's: a
+learned probability of failure V(s) instead: where a scene's robustness sits on one plateau in most rollouts
+(e.g. the cut-in's), its levels tie, and V takes a continuum of values. The failure threshold stays the robustness's: a
 prefix scores the running minimum of the graded score at the steps that do not fail (at least :data:`SCORE_FLOOR`)
 and of the robustness (< 0) at those that do. Any score that is a function of the state and the step keeps p_hat
 unbiased (Brehier et al. 2016 above); a poor one costs variance (more ties, fewer families).
@@ -64,12 +64,12 @@ threshold 0."""
 
 
 class GradedScore(Protocol):
-    """A graded AMS score that a scenario computes while it simulates (e.g. -log of a learned committor V,
-    :class:`pemviz.scenarios.cut_in.splitting.CommittorScore`): ``simulate(n, rng)`` draws n rollouts from the target,
-    ``branch(parents, parent, at, rng)`` continues parents' rollouts from the steps ``at`` as ``Problem.branch`` does;
-    each returns the rollouts [K, T] and the score at every step, float64 [K, T] (lower = closer to failure; +inf at
-    steps not scored, and up to ``at`` for a branch). ``steps`` counts the rollout-steps simulated besides the
-    rollouts (its look-aheads, its preparation)."""
+    """A graded AMS score that a scenario computes while it simulates, -log of a learned committor V
+    (e.g. :class:`pemviz.scenarios.cut_in.splitting.CommittorScore`); ``simulate(n, rng)`` draws n rollouts from the
+    target, ``branch(parents, parent, at, rng)`` continues parents' rollouts from the steps ``at`` as
+    ``Problem.branch`` does; each returns the rollouts [K, T] and the score at every step, float64 [K, T] (lower =
+    closer to failure; +inf at steps not scored, and up to ``at`` for a branch). ``steps`` counts the rollout-steps
+    simulated besides the rollouts (its look-aheads, its preparation)."""
 
     steps: int
 
@@ -378,7 +378,7 @@ def committor_score(problem: Problem, score: str) -> GradedScore | None:
         return None
     tilt = problem.tilt() if problem.tilt is not None else None
     if tilt is None or not hasattr(tilt, "splitting_score"):
-        raise ValueError(f"ams_score committor needs a scenario with a learned committor (the cut-in's); "
+        raise ValueError(f"ams_score committor needs a scenario with a learned committor; "
                          f"{problem.name} has none: use ams_score robustness")  # fmt: skip
     from threadpoolctl import threadpool_limits
 
