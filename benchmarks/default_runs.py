@@ -203,7 +203,7 @@ def heaviest_failures(seed: int, n: int, k: int) -> None:
             _, qc = self.grid.proposal(p0, self.beta * lqb, self.eps)
             log_q_cls, rr = self.grid.class_values(lqb), np.arange(idx.size)
             self.trace[idx, t] = np.column_stack([cls, exact.log(pc[rr, cls]) - exact.log(qc[rr, cls]),
-                                                  log_q_cls[rr, cls], np.log((pc * np.exp(log_q_cls)).sum(axis=1))])
+                                                  log_q_cls[rr, cls], self.grid.log_value(p0, lqb)])
 
     params = cut_in_params("moderate")
     problem = cut_in_problem(load_pem(), params)

@@ -32,9 +32,9 @@ from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 # `pemviz run --no-record` never loads rerun.
 
 
-RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "ams_score", "quantile_level", "smoothing", "metric", "seed",
-                "ce_epochs", "pem", "scenario", "scenario_params", "sim", "executor", "ray_address", "chunk_rollouts",
-                "rel_error", "require", "margin", "pem_uncertainty", "pem_shift", "max_sims", "max_time_s")
+RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "ams_score", "quantile_level", "smoothing",
+                "metric", "seed", "ce_epochs", "pem", "scenario", "scenario_params", "sim", "executor", "ray_address",
+                "chunk_rollouts", "rel_error", "require", "margin", "pem_uncertainty", "pem_shift", "max_sims", "max_time_s")
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 

@@ -335,10 +335,7 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
     def _initial_scored(self, rng: np.random.Generator) -> RolloutBatch:
         """The N initial particles drawn by the graded score (their scores kept for :meth:`finish`)."""
         assert self.ams.scorer is not None
-        from threadpoolctl import threadpool_limits
-
-        with threadpool_limits(1, user_api="blas"):
-            batch, self._graded = self.ams.scorer.simulate(self.config.n_per_stage, rng)
+        batch, self._graded = self.ams.scorer.simulate(self.config.n_per_stage, rng)
         return batch
 
     def _iterate(self, rng: np.random.Generator) -> RolloutBatch:

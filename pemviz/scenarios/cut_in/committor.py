@@ -137,6 +137,13 @@ class Grid:
         out[:, 1:] = np.maximum(qr[:, :, None], ql[:, None, :]).reshape(q.shape[0], -1)
         return out
 
+    def log_value(self, p0: np.ndarray, log_qb: np.ndarray) -> np.ndarray:
+        """log V = log sum_c p(c) Q(c) of states whose cut-in car is detected with ``p0`` [k], float64 [k] (nats): the
+        classes' Q (from the branches' log Q [k, NBRANCH]) averaged under the PEMs, summed in one order (the same on
+        every CPU)."""
+        v = np.cumsum(self.p_class(p0) * exact.exp(self.class_values(log_qb)), axis=1)[:, -1]
+        return exact.log(np.clip(v, 1e-300, 1.0))
+
     def proposal(self, p0: np.ndarray, log_qb: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
         """(p(class), q(class)), float64 [k, 1 + NB^2] each: the tilt p Q normalised (Q from the branches' log Q
         [k, NBRANCH]), mixed with a share ``eps`` of p itself (a defensive mixture: Hesterberg 1995, Technometrics

@@ -7,8 +7,8 @@ tilt's probability of failure from the state (its chain and effect model: :meth:
 <pemviz.scenarios.cut_in.tilt.CutInTilt.branch_log_q>`), at the steps of the tilt's window where the cut-in car is
 visible and the rollout has not failed; +inf at the other steps, and the failure formula's operand robustness
 (metres, < 0) at a step that fails. The prefix score is the running minimum, so a failure scores below 0 and every
-other rollout at least :data:`pemviz.estimators.ams.SCORE_FLOOR`. A graded score: V takes a continuum of values where the robustness sits on
-one plateau in about 97 % of rollouts, so no level ties there.
+other rollout at least :data:`pemviz.estimators.ams.SCORE_FLOOR`. A graded score: V takes a continuum of values
+where the robustness sits on one plateau in about 97 % of rollouts, so no level ties there.
 
 Splitting is unbiased for any score that is a function of the state and the step (Brehier, Gazeau, Goudenege, Lelievre
 & Rousset, Ann. Appl. Probab. 26(6), 2016): V's errors cost variance only, as they do the tilt's. Each score is
@@ -26,8 +26,8 @@ import functools
 from typing import Any, Iterator
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
-from pemviz.core import exact
 from pemviz.core.lockstep import replay_rows, run_batched
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch, draws_per_rollout
@@ -97,8 +97,9 @@ class CommittorScore:
                         graded[idx, t] = -self.log_v(sim, t, idx, zeros, rows, prefix_min)
                 yield rng.random(k)
 
-        batch = run_batched(sim, n, p.n_steps, self.problem.target, self.problem.target, uniforms(), forced,
-                            keep_rows=False)  # fmt: skip
+        with threadpool_limits(1, user_api="blas"):  # as the problems' own rollouts (rollout_functions)
+            batch = run_batched(sim, n, p.n_steps, self.problem.target, self.problem.target, uniforms(), forced,
+                                keep_rows=False)  # fmt: skip
         batch = dataclasses.replace(batch, replay=functools.partial(replay_rows, functools.partial(BatchedCutIn, p)))
         return batch, graded
 
@@ -109,7 +110,5 @@ class CommittorScore:
         tilt = self.tilt
         sfeat = features(sim.state.select(idx), tilt.traj[t], tilt.errors)
         p0 = p_detect_of(tilt.target.detect_logit(rows[idx, 0]))
-        lqb = tilt.branch_log_q(sim, t, idx, u, rows, prefix_min, sfeat, p0)
-        v = np.cumsum(tilt.grid.p_class(p0) * exact.exp(tilt.grid.class_values(lqb)), axis=1)[:, -1]
-        return exact.log(np.clip(v, 1e-300, 1.0))
+        return tilt.grid.log_value(p0, tilt.branch_log_q(sim, t, idx, u, rows, prefix_min, sfeat, p0))
 
