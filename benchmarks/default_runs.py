@@ -80,7 +80,14 @@ def spread(logs: np.ndarray, half_widths: np.ndarray, sims: np.ndarray) -> str:
     if logs.size < 2:
         return "spread of the seeds: one run"
     p = np.exp(logs)
+    none = int(np.sum(p == 0.0))
+    if none == logs.size:
+        return f"spread of the seeds: no run saw a failure ({logs.size} runs, {np.mean(sims):,.0f} simulations a run)"
     relvar = float(np.var(p, ddof=1) / np.mean(p) ** 2)
+    if none:
+        return (f"spread of the seeds: {none} of {logs.size} runs saw no failure, so the logs' spread and the lower "
+                f"bound are not defined; relvar x simulations {relvar * float(np.mean(sims)):.3g} (relvar "
+                f"{relvar:.3g}, {np.mean(sims):,.0f} simulations a run)")  # fmt: skip
     from pemviz.core.estimate import markov_lower_bound
 
     bound = markov_lower_bound(logs)
@@ -175,6 +182,10 @@ def agreement(a: list[tuple[float, tuple[float, float]]], b: list[tuple[float, t
     seeds' spread, and whether each one's geometric mean lies inside the other's mean interval."""
     la, lb = np.array([x[0] for x in a]), np.array([x[0] for x in b])
     overlap = sum(max(x[1][0], y[1][0]) <= min(x[1][1], y[1][1]) for x, y in zip(a, b))
+    none = [int(np.sum(~np.isfinite(x))) for x in (la, lb)]
+    if any(none):
+        return (f"agreement over {len(a)} seeds: the two intervals overlap in {overlap}; runs without a failure: "
+                f"{none[0]} and {none[1]}, so the geometric means cannot be compared")  # fmt: skip
     diff = la.mean() - lb.mean()
     se = math.sqrt(la.var(ddof=1) / la.size + lb.var(ddof=1) / lb.size) if min(la.size, lb.size) > 1 else math.nan
     return (f"agreement over {len(a)} seeds: the two intervals overlap in {overlap}; geometric means "

@@ -269,7 +269,7 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("mixed50", "50 % inside the window and the PEM outside"),
                          ("ams", "adaptive multilevel splitting on the robustness, no importance weights"),
                          ("tilt", "the scenario's own proposal: each step's events tilted by an approximate "
-                                  "probability of failure after them (the cut-in)"))),
+                                  "probability of failure after them (the cut-in, braking)"))),
     Setting("n_stages", "the number of cross-entropy stages K",
             "stages of N rollouts, the proposal refitted after each", kind="int", symbol="K", lo=1, hi=MAX_STAGES,
             flags=("--k", "--stages")),

@@ -305,10 +305,10 @@ def test_engine_runs_committor_scored_ams_as_run_ams_does():
 
 
 def test_committor_score_asked_of_a_scenario_without_one_gives_one_line():
-    with pytest.raises(ValueError, match=r"^ams_score committor needs a scenario with a learned committor; braking "
+    with pytest.raises(ValueError, match=r"^ams_score committor needs a scenario with a learned committor; crowd "
                                          r"has none: use ams_score robustness$"):  # fmt: skip
-        build_estimator(ExperimentConfig(method="ams", ams_score="committor"), build_problem("main"))
-    r = run_cli("run", "--method", "ams", "--ams-score", "committor", "--no-record")
+        build_estimator(ExperimentConfig(method="ams", ams_score="committor"), build_problem("crowd"))
+    r = run_cli("run", "--scenario", "crowd", "--method", "ams", "--ams-score", "committor", "--no-record")
     assert r.returncode == 2 and "Traceback" not in r.stderr and "has none: use ams_score robustness" in r.stderr
     r = run_cli("run", "--method", "ams", "--ams-score", "nope", "--no-record")
     assert r.returncode == 2 and "Traceback" not in r.stderr and "committor" in r.stderr

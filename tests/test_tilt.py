@@ -138,12 +138,12 @@ def test_a_scenario_without_a_tilt_is_refused():
         CommittorTilt(build_problem("crowd"), 10, False)
 
 
-def test_pemviz_run_refuses_the_tilt_on_braking_in_one_line(capsys):
+def test_pemviz_run_refuses_the_tilt_on_the_crowd_in_one_line(capsys):
     from pemviz.cli import main
 
-    assert main(["run", "--method", "tilt", "--no-record"]) != 0
+    assert main(["run", "--scenario", "crowd", "--method", "tilt", "--no-record"]) != 0
     err = capsys.readouterr().err.strip()
-    assert err == ("pemviz run: error: method tilt: the braking problem has no tilted proposal of its own; use "
+    assert err == ("pemviz run: error: method tilt: the crowd problem has no tilted proposal of its own; use "
                    "adaptive or mc")
 
 

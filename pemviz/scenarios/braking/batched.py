@@ -44,7 +44,7 @@ from pemviz.core.detectors import Detector
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, check_counts, iter_rollouts, simulate_rollouts
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.simulator import (
-    OBSERVATION_NAMES, BrakingParams, ego_step, initial_controller_state, lead_speeds,
+    OBSERVATION_NAMES, BrakingParams, ControllerState, ego_step, initial_controller_state, lead_speeds,
 )
 
 
@@ -97,6 +97,11 @@ class BatchedBraking:
         o[:, 2] = self.lead_speed_mps
         o[:, 3] = self._ctrl.pending_brake
         return o
+
+    @property
+    def controller(self) -> ControllerState:
+        """Every rollout's controller memory at the current step (PID integral, pending brake; [N] each), read-only."""
+        return self._ctrl
 
     @property
     def done(self) -> bool:

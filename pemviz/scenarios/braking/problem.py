@@ -5,6 +5,7 @@ on its batched twin or on highway-env vehicles) and its safety formula :func:`br
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Iterator
 
 import numpy as np
@@ -91,6 +92,11 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         known = {x: known_log_failure_probability(pem.logit_at_gap, dataclasses.replace(p, crash_gap_m=x))
                  for x in scale.levels}  # fmt: skip
         exact = {x: v for x, v in known.items() if v is not None}
+    tilt = None
+    if hasattr(pem, "logit_at_gap") and sim == "batched":
+        from pemviz.scenarios.braking.tilt import BrakingTilt
+
+        tilt = functools.partial(BrakingTilt, p, pem.logit_at_gap, PEMDetector(pem))
     look_ahead = None
     if hasattr(pem, "logit_at_gap") and p.crash_gap_m < never_detected_min_gap_m(p):
         look_ahead = braking_look_ahead(p, pem.logit_at_gap)
@@ -102,7 +108,7 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
         stream=stream if sim == "batched" else None, branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"),
-        drawing=BrakingDrawing(p), n_steps=p.n_steps, dt_s=p.dt_s,
+        drawing=BrakingDrawing(p), n_steps=p.n_steps, dt_s=p.dt_s, tilt=tilt,
         description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
                      f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
                      f"the gap drops below {p.crash_gap_m:g} m"),

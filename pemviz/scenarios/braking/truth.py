@@ -281,6 +281,7 @@ def braking_exact(
     bound_grid: int = 401,
     bound: MissBound | CellMissBound | None = None,
     max_paths: int = 20_000_000,
+    start: BrakingStart | None = None,
 ) -> ExactResult:
     """p_fail of the braking scenario (latched or not) by enumerating detection sequences.
 
@@ -300,6 +301,9 @@ def braking_exact(
         bound_grid: points per axis of the miss-bound grid (:func:`exact_bound`); ``bound`` reuses one already
             computed.
         max_paths: refuse to go on beyond this many live sequences (memory).
+        start: the state to enumerate from (None: :func:`branching_start`), a state at or after the branching start
+            (``bound``, when given, made from a start no later): the result is then the committor of that state,
+            P(failure | state) (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2)).
     Returns:
         :class:`ExactResult`: p_fail in [exp(log_p_fail), exp(log_p_fail_upper)].
     Raises:
@@ -307,7 +311,7 @@ def braking_exact(
     """
     t_start = time.perf_counter()
     p = params or BrakingParams()
-    start = branching_start(p)
+    start = start or branching_start(p)
     bound = bound or exact_bound(p, start, bound_grid)
     vl = lead_speeds(p)
     T = p.n_steps
