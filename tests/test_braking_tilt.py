@@ -161,3 +161,14 @@ def test_the_committor_scores_splitting_on_braking_and_its_solve_counts():
     obs = batch.observations[:, first + 3]
     np.testing.assert_array_equal(graded[:, first + 3], -cut.committor.log_value(first + 3, obs[:, 0], obs[:, 1],
                                                                                  obs[:, 3] > 0.5))  # fmt: skip
+
+
+def test_the_tilt_on_highway_env_vehicles_is_refused_in_one_line(capsys):
+    """The tilt reads the batched twin's controller state: on the highway-env simulator it is refused, saying where it
+    runs."""
+    from pemviz.cli import main
+
+    assert main(["run", "--method", "tilt", "--sim", "highway-env", "--no-record"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err == ("pemviz run: error: method tilt: the braking problem has no tilted proposal of its own on this "
+                   "simulator (a scenario's may run on its batched twin only: --sim batched); use adaptive or mc")

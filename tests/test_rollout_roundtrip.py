@@ -131,6 +131,17 @@ def test_every_preset_and_method_round_trips(tmp_path, capsys, run_args):
         assert (tmp_path / "r.proposal.pt").is_file()  # one stage drawn by the proposal: its checkpoint
 
 
+def test_a_tilted_run_round_trips_and_its_sidecar_names_the_tilt_without_a_weight_bound(tmp_path, capsys):
+    """The tilt's rollouts are drawn by the scenario's proposal, not the target: the sidecar says so and declares no
+    bound on the weights (a bound of 1 made every re-estimate warn that log_q was wrong); every braking rollout of the
+    tilt fails, so the mean weight is p itself, below 1, as unbounded weights aimed at the failures give."""
+    run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "tilt", "--n", "300")
+    assert_round_trip(run, est, sidecar)
+    assert [(s["max_weight"], [c["sampler"] for c in s["components"]]) for s in sidecar["stages"]] == [
+        (None, ["the scenario's tilted proposal"])]
+    assert "warning" not in est and "checked above 1 only" in est
+
+
 def test_chunked_runs_above_20000_rollouts_round_trip(tmp_path, capsys):
     # naive50 with 20,001 rollouts (streamed in chunks of 8,192) and a small default sampler whose final batch is
     run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "naive50", "--n", "20001")

@@ -17,13 +17,33 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
+from pemviz.core.detectors import Detector
 from pemviz.core.problems import Problem, TiltSampler
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import StagePlan
 from pemviz.estimators.fixed import FixedSampler
+
+
+@dataclass(frozen=True)
+class SceneProposal:
+    """The scenario's tilted proposal as a stage's sampler (:attr:`pemviz.estimators.base.StagePlan.sampler`): its
+    density is each batch's ``log_q``, made by the proposal's look-aheads along each rollout, not a function of an
+    observation. It is not the target, so a rollout file's sidecar declares no bound on its weights;
+    ``detect_logit`` gives the target's, all a display of q at a bare observation can show.
+
+    Attributes:
+        target: the problem's target (p).
+    """
+
+    target: Detector
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        """The target's logit p(detect | obs), float64 [N] (see the class docstring)."""
+        return self.target.detect_logit(obs)
 
 
 class CommittorTilt(FixedSampler):
@@ -41,8 +61,10 @@ class CommittorTilt(FixedSampler):
 
     def __init__(self, problem: Problem, n: int, weights_until_failure: bool, seed: int = 0) -> None:
         if problem.tilt is None:
-            raise ValueError(f"method tilt: the {problem.name} problem has no tilted proposal of its own; use adaptive "
-                             f"or mc")
+            where = "" if problem.stream is not None else " on this simulator (a scenario's may run on its batched twin " \
+                "only: --sim batched)"
+            raise ValueError(f"method tilt: the {problem.name} problem has no tilted proposal of its own{where}; use "
+                             f"adaptive or mc")  # fmt: skip
         super().__init__(problem, problem.target, n, weights_until_failure, seed)
         self.sampler_of_scene: TiltSampler | None = None
         self.look_ahead_steps = 0
@@ -52,7 +74,8 @@ class CommittorTilt(FixedSampler):
         the same scene, PEMs and options (:attr:`pemviz.engine.events.FinalEstimate.prepared`)."""
 
     def _open(self, stage: int, n: int) -> StagePlan:
-        return dataclasses.replace(super()._open(stage, n), draw=functools.partial(self._draw, n))
+        return dataclasses.replace(super()._open(stage, n), draw=functools.partial(self._draw, n),
+                                   sampler=SceneProposal(self.problem.target))  # fmt: skip
 
     def _draw(self, n: int, rng: np.random.Generator) -> RolloutBatch:
         """``n`` rollouts of the tilted proposal (solved first, once a run), on one BLAS thread (as the problems'

@@ -169,6 +169,7 @@ class RolloutSink(Sink):
 def describe(detector: Any, target: Any = None) -> str:
     """A short name of a sampler for the sidecar: ``target``, ``proposal within 10 m, target beyond`` ..."""
     from pemviz.estimators.cross_entropy import DefensiveDetector  # the sampler classes above the core
+    from pemviz.estimators.tilt import SceneProposal
 
     if detector is target:
         return "target"
@@ -179,6 +180,8 @@ def describe(detector: Any, target: Any = None) -> str:
                 f"{describe(detector.outside, target)} beyond")  # fmt: skip
     if isinstance(detector, DefensiveDetector):
         return f"(1 - {detector.eps:g}) {describe(detector.detector, target)} + {detector.eps:g} x 50 %"
+    if isinstance(detector, SceneProposal):
+        return "the scenario's tilted proposal"
     if isinstance(detector, ConstantDetector):
         return f"{detector.p_detect:g} everywhere"
     if isinstance(detector, Proposal):
