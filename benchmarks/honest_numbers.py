@@ -2,8 +2,8 @@
 
 Prints, as markdown tables (the figures of the CHANGELOG and the user guide's Validation page):
 
-1. ``matrix``: braking and cut-in, every method (adaptive under each preset, mc, naive50, mixed50, ams), N = 100 (the
-   default budget: every method's default N) and N = 1000, ``--seeds`` seeds: the verdicts, how many intervals hold
+1. ``matrix``: braking and cut-in, every method (adaptive under each preset, mc, naive50, mixed50, ams, tilt), N = 100
+   (the default budget: every method's default N) and N = 1000, ``--seeds`` seeds: the verdicts, how many intervals hold
    the exact answer (braking) or the plain Monte Carlo reference (cut-in), how many runs print nan or inf, and how
    many say "reliable" with the answer outside a factor of 2 (a wrong claim); a preset the scene refuses is listed
    as refused, with the one line it prints.
@@ -40,7 +40,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 SCENES = ("braking", "cut-in")
 PRESET_RUNS = ("state-ce", "paper", "authors-code", "quick", "state-ce-step")
-METHOD_RUNS = ("mc", "naive50", "mixed50", "ams")
+METHOD_RUNS = ("mc", "naive50", "mixed50", "ams", "tilt")
 BUDGETS = (100, 1000)
 PARTS = ("matrix", "defaults", "rel-error", "cut-in-mc", "refusal", "speed")
 
