@@ -96,6 +96,11 @@ class GridCommittor:
     log_v: np.ndarray = field(repr=False)
     first_step: int
     steps: int
+    lead_speeds_mps: np.ndarray = field(init=False, repr=False)
+    """The lead's speed at steps 0..T (m/s; :func:`~pemviz.scenarios.braking.lead_speeds`), once a committor."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "lead_speeds_mps", lead_speeds(self.params))
 
     def log_value(self, step: int, gap_m: np.ndarray, speed_mps: np.ndarray, pending: np.ndarray) -> np.ndarray:
         """log V (nats) of states at ``step``, float64 [N]: 0 where the gap [N] (metres) is below the crash gap (the
@@ -117,7 +122,7 @@ class GridCommittor:
         ``step`` (gap m, speed m/s, PID integral km/h s, pending brake): each outcome's next state by
         :func:`~pemviz.scenarios.braking.braking_step`, once when the actuation lag makes both share it."""
         p = self.params
-        vl = float(lead_speeds(p)[step])
+        vl = float(self.lead_speeds_mps[step])
         n = np.size(gap_m)
         miss = np.zeros(n, dtype=bool)
         g2, v2, _, b_miss = braking_step(p, vl, gap_m, speed_mps, integral, pending, miss)
@@ -140,8 +145,7 @@ def grid_axes(params: BrakingParams, n_gap: int, n_speed: int) -> tuple[np.ndarr
 
 
 def solve_committor(params: BrakingParams, logit_at_gap: LogitFn, n_gap: int = TILT_GAPS,
-                    n_speed: int = TILT_SPEEDS,
-                    axes: tuple[np.ndarray, np.ndarray] | None = None) -> GridCommittor:  # fmt: skip
+                    n_speed: int = TILT_SPEEDS) -> GridCommittor:  # fmt: skip
     """The braking scene's approximate committor by backward dynamic programming on a grid (module docstring).
 
     Args:
@@ -157,8 +161,7 @@ def solve_committor(params: BrakingParams, logit_at_gap: LogitFn, n_gap: int = T
                          f"{n_speed!r}")  # fmt: skip
     p = params
     first = branching_start(p).step
-    gaps, speeds = axes if axes is not None else grid_axes(p, n_gap, n_speed)
-    n_gap, n_speed = gaps.size, speeds.size
+    gaps, speeds = grid_axes(p, n_gap, n_speed)
     log_v = np.full((p.n_steps + 1, 2, n_gap, n_speed), LOG_V_FLOOR)
     committor = GridCommittor(p, gaps, speeds, log_v, first, 0)
     g, v = (x.ravel() for x in np.meshgrid(gaps, speeds, indexing="ij"))
