@@ -13,7 +13,7 @@ from conftest import REPO
 
 needs_mkdocs = pytest.mark.skipif(
     importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("mkdocstrings") is None,
-    reason='the docs extra is not installed (pip install -e ".[docs]")',
+    reason='mkdocs is not installed (pip install -e ".[test]" or ".[docs]")',
 )
 
 
