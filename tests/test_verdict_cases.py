@@ -121,6 +121,7 @@ def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():
     ("mc", 2, 20_000, "more rollouts: --rel-error 0.2 samples until the interval is within 20 % (about 1,109,"),
     ("adaptive", 3, 2100, "more budget (--n 400) or a precision target (--rel-error 0.1 --max-sims 100000"),
     ("tilt", 3, 2100, "more rollouts: --rel-error 0.2 adds tilted batches until the interval is within 20 %"),
+    ("ams", 0, 100, "more particles (--n 400), or particles ranked by the scenario's committor where it has one"),
 ])  # fmt: skip
 def test_each_unreliable_or_doubtful_run_gets_one_line_of_advice(method, failures, n, start):
     log_w, failed = np.zeros(n), np.zeros(n, bool)
@@ -176,3 +177,16 @@ def test_a_braking_failure_below_the_never_detected_stop_is_never_reliable():
         assert (cap is not None) == capped, margin
     cap = verdict_cap(dataclasses.replace(p, crash_gap_m=0.0))
     assert cap[0] == "doubtful" and cap[1].startswith("a gap below 0.08 m (where the ego ends when it never detects")
+
+
+def test_the_advice_after_an_extinct_splitting_run_is_a_run_the_config_accepts():
+    """AMS has no final batch, so a precision target is refused for it: the advice names particles and the committor's
+    score instead, and a config with both validates (a braking run that died out on the robustness's plateau)."""
+    e = estimate(np.zeros(100), np.zeros(100, bool), np.zeros(100))
+    advice = next_step(e, ExperimentConfig(method="ams", n_per_stage=100), math.log(1.984e-15))
+    assert "--rel-error" not in advice and "--n 400" in advice and "--ams-score committor" in advice
+    assert ExperimentConfig(method="ams", n_per_stage=400, ams_score="committor").n_per_stage == 400
+    with pytest.raises(ValueError, match="no final batch"):
+        ExperimentConfig(method="ams", rel_error=0.1)
+    committor = next_step(e, ExperimentConfig(method="ams", n_per_stage=400, ams_score="committor"))
+    assert committor == "more particles (--n 1600); the verdict says whether to trust the result"

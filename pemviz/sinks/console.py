@@ -56,7 +56,8 @@ MC_AFFORDABLE = 10**8
 def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: Reference | None = None) -> str | None:
     """What to do after a run whose verdict is not ``reliable``, in one line (None for a reliable one): plain Monte
     Carlo with a precision target where p is not rare (:data:`NOT_RARE`, judged from the exact answer, the reference,
-    or the estimate), else more budget or a precision target (``--rel-error``)."""
+    or the estimate), else more budget or a precision target (``--rel-error``); for splitting, which has no final batch
+    to add to, more particles or the committor's graded score (``--ams-score committor``)."""
     if e.verdict == "reliable" or config is None:
         return None
     known = exact_log_p if exact_log_p is not None else (reference.log_p if reference is not None else None)
@@ -81,6 +82,13 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
         return (f"p ~ {format_probability(guess, 2)} is not rare: plain Monte Carlo gets it right, e.g. --method mc "
                 "--rel-error 0.2 --max-time 600")  # fmt: skip
     n = getattr(config, "n_per_stage", 100)
+    if method == "ams":  # no final batch to add to: more particles, or a graded score where the robustness ties
+        more = f"more particles (--n {4 * n})"
+        if getattr(config, "ams_score", "robustness") == "robustness":
+            return (f"{more}, or particles ranked by the scenario's committor where it has one (--ams-score "
+                    "committor): where the robustness is flat every particle ties and the run dies out; the verdict "
+                    "says whether to trust the result")  # fmt: skip
+        return f"{more}; the verdict says whether to trust the result"
     return (f"more budget (--n {4 * n}) or a precision target (--rel-error 0.1 --max-sims 100000: final batches are "
             "added until the interval is within 10 %); the verdict says whether to trust the result")
 
