@@ -115,7 +115,7 @@ def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and
     assert record.config.scenario == "cut-in" and record.most_likely_failure is not None
     wait_until(lambda: s.objects_ex is not None and s.shown is record.most_likely_failure, timeout=60,
                what="the most likely failure explained")  # fmt: skip
-    ox, shown = s.objects_ex, s.shown
+    ox = s.objects_ex
     st = ox.story
     assert st is not None and st.severity.failed
     # the story's failure step is the safety formula's first violation, as the counterfactuals replay it
