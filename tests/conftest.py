@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from threadpoolctl import threadpool_limits
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -28,6 +29,13 @@ SHARED = REPO.parent / "shared"
 
 os.environ.setdefault("RERUN_ANALYTICS", "false")
 torch.set_num_threads(1)  # pemviz's networks are tiny: a second thread only adds contention on 2 cores
+# One BLAS / OpenMP thread in each test process and in the commands the tests start. Idle OpenBLAS threads spin, and
+# the README's test command runs two test processes on the 2-core machine beside the commands they start: measured
+# there on test_severity.py, test_pem_uncertainty.py and test_engine.py under ``-n 2``, 220 s with numpy's default
+# threads and 82 s with one. No number depends on it: a seed gives the same run on any thread count.
+for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+threadpool_limits(1)
 
 
 @pytest.fixture(scope="session")
