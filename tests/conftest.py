@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -36,6 +37,11 @@ torch.set_num_threads(1)  # pemviz's networks are tiny: a second thread only add
 for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 threadpool_limits(1)
+# Ctrl-C as in a terminal: a shell starts a background job without job control (``nohup pytest ... &`` in a script)
+# with SIGINT ignored, the commands the tests start would inherit that, and the tests that stop a server with Ctrl-C
+# would wait on it until their timeouts.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")
