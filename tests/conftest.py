@@ -15,6 +15,8 @@ import pytest
 import torch
 from threadpoolctl import threadpool_limits
 
+from pemviz.engine.resources import ONE_THREAD_ENV
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -34,8 +36,8 @@ torch.set_num_threads(1)  # pemviz's networks are tiny: a second thread only add
 # the README's test command runs two test processes on the 2-core machine beside the commands they start: measured
 # there on test_severity.py, test_pem_uncertainty.py and test_engine.py under ``-n 2``, 220 s with numpy's default
 # threads and 82 s with one. No number depends on it: a seed gives the same run on any thread count.
-for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_variable, "1")
+for _variable, _value in ONE_THREAD_ENV.items():
+    os.environ.setdefault(_variable, _value)
 threadpool_limits(1)
 # Ctrl-C as in a terminal: a shell starts a background job without job control (``nohup pytest ... &`` in a script)
 # with SIGINT ignored, the commands the tests start would inherit that, and the tests that stop a server with Ctrl-C

@@ -13,6 +13,9 @@ from pemviz.config import ExperimentConfig
 if TYPE_CHECKING:
     from pemviz.core.plan import RunPlan
 
+ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+"""The environment that gives a process started with it one OpenMP and one BLAS thread (OpenBLAS, MKL): for processes
+that run beside another busy one on few cores, where idle BLAS threads spin against it."""
 BYTES_PER_ROLLOUT_STEP = 100
 """Peak bytes per (rollout, step) of a batch: observations [N, T, 3], detected, log p, log q, robustness under
 three metrics and the masks (measured: 79 B from the peak RSS of ``mc`` runs of N = 2,000 and 8,000, T = 100)."""

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished
+from pemviz.engine.resources import ONE_THREAD_ENV
 from pemviz.sinks import Sink
 
 if TYPE_CHECKING:
@@ -68,7 +69,7 @@ class RecordingProcess(Sink):
         package_root = str(Path(__file__).resolve().parents[2])
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH"))
                                                            if p),
-               "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}  # fmt: skip
+               **ONE_THREAD_ENV}  # fmt: skip
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "pemviz.sinks.recording_process", str(self.path), "1" if overwrite else "0"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._errors, env=env, start_new_session=True,
