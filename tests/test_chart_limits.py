@@ -6,7 +6,6 @@ too few states is not joined into its stage's line, and a bin crowded with stand
 from __future__ import annotations
 
 import math
-import threading
 from types import SimpleNamespace
 
 import numpy as np

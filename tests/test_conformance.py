@@ -18,7 +18,7 @@ from pemviz.config import METHODS, SCENARIOS
 from pemviz.scenarios.problems import build_problem
 from pemviz.estimators.fixed import FixedSampler
 from pemviz.scenarios import builtin, get_scenario, register, registered
-from pemviz.scenarios.registry import Scenario, unregister
+from pemviz.scenarios.registry import unregister
 from pemviz.scenarios.toy import ToyBraking
 from pemviz.testing import ConformanceError, check_estimator, check_scenario
 

@@ -29,7 +29,7 @@ from pemviz.io.rollout_estimate import detector_log_prob, estimate_rollouts, pem
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, action_log_prob
 from pemviz.engine import Experiment
-from pemviz.engine.events import FinalEstimate, RolloutChunk, RolloutsSampled, RunFinished, RunStarted, StageStarted
+from pemviz.engine.events import FinalEstimate, RolloutChunk, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
 from pemviz.scenarios.problems import braking_problem
 from pemviz.core.severity import rollout_severity

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import math
 import re
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 from conftest import REPO, run_cli, verify_rrd
