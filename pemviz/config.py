@@ -364,8 +364,8 @@ class ExperimentConfig:
 
     @property
     def n_simulations(self) -> int:
-        """Rollouts the experiment will simulate, pretraining included (ams: the N initial particles; the run
-        reports the rollout-equivalents its continuations add)."""
+        """Rollouts the experiment will simulate, pretraining included (ams: the N initial particles, tilt: the
+        rollouts; the run reports the rollout-equivalents its continuations or look-aheads add)."""
         if self.method != "adaptive":
             return self.n_per_stage
         final = self.n_final if self.has_final_batch else 0

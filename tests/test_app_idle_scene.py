@@ -225,6 +225,10 @@ def test_choosing_a_scenario_in_the_browser_draws_its_idle_scene(browser, app): 
 
         wait_until(cut_in_drawn, what="the cut-in's road with its 5 cars at their start, no lane scene")
         assert "No rollout chosen: the cut-in scenario's 5 cars" in caption(scene)
+        # the scene's own method and budget (the tilt, 7,280 rollouts), and the cost line says the run counts more
+        wait_until(lambda: "Cost: 7,280 simulations plus the proposal's look-aheads" in page.inner_text("body"),
+                   what="the cut-in's cost line")  # fmt: skip
+        shoot(page, "cost_cut_in.png")
         tab.tab("Rollouts")
         shoot(page, "idle_cut_in.png")
         tab.tab("Experiment")

@@ -195,6 +195,12 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     plan = run_plan(cfg)  # the memory check's model, less the process's own
     assert cost.memory_bytes == run_memory(plan, 100, cfg.quantile_level, stream_above=20_000) - BASE_BYTES
     assert run_cost(cfg.replace(n_stages=1000, n_per_stage=1000)).needs_confirm
+    assert cost.text().startswith("240 simulations, ")  # the rollouts are all a cross-entropy run counts
+    # a tilt run and a splitting run count more than their rollouts: the line says so before the run
+    assert run_cost(cfg.replace(method="tilt", n_per_stage=1280)).text().startswith(
+        "1,280 simulations plus the proposal's look-aheads, ")
+    assert run_cost(cfg.replace(method="ams", n_per_stage=200)).text().startswith(
+        "200 simulations plus the branches' continuations, ")
     assert parse_number(FIELDS_BY_KEY["n_stages"], "100000")[1].startswith("K: 100000 is out of range")
     assert parse_number(FIELDS_BY_KEY["seed"], str(2**64 - 1)) == (2**64 - 1, "")
 

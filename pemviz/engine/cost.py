@@ -167,13 +167,20 @@ def plan_costs(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS,
     return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage) for s in plan.stages}
 
 
+RUN_ADDS = {"tilt": "plus the proposal's look-aheads", "ams": "plus the branches' continuations"}
+"""What a run of these methods counts in its simulations besides the rollouts :attr:`pemviz.config.ExperimentConfig.
+n_simulations` plans (the final line's rollout-equivalents)."""
+
+
 @dataclass(frozen=True)
 class RunCost:
-    """What a run will take: simulations, the largest batch in memory (bytes), expected seconds."""
+    """What a run will take: simulations, the largest batch in memory (bytes), expected seconds, and what the run will
+    count on top of the simulations (``adds``: e.g. a tilted proposal's look-aheads; ``""``: nothing)."""
 
     simulations: int
     memory_bytes: int
     seconds: float
+    adds: str = ""
 
     @property
     def needs_confirm(self) -> bool:
@@ -183,7 +190,8 @@ class RunCost:
 
     def text(self) -> str:
         mem = self.memory_bytes / 1024**2
-        return f"{self.simulations:,} simulations, {mem:,.1f} MB per batch, about {duration(self.seconds)}"
+        adds = f" {self.adds}" if self.adds else ""
+        return f"{self.simulations:,} simulations{adds}, {mem:,.1f} MB per batch, about {duration(self.seconds)}"
 
 
 def duration(seconds: float) -> str:
@@ -207,4 +215,4 @@ def run_cost(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, strea
     """
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
     batch = run_memory(plan, n_steps, cfg.quantile_level, stream_above=stream_above) - BASE_BYTES
-    return RunCost(int(cfg.n_simulations), int(batch), float(seconds))
+    return RunCost(int(cfg.n_simulations), int(batch), float(seconds), RUN_ADDS.get(cfg.method, ""))
