@@ -126,6 +126,9 @@ def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads():
     capped = small.replace(rel_error=0.01, max_sims=61)  # a precision target, capped below the first batch's cost
     with_target = Experiment(capped, problem=problem).run().final
     assert with_target.n_simulations == again.n_simulations  # it counts the look-aheads too, and adds no batch
+    room = small.replace(rel_error=0.01, max_sims=again.n_simulations + 300)  # room for about 190 rollouts more
+    grown = Experiment(room, problem=problem).run().final
+    assert again.n_simulations + 150 < grown.n_simulations <= room.max_sims  # batches added, look-aheads counted
     other = small.replace(scenario_params=(("cut_in_gap_m", 19.0),))
     assert Experiment(other, problem=problem_for(other)).run().final.prepared.startswith("the scenario's proposal "
                                                                                           "solved")

@@ -150,9 +150,10 @@ class PrecisionTarget:
                 return None
             want = added_batch_size(est, self.inner.final_rollouts(), target)
         left = self.max_sims - self.n_simulations
-        n = min(want, left)
+        per = self.simulations_per_rollout()
+        n = min(want, math.floor(left / per))
         cap = None
-        if left <= 0:
+        if n <= 0:
             cap = f"--max-sims {self.max_sims:,} reached"
         elif self.config.max_time_s is not None:
             time_left = self.config.max_time_s - elapsed
@@ -160,7 +161,7 @@ class PrecisionTarget:
             if time_left <= 0 or rate * time_left < 1:
                 cap = f"--max-time {self.config.max_time_s:g} s reached"
             else:
-                n = int(min(n, max(1, math.floor(rate * time_left))))
+                n = int(min(n, max(1, math.floor(rate * time_left / per))))
         if cap is not None:
             if self.decision is not None:
                 self.stop = (f"requirement undecided within budget: {cap} ({self.decision.why}, after "
@@ -173,6 +174,13 @@ class PrecisionTarget:
             return None
         self._current = self.inner.extend(int(n))
         return self._current
+
+    def simulations_per_rollout(self) -> float:
+        """What an added rollout costs in simulations: 1, or for an estimator that counts its own (a tilted
+        proposal's look-aheads) its count so far over its final rollouts, its solve included (an over-estimate, so
+        the added batches stay under ``max_sims``)."""
+        own = self.inner.simulations_counted()
+        return 1.0 if own is None else max(1.0, own / max(1, self.inner.final_rollouts()))
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         return self.inner.observe(batch, failed, robustness)
