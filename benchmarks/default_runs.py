@@ -18,6 +18,10 @@ for the failures' importance weights, how far they are from a zero-variance prop
 - ``--toy``: the tilted estimator on the toy braking model with a deliberately poor committor
   (:mod:`pemviz.scenarios.toy.tilt`) against its exact answer 1e-3, ``--toy-seeds`` seeds of ``--toy-n`` rollouts.
 - ``--heaviest SEED N K``: the cut-in's tilt on N rollouts of SEED, its K heaviest failures step by step.
+- ``--acceptance``: every target the committor tilt was built against, measured (the default cut-in command on 20
+  seeds and its wall time, the tilt and splitting at the rare setting on 10, braking's default on 200, braking's grid
+  committor against the exact one, the authors'-settings preset's seed 0, the toy), then a table of the targets, each
+  with its figure and whether it is met; exit 1 while one is not (about 33 min on 2 cores, ``--jobs`` parts at a time).
 
 Measured (2-core developer machine; cut-in reference 8.66e-5 [8.09e-5, 9.26e-5]):
 
@@ -34,6 +38,7 @@ Usage::
         --mc-reference 200000
     python benchmarks/default_runs.py --toy --toy-seeds 200
     python benchmarks/default_runs.py --heaviest 7 4000 8
+    python benchmarks/default_runs.py --acceptance
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -127,15 +133,16 @@ def mc_reference(cfg, problem, n: int) -> tuple[float, str]:  # noqa: ANN001 (an
     return (e.log_mu_hat if e.n_failures else math.nan), text
 
 
-def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (),
-                  mc: int = 0) -> list[tuple[float, tuple[float, float]]]:  # fmt: skip
+def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: int = 0) -> dict[str, Any]:
     """The default command of ``scenario`` at each seed (module docstring), with ``flags`` added, against the scene's
     exact answer or reference, or with ``mc`` > 0 a plain Monte Carlo reference of ``mc`` rollouts drawn here; without
-    any, the seeds' spread only. Returns each seed's log estimate and log interval (nats)."""
+    any, the seeds' spread only. Returns the runs: ``truth`` (log p, nats; nan without one), and one entry a seed in
+    ``logs`` (log estimates, nats), ``cis`` (log 95 % intervals), ``ratios`` (estimate / answer), ``holds``,
+    ``verdicts``, ``sims`` (rollout-equivalents) and ``walls`` (seconds in the engine)."""
     from pemviz.engine import Experiment
     from pemviz.scenarios.problems import problem_for
 
-    ratios, holds, verdicts, logs, halves, sims, weights, cis = [], [], [], [], [], [], [], []
+    ratios, holds, verdicts, logs, halves, sims, weights, cis, walls = [], [], [], [], [], [], [], [], []
     problem, truth = None, math.nan
     for seed in seeds:
         cfg = default_config(scenario, seed, flags)
@@ -162,6 +169,7 @@ def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (),
         halves.append(0.5 * (e.log_ci[1] - e.log_ci[0]))
         cis.append(e.log_ci)
         sims.append(final.n_simulations)
+        walls.append(wall)
         if final.failures is not None:
             weights.append(final.failures.log_weight)
         against = "" if math.isnan(truth) else f" x{ratios[-1]:.3f} ({'holds' if holds[-1] else 'misses'} it)"
@@ -173,22 +181,27 @@ def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (),
     print(spread(np.array(logs), np.array(halves), np.array(sims)))
     if weights and not math.isnan(truth):
         print(weight_profile(weights, truth))
-    return list(zip(logs, cis))
+    return {"truth": truth, "logs": np.array(logs), "cis": cis, "ratios": np.array(ratios), "holds": np.array(holds),
+            "verdicts": verdicts, "sims": np.array(sims), "walls": np.array(walls)}
 
 
-def agreement(a: list[tuple[float, tuple[float, float]]], b: list[tuple[float, tuple[float, float]]]) -> str:
-    """How two estimators' runs on the same seeds agree (each run: log estimate and log 95 % interval, nats): the
-    seeds whose two intervals overlap, the ratio of their geometric means with the standard error of its log from the
-    seeds' spread, and whether each one's geometric mean lies inside the other's mean interval."""
-    la, lb = np.array([x[0] for x in a]), np.array([x[0] for x in b])
-    overlap = sum(max(x[1][0], y[1][0]) <= min(x[1][1], y[1][1]) for x, y in zip(a, b))
+def overlaps(a: dict[str, Any], b: dict[str, Any]) -> int:
+    """How many seeds' 95 % intervals of two estimators' runs (:func:`scenario_runs`) overlap."""
+    return sum(max(x[0], y[0]) <= min(x[1], y[1]) for x, y in zip(a["cis"], b["cis"]))
+
+
+def agreement(a: dict[str, Any], b: dict[str, Any]) -> str:
+    """How two estimators' runs on the same seeds (:func:`scenario_runs`) agree: the seeds whose two intervals
+    overlap, and the ratio of their geometric means with the standard error of its log from the seeds' spread."""
+    la, lb = a["logs"], b["logs"]
+    overlap = overlaps(a, b)
     none = [int(np.sum(~np.isfinite(x))) for x in (la, lb)]
     if any(none):
-        return (f"agreement over {len(a)} seeds: the two intervals overlap in {overlap}; runs without a failure: "
+        return (f"agreement over {la.size} seeds: the two intervals overlap in {overlap}; runs without a failure: "
                 f"{none[0]} and {none[1]}, so the geometric means cannot be compared")  # fmt: skip
     diff = la.mean() - lb.mean()
     se = math.sqrt(la.var(ddof=1) / la.size + lb.var(ddof=1) / lb.size) if min(la.size, lb.size) > 1 else math.nan
-    return (f"agreement over {len(a)} seeds: the two intervals overlap in {overlap}; geometric means "
+    return (f"agreement over {la.size} seeds: the two intervals overlap in {overlap}; geometric means "
             f"{math.exp(la.mean()):.3g} and {math.exp(lb.mean()):.3g}, ratio x{math.exp(diff):.2f} (log ratio "
             f"{diff:+.2f} nats, standard error {se:.2f} from the seeds' spread: {abs(diff) / se:.1f} SE)")
 
@@ -238,8 +251,9 @@ def heaviest_failures(seed: int, n: int, k: int) -> None:
         print(f"  log w {log_w[i]:.2f}: " + " ".join(steps))
 
 
-def toy_runs(n_seeds: int, n: int) -> None:
-    """The tilted estimator with a deliberately poor committor on the toy (exact p = 1e-3), ``n_seeds`` seeds."""
+def toy_runs(n_seeds: int, n: int) -> dict[str, float]:
+    """The tilted estimator with a deliberately poor committor on the toy (exact p = 1e-3), ``n_seeds`` seeds; returns
+    the estimates' ``mean`` over p and its standard error ``se``."""
     import dataclasses
 
     from pemviz.config import ExperimentConfig
@@ -258,6 +272,169 @@ def toy_runs(n_seeds: int, n: int) -> None:
           f"variance a rollout {ratio.var(ddof=1) * n:.2f} (plain Monte Carlo: 1 / p - 1 = "
           f"{1 / math.exp(problem.exact_log_p) - 1:.0f})")  # fmt: skip
     print(summary(ratio, holds, [e.verdict for e in ests], np.array([e.log_mu_hat for e in ests])))
+    return {"mean": float(ratio.mean()), "se": float(se)}
+
+
+PAPER_PRESET_SEED0 = 5.6372e-19
+"""What ``pemviz run --preset paper --seed 0`` gave on braking when the acceptance was written (a build whose runs
+differed between CPUs)."""
+
+
+def _part(name: str) -> tuple[str, str, Any]:
+    """One part of :func:`acceptance`, run in a worker: (its name, what it printed, its numbers)."""
+    import contextlib
+    import io
+
+    from pemviz.engine.resources import torch_threads
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), torch_threads(1, blas=1):  # one core a part: the parts run side by side
+        data = ACCEPTANCE_PARTS[name]()
+    return name, out.getvalue(), data
+
+
+def _command_wall() -> float:
+    """Seconds of ``pemviz run --scenario cut-in --seed 1`` in a fresh process, its recording written."""
+    import subprocess
+    import tempfile
+
+    exe = Path(sys.executable).with_name("pemviz")
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        subprocess.run([str(exe), "run", "--scenario", "cut-in", "--seed", "1", "--save", f"{tmp}/r.rrd"], check=True,
+                       capture_output=True)  # fmt: skip
+        return time.perf_counter() - t0
+
+
+def _paper_seed0() -> float:
+    """log of ``pemviz run --preset paper --seed 0``'s estimate on braking (nats)."""
+    from pemviz.engine import Experiment
+    from pemviz.scenarios.problems import problem_for
+
+    cfg = default_config("braking", 0, ("--preset", "paper"))
+    e = Experiment(cfg, problem=problem_for(cfg)).run().final.estimate
+    print(f"pemviz run --preset paper --seed 0: {math.exp(e.log_mu_hat):.5g} {e.interval_text()}, {e.verdict}")
+    return e.log_mu_hat
+
+
+def _braking_committor() -> dict[str, float]:
+    """``benchmarks/braking_committor.py``'s study at its defaults: the grid committor against the exact one."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from braking_committor import study
+
+    return study()
+
+
+RARE_TILT, RARE_AMS = ("--method", "tilt", "--n", "7280"), ("--method", "ams", "--ams-score", "committor", "--n",
+                                                             "1000", "--ams-killed", "100")  # fmt: skip
+ACCEPTANCE_PARTS = {
+    "cut-in": lambda: scenario_runs("cut-in", range(20)),
+    "rare tilt": lambda: scenario_runs("cut-in-rare", range(10), RARE_TILT),
+    "rare ams 0-4": lambda: scenario_runs("cut-in-rare", range(5), RARE_AMS),
+    "rare ams 5-9": lambda: scenario_runs("cut-in-rare", range(5, 10), RARE_AMS),
+    "braking": lambda: scenario_runs("braking", range(200)),
+    "braking committor": _braking_committor,
+    "paper": _paper_seed0,
+    "toy": lambda: toy_runs(200, 2000),
+}
+"""The acceptance's parts (:func:`acceptance`), the longest first."""
+
+
+def _joined(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    """Two sets of runs of :func:`scenario_runs` (one scene, one truth) as one."""
+    return {k: a[k] + b[k] if isinstance(a[k], list) else (np.concatenate([a[k], b[k]]) if k != "truth" else a[k])
+            for k in a}  # fmt: skip
+
+
+def acceptance_rows(r: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
+    """Each target of the committor tilt's acceptance, its measured figure and whether it is met (None: printed
+    only), from :func:`acceptance`'s parts' numbers ``r``."""
+    cut, rare_t, brk, toy = r["cut-in"], r["rare tilt"], r["braking"], r["toy"]
+    rare_a = _joined(r["rare ams 0-4"], r["rare ams 5-9"])
+    rel, off = np.abs(cut["ratios"] - 1.0), (cut["ratios"] < 0.5) | (cut["ratios"] > 2.0)
+    held = int(cut["holds"].sum())
+    rows: list[tuple[str, str, bool | None]] = [
+        (f"cut-in, default command, {rel.size} seeds: median relative error <= 0.2", f"{np.median(rel):.3f}",
+         bool(np.median(rel) <= 0.2)),
+        ("  the reference inside the 95 % interval in >= 18 of 20", f"{held} of {rel.size}", held >= 0.9 * rel.size),
+        ("  no run off by more than x2", f"{int(off.sum())} beyond (x{cut['ratios'].min():.2f} to "
+         f"x{cut['ratios'].max():.2f})", not off.any()),
+        ("  cost <= 13,000 rollout-equivalents (first run; a run reusing the proposal)",
+         f"{int(cut['sims'][0]):,}; {int(np.median(cut['sims'][1:])):,}", bool(cut["sims"][0] <= 13000)),
+        ("  wall time <= 30 s (the command with its recording, a fresh process)", f"{r['cut-in wall']:.1f} s",
+         r["cut-in wall"] <= 30.0),
+    ]
+    both = np.concatenate([rare_t["logs"], rare_a["logs"]])
+    if np.all(np.isfinite(both)):
+        se = math.sqrt(rare_t["logs"].var(ddof=1) / rare_t["logs"].size + rare_a["logs"].var(ddof=1) /
+                       rare_a["logs"].size)  # fmt: skip
+        diff = rare_t["logs"].mean() - rare_a["logs"].mean()
+        gm = f"geometric means x{math.exp(diff):.2f} apart ({abs(diff) / se:.1f} SE)"
+    else:
+        gm, se, diff = "a run without a failure", math.nan, math.nan
+    ov = overlaps(rare_t, rare_a)
+    n_rare = rare_t["logs"].size
+    rows.append((f"cut-in rare, tilt and splitting, {n_rare} seeds: every seed's two intervals overlap",
+                 f"{ov} of {n_rare}; {gm}", ov == n_rare))
+    for name, runs in (("tilt", rare_t), ("splitting", rare_a)):
+        sd = float(np.std(runs["logs"], ddof=1))
+        half = float(np.mean([(hi - lo) / 2 for lo, hi in runs["cis"]])) / 1.96
+        rows.append((f"  {name}: the seeds' spread matches the intervals (sd of logs / interval sd in 2/3..3/2)",
+                     f"{sd:.2f} / {half:.2f}", bool(2 / 3 <= sd / half <= 1.5)))
+    b_rel = np.abs(brk["ratios"] - 1.0)
+    b_held = int(brk["holds"].sum())
+    p_b = np.exp(brk["logs"])
+    relvar_sims = float(np.var(p_b, ddof=1) / np.mean(p_b) ** 2 * np.mean(brk["sims"]))
+    bc = r["braking committor"]
+    paper = math.exp(r["paper"])
+    rows += [
+        (f"braking, default command, {b_rel.size} seeds: median relative error <= 0.021", f"{np.median(b_rel):.4f}",
+         bool(np.median(b_rel) <= 0.021)),
+        ("  RMS relative error <= 0.034", f"{np.sqrt(np.mean(b_rel ** 2)):.4f}", bool(np.sqrt(np.mean(b_rel ** 2))
+                                                                                     <= 0.034)),
+        ("  the exact answer inside the interval in >= 95 %", f"{b_held} of {b_rel.size}", b_held >= 0.95 * b_rel.size),
+        ("  relvar x simulations of the default (printed)", f"{relvar_sims:.2f}", None),
+        ("  the tilt by the grid committor: relvar x simulations <= 0.5 (goal)",
+         f"{bc['relvar_sims_solving']:.2f} solving it, {bc['relvar_sims_reusing']:.2f} reusing it",
+         bc["relvar_sims_solving"] <= 0.5),
+        ("  the grid committor against the exact one (log10 V, grid less exact; log odds shift, nats)",
+         f"median {bc['log10_v_median']:+.2f}, RMS {bc['log10_v_rms']:.2f}; shift RMS {bc['shift_rms']:.2f}", None),
+        (f"  the authors'-settings preset, seed 0, gives {PAPER_PRESET_SEED0:.5g}", f"{paper:.5g}",
+         abs(paper / PAPER_PRESET_SEED0 - 1.0) < 5e-5),
+    ]
+    verdicts = [v for k in ("cut-in", "rare tilt", "braking") for v in r[k]["verdicts"]] + rare_a["verdicts"]
+    ratios = np.concatenate([r[k]["ratios"] for k in ("cut-in", "braking")])
+    wrong = sum(v == "reliable" and not 0.5 <= x <= 2.0 for v, x in zip(r["cut-in"]["verdicts"] +
+                                                                            r["braking"]["verdicts"], ratios))
+    nans = int(sum(np.isnan(r[k]["logs"]).sum() for k in ("cut-in", "rare tilt", "braking"))
+               + np.isnan(rare_a["logs"]).sum())  # fmt: skip
+    rows.append((f"every verdict honest: no 'reliable' beyond x2, no nan ({len(verdicts)} runs)",
+                 f"{wrong} wrong 'reliable', {nans} nan", wrong == 0 and nans == 0))
+    rows.append(("the tilt on the toy with a poor committor is unbiased (mean within 3 standard errors of p)",
+                 f"x{toy['mean']:.4f} (standard error {toy['se']:.4f})", abs(toy["mean"] - 1.0) <= 3 * toy["se"]))
+    return [(target, figure, None if met is None else bool(met)) for target, figure, met in rows]
+
+
+def acceptance(jobs: int) -> int:
+    """Run every part of the committor tilt's acceptance: the default cut-in command's wall time alone, then
+    :data:`ACCEPTANCE_PARTS`, ``jobs`` at a time; print each part's output, then the targets with their figures.
+    Returns 0 when every target is met, else 1."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    t0 = time.perf_counter()
+    results: dict[str, Any] = {"cut-in wall": _command_wall()}  # alone: the machine's cores to itself
+    print(f"== pemviz run --scenario cut-in --seed 1 (its recording written): {results['cut-in wall']:.1f} s",
+          flush=True)  # fmt: skip
+    with ProcessPoolExecutor(jobs) as pool:
+        for fut in as_completed([pool.submit(_part, name) for name in ACCEPTANCE_PARTS]):
+            name, text, data = fut.result()
+            results[name] = data
+            print(f"== {name} ({time.perf_counter() - t0:.0f} s)\n{text}", flush=True)
+    rows = acceptance_rows(results)
+    print("\n| target | measured | met |\n|---|---|---|")
+    for target, figure, met in rows:
+        print(f"| {target} | {figure} | {'-' if met is None else ('yes' if met else '**no**')} |")
+    return int(any(met is False for _, _, met in rows))
 
 
 def main() -> None:
@@ -275,9 +452,14 @@ def main() -> None:
     ap.add_argument("--toy", action="store_true", help="the tilted estimator on the toy with a poor committor")
     ap.add_argument("--toy-seeds", type=int, default=200)
     ap.add_argument("--toy-n", type=int, default=2000)
+    ap.add_argument("--acceptance", action="store_true",
+                    help="every target of the committor tilt's acceptance, then a table of them (about 1 h, 2 jobs)")
+    ap.add_argument("--jobs", type=int, default=2, help="--acceptance: parts run at a time")
     args = ap.parse_args()
+    if args.acceptance:
+        raise SystemExit(acceptance(args.jobs))
     if args.scenario is None and not args.toy and args.heaviest is None:
-        raise SystemExit("give --scenario NAME, --toy or --heaviest SEED N K")
+        raise SystemExit("give --scenario NAME, --toy, --heaviest SEED N K or --acceptance")
     if args.heaviest is not None:
         heaviest_failures(*args.heaviest)
     if args.toy:
