@@ -79,6 +79,19 @@ def summary(ratios: np.ndarray, holds: np.ndarray, verdicts: list[str], logs: np
             f"{int(np.sum(reliable & ~holds))}; nan: {int(np.sum(np.isnan(logs)))}")  # fmt: skip
 
 
+def relative_variance(logs: np.ndarray) -> float:
+    """The runs' relative variance Var(p_hat) / E(p_hat)^2 from their log estimates [R] (nats; -inf for 0), R >= 2."""
+    p = np.exp(logs)
+    return float(np.var(p, ddof=1) / np.mean(p) ** 2)
+
+
+def log_gap(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """The difference of two sets of runs' mean log estimates (nats; [Ra], [Rb], finite) and its standard error from
+    the runs' spread (nan with fewer than two runs in a set)."""
+    se = math.sqrt(a.var(ddof=1) / a.size + b.var(ddof=1) / b.size) if min(a.size, b.size) > 1 else math.nan
+    return float(a.mean() - b.mean()), se
+
+
 def spread(logs: np.ndarray, half_widths: np.ndarray, sims: np.ndarray) -> str:
     """How the seeds' spread compares with the intervals they give: the standard deviation of the log estimates
     against the mean 95 % half-width in logs over 1.96, and the work-normalised relative variance (the estimates'
@@ -89,7 +102,7 @@ def spread(logs: np.ndarray, half_widths: np.ndarray, sims: np.ndarray) -> str:
     none = int(np.sum(p == 0.0))
     if none == logs.size:
         return f"spread of the seeds: no run saw a failure ({logs.size} runs, {np.mean(sims):,.0f} simulations a run)"
-    relvar = float(np.var(p, ddof=1) / np.mean(p) ** 2)
+    relvar = relative_variance(logs)
     if none:
         return (f"spread of the seeds: {none} of {logs.size} runs saw no failure, so the logs' spread and the lower "
                 f"bound are not defined; relvar x simulations {relvar * float(np.mean(sims)):.3g} (relvar "
@@ -199,8 +212,7 @@ def agreement(a: dict[str, Any], b: dict[str, Any]) -> str:
     if any(none):
         return (f"agreement over {la.size} seeds: the two intervals overlap in {overlap}; runs without a failure: "
                 f"{none[0]} and {none[1]}, so the geometric means cannot be compared")  # fmt: skip
-    diff = la.mean() - lb.mean()
-    se = math.sqrt(la.var(ddof=1) / la.size + lb.var(ddof=1) / lb.size) if min(la.size, lb.size) > 1 else math.nan
+    diff, se = log_gap(la, lb)
     return (f"agreement over {la.size} seeds: the two intervals overlap in {overlap}; geometric means "
             f"{math.exp(la.mean()):.3g} and {math.exp(lb.mean()):.3g}, ratio x{math.exp(diff):.2f} (log ratio "
             f"{diff:+.2f} nats, standard error {se:.2f} from the seeds' spread: {abs(diff) / se:.1f} SE)")
@@ -298,10 +310,10 @@ def _command_wall() -> float:
     import subprocess
     import tempfile
 
-    exe = Path(sys.executable).with_name("pemviz")
+    pemviz = [sys.executable, "-c", "from pemviz.cli import main; main()"]  # what the console script runs
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        subprocess.run([str(exe), "run", "--scenario", "cut-in", "--seed", "1", "--save", f"{tmp}/r.rrd"], check=True,
+        subprocess.run([*pemviz, "run", "--scenario", "cut-in", "--seed", "1", "--save", f"{tmp}/r.rrd"], check=True,
                        capture_output=True)  # fmt: skip
         return time.perf_counter() - t0
 
@@ -364,14 +376,10 @@ def acceptance_rows(r: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
         ("  wall time <= 30 s (the command with its recording, a fresh process)", f"{r['cut-in wall']:.1f} s",
          r["cut-in wall"] <= 30.0),
     ]
-    both = np.concatenate([rare_t["logs"], rare_a["logs"]])
-    if np.all(np.isfinite(both)):
-        se = math.sqrt(rare_t["logs"].var(ddof=1) / rare_t["logs"].size + rare_a["logs"].var(ddof=1) /
-                       rare_a["logs"].size)  # fmt: skip
-        diff = rare_t["logs"].mean() - rare_a["logs"].mean()
+    gm = "a run without a failure"
+    if np.all(np.isfinite(np.concatenate([rare_t["logs"], rare_a["logs"]]))):
+        diff, se = log_gap(rare_t["logs"], rare_a["logs"])
         gm = f"geometric means x{math.exp(diff):.2f} apart ({abs(diff) / se:.1f} SE)"
-    else:
-        gm, se, diff = "a run without a failure", math.nan, math.nan
     ov = overlaps(rare_t, rare_a)
     n_rare = rare_t["logs"].size
     rows.append((f"cut-in rare, tilt and splitting, {n_rare} seeds: every seed's two intervals overlap",
@@ -383,8 +391,7 @@ def acceptance_rows(r: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
                      f"{sd:.2f} / {half:.2f}", bool(2 / 3 <= sd / half <= 1.5)))
     b_rel = np.abs(brk["ratios"] - 1.0)
     b_held = int(brk["holds"].sum())
-    p_b = np.exp(brk["logs"])
-    relvar_sims = float(np.var(p_b, ddof=1) / np.mean(p_b) ** 2 * np.mean(brk["sims"]))
+    relvar_sims = relative_variance(brk["logs"]) * float(np.mean(brk["sims"]))
     bc = r["braking committor"]
     paper = math.exp(r["paper"])
     rows += [
@@ -453,9 +460,11 @@ def main() -> None:
     ap.add_argument("--toy-seeds", type=int, default=200)
     ap.add_argument("--toy-n", type=int, default=2000)
     ap.add_argument("--acceptance", action="store_true",
-                    help="every target of the committor tilt's acceptance, then a table of them (about 1 h, 2 jobs)")
-    ap.add_argument("--jobs", type=int, default=2, help="--acceptance: parts run at a time")
+                    help="every target of the committor tilt's acceptance, then a table of them (about 35 min, 2 jobs)")
+    ap.add_argument("--jobs", type=int, default=2, help="--acceptance: parts run at a time (at least 1)")
     args = ap.parse_args()
+    if args.jobs < 1:
+        ap.error(f"--jobs {args.jobs}: the parts run at a time must be at least 1")
     if args.acceptance:
         raise SystemExit(acceptance(args.jobs))
     if args.scenario is None and not args.toy and args.heaviest is None:
