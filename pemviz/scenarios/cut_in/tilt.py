@@ -109,7 +109,6 @@ class CutInTilt(CutInLookAhead):
         self.solve_steps = 0
         self.cache_key: tuple | None = None
         """Where :meth:`solve` keeps the solved proposal for later runs (:func:`solved_tilt`); None: not kept."""
-        self.doomed = np.zeros(0, dtype=bool)
 
     def solve(self) -> int | None:
         """Solve the chain (and fit the effect model) on the nominal path, :attr:`chain`; returns the rollout-steps
@@ -179,7 +178,6 @@ class CutInTilt(CutInLookAhead):
         sim = BatchedCutIn(p, n)
         log_w, prefix_min = np.zeros(n), np.full(n, np.inf)
         step_w = np.zeros((n, p.n_steps))
-        self.doomed = np.zeros(n, dtype=bool)
         before = self.steps
 
         def uniforms() -> Any:
@@ -188,7 +186,7 @@ class CutInTilt(CutInLookAhead):
                 prefix_min[:] = np.minimum(prefix_min, operand(sim.observation()))
                 if w0 <= t < w1:
                     rows = np.ascontiguousarray(sim.objects())
-                    idx = np.flatnonzero((rows[:, 0, VISIBLE] > 0.5) & (prefix_min >= 0.0) & ~self.doomed)
+                    idx = np.flatnonzero((rows[:, 0, VISIBLE] > 0.5) & (prefix_min >= 0.0))
                     if idx.size:
                         sfeat = features(sim.state.select(idx), self.traj[t], self.errors)
                         p0 = p_detect_of(target.detect_logit(rows[idx, 0]))
