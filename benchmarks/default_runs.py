@@ -409,13 +409,12 @@ def acceptance_rows(r: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
         (f"  the authors'-settings preset, seed 0, gives {PAPER_PRESET_SEED0:.5g}", f"{paper:.5g}",
          abs(paper / PAPER_PRESET_SEED0 - 1.0) < 5e-5),
     ]
-    verdicts = [v for k in ("cut-in", "rare tilt", "braking") for v in r[k]["verdicts"]] + rare_a["verdicts"]
-    ratios = np.concatenate([r[k]["ratios"] for k in ("cut-in", "braking")])
-    wrong = sum(v == "reliable" and not 0.5 <= x <= 2.0 for v, x in zip(r["cut-in"]["verdicts"] +
-                                                                            r["braking"]["verdicts"], ratios))
-    nans = int(sum(np.isnan(r[k]["logs"]).sum() for k in ("cut-in", "rare tilt", "braking"))
-               + np.isnan(rare_a["logs"]).sum())  # fmt: skip
-    rows.append((f"every verdict honest: no 'reliable' beyond x2, no nan ({len(verdicts)} runs)",
+    runs = (cut, rare_t, brk, rare_a)
+    wrong = sum(v == "reliable" and not 0.5 <= x <= 2.0  # the scenes with an answer to be wrong against
+                for a in (cut, brk) for v, x in zip(a["verdicts"], a["ratios"]))  # fmt: skip
+    nans = int(sum(np.isnan(a["logs"]).sum() for a in runs))
+    n_runs = sum(len(a["verdicts"]) for a in runs)
+    rows.append((f"every verdict honest: no 'reliable' beyond x2, no nan ({n_runs} runs)",
                  f"{wrong} wrong 'reliable', {nans} nan", wrong == 0 and nans == 0))
     rows.append(("the tilt on the toy with a poor committor is unbiased (mean within 3 standard errors of p)",
                  f"x{toy['mean']:.4f} (standard error {toy['se']:.4f})", abs(toy["mean"] - 1.0) <= 3 * toy["se"]))
