@@ -62,18 +62,27 @@ def test_compare_charts_each_runs_estimate_interval_and_exact_answer_and_lists_o
         assert not more and x[i] == position
         assert value == pytest.approx(math.log10(e.mu_hat), abs=1e-9)
         assert value == pytest.approx(e.log_mu_hat / ln10, abs=1e-9)
-        # the 95 % interval: caps at log10 of its low and high ends, a vertical line between them at the run's position
-        lo, hi = e.log_ci
-        assert math.isfinite(lo) and math.isfinite(hi)
-        low, high = series(f"{r.short_label} 95 % low"), series(f"{r.short_label} 95 % high")
-        cap = pytest.approx([position - compare.CAP_HALF_WIDTH, position, position, position + compare.CAP_HALF_WIDTH])
-        assert [x[j] for j, _ in low] == cap and [x[j] for j, _ in high] == cap
-        assert all(v == pytest.approx(lo / ln10, abs=1e-9) for _, v in low)
-        assert all(v == pytest.approx(hi / ln10, abs=1e-9) for _, v in high)
-        upright = series(f"{r.short_label} 95 % interval")
-        assert [x[j] for j, _ in upright] == [position, position]
-        assert [v for _, v in upright] == pytest.approx([lo / ln10, hi / ln10], abs=1e-9)
-        assert low[0][1] <= value <= high[0][1]
+        # the 95 % interval: caps at log10 of its low and high ends, a vertical line between them at the run's position;
+        # a run whose weights back no interval: its lower bound's cap and a line up to the chart's top
+        if not e.interval_backed:
+            bound = series(f"{r.short_label} 95 % lower bound")
+            assert all(v == pytest.approx(e.log_lower_bound / ln10, abs=1e-9) for _, v in bound)
+            up = [v for _, v in series(f"{r.short_label} no upper bound")]
+            assert up[0] == pytest.approx(e.log_lower_bound / ln10, abs=1e-9) and up[1] > value
+            assert up[1] == pytest.approx(chart["ymax"]) and f"{r.short_label} 95 % high" not in chart["labels"]
+        else:
+            lo, hi = e.log_ci
+            assert math.isfinite(lo) and math.isfinite(hi)
+            low, high = series(f"{r.short_label} 95 % low"), series(f"{r.short_label} 95 % high")
+            cap = pytest.approx([position - compare.CAP_HALF_WIDTH, position, position,
+                                 position + compare.CAP_HALF_WIDTH])  # fmt: skip
+            assert [x[j] for j, _ in low] == cap and [x[j] for j, _ in high] == cap
+            assert all(v == pytest.approx(lo / ln10, abs=1e-9) for _, v in low)
+            assert all(v == pytest.approx(hi / ln10, abs=1e-9) for _, v in high)
+            upright = series(f"{r.short_label} 95 % interval")
+            assert [x[j] for j, _ in upright] == [position, position]
+            assert [v for _, v in upright] == pytest.approx([lo / ln10, hi / ln10], abs=1e-9)
+            assert low[0][1] <= value <= high[0][1]
         # the exact answer: a bar across the run's position at log10 of the problem's exact p
         assert r.exact_log_p is not None
         bar = series(f"{r.short_label} {compare.EXACT}")
@@ -84,7 +93,7 @@ def test_compare_charts_each_runs_estimate_interval_and_exact_answer_and_lists_o
     # explicit, finite ranges that hold every point, interval and bar
     assert (chart["xmin"], chart["xmax"]) == (0.5, 2.5)
     values = [v for lab in chart["labels"][1:] for _, v in series(lab)]
-    assert chart["ymin"] < min(values) and chart["ymax"] > max(values)
+    assert chart["ymin"] < min(values) and chart["ymax"] >= max(values)  # a bound's line reaches the top: no upper end
     assert all(math.isfinite(chart[k]) for k in ("xmin", "xmax", "ymin", "ymax"))
 
     # the table: the result rows and only the settings that differ (alpha), the identical ones counted

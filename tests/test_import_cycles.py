@@ -74,7 +74,7 @@ def test_a_folder_that_is_no_package_or_does_not_parse_is_refused(tmp_path, caps
     assert "bad.py:1" in capsys.readouterr().err
 
 
-LOWER = ("core", "engine", "estimators", "stl", "pem")
+LOWER = ("core", "engine", "estimators", "stl", "pem", "stack")
 """The folders that know no scenario, file, sink, panel or command."""
 UPPER = ("scenarios", "io", "sinks", "app", "commands")
 

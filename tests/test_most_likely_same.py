@@ -123,12 +123,40 @@ def test_a_streamed_stage_states_the_rollout_number_not_the_row_of_the_sample(ru
 
 
 def test_the_console_line_states_the_same_stage_and_log_p(runs):
-    """The cut-in's *why* line (what ``pemviz run`` prints) rounds the same log p."""
+    """The cut-in's *why* line (what ``pemviz run`` prints) states the same failure's log p as its two parts, which
+    add up to it: the log-probability of its detections (<= 0) and the log-density of its measurement errors."""
     r = runs["cut-in"]
     likely = r["likely"]
+    parts = likely.parts(r["problem"])
+    assert parts.errors is not None and parts.detections <= 0.0
+    assert math.isclose(parts.total, likely.log_p, rel_tol=1e-9)
     line = likely.why(r["problem"])
     assert line is not None
-    assert line.startswith(f"why: the most likely failure (stage {likely.stage}, log p {likely.log_p:.1f} nats): ")
+    assert line.startswith(f"why: the most likely failure (stage {likely.stage}; log-probability of its detections "
+                           f"{parts.detections:.1f} nats, log-density of its measurement errors {parts.errors:+.1f} "
+                           "nats): ")  # fmt: skip
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_the_recording_and_the_panel_state_the_parts_of_log_p_apart(runs, name):
+    """The recording's ``explain/failure`` (read back) and the panel's most likely failure state the same two parts:
+    the log-probability of the detections (<= 0) and, on the cut-in only, the log-density of the measurement errors;
+    on the braking scenario (detections only) the log-probability is the log p itself and no density is named."""
+    r = runs[name]
+    read, best = r["read"], r["panel"].most_likely_failure
+    parts = r["likely"].parts(r["problem"])
+    assert read["log_prob_detections"] <= 0.0
+    assert math.isclose(read["log_prob_detections"], parts.detections, rel_tol=0, abs_tol=1e-9)
+    assert math.isclose(best.log_p_parts.detections, parts.detections, rel_tol=0, abs_tol=1e-9)
+    if name == "cut-in":
+        assert math.isclose(read["log_density_errors"], parts.errors, rel_tol=0, abs_tol=1e-9)
+        assert math.isclose(read["log_prob_detections"] + read["log_density_errors"], read["log_p"], rel_tol=1e-9)
+        assert best.log_p_words() == parts.words()
+        assert "log-density of its measurement errors" in best.log_p_words()
+    else:
+        assert "log_density_errors" not in read and parts.errors is None and best.log_p_parts.errors is None
+        assert math.isclose(read["log_prob_detections"], read["log_p"], rel_tol=0, abs_tol=1e-9)
+        assert best.log_p_words() == f"log-probability of its detections {read['log_p']:.1f} nats"
 
 
 def test_ties_keep_the_earlier_rollout_and_log_p_counts_t_minus_1_steps():

@@ -90,4 +90,4 @@ def test_a_plugin_that_cannot_be_imported_is_one_line(plugin, tmp_path):
 def test_an_unknown_scenario_lists_the_registered_ones(plugin, tmp_path):
     proc = pemviz("run", "--scenario", "my-bike", "--no-record", cwd=tmp_path, plugin=plugin)
     assert proc.returncode == 2
-    assert "use one of braking, cut-in, cut-in-rare, toy, crowd, my-car" in proc.stderr
+    assert "use one of braking, cut-in, cut-in-rare, toy, crowd, crossing, my-car" in proc.stderr

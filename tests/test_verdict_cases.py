@@ -16,6 +16,8 @@ from pemviz.estimators import CrossEntropy
 from pemviz.sinks.console import next_step
 
 CUT_IN_REFERENCE = Reference(866, 10_000_000, "plain Monte Carlo, shipped PEMs")
+CUT_IN_ROLLOUTS = math.ceil(1.96**2 * (1 - 866 / 10_000_000) / (0.04 * 866 / 10_000_000))  # a 20 % interval: 1,108,911
+CUT_IN_MAX_SIMS = math.ceil(1.2 * CUT_IN_ROLLOUTS)  # --max-sims: 1.2 times it, for the exact interval's width
 
 
 def distinct(log_w: np.ndarray, failed: np.ndarray) -> Estimate:
@@ -103,24 +105,32 @@ def test_the_verdict_cap_reaches_the_console(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("mu_hat = 4.620e-18"))
     # its ESS (13.8 < 20) already makes it doubtful, before the cap (which test_the_paper_s_whole_rollout_fit_... checks)
-    assert ": doubtful (ESS 13.8 < 20: too few effective failures" in line and "OUTSIDE the interval" in line
+    assert ": doubtful (ESS 13.8 < 20: too few effective failures" in line
+    # a doubtful run's weights back no interval (its CLT interval excluded the exact 1.984e-15): the lower bound that
+    # holds whatever their tail is shown instead, and it holds
+    assert "no 95% CI from these weights: p >= 1.91e-18" in line and "no upper bound from this run" in line
+    assert "above the lower bound" in line and "interval [" not in line
 
 
 def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():
     log_mu = math.log(6.6e-15)
     e = Estimate(2100, 40, log_mu, 30.0, 30.0, 2.0, (log_mu - 0.5, log_mu + 0.5), 0.9, 0.0, "unreliable", "k-hat")
     line = e.summary(reference=CUT_IN_REFERENCE)
-    assert "10.1 orders of magnitude too low, OUTSIDE the interval" in line
+    # an unreliable estimate backs no interval; this hand-made one keeps no terms, so it bounds nothing either way
+    assert "no 95% CI from these weights: no bound either way from this run" in line
+    assert "10.1 orders of magnitude too low" in line and "OUTSIDE the interval" not in line
     cfg = ExperimentConfig(scenario="cut-in")
     assert next_step(e, cfg, reference=CUT_IN_REFERENCE).startswith(
-        "p ~ 8.66e-05 is not rare: plain Monte Carlo gets it right, e.g. --method mc --rel-error 0.2")
+        f"plain Monte Carlo decides it: --method mc --rel-error 0.2 --max-sims {CUT_IN_MAX_SIMS} (p ~ 8.66e-05, the "
+        f"reference: {CUT_IN_ROLLOUTS:,} rollouts for a 20 % interval")
 
 
 @pytest.mark.parametrize("method, failures, n, start", [
     ("mc", 0, 20_000, "more rollouts (--n 200000) lower the bound ten-fold"),
-    ("mc", 2, 20_000, "more rollouts: --rel-error 0.2 samples until the interval is within 20 % (about 1,109,"),
-    ("adaptive", 3, 2100, "more budget (--n 400) or a precision target (--rel-error 0.1 --max-sims 100000"),
-    ("tilt", 3, 2100, "more rollouts: --rel-error 0.2 adds tilted batches until the interval is within 20 %"),
+    ("mc", 2, 20_000, f"more rollouts: --rel-error 0.2 --max-sims {CUT_IN_MAX_SIMS} samples until the interval is "
+                      "within 20 %"),
+    ("adaptive", 3, 2100, "p is not known (p ~ 1.34e-16, this run's mu_hat: 7.2e+17 rollouts for a 20 % interval"),
+    ("tilt", 3, 2100, "p is not known (p ~ 1.34e-16, this run's mu_hat: 7.2e+17 rollouts for a 20 % interval"),
     ("ams", 0, 100, "more particles (--n 400), or particles ranked by the scenario's committor where it has one"),
 ])  # fmt: skip
 def test_each_unreliable_or_doubtful_run_gets_one_line_of_advice(method, failures, n, start):

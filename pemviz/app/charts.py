@@ -287,7 +287,7 @@ def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
             stages = list(r.stages)
         for s in stages:
             if 0 <= s.stage < n:
-                a, b = s.estimate.log_ci
+                a, b = s.estimate.shown_log_ci  # a bound alone (b = inf: no upper) where no interval is backed
                 lo[s.stage], hi[s.stage] = a / ln10, b / ln10
                 failed[s.stage] = s.estimate.n_failures > 0
         lo[~np.isfinite(lo)] = np.nan

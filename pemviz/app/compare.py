@@ -67,6 +67,8 @@ class RunPoint:
             Carlo's rule of three); None otherwise.
         log10_exact: log10 of the exact answer of the run's problem; None where unknown.
         log10_reference: log10 of the plain Monte Carlo reference of the run's problem, where it has no exact answer.
+        bound_only: the run's weights back no interval (:attr:`pemviz.core.estimate.Estimate.interval_backed`):
+            ``log10_lo`` is its 95 % lower bound, ``log10_hi`` None, and the line runs up to the chart's top.
         note: why nothing, or only a bound, is drawn for this run ("" when its estimate is drawn).
     """
 
@@ -77,6 +79,7 @@ class RunPoint:
     log10_bound: float | None = None
     log10_exact: float | None = None
     log10_reference: float | None = None
+    bound_only: bool = False
     note: str = ""
 
 
@@ -108,6 +111,12 @@ def run_point(record: PanelRun) -> RunPoint:
         note = f"{name}: no failure in {e.n} rollouts, mu_hat = 0: drawn is the bound p < {format_probability(hi, 2)}"
         return RunPoint(record, log10_bound=bound, note=note, **known)
     mu = _log10(e.log_mu_hat)
+    if not e.interval_backed:  # the weights back no interval: its lower bound, and a line to the top (no upper end)
+        if mu is None:
+            return RunPoint(record, note=f"{name}: mu_hat is not a finite number, not drawn", **known)
+        note = (f"{name} is {e.verdict}: its weights back no interval; drawn is its 95 % lower bound "
+                f"p >= {format_probability(e.log_lower_bound, 2)}, with no upper bound")  # fmt: skip
+        return RunPoint(record, log10_mu=mu, log10_lo=_log10(e.log_lower_bound), bound_only=True, note=note, **known)
     if mu is None or _log10(hi) is None or math.isnan(lo):
         return RunPoint(record, note=f"{name}: mu_hat or its interval is not a finite number, not drawn", **known)
     low = _log10(lo)
@@ -157,7 +166,9 @@ def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list
     x: run k of the list at position k (1-based), ticks labelled by :func:`tick_label`; y: log10 of a probability.
     Series (a value at the x offsets :data:`_OFFSETS` they draw, nan elsewhere; uPlot leaves nan out): per run with an
     estimate ``<short label> 95 % low`` and ``... 95 % high`` (the interval's caps), ``... 95 % interval`` (the
-    vertical line between them) and ``... mu_hat`` (a dot at the run's position); per run without failure whose
+    vertical line between them) and ``... mu_hat`` (a dot at the run's position), or for a run whose weights back no
+    interval ``... 95 % lower bound`` (its cap) and ``... no upper bound`` (a line up to the chart's top) with its
+    ``... mu_hat``; per run without failure whose
     rollouts bound p, ``<short label> upper bound`` (a dashed cap) and ``... below the bound`` (a dashed line down to
     the chart's bottom); then, per run whose problem knows one, ``<short label> exact`` (:data:`EXACT`) or ``<short
     label> reference (plain Monte Carlo)`` (:data:`REFERENCE`), a bar across the run's position.
@@ -188,11 +199,16 @@ def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list
     for i, p in enumerate(points):
         colour = run_colour(p.record.run_id)
         name = p.record.short_label
-        if p.log10_mu is not None and p.log10_hi is not None:
+        if p.log10_mu is not None and (p.log10_hi is not None or p.bound_only):
             bottom = p.log10_lo if p.log10_lo is not None else y_lo  # an interval reaching 0: to the chart's bottom
-            for label, values in (("95 % low", column(i, _CAP, bottom) if p.log10_lo is not None else None),
-                                  ("95 % high", column(i, _CAP, p.log10_hi)),
-                                  ("95 % interval", line(i, bottom, p.log10_hi))):  # fmt: skip
+            if p.bound_only:  # a lower bound's cap, and a line to the chart's top: no upper bound from this run
+                parts = (("95 % lower bound", column(i, _CAP, bottom) if p.log10_lo is not None else None),
+                         ("no upper bound", line(i, bottom, y_hi)))
+            else:
+                parts = (("95 % low", column(i, _CAP, bottom) if p.log10_lo is not None else None),
+                         ("95 % high", column(i, _CAP, p.log10_hi)),
+                         ("95 % interval", line(i, bottom, p.log10_hi)))
+            for label, values in parts:
                 if values is not None:
                     series.append(up.Series(label=f"{name} {label}", stroke=colour, width=2, points=no_points))
                     data.append(values)

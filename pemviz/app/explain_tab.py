@@ -107,8 +107,7 @@ class ExplainTab:
         what = ("the most likely failure found" if traj is record.most_likely_failure
                 else ("a failure" if traj.crashed else "no failure"))  # fmt: skip
         head = (f"<b>{html.escape(record.short_label)} {traj.key}</b>: {what} · robustness {traj.robustness:+.4g} "
-                f"({record.config.metric}) · log p_PEM {traj.log_p_total:.1f} nats (every object's detections and "
-                f"errors)")  # fmt: skip
+                f"({record.config.metric}) · under the PEM (every object): {html.escape(traj.log_p_words())}")
         why = f"<b>Which errors decided it</b> (each undone alone, replayed): {html.escape(objects_summary(ox))}"
         story = OV.story_html(ox) or ("No story: this scene's drawing tells none of this rollout, so neither its "
                                       "tracker nor its controller is charted.")  # fmt: skip

@@ -47,15 +47,15 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
     colour = VERDICT_COLOURS.get(e.verdict, GREY)
     lines = [
         f"<b>Final estimate of {html.escape(record.short_label)}</b>: mu_hat = "
-        f"<b>{format_probability(e.log_mu_hat, 4)}</b> &nbsp;(95 % interval {html.escape(e.interval_text())})",
+        f"<b>{format_probability(e.log_mu_hat, 4)}</b> &nbsp;("
+        + (f"95 % interval {html.escape(e.interval_text())}" if e.interval_backed else html.escape(e.bound_text()))
+        + ")",
         f'<b style="color:{colour}">{html.escape(e.verdict)}</b>: {html.escape(e.reason)}',
     ]
     exact = record.exact_log_p
     if exact is not None:
-        inside = "inside" if e.covers(exact) else "<b>outside</b>"
-        lines.append(
-            f"exact answer {format_probability(exact, 4)}: {error_text(e.log_mu_hat, exact)}, {inside} the interval"
-        )
+        lines.append(f"exact answer {format_probability(exact, 4)}: {error_text(e.log_mu_hat, exact)}, "
+                     f"{e.holds_text(exact, '<b>outside</b>')}")
     elif record.reference is not None:
         text = html.escape(record.reference.comparison(e, outside="OUTSIDE"))
         lines.append(text.replace("OUTSIDE", "<b>outside</b>"))
@@ -86,8 +86,8 @@ def explanation_html(record: PanelRun, traj: Trajectory, ex: LaneExplanation, ti
     cf = ex.counterfactual
     lines = [
         f"<b>{html.escape(title)}</b>: {what} · <b>{html.escape(ex.severity.short)}</b> · robustness "
-        f"{traj.robustness:+.4g} ({record.config.metric}) · log p_PEM {traj.log_p_total:.1f} nats · log w "
-        f"{traj.log_weight:.1f} nats",
+        f"{traj.robustness:+.4g} ({record.config.metric}) · under the PEM: {html.escape(traj.log_p_words())} · "
+        f"log w {traj.log_weight:.1f} nats",
         f"<b>What happened</b>: {html.escape(ex.sentence)}",
     ]
     if ex.crashed and ex.replay_matches:

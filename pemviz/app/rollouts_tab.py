@@ -91,8 +91,8 @@ class RolloutsTab:
         )  # fmt: skip
         self.rollout_order = gui.add_dropdown(
             "sort by", ROLLOUT_ORDERS, initial_value=ROLLOUT_ORDERS[0],
-            hint="importance weight: the largest share of p first; robustness: least robust first; log p: most "
-                 "probable under the PEM first; severity: worst first",
+            hint="importance weight: the largest share of p first; robustness: least robust first; log p: the "
+                 "largest log-likelihood under the PEM first; severity: worst first",
         )  # fmt: skip
         self.failures_only = gui.add_checkbox("failures only", False, hint="list only the rollouts that failed")
         self.rollout_html = gui.add_html(box("No rollouts yet: run an experiment.", GREY))
@@ -205,9 +205,8 @@ class RolloutsTab:
             self.rollout_html.content = box(f"No rollouts of {html.escape(record.short_label)} yet.", GREY)
             return
         best_text = (
-            f"Most likely failure found: stage {best.stage} rollout {best.index}, log p_PEM = "
-            f"{best.log_p_total:.1f} nats (the failing rollout most probable under the PEM), "
-            f"{self.severity_of(record, best).short}."
+            f"Most likely failure found: stage {best.stage} rollout {best.index} (the failing rollout with the "
+            f"largest log p under the PEM; {best.log_p_words()}), {self.severity_of(record, best).short}."
             if best is not None
             else "No failure found yet."
         )
@@ -242,7 +241,9 @@ class RolloutsTab:
             f'<div style="margin:0 0.6em 0.5em; font-size:0.8em">{html.escape(best_text)}<br>'
             + groups_html(pop)
             + f"{what}, by {html.escape(self.rollout_order.value)}; share: the fraction of p the failure carries "
-            "(its importance weight over the failures'); log p: log-probability under the PEM, nats"
+            "(its importance weight over the failures'); log p: log-likelihood under the PEM over T - 1 steps, "
+            "nats: the log-probability of the detections plus, where the detector mislocates, the log-density of "
+            "the measurement errors (a density: it can exceed 0)"
             + (f"; the list above holds the first {MAX_LISTED}" if len(trajectories) > MAX_LISTED else "")
             + (f"; the table the first {MAX_ROWS:,} of {len(trajectories):,} (the groups cover every failure)"
                if len(trajectories) > MAX_ROWS else "")

@@ -4,7 +4,8 @@
 problem view (from its first event), the stage results, the proposal curves, the final estimate, the least-robust
 rollouts of the whole run (:class:`Trajectory`) and the
 event log for the ``.rrd`` export, and the most likely failure found (the failing rollout with the
-highest probability under the PEM). :func:`keep_runs` decides which runs stay for comparison (pinned and
+largest log p under the PEM: the log-probability of its detections plus, where the PEM mislocates, the log-density of
+its measurement errors). :func:`keep_runs` decides which runs stay for comparison (pinned and
 finished ones before stopped ones). :func:`object_proposal_view` bins one object's detections among several by its
 distance ahead, and :func:`export_path` / :func:`export_run` write a run into ``recordings/`` without letting a name
 from the browser escape that folder.
@@ -12,12 +13,13 @@ from the browser escape that folder.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import re
 import threading
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +27,7 @@ import numpy as np
 
 from pemviz.app.form import run_label
 from pemviz.config import ExperimentConfig
-from pemviz.core.counterfactuals import LikelyFailure
+from pemviz.core.counterfactuals import LikelyFailure, LogPParts, scoring_detector
 from pemviz.core.counterfactuals import most_likely_failure as pick_most_likely
 from pemviz.core.estimate import Reference
 from pemviz.core.population import FailureShares
@@ -145,12 +147,15 @@ class Trajectory:
         log_weight: importance log-weight log p_PEM - log q over T - 1 steps (nats).
         crashed: classic robustness < 0 (the safety formula is violated).
         detected: bool [T], the detector's output at each step (of the first object where there are several).
-        log_p, log_q: float64 [T] log-probability of each step's detection under the PEM and under the
-            detector that sampled it (nats).
+        log_p, log_q: float64 [T] log p of each step's events under the PEM and under the detector that sampled it
+            (nats): the log-probability of its detections plus, where the detector mislocates, the log-density of its
+            measurement errors (:attr:`log_p_parts` splits the PEM's sum).
         batch: the rollout as a batch of one (its observations and, in a scene of several objects, every object's
             rows, detections and measurement errors, replayed by *Explain*): what the drawing's hooks read.
         object_p, object_q: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that
             drew the rollout, float64 [T, M] (:func:`pemviz.core.proposal_view.object_detect_probabilities`); else None.
+        target: the PEM that weighs it (:func:`pemviz.core.counterfactuals.scoring_detector` of the event's target),
+            asked only by :attr:`log_p_parts`; None: not known.
     """
 
     stage: int
@@ -164,11 +169,34 @@ class Trajectory:
     batch: RolloutBatch
     object_p: np.ndarray | None = None
     object_q: np.ndarray | None = None
+    target: Any = field(default=None, compare=False, repr=False)
 
     @property
     def log_p_total(self) -> float:
-        """log p_PEM of the rollout's detections over its first T - 1 steps (nats): how likely it is."""
+        """log p_PEM of the rollout's events over its first T - 1 steps (nats), the log p by which the most likely
+        failure is chosen: the log-probability of its detections plus, where the PEM mislocates, the log-density of
+        its measurement errors (a log-likelihood; :attr:`log_p_parts` gives the two)."""
         return float(np.sum(self.log_p[:-1]))
+
+    @functools.cached_property
+    def log_p_parts(self) -> LogPParts | None:
+        """:attr:`log_p_total` split into the log-probability of the rollout's detections (nats, <= 0) and, where the
+        PEM mislocates, the log-density of its measurement errors (nats), recomputed under :attr:`target` once
+        (:func:`pemviz.core.counterfactuals.failure_log_p_parts`); None for a rollout with errors and no target."""
+        try:
+            return LogPParts.of(self.batch, 0, self.target)
+        except ValueError:
+            return None
+
+    def log_p_words(self, whose: str = "its ") -> str:
+        """``log-probability of its detections -63.2 nats, log-density of its measurement errors +12.4 nats`` under
+        the PEM (:meth:`pemviz.core.counterfactuals.LogPParts.words`), or, where the parts are not known, the sum
+        named for what it is."""
+        parts = self.log_p_parts
+        if parts is not None:
+            return parts.words(whose=whose)
+        return (f"log-likelihood under the PEM {self.log_p_total:.1f} nats (the log-probability of {whose}detections "
+                f"plus the log-density of {whose}measurement errors)")
 
     @property
     def key(self) -> str:
@@ -214,6 +242,7 @@ def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
         batch=one,
         object_p=object_p,
         object_q=object_q,
+        target=scoring_detector(event.target),
     )
 
 

@@ -15,10 +15,13 @@ violating trace were necessary.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from pemviz.core.detectors import SamplerView, ScoredTarget
+from pemviz.core.event_probs import batch_log_probs
 from pemviz.core.rollouts import RolloutBatch
 
 MISS = "miss"
@@ -141,7 +144,8 @@ class LikelyFailure:
         row: its row in that event's batch.
         rollout: its number in the stage (``event.rollout_numbers[row]``: the row, except in a streamed stage,
             whose listeners see a sample of its rollouts).
-        log_p: its log p under the PEM (nats; :func:`failure_log_p`).
+        log_p: its log p under the PEM (nats; :func:`failure_log_p`): the log-probability of its detections plus,
+            where the PEM mislocates, the log-density of its measurement errors (:func:`failure_log_p_parts`).
     """
 
     stage: int
@@ -154,7 +158,10 @@ def failure_log_p(batch: RolloutBatch, failed: np.ndarray) -> np.ndarray:
     """The log p under the PEM (the target) of each failing rollout, float64 [N] (nats), -inf where ``failed`` [N]
     is False: the sum of ``log p_target(a_t | s_t)`` over the rollout's first T - 1 steps, the steps its importance
     weight multiplies (:meth:`pemviz.core.rollouts.RolloutBatch.log_likelihood`; the last action changes nothing). The
-    one log p by which the console, the panel and the recording choose and state the most likely failure.
+    one log p by which the console, the panel and the recording choose the most likely failure. Where the PEM also
+    mislocates, it adds the log-probability of the detections and the log-density of the measurement errors, so it is
+    a log-likelihood, not the log of a probability (it can be positive): they state its two parts
+    (:func:`failure_log_p_parts`).
 
     Raises:
         ValueError: ``failed`` is not of shape [N].
@@ -163,6 +170,98 @@ def failure_log_p(batch: RolloutBatch, failed: np.ndarray) -> np.ndarray:
     if failed.shape != (batch.n,):
         raise ValueError(f"failure_log_p: failed needs shape ({batch.n},), got {failed.shape}")
     return np.where(failed, batch.log_likelihood(), -np.inf)
+
+
+def scoring_detector(target: object) -> object:
+    """The PEM behind a run's target detector: ``target`` itself, or the detector that a
+    :class:`pemviz.core.detectors.ScoredTarget` (a mixture stage's target, which keeps every logit it is asked for)
+    or a stage's target view (:class:`pemviz.core.detectors.SamplerView` 0, whose answers are the target's) wraps.
+    Asking it about a rollout after the stage changes nothing the run keeps."""
+    while True:
+        if isinstance(target, ScoredTarget):
+            target = target.target
+        elif isinstance(target, SamplerView) and target.index == 0:
+            target = target.samplers.target_detector
+        else:
+            return target
+
+
+def failure_log_p_parts(batch: RolloutBatch, target: object | None,
+                        n_factors: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:  # fmt: skip
+    """Each rollout's log p under the PEM (:func:`failure_log_p`, over the first ``n_factors`` steps, default T - 1)
+    split by the kind of event it sums: (the log-probability of its detections, float64 [N], nats, <= 0; the
+    log-density of its detected objects' measurement errors, float64 [N], nats, or None for a batch without errors).
+
+    Where the PEM also mislocates (``batch.noise`` [N, T, M, D], a :class:`pemviz.core.detectors.NoisyDetector`
+    target, e.g. the cut-in's noise PEM), a step's log p adds each object's ``log p(a | x)`` (a probability: <= 0)
+    and, where detected, ``log p(e | x)``, the density of its error in metres (:func:`pemviz.core.detectors.draw_step`).
+    The sum is a log-likelihood with respect to counting measure times Lebesgue measure, not the log of a probability:
+    a density exceeds 1 wherever its scale is below 1 m, so its log, and the sum, can be positive (Cover & Thomas,
+    "Elements of Information Theory", 2nd ed., 2006, Sec. 8.1), and its value depends on the unit of the errors.
+    The batch keeps only the sum per step (:attr:`RolloutBatch.log_p`), so both parts are recomputed here from the
+    rollout's object rows, detections and errors under ``target`` (its PEM: :func:`scoring_detector`), which asks
+    the detector nothing it keeps and changes no draw (:func:`pemviz.core.event_probs.batch_log_probs`). The two
+    add up to :func:`failure_log_p` up to rounding (about 1e-12 relative). A batch without errors (``noise`` None, e.g. the braking scenario) holds
+    nothing but detections: its log p is the first part as it is, and ``target`` is not asked.
+
+    Args:
+        batch: N rollouts (detected bool [N, T, M]; object rows [N, T, M, G]; noise [N, T, M, D] or None).
+        target: the PEM the rollouts are weighed under (a problem's ``target``, or an event's); only read when the
+            batch has errors.
+        n_factors: the steps summed (default T - 1, as :meth:`RolloutBatch.log_likelihood`).
+    Returns:
+        (log-probability of the detections [N], log-density of the measurement errors [N] or None), nats.
+    Raises:
+        ValueError: a batch with errors and no ``target``.
+    """
+    k = batch.n_steps - 1 if n_factors is None else int(n_factors)
+    if batch.noise is None:
+        return batch.log_likelihood(k), None
+    if target is None:
+        raise ValueError("failure_log_p_parts: a batch with measurement errors needs the target detector (the PEM)")
+    parts = batch_log_probs(batch, scoring_detector(target))  # [N, T] each
+    return parts.detections[:, :k].sum(axis=1), parts.errors[:, :k].sum(axis=1)
+
+
+@dataclass(frozen=True)
+class LogPParts:
+    """A rollout's log p under the PEM (over T - 1 steps) as its two kinds of terms (:func:`failure_log_p_parts`).
+
+    Attributes:
+        detections: the log-probability of its detections and misses (nats, <= 0).
+        errors: the log-density of its detected objects' measurement errors (nats, with the errors in metres; can be
+            positive), or None where the detector does not mislocate.
+    """
+
+    detections: float
+    errors: float | None = None
+
+    @staticmethod
+    def of(batch: RolloutBatch, row: int, target: object | None) -> "LogPParts":
+        """Rollout ``row`` of ``batch`` split under ``target`` (:func:`failure_log_p_parts`)."""
+        one = batch.select(np.array([int(row)]))
+        detections, errors = failure_log_p_parts(one, target)
+        return LogPParts(float(detections[0]), None if errors is None else float(errors[0]))
+
+    @property
+    def total(self) -> float:
+        """Their sum, the log p by which the most likely failure is chosen (nats; :func:`failure_log_p`)."""
+        return self.detections + (0.0 if self.errors is None else self.errors)
+
+    def words(self, digits: int = 1, whose: str = "its ") -> str:
+        """``log-probability of its detections -63.2 nats, log-density of its measurement errors +12.4 nats`` (the
+        second only with errors), each to ``digits`` decimals."""
+        head = f"log-probability of {whose}detections {_nats(self.detections, digits)} nats"
+        if self.errors is None:
+            return head
+        return f"{head}, log-density of {whose}measurement errors {_nats(self.errors, digits, sign=True)} nats"
+
+
+def _nats(x: float, digits: int, sign: bool = False) -> str:
+    """``x`` to ``digits`` decimals (``+`` before a positive one when ``sign``), ``-inf`` spelled so."""
+    if math.isinf(x):
+        return "-inf" if x < 0 else "+inf"
+    return format(x + 0.0, f"{'+' if sign else ''}.{digits}f")
 
 
 def likeliest_failures(batch: RolloutBatch, failed: np.ndarray, k: int) -> np.ndarray:

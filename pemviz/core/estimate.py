@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import math
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -92,6 +93,51 @@ class Estimate:
     log_mean_weight: float = math.nan
     verdict: str = "unreliable"
     reason: str = ""
+    plain_mc: bool = False
+    evidence: "BettingEvidence | None" = field(default=None, compare=False, repr=False)
+    markov_logs: tuple[float, ...] = ()
+
+    @property
+    def interval_backed(self) -> bool:
+        """Whether the run backs its :data:`CI_LEVEL` interval ``log_ci``: plain Monte Carlo (its Clopper-Pearson
+        interval is exact), or a ``reliable`` verdict. Otherwise the interval's coverage rests on a central limit the
+        weights' tail may not obey (k-hat, ESS, a collapsed proposal), and what is shown is
+        :attr:`log_lower_bound` with no upper bound."""
+        return self.plain_mc or self.verdict == "reliable"
+
+    def lower_bound(self, alpha: float = 1.0 - CI_LEVEL) -> float:
+        """A lower confidence bound of p at level 1 - ``alpha`` that holds whatever the weights' tail, as a natural
+        log (-inf: none). Plain Monte Carlo: the one-sided Clopper-Pearson bound ``B^-1(alpha; k, n - k + 1)``.
+        Importance sampling: :func:`betting_lower_bound` of the run's terms (exact weights suffice). A run that keeps
+        only unbiased run-level estimates (splitting): :func:`markov_lower_bound` of them.
+
+        Raises:
+            ValueError: ``alpha`` outside (0, 1).
+        """
+        if not 0.0 < alpha < 1.0:
+            raise ValueError(f"lower_bound: alpha must be in (0, 1), got {alpha}")
+        if self.n_failures == 0:
+            return -math.inf
+        if self.plain_mc:
+            from scipy.special import betaincinv
+
+            return math.log(float(betaincinv(self.n_failures, self.n - self.n_failures + 1, alpha)))
+        if self.evidence is not None:
+            return self.evidence.lower_bound(alpha)
+        if self.markov_logs:
+            return markov_lower_bound(np.asarray(self.markov_logs, dtype=np.float64), alpha)
+        return -math.inf
+
+    @cached_property
+    def log_lower_bound(self) -> float:
+        """:meth:`lower_bound` at :data:`CI_LEVEL` (natural log; -inf: none)."""
+        return self.lower_bound()
+
+    @property
+    def shown_log_ci(self) -> tuple[float, float]:
+        """What the run stands behind, as natural logs (lo, hi): ``log_ci`` where :attr:`interval_backed`, else
+        (:attr:`log_lower_bound`, +inf): a lower bound and no upper bound."""
+        return self.log_ci if self.interval_backed else (self.log_lower_bound, math.inf)
 
     @property
     def mu_hat(self) -> float:
@@ -113,13 +159,34 @@ class Estimate:
         return 0.5 * (math.exp(hi - self.log_mu_hat) - low)
 
     def covers(self, log_p: float) -> bool:
-        """Whether the interval holds the probability whose natural log is ``log_p``."""
-        return self.log_ci[0] <= log_p <= self.log_ci[1]
+        """Whether what the run shows holds the probability whose natural log is ``log_p``: its interval where
+        :attr:`interval_backed`, else its lower bound (:attr:`shown_log_ci`)."""
+        lo, hi = self.shown_log_ci
+        return lo <= log_p <= hi
+
+    def holds_text(self, log_p: float, outside: str = "OUTSIDE") -> str:
+        """``inside the interval`` / ``OUTSIDE the interval``, or for a bound ``above the lower bound`` / ``BELOW the
+        lower bound`` (``outside`` is the emphasised word for a miss; "below" in its case for a bound)."""
+        if self.interval_backed:
+            return f"{'inside' if self.covers(log_p) else outside} the interval"
+        below = outside.replace("OUTSIDE", "BELOW").replace("outside", "below")
+        return f"{'above' if self.covers(log_p) else below} the lower bound"
 
     def interval_text(self) -> str:
-        """``[1.2e-15, 2.6e-15]``: the interval as probabilities."""
+        """``[1.2e-15, 2.6e-15]``: the interval as probabilities; where the run does not back one
+        (:attr:`interval_backed`), its lower bound: ``>= 3.1e-16, no upper``."""
         lo, hi = self.log_ci
-        return f"[{format_probability(lo, 2)}, {format_probability(hi, 2)}]"
+        if self.interval_backed or self.n_failures == 0:
+            return f"[{format_probability(lo, 2)}, {format_probability(hi, 2)}]"
+        return f">= {format_probability(self.log_lower_bound, 2)}, no upper"
+
+    def bound_text(self) -> str:
+        """``p >= 3.1e-16 (95 % lower bound, whatever the weights' tail), no upper bound from this run``; ``no bound
+        either way from this run`` where there is no lower bound either (an estimate that keeps no terms)."""
+        if self.log_lower_bound == -math.inf:
+            return "no bound either way from this run"
+        return (f"p >= {format_probability(self.log_lower_bound, 2)} ({CI_LEVEL:.0%} lower bound, whatever the "
+                "weights' tail), no upper bound from this run")  # fmt: skip
 
     def below_seen(self, log_p_seen: float | None) -> "Estimate":
         """This estimate, or, when mu_hat is below ``log_p_seen`` (nats: the probability of the distinct failures the
@@ -153,15 +220,17 @@ class Estimate:
             bound = (f"p < {format_probability(hi, 2)} ({CI_LEVEL:.0%}, rule of three: 3 / {self.n} rollouts of the "
                      "PEM itself)" if hi < 0.0 else self.reason or "this bounds nothing")  # fmt: skip
             line = f"no failure seen in {self.n} rollouts: {bound}: {self.verdict} as an estimate"
-        else:
+        elif self.interval_backed:
             line = (
                 f"mu_hat = {format_probability(self.log_mu_hat)}, {CI_LEVEL:.0%} CI {self.interval_text()}, "
                 f"ESS {self.ess:.1f}, k-hat {khat}: {self.verdict} ({self.reason})"
             )
+        else:
+            line = (f"mu_hat = {format_probability(self.log_mu_hat)}, no {CI_LEVEL:.0%} CI from these weights: "
+                    f"{self.bound_text()}; ESS {self.ess:.1f}, k-hat {khat}: {self.verdict} ({self.reason})")
         if exact_log_p is not None:
-            inside = "inside" if self.covers(exact_log_p) else "OUTSIDE"
             error = error_text(self.log_mu_hat, exact_log_p)
-            line += f"; exact {format_probability(exact_log_p)} ({error}, {inside} the interval)"
+            line += f"; exact {format_probability(exact_log_p)} ({error}, {self.holds_text(exact_log_p)})"
         elif reference is not None:
             line += f"; {reference.comparison(self)}"
         return line
@@ -210,8 +279,7 @@ class Reference:
         reference, e.g. ``reference 8.66e-05 [...] (...): 11.8 orders of magnitude too low, OUTSIDE the interval``
         (:func:`error_text`); ``outside`` is
         the word used when it does not (the panel and the recording emphasise it their way)."""
-        inside = "inside" if e.covers(self.log_p) else outside
-        return f"reference {self.text()}: {error_text(e.log_mu_hat, self.log_p)}, {inside} the interval"
+        return f"reference {self.text()}: {error_text(e.log_mu_hat, self.log_p)}, {e.holds_text(self.log_p, outside)}"
 
 
 def error_text(log_mu_hat: float, log_truth: float) -> str:
@@ -324,7 +392,7 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
             bound = 0.0
             reason = "0 failures under importance sampling: this bounds nothing"
         return Estimate(n, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, bound), math.nan, log_mean_w,
-                        "unreliable", reason)  # fmt: skip
+                        "unreliable", reason, plain_mc)  # fmt: skip
     with np.errstate(invalid="ignore", over="ignore"):  # an inf or nan weight gives nan numbers: unreliable below
         return _estimate(n, lw, nf, log_weight, failed, log_p_total, log_mean_w, plain_mc)
 
@@ -352,8 +420,9 @@ def _estimate(n: int, lw: np.ndarray, nf: int, log_weight: np.ndarray, failed: n
     numbers = (log_sum, ess, log_ci[1], log_mean_w)
     if verdict == "reliable" and not all(math.isfinite(x) for x in numbers):  # a claim each number must back
         verdict, reason = "unreliable", "an estimate, interval bound, ESS or mean weight is not a finite number"
+    evidence = None if plain_mc else BettingEvidence.of(log_y)
     return Estimate(n, nf, log_sum - math.log(n), float(-lp.mean()), nll_lme, ess, log_ci, khat, log_mean_w,
-                    verdict, reason)  # fmt: skip
+                    verdict, reason, plain_mc, evidence)  # fmt: skip
 
 
 def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, plain_mc: bool,
@@ -432,3 +501,89 @@ def markov_lower_bound(log_estimates: np.ndarray, alpha: float = 1.0 - CI_LEVEL)
     if logs.size == 0 or np.any(np.isneginf(logs)):
         return -math.inf
     return float((math.log(alpha) + math.fsum(logs.tolist())) / logs.size)
+
+
+BET_FRACTIONS = 2.0 ** -np.arange(1, 31)
+"""The betting fractions lambda_j = 2^-j, j = 1..30, of :func:`betting_lower_bound`, fixed before any rollout is
+drawn: a run of n rollouts is best served by lambda ~ 1/n, so the grid serves runs of 2 to 10^9 rollouts."""
+
+BET_BIN_NATS = 0.01
+"""nats: :class:`BettingEvidence` rounds each log term down to a multiple of this before counting equal ones; a
+smaller term only lowers the wealth, so the bound stays valid (and at most 1 % lower)."""
+
+
+@dataclass(frozen=True, eq=False)
+class BettingEvidence:
+    """What :func:`betting_lower_bound` needs of a run's N terms X_i = 1[fail_i] w_i, kept small: the distinct values
+    of log X_i > -inf rounded down to :data:`BET_BIN_NATS` (``log_x`` float64 [U], nats), how many terms have each
+    (``counts`` int64 [U]), and N (``n``).
+
+    Built by :meth:`of`; the wealth of a fraction lambda does not depend on the terms' order, so the counts suffice.
+    """
+
+    log_x: np.ndarray
+    counts: np.ndarray
+    n: int
+
+    @classmethod
+    def of(cls, log_terms: np.ndarray) -> "BettingEvidence":
+        """From the log terms log X_i float64 [N] (nats; -inf for X_i = 0, a rollout that did not fail)."""
+        log_terms = np.asarray(log_terms, dtype=np.float64)
+        finite = log_terms[np.isfinite(log_terms)]
+        binned = np.floor(finite / BET_BIN_NATS) * BET_BIN_NATS
+        values, counts = np.unique(binned, return_counts=True)
+        return cls(values, counts.astype(np.int64), int(log_terms.size))
+
+    def log_wealth(self, log_m: float) -> float:
+        """log K(m) (nats) of the mixture of bettors against "E X <= m": K(m) = (1/J) sum_j prod_i (1 - lambda_j +
+        lambda_j X_i / m) over :data:`BET_FRACTIONS`, in log space; non-increasing in m."""
+        from scipy.special import logsumexp
+
+        lam = BET_FRACTIONS
+        log1m, loglam = np.log1p(-lam), np.log(lam)
+        zeros = self.n - int(self.counts.sum())
+        per = zeros * log1m
+        if self.log_x.size:
+            per = per + np.logaddexp(log1m[:, None], loglam[:, None] + (self.log_x - log_m)[None, :]) @ self.counts
+        return float(logsumexp(per)) - math.log(lam.size)
+
+    def lower_bound(self, alpha: float = 1.0 - CI_LEVEL) -> float:
+        """The smallest m whose wealth stays below 1 / ``alpha`` (:func:`betting_lower_bound`), natural log, to 1e-6
+        nats (rounded down); -inf with no positive term."""
+        if self.log_x.size == 0:
+            return -math.inf
+        target = -math.log(alpha)
+        hi = float(self.log_x.max())  # every factor <= 1 at m >= max X: K(hi) <= 1 < 1 / alpha
+        lo = hi - 64.0
+        while self.log_wealth(lo) < target:
+            lo -= 64.0
+        while hi - lo > 1e-6:
+            mid = 0.5 * (lo + hi)
+            if self.log_wealth(mid) >= target:
+                lo = mid
+            else:
+                hi = mid
+        return lo
+
+
+def betting_lower_bound(log_terms: np.ndarray, alpha: float = 1.0 - CI_LEVEL) -> float:
+    """A lower confidence bound of p at level 1 - ``alpha`` from a run's terms X_i = 1[fail_i] w_i, given as logs
+    ``log_terms`` float64 [N] (nats, -inf for 0), that holds however heavy the weights' tail: it needs only X_i >= 0
+    and E[X_i | the rollouts before i] = p, which exact importance weights p/q give under any proposal, adapted
+    between stages or not.
+
+    The bound is the smallest m that a mixture of bettors fails to reject (testing by betting: Waudby-Smith & Ramdas,
+    "Estimating means of bounded random variables by betting", JRSS B 86(1), 2024, Sec. 4, here for X >= 0 with no
+    upper bound). For each fraction lambda_j in :data:`BET_FRACTIONS`, K_j(m) = prod_i (1 - lambda_j + lambda_j X_i
+    / m) is a non-negative martingale with K_j(p) starting at 1 when m = p (each factor has conditional mean 1 and is
+    >= 1 - lambda_j > 0), and so is their mean K(m). Ville's inequality gives P(sup_n K(p) >= 1 / alpha) <= alpha, so
+    {m : K(m) < 1 / alpha} holds p with probability >= 1 - alpha, at every n at once (a run may stop on its data).
+    K is non-increasing in m, so that set is [bound, inf), found by bisection on log m. There is no such upper bound:
+    an unbiased estimator may miss most of p in every run.
+
+    Raises:
+        ValueError: ``alpha`` outside (0, 1).
+    """
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"betting_lower_bound: alpha must be in (0, 1), got {alpha}")
+    return BettingEvidence.of(log_terms).lower_bound(alpha)

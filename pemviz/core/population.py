@@ -44,7 +44,8 @@ class FailureShares:
         log_share: float64 [F] log of its share of mu_hat (nats, <= 0; the shares add up to 1), non-increasing.
         log_weight: float64 [F] its importance log-weight as the estimate counts it (nats; with the stage's pooling
             constant log(lambda_k N / n_k) added where the estimate pools stages).
-        log_p: float64 [F] log p_PEM of its events before the failure (nats): how probable the failure is.
+        log_p: float64 [F] log p_PEM of its events before the failure (nats): the log-probability of its detections
+            plus, where the PEM mislocates, the log-density of its measurement errors (a log-likelihood).
     """
 
     stage: np.ndarray

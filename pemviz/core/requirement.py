@@ -7,7 +7,10 @@ the number of looks. Here look j uses the interval at level ``1 - alpha_j`` with
 Bonferroni's inequality; an alpha-spending rule in the sense of Lan & DeMets, "Discrete sequential boundaries for
 clinical trials", Biometrika 70(3), 1983): whatever the number of looks, the chance that any of the intervals misses p,
 and so of a wrong "met" or "violated", is at most ``alpha`` (each interval's own coverage assumed: exact for plain
-Monte Carlo's Clopper-Pearson interval, asymptotic for importance sampling's log-scale t interval).
+Monte Carlo's Clopper-Pearson interval, asymptotic for importance sampling's log-scale t interval). An
+importance-sampling estimate whose verdict is not ``reliable`` backs no interval: its lower bound at the look's level,
+which holds whatever the weights' tail (:meth:`pemviz.core.estimate.Estimate.lower_bound`), can show a violation of
+``p < t`` (or meet ``p >= t``), and nothing else.
 
 The module is pure: no I/O, no scenario; numpy and scipy are imported where an interval is computed.
 """
@@ -144,14 +147,15 @@ def decide(est: Estimate, req: Requirement, look: int, plain_mc: bool, alpha: fl
     """Look ``look`` at ``est``: ``met`` when the interval at level ``1 - alpha_look`` (:func:`alpha_at_look`,
     :func:`interval_at_level`) lies wholly on the requirement's side of the threshold, ``violated`` when wholly on the
     other, else ``undecided``. Under importance sampling an interval whose verdict is not ``reliable`` decides
-    nothing (its coverage is not backed by its diagnostics); plain Monte Carlo's exact interval always may.
+    nothing (its coverage is not backed by its diagnostics): its lower bound at that level decides alone, and only
+    against ``p < t`` or for ``p >= t``; plain Monte Carlo's exact interval always may.
     """
     level = 1.0 - alpha_at_look(look, alpha)
-    lo, hi = interval_at_level(est, level, plain_mc)
     t = req.log_threshold
-    shown = f"{level:.4g} interval [{math.exp(lo):.3g}, {math.exp(hi):.3g}] at look {look}"
     if not plain_mc and est.verdict != "reliable":
-        return Decision("undecided", look, level, (lo, hi), f"the estimate is {est.verdict}: its interval decides nothing")
+        return _decide_on_bound(est, req, look, level)
+    lo, hi = interval_at_level(est, level, plain_mc)
+    shown = f"{level:.4g} interval [{math.exp(lo):.3g}, {math.exp(hi):.3g}] at look {look}"
     below = hi < t if req.op in ("<", ">=") else hi <= t  # p < t holds on [lo, hi] / p >= t fails on it
     above = lo >= t if req.op in ("<", ">=") else lo > t
     if req.upper:
@@ -160,3 +164,21 @@ def decide(est: Estimate, req: Requirement, look: int, plain_mc: bool, alpha: fl
         outcome = "met" if above else "violated" if below else "undecided"
     side = {"met": "holds", "violated": "fails", "undecided": "straddles the threshold"}[outcome]
     return Decision(outcome, look, level, (lo, hi), f"{req} {side} on the {shown}")
+
+
+def _decide_on_bound(est: "Estimate", req: Requirement, look: int, level: float) -> Decision:
+    """A look at an importance-sampling estimate whose verdict backs no interval: only its lower bound at ``level``
+    (:meth:`pemviz.core.estimate.Estimate.lower_bound`, whatever the weights' tail) may decide, and only one way: a
+    bound at or above the threshold violates ``p < t`` (``p <= t``: above it) and meets ``p >= t`` (``p > t``: above
+    it); nothing below the bound says p is small."""
+    lo = est.lower_bound(1.0 - level)
+    t = req.log_threshold
+    above = lo >= t if req.op in ("<", ">=") else lo > t
+    shown = (f"{level:.4g} lower bound p >= {math.exp(lo):.3g} at look {look} (the estimate is {est.verdict}: no "
+             "upper bound)")  # fmt: skip
+    if above:
+        outcome = "violated" if req.upper else "met"
+        side = "fails" if req.upper else "holds"
+        return Decision(outcome, look, level, (lo, math.inf), f"{req} {side} on the {shown}")
+    why = f"the {shown} is below the threshold: it decides nothing"
+    return Decision("undecided", look, level, (lo, math.inf), why)

@@ -177,7 +177,7 @@ class PemSpread:
                 covers = sum(a.estimate.covers(a.exact_log_p) for a in self.members)
                 out.append(f"  exact members: median {format_probability(emed)}, 90 % in [{format_probability(elo)}, "
                            f"{format_probability(ehi)}]; re-weighted within x1.5 of exact: {within}/{len(self.members)},"
-                           f" interval holds it: {covers}/{len(self.members)}")  # fmt: skip
+                           f" its interval or lower bound holds it: {covers}/{len(self.members)}")  # fmt: skip
         for a in self.shifts:
             e = a.estimate
             line = (f"PEM shifted by {a.label}: p = {format_probability(e.log_mu_hat)} {e.interval_text()}, ESS "

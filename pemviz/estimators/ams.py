@@ -275,7 +275,8 @@ def ams_estimate(problem: Problem, particles: RolloutBatch, failed: np.ndarray, 
     else:
         verdict, reason = "reliable", f"AMS: {nf} failures from {families} initial rollouts"
     return Estimate(n, nf, log_p, float(-lp.mean()), -(float(logsumexp(lp)) - math.log(nf)), 1.0 / v,
-                    (log_p - half, log_p + half), math.nan, 0.0, verdict, reason)  # fmt: skip
+                    (log_p - half, log_p + half), math.nan, 0.0, verdict, reason,
+                    markov_logs=(log_p,))  # unbiased, stopped early or not: Markov's bound  # fmt: skip
 
 
 class AdaptiveMultilevelSplitting(OwnsSettings):

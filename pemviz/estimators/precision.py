@@ -2,7 +2,8 @@
 
 Reliability tools let a user ask for a coefficient of variation and let the run decide its size; here the target is
 the relative half-width of the 95 % interval, (hi - lo) / (2 mu_hat) (:attr:`pemviz.core.estimate.Estimate.
-rel_half_width`). After the estimator's planned stages, :class:`PrecisionTarget` asks it for more final batches
+rel_half_width`), of an interval the run backs (:attr:`pemviz.core.estimate.Estimate.interval_backed`). After the
+estimator's planned stages, :class:`PrecisionTarget` asks it for more final batches
 (:meth:`Extensible.extend`: fresh rollouts from the same sampler, pooled with the first final batch, every rollout of
 the final batches alike) until the target holds or a cap (simulations, seconds) is hit, and says which.
 
@@ -144,7 +145,7 @@ class PrecisionTarget:
             want = decision_batch_size(est, self.inner.final_rollouts(), self.requirement.log_threshold)
         else:
             target, width = self.config.rel_error, est.rel_half_width
-            if width <= target:
+            if width <= target and est.interval_backed:  # a narrow interval the weights do not back is no target
                 self.stop = (f"target reached: the interval's relative half-width {width:.3g} <= {target:g} after "
                              f"{self.n_simulations:,} simulations")  # fmt: skip
                 return None
@@ -168,7 +169,8 @@ class PrecisionTarget:
                              f"{self.n_simulations:,} simulations)")  # fmt: skip
                 return None
             width = est.rel_half_width
-            shown = "no failure yet" if not math.isfinite(width) else f"relative half-width {width:.3g} > {target:g}"
+            shown = ("no failure yet" if not math.isfinite(width) else f"relative half-width {width:.3g} > {target:g}"
+                     if width > target else f"the estimate is {est.verdict}: its weights back no interval")
             self.stop = (f"stopped at a cap, not at the target: {cap} ({shown} after {self.n_simulations:,} "
                          "simulations)")  # fmt: skip
             return None

@@ -71,7 +71,7 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
     import pemviz
 
     e = final.estimate
-    lo, hi = e.log_ci
+    lo, hi = e.log_ci if e.interval_backed else (e.log_lower_bound, None)  # a bound alone: no upper end
     doc: dict[str, Any] = {
         "format": RESULT_FORMAT,
         "version": RESULT_VERSION,
@@ -82,8 +82,11 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
         "seed": config.seed,
         "estimate": {
             **_probability(e.log_mu_hat),
-            "ci95": [_probability(lo)["p"], _probability(hi)["p"]],
+            "interval": "ci95" if e.interval_backed else "lower_bound95",
+            "ci95": [_probability(lo)["p"], None if hi is None else _probability(hi)["p"]],
             "log_ci95": [_number(lo), _number(hi)],
+            "lower_bound95": _probability(e.log_lower_bound)["p"],
+            "log_lower_bound95": _number(e.log_lower_bound),
             "ess": _number(e.ess),
             "k_hat": _number(e.khat),
             "n_failures": int(e.n_failures),
@@ -115,7 +118,8 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
             "signal": curve.scale.signal, "label": curve.scale.label, "unit": curve.scale.unit, "title": curve.title(),
             "points": [{
                 "level": pt.level, "text": curve.point_text(pt), **_probability(pt.estimate.log_mu_hat),
-                "ci95": [_probability(x)["p"] for x in pt.estimate.log_ci], "ess": _number(pt.estimate.ess),
+                "ci95": [_probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in pt.estimate.shown_log_ci],
+                "ess": _number(pt.estimate.ess),
                 "n_events": int(pt.estimate.n_failures), "verdict": pt.estimate.verdict,
                 "exact": None if pt.exact_log_p is None else _probability(pt.exact_log_p),
             } for pt in curve.points],
@@ -128,7 +132,7 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
         doc["requirement"] = {
             "text": str(req), "op": req.op, "threshold": req.threshold, "outcome": d.outcome,
             "exit_code": EXIT_CODES[d.outcome], "look": d.look, "level": d.level,
-            "ci": [_probability(d.log_ci[0])["p"], _probability(d.log_ci[1])["p"]], "why": d.why,
+            "ci": [_probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in d.log_ci], "why": d.why,
         }  # fmt: skip
     return doc
 

@@ -8,7 +8,8 @@ names, :func:`get` returns the record. The kit of :mod:`pemviz.testing` (``check
 registered scenario, so a scenario of one's own is checked by the same tests as pemviz's.
 
 The built-in scenarios are the run scenarios of :data:`pemviz.settings.SCENARIOS` (``braking``, ``cut-in``,
-``cut-in-rare``) and the two toys with closed-form answers that ``pemviz validate`` uses (``toy``, ``crowd``).
+``cut-in-rare``), the two toys with closed-form answers that ``pemviz validate`` uses (``toy``, ``crowd``), and the
+``crossing`` scene built on the library's perception stack (:mod:`pemviz.scenarios.crossing`, :mod:`pemviz.stack`).
 
 A factory, a parameters dataclass or a simulator may be given as an object or, as Gymnasium's ``entry_point``, as the
 text ``"package.module:name"``, imported when it is first used: this module imports no problem or simulator (the
@@ -381,6 +382,9 @@ for _scenario in (
     Scenario("crowd", "toy braking toward several obstacles, each detected and its distance mislocated; failure: "
              "closer than the safe distance to the nearest (closed-form answer)", "pemviz.scenarios.crowd:CrowdParams",
              "pemviz.scenarios.builtin:crowd", exact=True),
+    Scenario("crossing", "an emergency brake on tracked pedestrians stepping onto a crossing, the shipped PEMs as the "
+             "camera's detector and mislocation; failure: a collision", "pemviz.scenarios.crossing.scene:CrossingParams",
+             "pemviz.scenarios.crossing.problem:crossing"),
 ):  # fmt: skip
     register(_scenario)
 del _scenario

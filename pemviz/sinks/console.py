@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import dataclass
 from typing import TextIO
 
-from pemviz.core.estimate import Estimate, Reference, format_probability
+from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability
 from pemviz.core.severity import FailureSeverity
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.sinks import Sink, StageClock
 
-__all__ = ["ConsoleSink", "HEADER", "estimate_cells", "final_lines", "next_step", "progress_line", "stage_row"]
+__all__ = ["ConsoleSink", "HEADER", "McRoute", "duration_text", "estimate_cells", "final_lines", "mc_rollouts",
+           "mc_route", "next_step", "progress_line", "stage_row"]
 
 HEADER = (
     f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} "
@@ -45,52 +47,334 @@ def stage_row(res: StageResult) -> str:
     return f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {estimate_cells(res.estimate)} {res.wall_s:>7.2f}"
 
 
-NOT_RARE = 1e-5
-"""A failure probability at or above this is not rare: plain Monte Carlo sees 100 failures in 10^7 rollouts."""
-
-
 MC_AFFORDABLE = 10**8
-"""The most rollouts :func:`next_step` suggests plain Monte Carlo for."""
+"""The most rollouts :func:`next_step` suggests plain Monte Carlo for (at p ~ 1e-6 and below it needs more)."""
+
+MC_REL_ERROR = 0.2
+"""The relative half-width of the 95 % interval :func:`next_step` sizes plain Monte Carlo for (``--rel-error 0.2``):
+about 96 failures."""
+
+PERCENT = f"{100 * MC_REL_ERROR:.0f} %"
+""":data:`MC_REL_ERROR` as the lines print it (``20 %``)."""
+
+Z_95 = 1.96
+"""The standard normal's 97.5 % quantile: a 95 % interval's half-width in standard errors."""
+
+IS_MAX_SIMS = 100_000
+"""The least ``--max-sims`` :func:`next_step` suggests with a precision target for an importance sampler (four times
+the run's simulations, rounded up, where that is more)."""
 
 
-def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: Reference | None = None) -> str | None:
-    """What to do after a run whose verdict is not ``reliable``, in one line (None for a reliable one): plain Monte
-    Carlo with a precision target where p is not rare (:data:`NOT_RARE`, judged from the exact answer, the reference,
-    or the estimate), else more budget or a precision target (``--rel-error``); for splitting, which has no final batch
-    to add to, more particles or the committor's graded score (``--ams-score committor``)."""
-    if e.verdict == "reliable" or config is None:
-        return None
-    known = exact_log_p if exact_log_p is not None else (reference.log_p if reference is not None else None)
-    guess = known if known is not None else (e.log_mu_hat if e.n_failures else None)
-    method = getattr(config, "method", "adaptive")
+def mc_rollouts(log_p: float, rel_error: float = MC_REL_ERROR) -> float:
+    """Rollouts plain Monte Carlo needs for a 95 % interval of half-width ``rel_error`` times p at the failure
+    probability p = e^``log_p`` (``log_p`` in nats): n = ceil(z^2 (1 - p) / (rel_error^2 p)), z = :data:`Z_95`, from the
+    binomial standard error sqrt(p (1 - p) / n) (the normal approximation to the binomial; the crude Monte Carlo
+    estimator's relative error sqrt((1 - p) / (n p)), Rubinstein & Kroese, "Simulation and the Monte Carlo Method", 3rd
+    ed., 2017; about 96 / p at 20 %, i.e. about 96 failures). A whole number as a float; inf where p underflows float64
+    (p < ~1e-300)."""
+    p = math.exp(log_p)
+    if not p > 1e-300:
+        return math.inf
+    return float(math.ceil(Z_95**2 * (1.0 - p) / (rel_error**2 * p)))
+
+
+def duration_text(seconds: float) -> str:
+    """``0.8 s``, ``42 s``, ``9.8 min``, ``63 min``, ``3.1 h``, ``12 days``, ``3.0e+05 years``: a duration given in
+    seconds, in the unit that reads best."""
+    if seconds < 10:
+        return f"{seconds:.1f} s"
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 600:
+        return f"{seconds / 60:.1f} min"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 48 * 3600:
+        return f"{seconds / 3600:.1f} h"
+    if seconds < 730 * 86400:
+        return f"{seconds / 86400:.0f} days"
+    years = seconds / (365.25 * 86400)
+    return f"{years:,.0f} years" if years < 10_000 else f"{years:.1e} years"
+
+
+def count_text(n: float) -> str:
+    """``1,108,911`` (below 10^9), ``4.8e+16`` (above), ``more than 1e+300`` (inf): a number of rollouts."""
+    if not math.isfinite(n):
+        return "more than 1e+300"
+    return f"{int(n):,}" if n < 1e9 else f"{n:.1e}"
+
+
+def _round_up(n: float) -> int:
+    """``n`` rounded up to two significant digits (100,400 -> 110,000)."""
+    unit = 10 ** max(0, math.floor(math.log10(max(n, 1.0))) - 1)
+    return int(math.ceil(n / unit) * unit)
+
+
+def _rate_text(s_per: float, method: str) -> str:
+    """``this run's 0.2 ms a rollout`` (a plain Monte Carlo run's measured seconds a rollout, ``s_per``), or after
+    another method ``~0.2 ms a plain rollout (this run's speed, by the cost model)``: :func:`plain_rollout_seconds`."""
+    rate = f"{s_per * 1e3:.2g} ms" if s_per < 1.0 else f"{s_per:.2g} s"
     if method == "mc":
-        if guess is not None and guess > -math.inf:
-            need = math.ceil(1.96**2 / (0.2**2 * math.exp(guess)))  # 20 % relative half-width: ~96 failures
-            if need > MC_AFFORDABLE:
-                return (f"p ~ {format_probability(guess, 2)} is too rare for plain Monte Carlo (about {need:.1e} "
-                        "rollouts for a 20 % interval): an importance-sampling method (--method adaptive), with its "
-                        "verdict")  # fmt: skip
-            return (f"more rollouts: --rel-error 0.2 samples until the interval is within 20 % (about {need:,} "
-                    "rollouts at this p; cap them with --max-sims or --max-time)")  # fmt: skip
-        return (f"more rollouts (--n {10 * e.n}) lower the bound ten-fold; where p is rare, an importance-sampling "
-                "method (--method adaptive) with its verdict")  # fmt: skip
-    if method == "tilt":  # the scene's own proposal: more of its batches, pooled alike
-        return ("more rollouts: --rel-error 0.2 adds tilted batches until the interval is within 20 % (cap them with "
-                "--max-sims or --max-time); heavy-tailed weights (k-hat > 0.7) can still hide a rare large weight, so "
-                "compare with plain Monte Carlo (--method mc --rel-error 0.2) where p is not rare")
-    if guess is not None and guess >= math.log(NOT_RARE):
-        return (f"p ~ {format_probability(guess, 2)} is not rare: plain Monte Carlo gets it right, e.g. --method mc "
-                "--rel-error 0.2 --max-time 600")  # fmt: skip
+        return f"this run's {rate} a rollout"
+    return f"~{rate} a plain rollout (this run's speed, by the cost model)"
+
+
+MC_CAP_MARGIN = 1.2
+"""The ``--max-sims`` named for plain Monte Carlo is this many times the rollouts the normal approximation says a
+20 % interval needs: the exact Clopper-Pearson interval the run stops on is a little wider (e.g. on the cut-in,
+1,108,911 rollouts left its half-width at 0.207)."""
+
+
+def plain_rollout_seconds(config, s_per: float | None, n_simulations: int | None = None,
+                          n_steps: int | None = None) -> float | None:  # fmt: skip
+    """Seconds a plain Monte Carlo rollout takes on this machine, from a run of another method: the run's measured
+    seconds ``s_per`` a simulation of its ``n_simulations`` (its reported count: a tilt's look-aheads and splitting's
+    continuations included; None: ``config.n_simulations``), so its wall time, over the cost model's seconds of the
+    run's plan (:func:`pemviz.engine.cost.run_cost`), times the model's seconds of a plain rollout (``stage_cost`` of a
+    large plain batch): the machine's speed is this run's, what each method adds is the model's. None unmeasured;
+    ``s_per`` itself for a plain Monte Carlo run or where the model cannot price the run. After a cross-entropy run it
+    over-estimates (its wall time holds costs the model leaves out: e.g. about 4 times on the cut-in)."""
+    if s_per is None or getattr(config, "method", "mc") == "mc":
+        return s_per
+    try:
+        import dataclasses
+
+        from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
+        from pemviz.estimators import run_plan
+
+        steps = n_steps or N_STEPS
+        sims = n_simulations if n_simulations else int(config.n_simulations)
+        run = run_cost(config, run_plan(config), steps).seconds / max(1, int(sims))
+        big = 100_000
+        plain = stage_cost(dataclasses.replace(config, method="mc"), "final", big, steps).seconds / big
+    except Exception:  # noqa: BLE001 (a config the model cannot price: the run's own rate, an upper estimate)
+        return s_per
+    return s_per * plain / run if run > 0 and plain > 0 else s_per
+
+
+@dataclass(frozen=True)
+class McRoute:
+    """Plain Monte Carlo with a precision target (``--method mc --rel-error 0.2 --max-sims N``) sized for a scene.
+
+    Attributes:
+        log_p: the failure probability it is sized for (nats).
+        source: where that comes from: ``the exact answer``, ``the reference``, ``this run's mu_hat`` or ``this run's
+            95 % lower bound``.
+        upper: whether p is the run's own estimate of an importance-sampling run that is not ``reliable``: its
+            heavy-tailed weights make mu_hat usually too low (the rare large weights that carry p are seldom drawn:
+            Vehtari, Simpson, Gelman, Yao, Gabry, "Pareto Smoothed Importance Sampling", JMLR 25(72), 2024, Sec. 3),
+            so :attr:`n` is an upper estimate, and a run with ``--rel-error`` stops earlier where p is larger.
+        n: rollouts for a 20 % interval at ``log_p`` (:func:`mc_rollouts`).
+        seconds: their time at the run's measured seconds a simulation (None: not measured).
+        log_floor: with ``upper``, the run's 95 % lower bound of p (``Estimate.log_lower_bound``, nats) where it is
+            below ``log_p``: p is at least this whatever the weights' tail, so :attr:`n_floor` rollouts suffice with
+            95 % confidence even where mu_hat is too high; None: none.
+        n_floor: rollouts for a 20 % interval at ``log_floor`` (:attr:`n` without one).
+    """
+
+    log_p: float
+    source: str
+    upper: bool
+    n: float
+    seconds: float | None
+    log_floor: float | None = None
+    n_floor: float = math.nan
+
+    def fits(self, max_time_s: float | None) -> bool:
+        """Whether :attr:`n` is at most :data:`MC_AFFORDABLE` rollouts and, with ``max_time_s`` (seconds; None: no
+        cap) and a measured time, within it."""
+        return self.n <= MC_AFFORDABLE and (max_time_s is None or self.seconds is None or self.seconds <= max_time_s)
+
+    def cap(self, config) -> int:
+        """The ``--max-sims`` to give it: :attr:`n_floor` (:attr:`n` without a floor), at most :data:`MC_AFFORDABLE`
+        but at least :attr:`n` and the config's ``--n`` (the run's planned rollouts, which ``--max-sims`` may not be
+        below)."""
+        floor = self.n_floor if self.log_floor is not None else self.n
+        return int(math.ceil(MC_CAP_MARGIN * max(self.n, min(floor, MC_AFFORDABLE), getattr(config, "n_per_stage", 0))))
+
+    def command(self, cap: int) -> str:
+        """``--method mc --rel-error 0.2 --max-sims 1108911``."""
+        return f"--method mc --rel-error {MC_REL_ERROR:g} --max-sims {cap}"
+
+    def text(self, s_per: float | None, method: str, floor: bool = True) -> str:
+        """``p ~ 8.66e-05, the reference: 1,108,911 rollouts for a 20 % interval, ~59 min at this run's ...``; with
+        :attr:`log_floor` and ``floor``, the rollouts at it too (``; up to 18,343 at its 95 % lower bound p >=
+        5.21e-03, ~34 s``)."""
+        time = (f", ~{duration_text(self.seconds)} at {_rate_text(s_per, method)}"
+                if self.seconds is not None and math.isfinite(self.seconds) else "")  # fmt: skip
+        line = (f"p ~ {format_probability(self.log_p, 2)}, {self.source}: {count_text(self.n)} rollouts for a "
+                f"{PERCENT} interval{time}")  # fmt: skip
+        if floor and self.log_floor is not None:
+            line += (f"; up to {count_text(self.n_floor)} at its 95 % lower bound p >= "
+                     f"{format_probability(self.log_floor, 2)}{_time(self.n_floor, s_per)}")  # fmt: skip
+        return line
+
+
+def mc_route(e: Estimate, method: str, exact_log_p: float | None = None, reference: Reference | None = None,
+             s_per: float | None = None) -> McRoute | None:  # fmt: skip
+    """Plain Monte Carlo sized from the exact answer, else the reference, else the run's own estimate: mu_hat, or
+    where the run does not back its interval (``Estimate.interval_backed``) its 95 % lower bound
+    (``Estimate.log_lower_bound``) when that is higher, and that lower bound as :attr:`McRoute.log_floor` when it is
+    lower; None with no failure and no known p. ``method``: the run's; ``s_per``: its measured seconds a simulation
+    (None: not measured)."""
+    lower, floor = getattr(e, "log_lower_bound", -math.inf), None
+    backed = getattr(e, "interval_backed", True)
+    if exact_log_p is not None:
+        log_p, source = exact_log_p, "the exact answer"
+    elif reference is not None:
+        log_p, source = reference.log_p, "the reference"
+    elif e.n_failures and e.log_mu_hat > -math.inf:
+        log_p, source = e.log_mu_hat, "this run's mu_hat"
+        if not backed and lower > log_p:
+            log_p, source = lower, "this run's 95 % lower bound"
+        elif not backed and lower > -math.inf:
+            floor = lower
+    else:
+        return None
+    if not log_p > -math.inf:
+        return None
+    n = mc_rollouts(log_p)
+    upper = source.startswith("this run's") and method != "mc"
+    n_floor = mc_rollouts(floor) if floor is not None and upper else math.nan
+    return McRoute(log_p, source, upper, n, n * s_per if s_per is not None else None,
+                   floor if upper else None, n_floor)  # fmt: skip
+
+
+def _time(n: float, s_per: float | None) -> str:
+    """``, ~26 s``: ``n`` simulations at ``s_per`` seconds each; ``""`` unmeasured."""
+    if s_per is None or not math.isfinite(n * s_per):
+        return ""
+    return f", ~{duration_text(n * s_per)}"
+
+
+def _more_budget(config, n_simulations: int | None, s_per: float | None, wall_s: float | None,
+                 within_s: float | None = None) -> str | None:  # fmt: skip
+    """The importance sampler's own route: a larger run or a precision target, each with its simulations and time at
+    ``s_per`` seconds a simulation; with ``within_s`` (seconds) only what fits in it (None: nothing more fits)."""
+    method = getattr(config, "method", "adaptive")
     n = getattr(config, "n_per_stage", 100)
-    if method == "ams":  # no final batch to add to: more particles, or a graded score where the robustness ties
-        more = f"more particles (--n {4 * n})"
+    if method == "ams":  # no final batch to add to: more particles (about 4 times the time), or a graded score
+        more = f"more particles (--n {4 * n}{_time(4.0, wall_s) if wall_s else ''})"
         if getattr(config, "ams_score", "robustness") == "robustness":
             return (f"{more}, or particles ranked by the scenario's committor where it has one (--ams-score "
-                    "committor): where the robustness is flat every particle ties and the run dies out; the verdict "
-                    "says whether to trust the result")  # fmt: skip
-        return f"{more}; the verdict says whether to trust the result"
-    return (f"more budget (--n {4 * n}) or a precision target (--rel-error 0.1 --max-sims 100000: final batches are "
-            "added until the interval is within 10 %); the verdict says whether to trust the result")
+                    "committor: where the robustness is flat every particle ties and the run dies out)")  # fmt: skip
+        return more
+    m = max(IS_MAX_SIMS, _round_up(4 * (n_simulations or 0)))
+    if within_s is not None:
+        if s_per is None:
+            return None
+        m = int(within_s / s_per)
+        if m <= 1.5 * (n_simulations or 0) or m < getattr(config, "n_simulations", 0):
+            return None
+        m = int(float(f"{m:.2g}"))
+    tail = f" --max-time {within_s:g}" if within_s is not None else ""
+    if method == "tilt":
+        return f"more tilted batches (--rel-error 0.2 --max-sims {m}{tail}: up to {m:,} simulations{_time(m, s_per)})"
+    target = (f"a precision target (--rel-error 0.1 --max-sims {m}{tail}: final batches up to {m:,} simulations"
+              f"{_time(m, s_per)})")  # fmt: skip
+    if within_s is not None:
+        return target
+    sims = 4 * n  # adaptive: pretraining, K stages of 4 N and the final batch (ExperimentConfig.n_simulations)
+    if method == "adaptive":
+        final = getattr(config, "n_final", 0) if getattr(config, "has_final_batch", True) else 0
+        sims = getattr(config, "pretrain_rollouts", 0) + getattr(config, "n_stages", 0) * 4 * n + final
+    return f"more budget (--n {4 * n}: {sims:,} simulations{_time(sims, s_per)}) or {target}"
+
+
+def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: Reference | None = None,
+              n_simulations: int | None = None, wall_s: float | None = None) -> str | None:  # fmt: skip
+    """What to do after a run whose verdict is not ``reliable``, in one line (None for a reliable one): the cheapest
+    route that would decide it, with its rollouts and its time on this machine.
+
+    Plain Monte Carlo is always considered: its Clopper-Pearson interval holds whatever p, so a run sized for a 20 %
+    interval (:func:`mc_rollouts`, about 96 / p rollouts; p from the exact answer, the reference or the run itself,
+    :func:`mc_route`) decides it. Its time is the rollouts times this run's measured seconds a simulation,
+    ``wall_s`` / ``n_simulations`` (the run's :class:`~pemviz.engine.events.FinalEstimate`); an importance-sampling
+    run's includes its proposal's fits, so for plain rollouts it is an upper estimate. Where it is at most
+    :data:`MC_AFFORDABLE` rollouts and fits ``config.max_time_s`` (seconds, where set) the line names it
+    (``--method mc --rel-error 0.2 --max-sims N``), then the sampler's own route; else it says why not and what is
+    left: more budget for the importance sampler (the verdict says whether to trust it), for splitting, which has no
+    final batch to add to, more particles or the committor's graded score (``--ams-score committor``), or that no
+    route within the time would decide it. Where p is only the run's own estimate of an importance sampler (usually too
+    low) and the count is past the cap, plain Monte Carlo capped at :data:`MC_AFFORDABLE` rollouts (or what fits in
+    ``max_time_s``) is named with the smallest p it resolves: it stops early where p is larger. Every flag it names is
+    one of ``pemviz run``'s.
+
+    Args:
+        e: the run's estimate; config: its :class:`~pemviz.config.ExperimentConfig` (None: no advice).
+        exact_log_p, reference: the scenario's exact answer (nats) or plain Monte Carlo reference, where known.
+        n_simulations, wall_s: the run's simulations and wall-clock seconds (None: the line gives no times).
+    """
+    if e.verdict == "reliable" or config is None:
+        return None
+    method = getattr(config, "method", "adaptive")
+    s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
+    mc_s = plain_rollout_seconds(config, s_per, n_simulations)  # a plain rollout's seconds here
+    max_time = getattr(config, "max_time_s", None)
+    route = mc_route(e, method, exact_log_p, reference, mc_s)
+    budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
+    if max_time is not None and mc_s is not None:
+        budget = min(budget, max_time / mc_s)
+    if method == "mc":
+        return _after_mc(e, config, route, s_per, max_time)
+    heavy = (f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it)"
+             if e.khat > KHAT_UNRELIABLE else "")  # fmt: skip
+    rest = _more_budget(config, n_simulations, s_per, wall_s)
+    if route is None:  # no failure and no known p: nothing to size plain Monte Carlo on
+        return f"{rest}; the verdict says whether to trust the result"
+    tail = f" --max-time {max_time:g}" if max_time is not None else ""
+    if route.fits(max_time):
+        cap = route.cap(config)
+        upper = ("; an upper estimate: heavy-tailed weights make this run's estimate usually too low, and the run "
+                 "stops early where p is larger" if route.upper else "")  # fmt: skip
+        return (f"plain Monte Carlo decides it: {route.command(cap)}{tail} ({route.text(mc_s, method)}){upper}; or "
+                f"{rest}, with its verdict{heavy}")  # fmt: skip
+    if route.upper and budget > (n_simulations or 0):  # p unknown, sized on an estimate that is usually too low:
+        # plain Monte Carlo capped at the budget stops early where p is larger and decides it wherever p is at least
+        # what the cap resolves
+        cap = max(int(float(f"{budget:.2g}")), getattr(config, "n_per_stage", 0))
+        least = Z_95**2 / (MC_REL_ERROR**2 * cap + Z_95**2)  # the p at which mc_rollouts(p) = cap
+        return (f"p is not known ({route.text(mc_s, method, floor=False)}: an upper estimate, as heavy-tailed "
+                f"weights make this run's estimate usually too low); plain Monte Carlo capped ({route.command(cap)}"
+                f"{tail}: up to {cap:,} rollouts{_time(cap, mc_s)}) decides it where p >= {least:.2g}, stopping "
+                f"early where p is larger; or {rest}, with its verdict{heavy}")  # fmt: skip
+    if route.n > MC_AFFORDABLE and (max_time is None or not route.upper):
+        return (f"{route.text(mc_s, method)}: too rare for plain Monte Carlo; what is left is {rest}, with its "
+                f"verdict{heavy}")  # fmt: skip
+    within = _more_budget(config, n_simulations, s_per, wall_s, within_s=max_time)
+    why = f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(mc_s, method)})"
+    if within is None:
+        cap = route.cap(config)
+        return (f"{why}, and this run's sampler has no more time in it: no route within --max-time {max_time:g} s "
+                f"would decide it; plain Monte Carlo would, given ~{duration_text(route.seconds)} "
+                f"({route.command(cap)} --max-time {math.ceil(route.seconds)})")  # fmt: skip
+    return f"{why}; within it only {within} is left, with its verdict{heavy}"
+
+
+def _after_mc(e: Estimate, config, route: McRoute | None, s_per: float | None, max_time: float | None) -> str:
+    """:func:`next_step` after a plain Monte Carlo run: more rollouts sized for a 20 % interval, or where p is too
+    rare for that or its time is past ``max_time`` (seconds), an importance-sampling method; with no failure and no
+    known p, ten times the rollouts (and the rollouts a 20 % interval needs at least, from the rule-of-three bound)."""
+    n = getattr(config, "n_per_stage", e.n)
+    if route is None:
+        hi = e.log_ci[1]
+        floor = ""
+        if -math.inf < hi < 0.0:
+            least = mc_rollouts(hi)
+            floor = (f"; p < {format_probability(hi, 2)} here, so a {PERCENT} interval needs at least "
+                     f"{count_text(least)} rollouts{_time(least, s_per)}")  # fmt: skip
+        return (f"more rollouts (--n {10 * n}{_time(10 * n, s_per)}) lower the bound ten-fold{floor}; where p is rare, "
+                "an importance-sampling method (--method adaptive), with its verdict")  # fmt: skip
+    if route.n > MC_AFFORDABLE:
+        return (f"{route.text(s_per, 'mc')}: too rare for plain Monte Carlo; an importance-sampling method "
+                "(--method adaptive), with its verdict")  # fmt: skip
+    command = route.command(route.cap(config)).replace("--method mc ", "")
+    if not route.fits(max_time):
+        return (f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(s_per, 'mc')}): a longer "
+                f"--max-time ({command} --max-time {math.ceil(route.seconds)}), or an importance-sampling method "
+                "(--method adaptive), with its verdict")  # fmt: skip
+    return (f"more rollouts: {command} samples until the interval is within {PERCENT} "
+            f"({route.text(s_per, 'mc')})")
 
 
 def scenario_params_text(cfg) -> str:
@@ -109,8 +393,9 @@ def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = N
                 failure_severity: FailureSeverity | None = None) -> list[str]:  # fmt: skip
     """The lines under the table: mu_hat with its log and the run's size, the estimate's summary with the exact answer
     or reference, the severity curve and, with ``failure_severity``, the failures by impact speed with their shares of
-    p (:meth:`pemviz.core.severity.FailureSeverity.line`), why the run stopped and what to do next (the console's,
-    ``--junit``'s and ``--report``'s)."""
+    p (:meth:`pemviz.core.severity.FailureSeverity.line`), why the run stopped and what to do next
+    (:func:`next_step`, timed by the event's ``n_simulations`` and ``wall_s``) (the console's, ``--junit``'s and
+    ``--report``'s)."""
     e = event.estimate
     point = "no failure seen" if e.n_failures == 0 else f"mu_hat = {format_probability(e.log_mu_hat, 4)}"
     lines = [f"{point} (log mu_hat = {e.log_mu_hat:.4f} nats) from {event.n_simulations} simulations in "
@@ -129,7 +414,7 @@ def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = N
         lines.append(f"stop: {event.stop}")
     if event.prepared is not None:
         lines.append(f"proposal: {event.prepared}")
-    advice = next_step(e, config, exact_log_p, reference)
+    advice = next_step(e, config, exact_log_p, reference, event.n_simulations, event.wall_s)
     if advice is not None:
         lines.append(f"next: {advice}")
     return lines

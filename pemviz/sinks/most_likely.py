@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pemviz.core.counterfactuals import LikelyFailure, counterfactuals, most_likely_failure
+from pemviz.core.counterfactuals import LikelyFailure, LogPParts, counterfactuals, most_likely_failure
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import RolloutsSampled
 from pemviz.sinks import Sink
@@ -13,9 +13,9 @@ from pemviz.sinks import Sink
 
 class MostLikelyFailure(Sink):
     """A run's listener that keeps its most likely failure (:func:`pemviz.core.counterfactuals.most_likely_failure`,
-    log p in nats over T - 1 steps: :func:`pemviz.core.counterfactuals.failure_log_p`) for the console's *why* line:
-    ``best`` (None until a failure is seen), its ``stage``, ``rollout`` number and ``log_p`` (-inf until then), and
-    ``batch``, the rollout as a batch of one."""
+    chosen by its log p in nats over T - 1 steps: :func:`pemviz.core.counterfactuals.failure_log_p`) for the console's
+    *why* line: ``best`` (None until a failure is seen), its ``stage``, ``rollout`` number and ``log_p`` (-inf until
+    then), and ``batch``, the rollout as a batch of one."""
 
     def __init__(self) -> None:
         self.best: LikelyFailure | None = None
@@ -30,15 +30,30 @@ class MostLikelyFailure(Sink):
             self.best, self.batch = best, event.batch.select(np.array([best.row]))
             self.stage, self.rollout, self.log_p = best.stage, best.rollout, best.log_p
 
+    def parts(self, problem) -> LogPParts | None:
+        """The most likely failure's log p split into the log-probability of its detections (nats, <= 0) and, where
+        the PEM mislocates, the log-density of its measurement errors (nats), recomputed under ``problem.target``
+        (:func:`pemviz.core.counterfactuals.failure_log_p_parts`); None before a failure."""
+        if self.batch is None:
+            return None
+        return LogPParts.of(self.batch, 0, problem.target)
+
     def why(self, problem) -> str | None:
         """The console's line saying which perception errors decided the most likely failure
         (:func:`pemviz.core.counterfactuals.counterfactuals`, replayed through ``problem``); None before a failure or
-        for rollouts without object rows. Where every failure drawn has probability 0 under the PEM (log p = -inf),
-        the line says so instead of calling one of them the most likely."""
+        for rollouts without object rows. It states the failure's log p as its two parts (:meth:`parts`): the
+        log-probability of its detections and, where the PEM mislocates, the log-density of its measurement errors,
+        e.g. ``why: the most likely failure (stage 5; log-probability of its detections -63.2 nats, log-density of
+        its measurement errors +12.4 nats): ...``. Where every failure drawn is impossible under the PEM (log p =
+        -inf), the line says so instead of calling one of them the most likely."""
         if self.batch is None or self.batch.objects is None:
             return None
         cf = counterfactuals(problem, self.batch, 0)
+        parts = self.parts(problem)
         if not np.isfinite(self.log_p):  # every failure drawn holds an event the PEM cannot produce
-            return (f"why: every failure drawn has probability 0 under the PEM (log p = -inf), so none is likely; "
-                    f"one of them (stage {self.stage}): {cf.summary()}")  # fmt: skip
-        return f"why: the most likely failure (stage {self.stage}, log p {self.log_p:.1f} nats): {cf.summary()}"
+            what = ("has probability 0 under the PEM (the log-probability of its detections is -inf)"
+                    if parts.errors is None else "is impossible under the PEM (the log-probability of its detections "
+                    "or the log-density of its measurement errors is -inf)")  # fmt: skip
+            head = f"why: every failure drawn {what}, so none is likely; one of them (stage {self.stage})"
+            return f"{head}: {cf.summary()}"
+        return f"why: the most likely failure (stage {self.stage}; {parts.words()}): {cf.summary()}"

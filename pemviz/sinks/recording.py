@@ -91,7 +91,7 @@ import numpy as np
 import rerun as rr
 
 import pemviz
-from pemviz.core.counterfactuals import LikelyFailure, most_likely_failure
+from pemviz.core.counterfactuals import LikelyFailure, LogPParts, most_likely_failure
 from pemviz.core.estimate import Reference, error_text, format_probability
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
@@ -175,7 +175,12 @@ class RerunSink(Sink):
         self.most_likely: RolloutsSampled | None = None
         """:attr:`likely` as an event of one rollout."""
         self.most_likely_log_p = -math.inf
-        """:attr:`likely`'s log p under the PEM (nats over T - 1 steps), -inf before a failure."""
+        """:attr:`likely`'s log p under the PEM (nats over T - 1 steps; the log-probability of its detections plus,
+        where the PEM mislocates, the log-density of its measurement errors), -inf before a failure."""
+        self.most_likely_parts: LogPParts | None = None
+        """:attr:`most_likely_log_p` split into the log-probability of the detections and the log-density of the
+        measurement errors (nats; :func:`pemviz.core.counterfactuals.failure_log_p_parts` under the event's target),
+        None before a failure or where they cannot be told apart (errors and no target)."""
         self.most_likely_detect: tuple[np.ndarray, np.ndarray] | None = None
         """Each object's p(detect) and q(detect) [T, M] along :attr:`most_likely` (several objects and an event that
         names its detectors; else None), read while the sampler that drew it was unchanged."""
@@ -351,14 +356,13 @@ class RerunSink(Sink):
         lines = [
             f"# {where}", "",
             f"## mu_hat = {format_probability(e.log_mu_hat, 4)}", "",
-            f"95 % interval **{e.interval_text()}**", "",
+            (f"95 % interval **{e.interval_text()}**" if e.interval_backed else f"**{e.bound_text()}**"), "",
             f"**{e.verdict}**: {e.reason}",
         ]  # fmt: skip
         exact = self.exact_log_p
         if exact is not None:
-            inside = "inside" if e.covers(exact) else "**outside**"
             lines += ["", f"exact answer **{format_probability(exact, 4)}**: {error_text(e.log_mu_hat, exact)}, "
-                          f"{inside} the interval"]  # fmt: skip
+                          f"{e.holds_text(exact, '**outside**')}"]  # fmt: skip
         elif self.reference is not None:
             lines += ["", self.reference.comparison(e, outside="**outside**")]
         if e.n_failures == 0:
@@ -446,8 +450,10 @@ class RerunSink(Sink):
             "khat": e.khat,
         }
         if math.isfinite(e.log10_mu_hat):
-            values["log10_mu_hat/ci_low"] = e.log_ci[0] / math.log(10.0)
-            values["log10_mu_hat/ci_high"] = e.log_ci[1] / math.log(10.0)
+            lo, hi = e.shown_log_ci  # a bound alone where the weights back no interval: no upper line then
+            values["log10_mu_hat/ci_low"] = lo / math.log(10.0)
+            if math.isfinite(hi):
+                values["log10_mu_hat/ci_high"] = hi / math.log(10.0)
         if self.exact_log_p is not None and math.isfinite(self.exact_log_p):
             values["log10_mu_hat/exact"] = self.exact_log_p / math.log(10.0)
         elif self.reference is not None:
@@ -515,6 +521,11 @@ class RerunSink(Sink):
             np.asarray(ev.log_weight)[i], index=ev.rollout_numbers[i],
         )  # fmt: skip
         self.most_likely_detect = object_detect_probabilities(ev.batch, likely.row, ev.sampler, ev.target)
+        target = ev.target if ev.target is not None else getattr(self.problem, "target", None)
+        try:
+            self.most_likely_parts = LogPParts.of(ev.batch, likely.row, target)
+        except ValueError:  # measurement errors and no target to tell their density from the detections
+            self.most_likely_parts = None
 
     def _log_rollouts(self, ev: RolloutsSampled) -> None:
         """The kept traces of a stage and its featured rollouts
@@ -540,7 +551,7 @@ class RerunSink(Sink):
         best = self.most_likely
         name = self.plan.label(best.stage, best.kind) if best is not None else ""
         log_explanation(self.stream, best, self.most_likely_log_p, self.n_failures_seen, self.view, name,
-                        self._indexes, object_detect=self.most_likely_detect)  # fmt: skip
+                        self._indexes, object_detect=self.most_likely_detect, parts=self.most_likely_parts)  # fmt: skip
 
     # -- final --------------------------------------------------------------------------------------
     def _final(self, ev: FinalEstimate) -> None:
@@ -556,8 +567,9 @@ class RerunSink(Sink):
                 n=e.n,
                 nll_mean=e.nll_mean,
                 ess=e.ess,
-                log_ci_low=e.log_ci[0],
-                log_ci_high=e.log_ci[1],
+                log_ci_low=e.shown_log_ci[0],
+                log_ci_high=e.shown_log_ci[1],
+                interval="95 % CI" if e.interval_backed else "95 % lower bound, no upper bound",
                 khat=e.khat,
                 verdict=e.verdict,
                 reason=e.reason,

@@ -44,11 +44,20 @@ def document_sha256(doc: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
+def _interval(ci: list[float | None]) -> str:
+    """``[1.2e-15, 2.6e-15]``, or with no upper end (the run's weights back no interval: its lower bound alone)
+    ``p >= 1.2e-15, no upper bound from this run``."""
+    if ci[1] is None and ci[0] is not None:
+        return f"p >= {_p(ci[0])}, no upper bound from this run"
+    return f"[{_p(ci[0])}, {_p(ci[1])}]"
+
+
 def _estimate_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
     e = doc["estimate"]
+    bound = e.get("interval") == "lower_bound95"
     rows = [
         ("failure probability p (mu_hat)", _p(e["p"])),
-        ("95 % interval", f"[{_p(e['ci95'][0])}, {_p(e['ci95'][1])}]"),
+        ("95 % lower bound (whatever the weights' tail)" if bound else "95 % interval", _interval(e["ci95"])),
         ("verdict", f"{e['verdict']}: {e['reason']}"),
         ("effective sample size (ESS)", _num(e["ess"])),
         ("Pareto k-hat", _num(e["k_hat"], ".2f")),
@@ -72,7 +81,7 @@ def _severity_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str, s
     out = []
     for pt in (doc.get("severity") or {}).get("points", []):
         exact = _p(pt["exact"]["p"]) if pt.get("exact") else "-"
-        out.append((pt["text"], _p(pt["p"]), f"[{_p(pt['ci95'][0])}, {_p(pt['ci95'][1])}]", _num(pt["ess"]),
+        out.append((pt["text"], _p(pt["p"]), _interval(pt["ci95"]), _num(pt["ess"]),
                     pt["verdict"], exact))  # fmt: skip
     return out
 
@@ -198,7 +207,9 @@ def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list
                          f"{100 * sum(g['share'] for g in rest):.3g} %"))  # fmt: skip
         top = failures["largest"][0] if failures.get("largest") else None
         largest = (f" The failure carrying the largest share: stage {top['stage']} rollout {top['rollout']}, "
-                   f"{100 * top['share']:.3g} % of p, log p {_num(top['log_p'], '.2f')} nats ({top['group']})."
+                   f"{100 * top['share']:.3g} % of p ({top['group']}), log-likelihood under the PEM before the "
+                   f"failure {_num(top['log_p'], '.2f')} nats (the log-probability of its detections plus, where the "
+                   "detector mislocates, the log-density of its measurement errors)."
                    if top else "")  # fmt: skip
         sections.append(("Failures by share of p", f"The {failures['n']:,} failures of the estimate in "
                          f"{len(failures['groups'])} groups by {failures['basis']}: each group's share of p (its "
@@ -224,8 +235,8 @@ def _title(doc: dict[str, Any]) -> str:
 
 def _headline(doc: dict[str, Any]) -> str:
     e = doc["estimate"]
-    return (f"p = {_p(e['p'])}, 95 % interval [{_p(e['ci95'][0])}, {_p(e['ci95'][1])}], ESS {_num(e['ess'])}: "
-            f"{e['verdict']}")  # fmt: skip
+    shown = _interval(e["ci95"]) if e.get("interval") == "lower_bound95" else f"95 % interval {_interval(e['ci95'])}"
+    return f"p = {_p(e['p'])}, {shown}, ESS {_num(e['ess'])}: {e['verdict']}"
 
 
 def report_html(doc: dict[str, Any]) -> str:

@@ -1,7 +1,9 @@
 """The recording's *Explain* tab: the most likely failure of a run, logged as entities under ``explain/``.
 
 The most likely failure is the failing rollout with the largest log p under the PEM (:meth:`RolloutBatch.log_likelihood
-<pemviz.scenarios.RolloutBatch.log_likelihood>`, T - 1 steps) among the rollouts the engine reported: the failure
+<pemviz.scenarios.RolloutBatch.log_likelihood>`, T - 1 steps: the log-probability of its detections plus, where the PEM
+mislocates, the log-density of its measurement errors, stated apart:
+:func:`pemviz.core.counterfactuals.failure_log_p_parts`) among the rollouts the engine reported: the failure
 the sampler found that the real detector is likeliest to produce, the "most likely failure" of adaptive stress
 testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020). For any problem it shows p(detect) of the PEM and
 q(detect) of the sampler along it and its misses (:func:`pemviz.core.proposal_view.prob_detect`); where the problem's
@@ -13,8 +15,10 @@ detection still saves it and replays of those counterfactuals), one paragraph in
 Entities (``step`` timeline unless static; ``<col>`` = the problem's first signal):
 
 - ``explain/summary``: Markdown (static): where the rollout comes from, its outcome and the drawing's lines.
-- ``explain/failure``: :class:`rerun.AnyValues` (static): stage, rollout, log p, robustness, misses, and the
-  drawing's properties of the failure (e.g. the outcome words, severity, minimal miss set, last saving step).
+- ``explain/failure``: :class:`rerun.AnyValues` (static): stage, rollout, log p and its parts
+  ``log_prob_detections`` (the log-probability of the detections, nats, <= 0) and, where the PEM mislocates,
+  ``log_density_errors`` (the log-density of the measurement errors, nats), robustness, misses, and the drawing's
+  properties of the failure (e.g. the outcome words, severity, minimal miss set, last saving step).
 - ``explain/detect/{pem,sampler}``: p(detect) and q(detect) at each step; ``explain/detect/misses``: markers below
   the curves at the misses.
 - ``explain/<col>/{recorded,thresholds,misses}``: the first signal, the problem's thresholds and the misses.
@@ -35,6 +39,7 @@ from typing import Any, Mapping
 import numpy as np
 import rerun as rr
 
+from pemviz.core.counterfactuals import LogPParts
 from pemviz.core.problems import ProblemView, object_scene
 from pemviz.core.proposal_view import prob_detect
 from pemviz.engine.events import RolloutsSampled
@@ -101,13 +106,15 @@ def log_explanation(
     stage_name: str,
     indexes: Indexes,
     object_detect: tuple[np.ndarray, np.ndarray] | None = None,
+    parts: LogPParts | None = None,
 ) -> Mapping[str, Any] | None:
     """Log the Explain tab's entities for ``failure``, a one-rollout event (its stage, number, batch row).
 
     Args:
         failure: the most likely failure as a batch of one rollout; None: the run found no failure (the summary
             says so and nothing else is logged).
-        log_p: its log p under the PEM over T - 1 steps (nats).
+        log_p: its log p under the PEM over T - 1 steps (nats): the log-probability of its detections plus, where
+            the PEM mislocates, the log-density of its measurement errors.
         n_failures: failing rollouts it was chosen among.
         view: the problem's view (signals, thresholds; its drawing object explains the failure).
         stage_name: the plan's name of its stage (``CE stage 4/10``).
@@ -115,6 +122,9 @@ def log_explanation(
         object_detect: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that drew
             the rollout, float64 [T, M] each (:func:`pemviz.core.proposal_view.object_detect_probabilities`), drawn in
             the object's row band; None: not drawn.
+        parts: ``log_p`` as its two parts (:func:`pemviz.core.counterfactuals.failure_log_p_parts`), stated apart
+            in the summary and the properties; None: the failure's own batch is split where it holds no measurement
+            errors, else only the sum is stated, named a log-likelihood.
     Returns:
         the drawing object's explanation of the rollout (:meth:`pemviz.sinks.drawing.RecordingDrawing.explanation`;
         None without one or without a failure).
@@ -163,16 +173,24 @@ def log_explanation(
     log_thresholds(s, view, trace.size, indexes, path=f"{E}/{col}/thresholds")
     _markers(s, f"{E}/{col}/misses", "miss", MISSED_RGBA, "cross", misses, trace[misses], indexes)
 
+    if parts is None and b.noise is None:  # detections only: log p is their log-probability
+        parts = LogPParts.of(b, 0, None)
     props: dict = dict(stage=stage, stage_name=stage_name, rollout=number, log_p=log_p,
                        log_weight=float(failure.log_weight[0]), robustness=float(failure.robustness[0]),
                        n_failures_compared=n_failures, misses=misses, n_steps=trace.size)  # fmt: skip
+    if parts is not None:
+        props["log_prob_detections"] = parts.detections
+        if parts.errors is not None:
+            props["log_density_errors"] = parts.errors
+    how = (parts.words(2) if parts is not None else f"log-likelihood {log_p:.2f} nats: the log-probability of its "
+           "detections plus the log-density of its measurement errors")  # fmt: skip
     thing = drawing.object_words if drawing is not None else "the object"
     missed = (f"The detector missed {thing} at {misses.size} of {trace.size} steps." if b.n_objects == 1 else
               f"The detector missed {int((~b.detected[0]).sum())} of {b.detected[0].size} object-steps of its "
               f"{b.n_objects} objects (those it cannot see included).")  # fmt: skip
     chosen = (
-        f"The failing rollout with the largest log p under the PEM ({log_p:.2f} nats over the first "
-        f"{trace.size - 1} steps) among the {n_failures:,} failing rollouts the run reported; robustness "
+        f"The failing rollout with the largest log p under the PEM ({how}, over the first {trace.size - 1} steps) "
+        f"among the {n_failures:,} failing rollouts the run reported; robustness "
         f"{float(failure.robustness[0]):.3g}, importance log-weight {float(failure.log_weight[0]):.2f} nats. "
         + missed
     )

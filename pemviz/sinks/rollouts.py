@@ -29,7 +29,8 @@ STAGES = ("used", "all")
 
 def _estimate_json(e: Any) -> dict[str, Any]:
     return {"log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n, "log_ci": list(e.log_ci), "ess": e.ess,
-            "khat": e.khat, "verdict": e.verdict, "reason": e.reason}  # fmt: skip
+            "khat": e.khat, "verdict": e.verdict, "reason": e.reason, "interval_backed": e.interval_backed,
+            "log_lower_bound": e.log_lower_bound}  # fmt: skip
 
 
 class RolloutSink(Sink):

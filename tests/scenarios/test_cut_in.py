@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pemviz.pem.encoding import encode_salient
-from pemviz.scenarios.cut_in import tracker
+from pemviz.stack import tracker
 from pemviz.scenarios.cut_in import (
     FAILURE_FORMULA,
     OBJECT_NAMES,

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.scenarios.cut_in import tracker
+from pemviz.stack import tracker
 from pemviz.scenarios.cut_in.scenario import (
     EGO_LANE,
     LANE_WIDTH_M,

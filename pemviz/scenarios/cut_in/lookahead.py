@@ -28,7 +28,7 @@ import numpy as np
 
 from pemviz.core import exact
 
-from pemviz.scenarios.cut_in import tracker
+from pemviz.stack import tracker
 from pemviz.scenarios.cut_in.batched import MAX_SPEED_MPS, BatchedCutIn, CutInBatchState, cached_trajectory
 from pemviz.scenarios.cut_in.committor import LMAX, Grid, LevelChain, continuous_level, g_bin, level
 from pemviz.scenarios.cut_in.highway import TrafficTrajectory

@@ -8,7 +8,7 @@ reacts to the ego, so their trajectories are one deterministic function of the p
 
 Each step the ego's camera perceives each object: detected or missed, and, when detected, measured with an error in
 range and lateral position (a perception error model, PEM, draws both). A constant-velocity Kalman tracker per
-object (:mod:`pemviz.scenarios.cut_in.tracker`) turns the measurements into estimates, and the ACC follows the nearest
+object (:mod:`pemviz.stack.tracker`) turns the measurements into estimates, and the ACC follows the nearest
 TRACKED vehicle whose ESTIMATED position is ahead in the ego's lane with highway-env's IDM acceleration
 (:func:`idm_acceleration`). A missed or laterally mislocated cut-in is therefore not followed, and the ego closes in.
 
@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pemviz.pem.encoding import INPUT_COLUMNS
-from pemviz.scenarios.cut_in.tracker import TrackerParams
+from pemviz.stack.tracker import TrackerParams
 
 LANE_WIDTH_M = 4.0
 """highway-env's ``StraightLane.DEFAULT_WIDTH`` (the lane width of ``straight_road_network``)."""

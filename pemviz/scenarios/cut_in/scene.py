@@ -37,8 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.pem.camera import KITTI_FOCAL_PX, KITTI_PRINCIPAL_POINT_PX, MIN_RANGE_M
-from pemviz.scenarios.cut_in import tracker
+from pemviz.pem.camera import MIN_RANGE_M
+from pemviz.stack import tracker
 from pemviz.scenarios.cut_in.scenario import (
     LANE_WIDTH_M,
     NO_VEHICLE_M,
@@ -48,17 +48,9 @@ from pemviz.scenarios.cut_in.scenario import (
     acc_control,
     safe_distance,
 )
-from pemviz.scenarios.cut_in.tracker import Tracks
+from pemviz.stack.camera import IMAGE_BOUNDS
+from pemviz.stack.tracker import Tracks
 
-KITTI_IMAGE_SIZE_PX = (1242, 375)
-"""Width and height of KITTI's camera-2 images, pixels (the KITTI object benchmark's left colour images)."""
-IMAGE_BOUNDS = (
-    -KITTI_PRINCIPAL_POINT_PX[0] / KITTI_FOCAL_PX,
-    (KITTI_IMAGE_SIZE_PX[0] - KITTI_PRINCIPAL_POINT_PX[0]) / KITTI_FOCAL_PX,
-    -KITTI_PRINCIPAL_POINT_PX[1] / KITTI_FOCAL_PX,
-    (KITTI_IMAGE_SIZE_PX[1] - KITTI_PRINCIPAL_POINT_PX[1]) / KITTI_FOCAL_PX,
-)
-"""The image's edges in normalised coordinates ``(u_left, u_right, v_top, v_bottom)`` = ``(pixel - c) / f``."""
 _MIN_DEPTH_M = 0.1
 """Corner depths are clamped to at least this before dividing (an object reaching behind the camera is largely
 truncated; it is not visible unless its centre is :data:`MIN_RANGE_M` ahead)."""
@@ -320,7 +312,7 @@ def scene_signals(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray, eg
 def decide(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, ego_speed_mps: np.ndarray, tracks: Tracks,
            detected: np.ndarray, noise: np.ndarray | None) -> tuple[Tracks, np.ndarray, np.ndarray]:  # fmt: skip
     """The ego's decision at this step: measure the detected visible objects (:func:`measure`), fold the measurements
-    into the tracks (:func:`pemviz.scenarios.cut_in.tracker.update`) and run the ACC on the tracks
+    into the tracks (:func:`pemviz.stack.tracker.update`) and run the ACC on the tracks
     (:func:`~pemviz.scenarios.cut_in.acc_control`) on the confirmed tracks.
 
     Args:

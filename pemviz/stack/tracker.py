@@ -1,4 +1,13 @@
-"""A constant-velocity Kalman tracker per object, for N rollouts x M objects at once, in numpy float64.
+"""A constant-velocity Kalman tracker per object, for N rollouts x M objects at once, in numpy float64: the tracking
+stage of a perception stack, for any scene (the Kalman filter: Kalman 1960, "A new approach to linear filtering and
+prediction problems", Trans. ASME, Journal of Basic Engineering 82(1), 35-45).
+
+Use: ``tracks = Tracks.empty((M, N))`` at the start; each step, with the step's detections and their measured
+positions in road coordinates, ``tracks = update(tracks, measured, z_x, z_y, range_m, prior_vx_mps, params)``, let
+the controller read ``tracks.x``, ``tracks.y``, ``tracks.vx``, ``tracks.vy`` where ``tracks.confirmed``, then
+``tracks = predict(tracks, dt_s, params)`` for the next step. :func:`pemviz.stack.camera.measure` gives the measured
+positions of objects seen by a camera and mislocated by the noise PEM's errors; the guide's page *A realistic
+perception stack* (``docs/realistic-stack.md``) writes a scene on it.
 
 Each object's track holds a constant-velocity (CV) state per road axis, ``(position, velocity)`` along x (the road)
 and y (across it), with a 2 x 2 covariance per axis. The axes are filtered independently: the motion model has no
@@ -24,7 +33,8 @@ block-diagonal covariance is exactly two 2-state filters. Per step:
   controller acts on confirmed tracks only (track confirmation, Blackman & Popoli 1999, *Design and Analysis of
   Modern Tracking Systems*, Artech House, Ch. 6), so one wild measurement cannot put a phantom in the ego's lane;
 - **start** (a detection of an object without a track): position = the measurement with variance ``r``, velocity =
-  a prior (the ego's own velocity: traffic moves with the ego) with variance ``sigma_v0^2``;
+  a prior (along the road the caller's ``prior_vx_mps``, e.g. the ego's own speed for traffic that moves with the
+  ego; across it 0) with variance ``sigma_v0^2``;
 - **drop** a track that went ``max_coast_steps`` predictions without an update (its prediction is no longer
   trusted; the next detection starts it again).
 
@@ -34,7 +44,7 @@ the controller that acts on them, and must give the same bits as the one-rollout
 simdkalman 1.0.4 vectorises many filters with stacked ``matmul`` and ``linalg.inv`` but measured 5.5 us per
 filter-step on 20,480 filters (this machine, 2026), about 100 times the budget of a rollout step. So the filter is
 written once here, as elementwise arithmetic on ``[N, M]`` arrays (the same code serves the one-rollout simulator
-with N = 1, so the two are step-identical), and ``tests/scenarios/test_cut_in_tracker.py`` checks it against
+with N = 1, so the two are step-identical), and ``tests/stack/test_tracker.py`` checks it against
 filterpy's ``KalmanFilter`` (4-state CV model) as the oracle.
 
 Units: metres, seconds, m/s; variances in m^2 and (m/s)^2.
@@ -181,7 +191,7 @@ def predict(tracks: Tracks, dt: float, params: TrackerParams) -> Tracks:
 
 
 def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarray, range_m: np.ndarray,
-           ego_speed_mps: np.ndarray, params: TrackerParams) -> Tracks:  # fmt: skip
+           prior_vx_mps: np.ndarray | float, params: TrackerParams) -> Tracks:  # fmt: skip
     """Fold in this step's position measurements: update the objects that have a track (measurements inside the gate),
     start one for the others.
 
@@ -192,8 +202,10 @@ def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarra
             measured entries are read).
         range_m: float64, the measured range along the camera axis (m), for the measurement variances
             (:meth:`TrackerParams.measurement_variances`).
-        ego_speed_mps: float64, broadcastable to the tracks (``[N]``): the ego's speed (m/s), the velocity prior of a
-            new track.
+        prior_vx_mps: float64, broadcastable to the tracks (``[N]``, or a number): the velocity along the road (m/s)
+            a new track starts with: the ego's speed for traffic that moves with the ego (cars ahead), 0 for
+            objects that stand or cross the road (pedestrians); its std is ``init_speed_std_x_mps``.
+        params: the noise model and track management (:class:`TrackerParams`).
     Returns:
         new :class:`Tracks`: objects whose measurement was accepted (now confirmed), or that start (or restart) a
         tentative track, have ``coast = 0``; a measurement outside the gate leaves its track as predicted.
@@ -212,7 +224,7 @@ def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarra
     coast = np.where(upd | new, 0, tracks.coast)
     if not new.any():  # starting no track: copying the start values where new would change nothing
         return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)
-    start_vx = np.where(tracks.active, tracks.vx, ego_speed_mps)  # a restart keeps its velocity estimate
+    start_vx = np.where(tracks.active, tracks.vx, prior_vx_mps)  # a restart keeps its velocity estimate
     start_vy = np.where(tracks.active, tracks.vy, 0.0)
     sx2, sy2 = params.init_speed_std_x_mps**2, params.init_speed_std_y_mps**2
     for field_value, start in ((x, z_x), (vx, start_vx), (pxx, r_x), (pxv, 0.0), (pvvx, sx2),

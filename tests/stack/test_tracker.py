@@ -1,5 +1,5 @@
-"""The cut-in scenario's constant-velocity tracker against filterpy's KalmanFilter (the oracle), and its gate and
-track management on hand-made cases."""
+"""The library's constant-velocity tracker (pemviz.stack.tracker) against filterpy's KalmanFilter (the oracle), and
+its gate and track management on hand-made cases."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
 from scipy.linalg import block_diag
 
-from pemviz.scenarios.cut_in import tracker
-from pemviz.scenarios.cut_in.tracker import TrackerParams, Tracks
+from pemviz.stack import tracker
+from pemviz.stack.tracker import TrackerParams, Tracks
 
 DT = 0.1
 

@@ -1,0 +1,193 @@
+"""The camera stage of a perception stack, for any scene: what a KITTI-like pinhole camera sees of an object (its 11
+salient variables, the detection PEM's and noise PEM's inputs) and where it measures a detected object, given the
+noise PEM's errors. Every function is elementwise over arrays of one shape (e.g. ``[M, N]``: M objects, N rollouts).
+
+The camera (pinhole, KITTI's camera 2: :data:`pemviz.pem.camera.KITTI_FOCAL_PX`, its principal point and the
+:data:`KITTI_IMAGE_SIZE_PX` image) looks along the road from ``camera_height_m`` above it; its frame is KITTI's
+(Geiger et al. 2013, "Vision meets robotics: the KITTI dataset", IJRR 32(11)): x to the right, y down, z forward.
+An object is an upright box (:class:`ObjectKind`) standing on the road, at ``(loc_x_m, loc_z_m)`` (its centre in the
+ground plane), turned by ``rot_y_rad`` about the camera's y axis (KITTI's rotation_y: 0 faces the camera's x axis,
+the right; -pi/2 faces forward). From the box:
+
+- **truncation** (KITTI's sense: the share of the object outside the image): ``1 - area(box & image) / area(box)``,
+  the 2D box being the box around the projections ``u = X / Z``, ``v = Y / Z`` of its ground-plane footprint's
+  axis-aligned bounding box, raised to the object's height (KITTI, eq. 5);
+- **occlusion**: KITTI's level (0 fully visible, 1 partly, 2 largely occluded) is the caller's (default 0): this
+  module computes no occlusion between objects (a scene whose objects hide each other computes it, as the cut-in's
+  does);
+- **visible**: the centre at least :data:`pemviz.pem.camera.MIN_RANGE_M` ahead and some of the box inside the image.
+
+A detected object is **measured** (:func:`measure`) at its true position moved by the noise PEM's range error along
+the camera ray and its lateral error across it, as a pinhole camera reads a box whose height is off (the range,
+bearing kept) and whose centre is off (the bearing): ``Z_m = Z + dZ``, ``X_m = (X + dX) Z_m / Z``
+(:mod:`pemviz.pem.camera`: ``dZ`` along the optical axis, ``dX`` back-projected at the true range).
+
+Units: metres, radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pemviz.pem.camera import KITTI_FOCAL_PX, KITTI_PRINCIPAL_POINT_PX, MIN_RANGE_M
+from pemviz.pem.encoding import INPUT_COLUMNS
+
+KITTI_IMAGE_SIZE_PX = (1242, 375)
+"""Width and height of KITTI's camera-2 images, pixels (the KITTI object benchmark's left colour images)."""
+IMAGE_BOUNDS = (
+    -KITTI_PRINCIPAL_POINT_PX[0] / KITTI_FOCAL_PX,
+    (KITTI_IMAGE_SIZE_PX[0] - KITTI_PRINCIPAL_POINT_PX[0]) / KITTI_FOCAL_PX,
+    -KITTI_PRINCIPAL_POINT_PX[1] / KITTI_FOCAL_PX,
+    (KITTI_IMAGE_SIZE_PX[1] - KITTI_PRINCIPAL_POINT_PX[1]) / KITTI_FOCAL_PX,
+)
+"""The image's edges in normalised coordinates ``(u_left, u_right, v_top, v_bottom)`` = ``(pixel - c) / f``."""
+
+SALIENT_NAMES: tuple[str, ...] = tuple(INPUT_COLUMNS)
+"""The 11 salient variables a row of :func:`salient_rows` holds, in the PEMs' raw-input order
+(:data:`pemviz.pem.encoding.INPUT_COLUMNS`); the dimension columns hold (height, width, length), KITTI's label order."""
+
+KITTI_CLASSES = {"car": 0, "van": 1, "truck": 2, "pedestrian": 3, "person_sitting": 4, "cyclist": 5, "tram": 6}
+"""KITTI's object classes as the PEMs index them (:data:`pemviz.pem.encoding.N_CLASSES`; Misc left out)."""
+
+_MIN_DEPTH_M = 0.1
+"""Corner depths are clamped to at least this before dividing (an object reaching behind the camera is largely
+truncated; it is not visible unless its centre is :data:`MIN_RANGE_M` ahead)."""
+
+
+@dataclass(frozen=True)
+class ObjectKind:
+    """What kind of object the camera sees: its KITTI class and box (metres).
+
+    Attributes:
+        kitti_class: a key of :data:`KITTI_CLASSES` (``pedestrian``, ``car``, ``cyclist`` ...).
+        height_m, width_m, length_m: the box (KITTI's h, w, l; e.g. a pedestrian 1.75, 0.6, 0.8).
+
+    Raises:
+        ValueError: an unknown class, or a dimension not in (0, 30] m.
+    """
+
+    kitti_class: str
+    height_m: float
+    width_m: float
+    length_m: float
+
+    def __post_init__(self) -> None:
+        if self.kitti_class not in KITTI_CLASSES:
+            raise ValueError(f"ObjectKind: kitti_class must be one of {', '.join(KITTI_CLASSES)}, got "
+                             f"{self.kitti_class!r}")  # fmt: skip
+        if not all(0.0 < d <= 30.0 for d in (self.height_m, self.width_m, self.length_m)):
+            raise ValueError(f"ObjectKind: height_m, width_m and length_m must be in (0, 30] m, got {self}")
+
+    @property
+    def class_index(self) -> int:
+        """The class's index in the PEMs' one-hot encoding."""
+        return KITTI_CLASSES[self.kitti_class]
+
+
+PEDESTRIAN = ObjectKind("pedestrian", 1.75, 0.6, 0.8)
+"""An adult pedestrian: about KITTI's mean pedestrian box (h 1.76, w 0.66, l 0.84 m)."""
+CAR = ObjectKind("car", 1.5, 1.7, 4.2)
+"""A passenger car."""
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """What the camera sees of each object: float64 arrays of the objects' shape.
+
+    Attributes:
+        salient: ``[..., 11]``, the salient variables (:data:`SALIENT_NAMES`): a PEM's raw inputs.
+        range_m: the ground-plane distance from the camera to the object's centre, ``sqrt(loc_x^2 + loc_z^2)``.
+        truncation: the share of the 2D box outside the image, in [0, 1].
+        visible: bool, whether the camera can see it at all (a PEM detector should never detect an object that is
+            not: :func:`pemviz.stack.detector.camera_detector` gives it logit -inf).
+    """
+
+    salient: np.ndarray
+    range_m: np.ndarray
+    truncation: np.ndarray
+    visible: np.ndarray
+
+
+def view(kind: ObjectKind, loc_x_m: np.ndarray, loc_z_m: np.ndarray, rot_y_rad: np.ndarray | float,
+         camera_height_m: float = 1.65, occlusion: np.ndarray | float = 0.0) -> CameraView:  # fmt: skip
+    """The camera's view of objects of one kind (module docstring).
+
+    Args:
+        kind: the objects' class and box.
+        loc_x_m, loc_z_m: the objects' centres in the camera frame, to the right and forward (m), one shape.
+        rot_y_rad: KITTI's rotation_y (radians; 0: facing the camera's right, pi: its left, -pi/2: forward),
+            broadcastable to them.
+        camera_height_m: the camera above the road (m; KITTI's is 1.65): the salient ``loc_y``, the box's bottom.
+        occlusion: KITTI's occlusion level (0, 1 or 2), broadcastable.
+    Returns:
+        :class:`CameraView`.
+    Raises:
+        ValueError: ``camera_height_m`` not in (0, 10] m.
+    """
+    if not 0.0 < camera_height_m <= 10.0:
+        raise ValueError(f"view: camera_height_m must be in (0, 10] m, got {camera_height_m}")
+    x = np.asarray(loc_x_m, dtype=np.float64)
+    z = np.asarray(loc_z_m, dtype=np.float64)
+    rot = np.broadcast_to(np.asarray(rot_y_rad, dtype=np.float64), x.shape)
+    c, s = np.abs(np.cos(rot)), np.abs(np.sin(rot))
+    half_x = 0.5 * (c * kind.length_m + s * kind.width_m)  # the footprint's axis-aligned half extents (camera x, z)
+    half_z = 0.5 * (s * kind.length_m + c * kind.width_m)
+    z_near = np.maximum(z - half_z, _MIN_DEPTH_M)
+    z_far = np.maximum(z + half_z, _MIN_DEPTH_M)
+    x_lo, x_hi = x - half_x, x + half_x
+    u_hi = np.maximum(x_hi / z_near, x_hi / z_far)
+    u_lo = np.minimum(x_lo / z_near, x_lo / z_far)
+    v_top = (camera_height_m - kind.height_m) / np.where(kind.height_m > camera_height_m, z_near, z_far)
+    v_bot = camera_height_m / z_near
+    left, right, top, bottom = IMAGE_BOUNDS
+    area = (u_hi - u_lo) * (v_bot - v_top)
+    inside = (np.maximum(np.minimum(u_hi, right) - np.maximum(u_lo, left), 0.0)
+              * np.maximum(np.minimum(v_bot, bottom) - np.maximum(v_top, top), 0.0))  # fmt: skip
+    truncation = 1.0 - inside / area
+    salient = np.empty(x.shape + (len(SALIENT_NAMES),))
+    salient[..., 0] = kind.class_index
+    salient[..., 1] = truncation
+    salient[..., 2] = occlusion
+    alpha = rot - np.arctan2(x, z)  # KITTI's observation angle: rotation_y minus the ray's angle, in [-pi, pi)
+    salient[..., 3] = np.mod(alpha + np.pi, 2.0 * np.pi) - np.pi
+    salient[..., 4] = kind.height_m
+    salient[..., 5] = kind.width_m
+    salient[..., 6] = kind.length_m
+    salient[..., 7] = x
+    salient[..., 8] = camera_height_m  # the box's bottom centre on the road, below the camera
+    salient[..., 9] = z
+    salient[..., 10] = rot
+    visible = (z >= MIN_RANGE_M) & (inside > 0.0)
+    return CameraView(salient, np.sqrt(x * x + z * z), truncation, visible)
+
+
+def measure(loc_x_m: np.ndarray, loc_z_m: np.ndarray, noise: np.ndarray | None,
+            measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Where the camera measures the objects (module docstring): ``Z_m = Z + dZ``, ``X_m = (X + dX) Z_m / Z``.
+
+    Args:
+        loc_x_m, loc_z_m: the true centres in the camera frame (m), one shape ``S``.
+        noise: float64 ``S + [2]``, each object's (range error, lateral error) in metres as the noise PEM draws them
+            (:data:`pemviz.stack.detector.NOISE_NAMES`), read only where ``measured``; None: exact measurements.
+        measured: bool ``S``, the objects detected (and visible).
+    Returns:
+        ``(x_m, z_m)``: the measured centre to the right and the measured range forward (m, at least
+        :data:`MIN_RANGE_M`: the pinhole reads no range behind the camera); the true values where not measured, so
+        that every entry is finite.
+    Raises:
+        ValueError: ``noise`` not of shape ``S + [2]``.
+    """
+    x = np.asarray(loc_x_m, dtype=np.float64)
+    z_true = np.maximum(np.asarray(loc_z_m, dtype=np.float64), MIN_RANGE_M)
+    if noise is None:
+        return x + 0.0, z_true
+    noise = np.asarray(noise, dtype=np.float64)
+    if noise.shape != x.shape + (2,):
+        raise ValueError(f"measure: noise must be float64 {list(x.shape) + [2]} (range, lateral error; metres), got "
+                         f"shape {noise.shape}")  # fmt: skip
+    d_range = np.where(measured, noise[..., 0], 0.0)
+    d_lat = np.where(measured, noise[..., 1], 0.0)
+    z_meas = np.maximum(z_true + d_range, MIN_RANGE_M)
+    return (x + d_lat) * (z_meas / z_true), z_meas
