@@ -21,10 +21,38 @@ from pemviz.commands import COMMANDS, Terminated, UsageError
 
 class OneLineParser(argparse.ArgumentParser):
     """An argument parser whose errors are one line, ``pemviz run: error: argument --k: 'abc' is not a number; ...``,
-    exit status 2, without the usage block argparse prints before it (``--help`` still shows the usage)."""
+    exit status 2, without the usage block argparse prints before it (``--help`` still shows the usage); an unknown
+    flag is followed by the nearest known one (``unrecognized arguments: --rel-eror 0.1; --rel-eror: did you mean
+    --rel-error?``)."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        self.exit(2, f"{self.prog}: error: {message}{self._nearest(message)}\n")
+
+    def _flags(self) -> set[str]:
+        """Every long flag of this parser and of its commands' parsers."""
+        flags: set[str] = set()
+        for action in self._actions:
+            flags.update(s for s in action.option_strings if s.startswith("--"))
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    flags |= sub._flags() if isinstance(sub, OneLineParser) else set()
+        return flags
+
+    def _nearest(self, message: str) -> str:
+        """``; --rel-eror: did you mean --rel-error?`` for each unknown flag of an ``unrecognized arguments`` message
+        with a known flag close to it (:func:`difflib.get_close_matches`); ``""`` otherwise."""
+        if not message.startswith("unrecognized arguments:"):
+            return ""
+        import difflib
+
+        known = sorted(self._flags())
+        hints = []
+        for word in message.split(":", 1)[1].split():
+            flag = word.split("=", 1)[0]
+            close = difflib.get_close_matches(flag, known, n=1, cutoff=0.75) if flag.startswith("--") else []
+            if close:
+                hints.append(f"{flag}: did you mean {close[0]}?")
+        return "".join(f"; {h}" for h in hints)
 
 
 def build_parser(command: str | None = None, *, full: bool = True) -> argparse.ArgumentParser:

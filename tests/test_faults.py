@@ -320,9 +320,10 @@ def test_sidecar_that_is_not_a_json_object_is_one_error(tmp_path, body):
 def test_sidecar_of_another_table_is_reported_as_an_incomplete_unit(tmp_path):
     """Killed between the Parquet and its sidecar: the new table beside the old sidecar is detected."""
     write_unit(tmp_path / "x.parquet", seed=0)
-    old_side = (tmp_path / "x.json").read_bytes()
+    side = rollout_format.sidecar_path(tmp_path / "x.parquet")  # x.rollouts.json
+    old_side = side.read_bytes()
     write_unit(tmp_path / "x.parquet", seed=1)
-    (tmp_path / "x.json").write_bytes(old_side)
+    side.write_bytes(old_side)
     assert unit_state(tmp_path / "x.parquet") == "incomplete"
 
 
@@ -362,20 +363,21 @@ def test_cli_existing_save_is_refused_without_overwrite(tmp_path, capsys, comman
 
 
 def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, capsys):
-    (tmp_path / "x.json").write_text('{"mine": true}')
+    (tmp_path / "x.rollouts.json").write_text('{"mine": true}')
     code, err = cli_line(capsys, *SMALL_RUN, "--no-record", "--save-rollouts", str(tmp_path / "x.parquet"),
                          "--overwrite")  # fmt: skip
-    assert code == 2 and "x.json: exists and is not a file pemviz wrote; not replacing it" in err
+    assert code == 2 and "x.rollouts.json: exists and is not a file pemviz wrote; not replacing it" in err
     (tmp_path / "other.rrd").write_text("not a recording")
     code, err = cli_line(capsys, *SMALL_RUN, "--save", str(tmp_path / "other.rrd"), "--overwrite")
     assert code == 2 and "other.rrd: exists and is not a .rrd file pemviz wrote" in err
-    assert (tmp_path / "x.json").read_text() == '{"mine": true}'
+    assert (tmp_path / "x.rollouts.json").read_text() == '{"mine": true}'
 
 
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["run", "--save-rollouts", "{tmp}/X.parquet", "--no-record"], "X.json: exists and is not a regular file"),
+        (["run", "--save-rollouts", "{tmp}/X.parquet", "--no-record"],
+         "X.rollouts.json: exists and is not a regular file"),
         (["run", "--save", "{tmp}/" + "a" * 240 + ".rrd"], "file name too long (244 bytes; at most 241 here)"),
         (["run", "--save-rollouts", "{tmp}/" + "b" * 232 + ".parquet", "--no-record"], "file name too long"),
         (["pem", "eval", "--out", "{tmp}", "--save", "/proc/x.rrd"], "--save /proc/x.rrd: folder /proc is not writable"),
@@ -416,7 +418,7 @@ def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, 
          "report-not-json"],
 )  # fmt: skip
 def test_cli_bad_output_or_resource_is_one_line_before_any_work(tmp_path, capsys, args, message):
-    (tmp_path / "X.json").mkdir()
+    (tmp_path / "X.rollouts.json").mkdir()
     (tmp_path / "file.txt").write_text("x")
     for name in ("run.rrd", "renamed.parquet"):  # what a rerun recording starts with
         (tmp_path / name).write_bytes(b"RRF2\x00\x29\x00\x00")
@@ -483,3 +485,15 @@ def test_writer_interrupt_inside_a_write_removes_the_temp_file_and_keeps_the_old
     with pytest.raises(KeyboardInterrupt):
         atomic_write(target, write)
     assert target.read_bytes() == b"old" and leftovers(tmp_path) == []
+
+
+def test_a_rollout_sidecar_has_a_name_of_its_own_and_an_old_one_still_reads(tmp_path):
+    # r.parquet's sidecar is r.rollouts.json, so `--json r.json` (the README's name for a result) no longer collides
+    assert rollout_format.sidecar_path(tmp_path / "r.parquet") == tmp_path / "r.rollouts.json"
+    write_unit(tmp_path / "r.parquet", seed=0)
+    new = json.loads((tmp_path / "r.rollouts.json").read_text())
+    assert not (tmp_path / "r.json").exists() and rollout_format.read_sidecar(tmp_path / "r.parquet").formula
+    # a file written before: its sidecar r.json beside it reads the same
+    (tmp_path / "r.rollouts.json").rename(tmp_path / "r.json")
+    assert rollout_format.existing_sidecar(tmp_path / "r.parquet") == tmp_path / "r.json"
+    assert rollout_format.read_sidecar(tmp_path / "r.parquet").formula == new["formula"]

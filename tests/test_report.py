@@ -180,3 +180,48 @@ def test_the_report_shows_the_failures_severity_by_share_as_the_console_printed_
     text = page.with_suffix(".md").read_text()
     assert "## Severity of the failures" in text and "| impact speed | failures | share of p |" in text
     assert f"median min {sev['label']}: {sev['median_min_distance']:.2f} m" in text
+
+
+@pytest.mark.parametrize("uncertainty", [True, False], ids=["pem-uncertainty", "no-spread"])
+def test_the_report_says_what_its_number_rests_on(tmp_path, uncertainty):
+    """`pemviz run [--pem-uncertainty] --report r.html`: a section with the PEM's sha256, the members' median and
+    90 % range as the console printed them (or that the spread was not computed, and how), the verdict's checks and
+    the limits; checked in headless Chromium. The headline puts the verdict and the spread side by side."""
+    sync_api = pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
+    if not os.path.exists(CHROMIUM):
+        pytest.skip("Debian's chromium is not installed (apt-get install chromium)")
+    page, result = tmp_path / "r.html", tmp_path / "r.json"
+    out = io.StringIO()
+    flags = ["--pem-uncertainty"] if uncertainty else []
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["run", "--no-record", *flags, "--json", str(result), "--report", str(page)]) == 0
+    doc = json.loads(result.read_text())
+    jsonschema = pytest.importorskip("jsonschema")
+    from test_requirement import schema
+
+    jsonschema.validate(doc, schema())  # the docs' schema, pem_spread included
+    sha = next(i["sha256"] for i in doc["inputs"] if i["what"] == "detection PEM")
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        tab = browser.new_context(offline=True).new_page()
+        tab.goto(page.as_uri())
+        tab.get_by_role("heading", name="What this number rests on").wait_for()
+        body = tab.inner_text("body")
+        headline = tab.inner_text(".headline")
+        if uncertainty:
+            tab.screenshot(path=str(tmp_path / "rests_on.png"), full_page=True)
+        browser.close()
+    assert sha in body and "false positives are not modelled" in body and "check: Pareto k-hat" in body
+    if uncertainty:
+        # the console's own line: "members: median 2.856e-15, 90 % of them in [3.549e-19, 6.182e-12] (x...)"
+        line = next(ln for ln in out.getvalue().splitlines() if "members: median" in ln)
+        median, lo, hi = re.search(r"median (\S+), 90 % of them in \[(\S+), (\S+)\]", line).groups()
+        members = doc["pem_spread"]["members"]
+        assert float(median) == pytest.approx(members["median"]["p"], rel=2e-3)
+        assert float(lo) == pytest.approx(members["range90"][0]["p"], rel=2e-3)
+        assert float(hi) == pytest.approx(members["range90"][1]["p"], rel=2e-3)
+        assert "ensemble members: median" in body and "under the PEM's uncertainty" in headline
+        assert doc["estimate"]["verdict"] in headline
+    else:
+        assert doc["pem_spread"] is None and "not computed for this run" in body and "--pem-uncertainty" in body
+        assert "under the PEM's uncertainty" not in headline

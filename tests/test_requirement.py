@@ -193,7 +193,8 @@ def test_a_close_threshold_is_undecided_at_a_cap_and_the_junit_file_says_so(tmp_
     (["--require", "p < 1e-9", "--method", "ams"], "adaptive multilevel splitting has no final batch"),
     (["--junit", "x.xml"], "--junit writes a requirement as a test case: give one with --require"),
     (["--json", "x.txt"], "--json"),
-    (["--save-rollouts", "b.parquet", "--json", "b.json"], "--json and --save-rollouts (its sidecar) both write b.json"),
+    (["--save-rollouts", "b.parquet", "--json", "b.rollouts.json"],
+     "--json and --save-rollouts (its sidecar) both write b.rollouts.json"),
     (["--save", "r.rrd", "--json", "r.result.json"], "--json and --save (its result document) both write"),
 ])  # fmt: skip
 def test_bad_requirement_flags_are_one_line(tmp_path, args, message):
@@ -213,12 +214,13 @@ def test_distinct_outputs_pass_and_a_clash_names_both_flags(tmp_path):
 
     sink = argparse.Namespace(path=tmp_path / "b.parquet")
     files = (tmp_path / "r.json", tmp_path / "r.xml", tmp_path / "r.html")
-    distinct_outputs(argparse.Namespace(), tmp_path / "r.rrd", sink, files)  # r.result.json, b.json, r.md: all apart
+    distinct_outputs(argparse.Namespace(), tmp_path / "r.rrd", sink, files)  # r.result.json, b.rollouts.json, r.md
+    distinct_outputs(argparse.Namespace(), None, sink, (tmp_path / "b.json", None, None))  # --json b.json: its own
     with pytest.raises(UsageError, match=r"--json and --save \(its result document\) both write .*r.result.json"):
         distinct_outputs(argparse.Namespace(), tmp_path / "r.rrd", None, (tmp_path / "r.result.json", None, None))
     with pytest.raises(UsageError, match=r"--json and --save-rollouts \(its sidecar\) both write"):
         distinct_outputs(argparse.Namespace(), None, argparse.Namespace(path=tmp_path / "x" / ".." / "b.parquet"),
-                         (tmp_path / "b.json", None, None))  # fmt: skip
+                         (tmp_path / "b.rollouts.json", None, None))  # fmt: skip
 
 
 def test_the_ci_page_s_job_runs_as_written(tmp_path):

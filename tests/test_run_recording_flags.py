@@ -117,7 +117,7 @@ def test_default_recording_name_says_what_ran_and_every_written_file_is_printed(
     printed = {line.split(": ", 1)[1] for line in proc.stderr.splitlines()
                if line.startswith(("recording: ", "rollouts: ", "result: "))}  # fmt: skip
     beside = "recordings/" + rrd.name.removesuffix(".rrd") + ".result.json"  # the run's result document
-    assert printed == {"recordings/" + rrd.name, beside, "r.parquet", "r.json", "r.proposal.pt"}
+    assert printed == {"recordings/" + rrd.name, beside, "r.parquet", "r.rollouts.json", "r.proposal.pt"}
     written = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file()}
     assert written == printed
 

@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its "
         "JSON sidecar (format: pemviz.io.rollout_format), and a rerun recording of it.",
     )
-    p.add_argument("rollouts", metavar="ROLLOUTS.parquet", help="rollout file (its sidecar ROLLOUTS.json beside it)")
+    p.add_argument("rollouts", metavar="ROLLOUTS.parquet",
+                   help="rollout file (its sidecar ROLLOUTS.rollouts.json, or ROLLOUTS.json, beside it)")
     lp = p.add_mutually_exclusive_group()
     lp.add_argument("--pem", default=None, metavar="NAME|PATH",
                     help=f"recompute log p from this PEM, {SETTINGS['pem'].allowed} (default: the log_p column, else "

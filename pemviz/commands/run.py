@@ -6,6 +6,7 @@ import argparse
 import importlib.util
 import json
 import os
+import shlex
 import socket
 import sys
 from datetime import datetime
@@ -291,7 +292,8 @@ def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path 
 def distinct_outputs(args: argparse.Namespace, save_path: Path | None, rollout_sink: Any,
                      result_files: tuple[Path | None, Path | None, Path | None]) -> None:  # fmt: skip
     """Refuse, before any work, two outputs of one run that name the same file (e.g. ``--save-rollouts b.parquet``,
-    whose sidecar is ``b.json``, with ``--json b.json``): the second would replace the first at the end of the run.
+    whose sidecar is ``b.rollouts.json``, with ``--json b.rollouts.json``): the second would replace the first at the
+    end of the run.
 
     Raises:
         UsageError: naming both flags and the file.
@@ -359,7 +361,7 @@ def result_lines(cfg: ExperimentConfig, problem, final, why: str | None = None, 
     lines = final_lines(final, cfg, problem.exact_log_p, problem.reference,
                         severity) + ([why] if why is not None else [])  # fmt: skip
     doc = result_document(cfg, final, exact_log_p=problem.exact_log_p, reference=problem.reference,
-                          recording=None, command=" ".join(["pemviz", *sys.argv[1:]]), problem=problem,
+                          recording=None, command=shlex.join(["pemviz", *sys.argv[1:]]), problem=problem,
                           console=lines, inputs=input_files(cfg),
                           failures=failures)  # fmt: skip
     return lines, doc

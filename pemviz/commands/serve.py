@@ -63,6 +63,10 @@ def main(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port {args.port} is invalid: use 0..65535")
     pem = pem_argument(args.pem)
+    if pem is not None:  # read it now, as pemviz run does: a bad file is refused before the panel serves
+        from pemviz.pem import load_pem
+
+        load_pem(pem)
     if not check_host(args.host):
         print(f"pemviz serve: warning: --host {args.host!r} is reachable from other machines and the panel has no "
               "authentication: anyone who reaches it can run experiments and write recordings", file=sys.stderr)

@@ -94,7 +94,9 @@ def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Excep
 
             payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for damaged files
-        raise error(f"{path}: not a readable {what} file ({exc})") from None
+        size = path.stat().st_size if path.is_file() else None
+        why = "it is empty" if size == 0 else str(exc).strip() or "not written by torch.save, or damaged"
+        raise error(f"{path}: not a readable {what} file ({why})") from None
     if not isinstance(payload, dict) or payload.get("format") != tag:
         raise error(f"{path}: not a pemviz {what} file (missing format tag {tag!r})")
     if payload.get("version") != version:

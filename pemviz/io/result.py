@@ -112,6 +112,7 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
         doc["inputs"] = list(inputs)
     if failures is not None:
         doc["failures"] = _plain(failures)
+    doc["pem_spread"] = _pem_spread(getattr(final, "pem_spread", None))
     curve = getattr(final, "severity", None)
     if curve is not None:
         doc["severity"] = {
@@ -135,6 +136,22 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
             "ci": [_probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in d.log_ci], "why": d.why,
         }  # fmt: skip
     return doc
+
+
+def _pem_spread(spread: Any) -> dict[str, Any] | None:
+    """p under the PEM's own uncertainty (:class:`pemviz.core.reweight.PemSpread`) for the result document: the
+    members' count, median and 90 % range (5th to 95th percentile) of p, and each logit shift's p; None where the run
+    did not compute it (no ``--pem-uncertainty``)."""
+    if spread is None:
+        return None
+    out: dict[str, Any] = {"source": spread.source, "members": None, "shifts": []}
+    if spread.members:
+        med, lo, hi = spread.spread()
+        out["members"] = {"n": len(spread.members), "median": _probability(med), "range90": [_probability(lo),
+                          _probability(hi)]}  # fmt: skip
+    out["shifts"] = [{"label": a.label, **_probability(a.estimate.log_mu_hat), "verdict": a.estimate.verdict}
+                     for a in spread.shifts]  # fmt: skip
+    return out
 
 
 RESULT_BESIDE_SUFFIX = ".result.json"

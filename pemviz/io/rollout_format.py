@@ -47,7 +47,8 @@ densities, which may be positive). ``log_p`` may also be -inf: an action the PEM
 its rollout importance weight 0; ``log_q`` stays finite (a proposal drew each action, so q > 0). Other columns are
 ignored.
 
-``NAME.json`` (the sidecar, same name with suffix ``.json``), a JSON object:
+``NAME.rollouts.json`` (the sidecar, same name with suffix ``.rollouts.json``; a file written before it had that name
+reads back from ``NAME.json``), a JSON object:
 
 - ``formula`` (required): the safety spec in STL, e.g. ``"G[0,99](d >= 2)"``; failure = classic
   robustness < 0 (Innes & Ramamoorthy 2022).
@@ -435,9 +436,21 @@ def problem_meta(problem: Any, formula: str | None = None, *, pem: str | None = 
                        pem=pem, proposal=proposal, provenance=dict(provenance or {}), **window)  # fmt: skip
 
 
+SIDECAR_SUFFIX = ".rollouts.json"
+"""A rollout file's sidecar is ``NAME.rollouts.json`` beside ``NAME.parquet``: a name no other output suggests (a run's
+result document is what ``--json NAME.json`` names). Files written before read back from ``NAME.json`` too."""
+
+
 def sidecar_path(path: str | os.PathLike[str]) -> Path:
-    """``NAME.parquet`` -> ``NAME.json``."""
-    return Path(path).with_suffix(".json")
+    """``NAME.parquet`` -> ``NAME.rollouts.json``, the sidecar a rollout file is written with."""
+    return Path(path).with_suffix(SIDECAR_SUFFIX)
+
+
+def existing_sidecar(path: str | os.PathLike[str]) -> Path:
+    """The sidecar of the rollout file ``path`` that is read: ``NAME.rollouts.json``, or where only that exists the
+    ``NAME.json`` of a file written before the sidecar had its own name (:data:`SIDECAR_SUFFIX`)."""
+    side, legacy = sidecar_path(path), Path(path).with_suffix(".json")
+    return legacy if not side.is_file() and legacy.is_file() else side
 
 
 def _plain(value: Any) -> Any:
@@ -487,15 +500,17 @@ def check_stage_counts(meta: RolloutMeta, counts: Mapping[int, list[int]], error
 
 
 def read_sidecar(path: str | os.PathLike[str]) -> RolloutMeta:
-    """The sidecar of the rollout file ``path`` (``NAME.json`` beside ``NAME.parquet``).
+    """The sidecar of the rollout file ``path`` (``NAME.rollouts.json`` beside ``NAME.parquet``, or ``NAME.json``:
+    :func:`existing_sidecar`).
 
     Raises:
         RolloutFormatError: no sidecar, not JSON, or an invalid field.
     """
-    side = sidecar_path(path)
+    side = existing_sidecar(path)
     if not side.is_file():
         raise RolloutFormatError(
-            f"{side}: sidecar not found; a rollout file NAME.parquet needs NAME.json with at least "
+            f"{side}: sidecar not found; a rollout file NAME.parquet needs NAME.rollouts.json (or NAME.json) with at "
+            "least "
             f'{{"formula": "G[0,99](d >= 2)", "dt_s": 0.05}} (see pemviz.io.rollout_format)'
         )
     try:

@@ -1,6 +1,6 @@
-"""Rollout files written: one unit (``NAME.parquet``, its sidecar ``NAME.json``, optionally the proposal checkpoint
-``NAME.proposal.pt``) chunk by chunk (:class:`RolloutWriter`) or at once (:func:`write_rollouts`), the table of a
-batch (:func:`rollouts_table`) and the check of a path before any work (:func:`check_rollouts_path`).
+"""Rollout files written: one unit (``NAME.parquet``, its sidecar ``NAME.rollouts.json``, optionally the proposal
+checkpoint ``NAME.proposal.pt``) chunk by chunk (:class:`RolloutWriter`) or at once (:func:`write_rollouts`), the table
+of a batch (:func:`rollouts_table`) and the check of a path before any work (:func:`check_rollouts_path`).
 
 Every chunk is checked as :func:`pemviz.io.rollouts.read_rollouts` checks a file (:mod:`pemviz.io.rollout_table`)
 before it is written. Writers write to temporary files and move them into place, sidecar last: no half file.
@@ -38,7 +38,7 @@ from pemviz.scenarios import RolloutBatch
 def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False, what: str = "rollout file") -> Path:
     """Refuse a path where a rollout file cannot be written, before any work (nothing is created).
 
-    The sidecar ``NAME.json`` and checkpoint ``NAME.proposal.pt`` are checked too: an existing one is replaced
+    The sidecar ``NAME.rollouts.json`` and checkpoint ``NAME.proposal.pt`` are checked too: an existing one is replaced
     only with ``overwrite`` and only if pemviz wrote it.
 
     Raises:
@@ -123,9 +123,9 @@ def rollouts_table(
 
 
 class RolloutWriter:
-    """Writes one rollout unit (``NAME.parquet``, its sidecar ``NAME.json``, optionally ``NAME.proposal.pt``) chunk
-    by chunk: each :meth:`append` validates a chunk and writes it as a Parquet row group, so memory holds one chunk
-    whatever the number of rollouts. Nothing appears under ``path`` before :meth:`commit`, which moves the files
+    """Writes one rollout unit (``NAME.parquet``, its sidecar ``NAME.rollouts.json``, optionally ``NAME.proposal.pt``)
+    chunk by chunk: each :meth:`append` validates a chunk and writes it as a Parquet row group, so memory holds one
+    chunk whatever the number of rollouts. Nothing appears under ``path`` before :meth:`commit`, which moves the files
     into place sidecar last (the sidecar holds the SHA-256 of the table and checkpoint, so
     :func:`~pemviz.io.rollouts.read_rollouts` tells a unit cut short by a kill from a complete one); :meth:`abort`, or
     leaving a ``with`` block without a commit, removes everything written so far and leaves an existing unit
@@ -295,8 +295,8 @@ def write_rollouts(
     component: np.ndarray | None = None,
     severity: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Path:
-    """Write ``NAME.parquet``, its sidecar ``NAME.json`` and (with ``proposal``) ``NAME.proposal.pt`` as one unit
-    (a :class:`RolloutWriter` with one chunk).
+    """Write ``NAME.parquet``, its sidecar ``NAME.rollouts.json`` and (with ``proposal``) ``NAME.proposal.pt`` as one
+    unit (a :class:`RolloutWriter` with one chunk).
 
     The table is validated as :func:`~pemviz.io.rollouts.read_rollouts` validates it before anything is written;
     ``meta.n_rollouts`` / ``n_steps`` / ``observation_columns`` are filled in.

@@ -24,6 +24,7 @@ from pemviz.io.rollout_format import (  # noqa: F401 (re-exported: importable fr
     RolloutFormatError,
     RolloutMeta,
     check_stage_counts,
+    existing_sidecar,
     proposal_path,
     read_sidecar,
     sidecar_path,
@@ -55,7 +56,7 @@ def check_not_a_recording(path: Path) -> None:
     if path.suffix.lower() == ".rrd" or head == RECORDING_MAGIC:
         raise RolloutFormatError(
             f"{path}: a rerun recording, not a rollout file; `pemviz estimate` reads the Parquet rollout file that "
-            "`pemviz run --save-rollouts NAME.parquet` writes (with its sidecar NAME.json), and `rerun "
+            "`pemviz run --save-rollouts NAME.parquet` writes (with its sidecar NAME.rollouts.json), and `rerun "
             f"{path.name}` opens the recording"
         )
 
@@ -83,7 +84,7 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     data = _Table(table, meta, str(p)).parse(p)
     if meta.table_sha256 is not None and sha256_file(p) != meta.table_sha256:
         raise RolloutFormatError(
-            f"{p}: the table is not the one its sidecar {sidecar_path(p).name} was written with (table_sha256 "
+            f"{p}: the table is not the one its sidecar {existing_sidecar(p).name} was written with (table_sha256 "
             "differs): an interrupted or concurrent write; write it again (or drop table_sha256 from the sidecar "
             "if the table was changed on purpose)"
         )

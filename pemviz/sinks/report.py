@@ -182,6 +182,62 @@ MAX_GROUPS = 12
 """Groups of failures the report lists, largest share first (the rest in one row)."""
 
 
+RESTS_ON = "What this number rests on"
+"""The report's section saying what p is conditional on and what the verdict checked (:func:`_rests_on`)."""
+
+LIMITS = ("failure is the specification as written, evaluated on the simulated signals; the detector's false "
+          "positives are not modelled (a missed or mislocated object only), as in Innes & Ramamoorthy (2022); p is "
+          "the probability under this PEM and these scenario parameters, not under the real detector")
+"""The limits every p of pemviz carries, stated in the report."""
+
+
+def _spread_text(spread: dict[str, Any] | None) -> str:
+    """``members: median 2.856e-15, 90 % of them in [3.549e-19, 6.182e-12] (x1.74e+07 wide)`` of the result
+    document's ``pem_spread``; where it was not computed, how to compute it."""
+    members = (spread or {}).get("members")
+    if not members:
+        return ("not computed for this run: p is conditional on the one PEM; `pemviz run --pem-uncertainty` "
+                "re-weighs the same rollouts under the PEM's bootstrap ensemble and logit shifts")
+    lo, hi = (r["log_p"] for r in members["range90"])
+    wide = f" (x{math.exp(hi - lo):.3g} wide)" if lo is not None and hi is not None else ""
+    return (f"{members['n']} ensemble members: median {_p(members['median']['p'])}, 90 % of them in "
+            f"[{_p(members['range90'][0]['p'])}, {_p(members['range90'][1]['p'])}]{wide}")
+
+
+def _checks(e: dict[str, Any]) -> list[tuple[str, str]]:
+    """The verdict's checks one by one (:func:`pemviz.core.estimate.estimate`'s thresholds), each with its figure."""
+    from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES
+
+    khat = e.get("k_hat")
+    return [
+        ("check: failures", f"{e['n_failures']:,} (fewer than {MIN_FAILURES}: doubtful)"),
+        ("check: effective sample size", f"{_num(e['ess'])} (below {MIN_ESS_RELIABLE} under importance sampling: "
+                                         "never reliable)"),  # fmt: skip
+        ("check: Pareto k-hat", f"{_num(khat, '.2f')} (above {KHAT_UNRELIABLE}: a few weights dominate; '-' for plain "
+                                "Monte Carlo or too few failures to fit)"),  # fmt: skip
+        ("verdict", f"{e['verdict']}: {e['reason']}"),
+        ("what is printed", "a 95 % lower bound that holds whatever the weights' tail, and no upper bound: the weights "
+                            "back no interval" if e.get("interval") == "lower_bound95" else "the 95 % interval"),
+    ]  # fmt: skip
+
+
+def _rests_on(doc: dict[str, Any]) -> list[tuple[str, str]]:
+    """The rows of :data:`RESTS_ON`: the PEM (file and sha256), p over the PEM's uncertainty (or that it was not
+    computed), the scenario's parameters, the verdict's checks, a requirement's basis and the limits."""
+    pems = [i for i in doc.get("inputs") or [] if "PEM" in i["what"] or "pem" in i["what"]]
+    rows = [(f"PEM ({i['what']})", f"{i['path']}, sha256 {i['sha256']}") for i in pems] or [
+        ("PEM", str((doc.get("settings") or {}).get("pem") or "the shipped default"))]
+    rows.append(("p over the PEM's uncertainty", _spread_text(doc.get("pem_spread"))))
+    params = (doc.get("settings") or {}).get("scenario_params") or []
+    rows.append(("scenario parameters", ", ".join(f"{k} = {v}" for k, v in params) or "the scenario's defaults"))
+    rows += _checks(doc["estimate"])
+    req = doc.get("requirement")
+    if req:
+        rows.append(("requirement decided on", f"{req['text']}: {req['outcome']} at look {req['look']}, {req['why']}"))
+    rows.append(("limits", LIMITS))
+    return rows
+
+
 def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]]:
     """(title, intro text, table header, rows) of each section both twins show."""
     problem = doc.get("problem") or {}
@@ -192,7 +248,9 @@ def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list
     settings = sorted((k, json.dumps(v)) for k, v in (doc.get("settings") or {}).items())
     prov = [("pemviz version", doc.get("pemviz_version", "-")), ("command", doc.get("command") or "-"),
             ("recording", doc.get("recording") or "-"), ("sha256 of the result document", document_sha256(doc))]  # fmt: skip
-    sections = [("Estimate", "", ("quantity", "value"), _estimate_rows(doc))]
+    sections = [("Estimate", "", ("quantity", "value"), _estimate_rows(doc)),
+                (RESTS_ON, "p is conditional on what follows: a safety case that cites p cites it with these.",
+                 ("item", "value"), _rests_on(doc))]  # fmt: skip
     if doc.get("severity"):
         title = doc["severity"].get("title", "severity: P(min signal < x), from the same rollouts")
         sections.append(("Severity", f"{title.removeprefix('severity: ')}: how deep the failures go.",
@@ -234,9 +292,13 @@ def _title(doc: dict[str, Any]) -> str:
 
 
 def _headline(doc: dict[str, Any]) -> str:
+    """p with what the run backs, its ESS and verdict, and beside them the PEM spread where the run computed one."""
     e = doc["estimate"]
     shown = _interval(e["ci95"]) if e.get("interval") == "lower_bound95" else f"95 % interval {_interval(e['ci95'])}"
-    return f"p = {_p(e['p'])}, {shown}, ESS {_num(e['ess'])}: {e['verdict']}"
+    line = f"p = {_p(e['p'])}, {shown}, ESS {_num(e['ess'])}: {e['verdict']}"
+    if ((doc.get("pem_spread") or {}).get("members")):
+        line += f" | under the PEM's uncertainty: {_spread_text(doc['pem_spread'])}"
+    return line
 
 
 def report_html(doc: dict[str, Any]) -> str:

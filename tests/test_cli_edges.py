@@ -1,0 +1,39 @@
+"""Edges of the command line a user meets: a typo in a flag gets the nearest known one, the recorded command pastes
+back into a shell as it was typed, and `pemviz serve` refuses a bad PEM before it serves."""
+
+from __future__ import annotations
+
+import json
+import shlex
+
+from conftest import run_cli
+
+
+def test_an_unknown_flag_gets_the_nearest_known_one_in_one_line(tmp_path):
+    proc = run_cli("run", "--rel-eror", "0.1", "--no-record", cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.strip().splitlines() == [
+        "pemviz: error: unrecognized arguments: --rel-eror 0.1; --rel-eror: did you mean --rel-error?"]
+    two = run_cli("run", "--seeed", "3", "--requre", "p < 1e-9", cwd=tmp_path)
+    assert two.returncode == 2 and "--seeed: did you mean --seed?; --requre: did you mean --require?" in two.stderr
+    far = run_cli("run", "--zzzz", "1", cwd=tmp_path)  # nothing near it: no suggestion
+    assert far.returncode == 2 and "did you mean" not in far.stderr
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_the_recorded_command_is_quoted_for_a_shell(tmp_path):
+    args = ["run", "--k", "3", "--n", "100", "--n-final", "200", "--no-record", "--require", "p < 1e-10",
+            "--max-sims", "600", "--json", "r.json"]  # fmt: skip
+    proc = run_cli(*args, cwd=tmp_path)
+    assert proc.returncode in (1, 3), proc.stderr[-2000:]
+    command = json.loads((tmp_path / "r.json").read_text())["command"]
+    assert "'p < 1e-10'" in command  # pasted, `<` is no redirect
+    assert shlex.split(command) == ["pemviz", *args]
+
+
+def test_serve_refuses_an_unreadable_pem_before_it_serves(tmp_path):
+    (tmp_path / "empty.pt").write_bytes(b"")
+    proc = run_cli("serve", "--pem", "empty.pt", "--port", "0", cwd=tmp_path, timeout=60)
+    assert proc.returncode == 2 and "open http" not in proc.stdout
+    assert proc.stderr.strip().splitlines() == [
+        "pemviz serve: error: empty.pt: not a readable PEM file (it is empty)"]
