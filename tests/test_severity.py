@@ -166,3 +166,25 @@ def test_console_and_json_show_the_curve(tmp_path, capsys):
     assert [p["level"] for p in points] == [2.0, 1.5, 1.0, 0.5, 0.0]
     assert points[0]["p"] == doc["estimate"]["p"] and points[1]["exact"]["p"] == pytest.approx(EXACT_1_5, rel=1e-4)
     assert points[-1]["n_events"] == 0 and points[-1]["p"] == 0.0
+
+
+def test_a_level_some_rollouts_reach_without_a_backed_estimate_says_so_and_gives_its_bound():
+    # "not reached" means no rollout reached the level; a level that some reach but whose weights back no estimate
+    # says "not estimated" and prints the 95 % lower bound those weights do back
+    import numpy as np
+
+    from pemviz.core.estimate import estimate
+    from pemviz.core.severity import SeverityCurve, SeverityPoint, SeverityScale
+
+    rng = np.random.default_rng(0)
+    log_w = rng.normal(-40.0, 4.0, 1800)
+    failed = np.arange(1800) < 9  # 9 failures: doubtful
+    e = estimate(log_w, failed, np.zeros(1800))
+    scale = SeverityScale("d", "gap", "m", levels=(0.5,), margin=2.0, target_flag="margin")
+    full = estimate(log_w, np.arange(1800) < 900, np.zeros(1800))
+    rows = dict(SeverityCurve(scale, (SeverityPoint(2.0, full), SeverityPoint(0.5, e))).rows())
+    text = rows[scale.level_text(0.5)]
+    assert e.verdict != "reliable" and e.log_lower_bound > -np.inf
+    assert text.startswith(f"reached by 9 of 1,800 rollouts, not estimated (ESS {e.ess:.1f}, {e.verdict}): p >= ")
+    assert "(95 % lower bound), no upper bound; pemviz run --margin 0.5 targets it" in text
+    assert "not reached" not in text

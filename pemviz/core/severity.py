@@ -165,8 +165,13 @@ class SeverityCurve:
             if point is not self.points[0] and not point.reached:
                 how = (f"pemviz run --{s.target_flag} {point.level:g} targets it" if s.target_flag
                        else "more rollouts (a larger budget, or --rel-error)")
-                ess = "" if e.n_failures == 0 else f", ESS {e.ess:.1f}, {e.verdict}"
-                out.append((self.point_text(point), f"not reached by this run ({e.n_failures} of {e.n:,} rollouts{ess}): {how}"))
+                if e.n_failures == 0:
+                    out.append((self.point_text(point), f"not reached by this run (0 of {e.n:,} rollouts): {how}"))
+                else:  # reached, but its weights back no estimate: what they do back, a lower bound
+                    bound = (f"p >= {format_probability(e.log_lower_bound, 2)} (95 % lower bound), no upper bound"
+                             if e.log_lower_bound > -math.inf else "no bound either way")
+                    out.append((self.point_text(point), f"reached by {e.n_failures:,} of {e.n:,} rollouts, not estimated "
+                                f"(ESS {e.ess:.1f}, {e.verdict}): {bound}; {how}"))  # fmt: skip
                 continue
             text = f"{format_probability(e.log_mu_hat)} {e.interval_text()}  ESS {e.ess:.1f}  {e.verdict}"
             if point.exact_log_p is not None:  # "inside" / "OUTSIDE" an interval; "above" / "BELOW" a lower bound
