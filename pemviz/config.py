@@ -160,7 +160,7 @@ class ExperimentConfig:
             (-log of the scenario's learned probability of failure, where it has one: the cut-in).
 
     Sampler improvements over the paper (on by default; :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` turns them
-    off; each one's effect is measured against exact answers in ``benchmarks/truth_sampler_improvements.py``):
+    off; each one's effect is measured against exact answers in ``research/truth_sampler_improvements.py``):
         proposal_inputs: h(s), one of :data:`PROPOSAL_INPUTS`.
         proposal_window: the proposal replaces the PEM only where the detector can matter (the problem's
             ``window``: gap < 10 m); elsewhere q = p_PEM, so those steps weigh exactly 1 and are not fitted.

@@ -37,3 +37,21 @@ def test_serve_refuses_an_unreadable_pem_before_it_serves(tmp_path):
     assert proc.returncode == 2 and "open http" not in proc.stdout
     assert proc.stderr.strip().splitlines() == [
         "pemviz serve: error: empty.pt: not a readable PEM file (it is empty)"]
+
+
+def test_an_unwritable_folder_says_read_only_not_errno_s_contradiction(tmp_path):
+    # /proc refuses a new file with ENOENT, whose words "No such file or directory" contradict "folder /proc"
+    proc = run_cli("run", "--save", "/proc/x.rrd", cwd=tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == "pemviz run: error: --save /proc/x.rrd: folder /proc is not writable (read-only)"
+
+
+def test_a_report_named_after_its_result_says_so_when_it_exists(tmp_path):
+    proc = run_cli("run", "--no-record", "--k", "2", "--n", "50", "--n-final", "50", "--json", "b.json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (tmp_path / "b.html").write_text("mine")
+    again = run_cli("report", "b.json", cwd=tmp_path)
+    assert again.returncode == 2 and "--out b.html" not in again.stderr  # no --out was given
+    assert again.stderr.strip() == ("pemviz report: error: the report (named after its result; --out names another) "
+                                    "b.html: exists; give --overwrite to replace it")
+    assert (tmp_path / "b.html").read_text() == "mine"

@@ -74,9 +74,10 @@ def main(args: argparse.Namespace) -> int:
     doc = read_result(src)
     name = src.name[: -len(RESULT_BESIDE_SUFFIX)] if src.name.endswith(RESULT_BESIDE_SUFFIX) else src.stem
     out = Path(args.out) if args.out is not None else src.with_name(name + ".html")
+    flag = "--out" if args.out is not None else "the report (named after its result; --out names another)"
     try:
-        check_output_path(out, ".html", "--out", overwrite=args.overwrite)
-        check_output_path(markdown_twin(out), ".md", "--out (its Markdown twin)", overwrite=args.overwrite)
+        check_output_path(out, ".html", flag, overwrite=args.overwrite)
+        check_output_path(markdown_twin(out), ".md", f"{flag}, its Markdown twin", overwrite=args.overwrite)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     try:

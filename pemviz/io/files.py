@@ -8,6 +8,7 @@ here with the checks of output paths and the writers of the commands' files.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import signal
 import tempfile
@@ -179,8 +180,9 @@ def _check_writable(folder: Path, where: str) -> None:
     try:
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".pemviz-probe-"):
             pass
-    except OSError as exc:
-        raise ValueError(f"{where}: folder {folder} is not writable ({exc.strerror})") from None
+    except OSError as exc:  # errno's own words can contradict the message (/proc: "No such file or directory")
+        why = "read-only" if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOENT) else exc.strerror
+        raise ValueError(f"{where}: folder {folder} is not writable ({why})") from None
 
 
 def check_output_folder(folder: str | os.PathLike[str], names: tuple[str, ...], what: str = "--out") -> Path:

@@ -35,8 +35,8 @@ relative error <= 0.2 at <= 13,000 rollout-equivalents is not reached by this ro
 
 Usage::
 
-    python benchmarks/committor_tilt.py --seeds 4
-    python benchmarks/committor_tilt.py --seeds 4 --window 12 26 --eps 0.2 --beta 1.5
+    python research/committor_tilt.py --seeds 4
+    python research/committor_tilt.py --seeds 4 --window 12 26 --eps 0.2 --beta 1.5
 """
 
 from __future__ import annotations

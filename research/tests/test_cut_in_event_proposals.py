@@ -1,4 +1,4 @@
-"""benchmarks/cut_in_event_proposals.py: its proposals over the uniforms are densities whose importance weights are
+"""research/cut_in_event_proposals.py: its proposals over the uniforms are densities whose importance weights are
 exact, the premise of every figure of that study (docs/cut-in.md, "What 5,000 simulations can and cannot do")."""
 
 from __future__ import annotations
@@ -7,13 +7,13 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import REPO as ROOT, load_script
+from conftest import REPO, load_script
 SHAPE = (4, 2)  # T steps, M objects
 
 
 @pytest.fixture(scope="module")
 def study():
-    yield load_script(ROOT / "benchmarks" / "cut_in_event_proposals.py")
+    yield load_script(REPO / "research" / "cut_in_event_proposals.py")
     del sys.modules["cut_in_event_proposals"]
 
 

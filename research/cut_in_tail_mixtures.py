@@ -53,10 +53,10 @@ Measured (2-core developer machine with other work running; the printed lines of
 
 Usage::
 
-    python benchmarks/cut_in_tail_mixtures.py --seeds 8
-    python benchmarks/cut_in_tail_mixtures.py --mode ce --seeds 4
-    python benchmarks/cut_in_tail_mixtures.py --mode amis --seeds 8
-    python benchmarks/cut_in_tail_mixtures.py --seeds 1 --first-seed 2 --diag 12
+    python research/cut_in_tail_mixtures.py --seeds 8
+    python research/cut_in_tail_mixtures.py --mode ce --seeds 4
+    python research/cut_in_tail_mixtures.py --mode amis --seeds 8
+    python research/cut_in_tail_mixtures.py --seeds 1 --first-seed 2 --diag 12
 """
 
 from __future__ import annotations

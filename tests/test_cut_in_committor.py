@@ -1,39 +1,33 @@
-"""benchmarks/cut_in_lookahead_tilt.py: its per-step proposal over the cut-in car's uniforms weighs every draw so that
-each event keeps its PEM probability, whatever the committor Q it is tilted by (a deliberately poor one here): the
-premise of every figure of that study (docs/cut-in.md, "Approximate zero-variance sampling with a look-ahead")."""
+"""The cut-in's committor grid and level chain (:mod:`pemviz.scenarios.cut_in.committor`) and its one-car look-ahead
+(:mod:`pemviz.scenarios.cut_in.lookahead`), which the cut-in's default tilted proposal and its splitting build on: the
+tilt over the cut-in car's uniforms weighs every draw so that each event keeps its PEM probability, whatever the
+committor Q it is tilted by (a deliberately poor one here); the levels and the chain against closed forms; the cut-in
+car alone drives the ego as the whole twin does. (The study that first used them, research/cut_in_lookahead_tilt.py,
+is tested in research/tests/.)"""
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 import pytest
-from conftest import REPO, load_script
 
 from pemviz.scenarios.cut_in import committor, lookahead
 
 
-@pytest.fixture(scope="module")
-def study():
-    yield load_script(REPO / "benchmarks" / "cut_in_lookahead_tilt.py")
-    del sys.modules["cut_in_lookahead_tilt"]
-
-
-def poor_proposal(study, grid, p0):
-    """The study's proposal with a random Q (log Q uniform on [-30, 0] per branch): no relation to any failure."""
+def poor_proposal(grid, p0):
+    """The grid's tilted proposal with a random Q (log Q uniform on [-30, 0] per branch): no relation to any failure."""
     log_qb = np.random.default_rng(5).uniform(-30.0, 0.0, size=(p0.size, grid.nbranch))
     return grid.proposal(p0, log_qb, 0.3)
 
 
 @pytest.mark.parametrize("grid_name", ["fine", "coarse"])
-def test_a_tilted_draw_is_weighed_so_that_every_event_keeps_its_pem_probability(study, grid_name):
+def test_a_tilted_draw_is_weighed_so_that_every_event_keeps_its_pem_probability(grid_name):
     """Uniforms drawn class by class from the proposal and weighed p / q of the class they fall in: E[w] = 1,
     E[w 1{miss}] = 1 - p(detect), and E[w 1{u < m}] = p(detect) m for tail masses m inside bins (so a draw that were
     not uniform in its bin would show), within 5 standard errors of 200,000 draws."""
     grid = committor.Grid(np.array(committor.GRIDS[grid_name]))
     n = 200_000
     p0 = np.full(n, 0.985)
-    pc, qc = (a[0] for a in poor_proposal(study, grid, p0[:1]))
+    pc, qc = (a[0] for a in poor_proposal(grid, p0[:1]))
     assert pc.sum() == pytest.approx(1.0) and qc.sum() == pytest.approx(1.0)
     rng = np.random.default_rng(7)
     cum = np.cumsum(qc)
@@ -54,7 +48,7 @@ def test_a_tilted_draw_is_weighed_so_that_every_event_keeps_its_pem_probability(
         check(w * (detected & (u[:, c] > 1.0 - mass)), p0[0] * mass)
 
 
-def test_the_tilt_follows_q_and_the_pems_keep_their_share(study):
+def test_the_tilt_follows_q_and_the_pems_keep_their_share():
     """A class whose Q is e^30 times another's is drawn far more often, and every class keeps at least eps p."""
     grid = committor.Grid(np.array(committor.GRIDS["coarse"]))
     p0 = np.array([0.99])
@@ -65,13 +59,13 @@ def test_the_tilt_follows_q_and_the_pems_keep_their_share(study):
     assert (qc >= 0.3 * pc - 1e-15).all()
 
 
-def test_a_continuations_level_counts_the_steps_of_late_braking_it_can_still_take(study):
+def test_a_continuations_level_counts_the_steps_of_late_braking_it_can_still_take():
     """Level 0 fails; 0.10 m (one step late at the moderate setting) is 1; 0.86 m (on time) 2; capped at LMAX."""
     r = np.array([-0.66, -1e-9, 0.0, 0.10, 0.75, 0.86, 1.62, 100.0])
     assert committor.level(r).tolist() == [0, 0, 1, 1, 1, 2, 3, committor.LMAX]
 
 
-def test_the_continuous_level_adds_how_deep_inside_the_lane_the_track_followed(study):
+def test_the_continuous_level_adds_how_deep_inside_the_lane_the_track_followed():
     """L - 1 + depth / lateral step, the depth capped at one step: hand-computed cases (a failing branch stays 0)."""
     lv = np.array([0, 1, 1, 2, 2, 3])
     inside = np.array([-0.1, -0.1, 0.0, -0.3, 0.2, -0.05])
@@ -80,7 +74,7 @@ def test_the_continuous_level_adds_how_deep_inside_the_lane_the_track_followed(s
 
 
 @pytest.mark.parametrize("miss_shift, expected", [(-2.0, 1 - 0.9 * 0.8), (-1.0, 0.1 * 0.2), (-0.5, 0.0)])
-def test_the_level_chain_gives_the_closed_form_probability_of_enough_misses(study, miss_shift, expected):
+def test_the_level_chain_gives_the_closed_form_probability_of_enough_misses(miss_shift, expected):
     """Two steps whose only event that moves the continuous level is a miss (p 0.1, then 0.2): from g = 1.5, a miss
     that lowers g by 2 fails alone (1 - 0.9 x 0.8), by 1 needs both (0.1 x 0.2), by 0.5 cannot fail (g stays 0.5)."""
     grid = committor.Grid(np.array(committor.GRIDS["coarse"]))
@@ -92,7 +86,7 @@ def test_the_level_chain_gives_the_closed_form_probability_of_enough_misses(stud
 
 
 @pytest.mark.parametrize("miss_shift, miss_q, other_q", [(-2.0, 1.0, 0.2), (-1.0, 0.2, 0.0)])
-def test_the_chain_gives_each_branch_the_value_of_the_level_its_event_leads_to(study, miss_shift, miss_q, other_q):
+def test_the_chain_gives_each_branch_the_value_of_the_level_its_event_leads_to(miss_shift, miss_q, other_q):
     """--chain-effects: from g = 1.5 at step 0 of the two-step chain above, a miss leads to g = 1.5 + shift and any
     detection keeps g = 1.5, so the branches' Q is U_1 there: 1 and 1 - 0.8 (shift -2: a second miss fails too), or
     0.2 and 0 (shift -1); and sum_c p(c) Q(c) gives back U_0(1.5) (1 - 0.9 x 0.8, or 0.1 x 0.2)."""
@@ -108,7 +102,7 @@ def test_the_chain_gives_each_branch_the_value_of_the_level_its_event_leads_to(s
     assert u0 == pytest.approx(np.exp(chain.log_u(0, np.array(1.5))), abs=1e-12)
 
 
-def test_a_chain_with_bins_of_g_takes_each_bins_effect_and_the_nearest_where_a_bin_has_none(study):
+def test_a_chain_with_bins_of_g_takes_each_bins_effect_and_the_nearest_where_a_bin_has_none():
     """--beam's cells: a miss lowers g by 0.6 at g >= 1 and by 2 below (bins 1 wide; bins 2-6 have no representative
     and take bin 1's). From g = 1.5, two misses (p 0.1, then 0.2) fail: 0.1 x 0.2; one alone leaves g at 0.9. With
     one bin, the misses' -0.6 each never fail (0.3 left). Regime 1, without any representative, takes the nominal
@@ -131,56 +125,7 @@ def test_a_chain_with_bins_of_g_takes_each_bins_effect_and_the_nearest_where_a_b
     assert q[1, 0] == pytest.approx(1.0, abs=1e-12) and q[1, 1] == pytest.approx(0.2, abs=1e-12)
 
 
-def test_the_beams_events_are_the_grid_branches_they_name(study):
-    """A beam representative's children: the central draw, a miss, a range error at the gate (the lean grid's 1e-3
-    edge) low and high, and each error at 1.6e-2 low and high; their log probabilities given a detection."""
-    self = type("S", (), {"grid": committor.Grid(np.array(committor.GRIDS["lean"])), "dp_mass": 1e-3})()
-    ev, log_pe = study.LookAheadTilt.beam_events(self)
-    reps = self.grid.reps[ev]
-    expected = [(0, 0.5, 0.5), (1, 0.5, 0.5), (0, 1e-3, 0.5), (0, 1 - 1e-3, 0.5), (0, 1.6e-2, 0.5),
-                (0, 1 - 1.6e-2, 0.5), (0, 0.5, 1.6e-2), (0, 0.5, 1 - 1.6e-2)]  # fmt: skip
-    assert reps == pytest.approx(np.array(expected, dtype=float))
-    assert np.exp(log_pe) == pytest.approx([1, 1, 1e-3, 1e-3] + [1.6e-2] * 4)
-
-
-@pytest.mark.parametrize("options, words", [
-    (["--window", "10", "5"], "need 0 <= window start < window end <= end <= 100"),
-    (["--window", "10", "200"], "need 0 <= window start < window end <= end <= 100"),
-    (["--n", "0"], "rollouts >= 1"),
-    (["--eps", "0"], "0 < eps <= 1"),
-    (["--a", "2"], "0 < a <= 1"),
-    (["--beta", "0"], "0 < beta <= 1"),
-    (["--chain-effects", "--graded"], "--chain-effects and --beam 0.0 need --dp"),
-    (["--beam", "0.25", "--graded"], "--chain-effects and --beam 0.25 need --dp"),
-    (["--effect-model", "--dp", "--graded", "--chain-effects"], "--effect-model needs --beam and --chain-effects"),
-    (["--beam", "0.25", "--dp", "--graded"], "--beam needs --one-car"),
-    (["--dp-mass", "0.7"], "need 0 < dp-mass < 0.5"),
-    (["--vy-buckets", "0.3", "-0.3"], "the buckets' bounds ascending"),
-    (["--dp"], "--continuous and --dp need --graded"),
-    (["--dp", "--graded", "--window", "3", "24"], "--dp needs the window to start at step 5"),
-])  # fmt: skip
-def test_options_the_study_cannot_run_with_stop_it_with_one_line(study, monkeypatch, options, words):
-    """Each refusal names the options and what is allowed, before the PEMs are loaded (no traceback)."""
-    monkeypatch.setattr(sys, "argv", ["cut_in_lookahead_tilt.py", *options])
-    with pytest.raises(SystemExit) as stop:
-        study.main()
-    message = str(stop.value.code)
-    assert words in message and "\n" not in message
-
-
-def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys, monkeypatch):
-    """--help lists them (the docs' commands run these routes)."""
-    monkeypatch.setattr(sys, "argv", ["cut_in_lookahead_tilt.py", "--help"])
-    with pytest.raises(SystemExit):
-        study.main()
-    out = capsys.readouterr().out
-    for option in ("--n", "--graded", "--q-model", "--grid", "--skip-doomed", "--mc-failures", "--window", "--one-car",
-                   "--check-one-car", "--a", "--eps", "--train-once", "--errors", "--continuous", "--dp",
-                   "--chain-effects", "--beta", "--dp-mass", "--beam", "--effect-model"):
-        assert option in out
-
-
-def test_the_cut_in_car_alone_drives_the_ego_as_the_whole_twin_does(study):
+def test_the_cut_in_car_alone_drives_the_ego_as_the_whole_twin_does():
     """The look-ahead's one-car twin (--one-car): 300 rollouts whose cut-in car is missed and mislocated at random
     (every other car detected without error) move the ego, its ACC's choice and the failure formula's operand the same
     way with the cut-in car alone as with the whole traffic, steps 0-40 (the study measured 99.9997 % of 344,400
@@ -205,30 +150,3 @@ def test_the_cut_in_car_alone_drives_the_ego_as_the_whole_twin_does(study):
         alone.step(det[:, :1], noise[:, :1])
     np.testing.assert_allclose(alone.state.ego_speed_mps, whole.state.ego_speed_mps, rtol=0, atol=1e-9)
     assert (whole.state.followed == 0).mean() > 0.5  # the ACC follows the cut-in car in most rollouts by step 40
-
-
-def test_a_cached_v_gives_the_run_it_was_fitted_for_and_refuses_another_setting(study, capsys, monkeypatch, tmp_path):
-    """--v-cache writes the V fitted by --train-once whole; read back, the same seed gives the same estimate; a cache
-    fitted with another grid stops the run with one line and leaves the file as it was."""
-    cache = tmp_path / "v.pkl"
-    base = ["cut_in_lookahead_tilt.py", "--train-once", "5", "--v-cache", str(cache), "--n", "40", "40", "--seeds", "1",
-            "--one-car", "--grid", "coarse", "--graded"]  # fmt: skip
-
-    def run(*extra):
-        monkeypatch.setattr(sys, "argv", base + list(extra))
-        study.main()
-        return [line for line in capsys.readouterr().out.splitlines() if line.startswith("  ")]
-
-    fitted = run()
-    assert "V trained once" in fitted[0] and cache.exists() and not list(tmp_path.glob("*.part"))
-    before = cache.read_bytes()
-    again = run()
-    assert "V read from" in again[0]
-    assert again[1].split("; cost")[0] == fitted[1].split("; cost")[0]  # estimate, interval, ESS and verdict
-    with pytest.raises(SystemExit, match="fitted for"):
-        run("--grid", "fine")
-    assert cache.read_bytes() == before
-    cache.write_text("not a pickle")
-    with pytest.raises(SystemExit, match="not a V this study wrote"):
-        run()
-    assert cache.read_text() == "not a pickle"

@@ -40,9 +40,9 @@ Modes (``--mode``):
 
 Usage (2 cores; each about 1-3 min)::
 
-    python benchmarks/cut_in_event_proposals.py --mode oracle
-    python benchmarks/cut_in_event_proposals.py --mode adaptive --family events --seeds 10
-    python benchmarks/cut_in_event_proposals.py --mode ams --ams-n 400 --seeds 6
+    python research/cut_in_event_proposals.py --mode oracle
+    python research/cut_in_event_proposals.py --mode adaptive --family events --seeds 10
+    python research/cut_in_event_proposals.py --mode ams --ams-n 400 --seeds 6
 """
 
 from __future__ import annotations

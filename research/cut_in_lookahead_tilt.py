@@ -119,24 +119,24 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
 
 Usage::
 
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 4 --n 1000 1000 --graded
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 4 --n 3000 1000 --graded
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 2 --n 1000 1000 --graded --v-large --iterations 20
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 2 --n 1000 4000 --graded --q-model
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 2 --n 400 5000 --graded --q-model --grid coarse --skip-doomed
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 1 --n 1000 1000 --mc-failures 600000
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 1 --n 300 --graded --check-one-car
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 6 --n 1000 1000 --graded --one-car --a 0.03 --eps 0.5
-    python benchmarks/cut_in_lookahead_tilt.py --train-once 1000 --v-cache v10k.pkl --seeds 10 --n 10000 1000 \
+    python research/cut_in_lookahead_tilt.py --seeds 4 --n 1000 1000 --graded
+    python research/cut_in_lookahead_tilt.py --seeds 4 --n 3000 1000 --graded
+    python research/cut_in_lookahead_tilt.py --seeds 2 --n 1000 1000 --graded --v-large --iterations 20
+    python research/cut_in_lookahead_tilt.py --seeds 2 --n 1000 4000 --graded --q-model
+    python research/cut_in_lookahead_tilt.py --seeds 2 --n 400 5000 --graded --q-model --grid coarse --skip-doomed
+    python research/cut_in_lookahead_tilt.py --seeds 1 --n 1000 1000 --mc-failures 600000
+    python research/cut_in_lookahead_tilt.py --seeds 1 --n 300 --graded --check-one-car
+    python research/cut_in_lookahead_tilt.py --seeds 6 --n 1000 1000 --graded --one-car --a 0.03 --eps 0.5
+    python research/cut_in_lookahead_tilt.py --train-once 1000 --v-cache v10k.pkl --seeds 10 --n 10000 1000 \
         --graded --one-car --a 0.03 --eps 0.5
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 1000 --graded --one-car --dp --dp-mass 1e-10
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 7900 --graded --one-car --dp --grid lean --chain-effects \
+    python research/cut_in_lookahead_tilt.py --seeds 20 --n 1000 --graded --one-car --dp --dp-mass 1e-10
+    python research/cut_in_lookahead_tilt.py --seeds 20 --n 7900 --graded --one-car --dp --grid lean --chain-effects \
         --beta 0.5 --window 10 32 --end 40
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 550 --graded --one-car --dp --grid lean --beam 0.25 \
+    python research/cut_in_lookahead_tilt.py --seeds 20 --n 550 --graded --one-car --dp --grid lean --beam 0.25 \
         --window 10 32 --end 40
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 1 --n 7900 --graded --one-car --dp --grid lean --chain-effects \
+    python research/cut_in_lookahead_tilt.py --seeds 1 --n 7900 --graded --one-car --dp --grid lean --chain-effects \
         --beta 0.5 --window 10 32 --end 40 --mc-failures 2200000
-    python benchmarks/cut_in_lookahead_tilt.py --seeds 20 --n 7280 --graded --one-car --dp --grid lean --chain-effects \
+    python research/cut_in_lookahead_tilt.py --seeds 20 --n 7280 --graded --one-car --dp --grid lean --chain-effects \
         --beam 0.25 --effect-model --beta 0.7 --window 10 32 --end 40
 """
 

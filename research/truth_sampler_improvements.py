@@ -5,8 +5,8 @@ below; prints, per problem and step, the median relative error of mu_hat over th
 are within a factor 2 of the truth, median failures of the final batch and median wall time. Every run
 simulates 1,200 rollouts (100 pretraining + 10 x 100 + 100).
 
-    python benchmarks/truth_sampler_improvements.py                       # main + toy, 10 seeds, 2 processes
-    python benchmarks/truth_sampler_improvements.py --problems main --seeds 5 --jobs 1
+    python research/truth_sampler_improvements.py                       # main + toy, 10 seeds, 2 processes
+    python research/truth_sampler_improvements.py --problems main --seeds 5 --jobs 1
 """
 
 from __future__ import annotations
