@@ -55,3 +55,22 @@ def test_a_report_named_after_its_result_says_so_when_it_exists(tmp_path):
     assert again.stderr.strip() == ("pemviz report: error: the report (named after its result; --out names another) "
                                     "b.html: exists; give --overwrite to replace it")
     assert (tmp_path / "b.html").read_text() == "mine"
+
+
+def test_an_interrupt_after_the_run_names_the_files_it_had_written(tmp_path, monkeypatch, capsys):
+    # Ctrl-C while the result files are made: the rollouts are already written, and the line says so (it said
+    # "nothing written")
+    import pemviz.commands.run as run_command
+    from pemviz.cli import main
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_command, "result_lines", interrupt)
+    monkeypatch.chdir(tmp_path)
+    code = main(["run", "--k", "2", "--n", "50", "--n-final", "50", "--no-record", "--save-rollouts", "r.parquet",
+                 "--json", "r.json"])  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 130 and (tmp_path / "r.parquet").is_file() and not (tmp_path / "r.json").exists()
+    assert err[-1] == ("pemviz run: interrupted (Ctrl-C); the run finished; r.parquet, r.rollouts.json written; its "
+                       "result files not written")

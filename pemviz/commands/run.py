@@ -536,38 +536,45 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
     finally:
         if rollout_sink is not None:
             rollout_sink.close()  # rollouts of a run that did not finish are not kept
-    if rollout_sink is not None and rollout_sink.written is not None:
-        for path in rollout_files(rollout_sink.written):
-            print(f"rollouts: {path}", file=sys.stderr)
-    why = likely.why(problem) if likely is not None else None  # the errors that decided the most likely failure
-    if why is not None:
-        print(why)
-    if target == "serve":
-        try:  # entered before the line is printed: a Ctrl-C sent as soon as it is read still ends the serving
-            print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
-            __import__("rerun").script_teardown(args)  # waits for Ctrl-C
-        except KeyboardInterrupt:
-            pass
-    final = getattr(done, "final", None)
-    results = None  # the result files' lines and document, made while the recording process writes the file
-    if final is not None and (target == "save" or any(path is not None for path in result_files)):
-        try:
-            failures = grouping_document(groups.grouping) if groups.grouping is not None else None
-            results = result_lines(cfg, problem, final, why, failures, getattr(groups.grouping, "severity", None))
-        except BaseException:  # a run that fails here writes nothing, as one that fails in a stage
-            if recorder is not None:
-                recorder.close(commit=False)
-            raise
+    kept = [str(path) for path in rollout_files(rollout_sink.written)] if rollout_sink is not None and \
+        rollout_sink.written is not None else []
+    for path in kept:
+        print(f"rollouts: {path}", file=sys.stderr)
     where = None
-    if recorder is not None:
-        where = recorder.close()
-        if where is not None:
-            print(f"recording: {where}", file=sys.stderr)
-    saved = Path(where) if where is not None and target == "save" else None
-    if results is not None and (saved is not None or any(path is not None for path in result_files)):
-        write_results(args, *results, str(where) if where is not None else None, result_files, saved)
-    if cfg.require is not None and final is not None and final.decision is not None:
-        from pemviz.core.requirement import EXIT_CODES
+    try:
+        why = likely.why(problem) if likely is not None else None  # the errors that decided the most likely failure
+        if why is not None:
+            print(why)
+        if target == "serve":
+            try:  # entered before the line is printed: a Ctrl-C sent as soon as it is read still ends the serving
+                print("run finished; still serving the recording (Ctrl-C to stop)", file=sys.stderr, flush=True)
+                __import__("rerun").script_teardown(args)  # waits for Ctrl-C
+            except KeyboardInterrupt:
+                pass
+        final = getattr(done, "final", None)
+        results = None  # the result files' lines and document, made while the recording process writes the file
+        if final is not None and (target == "save" or any(path is not None for path in result_files)):
+            try:
+                failures = grouping_document(groups.grouping) if groups.grouping is not None else None
+                results = result_lines(cfg, problem, final, why, failures, getattr(groups.grouping, "severity", None))
+            except BaseException:  # a run that fails here writes nothing, as one that fails in a stage
+                if recorder is not None:
+                    recorder.close(commit=False)
+                raise
+        where = None
+        if recorder is not None:
+            where = recorder.close()
+            if where is not None:
+                print(f"recording: {where}", file=sys.stderr)
+        saved = Path(where) if where is not None and target == "save" else None
+        if results is not None and (saved is not None or any(path is not None for path in result_files)):
+            write_results(args, *results, str(where) if where is not None else None, result_files, saved)
+        if cfg.require is not None and final is not None and final.decision is not None:
+            from pemviz.core.requirement import EXIT_CODES
 
-        return EXIT_CODES[final.decision.outcome]
-    return 0
+            return EXIT_CODES[final.decision.outcome]
+        return 0
+    except KeyboardInterrupt as exc:  # after the run: say what it had written (rollouts, recording), not "nothing"
+        done = [*kept, *([str(where)] if where is not None else [])]
+        files = f"{', '.join(done)} written" if done else "no file written"
+        raise interrupted(exc, f"the run finished; {files}; its result files not written") from None

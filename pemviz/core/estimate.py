@@ -164,13 +164,18 @@ class Estimate:
         lo, hi = self.shown_log_ci
         return lo <= log_p <= hi
 
+    def holds_word(self, log_p: float, outside: str = "OUTSIDE") -> str:
+        """``inside`` / ``OUTSIDE`` (the interval), or for a bound ``above`` / ``BELOW`` (``outside`` is the emphasised
+        word for a miss; "below" in its case for a bound)."""
+        if self.interval_backed:
+            return "inside" if self.covers(log_p) else outside
+        return "above" if self.covers(log_p) else outside.replace("OUTSIDE", "BELOW").replace("outside", "below")
+
     def holds_text(self, log_p: float, outside: str = "OUTSIDE") -> str:
         """``inside the interval`` / ``OUTSIDE the interval``, or for a bound ``above the lower bound`` / ``BELOW the
-        lower bound`` (``outside`` is the emphasised word for a miss; "below" in its case for a bound)."""
-        if self.interval_backed:
-            return f"{'inside' if self.covers(log_p) else outside} the interval"
-        below = outside.replace("OUTSIDE", "BELOW").replace("outside", "below")
-        return f"{'above' if self.covers(log_p) else below} the lower bound"
+        lower bound`` (:meth:`holds_word`)."""
+        what = "the interval" if self.interval_backed else "the lower bound"
+        return f"{self.holds_word(log_p, outside)} {what}"
 
     def interval_text(self) -> str:
         """``[1.2e-15, 2.6e-15]``: the interval as probabilities; where the run does not back one
@@ -345,7 +350,8 @@ def clopper_pearson(n_failures: int, n: int, level: float = CI_LEVEL) -> tuple[f
     return lo, hi
 
 
-def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray) -> Estimate:
+def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray,
+             own_log_weight: np.ndarray | None = None) -> Estimate:  # fmt: skip
     """mu_hat = logsumexp(log w over failures) - log N with its interval, diagnostics and verdict.
 
     Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t).
@@ -366,6 +372,9 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
         log_weight: float64 [N] importance log-weights sum_t (log p - log q) (nats).
         failed: bool [N] failure indicator.
         log_p_total: float64 [N] sum_t log p_PEM(a_t | s_t) over the steps before the failure (nats), for the NLL.
+        own_log_weight: float64 [N] each rollout's own log p/q (nats) where ``log_weight`` carries pooling shifts (the
+            stages' lambda_k N / n_k): the lower bound bets on the own terms, whose conditional mean is p
+            (:func:`betting_lower_bound`); None: ``log_weight`` itself.
     Raises:
         ValueError: if the arrays do not have one entry per rollout, or N = 0.
     """
@@ -394,11 +403,12 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
         return Estimate(n, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, bound), math.nan, log_mean_w,
                         "unreliable", reason, plain_mc)  # fmt: skip
     with np.errstate(invalid="ignore", over="ignore"):  # an inf or nan weight gives nan numbers: unreliable below
-        return _estimate(n, lw, nf, log_weight, failed, log_p_total, log_mean_w, plain_mc)
+        own = log_weight if own_log_weight is None else np.asarray(own_log_weight, dtype=np.float64)
+        return _estimate(n, lw, nf, log_weight, failed, log_p_total, log_mean_w, plain_mc, own)
 
 
 def _estimate(n: int, lw: np.ndarray, nf: int, log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray,
-              log_mean_w: float, plain_mc: bool) -> Estimate:  # fmt: skip
+              log_mean_w: float, plain_mc: bool, own_log_weight: np.ndarray) -> Estimate:  # fmt: skip
     """The rest of :func:`estimate`, with at least one failure."""
     from scipy.special import logsumexp
 
@@ -420,7 +430,7 @@ def _estimate(n: int, lw: np.ndarray, nf: int, log_weight: np.ndarray, failed: n
     numbers = (log_sum, ess, log_ci[1], log_mean_w)
     if verdict == "reliable" and not all(math.isfinite(x) for x in numbers):  # a claim each number must back
         verdict, reason = "unreliable", "an estimate, interval bound, ESS or mean weight is not a finite number"
-    evidence = None if plain_mc else BettingEvidence.of(log_y)
+    evidence = None if plain_mc else BettingEvidence.of(np.where(failed, own_log_weight, -math.inf))
     return Estimate(n, nf, log_sum - math.log(n), float(-lp.mean()), nll_lme, ess, log_ci, khat, log_mean_w,
                     verdict, reason, plain_mc, evidence)  # fmt: skip
 

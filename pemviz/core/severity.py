@@ -175,9 +175,8 @@ class SeverityCurve:
                 continue
             text = f"{format_probability(e.log_mu_hat)} {e.interval_text()}  ESS {e.ess:.1f}  {e.verdict}"
             if point.exact_log_p is not None:  # "inside" / "OUTSIDE" an interval; "above" / "BELOW" a lower bound
-                held = e.holds_text(point.exact_log_p).replace(" the interval", "").replace(" the lower bound", "")
                 text += (f"; exact {format_probability(point.exact_log_p)} "
-                         f"({error_text(e.log_mu_hat, point.exact_log_p)}, {held})")
+                         f"({error_text(e.log_mu_hat, point.exact_log_p)}, {e.holds_word(point.exact_log_p)})")
             out.append((self.point_text(point), text))
         return out
 

@@ -7,12 +7,11 @@ imports every name here too.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pemviz.core.estimate import BettingEvidence, Estimate, estimate
+from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.population import FailureShares, failure_shares, pooling_shifts
 from pemviz.core.problems import Problem
 
@@ -28,18 +27,12 @@ def pool(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], stage_weights: 
     Args:
         stage_weights: lambda_k >= 0, [K], summing to 1; None: n_k / N (every rollout alike).
     """
-    raw = parts
+    own = np.concatenate([lw for lw, _, _ in parts])  # the lower bound bets on each rollout's own p/q (estimate)
     if stage_weights is not None:
         shift = pooling_shifts(stage_weights, np.array([lw.size for lw, _, _ in parts], dtype=np.float64))
         parts = [(lw + c, f, lp) for (lw, f, lp), c in zip(parts, shift)]
     log_w, failed, log_p = (np.concatenate(a) for a in zip(*parts))
-    est = estimate(log_w, failed, log_p)
-    if stage_weights is None or est.evidence is None:
-        return est
-    # the lower bound bets on each rollout's own term 1[fail] p/q, whose conditional mean is p; the pooled terms,
-    # scaled by lambda_k N / n_k, have another mean in each stage
-    log_terms = np.concatenate([np.where(f, lw, -np.inf) for lw, f, _ in raw])
-    return dataclasses.replace(est, evidence=BettingEvidence.of(log_terms))
+    return estimate(log_w, failed, log_p, own)
 
 
 def severity_curve(problem: Problem, estimator: object, final: Estimate, used: tuple[int, ...],

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from dataclasses import dataclass
@@ -9,6 +10,7 @@ from typing import TextIO
 
 from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability
 from pemviz.core.severity import FailureSeverity
+from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.sinks import Sink, StageClock
 
@@ -132,23 +134,17 @@ def plain_rollout_seconds(config, s_per: float | None, n_simulations: int | None
     continuations included; None: ``config.n_simulations``), so its wall time, over the cost model's seconds of the
     run's plan (:func:`pemviz.engine.cost.run_cost`), times the model's seconds of a plain rollout (``stage_cost`` of a
     large plain batch): the machine's speed is this run's, what each method adds is the model's. None unmeasured;
-    ``s_per`` itself for a plain Monte Carlo run or where the model cannot price the run. After a cross-entropy run it
+    ``s_per`` itself for a plain Monte Carlo run. After a cross-entropy run it
     over-estimates (its wall time holds costs the model leaves out: e.g. about 4 times on the cut-in)."""
     if s_per is None or getattr(config, "method", "mc") == "mc":
         return s_per
-    try:
-        import dataclasses
+    from pemviz.estimators import run_plan  # the estimators import torch: only when a run is advised
 
-        from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
-        from pemviz.estimators import run_plan
-
-        steps = n_steps or N_STEPS
-        sims = n_simulations if n_simulations else int(config.n_simulations)
-        run = run_cost(config, run_plan(config), steps).seconds / max(1, int(sims))
-        big = 100_000
-        plain = stage_cost(dataclasses.replace(config, method="mc"), "final", big, steps).seconds / big
-    except Exception:  # noqa: BLE001 (a config the model cannot price: the run's own rate, an upper estimate)
-        return s_per
+    steps = n_steps or N_STEPS
+    sims = n_simulations if n_simulations else int(config.n_simulations)
+    run = run_cost(config, run_plan(config), steps).seconds / max(1, int(sims))
+    big = 100_000
+    plain = stage_cost(dataclasses.replace(config, method="mc"), "final", big, steps).seconds / big
     return s_per * plain / run if run > 0 and plain > 0 else s_per
 
 

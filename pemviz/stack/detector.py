@@ -44,6 +44,20 @@ VISIBLE = "visible"
 """The object-row column :func:`camera_detector` reads as the 0/1 flag of an object the camera can see."""
 
 
+def _salient_index(names: tuple[str, ...], who: str) -> list[int]:
+    """The columns of the 11 salient variables (:data:`pemviz.pem.encoding.INPUT_COLUMNS`) in the object rows
+    ``names``, in the PEMs' order.
+
+    Raises:
+        ValueError: one of them missing (``who`` names the caller).
+    """
+    missing = [c for c in INPUT_COLUMNS if c not in names]
+    if missing:
+        raise ValueError(f"{who}: object_names lack the salient variables {missing} (the PEMs' inputs: "
+                         f"{', '.join(INPUT_COLUMNS)})")  # fmt: skip
+    return [names.index(c) for c in INPUT_COLUMNS]
+
+
 def ahead_rows(object_names: Sequence[str], kind: Any, camera_height_m: float = 1.65) -> Any:
     """A problem's ``curve_rows`` (where the target's detection curve is drawn) for object rows ``object_names``: a
     function ``grid [R] -> rows float64 [R, G]`` of an object of ``kind`` (:class:`pemviz.stack.camera.ObjectKind`)
@@ -56,10 +70,7 @@ def ahead_rows(object_names: Sequence[str], kind: Any, camera_height_m: float = 
     from pemviz.stack.camera import view
 
     names = tuple(object_names)
-    missing = [c for c in INPUT_COLUMNS if c not in names]
-    if missing:
-        raise ValueError(f"ahead_rows: object_names lack the salient variables {missing}")
-    index = [names.index(c) for c in INPUT_COLUMNS]
+    index = _salient_index(names, "ahead_rows")
 
     def rows(grid: np.ndarray) -> np.ndarray:
         grid = np.asarray(grid, dtype=np.float64)
@@ -99,11 +110,7 @@ def camera_detector(object_names: Sequence[str], detect: Any = None, noise: Any 
     names = tuple(object_names)
     if len(set(names)) != len(names):
         raise ValueError(f"camera_detector: object_names must be distinct, got {names}")
-    missing = [c for c in INPUT_COLUMNS if c not in names]
-    if missing:
-        raise ValueError(f"camera_detector: object_names lack the salient variables {missing} (the PEMs' inputs: "
-                         f"{', '.join(INPUT_COLUMNS)})")  # fmt: skip
-    index = [names.index(c) for c in INPUT_COLUMNS]
+    index = _salient_index(names, "camera_detector")
     salient: Any = slice(index[0], index[0] + len(index)) if index == list(range(index[0], index[0] + len(index))) \
         else np.array(index)
     if detect is None:

@@ -14,7 +14,6 @@ from pemviz.scenarios.cut_in.scenario import (  # noqa: F401 (re-exported: impor
     LANE_WIDTH_M as LANE_WIDTH_M,
     MAX_STEPS as MAX_STEPS,
     MONTE_CARLO_REFERENCE as MONTE_CARLO_REFERENCE,
-    NOISE_NAMES as NOISE_NAMES,
     NO_VEHICLE_M as NO_VEHICLE_M,
     N_LANES as N_LANES,
     OBJECT_NAMES as OBJECT_NAMES,

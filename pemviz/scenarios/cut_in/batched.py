@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz.stack import tracker
-from pemviz.scenarios.cut_in.scenario import NOISE_NAMES, OBJECT_NAMES, OBSERVATION_NAMES, CutInParams
+from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, OBSERVATION_NAMES, CutInParams
+from pemviz.stack.detector import NOISE_NAMES
 from pemviz.scenarios.cut_in.highway import TrafficTrajectory, traffic_trajectory
 from pemviz.scenarios.cut_in.scene import CameraView, camera_view, decide, object_rows, scene_signals
 

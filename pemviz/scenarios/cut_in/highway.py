@@ -24,11 +24,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz.stack import tracker
+from pemviz.stack.detector import NOISE_NAMES
 from pemviz.scenarios.cut_in.scenario import (
     EGO_LANE,
     LANE_WIDTH_M,
     N_LANES,
-    NOISE_NAMES,
     OBJECT_NAMES,
     OBSERVATION_NAMES,
     ROAD_LENGTH_M,

@@ -113,9 +113,6 @@ OBJECT_NAMES: tuple[str, ...] = (
 - ``followed``: 1.0 if the ACC followed it at the last step;
 - ``ego_speed_mps``, ``ego_accel_mps2``: the ego's state (as in the observation)."""
 
-NOISE_NAMES: tuple[str, ...] = ("range_error_m", "lateral_error_m")
-"""Measurement-error components, [D]: measured minus true, along the camera axis and across it (metres), as the
-noise PEM gives them (:data:`pemviz.pem.noise.NOISE_DIMS`)."""
 
 FAILURE_FORMULA = "G(safe_margin_m + 1000 * cut_in_recent >= 0) & G(clearance_m >= 0)"
 """The failure, in pemviz's STL (:func:`pemviz.stl.parse`) over :data:`OBSERVATION_NAMES`: the rollout fails when its
