@@ -63,10 +63,11 @@ def test_why_says_so_when_every_failure_drawn_is_impossible_under_the_pem():
                            "of them (stage 0): ")  # fmt: skip
     assert "-inf nats" not in line and "decisive alone" in line
     likely.log_p = -42.25
-    assert likely.why(problem).startswith("why: the most likely failure (stage 0; log-probability of its detections ")
+    assert likely.why(problem).startswith("why: the most likely failure (stage 0; over all ")
 
 
-WHY = re.compile(r"^why: the most likely failure \(stage (\d+); log-probability of its detections (-?\d+\.\d) nats, "
+WHY = re.compile(r"^why: the most likely failure \(stage (\d+); over all 99 steps: log-probability of its detections "
+                 r"(-?\d+\.\d) nats, "
                  r"log-density of its measurement errors ([+-]\d+\.\d) nats\): ")
 
 

@@ -132,8 +132,9 @@ def test_the_console_line_states_the_same_stage_and_log_p(runs):
     assert math.isclose(parts.total, likely.log_p, rel_tol=1e-9)
     line = likely.why(r["problem"])
     assert line is not None
-    assert line.startswith(f"why: the most likely failure (stage {likely.stage}; log-probability of its detections "
-                           f"{parts.detections:.1f} nats, log-density of its measurement errors {parts.errors:+.1f} "
+    assert line.startswith(f"why: the most likely failure (stage {likely.stage}; over all 99 steps: "
+                           f"log-probability of its detections {parts.detections:.1f} nats, log-density of its "
+                           f"measurement errors {parts.errors:+.1f} "
                            "nats): ")  # fmt: skip
 
 

@@ -66,8 +66,11 @@ class SeverityScale:
             raise ValueError(f"severity levels must be strictly descending, got {self.levels}")
 
     def level_text(self, x: float) -> str:
-        """``x = 1 m``, with ``(contact)`` where x is the contact level."""
-        tail = " (contact)" if x <= self.contact else ""
+        """``gap < 1 m``, with ``(contact)`` where every rollout below x is in contact: x at or below the contact
+        level (:attr:`contact_at` where the scene stops its objects short of 0, else :attr:`contact`), the one meaning
+        of contact that the impact speeds use too (:func:`contact_level`)."""
+        touch = self.contact if self.contact_at is None else self.contact_at
+        tail = " (contact)" if x <= touch else ""
         return f"{self.label} < {x:g} {self.unit}{tail}".replace("  ", " ")
 
 

@@ -43,9 +43,11 @@ class MostLikelyFailure(Sink):
         (:func:`pemviz.core.counterfactuals.counterfactuals`, replayed through ``problem``); None before a failure or
         for rollouts without object rows. It states the failure's log p as its two parts (:meth:`parts`): the
         log-probability of its detections and, where the PEM mislocates, the log-density of its measurement errors,
-        e.g. ``why: the most likely failure (stage 5; log-probability of its detections -63.2 nats, log-density of
-        its measurement errors +12.4 nats): ...``. Where every failure drawn is impossible under the PEM (log p =
-        -inf), the line says so instead of calling one of them the most likely."""
+        e.g. ``why: the most likely failure (stage 5; over all 99 steps: log-probability of its detections -63.2
+        nats, log-density of its measurement errors +12.4 nats): ...``: the log p by which the failure was chosen
+        (:func:`pemviz.core.counterfactuals.failure_log_p`), not the NLL column's, which sums the steps before the
+        failure only. Where every failure drawn is impossible under the PEM (log p = -inf), the line says so instead
+        of calling one of them the most likely."""
         if self.batch is None or self.batch.objects is None:
             return None
         cf = counterfactuals(problem, self.batch, 0)
@@ -56,4 +58,5 @@ class MostLikelyFailure(Sink):
                     "or the log-density of its measurement errors is -inf)")  # fmt: skip
             head = f"why: every failure drawn {what}, so none is likely; one of them (stage {self.stage})"
             return f"{head}: {cf.summary()}"
-        return f"why: the most likely failure (stage {self.stage}; {parts.words()}): {cf.summary()}"
+        span = f"over all {self.batch.n_steps - 1} steps"
+        return f"why: the most likely failure (stage {self.stage}; {span}: {parts.words()}): {cf.summary()}"

@@ -1,0 +1,53 @@
+"""One meaning per word in a run's console output (docs/concepts.md#words): the severity table's ``(contact)`` marks
+exactly the levels at or below the contact level that the impact-speed line states; ``not reached`` only where no
+rollout reached the level; the ``why:`` line's log p says the steps it sums, apart from the NLL column's."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from pemviz.cli import main
+
+LEVEL = re.compile(r"^  (gap|clearance) < (-?[\d.]+) m( \(contact\))?\s{2,}(.*)$")
+CONTACT = re.compile(r"contact: (gap|clearance) <= (-?[\d.]+) m")
+
+
+def _console(capsys, *args: str) -> str:
+    assert main(["run", "--no-record", "--seed", "0", *args]) == 0
+    return capsys.readouterr().out
+
+
+def _check(text: str, signal: str, contact_m: float) -> None:
+    """The phrases that contradicted each other before are gone from ``text``."""
+    found = CONTACT.search(text)
+    assert found is not None and found.group(1) == signal and float(found.group(2)) == contact_m, text
+    levels = [m for m in map(LEVEL.match, text.splitlines()) if m]
+    assert len(levels) >= 3, text
+    for m in levels:
+        x, tagged, rest = float(m.group(2)), m.group(3) is not None, m.group(4)
+        assert tagged == (x <= contact_m), m.group(0)  # contact: one level, the impact line's
+        if "not reached" in rest:
+            assert "(0 of " in rest, m.group(0)  # not reached: no rollout reached it
+        if "reached by" in rest and not rest.startswith("not"):
+            assert "not estimated" in rest and "lower bound" in rest, m.group(0)
+    for why in (line for line in text.splitlines() if line.startswith("why: ")):
+        assert re.match(r"why: the most likely failure \(stage \d+; over all \d+ steps: log-probability of its "
+                        r"detections -?[\d.]+ nats", why), why  # fmt: skip
+
+
+def test_braking_console_uses_one_meaning_per_word(capsys):
+    text = _console(capsys)
+    _check(text, "gap", 0.7)
+    assert "gap < 0.5 m (contact)" in text
+    assert "gap < 0 m (contact)           not reached by this run (0 of 1,800" in text
+    assert "gap < 1 m (contact)" not in text
+
+
+@pytest.mark.slow
+def test_cut_in_console_uses_one_meaning_per_word(capsys):
+    text = _console(capsys, "--scenario", "cut-in")
+    _check(text, "clearance", 0.0)
+    assert "why: the most likely failure (stage " in text
+    assert "clearance < 0 m (contact)" in text and "clearance < 1 m (contact)" not in text
