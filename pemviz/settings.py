@@ -83,10 +83,11 @@ FIT_PRECISIONS = ("exact", "float32", "float64")
 kernels, whose last bits depend on the CPU's vector unit and BLAS kernel (the paper's fits are float64). The network
 samples in exact arithmetic whatever this is (:meth:`pemviz.core.sampling.Proposal.detect_logit`); the parameters and
 every importance weight stay float64."""
-AMS_SCORES = ("robustness", "committor")
+AMS_SCORES = ("robustness", "lookahead", "committor")
 """What ranks the AMS particles (:class:`~pemviz.config.ExperimentConfig` ``ams_score``,
-:mod:`pemviz.estimators.ams`): the formula's classic robustness, or -log of the scenario's learned committor
-(:mod:`pemviz.scenarios.cut_in.splitting`)."""
+:mod:`pemviz.estimators.ams`): the formula's classic robustness, the robustness of the nominal continuation from
+each step (any scene with snapshot/restore: :mod:`pemviz.estimators.lookahead_score`), or -log of the scenario's
+learned committor (:mod:`pemviz.scenarios.cut_in.splitting`)."""
 PROPOSAL_INPUTS = ("gap", "state")
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
@@ -128,6 +129,7 @@ class Setting:
         unit: the unit of a physical quantity (``""``: a count, a probability or a name).
         lo, hi, lo_open, hi_open: the allowed range of a number; ``lo_open`` / ``hi_open`` exclude the end.
         hi_words: how the upper end is written (``2^64 - 1`` rather than its 20 digits).
+        text_words: what a ``text`` setting takes, in words (``a Ray address``).
         optional: None is allowed too.
         choices: the allowed values of a ``choice``.
         choice_help: (value, what it does) for each choice: the rest of the help, and the panel dropdown's hint.
@@ -148,6 +150,7 @@ class Setting:
     lo_open: bool = False
     hi_open: bool = False
     hi_words: str | None = None
+    text_words: str = "non-empty text"
     optional: bool = False
     choices: tuple[str, ...] = ()
     choice_help: tuple[tuple[str, str], ...] = ()
@@ -179,7 +182,7 @@ class Setting:
         elif self.kind == "bool":
             text = "True or False"
         elif self.kind == "text":
-            text = "a non-empty address"
+            text = self.text_words
         elif self.kind == "pem":
             text = "a shipped PEM name or a PEM file"
         elif self.kind == "params":
@@ -338,7 +341,7 @@ SETTINGS: dict[str, Setting] = _settings(
             choice_help=(("serial", "in this process"),
                          ("ray", "Ray tasks over blocks of rollouts; a batch of one block runs in this process"))),
     Setting("ray_address", "the Ray cluster", "the cluster that executor ray uses", kind="text",
-            optional=True, owner=RUN, flags=("--ray-address",)),
+            text_words="a Ray address, e.g. ray://host:10001", optional=True, owner=RUN, flags=("--ray-address",)),
     Setting("chunk_rollouts", "the chunk size", "the most rollouts simulated and scored at a time: a serial stage of "
             "more streams chunk by chunk; a seed gives the same rollouts and estimate, bit for bit, at any chunk size",
             kind="int", lo=1, optional=True, owner=RUN, flags=("--chunk",)),
@@ -348,6 +351,7 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("require", "the requirement", "a requirement on p, e.g. 'p < 1e-9': sample more until the interval lies "
             "wholly on one side of the threshold (a sequential test whose error stays at most 5 % over every look), or "
             "a cap (--max-sims, --max-time) is hit; pemviz run exits 0 met, 1 violated, 3 undecided", kind="text",
+            text_words="a requirement p < T, p <= T, p > T or p >= T with T in (0, 1), e.g. 'p < 1e-9'",
             optional=True, owner=RUN, flags=("--require",)),
     Setting("margin", "the crash gap", "braking: a failure is the gap dropping below this many metres (None: the "
             "scenario's 2 m); 0 targets contact, the severity curve's last point, which a run at 2 m rarely reaches "
@@ -422,6 +426,7 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("ams_score", "the AMS score", "what ranks the AMS particles", kind="choice", choices=AMS_SCORES,
             owner="ams", flags=("--ams-score",),
             choice_help=(("robustness", "the formula's classic robustness"),
+                         ("lookahead", "the robustness of the nominal continuation from each step (any scene)"),
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
 )  # fmt: skip
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""

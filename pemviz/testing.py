@@ -496,13 +496,14 @@ class _folder:
 # -- estimators -----------------------------------------------------------------------------------------------------
 
 
-def estimator_config(method: str, seed: int, n: int = ESTIMATOR_ROLLOUTS) -> Any:
-    """The small run :func:`check_estimator` makes of ``method``: 2 stages of ``n`` rollouts, a final batch of
-    ``n // 5``, 50 Adam epochs a fit and 50 of pretraining (the adaptive method's), the defaults otherwise."""
+def estimator_config(method: str, seed: int, n: int = ESTIMATOR_ROLLOUTS, settings: Mapping | None = None) -> Any:
+    """:func:`check_estimator`'s run of ``method``: 2 stages of ``n`` rollouts, a final batch of ``n // 5``, 50 Adam
+    epochs a fit and of pretraining, ``settings`` (e.g. ``ams_score``; ConfigError if refused), else the defaults."""
     from pemviz.config import ExperimentConfig
 
     return dataclasses.replace(ExperimentConfig(method=method, seed=seed), n_stages=2, n_per_stage=n,
-                               n_final=max(1, n // 5), ce_epochs=50, pretrain_epochs=50)  # fmt: skip
+                               n_final=max(1, n // 5), ce_epochs=50, pretrain_epochs=50,
+                               **dict(settings or {}))  # fmt: skip
 
 
 def _never_fails(problem: Any) -> Any:
@@ -513,7 +514,8 @@ def _never_fails(problem: Any) -> Any:
     return dataclasses.replace(problem, formula=formula, exact_log_p=None, name=f"{problem.name}, never failing")
 
 
-def check_estimator(method: str, *, problem: Any = None, folder: str | Path | None = None) -> Report:
+def check_estimator(method: str, *, problem: Any = None, folder: str | Path | None = None,
+                    settings: Mapping[str, Any] | None = None) -> Report:  # fmt: skip
     """Check an estimation method on a problem with an exact answer: its interface, its bias, its verdicts, its files.
 
     The runs are :func:`estimator_config` (2 stages of :data:`ESTIMATOR_ROLLOUTS` = 2000 rollouts, a final batch of
@@ -524,25 +526,23 @@ def check_estimator(method: str, *, problem: Any = None, folder: str | Path | No
       runs the same bit for bit).
     - ``unbiased``: the estimates mu_k of seeds k = 0 .. K - 1 (K = :data:`ESTIMATOR_SEEDS` = 8) average to the exact
       p: ``|mean(mu_k) / p - 1| <= 0.2 + 4 SE`` with SE the sample standard deviation of mu_k / p over sqrt(K)
-      (:data:`UNBIASED_TOLERANCE`, :data:`UNBIASED_Z`). The seeds are fixed, so the check gives the same answer on
-      every run. At these sizes the means of mc, mixed50 and adaptive are within 0.1 % of p and that of ams within
-      4 %; naive50's estimates spread widely on the toy (mu_k / p from 0.04 to 1.6 under the default Array-RQMC
-      uniforms), and it passes by its SE. An estimator off by a factor 2 whose mu_k / p spread less than 0.25
-      (standard deviation) fails, e.g. ``mc`` with mu_hat doubled.
+      (:data:`UNBIASED_TOLERANCE`, :data:`UNBIASED_Z`; fixed seeds: the same answer on every run). Means at these
+      sizes: mc, mixed50, adaptive within 0.1 % of p, ams within 4 %; naive50 spreads widely (mu_k / p 0.04 to 1.6)
+      and passes by its SE. An estimator off by 2 whose mu_k / p spread less than 0.25 fails (``mc`` doubled).
     - ``verdicts``: no estimate (each stage's and the final one of every run) with no failure or a NaN mu_hat is
       called ``reliable``; and a run on the toy with a requirement no rollout can violate reports no failure and no
       ``reliable`` verdict.
     - ``rollout-file``: seed 0's run saved by :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file to
       the run's own mu_hat within 1e-9 (relative), with its failures, rollouts and verdict. Skipped for a method
       without importance weights (``ams``: the sink refuses it, saying why).
-    - ``recording``: seed 0's run recorded by :meth:`pemviz.sinks.recording.RerunSink.to_file` writes a non-empty
-      file without error.
+    - ``recording``: seed 0's run recorded (:meth:`pemviz.sinks.recording.RerunSink.to_file`) writes a non-empty file.
 
     Args:
         method: one of :data:`pemviz.config.METHODS`.
         problem: a :class:`pemviz.core.problems.Problem` with an exact answer and a distance signal ``d`` (None:
             :data:`ESTIMATOR_PROBLEM`).
         folder: where seed 0's files go (kept); None: a temporary folder, removed afterwards.
+        settings: the method's own settings (:class:`~pemviz.config.ExperimentConfig` fields, e.g. ``ams_score``).
     Returns:
         the :class:`Report`. A check takes about a second (``adaptive`` a few) on a laptop.
     Raises:
@@ -564,14 +564,14 @@ def check_estimator(method: str, *, problem: Any = None, folder: str | Path | No
 
     name = "interface"
     try:
-        check_interface(lambda p: build_estimator(estimator_config(method, 0), p), pb)
+        check_interface(lambda p: build_estimator(estimator_config(method, 0, settings=settings), p), pb)
     except CheckError as exc:
         raise checks.fail(name, str(exc)) from None
     checks.passed.append(name)
 
     with _folder(folder) as where:
-        runs = [_run_with_files(estimator_config(method, 0), pb, where, f"{method}-seed0")]
-        runs += [_run(estimator_config(method, k), pb) for k in range(1, ESTIMATOR_SEEDS)]
+        cfgs = [estimator_config(method, k, settings=settings) for k in range(ESTIMATOR_SEEDS)]
+        runs = [_run_with_files(cfgs[0], pb, where, f"{method}-seed0"), *(_run(c, pb) for c in cfgs[1:])]
 
         name = "unbiased"
         ratio = np.exp(np.array([r.final.estimate.log_mu_hat for r in runs]) - pb.exact_log_p)  # mu_k / p
@@ -585,7 +585,7 @@ def check_estimator(method: str, *, problem: Any = None, folder: str | Path | No
         checks.passed.append(name)
 
         name = "verdicts"
-        never = _run(estimator_config(method, 0), _never_fails(pb))
+        never = _run(cfgs[0], _never_fails(pb))
         for run in [*runs, never]:
             for est in run.estimates:
                 bad = est.n_failures == 0 or math.isnan(est.log_mu_hat)

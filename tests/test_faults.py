@@ -160,9 +160,9 @@ def test_signal_at_a_random_point_of_estimate_keeps_the_old_recording_or_writes_
         assert leftovers(tmp_path) == []
 
 
-def test_signal_sigterm_mid_run_finishes_the_recording_in_process(tmp_path, capsys, monkeypatch):
-    """SIGTERM raised inside the engine (as the handler raises it): one line, exit 143, a recording that
-    verifies and is marked interrupted, nothing else in the folder."""
+def terminate_after_stage_1(monkeypatch) -> None:
+    """The engine of the next run raises :class:`pemviz.commands.Terminated` (as the SIGTERM handler does) once its
+    stage 1 has finished."""
     from pemviz.commands import Terminated
     from pemviz.engine import experiment as engine
     from pemviz.engine.events import StageFinished
@@ -176,12 +176,31 @@ def test_signal_sigterm_mid_run_finishes_the_recording_in_process(tmp_path, caps
             super().__init__(config, [*listeners, term], cancel, problem=problem)
 
     monkeypatch.setattr(engine, "Experiment", TerminatedAfterStage1)
+
+
+def test_signal_sigterm_mid_run_finishes_the_recording_in_process(tmp_path, capsys, monkeypatch):
+    """SIGTERM raised inside the engine (as the handler raises it): one line, exit 143, a recording that
+    verifies and is marked interrupted, nothing else in the folder."""
+    terminate_after_stage_1(monkeypatch)
     code, err = cli_line(capsys, *SMALL_RUN, "--k", "3", "--save", str(tmp_path / "t.rrd"))
     assert code == 143
     assert err.splitlines()[-1] == ("pemviz run: interrupted (SIGTERM); 2 stage(s) finished; recording "
                                     f"{tmp_path / 't.rrd'} (marked interrupted)")  # fmt: skip
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.rrd"]
     verify_rrd(tmp_path / "t.rrd")
+
+
+def test_sigterm_mid_run_names_the_outputs_it_did_not_write(tmp_path, capsys, monkeypatch):
+    """SIGTERM inside the stages of a run asked for a rollout file and result files: the line names each one not
+    written, with its flag, and none of them exists."""
+    terminate_after_stage_1(monkeypatch)
+    monkeypatch.chdir(tmp_path)
+    code, err = cli_line(capsys, *SMALL_RUN, "--k", "3", "--no-record", "--save-rollouts", "r.parquet", "--json",
+                         "r.json", "--report", "r.html")  # fmt: skip
+    assert code == 143
+    assert err.splitlines()[-1] == ("pemviz run: interrupted (SIGTERM); 2 stage(s) finished; not written: r.parquet "
+                                    "(--save-rollouts), r.json (--json), r.html (--report)")  # fmt: skip
+    assert leftovers(tmp_path) == [] and not any(tmp_path.iterdir())
 
 
 # ------------------------------------------------------------------------------------------------ full disk

@@ -4,6 +4,7 @@ numbers; every flag it names is one `pemviz run` accepts."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import types
@@ -106,6 +107,31 @@ def test_a_known_p_sizes_plain_monte_carlo_on_the_reference_with_the_measured_ti
     assert "upper estimate" not in advice  # the reference is no estimate of this run
     assert "k-hat 3.06 > 0.7" in advice
     assert_valid_flags(advice)
+
+
+def test_a_probed_plain_rollout_times_plain_monte_carlo_at_its_own_speed():
+    """With the engine's probe (a plain rollout's seconds measured after the run), plain Monte Carlo's time is its
+    rollouts times that, and the line says it was measured; the sampler's own route keeps the run's speed."""
+    e = made(math.log(4.2e-12), khat=3.06)
+    advice = next_step(e, ExperimentConfig(scenario="cut-in"), None, CUT_IN_REFERENCE, 2100, 7.0, plain_s=2.3e-4)
+    n = mc_count(866 / 10_000_000)
+    assert f"{n:,} rollouts for a 20 % interval, ~{duration_text(n * 2.3e-4)} at ~0.23 ms a plain rollout (measured " \
+           "here after the run))" in advice
+    assert "more budget (--n 400: 5,100 simulations, ~17 s)" in advice
+
+
+def test_the_engine_probes_a_plain_rollout_only_where_the_advice_needs_it():
+    """:func:`pemviz.engine.experiment.plain_probe`: seconds a plain rollout after a run that is not reliable from
+    another method; None after a reliable run or a plain Monte Carlo run (which measured its own)."""
+    from pemviz.engine.experiment import plain_probe
+    from pemviz.scenarios.problems import build_problem
+
+    problem = build_problem("toy")
+    s = plain_probe(problem, ExperimentConfig(method="adaptive"), made(math.log(1e-3)))
+    assert s is not None and 0.0 < s < 0.1
+    assert plain_probe(problem, ExperimentConfig(method="mc"), made(math.log(1e-3))) is None
+    assert plain_probe(problem, ExperimentConfig(), dataclasses.replace(made(math.log(1e-3)), verdict="reliable")) \
+        is None
 
 
 def test_a_max_time_that_plain_monte_carlo_does_not_fit_says_so_and_what_is_left():

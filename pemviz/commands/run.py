@@ -468,6 +468,15 @@ def main(args: argparse.Namespace) -> int:
         raise
 
 
+def unwritten(rollout_sink: object, result_files: tuple[Path | None, Path | None, Path | None]) -> str:
+    """``not written: r.parquet (--save-rollouts), r.json (--json)``: the outputs asked for that a run interrupted
+    in its stages does not write (a rollout file keeps only a finished run's rollouts); empty when none was asked."""
+    asked = [(getattr(rollout_sink, "path", None), "--save-rollouts"),
+             *zip(result_files, ("--json", "--junit", "--report"))]  # fmt: skip
+    names = [f"{path} ({flag})" for path, flag in asked if path is not None]
+    return f"not written: {', '.join(names)}" if names else ""
+
+
 def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_files) -> int:
     """The run itself, its listeners and its files (:func:`run`); ``early``: the recording process started before
     the problem was built, or None."""
@@ -527,8 +536,9 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
         where = recorder.close() if recorder is not None else None
         done = f"{len(experiment.stages)} stage(s) finished"
-        raise interrupted(exc, f"{done}; recording {where} (marked interrupted)" if where else
-                          f"{done}; nothing written") from None
+        said = [f"recording {where} (marked interrupted)"] if where else []
+        said += [unwritten(rollout_sink, result_files)] if unwritten(rollout_sink, result_files) else []
+        raise interrupted(exc, "; ".join([done, *(said or ["nothing written"])])) from None
     except BaseException:
         if recorder is not None:
             recorder.close(commit=False)

@@ -242,3 +242,25 @@ class ShiftedPEM:
         """logit p'(detect | distance), float64 of the shape of ``distance`` (metres)."""
         return np.asarray(self.pem.logit_at_gap(distance), dtype=np.float64) + self.shift
 
+
+def no_branch_message(problem: Problem) -> str:
+    """The one-line error for a problem whose simulator cannot be continued from a step."""
+    return f"method ams needs a simulator with snapshot/restore; {problem.name} has none"
+
+
+def step_robustness(problem: Problem, batch: RolloutBatch) -> np.ndarray:
+    """The classic robustness of the operand of the problem's ``G[a,b](operand)`` formula at every step, float64
+    [N, T], +inf outside [a, b].
+
+    Raises:
+        ValueError: a formula that is not ``G[a,b](state predicate)`` (cf. :func:`pemviz.stl.first_violation`).
+    """
+    f = problem.formula
+    if not isinstance(f, stl.Always) or f.operand.horizon() != 0:
+        raise ValueError(f"method ams needs a safety formula G[a,b](state predicate), got {f}")
+    rho = np.array(stl.robustness_signal(f.operand, problem.signal_arrays(batch), "classic"), dtype=np.float64)
+    rho = np.atleast_2d(rho)
+    end = rho.shape[1] - 1 if f.end is None else min(f.end, rho.shape[1] - 1)
+    rho[:, : f.start] = np.inf
+    rho[:, end + 1 :] = np.inf
+    return rho

@@ -183,6 +183,11 @@ class FinalEstimate:
     prepared: str | None = None
     """How the estimator's proposal was prepared, one line (the tilt's: solved by this run, or reused from an earlier
     run of the same scene, PEMs and options); None: nothing to say."""
+    plain_rollout_s: float | None = None
+    """Seconds a plain rollout of the problem (its PEMs alone) takes on this machine, measured after the run by a probe
+    of :data:`pemviz.engine.experiment.PLAIN_PROBE` rollouts where the advice sizes plain Monte Carlo (a verdict that
+    is not ``reliable``, from another method); None: not probed (the advice then derives it from the run's own speed,
+    :func:`pemviz.sinks.console.plain_rollout_seconds`)."""
 
 
 @dataclass(frozen=True)

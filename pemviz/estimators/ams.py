@@ -20,12 +20,14 @@ so stopping early at a fixed iteration budget keeps it unbiased for the failure 
 level used); Innes & Ramamoorthy, "Adaptive Splitting of Reusable Temporal Monitors for Rare Traffic Violations",
 arXiv 2405.15771, 2024 (AMS with STL robustness as the score, by the authors of the PEM sampler).
 
-A graded score (``ams_score = "committor"``, :class:`GradedScore`) ranks the particles by -log of a scenario's
-learned probability of failure V(s) instead: where a scene's robustness sits on one plateau in most rollouts
-(e.g. the cut-in's), its levels tie, and V takes a continuum of values. The failure threshold stays the robustness's: a
-prefix scores the running minimum of the graded score at the steps that do not fail (at least :data:`SCORE_FLOOR`)
-and of the robustness (< 0) at those that do. Any score that is a function of the state and the step keeps p_hat
-unbiased (Brehier et al. 2016 above); a poor one costs variance (more ties, fewer families).
+A scene-neutral graded score (``ams_score = "lookahead"``, :mod:`pemviz.estimators.lookahead_score`) ranks the
+particles by the robustness of their nominal continuation (the PEM's most likely events from the step on), which any
+scene with ``branch`` has. A scenario's graded score (``ams_score = "committor"``, :class:`GradedScore`) ranks the
+particles by -log of a scenario's learned probability of failure V(s) instead: where a scene's robustness sits on one
+plateau in most rollouts (e.g. the cut-in's), its levels tie, and V takes a continuum of values. The failure threshold
+stays the robustness's: a prefix scores the running minimum of the graded score at the steps that do not fail (at
+least :data:`SCORE_FLOOR`) and of the robustness (< 0) at those that do. Any score that is a function of the state and
+the step keeps p_hat unbiased (Brehier et al. 2016 above); a poor one costs variance (more ties, fewer families).
 
 Cost: the N initial rollouts (N T steps) plus, per iteration, the continuations' steps sum_i (T - branch step_i).
 ``n_simulations`` counts rollout-equivalents, ceil(simulated steps / T), so that budgets compare with the
@@ -50,12 +52,7 @@ from pemviz.core.estimate import CI_LEVEL, MIN_FAILURES, Estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure
 from pemviz.core.plan import RunPlan
-from pemviz.core.problems import Problem
-
-
-def no_branch_message(problem: Problem) -> str:
-    """The one-line error for a problem whose simulator cannot be continued from a step."""
-    return f"method ams needs a simulator with snapshot/restore; {problem.name} has none"
+from pemviz.core.problems import Problem, no_branch_message, step_robustness
 
 
 SCORE_FLOOR = 1e-12
@@ -77,24 +74,6 @@ class GradedScore(Protocol):
 
     def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
                rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]: ...  # fmt: skip
-
-
-def step_robustness(problem: Problem, batch: RolloutBatch) -> np.ndarray:
-    """The classic robustness of the operand of the problem's ``G[a,b](operand)`` formula at every step, float64
-    [N, T], +inf outside [a, b].
-
-    Raises:
-        ValueError: a formula that is not ``G[a,b](state predicate)`` (cf. :func:`pemviz.stl.first_violation`).
-    """
-    f = problem.formula
-    if not isinstance(f, stl.Always) or f.operand.horizon() != 0:
-        raise ValueError(f"method ams needs a safety formula G[a,b](state predicate), got {f}")
-    rho = np.array(stl.robustness_signal(f.operand, problem.signal_arrays(batch), "classic"), dtype=np.float64)
-    rho = np.atleast_2d(rho)
-    end = rho.shape[1] - 1 if f.end is None else min(f.end, rho.shape[1] - 1)
-    rho[:, : f.start] = np.inf
-    rho[:, end + 1 :] = np.inf
-    return rho
 
 
 def running_score(problem: Problem, batch: RolloutBatch, graded: np.ndarray | None = None,
@@ -366,7 +345,8 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
 
 
 def committor_score(problem: Problem, score: str) -> GradedScore | None:
-    """The graded score ``ams_score`` names: None for ``robustness``; for ``committor`` the problem's tilted
+    """The graded score ``ams_score`` names: None for ``robustness``; for ``lookahead`` the scene-neutral nominal
+    look-ahead (:class:`pemviz.estimators.lookahead_score.LookAheadScore`); for ``committor`` the problem's tilted
     proposal's (solved, or reused from an earlier run of the process).
 
     Raises:
@@ -374,6 +354,10 @@ def committor_score(problem: Problem, score: str) -> GradedScore | None:
     """
     if score == "robustness":
         return None
+    if score == "lookahead":
+        from pemviz.estimators.lookahead_score import LookAheadScore
+
+        return LookAheadScore(problem)
     tilt = problem.tilt() if problem.tilt is not None else None
     if tilt is None or not hasattr(tilt, "splitting_score"):
         raise ValueError(f"ams_score committor needs a scenario with a learned committor; "

@@ -112,12 +112,20 @@ def _round_up(n: float) -> int:
     return int(math.ceil(n / unit) * unit)
 
 
+PROBED = "probed"
+"""The ``method`` :func:`_rate_text` takes for a plain rollout's seconds measured by the engine's probe
+(:attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`)."""
+
+
 def _rate_text(s_per: float, method: str) -> str:
-    """``this run's 0.2 ms a rollout`` (a plain Monte Carlo run's measured seconds a rollout, ``s_per``), or after
-    another method ``~0.2 ms a plain rollout (this run's speed, by the cost model)``: :func:`plain_rollout_seconds`."""
+    """``this run's 0.2 ms a rollout`` (a plain Monte Carlo run's measured seconds a rollout, ``s_per``), after another
+    method ``~0.2 ms a plain rollout (measured here after the run)`` (``method`` :data:`PROBED`: the engine's probe)
+    or ``~0.2 ms a plain rollout (this run's speed, by the cost model)``: :func:`plain_rollout_seconds`."""
     rate = f"{s_per * 1e3:.2g} ms" if s_per < 1.0 else f"{s_per:.2g} s"
     if method == "mc":
         return f"this run's {rate} a rollout"
+    if method == PROBED:
+        return f"~{rate} a plain rollout (measured here after the run)"
     return f"~{rate} a plain rollout (this run's speed, by the cost model)"
 
 
@@ -278,7 +286,8 @@ def _more_budget(config, n_simulations: int | None, s_per: float | None, wall_s:
 
 
 def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: Reference | None = None,
-              n_simulations: int | None = None, wall_s: float | None = None) -> str | None:  # fmt: skip
+              n_simulations: int | None = None, wall_s: float | None = None,
+              plain_s: float | None = None) -> str | None:  # fmt: skip
     """What to do after a run whose verdict is not ``reliable``, in one line (None for a reliable one): the cheapest
     route that would decide it, with its rollouts and its time on this machine.
 
@@ -300,12 +309,15 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
         e: the run's estimate; config: its :class:`~pemviz.config.ExperimentConfig` (None: no advice).
         exact_log_p, reference: the scenario's exact answer (nats) or plain Monte Carlo reference, where known.
         n_simulations, wall_s: the run's simulations and wall-clock seconds (None: the line gives no times).
+        plain_s: a plain rollout's seconds measured here after the run (the engine's probe,
+            :attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`); None: from the run's own speed.
     """
     if e.verdict == "reliable" or config is None:
         return None
     method = getattr(config, "method", "adaptive")
     s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
-    mc_s = plain_rollout_seconds(config, s_per, n_simulations)  # a plain rollout's seconds here
+    mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
+    rate = PROBED if plain_s is not None and method != "mc" else method  # how mc_s was had, for the text
     max_time = getattr(config, "max_time_s", None)
     route = mc_route(e, method, exact_log_p, reference, mc_s)
     budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
@@ -323,22 +335,22 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
         cap = route.cap(config)
         upper = ("; an upper estimate: heavy-tailed weights make this run's estimate usually too low, and the run "
                  "stops early where p is larger" if route.upper else "")  # fmt: skip
-        return (f"plain Monte Carlo decides it: {route.command(cap)}{tail} ({route.text(mc_s, method)}){upper}; or "
+        return (f"plain Monte Carlo decides it: {route.command(cap)}{tail} ({route.text(mc_s, rate)}){upper}; or "
                 f"{rest}, with its verdict{heavy}")  # fmt: skip
     if route.upper and budget > (n_simulations or 0):  # p unknown, sized on an estimate that is usually too low:
         # plain Monte Carlo capped at the budget stops early where p is larger and decides it wherever p is at least
         # what the cap resolves
         cap = max(int(float(f"{budget:.2g}")), getattr(config, "n_per_stage", 0))
         least = Z_95**2 / (MC_REL_ERROR**2 * cap + Z_95**2)  # the p at which mc_rollouts(p) = cap
-        return (f"p is not known ({route.text(mc_s, method, floor=False)}: an upper estimate, as heavy-tailed "
+        return (f"p is not known ({route.text(mc_s, rate, floor=False)}: an upper estimate, as heavy-tailed "
                 f"weights make this run's estimate usually too low); plain Monte Carlo capped ({route.command(cap)}"
                 f"{tail}: up to {cap:,} rollouts{_time(cap, mc_s)}) decides it where p >= {least:.2g}, stopping "
                 f"early where p is larger; or {rest}, with its verdict{heavy}")  # fmt: skip
     if route.n > MC_AFFORDABLE and (max_time is None or not route.upper):
-        return (f"{route.text(mc_s, method)}: too rare for plain Monte Carlo; what is left is {rest}, with its "
+        return (f"{route.text(mc_s, rate)}: too rare for plain Monte Carlo; what is left is {rest}, with its "
                 f"verdict{heavy}")  # fmt: skip
     within = _more_budget(config, n_simulations, s_per, wall_s, within_s=max_time)
-    why = f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(mc_s, method)})"
+    why = f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(mc_s, rate)})"
     if within is None:
         cap = route.cap(config)
         return (f"{why}, and this run's sampler has no more time in it: no route within --max-time {max_time:g} s "
@@ -410,7 +422,7 @@ def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = N
         lines.append(f"stop: {event.stop}")
     if event.prepared is not None:
         lines.append(f"proposal: {event.prepared}")
-    advice = next_step(e, config, exact_log_p, reference, event.n_simulations, event.wall_s)
+    advice = next_step(e, config, exact_log_p, reference, event.n_simulations, event.wall_s, event.plain_rollout_s)
     if advice is not None:
         lines.append(f"next: {advice}")
     return lines

@@ -1,0 +1,114 @@
+"""A scene-neutral graded score for adaptive multilevel splitting (``pemviz run --method ams --ams-score lookahead``):
+how close the rollout's state is to failure if perception from now on does what it most likely does.
+
+At a scored step t, the score of a rollout is the robustness of the formula's operand, minimised over the steps from t
+to the end, of its **nominal continuation**: the rollout's own events before t, then from t on every object detected
+iff the PEM says it is more likely detected than not and its measurement errors at their medians (every uniform of the
+simulator's draw at 0.5: :func:`pemviz.core.detectors.draw_step`). A state from which the nominal continuation still
+acts in time scores the nominal margin (e.g. an emergency brake's); the misses and mislocations that have already made
+it act late lower it, by the margin they cost; a doomed state (the nominal continuation fails) scores at the floor. It
+needs nothing but what every scenario gives: the problem's ``branch`` (the rollout continued from a step, by snapshot
+or prefix replay), its target detector and its formula's robustness. It names no scene and learns nothing, so a run
+cannot overfit it.
+
+Which steps are scored: every ``stride``-th step (stride = ceil(T / :data:`SCORED_STEPS`)) at which the rollout has
+not failed and, for a scene with object rows and a finite proposal window (:attr:`pemviz.core.problems.Problem.
+window`, metres), some object is nearer than the window; the others score +inf (no information).
+
+Splitting stays unbiased for any score that is a function of the state and the step (Brehier, Gazeau, Goudenege,
+Lelievre & Rousset, "Unbiasedness of some generalized adaptive multilevel splitting algorithms", Ann. Appl. Probab.
+26(6), 2016); a poor score costs variance (ties, few families). The nominal continuation is a deterministic function of
+the prefix, so this one is. Its levels are as coarse as the scene's decisions: on a scene that brakes at a step, the
+margin moves in steps of the distance covered in one; on a scene whose controller regulates back to one margin (for
+example an ACC), every nominal continuation ends on that plateau, every particle ties, and the run dies out (measured in
+``benchmarks/scene_neutral.py``).
+
+Cost: every step each look-ahead simulates (T - t for a look-ahead from step t) is counted in :attr:`LookAheadScore.
+steps`; a look-ahead's replayed prefix is not, as for the splitting's own branches (:mod:`pemviz.estimators.ams`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pemviz.core.problems import Problem, no_branch_message, step_robustness
+from pemviz.core.rollouts import RolloutBatch
+
+SCORED_STEPS = 25
+"""About how many steps of a rollout are scored: the stride is ceil(T / SCORED_STEPS)."""
+
+
+class MedianUniforms:
+    """A stand-in for ``numpy.random.Generator`` whose every uniform is 0.5: the draws of the nominal continuation
+    (each detection iff p(detect) >= 0.5, each error at its median)."""
+
+    bit_generator = None
+    """No bit generator to jump: the runners read its draws in order (:func:`pemviz.core.lockstep.uniform_chunks`)."""
+
+    def random(self, size: int | tuple[int, ...] | None = None) -> np.ndarray:
+        """0.5 in the shape ``size`` (float64)."""
+        return np.full(() if size is None else size, 0.5)
+
+
+class LookAheadScore:
+    """The nominal look-ahead score (module docstring) as a :class:`pemviz.estimators.ams.GradedScore`: it draws the
+    particles from the problem's target and scores them.
+
+    Args:
+        problem: a problem with ``branch`` and a ``G[a,b](state predicate)`` formula.
+        stride: score every ``stride``-th step (None: ceil(T / :data:`SCORED_STEPS`)).
+
+    Raises:
+        ValueError: a problem without ``branch``, or a stride < 1.
+    """
+
+    def __init__(self, problem: Problem, stride: int | None = None) -> None:
+        if problem.branch is None:
+            raise ValueError(no_branch_message(problem))
+        if stride is not None and stride < 1:
+            raise ValueError(f"LookAheadScore: stride must be >= 1, got {stride}")
+        self.problem, self.stride = problem, stride
+        self.steps = 0
+        """Rollout-steps the look-aheads simulated (their replayed prefixes not counted)."""
+
+    def scored_steps(self, n_steps: int) -> range:
+        """The steps scored in a rollout of ``n_steps`` steps (before the per-rollout conditions)."""
+        return range(0, n_steps, self.stride or max(1, math.ceil(n_steps / SCORED_STEPS)))
+
+    def simulate(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:
+        """``n`` rollouts of the problem's target and their scores, float64 [n, T] (metres of robustness; +inf at
+        steps not scored)."""
+        p = self.problem
+        batch = p.simulate(n, p.target, p.target, rng)
+        return batch, self.score(batch, np.full(n, -1))
+
+    def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
+               rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:  # fmt: skip
+        """``Problem.branch``'s rollouts [K, T] and their scores after each branching step ``at`` [K] (+inf up to
+        it: the parent's hold there)."""
+        p = self.problem
+        assert p.branch is not None
+        batch = p.branch(parents, parent, at, p.target, rng)
+        return batch, self.score(batch, np.asarray(at))
+
+    def score(self, batch: RolloutBatch, first: np.ndarray) -> np.ndarray:
+        """The scores of ``batch``'s rollouts at their scored steps after ``first`` [N], float64 [N, T] (+inf
+        elsewhere): the nominal continuation's least operand robustness from the step on (metres)."""
+        p = self.problem
+        assert p.branch is not None
+        n, t_end = batch.n, batch.n_steps
+        graded = np.full((n, t_end), np.inf)
+        alive = np.minimum.accumulate(step_robustness(p, batch), axis=1) >= 0.0
+        near = np.ones((n, t_end), bool)
+        if batch.objects is not None and math.isfinite(p.window):
+            near = (batch.objects[:, :, :, 0] <= p.window).any(axis=2)
+        for t in self.scored_steps(t_end):
+            rows = np.flatnonzero((t > first) & alive[:, t] & near[:, t])
+            if not rows.size:
+                continue
+            ahead = p.branch(batch, rows, np.full(rows.size, t), p.target, MedianUniforms())  # type: ignore[arg-type]
+            graded[rows, t] = step_robustness(p, ahead)[:, t:].min(axis=1)
+            self.steps += rows.size * (t_end - t)
+        return graded
