@@ -4,6 +4,7 @@ recovers its exact failure probability; pemviz's own scenarios implement the pro
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -135,4 +136,8 @@ def test_user_guide_example_is_under_30_lines_runs_and_estimates_its_exact_answe
     exact = exact_failure_probability(namespace["MyCar"], problem.target.detect_logit, 64, 25.0)
     assert exact == pytest.approx(2.8576e-5, rel=1e-3)  # the number the guide quotes
     assert est.n_failures > 0 and exact / 3 < est.mu_hat < 3 * exact
-    assert est.log_ci[0] < math.log(exact) < est.log_ci[1]  # the guide: the interval holds the exact answer
+    assert est.log_ci[0] < math.log(exact) < est.log_ci[1]  # the interval the estimate holds holds the exact answer
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "own-simulator.md").read_text()
+    quoted = guide.split("It prints `", 1)[1].split("`", 1)[0]
+    assert quoted == printed.splitlines()[0]  # the guide quotes this run's line exactly (the seed contract)
+    assert f"`p >= {math.exp(est.log_lower_bound):.2e}`" in guide and f"k-hat of {est.khat:.2f}" in guide

@@ -1,0 +1,149 @@
+"""The console output the README and the user guide quote, made by the current code: each quoted block names the
+command that prints it, this script runs every such command, says which blocks no longer match what the command
+prints, and with ``--write`` replaces them with what it prints now.
+
+A quoted block is a fenced ``text`` block right after a marker line naming its command::
+
+    <!-- quoted: pemviz run --scenario crossing --no-record --seed 0 -->
+    ```text
+    mu_hat = 2.844e-04, 95% CI [2.32e-04, 3.45e-04], ...
+    ```
+
+The block matches the output when, whitespace collapsed (a block may wrap a long line) and times masked (a number of
+seconds, milliseconds or minutes, which differ from machine to machine), its text appears in the output, in order,
+``...`` standing for any elided text. Every other number must be the same: the seed contract makes a run the same bits
+on every machine. ``tests/test_quoted_outputs.py`` runs the same check in the test command.
+
+Usage::
+
+    python benchmarks/docs_assets.py            # which quoted blocks are stale (exit 1 if any)
+    python benchmarks/docs_assets.py --write    # rewrite the stale ones from the commands' output
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import re
+import shlex
+import sys
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+MARKER = re.compile(r"^<!-- quoted: (pemviz .+?) -->\s*$")
+TIME = re.compile(r"~?\d[\d.,]*\s?(?:ms|s|min|h)\b")
+"""A duration (``5.8 s``, ``~0.23 ms``, ``~4.3 min``): masked before comparing."""
+
+
+@dataclass(frozen=True)
+class Block:
+    """A quoted block: its file, the line numbers of its text (first, end; 0-based, end exclusive), its command, its
+    lines."""
+
+    path: Path
+    first: int
+    end: int
+    command: str
+    lines: tuple[str, ...]
+
+
+def documents() -> list[Path]:
+    """The README and every page of the user guide."""
+    return [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+
+
+def quoted_blocks(path: Path) -> list[Block]:
+    """The quoted blocks of ``path``.
+
+    Raises:
+        ValueError: a marker not followed by a fenced text block (file and line in the message).
+    """
+    lines = path.read_text().splitlines()
+    out = []
+    for i, line in enumerate(lines):
+        m = MARKER.match(line)
+        if not m:
+            continue
+        if i + 1 >= len(lines) or lines[i + 1].strip() != "```text":
+            raise ValueError(f"{path.name}:{i + 1}: a quoted marker must be followed by a ```text block")
+        end = next((j for j in range(i + 2, len(lines)) if lines[j].strip() == "```"), None)
+        if end is None:
+            raise ValueError(f"{path.name}:{i + 2}: the quoted block is not closed")
+        out.append(Block(path, i + 2, end, m.group(1), tuple(lines[i + 2 : end])))
+    return out
+
+
+def run(command: str) -> str:
+    """What ``command`` (``pemviz ...``) prints, stdout then stderr, run in this process."""
+    from pemviz.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            main(shlex.split(command)[1:])
+        except SystemExit:
+            pass
+    return out.getvalue() + err.getvalue()
+
+
+def normal(text: str) -> str:
+    """Whitespace collapsed and durations masked."""
+    return " ".join(TIME.sub("<time>", text).split())
+
+
+def matches(block_lines: tuple[str, ...] | list[str], output: str) -> bool:
+    """Whether the block's text appears in ``output`` (module docstring)."""
+    text, where = normal("\n".join(block_lines)), normal(output)
+    at = 0
+    for part in (p.strip() for p in text.split("...")):
+        if not part:
+            continue
+        found = where.find(part, at)
+        if found < 0:
+            return False
+        at = found + len(part)
+    return True
+
+
+def fresh_lines(block: Block, output: str, width: int = 118) -> list[str]:
+    """The block rewritten from ``output``: each output line that begins as one of the block's lines begins (its
+    first word), in the output's order, wrapped at ``width`` where the block wrapped."""
+    starts = {line.split()[0] for line in block.lines if line.strip() and not line.startswith(" ")}
+    wrapped = any(len(line) > width for line in output.splitlines()) and all(len(x) <= 120 for x in block.lines)
+    out = []
+    for line in output.splitlines():
+        if line.split() and line.split()[0] in starts:
+            out += textwrap.wrap(line, width, break_on_hyphens=False) if wrapped else [line]
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--write", action="store_true", help="rewrite the stale blocks")
+    a = ap.parse_args(argv)
+    outputs: dict[str, str] = {}
+    stale = 0
+    for path in documents():
+        blocks = quoted_blocks(path)
+        lines = path.read_text().splitlines()
+        for block in reversed(blocks):  # from the end: a rewrite keeps the earlier blocks' line numbers
+            output = outputs.setdefault(block.command, run(block.command))
+            if matches(block.lines, output):
+                print(f"ok     {path.relative_to(REPO)}:{block.first}: {block.command}")
+                continue
+            stale += 1
+            print(f"stale  {path.relative_to(REPO)}:{block.first}: {block.command}")
+            if a.write:
+                lines[block.first : block.end] = fresh_lines(block, output)
+        if a.write and blocks:
+            path.write_text("\n".join(lines) + "\n")
+    return 1 if stale and not a.write else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
