@@ -114,8 +114,8 @@ def config_of(preset: str, settings: dict) -> ExperimentConfig:
 
 
 def measure(cfg: ExperimentConfig) -> tuple[float, float, Recorder]:
-    """:data:`CLOCK` (wall) and CPU seconds of one run as the panel runs it (the problem loaded before the clocks start), and its
-    stage records (:data:`CLOCK` seconds)."""
+    """:data:`CLOCK` (wall) and CPU seconds of one run as the panel runs it (the problem loaded before the clocks
+    start), and its stage records (:data:`CLOCK` seconds)."""
     global RECORDER
     problem = problem_for(cfg)
     RECORDER = Recorder()
@@ -172,7 +172,7 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
     sim = _lstsq(np.array(x, float), np.array(y), 1.0 / np.maximum(np.array(y), 1e-3))  # relative errors
     # after the rollouts: epochs x (c + d x rows) + e x rows + f (per stage)
     x, y = [], []
-    for cfg, rec in runs:
+    for _cfg, rec in runs:
         for s in rec.stages:
             rows = sum(r for r, _, _ in s.fits)
             epochs = sum(e for _, e, _ in s.fits)
@@ -197,18 +197,18 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
         for tau in np.linspace(0.3, 20.0, 198):
             sse = 0.0
             for points in ce.values():
-                k, n, rows = (np.array(v, float) for v in zip(*points))
+                k, n, rows = (np.array(v, float) for v in zip(*points, strict=False))
                 resid = np.log(rows) - gamma * np.log(n / 100.0) - np.log1p(-np.exp(-(k - 1) / tau))
                 sse += float(np.sum((resid - resid.mean()) ** 2))
             best = min(best, (sse, float(gamma), float(tau)))
     _, exponent, tau = best
     ce_rows = {}
     for inputs, points in ce.items():  # the plateau that gives the rows' sum (the cost is linear in the rows)
-        k, n, rows = (np.array(v, float) for v in zip(*points))
+        k, n, rows = (np.array(v, float) for v in zip(*points, strict=False))
         ce_rows[inputs] = float(rows.sum() / np.sum((n / 100.0) ** exponent * -np.expm1(-(k - 1) / tau)))
     return cost.CostConstants(
         pem_step_s=float(sim[0]), proposal_step_s=float(sim[1]),
-        rollout_step_s={**c0.rollout_step_s, **{m: float(b) for m, b in zip(sims, sim[3:])}},
+        rollout_step_s={**c0.rollout_step_s, **{m: float(b) for m, b in zip(sims, sim[3:], strict=False)}},
         proposal_rollout_step_s=float(sim[2]),
         stage_s=float(after[3]), epoch_s=float(after[0]), row_epoch_s=float(after[1]), row_s=float(after[2]),
         pretrain_rows={**c0.pretrain_rows, **{k: float(np.mean(v)) for k, v in pretrain.items()}},

@@ -200,7 +200,7 @@ def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: 
 
 def overlaps(a: dict[str, Any], b: dict[str, Any]) -> int:
     """How many seeds' 95 % intervals of two estimators' runs (:func:`scenario_runs`) overlap."""
-    return sum(max(x[0], y[0]) <= min(x[1], y[1]) for x, y in zip(a["cis"], b["cis"]))
+    return sum(max(x[0], y[0]) <= min(x[1], y[1]) for x, y in zip(a["cis"], b["cis"], strict=False))
 
 
 def agreement(a: dict[str, Any], b: dict[str, Any]) -> str:
@@ -411,7 +411,7 @@ def acceptance_rows(r: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
     ]
     runs = (cut, rare_t, brk, rare_a)
     wrong = sum(v == "reliable" and not 0.5 <= x <= 2.0  # the scenes with an answer to be wrong against
-                for a in (cut, brk) for v, x in zip(a["verdicts"], a["ratios"]))  # fmt: skip
+                for a in (cut, brk) for v, x in zip(a["verdicts"], a["ratios"], strict=False))  # fmt: skip
     nans = int(sum(np.isnan(a["logs"]).sum() for a in runs))
     n_runs = sum(len(a["verdicts"]) for a in runs)
     rows.append((f"every verdict honest: no 'reliable' beyond x2, no nan ({n_runs} runs)",

@@ -256,14 +256,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.follow_advice:
         work = [(s, seed) for s in ADVICE_SCENES for seed in range(min(args.seeds, 3))]
         with ProcessPoolExecutor(args.jobs) as pool:
-            for lines in pool.map(follow_advice, *zip(*work)):
+            for lines in pool.map(follow_advice, *zip(*work, strict=False)):
                 print("\n".join(lines), flush=True)
         return 0
     work = [(s, m, seed) for s in args.scenes for m in args.methods for seed in range(args.seeds)]
     t0 = time.perf_counter()
     outcomes: list[Outcome] = []
     with ProcessPoolExecutor(args.jobs) as pool:
-        for o in pool.map(one_run, *zip(*work)):
+        for o in pool.map(one_run, *zip(*work, strict=False)):
             outcomes.append(o)
             print(line(o), flush=True)
     rows, met = table(outcomes)

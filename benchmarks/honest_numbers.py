@@ -106,7 +106,8 @@ def jobs_of(part: str, seeds: int, scenes: tuple[str, ...] = SCENES) -> list[dic
 
 def table(runs: list[dict], keys: tuple[str, ...]) -> int:
     """Print one row per group of ``keys``; returns the wrong claims and nan/inf runs."""
-    print("| " + " | ".join(keys) + " | runs | verdicts | interval holds | within x2 | nan or inf | reliable when wrong |")
+    print("| " + " | ".join(keys)
+          + " | runs | verdicts | interval holds | within x2 | nan or inf | reliable when wrong |")
     print("|" + "---|" * (len(keys) + 6))
     bad = 0
     for key in dict.fromkeys(tuple(r.get(k) for k in keys) for r in runs):

@@ -44,9 +44,10 @@ later); an exception is recorded as ``crashed``. Crashed and stalled runs count 
 
 Table, per method and budget over the seeds: runs that returned an estimate > 0 / = 0 / crashed / stalled, the runs
 that returned one from a last level above g = 0 ("short": SubsetSampling ends so when no sample lies strictly below
-a level, a plateau of the piecewise-constant g), the median relative error |mu_hat / p - 1|, the seeds within a factor 2 of p, the median of mu_hat / p, the mean
-evaluations, the median wall time of a run (s), and the relative variance x evaluations, var(mu_hat) / p^2 x mean
-evaluations over the runs that returned (the work-normalised relative variance: lower is better).
+a level, a plateau of the piecewise-constant g), the median relative error |mu_hat / p - 1|, the seeds within a
+factor 2 of p, the median of mu_hat / p, the mean evaluations, the median wall time of a run (s), and the relative
+variance x evaluations, var(mu_hat) / p^2 x mean evaluations over the runs that returned (the work-normalised
+relative variance: lower is better).
 
     pip install -e ".[bench]"                    # openturns
     python benchmarks/openturns_braking.py       # 10 seeds x 3 budgets x 4 OpenTURNS methods + pemviz; ~1-2 h
@@ -237,7 +238,8 @@ def run_openturns(method: str, budget: int, seed: int, timeout_s: float, eval_ca
         status = "ok" if mu > 0.0 else "zero"
     except Exception as exc:  # noqa: BLE001 -- OpenTURNS wraps g's Stop in its own exception types
         mu, status = math.nan, "stalled" if counter.stopped else "crashed"
-        error = counter.stopped or f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}"
+        error = counter.stopped or (f"{type(exc).__name__}: "
+                                    f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}")
     wall = time.perf_counter() - counter.t0
     levels, last = 0, math.nan
     if status in ("ok", "zero"):
@@ -317,8 +319,8 @@ def summarise(runs: list[Run], p: float) -> dict[str, Any]:
 
 def markdown(rows: list[tuple[str, int, dict[str, Any]]], n_seeds: int, p: float) -> str:
     """The Markdown table of :func:`summarise` rows."""
-    head = (f"Braking job, p = {p:.4g}, {n_seeds} seeds. runs: estimate > 0 / = 0 / crashed / stalled; short: runs that "
-            "returned an estimate from a last level above g = 0 (P(g < that level), not the failure probability). "
+    head = (f"Braking job, p = {p:.4g}, {n_seeds} seeds. runs: estimate > 0 / = 0 / crashed / stalled; short: runs "
+            "that returned an estimate from a last level above g = 0 (P(g < that level), not the failure probability). "
             "rel. var x evals measures spread, not bias: read it beside median mu_hat/p.\n\n"
             "| method | budget | runs | short | median rel. error | within x2 | median mu_hat/p | mean evaluations "
             "| median wall s | rel. var x evals |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|\n")  # fmt: skip

@@ -95,8 +95,8 @@ def main() -> int:
                 t_whole = page.evaluate("() => performance.now() - window.__clicked") / 1000
                 first.append(t_first)
                 whole.append(t_whole)
-                print(f"run {i}: first stage shown {t_first:.2f} s after the click (finished {server[-1]:.2f} s after the "
-                      f"server had the click), final estimate {t_whole:.2f} s", flush=True)  # fmt: skip
+                print(f"run {i}: first stage shown {t_first:.2f} s after the click (finished {server[-1]:.2f} s after "
+                      f"the server had the click), final estimate {t_whole:.2f} s", flush=True)  # fmt: skip
             browser.close()
     finally:
         app.close()

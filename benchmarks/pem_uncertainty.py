@@ -34,10 +34,11 @@ def exact_answers(only: tuple[str, ...] = ()) -> None:
     spread = Experiment(cfg, problem=problem_for(cfg)).run().final.pem_spread
     guesses = [a.estimate.log_mu_hat for a in (*spread.members, *spread.shifts)]
     targets = [(f"member {k}", m.logit_at_gap) for k, m in enumerate(load_ensemble(ensemble_path("ml-nn")))]
-    targets += [(f"shift {d:+g}", lambda g, d=d: np.asarray(pem.logit_at_gap(g), dtype=np.float64) + d) for d in PEM_SHIFTS]
+    targets += [(f"shift {d:+g}", lambda g, d=d: np.asarray(pem.logit_at_gap(g), dtype=np.float64) + d)
+                for d in PEM_SHIFTS]
     params = BrakingParams()
     bound = miss_bound(params, branching_start(params))
-    for (label, fn), guess in zip(targets, guesses):
+    for (label, fn), guess in zip(targets, guesses, strict=False):
         if only and label not in only:
             continue
         t = time.perf_counter()
@@ -86,7 +87,8 @@ def runs(seeds: int) -> None:
         rel = sum(e.verdict == "reliable" for e in ests)
         print(f"{a.label:<12} {'-' if ex is None else format(math.exp(ex), '.3e'):>10} {math.exp(med):>11.3e} "
               f"{within!s:>8}/{seeds} {cover!s:>5}/{seeds} {rel:>6}/{seeds} {np.median([e.ess for e in ests]):>11.1f}")
-    print(f"\nmembers within x1.5 in every seed: {n_within}/{n_known}; interval holds p_k in every seed: {n_cover}/{n_known}")
+    print(f"\nmembers within x1.5 in every seed: {n_within}/{n_known}; "
+          f"interval holds p_k in every seed: {n_cover}/{n_known}")
     for s, sp in enumerate(spreads):
         med, lo, hi = sp.spread()
         ex = sp.exact_spread()
@@ -101,7 +103,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--exact", action="store_true", help="recompute the exact answers first")
-    ap.add_argument("--only", default="", help="with --exact: these targets only, comma-separated ('member 3,shift +1')")
+    ap.add_argument("--only", default="",
+                    help="with --exact: these targets only, comma-separated ('member 3,shift +1')")
     a = ap.parse_args()
     if a.exact:
         exact_answers(tuple(x.strip() for x in a.only.split(",") if x.strip()))

@@ -186,7 +186,8 @@ def exact_log_p(spec: Spec) -> tuple[float, str]:
     guess = truth.KNOWN_BRAKING_LOG_P["915fec568bb72b65"] - 9.0 * spec.shift  # ~9 nats per nat of shift (measured)
     ref = truth.braking_truth(pem.logit_at_gap, BrakingParams(), log_prunes=[guess - 10 - 4 * k for k in range(8)])
     f = ref.final
-    return ref.log_p_fail, f"exact enumeration, bracket width {f.relative_width:.2%}{'' if ref.converged else ' (NOT converged)'}"
+    return ref.log_p_fail, (f"exact enumeration, bracket width {f.relative_width:.2%}"
+                            f"{'' if ref.converged else ' (NOT converged)'}")
 
 
 # -- runs -----------------------------------------------------------------------------------------------------------
@@ -283,7 +284,7 @@ def run_all(jobs: Sequence[Job], runs_file: Path, n_jobs: int, truths: dict[str,
                 finished(job, run_job(job))
         else:
             with mp.get_context("spawn").Pool(n_jobs) as pool:  # torch and fork do not mix
-                for job, rec in zip(todo, pool.imap(run_job, todo)):
+                for job, rec in zip(todo, pool.imap(run_job, todo), strict=False):
                     finished(job, rec)
     return [done[j.key()] for j in jobs]
 
@@ -376,7 +377,7 @@ def write_png(path: str, rows: Sequence[Row], n_seeds: int, budget: int) -> None
         ax1.plot(x, [p[1] for p in pts], "o-", label=method)
         finite = [(p[0], p[2]) for p in pts if math.isfinite(p[2]) and p[2] >= 1.0]
         if finite:
-            ax2.plot(*zip(*finite), "o-", label=method)
+            ax2.plot(*zip(*finite, strict=False), "o-", label=method)
     ax1.set(yscale="log", xlabel="log10 p (exact)", ylabel="median relative error",
             title=f"relative error at {budget:,} simulations, {n_seeds} seeds")  # fmt: skip
     ax1.axhline(0.1, color="grey", lw=0.8, ls="--")
@@ -430,7 +431,7 @@ def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
 
         def keep(event: object) -> None:
             if isinstance(event, RolloutsSampled) and event.kind == "final":
-                finals.append(event)
+                finals.append(event)  # noqa: B023 (the run below calls it within the iteration)
 
         with torch_threads(1):
             Experiment(ExperimentConfig(seed=seed), [keep], problem=problem).run()

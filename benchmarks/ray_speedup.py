@@ -69,7 +69,8 @@ def main() -> int:
         from pemviz.engine.executors import get_executor
 
         t0 = time.perf_counter()
-        get_executor("ray").simulate(problem, 2 * args.workers, problem.target, problem.target, np.random.default_rng(0))
+        get_executor("ray").simulate(problem, 2 * args.workers, problem.target, problem.target,
+                                     np.random.default_rng(0))
         startup = time.perf_counter() - t0
         remote, wall_r, sim_r = run(base.replace(executor="ray"), problem)
     finally:

@@ -69,7 +69,7 @@ def main() -> int:
                     size = rrd.stat().st_size
                     print(f"  run {i + 1} --save:      {wall:6.1f} s wall {cpu:6.1f} s CPU ({size / 1e6:.2f} MB)",
                           flush=True)  # fmt: skip
-    ratios = [s / p for s, p in zip(saved, plain)]
+    ratios = [s / p for s, p in zip(saved, plain, strict=False)]
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"median wall: --no-record {statistics.median(plain):.1f} s, --save {statistics.median(saved):.1f} s")
     print(f"pair ratios save / no-record: {' '.join(f'{r:.3f}' for r in ratios)}")

@@ -174,7 +174,8 @@ def main() -> int:
         if CHECK_N not in ratios:
             raise SystemExit(f"--check needs N = {CHECK_N} among --n")
         if ratios[CHECK_N] > CHECK_RATIO:
-            print(f"check failed: at N = {CHECK_N:,} (other + fit) / simulation = {ratios[CHECK_N]:.2f} > {CHECK_RATIO}")
+            print(f"check failed: at N = {CHECK_N:,} (other + fit) / simulation = {ratios[CHECK_N]:.2f} "
+                  f"> {CHECK_RATIO}")
             return 1
         print(f"check passed: at N = {CHECK_N:,} (other + fit) / simulation = {ratios[CHECK_N]:.2f} <= {CHECK_RATIO}")
     return 0

@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     jobs = [(s, v, k) for s in a.scenes for v in a.variants
             for k in range(a.seeds // 2 if s in SLOW else a.seeds)]  # fmt: skip
     with ProcessPoolExecutor(a.jobs) as pool:
-        outcomes = list(pool.map(one_run, *zip(*jobs)))
+        outcomes = list(pool.map(one_run, *zip(*jobs, strict=False)))
     print("| scene | sampler | runs | median rel. error | within x2 | intervals holding p | bounds holding p | "
           "reliable outside x2 | verdicts | cost (rollout-eq.) | plain MC for that error | ratio | s a run |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")

@@ -102,15 +102,18 @@ def main() -> int:
             page.add_style_tag(content=".mantine-Notifications-root { display: none !important; }")
             labels = {h.label: h for h in session.fields.values()}
             for label, value in [("K", args.k)] + [tuple(kv.split("=", 1)) for kv in args.set]:
-                box = page.locator(f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input").first
+                box = page.locator(
+                    f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input").first
                 box.fill(value)
                 box.press("Tab")
-                wait_until(lambda: labels[label].value == value, 30, f"{label} to reach the server")
+                wait_until(lambda: labels[label].value == value,  # noqa: B023 (called within the iteration)
+                           30, f"{label} to reach the server")
             for key, value in (("metric", args.metric), ("scenario", args.scenario)):
                 if value:
                     page.get_by_label(key, exact=True).click()
                     page.get_by_role("option", name=value, exact=True).click()
-                    wait_until(lambda: session.choices[key].value == value, 30, f"the {key} to reach the server")
+                    wait_until(lambda: session.choices[key].value == value,  # noqa: B023 (called within the iteration)
+                               30, f"the {key} to reach the server")
             page.get_by_role("button", name="Run", exact=True).click()
             wait_until(lambda: session.record is not None and session.record.done, 600, "the run to finish")
             if args.scenario not in (None, "braking"):

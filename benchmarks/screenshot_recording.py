@@ -148,7 +148,8 @@ OUT = {"stages": SHOTS / "rerun_recording.png", "rollouts": SHOTS / "rerun_recor
 """Where each tab's screenshot goes by default."""
 
 
-def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path, scenario: str = "braking") -> tuple[Path, Path | None]:
+def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path,
+                  scenario: str = "braking") -> tuple[Path, Path | None]:
     """(recording, blueprint) to show ``tab``: the recording itself for its own default (``stages``); else a copy
     without its blueprint (``folder/data.rrd``, so that no blueprint competes with ours, whatever the order the
     viewer receives them in) and the recording's layout with ``tab`` open, its timeline selected and paused (so that

@@ -47,7 +47,8 @@ def table(label: str, configs: list[ExperimentConfig]) -> bool:
             exact[key] = pt.exact_log_p
             rows.setdefault(key, []).append(pt)
     print(f"\n{label}: {len(configs)} seeds, {time.perf_counter() - t0:.0f} s")
-    print(f"{'point':<30} {'reached':>8} {'median p':>10} {'exact':>10} {'worst ratio':>12} {'covers':>8} {'median ESS':>11}")
+    print(f"{'point':<30} {'reached':>8} {'median p':>10} {'exact':>10} {'worst ratio':>12} {'covers':>8} "
+          f"{'median ESS':>11}")
     ok = True
     for key, pts in rows.items():
         reached = [p for p in pts if p.reached]
@@ -82,7 +83,8 @@ def main() -> None:
         for m in (1.5, 1.0, 0.5, 0.0):
             t = time.perf_counter()
             r = braking_truth(pem.logit_at_gap, BrakingParams(crash_gap_m=m),
-                              log_prunes=(-46.0, -50.0, -54.0, -58.0, -62.0, -66.0, -70.0, -80.0, -90.0, -100.0, -110.0))
+                              log_prunes=(-46.0, -50.0, -54.0, -58.0, -62.0, -66.0, -70.0, -80.0, -90.0, -100.0,
+                                          -110.0))
             print(f"exact P(min gap < {m:g} m) = {math.exp(r.log_p_fail):.4e} (log {r.log_p_fail!r}), bracket width "
                   f"{r.final.relative_width:.2e}, {time.perf_counter() - t:.0f} s")
     ok = table("default run (pemviz run)", [ExperimentConfig(seed=s) for s in range(a.seeds)]) if a.seeds else True
@@ -109,7 +111,7 @@ def contact_study(seeds: int) -> None:
     for p in runs:
         verdicts[p.estimate.verdict] = verdicts.get(p.estimate.verdict, 0) + 1
     capped = [p.estimate.verdict == "reliable" or p.estimate.reason.startswith("a gap below") for p in runs]
-    wrong = sum(c and not (w and h) for c, w, h in zip(capped, within, holds))
+    wrong = sum(c and not (w and h) for c, w, h in zip(capped, within, holds, strict=False))
     print(f"\ncontact, {seeds} runs of pemviz run --margin 0 (seeds 0-{seeds - 1}, {time.perf_counter() - t0:.0f} s), "
           f"exact {math.exp(ex):.4e}: median relative error {np.median(err):.3f}; within x{TARGET_RATIO} "
           f"{sum(within)}/{seeds}; interval holds {sum(holds)}/{seeds}; seeds 0-4 all within x{TARGET_RATIO} and "

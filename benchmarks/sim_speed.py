@@ -299,7 +299,7 @@ def cut_in_vs_braking(before: Path | None, repeat: int) -> list[float]:
     print(f"5. plain Monte Carlo, cut-in against braking, fresh processes ({load()})")
     trees = [("after", None)] if before is None else [("before", before), ("after", None)]
     ratios = []
-    for r in range(repeat):
+    for _ in range(repeat):
         for label, tree in trees:
             braking, nb, sb = mc_rate(BRAKING_MC, tree)
             cut_in, nc, sc = mc_rate(CUT_IN_MC, tree)

@@ -129,7 +129,7 @@ def main() -> int:
             first, est, wall = timed(a.args, folder, i)
             rows.append((first, est, wall))
             print(f"| {i} | {first:.2f} | {est:.2f} | {wall:.2f} | {wall / est:.2f} |")
-    first, est, wall = (statistics.median(col) for col in zip(*rows))
+    first, est, wall = (statistics.median(col) for col in zip(*rows, strict=False))
     print(f"\nmedian: {first:.2f} s to the first stage (target <= 0.7), estimate {est:.2f} s, wall {wall:.2f} s, "
           f"wall / estimate {wall / est:.2f} (target <= 1.3)")  # fmt: skip
     print(f"load average after: {os.getloadavg()[0]:.2f}")

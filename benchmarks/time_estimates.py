@@ -61,7 +61,8 @@ def main() -> None:
             first.append(errors[0] if errors else float("nan"))
         verdict = "MET" if max(worst) <= TARGET else "MISSED"
         print(f"{scene:8s} {a.repeat} runs: worst relative error of any prediction {max(worst):.2f} (per run "
-              f"{', '.join(f'{w:.2f}' for w in worst)}), of the first {max(first):.2f}: {verdict} (target {TARGET:.0%})")
+              f"{', '.join(f'{w:.2f}' for w in worst)}), of the first {max(first):.2f}: {verdict} "
+              f"(target {TARGET:.0%})")
 
 
 if __name__ == "__main__":

@@ -57,6 +57,10 @@ class Grid:
         return f"{self.n_gap}x{self.n_speed}x{self.n_integral}x2"
 
 
+DEFAULT_GRID = Grid(401, 401, 8)
+"""The grid :func:`braking_dp` uses unless told otherwise."""
+
+
 
 
 def _axes(params: BrakingParams, start: BrakingStart, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -113,7 +117,7 @@ class _Interpolator:
 def braking_dp(
     logit_at_gap: LogitFn,
     params: BrakingParams | None = None,
-    grid: Grid = Grid(401, 401, 8),
+    grid: Grid = DEFAULT_GRID,
     *,
     chunk: int = 1 << 20,
 ) -> tuple[float, float]:
@@ -124,12 +128,12 @@ def braking_dp(
     axes = _axes(p, start, grid)
     interp = _Interpolator(axes)
     vl = lead_speeds(p)
-    G, S, I = (a.size for a in axes)
+    n_gap, n_speed, n_int = (a.size for a in axes)
     gg, ss, ii = np.meshgrid(*axes, indexing="ij")
     gg, ss, ii = gg.ravel(), ss.ravel(), ii.ravel()
     logit = np.asarray(logit_at_gap(axes[0]), dtype=np.float64)
-    p_hit = np.exp(log_expit(logit))[np.repeat(np.arange(G), S * I)]
-    n_slice = G * S * I
+    p_hit = np.exp(log_expit(logit))[np.repeat(np.arange(n_gap), n_speed * n_int)]
+    n_slice = n_gap * n_speed * n_int
     V = np.zeros(2 * n_slice)  # V_{T-1} on the grid: every node has gap >= 2
     for t in range(p.n_steps - 2, start.step - 1, -1):
         V_new = np.empty_like(V)
@@ -163,7 +167,8 @@ def main() -> None:
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     pem = load_pem()
     lt = latched_log_failure_probability(pem.logit_at_gap)
-    print(f"\nlatched brake: exact p_fail = {lt.p_fail:.6e} = prod of (1 - p) over steps {lt.first_step}..{lt.last_step}")
+    print(f"\nlatched brake: exact p_fail = {lt.p_fail:.6e} = prod of (1 - p) over steps "
+          f"{lt.first_step}..{lt.last_step}")
     for latched in (True, False):
         name = "latched" if latched else "main"
         ref = braking_truth(pem.logit_at_gap, BrakingParams(latched_brake=latched), tolerance=0.002,

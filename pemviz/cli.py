@@ -1,8 +1,9 @@
 """pemviz: estimate the probability of rare safety failures of a perception-driven controller with a perception
 error model (PEM) and adaptive importance sampling, recorded for rerun and shown in a browser panel.
 
-The command line ``pemviz run | serve | pem | data | estimate | validate | tables``. Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds
-its parser and sets ``func(args) -> int`` as the parser default.
+The command line ``pemviz run | serve | pem | data | estimate | validate | tables``. Each sub-command lives in
+``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds its parser and sets
+``func(args) -> int`` as the parser default.
 """
 
 from __future__ import annotations

@@ -13,8 +13,8 @@ gymnasium is imported, before or after pemviz, so::
     for _ in range(100):
         obs, reward, terminated, truncated, info = env.step(controller(obs))
 
-The scenario is Innes & Ramamoorthy (2022)'s automated braking on highway-env vehicles (:class:`pemviz.scenarios.braking.BrakingScenario`),
-except that the agent is the ego's controller:
+The scenario is Innes & Ramamoorthy (2022)'s automated braking on highway-env vehicles
+(:class:`pemviz.scenarios.braking.BrakingScenario`), except that the agent is the ego's controller:
 
 - **observation** float64 [3]: ``(detected, seen_gap_m, ego_speed_mps)``: 1.0 if the detector sees the
   lead at this step (else 0.0); the gap from the ego's camera to the lead's rear in metres when detected

@@ -389,9 +389,9 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
             again["streamed in chunks"] = chunks[0] if len(chunks) == 1 else type(batch).concatenate(chunks)
         for how, other in again.items():
             diff = _first_difference(batch, other)
-            checks.require(diff is None, name, lambda: f"seed {seed}, rollouts drawn by {label}: {how} gives other "
-                                                       f"rollouts: {diff} (a scenario's only randomness is the "
-                                                       "detector's; draw nothing of its own)")  # fmt: skip
+            checks.require(diff is None, name, f"seed {seed}, rollouts drawn by {label}: {how} gives other "
+                                               f"rollouts: {diff} (a scenario's only randomness is the "
+                                               "detector's; draw nothing of its own)")  # fmt: skip
     checks.passed.append(name)
 
     name = "twin"
@@ -412,8 +412,8 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
             lockstep = simulate(lambda: sc.single_simulator(built), TWIN_ROLLOUTS, sampler, problem.target,
                                 np.random.default_rng(seed), n_steps)  # fmt: skip
             diff = _first_difference(lockstep, twin)
-            checks.require(diff is None, name, lambda: f"rollouts drawn by {label}: the single simulator, then the "
-                                                       f"batched twin: {diff}")  # fmt: skip
+            checks.require(diff is None, name, f"rollouts drawn by {label}: the single simulator, then the "
+                                               f"batched twin: {diff}")  # fmt: skip
         checks.passed.append(name)
 
     _check_drawing(checks, sc, built, problem, first)
@@ -443,14 +443,15 @@ def _check_drawing(checks: _Checks, sc: Any, built: Any, problem: Any, batches: 
     try:
         checks.require(pickle.loads(pickle.dumps(drawing)) == drawing, "drawing", "not itself after pickling")
     except pickle.PicklingError as exc:
-        raise checks.fail("drawing", f"it cannot be pickled ({exc}); the recording runs in a process of its own")
+        raise checks.fail("drawing", f"it cannot be pickled ({exc}); the recording runs in a process "
+                                     "of its own") from None
     for label, batch in batches.items():
         failed = np.asarray(problem.failed(batch), dtype=bool)
         for i in range(batch.n):
             told = drawing.outcome(batch, i)
-            checks.require(isinstance(told, Outcome) and bool(told.failed) == failed[i], "drawing",
-                           lambda: f"rollout {i} drawn by {label}: outcome(batch, {i}) is {told!r:.80}, the "
-                                   f"problem's failure event says failed={bool(failed[i])}")  # fmt: skip
+            if not (isinstance(told, Outcome) and bool(told.failed) == failed[i]):
+                raise checks.fail("drawing", f"rollout {i} drawn by {label}: outcome(batch, {i}) is {told!r:.80}, the "
+                                             f"problem's failure event says failed={bool(failed[i])}")
     checks.passed.append("drawing")
 
 
@@ -588,10 +589,9 @@ def check_estimator(method: str, *, problem: Any = None, folder: str | Path | No
         never = _run(cfgs[0], _never_fails(pb))
         for run in [*runs, never]:
             for est in run.estimates:
-                bad = est.n_failures == 0 or math.isnan(est.log_mu_hat)
-                checks.require(not (bad and est.verdict == "reliable"), name, lambda: (
-                    f"an estimate with {est.n_failures} failures of {est.n} and log mu_hat = {est.log_mu_hat!r} is "
-                    f"called reliable ({est.reason})"))  # fmt: skip
+                if (est.n_failures == 0 or math.isnan(est.log_mu_hat)) and est.verdict == "reliable":
+                    raise checks.fail(name, f"an estimate with {est.n_failures} failures of {est.n} and log mu_hat = "
+                                            f"{est.log_mu_hat!r} is called reliable ({est.reason})")
         got = never.final.estimate
         checks.require(got.n_failures == 0, name, f"a run where no rollout can fail reports {got.n_failures} failures")
         checks.passed.append(name)

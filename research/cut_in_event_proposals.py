@@ -298,8 +298,9 @@ def report(label: str, log_w: np.ndarray, failed: np.ndarray, extra: str = "") -
     mu = math.exp(est.log_mu_hat) if failed.any() else 0.0
     lo, hi = np.exp(est.log_ci) if failed.any() else (0.0, 1.0)
     err = abs(mu / REFERENCE - 1.0)
-    print(f"{label}: {mu:.3e} [{lo:.2e}, {hi:.2e}] (reference {REFERENCE:.3e} {'inside' if lo <= REFERENCE <= hi else 'OUTSIDE'}), "
-          f"relative error {err:.3f}, {int(failed.sum())} failures, ESS {est.ess:.1f}, {est.verdict}{extra}", flush=True)  # fmt: skip
+    print(f"{label}: {mu:.3e} [{lo:.2e}, {hi:.2e}] (reference {REFERENCE:.3e} "
+          f"{'inside' if lo <= REFERENCE <= hi else 'OUTSIDE'}), relative error {err:.3f}, {int(failed.sum())} "
+          f"failures, ESS {est.ess:.1f}, {est.verdict}{extra}", flush=True)  # fmt: skip
     return err
 
 
@@ -313,8 +314,9 @@ def describe_failures(u: np.ndarray, decisive: np.ndarray, weight: np.ndarray) -
         print(f"  failures with {k} decisive event(s): {(count == k).sum()}, share of p_fail {share:.3f}")
     i, t, m, c = np.nonzero(bins >= 0)
     tail = np.minimum(u[i, t, m, c], 1.0 - u[i, t, m, c])
-    print(f"  decisive events: objects {dict(zip(*np.unique(m, return_counts=True)))}, components (detection, range, "
-          f"lateral) {np.bincount(c, minlength=3).tolist()}, steps 5/50/95 % {np.percentile(t, [5, 50, 95]).tolist()}, "
+    print(f"  decisive events: objects {dict(zip(*np.unique(m, return_counts=True), strict=False))}, components "
+          f"(detection, range, lateral) {np.bincount(c, minlength=3).tolist()}, "
+          f"steps 5/50/95 % {np.percentile(t, [5, 50, 95]).tolist()}, "
           f"tail probability 5/50/95 % {np.percentile(tail, [5, 50, 95]).round(8).tolist()}", flush=True)  # fmt: skip
 
 

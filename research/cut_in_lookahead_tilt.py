@@ -306,8 +306,8 @@ class LookAheadTilt(CutInTilt):
                 r, bfeat = self.look_ahead(cand, idx, u, np.ascontiguousarray(cand.objects()),
                                            np.full(seqs.shape[0], np.inf))  # fmt: skip
                 gl = continuous_level(level(r), bfeat[..., -2], bfeat[..., -1])
-                effects[t] = dict(zip(chosen, gl - gl[:, 1:2]))
-                nexts[t] = dict(zip(chosen, self.regime(bfeat, t + 1)))
+                effects[t] = dict(zip(chosen, gl - gl[:, 1:2], strict=False))
+                nexts[t] = dict(zip(chosen, self.regime(bfeat, t + 1), strict=False))
                 g_nom[t], states[t] = float(gl[0, 1]), idx.size
                 p0s[t] = float(expit(target.detect_logit(np.ascontiguousarray(sim.objects())[:1, 0]))[0])
             history.append(sim.snapshot())
@@ -417,7 +417,7 @@ class LookAheadTilt(CutInTilt):
             fails.append(failed)
         after, failed = np.concatenate(ends), np.concatenate(fails)
         kern /= np.maximum(counts, 1)[:, :, None]
-        for j, big_l in zip(*np.nonzero(counts == 0)):
+        for j, big_l in zip(*np.nonzero(counts == 0), strict=False):
             kern[j, big_l] = 0.0
             kern[j, big_l, big_l] = 1.0
         v = np.zeros((LMAX + 1, width + 1))
@@ -437,7 +437,7 @@ class LookAheadTilt(CutInTilt):
         pss = [self.one_step(s.pc, s.r, s.t) for s in steps]  # the states' one-step values from the new table
         for _ in range(iterations):
             y = np.concatenate([logsumexp(np.log(s.pc) + self.grid.class_values(self.log_q_hat(s.r, s.bfeat, s.t, ps)),
-                                          axis=1) for s, ps in zip(steps, pss)])  # fmt: skip
+                                          axis=1) for s, ps in zip(steps, pss, strict=False)])  # fmt: skip
             self.model = HistGradientBoostingRegressor(learning_rate=0.1, random_state=0, **self.v_size).fit(x, y)
 
     def fit_q_model(self) -> None:

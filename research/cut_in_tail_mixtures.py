@@ -147,9 +147,9 @@ class TailMixtures:
         return np.where((m >= self.m_min) & (m <= self.m_max), 1.0 / (m * self.log_range), 0.0)
 
     def log_q(self, eps: np.ndarray, kept: np.ndarray, p_kept: np.ndarray, seen: np.ndarray) -> np.ndarray:
-        """log q(U) of rollouts' uniforms under the mixtures ``eps`` [W, 5] (nats, [n]; ``kept``, ``p_kept``, ``seen`` as
-        :meth:`simulate` returns them): the sum over the window's visible steps of the detection's and, for a detected
-        car, both errors' mixture densities (the PEMs' own density is 1, so log w = -log q)."""
+        """log q(U) of rollouts' uniforms under the mixtures ``eps`` [W, 5] (nats, [n]; ``kept``, ``p_kept``,
+        ``seen`` as :meth:`simulate` returns them): the sum over the window's visible steps of the detection's and,
+        for a detected car, both errors' mixture densities (the PEMs' own density is 1, so log w = -log q)."""
         out = np.zeros(kept.shape[0])
         with np.errstate(divide="ignore", invalid="ignore"):  # p = 1 where the car is not visible (masked)
             for j in range(eps.shape[0]):
@@ -158,7 +158,8 @@ class TailMixtures:
                 term = np.log((1.0 - e) + np.where(miss, e / (1.0 - p), 0.0))
                 for c in range(2):
                     lo, hi = eps[j, 1 + 2 * c], eps[j, 2 + 2 * c]
-                    g = (1.0 - lo - hi) + lo * self.tail_density(u[:, 1 + c], 0) + hi * self.tail_density(u[:, 1 + c], 1)
+                    g = ((1.0 - lo - hi) + lo * self.tail_density(u[:, 1 + c], 0)
+                         + hi * self.tail_density(u[:, 1 + c], 1))
                     term = term + np.where(miss, 0.0, np.log(g))
                 out += np.where(seen[:, j], term, 0.0)
         return out
@@ -261,7 +262,8 @@ def main() -> None:
     ap.add_argument("--ams-k", type=int, default=100)
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--n", type=int, nargs="+", default=None, help="rollouts per batch (fixed: 13000; ce: 4000 9000; amis: 2000 3000 4000 4000)")
+    ap.add_argument("--n", type=int, nargs="+", default=None,
+                    help="rollouts per batch (fixed: 13000; ce: 4000 9000; amis: 2000 3000 4000 4000)")
     ap.add_argument("--window", type=int, nargs=2, default=(10, 26), help="steps whose uniforms are mixed")
     ap.add_argument("--eps", type=float, nargs=2, default=(0.02, 0.02), help="miss share, each error's tail share")
     ap.add_argument("--mmin", type=float, default=1e-8)

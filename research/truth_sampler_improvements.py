@@ -40,7 +40,8 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     args = ap.parse_args()
     problems = [p for p in args.problems.split(",") if p]
-    print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; {args.seeds} seeds; {args.jobs} process(es)")
+    print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; {args.seeds} seeds; "
+          f"{args.jobs} process(es)")
     truths = {p: exact_answer(p) for p in problems}
     jobs, fields = [], {}
     for label, change in STEPS:
@@ -50,7 +51,8 @@ def main() -> None:
     t0 = time.perf_counter()
     records = run_jobs(jobs, args.jobs)
     print(f"\n{len(jobs)} runs in {time.perf_counter() - t0:.0f} s\n")
-    print("| problem | sampler | median rel. error | within x2 | median mu_hat / truth | median failures | median wall s |")
+    print("| problem | sampler | median rel. error | within x2 | median mu_hat / truth | median failures "
+          "| median wall s |")
     print("|---|---|---:|---:|---:|---:|---:|")
     for p in problems:
         lt = truths[p].log_p_fail

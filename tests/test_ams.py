@@ -135,7 +135,7 @@ def test_gym_env_snapshot_restore():
     after = [env.step(accel) for _ in range(20)]
     env.restore(snap)
     again = [env.step(accel) for _ in range(20)]
-    for (o1, r1, _, _, i1), (o2, r2, _, _, i2) in zip(after, again):
+    for (o1, r1, _, _, i1), (o2, r2, _, _, i2) in zip(after, again, strict=False):
         np.testing.assert_array_equal(o1, o2)
         assert r1 == r2 and i1 == i2
 

@@ -243,8 +243,9 @@ def test_every_field_and_dropdown_has_a_hint_each_setting_the_one_its_flag_gives
     s = tab.session
     for key, handle in {**s.fields, **s.choices}.items():
         assert (handle.label, handle.hint) == (SETTINGS[key].label, SETTINGS[key].hint), key
-    assert s.fields["smoothing"].hint == "smoothing alpha, a number in (0, 1]: the power on the importance weights in " \
-                                         "the CE loss"  # not the weight of a new fit in an update: that is another method
+    # not the weight of a new fit in an update: that is another method
+    assert s.fields["smoothing"].hint == ("smoothing alpha, a number in (0, 1]: the power on the importance weights "
+                                          "in the CE loss")
     metric = s.choices["metric"].hint
     assert "\n" not in metric and all(f"; {m}: " in metric for m in ("classic", "agm", "smooth-cumulative"))
     assert all(h.hint for h in (s.preset, s.run_choice, s.rollout_dropdown))
@@ -355,7 +356,8 @@ def test_one_stage_numbering_and_plot_axes_follow_the_stages_that_ran(tab):
     wait_until(lambda: tab.plot("failures / N per stage")["xmax"] < last + 1, what="the x axes to fit the stages")
     for title in ("failures / N per stage", "log10 mu_hat per stage", "gamma per stage, classic (m)"):
         # each plot gets the last stage's point on its own update, after the status has said it stopped
-        wait_until(lambda: tab.plot(title)["x"] == list(range(last + 1)), what=f"{title}: a point per stage that ran")
+        wait_until(lambda: tab.plot(title)["x"] == list(range(last + 1)),  # noqa: B023 (called within the iteration)
+                   what=f"{title}: a point per stage that ran")
         p = tab.plot(title)
         assert p["x"] == list(range(last + 1)), title  # stage numbers as the engine counts them
         assert p["xmax"] == pytest.approx(last + 0.5) and p["axes"][0].startswith("stage (0 pretraining")
@@ -391,8 +393,10 @@ def test_the_final_estimate_comes_with_its_interval_verdict_and_a_hint_when_noth
     tab.run({"N": "20"})
     expect(tab.page.get_by_text("no failure among 20 rollouts, so mu_hat = 0", exact=False)).to_be_visible()
     # the advice speaks of what plain Monte Carlo does, not of stages or a proposal it does not have
-    expect(tab.page.get_by_text("plain Monte Carlo draws every rollout from the PEM itself", exact=False)).to_be_visible()
-    assert "More stages (K)" not in tab.session.result_html.content and "proposal" not in tab.session.result_html.content
+    expect(tab.page.get_by_text("plain Monte Carlo draws every rollout from the PEM itself",
+                                exact=False)).to_be_visible()
+    assert ("More stages (K)" not in tab.session.result_html.content
+            and "proposal" not in tab.session.result_html.content)
 
 
 # 7 ------------------------------------------------------------------------------------------------
@@ -636,7 +640,7 @@ def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detecti
         # holds no point of either car on screen
         width_px, height_px = got["canvas"][2], got["canvas"][3]
         cars = np.array(got["boxes"])
-        for (name, side), (ax, ay), text in zip(labels.items(), got["anchors"], got["texts"]):
+        for (name, side), (ax, ay), text in zip(labels.items(), got["anchors"], got["texts"], strict=False):
             lines = text.split("\n")
             w, hh = 7 * max(map(len, lines)) / (width_px / 2), 17 * len(lines) / (height_px / 2)
             x0, x1 = (ax, ax + w) if side == "right" else (ax - w, ax)
@@ -676,7 +680,8 @@ points, the breach gate, the trail's points and colours."""
 # 14 -----------------------------------------------------------------------------------------------
 OBJECTS_JS = """(n) => {
     const m = window.__viserMutable, tree = window.__viserSceneTree.getState();
-    const cells = Array.from(document.querySelectorAll('svg.pemviz-raster rect[height="10"]')).map(r => r.getAttribute('fill'));
+    const cells = Array.from(document.querySelectorAll('svg.pemviz-raster rect[height="10"]'))
+        .map(r => r.getAttribute('fill'));
     const cars = [...Array(n).keys()].map(j => {
         const name = '/objects/car' + j;
         return {position: m.nodePoseData[name]?.position, color: tree[name]?.message?.props?.color,
@@ -685,7 +690,8 @@ OBJECTS_JS = """(n) => {
     const above = Array.from(document.querySelectorAll('div')).map(d => d.textContent)
         .filter(t => t.startsWith('From above at step')).at(-1) ?? '';
     const tracks = document.querySelectorAll('svg.pemviz-birds-eye rect.pemviz-track').length;
-    const detect = Array.from(document.querySelectorAll('svg.pemviz-detect polyline')).map(p => p.getAttribute('points'));
+    const detect = Array.from(document.querySelectorAll('svg.pemviz-detect polyline'))
+        .map(p => p.getAttribute('points'));
     return {cells, cars, above, tracks, detect, braking_lead: tree['/lead']?.visibility};
 }"""
 """The Explain raster's cells (fill colours, object by object, step by step), each car of the scene (position,
@@ -757,7 +763,8 @@ def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_fail
     assert got["braking_lead"] is False  # the braking scene's lead is hidden
     # from above, a dashed box where the tracker places each tracked car drawn (in the view)
     t = first.step
-    drawn = (ox.ahead_m[t] >= OV.AHEAD_M[0]) & (ox.ahead_m[t] <= OV.AHEAD_M[1]) & (np.abs(ox.lateral_m[t]) <= OV.LATERAL_M)
+    drawn = ((ox.ahead_m[t] >= OV.AHEAD_M[0]) & (ox.ahead_m[t] <= OV.AHEAD_M[1])
+             & (np.abs(ox.lateral_m[t]) <= OV.LATERAL_M))
     assert got["tracks"] == int((np.isfinite(ox.tracked[t, :, 0]) & drawn).sum()) > 0
     # the playback moves the scene and the view from above to the failure
     s.step_slider.value = cf.failure_step

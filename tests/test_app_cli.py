@@ -72,4 +72,5 @@ def test_serve_binds_localhost_only_serves_the_page_and_stops_on_ctrl_c(tmp_path
 def test_serve_rejects_an_unknown_preset_in_one_line():
     proc = run_cli("serve", "--preset", "nope", "--port", "0", timeout=120)
     assert proc.returncode == 2
-    assert "pemviz serve: error: --preset 'nope' is invalid: use one of state-ce, paper, authors-code, quick" in proc.stderr
+    assert ("pemviz serve: error: --preset 'nope' is invalid: use one of state-ce, paper, authors-code, quick"
+            in proc.stderr)

@@ -35,9 +35,12 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
         record = tab.run(TINY, timeout=120)
         assert record.config.scenario == "my-car"
         assert math.exp(record.exact_log_p) == pytest.approx(2.8576e-5, rel=1e-3)
-        wait_until(lambda: "exact answer 2.8576e-05" in tab.page.inner_text("body"),
+        wait_until(lambda: ("exact answer 2.8576e-05"
+                            in tab.page.inner_text("body")),  # noqa: B023 (called within the iteration)
                    what="the final estimate beside the scenario's exact answer")  # fmt: skip
         scene = tab.session.scene
-        wait_until(lambda: "the my-car scenario draws no scene" in scene.scene_html.content, timeout=60,
+        wait_until(lambda: ("the my-car scenario draws no scene"
+                            in scene.scene_html.content),  # noqa: B023 (called within the iteration)
+                   timeout=60,
                    what="the 3D view saying the scenario draws no scene (no braking road for it)")  # fmt: skip
         assert not scene.object_box.visible and not scene.ego_box.visible

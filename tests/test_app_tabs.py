@@ -60,7 +60,8 @@ def check_every_tab(tab: Tab, scene: str) -> dict[str, list[dict]]:
     for name in TABS:
         tab.tab(name)
         n = CHARTS_PER_TAB[scene].get(name, 1)
-        wait_until(lambda: len(shown_charts(tab)) >= n and not any(empty(c) for c in shown_charts(tab)),
+        wait_until(lambda: (len(shown_charts(tab)) >= n  # noqa: B023 (called within the iteration)
+                            and not any(empty(c) for c in shown_charts(tab))),
                    what=f"{scene} {name}: {n} charts shown, each with data")  # fmt: skip
         shown = shown_charts(tab)
         assert not [c["title"] for c in shown if empty(c)], f"{scene} {name}: empty charts shown"

@@ -149,7 +149,7 @@ def test_a_sampler_with_a_window_couples_only_the_chains_inside_it():
 def test_the_ranking_key_orders_chains_by_their_float32_logit_then_by_their_gap(pairs):
     # numpy's lexicographic order of (logit rounded to float32, gap) is the order of the packed keys, ties included;
     # -0.0 ranks before +0.0, and a NaN logit last
-    logit, gap = (np.array(c, dtype=np.float64) for c in zip(*pairs))
+    logit, gap = (np.array(c, dtype=np.float64) for c in zip(*pairs, strict=False))
     key = ranking_key(logit, gap)
     p32 = logit.astype(np.float32).astype(np.float64)
     sign = np.signbit(p32).astype(float)  # -0.0 before +0.0

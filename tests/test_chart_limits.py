@@ -117,7 +117,7 @@ def staged_run(run_id: int, log10_mu: list[float], failures: list[int], log10_ci
         SimpleNamespace(stage=k, kind="ce", gamma=math.nan, estimate=SimpleNamespace(
             log10_mu_hat=mu, n_failures=f, n=100, nll_mean=math.nan, log_ci=(lo * LN10, hi * LN10),
             shown_log_ci=(lo * LN10, hi * LN10)))
-        for k, (mu, f, (lo, hi)) in enumerate(zip(log10_mu, failures, log10_ci))
+        for k, (mu, f, (lo, hi)) in enumerate(zip(log10_mu, failures, log10_ci, strict=False))
     ]  # fmt: skip
     run.exact_log_p = None if exact_log10 is None else exact_log10 * LN10
     return run

@@ -49,7 +49,8 @@ def test_run_help_gives_the_engines_real_chunks() -> None:
     from pemviz.scenarios import DEFAULT_CHUNK_SIZE
 
     run = " ".join(dict(all_parsers())["pemviz run"].format_help().split())
-    assert SHOWN_DEFAULTS["chunk_rollouts"] == f"{DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} rollouts stream"
+    assert SHOWN_DEFAULTS["chunk_rollouts"] == (f"{DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} "
+                                                "rollouts stream")
     assert f"(default {DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} rollouts stream)" in run
 
 

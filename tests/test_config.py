@@ -65,7 +65,8 @@ def test_authors_code_preset_is_the_paper_with_the_authors_training():
     assert c.n_simulations == 100 + 10 * 100
 
 
-@pytest.mark.parametrize("field, value", [("fit", "sgd"), ("fit_max_steps", 0), ("fit_rows", 0), ("fit_tolerance", 0.0)])
+@pytest.mark.parametrize("field, value",
+                         [("fit", "sgd"), ("fit_max_steps", 0), ("fit_rows", 0), ("fit_tolerance", 0.0)])
 def test_fitting_settings_are_validated(field, value):
     with pytest.raises(ConfigError, match=field):
         ExperimentConfig(**{field: value})
@@ -93,7 +94,8 @@ PAPER_RANGES = {
 
 def inside(name: str, x: float) -> bool:
     lo, hi, lo_open, hi_open, whole = PAPER_RANGES[name]
-    return (not whole or float(x).is_integer()) and (x > lo if lo_open else x >= lo) and (x < hi if hi_open else x <= hi)
+    return ((not whole or float(x).is_integer()) and (x > lo if lo_open else x >= lo)
+            and (x < hi if hi_open else x <= hi))
 
 
 def cli_error(argv: list[str]) -> str:
@@ -195,7 +197,8 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
         read = set(re.findall(r"\b(?:cfg|config)\.([a-z_]+)\b", source)) & fields
         read -= {"has_final_batch", "n_simulations"}
         assert cls.SETTINGS, owner  # an estimator that owns nothing would pass the two checks below vacuously
-        assert read <= set(cls.SETTINGS) | set(settings_of(RUN)), (owner, read - set(cls.SETTINGS) - set(settings_of(RUN)))
+        assert read <= set(cls.SETTINGS) | set(settings_of(RUN)), (
+            owner, read - set(cls.SETTINGS) - set(settings_of(RUN)))
         assert set(cls.SETTINGS) <= read, (owner, set(cls.SETTINGS) - read)  # no setting claimed and never read
     assert not set(settings_of("adaptive")) & set(settings_of("ams"))
     # every setting is read by the run or by one of the two estimators checked above: an owner misspelt in SETTINGS

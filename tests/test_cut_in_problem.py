@@ -36,7 +36,8 @@ def test_the_detector_is_the_pems_on_the_salient_columns_and_blind_to_unseen_car
     assert seen.any() and (~seen).any()
     pem, noise = load_pem(), load_noise_pem("hetero-t")
     logit = problem.target.detect_logit(rows)
-    np.testing.assert_allclose(logit[seen], pem.logit(rows[seen][:, SALIENT_COLUMNS]), rtol=1e-9, atol=1e-12)  # the same network, rows batched differently
+    # the same network, rows batched differently
+    np.testing.assert_allclose(logit[seen], pem.logit(rows[seen][:, SALIENT_COLUMNS]), rtol=1e-9, atol=1e-12)
     assert np.all(logit[~seen] == -np.inf)
     errors = np.random.default_rng(0).standard_normal((seen.sum(), 2)) * 0.3
     features = noise.features(rows[seen][:, SALIENT_COLUMNS])
@@ -105,7 +106,8 @@ def test_save_rollouts_refuses_splitting_on_the_cut_in_before_it_runs(tmp_path):
 
 
 def test_a_cut_in_run_says_which_errors_decided_its_most_likely_failure():
-    proc = run_cli("run", "--scenario", "cut-in", "--method", "adaptive", "--k", "2", "--n", "100", "--n-final", "200", "--no-record")
+    proc = run_cli("run", "--scenario", "cut-in", "--method", "adaptive", "--k", "2", "--n", "100", "--n-final", "200",
+                   "--no-record")
     assert proc.returncode == 0, proc.stderr
     why = [line for line in proc.stdout.splitlines() if line.startswith("why: the most likely failure")]
     assert len(why) == 1 and "before the failure at step" in why[0]

@@ -27,10 +27,12 @@ def test_user_guide_builds_strict_with_every_command_in_the_cli_reference(tmp_pa
     for command in ("run", "data fetch", "pem train", "pem eval", "serve", "estimate", "validate", "tables"):
         assert f"pemviz {command}" in cli, command
     assert "--grpc-port" in cli and "&lt;!-- pemviz-cli --&gt;" not in cli and "<!-- pemviz-cli -->" not in cli
-    assert "Any Python simulator plugs into the sampler" in (tmp_path / "site" / "own-simulator" / "index.html").read_text()
+    assert ("Any Python simulator plugs into the sampler"
+            in (tmp_path / "site" / "own-simulator" / "index.html").read_text())
 
 
-NUMBER_WORDS = {w: i for i, w in enumerate("zero one two three four five six seven eight nine ten eleven twelve".split())}
+NUMBER_WORDS = {w: i for i, w in enumerate(
+    "zero one two three four five six seven eight nine ten eleven twelve".split())}
 COUNTED = r"(presets?|methods?|scenarios?|scenes?|metrics?|commands?|tests?|skips?|skipped)"
 
 

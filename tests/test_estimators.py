@@ -126,7 +126,7 @@ def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of
     pool = EliteCandidates(n, 0.9, floor=0.0)
     cuts = np.sort(rng.choice(np.arange(1, n), size=int(rng.integers(0, 8)), replace=False))
     settled = []
-    for a, b in zip(np.r_[0, cuts], np.r_[cuts, n]):
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, n], strict=False):
         pool.add(batch.select(np.arange(a, b)), r[a:b])
         if seed >= 2:  # failures are handed over once the bound is the floor
             done, index = pool.settle()
@@ -273,7 +273,7 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
     first = next(s.stage for s in mixture if s.kind == "ce" and s.gamma == 0.0)  # the pool's first stage
     np.testing.assert_array_equal([s.gamma for s in mixture[: first + 1]], [s.gamma for s in sampler[: first + 1]])
     assert first == 2
-    for a, b in zip(mixture[: first + 1], sampler[: first + 1]):  # one stage in the pool: the same fits
+    for a, b in zip(mixture[: first + 1], sampler[: first + 1], strict=False):  # one stage in the pool: the same fits
         np.testing.assert_array_equal(a.proposal_curve, b.proposal_curve)
     assert np.nanmax(np.abs(mixture[first + 1].proposal_curve - sampler[first + 1].proposal_curve)) > 1e-3
     before, after = calls[0]  # the first reweight: two pooled stages of 100 rollouts
@@ -309,7 +309,8 @@ def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monk
     plain = fitted_log_weights(smoothing_at_failure=1.0, final_smoothing=None)
     other = {"final_smoothing": None} if field == "smoothing_at_failure" else {"smoothing_at_failure": 1.0}
     raised = fitted_log_weights(**{field: alpha, **other})
-    first = next(k for k, (a, b) in enumerate(zip(raised, plain)) if not np.array_equal(a, b))  # alpha's first fit
+    # alpha's first fit
+    first = next(k for k, (a, b) in enumerate(zip(raised, plain, strict=False)) if not np.array_equal(a, b))
     assert first >= 1  # stage 1 is below the failure level: alpha = smoothing in both runs
     assert plain[first].size > 50 and np.ptp(plain[first]) > 1.0
     np.testing.assert_allclose(raised[first], alpha * plain[first], rtol=0, atol=1e-9)
@@ -326,7 +327,8 @@ def test_fit_weights_are_checked():
     assert sampler.fit_weights == "sampler"
     with pytest.raises(ConfigError, match="final_smoothing = 1.0 is invalid: a last fit of its own needs fit_weights"):
         ExperimentConfig(fit_all_failures=False, fit_weights="sampler")
-    with pytest.raises(ConfigError, match=r"smoothing_at_failure = 2.5 is invalid: .* must be None or a number in \(0, 2\]"):
+    with pytest.raises(ConfigError,
+                       match=r"smoothing_at_failure = 2.5 is invalid: .* must be None or a number in \(0, 2\]"):
         ExperimentConfig(smoothing_at_failure=2.5)
     with pytest.raises(ConfigError, match=r"final_smoothing = 0 is invalid: .* must be None or a number in \(0, 2\]"):
         ExperimentConfig(final_smoothing=0)
@@ -346,5 +348,5 @@ def test_pool_weights_count_the_jth_pooled_stage_by_j_to_the_power_times_its_rol
     n = np.array([by_stage[k].n for k in used], dtype=np.float64)
     assert len(used) >= 2 and n[-1] == 100 and done.final.estimate.n == n.sum()
     lam = np.arange(1, n.size + 1) ** power * n
-    mu = sum(w / lam.sum() * by_stage[k].mu_hat for w, k in zip(lam, used))
+    mu = sum(w / lam.sum() * by_stage[k].mu_hat for w, k in zip(lam, used, strict=False))
     assert done.final.estimate.mu_hat == pytest.approx(mu, rel=1e-12)

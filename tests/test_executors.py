@@ -73,7 +73,8 @@ def test_chunks_gathered_equal_the_serial_batch_and_leave_the_rng_where_it_would
     rng_serial, rng_chunks = np.random.default_rng(9), np.random.default_rng(9)
     serial = SerialExecutor().simulate(problem, n, sampler, problem.target, rng_serial)
     state = rng_chunks.bit_generator.state
-    results = [simulate_chunk(problem, n, a, b, sampler, problem.target, state) for a, b in ((0, n // 3), (n // 3, 2 * n // 3), (2 * n // 3, n))]
+    results = [simulate_chunk(problem, n, a, b, sampler, problem.target, state)
+               for a, b in ((0, n // 3), (n // 3, 2 * n // 3), (2 * n // 3, n))]
     gathered = gather_chunks(problem, n, rng_chunks, results)
     for name in ("observations", "detected", "log_p", "log_q"):
         np.testing.assert_array_equal(getattr(gathered, name), getattr(serial, name))
@@ -131,7 +132,8 @@ def _run(config: ExperimentConfig, problem: Problem):
     return Experiment(config, [listen], problem=problem).run(), batches, stages
 
 
-ray_missing = pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install ray)")
+ray_missing = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
+                                 reason="ray is not installed (pip install ray)")
 
 
 @pytest.fixture(scope="module", params=[1, 2], ids=["1-worker", "2-workers"])
@@ -169,7 +171,7 @@ def test_ray_tasks_of_whole_blocks_give_the_serial_rollouts_and_estimate_bit_for
     assert executor.n_chunks == ray_workers
     remote, remote_batches, remote_stages = _run(BLOCKS.replace(uniforms=uniforms, executor="ray"), problem)
     assert [b.n for b in remote_batches] == [b.n for b in serial_batches] == [20, 20, 20, 9000]
-    for a, b in zip(serial_batches, remote_batches):
+    for a, b in zip(serial_batches, remote_batches, strict=False):
         for name in ("observations", "detected", "log_p", "log_q"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert [(repr(s.gamma), s.n_elites, s.estimate) for s in serial_stages] == \

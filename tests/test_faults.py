@@ -111,7 +111,7 @@ def kill_at_random_point(proc: subprocess.Popen, sig: int, seed: int, latest_s: 
         _, err = proc.communicate(timeout=120)  # a signal never leaves a hang
     except subprocess.TimeoutExpired:
         proc.kill()
-        raise AssertionError(f"still running 120 s after signal {sig}")
+        raise AssertionError(f"still running 120 s after signal {sig}") from None
     return proc.returncode, err
 
 
@@ -328,7 +328,8 @@ def test_sidecar_field_of_the_wrong_type_is_one_error_naming_file_and_field(tmp_
     assert "\n" not in str(err.value) or case.startswith("formula")
 
 
-@pytest.mark.parametrize("body", ["[" * 100_000, "{}" * 3, '"x"', "\udcff", "null"], ids=["deep", "junk", "str", "bad-utf8", "null"])
+@pytest.mark.parametrize("body", ["[" * 100_000, "{}" * 3, '"x"', "\udcff", "null"],
+                         ids=["deep", "junk", "str", "bad-utf8", "null"])
 def test_sidecar_that_is_not_a_json_object_is_one_error(tmp_path, body):
     side = tmp_path / "s.json"
     side.write_bytes(body.encode("utf-8", "surrogateescape"))
@@ -399,7 +400,8 @@ def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, 
          "X.rollouts.json: exists and is not a regular file"),
         (["run", "--save", "{tmp}/" + "a" * 240 + ".rrd"], "file name too long (244 bytes; at most 241 here)"),
         (["run", "--save-rollouts", "{tmp}/" + "b" * 232 + ".parquet", "--no-record"], "file name too long"),
-        (["pem", "eval", "--out", "{tmp}", "--save", "/proc/x.rrd"], "--save /proc/x.rrd: folder /proc is not writable"),
+        (["pem", "eval", "--out", "{tmp}", "--save", "/proc/x.rrd"],
+         "--save /proc/x.rrd: folder /proc is not writable"),
         (["pem", "train", "--out", "/proc/x.pt"], "--out /proc/x.pt: folder /proc is not writable"),
         (["validate", "--out", "/proc/x"], "--out /proc/x: folder /proc is not writable"),
         (["tables", "--out", "/proc/x"], "--out /proc/x: folder /proc is not writable"),
@@ -415,15 +417,16 @@ def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, 
         (["serve", "--host", "8.8.8.8", "--port", "8791"], "not an address of this machine"),
         (["estimate", "{tmp}/run.rrd", "--no-record"], "run.rrd: a rerun recording, not a rollout file; `pemviz "
          "estimate` reads the Parquet rollout file that `pemviz run --save-rollouts NAME.parquet` writes"),
-        (["estimate", "{tmp}/renamed.parquet", "--no-record"], "renamed.parquet: a rerun recording, not a rollout file"),
+        (["estimate", "{tmp}/renamed.parquet", "--no-record"],
+         "renamed.parquet: a rerun recording, not a rollout file"),
         (["run", "--sigma", "high", "--no-record"], "argument --sigma: 'high' is not a number"),
         (["run", "--metric", "best", "--no-record"], "--metric: metric = 'best' is invalid: use one of classic, agm"),
         (["run", "--rel-error", "0", "--no-record"], "--rel-error: rel_error = 0.0 is invalid"),
         (["run", "--max-time", "5", "--no-record"], "--max-time: max_time_s = 5.0 is invalid: a cap on the rollouts "
          "added for a target relative error or a requirement: give it with rel_error (--rel-error) or require "
          "(--require)"),
-        (["run", "--margin", "-1", "--no-record"], "--margin: margin = -1.0 is invalid: the crash gap must be None or a "
-         "number in [0, 10]"),
+        (["run", "--margin", "-1", "--no-record"], "--margin: margin = -1.0 is invalid: the crash gap must be None or "
+         "a number in [0, 10]"),
         (["run", "--scenario", "cut-in", "--margin", "1", "--no-record"], "--margin: margin = 1.0 is invalid: the "
          "crash gap is the braking scenario's"),
         (["run", "--pem", "gbt", "--pem-uncertainty", "--no-record"], "ensemble_gbt.pt: no PEM ensemble there"),

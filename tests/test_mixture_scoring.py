@@ -41,7 +41,8 @@ def test_scored_target_answers_as_the_target_and_hands_over_the_extras_logits_ch
     assert kept.shape == (1, 5, T, 1)  # [K, n, T, M]: one object per step
     obs = np.concatenate([b.observations for b in batches])
     np.testing.assert_array_equal(kept[0, ..., 0], obs[:, :, 0] / 10.0 - 2.0)  # rollout by rollout, step by step
-    np.testing.assert_array_equal(target_logit, np.full((5, T, 1), ConstantDetector(0.3).detect_logit(np.zeros((1, 1)))[0]))
+    np.testing.assert_array_equal(target_logit,
+                                  np.full((5, T, 1), ConstantDetector(0.3).detect_logit(np.zeros((1, 1)))[0]))
     assert scored.take(1, T) is None  # nothing left
 
 

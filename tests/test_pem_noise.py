@@ -179,7 +179,8 @@ def test_noise_loss_is_the_torch_distribution_nll() -> None:
     out = torch.tensor([[0.1, -0.2, 0.3, -1.0], [0.0, 0.5, -0.4, 0.2]])
     y = torch.tensor([[1.0, 0.0], [-2.0, 0.3]])
     loss = NoiseNLL("student-t")
-    expected = -torch.distributions.StudentT(1.0 + math.log(2.0), out[:, :2], out[:, 2:].exp()).log_prob(y).sum(1).mean()
+    expected = -torch.distributions.StudentT(1.0 + math.log(2.0), out[:, :2],
+                                             out[:, 2:].exp()).log_prob(y).sum(1).mean()
     assert float(loss(out, y).detach()) == pytest.approx(float(expected), rel=1e-6)  # softplus(0) = log 2
 
 

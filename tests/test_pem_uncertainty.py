@@ -87,8 +87,10 @@ def test_latched_members_and_shifts_against_their_closed_form(seed):
     for a in alts:  # the truth comes from the closed form, computed for each PEM here
         assert a.exact_log_p is not None
     pem = load_pem()
-    for a, d in zip(spread.shifts, PEM_SHIFTS):
-        known = latched_log_failure_probability(lambda g: pem.logit_at_gap(g) + d, BrakingParams(latched_brake=True))
+    for a, d in zip(spread.shifts, PEM_SHIFTS, strict=False):
+        known = latched_log_failure_probability(
+            lambda g: pem.logit_at_gap(g) + d,  # noqa: B023 (called within the iteration)
+            BrakingParams(latched_brake=True))
         assert a.exact_log_p == pytest.approx(known.log_p_fail, abs=1e-9)
     within = [a for a in alts if abs(a.estimate.log_mu_hat - a.exact_log_p) <= math.log(1.5)]
     covers = [a for a in alts if a.estimate.covers(a.exact_log_p)]

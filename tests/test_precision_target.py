@@ -84,7 +84,8 @@ def test_an_adaptive_run_pools_the_added_batches_with_the_final_one_as_its_rollo
 def test_the_added_batch_follows_the_square_root_law_within_its_bounds():
     def est(width: float) -> Estimate:  # mu_hat 1e-3 with a symmetric interval of relative half-width ``width``
         mu = 1e-3
-        return Estimate(1000, 10, math.log(mu), 1.0, 1.0, 10.0, (math.log(mu * (1 - width)), math.log(mu * (1 + width))))
+        return Estimate(1000, 10, math.log(mu), 1.0, 1.0, 10.0,
+                        (math.log(mu * (1 - width)), math.log(mu * (1 + width))))
 
     assert est(0.4).rel_half_width == pytest.approx(0.4)
     assert added_batch_size(est(0.4), 1000, 0.2) in (3600, 3601)  # 1.2 x ((0.4 / 0.2)^2 - 1) = 3.6 times more

@@ -19,7 +19,7 @@ rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
 
 from conftest import verify_rrd  # noqa: E402
-from pemviz.scenarios.problems import problem_for
+from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz import cli  # noqa: E402
 from pemviz.engine import experiment as engine  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
@@ -162,7 +162,7 @@ def test_every_rollout_gap_trace_has_T_points_equal_to_the_batch(runs):
         steps = column(table, "step")
         for ev in of(events, RolloutsSampled):
             rows = column(table, f"/rollouts/gap_m/stage_{ev.stage:02d}:Scalars:scalars")
-            got = {s: v for s, v in zip(steps, rows) if v is not None}
+            got = {s: v for s, v in zip(steps, rows, strict=False) if v is not None}
             assert sorted(got) == list(range(ev.batch.n_steps))  # T points per rollout
             trace = np.array([got[t] for t in range(ev.batch.n_steps)]).T  # [N, T]
             np.testing.assert_array_equal(trace, ev.batch.signal("gap_m"))
@@ -174,7 +174,8 @@ def test_every_rollout_gap_trace_has_T_points_equal_to_the_batch(runs):
                 marks = column(table, f"/rollouts/{key}/stage_{ev.stage:02d}:Scalars:scalars")
                 marks = np.array([m for m in marks if m is not None]).T  # [featured, T]
                 np.testing.assert_array_equal(np.isfinite(marks), (ev.batch.detected[rows, :, 0] == seen) & matters)
-                np.testing.assert_array_equal(marks[np.isfinite(marks)], ev.batch.signal("gap_m")[rows][np.isfinite(marks)])
+                np.testing.assert_array_equal(marks[np.isfinite(marks)],
+                                              ev.batch.signal("gap_m")[rows][np.isfinite(marks)])
 
 
 def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
@@ -184,7 +185,7 @@ def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
     colours = static_value(tables, "/rollouts/gap_m/stage_01:SeriesLines:colors")
     names = static_value(tables, "/rollouts/gap_m/stage_01:SeriesLines:names")
     tagged = set(np.argsort(ev.robustness, kind="stable")[:3].tolist())
-    for i, (c, name) in enumerate(zip(colours, names)):
+    for i, (c, name) in enumerate(zip(colours, names, strict=False)):
         if i in tagged:
             assert c == packed(TAG_CRASH_RGBA if ev.failed[i] else TAG_RGBA) and "least-robust" in name
         else:
@@ -205,8 +206,8 @@ def test_stage_series_hold_each_stage_result(runs):
     events, _, tables, _ = runs["adaptive"]
     table = tables["stage"]
     stages = column(table, "stage")
-    rate = dict(zip(stages, column(table, "/stages/failure_rate:Scalars:scalars")))
-    ess = dict(zip(stages, column(table, "/stages/ess:Scalars:scalars")))
+    rate = dict(zip(stages, column(table, "/stages/failure_rate:Scalars:scalars"), strict=False))
+    ess = dict(zip(stages, column(table, "/stages/ess:Scalars:scalars"), strict=False))
     results = [e.result for e in of(events, StageFinished)]
     assert sorted(rate) == [r.stage for r in results] == [0, 1, 2, 3, 4]
     for r in results:
@@ -223,9 +224,9 @@ def test_scene_boxes_follow_a_replay_of_the_braking_scenario(runs):
         for ev in of(events, RolloutsSampled):
             i = int(np.argmin(ev.robustness))
             path = f"/scene/stage_{ev.stage:02d}"
-            ego = dict(zip(steps, column(tables["step"], f"{path}/ego:Boxes2D:centers")))
-            lead = dict(zip(steps, column(tables["step"], f"{path}/lead:Boxes2D:centers")))
-            half = dict(zip(steps, column(tables["step"], f"{path}/lead:Boxes2D:half_sizes")))
+            ego = dict(zip(steps, column(tables["step"], f"{path}/ego:Boxes2D:centers"), strict=False))
+            lead = dict(zip(steps, column(tables["step"], f"{path}/lead:Boxes2D:centers"), strict=False))
+            half = dict(zip(steps, column(tables["step"], f"{path}/lead:Boxes2D:half_sizes"), strict=False))
             sim = BrakingScenario(p)
             truth = []
             for t in range(ev.batch.n_steps):
@@ -267,7 +268,8 @@ def test_nice_ticks_are_round_and_cover_the_range():
 
 def _stages_in(path) -> tuple[list[int], list[str], str]:
     tables = read({"run": path})["run"]
-    rates = zip(column(tables["stage"], "stage"), column(tables["stage"], "/stages/failure_rate:Scalars:scalars"))
+    rates = zip(column(tables["stage"], "stage"), column(tables["stage"], "/stages/failure_rate:Scalars:scalars"),
+                strict=False)
     stages = [s for s, v in rates if v]
     curves = sorted(c.split("/")[3][:8] for c in tables["static"].column_names if CURVE_RE.fullmatch(c))
     text = static_value(tables, "/description:TextDocument:text")[0]
@@ -319,12 +321,12 @@ def test_scrubbing_the_stage_timeline_steps_the_proposal_curve_and_the_histogram
     events, _, tables, _ = runs["adaptive"]
     table = tables["stage"]
     stages = column(table, "stage")
-    curves = dict(zip(stages, column(table, "/proposal/data/current:LineStrips2D:strips")))
+    curves = dict(zip(stages, column(table, "/proposal/data/current:LineStrips2D:strips"), strict=False))
     results = {e.result.stage: e.result for e in of(events, StageFinished)}
     for k, res in results.items():
         (strip,) = curves[k]
         np.testing.assert_allclose(np.asarray(strip)[:, 1], res.proposal_curve, atol=1e-6)
-    hist = dict(zip(stages, column(table, "/histograms/robustness:BarChart:values")))
+    hist = dict(zip(stages, column(table, "/histograms/robustness:BarChart:values"), strict=False))
     for ev in of(events, RolloutsSampled):
         (tensor,) = hist[ev.stage]
         assert sum(tensor["buffer"]) == ev.robustness.size  # every rollout counted once
@@ -341,11 +343,11 @@ def test_the_estimate_view_and_series_carry_the_interval_verdict_and_stage_names
     high = "/stages/log10_mu_hat/ci_high:Scalars:scalars"  # logged only where an interval is backed
     hi = [v for v in column(table, high) if v] if high in table.column_names else []
     mu = [v for v in column(table, "/stages/log10_mu_hat:Scalars:scalars") if v]
-    assert len(lo) == len(mu) and all(a[0] <= m[0] for a, m in zip(lo, mu))
+    assert len(lo) == len(mu) and all(a[0] <= m[0] for a, m in zip(lo, mu, strict=False))
     # an upper end only for the stages whose weights back an interval (the others show their lower bound alone)
     backed = [e for e in stage_estimates(events) if math.isfinite(e.log10_mu_hat) and e.interval_backed]
     assert len(hi) == len(backed) and all(b[0] == pytest.approx(e.log_ci[1] / math.log(10.0), rel=1e-6)
-                                          for b, e in zip(hi, backed))
+                                          for b, e in zip(hi, backed, strict=False))
     description = static_value(tables, "/description:TextDocument:text")[0]
     for name in ("| 0 | pretraining |", "| 1 | CE stage 1/3 |", "| 4 | final batch |"):
         assert name in description
@@ -452,7 +454,7 @@ def test_p_and_q_along_the_most_likely_failure_are_its_detectors_probabilities_a
     (ev,) = [e for e in of(events, RolloutsSampled) if e.stage == props["stage"]]
     i = props["rollout"]
     step = column(tables["step"], "step")
-    series = {k: dict(zip(step, column(tables["step"], f"/explain/detect/{k}:Scalars:scalars")))
+    series = {k: dict(zip(step, column(tables["step"], f"/explain/detect/{k}:Scalars:scalars"), strict=False))
               for k in ("pem", "sampler", "misses")}  # fmt: skip
     q = np.array([series["sampler"][t][0] for t in range(ev.batch.n_steps)])
     p = np.array([series["pem"][t][0] for t in range(ev.batch.n_steps)])
@@ -479,7 +481,8 @@ def test_the_featured_rollouts_are_each_an_entity_with_stage_log_p_robustness_an
             assert value["log_p"] == pytest.approx(ev.batch.log_p[i, :-1].sum(), abs=1e-9)
             assert value["min_gap_m"] == pytest.approx(ev.batch.signal("gap_m")[i].min())
             steps = column(tables["step"], "step")
-            trace = [v for s, v in zip(steps, column(tables["step"], f"{path}:Scalars:scalars")) if v is not None]
+            trace = [v for s, v in zip(steps, column(tables["step"], f"{path}:Scalars:scalars"), strict=False)
+                     if v is not None]
             np.testing.assert_array_equal(np.array(trace)[:, 0], ev.batch.signal("gap_m")[i])
 
 
@@ -489,9 +492,9 @@ def test_the_marginal_proposal_shows_q_miss_inside_10_m_above_the_pems(runs):
     events, _, tables, _ = runs["adaptive"]
     table = tables["stage"]
     stages = column(table, "stage")
-    stats = {k: dict(zip(stages, column(table, f"/proposal_marginal/stats:{k}")))
+    stats = {k: dict(zip(stages, column(table, f"/proposal_marginal/stats:{k}"), strict=False))
              for k in ("edges_m", "q_mean", "p_mean", "q_miss_window", "p_miss_window")}  # fmt: skip
-    bars = dict(zip(stages, column(table, "/proposal_marginal/miss/d_q:BarChart:values")))
+    bars = dict(zip(stages, column(table, "/proposal_marginal/miss/d_q:BarChart:values"), strict=False))
     for ev in of(events, RolloutsSampled):
         edges = np.asarray(stats["edges_m"][ev.stage])
         q_mean = np.asarray(stats["q_mean"][ev.stage], dtype=float)
@@ -531,7 +534,7 @@ def assert_every_view_has_data(events: list, tables: dict) -> None:
             return [v for child in inner for v in views(child)]
         return [part]
 
-    for key, tab in zip(("stages", "explain", "rollouts"), tabs):
+    for key, tab in zip(("stages", "explain", "rollouts"), tabs, strict=False):
         table, static = tables[TIMELINE[key]], tables["static"]
         filled = [c for c in table.column_names if c.startswith("/") and any(x is not None for x in column(table, c))]
         temporal_only = ("Scalars", "BarChart", "Series")  # a static style is no data
@@ -555,7 +558,7 @@ def test_the_share_of_failures_with_contact_per_stage(runs):
     events, _, tables, _ = runs["naive"]
     (ev,) = of(events, RolloutsSampled)
     stages = column(tables["stage"], "stage")
-    share = dict(zip(stages, column(tables["stage"], "/stages/contact_share:Scalars:scalars")))
+    share = dict(zip(stages, column(tables["stage"], "/stages/contact_share:Scalars:scalars"), strict=False))
     low = ev.batch.signal("gap_m")[ev.failed].min(axis=1)
     assert share[ev.stage] == [pytest.approx(np.mean(low <= 0.7))]
 
@@ -607,8 +610,9 @@ def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_whe
     true_xy = np.array(true, dtype=np.float64)  # [T, M, 2]: right, -ahead
     col = {name: OBJECT_NAMES.index(name) for name in ("loc_x", "loc_z", "tracked", "track_err_x_m", "track_err_y_m")}
     rows = next(e.batch.objects[i] for e in failures for i in np.flatnonzero(e.failed)
-                if np.allclose(np.stack([e.batch.objects[i][:, :, col["loc_x"]], -e.batch.objects[i][:, :, col["loc_z"]]],
-                                        -1), true_xy, atol=1e-4))  # fmt: skip
+                if np.allclose(np.stack([e.batch.objects[i][:, :, col["loc_x"]],
+                                         -e.batch.objects[i][:, :, col["loc_z"]]], -1),
+                               true_xy, atol=1e-4))  # fmt: skip
     has = rows[:, :, col["tracked"]] > 0.5
     want = np.stack([rows[:, :, col["loc_x"]] + rows[:, :, col["track_err_y_m"]],
                      -(rows[:, :, col["loc_z"]] + rows[:, :, col["track_err_x_m"]])], -1)  # fmt: skip
@@ -654,7 +658,7 @@ def test_the_recording_lists_every_failure_of_the_estimate_by_share_and_its_grou
     dist = np.array(static_value(tables, "/final/failures:min_distance"), dtype=np.float64)
     speed = np.array(static_value(tables, "/final/failures:impact_speed"), dtype=np.float64)
     batches = {e.stage: e.batch for e in events if isinstance(e, RolloutsSampled)}
-    want = [severity(batches[k].signal("gap_m")[i]) for k, i in zip(stage, rollout)]
+    want = [severity(batches[k].signal("gap_m")[i]) for k, i in zip(stage, rollout, strict=False)]
     np.testing.assert_array_equal(dist, [w.min_gap_m for w in want])
     np.testing.assert_array_equal(speed, [w.contact_speed_mps for w in want])
     # p(severity | failure): the shares of p of no contact, 0-2, 2-5 and > 5 m/s, as bars adding up to 1

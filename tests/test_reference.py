@@ -40,9 +40,11 @@ def test_the_summary_compares_the_estimate_with_the_reference_when_no_exact_answ
         "; reference 8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain Monte Carlo): "
         "relative error 0.0393, inside the interval")  # |9.0 - 8.66| / 8.66 = 0.03926
     far = an_estimate(1.455e-16, 2.08e-17, 1.02e-15)
-    assert far.summary(None, r).endswith("11.8 orders of magnitude too low, OUTSIDE the interval")  # 8.66e-5 / 1.455e-16
+    # 8.66e-5 / 1.455e-16
+    assert far.summary(None, r).endswith("11.8 orders of magnitude too low, OUTSIDE the interval")
     # an exact answer, where known, is the one shown
-    assert "reference" not in near.summary(math.log(8.66e-5), r) and "exact 8.660e-05" in near.summary(math.log(8.66e-5), r)
+    assert ("reference" not in near.summary(math.log(8.66e-5), r)
+            and "exact 8.660e-05" in near.summary(math.log(8.66e-5), r))
 
 
 def test_an_estimate_far_off_says_by_how_much():

@@ -62,7 +62,8 @@ def test_any_text_parses_or_raises_requirement_error(text):
 def test_the_looks_spend_alpha_and_no_more():
     # sum over j of 6 / (pi^2 j^2) = 1 (Euler): the error of every look together is alpha
     assert math.isclose(sum(alpha_at_look(j) for j in range(1, 200_001)), ALPHA, rel_tol=1e-5)
-    assert math.isclose(alpha_at_look(1), 0.05 * 6 / math.pi**2) and math.isclose(1 - alpha_at_look(2), 0.99240091, rel_tol=1e-8)
+    assert (math.isclose(alpha_at_look(1), 0.05 * 6 / math.pi**2)
+            and math.isclose(1 - alpha_at_look(2), 0.99240091, rel_tol=1e-8))
     with pytest.raises(ValueError):
         alpha_at_look(0)
 
@@ -88,7 +89,8 @@ def test_the_interval_at_the_run_s_own_level_is_the_printed_one():
         ci = binomtest(k, n).proportion_ci(confidence_level=level, method="exact")
         assert np.allclose(clopper_pearson(k, n, level), (ci.low, ci.high), rtol=1e-8, atol=1e-15)  # scipy root-finds
     none = estimate(np.zeros(1000), np.zeros(1000, bool), np.zeros(1000))
-    assert math.isclose(math.exp(interval_at_level(none, 0.99, plain_mc=True)[1]), 1 - 0.005 ** (1 / 1000), rel_tol=1e-9)
+    assert math.isclose(math.exp(interval_at_level(none, 0.99, plain_mc=True)[1]), 1 - 0.005 ** (1 / 1000),
+                        rel_tol=1e-9)
 
 
 def test_decisions_by_hand():

@@ -76,7 +76,8 @@ def estimate_cli(capsys, *args: str) -> tuple[int, str, str]:
 def test_run_rollouts_read_back_with_their_columns_give_the_runs_mu_hat_to_1e_12(naive_run):
     path, run_estimate = naive_run
     data = rio.read_rollouts(path)
-    assert (data.n, data.n_steps, data.observation_names) == (200, 100, ("gap_m", "ego_speed_mps", "lead_speed_mps", "brake_pending"))
+    assert (data.n, data.n_steps, data.observation_names) == (200, 100, ("gap_m", "ego_speed_mps", "lead_speed_mps",
+                                                                          "brake_pending"))
     result = estimate_rollouts(data, data.log_p, data.log_q)
     assert run_estimate.n_failures == result.estimate.n_failures > 100
     assert same_mu(result.estimate.log_mu_hat, run_estimate.log_mu_hat)
@@ -141,8 +142,8 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     pem_batch = problem.simulate(40, problem.target, problem.target, rng)
     pretrain_proposal(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], epochs=100, lr=1e-2)
     r = problem.robustness(pem_batch, "classic")
-    ce_update(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], pem_batch.log_p, pem_batch.log_q, r <= np.sort(r)[3],
-              smoothing=0.5, epochs=50, lr=1e-2)  # fmt: skip
+    ce_update(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], pem_batch.log_p, pem_batch.log_q,
+              r <= np.sort(r)[3], smoothing=0.5, epochs=50, lr=1e-2)  # fmt: skip
     batch = problem.simulate(60, proposal, problem.target, rng)
     failed = problem.failed(batch)
     truth = estimate(batch.log_weight(), failed, batch.log_p[:, :99].sum(axis=1))
@@ -288,7 +289,8 @@ def small_file(tmp_path_factory, pem):
     batch = problem.simulate(6, ConstantDetector(0.5), problem.target, np.random.default_rng(0))
     path = tmp_path_factory.mktemp("small") / "small.parquet"
     rio.write_rollouts(path, batch, rollout_format.braking_meta(pem="ml-nn", proposal="naive50"),
-                       salient=rio.braking_salient(batch.signal("gap_m")), severity=rollout_severity(problem, batch))  # fmt: skip
+                       salient=rio.braking_salient(batch.signal("gap_m")),
+                       severity=rollout_severity(problem, batch))  # fmt: skip
     return path
 
 

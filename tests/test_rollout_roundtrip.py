@@ -53,7 +53,8 @@ def estimate_cells(est_out: str) -> dict[object, str]:
     for ln in est_out.splitlines():
         m = re.match(r"^\s+(\d+|final) +\S* +(\d+/\d+ .*)$", ln)
         if m:
-            out[m.group(1) if m.group(1) == "final" else int(m.group(1))] = " ".join(m.group(2).split("   <-")[0].split())
+            out[m.group(1) if m.group(1) == "final" else int(m.group(1))] = " ".join(
+                m.group(2).split("   <-")[0].split())
     return out
 
 
@@ -116,7 +117,8 @@ def test_default_run_round_trips_all_its_pooled_stages_and_its_mean_weight_is_on
     ("--method", "mixed50", "--n", "300"),
     ("--rel-error", "0.05"),
     ("--method", "mixed50", "--n", "300", "--rel-error", "0.3", "--max-sims", "3000"),
-], ids=["state-ce-step", "paper", "authors-code", "mc", "naive50", "mixed50", "rel-error", "mixed50-rel-error"])  # fmt: skip
+], ids=["state-ce-step", "paper", "authors-code", "mc", "naive50", "mixed50", "rel-error",
+        "mixed50-rel-error"])  # fmt: skip
 def test_every_preset_and_method_round_trips(tmp_path, capsys, run_args):
     run, est, sidecar = run_and_estimate(capsys, tmp_path, *run_args)
     assert_round_trip(run, est, sidecar)
@@ -230,8 +232,8 @@ def braking_toy_log(n: int, seed: int) -> dict[str, np.ndarray]:
     return {"gap_m": gap, "detected": det, "log_p": log_p, "log_q": log_q}
 
 
-def test_a_full_trajectory_log_reproduces_its_own_estimate_and_both_conventions_find_the_exact_answer(tmp_path,
-                                                                                                       capsys):  # fmt: skip
+def test_a_full_trajectory_log_reproduces_its_own_estimate_and_both_conventions_find_the_exact_answer(
+        tmp_path, capsys):  # fmt: skip
     n, exact = 6000, 1e-5
     log = braking_toy_log(n, seed=0)
     failed = log["gap_m"].min(axis=1) < 2.0
@@ -351,16 +353,19 @@ def test_any_stages_pooling_or_weights_field_parses_or_is_one_format_error(value
     except rollout_format.RolloutFormatError as exc:
         assert str(exc).startswith("sidecar: ") and "\n" not in str(exc)
     else:
-        assert rollout_format.RolloutMeta.from_json(meta.to_json()).to_json() == meta.to_json()  # written back, read the same
+        # written back, read the same
+        assert rollout_format.RolloutMeta.from_json(meta.to_json()).to_json() == meta.to_json()
 
 
 def test_a_stage_column_that_changes_within_a_rollout_is_named(tmp_path):
     table = tiny_table([1, 1], [0, 0])
     stage = table.column("stage").to_numpy().copy()
     stage[4] = 2
-    pq.write_table(table.set_column(table.column_names.index("stage"), "stage", pa.array(stage)), tmp_path / "x.parquet")
+    pq.write_table(table.set_column(table.column_names.index("stage"), "stage", pa.array(stage)),
+                   tmp_path / "x.parquet")
     (tmp_path / "x.json").write_text(json.dumps({"formula": "G[0,2](d >= 2)", "dt_s": 0.1}))
-    with pytest.raises(rollout_format.RolloutFormatError, match=r"stage = 2 at rollout 1, step 1 \(row 4\) but 1 at its step 0"):
+    with pytest.raises(rollout_format.RolloutFormatError,
+                       match=r"stage = 2 at rollout 1, step 1 \(row 4\) but 1 at its step 0"):
         rio.read_rollouts(tmp_path / "x.parquet")
 
 
@@ -369,10 +374,12 @@ def test_a_stage_column_that_changes_within_a_rollout_is_named(tmp_path):
 
 @pytest.fixture(scope="module")
 def cut_in_file(tmp_path_factory):
-    """``pemviz run --scenario cut-in`` (small) with ``--save-rollouts``: (run stdout, estimate stdout, sidecar, path)."""
+    """``pemviz run --scenario cut-in`` (small) with ``--save-rollouts``: (run stdout, estimate stdout, sidecar,
+    path)."""
     tmp = tmp_path_factory.mktemp("cut_in")
     path = tmp / "r.parquet"
-    args = ["--scenario", "cut-in", "--method", "adaptive", "--n-final", "300"]  # K = 10: its pooled stages are mixtures with the target
+    # K = 10: its pooled stages are mixtures with the target
+    args = ["--scenario", "cut-in", "--method", "adaptive", "--n-final", "300"]
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert cli.main(["run", "--no-record", "--save-rollouts", str(path), *args]) == 0

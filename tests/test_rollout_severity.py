@@ -178,7 +178,8 @@ def test_a_small_run_s_failures_by_share_match_a_hand_computation(braking):
     shares = finals[0].failures
     assert isinstance(sev, FailureSeverity) and sev.n == sev.n_failures == shares.n > 20
     assert sev.counts()[0] > 20 and sev.counts()[1:].sum() >= 5  # failures with and without contact
-    want = [severity(sampled[s].batch.signal("gap_m")[i], braking.drawing.params) for s, i in zip(shares.stage, shares.index)]
+    want = [severity(sampled[s].batch.signal("gap_m")[i], braking.drawing.params)
+            for s, i in zip(shares.stage, shares.index, strict=False)]
     np.testing.assert_array_equal(sev.min_distance, [w.min_gap_m for w in want])
     np.testing.assert_array_equal(sev.impact_speed, [w.contact_speed_mps for w in want])
     share = np.exp(shares.log_share)

@@ -263,7 +263,9 @@ def test_fit_proposal_gives_autograd_and_torch_adams_parameters(state):
         start = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
         losses = fit_proposal(ours, inputs, counts, 200, 1e-2, per=per, dtype=torch.float64)
         expected = _torch_reference_fit(
-            ref, inputs, lambda lq: -(counts * lq).sum() if per is None else -(counts * lq).sum() / per, 200, 1e-2)
+            ref, inputs, lambda lq: (-(counts * lq).sum() if per is None  # noqa: B023 (called within the iteration)
+                                     else -(counts * lq).sum() / per),  # noqa: B023 (called within the iteration)
+            200, 1e-2)
         got = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
         assert (got - start).abs().max() > 0.1  # the fit moved the parameters
         torch.testing.assert_close(got, expected, **FIT_TOL)

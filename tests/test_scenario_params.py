@@ -155,7 +155,8 @@ def test_a_run_with_a_parameter_prints_and_records_it(tmp_path, capsys):
 
     sidecar = json.loads(sidecar_path(rollouts).read_text())
     assert sidecar["provenance"]["config"]["scenario_params"] == [["cut_in_gap_m", 19.5]]
-    assert known_answer(run_problem(read_rollouts(rollouts), "crash", True)) == (None, None)  # no reference of another scene
+    # no reference of another scene
+    assert known_answer(run_problem(read_rollouts(rollouts), "crash", True)) == (None, None)
 
 
 def test_a_parameter_at_its_default_is_not_named_in_the_header(capsys):

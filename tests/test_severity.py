@@ -78,7 +78,7 @@ def test_the_default_run_reports_each_known_point_within_x1_5_inside_its_interva
     curve = final.severity
     assert [pt.level for pt in curve.points] == [2.0, 1.5, 1.0, 0.5, 0.0]
     assert curve.points[0].estimate is final.estimate  # the margin's point is the run's own estimate
-    for pt, exact in zip(curve.points[1:3], (EXACT_1_5, EXACT_1_0)):
+    for pt, exact in zip(curve.points[1:3], (EXACT_1_5, EXACT_1_0), strict=False):
         assert pt.reached, pt.estimate.reason
         assert abs(pt.estimate.log_mu_hat - math.log(exact)) < math.log(1.5)
         assert pt.estimate.covers(math.log(exact))
@@ -160,7 +160,8 @@ def test_console_and_json_show_the_curve(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "severity: P(min gap < x), from the same rollouts" in text
     assert "gap < 1.5 m" in text and "exact 2.999e-17" in text
-    assert "gap < 0 m (contact)           not reached by this run (0 of 1,800 rollouts): pemviz run --margin 0 targets it" in text
+    assert ("gap < 0 m (contact)           not reached by this run (0 of 1,800 rollouts): pemviz run --margin 0 "
+            "targets it" in text)
     doc = json.loads(out.read_text())
     points = doc["severity"]["points"]
     assert [p["level"] for p in points] == [2.0, 1.5, 1.0, 0.5, 0.0]

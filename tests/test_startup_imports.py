@@ -51,7 +51,7 @@ def test_a_proposal_in_numpy_samples_curves_and_fits_as_one_in_torch(kind):
     la = fit_proposal(a, inputs, counts, 60, 1e-2, per=300.0)
     lb = fit_proposal(b, torch.as_tensor(inputs), torch.as_tensor(counts), 60, 1e-2, per=300.0)
     assert la == lb and a._module is None  # the exact fit never moved it into torch
-    for pa, pb in zip(a.parameter_arrays(), b.parameter_arrays()):
+    for pa, pb in zip(a.parameter_arrays(), b.parameter_arrays(), strict=False):
         np.testing.assert_array_equal(pa, pb)
     np.testing.assert_array_equal(a.detect_logit(obs), b.detect_logit(obs))  # the cache followed the fit
     grid = np.linspace(0.0, 40.0, 81)
@@ -69,7 +69,7 @@ def test_moving_into_torch_keeps_the_parameters_and_torchs_random_state():
     net = a.net
     assert torch.equal(torch.random.get_rng_state(), state)  # its own weights: torch's generator untouched
     assert a._module is not None and a._arrays is None
-    for p, q in zip(net.parameters(), before):
+    for p, q in zip(net.parameters(), before, strict=False):
         assert p.dtype == torch.float64
         np.testing.assert_array_equal(p.detach().numpy(), q)
     assert set(a.state_dict()) == {f"net.{i}.{k}" for i in (0, 2, 4) for k in ("weight", "bias")}
@@ -91,7 +91,7 @@ def test_a_run_in_numpy_is_the_run_in_torch(numpy_first, monkeypatch):
     in_torch = Experiment(cfg, problem=problem).run()
     a, b = in_numpy.final.estimate, in_torch.final.estimate
     assert a.n_failures > 0 and (a.log_mu_hat, a.n_failures, a.ess) == (b.log_mu_hat, b.n_failures, b.ess)
-    for sa, sb in zip(in_numpy.stages, in_torch.stages):
+    for sa, sb in zip(in_numpy.stages, in_torch.stages, strict=False):
         assert sa.estimate.log_mu_hat == sb.estimate.log_mu_hat or (np.isnan(sa.estimate.log_mu_hat)
                                                                      and np.isnan(sb.estimate.log_mu_hat))  # fmt: skip
         np.testing.assert_allclose(sa.proposal_curve, sb.proposal_curve, rtol=1e-13)
@@ -169,7 +169,7 @@ def test_a_checkpoint_loads_into_numpy_with_the_same_weights(tmp_path, numpy_fir
     saved.initialise(np.random.default_rng(11))
     loaded = load_proposal(save_proposal(saved, tmp_path / "q.proposal.pt"))
     assert loaded._module is None and not loaded.training and loaded.h_scale == 7.5
-    for a, b in zip(loaded.parameter_arrays(), saved.parameter_arrays()):
+    for a, b in zip(loaded.parameter_arrays(), saved.parameter_arrays(), strict=False):
         np.testing.assert_array_equal(a, b)
     obs = np.random.default_rng(1).uniform(0, 30, (200, 3))
     np.testing.assert_array_equal(loaded.detect_logit(obs), saved.detect_logit(obs))

@@ -196,6 +196,7 @@ def test_temporal_operators_share_one_base_and_differ_in_the_reduction():
     assert (g.symbol, f.symbol, u.symbol) == ("G", "F", "U")
     assert g != f and (g.operand, g.start, g.end) == (f.operand, f.start, f.end)
     assert (str(g), str(f), str(u)) == ("G[1,4](d >= 2)", "F[1,4](d >= 2)", "(d >= 2) U[0,inf] (d >= 2)")
-    assert repr(f) == "Eventually(operand=Predicate(lhs=Signal(name='d'), op='>=', rhs=Const(value=2.0)), start=1, end=4)"
+    assert repr(f) == ("Eventually(operand=Predicate(lhs=Signal(name='d'), op='>=', rhs=Const(value=2.0)), start=1, "
+                       "end=4)")
     with pytest.raises(ValueError, match=r"interval \[3,1\] of F is empty"):
         stl.eventually(p, 3, 1)

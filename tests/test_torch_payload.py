@@ -1,5 +1,6 @@
-"""pemviz.core.torch_payload: the torch-free reader of ``torch.save`` archives, against ``torch.load(weights_only=True)``;
-loading a PEM without torch, and the numpy fold of the weights, bit for bit the torch module's."""
+"""pemviz.core.torch_payload: the torch-free reader of ``torch.save`` archives, against
+``torch.load(weights_only=True)``; loading a PEM without torch, and the numpy fold of the weights, bit for bit the torch
+module's."""
 
 from __future__ import annotations
 
@@ -49,7 +50,7 @@ def assert_same(got: Any, want: Any, where: str = "payload") -> None:
             assert_same(got[key], want[key], f"{where}[{key!r}]")
     elif isinstance(want, (list, tuple)):
         assert len(got) == len(want), f"{where}: length {len(got)} != {len(want)}"
-        for i, (a, b) in enumerate(zip(got, want)):
+        for i, (a, b) in enumerate(zip(got, want, strict=False)):
             assert_same(a, b, f"{where}[{i}]")
     elif isinstance(want, float) and math.isnan(want):
         assert math.isnan(got), where
@@ -237,14 +238,16 @@ def _outcome(fn: Any) -> tuple:
 def test_damaged_and_foreign_files_fail_as_they_did_with_torch_load(tmp_path: Path) -> None:
     odd = {"flipped byte": _flipped(tmp_path), "no byteorder": _no_byteorder(tmp_path)}
     for name, path in [*_damaged(tmp_path).items(), *odd.items()]:
-        new = _outcome(lambda: load_tagged(path, "pemviz-pem", 1, "PEM", pem.PemFormatError, as_numpy=True))
-        old = _outcome(lambda: load_tagged(path, "pemviz-pem", 1, "PEM", pem.PemFormatError))
+        new = _outcome(lambda: load_tagged(path,  # noqa: B023 (called within the iteration)
+                                           "pemviz-pem", 1, "PEM", pem.PemFormatError, as_numpy=True))
+        old = _outcome(lambda: load_tagged(path,  # noqa: B023 (called within the iteration)
+                                           "pemviz-pem", 1, "PEM", pem.PemFormatError))
         if old[0] == "ok":  # torch reads it (no byte order, a flipped byte torch does not check): so does the reader
             assert new[0] == "ok", name
             assert_same(new[1], old[1], name)
         else:
             assert new == old, name
-        loaded = _outcome(lambda: pem.load_pem(path))
+        loaded = _outcome(lambda: pem.load_pem(path))  # noqa: B023 (called within the iteration)
         if loaded[0] == "error":
             assert loaded[1] is pem.PemFormatError and "\n" not in loaded[2] and str(path) in loaded[2], (name, loaded)
 
@@ -344,7 +347,7 @@ def test_shipped_pem_logits_are_bit_identical_to_the_torch_fold(index: int) -> N
     ref = _torch_folded(p, lambda: pem.PEM(name=p.name, norm=p.norm, state_dict=p.state_dict, hidden=p.hidden,
                                             batch_norm=p.batch_norm, temperature=p.temperature))  # fmt: skip
     torch_layers = network.fold_layers(p.to_module())
-    assert all(_same_bits(a, c) and _same_bits(b, d) for (a, b), (c, d) in zip(p._layers, torch_layers))
+    assert all(_same_bits(a, c) and _same_bits(b, d) for (a, b), (c, d) in zip(p._layers, torch_layers, strict=False))
     raw = _raw(3000, index)
     gaps = np.concatenate([np.linspace(-20, 200, 5001), p._gap_knots, np.nextafter(p._gap_knots, np.inf)])
     assert _same_bits(p.logit(raw), ref.logit(raw))
@@ -358,7 +361,7 @@ def test_shipped_noise_pem_is_bit_identical_to_the_torch_fold() -> None:
                                                 state_dict=n.state_dict, hidden=n.hidden,
                                                 target_scale=n.target_scale))  # fmt: skip
     x = n.features(_raw(3000, 7))
-    assert all(_same_bits(a, b) for a, b in zip(n.noise_params(x), ref.noise_params(x)))
+    assert all(_same_bits(a, b) for a, b in zip(n.noise_params(x), ref.noise_params(x), strict=False))
 
 
 def test_weights_of_another_architecture_are_refused_in_one_line() -> None:

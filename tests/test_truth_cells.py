@@ -72,14 +72,14 @@ def _least_misses(p: BrakingParams, step: int, g, v, i, b) -> np.ndarray:
     k = p.n_steps - 1 - step
     seqs = np.array(list(itertools.product((False, True), repeat=k)))  # [2^k, k]
     m, n = seqs.shape[0], g.size
-    G, V, I, B = (np.repeat(x, m) for x in (g, v, i, b))
+    G, V, Integ, B = (np.repeat(x, m) for x in (g, v, i, b))
     D = np.tile(seqs, (n, 1))
     misses, crashed = np.zeros(n * m, np.int64), np.zeros(n * m, bool)
     vl = lead_speeds(p)
     for s in range(k):
         live = ~crashed
         misses += live & ~D[:, s] & (G < p.braking_distance_m)
-        G, V, I, B = braking_step(p, vl[step + s], G, V, I, B, D[:, s])
+        G, V, Integ, B = braking_step(p, vl[step + s], G, V, Integ, B, D[:, s])
         crashed |= live & (G < p.crash_gap_m)
     return np.where(crashed, misses, MissBound.NO_CRASH).reshape(n, m).min(axis=1)
 

@@ -46,7 +46,8 @@ def test_tables_reduced_run_recovers_the_toy_1e_minus_3(tmp_path):
 
 
 def test_validate_reduced_run_prints_the_table_with_the_truth(tmp_path, capsys):
-    args = ["validate", "--problems", "toy-1e-3", "--seeds", "3", "--presets", "paper", *REDUCED, "--out", str(tmp_path)]
+    args = ["validate", "--problems", "toy-1e-3", "--seeds", "3", "--presets", "paper", *REDUCED,
+            "--out", str(tmp_path)]
     assert cli_main(args) == 0
     assert "| toy-1e-3 | 1.000e-03 | adaptive (paper) | 3 |" in capsys.readouterr().out
     rows = {row["method"]: row for row in csv.DictReader((tmp_path / "validate.csv").open())}
@@ -132,7 +133,8 @@ def test_state_proposal_reads_its_columns_and_holds_the_rest_for_the_curve():
     assert q.features(obs[None]).shape == (1, 2, 2)
     logit = q.detect_logit(obs)
     assert logit[0] != logit[1]  # the speed matters
-    assert q.curve(np.array([5.0]))[0] == pytest.approx(1.0 / (1.0 + math.exp(-q.detect_logit(np.array([[5.0, 7.7]]))[0])))
+    assert q.curve(np.array([5.0]))[0] == pytest.approx(
+        1.0 / (1.0 + math.exp(-q.detect_logit(np.array([[5.0, 7.7]]))[0])))
 
 
 def test_tables_recording_holds_fig4_as_the_mean_of_the_stage_3_curves(tmp_path):
@@ -140,7 +142,8 @@ def test_tables_recording_holds_fig4_as_the_mean_of_the_stage_3_curves(tmp_path)
     pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
     out = tmp_path / "t"
     assert cli_main(["tables", "--problem", "toy-1e-3", "--reps", "2", "--k", "3", "--ce-epochs", "30",
-                     "--pretrain-epochs", "50", "--extra", "", "--mc-large", "200", "--jobs", "1", "--out", str(out)]) == 0
+                     "--pretrain-epochs", "50", "--extra", "", "--mc-large", "200", "--jobs", "1",
+                     "--out", str(out)]) == 0
     with rr.server.Server(datasets={"t": [str(out / "tables.rrd")]}) as server:
         client = server.client()  # keep it alive while reading
         table = client.get_dataset("t").reader(index="gap_mm").to_arrow_table()

@@ -104,7 +104,8 @@ def test_the_verdict_cap_reaches_the_console(tmp_path):
     proc = run_cli("run", "--preset", "authors-code", "--n", "100", "--seed", "1", "--no-record", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("mu_hat = 4.620e-18"))
-    # its ESS (13.8 < 20) already makes it doubtful, before the cap (which test_the_paper_s_whole_rollout_fit_... checks)
+    # its ESS (13.8 < 20) already makes it doubtful, before the cap (which test_the_paper_s_whole_rollout_fit_...
+    # checks)
     assert ": doubtful (ESS 13.8 < 20: too few effective failures" in line
     # a doubtful run's weights back no interval (its CLT interval excluded the exact 1.984e-15): the lower bound that
     # holds whatever their tail is shown instead, and it holds
@@ -161,7 +162,8 @@ def test_an_ess_below_20_is_never_reliable_under_importance_sampling():
         assert got == verdict, (ess, got, reason)
         if verdict == "doubtful":
             assert reason == f"ESS {ess:.1f} < 20: too few effective failures to judge the weights' tail"
-    assert _verdict(20_000, 61, 11.1, 0.45, np.zeros(20_000), True, 61)[0] == "reliable"  # plain Monte Carlo: no ESS rule
+    # plain Monte Carlo: no ESS rule
+    assert _verdict(20_000, 61, 11.1, 0.45, np.zeros(20_000), True, 61)[0] == "reliable"
 
 
 def test_a_braking_failure_below_the_never_detected_stop_is_never_reliable():

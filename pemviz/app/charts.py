@@ -237,7 +237,7 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
             up.Series(label="PEM", stroke=hex_colour(BLACK), width=2.5),
         ]
         data = [x, enough(last, getattr(last, lo)), enough(last, getattr(last, hi)), rng.drawn(lines[0])]
-        for (stage, name, view), line in zip(stages, lines[1:]):
+        for (stage, name, view), line in zip(stages, lines[1:], strict=False):
             width = 2 if view is last else 1.5
             series.append(up.Series(label=name, stroke=css(stage_rgb(stage, n_colour)), width=width))
             data.append(rng.drawn(line))

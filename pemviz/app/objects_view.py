@@ -275,7 +275,7 @@ def detect_svg(names: tuple[str, ...], p: np.ndarray, q: np.ndarray, step: int, 
                      f'<line x1="{left}" y1="{foot}" x2="{width - 4}" y2="{foot}" stroke="{LANE}"/>')  # fmt: skip
         for values, colour, dash in ((p[:, j], AXIS_TEXT, ' stroke-dasharray="3,2"'), (q[:, j], BLUE, "")):
             y = foot - (band - 5) * np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0)
-            points = " ".join(f"{a:.1f},{b:.1f}" for a, b in zip(x, y))
+            points = " ".join(f"{a:.1f},{b:.1f}" for a, b in zip(x, y, strict=False))
             parts.append(f'<polyline points="{points}" fill="none" stroke="{colour}" stroke-width="1.2"{dash}/>')
     sx = left + (int(step) + 0.5) * cw
     parts.append(f'<line x1="{sx:.1f}" y1="0" x2="{sx:.1f}" y2="{height}" stroke="{NOW}" stroke-width="1.5"/>'

@@ -421,7 +421,7 @@ def fill_strip_plots(
         up.Series(label="t (s)"),
         *(up.Series(label=s.label, **SERIES_STYLE[s.role]) for s in lines),
         *(up.Series(label=label, stroke=css(colour), width=1.5, dash=[6, 4])
-          for label, colour in zip(thresholds.labels() if thresholds else (), (CRASH, BRAKE_ZONE))),
+          for label, colour in zip(thresholds.labels() if thresholds else (), (CRASH, BRAKE_ZONE), strict=False)),
         up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
     levels = (thresholds.failure, thresholds.window) if thresholds else ()

@@ -22,8 +22,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("pemviz.commands.serve", "open the interactive panel in the browser (viser)"),
     "estimate": ("pemviz.commands.estimate", "estimate the failure probability from logged rollouts (Parquet)"),
     "validate": ("pemviz.commands.validate", "judge the sampler and the baselines against exact failure probabilities"),
-    "tables": ("pemviz.commands.tables", "reproduce the paper's Tables II and III with repetitions and the exact answer"),
-    "report": ("pemviz.commands.report", "write a safety-case report (HTML and Markdown) from a run's result document or recording"),
+    "tables": ("pemviz.commands.tables",
+               "reproduce the paper's Tables II and III with repetitions and the exact answer"),
+    "report": ("pemviz.commands.report",
+               "write a safety-case report (HTML and Markdown) from a run's result document or recording"),
 }
 """Each command: (its module, its one-line help). ``pemviz --help`` lists them without importing any command module."""
 

@@ -64,8 +64,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="failure event: crash = classic robustness < 0 (default); metric = the metric's < 0")
     p.add_argument("--weights", default=None, choices=CONVENTIONS,
                    help="importance weights: to-failure = prod p/q over the steps before the failure step (pemviz's "
-                        "sampler); full = over every step but the last (the paper's eq. 6); both unbiased. Default: the "
-                        "convention the sidecar records, else to-failure")
+                        "sampler); full = over every step but the last (the paper's eq. 6); both unbiased. Default: "
+                        "the convention the sidecar records, else to-failure")
     add_setting(p, "pem_uncertainty")
     add_setting(p, "pem_shift")
     rec = p.add_argument_group("recording (rerun)")
@@ -204,12 +204,14 @@ def summary_lines(data: Any, result: Any, p_src: str, q_src: str, why: str = "",
         f"{'verdict':>10}",
     ]
     for row in result.stages:
-        lines.append(f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} {estimate_cells(row.estimate)}")
+        lines.append(f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} "
+                     f"{estimate_cells(row.estimate)}")
     if result.pooled:
         which = ", ".join(map(str, result.pooled))
         lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- stages {which} pooled ({result.rule})")
     elif len(result.stages) > 1:
-        lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike (the sidecar gives no pooling)")
+        lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike "
+                     "(the sidecar gives no pooling)")
     nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.4f}"
     lines.append(
         f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat!r} nats), "
@@ -285,8 +287,9 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
         def shifted(g, d=d):
             return np.asarray(pem.logit_at_gap(g), dtype=np.float64) + d
 
-        moved.append(Alternative(f"{d:+g}", *estimate_under(detector_log_prob(data, ShiftedDetector(PEMDetector(pem), d)),
-                                                             shifted)))  # fmt: skip
+        moved.append(Alternative(f"{d:+g}",
+                                 *estimate_under(detector_log_prob(data, ShiftedDetector(PEMDetector(pem), d)),
+                                                 shifted)))  # fmt: skip
     return PemSpread(result.estimate, tuple(made), tuple(moved), ensemble_for(name).name if members else "").lines()
 
 

@@ -43,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "pem",
         help=COMMANDS["pem"][1],
-        description="Train the PEM on the KITTI salient files or cross-validate the models (both need the files: pemviz data fetch).",
+        description="Train the PEM on the KITTI salient files or cross-validate the models (both need the files: "
+                    "pemviz data fetch).",
     )
     actions = p.add_subparsers(dest="pem_command", required=True)
     t = actions.add_parser(
@@ -69,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="train M bootstrap refits of a detection PEM instead (its epistemic uncertainty, for pemviz "
                    "run --pem-uncertainty) and write pemviz/assets/ensemble_<model>.pt (or --out; beside a PEM file "
                    "X.pt, pemviz looks for X.ensemble.pt)")
-    t.add_argument("--out", default=None, metavar="PATH", help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)")
+    t.add_argument("--out", default=None, metavar="PATH",
+                   help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)")
     t.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_main)
@@ -158,7 +160,8 @@ def train_main(args: argparse.Namespace) -> int:
         "labels_sha256": sha256_file(data.labels_path),
     }
     if ensemble is not None:
-        metadata["command"] = f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} --epochs {epochs}"
+        metadata["command"] = (f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} "
+                               f"--epochs {epochs}")
         _train_ensemble(recipe, data, ensemble, seed=seed, epochs=epochs, out=out, progress=not args.no_progress,
                         metadata=metadata)  # fmt: skip
     else:
@@ -198,7 +201,8 @@ def _train_ensemble(recipe, data, m: int, *, seed: int, epochs: int, out: Path, 
                              metadata=metadata)  # fmt: skip
     for k, pem in enumerate(members):
         bce = bce_from_logits(pem.logit(data.inputs), data.labels)
-        print(f"member {k}: BCE on the full file {bce:.4f} nats, p(detect | 4 m) {pem.prob_at_gap(np.array([4.0]))[0]:.4f}")
+        print(f"member {k}: BCE on the full file {bce:.4f} nats, "
+              f"p(detect | 4 m) {pem.prob_at_gap(np.array([4.0]))[0]:.4f}")
     save_ensemble(members, out, recipe.name, metadata)
 
 

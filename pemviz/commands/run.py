@@ -35,7 +35,8 @@ from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "ams_score", "quantile_level", "smoothing",
                 "metric", "seed", "ce_epochs", "pem", "scenario", "scenario_params", "sim", "executor", "ray_address",
-                "chunk_rollouts", "rel_error", "require", "margin", "pem_uncertainty", "pem_shift", "max_sims", "max_time_s")
+                "chunk_rollouts", "rel_error", "require", "margin", "pem_uncertainty", "pem_shift", "max_sims",
+                "max_time_s")
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 
@@ -153,7 +154,8 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
     rec.add_argument("--url", default=None, help="the viewer for --connect, e.g. rerun+http://127.0.0.1:9876/proxy")
     rec.add_argument("--headless", action="store_true", help="open no browser (with --serve)")
     rec.add_argument("--grpc-port", dest="grpc_port", type=int, default=9876, help="--serve: gRPC port (default 9876)")
-    rec.add_argument("--web-port", dest="web_port", type=int, default=9090, help="--serve: web viewer port (default 9090)")
+    rec.add_argument("--web-port", dest="web_port", type=int, default=9090,
+                     help="--serve: web viewer port (default 9090)")
     rec.add_argument("--no-record", action="store_true", help="write no recording")
 
 
@@ -253,7 +255,8 @@ def serve(args: argparse.Namespace):
     rr.serve_web_viewer(web_port=args.web_port, open_browser=not args.headless, connect_to=url)
     print(f"recording: serving at {url} (native viewer: rerun {url})", file=sys.stderr)
     print(f"recording: web viewer at {web_viewer_url(url, args.web_port)}", file=sys.stderr)
-    print("warning: rerun's servers listen on every network interface, without authentication", file=sys.stderr, flush=True)
+    print("warning: rerun's servers listen on every network interface, without authentication", file=sys.stderr,
+          flush=True)
     return sink
 
 
@@ -472,7 +475,7 @@ def unwritten(rollout_sink: object, result_files: tuple[Path | None, Path | None
     """``not written: r.parquet (--save-rollouts), r.json (--json)``: the outputs asked for that a run interrupted
     in its stages does not write (a rollout file keeps only a finished run's rollouts); empty when none was asked."""
     asked = [(getattr(rollout_sink, "path", None), "--save-rollouts"),
-             *zip(result_files, ("--json", "--junit", "--report"))]  # fmt: skip
+             *zip(result_files, ("--json", "--junit", "--report"), strict=False)]  # fmt: skip
     names = [f"{path} ({flag})" for path, flag in asked if path is not None]
     return f"not written: {', '.join(names)}" if names else ""
 

@@ -17,9 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "serve",
         help=COMMANDS["serve"][1],
         description=(
-            "Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM (--pem: the one it starts with), run the adaptive "
-            "sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, compare up to 4 "
-            "runs and export them to recordings/*.rrd."
+            "Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM (--pem: the one it starts "
+            "with), run the adaptive sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, "
+            "compare up to 4 runs and export them to recordings/*.rrd."
         ),
     )
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")

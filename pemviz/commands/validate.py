@@ -45,15 +45,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "validate",
         help=COMMANDS["validate"][1],
-        description="Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact answers "
-        "for several seeds at equal simulation budgets; print truth, median and spread of mu_hat, median relative "
-        "error, failures, ESS, simulations and wall time.",
+        description="Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact "
+        "answers for several seeds at equal simulation budgets; print truth, median and spread of mu_hat, median "
+        "relative error, failures, ESS, simulations and wall time.",
     )
     p.add_argument("--problems", default=",".join(DEFAULT_PROBLEMS),
                    help=f"comma-separated, from {', '.join(PROBLEMS)} or a registered scenario with an exact answer "
                    f"(default {','.join(DEFAULT_PROBLEMS)})")
     p.add_argument("--presets", default=f"{DEFAULT_PRESET},paper",
-                   help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} (default {DEFAULT_PRESET},paper)")
+                   help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} "
+                        f"(default {DEFAULT_PRESET},paper)")
     p.add_argument("--baselines", default="mc,naive50,ams",
                    help=f"from {', '.join(BASELINES)} (default mc,naive50,ams; ams: adaptive multilevel splitting, "
                    "N = budget / 4 particles)")  # fmt: skip

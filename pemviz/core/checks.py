@@ -93,7 +93,7 @@ def check_simulator(make: Callable[[], Any], n_steps: int, *, seed: int = 0) -> 
         raise _fail("check_simulator", f"reset() does not go back to the start: observation {again.tolist()} after "
                                        f"reset(), {start.tolist()} at the start")  # fmt: skip
     fresh = _trace(make(), names, detections)
-    for t, (a, b) in enumerate(zip(trace, fresh)):
+    for t, (a, b) in enumerate(zip(trace, fresh, strict=False)):
         if not np.array_equal(a, b):
             raise _fail("check_simulator", f"not deterministic: the same detections give observation {b.tolist()} at "
                                            f"step {t} of a second run, {a.tolist()} in the first (draw no random "
@@ -106,7 +106,7 @@ def check_simulator(make: Callable[[], Any], n_steps: int, *, seed: int = 0) -> 
         _trace(sim, names, detections, half)  # runs on after the snapshot ...
         sim.restore(state)  # ... and comes back to it
         resumed = _trace(sim, names, detections, half)
-        for t, (a, b) in enumerate(zip(trace[half:], resumed), start=half):
+        for t, (a, b) in enumerate(zip(trace[half:], resumed, strict=False), start=half):
             if not np.array_equal(a, b):
                 raise _fail("check_simulator", f"restore(snapshot()) taken at step {half} gives observation "
                                                f"{b.tolist()} at step {t}, the run itself {a.tolist()}: the snapshot "
@@ -197,15 +197,17 @@ def check_estimator(make: Callable[[Problem], Any], problem: Problem, *, metric:
         raise _fail("check_estimator", f"the estimate's interval {est.log_ci} (natural logs, low <= high) or verdict "
                                        f"{est.verdict!r} (one of {', '.join(VERDICTS)}) is wrong")  # fmt: skip
     est2, used2, drawn2 = _run(make, problem, metric, max_stages)
-    same = len(drawn) == len(drawn2) and all(np.array_equal(a, b) for a, b in zip(drawn, drawn2))
+    same = len(drawn) == len(drawn2) and all(np.array_equal(a, b) for a, b in zip(drawn, drawn2, strict=False))
     if not same or (est2.log_mu_hat, est2.n, used2) != (est.log_mu_hat, est.n, used):
         raise _fail("check_estimator", f"two runs disagree (their rollouts' detections, or log mu_hat "
                                        f"{est.log_mu_hat!r} then {est2.log_mu_hat!r}); seed every random stream "
                                        "from the configuration")  # fmt: skip
     if max_relative_error is not None:
-        rel = abs(math.expm1(est.log_mu_hat - problem.exact_log_p)) if est.log_mu_hat > -math.inf else 1.0
+        exact = problem.exact_log_p
+        assert exact is not None  # checked at the top
+        rel = abs(math.expm1(est.log_mu_hat - exact)) if est.log_mu_hat > -math.inf else 1.0
         if rel > max_relative_error:
             raise _fail("check_estimator", f"mu_hat = {math.exp(est.log_mu_hat):.4g} is {rel:.3g} away from the exact "
-                                           f"{math.exp(problem.exact_log_p):.4g} (relative error; allowed "
+                                           f"{math.exp(exact):.4g} (relative error; allowed "
                                            f"{max_relative_error:g})")  # fmt: skip
     return est

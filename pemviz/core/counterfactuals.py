@@ -130,8 +130,10 @@ def counterfactuals(problem, batch: RolloutBatch, index: int, *, max_interventio
     last = np.full(k, one.n_steps - 1)  # every event is replayed; the last step's event changes no signal
     replays = problem.branch(variants, np.arange(k), last, problem.target, np.random.default_rng(0))
     rho_k = np.asarray(problem.robustness(replays, "classic"), dtype=np.float64)
-    out = tuple(Intervention(t, m, kind, tuple(float(e) for e in one.noise[0, t, m]) if kind == ERROR else (),
-                             float(r)) for (t, m, kind), r in zip(candidates, rho_k))  # fmt: skip
+    errors = one.noise  # not None where an ERROR candidate was found
+    out = tuple(Intervention(t, m, kind, tuple(float(e) for e in errors[0, t, m])
+                             if kind == ERROR and errors is not None else (),
+                             float(r)) for (t, m, kind), r in zip(candidates, rho_k, strict=False))  # fmt: skip
     return Counterfactuals(index, rho, t_fail, out)
 
 
@@ -201,8 +203,9 @@ def failure_log_p_parts(batch: RolloutBatch, target: object | None,
     The batch keeps only the sum per step (:attr:`RolloutBatch.log_p`), so both parts are recomputed here from the
     rollout's object rows, detections and errors under ``target`` (its PEM: :func:`scoring_detector`), which asks
     the detector nothing it keeps and changes no draw (:func:`pemviz.core.event_probs.batch_log_probs`). The two
-    add up to :func:`failure_log_p` up to rounding (about 1e-12 relative). A batch without errors (``noise`` None, e.g. the braking scenario) holds
-    nothing but detections: its log p is the first part as it is, and ``target`` is not asked.
+    add up to :func:`failure_log_p` up to rounding (about 1e-12 relative). A batch without errors (``noise`` None,
+    e.g. the braking scenario) holds nothing but detections: its log p is the first part as it is, and ``target`` is
+    not asked.
 
     Args:
         batch: N rollouts (detected bool [N, T, M]; object rows [N, T, M, G]; noise [N, T, M, D] or None).
@@ -220,7 +223,9 @@ def failure_log_p_parts(batch: RolloutBatch, target: object | None,
     if target is None:
         raise ValueError("failure_log_p_parts: a batch with measurement errors needs the target detector (the PEM)")
     parts = batch_log_probs(batch, scoring_detector(target))  # [N, T] each
-    return parts.detections[:, :k].sum(axis=1), parts.errors[:, :k].sum(axis=1)
+    errors = parts.errors
+    assert errors is not None  # the batch has errors: so do its parts
+    return parts.detections[:, :k].sum(axis=1), errors[:, :k].sum(axis=1)
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, cast, runtime_checkable
 
 import numpy as np
 from scipy.special import expit, log_expit
@@ -63,6 +63,18 @@ class NoisyDetector(Detector, Protocol):
     def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray: ...
 
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray: ...
+
+
+class GapModel(Protocol):
+    """A model of ``logit p(detect)`` by the window's gap alone, metres (e.g. :class:`pemviz.pem.PEM`)."""
+
+    def logit_at_gap(self, distance: np.ndarray) -> np.ndarray: ...
+
+
+class NoiseShifting(Protocol):
+    """A proposal with a measurement-error head of its own (:meth:`pemviz.core.sampling.Proposal.noise_shift_of`)."""
+
+    def noise_shift_of(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
@@ -118,7 +130,7 @@ class ConstantDetector:
 class PEMDetector:
     """The perception error model as a detector: ``logit p_PEM(detect | salient variables(gap))``."""
 
-    pem: object  # pemviz.pem.PEM (kept untyped to avoid importing torch models at import time)
+    pem: GapModel  # pemviz.pem.PEM (a protocol: no torch model imported at import time)
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         return np.asarray(self.pem.logit_at_gap(np.asarray(obs)[:, GAP_COLUMN]), dtype=np.float64)
@@ -201,13 +213,18 @@ class StageSamplers:
         """:meth:`window_rows` of the array last asked about."""
         self._logits: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
         self._noise_obs: np.ndarray | None = None
-        self._noise: tuple[np.ndarray, ...] = ()
+        self._noise: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.target, self.plain = SamplerView(self, 0), SamplerView(self, 1)
         self.defensive = SamplerView(self, 2) if self.eps > 0.0 else self.plain
 
     def forget(self) -> None:
         """Drop the kept evaluations (the proposal changed)."""
         self._obs = self._noise_obs = self._asked = None
+
+    @property
+    def noisy_target(self) -> NoisyDetector:
+        """The target as the :class:`NoisyDetector` it is where errors are drawn or weighed (only asked then)."""
+        return cast(NoisyDetector, self.target_detector)
 
     def logits(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(target, plain, defensive) logit p(detect | obs), float64 [N] each, for observations [N, F]."""
@@ -253,14 +270,14 @@ class StageSamplers:
         parameters and the proposal's, which shift them inside the window (:class:`pemviz.core.torch_fits.NoiseShift`);
         the last rows' are kept (a step draws the errors, then weighs them)."""
         obs = np.asarray(obs, dtype=np.float64)
-        last = self._noise_obs
-        if last is not None and last.shape == obs.shape and np.array_equal(last, obs):
-            return self._noise
-        loc_p, ls_p = (np.asarray(a, dtype=np.float64) for a in self.target_detector.noise_params(obs))
+        last, kept = self._noise_obs, self._noise
+        if last is not None and kept is not None and last.shape == obs.shape and np.array_equal(last, obs):
+            return kept
+        loc_p, ls_p = (np.asarray(a, dtype=np.float64) for a in self.noisy_target.noise_params(obs))
         loc_q, ls_q = loc_p.copy(), ls_p.copy()
         near = self.window_rows(obs)
         if near.any():
-            a, b = self.proposal.noise_shift_of(obs[near])
+            a, b = cast(NoiseShifting, self.proposal).noise_shift_of(obs[near])  # has_noise: it has an error head
             loc_q[near] += np.exp(ls_p[near]) * a
             ls_q[near] += b
         self._noise_obs, self._noise = obs.copy(), (loc_p, ls_p, loc_q, ls_q)
@@ -269,7 +286,7 @@ class StageSamplers:
     def noise_from_uniforms(self, index: int, obs: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Errors [N, D] of detector ``index`` (1 plain: q's; 2 defensive: (1 - eps) q + eps p, the component chosen by
         the first uniform, which is then rescaled and reused) from uniforms [N, D]."""
-        t = self.target_detector
+        t = self.noisy_target
         loc_p, ls_p, loc_q, ls_q = self.noise_params(obs)
         u = np.asarray(u, dtype=np.float64)
         if index == 1 or self.eps <= 0.0:
@@ -282,7 +299,7 @@ class StageSamplers:
 
     def noise_log_prob(self, index: int, obs: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """log density [N] (nats) of errors [N, D] under detector ``index`` (:meth:`noise_from_uniforms`)."""
-        t = self.target_detector
+        t = self.noisy_target
         loc_p, ls_p, loc_q, ls_q = self.noise_params(obs)
         lq = noise_log_density(t.noise_family, t.noise_df, loc_q, ls_q, noise)
         if index == 1 or self.eps <= 0.0:
@@ -325,22 +342,22 @@ class SamplerView:
 
     @property
     def noise_family(self) -> str:
-        return self.samplers.target_detector.noise_family
+        return self.samplers.noisy_target.noise_family
 
     @property
     def noise_df(self) -> np.ndarray | None:
-        return self.samplers.target_detector.noise_df
+        return self.samplers.noisy_target.noise_df
 
     def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Errors [R, D] from uniforms (:class:`NoisyDetector`): the target's, or the proposal's samplers'."""
         if self.index == 0:
-            return self.samplers.target_detector.noise_from_uniforms(rows, u)
+            return self.samplers.noisy_target.noise_from_uniforms(rows, u)
         return self.samplers.noise_from_uniforms(self.index, rows, u)
 
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """Log density [R] (nats) of errors [R, D] (:class:`NoisyDetector`)."""
         if self.index == 0:
-            return self.samplers.target_detector.noise_log_prob(rows, noise)
+            return self.samplers.noisy_target.noise_log_prob(rows, noise)
         return self.samplers.noise_log_prob(self.index, rows, noise)
 
     def noise_draw(self, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -469,7 +486,8 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
             log_p[differ] = action_log_prob_into(p_logit[differ], detected[differ], None, np.empty(differ.size))
     if not names:
         return StepDraw(detected, None, log_q, log_p)
-    source = sampler if noise_names_of(sampler) == names else target  # a sampler without an error model draws p's
+    # a sampler without an error model draws p's; both have one where they name errors (``names``, not empty)
+    source = cast(NoisyDetector, sampler if noise_names_of(sampler) == names else target)
     noise = np.zeros((rows.shape[0], len(names)))
     if detected.any():  # only a detected object is measured: its error, drawn (or replayed), and its densities
         hit = detected
@@ -484,18 +502,24 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
         if source is target or error_model_of(source) is error_model_of(target):  # one error model: one density
             log_p[hit] += lq_noise
         else:
-            log_p[hit] += np.asarray(target.noise_log_prob(rows[hit], e), dtype=np.float64)
+            log_p[hit] += np.asarray(cast(NoisyDetector, target).noise_log_prob(rows[hit], e), dtype=np.float64)
     return StepDraw(detected, noise, log_q, log_p)
 
 
-def errors_log_density(batch: Any, detector: Detector, target: Detector) -> np.ndarray:
+def errors_log_density(batch: Any, detector: Detector, target: Detector | None) -> np.ndarray:
     """Per step, the log density of the detected objects' measurement errors under the sampler ``detector`` (under
     ``target`` when ``detector`` has no error model of its own: its errors were drawn from the target's, as
-    :func:`pemviz.core.detectors.draw_step` draws them), float64 [N, T] (nats) for a batch with ``noise``."""
+    :func:`pemviz.core.detectors.draw_step` draws them), float64 [N, T] (nats) for a batch with ``noise``.
+
+    Raises:
+        ValueError: ``detector`` without an error model and no ``target``.
+    """
     source = detector if noise_names_of(detector) else target
+    if source is None:
+        raise ValueError("errors_log_density: a detector without an error model of its own needs the target's")
     rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
     noise = batch.noise.reshape(rows.shape[0], -1)
-    log_density = np.asarray(source.noise_log_prob(rows, noise), dtype=np.float64)
+    log_density = np.asarray(cast(NoisyDetector, source).noise_log_prob(rows, noise), dtype=np.float64)
     return np.where(batch.detected.reshape(-1), log_density, 0.0).reshape(batch.detected.shape).sum(axis=2)
 
 

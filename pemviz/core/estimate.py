@@ -359,14 +359,15 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
     The interval: with weights all equal to 1 (plain Monte Carlo under the PEM) the Clopper-Pearson interval of
     the failure count (:func:`clopper_pearson`), and with 0 failures the one-sided rule-of-three bound
     p < 3 / N; under importance sampling the log-scale t interval of the mean of 1[fail_i] w_i (see
-    :func:`_log_mean_interval`), and with 0 failures the interval [0, 1]: 0 failures under a proposal bound
-    nothing. The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, with Pareto k-hat above
-    :data:`KHAT_UNRELIABLE` and an ESS below :data:`MIN_ESS_RELIABLE` (above it: ``doubtful``), or when the mean importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do
-    not belong to the proposal that drew the rollouts); ``doubtful`` with fewer than :data:`MIN_FAILURES` failures,
-    an ESS below it (below :data:`MIN_ESS_RELIABLE` under importance sampling), or k-hat above the sample-size threshold min(1 - 1 / log10 S, 0.7) of Vehtari et al. (2024);
-    ``doubtful`` too when the failures are fewer than :data:`MIN_FAILURES` distinct rollouts (:func:`distinct_failures`:
-    a collapsed proposal; a failure event of so few paths is rare), ``unreliable`` when a weight is nan; else
-    ``reliable``.
+    :func:`_log_mean_interval`), and with 0 failures the interval [0, 1]: 0 failures under a proposal bound nothing.
+    The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, with Pareto k-hat above
+    :data:`KHAT_UNRELIABLE` and an ESS below :data:`MIN_ESS_RELIABLE` (above it: ``doubtful``), or when the mean
+    importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do not belong to the proposal that drew the
+    rollouts); ``doubtful`` with fewer than :data:`MIN_FAILURES` failures, an ESS below it (below
+    :data:`MIN_ESS_RELIABLE` under importance sampling), or k-hat above the sample-size threshold min(1 - 1 / log10
+    S, 0.7) of Vehtari et al. (2024); ``doubtful`` too when the failures are fewer than :data:`MIN_FAILURES`
+    distinct rollouts (:func:`distinct_failures`: a collapsed proposal; a failure event of so few paths is rare),
+    ``unreliable`` when a weight is nan; else ``reliable``.
 
     Args:
         log_weight: float64 [N] importance log-weights sum_t (log p - log q) (nats).

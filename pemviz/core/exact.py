@@ -77,7 +77,7 @@ def to_grid(x: np.ndarray, bits: int, nonneg: bool = False) -> tuple[np.ndarray,
     return xi, math.ldexp(1.0, -shift)
 
 
-def matmul(a: np.ndarray, b: np.ndarray, b_grid: tuple[np.ndarray, np.ndarray] | None = None,
+def matmul(a: np.ndarray, b: np.ndarray | None, b_grid: tuple[np.ndarray, np.ndarray] | None = None,
            nonneg: bool = False) -> np.ndarray:  # fmt: skip
     """``a @ b`` of ``a`` rounded per row and ``b`` per column to :func:`grid_bits` (k) bits, computed exactly.
 
@@ -85,16 +85,22 @@ def matmul(a: np.ndarray, b: np.ndarray, b_grid: tuple[np.ndarray, np.ndarray] |
     row i depends on ``a[i]`` and ``b`` alone, and on no kernel, order, batch or CPU.
 
     Args:
-        a: float64 [m, k]; b: float64 [k, n] (ignored when ``b_grid`` is given).
+        a: float64 [m, k]; b: float64 [k, n] (ignored, and may be None, when ``b_grid`` is given).
         b_grid: ``b`` already on its grid (:func:`on_grid` with ``grid_bits(k)`` bits and ``axis`` 0), e.g. a
             network's weights rounded once.
         nonneg: ``a`` >= 0 (e.g. after a ReLU).
     Returns:
         float64 [m, n].
+    Raises:
+        ValueError: neither ``b`` nor ``b_grid``.
     """
     bits = grid_bits(a.shape[1])
     ai, ea = on_grid(a, bits, 1, nonneg)
-    bi, eb = on_grid(b, bits, 0) if b_grid is None else b_grid
+    if b_grid is None:
+        if b is None:
+            raise ValueError("matmul: give b or b_grid")
+        b_grid = on_grid(b, bits, 0)
+    bi, eb = b_grid
     return np.ldexp(ai @ bi, ea + eb)
 
 

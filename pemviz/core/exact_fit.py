@@ -48,11 +48,11 @@ def fit_exact(proposal: Any, inputs: np.ndarray, counts: np.ndarray, epochs: int
     shapes = [tuple(p.shape) for p in params]
     sizes = [p.size for p in params]
     offsets = np.cumsum([0, *sizes])
-    views = [flat[a:b].reshape(shape) for a, b, shape in zip(offsets[:-1], offsets[1:], shapes)]
+    views = [flat[a:b].reshape(shape) for a, b, shape in zip(offsets[:-1], offsets[1:], shapes, strict=False)]
     w1, b1, w2, b2, w3, b3 = views
     grad = np.zeros_like(flat)
-    g_w1, g_b1, g_w2, g_b2, g_w3, g_b3 = (grad[a:b].reshape(shape)
-                                          for a, b, shape in zip(offsets[:-1], offsets[1:], shapes))  # fmt: skip
+    g_w1, g_b1, g_w2, g_b2, g_w3, g_b3 = (
+        grad[a:b].reshape(shape) for a, b, shape in zip(offsets[:-1], offsets[1:], shapes, strict=False))  # fmt: skip
     # the weighted counts come from float64 weights whose last bits may depend on the CPU's libm (exp, log): on a
     # grid of COUNT_BITS bits they are the same numbers unless one lies within an ulp of a grid point's midpoint
     ci, ec = exact.on_grid(c * (1.0 if per is None else 1.0 / per), COUNT_BITS, None)

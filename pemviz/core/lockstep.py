@@ -4,23 +4,33 @@
 (:class:`pemviz.core.rollouts.BatchedSimulator`), draws the events (:func:`pemviz.core.detectors.draw_step`) and steps
 the simulator; :func:`simulate` runs N black-box simulators in lockstep through it (:class:`Lockstep`), and the
 batched twins (e.g. :mod:`pemviz.scenarios.braking.batched`, the toys) run through it too, so every simulator draws
-the same events from the same uniforms. :func:`iter_rollouts` / :func:`simulate_rollouts` stream or gather a batched simulator's
-rollouts in chunks (:func:`uniform_chunks`: the same rollouts, bit for bit, for any chunk size), :func:`branch` /
-:func:`branch_rollouts` continue rollouts from given steps of earlier ones. Re-exported by :mod:`pemviz.scenarios`.
+the same events from the same uniforms. :func:`iter_rollouts` / :func:`simulate_rollouts` stream or gather a batched
+simulator's rollouts in chunks (:func:`uniform_chunks`: the same rollouts, bit for bit, for any chunk size),
+:func:`branch` / :func:`branch_rollouts` continue rollouts from given steps of earlier ones. Re-exported by
+:mod:`pemviz.scenarios`.
 """
 
 from __future__ import annotations
 
 import functools
 from dataclasses import replace
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence, cast
 
 import numpy as np
 
 from pemviz.core.detectors import Detector, draw_step, noise_names_of
 from pemviz.core.exact import row_sum
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
-from pemviz.core.rollouts import BatchedSimulator, RolloutBatch, Simulator, draws_per_rollout, n_objects_of
+from pemviz.core.rollouts import (
+    BatchedObjectsSimulator,
+    BatchedSimulator,
+    ObjectsSimulator,
+    RolloutBatch,
+    Simulator,
+    draws_per_rollout,
+    n_objects_of,
+    reports_objects,
+)
 
 
 class Lockstep:
@@ -32,21 +42,26 @@ class Lockstep:
         self.observation_names = tuple(first.observation_names)
         self.multi = hasattr(first, "objects")
         self.n_objects = n_objects_of(first)
-        self.object_names = tuple(first.object_names) if self.multi else None
+        self.object_names = tuple(self._scenes[0].object_names) if self.multi else None
+
+    @property
+    def _scenes(self) -> list[ObjectsSimulator]:
+        """:attr:`sims` as scenes of several objects (read only when ``multi``)."""
+        return cast("list[ObjectsSimulator]", self.sims)
 
     def observation(self) -> np.ndarray:
         return np.stack([s.observation() for s in self.sims])
 
     def objects(self) -> np.ndarray:
-        return np.stack([s.objects() for s in self.sims])
+        return np.stack([s.objects() for s in self._scenes])
 
     def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
         if not self.multi:
-            for s, a in zip(self.sims, detected[:, 0]):
+            for s, a in zip(self.sims, detected[:, 0], strict=False):
                 s.step(bool(a))
             return
-        for i, s in enumerate(self.sims):
-            s.step(detected[i], None if noise is None else noise[i])
+        for i, scene in enumerate(self._scenes):
+            scene.step(detected[i], None if noise is None else noise[i])
 
 
 def run_batched(
@@ -75,7 +90,7 @@ def run_batched(
         when the target mislocates).
     """
     names = tuple(sim.observation_names)
-    multi = getattr(sim, "object_names", None) is not None  # else one object per rollout: its observation
+    scene = sim if reports_objects(sim) else None  # None: one object per rollout, its observation
     m = n_objects_of(sim)
     noise_names = noise_names_of(target)
     d = len(noise_names)
@@ -83,13 +98,13 @@ def run_batched(
     obs = np.empty((n, n_steps, len(names)))
     det = np.empty((n, n_steps, m), dtype=bool)
     log_p, log_q = np.empty((n, n_steps)), np.empty((n, n_steps))
-    objects = np.empty((n, n_steps, m, len(sim.object_names))) if multi and keep_rows else None
+    objects = np.empty((n, n_steps, m, len(scene.object_names))) if scene is not None and keep_rows else None
     noise = np.empty((n, n_steps, m, d)) if d else None
-    for t, u in zip(range(n_steps), uniforms):
+    for t, u in zip(range(n_steps), uniforms, strict=False):
         o = np.asarray(sim.observation(), dtype=np.float64)
         obs[:, t] = o
-        if multi:
-            rows = np.asarray(sim.objects(), dtype=np.float64)
+        if scene is not None:
+            rows = np.asarray(scene.objects(), dtype=np.float64)
             if objects is not None:
                 objects[:, t] = rows
             rows = rows.reshape(n * m, -1)  # a view where the simulator's layout allows (e.g. cut-in: column-major)
@@ -108,12 +123,12 @@ def run_batched(
         else:  # the step's objects together
             log_q[:, t], log_p[:, t] = row_sum(step.log_q.reshape(n, m)), row_sum(step.log_p.reshape(n, m))
         errors = None
-        if d:
+        if noise is not None and step.noise is not None:  # d > 0: the target's errors, drawn
             errors = step.noise.reshape(n, m, d)
             noise[:, t] = errors
         sim.step(detected, errors)
     return RolloutBatch(obs, det, log_p, log_q, names, objects=objects,
-                        object_names=tuple(sim.object_names) if multi else None, noise=noise,
+                        object_names=tuple(scene.object_names) if scene is not None else None, noise=noise,
                         noise_names=noise_names)  # fmt: skip
 
 
@@ -124,7 +139,8 @@ def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray,
     no detector asked. Bit for bit the rows :func:`run_batched` saw (a state is a function of the events before it,
     and a batched simulator's arithmetic is row by row)."""
     k, n_steps = detected.shape[:2]
-    sim = make(max(k, 1))  # no rollout: the rows' shape only
+    # no rollout: the rows' shape only; a simulator of object rows (rows are replayed only for batches that have them)
+    sim = cast(BatchedObjectsSimulator, make(max(k, 1)))
     out = np.empty((k, n_steps, n_objects_of(sim), len(sim.object_names)))
     for t in range(n_steps if k else 0):
         out[:, t] = sim.objects()
@@ -277,7 +293,8 @@ def simulate(
     Returns:
         :class:`RolloutBatch` with arrays [n, T].
     Raises:
-        ValueError: ``n < 1``, or ``uniforms`` not of shape [T, n K] with values in [0, 1).
+        ValueError: ``n < 1``, ``uniforms`` not of shape [T, n K] with values in [0, 1), or neither ``rng`` nor
+            ``uniforms``.
     """
     if n < 1:
         raise ValueError(f"simulate: n must be >= 1, got {n}")
@@ -288,7 +305,13 @@ def simulate(
         if uniforms.shape != (n_steps, n * k) or not np.all((uniforms >= 0.0) & (uniforms < 1.0)):
             raise ValueError(f"simulate: uniforms must be float64 [T, n K] = [{n_steps}, {n * k}] in [0, 1), "
                              f"got shape {uniforms.shape}")
-    draws = uniforms if uniforms is not None else (rng.random(n * k) for _ in range(n_steps))
+    draws: Iterable[np.ndarray]
+    if uniforms is not None:
+        draws = uniforms
+    elif rng is None:
+        raise ValueError("simulate: rng is None and no uniforms are given")
+    else:
+        draws = (rng.random(n * k) for _ in range(n_steps))
     return run_batched(sim, n, n_steps, sampler, target, draws)
 
 

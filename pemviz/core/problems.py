@@ -23,7 +23,7 @@ import numpy as np
 from scipy.special import expit
 
 from pemviz import stl
-from pemviz.core.detectors import Detector
+from pemviz.core.detectors import Detector, GapModel
 from pemviz.core.estimate import Reference
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, iter_rollouts, simulate_rollouts
 from pemviz.core.problem_view import (  # noqa: F401 (what sinks see of a problem, re-exported: importable from here)
@@ -31,7 +31,7 @@ from pemviz.core.problem_view import (  # noqa: F401 (what sinks see of a proble
     object_scene as object_scene,
 )
 from pemviz.core.reweight import AlternativeTarget
-from pemviz.core.rollouts import RolloutBatch
+from pemviz.core.rollouts import BatchedSimulator, RolloutBatch
 from pemviz.core.severity import SeverityScale
 
 SimulateFn = Callable[[int, Detector, Detector, np.random.Generator], RolloutBatch]
@@ -119,10 +119,10 @@ class Problem:
         verdict_cap: (verdict, reason): the best verdict the adaptive sampler's estimate may claim on this problem,
             whatever its weights show, where the scenario knows that the sampler's proposal misses part of the
             failures (:meth:`pemviz.core.estimate.Estimate.at_most`); None: no cap.
-        look_ahead: where the scenario can compute the failure probability exactly from a state on (:data:`LookAheadFn`),
-            the estimators' estimates weigh each rollout up to that state and multiply by it: unbiased, with the
-            variance of the steps after it removed (conditional Monte Carlo: Asmussen & Glynn, Stochastic Simulation,
-            Springer 2007, V.4); None: the failure indicator itself.
+        look_ahead: where the scenario can compute the failure probability exactly from a state on
+            (:data:`LookAheadFn`), the estimators' estimates weigh each rollout up to that state and multiply by it:
+            unbiased, with the variance of the steps after it removed (conditional Monte Carlo: Asmussen & Glynn,
+            Stochastic Simulation, Springer 2007, V.4); None: the failure indicator itself.
         look_ahead_s: the seconds per rollout the look-ahead takes, about, for time estimates (0: none).
         tilt: the scenario's own importance sampler, made once a run (``tilt() ->`` :class:`TiltSampler`), for
             ``method = "tilt"``; None: the scenario has none.
@@ -195,7 +195,8 @@ class Problem:
         return expit(self.target.detect_logit(obs))
 
 
-def rollout_functions(make: Callable[[int], object], n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:
+def rollout_functions(make: Callable[[int], BatchedSimulator],
+                      n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:  # fmt: skip
     """A :class:`Problem`'s ``simulate``, ``stream`` and ``branch`` for a batched simulator ``make(n)`` (n rollouts at
     their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.core.lockstep.simulate_rollouts`,
     :func:`~pemviz.core.lockstep.iter_rollouts`, :func:`~pemviz.core.lockstep.branch_rollouts`).
@@ -235,7 +236,7 @@ class ShiftedPEM:
     as wanted, and where the PEM's exact answer is known by enumeration over ``logit_at_gap`` (e.g. the braking
     scenario's, e.g. :mod:`pemviz.scenarios.braking.truth`), so is the shifted one's."""
 
-    pem: object
+    pem: GapModel
     shift: float
 
     def logit_at_gap(self, distance: np.ndarray) -> np.ndarray:

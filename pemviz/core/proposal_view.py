@@ -21,9 +21,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.special import expit
+
+if TYPE_CHECKING:  # annotations only
+    from pemviz.core.detectors import Detector
+    from pemviz.core.rollouts import RolloutBatch
 
 QUANTILES = (0.1, 0.9)
 """The lower and upper quantile of a bin's spread."""
@@ -67,8 +72,8 @@ def prob_detect(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:
     return np.where(np.asarray(detected, bool), np.exp(lp), -np.expm1(lp))
 
 
-def object_detect_probabilities(batch: object, i: int, sampler: object | None,
-                                target: object | None) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+def object_detect_probabilities(batch: RolloutBatch, i: int, sampler: Detector | None,
+                                target: Detector | None) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
     """Each object's p(detect) under ``target`` (the PEM) and q(detect) under ``sampler`` along rollout ``i`` of a
     batch of several objects: float64 (p [T, M], q [T, M]), the detectors' logits at the rollout's object rows
     passed through the logistic function (an object the camera cannot see, logit -inf, has 0); None for a batch of
@@ -145,7 +150,7 @@ def _bin_order(bins: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _by_bin(values: np.ndarray, sorted_bins: tuple[np.ndarray, np.ndarray], n_bins: int,
-            median: bool) -> tuple[np.ndarray, ...]:  # fmt: skip
+            median: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(centre, lo, hi) of ``values`` [S] per bin in 0..n_bins-1 (``sorted_bins``: :func:`_bin_order` of the states'
     bins): the mean (or median) and :data:`QUANTILES`."""
     out = np.full((3, n_bins), np.nan)
@@ -156,7 +161,7 @@ def _by_bin(values: np.ndarray, sorted_bins: tuple[np.ndarray, np.ndarray], n_bi
         if v.size:
             lo, mid, hi = np.quantile(v, (QUANTILES[0], 0.5, QUANTILES[1]))
             out[:, b] = (mid if median else v.mean(), lo, hi)
-    return tuple(out)
+    return out[0], out[1], out[2]
 
 
 def proposal_view(

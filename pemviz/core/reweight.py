@@ -173,11 +173,14 @@ class PemSpread:
             exact = self.exact_spread()
             if exact is not None:
                 emed, elo, ehi = exact
-                within = sum(abs(a.estimate.log_mu_hat - a.exact_log_p) <= math.log(1.5) for a in self.members)
-                covers = sum(a.estimate.covers(a.exact_log_p) for a in self.members)
+                # every member's exact log p is known (exact_spread)
+                known = [(a.estimate, a.exact_log_p) for a in self.members if a.exact_log_p is not None]
+                within = sum(abs(e.log_mu_hat - x) <= math.log(1.5) for e, x in known)
+                covers = sum(e.covers(x) for e, x in known)
                 out.append(f"  exact members: median {format_probability(emed)}, 90 % in [{format_probability(elo)}, "
-                           f"{format_probability(ehi)}]; re-weighted within x1.5 of exact: {within}/{len(self.members)},"
-                           f" its interval or lower bound holds it: {covers}/{len(self.members)}")  # fmt: skip
+                           f"{format_probability(ehi)}]; re-weighted within x1.5 of exact: "
+                           f"{within}/{len(self.members)}, its interval or lower bound holds it: "
+                           f"{covers}/{len(self.members)}")  # fmt: skip
         for a in self.shifts:
             e = a.estimate
             line = (f"PEM shifted by {a.label}: p = {format_probability(e.log_mu_hat)} {e.interval_text()}, ESS "

@@ -10,16 +10,23 @@ space-efficient statistically good algorithms for random number generation"); ot
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, Any, Mapping, cast
 
 import numpy as np
+
+if TYPE_CHECKING:  # numpy's stub-only type of a PCG64 state
+    from numpy.random._pcg64 import _PCG64State
 
 JUMPABLE = (np.random.PCG64, np.random.PCG64DXSM)
 """Bit generators that can jump by a number of draws."""
 
-_BY_NAME = {"PCG64": np.random.PCG64, "PCG64DXSM": np.random.PCG64DXSM}
+_BY_NAME: dict[str, type[np.random.PCG64] | type[np.random.PCG64DXSM]] = {
+    "PCG64": np.random.PCG64,
+    "PCG64DXSM": np.random.PCG64DXSM,
+}
 
 
-def bit_generator_at(state: dict, skip: int) -> np.random.BitGenerator:
+def bit_generator_at(state: Mapping[str, Any], skip: int) -> np.random.PCG64 | np.random.PCG64DXSM:
     """A fresh bit generator of the type ``state`` names, at ``state`` advanced by ``skip`` float64 draws.
 
     Args:
@@ -29,7 +36,7 @@ def bit_generator_at(state: dict, skip: int) -> np.random.BitGenerator:
         KeyError: a state of another bit generator.
     """
     bg = _BY_NAME[state["bit_generator"]](0)
-    bg.state = state
+    bg.state = cast("_PCG64State", state)  # a PCG64 / PCG64DXSM state (KeyError above for another generator's)
     if skip:
         bg.advance(skip)
     return bg
@@ -57,8 +64,9 @@ def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray, then: np.ndarray | None 
     second coordinate of point r of the two-dimensional golden-ratio lattice ``{(r / n, r * GOLDEN)}``, randomly
     shifted. Given everything before this step, ``u[0]`` is uniform and independent of the ranks, so every chain's
     uniform is exactly U(0, 1) and every chain follows its sampler exactly (a mean over chains keeps its
-    expectation); jointly, chains of nearby keys get evenly spread uniforms. With the sampler's detect logit and then the state as the key, chains of
-    similar detection probability detect in nearly their expected number, instead of binomially many.
+    expectation); jointly, chains of nearby keys get evenly spread uniforms. With the sampler's detect logit and then
+    the state as the key, chains of similar detection probability detect in nearly their expected number, instead of
+    binomially many.
 
     Args:
         u: float64 [n], i.i.d. U(0, 1) draws of this step; only ``u[0]`` is used (the others are drawn so that the
@@ -91,9 +99,10 @@ def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray, then: np.ndarray | None 
 
 
 def _lexicographic_order(first: np.ndarray, rest: np.ndarray | None) -> np.ndarray:
-    """The stable lexicographic order of the rows ``(first[i], rest[i, 0], rest[i, 1], ...)``, int [n]: ``np.lexsort``'s,
-    computed as a stable sort on ``first`` with only the runs of equal ``first`` whose rows differ in ``rest`` sorted
-    again (e.g. every chain before its first decisive step ties and agrees on all columns: no second sort)."""
+    """The stable lexicographic order of the rows ``(first[i], rest[i, 0], rest[i, 1], ...)``, int [n]:
+    ``np.lexsort``'s, computed as a stable sort on ``first`` with only the runs of equal ``first`` whose rows differ in
+    ``rest`` sorted again (e.g. every chain before its first decisive step ties and agrees on all columns: no second
+    sort)."""
     order = np.argsort(first, kind="stable")
     if rest is None or rest.shape[1] == 0 or first.size < 2:
         return order

@@ -18,7 +18,7 @@ and the sampling detector; :mod:`pemviz.core.lockstep` simulates them. Both are 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, Protocol, Sequence, TypeGuard
 
 import numpy as np
 
@@ -34,7 +34,8 @@ class Simulator(Protocol):
     simulator has one object whose row is its observation and ``step(detected: bool)``.
     """
 
-    observation_names: Sequence[str]
+    @property
+    def observation_names(self) -> Sequence[str]: ...
 
     def reset(self) -> None: ...
 
@@ -60,11 +61,47 @@ class BatchedSimulator(Protocol):
     noise: float64 [n, M, D] | None)``; with several objects also ``n_objects``, ``object_names`` and ``objects() ->
     float64 [n, M, G]`` (else one object per rollout whose row is its observation)."""
 
-    observation_names: Sequence[str]
+    @property
+    def observation_names(self) -> Sequence[str]: ...
 
     def observation(self) -> np.ndarray: ...
 
     def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None: ...
+
+
+class ObjectsSimulator(Protocol):
+    """A :class:`Simulator` of a scene of several objects: ``objects() -> float64 [M, G]`` (``object_names``) and
+    ``step(detected: bool [M], noise: float64 [M, D] | None)``."""
+
+    @property
+    def observation_names(self) -> Sequence[str]: ...
+
+    @property
+    def object_names(self) -> Sequence[str]: ...
+
+    def reset(self) -> None: ...
+
+    def observation(self) -> np.ndarray: ...
+
+    def objects(self) -> np.ndarray: ...
+
+    def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None: ...
+
+
+class BatchedObjectsSimulator(BatchedSimulator, Protocol):
+    """A :class:`BatchedSimulator` of several objects a rollout: ``objects() -> float64 [n, M, G]`` (``object_names``,
+    not None)."""
+
+    @property
+    def object_names(self) -> Sequence[str]: ...
+
+    def objects(self) -> np.ndarray: ...
+
+
+def reports_objects(sim: BatchedSimulator) -> TypeGuard[BatchedObjectsSimulator]:
+    """Whether a batched simulator reports object rows (``object_names`` not None; else one object per rollout whose
+    row is its observation)."""
+    return getattr(sim, "object_names", None) is not None
 
 
 def can_snapshot(sim: object) -> bool:
@@ -215,8 +252,9 @@ class RolloutBatch:
         k = self.n_steps - 1 if n_factors is None else n_factors
         return self.log_p[:, :k].sum(axis=1)
 
-    def select(self, rows: np.ndarray) -> "RolloutBatch":
-        """The rollouts ``rows`` (bool [N] mask or int indices), copied: a batch of its own, in their order."""
+    def select(self, rows: np.ndarray | slice) -> "RolloutBatch":
+        """The rollouts ``rows`` (bool [N] mask, int indices or a slice), copied: a batch of its own, in their
+        order."""
 
         def take(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[rows]
@@ -231,11 +269,15 @@ class RolloutBatch:
     def concatenate(batches: Sequence["RolloutBatch"]) -> "RolloutBatch":
         """Stack batches of equal T along N (``log_q_parts`` too where every batch has them)."""
 
-        def cat(field: str) -> np.ndarray | None:
+        def cat(field: str) -> np.ndarray:
+            return np.concatenate([getattr(b, field) for b in batches])
+
+        def cat_optional(field: str) -> np.ndarray | None:
             parts = [getattr(b, field) for b in batches]
             return None if any(x is None for x in parts) else np.concatenate(parts)
 
         lazy = all(b.rows_elided for b in batches)  # else every batch's rows, rebuilt where not kept
         return replace(batches[0], observations=cat("observations"), detected=cat("detected"), log_p=cat("log_p"),
-                       log_q=cat("log_q"), log_q_parts=cat("log_q_parts"), objects=None if lazy else cat("objects"),
-                       noise=cat("noise"), replay=batches[0].replay if lazy else None)  # fmt: skip
+                       log_q=cat("log_q"), log_q_parts=cat_optional("log_q_parts"),
+                       objects=None if lazy else cat_optional("objects"), noise=cat_optional("noise"),
+                       replay=batches[0].replay if lazy else None)  # fmt: skip

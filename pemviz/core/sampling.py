@@ -26,6 +26,8 @@ from pemviz.core.files import atomic_write, load_tagged
 if TYPE_CHECKING:
     import torch
 
+    from pemviz.core.torch_fits import ProposalModule
+
 def torch_imported() -> bool:
     """Whether a new :class:`Proposal` starts in torch: whether torch is imported already
     (:func:`pemviz.core.torch_use.imported`)."""
@@ -59,7 +61,7 @@ class Proposal:
         """The parameters while they live in numpy (None: not drawn yet, or moved into :attr:`_module`)."""
         self._version = 0
         """Bumped by every change of :attr:`_arrays` (the sampling weights' cache follows it)."""
-        self._module = None
+        self._module: ProposalModule | None = None
         """The torch module (:class:`pemviz.core.torch_fits.ProposalModule`) once the parameters moved there."""
         self._training = True
         if torch_imported():
@@ -94,7 +96,7 @@ class Proposal:
                 with torch.random.fork_rng(devices=[]):  # its own weights: torch's random state left as it was
                     module = ProposalModule(new_net(self.n_inputs))
                 with torch.no_grad():
-                    for p, a in zip(module.net.parameters(), self._arrays):
+                    for p, a in zip(module.net.parameters(), self._arrays, strict=False):
                         p.copy_(torch.from_numpy(a))
             module.train(self._training)
             self._module, self._arrays = module, None
@@ -108,15 +110,16 @@ class Proposal:
     def parameter_arrays(self) -> list[np.ndarray]:
         """The network's parameters, float64, in :meth:`layer_shapes` order (read-only views while in numpy; copies
         of torch's)."""
-        if self._module is None:
+        module = self._module
+        if module is None:
             if self._arrays is None:
-                self._to_torch()  # never initialised: torch's default initialisation, as before
+                module = self._to_torch()  # never initialised: torch's default initialisation, as before
             else:
                 views = [a.view() for a in self._arrays]
                 for v in views:
                     v.flags.writeable = False
                 return views
-        return [p.detach().numpy().copy() for p in self._module.net.parameters()]
+        return [p.detach().numpy().copy() for p in module.net.parameters()]
 
     def set_parameter_arrays(self, arrays: list[np.ndarray]) -> None:
         """Replace the network's parameters by ``arrays`` (float64, :meth:`layer_shapes` order; copied).
@@ -136,7 +139,7 @@ class Proposal:
 
         torch = torch_module()
         with torch.no_grad():
-            for p, a in zip(self._module.net.parameters(), arrays):
+            for p, a in zip(self._module.net.parameters(), arrays, strict=False):
                 p.copy_(torch.from_numpy(a))
 
     def forward(self, values):
@@ -152,7 +155,7 @@ class Proposal:
         weight [out, in], then its bias, layer by layer."""
         shapes = self.layer_shapes()
         bounds = [1.0 / math.sqrt(shapes[i - i % 2][1]) for i in range(len(shapes))]  # the layer's fan-in
-        self.set_parameter_arrays([rng.uniform(-b, b, shape) for b, shape in zip(bounds, shapes)])
+        self.set_parameter_arrays([rng.uniform(-b, b, shape) for b, shape in zip(bounds, shapes, strict=False)])
 
     def add_noise_head(self, n_noise: int) -> None:
         """Give the proposal a measurement-error model of its own (:class:`pemviz.core.torch_fits.NoiseShift`, equal

@@ -24,11 +24,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Mapping, Protocol
 
 import numpy as np
 from scipy.special import logsumexp
 
 from pemviz.core.estimate import Estimate, error_text, format_probability
+
+if TYPE_CHECKING:  # annotations only
+    from pemviz.core.rollouts import RolloutBatch
 
 
 @dataclass(frozen=True)
@@ -62,7 +66,7 @@ class SeverityScale:
     contact_at: float | None = None
 
     def __post_init__(self) -> None:
-        if any(b >= a for a, b in zip(self.levels, self.levels[1:])):
+        if any(b >= a for a, b in zip(self.levels, self.levels[1:], strict=False)):
             raise ValueError(f"severity levels must be strictly descending, got {self.levels}")
 
     def level_text(self, x: float) -> str:
@@ -149,10 +153,12 @@ class SeverityCurve:
         :meth:`SeverityScale.level_text`."""
         if point is self.points[0]:
             return self.failure_level_text()
+        assert point.level is not None  # every point after the failure is a level of the scale
         return self.scale.level_text(point.level)
 
     def title(self) -> str:
-        """``severity: P(min gap < x), from the same rollouts`` (with "failure and" where the failure is not a level)."""
+        """``severity: P(min gap < x), from the same rollouts`` (with "failure and" where the failure is not a
+        level)."""
         s = self.scale
         event = f"min {s.label} < x" if s.margin is not None else f"failure and min {s.label} < x"
         return f"severity: P({event}), from the same rollouts"
@@ -173,8 +179,8 @@ class SeverityCurve:
                 else:  # reached, but its weights back no estimate: what they do back, a lower bound
                     bound = (f"p >= {format_probability(e.log_lower_bound, 2)} (95 % lower bound), no upper bound"
                              if e.log_lower_bound > -math.inf else "no bound either way")
-                    out.append((self.point_text(point), f"reached by {e.n_failures:,} of {e.n:,} rollouts, not estimated "
-                                f"(ESS {e.ess:.1f}, {e.verdict}): {bound}; {how}"))  # fmt: skip
+                    out.append((self.point_text(point), f"reached by {e.n_failures:,} of {e.n:,} rollouts, not "
+                                f"estimated (ESS {e.ess:.1f}, {e.verdict}): {bound}; {how}"))  # fmt: skip
                 continue
             text = f"{format_probability(e.log_mu_hat)} {e.interval_text()}  ESS {e.ess:.1f}  {e.verdict}"
             if point.exact_log_p is not None:  # "inside" / "OUTSIDE" an interval; "above" / "BELOW" a lower bound
@@ -258,7 +264,20 @@ def contact_level(problem: object) -> float:
     return float(scale.contact if scale.contact_at is None else scale.contact_at)
 
 
-def rollout_severity(problem: object, batch: object) -> tuple[np.ndarray, np.ndarray]:
+class SeverityProblem(Protocol):
+    """What :func:`rollout_severity` reads of a problem (:class:`pemviz.core.problems.Problem`)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def signals(self) -> Mapping[str, str]: ...
+
+    @property
+    def severity(self) -> SeverityScale | None: ...
+
+
+def rollout_severity(problem: SeverityProblem, batch: RolloutBatch) -> tuple[np.ndarray, np.ndarray]:
     """Each rollout's severity, whatever the scene: its minimum distance and its impact speed.
 
     The distance is the problem's severity signal (:attr:`SeverityScale.signal`, metres); contact is that distance at
@@ -279,6 +298,7 @@ def rollout_severity(problem: object, batch: object) -> tuple[np.ndarray, np.nda
     """
     contact = contact_level(problem)
     scale = problem.severity
+    assert scale is not None  # contact_level raised ValueError otherwise
     column = problem.signals.get(scale.signal, scale.signal)
     dt = getattr(problem, "dt_s", None)
     if dt is None:
@@ -361,12 +381,13 @@ class FailureSeverity:
     def labels(self) -> list[str]:
         """The bins in words: ``no contact``, ``0-2 m/s``, ``2-5 m/s``, ``> 5 m/s``."""
         lo = (0.0, *self.edges)
-        return ["no contact"] + [f"{a:g}-{b:g} m/s" for a, b in zip(lo, self.edges)] + [f"> {self.edges[-1]:g} m/s"]
+        return (["no contact"] + [f"{a:g}-{b:g} m/s" for a, b in zip(lo, self.edges, strict=False)]
+                + [f"> {self.edges[-1]:g} m/s"])  # fmt: skip
 
     def bounds(self) -> list[tuple[float | None, float | None]]:
         """Each bin's impact speeds [lo, hi) in m/s: (None, None) for no contact, hi None for the last."""
         lo = (0.0, *self.edges)
-        return [(None, None)] + list(zip(lo, (*self.edges, None)))
+        return [(None, None)] + list(zip(lo, (*self.edges, None), strict=False))
 
     def bin_of(self) -> np.ndarray:
         """int [K] each kept failure's bin: 0 no contact, then 1 + the impact-speed interval it falls in."""
@@ -410,7 +431,7 @@ class FailureSeverity:
         if self.n == 0:
             return f"{head}: none of the {self.n_failures:,} failures' rollouts was kept"
         bins = ", ".join(f"{label} {share_text(x)} ({c:,})"
-                         for label, x, c in zip(self.labels(), self.shares(), self.counts()))  # fmt: skip
+                         for label, x, c in zip(self.labels(), self.shares(), self.counts(), strict=False))  # fmt: skip
         kept = ("" if self.n == self.n_failures
                 else f" (the {self.n:,} kept of {self.n_failures:,} failures: {share_text(self.covered)} of p)")
         return f"{head}: {bins}; median min {s.label} {self.median_min_distance():.2f} {s.unit}{kept}"
@@ -444,7 +465,7 @@ def failure_severity(scale: SeverityScale, contact: float, log_share: np.ndarray
         raise ValueError("failure_severity: a kept failure has no finite min distance")
     if (speed[kept] <= 0).any() or np.isinf(speed[kept]).any():
         raise ValueError("failure_severity: an impact speed must be a positive number of m/s (NaN: no contact)")
-    if not edges or any(e <= 0 for e in edges) or any(b <= a for a, b in zip(edges, edges[1:])):
+    if not edges or any(e <= 0 for e in edges) or any(b <= a for a, b in zip(edges, edges[1:], strict=False)):
         raise ValueError(f"failure_severity: edges must be positive and ascending, got {edges}")
     return FailureSeverity(scale, float(contact), log_share.copy(), np.where(kept, dist, np.nan),
                            np.where(kept, speed, np.nan), kept.copy(), tuple(float(e) for e in edges))  # fmt: skip

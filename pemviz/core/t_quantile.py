@@ -58,8 +58,9 @@ def _table(nu: float) -> np.ndarray:
     # operations in its order, its constant c computed once)
     c = math.lgamma((nu + 1.0) / 2.0) - math.lgamma(nu / 2.0) - 0.5 * math.log(nu * math.pi)
     half, exp, log1p = (nu + 1.0) / 2.0, math.exp, math.log1p
+    steps = (math.ldexp(1.0, int(e)) / (2.0 * k) for e in exponents)
     slope = np.array([[step * exp(-(c - half * log1p(z * z / nu))) for z in row.tolist()]
-                      for step, row in zip((math.ldexp(1.0, int(e)) / (2.0 * k) for e in exponents), q)])  # fmt: skip
+                      for step, row in zip(steps, q, strict=False)])  # fmt: skip
     y0, y1, d0, d1 = q[:, :-1], q[:, 1:], slope[:, :-1], slope[:, 1:]
     coef = np.stack([y0, d0, 3.0 * (y1 - y0) - 2.0 * d0 - d1, 2.0 * (y0 - y1) + d0 + d1], axis=-1)
     out = np.ascontiguousarray(coef.reshape(n_binades * k, 4))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any, Callable
+from typing import Any, Callable, cast
 
 import numpy as np
 import torch
@@ -88,8 +88,8 @@ def _standard_log_density(family: str, df: np.ndarray | None, z: torch.Tensor) -
 
 def fit_noise_shift(proposal: Any, obs: np.ndarray, noise: np.ndarray, loc_p: np.ndarray,
                     log_scale_p: np.ndarray, family: str, df: np.ndarray | None, log_w: np.ndarray, *, epochs: int,
-                    lr: float, max_rows: int | None, rng: np.random.Generator,
-                    check: Callable[[], None] | None = None, tolerance: float | None = None) -> list[float]:  # fmt: skip
+                    lr: float, max_rows: int | None, rng: np.random.Generator, check: Callable[[], None] | None = None,
+                    tolerance: float | None = None) -> list[float]:  # fmt: skip
     """The cross-entropy update of the proposal's error head, in place: maximise the weighted log-likelihood
     ``sum_s w_s log q(e_s | h_s)`` of detected objects' errors (Innes & Ramamoorthy 2022, eq. 10-11, for the errors'
     density), by Adam on the mean over the weights; returns the loss per epoch (nats per error).
@@ -153,7 +153,8 @@ class Backprop:
     """
 
     def __init__(self, net: nn.Sequential, h: torch.Tensor, grads: list[torch.Tensor]) -> None:
-        lin1, _, lin2, _, lin3, _ = net
+        first, _, second, _, third, _ = net
+        lin1, lin2, lin3 = cast(nn.Linear, first), cast(nn.Linear, second), cast(nn.Linear, third)  # the Linear layers
         self.h, self.grads = h, grads
         self.biases = (lin1.bias.detach(), lin2.bias.detach(), lin3.bias.detach())
         self.weights = (lin1.weight.detach(), lin2.weight.detach(), lin3.weight.detach())
@@ -174,7 +175,8 @@ class Backprop:
             a1 = torch.addmm(b1, self.h, w1.t(), out=self._a1).relu_()
             a2 = torch.addmm(b2, a1, w2.t(), out=self._a2).relu_()
             z = torch.addmm(b3, a2, w3.t(), out=self._z3)
-            if self.fast:  # log softmax of two: log q(miss) = -softplus(z_1 - z_0), log q(detect) = -softplus(z_0 - z_1)
+            # log softmax of two: log q(miss) = -softplus(z_1 - z_0), log q(detect) = -softplus(z_0 - z_1)
+            if self.fast:
                 d = z[:, 1] - z[:, 0]
                 lq = torch.stack((torch.nn.functional.softplus(d), torch.nn.functional.softplus(-d)), dim=1).neg_()
             else:
@@ -235,7 +237,7 @@ class Adam:
         step = float(self.steps)
         step_size = self.lr / (1 - self.beta1**step)
         bias_correction2_sqrt = (1 - self.beta2**step) ** 0.5
-        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq):
+        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=False):
             if p.grad is None:
                 continue
             m.lerp_(p.grad, 1 - self.beta1)
@@ -250,18 +252,19 @@ def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
     torch's float32 / float64 kernels (``dtype``: ``"float32"``, ``"float64"`` or a torch dtype); the arguments and
     the loss per step returned are :func:`~pemviz.core.sampling.fit_proposal`'s. ``inputs`` and a tensor objective
     may be numpy arrays (float64)."""
-    linear = not callable(objective)
-    if linear:
-        objective = torch.as_tensor(objective, dtype=torch.float64)
+    function = objective if callable(objective) else None
+    weights = None if callable(objective) else torch.as_tensor(objective, dtype=torch.float64)
+    linear = weights is not None
     inputs = torch.as_tensor(inputs, dtype=torch.float64)
     dtype = {"float32": torch.float32, "float64": torch.float64}.get(dtype, dtype) if isinstance(dtype, str) else dtype
     # d loss / d log q of a tensor objective, formed as autograd forms it (the same bits)
-    grad_linear = (objective * -1.0 if per is None else objective * -(1.0 / per)) if linear else None
+    grad_linear = None if weights is None else (weights * -1.0 if per is None else weights * -(1.0 / per))
 
     def loss_and_grad(log_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if not linear:
-            return objective(log_q)
-        loss = -(objective * log_q).sum()
+        if function is not None:
+            return function(log_q)
+        assert weights is not None and grad_linear is not None  # a tensor objective: both formed above
+        loss = -(weights * log_q).sum()
         return (loss if per is None else loss / per), grad_linear
 
     losses: list[float] = []
@@ -292,7 +295,7 @@ def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
         return losses
     dtype = dtype if linear and dtype not in (EXACT, None) else torch.float64
     h = proposal.inputs(torch.as_tensor(inputs)).to(dtype)
-    if linear:
+    if grad_linear is not None:  # linear
         grad_linear = grad_linear.to(dtype)  # the loss itself is summed in float64 (its log q cast up)
     # one flat tensor for all parameters and one for their gradients (each parameter and gradient a view into it
     # while the fit runs), so that an Adam step is 7 kernel calls, not 7 per parameter: element for element the
@@ -301,10 +304,10 @@ def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
     sizes = [p.numel() for p in params]
     flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]).to(dtype))
     flat.grad = torch.zeros_like(flat)
-    for p, view in zip(params, flat.detach().split(sizes)):
+    for p, view in zip(params, flat.detach().split(sizes), strict=False):
         p.data = view.view_as(p)
-    net = Backprop(proposal.net, h, [g.view_as(p) for p, g in zip(params, flat.grad.split(sizes))])
-    opt = Adam([flat], lr=lr)
+    net = Backprop(proposal.net, h, [g.view_as(p) for p, g in zip(params, flat.grad.split(sizes), strict=False)])
+    adam = Adam([flat], lr=lr)
     try:
         for epoch in range(epochs):
             if check is not None and epoch % CHECK_EVERY == 0:
@@ -312,9 +315,10 @@ def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
             log_q, cache = net.forward()
             loss, grad = loss_and_grad(log_q)
             net.backward(cache, grad)
-            opt.step()
+            adam.step()
             losses.append(loss.item())
-            if tolerance is not None and epoch >= PLATEAU_EPOCHS and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance:
+            if (tolerance is not None and epoch >= PLATEAU_EPOCHS
+                    and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance):  # fmt: skip
                 break  # converged: the loss has stopped falling
     finally:
         for p in params:  # each parameter its own storage again, in float64

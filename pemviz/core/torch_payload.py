@@ -103,7 +103,7 @@ def _rebuild_tensor_v2(storage: Any, storage_offset: Any, size: Any, stride: Any
     flat = storage.array
     if 0 in size:
         return np.empty(size, dtype=flat.dtype)
-    last = storage_offset + sum((n - 1) * s for n, s in zip(size, stride))
+    last = storage_offset + sum((n - 1) * s for n, s in zip(size, stride, strict=False))
     if last >= flat.shape[0]:
         raise UnsupportedPayload(f"tensor view ends at element {last}, beyond its storage of {flat.shape[0]}")
     item = flat.dtype.itemsize

@@ -42,7 +42,8 @@ def convention(weights_until_failure: bool) -> str:
     return "to-failure" if weights_until_failure else "full"
 
 
-def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float], densities: bool = False) -> np.ndarray:
+def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float] | np.ndarray,
+                       densities: bool = False) -> np.ndarray:  # fmt: skip
     """Per-step log density of a mixture over whole rollouts, float64 [N, T] (nats).
 
     Rollouts drawn from sum_k c_k q_k(tau) (component k picked once per rollout with probability c_k) have the
@@ -64,7 +65,8 @@ def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float], densities: bo
     log_q = np.asarray(log_q, dtype=np.float64)
     c = np.asarray(shares, dtype=np.float64)
     if log_q.ndim != 3 or c.shape != (log_q.shape[0],) or not (c > 0).all():
-        raise ValueError(f"mixture_step_log_q: log_q must be [K, N, T] and shares [K] > 0, got {log_q.shape}, {c.shape}")
+        raise ValueError(f"mixture_step_log_q: log_q must be [K, N, T] and shares [K] > 0, got {log_q.shape}, "
+                         f"{c.shape}")
     running = logsumexp(np.log(c)[:, None, None] + np.cumsum(log_q, axis=2), axis=0)  # M_t, [N, T]
     before = np.concatenate([np.zeros((running.shape[0], 1)), running[:, :-1]], axis=1)
     step = running - before
@@ -160,7 +162,8 @@ class MeanWeight:
         why = (f"{self.over_bound} weight(s) above the bound the sidecar's mixture allows" if self.over_bound else
                f"{abs(self.z):.1f} standard errors from 1")  # fmt: skip
         return (f"warning: mean importance weight {_number(self.mean)} is {why}: log_q is not the density that drew "
-                "these rollouts (e.g. one mixture component's instead of the mixture's): do not trust the estimate below")
+                "these rollouts (e.g. one mixture component's instead of the mixture's): do not trust the estimate "
+                "below")
 
 
 def _number(x: float) -> str:

@@ -30,7 +30,7 @@ and :func:`pemviz.core.lockstep.simulate` do; anything else raises a RuntimeErro
 from __future__ import annotations
 
 import socket
-from typing import Any, Protocol
+from typing import Any, Mapping, Protocol
 
 import numpy as np
 
@@ -82,7 +82,7 @@ def task_blocks(n: int, n_tasks: int, block: int = RQMC_BLOCK) -> list[list[tupl
     blocks = block_bounds(n, block)
     k = min(len(blocks), n_tasks)
     edges = [(i * len(blocks)) // k for i in range(k + 1)]
-    return [blocks[a:b] for a, b in zip(edges[:-1], edges[1:])]
+    return [blocks[a:b] for a, b in zip(edges[:-1], edges[1:], strict=False)]
 
 
 class ChunkUniforms:
@@ -100,7 +100,7 @@ class ChunkUniforms:
     bit_generator = None
     """Not a real generator: simulators that inspect it (the batched one) then draw plainly."""
 
-    def __init__(self, state: dict, n: int, start: int, stop: int) -> None:
+    def __init__(self, state: Mapping[str, Any], n: int, start: int, stop: int) -> None:
         self.state, self.n, self.start, self.stop = state, int(n), int(start), int(stop)
         self.calls, self._position, self.per_rollout = 0, 0, 1
 
@@ -127,7 +127,7 @@ class ChunkUniforms:
         )
 
 
-def chunk_uniforms(rng_state: dict, n: int, n_steps: int, start: int, stop: int) -> np.ndarray:
+def chunk_uniforms(rng_state: Mapping[str, Any], n: int, n_steps: int, start: int, stop: int) -> np.ndarray:
     """The u's of rollouts ``start..stop-1`` of an n-rollout serial run, float64 [T, stop - start].
 
     Equal to ``np.random.Generator(bg).random((T, n))[:, start:stop]`` for the bit generator ``bg`` in
@@ -146,7 +146,7 @@ def chunk_uniforms(rng_state: dict, n: int, n_steps: int, start: int, stop: int)
 
 
 def simulate_chunk(
-    problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, rng_state: dict
+    problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, rng_state: Mapping[str, Any]
 ) -> tuple[RolloutBatch, int, int]:
     """Rollouts ``start..stop-1`` of the serial run ``problem.simulate(n, sampler, target, rng)`` from
     ``rng_state``; returns the batch [stop - start, T], the number of per-step draws it made (T) and the uniforms
@@ -159,7 +159,8 @@ def simulate_chunk(
 
 
 def simulate_blocks(
-    problem: Any, n: int, blocks: list[tuple[int, int]], sampler: Detector, target: Detector, rng_state: dict
+    problem: Any, n: int, blocks: list[tuple[int, int]], sampler: Detector, target: Detector,
+    rng_state: Mapping[str, Any]
 ) -> list[tuple[RolloutBatch, int, int]]:
     """:func:`simulate_chunk` of each block ``(start, stop)`` in turn (one Ray task's work)."""
     return [simulate_chunk(problem, n, a, b, sampler, target, rng_state) for a, b in blocks]

@@ -81,7 +81,8 @@ class RobustnessByMetric(Mapping[str, np.ndarray]):
     first read (the estimator reads the classic one and the configured one; a listener may read the others)."""
 
     def __init__(self, problem: Problem, batch: RolloutBatch) -> None:
-        self.problem, self.batch, self._known = problem, batch, {}
+        self.problem, self.batch = problem, batch
+        self._known: dict[str, np.ndarray] = {}
 
     def __getitem__(self, metric: str) -> np.ndarray:
         if metric not in METRICS:
@@ -248,11 +249,13 @@ class Experiment:
         under ``target``: the estimator and the listeners see each chunk once, then the listeners a
         :class:`StageSample` of the stage."""
         pb, cfg = self.problem, self.config
+        stream = pb.stream
+        assert stream is not None  # the caller streams a stage only then
         sample = StageSample(plan.n)
         size: dict[str, Any] = {} if cfg.chunk_rollouts is None else {"chunk_size": cfg.chunk_rollouts}
         if getattr(pb.stream, "elides_rows", False) and not getattr(estimator, "needs_chunk_rows", True):
             size["keep_rows"] = False  # a chunk's object rows, rebuilt by replay for the few rollouts read
-        chunks = itertools.chain.from_iterable(pb.stream(k, d, target, estimator.rng, **size) for k, d in parts)
+        chunks = itertools.chain.from_iterable(stream(k, d, target, estimator.rng, **size) for k, d in parts)
         for batch in chunks:
             self._check_cancel()
             robustness = pb.robustness(batch, cfg.metric)

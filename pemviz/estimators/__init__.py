@@ -31,8 +31,8 @@ from pemviz.estimators.precision import PrecisionTarget
 
 __all__ = [
     "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator",
-    "FixedSampler", "PlannedStage", "PrecisionTarget", "RunPlan", "StageOutcome", "StagePlan", "break_ties", "build_estimator",
-    "check_runnable",
+    "FixedSampler", "PlannedStage", "PrecisionTarget", "RunPlan", "StageOutcome", "StagePlan", "break_ties",
+    "build_estimator", "check_runnable",
     "failure_steps", "log_p_before_failure", "log_weight", "mixed50", "monte_carlo", "naive50", "run_plan",
 ]  # fmt: skip
 

@@ -268,7 +268,7 @@ class SeenFailures:
         keys = np.concatenate([np.packbits(detected.reshape(rows.size, -1), axis=1),
                                k.astype("<u4").view(np.uint8).reshape(-1, 4)], axis=1)  # fmt: skip
         _, first = np.unique(keys, axis=0, return_index=True)  # each prefix once per batch
-        self._log_p.update(zip((keys[i].tobytes() for i in first), log_p[first].tolist()))
+        self._log_p.update(zip((keys[i].tobytes() for i in first), log_p[first].tolist(), strict=False))
         if len(self._log_p) > 2 * self.KEEP:
             kept = sorted(self._log_p.items(), key=lambda kv: kv[1], reverse=True)[: self.KEEP]
             self._log_p = dict(kept)
@@ -391,7 +391,8 @@ class StageRollouts:
         self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
 
     def add(self, problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
-            count_failures: bool = True, log_w: np.ndarray | None = None, weigh: Weigh | None = None) -> np.ndarray:  # fmt: skip
+            count_failures: bool = True, log_w: np.ndarray | None = None,
+            weigh: Weigh | None = None) -> np.ndarray:  # fmt: skip
         """Add a chunk (``count_failures``: bin its failures' detections too); returns its log-weights [N]
         (``log_w``: given, e.g. by a mixture, :func:`mixture_log_weight`, with ``weigh`` the same over any steps;
         None: :func:`log_weight`)."""
@@ -416,7 +417,7 @@ class StageRollouts:
         """(log-weights, failed, log p before the failure), [N] each, over every chunk."""
         if len(self.parts) == 1:
             return self.parts[0]
-        return tuple(np.concatenate(a) for a in zip(*self.parts))  # type: ignore[return-value]
+        return tuple(np.concatenate(a) for a in zip(*self.parts, strict=False))  # type: ignore[return-value]
 
     def severity_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(log-weights, events, log p), [L, N] each over every chunk (:func:`severity_arrays`), or None where a chunk
@@ -425,7 +426,8 @@ class StageRollouts:
             return None
         if len(self.severity_parts) == 1:
             return self.severity_parts[0]
-        return tuple(np.concatenate(a, axis=1) for a in zip(*self.severity_parts))  # type: ignore[return-value]
+        return tuple(np.concatenate(a, axis=1)  # type: ignore[return-value]
+                     for a in zip(*self.severity_parts, strict=False))
 
     def alternative_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(log-weights under each alternative [K, N], failed [K, N], log p before the failure [K, N]) over every
@@ -453,8 +455,8 @@ def elite_count(n: int, quantile_level: float) -> int:
 def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: float = 0.0) -> float:
     """gamma_kappa = max(floor, the ceil((1 - sigma) N)-th smallest robustness).
 
-    With sigma = 0.95 and N = 100 this is the 5th smallest value (Innes & Ramamoorthy 2022, Algorithm 1). ``floor`` is the
-    failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
+    With sigma = 0.95 and N = 100 this is the 5th smallest value (Innes & Ramamoorthy 2022, Algorithm 1). ``floor``
+    is the failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
     """
     r = np.asarray(robustness, dtype=np.float64)
     return kth_threshold(r, elite_count(r.size, quantile_level), floor)

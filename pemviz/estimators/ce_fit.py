@@ -388,7 +388,7 @@ class EliteSteps:
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rows [S(, k)], actions [S], log-weights [S]) in the order drawn."""
-        order, rows, actions, log_w = (np.concatenate(a) for a in zip(*self.parts))
+        order, rows, actions, log_w = (np.concatenate(a) for a in zip(*self.parts, strict=False))
         if len(self.parts) > 1 and not self.thinned:
             by = np.argsort(order, kind="stable")
             rows, actions, log_w = rows[by], actions[by], log_w[by]
@@ -417,7 +417,7 @@ class EliteSteps:
         """
         if not self.keep_observations or self.thinned or not self.parts:
             return False
-        order, rows, actions, _ = (np.concatenate(a) for a in zip(*self.parts))
+        order, rows, actions, _ = (np.concatenate(a) for a in zip(*self.parts, strict=False))
         obs, counts = (np.concatenate([o[i] for o in self.observations]) for i in (0, 1))
         noise = None if self.observations[0][2] is None else np.concatenate([o[2] for o in self.observations])
         by = np.argsort(order, kind="stable")  # rollout by rollout, step by step: the order drawn

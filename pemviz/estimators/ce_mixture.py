@@ -74,12 +74,14 @@ class MixtureWeights:
         rollouts of one mixture component, so that the proposal network sees the same rows and gives the same bits as it
         gave there."""
         plan, n, n_steps, m = self._plan, batch.n, batch.n_steps, batch.n_objects
-        rebuilt = dict(zip((id(d) for _, d in plan.mixture), (d for _, d in self._around(plan.mixture, self.proposal))))
+        rebuilt = dict(zip((id(d) for _, d in plan.mixture), (d for _, d in self._around(plan.mixture, self.proposal)),
+                           strict=False))
         extras = [rebuilt[id(d)] for d in self._scored.extras]
         logits = np.empty((len(extras), n, n_steps, m))
         object_rows = batch.object_rows
         edges = np.cumsum([0] + [k for k, _ in plan.mixture])
-        for lo, hi in zip(edges[:-1], edges[1:]):  # each component's rollouts, drawn one block after another
+        # each component's rollouts, drawn one block after another
+        for lo, hi in zip(edges[:-1], edges[1:], strict=False):
             for b0 in range(int(lo), int(hi), RQMC_BLOCK):
                 a, b = max(b0, start), min(b0 + RQMC_BLOCK, int(hi), start + n)
                 if a >= b:

@@ -54,8 +54,8 @@ from pemviz.core.sampling import EXACT, Proposal, StateProposal
 
 def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
     """Refuse, before any rollout or output, a ``config`` whose estimator cannot run on ``problem``: the
-    cross-entropy fit of whole elite rollouts (:attr:`~pemviz.config.ExperimentConfig.fits_whole_rollouts`, the ``paper`` preset's) on a problem of
-    several objects a step.
+    cross-entropy fit of whole elite rollouts (:attr:`~pemviz.config.ExperimentConfig.fits_whole_rollouts`, the
+    ``paper`` preset's) on a problem of several objects a step.
 
     Raises:
         ValueError: one line naming what cannot run and what to use instead.
@@ -115,7 +115,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     Random streams, one per purpose, all from ``config.seed``: the rollouts' detections (:attr:`rng`, which the
     engine draws from); the fits' subsamples
     (``(seed, 1)``); tie-breaking (``(seed, 2)``); the proposal's initial weights (numpy's generator seeded
-    with ``seed``, :meth:`pemviz.core.sampling.Proposal.initialise`), so turning one option on leaves the other streams as they were.
+    with ``seed``, :meth:`pemviz.core.sampling.Proposal.initialise`), so turning one option on leaves the other
+    streams as they were.
 
     Args:
         config: the sampler's settings.
@@ -287,7 +288,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             if plan.kind == "pretrain":
                 batch = RolloutBatch.concatenate(self._chunks) if len(self._chunks) > 1 else self._chunks[0]
                 self._chunks = []
-                gamma, n_elites, rate = float("nan"), 0, detect_rate(*elite_counts(batch, np.zeros(batch.n, bool), grid))
+                gamma, n_elites, rate = (float("nan"), 0,
+                                         detect_rate(*elite_counts(batch, np.zeros(batch.n, bool), grid)))
                 self._pretrain(batch)
             else:
                 batch, r, index = self._elites.candidates()
@@ -331,7 +333,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         interval in 1 of 200 seeds of the ``paper`` preset and 1 of 10 of ``authors-code`` at N = 100); else the
         problem's own cap (:attr:`pemviz.core.problems.Problem.verdict_cap`)."""
         if not self.reached_failures:
-            return "doubtful", "no stage's threshold reached the failure level: the proposal was never fitted to a failure"
+            return "doubtful", ("no stage's threshold reached the failure level: the proposal was never fitted to a "
+                                "failure")
         if self.config.fits_whole_rollouts:
             return "doubtful", ("the paper's fit of whole elite rollouts can settle on one failure mode and miss "
                                 "others its weights cannot show (the Validation page); use the default sampler")
@@ -449,7 +452,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             return
         from pemviz.core.torch_fits import fit_noise_shift  # torch: a noisy target's runs only
 
-        rows, noise, log_w = (np.concatenate(a) for a in zip(*data))
+        rows, noise, log_w = (np.concatenate(a) for a in zip(*data, strict=False))
         target = self.problem.target
         loc_p, log_scale_p = target.noise_params(rows)
         fit_noise_shift(self.proposal, rows, noise, loc_p, log_scale_p, target.noise_family, target.noise_df, log_w,

@@ -30,8 +30,8 @@ def pool(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], stage_weights: 
     own = np.concatenate([lw for lw, _, _ in parts])  # the lower bound bets on each rollout's own p/q (estimate)
     if stage_weights is not None:
         shift = pooling_shifts(stage_weights, np.array([lw.size for lw, _, _ in parts], dtype=np.float64))
-        parts = [(lw + c, f, lp) for (lw, f, lp), c in zip(parts, shift)]
-    log_w, failed, log_p = (np.concatenate(a) for a in zip(*parts))
+        parts = [(lw + c, f, lp) for (lw, f, lp), c in zip(parts, shift, strict=False)]
+    log_w, failed, log_p = (np.concatenate(a) for a in zip(*parts, strict=False))
     return estimate(log_w, failed, log_p, own)
 
 
@@ -57,7 +57,7 @@ def severity_curve(problem: Problem, estimator: object, final: Estimate, used: t
     estimates = pooled_rows(estimator, used, pooling, "severity_arrays", cap)
     if estimates is None:
         return None
-    for x, est in zip(scale.levels, estimates):
+    for x, est in zip(scale.levels, estimates, strict=False):
         points.append(SeverityPoint(x, est, problem.severity_exact.get(x)))
     return SeverityCurve(scale, tuple(points))
 
@@ -110,9 +110,9 @@ def pem_spread(problem: Problem, estimator: object, final: Estimate, used: tuple
     estimates = pooled_rows(estimator, used, pooling, "alternative_arrays", cap)
     if estimates is None:
         return None
-    made = [Alternative(a.label, est, a.exact_log_p) for a, est in zip(problem.alternatives, estimates)]
-    members = tuple(m for m, a in zip(made, problem.alternatives) if a.kind == "member")
-    shifts = tuple(m for m, a in zip(made, problem.alternatives) if a.kind == "shift")
+    made = [Alternative(a.label, est, a.exact_log_p) for a, est in zip(problem.alternatives, estimates, strict=False)]
+    members = tuple(m for m, a in zip(made, problem.alternatives, strict=False) if a.kind == "member")
+    shifts = tuple(m for m, a in zip(made, problem.alternatives, strict=False) if a.kind == "shift")
     return PemSpread(final, members, shifts, problem.alternatives_source)
 
 

@@ -61,8 +61,8 @@ class CommittorTilt(FixedSampler):
 
     def __init__(self, problem: Problem, n: int, weights_until_failure: bool, seed: int = 0) -> None:
         if problem.tilt is None:
-            where = "" if problem.stream is not None else " on this simulator (a scenario's may run on its batched twin " \
-                "only: --sim batched)"
+            where = "" if problem.stream is not None else (" on this simulator (a scenario's may run on its batched "
+                                                           "twin only: --sim batched)")
             raise ValueError(f"method tilt: the {problem.name} problem has no tilted proposal of its own{where}; use "
                              f"adaptive or mc")  # fmt: skip
         super().__init__(problem, problem.target, n, weights_until_failure, seed)

@@ -288,7 +288,7 @@ class _Table:
             raise self.error(f"{SEVERITY_COLUMNS[1]} = {float(speed[row])!r} at {self.at(row)}: an impact speed is a "
                              "positive number of m/s, or null where the rollout makes no contact")  # fmt: skip
         out = []
-        for name, x in zip(SEVERITY_COLUMNS, (dist, speed)):
+        for name, x in zip(SEVERITY_COLUMNS, (dist, speed), strict=False):
             per = x.reshape(n, n_steps)
             differs = ~((per == per[:, :1]) | (np.isnan(per) & np.isnan(per[:, :1]))).all(axis=1)
             if differs.any():

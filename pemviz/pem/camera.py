@@ -65,7 +65,8 @@ def box_errors_to_metric(
         ValueError: arrays of different lengths, a detected or true box height (``h_d``, ``h_d - e_h``) <= 0, a range
             below :data:`MIN_RANGE_M` or a focal length <= 0.
     """
-    z, h_d, e_cx, e_h = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (range_m, det_height_px, err_cx_px, err_h_px))
+    z, h_d, e_cx, e_h = (np.asarray(a, dtype=np.float64).reshape(-1)
+                         for a in (range_m, det_height_px, err_cx_px, err_h_px))
     if not (z.shape == h_d.shape == e_cx.shape == e_h.shape):
         raise ValueError(f"range, box height and errors must have one length each, got {z.shape}, {h_d.shape}, "
                          f"{e_cx.shape}, {e_h.shape}")  # fmt: skip

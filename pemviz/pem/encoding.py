@@ -1,7 +1,7 @@
 """PEM inputs: the 14-dim encoding of KITTI salient variables and the braking scenario's mapping.
 
-Innes & Ramamoorthy 2022, Sec. IV-A (the authors' ``SalientObstacleDataset`` in ``pems.py``): one-hot class (7) + one-hot
-occlusion (3: none, partly, largely) + loc_x, loc_y, loc_z, rot_y (raw columns 7..10) z-scored with the
+Innes & Ramamoorthy 2022, Sec. IV-A (the authors' ``SalientObstacleDataset`` in ``pems.py``): one-hot class (7) +
+one-hot occlusion (3: none, partly, largely) + loc_x, loc_y, loc_z, rot_y (raw columns 7..10) z-scored with the
 mean and unbiased (n - 1) std of the full 37,498-row file.
 """
 
@@ -76,7 +76,8 @@ class NormStats:
 
 
 def fit_norm_stats(raw_inputs: np.ndarray) -> NormStats:
-    """Mean and unbiased (n - 1) std of the pose columns of raw salient inputs ``[N, 11]`` (as the authors' training code).
+    """Mean and unbiased (n - 1) std of the pose columns of raw salient inputs ``[N, 11]`` (as the authors' training
+    code).
 
     Raises:
         ValueError: fewer than 2 rows or not 11 columns.

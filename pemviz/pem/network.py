@@ -259,7 +259,7 @@ class GridMLP:
         ``largest`` counts the ones. The result is bit for bit that of the whole input rows.
         """
         h = xt
-        for i, (wi, scale, b, bits) in enumerate(zip(self.weights, self.scales, self.biases, self.bits)):
+        for i, (wi, scale, b, bits) in enumerate(zip(self.weights, self.scales, self.biases, self.bits, strict=False)):
             if i:
                 largest = h.max(axis=0)  # after a ReLU: >= 0
             shift = np.minimum(bits - np.frexp(largest)[1], 1000)  # each row's largest on 2^(bits - 1) .. 2^bits

@@ -140,7 +140,8 @@ class NoiseModel:
         return self.log_prob_dims(features, errors).sum(axis=1)
 
     def cdf(self, features: np.ndarray, errors: np.ndarray) -> np.ndarray:
-        """Predictive CDF of each error dimension at the errors (the probability integral transform, PIT), ``[R, 2]``."""
+        """Predictive CDF of each error dimension at the errors (the probability integral transform, PIT),
+        ``[R, 2]``."""
         x = _check_features(features)
         return self.distribution(x).cdf(_check_errors(errors, x.shape[0]))
 
@@ -412,7 +413,8 @@ def fit_homoscedastic(
 
 
 def nll(model: NoiseModel, inputs: np.ndarray, errors: np.ndarray) -> float:
-    """Mean negative log-likelihood of errors ``[M, 2]`` (metres) at raw salient inputs ``[M, 11]``, nats per obstacle."""
+    """Mean negative log-likelihood of errors ``[M, 2]`` (metres) at raw salient inputs ``[M, 11]``, nats per
+    obstacle."""
     return float(-np.mean(model.log_prob(model.features(inputs), errors)))
 
 

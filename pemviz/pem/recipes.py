@@ -134,7 +134,8 @@ PEM_RECIPES: dict[str, PemRecipe | TreeRecipe] = {
 
 @dataclass(frozen=True)
 class NoiseRecipe:
-    """A heteroscedastic noise PEM: the family, architecture and optimiser settings passed to :func:`train_noise_pem`."""
+    """A heteroscedastic noise PEM: the family, architecture and optimiser settings passed to
+    :func:`train_noise_pem`."""
 
     name: str
     description: str

@@ -369,7 +369,8 @@ for _scenario in (
     Scenario("braking", "automated braking behind a lead car, the PEM as the camera's detector; failure: the gap "
              "drops below the crash gap", "pemviz.scenarios.braking:BrakingParams",
              "pemviz.scenarios.builtin:run_problem", exact=True,
-             simulator="pemviz.scenarios.braking:BrakingScenario", drawing="pemviz.scenarios.braking.drawing:BrakingDrawing"),
+             simulator="pemviz.scenarios.braking:BrakingScenario",
+             drawing="pemviz.scenarios.braking.drawing:BrakingDrawing"),
     Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in:CutInParams",
              "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
              drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
@@ -383,8 +384,8 @@ for _scenario in (
              "closer than the safe distance to the nearest (closed-form answer)", "pemviz.scenarios.crowd:CrowdParams",
              "pemviz.scenarios.builtin:crowd", exact=True),
     Scenario("crossing", "an emergency brake on tracked pedestrians stepping onto a crossing, the shipped PEMs as the "
-             "camera's detector and mislocation; failure: a collision", "pemviz.scenarios.crossing.scene:CrossingParams",
-             "pemviz.scenarios.crossing.problem:crossing"),
+             "camera's detector and mislocation; failure: a collision",
+             "pemviz.scenarios.crossing.scene:CrossingParams", "pemviz.scenarios.crossing.problem:crossing"),
 ):  # fmt: skip
     register(_scenario)
 del _scenario

@@ -87,10 +87,10 @@ class StageClock(Sink):
     seconds, default ``time.perf_counter``).
 
     Each stage of the run's plan (:class:`~pemviz.engine.events.RunStarted`) has a predicted time to simulate its
-    rollouts and to finish after them, its fit included (:func:`pemviz.engine.cost.plan_costs`; the problem's look-ahead,
-    :attr:`~pemviz.core.problem_view.ProblemView.look_ahead_s` a rollout, counts as simulating). As stages end the clock
-    measures both (from the stage's start to its :class:`~pemviz.engine.events.RolloutsSampled`, over all of its
-    rollouts, a streamed stage's too; then to its :class:`~pemviz.engine.events.StageFinished`) and scales the
+    rollouts and to finish after them, its fit included (:func:`pemviz.engine.cost.plan_costs`; the problem's
+    look-ahead, :attr:`~pemviz.core.problem_view.ProblemView.look_ahead_s` a rollout, counts as simulating). As stages
+    end the clock measures both (from the stage's start to its :class:`~pemviz.engine.events.RolloutsSampled`, over all
+    of its rollouts, a streamed stage's too; then to its :class:`~pemviz.engine.events.StageFinished`) and scales the
     predictions of what is left by measured / predicted so far, separately for the two parts: simulating over every
     stage (the machine's speed), what follows per kind of stage (a pretraining fit says little of a CE stage's, which
     grows with the pool of failures), a kind not yet measured by the simulating scale.

@@ -46,7 +46,8 @@ def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: flo
 
 def stage_row(res: StageResult) -> str:
     """One table row: stage, kind, gamma_kappa, the estimate's cells (:func:`estimate_cells`), wall time (s)."""
-    return f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {estimate_cells(res.estimate)} {res.wall_s:>7.2f}"
+    return (f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {estimate_cells(res.estimate)} "
+            f"{res.wall_s:>7.2f}")
 
 
 MC_AFFORDABLE = 10**8

@@ -71,9 +71,9 @@ def locate(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]) -> lis
     rows_of: dict[int, dict[int, int]] = {}
     for stage, event in sampled.items():
         index = np.arange(event.batch.n) if event.index is None else np.asarray(event.index)
-        rows_of[stage] = dict(zip(index.tolist(), range(index.size)))
+        rows_of[stage] = dict(zip(index.tolist(), range(index.size), strict=False))
     found: list[tuple[RolloutsSampled, int] | None] = []
-    for stage, index in zip(shares.stage.tolist(), shares.index.tolist()):
+    for stage, index in zip(shares.stage.tolist(), shares.index.tolist(), strict=False):
         row = rows_of.get(stage, {}).get(index)
         found.append((sampled[stage], row) if row is not None else None)
     return found
@@ -140,7 +140,7 @@ def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]
         rows = [found[r][0].batch.detected[found[r][1], :, 0] for r in kept]
         detected = np.stack(rows) if rows else np.zeros((0, 0), dtype=bool)
         basis, found_keys, found_labels = drawing.failure_keys(detected)
-        for rank, k in zip(kept, found_keys):
+        for rank, k in zip(kept, found_keys, strict=False):
             keys[rank] = k
         labels.update({k: v for k, v in found_labels.items() if k in set(keys)})
     elif problem is not None:
@@ -292,7 +292,7 @@ def severity_document(sev: FailureSeverity) -> dict:
         "n": sev.n_failures, "n_kept": sev.n, "covered": sev.covered,
         "median_min_distance": sev.median_min_distance() if sev.n else None, "text": sev.line(),
         "bins": [{"label": label, "lo": lo, "hi": hi, "count": int(c), "share": float(x)}
-                 for label, (lo, hi), c, x in zip(sev.labels(), bounds, counts, shares)],
+                 for label, (lo, hi), c, x in zip(sev.labels(), bounds, counts, shares, strict=False)],
     }  # fmt: skip
 
 

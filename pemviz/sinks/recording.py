@@ -69,15 +69,13 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
   :class:`rerun.BarChart`, with the bins' words, counts, shares and the share-weighted median min distance
   (:class:`pemviz.core.severity.FailureSeverity`).
 
-Size: per stage the recording holds summaries, two histograms, the marginal proposal's bars, at most
-500 rollouts' traces in one entity per signal and a few featured rollouts, so a run of 10^5
-rollouts a stage stays a few MB.
+Size: per stage the recording holds summaries, two histograms, the marginal proposal's bars, at most 500 rollouts'
+traces in one entity per signal and a few featured rollouts, so a run of 10^5 rollouts a stage stays a few MB.
 
 Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed, scenario and its
-parameters (``scenario_params``: ``name=value, ...`` as the run set them; ``""``: the scenario's defaults).
-The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM) under a unique temporary name and
-moved to ``PATH``, so a recording is never half-written, keeps every finished stage, and a kill leaves an
-existing ``PATH`` as it was.
+parameters (``scenario_params``: ``name=value, ...`` as the run set them; ``""``: the scenario's defaults). The file is
+written when the sink is closed (after the run, Ctrl-C or SIGTERM) under a unique temporary name and moved to ``PATH``,
+so a recording is never half-written, keeps every finished stage, and a kill leaves an existing ``PATH`` as it was.
 """
 
 from __future__ import annotations
@@ -426,7 +424,8 @@ class RerunSink(Sink):
             s.set_time("repetition", sequence=self.repetition)
         if not np.all(np.isnan(res.proposal_curve)):
             strip = [np.column_stack([self.grid_m, res.proposal_curve])]
-            s.log(f"proposal/data/stage_{res.stage:02d}", rr.LineStrips2D(strip, colors=colour, radii=-1.5), static=True)
+            s.log(f"proposal/data/stage_{res.stage:02d}", rr.LineStrips2D(strip, colors=colour, radii=-1.5),
+                  static=True)
             s.log("proposal/data/current", rr.LineStrips2D(strip, colors=colour, radii=-4.0,
                                                            labels=[self.plan.label(res.stage, res.kind)]))
             self.curve_stages.append(res.stage)
@@ -587,7 +586,8 @@ class RerunSink(Sink):
         if ev.severity is not None and len(ev.severity.points) > 1:
             self.status_md += "\n\n" + ev.severity.markdown()
             levels = [pt.level if pt.level is not None else math.nan for pt in ev.severity.points]
-            s.log("final/severity", rr.AnyValues(level=levels, log_p=[pt.estimate.log_mu_hat for pt in ev.severity.points],
+            s.log("final/severity", rr.AnyValues(level=levels,
+                                                 log_p=[pt.estimate.log_mu_hat for pt in ev.severity.points],
                                                  verdict=[pt.estimate.verdict for pt in ev.severity.points]),
                   static=True)  # fmt: skip
         if ev.pem_spread is not None:

@@ -247,7 +247,8 @@ def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list
     inputs = [(i["what"], i["path"], i["sha256"]) for i in doc.get("inputs") or []]
     settings = sorted((k, json.dumps(v)) for k, v in (doc.get("settings") or {}).items())
     prov = [("pemviz version", doc.get("pemviz_version", "-")), ("command", doc.get("command") or "-"),
-            ("recording", doc.get("recording") or "-"), ("sha256 of the result document", document_sha256(doc))]  # fmt: skip
+            ("recording", doc.get("recording") or "-"),
+            ("sha256 of the result document", document_sha256(doc))]  # fmt: skip
     sections = [("Estimate", "", ("quantity", "value"), _estimate_rows(doc)),
                 (RESTS_ON, "p is conditional on what follows: a safety case that cites p cites it with these.",
                  ("item", "value"), _rests_on(doc))]  # fmt: skip
@@ -310,7 +311,8 @@ def report_html(doc: dict[str, Any]) -> str:
     e = doc["estimate"]
     colour = VERDICT_COLOURS.get(e["verdict"], MUTED)
     body = [f"<h1>{html.escape(_title(doc))}</h1>",
-            f'<p class="headline" style="border-left:6px solid {colour}">{html.escape(_headline(doc))}</p>']  # fmt: skip
+            f'<p class="headline" style="border-left:6px solid {colour}">'
+            f'{html.escape(_headline(doc))}</p>']  # fmt: skip
     for title, intro, header, rows in _sections(doc):
         body.append(f"<h2>{html.escape(title)}</h2>")
         if intro:

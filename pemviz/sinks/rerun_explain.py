@@ -252,6 +252,6 @@ def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch,
     stream.send_columns(f"{E}/objects/measured", indexes=steps, columns=rr.Points2D.columns(
         positions=measured, colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (lengths.sum(), 1)),
         radii=np.full(lengths.sum(), 0.4)).partition(lengths))  # fmt: skip
-    strips = [[a, c] for a, c in zip(truth, measured)]
+    strips = [[a, c] for a, c in zip(truth, measured, strict=False)]
     stream.send_columns(f"{E}/objects/error", indexes=steps, columns=rr.LineStrips2D.columns(
         strips=strips, colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (len(strips), 1))).partition(lengths))

@@ -123,7 +123,7 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
     told = {i: outcome_values(view.drawing, batch, i) for i in keep.tolist()}
     words = [str(v["outcome"]) if v is not None else "failure" if failed[i] else "safe" for i, v in told.items()]
     colours, widths, names = [], [], []
-    for i, said in zip(keep.tolist(), words):
+    for i, said in zip(keep.tolist(), words, strict=False):
         tag = rank.get(i)
         what = f": {said}" if failed[i] else ""
         if tag is None:
@@ -158,7 +158,7 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
         static=True,
     )  # fmt: skip
     roles = featured(ev, n_tagged, n_likely)
-    said = dict(zip(keep.tolist(), words))
+    said = dict(zip(keep.tolist(), words, strict=False))
     rows = np.array(sorted(roles), dtype=np.int64)
     labels = []
     for i in rows.tolist():

@@ -16,12 +16,12 @@ its error adds nothing.
 :class:`pemviz.pem.perception.SalientDetector`, which every sampler of pemviz takes as a problem's target: the
 importance samplers replace its detection logits and shift its error model inside the problem's window, and weigh
 both; :func:`pemviz.core.detectors.draw_step`). :func:`pemviz.core.event_probs.event_log_probs` gives what a step's
-events cost under it, kept apart: the log-probability of the detections and misses (nats, <= 0) and the log-density of the detected
-objects' errors (nats, the errors in metres: a density, so it can be positive; Cover & Thomas 2006, *Elements of
-Information Theory*, Sec. 8.1). Their sum is the step's ``log p`` of the rollouts (:attr:`pemviz.core.rollouts.
-RolloutBatch.log_p`); :func:`pemviz.core.event_probs.batch_log_probs` splits a whole batch's. :func:`perceive` draws a step's events from
-the PEMs themselves, for a scene tried by hand outside a sampler; :func:`ahead_rows` gives a problem the rows where
-the PEM's detection curve is drawn.
+events cost under it, kept apart: the log-probability of the detections and misses (nats, <= 0) and the log-density
+of the detected objects' errors (nats, the errors in metres: a density, so it can be positive; Cover & Thomas 2006,
+*Elements of Information Theory*, Sec. 8.1). Their sum is the step's ``log p`` of the rollouts
+(:attr:`pemviz.core.rollouts.RolloutBatch.log_p`); :func:`pemviz.core.event_probs.batch_log_probs` splits a whole
+batch's. :func:`perceive` draws a step's events from the PEMs themselves, for a scene tried by hand outside a
+sampler; :func:`ahead_rows` gives a problem the rows where the PEM's detection curve is drawn.
 """
 
 from __future__ import annotations

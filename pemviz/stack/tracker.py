@@ -138,9 +138,9 @@ class Tracks:
     @classmethod
     def empty(cls, shape: tuple[int, ...]) -> "Tracks":
         """No track yet (the float fields are 0), arrays of ``shape``."""
-        z = [np.zeros(shape) for _ in range(10)]
-        return cls(*z, active=np.zeros(shape, dtype=bool), confirmed=np.zeros(shape, dtype=bool),
-                   coast=np.zeros(shape, dtype=np.int64))  # fmt: skip
+        x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy = (np.zeros(shape) for _ in range(10))
+        return cls(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active=np.zeros(shape, dtype=bool),
+                   confirmed=np.zeros(shape, dtype=bool), coast=np.zeros(shape, dtype=np.int64))  # fmt: skip
 
     def copy(self) -> "Tracks":
         return Tracks(*(getattr(self, f.name).copy() for f in fields(self)))

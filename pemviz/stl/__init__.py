@@ -66,7 +66,8 @@ BRAKING_SIGNAL_RANGES = {"d": (0.0, 15.0)}
 
 
 def braking_spec(n_steps: int = 100, crash_gap_m: float = 2.0) -> Formula:
-    """The safety spec ``G[0,n_steps-1](d >= crash_gap_m)`` (Innes & Ramamoorthy (2022)): the gap never drops below 2 m."""
+    """The safety spec ``G[0,n_steps-1](d >= crash_gap_m)`` (Innes & Ramamoorthy (2022)): the gap never drops below
+    2 m."""
     return Always(Predicate(Signal("d"), ">=", Const(crash_gap_m)), 0, int(n_steps) - 1)
 
 

@@ -195,12 +195,11 @@ class _Job:
             formula = parse(formula)
         if not isinstance(formula, Formula):
             raise TypeError(f"formula must be an STL Formula or its text, got {type(formula).__name__}")
-        named = not isinstance(semantics, Semantics)
-        if named and semantics not in SEMANTICS:
+        if not isinstance(semantics, Semantics) and semantics not in SEMANTICS:
             semantics_from_name(semantics)  # raises: unknown name, with the allowed ones
         if trace_end not in TRACE_END:
             raise ValueError(f"unknown trace_end {trace_end!r}; allowed: " + ", ".join(repr(s) for s in TRACE_END))
-        if named:
+        if not isinstance(semantics, Semantics):  # a name
             semantics = semantics_from_name(semantics, temperature=temperature, signal_ranges=signal_ranges)
         elif signal_ranges is not None or temperature != DEFAULT_TEMPERATURE:
             raise ValueError(f"got the semantics object {semantics!r} and temperature / signal_ranges as well: "
@@ -215,7 +214,8 @@ class _Job:
         missing = [n for n in positions if n not in signals]
         if missing:
             name = missing[0]
-            where = "" if positions[name] is None else f" at column {positions[name] + 1}"
+            pos = positions[name]
+            where = "" if pos is None else f" at column {pos + 1}"
             raise ValueError(f"the formula reads signal {name!r}{where} but signals has only "
                              f"{sorted(signals)}; names are case-sensitive")
         names = sorted(positions)

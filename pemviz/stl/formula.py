@@ -161,7 +161,7 @@ class Predicate(Formula):
     op: str
     rhs: Expr
     pos: int | None = field(default=None, compare=False, repr=False)
-    coefficients: dict = field(default=None, init=False, compare=False, repr=False)  # type: ignore[assignment]
+    coefficients: dict[str, float] = field(init=False, compare=False, repr=False)  # set by __post_init__
     offset: float = field(default=0.0, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:

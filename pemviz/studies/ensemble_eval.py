@@ -43,7 +43,8 @@ def _member_fold(job: tuple) -> tuple[int, int, float, float]:
 
 
 def evaluate_ensemble(inputs: np.ndarray, labels: np.ndarray, members: int, config: EvalConfig | None = None, *,
-                      jobs: int = 1, on_fit: Callable[[int, int, float, float], None] | None = None) -> EnsembleEvaluation:  # fmt: skip
+                      jobs: int = 1, on_fit: Callable[[int, int, float, float], None] | None = None
+                      ) -> EnsembleEvaluation:  # fmt: skip
     """Cross-validate ``members`` bootstrap members of the ML-NN recipe (its shipped seed) on ``config``'s folds, with
     ``jobs`` worker processes; ``on_fit(member, fold, bce, auc)`` after each fit.
 

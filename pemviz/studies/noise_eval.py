@@ -149,8 +149,8 @@ class NoiseEvalResult:
         return min(self.models, key=lambda m: m.mean("nll")).name
 
 
-def score_noise(model: NoiseModel, features: np.ndarray, errors: np.ndarray) -> tuple[float, np.ndarray, np.ndarray,
-                                                                                        np.ndarray, np.ndarray]:  # fmt: skip
+def score_noise(model: NoiseModel, features: np.ndarray,
+                errors: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """``(NLL nats per obstacle, NLL per dimension [2], coverage [levels, 2], ICE [2], PIT [M, 2])`` of errors
     ``[M, 2]`` (metres) under a noise model at encoded features ``[M, 14]``."""
     log_p = model.log_prob_dims(features, errors)
@@ -289,5 +289,6 @@ def summary_lines(result: NoiseEvalResult) -> Sequence[str]:
     for m in result.models:
         cov, ice = m.mean("coverage"), m.mean("ice")
         out.append(f"{m.name:14s} NLL {m.mean('nll'):.4f}  coverage 50 % {cov[i50, 0]:.3f}/{cov[i50, 1]:.3f}  "
-                   f"95 % {cov[i95, 0]:.3f}/{cov[i95, 1]:.3f}  ICE {ice[0]:.4f}/{ice[1]:.4f}  (range/lateral)")  # fmt: skip
+                   f"95 % {cov[i95, 0]:.3f}/{cov[i95, 1]:.3f}  ICE {ice[0]:.4f}/{ice[1]:.4f}  "
+                   "(range/lateral)")  # fmt: skip
     return out

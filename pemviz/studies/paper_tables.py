@@ -126,8 +126,8 @@ def row_specs(base: dict[str, Any], extra: Sequence[str], mc_large: int, naive_l
 
 
 def table_jobs(problem: str, specs: Sequence[RowSpec], reps: int, pem_path: str | None = None) -> list[Job]:
-    """R repetitions (seeds 0..reps-1) of every row as jobs (:class:`~pemviz.studies.validation.Job`) that keep their proposal
-    curves, the slow (adaptive) rows first so that parallel workers finish together."""
+    """R repetitions (seeds 0..reps-1) of every row as jobs (:class:`~pemviz.studies.validation.Job`) that keep their
+    proposal curves, the slow (adaptive) rows first so that parallel workers finish together."""
     jobs = [Job(problem, s.label, s.fields, seed, keep_curves=True, pem_path=pem_path)
             for s in specs for seed in range(reps)]  # fmt: skip
     return sorted(jobs, key=lambda j: dict(j.fields).get("method", "adaptive") != "adaptive")
@@ -153,7 +153,8 @@ def report(problem: str, reps: int, base: dict[str, Any], truth: ExactAnswer, ro
         f"{reps} repetitions per row (seeds 0..{reps - 1}); mu_hat is the mean over repetitions +- the "
         f"standard error std/sqrt({reps}); failures and ESS are means over repetitions; NLL is over failing "
         f"rollouts (nats), averaged over repetitions. Adaptive: K = {cfg.n_stages}, N = {cfg.n_per_stage}, "
-        f"N_e = {cfg.n_final}, sigma = {cfg.quantile_level}, alpha = {cfg.smoothing}, {cfg.ce_epochs} epochs per stage.",
+        f"N_e = {cfg.n_final}, sigma = {cfg.quantile_level}, alpha = {cfg.smoothing}, {cfg.ce_epochs} epochs per "
+        "stage.",
         f"Exact p_fail {format_probability(truth.log_p_fail, 5)}: {truth.source}.",
         "",
         "## Table II: methods (metric: classic)",
@@ -249,6 +250,7 @@ def tables_rows(specs: Sequence[RowSpec], records: dict[str, list[RunRecord]], l
     table3 = []
     for suffix in ("", *(f" ({name})" for name in extra)):
         classic = next(r for r in rows if r.table == "II" and r.label == f"{adaptive}{suffix}")
-        table3.append(Row("III", f"r_classic{suffix}", *[getattr(classic, f) for f in list(Row.__dataclass_fields__)[2:]]))
+        table3.append(Row("III", f"r_classic{suffix}",
+                          *[getattr(classic, f) for f in list(Row.__dataclass_fields__)[2:]]))
         table3 += [r for r in rows if r.table == "III" and r.label.endswith(suffix) and (suffix or "(" not in r.label)]
     return [r for r in rows if r.table == "II"] + table3

@@ -1,10 +1,10 @@
 """PEM quality: 5-fold cross-validation of the PEM models (paper Table I) with calibration.
 
-Protocol (Innes & Ramamoorthy (2022), Table I; the authors' ``eval_kfold_class_models.py``): ``StratifiedKFold(n_splits=5)``
-on the detected label, folds in file order (no shuffle); every model is trained on 4 folds and scored on
-the fifth; the 14-dim encoding uses the z-score statistics of the full file. Per fold: BCE (nats), ROC-AUC,
-average precision (AP) and expected calibration error (ECE, 15 equal-width bins); the table reports the
-mean over folds beside the paper's numbers.
+Protocol (Innes & Ramamoorthy (2022), Table I; the authors' ``eval_kfold_class_models.py``):
+``StratifiedKFold(n_splits=5)`` on the detected label, folds in file order (no shuffle); every model is trained on 4
+folds and scored on the fifth; the 14-dim encoding uses the z-score statistics of the full file. Per fold: BCE (nats),
+ROC-AUC, average precision (AP) and expected calibration error (ECE, 15 equal-width bins); the table reports the mean
+over folds beside the paper's numbers.
 
 Models:
 
@@ -495,7 +495,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
                 radii=-(2.0 + 10.0 * np.sqrt(share)),
                 labels=[
                     f"{m.name}: {int(c)} rows, p {p:.3f}, rate {r:.3f}"
-                    for c, p, r in zip(count[ok], mean_p[ok], rate[ok])
+                    for c, p, r in zip(count[ok], mean_p[ok], rate[ok], strict=False)
                 ],
                 show_labels=False,
             ),
@@ -527,7 +527,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
         pad = 0.08 * (v_hi - v_lo) if v_hi > v_lo else 0.01
         x_range = (fold_ids[0] - 0.3, fold_ids[-1] + 0.3)
         fig.draw_axes(stream, x_range, (v_lo - pad, v_hi + pad), x_ticks=fold_ids)
-        for m, v in zip(result.models, values):
+        for m, v in zip(result.models, values, strict=False):
             pts = np.column_stack([fold_ids, v])
             stream.log(
                 f"{fig.path}/data/{m.name}", rr.LineStrips2D([pts], colors=colour(m.name), radii=-1.0), static=True

@@ -327,7 +327,7 @@ def run_jobs(
         else:
             ctx = mp.get_context("spawn")  # torch and fork do not mix
             with ctx.Pool(min(n_jobs, len(todo))) as pool:
-                for job, rec in zip(todo, pool.imap(run_job, todo)):
+                for job, rec in zip(todo, pool.imap(run_job, todo), strict=False):
                     finished(job, rec)
     finally:
         bar.close()

@@ -114,7 +114,7 @@ def test_restoring_a_snapshot_continues_the_rollouts_bit_for_bit(make):
     sim = make()
     batched = isinstance(sim, BatchedCutIn)
     detected, noise = random_inputs(P, 3, seed=2)
-    per_step = zip(detected.transpose(1, 0, 2), noise.transpose(1, 0, 2, 3))
+    per_step = zip(detected.transpose(1, 0, 2), noise.transpose(1, 0, 2, 3), strict=False)
     inputs = [(d, e) if batched else (d[0], e[0]) for d, e in per_step]
 
     def run(from_step: int, to_step: int) -> list[np.ndarray]:
@@ -131,7 +131,7 @@ def test_restoring_a_snapshot_continues_the_rollouts_bit_for_bit(make):
     sim.restore(state)
     again = run(20, 40)
     sim.restore(state)
-    assert [np.array_equal(a, b) for a, b in zip(first, again)] == [True] * 20
+    assert [np.array_equal(a, b) for a, b in zip(first, again, strict=False)] == [True] * 20
     assert sim.t == 20
 
 

@@ -117,7 +117,8 @@ def test_each_tab_shows_only_entities_of_its_timeline():
         sink.close()  # an interrupted run: the most likely failure is explained at close
         by_tab = tabs(stream.blueprint)
         assert list(by_tab) == ["Stages (any timeline; on stage, scrub its bars)",
-                                "Explain: the most likely failure (timeline: step)", "Rollouts (timeline: step)"]  # fmt: skip
+                                "Explain: the most likely failure (timeline: step)",
+                                "Rollouts (timeline: step)"]  # fmt: skip
         stages, explain, rollouts = by_tab.values()
         assert origins(stages) == {"proposal_marginal", "proposal", "stage_figures", "histograms"}
         assert origins(explain) == {"explain"}

@@ -122,7 +122,8 @@ class BatchedBraking:
             ValueError: a snapshot of another number of rollouts.
         """
         if state["ego_x_m"].shape != (self.n,):
-            raise ValueError(f"BatchedBraking.restore: a snapshot of {state['ego_x_m'].size} rollouts, this has {self.n}")
+            raise ValueError(f"BatchedBraking.restore: a snapshot of {state['ego_x_m'].size} rollouts, "
+                             f"this has {self.n}")
         c = state["ctrl"]
         self.ego_x_m, self.ego_speed_mps = state["ego_x_m"].copy(), state["ego_speed_mps"].copy()
         self.lead_x_m, self.lead_speed_mps, self.t = state["lead_x_m"], state["lead_speed_mps"], state["t"]

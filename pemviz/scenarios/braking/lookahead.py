@@ -67,7 +67,7 @@ def _replay_states(p: BrakingParams, detected: np.ndarray, upto: np.ndarray) -> 
     for t in range(last):
         g, v, integ, pend = braking_step(p, float(vlead[t]), g, v, integ, pend, detected[:, t])
         at = upto == t + 1
-        for o, x in zip(out, (g, v, integ, pend)):
+        for o, x in zip(out, (g, v, integ, pend), strict=False):
             o[at] = x[at]
     return tuple(out)
 

@@ -160,8 +160,8 @@ scene stops the ego) breaks the order the table rests on: a state just above 0.7
 one further back or slower that arrives faster, so rounding to a smaller gap or a larger speed can raise the bound.
 At 0.5 m and 0 m the failures of targeted runs (``pemviz run --margin 0.5``) need fewer misses than it says (85 and
 466 of the rollout-steps of seed 0's final failures), and so do 25 and 23 of 2,000 random states 8 steps before
-the end against all 256 detection sequences (201-node grid; ``tests/test_truth_cells.py``); at 1 m, 1.5 m and 2 m none of 2,542
-failures violates it (``tests/test_severity.py`` checks 1 m)."""
+the end against all 256 detection sequences (201-node grid; ``tests/test_truth_cells.py``); at 1 m, 1.5 m and 2 m
+none of 2,542 failures violates it (``tests/test_severity.py`` checks 1 m)."""
 
 
 def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) -> MissBound:
@@ -389,7 +389,7 @@ class Refinement:
     def rel_changes(self) -> list[float]:
         """|lower_k - lower_{k-1}| / lower_k (nan for the first)."""
         out = [math.nan]
-        for a, b in zip(self.results, self.results[1:]):
+        for a, b in zip(self.results, self.results[1:], strict=False):
             out.append(abs(math.exp(b.log_p_fail - a.log_p_fail) - 1.0) if b.log_p_fail > -math.inf else math.nan)
         return out
 
@@ -400,7 +400,7 @@ class Refinement:
             "| upper bound | width | change | wall s |",
             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
-        for r, ch in zip(self.results, self.rel_changes()):
+        for r, ch in zip(self.results, self.rel_changes(), strict=False):
             rows.append(
                 f"| {r.log_prune:g} | {r.max_paths:,} | {r.n_crash_paths:,} | {format_probability(r.log_p_fail, 4)} "
                 f"| {format_probability(r.log_pruned_bound, 2)} | {format_probability(r.log_p_fail_upper, 4)} "

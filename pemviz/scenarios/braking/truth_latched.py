@@ -106,10 +106,10 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
         terms.append(log_prefix[-1])
     log_p = float(logsumexp(terms)) if terms else -math.inf
     # the window: effective steps whose first detection avoids the crash
-    safe = [t for t, cr in zip(eff, crash_after) if not cr]
+    safe = [t for t, cr in zip(eff, crash_after, strict=False) if not cr]
     first, last = (safe[0], safe[-1]) if safe else (-1, -1)
     window_exact = c is not None and bool(safe) and all(
-        (not cr) == (first <= t <= last) for t, cr in zip(eff, crash_after)
+        (not cr) == (first <= t <= last) for t, cr in zip(eff, crash_after, strict=False)
     ) and first == eff[0]
     return LatchedTruth(float(log_p), first, last, bool(window_exact), c)
 
@@ -183,7 +183,7 @@ def latched_value(logit_at_gap: LogitFn, params: BrakingParams | None = None) ->
     log_v = np.zeros(T + 1)  # V before the action of step t; V = 1 from the crash step on
     end = c if c is not None else T - 1
     log_v[end:] = 0.0 if c is not None else -math.inf
-    crash_after = dict(zip(path.effective, path.crash_after))
+    crash_after = dict(zip(path.effective, path.crash_after, strict=False))
     log_v_detect = np.empty(T)
     for t in range(T - 1, -1, -1):
         if t >= end or t not in crash_after:

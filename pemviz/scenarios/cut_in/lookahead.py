@@ -367,7 +367,7 @@ class CutInLookAhead:
         if self.effect_model_on:
             from sklearn.ensemble import ExtraTreesRegressor
 
-            x, y = (np.concatenate(a) for a in zip(*effect_rows))
+            x, y = (np.concatenate(a) for a in zip(*effect_rows, strict=False))
             self.effect_model = ExtraTreesRegressor(n_estimators=100, min_samples_leaf=1, random_state=0).fit(x, y)
         return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, counts, width)
 

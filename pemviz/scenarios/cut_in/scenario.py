@@ -73,9 +73,9 @@ OBSERVATION_NAMES: tuple[str, ...] = (
 - ``ego_x_m``: the ego's position along the road (centre)."""
 
 SALIENT_NAMES: tuple[str, ...] = tuple(INPUT_COLUMNS)
-"""The 11 KITTI salient variables of an object, in the PEMs' raw-input order (:data:`pemviz.pem.encoding.INPUT_COLUMNS`).
-The three dimension columns hold KITTI's (height, width, length), the order of the KITTI labels and of the salient
-files' values (their header calls them dim_w, dim_l, dim_h)."""
+"""The 11 KITTI salient variables of an object, in the PEMs' raw-input order
+(:data:`pemviz.pem.encoding.INPUT_COLUMNS`). The three dimension columns hold KITTI's (height, width, length), the order
+of the KITTI labels and of the salient files' values (their header calls them dim_w, dim_l, dim_h)."""
 SALIENT_COLUMNS = slice(1, 1 + len(SALIENT_NAMES))
 """Where the salient variables sit in an object row: ``rows[..., SALIENT_COLUMNS]`` are a PEM's raw inputs."""
 

@@ -1,4 +1,5 @@
-"""The toy 1-D braking model of the authors' code (``adaptiveImportanceSampler.py``), as a scenario with an exact answer.
+"""The toy 1-D braking model of the authors' code (``adaptiveImportanceSampler.py``), as a scenario with an exact
+answer.
 
 A car starts ``total`` units from an obstacle and moves 1 unit per step. Each step a detector fires
 with probability ``p(distance)``; a detection at distance <= ``braking`` stops the car for good. The
@@ -134,7 +135,8 @@ class ToyBraking:
         return np.array([float(self.distance), float(self.stopped)])
 
     def snapshot(self) -> tuple[int, bool]:
-        """The whole state, (distance, stopped) (the snapshot/restore capability of :class:`~pemviz.scenarios.Snapshotting`)."""
+        """The whole state, (distance, stopped) (the snapshot/restore capability of
+        :class:`~pemviz.scenarios.Snapshotting`)."""
         return (self.distance, self.stopped)
 
     def restore(self, state: tuple[int, bool]) -> None:

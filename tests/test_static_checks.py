@@ -1,0 +1,38 @@
+"""Static checks in the test command: ruff's lint (pycodestyle, pyflakes, bugbear; lines <= 120) over every Python
+folder, and mypy over the typed core (``pemviz/core``, ``stl``, ``stack``, ``engine``: the settings in
+``pyproject.toml``). Each check is first shown to fail on a file with a planted fault, so a check that cannot fail
+(a missing tool, a configuration that selects nothing) fails here."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+FOLDERS = ("pemviz", "tests", "benchmarks", "scripts", "research")
+
+
+def _tool(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, capture_output=True, text=True, timeout=600)
+
+
+def test_ruff_flags_a_planted_fault_and_passes_the_tree(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("import os\n\n\ndef f(xs=[]):\n    return xs\n")
+    planted = _tool("ruff", "check", "--config", str(REPO / "pyproject.toml"), str(bad))
+    assert planted.returncode == 1 and "F401" in planted.stdout and "B006" in planted.stdout, planted.stdout
+    tree = _tool("ruff", "check", *FOLDERS)
+    assert tree.returncode == 0, tree.stdout[-4000:]
+
+
+@pytest.mark.slow
+def test_mypy_flags_a_planted_fault_and_passes_the_core(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f(x: int) -> str:\n    return x\n")
+    planted = _tool("mypy", "--config-file", str(REPO / "pyproject.toml"), str(bad), cwd=tmp_path)
+    assert planted.returncode == 1 and "Incompatible return value type" in planted.stdout, planted.stdout
+    core = _tool("mypy")
+    assert core.returncode == 0, core.stdout[-4000:]
