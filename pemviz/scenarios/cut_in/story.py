@@ -272,7 +272,8 @@ def cut_in_story(observations: np.ndarray, observation_names: tuple[str, ...], r
         seen = f"The camera first detected it at {at(first_det)}"
         if span.size:
             until = "the ACC followed it" if stop == follow else ("the failure" if sev.failed else "the end")
-            seen += f"; of the {span.size} steps from its lane entry until {until}, it was missed at {misses}"
+            missed = "at none" if misses == 0 else f"at {misses}"
+            seen += f"; of the {span.size} steps from its lane entry until {until}, it was missed {missed}"
         s.append(seen + ".")
     if track is None:
         s.append("The tracker never confirmed a track of it.")
