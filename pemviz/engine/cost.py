@@ -84,21 +84,24 @@ class CostConstants:
 
 
 COST = CostConstants(
-    pem_step_s=8.68e-05,
-    proposal_step_s=0.000195,
-    rollout_step_s={"batched": 4.52e-07, "highway-env": 4.25e-05},
-    proposal_rollout_step_s=3.62e-07,
-    stage_s=0.0003,
-    epoch_s=8.3e-05,
-    row_epoch_s=4.37e-07,
-    row_s=9.75e-06,
+    pem_step_s=7.19e-05,
+    proposal_step_s=0.000148,
+    rollout_step_s={"batched": 3.53e-07, "highway-env": 3.59e-05},
+    proposal_rollout_step_s=2.03e-07,
+    stage_s=0.000617,
+    epoch_s=9.86e-05,
+    row_epoch_s=2.98e-07,
+    row_s=8.16e-06,
     pretrain_rows={"state": 12.2, "gap": 0.91},
     ce_rows={"state": 2.21e+03, "gap": 130},
     ce_rows_exponent=0.32,
     ce_rows_stages=3.4,
     early_stop_share=0.88,
     ams_rollouts=5,
-    measured="2026-11-25, benchmarks/calibrate_cost.py --fit --repeat 2 (wall seconds), 2 cores, load average 0.8",
+    tilt_rollouts=1.6,
+    tilt_solve_s=2.8,
+    measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
+    "tilt_rollouts and tilt_solve_s from the cut-in's default run in a fresh process (6.3 s, its solve 2.8 s)",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
