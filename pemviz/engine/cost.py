@@ -101,7 +101,7 @@ COST = CostConstants(
     tilt_rollouts=1.6,
     tilt_solve_s=2.8,
     measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
-    "tilt_rollouts and tilt_solve_s from the cut-in's default run in a fresh process (6.3 s, its solve 2.8 s)",
+    "tilt_rollouts and tilt_solve_s from a default tilt run in a fresh process (6.3 s, its solve 2.8 s)",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
