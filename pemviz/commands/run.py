@@ -540,7 +540,7 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
         where = recorder.close() if recorder is not None else None
         done = f"{len(experiment.stages)} stage(s) finished"
         said = [f"recording {where} (marked interrupted)"] if where else []
-        said += [unwritten(rollout_sink, result_files)] if unwritten(rollout_sink, result_files) else []
+        said += [lost] if (lost := unwritten(rollout_sink, result_files)) else []
         raise interrupted(exc, "; ".join([done, *(said or ["nothing written"])])) from None
     except BaseException:
         if recorder is not None:
