@@ -171,8 +171,7 @@ def _run_with_files(config: Any, problem: Any, folder: Path, stem: str) -> _Run:
     from pemviz.sinks.rollouts import RolloutSink
 
     rollout_sink = RolloutSink(folder / f"{stem}.parquet", overwrite=True)
-    known_step = problem.dt_s is not None
-    rollout_sink.problem = problem if known_step else dataclasses.replace(problem, dt_s=1.0)
+    rollout_sink.problem = problem
     recorder = RerunSink.to_file(folder / f"{stem}.rrd", overwrite=True, problem=problem)
     rollouts, recording = _Guarded(rollout_sink), _Guarded(recorder)
     try:

@@ -105,13 +105,13 @@ rollout-equivalents, every twin step counted, the kinematic tail not; the refere
   a window ending at step 23 leaves four of them at log w +6, their decisive events after it): ``--chain-effects
   --beta 0.5 --n 7900`` 12,494 (+510), 5 s a run: median relative error 0.24, 19 of 20 within x2, 16 of 20 hold, no
   ``reliable``; ``--beam 0.25 --n 550`` 11,450-11,500 (+1,464), 1-5 s: 0.23, 18 of 20 within x2, 16 of 20 hold, 19
-  ``unreliable`` (docs/cut-in.md has every estimate and the routes tried);
+  ``unreliable`` (research/cut-in-notes.md has every estimate and the routes tried);
 - the effect model (``--window 10 32 --end 40 --grid lean --chain-effects --beam 0.25 --effect-model --beta 0.7
   --n 7280``; 11,530 a run + 1,464 for the chain, 12,994 in all; 6-7 s a run): seeds 0-19 median relative error
   0.18, 19 of 20 within x2, 16 of 20 intervals hold the reference; seeds 20-39: 0.18, 19 of 20, 17 of 20; no
   ``reliable`` verdict; over the 40, mean x0.95 (measured on an AVX-512 CPU before the noise PEM's scale and the
   tilt's logs came from :mod:`pemviz.core.exact`; this route is now ``pemviz run --scenario cut-in``, whose figures
-  on every CPU are in docs/cut-in.md, "The default: the tilted proposal");
+  on every CPU are in research/cut-in-notes.md, "The default: the tilted proposal");
 - ``--n 1000 1000 --mc-failures 600000``: 45 failures; under the proposal fitted on the first 1,000 rollouts, 18 of
   them have log w above -5 (a zero-variance proposal: -9.35 each): drawn at least 80 times too rarely. In them an
   error in the 1-20 % tails at steps 16-18 decides, from states that moderate errors at steps 10-16 brought close to

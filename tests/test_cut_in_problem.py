@@ -111,7 +111,7 @@ def test_a_cut_in_run_says_which_errors_decided_its_most_likely_failure():
     assert proc.returncode == 0, proc.stderr
     why = [line for line in proc.stdout.splitlines() if line.startswith("why: the most likely failure")]
     assert len(why) == 1 and "before the failure at step" in why[0]
-    assert "decisive alone: object 0" in why[0] or "none of them alone decides it" in why[0]
+    assert "decisive alone: car 0" in why[0] or "none of them alone decides it" in why[0]
 
 
 class PerCall:

@@ -121,7 +121,7 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
     cf = None
     if failed and problem is not None and getattr(problem, "branch", None) is not None:
         cf = counterfactuals(problem, batch, 0)
-    names = tuple(f"car {j}" for j in range(sc.detected.shape[1]))
+    names = tuple(view.object_label(j) for j in range(sc.detected.shape[1]))
     drawing = objects_panel(getattr(view, "drawing", None))
     scene = drawing.panel_scene() if drawing is not None else None
     dt_s = getattr(problem, "dt_s", None) or (drawing.dt_s if drawing is not None else DEFAULT_DT_S)

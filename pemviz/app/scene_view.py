@@ -21,6 +21,7 @@ from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.html import BLUE, GREY, RED, box
 from pemviz.app.drawing import LanePanel, LaneScene, ObjectsScene, lane_panel, panel_scene, scenario_drawing
 from pemviz.app.runs import PanelRun, Trajectory
+from pemviz.core.problem_view import object_label
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, MISSED, OBJECT
 
@@ -49,8 +50,11 @@ ZONE_COLOURS = {"window": BRAKE_ZONE, "margin": CRASH}
 """The colour of a zone of each :attr:`pemviz.app.drawing.Zone.role`."""
 ZONE_COLOUR_NAMES = {"window": "yellow", "margin": "red"}
 """The colours' names in the zones' label."""
-DEFAULT_OBJECTS = ObjectsScene(4.5, 1.8, 4.0, 3, "", 0)
-"""The scene of several objects of a problem whose drawing gives none: cars 4.5 m by 1.8 m on three 4 m lanes."""
+DEFAULT_OBJECTS = ObjectsScene(1.0, 1.0, 4.0, 0, "", 0)
+"""The scene of several objects of a problem whose drawing gives none: 1 m boxes on open ground (no road: the scene
+may be a crosswalk, a warehouse or a field)."""
+GROUND_M = (240.0, 120.0)
+"""The open ground's length (ahead) and width (metres) of a scene of no lanes."""
 OBJECTS_FRAME_M = (-10.0, 60.0)
 """The stretch of road the camera frames in the scene of several objects, from behind the ego to ahead (metres)."""
 
@@ -156,6 +160,28 @@ def add_lane_nodes(scene: viser.SceneApi, p: LaneScene) -> tuple[list, viser.Box
     return nodes, object_box, gap_ruler, gap_label
 
 
+def _plural(labels: list[str]) -> str:
+    """What a scene's objects are, in the plural, from their labels: ``cars`` for ``car 0``, ``car 1``; else
+    ``objects``."""
+    kinds = {label.split(" ")[0] for label in labels}
+    return f"{kinds.pop()}s" if len(kinds) == 1 and len(labels) > 0 and all(" " in x for x in labels) else "objects"
+
+
+def _floor_lines(n_lanes: int, lane_m: float) -> np.ndarray:
+    """The lines on the floor of a scene of several objects, float32 [L, 2, 3] (metres, x ahead, y to the left): a
+    road's dashed lane lines and edges for ``n_lanes`` lanes of ``lane_m``; open ground's 10 m grid for no lanes."""
+    if n_lanes == 0:
+        half = GROUND_M[1] / 2
+        along = [[[-60.0, y, 0.01], [180.0, y, 0.01]] for y in np.arange(-half, half + 1.0, 10.0)]
+        across = [[[x, -half, 0.01], [x, half, 0.01]] for x in np.arange(-60.0, 181.0, 10.0)]
+        return np.array(along + across, np.float32)
+    lanes = n_lanes * lane_m
+    lines_y = [(k - n_lanes / 2) * lane_m for k in range(1, n_lanes)]  # between the lanes
+    dashes = [[[x, y, 0.01], [x + 3.0, y, 0.01]] for y in lines_y for x in np.arange(-60.0, 180.0, 9.0)]
+    edges = [[[-60.0, y, 0.01], [180.0, y, 0.01]] for y in (-lanes / 2, lanes / 2)]
+    return np.array(dashes + edges, np.float32)
+
+
 class SceneView:
     """The 3D scene and its playback: owns the scene's nodes, the playback controls under *Rollouts* (step slider,
     Play, follow cars, the scene's caption), the rollout shown (:attr:`shown` of :attr:`shown_record`, its cars'
@@ -253,7 +279,7 @@ class SceneView:
         self._scene_kind(ox.detected.shape[1], scene if isinstance(scene, ObjectsScene) else DEFAULT_OBJECTS)
         self._frame_objects()
         self.scene_html.content = box(
-            f"Scene: {html.escape(record.short_label)} {traj.key}, every car seen from the ego (blue-grey): green "
+            f"Scene: {html.escape(record.short_label)} {traj.key}, every object seen from the ego (blue-grey): green "
             "detected, orange missed, grey unseen. Explain draws them from above with where each was measured.", GREY
         )
         decisive = ox.counterfactuals.decisive if ox.counterfactuals is not None else ()
@@ -343,25 +369,22 @@ class SceneView:
                                             layout.n_lanes)  # fmt: skip
         if road is not None and (road != self._objects_road or len(self._object_nodes) < 2 + 2 * (objects or 0)):
             lane_m = layout.lane_width_m
-            lanes = layout.n_lanes * lane_m
+            lanes = layout.n_lanes * lane_m if layout.n_lanes else GROUND_M[1]
             for node in self._object_nodes:
                 node.remove()
             self._object_nodes = [scene.add_box(
-                "/objects/road", color=C.ROAD, dimensions=(240.0, lanes + 1.0, 0.05), position=(60.0, 0.0, -0.03),
-                cast_shadow=False, visible=False)]  # fmt: skip
-            lines_y = [(k - layout.n_lanes / 2) * lane_m for k in range(1, layout.n_lanes)]  # between the lanes
-            dashes = np.array([[[x, y, 0.01], [x + 3.0, y, 0.01]] for y in lines_y
-                               for x in np.arange(-60.0, 180.0, 9.0)], np.float32)  # fmt: skip
-            edges = np.array([[[-60.0, y, 0.01], [180.0, y, 0.01]] for y in (-lanes / 2, lanes / 2)], np.float32)
+                "/objects/road", color=C.ROAD if layout.n_lanes else C.GROUND, dimensions=(GROUND_M[0], lanes + 1.0,
+                0.05), position=(60.0, 0.0, -0.03), cast_shadow=False, visible=False)]  # fmt: skip
             self._object_nodes.append(scene.add_line_segments(
-                "/objects/lanes", np.concatenate([dashes, edges]), colors=C.ROAD_MARKING, thickness=0.12,
+                "/objects/lanes", _floor_lines(layout.n_lanes, lane_m), colors=C.ROAD_MARKING, thickness=0.12,
                 visible=False))  # fmt: skip
             for j in range(objects or 0):
                 self._object_nodes.append(scene.add_box(
                     f"/objects/car{j}", color=IDLE, dimensions=(layout.car_length_m, layout.car_width_m, CAR_HEIGHT_M),
                     position=(0.0, 0.0, CAR_HEIGHT_M / 2), visible=False))  # fmt: skip
                 self._object_nodes.append(scene.add_label(
-                    f"/objects/car{j}/label", f"car {j}", position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2),
+                    f"/objects/car{j}/label", object_label(layout.object_labels, j),
+                    position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2),
                     anchor="bottom-center", font_screen_scale=LABEL_SCALE, visible=False))  # fmt: skip
             self._objects_road = road
         lane = objects == 0 and layout is None
@@ -403,7 +426,7 @@ class SceneView:
             det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
             colours.append(DETECTED if det else (MISSED if seen else IDLE))
             state = "detected" if det else ("missed" if seen else "unseen")
-            texts.append(f"car {j}: {state}" + (" (decisive)" if j in decisive else ""))
+            texts.append(f"{ox.names[j]}: {state}" + (" (decisive)" if j in decisive else ""))
         self._place_objects(xy, colours, texts, label)
 
     def _frame_objects(self) -> None:
@@ -477,11 +500,11 @@ class SceneView:
         if isinstance(scene, ObjectsScene):
             starts = scene.start_xy_m
             self._scene_kind(len(starts), scene)
-            self._place_objects(list(starts), [OBJECT] * len(starts), [f"car {j}" for j in range(len(starts))],
-                                "ego: no rollout chosen")  # fmt: skip
+            labels = [object_label(scene.object_labels, j) for j in range(len(starts))]
+            self._place_objects(list(starts), [OBJECT] * len(starts), labels, "ego: no rollout chosen")
             self._frame_objects()
-            caption = (f"No rollout chosen: the {name} scenario's {len(starts)} cars at their start, seen from the ego "
-                       "(grey).")  # fmt: skip
+            caption = (f"No rollout chosen: the {name} scenario's {len(starts)} {_plural(labels)} at their start, seen "
+                       "from the ego (grey).")  # fmt: skip
         elif isinstance(scene, LaneScene):
             self._idle_lane(scene)
             caption = f"No rollout chosen: the {name} scenario's cars at their start."

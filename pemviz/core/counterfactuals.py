@@ -22,6 +22,7 @@ import numpy as np
 
 from pemviz.core.detectors import SamplerView, ScoredTarget
 from pemviz.core.event_probs import batch_log_probs
+from pemviz.core.problem_view import object_label
 from pemviz.core.rollouts import RolloutBatch
 
 MISS = "miss"
@@ -62,10 +63,15 @@ class Counterfactuals:
         return tuple(i for i in self.interventions if i.decisive)
 
     def summary(self, object_names: tuple[str, ...] | None = None, dt_s: float | None = None) -> str:
-        """One line: which object's errors, at which steps, were decisive (or that none was alone)."""
+        """One line: which object's errors, at which steps, were decisive (or that none was alone).
+
+        Args:
+            object_names: what each object is called (:attr:`pemviz.core.problems.Problem.object_labels`); None or
+                empty: ``object m``.
+            dt_s: seconds per step, to give each step's time too (None: steps only)."""
 
         def who(i: Intervention) -> str:
-            name = object_names[i.obj] if object_names else f"object {i.obj}"
+            name = object_label(object_names, i.obj)
             when = f"step {i.step}" + (f" ({i.step * dt_s:.2f} s)" if dt_s else "")
             what = "missed" if i.kind == MISS else "mislocated by " + ", ".join(f"{e:+.2f} m" for e in i.error)
             return f"{name} {what} at {when}"

@@ -68,6 +68,7 @@ class ProblemView:
             own package; None: the problem has no scene of its own, and sinks draw only its signals.
         look_ahead_s: seconds per rollout that the problem's look-ahead adds to a stage, about
             (:attr:`pemviz.core.problems.Problem.look_ahead_s`): time estimates add it; 0: none.
+        object_labels: what each object m is called (:meth:`object_label`); empty: ``object m``.
     """
 
     name: str
@@ -79,11 +80,21 @@ class ProblemView:
     n_steps: int | None = None
     drawing: object | None = None
     look_ahead_s: float = 0.0
+    object_labels: tuple[str, ...] = ()
+
+    def object_label(self, m: int) -> str:
+        """What object ``m`` (0-based) is called: the problem's label for it, else ``object m``."""
+        return object_label(self.object_labels, m)
 
     @property
     def signal_names(self) -> tuple[str, ...]:
         """The STL signal names, e.g. ``("d", "v", "vl")``."""
         return tuple(s.name for s in self.signals)
+
+
+def object_label(labels: tuple[str, ...] | None, m: int) -> str:
+    """``labels[m]`` where the scene names its objects (:attr:`ProblemView.object_labels`), else ``object m``."""
+    return str(labels[m]) if labels and 0 <= m < len(labels) else f"object {m}"
 
 
 @dataclass(frozen=True)

@@ -105,8 +105,8 @@ class Problem:
         n_objects: the objects the detector sees each step (M; 1: one object a step), known before any rollout so
             that a sampler that fits one object a step is refused at once.
         curve_rows: the object rows at which the target's curve is drawn, ``curve_rows(grid [G]) -> [G, cols]`` with
-            ``grid`` in the first column (None: rows of zeros but for that column, enough for a detector that reads
-            the first observation column alone).
+            ``grid`` in the first column (None: the first object's row at the start of a rollout drawn by the target,
+            moved to each value of the grid: :meth:`target_curve`).
         severity: the signal and levels of the run's exceedance curve (:class:`pemviz.core.severity.SeverityScale`;
             None: no curve).
         severity_exact: level -> the exact log P(failure and min s < level) (nats), where known.
@@ -126,6 +126,8 @@ class Problem:
         look_ahead_s: the seconds per rollout the look-ahead takes, about, for time estimates (0: none).
         tilt: the scenario's own importance sampler, made once a run (``tilt() ->`` :class:`TiltSampler`), for
             ``method = "tilt"``; None: the scenario has none.
+        object_labels: what the console, the panel and the recording call each of the M objects, e.g.
+            ``("pedestrian A", "pedestrian B")`` (:meth:`ProblemView.object_label`); empty: ``object 0``, ``object 1``.
     """
 
     name: str
@@ -160,13 +162,15 @@ class Problem:
     look_ahead: LookAheadFn | None = None
     look_ahead_s: float = 0.0
     tilt: Callable[[], TiltSampler] | None = None
+    object_labels: tuple[str, ...] = ()
 
     @property
     def view(self) -> ProblemView:
         """The problem as sinks show it: name, description, signals with units, thresholds, scene."""
         signals = tuple(SignalView(n, c, self.units.get(n, "")) for n, c in self.signals.items())
         return ProblemView(self.name, self.description or self.name, signals, self.thresholds,
-                           self.objects_xy, self.noise_xy, self.n_steps, self.drawing, self.look_ahead_s)  # fmt: skip
+                           self.objects_xy, self.noise_xy, self.n_steps, self.drawing, self.look_ahead_s,
+                           tuple(self.object_labels))  # fmt: skip
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""
@@ -187,12 +191,28 @@ class Problem:
         return (self.robustness(batch, "classic") if classic is None else np.asarray(classic)) < 0.0
 
     def target_curve(self) -> np.ndarray:
-        """p_target(detect | h) on :attr:`curve_grid`, float64 [G]."""
-        if self.curve_rows is not None:
-            return expit(self.target.detect_logit(self.curve_rows(self.curve_grid)))
-        obs = np.zeros((self.curve_grid.size, 1 + max(2, len(self.signals))))
-        obs[:, 0] = self.curve_grid
-        return expit(self.target.detect_logit(obs))
+        """p_target(detect | h) on :attr:`curve_grid`, float64 [G]: the target's detection probability of the rows of
+        :attr:`curve_rows`, or, without them, of the first object's row at step 0 of one rollout drawn by the target
+        (seed 0; its observation row where the scene has no object rows) with its first column set to each value
+        of the grid.
+
+        Raises:
+            ValueError: the target cannot read those rows (one line naming ``curve_rows``, which gives rows it can).
+        """
+        grid = np.asarray(self.curve_grid, dtype=np.float64)
+        try:
+            if self.curve_rows is not None:
+                rows = np.asarray(self.curve_rows(grid), dtype=np.float64)
+            else:
+                batch = self.simulate(1, self.target, self.target, np.random.default_rng(0))
+                first = batch.observations[0, 0] if batch.objects is None else batch.objects[0, 0, 0]
+                rows = np.tile(np.asarray(first, dtype=np.float64), (grid.size, 1))
+                rows[:, 0] = grid
+            return np.asarray(expit(self.target.detect_logit(rows)), dtype=np.float64)
+        except (IndexError, KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{self.name}: the target's detection curve over the first column cannot be drawn "
+                             f"({type(exc).__name__}: {exc}); give the Problem curve_rows=lambda grid: rows [G, "
+                             "columns] the target reads, with grid in the first column") from None
 
 
 def rollout_functions(make: Callable[[int], BatchedSimulator],

@@ -77,12 +77,16 @@ SAMPLE_UNIFORM = 100
 
 
 class RobustnessByMetric(Mapping[str, np.ndarray]):
-    """metric -> robustness [N] of a batch under each semantics of :data:`pemviz.config.METRICS`, each computed when
-    first read (the estimator reads the classic one and the configured one; a listener may read the others)."""
+    """metric -> robustness [N] of a batch under each semantics of :data:`pemviz.config.METRICS` the problem can
+    compute, each computed when first read (the estimator reads the classic one and the configured one; a listener may
+    read the others). ``agm`` needs a range for every signal (:attr:`pemviz.core.problems.Problem.signal_ranges`): a
+    problem without them has no ``agm`` entry, so that listeners (the recording) draw the other metrics."""
 
     def __init__(self, problem: Problem, batch: RolloutBatch) -> None:
         self.problem, self.batch = problem, batch
         self._known: dict[str, np.ndarray] = {}
+        ranged = set(problem.signals) <= set(problem.signal_ranges or {})
+        self._metrics = tuple(m for m in METRICS if m != "agm" or ranged)
 
     def __getitem__(self, metric: str) -> np.ndarray:
         if metric not in METRICS:
@@ -96,13 +100,13 @@ class RobustnessByMetric(Mapping[str, np.ndarray]):
     def __getstate__(self) -> dict:
         """Pickled without the problem (its simulator need not pickle): the metrics read so far travel, and a
         metric not read yet needs :attr:`problem` set again (:mod:`pemviz.sinks.recording_process` sets its own)."""
-        return {"problem": None, "batch": self.batch, "_known": dict(self._known)}
+        return {"problem": None, "batch": self.batch, "_known": dict(self._known), "_metrics": self._metrics}
 
     def __iter__(self) -> Iterator[str]:
-        return iter(METRICS)
+        return iter(self._metrics)
 
     def __len__(self) -> int:
-        return len(METRICS)
+        return len(self._metrics)
 
 
 class StageSample:

@@ -25,7 +25,7 @@ from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.weights import CONVENTIONS, MeanWeight, mean_weight
 from pemviz.estimators import log_p_before_failure, log_weight
 from pemviz.estimators.base import SeenFailures, look_ahead_weights, pool
-from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta
+from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta, json_float
 from pemviz.io.rollouts import RolloutData, braking_salient
 
 REESTIMATE_RTOL = 1e-9
@@ -157,7 +157,7 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
 
 def estimate_rollouts(
     data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
-    weights: str = "to-failure", log_p_seen: float | None = None, verdict_cap: tuple[str, str] | None = None,
+    weights: str = "to-failure", log_p_seen: float | str | None = None, verdict_cap: tuple[str, str] | None = None,
     look_ahead: LookAheadFn | None = None,
 ) -> RolloutEstimate:
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
@@ -177,7 +177,8 @@ def estimate_rollouts(
         weights: one of :data:`pemviz.core.weights.CONVENTIONS`; ``to-failure`` with a formula that is not
             ``G[a,b](state predicate)``, or with ``failure="metric"``, weighs every step but the last (``full``, said in
             :attr:`RolloutEstimate.weights`).
-        log_p_seen: the probability of the failures the run drew (nats; the sidecar's, for the run's own log p):
+        log_p_seen: the probability of the failures the run drew (nats; the sidecar's, for the run's own log p; a
+            non-finite value as the sidecar writes it, ``"-inf"``, is read as that number):
             with the file's own failures' (:class:`pemviz.estimators.base.SeenFailures`, ``failure="crash"``), the
             bound below which the verdict is unreliable (:meth:`pemviz.core.estimate.Estimate.below_seen`).
         verdict_cap: the best verdict the run's sampler let it claim (the sidecar's; :meth:`pemviz.core.estimate.
@@ -196,6 +197,7 @@ def estimate_rollouts(
     if weights not in CONVENTIONS:
         raise ValueError(f"unknown weight convention {weights!r}; use one of {', '.join(CONVENTIONS)}")
     shape = (data.n, data.n_steps)
+    log_p_seen = json_float(log_p_seen)  # a sidecar writes -inf as text
     log_p, log_q = np.asarray(log_p, np.float64), np.asarray(log_q, np.float64)
     if log_p.shape != shape or log_q.shape != shape:
         raise ValueError(f"log_p and log_q must have shape {shape}, got {log_p.shape}, {log_q.shape}")

@@ -15,7 +15,9 @@ column                        type                         unit   meaning
 ============================  ===========================  =====  ==========================================
 ``rollout``                   integer                      -      rollout id (any distinct integers)
 ``step``                      integer                      -      step t = 0..T-1 (time t * dt_s)
-``gap_m``                     float                        m      the gap: h(s) of the proposal (required)
+``gap_m``                     float                        m      h(s), the column the proposal and the window
+                                                                  read (required; another name where the
+                                                                  sidecar's ``h_column`` says so)
 signals of the spec           float                        SI     e.g. ``ego_speed_mps``, ``lead_speed_mps``
 ``detected``                  bool (or integer 0/1)        -      the detector output a_t taken at step t
 ``detected_<m>``, ``<e>_<m>`` bool; float                  -; m   version 3, a scene of M objects or with
@@ -54,8 +56,9 @@ reads back from ``NAME.json``), a JSON object:
   robustness < 0 (Innes & Ramamoorthy 2022).
 - ``dt_s`` (required): seconds per step.
 - ``signals``: STL signal name -> column (default ``{"d": "gap_m"}``); ``signal_ranges``: per STL
-  signal ``[lo, hi]`` for AGM's normalisation; ``observation_columns``: the state columns in the order
-  detectors see them (default ``gap_m`` then the signals' columns); ``units``: column -> unit (informative).
+  signal ``[lo, hi]`` for AGM's normalisation; ``h_column``: the column the proposal and the window read, first of
+  the state columns (default ``gap_m``); ``observation_columns``: the state columns in the order detectors see them
+  (default ``h_column`` then the signals' columns); ``units``: column -> unit (informative).
 - ``pem``: the PEM ``log_p`` was computed under (a shipped name or a path); ``proposal``: a proposal
   checkpoint (:func:`pemviz.core.sampling.save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` /
   ``mixed50``, what sampled the rollouts; ``window_m``: mixed50's 50 % window (metres, default 10).
@@ -146,8 +149,9 @@ class RolloutMeta:
         dt_s: seconds per step.
         signals: STL signal name -> column.
         signal_ranges: STL signal name -> (lo, hi), AGM's predicate normalisation.
-        observation_columns: state columns in the order detectors see them (``gap_m`` first); the
+        observation_columns: state columns in the order detectors see them (:attr:`h_column` first); the
             signals' columns are added after them (:attr:`columns`).
+        h_column: the first state column, h(s), which the proposal and the window read (default ``gap_m``).
         units: column -> unit (informative).
         pem: the PEM ``log_p`` was computed under (name or path), if known.
         proposal: what sampled the rollouts: a checkpoint path relative to the sidecar, or one of
@@ -185,6 +189,7 @@ class RolloutMeta:
     objects: int = 1
     noise: tuple[str, ...] = ()
     version: int = FORMAT_VERSION
+    h_column: str = "gap_m"
 
     def stage_info(self, stage: int) -> Mapping[str, Any] | None:
         """The sidecar's ``stages`` entry of ``stage``, or None."""
@@ -207,8 +212,8 @@ class RolloutMeta:
 
     @property
     def columns(self) -> tuple[str, ...]:
-        """The observation columns: ``gap_m``, then ``observation_columns``, then the signals' columns."""
-        return tuple(dict.fromkeys(["gap_m", *self.observation_columns, *self.signals.values()]))
+        """The observation columns: :attr:`h_column`, then ``observation_columns``, then the signals' columns."""
+        return tuple(dict.fromkeys([self.h_column, *self.observation_columns, *self.signals.values()]))
 
     def to_json(self) -> dict[str, Any]:
         """The sidecar as a JSON object."""
@@ -221,6 +226,7 @@ class RolloutMeta:
             "signals": dict(self.signals),
             "signal_ranges": {k: [float(lo), float(hi)] for k, (lo, hi) in self.signal_ranges.items()},
             "observation_columns": list(self.columns),
+            **({"h_column": self.h_column} if self.h_column != "gap_m" else {}),
             "units": dict(self.units),
             "pem": self.pem,
             "proposal": self.proposal,
@@ -285,6 +291,9 @@ class RolloutMeta:
         cols = obj.get("observation_columns") or []
         if not isinstance(cols, list) or not all(isinstance(c, str) for c in cols):
             raise bad(f"observation_columns must be a list of column names, got {cols!r}")
+        h_column = obj.get("h_column", "gap_m")
+        if not isinstance(h_column, str) or not h_column:
+            raise bad(f"h_column must be a column name such as 'gap_m', got {h_column!r}")
         for key in ("n_rollouts", "n_steps"):
             v = obj.get(key)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
@@ -334,6 +343,7 @@ class RolloutMeta:
             objects=objects,
             noise=tuple(noise),
             version=int(version),
+            h_column=h_column,
         )
 
 
@@ -420,20 +430,20 @@ def braking_meta(
 
 def problem_meta(problem: Any, formula: str | None = None, *, pem: str | None = None, proposal: str | None = None,
                  provenance: Mapping[str, Any] | None = None) -> RolloutMeta:  # fmt: skip
-    """The sidecar of a problem's rollouts (a :class:`pemviz.core.problems.Problem` that knows its step ``dt_s``,
-    e.g. the cut-in): its formula, signals, signal ranges and units; the objects and errors are filled in by the
-    writer from the rollouts.
-
-    Raises:
-        ValueError: the problem does not know its step (``dt_s`` None).
+    """The sidecar of a problem's rollouts (a :class:`pemviz.core.problems.Problem`): its formula, signals, signal
+    ranges, units and step; the objects and errors are filled in by the writer from the rollouts. A problem that does
+    not know its step (``dt_s`` None, e.g. the toys, whose steps are units of travel) is written with ``dt_s = 1`` and
+    the provenance's ``dt_s_unknown`` saying so: no estimate reads the step, only the impact speed of a failure.
     """
+    provenance = dict(provenance or {})
     if problem.dt_s is None:
-        raise ValueError(f"{problem.name}: its step (dt_s) is not known; a rollout file needs it")
+        provenance["dt_s_unknown"] = f"{problem.name} gave no step: dt_s = 1 stands for one step"
     units = {problem.signals[k]: u for k, u in problem.units.items() if k in problem.signals}
     window = {"window_m": float(problem.window)} if math.isfinite(problem.window) else {}
-    return RolloutMeta(formula=formula or str(problem.formula), dt_s=float(problem.dt_s), signals=dict(problem.signals),
+    dt_s = 1.0 if problem.dt_s is None else float(problem.dt_s)
+    return RolloutMeta(formula=formula or str(problem.formula), dt_s=dt_s, signals=dict(problem.signals),
                        signal_ranges=dict(problem.signal_ranges), units={**units, "log_p": "nats", "log_q": "nats"},
-                       pem=pem, proposal=proposal, provenance=dict(provenance or {}), **window)  # fmt: skip
+                       pem=pem, proposal=proposal, provenance=provenance, **window)  # fmt: skip
 
 
 SIDECAR_SUFFIX = ".rollouts.json"
@@ -468,6 +478,16 @@ def _plain(value: Any) -> Any:
     if value is None or isinstance(value, (bool, int, float, str)):
         return value
     return str(value)
+
+
+def json_float(value: Any) -> float | None:
+    """The number a sidecar holds, the inverse of how it writes one: a float, or a non-finite one written as text
+    (``"-inf"``, ``"inf"``, ``"nan"``); None for None or anything else (a field the sidecar does not have)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, str) and value.strip().lower() in ("-inf", "inf", "+inf", "nan"):
+        return float(value)
+    return None
 
 
 def _is_number(x: Any) -> bool:

@@ -183,10 +183,14 @@ class RolloutWriter:
                              f"{self._shape[1]}, {self._shape[2]} object(s) with errors "
                              f"{list(self._shape[3])}")  # fmt: skip
         self.meta = dataclasses.replace(self.meta, objects=objects[0], noise=objects[1])
+        if not names:
+            raise ValueError("write_rollouts: the batch has no observation columns")
+        self.meta = dataclasses.replace(self.meta, h_column=names[0])  # h(s): the first observation, whatever its name
         meta = dataclasses.replace(self.meta, n_rollouts=None, n_steps=batch.n_steps, observation_columns=names,
                                    stages=(), pooling=None)  # checked against the whole table at commit
         if meta.columns != names:
-            raise ValueError(f"write_rollouts: the batch's first observation must be gap_m, got {names}")
+            raise ValueError(f"write_rollouts: the spec's signals {dict(meta.signals)} name columns the batch's "
+                             f"observations {names} lack")
         if rollout_ids is None:
             rollout_ids = np.arange(self.n_rollouts, self.n_rollouts + batch.n, dtype=np.int64)
         table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=self.log_probs, stage=stage,

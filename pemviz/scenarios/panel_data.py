@@ -79,6 +79,9 @@ class ObjectsScene:
         start_xy_m: each object at the start (step 0), seen from the ego as a rollout's object positions place it
             (:attr:`pemviz.core.problems.ProblemView.objects_xy`): (to the right, ahead) in metres, one pair per object
             in object order; the idle scene draws them before any rollout is chosen (empty: the road alone).
+        object_labels: what each object is called in the idle scene (empty: ``object m``).
+
+    A scene of no lanes (``n_lanes`` 0) is open ground: the panel draws a plain floor with a 10 m grid, not a road.
     """
 
     car_length_m: float
@@ -88,6 +91,7 @@ class ObjectsScene:
     distance_column: str
     n_steps: int
     start_xy_m: tuple[tuple[float, float], ...] = ()
+    object_labels: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

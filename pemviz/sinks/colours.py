@@ -50,6 +50,8 @@ FIGURE_BACKGROUND = (25, 28, 32)
 ROAD = (70, 70, 75)
 ROAD_MARKING = (235, 235, 235)
 """The panel's 3D road: its surface, its edges and the 10 m ticks."""
+GROUND = (88, 92, 84)
+"""Open ground: the floor of a scene of several objects without lanes (a drawing of no road)."""
 ON_DARK = (245, 245, 245)
 """The target PEM's curve on the recordings' dark background (white)."""
 AXIS = (170, 170, 170)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from pemviz.core.counterfactuals import LikelyFailure, LogPParts, counterfactuals, most_likely_failure
+from pemviz.core.problem_view import object_label
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import RolloutsSampled
 from pemviz.sinks import Sink
@@ -52,11 +53,13 @@ class MostLikelyFailure(Sink):
             return None
         cf = counterfactuals(problem, self.batch, 0)
         parts = self.parts(problem)
+        m = self.batch.objects.shape[2]
+        labels = tuple(object_label(getattr(problem, "object_labels", ()), j) for j in range(m))
         if not np.isfinite(self.log_p):  # every failure drawn holds an event the PEM cannot produce
             what = ("has probability 0 under the PEM (the log-probability of its detections is -inf)"
                     if parts.errors is None else "is impossible under the PEM (the log-probability of its detections "
                     "or the log-density of its measurement errors is -inf)")  # fmt: skip
             head = f"why: every failure drawn {what}, so none is likely; one of them (stage {self.stage})"
-            return f"{head}: {cf.summary()}"
+            return f"{head}: {cf.summary(labels)}"
         span = f"over all {self.batch.n_steps - 1} steps"
-        return f"why: the most likely failure (stage {self.stage}; {span}: {parts.words()}): {cf.summary()}"
+        return f"why: the most likely failure (stage {self.stage}; {span}: {parts.words()}): {cf.summary(labels)}"

@@ -160,13 +160,14 @@ def log_explanation(
             for kind, rgba, steps_j in (("detected", DETECTED_RGBA, np.flatnonzero(d)),
                                         ("missed", MISSED_RGBA, np.flatnonzero(~d & seen[:, j])),
                                         ("unseen", UNSEEN_RGBA, np.flatnonzero(~d & ~seen[:, j]))):  # fmt: skip
-                _markers(s, f"{E}/detect/object_{j}/{kind}", f"object {j} {kind}", rgba, "circle", steps_j,
+                _markers(s, f"{E}/detect/object_{j}/{kind}", f"{view.object_label(j)} {kind}", rgba, "circle", steps_j,
                          np.full(steps_j.size, float(j)), indexes, size=3.0)  # fmt: skip
             if object_detect is not None:  # the object's band: 0 at its row, 1 at OBJECT_BAND above it
                 p_j, q_j = (np.asarray(a[:, j], dtype=np.float64) for a in object_detect)
-                _series(s, f"{E}/detect/object_{j}/pem", f"object {j} p(detect), PEM", PEM_PLOT_RGBA,
+                _series(s, f"{E}/detect/object_{j}/pem", f"{view.object_label(j)} p(detect), PEM", PEM_PLOT_RGBA,
                         j + OBJECT_BAND * p_j, indexes, width=1.0)  # fmt: skip
-                _series(s, f"{E}/detect/object_{j}/sampler", f"object {j} q(detect), sampler", C.rgba(C.BLUE),
+                _series(s, f"{E}/detect/object_{j}/sampler", f"{view.object_label(j)} q(detect), sampler",
+                        C.rgba(C.BLUE),
                         j + OBJECT_BAND * q_j, indexes, width=1.5)  # fmt: skip
     words = str(tale["words"]) if tale is not None else "failure"
     _series(s, f"{E}/{col}/recorded", f"as recorded: {words}", CRASH_RGBA[:3] + (255,), trace, indexes, width=2.5)

@@ -1,5 +1,6 @@
 """research/cut_in_event_proposals.py: its proposals over the uniforms are densities whose importance weights are
-exact, the premise of every figure of that study (docs/cut-in.md, "What 5,000 simulations can and cannot do")."""
+exact, the premise of every figure of that study (research/cut-in-notes.md, "What 5,000 simulations can and cannot
+do")."""
 
 from __future__ import annotations
 

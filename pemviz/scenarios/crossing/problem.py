@@ -46,7 +46,7 @@ def crossing_problem(params: CrossingParams | None = None, detect: Any = None, n
         units={"clearance": "m"}, signal_ranges={"clearance": (-3.0, 100.0)}, h_scale=40.0,
         curve_grid=np.arange(0.0, CROSSING_WINDOW_M + 10.5, 0.5), window=CROSSING_WINDOW_M, stream=stream,
         branch=resume, curve_rows=lambda grid: pedestrian_ahead_rows(p, grid), dt_s=p.dt_s, n_objects=p.n_pedestrians,
-        n_steps=p.n_steps,
+        n_steps=p.n_steps, object_labels=tuple(f"pedestrian {m}" for m in range(p.n_pedestrians)),
         objects_xy=("loc_x", "loc_z"), noise_xy=(NOISE_NAMES.index("lateral_error_m"),
                                                  NOISE_NAMES.index("range_error_m")),
         description=(f"emergency brake on a tracker, {p.n_pedestrians} pedestrian(s) stepping onto a crossing "

@@ -44,9 +44,10 @@ class CutInPanel:
         """The scene's constants: the cars' boxes, the lanes, the object rows' gap column and every car at the start
         seen from the ego (:func:`start_positions`)."""
         from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M
+        from pemviz.scenarios.cut_in.story import car_labels
 
         return ObjectsScene(CAR_M[0], CAR_M[1], LANE_WIDTH_M, N_LANES, "gap_m", int(self.params.n_steps),
-                            start_positions(self.params))  # fmt: skip
+                            start_positions(self.params), car_labels(self.params.n_objects))  # fmt: skip
 
     def proposal_axis(self) -> ViewAxis:
         """The proposal view's bins: the cut-in car's gap ahead, 1 m wide (:data:`GAP_BINS_M`), over the states where

@@ -12,6 +12,7 @@ from pemviz.core.problems import Problem, rollout_functions
 from pemviz.core.severity import SeverityScale
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory
 from pemviz.scenarios.cut_in.drawing import CutInDrawing
+from pemviz.scenarios.cut_in.story import car_labels
 from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, RARITY_SETTINGS, SALIENT_COLUMNS, CutInParams
 from pemviz.stack.detector import NOISE_NAMES
 
@@ -99,7 +100,7 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         severity=SeverityScale("clearance", "clearance", "m", CUT_IN_SEVERITY_LEVELS_M),
         h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
         stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"), dt_s=p.dt_s,
-        n_objects=p.n_objects, n_steps=p.n_steps, drawing=CutInDrawing(p),
+        n_objects=p.n_objects, n_steps=p.n_steps, drawing=CutInDrawing(p), object_labels=car_labels(p.n_objects),
         noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")), tilt=tilt,
         description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
                      f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),

@@ -295,7 +295,7 @@ to the ego at t = 0 with its speed 7.6 m/s below the ego's. Under the shipped PE
 the failure probability is 8.66e-5 [8.09e-5, 9.26e-5] at ``moderate`` (plain Monte Carlo, 10^7 rollouts,
 ``benchmarks/cut_in_mc.py``) and about 1e-7 at ``rare``: 10 runs of the tilted proposal give a geometric mean of
 1.8e-7 and, being unbiased, p >= 1.3e-7 at 95 % (Markov's inequality: :func:`pemviz.core.estimate.markov_lower_bound`);
-splitting ranked by the same committor gives 8.8e-8 (``docs/cut-in.md``)."""
+splitting ranked by the same committor gives 8.8e-8 (``research/cut-in-notes.md``)."""
 
 MONTE_CARLO_REFERENCE: dict[str, tuple[int, int]] = {"moderate": (866, 10_000_000)}
 """The plain Monte Carlo reference of a rarity setting under the shipped PEMs: (failures, rollouts) of the batched

@@ -29,6 +29,12 @@ from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, NO_VEHICLE_M
 CUT_IN_OBJECT = 0
 """The cut-in car's object index (the first of :attr:`pemviz.scenarios.cut_in.CutInParams.vehicles`)."""
 
+def car_labels(n_objects: int) -> tuple[str, ...]:
+    """What the console, the panel and the recording call the cut-in's M cars: ``car 0`` (the cut-in car, object
+    :data:`CUT_IN_OBJECT`) to ``car M-1``."""
+    return tuple(f"car {m}" for m in range(n_objects))
+
+
 BRAKING_MPS2 = -0.5
 """An ACC acceleration at or below this (m/s^2) counts as braking in the story (the IDM's free-road term is 0 at the
 set speed; a car followed far ahead costs a few tenths)."""
