@@ -289,7 +289,7 @@ class ExperimentConfig:
         for setting in SETTINGS.values():  # each setting on its own: its range from SETTINGS
             value = getattr(self, setting.name)
             if not setting.accepts(value):
-                verb = "use" if setting.kind in ("choice", "scenario") else f"{setting.words} must be"
+                verb = "use" if setting.kind in ("choice", "method", "scenario") else f"{setting.words} must be"
                 raise ConfigError(f"{setting.title} = {value!r} is invalid: {verb} {setting.allowed}", setting.name)
 
         def need(ok: bool, name: str, allowed: str) -> None:  # the settings against each other

@@ -38,6 +38,17 @@ measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``
 (:mod:`pemviz.scenarios.cut_in`)."""
 
 
+REGISTERED_METHODS: list[str] = []
+"""The methods registered in this process besides :data:`METHODS`: a user's own, once its plugin is loaded
+(:func:`pemviz.estimators.registry.register_method` adds each name, ``unregister_method`` removes it). The settings
+read this list and never import the registry."""
+
+
+def method_names() -> tuple[str, ...]:
+    """The methods a config may name: :data:`METHODS`, then :data:`REGISTERED_METHODS` in registration order."""
+    return (*METHODS, *(n for n in REGISTERED_METHODS if n not in METHODS))
+
+
 REGISTERED_SCENARIOS: list[str] = []
 """The scenarios registered in this process besides :data:`SCENARIOS` (:func:`pemviz.scenarios.registry.register` adds
 each name, ``unregister`` removes it): the built-in toys ``toy`` and ``crowd`` once the registry is imported, and the
@@ -119,8 +130,9 @@ class Setting:
         words: what it is, as a noun in plain words with its symbol (``"the smoothing alpha"``); error messages say
             ``<words> must be <allowed>``.
         help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
-        kind: ``int``, ``real``, ``choice``, ``scenario`` (the built-in :attr:`choices` or a name the scenario
-            registry has registered in this process: :func:`scenario_names`), ``bool``,
+        kind: ``int``, ``real``, ``choice``, ``method`` (the built-in :attr:`choices` or a name the method registry
+            has registered in this process: :func:`method_names`), ``scenario`` (the same for the scenario
+            registry: :func:`scenario_names`), ``bool``,
             ``text``, ``pem`` (a shipped PEM name or a file, checked
             where it is loaded: the config does no I/O) or ``params`` (``(name, value)`` pairs of the scenario's
             parameters, :mod:`pemviz.scenarios.parameters`, checked against the scenario by the config).
@@ -177,6 +189,8 @@ class Setting:
         ``a number in (0, 1]``, ``a whole number >= 2``, ``one of classic, agm, smooth-cumulative``."""
         if self.kind == "choice":
             text = f"one of {', '.join(self.choices)}"
+        elif self.kind == "method":
+            text = f"one of {', '.join(method_names())}"
         elif self.kind == "scenario":
             text = f"one of {', '.join(scenario_names())}"
         elif self.kind == "bool":
@@ -212,6 +226,8 @@ class Setting:
             return self.optional
         if self.kind == "choice":
             return isinstance(value, str) and value in self.choices
+        if self.kind == "method":  # a built-in one, or one a plugin has registered in this process
+            return isinstance(value, str) and value in method_names()
         if self.kind == "scenario":  # a built-in one, or one the registry has registered in this process
             return isinstance(value, str) and value in scenario_names()
         if self.kind == "bool":
@@ -266,7 +282,7 @@ def _settings(*settings: Setting) -> dict[str, Setting]:
 
 
 SETTINGS: dict[str, Setting] = _settings(
-    Setting("method", "the method", "the estimator", kind="choice", choices=METHODS, owner=RUN, flags=("--method",),
+    Setting("method", "the method", "the estimator", kind="method", choices=METHODS, owner=RUN, flags=("--method",),
             choice_help=(("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1)"),
                          ("mc", "rollouts with the PEM itself"), ("naive50", "a 50 % detector at every step"),
                          ("mixed50", "50 % inside the window and the PEM outside"),

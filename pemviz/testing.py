@@ -514,7 +514,7 @@ def _never_fails(problem: Any) -> Any:
     return dataclasses.replace(problem, formula=formula, exact_log_p=None, name=f"{problem.name}, never failing")
 
 
-def check_estimator(method: str, *, problem: Any = None, folder: str | Path | None = None,
+def check_estimator(method: Any, *, problem: Any = None, folder: str | Path | None = None,
                     settings: Mapping[str, Any] | None = None) -> Report:  # fmt: skip
     """Check an estimation method on a problem with an exact answer: its interface, its bias, its verdicts, its files.
 
@@ -538,7 +538,8 @@ def check_estimator(method: str, *, problem: Any = None, folder: str | Path | No
     - ``recording``: seed 0's run recorded (:meth:`pemviz.sinks.recording.RerunSink.to_file`) writes a non-empty file.
 
     Args:
-        method: one of :data:`pemviz.config.METHODS`.
+        method: a registered method's name (:func:`pemviz.estimators.registry.method_names`: the built-in ones and a
+            plugin's), or a :class:`pemviz.estimators.registry.Method` of one's own (registered by the check).
         problem: a :class:`pemviz.core.problems.Problem` with an exact answer and a distance signal ``d`` (None:
             :data:`ESTIMATOR_PROBLEM`).
         folder: where seed 0's files go (kept); None: a temporary folder, removed afterwards.
@@ -549,14 +550,13 @@ def check_estimator(method: str, *, problem: Any = None, folder: str | Path | No
         ConformanceError: the first check that fails, e.g. ``check_estimator('mc'): unbiased: ...``.
         ValueError: an unknown method, or a problem without an exact answer.
     """
-    from pemviz.config import METHODS
     from pemviz.core.checks import CheckError
     from pemviz.core.checks import check_estimator as check_interface
     from pemviz.estimators import build_estimator
+    from pemviz.estimators.registry import registered_name
     from pemviz.scenarios.problems import build_problem
 
-    if method not in METHODS:
-        raise ValueError(f"check_estimator: unknown method {method!r}; use one of {', '.join(METHODS)}")
+    method = registered_name(method, "check_estimator")  # a Method of one's own: registered (and kept) for the check
     pb = build_problem(ESTIMATOR_PROBLEM) if problem is None else problem
     if pb.exact_log_p is None:
         raise ValueError(f"check_estimator: {pb.name} has no exact answer (exact_log_p) to check the estimates with")

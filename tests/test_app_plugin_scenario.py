@@ -44,3 +44,28 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
                    timeout=60,
                    what="the 3D view saying the scenario draws no scene (no braking road for it)")  # fmt: skip
         assert not scene.object_box.visible and not scene.ego_box.visible
+
+
+@pytest.fixture
+def defensive_mc(monkeypatch):
+    """The method of one's own of ``tests/estimators/user_method.py``, imported (so registered) for this test only."""
+    from pathlib import Path
+
+    from pemviz.estimators.registry import unregister_method
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent / "estimators"))
+    sys.modules.pop("user_method", None)
+    __import__("user_method")
+    yield
+    unregister_method("defensive-mc")
+    sys.modules.pop("user_method", None)
+
+
+def test_the_panel_lists_and_runs_a_registered_method_of_ones_own(defensive_mc, browser, app):  # noqa: F811
+    for tab in open_tab(browser, app):
+        assert "defensive-mc" in tab.session.choices["method"].options
+        tab.session.choices["method"].value = "defensive-mc"  # the menu sits in the folded "advanced" folder
+        record = tab.run({"N": "400"}, timeout=120)
+        assert record.config.method == "defensive-mc" and record.config.n_per_stage == 400
+        wait_until(lambda: f"Final estimate of {record.short_label}" in tab.page.inner_text("body"),  # noqa: B023
+                   what="the method's final estimate in the panel")  # fmt: skip

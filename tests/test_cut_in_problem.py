@@ -101,7 +101,7 @@ def test_save_rollouts_refuses_splitting_on_the_cut_in_before_it_runs(tmp_path):
     out = tmp_path / "r.parquet"
     proc = run_cli("run", "--scenario", "cut-in", "--method", "ams", "--no-record", "--save-rollouts", str(out))
     assert proc.returncode == 2
-    assert proc.stderr.count("\n") == 1 and "method ams estimates by splitting" in proc.stderr
+    assert proc.stderr.count("\n") == 1 and "method ams estimates without importance weights" in proc.stderr
     assert "Traceback" not in proc.stderr and not out.exists() and not list(tmp_path.iterdir())
 
 

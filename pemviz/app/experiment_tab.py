@@ -19,6 +19,7 @@ from pemviz.app.runs import PANEL_PRESETS
 from pemviz.config import SCENE_DEFAULTS, SETTINGS, SIMULATORS, ExperimentConfig
 from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
 from pemviz.presets import preset_help
+from pemviz.estimators.registry import method_names
 from pemviz.scenarios.registry import registered
 
 
@@ -79,7 +80,7 @@ class ExperimentTab:
         dropdown("sim", simulators, c0.sim if c0.sim in simulators else simulators[0], disabled=len(simulators) < 2)
         self.params.build(self.choices["scenario"].value, lambda: self._on_change())
         with gui.add_folder("advanced", expand_by_default=False):
-            dropdown("method")
+            dropdown("method", method_names())  # every registered method, plugins included
             for key in ("rel_error", "max_sims", "max_time_s", "ce_epochs", "pretrain_rollouts", "pretrain_epochs",
                         "learning_rate"):
                 number(key)

@@ -223,11 +223,17 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
     return "".join(parts)
 
 
+def label_width(names: tuple[str, ...]) -> int:
+    """The pixels the charts' label column takes: room for the longest object label at 10 px type (34 px at least,
+    ``car 0``'s), at most 110."""
+    return int(min(max(34, 6 * max((len(n) for n in names), default=0) + 4), 110))
+
+
 def raster_svg(ox: ObjectsExplanation, step: int, width: int = 430) -> str:
     """Every object's events, a row per object and a column per step: green detected, orange missed, grey unseen;
     a red bar under a decisive miss or error; a black line at ``step`` and a red one at the failure."""
     t_steps, m = ox.detected.shape
-    left, cell_h = 34, 13
+    left, cell_h = label_width(ox.names), 13
     cw = (width - left - 4) / t_steps
     height = m * cell_h + 22
     parts = [f'<svg class="pemviz-raster" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}">']
@@ -264,7 +270,7 @@ def detect_svg(names: tuple[str, ...], p: np.ndarray, q: np.ndarray, step: int, 
             (:func:`pemviz.core.proposal_view.object_detect_probabilities`).
     """
     t_steps, m = p.shape
-    left, band = 34, 22
+    left, band = label_width(names), 22
     cw = (width - left - 4) / t_steps
     height = m * band + 4
     parts = [f'<svg class="pemviz-detect" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}">']

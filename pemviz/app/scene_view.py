@@ -384,7 +384,7 @@ class SceneView:
                     position=(0.0, 0.0, CAR_HEIGHT_M / 2), visible=False))  # fmt: skip
                 self._object_nodes.append(scene.add_label(
                     f"/objects/car{j}/label", object_label(layout.object_labels, j),
-                    position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2),
+                    position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2 + 0.7 * (j % 2)),  # neighbours' labels apart
                     anchor="bottom-center", font_screen_scale=LABEL_SCALE, visible=False))  # fmt: skip
             self._objects_road = road
         lane = objects == 0 and layout is None

@@ -23,7 +23,7 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
-from pemviz.config import SCENARIOS, SCENE_DEFAULTS, ConfigError, ExperimentConfig
+from pemviz.config import METHODS, SCENARIOS, SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
 from pemviz.io.files import check_output_folder, check_output_path, free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
@@ -90,11 +90,16 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     loaded first (:func:`pemviz.scenarios.registry.load_plugins`: a plugin that cannot be loaded is its one line).
 
     Raises:
-        ConfigError: a setting, preset or parameter refused; ScenarioPluginError: a plugin that cannot be loaded."""
+        ConfigError: a setting, preset or parameter refused; ScenarioPluginError, MethodPluginError: a plugin that
+            cannot be loaded."""
     if args.scenario is not None and args.scenario not in SCENARIOS:  # another registered scenario: load the registry
         from pemviz.scenarios.registry import load_plugins
 
         load_plugins()
+    if args.method is not None and args.method not in METHODS:  # a method of one's own: load the method plugins
+        from pemviz.estimators.registry import load_method_plugins
+
+        load_method_plugins()
     preset = DEFAULT_PRESET if args.preset is None else args.preset
     if preset not in PRESETS:
         raise ConfigError(f"--preset {preset!r} is invalid: use one of {', '.join(PRESETS)}")
@@ -419,8 +424,10 @@ def main(args: argparse.Namespace) -> int:
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     rollout_sink = None
     if args.save_rollouts is not None:
-        if cfg.method == "ams":
-            raise UsageError("--save-rollouts: method ams estimates by splitting, without importance weights; its "
+        from pemviz.estimators.registry import get_method
+
+        if not get_method(cfg.method).weighted:
+            raise UsageError(f"--save-rollouts: method {cfg.method} estimates without importance weights; its "
                              "rollouts cannot be estimated from again (use an importance-sampling method)")
         from pemviz.sinks.rollouts import RolloutSink
 

@@ -56,8 +56,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} "
                         f"(default {DEFAULT_PRESET},paper)")
     p.add_argument("--baselines", default="mc,naive50,ams",
-                   help=f"from {', '.join(BASELINES)} (default mc,naive50,ams; ams: adaptive multilevel splitting, "
-                   "N = budget / 4 particles)")  # fmt: skip
+                   help=f"from {', '.join(BASELINES)} or a plugin's method (PEMVIZ_METHODS) (default mc,naive50,ams; "
+                   "ams: adaptive multilevel splitting, N = budget / 4 particles)")  # fmt: skip
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
     add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
@@ -72,7 +72,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     problems = split_choices(args.problems, validation_problems(), "problems")
     presets = split_choices(args.presets, PRESETS, "presets") if args.presets.strip() else ()
-    baselines = split_choices(args.baselines, BASELINES, "baselines") if args.baselines.strip() else ()
+    from pemviz.estimators.registry import method_names
+
+    others = tuple(m for m in method_names() if m not in (*BASELINES, "adaptive", "tilt"))  # plugins' methods
+    baselines = split_choices(args.baselines, (*BASELINES, *others), "baselines") if args.baselines.strip() else ()
     if args.seeds < 1 or args.jobs < 1:
         raise UsageError("--seeds and --jobs must be >= 1")
     out_dir = Path(args.out) if args.out else None

@@ -7,6 +7,9 @@
 - :class:`~pemviz.estimators.tilt.CommittorTilt` (``tilt``): the scenario's own tilted proposal, one weighted batch.
 - :class:`PrecisionTarget` (``rel_error``, ``require``): any of the first two, with final batches added until a
   relative precision or a decision on a requirement.
+
+Every method, these and a user's own, is a record of :mod:`pemviz.estimators.registry`, which
+:func:`build_estimator` and :func:`run_plan` read.
 """
 
 from __future__ import annotations
@@ -28,12 +31,14 @@ from pemviz.estimators.cross_entropy import (
 )
 from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
 from pemviz.estimators.precision import PrecisionTarget
+from pemviz.estimators.registry import Method, get_method, method_names, register_method, unregister_method
 
 __all__ = [
     "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator",
     "FixedSampler", "PlannedStage", "PrecisionTarget", "RunPlan", "StageOutcome", "StagePlan", "break_ties",
     "build_estimator", "check_runnable",
     "failure_steps", "log_p_before_failure", "log_weight", "mixed50", "monte_carlo", "naive50", "run_plan",
+    "Method", "get_method", "method_names", "register_method", "unregister_method",
 ]  # fmt: skip
 
 
@@ -42,32 +47,36 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
 
     The baselines draw ``config.n_per_stage`` rollouts and stop their weights at the failure step with
     ``config.weights_until_failure``, like the adaptive sampler's.
+    The method is the registry's (:func:`pemviz.estimators.registry.get_method`: the built-in ones and a user's own);
+    a method that can be extended is wrapped in a :class:`PrecisionTarget` when the config has a stop rule.
+
+    Raises:
+        KeyError: a method no one registered; ValueError: a stop rule for a method that cannot take more batches.
     """
-    if config.method == "ams":
-        from pemviz.estimators.ams import AdaptiveMultilevelSplitting
+    method = _method_of(config)
+    inner = method.builder()(config, problem, check)
+    return inner if config.stop_rule is None or not method.extensible else PrecisionTarget(inner, config)
 
-        return AdaptiveMultilevelSplitting(config, problem, check)
-    if config.method == "adaptive":
-        inner: CrossEntropy | FixedSampler = CrossEntropy(config, problem, check)
-    elif config.method == "tilt":
-        from pemviz.estimators.tilt import CommittorTilt
 
-        inner = CommittorTilt(problem, config.n_per_stage, config.weights_until_failure, config.seed)
-    else:
-        baseline = {"mc": monte_carlo, "naive50": naive50, "mixed50": mixed50}[config.method]
-        inner = baseline(problem, config.n_per_stage, config.weights_until_failure, config.seed)
-    return inner if config.stop_rule is None else PrecisionTarget(inner, config)
+def _method_of(config: ExperimentConfig) -> Method:
+    """The registry's record of ``config.method``.
+
+    Raises:
+        KeyError: a method no one registered; ValueError: a stop rule (``rel_error``, ``require``) for a method that
+            cannot take more final batches (:attr:`pemviz.estimators.registry.Method.extensible`)."""
+    method = get_method(config.method)
+    if config.stop_rule is not None and not method.extensible:
+        raise ValueError(f"method {method.name} cannot add final batches: --rel-error and --require need a method "
+                         "that can (adaptive, mc, naive50, mixed50, tilt)")
+    return method
 
 
 def run_plan(config: ExperimentConfig) -> RunPlan:
     """The :class:`RunPlan` the estimator of ``config.method`` states (:meth:`Estimator.plan`), without building it:
-    e.g. to check a run's memory before its problem is loaded."""
-    if config.method == "ams":
-        from pemviz.estimators.ams import AdaptiveMultilevelSplitting
-
-        return AdaptiveMultilevelSplitting.run_plan(config)
-    plan = CrossEntropy.run_plan(config) if config.method == "adaptive" else FixedSampler.run_plan(config.n_per_stage)
-    return plan if config.stop_rule is None else RunPlan(plan.stages, open_ended=True)
+    e.g. to check a run's memory before its problem is loaded (:meth:`pemviz.estimators.registry.Method.run_plan`)."""
+    method = _method_of(config)
+    plan = method.run_plan(config)
+    return plan if config.stop_rule is None or not method.extensible else RunPlan(plan.stages, open_ended=True)
 
 
 def __getattr__(name: str) -> object:

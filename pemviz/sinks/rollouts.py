@@ -15,6 +15,7 @@ import numpy as np
 
 from pemviz.engine.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.estimators.base import pool_stage_weights
+from pemviz.estimators.registry import get_method
 from pemviz.io.rollouts import RolloutWriter, check_rollouts_path
 from pemviz.io.run_rollouts import run_meta, run_salient, run_severity
 from pemviz.pem import DEFAULT_PEM_NAME
@@ -79,8 +80,9 @@ class RolloutSink(Sink):
         return self.stages == "all" or kind != "pretrain"
 
     def on_run_started(self, event: RunStarted) -> None:
-        if getattr(event.config, "method", None) == "ams":
-            raise ValueError("--save-rollouts: method ams estimates by splitting, without importance weights; "
+        method = getattr(event.config, "method", None)
+        if method is not None and not get_method(method).weighted:
+            raise ValueError(f"--save-rollouts: method {method} estimates without importance weights; "
                              "its rollouts cannot be estimated from again")  # fmt: skip
         self._formula, self._config = event.formula, event.config
 

@@ -205,6 +205,10 @@ class Job:
 def run_job(job: Job) -> RunRecord:
     """Run one :class:`Job` (in this process) and summarise it."""
     problem = validation_problem(job.problem, job.pem_path)
+    if dict(job.fields).get("method", "adaptive") not in METHODS:  # a method of one's own: its plugin, in this worker
+        from pemviz.estimators.registry import load_method_plugins
+
+        load_method_plugins()
     cfg = ExperimentConfig(**dict(job.fields), seed=job.seed)
     t0 = time.perf_counter()
     with torch_threads(1, blas=1):  # runs go side by side: a BLAS thread each

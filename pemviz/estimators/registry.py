@@ -1,0 +1,250 @@
+"""The method registry: every estimation method a run can name, the built-in ones and a user's own, registered alike
+(as :mod:`pemviz.scenarios.registry` registers scenarios, and as Gymnasium's ``register`` names environments).
+
+A :class:`Method` is a small record: its name, a one-line description, a builder ``(config, problem, check) ->``
+:class:`pemviz.estimators.base.Estimator`, optionally the plan it states before it is built (for the run's memory
+and time checks) and what it can do (:attr:`Method.weighted`: it keeps importance weights, so its rollouts can be
+saved and re-estimated; :attr:`Method.extensible`: final batches can be added to it by a precision target).
+:func:`register_method` adds one, :func:`method_names` lists the names, :func:`get_method` returns the record.
+
+A user's method joins from a module named by the environment variable :data:`PLUGIN_VARIABLE` (``PEMVIZ_METHODS=
+my_package.my_method``, comma-separated, each module registering at import) or an entry point of the group
+:data:`ENTRY_POINTS`; the commands load them before they read a config (:func:`load_method_plugins`). Then
+``pemviz run --method NAME``, the panel's method menu, ``pemviz validate --methods NAME`` and
+``pemviz.testing.check_estimator(NAME)`` take it as they take the built-in ones.
+
+This module imports no estimator: a builder may be given as the text ``"package.module:name"`` (imported when first
+used), so listing the methods loads no torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from pemviz.settings import METHODS, REGISTERED_METHODS
+
+Ref = Any
+"""An object, or the text ``"package.module:name"`` that names it (imported when first used)."""
+
+PLUGIN_VARIABLE = "PEMVIZ_METHODS"
+"""The environment variable naming modules (comma-separated) that register methods when imported."""
+
+ENTRY_POINTS = "pemviz.methods"
+"""The entry-point group of installed packages' methods: each a :class:`Method`, or a callable that registers some."""
+
+
+class MethodPluginError(ValueError):
+    """A method plugin that cannot be loaded, or raised while registering (one line naming it)."""
+
+
+def resolve(ref: Ref) -> Any:
+    """The object ``ref`` names: ``ref`` itself, or for the text ``"package.module:attr"`` that attribute (imported
+    now).
+
+    Raises:
+        ValueError: a text that is not ``module:name``; ImportError, AttributeError: no such module or name.
+    """
+    if not isinstance(ref, str):
+        return ref
+    module, sep, attr = ref.partition(":")
+    if not sep or not module or not attr:
+        raise ValueError(f"{ref!r} is not 'package.module:name'")
+    obj: Any = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+@dataclass(frozen=True)
+class Method:
+    """One estimation method of the registry.
+
+    Attributes:
+        name: the registry's key (``adaptive``, ``mc``, ``my-method``): what ``--method`` names.
+        description: one line saying what it does (the command line's help and the panel's hint).
+        build: ``build(config, problem, check) -> Estimator``: the estimator of a run of ``config`` (a
+            :class:`pemviz.config.ExperimentConfig`: its seed, budget ``n_per_stage``, ``weights_until_failure``)
+            on ``problem`` (:class:`pemviz.core.problems.Problem`); ``check`` is None or a callable the estimator may
+            call between fits (it raises to cancel the run). The estimator follows the interface of
+            :class:`pemviz.estimators.base.Estimator`. A :data:`Ref`.
+        plan: optional, ``plan(config) -> RunPlan``: the stages the estimator will state, known before it is built
+            (None: one final batch of ``config.n_per_stage``). A :data:`Ref`.
+        weighted: the estimate is a mean of importance weights, so the run's rollouts can be saved
+            (``--save-rollouts``) and re-estimated (``pemviz estimate``); False for splitting, which keeps none.
+        extensible: final batches can be added to it until a relative precision or a decision on a requirement
+            (``--rel-error``, ``--require``; :class:`pemviz.estimators.precision.PrecisionTarget`).
+    Raises:
+        ValueError: an empty name, a name with spaces around it, or a description of several lines.
+    """
+
+    name: str
+    description: str
+    build: Ref
+    plan: Ref = None
+    weighted: bool = True
+    extensible: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
+            raise ValueError(f"Method: name must be a non-empty text without surrounding spaces, got {self.name!r}")
+        if not isinstance(self.description, str) or "\n" in self.description:
+            raise ValueError(f"Method {self.name}: description must be one line of text")
+        if self.build is None:
+            raise ValueError(f"Method {self.name}: a builder (config, problem, check) -> Estimator is needed")
+
+    def builder(self) -> Callable[..., Any]:
+        """The builder (:attr:`build` imported)."""
+        return resolve(self.build)
+
+    def run_plan(self, config: Any) -> Any:
+        """The :class:`pemviz.core.plan.RunPlan` a run of ``config`` states before the estimator is built."""
+        if self.plan is not None:
+            return resolve(self.plan)(config)
+        from pemviz.core.plan import RunPlan
+
+        return RunPlan.of([(1, "final", int(config.n_per_stage))])
+
+
+_REGISTRY: dict[str, Method] = {}
+
+
+def register_method(method: Method, *, replace: bool = False) -> Method:
+    """Add ``method`` to the registry (returned).
+
+    Raises:
+        TypeError: not a :class:`Method`; ValueError: the name is taken (``replace=True`` replaces a method of one's
+            own; a built-in one is never replaced).
+    """
+    if not isinstance(method, Method):
+        raise TypeError(f"register_method: expected a Method, got {type(method).__name__}")
+    if method.name in METHODS and method.name in _REGISTRY and _REGISTRY[method.name] is not method:
+        raise ValueError(f"method {method.name!r} is built in; name yours otherwise")
+    if method.name in _REGISTRY and not replace:
+        raise ValueError(f"method {method.name!r} is already registered (replace=True replaces it)")
+    _REGISTRY[method.name] = method
+    if method.name not in METHODS and method.name not in REGISTERED_METHODS:
+        REGISTERED_METHODS.append(method.name)
+    return method
+
+
+def unregister_method(name: str) -> None:
+    """Remove a method of one's own (a test's); the built-in ones stay.
+
+    Raises:
+        ValueError: a built-in method; KeyError: no method of that name.
+    """
+    if name in METHODS:
+        raise ValueError(f"method {name!r} is built in and stays registered")
+    del _REGISTRY[name]
+    if name in REGISTERED_METHODS:
+        REGISTERED_METHODS.remove(name)
+
+
+_PLUGINS_LOADED = False
+
+
+def load_method_plugins() -> None:
+    """Register the methods of the modules named by :data:`PLUGIN_VARIABLE` and of the installed packages' entry
+    points (:data:`ENTRY_POINTS`), once per process.
+
+    Raises:
+        MethodPluginError: a plugin that cannot be imported or that raised while registering (the next call tries
+            again).
+    """
+    global _PLUGINS_LOADED
+    if _PLUGINS_LOADED:
+        return
+    _PLUGINS_LOADED = True
+    try:
+        for module in (m.strip() for m in os.environ.get(PLUGIN_VARIABLE, "").split(",")):
+            if module:
+                _load(f"{PLUGIN_VARIABLE} module {module}", lambda module=module: importlib.import_module(module))
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group=ENTRY_POINTS):
+            _load(f"entry point {ep.name} ({ep.value}) of group {ENTRY_POINTS}",
+                  lambda ep=ep: _register_object(ep.load()))  # fmt: skip
+    except MethodPluginError:
+        _PLUGINS_LOADED = False
+        raise
+
+
+def _load(what: str, action: Callable[[], object]) -> None:
+    try:
+        action()
+    except MethodPluginError:
+        raise
+    except Exception as exc:  # a plugin's own failure: one line naming it
+        raise MethodPluginError(f"method plugin {what}: {type(exc).__name__}: {exc}") from None
+
+
+def _register_object(obj: object) -> None:
+    """An entry point's object: a :class:`Method` (registered unless one of that name is) or a callable that
+    registers."""
+    if isinstance(obj, Method):
+        if obj.name not in _REGISTRY:
+            register_method(obj)
+    elif callable(obj):
+        obj()
+    else:
+        raise TypeError(f"expected a Method or a callable that registers methods, got {type(obj).__name__}")
+
+
+def method_names() -> tuple[str, ...]:
+    """Every registered method's name, the built-in ones first (plugins loaded first: :func:`load_method_plugins`).
+
+    Raises:
+        MethodPluginError: a plugin that cannot be loaded.
+    """
+    load_method_plugins()
+    return tuple(_REGISTRY)
+
+
+def registered_name(method: str | Method, who: str = "method") -> str:
+    """The name of ``method``, registered: a registered name as it is, a :class:`Method` of one's own registered now
+    (replacing one of its name that is not built in) and kept.
+
+    Raises:
+        ValueError: a name no one registered (the message lists the registered ones), or a built-in name for a
+            method of one's own.
+    """
+    if isinstance(method, Method):
+        if _REGISTRY.get(method.name) is not method:
+            register_method(method, replace=True)
+        return method.name
+    names = method_names()
+    if method not in names:
+        raise ValueError(f"{who}: unknown method {method!r}; use one of {', '.join(names)}")
+    return str(method)
+
+
+def get_method(name: str) -> Method:
+    """The registered :class:`Method` called ``name`` (plugins loaded first).
+
+    Raises:
+        KeyError: no method of that name (the message lists the registered ones); MethodPluginError: a plugin that
+            cannot be loaded.
+    """
+    load_method_plugins()
+    if name not in _REGISTRY:
+        raise KeyError(f"no method named {name!r}; registered: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+for _method in (
+    Method("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
+           "pemviz.estimators.builtin:adaptive", plan="pemviz.estimators.builtin:adaptive_plan"),
+    Method("mc", "rollouts with the PEM itself (plain Monte Carlo)", "pemviz.estimators.builtin:mc"),
+    Method("naive50", "a 50 % detector at every step", "pemviz.estimators.builtin:naive50"),
+    Method("mixed50", "50 % inside the window and the PEM outside", "pemviz.estimators.builtin:mixed50"),
+    Method("ams", "adaptive multilevel splitting on the robustness, no importance weights",
+           "pemviz.estimators.builtin:ams", plan="pemviz.estimators.builtin:ams_plan", weighted=False,
+           extensible=False),
+    Method("tilt", "the scenario's own proposal: each step's events tilted by an approximate probability of failure "
+           "after them", "pemviz.estimators.builtin:tilt"),
+):  # fmt: skip
+    register_method(_method)
+del _method

@@ -1,0 +1,144 @@
+"""A method of one's own, registered from a module as the guide says (:mod:`tests.estimators.user_method`), runs
+wherever a built-in one does: ``pemviz run --method``, its rollout file and recording, ``pemviz estimate``,
+``pemviz validate`` and ``pemviz.testing.check_estimator`` (by name or as a ``Method`` object); a bad plugin or name is
+one line."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.estimators import build_estimator, method_names, run_plan
+from pemviz.estimators.fixed import FixedSampler
+from pemviz.estimators.registry import Method, get_method, register_method, registered_name, unregister_method
+from pemviz.testing import check_estimator
+
+HERE = Path(__file__).resolve().parent
+
+
+@pytest.fixture
+def defensive():
+    from . import user_method
+
+    register_method(user_method.METHOD, replace=True)
+    yield user_method.METHOD
+    unregister_method("defensive-mc")
+
+
+def _pemviz(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PEMVIZ_METHODS": "user_method", "PYTHONPATH": str(HERE)}
+    return subprocess.run([sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=600)  # fmt: skip
+
+
+def test_the_built_in_methods_are_registered_records():
+    assert method_names()[:6] == ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt")
+    assert not get_method("ams").weighted and not get_method("ams").extensible
+    assert all(get_method(m).weighted for m in ("adaptive", "mc", "naive50", "mixed50", "tilt"))
+    with pytest.raises(ValueError, match="built in"):
+        register_method(Method("mc", "mine", "x:y"))
+    with pytest.raises(ValueError, match="built in and stays"):
+        unregister_method("adaptive")
+    with pytest.raises(ValueError, match="check_estimator: unknown method 'nope'; use one of adaptive, mc"):
+        registered_name("nope", "check_estimator")
+
+
+def test_a_registered_method_is_a_config_method_and_builds(defensive):
+    assert "defensive-mc" in method_names()
+    cfg = ExperimentConfig(method="defensive-mc", scenario="braking", n_per_stage=500)
+    assert run_plan(cfg).stages[-1].n_rollouts == 500
+    from pemviz.scenarios.problems import build_problem
+
+    est = build_estimator(cfg, build_problem("toy-1e-3"))
+    assert isinstance(est, FixedSampler) and est.sampler.eps == 0.3
+    unregister_method("defensive-mc")
+    with pytest.raises(ConfigError, match="method = 'defensive-mc' is invalid: use one of adaptive, mc, naive50"):
+        ExperimentConfig(method="defensive-mc")
+    register_method(defensive)
+
+
+def test_check_estimator_takes_a_registered_name_and_a_method_object(defensive, tmp_path):
+    report = check_estimator("defensive-mc", folder=tmp_path / "a")
+    assert {"interface", "unbiased", "verdicts", "rollout-file", "recording"} <= set(report.passed)
+    unregister_method("defensive-mc")
+    report = check_estimator(defensive, folder=tmp_path / "b")  # the object itself: registered by the check
+    assert "unbiased" in report.passed and "defensive-mc" in method_names()
+
+    def biased(config, problem, check=None):  # the same sampler, its estimate doubled: caught
+        est = defensive.builder()(config, problem, check)
+        result = est.result
+
+        def doubled():
+            mu, used = result()
+            return dataclasses.replace(mu, log_mu_hat=mu.log_mu_hat + math.log(2.0)), used
+
+        est.result = doubled
+        return est
+
+    from pemviz.testing import ConformanceError
+
+    with pytest.raises(ConformanceError, match=r"check_estimator\('doubled'\): (unbiased|rollout-file): "):
+        check_estimator(Method("doubled", "defensive-mc, every weight doubled", biased), folder=tmp_path / "c")
+    unregister_method("doubled")
+
+
+def test_pemviz_run_records_and_re_estimates_a_method_of_ones_own(tmp_path):
+    proc = _pemviz("run", "--scenario", "toy", "--param", "total=10", "--param", "braking=5", "--param", "safe=3",
+                   "--method", "defensive-mc", "--n", "3000", "--seed", "2",
+                   "--save-rollouts", "r.parquet", "--save", "r.rrd", "--json", "r.json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "defensive-mc" in proc.stdout + proc.stderr
+    result = json.loads((tmp_path / "r.json").read_text())
+    assert result["method"] == "defensive-mc"
+    assert result["estimate"]["p"] == pytest.approx(1e-3, rel=0.5)  # the toy (10, 5, 3, p = 0.9): exactly 1e-3
+    assert (tmp_path / "r.rrd").stat().st_size > 0
+    again = _pemviz("estimate", "r.parquet", "--no-record", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    log_mu = result["estimate"]["log_p"]
+    assert f"log mu_hat = {log_mu!r} nats" in again.stdout
+
+
+def test_pemviz_validate_runs_a_method_of_ones_own(tmp_path):
+    proc = _pemviz("validate", "--problems", "toy-1e-3", "--presets", "", "--baselines", "defensive-mc",
+                   "--seeds", "2", "--out", "v", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    table = (tmp_path / "v" / "validate.md").read_text()
+    assert "defensive-mc" in table and "toy-1e-3" in table
+
+
+def test_a_bad_method_plugin_or_name_is_one_line(tmp_path):
+    (tmp_path / "broken.py").write_text("raise RuntimeError('boom')\n")
+    env = {**os.environ, "PEMVIZ_METHODS": "broken", "PYTHONPATH": str(tmp_path)}
+    proc = subprocess.run([sys.executable, "-m", "pemviz.cli", "run", "--method", "mine", "--no-record"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "method plugin PEMVIZ_METHODS module broken: RuntimeError: boom" in proc.stderr
+    proc = _pemviz("run", "--method", "defensive", "--no-record", cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "use one of adaptive, mc, naive50, mixed50, ams, tilt, defensive-mc" in proc.stderr
+
+
+def test_the_guide_shows_this_very_module():
+    from conftest import doc_python_block
+
+    assert doc_python_block("own-simulator.md", "### A method of your own") == (HERE / "user_method.py").read_text()
+
+
+def test_a_method_that_cannot_add_batches_refuses_a_stop_rule(defensive):
+    from dataclasses import replace
+
+    register_method(replace(defensive, name="one-batch", extensible=False))
+    try:
+        with pytest.raises(ValueError, match="method one-batch cannot add final batches: --rel-error and --require"):
+            run_plan(ExperimentConfig(method="one-batch", rel_error=0.2))
+        assert run_plan(ExperimentConfig(method="defensive-mc", rel_error=0.2)).open_ended
+    finally:
+        unregister_method("one-batch")
