@@ -14,10 +14,18 @@ seconds, milliseconds or minutes, which differ from machine to machine), its tex
 ``...`` standing for any elided text. Every other number must be the same: the seed contract makes a run the same bits
 on every machine. ``tests/test_quoted_outputs.py`` runs the same check in the test command.
 
+The screenshots of ``assets/screenshots/`` are made the same way, by the commands of one table
+(``SCREENSHOTS`` in ``benchmarks/screenshots.py``); ``--screenshots`` runs them all and rewrites
+``assets/screenshots/MANIFEST.md`` (each image's command, commit and date). It needs Debian's ``chromium`` and takes
+about 5 min on 2 cores; ``tests/test_screenshot_manifest.py`` checks the table and makes the cheapest two.
+
 Usage::
 
     python benchmarks/docs_assets.py            # which quoted blocks are stale (exit 1 if any)
     python benchmarks/docs_assets.py --write    # rewrite the stale ones from the commands' output
+    python benchmarks/docs_assets.py --screenshots                  # remake every screenshot and the manifest
+    python benchmarks/docs_assets.py --screenshots --only panel_cut_in.png viser_panel  # the entries making these
+    python benchmarks/docs_assets.py --write --screenshots          # both: every asset of the docs
 """
 
 from __future__ import annotations
@@ -125,7 +133,20 @@ def fresh_lines(block: Block, output: str, width: int = 118) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--write", action="store_true", help="rewrite the stale blocks")
+    ap.add_argument("--screenshots", action="store_true",
+                    help="remake the screenshots of benchmarks/screenshots.py's table and their manifest "
+                         "(the quoted blocks too only with --write)")  # fmt: skip
+    ap.add_argument("--only", nargs="+", metavar="NAME", default=None,
+                    help="with --screenshots: only the entries that make these images")  # fmt: skip
     a = ap.parse_args(argv)
+    if a.only and not a.screenshots:
+        ap.error("--only needs --screenshots")
+    if a.screenshots:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from screenshots import regenerate
+
+        shots = regenerate(a.only)
+        return max(shots, main(["--write"]) if a.write else 0)
     outputs: dict[str, str] = {}
     stale = 0
     for path in documents():

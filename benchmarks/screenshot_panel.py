@@ -2,11 +2,11 @@
 
     python benchmarks/screenshot_panel.py                        # writes assets/screenshots/viser_panel.png
     python benchmarks/screenshot_panel.py --preset quick --k 6 --out /tmp/panel.png
-    python benchmarks/screenshot_panel.py --preset state-ce --k 10 --metric agm --set alpha=0.2 --set sigma=0.9 \
-        --width 1400 --height 900 --out assets/screenshots/panel_explain.png \
-        --live-out assets/screenshots/panel_live.png --scene-out assets/screenshots/panel_scene.png
     python benchmarks/screenshot_panel.py --scenario cut-in --k 3 --set N=60 --set N_e=60 --set seed=1 \
-        --width 1400 --height 900 --out assets/screenshots/panel_cut_in.png
+        --width 1400 --height 900 --out /tmp/panel_cut_in.png
+
+The commands that make the docs' panel screenshots are in the table of ``benchmarks/screenshots.py``;
+``python benchmarks/docs_assets.py --screenshots`` runs them all and rewrites ``assets/screenshots/MANIFEST.md``.
 
 What it does: starts the panel (:class:`pemviz.app.PanelApp`, 127.0.0.1, a free port), opens it in
 Chromium (Debian's ``chromium`` driven by Playwright, with ``--headless --no-sandbox --disable-gpu

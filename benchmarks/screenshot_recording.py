@@ -4,6 +4,9 @@
     python benchmarks/screenshot_recording.py --rrd recordings/x.rrd --tab all
     python benchmarks/screenshot_recording.py --rrd x.rrd --tab explain --out /tmp/explain.png
 
+The commands that make the docs' recording screenshots are in the table of ``benchmarks/screenshots.py``;
+``python benchmarks/docs_assets.py --screenshots`` runs them all and rewrites ``assets/screenshots/MANIFEST.md``.
+
 ``--tab`` picks the blueprint tab shown (:data:`pemviz.sinks.rerun_blueprint.TABS`): ``stages`` (the recording's own
 layout, timeline ``stage``) -> ``assets/screenshots/rerun_recording.png``, ``rollouts`` (timeline ``step``) ->
 ``rerun_recording_step.png``, ``explain`` (timeline ``step``) -> ``rerun_recording_explain.png``; ``all`` makes the

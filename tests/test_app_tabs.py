@@ -213,6 +213,6 @@ def test_the_cut_in_story_tells_a_hand_made_rollout_step_by_step():
                          "boxes overlap)")
     assert st.acc.accel_mps2.tolist() == [0, 0, 0, -6, -6] and st.acc.followed.tolist() == [-1, -1, -1, 0, 0]
     assert "Its box entered the ego's lane at 0.20 s (step 2), 10.0 m ahead." in st.text
-    assert "it was missed at 1" in st.text and "lateral error up to 2.50 m" in st.text
+    assert "it was missed at 1 of them" in st.text and "lateral error up to 2.50 m" in st.text
     assert "The ACC first followed it at 0.30 s, 0.10 s after it entered the lane." in st.text
     assert "Contact at 0.40 s (step 4) at a closing speed of 3.0 m/s" in st.text

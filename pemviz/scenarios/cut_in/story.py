@@ -278,7 +278,7 @@ def cut_in_story(observations: np.ndarray, observation_names: tuple[str, ...], r
         seen = f"The camera first detected it at {at(first_det)}"
         if span.size:
             until = "the ACC followed it" if stop == follow else ("the failure" if sev.failed else "the end")
-            missed = "at none" if misses == 0 else f"at {misses}"
+            missed = "at none of them" if misses == 0 else f"at {misses} of them"
             seen += f"; of the {span.size} steps from its lane entry until {until}, it was missed {missed}"
         s.append(seen + ".")
     if track is None:

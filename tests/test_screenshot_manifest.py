@@ -1,0 +1,56 @@
+"""Every screenshot of the README and the user guide is made by a command of one table (``SCREENSHOTS`` in
+``benchmarks/screenshots.py``, run by ``python benchmarks/docs_assets.py --screenshots``) and listed in
+``assets/screenshots/MANIFEST.md`` with that command; the generation itself is checked, not the pixels: the cheapest
+panel and recording screenshots of the table are made into a temporary folder, small (about 40 s on 2 cores)."""
+
+from __future__ import annotations
+
+import re
+import shutil
+
+import pytest
+
+from conftest import REPO, load_script
+
+shots = load_script(REPO / "benchmarks" / "screenshots.py")
+CHEAPEST = {
+    "viser_panel.png": ("--width", "800", "--height", "500"),
+    "rerun_recording.png": ("--width", "800", "--height", "500", "--min-wait", "3", "--max-wait", "60"),
+}
+"""The cheapest panel and recording screenshot of the table (one command each: a quick run; the recording's own tab,
+no blueprint), and what the check adds to its command: a small window, a short wait."""
+REFERENCE = re.compile(r"(?:assets/)?screenshots/([\w.-]+\.png)")
+
+
+def test_every_image_is_in_the_table_and_the_manifest_and_every_entry_exists() -> None:
+    table = shots.by_image()
+    on_disk = {p.name for p in shots.SHOTS.glob("*.png")}
+    assert len(table) == sum(len(s.images) for s in shots.SCREENSHOTS), "an image is in two entries of the table"
+    assert not on_disk - set(table), f"images no command of the table makes: {sorted(on_disk - set(table))}"
+    assert not set(table) - on_disk, f"table entries without their image: {sorted(set(table) - on_disk)}"
+    rows = shots.manifest_rows()
+    assert set(rows) == set(table), f"MANIFEST.md lists {sorted(set(rows) ^ set(table))} differently from the table"
+    stale = [image for image, (command, commit, _) in rows.items()
+             if command != shots.shown(table[image]) or commit == shots.NOT_MADE]  # fmt: skip
+    assert not stale, f"not made by the table's command (run python benchmarks/docs_assets.py --screenshots): {stale}"
+
+
+def test_every_image_the_readme_and_the_guide_show_is_in_the_table() -> None:
+    table = shots.by_image()
+    documents = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    referenced = {(d.name, m.group(1)) for d in documents for m in REFERENCE.finditer(d.read_text())}
+    assert {image for _, image in referenced} >= {"viser_panel.png", "rerun_recording_explain.png"}
+    missing = sorted((doc, image) for doc, image in referenced if image not in table)
+    assert not missing, f"images the docs show that no command of the table makes: {missing}"
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None and shutil.which("chromium-browser") is None,
+                    reason="Debian's chromium is not on PATH (apt-get install chromium; CI installs it)")  # fmt: skip
+@pytest.mark.parametrize("image", sorted(CHEAPEST))
+def test_the_cheapest_screenshots_of_the_table_are_made(image, tmp_path) -> None:
+    pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
+    shot = shots.by_image()[image]
+    assert shot.images == (image,) and len(shot.commands) == 1, "the check runs one command that makes one image"
+    (png,) = shots.run_shot(shot, out=tmp_path, extra=CHEAPEST[image], timeout=240, quiet=True)
+    assert png == tmp_path / image and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    assert not list(tmp_path.glob("*.partial.png"))
