@@ -21,6 +21,7 @@ import viser.uplot as up
 from pemviz.app.drawing import LaneExplanation
 from pemviz.app.html import GREY as GREY_BOX
 from pemviz.app.html import box
+from pemviz.estimators.registry import plain_method
 from pemviz.app.plots import (
     LEGEND,
     _points,
@@ -189,7 +190,7 @@ def fill_marginal_plots(plots: dict[str, viser.GuiUplotHandle], record: PanelRun
     n_colour = stage_span(record.plan)
     x = last.centres_m
     x_range = (float(last.edges_m[0]), float(last.edges_m[-1]))
-    plain_mc = cfg.method == "mc"
+    plain_mc = plain_method(cfg.method)
     standing_signal = axis.standing_signal
     whose = "" if standing_signal is not None else f" of {axis.subject}"
     who = "plain Monte Carlo: the rollouts are the PEM's own (q = p)" if plain_mc else (

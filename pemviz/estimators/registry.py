@@ -76,6 +76,10 @@ class Method:
             (``--save-rollouts``) and re-estimated (``pemviz estimate``); False for splitting, which keeps none.
         extensible: final batches can be added to it until a relative precision or a decision on a requirement
             (``--rel-error``, ``--require``; :class:`pemviz.estimators.precision.PrecisionTarget`).
+        plain: it draws every rollout from the target itself (q = p, weights 1): plain Monte Carlo, whose own speed
+            is a plain rollout's and whose failures are binomial (the console's advice, the requirement's decision).
+        array_rqmc: its batches may be drawn by Array-RQMC (``ExperimentConfig.uniforms``); False for i.i.d.
+            particles (splitting).
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
@@ -86,6 +90,8 @@ class Method:
     plan: Ref = None
     weighted: bool = True
     extensible: bool = True
+    plain: bool = False
+    array_rqmc: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -221,6 +227,13 @@ def registered_name(method: str | Method, who: str = "method") -> str:
     return str(method)
 
 
+def plain_method(name: str) -> bool:
+    """Whether the method called ``name`` draws from the target itself (:attr:`Method.plain`); False for a name no one
+    registered."""
+    method = _REGISTRY.get(name)
+    return bool(method is not None and method.plain)
+
+
 def get_method(name: str) -> Method:
     """The registered :class:`Method` called ``name`` (plugins loaded first).
 
@@ -237,12 +250,12 @@ def get_method(name: str) -> Method:
 for _method in (
     Method("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
            "pemviz.estimators.builtin:adaptive", plan="pemviz.estimators.builtin:adaptive_plan"),
-    Method("mc", "rollouts with the PEM itself (plain Monte Carlo)", "pemviz.estimators.builtin:mc"),
+    Method("mc", "rollouts with the PEM itself (plain Monte Carlo)", "pemviz.estimators.builtin:mc", plain=True),
     Method("naive50", "a 50 % detector at every step", "pemviz.estimators.builtin:naive50"),
     Method("mixed50", "50 % inside the window and the PEM outside", "pemviz.estimators.builtin:mixed50"),
     Method("ams", "adaptive multilevel splitting on the robustness, no importance weights",
            "pemviz.estimators.builtin:ams", plan="pemviz.estimators.builtin:ams_plan", weighted=False,
-           extensible=False),
+           extensible=False, array_rqmc=False),
     Method("tilt", "the scenario's own proposal: each step's events tilted by an approximate probability of failure "
            "after them", "pemviz.estimators.builtin:tilt"),
 ):  # fmt: skip

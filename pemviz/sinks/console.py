@@ -12,6 +12,7 @@ from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_pr
 from pemviz.core.severity import FailureSeverity
 from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
+from pemviz.estimators.registry import plain_method
 from pemviz.sinks import Sink, StageClock
 
 __all__ = ["ConsoleSink", "HEADER", "McRoute", "duration_text", "estimate_cells", "final_lines", "mc_rollouts",
@@ -123,7 +124,7 @@ def _rate_text(s_per: float, method: str) -> str:
     method ``~0.2 ms a plain rollout (measured here after the run)`` (``method`` :data:`PROBED`: the engine's probe)
     or ``~0.2 ms a plain rollout (this run's speed, by the cost model)``: :func:`plain_rollout_seconds`."""
     rate = f"{s_per * 1e3:.2g} ms" if s_per < 1.0 else f"{s_per:.2g} s"
-    if method == "mc":
+    if plain_method(method):
         return f"this run's {rate} a rollout"
     if method == PROBED:
         return f"~{rate} a plain rollout (measured here after the run)"
@@ -239,7 +240,7 @@ def mc_route(e: Estimate, method: str, exact_log_p: float | None = None, referen
     if not log_p > -math.inf:
         return None
     n = mc_rollouts(log_p)
-    upper = source.startswith("this run's") and method != "mc"
+    upper = source.startswith("this run's") and not plain_method(method)
     n_floor = mc_rollouts(floor) if floor is not None and upper else math.nan
     return McRoute(log_p, source, upper, n, n * s_per if s_per is not None else None,
                    floor if upper else None, n_floor)  # fmt: skip
@@ -318,13 +319,13 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
     method = getattr(config, "method", "adaptive")
     s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
-    rate = PROBED if plain_s is not None and method != "mc" else method  # how mc_s was had, for the text
+    rate = PROBED if plain_s is not None and not plain_method(method) else method  # how mc_s was had, for the text
     max_time = getattr(config, "max_time_s", None)
     route = mc_route(e, method, exact_log_p, reference, mc_s)
     budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
     if max_time is not None and mc_s is not None:
         budget = min(budget, max_time / mc_s)
-    if method == "mc":
+    if plain_method(method):
         return _after_mc(e, config, route, s_per, max_time)
     heavy = (f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it)"
              if e.khat > KHAT_UNRELIABLE else "")  # fmt: skip
