@@ -209,20 +209,16 @@ def test_bad_requirement_flags_are_one_line(tmp_path, args, message):
 def test_distinct_outputs_pass_and_a_clash_names_both_flags(tmp_path):
     """Every output a run can write, with distinct names, passes; the same file reached by two flags (a report's
     Markdown twin given as --json's name would need a .json twin, so a recording's result document is used) fails."""
-    import argparse
-
     from pemviz.commands import UsageError
-    from pemviz.commands.run import distinct_outputs
+    from pemviz.commands.run_outputs import RunOutputs, check_distinct
 
-    sink = argparse.Namespace(path=tmp_path / "b.parquet")
-    files = (tmp_path / "r.json", tmp_path / "r.xml", tmp_path / "r.html")
-    distinct_outputs(argparse.Namespace(), tmp_path / "r.rrd", sink, files)  # r.result.json, b.rollouts.json, r.md
-    distinct_outputs(argparse.Namespace(), None, sink, (tmp_path / "b.json", None, None))  # --json b.json: its own
+    check_distinct(RunOutputs(tmp_path / "r.rrd", tmp_path / "b.parquet", tmp_path / "r.json", tmp_path / "r.xml",
+                              tmp_path / "r.html"))  # r.result.json, b.rollouts.json, r.md: all distinct
+    check_distinct(RunOutputs(None, tmp_path / "b.parquet", tmp_path / "b.json"))  # --json b.json: its own
     with pytest.raises(UsageError, match=r"--json and --save \(its result document\) both write .*r.result.json"):
-        distinct_outputs(argparse.Namespace(), tmp_path / "r.rrd", None, (tmp_path / "r.result.json", None, None))
+        check_distinct(RunOutputs(tmp_path / "r.rrd", json=tmp_path / "r.result.json"))
     with pytest.raises(UsageError, match=r"--json and --save-rollouts \(its sidecar\) both write"):
-        distinct_outputs(argparse.Namespace(), None, argparse.Namespace(path=tmp_path / "x" / ".." / "b.parquet"),
-                         (tmp_path / "b.rollouts.json", None, None))  # fmt: skip
+        check_distinct(RunOutputs(rollouts=tmp_path / "x" / ".." / "b.parquet", json=tmp_path / "b.rollouts.json"))
 
 
 def test_the_ci_page_s_job_runs_as_written(tmp_path):

@@ -5,27 +5,25 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import os
 import shlex
 import socket
 import sys
 from datetime import datetime
 from pathlib import Path
-from typing import Any
 from urllib.parse import quote, urlsplit
 
+from pemviz.commands.run_outputs import RunOutputs, plan_outputs
 from pemviz.commands import (
     COMMANDS,
     UsageError,
     add_setting,
-    check_save_path,
     interrupted,
     pem_argument,
     setting_error,
 )
 from pemviz.config import METHODS, SCENARIOS, SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
-from pemviz.io.files import check_output_folder, check_output_path, free_default_path
+from pemviz.io.files import free_default_path
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 # The parser needs only the light modules above: torch, rerun, the engine, the sinks and pyarrow are imported in
@@ -265,73 +263,6 @@ def serve(args: argparse.Namespace):
     return sink
 
 
-def result_paths(args: argparse.Namespace, cfg: ExperimentConfig) -> tuple[Path | None, Path | None, Path | None]:
-    """The ``--json``, ``--junit`` and ``--report`` paths (the report's Markdown twin checked too), checked before
-    any work (nothing is created).
-
-    Raises:
-        UsageError: a path that cannot be written, or ``--junit`` without ``--require``.
-    """
-    paths = []
-    report = getattr(args, "report_path", None)
-    if report is not None:
-        from pemviz.sinks.report import markdown_twin
-
-        try:
-            check_output_path(markdown_twin(Path(report)), ".md", "--report (its Markdown twin)",
-                              overwrite=args.overwrite)  # fmt: skip
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
-    for flag, value, suffix in (("--json", args.json_path, ".json"), ("--junit", args.junit_path, ".xml"),
-                                ("--report", report, ".html")):  # fmt: skip
-        if value is None:
-            paths.append(None)
-            continue
-        if flag == "--junit" and cfg.require is None:
-            raise UsageError("--junit writes a requirement as a test case: give one with --require, e.g. "
-                             "--require 'p < 1e-9'")  # fmt: skip
-        try:
-            paths.append(check_output_path(value, suffix, flag, overwrite=args.overwrite))
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
-    return paths[0], paths[1], paths[2]
-
-
-def distinct_outputs(args: argparse.Namespace, save_path: Path | None, rollout_sink: Any,
-                     result_files: tuple[Path | None, Path | None, Path | None]) -> None:  # fmt: skip
-    """Refuse, before any work, two outputs of one run that name the same file (e.g. ``--save-rollouts b.parquet``,
-    whose sidecar is ``b.rollouts.json``, with ``--json b.rollouts.json``): the second would replace the first at the
-    end of the run.
-
-    Raises:
-        UsageError: naming both flags and the file.
-    """
-    from pemviz.io.result import result_beside
-    from pemviz.io.rollout_format import proposal_path, sidecar_path
-
-    named: list[tuple[str, Path]] = []
-    if save_path is not None:
-        named += [("--save", save_path), ("--save (its result document)", result_beside(save_path))]
-    if rollout_sink is not None:
-        path = rollout_sink.path
-        named += [("--save-rollouts", path), ("--save-rollouts (its sidecar)", sidecar_path(path)),
-                  ("--save-rollouts (its proposal checkpoint)", proposal_path(path))]  # fmt: skip
-    json_path, junit_path, report_path = result_files
-    for flag, path in (("--json", json_path), ("--junit", junit_path), ("--report", report_path)):
-        if path is not None:
-            named.append((flag, path))
-    if report_path is not None:
-        from pemviz.sinks.report import markdown_twin
-
-        named.append(("--report (its Markdown twin)", markdown_twin(report_path)))
-    seen: dict[Path, str] = {}
-    for flag, path in named:
-        key = Path(os.path.abspath(path))
-        if key in seen:
-            raise UsageError(f"{flag} and {seen[key]} both write {path}: give each output its own name")
-        seen[key] = flag
-
-
 def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
     """The files a run reads, each ``{"what", "path", "sha256"}``: the detection PEM, and the noise PEM on a scene
     with measurement errors (the cut-in)."""
@@ -375,32 +306,33 @@ def result_lines(cfg: ExperimentConfig, problem, final, why: str | None = None, 
     return lines, doc
 
 
-def write_results(args: argparse.Namespace, lines: list[str], doc: dict, recording: str | None,
-                  paths: tuple[Path | None, Path | None, Path | None], saved: Path | None = None) -> None:
+def write_results(lines: list[str], doc: dict, recording: str | None, outputs: RunOutputs,
+                  saved: Path | None = None) -> None:
     """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where; with a ``saved`` recording its
     result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads).
 
     ``lines`` and ``doc``: :func:`result_lines`'; ``recording``: where the recording went (a path or a URL; None:
-    nowhere), set as the document's ``recording``; ``paths``: :func:`result_paths`'.
+    nowhere), set as the document's ``recording``; ``outputs``: the run's files (:func:`plan_outputs`).
 
     Raises:
         OSError, pemviz.io.files.OutputExists: a file that could not be written (nothing partial is left).
     """
     from pemviz.io.result import result_beside, write_junit, write_result_json
 
-    json_path, junit_path, report_path = paths
+    json_path, junit_path, report_path = outputs.result_files
+    overwrite = outputs.overwrite
     doc["recording"] = recording
     if json_path is not None:
-        print(f"result: {write_result_json(json_path, doc, overwrite=args.overwrite)}", file=sys.stderr)
+        print(f"result: {write_result_json(json_path, doc, overwrite=overwrite)}", file=sys.stderr)
     if saved is not None:
-        print(f"result: {write_result_json(result_beside(saved), doc, overwrite=args.overwrite)}", file=sys.stderr)
+        print(f"result: {write_result_json(result_beside(saved), doc, overwrite=overwrite)}", file=sys.stderr)
     if junit_path is not None:
         console = "\n".join(line for line in lines[1:] if line.startswith(("mu_hat", "no failure", "stop:")))
-        print(f"junit: {write_junit(junit_path, doc, console, overwrite=args.overwrite)}", file=sys.stderr)
+        print(f"junit: {write_junit(junit_path, doc, console, overwrite=overwrite)}", file=sys.stderr)
     if report_path is not None:
         from pemviz.sinks.report import write_report
 
-        page, twin = write_report(report_path, doc, overwrite=args.overwrite)
+        page, twin = write_report(report_path, doc, overwrite=overwrite)
         print(f"report: {page} (and {twin})", file=sys.stderr)
 
 
@@ -422,74 +354,45 @@ def main(args: argparse.Namespace) -> int:
         from pemviz.engine.executors import probe_ray_address
 
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
+    target = recording_target(args)
+    default = default_recording_path(cfg, args.preset or DEFAULT_PRESET) if target == "save" and args.save is None \
+        else None
+    outputs = plan_outputs(args, cfg, target, default)  # every file the run writes, checked once, before any work
     rollout_sink = None
-    if args.save_rollouts is not None:
-        from pemviz.estimators.registry import get_method
-
-        if not get_method(cfg.method).weighted:
-            raise UsageError(f"--save-rollouts: method {cfg.method} estimates without importance weights; its "
-                             "rollouts cannot be estimated from again (use an importance-sampling method)")
+    if outputs.rollouts is not None:
         from pemviz.sinks.rollouts import RolloutSink
 
         try:
-            rollout_sink = RolloutSink(args.save_rollouts, pem=cfg.pem, overwrite=args.overwrite,
+            rollout_sink = RolloutSink(outputs.rollouts, pem=cfg.pem, overwrite=outputs.overwrite,
                                        stages=args.rollout_stages)  # fmt: skip
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-
-    result_files = result_paths(args, cfg)
-    target = recording_target(args)
     if cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.executor == "serial":  # "save": the child's
         from pemviz.sinks.process import settle_pyarrow_without_pandas
 
         settle_pyarrow_without_pandas()
-    save_path = None
-    if target == "save":
-        from pemviz.io.result import result_beside  # the recording's result document, written beside it at the end
-
-        if args.save is None:  # recordings/ is made once every check has passed
-            save_path = default_recording_path(cfg, args.preset or DEFAULT_PRESET)
-            try:
-                check_output_folder(save_path.parent, (save_path.name, result_beside(save_path).name),
-                                    "recording folder")  # fmt: skip
-            except ValueError as exc:
-                raise UsageError(str(exc)) from None
-        else:
-            save_path = check_save_path(Path(args.save), args.overwrite)
-            try:
-                check_output_path(result_beside(save_path), ".json", "--save (the recording's result document)",
-                                  overwrite=args.overwrite)  # fmt: skip
-            except ValueError as exc:
-                raise UsageError(str(exc)) from None
-    elif target == "connect":
+    save_path = outputs.recording
+    if target == "connect":
         args.url = probe_viewer(args.url)
-    distinct_outputs(args, save_path, rollout_sink, result_files)
     early = None
     if target == "save" and cli.AS_PROGRAM and cfg.executor == "serial":
         from pemviz.sinks.recording_process import RecordingProcess  # rerun imported beside the run, not before it
 
         save_path.parent.mkdir(parents=True, exist_ok=True)
-        early = RecordingProcess(save_path, overwrite=args.overwrite)
+        early = RecordingProcess(save_path, overwrite=outputs.overwrite)
     try:
-        return _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_files)
+        return _run_experiment(args, cfg, target, outputs, early, rollout_sink)
     except BaseException:
         if early is not None:
             early.close(commit=False)  # idempotent: closed already where the run got that far
         raise
 
 
-def unwritten(rollout_sink: object, result_files: tuple[Path | None, Path | None, Path | None]) -> str:
-    """``not written: r.parquet (--save-rollouts), r.json (--json)``: the outputs asked for that a run interrupted
-    in its stages does not write (a rollout file keeps only a finished run's rollouts); empty when none was asked."""
-    asked = [(getattr(rollout_sink, "path", None), "--save-rollouts"),
-             *zip(result_files, ("--json", "--junit", "--report"), strict=False)]  # fmt: skip
-    names = [f"{path} ({flag})" for path, flag in asked if path is not None]
-    return f"not written: {', '.join(names)}" if names else ""
-
-
-def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_files) -> int:
-    """The run itself, its listeners and its files (:func:`run`); ``early``: the recording process started before
-    the problem was built, or None."""
+def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink) -> int:
+    """The run itself, its listeners and its files (:func:`main`), written where ``outputs`` says
+    (:func:`pemviz.commands.run_outputs.plan_outputs`); ``early``: the recording process started before the problem was
+    built, or None."""
+    save_path, result_files = outputs.recording, outputs.result_files
     from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.engine.cost import N_STEPS
     from pemviz.engine.resources import torch_threads
@@ -520,7 +423,7 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
 
         if target == "save":
             save_path.parent.mkdir(parents=True, exist_ok=True)
-            recorder = RerunSink.to_file(save_path, overwrite=args.overwrite)
+            recorder = RerunSink.to_file(save_path, overwrite=outputs.overwrite)
         elif target == "stdout":
             recorder = RerunSink.to_stdout()
         elif target == "connect":
@@ -547,7 +450,7 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
         where = recorder.close() if recorder is not None else None
         done = f"{len(experiment.stages)} stage(s) finished"
         said = [f"recording {where} (marked interrupted)"] if where else []
-        said += [lost] if (lost := unwritten(rollout_sink, result_files)) else []
+        said += [lost] if (lost := outputs.unwritten()) else []
         raise interrupted(exc, "; ".join([done, *(said or ["nothing written"])])) from None
     except BaseException:
         if recorder is not None:
@@ -588,7 +491,7 @@ def _run_experiment(args, cfg, target, save_path, early, rollout_sink, result_fi
                 print(f"recording: {where}", file=sys.stderr)
         saved = Path(where) if where is not None and target == "save" else None
         if results is not None and (saved is not None or any(path is not None for path in result_files)):
-            write_results(args, *results, str(where) if where is not None else None, result_files, saved)
+            write_results(*results, str(where) if where is not None else None, outputs, saved)
         if cfg.require is not None and final is not None and final.decision is not None:
             from pemviz.core.requirement import EXIT_CODES
 
