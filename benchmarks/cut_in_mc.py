@@ -4,12 +4,12 @@ Each step, for every rollout and object: the detection PEM (``pemviz.pem.load_pe
 p(detected | salient variables) of the object row's 11 KITTI columns; the object is detected iff ``u < p`` and it is
 visible; the noise PEM (``pemviz.pem.store.load_noise_pem("hetero-t")``: Student-t range and lateral errors, metres)
 draws its measurement error. The rollout fails when the robustness of
-:data:`pemviz.scenarios.cut_in.FAILURE_FORMULA` is negative (pemviz's STL, classic semantics). The estimate is the
-failure fraction with its Clopper-Pearson 95 % interval (:func:`pemviz.core.estimate.estimate` with unit weights).
+:data:`pemviz.scenarios.cut_in.scenario.FAILURE_FORMULA` is negative (pemviz's STL, classic semantics). The estimate is
+the failure fraction with its Clopper-Pearson 95 % interval (:func:`pemviz.core.estimate.estimate` with unit weights).
 
-Settings (``--setting``): ``default`` (:class:`~pemviz.scenarios.cut_in.CutInParams` as it is), ``moderate`` and
-``rare`` (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`), with ``--set NAME=VALUE`` overrides. Run from the
-repository root, e.g.:
+Settings (``--setting``): ``default`` (:class:`~pemviz.scenarios.cut_in.scenario.CutInParams` as it is), ``moderate``
+and ``rare`` (:data:`pemviz.scenarios.cut_in.scenario.RARITY_SETTINGS`), with ``--set NAME=VALUE`` overrides. Run from
+the repository root, e.g.:
 
     python benchmarks/cut_in_mc.py --setting moderate --n 1000000
     python benchmarks/cut_in_mc.py --cost            # the twin's cost per rollout (no PEM), N = 4096
@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pemviz.scenarios.cut_in import (  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import (  # noqa: E402
     FAILURE_FORMULA,
     OBJECT_NAMES,
     RARITY_SETTINGS,
@@ -38,7 +38,7 @@ from pemviz.scenarios.cut_in import (  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory  # noqa: E402
 
 SETTINGS: dict[str, dict] = {"default": {}, **RARITY_SETTINGS}
-"""Overrides of :class:`CutInParams` per named setting (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`)."""
+"""Overrides of :class:`CutInParams` per named setting (:data:`pemviz.scenarios.cut_in.scenario.RARITY_SETTINGS`)."""
 VISIBLE = OBJECT_NAMES.index("visible")
 
 

@@ -139,7 +139,7 @@ def weight_profile(log_weights: list[np.ndarray], truth: float) -> str:
 def mc_reference(cfg, problem, n: int) -> tuple[float, str]:  # noqa: ANN001 (an ExperimentConfig, a Problem)
     """A plain Monte Carlo reference of ``problem`` (the run's scene and parameters): log p (nats; nan without a
     failure) of ``n`` rollouts of the PEMs (seed 12345), and its text with the Clopper-Pearson interval."""
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
 
     e = Experiment(cfg.replace(method="mc", n_per_stage=n, seed=12345), problem=problem).run().final.estimate
     text = f"plain Monte Carlo reference {e.mu_hat:.4g} {e.interval_text()} ({e.n_failures} failures in {n:,} rollouts)"
@@ -152,7 +152,7 @@ def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: 
     any, the seeds' spread only. Returns the runs: ``truth`` (log p, nats; nan without one), and one entry a seed in
     ``logs`` (log estimates, nats), ``cis`` (log 95 % intervals), ``ratios`` (estimate / answer), ``holds``,
     ``verdicts``, ``sims`` (rollout-equivalents) and ``walls`` (seconds in the engine)."""
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.problems import problem_for
 
     ratios, holds, verdicts, logs, halves, sims, weights, cis, walls = [], [], [], [], [], [], [], [], []
@@ -225,9 +225,9 @@ def heaviest_failures(seed: int, n: int, k: int) -> None:
     zero-variance proposal each step's log p / q is log V - log Q, and every failure's log weight log p."""
     from pemviz.core import exact
     from pemviz.pem import load_pem
-    from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
+    from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE
     from pemviz.scenarios.cut_in.tilt import CutInTilt
-    from pemviz.scenarios.problems import cut_in_params, cut_in_problem
+    from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
 
     class Traced(CutInTilt):
         def branch_log_q(self, sim, t, idx, u, rows, prefix_min, sfeat, p0):  # noqa: ANN001, ANN202
@@ -269,7 +269,7 @@ def toy_runs(n_seeds: int, n: int) -> dict[str, float]:
     import dataclasses
 
     from pemviz.config import ExperimentConfig
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.problems import build_problem
     from pemviz.testing import ESTIMATOR_PROBLEM
 
@@ -320,7 +320,7 @@ def _command_wall() -> float:
 
 def _paper_seed0() -> float:
     """log of ``pemviz run --preset paper --seed 0``'s estimate on braking (nats)."""
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.problems import problem_for
 
     cfg = default_config("braking", 0, ("--preset", "paper"))

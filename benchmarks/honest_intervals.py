@@ -122,7 +122,7 @@ def one_run(scene: str, method: str, seed: int) -> Outcome:
     from threadpoolctl import threadpool_limits
 
     from pemviz.estimators.cross_entropy import check_runnable
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.registry import problem_for
 
     with threadpool_limits(1):
@@ -215,7 +215,7 @@ def follow_advice(scene: str, seed: int) -> tuple[str, str]:
 
     from threadpoolctl import threadpool_limits
 
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.registry import problem_for
     from pemviz.sinks.console import next_step
 

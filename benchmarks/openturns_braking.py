@@ -9,8 +9,8 @@ camera's detector, failure = the gap drops below 2 m) is written as a limit stat
   on all of R^T (NAIS's Gaussian kernels put points outside the cube, where the input density and so the weight is 0);
 - the ego reacts through pemviz's batched twin :class:`pemviz.scenarios.braking.batched.BatchedBraking`;
 - g(u) = the classic STL robustness of ``G[0,99](d >= 2)`` of the gap trace (metres), computed by pemviz's own
-  :meth:`pemviz.core.problems.Problem.robustness` on a :class:`pemviz.scenarios.RolloutBatch`. Failure: g(u) < 0, exact
-  probability 1.984e-15 (``problem.exact_log_p``, an enumeration of the detection sequences).
+  :meth:`pemviz.core.problems.Problem.robustness` on a :class:`pemviz.core.rollouts.RolloutBatch`. Failure: g(u) < 0,
+  exact probability 1.984e-15 (``problem.exact_log_p``, an enumeration of the detection sequences).
 
 OpenTURNS (https://openturns.github.io/openturns/latest/, version 1.27) then gets the event
 ``ThresholdEvent(CompositeRandomVector(PythonFunction(g), JointDistribution([Uniform(0, 1)] * 100)), Less(), 0)``
@@ -78,9 +78,9 @@ from scipy.special import log_expit, ndtr
 from pemviz.core.detectors import action_log_prob
 from pemviz.core.problems import Problem
 from pemviz.scenarios.problems import build_problem
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.batched import BatchedBraking
-from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams
+from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams
 
 T = 100
 """Steps of a rollout: the dimension of the input u."""
@@ -280,7 +280,7 @@ def run_pemviz(seed: int) -> Run:
     """pemviz's default sampler (``ExperimentConfig(seed=seed)``) on the braking job."""
     from pemviz.config import ExperimentConfig
     from pemviz.scenarios.problems import problem_for
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RunFinished
 
     cfg = ExperimentConfig(seed=seed)

@@ -3,7 +3,7 @@
     python benchmarks/panel_latency.py                  # the quick preset, 5 runs
     python benchmarks/panel_latency.py --preset state-ce --runs 3
 
-Starts the panel (:class:`pemviz.app.PanelApp`, 127.0.0.1, a free port) with the preset, opens it in Debian's
+Starts the panel (:class:`pemviz.app.panel.PanelApp`, 127.0.0.1, a free port) with the preset, opens it in Debian's
 Chromium driven by Playwright (the flags of ``benchmarks/screenshot_panel.py``), waits until the panel has warmed up,
 then for each run clicks Run and measures, in the browser's own clock from the click event, the time until the page's
 status line names a stage after the pretraining (stage 0 has finished and its row is on the page), and until the run has

@@ -20,11 +20,12 @@ import numpy as np
 
 from pemviz.config import ExperimentConfig
 from pemviz.scenarios.problems import PEM_SHIFTS, problem_for
-from pemviz.scenarios.braking.truth import braking_exact, branching_start, miss_bound, pem_fingerprint
+from pemviz.scenarios.braking.truth import braking_exact, branching_start, miss_bound
+from pemviz.scenarios.braking.truth_known import pem_fingerprint
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
 from pemviz.pem.ensemble import ensemble_path, load_ensemble
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking.simulator import BrakingParams
 
 def exact_answers(only: tuple[str, ...] = ()) -> None:
     """The enumeration under every member and shift, its drop thresholds set below a re-weighted guess of p (as

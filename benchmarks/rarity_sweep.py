@@ -8,11 +8,11 @@ Problems (each with its exact p_fail):
   :func:`pemviz.scenarios.braking.truth.braking_truth`);
 - ``cut-in-moderate``: the cut-in scenario of several cars, missed and mislocated, at its moderate setting (no closed
   form: its "exact" p is the plain Monte Carlo reference of 10^7 rollouts,
-  :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`, whose own 95 % interval is +-7 %).
+  :data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`, whose own 95 % interval is +-7 %).
 
 Methods (:func:`methods_at`, a list of (label, config fields); add a line for a new method): the default sampler
 ``ExperimentConfig()`` (2,100 simulations; ``--n-final 100``: 1,200), the ``paper`` preset with its final batch
-set to the same budget, adaptive multilevel splitting with budget / 4 particles (when :data:`pemviz.config.METHODS`
+set to the same budget, adaptive multilevel splitting with budget / 4 particles (when :data:`pemviz.settings.METHODS`
 has ``ams``), plain Monte Carlo with that many rollouts, and the exact zero-variance sampler q*
 (:class:`pemviz.estimators.optimal.ZeroVarianceDetector`) where V is known (toys, latched).
 
@@ -46,21 +46,25 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from pemviz.scenarios.braking import truth
-from pemviz.config import METHODS as CONFIG_METHODS, ExperimentConfig
+from pemviz.scenarios.braking import truth, truth_known, truth_latched
+from pemviz.settings import METHODS as CONFIG_METHODS
+from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import Detector
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.core.estimate import clopper_pearson, relative_error
 from pemviz.engine.events import RunFinished
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
-from pemviz.io.files import atomic_write
+from pemviz.core.files import atomic_write
 from pemviz.presets import PRESETS
 from pemviz.core.problems import Problem, ShiftedPEM
-from pemviz.scenarios.problems import braking_problem, cut_in_params, cut_in_problem, toy_problem
+from pemviz.scenarios.braking.problem import braking_problem
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.engine.resources import torch_threads
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
-from pemviz.scenarios.toy import ToyParams, ToyValue, toy_log_failure_probability
+from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE
+from pemviz.scenarios.toy import ToyParams, ToyValue
+from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 from pemviz.studies.validation import all_fields, ams_fields
 
 Q_STAR = "q*"
@@ -164,7 +168,8 @@ def build(spec: Spec) -> tuple[Problem, Detector | None]:
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
         problem = braking_problem(pem, BrakingParams(latched_brake=True))
-        return problem, ZeroVarianceDetector(problem.target, truth.latched_value(pem.logit_at_gap).log_value_next)
+        value = truth_latched.latched_value(pem.logit_at_gap)
+        return problem, ZeroVarianceDetector(problem.target, value.log_value_next)
     return braking_problem(pem, BrakingParams()), None
 
 
@@ -179,11 +184,11 @@ def exact_log_p(spec: Spec) -> tuple[float, str]:
                 f"(95 % interval [{lo:.3g}, {hi:.3g}])")  # fmt: skip
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
-        return truth.latched_log_failure_probability(pem.logit_at_gap).log_p_fail, "latched closed form"
-    known = truth.known_log_failure_probability(pem.logit_at_gap)
+        return truth_latched.latched_log_failure_probability(pem.logit_at_gap).log_p_fail, "latched closed form"
+    known = truth_known.known_log_failure_probability(pem.logit_at_gap)
     if known is not None:
         return known, "exact enumeration (stored)"
-    guess = truth.KNOWN_BRAKING_LOG_P["915fec568bb72b65"] - 9.0 * spec.shift  # ~9 nats per nat of shift (measured)
+    guess = truth_known.KNOWN_BRAKING_LOG_P["915fec568bb72b65"] - 9.0 * spec.shift  # ~9 nats per nat of shift, measured
     ref = truth.braking_truth(pem.logit_at_gap, BrakingParams(), log_prunes=[guess - 10 - 4 * k for k in range(8)])
     f = ref.final
     return ref.log_p_fail, (f"exact enumeration, bracket width {f.relative_width:.2%}"

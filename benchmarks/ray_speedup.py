@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 def run(config, problem):
     import pemviz.engine.executors as executors
     from pemviz.engine.resources import torch_threads
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
 
     spent = [0.0]
     ex = executors.get_executor(config.executor, config.ray_address)

@@ -96,7 +96,7 @@ def one_run(scene: str, variant: str, seed: int) -> Outcome:
 
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.registry import problem_for
 
     with threadpool_limits(1):

@@ -8,7 +8,7 @@
 The commands that make the docs' panel screenshots are in the table of ``benchmarks/screenshots.py``;
 ``python benchmarks/docs_assets.py --screenshots`` runs them all and rewrites ``assets/screenshots/MANIFEST.md``.
 
-What it does: starts the panel (:class:`pemviz.app.PanelApp`, 127.0.0.1, a free port), opens it in
+What it does: starts the panel (:class:`pemviz.app.panel.PanelApp`, 127.0.0.1, a free port), opens it in
 Chromium (Debian's ``chromium`` driven by Playwright, with ``--headless --no-sandbox --disable-gpu
 --no-first-run --disable-background-networking --disable-component-update --disable-sync``), runs an
 experiment from the browser's form (typing K, pressing Run), waits for the final estimate (the panel then

@@ -77,7 +77,7 @@ def main() -> None:
     if a.exact:
         from pemviz.scenarios.braking.truth import braking_truth
         from pemviz.pem import load_pem
-        from pemviz.scenarios.braking import BrakingParams
+        from pemviz.scenarios.braking.simulator import BrakingParams
 
         pem = load_pem()
         for m in (1.5, 1.0, 0.5, 0.0):

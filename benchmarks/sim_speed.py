@@ -74,7 +74,7 @@ def rollouts_per_second(n_highway: int, n_batched: int, seed: int) -> None:
     from pemviz.pem import load_pem
     from pemviz.scenarios import simulate
     from pemviz.scenarios.braking.batched import simulate_batched
-    from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+    from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
 
     p = BrakingParams()
     pem = PEMDetector(load_pem())
@@ -119,7 +119,7 @@ def peak_rss_gib() -> float:
 
 def million_child(n: int, seed: int) -> None:
     """Child process: stream n PEM rollouts, print seconds, failures and peak RSS as JSON."""
-    from pemviz.scenarios.problems import braking_problem
+    from pemviz.scenarios.braking.problem import braking_problem
     from pemviz.pem import load_pem
     from pemviz.scenarios.braking.batched import summarise_batched
 

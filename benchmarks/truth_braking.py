@@ -27,10 +27,9 @@ import numpy as np
 from scipy.special import log_expit
 
 from pemviz.pem import load_pem
-from pemviz.scenarios.braking import BrakingParams, braking_step, lead_speeds
-from pemviz.scenarios.braking.truth import (
-    BrakingStart, LogitFn, braking_truth, branching_start, latched_log_failure_probability,
-)
+from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
+from pemviz.scenarios.braking.truth import BrakingStart, braking_truth, branching_start
+from pemviz.scenarios.braking.truth_latched import LogitFn, latched_log_failure_probability
 
 
 @dataclass(frozen=True)

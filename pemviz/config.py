@@ -1,13 +1,13 @@
 """ExperimentConfig: every knob of a pemviz experiment, validated once.
 
 What each knob is (symbol, words, allowed range, help, command-line flag, the estimator that reads it) lives in one
-place, :data:`SETTINGS` (:mod:`pemviz.settings`, re-exported here with the choices and limits beside it): the config's
-checks, the command line (:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators
-(:func:`settings_of`) all read it there. This module holds :class:`ExperimentConfig`, its checks of the settings
-against each other and :class:`ConfigError`.
+place, :data:`pemviz.settings.SETTINGS`, with the choices and limits beside it (:data:`METHODS`, :data:`MAX_SEED`,
+... below are :mod:`pemviz.settings`'s): the config's checks, the command line (:mod:`pemviz.commands`), the panel's
+form (:mod:`pemviz.app.form`) and the estimators (:func:`~pemviz.settings.settings_of`) all read it there. This module
+holds :class:`ExperimentConfig`, its checks of the settings against each other and :class:`ConfigError`.
 
-Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.CrossEntropy` (its CE
-stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the weighted fit). The metric:
+Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.cross_entropy.CrossEntropy`
+(its CE stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the weighted fit). The metric:
 :class:`pemviz.engine.experiment.Experiment` ranks the rollouts with it
 (:meth:`pemviz.core.problems.Problem.robustness`). The seed: the engine's rollout stream and the estimator's fit,
 tie-breaking and initial-weight streams.
@@ -20,31 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pemviz.core.requirement import RequirementError, parse_requirement
-from pemviz.settings import (  # noqa: F401 (the settings table, re-exported: importable from here as before)
-    DEFAULT_MAX_SIMS,
-    ELITE_TIES,
-    EXECUTORS,
-    FINAL_MODES,
-    FIT_PRECISIONS,
-    FIT_WEIGHTS,
-    FITS,
-    MAX_EPOCHS,
-    MAX_SEED,
-    MAX_SMOOTHING_AT_FAILURE,
-    MAX_STAGES,
-    METHODS,
-    METRICS,
-    POOL_WEIGHTS,
-    PROPOSAL_INPUTS,
-    RUN,
-    SCENARIOS,
-    SETTINGS,
-    SIMULATORS,
-    UNIFORMS,
-    WEIGHT_MODES,
-    Setting,
-    settings_of,
-)
+from pemviz.settings import SETTINGS
 
 SCENARIO_OBJECTS = {"braking": 1, "cut-in": 5, "cut-in-rare": 5}
 """The objects each scenario perceives per step (its problem's ``n_objects``; a test keeps the two equal): what the
@@ -136,7 +112,7 @@ class ExperimentConfig:
         executor: where rollouts are simulated, one of :data:`EXECUTORS`.
         ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
         chunk_rollouts: None (serial stages above :data:`pemviz.engine.experiment.STREAM_ABOVE` rollouts stream
-            in chunks of :data:`pemviz.scenarios.DEFAULT_CHUNK_SIZE`) or the most rollouts simulated and scored at a
+            in chunks of :data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`) or the most rollouts simulated and scored at a
             time (memory): a serial stage of more streams chunk by chunk. The rollouts, weights and estimate do not
             depend on it (detectors give a row the same bits in any batch: :mod:`pemviz.core.exact`; Array-RQMC
             couples fixed blocks, whatever the chunks).

@@ -14,7 +14,7 @@ gymnasium is imported, before or after pemviz, so::
         obs, reward, terminated, truncated, info = env.step(controller(obs))
 
 The scenario is Innes & Ramamoorthy (2022)'s automated braking on highway-env vehicles
-(:class:`pemviz.scenarios.braking.BrakingScenario`), except that the agent is the ego's controller:
+(:class:`pemviz.scenarios.braking.simulator.BrakingScenario`), except that the agent is the ego's controller:
 
 - **observation** float64 [3]: ``(detected, seen_gap_m, ego_speed_mps)``: 1.0 if the detector sees the
   lead at this step (else 0.0); the gap from the ego's camera to the lead's rear in metres when detected
@@ -34,7 +34,7 @@ The scenario is Innes & Ramamoorthy (2022)'s automated braking on highway-env ve
 
 With :class:`BasicAgentController` (the scenario's CARLA BasicAgent: emergency brake if detected within
 10 m, else the PID toward 7.5 m/s, one step of actuation lag) the ego moves exactly as in
-:class:`~pemviz.scenarios.braking.BrakingScenario` for the same detections (tests/test_envs.py).
+:class:`~pemviz.scenarios.braking.simulator.BrakingScenario` for the same detections (tests/test_envs.py).
 """
 
 from __future__ import annotations
@@ -59,24 +59,24 @@ def register_envs() -> None:
 class BasicAgentController:
     """The braking scenario's ego controller as a policy ``obs [3] -> acceleration [1]`` (m/s^2).
 
-    :func:`pemviz.scenarios.braking.ego_acceleration` (emergency brake if the lead is
+    :func:`pemviz.scenarios.braking.simulator.ego_acceleration` (emergency brake if the lead is
     detected within 10 m, otherwise the PID toward 27 km/h; the brake acts one step late) on what the
     controller observes; the collision stop is the environment's. Call :meth:`reset` with each episode.
     """
 
     def __init__(self, params: Any = None) -> None:
-        from pemviz.scenarios.braking import BrakingParams
+        from pemviz.scenarios.braking.simulator import BrakingParams
 
         self.params = params or BrakingParams()
         self.reset()
 
     def reset(self) -> None:
-        from pemviz.scenarios.braking import initial_controller_state
+        from pemviz.scenarios.braking.simulator import initial_controller_state
 
         self._ctrl = initial_controller_state(1)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        from pemviz.scenarios.braking import ego_acceleration
+        from pemviz.scenarios.braking.simulator import ego_acceleration
 
         detected = bool(obs[0] >= 0.5)
         gap = float(obs[1]) if detected else math.inf  # a missed lead is nowhere (no emergency brake)
@@ -94,7 +94,7 @@ class BrakingEnv(gym.Env):
             observation [M, 3] = (gap_m, ego speed, lead speed)); default the PEM itself.
         pem: the target PEM (name or path, :func:`pemviz.pem.load_pem`; default the shipped one), or a
             :class:`pemviz.pem.PEM`; gives ``info["log_p"]``.
-        params: the scenario's constants (:class:`pemviz.scenarios.braking.BrakingParams`).
+        params: the scenario's constants (:class:`pemviz.scenarios.braking.simulator.BrakingParams`).
     """
 
     metadata = {"render_modes": []}
@@ -102,7 +102,7 @@ class BrakingEnv(gym.Env):
     def __init__(self, detector: Any = None, pem: Any = None, params: Any = None) -> None:
         from pemviz.core.detectors import PEMDetector
         from pemviz.pem import load_pem
-        from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+        from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
 
         self.params = params or BrakingParams()
         self.target = PEMDetector(pem if pem is not None and not isinstance(pem, str) else load_pem(pem))

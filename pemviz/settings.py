@@ -4,7 +4,7 @@ Each field's symbol, words, allowed range, unit, help, command-line flag and own
 :class:`Setting` in :data:`SETTINGS`: the config's checks (:mod:`pemviz.config`), the command line
 (:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read
 it here. The allowed values of the choices (:data:`METHODS`, :data:`METRICS`, ...) and the numeric limits
-(:data:`MAX_SEED`, :data:`MAX_STAGES`, ...) live beside it. :mod:`pemviz.config` re-exports every name.
+(:data:`MAX_SEED`, :data:`MAX_STAGES`, ...) live beside it: each name has one import path, this module.
 """
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ METRICS = ("classic", "agm", "smooth-cumulative")
 """Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
 
 SIMULATORS = ("highway-env", "batched")
-"""Braking-scenario back-ends (:func:`pemviz.scenarios.problems.braking_problem`): ``batched`` advances all rollouts
-together in numpy, ``highway-env`` steps one black-box simulator per rollout; the same seed gives the same rollouts on
-both."""
+"""Braking-scenario back-ends (:func:`pemviz.scenarios.braking.problem.braking_problem`): ``batched`` advances all
+rollouts together in numpy, ``highway-env`` steps one black-box simulator per rollout; the same seed gives the same
+rollouts on both."""
 
 SCENARIOS = ("braking", "cut-in", "cut-in-rare")
 """What a run estimates (:func:`pemviz.scenarios.problems.problem_for`): ``braking``, the paper's scenario (one lead
@@ -147,7 +147,8 @@ class Setting:
         choice_help: (value, what it does) for each choice: the rest of the help, and the panel dropdown's hint.
         flags: the command-line flags, the first the one error messages name (empty: no flag).
         owner: who reads it: :data:`RUN` (every method) or the method whose estimator reads it (``adaptive``:
-            :class:`pemviz.estimators.CrossEntropy`; ``ams``: :class:`pemviz.estimators.AdaptiveMultilevelSplitting`).
+            :class:`pemviz.estimators.cross_entropy.CrossEntropy`; ``ams``:
+            :class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`).
     """
 
     name: str

@@ -1,6 +1,6 @@
 """A conformance kit to run in one's own tests (as scikit-learn's ``check_estimator`` and Gymnasium's ``check_env``):
 :func:`check_scenario` checks a scenario of the registry (:mod:`pemviz.scenarios.registry`) and
-:func:`check_estimator` an estimation method of :data:`pemviz.config.METHODS`, each the way pemviz's own tests do::
+:func:`check_estimator` an estimation method of :data:`pemviz.settings.METHODS`, each the way pemviz's own tests do::
 
     from pemviz.testing import check_estimator, check_scenario
 
@@ -141,8 +141,8 @@ class _Run:
 
 
 def _run(config: Any, problem: Any, listeners: tuple = ()) -> _Run:
-    """Run ``config`` on ``problem`` through the engine (:class:`pemviz.engine.Experiment`)."""
-    from pemviz.engine import Experiment
+    """Run ``config`` on ``problem`` through the engine (:class:`pemviz.engine.experiment.Experiment`)."""
+    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import FinalEstimate, StageFinished
 
     finals: list[Any] = []
@@ -519,8 +519,8 @@ def check_estimator(method: Any, *, problem: Any = None, folder: str | Path | No
     """Check an estimation method on a problem with an exact answer: its interface, its bias, its verdicts, its files.
 
     The runs are :func:`estimator_config` (2 stages of :data:`ESTIMATOR_ROLLOUTS` = 2000 rollouts, a final batch of
-    400), driven by the engine (:class:`pemviz.engine.Experiment`) on :data:`ESTIMATOR_PROBLEM` (the toy, exact p =
-    1e-3, 9 steps a rollout). The checks, in order (:data:`ESTIMATOR_CHECKS`):
+    400), driven by the engine (:class:`pemviz.engine.experiment.Experiment`) on :data:`ESTIMATOR_PROBLEM` (the toy,
+    exact p = 1e-3, 9 steps a rollout). The checks, in order (:data:`ESTIMATOR_CHECKS`):
 
     - ``interface``: :func:`pemviz.core.checks.check_estimator` at seed 0 (its plans, weights and estimates, and two
       runs the same bit for bit).

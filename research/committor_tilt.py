@@ -1,7 +1,7 @@
 """A first try of approximate zero-variance importance sampling on the cut-in scenario's moderate setting (reference
-8.66e-5 from 10^7 plain Monte Carlo rollouts, :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`): the cut-in
-car's perception events tilted by a learned event-conditional committor. A study, not a sampler of pemviz: it shows
-how far this route gets at a tenth of plain Monte Carlo's cost.
+8.66e-5 from 10^7 plain Monte Carlo rollouts, :data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`): the
+cut-in car's perception events tilted by a learned event-conditional committor. A study, not a sampler of pemviz: it
+shows how far this route gets at a tenth of plain Monte Carlo's cost.
 
 Theory: for a Markov chain the zero-variance change of measure draws each step's events x from
 ``q(x | s) = p(x | s) Q(s, x) / V(s)``, with ``Q(s, x) = P(failure | s, x)`` and ``V(s) = sum_x p(x | s) Q(s, x)``
@@ -9,7 +9,7 @@ Theory: for a Markov chain the zero-variance change of measure draws each step's
 simulation", WSC). Any approximation of Q keeps the weights p / q exact and costs only variance.
 
 Here, at each step of ``--window`` where the cut-in car (object 0) is visible, its three uniforms (detection, range
-error, lateral error; :func:`pemviz.scenarios.run_batched` reads them in that order) fall in one of six classes: a
+error, lateral error; :func:`pemviz.core.lockstep.run_batched` reads them in that order) fall in one of six classes: a
 miss (u_det > p(detect)), a detection with the range error in its lower or upper ``--tail`` (u_r < a or > 1 - a),
 with a central range error and the lateral error in either tail, or with both central. The class is drawn from
 ``q(c | s) = (1 - eps) p(c | s) r_c(s)^beta / sum_c' p(c' | s) r_c'(s)^beta + eps p(c | s)``, r_c = Q(s, c) /
@@ -53,9 +53,9 @@ from scipy.special import expit, ndtri
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
-from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E402
-from pemviz.scenarios import run_batched  # noqa: E402
-from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
+from pemviz.core.lockstep import run_batched  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]

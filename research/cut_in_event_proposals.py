@@ -1,11 +1,11 @@
 """What importance sampling over single perception events, and splitting on a graded lateness, can do on the cut-in
 scenario's moderate setting (reference 8.66e-5 from 10^7 plain Monte Carlo rollouts,
-:data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`): a study of why no sampler reaches a 10 % median relative
-error at 5,000 simulations there.
+:data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`): a study of why no sampler reaches a 10 % median
+relative error at 5,000 simulations there.
 
 Every rollout of the batched twin is a deterministic function of its uniforms U [N, T, M, 3]: per step and object, the
 detection's uniform (detected iff u <= p(detect)), then the range and lateral errors' (inverse CDF of the noise PEM),
-in the order :func:`pemviz.scenarios.run_batched` reads them. A proposal density q over U, with U's own density 1
+in the order :func:`pemviz.core.lockstep.run_batched` reads them. A proposal density q over U, with U's own density 1
 under the PEMs, gives the unbiased importance weight 1 / q(U) whatever the scene. The proposals here inflate
 *events*: a uniform in one of the tail bins :data:`BINS` (a miss and the detection's upper tail; both tails of each
 error, from 1e-2 down to 0).
@@ -60,9 +60,9 @@ from scipy.ndimage import convolve1d
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
-from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E402
-from pemviz.scenarios import run_batched  # noqa: E402
-from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
+from pemviz.core.lockstep import run_batched  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]

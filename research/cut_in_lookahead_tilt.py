@@ -1,6 +1,6 @@
 """Approximate zero-variance importance sampling on the cut-in's moderate setting with a look-ahead committor: a study
 of the design (reference 8.66e-5 from 10^7 plain Monte Carlo rollouts,
-:data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`). No sampler of pemviz changes.
+:data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`). No sampler of pemviz changes.
 
 For a Markov chain the zero-variance change of measure draws each step's events x from q(x | s) = p(x | s) Q(s, x) /
 V(s), Q(s, x) the probability of failure after x and V(s) its mean under p (Kollman, Baggerly, Cox & Picard 1999, Ann.
@@ -155,14 +155,14 @@ from scipy.special import expit, logsumexp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
-from pemviz.scenarios import run_batched  # noqa: E402
-from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE  # noqa: E402
+from pemviz.core.lockstep import run_batched  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 from pemviz.scenarios.cut_in.committor import GRIDS, LMAX, LevelChain, continuous_level, level  # noqa: E402
 from pemviz.scenarios.cut_in.lookahead import (DP_DEPTH, LOG_PVVY, VISIBLE, VX_ERROR, VY_ERROR,  # noqa: E402
                                                features)
 from pemviz.scenarios.cut_in.tilt import CutInTilt  # noqa: E402
-from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E402
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 

@@ -1,10 +1,11 @@
 """Defensive tail mixtures over the cut-in car's perception uniforms on the cut-in scenario's moderate setting
-(reference 8.66e-5 from 10^7 plain Monte Carlo rollouts, :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`): a
-study of how far a proposal with bounded weights and no state gets at a tenth of plain Monte Carlo's cost.
+(reference 8.66e-5 from 10^7 plain Monte Carlo rollouts,
+:data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`): a study of how far a proposal with bounded weights and
+no state gets at a tenth of plain Monte Carlo's cost.
 
 A rollout of the batched twin is a deterministic function of its uniforms (per step and object: the detection's, then
-the range and lateral errors', in the order :func:`pemviz.scenarios.run_batched` reads them), whose density under the
-PEMs is 1. At each step t of ``--window`` where the cut-in car (object 0) is visible, its uniforms are drawn from a
+the range and lateral errors', in the order :func:`pemviz.core.lockstep.run_batched` reads them), whose density under
+the PEMs is 1. At each step t of ``--window`` where the cut-in car (object 0) is visible, its uniforms are drawn from a
 defensive mixture (Hesterberg 1995, Technometrics 37(2)):
 
 - detection: with probability eps[t, 0] a forced miss (u uniform on (p(detect), 1)), else u uniform on (0, 1);
@@ -72,10 +73,10 @@ from scipy.special import expit, logsumexp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
-from pemviz.scenarios import run_batched  # noqa: E402
-from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
+from pemviz.core.lockstep import run_batched  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
-from pemviz.scenarios.problems import cut_in_params, cut_in_problem  # noqa: E402
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 VISIBLE = OBJECT_NAMES.index("visible")

@@ -11,16 +11,20 @@ import pytest
 
 from conftest import run_cli
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RunFinished
 from pemviz.envs import BrakingEnv
 from pemviz.estimators import build_estimator
 from pemviz.estimators.ams import SCORE_FLOOR, run_ams, running_score
-from pemviz.scenarios.problems import braking_problem, build_problem, toy_problem
-from pemviz.scenarios import branch, can_snapshot
+from pemviz.scenarios.braking.problem import braking_problem
+from pemviz.scenarios.problems import build_problem
+from pemviz.scenarios.toy.problem import toy_problem
+from pemviz.scenarios import branch
+from pemviz.core.rollouts import can_snapshot
 from pemviz.scenarios.braking.batched import BatchedBraking
-from pemviz.scenarios.braking import BrakingParams, BrakingScenario
-from pemviz.scenarios.toy import ToyBraking, ToyParams, toy_log_failure_probability
+from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
+from pemviz.scenarios.toy import ToyBraking, ToyParams
+from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 
 
 def ratios(problem, n: int, k: int, seeds: range) -> np.ndarray:

@@ -28,7 +28,7 @@ if not os.path.exists(CHROMIUM):
 from pemviz.app.form import FIELDS_BY_KEY, parse_number  # noqa: E402
 from pemviz.app.panel import PanelApp  # noqa: E402
 from pemviz.app.session import Session  # noqa: E402
-from pemviz.config import SETTINGS  # noqa: E402
+from pemviz.settings import SETTINGS  # noqa: E402
 from pemviz.scenarios.braking.panel import explain  # noqa: E402
 from pemviz.sinks import colours  # noqa: E402
 

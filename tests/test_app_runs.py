@@ -26,11 +26,11 @@ from pemviz.app.runs import (
     sanitize_export_name,
 )
 from pemviz.config import ExperimentConfig
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RolloutsSampled, StageFinished, StageStarted
 from pemviz.sinks.console import ConsoleSink
-from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.braking import OBSERVATION_NAMES, BrakingParams, BrakingScenario
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams, BrakingScenario
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.panel import explain
 

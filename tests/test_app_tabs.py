@@ -174,7 +174,7 @@ def test_the_cut_in_story_tells_a_hand_made_rollout_step_by_step():
     """Six steps of 0.1 s by hand: car 0 moves across from step 1, enters the ego's lane at step 2 (missed there, its
     track 2.5 m off laterally, outside the lane), the ACC follows it and brakes from the decision at step 3, contact
     at step 4 at 3.0 m/s closing speed (the row before: car 0 3.0 m/s slower than the ego)."""
-    from pemviz.scenarios.cut_in import OBJECT_NAMES, OBSERVATION_NAMES
+    from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, OBSERVATION_NAMES
     from pemviz.scenarios.cut_in.story import cut_in_story
 
     t = 6

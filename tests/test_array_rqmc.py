@@ -12,11 +12,12 @@ from hypothesis import strategies as st
 
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, StageSamplers, WindowDetector, step_uniforms
-from pemviz.scenarios.problems import toy_problem
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.core.rng import GOLDEN, array_rqmc_uniforms, ranking_key
 from pemviz.estimators.base import weighted_steps_mask
 from pemviz.scenarios import simulate
-from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_log_failure_probability
+from pemviz.scenarios.toy import ToyBraking, ToyParams
+from pemviz.scenarios.toy.simulator import simulate_toy, toy_log_failure_probability
 
 
 def test_uniforms_by_hand_ranked_by_key_then_by_the_next_column():
@@ -108,10 +109,10 @@ def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_unifo
 
 
 def test_batched_array_rqmc_rollouts_do_not_depend_on_the_chunk_size():
-    from pemviz.scenarios.problems import braking_problem
+    from pemviz.scenarios.braking.problem import braking_problem
     from pemviz.pem import load_pem
     from pemviz.scenarios.braking.batched import iter_batched, simulate_batched
-    from pemviz.scenarios import RolloutBatch
+    from pemviz.core.rollouts import RolloutBatch
 
     pb = braking_problem(load_pem())
     q = ArrayRQMC(WindowDetector(ConstantDetector(0.5), pb.target, 10.0))

@@ -19,7 +19,7 @@ from pemviz.app.runs import PanelRun
 from pemviz.config import ExperimentConfig
 from pemviz.core.proposal_view import proposal_view
 from pemviz.engine.events import RolloutsSampled
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.panel import GAP_BINS_M
 

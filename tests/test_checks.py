@@ -11,7 +11,7 @@ import pytest
 from pemviz.core.checks import CheckError, check_estimator, check_simulator
 from pemviz.config import ExperimentConfig
 from pemviz.estimators import build_estimator
-from pemviz.scenarios.problems import toy_problem
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
 from test_simulator_protocol import ParkedCarAEB
 
@@ -157,10 +157,10 @@ def test_an_estimate_far_from_the_exact_answer_fails_and_bad_arguments_are_refus
 
 @pytest.mark.parametrize("method", ["mc", "naive50", "mixed50", "adaptive", "ams", "tilt"])
 def test_every_method_passes_the_estimator_check_on_the_toy(method):
-    """Every method of :data:`pemviz.config.METHODS` passes ``check_estimator`` (its interface, its estimate's
+    """Every method of :data:`pemviz.settings.METHODS` passes ``check_estimator`` (its interface, its estimate's
     consistency, the same bits twice) on the toy, within a factor 2 of the toy's exact 1e-3 at seed 3 (10,000
     rollouts a stage: plain Monte Carlo's relative standard deviation 0.32)."""
-    from pemviz.config import METHODS
+    from pemviz.settings import METHODS
 
     assert set(METHODS) == {"mc", "naive50", "mixed50", "adaptive", "ams", "tilt"}  # a new method joins this test
     cfg = dataclasses.replace(ExperimentConfig(method=method, seed=3), n_stages=2, n_per_stage=10_000, n_final=2000,

@@ -36,7 +36,7 @@ def test_help_has_no_markup_no_internal_names_and_no_documents_the_user_lacks(na
 
 def test_run_help_gives_the_real_pem_default() -> None:
     from pemviz.commands import SHOWN_DEFAULTS
-    from pemviz.pem import DEFAULT_PEM_NAME
+    from pemviz.pem.recipes import DEFAULT_PEM_NAME
 
     run = dict(all_parsers())["pemviz run"]
     assert SHOWN_DEFAULTS["pem"] == DEFAULT_PEM_NAME == "ml-nn"
@@ -46,7 +46,7 @@ def test_run_help_gives_the_real_pem_default() -> None:
 def test_run_help_gives_the_engines_real_chunks() -> None:
     from pemviz.commands import SHOWN_DEFAULTS
     from pemviz.engine.experiment import STREAM_ABOVE
-    from pemviz.scenarios import DEFAULT_CHUNK_SIZE
+    from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE
 
     run = " ".join(dict(all_parsers())["pemviz run"].format_help().split())
     assert SHOWN_DEFAULTS["chunk_rollouts"] == (f"{DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} "
@@ -128,7 +128,7 @@ SHIPPED_PEM_ARGS = {
 def test_every_command_refuses_an_unknown_pem_with_the_same_message_naming_the_shipped_ones(command, tmp_path,
                                                                                             monkeypatch, capsys):
     from pemviz.cli import main
-    from pemviz.pem import assets_dir
+    from pemviz.pem.store import assets_dir
 
     monkeypatch.chdir(tmp_path)  # nothing may be written here
     assert main([*SHIPPED_PEM_ARGS[command], "--pem", "no-such-pem"]) == 2

@@ -14,7 +14,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pemviz.config import RUN, SETTINGS, ConfigError, ExperimentConfig, settings_of
+from pemviz.settings import RUN, SETTINGS, settings_of
+from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.presets import PRESETS
 
 
@@ -189,7 +190,8 @@ def test_a_value_is_refused_alike_by_config_form_and_command_line_with_the_same_
 def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     import pemviz.estimators.ams as ams
     import pemviz.estimators.cross_entropy as ce
-    from pemviz.estimators import AdaptiveMultilevelSplitting, CrossEntropy
+    from pemviz.estimators.ams import AdaptiveMultilevelSplitting
+    from pemviz.estimators.cross_entropy import CrossEntropy
 
     fields = set(SETTINGS) | {"has_final_batch", "n_simulations"}
     for module, cls, owner in ((ce, CrossEntropy, "adaptive"), (ams, AdaptiveMultilevelSplitting, "ams")):
@@ -207,8 +209,9 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
 
 
 def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with():
-    from pemviz.scenarios.problems import toy_problem
-    from pemviz.estimators import AdaptiveMultilevelSplitting, CrossEntropy
+    from pemviz.scenarios.toy.problem import toy_problem
+    from pemviz.estimators.ams import AdaptiveMultilevelSplitting
+    from pemviz.estimators.cross_entropy import CrossEntropy
     from pemviz.scenarios.toy import ToyParams
 
     problem = toy_problem(ToyParams(10, 5, 3, 0.9))

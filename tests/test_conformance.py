@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from conftest import doc_python_block
-from pemviz.config import METHODS, SCENARIOS
+from pemviz.settings import METHODS, SCENARIOS
 from pemviz.scenarios.problems import build_problem
 from pemviz.estimators.fixed import FixedSampler
-from pemviz.scenarios import builtin, get_scenario, register, registered
-from pemviz.scenarios.registry import unregister
+from pemviz.scenarios import builtin, register, registered
+from pemviz.scenarios.registry import get as get_scenario, unregister
 from pemviz.scenarios.toy import ToyBraking
 from pemviz.testing import ConformanceError, check_estimator, check_scenario
 

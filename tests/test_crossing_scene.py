@@ -12,8 +12,9 @@ import pytest
 from conftest import REPO
 
 from pemviz.config import ExperimentConfig
-from pemviz.engine import Experiment
-from pemviz.scenarios import get_scenario, registered
+from pemviz.engine.experiment import Experiment
+from pemviz.scenarios.registry import get as get_scenario
+from pemviz.scenarios import registered
 from pemviz.scenarios.crossing.scene import BatchedCrossing, CrossingParams
 from pemviz.scenarios.crossing.problem import MONTE_CARLO_REFERENCE, crossing
 from pemviz.testing import check_scenario

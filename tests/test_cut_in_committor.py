@@ -133,7 +133,7 @@ def test_the_cut_in_car_alone_drives_the_ego_as_the_whole_twin_does():
     way with the cut-in car alone as with the whole traffic, steps 0-40 (the study measured 99.9997 % of 344,400
     look-ahead branches at the same level)."""
     from pemviz.scenarios.cut_in.batched import BatchedCutIn
-    from pemviz.scenarios.problems import cut_in_params
+    from pemviz.scenarios.cut_in.problem import cut_in_params
 
     params = cut_in_params("moderate")
     n, rng = 300, np.random.default_rng(3)

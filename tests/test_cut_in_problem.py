@@ -13,8 +13,8 @@ from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import StageSamplers
 from pemviz.pem import load_pem
 from pemviz.pem.store import load_noise_pem
-from pemviz.scenarios.problems import cut_in_params, cut_in_problem
-from pemviz.scenarios.cut_in import FAILURE_FORMULA, OBJECT_NAMES, OBSERVATION_NAMES, SALIENT_COLUMNS
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
+from pemviz.scenarios.cut_in.scenario import FAILURE_FORMULA, OBJECT_NAMES, OBSERVATION_NAMES, SALIENT_COLUMNS
 
 VISIBLE = OBJECT_NAMES.index("visible")
 
@@ -137,7 +137,7 @@ class PerCall:
 def test_the_heads_evaluated_once_per_step_give_the_per_call_rollouts_bit_for_bit(problem, monkeypatch):
     from pemviz.core.detectors import ArrayRQMC, ConstantDetector
     from pemviz.pem.noise import NoisePEM
-    from pemviz.scenarios import RolloutBatch
+    from pemviz.core.rollouts import RolloutBatch
 
     asked = []
     noise_params = NoisePEM.noise_params

@@ -13,10 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pemviz.core.files import repo_root
 from pemviz.io import data
 from pemviz.cli import main as cli_main
 
-SHARED_DATA = data.repo_root().parent / "shared" / "data" / "kitti-salient"
+SHARED_DATA = repo_root().parent / "shared" / "data" / "kitti-salient"
 needs_shared_data = pytest.mark.skipif(
     not (SHARED_DATA / data.INPUTS_FILE).is_file(), reason=f"KITTI salient files absent from {SHARED_DATA}"
 )

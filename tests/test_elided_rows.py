@@ -8,9 +8,9 @@ import numpy as np
 
 from pemviz.config import ExperimentConfig
 from pemviz.scenarios.problems import problem_for
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RolloutsSampled
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 
 FIELDS = ("observations", "detected", "log_p", "log_q", "noise")
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pemviz.config import ExperimentConfig
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RolloutsSampled
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import build_problem

@@ -16,7 +16,7 @@ from pemviz import stl
 from pemviz.core.detectors import action_log_prob
 from pemviz.envs import ENV_ID, MISSED_GAP_M, BasicAgentController, BrakingEnv
 from pemviz.pem import load_pem
-from pemviz.scenarios.braking import BrakingScenario
+from pemviz.scenarios.braking.simulator import BrakingScenario
 
 SPEC = stl.parse("G[0,99](d >= 2)")
 

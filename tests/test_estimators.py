@@ -10,19 +10,15 @@ import torch
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, action_log_prob
-from pemviz.scenarios.problems import build_problem, toy_problem
+from pemviz.scenarios.problems import build_problem
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.core.sampling import Proposal
-from pemviz.estimators import (
-    CrossEntropy,
-    DefensiveDetector,
-    FixedSampler,
-    break_ties,
-    build_estimator,
-    failure_steps,
-    log_weight,
-)
+from pemviz.estimators.cross_entropy import CrossEntropy, DefensiveDetector, break_ties
+from pemviz.estimators.fixed import FixedSampler
+from pemviz.estimators import build_estimator
+from pemviz.estimators.base import failure_steps, log_weight
 from pemviz.estimators.ce_fit import ce_update
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.toy import ToyParams
 
 SMALL_RUN = dict(n_per_stage=50, n_final=100, ce_epochs=100, pretrain_epochs=100)
@@ -116,7 +112,7 @@ def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of
     """Chunk by chunk, the pool ends with gamma_kappa of the whole stage and every rollout r <= gamma, in order."""
     from pemviz.estimators.base import EliteCandidates
     from pemviz.estimators.base import quantile_threshold
-    from pemviz.scenarios import RolloutBatch
+    from pemviz.core.rollouts import RolloutBatch
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(50, 400))
@@ -148,7 +144,7 @@ def test_elite_steps_thinned_as_they_come_keep_the_weighted_log_likelihood_in_ex
     """Thinning the gathered steps (systematic resampling, repeated as chunks arrive) keeps
     E[sum_s w_s f(h_s, a_s)] for any f: the CE objective's expectation."""
     from pemviz.estimators.ce_fit import EliteSteps
-    from pemviz.scenarios import RolloutBatch
+    from pemviz.core.rollouts import RolloutBatch
 
     rng = np.random.default_rng(0)
     m, t = 60, 5
@@ -177,7 +173,7 @@ def test_elite_steps_thinned_as_they_come_keep_the_weighted_log_likelihood_in_ex
 
 def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on_a_toy():
     from pemviz.estimators.base import mixture_log_weight, weighted_steps_mask
-    from pemviz.scenarios.toy import toy_log_failure_probability
+    from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 
     # p(x) = 1e-6, q1(x) = 0.5, q2(x) = 1e-3, shares (0.1, 0.45, 0.45): w = 1e-6 / (1e-7 + 0.225 + 4.5e-4)
     log_w = mixture_log_weight(np.log([1e-6]), np.log([[1e-6], [0.5], [1e-3]]), np.array([0.1, 0.45, 0.45]))
@@ -207,7 +203,7 @@ def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on
 
 def test_linear_pool_weights_by_hand_and_unbiased_over_stages_of_different_proposals():
     from pemviz.estimators.base import StageRollouts, pooled_estimate
-    from pemviz.scenarios.toy import toy_log_failure_probability
+    from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 
     params = ToyParams(8, 5, 2, 0.6)  # exact (1 - 0.6)^4 = 0.0256
     pb = toy_problem(params)
@@ -246,7 +242,7 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
     of ``fit_weights = "sampler"`` bit for bit; from the second pooled stage on they differ. With two stages of equal
     size the reweighted steps obey p / (c_1 q_1 + c_2 q_2) <= p / (c_j q_j) = 2 w_own for the stage j that drew a
     rollout."""
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.estimators import ce_fit as ce
 
     def in_order(steps):  # the held steps' log-weights, rollout by rollout
@@ -288,7 +284,7 @@ def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monk
     ``final_smoothing`` when the stage is the last. Until the first fit that uses it every rollout is the same as
     with alpha = 1, so with the same seed the fits before it see the same weights and it sees alpha times theirs (up
     to the constant the held weights are relative to)."""
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.estimators import ce_fit as ce
 
     def fitted_log_weights(**fields):
@@ -339,7 +335,7 @@ def test_pool_weights_count_the_jth_pooled_stage_by_j_to_the_power_times_its_rol
     # K = 4 stages of 50 and N_e = 100 on main: the pool starts once a stage reaches gamma = 0; the run's mu_hat must
     # be sum_j lambda_j mu_hat_j over the pooled stages' own estimates, lambda_j = j^power n_j / sum_i i^power n_i
     # (Portier & Delyon 2018), with the final batch's n_j = 100
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
 
     cfg = ExperimentConfig(**{**SMALL_RUN, "n_stages": 4, "seed": 0, "pool_weights": pool_weights})
     done = Experiment(cfg, problem=build_problem("main")).run()

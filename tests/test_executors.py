@@ -14,8 +14,9 @@ import pytest
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, WindowDetector
 from pemviz.core.problems import Problem
-from pemviz.scenarios.problems import braking_problem, toy_problem
-from pemviz.engine import Experiment
+from pemviz.scenarios.braking.problem import braking_problem
+from pemviz.scenarios.toy.problem import toy_problem
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RolloutsSampled, StageFinished
 from pemviz.engine.executors import (
     ChunkUniforms,

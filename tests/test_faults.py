@@ -28,10 +28,10 @@ import pytest
 
 from conftest import REPO, verify_rrd
 from pemviz import cli
-from pemviz.io import rollout_format
-from pemviz.io import rollouts as rio
-from pemviz.io.files import OutputExists, atomic_write, check_output_path
-from pemviz.scenarios import RolloutBatch
+from pemviz.io import rollout_format, rollout_writer, rollouts as rio
+from pemviz.core.files import OutputExists, atomic_write
+from pemviz.io.files import check_output_path
+from pemviz.core.rollouts import RolloutBatch
 
 FAULT_SEEDS = range(int(os.environ.get("FAULT_SEEDS", "1")))
 SMALL_RUN = ["run", "--preset", "quick", "--k", "1", "--n", "10", "--n-final", "10", "--ce-epochs", "1"]
@@ -64,7 +64,7 @@ def small_batch(n: int = 4, t: int = 6, seed: int = 0) -> RolloutBatch:
 
 def write_unit(path: Path, seed: int = 0) -> None:
     batch = small_batch(seed=seed)
-    rio.write_rollouts(path, batch, rollout_format.braking_meta(formula="G[0,5](d >= 2)"), overwrite=True)
+    rollout_writer.write_rollouts(path, batch, rollout_format.braking_meta(formula="G[0,5](d >= 2)"), overwrite=True)
 
 
 def spawn(args: list[str], cwd: Path, **kw) -> subprocess.Popen:
@@ -351,7 +351,7 @@ def test_sidecar_extreme_log_q_is_one_line_not_a_nan_crash(tmp_path, capsys):
     batch = small_batch()
     batch = RolloutBatch(batch.observations, batch.detected, batch.log_p, np.full(batch.log_q.shape, -1e308),
                          batch.observation_names)  # fmt: skip
-    rio.write_rollouts(tmp_path / "x.parquet", batch, rollout_format.braking_meta(formula="G[0,5](d >= 2)"))
+    rollout_writer.write_rollouts(tmp_path / "x.parquet", batch, rollout_format.braking_meta(formula="G[0,5](d >= 2)"))
     code, err = cli_line(capsys, "estimate", str(tmp_path / "x.parquet"), "--no-record")
     assert code == 2
     assert err == (f"pemviz estimate: error: {tmp_path / 'x.parquet'}: rollout 0: the importance log-weight "

@@ -10,8 +10,8 @@ import pytest
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, ScoredTarget, StageSamplers, WindowDetector
-from pemviz.estimators import DefensiveDetector
-from pemviz.engine import Experiment
+from pemviz.estimators.cross_entropy import DefensiveDetector
+from pemviz.engine.experiment import Experiment
 from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios import simulate
 from pemviz.scenarios.toy import ToyBraking, ToyParams

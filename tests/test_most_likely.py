@@ -50,7 +50,7 @@ def test_why_says_so_when_every_failure_drawn_is_impossible_under_the_pem():
     "-inf nats": the line says that every failure drawn is impossible under the PEM, then which errors decided it."""
     from pemviz.core.detectors import ConstantDetector
     from pemviz.pem import load_pem
-    from pemviz.scenarios.problems import cut_in_problem
+    from pemviz.scenarios.cut_in.problem import cut_in_problem
 
     problem = cut_in_problem(load_pem())
     batch = problem.simulate(64, ConstantDetector(0.5), problem.target, np.random.default_rng(2))
@@ -85,8 +85,8 @@ def test_the_cut_in_why_line_states_the_detections_log_probability_and_the_error
     from pemviz.engine.events import RolloutsSampled
     from pemviz.pem import load_pem
     from pemviz.pem.store import load_noise_pem
-    from pemviz.scenarios.cut_in import OBJECT_NAMES, SALIENT_COLUMNS
-    from pemviz.scenarios.problems import cut_in_problem
+    from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, SALIENT_COLUMNS
+    from pemviz.scenarios.cut_in.problem import cut_in_problem
 
     pem, noise = load_pem(), load_noise_pem("hetero-t")
     problem = cut_in_problem(pem)

@@ -161,7 +161,7 @@ def test_the_recording_and_the_panel_state_the_parts_of_log_p_apart(runs, name):
 
 
 def test_ties_keep_the_earlier_rollout_and_log_p_counts_t_minus_1_steps():
-    from pemviz.scenarios import RolloutBatch
+    from pemviz.core.rollouts import RolloutBatch
 
     log_p = np.array([[-1.0, -2.0, -50.0], [-2.0, -1.0, 0.0], [-0.5, -0.5, 0.0], [-3.0, 0.0, 0.0]])
     n, t = log_p.shape

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pemviz.config import METRICS
+from pemviz.settings import METRICS
 from pemviz.studies.paper_tables import (
     RowSpec,
     log_mean_and_se,

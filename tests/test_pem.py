@@ -12,17 +12,25 @@ import torch
 from conftest import float64_network
 
 from pemviz import pem
+from pemviz.pem.encoding import BRAKING_CAMERA_TO_LEAD_CENTRE_M, POSE_COLUMNS, bce_from_logits, NormStats
+from pemviz.pem.modules import MLNN
+from pemviz.pem.network import PemFormatError
+from pemviz.pem.recipes import BEST_PEM_NAME
+from pemviz.pem.store import ASSETS_DIR_ENV, load_reference_pem, pem_path, reference_pem_dir
+from pemviz.pem.training import train_pem
+from pemviz.pem.trees import export_hist_gradient_boosting
+from pemviz.core.files import repo_root
 from pemviz.io import data
 from pemviz.cli import main as cli_main
 
-SHARED = data.repo_root().parent / "shared"
+SHARED = repo_root().parent / "shared"
 needs_shared_data = pytest.mark.skipif(
     not (SHARED / "data" / "kitti-salient" / data.INPUTS_FILE).is_file(),
     reason=f"KITTI salient files absent from {SHARED / 'data' / 'kitti-salient'}",
 )
 needs_reference = pytest.mark.skipif(
-    not (pem.reference_pem_dir() / "pem_class_train_full.pt").is_file(),
-    reason=f"the authors' PEM is absent from {pem.reference_pem_dir()}",
+    not (reference_pem_dir() / "pem_class_train_full.pt").is_file(),
+    reason=f"the authors' PEM is absent from {reference_pem_dir()}",
 )
 GAPS_INSIDE_10_M = np.linspace(2.0, 10.0, 81)
 GAPS_2_TO_13_M = np.linspace(2.0, 13.0, 111)
@@ -56,7 +64,7 @@ def test_encoding_is_one_hot_class_and_occlusion_then_z_scored_pose_hand_compute
         ]
     )
     norm = pem.fit_norm_stats(raw)
-    for j, col in enumerate(pem.POSE_COLUMNS):  # independent truth: statistics.mean / stdev (n - 1)
+    for j, col in enumerate(POSE_COLUMNS):  # independent truth: statistics.mean / stdev (n - 1)
         assert norm.mean[j] == pytest.approx(statistics.mean(raw[:, col]), rel=1e-12)
         assert norm.std[j] == pytest.approx(statistics.stdev(raw[:, col]), rel=1e-12)
     enc = pem.encode_salient(raw, norm)
@@ -78,7 +86,7 @@ def test_encoding_is_one_hot_class_and_occlusion_then_z_scored_pose_hand_compute
     ],
 )
 def test_encoding_rejects_classes_and_occlusions_outside_the_paper_sets(row, what) -> None:
-    norm = pem.NormStats(mean=np.zeros(4), std=np.ones(4))
+    norm = NormStats(mean=np.zeros(4), std=np.ones(4))
     with pytest.raises(ValueError, match=f"{what} in row 1"):
         pem.encode_salient(np.array([_raw_row(0, 0, 0, 1, 10, 0), row]), norm)
 
@@ -87,7 +95,7 @@ def test_encoding_rejects_classes_and_occlusions_outside_the_paper_sets(row, wha
 @needs_reference
 def test_norm_stats_of_the_full_file_match_the_authors_stats(salient) -> None:
     norm = pem.fit_norm_stats(salient.inputs)
-    ref = pem.load_reference_pem().norm  # float32 torch .std() (unbiased) of the same file
+    ref = load_reference_pem().norm  # float32 torch .std() (unbiased) of the same file
     np.testing.assert_allclose(norm.mean, ref.mean, rtol=1e-5)
     np.testing.assert_allclose(norm.std, ref.std, rtol=1e-5)
 
@@ -107,7 +115,7 @@ def test_braking_salient_inputs_follow_spec_section_2() -> None:
 
 def _random_pem(seed: int, hidden=(20, 20), temperature: float = 1.0) -> pem.PEM:
     torch.manual_seed(seed)
-    module = pem.MLNN(hidden=hidden)
+    module = MLNN(hidden=hidden)
     with torch.no_grad():  # non-trivial BatchNorm statistics
         for m in module.modules():
             if isinstance(m, torch.nn.BatchNorm1d):
@@ -115,7 +123,7 @@ def _random_pem(seed: int, hidden=(20, 20), temperature: float = 1.0) -> pem.PEM
                 m.running_var.uniform_(0.2, 3)
                 m.weight.uniform_(0.5, 2)
                 m.bias.uniform_(-1, 1)
-    norm = pem.NormStats(mean=[-1.73, 1.66, 28.16, -0.11], std=[8.28, 0.40, 17.33, 1.71])
+    norm = NormStats(mean=[-1.73, 1.66, 28.16, -0.11], std=[8.28, 0.40, 17.33, 1.71])
     return pem.PEM.from_module(module, norm, name="random", hidden=hidden, temperature=temperature)
 
 
@@ -163,7 +171,7 @@ def test_bce_from_logits_matches_torch_on_extreme_logits() -> None:
     logits = np.array([-800.0, -30.0, -1.0, 0.0, 2.0, 40.0, 900.0])
     labels = np.array([0.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0])
     expected = torch.nn.functional.binary_cross_entropy_with_logits(torch.tensor(logits), torch.tensor(labels)).item()
-    assert pem.bce_from_logits(logits, labels) == pytest.approx(expected, rel=1e-12)
+    assert bce_from_logits(logits, labels) == pytest.approx(expected, rel=1e-12)
 
 
 # --------------------------------------------------------------------------------------- save / load
@@ -186,11 +194,11 @@ def test_load_pem_errors_name_the_problem(tmp_path: Path) -> None:
         pem.load_pem(tmp_path / "missing.pt")
     bad = tmp_path / "bad.pt"
     torch.save({"a": torch.zeros(1)}, bad)
-    with pytest.raises(pem.PemFormatError, match="not a pemviz PEM"):
+    with pytest.raises(PemFormatError, match="not a pemviz PEM"):
         pem.load_pem(bad)
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a torch file")
-    with pytest.raises(pem.PemFormatError, match="not a readable PEM"):
+    with pytest.raises(PemFormatError, match="not a readable PEM"):
         pem.load_pem(junk)
 
 
@@ -222,23 +230,23 @@ def test_training_is_seeded_and_learns_a_known_logistic_dependence_on_distance()
     )
     p_true = 1 / (1 + np.exp(-(4 - 0.08 * z)))
     y = (rng.uniform(size=n) < p_true).astype(float)
-    a = pem.train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=7)
-    b = pem.train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=7)
-    c = pem.train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=8)
+    a = train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=7)
+    b = train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=7)
+    c = train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=8)
     assert np.array_equal(a.logit(raw), b.logit(raw))
     assert not np.array_equal(a.logit(raw), c.logit(raw))
     # Within 0.05 of the truth at the bulk of the data, and its BCE close to the true model's.
     probe = pem.braking_salient_inputs(np.array([10.0, 30.0, 50.0]))
     truth = 1 / (1 + np.exp(-(4 - 0.08 * probe[:, 9])))
     np.testing.assert_allclose(a.prob(probe), truth, atol=0.03)
-    true_bce = pem.bce_from_logits(np.log(p_true / (1 - p_true)), y)
-    assert pem.bce_from_logits(a.logit(raw), y) < true_bce + 0.01
+    true_bce = bce_from_logits(np.log(p_true / (1 - p_true)), y)
+    assert bce_from_logits(a.logit(raw), y) < true_bce + 0.01
 
 
 def test_train_rejects_labels_outside_0_1() -> None:
     raw = pem.braking_salient_inputs(np.arange(4.0))
     with pytest.raises(ValueError, match="0 or 1"):
-        pem.train_pem(raw, np.array([0, 1, 2, 1]), epochs=1)
+        train_pem(raw, np.array([0, 1, 2, 1]), epochs=1)
 
 
 # ------------------------------------------------------------------------------ shipped weights (issue 3)
@@ -251,7 +259,7 @@ def test_shipped_pem_gives_p_detect_in_0_98_0_999_inside_10_m(shipped) -> None:
 
 
 def test_shipped_file_is_small_and_records_its_training_command() -> None:
-    path = pem.pem_path("ml-nn")
+    path = pem_path("ml-nn")
     assert path.stat().st_size < 20_000
     meta = pem.load_pem(path).metadata
     assert meta["command"].startswith("pemviz pem train --model ml-nn")
@@ -260,17 +268,17 @@ def test_shipped_file_is_small_and_records_its_training_command() -> None:
 
 @needs_shared_data
 def test_shipped_pem_full_data_bce_beats_guess_mu(shipped, salient) -> None:
-    guess_mu = pem.bce_from_logits(
+    guess_mu = bce_from_logits(
         np.full(len(salient), math.log(salient.labels.mean() / (1 - salient.labels.mean()))), salient.labels
     )
     assert guess_mu == pytest.approx(0.2595, abs=5e-4)  # the paper's Guess-mu BCE
-    bce = pem.bce_from_logits(shipped.logit(salient.inputs), salient.labels)
+    bce = bce_from_logits(shipped.logit(salient.inputs), salient.labels)
     assert bce < 0.2595 - 0.03, bce
 
 
 @needs_reference
 def test_authors_pem_reproduces_the_spec_numbers() -> None:
-    ref = pem.load_reference_pem()
+    ref = load_reference_pem()
     assert ref.prob_at_gap(12.293) == pytest.approx(0.985, abs=0.002)
     p = ref.prob_at_gap(GAPS_INSIDE_10_M)
     assert 0.9905 <= p.min() and p.max() <= 0.9955
@@ -278,14 +286,14 @@ def test_authors_pem_reproduces_the_spec_numbers() -> None:
 
 @needs_reference
 def test_shipped_pem_agrees_with_the_authors_pem_within_0_01_for_gaps_2_to_13_m(shipped) -> None:
-    ref = pem.load_reference_pem()
+    ref = load_reference_pem()
     diff = np.abs(shipped.prob_at_gap(GAPS_2_TO_13_M) - ref.prob_at_gap(GAPS_2_TO_13_M))
     assert diff.max() <= 0.01, diff.max()
 
 
 def test_assets_dir_env_override(tmp_path: Path, monkeypatch) -> None:
     pem.save_pem(_random_pem(1), tmp_path / "pem_mine.pt")
-    monkeypatch.setenv(pem.ASSETS_DIR_ENV, str(tmp_path))
+    monkeypatch.setenv(ASSETS_DIR_ENV, str(tmp_path))
     assert pem.load_pem("mine").name == "random"
     with pytest.raises(FileNotFoundError, match="mine"):
         pem.load_pem("other")
@@ -350,7 +358,7 @@ def small_hgb():
 
 def test_exported_trees_equal_scikit_learn_decision_function(small_hgb) -> None:
     model, norm, raw = small_hgb
-    tree = pem.export_hist_gradient_boosting(model, norm, name="t")
+    tree = export_hist_gradient_boosting(model, norm, name="t")
     assert tree.n_trees == 40
     np.testing.assert_allclose(
         tree.logit(raw), model.decision_function(pem.encode_salient(raw, norm)), rtol=0, atol=1e-10
@@ -359,8 +367,8 @@ def test_exported_trees_equal_scikit_learn_decision_function(small_hgb) -> None:
 
 def test_tree_logit_at_gap_is_exactly_the_full_evaluation_also_at_the_thresholds(small_hgb) -> None:
     model, norm, _ = small_hgb
-    tree = pem.export_hist_gradient_boosting(model, norm, name="t")
-    thr_gap = tree._gap_z_thresholds * norm.std[2] + norm.mean[2] - pem.BRAKING_CAMERA_TO_LEAD_CENTRE_M
+    tree = export_hist_gradient_boosting(model, norm, name="t")
+    thr_gap = tree._gap_z_thresholds * norm.std[2] + norm.mean[2] - BRAKING_CAMERA_TO_LEAD_CENTRE_M
     assert thr_gap.size > 10
     gaps = np.concatenate(
         [
@@ -376,7 +384,7 @@ def test_tree_logit_at_gap_is_exactly_the_full_evaluation_also_at_the_thresholds
 
 def test_tree_pem_round_trips_through_a_compact_weights_only_file(small_hgb, tmp_path: Path) -> None:
     model, norm, raw = small_hgb
-    tree = pem.export_hist_gradient_boosting(model, norm, name="t", metadata={"a": 1})
+    tree = export_hist_gradient_boosting(model, norm, name="t", metadata={"a": 1})
     path = pem.save_pem(tree, tmp_path / "t.pt")
     assert torch.load(path, weights_only=True)["kind"] == "gbt"
     back = pem.load_pem(path)
@@ -387,14 +395,14 @@ def test_tree_pem_round_trips_through_a_compact_weights_only_file(small_hgb, tmp
 
 
 def test_shipped_gbt_pem_curve_and_full_data_fit(salient) -> None:
-    gbt = pem.load_pem(pem.BEST_PEM_NAME)
+    gbt = pem.load_pem(BEST_PEM_NAME)
     assert isinstance(gbt, pem.TreePEM) and gbt.n_trees == 300
     p = gbt.prob_at_gap(GAPS_INSIDE_10_M)
     assert p.min() >= 0.98 and p.max() <= 0.999, (p.min(), p.max())
     assert gbt.metadata["command"].startswith("pemviz pem train --model gbt")
     rows = slice(None, None, 5)  # every 5th row keeps the test fast
-    bce = pem.bce_from_logits(gbt.logit(salient.inputs[rows]), salient.labels[rows])
-    assert bce < pem.bce_from_logits(pem.load_pem("ml-nn").logit(salient.inputs[rows]), salient.labels[rows]) - 0.03
+    bce = bce_from_logits(gbt.logit(salient.inputs[rows]), salient.labels[rows])
+    assert bce < bce_from_logits(pem.load_pem("ml-nn").logit(salient.inputs[rows]), salient.labels[rows]) - 0.03
 
 
 # ------------------------------------------------------------------------------------- B-NN (issue 4)
@@ -413,7 +421,7 @@ def test_bnn_predictive_mean_is_the_mean_of_the_sample_probabilities() -> None:
         "w3": rng.normal(size=(s, h, 1)),
         "b3": rng.normal(size=(s, 1)),
     }
-    bnn = BayesianPEM(name="b", norm=pem.NormStats(mean=np.zeros(4), std=np.ones(4)), weights=weights)
+    bnn = BayesianPEM(name="b", norm=NormStats(mean=np.zeros(4), std=np.ones(4)), weights=weights)
     x = rng.normal(size=(300, 14))
     probs = []
     for k in range(s):  # independent: torch, sample by sample
@@ -431,7 +439,7 @@ def test_bnn_training_runs_seeded_and_checks_its_site_order() -> None:
 
     raw = pem.braking_salient_inputs(np.linspace(2, 60, 400))
     y = (raw[:, 9] < 40).astype(float)
-    norm = pem.NormStats(mean=[0.0, 1.7, 30.0, 0.0], std=[1.0, 0.4, 17.0, 1.7])
+    norm = NormStats(mean=[0.0, 1.7, 30.0, 0.0], std=[1.0, 0.4, 17.0, 1.7])
     a = train_bnn_pem(raw, y, steps=30, batch_size=128, n_samples=16, seed=4, norm=norm)
     b = train_bnn_pem(raw, y, steps=30, batch_size=128, n_samples=16, seed=4, norm=norm)
     assert a.n_samples == 16 and a.weights["w2"].shape == (16, 20, 20)

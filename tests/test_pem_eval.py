@@ -10,6 +10,8 @@ import pytest
 
 from conftest import verify_rrd
 from pemviz import pem
+from pemviz.pem.store import load_reference_pem
+from pemviz.core.files import repo_root
 from pemviz.io import data
 from pemviz.cli import main as cli_main
 from pemviz.studies.pem_eval import (
@@ -25,7 +27,7 @@ from pemviz.studies.pem_eval import (
     write_recording,
 )
 
-SHARED_DATA = data.repo_root().parent / "shared" / "data" / "kitti-salient"
+SHARED_DATA = repo_root().parent / "shared" / "data" / "kitti-salient"
 QUICK = EvalConfig(folds=(0,), mlnn_epochs=20, gbt_trees=60, bnn_steps=200, bnn_samples=100)
 
 
@@ -170,7 +172,7 @@ def test_recording_passes_rrd_verify_and_reads_back(quick, tmp_path: Path) -> No
         assert strip(f"gap/data/{m}").shape == (GAP_GRID_M.size, 2)
     if quick.authors_gap_prob is not None:
         authors = strip("gap/data/authors")
-        np.testing.assert_allclose(authors[:, 1], pem.load_reference_pem().prob_at_gap(GAP_GRID_M), atol=1e-6)
+        np.testing.assert_allclose(authors[:, 1], load_reference_pem().prob_at_gap(GAP_GRID_M), atol=1e-6)
 
 
 # ----------------------------------------------------------------------------------------------- CLI

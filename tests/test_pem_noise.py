@@ -15,13 +15,20 @@ from hypothesis import strategies as st
 from scipy import special, stats
 
 from pemviz import pem
+from pemviz.pem.camera import KITTI_FOCAL_PX, box_errors_to_metric
+from pemviz.pem.encoding import NormStats
+from pemviz.pem.modules import MLNN, NoiseNLL
+from pemviz.pem.network import PemFormatError
+from pemviz.pem.noise import HomoscedasticNoise, NoisePEM, fit_homoscedastic, nll, noise_training_data, train_noise_pem
+from pemviz.pem.recipes import NOISE_RECIPES
+from pemviz.pem.store import noise_pem_path, save_noise_pem
 from pemviz.cli import main as cli_main
+from pemviz.core.files import repo_root
 from pemviz.io import data
-from pemviz.pem.noise import NoiseNLL, nll
 from pemviz.studies import noise_eval
 
-SHARED_DATA = data.repo_root().parent / "shared" / "data" / "kitti-salient"
-F = pem.KITTI_FOCAL_PX
+SHARED_DATA = repo_root().parent / "shared" / "data" / "kitti-salient"
+F = KITTI_FOCAL_PX
 
 
 @pytest.fixture(scope="module")
@@ -39,28 +46,28 @@ def _raw(z: np.ndarray, *, x: float = 0.0, cls: int = 0, occ: int = 0, rot: floa
     return raw
 
 
-NORM = pem.NormStats(mean=np.array([0.0, 1.65, 25.0, 0.0]), std=np.array([8.0, 0.5, 15.0, 1.8]))
+NORM = NormStats(mean=np.array([0.0, 1.65, 25.0, 0.0]), std=np.array([8.0, 0.5, 15.0, 1.8]))
 
 
 # ------------------------------------------------------------------------------------------- geometry
 
 
 def test_kitti_focal_length_is_p2_of_the_calibration_files() -> None:
-    assert pem.KITTI_FOCAL_PX == 721.5377  # P2[0, 0] of KITTI calib/000000.txt
+    assert KITTI_FOCAL_PX == 721.5377  # P2[0, 0] of KITTI calib/000000.txt
 
 
 def test_range_error_hand_computed_from_the_pinhole_model() -> None:
     # truth box 55 px high at 20 m; the detector's box is 50 px (e_h = -5): H = 20 * 55 / f, and the detected box
     # reads Z = f H / 50 = 20 * 55 / 50 = 22 m, 2 m too far
-    err = pem.box_errors_to_metric([20.0], [50.0], [0.0], [-5.0])
+    err = box_errors_to_metric([20.0], [50.0], [0.0], [-5.0])
     assert err[0, 0] == pytest.approx(2.0, rel=1e-14) and err[0, 1] == 0.0
     # 60 px box at 12 m, detected 4 px too tall (64 px): Z = 12 * 60 / 64 = 11.25 m
-    assert pem.box_errors_to_metric([12.0], [64.0], [0.0], [4.0])[0, 0] == pytest.approx(-0.75, rel=1e-14)
+    assert box_errors_to_metric([12.0], [64.0], [0.0], [4.0])[0, 0] == pytest.approx(-0.75, rel=1e-14)
 
 
 def test_lateral_error_hand_computed_is_the_centre_error_back_projected_at_the_range() -> None:
     # f / 100 pixels at 10 m is 0.1 m; 3 px at 48.10251 m is 3 * 48.10251 / 721.5377 = 0.2 m
-    err = pem.box_errors_to_metric([10.0, 48.10251], [40.0, 40.0], [F / 100, 3.0], [0.0, 0.0])
+    err = box_errors_to_metric([10.0, 48.10251], [40.0, 40.0], [F / 100, 3.0], [0.0, 0.0])
     np.testing.assert_allclose(err[:, 1], [0.1, 0.2], rtol=1e-6)
     np.testing.assert_array_equal(err[:, 0], [0.0, 0.0])
 
@@ -68,7 +75,7 @@ def test_lateral_error_hand_computed_is_the_centre_error_back_projected_at_the_r
 def test_small_height_error_gives_the_z_squared_law() -> None:
     # a car 1.5 m high at 30 m spans f * 1.5 / 30 px; 0.01 px too tall -> dZ ~ -Z^2 e_h / (f H)
     h_t = F * 1.5 / 30.0
-    err = pem.box_errors_to_metric([30.0], [h_t + 0.01], [0.0], [0.01])
+    err = box_errors_to_metric([30.0], [h_t + 0.01], [0.0], [0.01])
     assert err[0, 0] == pytest.approx(-(30.0**2) * 0.01 / (F * 1.5), rel=1e-3)
 
 
@@ -82,7 +89,7 @@ def test_small_height_error_gives_the_z_squared_law() -> None:
 )
 def test_geometry_rejects_bad_input(args, message) -> None:
     with pytest.raises(ValueError, match=message):
-        pem.box_errors_to_metric(*args)
+        box_errors_to_metric(*args)
 
 
 def test_training_data_keeps_detected_obstacles_ahead_and_dequantises_within_half_a_pixel() -> None:
@@ -93,22 +100,22 @@ def test_training_data_keeps_detected_obstacles_ahead_and_dequantises_within_hal
         [1, 600, 180, 40, 50, 1, 0, 0, 1],  # detected but 0.5 m ahead: dropped
         [1, 600, 180, 40, 30, 3, 0, 0, 0],  # detected, centre 3 px off
     ], dtype=np.float64)  # fmt: skip
-    d = pem.noise_training_data(raw, table, seed=3)
+    d = noise_training_data(raw, table, seed=3)
     assert d.rows.tolist() == [0, 3]
     # row 0: e_h in [-5.5, -4.5] with the truth 55 px: dZ = -20 e_h / (55 + e_h) in [20*4.5/50.5, 20*5.5/49.5]
     assert 20 * 4.5 / 50.5 <= d.errors[0, 0] <= 20 * 5.5 / 49.5
     assert abs(d.errors[0, 1]) <= 0.5 * 20 / F
     assert (2.5 * 40 / F) <= d.errors[1, 1] <= (3.5 * 40 / F)
-    np.testing.assert_array_equal(d.errors, pem.noise_training_data(raw, table, seed=3).errors)
-    assert not np.array_equal(d.errors, pem.noise_training_data(raw, table, seed=4).errors)
+    np.testing.assert_array_equal(d.errors, noise_training_data(raw, table, seed=3).errors)
+    assert not np.array_equal(d.errors, noise_training_data(raw, table, seed=4).errors)
 
 
 # ---------------------------------------------------------------------------------- densities
 
 
-def _homo(family: str, df=None) -> pem.HomoscedasticNoise:
+def _homo(family: str, df=None) -> HomoscedasticNoise:
     rng = np.random.default_rng(1)
-    return pem.HomoscedasticNoise(name="h", norm=NORM, family=family, df=df, coef=rng.normal(0, 0.3, (14, 2)),
+    return HomoscedasticNoise(name="h", norm=NORM, family=family, df=df, coef=rng.normal(0, 0.3, (14, 2)),
                                   intercept=np.array([0.2, -0.05]), log_scale=np.array([0.4, -2.0]))  # fmt: skip
 
 
@@ -149,9 +156,9 @@ def test_student_t_cdf_matches_the_incomplete_beta_closed_form() -> None:
 
 def test_network_parameters_equal_the_torch_module_in_float64() -> None:
     torch.manual_seed(0)
-    module = pem.MLNN(14, (8, 8), batch_norm=False, out_dim=4)
+    module = MLNN(14, (8, 8), batch_norm=False, out_dim=4)
     scale = np.array([2.5, 0.08])
-    model = pem.NoisePEM(name="n", norm=NORM, family="student-t", df=np.array([3.0, 4.0]),
+    model = NoisePEM(name="n", norm=NORM, family="student-t", df=np.array([3.0, 4.0]),
                          state_dict=module.state_dict(), hidden=(8, 8), target_scale=scale)  # fmt: skip
     x = model.features(_raw(np.linspace(2, 80, 50), x=-4.0, cls=3, occ=1))
     with torch.no_grad():
@@ -202,7 +209,7 @@ def _synthetic(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def synthetic_fit():
     raw, errors, _ = _synthetic(12000, 0)
-    model = pem.NOISE_RECIPES["hetero-t"].train(raw, errors, norm=NORM, seed=0)  # the shipped recipe, 100 epochs
+    model = NOISE_RECIPES["hetero-t"].train(raw, errors, norm=NORM, seed=0)  # the shipped recipe, 100 epochs
     return model, raw, errors
 
 
@@ -218,7 +225,7 @@ def test_fit_on_synthetic_data_recovers_the_scale_function_and_df(synthetic_fit)
 def test_fit_on_synthetic_data_beats_the_baseline_and_nears_the_true_model(synthetic_fit) -> None:
     model, raw, errors = synthetic_fit
     test_raw, test_err, scale = _synthetic(6000, 1)
-    baseline = pem.fit_homoscedastic(raw, errors, family="normal", norm=NORM)
+    baseline = fit_homoscedastic(raw, errors, family="normal", norm=NORM)
     oracle = -np.mean(np.sum(stats.t(4.0, 0.0, scale).logpdf(test_err), axis=1))  # the true density
     hetero = nll(model, test_raw, test_err)
     assert hetero < nll(baseline, test_raw, test_err) - 0.5  # 0.874 against 1.587 nats
@@ -227,7 +234,7 @@ def test_fit_on_synthetic_data_beats_the_baseline_and_nears_the_true_model(synth
 
 def test_training_is_reproducible_with_a_seed() -> None:
     raw, errors, _ = _synthetic(2000, 5)
-    a, b, c = (pem.train_noise_pem(raw, errors, epochs=2, norm=NORM, seed=s) for s in (3, 3, 4))
+    a, b, c = (train_noise_pem(raw, errors, epochs=2, norm=NORM, seed=s) for s in (3, 3, 4))
     for key, value in a.state_dict.items():
         np.testing.assert_array_equal(value, b.state_dict[key], strict=True)
     assert not all(np.array_equal(v, c.state_dict[k]) for k, v in a.state_dict.items())
@@ -284,7 +291,7 @@ def test_kitti_tables_have_one_row_per_model_and_fold(kitti_cv) -> None:
 def test_shipped_noise_pem_grows_with_range() -> None:
     model = pem.load_noise_pem()
     assert model.name == "hetero-t" and model.family == "student-t"
-    assert pem.noise_pem_path().stat().st_size < 20_000
+    assert noise_pem_path().stat().st_size < 20_000
     assert model.metadata["command"] == "pemviz pem train --model hetero-t --seed 0 --epochs 100"
     _, log_scale = model.noise_params(model.features(_raw(np.array([10.0, 40.0]))))
     ratio = np.exp(log_scale[1] - log_scale[0])
@@ -305,7 +312,7 @@ def test_noise_files_round_trip(tmp_path: Path) -> None:
     x = models[1].features(_raw(np.linspace(2, 70, 30)))
     errors = np.random.default_rng(0).normal(0, 1, (30, 2))
     for i, model in enumerate(models):
-        back = pem.load_noise_pem(pem.save_noise_pem(model, tmp_path / f"n{i}.pt"))
+        back = pem.load_noise_pem(save_noise_pem(model, tmp_path / f"n{i}.pt"))
         assert type(back) is type(model) and back.name == model.name and back.family == model.family
         np.testing.assert_array_equal(back.log_prob(x, errors), model.log_prob(x, errors))
 
@@ -354,10 +361,10 @@ def test_a_bad_file_gives_one_line_naming_it(tmp_path: Path, content, loader, me
     if content == "detection":
         pem.save_pem(pem.load_pem("ml-nn"), path)
     elif content == "noise":
-        pem.save_noise_pem(pem.load_noise_pem(), path)
+        save_noise_pem(pem.load_noise_pem(), path)
     else:
         path.write_bytes(content)
-    with pytest.raises(pem.PemFormatError) as info:
+    with pytest.raises(PemFormatError) as info:
         loader(path)
     text = str(info.value)
     assert message in text and str(path) in text and "\n" not in text
@@ -428,7 +435,7 @@ def test_the_closed_form_quantile_and_log_density_are_scipy_stats(family):
     distributions (the oracle), deep into both tails, per component's degrees of freedom."""
     from scipy import stats
 
-    from pemviz.core.detectors import standard_log_density, standard_quantile
+    from pemviz.core.detector_noise import standard_log_density, standard_quantile
 
     df = np.array([2.5, 7.0]) if family == "student-t" else None
     u = np.array([1e-12, 1e-6, 0.01, 0.3, 0.5, 0.7, 0.99, 1 - 1e-6, 1 - 1e-12])[:, None] * np.ones(2)

@@ -12,13 +12,14 @@ from scipy.special import logit
 
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ConstantDetector
-from pemviz.scenarios.problems import PEM_SHIFTS, braking_problem, problem_for, with_alternatives
+from pemviz.scenarios.problems import PEM_SHIFTS, problem_for, with_alternatives
+from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.core.reweight import ShiftedDetector, detection_log_ratios, with_pem
-from pemviz.scenarios.braking.truth import latched_log_failure_probability
+from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
 from pemviz.pem.ensemble import DEFAULT_MEMBERS, bootstrap_rows, ensemble_path, load_ensemble
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.scenarios.braking.simulator import BrakingParams
 
 
 class Invisible:

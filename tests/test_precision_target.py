@@ -11,10 +11,10 @@ import pytest
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.estimate import Estimate, clopper_pearson, estimate
 from pemviz.scenarios.problems import build_problem
-from pemviz.engine import Experiment
-from pemviz.estimators import PrecisionTarget, build_estimator
-from pemviz.estimators.base import pool
-from pemviz.estimators.precision import GROWTH, MIN_BATCH, added_batch_size
+from pemviz.engine.experiment import Experiment
+from pemviz.estimators.precision import GROWTH, MIN_BATCH, PrecisionTarget, added_batch_size
+from pemviz.estimators import build_estimator
+from pemviz.estimators.pooling import pool
 
 TOY = "toy-1e-3"
 """Exact p = 1e-3: plain Monte Carlo reaches a 20 % interval in about 10^5 rollouts, a second."""

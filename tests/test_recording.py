@@ -23,9 +23,9 @@ from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz import cli  # noqa: E402
 from pemviz.engine import experiment as engine  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
-from pemviz.engine import Experiment  # noqa: E402
+from pemviz.engine.experiment import Experiment  # noqa: E402
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunStarted, StageFinished  # noqa: E402
-from pemviz.scenarios.braking import BrakingParams, BrakingScenario  # noqa: E402
+from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario  # noqa: E402
 from pemviz.scenarios.braking.failures import severity  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
@@ -579,7 +579,7 @@ def test_the_braking_drawing_says_which_rollouts_made_contact_at_once_as_each_ro
 
 
 def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_where_it_was_measured(tmp_path):
-    from pemviz.scenarios.cut_in import OBJECT_NAMES
+    from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES
 
     cfg = ExperimentConfig(scenario="cut-in", n_stages=2, n_per_stage=60, n_final=60, ce_epochs=30, pretrain_epochs=50,
                            pretrain_rollouts=60, seed=2)  # fmt: skip

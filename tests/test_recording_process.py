@@ -17,7 +17,7 @@ pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings ba
 
 from conftest import REPO, verify_rrd  # noqa: E402
 from pemviz import cli  # noqa: E402
-from pemviz.io.files import OutputExists  # noqa: E402
+from pemviz.core.files import OutputExists  # noqa: E402
 from pemviz.sinks import HANDLERS, Sink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.recording_process import RECORDED, RecordingProcess  # noqa: E402

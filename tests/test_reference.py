@@ -79,7 +79,8 @@ def test_a_cut_in_run_prints_its_estimate_beside_the_reference():
 
 
 def test_the_config_knows_how_many_objects_each_scenario_perceives():
-    from pemviz.config import SCENARIO_OBJECTS, SCENARIOS
+    from pemviz.config import SCENARIO_OBJECTS
+    from pemviz.settings import SCENARIOS
 
     assert set(SCENARIO_OBJECTS) == set(SCENARIOS)
     for scenario in SCENARIOS:

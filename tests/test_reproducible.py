@@ -98,7 +98,7 @@ def test_cut_in_chunks_of_1000_give_the_default_chunk_s_rollouts_bit_for_bit():
     import numpy as np
 
     from pemviz.scenarios.problems import problem_for
-    from pemviz.scenarios import RolloutBatch
+    from pemviz.core.rollouts import RolloutBatch
 
     pb = problem_for(ExperimentConfig(scenario="cut-in"))
 

@@ -22,20 +22,18 @@ from pemviz.core.plan import RunPlan
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import problem_for
 from pemviz import cli
-from pemviz.io.rollout_estimate import REESTIMATE_RTOL
-from pemviz.io import rollout_format
-from pemviz.io import rollouts as rio
-from pemviz.io.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob
+from pemviz.io.rollout_estimate import REESTIMATE_RTOL, detector_log_prob, estimate_rollouts, pem_log_prob
+from pemviz.io import rollout_format, rollout_table, rollout_writer, rollouts as rio
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, action_log_prob
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import FinalEstimate, RolloutChunk, RunFinished, RunStarted, StageStarted
 from pemviz.pem import load_pem, save_pem
-from pemviz.scenarios.problems import braking_problem
+from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.core.severity import rollout_severity
 from pemviz.scenarios.braking.failures import severity
 from pemviz.core.sampling import Proposal, load_proposal
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.sinks.rollouts import RolloutSink
 
 LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
@@ -98,7 +96,7 @@ def test_each_rollout_carries_its_severity_as_the_braking_scene_s_severity_gives
     np.testing.assert_array_equal(data.impact_speed, [w.contact_speed_mps for w in want])
     contact = np.isfinite(data.impact_speed)
     assert 0 < contact.sum() < data.n and (data.impact_speed[contact] > 0).all()
-    table = pq.read_table(path, columns=list(rio.SEVERITY_COLUMNS))
+    table = pq.read_table(path, columns=list(rollout_table.SEVERITY_COLUMNS))
     assert table.column("impact_speed_mps").null_count == (~contact).sum() * data.n_steps
     assert table.column("min_distance_m").null_count == 0
 
@@ -116,10 +114,10 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     np.testing.assert_allclose(general, data.log_p, rtol=0, atol=1e-5)
     # a copy without log_p / log_q: the sidecar names the PEM and the sampler
     bare = tmp_path / "bare.parquet"
-    rio.write_rollouts(bare, data.to_batch(), data.meta, salient=data.salient, log_probs=False, stage=data.stage,
-                       component=data.component)  # fmt: skip
+    rollout_writer.write_rollouts(bare, data.to_batch(), data.meta, salient=data.salient, log_probs=False,
+                                  stage=data.stage, component=data.component)  # fmt: skip
     assert "log_p" not in pq.read_schema(bare).names
-    assert not set(rio.SEVERITY_COLUMNS) & set(pq.read_schema(bare).names)  # a file as before the severity columns
+    assert not set(rollout_table.SEVERITY_COLUMNS) & set(pq.read_schema(bare).names)  # a file without severity columns
     old = rio.read_rollouts(bare)
     assert old.min_distance is None and old.impact_speed is None
     for args in ([str(bare)], [str(path), "--pem", "ml-nn", "--proposal", "naive50"]):
@@ -168,8 +166,8 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     assert same_mu(paper_weights.log_mu_hat, truth.log_mu_hat)
     np.testing.assert_array_equal(detector_log_prob(data, load_proposal(ckpt)), batch.log_q)
     bare = tmp_path / "bare.parquet"
-    rio.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False, stage=data.stage,
-                       component=data.component)  # no salient columns: the gap
+    rollout_writer.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False, stage=data.stage,
+                                  component=data.component)  # no salient columns: the gap
     meta = json.loads(rollout_format.sidecar_path(bare).read_text())
     assert meta["proposal"] == "adaptive.proposal.pt" and meta["pem"] == str(pem_file)
     for args in ([str(bare)], [str(bare), "--pem", str(pem_file), "--proposal", str(ckpt)]):
@@ -288,9 +286,9 @@ def small_file(tmp_path_factory, pem):
     problem = braking_problem(pem)
     batch = problem.simulate(6, ConstantDetector(0.5), problem.target, np.random.default_rng(0))
     path = tmp_path_factory.mktemp("small") / "small.parquet"
-    rio.write_rollouts(path, batch, rollout_format.braking_meta(pem="ml-nn", proposal="naive50"),
-                       salient=rio.braking_salient(batch.signal("gap_m")),
-                       severity=rollout_severity(problem, batch))  # fmt: skip
+    rollout_writer.write_rollouts(path, batch, rollout_format.braking_meta(pem="ml-nn", proposal="naive50"),
+                                  salient=rollout_table.braking_salient(batch.signal("gap_m")),
+                                  severity=rollout_severity(problem, batch))  # fmt: skip
     return path
 
 
@@ -435,9 +433,9 @@ def test_writer_refuses_bad_rollouts_and_leaves_no_file(tmp_path, pem):
     obs[1, 17, 0] = np.inf
     broken = RolloutBatch(obs, batch.detected, batch.log_p, batch.log_q, batch.observation_names)
     with pytest.raises(rollout_format.RolloutFormatError, match=r"gap_m is inf at rollout 1, step 17 \(row 117\)"):
-        rio.write_rollouts(tmp_path / "x.parquet", broken, rollout_format.braking_meta())
+        rollout_writer.write_rollouts(tmp_path / "x.parquet", broken, rollout_format.braking_meta())
     with pytest.raises(ValueError, match="must end in .parquet"):
-        rio.write_rollouts(tmp_path / "x.csv", batch, rollout_format.braking_meta())
+        rollout_writer.write_rollouts(tmp_path / "x.csv", batch, rollout_format.braking_meta())
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(FileNotFoundError, match="rollout file .* not found"):
         rio.read_rollouts(tmp_path / "absent.parquet")

@@ -20,9 +20,8 @@ from hypothesis import strategies as st
 
 from pemviz import cli
 from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
-from pemviz.io import rollout_format
-from pemviz.io import rollouts as rio
-from pemviz.scenarios import RolloutBatch
+from pemviz.io import rollout_format, rollout_writer, rollouts as rio
+from pemviz.core.rollouts import RolloutBatch
 
 LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
 META = rollout_format.RolloutMeta(formula="G[0,5](d >= 2)", dt_s=0.1)
@@ -48,7 +47,7 @@ def with_impossible_actions() -> RolloutBatch:
 
 def test_neg_inf_log_p_is_written_and_read_back_bit_for_bit_and_weighs_zero(tmp_path):
     batch = with_impossible_actions()
-    path = rio.write_rollouts(tmp_path / "r.parquet", batch, META)
+    path = rollout_writer.write_rollouts(tmp_path / "r.parquet", batch, META)
     data = rio.read_rollouts(path)
     assert data.log_p.tobytes() == batch.log_p.tobytes() and data.log_q.tobytes() == batch.log_q.tobytes()
     assert np.isneginf(data.log_p).sum() == 3
@@ -83,7 +82,7 @@ def test_the_writer_refuses_nan_or_inf_log_p_and_non_finite_log_q_naming_rollout
     arrays[column][2, 3] = value
     path = tmp_path / "r.parquet"
     with pytest.raises(rollout_format.RolloutFormatError, match=message) as exc:
-        rio.write_rollouts(path, batch_of(arrays["log_p"], arrays["log_q"]), META)
+        rollout_writer.write_rollouts(path, batch_of(arrays["log_p"], arrays["log_q"]), META)
     assert one_line(exc).startswith(f"{path} (not written): ")
     assert list(tmp_path.iterdir()) == []
 
@@ -91,7 +90,7 @@ def test_the_writer_refuses_nan_or_inf_log_p_and_non_finite_log_q_naming_rollout
 @pytest.mark.parametrize("case", list(BAD))
 def test_the_reader_refuses_nan_or_inf_log_p_and_non_finite_log_q_naming_rollout_and_step(case, tmp_path, capsys):
     column, value, message = BAD[case]
-    good = rio.write_rollouts(tmp_path / "good.parquet", with_impossible_actions(), META)
+    good = rollout_writer.write_rollouts(tmp_path / "good.parquet", with_impossible_actions(), META)
     table = pq.read_table(good)
     x = table.column(column).to_numpy().copy()
     x[2 * 6 + 3] = value
@@ -126,7 +125,7 @@ def log_p_arrays(draw: st.DrawFn) -> np.ndarray:
 def test_any_log_p_of_numbers_at_most_0_and_neg_inf_reads_back_bit_for_bit(log_p):
     batch = batch_of(log_p)
     with tempfile.TemporaryDirectory() as folder:
-        data = rio.read_rollouts(rio.write_rollouts(Path(folder) / "r.parquet", batch, META))
+        data = rio.read_rollouts(rollout_writer.write_rollouts(Path(folder) / "r.parquet", batch, META))
     assert data.log_p.tobytes() == log_p.tobytes() and data.log_q.tobytes() == batch.log_q.tobytes()
 
 
@@ -143,7 +142,7 @@ def test_the_first_nan_or_inf_in_log_p_is_named_by_rollout_and_step(log_p, data)
     message = f"log_p is {what} at rollout {first // t}, step {first % t} (row {first}); values must be finite"
     with tempfile.TemporaryDirectory() as folder:
         with pytest.raises(rollout_format.RolloutFormatError) as exc:
-            rio.write_rollouts(Path(folder) / "r.parquet", batch_of(log_p.reshape(n, t)), META)
+            rollout_writer.write_rollouts(Path(folder) / "r.parquet", batch_of(log_p.reshape(n, t)), META)
         assert message in one_line(exc) and not any(Path(folder).iterdir())
 
 
@@ -195,7 +194,7 @@ def test_a_cut_in_naive50_run_re_estimates_from_its_file_to_its_own_numbers(scen
 def test_a_file_whose_every_weight_is_0_checks_a_mean_weight_of_0(tmp_path):
     log_p = np.log(np.full((3, 6), 0.5))
     log_p[:, 1] = -np.inf
-    data = rio.read_rollouts(rio.write_rollouts(tmp_path / "r.parquet", batch_of(log_p), META))
+    data = rio.read_rollouts(rollout_writer.write_rollouts(tmp_path / "r.parquet", batch_of(log_p), META))
     check = estimate_rollouts(data, data.log_p, data.log_q).check
     assert (check.log_mean, check.se, check.n, check.far) == (-math.inf, 0.0, 3, False)
 

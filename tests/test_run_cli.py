@@ -11,7 +11,7 @@ from conftest import REPO, run_cli, verify_rrd
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import problem_for
 from pemviz.config import ExperimentConfig
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import FinalEstimate, StageFinished
 
 FINAL_RE = re.compile(r"^\s*final\s+(\d+)/(\d+)\s+(\S+)", re.M)

@@ -201,7 +201,7 @@ def test_adam_gives_torch_optims_parameters(rows):
     to rounding (:data:`FIT_TOL`: torch may vectorise its element-wise update differently on another CPU)."""
     from torch import nn
 
-    from pemviz.core.sampling import Adam
+    from pemviz.core.torch_fits import Adam
 
     fitted, start = [], None
     for make in (lambda ps: torch.optim.Adam(ps, lr=1e-2), lambda ps: Adam(list(ps), lr=1e-2)):

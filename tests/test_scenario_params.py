@@ -13,9 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from conftest import REPO
-from pemviz.config import SCENARIOS, ConfigError, ExperimentConfig
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams
+from pemviz.settings import SCENARIOS
+from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.scenarios.cut_in.scenario import RARITY_SETTINGS, CutInParams
 from pemviz.scenarios.parameters import (
     ParameterError,
     apply_parameters,
@@ -105,7 +106,7 @@ def test_the_problem_has_the_gap_and_no_reference_of_the_default_scene():
 
 def test_the_braking_exact_answer_is_dropped_or_recomputed_for_changed_parameters():
     from pemviz.scenarios.problems import problem_for
-    from pemviz.scenarios.braking.truth import latched_log_failure_probability
+    from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
     from pemviz.pem import load_pem
 
     default = problem_for(ExperimentConfig(pem_shift=0.5))

@@ -49,7 +49,7 @@ def test_the_exact_answer_is_the_enumeration_and_the_estimate_finds_it(plugin, m
     monkeypatch.syspath_prepend(str(plugin))
     sys.modules.pop("my_car_scenario", None)
     from pemviz.config import ExperimentConfig
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.scenarios import registry
 
     try:

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.braking import truth
+from pemviz.scenarios.braking import truth, truth_known
 from pemviz.scenarios.problems import problem_for
 from pemviz.core.severity import SeverityScale, level_events
 from pemviz.engine.events import RolloutsSampled
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
-from pemviz.scenarios.braking import BrakingParams, braking_step, lead_speeds
+from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 
 EXACT_1_5 = 2.9992e-17
 """P(min gap < 1.5 m) of the braking scenario under the shipped PEM, by enumeration (``benchmarks/severity.py
@@ -51,9 +51,9 @@ def test_severity_scale_refuses_levels_out_of_order():
 def test_the_known_points_come_from_the_enumeration_at_that_crash_gap():
     pem = load_pem()
     for gap, p in ((1.5, EXACT_1_5), (1.0, EXACT_1_0), (0.5, EXACT_0_5), (0.0, EXACT_CONTACT)):
-        log_p = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=gap))
+        log_p = truth_known.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=gap))
         assert log_p is not None and math.exp(log_p) == pytest.approx(p, rel=1e-4)
-    assert truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=0.25)) is None
+    assert truth_known.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=0.25)) is None
 
 
 @pytest.mark.parametrize("gap, log_prune", [(0.5, -62.0), (0.0, -90.0)])
@@ -62,7 +62,7 @@ def test_the_kept_points_below_1_m_lie_in_a_coarser_enumeration_s_bracket(gap, l
     # and a higher threshold is another enumeration (other sequences dropped) whose bracket must hold them
     pem = load_pem()
     ex = truth.braking_exact(pem.logit_at_gap, BrakingParams(crash_gap_m=gap), log_prune=log_prune, bound_grid=161)
-    kept = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=gap))
+    kept = truth_known.known_log_failure_probability(pem.logit_at_gap, BrakingParams(crash_gap_m=gap))
     assert ex.log_p_fail <= kept <= ex.log_p_fail_upper
     assert ex.relative_width < 0.5
 

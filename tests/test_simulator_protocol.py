@@ -15,10 +15,10 @@ from conftest import doc_python_block
 from pemviz import stl
 from pemviz.core.checks import check_simulator
 from pemviz.config import ExperimentConfig
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.core.problems import Problem
 from pemviz.scenarios import simulate
-from pemviz.scenarios.braking import BrakingScenario
+from pemviz.scenarios.braking.simulator import BrakingScenario
 from pemviz.scenarios.toy import ToyBraking, ToyParams
 
 N_STEPS = 25

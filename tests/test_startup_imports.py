@@ -13,7 +13,7 @@ from pemviz.config import ExperimentConfig
 from pemviz.core import torch_use
 from pemviz.scenarios.problems import build_problem
 from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 
 
 @pytest.fixture

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy import stats
 from scipy.special import stdtrit
 
-from pemviz.core.detectors import standard_quantile
+from pemviz.core.detector_noise import standard_quantile
 from pemviz.core.t_quantile import LOWEST_EXPONENT, TOLERANCE, student_t_quantile
 
 NOISE_PEM_DF = (3.15016556, 2.66272616)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from pemviz.config import SCENE_DEFAULTS, ExperimentConfig
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.scenarios.problems import build_problem
 
 
@@ -51,7 +51,7 @@ def test_the_toys_tilt_detector_is_the_pem_outside_the_window():
 @pytest.fixture(scope="module")
 def cut_in():
     from pemviz.pem import load_pem
-    from pemviz.scenarios.problems import cut_in_problem
+    from pemviz.scenarios.cut_in.problem import cut_in_problem
 
     from pemviz.scenarios.cut_in import tilt as tilt_module
 

@@ -24,7 +24,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pemviz import pem
-from pemviz.io.files import load_tagged
+from pemviz.pem.modules import MLNN
+from pemviz.pem.network import PemFormatError
+from pemviz.pem.noise import NoisePEM
+from pemviz.core.files import load_tagged
 from pemviz.core.torch_payload import UnsupportedPayload, load_payload, read_payload
 from pemviz.pem import network, noise, store
 from pemviz.pem.ensemble import ensemble_for, load_ensemble
@@ -239,9 +242,9 @@ def test_damaged_and_foreign_files_fail_as_they_did_with_torch_load(tmp_path: Pa
     odd = {"flipped byte": _flipped(tmp_path), "no byteorder": _no_byteorder(tmp_path)}
     for name, path in [*_damaged(tmp_path).items(), *odd.items()]:
         new = _outcome(lambda: load_tagged(path,  # noqa: B023 (called within the iteration)
-                                           "pemviz-pem", 1, "PEM", pem.PemFormatError, as_numpy=True))
+                                           "pemviz-pem", 1, "PEM", PemFormatError, as_numpy=True))
         old = _outcome(lambda: load_tagged(path,  # noqa: B023 (called within the iteration)
-                                           "pemviz-pem", 1, "PEM", pem.PemFormatError))
+                                           "pemviz-pem", 1, "PEM", PemFormatError))
         if old[0] == "ok":  # torch reads it (no byte order, a flipped byte torch does not check): so does the reader
             assert new[0] == "ok", name
             assert_same(new[1], old[1], name)
@@ -249,13 +252,13 @@ def test_damaged_and_foreign_files_fail_as_they_did_with_torch_load(tmp_path: Pa
             assert new == old, name
         loaded = _outcome(lambda: pem.load_pem(path))  # noqa: B023 (called within the iteration)
         if loaded[0] == "error":
-            assert loaded[1] is pem.PemFormatError and "\n" not in loaded[2] and str(path) in loaded[2], (name, loaded)
+            assert loaded[1] is PemFormatError and "\n" not in loaded[2] and str(path) in loaded[2], (name, loaded)
 
 
 @pytest.mark.parametrize("loader", [pem.load_pem, pem.load_noise_pem, pem.load_noisy_pem, load_ensemble])
 def test_every_loader_gives_one_line_for_a_damaged_file(tmp_path: Path, loader: Any) -> None:
     for name, path in _damaged(tmp_path).items():
-        with pytest.raises(pem.PemFormatError) as info:
+        with pytest.raises(PemFormatError) as info:
             loader(path)
         assert "\n" not in str(info.value) and str(path) in str(info.value), (name, str(info.value))
 
@@ -264,7 +267,7 @@ def test_a_payload_with_lists_where_arrays_belong_is_damaged(tmp_path: Path) -> 
     payload = torch.load(store.pem_path(), weights_only=True)
     payload["norm_mean"] = [0.0, 1.0, 2.0, 3.0]
     torch.save(payload, tmp_path / "list.pt")
-    with pytest.raises(pem.PemFormatError, match="damaged PEM file"):
+    with pytest.raises(PemFormatError, match="damaged PEM file"):
         pem.load_pem(tmp_path / "list.pt")
 
 
@@ -281,7 +284,7 @@ assert isinstance(p.state_dict["ff_nn.0.weight"], __import__("numpy").ndarray)
 load_pem("gbt"), load_noise_pem(), load_ensemble(ensemble_for(None)), pem_argument(None), pem_argument("gbt")
 assert p.logit_at_gap([5.0]).shape == (1,)
 assert "torch" not in sys.modules, "torch was imported"
-pemviz.pem.MLNN  # named: now torch comes
+from pemviz.pem.modules import MLNN  # the torch modules' one home: now torch comes
 assert "torch" in sys.modules
 """
 
@@ -291,11 +294,13 @@ def test_loading_the_shipped_pems_does_not_import_torch() -> None:
     assert proc.returncode == 0, proc.stderr[-3000:]
 
 
-def test_the_lazily_imported_names_are_the_modules_own() -> None:
+def test_the_torch_modules_have_one_import_path() -> None:
+    """``MLNN`` and ``NoiseNLL`` are :mod:`pemviz.pem.modules`'s alone: the package and the modules that evaluate PEMs
+    without torch lend neither."""
     from pemviz.pem import modules
 
-    assert pem.MLNN is network.MLNN is modules.MLNN
-    assert noise.NoiseNLL is modules.NoiseNLL
+    for module, name in ((pem, "MLNN"), (network, "MLNN"), (noise, "NoiseNLL")):
+        assert not hasattr(module, name), f"{module.__name__}.{name}"
     assert modules.NoiseNLL.FAMILIES == noise.FAMILIES and modules.NoiseNLL.DF_MIN == noise.DF_MIN
     with pytest.raises(AttributeError):
         pem.NoSuchName  # noqa: B018
@@ -313,7 +318,7 @@ def _torch_folded(state_pem: Any, build: Any) -> Any:
     original = network.fold_state_dict
 
     def via_torch(state: Any, hidden: Any, *, batch_norm: bool = True, in_dim: int = 14, out_dim: int = 1) -> Any:
-        module = pem.MLNN(in_dim, hidden, batch_norm=batch_norm, out_dim=out_dim)
+        module = MLNN(in_dim, hidden, batch_norm=batch_norm, out_dim=out_dim)
         module.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
         return network.fold_layers(module.eval())
 
@@ -357,7 +362,7 @@ def test_shipped_pem_logits_are_bit_identical_to_the_torch_fold(index: int) -> N
 
 def test_shipped_noise_pem_is_bit_identical_to_the_torch_fold() -> None:
     n = pem.load_noise_pem()
-    ref = _torch_folded(n, lambda: pem.NoisePEM(name=n.name, norm=n.norm, family=n.family, df=n.df,
+    ref = _torch_folded(n, lambda: NoisePEM(name=n.name, norm=n.norm, family=n.family, df=n.df,
                                                 state_dict=n.state_dict, hidden=n.hidden,
                                                 target_scale=n.target_scale))  # fmt: skip
     x = n.features(_raw(3000, 7))
@@ -366,14 +371,14 @@ def test_shipped_noise_pem_is_bit_identical_to_the_torch_fold() -> None:
 
 def test_weights_of_another_architecture_are_refused_in_one_line() -> None:
     p = pem.load_pem()
-    with pytest.raises(pem.PemFormatError, match="weights do not fit hidden=\\(20, 30\\)") as info:
+    with pytest.raises(PemFormatError, match="weights do not fit hidden=\\(20, 30\\)") as info:
         pem.PEM(name="x", norm=p.norm, state_dict=p.state_dict, hidden=(20, 30))
     assert "ff_nn.3.weight has shape [20, 20], needs [30, 20]" in str(info.value) and "\n" not in str(info.value)
-    with pytest.raises(pem.PemFormatError, match="ff_nn.0.weight is a NoneType, not an array"):
+    with pytest.raises(PemFormatError, match="ff_nn.0.weight is a NoneType, not an array"):
         pem.PEM(name="x", norm=p.norm, state_dict={**p.state_dict, "ff_nn.0.weight": None})
-    with pytest.raises(pem.PemFormatError, match=r"missing keys \['ff_nn.6.bias'\]"):
+    with pytest.raises(PemFormatError, match=r"missing keys \['ff_nn.6.bias'\]"):
         pem.PEM(name="x", norm=p.norm, state_dict={k: v for k, v in p.state_dict.items() if k != "ff_nn.6.bias"})
-    with pytest.raises(pem.PemFormatError, match="unexpected keys"):
+    with pytest.raises(PemFormatError, match="unexpected keys"):
         pem.PEM(name="x", norm=p.norm, state_dict=p.state_dict, batch_norm=False)
 
 

@@ -12,13 +12,13 @@ from scipy.special import log_expit
 
 from pemviz.core.detectors import ConstantDetector, WindowDetector
 from pemviz.core.estimate import estimate
-from pemviz.scenarios.problems import toy_problem
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios import simulate
-from pemviz.scenarios.braking import BrakingParams, BrakingScenario, braking_replay, braking_step, lead_speeds
-from pemviz.scenarios.toy import ToyBraking, ToyParams, simulate_toy, toy_log_failure_probability
-from pemviz.scenarios.braking.truth import (
-    _relaxed_step, braking_exact, branching_start, latched_log_failure_probability, miss_bound,
-)
+from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario, braking_replay, braking_step, lead_speeds
+from pemviz.scenarios.toy import ToyBraking, ToyParams
+from pemviz.scenarios.toy.simulator import simulate_toy, toy_log_failure_probability
+from pemviz.scenarios.braking.truth import _relaxed_step, braking_exact, branching_start, miss_bound
+from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
 
 
 @pytest.fixture(scope="module")
@@ -170,7 +170,7 @@ def test_enumeration_agrees_with_the_latched_closed_form(pem):
 def test_enumerated_main_truth_agrees_with_importance_sampling(pem):
     # Independent check: a fixed 40 %-miss detector inside 10 m, weights up to the crash step, 40,000
     # rollouts of the batched simulator (relative standard error ~7 %).
-    from pemviz.scenarios.problems import braking_problem
+    from pemviz.scenarios.braking.problem import braking_problem
 
     ex = braking_exact(pem.logit_at_gap, BrakingParams(), log_prune=-50.0, bound_grid=201)
     assert ex.relative_width < 0.05

@@ -9,9 +9,10 @@ import itertools
 import numpy as np
 import pytest
 
-from pemviz.scenarios.braking import BrakingParams, braking_step, lead_speeds
+from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 from pemviz.scenarios.braking import truth
-from pemviz.scenarios.braking.truth import BrakingStart, MissBound, braking_exact, latched_log_failure_probability
+from pemviz.scenarios.braking.truth import BrakingStart, MissBound, braking_exact
+from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
 from pemviz.scenarios.braking.truth_cells import (
     CellMissBound, cell_miss_bound, integral_range, speed_lipschitz, speed_ranges,
 )

@@ -12,8 +12,8 @@ import pytest
 
 from pemviz.cli import main as cli_main
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.problems import toy_problem
-from pemviz.engine import Experiment
+from pemviz.scenarios.toy.problem import toy_problem
+from pemviz.engine.experiment import Experiment
 from pemviz.presets import PRESETS
 from pemviz.scenarios.toy import ToyParams
 

@@ -111,7 +111,7 @@ def test_baselines_get_the_first_presets_simulation_budget():
 
 
 def test_the_main_truth_of_a_shipped_pem_is_the_kept_enumeration_not_recomputed():
-    from pemviz.scenarios.braking.truth import KNOWN_BRAKING_LOG_P, pem_fingerprint
+    from pemviz.scenarios.braking.truth_known import KNOWN_BRAKING_LOG_P, pem_fingerprint
     from pemviz.pem import load_pem
 
     answer = exact_answer("main")

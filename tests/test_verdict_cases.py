@@ -12,7 +12,7 @@ import pytest
 from conftest import run_cli
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference, estimate
-from pemviz.estimators import CrossEntropy
+from pemviz.estimators.cross_entropy import CrossEntropy
 from pemviz.sinks.console import next_step
 
 CUT_IN_REFERENCE = Reference(866, 10_000_000, "plain Monte Carlo, shipped PEMs")

@@ -63,7 +63,7 @@ def test_pemviz_run_from_the_installed_wheel_in_an_empty_folder(wheel: Path, tmp
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PEMVIZ_ASSETS_DIR")}
     env["RERUN_ANALYTICS"] = "false"
     where = subprocess.run(
-        [str(py), "-c", "import pemviz, pemviz.pem as p; print(pemviz.__file__); print(p.assets_dir())"],
+        [str(py), "-c", "import pemviz, pemviz.pem.store as p; print(pemviz.__file__); print(p.assets_dir())"],
         cwd=work, env=env, capture_output=True, text=True, check=True, timeout=120,
     )  # fmt: skip
     module_file, assets = where.stdout.split()

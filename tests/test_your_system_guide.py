@@ -23,7 +23,7 @@ import pytest
 
 from conftest import REPO
 from pemviz.config import ExperimentConfig
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.io.rollout_estimate import estimate_rollouts
 from pemviz.io.rollouts import read_rollouts
 from pemviz.scenarios.registry import registered, unregister

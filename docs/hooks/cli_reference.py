@@ -3,7 +3,7 @@ of a setting where a page asks for them.
 
 The marker ``<!-- pemviz-cli -->`` is replaced with one section per command, each the exact text ``argparse`` prints,
 so the reference never drifts from the code. ``<!-- pemviz-choices NAME -->`` is replaced with a list of the choices
-of setting NAME (:data:`pemviz.config.SETTINGS`; ``preset``: :data:`pemviz.presets.PRESET_HELP`), each with the words
+of setting NAME (:data:`pemviz.settings.SETTINGS`; ``preset``: :data:`pemviz.presets.PRESET_HELP`), each with the words
 the panel's hint and ``pemviz run --help`` give it.
 """
 
@@ -39,7 +39,7 @@ def cli_markdown() -> str:
 
 def choices_markdown(name: str) -> str:
     """``- **classic**: the worst step's margin alone`` for each choice of setting ``name`` (or of ``preset``)."""
-    from pemviz.config import SETTINGS
+    from pemviz.settings import SETTINGS
     from pemviz.presets import PRESET_HELP
 
     pairs = PRESET_HELP.items() if name == "preset" else SETTINGS[name].choice_help

@@ -1,4 +1,4 @@
-"""What the panel asks of a scenario's drawing object (:attr:`pemviz.core.problems.ProblemView.drawing`): the hooks
+"""What the panel asks of a scenario's drawing object (:attr:`pemviz.core.problem_view.ProblemView.drawing`): the hooks
 of :class:`PanelDrawing`, which return plain data (:mod:`pemviz.scenarios.panel_data`) that the panel renders with
 viser and its colours. The panel names no scenario: a drawing whose :meth:`~PanelDrawing.panel_scene` is a
 :class:`~pemviz.scenarios.panel_data.LaneScene` is drawn as the ego and one object ahead of it (hooks of
@@ -15,13 +15,13 @@ import numpy as np
 
 from pemviz.core.drawing import Drawing
 from pemviz.scenarios import registry
-from pemviz.scenarios.panel_data import CurveAxis, LaneScene, ObjectsScene, Series, ViewAxis, Zone
+from pemviz.scenarios.panel_data import CurveAxis, LaneScene, ObjectsScene, Series, ViewAxis
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
 
-__all__ = ["CurveAxis", "LaneExplanation", "LanePanel", "LaneScene", "ObjectsPanel", "ObjectsScene", "PanelDrawing",
-           "Series", "ViewAxis", "Zone", "lane_panel", "objects_panel", "panel_scene", "scenario_drawing"]
+__all__ = ["LaneExplanation", "LanePanel", "ObjectsPanel", "PanelDrawing", "lane_panel", "objects_panel", "panel_scene",
+           "scenario_drawing"]
 
 
 class LaneExplanation(Protocol):

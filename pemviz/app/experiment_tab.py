@@ -16,8 +16,10 @@ from pemviz.app.host import PanelHost
 from pemviz.app.html import field_error
 from pemviz.app.params_form import ScenarioParamsForm
 from pemviz.app.runs import PANEL_PRESETS
-from pemviz.config import SCENE_DEFAULTS, SETTINGS, SIMULATORS, ExperimentConfig
-from pemviz.pem import DEFAULT_PEM_NAME, shipped_pems
+from pemviz.config import SCENE_DEFAULTS, ExperimentConfig
+from pemviz.settings import SETTINGS, SIMULATORS
+from pemviz.pem.recipes import DEFAULT_PEM_NAME
+from pemviz.pem import shipped_pems
 from pemviz.presets import preset_help
 from pemviz.estimators.registry import method_names
 from pemviz.scenarios.registry import registered
@@ -62,7 +64,7 @@ class ExperimentTab:
         self.fields: dict[str, viser.GuiTextHandle] = {}
         self.field_errors: dict[str, viser.GuiHtmlHandle] = {}
 
-        def number(key: str) -> None:  # label, range and hint from the setting (pemviz.config.SETTINGS)
+        def number(key: str) -> None:  # label, range and hint from the setting (pemviz.settings.SETTINGS)
             f = FIELDS_BY_KEY[key]
             self.fields[key] = gui.add_text(f.label, format_number(f, getattr(c0, key)), hint=f.hint)
             self.field_errors[key] = gui.add_html("")

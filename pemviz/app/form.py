@@ -15,7 +15,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from pemviz.config import SETTINGS, ConfigError, ExperimentConfig, Setting
+from pemviz.settings import SETTINGS, Setting
+from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
 from pemviz.scenarios.parameters import Parameter, ParameterError, Value
@@ -26,13 +27,13 @@ NUMBER_FIELDS: tuple[Setting, ...] = tuple(SETTINGS[name] for name in (
     "smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed", "ce_epochs", "pretrain_rollouts",
     "pretrain_epochs", "learning_rate", "rel_error", "max_sims", "max_time_s",
 ))  # fmt: skip
-"""The numbers the form shows, each with its :class:`~pemviz.config.Setting` (label, words, range, hint)."""
+"""The numbers the form shows, each with its :class:`~pemviz.settings.Setting` (label, words, range, hint)."""
 FIELDS_BY_KEY = {f.name: f for f in NUMBER_FIELDS}
 
 def parse_number(field: Setting, text: str) -> tuple[float | int | None, str]:
     """``(value, "")`` for a valid entry, ``(None, reason)`` otherwise; the reason names the field in words.
 
-    Parsed by :meth:`pemviz.config.Setting.parse` (as the command line's flags are), then checked against the
+    Parsed by :meth:`pemviz.settings.Setting.parse` (as the command line's flags are), then checked against the
     setting's range. Nothing is rounded or clipped.
     """
     if field.optional and str(text).strip() == "":  # an optional setting left empty: its default (None)
@@ -172,7 +173,7 @@ def run_cost(cfg: ExperimentConfig, n_steps: int = N_STEPS) -> RunCost:
 
 def setting_name(key: str) -> str:
     """The name a setting goes by in labels and the compare table (``smoothing`` -> ``alpha``): its
-    :attr:`~pemviz.config.Setting.label`."""
+    :attr:`~pemviz.settings.Setting.label`."""
     return SETTINGS[key].label
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 from pemviz.app.drawing import objects_panel
 from pemviz.core.counterfactuals import MISS, Counterfactuals, counterfactuals
-from pemviz.core.problems import object_scene
+from pemviz.core.problem_view import object_scene
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
@@ -96,7 +96,7 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
     Args:
         problem: the run's :class:`pemviz.core.problems.Problem` (its target gives the error ellipses, its ``branch``
             replays the counterfactuals); None: neither.
-        view: its :class:`pemviz.core.problems.ProblemView` (``objects_xy``, ``noise_xy``, ``drawing``: an
+        view: its :class:`pemviz.core.problem_view.ProblemView` (``objects_xy``, ``noise_xy``, ``drawing``: an
             :class:`pemviz.app.drawing.ObjectsPanel`, which tells the story and gives the lanes).
         batch: one rollout, ``objects`` [1, T, M, G] named by ``object_names``.
         failed: whether the rollout failed (only a failure is explained by counterfactuals).

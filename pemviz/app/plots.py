@@ -17,7 +17,8 @@ import numpy as np
 import viser
 import viser.uplot as up
 
-from pemviz.app.drawing import CurveAxis, LaneExplanation, Series
+from pemviz.scenarios.panel_data import CurveAxis, Series
+from pemviz.app.drawing import LaneExplanation
 from pemviz.app.runs import PanelRun
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import (
@@ -35,7 +36,7 @@ from pemviz.sinks.colours import (
 )
 
 if TYPE_CHECKING:
-    from pemviz.core.problems import Thresholds
+    from pemviz.core.problem_view import Thresholds
 
 RUN_COLOURS = tuple(hex_colour(c) for c in C.RUN_COLOURS)
 """Series colour of a run: its number modulo 6 (:data:`pemviz.sinks.colours.RUN_COLOURS`)."""
@@ -53,7 +54,7 @@ SERIES_STYLE: dict[str, dict[str, Any]] = {
     "ego": {"stroke": css(EGO_SPEED), "width": 1.5},
     "object": {"stroke": css(OBJECT_SPEED), "width": 1.5},
 }
-"""The strip chart's line of each :attr:`pemviz.app.drawing.Series.role`: colour and width."""
+"""The strip chart's line of each :attr:`pemviz.scenarios.panel_data.Series.role`: colour and width."""
 
 
 def run_colour(run_id: int) -> str:
@@ -347,7 +348,7 @@ def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) 
 
 def strip_plots(gui: viser.GuiApi, title: str = "distance and speeds") -> dict[str, viser.GuiUplotHandle]:
     """The three strip charts of *Explain*: the rollout's distance and speeds (``title``, e.g. the idle scene's
-    :attr:`pemviz.app.drawing.LaneScene.strip_title`), p / q of detect, cumulative log-weight."""
+    :attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`), p / q of detect, cumulative log-weight."""
     t = np.linspace(0, 5, 2)
     none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 5.0))
@@ -385,14 +386,14 @@ def fill_strip_plots(
     step: int, title: str, thresholds: Thresholds | None, what: str = "distance and speeds",
 ) -> None:  # fmt: skip
     """Draw a rollout with a marker at ``step`` (the 3D scene's step) in each strip chart, with the problem's failure
-    threshold and sampler window (:attr:`pemviz.core.problems.ProblemView.thresholds`; None: no such lines).
+    threshold and sampler window (:attr:`pemviz.core.problem_view.ProblemView.thresholds`; None: no such lines).
 
     Args:
         lines: the first chart's lines (:meth:`pemviz.app.drawing.LanePanel.strip_series`), the ``main`` one first:
             the marker follows it; float64 [T] each.
         detected: bool [T] the detections taken.
         ex: the rollout explained (:meth:`pemviz.app.drawing.LanePanel.lane_explanation`).
-        what: the first chart's title after the rollout's (:attr:`pemviz.app.drawing.LaneScene.strip_title`).
+        what: the first chart's title after the rollout's (:attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`).
     """
     t = ex.time_s
     now = np.full(t.size, np.nan)

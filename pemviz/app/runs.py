@@ -44,7 +44,7 @@ from pemviz.engine.events import (
     StageStarted,
 )
 from pemviz.presets import PRESETS
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.panel_data import ViewAxis
 from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.population import FailureGrouping, group_failures
@@ -326,7 +326,7 @@ class PanelRun(Sink):
         self.plan = None
         """The stages the run will draw (:class:`pemviz.core.plan.RunPlan`), once it started; None before."""
         self.view = None
-        """The problem as the panel shows it (:class:`pemviz.core.problems.ProblemView`), once it started; None
+        """The problem as the panel shows it (:class:`pemviz.core.problem_view.ProblemView`), once it started; None
         before."""
         self.problem = None
         """The run's :class:`pemviz.core.problems.Problem`, set by whoever runs it: *Explain* replays a scene of several

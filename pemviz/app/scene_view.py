@@ -19,7 +19,8 @@ import viser
 from pemviz.app import objects_view as OV
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.html import BLUE, GREY, RED, box
-from pemviz.app.drawing import LanePanel, LaneScene, ObjectsScene, lane_panel, panel_scene, scenario_drawing
+from pemviz.app.drawing import LanePanel, lane_panel, panel_scene, scenario_drawing
+from pemviz.scenarios.panel_data import LaneScene, ObjectsScene
 from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.core.problem_view import object_label
 from pemviz.sinks import colours as C
@@ -47,7 +48,7 @@ FRAMED_Y_M, FRAMED_Z_M = (-8.0, 6.0), (0.0, 3.0)
 LABEL_SCALE = 0.85
 """The labels' font, relative to viser's."""
 ZONE_COLOURS = {"window": BRAKE_ZONE, "margin": CRASH}
-"""The colour of a zone of each :attr:`pemviz.app.drawing.Zone.role`."""
+"""The colour of a zone of each :attr:`pemviz.scenarios.panel_data.Zone.role`."""
 ZONE_COLOUR_NAMES = {"window": "yellow", "margin": "red"}
 """The colours' names in the zones' label."""
 DEFAULT_OBJECTS = ObjectsScene(1.0, 1.0, 4.0, 0, "", 0)

@@ -11,7 +11,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from pemviz.config import SETTINGS, ConfigError, ExperimentConfig, Setting
+from pemviz.settings import SETTINGS, Setting
+from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.io.files import check_output_path
 
 
@@ -82,14 +83,14 @@ def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ..
 SHOWN_DEFAULTS = {"pem": "ml-nn", "ray_address": "a local one",
                   "chunk_rollouts": "8192, and only stages above 20000 rollouts stream"}
 """What a setting's None stands for, as the flags' help says it: the shipped default PEM
-(:data:`pemviz.pem.DEFAULT_PEM_NAME`, whose module imports torch; a test keeps the two equal), a local Ray cluster,
-the engine's chunks (:data:`pemviz.scenarios.DEFAULT_CHUNK_SIZE`, :data:`pemviz.engine.experiment.STREAM_ABOVE`; a
-test keeps them equal)."""
+(:data:`pemviz.pem.recipes.DEFAULT_PEM_NAME`, whose module imports torch; a test keeps the two equal), a local Ray
+cluster, the engine's chunks (:data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`,
+:data:`pemviz.engine.experiment.STREAM_ABOVE`; a test keeps them equal)."""
 
 
 def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str, default: Any = None) -> None:
     """The flag of the :class:`ExperimentConfig` field ``name`` (its flags, type and help from
-    :data:`pemviz.config.SETTINGS`; the help says the default config's value, or what None stands for:
+    :data:`pemviz.settings.SETTINGS`; the help says the default config's value, or what None stands for:
     :data:`SHOWN_DEFAULTS`).
 
     ``default`` is what the flag gives when absent (None: leave the field to the preset / the default config).

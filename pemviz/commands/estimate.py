@@ -23,7 +23,8 @@ import numpy as np
 
 import pemviz
 from pemviz.commands import COMMANDS, UsageError, add_setting, check_save_path, pem_argument
-from pemviz.config import SETTINGS, ExperimentConfig
+from pemviz.settings import SETTINGS
+from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability
 from pemviz.core.sampling import load_proposal
 from pemviz.core.weights import CONVENTIONS
@@ -253,9 +254,10 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
     """
     from pemviz.core.detectors import PEMDetector
     from pemviz.core.reweight import Alternative, PemSpread, ShiftedDetector
-    from pemviz.scenarios.braking.truth import known_log_failure_probability
+    from pemviz.scenarios.braking.truth_known import known_log_failure_probability
     from pemviz.pem.ensemble import ensemble_for, load_ensemble
-    from pemviz.scenarios.problems import PEM_SHIFTS, braking_formula
+    from pemviz.scenarios.problems import PEM_SHIFTS
+    from pemviz.scenarios.braking.problem import braking_formula
 
     if data.n_objects > 1 or data.noise is not None:
         raise UsageError(f"--pem-uncertainty: {data.path} holds {data.n_objects} objects a step with measurement "
@@ -296,7 +298,7 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
 def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, overwrite: bool = False) -> Path:
     """A rerun recording of the estimate: description, estimate values, the least-robust rollouts' traces
     over ``step`` (red = failure), and robustness against importance log-weight. Encoded in memory, written
-    under a unique temporary name and moved to ``PATH`` once complete (:func:`pemviz.io.files.atomic_write`).
+    under a unique temporary name and moved to ``PATH`` once complete (:func:`pemviz.core.files.atomic_write`).
 
     Raises:
         OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``.

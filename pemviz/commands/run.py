@@ -21,9 +21,10 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
-from pemviz.config import METHODS, SCENARIOS, SCENE_DEFAULTS, ConfigError, ExperimentConfig
+from pemviz.config import SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
 from pemviz.io.files import free_default_path
+from pemviz.settings import METHODS, SCENARIOS
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 # The parser needs only the light modules above: torch, rerun, the engine, the sinks and pyarrow are imported in
@@ -267,7 +268,7 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
     """The files a run reads, each ``{"what", "path", "sha256"}``: the detection PEM, and the noise PEM on a scene
     with measurement errors (the cut-in)."""
     from pemviz.io.data import sha256_file
-    from pemviz.pem import DEFAULT_PEM_NAME
+    from pemviz.pem.recipes import DEFAULT_PEM_NAME
     from pemviz.pem.store import _pem_file, noise_pem_path
 
     files = [("detection PEM", _pem_file(cfg.pem or DEFAULT_PEM_NAME))]
@@ -315,7 +316,7 @@ def write_results(lines: list[str], doc: dict, recording: str | None, outputs: R
     nowhere), set as the document's ``recording``; ``outputs``: the run's files (:func:`plan_outputs`).
 
     Raises:
-        OSError, pemviz.io.files.OutputExists: a file that could not be written (nothing partial is left).
+        OSError, pemviz.core.files.OutputExists: a file that could not be written (nothing partial is left).
     """
     from pemviz.io.result import result_beside, write_junit, write_result_json
 
@@ -397,7 +398,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     from pemviz.engine.cost import N_STEPS
     from pemviz.engine.resources import torch_threads
     from pemviz.engine.experiment import Experiment, stream_above
-    from pemviz.estimators import check_runnable
+    from pemviz.estimators.cross_entropy import check_runnable
     from pemviz.scenarios.registry import problem_for  # any registered scenario: the built-in ones and plugins
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.population import FailureGroups, grouping_document
@@ -439,6 +440,12 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
         rollout_sink.problem = problem  # its sidecar: the scenario's formula, signals and step
         listeners.append(rollout_sink)
     experiment.listeners[:0] = listeners
+    odd_map = None
+    if getattr(problem, "odd", None) is not None:  # over an operating design domain: the map after the estimate
+        from pemviz.sinks.odd_map import OddMapSink
+
+        odd_map = OddMapSink(problem, out=sys.stderr if target == "stdout" else None)
+        experiment.listeners.append(odd_map)
     likely = (MostLikelyFailure() if not getattr(problem.drawing, "draws_scene", False) and problem.branch is not None
               else None)
     if likely is not None:  # a drawing that explains no failure itself: say which errors decided
@@ -480,6 +487,8 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
             try:
                 failures = grouping_document(groups.grouping) if groups.grouping is not None else None
                 results = result_lines(cfg, problem, final, why, failures, getattr(groups.grouping, "severity", None))
+                if odd_map is not None and odd_map.bins:
+                    results[1]["odd_map"] = odd_map.document()
             except BaseException:  # a run that fails here writes nothing, as one that fails in a stage
                 if recorder is not None:
                     recorder.close(commit=False)

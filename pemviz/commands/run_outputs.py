@@ -95,7 +95,7 @@ def plan_outputs(args: argparse.Namespace, cfg: Any, target: str, default_record
     rollouts = None
     if args.save_rollouts is not None:
         from pemviz.estimators.registry import get_method
-        from pemviz.io.rollouts import check_rollouts_path
+        from pemviz.io.rollout_writer import check_rollouts_path
 
         if not get_method(cfg.method).weighted:
             raise UsageError(f"--save-rollouts: method {cfg.method} estimates without importance weights; its "

@@ -175,7 +175,7 @@ def check_estimator(make: Callable[[Problem], Any], problem: Problem, *, metric:
     Args:
         make: ``make(problem) -> estimator``, e.g. ``lambda pb: build_estimator(config, pb)``.
         problem: a :class:`~pemviz.core.problems.Problem` (a small one: the check runs the estimator twice).
-        metric: the robustness metric shown to ``observe`` (:data:`pemviz.config.METRICS`).
+        metric: the robustness metric shown to ``observe`` (:data:`pemviz.settings.METRICS`).
         max_relative_error: |mu_hat - p| / p allowed against ``problem.exact_log_p``; None: not checked.
         max_stages: stages after which ``next_stage`` is taken never to end.
     Returns:

@@ -17,16 +17,13 @@ from typing import Any, Protocol, cast, runtime_checkable
 import numpy as np
 from scipy.special import expit, log_expit
 
-from pemviz.core.detector_noise import (  # noqa: F401 (the error models, re-exported: importable from here as before)
-    NOISE_FAMILIES as NOISE_FAMILIES,
-    ErrorModelOf as ErrorModelOf,
-    draw_noise as draw_noise,
-    error_model_of as error_model_of,
-    noise_log_density as noise_log_density,
-    noise_names_of as noise_names_of,
-    noise_quantile as noise_quantile,
-    standard_log_density as standard_log_density,
-    standard_quantile as standard_quantile,
+from pemviz.core.detector_noise import (
+    ErrorModelOf,
+    draw_noise,
+    error_model_of,
+    noise_log_density,
+    noise_names_of,
+    noise_quantile,
 )
 from pemviz.core.rng import RQMC_BLOCK, array_rqmc_uniforms, block_bounds, by_blocks, ranking_key
 

@@ -245,7 +245,7 @@ class Estimate:
 class Reference:
     """A failure probability known from a separate, much larger plain Monte Carlo run under the same PEMs, with its
     own Clopper-Pearson :data:`CI_LEVEL` interval: the answer an estimate is shown beside where no exact one is known
-    (e.g. :data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`).
+    (e.g. :data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`).
 
     Attributes:
         n_failures, n: failures among ``n`` rollouts drawn from the PEMs.

@@ -36,8 +36,8 @@ def fit_exact(proposal: Any, inputs: np.ndarray, counts: np.ndarray, epochs: int
             (miss, detect).
         epochs, lr, check, tolerance, per: as :func:`pemviz.core.sampling.fit_proposal`.
         check_every, plateau_epochs: epochs between two ``check`` calls, and the epochs over which the loss must
-            fall by ``tolerance`` (:data:`pemviz.core.sampling.CHECK_EVERY`,
-            :data:`pemviz.core.sampling.PLATEAU_EPOCHS`).
+            fall by ``tolerance`` (:data:`pemviz.core.fit_settings.CHECK_EVERY`,
+            :data:`pemviz.core.fit_settings.PLATEAU_EPOCHS`).
     Returns:
         the loss per epoch (nats, divided by ``per``).
     """

@@ -2,8 +2,8 @@
 
 A model saved by the core (a proposal checkpoint, :func:`pemviz.core.sampling.save_proposal`) or by
 :mod:`pemviz.pem.store` is written through :func:`atomic_write` (never a half-written file) and read back through
-:func:`load_tagged` (its format tag and version checked). :mod:`pemviz.io.files` re-exports them with the checks of
-output paths made before a run's work, and :mod:`pemviz.io.data` re-exports :func:`repo_root`.
+:func:`load_tagged` (its format tag and version checked); the checks of output paths made before a run's work are
+:mod:`pemviz.io.files`'s.
 """
 
 from __future__ import annotations

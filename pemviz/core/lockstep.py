@@ -18,7 +18,8 @@ from typing import Callable, Iterable, Iterator, Sequence, cast
 
 import numpy as np
 
-from pemviz.core.detectors import Detector, draw_step, noise_names_of
+from pemviz.core.detectors import Detector, draw_step
+from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.exact import row_sum
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 from pemviz.core.rollouts import (
@@ -329,7 +330,8 @@ def branch(
     scenario is deterministic given its perception, so it passes through the parent's states) and draws them from
     ``target`` from step ``at[i]`` on (``log_q = log_p``), in lockstep (:func:`run_batched`): one ``rng.random(K)``
     per step 0..T - 1 for single-object rollouts (replayed rows ignore theirs), as the vectorised twins
-    (e.g. :func:`pemviz.scenarios.braking.batched.branch_batched`, :func:`pemviz.scenarios.toy.branch_toy`) draw.
+    (e.g. :func:`pemviz.scenarios.braking.batched.branch_batched`, :func:`pemviz.scenarios.toy.simulator.branch_toy`)
+    draw.
 
     Args:
         make_simulator: builds a fresh simulator at its start state.

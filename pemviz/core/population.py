@@ -77,7 +77,7 @@ def failure_shares(parts: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray
     Args:
         parts: per stage k, (stage number, log-weights [n_k] as the estimate weighs them (nats), failed bool [n_k],
             log p before the failure [n_k] (nats)), in the order the estimate pools them.
-        stage_weights: lambda_k >= 0, [K], summing to 1, as :func:`pemviz.estimators.base.pool` takes them; None:
+        stage_weights: lambda_k >= 0, [K], summing to 1, as :func:`pemviz.estimators.pooling.pool` takes them; None:
             every rollout alike (lambda_k = n_k / N).
     Returns:
         The failures sorted by share, largest first (ties: the earlier stage, then the lower index).

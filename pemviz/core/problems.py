@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Iterator, Mapping, Protocol
+from typing import Any, Callable, Iterator, Mapping, Protocol
 
 import numpy as np
 from scipy.special import expit
@@ -26,10 +26,7 @@ from pemviz import stl
 from pemviz.core.detectors import Detector, GapModel
 from pemviz.core.estimate import Reference
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, iter_rollouts, simulate_rollouts
-from pemviz.core.problem_view import (  # noqa: F401 (what sinks see of a problem, re-exported: importable from here)
-    ObjectScene as ObjectScene, ProblemView as ProblemView, SignalView as SignalView, Thresholds as Thresholds,
-    object_scene as object_scene,
-)
+from pemviz.core.problem_view import ProblemView, SignalView, Thresholds
 from pemviz.core.reweight import AlternativeTarget
 from pemviz.core.rollouts import BatchedSimulator, RolloutBatch
 from pemviz.core.severity import SeverityScale
@@ -128,6 +125,9 @@ class Problem:
             ``method = "tilt"``; None: the scenario has none.
         object_labels: what the console, the panel and the recording call each of the M objects, e.g.
             ``("pedestrian A", "pedestrian B")`` (:meth:`ProblemView.object_label`); empty: ``object 0``, ``object 1``.
+        odd: the operating design domain its rollouts draw their scenario parameters from
+            (:class:`pemviz.core.odd.ODD`, :mod:`pemviz.core.odd_rollouts`: each rollout's parameters are observation
+            columns), or None: the parameters are fixed.
     """
 
     name: str
@@ -163,6 +163,7 @@ class Problem:
     look_ahead_s: float = 0.0
     tilt: Callable[[], TiltSampler] | None = None
     object_labels: tuple[str, ...] = ()
+    odd: Any = None
 
     @property
     def view(self) -> ProblemView:

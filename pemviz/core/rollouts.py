@@ -11,8 +11,7 @@ Optional capability (:class:`Snapshotting`): ``snapshot()`` returns the simulato
 current step and ``restore(state)`` puts it back (checked by :func:`pemviz.core.checks.check_simulator`).
 
 :class:`RolloutBatch` holds N rollouts with the log-probabilities of every step's perception under the target (PEM)
-and the sampling detector; :mod:`pemviz.core.lockstep` simulates them. Both are re-exported by
-:mod:`pemviz.scenarios`.
+and the sampling detector; :mod:`pemviz.core.lockstep` simulates them.
 """
 
 from __future__ import annotations
@@ -22,7 +21,8 @@ from typing import Any, Callable, Protocol, Sequence, TypeGuard
 
 import numpy as np
 
-from pemviz.core.detectors import Detector, noise_names_of
+from pemviz.core.detectors import Detector
+from pemviz.core.detector_noise import noise_names_of
 
 
 class Simulator(Protocol):

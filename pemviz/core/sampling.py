@@ -19,7 +19,7 @@ import numpy as np
 from pemviz.settings import FITS
 from pemviz.core import exact, torch_use
 from pemviz.core.exact_fit import fit_exact
-from pemviz.core.fit_settings import CHECK_EVERY, EXACT, LBFGS_TOLERANCE, PLATEAU_EPOCHS, Objective  # noqa: F401
+from pemviz.core.fit_settings import CHECK_EVERY, EXACT, PLATEAU_EPOCHS, Objective
 from pemviz.core.detectors import GAP_COLUMN
 from pemviz.core.files import atomic_write, load_tagged
 
@@ -387,7 +387,7 @@ def fit_proposal(
             estimate is computed in float64 from the density sampled from (:meth:`Proposal.detect_logit`), so the
             precision of the fit only moves the proposal, never the estimate's unbiasedness. A function objective
             (the authors' recomputed weights) and ``lbfgs`` always fit in torch's float64.
-        method: one of :data:`pemviz.config.FITS`.
+        method: one of :data:`pemviz.settings.FITS`.
         tolerance: ``adam``: early stopping once the loss fell by less than this over the last
             :data:`pemviz.core.fit_settings.PLATEAU_EPOCHS` epochs (None: every epoch); ``lbfgs``: its tolerance on a
             change of the loss (default
@@ -429,7 +429,7 @@ class ProposalFormatError(ValueError):
 
 def write_proposal_file(proposal: Proposal, path: str | os.PathLike[str]) -> None:
     """``torch.save`` a :class:`Proposal` checkpoint into ``path`` as it is (no temporary file: for a caller that
-    moves its files into place itself, as :class:`pemviz.io.rollouts.RolloutWriter` does; else
+    moves its files into place itself, as :class:`pemviz.io.rollout_writer.RolloutWriter` does; else
     :func:`save_proposal`).
 
     The checkpoint is a plain dict: format tag, version, ``h_scale`` (metres), a copy of the ``state_dict`` and the
@@ -481,14 +481,3 @@ def load_proposal(path: str | os.PathLike[str]) -> Proposal:
         raise ProposalFormatError(f"{p}: damaged proposal checkpoint ({exc})") from None
     return proposal.eval()
 
-
-_MOVED = {"Adam": "torch_fits", "Backprop": "torch_fits", "NoiseShift": "torch_fits", "fit_noise_shift": "torch_fits"}
-
-
-def __getattr__(name: str) -> Any:
-    """The torch fits' names, imported from :mod:`pemviz.core.torch_fits` when asked for (that imports torch)."""
-    if name in _MOVED:
-        from pemviz.core import torch_fits
-
-        return getattr(torch_fits, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -50,7 +50,7 @@ class NoiseShift(nn.Module):
 
         loc_q = loc_p + s_p a(h),    log s_q = log s_p + b(h),
 
-    in the target's family (:func:`pemviz.core.detectors.noise_quantile`). (a, b) are linear in h (Linear(k, 2 D),
+    in the target's family (:func:`pemviz.core.detector_noise.noise_quantile`). (a, b) are linear in h (Linear(k, 2 D),
     float64), zero at first: q's errors are p's until a cross-entropy fit moves them toward the failures' errors
     (Rubinstein & Kroese, "The Cross-Entropy Method", 2004: the CE update of a location-scale family's parameters); a
     stage's few elites fit so few parameters without overfitting.
@@ -97,7 +97,7 @@ def fit_noise_shift(proposal: Any, obs: np.ndarray, noise: np.ndarray, loc_p: np
     Args:
         obs: float64 [S, G] the detected objects' rows; noise: [S, D] their errors; loc_p, log_scale_p: [S, D] the
             target's parameters at the rows; family, df: the target's family
-            (:data:`pemviz.core.detectors.NOISE_FAMILIES`).
+            (:data:`pemviz.core.detector_noise.NOISE_FAMILIES`).
         log_w: float64 [S] each error's weight in log space (alpha times its rollout's importance log-weight).
         max_rows: beyond that many errors, a weighted systematic subsample of them (:func:`pemviz.estimators.ce_fit`'s
             rule: the expected loss is kept); None: all.

@@ -45,13 +45,13 @@ class CostConstants:
     Attributes:
         pem_step_s: per time step of a batch whose detections the PEM (or a fixed detector) decides, seconds.
         proposal_step_s: per time step of a batch drawn by the proposal (its network and mixture), seconds.
-        rollout_step_s: per rollout and time step of each simulator (:data:`pemviz.config.SIMULATORS`), seconds.
+        rollout_step_s: per rollout and time step of each simulator (:data:`pemviz.settings.SIMULATORS`), seconds.
         proposal_rollout_step_s: per rollout and time step more when a proposal draws the batch, seconds.
         stage_s: per stage after its rollouts, besides the fit (robustness, estimate, listeners), seconds.
         epoch_s: per Adam epoch of a fit, whatever its rows, seconds.
         row_epoch_s: per fitted row and Adam epoch, seconds.
         row_s: per fitted row of a fit, outside the epochs (gathering and weighing the failures), seconds.
-        pretrain_rows: distinct fitted rows per pretraining rollout, by :data:`pemviz.config.PROPOSAL_INPUTS`.
+        pretrain_rows: distinct fitted rows per pretraining rollout, by :data:`pemviz.settings.PROPOSAL_INPUTS`.
         ce_rows: distinct fitted rows of a late CE stage's fit at N = 100 (the plateau), by proposal inputs.
         ce_rows_exponent: the CE rows grow as (N / 100) to this power.
         ce_rows_stages: stage k's rows are the plateau times 1 - exp(-(k - 1) / this) (stage 1 fits the few rollouts

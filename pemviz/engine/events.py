@@ -1,8 +1,8 @@
 """The events the experiment engine (:class:`pemviz.engine.experiment.Experiment`) emits, and what they carry.
 
 Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.core.plan.RunPlan` and the problem's
-:class:`~pemviz.core.problems.ProblemView`); for each stage (0 = pretraining, 1..K = cross-entropy stages, K+1 = final
-batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one :class:`RolloutsSampled`,
+:class:`~pemviz.core.problem_view.ProblemView`); for each stage (0 = pretraining, 1..K = cross-entropy stages, K+1 =
+final batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one :class:`RolloutsSampled`,
 :class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`).
 
 Sinks (:class:`pemviz.sinks.Sink`: the console table, the rerun recording, the rollout file, the viser panel) read
@@ -23,7 +23,7 @@ if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.config import ExperimentConfig
     from pemviz.core.detectors import Detector
     from pemviz.core.estimate import Estimate, Reference
-    from pemviz.core.problems import ProblemView
+    from pemviz.core.problem_view import ProblemView
     from pemviz.core.requirement import Decision
     from pemviz.core.population import FailureShares
     from pemviz.core.reweight import PemSpread
@@ -43,7 +43,7 @@ class RunStarted:
     its scene (:attr:`pemviz.core.problems.Problem.view`)."""
     plan: RunPlan
     """The stages the estimator will run (number, kind, label, rollouts) and its simulations, as it states them
-    (:meth:`pemviz.estimators.Estimator.plan`)."""
+    (:meth:`pemviz.estimators.base.Estimator.plan`)."""
     exact_log_p: float | None = None
     """Natural log of the problem's exact failure probability when one is known (closed form, enumeration),
     else None: sinks show it beside every estimate with the relative error."""
@@ -69,7 +69,7 @@ class RolloutsSampled:
     robustness: np.ndarray
     """[N] under the configured metric."""
     robustness_by_metric: Mapping[str, np.ndarray]
-    """metric name -> [N] robustness under each semantics of :data:`pemviz.config.METRICS` (computed when read)."""
+    """metric name -> [N] robustness under each semantics of :data:`pemviz.settings.METRICS` (computed when read)."""
     failed: np.ndarray
     """bool [N]: the problem's failure (:meth:`pemviz.core.problems.Problem.failed`: classic robustness < 0)."""
     log_weight: np.ndarray
@@ -116,7 +116,7 @@ class RolloutChunk:
     sampler: Detector | None = None
     parts: tuple = ()
     """The stage's samplers in the order drawn, ``(rollouts, detector)`` each
-    (:attr:`pemviz.estimators.StagePlan.parts`): several for a mixture over whole rollouts, whose rollouts are
+    (:attr:`pemviz.estimators.base.StagePlan.parts`): several for a mixture over whole rollouts, whose rollouts are
     weighed by the mixture (:func:`pemviz.core.weights.stage_log_q`)."""
     target: Detector | None = None
     """The problem's target detector (p)."""
@@ -157,26 +157,27 @@ class FinalEstimate:
     pooling: tuple[str, tuple[float, ...]] | None = None
     """How the estimate pools :attr:`stages_used` when the estimator says so itself (final batches added for a
     precision target): (the rule, ``rollouts`` for every rollout alike; lambda_k of each stage, summing to 1), as the
-    rollout file's sidecar states it (:func:`pemviz.estimators.base.pool`); None: one stage, or the config's rule."""
+    rollout file's sidecar states it (:func:`pemviz.estimators.pooling.pool`); None: one stage, or the config's rule."""
     stop: str | None = None
     """With a target relative error or a requirement (``ExperimentConfig.rel_error``, ``require``): why the run
     stopped adding rollouts, one line (the target reached, the requirement decided, or which cap); None without one."""
     verdict_cap: tuple[str, str] | None = None
     """The best verdict the sampler lets its estimate claim, whatever the weights show (verdict, reason), or None
-    (:attr:`pemviz.estimators.CrossEntropy.verdict_cap`): the rollout file keeps it for ``pemviz estimate``."""
+    (:attr:`pemviz.estimators.cross_entropy.CrossEntropy.verdict_cap`): the rollout file keeps it for ``pemviz
+    estimate``."""
     decision: Decision | None = None
     """With a requirement (``ExperimentConfig.require``): the last look's decision, its outcome ``met``,
     ``violated`` or ``undecided`` (:mod:`pemviz.core.requirement`); None without one."""
     severity: SeverityCurve | None = None
     """The exceedance curve P(failure and min s < x) over the problem's severity levels, from the same rollouts
-    (:func:`pemviz.estimators.base.severity_curve`); None where the problem has no severity scale or the estimator keeps
-    no per-stage rollouts."""
+    (:func:`pemviz.estimators.pooling.severity_curve`); None where the problem has no severity scale or the estimator
+    keeps no per-stage rollouts."""
     pem_spread: PemSpread | None = None
     """p under the PEM ensemble's members and the shifted PEMs, re-weighted from the same rollouts
-    (:func:`pemviz.estimators.base.pem_spread`); None without ``pem_uncertainty`` or ``pem_shift``."""
+    (:func:`pemviz.estimators.pooling.pem_spread`); None without ``pem_uncertainty`` or ``pem_shift``."""
     failures: FailureShares | None = None
     """The estimate's failing rollouts (stage, rollout number) with the share of mu_hat each carries, largest first
-    (:func:`pemviz.estimators.base.failure_population`); None where the estimator keeps no per-stage rollouts."""
+    (:func:`pemviz.estimators.pooling.failure_population`); None where the estimator keeps no per-stage rollouts."""
     look_ahead: bool = False
     """The estimate weighs each rollout up to a state and multiplies by the exact failure probability from it (the
     problem's :attr:`~pemviz.core.problems.Problem.look_ahead`): the rollout file says so, for ``pemviz estimate``."""

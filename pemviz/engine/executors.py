@@ -34,7 +34,7 @@ from typing import Any, Mapping, Protocol
 
 import numpy as np
 
-from pemviz.config import EXECUTORS
+from pemviz.settings import EXECUTORS
 from pemviz.core.detectors import Detector
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at, block_bounds
 from pemviz.core.rollouts import RolloutBatch

@@ -5,8 +5,8 @@ as listeners ``listener(event) -> None`` and never call back into the engine, ex
 ``cancel`` token (a :class:`threading.Event`).
 
 The events and their order are :mod:`pemviz.engine.events`'s: :class:`~pemviz.engine.events.RunStarted` (with the
-estimator's :class:`~pemviz.core.plan.RunPlan` and the problem's :class:`~pemviz.core.problems.ProblemView`), then per
-stage :class:`~pemviz.engine.events.StageStarted`, :class:`~pemviz.engine.events.RolloutChunk` (one per chunk),
+estimator's :class:`~pemviz.core.plan.RunPlan` and the problem's :class:`~pemviz.core.problem_view.ProblemView`), then
+per stage :class:`~pemviz.engine.events.StageStarted`, :class:`~pemviz.engine.events.RolloutChunk` (one per chunk),
 :class:`~pemviz.engine.events.RolloutsSampled`, :class:`~pemviz.engine.events.StageFinished`, then
 :class:`~pemviz.engine.events.FinalEstimate` and :class:`~pemviz.engine.events.RunFinished` (or
 :class:`~pemviz.engine.events.RunCancelled`). Failure is the problem's (:meth:`pemviz.core.problems.Problem.failed`),
@@ -28,7 +28,8 @@ from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
-from pemviz.config import METRICS, ExperimentConfig
+from pemviz.settings import METRICS
+from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, Detector
 from pemviz.core.estimate import Estimate
 from pemviz.core.problems import Problem
@@ -47,8 +48,9 @@ from pemviz.engine.events import (
     StageStarted,
 )
 from pemviz.engine.executors import get_executor
-from pemviz.estimators import Estimator, StagePlan, build_estimator
-from pemviz.estimators.base import SeenFailures, failure_population, pem_spread, severity_curve
+from pemviz.estimators.base import Estimator, SeenFailures, StagePlan
+from pemviz.estimators import build_estimator
+from pemviz.estimators.pooling import failure_population, pem_spread, severity_curve
 from pemviz.estimators.registry import get_method, plain_method
 
 
@@ -78,7 +80,7 @@ SAMPLE_UNIFORM = 100
 
 
 class RobustnessByMetric(Mapping[str, np.ndarray]):
-    """metric -> robustness [N] of a batch under each semantics of :data:`pemviz.config.METRICS` the problem can
+    """metric -> robustness [N] of a batch under each semantics of :data:`pemviz.settings.METRICS` the problem can
     compute, each computed when first read (the estimator reads the classic one and the configured one; a listener may
     read the others). ``agm`` needs a range for every signal (:attr:`pemviz.core.problems.Problem.signal_ranges`): a
     problem without them has no ``agm`` entry, so that listeners (the recording) draw the other metrics."""

@@ -1,45 +1,29 @@
-"""Rare-event estimators, one per method of :data:`pemviz.config.METHODS`, behind one small interface
-(:class:`Estimator`) that the engine drives stage by stage.
+"""Rare-event estimators, one per method of :data:`pemviz.settings.METHODS`, behind one small interface
+(:class:`~pemviz.estimators.base.Estimator`) that the engine drives stage by stage.
 
-- :class:`CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022) with pemviz's improvements.
-- :class:`FixedSampler` (``mc``, ``naive50``, ``mixed50``): one importance-weighted batch from a fixed detector.
-- :class:`AdaptiveMultilevelSplitting` (``ams``): splitting of target rollouts on their robustness, no weights.
+- :class:`~pemviz.estimators.cross_entropy.CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022)
+  with pemviz's improvements.
+- :class:`~pemviz.estimators.fixed.FixedSampler` (``mc``, ``naive50``, ``mixed50``): one importance-weighted batch
+  from a fixed detector.
+- :class:`~pemviz.estimators.ams.AdaptiveMultilevelSplitting` (``ams``): splitting of target rollouts on their
+  robustness, no weights.
 - :class:`~pemviz.estimators.tilt.CommittorTilt` (``tilt``): the scenario's own tilted proposal, one weighted batch.
-- :class:`PrecisionTarget` (``rel_error``, ``require``): any of the first two, with final batches added until a
-  relative precision or a decision on a requirement.
+- :class:`~pemviz.estimators.precision.PrecisionTarget` (``rel_error``, ``require``): any of the first two, with
+  final batches added until a relative precision or a decision on a requirement.
 
 Every method, these and a user's own, is a record of :mod:`pemviz.estimators.registry`, which
-:func:`build_estimator` and :func:`run_plan` read.
+:func:`build_estimator` and :func:`run_plan` (this package's own) read. Each estimator's name has one import path, its
+module's.
 """
 
 from __future__ import annotations
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.problems import Problem
-from pemviz.core.plan import PlannedStage, RunPlan
-from pemviz.estimators.base import (
-    Check,
-    Estimator,
-    StageOutcome,
-    StagePlan,
-    failure_steps,
-    log_p_before_failure,
-    log_weight,
-)
-from pemviz.estimators.cross_entropy import (
-    CappedDetector, CrossEntropy, DefensiveDetector, break_ties, check_runnable,
-)
-from pemviz.estimators.fixed import FixedSampler, mixed50, monte_carlo, naive50
+from pemviz.core.plan import RunPlan
+from pemviz.estimators.base import Check, Estimator
 from pemviz.estimators.precision import PrecisionTarget
-from pemviz.estimators.registry import Method, get_method, method_names, register_method, unregister_method
-
-__all__ = [
-    "AdaptiveMultilevelSplitting", "CappedDetector", "Check", "CrossEntropy", "DefensiveDetector", "Estimator",
-    "FixedSampler", "PlannedStage", "PrecisionTarget", "RunPlan", "StageOutcome", "StagePlan", "break_ties",
-    "build_estimator", "check_runnable",
-    "failure_steps", "log_p_before_failure", "log_weight", "mixed50", "monte_carlo", "naive50", "run_plan",
-    "Method", "get_method", "method_names", "register_method", "unregister_method",
-]  # fmt: skip
+from pemviz.estimators.registry import Method, get_method
 
 
 def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
@@ -78,11 +62,3 @@ def run_plan(config: ExperimentConfig) -> RunPlan:
     plan = method.run_plan(config)
     return plan if config.stop_rule is None or not method.extensible else RunPlan(plan.stages, open_ended=True)
 
-
-def __getattr__(name: str) -> object:
-    """:class:`AdaptiveMultilevelSplitting`, imported when first named (a run of another method never loads it)."""
-    if name == "AdaptiveMultilevelSplitting":
-        from pemviz.estimators.ams import AdaptiveMultilevelSplitting
-
-        return AdaptiveMultilevelSplitting
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -47,7 +47,8 @@ import numpy as np
 from scipy.special import logsumexp, ndtri
 
 from pemviz import stl
-from pemviz.config import ExperimentConfig, settings_of
+from pemviz.config import ExperimentConfig
+from pemviz.settings import settings_of
 from pemviz.core.estimate import CI_LEVEL, MIN_FAILURES, Estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure

@@ -25,15 +25,7 @@ from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
-from pemviz.estimators.pooling import (  # noqa: F401 (the stages' pooling, re-exported: importable from here as before)
-    failure_population as failure_population,
-    pem_spread as pem_spread,
-    pool as pool,
-    pool_stage_weights as pool_stage_weights,
-    pooled_rows as pooled_rows,
-    severity_curve as severity_curve,
-    stage_weights_of as stage_weights_of,
-)
+from pemviz.estimators.pooling import pool
 
 Check = Callable[[], None]
 """Called between and inside fits; raises to abandon the run (the engine's cancel token)."""
@@ -89,7 +81,7 @@ class StageOutcome:
 class OwnsSettings:
     """An estimator that owns its settings, as a scikit-learn estimator owns its parameters: :attr:`SETTINGS` names
     the :class:`~pemviz.config.ExperimentConfig` fields it reads besides the run-level ones
-    (:func:`pemviz.config.settings_of`; :data:`pemviz.config.SETTINGS` says what each one is), :meth:`get_params`
+    (:func:`pemviz.settings.settings_of`; :data:`pemviz.settings.SETTINGS` says what each one is), :meth:`get_params`
     gives their values."""
 
     SETTINGS: ClassVar[tuple[str, ...]] = ()
@@ -249,10 +241,11 @@ class SeenFailures:
         """False once a batch has measurement errors or a formula without a failure step: no bound then."""
 
     def add(self, problem: Problem, batch: RolloutBatch, failed: np.ndarray) -> None:
-        """Record the failing rollouts of ``batch`` (``failed`` bool [N])."""
+        """Record the failing rollouts of ``batch`` (``failed`` bool [N]). Over an operating design domain
+        (``problem.odd``) the bound does not apply: a path's probability there also holds its parameters' law."""
         if not self.applies or not failed.any():
             return
-        if batch.noise is not None:
+        if batch.noise is not None or getattr(problem, "odd", None) is not None:
             self.applies = False
             return
         try:
@@ -548,7 +541,8 @@ class EliteCandidates:
 
 def pooled_estimate(stages: list[StageRollouts], stage_weights: np.ndarray | None = None) -> Estimate:
     """mu_hat over the rollouts of several stages together, each weighted by the proposal that drew it (see
-    :meth:`pemviz.estimators.CrossEntropy.result` for why the pooled mean is unbiased); :func:`pool` of their arrays.
+    :meth:`pemviz.estimators.cross_entropy.CrossEntropy.result` for why the pooled mean is unbiased); :func:`pool` of
+    their arrays.
 
     Args:
         stages: K stages of n_k rollouts each.

@@ -1,7 +1,7 @@
 """The built-in methods' builders and plans, as :mod:`pemviz.estimators.registry` names them (each imported when a
-run first uses it): ``adaptive`` (:class:`pemviz.estimators.CrossEntropy`), ``mc``, ``naive50``, ``mixed50``
-(:mod:`pemviz.estimators.fixed`), ``ams`` (:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`) and ``tilt``
-(:class:`pemviz.estimators.tilt.CommittorTilt`).
+run first uses it): ``adaptive`` (:class:`pemviz.estimators.cross_entropy.CrossEntropy`), ``mc``, ``naive50``,
+``mixed50`` (:mod:`pemviz.estimators.fixed`), ``ams`` (:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`) and
+``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`).
 
 Each builder is ``(config, problem, check) -> Estimator``: the baselines draw ``config.n_per_stage`` rollouts and stop
 their weights at the failure step with ``config.weights_until_failure``, like the adaptive sampler's.

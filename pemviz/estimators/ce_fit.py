@@ -1,7 +1,7 @@
 """The cross-entropy fit of the proposal (Innes & Ramamoorthy 2022, Algorithm 1, eq. 10-11): the pretraining fit to the
 target's own actions, the weighted CE update on the elites' steps, the frozen- and recomputed-weight objectives, the
 systematic subsample that bounds a fit's rows, and :class:`EliteSteps`, the elites' fitted steps gathered chunk by
-chunk. :class:`pemviz.estimators.CrossEntropy` runs the stages around them.
+chunk. :class:`pemviz.estimators.cross_entropy.CrossEntropy` runs the stages around them.
 """
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING, Any, Callable, Literal
 import numpy as np
 
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.core.sampling import EXACT, Proposal, fit_proposal
+from pemviz.core.fit_settings import EXACT
+from pemviz.core.sampling import Proposal, fit_proposal
 from pemviz.estimators.base import elite_counts
 
 if TYPE_CHECKING:
@@ -133,9 +134,9 @@ def pretrain_proposal(
             inputs of a :class:`StateProposal` (``proposal.features(observations)``).
         detected: bool [N, T] the PEM's detections.
         epochs: Adam epochs, or the most L-BFGS iterations (``fit``).
-        check: called every :data:`pemviz.core.sampling.CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
+        check: called every :data:`pemviz.core.fit_settings.CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
         step_mask: bool [N, T] or None: only these steps are fitted (e.g. inside the proposal's window).
-        fit: one of :data:`pemviz.config.FITS`.
+        fit: one of :data:`pemviz.settings.FITS`.
         max_rows: None (``adam``: every step, summed over distinct inputs, the paper's fit) or the most steps
             the fit sees: a uniform systematic subsample of the fitted steps beyond that (:func:`weighted_steps`).
         rng: draws that subsample (default: seeded 0).
@@ -194,10 +195,11 @@ def ce_update(
         weights: ``"frozen"``: w from the proposal that sampled the batch (textbook CE, paper eq. 10-11);
             ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
         n_factors: steps in each weight (default T - 1: the last action affects nothing).
-        check: called every :data:`pemviz.core.sampling.CHECK_EVERY` epochs; may raise to abandon the update (cancel).
+        check: called every :data:`pemviz.core.fit_settings.CHECK_EVERY` epochs; may raise to abandon the update
+            (cancel).
         step_mask: bool [N, T] or None: steps that count, in the weights and in the fit (False: left out,
             e.g. outside the proposal's window or after the failure).
-        fit: one of :data:`pemviz.config.FITS`; ``epochs`` are then Adam epochs or the most L-BFGS iterations.
+        fit: one of :data:`pemviz.settings.FITS`; ``epochs`` are then Adam epochs or the most L-BFGS iterations.
         max_rows: None (``adam``: every elite step, summed over distinct inputs, the paper's fit) or the most
             steps the fit sees: beyond that a weighted systematic subsample whose weighted log-likelihood has
             the same expectation (:func:`weighted_steps`); the loss is then divided by the total weight.
@@ -248,7 +250,7 @@ def recomputed_objective(
     slot: np.ndarray, log_p: np.ndarray, mask: np.ndarray, n_factors: int, smoothing: float
 ) -> Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
     """The CE loss with importance weights recomputed from the current proposal (the authors' code), as a
-    :data:`pemviz.core.sampling.Objective`: ``-sum_i w_i(phi) sum_t m_it log q_phi(a_it | d_it)`` with
+    :data:`pemviz.core.fit_settings.Objective`: ``-sum_i w_i(phi) sum_t m_it log q_phi(a_it | d_it)`` with
     ``w_i(phi) = exp(alpha (log p_i - sum_{t < k} m_it log q_phi(a_it | d_it)) - c)`` (c: their largest exponent,
     held constant), and its gradient in log q, which flows through the weights.
 

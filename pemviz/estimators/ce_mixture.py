@@ -11,7 +11,8 @@ import dataclasses
 
 import numpy as np
 
-from pemviz.core.detectors import Detector, action_log_prob, errors_log_density, noise_names_of
+from pemviz.core.detectors import Detector, action_log_prob, errors_log_density
+from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import mixture_log_weight

@@ -19,16 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.config import ExperimentConfig, settings_of, whole_rollout_fit_refusal
-from pemviz.core.detectors import (
-    Detector,
-    ScoredTarget,
-    StageSamplers,
-    WindowDetector,
-    defensive_logit,
-    logit,
-    noise_names_of,
-)
+from pemviz.config import ExperimentConfig, whole_rollout_fit_refusal
+from pemviz.settings import settings_of
+from pemviz.core.detectors import Detector, ScoredTarget, StageSamplers, WindowDetector, defensive_logit, logit
+from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.ce_fit import EliteSteps, ce_update, pretrain_proposal
@@ -44,13 +38,14 @@ from pemviz.estimators.base import (
     elite_count,
     elite_counts,
     failure_steps,
-    pool_stage_weights,
     pooled_estimate,
     weighted_steps_mask,
 )
+from pemviz.estimators.pooling import pool_stage_weights
 from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
-from pemviz.core.sampling import EXACT, Proposal, StateProposal
+from pemviz.core.fit_settings import EXACT
+from pemviz.core.sampling import Proposal, StateProposal
 
 def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
     """Refuse, before any rollout or output, a ``config`` whose estimator cannot run on ``problem``: the

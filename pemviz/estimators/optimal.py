@@ -14,8 +14,8 @@ advances", Handbooks in OR & MS 13, 2006). For a detector (two actions) the odds
     logit q*(detect | s) = logit p(detect | s) + log V(s'_detect) - log V(s'_miss).
 
 V is known in closed form only on small problems (:class:`pemviz.scenarios.toy.ToyValue`,
-:class:`pemviz.scenarios.braking.truth.LatchedValue`, for example); on the others q* is the limit a learned proposal
-approaches, and :func:`relative_variance` says how far it is.
+:class:`pemviz.scenarios.braking.truth_latched.LatchedValue`, for example); on the others q* is the limit a learned
+proposal approaches, and :func:`relative_variance` says how far it is.
 """
 
 from __future__ import annotations

@@ -21,7 +21,8 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from pemviz.config import DEFAULT_MAX_SIMS, ExperimentConfig
+from pemviz.settings import DEFAULT_MAX_SIMS
+from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate
 from pemviz.core.requirement import Decision, decide, parse_requirement
 from pemviz.core.rollouts import RolloutBatch
@@ -87,7 +88,7 @@ class PrecisionTarget:
     """Runs ``inner`` as planned, then adds final batches until the estimate's relative half-width is at most
     ``config.rel_error`` (a precision target) or a requirement ``config.require`` is decided
     (:func:`pemviz.core.requirement.decide`, one look after each batch), or ``config.max_sims`` simulations (default
-    :data:`pemviz.config.DEFAULT_MAX_SIMS`) or ``config.max_time_s`` seconds are reached. :attr:`stop` says why it
+    :data:`pemviz.settings.DEFAULT_MAX_SIMS`) or ``config.max_time_s`` seconds are reached. :attr:`stop` says why it
     stopped, in one line; :attr:`decision` is the last look's :class:`pemviz.core.requirement.Decision`.
 
     Args:

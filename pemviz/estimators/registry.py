@@ -19,15 +19,11 @@ used), so listing the methods loads no torch.
 
 from __future__ import annotations
 
-import importlib
-import os
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from pemviz.plugins import Plugins, Ref, resolve
 from pemviz.settings import METHODS, REGISTERED_METHODS
-
-Ref = Any
-"""An object, or the text ``"package.module:name"`` that names it (imported when first used)."""
 
 PLUGIN_VARIABLE = "PEMVIZ_METHODS"
 """The environment variable naming modules (comma-separated) that register methods when imported."""
@@ -38,24 +34,6 @@ ENTRY_POINTS = "pemviz.methods"
 
 class MethodPluginError(ValueError):
     """A method plugin that cannot be loaded, or raised while registering (one line naming it)."""
-
-
-def resolve(ref: Ref) -> Any:
-    """The object ``ref`` names: ``ref`` itself, or for the text ``"package.module:attr"`` that attribute (imported
-    now).
-
-    Raises:
-        ValueError: a text that is not ``module:name``; ImportError, AttributeError: no such module or name.
-    """
-    if not isinstance(ref, str):
-        return ref
-    module, sep, attr = ref.partition(":")
-    if not sep or not module or not attr:
-        raise ValueError(f"{ref!r} is not 'package.module:name'")
-    obj: Any = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 @dataclass(frozen=True)
@@ -149,9 +127,6 @@ def unregister_method(name: str) -> None:
         REGISTERED_METHODS.remove(name)
 
 
-_PLUGINS_LOADED = False
-
-
 def load_method_plugins() -> None:
     """Register the methods of the modules named by :data:`PLUGIN_VARIABLE` and of the installed packages' entry
     points (:data:`ENTRY_POINTS`), once per process.
@@ -160,43 +135,11 @@ def load_method_plugins() -> None:
         MethodPluginError: a plugin that cannot be imported or that raised while registering (the next call tries
             again).
     """
-    global _PLUGINS_LOADED
-    if _PLUGINS_LOADED:
-        return
-    _PLUGINS_LOADED = True
-    try:
-        for module in (m.strip() for m in os.environ.get(PLUGIN_VARIABLE, "").split(",")):
-            if module:
-                _load(f"{PLUGIN_VARIABLE} module {module}", lambda module=module: importlib.import_module(module))
-        from importlib.metadata import entry_points
-
-        for ep in entry_points(group=ENTRY_POINTS):
-            _load(f"entry point {ep.name} ({ep.value}) of group {ENTRY_POINTS}",
-                  lambda ep=ep: _register_object(ep.load()))  # fmt: skip
-    except MethodPluginError:
-        _PLUGINS_LOADED = False
-        raise
+    _PLUGINS.load()
 
 
-def _load(what: str, action: Callable[[], object]) -> None:
-    try:
-        action()
-    except MethodPluginError:
-        raise
-    except Exception as exc:  # a plugin's own failure: one line naming it
-        raise MethodPluginError(f"method plugin {what}: {type(exc).__name__}: {exc}") from None
-
-
-def _register_object(obj: object) -> None:
-    """An entry point's object: a :class:`Method` (registered unless one of that name is) or a callable that
-    registers."""
-    if isinstance(obj, Method):
-        if obj.name not in _REGISTRY:
-            register_method(obj)
-    elif callable(obj):
-        obj()
-    else:
-        raise TypeError(f"expected a Method or a callable that registers methods, got {type(obj).__name__}")
+_PLUGINS = Plugins(PLUGIN_VARIABLE, ENTRY_POINTS, "method", MethodPluginError, Method, _REGISTRY,
+                   lambda record: register_method(record))
 
 
 def method_names() -> tuple[str, ...]:

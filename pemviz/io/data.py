@@ -29,15 +29,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from pemviz.core.files import repo_root as repo_root  # noqa: F401 (re-exported: importable from here as before)
-from pemviz.pem.encoding import INPUT_COLUMNS as INPUT_COLUMNS  # noqa: F401 (the PEM's raw inputs; re-exported)
-from pemviz.io.files import atomic_write
+from pemviz.core.files import atomic_write, repo_root
+from pemviz.pem.encoding import INPUT_COLUMNS
 
 __all__ = [
     "DATA_DIR_ENV",
     "FILE_SHA256",
     "INPUTS_FILE",
-    "INPUT_COLUMNS",
     "LABELS_FILE",
     "LABEL_COLUMNS",
     "ORIGIN_BASE_URL",
@@ -53,7 +51,6 @@ __all__ = [
     "load_salient_inputs",
     "load_salient_label_table",
     "load_salient_labels",
-    "repo_root",
     "sha256_file",
     "user_cache_dir",
 ]
@@ -280,7 +277,7 @@ def _parse_table(path: Path, n_columns: int) -> np.ndarray:
 
 
 def load_salient_inputs(path: str | os.PathLike[str]) -> np.ndarray:
-    """Salient inputs, float64 ``[N, 11]`` (columns :data:`INPUT_COLUMNS`; metres, radians).
+    """Salient inputs, float64 ``[N, 11]`` (columns :data:`~pemviz.pem.encoding.INPUT_COLUMNS`; metres, radians).
 
     Raises:
         DataFormatError: wrong column count, non-number or NaN (names file and line).

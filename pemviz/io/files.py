@@ -1,8 +1,8 @@
 """Writing files safely: never a half-written file, and bad output paths refused before any work.
 
-The atomic write itself (:func:`atomic_write`, :class:`OutputExists`) and the tagged checkpoints (:func:`load_tagged`)
-live in :mod:`pemviz.core.files`, where the core and the PEMs save and load their own models; they are re-exported
-here with the checks of output paths and the writers of the commands' files.
+The atomic write itself (:func:`pemviz.core.files.atomic_write`, :class:`pemviz.core.files.OutputExists`) and the
+tagged checkpoints live in :mod:`pemviz.core.files`, where the core and the PEMs save and load their own models; this
+module holds the checks of output paths and the writers of the commands' files, built on them.
 """
 
 from __future__ import annotations
@@ -16,13 +16,7 @@ import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from pemviz.core.files import (  # noqa: F401 (the core's file writing, re-exported: importable from here as before)
-    OutputExists as OutputExists,
-    _commit,
-    atomic_write as atomic_write,
-    default_file_mode as default_file_mode,
-    load_tagged as load_tagged,
-)
+from pemviz.core.files import OutputExists, _commit, atomic_write, default_file_mode
 
 
 TEMP_NAME_EXTRA = 14

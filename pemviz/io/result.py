@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 from xml.etree import ElementTree as ET
 
-from pemviz.io.files import atomic_write
+from pemviz.core.files import atomic_write
 
 RESULT_FORMAT = "pemviz-result"
 RESULT_VERSION = 1

@@ -17,16 +17,16 @@ from typing import Any
 import numpy as np
 
 from pemviz import stl
-from pemviz.config import METRICS
+from pemviz.settings import METRICS
 from pemviz.core.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.problems import LookAheadFn, Problem
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.weights import CONVENTIONS, MeanWeight, mean_weight
-from pemviz.estimators import log_p_before_failure, log_weight
-from pemviz.estimators.base import SeenFailures, look_ahead_weights, pool
+from pemviz.estimators.base import SeenFailures, log_p_before_failure, log_weight, look_ahead_weights
+from pemviz.estimators.pooling import pool
 from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta, json_float
-from pemviz.io.rollouts import RolloutData, braking_salient
+from pemviz.io.rollout_table import RolloutData, braking_salient
 
 REESTIMATE_RTOL = 1e-9
 """A rollout file re-estimates to its run's mu_hat within this relative error, and prints the run's rows and verdict:
@@ -163,8 +163,8 @@ def estimate_rollouts(
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
 
     The rollouts go through the engine's code: robustness and failure steps of :func:`file_problem`
-    (:meth:`pemviz.core.problems.Problem.robustness`, :func:`pemviz.estimators.log_weight`), the estimate of
-    :func:`pemviz.core.estimate.estimate`, the pool of :func:`pemviz.estimators.base.pool`. ``log w_i = sum_{t < k_i}
+    (:meth:`pemviz.core.problems.Problem.robustness`, :func:`pemviz.estimators.base.log_weight`), the estimate of
+    :func:`pemviz.core.estimate.estimate`, the pool of :func:`pemviz.estimators.pooling.pool`. ``log w_i = sum_{t < k_i}
     log p - log q`` with k_i = T - 1 (``weights="full"``: the last action affects nothing) or, with ``"to-failure"`` and
     ``failure="crash"``, the step at which rollout i first violates the sidecar's ``G[a,b](...)`` formula (both
     unbiased: :mod:`pemviz.core.weights`). Failure = classic robustness of the formula < 0 (``failure="crash"``, the

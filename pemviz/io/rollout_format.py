@@ -1,7 +1,7 @@
 """The logged-rollout file format: a Parquet table, one row per step, and a JSON sidecar (spec, dt, units).
 
 pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``pemviz run
---save-rollouts``): :func:`pemviz.io.rollouts.write_rollouts` / :func:`pemviz.io.rollouts.read_rollouts`, ``pemviz
+--save-rollouts``): :func:`pemviz.io.rollout_writer.write_rollouts` / :func:`pemviz.io.rollouts.read_rollouts`, ``pemviz
 estimate`` on the command line. Both validate with the same code, so a file pemviz writes is one pemviz reads. This
 module holds the format's constants and its sidecar (:class:`RolloutMeta`); :mod:`pemviz.io.rollouts` the table.
 
@@ -101,8 +101,8 @@ import numpy as np
 
 import pemviz
 from pemviz import stl
-from pemviz.scenarios.braking import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, OBSERVATION_NAMES, BrakingParams
-from pemviz.scenarios.problems import braking_formula
+from pemviz.scenarios.braking.simulator import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, OBSERVATION_NAMES, BrakingParams
+from pemviz.scenarios.braking.problem import braking_formula
 
 FORMAT_TAG = "pemviz-rollouts"
 
@@ -121,7 +121,7 @@ WEIGHTS = ("to-failure", "full")
 
 KITTI_COLUMNS = ("class", "truncation", "occlusion", "alpha", "dim_w", "dim_l", "dim_h", "loc_x", "loc_y", "loc_z",
                  "rot_y")  # fmt: skip
-"""The 11 salient-variable columns of the KITTI files (:data:`pemviz.io.data.INPUT_COLUMNS`)."""
+"""The 11 salient-variable columns of the KITTI files (:data:`pemviz.pem.encoding.INPUT_COLUMNS`)."""
 
 SALIENT_COLUMNS = tuple(f"salient_{c}" for c in KITTI_COLUMNS)
 """Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads."""
@@ -411,7 +411,7 @@ def braking_meta(
 ) -> RolloutMeta:
     """The sidecar of braking-scenario rollouts (Innes & Ramamoorthy 2022): dt 0.05 s, signals d / v / vl, units.
 
-    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.scenarios.problems.braking_formula`.
+    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.scenarios.braking.problem.braking_formula`.
     """
     p = BrakingParams()
     return RolloutMeta(

@@ -38,7 +38,7 @@ from pemviz.io.rollout_format import (
     check_stage_counts,
 )
 from pemviz.pem import braking_salient_inputs
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 
 SEVERITY_COLUMNS = ("min_distance_m", "impact_speed_mps")
 """The optional per-rollout severity columns (module docstring): min distance (m), impact speed (m/s, null: no
@@ -57,12 +57,12 @@ def braking_salient(gap_m: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class RolloutData(RolloutBatch):
     """N logged rollouts of T steps as :func:`~pemviz.io.rollouts.read_rollouts` returns them: a
-    :class:`~pemviz.scenarios.RolloutBatch` (its accessors ``n``, ``n_steps``, ``signal``, ``gap_m``) with one
+    :class:`~pemviz.core.rollouts.RolloutBatch` (its accessors ``n``, ``n_steps``, ``signal``, ``gap_m``) with one
     difference, plus what the file adds.
 
     The difference: ``log_p`` / ``log_q`` are None when the file has no such column (the format makes them
     optional; ``pemviz estimate`` recomputes them), so :meth:`log_weight` needs both columns and :meth:`to_batch`
-    gives the plain :class:`~pemviz.scenarios.RolloutBatch`, with the file's or recomputed log-probabilities, that
+    gives the plain :class:`~pemviz.core.rollouts.RolloutBatch`, with the file's or recomputed log-probabilities, that
     the estimators take.
 
     Attributes:
@@ -95,7 +95,7 @@ class RolloutData(RolloutBatch):
     impact_speed: np.ndarray | None = None
 
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:
-        """:meth:`pemviz.scenarios.RolloutBatch.log_weight` of the file's columns, float64 [N] (nats).
+        """:meth:`pemviz.core.rollouts.RolloutBatch.log_weight` of the file's columns, float64 [N] (nats).
 
         Raises:
             ValueError: the file has no ``log_p`` or no ``log_q`` column.

@@ -32,7 +32,7 @@ from pemviz.io.rollout_format import (
 )
 from pemviz.io.rollout_table import SEVERITY_COLUMNS, _Table
 from pemviz.core.sampling import write_proposal_file
-from pemviz.scenarios import RolloutBatch
+from pemviz.core.rollouts import RolloutBatch
 
 
 def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False, what: str = "rollout file") -> Path:
@@ -43,7 +43,7 @@ def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False
 
     Raises:
         ValueError: not ``.parquet``, a directory, a folder that does not exist / is not writable, a name too
-            long, or an existing file (:class:`pemviz.io.files.OutputExists` without ``overwrite``).
+            long, or an existing file (:class:`pemviz.core.files.OutputExists` without ``overwrite``).
     """
     p = check_output_path(path, ".parquet", what, overwrite=overwrite)
     check_output_path(proposal_path(p), ".pt", f"{what} checkpoint", overwrite=overwrite)

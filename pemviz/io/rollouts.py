@@ -1,10 +1,11 @@
-"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`), write one chunk by chunk
-(:class:`RolloutWriter`, :func:`write_rollouts`).
+"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`); a file is written chunk by chunk
+by :mod:`pemviz.io.rollout_writer` (:class:`~pemviz.io.rollout_writer.RolloutWriter`,
+:func:`~pemviz.io.rollout_writer.write_rollouts`).
 
 The format (the Parquet table's columns, the JSON sidecar's fields, the units) is :mod:`pemviz.io.rollout_format`'s;
-the table's checks, :class:`RolloutData` and the optional severity columns (:data:`SEVERITY_COLUMNS`) are
-:mod:`pemviz.io.rollout_table`'s; the writers are :mod:`pemviz.io.rollout_writer`'s. This module reads a file and
-re-exports the names of the other two, so every name is importable from here as before.
+the table's checks, :class:`~pemviz.io.rollout_table.RolloutData` and the optional severity columns
+(:data:`~pemviz.io.rollout_table.SEVERITY_COLUMNS`) are :mod:`pemviz.io.rollout_table`'s. This module reads a file;
+each name has one import path, its module's.
 Bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError`: one message naming the file, the column, and
 the rollout and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
 """
@@ -18,24 +19,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pemviz.io.data import sha256_file
-from pemviz.io.rollout_format import (  # noqa: F401 (re-exported: importable from here as before)
-    KITTI_COLUMNS,
-    SALIENT_COLUMNS,
-    RolloutFormatError,
-    RolloutMeta,
-    check_stage_counts,
-    existing_sidecar,
-    proposal_path,
-    read_sidecar,
-    sidecar_path,
-)
-from pemviz.io.rollout_table import SEVERITY_COLUMNS, RolloutData, _Table, braking_salient  # noqa: F401
-from pemviz.io.rollout_writer import (  # noqa: F401 (re-exported: importable from here as before)
-    RolloutWriter,
-    check_rollouts_path,
-    rollouts_table,
-    write_rollouts,
-)
+from pemviz.io.rollout_format import RolloutFormatError, existing_sidecar, read_sidecar
+from pemviz.io.rollout_table import RolloutData, _Table
 
 
 RECORDING_MAGIC = b"RRF"

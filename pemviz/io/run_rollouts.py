@@ -3,7 +3,7 @@
 
 The braking scenario's files keep their own sidecar (:func:`pemviz.io.rollout_format.braking_meta`: the gap, ego and
 lead speed columns, dt 0.05 s) and the salient variables of the car ahead at each gap
-(:func:`pemviz.io.rollouts.braking_salient`), as its first files did; every other problem's sidecar is
+(:func:`pemviz.io.rollout_table.braking_salient`), as its first files did; every other problem's sidecar is
 :func:`pemviz.io.rollout_format.problem_meta`'s, without salient variables. No run's problem known: the braking
 scenario's file at its defaults.
 """
@@ -43,7 +43,7 @@ def run_meta(problem: Any, formula: str | None, *, pem: str | None = None, propo
 
 def run_salient(problem: Any, batch: RolloutBatch) -> np.ndarray | None:
     """The PEM's salient variables the file holds for ``batch``'s rollouts: float64 [N, T, 11] of the car ahead at
-    each gap for a braking file (:func:`pemviz.io.rollouts.braking_salient`), else None.
+    each gap for a braking file (:func:`pemviz.io.rollout_table.braking_salient`), else None.
 
     Raises:
         KeyError: a braking file's rollouts without a ``gap_m`` column.
@@ -57,7 +57,7 @@ def run_severity(problem: Any, batch: RolloutBatch) -> tuple[np.ndarray, np.ndar
     scenario's gap at its defaults (contact gap, step) as its sidecar assumes; None for a problem without a severity
     scale."""
     if problem is None:
-        from pemviz.scenarios.braking import BrakingParams
+        from pemviz.scenarios.braking.simulator import BrakingParams
 
         p = BrakingParams()
         return severity_of_signal(batch.signal("gap_m"), p.contact_gap_m, p.dt_s)

@@ -7,152 +7,51 @@ Innes & Ramamoorthy 2022, Sec. IV-A and Table I. Two kinds, one interface (``nam
 - :class:`TreePEM`: gradient-boosted trees on the same 14 features, the best cross-validated model.
 
 Beyond detection, a noise PEM gives a detected obstacle's measurement error (range, lateral; metres):
-:class:`NoisePEM` (heteroscedastic, the shipped ``hetero-t``) and :class:`HomoscedasticNoise` (the baseline), with
-the interface ``noise_params``, ``log_prob``, ``cdf``, ``interval``, ``sample``; :class:`NoisyPEM` pairs a detection
-head and a noise head.
+:class:`~pemviz.pem.noise.NoisePEM` (heteroscedastic, the shipped ``hetero-t``) and
+:class:`~pemviz.pem.noise.HomoscedasticNoise` (the baseline), with the interface ``noise_params``, ``log_prob``,
+``cdf``, ``interval``, ``sample``; :class:`NoisyPEM` pairs a detection head and a noise head.
 
 Modules: ``encoding`` (14-dim input, braking scenario mapping), ``network`` (ML-NN), ``trees`` (boosted
 trees), ``camera`` (pixel box errors -> metric errors), ``noise`` (noise PEMs), ``perception`` (:class:`NoisyPEM`),
 ``recipes`` (named PEMs of ``pemviz pem train``), ``store`` (files, assets, the authors' PEM), ``modules`` (the torch
-modules for training: :class:`MLNN`, the noise loss).
+modules for training: :class:`~pemviz.pem.modules.MLNN`, the noise loss).
+
+This package's names (:data:`__all__`) are the ones the user guide imports from it: the two kinds of PEM and the
+noisy one, the PEM's inputs (:func:`encode_salient`, :func:`fit_norm_stats`, :func:`braking_salient_inputs`) and the
+files (:func:`load_pem`, :func:`save_pem`, :func:`shipped_pems`, :func:`resolve_pem`, :func:`load_noise_pem`,
+:func:`save_noisy_pem`, :func:`load_noisy_pem`); every other name has one import path, its module's.
 
 Importing this package, loading a PEM and evaluating it do not import torch (about 1 s): the files are read into
-numpy arrays (:mod:`pemviz.core.torch_payload`). ``MLNN`` is imported from :mod:`pemviz.pem.modules`, with torch, when
-first named; training and :meth:`PEM.to_module` import torch.
+numpy arrays (:mod:`pemviz.core.torch_payload`). Training, :meth:`PEM.to_module` and :mod:`pemviz.pem.modules`
+(``from pemviz.pem.modules import MLNN``) import torch.
 """
 
-from pemviz.pem.encoding import (
-    BRAKING_CAMERA_TO_LEAD_CENTRE_M,
-    BRAKING_LOC_X_M,
-    BRAKING_LOC_Y_M,
-    BRAKING_ROT_Y_RAD,
-    BRAKING_Z_FEATURE,
-    N_CLASSES,
-    N_FEATURES,
-    N_OCCLUSIONS,
-    POSE_COLUMNS,
-    NormStats,
-    bce_from_logits,
-    braking_features_at_z,
-    braking_salient_inputs,
-    braking_z_scored,
-    encode_salient,
-    fit_norm_stats,
-)
-from pemviz.pem.camera import KITTI_FOCAL_PX, MIN_RANGE_M, box_errors_to_metric
-from pemviz.pem.network import PEM, PemFormatError
-from pemviz.pem.training import train_pem
-from pemviz.pem.noise import (
-    FAMILIES,
-    NOISE_DIMS,
-    HomoscedasticNoise,
-    NoiseData,
-    NoiseModel,
-    NoisePEM,
-    fit_homoscedastic,
-    noise_training_data,
-    train_noise_pem,
-)
+from pemviz.pem.encoding import braking_salient_inputs, encode_salient, fit_norm_stats
+from pemviz.pem.network import PEM
 from pemviz.pem.perception import NoisyPEM
-from pemviz.pem.recipes import (
-    BEST_PEM_NAME,
-    DEFAULT_NOISE_NAME,
-    DEFAULT_PEM_NAME,
-    NOISE_RECIPES,
-    PEM_RECIPES,
-    NoiseRecipe,
-    PemRecipe,
-    TreeRecipe,
-)
 from pemviz.pem.store import (
-    ASSETS_DIR_ENV,
-    AnyPEM,
-    assets_dir,
     load_noise_pem,
     load_noisy_pem,
     load_pem,
-    load_reference_pem,
-    noise_pem_path,
-    pem_path,
-    reference_pem_dir,
     resolve_pem,
-    save_noise_pem,
     save_noisy_pem,
     save_pem,
-    shipped_noise_pems,
     shipped_pems,
 )
-from pemviz.pem.trees import TreePEM, export_hist_gradient_boosting, train_tree_pem
-
-
-def __getattr__(name: str) -> object:
-    """``MLNN``, the torch module, imported when first named (torch takes about 1 s to import)."""
-    if name == "MLNN":
-        from pemviz.pem.modules import MLNN
-
-        return MLNN
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
+from pemviz.pem.trees import TreePEM
 
 __all__ = [
-    "ASSETS_DIR_ENV",
-    "BEST_PEM_NAME",
-    "BRAKING_CAMERA_TO_LEAD_CENTRE_M",
-    "BRAKING_LOC_X_M",
-    "BRAKING_LOC_Y_M",
-    "BRAKING_ROT_Y_RAD",
-    "BRAKING_Z_FEATURE",
-    "DEFAULT_NOISE_NAME",
-    "DEFAULT_PEM_NAME",
-    "FAMILIES",
-    "KITTI_FOCAL_PX",
-    "MIN_RANGE_M",
-    "MLNN",
-    "NOISE_DIMS",
-    "NOISE_RECIPES",
-    "N_CLASSES",
-    "N_FEATURES",
-    "N_OCCLUSIONS",
     "PEM",
-    "PEM_RECIPES",
-    "POSE_COLUMNS",
-    "AnyPEM",
-    "HomoscedasticNoise",
-    "NoiseData",
-    "NoiseModel",
-    "NoisePEM",
-    "NoiseRecipe",
     "NoisyPEM",
-    "NormStats",
-    "PemFormatError",
-    "PemRecipe",
     "TreePEM",
-    "TreeRecipe",
-    "assets_dir",
-    "bce_from_logits",
-    "box_errors_to_metric",
-    "braking_features_at_z",
     "braking_salient_inputs",
-    "braking_z_scored",
     "encode_salient",
-    "export_hist_gradient_boosting",
-    "fit_homoscedastic",
     "fit_norm_stats",
     "load_noise_pem",
     "load_noisy_pem",
     "load_pem",
-    "load_reference_pem",
-    "noise_pem_path",
-    "noise_training_data",
-    "pem_path",
-    "reference_pem_dir",
     "resolve_pem",
-    "save_noise_pem",
     "save_noisy_pem",
     "save_pem",
-    "shipped_noise_pems",
     "shipped_pems",
-    "train_noise_pem",
-    "train_pem",
-    "train_tree_pem",
 ]

@@ -39,7 +39,7 @@ def ensemble_path(name: str) -> Path:
 def ensemble_for(pem: str | os.PathLike[str] | None) -> Path:
     """Where the ensemble of a PEM is looked for: ``<assets>/ensemble_<name>.pt`` for a shipped PEM's name (None: the
     default), ``<folder>/<stem>.ensemble.pt`` beside a PEM file."""
-    from pemviz.pem.store import DEFAULT_PEM_NAME
+    from pemviz.pem.recipes import DEFAULT_PEM_NAME
 
     ref = DEFAULT_PEM_NAME if pem is None else pem
     p = Path(ref)

@@ -2,7 +2,8 @@
 (:class:`NoiseNLL`).
 
 This module imports torch (about 1 s); evaluating or loading a PEM does not need it (:mod:`pemviz.pem.network` folds
-the weights in numpy). ``pemviz.pem.MLNN`` and ``pemviz.pem.noise.NoiseNLL`` import it when first named.
+the weights in numpy): import it where a module is trained or built (``from pemviz.pem.modules import MLNN``), the
+one import path of both names.
 """
 
 from __future__ import annotations

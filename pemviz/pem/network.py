@@ -12,7 +12,7 @@ and one multiply-add.
 
 Loading and evaluating a PEM does not import torch (about 1 s): its weights are numpy arrays, folded here
 (:func:`fold_state_dict`). Training (:func:`pemviz.pem.training.train_pem`), :meth:`PEM.to_module` and the torch
-module :class:`MLNN` (in :mod:`pemviz.pem.modules`, imported when first named) import it.
+module :class:`MLNN` (:mod:`pemviz.pem.modules`, imported by those alone) import it.
 """
 
 from __future__ import annotations
@@ -39,15 +39,6 @@ from pemviz.pem.encoding import (
 
 if TYPE_CHECKING:  # annotations only: it imports torch
     from pemviz.pem.modules import MLNN
-
-
-def __getattr__(name: str) -> Any:
-    """``MLNN``, the torch module, imported when first named (torch takes about 1 s to import)."""
-    if name == "MLNN":
-        from pemviz.pem.modules import MLNN
-
-        return MLNN
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class PemFormatError(ValueError):

@@ -41,15 +41,6 @@ DF_MIN = 1.0
 """Lower bound of the Student-t degrees of freedom (``nu = DF_MIN + softplus(raw)``): above it the mean exists."""
 
 
-def __getattr__(name: str) -> Any:
-    """``NoiseNLL``, the training loss (a torch module), imported when first named (torch takes about 1 s)."""
-    if name == "NoiseNLL":
-        from pemviz.pem.modules import NoiseNLL
-
-        return NoiseNLL
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 def _check_features(features: np.ndarray) -> np.ndarray:
     x = np.asarray(features, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] != N_FEATURES:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from scipy.special import expit, log_expit
 
-from pemviz.core.detectors import noise_log_density, noise_quantile
+from pemviz.core.detector_noise import noise_log_density, noise_quantile
 from pemviz.pem.encoding import CODE_COLUMNS, SalientCodes, codes_of_columns, encode_salient
 from pemviz.pem.network import PEM
 from pemviz.pem.noise import NoiseModel, NoisePEM

@@ -7,8 +7,10 @@ from __future__ import annotations
 from typing import Any
 
 from pemviz.core.problems import Problem
-from pemviz.scenarios.crowd import CrowdParams
-from pemviz.scenarios.problems import crowd_problem, problem_for, toy_problem
+from pemviz.scenarios.crowd.simulator import CrowdParams
+from pemviz.scenarios.crowd.problem import crowd_problem
+from pemviz.scenarios.problems import problem_for
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy import ToyParams
 
 
@@ -20,14 +22,14 @@ def run_problem(config: Any, params: Any = None) -> Problem:
 
 
 def toy(config: Any, params: ToyParams | None = None) -> Problem:
-    """The toy braking model (:func:`pemviz.scenarios.problems.toy_problem`; named ``toy`` at its defaults, as
+    """The toy braking model (:func:`pemviz.scenarios.toy.problem.toy_problem`; named ``toy`` at its defaults, as
     ``pemviz validate``'s); the config is not read (the toy's detector is its own)."""
     p = params if params is not None else ToyParams()
     return toy_problem(p, name="toy" if p == ToyParams() else None)
 
 
 def crowd(config: Any, params: CrowdParams | None = None) -> Problem:
-    """The crowd toy (:func:`pemviz.scenarios.problems.crowd_problem`; named ``crowd`` at its defaults); the config
+    """The crowd toy (:func:`pemviz.scenarios.crowd.problem.crowd_problem`; named ``crowd`` at its defaults); the config
     is not read."""
     p = params if params is not None else CrowdParams()
     return crowd_problem(p, name="crowd" if p == CrowdParams() else None)

@@ -77,8 +77,8 @@ class ObjectsScene:
             for the story's charts.
         n_steps: T, the steps of a rollout.
         start_xy_m: each object at the start (step 0), seen from the ego as a rollout's object positions place it
-            (:attr:`pemviz.core.problems.ProblemView.objects_xy`): (to the right, ahead) in metres, one pair per object
-            in object order; the idle scene draws them before any rollout is chosen (empty: the road alone).
+            (:attr:`pemviz.core.problem_view.ProblemView.objects_xy`): (to the right, ahead) in metres, one pair per
+            object in object order; the idle scene draws them before any rollout is chosen (empty: the road alone).
         object_labels: what each object is called in the idle scene (empty: ``object m``).
 
     A scene of no lanes (``n_lanes`` 0) is open ground: the panel draws a plain floor with a 10 m grid, not a road.

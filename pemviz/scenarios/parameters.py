@@ -1,12 +1,13 @@
 """Scenario parameters a user can set (``pemviz run --param NAME=VALUE``), derived from each scenario's dataclass.
 
 A scenario's parameters are the scalar fields (float, int, bool) of its params dataclass
-(:class:`pemviz.scenarios.braking.BrakingParams`, :class:`pemviz.scenarios.cut_in.CutInParams`), each with its
-default (the scenario's own: ``cut-in-rare`` starts its cut-in vehicle further back, ``RARITY_SETTINGS["rare"]``), its
-type and its unit (read from the name's suffix: ``_m`` metres, ``_mps`` m/s, ``_mps2`` m/s^2, ``_s`` seconds, ...).
-The range of a value is the dataclass's own check (its ``__post_init__``): :func:`apply_parameters` builds the
-dataclass and passes its one-line message on. Fields that are not scalars (the cut-in's traffic, IDM and tracker
-constants, the braking scenario's lead speed profile and brake curve) are not parameters.
+(:class:`pemviz.scenarios.braking.simulator.BrakingParams`, :class:`pemviz.scenarios.cut_in.scenario.CutInParams`), each
+with its default (the scenario's own: ``cut-in-rare`` starts its cut-in vehicle further back,
+``RARITY_SETTINGS["rare"]``), its type and its unit (read from the name's suffix: ``_m`` metres, ``_mps`` m/s, ``_mps2``
+m/s^2, ``_s`` seconds, ...). The range of a value is the dataclass's own check (its ``__post_init__``):
+:func:`apply_parameters` builds the dataclass and passes its one-line message on. Fields that are not scalars (the
+cut-in's traffic, IDM and tracker constants, the braking scenario's lead speed profile and brake curve) are not
+parameters.
 
 The run's parameters travel in :attr:`pemviz.config.ExperimentConfig.scenario_params` as ``(name, value)`` pairs;
 :func:`pemviz.scenarios.problems.problem_for` builds the scenario from them. This module imports the two scenario
@@ -26,13 +27,14 @@ from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.settings import SCENARIOS, scenario_names
 
 if TYPE_CHECKING:
-    from pemviz.scenarios.cut_in import CutInParams
+    from pemviz.scenarios.cut_in.scenario import CutInParams
 
 Value = Union[float, int, bool]
 """A parameter's value: a float, an int or a bool (the field's type)."""
 
 CUT_IN_SETTINGS: dict[str, str] = {"cut-in": "moderate", "cut-in-rare": "rare"}
-"""The cut-in scenarios and the rarity setting each starts from (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`)."""
+"""The cut-in scenarios and the rarity setting each starts from
+(:data:`pemviz.scenarios.cut_in.scenario.RARITY_SETTINGS`)."""
 
 UNIT_SUFFIXES: tuple[tuple[str, str], ...] = (
     ("_mps2", "m/s^2"), ("_mps", "m/s"), ("_kmh", "km/h"), ("_per_s", "1/s"), ("_steps", "steps"), ("_m", "m"),
@@ -112,7 +114,7 @@ def unit_of(name: str) -> str:
 
 
 def default_params(scenario: str) -> BrakingParams | CutInParams:
-    """The params dataclass of ``scenario`` (one of :data:`pemviz.config.SCENARIOS`, or another registered one:
+    """The params dataclass of ``scenario`` (one of :data:`pemviz.settings.SCENARIOS`, or another registered one:
     :mod:`pemviz.scenarios.registry`) at its defaults; None for a registered scenario without parameters.
 
     Raises:
@@ -121,7 +123,7 @@ def default_params(scenario: str) -> BrakingParams | CutInParams:
     if scenario == "braking":
         return BrakingParams()
     if scenario in CUT_IN_SETTINGS:
-        from pemviz.scenarios.cut_in import RARITY_SETTINGS, CutInParams  # the cut-in's modules: for its runs only
+        from pemviz.scenarios.cut_in.scenario import RARITY_SETTINGS, CutInParams  # the cut-in's: for its runs only
 
         return CutInParams(**RARITY_SETTINGS[CUT_IN_SETTINGS[scenario]])
     if scenario in _REGISTERED_DEFAULTS:  # a scenario of the registry (a plugin's, a toy): its own dataclass
@@ -134,12 +136,21 @@ _REGISTERED_DEFAULTS: dict[str, Callable[[], object]] = {}
 :func:`pemviz.scenarios.registry.register` through :func:`register_defaults`: this module sits below the registry)."""
 
 
-def register_defaults(scenario: str, defaults: Callable[[], object] | None) -> None:
-    """Let :func:`default_params` of ``scenario`` call ``defaults()`` (None: forget the scenario)."""
+RANDOM_PARAMS: dict[str, tuple[str, ...]] = {}
+"""Scenario name -> the parameters it may draw per rollout over an operating design domain
+(:attr:`pemviz.scenarios.registry.Scenario.random_params`, written by :func:`register_defaults`)."""
+
+
+def register_defaults(scenario: str, defaults: Callable[[], object] | None,
+                      random_params: tuple[str, ...] = ()) -> None:  # fmt: skip
+    """Let :func:`default_params` of ``scenario`` call ``defaults()`` and record the parameters it may draw per
+    rollout (None: forget the scenario)."""
     if defaults is None:
         _REGISTERED_DEFAULTS.pop(scenario, None)
+        RANDOM_PARAMS.pop(scenario, None)
     else:
         _REGISTERED_DEFAULTS[scenario] = defaults
+        RANDOM_PARAMS[scenario] = tuple(random_params)
 
 
 @functools.cache
@@ -179,6 +190,21 @@ def parse_assignment(scenario: str, text: str) -> tuple[str, Value]:
     Raises:
         ParameterError: no ``=``, an unknown name (the message lists the allowed ones) or a value not of its kind.
     """
+    head = str(text).split("=", 1)[0]
+    if "~" in head:  # NAME~DIST: drawn per rollout from a distribution (pemviz.scenarios.odd)
+        from pemviz.scenarios.odd import law_of, odd_value
+
+        name, _, dist = str(text).partition("~")
+        p = parameter(scenario, name.strip())
+        try:
+            value = odd_value(scenario, p.name, dist, RANDOM_PARAMS.get(scenario, ()))  # its range: check_pairs
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from None
+        law = law_of(value)
+        if p.kind != "float" and not (law.discrete and all(float(v).is_integer() for v in law.args)):
+            raise ParameterError(f"{p.name}~{law.text}: {p.name} takes {KINDS[p.kind]}: draw it from "
+                                 "choice(...) of whole numbers")
+        return p.name, value
     name, sep, value = str(text).partition("=")
     if not sep:
         names = ", ".join(p.name for p in scenario_parameters(scenario))
@@ -212,8 +238,41 @@ def check_pairs(scenario: str, pairs: object) -> tuple[tuple[str, Value], ...]:
         if name in seen:
             raise ParameterError(f"{name} is given twice; give each parameter once")
         seen.add(name)
-    apply_parameters(scenario, dict(pairs))
+    from pemviz.scenarios.odd import is_odd, law_of  # drawn parameters (NAME~DIST): as the command line checks them
+
+    for name, value in pairs:
+        if is_odd(value):
+            parse_assignment(scenario, f"{name}{value}")
+    fixed = representative(scenario, pairs)  # the fixed values, a drawn one at its support's first end
+    apply_parameters(scenario, fixed)
+    for name, value in pairs:
+        if is_odd(value):
+            law = law_of(value)
+            for end in law.args if law.discrete else law.support():  # the support's ends, with the fixed ones
+                whole = parameter(scenario, name).kind == "int"
+                try:
+                    apply_parameters(scenario, {**fixed, name: int(end) if whole else float(end)})
+                except ParameterError as exc:
+                    raise ParameterError(f"{name}~{law.text}: its value {end:g} is out of the parameter's "
+                                         f"range: {exc}") from None
     return pairs
+
+
+def representative(scenario: str, pairs: Iterable[tuple[str, object]]) -> dict[str, object]:
+    """name -> value of ``pairs`` with each drawn parameter (``NAME~DIST``, :mod:`pemviz.scenarios.odd`) at its
+    support's first end (a whole number for an int field): parameters the scenario's dataclass can be built from,
+    the drawn ones replaced per rollout."""
+    from pemviz.scenarios.odd import is_odd, law_of
+
+    out: dict[str, object] = {}
+    for name, value in pairs:
+        if is_odd(value):
+            law = law_of(str(value))
+            end = law.args[0] if law.discrete else law.support()[0]
+            out[name] = int(end) if parameter(scenario, name).kind == "int" else float(end)
+        else:
+            out[name] = value
+    return out
 
 
 def apply_parameters(scenario: str, values: Mapping[str, object]) -> BrakingParams | CutInParams:
@@ -244,7 +303,9 @@ def parameters_text(scenario: str, pairs: Iterable[tuple[str, Value]]) -> str:
     """``cut_in_gap_m=19.5 m, n_objects=4``: the pairs with their units, as the console's header line prints them
     (``""``: none)."""
     units = {p.name: p.unit for p in scenario_parameters(scenario)}
-    return ", ".join(f"{name}={value!r}" + (f" {units[name]}" if units.get(name) else "") for name, value in pairs)
+    drawn = {name for name, value in pairs if isinstance(value, str) and value.startswith("~")}  # NAME~DIST
+    return ", ".join((f"{name} {value[0]} {value[1:]}" if name in drawn else f"{name}={value!r}")
+                     + (f" {units[name]}" if units.get(name) else "") for name, value in pairs)  # fmt: skip
 
 
 def as_pairs(value: object) -> tuple[tuple[str, Value], ...]:

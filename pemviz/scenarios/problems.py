@@ -5,9 +5,9 @@ The braking scenario of Innes & Ramamoorthy (2022) (:func:`braking_problem`, its
 (:func:`cut_in_problem` at a named setting :func:`cut_in_params`); the named problems with a known exact answer
 (:data:`PROBLEMS`, :data:`TOY_PROBLEMS`, :data:`CROWD_PROBLEMS`, built by :func:`build_problem`), the problem a run of
 a config estimates (:func:`problem_for`) and its alternative targets (:func:`with_alternatives`, :data:`PEM_SHIFTS`).
-Each scenario's problem lives in its package (:mod:`pemviz.scenarios.braking.problem`,
+Each scenario's problem lives in its package, its one import path (:mod:`pemviz.scenarios.braking.problem`,
 :mod:`pemviz.scenarios.cut_in.problem`, :mod:`pemviz.scenarios.toy.problem`, :mod:`pemviz.scenarios.crowd.problem`);
-this module re-exports them (the cut-in's imported when first named). The scene-neutral
+this module builds them (the cut-in's modules imported by a cut-in run alone). The scene-neutral
 :class:`~pemviz.core.problems.Problem` and :func:`~pemviz.core.problems.rollout_functions` are in
 :mod:`pemviz.core.problems`.
 """
@@ -23,34 +23,15 @@ import numpy as np
 from pemviz.core.estimate import Reference
 from pemviz.core.problems import Problem
 from pemviz.core.reweight import AlternativeTarget
-from pemviz.pem import DEFAULT_PEM_NAME, load_pem
-from pemviz.scenarios.braking.problem import (  # noqa: F401 (re-exported: importable from here as before)
-    BRAKING_SEVERITY_LEVELS_M as BRAKING_SEVERITY_LEVELS_M,
-    braking_formula as braking_formula,
-    braking_problem,
-)
+from pemviz.pem.recipes import DEFAULT_PEM_NAME
+from pemviz.pem import load_pem
+from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.braking.simulator import BrakingParams
-from pemviz.scenarios.braking.truth import known_log_failure_probability
+from pemviz.scenarios.braking.truth_known import known_log_failure_probability
 from pemviz.scenarios.crowd.problem import crowd_problem
 from pemviz.scenarios.crowd.simulator import CrowdParams
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import ToyParams
-
-_CUT_IN_NAMES = ("CUT_IN_WINDOW_M", "CUT_IN_SIGNALS", "CUT_IN_FORMULA", "CUT_IN_SEVERITY_LEVELS_M", "cut_in_params",
-                 "cut_in_problem")  # fmt: skip
-"""The names of :mod:`pemviz.scenarios.cut_in.problem` this module lends, imported when first named (a run of
-another scenario loads none of the cut-in's modules)."""
-
-
-def __getattr__(name: str) -> Any:
-    """The cut-in's problem names (:data:`_CUT_IN_NAMES`), imported from :mod:`pemviz.scenarios.cut_in.problem` when
-    first named."""
-    if name in _CUT_IN_NAMES:
-        from pemviz.scenarios.cut_in import problem
-
-        return getattr(problem, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
 
 # -- named problems -----------------------------------------------------------------------------------------------
 
@@ -77,7 +58,8 @@ CROWD_PROBLEMS: dict[str, CrowdParams] = {
     "crowd": CrowdParams(),
     "crowd-1e-12": CrowdParams(total=30, braking=12, safe=3, p_detect=0.7),
 }
-"""The crowd toys of :data:`PROBLEMS` (several obstacles, mislocated: :class:`~pemviz.scenarios.crowd.CrowdParams`)."""
+"""The crowd toys of :data:`PROBLEMS` (several obstacles, mislocated:
+:class:`~pemviz.scenarios.crowd.simulator.CrowdParams`)."""
 
 
 @functools.cache
@@ -100,26 +82,35 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
 
 
 def problem_for(config: Any) -> Problem:
-    """The problem a run of ``config`` estimates: the scenario ``config.scenario`` (:data:`pemviz.config.SCENARIOS`)
+    """The problem a run of ``config`` estimates: the scenario ``config.scenario`` (:data:`pemviz.settings.SCENARIOS`)
     with its parameters ``config.scenario_params`` (:mod:`pemviz.scenarios.parameters`; the braking scenario's crash
     gap also ``config.margin``) and the PEM ``config.pem`` (None: the shipped one); the braking scenario on the
     simulator ``config.sim``. Loads the PEM on every call (a changed file is read again). A cut-in setting with a plain
-    Monte Carlo reference (:data:`pemviz.scenarios.cut_in.MONTE_CARLO_REFERENCE`) carries it as its
+    Monte Carlo reference (:data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`) carries it as its
     :attr:`Problem.reference` only when it runs the shipped PEMs at the setting's own parameters, under which the
     reference was drawn; the braking scenario's exact answer is known for its default parameters (or another crash
-    gap, or the latched brake) only (:func:`pemviz.scenarios.braking.truth.known_log_failure_probability`).
+    gap, or the latched brake) only (:func:`pemviz.scenarios.braking.truth_known.known_log_failure_probability`).
 
     Raises:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
         ValueError: parameters the scenario's dataclass refuses (the config checks them first).
     """
-    overrides = dict(config.scenario_params)
+    from pemviz.scenarios.odd import split_odd
+
+    from pemviz.scenarios.parameters import representative
+
+    _, odd = split_odd(config.scenario_params)
+    overrides = representative(config.scenario, config.scenario_params)  # a drawn parameter: replaced per rollout
     if config.scenario == "braking":
         if config.margin is not None:
             overrides["crash_gap_m"] = float(config.margin)
         params = BrakingParams(**overrides) if overrides else None
+        if odd is not None:  # the gap and speed at the start drawn per rollout (pemviz.scenarios.braking.odd)
+            from pemviz.scenarios.braking.odd import braking_odd_problem
+
+            return braking_odd_problem(config, params or BrakingParams(), odd)
         return with_alternatives(braking_problem(load_pem(config.pem), params, sim=config.sim), config)
-    from pemviz.scenarios.cut_in import MONTE_CARLO_REFERENCE
+    from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE
     from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
     from pemviz.scenarios.parameters import CUT_IN_SETTINGS, apply_parameters
 
@@ -142,7 +133,7 @@ def with_alternatives(problem: Problem, config: Any) -> Problem:
     """``problem`` with the alternative targets ``config`` asks for (:mod:`pemviz.core.reweight`): with
     ``pem_uncertainty`` every member of the PEM's ensemble (:func:`pemviz.pem.ensemble.ensemble_for`) and the shifts
     :data:`PEM_SHIFTS`, and ``pem_shift`` D; each with its exact answer where the truth knows it (the braking
-    scenario's PEM fingerprints, :func:`pemviz.scenarios.braking.truth.known_log_failure_probability`).
+    scenario's PEM fingerprints, :func:`pemviz.scenarios.braking.truth_known.known_log_failure_probability`).
 
     Raises:
         FileNotFoundError, pemviz.pem.network.PemFormatError: no ensemble for the PEM, or a damaged one.

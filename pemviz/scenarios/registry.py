@@ -12,46 +12,24 @@ The built-in scenarios are the run scenarios of :data:`pemviz.settings.SCENARIOS
 ``crossing`` scene built on the library's perception stack (:mod:`pemviz.scenarios.crossing`, :mod:`pemviz.stack`).
 
 A factory, a parameters dataclass or a simulator may be given as an object or, as Gymnasium's ``entry_point``, as the
-text ``"package.module:name"``, imported when it is first used: this module imports no problem or simulator (the
-problems' module imports :mod:`pemviz.scenarios`, which re-exports :func:`registered`, :func:`register` and
-:func:`get_scenario` from here), so listing the scenarios loads no PEM, no simulator and no torch.
+text ``"package.module:name"``, imported when it is first used: this module imports no problem (the problems' module
+imports :mod:`pemviz.scenarios`, which imports :func:`registered` and :func:`register` from here, the user guide's
+import path), so listing the scenarios loads no PEM, no problem and no torch.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
-import os
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 from pemviz.scenarios.parameters import (
-    KINDS, Parameter, ParameterError, apply_parameters, default_params, register_defaults, scenario_parameters,
+    KINDS, RANDOM_PARAMS, Parameter, ParameterError, apply_parameters, default_params, register_defaults,
+    scenario_parameters,
     unit_of,
 )
+from pemviz.plugins import Plugins, Ref, resolve
 from pemviz.settings import REGISTERED_SCENARIOS, SCENARIO_COST_FACTORS, SCENARIOS
-
-Ref = Any
-"""An object, or the text ``"package.module:name"`` that names it (imported when first used)."""
-
-
-def resolve(ref: Ref) -> Any:
-    """The object ``ref`` names: ``ref`` itself, or for the text ``"package.module:attr.attr"`` that attribute of
-    that module (imported now).
-
-    Raises:
-        ValueError: a text that is not ``module:name``.
-        ImportError, AttributeError: no such module or name.
-    """
-    if not isinstance(ref, str):
-        return ref
-    module, sep, attr = ref.partition(":")
-    if not sep or not module or not attr:
-        raise ValueError(f"{ref!r} is not 'package.module:name'")
-    obj: Any = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 def _kind(field: dataclasses.Field) -> str:
@@ -78,7 +56,7 @@ class Scenario:
             :data:`Ref`.
         exact: whether its problem carries an exact answer (``Problem.exact_log_p``) at its default parameters.
         simulator: optional, ``simulator(params) -> Simulator``: the single black-box simulator (one rollout, the
-            :class:`pemviz.scenarios.Simulator` protocol) whose rollouts the problem's batched twin must reproduce
+            :class:`pemviz.core.rollouts.Simulator` protocol) whose rollouts the problem's batched twin must reproduce
             bit for bit; None: no separate simulator. A :data:`Ref`.
         defaults: optional, ``defaults() -> params``: the parameters at the scenario's defaults (None: ``params()``;
             ``cut-in-rare`` starts from another gap than the dataclass's). A :data:`Ref`.
@@ -88,6 +66,11 @@ class Scenario:
         cost_factor: how many times the cost model's reference rollout step (:mod:`pemviz.engine.cost`, measured on
             the braking scenario's batched twin) one rollout step of this scenario costs, > 0 (default 1): the run's
             predicted seconds scale by it (:data:`pemviz.settings.SCENARIO_COST_FACTORS`).
+        random_params: the parameters that may be drawn per rollout from a distribution over an operating design
+            domain (``--param NAME~DIST``, :mod:`pemviz.scenarios.odd`); empty: none.
+        odd: ``odd(config, params, odd) -> Problem``: the problem over the ODD (:class:`pemviz.core.odd.ODD`) of
+            the parameters in :attr:`random_params`, the others fixed at ``params``; each rollout draws its own
+            (:func:`pemviz.core.odd_rollouts.odd_rollout_functions`). A :data:`Ref`; None: no ODD.
     """
 
     name: str
@@ -99,6 +82,8 @@ class Scenario:
     defaults: Ref = None
     drawing: Ref = None
     cost_factor: float = 1.0
+    random_params: tuple[str, ...] = ()
+    odd: Ref = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -195,10 +180,28 @@ class Scenario:
                 cfg = dataclasses.replace(cfg, scenario_params=tuple(merged.items()))
             built = self.build_params(dict(cfg.scenario_params))
         else:
+            from pemviz.scenarios.odd import split_odd
+
             cfg = config
             given = dict(cfg.scenario_params) if cfg is not None and cfg.scenario == self.name else {}
-            built = self.build_params({**given, **dict(params or {})})
+            from pemviz.scenarios.parameters import representative
+
+            values = {**given, **dict(params or {})}
+            _, odd = split_odd(values.items())
+            built = self.build_params(representative(self.name, values.items()) if odd is not None else values)
+            if odd is not None:  # parameters drawn per rollout over an operating design domain
+                return self.odd_problem(cfg, built, odd)
         return resolve(self.factory)(cfg, built)
+
+    def odd_problem(self, config: Any, params: Any, odd: Any) -> Any:
+        """The problem over the ODD ``odd`` (:attr:`odd`), the other parameters fixed at ``params``.
+
+        Raises:
+            ValueError: the scenario draws no parameter per rollout, or not one of ``odd``'s."""
+        others = [name for name in odd.names if name not in self.random_params]
+        if self.odd is None or others:
+            raise ValueError(f"the {self.name} scenario cannot draw {', '.join(others or odd.names)} per rollout")
+        return resolve(self.odd)(config, params, odd)
 
     def single_simulator(self, params: Any = None) -> Any:
         """A new single black-box simulator of the scenario at ``params`` (None: its defaults), or None when it has
@@ -232,10 +235,11 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
                          "replace it)")  # fmt: skip
     _REGISTRY[scenario.name] = scenario
     SCENARIO_COST_FACTORS[scenario.name] = float(scenario.cost_factor)  # the engine's cost model reads it there
+    RANDOM_PARAMS[scenario.name] = tuple(scenario.random_params)  # what --param NAME~DIST may draw
     if not scenario.runnable:  # the settings and parameters below the registry learn of it
         if scenario.name not in REGISTERED_SCENARIOS:
             REGISTERED_SCENARIOS.append(scenario.name)
-        register_defaults(scenario.name, scenario.default_params)
+        register_defaults(scenario.name, scenario.default_params, tuple(scenario.random_params))
     return scenario
 
 
@@ -269,9 +273,6 @@ class ScenarioPluginError(ValueError):
     be loaded: which, and why, in one line."""
 
 
-_PLUGINS_LOADED = False
-
-
 def load_plugins() -> None:
     """Register the scenarios of the installed packages' entry points (:data:`ENTRY_POINTS`) and of the modules named
     by :data:`PLUGIN_VARIABLE`, once per process (:func:`registered` and :func:`get` call it).
@@ -280,42 +281,11 @@ def load_plugins() -> None:
         ScenarioPluginError: a plugin that cannot be imported or that raised while registering (the next call tries
             again).
     """
-    global _PLUGINS_LOADED
-    if _PLUGINS_LOADED:
-        return
-    _PLUGINS_LOADED = True
-    try:
-        for module in (m.strip() for m in os.environ.get(PLUGIN_VARIABLE, "").split(",")):
-            if module:
-                _load(f"{PLUGIN_VARIABLE} module {module}", lambda module=module: importlib.import_module(module))
-        from importlib.metadata import entry_points
-
-        for ep in entry_points(group=ENTRY_POINTS):
-            _load(f"entry point {ep.name} ({ep.value}) of group {ENTRY_POINTS}",
-                  lambda ep=ep: _register_object(ep.load()))
-    except ScenarioPluginError:
-        _PLUGINS_LOADED = False
-        raise
+    _PLUGINS.load()
 
 
-def _load(what: str, action: Callable[[], object]) -> None:
-    try:
-        action()
-    except ScenarioPluginError:
-        raise
-    except Exception as exc:  # a plugin's own failure: one line naming it
-        raise ScenarioPluginError(f"scenario plugin {what}: {type(exc).__name__}: {exc}") from None
-
-
-def _register_object(obj: object) -> None:
-    """An entry point's object: a :class:`Scenario` (registered, replacing none) or a callable that registers."""
-    if isinstance(obj, Scenario):
-        if obj.name not in _REGISTRY:
-            register(obj)
-    elif callable(obj):
-        obj()
-    else:
-        raise TypeError(f"expected a Scenario or a callable that registers scenarios, got {type(obj).__name__}")
+_PLUGINS = Plugins(PLUGIN_VARIABLE, ENTRY_POINTS, "scenario", ScenarioPluginError, Scenario, _REGISTRY,
+                   lambda record: register(record))
 
 
 def registered() -> tuple[str, ...]:
@@ -367,22 +337,24 @@ _CUT_IN = ("ACC on a tracker, cars on a 3-lane highway, one cutting in at the {}
 
 for _scenario in (
     Scenario("braking", "automated braking behind a lead car, the PEM as the camera's detector; failure: the gap "
-             "drops below the crash gap", "pemviz.scenarios.braking:BrakingParams",
+             "drops below the crash gap", "pemviz.scenarios.braking.simulator:BrakingParams",
              "pemviz.scenarios.builtin:run_problem", exact=True,
-             simulator="pemviz.scenarios.braking:BrakingScenario",
-             drawing="pemviz.scenarios.braking.drawing:BrakingDrawing"),
-    Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in:CutInParams",
+             simulator="pemviz.scenarios.braking.simulator:BrakingScenario",
+             drawing="pemviz.scenarios.braking.drawing:BrakingDrawing", random_params=("gap0_m", "ego_speed0_mps"),
+             odd="pemviz.scenarios.braking.odd:braking_odd_problem"),
+    Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in.scenario:CutInParams",
              "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
              drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
-    Scenario("cut-in-rare", _CUT_IN.format("rare (about 1e-7)"), "pemviz.scenarios.cut_in:CutInParams",
+    Scenario("cut-in-rare", _CUT_IN.format("rare (about 1e-7)"), "pemviz.scenarios.cut_in.scenario:CutInParams",
              "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
              drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
     Scenario("toy", "toy braking: a car from an obstacle, a detection within the braking range stops it; failure: "
              "closer than the safe distance (closed-form answer)", "pemviz.scenarios.toy:ToyParams",
-             "pemviz.scenarios.builtin:toy", exact=True, simulator="pemviz.scenarios.toy:ToyBraking"),
+             "pemviz.scenarios.builtin:toy", exact=True, simulator="pemviz.scenarios.toy:ToyBraking",
+             random_params=("braking",), odd="pemviz.scenarios.toy.odd:toy_odd_problem"),
     Scenario("crowd", "toy braking toward several obstacles, each detected and its distance mislocated; failure: "
-             "closer than the safe distance to the nearest (closed-form answer)", "pemviz.scenarios.crowd:CrowdParams",
-             "pemviz.scenarios.builtin:crowd", exact=True),
+             "closer than the safe distance to the nearest (closed-form answer)",
+             "pemviz.scenarios.crowd.simulator:CrowdParams", "pemviz.scenarios.builtin:crowd", exact=True),
     Scenario("crossing", "an emergency brake on tracked pedestrians stepping onto a crossing, the shipped PEMs as the "
              "camera's detector and mislocation; failure: a collision",
              "pemviz.scenarios.crossing.scene:CrossingParams", "pemviz.scenarios.crossing.problem:crossing"),

@@ -1,5 +1,5 @@
 """What the recording (:mod:`pemviz.sinks.recording`) asks of a scenario's drawing object
-(:attr:`pemviz.core.problems.ProblemView.drawing`), on top of the outcome every sink shares
+(:attr:`pemviz.core.problem_view.ProblemView.drawing`), on top of the outcome every sink shares
 (:class:`pemviz.core.drawing.Drawing`).
 
 The hooks return data (words, numbers, arrays, names of entities, Markdown), never rerun objects: the sinks draw it

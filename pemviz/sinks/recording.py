@@ -93,7 +93,7 @@ from pemviz.core.counterfactuals import LikelyFailure, LogPParts, most_likely_fa
 from pemviz.core.estimate import Reference, error_text, format_probability
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
-from pemviz.io.files import atomic_write
+from pemviz.core.files import atomic_write
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
 from pemviz.sinks.population import FailureGroups, log_failures
@@ -161,7 +161,7 @@ class RerunSink(Sink):
         self.plan = None
         """The run's :class:`~pemviz.core.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
         self.view = None
-        """The problem's :class:`~pemviz.core.problems.ProblemView` (from :class:`~pemviz.engine.events.RunStarted`)."""
+        """The problem's :class:`~pemviz.core.problem_view.ProblemView` (from :class:`RunStarted`)."""
         self.drawing: object = None
         """The scenario's drawing object (the view's, :class:`pemviz.sinks.drawing.RecordingDrawing`), None: none."""
         self.grid_m = np.zeros(0)
@@ -259,7 +259,7 @@ class RerunSink(Sink):
 
         Raises:
             OSError: the file could not be written (nothing is left; an existing file is untouched).
-            pemviz.io.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given.
+            pemviz.core.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given.
         """
         if self._closed:
             return None

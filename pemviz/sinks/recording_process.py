@@ -14,7 +14,7 @@ not compute, and the failures' severity. The final estimate's failures come grou
 What the sink promises holds across the two processes:
 
 - :meth:`RecordingProcess.close` returns when the file is written, or raises what
-  :meth:`pemviz.sinks.recording.RerunSink.close` raises (:class:`pemviz.io.files.OutputExists`, ``OSError``), and an
+  :meth:`pemviz.sinks.recording.RerunSink.close` raises (:class:`pemviz.core.files.OutputExists`, ``OSError``), and an
   ``OSError`` naming the child's last words where the child itself failed.
 - Ctrl-C and SIGTERM reach the run only (the child has a session of its own and ignores both); the run closes the
   sink, and the child marks the recording interrupted and keeps every finished stage, as the one-process sink does.
@@ -57,7 +57,7 @@ class RecordingProcess(Sink):
 
     Args:
         path: the ``.rrd`` file; written under a temporary name and moved onto it when :meth:`close` commits.
-        overwrite: replace an existing ``path`` (else :class:`pemviz.io.files.OutputExists` at :meth:`close`).
+        overwrite: replace an existing ``path`` (else :class:`pemviz.core.files.OutputExists` at :meth:`close`).
 
     Raises:
         OSError: the child process could not be started.
@@ -119,7 +119,7 @@ class RecordingProcess(Sink):
         """Finish the recording: the child writes it (``commit``) or drops it; returns the file written, or None.
 
         Raises:
-            pemviz.io.files.OutputExists: ``path`` appeared meanwhile and ``overwrite`` was not given.
+            pemviz.core.files.OutputExists: ``path`` appeared meanwhile and ``overwrite`` was not given.
             OSError: the file could not be written (nothing is left; an existing file is untouched), the child
                 failed (its last line of errors), or it did not finish within :data:`CLOSE_TIMEOUT_S` seconds.
         """
@@ -161,7 +161,7 @@ def _last_json(out: bytes) -> dict | None:
 
 def _reported(report: dict) -> Path | None:
     """The child's report as :meth:`RecordingProcess.close` returns or raises it."""
-    from pemviz.io.files import OutputExists
+    from pemviz.core.files import OutputExists
 
     error = report.get("error")
     if error == "exists":
@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import_scipy_special_lean()  # before the engine's and the sink's modules import it
     from pemviz.engine.experiment import RobustnessByMetric
-    from pemviz.io.files import OutputExists
+    from pemviz.core.files import OutputExists
     from pemviz.sinks.recording import RerunSink
 
     settle_pyarrow_without_pandas()

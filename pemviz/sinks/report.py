@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from pemviz.core.severity import share_text
-from pemviz.io.files import atomic_write
+from pemviz.core.files import atomic_write
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import rerun.blueprint as rrb
 
-from pemviz.core.problems import ProblemView, SignalView
+from pemviz.core.problem_view import ProblemView, SignalView
 from pemviz.sinks import colours as C
 from pemviz.sinks.rerun_stage_figures import figure, figure_titles
 from pemviz.sinks.rerun_views import LANE_SPACING_M, PROPOSAL_FIG, SCENE_PATH, SCENE_X_RANGE_M

@@ -1,8 +1,8 @@
 """The recording's *Explain* tab: the most likely failure of a run, logged as entities under ``explain/``.
 
 The most likely failure is the failing rollout with the largest log p under the PEM (:meth:`RolloutBatch.log_likelihood
-<pemviz.scenarios.RolloutBatch.log_likelihood>`, T - 1 steps: the log-probability of its detections plus, where the PEM
-mislocates, the log-density of its measurement errors, stated apart:
+<pemviz.core.rollouts.RolloutBatch.log_likelihood>`, T - 1 steps: the log-probability of its detections plus, where the
+PEM mislocates, the log-density of its measurement errors, stated apart:
 :func:`pemviz.core.counterfactuals.failure_log_p_parts`) among the rollouts the engine reported: the failure
 the sampler found that the real detector is likeliest to produce, the "most likely failure" of adaptive stress
 testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020). For any problem it shows p(detect) of the PEM and
@@ -40,7 +40,7 @@ import numpy as np
 import rerun as rr
 
 from pemviz.core.counterfactuals import LogPParts
-from pemviz.core.problems import ProblemView, object_scene
+from pemviz.core.problem_view import ProblemView, object_scene
 from pemviz.core.proposal_view import prob_detect
 from pemviz.engine.events import RolloutsSampled
 from pemviz.core.rollouts import RolloutBatch

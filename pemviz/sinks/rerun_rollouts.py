@@ -17,7 +17,7 @@ import numpy as np
 import rerun as rr
 
 from pemviz.core.counterfactuals import likeliest_failures
-from pemviz.core.problems import ProblemView
+from pemviz.core.problem_view import ProblemView
 from pemviz.engine.events import RolloutsSampled
 from pemviz.sinks.rerun_views import (
     ALL_ROLLOUTS_UP_TO,

@@ -16,7 +16,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pemviz.core.problems import ProblemView
+from pemviz.core.problem_view import ProblemView
 from pemviz.core.proposal_view import LOG_ODDS_SPAN_NATS, ProposalView
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import RolloutsSampled, RunStarted

@@ -14,11 +14,11 @@ from typing import Any
 import numpy as np
 
 from pemviz.engine.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
-from pemviz.estimators.base import pool_stage_weights
+from pemviz.estimators.pooling import pool_stage_weights
 from pemviz.estimators.registry import get_method
-from pemviz.io.rollouts import RolloutWriter, check_rollouts_path
+from pemviz.io.rollout_writer import RolloutWriter, check_rollouts_path
 from pemviz.io.run_rollouts import run_meta, run_salient, run_severity
-from pemviz.pem import DEFAULT_PEM_NAME
+from pemviz.pem.recipes import DEFAULT_PEM_NAME
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, SamplerView, WindowDetector
 from pemviz.core.sampling import Proposal
 from pemviz.sinks import Sink
@@ -40,13 +40,13 @@ class RolloutSink(Sink):
     file reproduces the run's estimate.
 
     Each rollout is written with its stage, the component of the stage's mixture that drew it, its severity (min
-    distance and impact speed, :data:`pemviz.io.rollouts.SEVERITY_COLUMNS`), and as ``log_q`` the
+    distance and impact speed, :data:`pemviz.io.rollout_table.SEVERITY_COLUMNS`), and as ``log_q`` the
     per-step density the run weighed it with (:func:`pemviz.core.weights.stage_log_q`: for a mixture over whole
     rollouts, the mixture's). The sidecar holds the run's weight convention, each stage's components and weight bound,
     and the pooling rule with its stage weights (:mod:`pemviz.io.rollout_format`). Rollouts are written chunk by chunk
     as the engine simulates them (:class:`pemviz.engine.events.RolloutChunk`, Parquet row groups of a
-    :class:`pemviz.io.rollouts.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of a
-    chunk whatever N is; the stages the estimate did not use are dropped and the unit is moved into place when the
+    :class:`pemviz.io.rollout_writer.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of
+    a chunk whatever N is; the stages the estimate did not use are dropped and the unit is moved into place when the
     run finishes, and nothing is left after a cancelled or failed run. If the file holds one stage drawn by a
     proposal, a snapshot of it taken when the stage was sampled is saved as ``NAME.proposal.pt`` and named in the
     sidecar.

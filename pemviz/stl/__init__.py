@@ -19,21 +19,16 @@ predicates), :mod:`pemviz.stl.formula` (formulas), :mod:`pemviz.stl.parser`, :mo
 kinds, the trace-end convention).
 """
 
+from pemviz.stl.expr import KEYWORDS, BinaryExpr, Const, Expr, Negate, Signal, format_number
 from pemviz.stl.formula import (
-    KEYWORDS,
     Always,
     And,
-    BinaryExpr,
-    Const,
     Eventually,
-    Expr,
     Formula,
     Implies,
-    Negate,
     Not,
     Or,
     Predicate,
-    Signal,
     Temporal,
     UnaryTemporal,
     Until,
@@ -42,7 +37,6 @@ from pemviz.stl.formula import (
     const,
     disjunction,
     eventually,
-    format_number,
     implies,
     negation,
     signal,

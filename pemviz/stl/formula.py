@@ -13,7 +13,7 @@ Grammar (time in integer steps; an interval ``[a,b]`` is inclusive, ``b`` may be
 The temporal operators share one base, :class:`Temporal` (an interval of future steps); ``G`` and ``F`` are
 the two :class:`UnaryTemporal` operators and differ only in the reduction over their window
 (:attr:`UnaryTemporal.conjunctive`: a conjunction over the steps for ``G``, a disjunction for ``F``).
-Arithmetic inside predicates lives in :mod:`pemviz.stl.expr` (re-exported here).
+Arithmetic inside predicates lives in :mod:`pemviz.stl.expr`.
 
 Builders: ``signal("d") >= 2`` is a :class:`Predicate`; ``p & q``, ``p | q``, ``~p``, ``p >> q`` (implies);
 :func:`always`, :func:`eventually`, :func:`until`, :func:`conjunction`, :func:`disjunction`, :func:`negation`,
@@ -28,23 +28,14 @@ from typing import Iterable
 from pemviz.stl import expr
 from pemviz.stl.expr import (
     COMPARISONS,
-    KEYWORDS,
-    BinaryExpr,
     Const,
     Expr,
-    Negate,
     Signal,
     _as_expr,
     _where,
-    format_number,
 )
 
 __all__ = [
-    "Expr",
-    "Signal",
-    "Const",
-    "BinaryExpr",
-    "Negate",
     "Formula",
     "Predicate",
     "Not",
@@ -65,8 +56,6 @@ __all__ = [
     "always",
     "eventually",
     "until",
-    "format_number",
-    "KEYWORDS",
 ]
 
 # --------------------------------------------------------------------------------------------------

@@ -18,24 +18,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterator
 
-from pemviz.stl.formula import (
-    COMPARISONS,
-    KEYWORDS,
-    Always,
-    And,
-    BinaryExpr,
-    Const,
-    Eventually,
-    Expr,
-    Formula,
-    Implies,
-    Negate,
-    Not,
-    Or,
-    Predicate,
-    Signal,
-    Until,
-)
+from pemviz.stl.expr import COMPARISONS, KEYWORDS, BinaryExpr, Const, Expr, Negate, Signal
+from pemviz.stl.formula import Always, And, Eventually, Formula, Implies, Not, Or, Predicate, Until
 
 __all__ = ["parse", "STLSyntaxError", "MAX_DEPTH"]
 

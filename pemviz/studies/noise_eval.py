@@ -14,8 +14,8 @@ uses the z-score statistics of the full file. Every model is trained on four fol
   and far ones too rarely.
 
 Models (:data:`NOISE_MODEL_NAMES`): ``homo-normal`` (linear mean, constant scale: the baseline), ``homo-t``
-(constant Student-t), and the heteroscedastic :class:`pemviz.pem.NoisePEM` with a Normal, Laplace or Student-t head
-(``hetero-t`` is the shipped recipe). :func:`evaluate_noise_pems` computes; :func:`format_markdown`,
+(constant Student-t), and the heteroscedastic :class:`pemviz.pem.noise.NoisePEM` with a Normal, Laplace or Student-t
+head (``hetero-t`` is the shipped recipe). :func:`evaluate_noise_pems` computes; :func:`format_markdown`,
 :func:`format_csv`, :func:`summary_lines` present.
 """
 
@@ -28,16 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.pem import (
-    NOISE_DIMS,
-    NOISE_RECIPES,
-    NoiseModel,
-    NormStats,
-    encode_salient,
-    fit_homoscedastic,
-    fit_norm_stats,
-    noise_training_data,
-)
+from pemviz.pem.noise import NOISE_DIMS, NoiseModel, fit_homoscedastic, noise_training_data
+from pemviz.pem.recipes import NOISE_RECIPES
+from pemviz.pem.encoding import NormStats
+from pemviz.pem import encode_salient, fit_norm_stats
 from pemviz.studies.pem_eval import stratified_folds
 
 NOISE_MODEL_NAMES = ("homo-normal", "homo-t", "hetero-normal", "hetero-laplace", "hetero-t")

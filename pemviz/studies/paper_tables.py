@@ -20,7 +20,8 @@ from typing import Any, Sequence
 import numpy as np
 import rerun as rr
 
-from pemviz.config import METRICS, ExperimentConfig
+from pemviz.settings import METRICS
+from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability
 from pemviz.io.files import write_rrd
 from pemviz.presets import PRESETS

@@ -32,15 +32,10 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.special import expit
 from pemviz.io.files import write_rrd
-from pemviz.pem import (
-    PEM_RECIPES,
-    NormStats,
-    bce_from_logits,
-    braking_salient_inputs,
-    encode_salient,
-    fit_norm_stats,
-    load_reference_pem,
-)
+from pemviz.pem.recipes import PEM_RECIPES
+from pemviz.pem.encoding import NormStats, bce_from_logits
+from pemviz.pem import braking_salient_inputs, encode_salient, fit_norm_stats
+from pemviz.pem.store import load_reference_pem
 from pemviz.pem.bayes import train_bnn_pem
 from pemviz.sinks.colours import MODEL_COLOURS, MODEL_OTHER, REFERENCE_LINE, rgba
 

@@ -91,7 +91,7 @@ def fingerprint(config: Any) -> dict[str, Any]:
     ``chunks`` (how many chunks the run's stages came in), ``dispatch`` (:func:`dispatch_in_use`)."""
     import numpy as np
 
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RolloutChunk, RolloutsSampled
     from pemviz.scenarios.problems import problem_for
 

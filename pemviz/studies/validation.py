@@ -25,19 +25,20 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from pemviz.config import METHODS, ExperimentConfig
+from pemviz.settings import METHODS
+from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability, relative_error
 from pemviz.engine.resources import torch_threads
-from pemviz.engine import Experiment
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RunFinished
-from pemviz.io.files import atomic_write
+from pemviz.core.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.presets import PRESETS
-from pemviz.scenarios.braking import truth
-from pemviz.scenarios.braking import BrakingParams
-from pemviz.scenarios.crowd import crowd_log_failure_probability
+from pemviz.scenarios.braking import truth, truth_known, truth_latched
+from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.scenarios.crowd.simulator import crowd_log_failure_probability
 from pemviz.scenarios.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
-from pemviz.scenarios.toy import toy_log_failure_probability
+from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 
 DEFAULT_PROBLEMS = ("toy", "toy-1e-30", "latched", "main")
 """The problems ``pemviz validate`` runs by default."""
@@ -82,17 +83,17 @@ def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[
                            wall_s=time.perf_counter() - t0)
     pem = load_pem(pem_path)
     if name == "latched":
-        lt = truth.latched_log_failure_probability(pem.logit_at_gap, BrakingParams(latched_brake=True))
+        lt = truth_latched.latched_log_failure_probability(pem.logit_at_gap, BrakingParams(latched_brake=True))
         return ExactAnswer(
             lt.log_p_fail,
             f"product of (1 - p_PEM) over steps {lt.first_step}..{lt.last_step} (deterministic simulator)",
             wall_s=time.perf_counter() - t0,
         )
 
-    known = truth.known_log_failure_probability(pem.logit_at_gap, BrakingParams())
+    known = truth_known.known_log_failure_probability(pem.logit_at_gap, BrakingParams())
     if known is not None and not recompute:  # a shipped PEM: its enumeration (20-40 s) was kept
         return ExactAnswer(known, "exact enumeration kept for this PEM "
-                                  "(pemviz.scenarios.braking.truth.KNOWN_BRAKING_LOG_P, bracket width < 0.25 %; "
+                                  "(pemviz.scenarios.braking.truth_known.KNOWN_BRAKING_LOG_P, bracket width < 0.25 %; "
                                   "tests/test_truth.py recomputes it)",
                            wall_s=time.perf_counter() - t0)
 

@@ -16,9 +16,16 @@ from pathlib import Path
 import pytest
 
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.estimators import build_estimator, method_names, run_plan
+from pemviz.estimators import build_estimator, run_plan
+from pemviz.estimators.registry import (
+    Method,
+    get_method,
+    method_names,
+    register_method,
+    registered_name,
+    unregister_method,
+)
 from pemviz.estimators.fixed import FixedSampler
-from pemviz.estimators.registry import Method, get_method, register_method, registered_name, unregister_method
 from pemviz.testing import check_estimator
 
 HERE = Path(__file__).resolve().parent

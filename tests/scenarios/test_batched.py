@@ -12,11 +12,11 @@ import pytest
 import torch
 
 from pemviz.scenarios.problems import problem_for
-from pemviz.scenarios import problems
+from pemviz.scenarios import problems, simulate
 from pemviz.scenarios.braking import problem as braking_problem_module
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, PEMDetector, WindowDetector
-from pemviz.scenarios import RolloutBatch, simulate
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.batched import (
     BatchedBraking,
     iter_batched,
@@ -24,7 +24,7 @@ from pemviz.scenarios.braking.batched import (
     simulate_batched,
     summarise_batched,
 )
-from pemviz.scenarios.braking import BrakingParams, BrakingScenario
+from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
 
 FIELDS = ("observations", "detected", "log_p", "log_q")
 
@@ -229,7 +229,7 @@ def test_run_command_passes_sim_flag_into_the_config():
 
 
 def test_engine_runs_the_configured_back_end_and_both_give_the_same_estimate(monkeypatch):
-    from pemviz.engine import Experiment
+    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RunFinished
 
     estimates = {}

@@ -9,7 +9,7 @@ import pytest
 
 from pemviz.core.detectors import ConstantDetector, PEMDetector, WindowDetector
 from pemviz.scenarios import simulate
-from pemviz.scenarios.braking import LEAD_SPEED_PROFILE_MPS, BrakingParams, BrakingScenario
+from pemviz.scenarios.braking.simulator import LEAD_SPEED_PROFILE_MPS, BrakingParams, BrakingScenario
 
 
 def replay(detections) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -11,7 +11,7 @@ import pytest
 
 from pemviz.pem.encoding import encode_salient
 from pemviz.stack import tracker
-from pemviz.scenarios.cut_in import (
+from pemviz.scenarios.cut_in.scenario import (
     FAILURE_FORMULA,
     OBJECT_NAMES,
     SALIENT_COLUMNS,

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pemviz.scenarios.cut_in import (
+from pemviz.scenarios.cut_in.scenario import (
     FAILURE_FORMULA,
     LANE_WIDTH_M,
     NO_VEHICLE_M,

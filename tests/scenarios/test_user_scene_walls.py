@@ -14,8 +14,7 @@ from scipy.special import expit
 from pemviz.config import ExperimentConfig
 from pemviz.core.problems import Problem
 from pemviz.core.problem_view import object_label
-from pemviz.engine import Experiment
-from pemviz.engine.experiment import RobustnessByMetric
+from pemviz.engine.experiment import Experiment, RobustnessByMetric
 from pemviz.io.rollout_estimate import estimate_rollouts
 from pemviz.io.rollout_format import RolloutMeta, json_float
 from pemviz.io.rollouts import read_rollouts

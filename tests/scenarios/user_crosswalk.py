@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz import stl
-from pemviz.core.detectors import noise_log_density, noise_quantile
+from pemviz.core.detector_noise import noise_log_density, noise_quantile
 from pemviz.core.problems import Problem, rollout_functions
 from pemviz.scenarios.registry import Scenario
 

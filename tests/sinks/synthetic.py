@@ -6,12 +6,12 @@ import numpy as np
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import estimate
-from pemviz.core.problems import ProblemView, SignalView, Thresholds
+from pemviz.core.problem_view import ProblemView, SignalView, Thresholds
 from pemviz.engine.cost import CostConstants
 from pemviz.engine.events import RolloutsSampled, RunStarted, StageFinished, StageResult
 from pemviz.core.plan import RunPlan
-from pemviz.scenarios import RolloutBatch
-from pemviz.scenarios.braking import BrakingParams
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 
 PLAN = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 50)])

@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("rerun")
 
-from pemviz.core.problems import ProblemView, SignalView, Thresholds  # noqa: E402
+from pemviz.core.problem_view import ProblemView, SignalView, Thresholds  # noqa: E402
 from pemviz.engine.events import StageStarted  # noqa: E402
 from pemviz.scenarios.braking.drawing import BrakingDrawing  # noqa: E402
 from pemviz.scenarios.cut_in.drawing import CutInDrawing  # noqa: E402

@@ -4,7 +4,7 @@
 of one batch advance together, the detector is asked once per step for the whole batch, and 10^6
 rollouts stream through in chunks of bounded memory.
 
-Same scenario, same arithmetic. The ego's control step is :func:`pemviz.scenarios.braking.ego_acceleration`
+Same scenario, same arithmetic. The ego's control step is :func:`pemviz.scenarios.braking.simulator.ego_acceleration`
 itself (already vectorised over rollouts); the motion is highway-env's ``Vehicle.step`` on a straight
 lane with zero steering and heading (explicit Euler: ``x += v dt`` and then ``v += a dt``, the slip angle
 and the heading change being exactly 0), the ego's speed is clamped at 0 after each step, the gap is
@@ -58,11 +58,17 @@ class BatchedBraking:
 
     observation_names = OBSERVATION_NAMES
 
-    def __init__(self, params: BrakingParams | None = None, n: int = 1) -> None:
+    def __init__(self, params: BrakingParams | None = None, n: int = 1,
+                 starts: dict[str, np.ndarray] | None = None) -> None:  # fmt: skip
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
             raise ValueError(f"BatchedBraking: n (rollouts) must be an integer >= 1, got {n!r}")
         self.params = params or BrakingParams()
         self.n = int(n)
+        self.starts = {k: np.asarray(v, dtype=np.float64).reshape(self.n) for k, v in (starts or {}).items()}
+        """Per-rollout starts over an operating design domain: ``gap0_m`` and / or ``ego_speed0_mps``, float64 [N]
+        each, in place of the params' one value (:mod:`pemviz.scenarios.braking.odd`); empty: the params'."""
+        if set(self.starts) - {"gap0_m", "ego_speed0_mps"}:
+            raise ValueError(f"BatchedBraking: starts may set gap0_m and ego_speed0_mps, got {sorted(self.starts)}")
         self._lead_speeds = lead_speeds(self.params)
         self.reset()
 
@@ -72,6 +78,10 @@ class BatchedBraking:
         self.ego_x_m = np.zeros(self.n)
         self.ego_speed_mps = np.full(self.n, float(p.ego_speed0_mps))
         self.lead_x_m = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2  # as BrakingScenario.reset
+        if "ego_speed0_mps" in self.starts:
+            self.ego_speed_mps = self.starts["ego_speed0_mps"].copy()
+        if "gap0_m" in self.starts:  # [N]: each rollout's lead at its own gap
+            self.lead_x_m = p.camera_offset_m + self.starts["gap0_m"] + p.lead_length_m / 2
         self.lead_speed_mps = float(p.lead_speed_profile_mps[0])
         self.t = 0
         self._ctrl = initial_controller_state(self.n)
@@ -109,9 +119,10 @@ class BatchedBraking:
 
     def snapshot(self) -> dict:
         """Copies of every rollout's state at the current step (snapshot/restore capability of
-        :class:`~pemviz.scenarios.Snapshotting`); ``restore`` takes it on a simulator of the same N."""
+        :class:`~pemviz.core.rollouts.Snapshotting`); ``restore`` takes it on a simulator of the same N."""
         c = self._ctrl
-        return {"ego_x_m": self.ego_x_m.copy(), "ego_speed_mps": self.ego_speed_mps.copy(), "lead_x_m": self.lead_x_m,
+        return {"ego_x_m": self.ego_x_m.copy(), "ego_speed_mps": self.ego_speed_mps.copy(),
+                "lead_x_m": np.copy(self.lead_x_m) if np.ndim(self.lead_x_m) else self.lead_x_m,
                 "lead_speed_mps": self.lead_speed_mps, "t": self.t,
                 "ctrl": type(c)(c.integral_kmh_s.copy(), c.pending_brake.copy())}  # fmt: skip
 
@@ -255,7 +266,7 @@ def branch_batched(
     Returns:
         :class:`RolloutBatch` [K, T]; ``rng`` gives one ``random(K)`` per step.
     Raises:
-        ValueError: ``parent`` / ``at`` out of range (:func:`pemviz.scenarios.check_branch_args`).
+        ValueError: ``parent`` / ``at`` out of range (:func:`pemviz.core.lockstep.check_branch_args`).
     """
 
     p = params or BrakingParams()

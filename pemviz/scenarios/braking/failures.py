@@ -145,7 +145,8 @@ def severity(gap_m: np.ndarray, params: BrakingParams | None = None) -> Severity
 
 @dataclass(frozen=True)
 class ControllerTrace:
-    """The ego controller along a rollout (the CARLA BasicAgent of :func:`pemviz.scenarios.braking.ego_acceleration`).
+    """The ego controller along a rollout (the CARLA BasicAgent of
+    :func:`pemviz.scenarios.braking.simulator.ego_acceleration`).
 
     Attributes:
         time_s: float64 [T] (seconds).

@@ -114,7 +114,8 @@ def explain(
         gap_m: float64 [T] recorded gap (metres).
         detected: bool [T] the detections taken.
         log_p, log_q: float64 [T] log-probability of each action under the PEM and the sampler (nats).
-        params: the scenario's constants (crash gap, dt; default :class:`~pemviz.scenarios.braking.BrakingParams`).
+        params: the scenario's constants (crash gap, dt; default
+            :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:
         ValueError: ``gap_m`` and ``detected`` not of one shape [T], or longer than the scenario.
     """

@@ -1,6 +1,6 @@
 """The braking scenario's problem: :func:`braking_problem` (the scenario as a :class:`pemviz.core.problems.Problem`
 on its batched twin or on highway-env vehicles) and its safety formula :func:`braking_formula`
-(:mod:`pemviz.scenarios.problems` re-exports both)."""
+(:mod:`pemviz.scenarios.problems` builds the problem by name and for a run's config)."""
 
 from __future__ import annotations
 
@@ -18,13 +18,18 @@ from pemviz.core.problem_view import Thresholds
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import SeverityScale
-from pemviz.scenarios.braking.batched import OBSERVATION_NAMES, branch_batched, iter_batched, replay, simulate_batched
+from pemviz.scenarios.braking.simulator import (
+    BRAKING_SIGNAL_RANGES,
+    BRAKING_SIGNALS,
+    BRAKING_UNITS,
+    OBSERVATION_NAMES,
+    BrakingParams,
+    BrakingScenario,
+)
+from pemviz.scenarios.braking.batched import branch_batched, iter_batched, replay, simulate_batched
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.lookahead import LOOK_AHEAD_ROLLOUT_S, braking_look_ahead
-from pemviz.scenarios.braking.simulator import (
-    BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, BRAKING_UNITS, BrakingParams, BrakingScenario,
-)
-from pemviz.scenarios.braking.truth import known_log_failure_probability
+from pemviz.scenarios.braking.truth_known import known_log_failure_probability
 
 
 def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":

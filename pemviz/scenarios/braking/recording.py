@@ -25,12 +25,13 @@ def car_positions(
     The ego moves by explicit Euler on its recorded speed, as highway-env's ``Vehicle.step`` does
     (``x[t+1] = x[t] + v[t] * dt``, a speed of NaN counts as 0); the lead's rear is the camera
     (``camera_offset_m`` ahead of the ego's centre) plus the gap, so
-    ``lead = ego + camera_offset_m + gap_m + lead_length_m / 2`` (:class:`pemviz.scenarios.braking.BrakingScenario`).
+    ``lead = ego + camera_offset_m + gap_m + lead_length_m / 2``
+    (:class:`pemviz.scenarios.braking.simulator.BrakingScenario`).
 
     Args:
         gap_m: float64 [T] gaps (metres).
         ego_speed_mps: float64 [T] ego speeds (m/s).
-        params: the scenario's constants (default :class:`~pemviz.scenarios.braking.BrakingParams`).
+        params: the scenario's constants (default :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     """
     p = params or BrakingParams()
     v = np.nan_to_num(np.asarray(ego_speed_mps, dtype=np.float64), nan=0.0)

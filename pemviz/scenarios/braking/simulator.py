@@ -314,7 +314,7 @@ class BrakingScenario:
 
     def snapshot(self) -> tuple:
         """A deep copy of the highway-env road and both vehicles, the step and the controller's memory
-        (snapshot/restore capability of :class:`~pemviz.scenarios.Snapshotting`)."""
+        (snapshot/restore capability of :class:`~pemviz.core.rollouts.Snapshotting`)."""
         import copy
 
         return copy.deepcopy((self.road, self.ego, self.lead, self.t, self._ctrl))

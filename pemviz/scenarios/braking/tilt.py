@@ -97,7 +97,8 @@ class GridCommittor:
     first_step: int
     steps: int
     lead_speeds_mps: np.ndarray = field(init=False, repr=False)
-    """The lead's speed at steps 0..T (m/s; :func:`~pemviz.scenarios.braking.lead_speeds`), once a committor."""
+    """The lead's speed at steps 0..T (m/s; :func:`~pemviz.scenarios.braking.simulator.lead_speeds`), once a
+    committor."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "lead_speeds_mps", lead_speeds(self.params))
@@ -120,7 +121,7 @@ class GridCommittor:
                         pending: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:  # fmt: skip
         """(log V after a detection [N], log V after a miss [N], the look-ahead steps evaluated) of states [N] at
         ``step`` (gap m, speed m/s, PID integral km/h s, pending brake): each outcome's next state by
-        :func:`~pemviz.scenarios.braking.braking_step`, once when the actuation lag makes both share it."""
+        :func:`~pemviz.scenarios.braking.simulator.braking_step`, once when the actuation lag makes both share it."""
         p = self.params
         vl = float(self.lead_speeds_mps[step])
         n = np.size(gap_m)

@@ -3,7 +3,7 @@
 Three problems with a known answer judge the sampler:
 
 1. the toy 1-D braking model: ``p_fail = prod_{d=safe}^{braking} (1 - p(d))`` in closed form
-   (:func:`pemviz.scenarios.toy.toy_log_failure_probability`, beside the toy);
+   (:func:`pemviz.scenarios.toy.simulator.toy_log_failure_probability`, beside the toy);
 2. the latched-brake braking scenario: the first effective detection decides everything, so p_fail is a
    finite sum over the step of the first detection, each term from the deterministic simulator
    (:func:`latched_log_failure_probability`);
@@ -22,14 +22,13 @@ interpolation smears its jumps; on the latched problem it stays 45 % off on a 40
 by 50 % from 201 x 201 (``benchmarks/truth_braking.py`` prints both tables).
 
 The braking dynamics are the scenario's own, written on the gap instead of positions
-(:func:`pemviz.scenarios.braking.braking_step`). Probabilities are natural logs (nats) in float64 and sums are
+(:func:`pemviz.scenarios.braking.simulator.braking_step`). Probabilities are natural logs (nats) in float64 and sums are
 log-sum-exps.
 
 This module holds the main scenario's enumeration (3.); the latched scenario's closed form and value function (2.)
 are :mod:`pemviz.scenarios.braking.truth_latched`'s, the answers kept for the shipped PEMs
-:mod:`pemviz.scenarios.braking.truth_known`'s, the cell bound :mod:`pemviz.scenarios.braking.truth_cells`'s, and
-every name of the first two and the cell bound's :class:`CellMissBound` and :func:`cell_miss_bound` are importable
-from here.
+:mod:`pemviz.scenarios.braking.truth_known`'s, the cell bound :mod:`pemviz.scenarios.braking.truth_cells`'s: each name
+has one import path, its module's.
 """
 
 from __future__ import annotations
@@ -45,25 +44,8 @@ from scipy.special import expit, log_expit, logsumexp
 
 from pemviz.core.estimate import format_probability
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
-from pemviz.scenarios.braking.truth_known import (  # noqa: F401 (re-exported: importable from here as before)
-    FINGERPRINT_GRID_M,
-    KNOWN_BRAKING_LOG_P,
-    KNOWN_BRAKING_MARGIN_LOG_P,
-    known_log_failure_probability,
-    pem_fingerprint,
-)
-from pemviz.scenarios.braking.truth_cells import (  # noqa: F401 (CellMissBound, cell_miss_bound re-exported)
-    CellMissBound,
-    cell_miss_bound,
-    largest_gap_after,
-)
-from pemviz.scenarios.braking.truth_latched import (  # noqa: F401 (re-exported: importable from here as before)
-    LatchedTruth,
-    LatchedValue,
-    LogitFn,
-    latched_log_failure_probability,
-    latched_value,
-)
+from pemviz.scenarios.braking.truth_cells import CellMissBound, cell_miss_bound, largest_gap_after
+from pemviz.scenarios.braking.truth_latched import LogitFn
 
 
 @dataclass(frozen=True)

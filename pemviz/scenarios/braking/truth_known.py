@@ -4,7 +4,7 @@ PEMs (:data:`KNOWN_BRAKING_LOG_P`, :data:`KNOWN_BRAKING_MARGIN_LOG_P`), kept by 
 closed form) where they are cheap to know.
 
 The kept answers come from :func:`pemviz.scenarios.braking.truth.braking_truth` (20-40 s each); ``tests/test_truth.py``
-and the benchmarks named beside each table recompute them. :mod:`pemviz.scenarios.braking.truth` re-exports every name.
+and the benchmarks named beside each table recompute them.
 """
 
 from __future__ import annotations

@@ -3,9 +3,9 @@
 and :data:`LogitFn`, the detector curve every exact answer of :mod:`pemviz.scenarios.braking.truth` takes.
 
 With a latched brake the first effective detection decides everything, so p_fail is a finite sum over the step of
-the first detection, each term from the deterministic simulator (:func:`pemviz.scenarios.braking.braking_replay`).
-Probabilities are natural logs (nats) in float64 and sums are log-sum-exps. :mod:`pemviz.scenarios.braking.truth`
-re-exports every name.
+the first detection, each term from the deterministic simulator
+(:func:`pemviz.scenarios.braking.simulator.braking_replay`). Probabilities are natural logs (nats) in float64 and sums
+are log-sum-exps.
 """
 
 from __future__ import annotations

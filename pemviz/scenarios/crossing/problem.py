@@ -58,7 +58,8 @@ def crossing(config: Any = None, params: CrossingParams | None = None) -> Proble
     """The registry's factory (``pemviz run --scenario crossing``): :func:`crossing_problem` with the config's PEM
     (None: the shipped one), carrying :data:`MONTE_CARLO_REFERENCE` as its reference when it runs the shipped PEMs
     at the default parameters, under which the reference was drawn."""
-    from pemviz.pem import DEFAULT_PEM_NAME, load_pem
+    from pemviz.pem.recipes import DEFAULT_PEM_NAME
+    from pemviz.pem import load_pem
 
     pem_name = getattr(config, "pem", None)
     p = params if params is not None else CrossingParams()

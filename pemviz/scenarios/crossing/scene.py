@@ -112,7 +112,7 @@ class CrossingParams:
 
 
 class BatchedCrossing:
-    """n rollouts of the crossing scene stepped together (a :class:`pemviz.scenarios.BatchedSimulator` of M
+    """n rollouts of the crossing scene stepped together (a :class:`pemviz.core.rollouts.BatchedSimulator` of M
     pedestrians with measurement errors): ``objects()`` float64 ``[n, M, G]``, ``observation()`` float64 ``[n, F]``,
     ``step(detected bool [n, M], noise float64 [n, M, 2] | None)``.
 

@@ -1,5 +1,5 @@
 """The crowd toy's problem: :func:`crowd_problem`, the crowd toy as a :class:`pemviz.core.problems.Problem`
-(:mod:`pemviz.scenarios.problems` re-exports it)."""
+(:mod:`pemviz.scenarios.problems` builds it by name)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ def crowd_problem(params: CrowdParams | None = None, name: str | None = None) ->
     """The crowd toy (:mod:`pemviz.scenarios.crowd`) as a :class:`Problem`: M obstacles, each detected and mislocated
     per step; failure = classic robustness of ``G[0,T-1](d >= safe)`` below 0 on the nearest distance; the proposal
     reads each obstacle's row (distance first, scaled by ``total``) inside the window where a detection can stop the
-    car; the exact answer is :func:`pemviz.scenarios.crowd.crowd_log_failure_probability`."""
+    car; the exact answer is :func:`pemviz.scenarios.crowd.simulator.crowd_log_failure_probability`."""
     p = params or CrowdParams()
 
     def make(n: int) -> BatchedCrowd:

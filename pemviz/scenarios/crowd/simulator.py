@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import log_ndtr
 
-from pemviz.core.detectors import logit, noise_log_density, noise_quantile
+from pemviz.core.detectors import logit
+from pemviz.core.detector_noise import noise_log_density, noise_quantile
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")
 """The scene's signals: the distance to the nearest obstacle (units) and 1.0 once stopped or crashed."""
@@ -119,8 +120,8 @@ class CrowdDetector:
 
 
 class BatchedCrowd:
-    """n rollouts of the crowd toy stepped together, a :class:`~pemviz.scenarios.BatchedSimulator` with M object rows
-    and their measurement errors."""
+    """n rollouts of the crowd toy stepped together, a :class:`~pemviz.core.rollouts.BatchedSimulator` with M object
+    rows and their measurement errors."""
 
     observation_names = OBSERVATION_NAMES
     object_names = OBJECT_NAMES

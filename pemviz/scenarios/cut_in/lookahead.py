@@ -63,7 +63,7 @@ def p_detect_of(logit: np.ndarray) -> np.ndarray:
 
 def operand(obs: np.ndarray) -> np.ndarray:
     """The failure formula's operand at one step, float64 [N] (metres): min(safe margin + 1000 x cut-in grace,
-    clearance), from observations [N, F] (:data:`pemviz.scenarios.cut_in.OBSERVATION_NAMES`)."""
+    clearance), from observations [N, F] (:data:`pemviz.scenarios.cut_in.scenario.OBSERVATION_NAMES`)."""
     return np.minimum(obs[:, MARGIN] + 1000.0 * obs[:, RECENT], obs[:, CLEAR])
 
 

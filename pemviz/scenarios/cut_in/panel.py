@@ -26,7 +26,7 @@ to 40 m (the cut-in starts 20 m ahead; the proposal reads cars within 40 m,
 :data:`pemviz.scenarios.cut_in.problem.CUT_IN_WINDOW_M`)."""
 VIEW_OBJECT = 0
 """The object whose detections the proposal view follows: the cut-in car (object 0 of
-:attr:`pemviz.scenarios.cut_in.CutInParams.vehicles`)."""
+:attr:`pemviz.scenarios.cut_in.scenario.CutInParams.vehicles`)."""
 
 
 class CutInPanel:

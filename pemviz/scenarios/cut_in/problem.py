@@ -1,7 +1,7 @@
 """The cut-in scenario's problem: :func:`cut_in_problem` (the scenario as a :class:`pemviz.core.problems.Problem` on
 its batched twin) at a named rarity setting :func:`cut_in_params`, its failure formula :data:`CUT_IN_FORMULA` over
-:data:`CUT_IN_SIGNALS` and its window :data:`CUT_IN_WINDOW_M` (:mod:`pemviz.scenarios.problems` re-exports them,
-imported when first named there, so that a run of another scenario loads none of the cut-in's modules)."""
+:data:`CUT_IN_SIGNALS` and its window :data:`CUT_IN_WINDOW_M` (:mod:`pemviz.scenarios.problems` imports this module
+for a cut-in run alone, so that a run of another scenario loads none of the cut-in's modules)."""
 
 from __future__ import annotations
 
@@ -23,11 +23,11 @@ than this. The ACC of the cut-in scenario reacts within about 2 s at 25 m/s, so 
 time whatever the camera does; outside the window, a rollout's objects are drawn from the PEMs themselves."""
 
 CUT_IN_SIGNALS = {"margin": "safe_margin_m", "grace": "cut_in_recent", "clearance": "clearance_m"}
-"""STL signal name -> cut-in rollout observation column (:data:`pemviz.scenarios.cut_in.OBSERVATION_NAMES`)."""
+"""STL signal name -> cut-in rollout observation column (:data:`pemviz.scenarios.cut_in.scenario.OBSERVATION_NAMES`)."""
 
 CUT_IN_FORMULA = "G((margin + 1000 * grace >= 0) & (clearance >= 0))"
 """The cut-in failure over :data:`CUT_IN_SIGNALS`: R_G1 of Maierhofer et al. 2020, waived after a cut-in, and no
-collision; robustness in metres. Under classic semantics it is :data:`pemviz.scenarios.cut_in.FAILURE_FORMULA`
+collision; robustness in metres. Under classic semantics it is :data:`pemviz.scenarios.cut_in.scenario.FAILURE_FORMULA`
 (``G a & G b`` = ``G (a & b)``), written as one safety formula ``G(state predicate)``, whose first violation stops the
 importance weights and which adaptive multilevel splitting needs."""
 
@@ -38,8 +38,8 @@ collision."""
 
 
 def cut_in_params(setting: str) -> CutInParams:
-    """The cut-in scenario at a named rarity setting (:data:`pemviz.scenarios.cut_in.RARITY_SETTINGS`: ``moderate``,
-    ``rare``).
+    """The cut-in scenario at a named rarity setting (:data:`pemviz.scenarios.cut_in.scenario.RARITY_SETTINGS`:
+    ``moderate``, ``rare``).
 
     Raises:
         ValueError: an unknown setting.

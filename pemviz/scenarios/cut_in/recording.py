@@ -1,6 +1,6 @@
 """The cut-in scenario's hooks of the recording (:class:`pemviz.sinks.drawing.RecordingDrawing`), mixed into
 :class:`pemviz.scenarios.cut_in.drawing.CutInDrawing`. The recording draws the cut-in's scene from the rollouts'
-object rows (:attr:`pemviz.core.problems.ProblemView.objects_xy`), so these add no lanes and no story, and the
+object rows (:attr:`pemviz.core.problem_view.ProblemView.objects_xy`), so these add no lanes and no story, and the
 run's description is the recording's own; each rollout's outcome is the cut-in's severity
 (:func:`pemviz.scenarios.cut_in.story.cut_in_severity`), in the words the panel shows too."""
 

@@ -19,7 +19,7 @@ coordinates ``u = X / Z`` and ``v = Y / Z`` it spans ``[min u, max u]`` over its
 - **occluded fraction**: ``sum over nearer objects (smaller centre depth) of area(box_i & box) / area(box)``, at most
   1; exact when the nearer objects' boxes do not overlap each other on the box, an upper bound otherwise. Its level
   (KITTI's 0 fully visible, 1 partly, 2 largely occluded) and whether it is hidden follow the thresholds of
-  :class:`~pemviz.scenarios.cut_in.CutInParams`;
+  :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`;
 - **visible**: centre depth at least :data:`pemviz.pem.camera.MIN_RANGE_M`, some of the box inside the image, not
   hidden.
 
@@ -206,7 +206,7 @@ def camera_view(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray) -> C
 
 def occlusion_level(params: CutInParams, occluded_fraction: np.ndarray) -> np.ndarray:
     """KITTI's occlusion level, float64 0.0 (fully visible), 1.0 (partly) or 2.0 (largely occluded), elementwise, from
-    the occluded fraction and the thresholds of :class:`~pemviz.scenarios.cut_in.CutInParams`."""
+    the occluded fraction and the thresholds of :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`."""
     level = (occluded_fraction >= params.occlusion_partly).astype(np.float64)
     level += occluded_fraction >= params.occlusion_largely
     return level
@@ -235,7 +235,7 @@ def measure(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, noise: n
 def object_rows(params: CutInParams, traffic: Traffic, view: CameraView, ego_x_m: np.ndarray,
                 ego_speed_mps: np.ndarray, ego_accel_mps2: np.ndarray, tracks: Tracks,
                 followed: np.ndarray) -> np.ndarray:  # fmt: skip
-    """The object rows at this step, float64 ``[N, M, G]`` (:data:`~pemviz.scenarios.cut_in.OBJECT_NAMES`): a
+    """The object rows at this step, float64 ``[N, M, G]`` (:data:`~pemviz.scenarios.cut_in.scenario.OBJECT_NAMES`): a
     transposed view of a ``[G, N, M]`` array (each column written in one pass), so that its ``reshape(N M, G)``, the
     rows of every rollout's objects together, is a view too.
 
@@ -277,7 +277,7 @@ def object_rows(params: CutInParams, traffic: Traffic, view: CameraView, ego_x_m
 def scene_signals(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray, ego_speed_mps: np.ndarray,
                   ego_accel_mps2: np.ndarray, tracks: Tracks, followed: np.ndarray,
                   out: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
-    """The scene signals ``[N, F]`` (:data:`~pemviz.scenarios.cut_in.OBSERVATION_NAMES`) at this step.
+    """The scene signals ``[N, F]`` (:data:`~pemviz.scenarios.cut_in.scenario.OBSERVATION_NAMES`) at this step.
 
     Args: as :func:`object_rows`; ``out``: optional float64 ``[N, F]`` to fill.
     """
@@ -313,7 +313,7 @@ def decide(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, ego_speed
            detected: np.ndarray, noise: np.ndarray | None) -> tuple[Tracks, np.ndarray, np.ndarray]:  # fmt: skip
     """The ego's decision at this step: measure the detected visible objects (:func:`measure`), fold the measurements
     into the tracks (:func:`pemviz.stack.tracker.update`) and run the ACC on the tracks
-    (:func:`~pemviz.scenarios.cut_in.acc_control`) on the confirmed tracks.
+    (:func:`~pemviz.scenarios.cut_in.scenario.acc_control`) on the confirmed tracks.
 
     Args:
         tracks: the trackers' predictions for this step ``[M, N]``; detected: bool ``[M, N]``;

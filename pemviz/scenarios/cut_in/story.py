@@ -1,13 +1,14 @@
 """What happened in one cut-in rollout, in words, and how bad it was: pure functions of the rollout's scene signals
-(:data:`pemviz.scenarios.cut_in.OBSERVATION_NAMES`) and object rows (:data:`pemviz.scenarios.cut_in.OBJECT_NAMES`).
-Nothing is simulated or drawn; the rows are read as the simulators wrote them.
+(:data:`pemviz.scenarios.cut_in.scenario.OBSERVATION_NAMES`) and object rows
+(:data:`pemviz.scenarios.cut_in.scenario.OBJECT_NAMES`). Nothing is simulated or drawn; the rows are read as the
+simulators wrote them.
 
-The story follows the cut-in car (object 0, :attr:`pemviz.scenarios.cut_in.CutInParams.vehicles`): when it began to
-change lanes (its lateral speed), when its box entered the ego's lane (``in_ego_lane``), when the camera first
+The story follows the cut-in car (object 0, :attr:`pemviz.scenarios.cut_in.scenario.CutInParams.vehicles`): when it
+began to change lanes (its lateral speed), when its box entered the ego's lane (``in_ego_lane``), when the camera first
 detected it and how often it was missed after it entered, when the tracker confirmed a track of it and where the
 track placed it (``track_err_y_m``: a track outside the ego's lane is not followed), when the ACC first followed it
 and braked (``followed``, ``ego_accel_mps2``), and the outcome: the failure of
-:data:`pemviz.scenarios.cut_in.FAILURE_FORMULA` (a collision, or R_G1's safe distance violated after its cut-in
+:data:`pemviz.scenarios.cut_in.scenario.FAILURE_FORMULA` (a collision, or R_G1's safe distance violated after its cut-in
 waiver, Maierhofer et al. 2020) at its first step, and the severity: the smallest clearance (metres, bumper to bumper;
 negative: the boxes overlap) and, at contact, the closing speed (m/s).
 
@@ -27,7 +28,7 @@ import numpy as np
 from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, NO_VEHICLE_M
 
 CUT_IN_OBJECT = 0
-"""The cut-in car's object index (the first of :attr:`pemviz.scenarios.cut_in.CutInParams.vehicles`)."""
+"""The cut-in car's object index (the first of :attr:`pemviz.scenarios.cut_in.scenario.CutInParams.vehicles`)."""
 
 def car_labels(n_objects: int) -> tuple[str, ...]:
     """What the console, the panel and the recording call the cut-in's M cars: ``car 0`` (the cut-in car, object
@@ -73,7 +74,7 @@ class CutInSeverity:
 
     Attributes:
         min_clearance_m: the smallest clearance to a vehicle beside the ego's box (metres, bumper to bumper; negative:
-            the boxes overlap); :data:`pemviz.scenarios.cut_in.NO_VEHICLE_M` when no vehicle was ever beside.
+            the boxes overlap); :data:`pemviz.scenarios.cut_in.scenario.NO_VEHICLE_M` when no vehicle was ever beside.
         min_clearance_step: the step of that clearance.
         failure_step: the first step the failure formula is violated (None: the rollout held it).
         collision: the failure is a collision (the clearance below 0 at ``failure_step``), else R_G1's safe distance.

@@ -1,5 +1,5 @@
 """The toy's problem: :func:`toy_problem`, the toy braking model as a :class:`pemviz.core.problems.Problem`
-(:mod:`pemviz.scenarios.problems` re-exports it)."""
+(:mod:`pemviz.scenarios.problems` builds it by name)."""
 
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ happens iff the detector misses at every distance ``braking, braking - 1, ..., s
 (:func:`toy_log_failure_probability`). Source: ``SimParams``/``step_state``/``car_rollout``
 in craigiedon/CarlaStuff ``adaptiveImportanceSampler.py`` and ``approxDP.py``. The authors end a rollout
 at its failure; here every rollout has the fixed length ``total - safe + 2`` (a
-:class:`~pemviz.scenarios.RolloutBatch` has one T), which is exactly long enough for a failure to be
+:class:`~pemviz.core.rollouts.RolloutBatch` has one T), which is exactly long enough for a failure to be
 observed at the last step, so a failing rollout also ends at its failure. A car that has stopped stays
 stopped (and reports ``stopped = 1``); its later detector outputs change nothing.
 
@@ -118,7 +118,7 @@ class ToyDetector:
 
 
 class ToyBraking:
-    """One rollout of the toy model as a :class:`~pemviz.scenarios.Simulator` (the authors' ``step_state``)."""
+    """One rollout of the toy model as a :class:`~pemviz.core.rollouts.Simulator` (the authors' ``step_state``)."""
 
     observation_names = OBSERVATION_NAMES
 
@@ -136,7 +136,7 @@ class ToyBraking:
 
     def snapshot(self) -> tuple[int, bool]:
         """The whole state, (distance, stopped) (the snapshot/restore capability of
-        :class:`~pemviz.scenarios.Snapshotting`)."""
+        :class:`~pemviz.core.rollouts.Snapshotting`)."""
         return (self.distance, self.stopped)
 
     def restore(self, state: tuple[int, bool]) -> None:
@@ -153,7 +153,7 @@ class ToyBraking:
 
 
 class BatchedToy:
-    """n toy rollouts stepped together, a :class:`~pemviz.scenarios.BatchedSimulator`: the vectorised
+    """n toy rollouts stepped together, a :class:`~pemviz.core.rollouts.BatchedSimulator`: the vectorised
     :class:`ToyBraking` (the same states for the same detections)."""
 
     observation_names = OBSERVATION_NAMES
@@ -179,7 +179,7 @@ def simulate_toy(
     params: ToyParams, n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
     forced: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> RolloutBatch:
-    """``n`` toy rollouts, vectorised (:class:`BatchedToy`, :func:`pemviz.scenarios.run_batched`); the same draws
+    """``n`` toy rollouts, vectorised (:class:`BatchedToy`, :func:`pemviz.core.lockstep.run_batched`); the same draws
     and batch as :func:`pemviz.scenarios.simulate` with :class:`ToyBraking` (one ``rng.random(n)`` per step, detect
     iff ``log u <= log q(detect)``).
 
@@ -187,7 +187,7 @@ def simulate_toy(
     before ``until[i]`` instead of drawing them (a replayed prefix, for :func:`branch_toy`).
 
     Returns:
-        :class:`~pemviz.scenarios.RolloutBatch` with observations [n, T, 2] (distance, stopped).
+        :class:`~pemviz.core.rollouts.RolloutBatch` with observations [n, T, 2] (distance, stopped).
     Raises:
         ValueError: if ``n < 1``.
     """

@@ -1,0 +1,249 @@
+"""An operating design domain (ODD): scenario parameters drawn from distributions instead of fixed values, and the
+failure probability over it, p_ODD = E_theta[p(theta)] (ISO 21448 breaks a validation target down over the ODD;
+Zhao et al., IEEE T-ITS 2017, sample a scene's initial conditions from naturalistic statistics). No I/O, no
+scenario.
+
+A parameter's distribution is written ``uniform(a, b)``, ``normal(mu, sd)`` or ``choice(a, b, c)`` (equal weights) /
+``choice(a: w_a, b: w_b)`` (weights, normalised) and parsed by :func:`parse_distribution`; an :class:`ODD` is the
+parameters' joint law, independent parameters. Every draw is an inverse-CDF transform of uniforms
+(:meth:`Distribution.ppf`: scipy.stats' ``ppf`` for the continuous laws), so that a rollout's parameters are a fixed
+function of its uniforms and a seed gives the same parameters whatever the chunking.
+
+The map of where the failures come from splits each parameter into bins of equal probability
+(:meth:`Distribution.bins`: quantile edges; a choice's values) and estimates p(failure | theta in bin) from the
+importance weights of the rollouts drawn there (:func:`bin_log_weights`): the bin's weights divided by its known
+probability, so that each bin's estimate is unbiased and carries the estimate's own interval, ESS and verdict.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+KINDS = ("uniform", "normal", "choice")
+"""The distributions a parameter may be given."""
+
+_CALL = re.compile(r"^\s*([a-z_]+)\s*\((.*)\)\s*$", re.S)
+
+
+class ODDError(ValueError):
+    """An ODD that cannot be used: an unknown distribution, bad arguments, an empty support (one line)."""
+
+
+@dataclass(frozen=True)
+class Distribution:
+    """One parameter's law.
+
+    Attributes:
+        kind: one of :data:`KINDS`.
+        args: ``(a, b)`` for uniform (a < b), ``(mu, sd)`` for normal (sd > 0), the values for choice.
+        weights: choice only: each value's probability (summing to 1); empty otherwise.
+    """
+
+    kind: str
+    args: tuple[float, ...]
+    weights: tuple[float, ...] = ()
+
+    @property
+    def text(self) -> str:
+        """How it is written: ``uniform(10, 14)``, ``choice(19.5: 0.25, 20: 0.75)``."""
+        if self.kind == "choice":
+            even = len(set(self.weights)) == 1
+            items = [f"{v:g}" if even else f"{v:g}: {w:g}" for v, w in zip(self.args, self.weights, strict=True)]
+            return f"choice({', '.join(items)})"
+        return f"{self.kind}({', '.join(f'{a:g}' for a in self.args)})"
+
+    @property
+    def discrete(self) -> bool:
+        return self.kind == "choice"
+
+    def support(self) -> tuple[float, float]:
+        """The smallest and largest value it can take (a normal's: its 1e-9 and 1 - 1e-9 quantiles, the range its
+        draws can reach from float64 uniforms in practice)."""
+        if self.kind == "uniform":
+            return float(self.args[0]), float(self.args[1])
+        if self.kind == "normal":
+            lo, hi = self.ppf(np.array([1e-9, 1.0 - 1e-9]))
+            return float(lo), float(hi)
+        return float(min(self.args)), float(max(self.args))
+
+    def ppf(self, u: np.ndarray) -> np.ndarray:
+        """The values at uniforms ``u`` in [0, 1), float64 (the inverse CDF; a choice's value whose cumulative
+        weight first exceeds u)."""
+        u = np.asarray(u, dtype=np.float64)
+        if self.kind == "uniform":
+            a, b = self.args
+            return a + u * (b - a)
+        if self.kind == "normal":
+            from scipy.special import ndtri
+
+            mu, sd = self.args
+            return mu + sd * ndtri(np.clip(u, 1e-300, 1.0 - 1e-16))
+        cum = np.cumsum(self.weights)
+        index = np.minimum(np.searchsorted(cum, u, side="right"), len(self.args) - 1)
+        return np.asarray(self.args, dtype=np.float64)[index]
+
+    def bins(self, k: int = 5) -> tuple[np.ndarray, np.ndarray]:
+        """The map's bins: ``(edges [B + 1], probabilities [B])``; a continuous law's ``k`` bins of equal
+        probability (quantile edges, the outer ones its :meth:`support`), a choice's one bin per value (edges
+        halfway between the sorted values)."""
+        if self.kind == "choice":
+            order = np.argsort(self.args)
+            values = np.asarray(self.args, dtype=np.float64)[order]
+            probs = np.asarray(self.weights, dtype=np.float64)[order]
+            mids = (values[1:] + values[:-1]) / 2.0
+            return np.concatenate([[values[0] - 0.5], mids, [values[-1] + 0.5]]), probs
+        lo, hi = self.support()
+        inner = self.ppf(np.arange(1, k) / k)
+        return np.concatenate([[lo], inner, [hi]]), np.full(k, 1.0 / k)
+
+
+def _number(text: str, where: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ODDError(f"{where}: {text.strip()!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ODDError(f"{where}: {text.strip()!r} is not a finite number")
+    return value
+
+
+def parse_distribution(text: str, where: str = "distribution") -> Distribution:
+    """A parameter's distribution from its text (module docstring).
+
+    Raises:
+        ODDError: one line naming ``where``: an unknown distribution (the allowed ones listed), a wrong number of
+            arguments, a non-number, an empty support (uniform with b <= a, a normal's sd <= 0, no choice), a weight
+            that is negative or weights summing to 0.
+    """
+    match = _CALL.match(str(text))
+    if match is None:
+        raise ODDError(f"{where}: {str(text).strip()!r} is not a distribution; write uniform(a, b), normal(mu, sd) "
+                       "or choice(a, b, ...)")
+    kind, inner = match.group(1), match.group(2)
+    if kind not in KINDS:
+        raise ODDError(f"{where}: unknown distribution {kind!r}; use one of {', '.join(KINDS)}")
+    parts = [p for p in (s.strip() for s in inner.split(",")) if p] if inner.strip() else []
+    if kind == "choice":
+        if not parts:
+            raise ODDError(f"{where}: choice() has no value (an empty support); give at least one")
+        values, weights = [], []
+        for part in parts:
+            value, sep, weight = part.partition(":")
+            values.append(_number(value, where))
+            weights.append(_number(weight, where) if sep else 1.0)
+        if any(w < 0 for w in weights) or sum(weights) <= 0:
+            raise ODDError(f"{where}: choice weights must be >= 0 and not all 0, got {weights}")
+        if len(set(values)) != len(values):
+            raise ODDError(f"{where}: choice values must be distinct, got {values}")
+        total = sum(weights)
+        return Distribution("choice", tuple(values), tuple(w / total for w in weights))
+    if len(parts) != 2:
+        raise ODDError(f"{where}: {kind} takes 2 numbers, {'a, b' if kind == 'uniform' else 'mu, sd'}; got "
+                       f"{len(parts)}")
+    a, b = (_number(p, where) for p in parts)
+    if kind == "uniform" and not a < b:
+        raise ODDError(f"{where}: uniform({a:g}, {b:g}) has an empty support; need a < b")
+    if kind == "normal" and not b > 0:
+        raise ODDError(f"{where}: normal({a:g}, {b:g}) needs sd > 0")
+    return Distribution(kind, (a, b))
+
+
+@dataclass(frozen=True)
+class ODD:
+    """Independent scenario parameters, each drawn from its :class:`Distribution` (name -> law, in order)."""
+
+    parameters: tuple[tuple[str, Distribution], ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.parameters)
+
+    def __len__(self) -> int:
+        return len(self.parameters)
+
+    def draw(self, u: np.ndarray) -> np.ndarray:
+        """The parameters of rollouts with uniforms ``u`` [N, D] (D = len(self)): float64 [N, D] in
+        :attr:`names` order."""
+        u = np.asarray(u, dtype=np.float64).reshape(-1, len(self))
+        return np.stack([law.ppf(u[:, j]) for j, (_, law) in enumerate(self.parameters)], axis=1)
+
+    def text(self) -> str:
+        """``gap0_m ~ uniform(10, 14), ego_speed0_mps ~ normal(7.8, 0.5)``."""
+        return ", ".join(f"{name} ~ {law.text}" for name, law in self.parameters)
+
+    def to_json(self) -> list[dict[str, object]]:
+        """The ODD as JSON: one ``{"name", "distribution", "args", "weights"}`` per parameter."""
+        return [{"name": name, "distribution": law.kind, "args": list(law.args), "weights": list(law.weights),
+                 "text": law.text} for name, law in self.parameters]  # fmt: skip
+
+
+def bin_log_weights(values: np.ndarray, log_w: np.ndarray, edges: np.ndarray, probs: np.ndarray,
+                    b: int) -> np.ndarray:  # fmt: skip
+    """The log importance weights [N] (nats) that estimate p(failure | theta in bin ``b``) as the plain mean of
+    ``w 1[fail]`` over all N rollouts: ``log w - log P(bin)`` for a rollout whose parameter ``values`` [N] fall in the
+    bin (``edges[b] <= v < edges[b + 1]``; the last bin closed), ``-inf`` for the others. Unbiased, as
+    E[w 1[fail] 1[theta in bin]] = P(fail, theta in bin) (the map of :mod:`pemviz.core.odd`).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    last = b == len(probs) - 1
+    inside = (values >= edges[b]) & ((values <= edges[b + 1]) if last else (values < edges[b + 1]))
+    if b == 0:
+        inside |= values < edges[0]
+    if last:
+        inside |= values > edges[-1]
+    return np.where(inside, np.asarray(log_w, dtype=np.float64) - math.log(float(probs[b])), -np.inf)
+
+
+@dataclass(frozen=True)
+class MapBin:
+    """One bin of the ODD's map: a parameter's range, its probability under the ODD, p(failure | parameter in it)
+    (:class:`pemviz.core.estimate.Estimate`) and its share of p_ODD (P(bin) p_bin over the sum of the bins' terms)."""
+
+    name: str
+    lo: float
+    hi: float
+    probability: float
+    estimate: object
+    share: float
+
+    @property
+    def label(self) -> str:
+        """``speed in [10, 10.8)``; a choice's bin of whole numbers names its value: ``lane = 2``."""
+        if self.hi - self.lo == 1.0 and float(self.lo + 0.5).is_integer():
+            return f"{self.name} = {self.lo + 0.5:g}"
+        return f"{self.name} in [{self.lo:.4g}, {self.hi:.4g})"
+
+
+def odd_map(odd: ODD, values: np.ndarray, log_w: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray,
+            k: int = 5) -> list[MapBin]:  # fmt: skip
+    """The map of where p_ODD comes from, one parameter at a time: for each parameter of ``odd``, its bins
+    (:meth:`Distribution.bins`, ``k`` of equal probability for a continuous law) with p(failure | bin) estimated from
+    rollouts with parameters ``values`` [N, D], log importance weights ``log_w`` [N] (nats), failures ``failed`` [N]
+    (:func:`bin_log_weights`, :func:`pemviz.core.estimate.estimate`: each bin's interval, ESS and verdict).
+
+    Raises:
+        ValueError: arrays of other lengths.
+    """
+    from pemviz.core.estimate import estimate
+
+    values = np.asarray(values, dtype=np.float64).reshape(len(log_w), len(odd))
+    failed = np.asarray(failed, dtype=bool)
+    if failed.shape != np.shape(log_w) or np.shape(log_p_total) != np.shape(log_w):
+        raise ValueError("odd_map: values, log_w, failed and log_p_total must describe the same rollouts")
+    out: list[MapBin] = []
+    for j, (name, law) in enumerate(odd.parameters):
+        edges, probs = law.bins(k)
+        rows = []
+        for b in range(len(probs)):
+            lw = bin_log_weights(values[:, j], log_w, edges, probs, b)
+            rows.append((b, estimate(lw, failed & np.isfinite(lw), np.asarray(log_p_total, dtype=np.float64))))
+        terms = np.array([probs[b] * math.exp(e.log_mu_hat) if e.n_failures else 0.0 for b, e in rows])
+        total = float(terms.sum())
+        for (b, e), term in zip(rows, terms, strict=True):
+            out.append(MapBin(name, float(edges[b]), float(edges[b + 1]), float(probs[b]), e,
+                              float(term / total) if total > 0 else 0.0))  # fmt: skip
+    return out

@@ -1,0 +1,104 @@
+"""Rollouts over an operating design domain: each rollout's scenario parameters drawn from the :class:`ODD` before its
+events, carried in its observations, and the same rollouts for any chunk size.
+
+:func:`odd_rollout_functions` is :func:`pemviz.core.problems.rollout_functions` for a batched simulator that takes a
+parameter vector per rollout, ``make(n, values [n, D]) -> BatchedSimulator``. A stage of N rollouts first draws its
+N x D parameter uniforms from the stage's generator (before any event's uniform), maps them through the ODD's inverse
+CDFs (:meth:`pemviz.core.odd.ODD.draw`), then runs the rollouts chunk by chunk as :func:`pemviz.core.lockstep.
+iter_rollouts` does, each chunk's simulator made with its rollouts' parameters. The parameters are appended to each
+step's observation as constant columns named after them (:class:`WithParameters`), so a batch, a rollout file and a
+branch know every rollout's parameters. The parameters are drawn from the ODD itself: their importance weight is 1,
+and the estimate of any estimator is an estimate of p_ODD = E_theta[p(theta)].
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import replace
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from pemviz.core.detectors import Detector
+from pemviz.core.lockstep import (
+    DEFAULT_CHUNK_SIZE, _coupled, check_branch_args, check_counts, replay_rows, run_batched, uniform_chunks,
+)
+from pemviz.core.odd import ODD
+from pemviz.core.rng import RQMC_BLOCK
+from pemviz.core.rollouts import RolloutBatch, draws_per_rollout
+
+MakeWith = Callable[[int, np.ndarray], Any]
+"""``make(n, values [n, D]) -> BatchedSimulator``: n rollouts at their start, rollout i with parameters values[i]."""
+
+
+class WithParameters:
+    """A batched simulator whose observations end with its rollouts' parameters (constant columns named after them);
+    everything else is the simulator's own."""
+
+    def __init__(self, sim: Any, values: np.ndarray, names: tuple[str, ...]) -> None:
+        self.sim, self.values = sim, np.asarray(values, dtype=np.float64)
+        self.observation_names = (*tuple(sim.observation_names), *names)
+
+    def __getattr__(self, name: str) -> Any:  # objects, object_names, n_objects, snapshot, restore, ...
+        if name in ("sim", "values"):
+            raise AttributeError(name)
+        return getattr(self.sim, name)
+
+    def observation(self) -> np.ndarray:
+        return np.concatenate([np.asarray(self.sim.observation(), dtype=np.float64), self.values], axis=1)
+
+    def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
+        self.sim.step(detected, noise)
+
+
+def _first_rows(made: Callable[[np.ndarray], Any], values: np.ndarray, m: int) -> Any:
+    """The simulator of the first ``m`` rollouts of ``values`` (a replay's, for :func:`replay_rows`)."""
+    return made(values[:m])
+
+
+def odd_rollout_functions(make: MakeWith, odd: ODD, n_steps: int) -> tuple[Callable, Callable, Callable]:
+    """A :class:`pemviz.core.problems.Problem`'s ``simulate``, ``stream`` and ``branch`` over the ODD (module
+    docstring): rollout i of a stage has parameters ``odd.draw(u_i)``, u the stage's first N x D uniforms.
+
+    Raises (from the functions):
+        ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
+    """
+    names = odd.names
+
+    def made(values: np.ndarray) -> WithParameters:
+        return WithParameters(make(len(values), values), values, names)
+
+    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
+               chunk_size: int = DEFAULT_CHUNK_SIZE, keep_rows: bool = True) -> Iterator[RolloutBatch]:  # fmt: skip
+        check_counts("odd stream", n=n, chunk_size=chunk_size)
+        n = int(n)
+        values = odd.draw(rng.random((n, len(odd))))  # every rollout's parameters first: the same for any chunking
+        size = RQMC_BLOCK if _coupled(sampler) else int(chunk_size)
+        k = draws_per_rollout(made(values[:1]), target)
+        for start, stop, uniforms in uniform_chunks(rng, n, n_steps, size, k):
+            part = values[start:stop]
+            batch = run_batched(made(part), stop - start, n_steps, sampler, target, uniforms, keep_rows=keep_rows)
+            if not keep_rows and batch.object_names is not None:
+                rows: Callable[[int], Any] = functools.partial(_first_rows, made, part)
+                batch = replace(batch, replay=functools.partial(replay_rows, rows))
+            for a in range(0, batch.n, int(chunk_size)):
+                yield batch if batch.n <= chunk_size else batch.select(slice(a, a + int(chunk_size)))
+
+    def simulate(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:
+        chunks = list(stream(n, sampler, target, rng, chunk_size=max(int(n), 1)))
+        return chunks[0] if len(chunks) == 1 else RolloutBatch.concatenate(chunks)
+
+    def branch(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
+               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+        parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
+        check_branch_args(parents, parent, at)
+        cols = [tuple(parents.observation_names).index(name) for name in names]
+        values = parents.observations[parent, 0][:, cols]  # each parent's parameters, as its first step holds them
+        sim = made(values)
+        k = draws_per_rollout(sim, target) * parent.size
+        noise = None if parents.noise is None else parents.noise[parent]
+        return run_batched(sim, parent.size, parents.n_steps, target, target,
+                           (rng.random(k) for _ in range(parents.n_steps)),
+                           forced=(parents.detected[parent], noise, at))  # fmt: skip
+
+    return simulate, stream, branch

@@ -1,0 +1,98 @@
+"""What the registries of scenarios (:mod:`pemviz.scenarios.registry`) and methods (:mod:`pemviz.estimators.registry`)
+share: a reference to an object by its import path, resolved when first used (as Gymnasium's ``entry_point``), and the
+loading of plugins from the modules an environment variable names and from installed packages' entry points, each
+failure one line naming the plugin. No I/O beyond importing; no scenario, no method.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from typing import Any, Callable
+
+Ref = Any
+"""An object, or the text ``"package.module:name"`` that names it (imported when first used)."""
+
+
+def resolve(ref: Ref) -> Any:
+    """The object ``ref`` names: ``ref`` itself, or for the text ``"package.module:attr.attr"`` that attribute of
+    that module (imported now).
+
+    Raises:
+        ValueError: a text that is not ``module:name``.
+        ImportError, AttributeError: no such module or name.
+    """
+    if not isinstance(ref, str):
+        return ref
+    module, sep, attr = ref.partition(":")
+    if not sep or not module or not attr:
+        raise ValueError(f"{ref!r} is not 'package.module:name'")
+    obj: Any = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def load_plugins(variable: str, group: str, register_object: Callable[[object], None], error: type[ValueError],
+                 kind: str) -> None:  # fmt: skip
+    """Import the modules named (comma-separated) by the environment variable ``variable`` (each registers at import)
+    and register each object of the entry-point group ``group`` with ``register_object``.
+
+    Raises:
+        ``error``: one line, ``{kind} plugin <which>: <exception type>: <message>``, for the first plugin that cannot
+            be imported or that raised while registering.
+    """
+    def load(what: str, action: Callable[[], object]) -> None:
+        try:
+            action()
+        except error:
+            raise
+        except Exception as exc:  # a plugin's own failure: one line naming it
+            raise error(f"{kind} plugin {what}: {type(exc).__name__}: {exc}") from None
+
+    for module in (m.strip() for m in os.environ.get(variable, "").split(",")):
+        if module:
+            load(f"{variable} module {module}", lambda module=module: importlib.import_module(module))
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=group):
+        load(f"entry point {ep.name} ({ep.value}) of group {group}", lambda ep=ep: register_object(ep.load()))
+
+
+class Plugins:
+    """A registry's plugins, loaded once per process (:meth:`load`; after a failure the next call tries again).
+
+    Args:
+        variable, group, kind, error: as :func:`load_plugins` takes them.
+        record: the registry's record type (an entry point may give one, or a callable that registers some).
+        registry: name -> record, the registry itself (a record already there is not registered again).
+        register: registers one record.
+    """
+
+    def __init__(self, variable: str, group: str, kind: str, error: type[ValueError], record: type,
+                 registry: dict[str, Any], register: Callable[[Any], Any]) -> None:  # fmt: skip
+        self.variable, self.group, self.kind, self.error = variable, group, kind, error
+        self.record, self.registry, self.register = record, registry, register
+        self.loaded = False
+
+    def load(self) -> None:
+        """Load them, once (raises ``error``: one line naming the plugin)."""
+        if self.loaded:
+            return
+        self.loaded = True
+        try:
+            load_plugins(self.variable, self.group, self.register_object, self.error, self.kind)
+        except self.error:
+            self.loaded = False
+            raise
+
+    def register_object(self, obj: object) -> None:
+        """An entry point's object: a record (registered unless one of its name is) or a callable that registers."""
+        if isinstance(obj, self.record):
+            if obj.name not in self.registry:  # type: ignore[attr-defined]
+                self.register(obj)
+        elif callable(obj):
+            obj()
+        else:
+            raise TypeError(f"expected a {self.record.__name__} or a callable that registers {self.kind}s, got "
+                            f"{type(obj).__name__}")

@@ -1,0 +1,55 @@
+"""The braking scenario over an operating design domain: each rollout's gap to the lead and ego speed at the start
+(``gap0_m``, ``ego_speed0_mps``) drawn from distributions (``pemviz run --param gap0_m~uniform(10, 14)``), the other
+parameters fixed. The batched twin starts every rollout where its parameters say
+(:class:`pemviz.scenarios.braking.batched.BatchedBraking`'s ``starts``); the rollouts carry them as observation
+columns (:mod:`pemviz.core.odd_rollouts`); the problem is the braking one otherwise, without the exact answer and the
+look-ahead, which hold for one start only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from pemviz.core.odd import ODD
+from pemviz.core.odd_rollouts import odd_rollout_functions
+from pemviz.core.problems import Problem
+from pemviz.scenarios.braking.batched import BatchedBraking
+from pemviz.scenarios.braking.simulator import BrakingParams
+
+
+def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> Problem:
+    """The braking problem over ``odd`` (parameters ``gap0_m`` and / or ``ego_speed0_mps``), the others at ``params``
+    (None: the defaults), the PEM ``config.pem`` (None: the shipped one).
+
+    Raises:
+        ValueError: another parameter in the ODD, or the highway-env back-end (``config.sim``), which starts every
+            rollout alike.
+    """
+    from pemviz.pem import load_pem
+    from pemviz.scenarios.braking.problem import braking_problem
+
+    p = params or BrakingParams()
+    others = [name for name in odd.names if name not in ("gap0_m", "ego_speed0_mps")]
+    if others:
+        raise ValueError(f"the braking scenario draws only gap0_m and ego_speed0_mps per rollout, not {others}")
+    if config is not None and getattr(config, "sim", "batched") != "batched":
+        raise ValueError("--param NAME~DIST: an operating design domain runs on the batched twin only; use "
+                         "--sim batched")
+    names = odd.names
+
+    def make(n: int, values: np.ndarray) -> BatchedBraking:
+        return BatchedBraking(p, n, starts={name: values[:, j] for j, name in enumerate(names)})
+
+    simulate, stream, branch = odd_rollout_functions(make, odd, p.n_steps)
+    base = braking_problem(load_pem(getattr(config, "pem", None)), p, sim="batched")
+    return dataclasses.replace(
+        base, simulate=simulate, stream=stream, branch=branch, exact_log_p=None, severity_exact={}, look_ahead=None,
+        look_ahead_s=0.0, tilt=None, odd=odd,
+        verdict_cap=("doubtful", "the proposal reads the state, not the parameters drawn over the ODD: its weights can "
+                                 "look reliable while a region of the ODD is sampled too little"),
+        description=(f"automated braking behind a lead car, its start drawn per rollout ({odd.text()}), the PEM as "
+                     f"the camera's detector; failure: the gap drops below {p.crash_gap_m:g} m"),
+    )

@@ -1,0 +1,61 @@
+"""A scenario's parameters over an operating design domain: ``pemviz run --param NAME~DIST`` (``gap0_m~uniform(10,
+14)``) draws the parameter of each rollout from a distribution (:mod:`pemviz.core.odd`) instead of fixing it.
+
+A scenario says which of its parameters may be drawn per rollout (:attr:`pemviz.scenarios.registry.Scenario.
+random_params`, with the factory of its problem over an ODD, :attr:`~pemviz.scenarios.registry.Scenario.odd`); any
+other parameter is refused in one line. In the run's :attr:`pemviz.config.ExperimentConfig.scenario_params` a drawn
+parameter is the pair ``(name, "~uniform(10, 14)")``: :func:`odd_value` checks it (the distribution parses, its support
+lies in the parameter's range), :func:`split_odd` separates the fixed parameters from the :class:`pemviz.core.odd.ODD`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable
+
+from pemviz.core.odd import ODD, Distribution, ODDError, parse_distribution
+
+PREFIX = "~"
+"""A drawn parameter's value in ``scenario_params`` is its distribution's text after this mark."""
+
+
+def is_odd(value: object) -> bool:
+    """Whether a ``scenario_params`` value is a distribution (``"~uniform(10, 14)"``), not a fixed value."""
+    return isinstance(value, str) and value.startswith(PREFIX)
+
+
+def odd_value(scenario: str, name: str, text: str, allowed: tuple[str, ...]) -> str:
+    """The ``scenario_params`` value of ``NAME~TEXT``: ``"~" + the distribution's text``, checked (its range, with
+    the other parameters: :func:`pemviz.scenarios.parameters.check_pairs`).
+
+    Args:
+        allowed: the parameters ``scenario`` may draw per rollout
+            (:attr:`pemviz.scenarios.registry.Scenario.random_params`).
+    Raises:
+        ValueError: one line: a parameter the scenario does not draw per rollout (its random parameters listed), an
+            unknown distribution, bad arguments, an empty support.
+    """
+    if name not in allowed:
+        which = ", ".join(allowed) if allowed else "none"
+        raise ValueError(f"{name}~...: the {scenario} scenario cannot draw {name} per rollout (its parameters "
+                         f"that can be drawn: {which}); give it a value, {name}=VALUE")
+    try:
+        law = parse_distribution(text, where=f"{name}~{text.strip()}")
+    except ODDError as exc:
+        raise ValueError(str(exc)) from None
+    return PREFIX + law.text
+
+
+def split_odd(pairs: Iterable[tuple[str, Any]]) -> tuple[tuple[tuple[str, Any], ...], ODD | None]:
+    """``(the fixed pairs, the ODD of the drawn ones or None)`` of ``scenario_params`` pairs."""
+    fixed, drawn = [], []
+    for name, value in pairs:
+        if is_odd(value):
+            drawn.append((name, parse_distribution(value[len(PREFIX):], where=name)))
+        else:
+            fixed.append((name, value))
+    return tuple(fixed), (ODD(tuple(drawn)) if drawn else None)
+
+
+def law_of(value: str) -> Distribution:
+    """The distribution of a drawn parameter's ``scenario_params`` value."""
+    return parse_distribution(value[len(PREFIX):])
