@@ -173,12 +173,15 @@ def test_an_odd_run_writes_its_map_and_re_estimates_to_its_p(tmp_path):
 
     proc = subprocess.run([sys.executable, "-m", "pemviz.cli", "run", "--scenario", "toy", "--param", "total=10",
                            "--param", "safe=3", "--param", "braking~choice(5, 6, 7)", "--no-record",
-                           "--save-rollouts", "o.parquet", "--json", "o.json"], cwd=tmp_path, capture_output=True,
+                           "--save-rollouts", "o.parquet", "--json", "o.json", "--report", "o.html"], cwd=tmp_path,
+                          capture_output=True,
                           text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert "most of p_ODD: braking = 5" in proc.stdout
     doc = json.loads((tmp_path / "o.json").read_text())
     assert [b["lo"] for b in doc["odd_map"]["bins"]] == [4.5, 5.5, 6.5]
+    page = (tmp_path / "o.md").read_text()  # the report's Markdown twin: the map as a section of its own
+    assert "## Operating design domain" in page and "| braking in [4.5, 5.5) | 0.33 |" in page
     again = subprocess.run([sys.executable, "-m", "pemviz.cli", "estimate", "o.parquet", "--no-record"], cwd=tmp_path,
                            capture_output=True, text=True, timeout=300)  # fmt: skip
     said = float(__import__("re").search(r"log mu_hat = (-?[0-9.]+) nats", again.stdout).group(1))

@@ -28,6 +28,22 @@ VERDICT_COLOURS = {"reliable": hex_colour(C.GREEN), "doubtful": hex_colour(C.AMB
 WHITE, PANEL, TEXT, RULE, MUTED = (hex_colour(c) for c in (C.PAGE, C.SKETCH_BACKGROUND, C.TEXT, C.RULE, C.GREY))
 
 
+def _odd_section(odd_map: dict[str, Any]) -> tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]:
+    """The section of a run over an operating design domain: each parameter's bins with p(failure | bin), its interval
+    or lower bound, verdict and share of p_ODD (:meth:`pemviz.sinks.odd_map.OddMapSink.document`)."""
+    def exp(x: float | None) -> float | None:
+        return None if x is None else math.exp(x)
+
+    laws = ", ".join(f"{p['name']} ~ {p['text']}" for p in odd_map["odd"])
+    rows = [(f"{b['parameter']} in [{b['lo']:.4g}, {b['hi']:.4g})", f"{b['probability']:.2f}", _p(exp(b["log_p"])),
+             _interval([exp(x) for x in b["log_ci"]]), b["verdict"], f"{100 * b['share']:.1f} %")
+            for b in odd_map["bins"]]  # fmt: skip
+    intro = (f"p is p_ODD, the mean of p(theta) over the operating design domain {laws}: each rollout drew its own "
+             f"parameters. Where it comes from, from the final stage's {odd_map['rollouts']:,} rollouts: p(failure | "
+             "bin) of each parameter's bins of equal probability, and the bin's share of p_ODD.")
+    return ("Operating design domain", intro, ("bin", "P(bin)", "p", "95 % interval", "verdict", "share of p"), rows)
+
+
 def _p(x: float | None) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "-"
@@ -252,6 +268,8 @@ def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list
     sections = [("Estimate", "", ("quantity", "value"), _estimate_rows(doc)),
                 (RESTS_ON, "p is conditional on what follows: a safety case that cites p cites it with these.",
                  ("item", "value"), _rests_on(doc))]  # fmt: skip
+    if doc.get("odd_map"):
+        sections.append(_odd_section(doc["odd_map"]))
     if doc.get("severity"):
         title = doc["severity"].get("title", "severity: P(min signal < x), from the same rollouts")
         sections.append(("Severity", f"{title.removeprefix('severity: ')}: how deep the failures go.",
