@@ -192,3 +192,13 @@ def test_an_odd_is_its_parameters_in_order():
     odd = ODD((("a", parse_distribution("uniform(0, 1)")), ("b", parse_distribution("choice(1, 2)"))))
     assert odd.names == ("a", "b") and odd.text() == "a ~ uniform(0, 1), b ~ choice(1, 2)"
     np.testing.assert_allclose(odd.draw(np.array([[0.5, 0.75]])), [[0.5, 2.0]])
+
+
+def test_a_branch_over_an_odd_keeps_each_parents_parameters_and_prefix():
+    """Splitting and the counterfactuals replay a rollout from a step: its drawn parameters come with it."""
+    problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
+    parents = problem.simulate(50, problem.target, problem.target, np.random.default_rng(0))
+    children = problem.branch(parents, np.arange(10, 20), np.full(10, 3), problem.target, np.random.default_rng(1))
+    col = parents.observation_names.index("braking")
+    np.testing.assert_array_equal(children.observations[:, 0, col], parents.observations[10:20, 0, col])
+    np.testing.assert_array_equal(children.detected[:, :3], parents.detected[10:20, :3])

@@ -21,7 +21,8 @@ import numpy as np
 
 from pemviz.core.detectors import Detector
 from pemviz.core.lockstep import (
-    DEFAULT_CHUNK_SIZE, _coupled, check_branch_args, check_counts, replay_rows, run_batched, uniform_chunks,
+    DEFAULT_CHUNK_SIZE, _coupled, branch_rollouts, check_branch_args, check_counts, replay_rows, run_batched,
+    uniform_chunks,
 )
 from pemviz.core.odd import ODD
 from pemviz.core.rng import RQMC_BLOCK
@@ -90,15 +91,10 @@ def odd_rollout_functions(make: MakeWith, odd: ODD, n_steps: int) -> tuple[Calla
 
     def branch(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
                rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
-        parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
-        check_branch_args(parents, parent, at)
+        parent = np.asarray(parent, dtype=np.int64)
+        check_branch_args(parents, parent, np.asarray(at, dtype=np.int64))  # before the parents' rows are read
         cols = [tuple(parents.observation_names).index(name) for name in names]
         values = parents.observations[parent, 0][:, cols]  # each parent's parameters, as its first step holds them
-        sim = made(values)
-        k = draws_per_rollout(sim, target) * parent.size
-        noise = None if parents.noise is None else parents.noise[parent]
-        return run_batched(sim, parent.size, parents.n_steps, target, target,
-                           (rng.random(k) for _ in range(parents.n_steps)),
-                           forced=(parents.detected[parent], noise, at))  # fmt: skip
+        return branch_rollouts(lambda k: made(values[:k]), parents, parent, at, target, rng)
 
     return simulate, stream, branch

@@ -21,7 +21,7 @@ class _PerRollout(BatchedToy):
     """:class:`BatchedToy` with a braking distance per rollout (float64 [n]): the same steps otherwise."""
 
     def __init__(self, params: ToyParams, n: int, braking: np.ndarray) -> None:
-        super().__init__(dataclasses.replace(params, braking=params.braking), n)
+        super().__init__(params, n)
         self.braking = np.asarray(braking, dtype=np.float64)
 
     def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
@@ -41,14 +41,8 @@ def toy_odd_log_failure_probability(params: ToyParams, odd: ODD) -> float:
     (name, law), = odd.parameters
     if name != "braking" or not law.discrete:
         raise ValueError("the toy's exact answer over an ODD needs braking ~ choice(...)")
-    terms = [math_log(w) + toy_log_failure_probability(dataclasses.replace(params, braking=int(b)))
-             for b, w in zip(law.args, law.weights, strict=True)]
-    return float(logsumexp(terms))
-
-
-def math_log(x: float) -> float:
-    """log x, -inf at 0."""
-    return float(np.log(x)) if x > 0 else -np.inf
+    logs = [toy_log_failure_probability(dataclasses.replace(params, braking=int(b))) for b in law.args]
+    return float(logsumexp(logs, b=np.asarray(law.weights)))  # a weight of 0 adds nothing
 
 
 def toy_odd_problem(config: Any, params: ToyParams | None, odd: ODD) -> Problem:
