@@ -121,7 +121,7 @@ def one_run(scene: str, method: str, seed: int) -> Outcome:
     """``pemviz run --scenario SCENE --method METHOD --seed SEED`` (no recording) and what it printed."""
     from threadpoolctl import threadpool_limits
 
-    from pemviz.estimators.cross_entropy import check_runnable
+    from pemviz.estimators import check_runnable
     from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.registry import problem_for
 

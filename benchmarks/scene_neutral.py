@@ -21,6 +21,7 @@ Usage::
     python benchmarks/scene_neutral.py                                # every scene, 20 seeds (10 on the cut-ins
                                                                       # and braking), two jobs: about 10 min
     python benchmarks/scene_neutral.py --scenes crossing --seeds 5
+    python benchmarks/scene_neutral.py --scenes crossing --variants lookahead-400 --seeds 10 --scored-steps 10
 
 Measured figures: the Validation page ("A scene-neutral sampler") and the CHANGELOG.
 """
@@ -90,9 +91,16 @@ class Outcome:
         return math.exp(self.log_mu - self.truth) if self.log_mu > -math.inf else 0.0
 
 
-def one_run(scene: str, variant: str, seed: int) -> Outcome:
-    """``pemviz run SCENE-FLAGS VARIANT-FLAGS --seed SEED`` (no recording) and what it printed."""
+def one_run(scene: str, variant: str, seed: int, scored_steps: int | None = None) -> Outcome:
+    """``pemviz run SCENE-FLAGS VARIANT-FLAGS --seed SEED`` (no recording) and what it printed; ``scored_steps``: the
+    look-ahead scores about this many steps of a rollout (None:
+    :data:`pemviz.estimators.lookahead_score.SCORED_STEPS`)."""
     from threadpoolctl import threadpool_limits
+
+    import pemviz.estimators.lookahead_score as lookahead_score
+
+    if scored_steps is not None:
+        lookahead_score.SCORED_STEPS = scored_steps
 
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
@@ -161,11 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", nargs="+", default=list(SAMPLERS), choices=list(SAMPLERS))
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--scored-steps", type=int, default=None,
+                    help="the look-ahead scores about this many steps of a rollout (default 25: its cost and accuracy)")
     a = ap.parse_args(argv)
     jobs = [(s, v, k) for s in a.scenes for v in a.variants
             for k in range(a.seeds // 2 if s in SLOW else a.seeds)]  # fmt: skip
     with ProcessPoolExecutor(a.jobs) as pool:
-        outcomes = list(pool.map(one_run, *zip(*jobs, strict=False)))
+        outcomes = list(pool.map(one_run, *zip(*jobs, strict=False), [a.scored_steps] * len(jobs)))
     print("| scene | sampler | runs | median rel. error | within x2 | intervals holding p | bounds holding p | "
           "reliable outside x2 | verdicts | cost (rollout-eq.) | plain MC for that error | ratio | s a run |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")

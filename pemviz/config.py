@@ -285,17 +285,8 @@ class ExperimentConfig:
         need(self.scenario == "braking" or self.sim == "batched", "scenario",
              "the cut-in runs on its batched twin only; use sim = 'batched'")
         need(self.target_share + self.plain_share <= 1.0, "target_share", "target_share + plain_share must be <= 1")
-        need(self.method != "adaptive" or self.target_share + self.plain_share == 0.0 or (
-            self.weights == "frozen" and (self.weights_until_failure or self.proposal_window)), "target_share",
-            "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or proposal_window; "
-            "set target_share = plain_share = 0 (preset state-ce-step) for the others")
         need(self.fit_weights == "sampler" or self.fit_all_failures, "fit_weights",
              "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it")  # fmt: skip
-        need(self.method != "ams" or self.ams_killed < self.n_per_stage, "ams_killed",
-             f"{SETTINGS['ams_killed'].words} must be a whole number in [1, N - 1]")
-        n_objects = dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS.get(self.scenario, 1))
-        need(self.method != "adaptive" or n_objects == 1 or not self.fits_whole_rollouts, "scenario",
-             whole_rollout_fit_refusal(self, n_objects))
         need(self.margin is None or self.scenario == "braking", "margin",
              "the crash gap is the braking scenario's; the cut-in's failure is its safe distance (R_G1)")
         if self.require is not None:
@@ -305,12 +296,17 @@ class ExperimentConfig:
                 need(False, "require", str(exc))
         need(self.require is None or self.rel_error is None, "require",
              "give one stop rule: a requirement (--require) or a precision target (--rel-error)")
-        rule = "require" if self.require is not None else "rel_error"
-        need(self.stop_rule is None or self.method != "ams", rule,
-             "adaptive multilevel splitting has no final batch to add to; use it with method adaptive, mc, naive50 "
-             "or mixed50")
-        need(self.stop_rule is None or self.method != "adaptive" or self.final_estimate != "last-stage", rule,
-             "a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled or fresh)")
+        from pemviz.methods import extensible_names, method_or_none
+
+        method = method_or_none(self.method)
+        if method is not None:  # the method's own settings against the others (Method.validate)
+            need(self.stop_rule is None or method.extensible, self.stop_rule or "rel_error",
+                 f"method {method.name} has no final batch to add to; use it with method "
+                 f"{', '.join(extensible_names())}")
+            n_objects = dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS.get(self.scenario, 1))
+            conflict = method.conflict(self, n_objects)
+            if conflict is not None:
+                need(False, *conflict)
         for cap in ("max_sims", "max_time_s"):
             need(getattr(self, cap) is None or self.stop_rule is not None, cap,
                  "a cap on the rollouts added for a target relative error or a requirement: give it with rel_error "
@@ -339,18 +335,21 @@ class ExperimentConfig:
         return not (self.weights == "frozen" and (self.weights_until_failure or self.proposal_window))
 
     @property
-    def has_final_batch(self) -> bool:
-        """Whether the run ends with N_e fresh rollouts from the final proposal (not with ``last-stage``)."""
-        return self.method == "adaptive" and self.final_estimate != "last-stage"
-
-    @property
     def n_simulations(self) -> int:
-        """Rollouts the experiment will simulate, pretraining included (ams: the N initial particles, tilt: the
-        rollouts; the run reports the rollout-equivalents its continuations or look-aheads add)."""
-        if self.method != "adaptive":
-            return self.n_per_stage
-        final = self.n_final if self.has_final_batch else 0
-        return self.pretrain_rollouts + self.n_stages * self.n_per_stage + final
+        """Rollouts the experiment will simulate, pretraining included: those of the plan its method states
+        (:meth:`pemviz.methods.Method.run_plan`; an open-ended plan, e.g. splitting's, the N initial
+        particles; the run reports the rollout-equivalents its continuations or look-aheads add)."""
+        from pemviz.methods import method_or_none
+
+        method = method_or_none(self.method)
+        planned = method.run_plan(self).n_simulations if method is not None else None
+        return int(planned) if planned is not None else self.n_per_stage
+
+
+def has_final_batch(config: ExperimentConfig) -> bool:
+    """Whether a cross-entropy run of ``config`` ends with N_e fresh rollouts from its final proposal (not with
+    ``final_estimate = "last-stage"``)."""
+    return getattr(config, "final_estimate", "pooled") != "last-stage"
 
 
 def whole_rollout_fit_refusal(config: ExperimentConfig, n_objects: int) -> str:

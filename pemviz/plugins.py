@@ -1,4 +1,4 @@
-"""What the registries of scenarios (:mod:`pemviz.scenarios.registry`) and methods (:mod:`pemviz.estimators.registry`)
+"""What the registries of scenarios (:mod:`pemviz.scenarios.registry`) and methods (:mod:`pemviz.methods`)
 share: a reference to an object by its import path, resolved when first used (as Gymnasium's ``entry_point``), and the
 loading of plugins from the modules an environment variable names and from installed packages' entry points, each
 failure one line naming the plugin. No I/O beyond importing; no scenario, no method.

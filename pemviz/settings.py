@@ -40,7 +40,7 @@ measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``
 
 REGISTERED_METHODS: list[str] = []
 """The methods registered in this process besides :data:`METHODS`: a user's own, once its plugin is loaded
-(:func:`pemviz.estimators.registry.register_method` adds each name, ``unregister_method`` removes it). The settings
+(:func:`pemviz.methods.register_method` adds each name, ``unregister_method`` removes it). The settings
 read this list and never import the registry."""
 
 

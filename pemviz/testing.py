@@ -538,8 +538,8 @@ def check_estimator(method: Any, *, problem: Any = None, folder: str | Path | No
     - ``recording``: seed 0's run recorded (:meth:`pemviz.sinks.recording.RerunSink.to_file`) writes a non-empty file.
 
     Args:
-        method: a registered method's name (:func:`pemviz.estimators.registry.method_names`: the built-in ones and a
-            plugin's), or a :class:`pemviz.estimators.registry.Method` of one's own (registered by the check).
+        method: a registered method's name (:func:`pemviz.methods.method_names`: the built-in ones and a
+            plugin's), or a :class:`pemviz.methods.Method` of one's own (registered by the check).
         problem: a :class:`pemviz.core.problems.Problem` with an exact answer and a distance signal ``d`` (None:
             :data:`ESTIMATOR_PROBLEM`).
         folder: where seed 0's files go (kept); None: a temporary folder, removed afterwards.
@@ -553,7 +553,7 @@ def check_estimator(method: Any, *, problem: Any = None, folder: str | Path | No
     from pemviz.core.checks import CheckError
     from pemviz.core.checks import check_estimator as check_interface
     from pemviz.estimators import build_estimator
-    from pemviz.estimators.registry import registered_name
+    from pemviz.methods import registered_name
     from pemviz.scenarios.problems import build_problem
 
     method = registered_name(method, "check_estimator")  # a Method of one's own: registered (and kept) for the check

@@ -51,7 +51,7 @@ def defensive_mc(monkeypatch):
     """The method of one's own of ``tests/estimators/user_method.py``, imported (so registered) for this test only."""
     from pathlib import Path
 
-    from pemviz.estimators.registry import unregister_method
+    from pemviz.methods import unregister_method
 
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent / "estimators"))
     sys.modules.pop("user_method", None)

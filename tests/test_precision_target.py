@@ -96,7 +96,8 @@ def test_the_added_batch_follows_the_square_root_law_within_its_bounds():
 
 
 @pytest.mark.parametrize("fields, message", [
-    (dict(method="ams", rel_error=0.1), "rel_error = 0.1 is invalid: adaptive multilevel splitting has no final batch"),
+    (dict(method="ams", rel_error=0.1), "rel_error = 0.1 is invalid: method ams has no final batch to add to; use it "
+                                        "with method adaptive, mc"),
     (dict(max_sims=10_000), "max_sims = 10000 is invalid: a cap on the rollouts added for a target relative error"),
     (dict(max_time_s=60.0), "max_time_s = 60.0 is invalid: a cap on the rollouts added"),
     (dict(rel_error=0.1, max_sims=1000), "the most simulations must be at least the run's planned 2,100 simulations"),

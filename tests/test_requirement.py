@@ -192,7 +192,7 @@ def test_a_close_threshold_is_undecided_at_a_cap_and_the_junit_file_says_so(tmp_
 @pytest.mark.parametrize("args, message", [
     (["--require", "p < 2"], "--require: require = 'p < 2' is invalid: 'p < 2': the threshold must be a probability"),
     (["--require", "p < 1e-9", "--rel-error", "0.1"], "give one stop rule"),
-    (["--require", "p < 1e-9", "--method", "ams"], "adaptive multilevel splitting has no final batch"),
+    (["--require", "p < 1e-9", "--method", "ams"], "method ams has no final batch to add to"),
     (["--junit", "x.xml"], "--junit writes a requirement as a test case: give one with --require"),
     (["--json", "x.txt"], "--json"),
     (["--save-rollouts", "b.parquet", "--json", "b.rollouts.json"],

@@ -21,7 +21,7 @@ import viser.uplot as up
 from pemviz.app.drawing import LaneExplanation
 from pemviz.app.html import GREY as GREY_BOX
 from pemviz.app.html import box
-from pemviz.estimators.registry import plain_method
+from pemviz.methods import plain_method
 from pemviz.app.plots import (
     LEGEND,
     _points,

@@ -21,7 +21,7 @@ from pemviz.settings import SETTINGS, SIMULATORS
 from pemviz.pem.recipes import DEFAULT_PEM_NAME
 from pemviz.pem import shipped_pems
 from pemviz.presets import preset_help
-from pemviz.estimators.registry import method_names
+from pemviz.methods import method_names
 from pemviz.scenarios.registry import registered
 
 

@@ -162,13 +162,18 @@ def parse_form(texts: dict[str, str], choices: dict[str, Any], base: ExperimentC
         return FormResult(None, {"": str(exc)})
 
 
-def run_cost(cfg: ExperimentConfig, n_steps: int = N_STEPS) -> RunCost:
+def run_cost(cfg: ExperimentConfig, n_steps: int = N_STEPS, slowdown: float | None = None) -> RunCost:
     """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of the plan its estimator states,
-    :func:`pemviz.estimators.run_plan`): simulations, memory of the largest batch, expected seconds."""
+    :func:`pemviz.estimators.run_plan`): simulations, memory of the largest batch, expected seconds on this machine as
+    loaded now (times ``slowdown``; None: :func:`pemviz.engine.resources.load_slowdown`, as the console's first
+    progress line)."""
     from pemviz.engine.experiment import stream_above  # the engine and the estimators import torch: only when asked
+    from pemviz.engine.resources import load_slowdown
     from pemviz.estimators import run_plan
 
-    return cost.run_cost(cfg, run_plan(cfg), n_steps, stream_above(cfg))
+    idle = cost.run_cost(cfg, run_plan(cfg), n_steps, stream_above(cfg))
+    factor = load_slowdown() if slowdown is None else float(slowdown)
+    return dataclasses.replace(idle, seconds=idle.seconds * factor)
 
 
 def setting_name(key: str) -> str:

@@ -111,20 +111,14 @@ def explanation_html(record: PanelRun, traj: Trajectory, ex: LaneExplanation, ti
 
 
 def no_failure_advice(method: str, n: int) -> str:
-    """What to try after a run without a failure, in the terms of its ``method``."""
-    if method == "adaptive":
-        return (
-            "the sampler never reached a crash. More stages (K), more rollouts (N) or the state-ce preset move the "
-            "proposal further towards the failures."
-        )
-    if method == "mc":
-        return (
-            f"plain Monte Carlo draws every rollout from the PEM itself, so a failure of probability p shows up about "
-            f"once in 1/p rollouts; none in {n:,} only says p is likely below {3.0 / n:.2g}. The adaptive method "
-            "(state-ce preset) reaches failures far rarer than that."
-        )
-    if method == "ams":
-        return "no particle reached a failure: more particles (N) or the adaptive method (state-ce preset)."
+    """What to try after a run without a failure, in the terms of its ``method`` (its own words where it has them:
+    :attr:`pemviz.methods.Method.no_failure_advice`)."""
+    from pemviz.methods import method_or_none
+    from pemviz.plugins import resolve
+
+    record = method_or_none(method)
+    if record is not None and record.no_failure_advice is not None:
+        return str(resolve(record.no_failure_advice)(n))
     return (
         f"this fixed sampler ({method}) reached no crash: more rollouts (N) or the adaptive method (state-ce preset), "
         "which learns where to miss."

@@ -96,7 +96,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
 
         load_plugins()
     if args.method is not None and args.method not in METHODS:  # a method of one's own: load the method plugins
-        from pemviz.estimators.registry import load_method_plugins
+        from pemviz.methods import load_method_plugins
 
         load_method_plugins()
     preset = DEFAULT_PRESET if args.preset is None else args.preset
@@ -398,7 +398,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     from pemviz.engine.cost import N_STEPS
     from pemviz.engine.resources import torch_threads
     from pemviz.engine.experiment import Experiment, stream_above
-    from pemviz.estimators.cross_entropy import check_runnable
+    from pemviz.estimators import check_runnable
     from pemviz.scenarios.registry import problem_for  # any registered scenario: the built-in ones and plugins
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.population import FailureGroups, grouping_document

@@ -94,7 +94,7 @@ def plan_outputs(args: argparse.Namespace, cfg: Any, target: str, default_record
     recording = _recording(args, target, default_recording, overwrite)
     rollouts = None
     if args.save_rollouts is not None:
-        from pemviz.estimators.registry import get_method
+        from pemviz.methods import get_method
         from pemviz.io.rollout_writer import check_rollouts_path
 
         if not get_method(cfg.method).weighted:

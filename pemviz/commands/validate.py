@@ -72,7 +72,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     problems = split_choices(args.problems, validation_problems(), "problems")
     presets = split_choices(args.presets, PRESETS, "presets") if args.presets.strip() else ()
-    from pemviz.estimators.registry import method_names
+    from pemviz.methods import method_names
 
     others = tuple(m for m in method_names() if m not in (*BASELINES, "adaptive", "tilt"))  # plugins' methods
     baselines = split_choices(args.baselines, (*BASELINES, *others), "baselines") if args.baselines.strip() else ()

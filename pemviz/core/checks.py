@@ -72,9 +72,9 @@ def check_simulator(make: Callable[[], Any], n_steps: int, *, seed: int = 0) -> 
     if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
         raise ValueError(f"check_simulator: n_steps must be an integer >= 1, got {n_steps!r}")
     sim = make()
-    for method in ("reset", "observation", "step"):
-        if not callable(getattr(sim, method, None)):
-            raise _fail("check_simulator", f"the simulator has no method {method}(); the protocol needs reset(), "
+    for name in ("reset", "observation", "step"):
+        if not callable(getattr(sim, name, None)):
+            raise _fail("check_simulator", f"the simulator has no method {name}(); the protocol needs reset(), "
                                            "observation() and step(detected)")  # fmt: skip
     names = getattr(sim, "observation_names", None)
     if not isinstance(names, (tuple, list)) or not names or not all(isinstance(n, str) for n in names):

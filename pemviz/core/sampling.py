@@ -364,7 +364,7 @@ def fit_proposal(
     epochs: int,
     lr: float,
     check: Callable[[], None] | None = None,
-    method: str = "adam",
+    optimizer: str = "adam",
     tolerance: float | None = None,
     per: float | None = None,
     dtype: Any = EXACT,
@@ -387,7 +387,7 @@ def fit_proposal(
             estimate is computed in float64 from the density sampled from (:meth:`Proposal.detect_logit`), so the
             precision of the fit only moves the proposal, never the estimate's unbiasedness. A function objective
             (the authors' recomputed weights) and ``lbfgs`` always fit in torch's float64.
-        method: one of :data:`pemviz.settings.FITS`.
+        optimizer: one of :data:`pemviz.settings.FITS`.
         tolerance: ``adam``: early stopping once the loss fell by less than this over the last
             :data:`pemviz.core.fit_settings.PLATEAU_EPOCHS` epochs (None: every epoch); ``lbfgs``: its tolerance on a
             change of the loss (default
@@ -395,7 +395,7 @@ def fit_proposal(
     Returns:
         the loss per Adam epoch, or per L-BFGS evaluation.
     Raises:
-        ValueError: for an unknown ``method``.
+        ValueError: for an unknown ``optimizer``.
 
     ``adam`` (Kingma & Ba 2015, :class:`pemviz.core.torch_fits.Adam`) backpropagates through the network by hand
     (:func:`pemviz.core.exact_fit.fit_exact`, or :class:`pemviz.core.torch_fits.Backprop` in torch's kernels);
@@ -403,15 +403,15 @@ def fit_proposal(
     torch's, history 20, strong-Wolfe line search,
     unit step) backpropagates the objective's gradient with autograd.
     """
-    if method not in FITS:
-        raise ValueError(f"fit_proposal: unknown method {method!r}; use one of {', '.join(FITS)}")
-    if method == "adam" and dtype == EXACT and not callable(objective):
+    if optimizer not in FITS:
+        raise ValueError(f"fit_proposal: unknown optimizer {optimizer!r}; use one of {', '.join(FITS)}")
+    if optimizer == "adam" and dtype == EXACT and not callable(objective):
         counts = objective if isinstance(objective, np.ndarray) else objective.detach().numpy()
         return fit_exact(proposal, np.asarray(inputs, dtype=np.float64), counts, epochs, lr, check, tolerance, per,
                          check_every=CHECK_EVERY, plateau_epochs=PLATEAU_EPOCHS)  # fmt: skip
     from pemviz.core.torch_fits import fit_in_torch
 
-    return fit_in_torch(proposal, inputs, objective, epochs, lr, check, method, tolerance, per, dtype)
+    return fit_in_torch(proposal, inputs, objective, epochs, lr, check, optimizer, tolerance, per, dtype)
 
 
 # ---------------------------------------------------------------------------------- proposal checkpoints

@@ -246,7 +246,7 @@ class Adam:
 
 
 def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
-                 check: Callable[[], None] | None = None, method: str = "adam", tolerance: float | None = None,
+                 check: Callable[[], None] | None = None, optimizer: str = "adam", tolerance: float | None = None,
                  per: float | None = None, dtype: torch.dtype | str | None = None) -> list[float]:
     """:func:`pemviz.core.sampling.fit_proposal`'s fits in torch: L-BFGS, a function objective, or an Adam fit in
     torch's float32 / float64 kernels (``dtype``: ``"float32"``, ``"float64"`` or a torch dtype); the arguments and
@@ -268,7 +268,7 @@ def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
         return (loss if per is None else loss / per), grad_linear
 
     losses: list[float] = []
-    if method == "lbfgs":
+    if optimizer == "lbfgs":
         opt = torch.optim.LBFGS(
             proposal.net.parameters(), lr=1.0, max_iter=CHECK_EVERY, max_eval=10 * CHECK_EVERY, history_size=20,
             line_search_fn="strong_wolfe", tolerance_grad=1e-9,

@@ -98,10 +98,11 @@ COST = CostConstants(
     ce_rows_stages=3.4,
     early_stop_share=0.88,
     ams_rollouts=5,
-    tilt_rollouts=1.6,
-    tilt_solve_s=2.8,
+    tilt_rollouts=2.7,
+    tilt_solve_s=2.7,
     measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
-    "tilt_rollouts and tilt_solve_s from a default tilt run in a fresh process (6.3 s, its solve 2.8 s)",
+    "tilt_rollouts and tilt_solve_s from default tilt runs in fresh processes (7.4-7.6 s to the estimate, the solve "
+    "2.6 s; 2026-11-28, benchmarks/time_estimates.py)",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
@@ -141,19 +142,20 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
         c: the constants (default :data:`COST`).
         stage: the stage's number, for a CE stage's rows (:func:`ce_rows`); None: the mean over the K stages.
     """
-    proposal = cfg.method == "adaptive" and kind in ("ce", "final")
+    model = cost_model(cfg.method)
+    proposal = model == "proposal" and kind in ("ce", "final")
     per_step = c.proposal_step_s if proposal else c.pem_step_s
     per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
     per_rollout *= SCENARIO_COST_FACTORS.get(cfg.scenario, 1.0)  # what the scenario declares (1: none)
-    tilt = cfg.method == "tilt"
+    tilt = model == "look-ahead"
     rollouts = n * (c.ams_rollouts if kind == "ams" else c.tilt_rollouts if tilt else 1.0)
     simulate = n_steps * (per_step + per_rollout * rollouts) + (c.tilt_solve_s if tilt and stage == 1 else 0.0)
     cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
     inputs = cfg.proposal_inputs
     fit = c.stage_s
-    if cfg.method == "adaptive" and kind == "pretrain":
+    if model == "proposal" and kind == "pretrain":
         fit += _fit_s(cfg.pretrain_epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
-    elif cfg.method == "adaptive" and kind == "ce":
+    elif model == "proposal" and kind == "ce":
         stages = [stage] if stage is not None else range(1, cfg.n_stages + 1)
         rows = sum(ce_rows(cfg, k, n, c) for k in stages) / len(stages)
         if cfg.fit == "lbfgs":
@@ -170,9 +172,22 @@ def plan_costs(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS,
     return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage) for s in plan.stages}
 
 
-RUN_ADDS = {"tilt": "plus the proposal's look-aheads", "ams": "plus the branches' continuations"}
-"""What a run of these methods counts in its simulations besides the rollouts :attr:`pemviz.config.ExperimentConfig.
-n_simulations` plans (the final line's rollout-equivalents)."""
+def cost_model(method: str) -> str:
+    """How the stages of ``method`` cost (:attr:`pemviz.methods.Method.cost_model`; ``plain`` for a name no
+    one registered)."""
+    from pemviz.methods import method_or_none
+
+    record = method_or_none(method)
+    return record.cost_model if record is not None else "plain"
+
+
+def run_adds(method: str) -> str:
+    """What a run of ``method`` counts in its simulations besides the rollouts :attr:`pemviz.config.ExperimentConfig.
+    n_simulations` plans (the final line's rollout-equivalents; :attr:`pemviz.methods.Method.run_adds`)."""
+    from pemviz.methods import method_or_none
+
+    record = method_or_none(method)
+    return record.run_adds if record is not None else ""
 
 
 @dataclass(frozen=True)
@@ -218,4 +233,4 @@ def run_cost(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, strea
     """
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
     batch = run_memory(plan, n_steps, cfg.quantile_level, stream_above=stream_above) - BASE_BYTES
-    return RunCost(int(cfg.n_simulations), int(batch), float(seconds), RUN_ADDS.get(cfg.method, ""))
+    return RunCost(int(cfg.n_simulations), int(batch), float(seconds), run_adds(cfg.method))

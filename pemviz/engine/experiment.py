@@ -48,10 +48,10 @@ from pemviz.engine.events import (
     StageStarted,
 )
 from pemviz.engine.executors import get_executor
-from pemviz.estimators.base import Estimator, SeenFailures, StagePlan
+from pemviz.estimators.base import Estimator, SeenFailures, StagePlan, extras, needs_chunk_rows
 from pemviz.estimators import build_estimator
 from pemviz.estimators.pooling import failure_population, pem_spread, severity_curve
-from pemviz.estimators.registry import get_method, plain_method
+from pemviz.methods import get_method, plain_method
 
 
 class Cancelled(Exception):
@@ -195,18 +195,16 @@ class Experiment:
             self.emit(event)
             return event
         est, used = estimator.result()
-        n_sim = getattr(estimator, "n_simulations", self.n_simulations)  # AMS counts rollout-equivalents
+        said = extras(estimator)
+        n_sim = said.n_simulations if said.n_simulations is not None else self.n_simulations  # e.g. AMS's continuations
         seen = self.seen_failures.log_p
-        pooling = getattr(estimator, "pooling", None)
-        pooled = pooling() if callable(pooling) else None
-        cap = getattr(estimator, "verdict_cap", None)
+        pooled, cap = said.pooling, said.verdict_cap
         est = est.below_seen(seen)
-        final = FinalEstimate(est, n_sim, time.perf_counter() - t_start, used, seen, pooled,
-                              getattr(estimator, "stop", None), cap, getattr(estimator, "decision", None),
-                              severity_curve(pb, estimator, est, used, pooled, cap),
+        final = FinalEstimate(est, n_sim, time.perf_counter() - t_start, used, seen, pooled, said.stop, cap,
+                              said.decision, severity_curve(pb, estimator, est, used, pooled, cap),
                               pem_spread(pb, estimator, est, used, pooled, cap),
                               failure_population(estimator, used, pooled), pb.look_ahead is not None,
-                              getattr(estimator, "prepared", None), plain_probe(pb, cfg, est))  # fmt: skip
+                              said.prepared, plain_probe(pb, cfg, est))  # fmt: skip
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)
@@ -260,7 +258,7 @@ class Experiment:
         assert stream is not None  # the caller streams a stage only then
         sample = StageSample(plan.n)
         size: dict[str, Any] = {} if cfg.chunk_rollouts is None else {"chunk_size": cfg.chunk_rollouts}
-        if getattr(pb.stream, "elides_rows", False) and not getattr(estimator, "needs_chunk_rows", True):
+        if getattr(pb.stream, "elides_rows", False) and not needs_chunk_rows(estimator):
             size["keep_rows"] = False  # a chunk's object rows, rebuilt by replay for the few rollouts read
         chunks = itertools.chain.from_iterable(stream(k, d, target, estimator.rng, **size) for k, d in parts)
         for batch in chunks:

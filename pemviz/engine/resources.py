@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 from typing import TYPE_CHECKING, Iterator
 
 from pemviz.config import ExperimentConfig
@@ -98,6 +99,45 @@ def usable_cpus() -> int:
         return len(os.sched_getaffinity(0)) or 1
     except (AttributeError, OSError):
         return os.cpu_count() or 1
+
+
+LOAD_SAMPLES = 5
+"""How many times :func:`runnable_now` reads the count of runnable tasks (:data:`LOAD_GAP_S` apart)."""
+LOAD_GAP_S = 0.005
+"""Seconds between two of those readings."""
+
+
+def runnable_now(samples: int = LOAD_SAMPLES, gap_s: float = LOAD_GAP_S) -> float | None:
+    """The tasks other than this one that are running or waiting for a CPU now: the mean over ``samples`` readings of
+    the kernel's count of runnable tasks (the fourth field of ``/proc/loadavg``, which counts the reader) less one;
+    None where it cannot be read (not Linux). Unlike the load averages it does not lag: a machine busy a minute ago and
+    idle now reads 0."""
+    counts = []
+    for i in range(samples):
+        try:
+            with open("/proc/loadavg", encoding="ascii") as f:
+                running = f.read().split()[3].split("/")[0]
+            counts.append(max(0, int(running) - 1))
+        except (OSError, IndexError, ValueError):
+            return None
+        if i + 1 < samples:
+            time.sleep(gap_s)
+    return sum(counts) / len(counts)
+
+
+def load_slowdown(threads: int = 1) -> float:
+    """How many times longer than on an idle machine a run of ``threads`` busy threads will take now, from the
+    machine's load: ``max(1, (L + threads) / C)``, L the other tasks running or waiting for a CPU now
+    (:func:`runnable_now`; the 1-minute load average where that cannot be read), shared by the scheduler among the C
+    usable CPUs (:func:`usable_cpus`). On an idle machine 1; with two busy processes on two CPUs a one-thread run gets
+    two thirds of a CPU, 1.5. 1 where neither can be read."""
+    load = runnable_now()
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except (AttributeError, OSError):
+            return 1.0
+    return max(1.0, (float(load) + threads) / usable_cpus())
 
 
 def cap_jobs(jobs: int, say=None) -> int:

@@ -11,19 +11,22 @@
 - :class:`~pemviz.estimators.precision.PrecisionTarget` (``rel_error``, ``require``): any of the first two, with
   final batches added until a relative precision or a decision on a requirement.
 
-Every method, these and a user's own, is a record of :mod:`pemviz.estimators.registry`, which
+Every method, these and a user's own, is a record of :mod:`pemviz.methods`, which
 :func:`build_estimator` and :func:`run_plan` (this package's own) read. Each estimator's name has one import path, its
 module's.
 """
 
 from __future__ import annotations
 
-from pemviz.config import ExperimentConfig
-from pemviz.core.problems import Problem
-from pemviz.core.plan import RunPlan
-from pemviz.estimators.base import Check, Estimator
-from pemviz.estimators.precision import PrecisionTarget
-from pemviz.estimators.registry import Method, get_method
+from typing import TYPE_CHECKING
+
+from pemviz.methods import Method, get_method
+
+if TYPE_CHECKING:  # the package stays light: importing its registry (a config's checks) loads no estimator
+    from pemviz.config import ExperimentConfig
+    from pemviz.core.plan import RunPlan
+    from pemviz.core.problems import Problem
+    from pemviz.estimators.base import Check, Estimator
 
 
 def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
@@ -31,15 +34,30 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
 
     The baselines draw ``config.n_per_stage`` rollouts and stop their weights at the failure step with
     ``config.weights_until_failure``, like the adaptive sampler's.
-    The method is the registry's (:func:`pemviz.estimators.registry.get_method`: the built-in ones and a user's own);
+    The method is the registry's (:func:`pemviz.methods.get_method`: the built-in ones and a user's own);
     a method that can be extended is wrapped in a :class:`PrecisionTarget` when the config has a stop rule.
 
     Raises:
         KeyError: a method no one registered; ValueError: a stop rule for a method that cannot take more batches.
     """
+    from pemviz.estimators.precision import PrecisionTarget
+
     method = _method_of(config)
     inner = method.builder()(config, problem, check)
     return inner if config.stop_rule is None or not method.extensible else PrecisionTarget(inner, config)
+
+
+def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
+    """Refuse, before any rollout or output, a ``config`` whose method cannot run on ``problem`` (e.g. the
+    cross-entropy fit of whole elite rollouts, the ``paper`` preset's, on a scene of several objects a step):
+    :meth:`pemviz.methods.Method.conflict` with the problem's objects.
+
+    Raises:
+        ValueError: one line naming what cannot run and what to use instead.
+    """
+    conflict = get_method(config.method).conflict(config, problem.n_objects)
+    if conflict is not None:
+        raise ValueError(conflict[1])
 
 
 def _method_of(config: ExperimentConfig) -> Method:
@@ -47,7 +65,7 @@ def _method_of(config: ExperimentConfig) -> Method:
 
     Raises:
         KeyError: a method no one registered; ValueError: a stop rule (``rel_error``, ``require``) for a method that
-            cannot take more final batches (:attr:`pemviz.estimators.registry.Method.extensible`)."""
+            cannot take more final batches (:attr:`pemviz.methods.Method.extensible`)."""
     method = get_method(config.method)
     if config.stop_rule is not None and not method.extensible:
         raise ValueError(f"method {method.name} cannot add final batches: --rel-error and --require need a method "
@@ -57,7 +75,9 @@ def _method_of(config: ExperimentConfig) -> Method:
 
 def run_plan(config: ExperimentConfig) -> RunPlan:
     """The :class:`RunPlan` the estimator of ``config.method`` states (:meth:`Estimator.plan`), without building it:
-    e.g. to check a run's memory before its problem is loaded (:meth:`pemviz.estimators.registry.Method.run_plan`)."""
+    e.g. to check a run's memory before its problem is loaded (:meth:`pemviz.methods.Method.run_plan`)."""
+    from pemviz.core.plan import RunPlan
+
     method = _method_of(config)
     plan = method.run_plan(config)
     return plan if config.stop_rule is None or not method.extensible else RunPlan(plan.stages, open_ended=True)

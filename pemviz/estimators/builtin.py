@@ -1,4 +1,4 @@
-"""The built-in methods' builders and plans, as :mod:`pemviz.estimators.registry` names them (each imported when a
+"""The built-in methods' builders and plans, as :mod:`pemviz.methods` names them (each imported when a
 run first uses it): ``adaptive`` (:class:`pemviz.estimators.cross_entropy.CrossEntropy`), ``mc``, ``naive50``,
 ``mixed50`` (:mod:`pemviz.estimators.fixed`), ``ams`` (:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`) and
 ``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`).
@@ -9,10 +9,12 @@ their weights at the failure step with ``config.weights_until_failure``, like th
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pemviz.core.plan import RunPlan
-from pemviz.estimators.base import Check, Estimator
+
+if TYPE_CHECKING:  # light to import: a config's checks read these hooks
+    from pemviz.estimators.base import Check, Estimator
 
 
 def adaptive(config: Any, problem: Any, check: Check | None = None) -> Estimator:
@@ -23,10 +25,11 @@ def adaptive(config: Any, problem: Any, check: Check | None = None) -> Estimator
 
 
 def adaptive_plan(config: Any) -> RunPlan:
-    """The cross-entropy sampler's stages, from the config alone."""
-    from pemviz.estimators.cross_entropy import CrossEntropy
+    """The cross-entropy sampler's stages, from the config alone (:mod:`pemviz.estimators.ce_plan`: loads no
+    sampler)."""
+    from pemviz.estimators.ce_plan import adaptive_run_plan
 
-    return CrossEntropy.run_plan(config)
+    return adaptive_run_plan(config)
 
 
 def mc(config: Any, problem: Any, check: Check | None = None) -> Estimator:
@@ -69,3 +72,85 @@ def tilt(config: Any, problem: Any, check: Check | None = None) -> Estimator:
     from pemviz.estimators.tilt import CommittorTilt
 
     return CommittorTilt(problem, config.n_per_stage, config.weights_until_failure, config.seed)
+
+
+# -- the built-in methods' own settings, advice and words (pemviz.methods.Method's hooks) ----------------
+
+
+def adaptive_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
+    """The cross-entropy sampler's settings against each other and the scene (:attr:`Method.validate
+    <pemviz.methods.Method>`): a mixture over rollouts needs frozen weights that stop somewhere, the fit of
+    whole elite rollouts one object a step, a stop rule a final batch to add to."""
+    from pemviz.config import has_final_batch, whole_rollout_fit_refusal
+
+    if config.target_share + config.plain_share > 0.0 and not (
+            config.weights == "frozen" and (config.weights_until_failure or config.proposal_window)):
+        return "target_share", ("a mixture over rollouts needs weights = 'frozen' and weights_until_failure or "
+                                "proposal_window; set target_share = plain_share = 0 (preset state-ce-step) for the "
+                                "others")  # fmt: skip
+    if n_objects != 1 and config.fits_whole_rollouts:
+        return "scenario", whole_rollout_fit_refusal(config, n_objects)
+    if config.stop_rule is not None and not has_final_batch(config):
+        return config.stop_rule, ("a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled "
+                                  "or fresh)")  # fmt: skip
+    return None
+
+
+def ams_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
+    """Splitting's settings: k, the particles killed an iteration, below N."""
+    from pemviz.settings import SETTINGS
+
+    if config.ams_killed >= config.n_per_stage:
+        return "ams_killed", f"{SETTINGS['ams_killed'].words} must be a whole number in [1, N - 1]"
+    return None
+
+
+def adaptive_more_budget(config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None,
+                         within_s: float | None, text: Any) -> str | None:  # fmt: skip
+    """The cross-entropy sampler's route (:attr:`Method.more_budget <pemviz.methods.Method>`): a run at
+    4 N (pretraining, K stages of 4 N and the final batch) or a precision target."""
+    from pemviz.config import has_final_batch
+
+    n = int(getattr(config, "n_per_stage", 100))
+    final = getattr(config, "n_final", 0) if has_final_batch(config) else 0
+    sims = getattr(config, "pretrain_rollouts", 0) + getattr(config, "n_stages", 0) * 4 * n + final
+    return text.importance_route(config, n_simulations, s_per, within_s, sims)
+
+
+def tilt_more_budget(config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None,
+                     within_s: float | None, text: Any) -> str | None:  # fmt: skip
+    """The tilted proposal's route: more batches of it to a 20 % interval."""
+    m = text.cap(config, n_simulations, s_per, within_s)
+    if m is None:
+        return None
+    return (f"more tilted batches (--rel-error 0.2 --max-sims {m}{text.tail(within_s)}: up to {m:,} simulations"
+            f"{text.time(m, s_per)})")  # fmt: skip
+
+
+def ams_more_budget(config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None,
+                    within_s: float | None, text: Any) -> str | None:  # fmt: skip
+    """Splitting's route: no final batch to add to, so more particles (about 4 times the time), or a graded score."""
+    n = int(getattr(config, "n_per_stage", 100))
+    more = f"more particles (--n {4 * n}{text.time(4.0, wall_s) if wall_s else ''})"
+    if getattr(config, "ams_score", "robustness") == "robustness":
+        return (f"{more}, or particles ranked by the scenario's committor where it has one (--ams-score committor: "
+                "where the robustness is flat every particle ties and the run dies out)")  # fmt: skip
+    return more
+
+
+def adaptive_no_failure(n: int) -> str:
+    """What to try after a cross-entropy run of ``n`` rollouts without a failure."""
+    return ("the sampler never reached a crash. More stages (K), more rollouts (N) or the state-ce preset move the "
+            "proposal further towards the failures.")  # fmt: skip
+
+
+def mc_no_failure(n: int) -> str:
+    """What to try after ``n`` plain rollouts without a failure."""
+    return (f"plain Monte Carlo draws every rollout from the PEM itself, so a failure of probability p shows up about "
+            f"once in 1/p rollouts; none in {n:,} only says p is likely below {3.0 / n:.2g}. The adaptive method "
+            "(state-ce preset) reaches failures far rarer than that.")  # fmt: skip
+
+
+def ams_no_failure(n: int) -> str:
+    """What to try after a splitting run whose particles reached no failure."""
+    return "no particle reached a failure: more particles (N) or the adaptive method (state-ce preset)."

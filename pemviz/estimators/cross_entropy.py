@@ -27,6 +27,7 @@ from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.ce_fit import EliteSteps, ce_update, pretrain_proposal
 from pemviz.estimators.ce_mixture import MixtureWeights
+from pemviz.estimators.ce_plan import adaptive_run_plan
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
@@ -46,18 +47,6 @@ from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.core.fit_settings import EXACT
 from pemviz.core.sampling import Proposal, StateProposal
-
-def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
-    """Refuse, before any rollout or output, a ``config`` whose estimator cannot run on ``problem``: the
-    cross-entropy fit of whole elite rollouts (:attr:`~pemviz.config.ExperimentConfig.fits_whole_rollouts`, the
-    ``paper`` preset's) on a problem of several objects a step.
-
-    Raises:
-        ValueError: one line naming what cannot run and what to use instead.
-    """
-    if config.method == "adaptive" and problem.n_objects != 1 and config.fits_whole_rollouts:
-        raise ValueError(whole_rollout_fit_refusal(config, problem.n_objects))
-
 
 @dataclass(frozen=True)
 class CappedDetector:
@@ -174,15 +163,15 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
         self.fit_dtype = config.fit_precision if config.fit_precision in ("float32", "float64") else EXACT
         """The arithmetic of the Adam fits (``ExperimentConfig.fit_precision``)."""
-        check_runnable(config, problem)  # refused before any rollout, not after the pretraining
+        if problem.n_objects != 1 and config.fits_whole_rollouts:  # refused before any rollout, not after pretraining
+            raise ValueError(whole_rollout_fit_refusal(config, problem.n_objects))
 
     # -- the interface --------------------------------------------------------------------------------------------
     @staticmethod
     def run_plan(config: ExperimentConfig) -> RunPlan:
-        """Stage 0 pretraining, 1..K cross-entropy stages, K+1 the final batch (none with ``last-stage``)."""
-        final = [(config.n_stages + 1, "final", config.n_final)] if config.has_final_batch else []
-        return RunPlan.of([(0, "pretrain", config.pretrain_rollouts)]
-                          + [(k, "ce", config.n_per_stage) for k in range(1, config.n_stages + 1)] + final)  # fmt: skip
+        """Stage 0 pretraining, 1..K cross-entropy stages, K+1 the final batch (none with ``last-stage``):
+        :func:`pemviz.estimators.ce_plan.adaptive_run_plan`."""
+        return adaptive_run_plan(config)
 
     def plan(self) -> RunPlan:
         return self.run_plan(self.config)

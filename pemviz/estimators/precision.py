@@ -28,7 +28,7 @@ from pemviz.core.requirement import Decision, decide, parse_requirement
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan
-from pemviz.estimators.registry import plain_method
+from pemviz.methods import plain_method
 
 GROWTH = 4.0
 """An added batch is at most this many times the final rollouts so far: the interval's width is itself noisy, so the

@@ -93,19 +93,26 @@ class StageClock(Sink):
     of its rollouts, a streamed stage's too; then to its :class:`~pemviz.engine.events.StageFinished`) and scales the
     predictions of what is left by measured / predicted so far, separately for the two parts: simulating over every
     stage (the machine's speed), what follows per kind of stage (a pretraining fit says little of a CE stage's, which
-    grows with the pool of failures), a kind not yet measured by the simulating scale.
+    grows with the pool of failures), a kind not yet measured by the simulating scale. Before any stage has run the
+    predictions are the model's times the machine's load at the run's start (``slowdown()``, default
+    :func:`pemviz.engine.resources.load_slowdown`: 1 on an idle machine, 1.5 with two busy processes on two CPUs).
 
     Attributes:
         t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were sampled
             (None before).
-        simulate_scale: measured / predicted seconds of simulating over the stages so far (1 before any);
+        simulate_scale: measured / predicted seconds of simulating over the stages so far (:attr:`load` before any);
             :meth:`after_scale` the same of what follows (fits), per kind of stage.
         done: the finished stages' results.
     """
 
-    def __init__(self, now: Callable[[], float] = time.perf_counter, constants: CostConstants = COST) -> None:
+    def __init__(self, now: Callable[[], float] = time.perf_counter, constants: CostConstants = COST,
+                 slowdown: Callable[[], float] | None = None) -> None:  # fmt: skip
         self.now = now
         self.constants = constants
+        self._slowdown = slowdown
+        self.load = 1.0
+        """The machine's load at the run's start as a slowdown (:func:`pemviz.engine.resources.load_slowdown`): the
+        scale of every prediction before the run has measured its own speed."""
         self.t0 = self.stage_t0 = now()
         self.sampled_t: float | None = None
         self.plan: RunPlan | None = None
@@ -120,6 +127,12 @@ class StageClock(Sink):
         self.t0 = self.stage_t0 = self.now()
         self.sampled_t, self.current, self.done = None, None, []
         self.plan = event.plan
+        if self._slowdown is None:
+            from pemviz.engine.resources import load_slowdown
+
+            self.load = load_slowdown()
+        else:
+            self.load = float(self._slowdown())
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
         self._look_ahead_s = float(event.problem.look_ahead_s)
         self.predicted = {s.stage: self._model(s.kind, s.n_rollouts, s.stage) for s in event.plan.stages}
@@ -153,13 +166,13 @@ class StageClock(Sink):
         measured, predicted = self._measured.get(part, (0.0, 0.0))
         if predicted <= 0.0:
             return None
-        prior = SCALE_PRIOR * self._planned.get(part.split(":")[0], 0.0)  # pseudo-seconds at the model's own speed
-        return min(MAX_SCALE, max(1.0 / MAX_SCALE, (measured + prior) / (predicted + prior)))
+        prior = SCALE_PRIOR * self._planned.get(part.split(":")[0], 0.0)  # pseudo-seconds at the load's speed
+        return min(MAX_SCALE, max(1.0 / MAX_SCALE, (measured + prior * self.load) / (predicted + prior)))
 
     @property
     def simulate_scale(self) -> float:
         scale = self._scale("simulate")
-        return 1.0 if scale is None else scale
+        return self.load if scale is None else scale
 
     def after_scale(self, kind: str) -> float:
         """Measured / predicted seconds after the rollouts of the stages of ``kind`` so far (the simulating scale

@@ -12,7 +12,8 @@ from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_pr
 from pemviz.core.severity import FailureSeverity
 from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
-from pemviz.estimators.registry import plain_method
+from pemviz.methods import method_or_none, plain_method
+from pemviz.plugins import resolve
 from pemviz.sinks import Sink, StageClock
 
 __all__ = ["ConsoleSink", "HEADER", "McRoute", "duration_text", "estimate_cells", "final_lines", "mc_rollouts",
@@ -114,19 +115,25 @@ def _round_up(n: float) -> int:
     return int(math.ceil(n / unit) * unit)
 
 
-PROBED = "probed"
-"""The ``method`` :func:`_rate_text` takes for a plain rollout's seconds measured by the engine's probe
-(:attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`)."""
+RATE_SOURCES = ("plain", "probed", "model")
+"""How a plain rollout's seconds were had, as :func:`_rate_text` words them: a plain Monte Carlo run's own, the
+engine's probe after another method's run (:attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`), or the run's
+own speed scaled by the cost model."""
 
 
-def _rate_text(s_per: float, method: str) -> str:
+def rate_source(method: str, probed: bool) -> str:
+    """The :data:`RATE_SOURCES` entry of a run of ``method`` (``probed``: the engine timed plain rollouts after it)."""
+    return "plain" if plain_method(method) else "probed" if probed else "model"
+
+
+def _rate_text(s_per: float, source: str) -> str:
     """``this run's 0.2 ms a rollout`` (a plain Monte Carlo run's measured seconds a rollout, ``s_per``), after another
-    method ``~0.2 ms a plain rollout (measured here after the run)`` (``method`` :data:`PROBED`: the engine's probe)
-    or ``~0.2 ms a plain rollout (this run's speed, by the cost model)``: :func:`plain_rollout_seconds`."""
+    method ``~0.2 ms a plain rollout (measured here after the run)`` (the engine's probe) or ``~0.2 ms a plain rollout
+    (this run's speed, by the cost model)``: :func:`plain_rollout_seconds`; ``source`` one of :data:`RATE_SOURCES`."""
     rate = f"{s_per * 1e3:.2g} ms" if s_per < 1.0 else f"{s_per:.2g} s"
-    if plain_method(method):
+    if source == "plain":
         return f"this run's {rate} a rollout"
-    if method == PROBED:
+    if source == "probed":
         return f"~{rate} a plain rollout (measured here after the run)"
     return f"~{rate} a plain rollout (this run's speed, by the cost model)"
 
@@ -202,11 +209,11 @@ class McRoute:
         """``--method mc --rel-error 0.2 --max-sims 1108911``."""
         return f"--method mc --rel-error {MC_REL_ERROR:g} --max-sims {cap}"
 
-    def text(self, s_per: float | None, method: str, floor: bool = True) -> str:
+    def text(self, s_per: float | None, source: str, floor: bool = True) -> str:
         """``p ~ 8.66e-05, the reference: 1,108,911 rollouts for a 20 % interval, ~59 min at this run's ...``; with
         :attr:`log_floor` and ``floor``, the rollouts at it too (``; up to 18,343 at its 95 % lower bound p >=
         5.21e-03, ~34 s``)."""
-        time = (f", ~{duration_text(self.seconds)} at {_rate_text(s_per, method)}"
+        time = (f", ~{duration_text(self.seconds)} at {_rate_text(s_per, source)}"
                 if self.seconds is not None and math.isfinite(self.seconds) else "")  # fmt: skip
         line = (f"p ~ {format_probability(self.log_p, 2)}, {self.source}: {count_text(self.n)} rollouts for a "
                 f"{PERCENT} interval{time}")  # fmt: skip
@@ -253,38 +260,61 @@ def _time(n: float, s_per: float | None) -> str:
     return f", ~{duration_text(n * s_per)}"
 
 
-def _more_budget(config, n_simulations: int | None, s_per: float | None, wall_s: float | None,
-                 within_s: float | None = None) -> str | None:  # fmt: skip
-    """The importance sampler's own route: a larger run or a precision target, each with its simulations and time at
-    ``s_per`` seconds a simulation; with ``within_s`` (seconds) only what fits in it (None: nothing more fits)."""
-    method = getattr(config, "method", "adaptive")
-    n = getattr(config, "n_per_stage", 100)
-    if method == "ams":  # no final batch to add to: more particles (about 4 times the time), or a graded score
-        more = f"more particles (--n {4 * n}{_time(4.0, wall_s) if wall_s else ''})"
-        if getattr(config, "ams_score", "robustness") == "robustness":
-            return (f"{more}, or particles ranked by the scenario's committor where it has one (--ams-score "
-                    "committor: where the robustness is flat every particle ties and the run dies out)")  # fmt: skip
-        return more
-    m = max(IS_MAX_SIMS, _round_up(4 * (n_simulations or 0)))
-    if within_s is not None:
+class AdviceText:
+    """The wording helpers a method's own route (:attr:`pemviz.methods.Method.more_budget`) is given."""
+
+    @staticmethod
+    def time(n: float, s_per: float | None) -> str:
+        """``, ~26 s``: ``n`` simulations at ``s_per`` seconds each; ``""`` unmeasured."""
+        return _time(n, s_per)
+
+    @staticmethod
+    def tail(within_s: float | None) -> str:
+        """`` --max-time 60`` for a route that must fit in ``within_s`` seconds, else ``""``."""
+        return f" --max-time {within_s:g}" if within_s is not None else ""
+
+    @staticmethod
+    def cap(config, n_simulations: int | None, s_per: float | None, within_s: float | None) -> int | None:
+        """The ``--max-sims`` a precision target is given: four times the run's simulations rounded up, at least
+        :data:`IS_MAX_SIMS`; with ``within_s`` what fits in it (None: not half as much again as the run)."""
+        m = max(IS_MAX_SIMS, _round_up(4 * (n_simulations or 0)))
+        if within_s is None:
+            return m
         if s_per is None:
             return None
         m = int(within_s / s_per)
         if m <= 1.5 * (n_simulations or 0) or m < getattr(config, "n_simulations", 0):
             return None
-        m = int(float(f"{m:.2g}"))
-    tail = f" --max-time {within_s:g}" if within_s is not None else ""
-    if method == "tilt":
-        return f"more tilted batches (--rel-error 0.2 --max-sims {m}{tail}: up to {m:,} simulations{_time(m, s_per)})"
-    target = (f"a precision target (--rel-error 0.1 --max-sims {m}{tail}: final batches up to {m:,} simulations"
-              f"{_time(m, s_per)})")  # fmt: skip
-    if within_s is not None:
-        return target
-    sims = 4 * n  # adaptive: pretraining, K stages of 4 N and the final batch (ExperimentConfig.n_simulations)
-    if method == "adaptive":
-        final = getattr(config, "n_final", 0) if getattr(config, "has_final_batch", True) else 0
-        sims = getattr(config, "pretrain_rollouts", 0) + getattr(config, "n_stages", 0) * 4 * n + final
-    return f"more budget (--n {4 * n}: {sims:,} simulations{_time(sims, s_per)}) or {target}"
+        return int(float(f"{m:.2g}"))
+
+    def importance_route(self, config, n_simulations: int | None, s_per: float | None, within_s: float | None,
+                         sims: int | None = None) -> str | None:  # fmt: skip
+        """An importance sampler's route: a run at 4 N (``sims`` simulations; None: 4 N) or a precision target, each
+        with its time at ``s_per`` seconds a simulation; with ``within_s`` the target alone, if it fits."""
+        m = self.cap(config, n_simulations, s_per, within_s)
+        if m is None:
+            return None
+        target = (f"a precision target (--rel-error 0.1 --max-sims {m}{self.tail(within_s)}: final batches up to "
+                  f"{m:,} simulations{_time(m, s_per)})")  # fmt: skip
+        if within_s is not None:
+            return target
+        n = getattr(config, "n_per_stage", 100)
+        sims = 4 * n if sims is None else sims
+        return f"more budget (--n {4 * n}: {sims:,} simulations{_time(sims, s_per)}) or {target}"
+
+
+ADVICE_TEXT = AdviceText()
+
+
+def _more_budget(config, n_simulations: int | None, s_per: float | None, wall_s: float | None,
+                 within_s: float | None = None) -> str | None:  # fmt: skip
+    """The method's own route (:attr:`pemviz.methods.Method.more_budget`; an importance sampler's by
+    default: a larger run or a precision target), with simulations and time at ``s_per`` seconds a simulation; with
+    ``within_s`` (seconds) only what fits in it (None: nothing more fits)."""
+    method = method_or_none(getattr(config, "method", "adaptive"))
+    if method is not None and method.more_budget is not None:
+        return resolve(method.more_budget)(config, n_simulations, s_per, wall_s, within_s, ADVICE_TEXT)
+    return ADVICE_TEXT.importance_route(config, n_simulations, s_per, within_s)
 
 
 def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: Reference | None = None,
@@ -319,7 +349,7 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
     method = getattr(config, "method", "adaptive")
     s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
-    rate = PROBED if plain_s is not None and not plain_method(method) else method  # how mc_s was had, for the text
+    rate = rate_source(method, plain_s is not None)  # how mc_s was had, for the text
     max_time = getattr(config, "max_time_s", None)
     route = mc_route(e, method, exact_log_p, reference, mc_s)
     budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
@@ -376,15 +406,15 @@ def _after_mc(e: Estimate, config, route: McRoute | None, s_per: float | None, m
         return (f"more rollouts (--n {10 * n}{_time(10 * n, s_per)}) lower the bound ten-fold{floor}; where p is rare, "
                 "an importance-sampling method (--method adaptive), with its verdict")  # fmt: skip
     if route.n > MC_AFFORDABLE:
-        return (f"{route.text(s_per, 'mc')}: too rare for plain Monte Carlo; an importance-sampling method "
+        return (f"{route.text(s_per, 'plain')}: too rare for plain Monte Carlo; an importance-sampling method "
                 "(--method adaptive), with its verdict")  # fmt: skip
     command = route.command(route.cap(config)).replace("--method mc ", "")
     if not route.fits(max_time):
-        return (f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(s_per, 'mc')}): a longer "
+        return (f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(s_per, 'plain')}): a longer "
                 f"--max-time ({command} --max-time {math.ceil(route.seconds)}), or an importance-sampling method "
                 "(--method adaptive), with its verdict")  # fmt: skip
     return (f"more rollouts: {command} samples until the interval is within {PERCENT} "
-            f"({route.text(s_per, 'mc')})")
+            f"({route.text(s_per, 'plain')})")
 
 
 def scenario_params_text(cfg) -> str:

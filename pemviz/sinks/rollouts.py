@@ -15,7 +15,7 @@ import numpy as np
 
 from pemviz.engine.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.estimators.pooling import pool_stage_weights
-from pemviz.estimators.registry import get_method
+from pemviz.methods import get_method
 from pemviz.io.rollout_writer import RolloutWriter, check_rollouts_path
 from pemviz.io.run_rollouts import run_meta, run_salient, run_severity
 from pemviz.pem.recipes import DEFAULT_PEM_NAME

@@ -31,6 +31,7 @@ from pemviz.core.estimate import format_probability, relative_error
 from pemviz.engine.resources import torch_threads
 from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RunFinished
+from pemviz.methods import get_method
 from pemviz.core.files import atomic_write
 from pemviz.pem import load_pem
 from pemviz.presets import PRESETS
@@ -207,7 +208,7 @@ def run_job(job: Job) -> RunRecord:
     """Run one :class:`Job` (in this process) and summarise it."""
     problem = validation_problem(job.problem, job.pem_path)
     if dict(job.fields).get("method", "adaptive") not in METHODS:  # a method of one's own: its plugin, in this worker
-        from pemviz.estimators.registry import load_method_plugins
+        from pemviz.methods import load_method_plugins
 
         load_method_plugins()
     cfg = ExperimentConfig(**dict(job.fields), seed=job.seed)
@@ -217,7 +218,8 @@ def run_job(job: Job) -> RunRecord:
     if not isinstance(res, RunFinished):  # pragma: no cover - no cancel token here
         raise RuntimeError(f"{job.method} on {job.problem} seed {job.seed} did not finish")
     e = res.final.estimate
-    curves = np.stack([s.proposal_curve for s in res.stages]) if job.keep_curves and cfg.method == "adaptive" else None
+    curves = (np.stack([s.proposal_curve for s in res.stages])
+              if job.keep_curves and get_method(cfg.method).proposal_curves else None)  # fmt: skip
     gammas = tuple(float(s.gamma) for s in res.stages if s.kind == "ce")
     return RunRecord(job.problem, job.method, job.seed, e.log_mu_hat, e.n_failures, e.n, e.ess, e.nll_mean, e.nll_lme,
                      res.final.n_simulations, time.perf_counter() - t0, gammas, curves, *e.log_ci, e.khat, e.verdict,

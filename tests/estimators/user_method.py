@@ -4,7 +4,7 @@ The whole of a method of one's own: a builder and one registration."""
 
 from pemviz.estimators.cross_entropy import DefensiveDetector
 from pemviz.estimators.fixed import FixedSampler
-from pemviz.estimators.registry import Method, register_method
+from pemviz.methods import Method, register_method
 
 
 def build(config, problem, check=None):

@@ -29,7 +29,7 @@ class Ticks:
 def console():
     out, progress, now = io.StringIO(), io.StringIO(), Ticks()
     sink = ConsoleSink(out, progress)
-    sink.clock = StageClock(now, SIMPLE)
+    sink.clock = StageClock(now, SIMPLE, lambda: 1.0)  # an idle machine
     return sink, out, progress, now
 
 

@@ -19,7 +19,7 @@ from .synthetic import PLAN, SIMPLE, TOY, batch, finished, run_started, sampled 
 def test_progress_counts_the_plans_stages_and_the_final_batch_is_predicted_from_every_rollout():
     now = [0.0]
     run = PanelRun(1, run_started().config)
-    run.clock = StageClock(lambda: now[0], SIMPLE)  # simulating n rollouts: n x 1e-5 s
+    run.clock = StageClock(lambda: now[0], SIMPLE, lambda: 1.0)  # simulating n rollouts: n x 1e-5 s, machine idle
     run(run_started())
     assert run.progress() == (0.0, 0.0) and run.plan is PLAN
     for stage, kind in ((0, "pretrain"), (1, "ce")):

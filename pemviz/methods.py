@@ -13,8 +13,9 @@ my_package.my_method``, comma-separated, each module registering at import) or a
 ``pemviz run --method NAME``, the panel's method menu, ``pemviz validate --methods NAME`` and
 ``pemviz.testing.check_estimator(NAME)`` take it as they take the built-in ones.
 
-This module imports no estimator: a builder may be given as the text ``"package.module:name"`` (imported when first
-used), so listing the methods loads no torch.
+This module imports no estimator: a builder (and every hook) may be given as the text ``"package.module:name"``
+(imported when first used), so listing the methods loads no torch. It sits below the config, which asks a method's
+record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
 """
 
 from __future__ import annotations
@@ -58,6 +59,22 @@ class Method:
             is a plain rollout's and whose failures are binomial (the console's advice, the requirement's decision).
         array_rqmc: its batches may be drawn by Array-RQMC (``ExperimentConfig.uniforms``); False for i.i.d.
             particles (splitting).
+        validate: optional, ``validate(config, n_objects) -> (setting, what is allowed) | None``: the first of the
+            method's own settings that conflicts with another in ``config`` (its scene perceiving ``n_objects``
+            objects a step), checked when the config is made; None: none. A :data:`Ref`.
+        more_budget: optional, ``more_budget(config, n_simulations, s_per, wall_s, within_s, text) -> str | None``:
+            the method's own route to a decided answer after a run that is not ``reliable`` (the console's ``next:``
+            line; ``text`` is :class:`pemviz.sinks.console.AdviceText`, its wording helpers); None: more rollouts or a
+            precision target. A :data:`Ref`.
+        no_failure_advice: optional, ``no_failure_advice(n) -> str``: what to try after a run of ``n`` rollouts
+            without a failure (the panel's); None: more rollouts or the adaptive method. A :data:`Ref`.
+        cost_model: how :mod:`pemviz.engine.cost` predicts a stage's seconds: ``plain`` (rollouts of a detector),
+            ``proposal`` (a learned proposal's rollouts and its cross-entropy fits), ``look-ahead`` (rollouts whose
+            steps are tilted by look-aheads, solved once) or ``splitting`` (continued particles).
+        run_adds: what the run's simulations count besides the rollouts it plans (the cost line's words, e.g.
+            ``plus the branches' continuations``); empty: nothing.
+        proposal_curves: each stage ends with a fitted proposal whose q(detect | d) curve is worth keeping (a
+            validation study's curves).
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
@@ -70,6 +87,12 @@ class Method:
     extensible: bool = True
     plain: bool = False
     array_rqmc: bool = True
+    validate: Ref = None
+    more_budget: Ref = None
+    no_failure_advice: Ref = None
+    cost_model: str = "plain"
+    run_adds: str = ""
+    proposal_curves: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -78,6 +101,14 @@ class Method:
             raise ValueError(f"Method {self.name}: description must be one line of text")
         if self.build is None:
             raise ValueError(f"Method {self.name}: a builder (config, problem, check) -> Estimator is needed")
+        if self.cost_model not in COST_MODELS:
+            raise ValueError(f"Method {self.name}: cost_model must be one of {', '.join(COST_MODELS)}, got "
+                             f"{self.cost_model!r}")
+
+    def conflict(self, config: Any, n_objects: int) -> tuple[str, str] | None:
+        """(setting, what is allowed) of the first of this method's settings in ``config`` that conflicts with
+        another (:attr:`validate`), or None."""
+        return None if self.validate is None else resolve(self.validate)(config, n_objects)
 
     def builder(self) -> Callable[..., Any]:
         """The builder (:attr:`build` imported)."""
@@ -91,6 +122,9 @@ class Method:
 
         return RunPlan.of([(1, "final", int(config.n_per_stage))])
 
+
+COST_MODELS = ("plain", "proposal", "look-ahead", "splitting")
+"""The kinds of stage :mod:`pemviz.engine.cost` can predict the seconds of (:attr:`Method.cost_model`)."""
 
 _REGISTRY: dict[str, Method] = {}
 
@@ -177,6 +211,17 @@ def plain_method(name: str) -> bool:
     return bool(method is not None and method.plain)
 
 
+def extensible_names() -> tuple[str, ...]:
+    """The registered methods final batches can be added to (:attr:`Method.extensible`), in registration order."""
+    return tuple(name for name, record in _REGISTRY.items() if record.extensible)
+
+
+def method_or_none(name: str) -> Method | None:
+    """The registered :class:`Method` called ``name``, or None (no plugins loaded: the names a config already
+    checked)."""
+    return _REGISTRY.get(name)
+
+
 def get_method(name: str) -> Method:
     """The registered :class:`Method` called ``name`` (plugins loaded first).
 
@@ -190,17 +235,26 @@ def get_method(name: str) -> Method:
     return _REGISTRY[name]
 
 
-for _method in (
+for _record in (
     Method("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
-           "pemviz.estimators.builtin:adaptive", plan="pemviz.estimators.builtin:adaptive_plan"),
-    Method("mc", "rollouts with the PEM itself (plain Monte Carlo)", "pemviz.estimators.builtin:mc", plain=True),
+           "pemviz.estimators.builtin:adaptive", plan="pemviz.estimators.builtin:adaptive_plan",
+           validate="pemviz.estimators.builtin:adaptive_conflict",
+           more_budget="pemviz.estimators.builtin:adaptive_more_budget",
+           no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure", cost_model="proposal",
+           proposal_curves=True),
+    Method("mc", "rollouts with the PEM itself (plain Monte Carlo)", "pemviz.estimators.builtin:mc", plain=True,
+           no_failure_advice="pemviz.estimators.builtin:mc_no_failure"),
     Method("naive50", "a 50 % detector at every step", "pemviz.estimators.builtin:naive50"),
     Method("mixed50", "50 % inside the window and the PEM outside", "pemviz.estimators.builtin:mixed50"),
     Method("ams", "adaptive multilevel splitting on the robustness, no importance weights",
            "pemviz.estimators.builtin:ams", plan="pemviz.estimators.builtin:ams_plan", weighted=False,
-           extensible=False, array_rqmc=False),
+           extensible=False, array_rqmc=False, validate="pemviz.estimators.builtin:ams_conflict",
+           more_budget="pemviz.estimators.builtin:ams_more_budget",
+           no_failure_advice="pemviz.estimators.builtin:ams_no_failure", cost_model="splitting",
+           run_adds="plus the branches' continuations"),
     Method("tilt", "the scenario's own proposal: each step's events tilted by an approximate probability of failure "
-           "after them", "pemviz.estimators.builtin:tilt"),
+           "after them", "pemviz.estimators.builtin:tilt", more_budget="pemviz.estimators.builtin:tilt_more_budget",
+           cost_model="look-ahead", run_adds="plus the proposal's look-aheads"),
 ):  # fmt: skip
-    register_method(_method)
-del _method
+    register_method(_record)
+del _record
