@@ -49,8 +49,15 @@ def successors(p: BrakingParams, s: BrakingStart) -> tuple[BrakingStart, Braking
     """The states after a detection and after a miss at ``s``."""
     out = []
     for detected in (True, False):
-        g, v, i, b = braking_step(p, float(lead_speeds(p)[s.step]), np.array([s.gap_m]), np.array([s.speed_mps]),
-                                  np.array([s.integral]), np.array([s.pending]), np.array([detected]))
+        g, v, i, b = braking_step(
+            p,
+            float(lead_speeds(p)[s.step]),
+            np.array([s.gap_m]),
+            np.array([s.speed_mps]),
+            np.array([s.integral]),
+            np.array([s.pending]),
+            np.array([detected]),
+        )
         out.append(BrakingStart(s.step + 1, float(g[0]), float(v[0]), float(i[0]), bool(b[0])))
     return out[0], out[1]
 
@@ -67,13 +74,18 @@ def study(states: int = 12, seeds: int = 100, seed: int = 0) -> dict[str, float]
     grid = solve_committor(p, logit)
     solve_s = time.perf_counter() - t0
     start = branching_start(p)
-    at_start = float(grid.log_value(start.step, np.array([start.gap_m]), np.array([start.speed_mps]),
-                                    np.array([start.pending]))[0])  # fmt: skip
-    print(f"grid committor: {grid.gap_axis.size} gaps x {grid.speed_axis.size} speeds x 2, steps {grid.first_step}-"
-          f"{p.n_steps - 1}; solve {grid.steps:,} steps ({grid.steps / p.n_steps:,.0f} rollout-equivalents), "
-          f"{solve_s:.2f} s")  # fmt: skip
-    print(f"at the branching start (step {start.step}, gap {start.gap_m:.2f} m): grid V {np.exp(at_start):.3e}, "
-          f"exact {np.exp(log_p):.3e} (x{np.exp(at_start - log_p):.3g})")  # fmt: skip
+    at_start = float(
+        grid.log_value(start.step, np.array([start.gap_m]), np.array([start.speed_mps]), np.array([start.pending]))[0]
+    )
+    print(
+        f"grid committor: {grid.gap_axis.size} gaps x {grid.speed_axis.size} speeds x 2, steps {grid.first_step}-"
+        f"{p.n_steps - 1}; solve {grid.steps:,} steps ({grid.steps / p.n_steps:,.0f} rollout-equivalents), "
+        f"{solve_s:.2f} s"
+    )
+    print(
+        f"at the branching start (step {start.step}, gap {start.gap_m:.2f} m): grid V {np.exp(at_start):.3e}, "
+        f"exact {np.exp(log_p):.3e} (x{np.exp(at_start - log_p):.3g})"
+    )
 
     bound = exact_bound(p, start, 401)
     rng = np.random.default_rng(seed)
@@ -102,16 +114,20 @@ def study(states: int = 12, seeds: int = 100, seed: int = 0) -> dict[str, float]
         e_miss = exact_log_v(logit, p, bound, s_miss, float(g_miss[0]))[0]
         shift_grid, shift_exact = float(g_det[0] - g_miss[0]), e_det - e_miss
         rows.append((guess - exact, shift_grid - shift_exact))
-        print(f" {t:4d}  {state.gap_m:5.2f}  {state.speed_mps:5.2f}  {int(state.pending):4d} | {guess / LN10:12.3f}  "
-              f"{exact / LN10:6.3f} [{upper / LN10:6.3f}] | {shift_grid:19.2f}  {shift_exact:6.2f}  "
-              f"{time.perf_counter() - t1:6.1f}")  # fmt: skip
+        print(
+            f" {t:4d}  {state.gap_m:5.2f}  {state.speed_mps:5.2f}  {int(state.pending):4d} | {guess / LN10:12.3f}  "
+            f"{exact / LN10:6.3f} [{upper / LN10:6.3f}] | {shift_grid:19.2f}  {shift_exact:6.2f}  "
+            f"{time.perf_counter() - t1:6.1f}"
+        )
     err = np.array([r[0] for r in rows]) / LN10
     shift = np.array([r[1] for r in rows])
     ok = np.isfinite(err) & np.isfinite(shift)
     e_ok, s_ok = err[ok], shift[ok]
-    print(f"\ngrid over exact, {ok.sum()} states: log10 V median {np.median(e_ok):+.2f}, RMS "
-          f"{np.sqrt(np.mean(e_ok**2)):.2f}, largest {np.abs(e_ok).max():.2f}; log odds shift error median "
-          f"{np.median(s_ok):+.2f} nats, RMS {np.sqrt(np.mean(s_ok**2)):.2f}, largest {np.abs(s_ok).max():.2f}")
+    print(
+        f"\ngrid over exact, {ok.sum()} states: log10 V median {np.median(e_ok):+.2f}, RMS "
+        f"{np.sqrt(np.mean(e_ok**2)):.2f}, largest {np.abs(e_ok).max():.2f}; log odds shift error median "
+        f"{np.median(s_ok):+.2f} nats, RMS {np.sqrt(np.mean(s_ok**2)):.2f}, largest {np.abs(s_ok).max():.2f}"
+    )
 
     estimates, look_ahead = [], 0
     for run in range(seeds):
@@ -126,12 +142,19 @@ def study(states: int = 12, seeds: int = 100, seed: int = 0) -> dict[str, float]
     relvar = float(e.var(ddof=1))
     reused = 1000 + look_ahead / seeds / p.n_steps
     first = reused + grid.steps / p.n_steps
-    print(f"tilt, {seeds} seeds of 1,000 rollouts: mean x{e.mean():.3f}, relvar {relvar:.5f} (per rollout "
-          f"{relvar * 1000:.2f}); relvar x simulations {relvar * first:.2f} solving the committor ({first:,.0f} "
-          f"rollout-equivalents a run), {relvar * reused:.2f} reusing it ({reused:,.0f})")  # fmt: skip
-    return {"log10_v_median": float(np.median(e_ok)), "log10_v_rms": float(np.sqrt(np.mean(e_ok**2))),
-            "shift_rms": float(np.sqrt(np.mean(s_ok**2))), "mean": float(e.mean()),
-            "relvar_sims_solving": relvar * first, "relvar_sims_reusing": relvar * reused}
+    print(
+        f"tilt, {seeds} seeds of 1,000 rollouts: mean x{e.mean():.3f}, relvar {relvar:.5f} (per rollout "
+        f"{relvar * 1000:.2f}); relvar x simulations {relvar * first:.2f} solving the committor ({first:,.0f} "
+        f"rollout-equivalents a run), {relvar * reused:.2f} reusing it ({reused:,.0f})"
+    )
+    return {
+        "log10_v_median": float(np.median(e_ok)),
+        "log10_v_rms": float(np.sqrt(np.mean(e_ok**2))),
+        "shift_rms": float(np.sqrt(np.mean(s_ok**2))),
+        "mean": float(e.mean()),
+        "relvar_sims_solving": relvar * first,
+        "relvar_sims_reusing": relvar * reused,
+    }
 
 
 def main() -> None:

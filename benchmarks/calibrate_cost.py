@@ -166,8 +166,10 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
     for cfg, rec in runs:
         for s in rec.stages:
             proposal = cfg.method == "adaptive" and s.kind in ("ce", "final")
-            x.append([n_steps * (not proposal), n_steps * proposal, n_steps * s.n * proposal]
-                     + [n_steps * s.n * (cfg.sim == m) for m in sims])  # fmt: skip
+            x.append(
+                [n_steps * (not proposal), n_steps * proposal, n_steps * s.n * proposal]
+                + [n_steps * s.n * (cfg.sim == m) for m in sims]
+            )
             y.append(s.simulate_s)
     sim = _lstsq(np.array(x, float), np.array(y), 1.0 / np.maximum(np.array(y), 1e-3))  # relative errors
     # after the rollouts: epochs x (c + d x rows) + e x rows + f (per stage)
@@ -207,14 +209,21 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
         k, n, rows = (np.array(v, float) for v in zip(*points, strict=False))
         ce_rows[inputs] = float(rows.sum() / np.sum((n / 100.0) ** exponent * -np.expm1(-(k - 1) / tau)))
     return cost.CostConstants(
-        pem_step_s=float(sim[0]), proposal_step_s=float(sim[1]),
+        pem_step_s=float(sim[0]),
+        proposal_step_s=float(sim[1]),
         rollout_step_s={**c0.rollout_step_s, **{m: float(b) for m, b in zip(sims, sim[3:], strict=False)}},
         proposal_rollout_step_s=float(sim[2]),
-        stage_s=float(after[3]), epoch_s=float(after[0]), row_epoch_s=float(after[1]), row_s=float(after[2]),
+        stage_s=float(after[3]),
+        epoch_s=float(after[0]),
+        row_epoch_s=float(after[1]),
+        row_s=float(after[2]),
         pretrain_rows={**c0.pretrain_rows, **{k: float(np.mean(v)) for k, v in pretrain.items()}},
-        ce_rows={**c0.ce_rows, **ce_rows}, ce_rows_exponent=exponent, ce_rows_stages=tau,
-        early_stop_share=float(np.mean(share)) if share else c0.early_stop_share, ams_rollouts=c0.ams_rollouts,
-    )  # fmt: skip
+        ce_rows={**c0.ce_rows, **ce_rows},
+        ce_rows_exponent=exponent,
+        ce_rows_stages=tau,
+        early_stop_share=float(np.mean(share)) if share else c0.early_stop_share,
+        ams_rollouts=c0.ams_rollouts,
+    )
 
 
 def scale_to_totals(c: cost.CostConstants, rows: list[tuple[str, ExperimentConfig, float]]) -> cost.CostConstants:
@@ -228,11 +237,16 @@ def scale_to_totals(c: cost.CostConstants, rows: list[tuple[str, ExperimentConfi
     a, b = _lstsq(np.array(parts), np.ones(len(parts)))
     a, b = (a or 1.0), (b or 1.0)
     return replace(
-        c, pem_step_s=c.pem_step_s * a, proposal_step_s=c.proposal_step_s * a,
+        c,
+        pem_step_s=c.pem_step_s * a,
+        proposal_step_s=c.proposal_step_s * a,
         rollout_step_s={k: v * a for k, v in c.rollout_step_s.items()},
         proposal_rollout_step_s=c.proposal_rollout_step_s * a,
-        stage_s=c.stage_s * b, epoch_s=c.epoch_s * b, row_epoch_s=c.row_epoch_s * b, row_s=c.row_s * b,
-    )  # fmt: skip
+        stage_s=c.stage_s * b,
+        epoch_s=c.epoch_s * b,
+        row_epoch_s=c.row_epoch_s * b,
+        row_s=c.row_s * b,
+    )
 
 
 def literal(c: cost.CostConstants, measured: str) -> str:
@@ -253,10 +267,14 @@ def main() -> int:
     args = ap.parse_args()
     names = list(CONFIGS) if args.only is None else [n.strip() for n in args.only.split(",")]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
-    print(f"pemviz cost model: {len(names)} configurations x {args.repeat}, load average {load:.2f}, "
-          f"{os.cpu_count()} CPUs; constants measured: {cost.COST.measured}")  # fmt: skip
-    for warm in (ExperimentConfig(**{**PRESETS["quick"], "n_stages": 2, "n_per_stage": 40}),
-                 ExperimentConfig(method="mc", sim="highway-env", n_per_stage=4)):  # fmt: skip
+    print(
+        f"pemviz cost model: {len(names)} configurations x {args.repeat}, load average {load:.2f}, "
+        f"{os.cpu_count()} CPUs; constants measured: {cost.COST.measured}"
+    )
+    for warm in (
+        ExperimentConfig(**{**PRESETS["quick"], "n_stages": 2, "n_per_stage": 40}),
+        ExperimentConfig(method="mc", sim="highway-env", n_per_stage=4),
+    ):
         measure(warm)  # imports, the first network, the first highway-env simulator
     rows, records = [], []
     t_all = time.perf_counter()
@@ -269,14 +287,18 @@ def main() -> int:
             cpus.append(cpu)
             records.append((cfg, rec))
         rows.append((name, cfg, statistics.median(times)))
-        print(f"  {name}: wall {', '.join(f'{t:.2f}' for t in times)} s, CPU {', '.join(f'{t:.2f}' for t in cpus)} s",
-              flush=True)  # fmt: skip
+        print(
+            f"  {name}: wall {', '.join(f'{t:.2f}' for t in times)} s, CPU {', '.join(f'{t:.2f}' for t in cpus)} s",
+            flush=True,
+        )
     table(rows, cost.COST, "with the constants of pemviz.engine.cost.COST")
     if args.fit:
         fitted = scale_to_totals(fit_constants(records), rows)
         stamp = time.strftime("%Y-%m-%d")
-        measured = (f"{stamp}, benchmarks/calibrate_cost.py --fit --repeat {args.repeat}, {os.cpu_count()} cores, "
-                    f"load average {load:.1f}")  # fmt: skip
+        measured = (
+            f"{stamp}, benchmarks/calibrate_cost.py --fit --repeat {args.repeat}, {os.cpu_count()} cores, "
+            f"load average {load:.1f}"
+        )
         fitted = replace(fitted, measured=measured)
         table(rows, fitted, "with the constants fitted to these runs")
         print("\n" + literal(fitted, measured))

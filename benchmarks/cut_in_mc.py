@@ -111,8 +111,10 @@ def monte_carlo(params: CutInParams, n: int, chunk: int, seed: int) -> None:
     print(f"PEMs: {pem.name} (detection), {noise_pem.name} (noise); seed {seed}")
     print(f"{n} rollouts: {failed.sum()} failures ({collided.sum()} collisions)")
     lo, hi = np.exp(est.log_ci)
-    print(f"p_fail = {np.exp(est.log_mu_hat):.3e}, 95 % interval [{lo:.3e}, {hi:.3e}], ESS {est.ess:.1f}, "
-          f"{est.verdict} ({est.reason})")  # fmt: skip
+    print(
+        f"p_fail = {np.exp(est.log_mu_hat):.3e}, 95 % interval [{lo:.3e}, {hi:.3e}], ESS {est.ess:.1f}, "
+        f"{est.verdict} ({est.reason})"
+    )
     print(f"{elapsed:.0f} s ({elapsed / n * 1e6:.0f} us per rollout with both PEMs); {load()}")
 
 
@@ -138,8 +140,10 @@ def cost(params: CutInParams, n: int, seed: int) -> None:
                     sim.objects()
                 sim.step(detected[t], noise[t])
             best = min(best, time.perf_counter() - start)
-        print(f"twin, {label}: N = {n}, T = {n_steps}, M = {m} (T*M = {n_steps * m} object-steps): "
-              f"{best / n * 1e6:.1f} us per rollout (best of 5)")  # fmt: skip
+        print(
+            f"twin, {label}: N = {n}, T = {n_steps}, M = {m} (T*M = {n_steps * m} object-steps): "
+            f"{best / n * 1e6:.1f} us per rollout (best of 5)"
+        )
     print(f"# {load()}")
 
 

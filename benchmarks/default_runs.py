@@ -71,12 +71,14 @@ def summary(ratios: np.ndarray, holds: np.ndarray, verdicts: list[str], logs: np
     rel = np.abs(ratios - 1.0)
     off = (ratios < 0.5) | (ratios > 2.0)
     reliable = np.array([v == "reliable" for v in verdicts])
-    return (f"median relative error {np.median(rel):.3f}, RMS {np.sqrt(np.mean(rel ** 2)):.3f}, mean x"
-            f"{np.mean(ratios):.3f}; within x2 in {int(np.sum(~off))} of {ratios.size}; intervals holding the answer "
-            f"{int(np.sum(holds))} of {ratios.size} ({np.mean(holds):.1%}); verdicts " +
-            ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts)) +
-            f"; 'reliable' beyond x2: {int(np.sum(reliable & off))}, 'reliable' with the answer outside its interval: "
-            f"{int(np.sum(reliable & ~holds))}; nan: {int(np.sum(np.isnan(logs)))}")  # fmt: skip
+    return (
+        f"median relative error {np.median(rel):.3f}, RMS {np.sqrt(np.mean(rel ** 2)):.3f}, mean x"
+        f"{np.mean(ratios):.3f}; within x2 in {int(np.sum(~off))} of {ratios.size}; intervals holding the answer "
+        f"{int(np.sum(holds))} of {ratios.size} ({np.mean(holds):.1%}); verdicts "
+        + ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
+        + f"; 'reliable' beyond x2: {int(np.sum(reliable & off))}, 'reliable' with the answer outside its interval: "
+        f"{int(np.sum(reliable & ~holds))}; nan: {int(np.sum(np.isnan(logs)))}"
+    )
 
 
 def relative_variance(logs: np.ndarray) -> float:
@@ -104,17 +106,21 @@ def spread(logs: np.ndarray, half_widths: np.ndarray, sims: np.ndarray) -> str:
         return f"spread of the seeds: no run saw a failure ({logs.size} runs, {np.mean(sims):,.0f} simulations a run)"
     relvar = relative_variance(logs)
     if none:
-        return (f"spread of the seeds: {none} of {logs.size} runs saw no failure, so the logs' spread and the lower "
-                f"bound are not defined; relvar x simulations {relvar * float(np.mean(sims)):.3g} (relvar "
-                f"{relvar:.3g}, {np.mean(sims):,.0f} simulations a run)")  # fmt: skip
-    from pemviz.core.estimate import markov_lower_bound
+        return (
+            f"spread of the seeds: {none} of {logs.size} runs saw no failure, so the logs' spread and the lower "
+            f"bound are not defined; relvar x simulations {relvar * float(np.mean(sims)):.3g} (relvar "
+            f"{relvar:.3g}, {np.mean(sims):,.0f} simulations a run)"
+        )
+    from pemviz.core.confidence import markov_lower_bound
 
     bound = markov_lower_bound(logs)
-    return (f"spread of the seeds: sd of the log estimates {np.std(logs, ddof=1):.3f} against the intervals' mean "
-            f"half-width in logs / 1.96 = {np.mean(half_widths) / 1.96:.3f}; relvar x simulations "
-            f"{relvar * float(np.mean(sims)):.3g} (relvar {relvar:.3g}, {np.mean(sims):,.0f} simulations a run; "
-            f"{logs.size} runs); geometric mean {math.exp(np.mean(logs)):.3g}, so p >= {math.exp(bound):.3g} at 95 % "
-            f"(Markov's inequality on the product of the runs, which needs only their unbiasedness)")  # fmt: skip
+    return (
+        f"spread of the seeds: sd of the log estimates {np.std(logs, ddof=1):.3f} against the intervals' mean "
+        f"half-width in logs / 1.96 = {np.mean(half_widths) / 1.96:.3f}; relvar x simulations "
+        f"{relvar * float(np.mean(sims)):.3g} (relvar {relvar:.3g}, {np.mean(sims):,.0f} simulations a run; "
+        f"{logs.size} runs); geometric mean {math.exp(np.mean(logs)):.3g}, so p >= {math.exp(bound):.3g} at 95 % "
+        f"(Markov's inequality on the product of the runs, which needs only their unbiasedness)"
+    )
 
 
 def weight_profile(log_weights: list[np.ndarray], truth: float) -> str:
@@ -129,11 +135,13 @@ def weight_profile(log_weights: list[np.ndarray], truth: float) -> str:
     lw = np.concatenate(runs) - truth
     w = np.exp(lw - lw.max())
     low, high = lw < -math.log(1000.0), lw > 0
-    return (f"failures' weights over p (zero variance: all 1), {len(runs)} runs pooled: quantiles 10/50/90 % "
-            f"{', '.join(f'{math.exp(q):.2g}' for q in np.quantile(lw, [0.1, 0.5, 0.9]))}; below p / 1000: "
-            f"{low.mean():.0%} of the failures, carrying {w[low].sum() / w.sum():.2%} of the estimates; above p: "
-            f"{high.mean():.1%}, carrying {w[high].sum() / w.sum():.0%}; the heaviest 1 % of a run's failures carry "
-            f"{top1:.0%} of its estimate (mean over the runs)")  # fmt: skip
+    return (
+        f"failures' weights over p (zero variance: all 1), {len(runs)} runs pooled: quantiles 10/50/90 % "
+        f"{', '.join(f'{math.exp(q):.2g}' for q in np.quantile(lw, [0.1, 0.5, 0.9]))}; below p / 1000: "
+        f"{low.mean():.0%} of the failures, carrying {w[low].sum() / w.sum():.2%} of the estimates; above p: "
+        f"{high.mean():.1%}, carrying {w[high].sum() / w.sum():.0%}; the heaviest 1 % of a run's failures carry "
+        f"{top1:.0%} of its estimate (mean over the runs)"
+    )
 
 
 def mc_reference(cfg, problem, n: int) -> tuple[float, str]:  # noqa: ANN001 (an ExperimentConfig, a Problem)
@@ -186,16 +194,26 @@ def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: 
         if final.failures is not None:
             weights.append(final.failures.log_weight)
         against = "" if math.isnan(truth) else f" x{ratios[-1]:.3f} ({'holds' if holds[-1] else 'misses'} it)"
-        print(f"  seed {seed}: {math.exp(e.log_mu_hat):.3e} {e.interval_text()}{against}, {e.n_failures} failures, "
-              f"ESS {e.ess:.1f}, k-hat {e.khat:.2f}, {e.verdict}; {final.n_simulations:,} simulations, {wall:.1f} s",
-              flush=True)  # fmt: skip
+        print(
+            f"  seed {seed}: {math.exp(e.log_mu_hat):.3e} {e.interval_text()}{against}, {e.n_failures} failures, "
+            f"ESS {e.ess:.1f}, k-hat {e.khat:.2f}, {e.verdict}; {final.n_simulations:,} simulations, {wall:.1f} s",
+            flush=True,
+        )
     if not math.isnan(truth):
         print(summary(np.array(ratios), np.array(holds), verdicts, np.array(logs)))
     print(spread(np.array(logs), np.array(halves), np.array(sims)))
     if weights and not math.isnan(truth):
         print(weight_profile(weights, truth))
-    return {"truth": truth, "logs": np.array(logs), "cis": cis, "ratios": np.array(ratios), "holds": np.array(holds),
-            "verdicts": verdicts, "sims": np.array(sims), "walls": np.array(walls)}
+    return {
+        "truth": truth,
+        "logs": np.array(logs),
+        "cis": cis,
+        "ratios": np.array(ratios),
+        "holds": np.array(holds),
+        "verdicts": verdicts,
+        "sims": np.array(sims),
+        "walls": np.array(walls),
+    }
 
 
 def overlaps(a: dict[str, Any], b: dict[str, Any]) -> int:
@@ -210,12 +228,16 @@ def agreement(a: dict[str, Any], b: dict[str, Any]) -> str:
     overlap = overlaps(a, b)
     none = [int(np.sum(~np.isfinite(x))) for x in (la, lb)]
     if any(none):
-        return (f"agreement over {la.size} seeds: the two intervals overlap in {overlap}; runs without a failure: "
-                f"{none[0]} and {none[1]}, so the geometric means cannot be compared")  # fmt: skip
+        return (
+            f"agreement over {la.size} seeds: the two intervals overlap in {overlap}; runs without a failure: "
+            f"{none[0]} and {none[1]}, so the geometric means cannot be compared"
+        )
     diff, se = log_gap(la, lb)
-    return (f"agreement over {la.size} seeds: the two intervals overlap in {overlap}; geometric means "
-            f"{math.exp(la.mean()):.3g} and {math.exp(lb.mean()):.3g}, ratio x{math.exp(diff):.2f} (log ratio "
-            f"{diff:+.2f} nats, standard error {se:.2f} from the seeds' spread: {abs(diff) / se:.1f} SE)")
+    return (
+        f"agreement over {la.size} seeds: the two intervals overlap in {overlap}; geometric means "
+        f"{math.exp(la.mean()):.3g} and {math.exp(lb.mean()):.3g}, ratio x{math.exp(diff):.2f} (log ratio "
+        f"{diff:+.2f} nats, standard error {se:.2f} from the seeds' spread: {abs(diff) / se:.1f} SE)"
+    )
 
 
 def heaviest_failures(seed: int, n: int, k: int) -> None:
@@ -238,8 +260,9 @@ def heaviest_failures(seed: int, n: int, k: int) -> None:
             lqb, p0 = self.last
             _, qc = self.grid.proposal(p0, self.beta * lqb, self.eps)
             log_q_cls, rr = self.grid.class_values(lqb), np.arange(idx.size)
-            self.trace[idx, t] = np.column_stack([cls, exact.log(pc[rr, cls]) - exact.log(qc[rr, cls]),
-                                                  log_q_cls[rr, cls], self.grid.log_value(p0, lqb)])
+            self.trace[idx, t] = np.column_stack(
+                [cls, exact.log(pc[rr, cls]) - exact.log(qc[rr, cls]), log_q_cls[rr, cls], self.grid.log_value(p0, lqb)]
+            )
 
     params = cut_in_params("moderate")
     problem = cut_in_problem(load_pem(), params)
@@ -250,9 +273,11 @@ def heaviest_failures(seed: int, n: int, k: int) -> None:
     failed = problem.failed(batch, problem.robustness(batch, "classic"))
     failures, rollouts = MONTE_CARLO_REFERENCE["moderate"]
     nb, central = tilt.grid.nb, f"r{tilt.grid.nb // 2}l{tilt.grid.nb // 2}"
-    print(f"seed {seed}, {n} rollouts: {int(failed.sum())} failures, mu_hat {np.mean(np.exp(log_w) * failed):.3e}; "
-          f"log p of the reference {math.log(failures / rollouts):.2f}; class rIlJ: range error bin I, lateral bin J "
-          f"of {nb} (central {central})")  # fmt: skip
+    print(
+        f"seed {seed}, {n} rollouts: {int(failed.sum())} failures, mu_hat {np.mean(np.exp(log_w) * failed):.3e}; "
+        f"log p of the reference {math.log(failures / rollouts):.2f}; class rIlJ: range error bin I, lateral bin J "
+        f"of {nb} (central {central})"
+    )
     for i in np.argsort(-np.where(failed, log_w, -np.inf))[:k]:
         steps = []
         for t in np.flatnonzero(~np.isnan(tilt.trace[i, :, 0])):
@@ -274,15 +299,21 @@ def toy_runs(n_seeds: int, n: int) -> dict[str, float]:
     from pemviz.testing import ESTIMATOR_PROBLEM
 
     problem = build_problem(ESTIMATOR_PROBLEM)
-    ests = [Experiment(dataclasses.replace(ExperimentConfig(method="tilt", seed=s), n_per_stage=n),
-                       problem=problem).run().final.estimate for s in range(n_seeds)]  # fmt: skip
+    ests = [
+        Experiment(dataclasses.replace(ExperimentConfig(method="tilt", seed=s), n_per_stage=n), problem=problem)
+        .run()
+        .final.estimate
+        for s in range(n_seeds)
+    ]
     ratio = np.exp(np.array([e.log_mu_hat for e in ests]) - problem.exact_log_p)
     holds = np.array([e.covers(problem.exact_log_p) for e in ests])
     se = ratio.std(ddof=1) / math.sqrt(ratio.size)
-    print(f"toy {problem.name}, exact p {math.exp(problem.exact_log_p):.4g}, tilt with a poor committor, {n} rollouts "
-          f"a seed: mean of {ratio.size} estimates x{ratio.mean():.4f} of p (standard error {se:.4f}); the relative "
-          f"variance a rollout {ratio.var(ddof=1) * n:.2f} (plain Monte Carlo: 1 / p - 1 = "
-          f"{1 / math.exp(problem.exact_log_p) - 1:.0f})")  # fmt: skip
+    print(
+        f"toy {problem.name}, exact p {math.exp(problem.exact_log_p):.4g}, tilt with a poor committor, {n} rollouts "
+        f"a seed: mean of {ratio.size} estimates x{ratio.mean():.4f} of p (standard error {se:.4f}); the relative "
+        f"variance a rollout {ratio.var(ddof=1) * n:.2f} (plain Monte Carlo: 1 / p - 1 = "
+        f"{1 / math.exp(problem.exact_log_p) - 1:.0f})"
+    )
     print(summary(ratio, holds, [e.verdict for e in ests], np.array([e.log_mu_hat for e in ests])))
     return {"mean": float(ratio.mean()), "se": float(se)}
 
@@ -313,8 +344,11 @@ def _command_wall() -> float:
     pemviz = [sys.executable, "-c", "from pemviz.cli import main; main()"]  # what the console script runs
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        subprocess.run([*pemviz, "run", "--scenario", "cut-in", "--seed", "1", "--save", f"{tmp}/r.rrd"], check=True,
-                       capture_output=True)  # fmt: skip
+        subprocess.run(
+            [*pemviz, "run", "--scenario", "cut-in", "--seed", "1", "--save", f"{tmp}/r.rrd"],
+            check=True,
+            capture_output=True,
+        )
         return time.perf_counter() - t0
 
 
@@ -337,8 +371,10 @@ def _braking_committor() -> dict[str, float]:
     return study()
 
 
-RARE_TILT, RARE_AMS = ("--method", "tilt", "--n", "7280"), ("--method", "ams", "--ams-score", "committor", "--n",
-                                                             "1000", "--ams-killed", "100")  # fmt: skip
+RARE_TILT, RARE_AMS = (
+    ("--method", "tilt", "--n", "7280"),
+    ("--method", "ams", "--ams-score", "committor", "--n", "1000", "--ams-killed", "100"),
+)
 ACCEPTANCE_PARTS = {
     "cut-in": lambda: scenario_runs("cut-in", range(20)),
     "rare tilt": lambda: scenario_runs("cut-in-rare", range(10), RARE_TILT),
@@ -354,8 +390,10 @@ ACCEPTANCE_PARTS = {
 
 def _joined(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     """Two sets of runs of :func:`scenario_runs` (one scene, one truth) as one."""
-    return {k: a[k] + b[k] if isinstance(a[k], list) else (np.concatenate([a[k], b[k]]) if k != "truth" else a[k])
-            for k in a}  # fmt: skip
+    return {
+        k: a[k] + b[k] if isinstance(a[k], list) else (np.concatenate([a[k], b[k]]) if k != "truth" else a[k])
+        for k in a
+    }
 
 
 def acceptance_rows(r: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
@@ -366,15 +404,27 @@ def acceptance_rows(r: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
     rel, off = np.abs(cut["ratios"] - 1.0), (cut["ratios"] < 0.5) | (cut["ratios"] > 2.0)
     held = int(cut["holds"].sum())
     rows: list[tuple[str, str, bool | None]] = [
-        (f"cut-in, default command, {rel.size} seeds: median relative error <= 0.2", f"{np.median(rel):.3f}",
-         bool(np.median(rel) <= 0.2)),
+        (
+            f"cut-in, default command, {rel.size} seeds: median relative error <= 0.2",
+            f"{np.median(rel):.3f}",
+            bool(np.median(rel) <= 0.2),
+        ),
         ("  the reference inside the 95 % interval in >= 18 of 20", f"{held} of {rel.size}", held >= 0.9 * rel.size),
-        ("  no run off by more than x2", f"{int(off.sum())} beyond (x{cut['ratios'].min():.2f} to "
-         f"x{cut['ratios'].max():.2f})", not off.any()),
-        ("  cost <= 13,000 rollout-equivalents (first run; a run reusing the proposal)",
-         f"{int(cut['sims'][0]):,}; {int(np.median(cut['sims'][1:])):,}", bool(cut["sims"][0] <= 13000)),
-        ("  wall time <= 30 s (the command with its recording, a fresh process)", f"{r['cut-in wall']:.1f} s",
-         r["cut-in wall"] <= 30.0),
+        (
+            "  no run off by more than x2",
+            f"{int(off.sum())} beyond (x{cut['ratios'].min():.2f} to " f"x{cut['ratios'].max():.2f})",
+            not off.any(),
+        ),
+        (
+            "  cost <= 13,000 rollout-equivalents (first run; a run reusing the proposal)",
+            f"{int(cut['sims'][0]):,}; {int(np.median(cut['sims'][1:])):,}",
+            bool(cut["sims"][0] <= 13000),
+        ),
+        (
+            "  wall time <= 30 s (the command with its recording, a fresh process)",
+            f"{r['cut-in wall']:.1f} s",
+            r["cut-in wall"] <= 30.0,
+        ),
     ]
     gm = "a run without a failure"
     if np.all(np.isfinite(np.concatenate([rare_t["logs"], rare_a["logs"]]))):
@@ -382,42 +432,79 @@ def acceptance_rows(r: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
         gm = f"geometric means x{math.exp(diff):.2f} apart ({abs(diff) / se:.1f} SE)"
     ov = overlaps(rare_t, rare_a)
     n_rare = rare_t["logs"].size
-    rows.append((f"cut-in rare, tilt and splitting, {n_rare} seeds: every seed's two intervals overlap",
-                 f"{ov} of {n_rare}; {gm}", ov == n_rare))
+    rows.append(
+        (
+            f"cut-in rare, tilt and splitting, {n_rare} seeds: every seed's two intervals overlap",
+            f"{ov} of {n_rare}; {gm}",
+            ov == n_rare,
+        )
+    )
     for name, runs in (("tilt", rare_t), ("splitting", rare_a)):
         sd = float(np.std(runs["logs"], ddof=1))
         half = float(np.mean([(hi - lo) / 2 for lo, hi in runs["cis"]])) / 1.96
-        rows.append((f"  {name}: the seeds' spread matches the intervals (sd of logs / interval sd in 2/3..3/2)",
-                     f"{sd:.2f} / {half:.2f}", bool(2 / 3 <= sd / half <= 1.5)))
+        rows.append(
+            (
+                f"  {name}: the seeds' spread matches the intervals (sd of logs / interval sd in 2/3..3/2)",
+                f"{sd:.2f} / {half:.2f}",
+                bool(2 / 3 <= sd / half <= 1.5),
+            )
+        )
     b_rel = np.abs(brk["ratios"] - 1.0)
     b_held = int(brk["holds"].sum())
     relvar_sims = relative_variance(brk["logs"]) * float(np.mean(brk["sims"]))
     bc = r["braking committor"]
     paper = math.exp(r["paper"])
     rows += [
-        (f"braking, default command, {b_rel.size} seeds: median relative error <= 0.021", f"{np.median(b_rel):.4f}",
-         bool(np.median(b_rel) <= 0.021)),
-        ("  RMS relative error <= 0.034", f"{np.sqrt(np.mean(b_rel ** 2)):.4f}", bool(np.sqrt(np.mean(b_rel ** 2))
-                                                                                     <= 0.034)),
+        (
+            f"braking, default command, {b_rel.size} seeds: median relative error <= 0.021",
+            f"{np.median(b_rel):.4f}",
+            bool(np.median(b_rel) <= 0.021),
+        ),
+        (
+            "  RMS relative error <= 0.034",
+            f"{np.sqrt(np.mean(b_rel ** 2)):.4f}",
+            bool(np.sqrt(np.mean(b_rel**2)) <= 0.034),
+        ),
         ("  the exact answer inside the interval in >= 95 %", f"{b_held} of {b_rel.size}", b_held >= 0.95 * b_rel.size),
         ("  relvar x simulations of the default (printed)", f"{relvar_sims:.2f}", None),
-        ("  the tilt by the grid committor: relvar x simulations <= 0.5 (goal)",
-         f"{bc['relvar_sims_solving']:.2f} solving it, {bc['relvar_sims_reusing']:.2f} reusing it",
-         bc["relvar_sims_solving"] <= 0.5),
-        ("  the grid committor against the exact one (log10 V, grid less exact; log odds shift, nats)",
-         f"median {bc['log10_v_median']:+.2f}, RMS {bc['log10_v_rms']:.2f}; shift RMS {bc['shift_rms']:.2f}", None),
-        (f"  the authors'-settings preset, seed 0, gives {PAPER_PRESET_SEED0:.5g}", f"{paper:.5g}",
-         abs(paper / PAPER_PRESET_SEED0 - 1.0) < 5e-5),
+        (
+            "  the tilt by the grid committor: relvar x simulations <= 0.5 (goal)",
+            f"{bc['relvar_sims_solving']:.2f} solving it, {bc['relvar_sims_reusing']:.2f} reusing it",
+            bc["relvar_sims_solving"] <= 0.5,
+        ),
+        (
+            "  the grid committor against the exact one (log10 V, grid less exact; log odds shift, nats)",
+            f"median {bc['log10_v_median']:+.2f}, RMS {bc['log10_v_rms']:.2f}; shift RMS {bc['shift_rms']:.2f}",
+            None,
+        ),
+        (
+            f"  the authors'-settings preset, seed 0, gives {PAPER_PRESET_SEED0:.5g}",
+            f"{paper:.5g}",
+            abs(paper / PAPER_PRESET_SEED0 - 1.0) < 5e-5,
+        ),
     ]
     runs = (cut, rare_t, brk, rare_a)
-    wrong = sum(v == "reliable" and not 0.5 <= x <= 2.0  # the scenes with an answer to be wrong against
-                for a in (cut, brk) for v, x in zip(a["verdicts"], a["ratios"], strict=False))  # fmt: skip
+    wrong = sum(
+        v == "reliable" and not 0.5 <= x <= 2.0  # the scenes with an answer to be wrong against
+        for a in (cut, brk)
+        for v, x in zip(a["verdicts"], a["ratios"], strict=False)
+    )
     nans = int(sum(np.isnan(a["logs"]).sum() for a in runs))
     n_runs = sum(len(a["verdicts"]) for a in runs)
-    rows.append((f"every verdict honest: no 'reliable' beyond x2, no nan ({n_runs} runs)",
-                 f"{wrong} wrong 'reliable', {nans} nan", wrong == 0 and nans == 0))
-    rows.append(("the tilt on the toy with a poor committor is unbiased (mean within 3 standard errors of p)",
-                 f"x{toy['mean']:.4f} (standard error {toy['se']:.4f})", abs(toy["mean"] - 1.0) <= 3 * toy["se"]))
+    rows.append(
+        (
+            f"every verdict honest: no 'reliable' beyond x2, no nan ({n_runs} runs)",
+            f"{wrong} wrong 'reliable', {nans} nan",
+            wrong == 0 and nans == 0,
+        )
+    )
+    rows.append(
+        (
+            "the tilt on the toy with a poor committor is unbiased (mean within 3 standard errors of p)",
+            f"x{toy['mean']:.4f} (standard error {toy['se']:.4f})",
+            abs(toy["mean"] - 1.0) <= 3 * toy["se"],
+        )
+    )
     return [(target, figure, None if met is None else bool(met)) for target, figure, met in rows]
 
 
@@ -429,8 +516,9 @@ def acceptance(jobs: int) -> int:
 
     t0 = time.perf_counter()
     results: dict[str, Any] = {"cut-in wall": _command_wall()}  # alone: the machine's cores to itself
-    print(f"== pemviz run --scenario cut-in --seed 1 (its recording written): {results['cut-in wall']:.1f} s",
-          flush=True)  # fmt: skip
+    print(
+        f"== pemviz run --scenario cut-in --seed 1 (its recording written): {results['cut-in wall']:.1f} s", flush=True
+    )
     with ProcessPoolExecutor(jobs) as pool:
         for fut in as_completed([pool.submit(_part, name) for name in ACCEPTANCE_PARTS]):
             name, text, data = fut.result()
@@ -449,17 +537,34 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--flags", default="", help="flags added to the command, e.g. '--method tilt --n 7280'")
-    ap.add_argument("--against", default=None, metavar="FLAGS",
-                    help="run the command with these flags instead on the same seeds too, and compare the two")
-    ap.add_argument("--mc-reference", type=int, default=0, metavar="N",
-                    help="compare with a plain Monte Carlo reference of N rollouts drawn here (another setting)")
-    ap.add_argument("--heaviest", type=int, nargs=3, metavar=("SEED", "N", "K"),
-                    help="the cut-in's tilt on N rollouts of SEED: the K heaviest failures, step by step")
+    ap.add_argument(
+        "--against",
+        default=None,
+        metavar="FLAGS",
+        help="run the command with these flags instead on the same seeds too, and compare the two",
+    )
+    ap.add_argument(
+        "--mc-reference",
+        type=int,
+        default=0,
+        metavar="N",
+        help="compare with a plain Monte Carlo reference of N rollouts drawn here (another setting)",
+    )
+    ap.add_argument(
+        "--heaviest",
+        type=int,
+        nargs=3,
+        metavar=("SEED", "N", "K"),
+        help="the cut-in's tilt on N rollouts of SEED: the K heaviest failures, step by step",
+    )
     ap.add_argument("--toy", action="store_true", help="the tilted estimator on the toy with a poor committor")
     ap.add_argument("--toy-seeds", type=int, default=200)
     ap.add_argument("--toy-n", type=int, default=2000)
-    ap.add_argument("--acceptance", action="store_true",
-                    help="every target of the committor tilt's acceptance, then a table of them (about 35 min, 2 jobs)")
+    ap.add_argument(
+        "--acceptance",
+        action="store_true",
+        help="every target of the committor tilt's acceptance, then a table of them (about 35 min, 2 jobs)",
+    )
     ap.add_argument("--jobs", type=int, default=2, help="--acceptance: parts run at a time (at least 1)")
     args = ap.parse_args()
     if args.jobs < 1:

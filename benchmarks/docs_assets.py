@@ -133,11 +133,19 @@ def fresh_lines(block: Block, output: str, width: int = 118) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--write", action="store_true", help="rewrite the stale blocks")
-    ap.add_argument("--screenshots", action="store_true",
-                    help="remake the screenshots of benchmarks/screenshots.py's table and their manifest "
-                         "(the quoted blocks too only with --write)")  # fmt: skip
-    ap.add_argument("--only", nargs="+", metavar="NAME", default=None,
-                    help="with --screenshots: only the entries that make these images")  # fmt: skip
+    ap.add_argument(
+        "--screenshots",
+        action="store_true",
+        help="remake the screenshots of benchmarks/screenshots.py's table and their manifest "
+        "(the quoted blocks too only with --write)",
+    )
+    ap.add_argument(
+        "--only",
+        nargs="+",
+        metavar="NAME",
+        default=None,
+        help="with --screenshots: only the entries that make these images",
+    )
     a = ap.parse_args(argv)
     if a.only and not a.screenshots:
         ap.error("--only needs --screenshots")

@@ -6,7 +6,7 @@ A run prints one of three claims about p (:attr:`pemviz.core.estimate.Estimate.s
 - a 95 % interval, where the run backs one (plain Monte Carlo's exact Clopper-Pearson interval, or an
   importance-sampling or splitting estimate whose verdict is ``reliable``);
 - a 95 % lower bound and no upper bound, where the weights back no interval (any other verdict): the bound holds
-  whatever the weights' tail (:func:`pemviz.core.estimate.betting_lower_bound`; Markov's inequality for splitting);
+  whatever the weights' tail (:func:`pemviz.core.confidence.betting_lower_bound`; Markov's inequality for splitting);
 - with no failure, plain Monte Carlo's rule-of-three bound p < 3 / N, or under a proposal nothing at all.
 
 For each (scene, method) the study runs ``pemviz run --scenario SCENE --method METHOD --seed S`` at its default
@@ -142,12 +142,24 @@ def one_run(scene: str, method: str, seed: int) -> Outcome:
             return Outcome(scene, method, seed, truth, refused=str(exc).splitlines()[0])
         e = final.estimate
         lo, hi = e.shown_log_ci
-        claim = ("interval" if e.interval_backed and (e.n_failures or e.plain_mc) else
-                 "bound" if e.n_failures else "none")  # fmt: skip
+        claim = (
+            "interval" if e.interval_backed and (e.n_failures or e.plain_mc) else "bound" if e.n_failures else "none"
+        )
         if claim == "none":
             lo, hi = -math.inf, math.inf
-        return Outcome(scene, method, seed, truth, e.log_mu_hat, claim, lo, hi, e.verdict, int(final.n_simulations),
-                       time.perf_counter() - t0)  # fmt: skip
+        return Outcome(
+            scene,
+            method,
+            seed,
+            truth,
+            e.log_mu_hat,
+            claim,
+            lo,
+            hi,
+            e.verdict,
+            int(final.n_simulations),
+            time.perf_counter() - t0,
+        )
 
 
 def _p(log_p: float) -> str:
@@ -162,14 +174,19 @@ def line(o: Outcome) -> str:
         return f"  {o.scene} {o.method} seed {o.seed}: refused ({o.refused})"
     claim = {"interval": f"[{_p(o.lo)}, {_p(o.hi)}]", "bound": f"p >= {_p(o.lo)}", "none": "no claim"}[o.claim]
     ratio = f"x{math.exp(o.log_mu - o.truth):.3g}" if math.isfinite(o.log_mu) else "no failure"
-    return (f"  {o.scene} {o.method} seed {o.seed}: {_p(o.log_mu)} {claim} ({'holds' if o.holds else 'MISSES'} "
-            f"{_p(o.truth)}), {ratio}, {o.verdict}; {o.sims:,} simulations, {o.wall_s:.1f} s")  # fmt: skip
+    return (
+        f"  {o.scene} {o.method} seed {o.seed}: {_p(o.log_mu)} {claim} ({'holds' if o.holds else 'MISSES'} "
+        f"{_p(o.truth)}), {ratio}, {o.verdict}; {o.sims:,} simulations, {o.wall_s:.1f} s"
+    )
 
 
 def table(outcomes: list[Outcome]) -> tuple[list[str], bool]:
     """The per-(scene, method) table and the totals (module docstring), and whether every goal is met."""
-    rows = ["| scene | method | runs | intervals (holding; off by > x2) | lower bounds (holding) | 'reliable' off x2 "
-            "| nan | median simulations |", "|---|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    rows = [
+        "| scene | method | runs | intervals (holding; off by > x2) | lower bounds (holding) | 'reliable' off x2 "
+        "| nan | median simulations |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
     ran = [o for o in outcomes if o.refused is None]
     for scene in dict.fromkeys(o.scene for o in outcomes):
         shown = f"{scene} (provisional answer)" if scene in PROVISIONAL else scene
@@ -182,10 +199,12 @@ def table(outcomes: list[Outcome]) -> tuple[list[str], bool]:
             iv = [o for o in os_ if o.claim == "interval"]
             bd = [o for o in os_ if o.claim == "bound"]
             sims = sorted(o.sims for o in os_)[len(os_) // 2]
-            rows.append(f"| {shown} | {method} | {len(os_)} | {len(iv)} ({sum(o.holds for o in iv)}; "
-                        f"{sum(o.interval_off_x2 for o in iv)}) | {len(bd)} ({sum(o.holds for o in bd)}) | "
-                        f"{sum(o.reliable_off_x2 for o in os_)} | {sum(math.isnan(o.log_mu) for o in os_)} | "
-                        f"{sims:,} |")  # fmt: skip
+            rows.append(
+                f"| {shown} | {method} | {len(os_)} | {len(iv)} ({sum(o.holds for o in iv)}; "
+                f"{sum(o.interval_off_x2 for o in iv)}) | {len(bd)} ({sum(o.holds for o in bd)}) | "
+                f"{sum(o.reliable_off_x2 for o in os_)} | {sum(math.isnan(o.log_mu) for o in os_)} | "
+                f"{sims:,} |"
+            )
     off = [o for o in ran if o.interval_off_x2]
     bounds = [o for o in ran if o.claim == "bound"]
     held = sum(o.holds for o in bounds)
@@ -223,8 +242,10 @@ def follow_advice(scene: str, seed: int) -> tuple[str, str]:
         cfg = default_config(scene, seed, ("--method", "adaptive"))
         problem = problem_for(cfg)
         final = Experiment(cfg, problem=problem).run().final
-        advice = next_step(final.estimate, cfg, problem.exact_log_p, problem.reference, final.n_simulations,
-                           final.wall_s) or ""  # fmt: skip
+        advice = (
+            next_step(final.estimate, cfg, problem.exact_log_p, problem.reference, final.n_simulations, final.wall_s)
+            or ""
+        )
         m = re.search(r"--method mc --rel-error \S+ --max-sims \d+", advice)
         said = re.search(r"~([^ ]+ (s|min|h|days|years)) at", advice)
         head = f"  {scene} seed {seed}: next: {advice[:160]}{'...' if len(advice) > 160 else ''}"
@@ -236,9 +257,11 @@ def follow_advice(scene: str, seed: int) -> tuple[str, str]:
         wall = time.perf_counter() - t0
     truth = truth_of(problem, scene)
     lo, hi = e.shown_log_ci
-    return head, (f"  {scene} seed {seed}: followed ({m.group(0)}): {_p(e.log_mu_hat)} [{_p(lo)}, {_p(hi)}], "
-                  f"{e.verdict}, {'holds' if lo <= truth <= hi else 'MISSES'} the reference {_p(truth)}; {wall:.0f} s "
-                  f"against the ~{said.group(1) if said else '?'} predicted")  # fmt: skip
+    return head, (
+        f"  {scene} seed {seed}: followed ({m.group(0)}): {_p(e.log_mu_hat)} [{_p(lo)}, {_p(hi)}], "
+        f"{e.verdict}, {'holds' if lo <= truth <= hi else 'MISSES'} the reference {_p(truth)}; {wall:.0f} s "
+        f"against the ~{said.group(1) if said else '?'} predicted"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -247,8 +270,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     ap.add_argument("--jobs", type=int, default=1, help="runs at a time, one thread each (default 1)")
-    ap.add_argument("--follow-advice", action="store_true",
-                    help="follow the adaptive run's next: line on the cut-in and the crossing, seeds 0..N-1 (N <= 3)")
+    ap.add_argument(
+        "--follow-advice",
+        action="store_true",
+        help="follow the adaptive run's next: line on the cut-in and the crossing, seeds 0..N-1 (N <= 3)",
+    )
     args = ap.parse_args(argv)
     if args.seeds < 1 or args.jobs < 1:
         ap.error("--seeds and --jobs must be at least 1")

@@ -77,10 +77,19 @@ def one(job: dict) -> dict:
         final = Experiment(cfg, problem=problem).run().final
     e = final.estimate
     values = (e.log_mu_hat, e.ess, *e.log_ci, e.log_mean_weight)
-    return {**job, "verdict": e.verdict, "covers": e.covers(truth), "log_mu_hat": e.log_mu_hat,
-            "log_truth": truth, "nan_or_inf": any(math.isnan(v) or v == math.inf for v in values),
-            "within2": abs(e.log_mu_hat - truth) <= math.log(2.0), "rel_half_width": e.rel_half_width,
-            "n_simulations": final.n_simulations, "stop": final.stop, "wall_s": time.perf_counter() - t0}  # fmt: skip
+    return {
+        **job,
+        "verdict": e.verdict,
+        "covers": e.covers(truth),
+        "log_mu_hat": e.log_mu_hat,
+        "log_truth": truth,
+        "nan_or_inf": any(math.isnan(v) or v == math.inf for v in values),
+        "within2": abs(e.log_mu_hat - truth) <= math.log(2.0),
+        "rel_half_width": e.rel_half_width,
+        "n_simulations": final.n_simulations,
+        "stop": final.stop,
+        "wall_s": time.perf_counter() - t0,
+    }
 
 
 def jobs_of(part: str, seeds: int, scenes: tuple[str, ...] = SCENES) -> list[dict]:
@@ -89,25 +98,41 @@ def jobs_of(part: str, seeds: int, scenes: tuple[str, ...] = SCENES) -> list[dic
         for scene in scenes:
             for n in BUDGETS:
                 for label, spec in [(p, {"preset": p, "method": "adaptive"}) for p in PRESET_RUNS] + [
-                        (m, {"method": m}) for m in METHOD_RUNS]:
-                    jobs += [{"part": part, "label": label, "scene": scene, "seed": s, "n_per_stage": n, **spec}
-                             for s in range(seeds)]  # fmt: skip
+                    (m, {"method": m}) for m in METHOD_RUNS
+                ]:
+                    jobs += [
+                        {"part": part, "label": label, "scene": scene, "seed": s, "n_per_stage": n, **spec}
+                        for s in range(seeds)
+                    ]
         return jobs
     if part == "defaults":
         return [{"part": part, "label": "default", "scene": scene, "seed": s} for scene in scenes for s in range(20)]
     if part == "rel-error":
-        return [{"part": part, "label": "rel-error 0.05", "scene": "braking", "seed": s, "rel_error": 0.05}
-                for s in range(20)]  # fmt: skip
+        return [
+            {"part": part, "label": "rel-error 0.05", "scene": "braking", "seed": s, "rel_error": 0.05}
+            for s in range(20)
+        ]
     if part == "cut-in-mc":
-        return [{"part": part, "label": "mc rel-error 0.2", "scene": "cut-in", "seed": 0, "method": "mc",
-                 "n_per_stage": 20_000, "rel_error": 0.2, "max_time_s": 600.0}]  # fmt: skip
+        return [
+            {
+                "part": part,
+                "label": "mc rel-error 0.2",
+                "scene": "cut-in",
+                "seed": 0,
+                "method": "mc",
+                "n_per_stage": 20_000,
+                "rel_error": 0.2,
+                "max_time_s": 600.0,
+            }
+        ]
     return []
 
 
 def table(runs: list[dict], keys: tuple[str, ...]) -> int:
     """Print one row per group of ``keys``; returns the wrong claims and nan/inf runs."""
-    print("| " + " | ".join(keys)
-          + " | runs | verdicts | interval holds | within x2 | nan or inf | reliable when wrong |")
+    print(
+        "| " + " | ".join(keys) + " | runs | verdicts | interval holds | within x2 | nan or inf | reliable when wrong |"
+    )
     print("|" + "---|" * (len(keys) + 6))
     bad = 0
     for key in dict.fromkeys(tuple(r.get(k) for k in keys) for r in runs):
@@ -120,16 +145,32 @@ def table(runs: list[dict], keys: tuple[str, ...]) -> int:
         nan = sum(r["nan_or_inf"] for r in g)
         bad += wrong + nan
         verdicts = ", ".join(f"{v} {c}" for v, c in sorted(Counter(r["verdict"] for r in g).items()))
-        print(f"| {cells} | {len(g)} | {verdicts} | {sum(r['covers'] for r in g)} | {sum(r['within2'] for r in g)} "
-              f"| {nan} | {wrong} |")
+        print(
+            f"| {cells} | {len(g)} | {verdicts} | {sum(r['covers'] for r in g)} | {sum(r['within2'] for r in g)} "
+            f"| {nan} | {wrong} |"
+        )
     return bad
 
 
 def refusal_seconds() -> tuple[float, int, str]:
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", "import sys; from pemviz.cli import main; sys.exit(main())", "run",
-                           "--preset", "paper", "--scenario", "cut-in", "--no-record"], capture_output=True,
-                          text=True, cwd=REPO, timeout=120)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from pemviz.cli import main; sys.exit(main())",
+            "run",
+            "--preset",
+            "paper",
+            "--scenario",
+            "cut-in",
+            "--no-record",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=120,
+    )
     return time.perf_counter() - t0, proc.returncode, proc.stderr.strip()
 
 
@@ -168,15 +209,19 @@ def main() -> int:
                 held = sum(r["covers"] for r in g)
                 bad += held < 19
                 widths = sorted(r["rel_half_width"] for r in g)
-                print(f"\n{scene}: the interval holds the answer in {held} of {len(g)} (target >= 19); relative "
-                      f"half-width median {widths[len(g) // 2]:.3g}, max {widths[-1]:.3g}; simulations median "
-                      f"{sorted(r['n_simulations'] for r in g)[len(g) // 2]:,}")  # fmt: skip
+                print(
+                    f"\n{scene}: the interval holds the answer in {held} of {len(g)} (target >= 19); relative "
+                    f"half-width median {widths[len(g) // 2]:.3g}, max {widths[-1]:.3g}; simulations median "
+                    f"{sorted(r['n_simulations'] for r in g)[len(g) // 2]:,}"
+                )
         if part == "cut-in-mc":
             r = done[0]
             ratio = math.exp(abs(r["log_mu_hat"] - r["log_truth"]))
-            print(f"\nmu_hat {math.exp(r['log_mu_hat']):.3g} vs reference {math.exp(r['log_truth']):.3g}: x{ratio:.2f} "
-                  f"(target <= 1.5 or a cap said), {r['n_simulations']:,} simulations in {r['wall_s']:.0f} s; "
-                  f"stop: {r['stop']}")  # fmt: skip
+            print(
+                f"\nmu_hat {math.exp(r['log_mu_hat']):.3g} vs reference {math.exp(r['log_truth']):.3g}: x{ratio:.2f} "
+                f"(target <= 1.5 or a cap said), {r['n_simulations']:,} simulations in {r['wall_s']:.0f} s; "
+                f"stop: {r['stop']}"
+            )
             bad += ratio > 1.5 and not r["stop"].startswith("stopped at a cap")
         print(f"\n({len(runs)} runs in {time.perf_counter() - t0:.0f} s)")
     if a.json:

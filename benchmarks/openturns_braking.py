@@ -171,8 +171,10 @@ class Counter:
             u = ndtr(u)
         elapsed = time.perf_counter() - self.t0
         if self.evaluations + len(u) > self.cap or elapsed > self.timeout_s:
-            self.stopped = (f"stalled: stopped after {self.evaluations} evaluations, {elapsed:.0f} s "
-                            f"(cap {self.cap} evaluations, {self.timeout_s:g} s)")  # fmt: skip
+            self.stopped = (
+                f"stalled: stopped after {self.evaluations} evaluations, {elapsed:.0f} s "
+                f"(cap {self.cap} evaluations, {self.timeout_s:g} s)"
+            )
             raise Stop(self.stopped)
         self.evaluations += len(u)
         return limit_state(u)[:, None]
@@ -238,8 +240,9 @@ def run_openturns(method: str, budget: int, seed: int, timeout_s: float, eval_ca
         status = "ok" if mu > 0.0 else "zero"
     except Exception as exc:  # noqa: BLE001 -- OpenTURNS wraps g's Stop in its own exception types
         mu, status = math.nan, "stalled" if counter.stopped else "crashed"
-        error = counter.stopped or (f"{type(exc).__name__}: "
-                                    f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}")
+        error = counter.stopped or (
+            f"{type(exc).__name__}: " f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}"
+        )
     wall = time.perf_counter() - counter.t0
     levels, last = 0, math.nan
     if status in ("ok", "zero"):
@@ -290,8 +293,17 @@ def run_pemviz(seed: int) -> Run:
     if not isinstance(out, RunFinished):
         return Run("pemviz", 0, seed, "crashed", math.nan, 0, wall, error=str(out))
     mu = math.exp(out.final.estimate.log_mu_hat)
-    return Run("pemviz", out.final.n_simulations, seed, "ok" if mu > 0 else "zero", mu, out.final.n_simulations,
-               wall, cfg.n_stages, 0.0)  # fmt: skip
+    return Run(
+        "pemviz",
+        out.final.n_simulations,
+        seed,
+        "ok" if mu > 0 else "zero",
+        mu,
+        out.final.n_simulations,
+        wall,
+        cfg.n_stages,
+        0.0,
+    )
 
 
 # -- the table ---------------------------------------------------------------------------------------------------
@@ -319,14 +331,19 @@ def summarise(runs: list[Run], p: float) -> dict[str, Any]:
 
 def markdown(rows: list[tuple[str, int, dict[str, Any]]], n_seeds: int, p: float) -> str:
     """The Markdown table of :func:`summarise` rows."""
-    head = (f"Braking job, p = {p:.4g}, {n_seeds} seeds. runs: estimate > 0 / = 0 / crashed / stalled; short: runs "
-            "that returned an estimate from a last level above g = 0 (P(g < that level), not the failure probability). "
-            "rel. var x evals measures spread, not bias: read it beside median mu_hat/p.\n\n"
-            "| method | budget | runs | short | median rel. error | within x2 | median mu_hat/p | mean evaluations "
-            "| median wall s | rel. var x evals |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|\n")  # fmt: skip
-    lines = [f"| {m} | {b:,} | {s['runs']} | {s['short']} | {s['median_rel_error']:.3g} | {s['within_x2']}/{n_seeds} | "
-             f"{s['median_mu_over_p']:.3g} | {s['mean_evaluations']:,.0f} | {s['median_wall_s']:.1f} | "
-             f"{s['relvar_x_evals']:.3g} |" for m, b, s in rows]  # fmt: skip
+    head = (
+        f"Braking job, p = {p:.4g}, {n_seeds} seeds. runs: estimate > 0 / = 0 / crashed / stalled; short: runs "
+        "that returned an estimate from a last level above g = 0 (P(g < that level), not the failure probability). "
+        "rel. var x evals measures spread, not bias: read it beside median mu_hat/p.\n\n"
+        "| method | budget | runs | short | median rel. error | within x2 | median mu_hat/p | mean evaluations "
+        "| median wall s | rel. var x evals |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|\n"
+    )
+    lines = [
+        f"| {m} | {b:,} | {s['runs']} | {s['short']} | {s['median_rel_error']:.3g} | {s['within_x2']}/{n_seeds} | "
+        f"{s['median_mu_over_p']:.3g} | {s['mean_evaluations']:,.0f} | {s['median_wall_s']:.1f} | "
+        f"{s['relvar_x_evals']:.3g} |"
+        for m, b, s in rows
+    ]
     return head + "\n".join(lines) + "\n"
 
 
@@ -358,12 +375,18 @@ def main(argv: list[str] | None = None) -> int:
     for method, budget in plan:
         group = []
         for seed in range(args.seeds):
-            r = run_pemviz(seed) if method == "pemviz" else run_isolated(method, budget, seed, args.timeout,
-                                                                         args.eval_cap)  # fmt: skip
+            r = (
+                run_pemviz(seed)
+                if method == "pemviz"
+                else run_isolated(method, budget, seed, args.timeout, args.eval_cap)
+            )
             group.append(r)
-            print(f"{method:12s} budget {r.budget:>7,} seed {seed}: {r.status:7s} mu_hat/p {r.mu_hat / p:10.4g} "
-                  f"evaluations {r.evaluations:>9,} levels {r.levels:2d} last level {r.last_threshold_m:6.3f} m "
-                  f"{r.wall_s:7.1f} s {r.error}", flush=True)  # fmt: skip
+            print(
+                f"{method:12s} budget {r.budget:>7,} seed {seed}: {r.status:7s} mu_hat/p {r.mu_hat / p:10.4g} "
+                f"evaluations {r.evaluations:>9,} levels {r.levels:2d} last level {r.last_threshold_m:6.3f} m "
+                f"{r.wall_s:7.1f} s {r.error}",
+                flush=True,
+            )
         runs += group
         rows.append((method, budget or round(statistics.fmean(r.evaluations for r in group)), summarise(group, p)))
         (args.out / "runs.json").write_text(json.dumps({"p": p, "runs": [asdict(r) for r in runs]}, indent=1))

@@ -26,9 +26,14 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync",
-]  # fmt: skip
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 
 def _watch_first_stage(app, run_id: int, out: list[float]) -> threading.Thread:
@@ -76,8 +81,9 @@ def main() -> int:
             page.goto(app.url)
             run = page.get_by_role("button", name="Run", exact=True)
             run.wait_for(timeout=60_000)
-            page.evaluate("() => document.addEventListener('click', () => { window.__clicked = performance.now(); },"
-                          " true)")  # fmt: skip
+            page.evaluate(
+                "() => document.addEventListener('click', () => { window.__clicked = performance.now(); }," " true)"
+            )
             for i in range(1, args.runs + 1):
                 page.wait_for_function("() => !document.body.innerText.includes('is going')", timeout=120_000)
                 done: list[float] = []
@@ -86,23 +92,31 @@ def main() -> int:
                 # the status line names a stage after the pretraining (or the run has already ended)
                 page.wait_for_function(
                     f"() => /run {i}\\b[^\\n]*(CE stage|final batch)|Final estimate of run {i}\\b/"
-                    ".test(document.body.innerText)", timeout=60_000)  # fmt: skip
+                    ".test(document.body.innerText)",
+                    timeout=60_000,
+                )
                 t_first = page.evaluate("() => performance.now() - window.__clicked") / 1000
                 watcher.join()
                 server.append(done[0])
-                page.wait_for_function(f"() => document.body.innerText.includes('Final estimate of run {i}')",
-                                       timeout=300_000)  # fmt: skip
+                page.wait_for_function(
+                    f"() => document.body.innerText.includes('Final estimate of run {i}')", timeout=300_000
+                )
                 t_whole = page.evaluate("() => performance.now() - window.__clicked") / 1000
                 first.append(t_first)
                 whole.append(t_whole)
-                print(f"run {i}: first stage shown {t_first:.2f} s after the click (finished {server[-1]:.2f} s after "
-                      f"the server had the click), final estimate {t_whole:.2f} s", flush=True)  # fmt: skip
+                print(
+                    f"run {i}: first stage shown {t_first:.2f} s after the click (finished {server[-1]:.2f} s after "
+                    f"the server had the click), final estimate {t_whole:.2f} s",
+                    flush=True,
+                )
             browser.close()
     finally:
         app.close()
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-    print(f"median over {len(first)} runs of {args.preset}: first stage {statistics.median(first):.2f} s, final "
-          f"estimate {statistics.median(whole):.2f} s (load average {load})")
+    print(
+        f"median over {len(first)} runs of {args.preset}: first stage {statistics.median(first):.2f} s, final "
+        f"estimate {statistics.median(whole):.2f} s (load average {load})"
+    )
     return 0
 
 

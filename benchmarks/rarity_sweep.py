@@ -51,7 +51,8 @@ from pemviz.settings import METHODS as CONFIG_METHODS
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import Detector
 from pemviz.engine.experiment import Experiment
-from pemviz.core.estimate import clopper_pearson, relative_error
+from pemviz.core.confidence import clopper_pearson
+from pemviz.core.estimate import relative_error
 from pemviz.engine.events import RunFinished
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.core.files import atomic_write
@@ -69,6 +70,7 @@ from pemviz.studies.validation import all_fields, ams_fields
 
 Q_STAR = "q*"
 """The label of the exact zero-variance sampler (not a config: built from the problem's exact V)."""
+
 
 def methods_at(n_final: int = ExperimentConfig().n_final) -> list[tuple[str, dict[str, Any] | None]]:
     """(label, ExperimentConfig fields) per method, None for q*, all at the budget of the default sampler with a final
@@ -130,13 +132,19 @@ def toy_spec(misses: int, log10_p: float) -> Spec:
 
 
 FULL: tuple[Spec, ...] = (
-    toy_spec(3, -3), toy_spec(10, -10), toy_spec(30, -20), toy_spec(10, -30), toy_spec(100, -50),
+    toy_spec(3, -3),
+    toy_spec(10, -10),
+    toy_spec(30, -20),
+    toy_spec(10, -30),
+    toy_spec(100, -50),
     toy_spec(300, -100),
-    Spec("latched-6", "latched", shift=-6.0), Spec("latched+0", "latched", shift=0.0),
+    Spec("latched-6", "latched", shift=-6.0),
+    Spec("latched+0", "latched", shift=0.0),
     Spec("latched+8", "latched", shift=8.0),
-    Spec("main+0", "main", shift=0.0), Spec("main+3", "main", shift=3.0),
+    Spec("main+0", "main", shift=0.0),
+    Spec("main+3", "main", shift=3.0),
     Spec("cut-in-moderate", "cut-in", setting="moderate"),
-)  # fmt: skip
+)
 """The full sweep's problems (log10 p from -1.4 to -100, and the cut-in at -4.1)."""
 
 QUICK: tuple[Spec, ...] = (toy_spec(3, -3), toy_spec(10, -10), Spec("latched-6", "latched", shift=-6.0))
@@ -180,8 +188,11 @@ def exact_log_p(spec: Spec) -> tuple[float, str]:
     if spec.kind == "cut-in":
         failures, rollouts = MONTE_CARLO_REFERENCE[spec.setting]
         lo, hi = clopper_pearson(failures, rollouts)
-        return (math.log(failures / rollouts), f"plain Monte Carlo, {failures} failures in {rollouts:.0e} rollouts "
-                f"(95 % interval [{lo:.3g}, {hi:.3g}])")  # fmt: skip
+        return (
+            math.log(failures / rollouts),
+            f"plain Monte Carlo, {failures} failures in {rollouts:.0e} rollouts "
+            f"(95 % interval [{lo:.3g}, {hi:.3g}])",
+        )
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
         return truth_latched.latched_log_failure_probability(pem.logit_at_gap).log_p_fail, "latched closed form"
@@ -191,8 +202,9 @@ def exact_log_p(spec: Spec) -> tuple[float, str]:
     guess = truth_known.KNOWN_BRAKING_LOG_P["915fec568bb72b65"] - 9.0 * spec.shift  # ~9 nats per nat of shift, measured
     ref = truth.braking_truth(pem.logit_at_gap, BrakingParams(), log_prunes=[guess - 10 - 4 * k for k in range(8)])
     f = ref.final
-    return ref.log_p_fail, (f"exact enumeration, bracket width {f.relative_width:.2%}"
-                            f"{'' if ref.converged else ' (NOT converged)'}")
+    return ref.log_p_fail, (
+        f"exact enumeration, bracket width {f.relative_width:.2%}" f"{'' if ref.converged else ' (NOT converged)'}"
+    )
 
 
 # -- runs -----------------------------------------------------------------------------------------------------------
@@ -207,8 +219,11 @@ class Job:
 
     def key(self) -> str:
         fields = self.fields if self.method == Q_STAR else all_fields(self.fields or ())  # defaults filled in
-        return json.dumps({"spec": asdict(self.spec), "method": self.method, "fields": fields, "seed": self.seed},
-                          sort_keys=True, default=str)  # fmt: skip
+        return json.dumps(
+            {"spec": asdict(self.spec), "method": self.method, "fields": fields, "seed": self.seed},
+            sort_keys=True,
+            default=str,
+        )
 
 
 @dataclass(frozen=True)
@@ -276,13 +291,18 @@ def run_all(jobs: Sequence[Job], runs_file: Path, n_jobs: int, truths: dict[str,
     print(f"{len(jobs) - len(todo)} of {len(jobs)} runs already in {runs_file}", file=sys.stderr)
     t0 = time.perf_counter()
     with runs_file.open("a", encoding="utf-8") as log:
+
         def finished(job: Job, rec: Record) -> None:
             done[job.key()] = rec
             log.write(json.dumps({"job": job.key(), "record": asdict(rec)}) + "\n")
             log.flush()
-            print(f"  [{len(done)}/{len(jobs)}, {time.perf_counter() - t0:.0f} s] {rec.problem} {rec.method} seed "
-                  f"{rec.seed}: rel. error {relative_error(rec.log_mu_hat, truths[rec.problem]):.3g} "
-                  f"({rec.wall_s:.1f} s)", file=sys.stderr, flush=True)  # fmt: skip
+            print(
+                f"  [{len(done)}/{len(jobs)}, {time.perf_counter() - t0:.0f} s] {rec.problem} {rec.method} seed "
+                f"{rec.seed}: rel. error {relative_error(rec.log_mu_hat, truths[rec.problem]):.3g} "
+                f"({rec.wall_s:.1f} s)",
+                file=sys.stderr,
+                flush=True,
+            )
 
         if n_jobs <= 1:
             for job in todo:
@@ -325,9 +345,20 @@ def summarise(records: Sequence[Record], truths: dict[str, float]) -> list[Row]:
         errs = [relative_error(r.log_mu_hat, truths[problem]) for r in rs]
         n = int(np.median([r.n_simulations for r in rs]))
         med = float(np.median(errs))
-        rows.append(Row(problem, method, truths[problem], len(rs), med, float(max(errs)),
-                        float(np.median([r.n_failures for r in rs])), n, rollouts_for(med, n),
-                        float(np.median([r.wall_s for r in rs]))))  # fmt: skip
+        rows.append(
+            Row(
+                problem,
+                method,
+                truths[problem],
+                len(rs),
+                med,
+                float(max(errs)),
+                float(np.median([r.n_failures for r in rs])),
+                n,
+                rollouts_for(med, n),
+                float(np.median([r.wall_s for r in rs])),
+            )
+        )
     return rows
 
 
@@ -336,25 +367,57 @@ def _sims(x: float) -> str:
 
 
 def markdown(rows: Sequence[Row], n_seeds: int) -> str:
-    head = ("| problem | log10 p | method | seeds | median rel. error | max rel. error | median failures | simulations "
-            "| simulations for 10 % | median wall s |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|")
-    lines = [f"{r.problem} | {r.log10_p:.2f} | {r.method} | {r.n_seeds} | {r.median_rel_error:.3g} | "
-             f"{r.max_rel_error:.3g} | {r.median_failures:g} | {r.n_simulations:,} | {_sims(r.sims_for_10pct)} | "
-             f"{r.median_wall_s:.2f}" for r in rows]  # fmt: skip
-    note = (f"\n\nMedian over {n_seeds} seeds. Simulations for 10 %: N (median rel. error / 0.1)^2, the budget a "
-            "method would need if its error fell as 1 / sqrt(N) (a method that found no failure has rel. error 1).\n")
+    head = (
+        "| problem | log10 p | method | seeds | median rel. error | max rel. error | median failures | simulations "
+        "| simulations for 10 % | median wall s |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|"
+    )
+    lines = [
+        f"{r.problem} | {r.log10_p:.2f} | {r.method} | {r.n_seeds} | {r.median_rel_error:.3g} | "
+        f"{r.max_rel_error:.3g} | {r.median_failures:g} | {r.n_simulations:,} | {_sims(r.sims_for_10pct)} | "
+        f"{r.median_wall_s:.2f}"
+        for r in rows
+    ]
+    note = (
+        f"\n\nMedian over {n_seeds} seeds. Simulations for 10 %: N (median rel. error / 0.1)^2, the budget a "
+        "method would need if its error fell as 1 / sqrt(N) (a method that found no failure has rel. error 1).\n"
+    )
     return head + "\n" + "\n".join(f"| {line} |" for line in lines) + note
 
 
 def to_csv(rows: Sequence[Row]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["problem", "log_truth", "log10_p", "method", "seeds", "median_rel_error", "max_rel_error",
-                "median_failures", "n_simulations", "sims_for_10pct", "median_wall_s"])  # fmt: skip
+    w.writerow(
+        [
+            "problem",
+            "log_truth",
+            "log10_p",
+            "method",
+            "seeds",
+            "median_rel_error",
+            "max_rel_error",
+            "median_failures",
+            "n_simulations",
+            "sims_for_10pct",
+            "median_wall_s",
+        ]
+    )
     for r in rows:
-        w.writerow([r.problem, repr(r.log_truth), f"{r.log10_p:.6g}", r.method, r.n_seeds, f"{r.median_rel_error:.6g}",
-                    f"{r.max_rel_error:.6g}", r.median_failures, r.n_simulations, f"{r.sims_for_10pct:.6g}",
-                    f"{r.median_wall_s:.3f}"])  # fmt: skip
+        w.writerow(
+            [
+                r.problem,
+                repr(r.log_truth),
+                f"{r.log10_p:.6g}",
+                r.method,
+                r.n_seeds,
+                f"{r.median_rel_error:.6g}",
+                f"{r.max_rel_error:.6g}",
+                r.median_failures,
+                r.n_simulations,
+                f"{r.sims_for_10pct:.6g}",
+                f"{r.median_wall_s:.3f}",
+            ]
+        )
     return buf.getvalue()
 
 
@@ -383,11 +446,19 @@ def write_png(path: str, rows: Sequence[Row], n_seeds: int, budget: int) -> None
         finite = [(p[0], p[2]) for p in pts if math.isfinite(p[2]) and p[2] >= 1.0]
         if finite:
             ax2.plot(*zip(*finite, strict=False), "o-", label=method)
-    ax1.set(yscale="log", xlabel="log10 p (exact)", ylabel="median relative error",
-            title=f"relative error at {budget:,} simulations, {n_seeds} seeds")  # fmt: skip
+    ax1.set(
+        yscale="log",
+        xlabel="log10 p (exact)",
+        ylabel="median relative error",
+        title=f"relative error at {budget:,} simulations, {n_seeds} seeds",
+    )
     ax1.axhline(0.1, color="grey", lw=0.8, ls="--")
-    ax2.set(yscale="log", xlabel="log10 p (exact)", ylabel="simulations for 10 % relative error",
-            title="N (median rel. error / 0.1)^2 (q*: below 1)")  # fmt: skip
+    ax2.set(
+        yscale="log",
+        xlabel="log10 p (exact)",
+        ylabel="simulations for 10 % relative error",
+        title="N (median rel. error / 0.1)^2 (q*: below 1)",
+    )
     for ax in (ax1, ax2):
         ax.invert_xaxis()
         ax.grid(True, which="both", alpha=0.3)
@@ -448,14 +519,19 @@ def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
 def relative_variance_table(names: Sequence[str], n_seeds: int) -> str:
     """Markdown: per problem, the default sampler's median relative variance per rollout over the seeds and the
     rollouts it would need for a 10 % relative standard error (relative variance / 0.01), against Monte Carlo's."""
-    lines = ["| problem | p | seeds | rel. variance per rollout (median) | min - max | rollouts for 10 % | "
-             "Monte Carlo's rel. variance | q*'s |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    lines = [
+        "| problem | p | seeds | rel. variance per rollout (median) | min - max | rollouts for 10 % | "
+        "Monte Carlo's rel. variance | q*'s |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for name in names:
         log_mu, rv = relative_variances(name, n_seeds)
         med = float(np.median(rv))
         mc = -math.expm1(log_mu) / math.exp(log_mu)
-        lines.append(f"| {name} | {math.exp(log_mu):.4g} | {n_seeds} | {med:.3g} | {min(rv):.3g} - {max(rv):.3g} | "
-                     f"{med / 0.01:.3g} | {mc:.3g} | 0 |")  # fmt: skip
+        lines.append(
+            f"| {name} | {math.exp(log_mu):.4g} | {n_seeds} | {med:.3g} | {min(rv):.3g} - {max(rv):.3g} | "
+            f"{med / 0.01:.3g} | {mc:.3g} | 0 |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -472,22 +548,33 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--problems", default=None, help="comma-separated problem names (default: all of the mode)")
     ap.add_argument("--methods", default=None, help="comma-separated method labels (default: all)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
-    ap.add_argument("--n-final", type=int, default=None, metavar="N_E",
-                    help="the default sampler's final batch, which sets every method's budget (default 1000: 2,100 "
-                         "simulations; 100: 1,200)")  # fmt: skip
+    ap.add_argument(
+        "--n-final",
+        type=int,
+        default=None,
+        metavar="N_E",
+        help="the default sampler's final batch, which sets every method's budget (default 1000: 2,100 "
+        "simulations; 100: 1,200)",
+    )
     ap.add_argument("--overwrite", action="store_true", help="replace existing outputs (and start runs.jsonl anew)")
     ap.add_argument("--resume", action="store_true", help="keep the runs already in OUT/runs.jsonl")
-    ap.add_argument("--relative-variance", metavar="PROBLEMS", default=None,
-                    help="instead: the default sampler's relative variance per rollout on these named problems "
-                         "(comma-separated, e.g. toy,latched,main), printed as a table")  # fmt: skip
+    ap.add_argument(
+        "--relative-variance",
+        metavar="PROBLEMS",
+        default=None,
+        help="instead: the default sampler's relative variance per rollout on these named problems "
+        "(comma-separated, e.g. toy,latched,main), printed as a table",
+    )
     args = ap.parse_args(argv)
     if args.relative_variance:
         from pemviz.scenarios.problems import PROBLEMS
 
         names = args.relative_variance.split(",")
         if any(n not in PROBLEMS for n in names):
-            print(f"rarity_sweep: unknown problem in {args.relative_variance!r}; use some of {', '.join(PROBLEMS)}",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                f"rarity_sweep: unknown problem in {args.relative_variance!r}; use some of {', '.join(PROBLEMS)}",
+                file=sys.stderr,
+            )
             return 2
         print(relative_variance_table(names, args.seeds or 10))
         return 0
@@ -505,16 +592,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         names = args.problems.split(",")
         unknown = [n for n in names if n not in {s.name for s in specs}]
         if unknown:
-            print(f"rarity_sweep: unknown problem {unknown[0]!r}; use some of {', '.join(s.name for s in specs)}",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                f"rarity_sweep: unknown problem {unknown[0]!r}; use some of {', '.join(s.name for s in specs)}",
+                file=sys.stderr,
+            )
             return 2
         specs = tuple(s for s in specs if s.name in names)
     if args.methods:
         labels = args.methods.split(",")
         unknown = [m for m in labels if m not in {m for m, _ in methods}]
         if unknown:
-            print(f"rarity_sweep: unknown method {unknown[0]!r}; use some of {', '.join(m for m, _ in methods)}",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                f"rarity_sweep: unknown method {unknown[0]!r}; use some of {', '.join(m for m, _ in methods)}",
+                file=sys.stderr,
+            )
             return 2
         methods = [m for m in methods if m[0] in labels]
     out = Path(args.out)
@@ -524,8 +615,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if runs_file.exists() and not args.resume:
         existing.append(runs_file)
     if existing and not args.overwrite:
-        print(f"rarity_sweep: {existing[0]} exists; give --overwrite to replace it"
-              f"{' (or --resume to keep its runs)' if existing[0] == runs_file else ''}", file=sys.stderr)
+        print(
+            f"rarity_sweep: {existing[0]} exists; give --overwrite to replace it"
+            f"{' (or --resume to keep its runs)' if existing[0] == runs_file else ''}",
+            file=sys.stderr,
+        )
         return 2
     if runs_file.exists() and args.overwrite and not args.resume:
         runs_file.unlink()
@@ -534,8 +628,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     truths, sources = {}, {}
     for spec in specs:
         truths[spec.name], sources[spec.name] = exact_log_p(spec)
-        print(f"{spec.name}: exact p_fail = 10^{truths[spec.name] / math.log(10):.3f} ({sources[spec.name]})",
-              file=sys.stderr, flush=True)  # fmt: skip
+        print(
+            f"{spec.name}: exact p_fail = 10^{truths[spec.name] / math.log(10):.3f} ({sources[spec.name]})",
+            file=sys.stderr,
+            flush=True,
+        )
     records = run_all(jobs_for(specs, methods, n_seeds), runs_file, args.jobs, truths)
     rows = summarise(records, truths)
     table = markdown(rows, n_seeds)

@@ -58,8 +58,9 @@ def main() -> int:
     from pemviz.scenarios.problems import problem_for
     from pemviz.engine.executors import close_executors
 
-    base = ExperimentConfig(sim="highway-env", n_stages=args.k, n_per_stage=args.n, n_final=args.n,
-                            pretrain_rollouts=args.n, seed=0)  # fmt: skip
+    base = ExperimentConfig(
+        sim="highway-env", n_stages=args.k, n_per_stage=args.n, n_final=args.n, pretrain_rollouts=args.n, seed=0
+    )
     problem = problem_for(base)
     serial, wall_s, sim_s = run(base, problem)
     ray.init(num_cpus=args.workers, include_dashboard=False, log_to_driver=False)
@@ -69,22 +70,27 @@ def main() -> int:
         from pemviz.engine.executors import get_executor
 
         t0 = time.perf_counter()
-        get_executor("ray").simulate(problem, 2 * args.workers, problem.target, problem.target,
-                                     np.random.default_rng(0))
+        get_executor("ray").simulate(
+            problem, 2 * args.workers, problem.target, problem.target, np.random.default_rng(0)
+        )
         startup = time.perf_counter() - t0
         remote, wall_r, sim_r = run(base.replace(executor="ray"), problem)
     finally:
         close_executors()
         ray.shutdown()
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-    print(f"highway-env, {base.n_simulations} rollouts per run (K = {args.k}, N = N_e = {args.n}), {os.cpu_count()} "
-          f"cores, load {load}")  # fmt: skip
+    print(
+        f"highway-env, {base.n_simulations} rollouts per run (K = {args.k}, N = N_e = {args.n}), {os.cpu_count()} "
+        f"cores, load {load}"
+    )
     print(f"{'executor':<16} {'wall s':>8} {'simulate s':>11} {'mu_hat':>12} failures")
     for name, done, wall, sim in (("serial", serial, wall_s, sim_s), (f"ray x{args.workers}", remote, wall_r, sim_r)):
         e = done.final.estimate
         print(f"{name:<16} {wall:>8.1f} {sim:>11.1f} {e.mu_hat:>12.4g} {e.n_failures}/{e.n}")
-    print(f"speed-up: simulation {sim_s / sim_r:.2f}x, whole run {wall_s / wall_r:.2f}x (after a one-off Ray start-up "
-          f"of {startup:.1f} s: worker processes importing pemviz, torch, highway-env)")  # fmt: skip
+    print(
+        f"speed-up: simulation {sim_s / sim_r:.2f}x, whole run {wall_s / wall_r:.2f}x (after a one-off Ray start-up "
+        f"of {startup:.1f} s: worker processes importing pemviz, torch, highway-env)"
+    )
     s, r = serial.final.estimate, remote.final.estimate
     same = s.n_failures == r.n_failures and abs(s.log_mu_hat - r.log_mu_hat) <= 1e-9 * max(1.0, abs(s.log_mu_hat))
     print("same estimate as serial: " + ("yes" if same else f"NO ({s.log_mu_hat} vs {r.log_mu_hat})"))

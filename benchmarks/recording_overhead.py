@@ -67,8 +67,10 @@ def main() -> int:
                     saved.append(wall)
                     saved_cpu.append(cpu)
                     size = rrd.stat().st_size
-                    print(f"  run {i + 1} --save:      {wall:6.1f} s wall {cpu:6.1f} s CPU ({size / 1e6:.2f} MB)",
-                          flush=True)  # fmt: skip
+                    print(
+                        f"  run {i + 1} --save:      {wall:6.1f} s wall {cpu:6.1f} s CPU ({size / 1e6:.2f} MB)",
+                        flush=True,
+                    )
     ratios = [s / p for s, p in zip(saved, plain, strict=False)]
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"median wall: --no-record {statistics.median(plain):.1f} s, --save {statistics.median(saved):.1f} s")

@@ -28,16 +28,20 @@ def row(label: str, fp: dict, seconds: float, problems: list[str]) -> str:
     verdict = "same" if not problems else "DIFFERENT: " + "; ".join(problems)
     d = fp["dispatch"]
     kernels = f"{d['torch']} / {' '.join(d['numpy']) or 'baseline'} / {' '.join(d['openblas'])}"
-    return (f"| {label} | {kernels} | {fp['log_mu_hat']!r} | {fp['failures']}/{fp['n']} | {fp['ess']:.1f} "
-            f"| {fp['chunks']} | {fp['rollouts'][:12]} | {seconds:.1f} | {verdict} |")
+    return (
+        f"| {label} | {kernels} | {fp['log_mu_hat']!r} | {fp['failures']}/{fp['n']} | {fp['ess']:.1f} "
+        f"| {fp['chunks']} | {fp['rollouts'][:12]} | {seconds:.1f} | {verdict} |"
+    )
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="the braking default run only")
     a = p.parse_args()
-    print("| run | kernels: torch / numpy / OpenBLAS | log mu_hat | failures | ESS | chunks | rollouts sha256 | wall s "
-          "| against the first |")
+    print(
+        "| run | kernels: torch / numpy / OpenBLAS | log mu_hat | failures | ESS | chunks | rollouts sha256 | wall s "
+        "| against the first |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     bad = 0
     for name, args in CASES.items():
@@ -50,12 +54,15 @@ def main() -> int:
                     continue  # Ray deals whole blocks of 8,192 rollouts into tasks; --chunk streams serial stages
                 t0 = time.perf_counter()
                 fp = rp.fingerprint_in_subprocess(
-                    [*args, "--executor", executor, *([] if chunk is None else ["--chunk", str(chunk)])], {}, 900)
+                    [*args, "--executor", executor, *([] if chunk is None else ["--chunk", str(chunk)])], {}, 900
+                )
                 problems = [] if first is None else rp.compare(first, fp, same_machine=True)
                 first = first or fp
                 bad += bool(problems)
-                print(row(f"{name}, {executor}, chunk {chunk or 'whole'}", fp, time.perf_counter() - t0, problems),
-                      flush=True)
+                print(
+                    row(f"{name}, {executor}, chunk {chunk or 'whole'}", fp, time.perf_counter() - t0, problems),
+                    flush=True,
+                )
     first = None
     for setting, env in rp.DISPATCH_SETTINGS.items():
         t0 = time.perf_counter()

@@ -54,8 +54,10 @@ def main() -> int:
         bad += wrong
         codes = ", ".join(f"{c}: {sum(r[2] == c for r in g)}" for c in sorted({r[2] for r in g}))
         sims = [r[3] for r in g]
-        print(f"| `{req}{' ' + ' '.join(extra) if extra else ''}` | {'holds' if holds else 'fails'} | {codes} | "
-              f"{statistics.median(sims):,.0f} / {max(sims):,} | {wrong} |")  # fmt: skip
+        print(
+            f"| `{req}{' ' + ' '.join(extra) if extra else ''}` | {'holds' if holds else 'fails'} | {codes} | "
+            f"{statistics.median(sims):,.0f} / {max(sims):,} | {wrong} |"
+        )
     return 1 if bad else 0
 
 

@@ -124,16 +124,21 @@ def main() -> int:
     ap.add_argument("--record", action="store_true", help="also write a recording and report its size")
     ap.add_argument("--child", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     ap.add_argument("--args", nargs=argparse.REMAINDER, default=[], help="extra arguments for pemviz run")
-    ap.add_argument("--check", action="store_true",
-                    help=f"exit 1 if at N = {CHECK_N:,} (other + fit) / simulation exceeds {CHECK_RATIO}")
+    ap.add_argument(
+        "--check",
+        action="store_true",
+        help=f"exit 1 if at N = {CHECK_N:,} (other + fit) / simulation exceeds {CHECK_RATIO}",
+    )
     args = ap.parse_args()
     if args.child is not None:
         _child(args.child)
         return 0
     os.environ.setdefault("RERUN_ANALYTICS", "false")
     print(f"{os.cpu_count()} cores; times in seconds, per simulation in microseconds")
-    print(f"{'N':>7} {'sims':>9} {'rec':>4} {'wall':>7} {'cpu':>7} {'engine':>7} {'sim/run':>8} {'fit/run':>8} "
-          f"{'other/run':>9} {'other+fit / sim':>15} {'peak MB':>8} {'rrd MB':>7}  load")  # fmt: skip
+    print(
+        f"{'N':>7} {'sims':>9} {'rec':>4} {'wall':>7} {'cpu':>7} {'engine':>7} {'sim/run':>8} {'fit/run':>8} "
+        f"{'other/run':>9} {'other+fit / sim':>15} {'peak MB':>8} {'rrd MB':>7}  load"
+    )
     ratios: dict[int, float] = {}
     lines: list[str] = []
     for n in args.n:
@@ -143,8 +148,9 @@ def main() -> int:
                 extra = ["--n", str(n), "--n-final", str(n), *args.args]
                 extra += ["--save", str(rrd)] if record else ["--no-record"]
                 t0 = time.perf_counter()
-                proc = subprocess.run([sys.executable, __file__, "--child", *extra], cwd=REPO, capture_output=True,
-                                      text=True)  # fmt: skip
+                proc = subprocess.run(
+                    [sys.executable, __file__, "--child", *extra], cwd=REPO, capture_output=True, text=True
+                )
                 wall = time.perf_counter() - t0
                 line = [x for x in proc.stdout.splitlines() if x.startswith("SCALE ")]
                 if proc.returncode != 0 or not line:
@@ -156,26 +162,33 @@ def main() -> int:
                 other = f["run"] - f["simulation"] - f["fit"]
                 size = rrd.stat().st_size / 1e6 if record and rrd.exists() else float("nan")
                 load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-                print(f"{n:>7} {n_sims:>9} {'yes' if record else 'no':>4} {wall:>7.1f} {f['cpu']:>7.1f} "
-                      f"{f['run']:>7.1f} {f['simulation'] * per:>8.1f} {f['fit'] * per:>8.1f} {other * per:>9.1f} "
-                      f"{(other + f['fit']) / max(f['simulation'], 1e-9):>15.2f} {f['peak_rss_mb']:>8.0f} "
-                      f"{size:>7.1f}  {load}", flush=True)  # fmt: skip
+                print(
+                    f"{n:>7} {n_sims:>9} {'yes' if record else 'no':>4} {wall:>7.1f} {f['cpu']:>7.1f} "
+                    f"{f['run']:>7.1f} {f['simulation'] * per:>8.1f} {f['fit'] * per:>8.1f} {other * per:>9.1f} "
+                    f"{(other + f['fit']) / max(f['simulation'], 1e-9):>15.2f} {f['peak_rss_mb']:>8.0f} "
+                    f"{size:>7.1f}  {load}",
+                    flush=True,
+                )
                 if not record:
                     ratios[n] = (other + f["fit"]) / max(f["simulation"], 1e-9)
                     other_cpu = f["run_cpu"] - f["simulation_cpu"] - f["fit_cpu"]
                     ratio_cpu = (other_cpu + f["fit_cpu"]) / max(f["simulation_cpu"], 1e-9)
-                    lines.append(f"N = {n}: (other + fit) / simulation = {ratios[n]:.2f} wall, {ratio_cpu:.2f} CPU; "
-                                 f"simulation {f['simulation'] * per:.1f} us per rollout = "
-                                 f"{f['simulation'] * per / f['twin_us']:.2f} x the pure twin's {f['twin_us']:.1f} us "
-                                 f"wall, {f['simulation_cpu'] * per / f['twin_cpu_us']:.2f} x CPU "
-                                 f"({f['simulation_cpu'] * per:.1f} / {f['twin_cpu_us']:.1f} us)")  # fmt: skip
+                    lines.append(
+                        f"N = {n}: (other + fit) / simulation = {ratios[n]:.2f} wall, {ratio_cpu:.2f} CPU; "
+                        f"simulation {f['simulation'] * per:.1f} us per rollout = "
+                        f"{f['simulation'] * per / f['twin_us']:.2f} x the pure twin's {f['twin_us']:.1f} us "
+                        f"wall, {f['simulation_cpu'] * per / f['twin_cpu_us']:.2f} x CPU "
+                        f"({f['simulation_cpu'] * per:.1f} / {f['twin_cpu_us']:.1f} us)"
+                    )
     print("\n".join(lines))
     if args.check:
         if CHECK_N not in ratios:
             raise SystemExit(f"--check needs N = {CHECK_N} among --n")
         if ratios[CHECK_N] > CHECK_RATIO:
-            print(f"check failed: at N = {CHECK_N:,} (other + fit) / simulation = {ratios[CHECK_N]:.2f} "
-                  f"> {CHECK_RATIO}")
+            print(
+                f"check failed: at N = {CHECK_N:,} (other + fit) / simulation = {ratios[CHECK_N]:.2f} "
+                f"> {CHECK_RATIO}"
+            )
             return 1
         print(f"check passed: at N = {CHECK_N:,} (other + fit) / simulation = {ratios[CHECK_N]:.2f} <= {CHECK_RATIO}")
     return 0

@@ -122,9 +122,19 @@ def one_run(scene: str, variant: str, seed: int, scored_steps: int | None = None
         e = final.estimate
         lo, hi = e.shown_log_ci
         interval = e.interval_backed and e.n_failures > 0
-        return Outcome(scene, variant, seed, truth, e.log_mu_hat, interval, interval and lo <= truth <= hi,
-                       e.n_failures > 0 and e.log_lower_bound <= truth, e.verdict, int(final.n_simulations),
-                       time.perf_counter() - t0)  # fmt: skip
+        return Outcome(
+            scene,
+            variant,
+            seed,
+            truth,
+            e.log_mu_hat,
+            interval,
+            interval and lo <= truth <= hi,
+            e.n_failures > 0 and e.log_lower_bound <= truth,
+            e.verdict,
+            int(final.n_simulations),
+            time.perf_counter() - t0,
+        )
 
 
 def mc_cost(p: float, median_rel_error: float) -> float:
@@ -148,11 +158,16 @@ def summary(runs: list[Outcome]) -> str:
     cost = statistics.mean(o.sims for o in runs)
     mc = mc_cost(math.exp(r.truth), med) if med < 1.0 else math.inf  # every run 0: no error to match
     wall = statistics.mean(o.wall_s for o in runs)
-    verdicts = ",".join(f"{v} {sum(o.verdict == v for o in runs)}" for v in ("reliable", "doubtful", "unreliable")
-                        if any(o.verdict == v for o in runs))  # fmt: skip
-    return (f"| {r.scene} | {r.variant} | {len(runs)} | {med:.3f} | {within}/{len(runs)} | {held}/{shown} | "
-            f"{bounds}/{bound_n} | {wrong} | {verdicts} | {cost:,.0f} | {_count(mc)} | {_ratio(cost, mc)} | "
-            f"{wall:.1f} |")  # fmt: skip
+    verdicts = ",".join(
+        f"{v} {sum(o.verdict == v for o in runs)}"
+        for v in ("reliable", "doubtful", "unreliable")
+        if any(o.verdict == v for o in runs)
+    )
+    return (
+        f"| {r.scene} | {r.variant} | {len(runs)} | {med:.3f} | {within}/{len(runs)} | {held}/{shown} | "
+        f"{bounds}/{bound_n} | {wrong} | {verdicts} | {cost:,.0f} | {_count(mc)} | {_ratio(cost, mc)} | "
+        f"{wall:.1f} |"
+    )
 
 
 def _count(n: float) -> str:
@@ -169,15 +184,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", nargs="+", default=list(SAMPLERS), choices=list(SAMPLERS))
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--scored-steps", type=int, default=None,
-                    help="the look-ahead scores about this many steps of a rollout (default 25: its cost and accuracy)")
+    ap.add_argument(
+        "--scored-steps",
+        type=int,
+        default=None,
+        help="the look-ahead scores about this many steps of a rollout (default 25: its cost and accuracy)",
+    )
     a = ap.parse_args(argv)
-    jobs = [(s, v, k) for s in a.scenes for v in a.variants
-            for k in range(a.seeds // 2 if s in SLOW else a.seeds)]  # fmt: skip
+    jobs = [(s, v, k) for s in a.scenes for v in a.variants for k in range(a.seeds // 2 if s in SLOW else a.seeds)]
     with ProcessPoolExecutor(a.jobs) as pool:
         outcomes = list(pool.map(one_run, *zip(*jobs, strict=False), [a.scored_steps] * len(jobs)))
-    print("| scene | sampler | runs | median rel. error | within x2 | intervals holding p | bounds holding p | "
-          "reliable outside x2 | verdicts | cost (rollout-eq.) | plain MC for that error | ratio | s a run |")
+    print(
+        "| scene | sampler | runs | median rel. error | within x2 | intervals holding p | bounds holding p | "
+        "reliable outside x2 | verdicts | cost (rollout-eq.) | plain MC for that error | ratio | s a run |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for s in a.scenes:
         for v in a.variants:

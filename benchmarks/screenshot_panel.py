@@ -32,9 +32,14 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync",
-]  # fmt: skip
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 
 def wait_until(predicate, timeout: float, what: str) -> None:
@@ -53,8 +58,9 @@ def show_step(page, session, step: int) -> None:
         lambda: page.evaluate(
             "() => window.__viserSceneTree.getState()['/ego/label']?.message?.props?.text ?? ''"
         ).startswith(label),
-        30, f"the scene at step {step}",
-    )  # fmt: skip
+        30,
+        f"the scene at step {step}",
+    )
     page.wait_for_function("() => document.fonts.ready.then(() => true)")
 
 
@@ -72,11 +78,17 @@ def main() -> int:
     ap.add_argument("--k", default="8", help="K typed into the form (default 8)")
     ap.add_argument("--metric", default=None, help="the metric chosen in the form (default: the preset's)")
     ap.add_argument("--scenario", default=None, help="the scenario chosen in the form (default: braking)")
-    ap.add_argument("--set", action="append", default=[], metavar="LABEL=VALUE",
-                    help="type VALUE into the form's field LABEL (e.g. alpha=0.2); repeatable")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="LABEL=VALUE",
+        help="type VALUE into the form's field LABEL (e.g. alpha=0.2); repeatable",
+    )
     ap.add_argument("--live-out", type=Path, default=None, help="also write the Live tab here")
-    ap.add_argument("--scene-out", type=Path, default=None,
-                    help="also write the scene at the breach, beside the Rollouts tab, here")
+    ap.add_argument(
+        "--scene-out", type=Path, default=None, help="also write the scene at the breach, beside the Rollouts tab, here"
+    )
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=1000)
     args = ap.parse_args()
@@ -103,17 +115,24 @@ def main() -> int:
             labels = {h.label: h for h in session.fields.values()}
             for label, value in [("K", args.k)] + [tuple(kv.split("=", 1)) for kv in args.set]:
                 box = page.locator(
-                    f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input").first
+                    f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input"
+                ).first
                 box.fill(value)
                 box.press("Tab")
-                wait_until(lambda: labels[label].value == value,  # noqa: B023 (called within the iteration)
-                           30, f"{label} to reach the server")
+                wait_until(
+                    lambda: labels[label].value == value,  # noqa: B023 (called within the iteration)
+                    30,
+                    f"{label} to reach the server",
+                )
             for key, value in (("metric", args.metric), ("scenario", args.scenario)):
                 if value:
                     page.get_by_label(key, exact=True).click()
                     page.get_by_role("option", name=value, exact=True).click()
-                    wait_until(lambda: session.choices[key].value == value,  # noqa: B023 (called within the iteration)
-                               30, f"the {key} to reach the server")
+                    wait_until(
+                        lambda: session.choices[key].value == value,  # noqa: B023 (called within the iteration)
+                        30,
+                        f"the {key} to reach the server",
+                    )
             page.get_by_role("button", name="Run", exact=True).click()
             wait_until(lambda: session.record is not None and session.record.done, 600, "the run to finish")
             if args.scenario not in (None, "braking"):

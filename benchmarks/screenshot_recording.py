@@ -79,7 +79,13 @@ def record_default_run(out: Path) -> None:
 
 
 def screenshot(
-    rrd: Path, out: Path, width: int, height: int, min_wait_s: float, max_wait_s: float, step: int | None = None,
+    rrd: Path,
+    out: Path,
+    width: int,
+    height: int,
+    min_wait_s: float,
+    max_wait_s: float,
+    step: int | None = None,
     blueprint: Path | None = None,
 ) -> Path:
     """Serve ``rrd`` with rerun's web viewer and save a PNG of it from headless Chromium.
@@ -96,9 +102,17 @@ def screenshot(
         raise SystemExit("chromium not found: apt-get install -y chromium")
     web_port, grpc_port = free_port(), free_port()
     rerun_cmd = [
-        "rerun", "--serve-web", str(rrd), *([str(blueprint)] if blueprint is not None else []), "--bind", "127.0.0.1",
-        "--web-viewer-port", str(web_port), "--port", str(grpc_port),
-    ]  # fmt: skip
+        "rerun",
+        "--serve-web",
+        str(rrd),
+        *([str(blueprint)] if blueprint is not None else []),
+        "--bind",
+        "127.0.0.1",
+        "--web-viewer-port",
+        str(web_port),
+        "--port",
+        str(grpc_port),
+    ]
     env = dict(os.environ, RERUN_ANALYTICS="false")
     # its own process group: `rerun` may be a launcher script whose child is the real server
     server = subprocess.Popen(
@@ -146,13 +160,17 @@ def screenshot(
 
 
 SHOTS = REPO / "assets" / "screenshots"
-OUT = {"stages": SHOTS / "rerun_recording.png", "rollouts": SHOTS / "rerun_recording_step.png",
-       "explain": SHOTS / "rerun_recording_explain.png"}  # fmt: skip
+OUT = {
+    "stages": SHOTS / "rerun_recording.png",
+    "rollouts": SHOTS / "rerun_recording_step.png",
+    "explain": SHOTS / "rerun_recording_explain.png",
+}
 """Where each tab's screenshot goes by default."""
 
 
-def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path,
-                  scenario: str = "braking") -> tuple[Path, Path | None]:
+def tab_recording(
+    rrd: Path, tab: str, n_lanes: int, folder: Path, scenario: str = "braking"
+) -> tuple[Path, Path | None]:
     """(recording, blueprint) to show ``tab``: the recording itself for its own default (``stages``); else a copy
     without its blueprint (``folder/data.rrd``, so that no blueprint competes with ours, whatever the order the
     viewer receives them in) and the recording's layout with ``tab`` open, its timeline selected and paused (so that
@@ -168,8 +186,7 @@ def tab_recording(rrd: Path, tab: str, n_lanes: int, folder: Path,
     if not data.exists():
         reader = RrdReader(rrd)
         (store,) = reader.recordings()
-        reader.stream(store=store).write_rrd(data, application_id=store.application_id,
-                                             recording_id=store.recording_id)  # fmt: skip
+        reader.stream(store=store).write_rrd(data, application_id=store.application_id, recording_id=store.recording_id)
     path = folder / f"{tab}.rbl"
     from pemviz.config import ExperimentConfig
     from pemviz.scenarios.problems import problem_for
@@ -192,8 +209,12 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=1000)
     ap.add_argument("--min-wait", type=float, default=25.0, help="seconds before the page may count as drawn")
     ap.add_argument("--max-wait", type=float, default=120.0)
-    ap.add_argument("--step", type=int, default=48,
-                    help="time cursor on the step timeline, for the step tabs (-1: leave it at the end)")  # fmt: skip
+    ap.add_argument(
+        "--step",
+        type=int,
+        default=48,
+        help="time cursor on the step timeline, for the step tabs (-1: leave it at the end)",
+    )
     args = ap.parse_args()
     tabs = TABS if args.tab == "all" else (args.tab,)
     if args.out is not None and len(tabs) > 1:

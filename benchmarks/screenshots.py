@@ -27,8 +27,11 @@ REPO = Path(__file__).resolve().parents[1]
 SHOTS = REPO / "assets" / "screenshots"
 MANIFEST = SHOTS / "MANIFEST.md"
 PREFIX = "assets/screenshots/"
-TAB_SHOTS = tuple(f"panel_{scene}_{tab}.png" for scene in ("braking", "cut_in")
-                  for tab in ("live", "explain", "compare", "rollouts", "runs", "experiment"))  # fmt: skip
+TAB_SHOTS = tuple(
+    f"panel_{scene}_{tab}.png"
+    for scene in ("braking", "cut_in")
+    for tab in ("live", "explain", "compare", "rollouts", "runs", "experiment")
+)
 """What ``PEMVIZ_SCREENSHOTS=1`` writes in ``tests/test_app_tabs.py``: every tab after a tiny braking and cut-in run."""
 
 
@@ -41,31 +44,52 @@ class Shot:
 
 
 SCREENSHOTS: tuple[Shot, ...] = (
-    Shot(("viser_panel.png",), (
-        "python benchmarks/screenshot_panel.py --out assets/screenshots/viser_panel.png",)),
-    Shot(("panel_explain.png", "panel_live.png", "panel_scene.png"), (
-        "python benchmarks/screenshot_panel.py --preset state-ce --k 10 --metric agm --set alpha=0.2 --set sigma=0.9 "
-        "--width 1400 --height 900 --out assets/screenshots/panel_explain.png "
-        "--live-out assets/screenshots/panel_live.png --scene-out assets/screenshots/panel_scene.png",)),
-    Shot(("panel_cut_in.png",), (
-        "python benchmarks/screenshot_panel.py --scenario cut-in --set seed=1 --width 1400 --height 900 "
-        "--out assets/screenshots/panel_cut_in.png",)),
-    Shot(("panel_compare.png",), (
-        "PEMVIZ_SCREENSHOTS=1 python -m pytest -q -p no:cacheprovider tests/test_app_compare.py",)),
-    Shot(TAB_SHOTS, (
-        "PEMVIZ_SCREENSHOTS=1 python -m pytest -q -p no:cacheprovider tests/test_app_tabs.py",)),
-    Shot(("rerun_recording.png",), (
-        "python benchmarks/screenshot_recording.py --tab stages --out assets/screenshots/rerun_recording.png",)),
-    Shot(("rerun_recording_step.png",), (
-        "python benchmarks/screenshot_recording.py --tab rollouts --out assets/screenshots/rerun_recording_step.png",)),
-    Shot(("rerun_recording_explain.png",), (
-        "python benchmarks/screenshot_recording.py --tab explain --out assets/screenshots/rerun_recording_explain.png",
-    )),
-    Shot(("rerun_recording_cut_in.png",), (
-        "pemviz run --scenario cut-in --seed 1 --save $TMP/cut_in.rrd",
-        "python benchmarks/screenshot_recording.py --rrd $TMP/cut_in.rrd --scenario cut-in --tab explain --step 18 "
-        "--out assets/screenshots/rerun_recording_cut_in.png")),
-)  # fmt: skip
+    Shot(("viser_panel.png",), ("python benchmarks/screenshot_panel.py --out assets/screenshots/viser_panel.png",)),
+    Shot(
+        ("panel_explain.png", "panel_live.png", "panel_scene.png"),
+        (
+            "python benchmarks/screenshot_panel.py --preset state-ce --k 10 --metric agm --set alpha=0.2 "
+            "--set sigma=0.9 "
+            "--width 1400 --height 900 --out assets/screenshots/panel_explain.png "
+            "--live-out assets/screenshots/panel_live.png --scene-out assets/screenshots/panel_scene.png",
+        ),
+    ),
+    Shot(
+        ("panel_cut_in.png",),
+        (
+            "python benchmarks/screenshot_panel.py --scenario cut-in --set seed=1 --width 1400 --height 900 "
+            "--out assets/screenshots/panel_cut_in.png",
+        ),
+    ),
+    Shot(
+        ("panel_compare.png",),
+        ("PEMVIZ_SCREENSHOTS=1 python -m pytest -q -p no:cacheprovider tests/test_app_compare.py",),
+    ),
+    Shot(TAB_SHOTS, ("PEMVIZ_SCREENSHOTS=1 python -m pytest -q -p no:cacheprovider tests/test_app_tabs.py",)),
+    Shot(
+        ("rerun_recording.png",),
+        ("python benchmarks/screenshot_recording.py --tab stages --out assets/screenshots/rerun_recording.png",),
+    ),
+    Shot(
+        ("rerun_recording_step.png",),
+        ("python benchmarks/screenshot_recording.py --tab rollouts --out assets/screenshots/rerun_recording_step.png",),
+    ),
+    Shot(
+        ("rerun_recording_explain.png",),
+        (
+            "python benchmarks/screenshot_recording.py --tab explain --out "
+            "assets/screenshots/rerun_recording_explain.png",
+        ),
+    ),
+    Shot(
+        ("rerun_recording_cut_in.png",),
+        (
+            "pemviz run --scenario cut-in --seed 1 --save $TMP/cut_in.rrd",
+            "python benchmarks/screenshot_recording.py --rrd $TMP/cut_in.rrd --scenario cut-in --tab explain --step 18 "
+            "--out assets/screenshots/rerun_recording_cut_in.png",
+        ),
+    ),
+)
 """Every image of ``assets/screenshots/`` and the commands that make it. The recording screenshots without ``--rrd``
 record ``pemviz run``'s defaults (seed 0) first, the same run each time."""
 
@@ -104,8 +128,11 @@ def run_shot(
     """
     paths = [out / image for image in shot.images]
     before = {p: p.stat().st_mtime_ns if p.exists() else None for p in paths}
-    env = {**os.environ, "RERUN_ANALYTICS": "false",
-           "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}  # fmt: skip
+    env = {
+        **os.environ,
+        "RERUN_ANALYTICS": "false",
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+    }
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="pemviz-shots-") as tmp:
         for i, command in enumerate(shot.commands):
@@ -115,8 +142,9 @@ def run_shot(
                 command = " ".join([command, *extra])
             if not quiet:
                 print("+", command, flush=True)
-            proc = subprocess.run(words, cwd=REPO, env={**env, **more}, timeout=timeout,
-                                  capture_output=quiet, text=True)  # fmt: skip
+            proc = subprocess.run(
+                words, cwd=REPO, env={**env, **more}, timeout=timeout, capture_output=quiet, text=True
+            )
             if proc.returncode != 0:
                 tail = f"\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}" if quiet else ""
                 raise RuntimeError(f"{command!r} exited {proc.returncode}{tail}")
@@ -145,8 +173,9 @@ def manifest_rows(path: Path = MANIFEST) -> dict[str, tuple[str, str, str]]:
     """The manifest's rows: image -> (command, commit, date), as written by :func:`write_manifest`."""
     if not path.exists():
         return {}
-    return {m["image"]: (m["command"], m["commit"], m["date"]) for m in map(ROW.match, path.read_text().splitlines())
-            if m}  # fmt: skip
+    return {
+        m["image"]: (m["command"], m["commit"], m["date"]) for m in map(ROW.match, path.read_text().splitlines()) if m
+    }
 
 
 def write_manifest(made: dict[str, tuple[str, str]], path: Path = MANIFEST) -> None:
@@ -203,6 +232,9 @@ def regenerate(only: list[str] | None = None) -> int:
         write_manifest({image: (commit, date) for image in shot.images})
         print(f"made   {', '.join(shot.images)} in {time.monotonic() - t:.0f} s", flush=True)
     write_manifest({})
-    print(f"{len(shots) - len(failed)} of {len(shots)} entries made in {time.monotonic() - t0:.0f} s by {commit}; "
-          f"{MANIFEST.relative_to(REPO)} rewritten", flush=True)  # fmt: skip
+    print(
+        f"{len(shots) - len(failed)} of {len(shots)} entries made in {time.monotonic() - t0:.0f} s by {commit}; "
+        f"{MANIFEST.relative_to(REPO)} rewritten",
+        flush=True,
+    )
     return 1 if failed else 0

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from pemviz.core.estimate import relative_error
-from pemviz.studies.validation import RUNS_FILE, exact_answer, read_records
+from pemviz.studies.exact_answers import exact_answer
+from pemviz.studies.validation import RUNS_FILE, read_records
 
 DRAWS = 100_000
 """Bootstrap draws of a block of seeds."""
@@ -58,16 +59,22 @@ def main() -> None:
         seeds = sorted(by_seed)
         err = np.array([by_seed[s][0] for s in seeds])
         covered = sum(by_seed[s][1] for s in seeds)
-        print(f"{problem} / {method}: {len(seeds)} seeds ({seeds[0]}..{seeds[-1]}): median relative error "
-              f"{np.median(err):.4f}, RMS {math.sqrt(float(np.mean(err ** 2))):.4f}, largest {err.max():.3f}; "
-              f"95 % interval holds the truth {covered}/{len(seeds)}")
-        blocks = [err[i:i + args.block] for i in range(0, len(err) - args.block + 1, args.block)]
+        print(
+            f"{problem} / {method}: {len(seeds)} seeds ({seeds[0]}..{seeds[-1]}): median relative error "
+            f"{np.median(err):.4f}, RMS {math.sqrt(float(np.mean(err ** 2))):.4f}, largest {err.max():.3f}; "
+            f"95 % interval holds the truth {covered}/{len(seeds)}"
+        )
+        blocks = [err[i : i + args.block] for i in range(0, len(err) - args.block + 1, args.block)]
         if blocks:
-            print(f"  medians of {len(blocks)} blocks of {args.block} seeds: "
-                  + " ".join(f"{np.median(b):.3f}" for b in blocks))
+            print(
+                f"  medians of {len(blocks)} blocks of {args.block} seeds: "
+                + " ".join(f"{np.median(b):.3f}" for b in blocks)
+            )
         medians = np.median(rng.choice(err, size=(DRAWS, args.block)), axis=1)
-        print(f"  P(median of {args.block} seeds <= {args.threshold:g}) = {np.mean(medians <= args.threshold):.2f} "
-              f"(bootstrap, {DRAWS:,} draws)")
+        print(
+            f"  P(median of {args.block} seeds <= {args.threshold:g}) = {np.mean(medians <= args.threshold):.2f} "
+            f"(bootstrap, {DRAWS:,} draws)"
+        )
 
 
 if __name__ == "__main__":

@@ -47,8 +47,10 @@ def table(label: str, configs: list[ExperimentConfig]) -> bool:
             exact[key] = pt.exact_log_p
             rows.setdefault(key, []).append(pt)
     print(f"\n{label}: {len(configs)} seeds, {time.perf_counter() - t0:.0f} s")
-    print(f"{'point':<30} {'reached':>8} {'median p':>10} {'exact':>10} {'worst ratio':>12} {'covers':>8} "
-          f"{'median ESS':>11}")
+    print(
+        f"{'point':<30} {'reached':>8} {'median p':>10} {'exact':>10} {'worst ratio':>12} {'covers':>8} "
+        f"{'median ESS':>11}"
+    )
     ok = True
     for key, pts in rows.items():
         reached = [p for p in pts if p.reached]
@@ -62,8 +64,10 @@ def table(label: str, configs: list[ExperimentConfig]) -> bool:
         else:
             worst = cov = "-"
         ess = f"{np.median([p.estimate.ess for p in reached]):.1f}" if reached else "-"
-        print(f"{key:<30} {len(reached):>4}/{len(pts):<3} {math.exp(med) if reached else 0:>10.3e} "
-              f"{'-' if ex is None else format(math.exp(ex), '.3e'):>10} {worst:>12} {cov:>8} {ess:>11}")
+        print(
+            f"{key:<30} {len(reached):>4}/{len(pts):<3} {math.exp(med) if reached else 0:>10.3e} "
+            f"{'-' if ex is None else format(math.exp(ex), '.3e'):>10} {worst:>12} {cov:>8} {ess:>11}"
+        )
     return ok
 
 
@@ -82,19 +86,27 @@ def main() -> None:
         pem = load_pem()
         for m in (1.5, 1.0, 0.5, 0.0):
             t = time.perf_counter()
-            r = braking_truth(pem.logit_at_gap, BrakingParams(crash_gap_m=m),
-                              log_prunes=(-46.0, -50.0, -54.0, -58.0, -62.0, -66.0, -70.0, -80.0, -90.0, -100.0,
-                                          -110.0))
-            print(f"exact P(min gap < {m:g} m) = {math.exp(r.log_p_fail):.4e} (log {r.log_p_fail!r}), bracket width "
-                  f"{r.final.relative_width:.2e}, {time.perf_counter() - t:.0f} s")
+            r = braking_truth(
+                pem.logit_at_gap,
+                BrakingParams(crash_gap_m=m),
+                log_prunes=(-46.0, -50.0, -54.0, -58.0, -62.0, -66.0, -70.0, -80.0, -90.0, -100.0, -110.0),
+            )
+            print(
+                f"exact P(min gap < {m:g} m) = {math.exp(r.log_p_fail):.4e} (log {r.log_p_fail!r}), bracket width "
+                f"{r.final.relative_width:.2e}, {time.perf_counter() - t:.0f} s"
+            )
     ok = table("default run (pemviz run)", [ExperimentConfig(seed=s) for s in range(a.seeds)]) if a.seeds else True
     targeted_ok = True
     for m in (1.0, 0.5, 0.0):
         if a.targeted_seeds:
-            targeted_ok &= table(f"targeted run (pemviz run --margin {m:g})",
-                                 [ExperimentConfig(seed=s, margin=m) for s in range(a.targeted_seeds)])
-    print(f"\nevery reported point of the default run within x{TARGET_RATIO} of the exact one and inside its interval: "
-          f"{'MET' if ok else 'MISSED'}; of the targeted runs: {'MET' if targeted_ok else 'MISSED'}")
+            targeted_ok &= table(
+                f"targeted run (pemviz run --margin {m:g})",
+                [ExperimentConfig(seed=s, margin=m) for s in range(a.targeted_seeds)],
+            )
+    print(
+        f"\nevery reported point of the default run within x{TARGET_RATIO} of the exact one and inside its interval: "
+        f"{'MET' if ok else 'MISSED'}; of the targeted runs: {'MET' if targeted_ok else 'MISSED'}"
+    )
     if a.contact_seeds:
         contact_study(a.contact_seeds)
 
@@ -112,11 +124,13 @@ def contact_study(seeds: int) -> None:
         verdicts[p.estimate.verdict] = verdicts.get(p.estimate.verdict, 0) + 1
     capped = [p.estimate.verdict == "reliable" or p.estimate.reason.startswith("a gap below") for p in runs]
     wrong = sum(c and not (w and h) for c, w, h in zip(capped, within, holds, strict=False))
-    print(f"\ncontact, {seeds} runs of pemviz run --margin 0 (seeds 0-{seeds - 1}, {time.perf_counter() - t0:.0f} s), "
-          f"exact {math.exp(ex):.4e}: median relative error {np.median(err):.3f}; within x{TARGET_RATIO} "
-          f"{sum(within)}/{seeds}; interval holds {sum(holds)}/{seeds}; seeds 0-4 all within x{TARGET_RATIO} and "
-          f"holding: {'MET' if all(within[:5]) and all(holds[:5]) else 'MISSED'}; verdicts {verdicts}; weights that "
-          f"said reliable: {sum(capped)}, {wrong} of them wrong (outside x{TARGET_RATIO} or the interval missing)")
+    print(
+        f"\ncontact, {seeds} runs of pemviz run --margin 0 (seeds 0-{seeds - 1}, {time.perf_counter() - t0:.0f} s), "
+        f"exact {math.exp(ex):.4e}: median relative error {np.median(err):.3f}; within x{TARGET_RATIO} "
+        f"{sum(within)}/{seeds}; interval holds {sum(holds)}/{seeds}; seeds 0-4 all within x{TARGET_RATIO} and "
+        f"holding: {'MET' if all(within[:5]) and all(holds[:5]) else 'MISSED'}; verdicts {verdicts}; weights that "
+        f"said reliable: {sum(capped)}, {wrong} of them wrong (outside x{TARGET_RATIO} or the interval missing)"
+    )
 
 
 if __name__ == "__main__":

@@ -93,13 +93,17 @@ def rollouts_per_second(n_highway: int, n_batched: int, seed: int) -> None:
     hw, small, big = n_highway / highway_s, n_highway / same_n_s, n_batched / big_s
     print(f"1. rollouts per second (PEM detector, T = {p.n_steps}; {load()})")
     print(f"   highway-env  {n_highway:>9,} rollouts  {highway_s:8.2f} s  {hw:>12,.0f} rollouts/s")
-    print(f"   batched      {n_highway:>9,} rollouts  {same_n_s:8.3f} s  {small:>12,.0f} rollouts/s  "
-          f"({small / hw:,.0f}x)")  # fmt: skip
+    print(
+        f"   batched      {n_highway:>9,} rollouts  {same_n_s:8.3f} s  {small:>12,.0f} rollouts/s  "
+        f"({small / hw:,.0f}x)"
+    )
     print(f"   batched      {n_batched:>9,} rollouts  {big_s:8.3f} s  {big:>12,.0f} rollouts/s  ({big / hw:,.0f}x)")
     print(f"   same rollouts on both back-ends: {identical}")
     ratio = big / hw
-    print(f"   ratio batched / highway-env = {ratio:,.0f}x (target >= {TARGET_RATIO:.0f}x): "
-          f"{verdict(ratio >= TARGET_RATIO)}")  # fmt: skip
+    print(
+        f"   ratio batched / highway-env = {ratio:,.0f}x (target >= {TARGET_RATIO:.0f}x): "
+        f"{verdict(ratio >= TARGET_RATIO)}"
+    )
 
 
 def peak_rss_gib() -> float:
@@ -129,22 +133,38 @@ def million_child(n: int, seed: int) -> None:
     summary = summarise_batched(None, n, pem, pem, np.random.default_rng(seed), failed=problem.failed)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     rss_gib = peak_rss_gib()
-    print(json.dumps({"seconds": seconds, "cpu_s": cpu, "rss_gib": rss_gib, "failures": int(summary.failed.sum()),
-                      "n": summary.n}))
+    print(
+        json.dumps(
+            {
+                "seconds": seconds,
+                "cpu_s": cpu,
+                "rss_gib": rss_gib,
+                "failures": int(summary.failed.sum()),
+                "n": summary.n,
+            }
+        )
+    )
 
 
 def million(n: int, seed: int) -> None:
     print(f"2. {n:,} rollouts x 100 steps, PEM detector, streamed in chunks ({load()})")
     out = subprocess.run(
         [sys.executable, __file__, "--million-child", str(n), "--seed", str(seed)],
-        capture_output=True, text=True, check=True, cwd=REPO,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=REPO,
+    )
     r = json.loads(out.stdout.strip().splitlines()[-1])
-    print(f"   {r['seconds']:.1f} s wall, {r['cpu_s']:.1f} s CPU ({n / r['seconds']:,.0f} rollouts/s), "
-          f"{r['failures']} failures of {r['n']:,}")  # fmt: skip
+    print(
+        f"   {r['seconds']:.1f} s wall, {r['cpu_s']:.1f} s CPU ({n / r['seconds']:,.0f} rollouts/s), "
+        f"{r['failures']} failures of {r['n']:,}"
+    )
     rss = r["rss_gib"]
-    print(f"   time <= {TARGET_MILLION_S:.0f} s: {verdict(r['seconds'] <= TARGET_MILLION_S)}; "
-          f"peak RSS {rss:.2f} GiB <= {TARGET_RSS_GIB:.0f} GiB: {verdict(rss <= TARGET_RSS_GIB)}")  # fmt: skip
+    print(
+        f"   time <= {TARGET_MILLION_S:.0f} s: {verdict(r['seconds'] <= TARGET_MILLION_S)}; "
+        f"peak RSS {rss:.2f} GiB <= {TARGET_RSS_GIB:.0f} GiB: {verdict(rss <= TARGET_RSS_GIB)}"
+    )
 
 
 # -- 3. where the time of `pemviz run` goes -------------------------------------------------------------
@@ -237,10 +257,17 @@ def command_wall(args: list[str]) -> tuple[float, float, float, int]:
 
     A small wrapper process starts the command and reads its ru_maxrss (the wrapper is a fresh process,
     so the command does not inherit this benchmark's peak)."""
-    cmd = [sys.executable, "-c", "import resource, subprocess, sys; "
-           "r = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).returncode; "
-           "u = resource.getrusage(resource.RUSAGE_CHILDREN); print(u.ru_maxrss, u.ru_utime + u.ru_stime, r)",
-           sys.executable, "-m", "pemviz.cli", *args]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-c",
+        "import resource, subprocess, sys; "
+        "r = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).returncode; "
+        "u = resource.getrusage(resource.RUSAGE_CHILDREN); print(u.ru_maxrss, u.ru_utime + u.ru_stime, r)",
+        sys.executable,
+        "-m",
+        "pemviz.cli",
+        *args,
+    ]
     t0 = time.perf_counter()
     out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=REPO)
     wall = time.perf_counter() - t0
@@ -264,8 +291,10 @@ def commands(mc_million: bool) -> None:
             wall, cpu, rss, rc = command_wall(args)
             shown = " ".join(a if not a.endswith(".rrd") else "(tmp).rrd" for a in args)
             goal = "" if target is None else f"  target <= {target:.0f} s: {verdict(wall <= target and rc == 0)}"
-            print(f"   pemviz {shown:<62} {wall:6.1f} s wall {cpu:6.1f} s CPU  peak RSS {rss:5.2f} GiB  "
-                  f"exit {rc}{goal}")  # fmt: skip
+            print(
+                f"   pemviz {shown:<62} {wall:6.1f} s wall {cpu:6.1f} s CPU  peak RSS {rss:5.2f} GiB  "
+                f"exit {rc}{goal}"
+            )
 
 
 # -- 5. plain Monte Carlo: the cut-in against the braking scenario ----------------------------------------
@@ -283,12 +312,15 @@ def mc_rate(args: list[str], tree: Path | None = None) -> tuple[float, int, floa
     env = dict(os.environ, RERUN_ANALYTICS="false")
     if tree is not None:
         env["PYTHONPATH"] = os.pathsep.join([str(tree), *filter(None, [env.get("PYTHONPATH")])])
-    out = subprocess.run([sys.executable, "-m", "pemviz.cli", *args], capture_output=True, text=True,
-                         cwd=tree or REPO, env=env)  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-m", "pemviz.cli", *args], capture_output=True, text=True, cwd=tree or REPO, env=env
+    )
     found = re.search(r"from ([\d,]+) simulations in ([\d.]+) s", out.stdout)
     if out.returncode != 0 or found is None:
-        raise RuntimeError(f"pemviz {' '.join(args)} (exit {out.returncode}) printed no 'from N simulations in S s' "
-                           f"line:\n{out.stdout[-2000:]}{out.stderr[-2000:]}")  # fmt: skip
+        raise RuntimeError(
+            f"pemviz {' '.join(args)} (exit {out.returncode}) printed no 'from N simulations in S s' "
+            f"line:\n{out.stdout[-2000:]}{out.stderr[-2000:]}"
+        )
     n, seconds = int(found.group(1).replace(",", "")), float(found.group(2))
     return n / seconds, n, seconds
 
@@ -305,9 +337,11 @@ def cut_in_vs_braking(before: Path | None, repeat: int) -> list[float]:
             cut_in, nc, sc = mc_rate(CUT_IN_MC, tree)
             ratio = braking / cut_in
             ratios += [ratio] if tree is None else []
-            print(f"   {label:<6} cut-in {cut_in:>8,.0f} rollouts/s ({nc:,} in {sc:.1f} s)  braking {braking:>8,.0f} "
-                  f"rollouts/s ({nb:,} in {sb:.1f} s)  ratio {ratio:5.1f} (target <= {TARGET_CUT_IN_RATIO:.0f}): "
-                  f"{verdict(ratio <= TARGET_CUT_IN_RATIO)}")  # fmt: skip
+            print(
+                f"   {label:<6} cut-in {cut_in:>8,.0f} rollouts/s ({nc:,} in {sc:.1f} s)  braking {braking:>8,.0f} "
+                f"rollouts/s ({nb:,} in {sb:.1f} s)  ratio {ratio:5.1f} (target <= {TARGET_CUT_IN_RATIO:.0f}): "
+                f"{verdict(ratio <= TARGET_CUT_IN_RATIO)}"
+            )
     print(f"   ({load()})")
     return ratios
 
@@ -321,8 +355,12 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="skip the highway-env split and part 4")
     parser.add_argument("--no-mc-million", action="store_true", help="skip `pemviz run --method mc --n 1000000`")
     parser.add_argument("--cut-in", action="store_true", help="part 5 only: cut-in vs braking plain Monte Carlo")
-    parser.add_argument("--before", type=Path, default=None,
-                        help="part 5 also for the code of this directory (a git worktree), run first")
+    parser.add_argument(
+        "--before",
+        type=Path,
+        default=None,
+        help="part 5 also for the code of this directory (a git worktree), run first",
+    )
     parser.add_argument("--repeat", type=int, default=1, help="part 5's measurements per code")
     parser.add_argument("--million-child", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()

@@ -35,8 +35,24 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-HEAVY = ("torch", "rerun", "viser", "scipy.stats", "scipy.special", "scipy.optimize", "pyarrow", "pandas", "sklearn",
-         "numpy", "highway_env", "gymnasium", "pyro", "arviz", "pemviz.engine.experiment", "pemviz.sinks.recording")
+HEAVY = (
+    "torch",
+    "rerun",
+    "viser",
+    "scipy.stats",
+    "scipy.special",
+    "scipy.optimize",
+    "pyarrow",
+    "pandas",
+    "sklearn",
+    "numpy",
+    "highway_env",
+    "gymnasium",
+    "pyro",
+    "arviz",
+    "pemviz.engine.experiment",
+    "pemviz.sinks.recording",
+)
 STAGE_LINE = re.compile(r"^\s+(pretraining|CE stage|stage|final batch|Monte Carlo|AMS)\b.*\.\.\.")
 ESTIMATE_TIME = re.compile(r"from [\d,]+ simulations in ([\d.]+) s")
 
@@ -54,8 +70,13 @@ def run_env() -> dict[str, str]:
 
 def compile_modules() -> None:
     """Write pemviz's compiled files (``python -m compileall -q pemviz``), as pip does at install."""
-    subprocess.run([sys.executable, "-m", "compileall", "-q", str(REPO / "pemviz")], cwd=REPO, env=run_env(),
-                   check=True, timeout=600)  # fmt: skip
+    subprocess.run(
+        [sys.executable, "-m", "compileall", "-q", str(REPO / "pemviz")],
+        cwd=REPO,
+        env=run_env(),
+        check=True,
+        timeout=600,
+    )
 
 
 def command(extra: list[str], folder: Path, i: int) -> list[str]:
@@ -65,8 +86,14 @@ def command(extra: list[str], folder: Path, i: int) -> list[str]:
 
 def import_times(extra: list[str], folder: Path) -> dict[str, float | None]:
     """Cumulative import seconds of each module of :data:`HEAVY` in one run (None: not imported)."""
-    proc = subprocess.run([sys.executable, "-X", "importtime", *command(extra, folder, 99)[1:]], cwd=REPO,
-                          capture_output=True, text=True, timeout=600, env=run_env())  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-X", "importtime", *command(extra, folder, 99)[1:]],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=run_env(),
+    )
     found: dict[str, float | None] = dict.fromkeys(HEAVY)
     for line in proc.stderr.splitlines():
         m = re.match(r"import time:\s+\d+ \|\s+(\d+) \|(\s*)(\S+)$", line)
@@ -78,8 +105,9 @@ def import_times(extra: list[str], folder: Path) -> dict[str, float | None]:
 def timed(extra: list[str], folder: Path, i: int) -> tuple[float, float, float]:
     """(seconds to the first stage, the estimate's own seconds, wall seconds) of one run."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(command(extra, folder, i), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=run_env())  # fmt: skip
+    proc = subprocess.Popen(
+        command(extra, folder, i), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=run_env()
+    )
     first: list[float] = []
 
     def watch() -> None:
@@ -130,8 +158,10 @@ def main() -> int:
             rows.append((first, est, wall))
             print(f"| {i} | {first:.2f} | {est:.2f} | {wall:.2f} | {wall / est:.2f} |")
     first, est, wall = (statistics.median(col) for col in zip(*rows, strict=False))
-    print(f"\nmedian: {first:.2f} s to the first stage (target <= 0.7), estimate {est:.2f} s, wall {wall:.2f} s, "
-          f"wall / estimate {wall / est:.2f} (target <= 1.3)")  # fmt: skip
+    print(
+        f"\nmedian: {first:.2f} s to the first stage (target <= 0.7), estimate {est:.2f} s, wall {wall:.2f} s, "
+        f"wall / estimate {wall / est:.2f} (target <= 1.3)"
+    )
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     return 0
 

@@ -77,8 +77,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--traces", type=int, default=10_000, help="batch size N (default 10000)")
     parser.add_argument("--steps", type=int, default=200, help="trace length T (default 200)")
     parser.add_argument("--repeats", type=int, default=7, help="timed pemviz calls per case (median)")
-    parser.add_argument("--rtamt-traces", type=int, default=None,
-                        help="run rtamt on the first K traces and scale its time to N (default: all N)")
+    parser.add_argument(
+        "--rtamt-traces",
+        type=int,
+        default=None,
+        help="run rtamt on the first K traces and scale its time to N (default: all N)",
+    )
     parser.add_argument("--torch", action="store_true", help="also time torch float64 inputs")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -88,11 +92,15 @@ def main(argv: list[str] | None = None) -> int:
     signals = make_traces(args.traces, args.steps, args.seed)
     n_rtamt = min(args.traces, args.rtamt_traces or args.traces)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"pemviz STL robustness: N = {args.traces} traces x T = {args.steps} steps, float64, "
-          f"{os.cpu_count()} CPU(s), load average {load:.2f}; rtamt on {n_rtamt} traces"
-          + (f" scaled to {args.traces}" if n_rtamt < args.traces else ""))
-    print(f"{'formula':40s} {'semantics':18s} {'input':6s} {'pemviz ms':>10s} {'< 0.2 s':>8s} "
-          f"{'rtamt s':>9s} {'speed-up':>10s} {'>= 1000x':>9s}")
+    print(
+        f"pemviz STL robustness: N = {args.traces} traces x T = {args.steps} steps, float64, "
+        f"{os.cpu_count()} CPU(s), load average {load:.2f}; rtamt on {n_rtamt} traces"
+        + (f" scaled to {args.traces}" if n_rtamt < args.traces else "")
+    )
+    print(
+        f"{'formula':40s} {'semantics':18s} {'input':6s} {'pemviz ms':>10s} {'< 0.2 s':>8s} "
+        f"{'rtamt s':>9s} {'speed-up':>10s} {'>= 1000x':>9s}"
+    )
     ok = True
     for text, rtamt_text in FORMULAS.items():
         formula = stl.parse(text)

@@ -47,8 +47,14 @@ def one_run(argv: list[str]) -> list[tuple[float, float]]:
     with a prediction."""
     panel = panel_seconds(argv)
     env = {**os.environ, "RERUN_ANALYTICS": "false", "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-u", "-m", "pemviz.cli", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env=env, bufsize=1)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "-m", "pemviz.cli", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        bufsize=1,
+    )
     seen: list[tuple[float, float]] = []
     end = None
     start = time.perf_counter()
@@ -90,9 +96,11 @@ def main() -> None:
                 worst.append(max(errors[1:]) if errors[1:] else float("nan"))
                 first.append(errors[1] if errors[1:] else float("nan"))
             verdict = "MET" if max(worst + panel) <= TARGET else "MISSED"
-            print(f"{scene:8s} {a.repeat} runs: worst relative error of any progress line {max(worst):.2f} (per run "
-                  f"{', '.join(f'{w:.2f}' for w in worst)}), of the first {max(first):.2f}, of the panel's cost line "
-                  f"{max(panel):.2f}: {verdict} (target {TARGET:.0%})")
+            print(
+                f"{scene:8s} {a.repeat} runs: worst relative error of any progress line {max(worst):.2f} (per run "
+                f"{', '.join(f'{w:.2f}' for w in worst)}), of the first {max(first):.2f}, of the panel's cost line "
+                f"{max(panel):.2f}: {verdict} (target {TARGET:.0%})"
+            )
     finally:
         for loop in loops:
             loop.kill()

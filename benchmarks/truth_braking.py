@@ -60,8 +60,6 @@ DEFAULT_GRID = Grid(401, 401, 8)
 """The grid :func:`braking_dp` uses unless told otherwise."""
 
 
-
-
 def _axes(params: BrakingParams, start: BrakingStart, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Axis coordinates covering every state reachable after ``start`` (gap, speed, integral)."""
     vl = lead_speeds(params)
@@ -151,12 +149,11 @@ def braking_dp(
     positive = V[V > 0]
     if positive.size and positive.min() < 1e-290:
         raise ValueError("braking_dp: value function underflows float64; the problem needs a log-space DP")
-    v_start = interp(V, np.array([start.pending]), (np.array([start.gap_m]), np.array([start.speed_mps]),
-                                                     np.array([start.integral])))[0]  # fmt: skip
+    v_start = interp(
+        V, np.array([start.pending]), (np.array([start.gap_m]), np.array([start.speed_mps]), np.array([start.integral]))
+    )[0]
     log_p = math.log(v_start) if v_start > 0 else -math.inf
     return log_p, time.perf_counter() - t_start
-
-
 
 
 def main() -> None:
@@ -166,12 +163,18 @@ def main() -> None:
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     pem = load_pem()
     lt = latched_log_failure_probability(pem.logit_at_gap)
-    print(f"\nlatched brake: exact p_fail = {lt.p_fail:.6e} = prod of (1 - p) over steps "
-          f"{lt.first_step}..{lt.last_step}")
+    print(
+        f"\nlatched brake: exact p_fail = {lt.p_fail:.6e} = prod of (1 - p) over steps "
+        f"{lt.first_step}..{lt.last_step}"
+    )
     for latched in (True, False):
         name = "latched" if latched else "main"
-        ref = braking_truth(pem.logit_at_gap, BrakingParams(latched_brake=latched), tolerance=0.002,
-                            log_prunes=(-46.0, -50.0, -54.0, -58.0, -62.0, -66.0, -70.0, -75.0))
+        ref = braking_truth(
+            pem.logit_at_gap,
+            BrakingParams(latched_brake=latched),
+            tolerance=0.002,
+            log_prunes=(-46.0, -50.0, -54.0, -58.0, -62.0, -66.0, -70.0, -75.0),
+        )
         print(f"\n## {name}: exact enumeration (converged to 0.2 %: {ref.converged})\n")
         print(ref.table())
         if latched:
@@ -186,8 +189,10 @@ def main() -> None:
         for g in grids:
             log_p, wall = braking_dp(pem.logit_at_gap, BrakingParams(latched_brake=latched), g)
             change = "-" if prev is None else f"{abs(math.expm1(log_p - prev)):.1%}"
-            print(f"| {g} | {math.exp(log_p):.4e} | {math.exp(log_p - truths[latched]):.3f} | {change} | {wall:.1f} |",
-                  flush=True)
+            print(
+                f"| {g} | {math.exp(log_p):.4e} | {math.exp(log_p - truths[latched]):.3f} | {change} | {wall:.1f} |",
+                flush=True,
+            )
             prev = log_p
 
 

@@ -279,43 +279,70 @@ class ExperimentConfig:
                 check_pairs(self.scenario, self.scenario_params)
             except ParameterError as exc:
                 need(False, "scenario_params", str(exc))
-        need(self.margin is None or "crash_gap_m" not in dict(self.scenario_params), "margin",
-             "the crash gap is also the parameter crash_gap_m: give it once (--margin or --param crash_gap_m=...)")
+        need(
+            self.margin is None or "crash_gap_m" not in dict(self.scenario_params),
+            "margin",
+            "the crash gap is also the parameter crash_gap_m: give it once (--margin or --param crash_gap_m=...)",
+        )
         need(self.ray_address is None or self.executor == "ray", "ray_address", "give it only with executor = 'ray'")
-        need(self.scenario == "braking" or self.sim == "batched", "scenario",
-             "the cut-in runs on its batched twin only; use sim = 'batched'")
+        need(
+            self.scenario == "braking" or self.sim == "batched",
+            "scenario",
+            "the cut-in runs on its batched twin only; use sim = 'batched'",
+        )
         need(self.target_share + self.plain_share <= 1.0, "target_share", "target_share + plain_share must be <= 1")
-        need(self.fit_weights == "sampler" or self.fit_all_failures, "fit_weights",
-             "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it")  # fmt: skip
-        need(self.margin is None or self.scenario == "braking", "margin",
-             "the crash gap is the braking scenario's; the cut-in's failure is its safe distance (R_G1)")
+        need(
+            self.fit_weights == "sampler" or self.fit_all_failures,
+            "fit_weights",
+            "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it",
+        )
+        need(
+            self.margin is None or self.scenario == "braking",
+            "margin",
+            "the crash gap is the braking scenario's; the cut-in's failure is its safe distance (R_G1)",
+        )
         if self.require is not None:
             try:
                 parse_requirement(self.require)
             except RequirementError as exc:
                 need(False, "require", str(exc))
-        need(self.require is None or self.rel_error is None, "require",
-             "give one stop rule: a requirement (--require) or a precision target (--rel-error)")
+        need(
+            self.require is None or self.rel_error is None,
+            "require",
+            "give one stop rule: a requirement (--require) or a precision target (--rel-error)",
+        )
         from pemviz.methods import extensible_names, method_or_none
 
         method = method_or_none(self.method)
         if method is not None:  # the method's own settings against the others (Method.validate)
-            need(self.stop_rule is None or method.extensible, self.stop_rule or "rel_error",
-                 f"method {method.name} has no final batch to add to; use it with method "
-                 f"{', '.join(extensible_names())}")
+            need(
+                self.stop_rule is None or method.extensible,
+                self.stop_rule or "rel_error",
+                f"method {method.name} has no final batch to add to; use it with method "
+                f"{', '.join(extensible_names())}",
+            )
             n_objects = dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS.get(self.scenario, 1))
             conflict = method.conflict(self, n_objects)
             if conflict is not None:
                 need(False, *conflict)
         for cap in ("max_sims", "max_time_s"):
-            need(getattr(self, cap) is None or self.stop_rule is not None, cap,
-                 "a cap on the rollouts added for a target relative error or a requirement: give it with rel_error "
-                 "(--rel-error) or require (--require)")
-        need(self.max_sims is None or self.max_sims >= self.n_simulations, "max_sims",
-             f"{SETTINGS['max_sims'].words} must be at least the run's planned {self.n_simulations:,} simulations")
-        need(self.final_smoothing is None or self.fit_weights == "mixture", "final_smoothing",
-             "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
-             "set final_smoothing = None with fit_weights = 'sampler'")  # fmt: skip
+            need(
+                getattr(self, cap) is None or self.stop_rule is not None,
+                cap,
+                "a cap on the rollouts added for a target relative error or a requirement: give it with rel_error "
+                "(--rel-error) or require (--require)",
+            )
+        need(
+            self.max_sims is None or self.max_sims >= self.n_simulations,
+            "max_sims",
+            f"{SETTINGS['max_sims'].words} must be at least the run's planned {self.n_simulations:,} simulations",
+        )
+        need(
+            self.final_smoothing is None or self.fit_weights == "mixture",
+            "final_smoothing",
+            "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
+            "set final_smoothing = None with fit_weights = 'sampler'",
+        )
 
     def replace(self, **changes: Any) -> "ExperimentConfig":
         """A copy with some fields changed, validated again."""
@@ -355,5 +382,7 @@ def has_final_batch(config: ExperimentConfig) -> bool:
 def whole_rollout_fit_refusal(config: ExperimentConfig, n_objects: int) -> str:
     """The one line refusing :attr:`ExperimentConfig.fits_whole_rollouts` on a problem of ``n_objects`` objects a
     step."""
-    return (f"the cross-entropy fit of whole elite rollouts (weights {config.weights!r}, without the window or weights "
-            f"until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler")
+    return (
+        f"the cross-entropy fit of whole elite rollouts (weights {config.weights!r}, without the window or weights "
+        f"until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler"
+    )

@@ -169,8 +169,11 @@ class BrakingEnv(gym.Env):
         sim, p = self.sim, self.params
         if sim.done:
             raise RuntimeError(f"{ENV_ID}: episode over after {p.n_steps} steps; call reset()")
-        accel = float(np.clip(np.asarray(action, dtype=np.float64).reshape(-1)[0], self.action_space.low[0],
-                              self.action_space.high[0]))  # fmt: skip
+        accel = float(
+            np.clip(
+                np.asarray(action, dtype=np.float64).reshape(-1)[0], self.action_space.low[0], self.action_space.high[0]
+            )
+        )
         v, gap = sim.ego.speed, sim.gap_m
         accel = max(accel, -v / p.dt_s)  # the ego never reverses
         if gap <= p.contact_gap_m:  # collision: the ego is stopped (as ego_acceleration does)

@@ -102,8 +102,9 @@ class Method:
         if self.build is None:
             raise ValueError(f"Method {self.name}: a builder (config, problem, check) -> Estimator is needed")
         if self.cost_model not in COST_MODELS:
-            raise ValueError(f"Method {self.name}: cost_model must be one of {', '.join(COST_MODELS)}, got "
-                             f"{self.cost_model!r}")
+            raise ValueError(
+                f"Method {self.name}: cost_model must be one of {', '.join(COST_MODELS)}, got " f"{self.cost_model!r}"
+            )
 
     def conflict(self, config: Any, n_objects: int) -> tuple[str, str] | None:
         """(setting, what is allowed) of the first of this method's settings in ``config`` that conflicts with
@@ -172,8 +173,15 @@ def load_method_plugins() -> None:
     _PLUGINS.load()
 
 
-_PLUGINS = Plugins(PLUGIN_VARIABLE, ENTRY_POINTS, "method", MethodPluginError, Method, _REGISTRY,
-                   lambda record: register_method(record))
+_PLUGINS = Plugins(
+    PLUGIN_VARIABLE,
+    ENTRY_POINTS,
+    "method",
+    MethodPluginError,
+    Method,
+    _REGISTRY,
+    lambda record: register_method(record),
+)
 
 
 def method_names() -> tuple[str, ...]:
@@ -236,25 +244,48 @@ def get_method(name: str) -> Method:
 
 
 for _record in (
-    Method("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
-           "pemviz.estimators.builtin:adaptive", plan="pemviz.estimators.builtin:adaptive_plan",
-           validate="pemviz.estimators.builtin:adaptive_conflict",
-           more_budget="pemviz.estimators.builtin:adaptive_more_budget",
-           no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure", cost_model="proposal",
-           proposal_curves=True),
-    Method("mc", "rollouts with the PEM itself (plain Monte Carlo)", "pemviz.estimators.builtin:mc", plain=True,
-           no_failure_advice="pemviz.estimators.builtin:mc_no_failure"),
+    Method(
+        "adaptive",
+        "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
+        "pemviz.estimators.builtin:adaptive",
+        plan="pemviz.estimators.builtin:adaptive_plan",
+        validate="pemviz.estimators.builtin:adaptive_conflict",
+        more_budget="pemviz.estimators.builtin:adaptive_more_budget",
+        no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure",
+        cost_model="proposal",
+        proposal_curves=True,
+    ),
+    Method(
+        "mc",
+        "rollouts with the PEM itself (plain Monte Carlo)",
+        "pemviz.estimators.builtin:mc",
+        plain=True,
+        no_failure_advice="pemviz.estimators.builtin:mc_no_failure",
+    ),
     Method("naive50", "a 50 % detector at every step", "pemviz.estimators.builtin:naive50"),
     Method("mixed50", "50 % inside the window and the PEM outside", "pemviz.estimators.builtin:mixed50"),
-    Method("ams", "adaptive multilevel splitting on the robustness, no importance weights",
-           "pemviz.estimators.builtin:ams", plan="pemviz.estimators.builtin:ams_plan", weighted=False,
-           extensible=False, array_rqmc=False, validate="pemviz.estimators.builtin:ams_conflict",
-           more_budget="pemviz.estimators.builtin:ams_more_budget",
-           no_failure_advice="pemviz.estimators.builtin:ams_no_failure", cost_model="splitting",
-           run_adds="plus the branches' continuations"),
-    Method("tilt", "the scenario's own proposal: each step's events tilted by an approximate probability of failure "
-           "after them", "pemviz.estimators.builtin:tilt", more_budget="pemviz.estimators.builtin:tilt_more_budget",
-           cost_model="look-ahead", run_adds="plus the proposal's look-aheads"),
-):  # fmt: skip
+    Method(
+        "ams",
+        "adaptive multilevel splitting on the robustness, no importance weights",
+        "pemviz.estimators.builtin:ams",
+        plan="pemviz.estimators.builtin:ams_plan",
+        weighted=False,
+        extensible=False,
+        array_rqmc=False,
+        validate="pemviz.estimators.builtin:ams_conflict",
+        more_budget="pemviz.estimators.builtin:ams_more_budget",
+        no_failure_advice="pemviz.estimators.builtin:ams_no_failure",
+        cost_model="splitting",
+        run_adds="plus the branches' continuations",
+    ),
+    Method(
+        "tilt",
+        "the scenario's own proposal: each step's events tilted by an approximate probability of failure " "after them",
+        "pemviz.estimators.builtin:tilt",
+        more_budget="pemviz.estimators.builtin:tilt_more_budget",
+        cost_model="look-ahead",
+        run_adds="plus the proposal's look-aheads",
+    ),
+):
     register_method(_record)
 del _record

@@ -33,8 +33,9 @@ def resolve(ref: Ref) -> Any:
     return obj
 
 
-def load_plugins(variable: str, group: str, register_object: Callable[[object], None], error: type[ValueError],
-                 kind: str) -> None:  # fmt: skip
+def load_plugins(
+    variable: str, group: str, register_object: Callable[[object], None], error: type[ValueError], kind: str
+) -> None:
     """Import the modules named (comma-separated) by the environment variable ``variable`` (each registers at import)
     and register each object of the entry-point group ``group`` with ``register_object``.
 
@@ -42,6 +43,7 @@ def load_plugins(variable: str, group: str, register_object: Callable[[object], 
         ``error``: one line, ``{kind} plugin <which>: <exception type>: <message>``, for the first plugin that cannot
             be imported or that raised while registering.
     """
+
     def load(what: str, action: Callable[[], object]) -> None:
         try:
             action()
@@ -69,8 +71,16 @@ class Plugins:
         register: registers one record.
     """
 
-    def __init__(self, variable: str, group: str, kind: str, error: type[ValueError], record: type,
-                 registry: dict[str, Any], register: Callable[[Any], Any]) -> None:  # fmt: skip
+    def __init__(
+        self,
+        variable: str,
+        group: str,
+        kind: str,
+        error: type[ValueError],
+        record: type,
+        registry: dict[str, Any],
+        register: Callable[[Any], Any],
+    ) -> None:
         self.variable, self.group, self.kind, self.error = variable, group, kind, error
         self.record, self.registry, self.register = record, registry, register
         self.loaded = False
@@ -94,5 +104,7 @@ class Plugins:
         elif callable(obj):
             obj()
         else:
-            raise TypeError(f"expected a {self.record.__name__} or a callable that registers {self.kind}s, got "
-                            f"{type(obj).__name__}")
+            raise TypeError(
+                f"expected a {self.record.__name__} or a callable that registers {self.kind}s, got "
+                f"{type(obj).__name__}"
+            )

@@ -8,12 +8,27 @@ from __future__ import annotations
 from typing import Any
 
 PAPER: dict[str, Any] = {
-    "final_estimate": "fresh", "proposal_inputs": "gap", "proposal_window": False, "weights_until_failure": False,
-    "smoothing_at_failure": None, "final_smoothing": None, "elite_ties": "all", "pretrain_cap": None,
-    "defensive": 0.0, "target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
-    "fit": "adam", "fit_rows": None, "fit_tolerance": None, "pretrain_epochs": 1000,
+    "final_estimate": "fresh",
+    "proposal_inputs": "gap",
+    "proposal_window": False,
+    "weights_until_failure": False,
+    "smoothing_at_failure": None,
+    "final_smoothing": None,
+    "elite_ties": "all",
+    "pretrain_cap": None,
+    "defensive": 0.0,
+    "target_share": 0.0,
+    "plain_share": 0.0,
+    "fit_all_failures": False,
+    "fit_weights": "sampler",
+    "fit": "adam",
+    "fit_rows": None,
+    "fit_tolerance": None,
+    "pretrain_epochs": 1000,
     "n_final": 100,
-    "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500,
+    "uniforms": "iid",
+    "learning_rate": 1e-3,
+    "ce_epochs": 500,
 }
 """The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal
 fitted on every step by full-batch Adam, weights over T - 1 steps, every tie at gamma an elite, no defensive
@@ -27,15 +42,34 @@ PRESETS: dict[str, dict[str, Any]] = {
     DEFAULT_PRESET: {},
     "paper": dict(PAPER),
     "authors-code": {
-        **PAPER, "smoothing": 0.5, "ce_epochs": 1000, "weights": "recomputed", "final_estimate": "last-stage",
+        **PAPER,
+        "smoothing": 0.5,
+        "ce_epochs": 1000,
+        "weights": "recomputed",
+        "final_estimate": "last-stage",
     },
     "quick": {
-        "n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2,
+        "n_stages": 8,
+        "ce_epochs": 200,
+        "pretrain_rollouts": 50,
+        "pretrain_epochs": 200,
+        "learning_rate": 2e-2,
     },
-    "state-ce-step": {"target_share": 0.0, "plain_share": 0.0, "fit_all_failures": False, "fit_weights": "sampler",
-                      "pool_weights": "rollouts", "smoothing_at_failure": 1.0, "final_smoothing": None,
-                      "uniforms": "iid", "learning_rate": 1e-3, "ce_epochs": 500, "skip_decided": False,
-                      "fit_rows": 10_000, "fit_tolerance": None},
+    "state-ce-step": {
+        "target_share": 0.0,
+        "plain_share": 0.0,
+        "fit_all_failures": False,
+        "fit_weights": "sampler",
+        "pool_weights": "rollouts",
+        "smoothing_at_failure": 1.0,
+        "final_smoothing": None,
+        "uniforms": "iid",
+        "learning_rate": 1e-3,
+        "ce_epochs": 500,
+        "skip_decided": False,
+        "fit_rows": 10_000,
+        "fit_tolerance": None,
+    },
 }
 """Named settings, each applied on top of the defaults.
 
@@ -73,4 +107,3 @@ def preset_help(names=None) -> str:
     """``state-ce: the recommended sampler ...; paper: ...``: :data:`PRESET_HELP` of ``names`` (default every preset),
     one clause each."""
     return "; ".join(f"{name}: {PRESET_HELP[name]}" for name in (names or PRESETS))
-

@@ -237,7 +237,8 @@ class Setting:
             return isinstance(value, str) and value != ""
         if self.kind == "params":  # the names and values are checked against the scenario by the config
             return isinstance(value, tuple) and all(
-                isinstance(x, tuple) and len(x) == 2 and isinstance(x[0], str) for x in value)
+                isinstance(x, tuple) and len(x) == 2 and isinstance(x[0], str) for x in value
+            )
         if not (_is_int(value) if self.integer else _is_real(value)):
             return False
         too_low = value <= self.lo if self.lo_open else value < self.lo
@@ -445,7 +446,7 @@ SETTINGS: dict[str, Setting] = _settings(
             choice_help=(("robustness", "the formula's classic robustness"),
                          ("lookahead", "the robustness of the nominal continuation from each step (any scene)"),
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
-)  # fmt: skip
+)  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
 
 

@@ -10,20 +10,22 @@
 Each returns a :class:`Report` (the checks passed, and those skipped with the reason) and raises
 :class:`ConformanceError`, an AssertionError, naming the subject, the check and what was wrong, at the first check that
 fails. The checks are small (a few hundred rollouts, two stages of a few thousand): a scenario or a method takes
-seconds. Files go to a temporary folder that is removed afterwards (``folder=`` keeps them). Importing this module
-imports no simulator, PEM, recording library or torch; a check imports what it runs.
+seconds. The runs, with their rollout file and recording, are :mod:`pemviz.conformance_runs`'s; files go to a
+temporary folder that is removed afterwards (``folder=`` keeps them). Importing this module imports no simulator, PEM,
+recording library or torch; a check imports what it runs.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
+
+from pemviz.conformance_runs import KitRun, files_folder, run_engine, run_with_files
 
 SCENARIO_CHECKS = ("schema", "problem", "determinism", "twin", "drawing", "rollout-file", "recording")
 """The checks of :func:`check_scenario`, in the order they run."""
@@ -104,94 +106,7 @@ class _Checks:
         return Report(self.subject, tuple(self.passed), tuple(self.skipped))
 
 
-class _Guarded:
-    """A listener whose exceptions are kept, not raised: the run goes on, the check that owns the listener fails.
-    An exception at the run's start is kept as :attr:`refused` (a sink saying the run is not for it)."""
-
-    def __init__(self, listener: Callable[[Any], None]) -> None:
-        self.listener = listener
-        self.refused: str | None = None
-        self.error: str | None = None
-
-    def __call__(self, event: Any) -> None:
-        from pemviz.engine.events import RunStarted
-
-        if self.refused is not None or self.error is not None:
-            return
-        try:
-            self.listener(event)
-        except Exception as exc:  # the sink's code: any error is the finding
-            if isinstance(exc, ValueError) and isinstance(event, RunStarted):
-                self.refused = str(exc)
-            else:
-                self.error = f"{type(exc).__name__} at {type(event).__name__}: {exc}"
-
-
-@dataclass
-class _Run:
-    """One engine run: its final event, every stage's and the final estimate, and the files its sinks wrote."""
-
-    final: Any
-    estimates: list[Any]
-    rollouts: Path | None = None
-    rollouts_refused: str | None = None
-    rollouts_error: str | None = None
-    recording: Path | None = None
-    recording_error: str | None = None
-
-
-def _run(config: Any, problem: Any, listeners: tuple = ()) -> _Run:
-    """Run ``config`` on ``problem`` through the engine (:class:`pemviz.engine.experiment.Experiment`)."""
-    from pemviz.engine.experiment import Experiment
-    from pemviz.engine.events import FinalEstimate, StageFinished
-
-    finals: list[Any] = []
-    estimates: list[Any] = []
-
-    def hear(event: Any) -> None:
-        if isinstance(event, StageFinished):
-            estimates.append(event.result.estimate)
-        elif isinstance(event, FinalEstimate):
-            finals.append(event)
-            estimates.append(event.estimate)
-
-    Experiment(config, [*listeners, hear], problem=problem).run()
-    if not finals:
-        raise RuntimeError(f"the run of {config.method} on {problem.name} ended without a final estimate")
-    return _Run(finals[0], estimates)
-
-
-def _run_with_files(config: Any, problem: Any, folder: Path, stem: str) -> _Run:
-    """:func:`_run` with a rollout file (:class:`pemviz.sinks.rollouts.RolloutSink`) and a recording
-    (:meth:`pemviz.sinks.recording.RerunSink.to_file`) written to ``folder``.
-
-    A problem that does not know its step (``dt_s`` None, e.g. the toys, whose steps are units of travel) is written
-    with ``dt_s = 1`` in the file's sidecar (the estimate does not read it); the run itself is unchanged."""
-    from pemviz.sinks.recording import RerunSink
-    from pemviz.sinks.rollouts import RolloutSink
-
-    rollout_sink = RolloutSink(folder / f"{stem}.parquet", overwrite=True)
-    rollout_sink.problem = problem
-    recorder = RerunSink.to_file(folder / f"{stem}.rrd", overwrite=True, problem=problem)
-    rollouts, recording = _Guarded(rollout_sink), _Guarded(recorder)
-    try:
-        run = _run(config, problem, (rollouts, recording))
-    except BaseException:
-        recorder.close(commit=False)
-        rollout_sink.close()
-        raise
-    if rollouts.refused is not None or rollouts.error is not None:
-        rollout_sink.close()
-    try:
-        path = recorder.close(commit=recording.error is None)
-    except Exception as exc:
-        path, recording.error = None, recording.error or f"close() raised {type(exc).__name__}: {exc}"
-    run.rollouts, run.rollouts_refused, run.rollouts_error = rollout_sink.written, rollouts.refused, rollouts.error
-    run.recording, run.recording_error = path, recording.error
-    return run
-
-
-def _check_files(checks: _Checks, run: _Run, problem: Any = None) -> None:
+def _check_files(checks: _Checks, run: KitRun, problem: Any = None) -> None:
     """The rollout file re-estimates to the run's own estimate; the recording was written and is not empty."""
     from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
     from pemviz.io.rollouts import read_rollouts
@@ -203,30 +118,42 @@ def _check_files(checks: _Checks, run: _Run, problem: Any = None) -> None:
         checks.require(run.rollouts_error is None, name, f"the rollout sink raised {run.rollouts_error}")
         checks.require(run.rollouts is not None and run.rollouts.is_file(), name, "the run wrote no rollout file")
         data = read_rollouts(run.rollouts)
-        checks.require(data.log_p is not None and data.log_q is not None, name,
-                       f"{run.rollouts.name} has no log_p / log_q columns")  # fmt: skip
+        checks.require(
+            data.log_p is not None and data.log_q is not None, name, f"{run.rollouts.name} has no log_p / log_q columns"
+        )
         said = (data.meta.provenance or {}).get("estimate") or {}
         cap = said.get("verdict_cap")
-        again = estimate_rollouts(data, data.log_p, data.log_q, weights=data.meta.weights or "to-failure",
-                                  log_p_seen=said.get("log_p_seen"),
-                                  verdict_cap=tuple(cap) if isinstance(cap, list) and len(cap) == 2 else None,
-                                  look_ahead=getattr(problem, "look_ahead", None) if said.get("look_ahead") else None,
-                                  ).estimate  # fmt: skip
+        again = estimate_rollouts(
+            data,
+            data.log_p,
+            data.log_q,
+            weights=data.meta.weights or "to-failure",
+            log_p_seen=said.get("log_p_seen"),
+            verdict_cap=tuple(cap) if isinstance(cap, list) and len(cap) == 2 else None,
+            look_ahead=getattr(problem, "look_ahead", None) if said.get("look_ahead") else None,
+        ).estimate
         own = run.final.estimate
         a, b = again.log_mu_hat, own.log_mu_hat
         close = a == b or (math.isfinite(a) and math.isfinite(b) and abs(math.expm1(a - b)) <= REESTIMATE_RTOL)
-        checks.require(close and (again.n, again.n_failures) == (own.n, own.n_failures), name,
-                       f"re-estimated from {run.rollouts.name}: log mu_hat = {a!r} ({again.n_failures} failures of "
-                       f"{again.n}); the run's own: {b!r} ({own.n_failures} of {own.n}); allowed |mu / mu_run - 1| <= "
-                       f"{REESTIMATE_RTOL:g}")  # fmt: skip
-        checks.require(again.verdict == own.verdict, name, f"re-estimated verdict {again.verdict!r}, the run's "
-                                                           f"{own.verdict!r}")  # fmt: skip
+        checks.require(
+            close and (again.n, again.n_failures) == (own.n, own.n_failures),
+            name,
+            f"re-estimated from {run.rollouts.name}: log mu_hat = {a!r} ({again.n_failures} failures of "
+            f"{again.n}); the run's own: {b!r} ({own.n_failures} of {own.n}); allowed |mu / mu_run - 1| <= "
+            f"{REESTIMATE_RTOL:g}",
+        )
+        checks.require(
+            again.verdict == own.verdict, name, f"re-estimated verdict {again.verdict!r}, the run's " f"{own.verdict!r}"
+        )
         checks.passed.append(name)
     name = "recording"
     checks.require(run.recording_error is None, name, f"the recording sink raised {run.recording_error}")
     path = run.recording
-    checks.require(path is not None and Path(path).is_file() and Path(path).stat().st_size > 0, name,
-                   f"no recording written (RerunSink.to_file ... close() returned {path!r})")  # fmt: skip
+    checks.require(
+        path is not None and Path(path).is_file() and Path(path).stat().st_size > 0,
+        name,
+        f"no recording written (RerunSink.to_file ... close() returned {path!r})",
+    )
     checks.passed.append(name)
 
 
@@ -250,8 +177,10 @@ def _first_difference(a: Any, b: Any) -> str | None:
         if not same.all():
             where = np.argwhere(~same)
             first = tuple(where[np.lexsort((where[:, 0], where[:, 1]))[0]])  # the earliest step, then rollout
-            return (f"{name}{list(map(int, first))} (rollout {first[0]}, step {first[1]}): {x[first].item()!r} "
-                    f"then {y[first].item()!r}")  # fmt: skip
+            return (
+                f"{name}{list(map(int, first))} (rollout {first[0]}, step {first[1]}): {x[first].item()!r} "
+                f"then {y[first].item()!r}"
+            )
     return None
 
 
@@ -292,8 +221,11 @@ def _check_schema(checks: _Checks, scenario: Any) -> None:
                 refused_far |= not must
                 continue
             except Exception as exc:
-                raise checks.fail(name, f"{p.name}={value!r} raised {type(exc).__name__}: {exc} (a value out of "
-                                        "range must be refused with a ValueError)") from None  # fmt: skip
+                raise checks.fail(
+                    name,
+                    f"{p.name}={value!r} raised {type(exc).__name__}: {exc} (a value out of "
+                    "range must be refused with a ValueError)",
+                ) from None
             checks.require(not must, name, f"{p.name}={value!r} is accepted (not {p.kind}, or not finite)")
     try:
         scenario.build_params({"no_such_parameter": 1.0})
@@ -301,14 +233,20 @@ def _check_schema(checks: _Checks, scenario: Any) -> None:
         pass
     else:
         raise checks.fail(name, "an unknown parameter name is accepted")
-    checks.require(not params or refused_far, name, lambda: (
-        f"no far value of any parameter ({', '.join(p.name for p in params)}: -1e12, 1e12) is refused: the "
-        "parameters dataclass checks no range (raise ValueError in its __post_init__)"))  # fmt: skip
+    checks.require(
+        not params or refused_far,
+        name,
+        lambda: (
+            f"no far value of any parameter ({', '.join(p.name for p in params)}: -1e12, 1e12) is refused: the "
+            "parameters dataclass checks no range (raise ValueError in its __post_init__)"
+        ),
+    )
     checks.passed.append(name)
 
 
-def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None, seed: int = 0,
-                   folder: str | Path | None = None) -> Report:  # fmt: skip
+def check_scenario(
+    scenario: Any, *, params: Mapping[str, object] | None = None, seed: int = 0, folder: str | Path | None = None
+) -> Report:
     """Check a scenario of the registry: its parameters, its problem, its determinism, its batched twin, its files.
 
     The checks, in order (:data:`SCENARIO_CHECKS`):
@@ -368,8 +306,11 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
         checks.require(hasattr(problem, attr), name, f"the factory returned {type(problem).__name__}, not a Problem")
     if sc.exact and not params:
         p = problem.exact_log_p
-        checks.require(p is not None and p < 0.0, name, f"the record says it has an exact answer, the problem's "
-                                                        f"exact_log_p is {p!r}")  # fmt: skip
+        checks.require(
+            p is not None and p < 0.0,
+            name,
+            f"the record says it has an exact answer, the problem's " f"exact_log_p is {p!r}",
+        )
     checks.passed.append(name)
 
     name = "determinism"
@@ -378,19 +319,34 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
     for label, sampler in _samplers(problem):
         batch = problem.simulate(SIMULATED_ROLLOUTS, sampler, problem.target, np.random.default_rng(seed))
         first[label] = batch
-        again = {"the same seed again": problem.simulate(SIMULATED_ROLLOUTS, sampler, problem.target,
-                                                         np.random.default_rng(seed))}  # fmt: skip
-        again["a problem built again"] = rebuilt.simulate(SIMULATED_ROLLOUTS, sampler, rebuilt.target,
-                                                          np.random.default_rng(seed))  # fmt: skip
+        again = {
+            "the same seed again": problem.simulate(
+                SIMULATED_ROLLOUTS, sampler, problem.target, np.random.default_rng(seed)
+            )
+        }
+        again["a problem built again"] = rebuilt.simulate(
+            SIMULATED_ROLLOUTS, sampler, rebuilt.target, np.random.default_rng(seed)
+        )
         if problem.stream is not None:
-            chunks = list(problem.stream(SIMULATED_ROLLOUTS, sampler, problem.target, np.random.default_rng(seed),
-                                         chunk_size=SIMULATED_ROLLOUTS // 3))  # fmt: skip
+            chunks = list(
+                problem.stream(
+                    SIMULATED_ROLLOUTS,
+                    sampler,
+                    problem.target,
+                    np.random.default_rng(seed),
+                    chunk_size=SIMULATED_ROLLOUTS // 3,
+                )
+            )
             again["streamed in chunks"] = chunks[0] if len(chunks) == 1 else type(batch).concatenate(chunks)
         for how, other in again.items():
             diff = _first_difference(batch, other)
-            checks.require(diff is None, name, f"seed {seed}, rollouts drawn by {label}: {how} gives other "
-                                               f"rollouts: {diff} (a scenario's only randomness is the "
-                                               "detector's; draw nothing of its own)")  # fmt: skip
+            checks.require(
+                diff is None,
+                name,
+                f"seed {seed}, rollouts drawn by {label}: {how} gives other "
+                f"rollouts: {diff} (a scenario's only randomness is the "
+                "detector's; draw nothing of its own)",
+            )
     checks.passed.append(name)
 
     name = "twin"
@@ -408,19 +364,28 @@ def check_scenario(scenario: Any, *, params: Mapping[str, object] | None = None,
                 raise checks.fail(name, str(exc)) from None
         for label, sampler in _samplers(problem):
             twin = problem.simulate(TWIN_ROLLOUTS, sampler, problem.target, np.random.default_rng(seed))
-            lockstep = simulate(lambda: sc.single_simulator(built), TWIN_ROLLOUTS, sampler, problem.target,
-                                np.random.default_rng(seed), n_steps)  # fmt: skip
+            lockstep = simulate(
+                lambda: sc.single_simulator(built),
+                TWIN_ROLLOUTS,
+                sampler,
+                problem.target,
+                np.random.default_rng(seed),
+                n_steps,
+            )
             diff = _first_difference(lockstep, twin)
-            checks.require(diff is None, name, f"rollouts drawn by {label}: the single simulator, then the "
-                                               f"batched twin: {diff}")  # fmt: skip
+            checks.require(
+                diff is None,
+                name,
+                f"rollouts drawn by {label}: the single simulator, then the " f"batched twin: {diff}",
+            )
         checks.passed.append(name)
 
     _check_drawing(checks, sc, built, problem, first)
 
-    with _folder(folder) as where:
+    with files_folder(folder) as where:
         run = None
         for config in _scenario_configs(sc, params, seed):
-            run = _run_with_files(config, problem, where, f"{sc.name}-{config.method}")
+            run = run_with_files(config, problem, where, f"{sc.name}-{config.method}")
             if run.final.estimate.n_failures > 0:
                 break
         _check_files(checks, run, problem)
@@ -442,15 +407,19 @@ def _check_drawing(checks: _Checks, sc: Any, built: Any, problem: Any, batches: 
     try:
         checks.require(pickle.loads(pickle.dumps(drawing)) == drawing, "drawing", "not itself after pickling")
     except pickle.PicklingError as exc:
-        raise checks.fail("drawing", f"it cannot be pickled ({exc}); the recording runs in a process "
-                                     "of its own") from None
+        raise checks.fail(
+            "drawing", f"it cannot be pickled ({exc}); the recording runs in a process " "of its own"
+        ) from None
     for label, batch in batches.items():
         failed = np.asarray(problem.failed(batch), dtype=bool)
         for i in range(batch.n):
             told = drawing.outcome(batch, i)
             if not (isinstance(told, Outcome) and bool(told.failed) == failed[i]):
-                raise checks.fail("drawing", f"rollout {i} drawn by {label}: outcome(batch, {i}) is {told!r:.80}, the "
-                                             f"problem's failure event says failed={bool(failed[i])}")
+                raise checks.fail(
+                    "drawing",
+                    f"rollout {i} drawn by {label}: outcome(batch, {i}) is {told!r:.80}, the "
+                    f"problem's failure event says failed={bool(failed[i])}",
+                )
     checks.passed.append("drawing")
 
 
@@ -470,27 +439,10 @@ def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -
     base = ExperimentConfig(method="naive50", n_per_stage=RUN_ROLLOUTS, seed=seed)
     if sc.runnable:
         base = dataclasses.replace(base, scenario=sc.name, scenario_params=tuple(dict(params or {}).items()))
-    adaptive = dataclasses.replace(base, method="adaptive", n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50,
-                                   pretrain_epochs=50)  # fmt: skip
+    adaptive = dataclasses.replace(
+        base, method="adaptive", n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50
+    )
     return [base, adaptive]
-
-
-class _folder:
-    """``with _folder(path) as where``: ``path`` (made if need be), or a temporary folder removed afterwards."""
-
-    def __init__(self, path: str | Path | None) -> None:
-        self.path, self._tmp = path, None
-
-    def __enter__(self) -> Path:
-        if self.path is not None:
-            Path(self.path).mkdir(parents=True, exist_ok=True)
-            return Path(self.path)
-        self._tmp = tempfile.TemporaryDirectory(prefix="pemviz-check-")
-        return Path(self._tmp.name)
-
-    def __exit__(self, *exc: object) -> None:
-        if self._tmp is not None:
-            self._tmp.cleanup()
 
 
 # -- estimators -----------------------------------------------------------------------------------------------------
@@ -501,9 +453,15 @@ def estimator_config(method: str, seed: int, n: int = ESTIMATOR_ROLLOUTS, settin
     epochs a fit and of pretraining, ``settings`` (e.g. ``ams_score``; ConfigError if refused), else the defaults."""
     from pemviz.config import ExperimentConfig
 
-    return dataclasses.replace(ExperimentConfig(method=method, seed=seed), n_stages=2, n_per_stage=n,
-                               n_final=max(1, n // 5), ce_epochs=50, pretrain_epochs=50,
-                               **dict(settings or {}))  # fmt: skip
+    return dataclasses.replace(
+        ExperimentConfig(method=method, seed=seed),
+        n_stages=2,
+        n_per_stage=n,
+        n_final=max(1, n // 5),
+        ce_epochs=50,
+        pretrain_epochs=50,
+        **dict(settings or {}),
+    )
 
 
 def _never_fails(problem: Any) -> Any:
@@ -514,8 +472,9 @@ def _never_fails(problem: Any) -> Any:
     return dataclasses.replace(problem, formula=formula, exact_log_p=None, name=f"{problem.name}, never failing")
 
 
-def check_estimator(method: Any, *, problem: Any = None, folder: str | Path | None = None,
-                    settings: Mapping[str, Any] | None = None) -> Report:  # fmt: skip
+def check_estimator(
+    method: Any, *, problem: Any = None, folder: str | Path | None = None, settings: Mapping[str, Any] | None = None
+) -> Report:
     """Check an estimation method on a problem with an exact answer: its interface, its bias, its verdicts, its files.
 
     The runs are :func:`estimator_config` (2 stages of :data:`ESTIMATOR_ROLLOUTS` = 2000 rollouts, a final batch of
@@ -569,28 +528,37 @@ def check_estimator(method: Any, *, problem: Any = None, folder: str | Path | No
         raise checks.fail(name, str(exc)) from None
     checks.passed.append(name)
 
-    with _folder(folder) as where:
+    with files_folder(folder) as where:
         cfgs = [estimator_config(method, k, settings=settings) for k in range(ESTIMATOR_SEEDS)]
-        runs = [_run_with_files(cfgs[0], pb, where, f"{method}-seed0"), *(_run(c, pb) for c in cfgs[1:])]
+        runs = [run_with_files(cfgs[0], pb, where, f"{method}-seed0"), *(run_engine(c, pb) for c in cfgs[1:])]
 
         name = "unbiased"
         ratio = np.exp(np.array([r.final.estimate.log_mu_hat for r in runs]) - pb.exact_log_p)  # mu_k / p
         mean, se = float(ratio.mean()), float(ratio.std(ddof=1) / math.sqrt(ratio.size))
         allowed = UNBIASED_TOLERANCE + UNBIASED_Z * se
-        checks.require(abs(mean - 1.0) <= allowed, name, lambda: (
-            f"the mean of {ratio.size} estimates (seeds 0..{ratio.size - 1}) is {mean:.4g} times the exact "
-            f"{math.exp(pb.exact_log_p):.4g} (|log mean - log p| = {abs(math.log(mean)) if mean > 0 else math.inf:.3g}"
-            f" nats); allowed 1 +- {allowed:.3g} ({UNBIASED_TOLERANCE:g} + {UNBIASED_Z:g} SE, SE {se:.3g}); each "
-            f"mu_k / p: {np.array2string(ratio, precision=3)}"))  # fmt: skip
+        checks.require(
+            abs(mean - 1.0) <= allowed,
+            name,
+            lambda: (
+                f"the mean of {ratio.size} estimates (seeds 0..{ratio.size - 1}) is {mean:.4g} times the exact "
+                f"{math.exp(pb.exact_log_p):.4g} (|log mean - log p| = "
+                f"{abs(math.log(mean)) if mean > 0 else math.inf:.3g}"
+                f" nats); allowed 1 +- {allowed:.3g} ({UNBIASED_TOLERANCE:g} + {UNBIASED_Z:g} SE, SE {se:.3g}); each "
+                f"mu_k / p: {np.array2string(ratio, precision=3)}"
+            ),
+        )
         checks.passed.append(name)
 
         name = "verdicts"
-        never = _run(cfgs[0], _never_fails(pb))
+        never = run_engine(cfgs[0], _never_fails(pb))
         for run in [*runs, never]:
             for est in run.estimates:
                 if (est.n_failures == 0 or math.isnan(est.log_mu_hat)) and est.verdict == "reliable":
-                    raise checks.fail(name, f"an estimate with {est.n_failures} failures of {est.n} and log mu_hat = "
-                                            f"{est.log_mu_hat!r} is called reliable ({est.reason})")
+                    raise checks.fail(
+                        name,
+                        f"an estimate with {est.n_failures} failures of {est.n} and log mu_hat = "
+                        f"{est.log_mu_hat!r} is called reliable ({est.reason})",
+                    )
         got = never.final.estimate
         checks.require(got.n_failures == 0, name, f"a run where no rollout can fail reports {got.n_failures} failures")
         checks.passed.append(name)

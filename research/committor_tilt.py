@@ -59,8 +59,22 @@ from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, OBJECT_NAMES
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
-FEATURES = ("range_m", "gap_m", "rel_speed_mps", "lateral_speed_mps", "loc_x", "loc_z", "occluded_fraction", "visible",
-            "tracked", "track_err_x_m", "track_err_y_m", "followed", "ego_speed_mps", "ego_accel_mps2")  # fmt: skip
+FEATURES = (
+    "range_m",
+    "gap_m",
+    "rel_speed_mps",
+    "lateral_speed_mps",
+    "loc_x",
+    "loc_z",
+    "occluded_fraction",
+    "visible",
+    "tracked",
+    "track_err_x_m",
+    "track_err_y_m",
+    "followed",
+    "ego_speed_mps",
+    "ego_accel_mps2",
+)
 COLUMNS = [OBJECT_NAMES.index(f) for f in FEATURES]
 VISIBLE = OBJECT_NAMES.index("visible")
 RECORD = (5, 40)
@@ -124,8 +138,13 @@ class Study:
             return
         p = expit(target.detect_logit(rows0[idx]))
         mass = self.mass(p)
-        q_fail = np.stack([model.predict_proba(self.inputs(rows0[idx], t, gap, np.broadcast_to(r, (idx.size, 3))))[:, 1]
-                           for r in self.representative], axis=1)  # fmt: skip
+        q_fail = np.stack(
+            [
+                model.predict_proba(self.inputs(rows0[idx], t, gap, np.broadcast_to(r, (idx.size, 3))))[:, 1]
+                for r in self.representative
+            ],
+            axis=1,
+        )
         q_fail = np.clip(q_fail, 1e-12, 1.0)
         tilted = mass * (q_fail / q_fail[:, 5:6]) ** self.beta
         q = (1 - self.eps) * tilted / tilted.sum(1, keepdims=True) + self.eps * mass
@@ -150,8 +169,9 @@ def fit(study: Study, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, floa
             ys.append(failed.astype(int))
     x, y = np.concatenate(xs), np.concatenate(ys)
     seen = x[:, FEATURES.index("visible")] > 0.5
-    model = HistGradientBoostingClassifier(max_iter=150, learning_rate=0.1, max_leaf_nodes=31, early_stopping=False,
-                                           random_state=0)  # fmt: skip
+    model = HistGradientBoostingClassifier(
+        max_iter=150, learning_rate=0.1, max_leaf_nodes=31, early_stopping=False, random_state=0
+    )
     return model.fit(x[seen], y[seen])
 
 
@@ -165,9 +185,12 @@ def one_seed(study: Study, seed: int, pilots: int, n: int) -> float:
     model = fit(study, parts)
     failed, log_w, _, _ = study.simulate(TARGET_GAP_M, n, rng, model)
     est = estimate(log_w, failed, np.zeros(n))  # pemviz's own estimator: interval, ESS, k-hat and verdict
-    print(f"  seed {seed}: {est.mu_hat:.3e} {est.interval_text()} x{est.mu_hat / REFERENCE:.2f} of the reference, "
-          f"{est.n_failures} failures, ESS {est.ess:.1f}, k-hat {est.khat:.2f}, {est.verdict}; {pilots + n:,} "
-          f"rollouts, {time.perf_counter() - t0:.1f} s", flush=True)  # fmt: skip
+    print(
+        f"  seed {seed}: {est.mu_hat:.3e} {est.interval_text()} x{est.mu_hat / REFERENCE:.2f} of the reference, "
+        f"{est.n_failures} failures, ESS {est.ess:.1f}, k-hat {est.khat:.2f}, {est.verdict}; {pilots + n:,} "
+        f"rollouts, {time.perf_counter() - t0:.1f} s",
+        flush=True,
+    )
     return est.mu_hat
 
 
@@ -182,12 +205,16 @@ def main() -> None:
     ap.add_argument("--beta", type=float, default=1.0, help="power on Q's ratios")
     args = ap.parse_args()
     study = Study(args.tail, tuple(args.window), args.eps, args.beta)
-    print(f"cut-in, moderate setting (reference {REFERENCE:.3g}); window {args.window}, eps {args.eps}, "
-          f"beta {args.beta}")  # fmt: skip
+    print(
+        f"cut-in, moderate setting (reference {REFERENCE:.3g}); window {args.window}, eps {args.eps}, "
+        f"beta {args.beta}"
+    )
     mus = np.array([one_seed(study, s, args.pilots, args.n) for s in range(args.seeds)])
     err = np.abs(mus / REFERENCE - 1.0)
-    print(f"median relative error {np.median(err):.2f} (target <= 0.2); within x2 in "
-          f"{int(np.sum((mus >= REFERENCE / 2) & (mus <= 2 * REFERENCE)))} of {len(mus)}")  # fmt: skip
+    print(
+        f"median relative error {np.median(err):.2f} (target <= 0.2); within x2 in "
+        f"{int(np.sum((mus >= REFERENCE / 2) & (mus <= 2 * REFERENCE)))} of {len(mus)}"
+    )
 
 
 if __name__ == "__main__":

@@ -68,8 +68,16 @@ from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 
 DETECTION_BINS = ((0.98, 0.99), (0.99, 0.995), (0.995, 1.0))
-ERROR_BINS = ((0.0, 1e-5), (1e-5, 1e-4), (1e-4, 1e-3), (1e-3, 1e-2),
-              (0.99, 0.999), (0.999, 0.9999), (0.9999, 0.99999), (0.99999, 1.0))  # fmt: skip
+ERROR_BINS = (
+    (0.0, 1e-5),
+    (1e-5, 1e-4),
+    (1e-4, 1e-3),
+    (1e-3, 1e-2),
+    (0.99, 0.999),
+    (0.999, 0.9999),
+    (0.9999, 0.99999),
+    (0.99999, 1.0),
+)
 BINS = (DETECTION_BINS, ERROR_BINS, ERROR_BINS)
 """Tail bins of each component's uniform (0 detection: its upper tail holds the misses; 1 range, 2 lateral)."""
 NB = len(ERROR_BINS)
@@ -202,8 +210,9 @@ class Study:
         n, t_max = u.shape[0], self.shape[0]
         target = self.problem.target
         with np.errstate(divide="ignore"):
-            batch = run_batched(BatchedCutIn(self.params, n), n, t_max, target, target,
-                                (u[:, t].reshape(-1) for t in range(t_max)))  # fmt: skip
+            batch = run_batched(
+                BatchedCutIn(self.params, n), n, t_max, target, target, (u[:, t].reshape(-1) for t in range(t_max))
+            )
         self.simulations += n
         return self.problem.robustness(batch, "classic"), batch
 
@@ -241,8 +250,14 @@ def fit_product(u: np.ndarray, weight: np.ndarray, eps: float = 0.1, cap: float 
     return Product(np.where(total > cap, rho * cap / np.maximum(total, 1e-300), rho))
 
 
-def fit_events(u: np.ndarray, weight: np.ndarray, start: np.ndarray, eps: float = 0.1, iterations: int = 5,
-               betas: tuple[float, float, float] = (0.1, 0.6, 0.3)) -> Events:  # fmt: skip
+def fit_events(
+    u: np.ndarray,
+    weight: np.ndarray,
+    start: np.ndarray,
+    eps: float = 0.1,
+    iterations: int = 5,
+    betas: tuple[float, float, float] = (0.1, 0.6, 0.3),
+) -> Events:
     """The events family fitted to elites' decisive uniforms ``u`` by expectation-maximisation of the single-event
     mixture weights from ``start``, smoothed and mixed with a prior proportional to the bins' PEM probability."""
     prior = np.broadcast_to(WIDTH, start.shape).copy()
@@ -288,8 +303,9 @@ class Mixed:
         return u
 
     def log_density(self, u: np.ndarray) -> np.ndarray:
-        return np.logaddexp(math.log1p(-self.share) + self.product.log_density(u),
-                            math.log(self.share) + self.events.log_density(u))  # fmt: skip
+        return np.logaddexp(
+            math.log1p(-self.share) + self.product.log_density(u), math.log(self.share) + self.events.log_density(u)
+        )
 
 
 def report(label: str, log_w: np.ndarray, failed: np.ndarray, extra: str = "") -> float:
@@ -298,9 +314,12 @@ def report(label: str, log_w: np.ndarray, failed: np.ndarray, extra: str = "") -
     mu = math.exp(est.log_mu_hat) if failed.any() else 0.0
     lo, hi = np.exp(est.log_ci) if failed.any() else (0.0, 1.0)
     err = abs(mu / REFERENCE - 1.0)
-    print(f"{label}: {mu:.3e} [{lo:.2e}, {hi:.2e}] (reference {REFERENCE:.3e} "
-          f"{'inside' if lo <= REFERENCE <= hi else 'OUTSIDE'}), relative error {err:.3f}, {int(failed.sum())} "
-          f"failures, ESS {est.ess:.1f}, {est.verdict}{extra}", flush=True)  # fmt: skip
+    print(
+        f"{label}: {mu:.3e} [{lo:.2e}, {hi:.2e}] (reference {REFERENCE:.3e} "
+        f"{'inside' if lo <= REFERENCE <= hi else 'OUTSIDE'}), relative error {err:.3f}, {int(failed.sum())} "
+        f"failures, ESS {est.ess:.1f}, {est.verdict}{extra}",
+        flush=True,
+    )
     return err
 
 
@@ -314,10 +333,13 @@ def describe_failures(u: np.ndarray, decisive: np.ndarray, weight: np.ndarray) -
         print(f"  failures with {k} decisive event(s): {(count == k).sum()}, share of p_fail {share:.3f}")
     i, t, m, c = np.nonzero(bins >= 0)
     tail = np.minimum(u[i, t, m, c], 1.0 - u[i, t, m, c])
-    print(f"  decisive events: objects {dict(zip(*np.unique(m, return_counts=True), strict=False))}, components "
-          f"(detection, range, lateral) {np.bincount(c, minlength=3).tolist()}, "
-          f"steps 5/50/95 % {np.percentile(t, [5, 50, 95]).tolist()}, "
-          f"tail probability 5/50/95 % {np.percentile(tail, [5, 50, 95]).round(8).tolist()}", flush=True)  # fmt: skip
+    print(
+        f"  decisive events: objects {dict(zip(*np.unique(m, return_counts=True), strict=False))}, components "
+        f"(detection, range, lateral) {np.bincount(c, minlength=3).tolist()}, "
+        f"steps 5/50/95 % {np.percentile(t, [5, 50, 95]).tolist()}, "
+        f"tail probability 5/50/95 % {np.percentile(tail, [5, 50, 95]).round(8).tolist()}",
+        flush=True,
+    )
 
 
 def oracle(n_collect: int, n: int, seed: int) -> None:
@@ -424,9 +446,12 @@ def splitting(seed: int, n: int, killed: int) -> float:
     mu = math.exp(est.log_mu_hat) if est.n_failures else 0.0
     lo, hi = np.exp(est.log_ci)
     err = abs(mu / REFERENCE - 1.0)
-    print(f"AMS graded lateness, seed {seed}, N {n}, k {killed}: {mu:.3e} [{lo:.2e}, {hi:.2e}], relative error "
-          f"{err:.3f}, {run.n_simulations} simulations, {est.verdict} ({run.stop}), "
-          f"{time.perf_counter() - start:.0f} s", flush=True)  # fmt: skip
+    print(
+        f"AMS graded lateness, seed {seed}, N {n}, k {killed}: {mu:.3e} [{lo:.2e}, {hi:.2e}], relative error "
+        f"{err:.3f}, {run.n_simulations} simulations, {est.verdict} ({run.stop}), "
+        f"{time.perf_counter() - start:.0f} s",
+        flush=True,
+    )
     return err
 
 

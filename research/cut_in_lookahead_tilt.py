@@ -159,8 +159,14 @@ from pemviz.core.lockstep import run_batched  # noqa: E402
 from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 from pemviz.scenarios.cut_in.committor import GRIDS, LMAX, LevelChain, continuous_level, level  # noqa: E402
-from pemviz.scenarios.cut_in.lookahead import (DP_DEPTH, LOG_PVVY, VISIBLE, VX_ERROR, VY_ERROR,  # noqa: E402
-                                               features)
+from pemviz.scenarios.cut_in.lookahead import (
+    DP_DEPTH,
+    LOG_PVVY,
+    VISIBLE,
+    VX_ERROR,
+    VY_ERROR,  # noqa: E402
+    features,
+)
 from pemviz.scenarios.cut_in.tilt import CutInTilt  # noqa: E402
 from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
 
@@ -182,9 +188,31 @@ class Step:
     parent: np.ndarray
 
 
-CACHE_KEY = ("setting", "grid", "window", "end", "graded", "errors", "one_car", "q_model", "a", "eps", "train_once",
-             "iterations", "v_large", "continuous", "dp", "chain_effects", "dp_mass", "dp_lateral", "vx_buckets",
-             "vy_buckets", "beam", "effect_model", "beta")
+CACHE_KEY = (
+    "setting",
+    "grid",
+    "window",
+    "end",
+    "graded",
+    "errors",
+    "one_car",
+    "q_model",
+    "a",
+    "eps",
+    "train_once",
+    "iterations",
+    "v_large",
+    "continuous",
+    "dp",
+    "chain_effects",
+    "dp_mass",
+    "dp_lateral",
+    "vx_buckets",
+    "vy_buckets",
+    "beam",
+    "effect_model",
+    "beta",
+)
 """The options a V fitted by ``--train-once`` depends on: a ``--v-cache`` fitted with others is refused."""
 
 
@@ -192,30 +220,42 @@ def check_options(args: argparse.Namespace, n_steps: int) -> None:
     """Stop with one line (SystemExit) on options the study cannot run with, before anything is loaded."""
     w0, w1 = args.window
     if min(args.n) < 1 or not 0.0 < args.eps <= 1.0 or not 0.0 < args.a <= 1.0 or not 0.0 < args.beta <= 1.0:
-        raise SystemExit(f"--n {' '.join(map(str, args.n))} --eps {args.eps} --a {args.a} --beta {args.beta}: need "
-                         f"every stage's rollouts >= 1, 0 < eps <= 1 (the PEMs' share), 0 < a <= 1 (a probability) "
-                         f"and 0 < beta <= 1 (the tilt's power)")
+        raise SystemExit(
+            f"--n {' '.join(map(str, args.n))} --eps {args.eps} --a {args.a} --beta {args.beta}: need "
+            f"every stage's rollouts >= 1, 0 < eps <= 1 (the PEMs' share), 0 < a <= 1 (a probability) "
+            f"and 0 < beta <= 1 (the tilt's power)"
+        )
     if not 0 <= w0 < w1 <= args.end <= n_steps:
-        raise SystemExit(f"--window {w0} {w1} --end {args.end}: need 0 <= window start < window end <= end <= "
-                         f"{n_steps} (the scene's steps)")
+        raise SystemExit(
+            f"--window {w0} {w1} --end {args.end}: need 0 <= window start < window end <= end <= "
+            f"{n_steps} (the scene's steps)"
+        )
     if (args.continuous or args.dp) and not args.graded:
         raise SystemExit("--continuous and --dp need --graded (they read the continuations' lateral margins)")
     buckets = {"--vx-buckets": args.vx_buckets, "--vy-buckets": args.vy_buckets}
     unsorted = any(sorted(b) != b for b in buckets.values())
     if not 0.0 < args.dp_mass < 0.5 or not 0.0 <= args.dp_lateral < 0.5 or unsorted:
-        raise SystemExit(f"--dp-mass {args.dp_mass} --dp-lateral {args.dp_lateral} "
-                         + " ".join(f"{k} {' '.join(map(str, b))}" for k, b in buckets.items())
-                         + ": need 0 < dp-mass < 0.5 and 0 <= dp-lateral < 0.5 (tail masses; 0: no lateral events) and "
-                         "the buckets' bounds ascending")
+        raise SystemExit(
+            f"--dp-mass {args.dp_mass} --dp-lateral {args.dp_lateral} "
+            + " ".join(f"{k} {' '.join(map(str, b))}" for k, b in buckets.items())
+            + ": need 0 < dp-mass < 0.5 and 0 <= dp-lateral < 0.5 (tail masses; 0: no lateral events) and "
+            "the buckets' bounds ascending"
+        )
     if args.effect_model and not (args.beam and args.chain_effects):
-        raise SystemExit("--effect-model needs --beam and --chain-effects (it is fitted on the beam's look-aheads and "
-                         "gives the effects --chain-effects reads)")
+        raise SystemExit(
+            "--effect-model needs --beam and --chain-effects (it is fitted on the beam's look-aheads and "
+            "gives the effects --chain-effects reads)"
+        )
     if (args.chain_effects or args.beam) and not args.dp or args.beam < 0:
-        raise SystemExit(f"--chain-effects and --beam {args.beam} need --dp (they read or build its chain), and the "
-                         f"beam's bin width must be > 0")
+        raise SystemExit(
+            f"--chain-effects and --beam {args.beam} need --dp (they read or build its chain), and the "
+            f"beam's bin width must be > 0"
+        )
     if args.dp and w0 < DP_DEPTH:
-        raise SystemExit(f"--dp needs the window to start at step {DP_DEPTH} or later (its event sequences reach "
-                         f"{DP_DEPTH} steps back), got --window {w0} {w1}")
+        raise SystemExit(
+            f"--dp needs the window to start at step {DP_DEPTH} or later (its event sequences reach "
+            f"{DP_DEPTH} steps back), got --window {w0} {w1}"
+        )
     if args.beam and not args.one_car:
         raise SystemExit("--beam needs --one-car (its representatives are states of the cut-in car alone)")
     if args.check_one_car and not args.graded:
@@ -234,24 +274,38 @@ class LookAheadTilt(CutInTilt):
         check_options(args, params.n_steps)
         self.problem = cut_in_problem(load_pem(), params)
         buckets = tuple((c, tuple(b)) for c, b in ((VX_ERROR, args.vx_buckets), (VY_ERROR, args.vy_buckets)) if b)
-        super().__init__(params, self.problem.target, args.grid, tuple(args.window), args.end, args.beam or None,
-                         args.beta, args.eps, one_car=args.one_car, graded=args.graded,
-                         continuous=args.continuous or args.dp, errors=args.errors, error_buckets=buckets,
-                         dp_mass=args.dp_mass, effect_model=args.effect_model)  # fmt: skip
+        super().__init__(
+            params,
+            self.problem.target,
+            args.grid,
+            tuple(args.window),
+            args.end,
+            args.beam or None,
+            args.beta,
+            args.eps,
+            one_car=args.one_car,
+            graded=args.graded,
+            continuous=args.continuous or args.dp,
+            errors=args.errors,
+            error_buckets=buckets,
+            dp_mass=args.dp_mass,
+            effect_model=args.effect_model,
+        )
         self.a, self.skip_doomed = args.a, args.skip_doomed
         self.check_one_car, self.agree = args.check_one_car, []
         self.chain_effects, self.dp_lateral = args.chain_effects, args.dp_lateral
         self.n_state = 18 if args.errors else 14
-        self.v_size = (dict(max_iter=600, max_leaf_nodes=63, min_samples_leaf=5, early_stopping=False) if args.v_large
-                       else dict(max_iter=200, max_leaf_nodes=31, min_samples_leaf=10))  # fmt: skip
+        self.v_size = (
+            dict(max_iter=600, max_leaf_nodes=63, min_samples_leaf=5, early_stopping=False)
+            if args.v_large
+            else dict(max_iter=200, max_leaf_nodes=31, min_samples_leaf=10)
+        )
         self.reset()
-
 
     def reset(self) -> None:
         self.branch_steps = self.one_steps = self.extrap_steps = 0
         self.v_table = self.model = self.q_model = None
         self.traces: list = []
-
 
     def solve_dp(self, h: float = 0.01, gmax: float = LMAX) -> "LevelChain":
         """The committor as a function of the continuous level and the track's regime, U_t(G, k), solved on the
@@ -303,8 +357,9 @@ class LookAheadTilt(CutInTilt):
                     chosen.setdefault(int(reg[i]), int(i))
                 idx = np.array(list(chosen.values()))
                 u = np.tile([0.0, 0.5, 0.5], (seqs.shape[0], p.n_objects, 1))
-                r, bfeat = self.look_ahead(cand, idx, u, np.ascontiguousarray(cand.objects()),
-                                           np.full(seqs.shape[0], np.inf))  # fmt: skip
+                r, bfeat = self.look_ahead(
+                    cand, idx, u, np.ascontiguousarray(cand.objects()), np.full(seqs.shape[0], np.inf)
+                )
                 gl = continuous_level(level(r), bfeat[..., -2], bfeat[..., -1])
                 effects[t] = dict(zip(chosen, gl - gl[:, 1:2], strict=False))
                 nexts[t] = dict(zip(chosen, self.regime(bfeat, t + 1), strict=False))
@@ -314,7 +369,6 @@ class LookAheadTilt(CutInTilt):
             if t < p.n_steps:
                 sim.step(sim.objects()[:, :, VISIBLE] > 0.5, None)
         return LevelChain(g, self.window, p0s, effects, nexts, nreg, h, gmax, g_nom, states)
-
 
     def log_q_table(self, r: np.ndarray, t: int, feats: np.ndarray | None = None) -> np.ndarray:
         """log V(level, t + 1) of the branches [k, NBRANCH] from the level table (``a`` ^ L before the first fit;
@@ -339,20 +393,41 @@ class LookAheadTilt(CutInTilt):
         if self.model is None or t + 1 >= self.window[1]:
             return table
         lv = level(r)
-        x = np.concatenate([feats, lv[..., None], np.full(lv.shape + (1,), t + 1.0),
-                            np.broadcast_to(ps[:, None, None], lv.shape + (1,))], axis=-1)  # fmt: skip
+        x = np.concatenate(
+            [
+                feats,
+                lv[..., None],
+                np.full(lv.shape + (1,), t + 1.0),
+                np.broadcast_to(ps[:, None, None], lv.shape + (1,)),
+            ],
+            axis=-1,
+        )
         pred = self.model.predict(x.reshape(-1, x.shape[-1])).reshape(lv.shape)
         return np.where(lv == 0, table, np.minimum(pred, 0.0))
 
     def q_inputs(self, sfeat: np.ndarray, t: int) -> np.ndarray:
         """The Q model's inputs at every branch event [k NBRANCH, n_state + 4]: the state, the step, the event."""
         k, kk = sfeat.shape[0], self.grid.nbranch
-        return np.concatenate([np.repeat(sfeat[:, None, :self.n_state], kk, axis=1), np.full((k, kk, 1), float(t)),
-                               np.broadcast_to(self.grid.desc, (k, kk, 3))], axis=2).reshape(k * kk, -1)  # fmt: skip
+        return np.concatenate(
+            [
+                np.repeat(sfeat[:, None, : self.n_state], kk, axis=1),
+                np.full((k, kk, 1), float(t)),
+                np.broadcast_to(self.grid.desc, (k, kk, 3)),
+            ],
+            axis=2,
+        ).reshape(k * kk, -1)
 
-
-    def branch_log_q(self, sim: BatchedCutIn, t: int, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
-                     prefix_min: np.ndarray, sfeat: np.ndarray, p0: np.ndarray) -> np.ndarray:  # fmt: skip
+    def branch_log_q(
+        self,
+        sim: BatchedCutIn,
+        t: int,
+        idx: np.ndarray,
+        u: np.ndarray,
+        rows: np.ndarray,
+        prefix_min: np.ndarray,
+        sfeat: np.ndarray,
+        p0: np.ndarray,
+    ) -> np.ndarray:
         """log Q of the branches [k, NBRANCH] by the study's route: a Q model, the chain's effects (pemviz's), or a
         look-ahead of every branch scored by the chain, the level table or the fitted V (its step kept for the fit)."""
         self._step = None
@@ -365,8 +440,9 @@ class LookAheadTilt(CutInTilt):
             self.one_car = True
             r1, b1 = self.look_ahead(sim, idx, u, rows, prefix_min)
             self.one_car = False
-            self.agree.append(np.column_stack([level(r).ravel() == level(r1).ravel(),
-                                               bfeat[..., -3].ravel() == b1[..., -3].ravel()]))
+            self.agree.append(
+                np.column_stack([level(r).ravel() == level(r1).ravel(), bfeat[..., -3].ravel() == b1[..., -3].ravel()])
+            )
         if self.graded:
             sfeat = np.column_stack([sfeat, bfeat[:, 1, -3:]])
         ps = self.one_step(self.grid.p_class(p0), r, t)
@@ -394,7 +470,6 @@ class LookAheadTilt(CutInTilt):
         if given is None:
             self.traces.append((n, self._trace, failed))
         return failed, log_w, n + steps / self.params.n_steps, (self.extrap_steps - e0) / self.params.n_steps
-
 
     def fit(self, iterations: int) -> None:
         """V(L, t) from the level kernel of every stage so far, then log V on the branches' next states by fitted value
@@ -430,14 +505,27 @@ class LookAheadTilt(CutInTilt):
             v[:, j] = kern[j] @ v[:, j + 1]
         self.v_table, self.model = np.maximum(v, 1e-12), None
         steps = [s for _, trace, _ in self.traces for s in trace]
-        x = np.concatenate([np.column_stack([s.sfeat, level(s.r[:, 1]), np.full(s.idx.size, float(s.t)),
-                                             np.where(np.isnan(s.parent), np.log(self.v_table[level(s.r[:, 1]),
-                                                                                               s.t - w0]), s.parent)])
-                            for s in steps])  # fmt: skip
+        x = np.concatenate(
+            [
+                np.column_stack(
+                    [
+                        s.sfeat,
+                        level(s.r[:, 1]),
+                        np.full(s.idx.size, float(s.t)),
+                        np.where(np.isnan(s.parent), np.log(self.v_table[level(s.r[:, 1]), s.t - w0]), s.parent),
+                    ]
+                )
+                for s in steps
+            ]
+        )
         pss = [self.one_step(s.pc, s.r, s.t) for s in steps]  # the states' one-step values from the new table
         for _ in range(iterations):
-            y = np.concatenate([logsumexp(np.log(s.pc) + self.grid.class_values(self.log_q_hat(s.r, s.bfeat, s.t, ps)),
-                                          axis=1) for s, ps in zip(steps, pss, strict=False)])  # fmt: skip
+            y = np.concatenate(
+                [
+                    logsumexp(np.log(s.pc) + self.grid.class_values(self.log_q_hat(s.r, s.bfeat, s.t, ps)), axis=1)
+                    for s, ps in zip(steps, pss, strict=False)
+                ]
+            )
             self.model = HistGradientBoostingRegressor(learning_rate=0.1, random_state=0, **self.v_size).fit(x, y)
 
     def fit_q_model(self) -> None:
@@ -448,8 +536,9 @@ class LookAheadTilt(CutInTilt):
         steps = [s for _, trace, _ in self.traces for s in trace]
         x = np.concatenate([self.q_inputs(s.sfeat, s.t) for s in steps])
         y = np.concatenate([self.log_q_hat(s.r, s.bfeat, s.t, s.ps).reshape(-1) for s in steps])
-        self.q_model = HistGradientBoostingRegressor(max_iter=300, learning_rate=0.1, max_leaf_nodes=63,
-                                                     min_samples_leaf=20, random_state=0).fit(x, y)
+        self.q_model = HistGradientBoostingRegressor(
+            max_iter=300, learning_rate=0.1, max_leaf_nodes=63, min_samples_leaf=20, random_state=0
+        ).fit(x, y)
 
 
 def mc_failures(study: LookAheadTilt, n: int, rng: np.random.Generator, chunk: int = 20000) -> np.ndarray:
@@ -460,8 +549,15 @@ def mc_failures(study: LookAheadTilt, n: int, rng: np.random.Generator, chunk: i
         size = min(chunk, n - start)
         u = rng.random((params.n_steps, size, params.n_objects, 3))
         with np.errstate(divide="ignore"):
-            batch = run_batched(BatchedCutIn(params, size), size, params.n_steps, target, target,
-                                (u[t].reshape(-1) for t in range(params.n_steps)), keep_rows=False)  # fmt: skip
+            batch = run_batched(
+                BatchedCutIn(params, size),
+                size,
+                params.n_steps,
+                target,
+                target,
+                (u[t].reshape(-1) for t in range(params.n_steps)),
+                keep_rows=False,
+            )
         kept.append(u[:, study.problem.failed(batch, study.problem.robustness(batch, "classic"))])
     return np.concatenate(kept, axis=1)
 
@@ -488,12 +584,23 @@ def main() -> None:
     ap.add_argument("--graded", action="store_true", help="the continuation's follow step, lateral margins as inputs")
     ap.add_argument("--continuous", action="store_true", help="Q = a^G before a fit, G the level made continuous")
     ap.add_argument("--dp", action="store_true", help="Q = U_t(G), the level chain solved on the nominal path")
-    ap.add_argument("--chain-effects", action="store_true",
-                    help="with --dp: one continuation a step; every event's effect and next regime from the chain")
-    ap.add_argument("--effect-model", action="store_true",
-                    help="with --beam --chain-effects: each event's effect from a model of the beam's look-aheads")
-    ap.add_argument("--beam", type=float, default=0.0, metavar="WIDTH",
-                    help="with --dp: the chain's cells are (regime, bin of G of WIDTH), found by a beam of events")
+    ap.add_argument(
+        "--chain-effects",
+        action="store_true",
+        help="with --dp: one continuation a step; every event's effect and next regime from the chain",
+    )
+    ap.add_argument(
+        "--effect-model",
+        action="store_true",
+        help="with --beam --chain-effects: each event's effect from a model of the beam's look-aheads",
+    )
+    ap.add_argument(
+        "--beam",
+        type=float,
+        default=0.0,
+        metavar="WIDTH",
+        help="with --dp: the chain's cells are (regime, bin of G of WIDTH), found by a beam of events",
+    )
     ap.add_argument("--dp-mass", type=float, default=1e-3, help="tail mass of the chain's range errors")
     ap.add_argument("--beta", type=float, default=1.0, help="the tilt's power: q proportional to p Q^beta")
     ap.add_argument("--dp-lateral", type=float, default=0.0, help="tail mass of the chain's lateral errors (0: none)")
@@ -503,13 +610,25 @@ def main() -> None:
     ap.add_argument("--q-model", action="store_true", help="the last stage without look-ahead (a learned Q)")
     ap.add_argument("--v-large", action="store_true", help="V: 600 trees of 63 leaves (else 200 of 31)")
     ap.add_argument("--one-car", action="store_true", help="look ahead on the cut-in car alone (the OneCar twin)")
-    ap.add_argument("--check-one-car", action="store_true",
-                    help="run every look-ahead both ways; print how often the levels and follow steps agree")
+    ap.add_argument(
+        "--check-one-car",
+        action="store_true",
+        help="run every look-ahead both ways; print how often the levels and follow steps agree",
+    )
     ap.add_argument("--errors", action="store_true", help="V and Q also read the track's errors against the truth")
-    ap.add_argument("--train-once", type=int, default=None, metavar="SEED",
-                    help="fit V on every stage but the last once, with this seed; then only the last stage per seed")
-    ap.add_argument("--v-cache", default=None, metavar="PATH",
-                    help="with --train-once: read the fitted V from PATH if it exists, else fit it and write it there")
+    ap.add_argument(
+        "--train-once",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="fit V on every stage but the last once, with this seed; then only the last stage per seed",
+    )
+    ap.add_argument(
+        "--v-cache",
+        default=None,
+        metavar="PATH",
+        help="with --train-once: read the fitted V from PATH if it exists, else fit it and write it there",
+    )
     ap.add_argument("--mc-failures", type=int, default=0, help="replay the failures of N plain Monte Carlo rollouts")
     ap.add_argument("--setting", default="moderate")
     args = ap.parse_args()
@@ -519,16 +638,22 @@ def main() -> None:
         study.chain = study.solve_beam(args.beam) if args.beam else study.solve_dp()
         u_nom = {t: float(np.exp(study.chain.log_u(t, np.array(g)))) for t, g in study.chain.g_nom.items()}
         steps, states = study.one_steps + study.branch_steps, study.chain.states.values()
-        print(f"level chain solved on the nominal path in {time.perf_counter() - t0:.1f} s ({min(states)}-"
-              f"{max(states)} regime states a step, {steps:,} continuation steps = {steps / study.params.n_steps:,.0f} "
-              f"rollout-equivalents); its own p_fail "
-              f"{u_nom[min(u_nom)]:.2e} (x{u_nom[min(u_nom)] / REFERENCE:.2f} of the reference); U at the nominal "
-              f"state of steps " + ", ".join(f"{t}: {v:.1e}" for t, v in u_nom.items()))  # fmt: skip
-    print(f"cut-in, {args.setting} setting (reference {REFERENCE:.3g}); stages {args.n}, window {args.window}, grid "
-          f"{args.grid} ({study.grid.nbranch} branches), eps {args.eps}" + (", Q model" if args.q_model else ""))
+        print(
+            f"level chain solved on the nominal path in {time.perf_counter() - t0:.1f} s ({min(states)}-"
+            f"{max(states)} regime states a step, {steps:,} continuation steps = {steps / study.params.n_steps:,.0f} "
+            f"rollout-equivalents); its own p_fail "
+            f"{u_nom[min(u_nom)]:.2e} (x{u_nom[min(u_nom)] / REFERENCE:.2f} of the reference); U at the nominal "
+            f"state of steps " + ", ".join(f"{t}: {v:.1e}" for t, v in u_nom.items())
+        )
+    print(
+        f"cut-in, {args.setting} setting (reference {REFERENCE:.3g}); stages {args.n}, window {args.window}, grid "
+        f"{args.grid} ({study.grid.nbranch} branches), eps {args.eps}" + (", Q model" if args.q_model else "")
+    )
     t_mc = mc_rollout_seconds(study)
-    print(f"a plain Monte Carlo rollout takes {t_mc * 1e3:.2f} ms here (4,000 from the PEMs); plain Monte Carlo's "
-          f"median relative error 0.2 (1.3e5 rollouts) takes {1.3e5 * t_mc:.0f} s")  # fmt: skip
+    print(
+        f"a plain Monte Carlo rollout takes {t_mc * 1e3:.2f} ms here (4,000 from the PEMs); plain Monte Carlo's "
+        f"median relative error 0.2 (1.3e5 rollouts) takes {1.3e5 * t_mc:.0f} s"
+    )
     ratios = []
 
     def stages(ns: list[int], rng: np.random.Generator, fit_last: bool) -> tuple:
@@ -549,28 +674,37 @@ def main() -> None:
         t0 = time.perf_counter()
         study.reset()
         cache = Path(args.v_cache) if args.v_cache else None
-        key = tuple((name, repr(tuple(v) if isinstance(v, list) else v))
-                    for name, v in [(k, getattr(args, k)) for k in CACHE_KEY] + [("training stages", args.n[:-1])])
+        key = tuple(
+            (name, repr(tuple(v) if isinstance(v, list) else v))
+            for name, v in [(k, getattr(args, k)) for k in CACHE_KEY] + [("training stages", args.n[:-1])]
+        )
         if cache is not None and cache.exists():
             try:
                 with cache.open("rb") as f:
                     cached_key, study.v_table, study.model, study.q_model = pickle.load(f)
             except (OSError, EOFError, ValueError, TypeError, pickle.UnpicklingError) as err:
-                raise SystemExit(f"--v-cache {cache}: not a V this study wrote ({type(err).__name__}); give another "
-                                 f"path, or remove it to fit V again") from None
+                raise SystemExit(
+                    f"--v-cache {cache}: not a V this study wrote ({type(err).__name__}); give another "
+                    f"path, or remove it to fit V again"
+                ) from None
             if cached_key != key:
                 mine = dict(key)
                 other = dict(cached_key) if isinstance(cached_key[0], tuple) else {"format": "an older study"}
-                diff = ", ".join(f"{k} {other.get(k, '-')} (here {mine.get(k, '-')})"
-                                 for k in dict.fromkeys([*other, *mine]) if other.get(k) != mine.get(k))
+                diff = ", ".join(
+                    f"{k} {other.get(k, '-')} (here {mine.get(k, '-')})"
+                    for k in dict.fromkeys([*other, *mine])
+                    if other.get(k) != mine.get(k)
+                )
                 raise SystemExit(f"--v-cache {cache}: fitted for other settings: {diff}")
             print(f"  V read from {cache} (trained before; its cost is not this run's)")
         else:
             *_, cost, extra, _ = stages(args.n[:-1], np.random.default_rng(args.train_once), True)
             study.traces.clear()
             wall = time.perf_counter() - t0
-            print(f"  V trained once (seed {args.train_once}, stages {args.n[:-1]}): cost {cost:,.0f} (+{extra:,.0f} "
-                  f"kinematic), {wall:.0f} s = {wall / t_mc:,.0f} plain Monte Carlo rollouts")  # fmt: skip
+            print(
+                f"  V trained once (seed {args.train_once}, stages {args.n[:-1]}): cost {cost:,.0f} (+{extra:,.0f} "
+                f"kinematic), {wall:.0f} s = {wall / t_mc:,.0f} plain Monte Carlo rollouts"
+            )
             if cache is not None:  # written whole, then renamed: never half a file
                 part = cache.with_name(cache.name + ".part")
                 with part.open("wb") as f:
@@ -588,27 +722,35 @@ def main() -> None:
         wall = time.perf_counter() - t0
         est = estimate(log_w, failed, np.zeros(failed.size))
         ratios.append(est.mu_hat / REFERENCE)
-        print(f"  seed {seed}: {est.mu_hat:.3e} {est.interval_text()} x{ratios[-1]:.2f} "
-              f"({'holds' if est.covers(float(np.log(REFERENCE))) else 'misses'} the reference), {est.n_failures} "
-              f"failures, ESS {est.ess:.1f}, k-hat {est.khat:.2f}, {est.verdict}; cost {cost:,.0f} (+{extra:,.0f} "
-              f"kinematic), {wall:.0f} s = {wall / t_mc:,.0f} plain Monte Carlo rollouts; the last stage alone (V "
-              f"fitted before it): cost {last[0]:,.0f}, {last[1]:.0f} s = {last[1] / t_mc:,.0f}",
-              flush=True)  # fmt: skip
+        print(
+            f"  seed {seed}: {est.mu_hat:.3e} {est.interval_text()} x{ratios[-1]:.2f} "
+            f"({'holds' if est.covers(float(np.log(REFERENCE))) else 'misses'} the reference), {est.n_failures} "
+            f"failures, ESS {est.ess:.1f}, k-hat {est.khat:.2f}, {est.verdict}; cost {cost:,.0f} (+{extra:,.0f} "
+            f"kinematic), {wall:.0f} s = {wall / t_mc:,.0f} plain Monte Carlo rollouts; the last stage alone (V "
+            f"fitted before it): cost {last[0]:,.0f}, {last[1]:.0f} s = {last[1] / t_mc:,.0f}",
+            flush=True,
+        )
     r = np.array(ratios)
-    print(f"median relative error {np.median(np.abs(r - 1)):.2f} (target <= 0.2); within x2 in "
-          f"{int(np.sum((r >= 0.5) & (r <= 2)))} of {r.size}")  # fmt: skip
+    print(
+        f"median relative error {np.median(np.abs(r - 1)):.2f} (target <= 0.2); within x2 in "
+        f"{int(np.sum((r >= 0.5) & (r <= 2)))} of {r.size}"
+    )
     if study.agree:
         agree = np.concatenate(study.agree)
-        print(f"the cut-in car alone against the whole twin, {agree.shape[0]:,} branches: the same level in "
-              f"{agree[:, 0].mean():.4%}, the same follow step in {agree[:, 1].mean():.4%}")  # fmt: skip
+        print(
+            f"the cut-in car alone against the whole twin, {agree.shape[0]:,} branches: the same level in "
+            f"{agree[:, 0].mean():.4%}, the same follow step in {agree[:, 1].mean():.4%}"
+        )
     if args.mc_failures:
         u = mc_failures(study, args.mc_failures, np.random.default_rng(12345))
         failed, log_w, _, _ = study.simulate(u.shape[1], rng, given=u)
-        print(f"{u.shape[1]} failures in {args.mc_failures:,} plain Monte Carlo rollouts, replayed through the last "
-              f"proposal: log w (zero variance: {np.log(REFERENCE):.2f} each) {np.round(np.sort(log_w)[::-1], 1)}; "
-              f"{int(np.sum(log_w > -5.0))} above -5; the proposal's relative variance a rollout, E_p[w | fail] / p - "
-              f"1 from them: {np.exp(log_w).mean() / REFERENCE - 1:,.0f} (plain Monte Carlo: 1 / p - 1 = "
-              f"{1 / REFERENCE - 1:,.0f})")  # fmt: skip
+        print(
+            f"{u.shape[1]} failures in {args.mc_failures:,} plain Monte Carlo rollouts, replayed through the last "
+            f"proposal: log w (zero variance: {np.log(REFERENCE):.2f} each) {np.round(np.sort(log_w)[::-1], 1)}; "
+            f"{int(np.sum(log_w > -5.0))} above -5; the proposal's relative variance a rollout, E_p[w | fail] / p - "
+            f"1 from them: {np.exp(log_w).mean() / REFERENCE - 1:,.0f} (plain Monte Carlo: 1 / p - 1 = "
+            f"{1 / REFERENCE - 1:,.0f})"
+        )
 
 
 if __name__ == "__main__":

@@ -82,8 +82,21 @@ REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["modera
 VISIBLE = OBJECT_NAMES.index("visible")
 COMPONENTS = ("miss", "range low", "range high", "lateral low", "lateral high")
 DIAG_STEPS = (5, 40)
-FEATURES = ("range_m", "gap_m", "rel_speed_mps", "lateral_speed_mps", "loc_x", "occluded_fraction", "visible",
-            "tracked", "track_err_x_m", "track_err_y_m", "followed", "ego_speed_mps", "ego_accel_mps2")  # fmt: skip
+FEATURES = (
+    "range_m",
+    "gap_m",
+    "rel_speed_mps",
+    "lateral_speed_mps",
+    "loc_x",
+    "occluded_fraction",
+    "visible",
+    "tracked",
+    "track_err_x_m",
+    "track_err_y_m",
+    "followed",
+    "ego_speed_mps",
+    "ego_accel_mps2",
+)
 """The cut-in car's row columns the learned committor reads (with the step)."""
 FEATURE_STEPS = (5, 40)
 """Steps at which the learned committor scores a rollout (the failures' decisive events lie in 11-23)."""
@@ -105,8 +118,9 @@ def fit_committor(failed: np.ndarray, step_log_w: np.ndarray, features: np.ndarr
     future = np.cumsum(step_log_w[:, ::-1], axis=1)[:, ::-1][:, FEATURE_STEPS[0] : FEATURE_STEPS[1]]
     x = features.reshape(-1, features.shape[-1])
     y = np.repeat(failed, features.shape[1])
-    model = HistGradientBoostingClassifier(max_iter=200, learning_rate=0.1, max_leaf_nodes=15, min_samples_leaf=20,
-                                           l2_regularization=1.0, random_state=0)  # fmt: skip
+    model = HistGradientBoostingClassifier(
+        max_iter=200, learning_rate=0.1, max_leaf_nodes=15, min_samples_leaf=20, l2_regularization=1.0, random_state=0
+    )
     return model.fit(x, y, sample_weight=np.exp(future.reshape(-1)))
 
 
@@ -159,8 +173,11 @@ class TailMixtures:
                 term = np.log((1.0 - e) + np.where(miss, e / (1.0 - p), 0.0))
                 for c in range(2):
                     lo, hi = eps[j, 1 + 2 * c], eps[j, 2 + 2 * c]
-                    g = ((1.0 - lo - hi) + lo * self.tail_density(u[:, 1 + c], 0)
-                         + hi * self.tail_density(u[:, 1 + c], 1))
+                    g = (
+                        (1.0 - lo - hi)
+                        + lo * self.tail_density(u[:, 1 + c], 0)
+                        + hi * self.tail_density(u[:, 1 + c], 1)
+                    )
                     term = term + np.where(miss, 0.0, np.log(g))
                 out += np.where(seen[:, j], term, 0.0)
         return out
@@ -263,8 +280,13 @@ def main() -> None:
     ap.add_argument("--ams-k", type=int, default=100)
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--n", type=int, nargs="+", default=None,
-                    help="rollouts per batch (fixed: 13000; ce: 4000 9000; amis: 2000 3000 4000 4000)")
+    ap.add_argument(
+        "--n",
+        type=int,
+        nargs="+",
+        default=None,
+        help="rollouts per batch (fixed: 13000; ce: 4000 9000; amis: 2000 3000 4000 4000)",
+    )
     ap.add_argument("--window", type=int, nargs=2, default=(10, 26), help="steps whose uniforms are mixed")
     ap.add_argument("--eps", type=float, nargs=2, default=(0.02, 0.02), help="miss share, each error's tail share")
     ap.add_argument("--mmin", type=float, default=1e-8)
@@ -276,9 +298,11 @@ def main() -> None:
     sizes = args.n or {"fixed": [13000], "ce": [4000, 9000], "amis": [2000, 3000, 4000, 4000], "ams": [3000]}[args.mode]
     study = TailMixtures(tuple(args.window), args.mmin, args.mmax)
     width = args.window[1] - args.window[0]
-    print(f"cut-in, moderate setting (reference {REFERENCE:.3g}); mode {args.mode}, window {args.window}, eps "
-          f"{args.eps}, tails {args.mmin:g}..{args.mmax:g}, {sum(sizes):,} tail-mixture rollouts a seed"
-          + (f", then AMS N = {args.ams_n}, k = {args.ams_k}" if args.mode == "ams" else ""))  # fmt: skip
+    print(
+        f"cut-in, moderate setting (reference {REFERENCE:.3g}); mode {args.mode}, window {args.window}, eps "
+        f"{args.eps}, tails {args.mmin:g}..{args.mmax:g}, {sum(sizes):,} tail-mixture rollouts a seed"
+        + (f", then AMS N = {args.ams_n}, k = {args.ams_k}" if args.mode == "ams" else "")
+    )
     ratios = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         rng = np.random.default_rng(seed)
@@ -293,8 +317,9 @@ def main() -> None:
                 pool.append((out[0], out[2], out[3], out[4], out[5], eps.copy()))
                 failed, kept, p_kept, seen, detected = (np.concatenate([b[k] for b in pool]) for k in range(5))
                 shares = np.log(np.array(sizes[: i + 1], dtype=np.float64) / failed.size)
-                log_w = -logsumexp(shares[:, None] + np.stack([study.log_q(b[5], kept, p_kept, seen) for b in pool]),
-                                   axis=0)  # fmt: skip
+                log_w = -logsumexp(
+                    shares[:, None] + np.stack([study.log_q(b[5], kept, p_kept, seen) for b in pool]), axis=0
+                )
                 out = (failed, log_w, kept, p_kept, seen, detected)
             if i < len(sizes) - 1:
                 eps = study.refit(eps, *out[:5], args.eps_min, args.eps_max)
@@ -314,13 +339,17 @@ def main() -> None:
             est = estimate(log_w, failed, np.zeros(failed.size))
         ratios.append(est.mu_hat / REFERENCE)
         holds = est.covers(float(np.log(REFERENCE)))
-        print(f"  seed {seed}: {est.mu_hat:.3e} {est.interval_text()} x{ratios[-1]:.2f} of the reference "
-              f"({'holds' if holds else 'misses'} it), {est.n_failures} failures, ESS {est.ess:.1f}, k-hat "
-              f"{est.khat:.2f}, {est.verdict}; {cost:,} rollout-equivalents, {time.perf_counter() - t0:.1f} s",
-              flush=True)  # fmt: skip
+        print(
+            f"  seed {seed}: {est.mu_hat:.3e} {est.interval_text()} x{ratios[-1]:.2f} of the reference "
+            f"({'holds' if holds else 'misses'} it), {est.n_failures} failures, ESS {est.ess:.1f}, k-hat "
+            f"{est.khat:.2f}, {est.verdict}; {cost:,} rollout-equivalents, {time.perf_counter() - t0:.1f} s",
+            flush=True,
+        )
     r = np.array(ratios)
-    print(f"median relative error {np.median(np.abs(r - 1)):.2f} (target <= 0.2); within x2 in "
-          f"{int(np.sum((r >= 0.5) & (r <= 2)))} of {r.size}")  # fmt: skip
+    print(
+        f"median relative error {np.median(np.abs(r - 1)):.2f} (target <= 0.2); within x2 in "
+        f"{int(np.sum((r >= 0.5) & (r <= 2)))} of {r.size}"
+    )
     if args.diag:
         f = np.flatnonzero(failed)
         w = np.exp(log_w[f] - log_w[f].max())

@@ -43,8 +43,7 @@ def exact_curve(lo: float, hi: float, grid: int) -> tuple[np.ndarray, np.ndarray
             r = braking_truth(pem.logit_at_gap, BrakingParams(ego_speed0_mps=key), tolerance=0.01)
             known[key] = r.log_p_fail
             cache.write_text(json.dumps({str(k): x for k, x in known.items()}))
-            print(f"  v = {x:.3f} m/s: p = {math.exp(r.log_p_fail):.4e} ({time.perf_counter() - t0:.1f} s)",
-                  flush=True)  # fmt: skip
+            print(f"  v = {x:.3f} m/s: p = {math.exp(r.log_p_fail):.4e} ({time.perf_counter() - t0:.1f} s)", flush=True)
         log_p.append(known[key])
     return v, np.array(log_p)
 
@@ -65,8 +64,11 @@ def main() -> int:
     v, log_p = exact_curve(args.lo, args.hi, args.grid)
     p_odd = trapezoid_mean(v, log_p)
     half = trapezoid_mean(v[::2], log_p[::2])
-    print(f"p_ODD = {p_odd:.4e} (trapezoid, {args.grid} points; {half:.4e} on every second point); p(v) from "
-          f"{math.exp(log_p.min()):.2e} to {math.exp(log_p.max()):.2e}", flush=True)
+    print(
+        f"p_ODD = {p_odd:.4e} (trapezoid, {args.grid} points; {half:.4e} on every second point); p(v) from "
+        f"{math.exp(log_p.min()):.2e} to {math.exp(log_p.max()):.2e}",
+        flush=True,
+    )
     from pemviz.config import ExperimentConfig
     from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.registry import problem_for
@@ -83,11 +85,16 @@ def main() -> int:
         holds += lo <= math.log(p_odd) <= hi
         reliable_off += e.verdict == "reliable" and not 0.5 < r < 2
         ratios.append(r)
-        print(f"  seed {seed}: {math.exp(e.log_mu_hat):.3e} x{r:.3f} {e.verdict} {e.interval_text()} "
-              f"({done.final.n_simulations} simulations)", flush=True)
+        print(
+            f"  seed {seed}: {math.exp(e.log_mu_hat):.3e} x{r:.3f} {e.verdict} {e.interval_text()} "
+            f"({done.final.n_simulations} simulations)",
+            flush=True,
+        )
     x = np.array(ratios)
-    print(f"median relative error {np.median(np.abs(x - 1)):.3f}, within x2 {np.sum((x > 0.5) & (x < 2))}/{x.size}, "
-          f"intervals or bounds holding {holds}/{x.size}, reliable outside x2 {reliable_off}")
+    print(
+        f"median relative error {np.median(np.abs(x - 1)):.3f}, within x2 {np.sum((x > 0.5) & (x < 2))}/{x.size}, "
+        f"intervals or bounds holding {holds}/{x.size}, reliable outside x2 {reliable_off}"
+    )
     return 0
 
 

@@ -19,7 +19,8 @@ import time
 import numpy as np
 
 from pemviz.core.estimate import relative_error
-from pemviz.studies.validation import Job, exact_answer, run_jobs
+from pemviz.studies.exact_answers import exact_answer
+from pemviz.studies.validation import Job, run_jobs
 
 STEPS: tuple[tuple[str, dict], ...] = (
     ("paper", {}),
@@ -40,8 +41,10 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     args = ap.parse_args()
     problems = [p for p in args.problems.split(",") if p]
-    print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; {args.seeds} seeds; "
-          f"{args.jobs} process(es)")
+    print(
+        f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; {args.seeds} seeds; "
+        f"{args.jobs} process(es)"
+    )
     truths = {p: exact_answer(p) for p in problems}
     jobs, fields = [], {}
     for label, change in STEPS:
@@ -51,8 +54,10 @@ def main() -> None:
     t0 = time.perf_counter()
     records = run_jobs(jobs, args.jobs)
     print(f"\n{len(jobs)} runs in {time.perf_counter() - t0:.0f} s\n")
-    print("| problem | sampler | median rel. error | within x2 | median mu_hat / truth | median failures "
-          "| median wall s |")
+    print(
+        "| problem | sampler | median rel. error | within x2 | median mu_hat / truth | median failures "
+        "| median wall s |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|")
     for p in problems:
         lt = truths[p].log_p_fail
@@ -61,8 +66,10 @@ def main() -> None:
             errs = [relative_error(r.log_mu_hat, lt) for r in rs]
             ratio = float(np.median([math.exp(r.log_mu_hat - lt) if r.log_mu_hat > -math.inf else 0.0 for r in rs]))
             within = sum(abs(r.log_mu_hat - lt) <= math.log(2.0) for r in rs)
-            print(f"| {p} | {label} | {np.median(errs):.3f} | {within}/{len(rs)} | {ratio:.3g} | "
-                  f"{np.median([r.n_failures for r in rs]):g}/{rs[0].n} | {np.median([r.wall_s for r in rs]):.1f} |")
+            print(
+                f"| {p} | {label} | {np.median(errs):.3f} | {within}/{len(rs)} | {ratio:.3g} | "
+                f"{np.median([r.n_failures for r in rs]):g}/{rs[0].n} | {np.median([r.wall_s for r in rs]):.1f} |"
+            )
 
 
 if __name__ == "__main__":

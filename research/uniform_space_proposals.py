@@ -91,8 +91,9 @@ class UniformProposal:
         eps: the uniform's share.
     """
 
-    def __init__(self, problem: Any, make: Callable[[int], Any], n_steps: int, family: str = "product",
-                 eps: float = 0.1) -> None:  # fmt: skip
+    def __init__(
+        self, problem: Any, make: Callable[[int], Any], n_steps: int, family: str = "product", eps: float = 0.1
+    ) -> None:
         self.problem, self.make, self.n_steps, self.family, self.eps = problem, make, n_steps, family, eps
         self.per_step = draws_per_rollout(make(1), problem.target)  # M (1 + D)
         self.n_coords = n_steps * self.per_step
@@ -113,8 +114,9 @@ class UniformProposal:
             h = np.ones(bins.shape[0])
         return np.log((1.0 - self.eps) * h + self.eps)
 
-    def draw(self, n: int, rng: np.random.Generator,
-             plain: bool = False) -> tuple[RolloutBatch, np.ndarray, np.ndarray]:  # fmt: skip
+    def draw(
+        self, n: int, rng: np.random.Generator, plain: bool = False
+    ) -> tuple[RolloutBatch, np.ndarray, np.ndarray]:
         """``n`` rollouts (from the PEMs with ``plain``): (the batch, their uniforms' bins int [n, J], their log
         importance weights [n], nats)."""
         tilted = np.zeros(n, bool) if plain else rng.random(n) >= self.eps
@@ -132,11 +134,12 @@ class UniformProposal:
                     j = t * self.per_step + c
                     rows = np.flatnonzero(tilted if self.family == "product" else component == j)
                     if rows.size and not np.allclose(self.mass[j], WIDTHS):
-                        b = np.minimum(np.searchsorted(cum[j], rng.random(rows.size) * cum[j, -1], side="right"),
-                                       N_BINS - 1)  # fmt: skip
+                        b = np.minimum(
+                            np.searchsorted(cum[j], rng.random(rows.size) * cum[j, -1], side="right"), N_BINS - 1
+                        )
                         u[rows, c] = EDGES[b] + WIDTHS[b] * rng.random(rows.size)
                 u = np.minimum(u, np.nextafter(1.0, 0.0))
-                bins[:, t * self.per_step:(t + 1) * self.per_step] = np.searchsorted(EDGES, u, side="right") - 1
+                bins[:, t * self.per_step : (t + 1) * self.per_step] = np.searchsorted(EDGES, u, side="right") - 1
                 yield u.reshape(-1)
 
         target = self.problem.target
@@ -202,8 +205,9 @@ def lookahead_table(n: int, steps: tuple[int, ...] = (16, 20, 22, 24)) -> None:
         ahead = problem.branch(batch, np.arange(n), np.full(n, t), problem.target, MedianUniforms())
         score = np.round(step_robustness(problem, ahead)[:, t:].min(axis=1), 2)
         values, counts = np.unique(score, return_counts=True)
-        cells = [f"{v:g} m: {c} ({failed[score == v].mean():.4f})" for v, c in zip(values, counts, strict=True)
-                 if c >= 20]
+        cells = [
+            f"{v:g} m: {c} ({failed[score == v].mean():.4f})" for v, c in zip(values, counts, strict=True) if c >= 20
+        ]
         print(f"step {t}: " + ", ".join(cells))
 
 
@@ -242,10 +246,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plain", type=int, default=300_000, help="plain rollouts whose failures are fitted")
     ap.add_argument("--draws", type=int, default=5_000, help="rollouts drawn from each fitted proposal")
-    ap.add_argument("--lookahead-table", type=int, default=0, metavar="N",
-                    help="instead: the nominal look-ahead's score against the failure rate over N plain rollouts")
-    ap.add_argument("--smc", type=float, default=None, metavar="LAMBDA",
-                    help="instead: interacting particles on the nominal look-ahead with this potential's lambda (1/m)")
+    ap.add_argument(
+        "--lookahead-table",
+        type=int,
+        default=0,
+        metavar="N",
+        help="instead: the nominal look-ahead's score against the failure rate over N plain rollouts",
+    )
+    ap.add_argument(
+        "--smc",
+        type=float,
+        default=None,
+        metavar="LAMBDA",
+        help="instead: interacting particles on the nominal look-ahead with this potential's lambda (1/m)",
+    )
     ap.add_argument("--particles", type=int, default=500)
     ap.add_argument("--seeds", type=int, default=10)
     a = ap.parse_args(argv)
@@ -256,10 +270,12 @@ def main(argv: list[str] | None = None) -> int:
         _, _, _, p = crossing_setup()
         runs = [smc(a.particles, (20, 22, 24), a.smc, seed) for seed in range(a.seeds)]
         ratios = np.array([np.exp(lp) / p for lp, _, _ in runs])
-        print(f"interacting particles, lambda {a.smc:g}, {a.particles} particles, resampled at steps 20, 22, 24: "
-              f"median relative error {np.median(np.abs(ratios - 1)):.2f}, {int(((ratios > 0.5) & (ratios < 2)).sum())}"
-              f"/{a.seeds} within x2, mean ratio {ratios.mean():.2f}, cost {np.mean([c for _, _, c in runs]):,.0f} "
-              "rollout-equivalents")  # fmt: skip
+        print(
+            f"interacting particles, lambda {a.smc:g}, {a.particles} particles, resampled at steps 20, 22, 24: "
+            f"median relative error {np.median(np.abs(ratios - 1)):.2f}, {int(((ratios > 0.5) & (ratios < 2)).sum())}"
+            f"/{a.seeds} within x2, mean ratio {ratios.mean():.2f}, cost {np.mean([c for _, _, c in runs]):,.0f} "
+            "rollout-equivalents"
+        )
         return 0
     problem, make, n_steps, p = crossing_setup()
     rng = np.random.default_rng(11)
@@ -277,8 +293,10 @@ def main(argv: list[str] | None = None) -> int:
         x = np.where(robustness(problem, batch) < 0.0, np.exp(log_w), 0.0)
         v = float(x.var() / x.mean() ** 2) if x.mean() > 0 else float("inf")
         what = "coordinates tilted" if family == "product" else "components"
-        print(f"{family}: {size} {what}; {int((x > 0).sum())} failures of {a.draws:,}, mu_hat {x.mean():.2e}, "
-              f"relative variance {v:.0f} -> {v * p:.2f} of plain MC")
+        print(
+            f"{family}: {size} {what}; {int((x > 0).sum())} failures of {a.draws:,}, mu_hat {x.mean():.2e}, "
+            f"relative variance {v:.0f} -> {v * p:.2f} of plain MC"
+        )
     return 0
 
 

@@ -106,8 +106,9 @@ def main(argv: list[str] | None = None) -> int:
                 rc = subprocess.call(command, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
             seconds = time.monotonic() - t0
             result = "pass" if rc == 0 else f"FAIL{rc}"
-            print(f"{run:>3} {result:<6} {seconds:>7.1f} {start_load:>10.2f} {load1():>8.2f} {n_burners:>7}",
-                  flush=True)
+            print(
+                f"{run:>3} {result:<6} {seconds:>7.1f} {start_load:>10.2f} {load1():>8.2f} {n_burners:>7}", flush=True
+            )
             if rc == 0:
                 passed_in_a_row += 1
             else:

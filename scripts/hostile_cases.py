@@ -33,8 +33,13 @@ GROUPS = {
 
 def fault_cases(seeds: int) -> tuple[Counter, Counter]:
     env = {**os.environ, "FAULT_SEEDS": str(seeds), "RERUN_ANALYTICS": "false"}
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rA", "-p", "no:warnings", "tests/test_faults.py"],
-                          cwd=REPO, env=env, capture_output=True, text=True)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-rA", "-p", "no:warnings", "tests/test_faults.py"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     tried, passed = Counter(), Counter()
     for m in re.finditer(r"^(PASSED|FAILED|ERROR|SKIPPED) tests/test_faults\.py::(\w+)", proc.stdout, re.M):
         group = next((g for p, g in GROUPS.items() if m.group(2).startswith(p)), "other")
@@ -53,8 +58,9 @@ def stl_cases(n: int) -> tuple[int, int, Counter]:
     per = -(-n // 3)
     for strategy in (fuzz.token_text, fuzz.squashed_text, fuzz.any_text):
 
-        @settings(max_examples=per, deadline=None, derandomize=True, database=None,
-                  suppress_health_check=list(HealthCheck))  # fmt: skip
+        @settings(
+            max_examples=per, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
+        )
         @given(strategy)
         def one(text: str) -> None:
             try:

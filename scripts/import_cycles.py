@@ -208,11 +208,16 @@ def report(graph: ImportGraph) -> list[list[list[str]]]:
     for label, kinds in KINDS:
         edges = graph.edges(*kinds)
         circles = strongly_connected(edges)
-        print(f"{len(circles)} circle{'s' if len(circles) != 1 else ''} among {label} "
-              f"({len(graph.modules)} modules, {sum(map(len, edges.values()))} edges)")  # fmt: skip
+        print(
+            f"{len(circles)} circle{'s' if len(circles) != 1 else ''} among {label} "
+            f"({len(graph.modules)} modules, {sum(map(len, edges.values()))} edges)"
+        )
         for component in circles:
-            print("  " + " -> ".join(cycle_in(component, edges)) + (
-                f"   (with {', '.join(component)})" if len(component) > 2 else ""))  # fmt: skip
+            print(
+                "  "
+                + " -> ".join(cycle_in(component, edges))
+                + (f"   (with {', '.join(component)})" if len(component) > 2 else "")
+            )
         found.append(circles)
     return found
 
@@ -220,8 +225,9 @@ def report(graph: ImportGraph) -> list[list[list[str]]]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", type=Path, default=REPO / "pemviz", help="the package folder (default: pemviz/)")
-    parser.add_argument("--strict", action="store_true",
-                        help="fail on circles through function-level or TYPE_CHECKING imports too")
+    parser.add_argument(
+        "--strict", action="store_true", help="fail on circles through function-level or TYPE_CHECKING imports too"
+    )
     args = parser.parse_args(argv)
     if not (args.root / "__init__.py").is_file():
         print(f"import_cycles: --root {args.root} is not a package folder (no __init__.py)", file=sys.stderr)

@@ -28,6 +28,8 @@ def load_script(path: Path):
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
+
+
 SHARED = REPO.parent / "shared"
 
 os.environ.setdefault("RERUN_ANALYTICS", "false")
@@ -60,8 +62,13 @@ BIN = Path(sys.executable).parent
 
 def verify_rrd(path: Path, timeout: float = 300) -> None:
     """Assert that ``rerun rrd verify`` (the pinned rerun-sdk's own checker) accepts the recording at ``path``."""
-    proc = subprocess.run([str(BIN / "rerun"), "rrd", "verify", str(path)], capture_output=True, text=True,
-                          timeout=timeout, env={**os.environ, "RERUN_ANALYTICS": "false"})  # fmt: skip
+    proc = subprocess.run(
+        [str(BIN / "rerun"), "rrd", "verify", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, "RERUN_ANALYTICS": "false"},
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 

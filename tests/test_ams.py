@@ -29,8 +29,9 @@ from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 
 def ratios(problem, n: int, k: int, seeds: range) -> np.ndarray:
     """p_hat / p over the seeds."""
-    return np.array([math.exp(run_ams(problem, n, k, seed=s).estimate().log_mu_hat - problem.exact_log_p)
-                     for s in seeds])  # fmt: skip
+    return np.array(
+        [math.exp(run_ams(problem, n, k, seed=s).estimate().log_mu_hat - problem.exact_log_p) for s in seeds]
+    )
 
 
 def assert_unbiased(x: np.ndarray) -> None:
@@ -95,8 +96,9 @@ def _run(sim, actions):
     return np.array(out)
 
 
-@pytest.mark.parametrize("make", [lambda: BrakingScenario(BrakingParams()), lambda: ToyBraking(ToyParams())],
-                         ids=["highway-env", "toy"])  # fmt: skip
+@pytest.mark.parametrize(
+    "make", [lambda: BrakingScenario(BrakingParams()), lambda: ToyBraking(ToyParams())], ids=["highway-env", "toy"]
+)
 def test_restoring_a_snapshot_replays_the_rest_exactly(make):
     rng = np.random.default_rng(3)
     actions = rng.random(60) < 0.4
@@ -241,8 +243,12 @@ def test_ams_through_snapshots_of_single_simulators_equals_the_vectorised_toy():
     """The generic branch (ToyBraking snapshots) and the vectorised toy give the same AMS run for a seed."""
     pb = build_problem("toy-1e-3")
     params = ToyParams(10, 5, 3, 0.9)
-    generic = dataclasses.replace(pb, branch=lambda parents, parent, at, target, rng: branch(
-        lambda: ToyBraking(params), parents, parent, at, target, rng))  # fmt: skip
+    generic = dataclasses.replace(
+        pb,
+        branch=lambda parents, parent, at, target, rng: branch(
+            lambda: ToyBraking(params), parents, parent, at, target, rng
+        ),
+    )
     for seed in range(3):
         a, b = run_ams(pb, 30, 3, seed=seed), run_ams(generic, 30, 3, seed=seed)
         assert a.iterations == b.iterations > 0
@@ -292,8 +298,12 @@ def test_committor_scored_ams_is_unbiased_with_a_poor_committor():
     fail) likely to: the mean of p_hat over 400 seeds of N = 100, k = 10 (measured 1.04 +- 0.08 over seeds 0-199),
     and it is not the robustness's run (the score changes the particles kept)."""
     pb = build_problem("toy-1e-3")
-    x = np.array([math.exp(run_ams(pb, 100, 10, seed=s, score="committor").estimate().log_mu_hat - pb.exact_log_p)
-                  for s in range(400)])  # fmt: skip
+    x = np.array(
+        [
+            math.exp(run_ams(pb, 100, 10, seed=s, score="committor").estimate().log_mu_hat - pb.exact_log_p)
+            for s in range(400)
+        ]
+    )
     assert_unbiased(x)
     a, b = run_ams(pb, 100, 10, seed=3, score="committor"), run_ams(pb, 100, 10, seed=3)
     assert a.estimate().log_mu_hat != b.estimate().log_mu_hat
@@ -309,8 +319,11 @@ def test_engine_runs_committor_scored_ams_as_run_ams_does():
 
 
 def test_committor_score_asked_of_a_scenario_without_one_gives_one_line():
-    with pytest.raises(ValueError, match=r"^ams_score committor needs a scenario with a learned committor; crowd "
-                                         r"has none: use ams_score robustness$"):  # fmt: skip
+    with pytest.raises(
+        ValueError,
+        match=r"^ams_score committor needs a scenario with a learned committor; crowd "
+        r"has none: use ams_score robustness$",
+    ):
         build_estimator(ExperimentConfig(method="ams", ams_score="committor"), build_problem("crowd"))
     r = run_cli("run", "--scenario", "crowd", "--method", "ams", "--ams-score", "committor", "--no-record")
     assert r.returncode == 2 and "Traceback" not in r.stderr and "has none: use ams_score robustness" in r.stderr

@@ -33,9 +33,14 @@ from pemviz.scenarios.braking.panel import explain  # noqa: E402
 from pemviz.sinks import colours  # noqa: E402
 
 CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync",
-]  # fmt: skip
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 VIEWPORT = {"width": 1600, "height": 1000}
 TINY = {"K": "2", "N": "40", "N_e": "60", "CE epochs": "40", "pretrain rollouts": "30", "pretrain epochs": "40"}
 """A run of about a second: the quick preset with fewer stages, rollouts and epochs."""
@@ -74,9 +79,7 @@ class Tab:
 
     def field(self, label: str):
         """The text input labelled ``label`` (viser's text inputs are not tied to their label by id)."""
-        return self.page.locator(
-            f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input"
-        ).first
+        return self.page.locator(f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input").first
 
     def type(self, label: str, value: str, wait: bool = True) -> None:
         """Type into a field; with ``wait``, until the server has the value.
@@ -244,8 +247,9 @@ def test_every_field_and_dropdown_has_a_hint_each_setting_the_one_its_flag_gives
     for key, handle in {**s.fields, **s.choices}.items():
         assert (handle.label, handle.hint) == (SETTINGS[key].label, SETTINGS[key].hint), key
     # not the weight of a new fit in an update: that is another method
-    assert s.fields["smoothing"].hint == ("smoothing alpha, a number in (0, 1]: the power on the importance weights "
-                                          "in the CE loss")
+    assert s.fields["smoothing"].hint == (
+        "smoothing alpha, a number in (0, 1]: the power on the importance weights " "in the CE loss"
+    )
     metric = s.choices["metric"].hint
     assert "\n" not in metric and all(f"; {m}: " in metric for m in ("classic", "agm", "smooth-cumulative"))
     assert all(h.hint for h in (s.preset, s.run_choice, s.rollout_dropdown))
@@ -267,8 +271,10 @@ def test_the_scene_and_strip_chart_follow_the_newest_run_and_name_it(tab, app):
     shown = tab.session.shown
     assert shown is second.most_likely_failure or second.most_likely_failure is None
     ego_x, _ = app.drawing.lane_positions(shown.batch, 0)[:2]
-    wait_until(lambda: tab.scene()["label"].startswith(f"{second.short_label} {shown.key} t=0.00s"),
-               what="the browser's scene label to name run 2")  # fmt: skip
+    wait_until(
+        lambda: tab.scene()["label"].startswith(f"{second.short_label} {shown.key} t=0.00s"),
+        what="the browser's scene label to name run 2",
+    )
     assert abs(tab.scene()["x"] - ego_x[0]) < 1e-3
 
     # the explanation: strip chart of that rollout, its decisive misses as the counterfactual finds them
@@ -304,8 +310,9 @@ def test_finished_runs_survive_stopped_ones_pinned_runs_stay_and_any_kept_run_ex
     # the run chosen under Runs is the one the Rollouts tab lists and Explain explains
     wait_until(lambda: s.listed is first and s.shown_record is first, what="Rollouts and Explain to follow run 1")
     tab.tab("Rollouts")
-    expect(tab.page.get_by_text(f"Every failure of the final estimate of {first.short_label}",
-                                exact=False)).to_be_visible()  # fmt: skip
+    expect(
+        tab.page.get_by_text(f"Every failure of the final estimate of {first.short_label}", exact=False)
+    ).to_be_visible()
     # three stopped runs: the first is dropped to make room, never the finished run 2 or the pinned run 1
     stopped = []
     for _ in range(3):
@@ -356,8 +363,10 @@ def test_one_stage_numbering_and_plot_axes_follow_the_stages_that_ran(tab):
     wait_until(lambda: tab.plot("failures / N per stage")["xmax"] < last + 1, what="the x axes to fit the stages")
     for title in ("failures / N per stage", "log10 mu_hat per stage", "gamma per stage, classic (m)"):
         # each plot gets the last stage's point on its own update, after the status has said it stopped
-        wait_until(lambda: tab.plot(title)["x"] == list(range(last + 1)),  # noqa: B023 (called within the iteration)
-                   what=f"{title}: a point per stage that ran")
+        wait_until(
+            lambda: tab.plot(title)["x"] == list(range(last + 1)),  # noqa: B023 (called within the iteration)
+            what=f"{title}: a point per stage that ran",
+        )
         p = tab.plot(title)
         assert p["x"] == list(range(last + 1)), title  # stage numbers as the engine counts them
         assert p["xmax"] == pytest.approx(last + 0.5) and p["axes"][0].startswith("stage (0 pretraining")
@@ -393,10 +402,12 @@ def test_the_final_estimate_comes_with_its_interval_verdict_and_a_hint_when_noth
     tab.run({"N": "20"})
     expect(tab.page.get_by_text("no failure among 20 rollouts, so mu_hat = 0", exact=False)).to_be_visible()
     # the advice speaks of what plain Monte Carlo does, not of stages or a proposal it does not have
-    expect(tab.page.get_by_text("plain Monte Carlo draws every rollout from the PEM itself",
-                                exact=False)).to_be_visible()
-    assert ("More stages (K)" not in tab.session.result_html.content
-            and "proposal" not in tab.session.result_html.content)
+    expect(
+        tab.page.get_by_text("plain Monte Carlo draws every rollout from the PEM itself", exact=False)
+    ).to_be_visible()
+    assert (
+        "More stages (K)" not in tab.session.result_html.content and "proposal" not in tab.session.result_html.content
+    )
 
 
 # 7 ------------------------------------------------------------------------------------------------
@@ -413,8 +424,10 @@ def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_ov
     assert shown is not None and shown.crashed, "the quick preset finds a crash"
     t_crash = int(np.argmax(shown.signal("gap_m") < app.drawing.params.crash_gap_m))
     tab.session.step_slider.value = t_crash
-    wait_until(lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={t_crash * 0.05:.2f}s"),
-               what="the crash step")  # fmt: skip
+    wait_until(
+        lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={t_crash * 0.05:.2f}s"),
+        what="the crash step",
+    )
     s = tab.scene()
     assert tuple(s["color"]) == (colours.DETECTED if shown.detected[t_crash] else colours.MISSED)
     p = app.drawing.params
@@ -453,8 +466,9 @@ def test_progress_shows_elapsed_and_expected_time(tab):
     )
     expect(tab.page.get_by_text(status)).to_be_visible(timeout=60_000)
     tab.button("Stop").click()
-    expect(tab.page.get_by_text(re.compile(r"stopped after \d+ stages \(\d\.\d\d s after Stop\), \d+\.\d s in all"))
-           ).to_be_visible(timeout=10_000)  # fmt: skip
+    expect(
+        tab.page.get_by_text(re.compile(r"stopped after \d+ stages \(\d\.\d\d s after Stop\), \d+\.\d s in all"))
+    ).to_be_visible(timeout=10_000)
     assert tab.session.last_stop_latency_s < 2.0
 
 
@@ -499,8 +513,13 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     tab.choose("sort by", "robustness")
 
     def undecided() -> list[str]:  # the panel refills its rollout list after the sort: wait for one, never sleep
-        return [lab for lab, t in list(s._rollout_labels.items()) if t.crashed and t is not record.most_likely_failure
-                and app.drawing.lane_explanation(t.batch, 0).decisive.size == 0]  # fmt: skip
+        return [
+            lab
+            for lab, t in list(s._rollout_labels.items())
+            if t.crashed
+            and t is not record.most_likely_failure
+            and app.drawing.lane_explanation(t.batch, 0).decisive.size == 0
+        ]
 
     wait_until(lambda: bool(undecided()), what="a failing rollout no single miss decides, listed after the sort")
     label = undecided()[0]
@@ -512,8 +531,10 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     tab.page.get_by_role("tab", name="Explain").click()
     expect(tab.page.get_by_text(f"{cf.minimal_set.size} misses at", exact=False)).to_be_visible(timeout=10_000)
     expect(tab.page.get_by_text("none: no single detection saves it", exact=False)).to_be_visible()
-    wait_until(lambda: shown_series("p(detect) under the PEM", "minimal miss set") == cf.minimal_set.tolist(),
-               what="the minimal miss set marked in the strip chart")  # fmt: skip
+    wait_until(
+        lambda: shown_series("p(detect) under the PEM", "minimal miss set") == cf.minimal_set.tolist(),
+        what="the minimal miss set marked in the strip chart",
+    )
 
     # the Rollouts table lists every failure of the final estimate, the largest importance weight first, and groups
     # them by their last saving detection, the groups' shares adding up to 1
@@ -521,8 +542,9 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     tab.choose("sort by", "importance weight")
     pop, final = record.population, record.final
     n = final.estimate.n_failures
-    expect(tab.page.get_by_text(f"Every failure of the final estimate of {record.short_label}: {n:,}",
-                                exact=False)).to_be_visible(timeout=10_000)  # fmt: skip
+    expect(
+        tab.page.get_by_text(f"Every failure of the final estimate of {record.short_label}: {n:,}", exact=False)
+    ).to_be_visible(timeout=10_000)
     expect(tab.page.get_by_text("by importance weight", exact=False)).to_be_visible(timeout=10_000)
     assert pop.shares.n == n and sum(t is not None for t in pop.rollouts) == n
     first = tab.page.evaluate("""() => {
@@ -533,8 +555,9 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     assert best == 0 and first[1:3] == [str(pop.shares.stage[0]), str(pop.shares.index[0])], first
     from scipy.special import logsumexp
 
-    assert math.isclose(float(logsumexp(pop.shares.log_weight)) - math.log(final.estimate.n),
-                        final.estimate.log_mu_hat, rel_tol=1e-12)  # fmt: skip
+    assert math.isclose(
+        float(logsumexp(pop.shares.log_weight)) - math.log(final.estimate.n), final.estimate.log_mu_hat, rel_tol=1e-12
+    )
     assert math.isclose(sum(g.share for g in pop.groups), 1.0, rel_tol=1e-12) and len(pop.groups) >= 2
     expect(tab.page.get_by_text(pop.groups[0].label, exact=False).first).to_be_visible()
     if os.environ.get("PEMVIZ_SCREENSHOTS") == "1":  # the Rollouts tab as the user guide shows it
@@ -547,8 +570,9 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     tab.choose("sort by", "severity")
     expect(tab.page.get_by_text("by severity", exact=False)).to_be_visible(timeout=10_000)
     listed = s.rollouts_tab.ordered_rollouts(record)
-    speeds = [severity(t.signal("gap_m"), app.drawing.params).contact_speed_mps
-              for t in [*pop.rollouts, *record.trajectories]]
+    speeds = [
+        severity(t.signal("gap_m"), app.drawing.params).contact_speed_mps for t in [*pop.rollouts, *record.trajectories]
+    ]
     assert severity(listed[0].signal("gap_m"), app.drawing.params).contact_speed_mps == np.nanmax(speeds)
     tab.page.get_by_label("failures only").check()
     wait_until(lambda: all(t.crashed for t in s.rollouts_tab.ordered_rollouts(record)), what="only failures listed")
@@ -560,8 +584,9 @@ def test_every_dropdown_shows_its_hint_in_the_browser(tab):
     """Hovering any dropdown of any tab of the control panel shows a non-empty hint, the one its handle holds."""
     page = tab.page
     s = tab.session
-    expected = {h.label: h.hint for h in (*s.choices.values(), s.preset, s.run_choice, s.rollout_dropdown,
-                                          s.rollout_order)}  # fmt: skip
+    expected = {
+        h.label: h.hint for h in (*s.choices.values(), s.preset, s.run_choice, s.rollout_dropdown, s.rollout_order)
+    }
     seen = {}
     for name in ("Experiment", "Rollouts", "Runs"):
         tab.tab(name)
@@ -600,17 +625,27 @@ def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detecti
         b = s.explanation.severity.breach_step
         assert b == int(np.argmax(shown.signal("gap_m") < p.crash_gap_m))
         s.step_slider.value = b
-        wait_until(lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={b * p.dt_s:.2f}s"),
-                   what="the breach step")  # fmt: skip
+        wait_until(
+            lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={b * p.dt_s:.2f}s"),
+            what="the breach step",
+        )
         ego_x, lead_x = app.drawing.lane_positions(shown.batch, 0)[:2]
         cam, rear = ego_x[b] + p.camera_offset_m, lead_x[b] - p.lead_length_m / 2
         h = 1.5  # the boxes' height (metres)
         grid = np.linspace(-0.5, 0.5, 5)
-        boxes = [[x + fx * length, fy * p.vehicle_width_m, (fz + 0.5) * h]
-                 for x, length in ((ego_x[b], p.ego_length_m), (lead_x[b], p.lead_length_m))
-                 for fx in grid for fy in grid for fz in grid]  # fmt: skip
-        labels = {"/ego/label": "right", "/gap_ruler/label": "right", "/ego/brake_zone_10m/label": "right",
-                  "/breach/label": "left"}  # the labels beside the road and the side their text runs to  # fmt: skip
+        boxes = [
+            [x + fx * length, fy * p.vehicle_width_m, (fz + 0.5) * h]
+            for x, length in ((ego_x[b], p.ego_length_m), (lead_x[b], p.lead_length_m))
+            for fx in grid
+            for fy in grid
+            for fz in grid
+        ]
+        labels = {
+            "/ego/label": "right",
+            "/gap_ruler/label": "right",
+            "/ego/brake_zone_10m/label": "right",
+            "/breach/label": "left",
+        }  # the labels beside the road and the side their text runs to
 
         def read():
             return tab.page.evaluate(SCENE_JS, [boxes, list(labels)])
@@ -708,18 +743,25 @@ def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_fail
     s = tab.session
     tab.choose("scenario", "cut-in")
     # the scene's own default is its tilted proposal (its adaptive estimates are not right): N and method follow
-    wait_until(lambda: s.choices["method"].value == "tilt" and s.fields["n_per_stage"].value == "7280",
-               what="the cut-in's default method and N")  # fmt: skip
+    wait_until(
+        lambda: s.choices["method"].value == "tilt" and s.fields["n_per_stage"].value == "7280",
+        what="the cut-in's default method and N",
+    )
     s.choices["method"].value = "adaptive"  # the sampler whose failure this test explains
     record = tab.run({**TINY, "K": "3", "N": "60", "N_e": "60", "seed": "1"}, timeout=300)
     assert record.config.method == "adaptive"
     assert record.config.scenario == "cut-in"
     # no exact answer: the final estimate stands beside the scenario's plain Monte Carlo reference
     assert record.exact_log_p is None and record.reference is not None
-    wait_until(lambda: f"reference {record.reference.text()}: " in tab.page.inner_text("body"),
-               what="the final estimate beside the Monte Carlo reference")  # fmt: skip
-    wait_until(lambda: s.objects_ex is not None and s.shown is record.most_likely_failure, timeout=60,
-               what="the most likely failure explained")  # fmt: skip
+    wait_until(
+        lambda: f"reference {record.reference.text()}: " in tab.page.inner_text("body"),
+        what="the final estimate beside the Monte Carlo reference",
+    )
+    wait_until(
+        lambda: s.objects_ex is not None and s.shown is record.most_likely_failure,
+        timeout=60,
+        what="the most likely failure explained",
+    )
     ox, shown = s.objects_ex, s.shown
     t_steps, m = ox.detected.shape
     assert m == 5 and shown.crashed and shown.batch.detected.shape == (1, t_steps, m)
@@ -729,8 +771,10 @@ def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_fail
     tab.page.get_by_role("tab", name="Explain").click()
     expect(tab.page.get_by_text("Which errors decided it", exact=False)).to_be_visible(timeout=10_000)
     expect(tab.page.get_by_text(cf.summary(ox.names), exact=False)).to_be_visible()
-    wait_until(lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {first.step}"),
-               what="Explain at the first decisive error")  # fmt: skip
+    wait_until(
+        lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {first.step}"),
+        what="Explain at the first decisive error",
+    )
     got = tab.page.evaluate(OBJECTS_JS, m)
     # the raster: one cell per car and step, green detected, orange missed, grey unseen, as the rollout has them
     want = np.where(ox.detected, OV.GREEN, np.where(ox.seen, OV.ORANGE, OV.UNSEEN))
@@ -763,13 +807,19 @@ def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_fail
     assert got["braking_lead"] is False  # the braking scene's lead is hidden
     # from above, a dashed box where the tracker places each tracked car drawn (in the view)
     t = first.step
-    drawn = ((ox.ahead_m[t] >= OV.AHEAD_M[0]) & (ox.ahead_m[t] <= OV.AHEAD_M[1])
-             & (np.abs(ox.lateral_m[t]) <= OV.LATERAL_M))
+    drawn = (
+        (ox.ahead_m[t] >= OV.AHEAD_M[0]) & (ox.ahead_m[t] <= OV.AHEAD_M[1]) & (np.abs(ox.lateral_m[t]) <= OV.LATERAL_M)
+    )
     assert got["tracks"] == int((np.isfinite(ox.tracked[t, :, 0]) & drawn).sum()) > 0
     # the playback moves the scene and the view from above to the failure
     s.step_slider.value = cf.failure_step
-    wait_until(lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {cf.failure_step}"),
-               what="Explain at the failure step")  # fmt: skip
-    wait_until(lambda: tab.page.evaluate(OBJECTS_JS, m)["cars"][0]["position"][0] == pytest.approx(
-        ox.ahead_m[cf.failure_step, 0], abs=1e-4), what="the scene at the failure step")  # fmt: skip
+    wait_until(
+        lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {cf.failure_step}"),
+        what="Explain at the failure step",
+    )
+    wait_until(
+        lambda: tab.page.evaluate(OBJECTS_JS, m)["cars"][0]["position"][0]
+        == pytest.approx(ox.ahead_m[cf.failure_step, 0], abs=1e-4),
+        what="the scene at the failure step",
+    )
     check_cars(cf.failure_step, tab.page.evaluate(OBJECTS_JS, m)["cars"])

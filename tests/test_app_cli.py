@@ -39,10 +39,23 @@ def listening_addresses(port: int) -> set[str]:
 def test_serve_binds_localhost_only_serves_the_page_and_stops_on_ctrl_c(tmp_path):
     port = free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "pemviz.cli", "serve", "--port", str(port), "--preset", "quick",
-         "--recordings", str(tmp_path / "rec")],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "pemviz.cli",
+            "serve",
+            "--port",
+            str(port),
+            "--preset",
+            "quick",
+            "--recordings",
+            str(tmp_path / "rec"),
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         lines: queue.Queue[str] = queue.Queue()
         threading.Thread(target=lambda: [lines.put(x) for x in proc.stdout], daemon=True).start()
@@ -72,5 +85,7 @@ def test_serve_binds_localhost_only_serves_the_page_and_stops_on_ctrl_c(tmp_path
 def test_serve_rejects_an_unknown_preset_in_one_line():
     proc = run_cli("serve", "--preset", "nope", "--port", "0", timeout=120)
     assert proc.returncode == 2
-    assert ("pemviz serve: error: --preset 'nope' is invalid: use one of state-ce, paper, authors-code, quick"
-            in proc.stderr)
+    assert (
+        "pemviz serve: error: --preset 'nope' is invalid: use one of state-ce, paper, authors-code, quick"
+        in proc.stderr
+    )

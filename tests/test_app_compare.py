@@ -44,8 +44,10 @@ def test_compare_charts_each_runs_estimate_interval_and_exact_answer_and_lists_o
         assert r.final.estimate.n_failures > 0, f"{r.short_label} drew no failure: the chart has no estimate to draw"
     tab.tab("Compare")
     labels = [f"{r.short_label} mu_hat" for r in runs]
-    wait_until(lambda: all(lab in tab.plot("log10 mu_hat of each kept run")["labels"] for lab in labels),
-               what="both runs' estimates on the Compare chart")  # fmt: skip
+    wait_until(
+        lambda: all(lab in tab.plot("log10 mu_hat of each kept run")["labels"] for lab in labels),
+        what="both runs' estimates on the Compare chart",
+    )
     chart = tab.plot("log10 mu_hat of each kept run")
     assert chart["title"] == compare.TITLE
     x = chart["x"]
@@ -74,8 +76,9 @@ def test_compare_charts_each_runs_estimate_interval_and_exact_answer_and_lists_o
             lo, hi = e.log_ci
             assert math.isfinite(lo) and math.isfinite(hi)
             low, high = series(f"{r.short_label} 95 % low"), series(f"{r.short_label} 95 % high")
-            cap = pytest.approx([position - compare.CAP_HALF_WIDTH, position, position,
-                                 position + compare.CAP_HALF_WIDTH])  # fmt: skip
+            cap = pytest.approx(
+                [position - compare.CAP_HALF_WIDTH, position, position, position + compare.CAP_HALF_WIDTH]
+            )
             assert [x[j] for j, _ in low] == cap and [x[j] for j, _ in high] == cap
             assert all(v == pytest.approx(lo / ln10, abs=1e-9) for _, v in low)
             assert all(v == pytest.approx(hi / ln10, abs=1e-9) for _, v in high)
@@ -100,8 +103,10 @@ def test_compare_charts_each_runs_estimate_interval_and_exact_answer_and_lists_o
     n_settings = len(dataclasses.fields(ExperimentConfig))
     note = f"{n_settings - 1} identical settings hidden"
     expect(tab.page.get_by_text(note, exact=False)).to_be_visible(timeout=10_000)
-    table = tab.page.locator("xpath=//table[contains(@class, 'pemviz-table')]"
-                             "[following-sibling::div[contains(., 'identical settings hidden')]]")
+    table = tab.page.locator(
+        "xpath=//table[contains(@class, 'pemviz-table')]"
+        "[following-sibling::div[contains(., 'identical settings hidden')]]"
+    )
     expect(table).to_have_count(1)
     for row in ("mu_hat", "95 % interval", "failures", "ESS", "verdict", "alpha"):
         expect(table.locator("th", has_text=re.compile(f"^{re.escape(row)}$"))).to_have_count(1)

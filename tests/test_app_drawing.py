@@ -17,14 +17,20 @@ from pemviz.scenarios.braking.failures import severity
 from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, CutInParams
 from pemviz.scenarios.cut_in.drawing import CutInDrawing
 
+
 def test_the_braking_drawing_gives_a_lane_scene_of_its_constants():
     p = BrakingParams()
     d = BrakingDrawing(p)
     assert isinstance(d, LanePanel) and lane_panel(d) is d and objects_panel(d) is None
     scene = d.panel_scene()
     assert isinstance(scene, LaneScene)
-    assert (scene.ego_length_m, scene.object_length_m, scene.width_m, scene.sensor_offset_m, scene.start_distance_m) \
-        == (p.ego_length_m, p.lead_length_m, p.vehicle_width_m, p.camera_offset_m, p.gap0_m)
+    assert (
+        scene.ego_length_m,
+        scene.object_length_m,
+        scene.width_m,
+        scene.sensor_offset_m,
+        scene.start_distance_m,
+    ) == (p.ego_length_m, p.lead_length_m, p.vehicle_width_m, p.camera_offset_m, p.gap0_m)
     assert [(z.role, z.length_m) for z in scene.zones] == [("window", p.braking_distance_m), ("margin", p.crash_gap_m)]
     assert scene.n_steps == d.n_steps == p.n_steps and scene.object_start_x == p.camera_offset_m + p.gap0_m + 2.48
     assert scene.strip_title == "gap and speeds" and d.curve_axis().label == "gap d (m)"

@@ -52,10 +52,19 @@ class StandInClient:
 
     def __init__(self) -> None:
         self.nodes: dict[str, Node] = {}
-        self.scene = SimpleNamespace(set_up_direction=lambda _: None, add_box=self._add, add_label=self._label,
-                                     add_line_segments=self._segments, add_point_cloud=self._points)  # fmt: skip
-        self.gui = SimpleNamespace(add_slider=self._gui, add_button=self._gui, add_checkbox=self._gui,
-                                   add_html=lambda content: Node(content=content))  # fmt: skip
+        self.scene = SimpleNamespace(
+            set_up_direction=lambda _: None,
+            add_box=self._add,
+            add_label=self._label,
+            add_line_segments=self._segments,
+            add_point_cloud=self._points,
+        )
+        self.gui = SimpleNamespace(
+            add_slider=self._gui,
+            add_button=self._gui,
+            add_checkbox=self._gui,
+            add_html=lambda content: Node(content=content),
+        )
         self.camera = SimpleNamespace(aspect=0.6, fov=1.3, position=(0, 0, 0), look_at=(0, 0, 0))
         self.atomic = contextlib.nullcontext
 
@@ -78,6 +87,7 @@ class StandInClient:
 
     def shown(self, prefix: str) -> list[str]:
         """The names of the live, visible nodes under ``prefix`` whose parents are visible too."""
+
         def visible(name: str) -> bool:
             parent = name.rsplit("/", 1)[0]
             return self.nodes[name].visible and (not parent or parent not in self.nodes or visible(parent))
@@ -168,8 +178,9 @@ def test_a_rollouts_first_step_puts_the_cars_where_the_idle_scene_does():
     rollout draws at step 0): the idle scene's cars."""
     p = CutInParams()
     rows = BatchedCutIn(p, 1).objects()  # [1, M, G]: step 0 of one rollout
-    batch = SimpleNamespace(objects=rows[:, None], object_names=OBJECT_NAMES, detected=np.zeros((1, 1, 5), bool),
-                            noise=None)  # fmt: skip
+    batch = SimpleNamespace(
+        objects=rows[:, None], object_names=OBJECT_NAMES, detected=np.zeros((1, 1, 5), bool), noise=None
+    )
     sc = object_scene(SimpleNamespace(objects_xy=("loc_x", "loc_z"), noise_xy=None), batch)
     assert [(float(sc.lateral_m[0, j]), float(sc.ahead_m[0, j])) for j in range(5)] == list(start_positions(p))
 
@@ -211,36 +222,56 @@ def test_choosing_a_scenario_in_the_browser_draws_its_idle_scene(browser, app): 
     for tab in open_tab(browser, app):
         page, scene = tab.page, tab.session.scene
         assert tab.session.choices["scenario"].value == "braking"
-        wait_until(lambda: (state(page)["lead"] and state(page)["zone"]  # noqa: B023 (called within the iteration)
-                            and not state(page)["objects_road"]),  # noqa: B023 (called within the iteration)
-                   what="the braking lane scene at first")  # fmt: skip
+        wait_until(
+            lambda page=page: state(page)["lead"] and state(page)["zone"] and not state(page)["objects_road"],
+            what="the braking lane scene at first",
+        )
         tab.choose("scenario", "cut-in")
         starts = scenario_drawing("cut-in").panel_scene().start_xy_m
         want = sorted((ahead, -right) for right, ahead in starts)
 
-        def cut_in_drawn() -> bool:
-            s = state(page)  # noqa: B023 (called within the iteration)
-            return (s["objects_road"] and not s["lead"] and not s["road"] and not s["zone"] and s["ego"]
-                    and sorted(map(tuple, s["cars"])) == want)  # noqa: B023 (called within the iteration)
+        def cut_in_drawn(page=page, want=want) -> bool:
+            s = state(page)
+            return (
+                s["objects_road"]
+                and not s["lead"]
+                and not s["road"]
+                and not s["zone"]
+                and s["ego"]
+                and sorted(map(tuple, s["cars"])) == want
+            )
 
         wait_until(cut_in_drawn, what="the cut-in's road with its 5 cars at their start, no lane scene")
         assert "No rollout chosen: the cut-in scenario's 5 cars" in caption(scene)
         # the scene's own method and budget (the tilt, 7,280 rollouts), and the cost line says the run counts more
-        wait_until(lambda: ("Cost: 7,280 simulations plus the proposal's look-aheads"
-                            in page.inner_text("body")),  # noqa: B023 (called within the iteration)
-                   what="the cut-in's cost line")  # fmt: skip
+        wait_until(
+            lambda: ("Cost: 7,280 simulations plus the proposal's look-aheads" in page.inner_text("body")),  # noqa: B023 (called within the iteration)
+            what="the cut-in's cost line",
+        )
         shoot(page, "cost_cut_in.png")
         tab.tab("Rollouts")
         shoot(page, "idle_cut_in.png")
         tab.tab("Experiment")
         tab.choose("scenario", "toy")
-        wait_until(lambda: not any(state(page)[k]  # noqa: B023 (called within the iteration)
-                                   for k in ("lead", "road", "ego", "objects_road")),
-                   what="no scene for the toy")  # fmt: skip
+        wait_until(
+            lambda: not any(
+                state(page)[k]  # noqa: B023 (called within the iteration)
+                for k in ("lead", "road", "ego", "objects_road")
+            ),
+            what="no scene for the toy",
+        )
         assert "The toy scenario draws no scene" in caption(scene)
         tab.choose("scenario", "braking")
-        wait_until(lambda: (lambda s: s["lead"] and s["road"] and s["zone"] and s["ego"] and not s["objects_road"]
-                            and s["cars"] == [])(state(page)),  # noqa: B023 (called within the iteration)
-                   what="the braking lane scene again")  # fmt: skip
+        wait_until(
+            lambda: (
+                lambda s: s["lead"]
+                and s["road"]
+                and s["zone"]
+                and s["ego"]
+                and not s["objects_road"]
+                and s["cars"] == []
+            )(state(page)),  # noqa: B023 (called within the iteration)
+            what="the braking lane scene again",
+        )
         tab.tab("Rollouts")
         shoot(page, "idle_braking.png")

@@ -37,17 +37,22 @@ def test_a_changed_parameter_goes_into_the_runs_scenario_params_and_its_label():
     assert form.config.scenario_params == (("cut_in_gap_m", 19.5),)
     assert run_label(3, form.config) == "run 3 · classic, scenario cut-in, cut_in_gap_m=19.5"
     # an int and a bool by their kinds, in the order of the fields
-    both = parse_form({}, {"scenario": "braking"}, params={**default_texts("braking"), "n_steps": "80",
-                                                          "latched_brake": "yes"})  # fmt: skip
+    both = parse_form(
+        {}, {"scenario": "braking"}, params={**default_texts("braking"), "n_steps": "80", "latched_brake": "yes"}
+    )
     assert both.config.scenario_params == (("n_steps", 80), ("latched_brake", True))
     assert run_label(1, both.config).endswith("n_steps=80, latched_brake=true")
 
 
-@pytest.mark.parametrize("text, message", [
-    ("abc", "cut_in_gap_m='abc' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
-    ("-5", "CutInParams: cut_in_gap_m must be finite and >= 0, got -5.0"),
-    ("", "cut_in_gap_m='' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
-], ids=["not-a-number", "out-of-range", "empty"])  # fmt: skip
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("abc", "cut_in_gap_m='abc' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
+        ("-5", "CutInParams: cut_in_gap_m must be finite and >= 0, got -5.0"),
+        ("", "cut_in_gap_m='' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
+    ],
+    ids=["not-a-number", "out-of-range", "empty"],
+)
 def test_a_bad_value_is_an_error_of_its_field_only(text, message):
     form = parse_form({"n_stages": "0"}, CUT_IN, params={**default_texts("cut-in"), "cut_in_gap_m": text})
     assert not form.ok
@@ -80,10 +85,14 @@ def test_a_field_is_labelled_with_its_name_and_unit_and_shows_its_value_by_kind(
     p = {q.name: q for q in get("braking").parameters()}
     assert [label(p[n]) for n in ("gap0_m", "kp", "n_steps")] == ["gap0_m (m)", "kp", "n_steps (steps)"]
     assert [format_param(p[n], p[n].default) for n in ("gap0_m", "n_steps", "latched_brake")] == [
-        "12.2932", "100", "false"]
+        "12.2932",
+        "100",
+        "false",
+    ]
     assert parse_params("no-such-scenario", {"x": "1"}) == ((), {})
-    assert parse_params("braking", {"nope": "1"})[1] == {param_key("nope"): "'nope' is not a parameter of the "
-                                                                              "braking scenario"}  # fmt: skip
+    assert parse_params("braking", {"nope": "1"})[1] == {
+        param_key("nope"): "'nope' is not a parameter of the " "braking scenario"
+    }
 
 
 class FakeHandle(SimpleNamespace):
@@ -158,8 +167,11 @@ try:  # the browser test needs playwright and chromium (test_app skips without t
 except pytest.skip.Exception as exc:
     NO_BROWSER = str(exc) or "no browser"
 
-SHOT = Path(os.environ.get("PEMVIZ_PARAMS_SHOT", Path(__file__).resolve().parents[1] / "assets" / "screenshots" /
-                           "panel_params.png"))  # fmt: skip
+SHOT = Path(
+    os.environ.get(
+        "PEMVIZ_PARAMS_SHOT", Path(__file__).resolve().parents[1] / "assets" / "screenshots" / "panel_params.png"
+    )
+)
 
 
 @pytest.fixture
@@ -186,8 +198,9 @@ def test_the_folder_sets_the_chosen_scenarios_parameters_for_the_next_run(tab):
         expect(tab.button("Run")).to_be_disabled()
     gap.fill("19.5")
     gap.press("Tab")
-    wait_until(lambda: params.fields["cut_in_gap_m"].value == "19.5" and s.form.parsed.ok,
-               what="19.5 to reach the server")  # fmt: skip
+    wait_until(
+        lambda: params.fields["cut_in_gap_m"].value == "19.5" and s.form.parsed.ok, what="19.5 to reach the server"
+    )
     expect(tab.button("Run")).to_be_enabled()
     if os.environ.get("PEMVIZ_SCREENSHOTS") == "1" or "PEMVIZ_PARAMS_SHOT" in os.environ:
         page.wait_for_function("() => document.fonts.ready.then(() => true)")

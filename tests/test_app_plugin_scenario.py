@@ -35,14 +35,16 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
         record = tab.run(TINY, timeout=120)
         assert record.config.scenario == "my-car"
         assert math.exp(record.exact_log_p) == pytest.approx(2.8576e-5, rel=1e-3)
-        wait_until(lambda: ("exact answer 2.8576e-05"
-                            in tab.page.inner_text("body")),  # noqa: B023 (called within the iteration)
-                   what="the final estimate beside the scenario's exact answer")  # fmt: skip
+        wait_until(
+            lambda: ("exact answer 2.8576e-05" in tab.page.inner_text("body")),  # noqa: B023 (called within the iteration)
+            what="the final estimate beside the scenario's exact answer",
+        )
         scene = tab.session.scene
-        wait_until(lambda: ("the my-car scenario draws no scene"
-                            in scene.scene_html.content),  # noqa: B023 (called within the iteration)
-                   timeout=60,
-                   what="the 3D view saying the scenario draws no scene (no braking road for it)")  # fmt: skip
+        wait_until(
+            lambda: ("the my-car scenario draws no scene" in scene.scene_html.content),  # noqa: B023 (called within the iteration)
+            timeout=60,
+            what="the 3D view saying the scenario draws no scene (no braking road for it)",
+        )
         assert not scene.object_box.visible and not scene.ego_box.visible
 
 
@@ -67,5 +69,7 @@ def test_the_panel_lists_and_runs_a_registered_method_of_ones_own(defensive_mc, 
         tab.session.choices["method"].value = "defensive-mc"  # the menu sits in the folded "advanced" folder
         record = tab.run({"N": "400"}, timeout=120)
         assert record.config.method == "defensive-mc" and record.config.n_per_stage == 400
-        wait_until(lambda: f"Final estimate of {record.short_label}" in tab.page.inner_text("body"),  # noqa: B023
-                   what="the method's final estimate in the panel")  # fmt: skip
+        wait_until(
+            lambda: f"Final estimate of {record.short_label}" in tab.page.inner_text("body"),  # noqa: B023
+            what="the method's final estimate in the panel",
+        )

@@ -151,12 +151,19 @@ def test_new_runs_drop_stopped_runs_before_finished_ones_and_never_pinned_ones()
 
 # -- the form -------------------------------------------------------------------------------------
 def test_the_form_parses_exactly_what_was_typed_and_reports_every_error():
-    ok = parse_form({"smoothing": "1e-3", "quantile_level": " 0.9 ", "n_per_stage": "1e5", "n_stages": "3"},
-                    {"metric": "agm", "pem": ""})  # fmt: skip
+    ok = parse_form(
+        {"smoothing": "1e-3", "quantile_level": " 0.9 ", "n_per_stage": "1e5", "n_stages": "3"},
+        {"metric": "agm", "pem": ""},
+    )
     cfg = ok.config
     assert (cfg.smoothing, cfg.quantile_level, cfg.n_per_stage, cfg.n_stages, cfg.metric, cfg.pem) == (
-        0.001, 0.9, 100000, 3, "agm", None,
-    )  # fmt: skip
+        0.001,
+        0.9,
+        100000,
+        3,
+        "agm",
+        None,
+    )
     assert isinstance(cfg.n_per_stage, int)
     bad = parse_form({"smoothing": "abc", "quantile_level": "1", "n_stages": "", "n_per_stage": "12.5"}, {})
     assert bad.config is None
@@ -175,7 +182,7 @@ def test_a_typed_number_is_accepted_exactly_when_it_is_in_range(x):
     assert (value == x and error == "") if 0.0 < x <= 1.0 else (value is None and error.startswith("alpha: "))
 
 
-@given(st.integers(min_value=-10**7, max_value=10**7), st.sampled_from(["", ".0", ".5", "e0"]))
+@given(st.integers(min_value=-(10**7), max_value=10**7), st.sampled_from(["", ".0", ".5", "e0"]))
 def test_a_whole_number_field_takes_whole_numbers_only(n, suffix):
     value, error = parse_number(FIELDS_BY_KEY["n_per_stage"], f"{n}{suffix}")
     if suffix == ".5" or n < 2:
@@ -197,10 +204,16 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     assert run_cost(cfg.replace(n_stages=1000, n_per_stage=1000)).needs_confirm
     assert cost.text().startswith("240 simulations, ")  # the rollouts are all a cross-entropy run counts
     # a tilt run and a splitting run count more than their rollouts: the line says so before the run
-    assert run_cost(cfg.replace(method="tilt", n_per_stage=1280)).text().startswith(
-        "1,280 simulations plus the proposal's look-aheads, ")
-    assert run_cost(cfg.replace(method="ams", n_per_stage=200)).text().startswith(
-        "200 simulations plus the branches' continuations, ")
+    assert (
+        run_cost(cfg.replace(method="tilt", n_per_stage=1280))
+        .text()
+        .startswith("1,280 simulations plus the proposal's look-aheads, ")
+    )
+    assert (
+        run_cost(cfg.replace(method="ams", n_per_stage=200))
+        .text()
+        .startswith("200 simulations plus the branches' continuations, ")
+    )
     assert parse_number(FIELDS_BY_KEY["n_stages"], "100000")[1].startswith("K: 100000 is out of range")
     assert parse_number(FIELDS_BY_KEY["seed"], str(2**64 - 1)) == (2**64 - 1, "")
 

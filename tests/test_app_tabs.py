@@ -60,9 +60,13 @@ def check_every_tab(tab: Tab, scene: str) -> dict[str, list[dict]]:
     for name in TABS:
         tab.tab(name)
         n = CHARTS_PER_TAB[scene].get(name, 1)
-        wait_until(lambda: (len(shown_charts(tab)) >= n  # noqa: B023 (called within the iteration)
-                            and not any(empty(c) for c in shown_charts(tab))),
-                   what=f"{scene} {name}: {n} charts shown, each with data")  # fmt: skip
+        wait_until(
+            lambda: (
+                len(shown_charts(tab)) >= n  # noqa: B023 (called within the iteration)
+                and not any(empty(c) for c in shown_charts(tab))
+            ),
+            what=f"{scene} {name}: {n} charts shown, each with data",
+        )
         shown = shown_charts(tab)
         assert not [c["title"] for c in shown if empty(c)], f"{scene} {name}: empty charts shown"
         seen[name] = shown
@@ -96,8 +100,11 @@ def wide_tab(browser, app):  # noqa: F811  (pytest's fixtures, imported above)
 def test_every_braking_tab_shows_only_charts_with_data(wide_tab):
     tab = wide_tab
     record = tab.run()
-    wait_until(lambda: tab.session.shown_record is record and tab.session.explanation is not None, timeout=30,
-               what="the run's rollout explained")  # fmt: skip
+    wait_until(
+        lambda: tab.session.shown_record is record and tab.session.explanation is not None,
+        timeout=30,
+        what="the run's rollout explained",
+    )
     seen = check_every_tab(tab, "braking")
     live = chart(seen["Live"], "mean q(detect) over the visited states")
     assert "PEM" in live["labels"] and np.isfinite(series(live, "PEM")).any()
@@ -114,8 +121,11 @@ def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and
     s.choices["method"].value = "adaptive"  # a few stages of 60 rollouts find failures in a few seconds
     record = tab.run({**TINY, "K": "3", "N": "60", "N_e": "60", "seed": "1"}, timeout=120)
     assert record.config.scenario == "cut-in" and record.most_likely_failure is not None
-    wait_until(lambda: s.objects_ex is not None and s.shown is record.most_likely_failure, timeout=60,
-               what="the most likely failure explained")  # fmt: skip
+    wait_until(
+        lambda: s.objects_ex is not None and s.shown is record.most_likely_failure,
+        timeout=60,
+        what="the most likely failure explained",
+    )
     ox = s.objects_ex
     st = ox.story
     assert st is not None and st.severity.failed
@@ -209,8 +219,9 @@ def test_the_cut_in_story_tells_a_hand_made_rollout_step_by_step():
     assert (st.lane_change_step, st.lane_entry_step, st.first_detected_step, st.track_step) == (1, 2, 0, 1)
     assert (st.follow_step, st.brake_step, st.misses_after_entry, st.steps_after_entry) == (3, 3, 1, 1)
     assert st.outside_steps == 1 and st.worst_track_error_m == 2.5
-    assert sev.short == ("contact at 3.0 m/s closing speed at 0.40 s · minimum clearance -0.50 m at 0.40 s (the "
-                         "boxes overlap)")
+    assert sev.short == (
+        "contact at 3.0 m/s closing speed at 0.40 s · minimum clearance -0.50 m at 0.40 s (the " "boxes overlap)"
+    )
     assert st.acc.accel_mps2.tolist() == [0, 0, 0, -6, -6] and st.acc.followed.tolist() == [-1, -1, -1, 0, 0]
     assert "Its box entered the ego's lane at 0.20 s (step 2), 10.0 m ahead." in st.text
     assert "it was missed at 1 of them" in st.text and "lateral error up to 2.50 m" in st.text

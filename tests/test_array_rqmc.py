@@ -139,14 +139,24 @@ def test_a_sampler_with_a_window_couples_only_the_chains_inside_it():
     np.testing.assert_allclose(got[[4, 1, 3]], np.remainder(u[1] + np.arange(3) * GOLDEN, 1.0), rtol=0, atol=1e-15)
     # without a window every chain is coupled, ranked by its logit and then its state; an i.i.d. sampler keeps every
     # uniform
-    np.testing.assert_array_equal(step_uniforms(u, ArrayRQMC(ConstantDetector(0.5)), logit, obs),
-                                  array_rqmc_uniforms(u, np.column_stack([logit, obs])))  # fmt: skip
+    np.testing.assert_array_equal(
+        step_uniforms(u, ArrayRQMC(ConstantDetector(0.5)), logit, obs),
+        array_rqmc_uniforms(u, np.column_stack([logit, obs])),
+    )
     np.testing.assert_array_equal(step_uniforms(u, samplers.defensive, logit, obs), u)
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.lists(st.tuples(st.sampled_from([-np.inf, -3.5, -1e-40, -0.0, 0.0, 2.0, 2.0 + 1e-12, 7.25, np.inf, np.nan]),
-                          st.floats(-50.0, 50.0)), min_size=1, max_size=40))  # fmt: skip
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from([-np.inf, -3.5, -1e-40, -0.0, 0.0, 2.0, 2.0 + 1e-12, 7.25, np.inf, np.nan]),
+            st.floats(-50.0, 50.0),
+        ),
+        min_size=1,
+        max_size=40,
+    )
+)
 def test_the_ranking_key_orders_chains_by_their_float32_logit_then_by_their_gap(pairs):
     # numpy's lexicographic order of (logit rounded to float32, gap) is the order of the packed keys, ties included;
     # -0.0 ranks before +0.0, and a NaN logit last

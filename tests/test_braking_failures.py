@@ -163,8 +163,9 @@ def test_a_default_runs_late_stage_misses_the_lead_inside_10_m_far_more_than_the
     Experiment(cfg, [events.append], problem=problem_for(cfg)).run()
     late = [e for e in events if isinstance(e, RolloutsSampled) and e.kind == "ce"][-1]
     b = late.batch
-    v = proposal_view(b.signal("gap_m"), b.detected[..., 0], b.log_q, b.log_p, np.linspace(0.0, 13.0, 27),
-                      window_m=10.0)
+    v = proposal_view(
+        b.signal("gap_m"), b.detected[..., 0], b.log_q, b.log_p, np.linspace(0.0, 13.0, 27), window_m=10.0
+    )
     assert v.q_miss_window > 5 * v.p_miss_window and v.p_miss_window < 0.02
     busy = (v.centres_m > 3.0) & (v.centres_m < 9.0) & (v.n_states >= 50)
     assert busy.any() and np.all(v.q_mean[busy] < v.p_mean[busy])

@@ -54,8 +54,9 @@ def _committor_by_recursion(pem, p: BrakingParams, t: int, g: float, v: float, i
     total = 0.0
     for a in (False, True) if inside else (False,):
         prob = math.exp(float(log_expit((1 if a else -1) * pem.logit_at_gap(np.array([g]))[0]))) if inside else 1.0
-        nxt = braking_step(p, float(lead_speeds(p)[t]), np.array([g]), np.array([v]), np.array([i]), np.array([b]),
-                           np.array([a]))  # fmt: skip
+        nxt = braking_step(
+            p, float(lead_speeds(p)[t]), np.array([g]), np.array([v]), np.array([i]), np.array([b]), np.array([a])
+        )
         total += prob * _committor_by_recursion(pem, p, t + 1, *(x[0].item() for x in nxt))
     return total
 
@@ -66,13 +67,19 @@ def test_the_exact_committor_of_a_late_state_is_the_recursion_over_its_detection
     p = BrakingParams()
     start = branching_start(p)
     bound = exact_bound(p, start, 401)
-    cases = ((88, 5.0, 7.0, False), (88, 5.5, 7.0, True), (88, 5.5, 6.0, False), (90, 4.0, 6.0, True),
-             (90, 6.0, 7.0, False))  # fmt: skip
+    cases = (
+        (88, 5.0, 7.0, False),
+        (88, 5.5, 7.0, True),
+        (88, 5.5, 6.0, False),
+        (90, 4.0, 6.0, True),
+        (90, 6.0, 7.0, False),
+    )
     values = []
     for t, gap, speed, pending in cases:
         hand = _committor_by_recursion(pem, p, t, gap, speed, -0.2, pending)
-        r = braking_exact(pem.logit_at_gap, p, bound=bound, start=BrakingStart(t, gap, speed, -0.2, pending),
-                          log_prune=-200.0)  # fmt: skip
+        r = braking_exact(
+            pem.logit_at_gap, p, bound=bound, start=BrakingStart(t, gap, speed, -0.2, pending), log_prune=-200.0
+        )
         values.append(hand)
         assert math.exp(r.log_p_fail) == pytest.approx(hand, rel=1e-9, abs=1e-300)
     assert 1e-17 < min(v for v in values if v > 0) and max(values) < 0.1 and 0.0 in values
@@ -125,8 +132,9 @@ def test_the_braking_tilt_is_unbiased_and_its_step_weights_bounded(pem, committo
 
 def test_the_same_seed_gives_the_same_tilted_rollouts_for_any_chunk(pem, committor):
     a = draw_tilted(BrakingTiltDetector(committor, pem.logit_at_gap), PEMDetector(pem), 300, np.random.default_rng(5))
-    b = draw_tilted(BrakingTiltDetector(committor, pem.logit_at_gap), PEMDetector(pem), 300, np.random.default_rng(5),
-                    chunk_size=64)  # fmt: skip
+    b = draw_tilted(
+        BrakingTiltDetector(committor, pem.logit_at_gap), PEMDetector(pem), 300, np.random.default_rng(5), chunk_size=64
+    )
     np.testing.assert_array_equal(a.detected, b.detected)
     np.testing.assert_array_equal(a.log_q, b.log_q)
     np.testing.assert_array_equal(a.log_p, b.log_p)
@@ -159,8 +167,9 @@ def test_the_committor_scores_splitting_on_braking_and_its_solve_counts():
     first = cut.committor.first_step
     assert np.all(np.isinf(graded[:, :first]))
     obs = batch.observations[:, first + 3]
-    np.testing.assert_array_equal(graded[:, first + 3], -cut.committor.log_value(first + 3, obs[:, 0], obs[:, 1],
-                                                                                 obs[:, 3] > 0.5))  # fmt: skip
+    np.testing.assert_array_equal(
+        graded[:, first + 3], -cut.committor.log_value(first + 3, obs[:, 0], obs[:, 1], obs[:, 3] > 0.5)
+    )
 
 
 def test_the_tilt_on_highway_env_vehicles_is_refused_in_one_line(capsys):
@@ -170,5 +179,7 @@ def test_the_tilt_on_highway_env_vehicles_is_refused_in_one_line(capsys):
 
     assert main(["run", "--method", "tilt", "--sim", "highway-env", "--no-record"]) != 0
     err = capsys.readouterr().err.strip()
-    assert err == ("pemviz run: error: method tilt: the braking problem has no tilted proposal of its own on this "
-                   "simulator (a scenario's may run on its batched twin only: --sim batched); use adaptive or mc")
+    assert err == (
+        "pemviz run: error: method tilt: the braking problem has no tilted proposal of its own on this "
+        "simulator (a scenario's may run on its batched twin only: --sim batched); use adaptive or mc"
+    )

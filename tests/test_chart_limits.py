@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pemviz.app import charts, plots
+from pemviz.app import charts, explain_charts, plots
 from pemviz.app.plots import STAGE_RULES, AxisRange, robust_range
 from pemviz.app.runs import PanelRun
 from pemviz.config import ExperimentConfig
@@ -109,16 +109,31 @@ def test_values_that_do_not_matter_do_not_set_the_range_but_are_counted():
 
 
 # -- the per-stage charts ----------------------------------------------------------------------------
-def staged_run(run_id: int, log10_mu: list[float], failures: list[int], log10_ci: list[tuple[float, float]],
-               exact_log10: float | None = None) -> PanelRun:  # fmt: skip
+def staged_run(
+    run_id: int,
+    log10_mu: list[float],
+    failures: list[int],
+    log10_ci: list[tuple[float, float]],
+    exact_log10: float | None = None,
+) -> PanelRun:
     """A real PanelRun whose stages carry the given log10 mu_hat, failure counts and 95 % interval (log10)."""
     run = PanelRun(run_id, ExperimentConfig())
     run.stages = [
-        SimpleNamespace(stage=k, kind="ce", gamma=math.nan, estimate=SimpleNamespace(
-            log10_mu_hat=mu, n_failures=f, n=100, nll_mean=math.nan, log_ci=(lo * LN10, hi * LN10),
-            shown_log_ci=(lo * LN10, hi * LN10)))
+        SimpleNamespace(
+            stage=k,
+            kind="ce",
+            gamma=math.nan,
+            estimate=SimpleNamespace(
+                log10_mu_hat=mu,
+                n_failures=f,
+                n=100,
+                nll_mean=math.nan,
+                log_ci=(lo * LN10, hi * LN10),
+                shown_log_ci=(lo * LN10, hi * LN10),
+            ),
+        )
         for k, (mu, f, (lo, hi)) in enumerate(zip(log10_mu, failures, log10_ci, strict=False))
-    ]  # fmt: skip
+    ]
     run.exact_log_p = None if exact_log10 is None else exact_log10 * LN10
     return run
 
@@ -173,8 +188,10 @@ def test_early_in_a_run_the_first_stage_with_failures_sets_the_mu_hat_axis():
     plots.fill_stage_plot(plot, "log10_mu_hat", [run])
     charts.fill_mu_hat_plot(plot, [run])
     assert y_limits(plot) == pytest.approx((-15.5 - 0.128, -13.9 + 0.128))
-    assert plot.title == "log10 mu_hat per stage, 95 % interval (band); 3 points off scale, drawn at the edge " \
+    assert (
+        plot.title == "log10 mu_hat per stage, 95 % interval (band); 3 points off scale, drawn at the edge "
         "(highest 0.0)"
+    )
 
 
 def test_before_any_failure_the_mu_hat_axis_is_the_exact_answer_with_room_never_a_single_value():
@@ -204,14 +221,17 @@ def test_an_exact_answer_far_from_the_estimates_stays_on_the_axis():
 
 # -- the controller chart ----------------------------------------------------------------------------
 def controller_explanation(accel: np.ndarray, gap: np.ndarray, command=None, applied=None) -> SimpleNamespace:
-    """What :func:`charts.fill_controller_plot` reads of an explanation: the controller's signals and the steps in
-    contact (a gap of at most 0.7 m, the braking scenario's contact gap)."""
+    """What :func:`explain_charts.fill_controller_plot` reads of an explanation: the controller's signals and the
+    steps in contact (a gap of at most 0.7 m, the braking scenario's contact gap)."""
     n = accel.size
     none = np.zeros(n, bool)
     controller = SimpleNamespace(
-        time_s=np.arange(n) * 0.05, accel_mps2=accel, gap_m=gap,
-        brake_command=none if command is None else command, brake_applied=none if applied is None else applied,
-    )  # fmt: skip
+        time_s=np.arange(n) * 0.05,
+        accel_mps2=accel,
+        gap_m=gap,
+        brake_command=none if command is None else command,
+        brake_applied=none if applied is None else applied,
+    )
     return SimpleNamespace(controller=controller, contact=np.asarray(gap) <= 0.7)
 
 
@@ -224,16 +244,24 @@ def test_the_contact_steps_acceleration_is_drawn_at_the_edge_and_named():
     applied = np.zeros(accel.size, bool)
     applied[30:35] = True
     plot = handle()
-    charts.fill_controller_plot(plot, controller_explanation(accel, gap, applied=applied), 40, "run 1 r0")
+    explain_charts.fill_controller_plot(plot, controller_explanation(accel, gap, applied=applied), 40, "run 1 r0")
     names = labels(plot)
-    assert names == ["t (s)", "acceleration (m/s^2)", "brake commanded", "brake applied",
-                     "acceleration off scale (1)", "now"]  # fmt: skip
+    assert names == [
+        "t (s)",
+        "acceleration (m/s^2)",
+        "brake commanded",
+        "brake applied",
+        "acceleration off scale (1)",
+        "now",
+    ]
     # [-8, 3] padded by max(0.08 * 11, 1) = 1 m/s^2: about [-9, 4]
     bottom, top = -9.0, 4.0
     row = 0.07 * (top - bottom)
     assert y_limits(plot) == pytest.approx((bottom, top + 3 * row))
-    assert plot.title == ("run 1 r0: controller; 1 step off scale, drawn at the edge: -110.0 m/s^2 at 2.00 s "
-                          "(contact: the ego stops within one step)")  # fmt: skip
+    assert plot.title == (
+        "run 1 r0: controller; 1 step off scale, drawn at the edge: -110.0 m/s^2 at 2.00 s "
+        "(contact: the ego stops within one step)"
+    )
     assert_drawn_in_place(accel, plot.data[1], bottom, top)
     ring, now = plot.data[4], plot.data[5]
     assert np.flatnonzero(np.isfinite(ring)).tolist() == [40] and ring[40] == bottom
@@ -249,18 +277,20 @@ def test_a_contact_step_near_full_braking_still_leaves_the_axis():
     gap = np.full(accel.size, 3.0)
     gap[59:] = 0.46
     plot = handle()
-    charts.fill_controller_plot(plot, controller_explanation(accel, gap), 0, "r")
+    explain_charts.fill_controller_plot(plot, controller_explanation(accel, gap), 0, "r")
     bottom = -25.96 - 0.08 * (1.5 + 25.96)
     assert y_limits(plot)[0] == pytest.approx(bottom)
-    assert plot.title == ("r: controller; 1 step off scale, drawn at the edge: -76.8 m/s^2 at 2.95 s "
-                          "(contact: the ego stops within one step)")  # fmt: skip
+    assert plot.title == (
+        "r: controller; 1 step off scale, drawn at the edge: -76.8 m/s^2 at 2.95 s "
+        "(contact: the ego stops within one step)"
+    )
     assert_drawn_in_place(accel, plot.data[1], bottom, y_limits(plot)[1])
 
 
 def test_a_lone_spike_leaves_the_controller_axis_even_before_contact():
     accel = np.r_[np.linspace(-8.0, 3.0, 60), -110.0]
     plot = handle()
-    charts.fill_controller_plot(plot, controller_explanation(accel, np.full(accel.size, 5.0)), 0, "r")
+    explain_charts.fill_controller_plot(plot, controller_explanation(accel, np.full(accel.size, 5.0)), 0, "r")
     assert y_limits(plot)[0] == pytest.approx(-9.0)
     assert plot.title == "r: controller; 1 step off scale, drawn at the edge: -110.0 m/s^2 at 3.00 s"
 
@@ -269,7 +299,7 @@ def test_the_emergency_brake_stays_on_the_controller_axis():
     """Full braking (27.5 m/s^2 at low speed) is the controller's own action: drawn at its place, nothing off scale."""
     accel = np.r_[np.full(50, 1.5), np.linspace(1.0, -3.7, 10), [-9.2, -9.2, -22.0, -27.5, -27.5, -27.5], np.zeros(5)]
     plot = handle()
-    charts.fill_controller_plot(plot, controller_explanation(accel, np.full(accel.size, 3.0)), 0, "r")
+    explain_charts.fill_controller_plot(plot, controller_explanation(accel, np.full(accel.size, 3.0)), 0, "r")
     bottom = -27.5 - 0.08 * 29.0
     assert y_limits(plot)[0] == pytest.approx(bottom) and plot.title == "r: controller"
     np.testing.assert_array_equal(plot.data[1], accel)

@@ -76,14 +76,18 @@ def test_correct_simulators_pass():
     check_simulator(SpeedFirst, 40)
 
 
-@pytest.mark.parametrize("make, message", [
-    (SameNameTwice, "observation_names must be distinct (a signal reads its column by name), got 'gap_m' more"),
-    (Float32, "observation() at the start must be a float64 numpy array of shape (2,)"),
-    (NoReset, "reset() does not go back to the start"),
-    (Noisy, "not deterministic: the same detections give observation"),
-    (ShallowSnapshot, "restore(snapshot()) taken at step 20"),
-    (Crashes, r"step\((True|False)\) at step 9 raised IndexError: no road left"),
-], ids=["same-name-twice", "float32", "no-reset", "random", "snapshot", "raises"])  # fmt: skip
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (SameNameTwice, "observation_names must be distinct (a signal reads its column by name), got 'gap_m' more"),
+        (Float32, "observation() at the start must be a float64 numpy array of shape (2,)"),
+        (NoReset, "reset() does not go back to the start"),
+        (Noisy, "not deterministic: the same detections give observation"),
+        (ShallowSnapshot, "restore(snapshot()) taken at step 20"),
+        (Crashes, r"step\((True|False)\) at step 9 raised IndexError: no road left"),
+    ],
+    ids=["same-name-twice", "float32", "no-reset", "random", "snapshot", "raises"],
+)
 def test_broken_simulators_fail_with_the_rule_they_break(make, message):
     pattern = message if message.startswith("step") else re.escape(message)  # the gap first drops below 12 m at step 9
     with pytest.raises(CheckError, match="^check_simulator: " + pattern):
@@ -97,8 +101,9 @@ MC = ExperimentConfig(method="mc", n_per_stage=4000, seed=3)
 def test_pemviz_s_estimators_pass_on_the_toy_and_meet_its_exact_answer():
     est = check_estimator(lambda pb: build_estimator(MC, pb), TOY, max_relative_error=0.6)
     assert est.n == 4000 and 0 < est.n_failures < 20  # ~4 failures expected at p = 1e-3
-    adaptive = dataclasses.replace(ExperimentConfig(), n_stages=2, n_per_stage=200, n_final=400, ce_epochs=50,
-                                   pretrain_epochs=50)  # fmt: skip
+    adaptive = dataclasses.replace(
+        ExperimentConfig(), n_stages=2, n_per_stage=200, n_final=400, ce_epochs=50, pretrain_epochs=50
+    )
     est = check_estimator(lambda pb: build_estimator(adaptive, pb), TOY, max_relative_error=0.5)
     assert est.n_failures > 50  # the proposal finds the failures plain Monte Carlo barely sees
 
@@ -135,12 +140,15 @@ class Wrap:
         return (est, used + (7,)) if self.fault == "phantom-stage" else (est, used)
 
 
-@pytest.mark.parametrize("fault, message", [
-    ("short-weights", r"observe\(\) at stage 1 must return float64 \[4000\] importance log-weights"),
-    ("endless", r"next_stage\(\) still plans batches after 5 stages"),
-    ("phantom-stage", r"result\(\) says it uses stages \[7\], which were never drawn"),
-    ("unseeded", r"two runs disagree"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "fault, message",
+    [
+        ("short-weights", r"observe\(\) at stage 1 must return float64 \[4000\] importance log-weights"),
+        ("endless", r"next_stage\(\) still plans batches after 5 stages"),
+        ("phantom-stage", r"result\(\) says it uses stages \[7\], which were never drawn"),
+        ("unseeded", r"two runs disagree"),
+    ],
+)
 def test_broken_estimators_fail_with_the_rule_they_break(fault, message):
     with pytest.raises(CheckError, match="^check_estimator: " + message):
         check_estimator(lambda pb: Wrap(pb, fault), TOY, max_stages=5)
@@ -163,7 +171,13 @@ def test_every_method_passes_the_estimator_check_on_the_toy(method):
     from pemviz.settings import METHODS
 
     assert set(METHODS) == {"mc", "naive50", "mixed50", "adaptive", "ams", "tilt"}  # a new method joins this test
-    cfg = dataclasses.replace(ExperimentConfig(method=method, seed=3), n_stages=2, n_per_stage=10_000, n_final=2000,
-                              ce_epochs=50, pretrain_epochs=50)  # fmt: skip
+    cfg = dataclasses.replace(
+        ExperimentConfig(method=method, seed=3),
+        n_stages=2,
+        n_per_stage=10_000,
+        n_final=2000,
+        ce_epochs=50,
+        pretrain_epochs=50,
+    )
     est = check_estimator(lambda pb: build_estimator(cfg, pb), TOY, max_relative_error=1.0)
     assert est.n_failures > 0

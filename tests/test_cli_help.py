@@ -49,8 +49,9 @@ def test_run_help_gives_the_engines_real_chunks() -> None:
     from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE
 
     run = " ".join(dict(all_parsers())["pemviz run"].format_help().split())
-    assert SHOWN_DEFAULTS["chunk_rollouts"] == (f"{DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} "
-                                                "rollouts stream")
+    assert SHOWN_DEFAULTS["chunk_rollouts"] == (
+        f"{DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} " "rollouts stream"
+    )
     assert f"(default {DEFAULT_CHUNK_SIZE}, and only stages above {STREAM_ABOVE} rollouts stream)" in run
 
 
@@ -63,7 +64,12 @@ def test_every_command_that_takes_a_preset_accepts_quick() -> None:
     quick = config_from_args(parser.parse_args(["run", "--preset", "quick"]))
     # the quick preset as its documentation gives it (not read back from PRESETS), none of it the default's
     assert (quick.n_stages, quick.ce_epochs, quick.pretrain_rollouts, quick.pretrain_epochs, quick.learning_rate) == (
-        8, 200, 50, 200, 2e-2)
+        8,
+        200,
+        50,
+        200,
+        2e-2,
+    )
     assert (quick.smoothing, quick.n_per_stage) == (0.1, 100)  # what it leaves: the default sampler's
     overridden = config_from_args(parser.parse_args(["run", "--preset", "quick", "--k", "3"]))
     assert (overridden.n_stages, overridden.ce_epochs) == (3, 200)  # a flag given overrides the preset, only there
@@ -73,8 +79,13 @@ def test_every_command_that_takes_a_preset_accepts_quick() -> None:
         assert "quick" in " ".join(dict(all_parsers())[name].format_help().split()), name
 
 
-HEAVY = ("torch", "pemviz.engine.experiment", "pemviz.estimators.base", "pemviz.core.problems",
-         "pemviz.scenarios.problems")  # fmt: skip
+HEAVY = (
+    "torch",
+    "pemviz.engine.experiment",
+    "pemviz.estimators.base",
+    "pemviz.core.problems",
+    "pemviz.scenarios.problems",
+)
 """What a help page must not load (the estimators' package itself is light: its registry of methods, which a config's
 checks read)."""
 
@@ -84,12 +95,15 @@ def modules_loaded_by(argv: list[str], heavy: tuple[str, ...] = HEAVY, cwd: str 
     import subprocess
     import sys
 
-    code = ("import contextlib, io, sys\nfrom pemviz.cli import main\n"
-            "with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):\n"
-            f"    try:\n        main({argv!r})\n    except SystemExit:\n        pass\n"
-            f"print(' '.join(m for m in {heavy!r} if m in sys.modules))")  # fmt: skip
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True,
-                          cwd=cwd)  # fmt: skip
+    code = (
+        "import contextlib, io, sys\nfrom pemviz.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):\n"
+        f"    try:\n        main({argv!r})\n    except SystemExit:\n        pass\n"
+        f"print(' '.join(m for m in {heavy!r} if m in sys.modules))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True, cwd=cwd
+    )
     return set(proc.stdout.split())
 
 
@@ -101,8 +115,9 @@ def test_help_imports_no_torch_and_no_engine(argv) -> None:
 def test_a_braking_run_imports_no_scipy_stats(tmp_path) -> None:
     """scipy.stats takes ~0.5 s to import: a braking run (no measurement errors) must not pay it, while a run does
     load the engine (so the check sees a real run)."""
-    loaded = modules_loaded_by(["run", "--preset", "quick", "--no-record"], ("pemviz.engine.experiment", "scipy.stats"),
-                               cwd=str(tmp_path))  # fmt: skip
+    loaded = modules_loaded_by(
+        ["run", "--preset", "quick", "--no-record"], ("pemviz.engine.experiment", "scipy.stats"), cwd=str(tmp_path)
+    )
     assert loaded == {"pemviz.engine.experiment"}
 
 
@@ -128,16 +143,19 @@ SHIPPED_PEM_ARGS = {
 
 
 @pytest.mark.parametrize("command", list(SHIPPED_PEM_ARGS))
-def test_every_command_refuses_an_unknown_pem_with_the_same_message_naming_the_shipped_ones(command, tmp_path,
-                                                                                            monkeypatch, capsys):
+def test_every_command_refuses_an_unknown_pem_with_the_same_message_naming_the_shipped_ones(
+    command, tmp_path, monkeypatch, capsys
+):
     from pemviz.cli import main
     from pemviz.pem.store import assets_dir
 
     monkeypatch.chdir(tmp_path)  # nothing may be written here
     assert main([*SHIPPED_PEM_ARGS[command], "--pem", "no-such-pem"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == (f"pemviz {command}: error: --pem no-such-pem: neither a PEM file nor one of the shipped PEMs "
-                   f"(gbt, ml-nn, in {assets_dir()})"), err
+    assert err == (
+        f"pemviz {command}: error: --pem no-such-pem: neither a PEM file nor one of the shipped PEMs "
+        f"(gbt, ml-nn, in {assets_dir()})"
+    ), err
     assert list(tmp_path.iterdir()) == []
 
 

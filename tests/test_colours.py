@@ -29,7 +29,11 @@ def test_no_colour_is_written_out_outside_the_palette():
             continue
         for k, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
             code = line.split("#", 1)[0] if not re.search(r"#[0-9a-fA-F]{6}\b", line) else line
-            if (COLOUR_LITERAL.search(code) and "linspace" not in code and "transpose" not in code
-                    and "range(" not in code):
+            if (
+                COLOUR_LITERAL.search(code)
+                and "linspace" not in code
+                and "transpose" not in code
+                and "range(" not in code
+            ):
                 found.append(f"{path.relative_to(REPO)}:{k}: {line.strip()}")
     assert not found, "colours outside pemviz/sinks/colours.py:\n" + "\n".join(found)

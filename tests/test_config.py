@@ -42,8 +42,14 @@ def test_invalid_setting_is_rejected_with_its_name_value_and_range(field, value,
 def test_defaults_keep_the_papers_stages_with_a_larger_final_batch_and_count_2100_simulations():
     c = ExperimentConfig()
     assert (c.n_stages, c.n_per_stage, c.n_final, c.quantile_level, c.smoothing, c.metric, c.seed) == (
-        10, 100, 1000, 0.95, 0.1, "classic", 0,
-    )  # fmt: skip
+        10,
+        100,
+        1000,
+        0.95,
+        0.1,
+        "classic",
+        0,
+    )
     assert c.n_simulations == 100 + 10 * 100 + 1000
     assert ExperimentConfig(**PRESETS["paper"]).n_simulations == 100 + 10 * 100 + 100  # the paper's 1,200
     assert ExperimentConfig(method="mc", n_per_stage=10000).n_simulations == 10000
@@ -54,8 +60,11 @@ def test_default_is_the_state_ce_sampler_and_paper_turns_every_improvement_off()
     assert (c.proposal_inputs, c.proposal_window, c.weights_until_failure, c.defensive) == ("state", True, True, 0.2)
     p = ExperimentConfig(**PRESETS["paper"])
     assert (p.proposal_inputs, p.proposal_window, p.weights_until_failure, p.smoothing_at_failure) == (
-        "gap", False, False, None,
-    )  # fmt: skip
+        "gap",
+        False,
+        False,
+        None,
+    )
     assert (p.elite_ties, p.pretrain_cap, p.defensive) == ("all", None, 0.0)
 
 
@@ -66,8 +75,9 @@ def test_authors_code_preset_is_the_paper_with_the_authors_training():
     assert c.n_simulations == 100 + 10 * 100
 
 
-@pytest.mark.parametrize("field, value",
-                         [("fit", "sgd"), ("fit_max_steps", 0), ("fit_rows", 0), ("fit_tolerance", 0.0)])
+@pytest.mark.parametrize(
+    "field, value", [("fit", "sgd"), ("fit_max_steps", 0), ("fit_rows", 0), ("fit_tolerance", 0.0)]
+)
 def test_fitting_settings_are_validated(field, value):
     with pytest.raises(ConfigError, match=field):
         ExperimentConfig(**{field: value})
@@ -95,8 +105,9 @@ PAPER_RANGES = {
 
 def inside(name: str, x: float) -> bool:
     lo, hi, lo_open, hi_open, whole = PAPER_RANGES[name]
-    return ((not whole or float(x).is_integer()) and (x > lo if lo_open else x >= lo)
-            and (x < hi if hi_open else x <= hi))
+    return (
+        (not whole or float(x).is_integer()) and (x > lo if lo_open else x >= lo) and (x < hi if hi_open else x <= hi)
+    )
 
 
 def cli_error(argv: list[str]) -> str:
@@ -138,8 +149,11 @@ def test_alpha_means_the_same_in_the_docstring_the_flag_and_the_panel():
     from pemviz.cli import build_parser
 
     meaning = "the power on the importance weights in the CE loss"  # the paper's eq. 10 (not the update's weight)
-    run = next(a for a in build_parser("run", full=False)._subparsers._group_actions[0].choices["run"]._actions
-               if "--alpha" in a.option_strings)
+    run = next(
+        a
+        for a in build_parser("run", full=False)._subparsers._group_actions[0].choices["run"]._actions
+        if "--alpha" in a.option_strings
+    )
     assert FIELDS_BY_KEY["smoothing"].hint == f"smoothing alpha, a number in (0, 1]: {meaning}"
     assert run.help == f"{FIELDS_BY_KEY['smoothing'].hint} (default 0.1)"
     assert f"smoothing: alpha in (0, 1]: {meaning}." in " ".join(ExperimentConfig.__doc__.split())
@@ -200,7 +214,9 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
         read -= {"has_final_batch", "n_simulations"}
         assert cls.SETTINGS, owner  # an estimator that owns nothing would pass the two checks below vacuously
         assert read <= set(cls.SETTINGS) | set(settings_of(RUN)), (
-            owner, read - set(cls.SETTINGS) - set(settings_of(RUN)))
+            owner,
+            read - set(cls.SETTINGS) - set(settings_of(RUN)),
+        )
         assert set(cls.SETTINGS) <= read, (owner, set(cls.SETTINGS) - read)  # no setting claimed and never read
     assert not set(settings_of("adaptive")) & set(settings_of("ams"))
     # every setting is read by the run or by one of the two estimators checked above: an owner misspelt in SETTINGS
@@ -223,5 +239,8 @@ def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with()
     assert ExperimentConfig(**ce) == config
     assert "seed" not in ce and "ams_killed" not in ce  # run-level, and another estimator's
     cfg = ExperimentConfig(method="ams", n_per_stage=40, ams_killed=7)
-    assert AdaptiveMultilevelSplitting(cfg, problem).get_params() == {"ams_killed": 7, "ams_max_iterations": 10_000,
-                                                                      "ams_score": "robustness"}
+    assert AdaptiveMultilevelSplitting(cfg, problem).get_params() == {
+        "ams_killed": 7,
+        "ams_max_iterations": 10_000,
+        "ams_score": "robustness",
+    }

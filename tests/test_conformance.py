@@ -57,9 +57,11 @@ def test_the_registry_holds_the_run_scenarios_and_the_toys_and_refuses_a_second_
 
 
 def test_listing_the_scenarios_loads_no_problem_pem_or_torch():
-    code = ("import sys; from pemviz.scenarios import registered; print(','.join(registered())); "
-            "print([m for m in ('torch', 'pemviz.core.problems', 'pemviz.scenarios.problems', 'pemviz.pem') "
-            "if m in sys.modules])")  # fmt: skip
+    code = (
+        "import sys; from pemviz.scenarios import registered; print(','.join(registered())); "
+        "print([m for m in ('torch', 'pemviz.core.problems', 'pemviz.scenarios.problems', 'pemviz.pem') "
+        "if m in sys.modules])"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
     assert out[0].split(",")[:5] == ["braking", "cut-in", "cut-in-rare", "toy", "crowd"] and out[1] == "[]"
 
@@ -97,8 +99,9 @@ def test_the_user_guide_s_kit_examples_run_as_written(capsys):
         if "short-toy" in registered():
             unregister("short-toy")
     out = capsys.readouterr().out.splitlines()
-    assert out[0] == ("scenario braking: 7 checks passed (schema, problem, determinism, twin, drawing, rollout-file, "
-                      "recording)")
+    assert out[0] == (
+        "scenario braking: 7 checks passed (schema, problem, determinism, twin, drawing, rollout-file, " "recording)"
+    )
     assert out[1] == "estimator adaptive: 5 checks passed (interface, unbiased, verdicts, rollout-file, recording)"
     assert out[2].startswith("scenario short-toy: 6 checks passed") and len(out) == 4
     assert out[3] == "  skipped drawing: the problem has no drawing object: only its signals are drawn"
@@ -171,18 +174,33 @@ def drawn_toy(config, params):
     return dataclasses.replace(builtin.toy(config, params), drawing=AlwaysFailed())
 
 
-@pytest.mark.parametrize("changes, message", [
-    (dict(params=Unchecked, factory=unchecked_toy, simulator=None),
-     r"schema: no far value of any parameter \(speed_mps: -1e12, 1e12\) is refused"),
-    (dict(factory=failing_factory), r"problem: the factory raised RuntimeError: no road"),
-    (dict(factory=noisy_toy), r"determinism: seed 0, rollouts drawn by the target \(PEM\): the same seed again gives "
-                              r"other rollouts: observations\[0, 0, 0\] \(rollout 0, step 0\)"),
-    (dict(simulator=LateToy), r"twin: rollouts drawn by the target \(PEM\): the single simulator, then the batched "
-                              r"twin: observations\[\d+, 51, 0\] \(rollout \d+, step 51\): 49\.0 then 50\.0"),
-    (dict(factory=drawn_toy, drawing=always_failed),
-     r"drawing: rollout 0 drawn by the target \(PEM\): outcome\(batch, 0\) is Told\(failed=True.*failure event says "
-     r"failed=False"),
-], ids=["schema", "problem", "determinism", "twin", "drawing"])  # fmt: skip
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (
+            dict(params=Unchecked, factory=unchecked_toy, simulator=None),
+            r"schema: no far value of any parameter \(speed_mps: -1e12, 1e12\) is refused",
+        ),
+        (dict(factory=failing_factory), r"problem: the factory raised RuntimeError: no road"),
+        (
+            dict(factory=noisy_toy),
+            r"determinism: seed 0, rollouts drawn by the target \(PEM\): the same seed again gives "
+            r"other rollouts: observations\[0, 0, 0\] \(rollout 0, step 0\)",
+        ),
+        (
+            dict(simulator=LateToy),
+            r"twin: rollouts drawn by the target \(PEM\): the single simulator, then the batched "
+            r"twin: observations\[\d+, 51, 0\] \(rollout \d+, step 51\): 49\.0 then 50\.0",
+        ),
+        (
+            dict(factory=drawn_toy, drawing=always_failed),
+            r"drawing: rollout 0 drawn by the target \(PEM\): outcome\(batch, 0\) is "
+            r"Told\(failed=True.*failure event says "
+            r"failed=False",
+        ),
+    ],
+    ids=["schema", "problem", "determinism", "twin", "drawing"],
+)
 def test_each_scenario_check_fails_on_a_broken_scenario(changes, message):
     broken = dataclasses.replace(TOY, name="broken-toy", **changes)
     with pytest.raises(ConformanceError, match=r"^check_scenario\('broken-toy'\): " + message):
@@ -213,10 +231,14 @@ def recording_fails(monkeypatch):
     monkeypatch.setattr(RerunSink, "on_final_estimate", broken)
 
 
-@pytest.mark.parametrize("break_it, message", [
-    (reestimated_off, r"rollout-file: re-estimated from toy-adaptive\.parquet: log mu_hat = "),
-    (recording_fails, r"recording: the recording sink raised OSError at FinalEstimate: disk full"),
-], ids=["rollout-file", "recording"])  # fmt: skip
+@pytest.mark.parametrize(
+    "break_it, message",
+    [
+        (reestimated_off, r"rollout-file: re-estimated from toy-adaptive\.parquet: log mu_hat = "),
+        (recording_fails, r"recording: the recording sink raised OSError at FinalEstimate: disk full"),
+    ],
+    ids=["rollout-file", "recording"],
+)
 def test_each_file_check_of_a_scenario_fails_on_a_broken_file(break_it, message, monkeypatch):
     break_it(monkeypatch)
     with pytest.raises(ConformanceError, match=r"^check_scenario\('toy'\): " + message):
@@ -250,15 +272,25 @@ def always_reliable(monkeypatch):
     monkeypatch.setattr(FixedSampler, "result", result)
 
 
-@pytest.mark.parametrize("break_it, message", [
-    (short_weights, r"interface: check_estimator: observe\(\) at stage 1 must return float64 \[2000\]"),
-    (doubled, r"unbiased: the mean of 8 estimates \(seeds 0\.\.7\) is 2 times the exact 0\.001 "
-              r"\(\|log mean - log p\| = 0\.693 nats\); allowed 1 \+- 0\.2"),
-    (always_reliable, r"verdicts: an estimate with 0 failures of 2000 and log mu_hat = -inf is called reliable"),
-    (reestimated_off, r"rollout-file: re-estimated from mc-seed0\.parquet: log mu_hat = -6\.9\d+ \(2 failures of "
-                      r"2000\); the run's own: -6\.9\d+ \(2 of 2000\); allowed \|mu / mu_run - 1\| <= 1e-09"),
-    (recording_fails, r"recording: the recording sink raised OSError at FinalEstimate: disk full"),
-], ids=["interface", "unbiased", "verdicts", "rollout-file", "recording"])  # fmt: skip
+@pytest.mark.parametrize(
+    "break_it, message",
+    [
+        (short_weights, r"interface: check_estimator: observe\(\) at stage 1 must return float64 \[2000\]"),
+        (
+            doubled,
+            r"unbiased: the mean of 8 estimates \(seeds 0\.\.7\) is 2 times the exact 0\.001 "
+            r"\(\|log mean - log p\| = 0\.693 nats\); allowed 1 \+- 0\.2",
+        ),
+        (always_reliable, r"verdicts: an estimate with 0 failures of 2000 and log mu_hat = -inf is called reliable"),
+        (
+            reestimated_off,
+            r"rollout-file: re-estimated from mc-seed0\.parquet: log mu_hat = -6\.9\d+ \(2 failures of "
+            r"2000\); the run's own: -6\.9\d+ \(2 of 2000\); allowed \|mu / mu_run - 1\| <= 1e-09",
+        ),
+        (recording_fails, r"recording: the recording sink raised OSError at FinalEstimate: disk full"),
+    ],
+    ids=["interface", "unbiased", "verdicts", "rollout-file", "recording"],
+)
 def test_each_estimator_check_fails_on_a_broken_estimator(break_it, message, monkeypatch):
     break_it(monkeypatch)
     with pytest.raises(ConformanceError, match=r"^check_estimator\('mc'\): " + message):

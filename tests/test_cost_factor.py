@@ -27,8 +27,15 @@ def test_the_cut_in_scenarios_declare_their_factor_and_the_cost_is_the_one_measu
 
 
 def test_a_registered_scenario_s_factor_scales_its_cost_and_leaves_with_it():
-    register(Scenario("costly-toy", "a toy whose steps cost three braking ones", "pemviz.scenarios.toy:ToyParams",
-                      "pemviz.scenarios.builtin:toy", cost_factor=3.0))  # fmt: skip
+    register(
+        Scenario(
+            "costly-toy",
+            "a toy whose steps cost three braking ones",
+            "pemviz.scenarios.toy:ToyParams",
+            "pemviz.scenarios.builtin:toy",
+            cost_factor=3.0,
+        )
+    )
     try:
         assert SCENARIO_COST_FACTORS["costly-toy"] == 3.0
         per_rollout = COST.rollout_step_s["batched"] * 1000

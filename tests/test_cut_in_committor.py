@@ -113,12 +113,27 @@ def test_a_chain_with_bins_of_g_takes_each_bins_effect_and_the_nearest_where_a_b
         return np.r_[d, np.zeros(grid.nbranch - 1)]
 
     nexts0 = np.zeros(grid.nbranch, dtype=np.int64)
-    binned = committor.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8},
-                              {t: {1: shift(-0.6), 0: shift(-2.0)} for t in range(2)},
-                              {t: {1: nexts0, 0: nexts0} for t in range(2)}, 2, 0.01, 6.0,
-                              bin_width=1.0)  # fmt: skip
-    one = committor.LevelChain(grid, (0, 2), {0: 0.9, 1: 0.8}, {t: {0: shift(-0.6)} for t in range(2)},
-                           {t: {0: nexts0} for t in range(2)}, 2, 0.01, 6.0)  # fmt: skip
+    binned = committor.LevelChain(
+        grid,
+        (0, 2),
+        {0: 0.9, 1: 0.8},
+        {t: {1: shift(-0.6), 0: shift(-2.0)} for t in range(2)},
+        {t: {1: nexts0, 0: nexts0} for t in range(2)},
+        2,
+        0.01,
+        6.0,
+        bin_width=1.0,
+    )
+    one = committor.LevelChain(
+        grid,
+        (0, 2),
+        {0: 0.9, 1: 0.8},
+        {t: {0: shift(-0.6)} for t in range(2)},
+        {t: {0: nexts0} for t in range(2)},
+        2,
+        0.01,
+        6.0,
+    )
     assert binned.nbins == 7 and binned.nearest_cells([1, 0], 2).tolist() == [[0, 1, 1, 1, 1, 1, 1]] * 2
     assert np.exp(binned.log_u(0, np.array([1.5, 1.5]), np.array([0, 1]))) == pytest.approx([0.02, 0.02], abs=1e-12)
     assert np.exp(one.log_u(0, np.array(1.5))) == pytest.approx(0.0, abs=1e-12)

@@ -41,8 +41,9 @@ def test_the_detector_is_the_pems_on_the_salient_columns_and_blind_to_unseen_car
     assert np.all(logit[~seen] == -np.inf)
     errors = np.random.default_rng(0).standard_normal((seen.sum(), 2)) * 0.3
     features = noise.features(rows[seen][:, SALIENT_COLUMNS])
-    np.testing.assert_allclose(problem.target.noise_log_prob(rows[seen], errors), noise.log_prob(features, errors),
-                               rtol=1e-9, atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(
+        problem.target.noise_log_prob(rows[seen], errors), noise.log_prob(features, errors), rtol=1e-9, atol=1e-12
+    )
 
 
 def test_under_the_pems_an_unseen_car_is_never_detected_and_the_weights_are_one(problem, batch):
@@ -106,8 +107,20 @@ def test_save_rollouts_refuses_splitting_on_the_cut_in_before_it_runs(tmp_path):
 
 
 def test_a_cut_in_run_says_which_errors_decided_its_most_likely_failure():
-    proc = run_cli("run", "--scenario", "cut-in", "--method", "adaptive", "--k", "2", "--n", "100", "--n-final", "200",
-                   "--no-record")
+    proc = run_cli(
+        "run",
+        "--scenario",
+        "cut-in",
+        "--method",
+        "adaptive",
+        "--k",
+        "2",
+        "--n",
+        "100",
+        "--n-final",
+        "200",
+        "--no-record",
+    )
     assert proc.returncode == 0, proc.stderr
     why = [line for line in proc.stdout.splitlines() if line.startswith("why: the most likely failure")]
     assert len(why) == 1 and "before the failure at step" in why[0]
@@ -145,15 +158,20 @@ def test_the_heads_evaluated_once_per_step_give_the_per_call_rollouts_bit_for_bi
     fields = ("detected", "noise", "observations", "object_rows", "log_p", "log_q")
     target = problem.target
     plain = PerCall(target)
-    for sampler, plain_sampler in ((target, plain), (ArrayRQMC(target), ArrayRQMC(PerCall(target))),
-                                   (ConstantDetector(0.7), ConstantDetector(0.7))):  # fmt: skip
+    for sampler, plain_sampler in (
+        (target, plain),
+        (ArrayRQMC(target), ArrayRQMC(PerCall(target))),
+        (ConstantDetector(0.7), ConstantDetector(0.7)),
+    ):
         for chunk in (150, 64):
             asked.clear()
-            fast = RolloutBatch.concatenate(list(problem.stream(150, sampler, target, np.random.default_rng(11),
-                                                               chunk_size=chunk)))  # fmt: skip
+            fast = RolloutBatch.concatenate(
+                list(problem.stream(150, sampler, target, np.random.default_rng(11), chunk_size=chunk))
+            )
             once = len(asked)
-            slow = RolloutBatch.concatenate(list(problem.stream(150, plain_sampler, plain, np.random.default_rng(11),
-                                                               chunk_size=chunk)))  # fmt: skip
+            slow = RolloutBatch.concatenate(
+                list(problem.stream(150, plain_sampler, plain, np.random.default_rng(11), chunk_size=chunk))
+            )
             for f in fields:
                 assert np.array_equal(getattr(fast, f), getattr(slow, f)), (sampler, chunk, f)
             chunks = -(-150 // chunk)

@@ -20,19 +20,28 @@ needs_mkdocs = pytest.mark.skipif(
 @needs_mkdocs
 def test_user_guide_builds_strict_with_every_command_in_the_cli_reference(tmp_path) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), "NO_MKDOCS_2_WARNING": "1"}
-    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=600)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     cli = (tmp_path / "site" / "cli" / "index.html").read_text()
     for command in ("run", "data fetch", "pem train", "pem eval", "serve", "estimate", "validate", "tables"):
         assert f"pemviz {command}" in cli, command
     assert "--grpc-port" in cli and "&lt;!-- pemviz-cli --&gt;" not in cli and "<!-- pemviz-cli -->" not in cli
-    assert ("Any Python simulator plugs into the sampler"
-            in (tmp_path / "site" / "own-simulator" / "index.html").read_text())
+    assert (
+        "Any Python simulator plugs into the sampler"
+        in (tmp_path / "site" / "own-simulator" / "index.html").read_text()
+    )
 
 
-NUMBER_WORDS = {w: i for i, w in enumerate(
-    "zero one two three four five six seven eight nine ten eleven twelve".split())}
+NUMBER_WORDS = {
+    w: i for i, w in enumerate("zero one two three four five six seven eight nine ten eleven twelve".split())
+}
 COUNTED = r"(presets?|methods?|scenarios?|scenes?|metrics?|commands?|tests?|skips?|skipped)"
 
 
@@ -61,9 +70,14 @@ def test_every_count_in_the_docs_is_the_code_s_or_absent() -> None:
     from pemviz.presets import PRESETS
     from pemviz.scenarios.registry import registered
 
-    truth = {"preset": len(PRESETS), "method": len(SETTINGS["method"].choices),
-             "scenario": len(registered()), "scene": len(registered()),
-             "metric": len(SETTINGS["metric"].choices), "command": len(COMMANDS)}  # fmt: skip
+    truth = {
+        "preset": len(PRESETS),
+        "method": len(SETTINGS["method"].choices),
+        "scenario": len(registered()),
+        "scene": len(registered()),
+        "metric": len(SETTINGS["metric"].choices),
+        "command": len(COMMANDS),
+    }
     wrong = []
     for name, n, text in counts_in_docs():
         noun = text.split()[-1].lower().rstrip("s").replace("skipped", "skip")

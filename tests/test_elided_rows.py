@@ -30,8 +30,9 @@ def test_a_stream_without_rows_rebuilds_them_bit_for_bit():
         some = np.array([0, 5, b.n - 1])
         np.testing.assert_array_equal(b.object_rows_of(some), a.objects[some])  # those three only
         assert b.rows_elided  # a selection's replay leaves the chunk without rows
-        np.testing.assert_array_equal(b.select(b.detected[:, 40:, 1].any(axis=1)).object_rows,
-                                      a.objects[a.detected[:, 40:, 1].any(axis=1)])  # fmt: skip
+        np.testing.assert_array_equal(
+            b.select(b.detected[:, 40:, 1].any(axis=1)).object_rows, a.objects[a.detected[:, 40:, 1].any(axis=1)]
+        )
         np.testing.assert_array_equal(b.objects, a.objects)  # read: rebuilt whole, then held
         assert not b.rows_elided and b.replay is None
     assert cut_in_chunks(False)[2].object_rows_of(np.zeros(44, bool)).shape == (0, *kept[2].objects.shape[1:])

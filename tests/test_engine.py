@@ -33,26 +33,86 @@ SMALL = dict(n_stages=3, n_per_stage=50, n_final=100, ce_epochs=100, pretrain_ep
 # stages used, simulations, (stage, gamma, elites) per stage). Any change to the rollouts' stream, the weights, the
 # elites, the fits or the pooling moves these numbers.
 PINNED = {
-    "braking/state-ce/0": (-33.6501628042221, 80, 150, (3, 4), 350,
-        ((0, nan, 0), (1, 1.7331782684715016, 3), (2, 0.0, 12), (3, 0.0, 15), (4, nan, 65))),
-    "braking/state-ce/1": (-35.27676289960758, 83, 150, (3, 4), 350,
-        ((0, nan, 0), (1, 2.168889557137515, 3), (2, 0.0, 17), (3, 0.0, 29), (4, nan, 54))),
-    "braking/paper/0": (-inf, 0, 100, (4,), 350,
-        ((0, nan, 0), (1, 3.3448187147363484, 3), (2, 3.3357005795923413, 3), (3, 3.170121544617622, 3), (4, nan, 0))),
-    "braking/paper/1": (-inf, 0, 100, (4,), 350,
-        ((0, nan, 0), (1, 3.605276073653105, 3), (2, 3.5078852094923363, 3), (3, 3.082375304466666, 3), (4, nan, 0))),
-    "braking/authors-code/0": (-inf, 0, 50, (3,), 250,
-        ((0, nan, 0), (1, 3.3448187147363484, 3), (2, 3.3357005795923413, 3), (3, 3.511415532719294, 3))),
-    "braking/authors-code/1": (-inf, 0, 50, (3,), 250,
-        ((0, nan, 0), (1, 3.605276073653105, 3), (2, 3.5078852094923363, 3), (3, 3.097067091344499, 3))),
-    "braking/quick/0": (-36.162255820302505, 149, 150, (3, 4), 300,
-        ((0, nan, 0), (1, 1.390010839197359, 3), (2, 0.0, 10), (3, 0.0, 50), (4, nan, 99))),
-    "braking/quick/1": (-36.80117423790563, 110, 150, (3, 4), 300,
-        ((0, nan, 0), (1, 1.1756267103298654, 3), (2, 0.0, 8), (3, 0.0, 44), (4, nan, 66))),
-    "toy/state-ce/0": (-48.33957121992181, 11, 100, (4,), 350,
-        ((0, nan, 0), (1, 19.0, 3), (2, 13.0, 3), (3, 4.0, 3), (4, nan, 11))),
-    "toy/state-ce/1": (-48.21878174082067, 12, 100, (4,), 350,
-        ((0, nan, 0), (1, 18.0, 3), (2, 13.0, 3), (3, 1.0, 3), (4, nan, 12))),
+    "braking/state-ce/0": (
+        -33.6501628042221,
+        80,
+        150,
+        (3, 4),
+        350,
+        ((0, nan, 0), (1, 1.7331782684715016, 3), (2, 0.0, 12), (3, 0.0, 15), (4, nan, 65)),
+    ),
+    "braking/state-ce/1": (
+        -35.27676289960758,
+        83,
+        150,
+        (3, 4),
+        350,
+        ((0, nan, 0), (1, 2.168889557137515, 3), (2, 0.0, 17), (3, 0.0, 29), (4, nan, 54)),
+    ),
+    "braking/paper/0": (
+        -inf,
+        0,
+        100,
+        (4,),
+        350,
+        ((0, nan, 0), (1, 3.3448187147363484, 3), (2, 3.3357005795923413, 3), (3, 3.170121544617622, 3), (4, nan, 0)),
+    ),
+    "braking/paper/1": (
+        -inf,
+        0,
+        100,
+        (4,),
+        350,
+        ((0, nan, 0), (1, 3.605276073653105, 3), (2, 3.5078852094923363, 3), (3, 3.082375304466666, 3), (4, nan, 0)),
+    ),
+    "braking/authors-code/0": (
+        -inf,
+        0,
+        50,
+        (3,),
+        250,
+        ((0, nan, 0), (1, 3.3448187147363484, 3), (2, 3.3357005795923413, 3), (3, 3.511415532719294, 3)),
+    ),
+    "braking/authors-code/1": (
+        -inf,
+        0,
+        50,
+        (3,),
+        250,
+        ((0, nan, 0), (1, 3.605276073653105, 3), (2, 3.5078852094923363, 3), (3, 3.097067091344499, 3)),
+    ),
+    "braking/quick/0": (
+        -36.162255820302505,
+        149,
+        150,
+        (3, 4),
+        300,
+        ((0, nan, 0), (1, 1.390010839197359, 3), (2, 0.0, 10), (3, 0.0, 50), (4, nan, 99)),
+    ),
+    "braking/quick/1": (
+        -36.80117423790563,
+        110,
+        150,
+        (3, 4),
+        300,
+        ((0, nan, 0), (1, 1.1756267103298654, 3), (2, 0.0, 8), (3, 0.0, 44), (4, nan, 66)),
+    ),
+    "toy/state-ce/0": (
+        -48.33957121992181,
+        11,
+        100,
+        (4,),
+        350,
+        ((0, nan, 0), (1, 19.0, 3), (2, 13.0, 3), (3, 4.0, 3), (4, nan, 11)),
+    ),
+    "toy/state-ce/1": (
+        -48.21878174082067,
+        12,
+        100,
+        (4,),
+        350,
+        ((0, nan, 0), (1, 18.0, 3), (2, 13.0, 3), (3, 1.0, 3), (4, nan, 12)),
+    ),
     "toy/paper/0": (-inf, 0, 100, (4,), 350, ((0, nan, 0), (1, 19.0, 6), (2, 19.0, 4), (3, 20.0, 50), (4, nan, 0))),
     "braking/mc/0": (-inf, 0, 500, (1,), 500, ((1, nan, 0),)),
     "braking/mc-paper/0": (-inf, 0, 500, (1,), 500, ((1, nan, 0),)),
@@ -61,29 +121,95 @@ PINNED = {
     "braking/mixed50/0": (-33.73266933500028, 367, 500, (1,), 500, ((1, nan, 367),)),
     "braking/mixed50-paper/0": (-78.53820890572328, 367, 500, (1,), 500, ((1, nan, 367),)),
     "toy-1e-3/mc/0": (-7.600902459542082, 1, 2000, (1,), 2000, ((1, nan, 1),)),
-    "braking/state-ce-streamed/0": (-33.86618066893059, 25366, 100001, (2,), 100151,
-        ((0, nan, 0), (1, 1.7331782684715016, 3), (2, nan, 25366))),
-    "braking/rollout-mixture/0": (-36.743561993176925, 47, 100, (4,), 350,
-        ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47))),
-    "toy/rollout-mixture/0": (-48.40860816702972, 47, 100, (4,), 350,
-        ((0, nan, 0), (1, 19.0, 3), (2, 8.0, 3), (3, 0.0, 19), (4, nan, 47))),
-    "braking/fit-mixture/0": (-36.743561993176925, 47, 100, (4,), 350,
-        ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47))),
-    "braking/fit-mixture/1": (-34.94242219824203, 83, 150, (3, 4), 350,
-        ((0, nan, 0), (1, 2.1010082873038485, 3), (2, 0.0, 6), (3, 0.0, 36), (4, nan, 53))),
-    "braking/renyi-fit/0": (-36.743561993176925, 47, 100, (4,), 350,
-        ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47))),
-    "braking/renyi-fit/1": (-34.93184210242251, 82, 150, (3, 4), 350,
-        ((0, nan, 0), (1, 2.1010082873038485, 3), (2, 0.0, 6), (3, 0.0, 35), (4, nan, 53))),
-    "braking/array-rqmc/0": (-37.03650871595938, 84, 150, (3, 4), 350,
-        ((0, nan, 0), (1, 2.1145748565087814, 3), (2, 0.0, 4), (3, 0.0, 29), (4, nan, 59))),
-    "braking/array-rqmc/1": (-33.551592741030014, 63, 150, (3, 4), 350,
-        ((0, nan, 0), (1, 2.0341764480288447, 3), (2, 0.0, 3), (3, 0.0, 26), (4, nan, 40))),
-    "braking/window-rqmc/0": (-35.129977522741626, 90, 150, (3, 4), 350,
-        ((0, nan, 0), (1, 1.3649714792495367, 3), (2, 0.0, 19), (3, 0.0, 44), (4, nan, 65))),
-    "braking/window-rqmc/1": (-34.73174201870015, 105, 150, (3, 4), 350,
-        ((0, nan, 0), (1, 1.9607052156063247, 3), (2, 0.0, 6), (3, 0.0, 36), (4, nan, 75))),
-}  # fmt: skip
+    "braking/state-ce-streamed/0": (
+        -33.86618066893059,
+        25366,
+        100001,
+        (2,),
+        100151,
+        ((0, nan, 0), (1, 1.7331782684715016, 3), (2, nan, 25366)),
+    ),
+    "braking/rollout-mixture/0": (
+        -36.743561993176925,
+        47,
+        100,
+        (4,),
+        350,
+        ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47)),
+    ),
+    "toy/rollout-mixture/0": (
+        -48.40860816702972,
+        47,
+        100,
+        (4,),
+        350,
+        ((0, nan, 0), (1, 19.0, 3), (2, 8.0, 3), (3, 0.0, 19), (4, nan, 47)),
+    ),
+    "braking/fit-mixture/0": (
+        -36.743561993176925,
+        47,
+        100,
+        (4,),
+        350,
+        ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47)),
+    ),
+    "braking/fit-mixture/1": (
+        -34.94242219824203,
+        83,
+        150,
+        (3, 4),
+        350,
+        ((0, nan, 0), (1, 2.1010082873038485, 3), (2, 0.0, 6), (3, 0.0, 36), (4, nan, 53)),
+    ),
+    "braking/renyi-fit/0": (
+        -36.743561993176925,
+        47,
+        100,
+        (4,),
+        350,
+        ((0, nan, 0), (1, 2.662242742737181, 3), (2, 0.1618225703611742, 3), (3, 0.0, 25), (4, nan, 47)),
+    ),
+    "braking/renyi-fit/1": (
+        -34.93184210242251,
+        82,
+        150,
+        (3, 4),
+        350,
+        ((0, nan, 0), (1, 2.1010082873038485, 3), (2, 0.0, 6), (3, 0.0, 35), (4, nan, 53)),
+    ),
+    "braking/array-rqmc/0": (
+        -37.03650871595938,
+        84,
+        150,
+        (3, 4),
+        350,
+        ((0, nan, 0), (1, 2.1145748565087814, 3), (2, 0.0, 4), (3, 0.0, 29), (4, nan, 59)),
+    ),
+    "braking/array-rqmc/1": (
+        -33.551592741030014,
+        63,
+        150,
+        (3, 4),
+        350,
+        ((0, nan, 0), (1, 2.0341764480288447, 3), (2, 0.0, 3), (3, 0.0, 26), (4, nan, 40)),
+    ),
+    "braking/window-rqmc/0": (
+        -35.129977522741626,
+        90,
+        150,
+        (3, 4),
+        350,
+        ((0, nan, 0), (1, 1.3649714792495367, 3), (2, 0.0, 19), (3, 0.0, 44), (4, nan, 65)),
+    ),
+    "braking/window-rqmc/1": (
+        -34.73174201870015,
+        105,
+        150,
+        (3, 4),
+        350,
+        ((0, nan, 0), (1, 1.9607052156063247, 3), (2, 0.0, 6), (3, 0.0, 36), (4, nan, 75)),
+    ),
+}
 
 
 def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
@@ -154,14 +280,19 @@ def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
     first = events[0]
     assert isinstance(first, RunStarted) and first.problem.name == "toy-1e-3" and first.problem.signal_names == ("d",)
     assert "toy braking" in first.problem.description and torch.get_num_threads() == threads
-    assert first.problem.drawing is None and first.problem.thresholds.labels() == ("failure below 3 units",
-                                                                                 "braking within 5 units")
+    assert first.problem.drawing is None and first.problem.thresholds.labels() == (
+        "failure below 3 units",
+        "braking within 5 units",
+    )
     assert [(s.stage, s.kind, s.label, s.n_rollouts) for s in first.plan.stages] == [(1, "final", "final batch", 50)]
     assert first.plan.n_simulations == 50 and first.plan.has_final_batch
     view = build_problem("main").view
     assert view.name == "braking" and view.signal_names == ("d", "v", "vl") and "braking" in view.description
-    assert [(s.column, s.unit) for s in view.signals] == [("gap_m", "m"), ("ego_speed_mps", "m/s"),
-                                                          ("lead_speed_mps", "m/s")]
+    assert [(s.column, s.unit) for s in view.signals] == [
+        ("gap_m", "m"),
+        ("ego_speed_mps", "m/s"),
+        ("lead_speed_mps", "m/s"),
+    ]
     assert view.thresholds.labels() == ("crash gap 2 m", "braking distance 10 m") and view.drawing.params.n_steps == 100
 
 
@@ -185,12 +316,14 @@ def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, uni
 
     import pemviz.engine.experiment as engine
 
-    cfg = ExperimentConfig(**{**SMALL, "n_per_stage": 400, "n_final": 600, "pretrain_rollouts": 300, "seed": 2,
-                              "uniforms": uniforms})
+    cfg = ExperimentConfig(
+        **{**SMALL, "n_per_stage": 400, "n_final": 600, "pretrain_rollouts": 300, "seed": 2, "uniforms": uniforms}
+    )
     problem = build_problem(name, cfg.pem)
     whole = Experiment(cfg, problem=problem).run()
     monkeypatch.setattr(engine, "STREAM_ABOVE", 100)
     if problem.stream is None:  # the toy: stream in chunks of 64 from one batch's uniforms
+
         def stream(n, sampler, target, rng):
             batch = problem.simulate(n, sampler, target, rng)
             return (batch.select(np.arange(a, min(a + 64, n))) for a in range(0, n, 64))

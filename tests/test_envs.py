@@ -52,13 +52,17 @@ def episode(env, controller, seed=0):
 
 def test_import_pemviz_registers_the_env_without_importing_the_simulator_or_torch():
     assert gym.spec(ENV_ID).entry_point == "pemviz.envs:BrakingEnv"
-    code = "import sys, pemviz, gymnasium; print(sorted(m for m in ('torch', 'highway_env', 'pemviz.scenarios') " \
-           "if m in sys.modules), 'pemviz/Braking-v0' in gymnasium.registry)"  # fmt: skip
+    code = (
+        "import sys, pemviz, gymnasium; print(sorted(m for m in ('torch', 'highway_env', 'pemviz.scenarios') "
+        "if m in sys.modules), 'pemviz/Braking-v0' in gymnasium.registry)"
+    )
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.stdout.strip() == "[] True", out.stderr
     # nor gymnasium itself until it is imported (every command is that much faster), and in either order
-    code = "import sys, pemviz; print('gymnasium' in sys.modules); import gymnasium; " \
-           "print('pemviz/Braking-v0' in gymnasium.registry)"  # fmt: skip
+    code = (
+        "import sys, pemviz; print('gymnasium' in sys.modules); import gymnasium; "
+        "print('pemviz/Braking-v0' in gymnasium.registry)"
+    )
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.stdout.split() == ["False", "True"], out.stderr
     code = "import gymnasium, pemviz; print('pemviz/Braking-v0' in gymnasium.registry)"
@@ -94,13 +98,15 @@ def test_basic_agent_in_the_env_moves_exactly_as_the_braking_scenario_for_the_sa
 
 
 def test_always_detected_stops_at_the_calibrated_gap_and_never_detected_crashes_once(pem):
-    infos, _, rewards = episode(gym.make(ENV_ID, detector=ScriptedDetector(np.ones(101)), pem=pem),
-                                BasicAgentController())  # fmt: skip
+    infos, _, rewards = episode(
+        gym.make(ENV_ID, detector=ScriptedDetector(np.ones(101)), pem=pem), BasicAgentController()
+    )
     gaps = np.array([i["gap_m"] for i in infos[:100]])
     assert gaps.min() == pytest.approx(5.95, abs=0.15)  # spec section 1: CARLA stops 5.95 m behind
     assert rewards.sum() == 0.0
-    infos, _, rewards = episode(gym.make(ENV_ID, detector=ScriptedDetector(np.zeros(101)), pem=pem),
-                                BasicAgentController())  # fmt: skip
+    infos, _, rewards = episode(
+        gym.make(ENV_ID, detector=ScriptedDetector(np.zeros(101)), pem=pem), BasicAgentController()
+    )
     gaps = np.array([i["gap_m"] for i in infos[:100]])
     first = int(np.argmax(gaps < 2.0))
     assert rewards.sum() == -1.0 and rewards[first - 1] == -1.0  # the step that brought the gap below 2 m

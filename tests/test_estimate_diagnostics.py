@@ -9,7 +9,8 @@ import pytest
 
 from pemviz.core.diagnostics import effective_sample_size, fit_generalized_pareto, pareto_khat
 import pemviz.core.estimate as estimate_module
-from pemviz.core.estimate import CI_LEVEL, KHAT_UNRELIABLE, estimate, relative_error
+from pemviz.core.confidence import CI_LEVEL
+from pemviz.core.estimate import KHAT_UNRELIABLE, estimate, relative_error
 
 
 def _is(log_w: np.ndarray, failed: np.ndarray):
@@ -41,7 +42,7 @@ def test_plain_monte_carlo_interval_is_clopper_pearson():
 
 
 def test_clopper_pearson_bad_counts_are_one_clear_error():
-    from pemviz.core.estimate import clopper_pearson
+    from pemviz.core.confidence import clopper_pearson
 
     for k, n, level in ((-1, 10, 0.95), (11, 10, 0.95), (0, 0, 0.95), (1, 10, 1.0)):
         with pytest.raises(ValueError, match="clopper_pearson: need n >= 1"):
@@ -178,7 +179,7 @@ def test_markov_lower_bound_by_hand_and_its_coverage_under_a_heavy_tail():
     replicates of 10 runs of a lognormal estimator of mean 1 whose sd of logs is 2.5 (heavy: a few runs carry the
     mean), the bound exceeds the true mean 1 in at most 5 % (Markov's inequality makes it conservative: measured in
     none of the 20,000), while a normal interval on the same runs misses the mean in 60 %."""
-    from pemviz.core.estimate import markov_lower_bound
+    from pemviz.core.confidence import markov_lower_bound
 
     assert markov_lower_bound(np.log([20.0])) == pytest.approx(0.0, abs=1e-12)  # log 1
     assert markov_lower_bound(np.log([2.0, 8.0])) == pytest.approx(math.log(math.sqrt(0.05) * 4.0), rel=1e-12)

@@ -38,8 +38,11 @@ def test_weights_until_failure_sum_the_factors_before_the_failure_step_only():
     batch = pb.simulate(100, ConstantDetector(0.3), pb.target, np.random.default_rng(1))
     failed = pb.failed(batch)
     assert failed.any() and (~failed).any()
-    by_hand = np.where(failed, (batch.log_p - batch.log_q)[:, :8].sum(axis=1),
-                       (batch.log_p - batch.log_q)[:, : batch.n_steps - 1].sum(axis=1))  # fmt: skip
+    by_hand = np.where(
+        failed,
+        (batch.log_p - batch.log_q)[:, :8].sum(axis=1),
+        (batch.log_p - batch.log_q)[:, : batch.n_steps - 1].sum(axis=1),
+    )
     np.testing.assert_allclose(log_weight(pb, batch, until_failure=True), by_hand, rtol=1e-12)
     np.testing.assert_allclose(log_weight(pb, batch, until_failure=False), batch.log_weight(), rtol=0)
 
@@ -71,15 +74,28 @@ def test_ce_fit_of_a_proposal_with_one_input_is_the_alpha_weighted_detection_rat
     torch.manual_seed(0)
     q = Proposal()
     epochs, lr = (1500, 5e-2) if fit == "adam" else (60, 1e-3)
-    ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=alpha, epochs=epochs, lr=lr, step_mask=mask, fit=fit,
-              tolerance=1e-15 if fit == "lbfgs" else None)  # fmt: skip
+    ce_update(
+        q,
+        gaps,
+        detected,
+        log_p,
+        log_q,
+        elite,
+        smoothing=alpha,
+        epochs=epochs,
+        lr=lr,
+        step_mask=mask,
+        fit=fit,
+        tolerance=1e-15 if fit == "lbfgs" else None,
+    )
     assert 0.2 < expected < 0.5 and q.curve(np.array([5.0]))[0] == pytest.approx(expected, abs=1e-4)
 
 
 def test_cross_entropy_plans_pretraining_k_stages_and_the_final_batch():
     pb = build_problem("toy-1e-3")
-    cfg = ExperimentConfig(n_stages=2, n_per_stage=30, n_final=40, pretrain_rollouts=20, pretrain_epochs=20,
-                           ce_epochs=20, seed=0)  # fmt: skip
+    cfg = ExperimentConfig(
+        n_stages=2, n_per_stage=30, n_final=40, pretrain_rollouts=20, pretrain_epochs=20, ce_epochs=20, seed=0
+    )
     est = build_estimator(cfg, pb)
     assert isinstance(est, CrossEntropy)
     plans, rng = [], np.random.default_rng(0)
@@ -117,8 +133,9 @@ def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of
     rng = np.random.default_rng(seed)
     n = int(rng.integers(50, 400))
     r = rng.integers(-3, 30, n).astype(float) if seed % 2 else rng.normal(5, 3, n)  # ties, or none
-    batch = RolloutBatch(np.arange(n, dtype=float)[:, None, None], np.zeros((n, 1), bool), np.zeros((n, 1)),
-                         np.zeros((n, 1)), ("gap_m",))  # fmt: skip
+    batch = RolloutBatch(
+        np.arange(n, dtype=float)[:, None, None], np.zeros((n, 1), bool), np.zeros((n, 1)), np.zeros((n, 1)), ("gap_m",)
+    )
     pool = EliteCandidates(n, 0.9, floor=0.0)
     cuts = np.sort(rng.choice(np.arange(1, n), size=int(rng.integers(0, 8)), replace=False))
     settled = []
@@ -179,8 +196,9 @@ def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on
     log_w = mixture_log_weight(np.log([1e-6]), np.log([[1e-6], [0.5], [1e-3]]), np.array([0.1, 0.45, 0.45]))
     assert log_w[0] == pytest.approx(math.log(1e-6 / (1e-7 + 0.225 + 4.5e-4)), rel=1e-12)
     # a rollout q misses entirely: its weight is at most 1 / 0.1
-    assert mixture_log_weight(np.log([0.3]), np.array([[math.log(0.3)], [-np.inf]]), np.array([0.1, 0.9]))[0] == \
-        pytest.approx(math.log(10.0), rel=1e-12)
+    assert mixture_log_weight(np.log([0.3]), np.array([[math.log(0.3)], [-np.inf]]), np.array([0.1, 0.9]))[
+        0
+    ] == pytest.approx(math.log(10.0), rel=1e-12)
     # fixed shares of a toy (exact (1 - 0.6)^4): the mean weighted failure indicator is the exact answer within 4
     # standard errors (balance heuristic, Veach & Guibas 1995)
     params = ToyParams(8, 5, 2, 0.6)
@@ -191,8 +209,10 @@ def test_mixture_weights_by_hand_are_bounded_by_the_target_share_and_unbiased_on
     batch = RolloutBatch.concatenate([pb.simulate(n, d, pb.target, rng) for n, d in parts])
     mask = weighted_steps_mask(pb, batch, until_failure=True)
     obs = batch.observations.reshape(-1, batch.observations.shape[2])
-    log_q = [(action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected[..., 0]) * mask).sum(axis=1)
-             for _, d in parts]  # fmt: skip
+    log_q = [
+        (action_log_prob(d.detect_logit(obs).reshape(mask.shape), batch.detected[..., 0]) * mask).sum(axis=1)
+        for _, d in parts
+    ]
     log_p = (batch.log_p * mask).sum(axis=1)
     w = np.exp(mixture_log_weight(log_p, np.stack(log_q), np.array([0.1, 0.9]))) * pb.failed(batch)
     exact = math.exp(toy_log_failure_probability(params))
@@ -259,8 +279,16 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
         return changed
 
     def run(fit_weights):
-        config = ExperimentConfig(n_stages=4, n_per_stage=100, n_final=10, ce_epochs=50, pretrain_epochs=50,
-                                  smoothing_at_failure=1.0, final_smoothing=None, fit_weights=fit_weights)
+        config = ExperimentConfig(
+            n_stages=4,
+            n_per_stage=100,
+            n_final=10,
+            ce_epochs=50,
+            pretrain_epochs=50,
+            smoothing_at_failure=1.0,
+            final_smoothing=None,
+            fit_weights=fit_weights,
+        )
         return Experiment(config, problem=build_problem("main")).run().stages
 
     sampler = run("sampler")
@@ -323,8 +351,9 @@ def test_fit_weights_are_checked():
     assert sampler.fit_weights == "sampler"
     with pytest.raises(ConfigError, match="final_smoothing = 1.0 is invalid: a last fit of its own needs fit_weights"):
         ExperimentConfig(fit_all_failures=False, fit_weights="sampler")
-    with pytest.raises(ConfigError,
-                       match=r"smoothing_at_failure = 2.5 is invalid: .* must be None or a number in \(0, 2\]"):
+    with pytest.raises(
+        ConfigError, match=r"smoothing_at_failure = 2.5 is invalid: .* must be None or a number in \(0, 2\]"
+    ):
         ExperimentConfig(smoothing_at_failure=2.5)
     with pytest.raises(ConfigError, match=r"final_smoothing = 0 is invalid: .* must be None or a number in \(0, 2\]"):
         ExperimentConfig(final_smoothing=0)

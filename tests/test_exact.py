@@ -17,8 +17,10 @@ def exact_product(a: np.ndarray, b: np.ndarray) -> list[list[Fraction]]:
     """a @ b in rational arithmetic: the truth a float64 kernel can only round."""
     fa = [[Fraction(v) for v in row] for row in a]
     fb = [[Fraction(v) for v in row] for row in b]
-    return [[sum((fa[i][k] * fb[k][j] for k in range(a.shape[1])), Fraction(0)) for j in range(b.shape[1])]
-            for i in range(a.shape[0])]  # fmt: skip
+    return [
+        [sum((fa[i][k] * fb[k][j] for k in range(a.shape[1])), Fraction(0)) for j in range(b.shape[1])]
+        for i in range(a.shape[0])
+    ]
 
 
 def test_grid_bits_keep_every_partial_sum_below_two_to_the_53():

@@ -56,8 +56,10 @@ def test_simulate_with_pre_drawn_uniforms_reproduces_the_serial_rollouts_chunk_b
     sampler = ConstantDetector(0.6)
     serial = simulate(lambda: ToyBraking(params), 9, sampler, target, np.random.default_rng(4), params.steps)
     u = np.random.default_rng(4).random((params.steps, 9))
-    parts = [simulate(lambda: ToyBraking(params), b - a, sampler, target, None, params.steps, uniforms=u[:, a:b])
-             for a, b in [(0, 4), (4, 5), (5, 9)]]  # fmt: skip
+    parts = [
+        simulate(lambda: ToyBraking(params), b - a, sampler, target, None, params.steps, uniforms=u[:, a:b])
+        for a, b in [(0, 4), (4, 5), (5, 9)]
+    ]
     for name in ("observations", "detected", "log_p", "log_q"):
         np.testing.assert_array_equal(np.concatenate([getattr(p, name) for p in parts]), getattr(serial, name))
     with pytest.raises(ValueError, match=r"uniforms must be float64 \[T, n K\] = \[11, 9\]"):
@@ -74,8 +76,10 @@ def test_chunks_gathered_equal_the_serial_batch_and_leave_the_rng_where_it_would
     rng_serial, rng_chunks = np.random.default_rng(9), np.random.default_rng(9)
     serial = SerialExecutor().simulate(problem, n, sampler, problem.target, rng_serial)
     state = rng_chunks.bit_generator.state
-    results = [simulate_chunk(problem, n, a, b, sampler, problem.target, state)
-               for a, b in ((0, n // 3), (n // 3, 2 * n // 3), (2 * n // 3, n))]
+    results = [
+        simulate_chunk(problem, n, a, b, sampler, problem.target, state)
+        for a, b in ((0, n // 3), (n // 3, 2 * n // 3), (2 * n // 3, n))
+    ]
     gathered = gather_chunks(problem, n, rng_chunks, results)
     for name in ("observations", "detected", "log_p", "log_q"):
         np.testing.assert_array_equal(getattr(gathered, name), getattr(serial, name))
@@ -133,8 +137,9 @@ def _run(config: ExperimentConfig, problem: Problem):
     return Experiment(config, [listen], problem=problem).run(), batches, stages
 
 
-ray_missing = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
-                                 reason="ray is not installed (pip install ray)")
+ray_missing = pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None, reason="ray is not installed (pip install ray)"
+)
 
 
 @pytest.fixture(scope="module", params=[1, 2], ids=["1-worker", "2-workers"])
@@ -152,8 +157,9 @@ def ray_workers(request):
         ray.shutdown()
 
 
-BLOCKS = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=9000, pretrain_rollouts=20, ce_epochs=100,
-                          pretrain_epochs=200, seed=1)  # fmt: skip
+BLOCKS = ExperimentConfig(
+    n_stages=2, n_per_stage=20, n_final=9000, pretrain_rollouts=20, ce_epochs=100, pretrain_epochs=200, seed=1
+)
 """A small default-sampler run whose final batch spans two Array-RQMC blocks (8,192 + 808 rollouts)."""
 
 
@@ -175,8 +181,9 @@ def test_ray_tasks_of_whole_blocks_give_the_serial_rollouts_and_estimate_bit_for
     for a, b in zip(serial_batches, remote_batches, strict=False):
         for name in ("observations", "detected", "log_p", "log_q"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
-    assert [(repr(s.gamma), s.n_elites, s.estimate) for s in serial_stages] == \
-        [(repr(s.gamma), s.n_elites, s.estimate) for s in remote_stages]  # fmt: skip
+    assert [(repr(s.gamma), s.n_elites, s.estimate) for s in serial_stages] == [
+        (repr(s.gamma), s.n_elites, s.estimate) for s in remote_stages
+    ]
     assert serial.final.estimate == remote.final.estimate and serial.final.estimate.n_failures > 0
 
 

@@ -29,6 +29,7 @@ import pytest
 from conftest import REPO, verify_rrd
 from pemviz import cli
 from pemviz.io import rollout_format, rollout_writer, rollouts as rio
+from pemviz.io.rollout_sidecars import braking_meta
 from pemviz.core.files import OutputExists, atomic_write
 from pemviz.io.files import check_output_path
 from pemviz.core.rollouts import RolloutBatch
@@ -58,19 +59,31 @@ def small_batch(n: int = 4, t: int = 6, seed: int = 0) -> RolloutBatch:
     obs = np.stack([gap, np.full((n, t), 10.0), np.zeros((n, t))], axis=-1)
     # log_q = log_p: rollouts of the target itself, weights 1, so that ``pemviz estimate`` on the unit finishes with
     # exit code 0 when no signal stops it (a mean weight far from 1 is an error, exit 2)
-    return RolloutBatch(obs, rng.uniform(size=(n, t)) < 0.5, np.full((n, t), -0.1), np.full((n, t), -0.1),
-                        ("gap_m", "ego_speed_mps", "lead_speed_mps"))  # fmt: skip
+    return RolloutBatch(
+        obs,
+        rng.uniform(size=(n, t)) < 0.5,
+        np.full((n, t), -0.1),
+        np.full((n, t), -0.1),
+        ("gap_m", "ego_speed_mps", "lead_speed_mps"),
+    )
 
 
 def write_unit(path: Path, seed: int = 0) -> None:
     batch = small_batch(seed=seed)
-    rollout_writer.write_rollouts(path, batch, rollout_format.braking_meta(formula="G[0,5](d >= 2)"), overwrite=True)
+    rollout_writer.write_rollouts(path, batch, braking_meta(formula="G[0,5](d >= 2)"), overwrite=True)
 
 
 def spawn(args: list[str], cwd: Path, **kw) -> subprocess.Popen:
     env = {**os.environ, "RERUN_ANALYTICS": "false", "PYTHONPATH": str(REPO)}
-    return subprocess.Popen([sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kw)  # fmt: skip
+    return subprocess.Popen(
+        [sys.executable, "-m", "pemviz.cli", *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
 
 
 def unit_state(path: Path) -> str:
@@ -184,8 +197,10 @@ def test_signal_sigterm_mid_run_finishes_the_recording_in_process(tmp_path, caps
     terminate_after_stage_1(monkeypatch)
     code, err = cli_line(capsys, *SMALL_RUN, "--k", "3", "--save", str(tmp_path / "t.rrd"))
     assert code == 143
-    assert err.splitlines()[-1] == ("pemviz run: interrupted (SIGTERM); 2 stage(s) finished; recording "
-                                    f"{tmp_path / 't.rrd'} (marked interrupted)")  # fmt: skip
+    assert err.splitlines()[-1] == (
+        "pemviz run: interrupted (SIGTERM); 2 stage(s) finished; recording "
+        f"{tmp_path / 't.rrd'} (marked interrupted)"
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.rrd"]
     verify_rrd(tmp_path / "t.rrd")
 
@@ -195,11 +210,24 @@ def test_sigterm_mid_run_names_the_outputs_it_did_not_write(tmp_path, capsys, mo
     written, with its flag, and none of them exists."""
     terminate_after_stage_1(monkeypatch)
     monkeypatch.chdir(tmp_path)
-    code, err = cli_line(capsys, *SMALL_RUN, "--k", "3", "--no-record", "--save-rollouts", "r.parquet", "--json",
-                         "r.json", "--report", "r.html")  # fmt: skip
+    code, err = cli_line(
+        capsys,
+        *SMALL_RUN,
+        "--k",
+        "3",
+        "--no-record",
+        "--save-rollouts",
+        "r.parquet",
+        "--json",
+        "r.json",
+        "--report",
+        "r.html",
+    )
     assert code == 143
-    assert err.splitlines()[-1] == ("pemviz run: interrupted (SIGTERM); 2 stage(s) finished; not written: r.parquet "
-                                    "(--save-rollouts), r.json (--json), r.html (--report)")  # fmt: skip
+    assert err.splitlines()[-1] == (
+        "pemviz run: interrupted (SIGTERM); 2 stage(s) finished; not written: r.parquet "
+        "(--save-rollouts), r.json (--json), r.html (--report)"
+    )
     assert leftovers(tmp_path) == [] and not any(tmp_path.iterdir())
 
 
@@ -211,8 +239,11 @@ def test_disk_file_too_large_is_one_line_exit_1_and_leaves_the_old_file(tmp_path
     rrd = tmp_path / "f.rrd"
     rrd.write_bytes(OLD_RRD)
     limit = 300 * 1024
-    proc = spawn([*SMALL_RUN, "--save", rrd.name, "--overwrite"], tmp_path,
-                 preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))  # fmt: skip
+    proc = spawn(
+        [*SMALL_RUN, "--save", rrd.name, "--overwrite"],
+        tmp_path,
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)),
+    )
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 1, err[-2000:]
     assert "Traceback" not in err
@@ -308,8 +339,10 @@ HOSTILE_SIDECARS = {
     "weights-other": ({"weights": "half"}, "weights must be one of to-failure, full"),
     "stages-not-list": ({"stages": {"stage": 1}}, "stages must be a list of objects"),
     "stages-no-n": ({"stages": [{"stage": 1}]}, "stages[0] needs stage (an integer >= 0) and n"),
-    "stages-components": ({"stages": [{"stage": 1, "n": 5, "components": [{"sampler": "q", "n": 4}]}]},
-                          "stages[0]: its components hold 4 rollouts, not n = 5"),
+    "stages-components": (
+        {"stages": [{"stage": 1, "n": 5, "components": [{"sampler": "q", "n": 4}]}]},
+        "stages[0]: its components hold 4 rollouts, not n = 5",
+    ),
     "stages-twice": ({"stages": [{"stage": 1, "n": 5}, {"stage": 1, "n": 5}]}, "stages lists stage 1 twice"),
     "stages-bound": ({"stages": [{"stage": 1, "n": 5, "max_weight": 0.5}]}, "max_weight must be a number >= 1"),
     "pooling-sum": ({"pooling": {"stages": [1, 2], "stage_weights": [0.5, 0.6]}}, "summing to 1"),
@@ -328,8 +361,9 @@ def test_sidecar_field_of_the_wrong_type_is_one_error_naming_file_and_field(tmp_
     assert "\n" not in str(err.value) or case.startswith("formula")
 
 
-@pytest.mark.parametrize("body", ["[" * 100_000, "{}" * 3, '"x"', "\udcff", "null"],
-                         ids=["deep", "junk", "str", "bad-utf8", "null"])
+@pytest.mark.parametrize(
+    "body", ["[" * 100_000, "{}" * 3, '"x"', "\udcff", "null"], ids=["deep", "junk", "str", "bad-utf8", "null"]
+)
 def test_sidecar_that_is_not_a_json_object_is_one_error(tmp_path, body):
     side = tmp_path / "s.json"
     side.write_bytes(body.encode("utf-8", "surrogateescape"))
@@ -349,14 +383,17 @@ def test_sidecar_of_another_table_is_reported_as_an_incomplete_unit(tmp_path):
 
 def test_sidecar_extreme_log_q_is_one_line_not_a_nan_crash(tmp_path, capsys):
     batch = small_batch()
-    batch = RolloutBatch(batch.observations, batch.detected, batch.log_p, np.full(batch.log_q.shape, -1e308),
-                         batch.observation_names)  # fmt: skip
-    rollout_writer.write_rollouts(tmp_path / "x.parquet", batch, rollout_format.braking_meta(formula="G[0,5](d >= 2)"))
+    batch = RolloutBatch(
+        batch.observations, batch.detected, batch.log_p, np.full(batch.log_q.shape, -1e308), batch.observation_names
+    )
+    rollout_writer.write_rollouts(tmp_path / "x.parquet", batch, braking_meta(formula="G[0,5](d >= 2)"))
     code, err = cli_line(capsys, "estimate", str(tmp_path / "x.parquet"), "--no-record")
     assert code == 2
-    assert err == (f"pemviz estimate: error: {tmp_path / 'x.parquet'}: rollout 0: the importance log-weight "
-                   "sum(log_p - log_q) over its 5 steps is beyond float64 (+-1.8e308 nats; log_p down to -0.1, "
-                   "log_q down to -1e+308): no estimate can be formed from these log-probabilities")  # fmt: skip
+    assert err == (
+        f"pemviz estimate: error: {tmp_path / 'x.parquet'}: rollout 0: the importance log-weight "
+        "sum(log_p - log_q) over its 5 steps is beyond float64 (+-1.8e308 nats; log_p down to -0.1, "
+        "log_q down to -1e+308): no estimate can be formed from these log-probabilities"
+    )
 
 
 # ------------------------------------------------------------------------------------------ command line
@@ -384,8 +421,9 @@ def test_cli_existing_save_is_refused_without_overwrite(tmp_path, capsys, comman
 
 def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, capsys):
     (tmp_path / "x.rollouts.json").write_text('{"mine": true}')
-    code, err = cli_line(capsys, *SMALL_RUN, "--no-record", "--save-rollouts", str(tmp_path / "x.parquet"),
-                         "--overwrite")  # fmt: skip
+    code, err = cli_line(
+        capsys, *SMALL_RUN, "--no-record", "--save-rollouts", str(tmp_path / "x.parquet"), "--overwrite"
+    )
     assert code == 2 and "x.rollouts.json: exists and is not a file pemviz wrote; not replacing it" in err
     (tmp_path / "other.rrd").write_text("not a recording")
     code, err = cli_line(capsys, *SMALL_RUN, "--save", str(tmp_path / "other.rrd"), "--overwrite")
@@ -396,12 +434,16 @@ def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, 
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["run", "--save-rollouts", "{tmp}/X.parquet", "--no-record"],
-         "X.rollouts.json: exists and is not a regular file"),
+        (
+            ["run", "--save-rollouts", "{tmp}/X.parquet", "--no-record"],
+            "X.rollouts.json: exists and is not a regular file",
+        ),
         (["run", "--save", "{tmp}/" + "a" * 240 + ".rrd"], "file name too long (244 bytes; at most 241 here)"),
         (["run", "--save-rollouts", "{tmp}/" + "b" * 232 + ".parquet", "--no-record"], "file name too long"),
-        (["pem", "eval", "--out", "{tmp}", "--save", "/proc/x.rrd"],
-         "--save /proc/x.rrd: folder /proc is not writable"),
+        (
+            ["pem", "eval", "--out", "{tmp}", "--save", "/proc/x.rrd"],
+            "--save /proc/x.rrd: folder /proc is not writable",
+        ),
         (["pem", "train", "--out", "/proc/x.pt"], "--out /proc/x.pt: folder /proc is not writable"),
         (["validate", "--out", "/proc/x"], "--out /proc/x: folder /proc is not writable"),
         (["tables", "--out", "/proc/x"], "--out /proc/x: folder /proc is not writable"),
@@ -410,35 +452,73 @@ def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, 
         (["run", "--n-final", "1000000000000", "--no-record"], "this run needs about 63.7 TiB of memory"),
         (["run", "--k", "1000000000000", "--no-record"], "--k: n_stages (K) = 1000000000000 is invalid"),
         (["run", "--ce-epochs", "1000000000000", "--no-record"], "--ce-epochs: ce_epochs = 1000000000000 is invalid"),
-        (["run", "--executor", "ray", "--ray-address", "127.0.0.1:1", "--no-record"],
-         "--ray-address 127.0.0.1:1: cannot connect"),
+        (
+            ["run", "--executor", "ray", "--ray-address", "127.0.0.1:1", "--no-record"],
+            "--ray-address 127.0.0.1:1: cannot connect",
+        ),
         (["run", "--executor", "ray", "--ray-address", "nonsense", "--no-record"], "use HOST:PORT"),
         (["serve", "--host", "999.1.1.1", "--port", "8791"], "--host '999.1.1.1': not an address or a name"),
         (["serve", "--host", "8.8.8.8", "--port", "8791"], "not an address of this machine"),
-        (["estimate", "{tmp}/run.rrd", "--no-record"], "run.rrd: a rerun recording, not a rollout file; `pemviz "
-         "estimate` reads the Parquet rollout file that `pemviz run --save-rollouts NAME.parquet` writes"),
-        (["estimate", "{tmp}/renamed.parquet", "--no-record"],
-         "renamed.parquet: a rerun recording, not a rollout file"),
+        (
+            ["estimate", "{tmp}/run.rrd", "--no-record"],
+            "run.rrd: a rerun recording, not a rollout file; `pemviz "
+            "estimate` reads the Parquet rollout file that `pemviz run --save-rollouts NAME.parquet` writes",
+        ),
+        (
+            ["estimate", "{tmp}/renamed.parquet", "--no-record"],
+            "renamed.parquet: a rerun recording, not a rollout file",
+        ),
         (["run", "--sigma", "high", "--no-record"], "argument --sigma: 'high' is not a number"),
         (["run", "--metric", "best", "--no-record"], "--metric: metric = 'best' is invalid: use one of classic, agm"),
         (["run", "--rel-error", "0", "--no-record"], "--rel-error: rel_error = 0.0 is invalid"),
-        (["run", "--max-time", "5", "--no-record"], "--max-time: max_time_s = 5.0 is invalid: a cap on the rollouts "
-         "added for a target relative error or a requirement: give it with rel_error (--rel-error) or require "
-         "(--require)"),
-        (["run", "--margin", "-1", "--no-record"], "--margin: margin = -1.0 is invalid: the crash gap must be None or "
-         "a number in [0, 10]"),
-        (["run", "--scenario", "cut-in", "--margin", "1", "--no-record"], "--margin: margin = 1.0 is invalid: the "
-         "crash gap is the braking scenario's"),
+        (
+            ["run", "--max-time", "5", "--no-record"],
+            "--max-time: max_time_s = 5.0 is invalid: a cap on the rollouts "
+            "added for a target relative error or a requirement: give it with rel_error (--rel-error) or require "
+            "(--require)",
+        ),
+        (
+            ["run", "--margin", "-1", "--no-record"],
+            "--margin: margin = -1.0 is invalid: the crash gap must be None or " "a number in [0, 10]",
+        ),
+        (
+            ["run", "--scenario", "cut-in", "--margin", "1", "--no-record"],
+            "--margin: margin = 1.0 is invalid: the " "crash gap is the braking scenario's",
+        ),
         (["run", "--pem", "gbt", "--pem-uncertainty", "--no-record"], "ensemble_gbt.pt: no PEM ensemble there"),
         (["run", "--pem-shift", "11", "--no-record"], "--pem-shift: pem_shift = 11.0 is invalid"),
         (["report", "{tmp}/file.txt"], "file.txt: not a readable JSON file"),
     ],
-    ids=["json-folder", "name-240", "proposal-name", "pem-eval-proc", "pem-train-proc", "validate-proc",
-         "tables-proc", "validate-file", "n-1e12", "n-final-1e12", "k-1e12", "epochs-1e12", "ray-refused", "ray-bad",
-         "host-999", "host-foreign", "estimate-rrd", "estimate-rrd-renamed", "sigma-word", "metric-bad",
-         "rel-error-0", "max-time-alone", "margin-negative", "margin-cut-in", "no-ensemble", "pem-shift-11",
-         "report-not-json"],
-)  # fmt: skip
+    ids=[
+        "json-folder",
+        "name-240",
+        "proposal-name",
+        "pem-eval-proc",
+        "pem-train-proc",
+        "validate-proc",
+        "tables-proc",
+        "validate-file",
+        "n-1e12",
+        "n-final-1e12",
+        "k-1e12",
+        "epochs-1e12",
+        "ray-refused",
+        "ray-bad",
+        "host-999",
+        "host-foreign",
+        "estimate-rrd",
+        "estimate-rrd-renamed",
+        "sigma-word",
+        "metric-bad",
+        "rel-error-0",
+        "max-time-alone",
+        "margin-negative",
+        "margin-cut-in",
+        "no-ensemble",
+        "pem-shift-11",
+        "report-not-json",
+    ],
+)
 def test_cli_bad_output_or_resource_is_one_line_before_any_work(tmp_path, capsys, args, message):
     (tmp_path / "X.rollouts.json").mkdir()
     (tmp_path / "file.txt").write_text("x")
@@ -468,8 +548,10 @@ def test_cli_serve_on_every_interface_warns_that_the_panel_has_no_authentication
     for host in ("0.0.0.0", ""):
         code, err = cli_line(capsys, "serve", "--host", host, "--port", "0")
         assert code == 0
-        assert err.splitlines()[0].startswith(f"pemviz serve: warning: --host {host!r} is reachable from other "
-                                              "machines and the panel has no authentication")  # fmt: skip
+        assert err.splitlines()[0].startswith(
+            f"pemviz serve: warning: --host {host!r} is reachable from other "
+            "machines and the panel has no authentication"
+        )
     code, err = cli_line(capsys, "serve", "--host", "127.0.0.1", "--port", "0")
     assert code == 0 and "warning" not in err
 
@@ -479,8 +561,10 @@ def test_cli_jobs_beyond_the_cpu_count_are_capped_with_a_message():
 
     said: list[str] = []
     assert cap_jobs(1000, said.append) == usable_cpus()
-    assert said == [f"--jobs 1000: this machine gives {usable_cpus()} CPU{'s' * (usable_cpus() != 1)}; using "
-                    f"{usable_cpus()} worker processes"]  # fmt: skip
+    assert said == [
+        f"--jobs 1000: this machine gives {usable_cpus()} CPU{'s' * (usable_cpus() != 1)}; using "
+        f"{usable_cpus()} worker processes"
+    ]
     assert cap_jobs(1, said.append) == 1 and len(said) == 1
 
 

@@ -37,8 +37,10 @@ def raw_rows(n: int, seed: int = 0) -> np.ndarray:
 @pytest.fixture(scope="module")
 def networks():
     pem, noise = load_pem(), load_noise_pem()
-    return {"detection": (pem._grid, pem._one_hot, pem._layers, pem.norm),
-            "noise": (noise._grid, noise._one_hot, noise._layers, noise.norm)}  # fmt: skip
+    return {
+        "detection": (pem._grid, pem._one_hot, pem._layers, pem.norm),
+        "noise": (noise._grid, noise._one_hot, noise._layers, noise.norm),
+    }
 
 
 @pytest.mark.parametrize("head", ["detection", "noise"])
@@ -74,9 +76,10 @@ def test_within_float32_precision_of_the_float64_network(networks, head):
 def digests() -> dict[str, str]:
     """sha256 of the shipped heads' outputs on fixed rows (for a run under other kernels)."""
     out = {}
-    for head, (grid, one_hot, _, norm) in {"detection": (load_pem()._grid, load_pem()._one_hot, None, load_pem().norm),
-                                          "noise": (load_noise_pem()._grid, load_noise_pem()._one_hot, None,
-                                                    load_noise_pem().norm)}.items():  # fmt: skip
+    for head, (grid, one_hot, _, norm) in {
+        "detection": (load_pem()._grid, load_pem()._one_hot, None, load_pem().norm),
+        "noise": (load_noise_pem()._grid, load_noise_pem()._one_hot, None, load_noise_pem().norm),
+    }.items():
         codes = salient_codes(raw_rows(40960), norm)
         out[head] = hashlib.sha256(np.ascontiguousarray(grid.of_codes(codes, one_hot)).tobytes()).hexdigest()
         out[head + " features"] = hashlib.sha256(np.ascontiguousarray(grid(codes.features())).tobytes()).hexdigest()
@@ -89,8 +92,14 @@ def test_other_kernels_give_the_same_bits(setting):
     # OpenBLAS's Haswell and Sandybridge kernels rounded these products differently before the grid form
     code = "import json, sys; sys.path.insert(0, 'tests'); import test_grid_mlp as t; print(json.dumps(t.digests()))"
     env = {**os.environ, **rp.DISPATCH_SETTINGS[setting]}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300,
-                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == digests()
 
@@ -100,14 +109,17 @@ def test_a_single_layer_is_an_affine_map_on_grids():
     # input row's largest: 1e-3 < 2^-9 rounds to a multiple of 2^-35, the others are exact
     grid = GridMLP.of([(np.array([[3.0, -0.5]]), np.array([0.25]))])
     x = np.array([[1.0, 2.0], [0.5, -4.0], [0.0, 0.0], [1e-3, 0.0]])
-    np.testing.assert_array_equal(grid(x)[:, 0], [3.0 - 1.0 + 0.25, 1.5 + 2.0 + 0.25, 0.25,
-                                                  np.rint(1e-3 * 2.0**35) * 2.0**-35 * 3.0 + 0.25])  # fmt: skip
+    np.testing.assert_array_equal(
+        grid(x)[:, 0], [3.0 - 1.0 + 0.25, 1.5 + 2.0 + 0.25, 0.25, np.rint(1e-3 * 2.0**35) * 2.0**-35 * 3.0 + 0.25]
+    )
 
 
 @settings(max_examples=200, deadline=None)
-@given(cls=st.lists(st.sampled_from([0.0, 3.0, 6.0, 7.0, -1.0, 2.5, np.nan, 1e30]), min_size=1, max_size=12),
-       occ=st.sampled_from([0.0, 1.0, 2.0, 3.0, 0.5]),
-       pose=st.floats(-1e6, 1e6, allow_nan=False))  # fmt: skip
+@given(
+    cls=st.lists(st.sampled_from([0.0, 3.0, 6.0, 7.0, -1.0, 2.5, np.nan, 1e30]), min_size=1, max_size=12),
+    occ=st.sampled_from([0.0, 1.0, 2.0, 3.0, 0.5]),
+    pose=st.floats(-1e6, 1e6, allow_nan=False),
+)
 def test_the_compact_encoding_reads_what_the_one_hot_rows_hold_or_names_the_first_bad_row(cls, occ, pose):
     norm = load_pem().norm
     n = len(cls)

@@ -11,8 +11,6 @@ from conftest import REPO, load_script
 SCRIPT = REPO / "scripts" / "import_cycles.py"
 
 
-
-
 def package(root: Path, files: dict[str, str]) -> Path:
     for name, text in files.items():
         path = root / "pkg" / name
@@ -30,14 +28,17 @@ def test_pemviz_has_no_import_circle_of_any_kind():
 
 def test_a_module_level_circle_is_found_and_fails(tmp_path, capsys):
     ic = load_script(SCRIPT)
-    root = package(tmp_path, {
-        "__init__.py": "",
-        "a.py": "from pkg import b\n",
-        "b.py": "import pkg.sub.c\n",
-        "sub/__init__.py": "",
-        "sub/c.py": "from ..a import thing\n",  # relative: pkg.a
-        "d.py": "import os\nfrom pkg.a import x\n",  # imports into the circle, not part of it
-    })
+    root = package(
+        tmp_path,
+        {
+            "__init__.py": "",
+            "a.py": "from pkg import b\n",
+            "b.py": "import pkg.sub.c\n",
+            "sub/__init__.py": "",
+            "sub/c.py": "from ..a import thing\n",  # relative: pkg.a
+            "d.py": "import os\nfrom pkg.a import x\n",  # imports into the circle, not part of it
+        },
+    )
     assert ic.main(["--root", str(root)]) == 1
     out = capsys.readouterr().out
     assert "1 circle among module-level imports (6 modules" in out
@@ -47,13 +48,17 @@ def test_a_module_level_circle_is_found_and_fails(tmp_path, capsys):
 
 def test_function_level_and_type_checking_circles_are_reported_apart(tmp_path, capsys):
     ic = load_script(SCRIPT)
-    root = package(tmp_path, {
-        "__init__.py": "",
-        "a.py": "import pkg.b\n",
-        "b.py": "def f():\n    from pkg import a\n",
-        "c.py": "from typing import TYPE_CHECKING\nimport pkg.d\nif TYPE_CHECKING:\n    from pkg.d import D\n",
-        "d.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from pkg.c import C\nelse:\n    C = None\n",
-    })
+    root = package(
+        tmp_path,
+        {
+            "__init__.py": "",
+            "a.py": "import pkg.b\n",
+            "b.py": "def f():\n    from pkg import a\n",
+            "c.py": "from typing import TYPE_CHECKING\nimport pkg.d\nif TYPE_CHECKING:\n    from pkg.d import D\n",
+            "d.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from pkg.c import C"
+            "\nelse:\n    C = None\n",
+        },
+    )
     graph = ic.build_graph(root)
     assert graph.module_level["pkg.a"] == {"pkg.b"} and graph.function_level["pkg.b"] == {"pkg.a"}
     assert graph.type_checking["pkg.d"] == {"pkg.c"} and not graph.type_checking.get("pkg.c")  # also module-level
@@ -135,12 +140,20 @@ def test_the_folders_import_one_another_in_no_circle():
 
 def test_an_upward_import_and_a_folder_circle_are_found(tmp_path):
     root = tmp_path / "pemviz"
-    planted = {"core/a.py": "def f():\n    from pemviz.sinks import b\n", "sinks/b.py": "import pemviz.core.a\n",
-               "stl/c.py": "from pemviz.config import X\n", "config.py": "from pemviz.stl.c import y\n"}
+    planted = {
+        "core/a.py": "def f():\n    from pemviz.sinks import b\n",
+        "sinks/b.py": "import pemviz.core.a\n",
+        "stl/c.py": "from pemviz.config import X\n",
+        "config.py": "from pemviz.stl.c import y\n",
+    }
     for name, text in planted.items():
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         (root / name).write_text(text)
     found = folder_imports(root)
-    assert found == {("core", "sinks"): ["core/a.py:2"], ("sinks", "core"): ["sinks/b.py:1"],
-                     ("stl", "config"): ["stl/c.py:1"], ("config", "stl"): ["config.py:1"]}  # fmt: skip
+    assert found == {
+        ("core", "sinks"): ["core/a.py:2"],
+        ("sinks", "core"): ["sinks/b.py:1"],
+        ("stl", "config"): ["stl/c.py:1"],
+        ("config", "stl"): ["config.py:1"],
+    }
     assert sorted(folder_circles(found), key=sorted) == [{"config", "stl"}, {"core", "sinks"}]

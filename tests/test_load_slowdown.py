@@ -9,12 +9,15 @@ import pytest
 from pemviz.engine import resources
 
 
-@pytest.mark.parametrize("others, cpus, threads, expected", [
-    (0.0, 2, 1, 1.0),  # idle: the run has a CPU of its own
-    (1.0, 2, 1, 1.0),  # one busy process on two CPUs: still one free
-    (2.0, 2, 1, 1.5),  # two busy processes: three tasks share two CPUs, the run gets 2/3 of one
-    (6.0, 4, 2, 2.0),  # six others and a two-thread run on four CPUs: 8 / 4
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "others, cpus, threads, expected",
+    [
+        (0.0, 2, 1, 1.0),  # idle: the run has a CPU of its own
+        (1.0, 2, 1, 1.0),  # one busy process on two CPUs: still one free
+        (2.0, 2, 1, 1.5),  # two busy processes: three tasks share two CPUs, the run gets 2/3 of one
+        (6.0, 4, 2, 2.0),  # six others and a two-thread run on four CPUs: 8 / 4
+    ],
+)
 def test_the_slowdown_is_the_tasks_per_cpu_when_they_outnumber_the_cpus(monkeypatch, others, cpus, threads, expected):
     monkeypatch.setattr(resources, "runnable_now", lambda: others)
     monkeypatch.setattr(resources, "usable_cpus", lambda: cpus)

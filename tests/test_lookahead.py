@@ -27,7 +27,7 @@ def brute_force(p: BrakingParams, logit_at_gap, prefix: np.ndarray, level: float
     suffixes = np.array(list(itertools.product([False, True], repeat=k)), dtype=bool)
     seqs = np.concatenate([np.tile(prefix, (suffixes.shape[0], 1)), suffixes], axis=1)
     gaps = replay(p, seqs)[:, :, 0]
-    logit = logit_at_gap(gaps[:, prefix.size:])
+    logit = logit_at_gap(gaps[:, prefix.size :])
     log_prob = np.where(suffixes, log_expit(logit), log_expit(-logit)).sum(axis=1)
     fails = gaps.min(axis=1) < level
     return float(logsumexp(log_prob[fails])) if fails.any() else -np.inf
@@ -63,8 +63,19 @@ def test_a_run_that_targets_contact_is_right_and_its_file_re_estimates_to_it(tmp
     """`pemviz run --margin 0 --seed 0` at the default budget: within x1.5 of the exact 8.058e-33 with the exact answer
     inside its interval, capped at doubtful; before the look-ahead the same run gave 3.9e-33 (ESS 1.4)."""
     out = tmp_path / "contact.parquet"
-    proc = run_cli("run", "--margin", "0", "--seed", "0", "--no-record", "--save-rollouts", str(out),
-                   "--json", str(tmp_path / "result.json"), cwd=tmp_path)  # fmt: skip
+    proc = run_cli(
+        "run",
+        "--margin",
+        "0",
+        "--seed",
+        "0",
+        "--no-record",
+        "--save-rollouts",
+        str(out),
+        "--json",
+        str(tmp_path / "result.json"),
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     doc = json.loads((tmp_path / "result.json").read_text())
     log_mu, (lo, hi), exact = doc["estimate"]["log_p"], doc["estimate"]["log_ci95"], doc["exact"]["log_p"]

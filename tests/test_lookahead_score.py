@@ -91,8 +91,22 @@ def test_splitting_on_the_look_ahead_lands_near_the_crossing_reference(capsys):
     prints a lower bound below it, no interval (``doubtful``: few families)."""
     from pemviz.cli import main
 
-    argv = ["run", "--scenario", "crossing", "--method", "ams", "--ams-score", "lookahead", "--n", "400",
-            "--ams-killed", "40", "--no-record", "--seed", "0"]  # fmt: skip
+    argv = [
+        "run",
+        "--scenario",
+        "crossing",
+        "--method",
+        "ams",
+        "--ams-score",
+        "lookahead",
+        "--n",
+        "400",
+        "--ams-killed",
+        "40",
+        "--no-record",
+        "--seed",
+        "0",
+    ]
     assert main(argv) == 0
     mu, line = _final_line(capsys.readouterr().out)
     assert 3.08e-4 / 2 <= mu <= 2 * 3.08e-4, line

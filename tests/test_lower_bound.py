@@ -1,4 +1,4 @@
-"""The lower bound a run prints where its weights back no interval (pemviz.core.estimate.betting_lower_bound): by
+"""The lower bound a run prints where its weights back no interval (pemviz.core.confidence.betting_lower_bound): by
 hand, against an independent root finder, its coverage under heavy-tailed and adapted weights where the CLT interval
 fails, and what it decides for `--require`."""
 
@@ -13,7 +13,8 @@ from scipy.optimize import brentq
 from scipy.special import logsumexp
 
 from conftest import run_cli
-from pemviz.core.estimate import BET_FRACTIONS, betting_lower_bound, estimate, markov_lower_bound
+from pemviz.core.confidence import BET_FRACTIONS, betting_lower_bound, markov_lower_bound
+from pemviz.core.estimate import estimate
 from pemviz.core.requirement import decide, parse_requirement
 
 
@@ -110,14 +111,17 @@ def test_an_unbacked_estimate_prints_its_bound_and_a_backed_one_its_interval():
 def test_markov_is_the_bound_of_an_estimate_kept_whole():
     from pemviz.core.estimate import Estimate
 
-    e = Estimate(100, 12, math.log(3e-7), 1.0, 1.0, 4.0, (-20.0, -10.0), verdict="doubtful",
-                 markov_logs=(math.log(3e-7),))  # fmt: skip
+    e = Estimate(
+        100, 12, math.log(3e-7), 1.0, 1.0, 4.0, (-20.0, -10.0), verdict="doubtful", markov_logs=(math.log(3e-7),)
+    )
     assert e.log_lower_bound == pytest.approx(math.log(0.05 * 3e-7), rel=1e-12)
     assert e.log_lower_bound == markov_lower_bound(np.array([math.log(3e-7)]))
 
 
-@pytest.mark.parametrize("text, outcome", [("p < 1e-13", "violated"), ("p < 1e-11", "undecided"),
-                                           ("p >= 1e-13", "met"), ("p > 1e-11", "undecided")])
+@pytest.mark.parametrize(
+    "text, outcome",
+    [("p < 1e-13", "violated"), ("p < 1e-11", "undecided"), ("p >= 1e-13", "met"), ("p > 1e-11", "undecided")],
+)
 def test_require_decides_on_the_bound_one_way_only(text, outcome):
     rng = np.random.default_rng(2)
     log_w, failed = heavy_run(rng, 400, math.log(1e-10), 5.0)
@@ -161,9 +165,29 @@ def test_every_output_of_a_run_that_backs_no_interval_shows_its_bound_and_no_upp
     from junitparser import JUnitXml
 
     out = {k: tmp_path / f"r.{k}" for k in ("json", "xml", "html")}
-    proc = run_cli("run", "--k", "3", "--n", "100", "--n-final", "200", "--seed", "0", "--no-record", "--max-sims",
-                   "600", "--require", "p < 1e-14", "--json", str(out["json"]), "--junit", str(out["xml"]),
-                   "--report", str(out["html"]), cwd=tmp_path)  # fmt: skip
+    proc = run_cli(
+        "run",
+        "--k",
+        "3",
+        "--n",
+        "100",
+        "--n-final",
+        "200",
+        "--seed",
+        "0",
+        "--no-record",
+        "--max-sims",
+        "600",
+        "--require",
+        "p < 1e-14",
+        "--json",
+        str(out["json"]),
+        "--junit",
+        str(out["xml"]),
+        "--report",
+        str(out["html"]),
+        cwd=tmp_path,
+    )
     assert proc.returncode == 3, proc.stderr[-2000:]
     doc = json.loads(out["json"].read_text())["estimate"]
     assert doc["interval"] == "lower_bound95" and doc["ci95"][1] is None and doc["log_ci95"][1] is None

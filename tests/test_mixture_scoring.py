@@ -33,23 +33,27 @@ def test_scored_target_answers_as_the_target_and_hands_over_the_extras_logits_ch
     target, extra = ConstantDetector(0.3), GapLogit()
     scored = ScoredTarget(target, (extra,))
     rng = np.random.default_rng(1)
-    batches = [simulate(lambda: ToyBraking(ToyParams(20, 10, 5, 0.5)), n, ConstantDetector(0.5), scored, rng, T)
-               for n in (3, 2)]  # two chunks of rollouts, stepped one after the other
+    batches = [
+        simulate(lambda: ToyBraking(ToyParams(20, 10, 5, 0.5)), n, ConstantDetector(0.5), scored, rng, T)
+        for n in (3, 2)
+    ]  # two chunks of rollouts, stepped one after the other
     for b in batches:  # the target's log-probabilities: log 0.3 where detected, log 0.7 where missed
         np.testing.assert_allclose(b.log_p, np.where(b.detected[..., 0], math.log(0.3), math.log(0.7)), rtol=1e-14)
     kept, target_logit = scored.take(5, T)
     assert kept.shape == (1, 5, T, 1)  # [K, n, T, M]: one object per step
     obs = np.concatenate([b.observations for b in batches])
     np.testing.assert_array_equal(kept[0, ..., 0], obs[:, :, 0] / 10.0 - 2.0)  # rollout by rollout, step by step
-    np.testing.assert_array_equal(target_logit,
-                                  np.full((5, T, 1), ConstantDetector(0.3).detect_logit(np.zeros((1, 1)))[0]))
+    np.testing.assert_array_equal(
+        target_logit, np.full((5, T, 1), ConstantDetector(0.3).detect_logit(np.zeros((1, 1)))[0])
+    )
     assert scored.take(1, T) is None  # nothing left
 
 
 def test_scored_target_refuses_asks_that_do_not_make_whole_rollouts():
     scored = ScoredTarget(ConstantDetector(0.3), (GapLogit(),))
-    simulate(lambda: ToyBraking(ToyParams(20, 10, 5, 0.5)), 3, ConstantDetector(0.5), scored,
-             np.random.default_rng(0), T)  # fmt: skip
+    simulate(
+        lambda: ToyBraking(ToyParams(20, 10, 5, 0.5)), 3, ConstantDetector(0.5), scored, np.random.default_rng(0), T
+    )
     assert scored.take(4, T) is None  # 3 rollouts were drawn, not 4
     assert scored.take(3, T) is None  # and the unusable asks were dropped
 
@@ -76,11 +80,13 @@ def test_stage_samplers_evaluate_each_detector_once_per_step_and_the_proposal_on
         detector.detect_logit(obs.copy())  # equal values, other arrays: one evaluation
     assert (proposal.calls, proposal.rows, target.calls, target.rows) == (1, 3, 1, 5)
     np.testing.assert_array_equal(samplers.target.detect_logit(obs), ConstantDetector(0.9).detect_logit(obs))
-    np.testing.assert_array_equal(samplers.plain.detect_logit(obs),
-                                  WindowDetector(GapLogit(), ConstantDetector(0.9), 10.0, 2.0).detect_logit(obs))
+    np.testing.assert_array_equal(
+        samplers.plain.detect_logit(obs), WindowDetector(GapLogit(), ConstantDetector(0.9), 10.0, 2.0).detect_logit(obs)
+    )
     np.testing.assert_array_equal(
         samplers.defensive.detect_logit(obs),
-        WindowDetector(DefensiveDetector(GapLogit(), 0.2), ConstantDetector(0.9), 10.0, 2.0).detect_logit(obs))
+        WindowDetector(DefensiveDetector(GapLogit(), 0.2), ConstantDetector(0.9), 10.0, 2.0).detect_logit(obs),
+    )
     with pytest.raises(ValueError, match="read-only"):
         samplers.plain.detect_logit(obs)[0] = 1.0  # the kept answer cannot be changed through a caller
     samplers.forget()  # the proposal was fitted: asked again

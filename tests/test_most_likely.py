@@ -19,11 +19,20 @@ from pemviz.engine.experiment import Experiment
 from pemviz.sinks.recording import RerunSink
 
 CONFIGS = {
-    "braking": ExperimentConfig(n_stages=3, n_per_stage=100, n_final=100, ce_epochs=30, pretrain_epochs=50,
-                                pretrain_rollouts=100, seed=1),
-    "cut-in": ExperimentConfig(scenario="cut-in", n_stages=2, n_per_stage=60, n_final=60, ce_epochs=30,
-                               pretrain_epochs=50, pretrain_rollouts=60, seed=2),
-}  # fmt: skip
+    "braking": ExperimentConfig(
+        n_stages=3, n_per_stage=100, n_final=100, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=100, seed=1
+    ),
+    "cut-in": ExperimentConfig(
+        scenario="cut-in",
+        n_stages=2,
+        n_per_stage=60,
+        n_final=60,
+        ce_epochs=30,
+        pretrain_epochs=50,
+        pretrain_rollouts=60,
+        seed=2,
+    ),
+}
 
 
 @pytest.mark.parametrize("scene", sorted(CONFIGS))
@@ -58,17 +67,21 @@ def test_why_says_so_when_every_failure_drawn_is_impossible_under_the_pem():
     likely = MostLikelyFailure()
     likely.batch, likely.stage, likely.log_p = batch.select(np.array([i])), 0, -math.inf
     line = likely.why(problem)
-    assert line.startswith("why: every failure drawn is impossible under the PEM (the log-probability of its "
-                           "detections or the log-density of its measurement errors is -inf), so none is likely; one "
-                           "of them (stage 0): ")  # fmt: skip
+    assert line.startswith(
+        "why: every failure drawn is impossible under the PEM (the log-probability of its "
+        "detections or the log-density of its measurement errors is -inf), so none is likely; one "
+        "of them (stage 0): "
+    )
     assert "-inf nats" not in line and "decisive alone" in line
     likely.log_p = -42.25
     assert likely.why(problem).startswith("why: the most likely failure (stage 0; over all ")
 
 
-WHY = re.compile(r"^why: the most likely failure \(stage (\d+); over all 99 steps: log-probability of its detections "
-                 r"(-?\d+\.\d) nats, "
-                 r"log-density of its measurement errors ([+-]\d+\.\d) nats\): ")
+WHY = re.compile(
+    r"^why: the most likely failure \(stage (\d+); over all 99 steps: log-probability of its detections "
+    r"(-?\d+\.\d) nats, "
+    r"log-density of its measurement errors ([+-]\d+\.\d) nats\): "
+)
 
 
 def test_the_cut_in_why_line_states_the_detections_log_probability_and_the_errors_log_density_apart():

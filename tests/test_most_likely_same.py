@@ -33,11 +33,13 @@ from pemviz.sinks.recording import RerunSink  # noqa: E402
 SMALL = dict(ce_epochs=30, pretrain_epochs=50)
 CONFIGS = {
     "braking": ExperimentConfig(n_stages=3, n_per_stage=100, n_final=100, pretrain_rollouts=100, seed=1, **SMALL),
-    "cut-in": ExperimentConfig(scenario="cut-in", n_stages=2, n_per_stage=60, n_final=60, pretrain_rollouts=60, seed=2,
-                               **SMALL),
-    "braking-streamed": ExperimentConfig(n_stages=2, n_per_stage=400, n_final=400, pretrain_rollouts=100, seed=1,
-                                         chunk_rollouts=100, **SMALL),
-}  # fmt: skip
+    "cut-in": ExperimentConfig(
+        scenario="cut-in", n_stages=2, n_per_stage=60, n_final=60, pretrain_rollouts=60, seed=2, **SMALL
+    ),
+    "braking-streamed": ExperimentConfig(
+        n_stages=2, n_per_stage=400, n_final=400, pretrain_rollouts=100, seed=1, chunk_rollouts=100, **SMALL
+    ),
+}
 
 
 def read_explained(paths: dict) -> dict:
@@ -102,10 +104,13 @@ def test_console_panel_and_recording_state_the_same_most_likely_failure(runs, na
         "console": (likely.stage, likely.rollout, likely.log_p),
         "panel": (panel.likely.stage, panel.likely.rollout, panel.likely.log_p),
         "panel list": (best.stage, best.index, best.log_p_total),
-        "recording sink": (recording.most_likely.stage, int(recording.most_likely.rollout_numbers[0]),
-                           recording.most_likely_log_p),
+        "recording sink": (
+            recording.most_likely.stage,
+            int(recording.most_likely.rollout_numbers[0]),
+            recording.most_likely_log_p,
+        ),
         "recording read back": (read["stage"], read["rollout"], read["log_p"]),
-    }  # fmt: skip
+    }
     for who, (s, n, lp) in stated.items():
         assert (s, n) == (stage, rollout), who
         assert math.isclose(lp, log_p, rel_tol=0, abs_tol=1e-9), (who, lp, log_p)
@@ -132,10 +137,12 @@ def test_the_console_line_states_the_same_stage_and_log_p(runs):
     assert math.isclose(parts.total, likely.log_p, rel_tol=1e-9)
     line = likely.why(r["problem"])
     assert line is not None
-    assert line.startswith(f"why: the most likely failure (stage {likely.stage}; over all 99 steps: "
-                           f"log-probability of its detections {parts.detections:.1f} nats, log-density of its "
-                           f"measurement errors {parts.errors:+.1f} "
-                           "nats): ")  # fmt: skip
+    assert line.startswith(
+        f"why: the most likely failure (stage {likely.stage}; over all 99 steps: "
+        f"log-probability of its detections {parts.detections:.1f} nats, log-density of its "
+        f"measurement errors {parts.errors:+.1f} "
+        "nats): "
+    )
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))

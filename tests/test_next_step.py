@@ -17,8 +17,14 @@ from pemviz.commands.run import config_from_args
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference
 from pemviz.engine.events import FinalEstimate
-from pemviz.sinks.console import (MC_AFFORDABLE, duration_text, final_lines, mc_rollouts, next_step,
-                                  plain_rollout_seconds)  # fmt: skip
+from pemviz.sinks.console import (
+    MC_AFFORDABLE,
+    duration_text,
+    final_lines,
+    mc_rollouts,
+    next_step,
+    plain_rollout_seconds,
+)
 
 CUT_IN_REFERENCE = Reference(866, 10_000_000, "plain Monte Carlo, shipped PEMs")
 
@@ -73,7 +79,14 @@ def test_mc_rollouts_is_the_binomial_count_for_a_20_percent_half_width():
 
 def test_duration_text_reads_in_seconds_minutes_hours_days_years():
     assert [duration_text(s) for s in (0.84, 42.0, 588.0, 3780.0, 11_160.0, 86_400 * 12, 9.6e12)] == [
-        "0.8 s", "42 s", "9.8 min", "63 min", "3.1 h", "12 days", "3.0e+05 years"]  # fmt: skip
+        "0.8 s",
+        "42 s",
+        "9.8 min",
+        "63 min",
+        "3.1 h",
+        "12 days",
+        "3.0e+05 years",
+    ]
     assert duration_text(5.24e10) == "1,660 years"
 
 
@@ -88,8 +101,10 @@ def test_an_unknown_p_names_plain_monte_carlo_with_its_count_and_this_run_s_time
     n, plain = mc_count(p), plain_rollout_seconds(cfg, 6.3 / 2100)
     assert n == 320_038 and mc_cap(n) == 384_046
     assert plain < 6.3 / 2100  # a plain rollout costs less than a simulation of the adaptive run, fits included
-    assert advice.startswith(f"plain Monte Carlo decides it: --method mc --rel-error 0.2 --max-sims {mc_cap(n)} (p ~ "
-                             f"3.00e-04, this run's mu_hat: {n:,} rollouts for a 20 % interval, ")  # fmt: skip
+    assert advice.startswith(
+        f"plain Monte Carlo decides it: --method mc --rel-error 0.2 --max-sims {mc_cap(n)} (p ~ "
+        f"3.00e-04, this run's mu_hat: {n:,} rollouts for a 20 % interval, "
+    )
     assert f"~{duration_text(n * plain)} at {plain_rate(plain)})" in advice
     assert "an upper estimate" in advice and "stops early where p is larger" in advice
     assert "more budget (--n 400: 5,100 simulations, ~15 s)" in advice  # 5,100 x 3 ms
@@ -115,8 +130,10 @@ def test_a_probed_plain_rollout_times_plain_monte_carlo_at_its_own_speed():
     e = made(math.log(4.2e-12), khat=3.06)
     advice = next_step(e, ExperimentConfig(scenario="cut-in"), None, CUT_IN_REFERENCE, 2100, 7.0, plain_s=2.3e-4)
     n = mc_count(866 / 10_000_000)
-    assert f"{n:,} rollouts for a 20 % interval, ~{duration_text(n * 2.3e-4)} at ~0.23 ms a plain rollout (measured " \
-           "here after the run))" in advice
+    assert (
+        f"{n:,} rollouts for a 20 % interval, ~{duration_text(n * 2.3e-4)} at ~0.23 ms a plain rollout (measured "
+        "here after the run))" in advice
+    )
     assert "more budget (--n 400: 5,100 simulations, ~17 s)" in advice
 
 
@@ -130,8 +147,9 @@ def test_the_engine_probes_a_plain_rollout_only_where_the_advice_needs_it():
     s = plain_probe(problem, ExperimentConfig(method="adaptive"), made(math.log(1e-3)))
     assert s is not None and 0.0 < s < 0.1
     assert plain_probe(problem, ExperimentConfig(method="mc"), made(math.log(1e-3))) is None
-    assert plain_probe(problem, ExperimentConfig(), dataclasses.replace(made(math.log(1e-3)), verdict="reliable")) \
-        is None
+    assert (
+        plain_probe(problem, ExperimentConfig(), dataclasses.replace(made(math.log(1e-3)), verdict="reliable")) is None
+    )
 
 
 def test_a_max_time_that_plain_monte_carlo_does_not_fit_says_so_and_what_is_left():
@@ -141,11 +159,15 @@ def test_a_max_time_that_plain_monte_carlo_does_not_fit_says_so_and_what_is_left
     e = made(math.log(4.2e-12))
     # the sampler has time left in the minute: within it, only its own precision target, with its verdict
     left = next_step(e, cfg, None, CUT_IN_REFERENCE, 2100, 2.1)
-    assert left.startswith(f"plain Monte Carlo does not fit in --max-time 60 (p ~ 8.66e-05, the reference: {n:,} "
-                           f"rollouts for a 20 % interval, ~{duration_text(n * plain)} at "
-                           f"{plain_rate(plain)})")  # fmt: skip
-    assert "within it only a precision target (--rel-error 0.1 --max-sims 60000 --max-time 60: final batches up to "\
-           "60,000 simulations, ~60 s) is left, with its verdict" in left
+    assert left.startswith(
+        f"plain Monte Carlo does not fit in --max-time 60 (p ~ 8.66e-05, the reference: {n:,} "
+        f"rollouts for a 20 % interval, ~{duration_text(n * plain)} at "
+        f"{plain_rate(plain)})"
+    )
+    assert (
+        "within it only a precision target (--rel-error 0.1 --max-sims 60000 --max-time 60: final batches up to "
+        "60,000 simulations, ~60 s) is left, with its verdict" in left
+    )
     assert_valid_flags(left)
     # this run used the minute: no route within it decides
     none = next_step(e, cfg, None, CUT_IN_REFERENCE, 60_000, 60.0)
@@ -157,24 +179,50 @@ def test_a_max_time_that_plain_monte_carlo_does_not_fit_says_so_and_what_is_left
 
 
 def test_braking_s_p_is_too_rare_for_plain_monte_carlo_and_says_so():
-    e = Estimate(100, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, math.log(0.03)), math.nan, 0.0,
-                 "unreliable", "no failure")  # fmt: skip
+    e = Estimate(
+        100,
+        0,
+        -math.inf,
+        math.nan,
+        math.nan,
+        0.0,
+        (-math.inf, math.log(0.03)),
+        math.nan,
+        0.0,
+        "unreliable",
+        "no failure",
+    )
     advice = next_step(e, ExperimentConfig(method="mc"), math.log(1.984e-15), None, 100, 0.01)
-    assert advice.startswith("p ~ 1.98e-15, the exact answer: 4.8e+16 rollouts for a 20 % interval, ~1.5e+05 years "
-                             "at this run's 0.1 ms a rollout: too rare for plain Monte Carlo; an importance-sampling "
-                             "method (--method adaptive), with its verdict")  # fmt: skip
+    assert advice.startswith(
+        "p ~ 1.98e-15, the exact answer: 4.8e+16 rollouts for a 20 % interval, ~1.5e+05 years "
+        "at this run's 0.1 ms a rollout: too rare for plain Monte Carlo; an importance-sampling "
+        "method (--method adaptive), with its verdict"
+    )
     assert mc_count(1.984e-15) > MC_AFFORDABLE
     assert_valid_flags(advice)
 
 
 def test_a_plain_monte_carlo_run_is_told_how_many_rollouts_and_how_long():
-    e = Estimate(20_000, 1, math.log(5e-5), 0.0, 0.0, 1.0, (math.log(1.27e-6), math.log(2.79e-4)), math.nan, 0.0,
-                 "doubtful", "only 1 failure")  # fmt: skip
+    e = Estimate(
+        20_000,
+        1,
+        math.log(5e-5),
+        0.0,
+        0.0,
+        1.0,
+        (math.log(1.27e-6), math.log(2.79e-4)),
+        math.nan,
+        0.0,
+        "doubtful",
+        "only 1 failure",
+    )
     advice = next_step(e, ExperimentConfig(method="mc", n_per_stage=20_000), None, CUT_IN_REFERENCE, 20_000, 4.2)
     n = mc_count(866 / 10_000_000)  # timed at the run's own measured 4.2 s / 20,000 rollouts
-    assert advice == (f"more rollouts: --rel-error 0.2 --max-sims {mc_cap(n)} samples until the interval is within "
-                      f"20 % (p ~ 8.66e-05, the reference: {n:,} rollouts for a 20 % interval, "
-                      f"~{duration_text(n * 4.2 / 20_000)} at this run's 0.21 ms a rollout)")  # fmt: skip
+    assert advice == (
+        f"more rollouts: --rel-error 0.2 --max-sims {mc_cap(n)} samples until the interval is within "
+        f"20 % (p ~ 8.66e-05, the reference: {n:,} rollouts for a 20 % interval, "
+        f"~{duration_text(n * 4.2 / 20_000)} at this run's 0.21 ms a rollout)"
+    )
     assert_valid_flags(advice)
 
 
@@ -194,30 +242,49 @@ def test_a_heavy_tailed_tiny_mu_hat_gets_plain_monte_carlo_capped_not_called_too
 def test_a_run_that_backs_no_interval_caps_plain_monte_carlo_at_its_lower_bound(backed):
     """Estimate.interval_backed / log_lower_bound, read with getattr: where the interval is not backed, the 95 % lower
     bound of p sizes --max-sims (p >= it whatever the weights' tail), mu_hat the count expected."""
-    e = types.SimpleNamespace(verdict="doubtful", n=8221, n_failures=2824, log_mu_hat=math.log(1.76e-2), khat=-2.3,
-                              log_ci=(-5.0, -3.0), interval_backed=backed, log_lower_bound=math.log(5.21e-3))
+    e = types.SimpleNamespace(
+        verdict="doubtful",
+        n=8221,
+        n_failures=2824,
+        log_mu_hat=math.log(1.76e-2),
+        khat=-2.3,
+        log_ci=(-5.0, -3.0),
+        interval_backed=backed,
+        log_lower_bound=math.log(5.21e-3),
+    )
     cfg = ExperimentConfig()
     advice = next_step(e, cfg, n_simulations=8221, wall_s=15.2)
     n, floor, plain = mc_count(1.76e-2), mc_count(5.21e-3), plain_rollout_seconds(cfg, 15.2 / 8221, 8221)
     cap = mc_cap(floor if not backed else n)
     assert f"--method mc --rel-error 0.2 --max-sims {cap} (p ~ 1.76e-02, this run's mu_hat: {n:,} rollouts" in advice
     assert f"~{duration_text(n * plain)} at {plain_rate(plain)}" in advice
-    assert (f"; up to {floor:,} at its 95 % lower bound p >= 5.21e-03, ~{duration_text(floor * plain)}"
-            in advice) is not backed  # fmt: skip
+    assert (
+        f"; up to {floor:,} at its 95 % lower bound p >= 5.21e-03, ~{duration_text(floor * plain)}" in advice
+    ) is not backed
     assert_valid_flags(advice)
 
 
 def test_splitting_and_tilt_keep_their_own_advice_with_counts_and_times():
     e = Estimate(100, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, 0.0), math.nan, 0.0, "unreliable", "died")
     ams = next_step(e, ExperimentConfig(method="ams"), None, None, 170, 0.2)
-    assert ams == ("more particles (--n 400, ~0.8 s), or particles ranked by the scenario's committor where it has one "
-                   "(--ams-score committor: where the robustness is flat every particle ties and the run dies out); "
-                   "the verdict says whether to trust the result")  # fmt: skip
+    assert ams == (
+        "more particles (--n 400, ~0.8 s), or particles ranked by the scenario's committor where it has one "
+        "(--ams-score committor: where the robustness is flat every particle ties and the run dies out); "
+        "the verdict says whether to trust the result"
+    )
     assert_valid_flags(ams)
-    tilt = next_step(made(math.log(9.15e-5), khat=1.72), ExperimentConfig(method="tilt", scenario="cut-in"), None,
-                     CUT_IN_REFERENCE, 12_995, 6.5)  # fmt: skip
-    assert tilt.startswith(f"plain Monte Carlo decides it: --method mc --rel-error 0.2 --max-sims "
-                           f"{mc_cap(mc_count(866 / 10_000_000))} (")  # fmt: skip
+    tilt = next_step(
+        made(math.log(9.15e-5), khat=1.72),
+        ExperimentConfig(method="tilt", scenario="cut-in"),
+        None,
+        CUT_IN_REFERENCE,
+        12_995,
+        6.5,
+    )
+    assert tilt.startswith(
+        f"plain Monte Carlo decides it: --method mc --rel-error 0.2 --max-sims "
+        f"{mc_cap(mc_count(866 / 10_000_000))} ("
+    )
     assert "or more tilted batches (--rel-error 0.2 --max-sims 100000: up to 100,000 simulations, ~50 s)" in tilt
     assert_valid_flags(tilt)
 
@@ -242,8 +309,10 @@ def test_a_plain_rollout_s_seconds_are_the_run_s_scaled_by_the_cost_model_s_rati
     from pemviz.estimators import run_plan
 
     ratios = []
-    for cfg in (ExperimentConfig(method="adaptive", scenario="braking"), ExperimentConfig(method="tilt",
-                                                                                         scenario="cut-in")):
+    for cfg in (
+        ExperimentConfig(method="adaptive", scenario="braking"),
+        ExperimentConfig(method="tilt", scenario="cut-in"),
+    ):
         plain = stage_cost(replace(cfg, method="mc"), "final", 100_000, N_STEPS).seconds / 100_000
         run = run_cost(cfg, run_plan(cfg), N_STEPS).seconds / cfg.n_simulations
         ratios.append(plain / run)

@@ -31,25 +31,29 @@ def test_distributions_parse_draw_and_bin():
     np.testing.assert_allclose(edges, [10, 11, 12, 13, 14]) and np.testing.assert_allclose(probs, 0.25)
     n = parse_distribution("normal(7.5, 0.5)")
     assert n.ppf(np.array([0.5]))[0] == pytest.approx(7.5) and n.ppf(np.array([0.975]))[0] == pytest.approx(
-        7.5 + 1.959964 * 0.5, rel=1e-6)
+        7.5 + 1.959964 * 0.5, rel=1e-6
+    )
     c = parse_distribution("choice(19.5: 1, 20: 3)")
     assert c.weights == (0.25, 0.75) and c.text == "choice(19.5: 0.25, 20: 0.75)"
     np.testing.assert_array_equal(c.ppf(np.array([0.0, 0.2499, 0.25, 0.99])), [19.5, 19.5, 20.0, 20.0])
     assert parse_distribution("choice(5, 6, 7)").text == "choice(5, 6, 7)"
 
 
-@pytest.mark.parametrize("text, message", [
-    ("unif(1, 2)", "unknown distribution 'unif'; use one of uniform, normal, choice"),
-    ("uniform(2, 2)", r"uniform\(2, 2\) has an empty support; need a < b"),
-    ("uniform(1)", "uniform takes 2 numbers, a, b; got 1"),
-    ("normal(1, 0)", "needs sd > 0"),
-    ("normal(1, x)", "'x' is not a number"),
-    ("choice()", "choice\\(\\) has no value"),
-    ("choice(1: -1, 2: 1)", "weights must be >= 0"),
-    ("choice(1, 1)", "values must be distinct"),
-    ("uniform(1, inf)", "is not a finite number"),
-    ("12", "is not a distribution"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("unif(1, 2)", "unknown distribution 'unif'; use one of uniform, normal, choice"),
+        ("uniform(2, 2)", r"uniform\(2, 2\) has an empty support; need a < b"),
+        ("uniform(1)", "uniform takes 2 numbers, a, b; got 1"),
+        ("normal(1, 0)", "needs sd > 0"),
+        ("normal(1, x)", "'x' is not a number"),
+        ("choice()", "choice\\(\\) has no value"),
+        ("choice(1: -1, 2: 1)", "weights must be >= 0"),
+        ("choice(1, 1)", "values must be distinct"),
+        ("uniform(1, inf)", "is not a finite number"),
+        ("12", "is not a distribution"),
+    ],
+)
 def test_a_bad_distribution_is_one_line(text, message):
     with pytest.raises(ODDError, match=message) as err:
         parse_distribution(text, where="x")
@@ -67,8 +71,10 @@ def test_uniform_round_trips_its_text_and_draws_inside_its_support(a, width, u):
 
 
 @settings(max_examples=60, deadline=None)
-@given(values=st.lists(st.integers(-50, 50), min_size=1, max_size=6, unique=True),
-       weights=st.lists(st.floats(0.01, 10), min_size=6, max_size=6))
+@given(
+    values=st.lists(st.integers(-50, 50), min_size=1, max_size=6, unique=True),
+    weights=st.lists(st.floats(0.01, 10), min_size=6, max_size=6),
+)
 def test_choice_weights_are_its_draws_frequencies(values, weights):
     text = "choice(" + ", ".join(f"{v}: {w!r}" for v, w in zip(values, weights, strict=False)) + ")"
     law = parse_distribution(text)
@@ -92,8 +98,10 @@ def test_a_bin_estimate_is_unbiased_in_closed_form():
 def test_the_toy_over_an_odd_by_plain_monte_carlo_holds_its_closed_form():
     problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
     assert math.exp(problem.exact_log_p) == pytest.approx(EXACT, rel=1e-12)
-    done = Experiment(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD, method="mc", n_per_stage=200_000,
-                                       seed=3), problem=problem).run()  # fmt: skip
+    done = Experiment(
+        ExperimentConfig(scenario="toy", scenario_params=TOY_ODD, method="mc", n_per_stage=200_000, seed=3),
+        problem=problem,
+    ).run()
     e = done.final.estimate
     assert e.log_ci[0] <= problem.exact_log_p <= e.log_ci[1] and abs(math.exp(e.log_mu_hat) / EXACT - 1) < 0.15
 
@@ -104,8 +112,11 @@ def test_the_toy_over_an_odd_by_the_default_sampler_and_its_map():
     problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
     ratios = []
     for seed in range(10):
-        e = Experiment(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD, seed=seed),
-                       problem=problem).run().final.estimate  # fmt: skip
+        e = (
+            Experiment(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD, seed=seed), problem=problem)
+            .run()
+            .final.estimate
+        )
         ratios.append(math.exp(e.log_mu_hat) / EXACT)
         assert e.verdict != "reliable"
     assert np.median(np.abs(np.array(ratios) - 1)) < 0.1 and sum(0.5 < r < 2 for r in ratios) >= 8
@@ -143,24 +154,49 @@ def test_braking_draws_its_start_per_rollout():
 
 def test_a_fixed_parameter_is_todays_run():
     """Without a distribution nothing changes: the same problem and rollouts as before."""
-    problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=(("total", 10), ("safe", 3),
-                                                                            ("braking", 5))))  # fmt: skip
-    assert problem.odd is None and problem.exact_log_p == pytest.approx(toy_log_failure_probability(
-        ToyParams(10, 5, 3, 0.9)))
+    problem = problem_for(
+        ExperimentConfig(scenario="toy", scenario_params=(("total", 10), ("safe", 3), ("braking", 5)))
+    )
+    assert problem.odd is None and problem.exact_log_p == pytest.approx(
+        toy_log_failure_probability(ToyParams(10, 5, 3, 0.9))
+    )
 
 
-@pytest.mark.parametrize("param, message", [
-    ("braking~unif(5, 6)", "braking~unif\\(5, 6\\): unknown distribution 'unif'"),
-    ("braking~uniform(5, 7)", "braking takes a whole number: draw it from choice"),
-    ("braking~choice(5, 60)", "its value 60 is out of the parameter's range"),
-    ("total~choice(9, 10)", "the toy scenario cannot draw total per rollout \\(its parameters that can be drawn: "
-                            "braking\\)"),
-    ("braking~choice()", "choice\\(\\) has no value"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "param, message",
+    [
+        ("braking~unif(5, 6)", "braking~unif\\(5, 6\\): unknown distribution 'unif'"),
+        ("braking~uniform(5, 7)", "braking takes a whole number: draw it from choice"),
+        ("braking~choice(5, 60)", "its value 60 is out of the parameter's range"),
+        (
+            "total~choice(9, 10)",
+            "the toy scenario cannot draw total per rollout \\(its parameters that can be drawn: " "braking\\)",
+        ),
+        ("braking~choice()", "choice\\(\\) has no value"),
+    ],
+)
 def test_a_bad_odd_on_the_command_line_is_one_line_exit_2(param, message, tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "pemviz.cli", "run", "--scenario", "toy", "--param", "total=10",
-                           "--param", "safe=3", "--param", param, "--no-record"], cwd=tmp_path, capture_output=True,
-                          text=True, timeout=300)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pemviz.cli",
+            "run",
+            "--scenario",
+            "toy",
+            "--param",
+            "total=10",
+            "--param",
+            "safe=3",
+            "--param",
+            param,
+            "--no-record",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
     assert __import__("re").search(message, proc.stderr), proc.stderr
     with pytest.raises(ConfigError):
@@ -171,19 +207,46 @@ def test_a_bad_odd_on_the_command_line_is_one_line_exit_2(param, message, tmp_pa
 def test_an_odd_run_writes_its_map_and_re_estimates_to_its_p(tmp_path):
     import json
 
-    proc = subprocess.run([sys.executable, "-m", "pemviz.cli", "run", "--scenario", "toy", "--param", "total=10",
-                           "--param", "safe=3", "--param", "braking~choice(5, 6, 7)", "--no-record",
-                           "--save-rollouts", "o.parquet", "--json", "o.json", "--report", "o.html"], cwd=tmp_path,
-                          capture_output=True,
-                          text=True, timeout=300)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pemviz.cli",
+            "run",
+            "--scenario",
+            "toy",
+            "--param",
+            "total=10",
+            "--param",
+            "safe=3",
+            "--param",
+            "braking~choice(5, 6, 7)",
+            "--no-record",
+            "--save-rollouts",
+            "o.parquet",
+            "--json",
+            "o.json",
+            "--report",
+            "o.html",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "most of p_ODD: braking = 5" in proc.stdout
     doc = json.loads((tmp_path / "o.json").read_text())
     assert [b["lo"] for b in doc["odd_map"]["bins"]] == [4.5, 5.5, 6.5]
     page = (tmp_path / "o.md").read_text()  # the report's Markdown twin: the map as a section of its own
     assert "## Operating design domain" in page and "| braking in [4.5, 5.5) | 0.33 |" in page
-    again = subprocess.run([sys.executable, "-m", "pemviz.cli", "estimate", "o.parquet", "--no-record"], cwd=tmp_path,
-                           capture_output=True, text=True, timeout=300)  # fmt: skip
+    again = subprocess.run(
+        [sys.executable, "-m", "pemviz.cli", "estimate", "o.parquet", "--no-record"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     said = float(__import__("re").search(r"log mu_hat = (-?[0-9.]+) nats", again.stdout).group(1))
     assert said == pytest.approx(doc["estimate"]["log_p"], rel=1e-12, abs=0)  # the run's p_ODD again
 

@@ -33,8 +33,11 @@ def _check(text: str, signal: str, contact_m: float) -> None:
         if "reached by" in rest and not rest.startswith("not"):
             assert "not estimated" in rest and "lower bound" in rest, m.group(0)
     for why in (line for line in text.splitlines() if line.startswith("why: ")):
-        assert re.match(r"why: the most likely failure \(stage \d+; over all \d+ steps: log-probability of its "
-                        r"detections -?[\d.]+ nats", why), why  # fmt: skip
+        assert re.match(
+            r"why: the most likely failure \(stage \d+; over all \d+ steps: log-probability of its "
+            r"detections -?[\d.]+ nats",
+            why,
+        ), why
 
 
 def test_braking_console_uses_one_meaning_per_word(capsys):

@@ -38,8 +38,9 @@ def test_toy_q_star_draws_only_failures_each_weighted_1e_21():
     params = ToyParams(100, 50, 30, 0.9)
     problem = build_problem("toy")
     assert problem.exact_log_p == pytest.approx(math.log(1e-21), rel=1e-12)
-    assert_zero_variance(problem, ZeroVarianceDetector(problem.target, ToyValue(params).log_value_next),
-                         math.log(1e-21))  # fmt: skip
+    assert_zero_variance(
+        problem, ZeroVarianceDetector(problem.target, ToyValue(params).log_value_next), math.log(1e-21)
+    )
 
 
 def test_toy_q_star_with_distance_dependent_p():
@@ -105,8 +106,10 @@ def poor_value(log_value_next, miss_gap: float, temper: float = 0.7):
 
     def wrong(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         log_d, log_m = log_value_next(obs)
-        return (np.where(np.isfinite(log_d), temper * log_d, log_m - miss_gap),
-                np.where(np.isfinite(log_m), temper * log_m, log_d - miss_gap))  # fmt: skip
+        return (
+            np.where(np.isfinite(log_d), temper * log_d, log_m - miss_gap),
+            np.where(np.isfinite(log_m), temper * log_m, log_d - miss_gap),
+        )
 
     return wrong
 
@@ -125,8 +128,9 @@ def test_toy_v_tilted_sampler_with_a_poor_v_stays_unbiased(miss_gap, relvar_rang
     # variance (Kollman et al. 1999; L'Ecuyer & Tuffin 2008); exact mu = prod over d = 5..25 of (1 - p(d))
     params = ToyParams(40, 25, 5, lambda d: 0.3 + 0.6 * np.exp(-d / 10.0))
     log_mu = float(np.sum(np.log1p(-(0.3 + 0.6 * np.exp(-np.arange(5, 26) / 10.0)))))
-    relvar = assert_unbiased(toy_problem(params), poor_value(ToyValue(params).log_value_next, miss_gap), log_mu,
-                             n=20000)  # fmt: skip
+    relvar = assert_unbiased(
+        toy_problem(params), poor_value(ToyValue(params).log_value_next, miss_gap), log_mu, n=20000
+    )
     assert relvar_range[0] < relvar < relvar_range[1]  # the V is poor: far from q*'s 0, below plain MC's 6e5
 
 

@@ -18,8 +18,20 @@ from pemviz.cli import main as cli_main
 from pemviz.commands import UsageError, output_folder
 from pemviz.studies.validation import RUNS_FILE
 
-TINY = ("--problems", "toy-1e-3", "--presets", "paper", "--baselines", "mc",
-        "--k", "2", "--ce-epochs", "20", "--pretrain-epochs", "20")  # fmt: skip
+TINY = (
+    "--problems",
+    "toy-1e-3",
+    "--presets",
+    "paper",
+    "--baselines",
+    "mc",
+    "--k",
+    "2",
+    "--ce-epochs",
+    "20",
+    "--pretrain-epochs",
+    "20",
+)
 
 
 def runs(folder: Path) -> list[dict]:
@@ -31,7 +43,11 @@ def test_validate_keeps_every_run_and_a_larger_run_resumes_from_them(tmp_path: P
     assert cli_main(["validate", *TINY, "--seeds", "2", "--out", str(out)]) == 0
     first = runs(out)
     assert sorted((r["record"]["method"], r["record"]["seed"]) for r in first) == [
-        ("adaptive (paper)", 0), ("adaptive (paper)", 1), ("mc", 0), ("mc", 1)]  # fmt: skip
+        ("adaptive (paper)", 0),
+        ("adaptive (paper)", 1),
+        ("mc", 0),
+        ("mc", 1),
+    ]
     capsys.readouterr()
     with (out / RUNS_FILE).open("a") as f:  # a run killed while its line was being written
         f.write('{"job": "torn')
@@ -70,9 +86,30 @@ def test_validate_killed_by_sigterm_keeps_its_finished_runs_for_the_next_call(tm
 
 
 def test_tables_resume_from_their_out_folder(tmp_path: Path, capsys) -> None:
-    args = ["tables", "--problem", "toy-1e-3", "--reps", "2", "--k", "2", "--ce-epochs", "20", "--pretrain-epochs",
-            "20", "--extra", "", "--mc-large", "200", "--naive-large", "100", "--jobs", "1", "--no-record",
-            "--out", str(tmp_path / "t")]  # fmt: skip
+    args = [
+        "tables",
+        "--problem",
+        "toy-1e-3",
+        "--reps",
+        "2",
+        "--k",
+        "2",
+        "--ce-epochs",
+        "20",
+        "--pretrain-epochs",
+        "20",
+        "--extra",
+        "",
+        "--mc-large",
+        "200",
+        "--naive-large",
+        "100",
+        "--jobs",
+        "1",
+        "--no-record",
+        "--out",
+        str(tmp_path / "t"),
+    ]
     assert cli_main(args) == 0
     table = (tmp_path / "t" / "tables.csv").read_text()
     n = len(runs(tmp_path / "t"))

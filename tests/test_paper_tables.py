@@ -31,8 +31,21 @@ def test_log_mean_and_se_equal_numpy_and_stay_exact_below_float_range():
 
 
 def _record(label: str, seed: int, mu: float, failures: int) -> RunRecord:
-    return RunRecord("toy", label, seed, math.log(mu), failures, 100, 3.0, 20.0, 19.0, 100, 1.0,
-                     log_ci_lo=math.log(mu / 2), log_ci_hi=math.log(mu * 2))  # fmt: skip
+    return RunRecord(
+        "toy",
+        label,
+        seed,
+        math.log(mu),
+        failures,
+        100,
+        3.0,
+        20.0,
+        19.0,
+        100,
+        1.0,
+        log_ci_lo=math.log(mu / 2),
+        log_ci_hi=math.log(mu * 2),
+    )
 
 
 def test_a_row_is_the_mean_and_standard_error_over_repetitions():
@@ -41,8 +54,9 @@ def test_a_row_is_the_mean_and_standard_error_over_repetitions():
     assert math.exp(row.log_mean) == pytest.approx(2e-3, rel=1e-12)
     assert math.exp(row.log_se) == pytest.approx(np.std([1e-3, 3e-3], ddof=1) / math.sqrt(2), rel=1e-12)
     assert (row.reps, row.mean_failures, row.covered) == (2, 2.0, 1)  # 3e-3 / 2 > 1e-3
-    assert ("| MC_100 | 2.000e-03 (+-1.00e-03) | 2.0/100 | 20.0 | 19.0 | 3.0 | 1.0000e-03 | 2 | 1/2 |"
-            in markdown([row], "II"))
+    assert "| MC_100 | 2.000e-03 (+-1.00e-03) | 2.0/100 | 20.0 | 19.0 | 3.0 | 1.0000e-03 | 2 | 1/2 |" in markdown(
+        [row], "II"
+    )
     assert rows_csv([row]).splitlines()[1].startswith("II,MC_100,2,")
 
 

@@ -208,8 +208,9 @@ def test_cli_eval_cross_validates_the_ensemble_members_beside_the_nominal(salien
     from pemviz.studies.ensemble_eval import _member_fold
     from pemviz.studies.pem_eval import stratified_folds
 
-    rc = cli_main(["pem", "eval", "--quick", "--models", "ml-nn", "--ensemble", "2", "--no-record", "--out",
-                   str(tmp_path)])  # fmt: skip
+    rc = cli_main(
+        ["pem", "eval", "--quick", "--models", "ml-nn", "--ensemble", "2", "--no-record", "--out", str(tmp_path)]
+    )
     assert rc == 0
     text = (tmp_path / "pem-eval-ensemble.md").read_text()
     assert "| ml-nn (nominal) |" in text and "| member 0 |" in text and "| member 1 |" in text
@@ -218,8 +219,9 @@ def test_cli_eval_cross_validates_the_ensemble_members_beside_the_nominal(salien
     train, test = stratified_folds(y)[0]
     from pemviz.pem.encoding import fit_norm_stats
 
-    k, fold, bce, auc = _member_fold((1, 0, raw[train], y[train], raw[test], y[test], fit_norm_stats(raw),
-                                      PEM_RECIPES["ml-nn"].seed, 20, 15))  # fmt: skip
+    k, fold, bce, auc = _member_fold(
+        (1, 0, raw[train], y[train], raw[test], y[test], fit_norm_stats(raw), PEM_RECIPES["ml-nn"].seed, 20, 15)
+    )
     assert f"| member 1 | {bce:.4f} | {auc:.4f} |" in text
     assert 0.2 < bce < 0.3 and 0.6 < auc < 0.9
     assert len(set(bootstrap_rows(len(train), 2, 1))) < len(train)

@@ -37,11 +37,13 @@ def test_a_pem_written_as_the_page_says_loads_and_runs(tmp_path, monkeypatch, na
     # the synthetic detector misses more often far away: the file's PEM says so along the braking scene's gap
     near, far = pem.prob_at_gap(np.array([5.0, 40.0]))
     assert 0.9 < near <= 1.0 and far < near - 0.3, (near, far)
-    proc = run_cli("run", "--pem", str(tmp_path / file), "--k", "3", "--n", "100", "--n-final", "200",
-                   "--no-record", cwd=tmp_path)  # fmt: skip
+    proc = run_cli(
+        "run", "--pem", str(tmp_path / file), "--k", "3", "--n", "100", "--n-final", "200", "--no-record", cwd=tmp_path
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert re.search(r"mu_hat = \d\.\d+e-\d+, (95% CI \[|no 95% CI from these weights: p >= \d)", proc.stdout), \
-        proc.stdout[-1500:]
+    assert re.search(
+        r"mu_hat = \d\.\d+e-\d+, (95% CI \[|no 95% CI from these weights: p >= \d)", proc.stdout
+    ), proc.stdout[-1500:]
     assert "nan" not in proc.stdout
 
 

@@ -94,12 +94,15 @@ def test_geometry_rejects_bad_input(args, message) -> None:
 
 def test_training_data_keeps_detected_obstacles_ahead_and_dequantises_within_half_a_pixel() -> None:
     raw = _raw(np.array([20.0, 20.0, 0.5, 40.0]))
-    table = np.array([
-        [1, 600, 180, 40, 50, 0, 0, 0, -5],  # detected, truth 55 px high
-        [0, 0, 0, 0, 0, 0, 0, 0, 0],  # missed
-        [1, 600, 180, 40, 50, 1, 0, 0, 1],  # detected but 0.5 m ahead: dropped
-        [1, 600, 180, 40, 30, 3, 0, 0, 0],  # detected, centre 3 px off
-    ], dtype=np.float64)  # fmt: skip
+    table = np.array(
+        [
+            [1, 600, 180, 40, 50, 0, 0, 0, -5],  # detected, truth 55 px high
+            [0, 0, 0, 0, 0, 0, 0, 0, 0],  # missed
+            [1, 600, 180, 40, 50, 1, 0, 0, 1],  # detected but 0.5 m ahead: dropped
+            [1, 600, 180, 40, 30, 3, 0, 0, 0],  # detected, centre 3 px off
+        ],
+        dtype=np.float64,
+    )
     d = noise_training_data(raw, table, seed=3)
     assert d.rows.tolist() == [0, 3]
     # row 0: e_h in [-5.5, -4.5] with the truth 55 px: dZ = -20 e_h / (55 + e_h) in [20*4.5/50.5, 20*5.5/49.5]
@@ -115,8 +118,15 @@ def test_training_data_keeps_detected_obstacles_ahead_and_dequantises_within_hal
 
 def _homo(family: str, df=None) -> HomoscedasticNoise:
     rng = np.random.default_rng(1)
-    return HomoscedasticNoise(name="h", norm=NORM, family=family, df=df, coef=rng.normal(0, 0.3, (14, 2)),
-                                  intercept=np.array([0.2, -0.05]), log_scale=np.array([0.4, -2.0]))  # fmt: skip
+    return HomoscedasticNoise(
+        name="h",
+        norm=NORM,
+        family=family,
+        df=df,
+        coef=rng.normal(0, 0.3, (14, 2)),
+        intercept=np.array([0.2, -0.05]),
+        log_scale=np.array([0.4, -2.0]),
+    )
 
 
 def _torch_dist(family: str, loc, scale, df):
@@ -158,8 +168,15 @@ def test_network_parameters_equal_the_torch_module_in_float64() -> None:
     torch.manual_seed(0)
     module = MLNN(14, (8, 8), batch_norm=False, out_dim=4)
     scale = np.array([2.5, 0.08])
-    model = NoisePEM(name="n", norm=NORM, family="student-t", df=np.array([3.0, 4.0]),
-                         state_dict=module.state_dict(), hidden=(8, 8), target_scale=scale)  # fmt: skip
+    model = NoisePEM(
+        name="n",
+        norm=NORM,
+        family="student-t",
+        df=np.array([3.0, 4.0]),
+        state_dict=module.state_dict(),
+        hidden=(8, 8),
+        target_scale=scale,
+    )
     x = model.features(_raw(np.linspace(2, 80, 50), x=-4.0, cls=3, occ=1))
     with torch.no_grad():
         out = module.double()(torch.as_tensor(x)).numpy()
@@ -186,8 +203,9 @@ def test_noise_loss_is_the_torch_distribution_nll() -> None:
     out = torch.tensor([[0.1, -0.2, 0.3, -1.0], [0.0, 0.5, -0.4, 0.2]])
     y = torch.tensor([[1.0, 0.0], [-2.0, 0.3]])
     loss = NoiseNLL("student-t")
-    expected = -torch.distributions.StudentT(1.0 + math.log(2.0), out[:, :2],
-                                             out[:, 2:].exp()).log_prob(y).sum(1).mean()
+    expected = (
+        -torch.distributions.StudentT(1.0 + math.log(2.0), out[:, :2], out[:, 2:].exp()).log_prob(y).sum(1).mean()
+    )
     assert float(loss(out, y).detach()) == pytest.approx(float(expected), rel=1e-6)  # softplus(0) = log 2
 
 
@@ -323,11 +341,13 @@ def test_noisy_pem_round_trips_and_scores_detection_and_noise(noisy, tmp_path: P
     detected = np.array([True, False, True])
     errors = np.array([[0.1, 0.01], [np.nan, np.nan], [-3.0, 0.2]])
     logit = noisy.detect.logit_features(x)
-    expected = np.array([
-        -math.log1p(math.exp(-logit[0])) + noisy.noise.log_prob(x[:1], errors[:1])[0],
-        -math.log1p(math.exp(logit[1])),
-        -math.log1p(math.exp(-logit[2])) + noisy.noise.log_prob(x[2:], errors[2:])[0],
-    ])  # fmt: skip
+    expected = np.array(
+        [
+            -math.log1p(math.exp(-logit[0])) + noisy.noise.log_prob(x[:1], errors[:1])[0],
+            -math.log1p(math.exp(logit[1])),
+            -math.log1p(math.exp(-logit[2])) + noisy.noise.log_prob(x[2:], errors[2:])[0],
+        ]
+    )
     np.testing.assert_allclose(noisy.log_prob(x, detected, errors), expected, rtol=1e-12)
     np.testing.assert_array_equal(back.log_prob(x, detected, errors), noisy.log_prob(x, detected, errors))
     assert back.name == "ml-nn+hetero-t"
@@ -378,9 +398,15 @@ def test_unknown_noise_pem_name_lists_the_shipped_ones() -> None:
 # ------------------------------------------------------------------------------------- label reader
 
 _ROW = st.tuples(
-    st.integers(1, 1200), st.integers(1, 370), st.integers(1, 400), st.integers(2, 370),  # detected box
-    st.integers(-50, 50), st.integers(-50, 50), st.integers(-50, 50), st.integers(-50, 50),  # errors
-)  # fmt: skip
+    st.integers(1, 1200),
+    st.integers(1, 370),
+    st.integers(1, 400),
+    st.integers(2, 370),  # detected box
+    st.integers(-50, 50),
+    st.integers(-50, 50),
+    st.integers(-50, 50),
+    st.integers(-50, 50),  # errors
+)
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -406,8 +432,21 @@ def test_label_table_reader_round_trips_or_names_the_bad_line(tmp_path: Path, ro
 
 def test_cli_trains_a_noise_pem_that_loads(salient, tmp_path: Path, capsys) -> None:
     out = tmp_path / "noise.pt"
-    rc = cli_main(["pem", "train", "--model", "hetero-t", "--epochs", "2", "--out", str(out), "--no-progress",
-                   "--data-dir", str(SHARED_DATA)])  # fmt: skip
+    rc = cli_main(
+        [
+            "pem",
+            "train",
+            "--model",
+            "hetero-t",
+            "--epochs",
+            "2",
+            "--out",
+            str(out),
+            "--no-progress",
+            "--data-dir",
+            str(SHARED_DATA),
+        ]
+    )
     assert rc == 0
     model = pem.load_noise_pem(out)
     assert model.metadata["command"] == "pemviz pem train --model hetero-t --seed 0 --epochs 2"
@@ -415,8 +454,19 @@ def test_cli_trains_a_noise_pem_that_loads(salient, tmp_path: Path, capsys) -> N
 
 
 def test_cli_eval_reports_the_noise_table(salient, tmp_path: Path, capsys) -> None:
-    rc = cli_main(["pem", "eval", "--quick", "--models", "homo-normal,hetero-t", "--out", str(tmp_path),
-                   "--data-dir", str(SHARED_DATA)])  # fmt: skip
+    rc = cli_main(
+        [
+            "pem",
+            "eval",
+            "--quick",
+            "--models",
+            "homo-normal,hetero-t",
+            "--out",
+            str(tmp_path),
+            "--data-dir",
+            str(SHARED_DATA),
+        ]
+    )
     assert rc == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pem-eval.md", "pem-noise-eval.csv"]
     assert "Noise PEM cross-validation" in (tmp_path / "pem-eval.md").read_text()

@@ -37,8 +37,9 @@ def test_the_log_ratio_by_hand():
     rows = np.ones((1, 3, 1, 2))
     detected = np.array([[[True], [False], [True]]])
     mask = np.array([[True, True, False]])
-    out = detection_log_ratios(ConstantDetector(0.5), [ConstantDetector(0.9), ConstantDetector(0.5)], rows, detected,
-                               mask)  # fmt: skip
+    out = detection_log_ratios(
+        ConstantDetector(0.5), [ConstantDetector(0.9), ConstantDetector(0.5)], rows, detected, mask
+    )
     assert out[0, 0] == pytest.approx(math.log(0.9 / 0.5) + math.log(0.1 / 0.5), rel=1e-12)
     assert out[1, 0] == 0.0
 
@@ -91,7 +92,8 @@ def test_latched_members_and_shifts_against_their_closed_form(seed):
     for a, d in zip(spread.shifts, PEM_SHIFTS, strict=False):
         known = latched_log_failure_probability(
             lambda g: pem.logit_at_gap(g) + d,  # noqa: B023 (called within the iteration)
-            BrakingParams(latched_brake=True))
+            BrakingParams(latched_brake=True),
+        )
         assert a.exact_log_p == pytest.approx(known.log_p_fail, abs=1e-9)
     within = [a for a in alts if abs(a.estimate.log_mu_hat - a.exact_log_p) <= math.log(1.5)]
     covers = [a for a in alts if a.estimate.covers(a.exact_log_p)]
@@ -139,7 +141,10 @@ def test_the_rollout_file_re_estimates_the_run_s_spread(tmp_path, capsys):
     est = capsys.readouterr().out
 
     def spread(text: str) -> list[str]:
-        return [ln for ln in text.splitlines() if ln.startswith(("PEM uncertainty", "  members:", "  member ESS",
-                                                                 "  exact members", "PEM shifted"))]  # fmt: skip
+        return [
+            ln
+            for ln in text.splitlines()
+            if ln.startswith(("PEM uncertainty", "  members:", "  member ESS", "  exact members", "PEM shifted"))
+        ]
 
     assert len(spread(run)) >= 7 and spread(est) == spread(run)

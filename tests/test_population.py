@@ -25,8 +25,10 @@ def test_shares_by_hand_one_stage():
 def test_shares_reproduce_the_pooled_estimate_with_stage_weights():
     # two stages of 4 and 2 rollouts, lambda = (0.3, 0.7): each term is w lambda_k N / n_k, mu_hat their mean
     rng = np.random.default_rng(3)
-    parts = [(1, rng.normal(-30, 2, 4), np.array([True, True, False, True]), np.zeros(4)),
-             (2, rng.normal(-30, 2, 2), np.array([True, False]), np.zeros(2))]  # fmt: skip
+    parts = [
+        (1, rng.normal(-30, 2, 4), np.array([True, True, False, True]), np.zeros(4)),
+        (2, rng.normal(-30, 2, 2), np.array([True, False]), np.zeros(2)),
+    ]
     lam = np.array([0.3, 0.7])
     s = failure_shares(parts, lam)
     mu = pool([p[1:] for p in parts], lam)

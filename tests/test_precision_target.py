@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.core.estimate import Estimate, clopper_pearson, estimate
+from pemviz.core.confidence import clopper_pearson
+from pemviz.core.estimate import Estimate, estimate
 from pemviz.scenarios.problems import build_problem
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators.precision import GROWTH, MIN_BATCH, PrecisionTarget, added_batch_size
@@ -76,16 +77,18 @@ def test_an_adaptive_run_pools_the_added_batches_with_the_final_one_as_its_rollo
     n_finals = sum(sizes[k] for k in finals)
     ratios = [lam[used.index(k)] / sizes[k] for k in finals]  # every final rollout alike
     assert max(ratios) == pytest.approx(min(ratios), rel=1e-12)
-    assert sum(lam[used.index(k)] for k in finals) == pytest.approx(lam[used.index(k_final)] * n_finals
-                                                                    / sizes[k_final], rel=1e-12)  # fmt: skip
+    assert sum(lam[used.index(k)] for k in finals) == pytest.approx(
+        lam[used.index(k_final)] * n_finals / sizes[k_final], rel=1e-12
+    )
     assert final.estimate.covers(problem.exact_log_p)
 
 
 def test_the_added_batch_follows_the_square_root_law_within_its_bounds():
     def est(width: float) -> Estimate:  # mu_hat 1e-3 with a symmetric interval of relative half-width ``width``
         mu = 1e-3
-        return Estimate(1000, 10, math.log(mu), 1.0, 1.0, 10.0,
-                        (math.log(mu * (1 - width)), math.log(mu * (1 + width))))
+        return Estimate(
+            1000, 10, math.log(mu), 1.0, 1.0, 10.0, (math.log(mu * (1 - width)), math.log(mu * (1 + width)))
+        )
 
     assert est(0.4).rel_half_width == pytest.approx(0.4)
     assert added_batch_size(est(0.4), 1000, 0.2) in (3600, 3601)  # 1.2 x ((0.4 / 0.2)^2 - 1) = 3.6 times more
@@ -95,15 +98,23 @@ def test_the_added_batch_follows_the_square_root_law_within_its_bounds():
     assert no_failure.rel_half_width == math.inf and added_batch_size(no_failure, 500, 0.2) == 500
 
 
-@pytest.mark.parametrize("fields, message", [
-    (dict(method="ams", rel_error=0.1), "rel_error = 0.1 is invalid: method ams has no final batch to add to; use it "
-                                        "with method adaptive, mc"),
-    (dict(max_sims=10_000), "max_sims = 10000 is invalid: a cap on the rollouts added for a target relative error"),
-    (dict(max_time_s=60.0), "max_time_s = 60.0 is invalid: a cap on the rollouts added"),
-    (dict(rel_error=0.1, max_sims=1000), "the most simulations must be at least the run's planned 2,100 simulations"),
-    (dict(rel_error=0.1, final_estimate="last-stage"), "final_estimate = 'last-stage' has none"),
-    (dict(rel_error=0.0), "the target relative error must be None or a number in (0, 10]"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        (
+            dict(method="ams", rel_error=0.1),
+            "rel_error = 0.1 is invalid: method ams has no final batch to add to; use it " "with method adaptive, mc",
+        ),
+        (dict(max_sims=10_000), "max_sims = 10000 is invalid: a cap on the rollouts added for a target relative error"),
+        (dict(max_time_s=60.0), "max_time_s = 60.0 is invalid: a cap on the rollouts added"),
+        (
+            dict(rel_error=0.1, max_sims=1000),
+            "the most simulations must be at least the run's planned 2,100 simulations",
+        ),
+        (dict(rel_error=0.1, final_estimate="last-stage"), "final_estimate = 'last-stage' has none"),
+        (dict(rel_error=0.0), "the target relative error must be None or a number in (0, 10]"),
+    ],
+)
 def test_settings_that_cannot_run_are_refused_by_the_config(fields, message):
     with pytest.raises(ConfigError, match=None) as info:
         ExperimentConfig(**fields)

@@ -44,14 +44,19 @@ def test_the_docs_quote_commands():
 def test_a_quoted_block_is_what_its_command_prints_now(block):
     assert docs_assets().matches(block.lines, output(block.command)), (
         f"{block.path.name}:{block.first} is stale: run python benchmarks/docs_assets.py --write\n"
-        + "\n".join(block.lines) + "\n--- the command prints now ---\n" + output(block.command))
+        + "\n".join(block.lines)
+        + "\n--- the command prints now ---\n"
+        + output(block.command)
+    )
 
 
 def test_a_number_edited_by_hand_fails_and_durations_do_not():
     """A digit changed in a quoted line no longer matches; a duration changed does; ``...`` elides."""
     m = docs_assets().matches
-    printed = ("mu_hat = 2.844e-04, 95% CI [2.32e-04, 3.45e-04], ESS 102.0\n"
-               "stop: target reached after 358,697 simulations in 13.6 s (~22 s at ~0.069 ms a plain rollout)\n")
+    printed = (
+        "mu_hat = 2.844e-04, 95% CI [2.32e-04, 3.45e-04], ESS 102.0\n"
+        "stop: target reached after 358,697 simulations in 13.6 s (~22 s at ~0.069 ms a plain rollout)\n"
+    )
     assert m(["mu_hat = 2.844e-04, 95% CI [2.32e-04, 3.45e-04], ESS 102.0"], printed)
     assert not m(["mu_hat = 2.845e-04, 95% CI [2.32e-04, 3.45e-04], ESS 102.0"], printed)
     assert not m(["stop: target reached after 358,696 simulations"], printed)

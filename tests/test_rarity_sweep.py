@@ -66,8 +66,10 @@ def test_quick_sweep_writes_every_output_and_replaces_none_unasked(sweep, quick_
 
 def test_simulations_for_ten_percent_scale_as_the_square_of_the_error(sweep):
     rows = sweep.summarise(
-        [sweep.Record("a", "m", s, math.log(1e-5) + math.log1p(e), 1, 1000, 1.0)
-         for s, e in enumerate((0.2, -0.2, 0.4))],
+        [
+            sweep.Record("a", "m", s, math.log(1e-5) + math.log1p(e), 1, 1000, 1.0)
+            for s, e in enumerate((0.2, -0.2, 0.4))
+        ],
         {"a": math.log(1e-5)},
     )
     assert rows[0].median_rel_error == pytest.approx(0.2, rel=1e-9)

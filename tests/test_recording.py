@@ -58,8 +58,9 @@ def record(path, cfg: ExperimentConfig, extra_listeners=(), cancel=None):
     problem = problem_for(cfg)
     sink = RerunSink.to_file(path, problem=problem)
     try:
-        Experiment(cfg, [ConsoleSink(out, io.StringIO()), sink, events.append, *extra_listeners], cancel,
-                   problem=problem).run()
+        Experiment(
+            cfg, [ConsoleSink(out, io.StringIO()), sink, events.append, *extra_listeners], cancel, problem=problem
+        ).run()
     finally:
         sink.close()
     return events, out.getvalue()
@@ -107,7 +108,7 @@ def runs(tmp_path_factory):
 def featured_rows(tables, stage: int) -> list[int]:
     """Batch rows of a stage's featured rollouts (their own entities under ``/rollouts/gap_m/stage_KK/``), ascending."""
     prefix = f"/rollouts/gap_m/stage_{stage:02d}/rollout_"
-    numbers = {int(c[len(prefix):].split(":")[0]) for c in tables["static"].column_names if c.startswith(prefix)}
+    numbers = {int(c[len(prefix) :].split(":")[0]) for c in tables["static"].column_names if c.startswith(prefix)}
     return sorted(numbers)
 
 
@@ -174,8 +175,9 @@ def test_every_rollout_gap_trace_has_T_points_equal_to_the_batch(runs):
                 marks = column(table, f"/rollouts/{key}/stage_{ev.stage:02d}:Scalars:scalars")
                 marks = np.array([m for m in marks if m is not None]).T  # [featured, T]
                 np.testing.assert_array_equal(np.isfinite(marks), (ev.batch.detected[rows, :, 0] == seen) & matters)
-                np.testing.assert_array_equal(marks[np.isfinite(marks)],
-                                              ev.batch.signal("gap_m")[rows][np.isfinite(marks)])
+                np.testing.assert_array_equal(
+                    marks[np.isfinite(marks)], ev.batch.signal("gap_m")[rows][np.isfinite(marks)]
+                )
 
 
 def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
@@ -194,8 +196,10 @@ def test_crashes_are_red_and_the_least_robust_rollouts_tagged(runs):
         low = ev.batch.signal("gap_m")[i].min()
         said = ("contact at " in name) if low <= 0.7 else (f"breach {low:.2f} m, no contact" in name)
         assert said == bool(ev.failed[i]) and ("contact" in name or "breach" in name) == bool(ev.failed[i])
-    summary = {k: static_value(tables, f"/rollouts/summary/stage_01:{k}") for k in
-               ("failed", "least_robust", "log_weight", "robustness_classic", "robustness_agm")}  # fmt: skip
+    summary = {
+        k: static_value(tables, f"/rollouts/summary/stage_01:{k}")
+        for k in ("failed", "least_robust", "log_weight", "robustness_classic", "robustness_agm")
+    }
     assert summary["failed"] == ev.failed.tolist()
     assert [i for i, t in enumerate(summary["least_robust"]) if t] == sorted(tagged)
     np.testing.assert_array_equal(summary["log_weight"], ev.log_weight)
@@ -268,8 +272,9 @@ def test_nice_ticks_are_round_and_cover_the_range():
 
 def _stages_in(path) -> tuple[list[int], list[str], str]:
     tables = read({"run": path})["run"]
-    rates = zip(column(tables["stage"], "stage"), column(tables["stage"], "/stages/failure_rate:Scalars:scalars"),
-                strict=False)
+    rates = zip(
+        column(tables["stage"], "stage"), column(tables["stage"], "/stages/failure_rate:Scalars:scalars"), strict=False
+    )
     stages = [s for s, v in rates if v]
     curves = sorted(c.split("/")[3][:8] for c in tables["static"].column_names if CURVE_RE.fullmatch(c))
     text = static_value(tables, "/description:TextDocument:text")[0]
@@ -346,8 +351,9 @@ def test_the_estimate_view_and_series_carry_the_interval_verdict_and_stage_names
     assert len(lo) == len(mu) and all(a[0] <= m[0] for a, m in zip(lo, mu, strict=False))
     # an upper end only for the stages whose weights back an interval (the others show their lower bound alone)
     backed = [e for e in stage_estimates(events) if math.isfinite(e.log10_mu_hat) and e.interval_backed]
-    assert len(hi) == len(backed) and all(b[0] == pytest.approx(e.log_ci[1] / math.log(10.0), rel=1e-6)
-                                          for b, e in zip(hi, backed, strict=False))
+    assert len(hi) == len(backed) and all(
+        b[0] == pytest.approx(e.log_ci[1] / math.log(10.0), rel=1e-6) for b, e in zip(hi, backed, strict=False)
+    )
     description = static_value(tables, "/description:TextDocument:text")[0]
     for name in ("| 0 | pretraining |", "| 1 | CE stage 1/3 |", "| 4 | final batch |"):
         assert name in description
@@ -398,7 +404,7 @@ def explained(tables) -> dict:
     for c in tables["static"].column_names:
         if c.startswith(prefix):
             (value,) = [v for v in column(tables["static"], c) if v is not None]
-            out[c[len(prefix):]] = value[0] if len(value) == 1 else value
+            out[c[len(prefix) :]] = value[0] if len(value) == 1 else value
     return out
 
 
@@ -406,8 +412,14 @@ def explained(tables) -> dict:
 def test_the_most_likely_failure_is_read_back_with_a_minimal_miss_set_that_highway_env_confirms(runs, name):
     events, _, tables, _ = runs[name]
     # the failing rollout with the largest sum of log p over T - 1 steps, found here from the events
-    best = max(((float(ev.batch.log_p[i, :-1].sum()), ev.stage, int(i)) for ev in of(events, RolloutsSampled)
-                for i in np.flatnonzero(ev.failed)), key=lambda x: x[0])  # fmt: skip
+    best = max(
+        (
+            (float(ev.batch.log_p[i, :-1].sum()), ev.stage, int(i))
+            for ev in of(events, RolloutsSampled)
+            for i in np.flatnonzero(ev.failed)
+        ),
+        key=lambda x: x[0],
+    )
     log_p, stage, i = best
     props = explained(tables)
     assert (props["stage"], props["rollout"]) == (stage, i)
@@ -454,8 +466,10 @@ def test_p_and_q_along_the_most_likely_failure_are_its_detectors_probabilities_a
     (ev,) = [e for e in of(events, RolloutsSampled) if e.stage == props["stage"]]
     i = props["rollout"]
     step = column(tables["step"], "step")
-    series = {k: dict(zip(step, column(tables["step"], f"/explain/detect/{k}:Scalars:scalars"), strict=False))
-              for k in ("pem", "sampler", "misses")}  # fmt: skip
+    series = {
+        k: dict(zip(step, column(tables["step"], f"/explain/detect/{k}:Scalars:scalars"), strict=False))
+        for k in ("pem", "sampler", "misses")
+    }
     q = np.array([series["sampler"][t][0] for t in range(ev.batch.n_steps)])
     p = np.array([series["pem"][t][0] for t in range(ev.batch.n_steps)])
     d = ev.batch.detected[i, :, 0]
@@ -481,8 +495,11 @@ def test_the_featured_rollouts_are_each_an_entity_with_stage_log_p_robustness_an
             assert value["log_p"] == pytest.approx(ev.batch.log_p[i, :-1].sum(), abs=1e-9)
             assert value["min_gap_m"] == pytest.approx(ev.batch.signal("gap_m")[i].min())
             steps = column(tables["step"], "step")
-            trace = [v for s, v in zip(steps, column(tables["step"], f"{path}:Scalars:scalars"), strict=False)
-                     if v is not None]
+            trace = [
+                v
+                for s, v in zip(steps, column(tables["step"], f"{path}:Scalars:scalars"), strict=False)
+                if v is not None
+            ]
             np.testing.assert_array_equal(np.array(trace)[:, 0], ev.batch.signal("gap_m")[i])
 
 
@@ -492,8 +509,10 @@ def test_the_marginal_proposal_shows_q_miss_inside_10_m_above_the_pems(runs):
     events, _, tables, _ = runs["adaptive"]
     table = tables["stage"]
     stages = column(table, "stage")
-    stats = {k: dict(zip(stages, column(table, f"/proposal_marginal/stats:{k}"), strict=False))
-             for k in ("edges_m", "q_mean", "p_mean", "q_miss_window", "p_miss_window")}  # fmt: skip
+    stats = {
+        k: dict(zip(stages, column(table, f"/proposal_marginal/stats:{k}"), strict=False))
+        for k in ("edges_m", "q_mean", "p_mean", "q_miss_window", "p_miss_window")
+    }
     bars = dict(zip(stages, column(table, "/proposal_marginal/miss/d_q:BarChart:values"), strict=False))
     for ev in of(events, RolloutsSampled):
         edges = np.asarray(stats["edges_m"][ev.stage])
@@ -540,8 +559,9 @@ def assert_every_view_has_data(events: list, tables: dict) -> None:
         temporal_only = ("Scalars", "BarChart", "Series")  # a static style is no data
         filled += [c for c in static.column_names if c.startswith("/") and not any(k in c for k in temporal_only)]
         for v in views(tab):
-            queries = [str(v.origin)] + [str(q).lstrip("+ ") for q in (v.contents if isinstance(v.contents, list)
-                                                                       else [])]  # fmt: skip
+            queries = [str(v.origin)] + [
+                str(q).lstrip("+ ") for q in (v.contents if isinstance(v.contents, list) else [])
+            ]
             roots = {"/" + q.replace("$origin", str(v.origin)).replace("/**", "").strip("/") for q in queries}
             if any(r.startswith("/stage_figures/") for r in roots):  # a figure: its data, not only its axes
                 roots = {r + "/data" for r in roots}
@@ -581,8 +601,16 @@ def test_the_braking_drawing_says_which_rollouts_made_contact_at_once_as_each_ro
 def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_where_it_was_measured(tmp_path):
     from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES
 
-    cfg = ExperimentConfig(scenario="cut-in", n_stages=2, n_per_stage=60, n_final=60, ce_epochs=30, pretrain_epochs=50,
-                           pretrain_rollouts=60, seed=2)  # fmt: skip
+    cfg = ExperimentConfig(
+        scenario="cut-in",
+        n_stages=2,
+        n_per_stage=60,
+        n_final=60,
+        ce_epochs=30,
+        pretrain_epochs=50,
+        pretrain_rollouts=60,
+        seed=2,
+    )
     events, _ = record(tmp_path / "cut_in.rrd", cfg)
     failures = [e for e in events if isinstance(e, RolloutsSampled) and e.failed.any()]
     assert failures, "the run found no failure to explain"
@@ -609,13 +637,24 @@ def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_whe
     # the track's error along and across the road); the rollout found by its true positions
     true_xy = np.array(true, dtype=np.float64)  # [T, M, 2]: right, -ahead
     col = {name: OBJECT_NAMES.index(name) for name in ("loc_x", "loc_z", "tracked", "track_err_x_m", "track_err_y_m")}
-    rows = next(e.batch.objects[i] for e in failures for i in np.flatnonzero(e.failed)
-                if np.allclose(np.stack([e.batch.objects[i][:, :, col["loc_x"]],
-                                         -e.batch.objects[i][:, :, col["loc_z"]]], -1),
-                               true_xy, atol=1e-4))  # fmt: skip
+    rows = next(
+        e.batch.objects[i]
+        for e in failures
+        for i in np.flatnonzero(e.failed)
+        if np.allclose(
+            np.stack([e.batch.objects[i][:, :, col["loc_x"]], -e.batch.objects[i][:, :, col["loc_z"]]], -1),
+            true_xy,
+            atol=1e-4,
+        )
+    )
     has = rows[:, :, col["tracked"]] > 0.5
-    want = np.stack([rows[:, :, col["loc_x"]] + rows[:, :, col["track_err_y_m"]],
-                     -(rows[:, :, col["loc_z"]] + rows[:, :, col["track_err_x_m"]])], -1)  # fmt: skip
+    want = np.stack(
+        [
+            rows[:, :, col["loc_x"]] + rows[:, :, col["track_err_y_m"]],
+            -(rows[:, :, col["loc_z"]] + rows[:, :, col["track_err_x_m"]]),
+        ],
+        -1,
+    )
     boxes = column(step, "/explain/objects/tracked:Boxes2D:centers")
     got = [np.array(b, dtype=np.float64).reshape(-1, 2) if b else np.zeros((0, 2)) for b in boxes]
     assert has.any() and len(got) == 100
@@ -664,10 +703,16 @@ def test_the_recording_lists_every_failure_of_the_estimate_by_share_and_its_grou
     # p(severity | failure): the shares of p of no contact, 0-2, 2-5 and > 5 m/s, as bars adding up to 1
     (tensor,) = static_value(tables, "/final/severity_of_failures:BarChart:values")
     bars = np.asarray(tensor["buffer"], dtype=np.float64)
-    by_hand = [share[np.isnan(speed)].sum(), share[speed < 2].sum(), share[(speed >= 2) & (speed < 5)].sum(),
-               share[speed >= 5].sum()]  # fmt: skip
+    by_hand = [
+        share[np.isnan(speed)].sum(),
+        share[speed < 2].sum(),
+        share[(speed >= 2) & (speed < 5)].sum(),
+        share[speed >= 5].sum(),
+    ]
     np.testing.assert_allclose(bars, by_hand, rtol=1e-9, atol=1e-300)
     assert bars.sum() == pytest.approx(1.0, rel=1e-12)
     assert static_value(tables, "/final/severity_of_failures:bin") == ["no contact", "0-2 m/s", "2-5 m/s", "> 5 m/s"]
     assert static_value(tables, "/final/severity_of_failures:bin_failures") == [
-        int(np.isnan(speed).sum()), *np.histogram(speed, [0, 2, 5, np.inf])[0].tolist()]
+        int(np.isnan(speed).sum()),
+        *np.histogram(speed, [0, 2, 5, np.inf])[0].tolist(),
+    ]

@@ -31,8 +31,14 @@ the description's and estimate's text that states it)."""
 def program(*args: str, cwd: Path, importtime: bool = False) -> subprocess.CompletedProcess:
     env = {**os.environ, "RERUN_ANALYTICS": "false", "PYTHONPATH": str(REPO)}
     flags = ["-X", "importtime"] if importtime else []
-    return subprocess.run([sys.executable, *flags, "-m", "pemviz.cli", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, *flags, "-m", "pemviz.cli", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
 
 
 def tables(path: Path) -> dict:

@@ -15,8 +15,9 @@ from conftest import run_cli
 
 
 def an_estimate(mu: float, lo: float, hi: float) -> Estimate:
-    return Estimate(2100, 50, math.log(mu), 40.0, 40.0, 20.0, (math.log(lo), math.log(hi)), 0.3, 0.0, "reliable",
-                    "50 failures")  # fmt: skip
+    return Estimate(
+        2100, 50, math.log(mu), 40.0, 40.0, 20.0, (math.log(lo), math.log(hi)), 0.3, 0.0, "reliable", "50 failures"
+    )
 
 
 def test_the_reference_interval_is_clopper_pearsons_beta_quantiles():
@@ -38,13 +39,15 @@ def test_the_summary_compares_the_estimate_with_the_reference_when_no_exact_answ
     near = an_estimate(9.0e-5, 7.0e-5, 1.2e-4)
     assert near.summary(None, r).endswith(
         "; reference 8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain Monte Carlo): "
-        "relative error 0.0393, inside the interval")  # |9.0 - 8.66| / 8.66 = 0.03926
+        "relative error 0.0393, inside the interval"
+    )  # |9.0 - 8.66| / 8.66 = 0.03926
     far = an_estimate(1.455e-16, 2.08e-17, 1.02e-15)
     # 8.66e-5 / 1.455e-16
     assert far.summary(None, r).endswith("11.8 orders of magnitude too low, OUTSIDE the interval")
     # an exact answer, where known, is the one shown
-    assert ("reference" not in near.summary(math.log(8.66e-5), r)
-            and "exact 8.660e-05" in near.summary(math.log(8.66e-5), r))
+    assert "reference" not in near.summary(math.log(8.66e-5), r) and "exact 8.660e-05" in near.summary(
+        math.log(8.66e-5), r
+    )
 
 
 def test_an_estimate_far_off_says_by_how_much():
@@ -69,13 +72,16 @@ def test_only_the_moderate_cut_in_with_the_shipped_pems_carries_the_reference():
 
 
 def test_a_cut_in_run_prints_its_estimate_beside_the_reference():
-    proc = run_cli("run", "--scenario", "cut-in", "--method", "mc", "--n", "200", "--seed", "3", "--no-record",
-                   timeout=300)  # fmt: skip
+    proc = run_cli(
+        "run", "--scenario", "cut-in", "--method", "mc", "--n", "200", "--seed", "3", "--no-record", timeout=300
+    )
     assert proc.returncode == 0, proc.stderr
     last = next(ln for ln in proc.stdout.splitlines() if ln.startswith("no failure seen in "))
     assert last.startswith("no failure seen in 200 rollouts: p < 1.50e-02 (95%, rule of three")  # no point estimate
-    assert last.endswith("; reference 8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain "
-                         "Monte Carlo, shipped PEMs): no failure seen, inside the interval")  # fmt: skip
+    assert last.endswith(
+        "; reference 8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain "
+        "Monte Carlo, shipped PEMs): no failure seen, inside the interval"
+    )
 
 
 def test_the_config_knows_how_many_objects_each_scenario_perceives():

@@ -17,8 +17,15 @@ from pemviz.cli import main
 from pemviz.sinks.report import document_sha256, report_html, severity_svg
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync"]  # fmt: skip
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 RUNS = {
     "braking": ["run"],
@@ -38,9 +45,13 @@ def reported(request, tmp_path_factory):
 
 def _console_numbers(stdout: str) -> list[str]:
     """The lines under the table that carry the estimate and the severity curve."""
-    return [line.strip() for line in stdout.splitlines()
-            if line.startswith(("mu_hat = ", "no failure seen in", "severity:", "  gap <", "  clearance <",
-                                "  the spec's failure"))]  # fmt: skip
+    return [
+        line.strip()
+        for line in stdout.splitlines()
+        if line.startswith(
+            ("mu_hat = ", "no failure seen in", "severity:", "  gap <", "  clearance <", "  the spec's failure")
+        )
+    ]
 
 
 def test_the_report_holds_every_line_the_console_printed(reported):

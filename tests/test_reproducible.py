@@ -16,8 +16,11 @@ SMALL_CUT_IN = ["--scenario", "cut-in", "--k", "2", "--n", "150", "--n-final", "
 
 
 def small(scenario: str = "braking", **fields) -> ExperimentConfig:
-    base = dict(n_stages=3, n_per_stage=100, n_final=300) if scenario == "braking" else \
-        dict(n_stages=2, n_per_stage=150, n_final=200, pretrain_rollouts=100)  # fmt: skip
+    base = (
+        dict(n_stages=3, n_per_stage=100, n_final=300)
+        if scenario == "braking"
+        else dict(n_stages=2, n_per_stage=150, n_final=200, pretrain_rollouts=100)
+    )
     return ExperimentConfig(scenario=scenario, **{**base, **fields})
 
 
@@ -34,8 +37,15 @@ def test_any_chunk_size_gives_the_run_of_whole_batches_bit_for_bit(scenario):
 
 
 def test_the_comparison_names_what_differs():
-    a = {"rollouts": "x", "stages": [[1, "0.0", 3, 3]], "failures": 3, "n": 10, "summary": "s", "log_mu_hat": -30.0,
-         "ess": 5.0}
+    a = {
+        "rollouts": "x",
+        "stages": [[1, "0.0", 3, 3]],
+        "failures": 3,
+        "n": 10,
+        "summary": "s",
+        "log_mu_hat": -30.0,
+        "ess": 5.0,
+    }
     assert rp.compare(a, dict(a), same_machine=True) == []
     b = {**a, "log_mu_hat": -30.0 * (1 + 5e-13)}
     assert rp.compare(a, b, same_machine=True) == [f"log_mu_hat: -30.0 != {b['log_mu_hat']!r}"]
@@ -44,15 +54,20 @@ def test_the_comparison_names_what_differs():
     assert [d.split(":")[0] for d in rp.compare(a, c, same_machine=False)] == ["rollouts", "log_mu_hat"]
 
 
-x86 = pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"),
-                         reason="the dispatch settings name x86-64 kernels")  # fmt: skip
+x86 = pytest.mark.skipif(
+    platform.machine() not in ("x86_64", "AMD64"), reason="the dispatch settings name x86-64 kernels"
+)
 
 
 @x86
-@pytest.mark.parametrize(("args", "settings"), [
-    (SMALL, list(rp.DISPATCH_SETTINGS)),
-    (SMALL_CUT_IN, list(rp.DISPATCH_SETTINGS)),
-], ids=["braking", "cut-in"])  # fmt: skip
+@pytest.mark.parametrize(
+    ("args", "settings"),
+    [
+        (SMALL, list(rp.DISPATCH_SETTINGS)),
+        (SMALL_CUT_IN, list(rp.DISPATCH_SETTINGS)),
+    ],
+    ids=["braking", "cut-in"],
+)
 def test_every_dispatch_setting_gives_the_same_rollouts_and_printed_numbers(args, settings):
     # each setting picks the kernels another x86-64 CPU would run (AVX2 without AVX-512, scalar torch, MKL's SSE4.2
     # path, OpenBLAS's Haswell or Sandybridge kernels, numpy without its AVX-512 loops): the same rollouts, elites,
@@ -103,8 +118,9 @@ def test_cut_in_chunks_of_1000_give_the_default_chunk_s_rollouts_bit_for_bit():
     pb = problem_for(ExperimentConfig(scenario="cut-in"))
 
     def rollouts(chunk: int) -> RolloutBatch:
-        return RolloutBatch.concatenate(list(pb.stream(8192, pb.target, pb.target, np.random.default_rng(0),
-                                                       chunk_size=chunk, keep_rows=False)))  # fmt: skip
+        return RolloutBatch.concatenate(
+            list(pb.stream(8192, pb.target, pb.target, np.random.default_rng(0), chunk_size=chunk, keep_rows=False))
+        )
 
     whole, parts = rollouts(8192), rollouts(1000)
     for name in ("noise", "log_p", "observations", "detected"):

@@ -17,7 +17,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from conftest import REPO, run_cli
-from pemviz.core.estimate import CI_LEVEL, Estimate, clopper_pearson, estimate
+from pemviz.core.confidence import CI_LEVEL, clopper_pearson
+from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.requirement import (
     ALPHA,
     Requirement,
@@ -31,14 +32,30 @@ from pemviz.core.requirement import (
 CI_PAGE = REPO / "docs" / "ci.md"
 
 
-@pytest.mark.parametrize("text, op, t", [("p < 1e-9", "<", 1e-9), ("p<=0.5", "<=", 0.5), (" p >2.5E-3 ", ">", 2.5e-3),
-                                         ("p >= 1e-300", ">=", 1e-300)])  # fmt: skip
+@pytest.mark.parametrize(
+    "text, op, t",
+    [("p < 1e-9", "<", 1e-9), ("p<=0.5", "<=", 0.5), (" p >2.5E-3 ", ">", 2.5e-3), ("p >= 1e-300", ">=", 1e-300)],
+)
 def test_parse_requirement(text, op, t):
     assert parse_requirement(text) == Requirement(op, t)
 
 
-@pytest.mark.parametrize("text", ["p < 0", "p < 1", "p < 2", "q < 1e-9", "p = 1e-9", "p < abc", "p < 1e-9 and more",
-                                  "", "p <", "p < nan", "p < -1e-9"])  # fmt: skip
+@pytest.mark.parametrize(
+    "text",
+    [
+        "p < 0",
+        "p < 1",
+        "p < 2",
+        "q < 1e-9",
+        "p = 1e-9",
+        "p < abc",
+        "p < 1e-9 and more",
+        "",
+        "p <",
+        "p < nan",
+        "p < -1e-9",
+    ],
+)
 def test_bad_requirements_raise_one_error(text):
     with pytest.raises(RequirementError):
         parse_requirement(text)
@@ -62,8 +79,9 @@ def test_any_text_parses_or_raises_requirement_error(text):
 def test_the_looks_spend_alpha_and_no_more():
     # sum over j of 6 / (pi^2 j^2) = 1 (Euler): the error of every look together is alpha
     assert math.isclose(sum(alpha_at_look(j) for j in range(1, 200_001)), ALPHA, rel_tol=1e-5)
-    assert (math.isclose(alpha_at_look(1), 0.05 * 6 / math.pi**2)
-            and math.isclose(1 - alpha_at_look(2), 0.99240091, rel_tol=1e-8))
+    assert math.isclose(alpha_at_look(1), 0.05 * 6 / math.pi**2) and math.isclose(
+        1 - alpha_at_look(2), 0.99240091, rel_tol=1e-8
+    )
     with pytest.raises(ValueError):
         alpha_at_look(0)
 
@@ -89,8 +107,9 @@ def test_the_interval_at_the_run_s_own_level_is_the_printed_one():
         ci = binomtest(k, n).proportion_ci(confidence_level=level, method="exact")
         assert np.allclose(clopper_pearson(k, n, level), (ci.low, ci.high), rtol=1e-8, atol=1e-15)  # scipy root-finds
     none = estimate(np.zeros(1000), np.zeros(1000, bool), np.zeros(1000))
-    assert math.isclose(math.exp(interval_at_level(none, 0.99, plain_mc=True)[1]), 1 - 0.005 ** (1 / 1000),
-                        rel_tol=1e-9)
+    assert math.isclose(
+        math.exp(interval_at_level(none, 0.99, plain_mc=True)[1]), 1 - 0.005 ** (1 / 1000), rel_tol=1e-9
+    )
 
 
 def test_decisions_by_hand():
@@ -118,8 +137,19 @@ def sequential_mc(p: float, t: float, rng: np.random.Generator, n0: int = 1000, 
         failures += int(rng.binomial(batch, p))
         n += batch
         look += 1
-        e = Estimate(n, failures, math.log(max(failures, 1e-300) / n), 0.0, 0.0, float(failures), (0.0, 0.0),
-                     math.nan, 0.0, "reliable", "")  # fmt: skip
+        e = Estimate(
+            n,
+            failures,
+            math.log(max(failures, 1e-300) / n),
+            0.0,
+            0.0,
+            float(failures),
+            (0.0, 0.0),
+            math.nan,
+            0.0,
+            "reliable",
+            "",
+        )
         d = decide(e, Requirement("<", t), look, plain_mc=True)
         if d.outcome != "undecided":
             return d.outcome
@@ -175,8 +205,19 @@ def test_braking_requirements_against_the_exact_answer(tmp_path, require, code, 
 def test_a_close_threshold_is_undecided_at_a_cap_and_the_junit_file_says_so(tmp_path):
     junitparser = pytest.importorskip("junitparser")
     jsonschema = pytest.importorskip("jsonschema")
-    proc = run_cli("run", "--require", "p < 2e-15", "--max-sims", "3000", "--no-record", "--json",
-                   str(tmp_path / "r.json"), "--junit", str(tmp_path / "r.xml"), cwd=tmp_path)  # fmt: skip
+    proc = run_cli(
+        "run",
+        "--require",
+        "p < 2e-15",
+        "--max-sims",
+        "3000",
+        "--no-record",
+        "--json",
+        str(tmp_path / "r.json"),
+        "--junit",
+        str(tmp_path / "r.xml"),
+        cwd=tmp_path,
+    )
     assert proc.returncode == 3, proc.stderr[-2000:]
     assert "stop: requirement undecided within budget: --max-sims 3,000 reached" in proc.stdout
     jsonschema.validate(json.loads((tmp_path / "r.json").read_text()), schema())
@@ -189,16 +230,24 @@ def test_a_close_threshold_is_undecided_at_a_cap_and_the_junit_file_says_so(tmp_
     assert suites[0].errors == 1 and suites[0].failures == 0 and suites[0].tests == 1
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--require", "p < 2"], "--require: require = 'p < 2' is invalid: 'p < 2': the threshold must be a probability"),
-    (["--require", "p < 1e-9", "--rel-error", "0.1"], "give one stop rule"),
-    (["--require", "p < 1e-9", "--method", "ams"], "method ams has no final batch to add to"),
-    (["--junit", "x.xml"], "--junit writes a requirement as a test case: give one with --require"),
-    (["--json", "x.txt"], "--json"),
-    (["--save-rollouts", "b.parquet", "--json", "b.rollouts.json"],
-     "--json and --save-rollouts (its sidecar) both write b.rollouts.json"),
-    (["--save", "r.rrd", "--json", "r.result.json"], "--json and --save (its result document) both write"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["--require", "p < 2"],
+            "--require: require = 'p < 2' is invalid: 'p < 2': the threshold must be a probability",
+        ),
+        (["--require", "p < 1e-9", "--rel-error", "0.1"], "give one stop rule"),
+        (["--require", "p < 1e-9", "--method", "ams"], "method ams has no final batch to add to"),
+        (["--junit", "x.xml"], "--junit writes a requirement as a test case: give one with --require"),
+        (["--json", "x.txt"], "--json"),
+        (
+            ["--save-rollouts", "b.parquet", "--json", "b.rollouts.json"],
+            "--json and --save-rollouts (its sidecar) both write b.rollouts.json",
+        ),
+        (["--save", "r.rrd", "--json", "r.result.json"], "--json and --save (its result document) both write"),
+    ],
+)
 def test_bad_requirement_flags_are_one_line(tmp_path, args, message):
     proc = run_cli("run", *args, *([] if "--save" in args else ["--no-record"]), cwd=tmp_path)
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
@@ -212,8 +261,11 @@ def test_distinct_outputs_pass_and_a_clash_names_both_flags(tmp_path):
     from pemviz.commands import UsageError
     from pemviz.commands.run_outputs import RunOutputs, check_distinct
 
-    check_distinct(RunOutputs(tmp_path / "r.rrd", tmp_path / "b.parquet", tmp_path / "r.json", tmp_path / "r.xml",
-                              tmp_path / "r.html"))  # r.result.json, b.rollouts.json, r.md: all distinct
+    check_distinct(
+        RunOutputs(
+            tmp_path / "r.rrd", tmp_path / "b.parquet", tmp_path / "r.json", tmp_path / "r.xml", tmp_path / "r.html"
+        )
+    )  # r.result.json, b.rollouts.json, r.md: all distinct
     check_distinct(RunOutputs(None, tmp_path / "b.parquet", tmp_path / "b.json"))  # --json b.json: its own
     with pytest.raises(UsageError, match=r"--json and --save \(its result document\) both write .*r.result.json"):
         check_distinct(RunOutputs(tmp_path / "r.rrd", json=tmp_path / "r.result.json"))

@@ -24,6 +24,7 @@ from pemviz.scenarios.problems import problem_for
 from pemviz import cli
 from pemviz.io.rollout_estimate import REESTIMATE_RTOL, detector_log_prob, estimate_rollouts, pem_log_prob
 from pemviz.io import rollout_format, rollout_table, rollout_writer, rollouts as rio
+from pemviz.io.rollout_sidecars import braking_meta
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, action_log_prob
 from pemviz.engine.experiment import Experiment
@@ -51,8 +52,9 @@ def naive_run(tmp_path_factory, pem):
     finals = []
     sink = RolloutSink(path)
     cfg = ExperimentConfig(method="naive50", n_per_stage=200, seed=1)
-    Experiment(cfg, [sink, lambda ev: finals.append(ev) if isinstance(ev, FinalEstimate) else None],
-               problem=problem_for(cfg)).run()  # fmt: skip
+    Experiment(
+        cfg, [sink, lambda ev: finals.append(ev) if isinstance(ev, FinalEstimate) else None], problem=problem_for(cfg)
+    ).run()
     assert sink.written == path
     return path, finals[0].estimate
 
@@ -74,8 +76,11 @@ def estimate_cli(capsys, *args: str) -> tuple[int, str, str]:
 def test_run_rollouts_read_back_with_their_columns_give_the_runs_mu_hat_to_1e_12(naive_run):
     path, run_estimate = naive_run
     data = rio.read_rollouts(path)
-    assert (data.n, data.n_steps, data.observation_names) == (200, 100, ("gap_m", "ego_speed_mps", "lead_speed_mps",
-                                                                          "brake_pending"))
+    assert (data.n, data.n_steps, data.observation_names) == (
+        200,
+        100,
+        ("gap_m", "ego_speed_mps", "lead_speed_mps", "brake_pending"),
+    )
     result = estimate_rollouts(data, data.log_p, data.log_q)
     assert run_estimate.n_failures == result.estimate.n_failures > 100
     assert same_mu(result.estimate.log_mu_hat, run_estimate.log_mu_hat)
@@ -114,8 +119,15 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     np.testing.assert_allclose(general, data.log_p, rtol=0, atol=1e-5)
     # a copy without log_p / log_q: the sidecar names the PEM and the sampler
     bare = tmp_path / "bare.parquet"
-    rollout_writer.write_rollouts(bare, data.to_batch(), data.meta, salient=data.salient, log_probs=False,
-                                  stage=data.stage, component=data.component)  # fmt: skip
+    rollout_writer.write_rollouts(
+        bare,
+        data.to_batch(),
+        data.meta,
+        salient=data.salient,
+        log_probs=False,
+        stage=data.stage,
+        component=data.component,
+    )
     assert "log_p" not in pq.read_schema(bare).names
     assert not set(rollout_table.SEVERITY_COLUMNS) & set(pq.read_schema(bare).names)  # a file without severity columns
     old = rio.read_rollouts(bare)
@@ -140,8 +152,17 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     pem_batch = problem.simulate(40, problem.target, problem.target, rng)
     pretrain_proposal(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], epochs=100, lr=1e-2)
     r = problem.robustness(pem_batch, "classic")
-    ce_update(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], pem_batch.log_p, pem_batch.log_q,
-              r <= np.sort(r)[3], smoothing=0.5, epochs=50, lr=1e-2)  # fmt: skip
+    ce_update(
+        proposal,
+        pem_batch.signal("gap_m"),
+        pem_batch.detected[..., 0],
+        pem_batch.log_p,
+        pem_batch.log_q,
+        r <= np.sort(r)[3],
+        smoothing=0.5,
+        epochs=50,
+        lr=1e-2,
+    )
     batch = problem.simulate(60, proposal, problem.target, rng)
     failed = problem.failed(batch)
     truth = estimate(batch.log_weight(), failed, batch.log_p[:, :99].sum(axis=1))
@@ -150,8 +171,16 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     path = tmp_path / "adaptive.parquet"
     sink = RolloutSink(path, pem=str(pem_file))
     cfg = ExperimentConfig(**PRESETS["paper"], pem=str(pem_file))  # weights over T - 1 steps, as `truth` above
-    sink(RunStarted(cfg, str(problem.formula), problem.curve_grid, problem.target_curve(), problem.view,
-                    RunPlan.of([(3, "final", 60)])))
+    sink(
+        RunStarted(
+            cfg,
+            str(problem.formula),
+            problem.curve_grid,
+            problem.target_curve(),
+            problem.view,
+            RunPlan.of([(3, "final", 60)]),
+        )
+    )
     sink(StageStarted(3, "final", 60))
     sink(RolloutChunk(3, "final", 0, batch, batch.log_weight(), sampler=proposal))
     with torch_no_grad():
@@ -166,8 +195,9 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     assert same_mu(paper_weights.log_mu_hat, truth.log_mu_hat)
     np.testing.assert_array_equal(detector_log_prob(data, load_proposal(ckpt)), batch.log_q)
     bare = tmp_path / "bare.parquet"
-    rollout_writer.write_rollouts(bare, data.to_batch(), data.meta, log_probs=False, stage=data.stage,
-                                  component=data.component)  # no salient columns: the gap
+    rollout_writer.write_rollouts(
+        bare, data.to_batch(), data.meta, log_probs=False, stage=data.stage, component=data.component
+    )  # no salient columns: the gap
     meta = json.loads(rollout_format.sidecar_path(bare).read_text())
     assert meta["proposal"] == "adaptive.proposal.pt" and meta["pem"] == str(pem_file)
     for args in ([str(bare)], [str(bare), "--pem", str(pem_file), "--proposal", str(ckpt)]):
@@ -186,12 +216,23 @@ def chunked(pem, monkeypatch):
     from pemviz.scenarios.braking.batched import iter_batched
 
     monkeypatch.setattr(engine, "STREAM_ABOVE", 300)
-    return dataclasses.replace(braking_problem(pem), stream=lambda n, sampler, target, rng: iter_batched(
-        None, n, sampler, target, rng, chunk_size=128))  # fmt: skip
+    return dataclasses.replace(
+        braking_problem(pem),
+        stream=lambda n, sampler, target, rng: iter_batched(None, n, sampler, target, rng, chunk_size=128),
+    )
 
 
-STREAMED = ExperimentConfig(n_stages=1, n_per_stage=100, n_final=1000, pretrain_rollouts=50, ce_epochs=5,
-                            pretrain_epochs=5, seed=3, target_share=0.0, plain_share=0.0)  # fmt: skip
+STREAMED = ExperimentConfig(
+    n_stages=1,
+    n_per_stage=100,
+    n_final=1000,
+    pretrain_rollouts=50,
+    ce_epochs=5,
+    pretrain_epochs=5,
+    seed=3,
+    target_share=0.0,
+    plain_share=0.0,
+)
 """A run whose final batch (1,000 rollouts from one sampler) is streamed in 8 chunks by :func:`chunked`."""
 
 
@@ -199,8 +240,11 @@ def test_a_streamed_final_batch_is_written_chunk_by_chunk_and_reads_back_whole(t
     """Above STREAM_ABOVE the engine never holds the final batch: the sink writes each chunk as a row group."""
     sink = RolloutSink(tmp_path / "big.parquet")
     chunks = []
-    done = Experiment(STREAMED, [sink, lambda e: isinstance(e, RolloutChunk) and e.kind == "final"
-                                 and chunks.append(e)], problem=chunked).run()  # fmt: skip
+    done = Experiment(
+        STREAMED,
+        [sink, lambda e: isinstance(e, RolloutChunk) and e.kind == "final" and chunks.append(e)],
+        problem=chunked,
+    ).run()
     assert [c.start for c in chunks] == list(range(0, 1000, 128)) and pq.ParquetFile(sink.written).num_row_groups == 8
     data = rio.read_rollouts(sink.written)
     assert data.detected.shape == (1000, 100, 1)
@@ -237,15 +281,17 @@ def test_a_hand_written_file_with_a_minimal_sidecar_gives_the_hand_computed_esti
     """3 rollouts of 4 steps; rollouts 0 and 2 drop below 2 m, at steps 2 and 3. log w over the steps before the
     failure: rollout 0: 2 x (-1.0 - -0.5) = -1.0; rollout 2: 3 x (-2.0 - -0.25) = -5.25. mu_hat = (e^-1 + e^-5.25) / 3;
     over the first T - 1 = 3 steps (the paper's weights) rollout 0 has -1.5 instead."""
-    table = pa.table({
-        "rollout": np.repeat(np.array([10, 11, 12], dtype=np.int32), 4),
-        "step": np.tile(np.arange(4, dtype=np.int16), 3),
-        "gap_m": np.array([9, 5, 1.5, 1, 9, 8, 7, 6, 9, 4, 3, 1.9], dtype=np.float32),
-        "detected": np.array([1, 0, 0, 0, 1, 1, 1, 1, 0, 1, 0, 0], dtype=np.int8),
-        "log_p": np.repeat([-1.0, -0.1, -2.0], 4),
-        "log_q": np.repeat([-0.5, -0.1, -0.25], 4),
-        "note": ["ignored"] * 12,
-    })  # fmt: skip
+    table = pa.table(
+        {
+            "rollout": np.repeat(np.array([10, 11, 12], dtype=np.int32), 4),
+            "step": np.tile(np.arange(4, dtype=np.int16), 3),
+            "gap_m": np.array([9, 5, 1.5, 1, 9, 8, 7, 6, 9, 4, 3, 1.9], dtype=np.float32),
+            "detected": np.array([1, 0, 0, 0, 1, 1, 1, 1, 0, 1, 0, 0], dtype=np.int8),
+            "log_p": np.repeat([-1.0, -0.1, -2.0], 4),
+            "log_q": np.repeat([-0.5, -0.1, -0.25], 4),
+            "note": ["ignored"] * 12,
+        }
+    )
     pq.write_table(table, tmp_path / "mine.parquet")
     (tmp_path / "mine.json").write_text(json.dumps({"formula": "G[0,3](d >= 2)", "dt_s": 0.1}))
     data = rio.read_rollouts(tmp_path / "mine.parquet")
@@ -261,8 +307,9 @@ def test_a_hand_written_file_with_a_minimal_sidecar_gives_the_hand_computed_esti
 
 def test_cli_run_then_estimate_prints_the_runs_mu_hat_and_writes_a_recording(tmp_path, capsys):
     rollouts, recording = tmp_path / "mixed.parquet", tmp_path / "estimate.rrd"
-    code = cli.main(["run", "--method", "mixed50", "--n", "50", "--seed", "3", "--no-record",
-                     "--save-rollouts", str(rollouts)])  # fmt: skip
+    code = cli.main(
+        ["run", "--method", "mixed50", "--n", "50", "--seed", "3", "--no-record", "--save-rollouts", str(rollouts)]
+    )
     run = capsys.readouterr()
     assert code == 0, run.err
     est = run_cli("estimate", str(rollouts), "--save", str(recording))  # the installed entry point, end to end
@@ -286,9 +333,13 @@ def small_file(tmp_path_factory, pem):
     problem = braking_problem(pem)
     batch = problem.simulate(6, ConstantDetector(0.5), problem.target, np.random.default_rng(0))
     path = tmp_path_factory.mktemp("small") / "small.parquet"
-    rollout_writer.write_rollouts(path, batch, rollout_format.braking_meta(pem="ml-nn", proposal="naive50"),
-                                  salient=rollout_table.braking_salient(batch.signal("gap_m")),
-                                  severity=rollout_severity(problem, batch))  # fmt: skip
+    rollout_writer.write_rollouts(
+        path,
+        batch,
+        braking_meta(pem="ml-nn", proposal="naive50"),
+        salient=rollout_table.braking_salient(batch.signal("gap_m")),
+        severity=rollout_severity(problem, batch),
+    )
     return path
 
 
@@ -366,26 +417,39 @@ def _float_steps(t):
 
 MALFORMED = {
     "missing-column": (lambda t: t.drop_columns(["detected"]), r"missing column 'detected'; required: rollout, step"),
-    "missing-salient": (lambda t: t.drop_columns(["salient_loc_z"]), r"salient-variable columns incomplete: "
-                                                                     r"missing salient_loc_z"),
-    "wrong-dtype": (_string_gap, r"column 'gap_m' has type string \(e\.g\. '12\.293' at rollout 0, step 0 \(row 0\)\); "
-                                 r"it must hold numbers"),
+    "missing-salient": (
+        lambda t: t.drop_columns(["salient_loc_z"]),
+        r"salient-variable columns incomplete: " r"missing salient_loc_z",
+    ),
+    "wrong-dtype": (
+        _string_gap,
+        r"column 'gap_m' has type string \(e\.g\. '12\.293' at rollout 0, step 0 \(row 0\)\); " r"it must hold numbers",
+    ),
     "wrong-dtype-step": (_float_steps, r"column 'step' has type double .*it must hold integers"),
     "nan-gap": (_nan_gap, r"gap_m is NaN at rollout 3, step 41 \(row 341\); values must be finite"),
     "steps-out-of-order": (_swap_steps, r"rollout 2, step 11 \(row 210\): steps out of order, expected step 10"),
-    "different-lengths": (_short_rollout, r"rollout 4 has 99 steps but rollout 0 has 100: rollout 4 ends after "
-                                          r"step 98"),
+    "different-lengths": (
+        _short_rollout,
+        r"rollout 4 has 99 steps but rollout 0 has 100: rollout 4 ends after " r"step 98",
+    ),
     "rollout-not-contiguous": (_split_rollout, r"rollout 0, step 50 \(row 150\): rollout 0 appears again"),
     "detected-not-boolean": (_detected_two, r"detected = 2 at rollout 1, step 5 \(row 105\)"),
     "positive-log-p": (_positive_log_p, r"log_p = 0\.5 > 0 at rollout 0, step 3 \(row 3\)"),
     "null-value": (_null_speed, r"column 'lead_speed_mps' is missing a value \(null\) at rollout 2, step 7"),
-    "severity-half": (lambda t: t.drop_columns(["impact_speed_mps"]), r"severity columns incomplete: "
-                                                                       r"'min_distance_m' without 'impact_speed_mps'"),
-    "severity-changes": (_changed_min_distance, r"min_distance_m = \S+ at rollout 1, step 5 \(row 105\) but \S+ at "
-                                                r"its step 0; a rollout has one min_distance_m"),
-    "impact-speed-negative": (_negative_impact_speed, r"impact_speed_mps = -1\.0 at rollout 4, step 0 \(row 400\): an "
-                                                      r"impact speed is a positive number"),
-}  # fmt: skip
+    "severity-half": (
+        lambda t: t.drop_columns(["impact_speed_mps"]),
+        r"severity columns incomplete: " r"'min_distance_m' without 'impact_speed_mps'",
+    ),
+    "severity-changes": (
+        _changed_min_distance,
+        r"min_distance_m = \S+ at rollout 1, step 5 \(row 105\) but \S+ at "
+        r"its step 0; a rollout has one min_distance_m",
+    ),
+    "impact-speed-negative": (
+        _negative_impact_speed,
+        r"impact_speed_mps = -1\.0 at rollout 4, step 0 \(row 400\): an " r"impact speed is a positive number",
+    ),
+}
 
 
 @pytest.mark.parametrize("case", list(MALFORMED))
@@ -433,9 +497,9 @@ def test_writer_refuses_bad_rollouts_and_leaves_no_file(tmp_path, pem):
     obs[1, 17, 0] = np.inf
     broken = RolloutBatch(obs, batch.detected, batch.log_p, batch.log_q, batch.observation_names)
     with pytest.raises(rollout_format.RolloutFormatError, match=r"gap_m is inf at rollout 1, step 17 \(row 117\)"):
-        rollout_writer.write_rollouts(tmp_path / "x.parquet", broken, rollout_format.braking_meta())
+        rollout_writer.write_rollouts(tmp_path / "x.parquet", broken, braking_meta())
     with pytest.raises(ValueError, match="must end in .parquet"):
-        rollout_writer.write_rollouts(tmp_path / "x.csv", batch, rollout_format.braking_meta())
+        rollout_writer.write_rollouts(tmp_path / "x.csv", batch, braking_meta())
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(FileNotFoundError, match="rollout file .* not found"):
         rio.read_rollouts(tmp_path / "absent.parquet")
@@ -449,8 +513,22 @@ def test_estimate_with_a_proposal_that_did_not_draw_the_file_is_refused_in_one_l
     # rollouts drawn by the adaptive proposal, re-weighted as if a 50 % detector had drawn them: every detection
     # then weighs p / 0.5 ~ 2, the mean importance weight is astronomically above its expectation 1 and mu_hat > 1
     rollouts = tmp_path / "adaptive.parquet"
-    code = cli.main(["run", "--preset", "quick", "--k", "3", "--n-final", "60", "--seed", "1", "--no-record",
-                     "--save-rollouts", str(rollouts)])  # fmt: skip
+    code = cli.main(
+        [
+            "run",
+            "--preset",
+            "quick",
+            "--k",
+            "3",
+            "--n-final",
+            "60",
+            "--seed",
+            "1",
+            "--no-record",
+            "--save-rollouts",
+            str(rollouts),
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     capsys.readouterr()
     code, out, err = estimate_cli(capsys, str(rollouts), "--pem", "ml-nn", "--proposal", "naive50", "--no-record")
@@ -461,5 +539,9 @@ def test_estimate_with_a_proposal_that_did_not_draw_the_file_is_refused_in_one_l
     code, out, err = estimate_cli(capsys, str(rollouts), "--no-record")  # its own log_q columns: a plausible answer
     assert code == 0, err
     # a 95 % interval, or where the weights back none their lower bound alone
-    assert re.search(r"^mu_hat = \S+, (95% CI \[\S+, \S+\], |no 95% CI from these weights: p >= \S+ .*)ESS \S+, "
-                     r"k-hat \S+: (reliable|doubtful|unreliable) \(", out, re.M)  # fmt: skip
+    assert re.search(
+        r"^mu_hat = \S+, (95% CI \[\S+, \S+\], |no 95% CI from these weights: p >= \S+ .*)ESS \S+, "
+        r"k-hat \S+: (reliable|doubtful|unreliable) \(",
+        out,
+        re.M,
+    )

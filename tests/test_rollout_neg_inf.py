@@ -57,15 +57,26 @@ def test_neg_inf_log_p_is_written_and_read_back_bit_for_bit_and_weighs_zero(tmp_
 
 
 BAD = {
-    "log_p-nan": ("log_p", math.nan, r"log_p is NaN at rollout 2, step 3 \(row 15\); values must be finite numbers "
-                                     r"or -inf \(an action the PEM cannot take: weight 0\)$"),
-    "log_p-inf": ("log_p", math.inf, r"log_p is inf at rollout 2, step 3 \(row 15\); values must be finite numbers "
-                                     r"or -inf"),
-    "log_q-neg-inf": ("log_q", -math.inf, r"log_q is -inf at rollout 2, step 3 \(row 15\); values must be finite "
-                                          r"numbers \(a proposal drew each action: q > 0\)$"),
+    "log_p-nan": (
+        "log_p",
+        math.nan,
+        r"log_p is NaN at rollout 2, step 3 \(row 15\); values must be finite numbers "
+        r"or -inf \(an action the PEM cannot take: weight 0\)$",
+    ),
+    "log_p-inf": (
+        "log_p",
+        math.inf,
+        r"log_p is inf at rollout 2, step 3 \(row 15\); values must be finite numbers " r"or -inf",
+    ),
+    "log_q-neg-inf": (
+        "log_q",
+        -math.inf,
+        r"log_q is -inf at rollout 2, step 3 \(row 15\); values must be finite "
+        r"numbers \(a proposal drew each action: q > 0\)$",
+    ),
     "log_q-nan": ("log_q", math.nan, r"log_q is NaN at rollout 2, step 3 \(row 15\); values must be finite numbers"),
     "log_q-inf": ("log_q", math.inf, r"log_q is inf at rollout 2, step 3 \(row 15\); values must be finite numbers"),
-}  # fmt: skip
+}
 
 
 def one_line(exc: pytest.ExceptionInfo) -> str:
@@ -157,7 +168,7 @@ def final_row(out: str) -> str:
     """failures .. verdict of the ``final`` row of a run's or an estimate's table."""
     line = next(ln for ln in out.splitlines() if ln.startswith("  final "))
     cells = line.split("   <-")[0].split()
-    return " ".join(cells[cells.index(next(c for c in cells if "/" in c)):][:8])
+    return " ".join(cells[cells.index(next(c for c in cells if "/" in c)) :][:8])
 
 
 @pytest.mark.parametrize("scenario, n", [("cut-in", 200), ("cut-in-rare", 100)])
@@ -165,16 +176,36 @@ def test_a_cut_in_naive50_run_re_estimates_from_its_file_to_its_own_numbers(scen
     """naive50 detects cars the camera cannot see: the file holds their -inf log p, and its weights of 0 give the
     run's log mu_hat (to 1e-9), failures, ESS and verdict (cut-in-rare: every failure has weight 0, mu_hat = 0)."""
     path = tmp_path / "r.parquet"
-    args = ["run", "--scenario", scenario, "--method", "naive50", "--n", str(n), "--n-final", str(n), "--seed", "0",
-            "--no-record", "--save-rollouts", str(path)]  # fmt: skip
+    args = [
+        "run",
+        "--scenario",
+        scenario,
+        "--method",
+        "naive50",
+        "--n",
+        str(n),
+        "--n-final",
+        str(n),
+        "--seed",
+        "0",
+        "--no-record",
+        "--save-rollouts",
+        str(path),
+    ]
     assert cli.main(args) == 0, capsys.readouterr().err
     run = capsys.readouterr().out
     data = rio.read_rollouts(path)
     said = data.meta.provenance["estimate"]
     assert np.isneginf(data.log_p).any() and np.isfinite(data.log_q).all()
     cap = said.get("verdict_cap")
-    again = estimate_rollouts(data, data.log_p, data.log_q, weights=data.meta.weights or "to-failure",
-                              log_p_seen=said.get("log_p_seen"), verdict_cap=tuple(cap) if cap else None)
+    again = estimate_rollouts(
+        data,
+        data.log_p,
+        data.log_q,
+        weights=data.meta.weights or "to-failure",
+        log_p_seen=said.get("log_p_seen"),
+        verdict_cap=tuple(cap) if cap else None,
+    )
     assert np.isneginf(again.log_weight).any()  # weight 0, not an error
     est = again.estimate
     run_log_mu = float(said["log_mu_hat"])  # "-inf" in JSON when every failure weighs 0
@@ -197,4 +228,3 @@ def test_a_file_whose_every_weight_is_0_checks_a_mean_weight_of_0(tmp_path):
     data = rio.read_rollouts(rollout_writer.write_rollouts(tmp_path / "r.parquet", batch_of(log_p), META))
     check = estimate_rollouts(data, data.log_p, data.log_q).check
     assert (check.log_mean, check.se, check.n, check.far) == (-math.inf, 0.0, 3, False)
-

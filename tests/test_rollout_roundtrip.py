@@ -54,14 +54,18 @@ def estimate_cells(est_out: str) -> dict[object, str]:
         m = re.match(r"^\s+(\d+|final) +\S* +(\d+/\d+ .*)$", ln)
         if m:
             out[m.group(1) if m.group(1) == "final" else int(m.group(1))] = " ".join(
-                m.group(2).split("   <-")[0].split())
+                m.group(2).split("   <-")[0].split()
+            )
     return out
 
 
 def summary_line(out: str) -> str:
     """The verdict line: the last line that gives mu_hat with its interval (or says no failure was seen)."""
-    return [ln for ln in out.strip().splitlines() if ln.startswith(("mu_hat = ", "no failure seen in"))
-            and ("CI" in ln or "no failure seen in" in ln)][-1]
+    return [
+        ln
+        for ln in out.strip().splitlines()
+        if ln.startswith(("mu_hat = ", "no failure seen in")) and ("CI" in ln or "no failure seen in" in ln)
+    ][-1]
 
 
 def assert_round_trip(run: str, est: str, sidecar: dict) -> None:
@@ -93,8 +97,11 @@ def test_default_run_round_trips_all_its_pooled_stages_and_its_mean_weight_is_on
     n = np.array([s["n"] for s in sidecar["stages"]])
     np.testing.assert_allclose(pooling["stage_weights"], j**2 * n / (j**2 * n).sum(), rtol=1e-15)
     assert sidecar["weights"] == "to-failure" and sidecar["version"] == 2
-    assert all(s["max_weight"] == 10.0 and [c["n"] for c in s["components"]] == [s["n"] // 10, 45 * s["n"] // 100,
-               45 * s["n"] // 100] for s in sidecar["stages"])  # fmt: skip
+    assert all(
+        s["max_weight"] == 10.0
+        and [c["n"] for c in s["components"]] == [s["n"] // 10, 45 * s["n"] // 100, 45 * s["n"] // 100]
+        for s in sidecar["stages"]
+    )
     lines = est.splitlines()
     assert lines[1].startswith("  weights: to-failure, prod p/q over the steps before the failure step")
     assert f"<- stages {', '.join(map(str, pooling['stages']))} pooled (quadratic)" in est
@@ -108,17 +115,20 @@ def test_default_run_round_trips_all_its_pooled_stages_and_its_mean_weight_is_on
     assert np.isfinite(speed).any() and sidecar["version"] == 2  # the format version stays
 
 
-@pytest.mark.parametrize("run_args", [
-    ("--preset", "state-ce-step"),
-    ("--preset", "paper"),
-    ("--preset", "authors-code", "--seed", "1"),
-    ("--method", "mc", "--n", "2000"),
-    ("--method", "naive50", "--n", "300"),
-    ("--method", "mixed50", "--n", "300"),
-    ("--rel-error", "0.05"),
-    ("--method", "mixed50", "--n", "300", "--rel-error", "0.3", "--max-sims", "3000"),
-], ids=["state-ce-step", "paper", "authors-code", "mc", "naive50", "mixed50", "rel-error",
-        "mixed50-rel-error"])  # fmt: skip
+@pytest.mark.parametrize(
+    "run_args",
+    [
+        ("--preset", "state-ce-step"),
+        ("--preset", "paper"),
+        ("--preset", "authors-code", "--seed", "1"),
+        ("--method", "mc", "--n", "2000"),
+        ("--method", "naive50", "--n", "300"),
+        ("--method", "mixed50", "--n", "300"),
+        ("--rel-error", "0.05"),
+        ("--method", "mixed50", "--n", "300", "--rel-error", "0.3", "--max-sims", "3000"),
+    ],
+    ids=["state-ce-step", "paper", "authors-code", "mc", "naive50", "mixed50", "rel-error", "mixed50-rel-error"],
+)
 def test_every_preset_and_method_round_trips(tmp_path, capsys, run_args):
     run, est, sidecar = run_and_estimate(capsys, tmp_path, *run_args)
     assert_round_trip(run, est, sidecar)
@@ -140,7 +150,8 @@ def test_a_tilted_run_round_trips_and_its_sidecar_names_the_tilt_without_a_weigh
     run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "tilt", "--n", "300")
     assert_round_trip(run, est, sidecar)
     assert [(s["max_weight"], [c["sampler"] for c in s["components"]]) for s in sidecar["stages"]] == [
-        (None, ["the scenario's tilted proposal"])]
+        (None, ["the scenario's tilted proposal"])
+    ]
     assert "warning" not in est and "checked above 1 only" in est
 
 
@@ -150,15 +161,17 @@ def test_chunked_runs_above_20000_rollouts_round_trip(tmp_path, capsys):
     assert_round_trip(run, est, sidecar)
     assert pq.ParquetFile(tmp_path / "r.parquet").num_row_groups == 3
     (tmp_path / "r.parquet").unlink(), rollout_format.sidecar_path(tmp_path / "r.parquet").unlink()
-    run, est, sidecar = run_and_estimate(capsys, tmp_path, "--preset", "quick", "--k", "3", "--n", "40", "--n-final",
-                                         "20001", "--seed", "2")  # fmt: skip
+    run, est, sidecar = run_and_estimate(
+        capsys, tmp_path, "--preset", "quick", "--k", "3", "--n", "40", "--n-final", "20001", "--seed", "2"
+    )
     assert_round_trip(run, est, sidecar)
     assert sidecar["stages"][-1]["n"] == 20001 and len(sidecar["pooling"]["stages"]) >= 2
 
 
 def test_all_stages_are_written_on_request_and_only_the_pooled_ones_are_pooled(tmp_path, capsys):
-    run, est, sidecar = run_and_estimate(capsys, tmp_path, "--preset", "quick", "--k", "3", "--n", "40",
-                                         "--n-final", "200", "--rollout-stages", "all")  # fmt: skip
+    run, est, sidecar = run_and_estimate(
+        capsys, tmp_path, "--preset", "quick", "--k", "3", "--n", "40", "--n-final", "200", "--rollout-stages", "all"
+    )
     assert [s["stage"] for s in sidecar["stages"]] == [0, 1, 2, 3, 4]
     assert_round_trip(run, est, sidecar)
     cells, by_stage = estimate_cells(est), stage_cells(run)
@@ -175,8 +188,9 @@ def test_ams_refuses_to_save_rollouts_in_one_line(tmp_path, capsys):
 # ------------------------------------------------------------------------------------ the logged-density check
 
 
-def test_a_file_weighed_by_one_mixture_component_is_warned_about_and_the_right_one_is_not(tmp_path, capsys,
-                                                                                           monkeypatch):  # fmt: skip
+def test_a_file_weighed_by_one_mixture_component_is_warned_about_and_the_right_one_is_not(
+    tmp_path, capsys, monkeypatch
+):
     # log_q = the density of the component that drew each rollout (what version 1 wrote), not the mixture's: under
     # the mixture 0.1 p + 0.45 q1 + 0.45 q2 every weight is at most 10 and the mean is 1 +- 0.28 at 4 standard errors;
     # with the component's density the rollouts of the target weigh 1, the others almost 0: a mean near 0.1
@@ -232,8 +246,7 @@ def braking_toy_log(n: int, seed: int) -> dict[str, np.ndarray]:
     return {"gap_m": gap, "detected": det, "log_p": log_p, "log_q": log_q}
 
 
-def test_a_full_trajectory_log_reproduces_its_own_estimate_and_both_conventions_find_the_exact_answer(
-        tmp_path, capsys):  # fmt: skip
+def test_a_full_trajectory_log_reproduces_its_own_estimate_and_both_conventions_find_the_exact_answer(tmp_path, capsys):
     n, exact = 6000, 1e-5
     log = braking_toy_log(n, seed=0)
     failed = log["gap_m"].min(axis=1) < 2.0
@@ -241,8 +254,13 @@ def test_a_full_trajectory_log_reproduces_its_own_estimate_and_both_conventions_
     w_full = np.exp(ratio[:, :11].sum(axis=1))  # the tool's own weights: prod_{t < T - 1} p / q (the paper's eq. 6)
     w_stop = np.exp(ratio[:, :10].sum(axis=1))  # every failure happens at step 10
     tool = float(np.mean(w_full * failed))
-    table = pa.table({"rollout": np.repeat(np.arange(n), 12), "step": np.tile(np.arange(12), n),
-                      **{k: v.reshape(-1) for k, v in log.items()}})  # fmt: skip
+    table = pa.table(
+        {
+            "rollout": np.repeat(np.arange(n), 12),
+            "step": np.tile(np.arange(12), n),
+            **{k: v.reshape(-1) for k, v in log.items()},
+        }
+    )
     pq.write_table(table, tmp_path / "toy.parquet")
     (tmp_path / "toy.json").write_text(json.dumps({"formula": "G[0,11](d >= 2)", "dt_s": 0.1, "weights": "full"}))
     found = {}
@@ -269,16 +287,31 @@ def test_a_full_trajectory_log_reproduces_its_own_estimate_and_both_conventions_
 def test_a_version_1_file_is_read_as_one_batch_under_its_runs_convention(tmp_path, capsys):
     # what pemviz wrote before version 2: no stage column, the run's config in the provenance (the paper's weights)
     log = braking_toy_log(500, seed=1)
-    table = pa.table({"rollout": np.repeat(np.arange(500), 12), "step": np.tile(np.arange(12), 500),
-                      **{k: v.reshape(-1) for k, v in log.items()}})  # fmt: skip
+    table = pa.table(
+        {
+            "rollout": np.repeat(np.arange(500), 12),
+            "step": np.tile(np.arange(12), 500),
+            **{k: v.reshape(-1) for k, v in log.items()},
+        }
+    )
     pq.write_table(table, tmp_path / "old.parquet")
-    (tmp_path / "old.json").write_text(json.dumps({
-        "format": "pemviz-rollouts", "version": 1, "formula": "G[0,11](d >= 2)", "dt_s": 0.1,
-        "provenance": {"stage": 1, "kind": "final", "config": {"weights_until_failure": False}}}))  # fmt: skip
+    (tmp_path / "old.json").write_text(
+        json.dumps(
+            {
+                "format": "pemviz-rollouts",
+                "version": 1,
+                "formula": "G[0,11](d >= 2)",
+                "dt_s": 0.1,
+                "provenance": {"stage": 1, "kind": "final", "config": {"weights_until_failure": False}},
+            }
+        )
+    )
     assert cli.main(["estimate", str(tmp_path / "old.parquet"), "--no-record"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[1] == ("  weights: full, prod p/q over every step but the last (Innes & Ramamoorthy 2022, eq. 6) "
-                      "(the run's config in the sidecar)")  # fmt: skip
+    assert out[1] == (
+        "  weights: full, prod p/q over every step but the last (Innes & Ramamoorthy 2022, eq. 6) "
+        "(the run's config in the sidecar)"
+    )
     failed = log["gap_m"].min(axis=1) < 2.0
     mu = np.mean(np.exp((log["log_p"] - log["log_q"])[:, :11].sum(axis=1)) * failed)
     assert re.match(r"^\s+1 +final +\d+/500 ", out[5]) and f"{mu:.3e}" in out[5]
@@ -296,8 +329,9 @@ def test_mixture_step_density_by_hand():
     np.testing.assert_allclose(np.exp(got), [[0.2, 0.0925 / 0.2]], rtol=1e-14)
     many = np.log(np.random.default_rng(0).uniform(0.01, 1.0, size=(3, 5, 40)))
     c = np.array([0.1, 0.45, 0.45])
-    np.testing.assert_allclose(mixture_step_log_q(many, c).sum(axis=1),
-                               logsumexp(np.log(c)[:, None] + many.sum(axis=2), axis=0), rtol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(
+        mixture_step_log_q(many, c).sum(axis=1), logsumexp(np.log(c)[:, None] + many.sum(axis=2), axis=0), rtol=1e-12
+    )
     assert component_of(50, 10, [10, 45, 45]).tolist() == [1] * 5 + [2] * 5  # rollouts 50..59: edges at 10, 55
     assert component_of(8, 4, [10, 45]).tolist() == [0, 0, 1, 1]
     with pytest.raises(ValueError, match=r"log_q must be \[K, N, T\] and shares \[K\] > 0"):
@@ -309,13 +343,18 @@ def test_mixture_step_density_by_hand():
 
 def tiny_table(stages: list[int], components: list[int], t_steps: int = 3) -> pa.Table:
     n = len(stages)
-    return pa.table({
-        "rollout": np.repeat(np.arange(n), t_steps), "step": np.tile(np.arange(t_steps), n),
-        "gap_m": np.tile(np.linspace(5.0, 1.0, t_steps), n), "detected": np.zeros(n * t_steps, dtype=bool),
-        "log_p": np.full(n * t_steps, -0.1), "log_q": np.full(n * t_steps, -0.1),
-        "stage": np.repeat(np.asarray(stages, dtype=np.int64), t_steps),
-        "component": np.repeat(np.asarray(components, dtype=np.int64), t_steps),
-    })  # fmt: skip
+    return pa.table(
+        {
+            "rollout": np.repeat(np.arange(n), t_steps),
+            "step": np.tile(np.arange(t_steps), n),
+            "gap_m": np.tile(np.linspace(5.0, 1.0, t_steps), n),
+            "detected": np.zeros(n * t_steps, dtype=bool),
+            "log_p": np.full(n * t_steps, -0.1),
+            "log_q": np.full(n * t_steps, -0.1),
+            "stage": np.repeat(np.asarray(stages, dtype=np.int64), t_steps),
+            "component": np.repeat(np.asarray(components, dtype=np.int64), t_steps),
+        }
+    )
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -325,11 +364,20 @@ def test_stage_and_component_columns_read_back_and_are_checked_against_the_sidec
     path = tmp_path / "v2.parquet"
     pq.write_table(tiny_table(stages, comps), path)
     counts = {k: np.bincount([c for s, c in rows if s == k], minlength=3).tolist() for k in sorted(set(stages))}
-    side = {"formula": "G[0,2](d >= 2)", "dt_s": 0.1, "version": 2,
-            "stages": [{"stage": k, "n": sum(c), "components": [{"sampler": f"q{i}", "n": x} for i, x in enumerate(c)]}
-                       for k, c in counts.items()],
-            "pooling": {"rule": "rollouts", "stages": sorted(counts), "stage_weights": [sum(c) / len(rows) for c in
-                                                                                         counts.values()]}}  # fmt: skip
+    side = {
+        "formula": "G[0,2](d >= 2)",
+        "dt_s": 0.1,
+        "version": 2,
+        "stages": [
+            {"stage": k, "n": sum(c), "components": [{"sampler": f"q{i}", "n": x} for i, x in enumerate(c)]}
+            for k, c in counts.items()
+        ],
+        "pooling": {
+            "rule": "rollouts",
+            "stages": sorted(counts),
+            "stage_weights": [sum(c) / len(rows) for c in counts.values()],
+        },
+    }
     rollout_format.sidecar_path(path).write_text(json.dumps(side))
     data = rio.read_rollouts(path)
     assert data.stage.tolist() == stages and data.component.tolist() == comps
@@ -342,11 +390,21 @@ def test_stage_and_component_columns_read_back_and_are_checked_against_the_sidec
 
 
 @settings(max_examples=100, deadline=None)
-@given(st.recursive(st.none() | st.booleans() | st.integers(-3, 3) | st.floats(allow_nan=False) | st.text(max_size=4),
-                    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(
-                        st.sampled_from(["stage", "n", "kind", "components", "sampler", "max_weight", "rule",
-                                         "stages", "stage_weights"]), inner, max_size=4), max_leaves=12),
-       st.sampled_from(["stages", "pooling", "weights", "objects", "noise"]))  # fmt: skip
+@given(
+    st.recursive(
+        st.none() | st.booleans() | st.integers(-3, 3) | st.floats(allow_nan=False) | st.text(max_size=4),
+        lambda inner: st.lists(inner, max_size=3)
+        | st.dictionaries(
+            st.sampled_from(
+                ["stage", "n", "kind", "components", "sampler", "max_weight", "rule", "stages", "stage_weights"]
+            ),
+            inner,
+            max_size=4,
+        ),
+        max_leaves=12,
+    ),
+    st.sampled_from(["stages", "pooling", "weights", "objects", "noise"]),
+)
 def test_any_stages_pooling_or_weights_field_parses_or_is_one_format_error(value, key):
     try:
         meta = rollout_format.RolloutMeta.from_json({"formula": "G[0,2](d >= 2)", "dt_s": 0.1, key: value})
@@ -361,11 +419,13 @@ def test_a_stage_column_that_changes_within_a_rollout_is_named(tmp_path):
     table = tiny_table([1, 1], [0, 0])
     stage = table.column("stage").to_numpy().copy()
     stage[4] = 2
-    pq.write_table(table.set_column(table.column_names.index("stage"), "stage", pa.array(stage)),
-                   tmp_path / "x.parquet")
+    pq.write_table(
+        table.set_column(table.column_names.index("stage"), "stage", pa.array(stage)), tmp_path / "x.parquet"
+    )
     (tmp_path / "x.json").write_text(json.dumps({"formula": "G[0,2](d >= 2)", "dt_s": 0.1}))
-    with pytest.raises(rollout_format.RolloutFormatError,
-                       match=r"stage = 2 at rollout 1, step 1 \(row 4\) but 1 at its step 0"):
+    with pytest.raises(
+        rollout_format.RolloutFormatError, match=r"stage = 2 at rollout 1, step 1 \(row 4\) but 1 at its step 0"
+    ):
         rio.read_rollouts(tmp_path / "x.parquet")
 
 

@@ -49,9 +49,13 @@ def braking_batch(detected: np.ndarray) -> RolloutBatch:
 
 
 def test_min_distance_and_impact_speed_by_hand():
-    signal = np.array([[5.0, 3.0, 1.0, 0.5, 0.2],  # contact (<= 0.7) first at step 3: (1.0 - 0.5) / 0.05 = 10 m/s
-                       [5.0, 4.0, 3.0, 3.0, 4.0],  # no contact
-                       [2.0, 1.0, 0.7, 0.7, 0.9]])  # at the level itself: contact at step 2, (1.0 - 0.7) / 0.05 = 6
+    signal = np.array(
+        [
+            [5.0, 3.0, 1.0, 0.5, 0.2],  # contact (<= 0.7) first at step 3: (1.0 - 0.5) / 0.05 = 10 m/s
+            [5.0, 4.0, 3.0, 3.0, 4.0],  # no contact
+            [2.0, 1.0, 0.7, 0.7, 0.9],
+        ]
+    )  # at the level itself: contact at step 2, (1.0 - 0.7) / 0.05 = 6
     dist, speed = severity_of_signal(signal, 0.7, 0.05)
     np.testing.assert_array_equal(dist, [0.2, 3.0, 0.7])
     assert speed[0] == pytest.approx(10.0, rel=1e-12) and speed[2] == pytest.approx(6.0, rel=1e-12)
@@ -120,22 +124,31 @@ def test_cut_in_impact_speed_is_the_ego_s_closing_speed_on_the_car_it_meets():
 def test_the_distribution_of_four_failures_by_hand():
     # shares 0.4, 0.3, 0.2, 0.1: no contact, 1 m/s, 3 m/s, 7.5 m/s; min gaps sorted 0.3 (0.2), 0.6 (0.1), 1.2 (0.3):
     # the cumulative share first reaches 1/2 at 1.2 m
-    sev = failure_severity(GAP, 0.7, np.log([0.4, 0.3, 0.2, 0.1]), np.array([1.9, 1.2, 0.3, 0.6]),
-                           np.array([np.nan, 1.0, 3.0, 7.5]))  # fmt: skip
+    sev = failure_severity(
+        GAP, 0.7, np.log([0.4, 0.3, 0.2, 0.1]), np.array([1.9, 1.2, 0.3, 0.6]), np.array([np.nan, 1.0, 3.0, 7.5])
+    )
     np.testing.assert_allclose(sev.shares(), [0.4, 0.3, 0.2, 0.1], rtol=1e-12)
     assert sev.shares().sum() == pytest.approx(1.0, rel=1e-14)
     assert sev.counts().tolist() == [1, 1, 1, 1] and sev.labels() == ["no contact", "0-2 m/s", "2-5 m/s", "> 5 m/s"]
     assert sev.median_min_distance() == 1.2 and sev.covered == pytest.approx(1.0, rel=1e-14)
-    assert sev.line() == ("failures by impact speed, share of p (failures; contact: gap <= 0.7 m): no contact 40 % "
-                          "(1), 0-2 m/s 30 % (1), 2-5 m/s 20 % (1), > 5 m/s 10 % (1); median min gap 1.20 m")
+    assert sev.line() == (
+        "failures by impact speed, share of p (failures; contact: gap <= 0.7 m): no contact 40 % "
+        "(1), 0-2 m/s 30 % (1), 2-5 m/s 20 % (1), > 5 m/s 10 % (1); median min gap 1.20 m"
+    )
     # a speed on an edge falls in the bin above it: [0, 2), [2, 5), [5, inf)
     edge = failure_severity(GAP, 0.7, np.log([0.5, 0.5]), np.array([0.5, 0.5]), np.array([2.0, 5.0]))
     assert edge.counts().tolist() == [0, 0, 1, 1]
 
 
 def test_failures_not_kept_are_left_out_and_the_others_renormalised():
-    sev = failure_severity(GAP, 0.7, np.log([0.4, 0.3, 0.2, 0.1]), np.array([1.9, np.nan, 0.3, 0.6]),
-                           np.array([np.nan, np.nan, 3.0, 7.5]), kept=np.array([True, False, True, True]))  # fmt: skip
+    sev = failure_severity(
+        GAP,
+        0.7,
+        np.log([0.4, 0.3, 0.2, 0.1]),
+        np.array([1.9, np.nan, 0.3, 0.6]),
+        np.array([np.nan, np.nan, 3.0, 7.5]),
+        kept=np.array([True, False, True, True]),
+    )
     np.testing.assert_allclose(sev.shares(), [0.4 / 0.7, 0.0, 0.2 / 0.7, 0.1 / 0.7], rtol=1e-12)
     assert (sev.n, sev.n_failures) == (3, 4) and sev.covered == pytest.approx(0.7, rel=1e-12)
     # kept, sorted: 0.3 (2/7), 0.6 (1/7): 3/7 < 1/2; then 1.9 (4/7)
@@ -154,14 +167,23 @@ def test_inconsistent_arrays_and_speeds_are_refused():
 
 def test_share_text_never_rounds_a_share_to_0_or_100_percent():
     assert [share_text(x) for x in (0.0, 1.0, 0.5, 0.972, 0.99998, 2.24e-8, 1 - 3e-16, 1 - 1e-9)] == [
-        "0 %", "100 %", "50 %", "97.2 %", "99.998 %", "2.24e-06 %", "100 %", "99.9999999 %"]  # fmt: skip
+        "0 %",
+        "100 %",
+        "50 %",
+        "97.2 %",
+        "99.998 %",
+        "2.24e-06 %",
+        "100 %",
+        "99.9999999 %",
+    ]
 
 
 def test_a_small_run_s_failures_by_share_match_a_hand_computation(braking):
     # a braking run that keeps every rollout: each failure's severity is the scene's severity() of its rollout, and
     # each bin's share the sum of its failures' shares; the console prints the line under the severity curve
-    cfg = ExperimentConfig(n_stages=3, n_per_stage=60, n_final=200, ce_epochs=30, pretrain_epochs=50,
-                           pretrain_rollouts=40, seed=4)  # fmt: skip
+    cfg = ExperimentConfig(
+        n_stages=3, n_per_stage=60, n_final=200, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=40, seed=4
+    )
     groups = FailureGroups(braking.drawing, braking)
     console = ConsoleSink(io.StringIO(), io.StringIO())
     console.failures = groups
@@ -178,14 +200,20 @@ def test_a_small_run_s_failures_by_share_match_a_hand_computation(braking):
     shares = finals[0].failures
     assert isinstance(sev, FailureSeverity) and sev.n == sev.n_failures == shares.n > 20
     assert sev.counts()[0] > 20 and sev.counts()[1:].sum() >= 5  # failures with and without contact
-    want = [severity(sampled[s].batch.signal("gap_m")[i], braking.drawing.params)
-            for s, i in zip(shares.stage, shares.index, strict=False)]
+    want = [
+        severity(sampled[s].batch.signal("gap_m")[i], braking.drawing.params)
+        for s, i in zip(shares.stage, shares.index, strict=False)
+    ]
     np.testing.assert_array_equal(sev.min_distance, [w.min_gap_m for w in want])
     np.testing.assert_array_equal(sev.impact_speed, [w.contact_speed_mps for w in want])
     share = np.exp(shares.log_share)
     speed = np.array([w.contact_speed_mps for w in want])
-    by_hand = [share[np.isnan(speed)].sum(), share[speed < 2].sum(), share[(speed >= 2) & (speed < 5)].sum(),
-               share[speed >= 5].sum()]  # fmt: skip
+    by_hand = [
+        share[np.isnan(speed)].sum(),
+        share[speed < 2].sum(),
+        share[(speed >= 2) & (speed < 5)].sum(),
+        share[speed >= 5].sum(),
+    ]
     np.testing.assert_allclose(sev.shares(), by_hand, rtol=1e-9, atol=1e-300)
     assert sev.shares().sum() == pytest.approx(1.0, rel=1e-12)
     order = np.argsort(sev.min_distance, kind="stable")

@@ -42,8 +42,12 @@ def test_default_run_is_within_x2_of_the_exact_answer_with_its_interval_and_verd
     assert abs(log_mu - math.log(1.9837e-15)) < math.log(1.2)  # the exact answer (scenarios.truth): seed 0 is 4 % off
     assert sims == 100 + 10 * 100 + 1000  # pretraining, K = 10 stages of N = 100, N_e = 1000
     assert len(re.findall(r"^\s+\d+\s+ce\s", proc.stdout, re.M)) == 10  # one row per stage
-    summary = re.search(r"^mu_hat = \S+, 95% CI \[(\S+), (\S+)\], ESS \S+, k-hat \S+: (\w+) \(.+\); "
-                        r"exact 1\.984e-15 \(relative error (\S+), (inside|OUTSIDE) the interval\)$", proc.stdout, re.M)
+    summary = re.search(
+        r"^mu_hat = \S+, 95% CI \[(\S+), (\S+)\], ESS \S+, k-hat \S+: (\w+) \(.+\); "
+        r"exact 1\.984e-15 \(relative error (\S+), (inside|OUTSIDE) the interval\)$",
+        proc.stdout,
+        re.M,
+    )
     assert summary, proc.stdout
     lo, hi = float(summary.group(1)), float(summary.group(2))
     assert lo < math.exp(log_mu) < hi and summary.group(3) == "reliable" and summary.group(5) == "inside"
@@ -98,8 +102,9 @@ def test_paper_preset_reproduces_the_published_sampler_bit_for_bit():
     assert e.verdict != "reliable" and not lo <= math.log(1.9839e-15) <= hi  # its CLT interval misses by 10^9
     # so it shows its lower bound alone, which holds the exact answer
     assert not e.interval_backed and e.covers(math.log(1.9839e-15)) and e.log_lower_bound <= e.log_mu_hat
-    assert e.verdict == "unreliable" and e.reason.startswith("mu_hat is below 3.220e-24, the probability of the "
-                                                             "failures this run drew")
+    assert e.verdict == "unreliable" and e.reason.startswith(
+        "mu_hat is below 3.220e-24, the probability of the " "failures this run drew"
+    )
     assert res.final.log_p_seen == pytest.approx(math.log(3.220e-24), abs=2e-3)
     assert e.log_mu_hat < res.final.log_p_seen < math.log(1.9839e-15)  # a bound: never above the exact answer
 

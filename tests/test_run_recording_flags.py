@@ -17,7 +17,7 @@ import pytest
 
 from conftest import REPO
 from pemviz.cli import main as cli_main
-from pemviz.commands.run import default_recording_path, web_viewer_url
+from pemviz.commands.run_recording import default_recording_path, web_viewer_url
 from pemviz.config import ExperimentConfig
 
 QUICK = ("--preset", "quick", "--k", "2")
@@ -26,8 +26,14 @@ QUICK = ("--preset", "quick", "--k", "2")
 def pemviz(*args: str, cwd: Path, timeout: float = 300, **kw) -> subprocess.CompletedProcess:
     """This checkout's ``pemviz`` (PYTHONPATH), run in ``cwd``."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "RERUN_ANALYTICS": "false"}
-    return subprocess.run([sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, timeout=timeout,
-                          capture_output=True, **({"text": True} | kw))  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "pemviz.cli", *args],
+        cwd=cwd,
+        env=env,
+        timeout=timeout,
+        capture_output=True,
+        **({"text": True} | kw),
+    )
 
 
 def free_port() -> int:
@@ -69,8 +75,19 @@ def test_connect_to_a_port_where_no_viewer_listens_fails_fast_with_one_line(tmp_
 def test_serve_prints_both_addresses_and_keeps_serving_after_the_run_until_ctrl_c(tmp_path: Path) -> None:
     grpc_port, web_port = free_port(), free_port()
     env = {**os.environ, "PYTHONPATH": str(REPO), "RERUN_ANALYTICS": "false"}
-    argv = [sys.executable, "-m", "pemviz.cli", "run", *QUICK, "--serve", "--headless",
-            "--grpc-port", str(grpc_port), "--web-port", str(web_port)]  # fmt: skip
+    argv = [
+        sys.executable,
+        "-m",
+        "pemviz.cli",
+        "run",
+        *QUICK,
+        "--serve",
+        "--headless",
+        "--grpc-port",
+        str(grpc_port),
+        "--web-port",
+        str(web_port),
+    ]
     proc = subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         lines = []
@@ -108,14 +125,28 @@ def test_stdout_streams_a_recording_and_moves_the_table_to_stderr(tmp_path: Path
 
 def test_default_recording_name_says_what_ran_and_every_written_file_is_printed(tmp_path: Path) -> None:
     small = ("--k", "2", "--n", "50", "--n-final", "50", "--ce-epochs", "5")  # the paper's proposal is saved too
-    proc = pemviz("run", "--preset", "paper", *small, "--metric", "agm", "--seed", "3", "--save-rollouts", "r.parquet",
-                  cwd=tmp_path)  # fmt: skip
+    proc = pemviz(
+        "run",
+        "--preset",
+        "paper",
+        *small,
+        "--metric",
+        "agm",
+        "--seed",
+        "3",
+        "--save-rollouts",
+        "r.parquet",
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert len(list((tmp_path / "recordings").iterdir())) == 2  # the recording and its result document
     (rrd,) = (tmp_path / "recordings").glob("*.rrd")
     assert rrd.name.startswith("braking-adaptive-paper-agm-batched-seed3-") and rrd.suffix == ".rrd"
-    printed = {line.split(": ", 1)[1] for line in proc.stderr.splitlines()
-               if line.startswith(("recording: ", "rollouts: ", "result: "))}  # fmt: skip
+    printed = {
+        line.split(": ", 1)[1]
+        for line in proc.stderr.splitlines()
+        if line.startswith(("recording: ", "rollouts: ", "result: "))
+    }
     beside = "recordings/" + rrd.name.removesuffix(".rrd") + ".result.json"  # the run's result document
     assert printed == {"recordings/" + rrd.name, beside, "r.parquet", "r.rollouts.json", "r.proposal.pt"}
     written = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file()}

@@ -11,7 +11,12 @@ import torch
 from pemviz.core.detectors import ConstantDetector, action_log_prob, defensive_logit
 from pemviz.core.estimate import estimate, format_probability
 from pemviz.core.sampling import (
-    Proposal, ProposalFormatError, StateProposal, fit_proposal, load_proposal, save_proposal,
+    Proposal,
+    ProposalFormatError,
+    StateProposal,
+    fit_proposal,
+    load_proposal,
+    save_proposal,
 )
 from pemviz.estimators.base import quantile_threshold
 from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
@@ -134,8 +139,9 @@ def test_an_elite_set_with_no_step_to_fit_leaves_the_proposal_as_it_was():
 
     q = Proposal()
     before = q.curve(np.array([1.0, 6.0, 11.0]))
-    losses = fit_elite_steps(q, np.zeros(0), np.zeros(0, bool), np.zeros(0), -np.inf, epochs=50, lr=1e-2,
-                             tolerance=1e-4)  # fmt: skip
+    losses = fit_elite_steps(
+        q, np.zeros(0), np.zeros(0, bool), np.zeros(0), -np.inf, epochs=50, lr=1e-2, tolerance=1e-4
+    )
     assert losses == []
     np.testing.assert_array_equal(q.curve(np.array([1.0, 6.0, 11.0])), before)
 
@@ -187,8 +193,20 @@ def test_converging_fits_reach_the_elites_miss_rate_and_stop_early(fit, epochs, 
     log_p = np.where(detected, np.log(0.99), np.log(0.01))
     elite = np.arange(60) < 30
     q = Proposal()
-    losses = ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.0001, epochs=epochs, lr=1e-2, fit=fit,
-                       tolerance=tolerance, max_rows=1_000)  # fmt: skip
+    losses = ce_update(
+        q,
+        gaps,
+        detected,
+        log_p,
+        log_q,
+        elite,
+        smoothing=0.0001,
+        epochs=epochs,
+        lr=1e-2,
+        fit=fit,
+        tolerance=tolerance,
+        max_rows=1_000,
+    )
     assert len(losses) < epochs  # converged, then stopped
     curve = q.curve(np.array([2.0, 5.0, 8.0, 11.5]))
     np.testing.assert_allclose(curve[:3], detected[:30][inside[:30]].mean(), atol=0.06)
@@ -246,12 +264,14 @@ def test_fit_proposal_gives_autograd_and_torch_adams_parameters(state):
 
     gen = torch.Generator().manual_seed(5)
     if state:
+
         def make():
             torch.manual_seed(1)
             return StateProposal((0, 1, 2), (12.0, 8.0, 1.0), (20.0, 8.0, 0.0))
 
         inputs = torch.rand(300, 3, generator=gen, dtype=torch.float64) * torch.tensor([12.0, 8.0, 1.0])
     else:
+
         def make():
             torch.manual_seed(1)
             return Proposal()
@@ -263,9 +283,12 @@ def test_fit_proposal_gives_autograd_and_torch_adams_parameters(state):
         start = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
         losses = fit_proposal(ours, inputs, counts, 200, 1e-2, per=per, dtype=torch.float64)
         expected = _torch_reference_fit(
-            ref, inputs, lambda lq: (-(counts * lq).sum() if per is None  # noqa: B023 (called within the iteration)
-                                     else -(counts * lq).sum() / per),  # noqa: B023 (called within the iteration)
-            200, 1e-2)
+            ref,
+            inputs,
+            lambda lq, per=per: -(counts * lq).sum() if per is None else -(counts * lq).sum() / per,
+            200,
+            1e-2,
+        )
         got = torch.cat([p.detach().reshape(-1) for p in ours.parameters()])
         assert (got - start).abs().max() > 0.1  # the fit moved the parameters
         torch.testing.assert_close(got, expected, **FIT_TOL)

@@ -73,8 +73,13 @@ def test_the_dataclass_s_own_check_is_the_range():
 def test_the_config_checks_the_pairs_against_the_scenario():
     cfg = ExperimentConfig(scenario="cut-in", scenario_params=(("cut_in_gap_m", 19.5),))
     assert cfg.scenario_params == (("cut_in_gap_m", 19.5),)
-    for bad in ((("cut_in_gap_m", 19.5),), (("gap0_m", -1.0),), (("gap0_m", 12.0), ("gap0_m", 13.0)),
-                ((("gap0_m",),)), [("gap0_m", 12.0)]):  # fmt: skip
+    for bad in (
+        (("cut_in_gap_m", 19.5),),
+        (("gap0_m", -1.0),),
+        (("gap0_m", 12.0), ("gap0_m", 13.0)),
+        ((("gap0_m",),)),
+        [("gap0_m", 12.0)],
+    ):
         with pytest.raises(ConfigError) as info:
             ExperimentConfig(scenario_params=bad)
         assert info.value.field == "scenario_params" and "\n" not in str(info.value), bad
@@ -120,8 +125,9 @@ def test_the_braking_exact_answer_is_dropped_or_recomputed_for_changed_parameter
     param = problem_for(ExperimentConfig(scenario_params=(("crash_gap_m", 1.5),)))
     assert param.exact_log_p == margin.exact_log_p is not None and param.drawing == margin.drawing
     latched = problem_for(ExperimentConfig(scenario_params=(("latched_brake", True), ("gap0_m", 12.0))))
-    truth = latched_log_failure_probability(load_pem(None).logit_at_gap,
-                                            BrakingParams(latched_brake=True, gap0_m=12.0)).log_p_fail  # fmt: skip
+    truth = latched_log_failure_probability(
+        load_pem(None).logit_at_gap, BrakingParams(latched_brake=True, gap0_m=12.0)
+    ).log_p_fail
     assert latched.exact_log_p == truth and math.isfinite(truth)
     unmoved = latched_log_failure_probability(load_pem(None).logit_at_gap, BrakingParams(latched_brake=True))
     assert truth != unmoved.log_p_fail  # recomputed for the gap given, not the default scene's
@@ -140,8 +146,20 @@ def run(argv: list[str], capsys) -> tuple[int, str, str]:
 
 def test_a_run_with_a_parameter_prints_and_records_it(tmp_path, capsys):
     result, rollouts = tmp_path / "result.json", tmp_path / "rollouts.parquet"
-    code, out, err = run(["--scenario", "cut-in", "--param", "cut_in_gap_m=19.5", *SMALL, "--json", str(result),
-                          "--save-rollouts", str(rollouts)], capsys)  # fmt: skip
+    code, out, err = run(
+        [
+            "--scenario",
+            "cut-in",
+            "--param",
+            "cut_in_gap_m=19.5",
+            *SMALL,
+            "--json",
+            str(result),
+            "--save-rollouts",
+            str(rollouts),
+        ],
+        capsys,
+    )
     assert code == 0, err
     header = out.splitlines()[0]
     assert header.startswith("pemviz: tilt on the cut-in scenario (cut_in_gap_m=19.5 m), spec "), header
@@ -166,13 +184,16 @@ def test_a_parameter_at_its_default_is_not_named_in_the_header(capsys):
     assert out.splitlines()[0].startswith("pemviz: tilt on the cut-in scenario, spec "), out.splitlines()[0]
 
 
-@pytest.mark.parametrize("param, words", [
-    ("cut_in_gapm=19.5", "'cut_in_gapm' is not a parameter of the cut-in scenario; use one of dt_s, n_steps, "),
-    ("cut_in_gap_m=-3", "CutInParams: cut_in_gap_m must be finite and >= 0, got -3.0"),
-    ("cut_in_gap_m=abc", "cut_in_gap_m='abc' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
-    ("cut_in_gap_m", "'cut_in_gap_m' is not NAME=VALUE; the cut-in scenario's names: dt_s, "),
-    ("n_objects=4.5", "n_objects='4.5' is not a whole number"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "param, words",
+    [
+        ("cut_in_gapm=19.5", "'cut_in_gapm' is not a parameter of the cut-in scenario; use one of dt_s, n_steps, "),
+        ("cut_in_gap_m=-3", "CutInParams: cut_in_gap_m must be finite and >= 0, got -3.0"),
+        ("cut_in_gap_m=abc", "cut_in_gap_m='abc' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
+        ("cut_in_gap_m", "'cut_in_gap_m' is not NAME=VALUE; the cut-in scenario's names: dt_s, "),
+        ("n_objects=4.5", "n_objects='4.5' is not a whole number"),
+    ],
+)
 def test_a_bad_name_or_value_is_one_line_exit_2_and_nothing_written(param, words, tmp_path, capsys):
     result = tmp_path / "r.json"
     code, out, err = run(["--scenario", "cut-in", "--param", param, *SMALL, "--json", str(result)], capsys)
@@ -186,8 +207,9 @@ def test_a_bad_name_or_value_is_one_line_exit_2_and_nothing_written(param, words
 def test_the_flag_s_help_is_the_setting_s():
     from pemviz.cli import build_parser
 
-    help_text = " ".join(build_parser("run", full=False)._subparsers._group_actions[0].choices["run"]
-                         .format_help().split())  # fmt: skip
+    help_text = " ".join(
+        build_parser("run", full=False)._subparsers._group_actions[0].choices["run"].format_help().split()
+    )
     assert "--param NAME=VALUE" in help_text and "cut_in_gap_m=25" in help_text
 
 
@@ -195,10 +217,22 @@ PARSE_NAMES = sorted({p.name for s in SCENARIOS for p in scenario_parameters(s)}
 
 
 @settings(max_examples=300, deadline=None)
-@given(scenario=st.sampled_from(SCENARIOS),
-       text=st.one_of(st.text(), st.builds(lambda n, v: f"{n}={v}", st.sampled_from(PARSE_NAMES),
-                                           st.one_of(st.text(), st.floats().map(repr), st.integers().map(str),
-                                                     st.sampled_from(["true", "no", "1e400", "nan", " 3 ", "1_0"])))))
+@given(
+    scenario=st.sampled_from(SCENARIOS),
+    text=st.one_of(
+        st.text(),
+        st.builds(
+            lambda n, v: f"{n}={v}",
+            st.sampled_from(PARSE_NAMES),
+            st.one_of(
+                st.text(),
+                st.floats().map(repr),
+                st.integers().map(str),
+                st.sampled_from(["true", "no", "1e400", "nan", " 3 ", "1_0"]),
+            ),
+        ),
+    ),
+)
 def test_any_text_is_a_pair_of_the_scenario_or_one_line_saying_what_is_wrong(scenario, text):
     params = by_name(scenario)
     try:
@@ -235,5 +269,5 @@ def test_the_command_line_refuses_any_bad_param_text_with_one_config_error(text)
 def test_the_user_guide_s_table_is_the_schema():
     text = (REPO / "docs" / "cli.md").read_text()
     start, end = "<!-- scenario-params -->\n", "\n<!-- /scenario-params -->"
-    assert text[text.index(start) + len(start):text.index(end)] == parameter_table()
+    assert text[text.index(start) + len(start) : text.index(end)] == parameter_table()
     assert "--param" in (REPO / "docs" / "cut-in.md").read_text()

@@ -26,15 +26,33 @@ def plugin(tmp_path_factory) -> Path:
 
 
 def pemviz(*args: str, cwd: Path, plugin: Path, modules: str = "my_car_scenario") -> subprocess.CompletedProcess:
-    env = {**os.environ, "RERUN_ANALYTICS": "false", "PEMVIZ_SCENARIOS": modules,
-           "PYTHONPATH": os.pathsep.join((str(plugin), str(REPO)))}  # fmt: skip
-    return subprocess.run([sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)  # fmt: skip
+    env = {
+        **os.environ,
+        "RERUN_ANALYTICS": "false",
+        "PEMVIZ_SCENARIOS": modules,
+        "PYTHONPATH": os.pathsep.join((str(plugin), str(REPO))),
+    }
+    return subprocess.run(
+        [sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
 
 
 def test_the_guides_scenario_runs_with_its_recording_and_parameters(plugin, tmp_path):
-    proc = pemviz("run", "--scenario", "my-car", "--param", "start_gap_m=28", "--n", "200", "--n-final", "1000",
-                  "--save", "my-car.rrd", cwd=tmp_path, plugin=plugin)  # fmt: skip
+    proc = pemviz(
+        "run",
+        "--scenario",
+        "my-car",
+        "--param",
+        "start_gap_m=28",
+        "--n",
+        "200",
+        "--n-final",
+        "1000",
+        "--save",
+        "my-car.rrd",
+        cwd=tmp_path,
+        plugin=plugin,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "my-car scenario (start_gap_m=28.0 m)" in proc.stdout
     assert "exact" in proc.stdout.splitlines()[-1] or any("exact" in line for line in proc.stdout.splitlines())
@@ -55,8 +73,17 @@ def test_the_exact_answer_is_the_enumeration_and_the_estimate_finds_it(plugin, m
     try:
         __import__("my_car_scenario")
         assert "my-car" in registry.registered()
-        cfg = ExperimentConfig(scenario="my-car", n_stages=8, n_per_stage=200, n_final=2000, smoothing=1.0,
-                               quantile_level=0.9, ce_epochs=200, pretrain_epochs=1000, learning_rate=1e-2)
+        cfg = ExperimentConfig(
+            scenario="my-car",
+            n_stages=8,
+            n_per_stage=200,
+            n_final=2000,
+            smoothing=1.0,
+            quantile_level=0.9,
+            ce_epochs=200,
+            pretrain_epochs=1000,
+            learning_rate=1e-2,
+        )
         problem = registry.problem_for(cfg)
         assert math.exp(problem.exact_log_p) == pytest.approx(2.8576e-5, rel=1e-3)
         est = Experiment(cfg, problem=problem).run().final.estimate
@@ -72,8 +99,21 @@ def test_the_exact_answer_is_the_enumeration_and_the_estimate_finds_it(plugin, m
 
 
 def test_validate_runs_the_guides_scenario_against_its_exact_answer(plugin, tmp_path):
-    proc = pemviz("validate", "--problems", "my-car", "--presets", "quick", "--baselines", "mc", "--seeds", "2",
-                  "--out", str(tmp_path / "v"), cwd=tmp_path, plugin=plugin)  # fmt: skip
+    proc = pemviz(
+        "validate",
+        "--problems",
+        "my-car",
+        "--presets",
+        "quick",
+        "--baselines",
+        "mc",
+        "--seeds",
+        "2",
+        "--out",
+        str(tmp_path / "v"),
+        cwd=tmp_path,
+        plugin=plugin,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     table = (tmp_path / "v" / "validate.md").read_text()
     assert "| my-car | 2.858e-05 |" in table

@@ -44,8 +44,10 @@ class Hit:
     text: str
 
     def __str__(self) -> str:
-        return f"{self.path}:{self.line}: {self.word!r} in {'code' if self.in_code else 'a docstring or comment'}: " \
-               f"{self.text.strip()}"  # fmt: skip
+        return (
+            f"{self.path}:{self.line}: {self.word!r} in {'code' if self.in_code else 'a docstring or comment'}: "
+            f"{self.text.strip()}"
+        )
 
 
 def docstring_lines(tree: ast.AST) -> set[int]:
@@ -56,8 +58,11 @@ def docstring_lines(tree: ast.AST) -> set[int]:
         if not isinstance(body, list):
             continue
         for statement in body:
-            if (isinstance(statement, ast.Expr) and isinstance(statement.value, ast.Constant)
-                    and isinstance(statement.value.value, str)):  # fmt: skip
+            if (
+                isinstance(statement, ast.Expr)
+                and isinstance(statement.value, ast.Constant)
+                and isinstance(statement.value.value, str)
+            ):
                 lines.update(range(statement.lineno, statement.end_lineno + 1))
     return lines
 
@@ -104,8 +109,10 @@ def test_the_neutral_folders_name_no_scene_in_code():
 
 def test_the_neutral_folders_name_a_scene_in_docstrings_and_comments_only_as_an_example():
     found = [h for h in forbidden(folder_hits()) if not h.in_code]
-    assert not found, ("scene words in docstrings / comments (name a scene only as an example, 'e.g.' or 'for "
-                       "example' on the same line):\n" + "\n".join(map(str, found)))  # fmt: skip
+    assert not found, (
+        "scene words in docstrings / comments (name a scene only as an example, 'e.g.' or 'for "
+        "example' on the same line):\n" + "\n".join(map(str, found))
+    )
 
 
 PLANTED = '''"""A module of the braking scene."""
@@ -121,14 +128,35 @@ def f(gap_m):
 '''
 
 
-@pytest.mark.parametrize("source, expected", [
-    (PLANTED, [(1, "braking", False), (3, "LEAD", True), (3, "lead", False), (6, "gap_m", True),
-               (7, "braking", False), (8, "cut-in", True), (9, "Cut_In", False), (10, "Braking", True)]),
-    ('"""Plain words: a gap, a leader, mislead, cutting in."""\nclipped = 1  # braked\n', []),
-], ids=["planted", "clean"])  # fmt: skip
+@pytest.mark.parametrize(
+    "source, expected",
+    [
+        (
+            PLANTED,
+            [
+                (1, "braking", False),
+                (3, "LEAD", True),
+                (3, "lead", False),
+                (6, "gap_m", True),
+                (7, "braking", False),
+                (8, "cut-in", True),
+                (9, "Cut_In", False),
+                (10, "Braking", True),
+            ],
+        ),
+        ('"""Plain words: a gap, a leader, mislead, cutting in."""\nclipped = 1  # braked\n', []),
+    ],
+    ids=["planted", "clean"],
+)
 def test_the_counter_finds_planted_scene_words_and_only_them(source, expected):
     hits = scene_words(source)
     assert [(h.line, h.word, h.in_code) for h in hits] == expected
     if hits:
         assert [(h.line, h.word) for h in forbidden(hits)] == [
-            (1, "braking"), (3, "LEAD"), (3, "lead"), (6, "gap_m"), (8, "cut-in"), (10, "Braking")]
+            (1, "braking"),
+            (3, "LEAD"),
+            (3, "lead"),
+            (6, "gap_m"),
+            (8, "cut-in"),
+            (10, "Braking"),
+        ]

@@ -30,8 +30,11 @@ def test_every_image_is_in_the_table_and_the_manifest_and_every_entry_exists() -
     assert not set(table) - on_disk, f"table entries without their image: {sorted(set(table) - on_disk)}"
     rows = shots.manifest_rows()
     assert set(rows) == set(table), f"MANIFEST.md lists {sorted(set(rows) ^ set(table))} differently from the table"
-    stale = [image for image, (command, commit, _) in rows.items()
-             if command != shots.shown(table[image]) or commit == shots.NOT_MADE]  # fmt: skip
+    stale = [
+        image
+        for image, (command, commit, _) in rows.items()
+        if command != shots.shown(table[image]) or commit == shots.NOT_MADE
+    ]
     assert not stale, f"not made by the table's command (run python benchmarks/docs_assets.py --screenshots): {stale}"
 
 
@@ -44,8 +47,10 @@ def test_every_image_the_readme_and_the_guide_show_is_in_the_table() -> None:
     assert not missing, f"images the docs show that no command of the table makes: {missing}"
 
 
-@pytest.mark.skipif(shutil.which("chromium") is None and shutil.which("chromium-browser") is None,
-                    reason="Debian's chromium is not on PATH (apt-get install chromium; CI installs it)")  # fmt: skip
+@pytest.mark.skipif(
+    shutil.which("chromium") is None and shutil.which("chromium-browser") is None,
+    reason="Debian's chromium is not on PATH (apt-get install chromium; CI installs it)",
+)
 @pytest.mark.parametrize("image", sorted(CHEAPEST))
 def test_the_cheapest_screenshots_of_the_table_are_made(image, tmp_path) -> None:
     pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")

@@ -15,10 +15,16 @@ from pemviz.engine.experiment import Experiment
 from pemviz.estimators.base import SeenFailures, failure_steps, log_p_before_failure
 
 
-@pytest.mark.parametrize(("problem", "method", "n"), [
-    ("main", "naive50", 2000), ("main", "mixed50", 2000), ("main", "adaptive", 100), ("toy", "adaptive", 100),
-    ("latched", "adaptive", 100),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("problem", "method", "n"),
+    [
+        ("main", "naive50", 2000),
+        ("main", "mixed50", 2000),
+        ("main", "adaptive", 100),
+        ("toy", "adaptive", 100),
+        ("latched", "adaptive", 100),
+    ],
+)
 def test_the_failures_seen_never_sum_above_the_exact_answer(problem, method, n):
     # the exact answers (closed forms, the braking enumeration) are independent of the sampler: the bound, a sum of
     # p over distinct failing detection prefixes, must stay below them, and the run must have seen failures
@@ -37,8 +43,11 @@ def test_a_prefix_drawn_twice_counts_once_and_distinct_prefixes_add():
     res_batches = []
     from pemviz.engine.events import RolloutsSampled
 
-    Experiment(ExperimentConfig(method="naive50", n_per_stage=400, seed=2), [
-        lambda e: isinstance(e, RolloutsSampled) and res_batches.append(e)], problem=pb).run()  # fmt: skip
+    Experiment(
+        ExperimentConfig(method="naive50", n_per_stage=400, seed=2),
+        [lambda e: isinstance(e, RolloutsSampled) and res_batches.append(e)],
+        problem=pb,
+    ).run()
     e = res_batches[-1]
     batch, failed = e.batch, e.failed
     assert failed.sum() > 50

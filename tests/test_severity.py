@@ -32,9 +32,7 @@ EXACT_CONTACT = 8.0581e-33
 def test_level_events_by_hand():
     # three rollouts of 5 steps: one fails at step 1 and reaches 1 m at step 3, one fails at step 2 and stays above
     # 1 m, one never fails although its signal goes below 1.5 (the event needs the failure too)
-    s = np.array([[3.0, 1.9, 1.6, 0.9, 0.5],
-                  [3.0, 2.5, 1.8, 1.2, 1.1],
-                  [3.0, 1.4, 3.0, 3.0, 3.0]])  # fmt: skip
+    s = np.array([[3.0, 1.9, 1.6, 0.9, 0.5], [3.0, 2.5, 1.8, 1.2, 1.1], [3.0, 1.4, 3.0, 3.0, 3.0]])
     failed = np.array([True, True, False])
     fail_step = np.array([1, 2, 5])
     hit, step = level_events(s, failed, fail_step, np.array([1.5, 1.0, 0.0]))
@@ -115,8 +113,9 @@ def _remaining_misses_against_bound(margin: float) -> tuple[int, int]:
     cfg = ExperimentConfig(seed=0, margin=margin, n_final=300)
     pb = problem_for(cfg)
     got = []
-    Experiment(cfg, [lambda e: got.append(e) if isinstance(e, RolloutsSampled) and e.kind == "final" else None],
-               problem=pb).run()  # fmt: skip
+    Experiment(
+        cfg, [lambda e: got.append(e) if isinstance(e, RolloutsSampled) and e.kind == "final" else None], problem=pb
+    ).run()
     ev = got[-1]
     p = BrakingParams(crash_gap_m=margin)
     start, vl = truth.branching_start(p), lead_speeds(p)
@@ -160,8 +159,10 @@ def test_console_and_json_show_the_curve(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "severity: P(min gap < x), from the same rollouts" in text
     assert "gap < 1.5 m" in text and "exact 2.999e-17" in text
-    assert ("gap < 0 m (contact)           not reached by this run (0 of 1,800 rollouts): pemviz run --margin 0 "
-            "targets it" in text)
+    assert (
+        "gap < 0 m (contact)           not reached by this run (0 of 1,800 rollouts): pemviz run --margin 0 "
+        "targets it" in text
+    )
     doc = json.loads(out.read_text())
     points = doc["severity"]["points"]
     assert [p["level"] for p in points] == [2.0, 1.5, 1.0, 0.5, 0.0]

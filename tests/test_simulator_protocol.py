@@ -105,14 +105,27 @@ def test_user_simulator_through_the_protocol_recovers_its_exact_failure_probabil
         return simulate(ParkedCarAEB, n, sampler, target, rng, N_STEPS)
 
     problem = Problem(
-        "parked-car-aeb", run, RangeDetector(), stl.parse(f"G[0,{N_STEPS - 1}](d >= 2)"),
-        signals={"d": "gap_m"}, signal_ranges={"d": (0.0, 20.0)}, h_scale=20.0,
-        curve_grid=np.linspace(0.0, 20.0, 41), window=15.0,
-    )  # fmt: skip
+        "parked-car-aeb",
+        run,
+        RangeDetector(),
+        stl.parse(f"G[0,{N_STEPS - 1}](d >= 2)"),
+        signals={"d": "gap_m"},
+        signal_ranges={"d": (0.0, 20.0)},
+        h_scale=20.0,
+        curve_grid=np.linspace(0.0, 20.0, 41),
+        window=15.0,
+    )
     config = ExperimentConfig(
-        n_stages=4, n_per_stage=200, n_final=2000, quantile_level=0.9, smoothing=1.0, ce_epochs=200,
-        pretrain_epochs=300, learning_rate=1e-2, seed=0,
-    )  # fmt: skip
+        n_stages=4,
+        n_per_stage=200,
+        n_final=2000,
+        quantile_level=0.9,
+        smoothing=1.0,
+        ce_epochs=200,
+        pretrain_epochs=300,
+        learning_rate=1e-2,
+        seed=0,
+    )
     result = Experiment(config, problem=problem).run()
     exact = exact_failure_probability(ParkedCarAEB, RangeDetector().detect_logit, N_STEPS, 15.0)
     est = result.final.estimate

@@ -34,8 +34,7 @@ def _pair(make, seed: int = 3):
     return in_numpy, in_torch
 
 
-MAKERS = {"gap": lambda: Proposal(12.0),
-          "state": lambda: StateProposal((0, 1, 2), (12.0, 8.0, 1.0), (20.0, 8.0, 0.0))}  # fmt: skip
+MAKERS = {"gap": lambda: Proposal(12.0), "state": lambda: StateProposal((0, 1, 2), (12.0, 8.0, 1.0), (20.0, 8.0, 0.0))}
 
 
 @pytest.mark.parametrize("kind", MAKERS)
@@ -92,8 +91,9 @@ def test_a_run_in_numpy_is_the_run_in_torch(numpy_first, monkeypatch):
     a, b = in_numpy.final.estimate, in_torch.final.estimate
     assert a.n_failures > 0 and (a.log_mu_hat, a.n_failures, a.ess) == (b.log_mu_hat, b.n_failures, b.ess)
     for sa, sb in zip(in_numpy.stages, in_torch.stages, strict=False):
-        assert sa.estimate.log_mu_hat == sb.estimate.log_mu_hat or (np.isnan(sa.estimate.log_mu_hat)
-                                                                     and np.isnan(sb.estimate.log_mu_hat))  # fmt: skip
+        assert sa.estimate.log_mu_hat == sb.estimate.log_mu_hat or (
+            np.isnan(sa.estimate.log_mu_hat) and np.isnan(sb.estimate.log_mu_hat)
+        )
         np.testing.assert_allclose(sa.proposal_curve, sb.proposal_curve, rtol=1e-13)
 
 
@@ -118,13 +118,15 @@ def test_a_default_run_with_its_recording_imports_neither_torch_nor_pandas(tmp_p
     import subprocess
     import sys
 
-    code = ("import os, sys; import pemviz.cli as cli; "
-            "others = ('pemviz.scenarios.cut_in', 'pemviz.estimators.ams', 'pemviz.sinks.report'); "
-            "exit_now = lambda status: print('unused', [m for m in others if m in sys.modules], 'exit', status, "
-            "'torch', 'torch' in sys.modules, 'pandas', 'pandas' in sys.modules, flush=True) or os._exit(status); "
-            "cli._exit_now = exit_now; "
-            f"sys.argv = ['pemviz', 'run', '--scenario', {scenario!r}, '--k', '2', '--n', '40', '--n-final', '60', "
-            f"'--save', {str(tmp_path / 'run.rrd')!r}]; cli.main()")  # fmt: skip
+    code = (
+        "import os, sys; import pemviz.cli as cli; "
+        "others = ('pemviz.scenarios.cut_in', 'pemviz.estimators.ams', 'pemviz.sinks.report'); "
+        "exit_now = lambda status: print('unused', [m for m in others if m in sys.modules], 'exit', status, "
+        "'torch', 'torch' in sys.modules, 'pandas', 'pandas' in sys.modules, flush=True) or os._exit(status); "
+        "cli._exit_now = exit_now; "
+        f"sys.argv = ['pemviz', 'run', '--scenario', {scenario!r}, '--k', '2', '--n', '40', '--n-final', '60', "
+        f"'--save', {str(tmp_path / 'run.rrd')!r}]; cli.main()"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     pandas = scenario != "braking"
     assert out.stdout.strip().endswith(f"exit 0 torch False pandas {pandas}"), out.stdout[-500:] + out.stderr[-2000:]
@@ -151,9 +153,11 @@ def test_after_the_settle_pandas_imports_and_converts_as_before():
     import subprocess
     import sys
 
-    code = ("import sys; from pemviz.sinks.process import settle_pyarrow_without_pandas as settle; "
-            "print(settle(), 'pandas' in sys.modules); import pandas as pd, pyarrow as pa; "
-            "t = pa.Table.from_pandas(pd.DataFrame({'x': [1.5, None]})); print(t.column('x').to_pylist(), settle())")
+    code = (
+        "import sys; from pemviz.sinks.process import settle_pyarrow_without_pandas as settle; "
+        "print(settle(), 'pandas' in sys.modules); import pandas as pd, pyarrow as pa; "
+        "t = pa.Table.from_pandas(pd.DataFrame({'x': [1.5, None]})); print(t.column('x').to_pylist(), settle())"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.stdout.split("\n")[:2] == ["True False", "[1.5, None] False"], out.stdout + out.stderr[-2000:]
 
@@ -184,18 +188,29 @@ def test_the_program_imports_scipy_special_without_numpys_unused_submodules():
     import subprocess
     import sys
 
-    probe = ("import json, sys, numpy as np; {setup}; import scipy.special as sp; "
-             "import scipy._lib.array_api_compat.numpy as shim; "
-             "loaded = [m for m in ('numpy.f2py', 'numpy.testing') if m in sys.modules]; "
-             "x = np.linspace(-30.0, 30.0, 61); "
-             "print(json.dumps({{'loaded': loaded, 'all': sorted(shim.__all__), 'dir': sorted(dir(shim)), "
-             "'np_all': sorted(np.__all__), 'np_dir': sorted(dir(np)), "
-             "'values': [float(sp.logsumexp(x)), sp.softmax(x).tolist(), sp.expit(x).tolist()], "
-             "'same': [getattr(shim, n) is getattr(np, n) for n in ('testing', 'f2py', 'ma', 'random')]}}))")
+    probe = (
+        "import json, sys, numpy as np; {setup}; import scipy.special as sp; "
+        "import scipy._lib.array_api_compat.numpy as shim; "
+        "loaded = [m for m in ('numpy.f2py', 'numpy.testing') if m in sys.modules]; "
+        "x = np.linspace(-30.0, 30.0, 61); "
+        "print(json.dumps({{'loaded': loaded, 'all': sorted(shim.__all__), 'dir': sorted(dir(shim)), "
+        "'np_all': sorted(np.__all__), 'np_dir': sorted(dir(np)), "
+        "'values': [float(sp.logsumexp(x)), sp.softmax(x).tolist(), sp.expit(x).tolist()], "
+        "'same': [getattr(shim, n) is getattr(np, n) for n in ('testing', 'f2py', 'ma', 'random')]}}))"
+    )
     lean = "from pemviz.sinks.process import import_scipy_special_lean as lean; assert lean()"
-    docs = [json.loads(subprocess.run([sys.executable, "-c", probe.format(setup=setup)], capture_output=True, text=True,
-                                      timeout=120, check=True).stdout)
-            for setup in (lean, "pass")]  # fmt: skip
+    docs = [
+        json.loads(
+            subprocess.run(
+                [sys.executable, "-c", probe.format(setup=setup)],
+                capture_output=True,
+                text=True,
+                timeout=120,
+                check=True,
+            ).stdout
+        )
+        for setup in (lean, "pass")
+    ]
     assert docs[0]["loaded"] == [] and docs[1]["loaded"] == ["numpy.f2py", "numpy.testing"]
     for key in ("all", "dir", "np_all", "np_dir", "values", "same"):
         assert docs[0][key] == docs[1][key], key
@@ -207,11 +222,13 @@ def test_a_default_braking_run_imports_neither_f2py_nor_numpys_test_helpers(tmp_
     import subprocess
     import sys
 
-    code = ("import os, sys; import pemviz.cli as cli; "
-            "cli._exit_now = lambda status: print('unused', [m for m in ('numpy.f2py', 'numpy.testing') "
-            "if m in sys.modules], 'exit', status, flush=True) or os._exit(status); "
-            f"sys.argv = ['pemviz', 'run', '--k', '2', '--n', '40', '--n-final', '60', "
-            f"'--save', {str(tmp_path / 'run.rrd')!r}]; cli.main()")  # fmt: skip
+    code = (
+        "import os, sys; import pemviz.cli as cli; "
+        "cli._exit_now = lambda status: print('unused', [m for m in ('numpy.f2py', 'numpy.testing') "
+        "if m in sys.modules], 'exit', status, flush=True) or os._exit(status); "
+        f"sys.argv = ['pemviz', 'run', '--k', '2', '--n', '40', '--n-final', '60', "
+        f"'--save', {str(tmp_path / 'run.rrd')!r}]; cli.main()"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.stdout.strip().endswith("unused [] exit 0"), out.stdout[-500:] + out.stderr[-2000:]
     assert (tmp_path / "run.rrd").stat().st_size > 0

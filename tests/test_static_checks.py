@@ -36,3 +36,36 @@ def test_mypy_flags_a_planted_fault_and_passes_the_core(tmp_path):
     assert planted.returncode == 1 and "Incompatible return value type" in planted.stdout, planted.stdout
     core = _tool("mypy")
     assert core.returncode == 0, core.stdout[-4000:]
+
+
+MAX_FMT_SKIPS = 20
+"""The most ``# fmt: skip`` markers the tree may keep, each with its reason on the line before."""
+
+
+def test_ruff_format_flags_an_unformatted_file_and_passes_the_tree(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("x = {  'a':1 }\n")
+    planted = _tool("ruff", "format", "--check", "--config", str(REPO / "pyproject.toml"), str(bad))
+    assert planted.returncode == 1 and "Would reformat" in planted.stdout, planted.stdout
+    tree = _tool("ruff", "format", "--check", *FOLDERS)
+    assert tree.returncode == 0, tree.stdout[-4000:]
+
+
+def test_few_formatter_escapes_remain_each_with_its_reason():
+    """The formatter is run, not dodged: at most :data:`MAX_FMT_SKIPS` ``# fmt: skip`` markers (and no ``# fmt: off``),
+    each followed on its line by a comment that says why (``# fmt: skip  # a table, one row a line``)."""
+    import re
+
+    marker = re.compile(r"#\s*fmt:\s*(skip|off)")
+    found, bare = 0, []
+    for folder in FOLDERS:
+        for path in sorted((REPO / folder).rglob("*.py")):
+            if path.name == "test_static_checks.py":
+                continue
+            for i, line in enumerate(path.read_text().splitlines(), 1):
+                m = marker.search(line)
+                if m:
+                    found += 1
+                    if m.group(1) == "off" or not re.match(r"\s*#\s*\w", line[m.end() :]):
+                        bare.append(f"{path.relative_to(REPO)}:{i}")
+    assert found <= MAX_FMT_SKIPS and bare == [], (found, bare)

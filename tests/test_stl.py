@@ -195,8 +195,9 @@ def test_interval_past_the_trace_end_names_the_operator_and_column():
 
 
 def test_unknown_semantics_lists_the_allowed_names():
-    with pytest.raises(ValueError, match=r"unknown robustness semantics 'smooth'; allowed: 'classic', 'agm', "
-                                         r"'smooth-cumulative'"):
+    with pytest.raises(
+        ValueError, match=r"unknown robustness semantics 'smooth'; allowed: 'classic', 'agm', " r"'smooth-cumulative'"
+    ):
         stl.robustness("d >= 2", {"d": np.zeros((1, 3))}, "smooth")
     assert stl.SEMANTICS == ("classic", "agm", "smooth-cumulative")
 

@@ -115,8 +115,7 @@ def test_classic_matches_rtamt_on_500_random_formulas_at_every_step():
         T = max(2, _start_reach(f) + 1 + int(rng.integers(0, 14)))  # rtamt fails on T = 1
         grid = rng.random() < 0.4  # small grid values produce ties and exact zeros
         traces = {
-            s: (rng.integers(-4, 5, size=(3, T)) * 0.5 if grid else rng.normal(0.0, 2.0, size=(3, T)))
-            for s in SIGNALS
+            s: (rng.integers(-4, 5, size=(3, T)) * 0.5 if grid else rng.normal(0.0, 2.0, size=(3, T))) for s in SIGNALS
         }
         oracle = _rtamt_signal(text, traces)
         ours = stl.robustness_signal(f, traces, "classic")
@@ -147,7 +146,11 @@ def test_classic_matches_rtamt_on_the_benchmark_formulas():
         spec.declare_var("v", "float")
         spec.spec = text
         spec.parse()
-        oracle = np.array([[r for _, r in spec.evaluate({"time": list(range(200)), "d": d[i].tolist(),
-                                                         "v": v[i].tolist()})] for i in range(8)])
+        oracle = np.array(
+            [
+                [r for _, r in spec.evaluate({"time": list(range(200)), "d": d[i].tolist(), "v": v[i].tolist()})]
+                for i in range(8)
+            ]
+        )
         _assert_same(stl.robustness_signal(ours_text, {"d": d, "v": v}), oracle, text)
         _assert_same(stl.robustness(ours_text, {"d": d, "v": v}), oracle[:, 0], text)

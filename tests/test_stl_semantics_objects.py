@@ -134,11 +134,9 @@ def test_smooth_cumulative_predicate_is_softplus_of_the_polarity():
     sem = stl.SmoothCumulative(2.0)
     assert flat(sem.predicate(OPS, D_GE_2, h_of([2.3]), 1.0, 1)) == pytest.approx([softplus(0.3, 2.0)], abs=1e-15)
     # !(d >= 2) under rho+: minus rho- of the predicate = softplus_b(-h)
-    assert flat(sem.predicate(OPS, D_GE_2, h_of([2.3]), -1.0, -1)) == pytest.approx([softplus(-0.3, 2.0)],
-                                                                                     abs=1e-15)
+    assert flat(sem.predicate(OPS, D_GE_2, h_of([2.3]), -1.0, -1)) == pytest.approx([softplus(-0.3, 2.0)], abs=1e-15)
     # rho- of the predicate itself (under an odd number of negations): -softplus_b(-h)
-    assert flat(sem.predicate(OPS, D_GE_2, h_of([2.3]), 1.0, -1)) == pytest.approx([-softplus(-0.3, 2.0)],
-                                                                                    abs=1e-15)
+    assert flat(sem.predicate(OPS, D_GE_2, h_of([2.3]), 1.0, -1)) == pytest.approx([-softplus(-0.3, 2.0)], abs=1e-15)
 
 
 def test_smooth_cumulative_connectives_windows_and_until():
@@ -148,8 +146,7 @@ def test_smooth_cumulative_connectives_windows_and_until():
     assert flat(sem.conj(OPS, [x, y])) == pytest.approx([smin([1.0, 2.0], b)], abs=1e-14)
     assert flat(sem.disj(OPS, [x, y])) == pytest.approx([smax([1.0, 2.0], b)], abs=1e-14)
     r = col(1.0, 2.0, 0.5)
-    assert flat(sem.window(OPS, r, 2, 2, True)) == pytest.approx([smin([1.0, 2.0], b), smin([2.0, 0.5], b)],
-                                                                  abs=1e-14)
+    assert flat(sem.window(OPS, r, 2, 2, True)) == pytest.approx([smin([1.0, 2.0], b), smin([2.0, 0.5], b)], abs=1e-14)
     assert flat(sem.window(OPS, r, 3, 2, False)) == pytest.approx([3.0, 2.5, 0.5], abs=1e-15)  # F sums
     assert flat(sem.window(OPS, r, 1, 3, True)) == pytest.approx([smin([1.0, 2.0, 0.5], b)], abs=1e-14)
     # until: sum over t' of softmin(right(t'), left over [0, t'))
@@ -196,7 +193,8 @@ def test_temporal_operators_share_one_base_and_differ_in_the_reduction():
     assert (g.symbol, f.symbol, u.symbol) == ("G", "F", "U")
     assert g != f and (g.operand, g.start, g.end) == (f.operand, f.start, f.end)
     assert (str(g), str(f), str(u)) == ("G[1,4](d >= 2)", "F[1,4](d >= 2)", "(d >= 2) U[0,inf] (d >= 2)")
-    assert repr(f) == ("Eventually(operand=Predicate(lhs=Signal(name='d'), op='>=', rhs=Const(value=2.0)), start=1, "
-                       "end=4)")
+    assert repr(f) == (
+        "Eventually(operand=Predicate(lhs=Signal(name='d'), op='>=', rhs=Const(value=2.0)), start=1, " "end=4)"
+    )
     with pytest.raises(ValueError, match=r"interval \[3,1\] of F is empty"):
         stl.eventually(p, 3, 1)

@@ -24,8 +24,9 @@ def uniforms(seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     tail = np.exp(-rng.random(20_000) * 44.0)
     upper = 1.0 - np.exp(-rng.random(20_000) * 36.0)  # 1 - u >= 2.3e-16: below 1
-    return np.concatenate([rng.random(200_000), tail, upper, 0.5 + (rng.random(2_000) - 0.5) * 1e-6,
-                           np.ldexp(1.0, -np.arange(1, 64))])  # fmt: skip
+    return np.concatenate(
+        [rng.random(200_000), tail, upper, 0.5 + (rng.random(2_000) - 0.5) * 1e-6, np.ldexp(1.0, -np.arange(1, 64))]
+    )
 
 
 @pytest.mark.parametrize("df", [1.0, 1.5, *NOISE_PEM_DF, 7.0, 30.0, 300.0])
@@ -64,8 +65,9 @@ def test_standard_quantile_takes_one_df_per_column_and_falls_back_below_one():
     u = uniforms(1)[:1000].reshape(500, 2)
     got = standard_quantile("student-t", np.array(NOISE_PEM_DF), u)
     np.testing.assert_allclose(got, stdtrit(np.array(NOISE_PEM_DF), u), rtol=1e-10, atol=TOLERANCE)
-    np.testing.assert_array_equal(standard_quantile("student-t", np.array([0.5, 0.8]), u),
-                                  stdtrit(np.array([0.5, 0.8]), u))  # fmt: skip
+    np.testing.assert_array_equal(
+        standard_quantile("student-t", np.array([0.5, 0.8]), u), stdtrit(np.array([0.5, 0.8]), u)
+    )
 
 
 @pytest.mark.parametrize("df", [0.5, float("nan"), float("inf")])

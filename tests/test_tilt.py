@@ -130,8 +130,11 @@ def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads():
     grown = Experiment(room, problem=problem).run().final
     assert again.n_simulations + 150 < grown.n_simulations <= room.max_sims  # batches added, look-aheads counted
     other = small.replace(scenario_params=(("cut_in_gap_m", 19.0),))
-    assert Experiment(other, problem=problem_for(other)).run().final.prepared.startswith("the scenario's proposal "
-                                                                                          "solved")
+    assert (
+        Experiment(other, problem=problem_for(other))
+        .run()
+        .final.prepared.startswith("the scenario's proposal " "solved")
+    )
 
 
 def test_a_scenario_without_a_tilt_is_refused():
@@ -146,8 +149,9 @@ def test_pemviz_run_refuses_the_tilt_on_the_crowd_in_one_line(capsys):
 
     assert main(["run", "--scenario", "crowd", "--method", "tilt", "--no-record"]) != 0
     err = capsys.readouterr().err.strip()
-    assert err == ("pemviz run: error: method tilt: the crowd problem has no tilted proposal of its own; use "
-                   "adaptive or mc")
+    assert err == (
+        "pemviz run: error: method tilt: the crowd problem has no tilted proposal of its own; use " "adaptive or mc"
+    )
 
 
 def test_the_console_names_the_cross_entropy_settings_only_for_a_method_with_stages(capsys):

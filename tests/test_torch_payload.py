@@ -97,9 +97,12 @@ def tensors(draw: st.DrawFn) -> torch.Tensor:
     return base
 
 
-PLAIN = (st.none() | st.booleans() | st.integers(-(2**63), 2**63 - 1) | st.floats() | st.text(max_size=8))
-VALUES = st.recursive(PLAIN | tensors(), lambda inner: st.lists(inner, max_size=3)
-                      | st.dictionaries(st.text(max_size=6), inner, max_size=3), max_leaves=10)  # fmt: skip
+PLAIN = st.none() | st.booleans() | st.integers(-(2**63), 2**63 - 1) | st.floats() | st.text(max_size=8)
+VALUES = st.recursive(
+    PLAIN | tensors(),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+    max_leaves=10,
+)
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
@@ -116,10 +119,15 @@ def test_random_payloads_read_as_torch_load_reads_them(payload: dict, shared: to
 
 def test_ordered_dicts_parameters_tuples_and_odd_floats() -> None:
     state = torch.nn.Linear(3, 2).state_dict()  # an OrderedDict, with its _metadata attribute
-    payload = {"state": state, "param": torch.nn.Parameter(torch.arange(4.0)), "t": (1, "a", None),
-               "floats": [float("nan"), float("inf"), -0.0, 5e-324], "complex": torch.tensor([1 + 2j]),
-               "half": torch.tensor([1.5, -2.0], dtype=torch.half),
-               "u8": torch.arange(5, dtype=torch.uint8)}  # fmt: skip
+    payload = {
+        "state": state,
+        "param": torch.nn.Parameter(torch.arange(4.0)),
+        "t": (1, "a", None),
+        "floats": [float("nan"), float("inf"), -0.0, 5e-324],
+        "complex": torch.tensor([1 + 2j]),
+        "half": torch.tensor([1.5, -2.0], dtype=torch.half),
+        "u8": torch.arange(5, dtype=torch.uint8),
+    }
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "p.pt"
         torch.save(payload, path)
@@ -139,8 +147,12 @@ def _rewrite(path: Path, out: Path, change: Any) -> None:
 
 
 def test_a_big_endian_archive_reads_as_torch_reads_it(tmp_path: Path) -> None:
-    payload = {"f": torch.linspace(-3, 7, 11, dtype=torch.float64), "i": torch.arange(6, dtype=torch.int32).view(2, 3),
-               "b": torch.tensor([True, False]), "h": torch.tensor([0.5, 3.0], dtype=torch.float32)[1:]}  # fmt: skip
+    payload = {
+        "f": torch.linspace(-3, 7, 11, dtype=torch.float64),
+        "i": torch.arange(6, dtype=torch.int32).view(2, 3),
+        "b": torch.tensor([True, False]),
+        "h": torch.tensor([0.5, 3.0], dtype=torch.float32)[1:],
+    }
     torch.save(payload, tmp_path / "little.pt")
     assert_same(read_payload(tmp_path / "little.pt"), payload)
     keys = {"0": np.float64, "1": np.int32, "2": np.bool_, "3": np.float32}  # torch.save numbers storages as met
@@ -241,10 +253,25 @@ def _outcome(fn: Any) -> tuple:
 def test_damaged_and_foreign_files_fail_as_they_did_with_torch_load(tmp_path: Path) -> None:
     odd = {"flipped byte": _flipped(tmp_path), "no byteorder": _no_byteorder(tmp_path)}
     for name, path in [*_damaged(tmp_path).items(), *odd.items()]:
-        new = _outcome(lambda: load_tagged(path,  # noqa: B023 (called within the iteration)
-                                           "pemviz-pem", 1, "PEM", PemFormatError, as_numpy=True))
-        old = _outcome(lambda: load_tagged(path,  # noqa: B023 (called within the iteration)
-                                           "pemviz-pem", 1, "PEM", PemFormatError))
+        new = _outcome(
+            lambda: load_tagged(
+                path,  # noqa: B023 (called within the iteration)
+                "pemviz-pem",
+                1,
+                "PEM",
+                PemFormatError,
+                as_numpy=True,
+            )
+        )
+        old = _outcome(
+            lambda: load_tagged(
+                path,  # noqa: B023 (called within the iteration)
+                "pemviz-pem",
+                1,
+                "PEM",
+                PemFormatError,
+            )
+        )
         if old[0] == "ok":  # torch reads it (no byte order, a flipped byte torch does not check): so does the reader
             assert new[0] == "ok", name
             assert_same(new[1], old[1], name)
@@ -333,8 +360,18 @@ def _torch_folded(state_pem: Any, build: Any) -> Any:
 
 def _raw(n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    return np.column_stack([rng.integers(0, 7, n), rng.uniform(0, 1, n), rng.integers(0, 3, n), rng.normal(size=(n, 4)),
-                            rng.normal(0, 8, n), rng.normal(1.6, 0.4, n), rng.uniform(2, 80, n), rng.uniform(-3, 3, n)])
+    return np.column_stack(
+        [
+            rng.integers(0, 7, n),
+            rng.uniform(0, 1, n),
+            rng.integers(0, 3, n),
+            rng.normal(size=(n, 4)),
+            rng.normal(0, 8, n),
+            rng.normal(1.6, 0.4, n),
+            rng.uniform(2, 80, n),
+            rng.uniform(-3, 3, n),
+        ]
+    )
 
 
 def _same_bits(a: Any, b: Any) -> bool:
@@ -349,8 +386,17 @@ def _mlp_pems() -> list[pem.PEM]:
 @pytest.mark.parametrize("index", range(21))
 def test_shipped_pem_logits_are_bit_identical_to_the_torch_fold(index: int) -> None:
     p = _mlp_pems()[index]
-    ref = _torch_folded(p, lambda: pem.PEM(name=p.name, norm=p.norm, state_dict=p.state_dict, hidden=p.hidden,
-                                            batch_norm=p.batch_norm, temperature=p.temperature))  # fmt: skip
+    ref = _torch_folded(
+        p,
+        lambda: pem.PEM(
+            name=p.name,
+            norm=p.norm,
+            state_dict=p.state_dict,
+            hidden=p.hidden,
+            batch_norm=p.batch_norm,
+            temperature=p.temperature,
+        ),
+    )
     torch_layers = network.fold_layers(p.to_module())
     assert all(_same_bits(a, c) and _same_bits(b, d) for (a, b), (c, d) in zip(p._layers, torch_layers, strict=False))
     raw = _raw(3000, index)
@@ -362,9 +408,18 @@ def test_shipped_pem_logits_are_bit_identical_to_the_torch_fold(index: int) -> N
 
 def test_shipped_noise_pem_is_bit_identical_to_the_torch_fold() -> None:
     n = pem.load_noise_pem()
-    ref = _torch_folded(n, lambda: NoisePEM(name=n.name, norm=n.norm, family=n.family, df=n.df,
-                                                state_dict=n.state_dict, hidden=n.hidden,
-                                                target_scale=n.target_scale))  # fmt: skip
+    ref = _torch_folded(
+        n,
+        lambda: NoisePEM(
+            name=n.name,
+            norm=n.norm,
+            family=n.family,
+            df=n.df,
+            state_dict=n.state_dict,
+            hidden=n.hidden,
+            target_scale=n.target_scale,
+        ),
+    )
     x = n.features(_raw(3000, 7))
     assert all(_same_bits(a, b) for a, b in zip(n.noise_params(x), ref.noise_params(x), strict=False))
 

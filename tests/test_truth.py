@@ -58,8 +58,9 @@ def test_toy_vectorised_simulator_equals_the_black_box_one():
     params = ToyParams(12, 6, 3, lambda d: 0.6 + 0.02 * d)
     pb = toy_problem(params)
     a = simulate_toy(params, 40, ConstantDetector(0.4), pb.target, np.random.default_rng(3))
-    b = simulate(lambda: ToyBraking(params), 40, ConstantDetector(0.4), pb.target, np.random.default_rng(3),
-                 params.steps)
+    b = simulate(
+        lambda: ToyBraking(params), 40, ConstantDetector(0.4), pb.target, np.random.default_rng(3), params.steps
+    )
     for name in ("observations", "detected", "log_p", "log_q"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
@@ -181,8 +182,9 @@ def test_enumerated_main_truth_agrees_with_importance_sampling(pem):
     assert braking_problem(pem, BrakingParams(latched_brake=True)).exact_log_p == pytest.approx(
         latched_log_failure_probability(pem.logit_at_gap).log_p_fail, abs=1e-12
     )
-    batch = pb.simulate(40000, WindowDetector(ConstantDetector(0.6), pb.target, 10.0), pb.target,
-                        np.random.default_rng(0))
+    batch = pb.simulate(
+        40000, WindowDetector(ConstantDetector(0.6), pb.target, 10.0), pb.target, np.random.default_rng(0)
+    )
     crash = batch.signal("gap_m") < 2.0
     first = np.where(crash.any(axis=1), crash.argmax(axis=1), batch.n_steps - 1)
     upto = np.arange(batch.n_steps)[None, :] < first[:, None]

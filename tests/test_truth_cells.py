@@ -14,7 +14,11 @@ from pemviz.scenarios.braking import truth
 from pemviz.scenarios.braking.truth import BrakingStart, MissBound, braking_exact
 from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
 from pemviz.scenarios.braking.truth_cells import (
-    CellMissBound, cell_miss_bound, integral_range, speed_lipschitz, speed_ranges,
+    CellMissBound,
+    cell_miss_bound,
+    integral_range,
+    speed_lipschitz,
+    speed_ranges,
 )
 
 
@@ -46,8 +50,9 @@ def test_speed_lipschitz_bounds_the_slopes_of_the_true_step():
     L = speed_lipschitz(p, 9.0)
     for integral in (-2.7, 0.0, 6.0, 13.5):
         for pending, detected in itertools.product((False, True), repeat=2):
-            v2 = braking_step(p, 0.0, gap, v, np.full(v.size, integral), np.full(v.size, pending),
-                              np.array(detected))[1]  # fmt: skip
+            v2 = braking_step(p, 0.0, gap, v, np.full(v.size, integral), np.full(v.size, pending), np.array(detected))[
+                1
+            ]
             assert np.max(np.abs(np.diff(v2) / np.diff(v))) <= L
     assert 1.0 < L < 20.0
 

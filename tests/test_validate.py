@@ -34,8 +34,29 @@ def test_default_sampler_weights_of_a_toy_failure_are_exact():
 def test_tables_reduced_run_recovers_the_toy_1e_minus_3(tmp_path):
     # the CI version of `pemviz tables`: the toy's 1e-3 case within 30 %
     out = tmp_path / "t"
-    assert cli_main(["tables", "--problem", "toy-1e-3", "--reps", "3", *REDUCED, "--mc-large", "2000",
-                     "--naive-large", "300", "--extra", "paper", "--jobs", "1", "--out", str(out)]) == 0  # fmt: skip
+    assert (
+        cli_main(
+            [
+                "tables",
+                "--problem",
+                "toy-1e-3",
+                "--reps",
+                "3",
+                *REDUCED,
+                "--mc-large",
+                "2000",
+                "--naive-large",
+                "300",
+                "--extra",
+                "paper",
+                "--jobs",
+                "1",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = {row["method"]: row for row in csv.DictReader((out / "tables.csv").open())}
     assert set(rows) >= {"MC_100", "MC_2000", "naive-50_100", "naive-50_300", "adaptive_100", "r_agm"}
     for name in ("adaptive_100", "adaptive_100 (paper)"):
@@ -46,8 +67,18 @@ def test_tables_reduced_run_recovers_the_toy_1e_minus_3(tmp_path):
 
 
 def test_validate_reduced_run_prints_the_table_with_the_truth(tmp_path, capsys):
-    args = ["validate", "--problems", "toy-1e-3", "--seeds", "3", "--presets", "paper", *REDUCED,
-            "--out", str(tmp_path)]
+    args = [
+        "validate",
+        "--problems",
+        "toy-1e-3",
+        "--seeds",
+        "3",
+        "--presets",
+        "paper",
+        *REDUCED,
+        "--out",
+        str(tmp_path),
+    ]
     assert cli_main(args) == 0
     assert "| toy-1e-3 | 1.000e-03 | adaptive (paper) | 3 |" in capsys.readouterr().out
     rows = {row["method"]: row for row in csv.DictReader((tmp_path / "validate.csv").open())}
@@ -59,8 +90,26 @@ def test_validate_takes_a_shipped_pem_by_name_as_run_does(tmp_path):
     # `--pem gbt` once answered "no such file" here while `pemviz run --pem gbt` ran; the toy's truth is 1e-3 in
     # closed form whatever the PEM, and the run records the PEM it was given
     out = tmp_path / "v"
-    assert cli_main(["validate", "--problems", "toy-1e-3", "--pem", "gbt", "--seeds", "1", "--presets", "",
-                     "--baselines", "mc", "--out", str(out)]) == 0  # fmt: skip
+    assert (
+        cli_main(
+            [
+                "validate",
+                "--problems",
+                "toy-1e-3",
+                "--pem",
+                "gbt",
+                "--seeds",
+                "1",
+                "--presets",
+                "",
+                "--baselines",
+                "mc",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     (row,) = csv.DictReader((out / "validate.csv").open())
     assert (row["problem"], row["method"], float(row["truth"])) == ("toy-1e-3", "mc", 1e-3)
     assert '[\\"pem\\", \\"gbt\\"]' in (out / "runs.jsonl").read_text()
@@ -93,9 +142,15 @@ def test_paper_preset_leaves_every_improvement_off():
 
 @pytest.mark.parametrize(
     "field, value",
-    [("proposal_inputs", "speed"), ("defensive", 1.0), ("pretrain_cap", 1.5), ("elite_ties", "some"),
-     ("smoothing_at_failure", 0.0), ("proposal_window", 1)],
-)  # fmt: skip
+    [
+        ("proposal_inputs", "speed"),
+        ("defensive", 1.0),
+        ("pretrain_cap", 1.5),
+        ("elite_ties", "some"),
+        ("smoothing_at_failure", 0.0),
+        ("proposal_window", 1),
+    ],
+)
 def test_improvement_fields_reject_bad_values(field, value):
     from pemviz.config import ConfigError
 
@@ -134,16 +189,40 @@ def test_state_proposal_reads_its_columns_and_holds_the_rest_for_the_curve():
     logit = q.detect_logit(obs)
     assert logit[0] != logit[1]  # the speed matters
     assert q.curve(np.array([5.0]))[0] == pytest.approx(
-        1.0 / (1.0 + math.exp(-q.detect_logit(np.array([[5.0, 7.7]]))[0])))
+        1.0 / (1.0 + math.exp(-q.detect_logit(np.array([[5.0, 7.7]]))[0]))
+    )
 
 
 def test_tables_recording_holds_fig4_as_the_mean_of_the_stage_3_curves(tmp_path):
     rr = pytest.importorskip("rerun")
     pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
     out = tmp_path / "t"
-    assert cli_main(["tables", "--problem", "toy-1e-3", "--reps", "2", "--k", "3", "--ce-epochs", "30",
-                     "--pretrain-epochs", "50", "--extra", "", "--mc-large", "200", "--jobs", "1",
-                     "--out", str(out)]) == 0
+    assert (
+        cli_main(
+            [
+                "tables",
+                "--problem",
+                "toy-1e-3",
+                "--reps",
+                "2",
+                "--k",
+                "3",
+                "--ce-epochs",
+                "30",
+                "--pretrain-epochs",
+                "50",
+                "--extra",
+                "",
+                "--mc-large",
+                "200",
+                "--jobs",
+                "1",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     with rr.server.Server(datasets={"t": [str(out / "tables.rrd")]}) as server:
         client = server.client()  # keep it alive while reading
         table = client.get_dataset("t").reader(index="gap_mm").to_arrow_table()
@@ -158,7 +237,7 @@ def test_tables_recording_holds_fig4_as_the_mean_of_the_stage_3_curves(tmp_path)
 
 def test_every_named_problem_has_its_exact_answer_for_validate():
     from pemviz.scenarios.problems import PROBLEMS, build_problem
-    from pemviz.studies.validation import exact_answer
+    from pemviz.studies.exact_answers import exact_answer
 
     for name in PROBLEMS:
         assert exact_answer(name).log_p_fail == pytest.approx(build_problem(name).exact_log_p, rel=1e-9), name

@@ -11,12 +11,11 @@ from hypothesis import strategies as st
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import relative_error
 from pemviz.scenarios.problems import PROBLEMS, build_problem
+from pemviz.studies.exact_answers import ExactAnswer, exact_answer
 from pemviz.studies.validation import (
     DEFAULT_PROBLEMS,
-    ExactAnswer,
     Job,
     RunRecord,
-    exact_answer,
     job_key,
     markdown_table,
     methods_for,
@@ -33,10 +32,27 @@ def test_relative_error_and_summary_by_hand():
     lt = math.log(1e-21)
     assert relative_error(math.log(1.5e-21), lt) == pytest.approx(0.5, rel=1e-9)
     assert relative_error(-math.inf, lt) == 1.0
-    recs = [RunRecord("toy", "m", s, math.log(v), 10, 100, 5.0, 40.0, 39.0, 1200, 1.0,
-                      log_ci_lo=math.log(v / 1.6), log_ci_hi=math.log(v * 1.6), verdict=verdict)
-            for s, (v, verdict) in enumerate([(0.6e-21, "reliable"), (0.9e-21, "doubtful"), (1.2e-21, "reliable"),
-                                              (4e-21, "unreliable")])]  # fmt: skip
+    recs = [
+        RunRecord(
+            "toy",
+            "m",
+            s,
+            math.log(v),
+            10,
+            100,
+            5.0,
+            40.0,
+            39.0,
+            1200,
+            1.0,
+            log_ci_lo=math.log(v / 1.6),
+            log_ci_hi=math.log(v * 1.6),
+            verdict=verdict,
+        )
+        for s, (v, verdict) in enumerate(
+            [(0.6e-21, "reliable"), (0.9e-21, "doubtful"), (1.2e-21, "reliable"), (4e-21, "unreliable")]
+        )
+    ]
     (s,) = summarise(recs, {"toy": ExactAnswer(lt, "closed form")})
     assert s.median_rel_error == pytest.approx((0.2 + 0.4) / 2, rel=1e-9)  # errors 0.4, 0.1, 0.2, 3
     assert s.within_2x == 3 and s.n_seeds == 4
@@ -106,8 +122,13 @@ def test_baselines_get_the_first_presets_simulation_budget():
     # the paper's budget at K = 3: 100 pretraining rollouts + 3 stages x N = 100 + a final batch of 100
     assert methods["mc"] == {"method": "mc", "n_per_stage": 500}
     assert methods["naive50"] == {"method": "naive50", "n_per_stage": 500}
-    assert methods["adaptive (quick)"] == {"n_stages": 3, "ce_epochs": 200, "pretrain_rollouts": 50,
-                                           "pretrain_epochs": 200, "learning_rate": 2e-2}  # the quick preset, K = 3
+    assert methods["adaptive (quick)"] == {
+        "n_stages": 3,
+        "ce_epochs": 200,
+        "pretrain_rollouts": 50,
+        "pretrain_epochs": 200,
+        "learning_rate": 2e-2,
+    }  # the quick preset, K = 3
 
 
 def test_the_main_truth_of_a_shipped_pem_is_the_kept_enumeration_not_recomputed():

@@ -42,19 +42,24 @@ def test_too_few_failures_for_k_hat_are_doubtful_and_not_called_nan_weights():
     failed[:15] = True
     e = distinct(np.where(failed, -10.0 + 0.01 * rng.standard_normal(200), -5.0), failed)
     assert math.isnan(e.khat) and e.ess >= 10
-    assert (e.verdict, e.reason) == ("doubtful", "k-hat needs 25 failures to fit the weights' tail (15 here): more "
-                                                 "rollouts needed")  # fmt: skip
+    assert (e.verdict, e.reason) == (
+        "doubtful",
+        "k-hat needs 25 failures to fit the weights' tail (15 here): more " "rollouts needed",
+    )
     two = distinct(np.where(np.arange(200) < 2, -10.0, -5.0), np.arange(200) < 2)
     assert two.verdict == "doubtful" and "nan" not in two.reason, two.reason  # was "the weights hold nan"
 
 
 def test_no_failure_prints_a_bound_in_place_of_a_point_estimate():
     mc = estimate(np.zeros(2000), np.zeros(2000, bool), np.zeros(2000))
-    assert mc.summary().startswith("no failure seen in 2000 rollouts: p < 1.50e-03 (95%, rule of three: 3 / 2000 "
-                                   "rollouts of the PEM itself): unreliable as an estimate")  # fmt: skip
+    assert mc.summary().startswith(
+        "no failure seen in 2000 rollouts: p < 1.50e-03 (95%, rule of three: 3 / 2000 "
+        "rollouts of the PEM itself): unreliable as an estimate"
+    )
     weighted = estimate(np.full(2000, -3.0), np.zeros(2000, bool), np.zeros(2000))
-    assert weighted.summary().startswith("no failure seen in 2000 rollouts: 0 failures under importance sampling: "
-                                         "this bounds nothing: unreliable")  # fmt: skip
+    assert weighted.summary().startswith(
+        "no failure seen in 2000 rollouts: 0 failures under importance sampling: " "this bounds nothing: unreliable"
+    )
     assert "mu_hat" not in mc.summary() and "mu_hat" not in weighted.summary()
 
 
@@ -74,8 +79,12 @@ def test_a_run_whose_stages_never_reached_the_failure_level_is_never_reliable():
     cfg = ExperimentConfig()  # the default sampler: frozen weights, window, weights until failure
 
     def result(reached: bool, config: ExperimentConfig = cfg) -> tuple:
-        ce = types.SimpleNamespace(reached_failures=reached, config=config, _result=lambda: (good, (11,)),
-                                   problem=types.SimpleNamespace(verdict_cap=None))  # fmt: skip
+        ce = types.SimpleNamespace(
+            reached_failures=reached,
+            config=config,
+            _result=lambda: (good, (11,)),
+            problem=types.SimpleNamespace(verdict_cap=None),
+        )
         ce.verdict_cap = CrossEntropy.verdict_cap.fget(ce)
         return CrossEntropy.result(ce)
 
@@ -123,17 +132,25 @@ def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():
     cfg = ExperimentConfig(scenario="cut-in")
     assert next_step(e, cfg, reference=CUT_IN_REFERENCE).startswith(
         f"plain Monte Carlo decides it: --method mc --rel-error 0.2 --max-sims {CUT_IN_MAX_SIMS} (p ~ 8.66e-05, the "
-        f"reference: {CUT_IN_ROLLOUTS:,} rollouts for a 20 % interval")
+        f"reference: {CUT_IN_ROLLOUTS:,} rollouts for a 20 % interval"
+    )
 
 
-@pytest.mark.parametrize("method, failures, n, start", [
-    ("mc", 0, 20_000, "more rollouts (--n 200000) lower the bound ten-fold"),
-    ("mc", 2, 20_000, f"more rollouts: --rel-error 0.2 --max-sims {CUT_IN_MAX_SIMS} samples until the interval is "
-                      "within 20 %"),
-    ("adaptive", 3, 2100, "p is not known (p ~ 1.34e-16, this run's mu_hat: 7.2e+17 rollouts for a 20 % interval"),
-    ("tilt", 3, 2100, "p is not known (p ~ 1.34e-16, this run's mu_hat: 7.2e+17 rollouts for a 20 % interval"),
-    ("ams", 0, 100, "more particles (--n 400), or particles ranked by the scenario's committor where it has one"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "method, failures, n, start",
+    [
+        ("mc", 0, 20_000, "more rollouts (--n 200000) lower the bound ten-fold"),
+        (
+            "mc",
+            2,
+            20_000,
+            f"more rollouts: --rel-error 0.2 --max-sims {CUT_IN_MAX_SIMS} samples until the interval is " "within 20 %",
+        ),
+        ("adaptive", 3, 2100, "p is not known (p ~ 1.34e-16, this run's mu_hat: 7.2e+17 rollouts for a 20 % interval"),
+        ("tilt", 3, 2100, "p is not known (p ~ 1.34e-16, this run's mu_hat: 7.2e+17 rollouts for a 20 % interval"),
+        ("ams", 0, 100, "more particles (--n 400), or particles ranked by the scenario's committor where it has one"),
+    ],
+)
 def test_each_unreliable_or_doubtful_run_gets_one_line_of_advice(method, failures, n, start):
     log_w, failed = np.zeros(n), np.zeros(n, bool)
     failed[:failures] = True
@@ -156,8 +173,13 @@ def test_an_ess_below_20_is_never_reliable_under_importance_sampling():
     from pemviz.core.estimate import MIN_ESS_RELIABLE, _verdict
 
     log_w = np.full(20_000, -80.0)
-    for ess, khat, verdict in ((11.1, 0.45, "doubtful"), (11.8, 0.61, "doubtful"), (13.9, 0.44, "doubtful"),
-                               (19.9, 0.44, "doubtful"), (MIN_ESS_RELIABLE, 0.44, "reliable")):  # fmt: skip
+    for ess, khat, verdict in (
+        (11.1, 0.45, "doubtful"),
+        (11.8, 0.61, "doubtful"),
+        (13.9, 0.44, "doubtful"),
+        (19.9, 0.44, "doubtful"),
+        (MIN_ESS_RELIABLE, 0.44, "reliable"),
+    ):
         got, reason = _verdict(20_000, 61, ess, khat, log_w, False, 61)
         assert got == verdict, (ess, got, reason)
         if verdict == "doubtful":

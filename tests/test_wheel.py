@@ -31,8 +31,10 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("wheelhouse")
     subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", str(src), "-w", str(out)],
-        check=True, cwd=src, timeout=300,
-    )  # fmt: skip
+        check=True,
+        cwd=src,
+        timeout=300,
+    )
     (whl,) = out.glob("pemviz-*.whl")
     return whl
 
@@ -50,13 +52,19 @@ def test_pemviz_run_from_the_installed_wheel_in_an_empty_folder(wheel: Path, tmp
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
     py = venv / "bin" / "python"
-    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True,
-                   timeout=300)  # fmt: skip
+    subprocess.run(
+        [str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True, timeout=300
+    )
     # Only now (pip must not see, and so not uninstall, the running environment's pemviz): the running environment's
     # site-packages folders, after the new one's own. Their .pth files (an editable pemviz's among them) are not run.
     borrowed = [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages") and Path(p).is_dir()]
-    own = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                         capture_output=True, text=True, check=True, timeout=60).stdout.strip()  # fmt: skip
+    own = subprocess.run(
+        [str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    ).stdout.strip()
     (Path(own) / "borrowed-from-the-test-environment.pth").write_text("\n".join(borrowed) + "\n")
     work = tmp_path / "empty"
     work.mkdir()
@@ -64,15 +72,24 @@ def test_pemviz_run_from_the_installed_wheel_in_an_empty_folder(wheel: Path, tmp
     env["RERUN_ANALYTICS"] = "false"
     where = subprocess.run(
         [str(py), "-c", "import pemviz, pemviz.pem.store as p; print(pemviz.__file__); print(p.assets_dir())"],
-        cwd=work, env=env, capture_output=True, text=True, check=True, timeout=120,
-    )  # fmt: skip
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    )
     module_file, assets = where.stdout.split()
     assert Path(module_file).is_relative_to(venv), module_file  # the wheel's pemviz, not the checkout
     assert Path(assets).is_relative_to(venv) and (Path(assets) / "pem_ml-nn.pt").is_file()
     proc = subprocess.run(
         [str(venv / "bin" / "pemviz"), "run", "--no-record", "--preset", "quick", "--k", "2"],
-        cwd=work, env=env, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     found = re.search(r"mu_hat = ([0-9.e+-]+) ", proc.stdout)
     assert found and 1e-16 < float(found.group(1)) < 1e-13, proc.stdout[-2000:]  # the crash probability ~2e-15

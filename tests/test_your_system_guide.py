@@ -137,19 +137,26 @@ def test_a_run_s_rollout_file_re_estimates_and_its_why_line_names_the_pedestrian
     assert again.estimate.log_mu_hat == pytest.approx(done.final.estimate.log_mu_hat, rel=1e-9, abs=1e-9)
     why = likely.why(problem)
     assert why is not None and ("pedestrian A" in why or "pedestrian B" in why) and "object 0" not in why
-    quoted = ("37 misses and 8 measurement errors before the failure at step 28; decisive alone: pedestrian B missed "
-              "at step 11; pedestrian A missed at step 12;")
+    quoted = (
+        "37 misses and 8 measurement errors before the failure at step 28; decisive alone: pedestrian B missed "
+        "at step 11; pedestrian A missed at step 12;"
+    )
     assert why.startswith("why: the most likely failure (stage 11; ") and why.split("): ", 1)[1].startswith(quoted)
     assert f"`why: the most likely failure (stage 11; ...): {quoted} ...`" in prose()
 
 
 def pemviz(command: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "RERUN_ANALYTICS": "false", "PEMVIZ_SCENARIOS": "my_crosswalk",
-           "PYTHONPATH": os.pathsep.join((str(cwd), str(REPO)))}  # fmt: skip
+    env = {
+        **os.environ,
+        "RERUN_ANALYTICS": "false",
+        "PEMVIZ_SCENARIOS": "my_crosswalk",
+        "PYTHONPATH": os.pathsep.join((str(cwd), str(REPO))),
+    }
     args = shlex.split(command.split("#", 1)[0])
     assert args[0] == "pemviz"
-    return subprocess.run([sys.executable, "-m", "pemviz.cli", *args[1:]], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "pemviz.cli", *args[1:]], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
 
 
 def test_the_command_line_form_runs_the_saved_module_and_estimate_gives_its_number_back(guide, tmp_path):

@@ -106,16 +106,22 @@ def run_point(record: PanelRun) -> RunPoint:
     if e.n_failures == 0 or e.log_mu_hat == -math.inf:
         bound = _log10(hi) if hi < 0.0 else None
         if bound is None:
-            return RunPoint(record, note=f"{name}: no failure in {e.n} rollouts, mu_hat = 0; under importance sampling "
-                                         "this bounds nothing, not drawn", **known)  # fmt: skip
+            return RunPoint(
+                record,
+                note=f"{name}: no failure in {e.n} rollouts, mu_hat = 0; under importance sampling "
+                "this bounds nothing, not drawn",
+                **known,
+            )
         note = f"{name}: no failure in {e.n} rollouts, mu_hat = 0: drawn is the bound p < {format_probability(hi, 2)}"
         return RunPoint(record, log10_bound=bound, note=note, **known)
     mu = _log10(e.log_mu_hat)
     if not e.interval_backed:  # the weights back no interval: its lower bound, and a line to the top (no upper end)
         if mu is None:
             return RunPoint(record, note=f"{name}: mu_hat is not a finite number, not drawn", **known)
-        note = (f"{name} is {e.verdict}: its weights back no interval; drawn is its 95 % lower bound "
-                f"p >= {format_probability(e.log_lower_bound, 2)}, with no upper bound")  # fmt: skip
+        note = (
+            f"{name} is {e.verdict}: its weights back no interval; drawn is its 95 % lower bound "
+            f"p >= {format_probability(e.log_lower_bound, 2)}, with no upper bound"
+        )
         return RunPoint(record, log10_mu=mu, log10_lo=_log10(e.log_lower_bound), bound_only=True, note=note, **known)
     if mu is None or _log10(hi) is None or math.isnan(lo):
         return RunPoint(record, note=f"{name}: mu_hat or its interval is not a finite number, not drawn", **known)
@@ -190,8 +196,12 @@ def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list
         y[i * width + _TOP] = top
         return y
 
-    shown = [v for p in points for v in (p.log10_mu, p.log10_lo, p.log10_hi, p.log10_bound, p.log10_exact,
-                                         p.log10_reference) if v is not None]  # fmt: skip
+    shown = [
+        v
+        for p in points
+        for v in (p.log10_mu, p.log10_lo, p.log10_hi, p.log10_bound, p.log10_exact, p.log10_reference)
+        if v is not None
+    ]
     y_lo, y_hi = _y_range(shown)
     no_points = {"show": False}
     series: list[up.Series] = [up.Series(label="run")]
@@ -202,32 +212,48 @@ def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list
         if p.log10_mu is not None and (p.log10_hi is not None or p.bound_only):
             bottom = p.log10_lo if p.log10_lo is not None else y_lo  # an interval reaching 0: to the chart's bottom
             if p.bound_only:  # a lower bound's cap, and a line to the chart's top: no upper bound from this run
-                parts = (("95 % lower bound", column(i, _CAP, bottom) if p.log10_lo is not None else None),
-                         ("no upper bound", line(i, bottom, y_hi)))
+                parts = (
+                    ("95 % lower bound", column(i, _CAP, bottom) if p.log10_lo is not None else None),
+                    ("no upper bound", line(i, bottom, y_hi)),
+                )
             else:
-                parts = (("95 % low", column(i, _CAP, bottom) if p.log10_lo is not None else None),
-                         ("95 % high", column(i, _CAP, p.log10_hi)),
-                         ("95 % interval", line(i, bottom, p.log10_hi)))
+                parts = (
+                    ("95 % low", column(i, _CAP, bottom) if p.log10_lo is not None else None),
+                    ("95 % high", column(i, _CAP, p.log10_hi)),
+                    ("95 % interval", line(i, bottom, p.log10_hi)),
+                )
             for label, values in parts:
                 if values is not None:
                     series.append(up.Series(label=f"{name} {label}", stroke=colour, width=2, points=no_points))
                     data.append(values)
-            series.append(up.Series(label=f"{name} mu_hat", stroke=colour, width=0,
-                                    points={"show": True, "size": 11, "fill": colour, "stroke": colour}))  # fmt: skip
+            series.append(
+                up.Series(
+                    label=f"{name} mu_hat",
+                    stroke=colour,
+                    width=0,
+                    points={"show": True, "size": 11, "fill": colour, "stroke": colour},
+                )
+            )
             data.append(column(i, _BOTTOM, p.log10_mu))
         elif p.log10_bound is not None:
-            series += [up.Series(label=f"{name} upper bound", stroke=colour, width=2, dash=(4, 3), points=no_points),
-                       up.Series(label=f"{name} below the bound", stroke=colour, width=1.5, dash=(4, 3),
-                                 points=no_points)]  # fmt: skip
+            series += [
+                up.Series(label=f"{name} upper bound", stroke=colour, width=2, dash=(4, 3), points=no_points),
+                up.Series(label=f"{name} below the bound", stroke=colour, width=1.5, dash=(4, 3), points=no_points),
+            ]
             data += [column(i, _CAP, p.log10_bound), line(i, y_lo, p.log10_bound)]
     for i, p in enumerate(points):
-        answers = ((EXACT, p.log10_exact, hex_colour(BLACK), None),
-                   (REFERENCE, p.log10_reference, hex_colour(REFERENCE_LINE), (6, 3)))
+        answers = (
+            (EXACT, p.log10_exact, hex_colour(BLACK), None),
+            (REFERENCE, p.log10_reference, hex_colour(REFERENCE_LINE), (6, 3)),
+        )
         for label, value, stroke, dash in answers:
             if value is not None:
                 extra = {"dash": dash} if dash else {}
-                series.append(up.Series(label=f"{p.record.short_label} {label}", stroke=stroke, width=2.5,
-                                        points=no_points, **extra))  # fmt: skip
+                series.append(
+                    up.Series(
+                        label=f"{p.record.short_label} {label}", stroke=stroke, width=2.5, points=no_points, **extra
+                    )
+                )
                 data.append(column(i, _BAR, value))
     if len(series) == 1:  # nothing to draw yet: uPlot needs a y series
         series.append(up.Series(label="no estimate yet", stroke=hex_colour(BLACK)))
@@ -237,8 +263,11 @@ def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list
     plot.series = tuple(series)
     plot.data = tuple(data)
     x_axis, y_axis = axes("kept run", "log10 p")
-    x_axis = up.Axis(**{**x_axis, "size": 48}, splits=tuple(float(k) for k in range(1, n + 1)),
-                     values=tuple(tick_label(p) for p in points))  # fmt: skip
+    x_axis = up.Axis(
+        **{**x_axis, "size": 48},
+        splits=tuple(float(k) for k in range(1, n + 1)),
+        values=tuple(tick_label(p) for p in points),
+    )
     plot.axes = (x_axis, y_axis)
     # uPlot's auto-range breaks on nan: give both ranges explicitly
     plot.scales = {
@@ -257,8 +286,14 @@ def result_cells(record: PanelRun) -> list[str]:
     fin = record.final.estimate if record.final is not None else None
     if fin is None:
         return ["-"] * (len(RESULT_ROWS) - 1) + [record.status]
-    return [format_probability(fin.log_mu_hat), fin.interval_text(), f"{fin.n_failures}/{fin.n}",
-            finite_or_dash(fin.ess, ".1f"), fin.verdict, record.status]  # fmt: skip
+    return [
+        format_probability(fin.log_mu_hat),
+        fin.interval_text(),
+        f"{fin.n_failures}/{fin.n}",
+        finite_or_dash(fin.ess, ".1f"),
+        fin.verdict,
+        record.status,
+    ]
 
 
 def differing_settings(runs: list[PanelRun]) -> tuple[list[str], int]:
@@ -296,10 +331,11 @@ def compare_html(runs: list[PanelRun], notes: list[str] | None = None) -> str:
     )
     cells = [result_cells(r) for r in runs]
     body = "".join(
-        f'<tr><th style="text-align:left">{label}</th>' + "".join(f"<td>{html.escape(c[i])}</td>" for c in cells)
+        f'<tr><th style="text-align:left">{label}</th>'
+        + "".join(f"<td>{html.escape(c[i])}</td>" for c in cells)
         + "</tr>"
         for i, label in enumerate(RESULT_ROWS)
-    )  # fmt: skip
+    )
     differ, same = differing_settings(runs)
     for name in differ:
         body += (

@@ -20,8 +20,16 @@ from pemviz.scenarios.panel_data import CurveAxis, LaneScene, ObjectsScene, Seri
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
 
-__all__ = ["LaneExplanation", "LanePanel", "ObjectsPanel", "PanelDrawing", "lane_panel", "objects_panel", "panel_scene",
-           "scenario_drawing"]
+__all__ = [
+    "LaneExplanation",
+    "LanePanel",
+    "ObjectsPanel",
+    "PanelDrawing",
+    "lane_panel",
+    "objects_panel",
+    "panel_scene",
+    "scenario_drawing",
+]
 
 
 class LaneExplanation(Protocol):

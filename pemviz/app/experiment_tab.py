@@ -57,9 +57,11 @@ class ExperimentTab:
         pem_options = list(shipped) + ([c0.pem] if c0.pem and c0.pem not in shipped else [])
 
         self.preset = gui.add_dropdown(
-            "preset", tuple(PANEL_PRESETS), initial_value=self.app.preset_name,
+            "preset",
+            tuple(PANEL_PRESETS),
+            initial_value=self.app.preset_name,
             hint=f"sampler settings: {preset_help(PANEL_PRESETS)}",
-        )  # fmt: skip
+        )
         self.choices: dict[str, Any] = {}
         self.fields: dict[str, viser.GuiTextHandle] = {}
         self.field_errors: dict[str, viser.GuiHtmlHandle] = {}
@@ -71,8 +73,9 @@ class ExperimentTab:
 
         def dropdown(key: str, options: tuple[str, ...] | None = None, value: str | None = None, **kw: Any) -> None:
             s = SETTINGS[key]
-            self.choices[key] = gui.add_dropdown(s.label, options or s.choices, initial_value=value or getattr(c0, key),
-                                                 hint=s.hint, **kw)  # fmt: skip
+            self.choices[key] = gui.add_dropdown(
+                s.label, options or s.choices, initial_value=value or getattr(c0, key), hint=s.hint, **kw
+            )
 
         dropdown("scenario", registered())  # every registered scenario, plugins included
         dropdown("metric")
@@ -83,8 +86,15 @@ class ExperimentTab:
         self.params.build(self.choices["scenario"].value, lambda: self._on_change())
         with gui.add_folder("advanced", expand_by_default=False):
             dropdown("method", method_names())  # every registered method, plugins included
-            for key in ("rel_error", "max_sims", "max_time_s", "ce_epochs", "pretrain_rollouts", "pretrain_epochs",
-                        "learning_rate"):
+            for key in (
+                "rel_error",
+                "max_sims",
+                "max_time_s",
+                "ce_epochs",
+                "pretrain_rollouts",
+                "pretrain_epochs",
+                "learning_rate",
+            ):
                 number(key)
             dropdown("weights")
             dropdown("final_estimate")

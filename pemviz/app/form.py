@@ -23,12 +23,27 @@ from pemviz.scenarios.parameters import Parameter, ParameterError, Value
 from pemviz.scenarios.registry import get
 
 
-NUMBER_FIELDS: tuple[Setting, ...] = tuple(SETTINGS[name] for name in (
-    "smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed", "ce_epochs", "pretrain_rollouts",
-    "pretrain_epochs", "learning_rate", "rel_error", "max_sims", "max_time_s",
-))  # fmt: skip
+NUMBER_FIELDS: tuple[Setting, ...] = tuple(
+    SETTINGS[name]
+    for name in (
+        "smoothing",
+        "quantile_level",
+        "n_stages",
+        "n_per_stage",
+        "n_final",
+        "seed",
+        "ce_epochs",
+        "pretrain_rollouts",
+        "pretrain_epochs",
+        "learning_rate",
+        "rel_error",
+        "max_sims",
+        "max_time_s",
+    )
+)
 """The numbers the form shows, each with its :class:`~pemviz.settings.Setting` (label, words, range, hint)."""
 FIELDS_BY_KEY = {f.name: f for f in NUMBER_FIELDS}
+
 
 def parse_number(field: Setting, text: str) -> tuple[float | int | None, str]:
     """``(value, "")`` for a valid entry, ``(None, reason)`` otherwise; the reason names the field in words.
@@ -129,8 +144,12 @@ class FormResult:
         return self.config is not None
 
 
-def parse_form(texts: dict[str, str], choices: dict[str, Any], base: ExperimentConfig | None = None,
-               params: Mapping[str, str] | None = None) -> FormResult:
+def parse_form(
+    texts: dict[str, str],
+    choices: dict[str, Any],
+    base: ExperimentConfig | None = None,
+    params: Mapping[str, str] | None = None,
+) -> FormResult:
     """Parse every number field and build the config; every error at once.
 
     Args:

@@ -54,8 +54,10 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
     ]
     exact = record.exact_log_p
     if exact is not None:
-        lines.append(f"exact answer {format_probability(exact, 4)}: {error_text(e.log_mu_hat, exact)}, "
-                     f"{e.holds_text(exact, '<b>outside</b>')}")
+        lines.append(
+            f"exact answer {format_probability(exact, 4)}: {error_text(e.log_mu_hat, exact)}, "
+            f"{e.holds_text(exact, '<b>outside</b>')}"
+        )
     elif record.reference is not None:
         text = html.escape(record.reference.comparison(e, outside="OUTSIDE"))
         lines.append(text.replace("OUTSIDE", "<b>outside</b>"))
@@ -102,7 +104,8 @@ def explanation_html(record: PanelRun, traj: Trajectory, ex: LaneExplanation, ti
         else:
             found = "<b>Minimal miss set</b>: none: even a detection at every step fails"
         saving = (
-            f"{cf.last_saving_step * dt:.2f} s (step {cf.last_saving_step})" if cf.last_saving_step is not None
+            f"{cf.last_saving_step * dt:.2f} s (step {cf.last_saving_step})"
+            if cf.last_saving_step is not None
             else "none: no single detection saves it"
         )
         lines.append(f"{found} · <b>last step at which one detection still saves it</b>: {saving}")

@@ -20,10 +20,12 @@ from pemviz.core.problem_view import object_scene
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
-GREEN, ORANGE, UNSEEN, BLUE, RED, EGO, TRACK = (hex_colour(c) for c in (C.DETECTED, C.MISSED, C.IDLE, C.BLUE, C.RED,
-                                                                          C.OBJECT, C.VIOLET))
-BACKGROUND, LANE, TEXT, AXIS_TEXT, ON_EGO, NOW = (hex_colour(c) for c in (C.SKETCH_BACKGROUND, C.SKETCH_LANE, C.DARK,
-                                                                         C.GREY, C.ON_DARK, C.BLACK))
+GREEN, ORANGE, UNSEEN, BLUE, RED, EGO, TRACK = (
+    hex_colour(c) for c in (C.DETECTED, C.MISSED, C.IDLE, C.BLUE, C.RED, C.OBJECT, C.VIOLET)
+)
+BACKGROUND, LANE, TEXT, AXIS_TEXT, ON_EGO, NOW = (
+    hex_colour(c) for c in (C.SKETCH_BACKGROUND, C.SKETCH_LANE, C.DARK, C.GREY, C.ON_DARK, C.BLACK)
+)
 AHEAD_M = (-25.0, 75.0)
 """The stretch of road the bird's-eye view shows, from behind the ego to ahead of it (metres)."""
 LATERAL_M = 9.0
@@ -116,8 +118,9 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
         loc, log_scale = target.noise_params(rows.reshape(-1, rows.shape[-1]))
         shape = sc.detected.shape
         loc, scale = np.asarray(loc).reshape(*shape, -1), np.exp(log_scale).reshape(*shape, -1)
-        ellipse = np.stack([np.stack([loc[..., ix], scale[..., ix]], -1),
-                            np.stack([loc[..., iz], scale[..., iz]], -1)], -2)  # fmt: skip
+        ellipse = np.stack(
+            [np.stack([loc[..., ix], scale[..., ix]], -1), np.stack([loc[..., iz], scale[..., iz]], -1)], -2
+        )
     cf = None
     if failed and problem is not None and getattr(problem, "branch", None) is not None:
         cf = counterfactuals(problem, batch, 0)
@@ -129,9 +132,23 @@ def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
     column = scene.distance_column if scene is not None else ""
     gap = batch.objects[0][:, :, object_names.index(column)].astype(np.float64) if column in object_names else None
     story = drawing.objects_story(batch, names) if drawing is not None else None
-    return ObjectsExplanation(sc.lateral_m, sc.ahead_m, sc.detected, sc.seen, sc.measured, ellipse, sc.tracked,
-                              sc.followed, cf, names, bool(failed), np.arange(sc.detected.shape[0]) * float(dt_s), gap,
-                              story, scene.lane_width_m if scene is not None else DEFAULT_LANE_M)  # fmt: skip
+    return ObjectsExplanation(
+        sc.lateral_m,
+        sc.ahead_m,
+        sc.detected,
+        sc.seen,
+        sc.measured,
+        ellipse,
+        sc.tracked,
+        sc.followed,
+        cf,
+        names,
+        bool(failed),
+        np.arange(sc.detected.shape[0]) * float(dt_s),
+        gap,
+        story,
+        scene.lane_width_m if scene is not None else DEFAULT_LANE_M,
+    )
 
 
 @dataclass(frozen=True)
@@ -170,21 +187,29 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
     def px(ahead: float, lateral: float) -> tuple[float, float]:
         return (ahead - lo) * sx, 10 + (lateral + LATERAL_M) * sy
 
-    parts = [(f'<svg class="pemviz-birds-eye" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-              f'style="background:{BACKGROUND};border-radius:4px">')]  # fmt: skip
+    parts = [
+        (
+            f'<svg class="pemviz-birds-eye" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+            f'style="background:{BACKGROUND};border-radius:4px">'
+        )
+    ]
     for k in (-1.5, -0.5, 0.5, 1.5):  # the lines of three lanes, the ego's in the middle: dashed between lanes
         y = px(0.0, k * ox.lane_width_m)[1]
         dash = "" if abs(k) > 1 else ' stroke-dasharray="6 6"'
         parts.append(f'<line x1="0" y1="{y:.1f}" x2="{width}" y2="{y:.1f}" stroke="{LANE}"{dash}/>')
     for metres in range(0, int(hi) + 1, 25):
         x = px(float(metres), 0.0)[0]
-        parts.append(f'<text x="{x:.1f}" y="{height - 3}" font-size="9" fill="{AXIS_TEXT}" text-anchor="middle">'
-                     f'{metres} m</text>')  # fmt: skip
+        parts.append(
+            f'<text x="{x:.1f}" y="{height - 3}" font-size="9" fill="{AXIS_TEXT}" text-anchor="middle">'
+            f"{metres} m</text>"
+        )
 
     def car(ahead: float, lateral: float, fill: str, stroke: str = "none", width_px: float = 0.0) -> str:
         x, y = px(ahead - CAR_LENGTH_M / 2, lateral - CAR_WIDTH_M / 2)
-        return (f'<rect x="{x:.1f}" y="{y:.1f}" width="{CAR_LENGTH_M * sx:.1f}" height="{CAR_WIDTH_M * sy:.1f}" '
-                f'rx="2" fill="{fill}" stroke="{stroke}" stroke-width="{width_px}"/>')  # fmt: skip
+        return (
+            f'<rect x="{x:.1f}" y="{y:.1f}" width="{CAR_LENGTH_M * sx:.1f}" height="{CAR_WIDTH_M * sy:.1f}" '
+            f'rx="2" fill="{fill}" stroke="{stroke}" stroke-width="{width_px}"/>'
+        )
 
     parts.append(car(0.0, 0.0, EGO))
     ex, ey = px(0.0, 0.0)
@@ -198,27 +223,37 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
         hit = any(obj == j for obj, _ in decisive)
         parts.append(car(a, lat, state_colour(det, seen), RED if hit else TEXT, 3.0 if hit else 0.5))
         x, y = px(a, lat)
-        parts.append(f'<text x="{x:.1f}" y="{y - CAR_WIDTH_M * sy / 2 - 3:.1f}" font-size="10" fill="{TEXT}" '
-                     f'text-anchor="middle">{j}</text>')  # fmt: skip
+        parts.append(
+            f'<text x="{x:.1f}" y="{y - CAR_WIDTH_M * sy / 2 - 3:.1f}" font-size="10" fill="{TEXT}" '
+            f'text-anchor="middle">{j}</text>'
+        )
         if det and ox.ellipse is not None:
             (c_lat, r_lat), (c_ahead, r_ahead) = ox.ellipse[t, j]
             cx, cy = px(a + c_ahead, lat + c_lat)
-            parts.append(f'<ellipse cx="{cx:.1f}" cy="{cy:.1f}" rx="{ELLIPSE_SCALES * r_ahead * sx:.1f}" '
-                         f'ry="{ELLIPSE_SCALES * r_lat * sy:.1f}" fill="none" stroke="{BLUE}" '
-                         f'stroke-dasharray="3 2"/>')  # fmt: skip
+            parts.append(
+                f'<ellipse cx="{cx:.1f}" cy="{cy:.1f}" rx="{ELLIPSE_SCALES * r_ahead * sx:.1f}" '
+                f'ry="{ELLIPSE_SCALES * r_lat * sy:.1f}" fill="none" stroke="{BLUE}" '
+                f'stroke-dasharray="3 2"/>'
+            )
         if ox.tracked is not None and np.all(np.isfinite(ox.tracked[t, j])):  # the tracker's estimate, dashed
             tx, ty = px(float(ox.tracked[t, j, 1]) - CAR_LENGTH_M / 2, float(ox.tracked[t, j, 0]) - CAR_WIDTH_M / 2)
             follow = bool(ox.followed[t, j])
-            parts.append(f'<rect class="pemviz-track" x="{tx:.1f}" y="{ty:.1f}" width="{CAR_LENGTH_M * sx:.1f}" '
-                         f'height="{CAR_WIDTH_M * sy:.1f}" rx="2" fill="none" stroke="{TRACK}" '
-                         f'stroke-width="{2.0 if follow else 1.2}" stroke-dasharray="4 2"/>')  # fmt: skip
+            parts.append(
+                f'<rect class="pemviz-track" x="{tx:.1f}" y="{ty:.1f}" width="{CAR_LENGTH_M * sx:.1f}" '
+                f'height="{CAR_WIDTH_M * sy:.1f}" rx="2" fill="none" stroke="{TRACK}" '
+                f'stroke-width="{2.0 if follow else 1.2}" stroke-dasharray="4 2"/>'
+            )
             if follow:
-                parts.append(f'<text x="{tx + CAR_LENGTH_M * sx / 2:.1f}" y="{ty + CAR_WIDTH_M * sy + 10:.1f}" '
-                             f'font-size="9" fill="{TRACK}" text-anchor="middle">ACC follows</text>')  # fmt: skip
+                parts.append(
+                    f'<text x="{tx + CAR_LENGTH_M * sx / 2:.1f}" y="{ty + CAR_WIDTH_M * sy + 10:.1f}" '
+                    f'font-size="9" fill="{TRACK}" text-anchor="middle">ACC follows</text>'
+                )
         if det and ox.measured is not None and np.all(np.isfinite(ox.measured[t, j])):
             mx, my = px(float(ox.measured[t, j, 1]), float(ox.measured[t, j, 0]))
-            parts.append(f'<line x1="{x:.1f}" y1="{y:.1f}" x2="{mx:.1f}" y2="{my:.1f}" stroke="{BLUE}"/>'
-                         f'<circle cx="{mx:.1f}" cy="{my:.1f}" r="3" fill="{BLUE}"/>')  # fmt: skip
+            parts.append(
+                f'<line x1="{x:.1f}" y1="{y:.1f}" x2="{mx:.1f}" y2="{my:.1f}" stroke="{BLUE}"/>'
+                f'<circle cx="{mx:.1f}" cy="{my:.1f}" r="3" fill="{BLUE}"/>'
+            )
     parts.append("</svg>")
     return "".join(parts)
 
@@ -242,14 +277,18 @@ def raster_svg(ox: ObjectsExplanation, step: int, width: int = 430) -> str:
         parts.append(f'<text x="0" y="{y + cell_h - 3}" font-size="10" fill="{TEXT}">{html.escape(ox.names[j])}</text>')
         for t in range(t_steps):
             colour = state_colour(bool(ox.detected[t, j]), bool(ox.seen[t, j]))
-            parts.append(f'<rect x="{left + t * cw:.2f}" y="{y}" width="{max(cw - 0.3, 0.5):.2f}" '
-                         f'height="{cell_h - 3}" fill="{colour}"/>')  # fmt: skip
+            parts.append(
+                f'<rect x="{left + t * cw:.2f}" y="{y}" width="{max(cw - 0.3, 0.5):.2f}" '
+                f'height="{cell_h - 3}" fill="{colour}"/>'
+            )
     cf = ox.counterfactuals
     if cf is not None:
         for i in cf.decisive:
             x, y = left + i.step * cw, 2 + i.obj * cell_h + cell_h - 3
-            parts.append(f'<rect x="{x:.2f}" y="{y}" width="{max(cw, 2):.2f}" height="3" fill="{RED}">'
-                         f'<title>decisive: {html.escape(ox.names[i.obj])} {i.kind} at step {i.step}</title></rect>')
+            parts.append(
+                f'<rect x="{x:.2f}" y="{y}" width="{max(cw, 2):.2f}" height="3" fill="{RED}">'
+                f"<title>decisive: {html.escape(ox.names[i.obj])} {i.kind} at step {i.step}</title></rect>"
+            )
         fx = left + cf.failure_step * cw
         parts.append(f'<line x1="{fx:.1f}" y1="0" x2="{fx:.1f}" y2="{m * cell_h + 2}" stroke="{RED}"/>')
     sx = left + (int(step) + 0.5) * cw
@@ -277,15 +316,16 @@ def detect_svg(names: tuple[str, ...], p: np.ndarray, q: np.ndarray, step: int, 
     x = left + (np.arange(t_steps) + 0.5) * cw
     for j in range(m):
         foot = 2 + (j + 1) * band - 3
-        parts.append(f'<text x="0" y="{foot - 4}" font-size="10" fill="{TEXT}">{html.escape(names[j])}</text>'
-                     f'<line x1="{left}" y1="{foot}" x2="{width - 4}" y2="{foot}" stroke="{LANE}"/>')  # fmt: skip
+        parts.append(
+            f'<text x="0" y="{foot - 4}" font-size="10" fill="{TEXT}">{html.escape(names[j])}</text>'
+            f'<line x1="{left}" y1="{foot}" x2="{width - 4}" y2="{foot}" stroke="{LANE}"/>'
+        )
         for values, colour, dash in ((p[:, j], AXIS_TEXT, ' stroke-dasharray="3,2"'), (q[:, j], BLUE, "")):
             y = foot - (band - 5) * np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0)
             points = " ".join(f"{a:.1f},{b:.1f}" for a, b in zip(x, y, strict=False))
             parts.append(f'<polyline points="{points}" fill="none" stroke="{colour}" stroke-width="1.2"{dash}/>')
     sx = left + (int(step) + 0.5) * cw
-    parts.append(f'<line x1="{sx:.1f}" y1="0" x2="{sx:.1f}" y2="{height}" stroke="{NOW}" stroke-width="1.5"/>'
-                 "</svg>")  # fmt: skip
+    parts.append(f'<line x1="{sx:.1f}" y1="0" x2="{sx:.1f}" y2="{height}" stroke="{NOW}" stroke-width="1.5"/>' "</svg>")
     return "".join(parts)
 
 
@@ -296,14 +336,19 @@ def decisive_table(ox: ObjectsExplanation) -> str:
         return ""
     rows = "".join(
         f"<tr><td>{html.escape(ox.names[i.obj])}</td><td>{i.step}</td><td style='text-align:left'>"
-        + ("missed: flipped to an exact detection" if i.kind == MISS else
-           "mislocated by " + ", ".join(f"{e:+.2f} m" for e in i.error) + ": error set to zero")
+        + (
+            "missed: flipped to an exact detection"
+            if i.kind == MISS
+            else "mislocated by " + ", ".join(f"{e:+.2f} m" for e in i.error) + ": error set to zero"
+        )
         + f"</td><td>{i.robustness:+.3f}</td></tr>"
         for i in cf.decisive[:12]
-    )  # fmt: skip
+    )
     more = f"<div>... and {len(cf.decisive) - 12} more</div>" if len(cf.decisive) > 12 else ""
-    return ('<table class="pemviz-table" style="width:100%;font-size:0.95em"><tr><th>object</th><th>step</th>'
-            f"<th>undone alone</th><th>robustness after</th></tr>{rows}</table>{more}")  # fmt: skip
+    return (
+        '<table class="pemviz-table" style="width:100%;font-size:0.95em"><tr><th>object</th><th>step</th>'
+        f"<th>undone alone</th><th>robustness after</th></tr>{rows}</table>{more}"
+    )
 
 
 def story_html(ox: ObjectsExplanation) -> str:
@@ -313,7 +358,7 @@ def story_html(ox: ObjectsExplanation) -> str:
     st = ox.story
     if st is None:
         return ""
-    return (f"<b>Severity</b>: {html.escape(st.severity.short)}<br><b>What happened</b>: {html.escape(st.text)}")
+    return f"<b>Severity</b>: {html.escape(st.severity.short)}<br><b>What happened</b>: {html.escape(st.text)}"
 
 
 def objects_summary(ox: ObjectsExplanation) -> str:

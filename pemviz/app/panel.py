@@ -31,7 +31,6 @@ STATUS_EVERY_S = 0.5
 """How often a running run's status line (elapsed, expected time) is refreshed."""
 
 
-
 def idle_drawing(scenario: str) -> LanePanel:
     """The drawing object of the lane scene every session builds first: ``scenario``'s at its defaults where it draws a
     lane scene (:func:`pemviz.app.drawing.lane_panel`), else the first registered scenario's that does. Each session
@@ -46,6 +45,7 @@ def idle_drawing(scenario: str) -> LanePanel:
         if lane_panel(drawing) is not None:
             return drawing
     raise ValueError(f"no registered scenario draws a lane scene for the panel's idle scene ({scenario!r} does not)")
+
 
 class PanelApp:
     """The ``pemviz serve`` application: a viser server and one session per connected client.

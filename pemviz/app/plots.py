@@ -181,9 +181,13 @@ def robust_range(
     if not hi > lo:  # never a range without width (uPlot cannot draw one): values cut to a single limit
         lo, hi = (lo - 0.5, lo + 0.5) if math.isfinite(lo) else empty
     return AxisRange(
-        float(lo), float(hi), int(np.sum(finite < lo)), int(np.sum(finite > hi)),
-        float(finite.min()) if finite.size else math.nan, float(finite.max()) if finite.size else math.nan,
-    )  # fmt: skip
+        float(lo),
+        float(hi),
+        int(np.sum(finite < lo)),
+        int(np.sum(finite > hi)),
+        float(finite.min()) if finite.size else math.nan,
+        float(finite.max()) if finite.size else math.nan,
+    )
 
 
 STAGE_RULES: dict[str, dict[str, float]] = {
@@ -225,8 +229,14 @@ def off_scale_series(x: np.ndarray, rng: AxisRange, ys: list[np.ndarray]) -> tup
             hits |= m
             n += int(m.sum())
         if n:
-            series.append(up.Series(label=f"{n} {name} the scale (at the edge)", stroke=hex_colour(C.BLACK),
-                                    points=_ring(C.BLACK), width=0))  # fmt: skip
+            series.append(
+                up.Series(
+                    label=f"{n} {name} the scale (at the edge)",
+                    stroke=hex_colour(C.BLACK),
+                    points=_ring(C.BLACK),
+                    width=0,
+                )
+            )
             data.append(np.where(hits, edge, np.nan))
     return series, data
 
@@ -262,8 +272,7 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) ->
     hook = getattr(record.view.drawing if record.view is not None else None, "curve_axis", None)
     axis = hook() if callable(hook) else DEFAULT_CURVE_AXIS
     n_colour = C.stage_span(record.plan)  # blue (stage 0) to orange (the last stage)
-    series = [up.Series(label=axis.series_label),
-              up.Series(label="PEM", stroke=hex_colour(C.BLACK), width=2)]  # fmt: skip
+    series = [up.Series(label=axis.series_label), up.Series(label="PEM", stroke=hex_colour(C.BLACK), width=2)]
     data = [grid, pem]
     for s in stages:  # the final batch samples from the last stage's proposal: the same curve
         name = "pretraining" if s.kind == "pretrain" else f"stage {s.stage}"  # short: uPlot's legend is narrow
@@ -272,8 +281,10 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) ->
     plot.title = title
     plot.series = tuple(series)
     plot.data = tuple(data)
-    plot.scales = {"x": up.Scale(time=False, auto=False, range=(float(np.min(grid)), float(np.max(grid)))),
-                   "y": up.Scale(auto=False, range=(0.0, 1.04))}  # fmt: skip
+    plot.scales = {
+        "x": up.Scale(time=False, auto=False, range=(float(np.min(grid)), float(np.max(grid)))),
+        "y": up.Scale(auto=False, range=(0.0, 1.04)),
+    }
     plot.axes = axes(axis.label, axis.y_label)
 
 
@@ -282,8 +293,10 @@ def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHan
         data=(np.arange(2, dtype=np.float64), np.full(2, np.nan)),
         series=(up.Series(label="stage"), up.Series(label="no run yet", stroke=hex_colour(C.GREY))),
         title=title,
-        scales={"x": up.Scale(time=False, auto=False, range=(-0.5, 1.5)),
-                "y": up.Scale(auto=False, range=(-0.05, 1.05))},
+        scales={
+            "x": up.Scale(time=False, auto=False, range=(-0.5, 1.5)),
+            "y": up.Scale(auto=False, range=(-0.05, 1.05)),
+        },
         axes=axes("stage (0 pretraining, K+1 final batch)", y_label),
         legend=LEGEND,
         height=150,
@@ -354,22 +367,33 @@ def strip_plots(gui: viser.GuiApi, title: str = "distance and speeds") -> dict[s
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 5.0))
     return {
         "gap": gui.add_uplot(
-            data=(t, none), series=(up.Series(label="t (s)"), up.Series(label="gap (m)")),
-            title=f"{title} (choose a rollout)", scales={"x": x_scale}, axes=axes("time (s)", "m, m/s"),
-            legend=LEGEND, height=185,
+            data=(t, none),
+            series=(up.Series(label="t (s)"), up.Series(label="gap (m)")),
+            title=f"{title} (choose a rollout)",
+            scales={"x": x_scale},
+            axes=axes("time (s)", "m, m/s"),
+            legend=LEGEND,
+            height=185,
         ),
         "detect": gui.add_uplot(
-            data=(t, none), series=(up.Series(label="t (s)"), up.Series(label="p(detect)")),
+            data=(t, none),
+            series=(up.Series(label="t (s)"), up.Series(label="p(detect)")),
             title="p(detect) under the PEM and q(detect) of the sampler",
             scales={"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))},
-            axes=axes("time (s)", "probability"), legend=LEGEND, height=200,
+            axes=axes("time (s)", "probability"),
+            legend=LEGEND,
+            height=200,
         ),
         "weight": gui.add_uplot(
-            data=(t, none), series=(up.Series(label="t (s)"), up.Series(label="log w")),
-            title="cumulative importance log-weight", scales={"x": x_scale}, axes=axes("time (s)", "nats"),
-            legend=LEGEND, height=170,
+            data=(t, none),
+            series=(up.Series(label="t (s)"), up.Series(label="log w")),
+            title="cumulative importance log-weight",
+            scales={"x": x_scale},
+            axes=axes("time (s)", "nats"),
+            legend=LEGEND,
+            height=170,
         ),
-    }  # fmt: skip
+    }
 
 
 def _points(colour: tuple[int, int, int], size: float = 6) -> dict[str, Any]:
@@ -382,9 +406,15 @@ def _ring(colour: tuple[int, int, int], size: float = 11) -> dict[str, Any]:
 
 
 def fill_strip_plots(
-    plots: dict[str, viser.GuiUplotHandle], lines: tuple[Series, ...], detected: np.ndarray, ex: LaneExplanation,
-    step: int, title: str, thresholds: Thresholds | None, what: str = "distance and speeds",
-) -> None:  # fmt: skip
+    plots: dict[str, viser.GuiUplotHandle],
+    lines: tuple[Series, ...],
+    detected: np.ndarray,
+    ex: LaneExplanation,
+    step: int,
+    title: str,
+    thresholds: Thresholds | None,
+    what: str = "distance and speeds",
+) -> None:
     """Draw a rollout with a marker at ``step`` (the 3D scene's step) in each strip chart, with the problem's failure
     threshold and sampler window (:attr:`pemviz.core.problem_view.ProblemView.thresholds`; None: no such lines).
 
@@ -421,8 +451,10 @@ def fill_strip_plots(
     plots["gap"].series = (
         up.Series(label="t (s)"),
         *(up.Series(label=s.label, **SERIES_STYLE[s.role]) for s in lines),
-        *(up.Series(label=label, stroke=css(colour), width=1.5, dash=[6, 4])
-          for label, colour in zip(thresholds.labels() if thresholds else (), (CRASH, BRAKE_ZONE), strict=False)),
+        *(
+            up.Series(label=label, stroke=css(colour), width=1.5, dash=[6, 4])
+            for label, colour in zip(thresholds.labels() if thresholds else (), (CRASH, BRAKE_ZONE), strict=False)
+        ),
         up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
     levels = (thresholds.failure, thresholds.window) if thresholds else ()
@@ -437,9 +469,12 @@ def fill_strip_plots(
         up.Series(label="detected", stroke=css(DETECTED), points=_points(DETECTED, 5), **no_line),
         up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **no_line),
         up.Series(label="decisive miss", stroke=css(CRASH), points=_points(CRASH, 10), **no_line),
-        up.Series(label="minimal miss set", stroke=hex_colour(C.BLACK),
-                  points={"show": True, "size": 13, "fill": "transparent", "stroke": hex_colour(C.BLACK), "width": 1.5},
-                  **no_line),
+        up.Series(
+            label="minimal miss set",
+            stroke=hex_colour(C.BLACK),
+            points={"show": True, "size": 13, "fill": "transparent", "stroke": hex_colour(C.BLACK), "width": 1.5},
+            **no_line,
+        ),
         up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
     )
     plots["detect"].data = (t, ex.p_detect, ex.q_detect, det, miss, decisive, minimal, marker(ex.p_detect))

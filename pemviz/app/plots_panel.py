@@ -45,8 +45,9 @@ class PlotsPanel:
                 "objects, q(detect | range) of car 0 straight ahead in the ego's lane. The Live tab shows what each "
                 "sampler did over the states its rollouts visited. One chart per kept run.</div>"
             )
-            self.compare_plots = [plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190, visible=False)
-                                  for i in range(4)]  # fmt: skip
+            self.compare_plots = [
+                plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190, visible=False) for i in range(4)
+            ]
         self.panel = panel
         panel.dock_left()
         panel.set_width(460)

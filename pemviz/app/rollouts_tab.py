@@ -51,11 +51,16 @@ def groups_html(pop: Population | None) -> str:
     if pop is None or not pop.groups:
         return ""
     shown, rest = pop.groups[:MAX_GROUPS], pop.groups[MAX_GROUPS:]
-    rows = "".join(f"<tr><td style='text-align:left'>{html.escape(g.label)}</td><td>{g.count:,}</td>"
-                   f"<td>{format_share(g.share)}</td></tr>" for g in shown)  # fmt: skip
+    rows = "".join(
+        f"<tr><td style='text-align:left'>{html.escape(g.label)}</td><td>{g.count:,}</td>"
+        f"<td>{format_share(g.share)}</td></tr>"
+        for g in shown
+    )
     if rest:
-        rows += (f"<tr><td style='text-align:left'>{len(rest)} more groups</td><td>{sum(g.count for g in rest):,}</td>"
-                 f"<td>{format_share(sum(g.share for g in rest))}</td></tr>")  # fmt: skip
+        rows += (
+            f"<tr><td style='text-align:left'>{len(rest)} more groups</td><td>{sum(g.count for g in rest):,}</td>"
+            f"<td>{format_share(sum(g.share for g in rest))}</td></tr>"
+        )
     return (
         f"<b>Groups of failures</b> by {html.escape(pop.basis)} ({len(pop.groups)} groups; shares add up to 100 %):"
         '<table class="pemviz-table" style="width:100%"><tr><th>group</th><th>failures</th><th>share of p</th></tr>'
@@ -86,14 +91,18 @@ class RolloutsTab:
         """Add the list, its order and filter and the table to the tab open in ``client.gui``."""
         gui = self.client.gui
         self.rollout_dropdown = gui.add_dropdown(
-            "rollout", (NO_ROLLOUT,), initial_value=NO_ROLLOUT,
+            "rollout",
+            (NO_ROLLOUT,),
+            initial_value=NO_ROLLOUT,
             hint="the most likely failure found, then the rollouts in the order of sort by (the first 100)",
-        )  # fmt: skip
+        )
         self.rollout_order = gui.add_dropdown(
-            "sort by", ROLLOUT_ORDERS, initial_value=ROLLOUT_ORDERS[0],
+            "sort by",
+            ROLLOUT_ORDERS,
+            initial_value=ROLLOUT_ORDERS[0],
             hint="importance weight: the largest share of p first; robustness: least robust first; log p: the "
-                 "largest log-likelihood under the PEM first; severity: worst first",
-        )  # fmt: skip
+            "largest log-likelihood under the PEM first; severity: worst first",
+        )
         self.failures_only = gui.add_checkbox("failures only", False, hint="list only the rollouts that failed")
         self.rollout_html = gui.add_html(box("No rollouts yet: run an experiment.", GREY))
         self.rollout_dropdown.on_update(lambda _: self._on_rollout_chosen(self.rollout_dropdown.value))
@@ -101,8 +110,9 @@ class RolloutsTab:
             handle.on_update(lambda _: self._relist())
 
     @staticmethod
-    def rollout_label(t: Trajectory, most_likely: bool = False, sev: Outcome | None = None,
-                      share: float | None = None) -> str:  # fmt: skip
+    def rollout_label(
+        t: Trajectory, most_likely: bool = False, sev: Outcome | None = None, share: float | None = None
+    ) -> str:
         """The rollout list entry (no rank in it, so a chosen rollout stays chosen while later stages re-rank); the
         outcome in :attr:`pemviz.core.drawing.Outcome.short`'s words when ``sev`` is given; a failure's share of p
         when known."""
@@ -194,8 +204,12 @@ class RolloutsTab:
         labels = {}
         if best is not None:
             labels[self.rollout_label(best, True, self.severity_of(record, best), shares.get(best.key))] = best
-        labels.update({self.rollout_label(t, sev=self.severity_of(record, t), share=shares.get(t.key)): t
-                       for t in trajectories[:MAX_LISTED]})  # fmt: skip
+        labels.update(
+            {
+                self.rollout_label(t, sev=self.severity_of(record, t), share=shares.get(t.key)): t
+                for t in trajectories[:MAX_LISTED]
+            }
+        )
         self._rollout_labels = labels
         current = self.rollout_dropdown.value
         self.rollout_dropdown.options = (NO_ROLLOUT, *labels)
@@ -226,17 +240,25 @@ class RolloutsTab:
         )
         which = " that failed" if self.failures_only.value else ""
         if pop is None:
-            what = (f"The {n_kept} least robust rollouts of {html.escape(record.short_label)}{which} (metric "
-                    f"{record.config.metric}; every failure of the estimate is listed once the run has "
-                    "it)")  # fmt: skip
+            what = (
+                f"The {n_kept} least robust rollouts of {html.escape(record.short_label)}{which} (metric "
+                f"{record.config.metric}; every failure of the estimate is listed once the run has "
+                "it)"
+            )
         else:
             n_pop = pop.shares.n
             listed = sum(t is not None for t in pop.rollouts)
             safe = f", then the run's {n_kept} least robust rollouts outside it"
-            missing = (f" (the {listed:,} with the largest shares listed; a streamed stage keeps a sample, and the "
-                       f"panel at most {MAX_POPULATION:,})" if listed < n_pop else "")  # fmt: skip
-            what = (f"Every failure of the final estimate of {html.escape(record.short_label)}: {n_pop:,}{missing}"
-                    f"{safe}")  # fmt: skip
+            missing = (
+                f" (the {listed:,} with the largest shares listed; a streamed stage keeps a sample, and the "
+                f"panel at most {MAX_POPULATION:,})"
+                if listed < n_pop
+                else ""
+            )
+            what = (
+                f"Every failure of the final estimate of {html.escape(record.short_label)}: {n_pop:,}{missing}"
+                f"{safe}"
+            )
         self.rollout_html.content = TABLE_STYLE + (
             f'<div style="margin:0 0.6em 0.5em; font-size:0.8em">{html.escape(best_text)}<br>'
             + groups_html(pop)
@@ -245,8 +267,11 @@ class RolloutsTab:
             "nats: the log-probability of the detections plus, where the detector mislocates, the log-density of "
             "the measurement errors (a density: it can exceed 0)"
             + (f"; the list above holds the first {MAX_LISTED}" if len(trajectories) > MAX_LISTED else "")
-            + (f"; the table the first {MAX_ROWS:,} of {len(trajectories):,} (the groups cover every failure)"
-               if len(trajectories) > MAX_ROWS else "")
+            + (
+                f"; the table the first {MAX_ROWS:,} of {len(trajectories):,} (the groups cover every failure)"
+                if len(trajectories) > MAX_ROWS
+                else ""
+            )
             + ':<div style="max-height:22em; overflow-y:auto"><table class="pemviz-table" style="width:100%">'
             "<tr><th>#</th><th>stage</th><th>rollout</th><th>share of p</th><th>robustness</th><th>log p</th>"
             f"<th>outcome</th><th>{html.escape(heading)}</th></tr>"

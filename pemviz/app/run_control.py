@@ -48,9 +48,19 @@ class RunControl:
         plots_panel: the plots panel, refreshed as it goes.
     """
 
-    def __init__(self, client: viser.ClientHandle, app: PanelHost, lock: threading.RLock, *, form: ExperimentTab,
-                 runs_tab: RunsTab, rollouts_tab: RolloutsTab, scene: SceneView, explain: ExplainTab,
-                 plots_panel: PlotsPanel) -> None:  # fmt: skip
+    def __init__(
+        self,
+        client: viser.ClientHandle,
+        app: PanelHost,
+        lock: threading.RLock,
+        *,
+        form: ExperimentTab,
+        runs_tab: RunsTab,
+        rollouts_tab: RolloutsTab,
+        scene: SceneView,
+        explain: ExplainTab,
+        plots_panel: PlotsPanel,
+    ) -> None:
         self.client, self.app, self.lock = client, app, lock
         self.form, self.runs_tab, self.rollouts_tab, self.scene = form, runs_tab, rollouts_tab, scene
         self.explain, self.plots_panel = explain, plots_panel

@@ -66,14 +66,14 @@ detectors are asked again for each state (a batch keeps only each step's sum ove
 1,000 rollouts of five objects in about 0.2 s on one core."""
 
 
-DEFAULT_AXIS = ViewAxis("gap d (m), 0.5 m bins", "the object", None, "below", np.linspace(0.0, 13.0, 27),
-                        "gap (m)")
+DEFAULT_AXIS = ViewAxis("gap d (m), 0.5 m bins", "the object", None, "below", np.linspace(0.0, 13.0, 27), "gap (m)")
 """The proposal view's axis of a problem whose drawing gives none (a toy): its own distance signal in 0.5 m bins,
 0 to 13 m (:func:`pemviz.core.proposal_view.batch_proposal_view`)."""
 
 
-def object_proposal_view(event: RolloutsSampled, axis: ViewAxis,
-                         max_rollouts: int = MAX_VIEW_ROLLOUTS) -> ProposalView | None:  # fmt: skip
+def object_proposal_view(
+    event: RolloutsSampled, axis: ViewAxis, max_rollouts: int = MAX_VIEW_ROLLOUTS
+) -> ProposalView | None:
     """q(detect) of the sampler and p(detect) of the PEM for the object ``axis.view_object`` over the states a batch of
     several objects visited where the sensor can see it (its row's ``axis.visible_column``), binned by its distance
     ahead (``axis.distance_column``, metres; bins ``axis.edges``), as :func:`pemviz.core.proposal_view.proposal_view`
@@ -88,8 +88,15 @@ def object_proposal_view(event: RolloutsSampled, axis: ViewAxis,
     batch = event.batch
     names = tuple(batch.object_names or ())
     obj, edges_m = axis.view_object, np.asarray(axis.edges, dtype=np.float64)
-    if (obj is None or batch.objects is None or batch.n_objects < 2 or event.sampler is None or event.target is None
-            or not {axis.distance_column, axis.visible_column} <= set(names) or batch.n == 0):  # fmt: skip
+    if (
+        obj is None
+        or batch.objects is None
+        or batch.n_objects < 2
+        or event.sampler is None
+        or event.target is None
+        or not {axis.distance_column, axis.visible_column} <= set(names)
+        or batch.n == 0
+    ):
         return None
     pick = np.unique(np.linspace(0, batch.n - 1, min(batch.n, max_rollouts)).round().astype(np.int64))
     rows = np.asarray(batch.objects[pick, :, obj, :], dtype=np.float64)  # [n, T, G]
@@ -105,8 +112,14 @@ def object_proposal_view(event: RolloutsSampled, axis: ViewAxis,
         return -np.logaddexp(0.0, -sign * logit)
 
     distance = flat[:, names.index(axis.distance_column)]
-    return proposal_view(distance[None], detected[None], log_action(event.sampler)[None],
-                         log_action(event.target)[None], edges_m, float(edges_m[-1]))  # fmt: skip
+    return proposal_view(
+        distance[None],
+        detected[None],
+        log_action(event.sampler)[None],
+        log_action(event.target)[None],
+        edges_m,
+        float(edges_m[-1]),
+    )
 
 
 QUICK: dict[str, Any] = PRESETS["quick"]
@@ -195,8 +208,10 @@ class Trajectory:
         parts = self.log_p_parts
         if parts is not None:
             return parts.words(whose=whose)
-        return (f"log-likelihood under the PEM {self.log_p_total:.1f} nats (the log-probability of {whose}detections "
-                f"plus the log-density of {whose}measurement errors)")
+        return (
+            f"log-likelihood under the PEM {self.log_p_total:.1f} nats (the log-probability of {whose}detections "
+            f"plus the log-density of {whose}measurement errors)"
+        )
 
     @property
     def key(self) -> str:
@@ -296,16 +311,18 @@ class Population:
         return self.grouping.group_label(rank)
 
 
-def population_of(shares: FailureShares | None, sampled: Mapping[int, RolloutsSampled], drawing: object,
-                  problem: object = None) -> Population | None:  # fmt: skip
+def population_of(
+    shares: FailureShares | None, sampled: Mapping[int, RolloutsSampled], drawing: object, problem: object = None
+) -> Population | None:
     """The panel's :class:`Population` of a run (arguments as :func:`pemviz.sinks.population.group_failures`): the
     :data:`MAX_POPULATION` failures with the largest shares as rollouts (every failure in the groups); None when
     ``shares`` is None (the estimator keeps no per-stage rollouts)."""
     if shares is None:
         return None
     g = group_failures(shares, sampled, drawing, problem)
-    return Population(g, tuple(trajectory(*f) if f is not None and rank < MAX_POPULATION else None
-                               for rank, f in enumerate(g.found)))  # fmt: skip
+    return Population(
+        g, tuple(trajectory(*f) if f is not None and rank < MAX_POPULATION else None for rank, f in enumerate(g.found))
+    )
 
 
 class PanelRun(Sink):
@@ -421,8 +438,9 @@ class PanelRun(Sink):
         self.stages = self.stages + [event.result]
 
     def on_final_estimate(self, event: FinalEstimate) -> None:
-        self.population = population_of(event.failures, self.sampled, self.view.drawing if self.view else None,
-                                        self.problem)  # fmt: skip
+        self.population = population_of(
+            event.failures, self.sampled, self.view.drawing if self.view else None, self.problem
+        )
         self.final = event
 
     def on_run_finished(self, event: RunFinished) -> None:

@@ -34,8 +34,14 @@ class RunsTab:
         plots_panel: the plots panel, whose *Compare* tab shows the kept runs.
     """
 
-    def __init__(self, client: viser.ClientHandle, app: PanelHost, lock: threading.RLock, rollouts_tab: RolloutsTab,
-                 plots_panel: PlotsPanel) -> None:  # fmt: skip
+    def __init__(
+        self,
+        client: viser.ClientHandle,
+        app: PanelHost,
+        lock: threading.RLock,
+        rollouts_tab: RolloutsTab,
+        plots_panel: PlotsPanel,
+    ) -> None:
         self.client, self.app, self.lock, self.rollouts_tab = client, app, lock, rollouts_tab
         self.plots_panel = plots_panel
         self.runs: list[PanelRun] = []
@@ -49,8 +55,9 @@ class RunsTab:
         gui.add_markdown(
             "Up to 4 runs are kept; a new run drops stopped runs first, then the oldest finished one; pinned runs stay."
         )
-        self.run_choice = gui.add_dropdown("kept run", ("(no run yet)",), initial_value="(no run yet)",
-                                           hint="the run to pin or export")
+        self.run_choice = gui.add_dropdown(
+            "kept run", ("(no run yet)",), initial_value="(no run yet)", hint="the run to pin or export"
+        )
         self.pin_button = gui.add_button("Pin", icon=viser.Icon.PIN, disabled=True)
         with gui.add_folder("export to rerun (.rrd)"):
             self.export_name = gui.add_text("export name", "run")
@@ -115,10 +122,11 @@ class RunsTab:
         rows = [("mu_hat", "failures", "verdict", "status")]
         cells = [result(r) for r in runs]
         body = "".join(
-            f'<tr><th style="text-align:left">{label}</th>' + "".join(f"<td>{html.escape(c[i])}</td>" for c in cells)
+            f'<tr><th style="text-align:left">{label}</th>'
+            + "".join(f"<td>{html.escape(c[i])}</td>" for c in cells)
             + "</tr>"
             for i, label in enumerate(rows[0])
-        )  # fmt: skip
+        )
         defaults = ExperimentConfig()
         for name in names:
             values = [getattr(r.config, name) for r in runs]
@@ -135,11 +143,14 @@ class RunsTab:
         )
         block = (
             '<div style="margin:0 0.6em 0.5em; overflow-x:auto">'
-            + "".join(f'<div style="color:{plots.run_colour(r.run_id)}; font-size:0.8em">{html.escape(r.label)}</div>'
-                      for r in runs)
-            + table + "<div style='font-size:0.75em;color:#777'>bold: differs from the defaults or between runs</div>"
+            + "".join(
+                f'<div style="color:{plots.run_colour(r.run_id)}; font-size:0.8em">{html.escape(r.label)}</div>'
+                for r in runs
+            )
+            + table
+            + "<div style='font-size:0.75em;color:#777'>bold: differs from the defaults or between runs</div>"
             "</div>"
-        )  # fmt: skip
+        )
         with self.client.atomic():
             self.runs_html.content = block
             self.plots_panel.fill_compare(runs)

@@ -5,7 +5,8 @@ the detections so far as a trail on the road (green detected, orange missed), a 
 breached, and labels in columns beside the road, clear of the cars; the camera frames both cars inside the canvas the
 browser shows between the panels. A scene of several objects: every car seen from the ego on a road of lanes. Before
 any rollout is shown, the idle scene of the scenario chosen for the next run: its lane scene at the start, its cars at
-their start seen from the ego, or no scene for a scenario that draws none (a toy)."""
+their start seen from the ego, or no scene for a scenario that draws none (a toy). Where its nodes go and how the
+camera frames them: :mod:`pemviz.app.scene_layout`."""
 
 from __future__ import annotations
 
@@ -22,143 +23,30 @@ from pemviz.app.html import BLUE, GREY, RED, box
 from pemviz.app.drawing import LanePanel, lane_panel, panel_scene, scenario_drawing
 from pemviz.scenarios.panel_data import LaneScene, ObjectsScene
 from pemviz.app.runs import PanelRun, Trajectory
+from pemviz.app.scene_layout import (
+    CAR_HEIGHT_M,
+    DEFAULT_ASPECT,
+    DEFAULT_FOV,
+    GROUND_M,
+    LABEL_SCALE,
+    ROW_Y_M,
+    add_lane_nodes,
+    camera_pose,
+    floor_lines,
+    framing_distance,
+    ruler_segments,
+)
 from pemviz.core.problem_view import object_label
 from pemviz.sinks import colours as C
-from pemviz.sinks.colours import BRAKE_ZONE, CRASH, DETECTED, IDLE, MISSED, OBJECT
+from pemviz.sinks.colours import CRASH, DETECTED, IDLE, MISSED, OBJECT
 
-CAR_HEIGHT_M = 1.5
-VIEW_DIRECTION = np.array([-1.0, -0.3, 1.2]) / np.linalg.norm([-1.0, -0.3, 1.2])
-"""From the framed point towards the camera: behind the ego, a little to its right and above (unit vector), so that the
-road runs up the canvas, which is taller than wide between the panels."""
-FRAME_MARGIN = 1.05
-"""The framed box, times this, fits the canvas (room for the labels' text beyond their anchors)."""
-DEFAULT_ASPECT, DEFAULT_FOV = 0.6, math.radians(75.0)
-"""The canvas' width / height and vertical field of view (radians) before the browser has reported its own (the
-canvas between the panels at 1400 x 900)."""
-MIN_DISTANCE_M = 10.0
 TRAIL_POINT_M = 0.35
 """The side of a detection's square in the trail (metres)."""
-ROW_Y_M = {"ruler": -1.6, "right": -2.6, "left": 2.6}
-"""Lateral places (metres; negative: right of the road on screen, positive: left) of the ruler and of the two
-columns of labels beside the road, so that no label covers a car or another label: right, text to the right, the ego's
-(at the ego), the ruler's (e.g. at most 6.2 m ahead of the ego's camera) and the zones' (e.g. 10 m ahead); left, text
-to the left, the breach's alone."""
-FRAMED_Y_M, FRAMED_Z_M = (-8.0, 6.0), (0.0, 3.0)
-"""The lateral and vertical extent the camera keeps in view (metres): the road, the cars, the columns of labels."""
-LABEL_SCALE = 0.85
-"""The labels' font, relative to viser's."""
-ZONE_COLOURS = {"window": BRAKE_ZONE, "margin": CRASH}
-"""The colour of a zone of each :attr:`pemviz.scenarios.panel_data.Zone.role`."""
-ZONE_COLOUR_NAMES = {"window": "yellow", "margin": "red"}
-"""The colours' names in the zones' label."""
 DEFAULT_OBJECTS = ObjectsScene(1.0, 1.0, 4.0, 0, "", 0)
 """The scene of several objects of a problem whose drawing gives none: 1 m boxes on open ground (no road: the scene
 may be a crosswalk, a warehouse or a field)."""
-GROUND_M = (240.0, 120.0)
-"""The open ground's length (ahead) and width (metres) of a scene of no lanes."""
 OBJECTS_FRAME_M = (-10.0, 60.0)
 """The stretch of road the camera frames in the scene of several objects, from behind the ego to ahead (metres)."""
-
-
-def camera_pose(x_middle: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(position, look-at point) of the camera ``distance_m`` away along :data:`VIEW_DIRECTION` from the middle of
-    the framed box at ``x_middle`` along the road (metres)."""
-    target = np.array([x_middle, sum(FRAMED_Y_M) / 2, sum(FRAMED_Z_M) / 2])
-    return target + distance_m * VIEW_DIRECTION, target
-
-
-def _inside(points: np.ndarray, position: np.ndarray, target: np.ndarray, aspect: float, fov_rad: float) -> bool:
-    """Whether every point [P, 3] projects inside the canvas shrunk by :data:`FRAME_MARGIN` (a pinhole camera at
-    ``position`` looking at ``target``, +z up, vertical field of view ``fov_rad``)."""
-    forward = (target - position) / np.linalg.norm(target - position)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    rel = points - position
-    depth = rel @ forward
-    if np.any(depth <= 0.1):
-        return False
-    tan_v = math.tan(fov_rad / 2) / FRAME_MARGIN
-    x, y = (rel @ right) / (depth * tan_v * aspect), (rel @ up) / (depth * tan_v)
-    return bool(np.all(np.abs(x) <= 1.0) and np.all(np.abs(y) <= 1.0))
-
-
-def framing_distance(span_m: float, aspect: float, fov_rad: float) -> float:
-    """The least distance (metres, at least :data:`MIN_DISTANCE_M`) at which a box ``span_m`` metres along the road
-    by :data:`FRAMED_Y_M` by :data:`FRAMED_Z_M` fits the canvas (``aspect``: width / height; ``fov_rad``: the
-    vertical field of view), by bisection on the projection of its corners."""
-    corners = np.array([[x, y, z] for x in (-span_m / 2, span_m / 2) for y in FRAMED_Y_M for z in FRAMED_Z_M])
-    lo, hi = MIN_DISTANCE_M, 400.0
-    position, target = camera_pose(0.0, lo)
-    if _inside(corners, position, target, aspect, fov_rad):
-        return lo
-    for _ in range(40):
-        mid = (lo + hi) / 2
-        position, target = camera_pose(0.0, mid)
-        lo, hi = (lo, mid) if _inside(corners, position, target, aspect, fov_rad) else (mid, hi)
-    return hi
-
-
-def _ruler(x_from: float, x_to: float) -> np.ndarray:
-    """The ruler's segments [3, 2, 3]: the line and a tick at each end (metres)."""
-    y, z, tick = ROW_Y_M["ruler"], 0.03, 0.35
-    return np.array(
-        [[[x_from, y, z], [x_to, y, z]], [[x_from, y - tick, z], [x_from, y + tick, z]],
-         [[x_to, y - tick, z], [x_to, y + tick, z]]], np.float32,
-    )  # fmt: skip
-
-
-def add_lane_nodes(scene: viser.SceneApi, p: LaneScene) -> tuple[list, viser.BoxHandle, viser.LineSegmentsHandle,
-                                                                 viser.LabelHandle]:  # fmt: skip
-    """Add the nodes of the lane scene ``p`` at its start to ``scene``: the road, its edges and 10 m ticks, the object
-    and its label, the zones ahead of the ego's sensor (children of ``/ego``, which must exist) with their label, the
-    ruler and its label.
-
-    Returns:
-        (every node made, in the order made; the object's box; the ruler; the ruler's label).
-    """
-    road_len, x0, lane = 240.0, -60.0, 4.0
-    road = scene.add_box(
-        "/road", color=C.ROAD, dimensions=(road_len, lane + 1.0, 0.05),
-        position=(x0 + road_len / 2, 0.0, -0.03), cast_shadow=False,
-    )  # fmt: skip
-    edges = np.array(
-        [[[x0, s * lane / 2, 0.01], [x0 + road_len, s * lane / 2, 0.01]] for s in (-1, 1)], dtype=np.float32
-    )  # world coordinates: not children of /road, whose frame is the box's centre
-    road_edges = scene.add_line_segments("/road_edges", edges, colors=C.ROAD_MARKING, thickness=0.12)
-    ticks = np.array([[[x, lane / 2, 0.01], [x, lane / 2 + 0.6, 0.01]] for x in range(0, 150, 10)], np.float32)
-    road_ticks = scene.add_line_segments("/road_ticks_10m", ticks, colors=C.ROAD_MARKING, thickness=0.08)
-    object0 = p.object_start_x
-    object_box = scene.add_box(
-        f"/{p.object_name}", color=OBJECT, dimensions=(p.object_length_m, p.width_m, CAR_HEIGHT_M),
-        position=(object0, 0.0, CAR_HEIGHT_M / 2),
-    )  # fmt: skip
-    object_label = scene.add_label(f"/{p.object_name}/label", p.object_name, anchor="bottom-center",
-                                   position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2), font_screen_scale=LABEL_SCALE)
-    # zones ahead of the ego's sensor, moving with it; one label for all, in the right column at the middle of the first
-    zones = []
-    for zone in p.zones:
-        zones.append(scene.add_box(
-            f"/ego/{zone.name}", color=ZONE_COLOURS[zone.role], dimensions=(zone.length_m, p.width_m + 0.6, 0.02),
-            opacity=0.35, position=(p.sensor_offset_m + zone.length_m / 2, 0.0, -CAR_HEIGHT_M / 2 + 0.02),
-            cast_shadow=False, receive_shadow=False,
-        ))  # fmt: skip
-    if p.zones:
-        legend = ";\n".join(f"{ZONE_COLOUR_NAMES[zone.role]}: {zone.legend}" for zone in p.zones)
-        zones.append(scene.add_label(
-            f"/ego/{p.zones[0].name}/label", legend, position=(p.zones[0].length_m / 2, ROW_Y_M["right"], 0.0),
-            anchor="center-left", font_screen_scale=LABEL_SCALE,
-        ))  # fmt: skip
-    # the ruler: on the road beside the cars, from the ego's sensor to the object's rear, ticks at both ends
-    rear = object0 - p.object_length_m / 2
-    gap_ruler = scene.add_line_segments("/gap_ruler", _ruler(p.sensor_offset_m, rear), colors=C.ROAD_MARKING,
-                                        thickness=0.08)  # fmt: skip
-    gap_label = scene.add_label(
-        "/gap_ruler/label", f"{p.ruler_label} {p.start_distance_m:.2f} m", anchor="center-left",
-        font_screen_scale=LABEL_SCALE, position=((p.sensor_offset_m + rear) / 2, ROW_Y_M["right"], 0.0),
-    )  # fmt: skip
-    nodes = [road, road_edges, road_ticks, object_box, object_label, *zones, gap_ruler, gap_label]
-    return nodes, object_box, gap_ruler, gap_label
 
 
 def _plural(labels: list[str]) -> str:
@@ -166,21 +54,6 @@ def _plural(labels: list[str]) -> str:
     ``objects``."""
     kinds = {label.split(" ")[0] for label in labels}
     return f"{kinds.pop()}s" if len(kinds) == 1 and len(labels) > 0 and all(" " in x for x in labels) else "objects"
-
-
-def _floor_lines(n_lanes: int, lane_m: float) -> np.ndarray:
-    """The lines on the floor of a scene of several objects, float32 [L, 2, 3] (metres, x ahead, y to the left): a
-    road's dashed lane lines and edges for ``n_lanes`` lanes of ``lane_m``; open ground's 10 m grid for no lanes."""
-    if n_lanes == 0:
-        half = GROUND_M[1] / 2
-        along = [[[-60.0, y, 0.01], [180.0, y, 0.01]] for y in np.arange(-half, half + 1.0, 10.0)]
-        across = [[[x, -half, 0.01], [x, half, 0.01]] for x in np.arange(-60.0, 181.0, 10.0)]
-        return np.array(along + across, np.float32)
-    lanes = n_lanes * lane_m
-    lines_y = [(k - n_lanes / 2) * lane_m for k in range(1, n_lanes)]  # between the lanes
-    dashes = [[[x, y, 0.01], [x + 3.0, y, 0.01]] for y in lines_y for x in np.arange(-60.0, 180.0, 9.0)]
-    edges = [[[-60.0, y, 0.01], [180.0, y, 0.01]] for y in (-lanes / 2, lanes / 2)]
-    return np.array(dashes + edges, np.float32)
 
 
 class SceneView:
@@ -200,8 +73,9 @@ class SceneView:
         ValueError: ``drawing`` draws no lane scene.
     """
 
-    def __init__(self, client: viser.ClientHandle, drawing: LanePanel, lock: threading.RLock,
-                 explain: ExplainTab) -> None:  # fmt: skip
+    def __init__(
+        self, client: viser.ClientHandle, drawing: LanePanel, lock: threading.RLock, explain: ExplainTab
+    ) -> None:
         lane = panel_scene(drawing)
         if not isinstance(lane, LaneScene):
             raise ValueError(f"the idle scene's drawing {type(drawing).__name__} draws no lane scene")
@@ -247,9 +121,13 @@ class SceneView:
                     self._show_objects(record, traj)
                 elif record is not None:  # a problem that draws no scene (a toy, a scenario of one's own)
                     self._scene_kind(None)
-                    self.scene_html.content = box(html.escape(
-                        f"the {record.view.name} scenario draws no scene: its rollouts are under Rollouts and "
-                        "Live"), GREY)  # fmt: skip
+                    self.scene_html.content = box(
+                        html.escape(
+                            f"the {record.view.name} scenario draws no scene: its rollouts are under Rollouts and "
+                            "Live"
+                        ),
+                        GREY,
+                    )
                 return
             self.explain.explain_lane(traj, lane)
             self._use_lane(lane.panel_scene())
@@ -281,7 +159,8 @@ class SceneView:
         self._frame_objects()
         self.scene_html.content = box(
             f"Scene: {html.escape(record.short_label)} {traj.key}, every object seen from the ego (blue-grey): green "
-            "detected, orange missed, grey unseen. Explain draws them from above with where each was measured.", GREY
+            "detected, orange missed, grey unseen. Explain draws them from above with where each was measured.",
+            GREY,
         )
         decisive = ox.counterfactuals.decisive if ox.counterfactuals is not None else ()
         first = decisive[0].step if decisive else 0
@@ -316,12 +195,17 @@ class SceneView:
 
     def build_scene(self) -> None:
         """Add the scene's nodes to ``client.scene``: the road, the cars, the zones and the ruler of the lane scene of
-        :attr:`lane` (:func:`add_lane_nodes`), the ego, the trail, the breach gate and the ego's label."""
+        :attr:`lane` (:func:`pemviz.app.scene_layout.add_lane_nodes`), the ego, the trail, the breach gate and the
+        ego's label."""
         scene = self.client.scene
         p = self.lane
         scene.set_up_direction("+z")
-        self.ego_box = scene.add_box("/ego", color=IDLE, dimensions=(p.ego_length_m, p.width_m, CAR_HEIGHT_M),
-                                     position=(0.0, 0, CAR_HEIGHT_M / 2))  # fmt: skip
+        self.ego_box = scene.add_box(
+            "/ego",
+            color=IDLE,
+            dimensions=(p.ego_length_m, p.width_m, CAR_HEIGHT_M),
+            position=(0.0, 0, CAR_HEIGHT_M / 2),
+        )
         self._lane_nodes: list = []
         """What only the lane scene shows (hidden while a scene of several objects is shown), last made last."""
         self._object_nodes: list = []
@@ -333,21 +217,39 @@ class SceneView:
         # past detections, on the road where the ego's rear was at each step; the breach: a red gate at the place
         # where the ego's sensor breached the failure margin
         self.trail = scene.add_point_cloud(
-            "/trail", np.zeros((1, 3), np.float32), colors=IDLE, point_size=TRAIL_POINT_M, point_shape="square",
-            precision="float32", point_shading="flat", visible=False,
-        )  # fmt: skip
+            "/trail",
+            np.zeros((1, 3), np.float32),
+            colors=IDLE,
+            point_size=TRAIL_POINT_M,
+            point_shape="square",
+            precision="float32",
+            point_shading="flat",
+            visible=False,
+        )
         self.breach_gate = scene.add_box(
-            "/breach", color=CRASH, dimensions=(0.12, p.width_m + 1.0, CAR_HEIGHT_M + 0.7), opacity=0.7,
-            position=(0.0, 0.0, (CAR_HEIGHT_M + 0.7) / 2), cast_shadow=False, receive_shadow=False, visible=False,
-        )  # fmt: skip
+            "/breach",
+            color=CRASH,
+            dimensions=(0.12, p.width_m + 1.0, CAR_HEIGHT_M + 0.7),
+            opacity=0.7,
+            position=(0.0, 0.0, (CAR_HEIGHT_M + 0.7) / 2),
+            cast_shadow=False,
+            receive_shadow=False,
+            visible=False,
+        )
         self.breach_label = scene.add_label(
-            "/breach/label", "", position=(0.0, ROW_Y_M["left"], -(CAR_HEIGHT_M + 0.7) / 2), anchor="center-right",
+            "/breach/label",
+            "",
+            position=(0.0, ROW_Y_M["left"], -(CAR_HEIGHT_M + 0.7) / 2),
+            anchor="center-right",
             font_screen_scale=LABEL_SCALE,
-        )  # fmt: skip
+        )
         self.scene_label = scene.add_label(
-            "/ego/label", "ego: no rollout chosen", position=(0.0, ROW_Y_M["right"], -CAR_HEIGHT_M / 2),
-            anchor="center-left", font_screen_scale=LABEL_SCALE,
-        )  # fmt: skip
+            "/ego/label",
+            "ego: no rollout chosen",
+            position=(0.0, ROW_Y_M["right"], -CAR_HEIGHT_M / 2),
+            anchor="center-left",
+            font_screen_scale=LABEL_SCALE,
+        )
         object0 = p.object_start_x
         self._frame(0.0, object0, self._span(np.zeros(1), np.full(1, object0)))
 
@@ -366,27 +268,53 @@ class SceneView:
         """Show the lane scene (``objects`` 0, no ``layout``), a road of ``layout``'s lanes with its first ``objects``
         cars, or no scene (``objects`` None: a problem that draws none)."""
         scene = self.client.scene
-        road = None if layout is None else (layout.car_length_m, layout.car_width_m, layout.lane_width_m,
-                                            layout.n_lanes)  # fmt: skip
+        road = (
+            None if layout is None else (layout.car_length_m, layout.car_width_m, layout.lane_width_m, layout.n_lanes)
+        )
         if road is not None and (road != self._objects_road or len(self._object_nodes) < 2 + 2 * (objects or 0)):
             lane_m = layout.lane_width_m
             lanes = layout.n_lanes * lane_m if layout.n_lanes else GROUND_M[1]
             for node in self._object_nodes:
                 node.remove()
-            self._object_nodes = [scene.add_box(
-                "/objects/road", color=C.ROAD if layout.n_lanes else C.GROUND, dimensions=(GROUND_M[0], lanes + 1.0,
-                0.05), position=(60.0, 0.0, -0.03), cast_shadow=False, visible=False)]  # fmt: skip
-            self._object_nodes.append(scene.add_line_segments(
-                "/objects/lanes", _floor_lines(layout.n_lanes, lane_m), colors=C.ROAD_MARKING, thickness=0.12,
-                visible=False))  # fmt: skip
+            self._object_nodes = [
+                scene.add_box(
+                    "/objects/road",
+                    color=C.ROAD if layout.n_lanes else C.GROUND,
+                    dimensions=(GROUND_M[0], lanes + 1.0, 0.05),
+                    position=(60.0, 0.0, -0.03),
+                    cast_shadow=False,
+                    visible=False,
+                )
+            ]
+            self._object_nodes.append(
+                scene.add_line_segments(
+                    "/objects/lanes",
+                    floor_lines(layout.n_lanes, lane_m),
+                    colors=C.ROAD_MARKING,
+                    thickness=0.12,
+                    visible=False,
+                )
+            )
             for j in range(objects or 0):
-                self._object_nodes.append(scene.add_box(
-                    f"/objects/car{j}", color=IDLE, dimensions=(layout.car_length_m, layout.car_width_m, CAR_HEIGHT_M),
-                    position=(0.0, 0.0, CAR_HEIGHT_M / 2), visible=False))  # fmt: skip
-                self._object_nodes.append(scene.add_label(
-                    f"/objects/car{j}/label", object_label(layout.object_labels, j),
-                    position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2 + 0.7 * (j % 2)),  # neighbours' labels apart
-                    anchor="bottom-center", font_screen_scale=LABEL_SCALE, visible=False))  # fmt: skip
+                self._object_nodes.append(
+                    scene.add_box(
+                        f"/objects/car{j}",
+                        color=IDLE,
+                        dimensions=(layout.car_length_m, layout.car_width_m, CAR_HEIGHT_M),
+                        position=(0.0, 0.0, CAR_HEIGHT_M / 2),
+                        visible=False,
+                    )
+                )
+                self._object_nodes.append(
+                    scene.add_label(
+                        f"/objects/car{j}/label",
+                        object_label(layout.object_labels, j),
+                        position=(0.0, 0.0, CAR_HEIGHT_M / 2 + 0.2 + 0.7 * (j % 2)),  # neighbours' labels apart
+                        anchor="bottom-center",
+                        font_screen_scale=LABEL_SCALE,
+                        visible=False,
+                    )
+                )
             self._objects_road = road
         lane = objects == 0 and layout is None
         with self.client.atomic():
@@ -411,7 +339,7 @@ class SceneView:
                     box_.position = (place[1], -place[0], CAR_HEIGHT_M / 2)
                     box_.color = colours[j]
                     text.text = texts[j]
-            for node in self._object_nodes[2 + 2 * len(xy):]:  # cars of a larger scene shown before
+            for node in self._object_nodes[2 + 2 * len(xy) :]:  # cars of a larger scene shown before
                 node.visible = False
             self.scene_label.text = label
 
@@ -504,8 +432,10 @@ class SceneView:
             labels = [object_label(scene.object_labels, j) for j in range(len(starts))]
             self._place_objects(list(starts), [OBJECT] * len(starts), labels, "ego: no rollout chosen")
             self._frame_objects()
-            caption = (f"No rollout chosen: the {name} scenario's {len(starts)} {_plural(labels)} at their start, seen "
-                       "from the ego (grey).")  # fmt: skip
+            caption = (
+                f"No rollout chosen: the {name} scenario's {len(starts)} {_plural(labels)} at their start, seen "
+                "from the ego (grey)."
+            )
         elif isinstance(scene, LaneScene):
             self._idle_lane(scene)
             caption = f"No rollout chosen: the {name} scenario's cars at their start."
@@ -525,10 +455,9 @@ class SceneView:
         object0 = p.object_start_x
         with self.client.atomic():
             self.object_box.position = (object0, 0.0, CAR_HEIGHT_M / 2)
-            self.gap_ruler.points = _ruler(p.sensor_offset_m, object0 - p.object_length_m / 2)
+            self.gap_ruler.points = ruler_segments(p.sensor_offset_m, object0 - p.object_length_m / 2)
             self.gap_label.text = f"{p.ruler_label} {p.start_distance_m:.2f} m"
-            self.gap_label.position = ((p.sensor_offset_m + object0 - p.object_length_m / 2) / 2, ROW_Y_M["right"],
-                                       0.0)  # fmt: skip
+            self.gap_label.position = ((p.sensor_offset_m + object0 - p.object_length_m / 2) / 2, ROW_Y_M["right"], 0.0)
             self.trail.visible = self.breach_gate.visible = self.breach_label.visible = False
             self.scene_label.text = "ego: no rollout chosen"
         self._frame(0.0, object0, self._span(np.zeros(1), np.full(1, object0)))
@@ -569,7 +498,7 @@ class SceneView:
                 self.ego_box.position = (ego_x, 0.0, CAR_HEIGHT_M / 2)
                 self.ego_box.color = colour
                 self.object_box.position = (object_x, 0.0, CAR_HEIGHT_M / 2)
-                self.gap_ruler.points = _ruler(cam_x, rear_x)
+                self.gap_ruler.points = ruler_segments(cam_x, rear_x)
                 self.gap_label.text = f"{ruler_label} {distance:.2f} m"
                 self.gap_label.position = ((cam_x + rear_x) / 2, ROW_Y_M["right"], 0.0)
                 self.trail.points = trail
@@ -579,8 +508,11 @@ class SceneView:
                 self.explain.move_marker(t)
             if self.follow.value:
                 self._frame(ego_x, object_x, self._shown_span)
-            mark = {"detected": "detected", "missed": f"<b style='color:rgb{MISSED}'>missed</b>",
-                    "missed (decisive)": f"<b style='color:{RED}'>missed (decisive)</b>"}[seen]  # fmt: skip
+            mark = {
+                "detected": "detected",
+                "missed": f"<b style='color:rgb{MISSED}'>missed</b>",
+                "missed (decisive)": f"<b style='color:{RED}'>missed (decisive)</b>",
+            }[seen]
             crash = f" · <b style='color:{RED}'>{html.escape(ex.severity.short)}</b>" if traj.crashed else ""
             before, after = drawing.step_caption(traj.batch, 0, ex, t)
             self.scene_html.content = box(

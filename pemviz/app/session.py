@@ -73,9 +73,17 @@ class Session:
         self.plots_panel = PlotsPanel(client, self.explain)
         self.runs_tab = RunsTab(client, app, self.lock, self.rollouts_tab, self.plots_panel)
         self.form = ExperimentTab(client, app)
-        self.control = RunControl(client, app, self.lock, form=self.form, runs_tab=self.runs_tab,
-                                  rollouts_tab=self.rollouts_tab, scene=self.scene, explain=self.explain,
-                                  plots_panel=self.plots_panel)  # fmt: skip
+        self.control = RunControl(
+            client,
+            app,
+            self.lock,
+            form=self.form,
+            runs_tab=self.runs_tab,
+            rollouts_tab=self.rollouts_tab,
+            scene=self.scene,
+            explain=self.explain,
+            plots_panel=self.plots_panel,
+        )
         self._build_gui()
         self.scene.build_scene()
         self.scene.choose_scenario(self.form.choices["scenario"].value)  # its idle scene

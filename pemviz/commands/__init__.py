@@ -23,10 +23,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("pemviz.commands.serve", "open the interactive panel in the browser (viser)"),
     "estimate": ("pemviz.commands.estimate", "estimate the failure probability from logged rollouts (Parquet)"),
     "validate": ("pemviz.commands.validate", "judge the sampler and the baselines against exact failure probabilities"),
-    "tables": ("pemviz.commands.tables",
-               "reproduce the paper's Tables II and III with repetitions and the exact answer"),
-    "report": ("pemviz.commands.report",
-               "write a safety-case report (HTML and Markdown) from a run's result document or recording"),
+    "tables": (
+        "pemviz.commands.tables",
+        "reproduce the paper's Tables II and III with repetitions and the exact answer",
+    ),
+    "report": (
+        "pemviz.commands.report",
+        "write a safety-case report (HTML and Markdown) from a run's result document or recording",
+    ),
 }
 """Each command: (its module, its one-line help). ``pemviz --help`` lists them without importing any command module."""
 
@@ -80,8 +84,11 @@ def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ..
     return items
 
 
-SHOWN_DEFAULTS = {"pem": "ml-nn", "ray_address": "a local one",
-                  "chunk_rollouts": "8192, and only stages above 20000 rollouts stream"}
+SHOWN_DEFAULTS = {
+    "pem": "ml-nn",
+    "ray_address": "a local one",
+    "chunk_rollouts": "8192, and only stages above 20000 rollouts stream",
+}
 """What a setting's None stands for, as the flags' help says it: the shipped default PEM
 (:data:`pemviz.pem.recipes.DEFAULT_PEM_NAME`, whose module imports torch; a test keeps the two equal), a local Ray
 cluster, the engine's chunks (:data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`,
@@ -100,14 +107,21 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
     shown = SHOWN_DEFAULTS.get(name, shown) if shown is None else shown
     text = f"{s.hint} (default {shown})".replace("%", "%%")  # argparse formats help with %
     if s.kind == "params":  # NAME=VALUE, repeatable: the texts, parsed once the scenario is known
-        p.add_argument(*s.flags, dest=name, action="append", metavar="NAME=VALUE", default=default,
-                       help=f"{s.hint} (default none: the scenario's own values)".replace("%", "%%"))
+        p.add_argument(
+            *s.flags,
+            dest=name,
+            action="append",
+            metavar="NAME=VALUE",
+            default=default,
+            help=f"{s.hint} (default none: the scenario's own values)".replace("%", "%%"),
+        )
         return
     if s.kind == "bool":  # a switch: present sets True, absent leaves the config's value
         p.add_argument(*s.flags, dest=name, action="store_const", const=True, default=default, help=text)
         return
-    p.add_argument(*s.flags, dest=name, type=_number(s) if s.kind in ("int", "real") else str, default=default,
-                   help=text)
+    p.add_argument(
+        *s.flags, dest=name, type=_number(s) if s.kind in ("int", "real") else str, default=default, help=text
+    )
 
 
 def _number(s: Setting) -> Callable[[str], int | float]:

@@ -13,8 +13,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "data",
         help=COMMANDS["data"][1],
-        description="The KITTI salient files are never shipped: fetch them or show where "
-        "pemviz finds them.",
+        description="The KITTI salient files are never shipped: fetch them or show where " "pemviz finds them.",
     )
     actions = p.add_subparsers(dest="data_command", required=True)
     f = actions.add_parser(

@@ -48,33 +48,56 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its "
         "JSON sidecar (format: pemviz.io.rollout_format), and a rerun recording of it.",
     )
-    p.add_argument("rollouts", metavar="ROLLOUTS.parquet",
-                   help="rollout file (its sidecar ROLLOUTS.rollouts.json, or ROLLOUTS.json, beside it)")
+    p.add_argument(
+        "rollouts",
+        metavar="ROLLOUTS.parquet",
+        help="rollout file (its sidecar ROLLOUTS.rollouts.json, or ROLLOUTS.json, beside it)",
+    )
     lp = p.add_mutually_exclusive_group()
-    lp.add_argument("--pem", default=None, metavar="NAME|PATH",
-                    help=f"recompute log p from this PEM, {SETTINGS['pem'].allowed} (default: the log_p column, else "
-                    "the sidecar's PEM)")
+    lp.add_argument(
+        "--pem",
+        default=None,
+        metavar="NAME|PATH",
+        help=f"recompute log p from this PEM, {SETTINGS['pem'].allowed} (default: the log_p column, else "
+        "the sidecar's PEM)",
+    )
     lp.add_argument("--log-p-column", action="store_true", help="use the file's log_p column")
     lq = p.add_mutually_exclusive_group()
-    lq.add_argument("--proposal", default=None, metavar="CKPT|pem|naive50|mixed50",
-                    help="recompute log q from a proposal checkpoint or a named sampler "
-                         "(default: the log_q column, else the sidecar's proposal)")
+    lq.add_argument(
+        "--proposal",
+        default=None,
+        metavar="CKPT|pem|naive50|mixed50",
+        help="recompute log q from a proposal checkpoint or a named sampler "
+        "(default: the log_q column, else the sidecar's proposal)",
+    )
     lq.add_argument("--log-q-column", action="store_true", help="use the file's log_q column")
     add_setting(p, "metric", default=ExperimentConfig().metric)
-    p.add_argument("--failure", default="crash", choices=("crash", "metric"),
-                   help="failure event: crash = classic robustness < 0 (default); metric = the metric's < 0")
-    p.add_argument("--weights", default=None, choices=CONVENTIONS,
-                   help="importance weights: to-failure = prod p/q over the steps before the failure step (pemviz's "
-                        "sampler); full = over every step but the last (the paper's eq. 6); both unbiased. Default: "
-                        "the convention the sidecar records, else to-failure")
+    p.add_argument(
+        "--failure",
+        default="crash",
+        choices=("crash", "metric"),
+        help="failure event: crash = classic robustness < 0 (default); metric = the metric's < 0",
+    )
+    p.add_argument(
+        "--weights",
+        default=None,
+        choices=CONVENTIONS,
+        help="importance weights: to-failure = prod p/q over the steps before the failure step (pemviz's "
+        "sampler); full = over every step but the last (the paper's eq. 6); both unbiased. Default: "
+        "the convention the sidecar records, else to-failure",
+    )
     add_setting(p, "pem_uncertainty")
     add_setting(p, "pem_shift")
     rec = p.add_argument_group("recording (rerun)")
-    rec.add_argument("--save", default=None, metavar="PATH.rrd",
-                     help="write the recording here (default recordings/estimate-<name>-<time>.rrd)")
+    rec.add_argument(
+        "--save",
+        default=None,
+        metavar="PATH.rrd",
+        help="write the recording here (default recordings/estimate-<name>-<time>.rrd)",
+    )
     rec.add_argument("--no-record", action="store_true", help="write no recording")
     rec.add_argument("--overwrite", action="store_true", help="replace an existing --save file (only one pemviz wrote)")
-    p.set_defaults(func=main)  # fmt: skip
+    p.set_defaults(func=main)
 
 
 def _resolve(base: Path, ref: str) -> Path:
@@ -103,9 +126,11 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
 
     if meta.per_object and (args.pem is not None or args.proposal is not None):
         flag = "--pem" if args.pem is not None else "--proposal"
-        raise UsageError(f"{flag}: {data.path} holds {meta.objects} object(s) a step with errors "
-                         f"{list(meta.noise)}; it is estimated from its own log_p and log_q (each object's row, "
-                         "what the PEMs read, is not in the file)")  # fmt: skip
+        raise UsageError(
+            f"{flag}: {data.path} holds {meta.objects} object(s) a step with errors "
+            f"{list(meta.noise)}; it is estimated from its own log_p and log_q (each object's row, "
+            "what the PEMs read, is not in the file)"
+        )
     if args.log_p_column and data.log_p is None:
         raise UsageError(f"--log-p-column: {data.path} has no log_p column; give --pem NAME to recompute it")
     if args.pem is None and data.log_p is not None:
@@ -123,13 +148,17 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
     if q_ref is None:
         q_ref = meta.proposal
         if q_ref is None:
-            raise UsageError(f"{data.path}: no log_q column and the sidecar names no proposal; give --proposal "
-                             f"CKPT or one of {', '.join(SAMPLERS)}")  # fmt: skip
+            raise UsageError(
+                f"{data.path}: no log_q column and the sidecar names no proposal; give --proposal "
+                f"CKPT or one of {', '.join(SAMPLERS)}"
+            )
         if q_ref not in SAMPLERS:
             q_ref = str(_resolve(base, q_ref))
             if meta.proposal_sha256 and Path(q_ref).is_file() and sha256_file(q_ref) != meta.proposal_sha256:
-                raise RolloutFormatError(f"{q_ref}: not the proposal checkpoint the sidecar of {data.path} was "
-                                         "written with (proposal_sha256 differs); write the rollouts again")
+                raise RolloutFormatError(
+                    f"{q_ref}: not the proposal checkpoint the sidecar of {data.path} was "
+                    "written with (proposal_sha256 differs); write the rollouts again"
+                )
     if q_ref in SAMPLERS:
         detector = sampler_detector(q_ref, pem(), meta.window_m)
     else:
@@ -143,8 +172,10 @@ def default_recording_path(rollouts: Path) -> Path:
     return free_default_path(Path("recordings"), f"estimate-{rollouts.stem}-{stamp}")
 
 
-WEIGHT_TEXT = {"to-failure": "prod p/q over the steps before the failure step",
-               "full": "prod p/q over every step but the last (Innes & Ramamoorthy 2022, eq. 6)"}
+WEIGHT_TEXT = {
+    "to-failure": "prod p/q over the steps before the failure step",
+    "full": "prod p/q over every step but the last (Innes & Ramamoorthy 2022, eq. 6)",
+}
 
 
 def weights_convention(meta: Any, requested: str | None) -> tuple[str, str]:
@@ -188,8 +219,9 @@ def known_answer(problem: Any) -> tuple[float | None, Any]:
     return (None, None) if problem is None else (problem.exact_log_p, problem.reference)
 
 
-def summary_lines(data: Any, result: Any, p_src: str, q_src: str, why: str = "",
-                  known: tuple[float | None, Any] = (None, None)) -> list[str]:  # fmt: skip
+def summary_lines(
+    data: Any, result: Any, p_src: str, q_src: str, why: str = "", known: tuple[float | None, Any] = (None, None)
+) -> list[str]:
     """The printed report: the file, the weight convention, the sources of log p / log q, one row per stage, the
     pooled estimate and which stages it pools, the mean-weight check (and its warning), the verdict line with the
     exact answer or reference ``known`` (:func:`known_answer`)."""
@@ -205,14 +237,16 @@ def summary_lines(data: Any, result: Any, p_src: str, q_src: str, why: str = "",
         f"{'verdict':>10}",
     ]
     for row in result.stages:
-        lines.append(f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} "
-                     f"{estimate_cells(row.estimate)}")
+        lines.append(
+            f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} " f"{estimate_cells(row.estimate)}"
+        )
     if result.pooled:
         which = ", ".join(map(str, result.pooled))
         lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- stages {which} pooled ({result.rule})")
     elif len(result.stages) > 1:
-        lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike "
-                     "(the sidecar gives no pooling)")
+        lines.append(
+            f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike " "(the sidecar gives no pooling)"
+        )
     nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.4f}"
     lines.append(
         f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat!r} nats), "
@@ -242,8 +276,9 @@ def check_plausible(e: Any, q_src: str) -> None:
         )
 
 
-def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np.ndarray, weights: str,
-                     cap: Any) -> list[str]:  # fmt: skip
+def pem_spread_lines(
+    data: Any, args: argparse.Namespace, result: Any, log_q: np.ndarray, weights: str, cap: Any
+) -> list[str]:
     """``--pem-uncertainty`` / ``--pem-shift``: the file's rollouts re-weighted under every member of the PEM's ensemble
     and the logit shifts (:mod:`pemviz.core.reweight`), each estimated as the file's own log p is, printed as ``pemviz
     run`` prints them.
@@ -260,9 +295,11 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
     from pemviz.scenarios.braking.problem import braking_formula
 
     if data.n_objects > 1 or data.noise is not None:
-        raise UsageError(f"--pem-uncertainty: {data.path} holds {data.n_objects} objects a step with measurement "
-                         "errors, whose salient rows are not in the file; re-weight in the run instead (pemviz run "
-                         "--pem-uncertainty)")  # fmt: skip
+        raise UsageError(
+            f"--pem-uncertainty: {data.path} holds {data.n_objects} objects a step with measurement "
+            "errors, whose salient rows are not in the file; re-weight in the run instead (pemviz run "
+            "--pem-uncertainty)"
+        )
     name = args.pem or (data.meta.pem if data.meta else None) or "ml-nn"
     try:
         pem = load_pem(name)
@@ -278,20 +315,26 @@ def pem_spread_lines(data: Any, args: argparse.Namespace, result: Any, log_q: np
     cap = tuple(cap) if isinstance(cap, list) and len(cap) == 2 else None
 
     def estimate_under(log_p_k: np.ndarray, logit_fn: Any) -> tuple[Any, float | None]:
-        est = estimate_rollouts(data, log_p_k, log_q, metric=args.metric, failure=args.failure, weights=weights,
-                                verdict_cap=cap).estimate  # fmt: skip
+        est = estimate_rollouts(
+            data, log_p_k, log_q, metric=args.metric, failure=args.failure, weights=weights, verdict_cap=cap
+        ).estimate
         return est, known_log_failure_probability(logit_fn) if braking else None
 
-    made = [Alternative(f"member {k}", *estimate_under(pem_log_prob(data, m), m.logit_at_gap))
-            for k, m in enumerate(members)]  # fmt: skip
+    made = [
+        Alternative(f"member {k}", *estimate_under(pem_log_prob(data, m), m.logit_at_gap))
+        for k, m in enumerate(members)
+    ]
     moved = []
     for d in sorted(shifts):
+
         def shifted(g, d=d):
             return np.asarray(pem.logit_at_gap(g), dtype=np.float64) + d
 
-        moved.append(Alternative(f"{d:+g}",
-                                 *estimate_under(detector_log_prob(data, ShiftedDetector(PEMDetector(pem), d)),
-                                                 shifted)))  # fmt: skip
+        moved.append(
+            Alternative(
+                f"{d:+g}", *estimate_under(detector_log_prob(data, ShiftedDetector(PEMDetector(pem), d)), shifted)
+            )
+        )
     return PemSpread(result.estimate, tuple(made), tuple(moved), ensemble_for(name).name if members else "").lines()
 
 
@@ -312,12 +355,23 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
         stream.log("description", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
         stream.log(
             "estimate",
-            rr.AnyValues(log_mu_hat=e.log_mu_hat, n_failures=e.n_failures, n=e.n, nll_mean=e.nll_mean,
-                         nll_lme=e.nll_lme, ess=e.ess, metric=result.metric, failure=result.failure,
-                         formula=data.meta.formula, pemviz_version=pemviz.__version__, weights=result.weights,
-                         pooled_stages=",".join(map(str, result.pooled)), log_mean_weight=result.check.log_mean),
+            rr.AnyValues(
+                log_mu_hat=e.log_mu_hat,
+                n_failures=e.n_failures,
+                n=e.n,
+                nll_mean=e.nll_mean,
+                nll_lme=e.nll_lme,
+                ess=e.ess,
+                metric=result.metric,
+                failure=result.failure,
+                formula=data.meta.formula,
+                pemviz_version=pemviz.__version__,
+                weights=result.weights,
+                pooled_stages=",".join(map(str, result.pooled)),
+                log_mean_weight=result.check.log_mean,
+            ),
             static=True,
-        )  # fmt: skip
+        )
         order = np.argsort(np.where(result.failed, -np.inf, result.robustness), kind="stable")[:MAX_TRACES]
         colours = [rgba(FAILED_ROLLOUT, 160) if result.failed[i] else rgba(NEUTRAL, 80) for i in order]
         names = [f"rollout {data.rollout_ids[i]}{' failure' if result.failed[i] else ''}" for i in order]
@@ -329,10 +383,13 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
         points = np.column_stack([result.robustness, result.log_weight])
         stream.log(
             "scores",
-            rr.Points2D(points, colors=[rgba(FAILED_ROLLOUT) if f else rgba(NEUTRAL) for f in result.failed],
-                        labels=[f"rollout {i}: robustness, log w" for i in data.rollout_ids]),
+            rr.Points2D(
+                points,
+                colors=[rgba(FAILED_ROLLOUT) if f else rgba(NEUTRAL) for f in result.failed],
+                labels=[f"rollout {i}: robustness, log w" for i in data.rollout_ids],
+            ),
             static=True,
-        )  # fmt: skip
+        )
 
     return write_rrd(path, log, overwrite=overwrite)
 
@@ -361,13 +418,22 @@ def main(args: argparse.Namespace) -> int:
     said = run_estimate.get("look_ahead") is True  # the run weighed with its problem's look-ahead
     look_ahead = problem.look_ahead if problem is not None and said else None
     if said and own and args.failure == "crash" and look_ahead is None:
-        raise UsageError(f"{rollouts}: the run that wrote it weighed its rollouts with an exact look-ahead that this "
-                         "pemviz cannot rebuild (its scenario, parameters or PEM); estimate it with the version "
-                         "that wrote it")  # fmt: skip
-    result = estimate_rollouts(data, log_p, log_q, metric=args.metric, failure=args.failure, weights=weights,
-                               log_p_seen=run_estimate.get("log_p_seen") if own else None,
-                               verdict_cap=tuple(cap) if own and isinstance(cap, list) and len(cap) == 2 else None,
-                               look_ahead=look_ahead)
+        raise UsageError(
+            f"{rollouts}: the run that wrote it weighed its rollouts with an exact look-ahead that this "
+            "pemviz cannot rebuild (its scenario, parameters or PEM); estimate it with the version "
+            "that wrote it"
+        )
+    result = estimate_rollouts(
+        data,
+        log_p,
+        log_q,
+        metric=args.metric,
+        failure=args.failure,
+        weights=weights,
+        log_p_seen=run_estimate.get("log_p_seen") if own else None,
+        verdict_cap=tuple(cap) if own and isinstance(cap, list) and len(cap) == 2 else None,
+        look_ahead=look_ahead,
+    )
     if result.weights != weights:
         why = f"{weights} needs a crash of a G[a,b](state predicate) formula; every step but the last instead"
     check_plausible(result.estimate, q_src)

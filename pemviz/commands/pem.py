@@ -36,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "pem",
         help=COMMANDS["pem"][1],
         description="Train the PEM on the KITTI salient files or cross-validate the models (both need the files: "
-                    "pemviz data fetch).",
+        "pemviz data fetch).",
     )
     actions = p.add_subparsers(dest="pem_command", required=True)
     t = actions.add_parser(
@@ -58,12 +58,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="epochs for ml-nn and hetero-t, trees for gbt (default: the model's, 300, 300, 100)",
     )
     t.add_argument("--seed", type=int, default=None, help="seed (default: the model's shipped seed)")
-    t.add_argument("--ensemble", type=int, default=None, metavar="M",
-                   help="train M bootstrap refits of a detection PEM instead (its epistemic uncertainty, for pemviz "
-                   "run --pem-uncertainty) and write pemviz/assets/ensemble_<model>.pt (or --out; beside a PEM file "
-                   "X.pt, pemviz looks for X.ensemble.pt)")
-    t.add_argument("--out", default=None, metavar="PATH",
-                   help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)")
+    t.add_argument(
+        "--ensemble",
+        type=int,
+        default=None,
+        metavar="M",
+        help="train M bootstrap refits of a detection PEM instead (its epistemic uncertainty, for pemviz "
+        "run --pem-uncertainty) and write pemviz/assets/ensemble_<model>.pt (or --out; beside a PEM file "
+        "X.pt, pemviz looks for X.ensemble.pt)",
+    )
+    t.add_argument(
+        "--out", default=None, metavar="PATH", help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)"
+    )
     t.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_main)
@@ -95,9 +101,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--bnn-steps", type=int, default=None, help="B-NN SVI steps per fold (default 2000)")
     e.add_argument("--bnn-samples", type=int, default=None, help="B-NN posterior samples (default 800)")
     e.add_argument("--seed", type=int, default=0, help="seed of every model (default 0)")
-    e.add_argument("--ensemble", type=int, default=None, metavar="M",
-                   help="also cross-validate M bootstrap members of the ML-NN (as pemviz pem train --ensemble M builds "
-                   "them) beside the nominal one, on the same folds (pem-eval-ensemble.md)")
+    e.add_argument(
+        "--ensemble",
+        type=int,
+        default=None,
+        metavar="M",
+        help="also cross-validate M bootstrap members of the ML-NN (as pemviz pem train --ensemble M builds "
+        "them) beside the nominal one, on the same folds (pem-eval-ensemble.md)",
+    )
     e.add_argument("--jobs", type=int, default=1, help="worker processes for --ensemble (default 1)")
     e.add_argument(
         "--out",
@@ -129,8 +140,10 @@ def train_main(args: argparse.Namespace) -> int:
     recipe = NOISE_RECIPES[args.model] if noise else PEM_RECIPES[args.model]
     ensemble = getattr(args, "ensemble", None)
     if ensemble is not None and (noise or not hasattr(recipe, "hidden") or ensemble < 2):
-        raise UsageError(f"--ensemble {ensemble}: give M >= 2 with a network detection PEM "
-                         f"({', '.join(n for n, r in PEM_RECIPES.items() if hasattr(r, 'hidden'))})")  # fmt: skip
+        raise UsageError(
+            f"--ensemble {ensemble}: give M >= 2 with a network detection PEM "
+            f"({', '.join(n for n, r in PEM_RECIPES.items() if hasattr(r, 'hidden'))})"
+        )
     if ensemble is not None:
         from pemviz.pem.ensemble import ensemble_path
 
@@ -152,10 +165,12 @@ def train_main(args: argparse.Namespace) -> int:
         "labels_sha256": sha256_file(data.labels_path),
     }
     if ensemble is not None:
-        metadata["command"] = (f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} "
-                               f"--epochs {epochs}")
-        _train_ensemble(recipe, data, ensemble, seed=seed, epochs=epochs, out=out, progress=not args.no_progress,
-                        metadata=metadata)  # fmt: skip
+        metadata["command"] = (
+            f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} " f"--epochs {epochs}"
+        )
+        _train_ensemble(
+            recipe, data, ensemble, seed=seed, epochs=epochs, out=out, progress=not args.no_progress, metadata=metadata
+        )
     else:
         train = _train_noise if noise else _train_detection
         train(recipe, data, seed=seed, epochs=epochs, out=out, progress=not args.no_progress, metadata=metadata)
@@ -189,12 +204,15 @@ def _train_ensemble(recipe, data, m: int, *, seed: int, epochs: int, out: Path, 
     from pemviz.pem.ensemble import save_ensemble, train_ensemble
 
     print(f"training {m} bootstrap refits of {recipe.name} on {data.inputs_path} ({len(data)} rows), seed {seed}")
-    members = train_ensemble(recipe, data.inputs, data.labels, m, seed=seed, epochs=epochs, progress=progress,
-                             metadata=metadata)  # fmt: skip
+    members = train_ensemble(
+        recipe, data.inputs, data.labels, m, seed=seed, epochs=epochs, progress=progress, metadata=metadata
+    )
     for k, pem in enumerate(members):
         bce = bce_from_logits(pem.logit(data.inputs), data.labels)
-        print(f"member {k}: BCE on the full file {bce:.4f} nats, "
-              f"p(detect | 4 m) {pem.prob_at_gap(np.array([4.0]))[0]:.4f}")
+        print(
+            f"member {k}: BCE on the full file {bce:.4f} nats, "
+            f"p(detect | 4 m) {pem.prob_at_gap(np.array([4.0]))[0]:.4f}"
+        )
     save_ensemble(members, out, recipe.name, metadata)
 
 
@@ -202,12 +220,23 @@ def _train_noise(recipe, data, *, seed: int, epochs: int, out: Path, progress: b
     """``pem train --model hetero-t``: the noise PEM on the detected obstacles' metric errors of the full file
     (z-scored with the full file's statistics, as the detection PEMs), saved."""
     noise = noise_training_data(data.inputs, data.label_table, seed=seed)
-    print(f"training {recipe.name} ({recipe.description}) on {noise.rows.size} detected obstacles of "
-          f"{data.labels_path} ({len(data)} rows), seed {seed}")  # fmt: skip
-    model = recipe.train(noise.inputs, noise.errors, seed=seed, epochs=epochs, norm=fit_norm_stats(data.inputs),
-                         progress=progress, metadata=metadata)  # fmt: skip
-    print(f"NLL on the full training set: {nll(model, noise.inputs, noise.errors):.4f} nats per obstacle; "
-          f"degrees of freedom (range, lateral) {model.df[0]:.2f}, {model.df[1]:.2f}")  # fmt: skip
+    print(
+        f"training {recipe.name} ({recipe.description}) on {noise.rows.size} detected obstacles of "
+        f"{data.labels_path} ({len(data)} rows), seed {seed}"
+    )
+    model = recipe.train(
+        noise.inputs,
+        noise.errors,
+        seed=seed,
+        epochs=epochs,
+        norm=fit_norm_stats(data.inputs),
+        progress=progress,
+        metadata=metadata,
+    )
+    print(
+        f"NLL on the full training set: {nll(model, noise.inputs, noise.errors):.4f} nats per obstacle; "
+        f"degrees of freedom (range, lateral) {model.df[0]:.2f}, {model.df[1]:.2f}"
+    )
     save_noise_pem(model, out)
 
 
@@ -328,8 +357,11 @@ def _eval_ensemble(data, args: argparse.Namespace, config, result, out: Path) ->
     from pemviz.studies.ensemble_eval import evaluate_ensemble, format_ensemble_markdown
 
     config = config or EvalConfig(models=("ml-nn",), seed=args.seed)
-    print(f"cross-validating {args.ensemble} bootstrap members of ml-nn on folds {list(config.fold_ids)} "
-          f"({args.jobs} worker(s))", flush=True)  # fmt: skip
+    print(
+        f"cross-validating {args.ensemble} bootstrap members of ml-nn on folds {list(config.fold_ids)} "
+        f"({args.jobs} worker(s))",
+        flush=True,
+    )
 
     def on_fit(k: int, fold: int, bce: float, auc: float) -> None:
         print(f"  member {k:2d} fold {fold}: BCE {bce:.4f}  AUC {auc:.4f}", flush=True)
@@ -345,15 +377,22 @@ def _eval_ensemble(data, args: argparse.Namespace, config, result, out: Path) ->
 
 def _eval_noise(data, config: noise_eval.NoiseEvalConfig) -> noise_eval.NoiseEvalResult:
     """The noise PEMs' cross-validation against the homoscedastic baseline, with its console lines."""
-    print(f"cross-validating the noise PEMs {', '.join(config.models)} on folds {list(config.fold_ids)} of "
-          f"{config.n_splits} (detected obstacles of {data.labels_path.name})", flush=True)  # fmt: skip
+    print(
+        f"cross-validating the noise PEMs {', '.join(config.models)} on folds {list(config.fold_ids)} of "
+        f"{config.n_splits} (detected obstacles of {data.labels_path.name})",
+        flush=True,
+    )
 
     def on_fold(name, fs) -> None:
-        print(f"  {name:14s} fold {fs.fold}: NLL {fs.nll:.4f}  coverage 95 % {fs.coverage[-1, 0]:.3f} / "
-              f"{fs.coverage[-1, 1]:.3f}  ({fs.fit_s:.1f} s)", flush=True)  # fmt: skip
+        print(
+            f"  {name:14s} fold {fs.fold}: NLL {fs.nll:.4f}  coverage 95 % {fs.coverage[-1, 0]:.3f} / "
+            f"{fs.coverage[-1, 1]:.3f}  ({fs.fit_s:.1f} s)",
+            flush=True,
+        )
 
-    result = noise_eval.evaluate_noise_pems(data.inputs, data.label_table, config, on_fold=on_fold,
-                                            data_source=data.labels_path.name)  # fmt: skip
+    result = noise_eval.evaluate_noise_pems(
+        data.inputs, data.label_table, config, on_fold=on_fold, data_source=data.labels_path.name
+    )
     print("\n".join(noise_eval.summary_lines(result)))
     print(f"best noise PEM by mean NLL: {result.best()}; wall time {result.wall_s:.0f} s", flush=True)
     return result

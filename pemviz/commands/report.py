@@ -31,8 +31,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "readable offline, and its Markdown twin (PAGE.md).",
     )
     p.add_argument("result", metavar="RUN", help="the run's result document (pemviz run --json), or its recording")
-    p.add_argument("--out", default=None, metavar="PAGE.html",
-                   help="where the page goes (default: RUN.html beside the source; its twin PAGE.md)")
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="PAGE.html",
+        help="where the page goes (default: RUN.html beside the source; its twin PAGE.md)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing page and its twin")
     p.set_defaults(func=main)
 
@@ -46,14 +50,18 @@ def read_result(path: Path) -> dict:
     if path.suffix == ".rrd":
         beside = result_beside(path)
         if not beside.exists():
-            raise UsageError(f"{path}: a recording without its result document beside it ({beside.name}): a run "
-                             "stopped before its estimate, or a recording pemviz did not save; report a finished "
-                             "run's recording, or the JSON of pemviz run --json RESULT.json")  # fmt: skip
+            raise UsageError(
+                f"{path}: a recording without its result document beside it ({beside.name}): a run "
+                "stopped before its estimate, or a recording pemviz did not save; report a finished "
+                "run's recording, or the JSON of pemviz run --json RESULT.json"
+            )
         return read_result(beside)
     if path.suffix == ".parquet":
-        raise UsageError(f"{path}: a rollout file, not a result document; `pemviz report` reads the JSON that "
-                         "`pemviz run --json RESULT.json` writes, or a saved recording (or give --report PAGE.html "
-                         "to pemviz run)")  # fmt: skip
+        raise UsageError(
+            f"{path}: a rollout file, not a result document; `pemviz report` reads the JSON that "
+            "`pemviz run --json RESULT.json` writes, or a saved recording (or give --report PAGE.html "
+            "to pemviz run)"
+        )
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -61,8 +69,10 @@ def read_result(path: Path) -> dict:
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise UsageError(f"{path}: not a readable JSON file ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
-        raise UsageError(f"{path}: not a pemviz result document (format {RESULT_FORMAT!r}); write one with "
-                         "pemviz run --json RESULT.json")  # fmt: skip
+        raise UsageError(
+            f"{path}: not a pemviz result document (format {RESULT_FORMAT!r}); write one with "
+            "pemviz run --json RESULT.json"
+        )
     missing = [k for k in REQUIRED if k not in doc]
     if missing or not isinstance(doc.get("estimate"), dict):
         raise UsageError(f"{path}: a result document without {', '.join(missing) or 'an estimate'}")

@@ -6,13 +6,17 @@ import argparse
 import importlib.util
 import json
 import shlex
-import socket
 import sys
-from datetime import datetime
 from pathlib import Path
-from urllib.parse import quote, urlsplit
 
 from pemviz.commands.run_outputs import RunOutputs, plan_outputs
+from pemviz.commands.run_recording import (
+    add_recording_args,
+    default_recording_path,
+    probe_viewer,
+    recording_target,
+    serve,
+)
 from pemviz.commands import (
     COMMANDS,
     UsageError,
@@ -23,7 +27,6 @@ from pemviz.commands import (
 )
 from pemviz.config import SCENE_DEFAULTS, ConfigError, ExperimentConfig
 from pemviz.engine.resources import check_run_memory
-from pemviz.io.files import free_default_path
 from pemviz.settings import METHODS, SCENARIOS
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
@@ -32,10 +35,32 @@ from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 # `pemviz run --no-record` never loads rerun.
 
 
-RUN_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ams_killed", "ams_score", "quantile_level", "smoothing",
-                "metric", "seed", "ce_epochs", "pem", "scenario", "scenario_params", "sim", "executor", "ray_address",
-                "chunk_rollouts", "rel_error", "require", "margin", "pem_uncertainty", "pem_shift", "max_sims",
-                "max_time_s")
+RUN_SETTINGS = (
+    "n_stages",
+    "n_per_stage",
+    "n_final",
+    "ams_killed",
+    "ams_score",
+    "quantile_level",
+    "smoothing",
+    "metric",
+    "seed",
+    "ce_epochs",
+    "pem",
+    "scenario",
+    "scenario_params",
+    "sim",
+    "executor",
+    "ray_address",
+    "chunk_rollouts",
+    "rel_error",
+    "require",
+    "margin",
+    "pem_uncertainty",
+    "pem_shift",
+    "max_sims",
+    "max_time_s",
+)
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 
 
@@ -50,33 +75,60 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_setting(p, "method")
     p.add_argument(
-        "--preset", default=None,
+        "--preset",
+        default=None,
         help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}): {preset_help()}. A preset "
         "sets some of the values below; a flag given here overrides it.",
     )
     for name in RUN_SETTINGS:
         add_setting(p, name)
     p.add_argument(
-        "--save-rollouts", dest="save_rollouts", default=None, metavar="PATH.parquet",
+        "--save-rollouts",
+        dest="save_rollouts",
+        default=None,
+        metavar="PATH.parquet",
         help="write the rollouts of every stage the estimate uses, each with its stage, sampler component and the "
         "log density it was weighed with, for `pemviz estimate` to reproduce the estimate "
         "(format: pemviz.io.rollout_format)",
-    )  # fmt: skip
-    p.add_argument("--rollout-stages", dest="rollout_stages", default="used", choices=("used", "all"),
-                   help="--save-rollouts: the stages the estimate uses (default), or all of them")
-    p.add_argument("--json", dest="json_path", default=None, metavar="PATH.json",
-                   help="write the result as one JSON document: estimate, interval, verdict, requirement outcome, "
-                   "settings, seed, version, the recording's path (format: pemviz.io.result; schema: the user "
-                   "guide's 'pemviz in CI')")
-    p.add_argument("--junit", dest="junit_path", default=None, metavar="PATH.xml",
-                   help="with --require: write the requirement as a JUnit XML test case (passed, failure when "
-                   "violated, error when undecided) for CI dashboards")
-    p.add_argument("--report", dest="report_path", default=None, metavar="PATH.html",
-                   help="write a safety-case report: one self-contained HTML page (and PATH.md, its Markdown twin) "
-                   "with the estimate, verdict, severity, scenario, PEM, settings and the sha256 of the inputs")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace existing --save / --save-rollouts / --json / --junit / --report files (only files "
-                   "pemviz wrote)")
+    )
+    p.add_argument(
+        "--rollout-stages",
+        dest="rollout_stages",
+        default="used",
+        choices=("used", "all"),
+        help="--save-rollouts: the stages the estimate uses (default), or all of them",
+    )
+    p.add_argument(
+        "--json",
+        dest="json_path",
+        default=None,
+        metavar="PATH.json",
+        help="write the result as one JSON document: estimate, interval, verdict, requirement outcome, "
+        "settings, seed, version, the recording's path (format: pemviz.io.result; schema: the user "
+        "guide's 'pemviz in CI')",
+    )
+    p.add_argument(
+        "--junit",
+        dest="junit_path",
+        default=None,
+        metavar="PATH.xml",
+        help="with --require: write the requirement as a JUnit XML test case (passed, failure when "
+        "violated, error when undecided) for CI dashboards",
+    )
+    p.add_argument(
+        "--report",
+        dest="report_path",
+        default=None,
+        metavar="PATH.html",
+        help="write a safety-case report: one self-contained HTML page (and PATH.md, its Markdown twin) "
+        "with the estimate, verdict, severity, scenario, PEM, settings and the sha256 of the inputs",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace existing --save / --save-rollouts / --json / --junit / --report files (only files "
+        "pemviz wrote)",
+    )
     add_recording_args(p)
     p.set_defaults(func=main)
 
@@ -110,8 +162,9 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         if value is not None:
             fields[name] = value
     if fields.get("scenario_params") is not None:  # --param NAME=VALUE: parsed by the scenario's field types
-        fields["scenario_params"] = scenario_params(fields.get("scenario", ExperimentConfig().scenario),
-                                                    fields["scenario_params"])  # fmt: skip
+        fields["scenario_params"] = scenario_params(
+            fields.get("scenario", ExperimentConfig().scenario), fields["scenario_params"]
+        )
     return ExperimentConfig(**fields)
 
 
@@ -135,104 +188,6 @@ def scenario_params(scenario: str, texts: list[str]) -> tuple[tuple[str, float |
         raise ConfigError(str(exc), "scenario_params") from None
 
 
-def add_recording_args(p: argparse.ArgumentParser) -> None:
-    """rerun's standard script flags (those of ``rerun.script_add_args``: --save, --serve, --connect, --url, --stdout,
-    --headless, defined here so that the parser needs no rerun import) plus ``--no-record`` and the ports of
-    ``--serve``."""
-    rec = p.add_argument_group("recording (rerun's standard script flags; at most one of them)")
-    rec.add_argument("--stdout", action="store_true",
-                     help="write the recording to standard output, to be piped into a rerun viewer (... | rerun -)")
-    rec.add_argument(
-        "--save", default=None, metavar="PATH.rrd",
-        help="write the recording to this file "
-             "(default recordings/<scenario>-<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd)",
-    )  # fmt: skip
-    rec.add_argument(
-        "--serve", action="store_true",
-        help="serve the recording over gRPC and a web viewer, print both addresses, keep serving until Ctrl-C",
-    )  # fmt: skip
-    rec.add_argument(
-        "--connect", nargs="?", const=True, default=False, metavar="URL",
-        help=f"stream to a running rerun viewer (default URL {DEFAULT_VIEWER_URL}; or give it with --url)",
-    )  # fmt: skip
-    rec.add_argument("--url", default=None, help="the viewer for --connect, e.g. rerun+http://127.0.0.1:9876/proxy")
-    rec.add_argument("--headless", action="store_true", help="open no browser (with --serve)")
-    rec.add_argument("--grpc-port", dest="grpc_port", type=int, default=9876, help="--serve: gRPC port (default 9876)")
-    rec.add_argument("--web-port", dest="web_port", type=int, default=9090,
-                     help="--serve: web viewer port (default 9090)")
-    rec.add_argument("--no-record", action="store_true", help="write no recording")
-
-
-DEFAULT_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
-CONNECT_TIMEOUT_S = 3.0
-
-
-def recording_target(args: argparse.Namespace) -> str:
-    """Which one of save / serve / connect / stdout / none the flags ask for (default: save).
-
-    Raises:
-        UsageError: two of them at once, a port without --serve, or a bad port.
-    """
-    if isinstance(args.connect, str):  # --connect URL
-        if args.url is not None and args.url != args.connect:
-            raise UsageError(f"--connect {args.connect} and --url {args.url}: give the viewer URL once")
-        args.url = args.connect
-    if args.url is not None:
-        args.connect = True
-    chosen = [flag for flag, on in (("--save", args.save is not None), ("--serve", args.serve),
-                                    ("--connect", bool(args.connect)), ("--stdout", args.stdout),
-                                    ("--no-record", args.no_record)) if on]  # fmt: skip
-    if len(chosen) > 1:
-        raise UsageError(f"{' and '.join(chosen)} cannot be combined: choose one place for the recording")
-    for flag, port, default in (("--grpc-port", args.grpc_port, 9876), ("--web-port", args.web_port, 9090)):
-        if port != default and not args.serve:
-            raise UsageError(f"{flag} {port}: only with --serve")
-        if not 1 <= port <= 65535:
-            raise UsageError(f"{flag} {port}: not a port (1..65535)")
-    return chosen[0].lstrip("-") if chosen else "save"
-
-
-def probe_viewer(url: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> str:
-    """Check that a rerun viewer listens at ``url`` (default :data:`DEFAULT_VIEWER_URL`) before any work.
-
-    Returns:
-        The URL.
-
-    Raises:
-        UsageError: not a ``rerun+http(s)://HOST:PORT/...`` URL, or nothing answers within ``timeout_s``.
-    """
-    url = url or DEFAULT_VIEWER_URL
-    try:
-        parts = urlsplit(url)
-        scheme, host, port = parts.scheme, parts.hostname, parts.port
-    except ValueError:  # e.g. a port that is not a number
-        scheme = host = port = None
-    if not (scheme or "").startswith("rerun") or not host or port is None:
-        raise UsageError(f"--connect {url}: not a rerun viewer URL (expected e.g. {DEFAULT_VIEWER_URL})")
-    try:
-        with socket.create_connection((host, port), timeout=timeout_s):
-            pass
-    except OSError as exc:
-        reason = f"no answer within {timeout_s:g} s" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
-        raise UsageError(
-            f"--connect {url}: no rerun viewer there ({reason.lower()}); "
-            "start one with `rerun`, or use --serve or --save"
-        ) from None
-    return url
-
-
-def web_viewer_url(grpc_url: str, web_port: int) -> str:
-    """The address of rerun's web viewer that opens the gRPC stream ``grpc_url``."""
-    return f"http://127.0.0.1:{web_port}/?url={quote(grpc_url, safe='')}"
-
-
-def default_recording_path(cfg: ExperimentConfig, preset: str, folder: Path = Path("recordings")) -> Path:
-    """``recordings/<scenario>-<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd``: the name says what ran; a name
-    already taken (two runs in one second) gets ``-2``, ``-3``, ... so a default name never collides."""
-    return free_default_path(folder, f"{cfg.scenario}-{cfg.method}-{preset}-{cfg.metric}-{cfg.sim}-seed{cfg.seed}-"
-                                     f"{datetime.now():%Y%m%d-%H%M%S}")  # fmt: skip
-
-
 def rollout_files(parquet: Path) -> list[Path]:
     """The files ``--save-rollouts`` wrote: the table, its sidecar and, if the sidecar names one, the proposal."""
     from pemviz.io.rollout_format import sidecar_path
@@ -248,22 +203,6 @@ def rollout_files(parquet: Path) -> list[Path]:
     return files
 
 
-def serve(args: argparse.Namespace):
-    """A sink serving gRPC on ``--grpc-port`` and rerun's web viewer on ``--web-port``; prints both addresses."""
-    import rerun as rr
-
-    from pemviz.sinks.recording import RerunSink
-
-    sink = RerunSink.to_grpc(serve=True, grpc_port=args.grpc_port)
-    url = sink.serve_url or f"rerun+http://127.0.0.1:{args.grpc_port}/proxy"
-    rr.serve_web_viewer(web_port=args.web_port, open_browser=not args.headless, connect_to=url)
-    print(f"recording: serving at {url} (native viewer: rerun {url})", file=sys.stderr)
-    print(f"recording: web viewer at {web_viewer_url(url, args.web_port)}", file=sys.stderr)
-    print("warning: rerun's servers listen on every network interface, without authentication", file=sys.stderr,
-          flush=True)
-    return sink
-
-
 def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
     """The files a run reads, each ``{"what", "path", "sha256"}``: the detection PEM, and the noise PEM on a scene
     with measurement errors (the cut-in)."""
@@ -277,8 +216,9 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
     return [{"what": what, "path": str(path), "sha256": sha256_file(path)} for what, path in files]
 
 
-def result_lines(cfg: ExperimentConfig, problem, final, why: str | None = None, failures: dict | None = None,
-                 severity=None) -> tuple[list[str], dict]:  # fmt: skip
+def result_lines(
+    cfg: ExperimentConfig, problem, final, why: str | None = None, failures: dict | None = None, severity=None
+) -> tuple[list[str], dict]:
     """The console's lines after the table and the result document of a finished run (its ``recording`` None:
     :func:`write_results` sets it), built before the recording is closed, so that they are made while the recording
     process writes the file.
@@ -298,17 +238,27 @@ def result_lines(cfg: ExperimentConfig, problem, final, why: str | None = None, 
     from pemviz.io.result import result_document
     from pemviz.sinks.console import final_lines
 
-    lines = final_lines(final, cfg, problem.exact_log_p, problem.reference,
-                        severity) + ([why] if why is not None else [])  # fmt: skip
-    doc = result_document(cfg, final, exact_log_p=problem.exact_log_p, reference=problem.reference,
-                          recording=None, command=shlex.join(["pemviz", *sys.argv[1:]]), problem=problem,
-                          console=lines, inputs=input_files(cfg),
-                          failures=failures)  # fmt: skip
+    lines = final_lines(final, cfg, problem.exact_log_p, problem.reference, severity) + (
+        [why] if why is not None else []
+    )
+    doc = result_document(
+        cfg,
+        final,
+        exact_log_p=problem.exact_log_p,
+        reference=problem.reference,
+        recording=None,
+        command=shlex.join(["pemviz", *sys.argv[1:]]),
+        problem=problem,
+        console=lines,
+        inputs=input_files(cfg),
+        failures=failures,
+    )
     return lines, doc
 
 
-def write_results(lines: list[str], doc: dict, recording: str | None, outputs: RunOutputs,
-                  saved: Path | None = None) -> None:
+def write_results(
+    lines: list[str], doc: dict, recording: str | None, outputs: RunOutputs, saved: Path | None = None
+) -> None:
     """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where; with a ``saved`` recording its
     result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads).
 
@@ -356,16 +306,18 @@ def main(args: argparse.Namespace) -> int:
 
         probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
     target = recording_target(args)
-    default = default_recording_path(cfg, args.preset or DEFAULT_PRESET) if target == "save" and args.save is None \
-        else None
+    default = (
+        default_recording_path(cfg, args.preset or DEFAULT_PRESET) if target == "save" and args.save is None else None
+    )
     outputs = plan_outputs(args, cfg, target, default)  # every file the run writes, checked once, before any work
     rollout_sink = None
     if outputs.rollouts is not None:
         from pemviz.sinks.rollouts import RolloutSink
 
         try:
-            rollout_sink = RolloutSink(outputs.rollouts, pem=cfg.pem, overwrite=outputs.overwrite,
-                                       stages=args.rollout_stages)  # fmt: skip
+            rollout_sink = RolloutSink(
+                outputs.rollouts, pem=cfg.pem, overwrite=outputs.overwrite, stages=args.rollout_stages
+            )
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     if cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.executor == "serial":  # "save": the child's
@@ -446,8 +398,11 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
 
         odd_map = OddMapSink(problem, out=sys.stderr if target == "stdout" else None)
         experiment.listeners.append(odd_map)
-    likely = (MostLikelyFailure() if not getattr(problem.drawing, "draws_scene", False) and problem.branch is not None
-              else None)
+    likely = (
+        MostLikelyFailure()
+        if not getattr(problem.drawing, "draws_scene", False) and problem.branch is not None
+        else None
+    )
     if likely is not None:  # a drawing that explains no failure itself: say which errors decided
         experiment.listeners.append(likely)
     try:
@@ -466,8 +421,11 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     finally:
         if rollout_sink is not None:
             rollout_sink.close()  # rollouts of a run that did not finish are not kept
-    kept = [str(path) for path in rollout_files(rollout_sink.written)] if rollout_sink is not None and \
-        rollout_sink.written is not None else []
+    kept = (
+        [str(path) for path in rollout_files(rollout_sink.written)]
+        if rollout_sink is not None and rollout_sink.written is not None
+        else []
+    )
     for path in kept:
         print(f"rollouts: {path}", file=sys.stderr)
     where = None

@@ -55,11 +55,16 @@ class RunOutputs:
         if self.recording is not None:
             named += [("--save", self.recording), ("--save (its result document)", result_beside(self.recording))]
         if self.rollouts is not None:
-            named += [("--save-rollouts", self.rollouts),
-                      ("--save-rollouts (its sidecar)", sidecar_path(self.rollouts)),
-                      ("--save-rollouts (its proposal checkpoint)", proposal_path(self.rollouts))]  # fmt: skip
-        named += [(flag, path) for flag, path in zip(("--json", "--junit", "--report"), self.result_files,
-                                                     strict=True) if path is not None]  # fmt: skip
+            named += [
+                ("--save-rollouts", self.rollouts),
+                ("--save-rollouts (its sidecar)", sidecar_path(self.rollouts)),
+                ("--save-rollouts (its proposal checkpoint)", proposal_path(self.rollouts)),
+            ]
+        named += [
+            (flag, path)
+            for flag, path in zip(("--json", "--junit", "--report"), self.result_files, strict=True)
+            if path is not None
+        ]
         if self.report is not None:
             from pemviz.sinks.report import markdown_twin  # the report's module only for a report
 
@@ -70,8 +75,10 @@ class RunOutputs:
         """``not written: r.parquet (--save-rollouts), r.json (--json)``: the outputs asked for that a run interrupted
         in its stages does not write (a rollout file keeps only a finished run's rollouts); empty when none was
         asked."""
-        asked = [(self.rollouts, "--save-rollouts"), *zip(self.result_files, ("--json", "--junit", "--report"),
-                                                           strict=True)]  # fmt: skip
+        asked = [
+            (self.rollouts, "--save-rollouts"),
+            *zip(self.result_files, ("--json", "--junit", "--report"), strict=True),
+        ]
         names = [f"{path} ({flag})" for path, flag in asked if path is not None]
         return f"not written: {', '.join(names)}" if names else ""
 
@@ -98,22 +105,36 @@ def plan_outputs(args: argparse.Namespace, cfg: Any, target: str, default_record
         from pemviz.io.rollout_writer import check_rollouts_path
 
         if not get_method(cfg.method).weighted:
-            raise UsageError(f"--save-rollouts: method {cfg.method} estimates without importance weights; its "
-                             "rollouts cannot be estimated from again (use an importance-sampling method)")
-        rollouts = _checked(lambda: check_rollouts_path(args.save_rollouts, overwrite=overwrite,
-                                                        what="--save-rollouts"))  # fmt: skip
+            raise UsageError(
+                f"--save-rollouts: method {cfg.method} estimates without importance weights; its "
+                "rollouts cannot be estimated from again (use an importance-sampling method)"
+            )
+        rollouts = _checked(
+            lambda: check_rollouts_path(args.save_rollouts, overwrite=overwrite, what="--save-rollouts")
+        )
     report = getattr(args, "report_path", None)
     if report is not None:
         from pemviz.sinks.report import markdown_twin
 
-        _checked(lambda: check_output_path(markdown_twin(Path(report)), ".md", "--report (its Markdown twin)",
-                                           overwrite=overwrite))  # fmt: skip
+        _checked(
+            lambda: check_output_path(
+                markdown_twin(Path(report)), ".md", "--report (its Markdown twin)", overwrite=overwrite
+            )
+        )
     if args.junit_path is not None and cfg.require is None:
-        raise UsageError("--junit writes a requirement as a test case: give one with --require, e.g. "
-                         "--require 'p < 1e-9'")  # fmt: skip
-    found = {flag: None if value is None else _checked(lambda v=value, s=suffix, f=flag: check_output_path(
-        v, s, f, overwrite=overwrite)) for flag, value, suffix in (
-        ("--json", args.json_path, ".json"), ("--junit", args.junit_path, ".xml"), ("--report", report, ".html"))}
+        raise UsageError(
+            "--junit writes a requirement as a test case: give one with --require, e.g. " "--require 'p < 1e-9'"
+        )
+    found = {
+        flag: None
+        if value is None
+        else _checked(lambda v=value, s=suffix, f=flag: check_output_path(v, s, f, overwrite=overwrite))
+        for flag, value, suffix in (
+            ("--json", args.json_path, ".json"),
+            ("--junit", args.junit_path, ".xml"),
+            ("--report", report, ".html"),
+        )
+    }
     outputs = RunOutputs(recording, rollouts, found["--json"], found["--junit"], found["--report"], overwrite)
     check_distinct(outputs)
     return outputs
@@ -142,12 +163,16 @@ def _recording(args: argparse.Namespace, target: str, default: Path | None, over
 
     if args.save is None:  # recordings/ is made once every check has passed
         assert default is not None
-        _checked(lambda: check_output_folder(default.parent, (default.name, result_beside(default).name),
-                                             "recording folder"))  # fmt: skip
+        _checked(
+            lambda: check_output_folder(default.parent, (default.name, result_beside(default).name), "recording folder")
+        )
         return default
     path = check_save_path(Path(args.save), overwrite)
-    _checked(lambda: check_output_path(result_beside(path), ".json", "--save (the recording's result document)",
-                                       overwrite=overwrite))  # fmt: skip
+    _checked(
+        lambda: check_output_path(
+            result_beside(path), ".json", "--save (the recording's result document)", overwrite=overwrite
+        )
+    )
     return path
 
 

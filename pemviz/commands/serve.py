@@ -24,9 +24,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
-    p.add_argument("--preset", default=DEFAULT_PRESET,
-                   help=f"the form's initial settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}): "
-                        f"{preset_help()}")
+    p.add_argument(
+        "--preset",
+        default=DEFAULT_PRESET,
+        help=f"the form's initial settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}): "
+        f"{preset_help()}",
+    )
     add_setting(p, "pem")
     p.add_argument("--recordings", default="recordings", help="folder for exported .rrd files (default recordings)")
     p.set_defaults(func=main)
@@ -52,8 +55,10 @@ def check_host(host: str) -> bool:
             with socket.socket(family, kind, proto) as sock:
                 sock.bind(addr)
         except OSError as exc:
-            raise UsageError(f"--host {host!r}: not an address of this machine ({exc.strerror or exc}); use "
-                             "127.0.0.1 (this machine only) or an interface address") from None
+            raise UsageError(
+                f"--host {host!r}: not an address of this machine ({exc.strerror or exc}); use "
+                "127.0.0.1 (this machine only) or an interface address"
+            ) from None
     return all(ipaddress.ip_address(addr[0].split("%")[0]).is_loopback for *_, addr in infos)
 
 
@@ -68,8 +73,11 @@ def main(args: argparse.Namespace) -> int:
 
         load_pem(pem)
     if not check_host(args.host):
-        print(f"pemviz serve: warning: --host {args.host!r} is reachable from other machines and the panel has no "
-              "authentication: anyone who reaches it can run experiments and write recordings", file=sys.stderr)
+        print(
+            f"pemviz serve: warning: --host {args.host!r} is reachable from other machines and the panel has no "
+            "authentication: anyone who reaches it can run experiments and write recordings",
+            file=sys.stderr,
+        )
 
     def ready(app) -> None:
         print(f"pemviz serve: open {app.url} (Ctrl-C to stop)", flush=True)

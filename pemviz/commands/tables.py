@@ -37,7 +37,8 @@ from pemviz.studies.paper_tables import (
     tables_rows,
     write_recording,
 )
-from pemviz.studies.validation import RUNS_FILE, ExactAnswer, RunRecord, exact_answer, run_jobs
+from pemviz.studies.exact_answers import ExactAnswer, exact_answer
+from pemviz.studies.validation import RUNS_FILE, RunRecord, run_jobs
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -50,20 +51,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--problem", default="main", help=f"one of {', '.join(PROBLEMS)} (default main)")
     p.add_argument("--reps", type=int, default=10, help="repetitions per row (default 10)")
-    p.add_argument("--extra", default="paper,authors-code",
-                   help=f"extra adaptive rows with these presets, from {', '.join(PRESETS)} "
-                        "(default paper,authors-code; '' for none)")
+    p.add_argument(
+        "--extra",
+        default="paper,authors-code",
+        help=f"extra adaptive rows with these presets, from {', '.join(PRESETS)} "
+        "(default paper,authors-code; '' for none)",
+    )
     p.add_argument("--mc-large", type=int, default=10000, help="rollouts of the large MC row (default 10000)")
     p.add_argument("--naive-large", type=int, default=1000, help="rollouts of the large naive-50 row (default 1000)")
     add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2: the CI machine's cores)")
     p.add_argument(
-        "--out", default="tables", metavar="DIR",
+        "--out",
+        default="tables",
+        metavar="DIR",
         help=f"folder for tables.md, tables.csv, tables.rrd and {RUNS_FILE} (each run as it ends; an existing folder "
         "resumes: finished runs are not run again) (default tables)",
-    )  # fmt: skip
+    )
     p.add_argument("--no-record", action="store_true", help="write no recording")
-    p.set_defaults(func=main)  # fmt: skip
+    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -92,8 +98,10 @@ def main(args: argparse.Namespace) -> int:
     say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
-        say(f"  {r.method:28s} rep {r.seed}: mu_hat {format_probability(r.log_mu_hat)} {r.n_failures}/{r.n} failures "
-            f"{r.wall_s:.1f} s")  # fmt: skip
+        say(
+            f"  {r.method:28s} rep {r.seed}: mu_hat {format_probability(r.log_mu_hat)} {r.n_failures}/{r.n} failures "
+            f"{r.wall_s:.1f} s"
+        )
 
     done = run_jobs(jobs, n_jobs, on_record, runs_file=out / RUNS_FILE, progress=True)
     by_label = records_by_row(specs, done)

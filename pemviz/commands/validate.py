@@ -23,21 +23,18 @@ from pemviz.engine.resources import cap_jobs
 from pemviz.io.files import check_output_folder, write_text_atomic
 from pemviz.presets import DEFAULT_PRESET, PRESETS
 from pemviz.scenarios.problems import PROBLEMS
+from pemviz.studies.exact_answers import ExactAnswer, exact_answer, problem_description, validation_problems
 from pemviz.studies.validation import (
     BASELINES,
     DEFAULT_PROBLEMS,
     RUNS_FILE,
-    ExactAnswer,
     RunRecord,
-    exact_answer,
     methods_for,
-    problem_description,
     report,
     run_jobs,
     study_jobs,
     summaries_csv,
     summarise,
-    validation_problems,
 )
 
 
@@ -49,24 +46,34 @@ def register(sub: argparse._SubParsersAction) -> None:
         "answers for several seeds at equal simulation budgets; print truth, median and spread of mu_hat, median "
         "relative error, failures, ESS, simulations and wall time.",
     )
-    p.add_argument("--problems", default=",".join(DEFAULT_PROBLEMS),
-                   help=f"comma-separated, from {', '.join(PROBLEMS)} or a registered scenario with an exact answer "
-                   f"(default {','.join(DEFAULT_PROBLEMS)})")
-    p.add_argument("--presets", default=f"{DEFAULT_PRESET},paper",
-                   help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} "
-                        f"(default {DEFAULT_PRESET},paper)")
-    p.add_argument("--baselines", default="mc,naive50,ams",
-                   help=f"from {', '.join(BASELINES)} or a plugin's method (PEMVIZ_METHODS) (default mc,naive50,ams; "
-                   "ams: adaptive multilevel splitting, N = budget / 4 particles)")  # fmt: skip
+    p.add_argument(
+        "--problems",
+        default=",".join(DEFAULT_PROBLEMS),
+        help=f"comma-separated, from {', '.join(PROBLEMS)} or a registered scenario with an exact answer "
+        f"(default {','.join(DEFAULT_PROBLEMS)})",
+    )
+    p.add_argument(
+        "--presets",
+        default=f"{DEFAULT_PRESET},paper",
+        help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} " f"(default {DEFAULT_PRESET},paper)",
+    )
+    p.add_argument(
+        "--baselines",
+        default="mc,naive50,ams",
+        help=f"from {', '.join(BASELINES)} or a plugin's method (PEMVIZ_METHODS) (default mc,naive50,ams; "
+        "ams: adaptive multilevel splitting, N = budget / 4 particles)",
+    )
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
     add_sampler_arguments(p)
     p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     p.add_argument(
-        "--out", default="validate", metavar="DIR",
+        "--out",
+        default="validate",
+        metavar="DIR",
         help=f"folder for validate.md, validate.csv and {RUNS_FILE} (each run as it ends; an existing folder resumes: "
         "finished runs are not run again) (default validate)",
-    )  # fmt: skip
-    p.set_defaults(func=main)  # fmt: skip
+    )
+    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -102,8 +109,10 @@ def main(args: argparse.Namespace) -> int:
 
     def on_record(r: RunRecord) -> None:
         err = relative_error(r.log_mu_hat, truths[r.problem].log_p_fail)
-        say(f"  {r.problem:9s} {r.method:22s} seed {r.seed}: mu_hat {format_probability(r.log_mu_hat)} "
-            f"(rel. error {err:.3f}), {r.n_failures}/{r.n} failures, {r.wall_s:.1f} s")  # fmt: skip
+        say(
+            f"  {r.problem:9s} {r.method:22s} seed {r.seed}: mu_hat {format_probability(r.log_mu_hat)} "
+            f"(rel. error {err:.3f}), {r.n_failures}/{r.n} failures, {r.wall_s:.1f} s"
+        )
 
     records = run_jobs(jobs, n_jobs, on_record, runs_file=out_dir / RUNS_FILE, progress=True)
     summaries = summarise(records, truths)

@@ -130,16 +130,31 @@ def counterfactuals(problem, batch: RolloutBatch, index: int, *, max_interventio
             detected[j, t, m] = True
         if noise is not None:
             noise[j, t, m] = 0.0
-    variants = RolloutBatch(variants.observations, detected, variants.log_p, variants.log_q,
-                            variants.observation_names, objects=variants.objects, object_names=variants.object_names,
-                            noise=noise, noise_names=variants.noise_names)  # fmt: skip
+    variants = RolloutBatch(
+        variants.observations,
+        detected,
+        variants.log_p,
+        variants.log_q,
+        variants.observation_names,
+        objects=variants.objects,
+        object_names=variants.object_names,
+        noise=noise,
+        noise_names=variants.noise_names,
+    )
     last = np.full(k, one.n_steps - 1)  # every event is replayed; the last step's event changes no signal
     replays = problem.branch(variants, np.arange(k), last, problem.target, np.random.default_rng(0))
     rho_k = np.asarray(problem.robustness(replays, "classic"), dtype=np.float64)
     errors = one.noise  # not None where an ERROR candidate was found
-    out = tuple(Intervention(t, m, kind, tuple(float(e) for e in errors[0, t, m])
-                             if kind == ERROR and errors is not None else (),
-                             float(r)) for (t, m, kind), r in zip(candidates, rho_k, strict=False))  # fmt: skip
+    out = tuple(
+        Intervention(
+            t,
+            m,
+            kind,
+            tuple(float(e) for e in errors[0, t, m]) if kind == ERROR and errors is not None else (),
+            float(r),
+        )
+        for (t, m, kind), r in zip(candidates, rho_k, strict=False)
+    )
     return Counterfactuals(index, rho, t_fail, out)
 
 
@@ -194,8 +209,9 @@ def scoring_detector(target: object) -> object:
             return target
 
 
-def failure_log_p_parts(batch: RolloutBatch, target: object | None,
-                        n_factors: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:  # fmt: skip
+def failure_log_p_parts(
+    batch: RolloutBatch, target: object | None, n_factors: int | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Each rollout's log p under the PEM (:func:`failure_log_p`, over the first ``n_factors`` steps, default T - 1)
     split by the kind of event it sums: (the log-probability of its detections, float64 [N], nats, <= 0; the
     log-density of its detected objects' measurement errors, float64 [N], nats, or None for a batch without errors).

@@ -83,8 +83,9 @@ def _t_log_constant(nu_bytes: bytes, shape: tuple[int, ...]) -> np.ndarray:
     return out
 
 
-def noise_quantile(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
-                   u: np.ndarray) -> np.ndarray:  # fmt: skip
+def noise_quantile(
+    family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray, u: np.ndarray
+) -> np.ndarray:
     """Errors ``loc + exp(log_scale) F^-1(u)`` of a location-scale family, float64 [R, D] from uniforms [R, D] in (0, 1)
     (F the standard ``family``'s CDF; Student-t with ``df`` [D]); the scale from :func:`pemviz.core.exact.exp`, so
     that an error is the same on every CPU (numpy's vector exp rounds its last bit by the CPU).
@@ -96,8 +97,9 @@ def noise_quantile(family: str, df: np.ndarray | None, loc: np.ndarray, log_scal
     return np.asarray(loc, dtype=np.float64) + exact.exp(np.asarray(log_scale, dtype=np.float64)) * z
 
 
-def noise_log_density(family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray,
-                      noise: np.ndarray) -> np.ndarray:  # fmt: skip
+def noise_log_density(
+    family: str, df: np.ndarray | None, loc: np.ndarray, log_scale: np.ndarray, noise: np.ndarray
+) -> np.ndarray:
     """``sum_d log f((e_d - loc_d) / scale_d) - log scale_d``, float64 [R] (nats): the log density of errors [R, D]
     whose components are independent of a location-scale family.
 

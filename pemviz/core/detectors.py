@@ -87,8 +87,9 @@ def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
     return log_expit(sign * np.asarray(logit, dtype=np.float64))
 
 
-def action_log_prob_into(logit: np.ndarray, detected: np.ndarray, log_p_detect: np.ndarray | None,
-                         out: np.ndarray) -> np.ndarray:  # fmt: skip
+def action_log_prob_into(
+    logit: np.ndarray, detected: np.ndarray, log_p_detect: np.ndarray | None, out: np.ndarray
+) -> np.ndarray:
     """:func:`action_log_prob` into ``out``, bit for bit, reusing ``log_expit(logit)`` when given (``log_p_detect``).
 
     ``log_expit(+logit)`` where detected, ``log_expit(-logit) = -logaddexp(0, logit)`` elsewhere, evaluated only where
@@ -198,8 +199,14 @@ class StageSamplers:
         eps: the defensive share (0: none).
     """
 
-    def __init__(self, proposal: Detector, target: Detector, radius_m: float = math.inf, floor_m: float = -math.inf,
-                 eps: float = 0.0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        proposal: Detector,
+        target: Detector,
+        radius_m: float = math.inf,
+        floor_m: float = -math.inf,
+        eps: float = 0.0,
+    ) -> None:
         self.proposal, self.target_detector = proposal, target
         self.radius_m, self.floor_m, self.eps = float(radius_m), float(floor_m), float(eps)
         self._obs: np.ndarray | None = None
@@ -291,8 +298,11 @@ class StageSamplers:
         from_p = u[:, 0] < self.eps
         v = u.copy()
         v[:, 0] = np.where(from_p, u[:, 0] / self.eps, (u[:, 0] - self.eps) / (1.0 - self.eps))
-        return np.where(from_p[:, None], noise_quantile(t.noise_family, t.noise_df, loc_p, ls_p, v),
-                        noise_quantile(t.noise_family, t.noise_df, loc_q, ls_q, v))  # fmt: skip
+        return np.where(
+            from_p[:, None],
+            noise_quantile(t.noise_family, t.noise_df, loc_p, ls_p, v),
+            noise_quantile(t.noise_family, t.noise_df, loc_q, ls_q, v),
+        )
 
     def noise_log_prob(self, index: int, obs: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """log density [N] (nats) of errors [N, D] under detector ``index`` (:meth:`noise_from_uniforms`)."""
@@ -383,8 +393,9 @@ class ArrayRQMC(ErrorModelOf):
         return self.detector.detect_logit(obs)
 
 
-def step_uniforms(u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np.ndarray,
-                  block: int = RQMC_BLOCK) -> np.ndarray:  # fmt: skip
+def step_uniforms(
+    u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np.ndarray, block: int = RQMC_BLOCK
+) -> np.ndarray:
     """The uniforms a simulator compares with ``sampler``'s detection probabilities at one step: ``u`` (float64 [n],
     i.i.d. U(0, 1)) as drawn, or for an :class:`ArrayRQMC` sampler the Array-RQMC uniforms of the chains ranked by
     ``q_logit`` (float64 [n], the sampler's logits at this step, to float32), then by the first column of their rows
@@ -429,9 +440,15 @@ class StepDraw:
     log_p: np.ndarray
 
 
-def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarray, block: int = RQMC_BLOCK,
-              forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
-              n_objects: int = 1) -> StepDraw:  # fmt: skip
+def draw_step(
+    sampler: Detector,
+    target: Detector,
+    rows: np.ndarray,
+    u: np.ndarray,
+    block: int = RQMC_BLOCK,
+    forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
+    n_objects: int = 1,
+) -> StepDraw:
     """Draw one step's perception events for R object rows from ``sampler``, scored under ``target``: the arithmetic
     every simulator's rollouts share (Innes & Ramamoorthy 2022, Algorithm 1: detect iff u <= q(detect | s), as the
     authors' code draws; the importance weight's factor p / q of each event).
@@ -464,8 +481,10 @@ def draw_step(sampler: Detector, target: Detector, rows: np.ndarray, u: np.ndarr
     rows.flags.writeable = False  # a new read-only view: the detectors asked about it in turn may keep their answers
     names = noise_names_of(target)
     if u.ndim != 2 or u.shape != (rows.shape[0], 1 + len(names)):
-        raise ValueError(f"draw_step: u must be float64 [R, 1 + D] = [{rows.shape[0]}, {1 + len(names)}] for the "
-                         f"target's errors {names}, got shape {u.shape}")
+        raise ValueError(
+            f"draw_step: u must be float64 [R, 1 + D] = [{rows.shape[0]}, {1 + len(names)}] for the "
+            f"target's errors {names}, got shape {u.shape}"
+        )
     q_logit = by_blocks(sampler.detect_logit, rows, block)
     p_logit = q_logit if target is sampler else by_blocks(target.detect_logit, rows, block)
     u_detect = np.ascontiguousarray(u[:, 0])
@@ -552,7 +571,7 @@ class ScoredTarget(ErrorModelOf):
         asked, groups, used, rows = self._asked, [], 0, 0
         while rows < n and used + n_steps <= len(asked):
             r = asked[used][0].shape[0]
-            if r % n_objects or any(a[0].shape[0] != r for a in asked[used:used + n_steps]):
+            if r % n_objects or any(a[0].shape[0] != r for a in asked[used : used + n_steps]):
                 break
             groups.append((used, rows, r // n_objects))
             used, rows = used + n_steps, rows + r // n_objects
@@ -563,6 +582,6 @@ class ScoredTarget(ErrorModelOf):
         for first, row, m in groups:
             for t in range(n_steps):
                 for k, logit in enumerate(asked[first + t]):
-                    out[k, row:row + m, t] = logit.reshape(m, n_objects)
+                    out[k, row : row + m, t] = logit.reshape(m, n_objects)
         del asked[:used]
         return out[1:], out[0]

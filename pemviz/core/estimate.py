@@ -2,8 +2,9 @@
 
 Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t), computed in
 float64 log-space. :func:`estimate` gives an :class:`Estimate`; its diagnostics (ESS, Pareto k-hat) come from
-:mod:`pemviz.core.diagnostics`. :func:`format_probability` and :func:`relative_error` print and compare probabilities
-given as natural logs, exact also far below float64's range.
+:mod:`pemviz.core.diagnostics`, its interval and lower bound from :mod:`pemviz.core.confidence`.
+:func:`format_probability` and :func:`relative_error` print and compare probabilities given as natural logs, exact also
+far below float64's range.
 """
 
 from __future__ import annotations
@@ -15,10 +16,8 @@ from functools import cached_property
 
 import numpy as np
 
+from pemviz.core.confidence import CI_LEVEL, BettingEvidence, clopper_pearson, log_mean_interval, markov_lower_bound
 from pemviz.core.diagnostics import effective_sample_size, pareto_khat
-
-CI_LEVEL = 0.95
-"""Coverage of every interval pemviz reports for mu_hat."""
 
 VERDICTS = ("reliable", "doubtful", "unreliable")
 """How far an estimate can be trusted; :attr:`Estimate.reason` says why in one line."""
@@ -74,7 +73,8 @@ class Estimate:
             step t_fail, the same steps for every sampler (nats; nan with no failure).
         nll_lme: -log-mean-exp over failures of the same sums (nats; nan with no failure).
         ess: effective sample size of the failure weights, (sum w)^2 / sum w^2 (0 with no failure).
-        log_ci: the :data:`CI_LEVEL` confidence interval of mu_hat as natural logs (lo, hi) (see :func:`estimate`).
+        log_ci: the :data:`~pemviz.core.confidence.CI_LEVEL` confidence interval of mu_hat as natural logs (lo, hi)
+            (see :func:`estimate`).
         khat: Pareto k-hat of the tail of the importance-weighted failure indicator (nan with too few failures).
         log_mean_weight: log of the mean importance weight over all N rollouts (nats): an unbiased estimate of
             log 1 = 0 when the weights come from the proposal that really drew the rollouts.
@@ -99,17 +99,18 @@ class Estimate:
 
     @property
     def interval_backed(self) -> bool:
-        """Whether the run backs its :data:`CI_LEVEL` interval ``log_ci``: plain Monte Carlo (its Clopper-Pearson
-        interval is exact), or a ``reliable`` verdict. Otherwise the interval's coverage rests on a central limit the
-        weights' tail may not obey (k-hat, ESS, a collapsed proposal), and what is shown is
+        """Whether the run backs its :data:`~pemviz.core.confidence.CI_LEVEL` interval ``log_ci``: plain Monte Carlo
+        (its Clopper-Pearson interval is exact), or a ``reliable`` verdict. Otherwise the interval's coverage rests on
+        a central limit the weights' tail may not obey (k-hat, ESS, a collapsed proposal), and what is shown is
         :attr:`log_lower_bound` with no upper bound."""
         return self.plain_mc or self.verdict == "reliable"
 
     def lower_bound(self, alpha: float = 1.0 - CI_LEVEL) -> float:
         """A lower confidence bound of p at level 1 - ``alpha`` that holds whatever the weights' tail, as a natural
         log (-inf: none). Plain Monte Carlo: the one-sided Clopper-Pearson bound ``B^-1(alpha; k, n - k + 1)``.
-        Importance sampling: :func:`betting_lower_bound` of the run's terms (exact weights suffice). A run that keeps
-        only unbiased run-level estimates (splitting): :func:`markov_lower_bound` of them.
+        Importance sampling: :func:`pemviz.core.confidence.betting_lower_bound` of the run's terms (exact weights
+        suffice). A run that keeps only unbiased run-level estimates (splitting):
+        :func:`pemviz.core.confidence.markov_lower_bound` of them.
 
         Raises:
             ValueError: ``alpha`` outside (0, 1).
@@ -130,7 +131,7 @@ class Estimate:
 
     @cached_property
     def log_lower_bound(self) -> float:
-        """:meth:`lower_bound` at :data:`CI_LEVEL` (natural log; -inf: none)."""
+        """:meth:`lower_bound` at :data:`~pemviz.core.confidence.CI_LEVEL` (natural log; -inf: none)."""
         return self.lower_bound()
 
     @property
@@ -190,8 +191,10 @@ class Estimate:
         either way from this run`` where there is no lower bound either (an estimate that keeps no terms)."""
         if self.log_lower_bound == -math.inf:
             return "no bound either way from this run"
-        return (f"p >= {format_probability(self.log_lower_bound, 2)} ({CI_LEVEL:.0%} lower bound, whatever the "
-                "weights' tail), no upper bound from this run")  # fmt: skip
+        return (
+            f"p >= {format_probability(self.log_lower_bound, 2)} ({CI_LEVEL:.0%} lower bound, whatever the "
+            "weights' tail), no upper bound from this run"
+        )
 
     def below_seen(self, log_p_seen: float | None) -> "Estimate":
         """This estimate, or, when mu_hat is below ``log_p_seen`` (nats: the probability of the distinct failures the
@@ -200,8 +203,10 @@ class Estimate:
         onto a few unlikely paths draws weights that pass every other check)."""
         if log_p_seen is None or not self.log_mu_hat < log_p_seen - SEEN_TOLERANCE:
             return self
-        reason = (f"mu_hat is below {format_probability(log_p_seen)}, the probability of the failures this run drew: "
-                  "it misses most of them")  # fmt: skip
+        reason = (
+            f"mu_hat is below {format_probability(log_p_seen)}, the probability of the failures this run drew: "
+            "it misses most of them"
+        )
         return dataclasses.replace(self, verdict="unreliable", reason=reason)
 
     def at_most(self, cap: tuple[str, str] | None) -> "Estimate":
@@ -222,8 +227,12 @@ class Estimate:
         khat = "-" if math.isnan(self.khat) else f"{self.khat:.2f}"
         if self.n_failures == 0:  # no point estimate: the bound, if the rollouts give one
             hi = self.log_ci[1]
-            bound = (f"p < {format_probability(hi, 2)} ({CI_LEVEL:.0%}, rule of three: 3 / {self.n} rollouts of the "
-                     "PEM itself)" if hi < 0.0 else self.reason or "this bounds nothing")  # fmt: skip
+            bound = (
+                f"p < {format_probability(hi, 2)} ({CI_LEVEL:.0%}, rule of three: 3 / {self.n} rollouts of the "
+                "PEM itself)"
+                if hi < 0.0
+                else self.reason or "this bounds nothing"
+            )
             line = f"no failure seen in {self.n} rollouts: {bound}: {self.verdict} as an estimate"
         elif self.interval_backed:
             line = (
@@ -231,8 +240,10 @@ class Estimate:
                 f"ESS {self.ess:.1f}, k-hat {khat}: {self.verdict} ({self.reason})"
             )
         else:
-            line = (f"mu_hat = {format_probability(self.log_mu_hat)}, no {CI_LEVEL:.0%} CI from these weights: "
-                    f"{self.bound_text()}; ESS {self.ess:.1f}, k-hat {khat}: {self.verdict} ({self.reason})")
+            line = (
+                f"mu_hat = {format_probability(self.log_mu_hat)}, no {CI_LEVEL:.0%} CI from these weights: "
+                f"{self.bound_text()}; ESS {self.ess:.1f}, k-hat {khat}: {self.verdict} ({self.reason})"
+            )
         if exact_log_p is not None:
             error = error_text(self.log_mu_hat, exact_log_p)
             line += f"; exact {format_probability(exact_log_p)} ({error}, {self.holds_text(exact_log_p)})"
@@ -244,8 +255,8 @@ class Estimate:
 @dataclass(frozen=True)
 class Reference:
     """A failure probability known from a separate, much larger plain Monte Carlo run under the same PEMs, with its
-    own Clopper-Pearson :data:`CI_LEVEL` interval: the answer an estimate is shown beside where no exact one is known
-    (e.g. :data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`).
+    own Clopper-Pearson :data:`~pemviz.core.confidence.CI_LEVEL` interval: the answer an estimate is shown beside
+    where no exact one is known (e.g. :data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`).
 
     Attributes:
         n_failures, n: failures among ``n`` rollouts drawn from the PEMs.
@@ -269,15 +280,18 @@ class Reference:
 
     @property
     def log_ci(self) -> tuple[float, float]:
-        """The reference's own :data:`CI_LEVEL` interval (:func:`clopper_pearson`) as natural logs."""
+        """The reference's own :data:`~pemviz.core.confidence.CI_LEVEL` interval
+        (:func:`pemviz.core.confidence.clopper_pearson`) as natural logs."""
         lo, hi = clopper_pearson(self.n_failures, self.n)
         return math.log(lo), math.log(hi)
 
     def text(self) -> str:
         """e.g. ``8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain Monte Carlo)``."""
         lo, hi = self.log_ci
-        return (f"{format_probability(self.log_p, 2)} [{format_probability(lo, 2)}, {format_probability(hi, 2)}] "
-                f"({self.n_failures:,} failures in {self.n:,} rollouts, {self.source})")  # fmt: skip
+        return (
+            f"{format_probability(self.log_p, 2)} [{format_probability(lo, 2)}, {format_probability(hi, 2)}] "
+            f"({self.n_failures:,} failures in {self.n:,} rollouts, {self.source})"
+        )
 
     def comparison(self, e: Estimate, outside: str = "OUTSIDE") -> str:
         """How ``e`` stands against this reference: its relative error and whether its interval holds the
@@ -309,57 +323,18 @@ def relative_error(log_mu_hat: float, log_truth: float) -> float:
     return abs(math.expm1(log_mu_hat - log_truth))
 
 
-def _log_mean_interval(log_y: np.ndarray) -> tuple[float, float, float]:
-    """log of the mean of y >= 0 (given as logs, -inf for 0, [N]) and the log-scale t interval of the mean.
-
-    The interval is exp(log mean -+ t_{N-1} * se / mean) with se the standard error of the mean: the delta-method
-    interval on the log scale (Owen, "Monte Carlo theory, methods and examples", 2013, Ch. 2 and 9), which stays
-    inside (0, inf) and is wider below than a normal interval for right-skewed weights. Computed in log space.
-    """
-    from scipy.special import logsumexp, stdtrit  # stdtrit: the Student-t quantile, without scipy.stats' import
-
-    n = log_y.size
-    log_mean = float(logsumexp(log_y)) - math.log(n)
-    if log_mean == -math.inf or n < 2:
-        return log_mean, -math.inf, 0.0 if n < 2 else -math.inf
-    ratio = np.exp(log_y - log_mean)  # y_i / mean, finite
-    rel_se = float(np.std(ratio, ddof=1)) / math.sqrt(n)  # se / mean
-    half = float(stdtrit(n - 1, 0.5 + CI_LEVEL / 2.0)) * rel_se
-    return log_mean, log_mean - half, log_mean + half
-
-
-def clopper_pearson(n_failures: int, n: int, level: float = CI_LEVEL) -> tuple[float, float]:
-    """The exact (Clopper-Pearson) interval (lo, hi) at confidence ``level`` of a failure probability from
-    ``n_failures`` = k failures in ``n`` rollouts drawn from the target: the beta quantiles ``B^-1(a/2; k, n - k + 1)``
-    and ``B^-1(1 - a/2; k + 1, n - k)``, a = 1 - level (Clopper & Pearson, Biometrika 26(4), 1934), by
-    ``scipy.special.betaincinv``: what ``scipy.stats.binomtest(...).proportion_ci(method="exact")`` computes, to its
-    root finder's 1e-7, without importing scipy.stats (0.8 s).
-
-    Raises:
-        ValueError: ``n`` < 1, ``n_failures`` outside 0..n, or ``level`` outside (0, 1).
-    """
-    from scipy.special import betaincinv
-
-    k, n = int(n_failures), int(n)
-    if n < 1 or not 0 <= k <= n or not 0.0 < level < 1.0:
-        raise ValueError(f"clopper_pearson: need n >= 1, 0 <= failures <= n and a level in (0, 1), got {k} of {n} at "
-                         f"{level}")  # fmt: skip
-    a = 1.0 - level
-    lo = 0.0 if k == 0 else float(betaincinv(k, n - k + 1, a / 2.0))
-    hi = 1.0 if k == n else float(betaincinv(k + 1, n - k, 1.0 - a / 2.0))
-    return lo, hi
-
-
-def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray,
-             own_log_weight: np.ndarray | None = None) -> Estimate:  # fmt: skip
+def estimate(
+    log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray, own_log_weight: np.ndarray | None = None
+) -> Estimate:
     """mu_hat = logsumexp(log w over failures) - log N with its interval, diagnostics and verdict.
 
     Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t).
 
     The interval: with weights all equal to 1 (plain Monte Carlo under the PEM) the Clopper-Pearson interval of
-    the failure count (:func:`clopper_pearson`), and with 0 failures the one-sided rule-of-three bound
-    p < 3 / N; under importance sampling the log-scale t interval of the mean of 1[fail_i] w_i (see
-    :func:`_log_mean_interval`), and with 0 failures the interval [0, 1]: 0 failures under a proposal bound nothing.
+    the failure count (:func:`pemviz.core.confidence.clopper_pearson`), and with 0 failures the one-sided
+    rule-of-three bound p < 3 / N; under importance sampling the log-scale t interval of the mean of 1[fail_i] w_i
+    (see :func:`pemviz.core.confidence.log_mean_interval`), and with 0 failures the interval [0, 1]: 0 failures under
+    a proposal bound nothing.
     The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, with Pareto k-hat above
     :data:`KHAT_UNRELIABLE` and an ESS below :data:`MIN_ESS_RELIABLE` (above it: ``doubtful``), or when the mean
     importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do not belong to the proposal that drew the
@@ -375,7 +350,7 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
         log_p_total: float64 [N] sum_t log p_PEM(a_t | s_t) over the steps before the failure (nats), for the NLL.
         own_log_weight: float64 [N] each rollout's own log p/q (nats) where ``log_weight`` carries pooling shifts (the
             stages' lambda_k N / n_k): the lower bound bets on the own terms, whose conditional mean is p
-            (:func:`betting_lower_bound`); None: ``log_weight`` itself.
+            (:func:`pemviz.core.confidence.betting_lower_bound`); None: ``log_weight`` itself.
     Raises:
         ValueError: if the arrays do not have one entry per rollout, or N = 0.
     """
@@ -401,15 +376,36 @@ def estimate(log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray
         else:
             bound = 0.0
             reason = "0 failures under importance sampling: this bounds nothing"
-        return Estimate(n, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, bound), math.nan, log_mean_w,
-                        "unreliable", reason, plain_mc)  # fmt: skip
+        return Estimate(
+            n,
+            0,
+            -math.inf,
+            math.nan,
+            math.nan,
+            0.0,
+            (-math.inf, bound),
+            math.nan,
+            log_mean_w,
+            "unreliable",
+            reason,
+            plain_mc,
+        )
     with np.errstate(invalid="ignore", over="ignore"):  # an inf or nan weight gives nan numbers: unreliable below
         own = log_weight if own_log_weight is None else np.asarray(own_log_weight, dtype=np.float64)
         return _estimate(n, lw, nf, log_weight, failed, log_p_total, log_mean_w, plain_mc, own)
 
 
-def _estimate(n: int, lw: np.ndarray, nf: int, log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray,
-              log_mean_w: float, plain_mc: bool, own_log_weight: np.ndarray) -> Estimate:  # fmt: skip
+def _estimate(
+    n: int,
+    lw: np.ndarray,
+    nf: int,
+    log_weight: np.ndarray,
+    failed: np.ndarray,
+    log_p_total: np.ndarray,
+    log_mean_w: float,
+    plain_mc: bool,
+    own_log_weight: np.ndarray,
+) -> Estimate:
     """The rest of :func:`estimate`, with at least one failure."""
     from scipy.special import logsumexp
 
@@ -423,7 +419,7 @@ def _estimate(n: int, lw: np.ndarray, nf: int, log_weight: np.ndarray, failed: n
         log_ci = (math.log(lo) if lo > 0 else -math.inf, math.log(hi))
         khat = math.nan
     else:
-        _, lo, hi = _log_mean_interval(log_y)
+        _, lo, hi = log_mean_interval(log_y)
         log_ci = (lo, hi)
         khat = pareto_khat(log_y)
     distinct = nf if plain_mc else distinct_failures(lw, lp)
@@ -432,12 +428,26 @@ def _estimate(n: int, lw: np.ndarray, nf: int, log_weight: np.ndarray, failed: n
     if verdict == "reliable" and not all(math.isfinite(x) for x in numbers):  # a claim each number must back
         verdict, reason = "unreliable", "an estimate, interval bound, ESS or mean weight is not a finite number"
     evidence = None if plain_mc else BettingEvidence.of(np.where(failed, own_log_weight, -math.inf))
-    return Estimate(n, nf, log_sum - math.log(n), float(-lp.mean()), nll_lme, ess, log_ci, khat, log_mean_w,
-                    verdict, reason, plain_mc, evidence)  # fmt: skip
+    return Estimate(
+        n,
+        nf,
+        log_sum - math.log(n),
+        float(-lp.mean()),
+        nll_lme,
+        ess,
+        log_ci,
+        khat,
+        log_mean_w,
+        verdict,
+        reason,
+        plain_mc,
+        evidence,
+    )
 
 
-def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, plain_mc: bool,
-             distinct: int) -> tuple[str, str]:  # fmt: skip
+def _verdict(
+    n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, plain_mc: bool, distinct: int
+) -> tuple[str, str]:
     """The verdict and its one-line reason (see :func:`estimate`)."""
     from scipy.special import logsumexp
 
@@ -446,8 +456,10 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
     if not plain_mc and not math.isfinite(ess):
         return "unreliable", "the ESS is not a finite number"
     if not plain_mc and ess == 0.0:
-        return "unreliable", (f"every one of the {nf} failures weighs 0: the proposal drew only failures the PEM "
-                              "cannot produce (p = 0)")  # fmt: skip
+        return "unreliable", (
+            f"every one of the {nf} failures weighs 0: the proposal drew only failures the PEM "
+            "cannot produce (p = 0)"
+        )
     if not plain_mc:
         if khat > KHAT_UNRELIABLE and ess < MIN_ESS_RELIABLE:
             return "unreliable", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: a few weights dominate"
@@ -460,8 +472,10 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
     if nf < MIN_FAILURES:
         return "doubtful", f"only {nf} failure{'s' if nf != 1 else ''}"
     if distinct < MIN_FAILURES:
-        return "doubtful", (f"the {nf} failures are {distinct} distinct rollout{'s' if distinct != 1 else ''} "
-                              "drawn again and again: the proposal has collapsed onto them")
+        return "doubtful", (
+            f"the {nf} failures are {distinct} distinct rollout{'s' if distinct != 1 else ''} "
+            "drawn again and again: the proposal has collapsed onto them"
+        )
     if not plain_mc:
         if ess < MIN_FAILURES:
             return "doubtful", f"ESS {ess:.1f} < {MIN_FAILURES}: a few weights carry the estimate"
@@ -473,8 +487,9 @@ def _verdict(n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, p
         if khat > threshold:
             return "doubtful", f"k-hat {khat:.2f} > {threshold:.2f}: more rollouts needed"
         if ess < MIN_ESS_RELIABLE:
-            return "doubtful", (f"ESS {ess:.1f} < {MIN_ESS_RELIABLE}: too few effective failures to judge the "
-                                "weights' tail")  # fmt: skip
+            return "doubtful", (
+                f"ESS {ess:.1f} < {MIN_ESS_RELIABLE}: too few effective failures to judge the " "weights' tail"
+            )
     return "reliable", f"{nf} failures, ESS {ess:.1f}"
 
 
@@ -492,109 +507,3 @@ def format_probability(log_p: float, digits: int = 3) -> str:
     if round(mantissa, digits) >= 10:
         mantissa, exponent = mantissa / 10, exponent + 1
     return f"{mantissa:.{digits}f}e{exponent:+03d}"
-
-
-def markov_lower_bound(log_estimates: np.ndarray, alpha: float = 1.0 - CI_LEVEL) -> float:
-    """A lower confidence bound of p at level 1 - ``alpha``, log (nats), from n independent runs of unbiased,
-    non-negative estimators of p (importance sampling with exact weights, splitting), their log estimates
-    ``log_estimates`` float64 [n] (nats): (log alpha + sum of the logs) / n, i.e. alpha^(1/n) times their geometric
-    mean. It needs no variance estimate and holds however heavy the weights' tail: E[prod X_i] = p^n, so
-    P(prod X_i >= t) <= p^n / t (Markov's inequality), and a p below the bound would make the product the runs gave
-    less likely than alpha. -inf when a run gave 0 or there is none. There is no such upper bound: an unbiased
-    estimator may miss most of p in every run.
-
-    Raises:
-        ValueError: alpha outside (0, 1).
-    """
-    if not 0.0 < alpha < 1.0:
-        raise ValueError(f"markov_lower_bound: alpha must be in (0, 1), got {alpha}")
-    logs = np.asarray(log_estimates, dtype=np.float64)
-    if logs.size == 0 or np.any(np.isneginf(logs)):
-        return -math.inf
-    return float((math.log(alpha) + math.fsum(logs.tolist())) / logs.size)
-
-
-BET_FRACTIONS = 2.0 ** -np.arange(1, 31)
-"""The betting fractions lambda_j = 2^-j, j = 1..30, of :func:`betting_lower_bound`, fixed before any rollout is
-drawn: a run of n rollouts is best served by lambda ~ 1/n, so the grid serves runs of 2 to 10^9 rollouts."""
-
-BET_BIN_NATS = 0.01
-"""nats: :class:`BettingEvidence` rounds each log term down to a multiple of this before counting equal ones; a
-smaller term only lowers the wealth, so the bound stays valid (and at most 1 % lower)."""
-
-
-@dataclass(frozen=True, eq=False)
-class BettingEvidence:
-    """What :func:`betting_lower_bound` needs of a run's N terms X_i = 1[fail_i] w_i, kept small: the distinct values
-    of log X_i > -inf rounded down to :data:`BET_BIN_NATS` (``log_x`` float64 [U], nats), how many terms have each
-    (``counts`` int64 [U]), and N (``n``).
-
-    Built by :meth:`of`; the wealth of a fraction lambda does not depend on the terms' order, so the counts suffice.
-    """
-
-    log_x: np.ndarray
-    counts: np.ndarray
-    n: int
-
-    @classmethod
-    def of(cls, log_terms: np.ndarray) -> "BettingEvidence":
-        """From the log terms log X_i float64 [N] (nats; -inf for X_i = 0, a rollout that did not fail)."""
-        log_terms = np.asarray(log_terms, dtype=np.float64)
-        finite = log_terms[np.isfinite(log_terms)]
-        binned = np.floor(finite / BET_BIN_NATS) * BET_BIN_NATS
-        values, counts = np.unique(binned, return_counts=True)
-        return cls(values, counts.astype(np.int64), int(log_terms.size))
-
-    def log_wealth(self, log_m: float) -> float:
-        """log K(m) (nats) of the mixture of bettors against "E X <= m": K(m) = (1/J) sum_j prod_i (1 - lambda_j +
-        lambda_j X_i / m) over :data:`BET_FRACTIONS`, in log space; non-increasing in m."""
-        from scipy.special import logsumexp
-
-        lam = BET_FRACTIONS
-        log1m, loglam = np.log1p(-lam), np.log(lam)
-        zeros = self.n - int(self.counts.sum())
-        per = zeros * log1m
-        if self.log_x.size:
-            per = per + np.logaddexp(log1m[:, None], loglam[:, None] + (self.log_x - log_m)[None, :]) @ self.counts
-        return float(logsumexp(per)) - math.log(lam.size)
-
-    def lower_bound(self, alpha: float = 1.0 - CI_LEVEL) -> float:
-        """The smallest m whose wealth stays below 1 / ``alpha`` (:func:`betting_lower_bound`), natural log, to 1e-6
-        nats (rounded down); -inf with no positive term."""
-        if self.log_x.size == 0:
-            return -math.inf
-        target = -math.log(alpha)
-        hi = float(self.log_x.max())  # every factor <= 1 at m >= max X: K(hi) <= 1 < 1 / alpha
-        lo = hi - 64.0
-        while self.log_wealth(lo) < target:
-            lo -= 64.0
-        while hi - lo > 1e-6:
-            mid = 0.5 * (lo + hi)
-            if self.log_wealth(mid) >= target:
-                lo = mid
-            else:
-                hi = mid
-        return lo
-
-
-def betting_lower_bound(log_terms: np.ndarray, alpha: float = 1.0 - CI_LEVEL) -> float:
-    """A lower confidence bound of p at level 1 - ``alpha`` from a run's terms X_i = 1[fail_i] w_i, given as logs
-    ``log_terms`` float64 [N] (nats, -inf for 0), that holds however heavy the weights' tail: it needs only X_i >= 0
-    and E[X_i | the rollouts before i] = p, which exact importance weights p/q give under any proposal, adapted
-    between stages or not.
-
-    The bound is the smallest m that a mixture of bettors fails to reject (testing by betting: Waudby-Smith & Ramdas,
-    "Estimating means of bounded random variables by betting", JRSS B 86(1), 2024, Sec. 4, here for X >= 0 with no
-    upper bound). For each fraction lambda_j in :data:`BET_FRACTIONS`, K_j(m) = prod_i (1 - lambda_j + lambda_j X_i
-    / m) is a non-negative martingale with K_j(p) starting at 1 when m = p (each factor has conditional mean 1 and is
-    >= 1 - lambda_j > 0), and so is their mean K(m). Ville's inequality gives P(sup_n K(p) >= 1 / alpha) <= alpha, so
-    {m : K(m) < 1 / alpha} holds p with probability >= 1 - alpha, at every n at once (a run may stop on its data).
-    K is non-increasing in m, so that set is [bound, inf), found by bisection on log m. There is no such upper bound:
-    an unbiased estimator may miss most of p in every run.
-
-    Raises:
-        ValueError: ``alpha`` outside (0, 1).
-    """
-    if not 0.0 < alpha < 1.0:
-        raise ValueError(f"betting_lower_bound: alpha must be in (0, 1), got {alpha}")
-    return BettingEvidence.of(log_terms).lower_bound(alpha)

@@ -37,8 +37,9 @@ class EventLogProbs:
         return self.detections if self.errors is None else self.detections + self.errors
 
 
-def event_log_probs(detector: Any, rows: np.ndarray, detected: np.ndarray,
-                    noise: np.ndarray | None = None) -> EventLogProbs:  # fmt: skip
+def event_log_probs(
+    detector: Any, rows: np.ndarray, detected: np.ndarray, noise: np.ndarray | None = None
+) -> EventLogProbs:
     """The log-probability of each detection or miss and the log-density of each detected object's error under
     ``detector``, apart (:class:`EventLogProbs`; sum over the objects' axis for a step's).
 
@@ -57,8 +58,10 @@ def event_log_probs(detector: Any, rows: np.ndarray, detected: np.ndarray,
     detected = np.asarray(detected, dtype=bool)
     shape = rows.shape[:-1]
     if detected.shape != shape:
-        raise ValueError(f"event_log_probs: detected must be bool {list(shape)} for rows {list(rows.shape)}, got shape "
-                         f"{detected.shape}")  # fmt: skip
+        raise ValueError(
+            f"event_log_probs: detected must be bool {list(shape)} for rows {list(rows.shape)}, got shape "
+            f"{detected.shape}"
+        )
     flat = rows.reshape(-1, rows.shape[-1])
     hit = detected.reshape(-1)
     logit = np.asarray(detector.detect_logit(flat), dtype=np.float64)
@@ -86,5 +89,3 @@ def batch_log_probs(batch: Any, detector: Any) -> EventLogProbs:
     noise = None if batch.noise is None else batch.noise.reshape(*shape, -1)
     parts = event_log_probs(detector, rows, batch.detected, noise)
     return EventLogProbs(parts.detections.sum(axis=-1), None if parts.errors is None else parts.errors.sum(axis=-1))
-
-

@@ -77,8 +77,9 @@ def to_grid(x: np.ndarray, bits: int, nonneg: bool = False) -> tuple[np.ndarray,
     return xi, math.ldexp(1.0, -shift)
 
 
-def matmul(a: np.ndarray, b: np.ndarray | None, b_grid: tuple[np.ndarray, np.ndarray] | None = None,
-           nonneg: bool = False) -> np.ndarray:  # fmt: skip
+def matmul(
+    a: np.ndarray, b: np.ndarray | None, b_grid: tuple[np.ndarray, np.ndarray] | None = None, nonneg: bool = False
+) -> np.ndarray:
     """``a @ b`` of ``a`` rounded per row and ``b`` per column to :func:`grid_bits` (k) bits, computed exactly.
 
     The result is the exact product of the rounded operands, rounded once to float64 by the power-of-two scaling:

@@ -14,9 +14,19 @@ COUNT_BITS = 24
 """The bits an exact fit keeps of its weighted counts, relative to the largest (:func:`fit_exact`)."""
 
 
-def fit_exact(proposal: Any, inputs: np.ndarray, counts: np.ndarray, epochs: int, lr: float,
-              check: Callable[[], None] | None = None, tolerance: float | None = None, per: float | None = None, *,
-              check_every: int, plateau_epochs: int) -> list[float]:  # fmt: skip
+def fit_exact(
+    proposal: Any,
+    inputs: np.ndarray,
+    counts: np.ndarray,
+    epochs: int,
+    lr: float,
+    check: Callable[[], None] | None = None,
+    tolerance: float | None = None,
+    per: float | None = None,
+    *,
+    check_every: int,
+    plateau_epochs: int,
+) -> list[float]:
     """Full-batch Adam on the weighted log-likelihood ``-sum(C * log q) / per`` (:data:`Objective`, a tensor C), in
     place, in exact order-free arithmetic (:mod:`pemviz.core.exact`): the same parameters, bit for bit, on every CPU.
 
@@ -52,7 +62,8 @@ def fit_exact(proposal: Any, inputs: np.ndarray, counts: np.ndarray, epochs: int
     w1, b1, w2, b2, w3, b3 = views
     grad = np.zeros_like(flat)
     g_w1, g_b1, g_w2, g_b2, g_w3, g_b3 = (
-        grad[a:b].reshape(shape) for a, b, shape in zip(offsets[:-1], offsets[1:], shapes, strict=False))  # fmt: skip
+        grad[a:b].reshape(shape) for a, b, shape in zip(offsets[:-1], offsets[1:], shapes, strict=False)
+    )
     # the weighted counts come from float64 weights whose last bits may depend on the CPU's libm (exp, log): on a
     # grid of COUNT_BITS bits they are the same numbers unless one lies within an ulp of a grid point's midpoint
     ci, ec = exact.on_grid(c * (1.0 if per is None else 1.0 / per), COUNT_BITS, None)

@@ -34,8 +34,10 @@ def _commit(tmp: str, target: Path, overwrite: bool) -> None:
     try:
         os.link(tmp, target)
     except FileExistsError:
-        raise OutputExists(f"{target}: appeared while this run worked (another writer?); not replaced, "
-                           "give --overwrite to replace it") from None
+        raise OutputExists(
+            f"{target}: appeared while this run worked (another writer?); not replaced, "
+            "give --overwrite to replace it"
+        ) from None
     except OSError:  # a file system without hard links: check, then replace
         if target.exists():
             raise OutputExists(f"{target}: exists; give --overwrite to replace it") from None
@@ -69,8 +71,9 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None], *, 
     return target
 
 
-def load_tagged(path: Path, tag: str, version: int, what: str, error: type[Exception], *,
-                as_numpy: bool = False) -> dict:  # fmt: skip
+def load_tagged(
+    path: Path, tag: str, version: int, what: str, error: type[Exception], *, as_numpy: bool = False
+) -> dict:
     """A pemviz payload dict written by ``torch.save``, checked for its format tag and version.
 
     Args:

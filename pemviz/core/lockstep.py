@@ -115,8 +115,9 @@ def run_batched(
         if forced is not None:
             given = np.repeat(t < forced[2], m)
             f = (forced[0][:, t].reshape(-1), None if forced[1] is None else forced[1][:, t].reshape(-1, d), given)
-        step = draw_step(sampler, target, rows, np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d),
-                         RQMC_BLOCK * m, f, m)  # fmt: skip
+        step = draw_step(
+            sampler, target, rows, np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d), RQMC_BLOCK * m, f, m
+        )
         detected = step.detected.reshape(n, m)
         det[:, t] = detected
         if m == 1:
@@ -128,13 +129,20 @@ def run_batched(
             errors = step.noise.reshape(n, m, d)
             noise[:, t] = errors
         sim.step(detected, errors)
-    return RolloutBatch(obs, det, log_p, log_q, names, objects=objects,
-                        object_names=tuple(scene.object_names) if scene is not None else None, noise=noise,
-                        noise_names=noise_names)  # fmt: skip
+    return RolloutBatch(
+        obs,
+        det,
+        log_p,
+        log_q,
+        names,
+        objects=objects,
+        object_names=tuple(scene.object_names) if scene is not None else None,
+        noise=noise,
+        noise_names=noise_names,
+    )
 
 
-def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray,
-                noise: np.ndarray | None) -> np.ndarray:  # fmt: skip
+def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray, noise: np.ndarray | None) -> np.ndarray:
     """The object rows float64 [K, T, M, G] of K rollouts of the batched simulator ``make(K)`` that took the events
     ``detected`` bool [K, T, M] and ``noise`` float64 [K, T, M, D] (or None): the simulator stepped with those events,
     no detector asked. Bit for bit the rows :func:`run_batched` saw (a state is a function of the events before it,
@@ -161,8 +169,9 @@ def check_counts(who: str, **counts: object) -> None:
             raise ValueError(f"{who}: {name} must be an integer >= 1, got {value!r}")
 
 
-def uniform_chunks(rng: np.random.Generator, n: int, n_steps: int, chunk_size: int,
-                   per_rollout: int = 1) -> Iterator[tuple[int, int, Iterator[np.ndarray]]]:  # fmt: skip
+def uniform_chunks(
+    rng: np.random.Generator, n: int, n_steps: int, chunk_size: int, per_rollout: int = 1
+) -> Iterator[tuple[int, int, Iterator[np.ndarray]]]:
     """``(start, stop, per-step uniforms [(stop - start) K])`` for each chunk of rollouts, K = ``per_rollout``: the
     numbers one ``rng.random(n K)`` per step gives rollouts ``start .. stop - 1``, whatever the chunks.
 
@@ -199,9 +208,17 @@ def _coupled(sampler: Detector) -> bool:
     return bool(getattr(sampler, "array_rqmc", False))
 
 
-def iter_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int, sampler: Detector, target: Detector,
-                  rng: np.random.Generator, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
-                  keep_rows: bool = True) -> Iterator[RolloutBatch]:  # fmt: skip
+def iter_rollouts(
+    make: Callable[[int], BatchedSimulator],
+    n: int,
+    n_steps: int,
+    sampler: Detector,
+    target: Detector,
+    rng: np.random.Generator,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    keep_rows: bool = True,
+) -> Iterator[RolloutBatch]:
     """Stream ``n`` rollouts of a batched simulator as :class:`RolloutBatch` chunks of at most ``chunk_size`` rollouts
     (:func:`run_batched` on ``make(m)``, m rollouts at their start), the rollouts of ``rng.random(n K)`` per step
     (:func:`uniform_chunks`): the same rollouts, bit for bit, for any chunk size. An Array-RQMC sampler's rollouts are
@@ -227,9 +244,16 @@ def iter_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int,
         yield replace(batch, replay=replay) if elided else batch
 
 
-def simulate_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: int, sampler: Detector,
-                      target: Detector, rng: np.random.Generator, *,
-                      chunk_size: int = DEFAULT_CHUNK_SIZE) -> RolloutBatch:  # fmt: skip
+def simulate_rollouts(
+    make: Callable[[int], BatchedSimulator],
+    n: int,
+    n_steps: int,
+    sampler: Detector,
+    target: Detector,
+    rng: np.random.Generator,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> RolloutBatch:
     """The ``n`` rollouts of :func:`iter_rollouts` as one :class:`RolloutBatch` [n, T] (it holds them all: stream them
     for very large ``n``).
 
@@ -242,8 +266,14 @@ def simulate_rollouts(make: Callable[[int], BatchedSimulator], n: int, n_steps: 
     return chunks[0] if len(chunks) == 1 else RolloutBatch.concatenate(chunks)
 
 
-def branch_rollouts(make: Callable[[int], BatchedSimulator], parents: RolloutBatch, parent: np.ndarray,
-                    at: np.ndarray, target: Detector, rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+def branch_rollouts(
+    make: Callable[[int], BatchedSimulator],
+    parents: RolloutBatch,
+    parent: np.ndarray,
+    at: np.ndarray,
+    target: Detector,
+    rng: np.random.Generator,
+) -> RolloutBatch:
     """:func:`branch` on a batched simulator (``make(K)``): new rollout i replays parent ``parent[i]``'s events
     before step ``at[i]`` (the state at a step is a function of the events before it) and draws the rest from
     ``target``; one ``rng.random(K k)`` per step.
@@ -258,9 +288,15 @@ def branch_rollouts(make: Callable[[int], BatchedSimulator], parents: RolloutBat
     sim = make(parent.size)
     k = draws_per_rollout(sim, target) * parent.size
     noise = None if parents.noise is None else parents.noise[parent]
-    return run_batched(sim, parent.size, parents.n_steps, target, target,
-                       (rng.random(k) for _ in range(parents.n_steps)),
-                       forced=(parents.detected[parent], noise, at))  # fmt: skip
+    return run_batched(
+        sim,
+        parent.size,
+        parents.n_steps,
+        target,
+        target,
+        (rng.random(k) for _ in range(parents.n_steps)),
+        forced=(parents.detected[parent], noise, at),
+    )
 
 
 def simulate(
@@ -304,8 +340,10 @@ def simulate(
     if uniforms is not None:
         uniforms = np.asarray(uniforms, dtype=np.float64)
         if uniforms.shape != (n_steps, n * k) or not np.all((uniforms >= 0.0) & (uniforms < 1.0)):
-            raise ValueError(f"simulate: uniforms must be float64 [T, n K] = [{n_steps}, {n * k}] in [0, 1), "
-                             f"got shape {uniforms.shape}")
+            raise ValueError(
+                f"simulate: uniforms must be float64 [T, n K] = [{n_steps}, {n * k}] in [0, 1), "
+                f"got shape {uniforms.shape}"
+            )
     draws: Iterable[np.ndarray]
     if uniforms is not None:
         draws = uniforms

@@ -121,8 +121,10 @@ def parse_distribution(text: str, where: str = "distribution") -> Distribution:
     """
     match = _CALL.match(str(text))
     if match is None:
-        raise ODDError(f"{where}: {str(text).strip()!r} is not a distribution; write uniform(a, b), normal(mu, sd) "
-                       "or choice(a, b, ...)")
+        raise ODDError(
+            f"{where}: {str(text).strip()!r} is not a distribution; write uniform(a, b), normal(mu, sd) "
+            "or choice(a, b, ...)"
+        )
     kind, inner = match.group(1), match.group(2)
     if kind not in KINDS:
         raise ODDError(f"{where}: unknown distribution {kind!r}; use one of {', '.join(KINDS)}")
@@ -142,8 +144,9 @@ def parse_distribution(text: str, where: str = "distribution") -> Distribution:
         total = sum(weights)
         return Distribution("choice", tuple(values), tuple(w / total for w in weights))
     if len(parts) != 2:
-        raise ODDError(f"{where}: {kind} takes 2 numbers, {'a, b' if kind == 'uniform' else 'mu, sd'}; got "
-                       f"{len(parts)}")
+        raise ODDError(
+            f"{where}: {kind} takes 2 numbers, {'a, b' if kind == 'uniform' else 'mu, sd'}; got " f"{len(parts)}"
+        )
     a, b = (_number(p, where) for p in parts)
     if kind == "uniform" and not a < b:
         raise ODDError(f"{where}: uniform({a:g}, {b:g}) has an empty support; need a < b")
@@ -177,12 +180,19 @@ class ODD:
 
     def to_json(self) -> list[dict[str, object]]:
         """The ODD as JSON: one ``{"name", "distribution", "args", "weights"}`` per parameter."""
-        return [{"name": name, "distribution": law.kind, "args": list(law.args), "weights": list(law.weights),
-                 "text": law.text} for name, law in self.parameters]  # fmt: skip
+        return [
+            {
+                "name": name,
+                "distribution": law.kind,
+                "args": list(law.args),
+                "weights": list(law.weights),
+                "text": law.text,
+            }
+            for name, law in self.parameters
+        ]
 
 
-def bin_log_weights(values: np.ndarray, log_w: np.ndarray, edges: np.ndarray, probs: np.ndarray,
-                    b: int) -> np.ndarray:  # fmt: skip
+def bin_log_weights(values: np.ndarray, log_w: np.ndarray, edges: np.ndarray, probs: np.ndarray, b: int) -> np.ndarray:
     """The log importance weights [N] (nats) that estimate p(failure | theta in bin ``b``) as the plain mean of
     ``w 1[fail]`` over all N rollouts: ``log w - log P(bin)`` for a rollout whose parameter ``values`` [N] fall in the
     bin (``edges[b] <= v < edges[b + 1]``; the last bin closed), ``-inf`` for the others. Unbiased, as
@@ -218,8 +228,9 @@ class MapBin:
         return f"{self.name} in [{self.lo:.4g}, {self.hi:.4g})"
 
 
-def odd_map(odd: ODD, values: np.ndarray, log_w: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray,
-            k: int = 5) -> list[MapBin]:  # fmt: skip
+def odd_map(
+    odd: ODD, values: np.ndarray, log_w: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray, k: int = 5
+) -> list[MapBin]:
     """The map of where p_ODD comes from, one parameter at a time: for each parameter of ``odd``, its bins
     (:meth:`Distribution.bins`, ``k`` of equal probability for a continuous law) with p(failure | bin) estimated from
     rollouts with parameters ``values`` [N, D], log importance weights ``log_w`` [N] (nats), failures ``failed`` [N]
@@ -244,6 +255,14 @@ def odd_map(odd: ODD, values: np.ndarray, log_w: np.ndarray, failed: np.ndarray,
         terms = np.array([probs[b] * math.exp(e.log_mu_hat) if e.n_failures else 0.0 for b, e in rows])
         total = float(terms.sum())
         for (b, e), term in zip(rows, terms, strict=True):
-            out.append(MapBin(name, float(edges[b]), float(edges[b + 1]), float(probs[b]), e,
-                              float(term / total) if total > 0 else 0.0))  # fmt: skip
+            out.append(
+                MapBin(
+                    name,
+                    float(edges[b]),
+                    float(edges[b + 1]),
+                    float(probs[b]),
+                    e,
+                    float(term / total) if total > 0 else 0.0,
+                )
+            )
     return out

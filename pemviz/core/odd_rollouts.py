@@ -21,7 +21,13 @@ import numpy as np
 
 from pemviz.core.detectors import Detector
 from pemviz.core.lockstep import (
-    DEFAULT_CHUNK_SIZE, _coupled, branch_rollouts, check_branch_args, check_counts, replay_rows, run_batched,
+    DEFAULT_CHUNK_SIZE,
+    _coupled,
+    branch_rollouts,
+    check_branch_args,
+    check_counts,
+    replay_rows,
+    run_batched,
     uniform_chunks,
 )
 from pemviz.core.odd import ODD
@@ -69,8 +75,14 @@ def odd_rollout_functions(make: MakeWith, odd: ODD, n_steps: int) -> tuple[Calla
     def made(values: np.ndarray) -> WithParameters:
         return WithParameters(make(len(values), values), values, names)
 
-    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
-               chunk_size: int = DEFAULT_CHUNK_SIZE, keep_rows: bool = True) -> Iterator[RolloutBatch]:  # fmt: skip
+    def stream(
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng: np.random.Generator,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        keep_rows: bool = True,
+    ) -> Iterator[RolloutBatch]:
         check_counts("odd stream", n=n, chunk_size=chunk_size)
         n = int(n)
         values = odd.draw(rng.random((n, len(odd))))  # every rollout's parameters first: the same for any chunking
@@ -89,8 +101,9 @@ def odd_rollout_functions(make: MakeWith, odd: ODD, n_steps: int) -> tuple[Calla
         chunks = list(stream(n, sampler, target, rng, chunk_size=max(int(n), 1)))
         return chunks[0] if len(chunks) == 1 else RolloutBatch.concatenate(chunks)
 
-    def branch(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
-               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+    def branch(
+        parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector, rng: np.random.Generator
+    ) -> RolloutBatch:
         parent = np.asarray(parent, dtype=np.int64)
         check_branch_args(parents, parent, np.asarray(at, dtype=np.int64))  # before the parents' rows are read
         cols = [tuple(parents.observation_names).index(name) for name in names]

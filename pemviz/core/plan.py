@@ -27,7 +27,6 @@ def stage_label(stage: int, kind: str, n_stages: int) -> str:
     return "final batch"
 
 
-
 @dataclass(frozen=True)
 class PlannedStage:
     """One stage of a :class:`RunPlan`.

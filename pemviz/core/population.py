@@ -70,8 +70,9 @@ class FailureShares:
         return int(hit[0]) if hit.size else None
 
 
-def failure_shares(parts: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray]],
-                   stage_weights: np.ndarray | None = None) -> FailureShares:  # fmt: skip
+def failure_shares(
+    parts: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray]], stage_weights: np.ndarray | None = None
+) -> FailureShares:
     """The failures of an estimate pooled over K stages, each with its share of mu_hat.
 
     Args:
@@ -92,8 +93,10 @@ def failure_shares(parts: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray
     for k, (number, lw, failed, lp) in enumerate(parts):
         lw, failed, lp = np.asarray(lw, np.float64), np.asarray(failed, bool), np.asarray(lp, np.float64)
         if not lw.shape == failed.shape == lp.shape:
-            raise ValueError(f"failure_shares: stage {number} has arrays of shapes {lw.shape}, {failed.shape}, "
-                             f"{lp.shape}; they must be equal")  # fmt: skip
+            raise ValueError(
+                f"failure_shares: stage {number} has arrays of shapes {lw.shape}, {failed.shape}, "
+                f"{lp.shape}; they must be equal"
+            )
         shift = float(shifts[k])
         rows = np.flatnonzero(failed & np.isfinite(lw))
         stage.append(np.full(rows.size, number, dtype=np.int64))
@@ -146,8 +149,13 @@ def failure_groups(shares: FailureShares, keys: Sequence[Hashable], labels: dict
     for rank, key in enumerate(keys):
         members.setdefault(key, []).append(rank)
     groups = [
-        FailureGroup(key, (labels or {}).get(key, str(key)), len(ranks),
-                     float(np.exp(logsumexp(shares.log_share[ranks]))), ranks[0])
+        FailureGroup(
+            key,
+            (labels or {}).get(key, str(key)),
+            len(ranks),
+            float(np.exp(logsumexp(shares.log_share[ranks]))),
+            ranks[0],
+        )
         for key, ranks in members.items()
-    ]  # fmt: skip
+    ]
     return sorted(groups, key=lambda g: (-g.share, g.first))

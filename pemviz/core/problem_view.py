@@ -36,8 +36,10 @@ class Thresholds:
 
     def labels(self) -> tuple[str, str]:
         """The failure threshold's and the window's legend, e.g. ``("crash gap 2 m", "braking distance 10 m")``."""
-        return (f"{self.failure_name} {self.failure:g} {self.unit}".strip(),
-                f"{self.window_name} {self.window:g} {self.unit}".strip())  # fmt: skip
+        return (
+            f"{self.failure_name} {self.failure:g} {self.unit}".strip(),
+            f"{self.window_name} {self.window:g} {self.unit}".strip(),
+        )
 
 
 @dataclass(frozen=True)
@@ -128,8 +130,10 @@ def object_scene(view: ProblemView, batch: RolloutBatch) -> ObjectScene:
         ValueError: the view names no object positions or the batch has no object rows.
     """
     if view is None or view.objects_xy is None or batch.objects is None:
-        raise ValueError("object_scene: the problem's view names no object positions (objects_xy), or the rollout "
-                         "has no object rows")  # fmt: skip
+        raise ValueError(
+            "object_scene: the problem's view names no object positions (objects_xy), or the rollout "
+            "has no object rows"
+        )
     names = tuple(batch.object_names or ())
     rows = batch.objects[0]  # [T, M, G]
     cx, cz = (names.index(c) for c in view.objects_xy)
@@ -143,8 +147,9 @@ def object_scene(view: ProblemView, batch: RolloutBatch) -> ObjectScene:
         measured = np.where(detected[..., None], np.stack([lateral + err[..., ix], ahead + err[..., iz]], -1), np.nan)
     if {"tracked", "track_err_x_m", "track_err_y_m"} <= set(names):  # the track's error along and across the road
         has = rows[:, :, names.index("tracked")] > 0.5
-        est = np.stack([lateral + rows[:, :, names.index("track_err_y_m")],
-                        ahead + rows[:, :, names.index("track_err_x_m")]], -1)  # fmt: skip
+        est = np.stack(
+            [lateral + rows[:, :, names.index("track_err_y_m")], ahead + rows[:, :, names.index("track_err_x_m")]], -1
+        )
         tracked = np.where(has[..., None], est, np.nan)
     followed = rows[:, :, names.index("followed")] > 0.5 if "followed" in names else np.zeros_like(detected)
     return ObjectScene(lateral, ahead, detected, seen, measured, tracked, followed)

@@ -169,9 +169,18 @@ class Problem:
     def view(self) -> ProblemView:
         """The problem as sinks show it: name, description, signals with units, thresholds, scene."""
         signals = tuple(SignalView(n, c, self.units.get(n, "")) for n, c in self.signals.items())
-        return ProblemView(self.name, self.description or self.name, signals, self.thresholds,
-                           self.objects_xy, self.noise_xy, self.n_steps, self.drawing, self.look_ahead_s,
-                           tuple(self.object_labels))  # fmt: skip
+        return ProblemView(
+            self.name,
+            self.description or self.name,
+            signals,
+            self.thresholds,
+            self.objects_xy,
+            self.noise_xy,
+            self.n_steps,
+            self.drawing,
+            self.look_ahead_s,
+            tuple(self.object_labels),
+        )
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:
         """The batch's signals under their STL names, float64 [N, T] each."""
@@ -211,13 +220,14 @@ class Problem:
                 rows[:, 0] = grid
             return np.asarray(expit(self.target.detect_logit(rows)), dtype=np.float64)
         except (IndexError, KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{self.name}: the target's detection curve over the first column cannot be drawn "
-                             f"({type(exc).__name__}: {exc}); give the Problem curve_rows=lambda grid: rows [G, "
-                             "columns] the target reads, with grid in the first column") from None
+            raise ValueError(
+                f"{self.name}: the target's detection curve over the first column cannot be drawn "
+                f"({type(exc).__name__}: {exc}); give the Problem curve_rows=lambda grid: rows [G, "
+                "columns] the target reads, with grid in the first column"
+            ) from None
 
 
-def rollout_functions(make: Callable[[int], BatchedSimulator],
-                      n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:  # fmt: skip
+def rollout_functions(make: Callable[[int], BatchedSimulator], n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:
     """A :class:`Problem`'s ``simulate``, ``stream`` and ``branch`` for a batched simulator ``make(n)`` (n rollouts at
     their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.core.lockstep.simulate_rollouts`,
     :func:`~pemviz.core.lockstep.iter_rollouts`, :func:`~pemviz.core.lockstep.branch_rollouts`).
@@ -231,8 +241,14 @@ def rollout_functions(make: Callable[[int], BatchedSimulator],
         with threadpool_limits(1, user_api="blas"):
             return simulate_rollouts(make, n, n_steps, sampler, target, rng)
 
-    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
-               chunk_size: int = DEFAULT_CHUNK_SIZE, keep_rows: bool = True) -> Iterator[RolloutBatch]:  # fmt: skip
+    def stream(
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng: np.random.Generator,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        keep_rows: bool = True,
+    ) -> Iterator[RolloutBatch]:
         chunks = iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=chunk_size, keep_rows=keep_rows)
         while True:  # one thread while a chunk is simulated, whatever the consumer does between chunks
             with threadpool_limits(1, user_api="blas"):
@@ -241,8 +257,9 @@ def rollout_functions(make: Callable[[int], BatchedSimulator],
                 return
             yield batch
 
-    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
-               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+    def resume(
+        parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector, rng: np.random.Generator
+    ) -> RolloutBatch:
         with threadpool_limits(1, user_api="blas"):
             return branch_rollouts(make, parents, parent, at, target, rng)
 

@@ -52,8 +52,9 @@ def bins_over(grid: np.ndarray, n_bins: int = N_BINS) -> np.ndarray:
     g = np.asarray(grid, dtype=np.float64)
     lo, hi = (float(g.min()), float(g.max())) if g.size else (math.nan, math.nan)
     if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo) or n_bins < 1:
-        raise ValueError(f"bins_over: need a grid with a positive finite span and n_bins >= 1, got [{lo}, {hi}], "
-                         f"{n_bins}")  # fmt: skip
+        raise ValueError(
+            f"bins_over: need a grid with a positive finite span and n_bins >= 1, got [{lo}, {hi}], " f"{n_bins}"
+        )
     return np.linspace(lo, hi, n_bins + 1)
 
 
@@ -72,8 +73,9 @@ def prob_detect(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:
     return np.where(np.asarray(detected, bool), np.exp(lp), -np.expm1(lp))
 
 
-def object_detect_probabilities(batch: RolloutBatch, i: int, sampler: Detector | None,
-                                target: Detector | None) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+def object_detect_probabilities(
+    batch: RolloutBatch, i: int, sampler: Detector | None, target: Detector | None
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Each object's p(detect) under ``target`` (the PEM) and q(detect) under ``sampler`` along rollout ``i`` of a
     batch of several objects: float64 (p [T, M], q [T, M]), the detectors' logits at the rollout's object rows
     passed through the logistic function (an object the camera cannot see, logit -inf, has 0); None for a batch of
@@ -149,8 +151,9 @@ def _bin_order(bins: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
     return order, np.searchsorted(bins[order], np.arange(n_bins + 1))
 
 
-def _by_bin(values: np.ndarray, sorted_bins: tuple[np.ndarray, np.ndarray], n_bins: int,
-            median: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def _by_bin(
+    values: np.ndarray, sorted_bins: tuple[np.ndarray, np.ndarray], n_bins: int, median: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(centre, lo, hi) of ``values`` [S] per bin in 0..n_bins-1 (``sorted_bins``: :func:`_bin_order` of the states'
     bins): the mean (or median) and :data:`QUANTILES`."""
     out = np.full((3, n_bins), np.nan)
@@ -224,5 +227,6 @@ def batch_proposal_view(batch, edges_m: np.ndarray, window_m: float = 10.0) -> P
     rollouts perceive several objects, whose densities the batch holds only per step)."""
     if batch.n_objects != 1:
         return None
-    return proposal_view(batch.observations[:, :, 0], batch.detected[..., 0], batch.log_q, batch.log_p, edges_m,
-                         window_m)
+    return proposal_view(
+        batch.observations[:, :, 0], batch.detected[..., 0], batch.log_q, batch.log_p, edges_m, window_m
+    )

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from pemviz.core.estimate import Estimate
 
 ALPHA = 0.05
-"""The error rate of a decision over every look: 1 - :data:`pemviz.core.estimate.CI_LEVEL` (the config imports this
+"""The error rate of a decision over every look: 1 - :data:`pemviz.core.confidence.CI_LEVEL` (the config imports this
 module, which imports no numpy)."""
 OUTCOMES = ("met", "violated", "undecided")
 """A requirement's outcome; ``pemviz run --require`` exits 0, 1 and 3 for them."""
@@ -75,8 +75,9 @@ def parse_requirement(text: str) -> Requirement:
     """
     m = _PATTERN.match(text) if isinstance(text, str) else None
     if m is None:
-        raise RequirementError(f"{text!r} is not a requirement: write p < T, p <= T, p > T or p >= T with T in (0, 1), "
-                               "e.g. 'p < 1e-9'")  # fmt: skip
+        raise RequirementError(
+            f"{text!r} is not a requirement: write p < T, p <= T, p > T or p >= T with T in (0, 1), " "e.g. 'p < 1e-9'"
+        )
     try:
         threshold = float(m.group(2))
     except ValueError:
@@ -112,7 +113,7 @@ def interval_at_level(est: Estimate, level: float, plain_mc: bool) -> tuple[floa
     """
     from scipy.special import stdtrit
 
-    from pemviz.core.estimate import CI_LEVEL, clopper_pearson
+    from pemviz.core.confidence import CI_LEVEL, clopper_pearson
 
     if plain_mc:
         lo, hi = clopper_pearson(int(est.n_failures), int(est.n), level)
@@ -174,8 +175,10 @@ def _decide_on_bound(est: "Estimate", req: Requirement, look: int, level: float)
     lo = est.lower_bound(1.0 - level)
     t = req.log_threshold
     above = lo >= t if req.op in ("<", ">=") else lo > t
-    shown = (f"{level:.4g} lower bound p >= {math.exp(lo):.3g} at look {look} (the estimate is {est.verdict}: no "
-             "upper bound)")  # fmt: skip
+    shown = (
+        f"{level:.4g} lower bound p >= {math.exp(lo):.3g} at look {look} (the estimate is {est.verdict}: no "
+        "upper bound)"
+    )
     if above:
         outcome = "violated" if req.upper else "met"
         side = "fails" if req.upper else "holds"

@@ -52,8 +52,9 @@ def with_pem(detector: Any, pem: Any) -> Any:
     raise TypeError(f"cannot swap the PEM of a {type(detector).__name__}")
 
 
-def detection_log_ratios(target: Any, others: Sequence[Any], rows: np.ndarray, detected: np.ndarray,
-                         mask: np.ndarray) -> np.ndarray:  # fmt: skip
+def detection_log_ratios(
+    target: Any, others: Sequence[Any], rows: np.ndarray, detected: np.ndarray, mask: np.ndarray
+) -> np.ndarray:
     """sum over the masked steps and every object of log p_k(a | x) - log p(a | x), float64 [K, N] (nats).
 
     Args:
@@ -155,21 +156,31 @@ class PemSpread:
             med, lo, hi = self.spread()
             ess = np.array([a.estimate.ess for a in self.members])
             reliable = [a for a in self.members if a.estimate.verdict == "reliable"]
-            out.append(f"PEM uncertainty: p under {len(self.members)} bootstrap refits of the PEM ({self.source}), the "
-                       "same rollouts re-weighted")  # fmt: skip
-            out.append(f"  members: median {format_probability(med)}, 90 % of them in [{format_probability(lo)}, "
-                       f"{format_probability(hi)}] (x{math.exp(hi - lo):.3g} wide); the nominal PEM's "
-                       f"{format_probability(self.nominal.log_mu_hat)}")  # fmt: skip
-            out.append(f"  member ESS: median {np.nanmedian(ess):.1f}, min {np.nanmin(ess):.1f}; {len(reliable)} of "
-                       f"{len(self.members)} reliable")  # fmt: skip
+            out.append(
+                f"PEM uncertainty: p under {len(self.members)} bootstrap refits of the PEM ({self.source}), the "
+                "same rollouts re-weighted"
+            )
+            out.append(
+                f"  members: median {format_probability(med)}, 90 % of them in [{format_probability(lo)}, "
+                f"{format_probability(hi)}] (x{math.exp(hi - lo):.3g} wide); the nominal PEM's "
+                f"{format_probability(self.nominal.log_mu_hat)}"
+            )
+            out.append(
+                f"  member ESS: median {np.nanmedian(ess):.1f}, min {np.nanmin(ess):.1f}; {len(reliable)} of "
+                f"{len(self.members)} reliable"
+            )
             weak = [a for a in self.members if a.estimate.verdict != "reliable"]
             if 0 < len(weak) <= 4:
-                out.append("  not to trust (see their verdicts): " + ", ".join(
-                    f"{a.label} (ESS {a.estimate.ess:.1f}, {a.estimate.verdict})" for a in weak))  # fmt: skip
+                out.append(
+                    "  not to trust (see their verdicts): "
+                    + ", ".join(f"{a.label} (ESS {a.estimate.ess:.1f}, {a.estimate.verdict})" for a in weak)
+                )
             elif weak:
                 w = np.array([a.estimate.ess for a in weak])
-                out.append(f"  not to trust (see their verdicts): {len(weak)} of {len(self.members)} members (ESS "
-                           f"{np.nanmin(w):.1f} to {np.nanmax(w):.1f}); the spread above is not a result")  # fmt: skip
+                out.append(
+                    f"  not to trust (see their verdicts): {len(weak)} of {len(self.members)} members (ESS "
+                    f"{np.nanmin(w):.1f} to {np.nanmax(w):.1f}); the spread above is not a result"
+                )
             exact = self.exact_spread()
             if exact is not None:
                 emed, elo, ehi = exact
@@ -177,14 +188,18 @@ class PemSpread:
                 known = [(a.estimate, a.exact_log_p) for a in self.members if a.exact_log_p is not None]
                 within = sum(abs(e.log_mu_hat - x) <= math.log(1.5) for e, x in known)
                 covers = sum(e.covers(x) for e, x in known)
-                out.append(f"  exact members: median {format_probability(emed)}, 90 % in [{format_probability(elo)}, "
-                           f"{format_probability(ehi)}]; re-weighted within x1.5 of exact: "
-                           f"{within}/{len(self.members)}, its interval or lower bound holds it: "
-                           f"{covers}/{len(self.members)}")  # fmt: skip
+                out.append(
+                    f"  exact members: median {format_probability(emed)}, 90 % in [{format_probability(elo)}, "
+                    f"{format_probability(ehi)}]; re-weighted within x1.5 of exact: "
+                    f"{within}/{len(self.members)}, its interval or lower bound holds it: "
+                    f"{covers}/{len(self.members)}"
+                )
         for a in self.shifts:
             e = a.estimate
-            line = (f"PEM shifted by {a.label}: p = {format_probability(e.log_mu_hat)} {e.interval_text()}, ESS "
-                    f"{e.ess:.1f}: {e.verdict}")  # fmt: skip
+            line = (
+                f"PEM shifted by {a.label}: p = {format_probability(e.log_mu_hat)} {e.interval_text()}, ESS "
+                f"{e.ess:.1f}: {e.verdict}"
+            )
             if a.exact_log_p is not None:
                 line += f"; exact {format_probability(a.exact_log_p)} ({error_text(e.log_mu_hat, a.exact_log_p)})"
             out.append(line)

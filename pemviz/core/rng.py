@@ -83,8 +83,9 @@ def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray, then: np.ndarray | None 
     if key.dtype.kind not in "iu":  # integer keys (:func:`ranking_key`) are ranked as they are
         key = key.astype(np.float64)
     if u.ndim != 1 or u.size < 1 or key.ndim not in (1, 2) or key.shape[0] != u.size:
-        raise ValueError(f"array_rqmc_uniforms: u must be [n], n >= 1, and key [n] or [n, k]; got {u.shape} and "
-                         f"{key.shape}")
+        raise ValueError(
+            f"array_rqmc_uniforms: u must be [n], n >= 1, and key [n] or [n, k]; got {u.shape} and " f"{key.shape}"
+        )
     rest = [] if key.ndim == 1 else [key[:, 1:]]
     if then is not None:
         then = np.asarray(then, dtype=np.float64)

@@ -197,8 +197,10 @@ class RolloutBatch:
         if self.detected.ndim == 2:  # one object per step
             object.__setattr__(self, "detected", self.detected[:, :, None])
         if self.detected.ndim != 3:
-            raise ValueError(f"RolloutBatch: detected must be bool [N, T, M] (or [N, T]: one object), got shape "
-                             f"{self.detected.shape}")
+            raise ValueError(
+                f"RolloutBatch: detected must be bool [N, T, M] (or [N, T]: one object), got shape "
+                f"{self.detected.shape}"
+            )
 
     @property
     def n(self) -> int:
@@ -260,10 +262,17 @@ class RolloutBatch:
             return None if a is None else a[rows]
 
         objects = object.__getattribute__(self, "objects")  # rows not kept stay so: the selection replays its own
-        return replace(self, observations=self.observations[rows], detected=self.detected[rows],
-                       log_p=self.log_p[rows], log_q=self.log_q[rows], log_q_parts=take(self.log_q_parts),
-                       objects=take(objects), noise=take(self.noise),
-                       replay=self.replay if objects is None else None)  # fmt: skip
+        return replace(
+            self,
+            observations=self.observations[rows],
+            detected=self.detected[rows],
+            log_p=self.log_p[rows],
+            log_q=self.log_q[rows],
+            log_q_parts=take(self.log_q_parts),
+            objects=take(objects),
+            noise=take(self.noise),
+            replay=self.replay if objects is None else None,
+        )
 
     @staticmethod
     def concatenate(batches: Sequence["RolloutBatch"]) -> "RolloutBatch":
@@ -277,7 +286,14 @@ class RolloutBatch:
             return None if any(x is None for x in parts) else np.concatenate(parts)
 
         lazy = all(b.rows_elided for b in batches)  # else every batch's rows, rebuilt where not kept
-        return replace(batches[0], observations=cat("observations"), detected=cat("detected"), log_p=cat("log_p"),
-                       log_q=cat("log_q"), log_q_parts=cat_optional("log_q_parts"),
-                       objects=None if lazy else cat_optional("objects"), noise=cat_optional("noise"),
-                       replay=batches[0].replay if lazy else None)  # fmt: skip
+        return replace(
+            batches[0],
+            observations=cat("observations"),
+            detected=cat("detected"),
+            log_p=cat("log_p"),
+            log_q=cat("log_q"),
+            log_q_parts=cat_optional("log_q_parts"),
+            objects=None if lazy else cat_optional("objects"),
+            noise=cat_optional("noise"),
+            replay=batches[0].replay if lazy else None,
+        )

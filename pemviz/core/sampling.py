@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 
     from pemviz.core.torch_fits import ProposalModule
 
+
 def torch_imported() -> bool:
     """Whether a new :class:`Proposal` starts in torch: whether torch is imported already
     (:func:`pemviz.core.torch_use.imported`)."""
@@ -234,9 +235,14 @@ class Proposal:
         w2 = w2.T
         w3 = (w[1] - w[0])[:, None]
         b1, b2, b3 = b1.copy(), b2.copy(), float(b[1] - b[0])
-        weights = (exact.on_grid(w1, exact.grid_bits(w1.shape[0]), 0), b1,
-                   exact.on_grid(w2, exact.grid_bits(w2.shape[0]), 0), b2,
-                   exact.on_grid(w3, exact.grid_bits(w3.shape[0]), 0), b3)  # fmt: skip
+        weights = (
+            exact.on_grid(w1, exact.grid_bits(w1.shape[0]), 0),
+            b1,
+            exact.on_grid(w2, exact.grid_bits(w2.shape[0]), 0),
+            b2,
+            exact.on_grid(w3, exact.grid_bits(w3.shape[0]), 0),
+            b3,
+        )
         held = () if self._module is None else tuple(p.untyped_storage() for p in self._module.net.parameters())
         self.__dict__["_sampling_cache"] = (key, weights, held)
         return weights
@@ -407,8 +413,18 @@ def fit_proposal(
         raise ValueError(f"fit_proposal: unknown optimizer {optimizer!r}; use one of {', '.join(FITS)}")
     if optimizer == "adam" and dtype == EXACT and not callable(objective):
         counts = objective if isinstance(objective, np.ndarray) else objective.detach().numpy()
-        return fit_exact(proposal, np.asarray(inputs, dtype=np.float64), counts, epochs, lr, check, tolerance, per,
-                         check_every=CHECK_EVERY, plateau_epochs=PLATEAU_EPOCHS)  # fmt: skip
+        return fit_exact(
+            proposal,
+            np.asarray(inputs, dtype=np.float64),
+            counts,
+            epochs,
+            lr,
+            check,
+            tolerance,
+            per,
+            check_every=CHECK_EVERY,
+            plateau_epochs=PLATEAU_EPOCHS,
+        )
     from pemviz.core.torch_fits import fit_in_torch
 
     return fit_in_torch(proposal, inputs, objective, epochs, lr, check, optimizer, tolerance, per, dtype)
@@ -469,8 +485,9 @@ def load_proposal(path: str | os.PathLike[str]) -> Proposal:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"proposal checkpoint {p} not found")
-    payload = load_tagged(p, PROPOSAL_FORMAT_TAG, PROPOSAL_FORMAT_VERSION, "proposal checkpoint", ProposalFormatError,
-                          as_numpy=True)  # fmt: skip
+    payload = load_tagged(
+        p, PROPOSAL_FORMAT_TAG, PROPOSAL_FORMAT_VERSION, "proposal checkpoint", ProposalFormatError, as_numpy=True
+    )
     try:
         proposal = Proposal(float(payload["h_scale"]))
         proposal.load_state_dict(payload["state_dict"])
@@ -480,4 +497,3 @@ def load_proposal(path: str | os.PathLike[str]) -> Proposal:
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise ProposalFormatError(f"{p}: damaged proposal checkpoint ({exc})") from None
     return proposal.eval()
-

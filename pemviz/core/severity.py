@@ -78,8 +78,9 @@ class SeverityScale:
         return f"{self.label} < {x:g} {self.unit}{tail}".replace("  ", " ")
 
 
-def level_events(signal: np.ndarray, failed: np.ndarray, fail_step: np.ndarray,
-                 levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def level_events(
+    signal: np.ndarray, failed: np.ndarray, fail_step: np.ndarray, levels: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Which rollouts reach each severity level, and the step at which that is decided.
 
     Args:
@@ -172,20 +173,33 @@ class SeverityCurve:
         for point in self.points:
             e = point.estimate
             if point is not self.points[0] and not point.reached:
-                how = (f"pemviz run --{s.target_flag} {point.level:g} targets it" if s.target_flag
-                       else "more rollouts (a larger budget, or --rel-error)")
+                how = (
+                    f"pemviz run --{s.target_flag} {point.level:g} targets it"
+                    if s.target_flag
+                    else "more rollouts (a larger budget, or --rel-error)"
+                )
                 if e.n_failures == 0:
                     out.append((self.point_text(point), f"not reached by this run (0 of {e.n:,} rollouts): {how}"))
                 else:  # reached, but its weights back no estimate: what they do back, a lower bound
-                    bound = (f"p >= {format_probability(e.log_lower_bound, 2)} (95 % lower bound), no upper bound"
-                             if e.log_lower_bound > -math.inf else "no bound either way")
-                    out.append((self.point_text(point), f"reached by {e.n_failures:,} of {e.n:,} rollouts, not "
-                                f"estimated (ESS {e.ess:.1f}, {e.verdict}): {bound}; {how}"))  # fmt: skip
+                    bound = (
+                        f"p >= {format_probability(e.log_lower_bound, 2)} (95 % lower bound), no upper bound"
+                        if e.log_lower_bound > -math.inf
+                        else "no bound either way"
+                    )
+                    out.append(
+                        (
+                            self.point_text(point),
+                            f"reached by {e.n_failures:,} of {e.n:,} rollouts, not "
+                            f"estimated (ESS {e.ess:.1f}, {e.verdict}): {bound}; {how}",
+                        )
+                    )
                 continue
             text = f"{format_probability(e.log_mu_hat)} {e.interval_text()}  ESS {e.ess:.1f}  {e.verdict}"
             if point.exact_log_p is not None:  # "inside" / "OUTSIDE" an interval; "above" / "BELOW" a lower bound
-                text += (f"; exact {format_probability(point.exact_log_p)} "
-                         f"({error_text(e.log_mu_hat, point.exact_log_p)}, {e.holds_word(point.exact_log_p)})")
+                text += (
+                    f"; exact {format_probability(point.exact_log_p)} "
+                    f"({error_text(e.log_mu_hat, point.exact_log_p)}, {e.holds_word(point.exact_log_p)})"
+                )
             out.append((self.point_text(point), text))
         return out
 
@@ -242,8 +256,10 @@ def severity_of_signal(signal: np.ndarray, contact: float, dt_s: float) -> tuple
     first = np.where(hit, touched.argmax(axis=1), 0)
     if (hit & (first == 0)).any():
         row = int(np.flatnonzero(hit & (first == 0))[0])
-        raise ValueError(f"severity_of_signal: rollout {row} is in contact at step 0 ({s[row, 0]:g} <= {contact:g}): "
-                         "no step into contact, no closing speed")  # fmt: skip
+        raise ValueError(
+            f"severity_of_signal: rollout {row} is in contact at step 0 ({s[row, 0]:g} <= {contact:g}): "
+            "no step into contact, no closing speed"
+        )
     rows = np.flatnonzero(hit)
     impact = np.full(n, np.nan)
     impact[rows] = (s[rows, first[rows] - 1] - s[rows, first[rows]]) / dt_s
@@ -381,8 +397,11 @@ class FailureSeverity:
     def labels(self) -> list[str]:
         """The bins in words: ``no contact``, ``0-2 m/s``, ``2-5 m/s``, ``> 5 m/s``."""
         lo = (0.0, *self.edges)
-        return (["no contact"] + [f"{a:g}-{b:g} m/s" for a, b in zip(lo, self.edges, strict=False)]
-                + [f"> {self.edges[-1]:g} m/s"])  # fmt: skip
+        return (
+            ["no contact"]
+            + [f"{a:g}-{b:g} m/s" for a, b in zip(lo, self.edges, strict=False)]
+            + [f"> {self.edges[-1]:g} m/s"]
+        )
 
     def bounds(self) -> list[tuple[float | None, float | None]]:
         """Each bin's impact speeds [lo, hi) in m/s: (None, None) for no contact, hi None for the last."""
@@ -393,8 +412,9 @@ class FailureSeverity:
         """int [K] each kept failure's bin: 0 no contact, then 1 + the impact-speed interval it falls in."""
         speed = self.impact_speed[self.kept]
         contact = np.isfinite(speed)
-        return np.where(contact, 1 + np.searchsorted(np.asarray(self.edges), np.where(contact, speed, 0.0),
-                                                     side="right"), 0)  # fmt: skip
+        return np.where(
+            contact, 1 + np.searchsorted(np.asarray(self.edges), np.where(contact, speed, 0.0), side="right"), 0
+        )
 
     def counts(self) -> np.ndarray:
         """int [B] the kept failures in each bin."""
@@ -430,16 +450,27 @@ class FailureSeverity:
         head = f"failures by impact speed, share of p (failures; contact: {s.label} <= {self.contact:g} {s.unit})"
         if self.n == 0:
             return f"{head}: none of the {self.n_failures:,} failures' rollouts was kept"
-        bins = ", ".join(f"{label} {share_text(x)} ({c:,})"
-                         for label, x, c in zip(self.labels(), self.shares(), self.counts(), strict=False))  # fmt: skip
-        kept = ("" if self.n == self.n_failures
-                else f" (the {self.n:,} kept of {self.n_failures:,} failures: {share_text(self.covered)} of p)")
+        bins = ", ".join(
+            f"{label} {share_text(x)} ({c:,})"
+            for label, x, c in zip(self.labels(), self.shares(), self.counts(), strict=False)
+        )
+        kept = (
+            ""
+            if self.n == self.n_failures
+            else f" (the {self.n:,} kept of {self.n_failures:,} failures: {share_text(self.covered)} of p)"
+        )
         return f"{head}: {bins}; median min {s.label} {self.median_min_distance():.2f} {s.unit}{kept}"
 
 
-def failure_severity(scale: SeverityScale, contact: float, log_share: np.ndarray, min_distance: np.ndarray,
-                     impact_speed: np.ndarray, kept: np.ndarray | None = None,
-                     edges: tuple[float, ...] = IMPACT_SPEED_EDGES_MPS) -> FailureSeverity:  # fmt: skip
+def failure_severity(
+    scale: SeverityScale,
+    contact: float,
+    log_share: np.ndarray,
+    min_distance: np.ndarray,
+    impact_speed: np.ndarray,
+    kept: np.ndarray | None = None,
+    edges: tuple[float, ...] = IMPACT_SPEED_EDGES_MPS,
+) -> FailureSeverity:
     """The failures' severity distribution, p(severity | failure), from their shares.
 
     Args:
@@ -459,13 +490,22 @@ def failure_severity(scale: SeverityScale, contact: float, log_share: np.ndarray
     kept = np.ones(f, dtype=bool) if kept is None else np.asarray(kept, dtype=bool)
     dist, speed = np.asarray(min_distance, dtype=np.float64), np.asarray(impact_speed, dtype=np.float64)
     if not log_share.shape == dist.shape == speed.shape == kept.shape == (f,):
-        raise ValueError(f"failure_severity: log_share {log_share.shape}, min_distance {dist.shape}, impact_speed "
-                         f"{speed.shape} and kept {kept.shape} must all be [F]")  # fmt: skip
+        raise ValueError(
+            f"failure_severity: log_share {log_share.shape}, min_distance {dist.shape}, impact_speed "
+            f"{speed.shape} and kept {kept.shape} must all be [F]"
+        )
     if not np.isfinite(dist[kept]).all():
         raise ValueError("failure_severity: a kept failure has no finite min distance")
     if (speed[kept] <= 0).any() or np.isinf(speed[kept]).any():
         raise ValueError("failure_severity: an impact speed must be a positive number of m/s (NaN: no contact)")
     if not edges or any(e <= 0 for e in edges) or any(b <= a for a, b in zip(edges, edges[1:], strict=False)):
         raise ValueError(f"failure_severity: edges must be positive and ascending, got {edges}")
-    return FailureSeverity(scale, float(contact), log_share.copy(), np.where(kept, dist, np.nan),
-                           np.where(kept, speed, np.nan), kept.copy(), tuple(float(e) for e in edges))  # fmt: skip
+    return FailureSeverity(
+        scale,
+        float(contact),
+        log_share.copy(),
+        np.where(kept, dist, np.nan),
+        np.where(kept, speed, np.nan),
+        kept.copy(),
+        tuple(float(e) for e in edges),
+    )

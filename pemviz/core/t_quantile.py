@@ -38,8 +38,12 @@ TOLERANCE = 2e-12
 
 def _log_density(nu: float, z: float) -> float:
     """log f(z) of Student's t with ``nu`` degrees of freedom (nats), in scalar libm arithmetic."""
-    return (math.lgamma((nu + 1.0) / 2.0) - math.lgamma(nu / 2.0) - 0.5 * math.log(nu * math.pi)
-            - (nu + 1.0) / 2.0 * math.log1p(z * z / nu))  # fmt: skip
+    return (
+        math.lgamma((nu + 1.0) / 2.0)
+        - math.lgamma(nu / 2.0)
+        - 0.5 * math.log(nu * math.pi)
+        - (nu + 1.0) / 2.0 * math.log1p(z * z / nu)
+    )
 
 
 @functools.lru_cache(maxsize=16)
@@ -59,8 +63,12 @@ def _table(nu: float) -> np.ndarray:
     c = math.lgamma((nu + 1.0) / 2.0) - math.lgamma(nu / 2.0) - 0.5 * math.log(nu * math.pi)
     half, exp, log1p = (nu + 1.0) / 2.0, math.exp, math.log1p
     steps = (math.ldexp(1.0, int(e)) / (2.0 * k) for e in exponents)
-    slope = np.array([[step * exp(-(c - half * log1p(z * z / nu))) for z in row.tolist()]
-                      for step, row in zip(steps, q, strict=False)])  # fmt: skip
+    slope = np.array(
+        [
+            [step * exp(-(c - half * log1p(z * z / nu))) for z in row.tolist()]
+            for step, row in zip(steps, q, strict=False)
+        ]
+    )
     y0, y1, d0, d1 = q[:, :-1], q[:, 1:], slope[:, :-1], slope[:, 1:]
     coef = np.stack([y0, d0, 3.0 * (y1 - y0) - 2.0 * d0 - d1, 2.0 * (y0 - y1) + d0 + d1], axis=-1)
     out = np.ascontiguousarray(coef.reshape(n_binades * k, 4))

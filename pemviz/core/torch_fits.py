@@ -27,8 +27,9 @@ def new_net(n_inputs: int) -> nn.Sequential:
     """Linear(k, 32)-ReLU-Linear(32, 32)-ReLU-Linear(32, 2)-LogSoftmax in float64 (the authors' ``FFPolicy``), torch's
     default initialisation drawn as an ``nn.Module`` proposal always drew it: a one-input network first, its first
     layer then replaced when ``n_inputs`` > 1."""
-    net = nn.Sequential(nn.Linear(1, WIDTH), nn.ReLU(), nn.Linear(WIDTH, WIDTH), nn.ReLU(), nn.Linear(WIDTH, 2),
-                        nn.LogSoftmax(dim=-1)).double()  # fmt: skip
+    net = nn.Sequential(
+        nn.Linear(1, WIDTH), nn.ReLU(), nn.Linear(WIDTH, WIDTH), nn.ReLU(), nn.Linear(WIDTH, 2), nn.LogSoftmax(dim=-1)
+    ).double()
     if n_inputs != 1:
         net[0] = nn.Linear(n_inputs, WIDTH).double()
     return net
@@ -86,10 +87,23 @@ def _standard_log_density(family: str, df: np.ndarray | None, z: torch.Tensor) -
     return torch.distributions.StudentT(torch.as_tensor(df, dtype=torch.float64)).log_prob(z)
 
 
-def fit_noise_shift(proposal: Any, obs: np.ndarray, noise: np.ndarray, loc_p: np.ndarray,
-                    log_scale_p: np.ndarray, family: str, df: np.ndarray | None, log_w: np.ndarray, *, epochs: int,
-                    lr: float, max_rows: int | None, rng: np.random.Generator, check: Callable[[], None] | None = None,
-                    tolerance: float | None = None) -> list[float]:  # fmt: skip
+def fit_noise_shift(
+    proposal: Any,
+    obs: np.ndarray,
+    noise: np.ndarray,
+    loc_p: np.ndarray,
+    log_scale_p: np.ndarray,
+    family: str,
+    df: np.ndarray | None,
+    log_w: np.ndarray,
+    *,
+    epochs: int,
+    lr: float,
+    max_rows: int | None,
+    rng: np.random.Generator,
+    check: Callable[[], None] | None = None,
+    tolerance: float | None = None,
+) -> list[float]:
     """The cross-entropy update of the proposal's error head, in place: maximise the weighted log-likelihood
     ``sum_s w_s log q(e_s | h_s)`` of detected objects' errors (Innes & Ramamoorthy 2022, eq. 10-11, for the errors'
     density), by Adam on the mean over the weights; returns the loss per epoch (nats per error).
@@ -110,8 +124,7 @@ def fit_noise_shift(proposal: Any, obs: np.ndarray, noise: np.ndarray, loc_p: np
         picks = np.searchsorted(cum, (rng.random() + np.arange(max_rows)) * (cum[-1] / max_rows), side="right")
         picks, times = np.unique(np.minimum(picks, w.size - 1), return_counts=True)
         obs, noise, loc_p, log_scale_p, w = obs[picks], noise[picks], loc_p[picks], log_scale_p[picks], times * 1.0
-    x = torch.from_numpy(np.ascontiguousarray(np.asarray(obs)[:, proposal.input_columns()]
-                                              / proposal.input_scales()))  # fmt: skip
+    x = torch.from_numpy(np.ascontiguousarray(np.asarray(obs)[:, proposal.input_columns()] / proposal.input_scales()))
     e, lp, ls = (torch.as_tensor(np.asarray(a, dtype=np.float64)) for a in (noise, loc_p, log_scale_p))
     weights = torch.as_tensor(w / w.sum())
     params = list(head.parameters())
@@ -218,8 +231,9 @@ class Adam:
         lr: step size (> 0).
     """
 
-    def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-8) -> None:  # fmt: skip
+    def __init__(
+        self, params: list[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8
+    ) -> None:
         self.params = list(params)
         self.lr, (self.beta1, self.beta2), self.eps = float(lr), betas, float(eps)
         self.steps = 0
@@ -245,9 +259,18 @@ class Adam:
             p.addcdiv_(m, (v.sqrt() / bias_correction2_sqrt).add_(self.eps), value=-step_size)
 
 
-def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
-                 check: Callable[[], None] | None = None, optimizer: str = "adam", tolerance: float | None = None,
-                 per: float | None = None, dtype: torch.dtype | str | None = None) -> list[float]:
+def fit_in_torch(
+    proposal,
+    inputs,
+    objective: Objective,
+    epochs: int,
+    lr: float,
+    check: Callable[[], None] | None = None,
+    optimizer: str = "adam",
+    tolerance: float | None = None,
+    per: float | None = None,
+    dtype: torch.dtype | str | None = None,
+) -> list[float]:
     """:func:`pemviz.core.sampling.fit_proposal`'s fits in torch: L-BFGS, a function objective, or an Adam fit in
     torch's float32 / float64 kernels (``dtype``: ``"float32"``, ``"float64"`` or a torch dtype); the arguments and
     the loss per step returned are :func:`~pemviz.core.sampling.fit_proposal`'s. ``inputs`` and a tensor objective
@@ -270,10 +293,15 @@ def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
     losses: list[float] = []
     if optimizer == "lbfgs":
         opt = torch.optim.LBFGS(
-            proposal.net.parameters(), lr=1.0, max_iter=CHECK_EVERY, max_eval=10 * CHECK_EVERY, history_size=20,
-            line_search_fn="strong_wolfe", tolerance_grad=1e-9,
+            proposal.net.parameters(),
+            lr=1.0,
+            max_iter=CHECK_EVERY,
+            max_eval=10 * CHECK_EVERY,
+            history_size=20,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-9,
             tolerance_change=LBFGS_TOLERANCE if tolerance is None else tolerance,
-        )  # fmt: skip
+        )
         state = opt.state[next(iter(proposal.net.parameters()))]
 
         def closure() -> torch.Tensor:
@@ -317,8 +345,11 @@ def fit_in_torch(proposal, inputs, objective: Objective, epochs: int, lr: float,
             net.backward(cache, grad)
             adam.step()
             losses.append(loss.item())
-            if (tolerance is not None and epoch >= PLATEAU_EPOCHS
-                    and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance):  # fmt: skip
+            if (
+                tolerance is not None
+                and epoch >= PLATEAU_EPOCHS
+                and losses[-PLATEAU_EPOCHS - 1] - losses[-1] < tolerance
+            ):
                 break  # converged: the loss has stopped falling
     finally:
         for p in params:  # each parameter its own storage again, in float64

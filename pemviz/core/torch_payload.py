@@ -81,8 +81,15 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _rebuild_tensor_v2(storage: Any, storage_offset: Any, size: Any, stride: Any, requires_grad: Any,
-                       backward_hooks: Any, metadata: Any = None) -> np.ndarray:  # fmt: skip
+def _rebuild_tensor_v2(
+    storage: Any,
+    storage_offset: Any,
+    size: Any,
+    stride: Any,
+    requires_grad: Any,
+    backward_hooks: Any,
+    metadata: Any = None,
+) -> np.ndarray:
     """``torch._utils._rebuild_tensor_v2`` as a numpy array: the elements ``storage_offset + sum(i_d * stride_d)``
     (in elements) of the storage, in the shape ``size``, copied (C order, owning its memory).
 
@@ -107,8 +114,9 @@ def _rebuild_tensor_v2(storage: Any, storage_offset: Any, size: Any, stride: Any
     if last >= flat.shape[0]:
         raise UnsupportedPayload(f"tensor view ends at element {last}, beyond its storage of {flat.shape[0]}")
     item = flat.dtype.itemsize
-    view = np.lib.stride_tricks.as_strided(flat[storage_offset:], shape=size, strides=[s * item for s in stride],
-                                           writeable=False)  # fmt: skip
+    view = np.lib.stride_tricks.as_strided(
+        flat[storage_offset:], shape=size, strides=[s * item for s in stride], writeable=False
+    )
     return view.copy()
 
 
@@ -157,8 +165,13 @@ class _Unpickler(pickle.Unpickler):
         if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"):
             raise UnsupportedPayload(f"persistent id {pid!r}")
         _, storage_type, key, location, numel = pid
-        if not (isinstance(storage_type, _StorageType) and isinstance(key, str) and isinstance(location, str)
-                and _is_int(numel) and numel >= 0):  # fmt: skip
+        if not (
+            isinstance(storage_type, _StorageType)
+            and isinstance(key, str)
+            and isinstance(location, str)
+            and _is_int(numel)
+            and numel >= 0
+        ):
             raise UnsupportedPayload(f"storage id {pid!r}")
         return self._read_storage(storage_type.dtype, key, numel)
 

@@ -42,8 +42,7 @@ def convention(weights_until_failure: bool) -> str:
     return "to-failure" if weights_until_failure else "full"
 
 
-def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float] | np.ndarray,
-                       densities: bool = False) -> np.ndarray:  # fmt: skip
+def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float] | np.ndarray, densities: bool = False) -> np.ndarray:
     """Per-step log density of a mixture over whole rollouts, float64 [N, T] (nats).
 
     Rollouts drawn from sum_k c_k q_k(tau) (component k picked once per rollout with probability c_k) have the
@@ -65,8 +64,9 @@ def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float] | np.ndarray,
     log_q = np.asarray(log_q, dtype=np.float64)
     c = np.asarray(shares, dtype=np.float64)
     if log_q.ndim != 3 or c.shape != (log_q.shape[0],) or not (c > 0).all():
-        raise ValueError(f"mixture_step_log_q: log_q must be [K, N, T] and shares [K] > 0, got {log_q.shape}, "
-                         f"{c.shape}")
+        raise ValueError(
+            f"mixture_step_log_q: log_q must be [K, N, T] and shares [K] > 0, got {log_q.shape}, " f"{c.shape}"
+        )
     running = logsumexp(np.log(c)[:, None, None] + np.cumsum(log_q, axis=2), axis=0)  # M_t, [N, T]
     before = np.concatenate([np.zeros((running.shape[0], 1)), running[:, :-1]], axis=1)
     step = running - before
@@ -80,8 +80,9 @@ def component_of(start: int, n: int, sizes: Sequence[int]) -> np.ndarray:
     return np.searchsorted(edges, np.arange(start, start + n), side="right").astype(np.int64)
 
 
-def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detector | None,
-                start: int = 0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def stage_log_q(
+    batch: Any, parts: Sequence[tuple[int, Detector]], target: Detector | None, start: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """The per-step log density the rollouts of a stage were weighed with, and each rollout's component.
 
     Args:
@@ -98,10 +99,13 @@ def stage_log_q(batch: Any, parts: Sequence[tuple[int, Detector]], target: Detec
     if len(parts) <= 1:
         return np.asarray(batch.log_q, dtype=np.float64), component
     rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
-    log_q = [batch.log_p if d is target else
-             action_log_prob(d.detect_logit(rows).reshape(batch.detected.shape), batch.detected).sum(axis=2)
-             + (0.0 if batch.noise is None else errors_log_density(batch, d, target))
-             for _, d in parts]  # fmt: skip
+    log_q = [
+        batch.log_p
+        if d is target
+        else action_log_prob(d.detect_logit(rows).reshape(batch.detected.shape), batch.detected).sum(axis=2)
+        + (0.0 if batch.noise is None else errors_log_density(batch, d, target))
+        for _, d in parts
+    ]
     shares = np.asarray(sizes, dtype=np.float64) / sum(sizes)
     return mixture_step_log_q(np.stack(log_q), shares, densities=batch.noise is not None), component
 
@@ -149,8 +153,10 @@ class MeanWeight:
 
     def line(self) -> str:
         """``logged-density check: mean importance weight 0.998 (SE 0.031) over 1800 rollouts; ...``."""
-        head = (f"logged-density check: mean importance weight {_number(self.mean)} (SE {_number(self.se)}) over "
-                f"{self.n} rollouts, expected 1")  # fmt: skip
+        head = (
+            f"logged-density check: mean importance weight {_number(self.mean)} (SE {_number(self.se)}) over "
+            f"{self.n} rollouts, expected 1"
+        )
         if self.bound_se is not None:
             return f"{head} +- {_number(CHECK_Z * self.bound_se)} here (every weight bounded by the target's share)"
         return f"{head}; checked above 1 only (unbounded weights: a mean below 1 is usual)"
@@ -159,11 +165,16 @@ class MeanWeight:
         """One line when :attr:`far`, else None."""
         if not self.far:
             return None
-        why = (f"{self.over_bound} weight(s) above the bound the sidecar's mixture allows" if self.over_bound else
-               f"{abs(self.z):.1f} standard errors from 1")  # fmt: skip
-        return (f"warning: mean importance weight {_number(self.mean)} is {why}: log_q is not the density that drew "
-                "these rollouts (e.g. one mixture component's instead of the mixture's): do not trust the estimate "
-                "below")
+        why = (
+            f"{self.over_bound} weight(s) above the bound the sidecar's mixture allows"
+            if self.over_bound
+            else f"{abs(self.z):.1f} standard errors from 1"
+        )
+        return (
+            f"warning: mean importance weight {_number(self.mean)} is {why}: log_q is not the density that drew "
+            "these rollouts (e.g. one mixture component's instead of the mixture's): do not trust the estimate "
+            "below"
+        )
 
 
 def _number(x: float) -> str:

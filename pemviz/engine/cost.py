@@ -93,7 +93,7 @@ COST = CostConstants(
     row_epoch_s=2.98e-07,
     row_s=8.16e-06,
     pretrain_rows={"state": 12.2, "gap": 0.91},
-    ce_rows={"state": 2.21e+03, "gap": 130},
+    ce_rows={"state": 2.21e03, "gap": 130},
     ce_rows_exponent=0.32,
     ce_rows_stages=3.4,
     early_stop_share=0.88,
@@ -130,8 +130,9 @@ def ce_rows(cfg: ExperimentConfig, stage: int, n: int, c: CostConstants = COST) 
     return min(cap, max(1.0, c.ce_rows.get(cfg.proposal_inputs, 1.0) * (n / 100.0) ** c.ce_rows_exponent * ramp))
 
 
-def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS, c: CostConstants = COST,
-               stage: int | None = None) -> StageCost:  # fmt: skip
+def stage_cost(
+    cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS, c: CostConstants = COST, stage: int | None = None
+) -> StageCost:
     """Predicted seconds of a stage of ``kind`` (``pretrain`` | ``ce`` | ``final`` | ``ams``) with ``n`` rollouts.
 
     Args:
@@ -166,8 +167,9 @@ def stage_cost(cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS,
     return StageCost(simulate, fit)
 
 
-def plan_costs(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS,
-               c: CostConstants = COST) -> dict[int, StageCost]:  # fmt: skip
+def plan_costs(
+    cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, c: CostConstants = COST
+) -> dict[int, StageCost]:
     """Stage number -> :func:`stage_cost` of each stage of ``plan``."""
     return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage) for s in plan.stages}
 
@@ -203,8 +205,11 @@ class RunCost:
     @property
     def needs_confirm(self) -> bool:
         """Above any limit (:data:`CONFIRM_SIMULATIONS`, :data:`CONFIRM_SECONDS`, :data:`CONFIRM_BYTES`)."""
-        return (self.simulations > CONFIRM_SIMULATIONS or self.seconds > CONFIRM_SECONDS
-                or self.memory_bytes > CONFIRM_BYTES)  # fmt: skip
+        return (
+            self.simulations > CONFIRM_SIMULATIONS
+            or self.seconds > CONFIRM_SECONDS
+            or self.memory_bytes > CONFIRM_BYTES
+        )
 
     def text(self) -> str:
         mem = self.memory_bytes / 1024**2
@@ -221,8 +226,9 @@ def duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-def run_cost(cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, stream_above: int = 20_000,
-             c: CostConstants = COST) -> RunCost:  # fmt: skip
+def run_cost(
+    cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, stream_above: int = 20_000, c: CostConstants = COST
+) -> RunCost:
     """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, and the seconds of ``plan``
     (the sum of :func:`stage_cost`; an open-ended plan counts its first stage only).
 

@@ -203,6 +203,7 @@ class RunCancelled:
     reason: str
 
 
-Event = Union[RunStarted, StageStarted, RolloutChunk, RolloutsSampled, StageFinished, FinalEstimate, RunFinished,
-              RunCancelled]  # fmt: skip
+Event = Union[
+    RunStarted, StageStarted, RolloutChunk, RolloutsSampled, StageFinished, FinalEstimate, RunFinished, RunCancelled
+]
 Listener = Callable[[Event], None]

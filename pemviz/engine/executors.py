@@ -159,8 +159,12 @@ def simulate_chunk(
 
 
 def simulate_blocks(
-    problem: Any, n: int, blocks: list[tuple[int, int]], sampler: Detector, target: Detector,
-    rng_state: Mapping[str, Any]
+    problem: Any,
+    n: int,
+    blocks: list[tuple[int, int]],
+    sampler: Detector,
+    target: Detector,
+    rng_state: Mapping[str, Any],
 ) -> list[tuple[RolloutBatch, int, int]]:
     """:func:`simulate_chunk` of each block ``(start, stop)`` in turn (one Ray task's work)."""
     return [simulate_chunk(problem, n, a, b, sampler, target, rng_state) for a, b in blocks]
@@ -211,8 +215,10 @@ def probe_ray_address(address: str | None, timeout_s: float = RAY_PROBE_TIMEOUT_
     except socket.timeout:
         raise ValueError(f"--ray-address {address}: no answer within {timeout_s:g} s; is the Ray cluster up?") from None
     except OSError as exc:
-        raise ValueError(f"--ray-address {address}: cannot connect ({exc.strerror or exc}); is the Ray cluster "
-                         "up (ray start --head)?") from None
+        raise ValueError(
+            f"--ray-address {address}: cannot connect ({exc.strerror or exc}); is the Ray cluster "
+            "up (ray start --head)?"
+        ) from None
 
 
 class RayExecutor:

@@ -48,7 +48,8 @@ from pemviz.engine.events import (
     StageStarted,
 )
 from pemviz.engine.executors import get_executor
-from pemviz.estimators.base import Estimator, SeenFailures, StagePlan, extras, needs_chunk_rows
+from pemviz.estimators.base import Estimator, SeenFailures, StagePlan
+from pemviz.estimators.extras import extras, needs_chunk_rows
 from pemviz.estimators import build_estimator
 from pemviz.estimators.pooling import failure_population, pem_spread, severity_curve
 from pemviz.methods import get_method, plain_method
@@ -62,6 +63,8 @@ STREAM_ABOVE = 20_000
 """Stages of more rollouts than this are simulated chunk by chunk when the problem can stream
 (``Problem.stream``) and the executor is serial, and kept only as per-rollout numbers and a bounded sample: a
 [10^5, 100] batch with its robustness and masks holds ~1 GB, a chunk of 8,192 rollouts ~80 MB."""
+
+
 def stream_above(config: ExperimentConfig, n_objects: int = 1) -> int:
     """Rollouts above which a serial stage streams chunk by chunk: ``config.chunk_rollouts``, or
     :data:`STREAM_ABOVE` divided by the objects a rollout perceives (``n_objects``: a rollout of M objects holds M
@@ -185,8 +188,18 @@ class Experiment:
         cfg, pb = self.config, self.problem
         t_start = time.perf_counter()
         estimator = build_estimator(cfg, pb, self._check_cancel)  # it seeds its streams, the rollouts' included
-        self.emit(RunStarted(cfg, str(pb.formula), pb.curve_grid, pb.target_curve(), pb.view, estimator.plan(),
-                             pb.exact_log_p, pb.reference))  # fmt: skip
+        self.emit(
+            RunStarted(
+                cfg,
+                str(pb.formula),
+                pb.curve_grid,
+                pb.target_curve(),
+                pb.view,
+                estimator.plan(),
+                pb.exact_log_p,
+                pb.reference,
+            )
+        )
         try:
             while (plan := estimator.next_stage()) is not None:
                 self._stage(estimator, plan)
@@ -200,11 +213,23 @@ class Experiment:
         seen = self.seen_failures.log_p
         pooled, cap = said.pooling, said.verdict_cap
         est = est.below_seen(seen)
-        final = FinalEstimate(est, n_sim, time.perf_counter() - t_start, used, seen, pooled, said.stop, cap,
-                              said.decision, severity_curve(pb, estimator, est, used, pooled, cap),
-                              pem_spread(pb, estimator, est, used, pooled, cap),
-                              failure_population(estimator, used, pooled), pb.look_ahead is not None,
-                              said.prepared, plain_probe(pb, cfg, est))  # fmt: skip
+        final = FinalEstimate(
+            est,
+            n_sim,
+            time.perf_counter() - t_start,
+            used,
+            seen,
+            pooled,
+            said.stop,
+            cap,
+            said.decision,
+            severity_curve(pb, estimator, est, used, pooled, cap),
+            pem_spread(pb, estimator, est, used, pooled, cap),
+            failure_population(estimator, used, pooled),
+            pb.look_ahead is not None,
+            said.prepared,
+            plain_probe(pb, cfg, est),
+        )
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))
         self.emit(done)
@@ -222,8 +247,12 @@ class Experiment:
             # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
             # almost never fail, so coupling them would reduce no estimate's variance
             parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
-        if (plan.draw is None and plan.n > stream_above(cfg, pb.n_objects) and pb.stream is not None
-                and cfg.executor == "serial"):
+        if (
+            plan.draw is None
+            and plan.n > stream_above(cfg, pb.n_objects)
+            and pb.stream is not None
+            and cfg.executor == "serial"
+        ):
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
@@ -238,18 +267,38 @@ class Experiment:
             self.seen_failures.add(pb, batch, failed)
             log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
             self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target))
-            self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, failed, log_w,
-                                      plan.sampler, target=target))  # fmt: skip
+            self.emit(
+                RolloutsSampled(
+                    plan.stage,
+                    plan.kind,
+                    batch,
+                    by_metric[cfg.metric],
+                    by_metric,
+                    failed,
+                    log_w,
+                    plan.sampler,
+                    target=target,
+                )
+            )
         self.n_simulations += plan.n
         out = estimator.finish()
-        res = StageResult(plan.stage, plan.kind, out.gamma, out.n_elites, out.estimate, out.proposal_curve,
-                          out.elite_detect_rate, time.perf_counter() - t0)  # fmt: skip
+        res = StageResult(
+            plan.stage,
+            plan.kind,
+            out.gamma,
+            out.n_elites,
+            out.estimate,
+            out.proposal_curve,
+            out.elite_detect_rate,
+            time.perf_counter() - t0,
+        )
         self.stages.append(res)
         self.emit(StageFinished(res))
         return res
 
-    def _streamed(self, estimator: Estimator, plan: StagePlan, parts: list[tuple[int, Detector]],
-                  target: Detector) -> None:  # fmt: skip
+    def _streamed(
+        self, estimator: Estimator, plan: StagePlan, parts: list[tuple[int, Detector]], target: Detector
+    ) -> None:
         """Simulate a stage chunk by chunk (:func:`stream_above`), ``parts`` = (rollouts, detector) in order, scored
         under ``target``: the estimator and the listeners see each chunk once, then the listeners a
         :class:`StageSample` of the stage."""
@@ -267,16 +316,32 @@ class Experiment:
             failed = pb.failed(batch, robustness if cfg.metric == "classic" else None)
             self.seen_failures.add(pb, batch, failed)
             log_w = estimator.observe(batch, failed, robustness)
-            self.emit(RolloutChunk(plan.stage, plan.kind, sample.seen, batch, log_w, plan.sampler, tuple(plan.parts),
-                                   pb.target))  # fmt: skip
+            self.emit(
+                RolloutChunk(
+                    plan.stage, plan.kind, sample.seen, batch, log_w, plan.sampler, tuple(plan.parts), pb.target
+                )
+            )
             sample.add(batch, robustness, failed, log_w)
         batch, index = sample.rollouts()
         batch = batch.with_rows()  # the listeners' sample holds its rows
         by_metric = RobustnessByMetric(pb, batch)
-        self.emit(RolloutsSampled(plan.stage, plan.kind, batch, by_metric[cfg.metric], by_metric, sample.failed[index],
-                                  sample.log_weight[index], plan.sampler, n_total=plan.n, index=index,
-                                  stage_robustness=sample.robustness, stage_log_weight=sample.log_weight,
-                                  target=target))  # fmt: skip
+        self.emit(
+            RolloutsSampled(
+                plan.stage,
+                plan.kind,
+                batch,
+                by_metric[cfg.metric],
+                by_metric,
+                sample.failed[index],
+                sample.log_weight[index],
+                plan.sampler,
+                n_total=plan.n,
+                index=index,
+                stage_robustness=sample.robustness,
+                stage_log_weight=sample.log_weight,
+                target=target,
+            )
+        )
 
 
 PLAIN_PROBE = 1000

@@ -43,8 +43,9 @@ def available_memory() -> int | None:
         return None
 
 
-def run_memory(plan: RunPlan, n_steps: int, quantile_level: float = 0.0, *, stream_above: int | None = None,
-               chunk: int = 8192) -> int:  # fmt: skip
+def run_memory(
+    plan: RunPlan, n_steps: int, quantile_level: float = 0.0, *, stream_above: int | None = None, chunk: int = 8192
+) -> int:
     """Peak bytes a run of ``plan`` (:class:`~pemviz.core.plan.RunPlan`) needs for batches of ``n_steps`` steps.
 
     The largest stage held at once, each [N, T] whole or, above ``stream_above`` rollouts, one chunk plus

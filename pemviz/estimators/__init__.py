@@ -68,8 +68,10 @@ def _method_of(config: ExperimentConfig) -> Method:
             cannot take more final batches (:attr:`pemviz.methods.Method.extensible`)."""
     method = get_method(config.method)
     if config.stop_rule is not None and not method.extensible:
-        raise ValueError(f"method {method.name} cannot add final batches: --rel-error and --require need a method "
-                         "that can (adaptive, mc, naive50, mixed50, tilt)")
+        raise ValueError(
+            f"method {method.name} cannot add final batches: --rel-error and --require need a method "
+            "that can (adaptive, mc, naive50, mixed50, tilt)"
+        )
     return method
 
 
@@ -81,4 +83,3 @@ def run_plan(config: ExperimentConfig) -> RunPlan:
     method = _method_of(config)
     plan = method.run_plan(config)
     return plan if config.stop_rule is None or not method.extensible else RunPlan(plan.stages, open_ended=True)
-

@@ -49,7 +49,8 @@ from scipy.special import logsumexp, ndtri
 from pemviz import stl
 from pemviz.config import ExperimentConfig
 from pemviz.settings import settings_of
-from pemviz.core.estimate import CI_LEVEL, MIN_FAILURES, Estimate
+from pemviz.core.confidence import CI_LEVEL
+from pemviz.core.estimate import MIN_FAILURES, Estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure
 from pemviz.core.plan import RunPlan
@@ -73,12 +74,18 @@ class GradedScore(Protocol):
 
     def simulate(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]: ...
 
-    def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
-               rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]: ...  # fmt: skip
+    def branch(
+        self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, rng: np.random.Generator
+    ) -> tuple[RolloutBatch, np.ndarray]: ...
 
 
-def running_score(problem: Problem, batch: RolloutBatch, graded: np.ndarray | None = None,
-                  prefix: np.ndarray | None = None, at: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+def running_score(
+    problem: Problem,
+    batch: RolloutBatch,
+    graded: np.ndarray | None = None,
+    prefix: np.ndarray | None = None,
+    at: np.ndarray | None = None,
+) -> np.ndarray:
     """The score of every prefix, float64 [N, T]: the running minimum over ``t' <= t`` of the operand's classic
     robustness (:func:`step_robustness`), or with ``graded`` [N, T] (a :class:`GradedScore`'s) of the graded score
     (at least :data:`SCORE_FLOOR`) at steps that do not fail and the robustness (< 0) at those that do. The last
@@ -209,12 +216,20 @@ class Splitting:
 
     def estimate(self) -> Estimate:
         """p_hat with its :data:`CI_LEVEL` interval, diagnostics and verdict (see :func:`ams_estimate`)."""
-        return ams_estimate(self.problem, self.particles, self.running[:, -1] < 0.0, self.eve, self.log_prod,
-                            self.ratio_sum, self.stop)  # fmt: skip
+        return ams_estimate(
+            self.problem, self.particles, self.running[:, -1] < 0.0, self.eve, self.log_prod, self.ratio_sum, self.stop
+        )
 
 
-def ams_estimate(problem: Problem, particles: RolloutBatch, failed: np.ndarray, eve: np.ndarray, log_prod: float,
-                 ratio_sum: float, stop: str) -> Estimate:  # fmt: skip
+def ams_estimate(
+    problem: Problem,
+    particles: RolloutBatch,
+    failed: np.ndarray,
+    eve: np.ndarray,
+    log_prod: float,
+    ratio_sum: float,
+    stop: str,
+) -> Estimate:
     """The AMS estimate of the particles now: ``log p_hat = log_prod + log(failures / N)`` (nats).
 
     Interval: log p_hat -+ z sqrt(v), z the normal quantile of :data:`CI_LEVEL`, v the larger of two relative
@@ -235,8 +250,9 @@ def ams_estimate(problem: Problem, particles: RolloutBatch, failed: np.ndarray, 
     lp = log_p_before_failure(problem, particles)[failed]
     if nf == 0 or log_prod == -math.inf:
         why = stop if log_prod == -math.inf else f"no particle fails ({stop or 'the run goes on'})"
-        return Estimate(n, nf, -math.inf, math.nan, math.nan, 0.0, (-math.inf, 0.0), math.nan, 0.0, "unreliable",
-                        f"AMS: {why}")  # fmt: skip
+        return Estimate(
+            n, nf, -math.inf, math.nan, math.nan, 0.0, (-math.inf, 0.0), math.nan, 0.0, "unreliable", f"AMS: {why}"
+        )
     r = nf / n
     v_ideal = (ratio_sum + (1.0 - r) / r) / n
     counts = np.bincount(eve[failed], minlength=n)
@@ -250,13 +266,29 @@ def ams_estimate(problem: Problem, particles: RolloutBatch, failed: np.ndarray, 
     elif nf < MIN_FAILURES:
         verdict, reason = "doubtful", f"only {nf} failing particle{'s' if nf != 1 else ''}"
     elif families < MIN_FAILURES:
-        verdict, reason = "doubtful", (f"AMS: the {nf} failures descend from {families} of {n} initial rollout"
-                                       f"{'s' if families != 1 else ''}")  # fmt: skip
+        verdict, reason = (
+            "doubtful",
+            (
+                f"AMS: the {nf} failures descend from {families} of {n} initial rollout"
+                f"{'s' if families != 1 else ''}"
+            ),
+        )
     else:
         verdict, reason = "reliable", f"AMS: {nf} failures from {families} initial rollouts"
-    return Estimate(n, nf, log_p, float(-lp.mean()), -(float(logsumexp(lp)) - math.log(nf)), 1.0 / v,
-                    (log_p - half, log_p + half), math.nan, 0.0, verdict, reason,
-                    markov_logs=(log_p,))  # unbiased, stopped early or not: Markov's bound  # fmt: skip
+    return Estimate(
+        n,
+        nf,
+        log_p,
+        float(-lp.mean()),
+        -(float(logsumexp(lp)) - math.log(nf)),
+        1.0 / v,
+        (log_p - half, log_p + half),
+        math.nan,
+        0.0,
+        verdict,
+        reason,
+        markov_logs=(log_p,),
+    )  # unbiased, stopped early or not: Markov's bound
 
 
 class AdaptiveMultilevelSplitting(OwnsSettings):
@@ -286,8 +318,14 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         self.config, self.problem = config, problem
         self.check: Check = check or (lambda: None)
         self.rng = np.random.default_rng(config.seed)
-        self.ams = Splitting(problem, config.ams_killed, config.ams_max_iterations, self.rng,
-                             np.random.default_rng((config.seed, 1)), committor_score(problem, config.ams_score))
+        self.ams = Splitting(
+            problem,
+            config.ams_killed,
+            config.ams_max_iterations,
+            self.rng,
+            np.random.default_rng((config.seed, 1)),
+            committor_score(problem, config.ams_score),
+        )
         self._stage = -1
         self._initial: list[RolloutBatch] = []
         self._graded: np.ndarray | None = None
@@ -334,8 +372,9 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
 
     def finish(self) -> StageOutcome:
         if self._stage == 0:
-            self.ams.start(RolloutBatch.concatenate(self._initial) if len(self._initial) > 1 else self._initial[0],
-                           self._graded)
+            self.ams.start(
+                RolloutBatch.concatenate(self._initial) if len(self._initial) > 1 else self._initial[0], self._graded
+            )
             self._initial, self._graded = [], None
         nan = np.full(self.problem.curve_grid.size, np.nan)
         failed = self.ams.score < 0.0
@@ -361,16 +400,19 @@ def committor_score(problem: Problem, score: str) -> GradedScore | None:
         return LookAheadScore(problem)
     tilt = problem.tilt() if problem.tilt is not None else None
     if tilt is None or not hasattr(tilt, "splitting_score"):
-        raise ValueError(f"ams_score committor needs a scenario with a learned committor; "
-                         f"{problem.name} has none: use ams_score robustness")  # fmt: skip
+        raise ValueError(
+            f"ams_score committor needs a scenario with a learned committor; "
+            f"{problem.name} has none: use ams_score robustness"
+        )
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(1, user_api="blas"):
         return tilt.splitting_score(problem)
 
 
-def run_ams(problem: Problem, n: int, killed: int, seed: int = 0, max_iterations: int = 100_000,
-            score: str = "robustness") -> Splitting:  # fmt: skip
+def run_ams(
+    problem: Problem, n: int, killed: int, seed: int = 0, max_iterations: int = 100_000, score: str = "robustness"
+) -> Splitting:
     """One whole AMS run without the engine (for studies and tests): N particles from ``problem.target``, seeded
     like ``method = "ams"`` with ``seed`` and ranked by ``score`` (``ams_score``); returns the finished
     :class:`Splitting` (``.estimate()``, ``.n_simulations``).
@@ -378,8 +420,9 @@ def run_ams(problem: Problem, n: int, killed: int, seed: int = 0, max_iterations
     Raises:
         ValueError: as :class:`AdaptiveMultilevelSplitting`.
     """
-    cfg = ExperimentConfig(method="ams", n_per_stage=n, ams_killed=killed, ams_max_iterations=max_iterations,
-                           seed=seed, ams_score=score)  # fmt: skip
+    cfg = ExperimentConfig(
+        method="ams", n_per_stage=n, ams_killed=killed, ams_max_iterations=max_iterations, seed=seed, ams_score=score
+    )
     est = AdaptiveMultilevelSplitting(cfg, problem)
     if est.ams.scorer is not None:
         est.ams.start(*est.ams.scorer.simulate(n, est.rng))

@@ -125,46 +125,6 @@ class Estimator(Protocol):
         ...
 
 
-@dataclass(frozen=True)
-class Extras:
-    """What an estimator may say besides the :class:`Estimator` interface, read once its run is over (every field
-    optional for an estimator of one's own; :func:`extras`).
-
-    Attributes:
-        n_simulations: the rollout-equivalents it simulated (None: the rollouts the engine drew), e.g. splitting's
-            continuations or a proposal's look-aheads counted.
-        pooling: how its result pools the stages (``pooling()``: (name, lambda_k) or None), or None.
-        verdict_cap: the best verdict its estimate may have and why (e.g. ``("doubtful", ...)``), or None.
-        stop: why it stopped (one line), or None.
-        decision: a requirement's decision (:class:`pemviz.core.requirement.Decision`), or None.
-        prepared: how its proposal was prepared (one line), or None.
-        needs_chunk_rows: whether a streamed stage's chunks must carry their object rows (True unless it says not).
-    """
-
-    n_simulations: int | None = None
-    pooling: tuple[str, tuple[float, ...]] | None = None
-    verdict_cap: tuple[str, str] | None = None
-    stop: str | None = None
-    decision: Any = None
-    prepared: str | None = None
-    needs_chunk_rows: bool = True
-
-
-def extras(estimator: Any) -> Extras:
-    """The :class:`Extras` of ``estimator``: the attributes of those names it has (``pooling`` called), the defaults
-    for the others."""
-    pooling = getattr(estimator, "pooling", None)
-    return Extras(getattr(estimator, "n_simulations", None), pooling() if callable(pooling) else None,
-                  getattr(estimator, "verdict_cap", None), getattr(estimator, "stop", None),
-                  getattr(estimator, "decision", None), getattr(estimator, "prepared", None),
-                  bool(getattr(estimator, "needs_chunk_rows", True)))  # fmt: skip
-
-
-def needs_chunk_rows(estimator: Any) -> bool:
-    """Whether ``estimator`` reads every streamed chunk's object rows (:attr:`Extras.needs_chunk_rows`)."""
-    return bool(getattr(estimator, "needs_chunk_rows", True))
-
-
 def failure_steps(problem: Problem, batch: RolloutBatch, level: float = 0.0) -> np.ndarray:
     """The step at which each rollout fails, int [N] (T when it does not): :func:`pemviz.stl.first_violation` of
     the problem's safety formula on the batch's signals (robustness of the operand <= ``level``; < 0 at level 0).
@@ -217,8 +177,9 @@ def weighted_steps_mask(problem: Problem, batch: RolloutBatch, until_failure: bo
     return np.arange(batch.n_steps)[None, :] < k[:, None]
 
 
-def look_ahead_weights(problem: Problem, batch: RolloutBatch,
-                       weigh: Weigh | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
+def look_ahead_weights(
+    problem: Problem, batch: RolloutBatch, weigh: Weigh | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The conditional Monte Carlo weights of the problem's look-ahead (:attr:`pemviz.core.problems.Problem.look_ahead`;
     None where it has none): (log w_i + log V_i where V_i > 0, else log w_i; V_i > 0, bool; log w_i), [N] each, in nats,
     w_i the importance weight over the steps before rollout i's start (``weigh(mask)`` for a mixture, else the sum of
@@ -298,8 +259,10 @@ class SeenFailures:
         k = steps[rows]
         detected = batch.detected.reshape(batch.n, batch.n_steps, -1)[rows]
         detected = detected & (np.arange(batch.n_steps)[None, :, None] < k[:, None, None])  # the prefix before t_f
-        keys = np.concatenate([np.packbits(detected.reshape(rows.size, -1), axis=1),
-                               k.astype("<u4").view(np.uint8).reshape(-1, 4)], axis=1)  # fmt: skip
+        keys = np.concatenate(
+            [np.packbits(detected.reshape(rows.size, -1), axis=1), k.astype("<u4").view(np.uint8).reshape(-1, 4)],
+            axis=1,
+        )
         _, first = np.unique(keys, axis=0, return_index=True)  # each prefix once per batch
         self._log_p.update(zip((keys[i].tobytes() for i in first), log_p[first].tolist(), strict=False))
         if len(self._log_p) > 2 * self.KEEP:
@@ -339,9 +302,15 @@ Weigh = Callable[[np.ndarray], np.ndarray]
 mixture's (:func:`mixture_log_weight`); None where the weights are sum (log p - log q) over the masked steps."""
 
 
-def severity_arrays(problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
-                    log_w: np.ndarray, weigh: Weigh | None = None,
-                    log_p: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:  # fmt: skip
+def severity_arrays(
+    problem: Problem,
+    batch: RolloutBatch,
+    failed: np.ndarray,
+    until_failure: bool,
+    log_w: np.ndarray,
+    weigh: Weigh | None = None,
+    log_p: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Per severity level of ``problem.severity`` (:class:`pemviz.core.severity.SeverityScale`): each rollout's
     importance log-weight up to the step its event is decided, the event, and log p over the same steps.
 
@@ -388,8 +357,9 @@ def severity_arrays(problem: Problem, batch: RolloutBatch, failed: np.ndarray, u
     return out_w, hit, out_p
 
 
-def alternative_log_weights(problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
-                            log_w: np.ndarray) -> np.ndarray | None:  # fmt: skip
+def alternative_log_weights(
+    problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool, log_w: np.ndarray
+) -> np.ndarray | None:
     """Each failing rollout's importance log-weight under each of ``problem.alternatives`` (other PEMs, shifted PEMs:
     :mod:`pemviz.core.reweight`), float64 [K, N] (nats), or None without alternatives: ``log_w`` plus the detections'
     log-likelihood ratio over the same steps (:func:`pemviz.core.reweight.detection_log_ratios`). A rollout that does
@@ -404,8 +374,9 @@ def alternative_log_weights(problem: Problem, batch: RolloutBatch, failed: np.nd
     if rows.size:
         mask = weighted_steps_mask(problem, batch, until_failure)[rows]
         detected = batch.detected.reshape(batch.n, batch.n_steps, -1)[rows]
-        ratios = detection_log_ratios(problem.target, [a.detector for a in alternatives], batch.object_rows_of(rows),
-                                      detected, mask)  # fmt: skip
+        ratios = detection_log_ratios(
+            problem.target, [a.detector for a in alternatives], batch.object_rows_of(rows), detected, mask
+        )
         out[:, rows] = out[:, rows] + ratios
     return out
 
@@ -423,9 +394,16 @@ class StageRollouts:
         self.alternative_parts: list[np.ndarray | None] = []
         self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
 
-    def add(self, problem: Problem, batch: RolloutBatch, failed: np.ndarray, until_failure: bool,
-            count_failures: bool = True, log_w: np.ndarray | None = None,
-            weigh: Weigh | None = None) -> np.ndarray:  # fmt: skip
+    def add(
+        self,
+        problem: Problem,
+        batch: RolloutBatch,
+        failed: np.ndarray,
+        until_failure: bool,
+        count_failures: bool = True,
+        log_w: np.ndarray | None = None,
+        weigh: Weigh | None = None,
+    ) -> np.ndarray:
         """Add a chunk (``count_failures``: bin its failures' detections too); returns its log-weights [N]
         (``log_w``: given, e.g. by a mixture, :func:`mixture_log_weight`, with ``weigh`` the same over any steps;
         None: :func:`log_weight`)."""
@@ -459,8 +437,10 @@ class StageRollouts:
             return None
         if len(self.severity_parts) == 1:
             return self.severity_parts[0]
-        return tuple(np.concatenate(a, axis=1)  # type: ignore[return-value]
-                     for a in zip(*self.severity_parts, strict=False))
+        return tuple(
+            np.concatenate(a, axis=1)  # type: ignore[return-value]
+            for a in zip(*self.severity_parts, strict=False)
+        )
 
     def alternative_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(log-weights under each alternative [K, N], failed [K, N], log p before the failure [K, N]) over every
@@ -475,8 +455,13 @@ class StageRollouts:
     def failures_outcome(self, proposal_curve: np.ndarray) -> StageOutcome:
         """A batch drawn only to be weighed: its failures are its elites, no threshold."""
         log_w, failed, log_p = self.arrays()
-        return StageOutcome(float("nan"), int(failed.sum()), estimate(log_w, failed, log_p), proposal_curve,
-                            detect_rate(self.counts, self.hits))  # fmt: skip
+        return StageOutcome(
+            float("nan"),
+            int(failed.sum()),
+            estimate(log_w, failed, log_p),
+            proposal_curve,
+            detect_rate(self.counts, self.hits),
+        )
 
 
 def elite_count(n: int, quantile_level: float) -> int:
@@ -575,8 +560,11 @@ class EliteCandidates:
             return None, np.zeros(0), np.zeros(0, np.int64)
         if len(self._kept) == 1:
             return self._kept[0]
-        return (RolloutBatch.concatenate([b for b, _, _ in self._kept]), np.concatenate([r for _, r, _ in self._kept]),
-                np.concatenate([i for _, _, i in self._kept]))  # fmt: skip
+        return (
+            RolloutBatch.concatenate([b for b, _, _ in self._kept]),
+            np.concatenate([r for _, r, _ in self._kept]),
+            np.concatenate([i for _, _, i in self._kept]),
+        )
 
 
 def pooled_estimate(stages: list[StageRollouts], stage_weights: np.ndarray | None = None) -> Estimate:

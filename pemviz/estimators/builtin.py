@@ -84,15 +84,19 @@ def adaptive_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
     from pemviz.config import has_final_batch, whole_rollout_fit_refusal
 
     if config.target_share + config.plain_share > 0.0 and not (
-            config.weights == "frozen" and (config.weights_until_failure or config.proposal_window)):
-        return "target_share", ("a mixture over rollouts needs weights = 'frozen' and weights_until_failure or "
-                                "proposal_window; set target_share = plain_share = 0 (preset state-ce-step) for the "
-                                "others")  # fmt: skip
+        config.weights == "frozen" and (config.weights_until_failure or config.proposal_window)
+    ):
+        return "target_share", (
+            "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or "
+            "proposal_window; set target_share = plain_share = 0 (preset state-ce-step) for the "
+            "others"
+        )
     if n_objects != 1 and config.fits_whole_rollouts:
         return "scenario", whole_rollout_fit_refusal(config, n_objects)
     if config.stop_rule is not None and not has_final_batch(config):
-        return config.stop_rule, ("a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled "
-                                  "or fresh)")  # fmt: skip
+        return config.stop_rule, (
+            "a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled " "or fresh)"
+        )
     return None
 
 
@@ -105,8 +109,9 @@ def ams_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
     return None
 
 
-def adaptive_more_budget(config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None,
-                         within_s: float | None, text: Any) -> str | None:  # fmt: skip
+def adaptive_more_budget(
+    config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None, text: Any
+) -> str | None:
     """The cross-entropy sampler's route (:attr:`Method.more_budget <pemviz.methods.Method>`): a run at
     4 N (pretraining, K stages of 4 N and the final batch) or a precision target."""
     from pemviz.config import has_final_batch
@@ -117,38 +122,48 @@ def adaptive_more_budget(config: Any, n_simulations: int | None, s_per: float | 
     return text.importance_route(config, n_simulations, s_per, within_s, sims)
 
 
-def tilt_more_budget(config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None,
-                     within_s: float | None, text: Any) -> str | None:  # fmt: skip
+def tilt_more_budget(
+    config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None, text: Any
+) -> str | None:
     """The tilted proposal's route: more batches of it to a 20 % interval."""
     m = text.cap(config, n_simulations, s_per, within_s)
     if m is None:
         return None
-    return (f"more tilted batches (--rel-error 0.2 --max-sims {m}{text.tail(within_s)}: up to {m:,} simulations"
-            f"{text.time(m, s_per)})")  # fmt: skip
+    return (
+        f"more tilted batches (--rel-error 0.2 --max-sims {m}{text.tail(within_s)}: up to {m:,} simulations"
+        f"{text.time(m, s_per)})"
+    )
 
 
-def ams_more_budget(config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None,
-                    within_s: float | None, text: Any) -> str | None:  # fmt: skip
+def ams_more_budget(
+    config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None, text: Any
+) -> str | None:
     """Splitting's route: no final batch to add to, so more particles (about 4 times the time), or a graded score."""
     n = int(getattr(config, "n_per_stage", 100))
     more = f"more particles (--n {4 * n}{text.time(4.0, wall_s) if wall_s else ''})"
     if getattr(config, "ams_score", "robustness") == "robustness":
-        return (f"{more}, or particles ranked by the scenario's committor where it has one (--ams-score committor: "
-                "where the robustness is flat every particle ties and the run dies out)")  # fmt: skip
+        return (
+            f"{more}, or particles ranked by the scenario's committor where it has one (--ams-score committor: "
+            "where the robustness is flat every particle ties and the run dies out)"
+        )
     return more
 
 
 def adaptive_no_failure(n: int) -> str:
     """What to try after a cross-entropy run of ``n`` rollouts without a failure."""
-    return ("the sampler never reached a crash. More stages (K), more rollouts (N) or the state-ce preset move the "
-            "proposal further towards the failures.")  # fmt: skip
+    return (
+        "the sampler never reached a crash. More stages (K), more rollouts (N) or the state-ce preset move the "
+        "proposal further towards the failures."
+    )
 
 
 def mc_no_failure(n: int) -> str:
     """What to try after ``n`` plain rollouts without a failure."""
-    return (f"plain Monte Carlo draws every rollout from the PEM itself, so a failure of probability p shows up about "
-            f"once in 1/p rollouts; none in {n:,} only says p is likely below {3.0 / n:.2g}. The adaptive method "
-            "(state-ce preset) reaches failures far rarer than that.")  # fmt: skip
+    return (
+        f"plain Monte Carlo draws every rollout from the PEM itself, so a failure of probability p shows up about "
+        f"once in 1/p rollouts; none in {n:,} only says p is likely below {3.0 / n:.2g}. The adaptive method "
+        "(state-ce preset) reaches failures far rarer than that."
+    )
 
 
 def ams_no_failure(n: int) -> str:

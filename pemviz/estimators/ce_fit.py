@@ -226,16 +226,29 @@ def ce_update(
     if weights == "frozen" and step_mask is not None:
         scaled = smoothing * frozen_log_w
         rows, actions = inputs[idx][mask], detected[idx][mask]
-        return fit_elite_steps(proposal, rows, actions, np.broadcast_to(scaled[:, None], mask.shape)[mask],
-                               float(scaled.max()), epochs=epochs, lr=lr, check=check, fit=fit, max_rows=max_rows,
-                               rng=rng, tolerance=tolerance, dtype=dtype)  # fmt: skip
+        return fit_elite_steps(
+            proposal,
+            rows,
+            actions,
+            np.broadcast_to(scaled[:, None], mask.shape)[mask],
+            float(scaled.max()),
+            epochs=epochs,
+            lr=lr,
+            check=check,
+            fit=fit,
+            max_rows=max_rows,
+            rng=rng,
+            tolerance=tolerance,
+            dtype=dtype,
+        )
     if weights == "frozen":
         scaled = smoothing * frozen_log_w
         step_w = np.exp(scaled - scaled.max())[:, None] * mask
         if not _summed_fit(fit, max_rows, int(np.count_nonzero(step_w))):
             step_w = np.broadcast_to(step_w, detected[idx].shape)
-            rows, counts = weighted_steps(inputs[idx], detected[idx], step_w, max_rows or step_w.size,
-                                           rng or np.random.default_rng(0))  # fmt: skip
+            rows, counts = weighted_steps(
+                inputs[idx], detected[idx], step_w, max_rows or step_w.size, rng or np.random.default_rng(0)
+            )
             total = float(counts.sum())
             return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
         uniq, counts, _ = _action_counts(inputs[idx], detected[idx], step_w[:, 0])
@@ -331,8 +344,7 @@ def fit_elite_steps(
     if tolerance is None:
         return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, dtype=dtype)
     # the proposal starts from the last stage's fit (a warm start): stop once the loss per step stops falling
-    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, tolerance, per=float(counts.sum()),
-                        dtype=dtype)
+    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, tolerance, per=float(counts.sum()), dtype=dtype)
 
 
 class EliteSteps:
@@ -351,8 +363,14 @@ class EliteSteps:
             (until a thinning).
     """
 
-    def __init__(self, grid: np.ndarray, max_rows: int | None, rng: np.random.Generator,
-                 thin_above: int | None = None, keep_observations: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self,
+        grid: np.ndarray,
+        max_rows: int | None,
+        rng: np.random.Generator,
+        thin_above: int | None = None,
+        keep_observations: bool = False,
+    ) -> None:
         self.grid, self.max_rows, self.rng = grid, max_rows, rng
         self.thin_above = None if max_rows is None else (thin_above or 20 * max_rows)
         self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
@@ -364,8 +382,15 @@ class EliteSteps:
         self.n_rollouts, self.n_steps, self.held, self.thinned = 0, 0, 0, False
         self.log_w_max = -np.inf
 
-    def add(self, index: np.ndarray, batch: RolloutBatch, features: np.ndarray, mask: np.ndarray,
-            log_w: np.ndarray, weighted: np.ndarray | None = None) -> None:  # fmt: skip
+    def add(
+        self,
+        index: np.ndarray,
+        batch: RolloutBatch,
+        features: np.ndarray,
+        mask: np.ndarray,
+        log_w: np.ndarray,
+        weighted: np.ndarray | None = None,
+    ) -> None:
         """Elite rollouts ``index`` [m] of the stage: the features of their object events [m, S(, k)] (S = T M,
         :meth:`~pemviz.core.rollouts.RolloutBatch.events`), the events' mask bool [m, S], smoothed log-weights alpha
         log w_i [m] and (``keep_observations``) the events of ``mask`` whose steps count in the weights, bool [m, S]
@@ -379,8 +404,9 @@ class EliteSteps:
         self.parts.append((order, features[mask], detected[mask], np.broadcast_to(log_w[:, None], mask.shape)[mask]))
         if self.keep_observations:
             noise = None if batch.noise is None else batch.noise.reshape(batch.n, -1, batch.noise.shape[-1])[mask]
-            self.observations.append((rows[mask], np.ones(int(mask.sum()), bool) if weighted is None
-                                      else weighted[mask], noise))  # fmt: skip
+            self.observations.append(
+                (rows[mask], np.ones(int(mask.sum()), bool) if weighted is None else weighted[mask], noise)
+            )
         self.n_rollouts += index.size
         self.n_steps += int(mask.sum())
         self.held += int(mask.sum())
@@ -403,8 +429,9 @@ class EliteSteps:
         hit = counts > 0  # [U, 2]: (miss, detect) weights of each distinct input
         slot, action = np.nonzero(hit)
         with np.errstate(divide="ignore"):
-            self.parts = [(np.zeros(slot.size, np.int64), uniq[slot], action.astype(bool),
-                           np.log(counts[slot, action]) + top)]  # fmt: skip
+            self.parts = [
+                (np.zeros(slot.size, np.int64), uniq[slot], action.astype(bool), np.log(counts[slot, action]) + top)
+            ]
         self.held, self.thinned = slot.size, True
         self.observations, self.keep_observations = [], False  # the steps no longer belong to rollouts: no reweighting
 
@@ -434,5 +461,6 @@ class EliteSteps:
         """:func:`fit_elite_steps` on the gathered steps (``kwargs``: epochs, lr, check, fit, max_rows, rng,
         tolerance)."""
         rows, actions, log_w = self.arrays()
-        return fit_elite_steps(proposal, rows, actions, log_w, self.log_w_max,
-                               n_steps=self.n_steps if self.thinned else None, **kwargs)  # fmt: skip
+        return fit_elite_steps(
+            proposal, rows, actions, log_w, self.log_w_max, n_steps=self.n_steps if self.thinned else None, **kwargs
+        )

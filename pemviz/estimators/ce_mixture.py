@@ -30,8 +30,10 @@ class MixtureWeights:
         plan, pb = self._plan, self.problem
         log_p = (batch.log_p * mask).sum(axis=1)
         extras = self._scored.extras
-        log_q = [log_p if d is pb.target else (batch.log_q_parts[:, extras.index(d)] * mask).sum(axis=1)
-                 for _, d in plan.mixture]  # fmt: skip
+        log_q = [
+            log_p if d is pb.target else (batch.log_q_parts[:, extras.index(d)] * mask).sum(axis=1)
+            for _, d in plan.mixture
+        ]
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
 
     def _with_parts(self, batch: RolloutBatch) -> RolloutBatch:
@@ -75,8 +77,13 @@ class MixtureWeights:
         rollouts of one mixture component, so that the proposal network sees the same rows and gives the same bits as it
         gave there."""
         plan, n, n_steps, m = self._plan, batch.n, batch.n_steps, batch.n_objects
-        rebuilt = dict(zip((id(d) for _, d in plan.mixture), (d for _, d in self._around(plan.mixture, self.proposal)),
-                           strict=False))
+        rebuilt = dict(
+            zip(
+                (id(d) for _, d in plan.mixture),
+                (d for _, d in self._around(plan.mixture, self.proposal)),
+                strict=False,
+            )
+        )
         extras = [rebuilt[id(d)] for d in self._scored.extras]
         logits = np.empty((len(extras), n, n_steps, m))
         object_rows = batch.object_rows
@@ -94,8 +101,14 @@ class MixtureWeights:
                         logits[j, rows, t] = np.asarray(d.detect_logit(obs)).reshape(b - a, m)
         return logits
 
-    def _pool_log_weight(self, rollout: np.ndarray, obs: np.ndarray, actions: np.ndarray,
-                         counts: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    def _pool_log_weight(
+        self,
+        rollout: np.ndarray,
+        obs: np.ndarray,
+        actions: np.ndarray,
+        counts: np.ndarray,
+        noise: np.ndarray | None = None,
+    ) -> np.ndarray:
         """alpha log w of each step's rollout [S] (nats) for ``fit_weights = "mixture"``: w = p(x) / sum_j c_j q_j(x)
         over the samplers q_j of every stage in the failure pool, c_j their shares of its rollouts (the balance
         heuristic over all stages, the deterministic-mixture weight of adaptive multiple importance sampling:
@@ -124,8 +137,11 @@ class MixtureWeights:
             return known[ids]
 
         log_p = log_prob("target", pb.target)
-        parts = [(k, i, n, d) for k in range(self._pool_start, self._plan.stage + 1)
-                 for i, (n, d) in enumerate(self._stage_samplers[k])]  # fmt: skip
+        parts = [
+            (k, i, n, d)
+            for k in range(self._pool_start, self._plan.stage + 1)
+            for i, (n, d) in enumerate(self._stage_samplers[k])
+        ]
         log_q = np.stack([log_p if d is pb.target else log_prob((k, i), d) for k, i, _, d in parts])
         shares = np.array([n for _, _, n, _ in parts], dtype=np.float64)
         log_w = mixture_log_weight(log_p, log_q, shares / shares.sum())

@@ -48,6 +48,7 @@ from pemviz.core.problems import Problem
 from pemviz.core.fit_settings import EXACT
 from pemviz.core.sampling import Proposal, StateProposal
 
+
 @dataclass(frozen=True)
 class CappedDetector:
     """``logit min(p_detector, cap)``: the detector, never more sure to detect than the cap (``pretrain_cap``)."""
@@ -73,8 +74,14 @@ class DefensiveDetector:
         return defensive_logit(self.detector.detect_logit(obs), self.eps)
 
 
-def break_ties(robustness: np.ndarray, gamma: float, quantile_level: float, rng: np.random.Generator,
-               n: int | None = None, settled: int = 0) -> np.ndarray:  # fmt: skip
+def break_ties(
+    robustness: np.ndarray,
+    gamma: float,
+    quantile_level: float,
+    rng: np.random.Generator,
+    n: int | None = None,
+    settled: int = 0,
+) -> np.ndarray:
     """bool [M]: every rollout below gamma plus randomly chosen ties at gamma up to ceil((1 - sigma) N) elites.
 
     At gamma = 0 (the failure threshold) this keeps all failures (r < 0) and admits a non-failing rollout
@@ -190,8 +197,9 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             if self._failure_steps is not None:  # every failure since the failure level was reached
                 self._steps = self._failure_steps
             elif cfg.weights == "frozen" and (cfg.weights_until_failure or cfg.proposal_window):
-                self._steps = EliteSteps(self.problem.curve_grid, cfg.fit_rows, self.fit_rng,
-                                         keep_observations=cfg.fit_weights == "mixture")  # fmt: skip
+                self._steps = EliteSteps(
+                    self.problem.curve_grid, cfg.fit_rows, self.fit_rng, keep_observations=cfg.fit_weights == "mixture"
+                )
         elif k == cfg.n_stages + 1 and cfg.final_estimate != "last-stage":
             plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
         else:
@@ -261,8 +269,9 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         until = self.config.weights_until_failure
         weigh = (lambda mask: self._mixture_log_weight(batch, mask)) if plan.mixture else None
         log_w = weigh(weighted_steps_mask(self.problem, batch, until)) if weigh is not None else None
-        return self.stages[plan.stage].add(self.problem, batch, failed, until, count_failures=plan.kind == "final",
-                                           log_w=log_w, weigh=weigh)  # fmt: skip
+        return self.stages[plan.stage].add(
+            self.problem, batch, failed, until, count_failures=plan.kind == "final", log_w=log_w, weigh=weigh
+        )
 
     def finish(self) -> StageOutcome:
         plan, grid = self._plan, self.problem.curve_grid
@@ -272,8 +281,11 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             if plan.kind == "pretrain":
                 batch = RolloutBatch.concatenate(self._chunks) if len(self._chunks) > 1 else self._chunks[0]
                 self._chunks = []
-                gamma, n_elites, rate = (float("nan"), 0,
-                                         detect_rate(*elite_counts(batch, np.zeros(batch.n, bool), grid)))
+                gamma, n_elites, rate = (
+                    float("nan"),
+                    0,
+                    detect_rate(*elite_counts(batch, np.zeros(batch.n, bool), grid)),
+                )
                 self._pretrain(batch)
             else:
                 batch, r, index = self._elites.candidates()
@@ -317,11 +329,14 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         interval in 1 of 200 seeds of the ``paper`` preset and 1 of 10 of ``authors-code`` at N = 100); else the
         problem's own cap (:attr:`pemviz.core.problems.Problem.verdict_cap`)."""
         if not self.reached_failures:
-            return "doubtful", ("no stage's threshold reached the failure level: the proposal was never fitted to a "
-                                "failure")
+            return "doubtful", (
+                "no stage's threshold reached the failure level: the proposal was never fitted to a " "failure"
+            )
         if self.config.fits_whole_rollouts:
-            return "doubtful", ("the paper's fit of whole elite rollouts can settle on one failure mode and miss "
-                                "others its weights cannot show (the Validation page); use the default sampler")
+            return "doubtful", (
+                "the paper's fit of whole elite rollouts can settle on one failure mode and miss "
+                "others its weights cannot show (the Validation page); use the default sampler"
+            )
         return self.problem.verdict_cap  # what the scenario knows its proposal misses (Problem.verdict_cap)
 
     def _result(self) -> tuple[Estimate, tuple[int, ...]]:
@@ -365,11 +380,19 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             proposal.add_noise_head(len(noise_names_of(self.problem.target)))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch) if cfg.proposal_window else None)
         pretrain_proposal(
-            proposal, features, detected,
-            epochs=cfg.pretrain_epochs if cfg.fit == "adam" else cfg.fit_max_steps, lr=cfg.learning_rate,
-            check=self.check, step_mask=mask,
-            fit=cfg.fit, max_rows=cfg.fit_rows, rng=self.fit_rng, tolerance=self.tolerance, dtype=self.fit_dtype,
-        )  # fmt: skip
+            proposal,
+            features,
+            detected,
+            epochs=cfg.pretrain_epochs if cfg.fit == "adam" else cfg.fit_max_steps,
+            lr=cfg.learning_rate,
+            check=self.check,
+            step_mask=mask,
+            fit=cfg.fit,
+            max_rows=cfg.fit_rows,
+            rng=self.fit_rng,
+            tolerance=self.tolerance,
+            dtype=self.fit_dtype,
+        )
         self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
 
     def _samplers_around(self, proposal: Proposal) -> tuple[StageSamplers, Detector, Detector]:
@@ -387,8 +410,9 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         samplers = StageSamplers(proposal, pb.target, pb.window, floor, eps)
         return samplers, samplers.plain, samplers.defensive
 
-    def _around(self, mixture: tuple[tuple[int, Detector], ...],
-                proposal: Proposal) -> tuple[tuple[int, Detector], ...]:  # fmt: skip
+    def _around(
+        self, mixture: tuple[tuple[int, Detector], ...], proposal: Proposal
+    ) -> tuple[tuple[int, Detector], ...]:
         """A stage's (rollouts, sampler) components with the proposal's samplers rebuilt around ``proposal`` (the
         target stays)."""
         _, plain, sampler = self._samplers_around(proposal)
@@ -421,12 +445,23 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             frozen_log_w = ((batch.log_p - batch.log_q) * steps).sum(axis=1)
         rows, detected = batch.events()
         smoothed = self._smoothing(gamma) * frozen_log_w
-        self._steps.add(index + self._index_offset, batch, self.proposal.features(rows), mask.reshape(batch.n, -1),
-                        smoothed, (mask & counted[None, :, None]).reshape(batch.n, -1))  # fmt: skip
+        self._steps.add(
+            index + self._index_offset,
+            batch,
+            self.proposal.features(rows),
+            mask.reshape(batch.n, -1),
+            smoothed,
+            (mask & counted[None, :, None]).reshape(batch.n, -1),
+        )
         if batch.noise is not None and self.proposal.noise_shift is not None:  # the detected objects' errors
             hit = mask.reshape(batch.n, -1) & detected
-            self._noise_data.append((rows[hit], batch.noise.reshape(batch.n, -1, batch.noise.shape[-1])[hit],
-                                     np.broadcast_to(smoothed[:, None], hit.shape)[hit]))  # fmt: skip
+            self._noise_data.append(
+                (
+                    rows[hit],
+                    batch.noise.reshape(batch.n, -1, batch.noise.shape[-1])[hit],
+                    np.broadcast_to(smoothed[:, None], hit.shape)[hit],
+                )
+            )
 
     def _fit_noise(self, fit: dict) -> None:
         """The CE update of the proposal's error head on the errors of the detected objects of this stage's elites
@@ -439,12 +474,26 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         rows, noise, log_w = (np.concatenate(a) for a in zip(*data, strict=False))
         target = self.problem.target
         loc_p, log_scale_p = target.noise_params(rows)
-        fit_noise_shift(self.proposal, rows, noise, loc_p, log_scale_p, target.noise_family, target.noise_df, log_w,
-                        epochs=fit["epochs"], lr=fit["lr"], max_rows=fit["max_rows"], rng=self.fit_rng,
-                        check=self.check, tolerance=fit["tolerance"])  # fmt: skip
+        fit_noise_shift(
+            self.proposal,
+            rows,
+            noise,
+            loc_p,
+            log_scale_p,
+            target.noise_family,
+            target.noise_df,
+            log_w,
+            epochs=fit["epochs"],
+            lr=fit["lr"],
+            max_rows=fit["max_rows"],
+            rng=self.fit_rng,
+            check=self.check,
+            tolerance=fit["tolerance"],
+        )
 
-    def _ce_stage(self, batch: RolloutBatch | None, robustness: np.ndarray, index: np.ndarray, gamma: float,
-                  n: int) -> tuple[float, int, np.ndarray]:  # fmt: skip
+    def _ce_stage(
+        self, batch: RolloutBatch | None, robustness: np.ndarray, index: np.ndarray, gamma: float, n: int
+    ) -> tuple[float, int, np.ndarray]:
         """The elites among ``batch`` (the stage's rollouts at or below gamma_kappa not yet settled,
         :class:`EliteCandidates`, of its ``n``) and the proposal refitted to all elites (in place); returns
         (gamma, elites, their detection rate per bin of the curve grid [G])."""
@@ -455,8 +504,16 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             elite = break_ties(robustness, gamma, cfg.quantile_level, self.tie_rng, n, settled=self._elites.n_settled)
         self.check()
         epochs = cfg.ce_epochs if cfg.fit == "adam" else cfg.fit_max_steps
-        fit = dict(epochs=epochs, lr=cfg.learning_rate, check=self.check, fit=cfg.fit, max_rows=cfg.fit_rows,
-                   rng=self.fit_rng, tolerance=self.tolerance, dtype=self.fit_dtype)  # fmt: skip
+        fit = dict(
+            epochs=epochs,
+            lr=cfg.learning_rate,
+            check=self.check,
+            fit=cfg.fit,
+            max_rows=cfg.fit_rows,
+            rng=self.fit_rng,
+            tolerance=self.tolerance,
+            dtype=self.fit_dtype,
+        )
         if self._steps is not None:
             if batch is not None and elite.any():
                 self._add_steps(batch.select(elite), index[elite], gamma)
@@ -469,9 +526,17 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             raise ValueError(whole_rollout_fit_refusal(cfg, batch.n_objects))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch, gamma))
         ce_update(
-            proposal, features, detected, batch.log_p, batch.log_q, elite,
-            smoothing=self._smoothing(gamma), weights=cfg.weights, step_mask=mask, **fit,
-        )  # fmt: skip
+            proposal,
+            features,
+            detected,
+            batch.log_p,
+            batch.log_q,
+            elite,
+            smoothing=self._smoothing(gamma),
+            weights=cfg.weights,
+            step_mask=mask,
+            **fit,
+        )
         return gamma, int(elite.sum()), detect_rate(*elite_counts(batch, elite, grid))
 
     def step_mask(self, batch: RolloutBatch, level: float = 0.0) -> np.ndarray | None:
@@ -495,8 +560,9 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             mask &= batch.object_rows[..., 0] < self.problem.window
         return mask
 
-    def _fit_events(self, batch: RolloutBatch, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray,
-                                                                                 np.ndarray | None]:  # fmt: skip
+    def _fit_events(
+        self, batch: RolloutBatch, mask: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """(the proposal's features of every object event [N, S(, k)], the detections [N, S], ``mask`` [N, S] or None),
         S = T M, events in order (:meth:`~pemviz.core.rollouts.RolloutBatch.events`)."""
         rows, detected = batch.events()
@@ -511,7 +577,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             proposal = Proposal(self.problem.h_scale)
         else:
             rows, _ = pretrain.events()
-            scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0
-                                               for j in range(1, rows.shape[2])]  # fmt: skip
+            scales = [self.problem.h_scale] + [
+                float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])
+            ]
             proposal = StateProposal(tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
         return proposal

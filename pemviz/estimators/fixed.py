@@ -102,5 +102,6 @@ def naive50(problem: Problem, n: int, weights_until_failure: bool = False, seed:
 
 def mixed50(problem: Problem, n: int, weights_until_failure: bool = False, seed: int = 0) -> FixedSampler:
     """50 % inside the problem's window, where the detector can change the outcome, the target elsewhere."""
-    return FixedSampler(problem, WindowDetector(ConstantDetector(0.5), problem.target, problem.window), n,
-                        weights_until_failure, seed)  # fmt: skip
+    return FixedSampler(
+        problem, WindowDetector(ConstantDetector(0.5), problem.target, problem.window), n, weights_until_failure, seed
+    )

@@ -84,8 +84,9 @@ class LookAheadScore:
         batch = p.simulate(n, p.target, p.target, rng)
         return batch, self.score(batch, np.full(n, -1))
 
-    def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
-               rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:  # fmt: skip
+    def branch(
+        self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, rng: np.random.Generator
+    ) -> tuple[RolloutBatch, np.ndarray]:
         """``Problem.branch``'s rollouts [K, T] and their scores after each branching step ``at`` [K] (+inf up to
         it: the parent's hold there)."""
         p = self.problem

@@ -105,8 +105,10 @@ def relative_variance(log_weight: np.ndarray, failed: np.ndarray, log_mu: float)
     log_weight = np.asarray(log_weight, dtype=np.float64)
     failed = np.asarray(failed, dtype=bool)
     if log_weight.size == 0 or log_weight.shape != failed.shape:
-        raise ValueError(f"relative_variance: need log_weight and failed of one shape, N >= 1; got "
-                         f"{log_weight.shape}, {failed.shape}")  # fmt: skip
+        raise ValueError(
+            f"relative_variance: need log_weight and failed of one shape, N >= 1; got "
+            f"{log_weight.shape}, {failed.shape}"
+        )
     ratio = np.where(failed, np.exp(np.where(failed, log_weight, 0.0) - log_mu), 0.0)
     return float(np.mean(np.square(ratio - 1.0)))
 

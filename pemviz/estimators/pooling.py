@@ -35,9 +35,14 @@ def pool(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], stage_weights: 
     return estimate(log_w, failed, log_p, own)
 
 
-def severity_curve(problem: Problem, estimator: object, final: Estimate, used: tuple[int, ...],
-                   pooling: tuple[str, tuple[float, ...]] | None,
-                   cap: tuple[str, str] | None = None) -> "SeverityCurve | None":  # fmt: skip
+def severity_curve(
+    problem: Problem,
+    estimator: object,
+    final: Estimate,
+    used: tuple[int, ...],
+    pooling: tuple[str, tuple[float, ...]] | None,
+    cap: tuple[str, str] | None = None,
+) -> "SeverityCurve | None":
     """The run's exceedance curve (:mod:`pemviz.core.severity`): ``final`` (the run's estimate) as its first point,
     then P(failure and min s < x) for each level x of ``problem.severity``, pooled over the stages ``used`` as the run's
     estimate is (``pooling``'s lambda_k, :func:`pool`; None: every rollout alike), each capped at ``cap`` (the sampler's
@@ -68,8 +73,13 @@ def stage_weights_of(pooling: tuple[str, tuple[float, ...]] | None) -> np.ndarra
     return None if pooling is None or pooling[0] == "rollouts" else np.asarray(pooling[1], dtype=np.float64)
 
 
-def pooled_rows(estimator: object, used: tuple[int, ...], pooling: tuple[str, tuple[float, ...]] | None, arrays: str,
-                cap: tuple[str, str] | None = None) -> list[Estimate] | None:  # fmt: skip
+def pooled_rows(
+    estimator: object,
+    used: tuple[int, ...],
+    pooling: tuple[str, tuple[float, ...]] | None,
+    arrays: str,
+    cap: tuple[str, str] | None = None,
+) -> list[Estimate] | None:
     """One estimate per row of the [R, N] arrays that each used stage's
     :class:`~pemviz.estimators.base.StageRollouts` gives by its method ``arrays`` (``severity_arrays``,
     ``alternative_arrays``: log-weights, events, log p), pooled over the stages ``used`` as the run's estimate is
@@ -82,12 +92,14 @@ def pooled_rows(estimator: object, used: tuple[int, ...], pooling: tuple[str, tu
     if any(part is None for part in parts):
         return None
     lam = stage_weights_of(pooling)
-    return [pool([(w[r], hit[r], lp[r]) for w, hit, lp in parts], lam).at_most(cap)
-            for r in range(parts[0][0].shape[0])]
+    return [
+        pool([(w[r], hit[r], lp[r]) for w, hit, lp in parts], lam).at_most(cap) for r in range(parts[0][0].shape[0])
+    ]
 
 
-def failure_population(estimator: object, used: tuple[int, ...],
-                       pooling: tuple[str, tuple[float, ...]] | None) -> FailureShares | None:  # fmt: skip
+def failure_population(
+    estimator: object, used: tuple[int, ...], pooling: tuple[str, tuple[float, ...]] | None
+) -> FailureShares | None:
     """The failures of the run's estimate with the share of mu_hat each carries (:mod:`pemviz.core.population`),
     pooled over the stages ``used`` as the estimate is (``pooling``'s lambda_k, :func:`pool`; None or ``rollouts``:
     every rollout alike); None where the estimator keeps no per-stage rollouts (``stages``), e.g. AMS."""
@@ -97,9 +109,14 @@ def failure_population(estimator: object, used: tuple[int, ...],
     return failure_shares([(k, *stages[k].arrays()) for k in used], stage_weights_of(pooling))
 
 
-def pem_spread(problem: Problem, estimator: object, final: Estimate, used: tuple[int, ...],
-               pooling: tuple[str, tuple[float, ...]] | None,
-               cap: tuple[str, str] | None = None) -> "PemSpread | None":  # fmt: skip
+def pem_spread(
+    problem: Problem,
+    estimator: object,
+    final: Estimate,
+    used: tuple[int, ...],
+    pooling: tuple[str, tuple[float, ...]] | None,
+    cap: tuple[str, str] | None = None,
+) -> "PemSpread | None":
     """p under each of ``problem.alternatives`` from the run's own rollouts (:mod:`pemviz.core.reweight`), pooled as
     the run's estimate: the members of a PEM ensemble and the shifted PEMs; None without alternatives or where the
     estimator keeps no per-stage rollouts."""

@@ -99,8 +99,9 @@ class PrecisionTarget:
         ValueError: ``config.rel_error`` is None.
     """
 
-    def __init__(self, inner: Extensible, config: ExperimentConfig,
-                 clock: Callable[[], float] = time.perf_counter) -> None:  # fmt: skip
+    def __init__(
+        self, inner: Extensible, config: ExperimentConfig, clock: Callable[[], float] = time.perf_counter
+    ) -> None:
         if config.stop_rule is None:
             raise ValueError("PrecisionTarget: the config has neither rel_error nor require")
         self.inner, self.config, self.clock = inner, config, clock
@@ -141,15 +142,19 @@ class PrecisionTarget:
             look = 1 if self.decision is None else self.decision.look + 1
             self.decision = decide(est, self.requirement, look, plain_mc=plain_method(self.config.method))
             if self.decision.outcome != "undecided":
-                self.stop = (f"requirement {self.decision.outcome}: {self.decision.why}, after "
-                             f"{self.n_simulations:,} simulations")  # fmt: skip
+                self.stop = (
+                    f"requirement {self.decision.outcome}: {self.decision.why}, after "
+                    f"{self.n_simulations:,} simulations"
+                )
                 return None
             want = decision_batch_size(est, self.inner.final_rollouts(), self.requirement.log_threshold)
         else:
             target, width = self.config.rel_error, est.rel_half_width
             if width <= target and est.interval_backed:  # a narrow interval the weights do not back is no target
-                self.stop = (f"target reached: the interval's relative half-width {width:.3g} <= {target:g} after "
-                             f"{self.n_simulations:,} simulations")  # fmt: skip
+                self.stop = (
+                    f"target reached: the interval's relative half-width {width:.3g} <= {target:g} after "
+                    f"{self.n_simulations:,} simulations"
+                )
                 return None
             want = added_batch_size(est, self.inner.final_rollouts(), target)
         left = self.max_sims - self.n_simulations
@@ -167,14 +172,22 @@ class PrecisionTarget:
                 n = int(min(n, max(1, math.floor(rate * time_left / per))))
         if cap is not None:
             if self.decision is not None:
-                self.stop = (f"requirement undecided within budget: {cap} ({self.decision.why}, after "
-                             f"{self.n_simulations:,} simulations)")  # fmt: skip
+                self.stop = (
+                    f"requirement undecided within budget: {cap} ({self.decision.why}, after "
+                    f"{self.n_simulations:,} simulations)"
+                )
                 return None
             width = est.rel_half_width
-            shown = ("no failure yet" if not math.isfinite(width) else f"relative half-width {width:.3g} > {target:g}"
-                     if width > target else f"the estimate is {est.verdict}: its weights back no interval")
-            self.stop = (f"stopped at a cap, not at the target: {cap} ({shown} after {self.n_simulations:,} "
-                         "simulations)")  # fmt: skip
+            shown = (
+                "no failure yet"
+                if not math.isfinite(width)
+                else f"relative half-width {width:.3g} > {target:g}"
+                if width > target
+                else f"the estimate is {est.verdict}: its weights back no interval"
+            )
+            self.stop = (
+                f"stopped at a cap, not at the target: {cap} ({shown} after {self.n_simulations:,} " "simulations)"
+            )
             return None
         self._current = self.inner.extend(int(n))
         return self._current

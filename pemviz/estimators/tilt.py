@@ -61,10 +61,15 @@ class CommittorTilt(FixedSampler):
 
     def __init__(self, problem: Problem, n: int, weights_until_failure: bool, seed: int = 0) -> None:
         if problem.tilt is None:
-            where = "" if problem.stream is not None else (" on this simulator (a scenario's may run on its batched "
-                                                           "twin only: --sim batched)")
-            raise ValueError(f"method tilt: the {problem.name} problem has no tilted proposal of its own{where}; use "
-                             f"adaptive or mc")  # fmt: skip
+            where = (
+                ""
+                if problem.stream is not None
+                else (" on this simulator (a scenario's may run on its batched " "twin only: --sim batched)")
+            )
+            raise ValueError(
+                f"method tilt: the {problem.name} problem has no tilted proposal of its own{where}; use "
+                f"adaptive or mc"
+            )
         super().__init__(problem, problem.target, n, weights_until_failure, seed)
         self.sampler_of_scene: TiltSampler | None = None
         self.look_ahead_steps = 0
@@ -74,8 +79,9 @@ class CommittorTilt(FixedSampler):
         the same scene, PEMs and options (:attr:`pemviz.engine.events.FinalEstimate.prepared`)."""
 
     def _open(self, stage: int, n: int) -> StagePlan:
-        return dataclasses.replace(super()._open(stage, n), draw=functools.partial(self._draw, n),
-                                   sampler=SceneProposal(self.problem.target))  # fmt: skip
+        return dataclasses.replace(
+            super()._open(stage, n), draw=functools.partial(self._draw, n), sampler=SceneProposal(self.problem.target)
+        )
 
     def _draw(self, n: int, rng: np.random.Generator) -> RolloutBatch:
         """``n`` rollouts of the tilted proposal (solved first, once a run), on one BLAS thread (as the problems'
@@ -90,14 +96,18 @@ class CommittorTilt(FixedSampler):
                 solve_steps = self.sampler_of_scene.solve()
                 same = "the same scene, PEMs and options"
                 if solve_steps is None:
-                    self.prepared = (f"the scenario's proposal reused from an earlier run of {same} in this process "
-                                     "(no solve counted)")  # fmt: skip
+                    self.prepared = (
+                        f"the scenario's proposal reused from an earlier run of {same} in this process "
+                        "(no solve counted)"
+                    )
                 elif solve_steps > 0:
                     self.look_ahead_steps += solve_steps
                     eq = solve_steps / max(1, self.problem.n_steps or 1)
-                    self.prepared = (f"the scenario's proposal solved by this run ({eq:,.0f} rollout-equivalents, "
-                                     f"{time.perf_counter() - t0:.1f} s; a later run of {same} in this process reuses "
-                                     "it)")  # fmt: skip
+                    self.prepared = (
+                        f"the scenario's proposal solved by this run ({eq:,.0f} rollout-equivalents, "
+                        f"{time.perf_counter() - t0:.1f} s; a later run of {same} in this process reuses "
+                        "it)"
+                    )
             batch, steps = self.sampler_of_scene.draw(n, rng)
         self.look_ahead_steps += steps
         return batch

@@ -211,9 +211,13 @@ def fetch(
 
 
 def _fetch_into(
-    folder: Path, names: tuple[str, ...], base: str, force: bool, timeout_s: float,
+    folder: Path,
+    names: tuple[str, ...],
+    base: str,
+    force: bool,
+    timeout_s: float,
     on_file: Callable[[str, str], None] | None,
-) -> None:  # fmt: skip
+) -> None:
     """The download loop of :func:`fetch` (same errors)."""
     for name in names:
         target = folder / name
@@ -376,5 +380,10 @@ def load_salient_data(
         raise DataFormatError(
             f"{inputs_path} has {inputs.shape[0]} rows but {labels_path} has {table.shape[0]}; they must match"
         )
-    return SalientData(inputs=inputs, labels=np.ascontiguousarray(table[:, 0]), inputs_path=inputs_path,
-                       labels_path=labels_path, label_table=table)  # fmt: skip
+    return SalientData(
+        inputs=inputs,
+        labels=np.ascontiguousarray(table[:, 0]),
+        inputs_path=inputs_path,
+        labels_path=labels_path,
+        label_table=table,
+    )

@@ -93,8 +93,9 @@ def write_text_atomic(path: str | os.PathLike[str], text: str, *, overwrite: boo
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), overwrite=overwrite)
 
 
-def write_rrd(path: str | os.PathLike[str], log: Callable[[Any], None], *, app_id: str = "pemviz",
-              overwrite: bool = True) -> Path:
+def write_rrd(
+    path: str | os.PathLike[str], log: Callable[[Any], None], *, app_id: str = "pemviz", overwrite: bool = True
+) -> Path:
     """A rerun recording: ``log(stream)`` into a :class:`rerun.RecordingStream` encoded in memory, then written
     through :func:`atomic_write` (rerun's own file sink stalls its writer thread on a write error).
 
@@ -162,8 +163,10 @@ def check_output_path(
         name_max = 255
     n_bytes = len(os.fsencode(p.name)) + TEMP_NAME_EXTRA
     if n_bytes > name_max:
-        raise ValueError(f"{what} {p}: file name too long ({len(os.fsencode(p.name))} bytes; at most "
-                         f"{name_max - TEMP_NAME_EXTRA} here)")  # fmt: skip
+        raise ValueError(
+            f"{what} {p}: file name too long ({len(os.fsencode(p.name))} bytes; at most "
+            f"{name_max - TEMP_NAME_EXTRA} here)"
+        )
     _check_writable(parent, f"{what} {p}")
     check_free_name(p, what, overwrite=overwrite, kind=f"{suffix} file")
     return p

@@ -48,10 +48,19 @@ def _plain(value: Any) -> Any:
     return value if value is None or isinstance(value, (bool, int, str)) else str(value)
 
 
-def result_document(config: Any, final: Any, *, exact_log_p: float | None = None, reference: Any = None,
-                    recording: str | None = None, command: str | None = None, problem: Any = None,
-                    console: list[str] | None = None, inputs: list[dict[str, str]] | None = None,
-                    failures: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
+def result_document(
+    config: Any,
+    final: Any,
+    *,
+    exact_log_p: float | None = None,
+    reference: Any = None,
+    recording: str | None = None,
+    command: str | None = None,
+    problem: Any = None,
+    console: list[str] | None = None,
+    inputs: list[dict[str, str]] | None = None,
+    failures: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """The JSON document of a finished run.
 
     Args:
@@ -116,25 +125,42 @@ def result_document(config: Any, final: Any, *, exact_log_p: float | None = None
     curve = getattr(final, "severity", None)
     if curve is not None:
         doc["severity"] = {
-            "signal": curve.scale.signal, "label": curve.scale.label, "unit": curve.scale.unit, "title": curve.title(),
-            "points": [{
-                "level": pt.level, "text": curve.point_text(pt), **_probability(pt.estimate.log_mu_hat),
-                "ci95": [_probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in pt.estimate.shown_log_ci],
-                "ess": _number(pt.estimate.ess),
-                "n_events": int(pt.estimate.n_failures), "verdict": pt.estimate.verdict,
-                "exact": None if pt.exact_log_p is None else _probability(pt.exact_log_p),
-            } for pt in curve.points],
-        }  # fmt: skip
+            "signal": curve.scale.signal,
+            "label": curve.scale.label,
+            "unit": curve.scale.unit,
+            "title": curve.title(),
+            "points": [
+                {
+                    "level": pt.level,
+                    "text": curve.point_text(pt),
+                    **_probability(pt.estimate.log_mu_hat),
+                    "ci95": [
+                        _probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in pt.estimate.shown_log_ci
+                    ],
+                    "ess": _number(pt.estimate.ess),
+                    "n_events": int(pt.estimate.n_failures),
+                    "verdict": pt.estimate.verdict,
+                    "exact": None if pt.exact_log_p is None else _probability(pt.exact_log_p),
+                }
+                for pt in curve.points
+            ],
+        }
     d = getattr(final, "decision", None)
     if config.require is not None and d is not None:
         from pemviz.core.requirement import EXIT_CODES, parse_requirement
 
         req = parse_requirement(config.require)
         doc["requirement"] = {
-            "text": str(req), "op": req.op, "threshold": req.threshold, "outcome": d.outcome,
-            "exit_code": EXIT_CODES[d.outcome], "look": d.look, "level": d.level,
-            "ci": [_probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in d.log_ci], "why": d.why,
-        }  # fmt: skip
+            "text": str(req),
+            "op": req.op,
+            "threshold": req.threshold,
+            "outcome": d.outcome,
+            "exit_code": EXIT_CODES[d.outcome],
+            "look": d.look,
+            "level": d.level,
+            "ci": [_probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in d.log_ci],
+            "why": d.why,
+        }
     return doc
 
 
@@ -147,10 +173,14 @@ def _pem_spread(spread: Any) -> dict[str, Any] | None:
     out: dict[str, Any] = {"source": spread.source, "members": None, "shifts": []}
     if spread.members:
         med, lo, hi = spread.spread()
-        out["members"] = {"n": len(spread.members), "median": _probability(med), "range90": [_probability(lo),
-                          _probability(hi)]}  # fmt: skip
-    out["shifts"] = [{"label": a.label, **_probability(a.estimate.log_mu_hat), "verdict": a.estimate.verdict}
-                     for a in spread.shifts]  # fmt: skip
+        out["members"] = {
+            "n": len(spread.members),
+            "median": _probability(med),
+            "range90": [_probability(lo), _probability(hi)],
+        }
+    out["shifts"] = [
+        {"label": a.label, **_probability(a.estimate.log_mu_hat), "verdict": a.estimate.verdict} for a in spread.shifts
+    ]
     return out
 
 
@@ -186,8 +216,15 @@ def junit_xml(doc: dict[str, Any], console: str = "") -> bytes:
         raise ValueError("a JUnit test case needs a requirement (--require)")
     outcome = req["outcome"]
     wall = f"{doc['wall_s'] or 0.0:.3f}"
-    suite = ET.Element("testsuite", name="pemviz", tests="1", failures=str(int(outcome == "violated")),
-                       errors=str(int(outcome == "undecided")), skipped="0", time=wall)  # fmt: skip
+    suite = ET.Element(
+        "testsuite",
+        name="pemviz",
+        tests="1",
+        failures=str(int(outcome == "violated")),
+        errors=str(int(outcome == "undecided")),
+        skipped="0",
+        time=wall,
+    )
     case = ET.SubElement(suite, "testcase", classname=f"pemviz.{doc['scenario']}", name=req["text"], time=wall)
     message = f"requirement {outcome}: {req['why']}"
     if outcome == "violated":
@@ -200,8 +237,9 @@ def junit_xml(doc: dict[str, Any], console: str = "") -> bytes:
     return ET.tostring(root, encoding="utf-8", xml_declaration=True)
 
 
-def write_junit(path: str | os.PathLike[str], doc: dict[str, Any], console: str = "", *,
-                overwrite: bool = False) -> Path:  # fmt: skip
+def write_junit(
+    path: str | os.PathLike[str], doc: dict[str, Any], console: str = "", *, overwrite: bool = False
+) -> Path:
     """Write :func:`junit_xml` atomically.
 
     Raises:

@@ -37,8 +37,10 @@ the file's weights are summed in another grouping than the run's, so their float
 def _one_object(data: RolloutData) -> None:
     """Refuse to recompute log-probabilities of a file of several objects or with errors (its rows are not in it)."""
     if data.n_objects > 1 or data.noise is not None:
-        raise ValueError(f"{data.path or 'rollouts'}: {data.n_objects} object(s) a step with errors "
-                         f"{list(data.noise_names)}: log p and log q are the file's own columns, not recomputed")
+        raise ValueError(
+            f"{data.path or 'rollouts'}: {data.n_objects} object(s) a step with errors "
+            f"{list(data.noise_names)}: log p and log q are the file's own columns, not recomputed"
+        )
 
 
 def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
@@ -151,13 +153,26 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
         formula = stl.parse(meta.formula)
     except ValueError as exc:
         raise RolloutFormatError(f"{name}: formula {meta.formula!r} is not valid STL: {exc}") from None
-    return Problem(name, _no_simulator, None, formula, signals=dict(meta.signals),  # type: ignore[arg-type]
-                   signal_ranges=dict(meta.signal_ranges))  # fmt: skip
+    return Problem(
+        name,
+        _no_simulator,
+        None,
+        formula,
+        signals=dict(meta.signals),  # type: ignore[arg-type]
+        signal_ranges=dict(meta.signal_ranges),
+    )
 
 
 def estimate_rollouts(
-    data: RolloutData, log_p: np.ndarray, log_q: np.ndarray, *, metric: str = "classic", failure: str = "crash",
-    weights: str = "to-failure", log_p_seen: float | str | None = None, verdict_cap: tuple[str, str] | None = None,
+    data: RolloutData,
+    log_p: np.ndarray,
+    log_q: np.ndarray,
+    *,
+    metric: str = "classic",
+    failure: str = "crash",
+    weights: str = "to-failure",
+    log_p_seen: float | str | None = None,
+    verdict_cap: tuple[str, str] | None = None,
     look_ahead: LookAheadFn | None = None,
 ) -> RolloutEstimate:
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
@@ -241,8 +256,9 @@ def estimate_rollouts(
     if data.stage is not None and data.meta.stages:
         b = {s["stage"]: s["max_weight"] for s in data.meta.stages}
         bound = np.array([math.nan if b.get(int(k)) is None else b[int(k)] for k in data.stage])
-    return RolloutEstimate(est, rho[metric], failed, log_w, metric, failure, weights, rows, pooled, rule,
-                           _mean_weight(checked, bound))  # fmt: skip
+    return RolloutEstimate(
+        est, rho[metric], failed, log_w, metric, failure, weights, rows, pooled, rule, _mean_weight(checked, bound)
+    )
 
 
 def _mean_weight(log_w: np.ndarray, bound: np.ndarray | None) -> MeanWeight:
@@ -253,8 +269,9 @@ def _mean_weight(log_w: np.ndarray, bound: np.ndarray | None) -> MeanWeight:
     return replace(mean_weight(np.zeros_like(log_w), bound), log_mean=-math.inf, se=0.0)
 
 
-def _pooled(data: RolloutData, log_w: np.ndarray, failed: np.ndarray,
-            log_p: np.ndarray) -> tuple[Estimate, tuple[StageRow, ...], tuple[int, ...], str]:  # fmt: skip
+def _pooled(
+    data: RolloutData, log_w: np.ndarray, failed: np.ndarray, log_p: np.ndarray
+) -> tuple[Estimate, tuple[StageRow, ...], tuple[int, ...], str]:
     """(the estimate, the per-stage rows, the pooled stages, the rule) of :func:`estimate_rollouts`."""
     if data.stage is None:
         whole = estimate(log_w, failed, log_p)

@@ -3,7 +3,8 @@
 pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``pemviz run
 --save-rollouts``): :func:`pemviz.io.rollout_writer.write_rollouts` / :func:`pemviz.io.rollouts.read_rollouts`, ``pemviz
 estimate`` on the command line. Both validate with the same code, so a file pemviz writes is one pemviz reads. This
-module holds the format's constants and its sidecar (:class:`RolloutMeta`); :mod:`pemviz.io.rollouts` the table.
+module holds the format's constants and its sidecar (:class:`RolloutMeta`); :mod:`pemviz.io.rollouts` the table;
+:mod:`pemviz.io.rollout_sidecars` the sidecars of the braking scenario's and of any problem's rollouts.
 
 Format, version 2
 -----------------
@@ -101,8 +102,6 @@ import numpy as np
 
 import pemviz
 from pemviz import stl
-from pemviz.scenarios.braking.simulator import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, OBSERVATION_NAMES, BrakingParams
-from pemviz.scenarios.braking.problem import braking_formula
 
 FORMAT_TAG = "pemviz-rollouts"
 
@@ -119,18 +118,23 @@ READ_VERSIONS = (1, FORMAT_VERSION, OBJECTS_VERSION)
 WEIGHTS = ("to-failure", "full")
 """Weight conventions (:mod:`pemviz.core.weights`)."""
 
-KITTI_COLUMNS = ("class", "truncation", "occlusion", "alpha", "dim_w", "dim_l", "dim_h", "loc_x", "loc_y", "loc_z",
-                 "rot_y")  # fmt: skip
+KITTI_COLUMNS = (
+    "class",
+    "truncation",
+    "occlusion",
+    "alpha",
+    "dim_w",
+    "dim_l",
+    "dim_h",
+    "loc_x",
+    "loc_y",
+    "loc_z",
+    "rot_y",
+)
 """The 11 salient-variable columns of the KITTI files (:data:`pemviz.pem.encoding.INPUT_COLUMNS`)."""
 
 SALIENT_COLUMNS = tuple(f"salient_{c}" for c in KITTI_COLUMNS)
 """Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads."""
-
-SALIENT_UNITS = {"alpha": "rad", "rot_y": "rad", "dim_w": "m", "dim_l": "m", "dim_h": "m", "loc_x": "m",
-                 "loc_y": "m", "loc_z": "m"}  # fmt: skip
-
-BRAKING_UNITS = {"gap_m": "m", "ego_speed_mps": "m/s", "lead_speed_mps": "m/s", "log_p": "nats", "log_q": "nats",
-                 **{f"salient_{k}": u for k, u in SALIENT_UNITS.items()}}  # fmt: skip
 
 SAMPLERS = ("pem", "naive50", "mixed50")
 """Named samplers a file's log q can be recomputed from besides a proposal checkpoint."""
@@ -249,6 +253,7 @@ class RolloutMeta:
         Raises:
             RolloutFormatError: not an object, wrong format tag or version, a missing or invalid field.
         """
+
         def bad(msg: str) -> RolloutFormatError:
             return RolloutFormatError(f"{where}: {msg}")
 
@@ -258,8 +263,10 @@ class RolloutMeta:
             raise bad(f"format is {obj.get('format')!r}, expected {FORMAT_TAG!r}")
         version = obj.get("version", FORMAT_VERSION)
         if isinstance(version, bool) or version not in READ_VERSIONS:
-            raise bad(f"format version {version!r}; this pemviz reads versions {', '.join(map(str, READ_VERSIONS))}: "
-                      "a newer pemviz wrote the file, upgrade pemviz to read it")
+            raise bad(
+                f"format version {version!r}; this pemviz reads versions {', '.join(map(str, READ_VERSIONS))}: "
+                "a newer pemviz wrote the file, upgrade pemviz to read it"
+            )
         for key in ("formula", "dt_s"):
             if key not in obj:
                 raise bad(f"field {key!r} is missing (required: formula, dt_s)")
@@ -274,8 +281,9 @@ class RolloutMeta:
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
             raise bad(f"dt_s must be a number of seconds > 0, got {dt!r}")
         signals = obj.get("signals") or {"d": "gap_m"}
-        if not isinstance(signals, dict) or not all(isinstance(k, str) and isinstance(v, str)
-                                                     for k, v in signals.items()):
+        if not isinstance(signals, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in signals.items()
+        ):
             raise bad(f"signals must map STL names to column names, got {signals!r}")
         for key in ("signal_ranges", "units", "provenance"):
             if not isinstance(obj.get(key) or {}, dict):
@@ -318,8 +326,9 @@ class RolloutMeta:
         if not _is_count(objects, 1):
             raise bad(f"objects must be an integer >= 1 (the objects perceived at each step), got {objects!r}")
         noise = obj.get("noise") or []
-        if not (isinstance(noise, list) and all(isinstance(e, str) and e for e in noise)
-                and len(set(noise)) == len(noise)):
+        if not (
+            isinstance(noise, list) and all(isinstance(e, str) and e for e in noise) and len(set(noise)) == len(noise)
+        ):
             raise bad(f"noise must be a list of distinct error names such as ['range_error_m'], got {noise!r}")
         return cls(
             formula=formula,
@@ -365,9 +374,10 @@ def _parse_stages(value: Any, bad: Any) -> tuple[dict[str, Any], ...]:
         if not _is_count(st.get("stage")) or not _is_count(st.get("n"), 1):
             raise bad(f"{where} needs stage (an integer >= 0) and n (an integer >= 1), got {st!r}")
         comps = st.get("components", [])
-        if not isinstance(comps, list) or not all(isinstance(c, dict) and _is_count(c.get("n"))
-                                                  and isinstance(c.get("sampler", ""), str) for c in comps):
-            raise bad(f"{where}.components must be a list of {{\"sampler\": text, \"n\": rollouts}}, got {comps!r}")
+        if not isinstance(comps, list) or not all(
+            isinstance(c, dict) and _is_count(c.get("n")) and isinstance(c.get("sampler", ""), str) for c in comps
+        ):
+            raise bad(f'{where}.components must be a list of {{"sampler": text, "n": rollouts}}, got {comps!r}')
         if comps and sum(c["n"] for c in comps) != st["n"]:
             raise bad(f"{where}: its components hold {sum(c['n'] for c in comps)} rollouts, not n = {st['n']}")
         bound = st.get("max_weight")
@@ -375,9 +385,15 @@ def _parse_stages(value: Any, bad: Any) -> tuple[dict[str, Any], ...]:
             raise bad(f"{where}.max_weight must be a number >= 1 or null, got {bound!r}")
         if not isinstance(st.get("kind", ""), str):
             raise bad(f"{where}.kind must be text, got {st.get('kind')!r}")
-        out.append({"stage": st["stage"], "kind": st.get("kind", ""), "n": st["n"],
-                    "components": [{"sampler": c.get("sampler", ""), "n": c["n"]} for c in comps],
-                    "max_weight": None if bound is None else float(bound)})  # fmt: skip
+        out.append(
+            {
+                "stage": st["stage"],
+                "kind": st.get("kind", ""),
+                "n": st["n"],
+                "components": [{"sampler": c.get("sampler", ""), "n": c["n"]} for c in comps],
+                "max_weight": None if bound is None else float(bound),
+            }
+        )
     numbers = [st["stage"] for st in out]
     if len(set(numbers)) != len(numbers):
         raise bad(f"stages lists stage {next(x for x in numbers if numbers.count(x) > 1)} twice")
@@ -391,59 +407,20 @@ def _parse_pooling(value: Any, bad: Any) -> dict[str, Any] | None:
     if not isinstance(value, dict):
         raise bad(f"pooling must be a JSON object, got {value!r}")
     stages, lam, rule = value.get("stages"), value.get("stage_weights"), value.get("rule", "")
-    if not (isinstance(stages, list) and stages and all(_is_count(k) for k in stages)
-            and len(set(stages)) == len(stages)):
+    if not (
+        isinstance(stages, list) and stages and all(_is_count(k) for k in stages) and len(set(stages)) == len(stages)
+    ):
         raise bad(f"pooling.stages must be a non-empty list of distinct stage numbers, got {stages!r}")
-    if not (isinstance(lam, list) and len(lam) == len(stages) and all(_is_number(x) and x >= 0 for x in lam)
-            and abs(math.fsum(lam) - 1.0) <= 1e-9):
+    if not (
+        isinstance(lam, list)
+        and len(lam) == len(stages)
+        and all(_is_number(x) and x >= 0 for x in lam)
+        and abs(math.fsum(lam) - 1.0) <= 1e-9
+    ):
         raise bad(f"pooling.stage_weights must be {len(stages)} numbers >= 0 summing to 1, got {lam!r}")
     if not isinstance(rule, str):
         raise bad(f"pooling.rule must be text, got {rule!r}")
     return {"rule": rule, "stages": list(stages), "stage_weights": [float(x) for x in lam]}
-
-
-def braking_meta(
-    formula: str | None = None,
-    *,
-    pem: str | None = None,
-    proposal: str | None = None,
-    provenance: Mapping[str, Any] | None = None,
-) -> RolloutMeta:
-    """The sidecar of braking-scenario rollouts (Innes & Ramamoorthy 2022): dt 0.05 s, signals d / v / vl, units.
-
-    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.scenarios.braking.problem.braking_formula`.
-    """
-    p = BrakingParams()
-    return RolloutMeta(
-        formula=formula or str(braking_formula(p)),
-        dt_s=p.dt_s,
-        signals=dict(BRAKING_SIGNALS),
-        signal_ranges=dict(BRAKING_SIGNAL_RANGES),
-        observation_columns=tuple(OBSERVATION_NAMES),
-        units=dict(BRAKING_UNITS),
-        pem=pem,
-        proposal=proposal,
-        window_m=p.braking_distance_m,
-        provenance=dict(provenance or {}),
-    )
-
-
-def problem_meta(problem: Any, formula: str | None = None, *, pem: str | None = None, proposal: str | None = None,
-                 provenance: Mapping[str, Any] | None = None) -> RolloutMeta:  # fmt: skip
-    """The sidecar of a problem's rollouts (a :class:`pemviz.core.problems.Problem`): its formula, signals, signal
-    ranges, units and step; the objects and errors are filled in by the writer from the rollouts. A problem that does
-    not know its step (``dt_s`` None, e.g. the toys, whose steps are units of travel) is written with ``dt_s = 1`` and
-    the provenance's ``dt_s_unknown`` saying so: no estimate reads the step, only the impact speed of a failure.
-    """
-    provenance = dict(provenance or {})
-    if problem.dt_s is None:
-        provenance["dt_s_unknown"] = f"{problem.name} gave no step: dt_s = 1 stands for one step"
-    units = {problem.signals[k]: u for k, u in problem.units.items() if k in problem.signals}
-    window = {"window_m": float(problem.window)} if math.isfinite(problem.window) else {}
-    dt_s = 1.0 if problem.dt_s is None else float(problem.dt_s)
-    return RolloutMeta(formula=formula or str(problem.formula), dt_s=dt_s, signals=dict(problem.signals),
-                       signal_ranges=dict(problem.signal_ranges), units={**units, "log_p": "nats", "log_q": "nats"},
-                       pem=pem, proposal=proposal, provenance=provenance, **window)  # fmt: skip
 
 
 SIDECAR_SUFFIX = ".rollouts.json"

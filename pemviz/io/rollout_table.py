@@ -112,8 +112,15 @@ class RolloutData(RolloutBatch):
         log_q = self.log_q if log_q is None else log_q
         if log_p is None or log_q is None:
             raise ValueError("to_batch: give log_p and log_q, the file has no such column")
-        return RolloutBatch(self.observations, self.detected, log_p, log_q, self.observation_names, noise=self.noise,
-                            noise_names=self.noise_names)  # fmt: skip
+        return RolloutBatch(
+            self.observations,
+            self.detected,
+            log_p,
+            log_q,
+            self.observation_names,
+            noise=self.noise,
+            noise_names=self.noise_names,
+        )
 
 
 def _first_index(mask: np.ndarray) -> int:
@@ -150,8 +157,13 @@ class _Table:
     def structure(self) -> tuple[np.ndarray, np.ndarray]:
         """Check rollout ids and steps; returns (rollout ids [N], T)."""
         names = self.table.column_names
-        needed = ["rollout", "step", *self.meta.columns, *self.meta.detection_columns,
-                  *(c for cols in self.meta.noise_columns for c in cols)]  # fmt: skip
+        needed = [
+            "rollout",
+            "step",
+            *self.meta.columns,
+            *self.meta.detection_columns,
+            *(c for cols in self.meta.noise_columns for c in cols),
+        ]
         missing = [c for c in needed if c not in names]
         if missing:
             raise self.error(
@@ -160,8 +172,10 @@ class _Table:
                 f"present: {', '.join(names)}"
             )
         if self.meta.per_object and not {"log_p", "log_q"} <= set(names):
-            raise self.error(f"a file of {self.meta.objects} object(s) a step with errors {list(self.meta.noise)} must "
-                             "hold log_p and log_q: the PEMs' inputs (each object's row) are not in it")  # fmt: skip
+            raise self.error(
+                f"a file of {self.meta.objects} object(s) a step with errors {list(self.meta.noise)} must "
+                "hold log_p and log_q: the PEMs' inputs (each object's row) are not in it"
+            )
         partial = [c for c in SALIENT_COLUMNS if c in names]
         if partial and len(partial) != len(SALIENT_COLUMNS):
             absent = [c for c in SALIENT_COLUMNS if c not in names]
@@ -238,8 +252,13 @@ class _Table:
         if bad.any():
             row = _first_index(bad)
             what = "NaN" if np.isnan(x[row]) else str(x[row])
-            allowed = ("finite numbers or -inf (an action the PEM cannot take: weight 0)" if impossible else
-                       "finite numbers (a proposal drew each action: q > 0)" if name == "log_q" else "finite numbers")
+            allowed = (
+                "finite numbers or -inf (an action the PEM cannot take: weight 0)"
+                if impossible
+                else "finite numbers (a proposal drew each action: q > 0)"
+                if name == "log_q"
+                else "finite numbers"
+            )
             raise self.error(f"{name} is {what} at {self.at(row)}; values must be {allowed}")
         if log_prob and (x > 0).any():
             row = _first_index(x > 0)
@@ -261,8 +280,10 @@ class _Table:
         if differs.any():
             i = _first_index(differs)
             t = _first_index(per[i] != per[i, 0])
-            raise self.error(f"{name} = {per[i, t]} at {self.at(i * n_steps + t)} but {per[i, 0]} at its step 0; "
-                             f"a rollout has one {name}")
+            raise self.error(
+                f"{name} = {per[i, t]} at {self.at(i * n_steps + t)} but {per[i, 0]} at its step 0; "
+                f"a rollout has one {name}"
+            )
         return per[:, 0].copy()
 
     def severity(self, n: int, n_steps: int) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -275,8 +296,9 @@ class _Table:
             return None, None
         if len(present) != len(SEVERITY_COLUMNS):
             absent = [c for c in SEVERITY_COLUMNS if c not in names]
-            raise self.error(f"severity columns incomplete: {present[0]!r} without {absent[0]!r} (give both or "
-                             "neither)")  # fmt: skip
+            raise self.error(
+                f"severity columns incomplete: {present[0]!r} without {absent[0]!r} (give both or " "neither)"
+            )
         dist = self.floats(SEVERITY_COLUMNS[0])
         col = self.table.column(SEVERITY_COLUMNS[1])
         if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
@@ -285,8 +307,10 @@ class _Table:
         bad = np.isinf(speed) | (speed <= 0)
         if bad.any():
             row = _first_index(bad)
-            raise self.error(f"{SEVERITY_COLUMNS[1]} = {float(speed[row])!r} at {self.at(row)}: an impact speed is a "
-                             "positive number of m/s, or null where the rollout makes no contact")  # fmt: skip
+            raise self.error(
+                f"{SEVERITY_COLUMNS[1]} = {float(speed[row])!r} at {self.at(row)}: an impact speed is a "
+                "positive number of m/s, or null where the rollout makes no contact"
+            )
         out = []
         for name, x in zip(SEVERITY_COLUMNS, (dist, speed), strict=False):
             per = x.reshape(n, n_steps)
@@ -294,8 +318,10 @@ class _Table:
             if differs.any():
                 i = _first_index(differs)
                 t = _first_index(~((per[i] == per[i, 0]) | (np.isnan(per[i]) & np.isnan(per[i, 0]))))
-                raise self.error(f"{name} = {per[i, t]} at {self.at(i * n_steps + t)} but {per[i, 0]} at its step 0; "
-                                 f"a rollout has one {name}")  # fmt: skip
+                raise self.error(
+                    f"{name} = {per[i, t]} at {self.at(i * n_steps + t)} but {per[i, 0]} at its step 0; "
+                    f"a rollout has one {name}"
+                )
             out.append(per[:, 0].copy())
         return out[0], out[1]
 
@@ -335,18 +361,36 @@ class _Table:
         detected = np.stack([self.booleans(c) for c in self.meta.detection_columns], axis=-1).reshape(n, n_steps, m)
         noise = None
         if self.meta.noise:
-            noise = np.stack([np.stack([self.floats(c) for c in cols], axis=-1) for cols in self.meta.noise_columns],
-                             axis=1).reshape(n, n_steps, m, len(self.meta.noise))  # fmt: skip
+            noise = np.stack(
+                [np.stack([self.floats(c) for c in cols], axis=-1) for cols in self.meta.noise_columns], axis=1
+            ).reshape(n, n_steps, m, len(self.meta.noise))
         salient = None
         if SALIENT_COLUMNS[0] in names:
             salient = np.stack([self.floats(c) for c in SALIENT_COLUMNS], axis=-1).reshape(n, n_steps, -1)
         probability = not self.meta.noise  # with measurement errors a step's log_p / log_q hold log densities
-        log_p = (self.floats("log_p", log_prob=probability, impossible=True).reshape(n, n_steps) if "log_p" in names
-                 else None)  # fmt: skip
+        log_p = (
+            self.floats("log_p", log_prob=probability, impossible=True).reshape(n, n_steps)
+            if "log_p" in names
+            else None
+        )
         log_q = self.floats("log_q", log_prob=probability).reshape(n, n_steps) if "log_q" in names else None
         stage, component = (self.per_rollout(c, n, n_steps) if c in names else None for c in ("stage", "component"))
         self.stages(stage, component)
         min_distance, impact_speed = self.severity(n, n_steps)
-        return RolloutData(obs, detected, log_p, log_q, tuple(cols), noise=noise, noise_names=self.meta.noise,
-                           meta=self.meta, rollout_ids=ids, salient=salient, path=path, stage=stage,
-                           component=component, min_distance=min_distance, impact_speed=impact_speed)  # fmt: skip
+        return RolloutData(
+            obs,
+            detected,
+            log_p,
+            log_q,
+            tuple(cols),
+            noise=noise,
+            noise_names=self.meta.noise,
+            meta=self.meta,
+            rollout_ids=ids,
+            salient=salient,
+            path=path,
+            stage=stage,
+            component=component,
+            min_distance=min_distance,
+            impact_speed=impact_speed,
+        )

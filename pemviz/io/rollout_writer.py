@@ -133,8 +133,8 @@ class RolloutWriter:
 
     Args:
         path: ``NAME.parquet``, checked at once (:func:`check_rollouts_path`).
-        meta: the sidecar (:func:`~pemviz.io.rollout_format.braking_meta` for the braking scenario,
-            :func:`~pemviz.io.rollout_format.problem_meta` for another problem); ``n_rollouts`` / ``n_steps`` /
+        meta: the sidecar (:func:`~pemviz.io.rollout_sidecars.braking_meta` for the braking scenario,
+            :func:`~pemviz.io.rollout_sidecars.problem_meta` for another problem); ``n_rollouts`` / ``n_steps`` /
             ``observation_columns`` and ``objects`` / ``noise`` are filled in from the rollouts.
         log_probs: write ``log_p`` and ``log_q``.
         overwrite: replace existing files of the unit (only ones pemviz wrote).
@@ -142,8 +142,9 @@ class RolloutWriter:
         ValueError: a bad path (an existing file without ``overwrite``).
     """
 
-    def __init__(self, path: str | os.PathLike[str], meta: RolloutMeta, *, log_probs: bool = True,
-                 overwrite: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self, path: str | os.PathLike[str], meta: RolloutMeta, *, log_probs: bool = True, overwrite: bool = False
+    ) -> None:
         self.path = check_rollouts_path(path, overwrite=overwrite)
         self.meta, self.log_probs, self.overwrite = meta, log_probs, overwrite
         self.n_rollouts = 0
@@ -161,10 +162,16 @@ class RolloutWriter:
     def __exit__(self, *exc: Any) -> None:
         self.abort()
 
-    def append(self, batch: RolloutBatch, *, rollout_ids: np.ndarray | None = None,
-               salient: np.ndarray | None = None, stage: int | np.ndarray | None = None,
-               component: np.ndarray | None = None,
-               severity: tuple[np.ndarray, np.ndarray] | None = None) -> None:  # fmt: skip
+    def append(
+        self,
+        batch: RolloutBatch,
+        *,
+        rollout_ids: np.ndarray | None = None,
+        salient: np.ndarray | None = None,
+        stage: int | np.ndarray | None = None,
+        component: np.ndarray | None = None,
+        severity: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         """Validate and write the next rollouts (default ids: continuing from the last chunk's).
 
         Args:
@@ -178,23 +185,35 @@ class RolloutWriter:
         names = tuple(batch.observation_names)
         objects = (batch.n_objects, tuple(batch.noise_names) if batch.noise is not None else ())
         if self._shape is not None and self._shape != (batch.n_steps, names, *objects):
-            raise ValueError(f"RolloutWriter: a chunk of {batch.n_steps} steps of {names}, {objects[0]} object(s) "
-                             f"with errors {list(objects[1])}, after chunks of {self._shape[0]} steps of "
-                             f"{self._shape[1]}, {self._shape[2]} object(s) with errors "
-                             f"{list(self._shape[3])}")  # fmt: skip
+            raise ValueError(
+                f"RolloutWriter: a chunk of {batch.n_steps} steps of {names}, {objects[0]} object(s) "
+                f"with errors {list(objects[1])}, after chunks of {self._shape[0]} steps of "
+                f"{self._shape[1]}, {self._shape[2]} object(s) with errors "
+                f"{list(self._shape[3])}"
+            )
         self.meta = dataclasses.replace(self.meta, objects=objects[0], noise=objects[1])
         if not names:
             raise ValueError("write_rollouts: the batch has no observation columns")
         self.meta = dataclasses.replace(self.meta, h_column=names[0])  # h(s): the first observation, whatever its name
-        meta = dataclasses.replace(self.meta, n_rollouts=None, n_steps=batch.n_steps, observation_columns=names,
-                                   stages=(), pooling=None)  # checked against the whole table at commit
+        meta = dataclasses.replace(
+            self.meta, n_rollouts=None, n_steps=batch.n_steps, observation_columns=names, stages=(), pooling=None
+        )  # checked against the whole table at commit
         if meta.columns != names:
-            raise ValueError(f"write_rollouts: the spec's signals {dict(meta.signals)} name columns the batch's "
-                             f"observations {names} lack")
+            raise ValueError(
+                f"write_rollouts: the spec's signals {dict(meta.signals)} name columns the batch's "
+                f"observations {names} lack"
+            )
         if rollout_ids is None:
             rollout_ids = np.arange(self.n_rollouts, self.n_rollouts + batch.n, dtype=np.int64)
-        table = rollouts_table(batch, rollout_ids=rollout_ids, salient=salient, log_probs=self.log_probs, stage=stage,
-                               component=component, severity=severity)  # fmt: skip
+        table = rollouts_table(
+            batch,
+            rollout_ids=rollout_ids,
+            salient=salient,
+            log_probs=self.log_probs,
+            stage=stage,
+            component=component,
+            severity=severity,
+        )
         _Table(table, meta, f"{self.path} (not written)").parse(None)
         if self._writer is None:
             self._writer = pq.ParquetWriter(self._tmp, table.schema)
@@ -233,8 +252,7 @@ class RolloutWriter:
             n_rollouts = self.n_rollouts
             if keep_stages is not None and set(self.stage_counts) - set(keep_stages):
                 n_rollouts = self._keep(set(keep_stages))
-            meta = dataclasses.replace(self.meta, n_rollouts=n_rollouts, n_steps=n_steps,
-                                       observation_columns=names)  # fmt: skip
+            meta = dataclasses.replace(self.meta, n_rollouts=n_rollouts, n_steps=n_steps, observation_columns=names)
             if self.stage_counts or meta.stages or meta.pooling:
                 kept = {k: c for k, c in self.stage_counts.items() if keep_stages is None or k in keep_stages}
                 check_stage_counts(meta, kept, lambda msg: RolloutFormatError(f"{self.path} (not written): {msg}"))
@@ -308,7 +326,7 @@ def write_rollouts(
     Args:
         path: ``NAME.parquet``.
         batch: N rollouts [N, T] (observations, detected, log_p, log_q in nats).
-        meta: the sidecar (:func:`~pemviz.io.rollout_format.braking_meta` for the braking scenario).
+        meta: the sidecar (:func:`~pemviz.io.rollout_sidecars.braking_meta` for the braking scenario).
         rollout_ids, salient, log_probs, stage, component, severity: see :func:`rollouts_table` (``stage`` /
             ``component`` of a version-2 file: ``RolloutData.stage`` / ``.component``; ``severity``: the optional
             :data:`SEVERITY_COLUMNS`).
@@ -324,6 +342,7 @@ def write_rollouts(
         OSError: the folder is not writable, the disk is full (nothing is left behind).
     """
     with RolloutWriter(path, meta, log_probs=log_probs, overwrite=overwrite) as writer:
-        writer.append(batch, rollout_ids=rollout_ids, salient=salient, stage=stage, component=component,
-                      severity=severity)  # fmt: skip
+        writer.append(
+            batch, rollout_ids=rollout_ids, salient=salient, stage=stage, component=component, severity=severity
+        )
         return writer.commit(proposal)

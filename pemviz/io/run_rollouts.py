@@ -1,10 +1,10 @@
 """What a run's rollout file holds beyond the rollouts themselves, by the run's problem (what
 :class:`pemviz.sinks.rollouts.RolloutSink` writes): the sidecar, the PEM's salient variables and the severity columns.
 
-The braking scenario's files keep their own sidecar (:func:`pemviz.io.rollout_format.braking_meta`: the gap, ego and
+The braking scenario's files keep their own sidecar (:func:`pemviz.io.rollout_sidecars.braking_meta`: the gap, ego and
 lead speed columns, dt 0.05 s) and the salient variables of the car ahead at each gap
 (:func:`pemviz.io.rollout_table.braking_salient`), as its first files did; every other problem's sidecar is
-:func:`pemviz.io.rollout_format.problem_meta`'s, without salient variables. No run's problem known: the braking
+:func:`pemviz.io.rollout_sidecars.problem_meta`'s, without salient variables. No run's problem known: the braking
 scenario's file at its defaults.
 """
 
@@ -16,7 +16,8 @@ import numpy as np
 
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import rollout_severity, severity_of_signal
-from pemviz.io.rollout_format import RolloutMeta, braking_meta, problem_meta
+from pemviz.io.rollout_format import RolloutMeta
+from pemviz.io.rollout_sidecars import braking_meta, problem_meta
 from pemviz.io.rollout_table import braking_salient
 
 
@@ -28,10 +29,16 @@ def braking_file(problem: Any) -> bool:
     return problem is None or isinstance(getattr(problem, "drawing", None), BrakingDrawing)
 
 
-def run_meta(problem: Any, formula: str | None, *, pem: str | None = None, proposal: str | None = None,
-             provenance: Mapping[str, Any] | None = None) -> RolloutMeta:  # fmt: skip
-    """The sidecar of a run's rollouts (:func:`braking_file`: :func:`~pemviz.io.rollout_format.braking_meta`, else
-    :func:`~pemviz.io.rollout_format.problem_meta`).
+def run_meta(
+    problem: Any,
+    formula: str | None,
+    *,
+    pem: str | None = None,
+    proposal: str | None = None,
+    provenance: Mapping[str, Any] | None = None,
+) -> RolloutMeta:
+    """The sidecar of a run's rollouts (:func:`braking_file`: :func:`~pemviz.io.rollout_sidecars.braking_meta`, else
+    :func:`~pemviz.io.rollout_sidecars.problem_meta`).
 
     Raises:
         ValueError: a problem other than the braking one that does not know its step (``dt_s`` None).

@@ -65,11 +65,14 @@ def box_errors_to_metric(
         ValueError: arrays of different lengths, a detected or true box height (``h_d``, ``h_d - e_h``) <= 0, a range
             below :data:`MIN_RANGE_M` or a focal length <= 0.
     """
-    z, h_d, e_cx, e_h = (np.asarray(a, dtype=np.float64).reshape(-1)
-                         for a in (range_m, det_height_px, err_cx_px, err_h_px))
+    z, h_d, e_cx, e_h = (
+        np.asarray(a, dtype=np.float64).reshape(-1) for a in (range_m, det_height_px, err_cx_px, err_h_px)
+    )
     if not (z.shape == h_d.shape == e_cx.shape == e_h.shape):
-        raise ValueError(f"range, box height and errors must have one length each, got {z.shape}, {h_d.shape}, "
-                         f"{e_cx.shape}, {e_h.shape}")  # fmt: skip
+        raise ValueError(
+            f"range, box height and errors must have one length each, got {z.shape}, {h_d.shape}, "
+            f"{e_cx.shape}, {e_h.shape}"
+        )
     if not focal_px > 0:
         raise ValueError(f"focal length must be > 0 pixels, got {focal_px}")
     if np.any(h_d <= 0) or np.any(h_d - e_h <= 0):
@@ -77,4 +80,3 @@ def box_errors_to_metric(
     if np.any(~(z >= MIN_RANGE_M)):
         raise ValueError(f"ranges must be >= {MIN_RANGE_M} m (obstacles ahead of the camera), got min {z.min():g}")
     return np.stack([-z * e_h / h_d, e_cx * z / focal_px], axis=1)
-

@@ -54,9 +54,17 @@ def bootstrap_rows(n: int, seed: int, member: int) -> np.ndarray:
     return np.random.default_rng([int(seed), int(member)]).integers(0, n, size=n)
 
 
-def train_ensemble(recipe: Any, inputs: np.ndarray, labels: np.ndarray, m: int, *, seed: int = 0,
-                   epochs: int | None = None, progress: bool = False,
-                   metadata: Mapping[str, Any] | None = None) -> list[PEM]:  # fmt: skip
+def train_ensemble(
+    recipe: Any,
+    inputs: np.ndarray,
+    labels: np.ndarray,
+    m: int,
+    *,
+    seed: int = 0,
+    epochs: int | None = None,
+    progress: bool = False,
+    metadata: Mapping[str, Any] | None = None,
+) -> list[PEM]:
     """M bootstrap refits of a detection recipe (:class:`pemviz.pem.recipes.PemRecipe`).
 
     Member k trains on :func:`bootstrap_rows` ``(n, seed, k)`` with the recipe's architecture and optimiser, initial
@@ -77,20 +85,35 @@ def train_ensemble(recipe: Any, inputs: np.ndarray, labels: np.ndarray, m: int, 
     for k in range(m):
         rows = bootstrap_rows(len(labels), seed, k)
         meta = {**dict(metadata or {}), "member": k, "bootstrap_seed": [int(seed), k], "init_seed": int(seed) + 1 + k}
-        members.append(recipe.train(inputs[rows], labels[rows], seed=int(seed) + 1 + k, epochs=epochs, norm=norm,
-                                    progress=progress, metadata=meta))  # fmt: skip
+        members.append(
+            recipe.train(
+                inputs[rows],
+                labels[rows],
+                seed=int(seed) + 1 + k,
+                epochs=epochs,
+                norm=norm,
+                progress=progress,
+                metadata=meta,
+            )
+        )
     return members
 
 
-def save_ensemble(members: Sequence[PEM], path: str | os.PathLike[str], nominal: str,
-                  metadata: Mapping[str, Any] | None = None) -> Path:  # fmt: skip
+def save_ensemble(
+    members: Sequence[PEM], path: str | os.PathLike[str], nominal: str, metadata: Mapping[str, Any] | None = None
+) -> Path:
     """Write an ensemble file atomically (see the module docstring).
 
     Raises:
         OSError: the folder is not writable (nothing is left behind).
     """
-    payload = {"format": ENSEMBLE_TAG, "version": ENSEMBLE_VERSION, "nominal": str(nominal),
-               "metadata": dict(metadata or {}), "members": [_pem_payload(p) for p in members]}  # fmt: skip
+    payload = {
+        "format": ENSEMBLE_TAG,
+        "version": ENSEMBLE_VERSION,
+        "nominal": str(nominal),
+        "metadata": dict(metadata or {}),
+        "members": [_pem_payload(p) for p in members],
+    }
     return _save(payload, path)
 
 
@@ -102,8 +125,10 @@ def load_ensemble(path: str | os.PathLike[str]) -> list[PEM]:
     """
     p = Path(path)
     if not p.is_file():
-        raise FileNotFoundError(f"{p}: no PEM ensemble there (build one with pemviz pem train --ensemble 20, or "
-                                "pemviz.pem.ensemble.save_ensemble for a PEM of your own)")
+        raise FileNotFoundError(
+            f"{p}: no PEM ensemble there (build one with pemviz pem train --ensemble 20, or "
+            "pemviz.pem.ensemble.save_ensemble for a PEM of your own)"
+        )
     payload = _load_payload(p, ENSEMBLE_TAG, ENSEMBLE_VERSION, "PEM ensemble")
     members = payload.get("members")
     if not isinstance(members, list) or len(members) < 2:

@@ -50,8 +50,9 @@ BATCH_NORM_EPS = 1e-5
 square root of the fold (:func:`fold_state_dict`)."""
 
 
-def mlnn_shapes(hidden: Sequence[int], *, batch_norm: bool = True, in_dim: int = N_FEATURES,
-                out_dim: int = 1) -> dict[str, tuple[int, ...]]:  # fmt: skip
+def mlnn_shapes(
+    hidden: Sequence[int], *, batch_norm: bool = True, in_dim: int = N_FEATURES, out_dim: int = 1
+) -> dict[str, tuple[int, ...]]:
     """The state-dict keys of an :class:`MLNN` without dropout, in its order, with their shapes: per hidden layer of
     width ``h`` a Linear (``ff_nn.{i}.weight [h, prev]``, ``.bias [h]``), with ``batch_norm`` a BatchNorm1d
     (``ff_nn.{i+1}.weight``, ``.bias``, ``.running_mean``, ``.running_var`` ``[h]``, ``.num_batches_tracked []``) and a
@@ -106,8 +107,14 @@ def state_problem(state: Mapping[str, Any], shapes: Mapping[str, tuple[int, ...]
     return "; ".join(problems) or None
 
 
-def fold_state_dict(state: Mapping[str, np.ndarray], hidden: Sequence[int], *, batch_norm: bool = True,
-                    in_dim: int = N_FEATURES, out_dim: int = 1) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+def fold_state_dict(
+    state: Mapping[str, np.ndarray],
+    hidden: Sequence[int],
+    *,
+    batch_norm: bool = True,
+    in_dim: int = N_FEATURES,
+    out_dim: int = 1,
+) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
     """:func:`fold_layers` of the :class:`MLNN` with this state, computed in numpy, bit for bit: affine layers
     ``(W float64 [out, in], b float64 [out])``, each BatchNorm (eval mode, ``eps`` :data:`BATCH_NORM_EPS`) folded
     into the Linear before it, ``gamma * (W x + b - mean) / sqrt(var + eps) + beta``; a ReLU follows every layer but
@@ -240,8 +247,9 @@ class GridMLP:
             out[a : a + MLP_BLOCK] = self.forward_t(zt, largest, (columns, codes.code[a : a + MLP_BLOCK])).T
         return out
 
-    def forward_t(self, xt: np.ndarray, largest: np.ndarray,
-                  first: tuple[OneHotColumns, np.ndarray] | None = None) -> np.ndarray:  # fmt: skip
+    def forward_t(
+        self, xt: np.ndarray, largest: np.ndarray, first: tuple[OneHotColumns, np.ndarray] | None = None
+    ) -> np.ndarray:
         """Outputs float64 ``[out, n]`` of one block of inputs laid out feature by feature, ``xt`` float64 ``[in, n]``
         (overwritten), ``largest`` float64 ``[n]`` the largest magnitude of each input row.
 
@@ -367,8 +375,9 @@ class PEM:
         try:
             layers = fold_state_dict(self.state_dict, self.hidden, batch_norm=self.batch_norm)
         except ValueError as exc:
-            raise PemFormatError(f"PEM {self.name!r}: weights do not fit hidden={self.hidden}, "
-                                 f"batch_norm={self.batch_norm}: {exc}") from None  # fmt: skip
+            raise PemFormatError(
+                f"PEM {self.name!r}: weights do not fit hidden={self.hidden}, " f"batch_norm={self.batch_norm}: {exc}"
+            ) from None
         object.__setattr__(self, "_layers", layers)
         object.__setattr__(self, "_grid", GridMLP.of(layers))
         object.__setattr__(self, "_one_hot", self._grid.one_hot(ONE_HOT_GROUPS))

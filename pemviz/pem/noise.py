@@ -105,6 +105,7 @@ class NoiseModel:
     def distribution(self, features: np.ndarray) -> Any:
         """The predictive distribution as a frozen ``scipy.stats`` distribution of shape ``[R, 2]``."""
         from scipy import stats  # ~0.5 s to import: not on a braking run's path
+
         loc, log_scale = self.noise_params(features)
         scale = np.exp(log_scale)
         if self.family == "normal":
@@ -348,8 +349,16 @@ def train_noise_pem(
         "torch_version": str(torch.__version__),
         **dict(metadata or {}),
     }
-    return NoisePEM(name=name, norm=norm, family=family, df=df, state_dict=module.state_dict(),
-                    hidden=tuple(int(h) for h in hidden), target_scale=target_scale, metadata=meta)  # fmt: skip
+    return NoisePEM(
+        name=name,
+        norm=norm,
+        family=family,
+        df=df,
+        state_dict=module.state_dict(),
+        hidden=tuple(int(h) for h in hidden),
+        target_scale=target_scale,
+        metadata=meta,
+    )
 
 
 def fit_homoscedastic(
@@ -387,8 +396,14 @@ def fit_homoscedastic(
         else:
             intercept = err.mean(axis=0)
         residual = err - (x @ coef + intercept)
-        return HomoscedasticNoise(name=name, norm=norm, family=family, coef=coef, intercept=intercept,
-                                  log_scale=0.5 * np.log(np.mean(residual**2, axis=0)))  # fmt: skip
+        return HomoscedasticNoise(
+            name=name,
+            norm=norm,
+            family=family,
+            coef=coef,
+            intercept=intercept,
+            log_scale=0.5 * np.log(np.mean(residual**2, axis=0)),
+        )
     if linear_mean:
         raise ValueError(f"a linear mean is fitted for the normal family only, not {family!r}")
     from scipy import stats  # ~0.5 s to import: only when fitting
@@ -399,8 +414,9 @@ def fit_homoscedastic(
     else:
         params = [stats.t.fit(err[:, d]) for d in range(2)]
         df, loc, scale = (np.array([p[i] for p in params]) for i in range(3))
-    return HomoscedasticNoise(name=name, norm=norm, family=family, df=df, coef=coef, intercept=loc,
-                              log_scale=np.log(scale))  # fmt: skip
+    return HomoscedasticNoise(
+        name=name, norm=norm, family=family, df=df, coef=coef, intercept=loc, log_scale=np.log(scale)
+    )
 
 
 def nll(model: NoiseModel, inputs: np.ndarray, errors: np.ndarray) -> float:

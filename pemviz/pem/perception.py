@@ -80,8 +80,9 @@ class NoisyPEM:
         hit = np.asarray(detected, dtype=bool)
         err = np.asarray(errors, dtype=np.float64)
         if x.ndim != 2 or hit.shape != (x.shape[0],) or err.shape != (x.shape[0], 2):
-            raise ValueError(f"need features [R, 14], detected [R] and errors [R, 2], got {x.shape}, {hit.shape}, "
-                             f"{err.shape}")  # fmt: skip
+            raise ValueError(
+                f"need features [R, 14], detected [R] and errors [R, 2], got {x.shape}, {hit.shape}, " f"{err.shape}"
+            )
         logit = self.logit(x)
         out = np.where(hit, log_expit(logit), log_expit(-logit))
         if np.any(hit):
@@ -238,8 +239,13 @@ class SalientDetector:
             (errors float64 [H, D] in metres, log density float64 [H] in nats).
         """
         kept = self._step
-        if (kept is not None and kept.rows is rows and kept.codes is not None and self._shares_encoding()
-                and np.all(kept.seen[hit])):  # fmt: skip
+        if (
+            kept is not None
+            and kept.rows is rows
+            and kept.codes is not None
+            and self._shares_encoding()
+            and np.all(kept.seen[hit])
+        ):
             which = np.flatnonzero(hit[kept.seen])  # the hit rows among the seen ones
             if kept.inverse is not None:  # among the distinct ones: each asked once
                 which = kept.inverse[which]

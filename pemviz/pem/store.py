@@ -234,16 +234,19 @@ def _pem_file(ref: str | os.PathLike[str]) -> Path:
     return _model_file(ref, pem_path, shipped_pems, "PEM")
 
 
-def _model_file(ref: str | os.PathLike[str], path_of: Callable[[str], Path], shipped: Callable[[], list[str]],
-                what: str) -> Path:  # fmt: skip
+def _model_file(
+    ref: str | os.PathLike[str], path_of: Callable[[str], Path], shipped: Callable[[], list[str]], what: str
+) -> Path:
     """A name without ``.pt`` suffix and folder -> ``path_of(name)``; anything else a path. Raises FileNotFoundError
     (listing ``shipped()``) when the file is absent."""
     p = Path(ref)
     if isinstance(ref, str) and p.suffix != ".pt" and len(p.parts) == 1:
         p = path_of(ref)
     if not p.is_file():
-        raise FileNotFoundError(f"{ref}: neither a {what} file nor one of the shipped {what}s "
-                                f"({', '.join(shipped()) or 'none'}, in {assets_dir()})")  # fmt: skip
+        raise FileNotFoundError(
+            f"{ref}: neither a {what} file nor one of the shipped {what}s "
+            f"({', '.join(shipped()) or 'none'}, in {assets_dir()})"
+        )
     return p
 
 
@@ -382,9 +385,12 @@ def _noise_from_payload(payload: Mapping[str, Any], p: Path) -> NoiseModel:
             "metadata": dict(payload.get("metadata") or {}),
         }
         if kind == NoisePEM.kind:
-            return NoisePEM(**common, state_dict=dict(payload["state_dict"]),
-                            hidden=tuple(int(h) for h in payload["hidden"]),
-                            target_scale=_array(payload["target_scale"]))  # fmt: skip
+            return NoisePEM(
+                **common,
+                state_dict=dict(payload["state_dict"]),
+                hidden=tuple(int(h) for h in payload["hidden"]),
+                target_scale=_array(payload["target_scale"]),
+            )
         if kind == HomoscedasticNoise.kind:
             return HomoscedasticNoise(**common, **{k: _array(payload[k]) for k in ("coef", "intercept", "log_scale")})
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -421,8 +427,15 @@ def save_noisy_pem(model: NoisyPEM, path: str | os.PathLike[str]) -> Path:
         OSError: the folder is not writable (nothing is left behind).
         TypeError: a head of a kind that cannot be saved.
     """
-    return _save({"format": NOISY_FORMAT_TAG, "version": NOISY_FORMAT_VERSION,
-                  "detect": _pem_payload(model.detect), "noise": _noise_payload(model.noise)}, path)  # fmt: skip
+    return _save(
+        {
+            "format": NOISY_FORMAT_TAG,
+            "version": NOISY_FORMAT_VERSION,
+            "detect": _pem_payload(model.detect),
+            "noise": _noise_payload(model.noise),
+        },
+        path,
+    )
 
 
 def load_noisy_pem(path: str | os.PathLike[str]) -> NoisyPEM:

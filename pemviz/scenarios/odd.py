@@ -36,8 +36,10 @@ def odd_value(scenario: str, name: str, text: str, allowed: tuple[str, ...]) -> 
     """
     if name not in allowed:
         which = ", ".join(allowed) if allowed else "none"
-        raise ValueError(f"{name}~...: the {scenario} scenario cannot draw {name} per rollout (its parameters "
-                         f"that can be drawn: {which}); give it a value, {name}=VALUE")
+        raise ValueError(
+            f"{name}~...: the {scenario} scenario cannot draw {name} per rollout (its parameters "
+            f"that can be drawn: {which}); give it a value, {name}=VALUE"
+        )
     try:
         law = parse_distribution(text, where=f"{name}~{text.strip()}")
     except ODDError as exc:
@@ -50,7 +52,7 @@ def split_odd(pairs: Iterable[tuple[str, Any]]) -> tuple[tuple[tuple[str, Any], 
     fixed, drawn = [], []
     for name, value in pairs:
         if is_odd(value):
-            drawn.append((name, parse_distribution(value[len(PREFIX):], where=name)))
+            drawn.append((name, parse_distribution(value[len(PREFIX) :], where=name)))
         else:
             fixed.append((name, value))
     return tuple(fixed), (ODD(tuple(drawn)) if drawn else None)
@@ -58,4 +60,4 @@ def split_odd(pairs: Iterable[tuple[str, Any]]) -> tuple[tuple[tuple[str, Any], 
 
 def law_of(value: str) -> Distribution:
     """The distribution of a drawn parameter's ``scenario_params`` value."""
-    return parse_distribution(value[len(PREFIX):])
+    return parse_distribution(value[len(PREFIX) :])

@@ -37,9 +37,14 @@ CUT_IN_SETTINGS: dict[str, str] = {"cut-in": "moderate", "cut-in-rare": "rare"}
 (:data:`pemviz.scenarios.cut_in.scenario.RARITY_SETTINGS`)."""
 
 UNIT_SUFFIXES: tuple[tuple[str, str], ...] = (
-    ("_mps2", "m/s^2"), ("_mps", "m/s"), ("_kmh", "km/h"), ("_per_s", "1/s"), ("_steps", "steps"), ("_m", "m"),
+    ("_mps2", "m/s^2"),
+    ("_mps", "m/s"),
+    ("_kmh", "km/h"),
+    ("_per_s", "1/s"),
+    ("_steps", "steps"),
+    ("_m", "m"),
     ("_s", "s"),
-)  # fmt: skip
+)
 """A field name's suffix -> the unit of its value (the first suffix that matches)."""
 
 KINDS = {"float": "a number", "int": "a whole number", "bool": "true or false"}
@@ -104,8 +109,10 @@ class Parameter:
 
     def _refuse(self, value: object) -> Value:
         unit = f" in {self.unit}" if self.unit else ""
-        raise ParameterError(f"{self.name}={value!r} is not {KINDS[self.kind]}: {self.name} takes {KINDS[self.kind]}"
-                             f"{unit} (default {self.default!r})")  # fmt: skip
+        raise ParameterError(
+            f"{self.name}={value!r} is not {KINDS[self.kind]}: {self.name} takes {KINDS[self.kind]}"
+            f"{unit} (default {self.default!r})"
+        )
 
 
 def unit_of(name: str) -> str:
@@ -141,8 +148,9 @@ RANDOM_PARAMS: dict[str, tuple[str, ...]] = {}
 (:attr:`pemviz.scenarios.registry.Scenario.random_params`, written by :func:`register_defaults`)."""
 
 
-def register_defaults(scenario: str, defaults: Callable[[], object] | None,
-                      random_params: tuple[str, ...] = ()) -> None:  # fmt: skip
+def register_defaults(
+    scenario: str, defaults: Callable[[], object] | None, random_params: tuple[str, ...] = ()
+) -> None:
     """Let :func:`default_params` of ``scenario`` call ``defaults()`` and record the parameters it may draw per
     rollout (None: forget the scenario)."""
     if defaults is None:
@@ -164,10 +172,15 @@ def scenario_parameters(scenario: str) -> tuple[Parameter, ...]:
     params = default_params(scenario)
     if params is None:  # a registered scenario without parameters
         return ()
-    kinds = {f.name: f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
-             for f in dataclasses.fields(params)}  # an annotation as text (postponed) or as the type itself
-    return tuple(Parameter(f.name, kinds[f.name], getattr(params, f.name), unit_of(f.name))
-                 for f in dataclasses.fields(params) if kinds[f.name] in KINDS)  # fmt: skip
+    kinds = {
+        f.name: f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
+        for f in dataclasses.fields(params)
+    }  # an annotation as text (postponed) or as the type itself
+    return tuple(
+        Parameter(f.name, kinds[f.name], getattr(params, f.name), unit_of(f.name))
+        for f in dataclasses.fields(params)
+        if kinds[f.name] in KINDS
+    )
 
 
 def parameter(scenario: str, name: str) -> Parameter:
@@ -178,8 +191,9 @@ def parameter(scenario: str, name: str) -> Parameter:
     """
     found = {p.name: p for p in scenario_parameters(scenario)}
     if name not in found:
-        raise ParameterError(f"{name!r} is not a parameter of the {scenario} scenario; use one of "
-                             f"{', '.join(found)}")  # fmt: skip
+        raise ParameterError(
+            f"{name!r} is not a parameter of the {scenario} scenario; use one of " f"{', '.join(found)}"
+        )
     return found[name]
 
 
@@ -202,8 +216,9 @@ def parse_assignment(scenario: str, text: str) -> tuple[str, Value]:
             raise ParameterError(str(exc)) from None
         law = law_of(value)
         if p.kind != "float" and not (law.discrete and all(float(v).is_integer() for v in law.args)):
-            raise ParameterError(f"{p.name}~{law.text}: {p.name} takes {KINDS[p.kind]}: draw it from "
-                                 "choice(...) of whole numbers")
+            raise ParameterError(
+                f"{p.name}~{law.text}: {p.name} takes {KINDS[p.kind]}: draw it from " "choice(...) of whole numbers"
+            )
         return p.name, value
     name, sep, value = str(text).partition("=")
     if not sep:
@@ -253,8 +268,9 @@ def check_pairs(scenario: str, pairs: object) -> tuple[tuple[str, Value], ...]:
                 try:
                     apply_parameters(scenario, {**fixed, name: int(end) if whole else float(end)})
                 except ParameterError as exc:
-                    raise ParameterError(f"{name}~{law.text}: its value {end:g} is out of the parameter's "
-                                         f"range: {exc}") from None
+                    raise ParameterError(
+                        f"{name}~{law.text}: its value {end:g} is out of the parameter's " f"range: {exc}"
+                    ) from None
     return pairs
 
 
@@ -304,8 +320,11 @@ def parameters_text(scenario: str, pairs: Iterable[tuple[str, Value]]) -> str:
     (``""``: none)."""
     units = {p.name: p.unit for p in scenario_parameters(scenario)}
     drawn = {name for name, value in pairs if isinstance(value, str) and value.startswith("~")}  # NAME~DIST
-    return ", ".join((f"{name} {value[0]} {value[1:]}" if name in drawn else f"{name}={value!r}")
-                     + (f" {units[name]}" if units.get(name) else "") for name, value in pairs)  # fmt: skip
+    return ", ".join(
+        (f"{name} {value[0]} {value[1:]}" if name in drawn else f"{name}={value!r}")
+        + (f" {units[name]}" if units.get(name) else "")
+        for name, value in pairs
+    )
 
 
 def as_pairs(value: object) -> tuple[tuple[str, Value], ...]:

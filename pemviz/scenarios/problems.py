@@ -159,8 +159,9 @@ def with_alternatives(problem: Problem, config: Any) -> Problem:
         members = load_ensemble(path)
         source = path.name
         for k, member in enumerate(members):
-            alternatives.append(AlternativeTarget("member", f"member {k}", with_pem(target, member),
-                                                  exact(member.logit_at_gap)))  # fmt: skip
+            alternatives.append(
+                AlternativeTarget("member", f"member {k}", with_pem(target, member), exact(member.logit_at_gap))
+            )
     pem = getattr(target, "pem", None)
     for d in sorted(shifts):
         known = None

@@ -24,7 +24,13 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 from pemviz.scenarios.parameters import (
-    KINDS, RANDOM_PARAMS, Parameter, ParameterError, apply_parameters, default_params, register_defaults,
+    KINDS,
+    RANDOM_PARAMS,
+    Parameter,
+    ParameterError,
+    apply_parameters,
+    default_params,
+    register_defaults,
     scenario_parameters,
     unit_of,
 )
@@ -126,8 +132,11 @@ class Scenario:
         params = self.default_params()
         if params is None:
             return ()
-        return tuple(Parameter(f.name, _kind(f), getattr(params, f.name), unit_of(f.name))
-                     for f in dataclasses.fields(params) if _kind(f))  # fmt: skip
+        return tuple(
+            Parameter(f.name, _kind(f), getattr(params, f.name), unit_of(f.name))
+            for f in dataclasses.fields(params)
+            if _kind(f)
+        )
 
     def build_params(self, values: Mapping[str, object] | None = None) -> Any:
         """The parameters with ``values`` (name -> value) replacing the scenario's defaults; None without a dataclass
@@ -170,8 +179,10 @@ class Scenario:
         """
         if self.runnable:
             if config is None:
-                raise ValueError(f"the {self.name} scenario's problem needs a config (ExperimentConfig(scenario="
-                                 f"{self.name!r})): its PEM, back-end and parameters")  # fmt: skip
+                raise ValueError(
+                    f"the {self.name} scenario's problem needs a config (ExperimentConfig(scenario="
+                    f"{self.name!r})): its PEM, back-end and parameters"
+                )
             if config.scenario != self.name:
                 raise ValueError(f"the config is one of the {config.scenario} scenario, not of {self.name}")
             cfg = config
@@ -231,8 +242,9 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
     if not isinstance(scenario, Scenario):
         raise TypeError(f"register: a Scenario is needed, got {type(scenario).__name__}")
     if scenario.name in _REGISTRY and not replace:
-        raise ValueError(f"register: a scenario named {scenario.name!r} is registered already (replace=True to "
-                         "replace it)")  # fmt: skip
+        raise ValueError(
+            f"register: a scenario named {scenario.name!r} is registered already (replace=True to " "replace it)"
+        )
     _REGISTRY[scenario.name] = scenario
     SCENARIO_COST_FACTORS[scenario.name] = float(scenario.cost_factor)  # the engine's cost model reads it there
     RANDOM_PARAMS[scenario.name] = tuple(scenario.random_params)  # what --param NAME~DIST may draw
@@ -284,8 +296,9 @@ def load_plugins() -> None:
     _PLUGINS.load()
 
 
-_PLUGINS = Plugins(PLUGIN_VARIABLE, ENTRY_POINTS, "scenario", ScenarioPluginError, Scenario, _REGISTRY,
-                   lambda record: register(record))
+_PLUGINS = Plugins(
+    PLUGIN_VARIABLE, ENTRY_POINTS, "scenario", ScenarioPluginError, Scenario, _REGISTRY, lambda record: register(record)
+)
 
 
 def registered() -> tuple[str, ...]:
@@ -332,32 +345,68 @@ _CUT_IN_COST_FACTOR = 6.7
 """A cut-in rollout step costs 6.7 braking ones (its five cars, their salient variables, measurement errors and
 tracker): 9.5 x 5.6 s / 7.9 s, the cut-in 1.4x faster, measured 2026-11-25 (``benchmarks/calibrate_cost.py``)."""
 
-_CUT_IN = ("ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "
-           "or the safe distance of rule R_G1")  # fmt: skip
+_CUT_IN = (
+    "ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "
+    "or the safe distance of rule R_G1"
+)
 
 for _scenario in (
-    Scenario("braking", "automated braking behind a lead car, the PEM as the camera's detector; failure: the gap "
-             "drops below the crash gap", "pemviz.scenarios.braking.simulator:BrakingParams",
-             "pemviz.scenarios.builtin:run_problem", exact=True,
-             simulator="pemviz.scenarios.braking.simulator:BrakingScenario",
-             drawing="pemviz.scenarios.braking.drawing:BrakingDrawing", random_params=("gap0_m", "ego_speed0_mps"),
-             odd="pemviz.scenarios.braking.odd:braking_odd_problem"),
-    Scenario("cut-in", _CUT_IN.format("moderate (about 9e-5)"), "pemviz.scenarios.cut_in.scenario:CutInParams",
-             "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
-             drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
-    Scenario("cut-in-rare", _CUT_IN.format("rare (about 1e-7)"), "pemviz.scenarios.cut_in.scenario:CutInParams",
-             "pemviz.scenarios.builtin:run_problem", simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
-             drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing", cost_factor=_CUT_IN_COST_FACTOR),
-    Scenario("toy", "toy braking: a car from an obstacle, a detection within the braking range stops it; failure: "
-             "closer than the safe distance (closed-form answer)", "pemviz.scenarios.toy:ToyParams",
-             "pemviz.scenarios.builtin:toy", exact=True, simulator="pemviz.scenarios.toy:ToyBraking",
-             random_params=("braking",), odd="pemviz.scenarios.toy.odd:toy_odd_problem"),
-    Scenario("crowd", "toy braking toward several obstacles, each detected and its distance mislocated; failure: "
-             "closer than the safe distance to the nearest (closed-form answer)",
-             "pemviz.scenarios.crowd.simulator:CrowdParams", "pemviz.scenarios.builtin:crowd", exact=True),
-    Scenario("crossing", "an emergency brake on tracked pedestrians stepping onto a crossing, the shipped PEMs as the "
-             "camera's detector and mislocation; failure: a collision",
-             "pemviz.scenarios.crossing.scene:CrossingParams", "pemviz.scenarios.crossing.problem:crossing"),
-):  # fmt: skip
+    Scenario(
+        "braking",
+        "automated braking behind a lead car, the PEM as the camera's detector; failure: the gap "
+        "drops below the crash gap",
+        "pemviz.scenarios.braking.simulator:BrakingParams",
+        "pemviz.scenarios.builtin:run_problem",
+        exact=True,
+        simulator="pemviz.scenarios.braking.simulator:BrakingScenario",
+        drawing="pemviz.scenarios.braking.drawing:BrakingDrawing",
+        random_params=("gap0_m", "ego_speed0_mps"),
+        odd="pemviz.scenarios.braking.odd:braking_odd_problem",
+    ),
+    Scenario(
+        "cut-in",
+        _CUT_IN.format("moderate (about 9e-5)"),
+        "pemviz.scenarios.cut_in.scenario:CutInParams",
+        "pemviz.scenarios.builtin:run_problem",
+        simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
+        drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
+        cost_factor=_CUT_IN_COST_FACTOR,
+    ),
+    Scenario(
+        "cut-in-rare",
+        _CUT_IN.format("rare (about 1e-7)"),
+        "pemviz.scenarios.cut_in.scenario:CutInParams",
+        "pemviz.scenarios.builtin:run_problem",
+        simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
+        drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
+        cost_factor=_CUT_IN_COST_FACTOR,
+    ),
+    Scenario(
+        "toy",
+        "toy braking: a car from an obstacle, a detection within the braking range stops it; failure: "
+        "closer than the safe distance (closed-form answer)",
+        "pemviz.scenarios.toy:ToyParams",
+        "pemviz.scenarios.builtin:toy",
+        exact=True,
+        simulator="pemviz.scenarios.toy:ToyBraking",
+        random_params=("braking",),
+        odd="pemviz.scenarios.toy.odd:toy_odd_problem",
+    ),
+    Scenario(
+        "crowd",
+        "toy braking toward several obstacles, each detected and its distance mislocated; failure: "
+        "closer than the safe distance to the nearest (closed-form answer)",
+        "pemviz.scenarios.crowd.simulator:CrowdParams",
+        "pemviz.scenarios.builtin:crowd",
+        exact=True,
+    ),
+    Scenario(
+        "crossing",
+        "an emergency brake on tracked pedestrians stepping onto a crossing, the shipped PEMs as the "
+        "camera's detector and mislocation; failure: a collision",
+        "pemviz.scenarios.crossing.scene:CrossingParams",
+        "pemviz.scenarios.crossing.problem:crossing",
+    ),
+):
     register(_scenario)
 del _scenario

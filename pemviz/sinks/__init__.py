@@ -105,8 +105,12 @@ class StageClock(Sink):
         done: the finished stages' results.
     """
 
-    def __init__(self, now: Callable[[], float] = time.perf_counter, constants: CostConstants = COST,
-                 slowdown: Callable[[], float] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        now: Callable[[], float] = time.perf_counter,
+        constants: CostConstants = COST,
+        slowdown: Callable[[], float] | None = None,
+    ) -> None:
         self.now = now
         self.constants = constants
         self._slowdown = slowdown
@@ -137,8 +141,10 @@ class StageClock(Sink):
         self._look_ahead_s = float(event.problem.look_ahead_s)
         self.predicted = {s.stage: self._model(s.kind, s.n_rollouts, s.stage) for s in event.plan.stages}
         self._measured = {}
-        self._planned = {"simulate": sum(c.simulate_s for c in self.predicted.values()),
-                         "after": sum(c.after_s for c in self.predicted.values())}  # fmt: skip
+        self._planned = {
+            "simulate": sum(c.simulate_s for c in self.predicted.values()),
+            "after": sum(c.after_s for c in self.predicted.values()),
+        }
 
     def on_stage_started(self, event: StageStarted) -> None:
         self.stage_t0, self.sampled_t, self.current = self.now(), None, event

@@ -64,8 +64,14 @@ METRIC_COLOURS = {"classic": (40, 110, 230), "agm": (230, 120, 30), "smooth-cumu
 """The robustness metrics' curves in the paper-tables recording."""
 OTHER = (120, 120, 120)
 """A series without a colour of its own."""
-MODEL_COLOURS = {"ml-nn": (90, 160, 240), "lr": (170, 120, 220), "guess-mu": (150, 150, 150), "b-nn": (80, 200, 160),
-                 "gbt": (250, 170, 40), "authors": ON_DARK}  # fmt: skip
+MODEL_COLOURS = {
+    "ml-nn": (90, 160, 240),
+    "lr": (170, 120, 220),
+    "guess-mu": (150, 150, 150),
+    "b-nn": (80, 200, 160),
+    "gbt": (250, 170, 40),
+    "authors": ON_DARK,
+}
 """The PEM families in ``pemviz pem eval``'s recording."""
 MODEL_OTHER = (200, 200, 200)
 REFERENCE_LINE = (110, 110, 110)

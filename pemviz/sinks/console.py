@@ -16,8 +16,19 @@ from pemviz.methods import method_or_none, plain_method
 from pemviz.plugins import resolve
 from pemviz.sinks import Sink, StageClock
 
-__all__ = ["ConsoleSink", "HEADER", "McRoute", "duration_text", "estimate_cells", "final_lines", "mc_rollouts",
-           "mc_route", "next_step", "progress_line", "stage_row"]
+__all__ = [
+    "ConsoleSink",
+    "HEADER",
+    "McRoute",
+    "duration_text",
+    "estimate_cells",
+    "final_lines",
+    "mc_rollouts",
+    "mc_route",
+    "next_step",
+    "progress_line",
+    "stage_row",
+]
 
 HEADER = (
     f"{'stage':>7} {'kind':>8} {'gamma':>9} {'failures':>10} {'mu_hat':>11} {'95% CI':>21} {'NLL':>8} {'ESS':>7} "
@@ -37,8 +48,9 @@ def estimate_cells(e: Estimate) -> str:
     )
 
 
-def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: float,
-                  run_left_s: float = math.nan) -> str:  # fmt: skip
+def progress_line(
+    label: str, n_rollouts: int, elapsed_s: float, expected_s: float, run_left_s: float = math.nan
+) -> str:
     """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s, run ~8.4 s left)``: the stage's
     expected seconds and the whole run's left (:class:`pemviz.sinks.StageClock`), each left out where unknown."""
     eta = f", this stage ~{expected_s:.1f} s" if math.isfinite(expected_s) else ""
@@ -48,8 +60,10 @@ def progress_line(label: str, n_rollouts: int, elapsed_s: float, expected_s: flo
 
 def stage_row(res: StageResult) -> str:
     """One table row: stage, kind, gamma_kappa, the estimate's cells (:func:`estimate_cells`), wall time (s)."""
-    return (f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {estimate_cells(res.estimate)} "
-            f"{res.wall_s:>7.2f}")
+    return (
+        f"{res.stage:>7d} {res.kind:>8} {_num(res.gamma, '9.4f'):>9} {estimate_cells(res.estimate)} "
+        f"{res.wall_s:>7.2f}"
+    )
 
 
 MC_AFFORDABLE = 10**8
@@ -144,8 +158,9 @@ MC_CAP_MARGIN = 1.2
 1,108,911 rollouts left its half-width at 0.207)."""
 
 
-def plain_rollout_seconds(config, s_per: float | None, n_simulations: int | None = None,
-                          n_steps: int | None = None) -> float | None:  # fmt: skip
+def plain_rollout_seconds(
+    config, s_per: float | None, n_simulations: int | None = None, n_steps: int | None = None
+) -> float | None:
     """Seconds a plain Monte Carlo rollout takes on this machine, from a run of another method: the run's measured
     seconds ``s_per`` a simulation of its ``n_simulations`` (its reported count: a tilt's look-aheads and splitting's
     continuations included; None: ``config.n_simulations``), so its wall time, over the cost model's seconds of the
@@ -213,18 +228,30 @@ class McRoute:
         """``p ~ 8.66e-05, the reference: 1,108,911 rollouts for a 20 % interval, ~59 min at this run's ...``; with
         :attr:`log_floor` and ``floor``, the rollouts at it too (``; up to 18,343 at its 95 % lower bound p >=
         5.21e-03, ~34 s``)."""
-        time = (f", ~{duration_text(self.seconds)} at {_rate_text(s_per, source)}"
-                if self.seconds is not None and math.isfinite(self.seconds) else "")  # fmt: skip
-        line = (f"p ~ {format_probability(self.log_p, 2)}, {self.source}: {count_text(self.n)} rollouts for a "
-                f"{PERCENT} interval{time}")  # fmt: skip
+        time = (
+            f", ~{duration_text(self.seconds)} at {_rate_text(s_per, source)}"
+            if self.seconds is not None and math.isfinite(self.seconds)
+            else ""
+        )
+        line = (
+            f"p ~ {format_probability(self.log_p, 2)}, {self.source}: {count_text(self.n)} rollouts for a "
+            f"{PERCENT} interval{time}"
+        )
         if floor and self.log_floor is not None:
-            line += (f"; up to {count_text(self.n_floor)} at its 95 % lower bound p >= "
-                     f"{format_probability(self.log_floor, 2)}{_time(self.n_floor, s_per)}")  # fmt: skip
+            line += (
+                f"; up to {count_text(self.n_floor)} at its 95 % lower bound p >= "
+                f"{format_probability(self.log_floor, 2)}{_time(self.n_floor, s_per)}"
+            )
         return line
 
 
-def mc_route(e: Estimate, method: str, exact_log_p: float | None = None, reference: Reference | None = None,
-             s_per: float | None = None) -> McRoute | None:  # fmt: skip
+def mc_route(
+    e: Estimate,
+    method: str,
+    exact_log_p: float | None = None,
+    reference: Reference | None = None,
+    s_per: float | None = None,
+) -> McRoute | None:
     """Plain Monte Carlo sized from the exact answer, else the reference, else the run's own estimate: mu_hat, or
     where the run does not back its interval (``Estimate.interval_backed``) its 95 % lower bound
     (``Estimate.log_lower_bound``) when that is higher, and that lower bound as :attr:`McRoute.log_floor` when it is
@@ -249,8 +276,7 @@ def mc_route(e: Estimate, method: str, exact_log_p: float | None = None, referen
     n = mc_rollouts(log_p)
     upper = source.startswith("this run's") and not plain_method(method)
     n_floor = mc_rollouts(floor) if floor is not None and upper else math.nan
-    return McRoute(log_p, source, upper, n, n * s_per if s_per is not None else None,
-                   floor if upper else None, n_floor)  # fmt: skip
+    return McRoute(log_p, source, upper, n, n * s_per if s_per is not None else None, floor if upper else None, n_floor)
 
 
 def _time(n: float, s_per: float | None) -> str:
@@ -287,15 +313,18 @@ class AdviceText:
             return None
         return int(float(f"{m:.2g}"))
 
-    def importance_route(self, config, n_simulations: int | None, s_per: float | None, within_s: float | None,
-                         sims: int | None = None) -> str | None:  # fmt: skip
+    def importance_route(
+        self, config, n_simulations: int | None, s_per: float | None, within_s: float | None, sims: int | None = None
+    ) -> str | None:
         """An importance sampler's route: a run at 4 N (``sims`` simulations; None: 4 N) or a precision target, each
         with its time at ``s_per`` seconds a simulation; with ``within_s`` the target alone, if it fits."""
         m = self.cap(config, n_simulations, s_per, within_s)
         if m is None:
             return None
-        target = (f"a precision target (--rel-error 0.1 --max-sims {m}{self.tail(within_s)}: final batches up to "
-                  f"{m:,} simulations{_time(m, s_per)})")  # fmt: skip
+        target = (
+            f"a precision target (--rel-error 0.1 --max-sims {m}{self.tail(within_s)}: final batches up to "
+            f"{m:,} simulations{_time(m, s_per)})"
+        )
         if within_s is not None:
             return target
         n = getattr(config, "n_per_stage", 100)
@@ -306,8 +335,9 @@ class AdviceText:
 ADVICE_TEXT = AdviceText()
 
 
-def _more_budget(config, n_simulations: int | None, s_per: float | None, wall_s: float | None,
-                 within_s: float | None = None) -> str | None:  # fmt: skip
+def _more_budget(
+    config, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None = None
+) -> str | None:
     """The method's own route (:attr:`pemviz.methods.Method.more_budget`; an importance sampler's by
     default: a larger run or a precision target), with simulations and time at ``s_per`` seconds a simulation; with
     ``within_s`` (seconds) only what fits in it (None: nothing more fits)."""
@@ -317,9 +347,15 @@ def _more_budget(config, n_simulations: int | None, s_per: float | None, wall_s:
     return ADVICE_TEXT.importance_route(config, n_simulations, s_per, within_s)
 
 
-def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: Reference | None = None,
-              n_simulations: int | None = None, wall_s: float | None = None,
-              plain_s: float | None = None) -> str | None:  # fmt: skip
+def next_step(
+    e: Estimate,
+    config,
+    exact_log_p: float | None = None,
+    reference: Reference | None = None,
+    n_simulations: int | None = None,
+    wall_s: float | None = None,
+    plain_s: float | None = None,
+) -> str | None:
     """What to do after a run whose verdict is not ``reliable``, in one line (None for a reliable one): the cheapest
     route that would decide it, with its rollouts and its time on this machine.
 
@@ -357,37 +393,52 @@ def next_step(e: Estimate, config, exact_log_p: float | None = None, reference: 
         budget = min(budget, max_time / mc_s)
     if plain_method(method):
         return _after_mc(e, config, route, s_per, max_time)
-    heavy = (f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it)"
-             if e.khat > KHAT_UNRELIABLE else "")  # fmt: skip
+    heavy = (
+        f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it)"
+        if e.khat > KHAT_UNRELIABLE
+        else ""
+    )
     rest = _more_budget(config, n_simulations, s_per, wall_s)
     if route is None:  # no failure and no known p: nothing to size plain Monte Carlo on
         return f"{rest}; the verdict says whether to trust the result"
     tail = f" --max-time {max_time:g}" if max_time is not None else ""
     if route.fits(max_time):
         cap = route.cap(config)
-        upper = ("; an upper estimate: heavy-tailed weights make this run's estimate usually too low, and the run "
-                 "stops early where p is larger" if route.upper else "")  # fmt: skip
-        return (f"plain Monte Carlo decides it: {route.command(cap)}{tail} ({route.text(mc_s, rate)}){upper}; or "
-                f"{rest}, with its verdict{heavy}")  # fmt: skip
+        upper = (
+            "; an upper estimate: heavy-tailed weights make this run's estimate usually too low, and the run "
+            "stops early where p is larger"
+            if route.upper
+            else ""
+        )
+        return (
+            f"plain Monte Carlo decides it: {route.command(cap)}{tail} ({route.text(mc_s, rate)}){upper}; or "
+            f"{rest}, with its verdict{heavy}"
+        )
     if route.upper and budget > (n_simulations or 0):  # p unknown, sized on an estimate that is usually too low:
         # plain Monte Carlo capped at the budget stops early where p is larger and decides it wherever p is at least
         # what the cap resolves
         cap = max(int(float(f"{budget:.2g}")), getattr(config, "n_per_stage", 0))
         least = Z_95**2 / (MC_REL_ERROR**2 * cap + Z_95**2)  # the p at which mc_rollouts(p) = cap
-        return (f"p is not known ({route.text(mc_s, rate, floor=False)}: an upper estimate, as heavy-tailed "
-                f"weights make this run's estimate usually too low); plain Monte Carlo capped ({route.command(cap)}"
-                f"{tail}: up to {cap:,} rollouts{_time(cap, mc_s)}) decides it where p >= {least:.2g}, stopping "
-                f"early where p is larger; or {rest}, with its verdict{heavy}")  # fmt: skip
+        return (
+            f"p is not known ({route.text(mc_s, rate, floor=False)}: an upper estimate, as heavy-tailed "
+            f"weights make this run's estimate usually too low); plain Monte Carlo capped ({route.command(cap)}"
+            f"{tail}: up to {cap:,} rollouts{_time(cap, mc_s)}) decides it where p >= {least:.2g}, stopping "
+            f"early where p is larger; or {rest}, with its verdict{heavy}"
+        )
     if route.n > MC_AFFORDABLE and (max_time is None or not route.upper):
-        return (f"{route.text(mc_s, rate)}: too rare for plain Monte Carlo; what is left is {rest}, with its "
-                f"verdict{heavy}")  # fmt: skip
+        return (
+            f"{route.text(mc_s, rate)}: too rare for plain Monte Carlo; what is left is {rest}, with its "
+            f"verdict{heavy}"
+        )
     within = _more_budget(config, n_simulations, s_per, wall_s, within_s=max_time)
     why = f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(mc_s, rate)})"
     if within is None:
         cap = route.cap(config)
-        return (f"{why}, and this run's sampler has no more time in it: no route within --max-time {max_time:g} s "
-                f"would decide it; plain Monte Carlo would, given ~{duration_text(route.seconds)} "
-                f"({route.command(cap)} --max-time {math.ceil(route.seconds)})")  # fmt: skip
+        return (
+            f"{why}, and this run's sampler has no more time in it: no route within --max-time {max_time:g} s "
+            f"would decide it; plain Monte Carlo would, given ~{duration_text(route.seconds)} "
+            f"({route.command(cap)} --max-time {math.ceil(route.seconds)})"
+        )
     return f"{why}; within it only {within} is left, with its verdict{heavy}"
 
 
@@ -401,20 +452,27 @@ def _after_mc(e: Estimate, config, route: McRoute | None, s_per: float | None, m
         floor = ""
         if -math.inf < hi < 0.0:
             least = mc_rollouts(hi)
-            floor = (f"; p < {format_probability(hi, 2)} here, so a {PERCENT} interval needs at least "
-                     f"{count_text(least)} rollouts{_time(least, s_per)}")  # fmt: skip
-        return (f"more rollouts (--n {10 * n}{_time(10 * n, s_per)}) lower the bound ten-fold{floor}; where p is rare, "
-                "an importance-sampling method (--method adaptive), with its verdict")  # fmt: skip
+            floor = (
+                f"; p < {format_probability(hi, 2)} here, so a {PERCENT} interval needs at least "
+                f"{count_text(least)} rollouts{_time(least, s_per)}"
+            )
+        return (
+            f"more rollouts (--n {10 * n}{_time(10 * n, s_per)}) lower the bound ten-fold{floor}; where p is rare, "
+            "an importance-sampling method (--method adaptive), with its verdict"
+        )
     if route.n > MC_AFFORDABLE:
-        return (f"{route.text(s_per, 'plain')}: too rare for plain Monte Carlo; an importance-sampling method "
-                "(--method adaptive), with its verdict")  # fmt: skip
+        return (
+            f"{route.text(s_per, 'plain')}: too rare for plain Monte Carlo; an importance-sampling method "
+            "(--method adaptive), with its verdict"
+        )
     command = route.command(route.cap(config)).replace("--method mc ", "")
     if not route.fits(max_time):
-        return (f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(s_per, 'plain')}): a longer "
-                f"--max-time ({command} --max-time {math.ceil(route.seconds)}), or an importance-sampling method "
-                "(--method adaptive), with its verdict")  # fmt: skip
-    return (f"more rollouts: {command} samples until the interval is within {PERCENT} "
-            f"({route.text(s_per, 'plain')})")
+        return (
+            f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(s_per, 'plain')}): a longer "
+            f"--max-time ({command} --max-time {math.ceil(route.seconds)}), or an importance-sampling method "
+            "(--method adaptive), with its verdict"
+        )
+    return f"more rollouts: {command} samples until the interval is within {PERCENT} " f"({route.text(s_per, 'plain')})"
 
 
 def scenario_params_text(cfg) -> str:
@@ -429,8 +487,13 @@ def scenario_params_text(cfg) -> str:
     return f" ({parameters_text(cfg.scenario, changed)})" if changed else ""
 
 
-def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = None, reference: Reference | None = None,
-                failure_severity: FailureSeverity | None = None) -> list[str]:  # fmt: skip
+def final_lines(
+    event: FinalEstimate,
+    config=None,
+    exact_log_p: float | None = None,
+    reference: Reference | None = None,
+    failure_severity: FailureSeverity | None = None,
+) -> list[str]:
     """The lines under the table: mu_hat with its log and the run's size, the estimate's summary with the exact answer
     or reference, the severity curve and, with ``failure_severity``, the failures by impact speed with their shares of
     p (:meth:`pemviz.core.severity.FailureSeverity.line`), why the run stopped and what to do next
@@ -438,12 +501,17 @@ def final_lines(event: FinalEstimate, config=None, exact_log_p: float | None = N
     ``--report``'s)."""
     e = event.estimate
     point = "no failure seen" if e.n_failures == 0 else f"mu_hat = {format_probability(e.log_mu_hat, 4)}"
-    lines = [f"{point} (log mu_hat = {e.log_mu_hat:.4f} nats) from {event.n_simulations} simulations in "
-             f"{event.wall_s:.1f} s", e.summary(exact_log_p, reference)]  # fmt: skip
+    lines = [
+        f"{point} (log mu_hat = {e.log_mu_hat:.4f} nats) from {event.n_simulations} simulations in "
+        f"{event.wall_s:.1f} s",
+        e.summary(exact_log_p, reference),
+    ]
     if event.look_ahead:
-        lines.append("look-ahead: each rollout weighs up to the state from which the scenario computes the failure "
-                     "probability exactly, times that probability (conditional Monte Carlo); the failures counted are "
-                     "the rollouts that can still fail there")  # fmt: skip
+        lines.append(
+            "look-ahead: each rollout weighs up to the state from which the scenario computes the failure "
+            "probability exactly, times that probability (conditional Monte Carlo); the failures counted are "
+            "the rollouts that can still fail there"
+        )
     if event.severity is not None and len(event.severity.points) > 1:
         lines += event.severity.lines()
     if failure_severity is not None and failure_severity.n_failures:
@@ -486,9 +554,14 @@ class ConsoleSink(Sink):
         self.exact_log_p, self.reference, self.plan = event.exact_log_p, event.reference, event.plan
         print(
             f"pemviz: {cfg.method} on the {event.problem.name} scenario{scenario_params_text(cfg)}, spec "
-            f"{event.formula}, metric {cfg.metric}, " + (
+            f"{event.formula}, metric {cfg.metric}, "
+            + (
                 f"K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.n_final} sigma={cfg.quantile_level} "
-                f"alpha={cfg.smoothing}" if self.plan.n_ce else f"N={cfg.n_per_stage}") + f" seed={cfg.seed}",
+                f"alpha={cfg.smoothing}"
+                if self.plan.n_ce
+                else f"N={cfg.n_per_stage}"
+            )
+            + f" seed={cfg.seed}",
             file=self.out,
         )
         print(HEADER, file=self.out)

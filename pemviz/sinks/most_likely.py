@@ -56,9 +56,12 @@ class MostLikelyFailure(Sink):
         m = self.batch.objects.shape[2]
         labels = tuple(object_label(getattr(problem, "object_labels", ()), j) for j in range(m))
         if not np.isfinite(self.log_p):  # every failure drawn holds an event the PEM cannot produce
-            what = ("has probability 0 under the PEM (the log-probability of its detections is -inf)"
-                    if parts.errors is None else "is impossible under the PEM (the log-probability of its detections "
-                    "or the log-density of its measurement errors is -inf)")  # fmt: skip
+            what = (
+                "has probability 0 under the PEM (the log-probability of its detections is -inf)"
+                if parts.errors is None
+                else "is impossible under the PEM (the log-probability of its detections "
+                "or the log-density of its measurement errors is -inf)"
+            )
             head = f"why: every failure drawn {what}, so none is likely; one of them (stage {self.stage})"
             return f"{head}: {cf.summary(labels)}"
         span = f"over all {self.batch.n_steps - 1} steps"

@@ -79,9 +79,11 @@ def locate(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]) -> lis
     return found
 
 
-def failures_severity(shares: FailureShares,
-                      found: list[tuple[RolloutsSampled, int] | None] | Mapping[int, RolloutsSampled],
-                      problem: object) -> FailureSeverity | None:  # fmt: skip
+def failures_severity(
+    shares: FailureShares,
+    found: list[tuple[RolloutsSampled, int] | None] | Mapping[int, RolloutsSampled],
+    problem: object,
+) -> FailureSeverity | None:
     """Each failure's min distance and impact speed (:func:`pemviz.core.severity.rollout_severity`, read from the
     rollout in its stage's batch) and their distribution by share of p.
 
@@ -111,8 +113,13 @@ def failures_severity(shares: FailureShares,
     return failure_severity(problem.severity, contact_level(problem), shares.log_share, dist, speed, kept)
 
 
-def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled], drawing: object = None,
-                   problem: object = None, keys_wanted: bool = True) -> FailureGrouping:  # fmt: skip
+def group_failures(
+    shares: FailureShares,
+    sampled: Mapping[int, RolloutsSampled],
+    drawing: object = None,
+    problem: object = None,
+    keys_wanted: bool = True,
+) -> FailureGrouping:
     """Locate and group the failures of an estimate, and with ``problem`` read their severity
     (:func:`failures_severity`).
 
@@ -161,8 +168,14 @@ def group_failures(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]
     if basis.startswith("nothing"):
         keys = ["all"] * shares.n
         labels["all"] = "every failure"
-    return FailureGrouping(shares, tuple(found), tuple(keys), tuple(failure_groups(shares, keys, labels)), basis,
-                           failures_severity(shares, found, problem))  # fmt: skip
+    return FailureGrouping(
+        shares,
+        tuple(found),
+        tuple(keys),
+        tuple(failure_groups(shares, keys, labels)),
+        basis,
+        failures_severity(shares, found, problem),
+    )
 
 
 def population_markdown(g: FailureGrouping, most: int = MAX_LISTED) -> str:
@@ -180,8 +193,10 @@ def population_markdown(g: FailureGrouping, most: int = MAX_LISTED) -> str:
         for r in range(min(n, most))
     )
     more = f"\n\n... and {n - most:,} more failures (their groups are above).\n" if n > most else "\n"
-    head = ("| # | stage | rollout | share of p | log w (nats) | log p (nats) | group |\n"
-            "|---:|---:|---:|---:|---:|---:|---|\n")
+    head = (
+        "| # | stage | rollout | share of p | log w (nats) | log p (nats) | group |\n"
+        "|---:|---:|---:|---:|---:|---:|---|\n"
+    )
     return (
         f"## Failures of the final estimate: {n:,}\n\nShare of p: the fraction of mu_hat a failure carries (its "
         f"importance weight over the failures'). Groups by {g.basis} ({len(g.groups)}; shares add up to 100 %):\n\n"
@@ -204,15 +219,24 @@ def compact_failures(event: RolloutsSampled, problem: object = None) -> Rollouts
             wanted.add(problem.signals.get(scale.signal, scale.signal))
         names = tuple(c for c in b.observation_names if c in wanted)
     cols = [b.observation_names.index(c) for c in names]
-    batch = RolloutBatch(b.observations[rows][:, :, cols], b.detected[rows], np.zeros((rows.size, 0)),
-                         np.zeros((rows.size, 0)), names)  # fmt: skip
+    batch = RolloutBatch(
+        b.observations[rows][:, :, cols], b.detected[rows], np.zeros((rows.size, 0)), np.zeros((rows.size, 0)), names
+    )
     index = np.arange(b.n) if event.index is None else np.asarray(event.index)
     return dataclasses.replace(
-        event, batch=batch, robustness=np.asarray(event.robustness)[rows], robustness_by_metric={},
-        failed=np.ones(rows.size, dtype=bool), log_weight=np.asarray(event.log_weight)[rows],
-        n_total=event.n_total or b.n, index=index[rows], stage_robustness=None, stage_log_weight=None, sampler=None,
+        event,
+        batch=batch,
+        robustness=np.asarray(event.robustness)[rows],
+        robustness_by_metric={},
+        failed=np.ones(rows.size, dtype=bool),
+        log_weight=np.asarray(event.log_weight)[rows],
+        n_total=event.n_total or b.n,
+        index=index[rows],
+        stage_robustness=None,
+        stage_log_weight=None,
+        sampler=None,
         target=None,
-    )  # fmt: skip
+    )
 
 
 class FailureGroups:
@@ -258,8 +282,13 @@ def grouping_document(g: FailureGrouping, most: int = 20) -> dict:
     sev = g.severity
     largest = []
     for r in range(min(most, g.shares.n)):
-        row = {"stage": int(g.shares.stage[r]), "rollout": int(g.shares.index[r]), "share": float(share[r]),
-               "log_p": float(g.shares.log_p[r]), "group": g.group_label(r)}  # fmt: skip
+        row = {
+            "stage": int(g.shares.stage[r]),
+            "rollout": int(g.shares.index[r]),
+            "share": float(share[r]),
+            "log_p": float(g.shares.log_p[r]),
+            "group": g.group_label(r),
+        }
         if sev is not None:
             row["min_distance"] = _finite(sev.min_distance[r])
             row["impact_speed"] = _finite(sev.impact_speed[r])
@@ -288,12 +317,20 @@ def severity_document(sev: FailureSeverity) -> dict:
     of the kept failures' p (the shares add up to 1)."""
     bounds, counts, shares = sev.bounds(), sev.counts(), sev.shares()
     return {
-        "signal": sev.scale.signal, "label": sev.scale.label, "unit": sev.scale.unit, "contact": sev.contact,
-        "n": sev.n_failures, "n_kept": sev.n, "covered": sev.covered,
-        "median_min_distance": sev.median_min_distance() if sev.n else None, "text": sev.line(),
-        "bins": [{"label": label, "lo": lo, "hi": hi, "count": int(c), "share": float(x)}
-                 for label, (lo, hi), c, x in zip(sev.labels(), bounds, counts, shares, strict=False)],
-    }  # fmt: skip
+        "signal": sev.scale.signal,
+        "label": sev.scale.label,
+        "unit": sev.scale.unit,
+        "contact": sev.contact,
+        "n": sev.n_failures,
+        "n_kept": sev.n,
+        "covered": sev.covered,
+        "median_min_distance": sev.median_min_distance() if sev.n else None,
+        "text": sev.line(),
+        "bins": [
+            {"label": label, "lo": lo, "hi": hi, "count": int(c), "share": float(x)}
+            for label, (lo, hi), c, x in zip(sev.labels(), bounds, counts, shares, strict=False)
+        ],
+    }
 
 
 def log_failures(stream: object, grouping: FailureGrouping, problem: object = None) -> str:
@@ -313,19 +350,39 @@ def log_failures(stream: object, grouping: FailureGrouping, problem: object = No
     from pemviz.sinks import colours as C
 
     f = grouping.shares
-    stream.log("failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN),
-               static=True)  # fmt: skip
+    stream.log(
+        "failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN), static=True
+    )
     sev = failures_severity(f, list(grouping.found), problem)
     aligned = {} if sev is None else {"min_distance": sev.min_distance, "impact_speed": sev.impact_speed}
-    stream.log("final/failures", rr.AnyValues(stage=f.stage, rollout=f.index, share=f.share(), log_weight=f.log_weight,
-                                              log_p=f.log_p, group=[str(k) for k in grouping.keys], **aligned),
-               static=True)  # fmt: skip
+    stream.log(
+        "final/failures",
+        rr.AnyValues(
+            stage=f.stage,
+            rollout=f.index,
+            share=f.share(),
+            log_weight=f.log_weight,
+            log_p=f.log_p,
+            group=[str(k) for k in grouping.keys],
+            **aligned,
+        ),
+        static=True,
+    )
     if sev is None or not sev.n:
         return ""
     shares = sev.shares()
-    stream.log("final/severity_of_failures", rr.BarChart(shares, color=C.rgba(C.CRASH)),
-               rr.AnyValues(bin=sev.labels(), bin_failures=sev.counts(), bin_share=shares,
-                            median_min_distance=sev.median_min_distance(), contact_level=sev.contact,
-                            kept_share=sev.covered, distance=f"min {sev.scale.label} ({sev.scale.unit})"),
-               static=True)  # fmt: skip
+    stream.log(
+        "final/severity_of_failures",
+        rr.BarChart(shares, color=C.rgba(C.CRASH)),
+        rr.AnyValues(
+            bin=sev.labels(),
+            bin_failures=sev.counts(),
+            bin_share=shares,
+            median_min_distance=sev.median_min_distance(),
+            contact_level=sev.contact,
+            kept_share=sev.covered,
+            distance=f"min {sev.scale.label} ({sev.scale.unit})",
+        ),
+        static=True,
+    )
     return "\n\n" + sev.line()

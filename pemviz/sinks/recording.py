@@ -5,7 +5,7 @@ the run and the problem comes with :class:`~pemviz.engine.events.RunStarted`: th
 plan, the signals, thresholds and scene from the problem's view. Its look (colours, figures, scene lanes) is
 :mod:`pemviz.sinks.rerun_views`'s, its layout :mod:`pemviz.sinks.rerun_blueprint`'s (three tabs: *Stages* on the
 ``stage`` timeline, *Explain* and *Rollouts* on ``step``), the most likely failure's entities
-:mod:`pemviz.sinks.rerun_explain`'s.
+:mod:`pemviz.sinks.rerun_explain`'s, the estimate's Markdown :mod:`pemviz.sinks.rerun_text`'s.
 
 Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch: the engine's
 numbering and the plan's names, :func:`pemviz.core.plan.stage_label`; the default timeline: scrubbing it steps the
@@ -90,7 +90,7 @@ import rerun as rr
 
 import pemviz
 from pemviz.core.counterfactuals import LikelyFailure, LogPParts, most_likely_failure
-from pemviz.core.estimate import Reference, error_text, format_probability
+from pemviz.core.estimate import Reference
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.core.files import atomic_write
@@ -101,6 +101,14 @@ from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
 from pemviz.sinks.rerun_stage_figures import StageFigures, log_histograms, log_series_styles
+from pemviz.sinks.rerun_text import (
+    config_markdown,
+    description_markdown,
+    estimate_markdown,
+    final_status,
+    final_values,
+    stage_row,
+)
 from pemviz.sinks.rerun_views import (
     PEM_RGBA,
     PROPOSAL_FIG,
@@ -227,9 +235,7 @@ class RerunSink(Sink):
         return sink
 
     @classmethod
-    def to_grpc(
-        cls, url: str | None = None, *, serve: bool = False, grpc_port: int | None = None, **kw
-    ) -> "RerunSink":
+    def to_grpc(cls, url: str | None = None, *, serve: bool = False, grpc_port: int | None = None, **kw) -> "RerunSink":
         """A sink that streams to a running viewer (``url``) or serves a gRPC endpoint (``serve``, on
         ``grpc_port``, default 9876; its ``rerun+http://...`` address is in :attr:`serve_url`)."""
         stream = rr.RecordingStream(APP_ID)
@@ -318,18 +324,8 @@ class RerunSink(Sink):
         return C.stage_rgba(stage, C.stage_span(self.plan))
 
     def _log_description(self) -> None:
-        table = ""
-        if self.stage_rows:
-            table = (
-                "\n## Stages\n\n| stage | name | gamma | failures | mu_hat | NLL | ESS | wall s |\n"
-                "|---|---|---|---|---|---|---|---|\n" + "\n".join(self.stage_rows) + "\n"
-            )
-        status = f"\n## Result\n\n{self.status_md}\n" if self.status_md else ""
-        self.stream.log(
-            "description",
-            rr.TextDocument(self.intro_md + status + table + self.config_md, media_type=rr.MediaType.MARKDOWN),
-            static=True,
-        )
+        text = description_markdown(self.intro_md, self.status_md, self.stage_rows, self.config_md)
+        self.stream.log("description", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
 
     def _log_proposal_legend(self) -> None:
         """Legend right of the reference-state plot (data units: metres, probability): the PEM, the first and last
@@ -342,35 +338,17 @@ class RerunSink(Sink):
         pos = [[x, 0.9 - j * 0.12] for j in range(len(entries))]
         self.stream.log(
             "proposal/data/legend",
-            rr.Points2D(pos, radii=-0.01, colors=[c for _, c in entries], labels=[t for t, _ in entries],
-                        show_labels=True),
+            rr.Points2D(
+                pos, radii=-0.01, colors=[c for _, c in entries], labels=[t for t, _ in entries], show_labels=True
+            ),
             static=True,
-        )  # fmt: skip
+        )
 
     def _log_estimate(self, res: StageResult | None, final: FinalEstimate | None = None) -> None:
         """The ``estimate`` view: mu_hat with its interval, k-hat, verdict and the exact answer where known."""
         e = final.estimate if final is not None else res.estimate
         where = "Final estimate" if final is not None else f"Estimate after {self.plan.label(res.stage, res.kind)}"
-        lines = [
-            f"# {where}", "",
-            f"## mu_hat = {format_probability(e.log_mu_hat, 4)}", "",
-            (f"95 % interval **{e.interval_text()}**" if e.interval_backed else f"**{e.bound_text()}**"), "",
-            f"**{e.verdict}**: {e.reason}",
-        ]  # fmt: skip
-        exact = self.exact_log_p
-        if exact is not None:
-            lines += ["", f"exact answer **{format_probability(exact, 4)}**: {error_text(e.log_mu_hat, exact)}, "
-                          f"{e.holds_text(exact, '**outside**')}"]  # fmt: skip
-        elif self.reference is not None:
-            lines += ["", self.reference.comparison(e, outside="**outside**")]
-        if e.n_failures == 0:
-            lines += ["", f"No failure among {e.n} rollouts: mu_hat = 0 says only that the sampler found no crash."]
-        khat = "-" if math.isnan(e.khat) else f"{e.khat:.2f}"
-        nll = f" · NLL {e.nll_mean:.1f} nats" if math.isfinite(e.nll_mean) else ""
-        lines += ["", f"failures {e.n_failures}/{e.n} · ESS {e.ess:.1f} · k-hat {khat}{nll}"]
-        if final is not None:
-            lines += ["", f"{final.n_simulations:,} simulations in {final.wall_s:.1f} s"]
-        self.estimate_md = "\n".join(lines) + "\n"
+        self.estimate_md = estimate_markdown(e, where, self.exact_log_p, self.reference, final)
         self.stream.log("estimate", rr.TextDocument(self.estimate_md, media_type=rr.MediaType.MARKDOWN), static=True)
 
     # -- run started ----------------------------------------------------------------------------------
@@ -399,14 +377,17 @@ class RerunSink(Sink):
         s.send_recording_name(f"pemviz {cfg.method} {cfg.metric} seed {cfg.seed}")
         s.send_blueprint(default_blueprint(len(self.plan.stages) * self.scene_per_stage, self.view))
         self.intro_md = intro_markdown(ev)
-        rows = "\n".join(f"| {k} | `{v}` |" for k, v in vars(cfg).items())
-        self.config_md = f"\n## Config\n\n| setting | value |\n|---|---|\n{rows}\n"
+        self.config_md = config_markdown(cfg)
         self._log_description()
         log_series_styles(s, draws_scene(self.drawing))
-        known = ev.exact_log_p if ev.exact_log_p is not None and math.isfinite(ev.exact_log_p) else (
-            ev.reference.log_p if ev.reference is not None else None)
-        self.figures = StageFigures(s, self.plan.last_stage, None if known is None else known / math.log(10.0),
-                                    draws_scene(self.drawing))  # fmt: skip
+        known = (
+            ev.exact_log_p
+            if ev.exact_log_p is not None and math.isfinite(ev.exact_log_p)
+            else (ev.reference.log_p if ev.reference is not None else None)
+        )
+        self.figures = StageFigures(
+            s, self.plan.last_stage, None if known is None else known / math.log(10.0), draws_scene(self.drawing)
+        )
         PROPOSAL_FIG.draw_axes(s, (float(self.grid_m.min()), float(self.grid_m.max())), (0.0, 1.0))
         s.log(
             "proposal/data/pem",
@@ -424,10 +405,13 @@ class RerunSink(Sink):
             s.set_time("repetition", sequence=self.repetition)
         if not np.all(np.isnan(res.proposal_curve)):
             strip = [np.column_stack([self.grid_m, res.proposal_curve])]
-            s.log(f"proposal/data/stage_{res.stage:02d}", rr.LineStrips2D(strip, colors=colour, radii=-1.5),
-                  static=True)
-            s.log("proposal/data/current", rr.LineStrips2D(strip, colors=colour, radii=-4.0,
-                                                           labels=[self.plan.label(res.stage, res.kind)]))
+            s.log(
+                f"proposal/data/stage_{res.stage:02d}", rr.LineStrips2D(strip, colors=colour, radii=-1.5), static=True
+            )
+            s.log(
+                "proposal/data/current",
+                rr.LineStrips2D(strip, colors=colour, radii=-4.0, labels=[self.plan.label(res.stage, res.kind)]),
+            )
             self.curve_stages.append(res.stage)
             self._log_proposal_legend()
         rate = np.asarray(res.elite_detect_rate, dtype=np.float64)
@@ -467,14 +451,7 @@ class RerunSink(Sink):
         if self.figures is not None:
             self.figures.add(res.stage, values)  # the same series as static figures: shown on every timeline
 
-        def num(x: float, fmt: str) -> str:
-            return format(x, fmt) if math.isfinite(x) else "-"
-
-        self.stage_rows.append(
-            f"| {res.stage} | {self.plan.label(res.stage, res.kind)} | {num(res.gamma, '.4f')} | "
-            f"{e.n_failures}/{e.n} | {format_probability(e.log_mu_hat)} | {num(e.nll_mean, '.2f')} | "
-            f"{num(e.ess, '.2f')} | {res.wall_s:.2f} |"
-        )
+        self.stage_rows.append(stage_row(res, self.plan.label(res.stage, res.kind)))
         self._log_description()
         self._log_estimate(res)
 
@@ -515,10 +492,15 @@ class RerunSink(Sink):
         self.likely, self.most_likely_log_p = likely, likely.log_p
         i = np.array([likely.row])
         self.most_likely = RolloutsSampled(
-            ev.stage, ev.kind, ev.batch.select(i), ev.robustness[i],
-            {m: np.asarray(v)[i] for m, v in ev.robustness_by_metric.items()}, np.asarray(ev.failed)[i],
-            np.asarray(ev.log_weight)[i], index=ev.rollout_numbers[i],
-        )  # fmt: skip
+            ev.stage,
+            ev.kind,
+            ev.batch.select(i),
+            ev.robustness[i],
+            {m: np.asarray(v)[i] for m, v in ev.robustness_by_metric.items()},
+            np.asarray(ev.failed)[i],
+            np.asarray(ev.log_weight)[i],
+            index=ev.rollout_numbers[i],
+        )
         self.most_likely_detect = object_detect_probabilities(ev.batch, likely.row, ev.sampler, ev.target)
         target = ev.target if ev.target is not None else getattr(self.problem, "target", None)
         try:
@@ -533,8 +515,15 @@ class RerunSink(Sink):
         if not self.thresholds_logged:
             log_thresholds(s, self.view, ev.batch.n_steps, self._indexes)
             self.thresholds_logged = True
-        log_stage_rollouts(s, ev, self.view, self.plan.label(ev.stage, ev.kind), self.tagged_per_stage,
-                           self.likely_per_stage, self._indexes)  # fmt: skip
+        log_stage_rollouts(
+            s,
+            ev,
+            self.view,
+            self.plan.label(ev.stage, ev.kind),
+            self.tagged_per_stage,
+            self.likely_per_stage,
+            self._indexes,
+        )
         if draws_scene(self.drawing):
             for i in least_robust(ev, self.scene_per_stage):
                 path = f"{SCENE_PATH}/stage_{ev.stage:02d}" + (f"_{self.n_lanes}" if self.scene_per_stage > 1 else "")
@@ -549,49 +538,36 @@ class RerunSink(Sink):
         self.explained = True
         best = self.most_likely
         name = self.plan.label(best.stage, best.kind) if best is not None else ""
-        log_explanation(self.stream, best, self.most_likely_log_p, self.n_failures_seen, self.view, name,
-                        self._indexes, object_detect=self.most_likely_detect, parts=self.most_likely_parts)  # fmt: skip
+        log_explanation(
+            self.stream,
+            best,
+            self.most_likely_log_p,
+            self.n_failures_seen,
+            self.view,
+            name,
+            self._indexes,
+            object_detect=self.most_likely_detect,
+            parts=self.most_likely_parts,
+        )
 
     # -- final --------------------------------------------------------------------------------------
     def _final(self, ev: FinalEstimate) -> None:
-        e = ev.estimate
         s = self.stream
         self.finished = True
-        s.log(
-            "final",
-            rr.AnyValues(
-                log_mu_hat=e.log_mu_hat,
-                mu_hat=format_probability(e.log_mu_hat, 4),
-                n_failures=e.n_failures,
-                n=e.n,
-                nll_mean=e.nll_mean,
-                ess=e.ess,
-                log_ci_low=e.shown_log_ci[0],
-                log_ci_high=e.shown_log_ci[1],
-                interval="95 % CI" if e.interval_backed else "95 % lower bound, no upper bound",
-                khat=e.khat,
-                verdict=e.verdict,
-                reason=e.reason,
-                n_simulations=ev.n_simulations,
-                wall_s=ev.wall_s,
-            ),
-            static=True,
-        )
+        s.log("final", rr.AnyValues(**final_values(ev)), static=True)
         self._log_estimate(None, ev)
-        self.status_md = (
-            f"**Final estimate** mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = "
-            f"{e.log_mu_hat:.4f} nats; {e.n_failures}/{e.n} failures, ESS {e.ess:.2f}) from "
-            f"{ev.n_simulations} simulations in {ev.wall_s:.1f} s."
-        )
+        self.status_md = final_status(ev)
         if ev.severity is not None and len(ev.severity.points) > 1:
-            self.status_md += "\n\n" + ev.severity.markdown()
             levels = [pt.level if pt.level is not None else math.nan for pt in ev.severity.points]
-            s.log("final/severity", rr.AnyValues(level=levels,
-                                                 log_p=[pt.estimate.log_mu_hat for pt in ev.severity.points],
-                                                 verdict=[pt.estimate.verdict for pt in ev.severity.points]),
-                  static=True)  # fmt: skip
-        if ev.pem_spread is not None:
-            self.status_md += "\n\n```text\n" + "\n".join(ev.pem_spread.lines()) + "\n```\n"
+            s.log(
+                "final/severity",
+                rr.AnyValues(
+                    level=levels,
+                    log_p=[pt.estimate.log_mu_hat for pt in ev.severity.points],
+                    verdict=[pt.estimate.verdict for pt in ev.severity.points],
+                ),
+                static=True,
+            )
         self._explain()  # before the grouping, which a shared listener may still be computing
         self._groups(ev)  # the final estimate's failures, grouped (FailureGroups keeps each stage's failing rows)
         if ev.failures is not None and self._groups.grouping is not None:

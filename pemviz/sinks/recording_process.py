@@ -67,13 +67,19 @@ class RecordingProcess(Sink):
         self.path = Path(path)
         self._errors = tempfile.TemporaryFile()
         package_root = str(Path(__file__).resolve().parents[2])
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH"))
-                                                           if p),
-               **ONE_THREAD_ENV}  # fmt: skip
+        env = {
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH")) if p),
+            **ONE_THREAD_ENV,
+        }
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "pemviz.sinks.recording_process", str(self.path), "1" if overwrite else "0"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._errors, env=env, start_new_session=True,
-        )  # fmt: skip
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self._errors,
+            env=env,
+            start_new_session=True,
+        )
         self._queue: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._writer = threading.Thread(target=self._write, name="pemviz-recording-feed", daemon=True)
         self._writer.start()
@@ -135,8 +141,10 @@ class RecordingProcess(Sink):
         except subprocess.TimeoutExpired:
             self._proc.kill()
             self._proc.wait()
-            raise OSError(f"the recording process did not finish within {CLOSE_TIMEOUT_S:.0f} s; nothing written "
-                          f"to {self.path}") from None  # fmt: skip
+            raise OSError(
+                f"the recording process did not finish within {CLOSE_TIMEOUT_S:.0f} s; nothing written "
+                f"to {self.path}"
+            ) from None
         report = _last_json(out)
         if not commit:  # a run that failed: its own error is the one to show
             return None

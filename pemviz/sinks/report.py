@@ -31,16 +31,27 @@ WHITE, PANEL, TEXT, RULE, MUTED = (hex_colour(c) for c in (C.PAGE, C.SKETCH_BACK
 def _odd_section(odd_map: dict[str, Any]) -> tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]:
     """The section of a run over an operating design domain: each parameter's bins with p(failure | bin), its interval
     or lower bound, verdict and share of p_ODD (:meth:`pemviz.sinks.odd_map.OddMapSink.document`)."""
+
     def exp(x: float | None) -> float | None:
         return None if x is None else math.exp(x)
 
     laws = ", ".join(f"{p['name']} ~ {p['text']}" for p in odd_map["odd"])
-    rows = [(f"{b['parameter']} in [{b['lo']:.4g}, {b['hi']:.4g})", f"{b['probability']:.2f}", _p(exp(b["log_p"])),
-             _interval([exp(x) for x in b["log_ci"]]), b["verdict"], f"{100 * b['share']:.1f} %")
-            for b in odd_map["bins"]]  # fmt: skip
-    intro = (f"p is p_ODD, the mean of p(theta) over the operating design domain {laws}: each rollout drew its own "
-             f"parameters. Where it comes from, from the final stage's {odd_map['rollouts']:,} rollouts: p(failure | "
-             "bin) of each parameter's bins of equal probability, and the bin's share of p_ODD.")
+    rows = [
+        (
+            f"{b['parameter']} in [{b['lo']:.4g}, {b['hi']:.4g})",
+            f"{b['probability']:.2f}",
+            _p(exp(b["log_p"])),
+            _interval([exp(x) for x in b["log_ci"]]),
+            b["verdict"],
+            f"{100 * b['share']:.1f} %",
+        )
+        for b in odd_map["bins"]
+    ]
+    intro = (
+        f"p is p_ODD, the mean of p(theta) over the operating design domain {laws}: each rollout drew its own "
+        f"parameters. Where it comes from, from the final stage's {odd_map['rollouts']:,} rollouts: p(failure | "
+        "bin) of each parameter's bins of equal probability, and the bin's share of p_ODD."
+    )
     return ("Operating design domain", intro, ("bin", "P(bin)", "p", "95 % interval", "verdict", "share of p"), rows)
 
 
@@ -97,8 +108,7 @@ def _severity_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str, s
     out = []
     for pt in (doc.get("severity") or {}).get("points", []):
         exact = _p(pt["exact"]["p"]) if pt.get("exact") else "-"
-        out.append((pt["text"], _p(pt["p"]), _interval(pt["ci95"]), _num(pt["ess"]),
-                    pt["verdict"], exact))  # fmt: skip
+        out.append((pt["text"], _p(pt["p"]), _interval(pt["ci95"]), _num(pt["ess"]), pt["verdict"], exact))
     return out
 
 
@@ -126,38 +136,52 @@ def severity_svg(doc: dict[str, Any], width: int = 560, height: int = 300) -> st
     def sy(log10p: float) -> float:
         return top + (hi - log10p) / (hi - lo) * (height - top - bottom)
 
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" role="img" '
-             f'aria-label="severity curve">', f'<rect width="{width}" height="{height}" fill="{WHITE}"/>']  # fmt: skip
+    parts = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" role="img" '
+        f'aria-label="severity curve">',
+        f'<rect width="{width}" height="{height}" fill="{WHITE}"/>',
+    ]
     step = max(1, (hi - lo) // 6)
     for k in range(lo, hi + 1, step):
         y = sy(k)
         parts.append(f'<line x1="{left}" x2="{width - right}" y1="{y:.1f}" y2="{y:.1f}" stroke="{RULE}"/>')
         parts.append(f'<text x="{left - 6}" y="{y + 4:.1f}" font-size="11" text-anchor="end">1e{k}</text>')
     for x in levels:
-        parts.append(f'<text x="{sx(x):.1f}" y="{height - bottom + 16}" font-size="11" text-anchor="middle">'
-                     f'{x:g}</text>')  # fmt: skip
+        parts.append(
+            f'<text x="{sx(x):.1f}" y="{height - bottom + 16}" font-size="11" text-anchor="middle">' f"{x:g}</text>"
+        )
     unit = html.escape(sev.get("unit", ""))
-    parts.append(f'<text x="{(left + width - right) / 2:.1f}" y="{height - 8}" font-size="12" text-anchor="middle">'
-                 f'{html.escape(sev.get("label", "level"))} below x ({unit})</text>')  # fmt: skip
-    parts.append(f'<text x="14" y="{(top + height - bottom) / 2:.1f}" font-size="12" text-anchor="middle" '
-                 f'transform="rotate(-90 14 {(top + height - bottom) / 2:.1f})">probability</text>')  # fmt: skip
+    parts.append(
+        f'<text x="{(left + width - right) / 2:.1f}" y="{height - 8}" font-size="12" text-anchor="middle">'
+        f'{html.escape(sev.get("label", "level"))} below x ({unit})</text>'
+    )
+    parts.append(
+        f'<text x="14" y="{(top + height - bottom) / 2:.1f}" font-size="12" text-anchor="middle" '
+        f'transform="rotate(-90 14 {(top + height - bottom) / 2:.1f})">probability</text>'
+    )
     for pt in pts:
         x = sx(pt["level"])
         if pt.get("exact") and pt["exact"]["p"]:
             y = sy(math.log10(pt["exact"]["p"]))
-            parts.append(f'<path d="M{x - 5:.1f},{y - 5:.1f}L{x + 5:.1f},{y + 5:.1f}M{x - 5:.1f},{y + 5:.1f}'
-                         f'L{x + 5:.1f},{y - 5:.1f}" stroke="{MUTED}" stroke-width="1.5"/>')  # fmt: skip
+            parts.append(
+                f'<path d="M{x - 5:.1f},{y - 5:.1f}L{x + 5:.1f},{y + 5:.1f}M{x - 5:.1f},{y + 5:.1f}'
+                f'L{x + 5:.1f},{y - 5:.1f}" stroke="{MUTED}" stroke-width="1.5"/>'
+            )
         if not pt.get("p"):
             continue
         colour = VERDICT_COLOURS.get(pt["verdict"], MUTED)
         a, b = pt["ci95"]
         if a and b:
-            parts.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{sy(math.log10(b)):.1f}" y2="{sy(math.log10(a)):.1f}" '
-                         f'stroke="{colour}" stroke-width="2"/>')  # fmt: skip
+            parts.append(
+                f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{sy(math.log10(b)):.1f}" y2="{sy(math.log10(a)):.1f}" '
+                f'stroke="{colour}" stroke-width="2"/>'
+            )
         fill = colour if pt["verdict"] == "reliable" else WHITE
-        parts.append(f'<circle cx="{x:.1f}" cy="{sy(math.log10(pt["p"])):.1f}" r="4.5" fill="{fill}" '
-                     f'stroke="{colour}" stroke-width="2"><title>{html.escape(pt["text"])}: {_p(pt["p"])} '
-                     f'({pt["verdict"]})</title></circle>')  # fmt: skip
+        parts.append(
+            f'<circle cx="{x:.1f}" cy="{sy(math.log10(pt["p"])):.1f}" r="4.5" fill="{fill}" '
+            f'stroke="{colour}" stroke-width="2"><title>{html.escape(pt["text"])}: {_p(pt["p"])} '
+            f'({pt["verdict"]})</title></circle>'
+        )
     parts.append("</svg>")
     return "".join(parts)
 
@@ -187,11 +211,16 @@ def _failure_severity_intro(sev: dict[str, Any]) -> str:
     much of p the table covers."""
     unit, label = sev.get("unit", "m"), sev.get("label", "distance")
     median = sev.get("median_min_distance")
-    kept = (f" It covers the {sev['n_kept']:,} failures whose rollouts were kept, {_share(sev.get('covered'))} of p."
-            if sev.get("n_kept") != sev.get("n") else "")  # fmt: skip
-    return (f"p(severity | failure): the failures' share of p by impact speed, the closing speed into contact "
-            f"(contact: {label} <= {sev.get('contact', 0):g} {unit}; the shares add up to 100 %). Share-weighted "
-            f"median min {label}: {'-' if median is None else f'{median:.2f} {unit}'}.{kept}")
+    kept = (
+        f" It covers the {sev['n_kept']:,} failures whose rollouts were kept, {_share(sev.get('covered'))} of p."
+        if sev.get("n_kept") != sev.get("n")
+        else ""
+    )
+    return (
+        f"p(severity | failure): the failures' share of p by impact speed, the closing speed into contact "
+        f"(contact: {label} <= {sev.get('contact', 0):g} {unit}; the shares add up to 100 %). Share-weighted "
+        f"median min {label}: {'-' if median is None else f'{median:.2f} {unit}'}.{kept}"
+    )
 
 
 MAX_GROUPS = 12
@@ -201,9 +230,11 @@ MAX_GROUPS = 12
 RESTS_ON = "What this number rests on"
 """The report's section saying what p is conditional on and what the verdict checked (:func:`_rests_on`)."""
 
-LIMITS = ("failure is the specification as written, evaluated on the simulated signals; the detector's false "
-          "positives are not modelled (a missed or mislocated object only), as in Innes & Ramamoorthy (2022); p is "
-          "the probability under this PEM and these scenario parameters, not under the real detector")
+LIMITS = (
+    "failure is the specification as written, evaluated on the simulated signals; the detector's false "
+    "positives are not modelled (a missed or mislocated object only), as in Innes & Ramamoorthy (2022); p is "
+    "the probability under this PEM and these scenario parameters, not under the real detector"
+)
 """The limits every p of pemviz carries, stated in the report."""
 
 
@@ -212,12 +243,16 @@ def _spread_text(spread: dict[str, Any] | None) -> str:
     document's ``pem_spread``; where it was not computed, how to compute it."""
     members = (spread or {}).get("members")
     if not members:
-        return ("not computed for this run: p is conditional on the one PEM; `pemviz run --pem-uncertainty` "
-                "re-weighs the same rollouts under the PEM's bootstrap ensemble and logit shifts")
+        return (
+            "not computed for this run: p is conditional on the one PEM; `pemviz run --pem-uncertainty` "
+            "re-weighs the same rollouts under the PEM's bootstrap ensemble and logit shifts"
+        )
     lo, hi = (r["log_p"] for r in members["range90"])
     wide = f" (x{math.exp(hi - lo):.3g} wide)" if lo is not None and hi is not None else ""
-    return (f"{members['n']} ensemble members: median {_p(members['median']['p'])}, 90 % of them in "
-            f"[{_p(members['range90'][0]['p'])}, {_p(members['range90'][1]['p'])}]{wide}")
+    return (
+        f"{members['n']} ensemble members: median {_p(members['median']['p'])}, 90 % of them in "
+        f"[{_p(members['range90'][0]['p'])}, {_p(members['range90'][1]['p'])}]{wide}"
+    )
 
 
 def _checks(e: dict[str, Any]) -> list[tuple[str, str]]:
@@ -227,14 +262,24 @@ def _checks(e: dict[str, Any]) -> list[tuple[str, str]]:
     khat = e.get("k_hat")
     return [
         ("check: failures", f"{e['n_failures']:,} (fewer than {MIN_FAILURES}: doubtful)"),
-        ("check: effective sample size", f"{_num(e['ess'])} (below {MIN_ESS_RELIABLE} under importance sampling: "
-                                         "never reliable)"),  # fmt: skip
-        ("check: Pareto k-hat", f"{_num(khat, '.2f')} (above {KHAT_UNRELIABLE}: a few weights dominate; '-' for plain "
-                                "Monte Carlo or too few failures to fit)"),  # fmt: skip
+        (
+            "check: effective sample size",
+            f"{_num(e['ess'])} (below {MIN_ESS_RELIABLE} under importance sampling: " "never reliable)",
+        ),
+        (
+            "check: Pareto k-hat",
+            f"{_num(khat, '.2f')} (above {KHAT_UNRELIABLE}: a few weights dominate; '-' for plain "
+            "Monte Carlo or too few failures to fit)",
+        ),
         ("verdict", f"{e['verdict']}: {e['reason']}"),
-        ("what is printed", "a 95 % lower bound that holds whatever the weights' tail, and no upper bound: the weights "
-                            "back no interval" if e.get("interval") == "lower_bound95" else "the 95 % interval"),
-    ]  # fmt: skip
+        (
+            "what is printed",
+            "a 95 % lower bound that holds whatever the weights' tail, and no upper bound: the weights "
+            "back no interval"
+            if e.get("interval") == "lower_bound95"
+            else "the 95 % interval",
+        ),
+    ]
 
 
 def _rests_on(doc: dict[str, Any]) -> list[tuple[str, str]]:
@@ -242,7 +287,8 @@ def _rests_on(doc: dict[str, Any]) -> list[tuple[str, str]]:
     computed), the scenario's parameters, the verdict's checks, a requirement's basis and the limits."""
     pems = [i for i in doc.get("inputs") or [] if "PEM" in i["what"] or "pem" in i["what"]]
     rows = [(f"PEM ({i['what']})", f"{i['path']}, sha256 {i['sha256']}") for i in pems] or [
-        ("PEM", str((doc.get("settings") or {}).get("pem") or "the shipped default"))]
+        ("PEM", str((doc.get("settings") or {}).get("pem") or "the shipped default"))
+    ]
     rows.append(("p over the PEM's uncertainty", _spread_text(doc.get("pem_spread"))))
     params = (doc.get("settings") or {}).get("scenario_params") or []
     rows.append(("scenario parameters", ", ".join(f"{k} = {v}" for k, v in params) or "the scenario's defaults"))
@@ -257,46 +303,83 @@ def _rests_on(doc: dict[str, Any]) -> list[tuple[str, str]]:
 def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]]:
     """(title, intro text, table header, rows) of each section both twins show."""
     problem = doc.get("problem") or {}
-    scene = [("scenario", f"{doc['scenario']}: {problem.get('description', '')}".rstrip(": ")),
-             ("specification (STL)", problem.get("formula", "-")), ("method", doc["method"]),
-             ("seed", str(doc["seed"]))]  # fmt: skip
+    scene = [
+        ("scenario", f"{doc['scenario']}: {problem.get('description', '')}".rstrip(": ")),
+        ("specification (STL)", problem.get("formula", "-")),
+        ("method", doc["method"]),
+        ("seed", str(doc["seed"])),
+    ]
     inputs = [(i["what"], i["path"], i["sha256"]) for i in doc.get("inputs") or []]
     settings = sorted((k, json.dumps(v)) for k, v in (doc.get("settings") or {}).items())
-    prov = [("pemviz version", doc.get("pemviz_version", "-")), ("command", doc.get("command") or "-"),
-            ("recording", doc.get("recording") or "-"),
-            ("sha256 of the result document", document_sha256(doc))]  # fmt: skip
-    sections = [("Estimate", "", ("quantity", "value"), _estimate_rows(doc)),
-                (RESTS_ON, "p is conditional on what follows: a safety case that cites p cites it with these.",
-                 ("item", "value"), _rests_on(doc))]  # fmt: skip
+    prov = [
+        ("pemviz version", doc.get("pemviz_version", "-")),
+        ("command", doc.get("command") or "-"),
+        ("recording", doc.get("recording") or "-"),
+        ("sha256 of the result document", document_sha256(doc)),
+    ]
+    sections = [
+        ("Estimate", "", ("quantity", "value"), _estimate_rows(doc)),
+        (
+            RESTS_ON,
+            "p is conditional on what follows: a safety case that cites p cites it with these.",
+            ("item", "value"),
+            _rests_on(doc),
+        ),
+    ]
     if doc.get("odd_map"):
         sections.append(_odd_section(doc["odd_map"]))
     if doc.get("severity"):
         title = doc["severity"].get("title", "severity: P(min signal < x), from the same rollouts")
-        sections.append(("Severity", f"{title.removeprefix('severity: ')}: how deep the failures go.",
-                         ("level", "p", "95 % interval", "ESS", "verdict", "exact"), _severity_rows(doc)))  # fmt: skip
+        sections.append(
+            (
+                "Severity",
+                f"{title.removeprefix('severity: ')}: how deep the failures go.",
+                ("level", "p", "95 % interval", "ESS", "verdict", "exact"),
+                _severity_rows(doc),
+            )
+        )
     failures = doc.get("failures")
     if failures and failures.get("groups"):
         shown = failures["groups"][:MAX_GROUPS]
         rows = [(g["label"], f"{g['count']:,}", f"{100 * g['share']:.3g} %") for g in shown]
         rest = failures["groups"][MAX_GROUPS:]
         if rest:
-            rows.append((f"{len(rest)} more groups", f"{sum(g['count'] for g in rest):,}",
-                         f"{100 * sum(g['share'] for g in rest):.3g} %"))  # fmt: skip
+            rows.append(
+                (
+                    f"{len(rest)} more groups",
+                    f"{sum(g['count'] for g in rest):,}",
+                    f"{100 * sum(g['share'] for g in rest):.3g} %",
+                )
+            )
         top = failures["largest"][0] if failures.get("largest") else None
-        largest = (f" The failure carrying the largest share: stage {top['stage']} rollout {top['rollout']}, "
-                   f"{100 * top['share']:.3g} % of p ({top['group']}), log-likelihood under the PEM before the "
-                   f"failure {_num(top['log_p'], '.2f')} nats (the log-probability of its detections plus, where the "
-                   "detector mislocates, the log-density of its measurement errors)."
-                   if top else "")  # fmt: skip
-        sections.append(("Failures by share of p", f"The {failures['n']:,} failures of the estimate in "
-                         f"{len(failures['groups'])} groups by {failures['basis']}: each group's share of p (its "
-                         f"failures' importance weights over all the failures'; the shares add up to 100 %).{largest}",
-                         ("group", "failures", "share of p"), rows))  # fmt: skip
+        largest = (
+            f" The failure carrying the largest share: stage {top['stage']} rollout {top['rollout']}, "
+            f"{100 * top['share']:.3g} % of p ({top['group']}), log-likelihood under the PEM before the "
+            f"failure {_num(top['log_p'], '.2f')} nats (the log-probability of its detections plus, where the "
+            "detector mislocates, the log-density of its measurement errors)."
+            if top
+            else ""
+        )
+        sections.append(
+            (
+                "Failures by share of p",
+                f"The {failures['n']:,} failures of the estimate in "
+                f"{len(failures['groups'])} groups by {failures['basis']}: each group's share of p (its "
+                f"failures' importance weights over all the failures'; the shares add up to 100 %).{largest}",
+                ("group", "failures", "share of p"),
+                rows,
+            )
+        )
     severity = (failures or {}).get("severity")
     if severity and severity.get("bins") and severity.get("n_kept"):
-        sections.append(("Severity of the failures", _failure_severity_intro(severity),
-                         ("impact speed", "failures", "share of p"),
-                         [(b["label"], f"{b['count']:,}", _share(b["share"])) for b in severity["bins"]]))  # fmt: skip
+        sections.append(
+            (
+                "Severity of the failures",
+                _failure_severity_intro(severity),
+                ("impact speed", "failures", "share of p"),
+                [(b["label"], f"{b['count']:,}", _share(b["share"])) for b in severity["bins"]],
+            )
+        )
     sections += [
         ("Scenario, specification and PEM", "", ("item", "value"), scene),
         ("Inputs", "sha256 of every file the run read.", ("input", "path", "sha256"), inputs),
@@ -315,7 +398,7 @@ def _headline(doc: dict[str, Any]) -> str:
     e = doc["estimate"]
     shown = _interval(e["ci95"]) if e.get("interval") == "lower_bound95" else f"95 % interval {_interval(e['ci95'])}"
     line = f"p = {_p(e['p'])}, {shown}, ESS {_num(e['ess'])}: {e['verdict']}"
-    if ((doc.get("pem_spread") or {}).get("members")):
+    if (doc.get("pem_spread") or {}).get("members"):
         line += f" | under the PEM's uncertainty: {_spread_text(doc['pem_spread'])}"
     return line
 
@@ -328,9 +411,10 @@ def report_html(doc: dict[str, Any]) -> str:
     """
     e = doc["estimate"]
     colour = VERDICT_COLOURS.get(e["verdict"], MUTED)
-    body = [f"<h1>{html.escape(_title(doc))}</h1>",
-            f'<p class="headline" style="border-left:6px solid {colour}">'
-            f'{html.escape(_headline(doc))}</p>']  # fmt: skip
+    body = [
+        f"<h1>{html.escape(_title(doc))}</h1>",
+        f'<p class="headline" style="border-left:6px solid {colour}">' f"{html.escape(_headline(doc))}</p>",
+    ]
     for title, intro, header, rows in _sections(doc):
         body.append(f"<h2>{html.escape(title)}</h2>")
         if intro:
@@ -341,13 +425,17 @@ def report_html(doc: dict[str, Any]) -> str:
     if doc.get("console"):
         body.append("<h2>What the console printed</h2>")
         body.append(f"<pre>{html.escape(chr(10).join(doc['console']))}</pre>")
-    style = (f"body{{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:{TEXT};"
-             f"background:{WHITE}}}table{{border-collapse:collapse;margin:.5em 0 1.5em}}td,th{{border:1px solid {RULE};"
-             f"padding:4px 8px;text-align:left;vertical-align:top;font-size:14px}}th{{background:{PANEL}}}"
-             f".headline{{font-size:18px;padding:.4em .8em;background:{PANEL}}}pre{{background:{PANEL};padding:1em;"
-             "overflow-x:auto;font-size:12px}")  # fmt: skip
-    return (f'<!doctype html>\n<html lang="en"><head><meta charset="utf-8"><title>{html.escape(_title(doc))}</title>'
-            f"<style>{style}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")
+    style = (
+        f"body{{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:{TEXT};"
+        f"background:{WHITE}}}table{{border-collapse:collapse;margin:.5em 0 1.5em}}td,th{{border:1px solid {RULE};"
+        f"padding:4px 8px;text-align:left;vertical-align:top;font-size:14px}}th{{background:{PANEL}}}"
+        f".headline{{font-size:18px;padding:.4em .8em;background:{PANEL}}}pre{{background:{PANEL};padding:1em;"
+        "overflow-x:auto;font-size:12px}"
+    )
+    return (
+        f'<!doctype html>\n<html lang="en"><head><meta charset="utf-8"><title>{html.escape(_title(doc))}</title>'
+        f"<style>{style}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n"
+    )
 
 
 def report_markdown(doc: dict[str, Any]) -> str:
@@ -374,6 +462,7 @@ def write_report(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite
     path = Path(path)
     page, text = report_html(doc), report_markdown(doc)
     written = atomic_write(path, lambda tmp: Path(tmp).write_text(page, encoding="utf-8"), overwrite=overwrite)
-    twin = atomic_write(markdown_twin(path), lambda tmp: Path(tmp).write_text(text, encoding="utf-8"),
-                        overwrite=overwrite)  # fmt: skip
+    twin = atomic_write(
+        markdown_twin(path), lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), overwrite=overwrite
+    )
     return Path(written), Path(twin)

@@ -58,8 +58,11 @@ def _has_scene(view: ProblemView | None) -> bool:
 
 def tab_name(tab: str) -> str:
     """The title of a tab, with its timeline: ``Stages (timeline: stage)``."""
-    words = {"stages": "Stages (any timeline; on stage, scrub its bars)", "explain": "Explain: the most likely failure",
-             "rollouts": "Rollouts"}[tab]
+    words = {
+        "stages": "Stages (any timeline; on stage, scrub its bars)",
+        "explain": "Explain: the most likely failure",
+        "rollouts": "Rollouts",
+    }[tab]
     return words if tab == "stages" else f"{words} (timeline: {TIMELINE[tab]})"
 
 
@@ -67,22 +70,35 @@ def _stages_tab(view: ProblemView | None) -> rrb.Container:
     scene = _has_scene(view)
     several = view is not None and view.objects_xy is not None  # no gap bins: the reference-state curve alone
     series = [figure(key).view(title) for key, title in figure_titles(scene, window=not several)]
-    proposal = PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM",
-                                 legend_room=0.34) if several else rrb.Horizontal(
-        rrb.BarChartView(origin="/proposal_marginal/miss", plot_legend=_NO_LEGEND,
-                         name="q(miss) per gap bin over the visited states: mean, 10-90 % (light), PEM (grey)"),
-        rrb.Tabs(
-            rrb.BarChartView(origin="/proposal_marginal/log_odds", plot_legend=_NO_LEGEND,
-                             name="log-odds of a miss (nats) per gap bin: median, 10-90 % (light), PEM (grey)"),
-            PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM", legend_room=0.34),
-        ),
-    )  # fmt: skip
+    proposal = (
+        PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM", legend_room=0.34)
+        if several
+        else rrb.Horizontal(
+            rrb.BarChartView(
+                origin="/proposal_marginal/miss",
+                plot_legend=_NO_LEGEND,
+                name="q(miss) per gap bin over the visited states: mean, 10-90 % (light), PEM (grey)",
+            ),
+            rrb.Tabs(
+                rrb.BarChartView(
+                    origin="/proposal_marginal/log_odds",
+                    plot_legend=_NO_LEGEND,
+                    name="log-odds of a miss (nats) per gap bin: median, 10-90 % (light), PEM (grey)",
+                ),
+                PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM", legend_room=0.34),
+            ),
+        )
+    )
     histograms = rrb.Horizontal(
-        rrb.BarChartView(origin="/histograms/robustness", name="histogram: robustness of the stage's rollouts",
-                         plot_legend=_NO_LEGEND),
-        rrb.BarChartView(origin="/histograms/log_weight", name="histogram: importance log-weight (nats)",
-                         plot_legend=_NO_LEGEND),
-    )  # fmt: skip
+        rrb.BarChartView(
+            origin="/histograms/robustness",
+            name="histogram: robustness of the stage's rollouts",
+            plot_legend=_NO_LEGEND,
+        ),
+        rrb.BarChartView(
+            origin="/histograms/log_weight", name="histogram: importance log-weight (nats)", plot_legend=_NO_LEGEND
+        ),
+    )
     return rrb.Vertical(
         proposal,
         rrb.Grid(*series, grid_columns=4),
@@ -108,34 +124,58 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
     scene = _has_scene(view)
     e = f"/{EXPLAIN_PATH}"
     several = view is not None and view.objects_xy is not None
-    detect = rrb.TimeSeriesView(
-        origin=f"{e}/detect", name="p(detect) of the PEM (grey), q(detect) of the sampler (blue); misses below",
-        plot_legend=rrb.PlotLegend(corner="LeftBottom"), axis_y=rrb.ScalarAxis(range=(-0.15, 1.08), zoom_lock=True),
-    ) if not several else rrb.TimeSeriesView(
-        origin=f"{e}/detect", name="each object's events, a row per object (0 at the bottom): green detected, orange "
-        "missed, grey unseen; above each row its q(detect) of the sampler (blue) and p(detect) of the PEM (grey), "
-        "0 to 1", plot_legend=_NO_LEGEND,
-    )  # fmt: skip
+    detect = (
+        rrb.TimeSeriesView(
+            origin=f"{e}/detect",
+            name="p(detect) of the PEM (grey), q(detect) of the sampler (blue); misses below",
+            plot_legend=rrb.PlotLegend(corner="LeftBottom"),
+            axis_y=rrb.ScalarAxis(range=(-0.15, 1.08), zoom_lock=True),
+        )
+        if not several
+        else rrb.TimeSeriesView(
+            origin=f"{e}/detect",
+            name="each object's events, a row per object (0 at the bottom): green detected, orange "
+            "missed, grey unseen; above each row its q(detect) of the sampler (blue) and p(detect) of the PEM (grey), "
+            "0 to 1",
+            plot_legend=_NO_LEGEND,
+        )
+    )
     replays = ": red recorded; replays: green minimal set detected, violet last saving step"
-    traces = [rrb.TimeSeriesView(
-        origin=f"{e}/{first.column}", name=f"{first.name} ({first.unit}){replays if scene else ''}",
-        plot_legend=_NO_LEGEND,
-    ) for first in signals[:1]]  # fmt: skip
+    traces = [
+        rrb.TimeSeriesView(
+            origin=f"{e}/{first.column}",
+            name=f"{first.name} ({first.unit}){replays if scene else ''}",
+            plot_legend=_NO_LEGEND,
+        )
+        for first in signals[:1]
+    ]
     top = [rrb.TextDocumentView(origin=f"{e}/summary", name="What happened")]
     if scene:
         top.append(_scene_view(f"{e}/scene", "Scene of the most likely failure (play on step)", 1))
     elif view is not None and view.objects_xy is not None:
-        top.append(rrb.Spatial2DView(
-            origin=f"{e}/objects", name="Every object seen from the ego (ahead is up, metres; play on step): green "
-            "detected, orange missed, grey unseen; blue where measured", background=C.FIGURE_BACKGROUND,
-            visual_bounds=rrb.VisualBounds2D(x_range=[-16.0, 16.0], y_range=[-45.0, 5.0])))  # fmt: skip
+        top.append(
+            rrb.Spatial2DView(
+                origin=f"{e}/objects",
+                name="Every object seen from the ego (ahead is up, metres; play on step): green "
+                "detected, orange missed, grey unseen; blue where measured",
+                background=C.FIGURE_BACKGROUND,
+                visual_bounds=rrb.VisualBounds2D(x_range=[-16.0, 16.0], y_range=[-45.0, 5.0]),
+            )
+        )
     bottom: list = traces
     if scene:
-        bottom.append(rrb.Tabs(
-            rrb.TimeSeriesView(origin=f"{e}/controller", name="Controller: acceleration (m/s^2), brake commanded, "
-                               "brake applied", plot_legend=rrb.PlotLegend(corner="LeftBottom")),
-            rrb.TimeSeriesView(origin=f"{e}/speed", name="Speeds (m/s)", plot_legend=rrb.PlotLegend(corner="RightTop")),
-        ))  # fmt: skip
+        bottom.append(
+            rrb.Tabs(
+                rrb.TimeSeriesView(
+                    origin=f"{e}/controller",
+                    name="Controller: acceleration (m/s^2), brake commanded, " "brake applied",
+                    plot_legend=rrb.PlotLegend(corner="LeftBottom"),
+                ),
+                rrb.TimeSeriesView(
+                    origin=f"{e}/speed", name="Speeds (m/s)", plot_legend=rrb.PlotLegend(corner="RightTop")
+                ),
+            )
+        )
     return rrb.Vertical(
         rrb.Horizontal(*top, column_shares=[1.3, 1.0][: len(top)]),
         detect,
@@ -149,13 +189,21 @@ def _rollouts_tab(view: ProblemView | None, n_lanes: int) -> rrb.Container:
     signals = _signals(view)
     rest = signals[1:]
     colours = "kept rollouts: red failure, grey safe, yellow least robust, blue most likely, x miss"
-    traces = rrb.TimeSeriesView(
-        name=f"{signals[0].name}: {signals[0].column} ({signals[0].unit}), {colours}", plot_legend=_NO_LEGEND,
-        contents=[f"+ /rollouts/{signals[0].column}/**", "+ /rollouts/detected/**", "+ /rollouts/missed/**"],
-    ) if signals else rrb.TimeSeriesView(name=colours.capitalize(), contents=["+ /rollouts/**"],
-                                         plot_legend=_NO_LEGEND)  # fmt: skip
-    others = [rrb.TimeSeriesView(name=f"{s.name}: {s.column} ({s.unit})", origin=f"/rollouts/{s.column}",
-                                 plot_legend=_NO_LEGEND) for s in rest]  # fmt: skip
+    traces = (
+        rrb.TimeSeriesView(
+            name=f"{signals[0].name}: {signals[0].column} ({signals[0].unit}), {colours}",
+            plot_legend=_NO_LEGEND,
+            contents=[f"+ /rollouts/{signals[0].column}/**", "+ /rollouts/detected/**", "+ /rollouts/missed/**"],
+        )
+        if signals
+        else rrb.TimeSeriesView(name=colours.capitalize(), contents=["+ /rollouts/**"], plot_legend=_NO_LEGEND)
+    )
+    others = [
+        rrb.TimeSeriesView(
+            name=f"{s.name}: {s.column} ({s.unit})", origin=f"/rollouts/{s.column}", plot_legend=_NO_LEGEND
+        )
+        for s in rest
+    ]
     right: list = []
     if others:
         right.append(rrb.Tabs(*others) if len(others) > 1 else others[0])
@@ -191,9 +239,17 @@ def default_blueprint(
                 rrb.Tabs(
                     rrb.TextDocumentView(origin="/description", name="Run"),
                     rrb.TextDocumentView(origin="/failures", name="Failures by share of p, in groups"),
-                    *([rrb.BarChartView(origin="/final/severity_of_failures", plot_legend=_NO_LEGEND,
-                                        name="p(severity | failure): share of p per impact speed, no contact first")]
-                      if _has_scene(view) or view is not None and view.objects_xy is not None else []),
+                    *(
+                        [
+                            rrb.BarChartView(
+                                origin="/final/severity_of_failures",
+                                plot_legend=_NO_LEGEND,
+                                name="p(severity | failure): share of p per impact speed, no contact first",
+                            )
+                        ]
+                        if _has_scene(view) or view is not None and view.objects_xy is not None
+                        else []
+                    ),
                 ),
                 row_shares=[1.0, 1.8],
             ),

@@ -77,8 +77,16 @@ ROLE_RGBA = {
 """The colour of each role a drawing's explanation names (:data:`pemviz.sinks.drawing.ROLES`)."""
 
 
-def _series(stream: rr.RecordingStream, path: str, name: str, rgba, values: np.ndarray, indexes: Indexes,
-            steps: np.ndarray | None = None, width: float = 2.0) -> None:  # fmt: skip
+def _series(
+    stream: rr.RecordingStream,
+    path: str,
+    name: str,
+    rgba,
+    values: np.ndarray,
+    indexes: Indexes,
+    steps: np.ndarray | None = None,
+    width: float = 2.0,
+) -> None:
     """A line ``values`` [T] (or at ``steps`` only), named and coloured, on ``step``."""
     v = np.asarray(values, dtype=np.float64)
     t = np.arange(v.size) if steps is None else np.asarray(steps, dtype=np.int64)
@@ -86,15 +94,25 @@ def _series(stream: rr.RecordingStream, path: str, name: str, rgba, values: np.n
     stream.send_columns(path, indexes=indexes(step=t), columns=rr.Scalars.columns(scalars=v))
 
 
-def _markers(stream: rr.RecordingStream, path: str, name: str, rgba, marker: str, steps: np.ndarray,
-             values: np.ndarray, indexes: Indexes, size: float = 4.0) -> None:  # fmt: skip
+def _markers(
+    stream: rr.RecordingStream,
+    path: str,
+    name: str,
+    rgba,
+    marker: str,
+    steps: np.ndarray,
+    values: np.ndarray,
+    indexes: Indexes,
+    size: float = 4.0,
+) -> None:
     """Points at ``steps`` [k] with heights ``values`` [k] (nothing when ``steps`` is empty)."""
     steps = np.asarray(steps, dtype=np.int64)
     if steps.size == 0:
         return
     stream.log(path, rr.SeriesPoints(colors=[rgba], names=[name], markers=[marker], marker_sizes=[size]), static=True)
-    stream.send_columns(path, indexes=indexes(step=steps),
-                        columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64)))  # fmt: skip
+    stream.send_columns(
+        path, indexes=indexes(step=steps), columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64))
+    )
 
 
 def log_explanation(
@@ -131,8 +149,14 @@ def log_explanation(
     """
     s = stream
     if failure is None:
-        s.log(f"{E}/summary", rr.TextDocument("# No failure found\n\nThe run found no failing rollout: nothing to "
-                                              "explain.", media_type=rr.MediaType.MARKDOWN), static=True)  # fmt: skip
+        s.log(
+            f"{E}/summary",
+            rr.TextDocument(
+                "# No failure found\n\nThe run found no failing rollout: nothing to " "explain.",
+                media_type=rr.MediaType.MARKDOWN,
+            ),
+            static=True,
+        )
         return None
     b = failure.batch
     col = view.signals[0].column
@@ -149,26 +173,54 @@ def log_explanation(
     if b.n_objects == 1:
         _series(s, f"{E}/detect/pem", "p(detect), PEM", PEM_PLOT_RGBA, p_det, indexes)
         _series(s, f"{E}/detect/sampler", "q(detect), sampler", C.rgba(C.BLUE), q_det, indexes)
-        _markers(s, f"{E}/detect/misses", "miss", MISSED_RGBA, "cross", misses, np.full(misses.size, MARKER_ROW),
-                 indexes)  # fmt: skip
+        _markers(
+            s, f"{E}/detect/misses", "miss", MISSED_RGBA, "cross", misses, np.full(misses.size, MARKER_ROW), indexes
+        )
     else:  # log p sums every object's events and error densities: each object's events instead, a row each
         names = b.object_names or ()
-        seen = b.objects[0][:, :, names.index("visible")] > 0.5 if "visible" in names else np.ones(b.detected[0].shape,
-                                                                                                   bool)  # fmt: skip
+        seen = (
+            b.objects[0][:, :, names.index("visible")] > 0.5
+            if "visible" in names
+            else np.ones(b.detected[0].shape, bool)
+        )
         for j in range(b.n_objects):
             d = b.detected[0, :, j]
-            for kind, rgba, steps_j in (("detected", DETECTED_RGBA, np.flatnonzero(d)),
-                                        ("missed", MISSED_RGBA, np.flatnonzero(~d & seen[:, j])),
-                                        ("unseen", UNSEEN_RGBA, np.flatnonzero(~d & ~seen[:, j]))):  # fmt: skip
-                _markers(s, f"{E}/detect/object_{j}/{kind}", f"{view.object_label(j)} {kind}", rgba, "circle", steps_j,
-                         np.full(steps_j.size, float(j)), indexes, size=3.0)  # fmt: skip
+            for kind, rgba, steps_j in (
+                ("detected", DETECTED_RGBA, np.flatnonzero(d)),
+                ("missed", MISSED_RGBA, np.flatnonzero(~d & seen[:, j])),
+                ("unseen", UNSEEN_RGBA, np.flatnonzero(~d & ~seen[:, j])),
+            ):
+                _markers(
+                    s,
+                    f"{E}/detect/object_{j}/{kind}",
+                    f"{view.object_label(j)} {kind}",
+                    rgba,
+                    "circle",
+                    steps_j,
+                    np.full(steps_j.size, float(j)),
+                    indexes,
+                    size=3.0,
+                )
             if object_detect is not None:  # the object's band: 0 at its row, 1 at OBJECT_BAND above it
                 p_j, q_j = (np.asarray(a[:, j], dtype=np.float64) for a in object_detect)
-                _series(s, f"{E}/detect/object_{j}/pem", f"{view.object_label(j)} p(detect), PEM", PEM_PLOT_RGBA,
-                        j + OBJECT_BAND * p_j, indexes, width=1.0)  # fmt: skip
-                _series(s, f"{E}/detect/object_{j}/sampler", f"{view.object_label(j)} q(detect), sampler",
-                        C.rgba(C.BLUE),
-                        j + OBJECT_BAND * q_j, indexes, width=1.5)  # fmt: skip
+                _series(
+                    s,
+                    f"{E}/detect/object_{j}/pem",
+                    f"{view.object_label(j)} p(detect), PEM",
+                    PEM_PLOT_RGBA,
+                    j + OBJECT_BAND * p_j,
+                    indexes,
+                    width=1.0,
+                )
+                _series(
+                    s,
+                    f"{E}/detect/object_{j}/sampler",
+                    f"{view.object_label(j)} q(detect), sampler",
+                    C.rgba(C.BLUE),
+                    j + OBJECT_BAND * q_j,
+                    indexes,
+                    width=1.5,
+                )
     words = str(tale["words"]) if tale is not None else "failure"
     _series(s, f"{E}/{col}/recorded", f"as recorded: {words}", CRASH_RGBA[:3] + (255,), trace, indexes, width=2.5)
     log_thresholds(s, view, trace.size, indexes, path=f"{E}/{col}/thresholds")
@@ -176,24 +228,38 @@ def log_explanation(
 
     if parts is None and b.noise is None:  # detections only: log p is their log-probability
         parts = LogPParts.of(b, 0, None)
-    props: dict = dict(stage=stage, stage_name=stage_name, rollout=number, log_p=log_p,
-                       log_weight=float(failure.log_weight[0]), robustness=float(failure.robustness[0]),
-                       n_failures_compared=n_failures, misses=misses, n_steps=trace.size)  # fmt: skip
+    props: dict = dict(
+        stage=stage,
+        stage_name=stage_name,
+        rollout=number,
+        log_p=log_p,
+        log_weight=float(failure.log_weight[0]),
+        robustness=float(failure.robustness[0]),
+        n_failures_compared=n_failures,
+        misses=misses,
+        n_steps=trace.size,
+    )
     if parts is not None:
         props["log_prob_detections"] = parts.detections
         if parts.errors is not None:
             props["log_density_errors"] = parts.errors
-    how = (parts.words(2) if parts is not None else f"log-likelihood {log_p:.2f} nats: the log-probability of its "
-           "detections plus the log-density of its measurement errors")  # fmt: skip
+    how = (
+        parts.words(2)
+        if parts is not None
+        else f"log-likelihood {log_p:.2f} nats: the log-probability of its "
+        "detections plus the log-density of its measurement errors"
+    )
     thing = drawing.object_words if drawing is not None else "the object"
-    missed = (f"The detector missed {thing} at {misses.size} of {trace.size} steps." if b.n_objects == 1 else
-              f"The detector missed {int((~b.detected[0]).sum())} of {b.detected[0].size} object-steps of its "
-              f"{b.n_objects} objects (those it cannot see included).")  # fmt: skip
+    missed = (
+        f"The detector missed {thing} at {misses.size} of {trace.size} steps."
+        if b.n_objects == 1
+        else f"The detector missed {int((~b.detected[0]).sum())} of {b.detected[0].size} object-steps of its "
+        f"{b.n_objects} objects (those it cannot see included)."
+    )
     chosen = (
         f"The failing rollout with the largest log p under the PEM ({how}, over the first {trace.size - 1} steps) "
         f"among the {n_failures:,} failing rollouts the run reported; robustness "
-        f"{float(failure.robustness[0]):.3g}, importance log-weight {float(failure.log_weight[0]):.2f} nats. "
-        + missed
+        f"{float(failure.robustness[0]):.3g}, importance log-weight {float(failure.log_weight[0]):.2f} nats. " + missed
     )
     lines = [f"## Most likely failure: {stage_name}, rollout {number}" + (f": {words}" if tale else ""), ""]
     if tale is not None:
@@ -223,26 +289,50 @@ def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch,
     sc = object_scene(view, b)
     x, ahead, det = sc.lateral_m, sc.ahead_m, sc.detected
     t_steps, m = det.shape
-    colours = np.where(det[..., None], np.array(DETECTED_RGBA),
-                       np.where(sc.seen[..., None], np.array(MISSED_RGBA), np.array(UNSEEN_RGBA))).astype(np.uint8)
+    colours = np.where(
+        det[..., None],
+        np.array(DETECTED_RGBA),
+        np.where(sc.seen[..., None], np.array(MISSED_RGBA), np.array(UNSEEN_RGBA)),
+    ).astype(np.uint8)
     labels = [str(j) for j in range(m)] * t_steps
     steps = indexes(step=np.arange(t_steps))
-    stream.log(f"{E}/objects/ego", rr.Boxes2D(centers=[[0.0, 2.0]], half_sizes=[[1.0, 2.5]], colors=[C.rgba(C.BLUE)],
-                                              labels=["ego"]), static=True)  # fmt: skip
+    stream.log(
+        f"{E}/objects/ego",
+        rr.Boxes2D(centers=[[0.0, 2.0]], half_sizes=[[1.0, 2.5]], colors=[C.rgba(C.BLUE)], labels=["ego"]),
+        static=True,
+    )
     where = np.stack([x, -ahead], axis=-1).reshape(-1, 2)
-    stream.send_columns(f"{E}/objects/true", indexes=steps, columns=rr.Points2D.columns(
-        positions=where, colors=colours.reshape(-1, 4), radii=np.full(t_steps * m, 1.0)).partition(np.full(t_steps, m)))
-    stream.send_columns(f"{E}/objects/names", indexes=steps, columns=rr.Points2D.columns(
-        positions=where + [2.5, 0.0], colors=np.tile(np.array(AXIS_LABEL_RGBA, np.uint8), (t_steps * m, 1)),
-        radii=np.full(t_steps * m, 0.01), labels=labels).partition(np.full(t_steps, m)))  # fmt: skip
+    stream.send_columns(
+        f"{E}/objects/true",
+        indexes=steps,
+        columns=rr.Points2D.columns(
+            positions=where, colors=colours.reshape(-1, 4), radii=np.full(t_steps * m, 1.0)
+        ).partition(np.full(t_steps, m)),
+    )
+    stream.send_columns(
+        f"{E}/objects/names",
+        indexes=steps,
+        columns=rr.Points2D.columns(
+            positions=where + [2.5, 0.0],
+            colors=np.tile(np.array(AXIS_LABEL_RGBA, np.uint8), (t_steps * m, 1)),
+            radii=np.full(t_steps * m, 0.01),
+            labels=labels,
+        ).partition(np.full(t_steps, m)),
+    )
     if sc.tracked is not None:  # where the tracker places each tracked car
         has = np.isfinite(sc.tracked[..., 0])
         n_tracked = has.sum(axis=1)
         if n_tracked.sum():
             est = np.stack([sc.tracked[..., 0], -sc.tracked[..., 1]], -1)
-            stream.send_columns(f"{E}/objects/tracked", indexes=steps, columns=rr.Boxes2D.columns(
-                centers=est[has], half_sizes=np.tile([0.9, 2.25], (int(n_tracked.sum()), 1)),
-                colors=np.tile(np.array(C.rgba(C.VIOLET), np.uint8), (int(n_tracked.sum()), 1))).partition(n_tracked))
+            stream.send_columns(
+                f"{E}/objects/tracked",
+                indexes=steps,
+                columns=rr.Boxes2D.columns(
+                    centers=est[has],
+                    half_sizes=np.tile([0.9, 2.25], (int(n_tracked.sum()), 1)),
+                    colors=np.tile(np.array(C.rgba(C.VIOLET), np.uint8), (int(n_tracked.sum()), 1)),
+                ).partition(n_tracked),
+            )
     if sc.measured is None:
         return
     lengths = det.sum(axis=1)
@@ -250,9 +340,20 @@ def _log_objects(stream: rr.RecordingStream, view: ProblemView, b: RolloutBatch,
         return
     measured = np.stack([sc.measured[..., 0], -sc.measured[..., 1]], -1)[det]  # step by step, object by object
     truth = np.stack([x, -ahead], -1)[det]
-    stream.send_columns(f"{E}/objects/measured", indexes=steps, columns=rr.Points2D.columns(
-        positions=measured, colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (lengths.sum(), 1)),
-        radii=np.full(lengths.sum(), 0.4)).partition(lengths))  # fmt: skip
+    stream.send_columns(
+        f"{E}/objects/measured",
+        indexes=steps,
+        columns=rr.Points2D.columns(
+            positions=measured,
+            colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (lengths.sum(), 1)),
+            radii=np.full(lengths.sum(), 0.4),
+        ).partition(lengths),
+    )
     strips = [[a, c] for a, c in zip(truth, measured, strict=False)]
-    stream.send_columns(f"{E}/objects/error", indexes=steps, columns=rr.LineStrips2D.columns(
-        strips=strips, colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (len(strips), 1))).partition(lengths))
+    stream.send_columns(
+        f"{E}/objects/error",
+        indexes=steps,
+        columns=rr.LineStrips2D.columns(
+            strips=strips, colors=np.tile(np.array(C.rgba(C.BLUE), np.uint8), (len(strips), 1))
+        ).partition(lengths),
+    )

@@ -97,8 +97,15 @@ class StageRollouts:
     featured: dict[int, str]
 
 
-def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: ProblemView, stage_name: str,
-                       n_tagged: int, n_likely: int, indexes: Indexes) -> StageRollouts:  # fmt: skip
+def log_stage_rollouts(
+    stream: rr.RecordingStream,
+    ev: RolloutsSampled,
+    view: ProblemView,
+    stage_name: str,
+    n_tagged: int,
+    n_likely: int,
+    indexes: Indexes,
+) -> StageRollouts:
     """A stage's kept rollouts (:func:`kept_rollouts`): one entity per signal of the view with one series per rollout,
     the per-rollout values, the featured rollouts' own entities (:func:`featured`), and their misses (and the tagged
     ones' detections) where a detection can still change the outcome (:func:`deciding`).
@@ -152,11 +159,13 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
             failed=failed[keep],
             outcome=words,
             least_robust=np.isin(keep, order),
-            **{f"robustness_{m.replace('-', '_')}": np.asarray(v, np.float64)[keep]
-               for m, v in ev.robustness_by_metric.items()},
+            **{
+                f"robustness_{m.replace('-', '_')}": np.asarray(v, np.float64)[keep]
+                for m, v in ev.robustness_by_metric.items()
+            },
         ),
         static=True,
-    )  # fmt: skip
+    )
     roles = featured(ev, n_tagged, n_likely)
     said = dict(zip(keep.tolist(), words, strict=False))
     rows = np.array(sorted(roles), dtype=np.int64)
@@ -164,31 +173,59 @@ def log_stage_rollouts(stream: rr.RecordingStream, ev: RolloutsSampled, view: Pr
     for i in rows.tolist():
         labels.append(_log_featured(s, ev, view, i, roles[i], said[i], told[i], float(log_p[i]), stage_name, index))
     tagged = np.isin(rows, order)
-    marks_of = (("detected", True, DETECTED_RGBA, "circle", 1.5, tagged),
-                ("missed", False, MISSED_RGBA, "cross", 3.0, np.ones_like(tagged)))  # fmt: skip
+    marks_of = (
+        ("detected", True, DETECTED_RGBA, "circle", 1.5, tagged),
+        ("missed", False, MISSED_RGBA, "cross", 3.0, np.ones_like(tagged)),
+    )
     for key, mask, rgba, marker, size, show in marks_of:
         if rows.size == 0:
             break
         path = f"rollouts/{key}/{stage}"
-        s.log(path, rr.SeriesPoints(colors=[rgba] * rows.size, names=[f"{lb}: {key}" for lb in labels],
-                                    markers=[marker] * rows.size, marker_sizes=[size] * rows.size,
-                                    visible_series=show), static=True)  # fmt: skip
+        s.log(
+            path,
+            rr.SeriesPoints(
+                colors=[rgba] * rows.size,
+                names=[f"{lb}: {key}" for lb in labels],
+                markers=[marker] * rows.size,
+                marker_sizes=[size] * rows.size,
+                visible_series=show,
+            ),
+            static=True,
+        )
         marks = np.where((batch.detected[rows, :, 0] == mask) & deciding(trace[rows], view), trace[rows], np.nan)
         s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=marks.T))
     return StageRollouts(keep, words, roles)
 
 
-def _log_featured(s: rr.RecordingStream, ev: RolloutsSampled, view: ProblemView, i: int, role: str, said: str,
-                  told: dict | None, log_p: float, stage_name: str, index: list) -> str:  # fmt: skip
+def _log_featured(
+    s: rr.RecordingStream,
+    ev: RolloutsSampled,
+    view: ProblemView,
+    i: int,
+    role: str,
+    said: str,
+    told: dict | None,
+    log_p: float,
+    stage_name: str,
+    index: list,
+) -> str:
     """Rollout ``i``'s first signal as an entity of its own (:func:`rollout_path`) with its properties (with the
     drawing object's numbers of its outcome, ``told``, where it has them); returns its label."""
     batch, n = ev.batch, int(ev.rollout_numbers[i])
     failed = bool(ev.failed[i])
-    rgba = (LIKELY_RGBA if role.startswith("most likely") else TAG_CRASH_RGBA if failed else TAG_RGBA)
+    rgba = LIKELY_RGBA if role.startswith("most likely") else TAG_CRASH_RGBA if failed else TAG_RGBA
     label = f"stage {ev.stage} rollout {n} ({role}): {said}"
-    props: dict = dict(stage=ev.stage, stage_name=stage_name, rollout=n, role=role, log_p=log_p,
-                       log_weight=float(ev.log_weight[i]), robustness=float(ev.robustness[i]), failed=failed,
-                       outcome=said)  # fmt: skip
+    props: dict = dict(
+        stage=ev.stage,
+        stage_name=stage_name,
+        rollout=n,
+        role=role,
+        log_p=log_p,
+        log_weight=float(ev.log_weight[i]),
+        robustness=float(ev.robustness[i]),
+        failed=failed,
+        outcome=said,
+    )
     props.update({f"robustness_{m.replace('-', '_')}": float(v[i]) for m, v in ev.robustness_by_metric.items()})
     if told is not None:
         props.update(told)

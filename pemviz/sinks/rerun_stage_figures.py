@@ -30,8 +30,12 @@ EXTRA_SERIES = (
 )
 """Series beyond :data:`pemviz.sinks.rerun_views.STAGE_METRICS`: key, title, colour."""
 
-EMPTY = {"khat": "no k-hat yet: it needs 25 failures in a stage to fit the weights' tail",
-         "nll": "no NLL yet: no failure so far", "log10_mu_hat": "no estimate yet", "gamma": "no threshold yet"}
+EMPTY = {
+    "khat": "no k-hat yet: it needs 25 failures in a stage to fit the weights' tail",
+    "nll": "no NLL yet: no failure so far",
+    "log10_mu_hat": "no estimate yet",
+    "gamma": "no threshold yet",
+}
 """What a figure says while its series has no finite value."""
 
 FIGURE_ROOT = "stage_figures"
@@ -52,11 +56,16 @@ def stage_ticks(last_stage: int) -> np.ndarray:
 def figure_titles(scene: bool, window: bool = True) -> list[tuple[str, str]]:
     """(key, title) of every figure, in the Stages tab's order; ``contact_share`` only for a scene with contact,
     ``miss_in_window`` only with a sampler window over one object's gap (``window``)."""
-    titles = {"log10_mu_hat": "log10 mu_hat per stage: 95 % interval (bars), exact or reference (line)",
-              "nll": "NLL of the failures (nats)"}  # fmt: skip
+    titles = {
+        "log10_mu_hat": "log10 mu_hat per stage: 95 % interval (bars), exact or reference (line)",
+        "nll": "NLL of the failures (nats)",
+    }
     out = [(key, titles.get(key, name)) for key, name, _ in STAGE_METRICS]
-    out += [(key, title) for key, title, _ in EXTRA_SERIES
-            if (scene or key != "contact_share") and (window or key != "miss_in_window")]
+    out += [
+        (key, title)
+        for key, title, _ in EXTRA_SERIES
+        if (scene or key != "contact_share") and (window or key != "miss_in_window")
+    ]
     return out
 
 
@@ -105,10 +114,20 @@ class StageFigures:
         parts = {"miss_in_window": ("miss_in_window/q", "miss_in_window/pem")}.get(key, (key,))
         curves = [(part, self._points(part)) for part in parts]
         if all(c.size == 0 for _, c in curves):  # the axes and a note in place of an empty view
-            fig.draw_axes(s, (-0.5, self.last_stage + 0.5), (0.0, 1.0), x_ticks=stage_ticks(self.last_stage),
-                          n_y_ticks=3)  # fmt: skip
-            s.log(f"{fig.path}/data/note", rr.Points2D([[self.last_stage / 2, 0.5]], radii=-0.01, labels=[EMPTY.get(
-                key, "no finite value yet")], colors=C.rgba(C.ON_DARK), show_labels=True), static=True)  # fmt: skip
+            fig.draw_axes(
+                s, (-0.5, self.last_stage + 0.5), (0.0, 1.0), x_ticks=stage_ticks(self.last_stage), n_y_ticks=3
+            )
+            s.log(
+                f"{fig.path}/data/note",
+                rr.Points2D(
+                    [[self.last_stage / 2, 0.5]],
+                    radii=-0.01,
+                    labels=[EMPTY.get(key, "no finite value yet")],
+                    colors=C.rgba(C.ON_DARK),
+                    show_labels=True,
+                ),
+                static=True,
+            )
             return
         s.log(f"{fig.path}/data/note", rr.Clear(recursive=False), static=True)
         ys = [float(y) for _, c in curves for y in c[:, 1]]
@@ -137,8 +156,9 @@ class StageFigures:
             s.log(f"{fig.path}/data/{name}/points", rr.Points2D(c, colors=C.rgba(rgb), radii=-3.0), static=True)
         if bars.size:
             segs = [[[k, max(a, y0)], [k, min(b, y1)]] for k, a, b in bars]
-            s.log(f"{fig.path}/data/interval", rr.LineStrips2D(segs, colors=C.rgba(C.INTERVAL), radii=-1.0),
-                  static=True)  # fmt: skip
+            s.log(
+                f"{fig.path}/data/interval", rr.LineStrips2D(segs, colors=C.rgba(C.INTERVAL), radii=-1.0), static=True
+            )
         if key == "log10_mu_hat" and self.known_log10 is not None:
             k = min(max(self.known_log10, y0), y1)
             line = [[[-0.5, k], [self.last_stage + 0.5, k]]]
@@ -149,27 +169,43 @@ def log_series_styles(s: rr.RecordingStream, scene: bool) -> None:
     """Static styling of the per-stage scalars ``stages/<series>`` on the ``stage`` timeline (names, colours,
     markers), for a time-series view a user builds over them; ``scene``: the contact share is one of them."""
     for key, name, rgb in STAGE_METRICS:
-        s.log(f"stages/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[2.0]),
-              rr.SeriesPoints(colors=[C.rgba(rgb)], names=[name], marker_sizes=[3.0]), static=True)  # fmt: skip
-    for key, name, rgb in (("ci_low", "95 % interval, low", C.INTERVAL), ("ci_high", "95 % interval, high", C.INTERVAL),
-                           ("exact", "exact answer", C.DETECTED)):  # fmt: skip
-        s.log(f"stages/log10_mu_hat/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[1.0]),
-              static=True)  # fmt: skip
-    for key, name, rgba in (("miss_in_window/q", "mean q(miss) of the sampler", C.rgba(C.PROPOSAL)),
-                            ("miss_in_window/pem", "mean p(miss) of the PEM", PEM_PLOT_RGBA),
-                            ("contact_share", "share of failures with contact", C.rgba(C.CRASH))):  # fmt: skip
+        s.log(
+            f"stages/{key}",
+            rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[2.0]),
+            rr.SeriesPoints(colors=[C.rgba(rgb)], names=[name], marker_sizes=[3.0]),
+            static=True,
+        )
+    for key, name, rgb in (
+        ("ci_low", "95 % interval, low", C.INTERVAL),
+        ("ci_high", "95 % interval, high", C.INTERVAL),
+        ("exact", "exact answer", C.DETECTED),
+    ):
+        s.log(
+            f"stages/log10_mu_hat/{key}", rr.SeriesLines(colors=[C.rgba(rgb)], names=[name], widths=[1.0]), static=True
+        )
+    for key, name, rgba in (
+        ("miss_in_window/q", "mean q(miss) of the sampler", C.rgba(C.PROPOSAL)),
+        ("miss_in_window/pem", "mean p(miss) of the PEM", PEM_PLOT_RGBA),
+        ("contact_share", "share of failures with contact", C.rgba(C.CRASH)),
+    ):
         if key == "contact_share" and not scene:
             continue
-        s.log(f"stages/{key}", rr.SeriesLines(colors=[rgba], names=[name], widths=[2.0]),
-              rr.SeriesPoints(colors=[rgba], names=[name], marker_sizes=[3.0]), static=True)  # fmt: skip
+        s.log(
+            f"stages/{key}",
+            rr.SeriesLines(colors=[rgba], names=[name], widths=[2.0]),
+            rr.SeriesPoints(colors=[rgba], names=[name], marker_sizes=[3.0]),
+            static=True,
+        )
 
 
 def log_histograms(s: rr.RecordingStream, ev: RolloutsSampled, bins: int = HISTOGRAM_BINS) -> None:
     """Histograms of every rollout's robustness and log-weight at the stage of ``ev`` (:class:`rerun.BarChart` on
     ``stage``, and on ``step`` 0 so that ``step`` shows the last stage's)."""
     every = ev.n_total is not None  # a streamed stage: the sample's rows, every rollout's numbers
-    for key, values in (("robustness", ev.stage_robustness if every else ev.robustness),
-                        ("log_weight", ev.stage_log_weight if every else ev.log_weight)):  # fmt: skip
+    for key, values in (
+        ("robustness", ev.stage_robustness if every else ev.robustness),
+        ("log_weight", ev.stage_log_weight if every else ev.log_weight),
+    ):
         v = np.asarray(values, dtype=np.float64)
         v = v[np.isfinite(v)]
         if v.size == 0:
@@ -177,6 +213,10 @@ def log_histograms(s: rr.RecordingStream, ev: RolloutsSampled, bins: int = HISTO
         counts, edges = np.histogram(v, bins=bins if np.ptp(v) > 0 else 1)
         colour = CRASH_RGBA[:3] + (255,) if key == "robustness" else C.rgba(C.LOG_WEIGHT)
         s.set_time("step", sequence=0)
-        s.log(f"histograms/{key}", rr.BarChart(counts.astype(np.float64), abscissa=(edges[:-1] + edges[1:]) / 2,
-                                               widths=np.diff(edges), color=colour))  # fmt: skip
+        s.log(
+            f"histograms/{key}",
+            rr.BarChart(
+                counts.astype(np.float64), abscissa=(edges[:-1] + edges[1:]) / 2, widths=np.diff(edges), color=colour
+            ),
+        )
         s.disable_timeline("step")

@@ -167,8 +167,9 @@ class Figure:
         return rrb.Spatial2DView(
             origin=self.path,
             name=name,
-            visual_bounds=rrb.VisualBounds2D(x_range=[-0.16 * w, (1.04 + legend_room) * w],
-                                             y_range=[-0.16 * h, 1.24 * h]),
+            visual_bounds=rrb.VisualBounds2D(
+                x_range=[-0.16 * w, (1.04 + legend_room) * w], y_range=[-0.16 * h, 1.24 * h]
+            ),
             background=C.FIGURE_BACKGROUND,
         )
 
@@ -195,8 +196,11 @@ def method_markdown(ev: RunStarted) -> str:
         return f"method **{cfg.method}**: {stages or 'no stage planned'}."
     window = ev.problem.thresholds.labels()[1] if ev.problem.thresholds is not None else "the sampler window"
     n_final = plan.stages[-1].n_rollouts if plan.has_final_batch else None
-    final = (f"a final batch of N_e = {n_final} rollouts gives the estimate" if n_final is not None
-             else "the last stages give the estimate")  # fmt: skip
+    final = (
+        f"a final batch of N_e = {n_final} rollouts gives the estimate"
+        if n_final is not None
+        else "the last stages give the estimate"
+    )
     known = {
         "adaptive": (
             f"**adaptive importance sampling** (cross-entropy method, Innes & Ramamoorthy 2022): "
@@ -208,14 +212,18 @@ def method_markdown(ev: RunStarted) -> str:
         "mc": f"plain **Monte Carlo** with the PEM: {cfg.n_per_stage} rollouts.",
         "naive50": f"a **50 % detector** at every step, weighted by the PEM: {cfg.n_per_stage} rollouts.",
         "mixed50": f"a **50 % detector inside the window** ({window}), the PEM outside: {cfg.n_per_stage} rollouts.",
-        "ams": (f"**adaptive multilevel splitting** on {AMS_SCORE_WORDS.get(cfg.ams_score, cfg.ams_score)} (Cerou & "
-                f"Guyader 2007): N = {cfg.n_per_stage} "
-                f"PEM rollouts, the k = {cfg.ams_killed} highest killed per iteration and branched from survivors; "
-                "each stage shows the particles after about N resamplings."),
-        "tilt": (f"**approximate zero-variance importance sampling** (L'Ecuyer & Tuffin 2008): {cfg.n_per_stage} "
-                 "rollouts, each step's events drawn in proportion to their PEM probability times the scenario's "
-                 "approximate probability of failure after them, mixed with the PEM; the simulations count the "
-                 "look-aheads' steps too."),
+        "ams": (
+            f"**adaptive multilevel splitting** on {AMS_SCORE_WORDS.get(cfg.ams_score, cfg.ams_score)} (Cerou & "
+            f"Guyader 2007): N = {cfg.n_per_stage} "
+            f"PEM rollouts, the k = {cfg.ams_killed} highest killed per iteration and branched from survivors; "
+            "each stage shows the particles after about N resamplings."
+        ),
+        "tilt": (
+            f"**approximate zero-variance importance sampling** (L'Ecuyer & Tuffin 2008): {cfg.n_per_stage} "
+            "rollouts, each step's events drawn in proportion to their PEM probability times the scenario's "
+            "approximate probability of failure after them, mixed with the PEM; the simulations count the "
+            "look-aheads' steps too."
+        ),
     }
     return known[cfg.method]
 
@@ -224,8 +232,12 @@ def intro_markdown(ev: RunStarted) -> str:
     """The head of the recording's description: what the run estimates (from its problem view) and how to read it."""
     view, cfg = ev.problem, ev.config
     method = method_markdown(ev)
-    bins = ("" if view.objects_xy is not None else "the sampler's q(miss) over the states the last stage's rollouts "
-            "visited, per gap bin, beside the PEM's (grey), as a probability and as log-odds, ")
+    bins = (
+        ""
+        if view.objects_xy is not None
+        else "the sampler's q(miss) over the states the last stage's rollouts "
+        "visited, per gap bin, beside the PEM's (grey), as a probability and as log-odds, "
+    )
     reading = (
         "**How to read it.** Three tabs; the recording opens on the `step` timeline, where each has content. "
         "*Stages* (0 = pretraining, 1..K = CE stages, K+1 = final batch, as in the console): the per-stage series "
@@ -315,9 +327,10 @@ def log_marginal_proposal(stream: rr.RecordingStream, pv: ProposalView, rgb: tup
 
     scales = {
         "miss": (1.0 - pv.p_mean, 1.0 - pv.q_mean, 1.0 - pv.q_hi, 1.0 - pv.q_lo),
-        "log_odds": tuple(np.clip(a, -span, span) for a in (pv.p_log_odds, pv.q_log_odds, pv.q_log_odds_lo,
-                                                              pv.q_log_odds_hi)),
-    }  # fmt: skip
+        "log_odds": tuple(
+            np.clip(a, -span, span) for a in (pv.p_log_odds, pv.q_log_odds, pv.q_log_odds_lo, pv.q_log_odds_hi)
+        ),
+    }
     light = C.rgba(rgb, 80)
     for key, (pem, q, q_a, q_b) in scales.items():
         path = f"{MARGINAL_PATH}/{key}"
@@ -329,23 +342,28 @@ def log_marginal_proposal(stream: rr.RecordingStream, pv: ProposalView, rgb: tup
     stream.log(f"{MARGINAL_PATH}/stats", rr.AnyValues(**fields))
 
 
-def log_thresholds(stream: rr.RecordingStream, view: ProblemView, n_steps: int, indexes: Indexes,
-                   path: str | None = None) -> None:  # fmt: skip
+def log_thresholds(
+    stream: rr.RecordingStream, view: ProblemView, n_steps: int, indexes: Indexes, path: str | None = None
+) -> None:
     """The failure threshold and the sampler window as two lines over ``n_steps`` steps beside the first signal's
     traces (at ``path``, default ``rollouts/<column>/thresholds``); nothing for a problem without thresholds."""
     th = view.thresholds
     if th is None:
         return
     path = path or f"rollouts/{view.signals[0].column}/thresholds"
-    stream.log(path, rr.SeriesLines(colors=[CRASH_RGBA[:3] + (255,), BRAKE_RGBA], widths=[2.0, 2.0],
-                                    names=list(th.labels())), static=True)  # fmt: skip
+    stream.log(
+        path,
+        rr.SeriesLines(colors=[CRASH_RGBA[:3] + (255,), BRAKE_RGBA], widths=[2.0, 2.0], names=list(th.labels())),
+        static=True,
+    )
     t = np.arange(n_steps)
     levels = np.array([[th.failure, th.window]] * t.size)
     stream.send_columns(path, indexes=indexes(step=t), columns=rr.Scalars.columns(scalars=levels))
 
 
-def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: RolloutsSampled, i: int,
-                   drawing: object, indexes: Indexes) -> bool:  # fmt: skip
+def log_scene_lane(
+    stream: rr.RecordingStream, path: str, lane: int, ev: RolloutsSampled, i: int, drawing: object, indexes: Indexes
+) -> bool:
     """One lane (number ``lane``) of the top-down scene under ``path``: rollout ``i`` of the stage as the drawing
     object draws it (:meth:`pemviz.sinks.drawing.RecordingDrawing.scene_lane`: its objects as boxes, ``path/<name>``,
     and a sight line, ``path/sight``, metres along the road), playable on ``step``, labelled with its stage and
@@ -368,29 +386,44 @@ def log_scene_lane(stream: rr.RecordingStream, path: str, lane: int, ev: Rollout
         f"{path}/lane",
         rr.LineStrips2D(
             [[[-4.0, y - half], [x_end, y - half]], [[-4.0, y + half], [x_end, y + half]]],
-            colors=GRID_RGBA, radii=-0.75, labels=[detail, detail], show_labels=False,
+            colors=GRID_RGBA,
+            radii=-0.75,
+            labels=[detail, detail],
+            show_labels=False,
         ),
         static=True,
-    )  # fmt: skip
+    )
     s.log(
         f"{path}/label",
-        rr.Points2D([[-16.0, y]], radii=-0.01, colors=OBJECT_CRASH_RGBA if ev.failed[i] else AXIS_RGBA,
-                    labels=label, show_labels=True),
+        rr.Points2D(
+            [[-16.0, y]],
+            radii=-0.01,
+            colors=OBJECT_CRASH_RGBA if ev.failed[i] else AXIS_RGBA,
+            labels=label,
+            show_labels=True,
+        ),
         static=True,
-    )  # fmt: skip
+    )
     index = indexes(step=np.arange(t))
     det_col = np.where(seen[:, None], np.array(DETECTED_RGBA), np.array(MISSED_RGBA)).astype(np.uint8)
     for name, centre_x, half_size, alarm in boxes:
-        colours = det_col if alarm is None else np.where(np.asarray(alarm, bool)[:, None], np.array(OBJECT_CRASH_RGBA),
-                                                         np.array(OBJECT_RGBA)).astype(np.uint8)  # fmt: skip
+        colours = (
+            det_col
+            if alarm is None
+            else np.where(np.asarray(alarm, bool)[:, None], np.array(OBJECT_CRASH_RGBA), np.array(OBJECT_RGBA)).astype(
+                np.uint8
+            )
+        )
         s.send_columns(
             f"{path}/{name}",
             indexes=index,
             columns=rr.Boxes2D.columns(
-                centers=np.column_stack([centre_x, ys]), half_sizes=np.tile(list(half_size), (t, 1)), colors=colours,
+                centers=np.column_stack([centre_x, ys]),
+                half_sizes=np.tile(list(half_size), (t, 1)),
+                colors=colours,
                 radii=np.full(t, -2.0),
             ),
-        )  # fmt: skip
+        )
     if sight_x is not None:
         sight = np.stack([np.column_stack([sight_x[0], ys]), np.column_stack([sight_x[1], ys])], axis=1)
         s.send_columns(

@@ -29,9 +29,18 @@ STAGES = ("used", "all")
 
 
 def _estimate_json(e: Any) -> dict[str, Any]:
-    return {"log_mu_hat": e.log_mu_hat, "n_failures": e.n_failures, "n": e.n, "log_ci": list(e.log_ci), "ess": e.ess,
-            "khat": e.khat, "verdict": e.verdict, "reason": e.reason, "interval_backed": e.interval_backed,
-            "log_lower_bound": e.log_lower_bound}  # fmt: skip
+    return {
+        "log_mu_hat": e.log_mu_hat,
+        "n_failures": e.n_failures,
+        "n": e.n,
+        "log_ci": list(e.log_ci),
+        "ess": e.ess,
+        "khat": e.khat,
+        "verdict": e.verdict,
+        "reason": e.reason,
+        "interval_backed": e.interval_backed,
+        "log_lower_bound": e.log_lower_bound,
+    }
 
 
 class RolloutSink(Sink):
@@ -57,8 +66,9 @@ class RolloutSink(Sink):
         ValueError: a bad path, an unknown ``stages``, or (at the run's start) a method without importance weights.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, pem: str | None = None, overwrite: bool = False,
-                 stages: str = "used") -> None:  # fmt: skip
+    def __init__(
+        self, path: str | os.PathLike[str], *, pem: str | None = None, overwrite: bool = False, stages: str = "used"
+    ) -> None:
         if stages not in STAGES:
             raise ValueError(f"stages = {stages!r}: use one of {', '.join(STAGES)}")
         self.path = check_rollouts_path(path, overwrite=overwrite, what="--save-rollouts")
@@ -82,8 +92,10 @@ class RolloutSink(Sink):
     def on_run_started(self, event: RunStarted) -> None:
         method = getattr(event.config, "method", None)
         if method is not None and not get_method(method).weighted:
-            raise ValueError(f"--save-rollouts: method {method} estimates without importance weights; "
-                             "its rollouts cannot be estimated from again")  # fmt: skip
+            raise ValueError(
+                f"--save-rollouts: method {method} estimates without importance weights; "
+                "its rollouts cannot be estimated from again"
+            )
         self._formula, self._config = event.formula, event.config
 
     def on_stage_started(self, event: StageStarted) -> None:
@@ -111,16 +123,23 @@ class RolloutSink(Sink):
             parts = list(chunk.parts) or [(n, chunk.sampler)]
             n_target = sum(k for k, d in parts if d is chunk.target and d is not None)
             self._infos[chunk.stage] = {
-                "stage": chunk.stage, "kind": chunk.kind, "n": n,
+                "stage": chunk.stage,
+                "kind": chunk.kind,
+                "n": n,
                 "components": [{"sampler": describe(d, chunk.target), "n": k} for k, d in parts],
                 "max_weight": n / n_target if n_target else None,
-            }  # fmt: skip
+            }
             if isinstance(chunk.sampler, Proposal):  # trained in place afterwards: keep the one that sampled
                 self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
         log_q, component = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
         batch = chunk.batch.with_changes(log_q=log_q)  # the file holds no object rows: none rebuilt for it
-        self._writer.append(batch, salient=run_salient(self.problem, batch), stage=chunk.stage, component=component,
-                            severity=run_severity(self.problem, batch))  # fmt: skip
+        self._writer.append(
+            batch,
+            salient=run_salient(self.problem, batch),
+            stage=chunk.stage,
+            component=component,
+            severity=run_severity(self.problem, batch),
+        )
 
     def _meta(self) -> Any:
         cfg = self._config
@@ -146,15 +165,21 @@ class RolloutSink(Sink):
         lam = np.asarray(sizes, dtype=np.float64) / sum(sizes) if lam is None else lam
         provenance = dict(writer.meta.provenance or {})
         cap = finished.final.verdict_cap  # the verdict's bound and cap: pemviz estimate applies them as the run did
-        provenance["estimate"] = {**_estimate_json(finished.final.estimate), "stages_used": used,
-                                  "log_p_seen": finished.final.log_p_seen, "verdict_cap": list(cap) if cap else None,
-                                  **({"look_ahead": True} if finished.final.look_ahead else {})}
+        provenance["estimate"] = {
+            **_estimate_json(finished.final.estimate),
+            "stages_used": used,
+            "log_p_seen": finished.final.log_p_seen,
+            "verdict_cap": list(cap) if cap else None,
+            **({"look_ahead": True} if finished.final.look_ahead else {}),
+        }
         provenance["stage_estimates"] = {str(k): v for k, v in sorted(self._results.items())}
         writer.meta = dataclasses.replace(
-            writer.meta, provenance=provenance, weights=convention(getattr(cfg, "weights_until_failure", True)),
+            writer.meta,
+            provenance=provenance,
+            weights=convention(getattr(cfg, "weights_until_failure", True)),
             stages=tuple(self._infos[k] for k in keep),
             pooling={"rule": rule, "stages": used, "stage_weights": [float(x) for x in lam]},
-        )  # fmt: skip
+        )
         proposal = self._proposals.get(keep[0]) if len(keep) == 1 else None
         try:
             self.written = writer.commit(proposal, keep_stages=keep)
@@ -179,8 +204,10 @@ def describe(detector: Any, target: Any = None) -> str:
     if isinstance(detector, SamplerView):
         return detector.samplers.describe(detector.index)
     if isinstance(detector, WindowDetector):
-        return (f"{describe(detector.inside, target)} within {detector.radius_m:g} m, "
-                f"{describe(detector.outside, target)} beyond")  # fmt: skip
+        return (
+            f"{describe(detector.inside, target)} within {detector.radius_m:g} m, "
+            f"{describe(detector.outside, target)} beyond"
+        )
     if isinstance(detector, DefensiveDetector):
         return f"(1 - {detector.eps:g}) {describe(detector.detector, target)} + {detector.eps:g} x 50 %"
     if isinstance(detector, SceneProposal):

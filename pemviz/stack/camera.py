@@ -75,8 +75,9 @@ class ObjectKind:
 
     def __post_init__(self) -> None:
         if self.kitti_class not in KITTI_CLASSES:
-            raise ValueError(f"ObjectKind: kitti_class must be one of {', '.join(KITTI_CLASSES)}, got "
-                             f"{self.kitti_class!r}")  # fmt: skip
+            raise ValueError(
+                f"ObjectKind: kitti_class must be one of {', '.join(KITTI_CLASSES)}, got " f"{self.kitti_class!r}"
+            )
         if not all(0.0 < d <= 30.0 for d in (self.height_m, self.width_m, self.length_m)):
             raise ValueError(f"ObjectKind: height_m, width_m and length_m must be in (0, 30] m, got {self}")
 
@@ -110,8 +111,14 @@ class CameraView:
     visible: np.ndarray
 
 
-def view(kind: ObjectKind, loc_x_m: np.ndarray, loc_z_m: np.ndarray, rot_y_rad: np.ndarray | float,
-         camera_height_m: float = 1.65, occlusion: np.ndarray | float = 0.0) -> CameraView:  # fmt: skip
+def view(
+    kind: ObjectKind,
+    loc_x_m: np.ndarray,
+    loc_z_m: np.ndarray,
+    rot_y_rad: np.ndarray | float,
+    camera_height_m: float = 1.65,
+    occlusion: np.ndarray | float = 0.0,
+) -> CameraView:
     """The camera's view of objects of one kind (module docstring).
 
     Args:
@@ -143,8 +150,9 @@ def view(kind: ObjectKind, loc_x_m: np.ndarray, loc_z_m: np.ndarray, rot_y_rad: 
     v_bot = camera_height_m / z_near
     left, right, top, bottom = IMAGE_BOUNDS
     area = (u_hi - u_lo) * (v_bot - v_top)
-    inside = (np.maximum(np.minimum(u_hi, right) - np.maximum(u_lo, left), 0.0)
-              * np.maximum(np.minimum(v_bot, bottom) - np.maximum(v_top, top), 0.0))  # fmt: skip
+    inside = np.maximum(np.minimum(u_hi, right) - np.maximum(u_lo, left), 0.0) * np.maximum(
+        np.minimum(v_bot, bottom) - np.maximum(v_top, top), 0.0
+    )
     truncation = 1.0 - inside / area
     salient = np.empty(x.shape + (len(SALIENT_NAMES),))
     salient[..., 0] = kind.class_index
@@ -163,8 +171,9 @@ def view(kind: ObjectKind, loc_x_m: np.ndarray, loc_z_m: np.ndarray, rot_y_rad: 
     return CameraView(salient, np.sqrt(x * x + z * z), truncation, visible)
 
 
-def measure(loc_x_m: np.ndarray, loc_z_m: np.ndarray, noise: np.ndarray | None,
-            measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def measure(
+    loc_x_m: np.ndarray, loc_z_m: np.ndarray, noise: np.ndarray | None, measured: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Where the camera measures the objects (module docstring): ``Z_m = Z + dZ``, ``X_m = (X + dX) Z_m / Z``.
 
     Args:
@@ -185,8 +194,10 @@ def measure(loc_x_m: np.ndarray, loc_z_m: np.ndarray, noise: np.ndarray | None,
         return x + 0.0, z_true
     noise = np.asarray(noise, dtype=np.float64)
     if noise.shape != x.shape + (2,):
-        raise ValueError(f"measure: noise must be float64 {list(x.shape) + [2]} (range, lateral error; metres), got "
-                         f"shape {noise.shape}")  # fmt: skip
+        raise ValueError(
+            f"measure: noise must be float64 {list(x.shape) + [2]} (range, lateral error; metres), got "
+            f"shape {noise.shape}"
+        )
     d_range = np.where(measured, noise[..., 0], 0.0)
     d_lat = np.where(measured, noise[..., 1], 0.0)
     z_meas = np.maximum(z_true + d_range, MIN_RANGE_M)

@@ -53,8 +53,10 @@ def _salient_index(names: tuple[str, ...], who: str) -> list[int]:
     """
     missing = [c for c in INPUT_COLUMNS if c not in names]
     if missing:
-        raise ValueError(f"{who}: object_names lack the salient variables {missing} (the PEMs' inputs: "
-                         f"{', '.join(INPUT_COLUMNS)})")  # fmt: skip
+        raise ValueError(
+            f"{who}: object_names lack the salient variables {missing} (the PEMs' inputs: "
+            f"{', '.join(INPUT_COLUMNS)})"
+        )
     return [names.index(c) for c in INPUT_COLUMNS]
 
 
@@ -85,8 +87,9 @@ def ahead_rows(object_names: Sequence[str], kind: Any, camera_height_m: float = 
     return rows
 
 
-def camera_detector(object_names: Sequence[str], detect: Any = None, noise: Any = None,
-                    errors: bool = True) -> SalientDetector:  # fmt: skip
+def camera_detector(
+    object_names: Sequence[str], detect: Any = None, noise: Any = None, errors: bool = True
+) -> SalientDetector:
     """The noisy detector of a scene's objects: the detection PEM on each object row's 11 salient variables and, when
     detected, the noise PEM's range and lateral errors (module docstring).
 
@@ -111,8 +114,11 @@ def camera_detector(object_names: Sequence[str], detect: Any = None, noise: Any 
     if len(set(names)) != len(names):
         raise ValueError(f"camera_detector: object_names must be distinct, got {names}")
     index = _salient_index(names, "camera_detector")
-    salient: Any = slice(index[0], index[0] + len(index)) if index == list(range(index[0], index[0] + len(index))) \
+    salient: Any = (
+        slice(index[0], index[0] + len(index))
+        if index == list(range(index[0], index[0] + len(index)))
         else np.array(index)
+    )
     if detect is None:
         from pemviz.pem import load_pem
 
@@ -121,8 +127,13 @@ def camera_detector(object_names: Sequence[str], detect: Any = None, noise: Any 
         from pemviz.pem.store import load_noise_pem
 
         noise = load_noise_pem("hetero-t")
-    return SalientDetector(detect, salient, noise if errors else None, NOISE_NAMES if errors else (),
-                           names.index(VISIBLE) if VISIBLE in names else None)  # fmt: skip
+    return SalientDetector(
+        detect,
+        salient,
+        noise if errors else None,
+        NOISE_NAMES if errors else (),
+        names.index(VISIBLE) if VISIBLE in names else None,
+    )
 
 
 @dataclass(frozen=True)

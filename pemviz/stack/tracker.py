@@ -98,8 +98,9 @@ class TrackerParams:
             if not (value >= 0 and (np.isfinite(value) or f.name == "gate_chi2")):
                 raise ValueError(f"TrackerParams.{f.name} must be finite and >= 0, got {value!r}")
         if self.meas_std_x0_m <= 0 or self.meas_std_y0_m <= 0:
-            raise ValueError("TrackerParams: meas_std_x0_m and meas_std_y0_m must be > 0 "
-                             "(a measurement is never exact)")
+            raise ValueError(
+                "TrackerParams: meas_std_x0_m and meas_std_y0_m must be > 0 " "(a measurement is never exact)"
+            )
 
     def measurement_variances(self, range_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(r_x, r_y)``: the variances (m^2) of position measurements taken at range ``range_m`` (m), same shape."""
@@ -139,8 +140,21 @@ class Tracks:
     def empty(cls, shape: tuple[int, ...]) -> "Tracks":
         """No track yet (the float fields are 0), arrays of ``shape``."""
         x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy = (np.zeros(shape) for _ in range(10))
-        return cls(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active=np.zeros(shape, dtype=bool),
-                   confirmed=np.zeros(shape, dtype=bool), coast=np.zeros(shape, dtype=np.int64))  # fmt: skip
+        return cls(
+            x,
+            vx,
+            pxx,
+            pxv,
+            pvvx,
+            y,
+            vy,
+            pyy,
+            pyv,
+            pvvy,
+            active=np.zeros(shape, dtype=bool),
+            confirmed=np.zeros(shape, dtype=bool),
+            coast=np.zeros(shape, dtype=np.int64),
+        )
 
     def copy(self) -> "Tracks":
         return Tracks(*(getattr(self, f.name).copy() for f in fields(self)))
@@ -150,8 +164,9 @@ class Tracks:
         return Tracks(*(getattr(self, f.name)[..., rows] for f in fields(self)))
 
 
-def _predict_axis(p: np.ndarray, v: np.ndarray, ppp: np.ndarray, ppv: np.ndarray, pvv: np.ndarray,
-                  dt: float, accel_std: float) -> tuple[np.ndarray, ...]:  # fmt: skip
+def _predict_axis(
+    p: np.ndarray, v: np.ndarray, ppp: np.ndarray, ppv: np.ndarray, pvv: np.ndarray, dt: float, accel_std: float
+) -> tuple[np.ndarray, ...]:
     """One CV prediction on one axis: ``F = [[1, dt], [0, 1]]``, DWNA ``Q`` (module docstring); arrays ``[...]``."""
     q = accel_std * accel_std
     q_pp, q_pv, q_vv = q * (dt**4 / 4.0), q * (dt**3 / 2.0), q * (dt * dt)
@@ -163,8 +178,16 @@ def _predict_axis(p: np.ndarray, v: np.ndarray, ppp: np.ndarray, ppv: np.ndarray
     return p2, v, ppp2, ppv2 + q_pv, pvv + q_vv
 
 
-def _update_axis(p: np.ndarray, v: np.ndarray, ppp: np.ndarray, ppv: np.ndarray, pvv: np.ndarray,
-                 innovation: np.ndarray, s: np.ndarray, gate: np.ndarray) -> tuple[np.ndarray, ...]:  # fmt: skip
+def _update_axis(
+    p: np.ndarray,
+    v: np.ndarray,
+    ppp: np.ndarray,
+    ppv: np.ndarray,
+    pvv: np.ndarray,
+    innovation: np.ndarray,
+    s: np.ndarray,
+    gate: np.ndarray,
+) -> tuple[np.ndarray, ...]:
     """One position measurement on one axis, given its innovation ``z - p`` and variance ``s = ppp + r``, with the gain
     multiplied by ``gate`` (float64 1.0 where accepted, 0.0 elsewhere): where the gain is 0 the state and covariance
     keep their values (``p + 0 * y == p`` for finite ``y``)."""
@@ -180,18 +203,28 @@ def predict(tracks: Tracks, dt: float, params: TrackerParams) -> Tracks:
     Returns:
         new :class:`Tracks` (the input is not modified).
     """
-    x, vx, pxx, pxv, pvvx = _predict_axis(tracks.x, tracks.vx, tracks.pxx, tracks.pxv, tracks.pvvx, dt,
-                                          params.accel_std_x_mps2)  # fmt: skip
-    y, vy, pyy, pyv, pvvy = _predict_axis(tracks.y, tracks.vy, tracks.pyy, tracks.pyv, tracks.pvvy, dt,
-                                          params.accel_std_y_mps2)  # fmt: skip
+    x, vx, pxx, pxv, pvvx = _predict_axis(
+        tracks.x, tracks.vx, tracks.pxx, tracks.pxv, tracks.pvvx, dt, params.accel_std_x_mps2
+    )
+    y, vy, pyy, pyv, pvvy = _predict_axis(
+        tracks.y, tracks.vy, tracks.pyy, tracks.pyv, tracks.pvvy, dt, params.accel_std_y_mps2
+    )
     coast = tracks.coast + 1
     active = tracks.active & (coast <= params.max_coast_steps)
-    return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, tracks.confirmed & active,
-                  np.where(active, coast, 0))  # fmt: skip
+    return Tracks(
+        x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, tracks.confirmed & active, np.where(active, coast, 0)
+    )
 
 
-def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarray, range_m: np.ndarray,
-           prior_vx_mps: np.ndarray | float, params: TrackerParams) -> Tracks:  # fmt: skip
+def update(
+    tracks: Tracks,
+    measured: np.ndarray,
+    z_x: np.ndarray,
+    z_y: np.ndarray,
+    range_m: np.ndarray,
+    prior_vx_mps: np.ndarray | float,
+    params: TrackerParams,
+) -> Tracks:
     """Fold in this step's position measurements: update the objects that have a track (measurements inside the gate),
     start one for the others.
 
@@ -227,7 +260,17 @@ def update(tracks: Tracks, measured: np.ndarray, z_x: np.ndarray, z_y: np.ndarra
     start_vx = np.where(tracks.active, tracks.vx, prior_vx_mps)  # a restart keeps its velocity estimate
     start_vy = np.where(tracks.active, tracks.vy, 0.0)
     sx2, sy2 = params.init_speed_std_x_mps**2, params.init_speed_std_y_mps**2
-    for field_value, start in ((x, z_x), (vx, start_vx), (pxx, r_x), (pxv, 0.0), (pvvx, sx2),
-                               (y, z_y), (vy, start_vy), (pyy, r_y), (pyv, 0.0), (pvvy, sy2)):  # fmt: skip
+    for field_value, start in (
+        (x, z_x),
+        (vx, start_vx),
+        (pxx, r_x),
+        (pxv, 0.0),
+        (pvvx, sx2),
+        (y, z_y),
+        (vy, start_vy),
+        (pyy, r_y),
+        (pyv, 0.0),
+        (pvvy, sy2),
+    ):
         np.copyto(field_value, start, where=new)
     return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)

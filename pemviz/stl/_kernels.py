@@ -29,6 +29,7 @@ def is_tensor(x: Any) -> bool:
     module = sys.modules.get("torch")
     return module is not None and isinstance(x, module.Tensor)
 
+
 Array = Any  # np.ndarray | torch.Tensor
 
 
@@ -71,6 +72,7 @@ class NumpyOps:
     @staticmethod
     def prod(x: Array, axis: int) -> Array:
         return x.prod(axis=axis)
+
     log1p = staticmethod(np.log1p)
     expm1 = staticmethod(np.expm1)
     log = staticmethod(np.log)

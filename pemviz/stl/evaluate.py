@@ -191,9 +191,11 @@ class _Job:
         if not isinstance(semantics, Semantics):  # a name
             semantics = semantics_from_name(semantics, temperature=temperature, signal_ranges=signal_ranges)
         elif signal_ranges is not None or temperature != DEFAULT_TEMPERATURE:
-            raise ValueError(f"got the semantics object {semantics!r} and temperature / signal_ranges as well: "
-                             "give them to the object (AGM(signal_ranges), SmoothCumulative(temperature)) or "
-                             "name the semantics by its string")
+            raise ValueError(
+                f"got the semantics object {semantics!r} and temperature / signal_ranges as well: "
+                "give them to the object (AGM(signal_ranges), SmoothCumulative(temperature)) or "
+                "name the semantics by its string"
+            )
         if not isinstance(signals, Mapping):
             raise TypeError(f"signals must be a mapping name -> array [N, T], got {type(signals).__name__}")
         self.formula = formula
@@ -205,8 +207,10 @@ class _Job:
             name = missing[0]
             pos = positions[name]
             where = "" if pos is None else f" at column {pos + 1}"
-            raise ValueError(f"the formula reads signal {name!r}{where} but signals has only "
-                             f"{sorted(signals)}; names are case-sensitive")
+            raise ValueError(
+                f"the formula reads signal {name!r}{where} but signals has only "
+                f"{sorted(signals)}; names are case-sensitive"
+            )
         names = sorted(positions)
         use_torch = any(_is_torch(signals[n]) for n in names)
         self.ops: Any = K.TorchOps if use_torch else K.NumpyOps
@@ -217,8 +221,10 @@ class _Job:
             if shape is None:
                 shape = tuple(a.shape)
             elif tuple(a.shape) != shape:
-                raise ValueError(f"signals must all have the same shape [N, T]: {names[0]!r} is "
-                                 f"{list(shape)}, {n!r} is {list(a.shape)}")
+                raise ValueError(
+                    f"signals must all have the same shape [N, T]: {names[0]!r} is "
+                    f"{list(shape)}, {n!r} is {list(a.shape)}"
+                )
         assert shape is not None
         if len(shape) not in (1, 2):
             raise ValueError(f"signal arrays must be [N, T] (or one trace [T]), got shape {list(shape)}")
@@ -280,16 +286,20 @@ class _Job:
             bad = np.argwhere(np.isnan(a.detach().cpu().numpy() if _is_torch(a) else a))
             if len(bad):
                 i, t = (int(v) for v in bad[0])
-                raise ValueError(f"signal {n!r} contains NaN (trace {i}, step {t}); robustness needs finite "
-                                 "or infinite values")
-        raise ValueError("robustness is NaN: a predicate met inf - inf (infinite signal values of opposite "
-                         "effect); use finite signal values")
+                raise ValueError(
+                    f"signal {n!r} contains NaN (trace {i}, step {t}); robustness needs finite " "or infinite values"
+                )
+        raise ValueError(
+            "robustness is NaN: a predicate met inf - inf (infinite signal values of opposite "
+            "effect); use finite signal values"
+        )
 
 
 # ------------------------------------------------------------------------------------------------
 # Evaluation: eval(node, lo, hi) -> [hi - lo + 1, n] values at steps lo..hi (0 <= lo <= hi <= T - 1).
 # Time-major: a window shift is a contiguous block of rows, so every pass is one flat vectorised loop.
 # ------------------------------------------------------------------------------------------------
+
 
 class _Evaluator:
     """The walk over the formula for one chunk of traces; every operator's arithmetic is the semantics'."""
@@ -353,14 +363,16 @@ class _Evaluator:
         if lo + a > T - 1:
             raise ValueError(
                 f"the interval {shown} of {name}{_col(f)} lies past the end of the trace: evaluated from step "
-                f"{lo}, its window starts at step {lo + a}, but the trace has T = {T} steps (0..{T - 1})")
+                f"{lo}, its window starts at step {lo + a}, but the trace has T = {T} steps (0..{T - 1})"
+            )
         if self.job.trace_end == "error":
             last = hi + (a if b is None else b)
             if last > T - 1:
                 raise ValueError(
                     f"the interval {shown} of {name}{_col(f)} needs step {last} (evaluated at steps {lo}..{hi}) "
                     f"but the trace has T = {T} steps (0..{T - 1}); shorten the interval or use "
-                    "trace_end='truncate'")
+                    "trace_end='truncate'"
+                )
         b_eff = T - 1 - lo if b is None else min(b, T - 1 - lo)
         return a, b_eff
 

@@ -133,8 +133,10 @@ class Signal(Expr):
                 "starting with a letter or '_'"
             )
         if self.name in KEYWORDS:
-            raise ValueError(f"{self.name!r}{_where(self.pos)} is a keyword, not a signal name "
-                             f"(reserved: {', '.join(sorted(KEYWORDS))})")
+            raise ValueError(
+                f"{self.name!r}{_where(self.pos)} is a keyword, not a signal name "
+                f"(reserved: {', '.join(sorted(KEYWORDS))})"
+            )
 
     def affine(self) -> tuple[dict[str, float], float]:
         return {self.name: 1.0}, 0.0

@@ -62,6 +62,7 @@ __all__ = [
 # Formulas
 # --------------------------------------------------------------------------------------------------
 
+
 # precedence for printing: implies 1 < or 2 < and 3 < until 4 < unary 5 < predicate 6
 class Formula:
     """Base class of STL formulas. Operators: ``&`` and, ``|`` or, ``~`` not, ``>>`` implies."""
@@ -124,8 +125,10 @@ def _check_interval(start: int, end: int | None, pos: int | None, op: str) -> No
     if end is not None and (isinstance(end, bool) or not isinstance(end, int)):
         raise TypeError(f"interval end of {op}{_where(pos)} must be an int (steps) or None (inf), got {end!r}")
     if start < 0:
-        raise ValueError(f"interval [{start},{_fmt_end(end)}] of {op}{_where(pos)} starts before 0: "
-                         "intervals are future steps [a,b] with 0 <= a <= b")
+        raise ValueError(
+            f"interval [{start},{_fmt_end(end)}] of {op}{_where(pos)} starts before 0: "
+            "intervals are future steps [a,b] with 0 <= a <= b"
+        )
     if end is not None and end < start:
         raise ValueError(f"interval [{start},{end}] of {op}{_where(pos)} is empty: need a <= b")
 

@@ -53,8 +53,32 @@ class _Tok:
     pos: int
 
 
-_OPS = ("->", "=>", "&&", "||", ">=", "<=", "==", "!=", "(", ")", "[", "]", ",", ":", "+", "-", "*", "/",
-        ">", "<", "!", "~", "&", "|")
+_OPS = (
+    "->",
+    "=>",
+    "&&",
+    "||",
+    ">=",
+    "<=",
+    "==",
+    "!=",
+    "(",
+    ")",
+    "[",
+    "]",
+    ",",
+    ":",
+    "+",
+    "-",
+    "*",
+    "/",
+    ">",
+    "<",
+    "!",
+    "~",
+    "&",
+    "|",
+)
 
 _WORD_OPS = {"not": "!", "and": "&", "or": "|", "implies": "->", "always": "G", "eventually": "F", "until": "U"}
 
@@ -106,8 +130,9 @@ def _tokenize(text: str) -> list[_Tok]:
         for op in _OPS:
             if text.startswith(op, i):
                 if op in ("==", "!="):
-                    raise STLSyntaxError(f"comparison {op!r} is not supported; allowed: {' '.join(COMPARISONS)}",
-                                         text, i)
+                    raise STLSyntaxError(
+                        f"comparison {op!r} is not supported; allowed: {' '.join(COMPARISONS)}", text, i
+                    )
                 norm = {"&&": "&", "||": "|", "~": "!", "=>": "->"}.get(op, op)
                 toks.append(_Tok("op", norm, i))
                 i += len(op)
@@ -216,8 +241,11 @@ class _Parser:
             self.i += 1
             nxt = self.tok
             if nxt.kind == "op" and nxt.text in COMPARISONS + ("+", "-", "*", "/"):
-                raise self.fail(f"{self.text[t.pos:nxt.pos].strip()!r} is an operator, not a signal name "
-                                "(G, F, U and their word forms are reserved)", t.pos)
+                raise self.fail(
+                    f"{self.text[t.pos:nxt.pos].strip()!r} is an operator, not a signal name "
+                    "(G, F, U and their word forms are reserved)",
+                    t.pos,
+                )
             start, end = self.interval(t.text)
             with self.nested():
                 operand = self.unary()
@@ -282,8 +310,10 @@ class _Parser:
         lhs = self.expr()
         t = self.tok
         if not (t.kind == "op" and t.text in COMPARISONS):
-            raise self.fail(f"expected a comparison ({' '.join(COMPARISONS)}) or an arithmetic operator, "
-                            f"found {self.describe(t)}")
+            raise self.fail(
+                f"expected a comparison ({' '.join(COMPARISONS)}) or an arithmetic operator, "
+                f"found {self.describe(t)}"
+            )
         self.i += 1
         rhs = self.expr()
         try:
@@ -291,8 +321,9 @@ class _Parser:
         except (ValueError, ArithmeticError) as e:
             raise self.fail(str(e).replace(f" at column {start_tok.pos + 1}", ""), start_tok.pos) from None
         if not all(math.isfinite(c) for c in (*pred.coefficients.values(), pred.offset)):
-            raise self.fail("the predicate's arithmetic goes beyond float64 (a coefficient or offset is not finite)",
-                            start_tok.pos)
+            raise self.fail(
+                "the predicate's arithmetic goes beyond float64 (a coefficient or offset is not finite)", start_tok.pos
+            )
         return pred
 
     def expr(self) -> Expr:

@@ -212,8 +212,9 @@ class AGM(Semantics):
         if self.signal_ranges is None:
             return self
         bound = AGM(self.signal_ranges)
-        bound._scales = {id(p): agm_scale(p, self.signal_ranges)
-                         for p in formula.subformulas() if isinstance(p, Predicate)}
+        bound._scales = {
+            id(p): agm_scale(p, self.signal_ranges) for p in formula.subformulas() if isinstance(p, Predicate)
+        }
         bound._formula = formula
         return bound
 
@@ -234,7 +235,8 @@ class AGM(Semantics):
                 f"AGM needs predicate values in [-1, 1], but '{p}'{_col(p)} reaches {worst:.6g}: pass "
                 "signal_ranges={name: (lo, hi)} (each predicate is divided by its largest |value| over the "
                 "ranges, e.g. {'d': (0.0, 15.0)} gives (d - 2) / 13 for d >= 2), or write the scale into "
-                "the formula, e.g. '(d - 2) / 13 >= 0'")
+                "the formula, e.g. '(d - 2) / 13 >= 0'"
+            )
         return h
 
     def conj(self, ops: Ops, xs: list[Array]) -> Array:
@@ -280,15 +282,17 @@ class AGM(Semantics):
                 log_p = ops.sum(ops.log(fac), axis)[None, :]
             return self._finish(ops, ext, s, log_p, float(L), dual)
         length = n_out + w - 1
-        ext = K.sliding_idempotent(ops, K.pad_right(ops, r, length, -_INF if dual else _INF), w, n_out,
-                                   ops.maximum if dual else ops.minimum)
+        ext = K.sliding_idempotent(
+            ops, K.pad_right(ops, r, length, -_INF if dual else _INF), w, n_out, ops.maximum if dual else ops.minimum
+        )
         (s,) = K.sliding_monoid((K.pad_right(ops, part, length, 0.0),), w, n_out, lambda a, b: (a[0] + b[0],))
         if w <= 1000:
             (p,) = K.sliding_monoid((K.pad_right(ops, fac, length, 1.0),), w, n_out, lambda a, b: (a[0] * b[0],))
             log_p = ops.log(p)
         else:
-            (log_p,) = K.sliding_monoid((K.pad_right(ops, ops.log(fac), length, 0.0),), w, n_out,
-                                        lambda a, b: (a[0] + b[0],))
+            (log_p,) = K.sliding_monoid(
+                (K.pad_right(ops, ops.log(fac), length, 0.0),), w, n_out, lambda a, b: (a[0] + b[0],)
+            )
         m_np = np.clip(L - np.arange(n_out), 0, w).astype(np.float64)
         out = self._finish(ops, ext, s, log_p, column(ops, np.maximum(m_np, 1.0), r), dual)
         if (m_np == 0).any():
@@ -474,8 +478,10 @@ def agm_scale(predicate: Predicate, signal_ranges: Mapping[str, tuple[float, flo
     hmin = hmax = predicate.offset
     for name, c in predicate.coefficients.items():
         if name not in signal_ranges:
-            raise ValueError(f"signal_ranges has no range for signal {name!r} of predicate '{predicate}'"
-                             f"{_col(predicate)}; given: {sorted(signal_ranges)}")
+            raise ValueError(
+                f"signal_ranges has no range for signal {name!r} of predicate '{predicate}'"
+                f"{_col(predicate)}; given: {sorted(signal_ranges)}"
+            )
         lo, hi = _range(name, signal_ranges[name])
         hmin += min(c * lo, c * hi)
         hmax += max(c * lo, c * hi)

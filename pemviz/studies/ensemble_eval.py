@@ -43,9 +43,15 @@ def _member_fold(job: tuple) -> tuple[int, int, float, float]:
     return k, fold, bce, auc
 
 
-def evaluate_ensemble(inputs: np.ndarray, labels: np.ndarray, members: int, config: EvalConfig | None = None, *,
-                      jobs: int = 1, on_fit: Callable[[int, int, float, float], None] | None = None
-                      ) -> EnsembleEvaluation:  # fmt: skip
+def evaluate_ensemble(
+    inputs: np.ndarray,
+    labels: np.ndarray,
+    members: int,
+    config: EvalConfig | None = None,
+    *,
+    jobs: int = 1,
+    on_fit: Callable[[int, int, float, float], None] | None = None,
+) -> EnsembleEvaluation:
     """Cross-validate ``members`` bootstrap members of the ML-NN recipe (its shipped seed) on ``config``'s folds, with
     ``jobs`` worker processes; ``on_fit(member, fold, bce, auc)`` after each fit.
 
@@ -61,8 +67,22 @@ def evaluate_ensemble(inputs: np.ndarray, labels: np.ndarray, members: int, conf
     norm = fit_norm_stats(raw)
     splits = stratified_folds(y, config.n_splits)
     seed = PEM_RECIPES["ml-nn"].seed
-    work = [(k, f, raw[splits[f][0]], y[splits[f][0]], raw[splits[f][1]], y[splits[f][1]], norm, seed,
-             config.mlnn_epochs, config.n_bins) for f in config.fold_ids for k in range(members)]  # fmt: skip
+    work = [
+        (
+            k,
+            f,
+            raw[splits[f][0]],
+            y[splits[f][0]],
+            raw[splits[f][1]],
+            y[splits[f][1]],
+            norm,
+            seed,
+            config.mlnn_epochs,
+            config.n_bins,
+        )
+        for f in config.fold_ids
+        for k in range(members)
+    ]
     folds = list(config.fold_ids)
     bce, auc = np.full((members, len(folds)), np.nan), np.full((members, len(folds)), np.nan)
 
@@ -89,12 +109,19 @@ def format_ensemble_markdown(ev: EnsembleEvaluation, nominal: ModelEvaluation | 
     """The members' cross-validation as Markdown: each member's mean BCE and ROC-AUC over the folds, their range, and
     the nominal ML-NN's row of the same folds beside them."""
     m = ev.bce.shape[0]
-    lines = [f"Bootstrap ensemble of the ML-NN: {m} members (recipe seed {ev.seed}), folds {list(ev.folds)}; wall time "
-             f"{ev.wall_s:.0f} s.", "", "| model | BCE (nats) | ROC-AUC |", "|---|---|---|"]  # fmt: skip
+    lines = [
+        f"Bootstrap ensemble of the ML-NN: {m} members (recipe seed {ev.seed}), folds {list(ev.folds)}; wall time "
+        f"{ev.wall_s:.0f} s.",
+        "",
+        "| model | BCE (nats) | ROC-AUC |",
+        "|---|---|---|",
+    ]
     if nominal is not None:
         lines.append(f"| ml-nn (nominal) | {nominal.mean('bce'):.4f} | {nominal.mean('auc'):.4f} |")
     mb, ma = ev.bce.mean(axis=1), ev.auc.mean(axis=1)
-    lines.append(f"| members: mean [min, max] | {mb.mean():.4f} [{mb.min():.4f}, {mb.max():.4f}] | {ma.mean():.4f} "
-                 f"[{ma.min():.4f}, {ma.max():.4f}] |")  # fmt: skip
+    lines.append(
+        f"| members: mean [min, max] | {mb.mean():.4f} [{mb.min():.4f}, {mb.max():.4f}] | {ma.mean():.4f} "
+        f"[{ma.min():.4f}, {ma.max():.4f}] |"
+    )
     lines += [f"| member {k} | {mb[k]:.4f} | {ma[k]:.4f} |" for k in range(m)]
     return "\n".join(lines) + "\n"

@@ -143,8 +143,9 @@ class NoiseEvalResult:
         return min(self.models, key=lambda m: m.mean("nll")).name
 
 
-def score_noise(model: NoiseModel, features: np.ndarray,
-                errors: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def score_noise(
+    model: NoiseModel, features: np.ndarray, errors: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(NLL nats per obstacle, NLL per dimension [2], coverage [levels, 2], ICE [2], PIT [M, 2])`` of errors
     ``[M, 2]`` (metres) under a noise model at encoded features ``[M, 14]``."""
     log_p = model.log_prob_dims(features, errors)
@@ -155,8 +156,9 @@ def score_noise(model: NoiseModel, features: np.ndarray,
     return float(-log_p.sum(axis=1).mean()), -log_p.mean(axis=0), coverage, ice, pit
 
 
-def fit_noise_model(name: str, inputs: np.ndarray, errors: np.ndarray, norm: NormStats,
-                    config: NoiseEvalConfig) -> NoiseModel:  # fmt: skip
+def fit_noise_model(
+    name: str, inputs: np.ndarray, errors: np.ndarray, norm: NormStats, config: NoiseEvalConfig
+) -> NoiseModel:
     """Train noise model ``name`` on raw inputs ``[M, 11]`` and errors ``[M, 2]`` (one training split)."""
     if name == "homo-normal":
         return fit_homoscedastic(inputs, errors, family="normal", linear_mean=True, name=name, norm=norm)
@@ -198,17 +200,37 @@ def evaluate_noise_pems(
             model = fit_noise_model(name, data.inputs[train], data.errors[train], norm, config)
             fit_s = time.perf_counter() - t0
             nll, nll_dims, coverage, ice, pit = score_noise(model, x_all[test], data.errors[test])
-            fs = NoiseFoldScore(fold=k, n_train=int(train.size), n_test=int(test.size), nll=nll, nll_dims=nll_dims,
-                                coverage=coverage, ice=ice, fit_s=fit_s)  # fmt: skip
+            fs = NoiseFoldScore(
+                fold=k,
+                n_train=int(train.size),
+                n_test=int(test.size),
+                nll=nll,
+                nll_dims=nll_dims,
+                coverage=coverage,
+                ice=ice,
+                fit_s=fit_s,
+            )
             scores.append(fs)
             pits.append(pit)
             ranges.append(data.inputs[test, 9])
             if on_fold is not None:
                 on_fold(name, fs)
-        results.append(NoiseModelEvaluation(name=name, description=NOISE_MODEL_DESCRIPTIONS[name], folds=tuple(scores),
-                                            pit=np.concatenate(pits), range_m=np.concatenate(ranges)))  # fmt: skip
-    return NoiseEvalResult(config=config, models=tuple(results), n_rows=int(data.rows.size),
-                           wall_s=time.perf_counter() - start, data_source=data_source)  # fmt: skip
+        results.append(
+            NoiseModelEvaluation(
+                name=name,
+                description=NOISE_MODEL_DESCRIPTIONS[name],
+                folds=tuple(scores),
+                pit=np.concatenate(pits),
+                range_m=np.concatenate(ranges),
+            )
+        )
+    return NoiseEvalResult(
+        config=config,
+        models=tuple(results),
+        n_rows=int(data.rows.size),
+        wall_s=time.perf_counter() - start,
+        data_source=data_source,
+    )
 
 
 # ----------------------------------------------------------------------------------------- formatting
@@ -221,8 +243,10 @@ def _levels(values: np.ndarray) -> str:
 
 def _bands() -> list[str]:
     edges = RANGE_BANDS_M
-    return [f"{edges[i]:g}-{edges[i + 1]:g} m" if np.isfinite(edges[i + 1]) else f">= {edges[i]:g} m"
-            for i in range(len(edges) - 1)]  # fmt: skip
+    return [
+        f"{edges[i]:g}-{edges[i + 1]:g} m" if np.isfinite(edges[i + 1]) else f">= {edges[i]:g} m"
+        for i in range(len(edges) - 1)
+    ]
 
 
 def format_markdown(result: NoiseEvalResult) -> str:
@@ -230,10 +254,12 @@ def format_markdown(result: NoiseEvalResult) -> str:
     central 50 / 80 / 90 / 95 % intervals and the ICE per dimension, per-fold NLL; then the 90 % coverage by range."""
     folds = result.config.fold_ids
     best = result.best()
-    head = (f"Noise PEM cross-validation: {len(folds)} of {result.config.n_splits} stratified folds of Table I "
-            f"(file order, no shuffle), {result.n_rows} detected obstacles at a range >= 1 m"
-            f"{f' from {result.data_source}' if result.data_source else ''}; errors in metres (range dZ, lateral dX) "
-            f"from the dequantised box errors; NLL in nats per obstacle; wall time {result.wall_s:.0f} s.")  # fmt: skip
+    head = (
+        f"Noise PEM cross-validation: {len(folds)} of {result.config.n_splits} stratified folds of Table I "
+        f"(file order, no shuffle), {result.n_rows} detected obstacles at a range >= 1 m"
+        f"{f' from {result.data_source}' if result.data_source else ''}; errors in metres (range dZ, lateral dX) "
+        f"from the dequantised box errors; NLL in nats per obstacle; wall time {result.wall_s:.0f} s."
+    )
     levels = "/".join(f"{round(100 * v)}" for v in COVERAGE_LEVELS)
     lines = [
         head,
@@ -251,8 +277,13 @@ def format_markdown(result: NoiseEvalResult) -> str:
             f"| {_levels(coverage[:, 1])} | {ice[0]:.4f} | {ice[1]:.4f} | {per_fold} | {m.mean('fit_s'):.1f} |"
         )
     bands = _bands()
-    lines += ["", "Out-of-fold coverage of the central 90 % interval by range (loc_z), range / lateral:", "",
-              "| model | " + " | ".join(bands) + " |", "|---|" + "---|" * len(bands)]  # fmt: skip
+    lines += [
+        "",
+        "Out-of-fold coverage of the central 90 % interval by range (loc_z), range / lateral:",
+        "",
+        "| model | " + " | ".join(bands) + " |",
+        "|---|" + "---|" * len(bands),
+    ]
     for m in result.models:
         cov = m.band_coverage(0.9)
         lines.append(f"| {m.name} | " + " | ".join(f"{c[0]:.3f} / {c[1]:.3f}" for c in cov) + " |")
@@ -265,14 +296,33 @@ def format_markdown(result: NoiseEvalResult) -> str:
 def format_csv(result: NoiseEvalResult) -> str:
     """One row per model and fold: NLL (total, per dimension), coverage per level and dimension, ICE, fit seconds."""
     cov_cols = [f"coverage{round(100 * v)}_{d}" for v in COVERAGE_LEVELS for d in NOISE_DIMS]
-    header = ["model", "fold", "n_train", "n_test", "nll", *(f"nll_{d}" for d in NOISE_DIMS), *cov_cols,
-              *(f"ice_{d}" for d in NOISE_DIMS), "fit_s"]  # fmt: skip
+    header = [
+        "model",
+        "fold",
+        "n_train",
+        "n_test",
+        "nll",
+        *(f"nll_{d}" for d in NOISE_DIMS),
+        *cov_cols,
+        *(f"ice_{d}" for d in NOISE_DIMS),
+        "fit_s",
+    ]
     rows = [",".join(header)]
     for m in result.models:
         for f in m.folds:
             values = [f.nll, *f.nll_dims, *f.coverage.reshape(-1), *f.ice]
-            rows.append(",".join([m.name, str(f.fold), str(f.n_train), str(f.n_test),
-                                  *(f"{v:.6f}" for v in values), f"{f.fit_s:.2f}"]))  # fmt: skip
+            rows.append(
+                ",".join(
+                    [
+                        m.name,
+                        str(f.fold),
+                        str(f.n_train),
+                        str(f.n_test),
+                        *(f"{v:.6f}" for v in values),
+                        f"{f.fit_s:.2f}",
+                    ]
+                )
+            )
     return "\n".join(rows) + "\n"
 
 
@@ -282,7 +332,9 @@ def summary_lines(result: NoiseEvalResult) -> Sequence[str]:
     i50, i95 = COVERAGE_LEVELS.index(0.5), COVERAGE_LEVELS.index(0.95)
     for m in result.models:
         cov, ice = m.mean("coverage"), m.mean("ice")
-        out.append(f"{m.name:14s} NLL {m.mean('nll'):.4f}  coverage 50 % {cov[i50, 0]:.3f}/{cov[i50, 1]:.3f}  "
-                   f"95 % {cov[i95, 0]:.3f}/{cov[i95, 1]:.3f}  ICE {ice[0]:.4f}/{ice[1]:.4f}  "
-                   "(range/lateral)")  # fmt: skip
+        out.append(
+            f"{m.name:14s} NLL {m.mean('nll'):.4f}  coverage 50 % {cov[i50, 0]:.3f}/{cov[i50, 1]:.3f}  "
+            f"95 % {cov[i95, 0]:.3f}/{cov[i95, 1]:.3f}  ICE {ice[0]:.4f}/{ice[1]:.4f}  "
+            "(range/lateral)"
+        )
     return out

@@ -577,4 +577,3 @@ def summary_lines(result: EvalResult) -> Sequence[str]:
             f"ECE {m.mean('ece'):.4f}{ref}"
         )
     return out
-

@@ -32,6 +32,7 @@ import subprocess
 import sys
 from typing import Any
 
+
 def numpy_dispatch() -> tuple[list[str], list[str]]:
     """(the SIMD targets this numpy build dispatches to at run time, those this process uses): e.g. ``(['X86_V3',
     'X86_V4', 'AVX512_ICL', 'AVX512_SPR'], ['X86_V3'])`` under ``NPY_DISABLE_CPU_FEATURES="X86_V4 AVX512_ICL
@@ -59,9 +60,13 @@ DISPATCH_SETTINGS: dict[str, dict[str, str]] = {
     "MKL AVX2": {"MKL_ENABLE_INSTRUCTIONS": "AVX2"},
     "numpy without AVX-512": {"NPY_DISABLE_CPU_FEATURES": _numpy_without("avx2")},
     "OpenBLAS Haswell": {"OPENBLAS_CORETYPE": "Haswell"},
-    "all at their lowest": {"ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2",
-                            "MKL_CBWR": "COMPATIBLE", "OPENBLAS_CORETYPE": "Sandybridge",
-                            "NPY_DISABLE_CPU_FEATURES": _numpy_without("baseline")},
+    "all at their lowest": {
+        "ATEN_CPU_CAPABILITY": "default",
+        "MKL_ENABLE_INSTRUCTIONS": "SSE4_2",
+        "MKL_CBWR": "COMPATIBLE",
+        "OPENBLAS_CORETYPE": "Sandybridge",
+        "NPY_DISABLE_CPU_FEATURES": _numpy_without("baseline"),
+    },
 }
 """Settings of torch's (``ATEN_CPU_CAPABILITY``), MKL's, numpy's (``NPY_DISABLE_CPU_FEATURES``, named by the installed
 numpy's own dispatch targets: :func:`numpy_dispatch`) and OpenBLAS's kernel dispatch that any x86-64 CPU with AVX2
@@ -75,9 +80,13 @@ def dispatch_in_use() -> dict[str, Any]:
     import torch
     from threadpoolctl import threadpool_info
 
-    return {"torch": torch.backends.cpu.get_cpu_capability(), "numpy": numpy_dispatch()[1],
-            "openblas": sorted({str(i.get("architecture")) for i in threadpool_info()
-                                if i.get("internal_api") == "openblas"})}  # fmt: skip
+    return {
+        "torch": torch.backends.cpu.get_cpu_capability(),
+        "numpy": numpy_dispatch()[1],
+        "openblas": sorted(
+            {str(i.get("architecture")) for i in threadpool_info() if i.get("internal_api") == "openblas"}
+        ),
+    }
 
 
 LOG_MU_RTOL = 1e-12
@@ -103,8 +112,9 @@ def fingerprint(config: Any) -> dict[str, Any]:
             chunks[0] += 1
             digest.update(np.ascontiguousarray(event.batch.detected).tobytes())
         elif isinstance(event, RolloutsSampled):
-            digest.update(np.ascontiguousarray(event.failed if event.index is None
-                                               else event.stage_robustness < 0).tobytes())  # fmt: skip
+            digest.update(
+                np.ascontiguousarray(event.failed if event.index is None else event.stage_robustness < 0).tobytes()
+            )
 
     problem = problem_for(config)
     result = Experiment(config, [listen], problem=problem).run()
@@ -112,10 +122,14 @@ def fingerprint(config: Any) -> dict[str, Any]:
     return {
         "rollouts": digest.hexdigest(),
         "stages": [[s.stage, repr(s.gamma), int(s.n_elites), int(s.estimate.n_failures)] for s in result.stages],
-        "log_mu_hat": e.log_mu_hat, "failures": e.n_failures, "n": e.n, "ess": e.ess,
-        "summary": e.summary(problem.exact_log_p, problem.reference), "chunks": chunks[0],
+        "log_mu_hat": e.log_mu_hat,
+        "failures": e.n_failures,
+        "n": e.n,
+        "ess": e.ess,
+        "summary": e.summary(problem.exact_log_p, problem.reference),
+        "chunks": chunks[0],
         "dispatch": dispatch_in_use(),
-    }  # fmt: skip
+    }
 
 
 def fingerprint_in_subprocess(args: list[str], env: dict[str, str], timeout_s: float = 300.0) -> dict[str, Any]:
@@ -126,8 +140,13 @@ def fingerprint_in_subprocess(args: list[str], env: dict[str, str], timeout_s: f
         RuntimeError: the run failed or printed no fingerprint (the message holds its stderr's tail).
         subprocess.TimeoutExpired: it ran past ``timeout_s`` seconds.
     """
-    proc = subprocess.run([sys.executable, "-m", "pemviz.studies.reproducibility", *args], capture_output=True,
-                          text=True, env={**os.environ, **env}, timeout=timeout_s)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "pemviz.studies.reproducibility", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+        timeout=timeout_s,
+    )
     lines = proc.stdout.strip().splitlines()
     if proc.returncode != 0 or not lines:
         raise RuntimeError(f"reproducibility run {args} under {env} failed ({proc.returncode}): {proc.stderr[-2000:]}")
@@ -163,10 +182,16 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--executor", default="serial")
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
-    fields = {"n_stages": a.k, "n_per_stage": a.n, "n_final": a.n_final, "pretrain_rollouts": a.pretrain,
-              "chunk_rollouts": a.chunk}  # fmt: skip
-    cfg = ExperimentConfig(scenario=a.scenario, executor=a.executor, seed=a.seed,
-                           **{k: v for k, v in fields.items() if v is not None})  # fmt: skip
+    fields = {
+        "n_stages": a.k,
+        "n_per_stage": a.n,
+        "n_final": a.n_final,
+        "pretrain_rollouts": a.pretrain,
+        "chunk_rollouts": a.chunk,
+    }
+    cfg = ExperimentConfig(
+        scenario=a.scenario, executor=a.executor, seed=a.seed, **{k: v for k, v in fields.items() if v is not None}
+    )
     try:
         print(json.dumps(fingerprint(cfg)))
     finally:

@@ -2,9 +2,9 @@
 
 A :class:`Job` is one method (a config) on one named problem (:data:`pemviz.scenarios.problems.PROBLEMS`) for one seed;
 :func:`run_jobs` runs jobs in worker processes and appends every :class:`RunRecord` to a ``runs.jsonl`` file as it
-ends, so an interrupted study resumes; :func:`exact_answer` is each problem's truth (closed form, the
-deterministic latched simulator, or exact enumeration, :mod:`pemviz.scenarios.braking.truth`); :func:`summarise` groups
-records into table rows. ``pemviz validate`` and ``pemviz tables`` are the command-line layers over this module.
+ends, so an interrupted study resumes; :func:`summarise` groups records into table rows, beside each problem's truth
+(closed form, the deterministic latched simulator, or exact enumeration: :mod:`pemviz.studies.exact_answers`).
+``pemviz validate`` and ``pemviz tables`` are the command-line layers over this module.
 """
 
 from __future__ import annotations
@@ -33,128 +33,11 @@ from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RunFinished
 from pemviz.methods import get_method
 from pemviz.core.files import atomic_write
-from pemviz.pem import load_pem
 from pemviz.presets import PRESETS
-from pemviz.scenarios.braking import truth, truth_known, truth_latched
-from pemviz.scenarios.braking.simulator import BrakingParams
-from pemviz.scenarios.crowd.simulator import crowd_log_failure_probability
-from pemviz.scenarios.problems import CROWD_PROBLEMS, PROBLEMS, TOY_PROBLEMS, build_problem
-from pemviz.scenarios.toy.simulator import toy_log_failure_probability
+from pemviz.studies.exact_answers import ExactAnswer, problem_description, validation_problem
 
 DEFAULT_PROBLEMS = ("toy", "toy-1e-30", "latched", "main")
 """The problems ``pemviz validate`` runs by default."""
-
-# -- problems with an exact answer ------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ExactAnswer:
-    """The truth of a problem: ``log_p_fail`` (nats), where it comes from, and a refinement table if any."""
-
-    log_p_fail: float
-    source: str
-    table: str | None = None
-    wall_s: float = 0.0
-
-
-def exact_answer(name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None,
-                 recompute: bool = False) -> ExactAnswer:  # fmt: skip
-    """The exact p_fail of a problem of :data:`~pemviz.scenarios.problems.PROBLEMS` (milliseconds for the toys, the
-    latched scenario and ``main`` with a shipped PEM, whose answer is kept; 20-40 s of enumeration for ``main`` with
-    another PEM or with ``recompute``).
-
-    ``progress`` receives a line per refinement of the enumeration (``main``).
-
-    Raises:
-        ValueError: an unknown name.
-    """
-    t0 = time.perf_counter()
-    if name in TOY_PROBLEMS:
-        params = TOY_PROBLEMS[name]
-        log_p = toy_log_failure_probability(params)
-        q, n = 1 - params.p_detect, params.braking - params.safe + 1
-        return ExactAnswer(log_p, f"closed form (1 - p)^(braking - safe + 1) = {q:g}^{n}")
-    if name in CROWD_PROBLEMS:
-        params = CROWD_PROBLEMS[name]
-        return ExactAnswer(crowd_log_failure_probability(params),
-                           f"closed form over {len(params.offsets)} obstacles' independent triggers")  # fmt: skip
-    if name not in ("latched", "main"):
-        problem = validation_problem(name, pem_path)  # a registered scenario that carries its exact answer
-        return ExactAnswer(problem.exact_log_p, f"the {name} scenario's own exact answer",
-                           wall_s=time.perf_counter() - t0)
-    pem = load_pem(pem_path)
-    if name == "latched":
-        lt = truth_latched.latched_log_failure_probability(pem.logit_at_gap, BrakingParams(latched_brake=True))
-        return ExactAnswer(
-            lt.log_p_fail,
-            f"product of (1 - p_PEM) over steps {lt.first_step}..{lt.last_step} (deterministic simulator)",
-            wall_s=time.perf_counter() - t0,
-        )
-
-    known = truth_known.known_log_failure_probability(pem.logit_at_gap, BrakingParams())
-    if known is not None and not recompute:  # a shipped PEM: its enumeration (20-40 s) was kept
-        return ExactAnswer(known, "exact enumeration kept for this PEM "
-                                  "(pemviz.scenarios.braking.truth_known.KNOWN_BRAKING_LOG_P, bracket width < 0.25 %; "
-                                  "tests/test_truth.py recomputes it)",
-                           wall_s=time.perf_counter() - t0)
-
-    def on_result(r: truth.ExactResult) -> None:
-        if progress is not None:
-            progress(f"  truth: drop threshold {r.log_prune:g} nats -> p_fail {math.exp(r.log_p_fail):.5g} "
-                     f"(+ at most {math.exp(r.log_pruned_bound):.2g}), {r.wall_s:.1f} s")  # fmt: skip
-
-    ref = truth.braking_truth(pem.logit_at_gap, BrakingParams(), on_result=on_result)
-    status = "converged" if ref.converged else "NOT converged"
-    f = ref.final
-    return ExactAnswer(
-        ref.log_p_fail,
-        f"exact enumeration, bracket [{math.exp(f.log_p_fail):.5g}, {math.exp(f.log_p_fail_upper):.5g}] "
-        f"(width {f.relative_width:.2%}, {status})",
-        ref.table(),
-        time.perf_counter() - t0,
-    )
-
-
-def validation_problems() -> tuple[str, ...]:
-    """The problems ``pemviz validate`` can run: :data:`~pemviz.scenarios.problems.PROBLEMS`, then every registered
-    scenario with an exact answer (:attr:`pemviz.scenarios.registry.Scenario.exact`; plugins included) not named
-    there."""
-    from pemviz.scenarios import registry
-
-    extra = [n for n in registry.registered() if n not in PROBLEMS and registry.get(n).exact]
-    return (*PROBLEMS, *extra)
-
-
-def problem_description(name: str) -> str:
-    """What the problem ``name`` is, one line: its entry of :data:`~pemviz.scenarios.problems.PROBLEMS`, else the
-    registered scenario's description (:attr:`pemviz.scenarios.registry.Scenario.description`)."""
-    if name in PROBLEMS:
-        return PROBLEMS[name]
-    from pemviz.scenarios import registry
-
-    return registry.get(name).description
-
-
-def validation_problem(name: str, pem_path: str | None = None):
-    """The :class:`~pemviz.core.problems.Problem` of ``name``: one of :data:`~pemviz.scenarios.problems.PROBLEMS`
-    (:func:`~pemviz.scenarios.problems.build_problem`), else a registered scenario at its defaults with
-    ``pem_path``'s PEM (:mod:`pemviz.scenarios.registry`).
-
-    Raises:
-        ValueError: an unknown name, or a registered scenario whose problem carries no exact answer.
-    """
-    if name in PROBLEMS:
-        return build_problem(name, pem_path)
-    from pemviz.config import ExperimentConfig
-    from pemviz.scenarios import registry
-
-    if name not in registry.registered():
-        raise ValueError(f"unknown problem {name!r}; use one of {', '.join(validation_problems())}")
-    problem = registry.get(name).problem(ExperimentConfig(scenario=name, pem=pem_path))
-    if problem.exact_log_p is None:
-        raise ValueError(f"the {name} scenario carries no exact answer: pemviz validate needs one")
-    return problem
-
 
 # -- one run ----------------------------------------------------------------------------------------------------
 
@@ -218,12 +101,31 @@ def run_job(job: Job) -> RunRecord:
     if not isinstance(res, RunFinished):  # pragma: no cover - no cancel token here
         raise RuntimeError(f"{job.method} on {job.problem} seed {job.seed} did not finish")
     e = res.final.estimate
-    curves = (np.stack([s.proposal_curve for s in res.stages])
-              if job.keep_curves and get_method(cfg.method).proposal_curves else None)  # fmt: skip
+    curves = (
+        np.stack([s.proposal_curve for s in res.stages])
+        if job.keep_curves and get_method(cfg.method).proposal_curves
+        else None
+    )
     gammas = tuple(float(s.gamma) for s in res.stages if s.kind == "ce")
-    return RunRecord(job.problem, job.method, job.seed, e.log_mu_hat, e.n_failures, e.n, e.ess, e.nll_mean, e.nll_lme,
-                     res.final.n_simulations, time.perf_counter() - t0, gammas, curves, *e.log_ci, e.khat, e.verdict,
-                     e.reason)  # fmt: skip
+    return RunRecord(
+        job.problem,
+        job.method,
+        job.seed,
+        e.log_mu_hat,
+        e.n_failures,
+        e.n,
+        e.ess,
+        e.nll_mean,
+        e.nll_lme,
+        res.final.n_simulations,
+        time.perf_counter() - t0,
+        gammas,
+        curves,
+        *e.log_ci,
+        e.khat,
+        e.verdict,
+        e.reason,
+    )
 
 
 RUNS_FILE = "runs.jsonl"
@@ -300,8 +202,14 @@ def run_jobs(
     if done:
         print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {runs_file}", file=sys.stderr)
     tty = sys.stderr.isatty()
-    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), unit="run", file=sys.stderr,
-               disable=not (progress and tty), dynamic_ncols=True)  # fmt: skip
+    bar = tqdm(
+        total=len(jobs),
+        initial=len(jobs) - len(todo),
+        unit="run",
+        file=sys.stderr,
+        disable=not (progress and tty),
+        dynamic_ncols=True,
+    )
     t0, n0 = time.perf_counter(), len(jobs) - len(todo)
     log = None
     if runs_file is not None:
@@ -324,8 +232,11 @@ def run_jobs(
         if progress and not tty:  # a log, not a terminal: the bar's counts and ETA as a line
             n, elapsed = len(done), time.perf_counter() - t0
             eta = elapsed / (n - n0) * (len(jobs) - n)
-            print(f"  [{n}/{len(jobs)} runs, {tqdm.format_interval(elapsed)} elapsed, ETA {tqdm.format_interval(eta)}]",
-                  file=sys.stderr, flush=True)  # fmt: skip
+            print(
+                f"  [{n}/{len(jobs)} runs, {tqdm.format_interval(elapsed)} elapsed, ETA {tqdm.format_interval(eta)}]",
+                file=sys.stderr,
+                flush=True,
+            )
 
     try:
         if n_jobs <= 1 or len(todo) <= 1:
@@ -381,29 +292,65 @@ def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> l
         logs = np.array([r.log_mu_hat for r in rs])
         out.append(
             Summary(
-                problem, method, lt, len(rs), float(np.median(logs)), float(logs.min()), float(logs.max()),
+                problem,
+                method,
+                lt,
+                len(rs),
+                float(np.median(logs)),
+                float(logs.min()),
+                float(logs.max()),
                 float(np.median([relative_error(x, lt) for x in logs])),
                 int(sum(abs(x - lt) <= math.log(2.0) for x in logs)),
-                float(np.median([r.n_failures for r in rs])), rs[0].n, float(np.median([r.ess for r in rs])),
-                int(np.median([r.n_simulations for r in rs])), float(np.median([r.wall_s for r in rs])),
-                sum(r.covers(lt) for r in rs), sum(r.verdict == "reliable" for r in rs),
+                float(np.median([r.n_failures for r in rs])),
+                rs[0].n,
+                float(np.median([r.ess for r in rs])),
+                int(np.median([r.n_simulations for r in rs])),
+                float(np.median([r.wall_s for r in rs])),
+                sum(r.covers(lt) for r in rs),
+                sum(r.verdict == "reliable" for r in rs),
             )
-        )  # fmt: skip
+        )
     return out
 
 
-COLUMNS = ("problem", "truth", "method", "seeds", "median mu_hat", "min mu_hat", "max mu_hat", "median rel. error",
-           "within x2", "95% CI covers", "reliable", "median failures", "median ESS", "simulations",
-           "median wall s")  # fmt: skip
+COLUMNS = (
+    "problem",
+    "truth",
+    "method",
+    "seeds",
+    "median mu_hat",
+    "min mu_hat",
+    "max mu_hat",
+    "median rel. error",
+    "within x2",
+    "95% CI covers",
+    "reliable",
+    "median failures",
+    "median ESS",
+    "simulations",
+    "median wall s",
+)
 
 
 def _row(s: Summary) -> list[str]:
     fp = format_probability
-    return [s.problem, fp(s.log_truth), s.method, str(s.n_seeds), fp(s.median_mu_hat), fp(s.min_mu_hat),
-            fp(s.max_mu_hat), f"{s.median_rel_error:.3f}", f"{s.within_2x}/{s.n_seeds}", f"{s.covered}/{s.n_seeds}",
-            f"{s.reliable}/{s.n_seeds}",
-            f"{s.median_failures:g}/{s.n_per_estimate}", f"{s.median_ess:.1f}", f"{s.n_simulations:,}",
-            f"{s.median_wall_s:.1f}"]  # fmt: skip
+    return [
+        s.problem,
+        fp(s.log_truth),
+        s.method,
+        str(s.n_seeds),
+        fp(s.median_mu_hat),
+        fp(s.min_mu_hat),
+        fp(s.max_mu_hat),
+        f"{s.median_rel_error:.3f}",
+        f"{s.within_2x}/{s.n_seeds}",
+        f"{s.covered}/{s.n_seeds}",
+        f"{s.reliable}/{s.n_seeds}",
+        f"{s.median_failures:g}/{s.n_per_estimate}",
+        f"{s.median_ess:.1f}",
+        f"{s.n_simulations:,}",
+        f"{s.median_wall_s:.1f}",
+    ]
 
 
 def markdown_table(summaries: Sequence[Summary]) -> str:
@@ -417,21 +364,57 @@ def summaries_csv(summaries: Sequence[Summary]) -> str:
     """The summaries as CSV text, logs in nats beside the probabilities."""
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["problem", "log_truth", "truth", "method", "seeds", "median_log_mu_hat", "min_log_mu_hat",
-                "max_log_mu_hat", "median_mu_hat", "median_rel_error", "within_2x", "covered", "reliable",
-                "median_failures", "n_per_estimate",
-                "median_ess", "simulations", "median_wall_s"])  # fmt: skip
+    w.writerow(
+        [
+            "problem",
+            "log_truth",
+            "truth",
+            "method",
+            "seeds",
+            "median_log_mu_hat",
+            "min_log_mu_hat",
+            "max_log_mu_hat",
+            "median_mu_hat",
+            "median_rel_error",
+            "within_2x",
+            "covered",
+            "reliable",
+            "median_failures",
+            "n_per_estimate",
+            "median_ess",
+            "simulations",
+            "median_wall_s",
+        ]
+    )
     for s in summaries:
-        w.writerow([s.problem, repr(s.log_truth), f"{math.exp(s.log_truth):.6g}", s.method, s.n_seeds,
-                    repr(s.median_mu_hat), repr(s.min_mu_hat), repr(s.max_mu_hat),
-                    f"{math.exp(s.median_mu_hat):.6g}", f"{s.median_rel_error:.6g}", s.within_2x, s.covered, s.reliable,
-                    s.median_failures, s.n_per_estimate, f"{s.median_ess:.6g}", s.n_simulations,
-                    f"{s.median_wall_s:.3f}"])  # fmt: skip
+        w.writerow(
+            [
+                s.problem,
+                repr(s.log_truth),
+                f"{math.exp(s.log_truth):.6g}",
+                s.method,
+                s.n_seeds,
+                repr(s.median_mu_hat),
+                repr(s.min_mu_hat),
+                repr(s.max_mu_hat),
+                f"{math.exp(s.median_mu_hat):.6g}",
+                f"{s.median_rel_error:.6g}",
+                s.within_2x,
+                s.covered,
+                s.reliable,
+                s.median_failures,
+                s.n_per_estimate,
+                f"{s.median_ess:.6g}",
+                s.n_simulations,
+                f"{s.median_wall_s:.3f}",
+            ]
+        )
     return buf.getvalue()
 
 
-def report(problems: Sequence[str], truths: dict[str, ExactAnswer], summaries: Sequence[Summary], n_seeds: int,
-           wall_s: float) -> str:  # fmt: skip
+def report(
+    problems: Sequence[str], truths: dict[str, ExactAnswer], summaries: Sequence[Summary], n_seeds: int, wall_s: float
+) -> str:
     """The Markdown report of ``pemviz validate`` (``validate.md``): each problem's truth and where it comes from,
     the table of :func:`markdown_table`, the refinement tables of the enumerated truths, the wall time (seconds)."""
     md = [f"# pemviz validate: {n_seeds} seeds, equal budgets ({summaries[0].n_simulations:,} simulations)", ""]
@@ -481,9 +464,14 @@ def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str
     return out
 
 
-def study_jobs(problems: Sequence[str], methods: Sequence[tuple[str, dict]], n_seeds: int,
-               pem_path: str | None = None) -> list[Job]:  # fmt: skip
+def study_jobs(
+    problems: Sequence[str], methods: Sequence[tuple[str, dict]], n_seeds: int, pem_path: str | None = None
+) -> list[Job]:
     """Every (problem, method, seed) of a study as a :class:`Job`, seeds 0..n_seeds-1; ``methods`` as
     :func:`methods_for` returns them."""
-    return [Job(pb, label, tuple(sorted(fields.items())), seed, pem_path=pem_path)
-            for pb in problems for label, fields in methods for seed in range(n_seeds)]  # fmt: skip
+    return [
+        Job(pb, label, tuple(sorted(fields.items())), seed, pem_path=pem_path)
+        for pb in problems
+        for label, fields in methods
+        for seed in range(n_seeds)
+    ]

@@ -25,28 +25,39 @@ def test_the_beams_events_are_the_grid_branches_they_name(study):
     self = type("S", (), {"grid": committor.Grid(np.array(committor.GRIDS["lean"])), "dp_mass": 1e-3})()
     ev, log_pe = study.LookAheadTilt.beam_events(self)
     reps = self.grid.reps[ev]
-    expected = [(0, 0.5, 0.5), (1, 0.5, 0.5), (0, 1e-3, 0.5), (0, 1 - 1e-3, 0.5), (0, 1.6e-2, 0.5),
-                (0, 1 - 1.6e-2, 0.5), (0, 0.5, 1.6e-2), (0, 0.5, 1 - 1.6e-2)]  # fmt: skip
+    expected = [
+        (0, 0.5, 0.5),
+        (1, 0.5, 0.5),
+        (0, 1e-3, 0.5),
+        (0, 1 - 1e-3, 0.5),
+        (0, 1.6e-2, 0.5),
+        (0, 1 - 1.6e-2, 0.5),
+        (0, 0.5, 1.6e-2),
+        (0, 0.5, 1 - 1.6e-2),
+    ]
     assert reps == pytest.approx(np.array(expected, dtype=float))
     assert np.exp(log_pe) == pytest.approx([1, 1, 1e-3, 1e-3] + [1.6e-2] * 4)
 
 
-@pytest.mark.parametrize("options, words", [
-    (["--window", "10", "5"], "need 0 <= window start < window end <= end <= 100"),
-    (["--window", "10", "200"], "need 0 <= window start < window end <= end <= 100"),
-    (["--n", "0"], "rollouts >= 1"),
-    (["--eps", "0"], "0 < eps <= 1"),
-    (["--a", "2"], "0 < a <= 1"),
-    (["--beta", "0"], "0 < beta <= 1"),
-    (["--chain-effects", "--graded"], "--chain-effects and --beam 0.0 need --dp"),
-    (["--beam", "0.25", "--graded"], "--chain-effects and --beam 0.25 need --dp"),
-    (["--effect-model", "--dp", "--graded", "--chain-effects"], "--effect-model needs --beam and --chain-effects"),
-    (["--beam", "0.25", "--dp", "--graded"], "--beam needs --one-car"),
-    (["--dp-mass", "0.7"], "need 0 < dp-mass < 0.5"),
-    (["--vy-buckets", "0.3", "-0.3"], "the buckets' bounds ascending"),
-    (["--dp"], "--continuous and --dp need --graded"),
-    (["--dp", "--graded", "--window", "3", "24"], "--dp needs the window to start at step 5"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "options, words",
+    [
+        (["--window", "10", "5"], "need 0 <= window start < window end <= end <= 100"),
+        (["--window", "10", "200"], "need 0 <= window start < window end <= end <= 100"),
+        (["--n", "0"], "rollouts >= 1"),
+        (["--eps", "0"], "0 < eps <= 1"),
+        (["--a", "2"], "0 < a <= 1"),
+        (["--beta", "0"], "0 < beta <= 1"),
+        (["--chain-effects", "--graded"], "--chain-effects and --beam 0.0 need --dp"),
+        (["--beam", "0.25", "--graded"], "--chain-effects and --beam 0.25 need --dp"),
+        (["--effect-model", "--dp", "--graded", "--chain-effects"], "--effect-model needs --beam and --chain-effects"),
+        (["--beam", "0.25", "--dp", "--graded"], "--beam needs --one-car"),
+        (["--dp-mass", "0.7"], "need 0 < dp-mass < 0.5"),
+        (["--vy-buckets", "0.3", "-0.3"], "the buckets' bounds ascending"),
+        (["--dp"], "--continuous and --dp need --graded"),
+        (["--dp", "--graded", "--window", "3", "24"], "--dp needs the window to start at step 5"),
+    ],
+)
 def test_options_the_study_cannot_run_with_stop_it_with_one_line(study, monkeypatch, options, words):
     """Each refusal names the options and what is allowed, before the PEMs are loaded (no traceback)."""
     monkeypatch.setattr(sys, "argv", ["cut_in_lookahead_tilt.py", *options])
@@ -62,9 +73,28 @@ def test_the_command_line_takes_every_option_the_docs_commands_use(study, capsys
     with pytest.raises(SystemExit):
         study.main()
     out = capsys.readouterr().out
-    for option in ("--n", "--graded", "--q-model", "--grid", "--skip-doomed", "--mc-failures", "--window", "--one-car",
-                   "--check-one-car", "--a", "--eps", "--train-once", "--errors", "--continuous", "--dp",
-                   "--chain-effects", "--beta", "--dp-mass", "--beam", "--effect-model"):
+    for option in (
+        "--n",
+        "--graded",
+        "--q-model",
+        "--grid",
+        "--skip-doomed",
+        "--mc-failures",
+        "--window",
+        "--one-car",
+        "--check-one-car",
+        "--a",
+        "--eps",
+        "--train-once",
+        "--errors",
+        "--continuous",
+        "--dp",
+        "--chain-effects",
+        "--beta",
+        "--dp-mass",
+        "--beam",
+        "--effect-model",
+    ):
         assert option in out
 
 
@@ -72,8 +102,22 @@ def test_a_cached_v_gives_the_run_it_was_fitted_for_and_refuses_another_setting(
     """--v-cache writes the V fitted by --train-once whole; read back, the same seed gives the same estimate; a cache
     fitted with another grid stops the run with one line and leaves the file as it was."""
     cache = tmp_path / "v.pkl"
-    base = ["cut_in_lookahead_tilt.py", "--train-once", "5", "--v-cache", str(cache), "--n", "40", "40", "--seeds", "1",
-            "--one-car", "--grid", "coarse", "--graded"]  # fmt: skip
+    base = [
+        "cut_in_lookahead_tilt.py",
+        "--train-once",
+        "5",
+        "--v-cache",
+        str(cache),
+        "--n",
+        "40",
+        "40",
+        "--seeds",
+        "1",
+        "--one-car",
+        "--grid",
+        "coarse",
+        "--graded",
+    ]
 
     def run(*extra):
         monkeypatch.setattr(sys, "argv", base + list(extra))

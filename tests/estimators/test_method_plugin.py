@@ -42,8 +42,9 @@ def defensive():
 
 def _pemviz(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PEMVIZ_METHODS": "user_method", "PYTHONPATH": str(HERE)}
-    return subprocess.run([sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
 
 
 def test_the_built_in_methods_are_registered_records():
@@ -98,9 +99,30 @@ def test_check_estimator_takes_a_registered_name_and_a_method_object(defensive, 
 
 
 def test_pemviz_run_records_and_re_estimates_a_method_of_ones_own(tmp_path):
-    proc = _pemviz("run", "--scenario", "toy", "--param", "total=10", "--param", "braking=5", "--param", "safe=3",
-                   "--method", "defensive-mc", "--n", "3000", "--seed", "2",
-                   "--save-rollouts", "r.parquet", "--save", "r.rrd", "--json", "r.json", cwd=tmp_path)
+    proc = _pemviz(
+        "run",
+        "--scenario",
+        "toy",
+        "--param",
+        "total=10",
+        "--param",
+        "braking=5",
+        "--param",
+        "safe=3",
+        "--method",
+        "defensive-mc",
+        "--n",
+        "3000",
+        "--seed",
+        "2",
+        "--save-rollouts",
+        "r.parquet",
+        "--save",
+        "r.rrd",
+        "--json",
+        "r.json",
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "defensive-mc" in proc.stdout + proc.stderr
     result = json.loads((tmp_path / "r.json").read_text())
@@ -114,8 +136,20 @@ def test_pemviz_run_records_and_re_estimates_a_method_of_ones_own(tmp_path):
 
 
 def test_pemviz_validate_runs_a_method_of_ones_own(tmp_path):
-    proc = _pemviz("validate", "--problems", "toy-1e-3", "--presets", "", "--baselines", "defensive-mc",
-                   "--seeds", "2", "--out", "v", cwd=tmp_path)
+    proc = _pemviz(
+        "validate",
+        "--problems",
+        "toy-1e-3",
+        "--presets",
+        "",
+        "--baselines",
+        "defensive-mc",
+        "--seeds",
+        "2",
+        "--out",
+        "v",
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr
     table = (tmp_path / "v" / "validate.md").read_text()
     assert "defensive-mc" in table and "toy-1e-3" in table
@@ -124,8 +158,14 @@ def test_pemviz_validate_runs_a_method_of_ones_own(tmp_path):
 def test_a_bad_method_plugin_or_name_is_one_line(tmp_path):
     (tmp_path / "broken.py").write_text("raise RuntimeError('boom')\n")
     env = {**os.environ, "PEMVIZ_METHODS": "broken", "PYTHONPATH": str(tmp_path)}
-    proc = subprocess.run([sys.executable, "-m", "pemviz.cli", "run", "--method", "mine", "--no-record"], cwd=tmp_path,
-                          env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "pemviz.cli", "run", "--method", "mine", "--no-record"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
     assert "method plugin PEMVIZ_METHODS module broken: RuntimeError: boom" in proc.stderr
     proc = _pemviz("run", "--method", "defensive", "--no-record", cwd=tmp_path)
@@ -144,18 +184,27 @@ def test_a_method_that_cannot_add_batches_refuses_a_stop_rule(defensive):
 
     register_method(replace(defensive, name="one-batch", extensible=False))
     try:
-        with pytest.raises(ValueError, match="rel_error = 0.2 is invalid: method one-batch has no final batch to add "
-                                             "to; use it with method adaptive, mc, naive50, mixed50, tilt, "
-                                             "defensive-mc$"):  # fmt: skip
+        with pytest.raises(
+            ValueError,
+            match="rel_error = 0.2 is invalid: method one-batch has no final batch to add "
+            "to; use it with method adaptive, mc, naive50, mixed50, tilt, "
+            "defensive-mc$",
+        ):
             run_plan(ExperimentConfig(method="one-batch", rel_error=0.2))
         assert run_plan(ExperimentConfig(method="defensive-mc", rel_error=0.2)).open_ended
     finally:
         unregister_method("one-batch")
 
 
-METHOD_HOMES = {"pemviz/estimators/builtin.py", "pemviz/estimators/cross_entropy.py", "pemviz/estimators/ce_fit.py",
-                "pemviz/estimators/ce_mixture.py", "pemviz/estimators/ams.py", "pemviz/estimators/tilt.py",
-                "pemviz/estimators/fixed.py"}  # fmt: skip
+METHOD_HOMES = {
+    "pemviz/estimators/builtin.py",
+    "pemviz/estimators/cross_entropy.py",
+    "pemviz/estimators/ce_fit.py",
+    "pemviz/estimators/ce_mixture.py",
+    "pemviz/estimators/ams.py",
+    "pemviz/estimators/tilt.py",
+    "pemviz/estimators/fixed.py",
+}
 """Where a built-in method's own code lives: the only files that may name a method to branch on it."""
 
 
@@ -169,15 +218,18 @@ def _matches(pattern: str, folders: tuple[str, ...]) -> list[str]:
     for folder in folders:
         for path in sorted((REPO / folder).rglob("*.py")):
             rel = str(path.relative_to(REPO))
-            out += [f"{rel}:{i}: {line.strip()}" for i, line in enumerate(path.read_text().splitlines(), 1)
-                    if rx.search(line)]  # fmt: skip
+            out += [
+                f"{rel}:{i}: {line.strip()}"
+                for i, line in enumerate(path.read_text().splitlines(), 1)
+                if rx.search(line)
+            ]
     return out
 
 
 def test_no_branch_on_a_method_name_outside_its_home_and_no_capability_probe_in_the_upper_layers(tmp_path):
     """A method is a record, not a string to compare: ``method ==`` / ``.method in`` appear only in the methods' own
     homes, and the engine, sinks, panel, studies and commands probe no estimator with getattr / hasattr (they read
-    :func:`pemviz.estimators.base.extras`). The patterns are first shown to find a planted line."""
+    :func:`pemviz.estimators.extras.extras`). The patterns are first shown to find a planted line."""
     branch = r"method ?(==|!=|in) |\.method ?(==|!=| in )"
     probe = r"(get|has)attr\(\s*(self\.)?(estimator|est|inner)\b"
     import re

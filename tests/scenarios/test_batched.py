@@ -169,8 +169,9 @@ def test_summary_keeps_the_weights_failures_and_estimate_of_the_full_batch(pem):
     problem = problems.braking_problem(pem, sim="batched")
     mixed = WindowDetector(ConstantDetector(0.5), problem.target, 10.0)
     full = simulate_batched(None, 2000, mixed, problem.target, np.random.default_rng(9))
-    summary = summarise_batched(None, 2000, mixed, problem.target, np.random.default_rng(9), failed=problem.failed,
-                                chunk_size=300)  # fmt: skip
+    summary = summarise_batched(
+        None, 2000, mixed, problem.target, np.random.default_rng(9), failed=problem.failed, chunk_size=300
+    )
     failed = full.signal("gap_m").min(axis=1) < 2.0  # the gap drops below the 2 m crash gap: G[0,99](d >= 2) violated
     assert 1000 < failed.sum() < 1600  # mixed-50 crashes in ~65-75 % of rollouts
     assert np.array_equal(summary.failed, failed)

@@ -35,8 +35,12 @@ def test_idm_constants_are_highway_env_idm_vehicle_constants():
 
     idm = IDMParams()
     assert (idm.comfort_acc_max_mps2, idm.comfort_acc_min_mps2, idm.time_wanted_s, idm.delta, idm.acc_max_mps2) == (
-        IDMVehicle.COMFORT_ACC_MAX, IDMVehicle.COMFORT_ACC_MIN, IDMVehicle.TIME_WANTED, IDMVehicle.DELTA,
-        IDMVehicle.ACC_MAX)  # fmt: skip
+        IDMVehicle.COMFORT_ACC_MAX,
+        IDMVehicle.COMFORT_ACC_MIN,
+        IDMVehicle.TIME_WANTED,
+        IDMVehicle.DELTA,
+        IDMVehicle.ACC_MAX,
+    )
     assert idm.distance_wanted_m == IDMVehicle.DISTANCE_WANTED == 5.0 + 5.0
 
 
@@ -59,8 +63,9 @@ def test_idm_acceleration_equals_highway_env_idm_vehicle_acceleration():
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
     assert (got == -6.0).sum() > 20 and (np.abs(got) < 6.0).sum() > 20  # both the clip and the formula are exercised
     free = IDMVehicle(road, [0.0, 4.0], speed=20.0, target_speed=25.0, enable_lane_change=False)
-    assert idm_acceleration(IDMParams(), 25.0, np.array([20.0]), np.array([np.inf]), np.zeros(1))[0] == \
-        pytest.approx(free.acceleration(free, None), rel=1e-12)  # fmt: skip
+    assert idm_acceleration(IDMParams(), 25.0, np.array([20.0]), np.array([np.inf]), np.zeros(1))[0] == pytest.approx(
+        free.acceleration(free, None), rel=1e-12
+    )
 
 
 def test_acc_follows_the_nearest_estimate_in_the_ego_lane_only():
@@ -72,8 +77,9 @@ def test_acc_follows_the_nearest_estimate_in_the_ego_lane_only():
     active = np.array([[True, True], [True, True], [True, False]])
     followed, accel = acc_control(P, x, y, vx, active, np.zeros(2), np.full(2, 25.0))
     assert followed.tolist() == [2, 0]  # rollout 1: object 0 at y = 5.9 is in the lane (|5.9 - 4| < 2)
-    np.testing.assert_allclose(accel, idm_acceleration(P.idm, 25.0, np.full(2, 25.0), np.array([15.0, 10.0]),
-                                                       np.full(2, 5.0)))  # fmt: skip
+    np.testing.assert_allclose(
+        accel, idm_acceleration(P.idm, 25.0, np.full(2, 25.0), np.array([15.0, 10.0]), np.full(2, 5.0))
+    )
     none, free = acc_control(P, x, y + 10.0, vx, active, np.zeros(2), np.full(2, 25.0))
     assert none.tolist() == [-1, -1] and np.all(free == 0.0)  # free road at the set speed: no acceleration
 
@@ -81,8 +87,7 @@ def test_acc_follows_the_nearest_estimate_in_the_ego_lane_only():
 # -- camera geometry ----------------------------------------------------------------------------------------------
 
 
-def traffic(x: list[float], y: list[float], heading: list[float] | None = None, step: int = 0,
-            params: CutInParams = P):  # fmt: skip
+def traffic(x: list[float], y: list[float], heading: list[float] | None = None, step: int = 0, params: CutInParams = P):
     h = np.zeros(len(x)) if heading is None else np.array(heading)
     t, _ = traffic_at(params, step, np.array(x), np.array(y), h, np.full(len(x), 20.0), CutInMemory.initial(len(x)))
     return t
@@ -99,8 +104,9 @@ def test_a_car_behind_another_in_the_same_lane_is_hidden_by_its_image_box():
     assert expected == pytest.approx(0.8907, abs=1e-4)
     assert view.occluded_fraction[0, 0] == 0.0 and view.visible[0, 0]
     assert not view.visible[1, 0]  # more than 80 % covered: hidden
-    rows = object_rows(P, tr, view, np.zeros(1), np.full(1, 25.0), np.zeros(1), tracker.Tracks.empty((2, 1)),
-                       np.full(1, -1))  # fmt: skip
+    rows = object_rows(
+        P, tr, view, np.zeros(1), np.full(1, 25.0), np.zeros(1), tracker.Tracks.empty((2, 1)), np.full(1, -1)
+    )
     assert rows[0, :, OBJECT_NAMES.index("occlusion")].tolist() == [0.0, 2.0]
 
 
@@ -150,8 +156,9 @@ def test_a_detection_is_moved_along_the_ray_by_the_range_error_and_across_it_by_
 def test_object_rows_hold_kitti_salient_variables_a_pem_can_encode():
     tr = traffic([15.0, 40.0], [4.0, 0.0])
     view = camera_view(P, tr, np.zeros(1))
-    rows = object_rows(P, tr, view, np.zeros(1), np.full(1, 25.0), np.zeros(1), tracker.Tracks.empty((2, 1)),
-                       np.full(1, -1))[0]  # fmt: skip
+    rows = object_rows(
+        P, tr, view, np.zeros(1), np.full(1, 25.0), np.zeros(1), tracker.Tracks.empty((2, 1)), np.full(1, -1)
+    )[0]
     col = {name: rows[:, k] for k, name in enumerate(OBJECT_NAMES)}
     assert col["class"].tolist() == [0.0, 0.0] and col["loc_y"].tolist() == [1.65, 1.65]
     assert col["loc_z"].tolist() == [13.0, 38.0] and col["loc_x"].tolist() == [0.0, -4.0]
@@ -189,8 +196,11 @@ def test_safe_distance_by_hand():
 
 
 def signals(margin: list[float], recent: list[float], clearance: list[float]) -> dict[str, np.ndarray]:
-    return {"safe_margin_m": np.array([margin]), "cut_in_recent": np.array([recent]),
-            "clearance_m": np.array([clearance])}  # fmt: skip
+    return {
+        "safe_margin_m": np.array([margin]),
+        "cut_in_recent": np.array([recent]),
+        "clearance_m": np.array([clearance]),
+    }
 
 
 def test_rule_g1_waives_the_safe_distance_right_after_a_cut_in_only():

@@ -110,7 +110,16 @@ def test_a_problem_without_signal_ranges_has_no_agm_to_draw():
     batch = problem.simulate(4, problem.target, problem.target, np.random.default_rng(0))
     by_metric = RobustnessByMetric(problem, batch)
     assert "agm" not in list(by_metric) and set(by_metric) == {"classic", "smooth-cumulative"}
-    with_ranges = RobustnessByMetric(Problem(problem.name, problem.simulate, problem.target, problem.formula,
-                                             problem.signals, signal_ranges={"d": (-5.0, 40.0)}), batch)
+    with_ranges = RobustnessByMetric(
+        Problem(
+            problem.name,
+            problem.simulate,
+            problem.target,
+            problem.formula,
+            problem.signals,
+            signal_ranges={"d": (-5.0, 40.0)},
+        ),
+        batch,
+    )
     assert "agm" in list(with_ranges)
     assert batch.observations.shape[1] == T and isinstance(Crosswalk.observation_names[0], str)

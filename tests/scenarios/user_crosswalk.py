@@ -69,10 +69,21 @@ class Camera:
 def crosswalk_problem(config: object = None, params: CrosswalkParams | None = None) -> Problem:
     p = params or CrosswalkParams()
     run, stream, resume = rollout_functions(lambda n: Crosswalk(n, p.speed_mps), T)
-    return Problem("crosswalk", run, Camera(), stl.parse(f"G[0,{T - 1}](d >= 2)"), signals={"d": "dist_m"},
-                   h_scale=30.0, window=28.0, stream=stream, branch=resume, n_objects=2,
-                   object_labels=("pedestrian A", "pedestrian B"))
+    return Problem(
+        "crosswalk",
+        run,
+        Camera(),
+        stl.parse(f"G[0,{T - 1}](d >= 2)"),
+        signals={"d": "dist_m"},
+        h_scale=30.0,
+        window=28.0,
+        stream=stream,
+        branch=resume,
+        n_objects=2,
+        object_labels=("pedestrian A", "pedestrian B"),
+    )
 
 
-SCENARIO = Scenario("user-crosswalk", "two pedestrians, the second hidden behind a van at first", CrosswalkParams,
-                    crosswalk_problem)
+SCENARIO = Scenario(
+    "user-crosswalk", "two pedestrians, the second hidden behind a van at first", CrosswalkParams, crosswalk_problem
+)

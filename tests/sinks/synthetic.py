@@ -17,20 +17,35 @@ from pemviz.scenarios.braking.drawing import BrakingDrawing
 PLAN = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 50)])
 """Pretraining, K = 2 CE stages, the final batch: 130 simulations."""
 
-BRAKING = ProblemView("braking", "a lead car ahead",
-                      (SignalView("d", "gap_m", "m"), SignalView("v", "ego_speed_mps", "m/s")),
-                      Thresholds(2.0, 10.0, "m", "crash gap", "braking distance"),
-                      drawing=BrakingDrawing(BrakingParams()))  # fmt: skip
-TOY = ProblemView("toy-1e-3", "toy braking", (SignalView("d", "gap_m", "units"),),
-                  Thresholds(3.0, 5.0, "units", "failure below", "braking within"))  # fmt: skip
+BRAKING = ProblemView(
+    "braking",
+    "a lead car ahead",
+    (SignalView("d", "gap_m", "m"), SignalView("v", "ego_speed_mps", "m/s")),
+    Thresholds(2.0, 10.0, "m", "crash gap", "braking distance"),
+    drawing=BrakingDrawing(BrakingParams()),
+)
+TOY = ProblemView(
+    "toy-1e-3",
+    "toy braking",
+    (SignalView("d", "gap_m", "units"),),
+    Thresholds(3.0, 5.0, "units", "failure below", "braking within"),
+)
 GRID = np.linspace(0.0, 13.0, 14)
 SIMPLE = CostConstants(
-    pem_step_s=0.0, proposal_step_s=0.0, rollout_step_s={"batched": 1e-7}, proposal_rollout_step_s=0.0, stage_s=0.0,
-    epoch_s=1e-3, row_epoch_s=0.0,
+    pem_step_s=0.0,
+    proposal_step_s=0.0,
+    rollout_step_s={"batched": 1e-7},
+    proposal_rollout_step_s=0.0,
+    stage_s=0.0,
+    epoch_s=1e-3,
+    row_epoch_s=0.0,
     row_s=0.0,
-    pretrain_rows={"state": 1.0}, ce_rows={"state": 1.0}, ce_rows_exponent=0.0, ce_rows_stages=1.0,
+    pretrain_rows={"state": 1.0},
+    ce_rows={"state": 1.0},
+    ce_rows_exponent=0.0,
+    ce_rows_stages=1.0,
     early_stop_share=1.0,
-)  # fmt: skip
+)
 """Constants to compute by hand: simulating n rollouts of T = 100 steps takes n x 1e-5 s, a fit 1 ms per epoch."""
 
 
@@ -54,8 +69,9 @@ def sampled(stage: int, kind: str, b: RolloutBatch, n_total: int | None = None) 
     return RolloutsSampled(stage, kind, b, r, {"classic": r}, r < 0, np.zeros(b.n), n_total=n_total, index=index)
 
 
-def finished(stage: int, kind: str, n: int, n_failures: int, gamma: float = float("nan"), wall_s: float = 1.0
-             ) -> StageFinished:  # fmt: skip
+def finished(
+    stage: int, kind: str, n: int, n_failures: int, gamma: float = float("nan"), wall_s: float = 1.0
+) -> StageFinished:
     """A stage of ``n`` rollouts, ``n_failures`` of them failing, every importance weight 1 (mu_hat = n_failures /
     n)."""
     failed = np.arange(n) < n_failures

@@ -46,8 +46,12 @@ def test_the_progress_names_each_stage_and_predicts_it_and_the_whole_run_from_wh
         now.t += 2.0 * {"pretrain": 0.5, "ce": 0.15, "final": 0.0}[kind]
         sink(finished(stage, kind, n if n < 100 else 50, 3))
     lines = progress.getvalue().splitlines()
-    assert [line.split(":")[0].strip() for line in lines] == ["pretraining", "CE stage 1/2", "CE stage 2/2",
-                                                               "final batch"]  # fmt: skip
+    assert [line.split(":")[0].strip() for line in lines] == [
+        "pretraining",
+        "CE stage 1/2",
+        "CE stage 2/2",
+        "final batch",
+    ]
     # before any measurement: the model; pretraining 0.0002 + 0.5 s, then 0.0003 + 0.15, 0.4 + 0.15 and 0.5 s
     assert lines[0].endswith("this stage ~0.5 s, run ~1.7 s left)")
     # twice as slow as predicted so far, each scale shrunk by a prior worth a quarter of the plan's predicted seconds

@@ -59,13 +59,22 @@ class RobotDrawing:
 
     def explanation(self, b, i):
         d = b.signal("gap_m")[i]
-        return {"words": "hit the wall", "props": {"closest_units": float(d.min())}, "lines": ["It hit the wall.", ""],
-                "series": (("wall/distance", "distance (units)", "object_speed", d),),
-                "markers": (("detect/touch", "touch", "failure", "down", np.array([3]), None, 5.0),)}
+        return {
+            "words": "hit the wall",
+            "props": {"closest_units": float(d.min())},
+            "lines": ["It hit the wall.", ""],
+            "series": (("wall/distance", "distance (units)", "object_speed", d),),
+            "markers": (("detect/touch", "touch", "failure", "down", np.array([3]), None, 5.0),),
+        }
 
 
-VIEW = ProblemView("robot", "a robot near a wall", (SignalView("d", "gap_m", "units"),),
-                   Thresholds(2.0, 5.0, "units", "too close", "looking"), drawing=RobotDrawing())  # fmt: skip
+VIEW = ProblemView(
+    "robot",
+    "a robot near a wall",
+    (SignalView("d", "gap_m", "units"),),
+    Thresholds(2.0, 5.0, "units", "too close", "looking"),
+    drawing=RobotDrawing(),
+)
 
 
 def values(any_values) -> dict:
@@ -121,9 +130,9 @@ def test_the_cut_ins_outcome_values_are_its_severity_and_every_failure_is_said_f
     from pemviz.scenarios.problems import problem_for
 
     problem = problem_for(ExperimentConfig(scenario="cut-in"))
-    b = RolloutBatch.concatenate([
-        problem.simulate(12, ConstantDetector(p), problem.target, np.random.default_rng(3)) for p in (0.5, 0.02)
-    ])  # the cut-in car seen half the time (safe), or almost never (failures)
+    b = RolloutBatch.concatenate(
+        [problem.simulate(12, ConstantDetector(p), problem.target, np.random.default_rng(3)) for p in (0.5, 0.02)]
+    )  # the cut-in car seen half the time (safe), or almost never (failures)
     failed = problem.failed(b)
     assert 0 < failed.sum() < b.n  # both kinds
     names, object_names = tuple(b.observation_names), tuple(b.object_names)

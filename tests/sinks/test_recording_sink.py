@@ -116,9 +116,11 @@ def test_each_tab_shows_only_entities_of_its_timeline():
         sink, stream = record(view)
         sink.close()  # an interrupted run: the most likely failure is explained at close
         by_tab = tabs(stream.blueprint)
-        assert list(by_tab) == ["Stages (any timeline; on stage, scrub its bars)",
-                                "Explain: the most likely failure (timeline: step)",
-                                "Rollouts (timeline: step)"]  # fmt: skip
+        assert list(by_tab) == [
+            "Stages (any timeline; on stage, scrub its bars)",
+            "Explain: the most likely failure (timeline: step)",
+            "Rollouts (timeline: step)",
+        ]
         stages, explain, rollouts = by_tab.values()
         assert origins(stages) == {"proposal_marginal", "proposal", "stage_figures", "histograms"}
         assert origins(explain) == {"explain"}
@@ -161,8 +163,11 @@ def test_a_method_the_recording_does_not_know_is_described_by_its_plan():
     from pemviz.sinks.rerun_views import method_markdown
 
     plan = RunPlan.of([(0, "pretrain", 50), (1, "ce", 80), (2, "final", 300)])
-    ev = SimpleNamespace(config=SimpleNamespace(method="splitting-2030", n_per_stage=80), plan=plan,
-                         problem=SimpleNamespace(thresholds=None))  # fmt: skip
+    ev = SimpleNamespace(
+        config=SimpleNamespace(method="splitting-2030", n_per_stage=80),
+        plan=plan,
+        problem=SimpleNamespace(thresholds=None),
+    )
     text = method_markdown(ev)
     assert text.startswith("method **splitting-2030**:")
     assert "pretraining (50 rollouts)" in text and "(300 rollouts)" in text

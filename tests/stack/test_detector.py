@@ -28,8 +28,9 @@ def test_view_gives_kitti_salient_variables_truncation_and_visibility():
 
 
 def test_measure_moves_range_along_the_ray_and_keeps_unmeasured_objects_true():
-    x, z = camera.measure(np.array([1.0, 1.0]), np.array([10.0, 10.0]), np.array([[2.0, 0.5], [2.0, 0.5]]),
-                          np.array([True, False]))
+    x, z = camera.measure(
+        np.array([1.0, 1.0]), np.array([10.0, 10.0]), np.array([[2.0, 0.5], [2.0, 0.5]]), np.array([True, False])
+    )
     assert z.tolist() == [12.0, 10.0] and x[0] == pytest.approx(1.5 * 1.2) and x[1] == 1.0
     with pytest.raises(ValueError, match="noise must be"):
         camera.measure(np.zeros(2), np.ones(2), np.zeros((2, 3)), np.ones(2, bool))

@@ -20,8 +20,10 @@ def oracle_filter(params: TrackerParams, x0: float, y0: float, v0: float, r0: tu
     kf = KalmanFilter(dim_x=4, dim_z=2)
     kf.F = block_diag([[1.0, DT], [0.0, 1.0]], [[1.0, DT], [0.0, 1.0]])
     kf.H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
-    kf.Q = block_diag(Q_discrete_white_noise(2, DT, params.accel_std_x_mps2**2),
-                      Q_discrete_white_noise(2, DT, params.accel_std_y_mps2**2))  # fmt: skip
+    kf.Q = block_diag(
+        Q_discrete_white_noise(2, DT, params.accel_std_x_mps2**2),
+        Q_discrete_white_noise(2, DT, params.accel_std_y_mps2**2),
+    )
     kf.x = np.array([[x0], [v0], [y0], [0.0]])
     kf.P = np.diag([r0[0], params.init_speed_std_x_mps**2, r0[1], params.init_speed_std_y_mps**2])
     return kf
@@ -70,8 +72,9 @@ def test_tracks_follow_filterpy_kalman_filter_through_detections_and_misses():
 
 def start_one(params: TrackerParams, x: float = 30.0) -> Tracks:
     tracks = Tracks.empty((1,))
-    tracks = tracker.update(tracks, np.array([True]), np.array([x]), np.array([4.0]), np.array([20.0]),
-                            np.array([25.0]), params)  # fmt: skip
+    tracks = tracker.update(
+        tracks, np.array([True]), np.array([x]), np.array([4.0]), np.array([20.0]), np.array([25.0]), params
+    )
     return tracker.predict(tracks, DT, params)
 
 
@@ -97,8 +100,9 @@ def test_a_track_that_missed_a_step_restarts_at_a_measurement_outside_its_gate_k
     assert pred.coast[0] == params.restart_after_steps == 2
     s_x = pred.pxx[0] + params.measurement_variances(np.array([20.0]))[0][0]
     far = pred.x[0] + 1.5 * np.sqrt(params.gate_chi2 * s_x)
-    out = tracker.update(pred, np.array([True]), np.array([far]), np.array([4.5]), np.array([20.0]),
-                         np.array([30.0]), params)  # fmt: skip
+    out = tracker.update(
+        pred, np.array([True]), np.array([far]), np.array([4.5]), np.array([20.0]), np.array([30.0]), params
+    )
     assert out.x[0] == far and out.y[0] == 4.5 and out.coast[0] == 0
     assert out.vx[0] == pred.vx[0] == 25.0  # the velocity estimate is kept, not the ego's 30 m/s
     assert out.pvvx[0] == params.init_speed_std_x_mps**2 and out.pxv[0] == 0.0
@@ -108,12 +112,14 @@ def test_a_track_is_tentative_until_a_measurement_inside_its_gate_confirms_it():
     params = TrackerParams()
     pred = start_one(params)
     assert pred.active[0] and not pred.confirmed[0]
-    confirmed = tracker.update(pred, np.array([True]), pred.x.copy(), np.array([4.0]), np.array([20.0]),
-                               np.array([25.0]), params)  # fmt: skip
+    confirmed = tracker.update(
+        pred, np.array([True]), pred.x.copy(), np.array([4.0]), np.array([20.0]), np.array([25.0]), params
+    )
     assert confirmed.confirmed[0]
     coasted = tracker.predict(tracker.predict(confirmed, DT, params), DT, params)
-    restarted = tracker.update(coasted, np.array([True]), coasted.x + 100.0, np.array([4.0]), np.array([20.0]),
-                               np.array([25.0]), params)  # fmt: skip
+    restarted = tracker.update(
+        coasted, np.array([True]), coasted.x + 100.0, np.array([4.0]), np.array([20.0]), np.array([25.0]), params
+    )
     assert restarted.active[0] and not restarted.confirmed[0]  # a restart is tentative again
 
 
@@ -125,8 +131,9 @@ def test_a_track_is_dropped_after_max_coast_steps_and_restarts_at_the_next_detec
     assert tracks.active[0] and tracks.coast[0] == 3
     tracks = tracker.predict(tracks, DT, params)
     assert not tracks.active[0] and tracks.coast[0] == 0
-    restarted = tracker.update(tracks, np.array([True]), np.array([55.0]), np.array([3.0]), np.array([20.0]),
-                               np.array([24.0]), params)  # fmt: skip
+    restarted = tracker.update(
+        tracks, np.array([True]), np.array([55.0]), np.array([3.0]), np.array([20.0]), np.array([24.0]), params
+    )
     assert restarted.active[0] and restarted.x[0] == 55.0 and restarted.vx[0] == 24.0 and restarted.vy[0] == 0.0
     r_x, r_y = params.measurement_variances(np.array([20.0]))
     assert restarted.pxx[0] == r_x[0] and restarted.pyy[0] == r_y[0]

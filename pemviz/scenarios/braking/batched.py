@@ -44,9 +44,13 @@ from pemviz.core.detectors import Detector
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, check_counts, iter_rollouts, simulate_rollouts
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.simulator import (
-    OBSERVATION_NAMES, BrakingParams, ControllerState, ego_step, initial_controller_state, lead_speeds,
+    OBSERVATION_NAMES,
+    BrakingParams,
+    ControllerState,
+    ego_step,
+    initial_controller_state,
+    lead_speeds,
 )
-
 
 
 class BatchedBraking:
@@ -58,8 +62,9 @@ class BatchedBraking:
 
     observation_names = OBSERVATION_NAMES
 
-    def __init__(self, params: BrakingParams | None = None, n: int = 1,
-                 starts: dict[str, np.ndarray] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, params: BrakingParams | None = None, n: int = 1, starts: dict[str, np.ndarray] | None = None
+    ) -> None:
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
             raise ValueError(f"BatchedBraking: n (rollouts) must be an integer >= 1, got {n!r}")
         self.params = params or BrakingParams()
@@ -121,10 +126,14 @@ class BatchedBraking:
         """Copies of every rollout's state at the current step (snapshot/restore capability of
         :class:`~pemviz.core.rollouts.Snapshotting`); ``restore`` takes it on a simulator of the same N."""
         c = self._ctrl
-        return {"ego_x_m": self.ego_x_m.copy(), "ego_speed_mps": self.ego_speed_mps.copy(),
-                "lead_x_m": np.copy(self.lead_x_m) if np.ndim(self.lead_x_m) else self.lead_x_m,
-                "lead_speed_mps": self.lead_speed_mps, "t": self.t,
-                "ctrl": type(c)(c.integral_kmh_s.copy(), c.pending_brake.copy())}  # fmt: skip
+        return {
+            "ego_x_m": self.ego_x_m.copy(),
+            "ego_speed_mps": self.ego_speed_mps.copy(),
+            "lead_x_m": np.copy(self.lead_x_m) if np.ndim(self.lead_x_m) else self.lead_x_m,
+            "lead_speed_mps": self.lead_speed_mps,
+            "t": self.t,
+            "ctrl": type(c)(c.integral_kmh_s.copy(), c.pending_brake.copy()),
+        }
 
     def restore(self, state: dict) -> None:
         """Put back a :meth:`snapshot` (copied, so the snapshot can be restored again).
@@ -133,8 +142,9 @@ class BatchedBraking:
             ValueError: a snapshot of another number of rollouts.
         """
         if state["ego_x_m"].shape != (self.n,):
-            raise ValueError(f"BatchedBraking.restore: a snapshot of {state['ego_x_m'].size} rollouts, "
-                             f"this has {self.n}")
+            raise ValueError(
+                f"BatchedBraking.restore: a snapshot of {state['ego_x_m'].size} rollouts, " f"this has {self.n}"
+            )
         c = state["ctrl"]
         self.ego_x_m, self.ego_speed_mps = state["ego_x_m"].copy(), state["ego_speed_mps"].copy()
         self.lead_x_m, self.lead_speed_mps, self.t = state["lead_x_m"], state["lead_speed_mps"], state["t"]
@@ -156,8 +166,10 @@ class BatchedBraking:
             raise RuntimeError(f"BatchedBraking.step: rollouts over after {p.n_steps} steps; call reset()")
         detected = np.asarray(detected, dtype=bool)
         if detected.shape not in ((self.n,), (self.n, 1)) or noise is not None:
-            raise ValueError(f"BatchedBraking.step: detected must have shape ({self.n},) or ({self.n}, 1) and noise "
-                             f"None, got {detected.shape}")
+            raise ValueError(
+                f"BatchedBraking.step: detected must have shape ({self.n},) or ({self.n}, 1) and noise "
+                f"None, got {detected.shape}"
+            )
         gap = self._gap if self._gap is not None else self.gap_m  # the observation's, when it was just asked
         speed, self._ctrl = ego_step(p, detected.reshape(self.n), gap, self.ego_speed_mps, self._ctrl)
         dt = p.dt_s
@@ -337,4 +349,3 @@ def summarise_batched(
             raise ValueError(f"summarise_batched: failed(batch) must be bool [{batch.n}], got shape {f.shape}")
         fail[s] = f
     return RolloutSummary(log_weight, log_p_total, fail, min_gap)
-

@@ -61,7 +61,8 @@ class BrakingDrawing(BrakingRecording, BrakingPanel):
 
         keys = last_saving_steps(detected, self.params).tolist() if len(detected) else []
         dt = self.dt_s
-        labels = {k: (f"last saving detection at step {k} ({k * dt:.2f} s)" if k >= 0
-                      else "no single detection saves it")
-                  for k in set(keys)}  # fmt: skip
+        labels = {
+            k: (f"last saving detection at step {k} ({k * dt:.2f} s)" if k >= 0 else "no single detection saves it")
+            for k in set(keys)
+        }
         return "the last step at which one detection alone still saves the rollout (exact replays)", keys, labels

@@ -517,8 +517,12 @@ def story(gap_m: np.ndarray, detected: np.ndarray, params: BrakingParams | None 
     ctrl = controller_trace(d, p)
     matches = bool(np.allclose(ctrl.gap_m, gap, rtol=0.0, atol=1e-9))
     sev, cf = severity(gap, p), counterfactual(d, p)
-    sentence = describe(d, sev, ctrl, cf, p) if matches else (
-        sev.phrase[0].upper() + sev.phrase[1:] + ". The replay does not reproduce this rollout: no counterfactual."
+    sentence = (
+        describe(d, sev, ctrl, cf, p)
+        if matches
+        else (
+            sev.phrase[0].upper() + sev.phrase[1:] + ". The replay does not reproduce this rollout: no counterfactual."
+        )
     )
     return FailureStory(sev, ctrl, cf, matches, sentence)
 

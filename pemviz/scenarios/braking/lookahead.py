@@ -104,10 +104,16 @@ def log_exceedance_after(
     detected = np.asarray(detected, dtype=bool)
     start = np.asarray(start, dtype=np.int64)
     n_steps = p.n_steps
-    if detected.ndim != 2 or detected.shape[1] != n_steps or start.shape != (detected.shape[0],) \
-            or (start.size and (start.min() < 0 or start.max() > n_steps)):  # fmt: skip
-        raise ValueError(f"log_exceedance_after: detected must be bool [N, {n_steps}] and start int [N] in "
-                         f"[0, {n_steps}], got {detected.shape} and {start.shape}")  # fmt: skip
+    if (
+        detected.ndim != 2
+        or detected.shape[1] != n_steps
+        or start.shape != (detected.shape[0],)
+        or (start.size and (start.min() < 0 or start.max() > n_steps))
+    ):
+        raise ValueError(
+            f"log_exceedance_after: detected must be bool [N, {n_steps}] and start int [N] in "
+            f"[0, {n_steps}], got {detected.shape} and {start.shape}"
+        )
     out = np.full(detected.shape[0], -np.inf)
     group = 100
     for lo in range(0, detected.shape[0], group):
@@ -117,9 +123,15 @@ def log_exceedance_after(
     return out
 
 
-def _enumerate(p: BrakingParams, logit_at_gap: Callable[[np.ndarray], np.ndarray], detected: np.ndarray,
-               start: np.ndarray, level: float, prune_nats: float,
-               observed_gap_m: np.ndarray | None) -> np.ndarray:  # fmt: skip
+def _enumerate(
+    p: BrakingParams,
+    logit_at_gap: Callable[[np.ndarray], np.ndarray],
+    detected: np.ndarray,
+    start: np.ndarray,
+    level: float,
+    prune_nats: float,
+    observed_gap_m: np.ndarray | None,
+) -> np.ndarray:
     n, n_steps, dt = detected.shape[0], p.n_steps, p.dt_s
     vlead = lead_speeds(p)
     lead_travel = np.concatenate([np.cumsum(vlead[::-1])[::-1] * dt, [0.0]])  # [T + 2]: metres from step t on
@@ -128,9 +140,11 @@ def _enumerate(p: BrakingParams, logit_at_gap: Callable[[np.ndarray], np.ndarray
         off = np.flatnonzero((start < n_steps) & ~(np.abs(g0 - observed_gap_m) <= 1e-6))
         if off.size:
             i = int(off[0])
-            raise ValueError(f"the braking look-ahead replays a gap of {g0[i]:.6g} m at step {start[i]} of a rollout "
-                             f"that reported {observed_gap_m[i]:.6g} m: its rollouts are not of this scene's "
-                             "parameters")  # fmt: skip
+            raise ValueError(
+                f"the braking look-ahead replays a gap of {g0[i]:.6g} m at step {start[i]} of a rollout "
+                f"that reported {observed_gap_m[i]:.6g} m: its rollouts are not of this scene's "
+                "parameters"
+            )
     total = np.full(n, -np.inf)
     owner = np.empty(0, dtype=np.int64)
     g = v = integ = log_path = np.empty(0)
@@ -178,14 +192,17 @@ def _enumerate(p: BrakingParams, logit_at_gap: Callable[[np.ndarray], np.ndarray
         log_path[s] = log_path[s] + log_expit(logit)
         g, v, integ, pend = braking_step(p, float(vlead[t]), g, v, integ, pend, det)
         if owner.size > MAX_BRANCHES:
-            raise RuntimeError(f"the braking look-ahead holds {owner.size:,} branches at step {t} (at most "
-                               f"{MAX_BRANCHES:,}): start it at a smaller gap, or use it for a failure below the "
-                               f"contact gap ({p.contact_gap_m:g} m) only")  # fmt: skip
+            raise RuntimeError(
+                f"the braking look-ahead holds {owner.size:,} branches at step {t} (at most "
+                f"{MAX_BRANCHES:,}): start it at a smaller gap, or use it for a failure below the "
+                f"contact gap ({p.contact_gap_m:g} m) only"
+            )
     return total
 
 
-def braking_look_ahead(params: BrakingParams, logit_at_gap: Callable[[np.ndarray], np.ndarray],
-                       start_gap_m: float = LOOK_AHEAD_GAP_M) -> Callable:  # fmt: skip
+def braking_look_ahead(
+    params: BrakingParams, logit_at_gap: Callable[[np.ndarray], np.ndarray], start_gap_m: float = LOOK_AHEAD_GAP_M
+) -> Callable:
     """The braking problem's :data:`pemviz.core.problems.LookAheadFn`: each rollout from the first step its gap is below
     ``start_gap_m`` (metres), with the exact probability of a gap below ``params.crash_gap_m`` after it
     (:func:`log_exceedance_after`)."""
@@ -196,7 +213,8 @@ def braking_look_ahead(params: BrakingParams, logit_at_gap: Callable[[np.ndarray
         start = start_steps(gap, start_gap_m)
         detected = np.asarray(batch.detected).reshape(batch.n, batch.n_steps)
         seen = gap[np.arange(batch.n), np.minimum(start, batch.n_steps - 1)]
-        return start, log_exceedance_after(params, logit_at_gap, detected, start, params.crash_gap_m,
-                                           observed_gap_m=seen)  # fmt: skip
+        return start, log_exceedance_after(
+            params, logit_at_gap, detected, start, params.crash_gap_m, observed_gap_m=seen
+        )
 
     return look_ahead

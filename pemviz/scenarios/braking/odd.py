@@ -36,8 +36,9 @@ def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> 
     if others:
         raise ValueError(f"the braking scenario draws only gap0_m and ego_speed0_mps per rollout, not {others}")
     if config is not None and getattr(config, "sim", "batched") != "batched":
-        raise ValueError("--param NAME~DIST: an operating design domain runs on the batched twin only; use "
-                         "--sim batched")
+        raise ValueError(
+            "--param NAME~DIST: an operating design domain runs on the batched twin only; use " "--sim batched"
+        )
     names = odd.names
 
     def make(n: int, values: np.ndarray) -> BatchedBraking:
@@ -46,10 +47,23 @@ def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> 
     simulate, stream, branch = odd_rollout_functions(make, odd, p.n_steps)
     base = braking_problem(load_pem(getattr(config, "pem", None)), p, sim="batched")
     return dataclasses.replace(
-        base, simulate=simulate, stream=stream, branch=branch, exact_log_p=None, severity_exact={}, look_ahead=None,
-        look_ahead_s=0.0, tilt=None, odd=odd,
-        verdict_cap=("doubtful", "the proposal reads the state, not the parameters drawn over the ODD: its weights can "
-                                 "look reliable while a region of the ODD is sampled too little"),
-        description=(f"automated braking behind a lead car, its start drawn per rollout ({odd.text()}), the PEM as "
-                     f"the camera's detector; failure: the gap drops below {p.crash_gap_m:g} m"),
+        base,
+        simulate=simulate,
+        stream=stream,
+        branch=branch,
+        exact_log_p=None,
+        severity_exact={},
+        look_ahead=None,
+        look_ahead_s=0.0,
+        tilt=None,
+        odd=odd,
+        verdict_cap=(
+            "doubtful",
+            "the proposal reads the state, not the parameters drawn over the ODD: its weights can "
+            "look reliable while a region of the ODD is sampled too little",
+        ),
+        description=(
+            f"automated braking behind a lead car, its start drawn per rollout ({odd.text()}), the PEM as "
+            f"the camera's detector; failure: the gap drops below {p.crash_gap_m:g} m"
+        ),
     )

@@ -170,13 +170,27 @@ class BrakingPanel:
         """The scene's constants: the cars' boxes, the camera, the braking distance and the crash margin."""
         p = self.params
         zones = (
-            Zone("brake_zone_10m", p.braking_distance_m, "window",
-                 f"brakes if the lead is\ndetected within {p.braking_distance_m:g} m"),
+            Zone(
+                "brake_zone_10m",
+                p.braking_distance_m,
+                "window",
+                f"brakes if the lead is\ndetected within {p.braking_distance_m:g} m",
+            ),
             Zone("crash_zone_2m", p.crash_gap_m, "margin", f"the {p.crash_gap_m:g} m crash margin"),
-        )  # fmt: skip
-        return LaneScene(p.ego_length_m, p.lead_length_m, p.vehicle_width_m, p.camera_offset_m, p.gap0_m, "lead",
-                         zones, "gap", f"{p.crash_gap_m:g} m line crossed", int(p.n_steps),
-                         "gap and speeds")  # fmt: skip
+        )
+        return LaneScene(
+            p.ego_length_m,
+            p.lead_length_m,
+            p.vehicle_width_m,
+            p.camera_offset_m,
+            p.gap0_m,
+            "lead",
+            zones,
+            "gap",
+            f"{p.crash_gap_m:g} m line crossed",
+            int(p.n_steps),
+            "gap and speeds",
+        )
 
     def proposal_axis(self) -> ViewAxis:
         """The proposal view's bins: the gap to the lead, 0.5 m wide (:data:`GAP_BINS_M`)."""
@@ -200,20 +214,25 @@ class BrakingPanel:
 
     def lane_explanation(self, batch: RolloutBatch, i: int) -> BrakingExplanation:
         """Rollout ``i`` of ``batch`` explained (:func:`explain`)."""
-        return explain(_column(batch, i, "gap_m", 0), batch.detected[i, :, 0], batch.log_p[i], batch.log_q[i],
-                       self.params)  # fmt: skip
+        return explain(
+            _column(batch, i, "gap_m", 0), batch.detected[i, :, 0], batch.log_p[i], batch.log_q[i], self.params
+        )
 
     def strip_series(self, batch: RolloutBatch, i: int) -> tuple[Series, ...]:
         """The strip chart's lines of rollout ``i``: the gap, the ego's and the lead's speeds."""
-        return (Series("gap (m)", _column(batch, i, "gap_m", 0), "main"),
-                Series("ego speed (m/s)", _column(batch, i, "ego_speed_mps"), "ego"),
-                Series("lead speed (m/s)", _column(batch, i, "lead_speed_mps"), "object"))  # fmt: skip
+        return (
+            Series("gap (m)", _column(batch, i, "gap_m", 0), "main"),
+            Series("ego speed (m/s)", _column(batch, i, "ego_speed_mps"), "ego"),
+            Series("lead speed (m/s)", _column(batch, i, "lead_speed_mps"), "object"),
+        )
 
     def step_caption(self, batch: RolloutBatch, i: int, ex: BrakingExplanation, t: int) -> tuple[str, str]:
         """The scene's caption at step ``t`` of rollout ``i``, before and after the detector's state: the gap and the
         speeds; the brake and the acceleration."""
         c = ex.controller
         brake = "applied" if c.brake_applied[t] else ("commanded" if c.brake_command[t] else "off")
-        before = (f"gap {_column(batch, i, 'gap_m', 0)[t]:.2f} m · ego {_column(batch, i, 'ego_speed_mps')[t]:.2f} "
-                  f"m/s · lead {_column(batch, i, 'lead_speed_mps')[t]:.2f} m/s")  # fmt: skip
+        before = (
+            f"gap {_column(batch, i, 'gap_m', 0)[t]:.2f} m · ego {_column(batch, i, 'ego_speed_mps')[t]:.2f} "
+            f"m/s · lead {_column(batch, i, 'lead_speed_mps')[t]:.2f} m/s"
+        )
         return before, f"brake {brake} · acceleration {c.accel_mps2[t]:+.2f} m/s^2"

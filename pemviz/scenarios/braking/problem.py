@@ -60,9 +60,11 @@ def verdict_cap(params: BrakingParams) -> tuple[str, str] | None:
     floor = never_detected_min_gap_m(params)
     if params.crash_gap_m >= floor:
         return None
-    return "doubtful", (f"a gap below {floor:.2f} m (where the ego ends when it never detects the lead) needs "
-                        "detections at the right steps before the enumerated ones, which the proposal draws only in "
-                        "part: 2 of 10 runs whose weights looked reliable missed the exact answer")  # fmt: skip
+    return "doubtful", (
+        f"a gap below {floor:.2f} m (where the ego ends when it never detects the lead) needs "
+        "detections at the right steps before the enumerated ones, which the proposal draws only in "
+        "part: 2 of 10 runs whose weights looked reliable missed the exact answer"
+    )
 
 
 def braking_problem(pem: object, params: BrakingParams | None = None, sim: str = "batched") -> Problem:
@@ -80,22 +82,33 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
             return simulate_batched(p, n, sampler, target, rng)
         return simulate(lambda: BrakingScenario(p), n, sampler, target, rng, p.n_steps)
 
-    def stream(n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
-               chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[RolloutBatch]:  # fmt: skip
+    def stream(
+        n: int, sampler: Detector, target: Detector, rng: np.random.Generator, chunk_size: int = DEFAULT_CHUNK_SIZE
+    ) -> Iterator[RolloutBatch]:
         return iter_batched(p, n, sampler, target, rng, chunk_size=chunk_size)
 
-    def resume(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
-               rng: np.random.Generator) -> RolloutBatch:  # fmt: skip
+    def resume(
+        parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector, rng: np.random.Generator
+    ) -> RolloutBatch:
         if sim == "batched":
             return branch_batched(p, parents, parent, at, target, rng)
         return branch(lambda: BrakingScenario(p), parents, parent, at, target, rng)
 
-    scale = SeverityScale("d", "gap", "m", tuple(x for x in BRAKING_SEVERITY_LEVELS_M if x < p.crash_gap_m),
-                          margin=p.crash_gap_m, target_flag="margin", contact_at=p.contact_gap_m)  # fmt: skip
+    scale = SeverityScale(
+        "d",
+        "gap",
+        "m",
+        tuple(x for x in BRAKING_SEVERITY_LEVELS_M if x < p.crash_gap_m),
+        margin=p.crash_gap_m,
+        target_flag="margin",
+        contact_at=p.contact_gap_m,
+    )
     exact = {}
     if hasattr(pem, "logit_at_gap"):
-        known = {x: known_log_failure_probability(pem.logit_at_gap, dataclasses.replace(p, crash_gap_m=x))
-                 for x in scale.levels}  # fmt: skip
+        known = {
+            x: known_log_failure_probability(pem.logit_at_gap, dataclasses.replace(p, crash_gap_m=x))
+            for x in scale.levels
+        }
         exact = {x: v for x, v in known.items() if v is not None}
     tilt = None
     if hasattr(pem, "logit_at_gap") and sim == "batched":
@@ -106,15 +119,31 @@ def braking_problem(pem: object, params: BrakingParams | None = None, sim: str =
     if hasattr(pem, "logit_at_gap") and p.crash_gap_m < never_detected_min_gap_m(p):
         look_ahead = braking_look_ahead(p, pem.logit_at_gap)
     return Problem(
-        "braking", run, PEMDetector(pem), braking_formula(p), signals=dict(BRAKING_SIGNALS), verdict_cap=verdict_cap(p),
-        look_ahead=look_ahead, look_ahead_s=LOOK_AHEAD_ROLLOUT_S if look_ahead is not None else 0.0,
-        signal_ranges=dict(BRAKING_SIGNAL_RANGES), units=dict(BRAKING_UNITS), window=p.braking_distance_m,
-        decided_below=p.crash_gap_m, severity=scale, severity_exact=exact,
-        stream=stream if sim == "batched" else None, branch=resume,
+        "braking",
+        run,
+        PEMDetector(pem),
+        braking_formula(p),
+        signals=dict(BRAKING_SIGNALS),
+        verdict_cap=verdict_cap(p),
+        look_ahead=look_ahead,
+        look_ahead_s=LOOK_AHEAD_ROLLOUT_S if look_ahead is not None else 0.0,
+        signal_ranges=dict(BRAKING_SIGNAL_RANGES),
+        units=dict(BRAKING_UNITS),
+        window=p.braking_distance_m,
+        decided_below=p.crash_gap_m,
+        severity=scale,
+        severity_exact=exact,
+        stream=stream if sim == "batched" else None,
+        branch=resume,
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"),
-        drawing=BrakingDrawing(p), n_steps=p.n_steps, dt_s=p.dt_s, tilt=tilt,
-        description=(f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
-                     f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
-                     f"the gap drops below {p.crash_gap_m:g} m"),
-    )  # fmt: skip
+        drawing=BrakingDrawing(p),
+        n_steps=p.n_steps,
+        dt_s=p.dt_s,
+        tilt=tilt,
+        description=(
+            f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
+            f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "
+            f"the gap drops below {p.crash_gap_m:g} m"
+        ),
+    )

@@ -69,8 +69,10 @@ class BrakingRecording:
             f"is the gap d dropping below {p.crash_gap_m:g} m, safety spec `{formula}`; rollouts are ranked "
             f"by **{metric}** robustness. Method: {method}"
         )
-        tail = (f" and the *scene* (ego green = detected, orange = missed). Every failing rollout says "
-                f"whether it made contact or only breached the {p.crash_gap_m:g} m margin.")  # fmt: skip
+        tail = (
+            f" and the *scene* (ego green = detected, orange = missed). Every failing rollout says "
+            f"whether it made contact or only breached the {p.crash_gap_m:g} m margin."
+        )
         return head, tail
 
     def outcome_values(self, batch: RolloutBatch, i: int) -> dict[str, Any] | None:
@@ -80,8 +82,13 @@ class BrakingRecording:
         if "gap_m" not in batch.observation_names:
             return None
         sev = self.outcome(batch, i)
-        return dict(outcome=sev.short, min_gap_m=sev.min_gap_m, breach_closing_mps=sev.breach_closing_mps,
-                    contact=sev.contact, contact_speed_mps=sev.contact_speed_mps)  # fmt: skip
+        return dict(
+            outcome=sev.short,
+            min_gap_m=sev.min_gap_m,
+            breach_closing_mps=sev.breach_closing_mps,
+            contact=sev.contact,
+            contact_speed_mps=sev.contact_speed_mps,
+        )
 
     def contacts(self, batch: RolloutBatch, rows: np.ndarray) -> np.ndarray | None:
         """Whether each of the rollouts ``rows`` (int [k]) made contact, bool [k]: the ``contact`` of
@@ -103,8 +110,10 @@ class BrakingRecording:
         gap = batch.signal("gap_m")[i]
         ego_x, lead_x = car_positions(gap, batch.signal("ego_speed_mps")[i], p)
         camera_x = ego_x + p.camera_offset_m
-        boxes = (("ego", ego_x, (p.ego_length_m / 2, p.vehicle_width_m / 2), None),
-                 ("lead", lead_x, (p.lead_length_m / 2, p.vehicle_width_m / 2), gap < p.crash_gap_m))  # fmt: skip
+        boxes = (
+            ("ego", ego_x, (p.ego_length_m / 2, p.vehicle_width_m / 2), None),
+            ("lead", lead_x, (p.lead_length_m / 2, p.vehicle_width_m / 2), gap < p.crash_gap_m),
+        )
         return boxes, (camera_x, camera_x + gap), float(lead_x.max() + p.lead_length_m)
 
     def explanation(self, batch: RolloutBatch, i: int) -> dict[str, Any] | None:
@@ -125,57 +134,93 @@ class BrakingRecording:
         dt = p.dt_s
         breach = sev.breach_step
         props: dict[str, Any] = dict(
-            outcome=sev.short, min_gap_m=sev.min_gap_m, breach_step=-1 if breach is None else breach,
-            breach_time_s=math.nan if breach is None else breach * dt, breach_closing_mps=sev.breach_closing_mps,
-            contact=sev.contact, contact_speed_mps=sev.contact_speed_mps, replay_matches=tale.replay_matches,
-        )  # fmt: skip
+            outcome=sev.short,
+            min_gap_m=sev.min_gap_m,
+            breach_step=-1 if breach is None else breach,
+            breach_time_s=math.nan if breach is None else breach * dt,
+            breach_closing_mps=sev.breach_closing_mps,
+            contact=sev.contact,
+            contact_speed_mps=sev.contact_speed_mps,
+            replay_matches=tale.replay_matches,
+        )
         lines: list[str] = []
         series: list[tuple] = []
         markers: list[tuple] = []
         if breach is not None:
-            markers.append(("gap_m/breach", f"{p.crash_gap_m:g} m margin crossed", "failure", "down",
-                            np.array([breach]), gap[[breach]], 7.0))  # fmt: skip
+            markers.append(
+                (
+                    "gap_m/breach",
+                    f"{p.crash_gap_m:g} m margin crossed",
+                    "failure",
+                    "down",
+                    np.array([breach]),
+                    gap[[breach]],
+                    7.0,
+                )
+            )
         if tale.replay_matches:
             last = cf.last_saving_step
-            props.update(minimal_miss_set=cf.minimal_set, minimal_set_is_smallest=cf.smallest,
-                         minimal_set_min_gap_m=cf.minimal_set_min_gap_m, last_saving_step=-1 if last is None else last,
-                         decisive_misses=cf.decisive,
-                         recovery_step=-1 if cf.recovery_step is None else cf.recovery_step)  # fmt: skip
+            props.update(
+                minimal_miss_set=cf.minimal_set,
+                minimal_set_is_smallest=cf.smallest,
+                minimal_set_min_gap_m=cf.minimal_set_min_gap_m,
+                last_saving_step=-1 if last is None else last,
+                decisive_misses=cf.decisive,
+                recovery_step=-1 if cf.recovery_step is None else cf.recovery_step,
+            )
             ms = cf.minimal_set
             if ms.size:
                 smallest = "the smallest such set" if cf.smallest else "none of them can be left out"
-                lines += [f"**Minimal miss set** ({ms.size} of {misses.size} misses, {smallest}): "
-                          f"step{'s' * (ms.size > 1)} {_steps_text(ms, dt)}; detected, the min gap is "
-                          f"{cf.minimal_set_min_gap_m:.2f} m.", ""]  # fmt: skip
+                lines += [
+                    f"**Minimal miss set** ({ms.size} of {misses.size} misses, {smallest}): "
+                    f"step{'s' * (ms.size > 1)} {_steps_text(ms, dt)}; detected, the min gap is "
+                    f"{cf.minimal_set_min_gap_m:.2f} m.",
+                    "",
+                ]
                 replay = replay_with_detections(detected, ms, p)
-                series.append(("gap_m/with_minimal_set", f"minimal miss set detected: min gap "
-                               f"{replay.gap_m.min():.2f} m", "detected", replay.gap_m))  # fmt: skip
+                series.append(
+                    (
+                        "gap_m/with_minimal_set",
+                        f"minimal miss set detected: min gap " f"{replay.gap_m.min():.2f} m",
+                        "detected",
+                        replay.gap_m,
+                    )
+                )
                 markers.append(("gap_m/minimal_set", "minimal miss set", "failure", "diamond", ms, gap[ms], 6.0))
                 markers.append(("detect/minimal_set", "minimal miss set", "failure", "diamond", ms, None, 6.0))
             else:
                 lines += ["**Minimal miss set**: none; even a detection at every miss does not avoid the failure.", ""]
             if last is not None:
-                lines += [f"**Last saving step**: {last} ({last * dt:.2f} s): one detection there still avoids the "
-                          f"failure ({cf.decisive.size} of the {misses.size} misses would each do alone).", ""]
+                lines += [
+                    f"**Last saving step**: {last} ({last * dt:.2f} s): one detection there still avoids the "
+                    f"failure ({cf.decisive.size} of the {misses.size} misses would each do alone).",
+                    "",
+                ]
                 replay = replay_with_detections(detected, np.array([last]), p)
-                series.append(("gap_m/with_last_saving", f"detected at {last * dt:.2f} s: min gap "
-                               f"{replay.gap_m.min():.2f} m", "replay", replay.gap_m))  # fmt: skip
-                markers.append(("detect/last_saving", "last saving step", "detected", "up", np.array([last]), None,
-                                7.0))  # fmt: skip
+                series.append(
+                    (
+                        "gap_m/with_last_saving",
+                        f"detected at {last * dt:.2f} s: min gap " f"{replay.gap_m.min():.2f} m",
+                        "replay",
+                        replay.gap_m,
+                    )
+                )
+                markers.append(
+                    ("detect/last_saving", "last saving step", "detected", "up", np.array([last]), None, 7.0)
+                )
             else:
                 lines += ["**Last saving step**: none; no single detection avoids the failure.", ""]
             a = ctrl.accel_mps2
             top = max(4.0, float(np.max(a)) + 1.0)
             row = 0.07 * (top - min(-4.0, float(np.min(a)) - 1.0))
             series.append(("controller/acceleration", "acceleration (m/s^2)", "ego_speed", a))
-            for key, name, mask, height, role in (("brake_commanded", "brake commanded", ctrl.brake_command,
-                                                   top + 2 * row, "window"),
-                                                  ("brake_applied", "brake applied", ctrl.brake_applied, top + row,
-                                                   "failure")):  # fmt: skip
+            for key, name, mask, height, role in (
+                ("brake_commanded", "brake commanded", ctrl.brake_command, top + 2 * row, "window"),
+                ("brake_applied", "brake applied", ctrl.brake_applied, top + row, "failure"),
+            ):
                 steps = np.flatnonzero(mask)
                 markers.append((f"controller/{key}", name, role, "circle", steps, np.full(steps.size, height), 3.0))
             series.append(("speed/ego", "ego speed (m/s)", "ego_speed", ctrl.ego_speed_mps))
             series.append(("speed/lead", "lead speed (m/s)", "object_speed", ctrl.lead_speed_mps))
         lines += [tale.sentence, ""]
-        return {"words": sev.short, "props": props, "lines": lines, "series": tuple(series),
-                "markers": tuple(markers)}  # fmt: skip
+        return {"words": sev.short, "props": props, "lines": lines, "series": tuple(series), "markers": tuple(markers)}

@@ -28,9 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 LEAD_SPEED_PROFILE_MPS: tuple[float, ...] = (
-    (8.038,) * 20
-    + (8.01, 7.89, 7.69, 7.44, 7.16, 6.87, 5.72, 4.40, 3.06, 1.74, 0.43, 0.006)
-    + (0.0,) * 68
+    (8.038,) * 20 + (8.01, 7.89, 7.69, 7.44, 7.16, 6.87, 5.72, 4.40, 3.06, 1.74, 0.43, 0.006) + (0.0,) * 68
 )
 """Lead speed at step t = 0..99 (the authors' CARLA logs; 8.038 m/s is the logged start speed)."""
 
@@ -96,15 +94,25 @@ class BrakingParams:
             return ValueError(f"BrakingParams: {what} must be {allowed}, got {value!r}")
 
         if not (isinstance(self.n_steps, int) and 1 <= self.n_steps <= len(self.lead_speed_profile_mps)):
-            raise bad("n_steps", f"an integer in 1..{len(self.lead_speed_profile_mps)} (the values of "
-                      "lead_speed_profile_mps)", self.n_steps)  # fmt: skip
+            raise bad(
+                "n_steps",
+                f"an integer in 1..{len(self.lead_speed_profile_mps)} (the values of " "lead_speed_profile_mps)",
+                self.n_steps,
+            )
         if self.actuation_lag_steps not in (0, 1):
             raise bad("actuation_lag_steps", "0 or 1", self.actuation_lag_steps)
         ranges = (
-            ("dt_s gap0_m lead_length_m ego_length_m vehicle_width_m camera_height_m target_speed_kmh", "> 0",
-             lambda x: x > 0),
-            ("ego_speed0_mps braking_distance_m crash_gap_m contact_gap_m kp ki kd throttle_accel0_mps2 "
-             "throttle_accel_slope_per_s", ">= 0", lambda x: x >= 0),
+            (
+                "dt_s gap0_m lead_length_m ego_length_m vehicle_width_m camera_height_m target_speed_kmh",
+                "> 0",
+                lambda x: x > 0,
+            ),
+            (
+                "ego_speed0_mps braking_distance_m crash_gap_m contact_gap_m kp ki kd throttle_accel0_mps2 "
+                "throttle_accel_slope_per_s",
+                ">= 0",
+                lambda x: x >= 0,
+            ),
             ("max_throttle emergency_brake", "in (0, 1]", lambda x: 0 < x <= 1),
             ("max_pid_brake integral_leak", "in [0, 1]", lambda x: 0 <= x <= 1),
             ("camera_offset_m", "any number", lambda x: True),
@@ -305,8 +313,9 @@ class BrakingScenario:
     def observation(self) -> np.ndarray:
         """The state reported with each detector query: float64 [4] (:data:`OBSERVATION_NAMES`): gap (m), ego and
         lead speeds (m/s), brake pending (1.0 or 0.0)."""
-        return np.array([self.gap_m, self.ego.speed, self.lead.speed, float(self._ctrl.pending_brake[0])],
-                        dtype=np.float64)  # fmt: skip
+        return np.array(
+            [self.gap_m, self.ego.speed, self.lead.speed, float(self._ctrl.pending_brake[0])], dtype=np.float64
+        )
 
     @property
     def done(self) -> bool:

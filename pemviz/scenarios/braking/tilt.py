@@ -113,12 +113,17 @@ class GridCommittor:
         i, dx = _cell(self.gap_axis, g)
         j, dy = _cell(self.speed_axis, np.asarray(speed_mps, dtype=np.float64))
         table, b = self.log_v[step], np.asarray(pending, dtype=bool).astype(np.int64)
-        value = ((1 - dx) * (1 - dy) * table[b, i, j] + dx * (1 - dy) * table[b, i + 1, j]
-                 + (1 - dx) * dy * table[b, i, j + 1] + dx * dy * table[b, i + 1, j + 1])  # fmt: skip
+        value = (
+            (1 - dx) * (1 - dy) * table[b, i, j]
+            + dx * (1 - dy) * table[b, i + 1, j]
+            + (1 - dx) * dy * table[b, i, j + 1]
+            + dx * dy * table[b, i + 1, j + 1]
+        )
         return np.where(g < self.params.crash_gap_m, 0.0, value)
 
-    def next_log_values(self, step: int, gap_m: np.ndarray, speed_mps: np.ndarray, integral: np.ndarray,
-                        pending: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:  # fmt: skip
+    def next_log_values(
+        self, step: int, gap_m: np.ndarray, speed_mps: np.ndarray, integral: np.ndarray, pending: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int]:
         """(log V after a detection [N], log V after a miss [N], the look-ahead steps evaluated) of states [N] at
         ``step`` (gap m, speed m/s, PID integral km/h s, pending brake): each outcome's next state by
         :func:`~pemviz.scenarios.braking.simulator.braking_step`, once when the actuation lag makes both share it."""
@@ -141,12 +146,15 @@ def grid_axes(params: BrakingParams, n_gap: int, n_speed: int) -> tuple[np.ndarr
     ``n_speed`` speeds evenly from 0 to 1 m/s above the faster of the ego's start and target speeds (float64, metres
     and m/s)."""
     p = params
-    return (np.linspace(p.crash_gap_m, p.braking_distance_m + 1.0, n_gap),
-            np.linspace(0.0, max(p.ego_speed0_mps, p.target_speed_kmh / 3.6) + 1.0, n_speed))
+    return (
+        np.linspace(p.crash_gap_m, p.braking_distance_m + 1.0, n_gap),
+        np.linspace(0.0, max(p.ego_speed0_mps, p.target_speed_kmh / 3.6) + 1.0, n_speed),
+    )
 
 
-def solve_committor(params: BrakingParams, logit_at_gap: LogitFn, n_gap: int = TILT_GAPS,
-                    n_speed: int = TILT_SPEEDS) -> GridCommittor:  # fmt: skip
+def solve_committor(
+    params: BrakingParams, logit_at_gap: LogitFn, n_gap: int = TILT_GAPS, n_speed: int = TILT_SPEEDS
+) -> GridCommittor:
     """The braking scene's approximate committor by backward dynamic programming on a grid (module docstring).
 
     Args:
@@ -158,8 +166,9 @@ def solve_committor(params: BrakingParams, logit_at_gap: LogitFn, n_gap: int = T
             (:func:`~pemviz.scenarios.braking.truth.branching_start`: nothing is random).
     """
     if not (isinstance(n_gap, int) and isinstance(n_speed, int) and n_gap >= 2 and n_speed >= 2):
-        raise ValueError(f"the braking committor's grid needs at least 2 gap and 2 speed nodes, got {n_gap!r} x "
-                         f"{n_speed!r}")  # fmt: skip
+        raise ValueError(
+            f"the braking committor's grid needs at least 2 gap and 2 speed nodes, got {n_gap!r} x " f"{n_speed!r}"
+        )
     p = params
     first = branching_start(p).step
     gaps, speeds = grid_axes(p, n_gap, n_speed)
@@ -181,8 +190,9 @@ def solve_committor(params: BrakingParams, logit_at_gap: LogitFn, n_gap: int = T
     return GridCommittor(p, gaps, speeds, log_v, first, steps)
 
 
-def solved_committor(params: BrakingParams, logit_at_gap: LogitFn, n_gap: int = TILT_GAPS,
-                     n_speed: int = TILT_SPEEDS) -> tuple[GridCommittor, bool]:  # fmt: skip
+def solved_committor(
+    params: BrakingParams, logit_at_gap: LogitFn, n_gap: int = TILT_GAPS, n_speed: int = TILT_SPEEDS
+) -> tuple[GridCommittor, bool]:
     """(:func:`solve_committor`'s committor, whether it was reused): the one this process solved before for the same
     scene, PEM (:func:`~pemviz.scenarios.braking.truth_known.pem_fingerprint`: its detection curve) and grid, else a
     new one, kept for the next run (the last :data:`SOLVED_KEPT`)."""
@@ -225,8 +235,9 @@ class BrakingTiltDetector:
         if inside.size == 0:
             return logit
         ctrl = sim.controller
-        after_detect, after_miss, k = c.next_log_values(sim.t, obs[inside, 0], obs[inside, 1],
-                                                        ctrl.integral_kmh_s[inside], ctrl.pending_brake[inside])
+        after_detect, after_miss, k = c.next_log_values(
+            sim.t, obs[inside, 0], obs[inside, 1], ctrl.integral_kmh_s[inside], ctrl.pending_brake[inside]
+        )
         self.steps += k
         lp_det, lp_miss = log_expit(logit[inside]), log_expit(-logit[inside])
         a_det, a_miss = lp_det + after_detect, lp_miss + after_miss
@@ -254,14 +265,20 @@ class _Watched(BatchedBraking):
         return super().observation(out)
 
 
-def draw_tilted(detector: BrakingTiltDetector, target: Detector, n: int, rng: np.random.Generator,
-                chunk_size: int = DEFAULT_CHUNK_SIZE) -> RolloutBatch:  # fmt: skip
+def draw_tilted(
+    detector: BrakingTiltDetector,
+    target: Detector,
+    n: int,
+    rng: np.random.Generator,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> RolloutBatch:
     """``n`` rollouts of the batched twin with detections drawn from ``detector`` and scored under ``target`` (the
     PEM), the stream of :func:`pemviz.scenarios.braking.batched.simulate_batched`: the same rollouts for any
     ``chunk_size``."""
     p = detector.committor.params
-    return simulate_rollouts(lambda m: _Watched(p, m, detector), n, p.n_steps, detector, target, rng,
-                             chunk_size=chunk_size)  # fmt: skip
+    return simulate_rollouts(
+        lambda m: _Watched(p, m, detector), n, p.n_steps, detector, target, rng, chunk_size=chunk_size
+    )
 
 
 class BrakingTilt:
@@ -278,8 +295,15 @@ class BrakingTilt:
         ValueError: ``eps`` outside (0, 1].
     """
 
-    def __init__(self, params: BrakingParams, logit_at_gap: LogitFn, target: Detector, n_gap: int = TILT_GAPS,
-                 n_speed: int = TILT_SPEEDS, eps: float = TILT_EPS) -> None:  # fmt: skip
+    def __init__(
+        self,
+        params: BrakingParams,
+        logit_at_gap: LogitFn,
+        target: Detector,
+        n_gap: int = TILT_GAPS,
+        n_speed: int = TILT_SPEEDS,
+        eps: float = TILT_EPS,
+    ) -> None:
         if not 0.0 < eps <= 1.0:
             raise ValueError(f"the braking tilt's eps (the PEM's share) must be in (0, 1], got {eps!r}")
         self.params, self.logit_at_gap, self.target = params, logit_at_gap, target
@@ -329,8 +353,9 @@ class BrakingCommittorScore:
         batch = self.problem.simulate(n, self.problem.target, self.problem.target, rng)
         return batch, self.graded(batch)
 
-    def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
-               rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:  # fmt: skip
+    def branch(
+        self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, rng: np.random.Generator
+    ) -> tuple[RolloutBatch, np.ndarray]:
         """``parents``' rollouts ``parent`` continued from the steps ``at`` and their scores [K, T]."""
         batch = self.problem.branch(parents, parent, at, self.problem.target, rng)
         return batch, self.graded(batch)

@@ -77,6 +77,7 @@ def branching_start(params: BrakingParams) -> BrakingStart:
         g, v, i, b = braking_step(params, vl[t], g, v, i, b, np.zeros(1, bool))
     raise ValueError("branching_start: the gap never drops below the braking distance; p_fail is 0 or 1")
 
+
 # -- 3. main scenario: exact enumeration with a rigorous bound ---------------------------------------------------
 #
 # A grid DP with interpolation smears V, a sum of step functions of the state, across its jumps: on the
@@ -313,8 +314,9 @@ def braking_exact(
         lp2 = np.concatenate([lp + np.where(inside, log_expit(-logit), 0.0), lp + log_expit(logit)])
         live = np.concatenate([np.ones(n, bool), inside])  # outside the braking distance: one outcome
         detected = np.concatenate([np.zeros(n, bool), np.ones(n, bool)])[live]
-        g, v, i, b = braking_step(p, vl[t], np.tile(g, 2)[live], np.tile(v, 2)[live], np.tile(i, 2)[live],
-                                  np.tile(b, 2)[live], detected)  # fmt: skip
+        g, v, i, b = braking_step(
+            p, vl[t], np.tile(g, 2)[live], np.tile(v, 2)[live], np.tile(i, 2)[live], np.tile(b, 2)[live], detected
+        )
         lp = lp2[live]
         crash = g < p.crash_gap_m
         crash_terms.append(lp[crash])
@@ -338,9 +340,15 @@ def braking_exact(
     pruned = np.concatenate(pruned_terms) if pruned_terms else np.zeros(0)
     m0 = int(bound(start.step, np.array([start.gap_m]), np.array([start.speed_mps]), np.array([start.pending]))[0])
     return ExactResult(
-        float(logsumexp(crashes)), float(logsumexp(pruned)), float(log_prune), m0, int(max_live), int(crashes.size),
-        start, time.perf_counter() - t_start,
-    )  # fmt: skip
+        float(logsumexp(crashes)),
+        float(logsumexp(pruned)),
+        float(log_prune),
+        m0,
+        int(max_live),
+        int(crashes.size),
+        start,
+        time.perf_counter() - t_start,
+    )
 
 
 @dataclass(frozen=True)

@@ -103,8 +103,15 @@ def speed_lipschitz(params: BrakingParams, speed_top_mps: float) -> float:
     return 1.0 + p.dt_s * (throttle + pid + d_slope)
 
 
-def speed_ranges(params: BrakingParams, speed_edges: np.ndarray, integral_lo: float, integral_hi: float,
-                 pending: bool, detected: bool, samples: int = 513) -> tuple[np.ndarray, np.ndarray, bool]:  # fmt: skip
+def speed_ranges(
+    params: BrakingParams,
+    speed_edges: np.ndarray,
+    integral_lo: float,
+    integral_hi: float,
+    pending: bool,
+    detected: bool,
+    samples: int = 513,
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """The range of the ego's next speed over each speed cell and the integral's range, and the next brake command.
 
     Args:
@@ -138,8 +145,9 @@ def speed_ranges(params: BrakingParams, speed_edges: np.ndarray, integral_lo: fl
         raise ValueError("speed_ranges: no gap lies between the contact gap and the braking distance")
     out = []
     for integral in (integral_lo, integral_hi):
-        _, v2, _, b2 = braking_step(p, 0.0, gap, v, np.full(v.shape, integral), np.full(v.shape, pending),
-                                    np.full(v.shape, detected))  # fmt: skip
+        _, v2, _, b2 = braking_step(
+            p, 0.0, gap, v, np.full(v.shape, integral), np.full(v.shape, pending), np.full(v.shape, detected)
+        )
         out.append(v2)
     margin = speed_lipschitz(p, top) * float(np.max(hi_edges - lo_edges)) / (samples - 1) / 2.0 + _EPS
     lo = np.maximum(np.minimum(out[0], out[1]).min(axis=1) - margin, 0.0)
@@ -174,8 +182,9 @@ class _RangeMin:
             raise RuntimeError("_RangeMin: a query wider than the table was built for")
         ib2, jb2 = ib - (1 << kx) + 1, jb - (1 << ky) + 1
         st = self.st
-        return np.minimum(np.minimum(st[kx, ky, ia, ja], st[kx, ky, ib2, ja]),
-                          np.minimum(st[kx, ky, ia, jb2], st[kx, ky, ib2, jb2]))  # fmt: skip
+        return np.minimum(
+            np.minimum(st[kx, ky, ia, ja], st[kx, ky, ib2, ja]), np.minimum(st[kx, ky, ia, jb2], st[kx, ky, ib2, jb2])
+        )
 
 
 @dataclass(frozen=True)
@@ -220,10 +229,14 @@ class CellMissBound:
         g0, dg = self.gap_edges[0], self.gap_edges[1] - self.gap_edges[0]
         dv = self.speed_edges[1] - self.speed_edges[0]
         dom = (g > p.contact_gap_m) & (g >= p.crash_gap_m)  # the cells' dynamics: the ego not stopped
-        if g.size and (np.max(np.where(dom, g, -np.inf)) > self.gap_edges[-1]
-                       or np.max(np.where(dom, v, -np.inf)) > self.speed_edges[-1]):  # fmt: skip
-            raise ValueError(f"CellMissBound: a state above the grid (gap <= {self.gap_edges[-1]:.3f} m, "
-                             f"speed <= {self.speed_edges[-1]:.3f} m/s)")  # fmt: skip
+        if g.size and (
+            np.max(np.where(dom, g, -np.inf)) > self.gap_edges[-1]
+            or np.max(np.where(dom, v, -np.inf)) > self.speed_edges[-1]
+        ):
+            raise ValueError(
+                f"CellMissBound: a state above the grid (gap <= {self.gap_edges[-1]:.3f} m, "
+                f"speed <= {self.speed_edges[-1]:.3f} m/s)"
+            )
         n_g, n_v = self.gap_edges.size - 1, self.speed_edges.size - 1
         gi = np.minimum(np.maximum((g - g0) / dg, 0.0), n_g - 1).astype(np.int64)  # floor of a number >= 0
         vi = np.minimum(np.maximum(v / dv, 0.0), n_v - 1).astype(np.int64)
@@ -239,8 +252,9 @@ class CellMissBound:
         return out
 
 
-def cell_miss_bound(params: BrakingParams, start, n_gap: int = 2000, n_speed: int = 400,
-                    speed_margin_mps: float = 1.5) -> CellMissBound:  # fmt: skip
+def cell_miss_bound(
+    params: BrakingParams, start, n_gap: int = 2000, n_speed: int = 400, speed_margin_mps: float = 1.5
+) -> CellMissBound:
     """Backward DP over cells of the least number of misses to a crash (see the module and :class:`CellMissBound`).
 
     Args:
@@ -297,8 +311,9 @@ def cell_miss_bound(params: BrakingParams, start, n_gap: int = 2000, n_speed: in
                 dom = G_hi >= floor_gap
                 if rmq is not None and dom.any():
                     beyond = (G_hi > gap_edges[-1]) | (V_hi > speed_edges[-1])
-                    ia = np.clip(np.floor((np.maximum(G_lo, floor_gap) - floor_gap) / dg).astype(np.int64), 0,
-                                 n_gap - 1)  # fmt: skip
+                    ia = np.clip(
+                        np.floor((np.maximum(G_lo, floor_gap) - floor_gap) / dg).astype(np.int64), 0, n_gap - 1
+                    )
                     ib = np.clip(np.floor((G_hi - floor_gap) / dg).astype(np.int64), ia, n_gap - 1)
                     ja = np.clip(np.floor(V_lo / dv).astype(np.int64), 0, n_speed - 1)
                     jb = np.clip(np.floor(V_hi / dv).astype(np.int64), ja, n_speed - 1)

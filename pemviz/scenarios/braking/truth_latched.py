@@ -108,9 +108,12 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
     # the window: effective steps whose first detection avoids the crash
     safe = [t for t, cr in zip(eff, crash_after, strict=False) if not cr]
     first, last = (safe[0], safe[-1]) if safe else (-1, -1)
-    window_exact = c is not None and bool(safe) and all(
-        (not cr) == (first <= t <= last) for t, cr in zip(eff, crash_after, strict=False)
-    ) and first == eff[0]
+    window_exact = (
+        c is not None
+        and bool(safe)
+        and all((not cr) == (first <= t <= last) for t, cr in zip(eff, crash_after, strict=False))
+        and first == eff[0]
+    )
     return LatchedTruth(float(log_p), first, last, bool(window_exact), c)
 
 
@@ -204,6 +207,8 @@ def latched_value(logit_at_gap: LogitFn, params: BrakingParams | None = None) ->
     if p.actuation_lag_steps == 1:
         reachable = [t for t in path.effective if crash_after[t] and logit[t] > -np.inf]  # q*(detect at t) > 0
         if any(t + 1 < T and not same_v[t + 1] for t in reachable):
-            raise ValueError("latched_value: a state one step after a detection looks like an all-miss state where "
-                             "q* differs from p: the observation does not show the pending brake q* needs")  # fmt: skip
+            raise ValueError(
+                "latched_value: a state one step after a detection looks like an all-miss state where "
+                "q* differs from p: the observation does not show the pending brake q* needs"
+            )
     return value

@@ -29,8 +29,9 @@ MONTE_CARLO_REFERENCE: tuple[int, int] = (616, 2_000_000)
 ``docs/realistic-stack.md``)."""
 
 
-def crossing_problem(params: CrossingParams | None = None, detect: Any = None, noise: Any = None,
-                     name: str = "crossing") -> Problem:  # fmt: skip
+def crossing_problem(
+    params: CrossingParams | None = None, detect: Any = None, noise: Any = None, name: str = "crossing"
+) -> Problem:
     """The crossing scene as a :class:`Problem` on its batched simulator: each pedestrian detected by the detection
     PEM ``detect`` and mislocated by the noise PEM ``noise`` (None: the shipped ones;
     :func:`pemviz.stack.detector.camera_detector`); failure: :data:`CROSSING_FORMULA` violated (a collision)."""
@@ -42,16 +43,30 @@ def crossing_problem(params: CrossingParams | None = None, detect: Any = None, n
     run, stream, resume = rollout_functions(make, p.n_steps)
     detector = camera_detector(OBJECT_NAMES, detect, noise)
     return Problem(
-        name, run, detector, stl.parse(CROSSING_FORMULA), signals={"clearance": "clearance_m"},
-        units={"clearance": "m"}, signal_ranges={"clearance": (-3.0, 100.0)}, h_scale=40.0,
-        curve_grid=np.arange(0.0, CROSSING_WINDOW_M + 10.5, 0.5), window=CROSSING_WINDOW_M, stream=stream,
-        branch=resume, curve_rows=lambda grid: pedestrian_ahead_rows(p, grid), dt_s=p.dt_s, n_objects=p.n_pedestrians,
-        n_steps=p.n_steps, object_labels=tuple(f"pedestrian {m}" for m in range(p.n_pedestrians)),
-        objects_xy=("loc_x", "loc_z"), noise_xy=(NOISE_NAMES.index("lateral_error_m"),
-                                                 NOISE_NAMES.index("range_error_m")),
-        description=(f"emergency brake on a tracker, {p.n_pedestrians} pedestrian(s) stepping onto a crossing "
-                     f"{p.crossing_m:g} m ahead at {p.ego_speed_mps:g} m/s; failure: a collision"),
-    )  # fmt: skip
+        name,
+        run,
+        detector,
+        stl.parse(CROSSING_FORMULA),
+        signals={"clearance": "clearance_m"},
+        units={"clearance": "m"},
+        signal_ranges={"clearance": (-3.0, 100.0)},
+        h_scale=40.0,
+        curve_grid=np.arange(0.0, CROSSING_WINDOW_M + 10.5, 0.5),
+        window=CROSSING_WINDOW_M,
+        stream=stream,
+        branch=resume,
+        curve_rows=lambda grid: pedestrian_ahead_rows(p, grid),
+        dt_s=p.dt_s,
+        n_objects=p.n_pedestrians,
+        n_steps=p.n_steps,
+        object_labels=tuple(f"pedestrian {m}" for m in range(p.n_pedestrians)),
+        objects_xy=("loc_x", "loc_z"),
+        noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")),
+        description=(
+            f"emergency brake on a tracker, {p.n_pedestrians} pedestrian(s) stepping onto a crossing "
+            f"{p.crossing_m:g} m ahead at {p.ego_speed_mps:g} m/s; failure: a collision"
+        ),
+    )
 
 
 def crossing(config: Any = None, params: CrossingParams | None = None) -> Problem:

@@ -46,15 +46,24 @@ OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "clearance_m", "ego_speed_mps", "
 it (m; :data:`NO_PEDESTRIAN_M` when none), the smallest signed separation of the ego's box from a pedestrian's (m;
 negative: they overlap), the ego's speed, 1.0 once the AEB brakes, and the ego's position along the road."""
 
-OBJECT_NAMES: tuple[str, ...] = ("range_m", *SALIENT_NAMES, "visible", "lateral_m", "ttc_s", "tracked", "braking",
-                                 "ego_speed_mps")  # fmt: skip
+OBJECT_NAMES: tuple[str, ...] = (
+    "range_m",
+    *SALIENT_NAMES,
+    "visible",
+    "lateral_m",
+    "ttc_s",
+    "tracked",
+    "braking",
+    "ego_speed_mps",
+)
 """Each pedestrian's row [G]: its ground-plane range from the camera (the window's column), the 11 salient variables
 (:data:`pemviz.stack.camera.SALIENT_NAMES`), 1.0 if the camera can see it, its position across the road (m, from the
 lane's centre), the time the ego would take to reach it at its speed (s, at most 10), 1.0 if its track is confirmed,
 and the ego's state (braking, speed)."""
 
-PEDESTRIAN_TRACKER = tracker.TrackerParams(accel_std_x_mps2=0.5, accel_std_y_mps2=1.0, init_speed_std_x_mps=0.5,
-                                           init_speed_std_y_mps=1.5, max_coast_steps=3)  # fmt: skip
+PEDESTRIAN_TRACKER = tracker.TrackerParams(
+    accel_std_x_mps2=0.5, accel_std_y_mps2=1.0, init_speed_std_x_mps=0.5, init_speed_std_y_mps=1.5, max_coast_steps=3
+)
 """The tracker tuned for pedestrians: little motion along the road, a walking speed across it unknown at the start
 (std 1.5 m/s); a track is dropped after 3 predictions without an update."""
 
@@ -83,17 +92,28 @@ class CrossingParams:
     tracker: tracker.TrackerParams = field(default=PEDESTRIAN_TRACKER)
 
     def __post_init__(self) -> None:
-        ranges = {"ego_speed_mps": (1.0, 30.0), "crossing_m": (5.0, 150.0), "kerb_m": (1.5, 10.0),
-                  "walk_speed_mps": (0.3, 4.0), "step_out_s": (0.0, 20.0), "second_delay_s": (0.0, 20.0),
-                  "brake_ttc_s": (0.1, 10.0), "brake_mps2": (1.0, 12.0), "corridor_m": (0.5, 5.0),
-                  "camera_offset_m": (-2.0, 2.25), "dt_s": (0.01, 0.5)}  # fmt: skip
+        ranges = {
+            "ego_speed_mps": (1.0, 30.0),
+            "crossing_m": (5.0, 150.0),
+            "kerb_m": (1.5, 10.0),
+            "walk_speed_mps": (0.3, 4.0),
+            "step_out_s": (0.0, 20.0),
+            "second_delay_s": (0.0, 20.0),
+            "brake_ttc_s": (0.1, 10.0),
+            "brake_mps2": (1.0, 12.0),
+            "corridor_m": (0.5, 5.0),
+            "camera_offset_m": (-2.0, 2.25),
+            "dt_s": (0.01, 0.5),
+        }
         for name, (lo, hi) in ranges.items():
             value = getattr(self, name)
             if not lo <= value <= hi:
                 raise ValueError(f"CrossingParams.{name} must be in [{lo:g}, {hi:g}], got {value!r}")
         if self.n_pedestrians not in (1, 2) or not 5 <= self.n_steps <= 1000:
-            raise ValueError(f"CrossingParams: n_pedestrians must be 1 or 2 and n_steps in [5, 1000], got "
-                             f"{self.n_pedestrians}, {self.n_steps}")  # fmt: skip
+            raise ValueError(
+                f"CrossingParams: n_pedestrians must be 1 or 2 and n_steps in [5, 1000], got "
+                f"{self.n_pedestrians}, {self.n_steps}"
+            )
 
     def pedestrians(self, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The pedestrians at ``step``: ``(x_m, y_m, vy_mps, rot_y_rad)``, arrays [M] (road frame; KITTI's rotation,
@@ -104,8 +124,12 @@ class CrossingParams:
         start = self.step_out_s + self.second_delay_s * np.arange(m)
         walked = np.clip(step * self.dt_s - start, 0.0, 2.0 * self.kerb_m / self.walk_speed_mps) * self.walk_speed_mps
         moving = (step * self.dt_s > start) & (walked < 2.0 * self.kerb_m)
-        return x, side * (walked - self.kerb_m), np.where(moving, side * self.walk_speed_mps, 0.0), \
-            np.where(side > 0, 0.0, np.pi)  # fmt: skip
+        return (
+            x,
+            side * (walked - self.kerb_m),
+            np.where(moving, side * self.walk_speed_mps, 0.0),
+            np.where(side > 0, 0.0, np.pi),
+        )
 
     EGO_FRONT0 = EGO_LENGTH_M / 2
     """The ego's front at t = 0 (its centre at x = 0)."""
@@ -150,9 +174,16 @@ class BatchedCrossing:
         loc_x, loc_z, view, x_p = self._view()
         ahead = x_p[:, None] - PEDESTRIAN.width_m / 2 - (self.x + EGO_LENGTH_M / 2)
         ttc = np.where(ahead > 0, np.minimum(ahead / np.maximum(self.v, 0.1), 10.0), 0.0)
-        cols = [view.range_m[..., None], view.salient, view.visible[..., None], loc_x[..., None], ttc[..., None],
-                self.tracks.confirmed[..., None], np.broadcast_to(self.braking, loc_z.shape)[..., None],
-                np.broadcast_to(self.v, loc_z.shape)[..., None]]  # fmt: skip
+        cols = [
+            view.range_m[..., None],
+            view.salient,
+            view.visible[..., None],
+            loc_x[..., None],
+            ttc[..., None],
+            self.tracks.confirmed[..., None],
+            np.broadcast_to(self.braking, loc_z.shape)[..., None],
+            np.broadcast_to(self.v, loc_z.shape)[..., None],
+        ]
         return np.concatenate([np.asarray(c, dtype=np.float64) for c in cols], axis=-1).transpose(1, 0, 2)
 
     def observation(self) -> np.ndarray:
@@ -162,8 +193,16 @@ class BatchedCrossing:
         clearance = np.maximum(dx, dy).min(axis=0)
         ahead = x_p[:, None] - PEDESTRIAN.width_m / 2 - (self.x + EGO_LENGTH_M / 2)
         gap = np.where(ahead >= 0.0, ahead, np.inf).min(axis=0)
-        return np.stack([np.minimum(gap, NO_PEDESTRIAN_M), np.minimum(clearance, NO_PEDESTRIAN_M), self.v,
-                         self.braking.astype(np.float64), self.x], axis=1)  # fmt: skip
+        return np.stack(
+            [
+                np.minimum(gap, NO_PEDESTRIAN_M),
+                np.minimum(clearance, NO_PEDESTRIAN_M),
+                self.v,
+                self.braking.astype(np.float64),
+                self.x,
+            ],
+            axis=1,
+        )
 
     def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
         """Advance every rollout one step: measure the detected pedestrians, update the tracks, brake on a threat.
@@ -174,8 +213,9 @@ class BatchedCrossing:
         p = self.p
         loc_x, loc_z, view, _ = self._view()
         measured = np.asarray(detected, dtype=bool).T & view.visible
-        x_m, z_m = camera.measure(loc_x, loc_z, None if noise is None else np.asarray(noise).transpose(1, 0, 2),
-                                  measured)  # fmt: skip
+        x_m, z_m = camera.measure(
+            loc_x, loc_z, None if noise is None else np.asarray(noise).transpose(1, 0, 2), measured
+        )
         tracks = tracker.update(self.tracks, measured, self.x + p.camera_offset_m + z_m, x_m, z_m, 0.0, p.tracker)
         self.braking = self.braking | self._threat(tracks).any(axis=0)
         speed = np.where(self.braking, np.maximum(self.v - p.brake_mps2 * p.dt_s, 0.0), self.v)
@@ -201,5 +241,6 @@ def pedestrian_ahead_rows(params: CrossingParams, grid: np.ndarray) -> np.ndarra
     gap = grid + params.camera_offset_m - PEDESTRIAN.width_m / 2 - EGO_LENGTH_M / 2
     ttc = np.clip(gap / params.ego_speed_mps, 0.0, 10.0)
     zeros = np.zeros_like(grid)
-    return np.column_stack([view.range_m, view.salient, view.visible, zeros, ttc, zeros, zeros,
-                            np.full_like(grid, params.ego_speed_mps)])
+    return np.column_stack(
+        [view.range_m, view.salient, view.visible, zeros, ttc, zeros, zeros, np.full_like(grid, params.ego_speed_mps)]
+    )

@@ -26,12 +26,24 @@ def crowd_problem(params: CrowdParams | None = None, name: str | None = None) ->
     far = p.total + max(p.offsets)
     return Problem(
         name or f"crowd({p.total},{p.braking},{p.safe},{p.p_detect:g},{len(p.offsets)} obstacles,sd {p.noise_sd:g})",
-        run, CrowdDetector(p), stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})"), signals={"d": "gap_m"},
-        units={"d": "units"}, signal_ranges={"d": (0.0, float(p.total))}, h_scale=float(p.total),
-        curve_grid=np.arange(0.0, far + 1.0), window=p.window, stream=stream, branch=resume,
-        exact_log_p=crowd_log_failure_probability(p), n_objects=len(p.offsets), n_steps=p.steps,
+        run,
+        CrowdDetector(p),
+        stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})"),
+        signals={"d": "gap_m"},
+        units={"d": "units"},
+        signal_ranges={"d": (0.0, float(p.total))},
+        h_scale=float(p.total),
+        curve_grid=np.arange(0.0, far + 1.0),
+        window=p.window,
+        stream=stream,
+        branch=resume,
+        exact_log_p=crowd_log_failure_probability(p),
+        n_objects=len(p.offsets),
+        n_steps=p.steps,
         thresholds=Thresholds(float(p.safe), float(p.braking), "units", "failure below", "braking within"),
-        description=(f"toy braking toward {len(p.offsets)} obstacles, each detected with probability {p.p_detect:g} "
-                     f"and its distance measured with an N(0, {p.noise_sd:g}^2) error; braking when one is measured "
-                     f"within {p.braking}, failure closer than {p.safe} to the nearest"),
-    )  # fmt: skip
+        description=(
+            f"toy braking toward {len(p.offsets)} obstacles, each detected with probability {p.p_detect:g} "
+            f"and its distance measured with an N(0, {p.noise_sd:g}^2) error; braking when one is measured "
+            f"within {p.braking}, failure closer than {p.safe} to the nearest"
+        ),
+    )

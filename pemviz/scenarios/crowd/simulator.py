@@ -65,11 +65,13 @@ class CrowdParams:
 
     def __post_init__(self) -> None:
         if not 1 <= self.safe <= self.braking < self.total:
-            raise ValueError(f"CrowdParams: need 1 <= safe <= braking < total, got {self.total}, {self.braking}, "
-                             f"{self.safe}")  # fmt: skip
+            raise ValueError(
+                f"CrowdParams: need 1 <= safe <= braking < total, got {self.total}, {self.braking}, " f"{self.safe}"
+            )
         if not 0.0 < self.p_detect < 1.0 or self.noise_sd < 0.0:
-            raise ValueError(f"CrowdParams: p_detect must be in (0, 1) and noise_sd >= 0, got {self.p_detect}, "
-                             f"{self.noise_sd}")  # fmt: skip
+            raise ValueError(
+                f"CrowdParams: p_detect must be in (0, 1) and noise_sd >= 0, got {self.p_detect}, " f"{self.noise_sd}"
+            )
         if not self.offsets or self.offsets[0] != 0.0 or min(self.offsets) < 0.0:
             raise ValueError(f"CrowdParams: offsets must start at 0 and be >= 0, got {self.offsets}")
 

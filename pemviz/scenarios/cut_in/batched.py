@@ -51,14 +51,26 @@ class CutInBatchState:
     followed: np.ndarray
 
     def copy(self) -> "CutInBatchState":
-        return CutInBatchState(self.t, self.ego_x_m.copy(), self.ego_speed_mps.copy(), self.ego_accel_mps2.copy(),
-                               self.tracks.copy(), self.followed.copy())  # fmt: skip
+        return CutInBatchState(
+            self.t,
+            self.ego_x_m.copy(),
+            self.ego_speed_mps.copy(),
+            self.ego_accel_mps2.copy(),
+            self.tracks.copy(),
+            self.followed.copy(),
+        )
 
     def select(self, rows: np.ndarray) -> "CutInBatchState":
         """The state of rollouts ``rows`` (int indices, repeats allowed, or a bool mask), copied: restore it on a batch
         of that many rollouts to continue them (branching, as adaptive multilevel splitting does)."""
-        return CutInBatchState(self.t, self.ego_x_m[rows], self.ego_speed_mps[rows], self.ego_accel_mps2[rows],
-                               self.tracks.select(rows), self.followed[rows])  # fmt: skip
+        return CutInBatchState(
+            self.t,
+            self.ego_x_m[rows],
+            self.ego_speed_mps[rows],
+            self.ego_accel_mps2[rows],
+            self.tracks.select(rows),
+            self.followed[rows],
+        )
 
 
 class BatchedCutIn:
@@ -88,8 +100,9 @@ class BatchedCutIn:
         """Every rollout at the start: the ego at x = 0, no tracks."""
         p, n = self.params, self.n
         tracks = tracker.Tracks.empty((p.n_objects, n))
-        self.state = CutInBatchState(0, np.zeros(n), np.full(n, p.ego_speed0_mps), np.zeros(n), tracks,
-                                     np.full(n, -1, dtype=np.int64))  # fmt: skip
+        self.state = CutInBatchState(
+            0, np.zeros(n), np.full(n, p.ego_speed0_mps), np.zeros(n), tracks, np.full(n, -1, dtype=np.int64)
+        )
         self._view: CameraView | None = None
 
     @property
@@ -110,8 +123,16 @@ class BatchedCutIn:
     def objects(self, out: np.ndarray | None = None) -> np.ndarray:
         """The object rows at this step, float64 ``[N, M, G]``: a view of a column-major array, or ``out`` filled."""
         s = self.state
-        rows = object_rows(self.params, self._trajectory.traffic[s.t], self.view(), s.ego_x_m, s.ego_speed_mps,
-                           s.ego_accel_mps2, s.tracks, s.followed)  # fmt: skip
+        rows = object_rows(
+            self.params,
+            self._trajectory.traffic[s.t],
+            self.view(),
+            s.ego_x_m,
+            s.ego_speed_mps,
+            s.ego_accel_mps2,
+            s.tracks,
+            s.followed,
+        )
         if out is None:
             return rows
         out[...] = rows
@@ -120,8 +141,16 @@ class BatchedCutIn:
     def observation(self, out: np.ndarray | None = None) -> np.ndarray:
         """The scene signals at this step, float64 ``[N, F]`` (into ``out`` when given)."""
         s = self.state
-        return scene_signals(self.params, self._trajectory.traffic[s.t], s.ego_x_m, s.ego_speed_mps,
-                             s.ego_accel_mps2, s.tracks, s.followed, out=out)  # fmt: skip
+        return scene_signals(
+            self.params,
+            self._trajectory.traffic[s.t],
+            s.ego_x_m,
+            s.ego_speed_mps,
+            s.ego_accel_mps2,
+            s.tracks,
+            s.followed,
+            out=out,
+        )
 
     def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
         """Advance every rollout one step of ``dt`` seconds.
@@ -143,17 +172,27 @@ class BatchedCutIn:
         if noise is not None:
             noise = np.asarray(noise, dtype=np.float64)
             if noise.shape != shape + (2,):
-                raise ValueError(f"BatchedCutIn.step: noise must be float64 {list(shape + (2,))} (range, lateral "
-                                 f"error; metres), got shape {noise.shape}")  # fmt: skip
-        tracks, followed, accel = decide(p, self.view(), s.ego_x_m, s.ego_speed_mps, s.tracks, detected.T,
-                                         None if noise is None else noise.transpose(1, 0, 2))  # fmt: skip
+                raise ValueError(
+                    f"BatchedCutIn.step: noise must be float64 {list(shape + (2,))} (range, lateral "
+                    f"error; metres), got shape {noise.shape}"
+                )
+        tracks, followed, accel = decide(
+            p,
+            self.view(),
+            s.ego_x_m,
+            s.ego_speed_mps,
+            s.tracks,
+            detected.T,
+            None if noise is None else noise.transpose(1, 0, 2),
+        )
         v = s.ego_speed_mps
         accel = np.where(v > MAX_SPEED_MPS, np.minimum(accel, MAX_SPEED_MPS - v), accel)  # Vehicle.clip_actions
         # highway-env Vehicle.step: position += speed * dt, then speed += acceleration * dt.
         x = s.ego_x_m + v * p.dt_s
         speed = v + accel * p.dt_s
-        self.state = CutInBatchState(s.t + 1, x, np.maximum(speed, 0.0, out=speed), accel,
-                                     tracker.predict(tracks, p.dt_s, p.tracker), followed)  # fmt: skip
+        self.state = CutInBatchState(
+            s.t + 1, x, np.maximum(speed, 0.0, out=speed), accel, tracker.predict(tracks, p.dt_s, p.tracker), followed
+        )
         self._view = None
 
     def snapshot(self) -> CutInBatchState:
@@ -167,14 +206,16 @@ class BatchedCutIn:
             ValueError: a snapshot of another batch size.
         """
         if state.ego_x_m.shape != (self.n,):
-            raise ValueError(f"BatchedCutIn.restore: snapshot of {state.ego_x_m.shape[0]} rollouts, this batch has "
-                             f"{self.n}")  # fmt: skip
+            raise ValueError(
+                f"BatchedCutIn.restore: snapshot of {state.ego_x_m.shape[0]} rollouts, this batch has " f"{self.n}"
+            )
         self.state = state.copy()
         self._view = None
 
 
-def replay(params: CutInParams | None, detected: np.ndarray,
-           noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def replay(
+    params: CutInParams | None, detected: np.ndarray, noise: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The observations and object rows of rollouts driven by fixed detections and errors (no randomness).
 
     Args:
@@ -189,8 +230,9 @@ def replay(params: CutInParams | None, detected: np.ndarray,
     p = params or CutInParams()
     detected = np.asarray(detected, dtype=bool)
     if detected.ndim != 3 or detected.shape[0] < 1 or detected.shape[1] > p.n_steps or detected.shape[2] != p.n_objects:
-        raise ValueError(f"replay: detected must be bool [N >= 1, T <= {p.n_steps}, {p.n_objects}], got shape "
-                         f"{detected.shape}")  # fmt: skip
+        raise ValueError(
+            f"replay: detected must be bool [N >= 1, T <= {p.n_steps}, {p.n_objects}], got shape " f"{detected.shape}"
+        )
     if noise is not None and np.shape(noise) != detected.shape + (2,):
         raise ValueError(f"replay: noise must be float64 {list(detected.shape + (2,))}, got shape {np.shape(noise)}")
     n, n_steps, m = detected.shape

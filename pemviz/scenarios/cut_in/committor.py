@@ -19,8 +19,28 @@ import numpy as np
 from pemviz.core import exact
 
 GRIDS = {
-    "fine": (1e-10, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 3e-4, 1e-3, 1.6e-3, 2.5e-3, 4e-3, 6.3e-3, 1e-2, 1.6e-2, 2.5e-2, 4e-2,
-             6.3e-2, 0.1, 0.16, 0.25),
+    "fine": (
+        1e-10,
+        1e-8,
+        1e-7,
+        1e-6,
+        1e-5,
+        1e-4,
+        3e-4,
+        1e-3,
+        1.6e-3,
+        2.5e-3,
+        4e-3,
+        6.3e-3,
+        1e-2,
+        1.6e-2,
+        2.5e-2,
+        4e-2,
+        6.3e-2,
+        0.1,
+        0.16,
+        0.25,
+    ),
     "coarse": (1e-8, 1e-6, 1e-5, 1e-4, 3e-4, 1e-3, 2.5e-3, 6.3e-3, 1.6e-2, 4e-2, 0.1, 0.25),
     "lean": (1e-7, 1e-5, 1e-4, 1e-3, 4e-3, 1.6e-2, 6.3e-2, 0.25),
 }
@@ -207,9 +227,20 @@ class LevelChain:
         bin_width: the width of a cell's bin of g (None: one bin).
     """
 
-    def __init__(self, grid: Grid, window: tuple[int, int], p0s: Mapping[int, float], effects: Mapping[int, dict],
-                 nexts: Mapping[int, dict], nreg: int, h: float, gmax: float, g_nom: Mapping[int, float] | None = None,
-                 states: Mapping[int, int] | None = None, bin_width: float | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        grid: Grid,
+        window: tuple[int, int],
+        p0s: Mapping[int, float],
+        effects: Mapping[int, dict],
+        nexts: Mapping[int, dict],
+        nreg: int,
+        h: float,
+        gmax: float,
+        g_nom: Mapping[int, float] | None = None,
+        states: Mapping[int, int] | None = None,
+        bin_width: float | None = None,
+    ) -> None:
         self.g = np.arange(0.0, gmax + h, h)
         self.window, self.nbranch = window, grid.nbranch
         self.g_nom, self.states = dict(g_nom or {}), dict(states or {})
@@ -235,12 +266,17 @@ class LevelChain:
                         e, nxt = effects[t][cell], nexts[t][cell]
                         dr, dl = (mp @ e / np.maximum(mp.sum(axis=1), 1e-12) for mp in grid.maps)
                         delta = np.concatenate([[e[0]], (dr[:, None] + dl[None, :]).ravel()])
-                        cls_reg = np.concatenate([[nxt[0]], np.repeat(np.where(np.arange(grid.nb) == grid.central,
-                                                                               nxt[1], nxt[outer]), grid.nb)])
+                        cls_reg = np.concatenate(
+                            [
+                                [nxt[0]],
+                                np.repeat(np.where(np.arange(grid.nb) == grid.central, nxt[1], nxt[outer]), grid.nb),
+                            ]
+                        )
                         for k2 in np.unique(cls_reg):
                             sel = np.flatnonzero(cls_reg == k2)
-                            shifted = np.interp(self.g[None, gsel] + delta[sel, None], self.g, u[k2], left=1.0,
-                                                right=u[k2, -1])  # fmt: skip
+                            shifted = np.interp(
+                                self.g[None, gsel] + delta[sel, None], self.g, u[k2], left=1.0, right=u[k2, -1]
+                            )
                             new[k, gsel] += pc[sel] @ shifted
                 u = new
             self.log_table[t] = exact.log(np.maximum(u, 1e-300))
@@ -262,8 +298,9 @@ class LevelChain:
             out[k] = pool[np.argmin(np.abs(pool[None, :] % self.nbins - bins[:, None]), axis=1)]
         return out
 
-    def log_q_branches(self, t: int, g0: np.ndarray, regime: np.ndarray,
-                       shifts: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    def log_q_branches(
+        self, t: int, g0: np.ndarray, regime: np.ndarray, shifts: np.ndarray | None = None
+    ) -> np.ndarray:
         """log U_{t+1} after each branch, float64 [k, NBRANCH] (nats), of states at step t whose continuous level is
         ``g0`` [k] and regime ``regime`` (int [k]): every branch's shift of G (``shifts`` [k, NBRANCH] where given,
         else the cell's representative's) and next regime (the representative's) read from the chain, no look-ahead;

@@ -66,8 +66,9 @@ def build_road(params: CutInParams, with_ego: bool = True) -> tuple[object, obje
     others = []
     for spec in params.vehicles:
         x = length / 2 + spec.gap_m + length / 2  # ego front at +L/2; the vehicle's rear gap_m ahead of it
-        v = ControlledVehicle(road, [x, spec.lane * LANE_WIDTH_M], heading=0.0, speed=spec.speed_mps,
-                              target_speed=spec.speed_mps)  # fmt: skip
+        v = ControlledVehicle(
+            road, [x, spec.lane * LANE_WIDTH_M], heading=0.0, speed=spec.speed_mps, target_speed=spec.speed_mps
+        )
         others.append(v)
         road.vehicles.append(v)
     for v in ([ego] if ego is not None else []) + others:
@@ -89,8 +90,12 @@ def step_traffic(params: CutInParams, others: list, step: int) -> None:
 
 def vehicle_state(others: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(x, y, heading, speed)`` float64 ``[M]`` of highway-env vehicles."""
-    return (np.array([v.position[0] for v in others]), np.array([v.position[1] for v in others]),
-            np.array([float(v.heading) for v in others]), np.array([float(v.speed) for v in others]))  # fmt: skip
+    return (
+        np.array([v.position[0] for v in others]),
+        np.array([v.position[1] for v in others]),
+        np.array([float(v.heading) for v in others]),
+        np.array([float(v.speed) for v in others]),
+    )
 
 
 @dataclass(frozen=True)
@@ -163,7 +168,8 @@ class CutInScenario:
         """The M object rows at this step, float64 ``[M, G]``."""
         x, v = self._ego()
         return np.ascontiguousarray(
-            object_rows(self.params, self.traffic, self.view(), x, v, self.accel, self.tracks, self.followed)[0])
+            object_rows(self.params, self.traffic, self.view(), x, v, self.accel, self.tracks, self.followed)[0]
+        )
 
     def observation(self) -> np.ndarray:
         """The scene signals at this step, float64 ``[F]``."""
@@ -189,8 +195,10 @@ class CutInScenario:
         if noise is not None:
             noise = np.asarray(noise, dtype=np.float64)
             if noise.shape != (m, 2):
-                raise ValueError(f"CutInScenario.step: noise must be float64 [{m}, 2] (range, lateral error; metres), "
-                                 f"got shape {noise.shape}")  # fmt: skip
+                raise ValueError(
+                    f"CutInScenario.step: noise must be float64 [{m}, 2] (range, lateral error; metres), "
+                    f"got shape {noise.shape}"
+                )
             noise = noise[:, None, :]
         x, v = self._ego()
         self.tracks, self.followed, accel = decide(p, self.view(), x, v, self.tracks, detected[:, None], noise)
@@ -205,11 +213,31 @@ class CutInScenario:
 
     def snapshot(self) -> tuple:
         """A deep copy of the road, the vehicles and the ego's memory (tracks, ACC, cut-in memory)."""
-        return copy.deepcopy((self.road, self.ego, self.others, self.t, self.tracks, self.followed, self.accel,
-                              self._memory, self.traffic))  # fmt: skip
+        return copy.deepcopy(
+            (
+                self.road,
+                self.ego,
+                self.others,
+                self.t,
+                self.tracks,
+                self.followed,
+                self.accel,
+                self._memory,
+                self.traffic,
+            )
+        )
 
     def restore(self, state: tuple) -> None:
         """Put back a :meth:`snapshot` (copied again, so it can be restored more than once)."""
-        (self.road, self.ego, self.others, self.t, self.tracks, self.followed, self.accel, self._memory,
-         self.traffic) = copy.deepcopy(state)  # fmt: skip
+        (
+            self.road,
+            self.ego,
+            self.others,
+            self.t,
+            self.tracks,
+            self.followed,
+            self.accel,
+            self._memory,
+            self.traffic,
+        ) = copy.deepcopy(state)
         self._view = None

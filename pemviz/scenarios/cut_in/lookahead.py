@@ -41,8 +41,9 @@ LOG_PVVY, CONFIRMED, COAST, VX_ERROR, VY_ERROR = 7, 9, 10, 15, 17
 """Columns of :func:`features`: the log of the cut-in car's track's lateral velocity variance, whether it is
 confirmed, and the predictions since its last update (1 after an updated step: the state is predicted); with errors,
 the track's velocity errors along and across the road."""
-MARGIN, RECENT, CLEAR, FOLLOWED = (OBSERVATION_NAMES.index(k) for k in
-                                   ("safe_margin_m", "cut_in_recent", "clearance_m", "followed_index"))  # fmt: skip
+MARGIN, RECENT, CLEAR, FOLLOWED = (
+    OBSERVATION_NAMES.index(k) for k in ("safe_margin_m", "cut_in_recent", "clearance_m", "followed_index")
+)
 
 DP_DEPTH = 5
 """How many steps before the window the beam (and the study's event sequences) start."""
@@ -77,12 +78,29 @@ def features(state: CutInBatchState, traffic: Any, errors: bool = False) -> np.n
     """
     tr = state.tracks
     log = exact.log  # the same on every CPU: the regimes and the effect model's splits read these
-    cols = [tr.x[0] - state.ego_x_m, tr.vx[0], log(tr.pxx[0] + 1e-6), log(tr.pvvx[0] + 1e-6), tr.y[0], tr.vy[0],
-            log(tr.pyy[0] + 1e-6), log(tr.pvvy[0] + 1e-6), tr.active[0], tr.confirmed[0], tr.coast[0],
-            traffic.x_m[0] - state.ego_x_m, state.ego_speed_mps, state.followed == 0]
+    cols = [
+        tr.x[0] - state.ego_x_m,
+        tr.vx[0],
+        log(tr.pxx[0] + 1e-6),
+        log(tr.pvvx[0] + 1e-6),
+        tr.y[0],
+        tr.vy[0],
+        log(tr.pyy[0] + 1e-6),
+        log(tr.pvvy[0] + 1e-6),
+        tr.active[0],
+        tr.confirmed[0],
+        tr.coast[0],
+        traffic.x_m[0] - state.ego_x_m,
+        state.ego_speed_mps,
+        state.followed == 0,
+    ]
     if errors:
-        cols += [tr.x[0] - traffic.x_m[0], tr.vx[0] - traffic.vx_mps[0], tr.y[0] - traffic.y_m[0],
-                 tr.vy[0] - traffic.vy_mps[0]]
+        cols += [
+            tr.x[0] - traffic.x_m[0],
+            tr.vx[0] - traffic.vx_mps[0],
+            tr.y[0] - traffic.y_m[0],
+            tr.vy[0] - traffic.vy_mps[0],
+        ]
     return np.column_stack(cols)
 
 
@@ -104,8 +122,11 @@ def one_car_trajectory(params: CutInParams) -> TrafficTrajectory:
     """The traffic of every step with the cut-in car (object 0) alone, computed once per parameter set."""
 
     def alone(tr: Any) -> Any:
-        arrays = {f.name: getattr(tr, f.name)[:1] for f in dataclasses.fields(tr)
-                  if isinstance(getattr(tr, f.name), np.ndarray)}  # fmt: skip
+        arrays = {
+            f.name: getattr(tr, f.name)[:1]
+            for f in dataclasses.fields(tr)
+            if isinstance(getattr(tr, f.name), np.ndarray)
+        }
         return dataclasses.replace(tr, occluder_pairs=(), **arrays)
 
     return TrafficTrajectory(tuple(alone(tr) for tr in cached_trajectory(params).traffic))
@@ -114,8 +135,9 @@ def one_car_trajectory(params: CutInParams) -> TrafficTrajectory:
 def one_car_state(st: CutInBatchState) -> CutInBatchState:
     """A state of the twin cut down to the cut-in car's track (a followed other car becomes none)."""
     tracks = tracker.Tracks(*(getattr(st.tracks, f.name)[:1] for f in dataclasses.fields(st.tracks)))
-    return CutInBatchState(st.t, st.ego_x_m, st.ego_speed_mps, st.ego_accel_mps2, tracks,
-                           np.where(st.followed > 0, -1, st.followed))  # fmt: skip
+    return CutInBatchState(
+        st.t, st.ego_x_m, st.ego_speed_mps, st.ego_accel_mps2, tracks, np.where(st.followed > 0, -1, st.followed)
+    )
 
 
 class CutInLookAhead:
@@ -137,10 +159,22 @@ class CutInLookAhead:
         effect_model: fit the regression of the events' shifts of G in :meth:`solve_beam`.
     """
 
-    def __init__(self, params: CutInParams, target: Any, grid: Grid, window: tuple[int, int], end: int, *,
-                 one_car: bool = True, graded: bool = True, continuous: bool = True, errors: bool = False,
-                 error_buckets: tuple[tuple[int, tuple[float, ...]], ...] = (), dp_mass: float = 1e-3,
-                 effect_model: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        params: CutInParams,
+        target: Any,
+        grid: Grid,
+        window: tuple[int, int],
+        end: int,
+        *,
+        one_car: bool = True,
+        graded: bool = True,
+        continuous: bool = True,
+        errors: bool = False,
+        error_buckets: tuple[tuple[int, tuple[float, ...]], ...] = (),
+        dp_mass: float = 1e-3,
+        effect_model: bool = True,
+    ) -> None:
         self.params, self.target, self.grid = params, target, grid
         self.traj = cached_trajectory(params).traffic
         self.window, self.end = (int(window[0]), int(window[1])), int(end)
@@ -226,8 +260,9 @@ class CutInLookAhead:
         st = bsim.state.select(np.flatnonzero(done))
         rows = live[done]
         # the operand depends on the ego's (x, v) at the follow step alone: one extrapolation per distinct pair
-        pairs, first, inverse = np.unique(np.column_stack([st.ego_x_m, st.ego_speed_mps]), axis=0, return_index=True,
-                                          return_inverse=True)  # fmt: skip
+        pairs, first, inverse = np.unique(
+            np.column_stack([st.ego_x_m, st.ego_speed_mps]), axis=0, return_index=True, return_inverse=True
+        )
         tracks, followed = st.tracks.select(first), st.followed[first]
         x, v, low = pairs[:, 0].copy(), pairs[:, 1].copy(), np.full(pairs.shape[0], np.inf)
         for t in range(st.t, self.end):
@@ -240,9 +275,16 @@ class CutInLookAhead:
             self.extrap_steps += rows.size
         lo[rows] = np.minimum(lo[rows], low[inverse.ravel()])
 
-    def look_ahead(self, sim: BatchedCutIn, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
-                   prefix_min: np.ndarray, reps: np.ndarray | None = None,
-                   keep_states: bool = False) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    def look_ahead(
+        self,
+        sim: BatchedCutIn,
+        idx: np.ndarray,
+        u: np.ndarray,
+        rows: np.ndarray,
+        prefix_min: np.ndarray,
+        reps: np.ndarray | None = None,
+        keep_states: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Each branch's robustness [k, B] (metres) and next-state features [k, B, F] for the rollouts ``idx`` [k] of
         ``sim`` at their step, the other cars taking the step's own uniforms ``u`` [N, M, 3].
 
@@ -340,8 +382,9 @@ class CutInLookAhead:
                 continue
             rows = np.ascontiguousarray(bsim.objects())
             n = logp.size
-            r, bfeat = self.look_ahead(bsim, np.arange(n), np.zeros((n, 1, 3)), rows, np.full(n, np.inf),
-                                       keep_states=True)  # fmt: skip
+            r, bfeat = self.look_ahead(
+                bsim, np.arange(n), np.zeros((n, 1, 3)), rows, np.full(n, np.inf), keep_states=True
+            )
             gl = continuous_level(level(r), bfeat[..., -2], bfeat[..., -1])  # [n, NBRANCH]
             reg = self.regime(features(bsim.state, self.traj[t], self.errors), t)
             if t >= w0:

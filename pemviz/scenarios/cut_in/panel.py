@@ -46,14 +46,31 @@ class CutInPanel:
         from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M
         from pemviz.scenarios.cut_in.story import car_labels
 
-        return ObjectsScene(CAR_M[0], CAR_M[1], LANE_WIDTH_M, N_LANES, "gap_m", int(self.params.n_steps),
-                            start_positions(self.params), car_labels(self.params.n_objects))  # fmt: skip
+        return ObjectsScene(
+            CAR_M[0],
+            CAR_M[1],
+            LANE_WIDTH_M,
+            N_LANES,
+            "gap_m",
+            int(self.params.n_steps),
+            start_positions(self.params),
+            car_labels(self.params.n_objects),
+        )
 
     def proposal_axis(self) -> ViewAxis:
         """The proposal view's bins: the cut-in car's gap ahead, 1 m wide (:data:`GAP_BINS_M`), over the states where
         the camera sees it."""
-        return ViewAxis("car 0's gap ahead (m), 1 m bins", "car 0 (the cut-in car)", None, "within", GAP_BINS_M,
-                        "car 0's gap (m)", VIEW_OBJECT, "gap_m", "visible")  # fmt: skip
+        return ViewAxis(
+            "car 0's gap ahead (m), 1 m bins",
+            "car 0 (the cut-in car)",
+            None,
+            "within",
+            GAP_BINS_M,
+            "car 0's gap (m)",
+            VIEW_OBJECT,
+            "gap_m",
+            "visible",
+        )
 
     def curve_axis(self) -> CurveAxis:
         """The reference-state curves' x axis: the range from the camera to the cut-in car placed straight ahead in the
@@ -72,8 +89,16 @@ class CutInPanel:
         object_names = tuple(batch.object_names or ())
         if batch.objects is None or not has_story_columns(tuple(batch.observation_names), object_names):
             return None
-        return cut_in_story(batch.observations[0], tuple(batch.observation_names), batch.objects[0], object_names,
-                            batch.detected[0], float(self.params.dt_s), VIEW_OBJECT, names[0])  # fmt: skip
+        return cut_in_story(
+            batch.observations[0],
+            tuple(batch.observation_names),
+            batch.objects[0],
+            object_names,
+            batch.detected[0],
+            float(self.params.dt_s),
+            VIEW_OBJECT,
+            names[0],
+        )
 
 
 def start_positions(params: CutInParams) -> tuple[tuple[float, float], ...]:

@@ -49,8 +49,9 @@ def cut_in_params(setting: str) -> CutInParams:
     return CutInParams(**RARITY_SETTINGS[setting])
 
 
-def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object | None = None,
-                   name: str = "cut-in") -> Problem:  # fmt: skip
+def cut_in_problem(
+    pem: object, params: CutInParams | None = None, noise: object | None = None, name: str = "cut-in"
+) -> Problem:
     """The cut-in scenario (:mod:`pemviz.scenarios.cut_in`) as a :class:`Problem` on its batched twin
     (:class:`~pemviz.scenarios.cut_in.batched.BatchedCutIn`): M cars, each detected by ``pem`` from its 11 KITTI
     salient variables and, when detected, mislocated in range and laterally by the noise PEM ``noise``
@@ -70,8 +71,13 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
 
     p = params if params is not None else cut_in_params("moderate")
     cached_trajectory(p)
-    detector = SalientDetector(pem, SALIENT_COLUMNS, load_noise_pem("hetero-t") if noise is None else noise,
-                               NOISE_NAMES, OBJECT_NAMES.index("visible"))  # fmt: skip
+    detector = SalientDetector(
+        pem,
+        SALIENT_COLUMNS,
+        load_noise_pem("hetero-t") if noise is None else noise,
+        NOISE_NAMES,
+        OBJECT_NAMES.index("visible"),
+    )
 
     def make(n: int) -> BatchedCutIn:
         return BatchedCutIn(p, n)
@@ -94,17 +100,33 @@ def cut_in_problem(pem: object, params: CutInParams | None = None, noise: object
         return solved_tilt(p, detector)
 
     return Problem(
-        name, run, detector, stl.parse(CUT_IN_FORMULA), signals=dict(CUT_IN_SIGNALS),
+        name,
+        run,
+        detector,
+        stl.parse(CUT_IN_FORMULA),
+        signals=dict(CUT_IN_SIGNALS),
         units={"margin": "m", "grace": "", "clearance": "m"},
         signal_ranges={"margin": (-60.0, 200.0), "grace": (0.0, 1.0), "clearance": (-10.0, 200.0)},
         severity=SeverityScale("clearance", "clearance", "m", CUT_IN_SEVERITY_LEVELS_M),
-        h_scale=50.0, curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5), window=CUT_IN_WINDOW_M,
-        stream=stream, branch=resume, curve_rows=curve_rows, objects_xy=("loc_x", "loc_z"), dt_s=p.dt_s,
-        n_objects=p.n_objects, n_steps=p.n_steps, drawing=CutInDrawing(p), object_labels=car_labels(p.n_objects),
-        noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")), tilt=tilt,
-        description=(f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
-                     f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"),
-    )  # fmt: skip
+        h_scale=50.0,
+        curve_grid=np.arange(0.0, CUT_IN_WINDOW_M + 10.5, 0.5),
+        window=CUT_IN_WINDOW_M,
+        stream=stream,
+        branch=resume,
+        curve_rows=curve_rows,
+        objects_xy=("loc_x", "loc_z"),
+        dt_s=p.dt_s,
+        n_objects=p.n_objects,
+        n_steps=p.n_steps,
+        drawing=CutInDrawing(p),
+        object_labels=car_labels(p.n_objects),
+        noise_xy=(NOISE_NAMES.index("lateral_error_m"), NOISE_NAMES.index("range_error_m")),
+        tilt=tilt,
+        description=(
+            f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in {p.cut_in_gap_m:g} m "
+            f"ahead at {p.cut_in_speed_mps:g} m/s; failure: a collision or the safe distance of R_G1"
+        ),
+    )
 
 
 def _car_ahead_row(sim: object, p: CutInParams) -> np.ndarray:

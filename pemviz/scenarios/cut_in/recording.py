@@ -38,8 +38,12 @@ class CutInRecording:
         if batch.objects is None or not has_story_columns(names, object_names):
             return None
         sev = self.outcome(batch, i)
-        return dict(outcome=sev.short, min_clearance_m=sev.min_clearance_m, contact=sev.contact,
-                    closing_speed_mps=sev.closing_speed_mps)  # fmt: skip
+        return dict(
+            outcome=sev.short,
+            min_clearance_m=sev.min_clearance_m,
+            contact=sev.contact,
+            closing_speed_mps=sev.closing_speed_mps,
+        )
 
     def scene_lane(self, batch: RolloutBatch, i: int) -> None:
         """None: no lane (the scene is drawn from the object rows)."""

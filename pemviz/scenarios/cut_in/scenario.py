@@ -232,8 +232,12 @@ class CutInParams:
         if not (isinstance(self.n_steps, int) and 1 <= self.n_steps <= MAX_STEPS):
             raise bad("n_steps", f"an integer in 1..{MAX_STEPS}", self.n_steps)
         if not (isinstance(self.n_objects, int) and 3 <= self.n_objects <= 1 + len(self.traffic)):
-            raise bad("n_objects", f"an integer in 3..{min(6, 1 + len(self.traffic))} (the cut-in vehicle and "
-                      "the first n_objects - 1 of traffic)", self.n_objects)  # fmt: skip
+            raise bad(
+                "n_objects",
+                f"an integer in 3..{min(6, 1 + len(self.traffic))} (the cut-in vehicle and "
+                "the first n_objects - 1 of traffic)",
+                self.n_objects,
+            )
         if self.n_objects > 6:
             raise bad("n_objects", "at most 6", self.n_objects)
         if self.cut_in_lane not in (EGO_LANE - 1, EGO_LANE + 1):
@@ -241,28 +245,47 @@ class CutInParams:
         for v in self.traffic:
             if v.lane not in range(N_LANES):
                 raise bad("traffic lane", f"one of 0..{N_LANES - 1}", v.lane)
-        positive = ("dt_s", "ego_speed0_mps", "ego_target_speed_mps", "cut_in_speed_mps", "cut_in_lateral_time_s",
-                    "vehicle_length_m", "vehicle_width_m", "vehicle_height_m", "camera_height_m", "reaction_time_s")
-        for name in positive:  # fmt: skip
+        positive = (
+            "dt_s",
+            "ego_speed0_mps",
+            "ego_target_speed_mps",
+            "cut_in_speed_mps",
+            "cut_in_lateral_time_s",
+            "vehicle_length_m",
+            "vehicle_width_m",
+            "vehicle_height_m",
+            "camera_height_m",
+            "reaction_time_s",
+        )
+        for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise bad(name, "finite and > 0", value)
-        for name in ("cut_in_gap_m", "cut_in_time_s", "cut_in_grace_s"):  # fmt: skip
+        for name in ("cut_in_gap_m", "cut_in_time_s", "cut_in_grace_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise bad(name, "finite and >= 0", value)
         if not math.isfinite(self.camera_offset_m):
             raise bad("camera_offset_m", "finite", self.camera_offset_m)
         if not (0 < self.occlusion_partly < self.occlusion_largely < self.occlusion_hidden <= 1):
-            raise bad("occlusion thresholds", "0 < partly < largely < hidden <= 1",
-                      (self.occlusion_partly, self.occlusion_largely, self.occlusion_hidden))  # fmt: skip
-        if not (self.ego_a_min_mps2 < 0 and self.other_a_min_mps2 < 0 and math.isfinite(self.ego_a_min_mps2)
-                and math.isfinite(self.other_a_min_mps2)):
-            raise bad("ego_a_min_mps2 and other_a_min_mps2", "finite and < 0",
-                      (self.ego_a_min_mps2, self.other_a_min_mps2))  # fmt: skip
+            raise bad(
+                "occlusion thresholds",
+                "0 < partly < largely < hidden <= 1",
+                (self.occlusion_partly, self.occlusion_largely, self.occlusion_hidden),
+            )
+        if not (
+            self.ego_a_min_mps2 < 0
+            and self.other_a_min_mps2 < 0
+            and math.isfinite(self.ego_a_min_mps2)
+            and math.isfinite(self.other_a_min_mps2)
+        ):
+            raise bad(
+                "ego_a_min_mps2 and other_a_min_mps2", "finite and < 0", (self.ego_a_min_mps2, self.other_a_min_mps2)
+            )
         if not (self.camera_height_m > self.vehicle_height_m):
-            raise bad("camera_height_m", "above vehicle_height_m (the camera sees over the cars' roofs)",
-                      self.camera_height_m)  # fmt: skip
+            raise bad(
+                "camera_height_m", "above vehicle_height_m (the camera sees over the cars' roofs)", self.camera_height_m
+            )
 
     @property
     def ego_y_m(self) -> float:
@@ -294,8 +317,9 @@ RARITY_SETTINGS: dict[str, dict[str, float]] = {
 to the ego at t = 0 with its speed 7.6 m/s below the ego's. Under the shipped PEMs (ml-nn detection, hetero-t noise)
 the failure probability is 8.66e-5 [8.09e-5, 9.26e-5] at ``moderate`` (plain Monte Carlo, 10^7 rollouts,
 ``benchmarks/cut_in_mc.py``) and about 1e-7 at ``rare``: 10 runs of the tilted proposal give a geometric mean of
-1.8e-7 and, being unbiased, p >= 1.3e-7 at 95 % (Markov's inequality: :func:`pemviz.core.estimate.markov_lower_bound`);
-splitting ranked by the same committor gives 8.8e-8 (``research/cut-in-notes.md``)."""
+1.8e-7 and, being unbiased, p >= 1.3e-7 at 95 % (Markov's inequality:
+:func:`pemviz.core.confidence.markov_lower_bound`); splitting ranked by the same committor gives 8.8e-8
+(``research/cut-in-notes.md``)."""
 
 MONTE_CARLO_REFERENCE: dict[str, tuple[int, int]] = {"moderate": (866, 10_000_000)}
 """The plain Monte Carlo reference of a rarity setting under the shipped PEMs: (failures, rollouts) of the batched
@@ -320,8 +344,13 @@ def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mp
     return ego_stop - vf * vf / (2.0 * -params.other_a_min_mps2) + v * params.reaction_time_s
 
 
-def idm_acceleration(idm: IDMParams, target_speed_mps: float, speed_mps: np.ndarray, distance_m: np.ndarray,
-                     closing_speed_mps: np.ndarray) -> np.ndarray:  # fmt: skip
+def idm_acceleration(
+    idm: IDMParams,
+    target_speed_mps: float,
+    speed_mps: np.ndarray,
+    distance_m: np.ndarray,
+    closing_speed_mps: np.ndarray,
+) -> np.ndarray:
     """The IDM acceleration of highway-env's ``IDMVehicle.acceleration`` and ``desired_gap``, elementwise, clipped to
     ``+-acc_max`` as ``IDMVehicle.act`` clips it:
 
@@ -345,9 +374,15 @@ def idm_acceleration(idm: IDMParams, target_speed_mps: float, speed_mps: np.ndar
     return np.clip(acc, -idm.acc_max_mps2, idm.acc_max_mps2)
 
 
-def acc_control(params: CutInParams, track_x: np.ndarray, track_y: np.ndarray, track_vx: np.ndarray,
-                active: np.ndarray, ego_x_m: np.ndarray,
-                ego_speed_mps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def acc_control(
+    params: CutInParams,
+    track_x: np.ndarray,
+    track_y: np.ndarray,
+    track_vx: np.ndarray,
+    active: np.ndarray,
+    ego_x_m: np.ndarray,
+    ego_speed_mps: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """The ego's ACC on the tracked objects: follow the nearest (confirmed) track whose estimated centre is ahead of the
     ego's centre and within its lane (``|y - y_ego| < lane width / 2``), with :func:`idm_acceleration` at the estimated
     centre distance and closing speed; the free-road IDM term when none.

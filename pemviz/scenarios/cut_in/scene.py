@@ -120,8 +120,15 @@ class CutInMemory:
         return cls(np.zeros(m, dtype=bool), np.full(m, _NEVER, dtype=np.int64))
 
 
-def traffic_at(params: CutInParams, step: int, x_m: np.ndarray, y_m: np.ndarray, heading_rad: np.ndarray,
-               speed_mps: np.ndarray, memory: CutInMemory) -> tuple[Traffic, CutInMemory]:  # fmt: skip
+def traffic_at(
+    params: CutInParams,
+    step: int,
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    heading_rad: np.ndarray,
+    speed_mps: np.ndarray,
+    memory: CutInMemory,
+) -> tuple[Traffic, CutInMemory]:
     """The :class:`Traffic` of vehicles in the given state (float64 ``[M]`` each) at ``step``, and the cut-in memory
     to pass at the next step.
 
@@ -145,11 +152,33 @@ def traffic_at(params: CutInParams, step: int, x_m: np.ndarray, y_m: np.ndarray,
     recent = step - last_start <= params.cut_in_grace_steps
     loc_lo, loc_hi = lo - params.ego_y_m, hi - params.ego_y_m
     m = x.shape[0]
-    pairs = tuple((i, j) for j in range(m) for i in range(m)
-                  if x[i] < x[j] and not (loc_hi[i] < 0.0 < loc_lo[j] or loc_hi[j] < 0.0 < loc_lo[i]))  # fmt: skip
-    col = (lambda a: a[:, None])  # noqa: E731
-    traffic = Traffic(x, y, h, s, s * cos, vy, half_x, half_y, col(x - half_x), col(x + half_x), col(loc_lo),
-                      col(loc_hi), _wrap(h - np.pi / 2.0), in_lane, col(beside), cutting_in, recent, pairs)  # fmt: skip
+    pairs = tuple(
+        (i, j)
+        for j in range(m)
+        for i in range(m)
+        if x[i] < x[j] and not (loc_hi[i] < 0.0 < loc_lo[j] or loc_hi[j] < 0.0 < loc_lo[i])
+    )
+    col = lambda a: a[:, None]  # noqa: E731
+    traffic = Traffic(
+        x,
+        y,
+        h,
+        s,
+        s * cos,
+        vy,
+        half_x,
+        half_y,
+        col(x - half_x),
+        col(x + half_x),
+        col(loc_lo),
+        col(loc_hi),
+        _wrap(h - np.pi / 2.0),
+        in_lane,
+        col(beside),
+        cutting_in,
+        recent,
+        pairs,
+    )
     return traffic, CutInMemory(cutting_in, last_start)
 
 
@@ -192,8 +221,9 @@ def camera_view(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray) -> C
     v_bot = params.camera_height_m / z_near
     area = (u_hi - u_lo) * (v_bot - v_top)
     left, right, _, bottom = IMAGE_BOUNDS  # the roofs are below the camera: v_top > 0 > the image's top
-    inside = (np.maximum(np.minimum(u_hi, right) - np.maximum(u_lo, left), 0.0)
-              * np.maximum(np.minimum(v_bot, bottom) - v_top, 0.0))  # fmt: skip
+    inside = np.maximum(np.minimum(u_hi, right) - np.maximum(u_lo, left), 0.0) * np.maximum(
+        np.minimum(v_bot, bottom) - v_top, 0.0
+    )
     covered = np.zeros_like(loc_z)
     for i, j in traffic.occluder_pairs:  # a fixed order: the same sums whatever N
         du = np.minimum(u_hi[i], u_hi[j]) - np.maximum(u_lo[i], u_lo[j])
@@ -212,8 +242,9 @@ def occlusion_level(params: CutInParams, occluded_fraction: np.ndarray) -> np.nd
     return level
 
 
-def measure(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, noise: np.ndarray,
-            measured: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def measure(
+    params: CutInParams, view: CameraView, ego_x_m: np.ndarray, noise: np.ndarray, measured: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The measured positions of the objects (module docstring), ``[M, N]`` each.
 
     Args:
@@ -232,9 +263,16 @@ def measure(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, noise: n
     return (ego_x_m + params.camera_offset_m) + z_meas, params.ego_y_m + x_meas, z_meas
 
 
-def object_rows(params: CutInParams, traffic: Traffic, view: CameraView, ego_x_m: np.ndarray,
-                ego_speed_mps: np.ndarray, ego_accel_mps2: np.ndarray, tracks: Tracks,
-                followed: np.ndarray) -> np.ndarray:  # fmt: skip
+def object_rows(
+    params: CutInParams,
+    traffic: Traffic,
+    view: CameraView,
+    ego_x_m: np.ndarray,
+    ego_speed_mps: np.ndarray,
+    ego_accel_mps2: np.ndarray,
+    tracks: Tracks,
+    followed: np.ndarray,
+) -> np.ndarray:
     """The object rows at this step, float64 ``[N, M, G]`` (:data:`~pemviz.scenarios.cut_in.scenario.OBJECT_NAMES`): a
     transposed view of a ``[G, N, M]`` array (each column written in one pass), so that its ``reshape(N M, G)``, the
     rows of every rollout's objects together, is a view too.
@@ -274,9 +312,16 @@ def object_rows(params: CutInParams, traffic: Traffic, view: CameraView, ego_x_m
     return cols.transpose(2, 1, 0)
 
 
-def scene_signals(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray, ego_speed_mps: np.ndarray,
-                  ego_accel_mps2: np.ndarray, tracks: Tracks, followed: np.ndarray,
-                  out: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+def scene_signals(
+    params: CutInParams,
+    traffic: Traffic,
+    ego_x_m: np.ndarray,
+    ego_speed_mps: np.ndarray,
+    ego_accel_mps2: np.ndarray,
+    tracks: Tracks,
+    followed: np.ndarray,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
     """The scene signals ``[N, F]`` (:data:`~pemviz.scenarios.cut_in.scenario.OBSERVATION_NAMES`) at this step.
 
     Args: as :func:`object_rows`; ``out``: optional float64 ``[N, F]`` to fill.
@@ -309,8 +354,15 @@ def scene_signals(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray, eg
     return obs
 
 
-def decide(params: CutInParams, view: CameraView, ego_x_m: np.ndarray, ego_speed_mps: np.ndarray, tracks: Tracks,
-           detected: np.ndarray, noise: np.ndarray | None) -> tuple[Tracks, np.ndarray, np.ndarray]:  # fmt: skip
+def decide(
+    params: CutInParams,
+    view: CameraView,
+    ego_x_m: np.ndarray,
+    ego_speed_mps: np.ndarray,
+    tracks: Tracks,
+    detected: np.ndarray,
+    noise: np.ndarray | None,
+) -> tuple[Tracks, np.ndarray, np.ndarray]:
     """The ego's decision at this step: measure the detected visible objects (:func:`measure`), fold the measurements
     into the tracks (:func:`pemviz.stack.tracker.update`) and run the ACC on the tracks
     (:func:`~pemviz.scenarios.cut_in.scenario.acc_control`) on the confirmed tracks.

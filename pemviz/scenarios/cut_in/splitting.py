@@ -34,6 +34,7 @@ from pemviz.core.rollouts import RolloutBatch, draws_per_rollout
 from pemviz.scenarios.cut_in.batched import BatchedCutIn
 from pemviz.scenarios.cut_in.lookahead import VISIBLE, features, operand, p_detect_of
 
+
 class CommittorScore:
     """Rollouts of the cut-in under its PEMs with their prefix scores (module docstring), for
     :class:`pemviz.estimators.ams.Splitting`.
@@ -61,8 +62,9 @@ class CommittorScore:
         scored); one ``rng.random(n k)`` a step, k the uniforms a rollout draws a step."""
         return self._run(n, rng, None, np.full(n, -1))
 
-    def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
-               rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:  # fmt: skip
+    def branch(
+        self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, rng: np.random.Generator
+    ) -> tuple[RolloutBatch, np.ndarray]:
         """New rollout i replays ``parents``' rollout ``parent[i]`` before step ``at[i]`` and draws the rest from the
         PEMs (as :func:`pemviz.core.lockstep.branch_rollouts`); returns the rollouts [K, T] and their graded scores
         [K, T] after each branching step (+inf up to it: the parent's hold there)."""
@@ -75,8 +77,9 @@ class CommittorScore:
         forced = (batch.detected, batch.noise, np.full(batch.n, batch.n_steps))
         return self._run(batch.n, np.random.default_rng(0), forced, np.full(batch.n, -1))[1]
 
-    def _run(self, n: int, rng: np.random.Generator, forced: tuple | None,
-             first: np.ndarray) -> tuple[RolloutBatch, np.ndarray]:  # fmt: skip
+    def _run(
+        self, n: int, rng: np.random.Generator, forced: tuple | None, first: np.ndarray
+    ) -> tuple[RolloutBatch, np.ndarray]:
         """Simulate (``forced``: events replayed before each rollout's step, as :func:`run_batched`'s), scoring each
         rollout at its steps after ``first`` [n]."""
         p, tilt = self.tilt.params, self.tilt
@@ -98,17 +101,18 @@ class CommittorScore:
                 yield rng.random(k)
 
         with threadpool_limits(1, user_api="blas"):  # as the problems' own rollouts (rollout_functions)
-            batch = run_batched(sim, n, p.n_steps, self.problem.target, self.problem.target, uniforms(), forced,
-                                keep_rows=False)  # fmt: skip
+            batch = run_batched(
+                sim, n, p.n_steps, self.problem.target, self.problem.target, uniforms(), forced, keep_rows=False
+            )
         batch = dataclasses.replace(batch, replay=functools.partial(replay_rows, functools.partial(BatchedCutIn, p)))
         return batch, graded
 
-    def log_v(self, sim: BatchedCutIn, t: int, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
-              prefix_min: np.ndarray) -> np.ndarray:  # fmt: skip
+    def log_v(
+        self, sim: BatchedCutIn, t: int, idx: np.ndarray, u: np.ndarray, rows: np.ndarray, prefix_min: np.ndarray
+    ) -> np.ndarray:
         """log V of the rollouts ``idx`` [k] of ``sim`` at step t, float64 [k] (nats): the tilt's classes' log Q
         averaged under the PEMs' p(class), summed in one order (the same on every CPU)."""
         tilt = self.tilt
         sfeat = features(sim.state.select(idx), tilt.traj[t], tilt.errors)
         p0 = p_detect_of(tilt.target.detect_logit(rows[idx, 0]))
         return tilt.grid.log_value(p0, tilt.branch_log_q(sim, t, idx, u, rows, prefix_min, sfeat, p0))
-

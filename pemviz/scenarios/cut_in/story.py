@@ -30,6 +30,7 @@ from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, NO_VEHICLE_M
 CUT_IN_OBJECT = 0
 """The cut-in car's object index (the first of :attr:`pemviz.scenarios.cut_in.scenario.CutInParams.vehicles`)."""
 
+
 def car_labels(n_objects: int) -> tuple[str, ...]:
     """What the console, the panel and the recording call the cut-in's M cars: ``car 0`` (the cut-in car, object
     :data:`CUT_IN_OBJECT`) to ``car M-1``."""
@@ -40,11 +41,25 @@ BRAKING_MPS2 = -0.5
 """An ACC acceleration at or below this (m/s^2) counts as braking in the story (the IDM's free-road term is 0 at the
 set speed; a car followed far ahead costs a few tenths)."""
 
-OBSERVATION_COLUMNS = ("safe_margin_m", "cut_in_recent", "clearance_m", "ego_accel_mps2", "front_index",
-                       "followed_index")  # fmt: skip
+OBSERVATION_COLUMNS = (
+    "safe_margin_m",
+    "cut_in_recent",
+    "clearance_m",
+    "ego_accel_mps2",
+    "front_index",
+    "followed_index",
+)
 """The scene signals the story reads."""
-OBJECT_COLUMNS = ("gap_m", "rel_speed_mps", "lateral_speed_mps", "in_ego_lane", "tracked", "track_err_y_m", "followed",
-                  "loc_x")  # fmt: skip
+OBJECT_COLUMNS = (
+    "gap_m",
+    "rel_speed_mps",
+    "lateral_speed_mps",
+    "in_ego_lane",
+    "tracked",
+    "track_err_y_m",
+    "followed",
+    "loc_x",
+)
 """The object-row columns the story reads."""
 
 
@@ -109,8 +124,10 @@ class CutInSeverity:
         if self.min_clearance_m >= NO_VEHICLE_M:
             return "minimum clearance: no vehicle ever beside the ego's box"
         overlap = " (the boxes overlap)" if self.min_clearance_m < 0 else ""
-        return (f"minimum clearance {self.min_clearance_m:.2f} m at {self.min_clearance_step * self.dt_s:.2f} s"
-                f"{overlap}")  # fmt: skip
+        return (
+            f"minimum clearance {self.min_clearance_m:.2f} m at {self.min_clearance_step * self.dt_s:.2f} s"
+            f"{overlap}"
+        )
 
     @property
     def short(self) -> str:
@@ -120,8 +137,10 @@ class CutInSeverity:
             speed = f"contact at {v:.1f} m/s closing speed" if math.isfinite(v) else "contact beside the ego"
             head = f"{speed} at {self.contact_step * self.dt_s:.2f} s"
         elif self.failed:
-            head = (f"R_G1's safe distance short by {-self.margin_m:.2f} m at {self.failure_step * self.dt_s:.2f} s, "
-                    "no contact")  # fmt: skip
+            head = (
+                f"R_G1's safe distance short by {-self.margin_m:.2f} m at {self.failure_step * self.dt_s:.2f} s, "
+                "no contact"
+            )
         else:
             head = "no failure, no contact"
         return f"{head} · {self.clearance_text}"
@@ -188,8 +207,13 @@ def _first(mask: np.ndarray, start: int = 0) -> int | None:
     return int(hits[0]) + start if hits.size else None
 
 
-def cut_in_severity(observations: np.ndarray, observation_names: tuple[str, ...], rows: np.ndarray,
-                    object_names: tuple[str, ...], dt_s: float) -> CutInSeverity:  # fmt: skip
+def cut_in_severity(
+    observations: np.ndarray,
+    observation_names: tuple[str, ...],
+    rows: np.ndarray,
+    object_names: tuple[str, ...],
+    dt_s: float,
+) -> CutInSeverity:
     """The :class:`CutInSeverity` of one rollout: its scene signals ``observations`` [T, F] and object rows ``rows``
     [T, M, G] (metres, m/s). The closing speed at contact is minus the row's ``rel_speed_mps`` of the vehicle in front
     at contact, at the step before (whose speeds moved the cars into contact: highway-env moves, then accelerates)."""
@@ -206,11 +230,15 @@ def cut_in_severity(observations: np.ndarray, observation_names: tuple[str, ...]
             rel = rows[max(contact - 1, 0), front, object_names.index("rel_speed_mps")]
             closing = float(-rel)
     return CutInSeverity(
-        min_clearance_m=float(clearance[k]), min_clearance_step=k, failure_step=fail,
+        min_clearance_m=float(clearance[k]),
+        min_clearance_step=k,
+        failure_step=fail,
         collision=bool(fail is not None and clearance[fail] < 0.0),
-        margin_m=float(col["safe_margin_m"][fail]) if fail is not None else math.nan, contact_step=contact,
-        closing_speed_mps=closing, dt_s=float(dt_s),
-    )  # fmt: skip
+        margin_m=float(col["safe_margin_m"][fail]) if fail is not None else math.nan,
+        contact_step=contact,
+        closing_speed_mps=closing,
+        dt_s=float(dt_s),
+    )
 
 
 def acc_trace(observations: np.ndarray, observation_names: tuple[str, ...], dt_s: float) -> AccTrace:
@@ -220,9 +248,16 @@ def acc_trace(observations: np.ndarray, observation_names: tuple[str, ...], dt_s
     return AccTrace(np.arange(accel.size) * float(dt_s), accel, followed)
 
 
-def cut_in_story(observations: np.ndarray, observation_names: tuple[str, ...], rows: np.ndarray,
-                 object_names: tuple[str, ...], detected: np.ndarray, dt_s: float, obj: int = CUT_IN_OBJECT,
-                 name: str = "car 0") -> CutInStory:  # fmt: skip
+def cut_in_story(
+    observations: np.ndarray,
+    observation_names: tuple[str, ...],
+    rows: np.ndarray,
+    object_names: tuple[str, ...],
+    detected: np.ndarray,
+    dt_s: float,
+    obj: int = CUT_IN_OBJECT,
+    name: str = "car 0",
+) -> CutInStory:
     """Tell one cut-in rollout (module docstring).
 
     Args:
@@ -235,15 +270,16 @@ def cut_in_story(observations: np.ndarray, observation_names: tuple[str, ...], r
         ValueError: a column the story reads is missing (:func:`has_story_columns`).
     """
     if not has_story_columns(tuple(observation_names), tuple(object_names)):
-        raise ValueError(f"cut_in_story: needs the scene signals {OBSERVATION_COLUMNS} and the object columns "
-                         f"{OBJECT_COLUMNS}")  # fmt: skip
+        raise ValueError(
+            f"cut_in_story: needs the scene signals {OBSERVATION_COLUMNS} and the object columns " f"{OBJECT_COLUMNS}"
+        )
     names = tuple(object_names)
     car = {n: np.asarray(rows[:, obj, names.index(n)], dtype=np.float64) for n in OBJECT_COLUMNS}
     det = np.asarray(detected, bool)[:, obj]
     t_steps = det.size
     sev = cut_in_severity(observations, tuple(observation_names), rows, names, dt_s)
     acc = acc_trace(observations, tuple(observation_names), dt_s)
-    at = (lambda k: f"{k * dt_s:.2f} s")  # noqa: E731
+    at = lambda k: f"{k * dt_s:.2f} s"  # noqa: E731
 
     change = _first(np.abs(car["lateral_speed_mps"]) > 1e-6)
     entry = _first(car["in_ego_lane"] > 0.5)
@@ -267,8 +303,10 @@ def cut_in_story(observations: np.ndarray, observation_names: tuple[str, ...], r
     else:
         slower = -car["rel_speed_mps"][change]
         pace = f"{slower:.1f} m/s slower than the ego" if slower >= 0 else f"{-slower:.1f} m/s faster than the ego"
-        s.append(f"{name.capitalize()} began to change lanes at {at(change)}, {car['gap_m'][change]:.1f} m ahead and "
-                 f"{pace}.")  # fmt: skip
+        s.append(
+            f"{name.capitalize()} began to change lanes at {at(change)}, {car['gap_m'][change]:.1f} m ahead and "
+            f"{pace}."
+        )
     if entry is None:
         s.append("It never entered the ego's lane.")
     else:
@@ -287,28 +325,52 @@ def cut_in_story(observations: np.ndarray, observation_names: tuple[str, ...], r
     else:
         where = ""
         if outside.size:
-            where = (f", but placed it outside the ego's lane at {outside.size} step{'s' * (outside.size != 1)} after "
-                     f"it entered (lateral error up to {worst:.2f} m), where the ACC follows no track")  # fmt: skip
+            where = (
+                f", but placed it outside the ego's lane at {outside.size} step{'s' * (outside.size != 1)} after "
+                f"it entered (lateral error up to {worst:.2f} m), where the ACC follows no track"
+            )
         s.append(f"The tracker confirmed a track of it at {at(track)}{where}.")
     if follow is None:
         s.append("The ACC never followed it.")
     else:
-        late = f", {(follow - entry) * dt_s:.2f} s after it entered the lane" if entry is not None and follow >= entry \
+        late = (
+            f", {(follow - entry) * dt_s:.2f} s after it entered the lane"
+            if entry is not None and follow >= entry
             else ""
+        )
         s.append(f"The ACC first followed it at {at(follow)}{late}.")
     if brake is None:
         s.append("The ego never braked" + (" after it entered." if entry is not None else "."))
     else:
         s.append(f"The ego braked from {at(brake)}, hardest {lowest:.1f} m/s^2 at {at(hardest)}.")
     if sev.contact:
-        speed = (f" at a closing speed of {sev.closing_speed_mps:.1f} m/s" if math.isfinite(sev.closing_speed_mps)
-                 else "")  # fmt: skip
+        speed = (
+            f" at a closing speed of {sev.closing_speed_mps:.1f} m/s" if math.isfinite(sev.closing_speed_mps) else ""
+        )
         s.append(f"Contact at {at(sev.contact_step)} (step {sev.contact_step}){speed}; {sev.clearance_text}.")
     elif sev.failed:
-        s.append(f"R_G1's safe distance to the vehicle in front was violated at {at(sev.failure_step)} (step "
-                 f"{sev.failure_step}) by {-sev.margin_m:.2f} m, outside the rule's waiver after a cut-in, without "
-                 f"contact; {sev.clearance_text}.")  # fmt: skip
+        s.append(
+            f"R_G1's safe distance to the vehicle in front was violated at {at(sev.failure_step)} (step "
+            f"{sev.failure_step}) by {-sev.margin_m:.2f} m, outside the rule's waiver after a cut-in, without "
+            f"contact; {sev.clearance_text}."
+        )
     else:
         s.append(f"No failure: {sev.clearance_text}.")
-    return CutInStory(change, entry, first_det, misses, int(span.size), track, int(outside.size), worst, follow, brake,
-                      lowest, hardest, acc, car["in_ego_lane"] > 0.5, sev, tuple(s))  # fmt: skip
+    return CutInStory(
+        change,
+        entry,
+        first_det,
+        misses,
+        int(span.size),
+        track,
+        int(outside.size),
+        worst,
+        follow,
+        brake,
+        lowest,
+        hardest,
+        acc,
+        car["in_ego_lane"] > 0.5,
+        sev,
+        tuple(s),
+    )

@@ -95,12 +95,23 @@ class CutInTilt(CutInLookAhead):
         ValueError: a window that does not fit the scene, eps outside (0, 1], beta outside (0, 1].
     """
 
-    def __init__(self, params: CutInParams, target: Any, grid: str = "lean", window: tuple[int, int] = TILT_WINDOW,
-                 end: int = TILT_END, beam_width: float = TILT_BEAM_WIDTH, beta: float = TILT_BETA,
-                 eps: float = TILT_EPS, **options: Any) -> None:  # fmt: skip
+    def __init__(
+        self,
+        params: CutInParams,
+        target: Any,
+        grid: str = "lean",
+        window: tuple[int, int] = TILT_WINDOW,
+        end: int = TILT_END,
+        beam_width: float = TILT_BEAM_WIDTH,
+        beta: float = TILT_BETA,
+        eps: float = TILT_EPS,
+        **options: Any,
+    ) -> None:
         if not 0 <= window[0] < window[1] <= end <= params.n_steps:
-            raise ValueError(f"tilt window {tuple(window)}, end {end}: need 0 <= start < end of the window <= end <= "
-                             f"{params.n_steps} (the scene's steps)")
+            raise ValueError(
+                f"tilt window {tuple(window)}, end {end}: need 0 <= start < end of the window <= end <= "
+                f"{params.n_steps} (the scene's steps)"
+            )
         if not (0.0 < eps <= 1.0 and 0.0 < beta <= 1.0):
             raise ValueError(f"tilt eps {eps}, beta {beta}: need 0 < eps <= 1 (the PEMs' share) and 0 < beta <= 1")
         super().__init__(params, target, Grid(np.array(GRIDS[grid])), window, end, **options)
@@ -138,8 +149,17 @@ class CutInTilt(CutInLookAhead):
         batch, _, steps = self.stage(n, rng)
         return batch, steps
 
-    def branch_log_q(self, sim: BatchedCutIn, t: int, idx: np.ndarray, u: np.ndarray, rows: np.ndarray,
-                     prefix_min: np.ndarray, sfeat: np.ndarray, p0: np.ndarray) -> np.ndarray:  # fmt: skip
+    def branch_log_q(
+        self,
+        sim: BatchedCutIn,
+        t: int,
+        idx: np.ndarray,
+        u: np.ndarray,
+        rows: np.ndarray,
+        prefix_min: np.ndarray,
+        sfeat: np.ndarray,
+        p0: np.ndarray,
+    ) -> np.ndarray:
         """log Q of every grid branch, float64 [k, NBRANCH] (nats), for the rollouts ``idx`` [k] at step ``t``: one
         look-ahead of the central draw gives each state's G, the effect model (else the chain's cell) each branch's
         shift of it, the chain U_{t+1} its value.
@@ -161,8 +181,9 @@ class CutInTilt(CutInLookAhead):
         """Told each tilted step's classes ``cls`` [k] of rollouts ``idx`` and their p(class) [k, C] (a study's hook;
         nothing here)."""
 
-    def stage(self, n: int, rng: np.random.Generator,
-              given: np.ndarray | None = None) -> tuple[RolloutBatch, np.ndarray, int]:  # fmt: skip
+    def stage(
+        self, n: int, rng: np.random.Generator, given: np.ndarray | None = None
+    ) -> tuple[RolloutBatch, np.ndarray, int]:
         """``n`` rollouts drawn from the tilted proposal.
 
         Args:
@@ -194,8 +215,9 @@ class CutInTilt(CutInLookAhead):
                         pc, qc = g.proposal(p0, self.beta * lqb, self.eps)
                         if given is None:
                             cum = np.cumsum(qc, axis=1)
-                            cls = np.minimum((cum < rng.random(idx.size)[:, None] * cum[:, -1:]).sum(axis=1),
-                                             pc.shape[1] - 1)  # fmt: skip
+                            cls = np.minimum(
+                                (cum < rng.random(idx.size)[:, None] * cum[:, -1:]).sum(axis=1), pc.shape[1] - 1
+                            )
                             u[idx, 0] = g.draw(cls, p0, rng.random((idx.size, 3)))
                         else:
                             cls = g.classify(u[idx, 0], p0)
@@ -207,6 +229,7 @@ class CutInTilt(CutInLookAhead):
 
         with np.errstate(divide="ignore"):
             batch = run_batched(sim, n, p.n_steps, target, target, uniforms(), keep_rows=False)
-        batch = dataclasses.replace(batch, log_q=batch.log_p - step_w,
-                                    replay=functools.partial(replay_rows, functools.partial(BatchedCutIn, p)))
+        batch = dataclasses.replace(
+            batch, log_q=batch.log_p - step_w, replay=functools.partial(replay_rows, functools.partial(BatchedCutIn, p))
+        )
         return batch, log_w, self.steps - before

@@ -38,7 +38,7 @@ def toy_odd_log_failure_probability(params: ToyParams, odd: ODD) -> float:
     Raises:
         ValueError: an ODD that is not one choice over ``braking``.
     """
-    (name, law), = odd.parameters
+    ((name, law),) = odd.parameters
     if name != "braking" or not law.discrete:
         raise ValueError("the toy's exact answer over an ODD needs braking ~ choice(...)")
     logs = [toy_log_failure_probability(dataclasses.replace(params, braking=int(b))) for b in law.args]
@@ -54,7 +54,7 @@ def toy_odd_problem(config: Any, params: ToyParams | None, odd: ODD) -> Problem:
     p = params or ToyParams()
     if odd.names != ("braking",):
         raise ValueError(f"the toy draws only its braking distance per rollout, not {list(odd.names)}")
-    (_, law), = odd.parameters
+    ((_, law),) = odd.parameters
     for b in law.args if law.discrete else law.support():
         dataclasses.replace(p, braking=int(b))  # its own range check (safe <= braking < total)
     top = int(max(law.args)) if law.discrete else int(np.ceil(law.support()[1]))
@@ -66,9 +66,19 @@ def toy_odd_problem(config: Any, params: ToyParams | None, odd: ODD) -> Problem:
     base = toy_problem(dataclasses.replace(p, braking=top))
     exact = toy_odd_log_failure_probability(p, odd) if law.discrete else None
     return dataclasses.replace(
-        base, simulate=simulate, stream=stream, branch=branch, exact_log_p=exact, tilt=None, odd=odd,
-        verdict_cap=("doubtful", "the proposal reads the state, not the parameters drawn over the ODD: its weights can "
-                                 "look reliable while a region of the ODD is sampled too little"),
-        name=f"toy over {odd.text()}", window=float(top) + 0.5,
+        base,
+        simulate=simulate,
+        stream=stream,
+        branch=branch,
+        exact_log_p=exact,
+        tilt=None,
+        odd=odd,
+        verdict_cap=(
+            "doubtful",
+            "the proposal reads the state, not the parameters drawn over the ODD: its weights can "
+            "look reliable while a region of the ODD is sampled too little",
+        ),
+        name=f"toy over {odd.text()}",
+        window=float(top) + 0.5,
         description=f"toy braking, its braking distance drawn per rollout ({odd.text()})",
     )

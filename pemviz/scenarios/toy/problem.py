@@ -10,7 +10,11 @@ from pemviz.core.detectors import Detector
 from pemviz.core.problem_view import Thresholds
 from pemviz.core.problems import Problem
 from pemviz.scenarios.toy.simulator import (
-    ToyDetector, ToyParams, branch_toy, simulate_toy, toy_log_failure_probability,
+    ToyDetector,
+    ToyParams,
+    branch_toy,
+    simulate_toy,
+    toy_log_failure_probability,
 )
 
 
@@ -50,6 +54,8 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
         exact_log_p=toy_log_failure_probability(p),
         branch=branch,
         tilt=tilt,
-        description=(f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
-                     f"closer than {p.safe}; detection probability {p_label}"),
+        description=(
+            f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
+            f"closer than {p.safe}; detection probability {p_label}"
+        ),
     )

@@ -176,7 +176,11 @@ class BatchedToy:
 
 
 def simulate_toy(
-    params: ToyParams, n: int, sampler: Detector, target: Detector, rng: np.random.Generator,
+    params: ToyParams,
+    n: int,
+    sampler: Detector,
+    target: Detector,
+    rng: np.random.Generator,
     forced: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> RolloutBatch:
     """``n`` toy rollouts, vectorised (:class:`BatchedToy`, :func:`pemviz.core.lockstep.run_batched`); the same draws
@@ -199,7 +203,11 @@ def simulate_toy(
 
 
 def branch_toy(
-    params: ToyParams, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector,
+    params: ToyParams,
+    parents: RolloutBatch,
+    parent: np.ndarray,
+    at: np.ndarray,
+    target: Detector,
     rng: np.random.Generator,
 ) -> RolloutBatch:
     """:func:`pemviz.scenarios.branch` for the toy, vectorised: the parents' prefixes are replayed (the state at a

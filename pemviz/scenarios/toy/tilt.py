@@ -30,8 +30,7 @@ SCORE_STOPPED_V = 0.4
 the last one, so a stopped car, which can never fail, ranks as close to failure."""
 
 
-def poor_committor(params: ToyParams, d: np.ndarray, stopped: np.ndarray,
-                   stopped_v: float = STOPPED_V) -> np.ndarray:  # fmt: skip
+def poor_committor(params: ToyParams, d: np.ndarray, stopped: np.ndarray, stopped_v: float = STOPPED_V) -> np.ndarray:
     """The poor V, float64 [N]: a moving car at distance ``d`` [N] (units) fails with probability (1 -
     :data:`P_GUESS`)^(min(d, braking) - safe + 1) (1 below ``safe``), a stopped one (``stopped`` bool [N]) with
     ``stopped_v`` (the truths: prod (1 - p(d')) over the distances left in the window, and 0)."""
@@ -96,8 +95,9 @@ class ToyCommittorScore:
         batch = self.problem.simulate(n, self.problem.target, self.problem.target, rng)
         return batch, self._graded(batch)
 
-    def branch(self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray,
-               rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:  # fmt: skip
+    def branch(
+        self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, rng: np.random.Generator
+    ) -> tuple[RolloutBatch, np.ndarray]:
         """``parents``' rollouts ``parent`` continued from the steps ``at`` (the problem's ``branch``) and their
         scores [K, T]."""
         batch = self.problem.branch(parents, parent, at, self.problem.target, rng)

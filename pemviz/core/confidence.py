@@ -1,0 +1,166 @@
+"""Confidence intervals and lower confidence bounds of a failure probability, as natural logs.
+
+:data:`CI_LEVEL` is the coverage of every interval pemviz reports. :func:`clopper_pearson` is the exact interval of
+plain Monte Carlo's failure count and :func:`log_mean_interval` the log-scale t interval of an importance-sampling
+mean; where a run's weights back no interval, :func:`betting_lower_bound` (testing by betting, on the run's terms,
+summed up in a :class:`BettingEvidence`) and :func:`markov_lower_bound` (on independent runs' unbiased estimates)
+give a lower bound that holds whatever the weights' tail. :class:`pemviz.core.estimate.Estimate` reports them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+CI_LEVEL = 0.95
+"""Coverage of every interval pemviz reports for mu_hat."""
+
+
+def log_mean_interval(log_y: np.ndarray) -> tuple[float, float, float]:
+    """log of the mean of y >= 0 (given as logs, -inf for 0, [N]) and the log-scale t interval of the mean.
+
+    The interval is exp(log mean -+ t_{N-1} * se / mean) with se the standard error of the mean: the delta-method
+    interval on the log scale (Owen, "Monte Carlo theory, methods and examples", 2013, Ch. 2 and 9), which stays
+    inside (0, inf) and is wider below than a normal interval for right-skewed weights. Computed in log space.
+    """
+    from scipy.special import logsumexp, stdtrit  # stdtrit: the Student-t quantile, without scipy.stats' import
+
+    n = log_y.size
+    log_mean = float(logsumexp(log_y)) - math.log(n)
+    if log_mean == -math.inf or n < 2:
+        return log_mean, -math.inf, 0.0 if n < 2 else -math.inf
+    ratio = np.exp(log_y - log_mean)  # y_i / mean, finite
+    rel_se = float(np.std(ratio, ddof=1)) / math.sqrt(n)  # se / mean
+    half = float(stdtrit(n - 1, 0.5 + CI_LEVEL / 2.0)) * rel_se
+    return log_mean, log_mean - half, log_mean + half
+
+
+def clopper_pearson(n_failures: int, n: int, level: float = CI_LEVEL) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) interval (lo, hi) at confidence ``level`` of a failure probability from
+    ``n_failures`` = k failures in ``n`` rollouts drawn from the target: the beta quantiles ``B^-1(a/2; k, n - k + 1)``
+    and ``B^-1(1 - a/2; k + 1, n - k)``, a = 1 - level (Clopper & Pearson, Biometrika 26(4), 1934), by
+    ``scipy.special.betaincinv``: what ``scipy.stats.binomtest(...).proportion_ci(method="exact")`` computes, to its
+    root finder's 1e-7, without importing scipy.stats (0.8 s).
+
+    Raises:
+        ValueError: ``n`` < 1, ``n_failures`` outside 0..n, or ``level`` outside (0, 1).
+    """
+    from scipy.special import betaincinv
+
+    k, n = int(n_failures), int(n)
+    if n < 1 or not 0 <= k <= n or not 0.0 < level < 1.0:
+        raise ValueError(
+            f"clopper_pearson: need n >= 1, 0 <= failures <= n and a level in (0, 1), got {k} of {n} at " f"{level}"
+        )
+    a = 1.0 - level
+    lo = 0.0 if k == 0 else float(betaincinv(k, n - k + 1, a / 2.0))
+    hi = 1.0 if k == n else float(betaincinv(k + 1, n - k, 1.0 - a / 2.0))
+    return lo, hi
+
+
+def markov_lower_bound(log_estimates: np.ndarray, alpha: float = 1.0 - CI_LEVEL) -> float:
+    """A lower confidence bound of p at level 1 - ``alpha``, log (nats), from n independent runs of unbiased,
+    non-negative estimators of p (importance sampling with exact weights, splitting), their log estimates
+    ``log_estimates`` float64 [n] (nats): (log alpha + sum of the logs) / n, i.e. alpha^(1/n) times their geometric
+    mean. It needs no variance estimate and holds however heavy the weights' tail: E[prod X_i] = p^n, so
+    P(prod X_i >= t) <= p^n / t (Markov's inequality), and a p below the bound would make the product the runs gave
+    less likely than alpha. -inf when a run gave 0 or there is none. There is no such upper bound: an unbiased
+    estimator may miss most of p in every run.
+
+    Raises:
+        ValueError: alpha outside (0, 1).
+    """
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"markov_lower_bound: alpha must be in (0, 1), got {alpha}")
+    logs = np.asarray(log_estimates, dtype=np.float64)
+    if logs.size == 0 or np.any(np.isneginf(logs)):
+        return -math.inf
+    return float((math.log(alpha) + math.fsum(logs.tolist())) / logs.size)
+
+
+BET_FRACTIONS = 2.0 ** -np.arange(1, 31)
+"""The betting fractions lambda_j = 2^-j, j = 1..30, of :func:`betting_lower_bound`, fixed before any rollout is
+drawn: a run of n rollouts is best served by lambda ~ 1/n, so the grid serves runs of 2 to 10^9 rollouts."""
+
+BET_BIN_NATS = 0.01
+"""nats: :class:`BettingEvidence` rounds each log term down to a multiple of this before counting equal ones; a
+smaller term only lowers the wealth, so the bound stays valid (and at most 1 % lower)."""
+
+
+@dataclass(frozen=True, eq=False)
+class BettingEvidence:
+    """What :func:`betting_lower_bound` needs of a run's N terms X_i = 1[fail_i] w_i, kept small: the distinct values
+    of log X_i > -inf rounded down to :data:`BET_BIN_NATS` (``log_x`` float64 [U], nats), how many terms have each
+    (``counts`` int64 [U]), and N (``n``).
+
+    Built by :meth:`of`; the wealth of a fraction lambda does not depend on the terms' order, so the counts suffice.
+    """
+
+    log_x: np.ndarray
+    counts: np.ndarray
+    n: int
+
+    @classmethod
+    def of(cls, log_terms: np.ndarray) -> "BettingEvidence":
+        """From the log terms log X_i float64 [N] (nats; -inf for X_i = 0, a rollout that did not fail)."""
+        log_terms = np.asarray(log_terms, dtype=np.float64)
+        finite = log_terms[np.isfinite(log_terms)]
+        binned = np.floor(finite / BET_BIN_NATS) * BET_BIN_NATS
+        values, counts = np.unique(binned, return_counts=True)
+        return cls(values, counts.astype(np.int64), int(log_terms.size))
+
+    def log_wealth(self, log_m: float) -> float:
+        """log K(m) (nats) of the mixture of bettors against "E X <= m": K(m) = (1/J) sum_j prod_i (1 - lambda_j +
+        lambda_j X_i / m) over :data:`BET_FRACTIONS`, in log space; non-increasing in m."""
+        from scipy.special import logsumexp
+
+        lam = BET_FRACTIONS
+        log1m, loglam = np.log1p(-lam), np.log(lam)
+        zeros = self.n - int(self.counts.sum())
+        per = zeros * log1m
+        if self.log_x.size:
+            per = per + np.logaddexp(log1m[:, None], loglam[:, None] + (self.log_x - log_m)[None, :]) @ self.counts
+        return float(logsumexp(per)) - math.log(lam.size)
+
+    def lower_bound(self, alpha: float = 1.0 - CI_LEVEL) -> float:
+        """The smallest m whose wealth stays below 1 / ``alpha`` (:func:`betting_lower_bound`), natural log, to 1e-6
+        nats (rounded down); -inf with no positive term."""
+        if self.log_x.size == 0:
+            return -math.inf
+        target = -math.log(alpha)
+        hi = float(self.log_x.max())  # every factor <= 1 at m >= max X: K(hi) <= 1 < 1 / alpha
+        lo = hi - 64.0
+        while self.log_wealth(lo) < target:
+            lo -= 64.0
+        while hi - lo > 1e-6:
+            mid = 0.5 * (lo + hi)
+            if self.log_wealth(mid) >= target:
+                lo = mid
+            else:
+                hi = mid
+        return lo
+
+
+def betting_lower_bound(log_terms: np.ndarray, alpha: float = 1.0 - CI_LEVEL) -> float:
+    """A lower confidence bound of p at level 1 - ``alpha`` from a run's terms X_i = 1[fail_i] w_i, given as logs
+    ``log_terms`` float64 [N] (nats, -inf for 0), that holds however heavy the weights' tail: it needs only X_i >= 0
+    and E[X_i | the rollouts before i] = p, which exact importance weights p/q give under any proposal, adapted
+    between stages or not.
+
+    The bound is the smallest m that a mixture of bettors fails to reject (testing by betting: Waudby-Smith & Ramdas,
+    "Estimating means of bounded random variables by betting", JRSS B 86(1), 2024, Sec. 4, here for X >= 0 with no
+    upper bound). For each fraction lambda_j in :data:`BET_FRACTIONS`, K_j(m) = prod_i (1 - lambda_j + lambda_j X_i
+    / m) is a non-negative martingale with K_j(p) starting at 1 when m = p (each factor has conditional mean 1 and is
+    >= 1 - lambda_j > 0), and so is their mean K(m). Ville's inequality gives P(sup_n K(p) >= 1 / alpha) <= alpha, so
+    {m : K(m) < 1 / alpha} holds p with probability >= 1 - alpha, at every n at once (a run may stop on its data).
+    K is non-increasing in m, so that set is [bound, inf), found by bisection on log m. There is no such upper bound:
+    an unbiased estimator may miss most of p in every run.
+
+    Raises:
+        ValueError: ``alpha`` outside (0, 1).
+    """
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"betting_lower_bound: alpha must be in (0, 1), got {alpha}")
+    return BettingEvidence.of(log_terms).lower_bound(alpha)

@@ -1,0 +1,92 @@
+"""The sidecars (:class:`pemviz.io.rollout_format.RolloutMeta`) of a scene's rollout files: the braking scenario's
+(:func:`braking_meta`: its gap, ego and lead speed columns and the PEM's salient variables with their units, dt 0.05 s;
+Innes & Ramamoorthy 2022) and any other problem's (:func:`problem_meta`: its formula, signals, ranges, units and step).
+Which one a run writes is :func:`pemviz.io.run_rollouts.run_meta`'s choice.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+from pemviz.io.rollout_format import RolloutMeta
+from pemviz.scenarios.braking.problem import braking_formula
+from pemviz.scenarios.braking.simulator import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, OBSERVATION_NAMES, BrakingParams
+
+SALIENT_UNITS = {
+    "alpha": "rad",
+    "rot_y": "rad",
+    "dim_w": "m",
+    "dim_l": "m",
+    "dim_h": "m",
+    "loc_x": "m",
+    "loc_y": "m",
+    "loc_z": "m",
+}
+
+BRAKING_UNITS = {
+    "gap_m": "m",
+    "ego_speed_mps": "m/s",
+    "lead_speed_mps": "m/s",
+    "log_p": "nats",
+    "log_q": "nats",
+    **{f"salient_{k}": u for k, u in SALIENT_UNITS.items()},
+}
+
+
+def braking_meta(
+    formula: str | None = None,
+    *,
+    pem: str | None = None,
+    proposal: str | None = None,
+    provenance: Mapping[str, Any] | None = None,
+) -> RolloutMeta:
+    """The sidecar of braking-scenario rollouts (Innes & Ramamoorthy 2022): dt 0.05 s, signals d / v / vl, units.
+
+    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.scenarios.braking.problem.braking_formula`.
+    """
+    p = BrakingParams()
+    return RolloutMeta(
+        formula=formula or str(braking_formula(p)),
+        dt_s=p.dt_s,
+        signals=dict(BRAKING_SIGNALS),
+        signal_ranges=dict(BRAKING_SIGNAL_RANGES),
+        observation_columns=tuple(OBSERVATION_NAMES),
+        units=dict(BRAKING_UNITS),
+        pem=pem,
+        proposal=proposal,
+        window_m=p.braking_distance_m,
+        provenance=dict(provenance or {}),
+    )
+
+
+def problem_meta(
+    problem: Any,
+    formula: str | None = None,
+    *,
+    pem: str | None = None,
+    proposal: str | None = None,
+    provenance: Mapping[str, Any] | None = None,
+) -> RolloutMeta:
+    """The sidecar of a problem's rollouts (a :class:`pemviz.core.problems.Problem`): its formula, signals, signal
+    ranges, units and step; the objects and errors are filled in by the writer from the rollouts. A problem that does
+    not know its step (``dt_s`` None, e.g. the toys, whose steps are units of travel) is written with ``dt_s = 1`` and
+    the provenance's ``dt_s_unknown`` saying so: no estimate reads the step, only the impact speed of a failure.
+    """
+    provenance = dict(provenance or {})
+    if problem.dt_s is None:
+        provenance["dt_s_unknown"] = f"{problem.name} gave no step: dt_s = 1 stands for one step"
+    units = {problem.signals[k]: u for k, u in problem.units.items() if k in problem.signals}
+    window = {"window_m": float(problem.window)} if math.isfinite(problem.window) else {}
+    dt_s = 1.0 if problem.dt_s is None else float(problem.dt_s)
+    return RolloutMeta(
+        formula=formula or str(problem.formula),
+        dt_s=dt_s,
+        signals=dict(problem.signals),
+        signal_ranges=dict(problem.signal_ranges),
+        units={**units, "log_p": "nats", "log_q": "nats"},
+        pem=pem,
+        proposal=proposal,
+        provenance=provenance,
+        **window,
+    )
