@@ -189,18 +189,21 @@ class Splitting:
 
     def iterate(self) -> int:
         """One iteration: kill the particles at or above the level, branch their replacements; returns K_j."""
-        score, n = self.score, self.n
+        score, n, particles = self.score, self.n, self.particles
+        assert particles is not None, "iterate() before start()"
         killed = np.flatnonzero(score >= self.level)
         survivors = np.flatnonzero(score < self.level)
         parent = survivors[self.pick_rng.integers(survivors.size, size=killed.size)]
         at = np.argmax(self.running[parent] < self.level, axis=1)  # first step strictly below the level
         if self.scorer is None:
-            new = self.problem.branch(self.particles, parent, at, self.problem.target, self.rng)
+            branch = self.problem.branch
+            assert branch is not None  # AMS needs snapshot/restore (AdaptiveMultilevelSplitting checks it)
+            new = branch(particles, parent, at, self.problem.target, self.rng)
             new_running = running_score(self.problem, new)
         else:
-            new, graded = self.scorer.branch(self.particles, parent, at, self.rng)
+            new, graded = self.scorer.branch(particles, parent, at, self.rng)
             new_running = running_score(self.problem, new, graded, self.running[parent], at)
-        b = self.particles
+        b = particles
         self.particles = _replaced(b, killed, new)
         self.running = self.running.copy()
         self.running[killed] = new_running
@@ -216,6 +219,7 @@ class Splitting:
 
     def estimate(self) -> Estimate:
         """p_hat with its :data:`CI_LEVEL` interval, diagnostics and verdict (see :func:`ams_estimate`)."""
+        assert self.particles is not None, "estimate() before start()"
         return ams_estimate(
             self.problem, self.particles, self.running[:, -1] < 0.0, self.eve, self.log_prod, self.ratio_sum, self.stop
         )
@@ -363,6 +367,7 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         while not self.ams.stop and resampled < self.ams.n:
             self.check()
             resampled += self.ams.iterate()
+        assert self.ams.particles is not None  # started by stage 0's finish()
         return self.ams.particles
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:

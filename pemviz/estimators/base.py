@@ -447,7 +447,7 @@ class StageRollouts:
         chunk (:func:`alternative_log_weights`), or None where a chunk has none."""
         if not self.alternative_parts or any(part is None for part in self.alternative_parts):
             return None
-        log_w = np.concatenate(self.alternative_parts, axis=1)
+        log_w = np.concatenate([part for part in self.alternative_parts if part is not None], axis=1)
         _, failed, log_p = self.arrays()
         k = log_w.shape[0]
         return log_w, np.repeat(failed[None, :], k, axis=0), np.repeat(log_p[None, :], k, axis=0)

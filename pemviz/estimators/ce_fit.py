@@ -17,6 +17,7 @@ from pemviz.estimators.base import elite_counts
 
 if TYPE_CHECKING:
     import torch
+    from torch import Tensor  # inside :func:`recomputed_objective` the name ``torch`` is a local
 
 WeightMode = Literal["frozen", "recomputed"]
 
@@ -286,7 +287,7 @@ def recomputed_objective(
     mask_k = torch.zeros_like(mask_t)
     mask_k[:, :n_factors] = 1.0
 
-    def loss(log_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def loss(log_q: Tensor) -> tuple[Tensor, Tensor]:
         log_q_now = log_q.reshape(-1)[slot_t] * mask_t
         scaled = smoothing * (lp_t - log_q_now[:, :n_factors].sum(dim=1))
         w = torch.exp(scaled - scaled.max())
@@ -423,6 +424,7 @@ class EliteSteps:
         return rows, actions, log_w
 
     def _thin(self) -> None:
+        assert self.max_rows is not None  # thinned only above thin_above, set with max_rows
         rows, actions, log_w = self.arrays()
         top = float(log_w.max())
         uniq, counts = weighted_steps(rows[None], actions[None], np.exp(log_w - top)[None], self.max_rows, self.rng)

@@ -8,14 +8,19 @@ in the pool (``fit_weights = "mixture"``). :class:`MixtureWeights` holds these m
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from pemviz.core.detectors import Detector, action_log_prob, errors_log_density
+from pemviz.core.detectors import Detector, NoisyDetector, ScoredTarget, action_log_prob, errors_log_density
 from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.estimators.base import mixture_log_weight
+from pemviz.estimators.base import StagePlan, mixture_log_weight
+
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
+    from pemviz.core.sampling import Proposal
 
 
 class MixtureWeights:
@@ -23,16 +28,35 @@ class MixtureWeights:
     (``problem``, the planned stage ``_plan``, its scoring target ``_scored``, the proposal, the failure pool's samplers
     and log-probabilities) and the methods they call (``_around``, ``_smoothing``)."""
 
+    # the state of CrossEntropy these methods read (set by its __init__, :mod:`pemviz.estimators.cross_entropy`)
+    problem: Problem
+    proposal: Proposal | None
+    _plan: StagePlan | None
+    _scored: ScoredTarget | None
+    _seen: int
+    _pool_start: int | None
+    _stage_samplers: dict[int, tuple[tuple[int, Detector], ...]]
+    _pool_log_q: dict[object, np.ndarray]
+
+    if TYPE_CHECKING:  # CrossEntropy's methods these call
+
+        def _around(
+            self, mixture: tuple[tuple[int, Detector], ...], proposal: Proposal
+        ) -> tuple[tuple[int, Detector], ...]: ...
+
+        def _smoothing(self, gamma: float) -> float: ...
+
     def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
         """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]) for rollouts of the planned
         stage's mixture (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] (nats), from the
         components' log-probabilities the batch carries (:meth:`_with_parts`)."""
-        plan, pb = self._plan, self.problem
+        plan, pb, scored, log_q_parts = self._plan, self.problem, self._scored, batch.log_q_parts
+        assert plan is not None and scored is not None, "a mixture stage is planned (_open)"
+        assert log_q_parts is not None, "the batch has its components' log-probabilities (_with_parts)"
         log_p = (batch.log_p * mask).sum(axis=1)
-        extras = self._scored.extras
+        extras = scored.extras
         log_q = [
-            log_p if d is pb.target else (batch.log_q_parts[:, extras.index(d)] * mask).sum(axis=1)
-            for _, d in plan.mixture
+            log_p if d is pb.target else (log_q_parts[:, extras.index(d)] * mask).sum(axis=1) for _, d in plan.mixture
         ]
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
 
@@ -40,9 +64,11 @@ class MixtureWeights:
         """``batch`` (the planned mixture stage's next rollouts) with ``log_q_parts`` [N, K, T]: the log-probabilities
         of its events under the mixture's proposal components (:attr:`ScoredTarget.extras`), as the simulation asked
         them, or asked again where it could not keep them (Ray tasks; :meth:`_ask_again`)."""
+        scored = self._scored
+        assert scored is not None, "a mixture stage is planned (_open)"
         start, self._seen = self._seen, self._seen + batch.n
         m = batch.n_objects
-        taken = self._scored.take(batch.n, batch.n_steps, m)
+        taken = scored.take(batch.n, batch.n_steps, m)
         logits, target_logit = (self._ask_again(batch, start), None) if taken is None else taken
         detected = batch.detected
         parts = np.empty((batch.n, len(logits), batch.n_steps))
@@ -67,7 +93,7 @@ class MixtureWeights:
                 lq[differ] = action_log_prob(lg[differ], detected[differ])
             parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
         if batch.noise is not None:  # each component's density of the detected objects' measurement errors
-            for k, d in enumerate(self._scored.extras):
+            for k, d in enumerate(scored.extras):
                 parts[:, k] += errors_log_density(batch, d, self.problem.target)
         return dataclasses.replace(batch, log_q_parts=parts)
 
@@ -77,6 +103,8 @@ class MixtureWeights:
         rollouts of one mixture component, so that the proposal network sees the same rows and gives the same bits as it
         gave there."""
         plan, n, n_steps, m = self._plan, batch.n, batch.n_steps, batch.n_objects
+        assert plan is not None and self._scored is not None, "a mixture stage is planned (_open)"
+        assert self.proposal is not None, "a mixture stage comes after the pretraining fit"
         rebuilt = dict(
             zip(
                 (id(d) for _, d in plan.mixture),
@@ -115,7 +143,8 @@ class MixtureWeights:
         Cornuet, Marin, Mira & Robert, "Adaptive multiple importance sampling", Scand. J. Stat. 39(4), 2012;
         Owen & Zhou, "Safe and effective importance sampling", JASA 2000), over the steps that count (``counts``).
         Arguments as :meth:`EliteSteps.reweight` passes them."""
-        pb = self.problem
+        pb, plan, pool_start = self.problem, self._plan, self._pool_start
+        assert plan is not None and pool_start is not None, "the failure pool has started (CrossEntropy.finish)"
         ids, inverse = np.unique(rollout, return_inverse=True)
 
         def log_prob(key: object, detector: Detector) -> np.ndarray:
@@ -130,7 +159,7 @@ class MixtureWeights:
                 steps = todo[inverse]
                 step = np.where(counts[steps], action_log_prob(detector.detect_logit(obs[steps]), actions[steps]), 0.0)
                 if noise is not None:  # and its density of the detected objects' errors
-                    errors = detector if noise_names_of(detector) else pb.target
+                    errors = cast(NoisyDetector, detector if noise_names_of(detector) else pb.target)
                     hit = counts[steps] & actions[steps]
                     step = step + np.where(hit, errors.noise_log_prob(obs[steps], noise[steps]), 0.0)
                 known[ids[todo]] = np.bincount(inverse[steps], weights=step, minlength=ids.size)[todo]
@@ -138,9 +167,7 @@ class MixtureWeights:
 
         log_p = log_prob("target", pb.target)
         parts = [
-            (k, i, n, d)
-            for k in range(self._pool_start, self._plan.stage + 1)
-            for i, (n, d) in enumerate(self._stage_samplers[k])
+            (k, i, n, d) for k in range(pool_start, plan.stage + 1) for i, (n, d) in enumerate(self._stage_samplers[k])
         ]
         log_q = np.stack([log_p if d is pb.target else log_prob((k, i), d) for k, i, _, d in parts])
         shares = np.array([n for _, _, n, _ in parts], dtype=np.float64)

@@ -16,16 +16,25 @@ import copy
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 
 from pemviz.config import ExperimentConfig, whole_rollout_fit_refusal
 from pemviz.settings import settings_of
-from pemviz.core.detectors import Detector, ScoredTarget, StageSamplers, WindowDetector, defensive_logit, logit
+from pemviz.core.detectors import (
+    Detector,
+    NoisyDetector,
+    ScoredTarget,
+    StageSamplers,
+    WindowDetector,
+    defensive_logit,
+    logit,
+)
 from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.estimators.ce_fit import EliteSteps, ce_update, pretrain_proposal
+from pemviz.estimators.ce_fit import EliteSteps, WeightMode, ce_update, pretrain_proposal
 from pemviz.estimators.ce_mixture import MixtureWeights
 from pemviz.estimators.ce_plan import adaptive_run_plan
 from pemviz.estimators.base import (
@@ -188,6 +197,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         if k == 0:
             plan = StagePlan(0, "pretrain", cfg.pretrain_rollouts, self._pretrain_sampler())
         elif k <= cfg.n_stages:
+            assert self.sampler is not None, "the CE stages' sampler comes with the pretraining fit"
             if self.reached_failures:
                 self.pooled.append(k)
             plan = StagePlan(k, "ce", cfg.n_per_stage, self.sampler, mixture=self._mixture(cfg.n_per_stage))
@@ -201,6 +211,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                     self.problem.curve_grid, cfg.fit_rows, self.fit_rng, keep_observations=cfg.fit_weights == "mixture"
                 )
         elif k == cfg.n_stages + 1 and cfg.final_estimate != "last-stage":
+            assert self.sampler is not None, "the final batch's sampler comes with the pretraining fit"
             plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
         else:
             return None
@@ -216,6 +227,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         final = self.config.n_stages + 1
         if self._plan is None or self._plan.stage < final or final not in self.stages:
             raise RuntimeError("CrossEntropy.extend: the final batch has not been drawn")
+        assert self.sampler is not None  # fitted before the final batch
         self._added.append(self._plan.stage + 1)
         return self._open(StagePlan(self._plan.stage + 1, "final", int(n), self.sampler, mixture=self._mixture(int(n))))
 
@@ -234,6 +246,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             self._samplers.forget()  # the proposal was fitted since it last answered
         self._scored, self._seen = None, 0
         if plan.mixture:
+            assert self._samplers is not None, "a mixture stage comes after the pretraining fit"
             extras = tuple(dict.fromkeys(d for _, d in plan.mixture if d is not self.problem.target))
             self._scored = ScoredTarget(self._samplers.target, extras)
             plan = dataclasses.replace(plan, target=self._scored)
@@ -248,6 +261,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         cfg = self.config
         if cfg.target_share + cfg.plain_share == 0.0:
             return ()
+        assert self.plain_sampler is not None and self.sampler is not None, "set by the pretraining fit"
         # before the failure level the target's rollouts would not reach the stage's level: none are drawn
         n_p = int(round(cfg.target_share * n)) if self.reached_failures else 0
         n_q = int(round(cfg.plain_share * n))
@@ -256,11 +270,13 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         plan = self._plan
+        assert plan is not None, "observe() before a stage was planned"
         if plan.mixture:
             batch = self._with_parts(batch)
         if plan.kind == "pretrain":
             self._chunks.append(batch)
         elif plan.kind == "ce":
+            assert self._elites is not None and robustness is not None, "a CE stage ranks its rollouts"
             self._elites.add(batch, robustness)
             if self._steps is not None:  # failures of a stage at the failure level: only their fitted steps are kept
                 settled, index = self._elites.settle()
@@ -275,7 +291,9 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
 
     def finish(self) -> StageOutcome:
         plan, grid = self._plan, self.problem.curve_grid
+        assert plan is not None, "finish() before a stage was planned"
         if plan.kind == "final":
+            assert self.proposal is not None  # fitted before the final batch
             outcome = self.stages[plan.stage].failures_outcome(self.proposal.curve(grid))
         else:
             if plan.kind == "pretrain":
@@ -288,14 +306,16 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 )
                 self._pretrain(batch)
             else:
-                batch, r, index = self._elites.candidates()
-                gamma, n_elites, rate = self._ce_stage(batch, r, index, self._elites.gamma(), plan.n)
+                assert self._elites is not None  # opened with the CE stage (next_stage)
+                kept, r, index = self._elites.candidates()
+                gamma, n_elites, rate = self._ce_stage(kept, r, index, self._elites.gamma(), plan.n)
                 if self.config.fit_all_failures and gamma <= 0.0 and self._steps is not None:
                     self._failure_steps = self._steps
                     self._index_offset += plan.n
                     self._pool_start = plan.stage if self._pool_start is None else self._pool_start
                 self._elites = self._steps = None
             log_w, failed, log_p = self.stages[plan.stage].arrays()
+            assert self.proposal is not None  # fitted by the pretraining stage
             outcome = StageOutcome(gamma, n_elites, estimate(log_w, failed, log_p), self.proposal.curve(grid), rate)
         if self.problem.verdict_cap is not None:  # each stage's row too: its weights miss what the final one's do
             outcome = dataclasses.replace(outcome, estimate=outcome.estimate.at_most(self.problem.verdict_cap))
@@ -340,6 +360,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         return self.problem.verdict_cap  # what the scenario knows its proposal misses (Problem.verdict_cap)
 
     def _result(self) -> tuple[Estimate, tuple[int, ...]]:
+        assert self._last is not None, "result() before a stage was finished"
         stage, est = self._last
         finals = [k for k in (self.config.n_stages + 1, *self._added) if k in self.stages]
         pooled = self.config.final_estimate == "pooled" and self.reached_failures and self.pooled
@@ -422,6 +443,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     def _frozen_samplers(self, plan: StagePlan) -> tuple[tuple[int, Detector], ...]:
         """A CE stage's samplers, (rollouts, detector) each, around a copy of the current proposal (later fits
         change the proposal in place)."""
+        assert self.sampler is not None and self.proposal is not None, "set by the pretraining fit"
         return self._around(plan.mixture or ((plan.n, self.sampler),), copy.deepcopy(self.proposal))
 
     def _smoothing(self, gamma: float) -> float:
@@ -436,24 +458,27 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
 
     def _add_steps(self, batch: RolloutBatch, index: np.ndarray, gamma: float) -> None:
         """Reduce elite rollouts to their fitted object events (:class:`EliteSteps`): inputs, actions, alpha log w_i."""
+        plan, elite_steps, proposal = self._plan, self._steps, self.proposal
+        assert plan is not None and elite_steps is not None and proposal is not None, "a CE stage gathers its steps"
         mask = self.step_mask(batch, gamma)  # [N, T, M]
+        assert mask is not None  # fitted steps are kept only with a step mask (next_stage)
         counted = np.arange(batch.n_steps) < batch.n_steps - 1
         steps = mask.any(axis=2) & counted  # the steps whose factors enter each weight
-        if self._plan.mixture:
+        if plan.mixture:
             frozen_log_w = self._mixture_log_weight(batch, steps)
         else:
             frozen_log_w = ((batch.log_p - batch.log_q) * steps).sum(axis=1)
         rows, detected = batch.events()
         smoothed = self._smoothing(gamma) * frozen_log_w
-        self._steps.add(
+        elite_steps.add(
             index + self._index_offset,
             batch,
-            self.proposal.features(rows),
+            proposal.features(rows),
             mask.reshape(batch.n, -1),
             smoothed,
             (mask & counted[None, :, None]).reshape(batch.n, -1),
         )
-        if batch.noise is not None and self.proposal.noise_shift is not None:  # the detected objects' errors
+        if batch.noise is not None and proposal.noise_shift is not None:  # the detected objects' errors
             hit = mask.reshape(batch.n, -1) & detected
             self._noise_data.append(
                 (
@@ -463,16 +488,17 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 )
             )
 
-    def _fit_noise(self, fit: dict) -> None:
+    def _fit_noise(self, fit: dict[str, Any]) -> None:
         """The CE update of the proposal's error head on the errors of the detected objects of this stage's elites
         (:func:`pemviz.core.torch_fits.fit_noise_shift`), weighted as their rollouts in the detection fit."""
         data, self._noise_data = self._noise_data, []
+        assert self.proposal is not None  # fitted by the pretraining stage
         if self.proposal.noise_shift is None or not data or not sum(len(d[0]) for d in data):
             return
         from pemviz.core.torch_fits import fit_noise_shift  # torch: a noisy target's runs only
 
         rows, noise, log_w = (np.concatenate(a) for a in zip(*data, strict=False))
-        target = self.problem.target
+        target = cast(NoisyDetector, self.problem.target)  # the errors' data come from a noisy target's rollouts
         loc_p, log_scale_p = target.noise_params(rows)
         fit_noise_shift(
             self.proposal,
@@ -498,13 +524,14 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         :class:`EliteCandidates`, of its ``n``) and the proposal refitted to all elites (in place); returns
         (gamma, elites, their detection rate per bin of the curve grid [G])."""
         cfg, proposal, grid = self.config, self.proposal, self.problem.curve_grid
+        assert proposal is not None and self._elites is not None, "a CE stage comes after the pretraining fit"
         self.reached_failures = self.reached_failures or gamma <= 0.0  # latched: the pool's N is fixed once it starts
         elite = robustness <= gamma
         if cfg.elite_ties == "random":
             elite = break_ties(robustness, gamma, cfg.quantile_level, self.tie_rng, n, settled=self._elites.n_settled)
         self.check()
         epochs = cfg.ce_epochs if cfg.fit == "adam" else cfg.fit_max_steps
-        fit = dict(
+        fit: dict[str, Any] = dict(
             epochs=epochs,
             lr=cfg.learning_rate,
             check=self.check,
@@ -522,6 +549,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             self._steps.fit(proposal, **fit)
             self._fit_noise(fit)
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
+        assert batch is not None  # without fitted steps none settled: the elites are all kept (EliteCandidates)
         if batch.n_objects != 1:
             raise ValueError(whole_rollout_fit_refusal(cfg, batch.n_objects))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch, gamma))
@@ -533,7 +561,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             batch.log_q,
             elite,
             smoothing=self._smoothing(gamma),
-            weights=cfg.weights,
+            weights=cast(WeightMode, cfg.weights),
             step_mask=mask,
             **fit,
         )
@@ -565,6 +593,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """(the proposal's features of every object event [N, S(, k)], the detections [N, S], ``mask`` [N, S] or None),
         S = T M, events in order (:meth:`~pemviz.core.rollouts.RolloutBatch.events`)."""
+        assert self.proposal is not None  # fitted (or created, for its own pretraining) before
         rows, detected = batch.events()
         return self.proposal.features(rows), detected, None if mask is None else mask.reshape(batch.n, -1)
 

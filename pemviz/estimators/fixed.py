@@ -54,6 +54,7 @@ class FixedSampler:
     def extend(self, n: int) -> StagePlan:
         """``n`` more rollouts from the same detector as the next stage, pooled with the others in :meth:`result`
         (every rollout alike: they are i.i.d. draws of the same q)."""
+        assert self._stage is not None, "extend() before the planned batch"
         return self._open(self._stage + 1, int(n))
 
     def _open(self, stage: int, n: int) -> StagePlan:
@@ -77,14 +78,16 @@ class FixedSampler:
         return "rollouts", tuple(float(x) for x in sizes / sizes.sum())
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
+        assert self._stage is not None, "observe() before a stage was planned"
         return self.stages[self._stage].add(self.problem, batch, failed, self.until_failure)
 
     def finish(self) -> StageOutcome:
+        assert self._stage is not None, "finish() before a stage was planned"
         self._outcome = self.stages[self._stage].failures_outcome(np.full(self.problem.curve_grid.size, np.nan))
         return self._outcome
 
     def result(self) -> tuple[Estimate, tuple[int, ...]]:
-        assert self._outcome is not None, "result() before the batch was finished"
+        assert self._outcome is not None and self._stage is not None, "result() before the batch was finished"
         if len(self.stages) == 1:
             return self._outcome.estimate, (self._stage,)
         return pooled_estimate(list(self.stages.values())), tuple(self.stages)

@@ -104,7 +104,7 @@ class LookAheadScore:
         alive = np.minimum.accumulate(step_robustness(p, batch), axis=1) >= 0.0
         near = np.ones((n, t_end), bool)
         if batch.objects is not None and math.isfinite(p.window):
-            near = (batch.objects[:, :, :, 0] <= p.window).any(axis=2)
+            near = np.any(batch.objects[:, :, :, 0] <= p.window, axis=2)
         for t in self.scored_steps(t_end):
             rows = np.flatnonzero((t > first) & alive[:, t] & near[:, t])
             if not rows.size:

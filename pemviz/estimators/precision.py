@@ -150,6 +150,7 @@ class PrecisionTarget:
             want = decision_batch_size(est, self.inner.final_rollouts(), self.requirement.log_threshold)
         else:
             target, width = self.config.rel_error, est.rel_half_width
+            assert target is not None  # the stop rule is rel_error without a requirement (__init__)
             if width <= target and est.interval_backed:  # a narrow interval the weights do not back is no target
                 self.stop = (
                     f"target reached: the interval's relative half-width {width:.3g} <= {target:g} after "
@@ -177,6 +178,7 @@ class PrecisionTarget:
                     f"{self.n_simulations:,} simulations)"
                 )
                 return None
+            assert target is not None  # no decision, so no requirement: the target is rel_error's
             width = est.rel_half_width
             shown = (
                 "no failure yet"
