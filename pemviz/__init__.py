@@ -6,6 +6,7 @@ import importlib.machinery as _machinery
 import importlib.util as _util
 import os as _os
 import sys as _sys
+import types as _types
 
 __version__ = "0.1.0"
 
@@ -40,7 +41,7 @@ class _RegisterWhenGymnasiumLoads(_abc.MetaPathFinder):
             return spec
         exec_module = spec.loader.exec_module
 
-        def exec_then_register(module: object) -> None:
+        def exec_then_register(module: _types.ModuleType) -> None:
             exec_module(module)
             _register_env()
 

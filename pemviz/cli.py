@@ -130,11 +130,12 @@ def _interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
     """The Ctrl-C / SIGTERM behind ``exc``: itself, or one it was raised from (an import machinery or a
     library can wrap it, e.g. ``RuntimeError`` from ``__set_name__``)."""
     seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return exc
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return cur
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
     return None
 
 

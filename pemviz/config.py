@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from pemviz.core.requirement import RequirementError, parse_requirement
 from pemviz.settings import SETTINGS
@@ -321,7 +321,8 @@ class ExperimentConfig:
                 f"method {method.name} has no final batch to add to; use it with method "
                 f"{', '.join(extensible_names())}",
             )
-            n_objects = dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS.get(self.scenario, 1))
+            # a whole number: check_pairs checked the value's kind (the field's, an int)
+            n_objects = cast(int, dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS.get(self.scenario, 1)))
             conflict = method.conflict(self, n_objects)
             if conflict is not None:
                 need(False, *conflict)

@@ -98,6 +98,8 @@ class BrakingEnv(gym.Env):
     """
 
     metadata = {"render_modes": []}
+    observation_space: gym.spaces.Box
+    action_space: gym.spaces.Box
 
     def __init__(self, detector: Any = None, pem: Any = None, params: Any = None) -> None:
         from pemviz.core.detectors import PEMDetector

@@ -6,6 +6,7 @@ failure one line naming the plugin. No I/O beyond importing; no scenario, no met
 
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 from typing import Any, Callable
@@ -54,11 +55,14 @@ def load_plugins(
 
     for module in (m.strip() for m in os.environ.get(variable, "").split(",")):
         if module:
-            load(f"{variable} module {module}", lambda module=module: importlib.import_module(module))
-    from importlib.metadata import entry_points
+            load(f"{variable} module {module}", functools.partial(importlib.import_module, module))
+    from importlib.metadata import EntryPoint, entry_points
+
+    def register_entry_point(ep: EntryPoint) -> None:
+        register_object(ep.load())
 
     for ep in entry_points(group=group):
-        load(f"entry point {ep.name} ({ep.value}) of group {group}", lambda ep=ep: register_object(ep.load()))
+        load(f"entry point {ep.name} ({ep.value}) of group {group}", functools.partial(register_entry_point, ep))
 
 
 class Plugins:

@@ -241,6 +241,7 @@ class Setting:
             )
         if not (_is_int(value) if self.integer else _is_real(value)):
             return False
+        assert isinstance(value, (int, float))  # just checked: a whole or a real number
         too_low = value <= self.lo if self.lo_open else value < self.lo
         too_high = value >= self.hi if self.hi_open else value > self.hi
         return not (too_low or too_high)

@@ -13,7 +13,8 @@ from pemviz.core.detectors import ConstantDetector, action_log_prob
 from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.core.sampling import Proposal
-from pemviz.estimators.cross_entropy import CrossEntropy, DefensiveDetector, break_ties
+from pemviz.estimators.ce_fit import break_ties
+from pemviz.estimators.cross_entropy import CrossEntropy, DefensiveDetector
 from pemviz.estimators.fixed import FixedSampler
 from pemviz.estimators import build_estimator
 from pemviz.estimators.base import failure_steps, log_weight

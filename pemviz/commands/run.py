@@ -168,7 +168,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     return ExperimentConfig(**fields)
 
 
-def scenario_params(scenario: str, texts: list[str]) -> tuple[tuple[str, float | int | bool], ...]:
+def scenario_params(scenario: str, texts: list[str]) -> tuple[tuple[str, float | int | bool | str], ...]:
     """The ``(name, value)`` pairs of ``--param NAME=VALUE`` flags (:mod:`pemviz.scenarios.parameters`): each value
     parsed by its field's type and the scenario's dataclass built from them (its range check).
 

@@ -13,7 +13,7 @@ import numpy as np
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.fit_settings import EXACT
 from pemviz.core.sampling import Proposal, fit_proposal
-from pemviz.estimators.base import elite_counts
+from pemviz.estimators.base import elite_count, elite_counts
 
 if TYPE_CHECKING:
     import torch
@@ -466,3 +466,26 @@ class EliteSteps:
         return fit_elite_steps(
             proposal, rows, actions, log_w, self.log_w_max, n_steps=self.n_steps if self.thinned else None, **kwargs
         )
+
+
+def break_ties(
+    robustness: np.ndarray,
+    gamma: float,
+    quantile_level: float,
+    rng: np.random.Generator,
+    n: int | None = None,
+    settled: int = 0,
+) -> np.ndarray:
+    """bool [M]: every rollout below gamma plus randomly chosen ties at gamma up to ceil((1 - sigma) N) elites.
+
+    At gamma = 0 (the failure threshold) this keeps all failures (r < 0) and admits a non-failing rollout
+    with r = 0 only to reach ceil((1 - sigma) N) elites. ``n``: N, the stage's rollouts, when ``robustness``
+    holds only some of them (:class:`~pemviz.estimators.base.EliteCandidates`: every one at or below gamma);
+    default M. ``settled``: rollouts below gamma already taken as elites and not in ``robustness``.
+    """
+    k = elite_count(robustness.size if n is None else n, quantile_level)
+    below = robustness < gamma
+    ties = np.flatnonzero(robustness == gamma)
+    elite = below.copy()
+    elite[rng.permutation(ties)[: max(0, k - int(below.sum()) - settled)]] = True
+    return elite

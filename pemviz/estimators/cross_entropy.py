@@ -34,7 +34,7 @@ from pemviz.core.detectors import (
 from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.estimators.ce_fit import EliteSteps, WeightMode, ce_update, pretrain_proposal
+from pemviz.estimators.ce_fit import EliteSteps, WeightMode, break_ties, ce_update, pretrain_proposal
 from pemviz.estimators.ce_mixture import MixtureWeights
 from pemviz.estimators.ce_plan import adaptive_run_plan
 from pemviz.estimators.base import (
@@ -45,7 +45,6 @@ from pemviz.estimators.base import (
     StagePlan,
     StageRollouts,
     detect_rate,
-    elite_count,
     elite_counts,
     failure_steps,
     pooled_estimate,
@@ -81,29 +80,6 @@ class DefensiveDetector:
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """log p_mix(detect) - log p_mix(miss), float64 [N], in log space throughout (:func:`defensive_logit`)."""
         return defensive_logit(self.detector.detect_logit(obs), self.eps)
-
-
-def break_ties(
-    robustness: np.ndarray,
-    gamma: float,
-    quantile_level: float,
-    rng: np.random.Generator,
-    n: int | None = None,
-    settled: int = 0,
-) -> np.ndarray:
-    """bool [M]: every rollout below gamma plus randomly chosen ties at gamma up to ceil((1 - sigma) N) elites.
-
-    At gamma = 0 (the failure threshold) this keeps all failures (r < 0) and admits a non-failing rollout
-    with r = 0 only to reach ceil((1 - sigma) N) elites. ``n``: N, the stage's rollouts, when ``robustness``
-    holds only some of them (:class:`~pemviz.estimators.base.EliteCandidates`: every one at or below gamma);
-    default M. ``settled``: rollouts below gamma already taken as elites and not in ``robustness``.
-    """
-    k = elite_count(robustness.size if n is None else n, quantile_level)
-    below = robustness < gamma
-    ties = np.flatnonzero(robustness == gamma)
-    elite = below.copy()
-    elite[rng.permutation(ties)[: max(0, k - int(below.sum()) - settled)]] = True
-    return elite
 
 
 class CrossEntropy(OwnsSettings, MixtureWeights):

@@ -23,7 +23,7 @@ import numpy as np
 
 from pemviz.pem.encoding import fit_norm_stats
 from pemviz.pem.network import PEM, PemFormatError
-from pemviz.pem.store import _load_payload, _pem_from_payload, _pem_payload, _save, assets_dir
+from pemviz.pem.store import AnyPEM, _load_payload, _pem_from_payload, _pem_payload, _save, assets_dir
 
 ENSEMBLE_TAG = "pemviz-pem-ensemble"
 ENSEMBLE_VERSION = 1
@@ -117,7 +117,7 @@ def save_ensemble(
     return _save(payload, path)
 
 
-def load_ensemble(path: str | os.PathLike[str]) -> list[PEM]:
+def load_ensemble(path: str | os.PathLike[str]) -> list[AnyPEM]:
     """The members of an ensemble file.
 
     Raises:

@@ -378,6 +378,12 @@ class PEM:
             raise PemFormatError(
                 f"PEM {self.name!r}: weights do not fit hidden={self.hidden}, " f"batch_norm={self.batch_norm}: {exc}"
             ) from None
+        # derived from the fields, set on the frozen instance (not fields)
+        self._grid: GridMLP
+        self._one_hot: OneHotColumns
+        self._gap_knots: np.ndarray
+        self._gap_slopes: np.ndarray
+        self._gap_intercepts: np.ndarray
         object.__setattr__(self, "_layers", layers)
         object.__setattr__(self, "_grid", GridMLP.of(layers))
         object.__setattr__(self, "_one_hot", self._grid.one_hot(ONE_HOT_GROUPS))
@@ -449,7 +455,7 @@ class PEM:
     # -- evaluation -----------------------------------------------------------------------------
     def _mlp(self, x: np.ndarray) -> np.ndarray:
         """Logits float64 ``[N]`` of encoded features ``[N, 14]`` (folded layers, ReLU between)."""
-        out = self._grid(x)[:, 0]  # type: ignore[attr-defined]
+        out = self._grid(x)[:, 0]
         return out / self.temperature if self.temperature != 1.0 else out
 
     def features(self, raw_inputs: np.ndarray) -> np.ndarray:
@@ -466,7 +472,7 @@ class PEM:
     def logit_codes(self, codes: SalientCodes) -> np.ndarray:
         """:meth:`logit_features` of ``codes.features()``, bit for bit, float64 ``[N]``, computed from the compact
         encoding (:func:`~pemviz.pem.encoding.salient_codes`)."""
-        out = self._grid.of_codes(codes, self._one_hot)[:, 0]  # type: ignore[attr-defined]
+        out = self._grid.of_codes(codes, self._one_hot)[:, 0]
         return out / self.temperature if self.temperature != 1.0 else out
 
     def logit(self, raw_inputs: np.ndarray) -> np.ndarray:
@@ -499,8 +505,8 @@ class PEM:
             float64 logits of the same shape as ``gap_m``.
         """
         gap = np.asarray(gap_m, dtype=np.float64)
-        piece = np.searchsorted(self._gap_knots, gap)  # type: ignore[attr-defined]
-        return self._gap_slopes[piece] * gap + self._gap_intercepts[piece]  # type: ignore[attr-defined]
+        piece = np.searchsorted(self._gap_knots, gap)
+        return self._gap_slopes[piece] * gap + self._gap_intercepts[piece]
 
     def prob_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
         """p(detect) of the lead car at a gap, float64, shape of ``gap_m`` (sigmoid of :meth:`logit_at_gap`)."""

@@ -30,7 +30,7 @@ import numpy as np
 
 from pemviz.pem.camera import MIN_RANGE_M, box_errors_to_metric
 from pemviz.pem.encoding import N_FEATURES, ONE_HOT_GROUPS, NormStats, SalientCodes, encode_salient, fit_norm_stats
-from pemviz.pem.network import GridMLP, PemFormatError, as_arrays, fold_state_dict
+from pemviz.pem.network import GridMLP, OneHotColumns, PemFormatError, as_arrays, fold_state_dict
 from pemviz.pem.training import fit_network
 
 NOISE_DIMS = ("range", "lateral")
@@ -186,16 +186,18 @@ class NoisePEM(NoiseModel):
         w, b = layers[-1]  # outputs in target units: loc * scale, log_scale + log(scale)
         gain = np.concatenate([scale, np.ones(2)])
         layers[-1] = (w * gain[:, None], b * gain + np.concatenate([np.zeros(2), np.log(scale)]))
+        self._grid: GridMLP  # derived from the fields, set on the frozen instance (not fields)
+        self._one_hot: OneHotColumns
         object.__setattr__(self, "_layers", tuple(layers))
         object.__setattr__(self, "_grid", GridMLP.of(layers))
         object.__setattr__(self, "_one_hot", self._grid.one_hot(ONE_HOT_GROUPS))
 
     def noise_params(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out = self._grid(_check_features(features))  # type: ignore[attr-defined]
+        out = self._grid(_check_features(features))
         return out[:, :2], out[:, 2:]
 
     def noise_params_codes(self, codes: SalientCodes) -> tuple[np.ndarray, np.ndarray]:
-        out = self._grid.of_codes(codes, self._one_hot)  # type: ignore[attr-defined]
+        out = self._grid.of_codes(codes, self._one_hot)
         return out[:, :2], out[:, 2:]
 
 
@@ -217,11 +219,12 @@ class HomoscedasticNoise(NoiseModel):
             if value.shape != shape or not np.all(np.isfinite(value)):
                 raise ValueError(f"homoscedastic noise {name} must be finite of shape {shape}, got {value.shape}")
             object.__setattr__(self, name, value)
+        self._grid: GridMLP  # derived from the fields, set on the frozen instance (not a field)
         object.__setattr__(self, "_grid", GridMLP.of(((self.coef.T, self.intercept),)))
 
     def noise_params(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = _check_features(features)
-        return self._grid(x), np.broadcast_to(self.log_scale, (x.shape[0], 2)).copy()  # type: ignore[attr-defined]
+        return self._grid(x), np.broadcast_to(self.log_scale, (x.shape[0], 2)).copy()
 
 
 # ------------------------------------------------------------------------------------------------ data

@@ -127,7 +127,15 @@ class SalientDetector:
     def __post_init__(self) -> None:
         if (self.noise is None) != (not self.noise_names):
             raise ValueError("SalientDetector: give the noise model and its error names together")
+        self._step: _Step | None  # the kept step of _evaluate (not a field: set by object.__setattr__)
         object.__setattr__(self, "_step", None)
+
+    @property
+    def _noise(self) -> NoiseModel:
+        """The noise PEM, which only a detector with one (``noise_names``) is asked about."""
+        if self.noise is None:
+            raise AttributeError("SalientDetector: no noise model (noise=None): detections measure exactly")
+        return self.noise
 
     def __getstate__(self) -> dict[str, Any]:
         """The fields without the kept step (a copy sent to another process starts with none)."""
@@ -153,7 +161,7 @@ class SalientDetector:
 
     def _shares_encoding(self) -> bool:
         """Whether the noise head encodes the salient variables as the detection PEM does (same z-score statistics)."""
-        a, b = self.detect.norm, self.noise.norm
+        a, b = self.detect.norm, self._noise.norm
         return a is b or (np.array_equal(a.mean, b.mean) and np.array_equal(a.std, b.std))
 
     def _evaluate(self, rows: np.ndarray) -> _Step:
@@ -202,28 +210,29 @@ class SalientDetector:
 
     @property
     def noise_family(self) -> str:
-        return self.noise.family
+        return self._noise.family
 
     @property
     def noise_df(self) -> np.ndarray | None:
-        return self.noise.df
+        return self._noise.df
 
     def noise_params(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(loc [R, D], log_scale [R, D]) of the noise PEM at the rows' salient variables (metres; log metres)."""
-        return self.noise.noise_params(self.noise.features(self._raw(rows)))
+        return self._noise.noise_params(self._noise.features(self._raw(rows)))
 
     def _noise_params(self, codes: SalientCodes) -> tuple[np.ndarray, np.ndarray]:
-        if type(self.noise) is NoisePEM:
-            return self.noise.noise_params_codes(codes)
-        return self.noise.noise_params(codes.features())
+        noise = self._noise
+        if type(noise) is NoisePEM:
+            return noise.noise_params_codes(codes)
+        return noise.noise_params(codes.features())
 
     def noise_from_uniforms(self, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Errors [R, D] (metres) from uniforms [R, D] by the noise PEM's inverse CDF."""
-        return noise_quantile(self.noise.family, self.noise.df, *self.noise_params(rows), u)
+        return noise_quantile(self._noise.family, self._noise.df, *self.noise_params(rows), u)
 
     def noise_log_prob(self, rows: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """log p_noise(errors | salient variables), float64 [R] (nats)."""
-        return noise_log_density(self.noise.family, self.noise.df, *self.noise_params(rows), noise)
+        return noise_log_density(self._noise.family, self._noise.df, *self.noise_params(rows), noise)
 
     def noise_draw(self, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The errors of the rows ``hit`` and their log density, the noise head evaluated once: exactly
@@ -257,9 +266,9 @@ class SalientDetector:
             else:
                 loc, log_scale = self._noise_params(kept.codes.take(which))
         else:
-            loc, log_scale = self.noise.noise_params(self.noise.features(self._raw(rows)[hit]))
-        errors = noise_quantile(self.noise.family, self.noise.df, loc, log_scale, u)
-        return errors, noise_log_density(self.noise.family, self.noise.df, loc, log_scale, errors)
+            loc, log_scale = self._noise.noise_params(self._noise.features(self._raw(rows)[hit]))
+        errors = noise_quantile(self._noise.family, self._noise.df, loc, log_scale, u)
+        return errors, noise_log_density(self._noise.family, self._noise.df, loc, log_scale, errors)
 
 
 @dataclass(frozen=True)

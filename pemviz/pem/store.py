@@ -18,7 +18,7 @@ import os
 from collections.abc import Callable, Mapping
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 
@@ -373,11 +373,21 @@ def _noise_payload(model: NoiseModel) -> dict[str, Any]:
     return payload
 
 
+class _NoiseFields(TypedDict):
+    """The fields every noise PEM shares (:class:`pemviz.pem.noise.NoiseModel`)."""
+
+    name: str
+    norm: NormStats
+    family: str
+    df: np.ndarray | None
+    metadata: dict[str, Any]
+
+
 def _noise_from_payload(payload: Mapping[str, Any], p: Path) -> NoiseModel:
     """The noise PEM of a payload of :func:`_noise_payload` read from ``p``; raises PemFormatError."""
     kind = payload.get("kind")
     try:
-        common = {
+        common: _NoiseFields = {
             "name": str(payload["name"]),
             "norm": NormStats(mean=_array(payload["norm_mean"]), std=_array(payload["norm_std"])),
             "family": str(payload["family"]),
@@ -392,7 +402,12 @@ def _noise_from_payload(payload: Mapping[str, Any], p: Path) -> NoiseModel:
                 target_scale=_array(payload["target_scale"]),
             )
         if kind == HomoscedasticNoise.kind:
-            return HomoscedasticNoise(**common, **{k: _array(payload[k]) for k in ("coef", "intercept", "log_scale")})
+            return HomoscedasticNoise(
+                **common,
+                coef=_array(payload["coef"]),
+                intercept=_array(payload["intercept"]),
+                log_scale=_array(payload["log_scale"]),
+            )
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise PemFormatError(f"{p}: damaged noise PEM file ({exc!r})") from None
     raise PemFormatError(f"{p}: unknown noise PEM kind {kind!r} (known: {NoisePEM.kind}, {HomoscedasticNoise.kind})")

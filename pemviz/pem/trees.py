@@ -87,10 +87,17 @@ class TreePEM:
         object.__setattr__(self, "baseline", float(self.baseline))
         # Leaves point to themselves so that a fixed number of steps lands every row on its leaf.
         idx = np.arange(m)
+        # derived from the fields, set on the frozen instance (not fields)
+        self._left: np.ndarray
+        self._right: np.ndarray
+        self._feature: np.ndarray
+        self._depth: int
+        self._gap_z_thresholds: np.ndarray
+        self._gap_values: np.ndarray
         object.__setattr__(self, "_left", np.where(internal, arrays["left"], idx))
         object.__setattr__(self, "_right", np.where(internal, arrays["right"], idx))
         object.__setattr__(self, "_feature", np.where(internal, arrays["feature"], 0))
-        object.__setattr__(self, "_depth", _max_depth(arrays["roots"], self._left, self._right, internal))  # type: ignore[attr-defined]
+        object.__setattr__(self, "_depth", _max_depth(arrays["roots"], self._left, self._right, internal))
         # Braking table: the loc_z thresholds, and the logit on each step (represented by its right end,
         # which belongs to it since the trees go left on <=).
         z_thr = np.unique(arrays["threshold"][internal & (arrays["feature"] == BRAKING_Z_FEATURE)])
@@ -113,9 +120,9 @@ class TreePEM:
             xs = x[start : start + chunk]
             node = np.broadcast_to(self.roots, (xs.shape[0], self.roots.shape[0])).copy()  # [n, T]
             rows = np.arange(xs.shape[0])[:, None]
-            for _ in range(self._depth):  # type: ignore[attr-defined]
-                go_left = xs[rows, self._feature[node]] <= self.threshold[node]  # type: ignore[attr-defined]
-                node = np.where(go_left, self._left[node], self._right[node])  # type: ignore[attr-defined]
+            for _ in range(self._depth):
+                go_left = xs[rows, self._feature[node]] <= self.threshold[node]
+                node = np.where(go_left, self._left[node], self._right[node])
             out[start : start + chunk] = self.baseline + self.value[node].sum(axis=1)
         return out
 
@@ -134,7 +141,7 @@ class TreePEM:
         comparisons, looked up in the precomputed step table.
         """
         zn = braking_z_scored(gap_m, self.norm)
-        return self._gap_values[np.searchsorted(self._gap_z_thresholds, zn, side="left")]  # type: ignore[attr-defined]
+        return self._gap_values[np.searchsorted(self._gap_z_thresholds, zn, side="left")]
 
     def prob_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
         """p(detect) at ``gap_m`` (sigmoid of :meth:`logit_at_gap`), float64, shape of ``gap_m``."""

@@ -21,16 +21,22 @@ import functools
 import math
 import re
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Iterable, Mapping, Union
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Union, cast
 
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.settings import SCENARIOS, scenario_names
 
 if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
     from pemviz.scenarios.cut_in.scenario import CutInParams
 
 Value = Union[float, int, bool]
 """A parameter's value: a float, an int or a bool (the field's type)."""
+
+PairValue = Union[float, int, bool, str]
+"""A value of a ``(name, value)`` pair of ``scenario_params``: a :data:`Value`, or for a parameter drawn per rollout
+the text ``"~" + its distribution`` (:func:`pemviz.scenarios.odd.odd_value`)."""
 
 CUT_IN_SETTINGS: dict[str, str] = {"cut-in": "moderate", "cut-in-rare": "rare"}
 """The cut-in scenarios and the rarity setting each starts from
@@ -120,7 +126,7 @@ def unit_of(name: str) -> str:
     return next((unit for suffix, unit in UNIT_SUFFIXES if name.endswith(suffix)), "")
 
 
-def default_params(scenario: str) -> BrakingParams | CutInParams:
+def default_params(scenario: str) -> BrakingParams | CutInParams | DataclassInstance | None:
     """The params dataclass of ``scenario`` (one of :data:`pemviz.settings.SCENARIOS`, or another registered one:
     :mod:`pemviz.scenarios.registry`) at its defaults; None for a registered scenario without parameters.
 
@@ -138,7 +144,7 @@ def default_params(scenario: str) -> BrakingParams | CutInParams:
     raise ParameterError(f"unknown scenario {scenario!r}; use one of {', '.join(scenario_names())}")
 
 
-_REGISTERED_DEFAULTS: dict[str, Callable[[], object]] = {}
+_REGISTERED_DEFAULTS: dict[str, Callable[[], DataclassInstance | None]] = {}
 """Scenario name -> its parameters at their defaults, for the registry's scenarios besides :data:`SCENARIOS` (filled by
 :func:`pemviz.scenarios.registry.register` through :func:`register_defaults`: this module sits below the registry)."""
 
@@ -149,7 +155,7 @@ RANDOM_PARAMS: dict[str, tuple[str, ...]] = {}
 
 
 def register_defaults(
-    scenario: str, defaults: Callable[[], object] | None, random_params: tuple[str, ...] = ()
+    scenario: str, defaults: Callable[[], DataclassInstance | None] | None, random_params: tuple[str, ...] = ()
 ) -> None:
     """Let :func:`default_params` of ``scenario`` call ``defaults()`` and record the parameters it may draw per
     rollout (None: forget the scenario)."""
@@ -197,7 +203,7 @@ def parameter(scenario: str, name: str) -> Parameter:
     return found[name]
 
 
-def parse_assignment(scenario: str, text: str) -> tuple[str, Value]:
+def parse_assignment(scenario: str, text: str) -> tuple[str, PairValue]:
     """``(name, value)`` of ``NAME=VALUE`` (``cut_in_gap_m=19.5``), the value parsed by the field's kind
     (:meth:`Parameter.parse`); its range is checked by :func:`apply_parameters`.
 
@@ -228,7 +234,7 @@ def parse_assignment(scenario: str, text: str) -> tuple[str, Value]:
     return p.name, p.parse(value)
 
 
-def parse_assignments(scenario: str, texts: Iterable[str]) -> tuple[tuple[str, Value], ...]:
+def parse_assignments(scenario: str, texts: Iterable[str]) -> tuple[tuple[str, PairValue], ...]:
     """The pairs of every ``NAME=VALUE`` of ``texts`` (:func:`parse_assignment`), in the order given.
 
     Raises:
@@ -239,7 +245,7 @@ def parse_assignments(scenario: str, texts: Iterable[str]) -> tuple[tuple[str, V
     return pairs
 
 
-def check_pairs(scenario: str, pairs: object) -> tuple[tuple[str, Value], ...]:
+def check_pairs(scenario: str, pairs: object) -> tuple[tuple[str, PairValue], ...]:
     """``pairs`` if it is a tuple of ``(name, value)`` pairs of parameters of ``scenario``, each name once, each value
     of its kind and the dataclass built from them valid (:func:`apply_parameters`).
 
@@ -291,37 +297,38 @@ def representative(scenario: str, pairs: Iterable[tuple[str, object]]) -> dict[s
     return out
 
 
-def apply_parameters(scenario: str, values: Mapping[str, object]) -> BrakingParams | CutInParams:
+def apply_parameters(scenario: str, values: Mapping[str, object]) -> BrakingParams | CutInParams | DataclassInstance:
     """The params dataclass of ``scenario`` with ``values`` (name -> value) replacing its defaults.
 
     Raises:
         ParameterError: an unknown name (the message lists the allowed ones), a value not of its field's kind, or a
             value the dataclass refuses (its message: the field, what is allowed and what was given).
     """
-    changes = {}
+    changes: dict[str, Any] = {}  # the fields' own kinds, each checked by Parameter.check
     for name, value in values.items():
         if not isinstance(name, str):
             raise ParameterError(f"{name!r} is not a parameter name")
         changes[name] = parameter(scenario, name).check(value)
+    params = default_params(scenario)  # None (a scenario without parameters): replace's TypeError, as always
     try:
-        return dataclasses.replace(default_params(scenario), **changes)
+        return dataclasses.replace(cast("DataclassInstance", params), **changes)
     except ValueError as exc:
         raise ParameterError(str(exc).replace("\n", " ")) from None
 
 
-def changed_parameters(scenario: str, pairs: Iterable[tuple[str, Value]]) -> tuple[tuple[str, Value], ...]:
+def changed_parameters(scenario: str, pairs: Iterable[tuple[str, PairValue]]) -> tuple[tuple[str, PairValue], ...]:
     """The pairs of ``pairs`` whose value differs from the scenario's default, in the order given."""
     defaults = {p.name: p.default for p in scenario_parameters(scenario)}
     return tuple((name, value) for name, value in pairs if name in defaults and value != defaults[name])
 
 
-def parameters_text(scenario: str, pairs: Iterable[tuple[str, Value]]) -> str:
+def parameters_text(scenario: str, pairs: Iterable[tuple[str, PairValue]]) -> str:
     """``cut_in_gap_m=19.5 m, n_objects=4``: the pairs with their units, as the console's header line prints them
     (``""``: none)."""
     units = {p.name: p.unit for p in scenario_parameters(scenario)}
     drawn = {name for name, value in pairs if isinstance(value, str) and value.startswith("~")}  # NAME~DIST
     return ", ".join(
-        (f"{name} {value[0]} {value[1:]}" if name in drawn else f"{name}={value!r}")
+        (f"{name} {value[0]} {value[1:]}" if name in drawn and isinstance(value, str) else f"{name}={value!r}")
         + (f" {units[name]}" if units.get(name) else "")
         for name, value in pairs
     )

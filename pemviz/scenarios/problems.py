@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -32,6 +32,9 @@ from pemviz.scenarios.crowd.problem import crowd_problem
 from pemviz.scenarios.crowd.simulator import CrowdParams
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import ToyParams
+
+if TYPE_CHECKING:
+    from pemviz.scenarios.braking.drawing import BrakingDrawing
 
 # -- named problems -----------------------------------------------------------------------------------------------
 
@@ -100,7 +103,8 @@ def problem_for(config: Any) -> Problem:
     from pemviz.scenarios.parameters import representative
 
     _, odd = split_odd(config.scenario_params)
-    overrides = representative(config.scenario, config.scenario_params)  # a drawn parameter: replaced per rollout
+    # the scenario's fields (their kinds checked by the config); a drawn parameter: replaced per rollout
+    overrides: dict[str, Any] = representative(config.scenario, config.scenario_params)
     if config.scenario == "braking":
         if config.margin is not None:
             overrides["crash_gap_m"] = float(config.margin)
@@ -110,14 +114,15 @@ def problem_for(config: Any) -> Problem:
 
             return braking_odd_problem(config, params or BrakingParams(), odd)
         return with_alternatives(braking_problem(load_pem(config.pem), params, sim=config.sim), config)
-    from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE
+    from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, CutInParams
     from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
     from pemviz.scenarios.parameters import CUT_IN_SETTINGS, apply_parameters
 
     setting = CUT_IN_SETTINGS[config.scenario]
-    params = apply_parameters(config.scenario, overrides)
-    problem = cut_in_problem(load_pem(config.pem), params, name=config.scenario)
-    own = params == cut_in_params(setting)  # the reference holds for the setting's own scene only
+    scene = apply_parameters(config.scenario, overrides)
+    assert isinstance(scene, CutInParams)  # a cut-in scenario's own dataclass
+    problem = cut_in_problem(load_pem(config.pem), scene, name=config.scenario)
+    own = scene == cut_in_params(setting)  # the reference holds for the setting's own scene only
     if config.pem in (None, DEFAULT_PEM_NAME) and setting in MONTE_CARLO_REFERENCE and own:
         failures, n = MONTE_CARLO_REFERENCE[setting]
         problem = dataclasses.replace(problem, reference=Reference(failures, n, "plain Monte Carlo, shipped PEMs"))
@@ -146,7 +151,8 @@ def with_alternatives(problem: Problem, config: Any) -> Problem:
     if not shifts and not config.pem_uncertainty:
         return problem
     target = problem.target
-    scene = problem.drawing.params if problem.name == "braking" else None
+    # a braking problem draws with its BrakingDrawing (braking_problem)
+    scene = cast("BrakingDrawing", problem.drawing).params if problem.name == "braking" else None
 
     def exact(logit_at_gap) -> float | None:
         return known_log_failure_probability(logit_at_gap, scene) if scene is not None else None

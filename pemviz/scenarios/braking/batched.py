@@ -82,7 +82,7 @@ class BatchedBraking:
         p = self.params
         self.ego_x_m = np.zeros(self.n)
         self.ego_speed_mps = np.full(self.n, float(p.ego_speed0_mps))
-        self.lead_x_m = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2  # as BrakingScenario.reset
+        self.lead_x_m: float | np.ndarray = p.camera_offset_m + p.gap0_m + p.lead_length_m / 2  # as BrakingScenario's
         if "ego_speed0_mps" in self.starts:
             self.ego_speed_mps = self.starts["ego_speed0_mps"].copy()
         if "gap0_m" in self.starts:  # [N]: each rollout's lead at its own gap

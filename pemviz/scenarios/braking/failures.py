@@ -88,13 +88,13 @@ class Severity:
     def phrase(self) -> str:
         """:attr:`short` with when and how fast: ``breach 1.91 m, no contact (the 2 m margin crossed at 2.45 s,
         closing at 1.20 m/s)``."""
-        if not self.failed:
+        if self.breach_step is None:  # not self.failed
             return f"{self.short} (at {self.min_gap_step * self.dt_s:.2f} s): the {self.crash_gap_m:g} m margin held"
         crossed = (
             f"the {self.crash_gap_m:g} m margin crossed at {self.breach_step * self.dt_s:.2f} s, closing at "
             f"{_speed(self.breach_closing_mps)}"
         )
-        if self.contact:
+        if self.contact_step is not None:  # self.contact
             return f"{self.short} at {self.contact_step * self.dt_s:.2f} s ({crossed})"
         return f"{self.short} ({crossed})"
 
@@ -433,7 +433,7 @@ def describe(
     p = params or BrakingParams()
     dt = p.dt_s
     d = np.asarray(detected, dtype=bool)
-    if not sev.failed:
+    if sev.breach_step is None:  # not sev.failed
         return (
             f"No failure: {sev.phrase}; the emergency brake acted at {int(ctrl.brake_applied.sum())} of "
             f"{d.size} steps."

@@ -174,7 +174,7 @@ def _enumerate(
             reach = np.sqrt(v**2 + 2 * a_max * travel + (n_steps - t) * (a_max * dt) ** 2) + a_max * dt
             keep &= (g <= p.contact_gap_m) | (reach > v_need)
         keep &= log_path >= total[owner] - prune_nats
-        owner, g, v, integ, pend, log_path = (x[keep] for x in (owner, g, v, integ, pend, log_path))
+        owner, g, v, integ, pend, log_path = owner[keep], g[keep], v[keep], integ[keep], pend[keep], log_path[keep]
         if owner.size == 0:
             if start.max(initial=-1) <= t:
                 break

@@ -12,7 +12,7 @@ import numpy as np
 
 from pemviz import stl
 from pemviz.settings import SIMULATORS
-from pemviz.core.detectors import Detector, PEMDetector
+from pemviz.core.detectors import Detector, GapModel, PEMDetector
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch, simulate
 from pemviz.core.problem_view import Thresholds
 from pemviz.core.problems import Problem
@@ -67,7 +67,7 @@ def verdict_cap(params: BrakingParams) -> tuple[str, str] | None:
     )
 
 
-def braking_problem(pem: object, params: BrakingParams | None = None, sim: str = "batched") -> Problem:
+def braking_problem(pem: GapModel, params: BrakingParams | None = None, sim: str = "batched") -> Problem:
     """The automated-braking scenario of Innes & Ramamoorthy (2022) with the given PEM as target detector.
 
     Raises:

@@ -7,7 +7,7 @@ replays with the minimal miss set or the last saving detection). Plain data, no 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -15,6 +15,7 @@ from pemviz.scenarios.braking.simulator import BrakingParams
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
+    from pemviz.scenarios.braking.failures import Severity
 
 
 def car_positions(
@@ -55,6 +56,7 @@ class BrakingRecording:
     """
 
     params: BrakingParams
+    outcome: Callable[[RolloutBatch, int], Severity]  # the drawing object's (BrakingDrawing.outcome)
     draws_scene = True
     object_words = "the lead"
 

@@ -72,7 +72,7 @@ def _latched_path(p: BrakingParams) -> _LatchedPath:
     det = np.zeros((len(eff), T), bool)
     for k, t in enumerate(eff):
         det[k, t] = True
-    crash_after = (braking_replay(p, det) < p.crash_gap_m).any(axis=1) if eff else np.zeros(0, bool)
+    crash_after = np.asarray((braking_replay(p, det) < p.crash_gap_m).any(axis=1)) if eff else np.zeros(0, bool)
     return _LatchedPath(all_miss, c, eff, crash_after)
 
 

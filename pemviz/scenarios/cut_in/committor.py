@@ -113,8 +113,8 @@ class Grid:
         self.width = np.diff(self.edges)
         reps = [(1.0, 0.5, 0.5), (0.0, 0.5, 0.5)]
         for c in range(2):
-            for side in (self.masses, 1.0 - self.masses):
-                reps += [(0.0, v, 0.5) if c == 0 else (0.0, 0.5, v) for v in side]
+            for tail in (self.masses, 1.0 - self.masses):
+                reps += [(0.0, v, 0.5) if c == 0 else (0.0, 0.5, v) for v in tail]
         self.reps = np.array(reps)
         """Each branch's uniforms [NBRANCH, 3]."""
         self.desc = event_descriptor(self.reps, np.full(len(reps), 0.5))

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -45,8 +46,13 @@ from pemviz.scenarios.cut_in.scene import (
     traffic_at,
 )
 
+if TYPE_CHECKING:
+    from highway_env.road.road import Road
+    from highway_env.vehicle.controller import ControlledVehicle
+    from highway_env.vehicle.kinematics import Vehicle
 
-def build_road(params: CutInParams, with_ego: bool = True) -> tuple[object, object | None, list]:
+
+def build_road(params: CutInParams, with_ego: bool = True) -> tuple[Road, Vehicle | None, list[ControlledVehicle]]:
     """A fresh highway-env road with the traffic at t = 0 (and the ego at x = 0 in the middle lane).
 
     Returns:
@@ -139,7 +145,9 @@ class CutInScenario:
     def reset(self) -> None:
         """Every vehicle at its start; no tracks."""
         p = self.params
-        self.road, self.ego, self.others = build_road(p)
+        self.road, ego, self.others = build_road(p)
+        assert ego is not None  # built with the ego
+        self.ego = ego
         self.t = 0
         self.tracks = tracker.Tracks.empty((p.n_objects, 1))
         self.followed = np.full(1, -1, dtype=np.int64)

@@ -5,6 +5,8 @@ for a cut-in run alone, so that a run of another scenario loads none of the cut-
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from pemviz import stl
@@ -15,6 +17,10 @@ from pemviz.scenarios.cut_in.drawing import CutInDrawing
 from pemviz.scenarios.cut_in.story import car_labels
 from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, RARITY_SETTINGS, SALIENT_COLUMNS, CutInParams
 from pemviz.stack.detector import NOISE_NAMES
+
+if TYPE_CHECKING:
+    from pemviz.pem.noise import NoiseModel
+    from pemviz.scenarios.cut_in.tilt import CutInTilt
 
 
 CUT_IN_WINDOW_M = 40.0
@@ -50,7 +56,7 @@ def cut_in_params(setting: str) -> CutInParams:
 
 
 def cut_in_problem(
-    pem: object, params: CutInParams | None = None, noise: object | None = None, name: str = "cut-in"
+    pem: object, params: CutInParams | None = None, noise: NoiseModel | None = None, name: str = "cut-in"
 ) -> Problem:
     """The cut-in scenario (:mod:`pemviz.scenarios.cut_in`) as a :class:`Problem` on its batched twin
     (:class:`~pemviz.scenarios.cut_in.batched.BatchedCutIn`): M cars, each detected by ``pem`` from its 11 KITTI
@@ -94,7 +100,7 @@ def cut_in_problem(
 
     run, stream, resume = rollout_functions(make, p.n_steps)
 
-    def tilt() -> object:
+    def tilt() -> CutInTilt:
         from pemviz.scenarios.cut_in.tilt import solved_tilt
 
         return solved_tilt(p, detector)
@@ -129,7 +135,7 @@ def cut_in_problem(
     )
 
 
-def _car_ahead_row(sim: object, p: CutInParams) -> np.ndarray:
+def _car_ahead_row(sim: BatchedCutIn, p: CutInParams) -> np.ndarray:
     """Object 0's row [G] once it has cut in (every car detected exactly): the cut-in car ahead in the ego's lane."""
     lane = OBJECT_NAMES.index("in_ego_lane")
     for _ in range(p.n_steps):

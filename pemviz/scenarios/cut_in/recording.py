@@ -6,10 +6,11 @@ run's description is the recording's own; each rollout's outcome is the cut-in's
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch
+    from pemviz.scenarios.cut_in.story import CutInSeverity
 
 
 class CutInRecording:
@@ -20,6 +21,7 @@ class CutInRecording:
         object_words: ``the car ahead`` (a sentence on one object; the cut-in's rollouts have several).
     """
 
+    outcome: Callable[[RolloutBatch, int], CutInSeverity]  # the drawing object's (CutInDrawing.outcome)
     draws_scene = False
     object_words = "the car ahead"
 

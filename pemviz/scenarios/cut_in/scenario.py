@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
 
@@ -309,7 +310,14 @@ class CutInParams:
         return (cut_in, *self.traffic[: self.n_objects - 1])
 
 
-RARITY_SETTINGS: dict[str, dict[str, float]] = {
+class RaritySetting(TypedDict):
+    """The :class:`CutInParams` fields a rarity setting of :data:`RARITY_SETTINGS` sets."""
+
+    cut_in_gap_m: float
+    cut_in_speed_mps: float
+
+
+RARITY_SETTINGS: dict[str, RaritySetting] = {
     "moderate": {"cut_in_gap_m": 20.0, "cut_in_speed_mps": 17.4},
     "rare": {"cut_in_gap_m": 22.5, "cut_in_speed_mps": 17.4},
 }

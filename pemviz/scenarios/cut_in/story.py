@@ -132,11 +132,11 @@ class CutInSeverity:
     @property
     def short(self) -> str:
         """One line: ``contact at 2.8 m/s closing speed · minimum clearance -0.66 m ...``."""
-        if self.contact:
+        if self.contact_step is not None:  # self.contact
             v = self.closing_speed_mps
             speed = f"contact at {v:.1f} m/s closing speed" if math.isfinite(v) else "contact beside the ego"
             head = f"{speed} at {self.contact_step * self.dt_s:.2f} s"
-        elif self.failed:
+        elif self.failure_step is not None:  # self.failed
             head = (
                 f"R_G1's safe distance short by {-self.margin_m:.2f} m at {self.failure_step * self.dt_s:.2f} s, "
                 "no contact"

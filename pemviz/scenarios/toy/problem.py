@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from pemviz import stl
@@ -16,6 +18,9 @@ from pemviz.scenarios.toy.simulator import (
     simulate_toy,
     toy_log_failure_probability,
 )
+
+if TYPE_CHECKING:
+    from pemviz.scenarios.toy.tilt import ToyTilt
 
 
 def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Problem:
@@ -32,7 +37,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
     def branch(parents, parent, at, target: Detector, rng: np.random.Generator):
         return branch_toy(p, parents, parent, at, target, rng)
 
-    def tilt() -> object:
+    def tilt() -> ToyTilt:
         from pemviz.scenarios.toy.tilt import ToyTilt
 
         return ToyTilt(p)
