@@ -33,18 +33,6 @@ def test_the_runnable_count_leaves_the_reader_out_and_falls_back_to_the_load_ave
     assert resources.load_slowdown() == pytest.approx(3.0)  # (5 + 1) / 2, the 1-minute average where nothing better
 
 
-def test_the_first_predictions_scale_by_the_load_and_what_is_measured_replaces_it():
-    from pemviz.sinks import StageClock
-
-    from sinks.synthetic import PLAN, SIMPLE, run_started
-
-    idle, loaded = StageClock(lambda: 0.0, SIMPLE, lambda: 1.0), StageClock(lambda: 0.0, SIMPLE, lambda: 1.5)
-    for clock in (idle, loaded):
-        clock(run_started(plan=PLAN))
-    assert loaded.load == 1.5 and idle.load == 1.0
-    assert loaded.run_left_s() == pytest.approx(1.5 * idle.run_left_s()) and idle.run_left_s() > 0.0
-
-
 def test_the_panels_cost_line_scales_by_the_load():
     from pemviz.app.form import run_cost
     from pemviz.config import ExperimentConfig

@@ -21,14 +21,19 @@ import functools
 import math
 import re
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Union, cast
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterable, Mapping, Protocol, Union, cast
 
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.settings import SCENARIOS, scenario_names
 
-if TYPE_CHECKING:
-    from _typeshed import DataclassInstance
 
+class DataclassInstance(Protocol):
+    """Any dataclass instance (a scenario's parameters, a plugin's included): what ``dataclasses.replace`` takes."""
+
+    __dataclass_fields__: ClassVar[dict[str, Any]]
+
+
+if TYPE_CHECKING:
     from pemviz.scenarios.cut_in.scenario import CutInParams
 
 Value = Union[float, int, bool]
