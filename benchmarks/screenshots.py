@@ -65,6 +65,10 @@ SCREENSHOTS: tuple[Shot, ...] = (
         ("panel_compare.png",),
         ("PEMVIZ_SCREENSHOTS=1 python -m pytest -q -p no:cacheprovider tests/test_app_compare.py",),
     ),
+    Shot(
+        ("panel_odd.png",),
+        ("PEMVIZ_SCREENSHOTS=1 python -m pytest -q -p no:cacheprovider tests/test_app_odd.py",),
+    ),
     Shot(TAB_SHOTS, ("PEMVIZ_SCREENSHOTS=1 python -m pytest -q -p no:cacheprovider tests/test_app_tabs.py",)),
     Shot(
         ("rerun_recording.png",),

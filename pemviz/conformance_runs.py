@@ -107,7 +107,8 @@ class files_folder:
     """``with files_folder(path) as where``: ``path`` (made if need be), or a temporary folder removed afterwards."""
 
     def __init__(self, path: str | Path | None) -> None:
-        self.path, self._tmp = path, None
+        self.path = path
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
 
     def __enter__(self) -> Path:
         if self.path is not None:

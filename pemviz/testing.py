@@ -21,7 +21,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, cast
 
 import numpy as np
 
@@ -117,10 +117,13 @@ def _check_files(checks: _Checks, run: KitRun, problem: Any = None) -> None:
     else:
         checks.require(run.rollouts_error is None, name, f"the rollout sink raised {run.rollouts_error}")
         checks.require(run.rollouts is not None and run.rollouts.is_file(), name, "the run wrote no rollout file")
+        assert run.rollouts is not None  # required just above
         data = read_rollouts(run.rollouts)
         checks.require(
             data.log_p is not None and data.log_q is not None, name, f"{run.rollouts.name} has no log_p / log_q columns"
         )
+        assert data.log_p is not None and data.log_q is not None  # required just above
+        assert data.meta is not None  # a rollout file's data has its sidecar
         said = (data.meta.provenance or {}).get("estimate") or {}
         cap = said.get("verdict_cap")
         again = estimate_rollouts(
@@ -388,6 +391,7 @@ def check_scenario(
             run = run_with_files(config, problem, where, f"{sc.name}-{config.method}")
             if run.final.estimate.n_failures > 0:
                 break
+        assert run is not None  # _scenario_configs gives two configs
         _check_files(checks, run, problem)
     return checks.report()
 
@@ -438,7 +442,8 @@ def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -
 
     base = ExperimentConfig(method="naive50", n_per_stage=RUN_ROLLOUTS, seed=seed)
     if sc.runnable:
-        base = dataclasses.replace(base, scenario=sc.name, scenario_params=tuple(dict(params or {}).items()))
+        pairs = cast("dict[str, float | int | bool]", dict(params or {}))  # checked by the config
+        base = dataclasses.replace(base, scenario=sc.name, scenario_params=tuple(pairs.items()))
     adaptive = dataclasses.replace(
         base, method="adaptive", n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50
     )
@@ -541,7 +546,7 @@ def check_estimator(
             name,
             lambda: (
                 f"the mean of {ratio.size} estimates (seeds 0..{ratio.size - 1}) is {mean:.4g} times the exact "
-                f"{math.exp(pb.exact_log_p):.4g} (|log mean - log p| = "
+                f"{math.exp(cast(float, pb.exact_log_p)):.4g} (|log mean - log p| = "
                 f"{abs(math.log(mean)) if mean > 0 else math.inf:.3g}"
                 f" nats); allowed 1 +- {allowed:.3g} ({UNBIASED_TOLERANCE:g} + {UNBIASED_Z:g} SE, SE {se:.3g}); each "
                 f"mu_k / p: {np.array2string(ratio, precision=3)}"

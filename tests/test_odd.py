@@ -221,7 +221,8 @@ def test_an_odd_run_writes_its_map_and_re_estimates_to_its_p(tmp_path):
             "safe=3",
             "--param",
             "braking~choice(5, 6, 7)",
-            "--no-record",
+            "--save",
+            "o.rrd",
             "--save-rollouts",
             "o.parquet",
             "--json",
@@ -249,6 +250,28 @@ def test_an_odd_run_writes_its_map_and_re_estimates_to_its_p(tmp_path):
     )
     said = float(__import__("re").search(r"log mu_hat = (-?[0-9.]+) nats", again.stdout).group(1))
     assert said == pytest.approx(doc["estimate"]["log_p"], rel=1e-12, abs=0)  # the run's p_ODD again
+    recorded = recorded_map(tmp_path / "o.rrd")  # the recording's ODD view: the document's numbers
+    assert [round(b["log_p"] / math.log(10), 9) for b in doc["odd_map"]["bins"]] == [
+        round(x, 9) for x in recorded["/odd/braking/log10_p"]
+    ]
+    assert "Most of p_ODD: **braking = 5**" in recorded["/odd/map"]
+
+
+def recorded_map(path) -> dict:
+    """The ODD view of a recording read back through rerun's own API: the map's table and each ``/odd/<name>/...``
+    series over the ``odd_bin`` timeline, in bin order."""
+    rr = pytest.importorskip("rerun")
+    pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
+    with rr.server.Server(datasets={"run": [str(path)]}) as server:
+        ds = server.client().get_dataset("run")
+        table = ds.reader(index="odd_bin").to_arrow_table().to_pylist()
+        static = ds.reader(index=None).to_arrow_table()
+    out: dict = {"/odd/map": static.column("/odd/map:TextDocument:text").to_pylist()[0][0]}
+    for row in sorted(table, key=lambda r: r["odd_bin"]):
+        for key, value in row.items():
+            if key.startswith("/odd/") and key.endswith(":Scalars:scalars") and value is not None:
+                out.setdefault(key.split(":")[0], []).append(value[0])
+    return out
 
 
 def test_an_odd_is_its_parameters_in_order():

@@ -19,7 +19,7 @@ from pemviz.settings import SETTINGS, Setting
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
-from pemviz.scenarios.parameters import Parameter, ParameterError, Value
+from pemviz.scenarios.parameters import Parameter, ParameterError, Value, check_pairs, parse_assignment
 from pemviz.scenarios.registry import get
 
 
@@ -115,19 +115,34 @@ def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[s
         try:
             if name not in params:
                 raise ParameterError(f"{name!r} is not a parameter of the {scenario} scenario")
-            value = params[name].parse(text)
-            if value == params[name].default:
+            if str(text).strip().startswith("~"):  # ~uniform(a, b): drawn per rollout over an ODD, as --param NAME~DIST
+                pairs.append(parse_assignment(scenario, f"{name}{text.strip()}"))
                 continue
-            found.build_params({name: value})
+            value = params[name].parse(text)
         except ParameterError as exc:
             errors[param_key(name)] = str(exc)
             continue
-        pairs.append((name, value))
-    if pairs and not errors:
+        if value != params[name].default:
+            pairs.append((name, value))
+
+    def check(given: list[tuple[str, Value]]) -> None:
+        if any(isinstance(v, str) and v.startswith("~") for _, v in given):
+            check_pairs(scenario, tuple(given))
+        else:
+            found.build_params(dict(given))
+
+    valid = [pair for pair in pairs if param_key(pair[0]) not in errors]
+    if valid:
         try:
-            found.build_params(dict(pairs))
-        except ParameterError as exc:
-            errors[""] = str(exc)
+            check(valid)  # the values together (a field may need another changed with it: total with braking)
+        except ParameterError as together:
+            alone: dict[str, str] = {}
+            for pair in valid:  # blame the fields refused even with the others at their defaults
+                try:
+                    check([pair])
+                except ParameterError as exc:
+                    alone[param_key(pair[0])] = str(exc)
+            errors.update(alone or {"": str(together)})
     return tuple(pairs), errors
 
 

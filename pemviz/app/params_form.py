@@ -65,7 +65,9 @@ class ScenarioParamsForm:
                 if not params:
                     self._extra.append(gui.add_markdown(f"The {scenario} scenario has no parameters."))
                 for p in params:
-                    field = gui.add_text(label(p), format_param(p, given.get(p.name, p.default)), hint=hint(p))
+                    value = given.get(p.name, p.default)
+                    text = value if isinstance(value, str) and value.startswith("~") else format_param(p, value)
+                    field = gui.add_text(label(p), text, hint=hint(p, scenario))
                     field.on_update(lambda _: self._on_change())
                     self.fields[p.name] = field
                     self.field_errors[p.name] = gui.add_html("")
@@ -96,8 +98,10 @@ def label(p: Parameter) -> str:
     return f"{p.name} ({p.unit})" if p.unit else p.name
 
 
-def hint(p: Parameter) -> str:
+def hint(p: Parameter, scenario: str = "") -> str:
     """A field's hint: what its value must be and the scenario's default."""
     unit = f" in {p.unit}" if p.unit else ""
     default = format_param(p, p.default)
-    return f"{p.name}: {KINDS[p.kind]}{unit} (default {default}); a changed value applies to the next run"
+    drawn = bool(scenario) and p.name in get(scenario).random_params
+    odd = "; or ~uniform(a, b), ~normal(mu, sd), ~choice(a, b): drawn per rollout over an ODD" if drawn else ""
+    return f"{p.name}: {KINDS[p.kind]}{unit} (default {default}){odd}; a changed value applies to the next run"

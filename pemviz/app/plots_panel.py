@@ -2,7 +2,8 @@
 states its rollouts visited, per-stage values of every kept run, mu_hat with its interval and the exact answer),
 *Explain* (:class:`pemviz.app.explain_tab.ExplainTab`) and *Compare* (each kept run's final estimate with its 95 %
 interval on a log10 chart beside the exact answer or reference, the settings that differ between the kept runs, and
-their reference-state proposal curves)."""
+their reference-state proposal curves) and *ODD* (where p over an operating design domain comes from:
+:class:`pemviz.app.odd_tab.OddTab`)."""
 
 from __future__ import annotations
 
@@ -10,13 +11,14 @@ import viser
 
 from pemviz.app import charts, compare, plots
 from pemviz.app.explain_tab import ExplainTab
+from pemviz.app.odd_tab import OddTab
 from pemviz.app.runs import PanelRun
 from pemviz.core.estimate import format_probability
 
 
 class PlotsPanel:
-    """The plots panel: owns the panel, its *Live* and *Compare* charts and HTML; its *Explain* tab is the
-    :class:`pemviz.app.explain_tab.ExplainTab` it is given.
+    """The plots panel: owns the panel, its *Live* and *Compare* charts and HTML and its *ODD* tab; its *Explain* tab
+    is the :class:`pemviz.app.explain_tab.ExplainTab` it is given.
 
     Args:
         client: the viser client the panel draws into.
@@ -25,6 +27,7 @@ class PlotsPanel:
 
     def __init__(self, client: viser.ClientHandle, explain: ExplainTab) -> None:
         self.client, self.explain = client, explain
+        self.odd = OddTab(client)
 
     def build(self) -> None:
         """Add the panel, docked left, with its three tabs to ``client.gui``."""
@@ -48,6 +51,8 @@ class PlotsPanel:
             self.compare_plots = [
                 plots.curve_plot(gui, f"slot {i + 1}: no run yet", height=190, visible=False) for i in range(4)
             ]
+        with panel.add_tab("ODD", viser.Icon.MAP):
+            self.odd.build()
         self.panel = panel
         panel.dock_left()
         panel.set_width(460)
@@ -66,6 +71,7 @@ class PlotsPanel:
                     mu = f", mu_hat {format_probability(fin.log_mu_hat)}" if fin is not None else ""
                     ref = ", reference-state q" if r.config.proposal_inputs == "state" else ""
                     plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}{ref}")
+            self.odd.fill(record)
             for key, plot in self.stage_plots.items():
                 plots.fill_stage_plot(plot, key, runs)
                 if key == "log10_mu_hat":

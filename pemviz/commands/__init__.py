@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, cast
 
 from pemviz.settings import SETTINGS, Setting
 from pemviz.config import ConfigError, ExperimentConfig
@@ -178,7 +178,7 @@ def pem_argument(value: str | None, flag: str = "--pem") -> str | None:
     from pemviz.pem import resolve_pem  # torch: imported when a command runs, not for --help
 
     try:
-        return resolve_pem(value)
+        return cast("str | None", resolve_pem(value))  # a str given, the str returned
     except FileNotFoundError as exc:
         raise UsageError(f"{flag} {exc}") from None
 

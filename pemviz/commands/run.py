@@ -8,6 +8,7 @@ import json
 import shlex
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pemviz.commands.run_outputs import RunOutputs, plan_outputs
 from pemviz.commands.run_recording import (
@@ -25,10 +26,13 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
-from pemviz.config import SCENE_DEFAULTS, ConfigError, ExperimentConfig
+from pemviz.config import ConfigError, ExperimentConfig, scene_defaults
 from pemviz.engine.resources import check_run_memory
 from pemviz.settings import METHODS, SCENARIOS
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
+
+if TYPE_CHECKING:
+    from pemviz.engine.events import Listener
 
 # The parser needs only the light modules above: torch, rerun, the engine, the sinks and pyarrow are imported in
 # main, where a run needs them (rerun only when it records), so that `pemviz --help` answers at once and
@@ -136,9 +140,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     """Build and validate the config; raises ConfigError with a one-line message.
 
-    With neither ``--method`` nor ``--preset``, a scenario of :data:`pemviz.config.SCENE_DEFAULTS` runs its own
-    default method and budget (flags given still override them). The scenario registry, its plugins included, is
-    loaded first (:func:`pemviz.scenarios.registry.load_plugins`: a plugin that cannot be loaded is its one line).
+    With neither ``--method`` nor ``--preset``, a scenario runs its own default method and budget
+    (:func:`pemviz.config.scene_defaults`, over an operating design domain too; flags given still override them). The
+    scenario registry, its plugins included, is loaded first (:func:`pemviz.scenarios.registry.load_plugins`: a
+    plugin that cannot be loaded is its one line).
 
     Raises:
         ConfigError: a setting, preset or parameter refused; ScenarioPluginError, MethodPluginError: a plugin that
@@ -155,20 +160,22 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     if preset not in PRESETS:
         raise ConfigError(f"--preset {preset!r} is invalid: use one of {', '.join(PRESETS)}")
     fields = dict(PRESETS[preset])
+    scene = args.scenario or ExperimentConfig().scenario
+    params = None if args.scenario_params is None else scenario_params(scene, args.scenario_params)
     if args.method is None and args.preset is None:
-        fields.update(SCENE_DEFAULTS.get(args.scenario or ExperimentConfig().scenario, {}))
+        fields.update(scene_defaults(scene, params or ()))
     for name in ("method", *RUN_SETTINGS):
         value = getattr(args, name)
         if value is not None:
             fields[name] = value
-    if fields.get("scenario_params") is not None:  # --param NAME=VALUE: parsed by the scenario's field types
-        fields["scenario_params"] = scenario_params(
-            fields.get("scenario", ExperimentConfig().scenario), fields["scenario_params"]
-        )
+    if params is not None:  # --param NAME=VALUE: parsed by the scenario's field types
+        fields["scenario_params"] = params
     return ExperimentConfig(**fields)
 
 
-def scenario_params(scenario: str, texts: list[str]) -> tuple[tuple[str, float | int | bool | str], ...]:
+def scenario_params(
+    scenario: str, texts: list[str]
+) -> tuple[tuple[str, float | int | bool | str], ...] | tuple[str, ...]:
     """The ``(name, value)`` pairs of ``--param NAME=VALUE`` flags (:mod:`pemviz.scenarios.parameters`): each value
     parsed by its field's type and the scenario's dataclass built from them (its range check).
 
@@ -331,6 +338,7 @@ def main(args: argparse.Namespace) -> int:
     if target == "save" and cli.AS_PROGRAM and cfg.executor == "serial":
         from pemviz.sinks.recording_process import RecordingProcess  # rerun imported beside the run, not before it
 
+        assert save_path is not None  # plan_outputs names the file of a recording saved
         save_path.parent.mkdir(parents=True, exist_ok=True)
         early = RecordingProcess(save_path, overwrite=outputs.overwrite)
     try:
@@ -366,8 +374,9 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     wanted = target != "no-record" or any(path is not None for path in result_files)  # files that show the groups
     groups = FailureGroups(problem.drawing, problem, keys=wanted)  # the failures' severity (console), groups
     console = ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()
-    console.failures = groups  # prints the failures' severity, which groups (heard first) reads at the final estimate
-    listeners = [groups, console]
+    # prints the failures' severity, which groups (heard first) reads at the final estimate
+    console.failures = groups  # type: ignore[assignment]  # pemviz.sinks.console types it as None
+    listeners: list[Listener] = [groups, console]
     recorder = None
     if early is not None:
         recorder = early
@@ -375,6 +384,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
         from pemviz.sinks.recording import RerunSink  # rerun, and pandas through pyarrow: only for a recording
 
         if target == "save":
+            assert save_path is not None  # plan_outputs names the file of a recording saved
             save_path.parent.mkdir(parents=True, exist_ok=True)
             recorder = RerunSink.to_file(save_path, overwrite=outputs.overwrite)
         elif target == "stdout":
@@ -396,7 +406,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     if getattr(problem, "odd", None) is not None:  # over an operating design domain: the map after the estimate
         from pemviz.sinks.odd_map import OddMapSink
 
-        odd_map = OddMapSink(problem, out=sys.stderr if target == "stdout" else None)
+        odd_map = OddMapSink(out=sys.stderr if target == "stdout" else None)
         experiment.listeners.append(odd_map)
     likely = (
         MostLikelyFailure()
@@ -410,10 +420,10 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
             done = experiment.run()
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep the finished stages, say what was saved
         where = recorder.close() if recorder is not None else None
-        done = f"{len(experiment.stages)} stage(s) finished"
+        stages = f"{len(experiment.stages)} stage(s) finished"
         said = [f"recording {where} (marked interrupted)"] if where else []
         said += [lost] if (lost := outputs.unwritten()) else []
-        raise interrupted(exc, "; ".join([done, *(said or ["nothing written"])])) from None
+        raise interrupted(exc, "; ".join([stages, *(said or ["nothing written"])])) from None
     except BaseException:
         if recorder is not None:
             recorder.close(commit=False)
@@ -445,8 +455,8 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
             try:
                 failures = grouping_document(groups.grouping) if groups.grouping is not None else None
                 results = result_lines(cfg, problem, final, why, failures, getattr(groups.grouping, "severity", None))
-                if odd_map is not None and odd_map.bins:
-                    results[1]["odd_map"] = odd_map.document()
+                if final.odd_map is not None and final.odd_map.bins:
+                    results[1]["odd_map"] = final.odd_map.document()
             except BaseException:  # a run that fails here writes nothing, as one that fails in a stage
                 if recorder is not None:
                     recorder.close(commit=False)
@@ -465,6 +475,6 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
             return EXIT_CODES[final.decision.outcome]
         return 0
     except KeyboardInterrupt as exc:  # after the run: say what it had written (rollouts, recording), not "nothing"
-        done = [*kept, *([str(where)] if where is not None else [])]
-        files = f"{', '.join(done)} written" if done else "no file written"
+        written = [*kept, *([str(where)] if where is not None else [])]
+        files = f"{', '.join(written)} written" if written else "no file written"
         raise interrupted(exc, f"the run finished; {files}; its result files not written") from None

@@ -104,6 +104,9 @@ def probe_viewer(url: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> str:
         UsageError: not a ``rerun+http(s)://HOST:PORT/...`` URL, or nothing answers within ``timeout_s``.
     """
     url = url or DEFAULT_VIEWER_URL
+    scheme: str | None
+    host: str | None
+    port: int | None
     try:
         parts = urlsplit(url)
         scheme, host, port = parts.scheme, parts.hostname, parts.port

@@ -7,6 +7,7 @@ import ipaddress
 import os
 import socket
 import sys
+from typing import cast
 
 from pemviz.commands import COMMANDS, UsageError, add_setting, pem_argument
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
@@ -59,7 +60,8 @@ def check_host(host: str) -> bool:
                 f"--host {host!r}: not an address of this machine ({exc.strerror or exc}); use "
                 "127.0.0.1 (this machine only) or an interface address"
             ) from None
-    return all(ipaddress.ip_address(addr[0].split("%")[0]).is_loopback for *_, addr in infos)
+    # an IPv4 / IPv6 address: its host a str
+    return all(ipaddress.ip_address(cast(str, addr[0]).split("%")[0]).is_loopback for *_, addr in infos)
 
 
 def main(args: argparse.Namespace) -> int:

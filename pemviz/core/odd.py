@@ -20,8 +20,12 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from pemviz.core.estimate import Estimate
 
 KINDS = ("uniform", "normal", "choice")
 """The distributions a parameter may be given."""
@@ -217,7 +221,7 @@ class MapBin:
     lo: float
     hi: float
     probability: float
-    estimate: object
+    estimate: Estimate
     share: float
 
     @property
@@ -234,7 +238,10 @@ def odd_map(
     """The map of where p_ODD comes from, one parameter at a time: for each parameter of ``odd``, its bins
     (:meth:`Distribution.bins`, ``k`` of equal probability for a continuous law) with p(failure | bin) estimated from
     rollouts with parameters ``values`` [N, D], log importance weights ``log_w`` [N] (nats), failures ``failed`` [N]
-    (:func:`bin_log_weights`, :func:`pemviz.core.estimate.estimate`: each bin's interval, ESS and verdict).
+    (:func:`bin_log_weights`, :func:`pemviz.core.estimate.estimate`: each bin's interval, ESS and verdict). Where every
+    weight is 1 (plain Monte Carlo, the parameters drawn from the ODD itself), a bin's estimate is instead the failure
+    rate of the rollouts that fell in it, with its Clopper-Pearson interval: given their number n_b its failures are
+    Binomial(n_b, p(failure | bin)), so the interval holds whatever n_b came out.
 
     Raises:
         ValueError: arrays of other lengths.
@@ -245,13 +252,19 @@ def odd_map(
     failed = np.asarray(failed, dtype=bool)
     if failed.shape != np.shape(log_w) or np.shape(log_p_total) != np.shape(log_w):
         raise ValueError("odd_map: values, log_w, failed and log_p_total must describe the same rollouts")
+    log_p = np.asarray(log_p_total, dtype=np.float64)
+    plain = bool(np.all(np.asarray(log_w, dtype=np.float64) == 0.0))  # plain Monte Carlo: theta drawn from the ODD
     out: list[MapBin] = []
     for j, (name, law) in enumerate(odd.parameters):
         edges, probs = law.bins(k)
         rows = []
         for b in range(len(probs)):
             lw = bin_log_weights(values[:, j], log_w, edges, probs, b)
-            rows.append((b, estimate(lw, failed & np.isfinite(lw), np.asarray(log_p_total, dtype=np.float64))))
+            inside = np.isfinite(lw)
+            if plain and inside.any():  # the bin's own rollouts, its failures binomial given their number
+                rows.append((b, estimate(np.zeros(int(inside.sum())), failed[inside], log_p[inside])))
+            else:
+                rows.append((b, estimate(lw, failed & inside, log_p)))
         terms = np.array([probs[b] * math.exp(e.log_mu_hat) if e.n_failures else 0.0 for b, e in rows])
         total = float(terms.sum())
         for (b, e), term in zip(rows, terms, strict=True):
@@ -266,3 +279,60 @@ def odd_map(
                 )
             )
     return out
+
+
+@dataclass(frozen=True)
+class OddMap:
+    """The map of a run over an ODD (:func:`odd_map`) as its final estimate carries it: the ODD, the rollouts the
+    bins were estimated from (the final stage's) and the bins, each parameter's in order."""
+
+    odd: ODD
+    rollouts: int
+    bins: tuple[MapBin, ...]
+
+    def top(self) -> MapBin | None:
+        """The bin with the largest share of p_ODD, or None where no bin has a failure."""
+        best = max(self.bins, key=lambda b: b.share, default=None)
+        return best if best is not None and best.share > 0 else None
+
+    def lines(self) -> list[str]:
+        """The map as the console prints it: a header, a line per bin, the region that carries most of p_ODD."""
+        from pemviz.core.estimate import format_probability
+
+        if not self.bins:
+            return []
+        out = [
+            f"odd map ({self.odd.text()}; the final stage's {self.rollouts:,} rollouts): p(failure | bin), "
+            "its 95 % interval or lower bound, its verdict, its share of p_ODD"
+        ]
+        for b in self.bins:
+            e = b.estimate
+            said = format_probability(e.log_mu_hat) if e.n_failures else "no failure"
+            out.append(
+                f"  {b.label:32s} P(bin) {b.probability:.2f}  p {said:>10s} {e.interval_text():>26s}  "
+                f"{e.verdict:10s} share {100 * b.share:5.1f} %"
+            )
+        top = self.top()
+        if top is not None:
+            out.append(f"most of p_ODD: {top.label} ({100 * top.share:.0f} % of it, P(bin) {top.probability:.2f})")
+        return out
+
+    def document(self) -> dict[str, Any]:
+        """The map for the result document (JSON): the ODD and each bin's range, probability, log p (nats; None
+        without a failure), 95 % interval of log p (None for an end it lacks), verdict and share."""
+        bins = []
+        for b in self.bins:
+            e = b.estimate
+            bins.append(
+                {
+                    "parameter": b.name,
+                    "lo": b.lo,
+                    "hi": b.hi,
+                    "probability": b.probability,
+                    "log_p": e.log_mu_hat if e.n_failures else None,
+                    "log_ci": [float(x) if np.isfinite(x) else None for x in e.shown_log_ci],
+                    "verdict": e.verdict,
+                    "share": b.share,
+                }
+            )
+        return {"odd": self.odd.to_json(), "rollouts": self.rollouts, "bins": bins}

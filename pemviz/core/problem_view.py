@@ -71,6 +71,8 @@ class ProblemView:
         look_ahead_s: seconds per rollout that the problem's look-ahead adds to a stage, about
             (:attr:`pemviz.core.problems.Problem.look_ahead_s`): time estimates add it; 0: none.
         object_labels: what each object m is called (:meth:`object_label`); empty: ``object m``.
+        odd_names: the scenario parameters drawn per rollout over an operating design domain
+            (:attr:`pemviz.core.problems.Problem.odd`); empty: none (the final estimate then carries no map).
     """
 
     name: str
@@ -83,6 +85,7 @@ class ProblemView:
     drawing: object | None = None
     look_ahead_s: float = 0.0
     object_labels: tuple[str, ...] = ()
+    odd_names: tuple[str, ...] = ()
 
     def object_label(self, m: int) -> str:
         """What object ``m`` (0-based) is called: the problem's label for it, else ``object m``."""

@@ -180,6 +180,7 @@ class Problem:
             self.drawing,
             self.look_ahead_s,
             tuple(self.object_labels),
+            tuple(self.odd.names) if self.odd is not None else (),
         )
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:

@@ -23,6 +23,7 @@ if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.config import ExperimentConfig
     from pemviz.core.detectors import Detector
     from pemviz.core.estimate import Estimate, Reference
+    from pemviz.core.odd import OddMap
     from pemviz.core.problem_view import ProblemView
     from pemviz.core.requirement import Decision
     from pemviz.core.population import FailureShares
@@ -189,6 +190,9 @@ class FinalEstimate:
     of :data:`pemviz.engine.experiment.PLAIN_PROBE` rollouts where the advice sizes plain Monte Carlo (a verdict that
     is not ``reliable``, from another method); None: not probed (the advice then derives it from the run's own speed,
     :func:`pemviz.sinks.console.plain_rollout_seconds`)."""
+    odd_map: OddMap | None = None
+    """Over an operating design domain: where p_ODD comes from, p(failure | bin) of each drawn parameter's bins from the
+    final stage's rollouts (:class:`pemviz.core.odd.OddMap`); None: no ODD."""
 
 
 @dataclass(frozen=True)

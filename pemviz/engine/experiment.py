@@ -34,6 +34,7 @@ from pemviz.core.detectors import ArrayRQMC, Detector
 from pemviz.core.estimate import Estimate
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine.odd_map import OddMapCollector
 from pemviz.engine.events import (
     Event,
     FinalEstimate,
@@ -174,8 +175,12 @@ class Experiment:
         self.n_simulations = 0
         self.seen_failures = SeenFailures()
         """The probability of the distinct failures drawn in any stage: a lower bound the final verdict checks."""
+        self._odd_map = OddMapCollector(problem) if getattr(problem, "odd", None) is not None else None
+        """Over an operating design domain: the final stage's rollouts, for the map the final estimate carries."""
 
     def emit(self, event: Event) -> None:
+        if self._odd_map is not None and isinstance(event, RolloutChunk):
+            self._odd_map.add(event)
         for listener in self.listeners:
             listener(event)
 
@@ -229,6 +234,7 @@ class Experiment:
             pb.look_ahead is not None,
             said.prepared,
             plain_probe(pb, cfg, est),
+            self._odd_map.result(cap) if self._odd_map is not None else None,
         )
         self.emit(final)
         done = RunFinished(final, tuple(self.stages))

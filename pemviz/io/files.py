@@ -14,6 +14,7 @@ import signal
 import tempfile
 import threading
 from pathlib import Path
+from types import FrameType
 from typing import Any, Callable, Iterator
 
 from pemviz.core.files import OutputExists, _commit, atomic_write, default_file_mode
@@ -74,7 +75,9 @@ def deferred_signals() -> Iterator[None]:
         return
     received: list[int] = []
     names = [signal.SIGINT, signal.SIGTERM]
-    previous = {sig: signal.signal(sig, lambda signum, frame: received.append(signum)) for sig in names}
+    previous: dict[int, Callable[[int, FrameType | None], Any] | int | None] = {
+        sig: signal.signal(sig, lambda signum, frame: received.append(signum)) for sig in names
+    }
     try:
         yield
     finally:
@@ -90,7 +93,11 @@ def deferred_signals() -> Iterator[None]:
 
 def write_text_atomic(path: str | os.PathLike[str], text: str, *, overwrite: bool = True) -> Path:
     """Write UTF-8 ``text`` to ``path`` through :func:`atomic_write`."""
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), overwrite=overwrite)
+
+    def write(tmp: str) -> None:
+        Path(tmp).write_text(text, encoding="utf-8")
+
+    return atomic_write(path, write, overwrite=overwrite)
 
 
 def write_rrd(
@@ -105,7 +112,8 @@ def write_rrd(
     import rerun as rr  # ~1.3 s to import: pemviz.io.data imports this module and needs neither rerun nor torch
 
     stream = rr.RecordingStream(app_id)
-    binary = stream.binary_stream()
+    # rerun's class attribute ``binary_stream = binary_stream`` (a module function) reads to mypy as unbound
+    binary = stream.binary_stream()  # type: ignore[misc]
     try:
         stream.set_log_time_enabled(False)
         stream.set_log_tick_enabled(False)
@@ -114,7 +122,11 @@ def write_rrd(
         encoded = binary.read(flush=True) or b""
     finally:
         stream.disconnect()
-    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(encoded), overwrite=overwrite)
+
+    def write(tmp: str) -> None:
+        Path(tmp).write_bytes(encoded)
+
+    return atomic_write(path, write, overwrite=overwrite)
 
 
 def written_by_pemviz(path: Path) -> bool:

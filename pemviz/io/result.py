@@ -202,7 +202,11 @@ def write_result_json(path: str | os.PathLike[str], doc: dict[str, Any], *, over
         OSError: the file could not be written (nothing is left); OutputExists: ``path`` exists, no ``overwrite``.
     """
     text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text), overwrite=overwrite)
+
+    def write(tmp: str) -> None:
+        Path(tmp).write_text(text)
+
+    return atomic_write(path, write, overwrite=overwrite)
 
 
 def junit_xml(doc: dict[str, Any], console: str = "") -> bytes:
@@ -246,4 +250,8 @@ def write_junit(
         ValueError: ``doc`` has no requirement; OSError, OutputExists: as :func:`write_result_json`.
     """
     data = junit_xml(doc, console)
-    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data), overwrite=overwrite)
+
+    def write(tmp: str) -> None:
+        Path(tmp).write_bytes(data)
+
+    return atomic_write(path, write, overwrite=overwrite)

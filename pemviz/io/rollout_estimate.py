@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -156,7 +156,7 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
     return Problem(
         name,
         _no_simulator,
-        None,
+        cast(Detector, None),  # no target detector: the logged log-probabilities stand for it
         formula,
         signals=dict(meta.signals),  # type: ignore[arg-type]
         signal_ranges=dict(meta.signal_ranges),
@@ -217,6 +217,7 @@ def estimate_rollouts(
     if log_p.shape != shape or log_q.shape != shape:
         raise ValueError(f"log_p and log_q must have shape {shape}, got {log_p.shape}, {log_q.shape}")
     where = str(data.path or "rollouts")
+    assert data.meta is not None  # a rollout file's data has its sidecar
     problem = file_problem(data.meta, where)
     batch = data.to_batch(log_p, log_q)
     try:
@@ -237,6 +238,7 @@ def estimate_rollouts(
         bad = np.isnan(x) | (x == np.inf)  # -inf: an action the PEM cannot take, weight 0 (as in the run)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
+            assert data.rollout_ids is not None  # a rollout file's data has its ids
             raise RolloutFormatError(
                 f"{where}: rollout {data.rollout_ids[i]}: the {name} over its {k} steps is beyond "
                 f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
@@ -244,7 +246,9 @@ def estimate_rollouts(
             )
     checked = log_w  # the weights whose mean should be 1
     if look_ahead is not None and failure == "crash":
-        log_w, failed, checked = look_ahead_weights(replace(problem, look_ahead=look_ahead), batch)
+        weighed = look_ahead_weights(replace(problem, look_ahead=look_ahead), batch)
+        assert weighed is not None  # the problem has a look-ahead
+        log_w, failed, checked = weighed
     est, rows, pooled, rule = _pooled(data, log_w, failed, log_p_total)
     if failure == "crash":
         seen = SeenFailures()
@@ -278,6 +282,7 @@ def _pooled(
         stage = (data.meta.provenance or {}).get("stage") if data.meta else None
         kind = str((data.meta.provenance or {}).get("kind", "")) if data.meta else ""
         return whole, (StageRow(stage if isinstance(stage, int) else None, kind, whole),), (), "every rollout alike"
+    assert data.meta is not None  # a stage column comes with its sidecar
     rows = []
     for k in np.unique(data.stage).tolist():
         m = data.stage == k

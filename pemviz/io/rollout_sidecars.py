@@ -77,7 +77,7 @@ def problem_meta(
     if problem.dt_s is None:
         provenance["dt_s_unknown"] = f"{problem.name} gave no step: dt_s = 1 stands for one step"
     units = {problem.signals[k]: u for k, u in problem.units.items() if k in problem.signals}
-    window = {"window_m": float(problem.window)} if math.isfinite(problem.window) else {}
+    window: dict[str, Any] = {"window_m": float(problem.window)} if math.isfinite(problem.window) else {}
     dt_s = 1.0 if problem.dt_s is None else float(problem.dt_s)
     return RolloutMeta(
         formula=formula or str(problem.formula),

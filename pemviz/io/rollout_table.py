@@ -83,8 +83,9 @@ class RolloutData(RolloutBatch):
             (:data:`SEVERITY_COLUMNS`).
     """
 
-    log_p: np.ndarray | None
-    log_q: np.ndarray | None
+    # Optional here, unlike RolloutBatch's (the class docstring's one difference): an override mypy cannot accept
+    log_p: np.ndarray | None  # type: ignore[assignment]
+    log_q: np.ndarray | None  # type: ignore[assignment]
     meta: RolloutMeta | None = None
     rollout_ids: np.ndarray | None = None
     salient: np.ndarray | None = None
@@ -138,7 +139,7 @@ class _Table:
     def error(self, msg: str) -> RolloutFormatError:
         return RolloutFormatError(f"{self.where}: {msg}")
 
-    def at(self, row: int) -> str:
+    def at(self, row: int | np.integer) -> str:
         return f"rollout {self.rid[row]}, step {self.step[row]} (row {row})"
 
     def _nulls(self, name: str, located: bool) -> None:
@@ -154,7 +155,7 @@ class _Table:
         where = f" at {self.at(0)}" if located and len(col) else ""
         return self.error(f"column {name!r} has type {col.type} (e.g. {first!r}{where}); it must hold {allowed}")
 
-    def structure(self) -> tuple[np.ndarray, np.ndarray]:
+    def structure(self) -> tuple[np.ndarray, int]:
         """Check rollout ids and steps; returns (rollout ids [N], T)."""
         names = self.table.column_names
         needed = [

@@ -91,8 +91,9 @@ def rollouts_table(
     if batch.n_objects > 1 or batch.noise is not None:  # each object's detection and errors (format version 3)
         for m in range(batch.n_objects):
             cols[f"detected_{m}"] = np.ascontiguousarray(detected[:, :, m]).reshape(-1)
-            for d, name in enumerate(batch.noise_names if batch.noise is not None else ()):
-                cols[f"{name}_{m}"] = np.ascontiguousarray(batch.noise[:, :, m, d], dtype=np.float64).reshape(-1)
+            if batch.noise is not None:
+                for d, name in enumerate(batch.noise_names):
+                    cols[f"{name}_{m}"] = np.ascontiguousarray(batch.noise[:, :, m, d], dtype=np.float64).reshape(-1)
         if salient is not None:
             raise ValueError("salient variables are written for one object per step without errors only")
     else:
@@ -248,6 +249,7 @@ class RolloutWriter:
                 raise ValueError(f"{self.path}: no rollouts to write")
             self._writer.close()
             self._writer = None
+            assert self._shape is not None  # set with the writer, by the first append
             n_steps, names = self._shape[:2]
             n_rollouts = self.n_rollouts
             if keep_stages is not None and set(self.stage_counts) - set(keep_stages):
@@ -293,6 +295,7 @@ class RolloutWriter:
         if writer is None:
             raise ValueError(f"{self.path}: none of stages {sorted(stages)} was written")
         self._tmp = kept
+        assert self._shape is not None  # close() calls this after the first append
         return n_rows // self._shape[0]
 
     def abort(self) -> None:

@@ -270,7 +270,13 @@ def check_pairs(scenario: str, pairs: object) -> tuple[tuple[str, PairValue], ..
         if is_odd(value):
             parse_assignment(scenario, f"{name}{value}")
     fixed = representative(scenario, pairs)  # the fixed values, a drawn one at its support's first end
-    apply_parameters(scenario, fixed)
+    try:
+        apply_parameters(scenario, fixed)
+    except ParameterError:
+        if any(is_odd(value) for _, value in pairs):  # the fixed ones alone (drawn ones at their defaults) first
+            apply_parameters(scenario, {name: value for name, value in pairs if not is_odd(value)})
+        else:
+            raise
     for name, value in pairs:
         if is_odd(value):
             law = law_of(value)

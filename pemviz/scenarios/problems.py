@@ -121,6 +121,10 @@ def problem_for(config: Any) -> Problem:
     setting = CUT_IN_SETTINGS[config.scenario]
     scene = apply_parameters(config.scenario, overrides)
     assert isinstance(scene, CutInParams)  # a cut-in scenario's own dataclass
+    if odd is not None:  # the start gap drawn per rollout (pemviz.scenarios.cut_in.odd)
+        from pemviz.scenarios.cut_in.odd import cut_in_odd_problem
+
+        return cut_in_odd_problem(config, scene, odd)
     problem = cut_in_problem(load_pem(config.pem), scene, name=config.scenario)
     own = scene == cut_in_params(setting)  # the reference holds for the setting's own scene only
     if config.pem in (None, DEFAULT_PEM_NAME) and setting in MONTE_CARLO_REFERENCE and own:

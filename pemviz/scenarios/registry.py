@@ -371,6 +371,8 @@ for _scenario in (
         simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
         drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
         cost_factor=_CUT_IN_COST_FACTOR,
+        random_params=("cut_in_gap_m",),
+        odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
     ),
     Scenario(
         "cut-in-rare",
@@ -380,6 +382,8 @@ for _scenario in (
         simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
         drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
         cost_factor=_CUT_IN_COST_FACTOR,
+        random_params=("cut_in_gap_m",),
+        odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
     ),
     Scenario(
         "toy",

@@ -101,6 +101,7 @@ from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
 from pemviz.sinks.rerun_stage_figures import StageFigures, log_histograms, log_series_styles
+from pemviz.sinks.rerun_odd import log_odd_map
 from pemviz.sinks.rerun_text import (
     config_markdown,
     description_markdown,
@@ -572,5 +573,7 @@ class RerunSink(Sink):
         self._groups(ev)  # the final estimate's failures, grouped (FailureGroups keeps each stage's failing rows)
         if ev.failures is not None and self._groups.grouping is not None:
             self.status_md += log_failures(s, self._groups.grouping, self.problem)
+        if ev.odd_map is not None:  # over an operating design domain: where p_ODD comes from
+            log_odd_map(s, ev.odd_map)
         self._log_description()
         s.flush()

@@ -30,7 +30,7 @@ WHITE, PANEL, TEXT, RULE, MUTED = (hex_colour(c) for c in (C.PAGE, C.SKETCH_BACK
 
 def _odd_section(odd_map: dict[str, Any]) -> tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]:
     """The section of a run over an operating design domain: each parameter's bins with p(failure | bin), its interval
-    or lower bound, verdict and share of p_ODD (:meth:`pemviz.sinks.odd_map.OddMapSink.document`)."""
+    or lower bound, verdict and share of p_ODD (:meth:`pemviz.core.odd.OddMap.document`)."""
 
     def exp(x: float | None) -> float | None:
         return None if x is None else math.exp(x)

@@ -24,6 +24,8 @@ Everything here builds blueprint objects and logs nothing.
 
 from __future__ import annotations
 
+from typing import Any
+
 import rerun.blueprint as rrb
 
 from pemviz.core.problem_view import ProblemView, SignalView
@@ -214,6 +216,19 @@ def _rollouts_tab(view: ProblemView | None, n_lanes: int) -> rrb.Container:
     return rrb.Horizontal(traces, rrb.Vertical(*right), column_shares=[1.4, 1.0], name=tab_name("rollouts"))
 
 
+def _odd_views(view: ProblemView | None) -> list[Any]:
+    """Over an operating design domain: the map's table (``/odd/map``) and, per drawn parameter, log10 p(failure |
+    bin) with its 95 % interval's ends over the ``odd_bin`` timeline (``/odd/<name>``); none without an ODD."""
+    names = view.odd_names if view is not None else ()
+    if not names:
+        return []
+    plots = [
+        rrb.TimeSeriesView(origin=f"/odd/{name}", name=f"log10 p(failure | {name} bin)", plot_legend=_NO_LEGEND)
+        for name in names
+    ]
+    return [rrb.Vertical(rrb.TextDocumentView(origin="/odd/map", name="ODD map"), *plots, name="ODD map")]
+
+
 def default_blueprint(
     n_lanes: int = 12, view: ProblemView | None = None, tab: str = "stages", paused: bool = False
 ) -> rrb.Blueprint:
@@ -239,6 +254,7 @@ def default_blueprint(
                 rrb.Tabs(
                     rrb.TextDocumentView(origin="/description", name="Run"),
                     rrb.TextDocumentView(origin="/failures", name="Failures by share of p, in groups"),
+                    *_odd_views(view),
                     *(
                         [
                             rrb.BarChartView(

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, cast
 
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking import truth, truth_known, truth_latched
@@ -49,13 +49,13 @@ def exact_answer(
     if name in TOY_PROBLEMS:
         params = TOY_PROBLEMS[name]
         log_p = toy_log_failure_probability(params)
-        q, n = 1 - params.p_detect, params.braking - params.safe + 1
+        q, n = 1 - cast(float, params.p_detect), params.braking - params.safe + 1  # the toys' p(detect): constants
         return ExactAnswer(log_p, f"closed form (1 - p)^(braking - safe + 1) = {q:g}^{n}")
     if name in CROWD_PROBLEMS:
-        params = CROWD_PROBLEMS[name]
+        crowd = CROWD_PROBLEMS[name]
         return ExactAnswer(
-            crowd_log_failure_probability(params),
-            f"closed form over {len(params.offsets)} obstacles' independent triggers",
+            crowd_log_failure_probability(crowd),
+            f"closed form over {len(crowd.offsets)} obstacles' independent triggers",
         )
     if name not in ("latched", "main"):
         problem = validation_problem(name, pem_path)  # a registered scenario that carries its exact answer

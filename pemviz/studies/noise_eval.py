@@ -25,6 +25,7 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 
@@ -110,6 +111,10 @@ class NoiseModelEvaluation:
     pit: np.ndarray
     range_m: np.ndarray
 
+    @overload
+    def mean(self, metric: Literal["nll_dims", "coverage", "ice"]) -> np.ndarray: ...
+    @overload
+    def mean(self, metric: str) -> np.ndarray | float: ...
     def mean(self, metric: str) -> np.ndarray | float:
         """The mean over folds of a :class:`NoiseFoldScore` field (an array for array fields)."""
         values = np.mean([np.asarray(getattr(f, metric), dtype=np.float64) for f in self.folds], axis=0)

@@ -475,7 +475,8 @@ def log_recording(result: EvalResult, stream: Any) -> None:
     lo = min(float(np.quantile(p, 0.001)) for p in probs.values())
     lo = max(0.0, math.floor(lo * 10) / 10)
     rel_fig.draw_axes(stream, (lo, 1.0), (lo, 1.0))
-    stream.log("reliability/data/diagonal", rr.LineStrips2D([[[lo, lo], [1, 1]]], colors=grey, radii=-0.5), static=True)
+    diagonal: list[list[float]] = [[lo, lo], [1, 1]]
+    stream.log("reliability/data/diagonal", rr.LineStrips2D([diagonal], colors=grey, radii=-0.5), static=True)
     for m in result.models:
         mean_p, rate, count = reliability_curve(probs[m.name], y[m.test_rows], result.config.n_bins)
         ok = (count > 0) & (mean_p >= lo) & (rate >= lo)

@@ -38,7 +38,7 @@ def numpy_dispatch() -> tuple[list[str], list[str]]:
     'X86_V4', 'AVX512_ICL', 'AVX512_SPR'], ['X86_V3'])`` under ``NPY_DISABLE_CPU_FEATURES="X86_V4 AVX512_ICL
     AVX512_SPR"``. numpy names its targets by version (``AVX512F``, ``AVX512_SKX`` before 2.4; ``X86_V4`` since),
     and ignores, with a warning, a name it does not dispatch."""
-    from numpy._core import _multiarray_umath as umath
+    from numpy._core import _multiarray_umath as umath  # type: ignore[attr-defined]  # private: not in numpy's stubs
 
     dispatch = list(getattr(umath, "__cpu_dispatch__", []))
     return dispatch, [name for name in dispatch if umath.__cpu_features__.get(name, False)]
@@ -101,7 +101,7 @@ def fingerprint(config: Any) -> dict[str, Any]:
     import numpy as np
 
     from pemviz.engine.experiment import Experiment
-    from pemviz.engine.events import RolloutChunk, RolloutsSampled
+    from pemviz.engine.events import RolloutChunk, RolloutsSampled, RunFinished
     from pemviz.scenarios.problems import problem_for
 
     digest = hashlib.sha256()
@@ -112,12 +112,16 @@ def fingerprint(config: Any) -> dict[str, Any]:
             chunks[0] += 1
             digest.update(np.ascontiguousarray(event.batch.detected).tobytes())
         elif isinstance(event, RolloutsSampled):
-            digest.update(
-                np.ascontiguousarray(event.failed if event.index is None else event.stage_robustness < 0).tobytes()
-            )
+            if event.index is None:
+                failed = event.failed
+            else:
+                assert event.stage_robustness is not None  # a sample of the stage comes with every robustness
+                failed = event.stage_robustness < 0
+            digest.update(np.ascontiguousarray(failed).tobytes())
 
     problem = problem_for(config)
     result = Experiment(config, [listen], problem=problem).run()
+    assert isinstance(result, RunFinished)  # nothing cancels this run
     e = result.final.estimate
     return {
         "rollouts": digest.hexdigest(),

@@ -216,7 +216,11 @@ def run_jobs(
         data = runs_file.read_bytes() if runs_file.is_file() else b""
         if data and not data.endswith(b"\n"):
             kept = data.rsplit(b"\n", 1)[0] + b"\n"  # drop a torn last line, the rest intact
-            atomic_write(runs_file, lambda tmp: Path(tmp).write_bytes(kept))
+
+            def write(tmp: str) -> None:
+                Path(tmp).write_bytes(kept)
+
+            atomic_write(runs_file, write)
         log = runs_file.open("a", encoding="utf-8")
 
     def finished(job: Job, rec: RunRecord) -> None:
@@ -423,8 +427,9 @@ def report(
         md.append(f"- **{name}**: {problem_description(name)}; truth {math.exp(truth.log_p_fail):.6g}: {truth.source}")
     md += ["", markdown_table(summaries), ""]
     for name in problems:
-        if truths[name].table:
-            md += [f"Refinement of the {name} truth:", "", truths[name].table, ""]
+        table = truths[name].table
+        if table:
+            md += [f"Refinement of the {name} truth:", "", table, ""]
     md.append(f"Total wall time {wall_s:.0f} s.")
     return "\n".join(md) + "\n"
 

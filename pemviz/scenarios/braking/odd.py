@@ -59,8 +59,9 @@ def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> 
         odd=odd,
         verdict_cap=(
             "doubtful",
-            "the proposal reads the state, not the parameters drawn over the ODD: its weights can "
-            "look reliable while a region of the ODD is sampled too little",
+            "over an ODD the fitted proposal (which reads the drawn parameters with the state) can sample a "
+            "region of the ODD too little while its weights look reliable (on the toy, 2 of 20 runs at x0.47 "
+            "and x0.50)",
         ),
         description=(
             f"automated braking behind a lead car, its start drawn per rollout ({odd.text()}), the PEM as "

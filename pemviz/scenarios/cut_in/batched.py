@@ -16,7 +16,9 @@ Units: metres, seconds, m/s.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +27,7 @@ from pemviz.stack import tracker
 from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, OBSERVATION_NAMES, CutInParams
 from pemviz.stack.detector import NOISE_NAMES
 from pemviz.scenarios.cut_in.highway import TrafficTrajectory, traffic_trajectory
-from pemviz.scenarios.cut_in.scene import CameraView, camera_view, decide, object_rows, scene_signals
+from pemviz.scenarios.cut_in.scene import CameraView, Traffic, camera_view, decide, object_rows, scene_signals
 
 MAX_SPEED_MPS = 40.0
 """highway-env's ``Vehicle.MAX_SPEED``: above it ``clip_actions`` caps the acceleration at ``MAX_SPEED - speed``."""
@@ -35,6 +37,30 @@ MAX_SPEED_MPS = 40.0
 def cached_trajectory(params: CutInParams) -> TrafficTrajectory:
     """:func:`~pemviz.scenarios.cut_in.highway.traffic_trajectory`, computed once per parameter set."""
     return traffic_trajectory(params)
+
+
+def translation_error(params: CutInParams, gap_m: float) -> float:
+    """The largest difference, in metres, between the traffic trajectory started at the cut-in gap ``gap_m`` and
+    that of ``params`` with its cut-in vehicle moved by ``gap_m - params.cut_in_gap_m`` (every vehicle, every step,
+    position and extent), or ``inf`` where anything else differs (speeds, headings, lanes, who occludes whom): what
+    ``gap_shift_m`` of :class:`BatchedCutIn` assumes is 0 (rounding)."""
+    base = cached_trajectory(params)
+    other = traffic_trajectory(dataclasses.replace(params, cut_in_gap_m=float(gap_m)))
+    shift = float(gap_m) - params.cut_in_gap_m
+    worst = 0.0
+    for a, b in zip(base.traffic, other.traffic, strict=True):
+        for field in dataclasses.fields(a):
+            x, y = getattr(a, field.name), getattr(b, field.name)
+            if field.name in ("x_m", "rear_m", "front_m"):
+                moved = np.array(x, dtype=np.float64)
+                moved[0] += shift
+                worst = max(worst, float(np.max(np.abs(np.asarray(y, dtype=np.float64) - moved))))
+            elif field.name == "occluder_pairs":
+                if x != y:
+                    return math.inf
+            elif not np.allclose(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), rtol=0, atol=1e-9):
+                return math.inf
+    return worst
 
 
 @dataclass
@@ -79,22 +105,53 @@ class BatchedCutIn:
     Protocol (the batched form of :class:`~pemviz.scenarios.cut_in.highway.CutInScenario`): ``objects()`` float64
     ``[N, M, G]``, ``observation()`` float64 ``[N, F]``, ``step(detected bool [N, M], noise float64 [N, M, 2] | None)``.
 
+    ``gap_shift_m`` float64 ``[N]`` (None: none) moves the cut-in vehicle (object 0) of each rollout that many metres
+    along the road from where ``params`` start it, at every step: its start gap is ``params.cut_in_gap_m +
+    gap_shift_m``. The traffic never reacts to the ego and, where :func:`translation_error` is small, the cut-in
+    vehicle's highway-env trajectory from another start gap is this one translated (the other vehicles the same), so
+    rollouts with their own start gaps share one traffic trajectory (an operating design domain over
+    ``cut_in_gap_m``, :mod:`pemviz.scenarios.cut_in.odd`).
+
     Raises:
-        ValueError: ``n`` not an integer >= 1.
+        ValueError: ``n`` not an integer >= 1; ``gap_shift_m`` not finite of shape ``[n]``.
     """
 
     observation_names = OBSERVATION_NAMES
     object_names = OBJECT_NAMES
     noise_names = NOISE_NAMES
 
-    def __init__(self, params: CutInParams | None, n: int) -> None:
+    def __init__(self, params: CutInParams | None, n: int, gap_shift_m: np.ndarray | None = None) -> None:
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
             raise ValueError(f"BatchedCutIn: n must be an integer >= 1, got {n!r}")
         self.params = params or CutInParams()
         self.n = int(n)
         self.n_objects = self.params.n_objects
         self._trajectory = cached_trajectory(self.params)
+        self._shift: np.ndarray | None = None
+        if gap_shift_m is not None:
+            shift = np.asarray(gap_shift_m, dtype=np.float64)
+            if shift.shape != (self.n,) or not np.all(np.isfinite(shift)):
+                raise ValueError(f"BatchedCutIn: gap_shift_m must be finite float64 [{self.n}], got {shift.shape}")
+            self._shift = np.zeros((self.n_objects, self.n))
+            self._shift[0] = shift  # the cut-in vehicle only
+        self._traffic_at: tuple[int, Traffic] | None = None
         self.reset()
+
+    def traffic(self) -> Traffic:
+        """The traffic at this step: the shared trajectory's, with each rollout's cut-in vehicle moved by its
+        ``gap_shift_m`` (then ``x_m``, ``rear_m`` and ``front_m`` are ``[M, N]``; computed once a step)."""
+        shared = self._trajectory.traffic[self.state.t]
+        if self._shift is None:
+            return shared
+        if self._traffic_at is None or self._traffic_at[0] != self.state.t:
+            moved = dataclasses.replace(
+                shared,
+                x_m=shared.x_m[:, None] + self._shift,
+                rear_m=shared.rear_m + self._shift,
+                front_m=shared.front_m + self._shift,
+            )
+            self._traffic_at = (self.state.t, moved)
+        return self._traffic_at[1]
 
     def reset(self) -> None:
         """Every rollout at the start: the ego at x = 0, no tracks."""
@@ -116,8 +173,7 @@ class BatchedCutIn:
     def view(self) -> CameraView:
         """The camera's view at this step, ``[M, N]`` arrays (computed once per step)."""
         if self._view is None:
-            traffic = self._trajectory.traffic[self.state.t]
-            self._view = camera_view(self.params, traffic, self.state.ego_x_m)
+            self._view = camera_view(self.params, self.traffic(), self.state.ego_x_m)
         return self._view
 
     def objects(self, out: np.ndarray | None = None) -> np.ndarray:
@@ -125,7 +181,7 @@ class BatchedCutIn:
         s = self.state
         rows = object_rows(
             self.params,
-            self._trajectory.traffic[s.t],
+            self.traffic(),
             self.view(),
             s.ego_x_m,
             s.ego_speed_mps,
@@ -143,7 +199,7 @@ class BatchedCutIn:
         s = self.state
         return scene_signals(
             self.params,
-            self._trajectory.traffic[s.t],
+            self.traffic(),
             s.ego_x_m,
             s.ego_speed_mps,
             s.ego_accel_mps2,

@@ -114,6 +114,7 @@ class OneCar(BatchedCutIn):
         object.__setattr__(one, "n_objects", 1)
         self.params, self.n, self.n_objects = one, int(n), 1
         self._trajectory = one_car_trajectory(params)
+        self._shift, self._traffic_at = None, None  # one start gap (BatchedCutIn's gap_shift_m: none)
         self.reset()
 
 

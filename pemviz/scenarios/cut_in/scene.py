@@ -67,7 +67,8 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class Traffic:
     """The M other vehicles at one step, the same in every rollout: arrays ``[M]``, or ``[M, 1]`` where marked (a
-    column, to broadcast against the rollouts' ``[M, N]`` arrays).
+    column, to broadcast against the rollouts' ``[M, N]`` arrays). ``x_m``, ``rear_m`` and ``front_m`` may instead be
+    ``[M, N]``, each rollout's own (the cut-in vehicle moved per rollout: ``BatchedCutIn(gap_shift_m=)``).
 
     Attributes:
         x_m, y_m, heading_rad, speed_mps: highway-env's vehicle state (centre; heading from the road's direction,
@@ -202,6 +203,12 @@ class CameraView:
     visible: np.ndarray
 
 
+def _column(x: np.ndarray) -> np.ndarray:
+    """``[M]`` as a column ``[M, 1]`` to broadcast against the rollouts' ``[M, N]``; ``[M, N]`` as it is (each rollout's
+    own positions: :class:`pemviz.scenarios.cut_in.batched.BatchedCutIn`'s ``gap_shift_m``)."""
+    return x[:, None] if x.ndim == 1 else x
+
+
 def camera_view(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray) -> CameraView:
     """The camera's view of the traffic from ego positions ``ego_x_m`` ``[N]`` (module docstring).
 
@@ -211,7 +218,7 @@ def camera_view(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray) -> C
     far face: ``u_hi = max(X_hi / Z_near, X_hi / Z_far)``, ``u_lo = min(X_lo / Z_near, X_lo / Z_far)``.
     """
     cam_x = ego_x_m + params.camera_offset_m
-    loc_z = traffic.x_m[:, None] - cam_x
+    loc_z = _column(traffic.x_m) - cam_x
     z_near = np.maximum(loc_z - traffic.half_x_m[:, None], _MIN_DEPTH_M)
     z_far = np.maximum(loc_z + traffic.half_x_m[:, None], _MIN_DEPTH_M)
     x_lo, x_hi = traffic.loc_x_lo_m, traffic.loc_x_hi_m
@@ -304,7 +311,7 @@ def object_rows(
     cols[16] = view.visible
     cols[17] = traffic.in_ego_lane[:, None]
     cols[18] = tracks.confirmed
-    np.multiply(tracks.x - traffic.x_m[:, None], tracks.active, out=cols[19])
+    np.multiply(tracks.x - _column(traffic.x_m), tracks.active, out=cols[19])
     np.multiply(tracks.y - traffic.y_m[:, None], tracks.active, out=cols[20])
     cols[21] = followed == np.arange(m)[:, None]
     cols[22] = ego_speed_mps
@@ -331,7 +338,7 @@ def scene_signals(
     rows = np.arange(n)
     half_l = params.vehicle_length_m / 2
     ego_front, ego_rear = ego_x_m + half_l, ego_x_m - half_l
-    ahead = traffic.in_ego_lane[:, None] & (traffic.x_m[:, None] > ego_x_m)
+    ahead = traffic.in_ego_lane[:, None] & (_column(traffic.x_m) > ego_x_m)
     gaps = np.where(ahead, traffic.rear_m - ego_front, np.inf)
     front_index = np.argmin(gaps, axis=0)
     gap = gaps[front_index, rows]

@@ -75,8 +75,9 @@ def toy_odd_problem(config: Any, params: ToyParams | None, odd: ODD) -> Problem:
         odd=odd,
         verdict_cap=(
             "doubtful",
-            "the proposal reads the state, not the parameters drawn over the ODD: its weights can "
-            "look reliable while a region of the ODD is sampled too little",
+            "over an ODD the fitted proposal (which reads the drawn parameters with the state) can sample a "
+            "region of the ODD too little while its weights look reliable (on the toy, 2 of 20 runs at x0.47 "
+            "and x0.50)",
         ),
         name=f"toy over {odd.text()}",
         window=float(top) + 0.5,

@@ -1,0 +1,55 @@
+"""The map of where p_ODD comes from, made by the engine for a run over an operating design domain: it gathers the
+final stage's rollouts (their parameters, importance weights and failures) as they pass, and after the final estimate
+bins them (:func:`pemviz.core.odd.odd_map`); :class:`pemviz.engine.events.FinalEstimate` carries the result as its
+``odd_map``, which the console, the recording, the panel and the result document show."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from pemviz.core.odd import OddMap, odd_map
+from pemviz.engine.events import RolloutChunk
+
+
+class OddMapCollector:
+    """The final stage's rollouts of a run over ``problem.odd`` (its last final stage: a precision target adds
+    batches), kept as four arrays a chunk: parameters ``[n, D]``, log weights, failures, log p of the detections."""
+
+    def __init__(self, problem: Any) -> None:
+        self.problem, self.odd = problem, problem.odd
+        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._stage: int | None = None
+
+    def add(self, event: RolloutChunk) -> None:
+        """Keep a final stage's chunk (other stages' are ignored)."""
+        from pemviz.estimators.base import log_p_before_failure
+
+        if event.kind != "final":
+            return
+        if self._stage != event.stage:
+            self._stage, self._parts = event.stage, []
+        b = event.batch
+        cols = [tuple(b.observation_names).index(name) for name in self.odd.names]
+        self._parts.append(
+            (
+                b.observations[:, 0][:, cols],
+                np.asarray(event.log_weight, dtype=np.float64),
+                self.problem.failed(b),
+                log_p_before_failure(self.problem, b),
+            )
+        )
+
+    def result(self, cap: tuple[str, str] | None) -> OddMap | None:
+        """The map of the kept rollouts, each bin's verdict at most the run's ``cap`` (verdict, reason); None without
+        rollouts."""
+        if not self._parts:
+            return None
+        values, log_w, failed, log_p = (np.concatenate(x) for x in zip(*self._parts, strict=True))
+        bins = [
+            dataclasses.replace(b, estimate=b.estimate.at_most(cap)) if cap else b
+            for b in odd_map(self.odd, values, log_w, failed, log_p)
+        ]
+        return OddMap(self.odd, len(log_w), tuple(bins))

@@ -1,0 +1,55 @@
+"""The map of a run over an operating design domain in the recording: ``/odd/map``, a table of each drawn parameter's
+bins (P(bin), p(failure | bin) with its 95 % interval or lower bound, verdict, share of p_ODD) and the region that
+carries most of p_ODD; ``/odd/<name>/log10_p``, ``log10_low`` and ``log10_high``, one point per bin on the ``odd_bin``
+timeline (the blueprint's *ODD map* view, :func:`pemviz.sinks.rerun_blueprint.default_blueprint`)."""
+
+from __future__ import annotations
+
+import math
+
+import rerun as rr
+
+from pemviz.core.estimate import format_probability
+from pemviz.core.odd import OddMap
+
+
+def odd_map_markdown(m: OddMap) -> str:
+    """The map as a markdown table, with the region that carries most of p_ODD under it."""
+    rows = [
+        f"**Operating design domain**: {m.odd.text()}; p(failure | bin) from the final stage's {m.rollouts:,} "
+        "rollouts.",
+        "",
+        "| bin | P(bin) | p(failure \\| bin) | 95 % interval | verdict | share of p_ODD |",
+        "|---|---|---|---|---|---|",
+    ]
+    for b in m.bins:
+        e = b.estimate
+        p = format_probability(e.log_mu_hat) if e.n_failures else "no failure"
+        rows.append(
+            f"| {b.label} | {b.probability:.2f} | {p} | {e.interval_text()} | {e.verdict} | {100 * b.share:.1f} % |"
+        )
+    top = m.top()
+    if top is not None:
+        rows += ["", f"Most of p_ODD: **{top.label}** ({100 * top.share:.0f} % of it, P(bin) {top.probability:.2f})."]
+    return "\n".join(rows)
+
+
+def log_odd_map(stream: rr.RecordingStream, m: OddMap) -> None:
+    """Log ``m`` to ``stream`` (module docstring); nothing for a map without bins."""
+    if not m.bins:
+        return
+    stream.log("odd/map", rr.TextDocument(odd_map_markdown(m), media_type=rr.MediaType.MARKDOWN), static=True)
+    for name in m.odd.names:
+        for k, b in enumerate(x for x in m.bins if x.name == name):
+            e = b.estimate
+            lo, hi = e.shown_log_ci
+            stream.set_time("odd_bin", sequence=k)
+            values = {
+                "log10_p": e.log_mu_hat / math.log(10) if e.n_failures else math.nan,
+                "log10_low": lo / math.log(10) if math.isfinite(lo) else math.nan,
+                "log10_high": hi / math.log(10) if math.isfinite(hi) else math.nan,
+            }
+            for key, value in values.items():
+                if math.isfinite(value):
+                    stream.log(f"odd/{name}/{key}", rr.Scalars(value))
+    stream.reset_time()
