@@ -7,9 +7,14 @@ the one to adapt (``tests/test_app.py`` drives the panel in a browser and finds 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from viser._messages import GuiUpdateMessage
+
+if TYPE_CHECKING:
+    from viser._gui_handles import _GuiInputHandle
+
+T = TypeVar("T")
 
 
 def resend_value(handle: Any) -> None:
@@ -22,3 +27,12 @@ def resend_value(handle: Any) -> None:
     """
     impl = handle._impl
     impl.gui_api._websock_interface.queue_message(GuiUpdateMessage(impl.uuid, {"value": impl.value}))
+
+
+def set_value(handle: _GuiInputHandle[T], value: T) -> None:
+    """``handle.value = value``: set a GUI input's value (viser sends it to the browser and runs its callbacks).
+
+    viser 1.1 defines the ``value`` setter apart from its getter, so mypy takes the property for read-only; the
+    assignment is typed here once, against the handle's value type.
+    """
+    handle.value = value  # type: ignore[misc]  # viser 1.1: setter not adjacent to the getter, mypy sees read-only

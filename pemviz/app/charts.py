@@ -248,8 +248,8 @@ def fill_marginal_plots(
             title += rng.note("median", ".1f", " nats")
         series: list[Any] = [
             up.Series(label=axis.series_label),
-            up.Series(label=f"{last_name} 10 %", stroke=colour, width=1, dash=[3, 3]),
-            up.Series(label=f"{last_name} 90 %", stroke=colour, width=1, dash=[3, 3]),
+            up.Series(label=f"{last_name} 10 %", stroke=colour, width=1, dash=(3, 3)),
+            up.Series(label=f"{last_name} 90 %", stroke=colour, width=1, dash=(3, 3)),
             up.Series(label="PEM", stroke=hex_colour(BLACK), width=2.5),
         ]
         data = [x, enough(last, getattr(last, lo)), enough(last, getattr(last, hi)), rng.drawn(lines[0])]
@@ -323,26 +323,25 @@ def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
             continue
         colour = run_colour(r.run_id)
         series += [
-            up.Series(label=f"{r.short_label} 95 % low", stroke=colour, width=1, dash=[4, 3]),
-            up.Series(label=f"{r.short_label} 95 % high", stroke=colour, width=1, dash=[4, 3]),
+            up.Series(label=f"{r.short_label} 95 % low", stroke=colour, width=1, dash=(4, 3)),
+            up.Series(label=f"{r.short_label} 95 % high", stroke=colour, width=1, dash=(4, 3)),
         ]
         lines += [lo, hi]
         matters += [failed, failed]
         bands.append(up.Band(series=(len(series) - 1, len(series) - 2), fill=f"{colour}26"))
     exact = runs[-1].exact_log_p
     known = exact is not None and math.isfinite(exact)
+    exact10 = exact / ln10 if exact is not None else math.nan  # log10 of the exact answer, drawn where known
     rng = robust_range(
         np.concatenate(lines),
         np.concatenate(matters),
         **MU_HAT_RULE,
-        at_least=(exact / ln10, exact / ln10) if known else None,
+        at_least=(exact10, exact10) if known else None,
     )
     data = [x, *(rng.drawn(y) for y in lines)]
     if known:
-        series.append(
-            up.Series(label=f"exact answer {exact / ln10:.3f}", stroke=hex_colour(BLACK), width=1.5, dash=[8, 4])
-        )
-        data.append(np.full(n, exact / ln10))
+        series.append(up.Series(label=f"exact answer {exact10:.3f}", stroke=hex_colour(BLACK), width=1.5, dash=(8, 4)))
+        data.append(np.full(n, exact10))
     extra_series, extra_data = off_scale_series(x, rng, lines)
     plot.title = (
         "log10 mu_hat per stage, 95 % interval (band)" + (", exact answer (black)" * known) + rng.note("point", ".1f")

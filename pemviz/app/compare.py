@@ -21,6 +21,7 @@ import dataclasses
 import html
 import math
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 import viser
@@ -83,6 +84,14 @@ class RunPoint:
     note: str = ""
 
 
+class _Known(TypedDict, total=False):
+    """What a run's problem knows of its answer (:func:`run_point`): :attr:`RunPoint.log10_exact`, else
+    :attr:`RunPoint.log10_reference`."""
+
+    log10_exact: float | None
+    log10_reference: float | None
+
+
 def _log10(log_p: float | None) -> float | None:
     """log10 of a probability given as a natural log; None for None, -inf, +inf or nan."""
     if log_p is None or not math.isfinite(log_p):
@@ -95,7 +104,7 @@ def run_point(record: PanelRun) -> RunPoint:
     and its problem's exact answer or reference."""
     with record.lock:
         final, exact, reference, status = record.final, record.exact_log_p, record.reference, record.status
-    known = {"log10_exact": _log10(exact)}
+    known: _Known = {"log10_exact": _log10(exact)}
     if known["log10_exact"] is None and reference is not None:
         known["log10_reference"] = _log10(reference.log_p)
     name = record.short_label
@@ -203,7 +212,7 @@ def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list
         if v is not None
     ]
     y_lo, y_hi = _y_range(shown)
-    no_points = {"show": False}
+    no_points: up.Series_Points = {"show": False}
     series: list[up.Series] = [up.Series(label="run")]
     data: list[np.ndarray] = [x]
     for i, p in enumerate(points):
@@ -211,12 +220,14 @@ def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list
         name = p.record.short_label
         if p.log10_mu is not None and (p.log10_hi is not None or p.bound_only):
             bottom = p.log10_lo if p.log10_lo is not None else y_lo  # an interval reaching 0: to the chart's bottom
+            parts: tuple[tuple[str, np.ndarray | None], ...]
             if p.bound_only:  # a lower bound's cap, and a line to the chart's top: no upper bound from this run
                 parts = (
                     ("95 % lower bound", column(i, _CAP, bottom) if p.log10_lo is not None else None),
                     ("no upper bound", line(i, bottom, y_hi)),
                 )
             else:
+                assert p.log10_hi is not None  # not bound_only: the condition above
                 parts = (
                     ("95 % low", column(i, _CAP, bottom) if p.log10_lo is not None else None),
                     ("95 % high", column(i, _CAP, p.log10_hi)),
@@ -248,7 +259,7 @@ def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list
         )
         for label, value, stroke, dash in answers:
             if value is not None:
-                extra = {"dash": dash} if dash else {}
+                extra: up.Series = {"dash": dash} if dash else {}
                 series.append(
                     up.Series(
                         label=f"{p.record.short_label} {label}", stroke=stroke, width=2.5, points=no_points, **extra

@@ -106,6 +106,10 @@ class LanePanel(PanelDrawing, Protocol):
     """The hooks of a drawing of the ego and one object ahead of it (:class:`~pemviz.scenarios.panel_data
     .LaneScene`). ``batch, i``: rollout ``i`` of a :class:`pemviz.core.rollouts.RolloutBatch`."""
 
+    def panel_scene(self) -> LaneScene:
+        """The lane scene's constants: its cars' sizes, its zones, its labels."""
+        ...
+
     def lane_positions(self, batch: RolloutBatch, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """float64 [T] each (metres): the ego's centre along the road (0 at the start), the object's centre, the
         ruler's length (sensor to the object's rear)."""
@@ -128,6 +132,10 @@ class LanePanel(PanelDrawing, Protocol):
 class ObjectsPanel(PanelDrawing, Protocol):
     """The hooks of a drawing of several objects around the ego (:class:`~pemviz.scenarios.panel_data
     .ObjectsScene`)."""
+
+    def panel_scene(self) -> ObjectsScene:
+        """The scene's constants: its car sizes, its lanes, its objects' names."""
+        ...
 
     def objects_story(self, batch: RolloutBatch, names: tuple[str, ...]) -> Any | None:
         """What happened in rollout 0 of ``batch`` (``text``, ``severity``, ``acc``, ``in_lane``), or None: the scene

@@ -10,7 +10,7 @@ from typing import Any
 
 import viser
 
-from pemviz.app._viser_compat import resend_value
+from pemviz.app._viser_compat import resend_value, set_value
 from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_number, parse_form
 from pemviz.app.host import PanelHost
 from pemviz.app.html import field_error
@@ -148,7 +148,7 @@ class ExperimentTab:
             fields = {"method": "adaptive", "n_per_stage": preset.n_per_stage}
         with self.client.atomic():
             self.choices["method"].value = fields["method"]
-            self.fields["n_per_stage"].value = format_number(FIELDS_BY_KEY["n_per_stage"], fields["n_per_stage"])
+            set_value(self.fields["n_per_stage"], format_number(FIELDS_BY_KEY["n_per_stage"], fields["n_per_stage"]))
         self.params.show(scenario)
         self._on_change()
         self._on_scenario(scenario)
@@ -159,7 +159,7 @@ class ExperimentTab:
         with self.client.atomic():
             for f in NUMBER_FIELDS:
                 if f.name in self.fields and f.name != "seed":
-                    self.fields[f.name].value = format_number(f, getattr(cfg, f.name))
+                    set_value(self.fields[f.name], format_number(f, getattr(cfg, f.name)))
             for key in ("weights", "final_estimate"):
                 self.choices[key].value = getattr(cfg, key)
         self._on_change()

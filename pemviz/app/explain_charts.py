@@ -64,7 +64,7 @@ def fill_controller_plot(plot: viser.GuiUplotHandle, ex: LaneExplanation, step: 
     drawn = rng.drawn(a)  # the now marker (pemviz.app.plots.move_strip_marker) follows this series: on the chart
     now = np.full(t.size, np.nan)
     now[int(np.clip(step, 0, t.size - 1))] = drawn[int(np.clip(step, 0, t.size - 1))]
-    dots = {"width": 0}
+    dots: up.Series = {"width": 0}
     off = np.flatnonzero(rng.below(a) | rng.above(a))
     why = {True: " (contact: the ego stops within one step)", False: ""}
     note = (
@@ -172,7 +172,7 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
     i = int(np.clip(step, 0, t.size - 1))
     fail = st.severity.failure_step
     x_scale = up.Scale(time=False, auto=False, range=(0.0, float(t[-1])))
-    dots = {"width": 0}
+    dots: up.Series = {"width": 0}
     det, seen = ox.detected[:, 0], ox.seen[:, 0]
     missed = seen & ~det
     failure_series = (
@@ -214,7 +214,7 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
             up.Series(label="measured (detected)", stroke=css(BLUE), points=_points(BLUE, 4), **dots),
             up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **dots),
             up.Series(label="tracker (confirmed track)", stroke=css(VIOLET), width=2),  # over the dots
-            *(up.Series(label=label, stroke=css(colour), width=1.5, dash=[6, 4]) for label, _, colour in levels),
+            *(up.Series(label=label, stroke=css(colour), width=1.5, dash=(6, 4)) for label, _, colour in levels),
             *failure_series,
             *extra_series,
             up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots),  # the last series

@@ -19,6 +19,26 @@ from pemviz.app.objects_view import ObjectsExplanation, explain_objects, objects
 from pemviz.app.runs import PanelRun, Trajectory
 
 
+def _proposal_html(ox: ObjectsExplanation, traj: Trajectory, t: int) -> str:
+    """Each object's q(detect) and p(detect) at step ``t`` and its chart; empty where the rollout has none."""
+    if traj.object_p is None:
+        return ""
+    assert traj.object_q is not None  # set with object_p (pemviz.app.runs.trajectory)
+    return (
+        f"<div><b>Each object's proposal</b>: q(detect) of the sampler (blue), "
+        f"p(detect) of the PEM (grey, "
+        f"dashed), 0 to 1 in its band; at step {t}: "
+        + html.escape(
+            ", ".join(
+                f"{ox.names[j]} q {traj.object_q[t, j]:.3g} p {traj.object_p[t, j]:.3g}"
+                for j in range(traj.object_p.shape[1])
+            )
+        )
+        + "</div>"
+        + OV.detect_svg(ox.names, traj.object_p, traj.object_q, t)
+    )
+
+
 class ExplainTab:
     """The *Explain* tab: owns its charts and HTML and the explanation of the rollout shown, :attr:`explanation` (a
     lane scene) or :attr:`objects_ex` (a scene of several objects); the 3D scene (:class:`pemviz.app.scene_view
@@ -89,6 +109,7 @@ class ExplainTab:
         if ex is None:
             return
         title = f"{record.short_label} {traj.key}"
+        assert record.view is not None  # its drawing drew the lane scene
         plots.fill_strip_plots(
             self.strip,
             drawing.strip_series(traj.batch, 0),
@@ -139,21 +160,7 @@ class ExplainTab:
             + OV.decisive_table(ox)
             + f"<div><b>Every object, step by step</b> · {html.escape(OV.state_counts(ox, t))}</div>"
             + OV.raster_svg(ox, t)
-            + (
-                ""
-                if traj.object_p is None
-                else f"<div><b>Each object's proposal</b>: q(detect) of the sampler (blue), "
-                f"p(detect) of the PEM (grey, "
-                f"dashed), 0 to 1 in its band; at step {t}: "
-                + html.escape(
-                    ", ".join(
-                        f"{ox.names[j]} q {traj.object_q[t, j]:.3g} p {traj.object_p[t, j]:.3g}"
-                        for j in range(traj.object_p.shape[1])
-                    )
-                )
-                + "</div>"
-                + OV.detect_svg(ox.names, traj.object_p, traj.object_q, t)
-            )
+            + _proposal_html(ox, traj, t)
             + f"<div><b>From above at step {t}</b> (the road runs right; the ego's right is down)</div>"
             + OV.birds_eye_svg(ox, t)
             + f"<div>{legend}</div></div>"

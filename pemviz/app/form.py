@@ -19,7 +19,7 @@ from pemviz.settings import SETTINGS, Setting
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
-from pemviz.scenarios.parameters import Parameter, ParameterError, Value, check_pairs, parse_assignment
+from pemviz.scenarios.parameters import Parameter, ParameterError, PairValue, Value, check_pairs, parse_assignment
 from pemviz.scenarios.registry import get
 
 
@@ -88,7 +88,7 @@ def format_param(p: Parameter, value: Value) -> str:
     return str(int(value)) if p.kind == "int" else repr(float(value))
 
 
-def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[str, Value], ...], dict[str, str]]:
+def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[str, PairValue], ...], dict[str, str]]:
     """The changed parameters of ``scenario`` and the errors of its parameter fields.
 
     Each text is parsed by its parameter's kind (:meth:`pemviz.scenarios.parameters.Parameter.parse`); a value equal
@@ -109,7 +109,7 @@ def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[s
     except KeyError:
         return (), {}
     params = {p.name: p for p in found.parameters()}
-    pairs: list[tuple[str, Value]] = []
+    pairs: list[tuple[str, PairValue]] = []
     errors: dict[str, str] = {}
     for name, text in texts.items():
         try:
@@ -125,7 +125,7 @@ def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[s
         if value != params[name].default:
             pairs.append((name, value))
 
-    def check(given: list[tuple[str, Value]]) -> None:
+    def check(given: list[tuple[str, PairValue]]) -> None:
         if any(isinstance(v, str) and v.startswith("~") for _, v in given):
             check_pairs(scenario, tuple(given))
         else:
@@ -134,7 +134,7 @@ def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[s
     valid = [pair for pair in pairs if param_key(pair[0]) not in errors]
     if valid:
         try:
-            check(valid)  # the values together (a field may need another changed with it: total with braking)
+            check(valid)  # the values together (a field may be valid only with another one changed)
         except ParameterError as together:
             alone: dict[str, str] = {}
             for pair in valid:  # blame the fields refused even with the others at their defaults

@@ -68,8 +68,9 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
         f"{plots.finite_or_dash(e.khat, '.2f')} · NLL {plots.finite_or_dash(e.nll_mean, '.1f')} nats · "
         f"{ev.n_simulations:,} simulations in {ev.wall_s:.1f} s"
     )
-    if getattr(ev, "prepared", None):  # the tilt: its proposal solved by this run, or reused from an earlier one
-        lines.append(f"proposal: {html.escape(ev.prepared)}")
+    prepared = getattr(ev, "prepared", None)
+    if prepared:  # the tilt: its proposal solved by this run, or reused from an earlier one
+        lines.append(f"proposal: {html.escape(prepared)}")
     curve = getattr(ev, "severity", None)
     if curve is not None and len(curve.points) > 1:
         lines.append(f"<b>{html.escape(curve.title())}</b>")

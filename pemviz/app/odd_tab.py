@@ -123,7 +123,7 @@ class OddTab:
         shown = np.concatenate([v[np.isfinite(v)] for v in (p, lo, hi)])
         y_lo, y_hi = (float(shown.min()) - 0.3, float(shown.max()) + 0.3) if shown.size else (-1.0, 0.0)
         pad = 0.5 * float(np.min(np.diff(x))) if x.size > 1 else 0.5
-        dot = {"show": True, "size": 7}
+        dot: up.Series_Points = {"show": True, "size": 7}
         chart.title = f"log10 p(failure | {name} bin), 95 % interval"
         chart.series = (
             up.Series(label=name),

@@ -41,8 +41,8 @@ def idle_drawing(scenario: str) -> LanePanel:
         ValueError: no registered scenario draws a lane scene.
     """
     for name in (scenario, *registry.registered()):
-        drawing = scenario_drawing(name)
-        if lane_panel(drawing) is not None:
+        drawing = lane_panel(scenario_drawing(name))
+        if drawing is not None:
             return drawing
     raise ValueError(f"no registered scenario draws a lane scene for the panel's idle scene ({scenario!r} does not)")
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 import viser
@@ -49,7 +49,7 @@ STAGE_PLOTS = (
 )
 GAMMA_UNITS = {"classic": "m", "agm": "unitless", "smooth-cumulative": "m"}
 LEGEND = up.Legend(show=True, live=False)
-SERIES_STYLE: dict[str, dict[str, Any]] = {
+SERIES_STYLE: dict[str, up.Series] = {
     "main": {"stroke": hex_colour(C.BLACK), "width": 2},
     "ego": {"stroke": css(EGO_SPEED), "width": 1.5},
     "object": {"stroke": css(OBJECT_SPEED), "width": 1.5},
@@ -157,6 +157,7 @@ def robust_range(
     if c.size == 0 and at_least is None:
         lo, hi = empty
     elif c.size == 0:  # only at_least to cover; one value of it (an exact answer before any failure) padded as in 3
+        assert at_least is not None  # the branch above takes no candidate and no at_least
         lo, hi = float(at_least[0]), float(at_least[1])
         if not hi > lo:
             pad = min_pad if min_pad > 0.0 else max(0.5, 0.1 * abs(lo))
@@ -190,7 +191,16 @@ def robust_range(
     )
 
 
-STAGE_RULES: dict[str, dict[str, float]] = {
+class RangeRules(TypedDict, total=False):
+    """Settings of :func:`robust_range` kept by name (:data:`STAGE_RULES`)."""
+
+    min_gap: float
+    factor: float
+    pad_frac: float
+    min_pad: float
+
+
+STAGE_RULES: dict[str, RangeRules] = {
     "log10_mu_hat": {"min_gap": 3.0, "min_pad": 0.05},
     "gamma": {},
     "nll": {},
@@ -396,11 +406,11 @@ def strip_plots(gui: viser.GuiApi, title: str = "distance and speeds") -> dict[s
     }
 
 
-def _points(colour: tuple[int, int, int], size: float = 6) -> dict[str, Any]:
+def _points(colour: tuple[int, int, int], size: float = 6) -> up.Series_Points:
     return {"show": True, "size": size, "fill": css(colour), "stroke": css(colour)}
 
 
-def _ring(colour: tuple[int, int, int], size: float = 11) -> dict[str, Any]:
+def _ring(colour: tuple[int, int, int], size: float = 11) -> up.Series_Points:
     """Hollow points: a value drawn at the edge of its chart (off scale) or a bin of too few states."""
     return {"show": True, "size": size, "fill": "transparent", "stroke": css(colour), "width": 1.5}
 
@@ -428,7 +438,7 @@ def fill_strip_plots(
     t = ex.time_s
     now = np.full(t.size, np.nan)
     now_i = int(np.clip(step, 0, t.size - 1))
-    no_line = {"width": 0}
+    no_line: up.Series = {"width": 0}
 
     def marker(values: np.ndarray) -> np.ndarray:
         m = now.copy()
@@ -452,7 +462,7 @@ def fill_strip_plots(
         up.Series(label="t (s)"),
         *(up.Series(label=s.label, **SERIES_STYLE[s.role]) for s in lines),
         *(
-            up.Series(label=label, stroke=css(colour), width=1.5, dash=[6, 4])
+            up.Series(label=label, stroke=css(colour), width=1.5, dash=(6, 4))
             for label, colour in zip(thresholds.labels() if thresholds else (), (CRASH, BRAKE_ZONE), strict=False)
         ),
         up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),

@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import html
 import threading
+from typing import Protocol, cast
 
 import viser
 
+from pemviz.app._viser_compat import set_value
 from pemviz.app.html import GREY, NO_ROLLOUT, RED, TABLE_STYLE, box
 from pemviz.app.objects_view import RobustnessOutcome
 from pemviz.app.runs import MAX_POPULATION, PanelRun, Population, Trajectory
 from pemviz.app.scene_view import SceneView
-from pemviz.core.drawing import Outcome
+from pemviz.core.drawing import Drawing
 
 
 ROLLOUT_ORDERS = ("importance weight", "robustness", "log p", "severity")
@@ -26,6 +28,20 @@ MAX_ROWS = 200
 
 MAX_GROUPS = 8
 """Groups of failures shown, largest share first (the rest summed in one row)."""
+
+
+class Severity(Protocol):
+    """What the tab reads of a rollout's outcome: a drawing's :class:`pemviz.core.drawing.Outcome`, else a
+    :class:`pemviz.app.objects_view.RobustnessOutcome`."""
+
+    @property
+    def failed(self) -> bool: ...
+
+    @property
+    def short(self) -> str: ...
+
+    @property
+    def rank(self) -> float: ...
 
 
 def format_share(share: float | None) -> str:
@@ -84,7 +100,7 @@ class RolloutsTab:
         self.listed: PanelRun | None = None
         """The run whose rollouts the Rollouts tab lists and Explain explains: the one chosen under Runs (a new run
         chooses itself)."""
-        self._severities: dict[tuple[int, str], Outcome] = {}
+        self._severities: dict[tuple[int, str], Severity] = {}
         self._rollout_labels: dict[str, Trajectory] = {}
 
     def build(self) -> None:
@@ -111,7 +127,7 @@ class RolloutsTab:
 
     @staticmethod
     def rollout_label(
-        t: Trajectory, most_likely: bool = False, sev: Outcome | None = None, share: float | None = None
+        t: Trajectory, most_likely: bool = False, sev: Severity | None = None, share: float | None = None
     ) -> str:
         """The rollout list entry (no rank in it, so a chosen rollout stays chosen while later stages re-rank); the
         outcome in :attr:`pemviz.core.drawing.Outcome.short`'s words when ``sev`` is given; a failure's share of p
@@ -124,17 +140,17 @@ class RolloutsTab:
             f"{outcome}"
         )
 
-    def severity_of(self, record: PanelRun, t: Trajectory) -> Outcome:
+    def severity_of(self, record: PanelRun, t: Trajectory) -> Severity:
         """The severity of a listed rollout (computed once per rollout): the outcome of its scenario's drawing object
         (:meth:`pemviz.core.drawing.Drawing.outcome`, the words the recording shows), else (no drawing, or rows
         without the columns it reads) failed or safe by its robustness."""
         key = (record.run_id, t.key)
         if key not in self._severities:
             drawing = record.view.drawing if record.view is not None else None
-            told: Outcome = RobustnessOutcome(t.robustness, t.crashed)
+            told: Severity = RobustnessOutcome(t.robustness, t.crashed)
             if drawing is not None:
                 try:
-                    told = drawing.outcome(t.batch, 0)
+                    told = cast(Drawing, drawing).outcome(t.batch, 0)
                 except ValueError:  # not the scenario's own columns (a rollout file of another problem)
                     pass
             self._severities[key] = told
@@ -214,7 +230,7 @@ class RolloutsTab:
         current = self.rollout_dropdown.value
         self.rollout_dropdown.options = (NO_ROLLOUT, *labels)
         if current not in labels:
-            self.rollout_dropdown.value = NO_ROLLOUT
+            set_value(self.rollout_dropdown, NO_ROLLOUT)
         if not n_kept and pop is None:
             self.rollout_html.content = box(f"No rollouts of {html.escape(record.short_label)} yet.", GREY)
             return
@@ -287,7 +303,7 @@ class RolloutsTab:
                 if self.rollout_dropdown.value == label:  # the same label (an identical run): no callback
                     self._on_rollout_chosen(label)
                 else:
-                    self.rollout_dropdown.value = label
+                    set_value(self.rollout_dropdown, label)
                 return
 
     def after_run(self, record: PanelRun) -> None:
@@ -307,4 +323,5 @@ class RolloutsTab:
         if traj is None:
             return
         with self.lock:
+            assert self.listed is not None  # the labels are those of the run listed (set_rollouts)
             self.scene.show(self.listed, traj)

@@ -12,6 +12,7 @@ import time
 
 import viser
 
+from pemviz.app._viser_compat import set_value
 from pemviz.app.experiment_tab import ExperimentTab
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.form import FormResult, run_cost
@@ -86,8 +87,15 @@ class RunControl:
         self.stage_progress = gui.add_progress_bar(0.0, color="teal", animated=False)
         self.result_html = gui.add_html("")
         self.error_html = gui.add_html("")
-        self.run_button.on_click(lambda _: self.start_run())
-        self.confirm_button.on_click(lambda _: self.start_run(confirmed=True))
+
+        def run(_: object) -> None:
+            self.start_run()
+
+        def run_anyway(_: object) -> None:
+            self.start_run(confirmed=True)
+
+        self.run_button.on_click(run)
+        self.confirm_button.on_click(run_anyway)
         self.stop_button.on_click(lambda _: self.stop_run())
 
     @property
@@ -108,6 +116,7 @@ class RunControl:
             if not form.ok:
                 return "invalid settings: " + "; ".join(form.errors.values())
             cfg = form.config
+            assert cfg is not None  # form.ok
             cost = run_cost(cfg)
             if cost.needs_confirm and not confirmed:
                 self.cost_html.content = box(
@@ -183,6 +192,7 @@ class RunControl:
                     self.run_button.disabled = not form.ok
                 self.confirm_button.visible = False
                 if form.ok:
+                    assert form.config is not None  # form.ok
                     cost = run_cost(form.config)
                     colour = AMBER if cost.needs_confirm else GREY
                     self.cost_html.content = box(f"Cost: {html.escape(cost.text())}", colour)
@@ -230,6 +240,7 @@ class RunControl:
             if stage is None:
                 return
             cfg = record.config
+            assert record.plan is not None  # set by the run's first event, before any stage started
             label = record.plan.label(stage.stage, stage.kind)
             if stage.kind == "final" or not sampled:
                 doing = f"simulating {stage.n_rollouts:,} rollouts"
@@ -262,8 +273,8 @@ class RunControl:
     def set_progress(self, record: PanelRun) -> None:
         """Move the progress bars to where ``record`` is (the whole run, the stage)."""
         run, stage = record.progress()
-        self.run_progress.value = run
-        self.stage_progress.value = stage
+        set_value(self.run_progress, run)
+        set_value(self.stage_progress, stage)
 
     def refresh_plots(self) -> None:
         """Redraw the plots panel for the newest run and the kept ones."""

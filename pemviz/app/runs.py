@@ -21,7 +21,7 @@ import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,6 +49,12 @@ from pemviz.scenarios.panel_data import ViewAxis
 from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.population import FailureGrouping, group_failures
 from pemviz.sinks.recording import RerunSink
+
+if TYPE_CHECKING:
+    from pemviz.core.detectors import Detector
+    from pemviz.core.plan import RunPlan
+    from pemviz.core.problem_view import ProblemView
+    from pemviz.core.problems import Problem
 
 MAX_RUNS = 4
 """Runs kept side by side for comparison (:func:`keep_runs` decides which go when a fifth starts)."""
@@ -107,7 +113,7 @@ def object_proposal_view(
     detected = np.asarray(batch.detected[pick, :, obj], bool)[seen]
     sign = np.where(detected, 1.0, -1.0)  # log sigma(l) for a detection, log sigma(-l) for a miss
 
-    def log_action(detector: object) -> np.ndarray:
+    def log_action(detector: Detector) -> np.ndarray:
         logit = np.asarray(detector.detect_logit(flat), dtype=np.float64)
         return -np.logaddexp(0.0, -sign * logit)
 
@@ -267,7 +273,10 @@ def most_likely_failure(best: Trajectory | None, event: RolloutsSampled) -> Traj
     row. :class:`PanelRun` keeps the chosen :class:`~pemviz.core.counterfactuals.LikelyFailure` beside it."""
     prior = None if best is None else LikelyFailure(best.stage, -1, best.index, best.log_p_total)
     likely = pick_most_likely(event, prior)
-    return best if likely is prior else trajectory(event, likely.row)
+    if likely is prior:
+        return best
+    assert likely is not None  # None only while no failure has been seen, and then it is ``prior`` (None)
+    return trajectory(event, likely.row)
 
 
 def least_robust(kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJECTORIES) -> list[Trajectory]:
@@ -340,12 +349,12 @@ class PanelRun(Sink):
         """``starting`` | ``running`` | ``finished`` | ``cancelled`` | ``failed``."""
         self.message = ""
         self.formula = ""
-        self.plan = None
+        self.plan: RunPlan | None = None
         """The stages the run will draw (:class:`pemviz.core.plan.RunPlan`), once it started; None before."""
-        self.view = None
+        self.view: ProblemView | None = None
         """The problem as the panel shows it (:class:`pemviz.core.problem_view.ProblemView`), once it started; None
         before."""
-        self.problem = None
+        self.problem: Problem | None = None
         """The run's :class:`pemviz.core.problems.Problem`, set by whoever runs it: *Explain* replays a scene of several
         objects through it (None: no replays)."""
         self.curve_grid_m = np.zeros(0)
@@ -372,7 +381,7 @@ class PanelRun(Sink):
         self.events: list[Event] = []
         self.sampled: dict[int, RolloutsSampled] = {}
         """Stage -> its :class:`RolloutsSampled` (the batch, or a sample of a streamed stage)."""
-        self.population = None
+        self.population: Population | None = None
         """Every failure of the final estimate with its share of p and its group (:class:`Population`), once the run
         has its final estimate; None before or where the estimator keeps no per-stage rollouts."""
         self.pinned = False
@@ -424,6 +433,7 @@ class PanelRun(Sink):
         self.trajectories = least_robust(self.trajectories, event)
         likely = pick_most_likely(event, self.likely)
         if likely is not self.likely:
+            assert likely is not None  # None only while no failure has been seen, and then it is ``self.likely``
             self.likely, self.most_likely_failure = likely, trajectory(event, likely.row)
         window = self.view.thresholds.window if self.view is not None and self.view.thresholds else None
         axis = self.proposal_axis

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import viser
 
+from pemviz.app._viser_compat import set_value
 from pemviz.app import plots
 from pemviz.app.form import setting_name, setting_value
 from pemviz.app.host import PanelHost
@@ -72,7 +73,7 @@ class RunsTab:
         self.runs = keep_runs(self.runs, record)
         with self.client.atomic():
             self.run_choice.options = tuple(r.label for r in self.runs)
-            self.run_choice.value = record.label
+            set_value(self.run_choice, record.label)
 
     def kept_run(self, run_id: int) -> PanelRun:
         for r in self.runs:
@@ -158,7 +159,7 @@ class RunsTab:
             current = self.run_choice.value
             self.run_choice.options = options
             if current not in options:
-                self.run_choice.value = options[-1]
+                set_value(self.run_choice, options[-1])
             self._on_run_choice()
 
     def chosen_run(self) -> PanelRun | None:
@@ -173,7 +174,7 @@ class RunsTab:
         self.export_button.disabled = r is None or not r.events
         if r is not None:
             self.pin_button.label = "Unpin" if r.pinned else "Pin"
-            self.export_name.value = f"run{r.run_id}-{r.config.metric}"
+            set_value(self.export_name, f"run{r.run_id}-{r.config.metric}")
             self.rollouts_tab.list_run(r)
 
     def _toggle_pin(self) -> None:

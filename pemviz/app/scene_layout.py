@@ -134,7 +134,7 @@ def add_lane_nodes(
         font_screen_scale=LABEL_SCALE,
     )
     # zones ahead of the ego's sensor, moving with it; one label for all, in the right column at the middle of the first
-    zones = []
+    zones: list[viser.BoxHandle | viser.LabelHandle] = []
     for zone in p.zones:
         zones.append(
             scene.add_box(

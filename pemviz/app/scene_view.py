@@ -17,6 +17,7 @@ import threading
 import numpy as np
 import viser
 
+from pemviz.app._viser_compat import set_value
 from pemviz.app import objects_view as OV
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.html import BLUE, GREY, RED, box
@@ -110,16 +111,17 @@ class SceneView:
         self.step_slider.on_update(lambda _: self.render_step(int(self.step_slider.value)))
         self.play_button.on_click(lambda _: self._toggle_play())
 
-    def show(self, record: PanelRun | None, traj: Trajectory) -> None:
+    def show(self, record: PanelRun, traj: Trajectory) -> None:
         """Show ``traj`` of ``record`` (a rollout chosen under *Rollouts*), paused at its start; a rollout of several
         objects at its first decisive step; nothing for a problem without a scene (a toy)."""
         with self.lock:
             drawing = record.view.drawing if record is not None and record.view is not None else None
             lane = lane_panel(drawing)
             if lane is None:
+                assert record.view is not None  # a rollout's run has started: it has its problem's view
                 if traj.several and record.view.objects_xy is not None:  # a scene of several objects
                     self._show_objects(record, traj)
-                elif record is not None:  # a problem that draws no scene (a toy, a scenario of one's own)
+                else:  # a problem that draws no scene (a toy, a scenario of one's own)
                     self._scene_kind(None)
                     self.scene_html.content = box(
                         html.escape(
@@ -142,12 +144,13 @@ class SceneView:
             self._place_rollout()
             self.shown_step = -1
             if self.step_slider.value != 0:
-                self.step_slider.value = 0  # renders step 0 through the slider's callback
+                set_value(self.step_slider, 0)  # renders step 0 through the slider's callback
             else:
                 self.render_step(0)
 
     def _show_objects(self, record: PanelRun, traj: Trajectory) -> None:
         """Show a rollout of a scene of several objects, paused at its first decisive step (else step 0)."""
+        assert record.view is not None  # checked by show()
         ox = self.explain.explain_objects(record, traj)
         self.shown, self.shown_record, self._shown_x, self.shown_drawing = traj, record, None, None
         self.step_slider.max = traj.n_steps - 1
@@ -165,7 +168,7 @@ class SceneView:
         decisive = ox.counterfactuals.decisive if ox.counterfactuals is not None else ()
         first = decisive[0].step if decisive else 0
         if self.step_slider.value != first:
-            self.step_slider.value = first  # renders it through the slider's callback
+            set_value(self.step_slider, first)  # renders it through the slider's callback
         else:
             self.render_step(first)
 
@@ -174,7 +177,7 @@ class SceneView:
             if self.shown is None:
                 return
             if not self.playing and int(self.step_slider.value) >= self.shown.n_steps - 1:
-                self.step_slider.value = 0
+                set_value(self.step_slider, 0)
             self._set_playing(not self.playing)
 
     def _set_playing(self, playing: bool) -> None:
@@ -191,7 +194,7 @@ class SceneView:
             if step > self.shown.n_steps - 1:
                 self._set_playing(False)
                 return
-            self.step_slider.value = step
+            set_value(self.step_slider, step)
 
     def build_scene(self) -> None:
         """Add the scene's nodes to ``client.scene``: the road, the cars, the zones and the ruler of the lane scene of
@@ -272,6 +275,7 @@ class SceneView:
             None if layout is None else (layout.car_length_m, layout.car_width_m, layout.lane_width_m, layout.n_lanes)
         )
         if road is not None and (road != self._objects_road or len(self._object_nodes) < 2 + 2 * (objects or 0)):
+            assert layout is not None  # road is layout's
             lane_m = layout.lane_width_m
             lanes = layout.n_lanes * lane_m if layout.n_lanes else GROUND_M[1]
             for node in self._object_nodes:

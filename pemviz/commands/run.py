@@ -375,7 +375,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     groups = FailureGroups(problem.drawing, problem, keys=wanted)  # the failures' severity (console), groups
     console = ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()
     # prints the failures' severity, which groups (heard first) reads at the final estimate
-    console.failures = groups  # type: ignore[assignment]  # pemviz.sinks.console types it as None
+    console.failures = groups
     listeners: list[Listener] = [groups, console]
     recorder = None
     if early is not None:

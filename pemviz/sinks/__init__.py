@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from pemviz.engine.cost import COST, N_STEPS, CostConstants, StageCost, stage_cost
 from pemviz.engine.events import (
@@ -25,6 +25,9 @@ from pemviz.engine.events import (
     StageStarted,
 )
 from pemviz.core.plan import RunPlan
+
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
 
 MAX_SCALE = 20.0
 """The most a :class:`StageClock` scales a prediction by (either way): a first stage slowed by a one-off start
@@ -120,7 +123,8 @@ class StageClock(Sink):
         self.t0 = self.stage_t0 = now()
         self.sampled_t: float | None = None
         self.plan: RunPlan | None = None
-        self._config, self._n_steps, self._look_ahead_s = None, N_STEPS, 0.0
+        self._config: ExperimentConfig | None = None
+        self._n_steps, self._look_ahead_s = N_STEPS, 0.0
         self.predicted: dict[int, StageCost] = {}
         self.current: StageStarted | None = None
         self.done: list[StageResult] = []

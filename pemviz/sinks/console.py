@@ -6,7 +6,7 @@ import dataclasses
 import math
 import sys
 from dataclasses import dataclass
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability
 from pemviz.core.severity import FailureSeverity
@@ -15,6 +15,11 @@ from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageF
 from pemviz.methods import method_or_none, plain_method
 from pemviz.plugins import resolve
 from pemviz.sinks import Sink, StageClock
+
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
+    from pemviz.core.plan import RunPlan
+    from pemviz.sinks.population import SharedGroups
 
 __all__ = [
     "ConsoleSink",
@@ -228,11 +233,10 @@ class McRoute:
         """``p ~ 8.66e-05, the reference: 1,108,911 rollouts for a 20 % interval, ~59 min at this run's ...``; with
         :attr:`log_floor` and ``floor``, the rollouts at it too (``; up to 18,343 at its 95 % lower bound p >=
         5.21e-03, ~34 s``)."""
-        time = (
-            f", ~{duration_text(self.seconds)} at {_rate_text(s_per, source)}"
-            if self.seconds is not None and math.isfinite(self.seconds)
-            else ""
-        )
+        time = ""
+        if self.seconds is not None and math.isfinite(self.seconds):
+            assert s_per is not None  # the seconds were measured at s_per a rollout
+            time = f", ~{duration_text(self.seconds)} at {_rate_text(s_per, source)}"
         line = (
             f"p ~ {format_probability(self.log_p, 2)}, {self.source}: {count_text(self.n)} rollouts for a "
             f"{PERCENT} interval{time}"
@@ -434,6 +438,7 @@ def next_step(
     why = f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(mc_s, rate)})"
     if within is None:
         cap = route.cap(config)
+        assert route.seconds is not None  # a route that does not fit in the time has a measured one
         return (
             f"{why}, and this run's sampler has no more time in it: no route within --max-time {max_time:g} s "
             f"would decide it; plain Monte Carlo would, given ~{duration_text(route.seconds)} "
@@ -467,6 +472,7 @@ def _after_mc(e: Estimate, config, route: McRoute | None, s_per: float | None, m
         )
     command = route.command(route.cap(config)).replace("--method mc ", "")
     if not route.fits(max_time):
+        assert route.seconds is not None  # within MC_AFFORDABLE: it does not fit the time it measured
         return (
             f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(s_per, 'plain')}): a longer "
             f"--max-time ({command} --max-time {math.ceil(route.seconds)}), or an importance-sampling method "
@@ -535,12 +541,12 @@ class ConsoleSink(Sink):
         self.out = out or sys.stdout
         self.progress = progress or sys.stderr
         self.clock = StageClock()
-        self.plan = None
+        self.plan: RunPlan | None = None
         """The run's :class:`~pemviz.core.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
-        self.config = None
+        self.config: ExperimentConfig | None = None
         self.exact_log_p: float | None = None
         self.reference: Reference | None = None
-        self.failures = None
+        self.failures: SharedGroups | None = None
         """A listener that has grouped the final estimate's failures before this sink hears of it
         (:class:`pemviz.sinks.population.FailureGroups`, run before it): its grouping's severity is printed
         (:func:`final_lines`); None: not printed."""
@@ -567,6 +573,7 @@ class ConsoleSink(Sink):
         print(HEADER, file=self.out)
 
     def on_stage_started(self, event: StageStarted) -> None:
+        assert self.plan is not None  # the run has started
         label = self.plan.label(event.stage, event.kind)
         expected = self.clock.expected_s(event.kind, event.n_rollouts)
         line = progress_line(label, event.n_rollouts, self.clock.elapsed_s(), expected, self.clock.run_left_s())

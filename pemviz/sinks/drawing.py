@@ -32,7 +32,7 @@ None: ask :meth:`RecordingDrawing.outcome_values` rollout by rollout), for the f
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Mapping, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Mapping, Protocol, cast, runtime_checkable
 
 from pemviz.core.drawing import Drawing
 
@@ -101,3 +101,9 @@ class RecordingDrawing(Drawing, Protocol):
         explanation mapping: words, properties, summary lines, series and markers); None: nothing beyond the
         signals, p(detect) and the misses."""
         ...
+
+
+def recording_hooks(drawing: object) -> RecordingDrawing | None:
+    """A scenario's drawing object (:attr:`pemviz.core.problem_view.ProblemView.drawing`, or None) as the recording
+    reads it: its hooks (:class:`RecordingDrawing`), called without checking for them, as every caller did."""
+    return cast("RecordingDrawing | None", drawing)

@@ -28,6 +28,7 @@ class MostLikelyFailure(Sink):
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         best = most_likely_failure(event, self.best)
         if best is not self.best:
+            assert best is not None  # None only while no failure is seen, and self.best is None then
             self.best, self.batch = best, event.batch.select(np.array([best.row]))
             self.stage, self.rollout, self.log_p = best.stage, best.rollout, best.log_p
 
@@ -53,6 +54,7 @@ class MostLikelyFailure(Sink):
             return None
         cf = counterfactuals(problem, self.batch, 0)
         parts = self.parts(problem)
+        assert parts is not None  # None only without a batch
         m = self.batch.objects.shape[2]
         labels = tuple(object_label(getattr(problem, "object_labels", ()), j) for j in range(m))
         if not np.isfinite(self.log_p):  # every failure drawn holds an event the PEM cannot produce

@@ -17,13 +17,19 @@ import dataclasses
 import functools
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 
 from pemviz.core.population import FailureGroup, FailureShares, failure_groups
-from pemviz.core.severity import FailureSeverity, contact_level, failure_severity, rollout_severity
+from pemviz.core.severity import FailureSeverity, SeverityProblem, contact_level, failure_severity, rollout_severity
 from pemviz.engine.events import RolloutsSampled
 from pemviz.core.rollouts import RolloutBatch
+
+if TYPE_CHECKING:
+    import rerun as rr
+
+    from pemviz.core.problems import Problem
 
 NOT_KEPT = "not kept"
 """Group key of failures whose stage was streamed and kept only a sample of its rollouts for the listeners."""
@@ -99,6 +105,7 @@ def failures_severity(
     """
     if problem is None or getattr(problem, "severity", None) is None:
         return None
+    severe = cast(SeverityProblem, problem)  # a problem with a severity scale, as just checked
     if isinstance(found, Mapping):
         found = locate(shares, found)
     dist, speed = np.full(shares.n, np.nan), np.full(shares.n, np.nan)
@@ -108,9 +115,11 @@ def failures_severity(
             by_stage.setdefault(f[0].stage, (f[0], [], []))[1].append(rank)
             by_stage[f[0].stage][2].append(f[1])
     for event, ranks, rows in by_stage.values():
-        dist[ranks], speed[ranks] = rollout_severity(problem, event.batch.select(np.asarray(rows)))
+        dist[ranks], speed[ranks] = rollout_severity(severe, event.batch.select(np.asarray(rows)))
     kept = np.array([f is not None for f in found], dtype=bool)
-    return failure_severity(problem.severity, contact_level(problem), shares.log_share, dist, speed, kept)
+    scale = severe.severity
+    assert scale is not None  # checked above
+    return failure_severity(scale, contact_level(problem), shares.log_share, dist, speed, kept)
 
 
 def group_failures(
@@ -138,13 +147,14 @@ def group_failures(
     """
     found = locate(shares, sampled)
     keys: list[Hashable] = [NOT_KEPT] * shares.n
-    kept = [rank for rank, f in enumerate(found) if f is not None]
+    located = {rank: f for rank, f in enumerate(found) if f is not None}
+    kept = list(located)
     labels: dict[Hashable, str] = {NOT_KEPT: "not kept (a streamed stage keeps a sample of its rollouts)"}
     basis = "nothing: this problem has no scene to replay"
     if not keys_wanted:
         basis = "nothing: not asked for"
     elif drawing is not None and hasattr(drawing, "failure_keys"):
-        rows = [found[r][0].batch.detected[found[r][1], :, 0] for r in kept]
+        rows = [located[r][0].batch.detected[located[r][1], :, 0] for r in kept]
         detected = np.stack(rows) if rows else np.zeros((0, 0), dtype=bool)
         basis, found_keys, found_labels = drawing.failure_keys(detected)
         for rank, k in zip(kept, found_keys, strict=False):
@@ -157,9 +167,9 @@ def group_failures(
         steps: dict[int, np.ndarray] = {}
         try:
             for rank in kept:
-                event, row = found[rank]
+                event, row = located[rank]
                 if event.stage not in steps:
-                    steps[event.stage] = failure_steps(problem, event.batch)
+                    steps[event.stage] = failure_steps(cast("Problem", problem), event.batch)
                 keys[rank] = int(steps[event.stage][row])
             labels.update({k: f"fails at step {k}" for k in set(keys) if isinstance(k, int)})
         except ValueError:  # a formula whose failure step cannot be read: one group
@@ -216,7 +226,7 @@ def compact_failures(event: RolloutsSampled, problem: object = None) -> Rollouts
         wanted = set(getattr(problem, "signals", {}).values())
         scale = getattr(problem, "severity", None)
         if scale is not None:
-            wanted.add(problem.signals.get(scale.signal, scale.signal))
+            wanted.add(cast(SeverityProblem, problem).signals.get(scale.signal, scale.signal))
         names = tuple(c for c in b.observation_names if c in wanted)
     cols = [b.observation_names.index(c) for c in names]
     batch = RolloutBatch(
@@ -237,6 +247,18 @@ def compact_failures(event: RolloutsSampled, problem: object = None) -> Rollouts
         sampler=None,
         target=None,
     )
+
+
+class SharedGroups(Protocol):
+    """What the sinks that share a run's failure groups read and set of them (``ConsoleSink.failures``,
+    ``share_failure_groups`` of the recording's sinks): a :class:`FailureGroups`, or the recording process's stand-in
+    for the run's (:mod:`pemviz.sinks.recording_process`)."""
+
+    drawing: object
+    problem: object
+    grouping: FailureGrouping | None
+
+    def __call__(self, event: object) -> None: ...
 
 
 class FailureGroups:
@@ -333,7 +355,7 @@ def severity_document(sev: FailureSeverity) -> dict:
     }
 
 
-def log_failures(stream: object, grouping: FailureGrouping, problem: object = None) -> str:
+def log_failures(stream: rr.RecordingStream, grouping: FailureGrouping, problem: object = None) -> str:
     """Log a run's failures to its recording (static): ``failures`` (Markdown, :func:`population_markdown`),
     ``final/failures`` (every failure, in share order: stage, rollout, share, log-weight, log p, group, and where the
     problem gives them its min distance and impact speed) and ``final/severity_of_failures``: p(severity | failure)
@@ -354,7 +376,9 @@ def log_failures(stream: object, grouping: FailureGrouping, problem: object = No
         "failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN), static=True
     )
     sev = failures_severity(f, list(grouping.found), problem)
-    aligned = {} if sev is None else {"min_distance": sev.min_distance, "impact_speed": sev.impact_speed}
+    aligned: dict[str, Any] = (
+        {} if sev is None else {"min_distance": sev.min_distance, "impact_speed": sev.impact_speed}
+    )
     stream.log(
         "final/failures",
         rr.AnyValues(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 import types
+from typing import Any, Callable
 
 
 class _NoPandas:
@@ -85,20 +86,21 @@ def import_scipy_special_lean() -> bool:
     if len(skipped) != len(UNUSED_NUMPY_SUBMODULES) or "__dir__" not in vars(np):
         return False
     full_all, full_dir = np.__all__, np.__dir__
-    np.__all__ = [n for n in full_all if n not in skipped]
-    np.__dir__ = lambda: [n for n in full_dir() if n not in skipped]
+    numpy_names = vars(np)  # numpy's own namespace: setting a name there is setting numpy's attribute
+    numpy_names["__all__"] = [n for n in full_all if n not in skipped]
+    numpy_names["__dir__"] = lambda: [n for n in full_dir() if n not in skipped]
     try:
         import scipy.special  # noqa: F401
     finally:
-        np.__all__, np.__dir__ = full_all, full_dir
-    shim = sys.modules.get("scipy._lib.array_api_compat.numpy")
+        numpy_names["__all__"], numpy_names["__dir__"] = full_all, full_dir
+    shim: Any = sys.modules.get("scipy._lib.array_api_compat.numpy")  # a module given names at run time
     if shim is not None and "__getattr__" not in vars(shim):
         shim.__getattr__ = _numpy_submodule(shim.__name__, skipped)
         shim.__all__ = sorted(set(shim.__all__) | set(skipped))
     return True
 
 
-def _numpy_submodule(module: str, names: tuple[str, ...]):
+def _numpy_submodule(module: str, names: tuple[str, ...]) -> Callable[[str], object]:
     """A module ``__getattr__`` (PEP 562) for ``module`` that reads each of ``names`` from numpy (importing the
     submodule then) and raises ``AttributeError`` for any other name."""
 

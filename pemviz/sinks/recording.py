@@ -91,12 +91,14 @@ import rerun as rr
 import pemviz
 from pemviz.core.counterfactuals import LikelyFailure, LogPParts, most_likely_failure
 from pemviz.core.estimate import Reference
+from pemviz.core.plan import RunPlan
+from pemviz.core.problem_view import ProblemView
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
 from pemviz.core.files import atomic_write
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
-from pemviz.sinks.population import FailureGroups, log_failures
+from pemviz.sinks.population import FailureGroups, SharedGroups, log_failures
 from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
@@ -167,9 +169,9 @@ class RerunSink(Sink):
         self.likely_per_stage = likely_per_stage
         self.scene_per_stage = scene_per_stage
         self.repetition = repetition
-        self.plan = None
+        self.plan: RunPlan | None = None
         """The run's :class:`~pemviz.core.plan.RunPlan` (from :class:`~pemviz.engine.events.RunStarted`)."""
-        self.view = None
+        self.view: ProblemView | None = None
         """The problem's :class:`~pemviz.core.problem_view.ProblemView` (from :class:`RunStarted`)."""
         self.drawing: object = None
         """The scenario's drawing object (the view's, :class:`pemviz.sinks.drawing.RecordingDrawing`), None: none."""
@@ -207,7 +209,7 @@ class RerunSink(Sink):
         self._pending: RolloutsSampled | None = None
         self.figures: StageFigures | None = None
         """The per-stage series as static figures (:mod:`pemviz.sinks.rerun_stage_figures`), from the run's start."""
-        self._groups = FailureGroups()
+        self._groups: SharedGroups = FailureGroups()
         """Each stage's failing rollouts, in which the final estimate's failures are found and grouped (``failures``);
         its scene and problem are set when the run starts."""
         self.serve_url: str | None = None
@@ -230,7 +232,7 @@ class RerunSink(Sink):
         """
         stream = rr.RecordingStream(APP_ID, batcher_config=FILE_BATCHER)
         sink = cls(stream, **kw)
-        sink._binary = stream.binary_stream()
+        sink._binary = rr.binary_stream(stream)  # what stream.binary_stream() calls, in words mypy reads
         sink._path = Path(path)
         sink._overwrite = overwrite
         return sink
@@ -282,15 +284,20 @@ class RerunSink(Sink):
             self.stream.disconnect()
             return None
         self.stream.flush()
+        assert self._binary is not None  # a file sink (to_file) encodes into it
         data = self._binary.read(flush=True) or b""
         self.stream.disconnect()
         self._binary = None
         if not commit:
             return None
-        return atomic_write(self._path, lambda tmp: Path(tmp).write_bytes(data), overwrite=self._overwrite)
+
+        def write(tmp: str) -> None:
+            Path(tmp).write_bytes(data)
+
+        return atomic_write(self._path, write, overwrite=self._overwrite)
 
     # -- events -------------------------------------------------------------------------------------
-    def share_failure_groups(self, groups: FailureGroups) -> None:
+    def share_failure_groups(self, groups: SharedGroups) -> None:
         """Use ``groups`` (a listener of the same run, heard before or after this sink) for the final estimate's
         failures instead of grouping them again."""
         self._groups = groups
@@ -324,6 +331,11 @@ class RerunSink(Sink):
         """A stage's colour, blue (stage 0) to orange (the plan's last stage)."""
         return C.stage_rgba(stage, C.stage_span(self.plan))
 
+    def _label(self, stage: int, kind: str) -> str:
+        """A stage's name in the run's plan (:meth:`pemviz.core.plan.RunPlan.label`)."""
+        assert self.plan is not None  # set when the run starts, before any stage
+        return self.plan.label(stage, kind)
+
     def _log_description(self) -> None:
         text = description_markdown(self.intro_md, self.status_md, self.stage_rows, self.config_md)
         self.stream.log("description", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
@@ -347,8 +359,11 @@ class RerunSink(Sink):
 
     def _log_estimate(self, res: StageResult | None, final: FinalEstimate | None = None) -> None:
         """The ``estimate`` view: mu_hat with its interval, k-hat, verdict and the exact answer where known."""
-        e = final.estimate if final is not None else res.estimate
-        where = "Final estimate" if final is not None else f"Estimate after {self.plan.label(res.stage, res.kind)}"
+        if final is not None:
+            e, where = final.estimate, "Final estimate"
+        else:
+            assert res is not None  # a stage's estimate, where not the final one
+            e, where = res.estimate, f"Estimate after {self._label(res.stage, res.kind)}"
         self.estimate_md = estimate_markdown(e, where, self.exact_log_p, self.reference, final)
         self.stream.log("estimate", rr.TextDocument(self.estimate_md, media_type=rr.MediaType.MARKDOWN), static=True)
 
@@ -411,7 +426,7 @@ class RerunSink(Sink):
             )
             s.log(
                 "proposal/data/current",
-                rr.LineStrips2D(strip, colors=colour, radii=-4.0, labels=[self.plan.label(res.stage, res.kind)]),
+                rr.LineStrips2D(strip, colors=colour, radii=-4.0, labels=[self._label(res.stage, res.kind)]),
             )
             self.curve_stages.append(res.stage)
             self._log_proposal_legend()
@@ -452,7 +467,7 @@ class RerunSink(Sink):
         if self.figures is not None:
             self.figures.add(res.stage, values)  # the same series as static figures: shown on every timeline
 
-        self.stage_rows.append(stage_row(res, self.plan.label(res.stage, res.kind)))
+        self.stage_rows.append(stage_row(res, self._label(res.stage, res.kind)))
         self._log_description()
         self._log_estimate(res)
 
@@ -470,6 +485,7 @@ class RerunSink(Sink):
         window for the per-stage series (none when its rollouts report no gap)."""
         if self.bins_m is None:
             return {}
+        assert self.view is not None  # set when the run starts, with bins_m
         window = self.view.thresholds.window if self.view.thresholds is not None else float(self.bins_m[-1])
         pv = batch_proposal_view(ev.batch, self.bins_m, window)
         if pv is None:
@@ -490,6 +506,7 @@ class RerunSink(Sink):
         likely = most_likely_failure(ev, self.likely)
         if likely is self.likely:
             return
+        assert likely is not None  # None only while no failure is seen, and self.likely is None then
         self.likely, self.most_likely_log_p = likely, likely.log_p
         i = np.array([likely.row])
         self.most_likely = RolloutsSampled(
@@ -513,6 +530,7 @@ class RerunSink(Sink):
         """The kept traces of a stage and its featured rollouts
         (:func:`pemviz.sinks.rerun_rollouts.log_stage_rollouts`), the thresholds once, and the scene's lanes."""
         s = self.stream
+        assert self.view is not None  # set when the run starts, before any stage
         if not self.thresholds_logged:
             log_thresholds(s, self.view, ev.batch.n_steps, self._indexes)
             self.thresholds_logged = True
@@ -520,7 +538,7 @@ class RerunSink(Sink):
             s,
             ev,
             self.view,
-            self.plan.label(ev.stage, ev.kind),
+            self._label(ev.stage, ev.kind),
             self.tagged_per_stage,
             self.likely_per_stage,
             self._indexes,
@@ -538,7 +556,7 @@ class RerunSink(Sink):
             return
         self.explained = True
         best = self.most_likely
-        name = self.plan.label(best.stage, best.kind) if best is not None else ""
+        name = self._label(best.stage, best.kind) if best is not None else ""
         log_explanation(
             self.stream,
             best,

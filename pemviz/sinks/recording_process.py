@@ -36,14 +36,15 @@ import sys
 import tempfile
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import IO, TYPE_CHECKING, Any, cast
 
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished
 from pemviz.engine.resources import ONE_THREAD_ENV
 from pemviz.sinks import Sink
 
 if TYPE_CHECKING:
-    from pemviz.sinks.population import FailureGroups
+    from pemviz.core.problems import Problem
+    from pemviz.sinks.population import FailureGrouping, SharedGroups
 
 RECORDED = (RunStarted, RolloutsSampled, StageFinished, FinalEstimate, RunCancelled)
 """The events :class:`pemviz.sinks.recording.RerunSink` takes (the others are not sent to the child)."""
@@ -84,9 +85,9 @@ class RecordingProcess(Sink):
         self._writer = threading.Thread(target=self._write, name="pemviz-recording-feed", daemon=True)
         self._writer.start()
         self._closed = False
-        self._groups: FailureGroups | None = None
+        self._groups: SharedGroups | None = None
 
-    def share_failure_groups(self, groups: FailureGroups) -> None:
+    def share_failure_groups(self, groups: SharedGroups) -> None:
         """Send ``groups``' grouping of the final estimate's failures (a listener of the same run, heard before or
         after this sink) with the final estimate, rather than have the child group them again: the run groups them
         while the child logs the last stage."""
@@ -109,6 +110,7 @@ class RecordingProcess(Sink):
         """The writer thread: each pickled message to the child's input, in order; stops at ``None`` or when the
         child has gone (its input closed)."""
         pipe = self._proc.stdin
+        assert pipe is not None  # started with stdin=PIPE
         try:
             while (data := self._queue.get()) is not None:
                 pipe.write(data)
@@ -185,11 +187,12 @@ class _GivenGroups:
     """The child's stand-in for the run's :class:`~pemviz.sinks.population.FailureGroups`: the events need no keeping
     here; at the final estimate it waits for the run's grouping, the message that follows it on ``source``."""
 
-    problem = True  # "knows the run's problem": the run's groups read it
-    drawing = None
+    problem: object = True  # "knows the run's problem": the run's groups read it
+    drawing: object = None
 
     def __init__(self, source: _Messages) -> None:
-        self.source, self.grouping = source, None
+        self.source = source
+        self.grouping: FailureGrouping | None = None
 
     def __call__(self, event: object) -> None:
         if isinstance(event, FinalEstimate):
@@ -203,11 +206,13 @@ class _GivenGroups:
 class _Messages:
     """The run's messages on standard input, one at a time, with one put back (:meth:`unread`)."""
 
-    def __init__(self, stream: object) -> None:
-        self.stream, self.back = stream, []
+    def __init__(self, stream: IO[bytes]) -> None:
+        self.stream = stream
+        self.back: list[tuple[str, Any]] = []
 
-    def next(self) -> tuple[str, object]:
-        """The next ``(kind, payload)``; ``("end", None)`` when the run closed its side without a close message."""
+    def next(self) -> tuple[str, Any]:
+        """The next ``(kind, payload)``; ``("end", None)`` when the run closed its side without a close message. The
+        payload's type is the kind's (an event, the final estimate's grouping, the close's commit)."""
         if self.back:
             return self.back.pop()
         try:
@@ -215,7 +220,7 @@ class _Messages:
         except EOFError:
             return ("end", None)
 
-    def unread(self, message: tuple[str, object]) -> None:
+    def unread(self, message: tuple[str, Any]) -> None:
         self.back.append(message)
 
 
@@ -263,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
 
                 sink.problem = problem_for(payload.config)
             if isinstance(payload, RolloutsSampled) and isinstance(payload.robustness_by_metric, RobustnessByMetric):
-                payload.robustness_by_metric.problem = sink.problem
+                payload.robustness_by_metric.problem = cast("Problem", sink.problem)  # problem_for's, set at RunStarted
             sink(payload)
         except Exception as exc:  # reported at close: the run's own estimate is unaffected
             failed = f"{type(exc).__name__}: {exc}"

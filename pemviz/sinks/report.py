@@ -17,7 +17,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from pemviz.core.severity import share_text
 from pemviz.core.files import atomic_write
@@ -25,10 +25,13 @@ from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
 VERDICT_COLOURS = {"reliable": hex_colour(C.GREEN), "doubtful": hex_colour(C.AMBER), "unreliable": hex_colour(C.RED)}
+Section = tuple[str, str, tuple[str, ...], Sequence[tuple[str, ...]]]
+"""(title, intro text, table header, rows) of a section of the report and its Markdown twin."""
+
 WHITE, PANEL, TEXT, RULE, MUTED = (hex_colour(c) for c in (C.PAGE, C.SKETCH_BACKGROUND, C.TEXT, C.RULE, C.GREY))
 
 
-def _odd_section(odd_map: dict[str, Any]) -> tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]:
+def _odd_section(odd_map: dict[str, Any]) -> Section:
     """The section of a run over an operating design domain: each parameter's bins with p(failure | bin), its interval
     or lower bound, verdict and share of p_ODD (:meth:`pemviz.core.odd.OddMap.document`)."""
 
@@ -186,13 +189,13 @@ def severity_svg(doc: dict[str, Any], width: int = 560, height: int = 300) -> st
     return "".join(parts)
 
 
-def _table_html(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> str:
+def _table_html(header: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
-def _table_md(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> str:
+def _table_md(header: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> str:
     def cell(c: Any) -> str:
         return str(c).replace("|", "\\|").replace("\n", " ")
 
@@ -300,7 +303,7 @@ def _rests_on(doc: dict[str, Any]) -> list[tuple[str, str]]:
     return rows
 
 
-def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list[tuple[str, ...]]]]:
+def _sections(doc: dict[str, Any]) -> list[Section]:
     """(title, intro text, table header, rows) of each section both twins show."""
     problem = doc.get("problem") or {}
     scene = [
@@ -317,7 +320,7 @@ def _sections(doc: dict[str, Any]) -> list[tuple[str, str, tuple[str, ...], list
         ("recording", doc.get("recording") or "-"),
         ("sha256 of the result document", document_sha256(doc)),
     ]
-    sections = [
+    sections: list[Section] = [
         ("Estimate", "", ("quantity", "value"), _estimate_rows(doc)),
         (
             RESTS_ON,
@@ -461,8 +464,13 @@ def write_report(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite
     """
     path = Path(path)
     page, text = report_html(doc), report_markdown(doc)
-    written = atomic_write(path, lambda tmp: Path(tmp).write_text(page, encoding="utf-8"), overwrite=overwrite)
-    twin = atomic_write(
-        markdown_twin(path), lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), overwrite=overwrite
-    )
+
+    def write_page(tmp: str) -> None:
+        Path(tmp).write_text(page, encoding="utf-8")
+
+    def write_twin(tmp: str) -> None:
+        Path(tmp).write_text(text, encoding="utf-8")
+
+    written = atomic_write(path, write_page, overwrite=overwrite)
+    twin = atomic_write(markdown_twin(path), write_twin, overwrite=overwrite)
     return Path(written), Path(twin)

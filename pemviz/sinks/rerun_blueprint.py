@@ -151,7 +151,7 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
         )
         for first in signals[:1]
     ]
-    top = [rrb.TextDocumentView(origin=f"{e}/summary", name="What happened")]
+    top: list[rrb.View] = [rrb.TextDocumentView(origin=f"{e}/summary", name="What happened")]
     if scene:
         top.append(_scene_view(f"{e}/scene", "Scene of the most likely failure (play on step)", 1))
     elif view is not None and view.objects_xy is not None:

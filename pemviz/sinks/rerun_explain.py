@@ -34,7 +34,7 @@ Entities (``step`` timeline unless static; ``<col>`` = the problem's first signa
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 import rerun as rr
@@ -45,6 +45,7 @@ from pemviz.core.proposal_view import prob_detect
 from pemviz.engine.events import RolloutsSampled
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.sinks import colours as C
+from pemviz.sinks.drawing import recording_hooks
 from pemviz.sinks.rerun_blueprint import EXPLAIN_PATH
 from pemviz.sinks.rerun_views import (
     BRAKE_RGBA,
@@ -56,6 +57,9 @@ from pemviz.sinks.rerun_views import (
     log_scene_lane,
     log_thresholds,
 )
+
+if TYPE_CHECKING:
+    from rerun.components import MarkerShapeLike
 
 E = EXPLAIN_PATH
 UNSEEN_RGBA = C.rgba(C.NEUTRAL)
@@ -99,7 +103,7 @@ def _markers(
     path: str,
     name: str,
     rgba,
-    marker: str,
+    marker: MarkerShapeLike,
     steps: np.ndarray,
     values: np.ndarray,
     indexes: Indexes,
@@ -167,7 +171,7 @@ def log_explanation(
         _log_objects(s, view, b, indexes)
     p_det, q_det = prob_detect(b.log_p[0], detected), prob_detect(b.log_q[0], detected)
     number, stage = int(failure.rollout_numbers[0]), failure.stage
-    drawing = view.drawing
+    drawing = recording_hooks(view.drawing)
     tale = drawing.explanation(b, 0) if drawing is not None else None
 
     if b.n_objects == 1:
@@ -178,11 +182,11 @@ def log_explanation(
         )
     else:  # log p sums every object's events and error densities: each object's events instead, a row each
         names = b.object_names or ()
-        seen = (
-            b.objects[0][:, :, names.index("visible")] > 0.5
-            if "visible" in names
-            else np.ones(b.detected[0].shape, bool)
-        )
+        if "visible" in names:
+            assert b.objects is not None  # object names come with the object rows
+            seen = b.objects[0][:, :, names.index("visible")] > 0.5
+        else:
+            seen = np.ones(b.detected[0].shape, bool)
         for j in range(b.n_objects):
             d = b.detected[0, :, j]
             for kind, rgba, steps_j in (

@@ -12,6 +12,7 @@ second.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import rerun as rr
@@ -32,6 +33,9 @@ from pemviz.sinks.rerun_views import (
     Indexes,
     outcome_values,
 )
+
+if TYPE_CHECKING:
+    from rerun.components import MarkerShapeLike
 
 
 def least_robust(ev: RolloutsSampled, k: int) -> np.ndarray:
@@ -167,13 +171,13 @@ def log_stage_rollouts(
         static=True,
     )
     roles = featured(ev, n_tagged, n_likely)
-    said = dict(zip(keep.tolist(), words, strict=False))
+    said_of = dict(zip(keep.tolist(), words, strict=False))
     rows = np.array(sorted(roles), dtype=np.int64)
     labels = []
     for i in rows.tolist():
-        labels.append(_log_featured(s, ev, view, i, roles[i], said[i], told[i], float(log_p[i]), stage_name, index))
+        labels.append(_log_featured(s, ev, view, i, roles[i], said_of[i], told[i], float(log_p[i]), stage_name, index))
     tagged = np.isin(rows, order)
-    marks_of = (
+    marks_of: tuple[tuple[str, bool, tuple[int, ...], MarkerShapeLike, float, np.ndarray], ...] = (
         ("detected", True, DETECTED_RGBA, "circle", 1.5, tagged),
         ("missed", False, MISSED_RGBA, "cross", 3.0, np.ones_like(tagged)),
     )
@@ -188,7 +192,7 @@ def log_stage_rollouts(
                 names=[f"{lb}: {key}" for lb in labels],
                 markers=[marker] * rows.size,
                 marker_sizes=[size] * rows.size,
-                visible_series=show,
+                visible_series=show,  # type: ignore[arg-type]  # rerun's BoolArrayLike omits numpy arrays it takes
             ),
             static=True,
         )

@@ -10,6 +10,7 @@ rerun.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from pemviz.core.estimate import Estimate, Reference, error_text, format_probability
 from pemviz.engine.events import FinalEstimate, StageResult
@@ -102,7 +103,7 @@ def final_status(ev: FinalEstimate) -> str:
     return status
 
 
-def final_values(ev: FinalEstimate) -> dict[str, object]:
+def final_values(ev: FinalEstimate) -> dict[str, Any]:
     """The values of the ``final`` entity (:class:`rerun.AnyValues`): the final estimate, its 95 % interval (or lower
     bound), k-hat, verdict, simulations and wall time."""
     e = ev.estimate

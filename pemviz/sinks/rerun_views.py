@@ -21,6 +21,7 @@ from pemviz.core.proposal_view import LOG_ODDS_SPAN_NATS, ProposalView
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import RolloutsSampled, RunStarted
 from pemviz.sinks import colours as C
+from pemviz.sinks.drawing import recording_hooks
 
 
 def _pyarrow_without_pandas() -> None:
@@ -143,9 +144,10 @@ class Figure:
         Y = (y1 - yt) * sy
         grid = [[[x, 0.0], [x, h]] for x in X] + [[[0.0, y], [w, y]] for y in Y]
         stream.log(f"{self.path}/axes/grid", rr.LineStrips2D(grid, colors=GRID_RGBA, radii=-0.5), static=True)
+        frame: list[list[list[float]]] = [[[0, 0], [w, 0], [w, h], [0, h], [0, 0]]]
         stream.log(
             f"{self.path}/axes/frame",
-            rr.LineStrips2D([[[0, 0], [w, 0], [w, h], [0, h], [0, 0]]], colors=AXIS_RGBA, radii=-1.0),
+            rr.LineStrips2D(frame, colors=AXIS_RGBA, radii=-1.0),
             static=True,
         )
         pos = [[x, h + 0.045 * h] for x in X] + [[-0.06 * w, y] for y in Y]
@@ -250,7 +252,7 @@ def intro_markdown(ev: RunStarted) -> str:
     lines = " and ".join(view.thresholds.labels()) if view.thresholds is not None else ""
     colours = "red = failure, yellow = least robust, blue = most likely failures, orange x = misses"
     traces = f" ({view.signals[0].column} with the lines {lines}; {colours})" if lines else f" ({colours})"
-    drawing = view.drawing
+    drawing = recording_hooks(view.drawing)
     told = drawing.intro(ev.formula, cfg.metric, method) if drawing is not None else None
     if told is not None:
         head, scene = told
@@ -266,7 +268,8 @@ def outcome_values(drawing: object, batch: RolloutBatch, i: int) -> dict | None:
     """Rollout ``i``'s outcome as the recording's properties (:meth:`pemviz.sinks.drawing.RecordingDrawing.
     outcome_values`: ``outcome`` words, ``contact`` and the scenario's numbers), None without a drawing object or
     where it has none."""
-    values = drawing.outcome_values(batch, i) if drawing is not None else None
+    hooks = recording_hooks(drawing)
+    values = hooks.outcome_values(batch, i) if hooks is not None else None
     return dict(values) if values is not None else None
 
 
@@ -290,7 +293,7 @@ def contact_share(drawing: object, batch: RolloutBatch, failed: np.ndarray) -> d
         told = [outcome_values(drawing, batch, int(i)) for i in rows]
         if any(t is None for t in told):
             return {}
-        made = [bool(t["contact"]) for t in told]
+        made = [bool(t["contact"]) for t in told if t is not None]  # none is None, as just checked
     return {"contact_share": float(np.mean(made))}
 
 
@@ -369,7 +372,8 @@ def log_scene_lane(
     and a sight line, ``path/sight``, metres along the road), playable on ``step``, labelled with its stage and
     outcome (:func:`outcome`); returns False (nothing logged) where the drawing draws no lane of it."""
     s, batch = stream, ev.batch
-    drawn = drawing.scene_lane(batch, i) if drawing is not None else None
+    hooks = recording_hooks(drawing)
+    drawn = hooks.scene_lane(batch, i) if hooks is not None else None
     if drawn is None:
         return False
     boxes, sight_x, end_m = drawn

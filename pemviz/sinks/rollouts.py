@@ -144,7 +144,8 @@ class RolloutSink(Sink):
     def _meta(self) -> Any:
         cfg = self._config
         method = getattr(cfg, "method", None)
-        proposal = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}.get(method)
+        proposals: dict[str | None, str] = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}
+        proposal = proposals.get(method)
         provenance: dict[str, Any] = {} if cfg is None else {"config": dataclasses.asdict(cfg)}
         pem = self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME
         return run_meta(self.problem, self._formula, pem=pem, proposal=proposal, provenance=provenance)
@@ -158,11 +159,13 @@ class RolloutSink(Sink):
         sizes = [self._infos[k]["n"] for k in used]
         rule = "single" if len(used) == 1 else getattr(cfg, "pool_weights", "rollouts")
         given = finished.final.pooling  # the estimator's own (added final batches), else the config's rule
+        lam: np.ndarray | None
         if given is not None and len(given[1]) == len(used) and len(used) > 1:
             rule, lam = given[0], np.asarray(given[1], dtype=np.float64)
         else:
             lam = None if rule == "single" else pool_stage_weights(rule, sizes)
         lam = np.asarray(sizes, dtype=np.float64) / sum(sizes) if lam is None else lam
+        assert writer is not None  # a run's rollouts were appended
         provenance = dict(writer.meta.provenance or {})
         cap = finished.final.verdict_cap  # the verdict's bound and cap: pemviz estimate applies them as the run did
         provenance["estimate"] = {
