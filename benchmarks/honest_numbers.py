@@ -8,7 +8,7 @@ Prints, as markdown tables (the figures of the CHANGELOG and the user guide's Va
    many say "reliable" with the answer outside a factor of 2 (a wrong claim); a preset the scene refuses is listed
    as refused, with the one line it prints.
 2. ``defaults``: the default command of each scene (``pemviz run [--scenario S]``: the scene's own default method,
-   :data:`pemviz.config.SCENE_DEFAULTS`), 20 seeds: how many intervals hold the answer (target >= 19 of 20).
+   :func:`pemviz.config.scene_defaults`), 20 seeds: how many intervals hold the answer (target >= 19 of 20).
 3. ``rel-error``: ``pemviz run --rel-error 0.05`` on braking, 20 seeds: the relative half-width reached, the
    simulations, how many intervals hold the exact answer (target >= 19 of 20).
 4. ``cut-in-mc``: ``pemviz run --scenario cut-in --method mc --rel-error 0.2 --max-time 600``: where it stops, and
@@ -47,12 +47,12 @@ PARTS = ("matrix", "defaults", "rel-error", "cut-in-mc", "refusal", "speed")
 
 def config(scene: str, seed: int, preset: str | None = None, method: str | None = None, **fields):
     """The config ``pemviz run`` builds from these flags (a scene's own defaults with neither method nor preset)."""
-    from pemviz.config import SCENE_DEFAULTS, ExperimentConfig
+    from pemviz.config import ExperimentConfig, scene_defaults
     from pemviz.presets import DEFAULT_PRESET, PRESETS
 
     base = dict(PRESETS[preset or DEFAULT_PRESET])
     if preset is None and method is None:
-        base.update(SCENE_DEFAULTS.get(scene, {}))
+        base.update(scene_defaults(scene))
     if method is not None:
         base["method"] = method
     return ExperimentConfig(**{**base, "scenario": scene, "seed": seed, **fields})

@@ -22,46 +22,30 @@ from typing import Any, cast
 from pemviz.core.requirement import RequirementError, parse_requirement
 from pemviz.settings import SETTINGS
 
-SCENARIO_OBJECTS = {"braking": 1, "cut-in": 5, "cut-in-rare": 5}
-"""The objects each scenario perceives per step (its problem's ``n_objects``; a test keeps the two equal): what the
-config checks a sampler against before anything is loaded."""
-
-SCENE_DEFAULTS: dict[str, dict[str, Any]] = {
-    "cut-in": {"method": "tilt", "n_per_stage": 7_280},
-    "cut-in-rare": {"method": "mc", "n_per_stage": 20_000},
-    "crossing": {"method": "mc", "n_per_stage": 50_000, "rel_error": 0.2, "max_sims": 500_000},
-}
-"""The method and budget a scenario runs with when neither a method nor a preset is asked for (``pemviz run
---scenario``, the panel). On the cut-in scenes the adaptive sampler's estimates are orders of magnitude low (the user
-guide's Validation page). The cut-in runs its own tilted proposal (``tilt``: :mod:`pemviz.scenarios.cut_in.tilt`) on
-7,280 rollouts, about 13,000 rollout-equivalents with its look-aheads. The rare cut-in (about 1e-7), where that
-proposal's intervals are too narrow (its seeds spread 1.8 times what they say) and no reference exists, runs plain
-Monte Carlo, whose Clopper-Pearson interval holds p in at least 95 % of runs at any budget (a wide
-interval, or with no failure the bound p < 3 / N, but an honest one). The crossing (a noisy detector behind a Kalman
-tracker, p about 3e-4), where the cross-entropy sampler is 5 to 10 orders of magnitude low and splitting on the
-scene-neutral look-ahead (:mod:`pemviz.estimators.lookahead_score`) costs 1.3 times plain Monte Carlo for the same
-median error (``benchmarks/scene_neutral.py``), runs plain Monte Carlo to a 20 % interval (at most 500,000 rollouts,
-about 15 s). Scenarios not named here use
-:class:`ExperimentConfig`'s defaults."""
-
-
-ODD_DEFAULTS: dict[str, dict[str, Any]] = {
-    "cut-in": {"method": "mc", "n_per_stage": 100_000},
-}
-"""The method and budget a scenario runs with over an operating design domain (a parameter drawn per rollout,
-``--param NAME~DIST``) when neither a method nor a preset is asked for, in place of :data:`SCENE_DEFAULTS`'. The
-cut-in's tilted proposal is solved for one start gap, so over a range of gaps the cut-in runs plain Monte Carlo:
-100,000 rollouts, a tenth of the reference of ``docs/odd.md`` (about 50 s)."""
-
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
-    """The method and budget ``scenario`` runs with when neither a method nor a preset is asked for: its
-    :data:`SCENE_DEFAULTS`, or over an operating design domain (a drawn parameter among ``params``, the
-    ``scenario_params`` pairs) its :data:`ODD_DEFAULTS` where it has them; empty: the config's defaults."""
+    """The settings ``scenario`` runs with when neither a method nor a preset is asked for: its registry record's
+    :attr:`~pemviz.scenarios.registry.Scenario.run_defaults`, or over an operating design domain (a drawn parameter
+    among ``params``, the ``scenario_params`` pairs) its
+    :attr:`~pemviz.scenarios.registry.Scenario.odd_defaults` where it has them; empty: the config's defaults (also
+    for a scenario not registered)."""
+    from pemviz.scenarios.registry import known
+
+    record = known(scenario)
+    if record is None:
+        return {}
     drawn = any(isinstance(pair, tuple) and str(pair[-1]).startswith("~") for pair in params)
-    if drawn and scenario in ODD_DEFAULTS:
-        return dict(ODD_DEFAULTS[scenario])
-    return dict(SCENE_DEFAULTS.get(scenario, {}))
+    return dict(record.odd_defaults if drawn and record.odd_defaults else record.run_defaults)
+
+
+def objects_of(scenario: str) -> int:
+    """The objects ``scenario`` perceives a step (its registry record's
+    :attr:`~pemviz.scenarios.registry.Scenario.n_objects`; 1 for one not registered): what the config checks a method
+    against before anything is loaded."""
+    from pemviz.scenarios.registry import known
+
+    record = known(scenario)
+    return record.n_objects if record is not None else 1
 
 
 class ConfigError(ValueError):
@@ -341,7 +325,7 @@ class ExperimentConfig:
                 f"{', '.join(extensible_names())}",
             )
             # a whole number: check_pairs checked the value's kind (the field's, an int)
-            n_objects = cast(int, dict(self.scenario_params).get("n_objects", SCENARIO_OBJECTS.get(self.scenario, 1)))
+            n_objects = cast(int, dict(self.scenario_params).get("n_objects", objects_of(self.scenario)))
             conflict = method.conflict(self, n_objects)
             if conflict is not None:
                 need(False, *conflict)

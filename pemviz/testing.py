@@ -428,11 +428,19 @@ def _check_drawing(checks: _Checks, sc: Any, built: Any, problem: Any, batches: 
 
 
 def _default_config(sc: Any) -> Any:
-    """The config :func:`check_scenario` builds a scenario's problem with: the run scenario's own
-    (``ExperimentConfig(scenario=name)``), else the defaults (the shipped PEM, the batched back-end)."""
+    """The config :func:`check_scenario` builds a scenario's problem with: the scenario's own
+    (``ExperimentConfig(scenario=name)``: the shipped PEM, the batched back-end), a built-in one's or a plugin's
+    alike; the defaults for a scenario not registered (a config names registered ones only)."""
     from pemviz.config import ExperimentConfig
 
-    return ExperimentConfig(scenario=sc.name) if sc.runnable else ExperimentConfig()
+    return ExperimentConfig(scenario=sc.name) if _registered(sc) else ExperimentConfig()
+
+
+def _registered(sc: Any) -> bool:
+    """Whether ``sc`` is registered under its name (a config may name it)."""
+    from pemviz.scenarios.registry import known
+
+    return known(sc.name) is sc
 
 
 def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -> list[Any]:
@@ -441,8 +449,8 @@ def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -
     from pemviz.config import ExperimentConfig
 
     base = ExperimentConfig(method="naive50", n_per_stage=RUN_ROLLOUTS, seed=seed)
-    if sc.runnable:
-        pairs = cast("dict[str, float | int | bool]", dict(params or {}))  # checked by the config
+    if _registered(sc):  # the run names it (its rollout files say which scene), its parameters checked by the config
+        pairs = cast("dict[str, float | int | bool]", dict(params or {}))
         base = dataclasses.replace(base, scenario=sc.name, scenario_params=tuple(pairs.items()))
     adaptive = dataclasses.replace(
         base, method="adaptive", n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50

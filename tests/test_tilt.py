@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-from pemviz.config import SCENE_DEFAULTS, ExperimentConfig
+from pemviz.config import ExperimentConfig
 from pemviz.engine.experiment import Experiment
 from pemviz.scenarios.problems import build_problem
 
@@ -106,7 +106,7 @@ def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads():
     from pemviz.scenarios.cut_in import tilt as tilt_module
 
     cfg = config_from_args(build_parser("run").parse_args(["run", "--scenario", "cut-in"]))
-    assert cfg.method == "tilt" and cfg.n_per_stage == SCENE_DEFAULTS["cut-in"]["n_per_stage"]
+    assert (cfg.method, cfg.n_per_stage) == ("tilt", 7_280)  # the cut-in record's run_defaults
     from pemviz.estimators import build_estimator
     from pemviz.scenarios.problems import problem_for
 

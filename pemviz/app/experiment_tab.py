@@ -16,7 +16,7 @@ from pemviz.app.host import PanelHost
 from pemviz.app.html import field_error
 from pemviz.app.params_form import ScenarioParamsForm
 from pemviz.app.runs import PANEL_PRESETS
-from pemviz.config import SCENE_DEFAULTS, ExperimentConfig
+from pemviz.config import ExperimentConfig, scene_defaults
 from pemviz.settings import SETTINGS, SIMULATORS
 from pemviz.pem.recipes import DEFAULT_PEM_NAME
 from pemviz.pem import shipped_pems
@@ -140,9 +140,9 @@ class ExperimentTab:
                 resend_value(handle)
 
     def _apply_scene(self, scenario: str) -> None:
-        """Set the method and N to ``scenario``'s own defaults (:data:`pemviz.config.SCENE_DEFAULTS`) where it has
+        """Set the method and N to ``scenario``'s own defaults (:func:`pemviz.config.scene_defaults`) where it has
         them, and back to the preset's where it has none; show its parameters; tell whoever built the tab."""
-        fields = SCENE_DEFAULTS.get(scenario)
+        fields = scene_defaults(scenario)
         if not fields:
             preset = ExperimentConfig(**PANEL_PRESETS.get(self.preset.value, {}))
             fields = {"method": "adaptive", "n_per_stage": preset.n_per_stage}

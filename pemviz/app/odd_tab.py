@@ -27,7 +27,7 @@ MAX_CHARTS = 3
 NO_ODD = (
     "No operating design domain in this run. Give a scenario parameter a distribution instead of a value in the "
     "Experiment tab's folder of scenario parameters (e.g. <code>~uniform(19.5, 21.5)</code>, <code>~normal(12.3, "
-    "0.4)</code>, <code>~choice(5, 6, 7)</code>): each rollout then draws its own, the run estimates p over the "
+    "0.4)</code>, <code>~choice(4, 8)</code>): each rollout then draws its own, the run estimates p over the "
     "ODD, and this tab shows where it comes from."
 )
 

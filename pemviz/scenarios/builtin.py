@@ -9,16 +9,8 @@ from typing import Any
 from pemviz.core.problems import Problem
 from pemviz.scenarios.crowd.simulator import CrowdParams
 from pemviz.scenarios.crowd.problem import crowd_problem
-from pemviz.scenarios.problems import problem_for
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy import ToyParams
-
-
-def run_problem(config: Any, params: Any = None) -> Problem:
-    """The problem of a run scenario (:data:`pemviz.settings.SCENARIOS`):
-    :func:`pemviz.scenarios.problems.problem_for` ``(config)``, whose ``scenario_params`` hold the parameters
-    (``params`` is the dataclass built from them)."""
-    return problem_for(config)
 
 
 def toy(config: Any, params: ToyParams | None = None) -> Problem:

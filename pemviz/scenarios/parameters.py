@@ -43,10 +43,6 @@ PairValue = Union[float, int, bool, str]
 """A value of a ``(name, value)`` pair of ``scenario_params``: a :data:`Value`, or for a parameter drawn per rollout
 the text ``"~" + its distribution`` (:func:`pemviz.scenarios.odd.odd_value`)."""
 
-CUT_IN_SETTINGS: dict[str, str] = {"cut-in": "moderate", "cut-in-rare": "rare"}
-"""The cut-in scenarios and the rarity setting each starts from
-(:data:`pemviz.scenarios.cut_in.scenario.RARITY_SETTINGS`)."""
-
 UNIT_SUFFIXES: tuple[tuple[str, str], ...] = (
     ("_mps2", "m/s^2"),
     ("_mps", "m/s"),
@@ -138,13 +134,7 @@ def default_params(scenario: str) -> BrakingParams | CutInParams | DataclassInst
     Raises:
         ParameterError: an unknown scenario.
     """
-    if scenario == "braking":
-        return BrakingParams()
-    if scenario in CUT_IN_SETTINGS:
-        from pemviz.scenarios.cut_in.scenario import RARITY_SETTINGS, CutInParams  # the cut-in's: for its runs only
-
-        return CutInParams(**RARITY_SETTINGS[CUT_IN_SETTINGS[scenario]])
-    if scenario in _REGISTERED_DEFAULTS:  # a scenario of the registry (a plugin's, a toy): its own dataclass
+    if scenario in _REGISTERED_DEFAULTS:  # every scenario of the registry, built-in or a plugin's: its own defaults
         return _REGISTERED_DEFAULTS[scenario]()
     raise ParameterError(f"unknown scenario {scenario!r}; use one of {', '.join(scenario_names())}")
 

@@ -85,52 +85,50 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
 
 
 def problem_for(config: Any) -> Problem:
-    """The problem a run of ``config`` estimates: the scenario ``config.scenario`` (:data:`pemviz.settings.SCENARIOS`)
-    with its parameters ``config.scenario_params`` (:mod:`pemviz.scenarios.parameters`; the braking scenario's crash
-    gap also ``config.margin``) and the PEM ``config.pem`` (None: the shipped one); the braking scenario on the
-    simulator ``config.sim``. Loads the PEM on every call (a changed file is read again). A cut-in setting with a plain
-    Monte Carlo reference (:data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`) carries it as its
-    :attr:`Problem.reference` only when it runs the shipped PEMs at the setting's own parameters, under which the
-    reference was drawn; the braking scenario's exact answer is known for its default parameters (or another crash
-    gap, or the latched brake) only (:func:`pemviz.scenarios.braking.truth_known.known_log_failure_probability`).
+    """The problem a run of ``config`` estimates: its scenario's registry factory called with the config
+    (:attr:`pemviz.scenarios.registry.Scenario.factory`: :func:`braking_run_problem`, :func:`cut_in_run_problem`, a
+    plugin's own), which reads the parameters ``config.scenario_params`` and the PEM ``config.pem``. Loads the PEM on
+    every call (a changed file is read again).
 
     Raises:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
         ValueError: parameters the scenario's dataclass refuses (the config checks them first).
     """
-    from pemviz.scenarios.odd import split_odd
+    from pemviz.scenarios.registry import problem_for as registered
 
-    from pemviz.scenarios.parameters import representative
+    return cast(Problem, registered(config))
 
-    _, odd = split_odd(config.scenario_params)
-    # the scenario's fields (their kinds checked by the config); a drawn parameter: replaced per rollout
-    overrides: dict[str, Any] = representative(config.scenario, config.scenario_params)
-    if config.scenario == "braking":
-        if config.margin is not None:
-            overrides["crash_gap_m"] = float(config.margin)
-        params = BrakingParams(**overrides) if overrides else None
-        if odd is not None:  # the gap and speed at the start drawn per rollout (pemviz.scenarios.braking.odd)
-            from pemviz.scenarios.braking.odd import braking_odd_problem
 
-            return braking_odd_problem(config, params or BrakingParams(), odd)
-        return with_alternatives(braking_problem(load_pem(config.pem), params, sim=config.sim), config)
-    from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, CutInParams
+def braking_run_problem(config: Any, params: BrakingParams | None = None) -> Problem:
+    """The braking scenario's problem (the registry's factory of ``braking``) at ``params`` (None: the defaults), its
+    crash gap ``config.margin`` where given, the PEM ``config.pem`` on the simulator ``config.sim`` (``config`` None:
+    the shipped PEM on the batched twin), with the config's alternative targets (:func:`with_alternatives`)."""
+    margin = getattr(config, "margin", None)
+    scene = params
+    if margin is not None:
+        scene = dataclasses.replace(scene or BrakingParams(), crash_gap_m=float(margin))
+    problem = braking_problem(load_pem(getattr(config, "pem", None)), scene, sim=getattr(config, "sim", "batched"))
+    return with_alternatives(problem, config) if config is not None else problem
+
+
+def cut_in_run_problem(config: Any, params: Any = None) -> Problem:
+    """A cut-in scenario's problem (the registry's factory of ``cut-in`` and ``cut-in-rare``) at ``params`` (a
+    :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`; None: the ``moderate`` setting), named after
+    ``config.scenario``, the PEMs ``config.pem`` (``config`` None: the shipped ones), with the plain Monte Carlo
+    reference of a rarity setting (:data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`) where the scene is
+    that setting's own and the PEMs the shipped ones, under which it was drawn."""
     from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
-    from pemviz.scenarios.parameters import CUT_IN_SETTINGS, apply_parameters
+    from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, RARITY_SETTINGS, CutInParams
 
-    setting = CUT_IN_SETTINGS[config.scenario]
-    scene = apply_parameters(config.scenario, overrides)
+    scene = params if params is not None else cut_in_params("moderate")
     assert isinstance(scene, CutInParams)  # a cut-in scenario's own dataclass
-    if odd is not None:  # the start gap drawn per rollout (pemviz.scenarios.cut_in.odd)
-        from pemviz.scenarios.cut_in.odd import cut_in_odd_problem
-
-        return cut_in_odd_problem(config, scene, odd)
-    problem = cut_in_problem(load_pem(config.pem), scene, name=config.scenario)
-    own = scene == cut_in_params(setting)  # the reference holds for the setting's own scene only
-    if config.pem in (None, DEFAULT_PEM_NAME) and setting in MONTE_CARLO_REFERENCE and own:
-        failures, n = MONTE_CARLO_REFERENCE[setting]
+    pem = getattr(config, "pem", None)
+    problem = cut_in_problem(load_pem(pem), scene, name=getattr(config, "scenario", "cut-in"))
+    own = [name for name in RARITY_SETTINGS if scene == cut_in_params(name)]  # the references hold for these only
+    if pem in (None, DEFAULT_PEM_NAME) and own and own[0] in MONTE_CARLO_REFERENCE:
+        failures, n = MONTE_CARLO_REFERENCE[own[0]]
         problem = dataclasses.replace(problem, reference=Reference(failures, n, "plain Monte Carlo, shipped PEMs"))
-    return with_alternatives(problem, config)
+    return with_alternatives(problem, config) if config is not None else problem
 
 
 PEM_SHIFTS = (-1.0, -0.5, 0.5, 1.0)

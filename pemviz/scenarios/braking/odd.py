@@ -8,13 +8,12 @@ look-ahead, which hold for one start only.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import numpy as np
 
 from pemviz.core.odd import ODD
-from pemviz.core.odd_rollouts import odd_rollout_functions
+from pemviz.core.odd_rollouts import problem_over_odd
 from pemviz.core.problems import Problem
 from pemviz.scenarios.braking.batched import BatchedBraking
 from pemviz.scenarios.braking.simulator import BrakingParams
@@ -44,25 +43,12 @@ def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> 
     def make(n: int, values: np.ndarray) -> BatchedBraking:
         return BatchedBraking(p, n, starts={name: values[:, j] for j, name in enumerate(names)})
 
-    simulate, stream, branch = odd_rollout_functions(make, odd, p.n_steps)
     base = braking_problem(load_pem(getattr(config, "pem", None)), p, sim="batched")
-    return dataclasses.replace(
+    return problem_over_odd(
         base,
-        simulate=simulate,
-        stream=stream,
-        branch=branch,
-        exact_log_p=None,
-        severity_exact={},
-        look_ahead=None,
-        look_ahead_s=0.0,
-        tilt=None,
-        odd=odd,
-        verdict_cap=(
-            "doubtful",
-            "over an ODD the fitted proposal (which reads the drawn parameters with the state) can sample a "
-            "region of the ODD too little while its weights look reliable (on the toy, 2 of 20 runs at x0.47 "
-            "and x0.50)",
-        ),
+        make,
+        odd,
+        p.n_steps,
         description=(
             f"automated braking behind a lead car, its start drawn per rollout ({odd.text()}), the PEM as "
             f"the camera's detector; failure: the gap drops below {p.crash_gap_m:g} m"

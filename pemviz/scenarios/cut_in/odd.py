@@ -14,14 +14,13 @@ Clopper-Pearson interval holds at any budget.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any
 
 import numpy as np
 
 from pemviz.core.odd import ODD
-from pemviz.core.odd_rollouts import odd_rollout_functions
+from pemviz.core.odd_rollouts import problem_over_odd
 from pemviz.core.problems import Problem
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, translation_error
 from pemviz.scenarios.cut_in.scenario import CutInParams
@@ -63,18 +62,12 @@ def cut_in_odd_problem(config: Any, params: CutInParams | None, odd: ODD) -> Pro
     def make(n: int, values: np.ndarray) -> BatchedCutIn:
         return BatchedCutIn(p, n, gap_shift_m=values[:, 0] - p.cut_in_gap_m)
 
-    simulate, stream, branch = odd_rollout_functions(make, odd, p.n_steps)
     base = cut_in_problem(load_pem(getattr(config, "pem", None)), p, name=getattr(config, "scenario", "cut-in"))
-    return dataclasses.replace(
+    return problem_over_odd(
         base,
-        simulate=simulate,
-        stream=stream,
-        branch=branch,
-        reference=None,
-        look_ahead=None,
-        look_ahead_s=0.0,
-        tilt=None,
-        odd=odd,
+        make,
+        odd,
+        p.n_steps,
         description=(
             f"ACC on a tracker, {p.n_objects} cars on a 3-lane highway, one cutting in at {p.cut_in_speed_mps:g} m/s, "
             f"its start gap drawn per rollout ({odd.text()}); failure: a collision or the safe distance of R_G1"

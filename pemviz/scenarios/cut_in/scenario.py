@@ -329,6 +329,17 @@ the failure probability is 8.66e-5 [8.09e-5, 9.26e-5] at ``moderate`` (plain Mon
 :func:`pemviz.core.confidence.markov_lower_bound`); splitting ranked by the same committor gives 8.8e-8
 (``research/cut-in-notes.md``)."""
 
+
+def moderate_params() -> CutInParams:
+    """The ``cut-in`` scenario's defaults: the ``moderate`` rarity setting (about 9e-5)."""
+    return CutInParams(**RARITY_SETTINGS["moderate"])
+
+
+def rare_params() -> CutInParams:
+    """The ``cut-in-rare`` scenario's defaults: the ``rare`` rarity setting (about 1e-7)."""
+    return CutInParams(**RARITY_SETTINGS["rare"])
+
+
 MONTE_CARLO_REFERENCE: dict[str, tuple[int, int]] = {"moderate": (866, 10_000_000)}
 """The plain Monte Carlo reference of a rarity setting under the shipped PEMs: (failures, rollouts) of the batched
 twin drawn from the PEMs (``benchmarks/cut_in_mc.py``, seeds 11 and 12, 5 x 10^6 rollouts each; every failure a

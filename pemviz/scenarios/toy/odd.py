@@ -11,7 +11,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from pemviz.core.odd import ODD
-from pemviz.core.odd_rollouts import odd_rollout_functions
+from pemviz.core.odd_rollouts import problem_over_odd
 from pemviz.core.problems import Problem
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import BatchedToy, ToyParams, toy_log_failure_probability
@@ -62,23 +62,14 @@ def toy_odd_problem(config: Any, params: ToyParams | None, odd: ODD) -> Problem:
     def make(n: int, values: np.ndarray) -> _PerRollout:
         return _PerRollout(p, n, values[:, 0])
 
-    simulate, stream, branch = odd_rollout_functions(make, odd, p.steps)
     base = toy_problem(dataclasses.replace(p, braking=top))
     exact = toy_odd_log_failure_probability(p, odd) if law.discrete else None
-    return dataclasses.replace(
+    return problem_over_odd(
         base,
-        simulate=simulate,
-        stream=stream,
-        branch=branch,
+        make,
+        odd,
+        p.steps,
         exact_log_p=exact,
-        tilt=None,
-        odd=odd,
-        verdict_cap=(
-            "doubtful",
-            "over an ODD the fitted proposal (which reads the drawn parameters with the state) can sample a "
-            "region of the ODD too little while its weights look reliable (on the toy, 2 of 20 runs at x0.47 "
-            "and x0.50)",
-        ),
         name=f"toy over {odd.text()}",
         window=float(top) + 0.5,
         description=f"toy braking, its braking distance drawn per rollout ({odd.text()})",
