@@ -111,3 +111,19 @@ def test_the_odd_tab_maps_a_run_over_a_distribution_chosen_in_the_form(tab):
         page.wait_for_function("() => document.fonts.ready.then(() => true)")
         SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(SCREENSHOT))
+
+
+def test_the_heat_map_of_a_pair_shows_each_cell_shaded_by_its_p_and_names_the_largest_share():
+    from pemviz.app.odd_tab import pair_html
+    from pemviz.core.odd_pair import pair_map
+
+    odd = ODD((("gap", parse_distribution("choice(10, 11)")), ("speed", parse_distribution("choice(8, 9)"))))
+    values = np.array([[10, 8], [10, 9], [11, 8], [11, 9]] * 10, dtype=np.float64)
+    failed = np.zeros(40, bool)
+    failed[[0, 4, 8, 1]] = True  # cell (gap 10, speed 8): 3 of 10; (gap 10, speed 9): 1 of 10; the others none
+    pair = pair_map(odd, values, np.zeros(40), failed, np.zeros(40))
+    assert pair is not None
+    page = pair_html(pair)
+    assert "rows speed, columns gap" in page and "3.0e-01" in page and "1.0e-01" in page and page.count(">-<") == 2
+    assert "Most of p_ODD in the pair: <b>gap in [9.5, 10.5) and speed in [7.5, 8.5)</b> (75 % of it)" in page
+    assert "rgba(214, 64, 43, 1)" in page and "rgba(214, 64, 43, 0.15)" in page  # largest dark, least light

@@ -288,3 +288,71 @@ def test_a_branch_over_an_odd_keeps_each_parents_parameters_and_prefix():
     col = parents.observation_names.index("braking")
     np.testing.assert_array_equal(children.observations[:, 0, col], parents.observations[10:20, 0, col])
     np.testing.assert_array_equal(children.detected[:, :3], parents.detected[10:20, :3])
+
+
+def test_the_pair_map_is_each_cells_failure_rate_under_plain_monte_carlo_and_unbiased_under_weights():
+    """Hand-made rollouts over x ~ uniform(0, 1) (5 bins of 0.2) and y ~ choice(1, 2): a cell's p is the failure
+    rate of its rollouts with plain Monte Carlo's weights, and the weighted mean / P(cell) under importance weights."""
+    from pemviz.core.odd_pair import pair_map
+
+    odd = ODD((("x", parse_distribution("uniform(0, 1)")), ("y", parse_distribution("choice(1, 2)"))))
+    x = np.repeat([0.1, 0.3, 0.5, 0.7, 0.9], 8)  # 8 rollouts a column, 4 with y = 1 and 4 with y = 2
+    y = np.tile([1.0, 1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 2.0], 5)
+    failed = (x > 0.6) & ((np.arange(40) % 4) < (y == 2) * 2 + 1)  # y = 1: 1 of 4 fail, y = 2: 3 of 4 (x > 0.6)
+    values = np.stack([x, y], axis=1)
+    plain = pair_map(odd, values, np.zeros(40), failed, np.zeros(40))
+    assert plain is not None and plain.names == ("x", "y") and len(plain.cells) == 2 and len(plain.cells[0]) == 5
+    rates = np.array([[e.mu_hat if e.n_failures else 0.0 for e in row] for row in plain.cells])
+    np.testing.assert_allclose(rates, [[0, 0, 0, 0.25, 0.25], [0, 0, 0, 0.75, 0.75]], rtol=1e-12)
+    # shares: P(cell) p_cell over their sum, P(cell) = 0.2 * 0.5 for every cell
+    np.testing.assert_allclose(plain.shares[:, 3:], [[0.125, 0.125], [0.375, 0.375]], rtol=1e-12)
+    assert plain.top() in ((3, 1), (4, 1)) and "x in [0.6, 0.8) and y in" in plain.cell_label(3, 1)
+    # importance weights w: the estimate of cell (a, b) is sum(w 1[fail] in cell) / (N P(cell))
+    log_w = np.log(np.linspace(0.5, 1.5, 40))
+    weighted = pair_map(odd, values, log_w, failed, np.zeros(40))
+    w = np.exp(log_w)
+    inside = (x > 0.6) & (x < 0.8) & (y == 2)
+    expected = np.sum(w * failed * inside) / (40 * 0.1)
+    assert weighted is not None and weighted.cells[1][3].mu_hat == pytest.approx(expected, rel=1e-12)
+    assert pair_map(ODD((("x", parse_distribution("uniform(0, 1)")),)), x[:, None], np.zeros(40), failed, x) is None
+
+
+def test_a_run_over_two_parameters_prints_records_and_keeps_their_heat_map(tmp_path):
+    import json
+
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pemviz.cli",
+            "run",
+            "--preset",
+            "quick",
+            "--param",
+            "gap0_m~uniform(11, 13)",
+            "--param",
+            "ego_speed0_mps~uniform(9, 10.4)",
+            "--save",
+            "b.rrd",
+            "--json",
+            "b.json",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "odd map of the pair (gap0_m, ego_speed0_mps): p(failure | cell)" in proc.stdout
+    pair = json.loads((tmp_path / "b.json").read_text())["odd_map"]["pair"]
+    assert pair["names"] == ["gap0_m", "ego_speed0_mps"] and len(pair["cells"]) == 5 and len(pair["cells"][0]) == 5
+    assert pair["x_edges"][0] == 11 and pair["y_edges"][-1] == 10.4
+    shares = [c["share"] for row in pair["cells"] for c in row]
+    assert sum(shares) == pytest.approx(1.0, abs=1e-9)
+    rr = pytest.importorskip("rerun")
+    pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
+    with rr.server.Server(datasets={"run": [str(tmp_path / "b.rrd")]}) as server:
+        client = server.client()
+        ds = client.get_dataset("run")
+        static = ds.reader(index=None).to_arrow_table()
+    assert any(c.startswith("/odd/pair:Tensor") for c in static.column_names), static.column_names

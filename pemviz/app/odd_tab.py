@@ -17,9 +17,9 @@ from pemviz.app.html import AMBER, GREY, TABLE_STYLE, VERDICT_COLOURS, box
 from pemviz.app.plots import LEGEND, axes
 from pemviz.app.runs import PanelRun
 from pemviz.core.estimate import format_probability
-from pemviz.core.odd import MapBin, OddMap
+from pemviz.core.odd import MapBin, OddMap, PairMap, cell_text
 from pemviz.sinks import colours as C
-from pemviz.sinks.colours import hex_colour
+from pemviz.sinks.colours import css, hex_colour
 
 MAX_CHARTS = 3
 """Drawn parameters charted (the table lists every one)."""
@@ -73,6 +73,39 @@ def odd_table_html(m: OddMap) -> str:
     return box(head, AMBER) + table
 
 
+def pair_html(pair: PairMap) -> str:
+    """The heat map of the first two parameters as an HTML table: a cell per pair of bins with p(failure | cell)
+    (``>=`` a lower bound where its weights back no interval, ``-`` without failure), shaded by log10 p from the
+    smallest cell's (light) to the largest's (dark red); the cell that carries most of p_ODD named under it."""
+    x, y = pair.names
+    grid = pair.log10_p()
+    shown = grid[np.isfinite(grid)]
+    lo, hi = (float(shown.min()), float(shown.max())) if shown.size else (0.0, 0.0)
+    head = "".join(f"<th>{pair.x_edges[a]:.3g}-{pair.x_edges[a + 1]:.3g}</th>" for a in range(len(pair.x_probs)))
+    rows = []
+    for b, row in enumerate(pair.cells):
+        tds = []
+        for a, e in enumerate(row):
+            v = grid[b, a]
+            f = 0.15 + 0.85 * ((v - lo) / (hi - lo) if hi > lo else 1.0) if math.isfinite(v) else 0.0
+            tds.append(f"<td style='background:{css(C.RED, f)}'>{html.escape(cell_text(e))}</td>")
+        label = f"{pair.y_edges[b]:.3g}-{pair.y_edges[b + 1]:.3g}"
+        rows.append(f"<tr><th style='text-align:left'>{label}</th>{''.join(tds)}</tr>")
+    top = pair.top()
+    said = (
+        f"Most of p_ODD in the pair: <b>{html.escape(pair.cell_label(*top))}</b> "
+        f"({100 * pair.shares[top[1], top[0]]:.0f} % of it)."
+        if top is not None
+        else "No failure in any cell."
+    )
+    return (
+        f"<div style='margin:0.6em 0.6em 0.2em;font-size:0.85em'><b>p(failure | cell)</b>: rows {html.escape(y)}, "
+        f"columns {html.escape(x)}. {said}</div>"
+        f"{TABLE_STYLE}<table class='pemviz-table' style='font-size:0.75em;margin:0 0.6em'>"
+        f"<tr><th></th>{head}</tr>{''.join(rows)}</table>"
+    )
+
+
 class OddTab:
     """The *ODD* tab: a note, :data:`MAX_CHARTS` charts (hidden until a run over an ODD fills them) and the table."""
 
@@ -110,7 +143,7 @@ class OddTab:
                 chart.visible = False
             return
         self.note.visible = False
-        self.table.content = odd_table_html(m)
+        self.table.content = odd_table_html(m) + (pair_html(m.pair) if m.pair is not None else "")
         names = list(m.odd.names)
         for i, chart in enumerate(self.charts):
             chart.visible = i < len(names)

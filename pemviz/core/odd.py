@@ -282,6 +282,98 @@ def odd_map(
 
 
 @dataclass(frozen=True)
+class PairMap:
+    """p(failure | cell) over the first two parameters of an ODD.
+
+    Attributes:
+        names: ``(x, y)``, the two parameters.
+        x_edges, y_edges: float64 ``[Bx + 1]``, ``[By + 1]``: their bins' edges.
+        x_probs, y_probs: float64 ``[Bx]``, ``[By]``: their bins' probabilities.
+        cells: ``cells[b][a]`` the estimate of p(failure | x in bin a, y in bin b) (:class:`pemviz.core.estimate.
+            Estimate`).
+        shares: float64 ``[By, Bx]``: each cell's share of p_ODD (P(cell) p_cell over their sum; 0 without failure).
+    """
+
+    names: tuple[str, str]
+    x_edges: np.ndarray
+    y_edges: np.ndarray
+    x_probs: np.ndarray
+    y_probs: np.ndarray
+    cells: tuple[tuple[Estimate, ...], ...]
+    shares: np.ndarray
+
+    def log10_p(self) -> np.ndarray:
+        """float64 ``[By, Bx]``: log10 of each cell's estimate (nan where the cell has no failure)."""
+        return np.array(
+            [[e.log_mu_hat / math.log(10) if e.n_failures else math.nan for e in row] for row in self.cells]
+        )
+
+    def top(self) -> tuple[int, int] | None:
+        """``(a, b)`` of the cell with the largest share of p_ODD, or None without failures."""
+        if not np.any(self.shares > 0):
+            return None
+        b, a = np.unravel_index(int(np.argmax(self.shares)), self.shares.shape)
+        return int(a), int(b)
+
+    def cell_label(self, a: int, b: int) -> str:
+        """``x in [lo, hi) and y in [lo, hi)`` of cell ``(a, b)``."""
+        x, y = self.names
+        return (
+            f"{x} in [{self.x_edges[a]:.4g}, {self.x_edges[a + 1]:.4g}) and {y} in "
+            f"[{self.y_edges[b]:.4g}, {self.y_edges[b + 1]:.4g})"
+        )
+
+    def lines(self) -> list[str]:
+        """The heat map as text: a header of the x bins, a row per y bin with each cell's p (``>=`` where only its
+        lower bound is backed, ``-`` without failure), and the cell that carries most of p_ODD."""
+        x, y = self.names
+        width = 10
+        corner = f"{y} by {x}"
+        head = f"  {corner:>24s} " + "".join(
+            f"{f'{self.x_edges[a]:.3g}-{self.x_edges[a + 1]:.3g}':>{width}s}" for a in range(len(self.x_probs))
+        )
+        out = [f"odd map of the pair ({x}, {y}): p(failure | cell)", head]
+        for b, row in enumerate(self.cells):
+            label = f"{self.y_edges[b]:.3g}-{self.y_edges[b + 1]:.3g}"
+            out.append(f"  {label:>24s} " + "".join(f"{cell_text(e):>{width}s}" for e in row))
+        top = self.top()
+        if top is not None:
+            a, b = top
+            out.append(f"most of p_ODD in the pair: {self.cell_label(a, b)} ({100 * self.shares[b, a]:.0f} % of it)")
+        return out
+
+    def document(self) -> dict[str, Any]:
+        """The heat map for the result document: the pair, the edges and each cell's log p (nats; None without a
+        failure), 95 % interval of log p (None for an end it lacks), verdict and share, rows by the y bin."""
+        return {
+            "names": list(self.names),
+            "x_edges": [float(v) for v in self.x_edges],
+            "y_edges": [float(v) for v in self.y_edges],
+            "cells": [
+                [
+                    {
+                        "log_p": e.log_mu_hat if e.n_failures else None,
+                        "log_ci": [float(v) if np.isfinite(v) else None for v in e.shown_log_ci],
+                        "verdict": e.verdict,
+                        "share": float(self.shares[b, a]),
+                    }
+                    for a, e in enumerate(row)
+                ]
+                for b, row in enumerate(self.cells)
+            ],
+        }
+
+
+def cell_text(e: Estimate) -> str:
+    """A heat-map cell's p: ``1.2e-03``, ``>=1.2e-03`` (a lower bound where its weights back no interval), ``-``
+    without failure."""
+    if not e.n_failures:
+        return "-"
+    p = f"{math.exp(e.log_mu_hat):.1e}"
+    return p if e.interval_backed else ">=" + f"{math.exp(e.shown_log_ci[0]):.1e}"
+
+
+@dataclass(frozen=True)
 class OddMap:
     """The map of a run over an ODD (:func:`odd_map`) as its final estimate carries it: the ODD, the rollouts the
     bins were estimated from (the final stage's) and the bins, each parameter's in order."""
@@ -289,6 +381,8 @@ class OddMap:
     odd: ODD
     rollouts: int
     bins: tuple[MapBin, ...]
+    pair: PairMap | None = None
+    """The heat map of the first two parameters (:func:`pemviz.core.odd_pair.pair_map`); None for one parameter."""
 
     def top(self) -> MapBin | None:
         """The bin with the largest share of p_ODD, or None where no bin has a failure."""
@@ -315,7 +409,7 @@ class OddMap:
         top = self.top()
         if top is not None:
             out.append(f"most of p_ODD: {top.label} ({100 * top.share:.0f} % of it, P(bin) {top.probability:.2f})")
-        return out
+        return out + (self.pair.lines() if self.pair is not None else [])
 
     def document(self) -> dict[str, Any]:
         """The map for the result document (JSON): the ODD and each bin's range, probability, log p (nats; None
@@ -335,4 +429,7 @@ class OddMap:
                     "share": b.share,
                 }
             )
-        return {"odd": self.odd.to_json(), "rollouts": self.rollouts, "bins": bins}
+        doc: dict[str, Any] = {"odd": self.odd.to_json(), "rollouts": self.rollouts, "bins": bins}
+        if self.pair is not None:
+            doc["pair"] = self.pair.document()
+        return doc

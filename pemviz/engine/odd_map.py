@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from pemviz.core.odd import OddMap, odd_map
+from pemviz.core.odd_pair import pair_map
 from pemviz.engine.events import RolloutChunk
 
 
@@ -52,4 +53,7 @@ class OddMapCollector:
             dataclasses.replace(b, estimate=b.estimate.at_most(cap)) if cap else b
             for b in odd_map(self.odd, values, log_w, failed, log_p)
         ]
-        return OddMap(self.odd, len(log_w), tuple(bins))
+        pair = pair_map(self.odd, values, log_w, failed, log_p)
+        if pair is not None and cap:
+            pair = dataclasses.replace(pair, cells=tuple(tuple(e.at_most(cap) for e in row) for row in pair.cells))
+        return OddMap(self.odd, len(log_w), tuple(bins), pair)

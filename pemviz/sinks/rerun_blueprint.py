@@ -222,10 +222,12 @@ def _odd_views(view: ProblemView | None) -> list[Any]:
     names = view.odd_names if view is not None else ()
     if not names:
         return []
-    plots = [
+    plots: list[Any] = [
         rrb.TimeSeriesView(origin=f"/odd/{name}", name=f"log10 p(failure | {name} bin)", plot_legend=_NO_LEGEND)
         for name in names
     ]
+    if len(names) > 1:  # the heat map of the first two
+        plots.append(rrb.TensorView(origin="/odd/pair", name=f"log10 p(failure | {names[0]}, {names[1]} cell)"))
     return [rrb.Vertical(rrb.TextDocumentView(origin="/odd/map", name="ODD map"), *plots, name="ODD map")]
 
 

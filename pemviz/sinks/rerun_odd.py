@@ -1,7 +1,8 @@
 """The map of a run over an operating design domain in the recording: ``/odd/map``, a table of each drawn parameter's
 bins (P(bin), p(failure | bin) with its 95 % interval or lower bound, verdict, share of p_ODD) and the region that
 carries most of p_ODD; ``/odd/<name>/log10_p``, ``log10_low`` and ``log10_high``, one point per bin on the ``odd_bin``
-timeline (the blueprint's *ODD map* view, :func:`pemviz.sinks.rerun_blueprint.default_blueprint`)."""
+timeline; over two or more parameters ``/odd/pair``, a tensor of log10 p(failure | cell) of the first two (nan without
+failure; the blueprint's *ODD map* view, :func:`pemviz.sinks.rerun_blueprint.default_blueprint`)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,8 @@ def odd_map_markdown(m: OddMap) -> str:
     top = m.top()
     if top is not None:
         rows += ["", f"Most of p_ODD: **{top.label}** ({100 * top.share:.0f} % of it, P(bin) {top.probability:.2f})."]
+    if m.pair is not None:  # the heat map of the first two parameters, as the console prints it
+        rows += ["", "```text", *m.pair.lines(), "```"]
     return "\n".join(rows)
 
 
@@ -39,6 +42,10 @@ def log_odd_map(stream: rr.RecordingStream, m: OddMap) -> None:
     if not m.bins:
         return
     stream.log("odd/map", rr.TextDocument(odd_map_markdown(m), media_type=rr.MediaType.MARKDOWN), static=True)
+    if m.pair is not None:  # log10 p(failure | cell), rows the second parameter's bins, columns the first's
+        x, y = m.pair.names
+        grid = m.pair.log10_p()
+        stream.log("odd/pair", rr.Tensor(grid, dim_names=[f"{y} bin", f"{x} bin"]), static=True)
     for name in m.odd.names:
         for k, b in enumerate(x for x in m.bins if x.name == name):
             e = b.estimate
