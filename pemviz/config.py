@@ -390,3 +390,20 @@ def whole_rollout_fit_refusal(config: ExperimentConfig, n_objects: int) -> str:
         f"the cross-entropy fit of whole elite rollouts (weights {config.weights!r}, without the window or weights "
         f"until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler"
     )
+
+
+def default_of(name: str) -> Any:
+    """The default value of the :class:`ExperimentConfig` field ``name``, read from the dataclass (no config is made:
+    a command line's help and flags need the defaults before a run, and a config's checks read the scenario registry).
+
+    Raises:
+        KeyError: not a field.
+    """
+    for f in dataclasses.fields(ExperimentConfig):
+        if f.name == name:
+            if f.default is not dataclasses.MISSING:
+                return f.default
+            if f.default_factory is not dataclasses.MISSING:
+                return f.default_factory()
+            raise KeyError(f"ExperimentConfig.{name} has no default")
+    raise KeyError(f"ExperimentConfig has no field {name!r}")

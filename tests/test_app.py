@@ -123,6 +123,21 @@ class Tab:
     def button(self, name: str):
         return self.page.get_by_role("button", name=name, exact=True)
 
+    def open_folder(self, label: str, field_label: str):
+        """Expand the folder ``label`` until its field ``field_label`` shows (a click that lands while the folder is
+        being rebuilt, e.g. right after a scenario change, is made again); the field's input."""
+        field = self.field(field_label)
+        for _ in range(3):
+            if field.is_visible():
+                return field
+            self.page.get_by_text(label, exact=True).click()
+            try:
+                field.wait_for(state="visible", timeout=5_000)
+            except sync_api.TimeoutError:
+                continue
+        field.wait_for(state="visible")
+        return field
+
     def tab(self, name: str) -> None:
         self.page.get_by_role("tab", name=name, exact=True).click()
 

@@ -85,7 +85,7 @@ def test_the_odd_tab_maps_a_run_over_a_distribution_chosen_in_the_form(tab):
     tab.tab("Experiment")
     tab.choose("scenario", "toy")
     wait_until(lambda: s.form.params.scenario == "toy", what="the toy's parameter fields")
-    page.get_by_text("scenario parameters", exact=True).click()
+    tab.open_folder("scenario parameters", "total")
     for name, value in (("total", "10"), ("safe", "3"), ("braking", "~choice(5, 6, 7)")):
         box = tab.field(name)
         box.wait_for()

@@ -186,9 +186,7 @@ def test_the_folder_sets_the_chosen_scenarios_parameters_for_the_next_run(tab):
     assert params.scenario == "braking" and "gap0_m" in params.fields
     tab.choose("scenario", "cut-in")
     wait_until(lambda: params.scenario == "cut-in", what="the cut-in's parameter fields")
-    page.get_by_text("scenario parameters", exact=True).click()
-    gap = tab.field("cut_in_gap_m (m)")
-    gap.wait_for()
+    gap = tab.open_folder("scenario parameters", "cut_in_gap_m (m)")
     assert gap.input_value() == "20.0" and "gap0_m" not in params.fields
 
     for bad, message in (("abc", "is not a number"), ("-5", "must be finite and >= 0")):

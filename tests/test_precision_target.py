@@ -127,3 +127,19 @@ def test_pool_of_equal_shares_is_the_pool_of_every_rollout_alike():
     lam = np.array([100, 250, 50], dtype=np.float64) / 400
     alike, shared = pool(parts, None), pool(parts, lam)
     assert shared.log_mu_hat == pytest.approx(alike.log_mu_hat, rel=1e-13)
+
+
+def test_while_the_weights_back_no_interval_the_added_batches_double():
+    """A requirement the estimate cannot decide (its weights back no upper bound) used to add batches of
+    ``MIN_BATCH`` (its relative width looked small enough): 189 looks to 20,000 simulations. Each added batch is now
+    at least as many rollouts again as the final ones so far, so the budget is spent in a few looks."""
+    from pemviz.presets import PRESETS
+    from pemviz.scenarios.problems import problem_for
+
+    cfg = ExperimentConfig(**{**PRESETS["quick"], "n_stages": 2, "require": "p < 1e-9", "max_sims": 20_000})
+    done = Experiment(cfg, problem=problem_for(cfg)).run()
+    final = done.final
+    assert final.decision is not None and final.decision.outcome == "undecided"
+    assert not final.estimate.interval_backed
+    assert final.decision.look <= 10, final.stop
+    assert 10_000 < final.n_simulations <= 20_000

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, cast
 
 from pemviz.settings import SETTINGS, Setting
-from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.config import ConfigError, ExperimentConfig, default_of
 from pemviz.io.files import check_output_path
 
 
@@ -103,7 +103,7 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
     ``default`` is what the flag gives when absent (None: leave the field to the preset / the default config).
     """
     s = SETTINGS[name]
-    shown = getattr(ExperimentConfig(), name)
+    shown = default_of(name)
     shown = SHOWN_DEFAULTS.get(name, shown) if shown is None else shown
     text = f"{s.hint} (default {shown})".replace("%", "%%")  # argparse formats help with %
     if s.kind == "params":  # NAME=VALUE, repeatable: the texts, parsed once the scenario is known

@@ -24,7 +24,7 @@ import numpy as np
 import pemviz
 from pemviz.commands import COMMANDS, UsageError, add_setting, check_save_path, pem_argument
 from pemviz.settings import SETTINGS
-from pemviz.config import ExperimentConfig
+from pemviz.config import ExperimentConfig, default_of
 from pemviz.core.estimate import format_probability
 from pemviz.core.sampling import load_proposal
 from pemviz.core.weights import CONVENTIONS
@@ -71,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(default: the log_q column, else the sidecar's proposal)",
     )
     lq.add_argument("--log-q-column", action="store_true", help="use the file's log_q column")
-    add_setting(p, "metric", default=ExperimentConfig().metric)
+    add_setting(p, "metric", default=default_of("metric"))
     p.add_argument(
         "--failure",
         default="crash",

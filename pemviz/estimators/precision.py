@@ -158,6 +158,8 @@ class PrecisionTarget:
                 )
                 return None
             want = added_batch_size(est, self.inner.final_rollouts(), target)
+        if not est.interval_backed:  # a width the weights do not back: as many rollouts again
+            want = max(want, self.inner.final_rollouts())
         left = self.max_sims - self.n_simulations
         per = self.simulations_per_rollout()
         n = min(want, math.floor(left / per))
