@@ -176,26 +176,12 @@ def test_a_fixed_parameter_is_todays_run():
     ],
 )
 def test_a_bad_odd_on_the_command_line_is_one_line_exit_2(param, message, tmp_path):
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pemviz.cli",
-            "run",
-            "--scenario",
-            "toy",
-            "--param",
-            "total=10",
-            "--param",
-            "safe=3",
-            "--param",
-            param,
-            "--no-record",
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
+    proc = pemviz_cli(
+        tmp_path,
+        *TOY_RUN,
+        "--param",
+        param,
+        "--no-record",
     )
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
     assert __import__("re").search(message, proc.stderr), proc.stderr
@@ -207,33 +193,19 @@ def test_a_bad_odd_on_the_command_line_is_one_line_exit_2(param, message, tmp_pa
 def test_an_odd_run_writes_its_map_and_re_estimates_to_its_p(tmp_path):
     import json
 
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pemviz.cli",
-            "run",
-            "--scenario",
-            "toy",
-            "--param",
-            "total=10",
-            "--param",
-            "safe=3",
-            "--param",
-            "braking~choice(5, 6, 7)",
-            "--save",
-            "o.rrd",
-            "--save-rollouts",
-            "o.parquet",
-            "--json",
-            "o.json",
-            "--report",
-            "o.html",
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
+    proc = pemviz_cli(
+        tmp_path,
+        *TOY_RUN,
+        "--param",
+        "braking~choice(5, 6, 7)",
+        "--save",
+        "o.rrd",
+        "--save-rollouts",
+        "o.parquet",
+        "--json",
+        "o.json",
+        "--report",
+        "o.html",
     )
     assert proc.returncode == 0, proc.stderr
     assert "most of p_ODD: braking = 5" in proc.stdout
@@ -241,13 +213,7 @@ def test_an_odd_run_writes_its_map_and_re_estimates_to_its_p(tmp_path):
     assert [b["lo"] for b in doc["odd_map"]["bins"]] == [4.5, 5.5, 6.5]
     page = (tmp_path / "o.md").read_text()  # the report's Markdown twin: the map as a section of its own
     assert "## Operating design domain" in page and "| braking in [4.5, 5.5) | 0.33 |" in page
-    again = subprocess.run(
-        [sys.executable, "-m", "pemviz.cli", "estimate", "o.parquet", "--no-record"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    again = pemviz_cli(tmp_path, "estimate", "o.parquet", "--no-record")
     said = float(__import__("re").search(r"log mu_hat = (-?[0-9.]+) nats", again.stdout).group(1))
     assert said == pytest.approx(doc["estimate"]["log_p"], rel=1e-12, abs=0)  # the run's p_ODD again
     recorded = recorded_map(tmp_path / "o.rrd")  # the recording's ODD view: the document's numbers
@@ -320,27 +286,19 @@ def test_the_pair_map_is_each_cells_failure_rate_under_plain_monte_carlo_and_unb
 def test_a_run_over_two_parameters_prints_records_and_keeps_their_heat_map(tmp_path):
     import json
 
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pemviz.cli",
-            "run",
-            "--preset",
-            "quick",
-            "--param",
-            "gap0_m~uniform(11, 13)",
-            "--param",
-            "ego_speed0_mps~uniform(9, 10.4)",
-            "--save",
-            "b.rrd",
-            "--json",
-            "b.json",
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
+    proc = pemviz_cli(
+        tmp_path,
+        "run",
+        "--preset",
+        "quick",
+        "--param",
+        "gap0_m~uniform(11, 13)",
+        "--param",
+        "ego_speed0_mps~uniform(9, 10.4)",
+        "--save",
+        "b.rrd",
+        "--json",
+        "b.json",
     )
     assert proc.returncode == 0, proc.stderr
     assert "odd map of the pair (gap0_m, ego_speed0_mps): p(failure | cell)" in proc.stdout
@@ -356,3 +314,14 @@ def test_a_run_over_two_parameters_prints_records_and_keeps_their_heat_map(tmp_p
         ds = client.get_dataset("run")
         static = ds.reader(index=None).to_arrow_table()
     assert any(c.startswith("/odd/pair:Tensor") for c in static.column_names), static.column_names
+
+
+TOY_RUN = ("run", "--scenario", "toy", "--param", "total=10", "--param", "safe=3")
+"""``pemviz run`` of the toy of these tests (its other parameters at their defaults)."""
+
+
+def pemviz_cli(cwd, *argv: str) -> subprocess.CompletedProcess:
+    """``pemviz ARGV`` in a new process in ``cwd``, its output captured."""
+    return subprocess.run(
+        [sys.executable, "-m", "pemviz.cli", *argv], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
