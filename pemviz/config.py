@@ -29,12 +29,13 @@ def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
     among ``params``, the ``scenario_params`` pairs) its
     :attr:`~pemviz.scenarios.registry.Scenario.odd_defaults` where it has them; empty: the config's defaults (also
     for a scenario not registered)."""
+    from pemviz.scenarios.odd import is_odd
     from pemviz.scenarios.registry import known
 
     record = known(scenario)
     if record is None:
         return {}
-    drawn = any(isinstance(pair, tuple) and str(pair[-1]).startswith("~") for pair in params)
+    drawn = any(isinstance(pair, tuple) and is_odd(pair[-1]) for pair in params)
     return dict(record.odd_defaults if drawn and record.odd_defaults else record.run_defaults)
 
 

@@ -20,6 +20,7 @@ from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
 from pemviz.scenarios.parameters import Parameter, ParameterError, PairValue, Value, check_pairs, parse_assignment
+from pemviz.scenarios.odd import is_odd
 from pemviz.scenarios.registry import get
 
 
@@ -115,7 +116,7 @@ def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[s
         try:
             if name not in params:
                 raise ParameterError(f"{name!r} is not a parameter of the {scenario} scenario")
-            if str(text).strip().startswith("~"):  # ~uniform(a, b): drawn per rollout over an ODD, as --param NAME~DIST
+            if is_odd(str(text).strip()):  # ~uniform(a, b): drawn per rollout over an ODD, as --param NAME~DIST
                 pairs.append(parse_assignment(scenario, f"{name}{text.strip()}"))
                 continue
             value = params[name].parse(text)
@@ -126,7 +127,7 @@ def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[s
             pairs.append((name, value))
 
     def check(given: list[tuple[str, PairValue]]) -> None:
-        if any(isinstance(v, str) and v.startswith("~") for _, v in given):
+        if any(is_odd(v) for _, v in given):
             check_pairs(scenario, tuple(given))
         else:
             found.build_params(dict(given))

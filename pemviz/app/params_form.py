@@ -14,6 +14,7 @@ from pemviz.app.form import format_param, param_key
 from pemviz.app.html import field_error
 from pemviz.config import ExperimentConfig
 from pemviz.scenarios.parameters import KINDS, Parameter
+from pemviz.scenarios.odd import is_odd
 from pemviz.scenarios.registry import get
 
 
@@ -66,7 +67,7 @@ class ScenarioParamsForm:
                     self._extra.append(gui.add_markdown(f"The {scenario} scenario has no parameters."))
                 for p in params:
                     value = given.get(p.name, p.default)
-                    text = value if isinstance(value, str) and value.startswith("~") else format_param(p, value)
+                    text = value if is_odd(value) else format_param(p, value)
                     field = gui.add_text(label(p), text, hint=hint(p, scenario))
                     field.on_update(lambda _: self._on_change())
                     self.fields[p.name] = field

@@ -10,7 +10,7 @@ lies in the parameter's range), :func:`split_odd` separates the fixed parameters
 
 from __future__ import annotations
 
-from typing import Any, Iterable
+from typing import Any, Iterable, TypeGuard
 
 from pemviz.core.odd import ODD, Distribution, ODDError, parse_distribution
 
@@ -18,7 +18,7 @@ PREFIX = "~"
 """A drawn parameter's value in ``scenario_params`` is its distribution's text after this mark."""
 
 
-def is_odd(value: object) -> bool:
+def is_odd(value: object) -> TypeGuard[str]:
     """Whether a ``scenario_params`` value is a distribution (``"~uniform(10, 14)"``), not a fixed value."""
     return isinstance(value, str) and value.startswith(PREFIX)
 

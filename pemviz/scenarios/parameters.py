@@ -327,7 +327,9 @@ def parameters_text(scenario: str, pairs: Iterable[tuple[str, PairValue]]) -> st
     """``cut_in_gap_m=19.5 m, n_objects=4``: the pairs with their units, as the console's header line prints them
     (``""``: none)."""
     units = {p.name: p.unit for p in scenario_parameters(scenario)}
-    drawn = {name for name, value in pairs if isinstance(value, str) and value.startswith("~")}  # NAME~DIST
+    from pemviz.scenarios.odd import is_odd
+
+    drawn = {name for name, value in pairs if is_odd(value)}  # NAME~DIST
     return ", ".join(
         (f"{name} {value[0]} {value[1:]}" if name in drawn and isinstance(value, str) else f"{name}={value!r}")
         + (f" {units[name]}" if units.get(name) else "")

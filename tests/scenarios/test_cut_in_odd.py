@@ -13,7 +13,7 @@ import pytest
 from pemviz.core.odd import ODD, parse_distribution
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, translation_error
 from pemviz.scenarios.cut_in.scenario import OBSERVATION_NAMES, CutInParams
-from tests.scenarios.test_cut_in_batched import highway_env_replay, random_inputs
+from .test_cut_in_batched import highway_env_replay, random_inputs
 
 P = CutInParams()
 GAPS = np.array([19.5, 20.0, 20.73, 21.5])
