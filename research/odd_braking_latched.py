@@ -5,14 +5,15 @@ With the brake latched, the first effective detection decides a rollout, so p(th
 (:func:`pemviz.scenarios.braking.truth_latched.latched_log_failure_probability`, about 5 ms), unlike the enumeration of
 the main scenario, which refuses starts where the lead still moves once the ego is inside its braking distance.
 p_ODD = the mean of p over the ODD, by the midpoint rule on an n x n grid (checked against the n/2 grid). Then
-``--seeds`` runs of the default sampler at ``--budget`` times its rollouts a stage:
+``--seeds`` runs of the default sampler at ``--budget`` times its rollouts (of each CE stage and the final batch):
 
     pemviz run --param latched_brake=true --param "gap0_m~uniform(18.5, 19.5)" \\
         --param "ego_speed0_mps~uniform(12.8, 13)"
 
-Usage::
+Usage (the grid's log p cached in ``--cache``, about 9 minutes at 320)::
 
-    python research/odd_braking_latched.py --grid 160 --seeds 10 --budget 1
+    python research/odd_braking_latched.py --grid 320 --cache latched320.npy --seeds 20 --budget 1
+    python research/odd_braking_latched.py --grid 4000 --gap 18 20 --speed 13 13 --seeds 20   # the gap alone
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ GAP = (18.5, 19.5)
 SPEED = (12.8, 13.0)
 
 
-def quadrature(n: int) -> tuple[float, np.ndarray]:
+def quadrature(n: int, gap: tuple[float, float] = GAP, speed: tuple[float, float] = SPEED) -> tuple[float, np.ndarray]:
     """log p_ODD (nats) by the midpoint rule on an n x n grid, and log p on the grid [speed, gap]."""
     from scipy.special import logsumexp
 
@@ -41,8 +42,8 @@ def quadrature(n: int) -> tuple[float, np.ndarray]:
     from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
 
     pem = load_pem()
-    gaps = GAP[0] + (np.arange(n) + 0.5) * (GAP[1] - GAP[0]) / n
-    speeds = SPEED[0] + (np.arange(n) + 0.5) * (SPEED[1] - SPEED[0]) / n
+    gaps = gap[0] + (np.arange(n) + 0.5) * (gap[1] - gap[0]) / n
+    speeds = speed[0] + (np.arange(n if speed[1] > speed[0] else 1) + 0.5) * (speed[1] - speed[0]) / n
     log_p = np.array(
         [
             [
@@ -58,17 +59,38 @@ def quadrature(n: int) -> tuple[float, np.ndarray]:
 
 
 def main() -> int:
+    from scipy.special import logsumexp
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--grid", type=int, default=160)
     ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--budget", type=float, default=1.0, help="rollouts a stage, times the default's")
+    ap.add_argument(
+        "--budget",
+        type=float,
+        default=1.0,
+        help="rollouts of each CE stage and of the final batch, times the default's",
+    )
+    ap.add_argument("--gap", type=float, nargs=2, default=GAP, help="the start gap's uniform range, metres")
+    ap.add_argument(
+        "--speed", type=float, nargs=2, default=SPEED, help="the ego's start speed's range, m/s (a b with a = b: fixed)"
+    )
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--cache", help="a .npy file holding the grid's log p (written when absent)")
     args = ap.parse_args()
+    gap, speed = tuple(args.gap), tuple(args.speed)
     t0 = time.perf_counter()
-    exact, log_p = quadrature(args.grid)
-    half, _ = quadrature(args.grid // 2)
+    cache = Path(args.cache) if args.cache else None
+    if cache is not None and cache.exists():  # the grid's log p, computed before (5 ms a point)
+        log_p = np.load(cache)
+        exact = float(logsumexp(log_p) - math.log(log_p.size))
+    else:
+        exact, log_p = quadrature(args.grid, gap, speed)
+        if cache is not None:
+            np.save(cache, log_p)
+    half, _ = quadrature(args.grid // 2, gap, speed)
     print(
-        f"p_ODD = {math.exp(exact):.4e} ({args.grid} x {args.grid} midpoints; {math.exp(half):.4e} on "
-        f"{args.grid // 2} x {args.grid // 2}); p(theta) from {math.exp(log_p.min()):.1e} to "
+        f"p_ODD = {math.exp(exact):.4e} ({log_p.size} midpoints; {math.exp(half):.4e} on {log_p.size // 4 or 1}"
+        f"{'' if log_p.shape[0] > 1 else ' x 2'}); p(theta) from {math.exp(log_p.min()):.1e} to "
         f"{math.exp(log_p.max()):.1e} ({time.perf_counter() - t0:.0f} s)",
         flush=True,
     )
@@ -78,26 +100,56 @@ def main() -> int:
 
     params = (
         ("latched_brake", True),
-        ("gap0_m", f"~uniform({GAP[0]:g}, {GAP[1]:g})"),
-        ("ego_speed0_mps", f"~uniform({SPEED[0]:g}, {SPEED[1]:g})"),
+        ("gap0_m", f"~uniform({gap[0]:g}, {gap[1]:g})"),
+        ("ego_speed0_mps", f"~uniform({speed[0]:g}, {speed[1]:g})" if speed[1] > speed[0] else speed[0]),
     )
     cfg0 = ExperimentConfig(scenario_params=params)
-    cfg0 = dataclasses.replace(cfg0, n_per_stage=int(round(cfg0.n_per_stage * args.budget)))
+    cfg0 = dataclasses.replace(
+        cfg0,
+        n_per_stage=int(round(cfg0.n_per_stage * args.budget)),
+        n_final=int(round(cfg0.n_final * args.budget)),
+    )
     problem = problem_for(cfg0)
-    ratios, holds, reliable_off = [], 0, 0
-    for seed in range(args.seeds):
-        e = Experiment(dataclasses.replace(cfg0, seed=seed), problem=problem).run().final.estimate
+    n = args.grid
+    axes = {
+        "gap0_m": (gap[0] + (np.arange(n) + 0.5) * (gap[1] - gap[0]) / n, 1),
+        "ego_speed0_mps": (speed[0] + (np.arange(n) + 0.5) * (speed[1] - speed[0]) / n, 0),
+    }
+
+    def exact_bin(name: str, lo: float, hi: float) -> float:
+        """log p(failure | parameter in [lo, hi)) by the midpoints inside the bin."""
+        from scipy.special import logsumexp
+
+        points, axis = axes[name]
+        inside = (points >= lo) & (points < hi)
+        part = log_p[:, inside] if axis == 1 else log_p[inside, :]
+        return float(logsumexp(part) - math.log(part.size))
+
+    ratios, holds, reliable_off, points_held, points = [], 0, 0, 0, 0
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
+        t1 = time.perf_counter()
+        final = Experiment(dataclasses.replace(cfg0, seed=seed), problem=problem).run().final
+        e = final.estimate
         r = math.exp(e.log_mu_hat - exact)
         lo, hi = e.shown_log_ci
         holds += lo <= exact <= hi
         reliable_off += e.verdict == "reliable" and not 0.5 < r < 2
         ratios.append(r)
-        print(f"  seed {seed}: x{r:.3f} {e.verdict} {e.interval_text()}", flush=True)
+        held = 0
+        for b in final.odd_map.bins:
+            blo, bhi = b.estimate.shown_log_ci
+            held += blo <= exact_bin(b.name, b.lo, b.hi) <= bhi
+        points_held, points = points_held + held, points + len(final.odd_map.bins)
+        print(
+            f"  seed {seed}: x{r:.3f} {e.verdict} {e.interval_text()}; map {held}/{len(final.odd_map.bins)} points "
+            f"hold ({final.n_simulations:,} simulations, {time.perf_counter() - t1:.0f} s)",
+            flush=True,
+        )
     x = np.array(ratios)
     print(
         f"budget x{args.budget:g}: median relative error {np.median(np.abs(x - 1)):.3f}, within x2 "
         f"{np.sum((x > 0.5) & (x < 2))}/{x.size}, intervals or bounds holding {holds}/{x.size}, reliable outside x2 "
-        f"{reliable_off}"
+        f"{reliable_off}; the map's points holding their quadrature {points_held}/{points}"
     )
     return 0
 

@@ -107,8 +107,8 @@ def test_the_toy_over_an_odd_by_plain_monte_carlo_holds_its_closed_form():
 
 
 def test_the_toy_over_an_odd_by_the_default_sampler_and_its_map():
-    """The default sampler over seeds 0-9: near the closed form, capped at doubtful (its proposal does not see the
-    drawn parameter); the map's bins hold each braking distance's closed form."""
+    """The default sampler over seeds 0-9: near the closed form, capped at doubtful (a fit can miss a region of the
+    ODD unseen by its weights); the map's bins hold each braking distance's closed form."""
     problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
     ratios = []
     for seed in range(10):

@@ -305,6 +305,41 @@ def test_a_hand_written_file_with_a_minimal_sidecar_gives_the_hand_computed_esti
     assert paper.log_mu_hat == pytest.approx(math.log((math.exp(-1.5) + math.exp(-5.25)) / 3), rel=1e-14)
 
 
+def test_a_files_parameter_term_divides_each_rollouts_weight_and_a_bad_one_is_one_line(tmp_path):
+    """The hand-written file above over an ODD: ``log_q_params`` 0.7 (rollout 0) and -0.2 (rollout 2), drawn from a
+    proposal over the parameters: mu_hat = (e^(-1 - 0.7) + e^(-5.25 + 0.2)) / 3; a value that changes along a rollout,
+    and a sidecar's ``odd_parameters`` that is not a list of names, are one line each."""
+    table = pa.table(
+        {
+            "rollout": np.repeat(np.array([0, 1, 2], dtype=np.int32), 4),
+            "step": np.tile(np.arange(4, dtype=np.int16), 3),
+            "gap_m": np.array([9, 5, 1.5, 1, 9, 8, 7, 6, 9, 4, 3, 1.9]),
+            "gap0_m": np.repeat([9.0, 9.0, 9.0], 4),
+            "detected": np.array([1, 0, 0, 0, 1, 1, 1, 1, 0, 1, 0, 0], dtype=np.int8),
+            "log_p": np.repeat([-1.0, -0.1, -2.0], 4),
+            "log_q": np.repeat([-0.5, -0.1, -0.25], 4),
+            "log_q_params": np.repeat([0.7, 0.3, -0.2], 4),
+        }
+    )
+    pq.write_table(table, tmp_path / "odd.parquet")
+    sidecar = {"formula": "G[0,3](d >= 2)", "dt_s": 0.1, "odd_parameters": ["gap0_m"]}
+    (tmp_path / "odd.json").write_text(json.dumps(sidecar))
+    data = rio.read_rollouts(tmp_path / "odd.parquet")
+    assert data.meta is not None and data.meta.odd_parameters == ("gap0_m",)
+    np.testing.assert_array_equal(data.log_q_params, [0.7, 0.3, -0.2])
+    res = estimate_rollouts(data, data.log_p, data.log_q).estimate
+    assert res.log_mu_hat == pytest.approx(math.log((math.exp(-1.7) + math.exp(-5.05)) / 3), rel=1e-14)
+    changing = table.set_column(7, "log_q_params", pa.array(np.r_[np.repeat([0.7, 0.3], 4), [-0.2, -0.2, 0.1, -0.2]]))
+    pq.write_table(changing, tmp_path / "odd.parquet")
+    with pytest.raises(
+        rollout_format.RolloutFormatError, match=r"log_q_params = 0\.1 at rollout 2, step 2 .* a rollout has one"
+    ):
+        rio.read_rollouts(tmp_path / "odd.parquet")
+    (tmp_path / "odd.json").write_text(json.dumps({**sidecar, "odd_parameters": "gap0_m"}))
+    with pytest.raises(rollout_format.RolloutFormatError, match=r"odd_parameters must be a list of column names"):
+        rio.read_rollouts(tmp_path / "odd.parquet")
+
+
 def test_cli_run_then_estimate_prints_the_runs_mu_hat_and_writes_a_recording(tmp_path, capsys):
     rollouts, recording = tmp_path / "mixed.parquet", tmp_path / "estimate.rrd"
     code = cli.main(

@@ -200,7 +200,7 @@ def test_a_file_weighed_by_one_mixture_component_is_warned_about_and_the_right_o
     _, right, _ = run_and_estimate(capsys, tmp_path, *args)
     assert "warning" not in right
     real = sinks.stage_log_q
-    monkeypatch.setattr(sinks, "stage_log_q", lambda batch, *a: (batch.log_q, real(batch, *a)[1]))
+    monkeypatch.setattr(sinks, "stage_log_q", lambda batch, *a: (batch.log_q, *real(batch, *a)[1:]))
     (tmp_path / "r.parquet").unlink(), rollout_format.sidecar_path(tmp_path / "r.parquet").unlink()
     _, wrong, _ = run_and_estimate(capsys, tmp_path, *args)
     warning = [ln for ln in wrong.splitlines() if ln.startswith("warning:")]

@@ -220,6 +220,9 @@ class StageSamplers:
         self._noise: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.target, self.plain = SamplerView(self, 0), SamplerView(self, 1)
         self.defensive = SamplerView(self, 2) if self.eps > 0.0 else self.plain
+        self.parameter_proposal: Any = None
+        """Over an ODD: the proposal the samplers (not the target) draw a rollout's parameters from
+        (:class:`pemviz.core.odd_proposal.ParameterProposal`), or None: the ODD itself."""
 
     def forget(self) -> None:
         """Drop the kept evaluations (the proposal changed)."""
@@ -334,6 +337,12 @@ class SamplerView:
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
         """logit p(detect | obs), float64 [N] (read-only), for observations [N, F]."""
         return self.samplers.logits(obs)[self.index]
+
+    @property
+    def parameter_proposal(self) -> Any:
+        """The samplers' proposal over an ODD's parameters (:attr:`StageSamplers.parameter_proposal`); None for the
+        target view, which draws them from the ODD."""
+        return None if self.index == 0 else self.samplers.parameter_proposal
 
     def window_rows(self, obs: np.ndarray) -> np.ndarray | None:
         """bool [N]: where a sampler's proposal draws (:meth:`StageSamplers.window_rows`); None for the target view

@@ -138,6 +138,9 @@ class RolloutBatch:
         object_names: the G names of the object rows (None: ``observation_names``).
         noise: float64 [N, T, M, D] the measurement errors of the detected objects (0 where missed), or None (D = 0).
         noise_names: the D names of the errors (e.g. ``("range_err_m", "lateral_err_m")``).
+        log_q_params: None, or float64 [N]: over an operating design domain whose parameters the sampler drew from a
+            proposal of its own (:mod:`pemviz.core.odd_proposal`), log q(theta) - log p_ODD(theta) of each rollout
+            (nats), a term of its log q before any step; None: drawn from the ODD itself (0).
         replay: None, or a function ``(detected [K, T, M], noise [K, T, M, D] | None) -> objects [K, T, M, G]``
             that rebuilds the object rows of rollouts by replaying their events (:func:`replay_rows`). A batch
             simulated without its object rows (``objects`` None, ``replay`` given: :func:`run_batched` with
@@ -156,6 +159,7 @@ class RolloutBatch:
     object_names: tuple[str, ...] | None = None
     noise: np.ndarray | None = None
     noise_names: tuple[str, ...] = ()
+    log_q_params: np.ndarray | None = None
     replay: Callable[[np.ndarray, np.ndarray | None], np.ndarray] | None = field(default=None, compare=False)
 
     def __getattribute__(self, name: str) -> Any:
@@ -240,13 +244,15 @@ class RolloutBatch:
             raise KeyError(f"unknown signal {name!r}; this batch has {self.observation_names}") from None
 
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:
-        """Importance log-weights ``sum_t log p - log q`` over the first ``n_factors`` steps, float64 [N].
+        """Importance log-weights ``sum_t log p - log q`` over the first ``n_factors`` steps (less
+        :attr:`log_q_params`), float64 [N].
 
         The last action of a rollout affects nothing (Innes & Ramamoorthy (2022), Algorithm 1), so the default is
         T - 1 factors.
         """
         k = self.n_steps - 1 if n_factors is None else n_factors
-        return (self.log_p[:, :k] - self.log_q[:, :k]).sum(axis=1)
+        log_w = (self.log_p[:, :k] - self.log_q[:, :k]).sum(axis=1)
+        return log_w if self.log_q_params is None else log_w - self.log_q_params
 
     def log_likelihood(self, n_factors: int | None = None) -> np.ndarray:
         """``sum_t log p_target(a_t | s_t)`` over the first ``n_factors`` steps (default T - 1, as
@@ -271,6 +277,7 @@ class RolloutBatch:
             log_q_parts=take(self.log_q_parts),
             objects=take(objects),
             noise=take(self.noise),
+            log_q_params=take(self.log_q_params),
             replay=self.replay if objects is None else None,
         )
 
@@ -285,6 +292,7 @@ class RolloutBatch:
             parts = [getattr(b, field) for b in batches]
             return None if any(x is None for x in parts) else np.concatenate(parts)
 
+        params = [b.log_q_params for b in batches]  # a component drawing from the ODD itself: 0
         lazy = all(b.rows_elided for b in batches)  # else every batch's rows, rebuilt where not kept
         return replace(
             batches[0],
@@ -295,5 +303,8 @@ class RolloutBatch:
             log_q_parts=cat_optional("log_q_parts"),
             objects=None if lazy else cat_optional("objects"),
             noise=cat_optional("noise"),
+            log_q_params=None
+            if all(x is None for x in params)
+            else np.concatenate([np.zeros(b.n) if x is None else x for b, x in zip(batches, params, strict=True)]),
             replay=batches[0].replay if lazy else None,
         )

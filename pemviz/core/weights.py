@@ -28,6 +28,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from pemviz.core.detectors import Detector, action_log_prob, errors_log_density
+from pemviz.core.odd_proposal import parameter_log_ratio
 
 CONVENTIONS = ("to-failure", "full")
 """The weight conventions: ``to-failure`` (stopped at the failure step) and ``full`` (every step but the last)."""
@@ -42,7 +43,12 @@ def convention(weights_until_failure: bool) -> str:
     return "to-failure" if weights_until_failure else "full"
 
 
-def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float] | np.ndarray, densities: bool = False) -> np.ndarray:
+def mixture_step_log_q(
+    log_q: np.ndarray,
+    shares: Sequence[float] | np.ndarray,
+    densities: bool = False,
+    log_start: np.ndarray | None = None,
+) -> np.ndarray:
     """Per-step log density of a mixture over whole rollouts, float64 [N, T] (nats).
 
     Rollouts drawn from sum_k c_k q_k(tau) (component k picked once per rollout with probability c_k) have the
@@ -56,6 +62,10 @@ def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float] | np.ndarray, 
         shares: c_k > 0, [K], summing to 1.
         densities: the steps hold log densities (continuous measurement errors), which may be positive; else
             probabilities, whose conditionals are clipped at 0 (rounding).
+        log_start: None, or float64 [K, N]: each component's log-density of what was drawn before the first step
+            relative to the target's (over an ODD, log q_k(theta) - log p_ODD(theta)); then M_{-1} = logsumexp_k
+            (log c_k + log_start_k), the rollout's :func:`stage_log_q_params`, and the steps' sum is log sum_k c_k
+            q_k / p_ODD less it.
     Returns:
         float64 [N, T], each entry <= 0 unless ``densities``.
     Raises:
@@ -67,10 +77,19 @@ def mixture_step_log_q(log_q: np.ndarray, shares: Sequence[float] | np.ndarray, 
         raise ValueError(
             f"mixture_step_log_q: log_q must be [K, N, T] and shares [K] > 0, got {log_q.shape}, " f"{c.shape}"
         )
-    running = logsumexp(np.log(c)[:, None, None] + np.cumsum(log_q, axis=2), axis=0)  # M_t, [N, T]
-    before = np.concatenate([np.zeros((running.shape[0], 1)), running[:, :-1]], axis=1)
+    start = np.zeros(log_q.shape[:2]) if log_start is None else np.asarray(log_start, dtype=np.float64)
+    running = logsumexp(np.log(c)[:, None, None] + start[:, :, None] + np.cumsum(log_q, axis=2), axis=0)  # M_t
+    first = np.zeros((running.shape[0], 1)) if log_start is None else stage_log_q_params(start, c)[:, None]
+    before = np.concatenate([first, running[:, :-1]], axis=1)
     step = running - before
     return step if densities else np.minimum(step, 0.0)  # a conditional probability: <= 0 up to rounding
+
+
+def stage_log_q_params(log_start: np.ndarray, shares: Sequence[float] | np.ndarray) -> np.ndarray:
+    """log sum_k c_k q_k(theta) / p_ODD(theta), float64 [N] (nats): the parameters' term of a mixture's log density
+    (:attr:`pemviz.core.rollouts.RolloutBatch.log_q_params`), from each component's ``log_start`` [K, N] (0 for one
+    drawing them from the ODD) and shares c_k [K]."""
+    return logsumexp(np.log(np.asarray(shares, dtype=np.float64))[:, None] + log_start, axis=0)
 
 
 def component_of(start: int, n: int, sizes: Sequence[int]) -> np.ndarray:
@@ -82,7 +101,7 @@ def component_of(start: int, n: int, sizes: Sequence[int]) -> np.ndarray:
 
 def stage_log_q(
     batch: Any, parts: Sequence[tuple[int, Detector]], target: Detector | None, start: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """The per-step log density the rollouts of a stage were weighed with, and each rollout's component.
 
     Args:
@@ -92,12 +111,13 @@ def stage_log_q(
     Returns:
         (log q float64 [n, T] in nats: ``batch.log_q`` for one sampler, else :func:`mixture_step_log_q` of every
         sampler's density of the logged actions, the measurement errors' included (:func:`errors_log_density`);
-        component int64 [n]).
+        component int64 [n]; over an ODD whose parameters a sampler drew from a proposal of its own, their term of
+        each rollout's log q, float64 [n] (:attr:`~pemviz.core.rollouts.RolloutBatch.log_q_params`), else None).
     """
     sizes = [k for k, _ in parts] or [batch.n]
     component = component_of(start, batch.n, sizes)
     if len(parts) <= 1:
-        return np.asarray(batch.log_q, dtype=np.float64), component
+        return np.asarray(batch.log_q, dtype=np.float64), component, batch.log_q_params
     rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
     log_q = [
         batch.log_p
@@ -107,7 +127,12 @@ def stage_log_q(
         for _, d in parts
     ]
     shares = np.asarray(sizes, dtype=np.float64) / sum(sizes)
-    return mixture_step_log_q(np.stack(log_q), shares, densities=batch.noise is not None), component
+    ratios = [None if d is target else parameter_log_ratio(d, batch) for _, d in parts]
+    if all(r is None for r in ratios):
+        return mixture_step_log_q(np.stack(log_q), shares, densities=batch.noise is not None), component, None
+    log_start = np.stack([np.zeros(batch.n) if r is None else r for r in ratios])
+    step = mixture_step_log_q(np.stack(log_q), shares, densities=batch.noise is not None, log_start=log_start)
+    return step, component, stage_log_q_params(log_start, shares)
 
 
 @dataclass(frozen=True)

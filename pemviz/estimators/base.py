@@ -162,10 +162,12 @@ def log_weight(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np
 
 
 def masked_log_weight(batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
-    """sum_t log p - log q over the steps of ``mask`` (bool [N, T]), float64 [N] (nats); a step the mask drops may
-    hold -inf - -inf (an action after the failure), never summed."""
+    """sum_t log p - log q over the steps of ``mask`` (bool [N, T]), less the parameters' term over an ODD
+    (:attr:`~pemviz.core.rollouts.RolloutBatch.log_q_params`), float64 [N] (nats); a step the mask drops may hold
+    -inf - -inf (an action after the failure), never summed."""
     with np.errstate(invalid="ignore"):
-        return np.where(mask, batch.log_p - batch.log_q, 0.0).sum(axis=1)
+        log_w = np.where(mask, batch.log_p - batch.log_q, 0.0).sum(axis=1)
+    return log_w if batch.log_q_params is None else log_w - batch.log_q_params
 
 
 def weighted_steps_mask(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np.ndarray:
@@ -352,7 +354,8 @@ def severity_arrays(
             out_w[level, rows] = weigh(full)[rows]
         else:
             with np.errstate(invalid="ignore"):  # -inf - -inf outside the mask, where it is never summed
-                out_w[level, rows] = np.where(mask, batch.log_p[rows] - batch.log_q[rows], 0.0).sum(axis=1)
+                w = np.where(mask, batch.log_p[rows] - batch.log_q[rows], 0.0).sum(axis=1)
+            out_w[level, rows] = w if batch.log_q_params is None else w - batch.log_q_params[rows]
         out_p[level, rows] = np.where(mask, batch.log_p[rows], 0.0).sum(axis=1)
     return out_w, hit, out_p
 

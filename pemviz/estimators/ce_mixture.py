@@ -1,7 +1,8 @@
 """The importance weights of a cross-entropy stage drawn from a mixture of samplers: a stage's rollouts weighed
 under the mixture over whole rollouts it was drawn from, from the components' log-probabilities the simulation kept
 (asked again where it could not keep them), and the failure pool's rollouts weighed under the samplers of every stage
-in the pool (``fit_weights = "mixture"``). :class:`MixtureWeights` holds these methods of
+in the pool (``fit_weights = "mixture"``); over an ODD, the refit of the samplers' proposal over the parameters to
+the elites so weighed. :class:`MixtureWeights` holds these methods of
 :class:`~pemviz.estimators.cross_entropy.CrossEntropy`, which inherits them.
 """
 
@@ -12,14 +13,24 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from pemviz.core.detectors import Detector, NoisyDetector, ScoredTarget, action_log_prob, errors_log_density
+from pemviz.core.detectors import (
+    Detector,
+    NoisyDetector,
+    ScoredTarget,
+    StageSamplers,
+    action_log_prob,
+    errors_log_density,
+)
 from pemviz.core.detector_noise import noise_names_of
+from pemviz.core.odd_proposal import parameter_log_ratio
 from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.estimators.base import StagePlan, mixture_log_weight
+from pemviz.estimators.base import StagePlan, masked_log_weight, mixture_log_weight, weighted_steps_mask
 
 if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
     from pemviz.core.problems import Problem
+    from pemviz.estimators.ce_odd import ParameterFit
     from pemviz.core.sampling import Proposal
 
 
@@ -30,7 +41,10 @@ class MixtureWeights:
 
     # the state of CrossEntropy these methods read (set by its __init__, :mod:`pemviz.estimators.cross_entropy`)
     problem: Problem
+    config: ExperimentConfig
     proposal: Proposal | None
+    _parameters: ParameterFit
+    _samplers: StageSamplers | None
     _plan: StagePlan | None
     _scored: ScoredTarget | None
     _seen: int
@@ -58,7 +72,25 @@ class MixtureWeights:
         log_q = [
             log_p if d is pb.target else (log_q_parts[:, extras.index(d)] * mask).sum(axis=1) for _, d in plan.mixture
         ]
+        for k, (_, d) in enumerate(plan.mixture):  # over an ODD: its density of the parameters, relative to the ODD's
+            ratio = None if d is pb.target else parameter_log_ratio(d, batch)
+            if ratio is not None:
+                log_q[k] = log_q[k] + ratio
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
+
+    def _whole_log_weight(self, batch: RolloutBatch) -> np.ndarray:
+        """Each rollout's importance log-weight [N] (nats) over the steps that count (:func:`weighted_steps_mask`):
+        under the planned stage's mixture where it is one, else its own sampler's."""
+        assert self._plan is not None, "a stage is planned (_open)"
+        whole = weighted_steps_mask(self.problem, batch, self.config.weights_until_failure)
+        return self._mixture_log_weight(batch, whole) if self._plan.mixture else masked_log_weight(batch, whole)
+
+    def _refit_parameters(self, gamma: float) -> None:
+        """Over an ODD, q(theta) refitted to the elites (from the failure level on, to every failure since,
+        :class:`~pemviz.estimators.ce_odd.ParameterFit`): the samplers draw the next stage's parameters from it."""
+        proposal = self._parameters.refit(keep=self.config.fit_all_failures and gamma <= 0.0)
+        if self._samplers is not None and self.config.proposal_window:
+            self._samplers.parameter_proposal = proposal
 
     def _with_parts(self, batch: RolloutBatch) -> RolloutBatch:
         """``batch`` (the planned mixture stage's next rollouts) with ``log_q_parts`` [N, K, T]: the log-probabilities

@@ -36,6 +36,7 @@ from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.ce_fit import EliteSteps, WeightMode, break_ties, ce_update, pretrain_proposal
 from pemviz.estimators.ce_mixture import MixtureWeights
+from pemviz.estimators.ce_odd import ParameterFit
 from pemviz.estimators.ce_plan import adaptive_run_plan
 from pemviz.estimators.base import (
     Check,
@@ -155,6 +156,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
         self.fit_dtype = config.fit_precision if config.fit_precision in ("float32", "float64") else EXACT
         """The arithmetic of the Adam fits (``ExperimentConfig.fit_precision``)."""
+        self._parameters = ParameterFit(problem)
+        """Over an ODD: the proposal the CE stages draw the parameters from, fitted to the elites (:mod:`.ce_odd`)."""
         if problem.n_objects != 1 and config.fits_whole_rollouts:  # refused before any rollout, not after pretraining
             raise ValueError(whole_rollout_fit_refusal(config, problem.n_objects))
 
@@ -391,6 +394,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             dtype=self.fit_dtype,
         )
         self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
+        if cfg.proposal_window:  # over an ODD the samplers (not the target) draw theta from q(theta)
+            self._samplers.parameter_proposal = self._parameters.proposal
 
     def _samplers_around(self, proposal: Proposal) -> tuple[StageSamplers, Detector, Detector]:
         """(the CE stages' samplers around a proposal, the plain sampler, the defensive one): q inside the problem's
@@ -446,6 +451,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             frozen_log_w = ((batch.log_p - batch.log_q) * steps).sum(axis=1)
         rows, detected = batch.events()
         smoothed = self._smoothing(gamma) * frozen_log_w
+        if self._parameters.proposal is not None:  # the parameters' fit weighs the whole rollout, theta's ratio too
+            self._parameters.add(batch, self._smoothing(gamma) * self._whole_log_weight(batch))
         elite_steps.add(
             index + self._index_offset,
             batch,
@@ -524,6 +531,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 self._steps.reweight(self._pool_log_weight)
             self._steps.fit(proposal, **fit)
             self._fit_noise(fit)
+            self._refit_parameters(gamma)
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
         assert batch is not None  # without fitted steps none settled: the elites are all kept (EliteCandidates)
         if batch.n_objects != 1:
@@ -541,6 +549,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             step_mask=mask,
             **fit,
         )
+        self._parameters.add(batch.select(elite), self._smoothing(gamma) * batch.log_weight()[elite])
+        self._refit_parameters(gamma)
         return gamma, int(elite.sum()), detect_rate(*elite_counts(batch, elite, grid))
 
     def step_mask(self, batch: RolloutBatch, level: float = 0.0) -> np.ndarray | None:

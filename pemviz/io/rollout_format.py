@@ -78,6 +78,10 @@ reads back from ``NAME.json``), a JSON object:
   a detected object's measurement-error components (metres, default none). With M > 1 or any error the table has
   ``detected_<m>`` and ``<e>_<m>`` columns instead of ``detected``, and must hold ``log_p`` and ``log_q`` (the PEMs'
   inputs, each object's row, are not in the file, so they cannot be recomputed).
+- ``odd_parameters``: the scenario parameters drawn per rollout from an operating design domain (observation
+  columns; default none). Where a sampler drew them from a proposal of its own, the table's column ``log_q_params``
+  (one value a rollout, on each of its rows) holds log q(theta) - log p_ODD(theta) (nats), a term of the rollout's
+  log q before any step: its importance weight is exp(sum_t (log_p - log_q) - log_q_params).
 - ``format`` (``"pemviz-rollouts"``), ``version`` (2, or 3 for a file of several objects or with errors; version 1
   files, without ``weights``, ``stages``, ``pooling`` and the two integer columns, are read too),
   ``pemviz_version``, ``provenance`` (free-form: the run's config, its estimate and its per-stage estimates).
@@ -169,6 +173,7 @@ class RolloutMeta:
         pooling: ``{"rule", "stages", "stage_weights"}``: how the writer pooled the stages, or None.
         objects: M, the objects perceived at each step.
         noise: the names of a detected object's measurement-error components (metres); empty: none.
+        odd_parameters: the columns of the parameters drawn per rollout from an ODD; empty: none.
         version: the file's format version (:data:`READ_VERSIONS`).
     """
 
@@ -192,6 +197,7 @@ class RolloutMeta:
     pooling: Mapping[str, Any] | None = None
     objects: int = 1
     noise: tuple[str, ...] = ()
+    odd_parameters: tuple[str, ...] = ()
     version: int = FORMAT_VERSION
     h_column: str = "gap_m"
 
@@ -242,6 +248,7 @@ class RolloutMeta:
             **({"stages": [_plain(st) for st in self.stages]} if self.stages else {}),
             **({"pooling": _plain(self.pooling)} if self.pooling else {}),
             **({"objects": self.objects, "noise": list(self.noise)} if self.per_object else {}),
+            **({"odd_parameters": list(self.odd_parameters)} if self.odd_parameters else {}),
             **({"table_sha256": self.table_sha256} if self.table_sha256 else {}),
             **({"proposal_sha256": self.proposal_sha256} if self.proposal_sha256 else {}),
         }
@@ -330,6 +337,9 @@ class RolloutMeta:
             isinstance(noise, list) and all(isinstance(e, str) and e for e in noise) and len(set(noise)) == len(noise)
         ):
             raise bad(f"noise must be a list of distinct error names such as ['range_error_m'], got {noise!r}")
+        odd_parameters = obj.get("odd_parameters") or []
+        if not (isinstance(odd_parameters, list) and all(isinstance(c, str) and c for c in odd_parameters)):
+            raise bad(f"odd_parameters must be a list of column names such as ['gap0_m'], got {odd_parameters!r}")
         return cls(
             formula=formula,
             dt_s=float(dt),
@@ -351,6 +361,7 @@ class RolloutMeta:
             pooling=pooling,
             objects=objects,
             noise=tuple(noise),
+            odd_parameters=tuple(odd_parameters),
             version=int(version),
             h_column=h_column,
         )

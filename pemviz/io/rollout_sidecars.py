@@ -77,8 +77,11 @@ def problem_meta(
     if problem.dt_s is None:
         provenance["dt_s_unknown"] = f"{problem.name} gave no step: dt_s = 1 stands for one step"
     units = {problem.signals[k]: u for k, u in problem.units.items() if k in problem.signals}
-    window: dict[str, Any] = {"window_m": float(problem.window)} if math.isfinite(problem.window) else {}
+    extra: dict[str, Any] = {"window_m": float(problem.window)} if math.isfinite(problem.window) else {}
     dt_s = 1.0 if problem.dt_s is None else float(problem.dt_s)
+    odd = getattr(problem, "odd", None)
+    if odd is not None:
+        extra["odd_parameters"] = tuple(odd.names)
     return RolloutMeta(
         formula=formula or str(problem.formula),
         dt_s=dt_s,
@@ -88,5 +91,5 @@ def problem_meta(
         pem=pem,
         proposal=proposal,
         provenance=provenance,
-        **window,
+        **extra,
     )

@@ -121,6 +121,7 @@ class RolloutData(RolloutBatch):
             self.observation_names,
             noise=self.noise,
             noise_names=self.noise_names,
+            log_q_params=self.log_q_params,
         )
 
 
@@ -312,19 +313,20 @@ class _Table:
                 f"{SEVERITY_COLUMNS[1]} = {float(speed[row])!r} at {self.at(row)}: an impact speed is a "
                 "positive number of m/s, or null where the rollout makes no contact"
             )
-        out = []
-        for name, x in zip(SEVERITY_COLUMNS, (dist, speed), strict=False):
-            per = x.reshape(n, n_steps)
-            differs = ~((per == per[:, :1]) | (np.isnan(per) & np.isnan(per[:, :1]))).all(axis=1)
-            if differs.any():
-                i = _first_index(differs)
-                t = _first_index(~((per[i] == per[i, 0]) | (np.isnan(per[i]) & np.isnan(per[i, 0]))))
-                raise self.error(
-                    f"{name} = {per[i, t]} at {self.at(i * n_steps + t)} but {per[i, 0]} at its step 0; "
-                    f"a rollout has one {name}"
-                )
-            out.append(per[:, 0].copy())
-        return out[0], out[1]
+        return self.one_per_rollout(SEVERITY_COLUMNS[0], dist, n), self.one_per_rollout(SEVERITY_COLUMNS[1], speed, n)
+
+    def one_per_rollout(self, name: str, x: np.ndarray, n: int) -> np.ndarray:
+        """float64 [N]: a column [N T] that holds one value per rollout (the same on all its rows, NaN alike)."""
+        per = x.reshape(n, -1)
+        differs = ~((per == per[:, :1]) | (np.isnan(per) & np.isnan(per[:, :1]))).all(axis=1)
+        if differs.any():
+            i = _first_index(differs)
+            t = _first_index(~((per[i] == per[i, 0]) | (np.isnan(per[i]) & np.isnan(per[i, 0]))))
+            raise self.error(
+                f"{name} = {per[i, t]} at {self.at(i * per.shape[1] + t)} but {per[i, 0]} at its step 0; "
+                f"a rollout has one {name}"
+            )
+        return per[:, 0].copy()
 
     def stages(self, stage: np.ndarray | None, component: np.ndarray | None) -> None:
         """Check the stage / component columns against the sidecar's ``stages`` and ``pooling``."""
@@ -375,6 +377,9 @@ class _Table:
             else None
         )
         log_q = self.floats("log_q", log_prob=probability).reshape(n, n_steps) if "log_q" in names else None
+        log_q_params = (
+            self.one_per_rollout("log_q_params", self.floats("log_q_params"), n) if "log_q_params" in names else None
+        )
         stage, component = (self.per_rollout(c, n, n_steps) if c in names else None for c in ("stage", "component"))
         self.stages(stage, component)
         min_distance, impact_speed = self.severity(n, n_steps)
@@ -386,6 +391,7 @@ class _Table:
             tuple(cols),
             noise=noise,
             noise_names=self.meta.noise,
+            log_q_params=log_q_params,
             meta=self.meta,
             rollout_ids=ids,
             salient=salient,

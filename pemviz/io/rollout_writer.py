@@ -62,8 +62,8 @@ def rollouts_table(
     severity: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Any:
     """The Parquet table of a batch: rollout, step, observations, detected (or, for several objects or errors, each
-    object's ``detected_<m>`` and ``<error>_<m>``), [salient], [log_p, log_q], [stage, component], [min_distance_m,
-    impact_speed_mps].
+    object's ``detected_<m>`` and ``<error>_<m>``), [salient], [log_p, log_q, [log_q_params]], [stage, component],
+    [min_distance_m, impact_speed_mps].
 
     Args:
         batch: N rollouts [N, T].
@@ -107,6 +107,8 @@ def rollouts_table(
     if log_probs:
         cols["log_p"] = np.asarray(batch.log_p, dtype=np.float64).reshape(-1)
         cols["log_q"] = np.asarray(batch.log_q, dtype=np.float64).reshape(-1)
+        if batch.log_q_params is not None:  # over an ODD, the parameters' term of each rollout's log q
+            cols["log_q_params"] = np.repeat(np.asarray(batch.log_q_params, dtype=np.float64), n_steps)
     if stage is not None:
         comp = np.zeros(n, np.int64) if component is None else np.asarray(component, dtype=np.int64)
         if comp.shape != (n,):

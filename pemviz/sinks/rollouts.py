@@ -131,8 +131,8 @@ class RolloutSink(Sink):
             }
             if isinstance(chunk.sampler, Proposal):  # trained in place afterwards: keep the one that sampled
                 self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
-        log_q, component = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
-        batch = chunk.batch.with_changes(log_q=log_q)  # the file holds no object rows: none rebuilt for it
+        log_q, component, log_q_params = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
+        batch = chunk.batch.with_changes(log_q=log_q, log_q_params=log_q_params)  # no object rows: none rebuilt
         self._writer.append(
             batch,
             salient=run_salient(self.problem, batch),
