@@ -22,7 +22,7 @@ about 5 min on 2 cores; ``tests/test_screenshot_manifest.py`` checks the table a
 Usage::
 
     python benchmarks/docs_assets.py            # which quoted blocks are stale (exit 1 if any)
-    python benchmarks/docs_assets.py --write    # rewrite the stale ones from the commands' output
+    python benchmarks/docs_assets.py --write    # rewrite the stale ones from the commands' output, in their shape
     python benchmarks/docs_assets.py --screenshots                  # remake every screenshot and the manifest
     python benchmarks/docs_assets.py --screenshots --only panel_cut_in.png viser_panel  # the entries making these
     python benchmarks/docs_assets.py --write --screenshots          # both: every asset of the docs
@@ -118,16 +118,54 @@ def matches(block_lines: tuple[str, ...] | list[str], output: str) -> bool:
     return True
 
 
-def fresh_lines(block: Block, output: str, width: int = 118) -> list[str]:
-    """The block rewritten from ``output``: each output line that begins as one of the block's lines begins (its
-    first word), in the output's order, wrapped at ``width`` where the block wrapped."""
-    starts = {line.split()[0] for line in block.lines if line.strip() and not line.startswith(" ")}
-    wrapped = any(len(line) > width for line in output.splitlines()) and all(len(x) <= 120 for x in block.lines)
-    out = []
-    for line in output.splitlines():
-        if line.split() and line.split()[0] in starts:
-            out += textwrap.wrap(line, width, break_on_hyphens=False) if wrapped else [line]
-    return out
+NUMBER = re.compile(r"[-+]?\d[\d,]*(?:\.\d+)?(?:e[-+]?\d+)?%?")
+"""A number as printed (``3.548e-04``, ``1,000``, ``88.7``, ``95%``): what a stale block differs in."""
+
+
+def shape(text: str) -> str:
+    """``text`` normalised (:func:`normal`) with every number replaced by ``#``: what a line of a stale block still
+    shares with the output line it stands for."""
+    return NUMBER.sub("#", normal(text))
+
+
+def fresh_lines(block: Block, output: str) -> list[str] | None:
+    """The block rewritten from ``output``, in its own shape: each of its lines (with the lines that continue it, where
+    the block wrapped a long line) replaced by the output line it stands for, the next one whose text begins as it
+    does but for its numbers (:func:`shape`); a line the block elided (``...`` at its end) cut after as many words,
+    the ``...`` kept; a wrapped line wrapped again at the block's width. None where a line of the block stands for no
+    line of the output (the block must then be rewritten by hand)."""
+    out_lines = output.splitlines()
+    lines, result, cursor, i = block.lines, [], 0, 0
+    while i < len(lines):
+        if not lines[i].strip():
+            result.append(lines[i])
+            i += 1
+            continue
+        head = lines[i].split("...")[0]
+        j = next((j for j in range(cursor, len(out_lines)) if shape(out_lines[j]).startswith(shape(head))), None)
+        if j is None or not shape(head):
+            return None
+        o, joined, k = out_lines[j], lines[i], i + 1
+        while (  # the block's next lines, while they go on with the same output line (a wrapped line)
+            k < len(lines)
+            and "..." not in joined
+            and lines[k].strip()
+            and len(shape(o)) > len(shape(joined))
+            and shape(o).startswith(shape(joined + " " + lines[k].split("...")[0]))
+        ):
+            joined, k = joined + " " + lines[k], k + 1
+        new = o
+        if "..." in joined:  # elided after as many words as the block kept
+            words = list(re.finditer(r"\S+", o))
+            kept = len(joined.split("...")[0].split())
+            new = o[: words[kept - 1].end()] + " ..." if 0 < kept <= len(words) else o
+        if k - i > 1:
+            width = max(len(x) for x in lines[i:k])
+            result += textwrap.wrap(new, width, break_on_hyphens=False, break_long_words=False)
+        else:
+            result.append(new)
+        cursor, i = j + 1, k
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -156,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         shots = regenerate(a.only)
         return max(shots, main(["--write"]) if a.write else 0)
     outputs: dict[str, str] = {}
-    stale = 0
+    stale = unwritten = 0
     for path in documents():
         blocks = quoted_blocks(path)
         lines = path.read_text().splitlines()
@@ -168,10 +206,15 @@ def main(argv: list[str] | None = None) -> int:
             stale += 1
             print(f"stale  {path.relative_to(REPO)}:{block.first}: {block.command}")
             if a.write:
-                lines[block.first : block.end] = fresh_lines(block, output)
+                fresh = fresh_lines(block, output)
+                if fresh is None or not matches(fresh, output):
+                    print("       not rewritten: a line of it stands for no line of the output; edit it by hand")
+                    unwritten += 1
+                    continue
+                lines[block.first : block.end] = fresh
         if a.write and blocks:
             path.write_text("\n".join(lines) + "\n")
-    return 1 if stale and not a.write else 0
+    return 1 if (stale and not a.write) or unwritten else 0
 
 
 if __name__ == "__main__":
