@@ -110,7 +110,7 @@ ce_fit.fit_proposal = _timed_fit(ce_fit.fit_proposal)
 
 
 def config_of(preset: str, settings: dict) -> ExperimentConfig:
-    return ExperimentConfig(**{**PRESETS[preset], **settings})
+    return ExperimentConfig.of(**{**PRESETS[preset], **settings})
 
 
 def measure(cfg: ExperimentConfig) -> tuple[float, float, Recorder]:
@@ -188,12 +188,12 @@ def fit_constants(runs: list[tuple[ExperimentConfig, Recorder]], n_steps: int = 
         for s in rec.stages:
             for rows, epochs, _ in s.fits:
                 if s.kind == "pretrain":
-                    pretrain.setdefault(cfg.proposal_inputs, []).append(rows / s.n)
+                    pretrain.setdefault(cfg.adaptive.proposal_inputs, []).append(rows / s.n)
                 elif s.kind == "ce":
                     if s.stage > 1:
-                        ce.setdefault(cfg.proposal_inputs, []).append((s.stage, s.n, rows))
-                    if cfg.fit_tolerance is not None and cfg.fit == "adam":
-                        share.append(epochs / cfg.ce_epochs)
+                        ce.setdefault(cfg.adaptive.proposal_inputs, []).append((s.stage, s.n, rows))
+                    if cfg.adaptive.fit_tolerance is not None and cfg.adaptive.fit == "adam":
+                        share.append(epochs / cfg.adaptive.ce_epochs)
     best = (math.inf, c0.ce_rows_exponent, c0.ce_rows_stages)
     for gamma in np.linspace(0.0, 0.6, 31):
         for tau in np.linspace(0.3, 20.0, 198):
@@ -272,8 +272,8 @@ def main() -> int:
         f"{os.cpu_count()} CPUs; constants measured: {cost.COST.measured}"
     )
     for warm in (
-        ExperimentConfig(**{**PRESETS["quick"], "n_stages": 2, "n_per_stage": 40}),
-        ExperimentConfig(method="mc", sim="highway-env", n_per_stage=4),
+        ExperimentConfig.of(**{**PRESETS["quick"], "n_stages": 2, "n_per_stage": 40}),
+        ExperimentConfig.of(method="mc", sim="highway-env", n_per_stage=4),
     ):
         measure(warm)  # imports, the first network, the first highway-env simulator
     rows, records = [], []

@@ -300,7 +300,7 @@ def toy_runs(n_seeds: int, n: int) -> dict[str, float]:
 
     problem = build_problem(ESTIMATOR_PROBLEM)
     ests = [
-        Experiment(dataclasses.replace(ExperimentConfig(method="tilt", seed=s), n_per_stage=n), problem=problem)
+        Experiment(dataclasses.replace(ExperimentConfig.of(method="tilt", seed=s), n_per_stage=n), problem=problem)
         .run()
         .final.estimate
         for s in range(n_seeds)

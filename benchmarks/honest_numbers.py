@@ -55,7 +55,7 @@ def config(scene: str, seed: int, preset: str | None = None, method: str | None 
         base.update(scene_defaults(scene))
     if method is not None:
         base["method"] = method
-    return ExperimentConfig(**{**base, "scenario": scene, "seed": seed, **fields})
+    return ExperimentConfig.of(**{**base, "scenario": scene, "seed": seed, **fields})
 
 
 def one(job: dict) -> dict:

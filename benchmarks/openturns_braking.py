@@ -32,7 +32,7 @@ and runs, on each seed (``ot.RandomGenerator.SetSeed``) and evaluation budget:
 - ``ce-physical``: ``ot.PhysicalSpaceCrossEntropyImportanceSampling`` with independent Beta(a_t, b_t) marginals on
   [0, 1] (200 parameters fitted by OpenTURNS's default NLopt LD_LBFGS at each level), quantile level 0.1;
 
-and beside them ``pemviz``: pemviz's default sampler (``ExperimentConfig()``: state-dependent CE with K = 10,
+and beside them ``pemviz``: pemviz's default sampler (``ExperimentConfig.of()``: state-dependent CE with K = 10,
 N = 100, N_e = 1000 plus pretraining, ~2,100 simulations) on the same seeds.
 
 Budgets: a run at p0 = 0.1 needs ~log(p) / log(0.1) = 15 levels for p = 2e-15, so each OpenTURNS algorithm gets
@@ -280,13 +280,13 @@ def run_isolated(method: str, budget: int, seed: int, timeout_s: float, eval_cap
 
 
 def run_pemviz(seed: int) -> Run:
-    """pemviz's default sampler (``ExperimentConfig(seed=seed)``) on the braking job."""
+    """pemviz's default sampler (``ExperimentConfig.of(seed=seed)``) on the braking job."""
     from pemviz.config import ExperimentConfig
     from pemviz.scenarios.problems import problem_for
     from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RunFinished
 
-    cfg = ExperimentConfig(seed=seed)
+    cfg = ExperimentConfig.of(seed=seed)
     t0 = time.perf_counter()
     out = Experiment(cfg, problem=problem_for(cfg)).run()
     wall = time.perf_counter() - t0
@@ -301,7 +301,7 @@ def run_pemviz(seed: int) -> Run:
         mu,
         out.final.n_simulations,
         wall,
-        cfg.n_stages,
+        cfg.adaptive.n_stages,
         0.0,
     )
 

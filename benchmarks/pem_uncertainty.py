@@ -32,7 +32,7 @@ def exact_answers(only: tuple[str, ...] = ()) -> None:
     """The enumeration under every member and shift, its drop thresholds set below a re-weighted guess of p (as
     ``benchmarks/rarity_sweep.py`` does: fixed thresholds keep tens of millions of sequences alive where p ~ 1e-11)."""
     pem = load_pem()
-    cfg = ExperimentConfig(seed=0, pem_uncertainty=True)
+    cfg = ExperimentConfig.of(seed=0, pem_uncertainty=True)
     spread = Experiment(cfg, problem=problem_for(cfg)).run().final.pem_spread
     guesses = [a.estimate.log_mu_hat for a in (*spread.members, *spread.shifts)]
     targets = [(f"member {k}", m.logit_at_gap) for k, m in enumerate(load_ensemble(ensemble_path("ml-nn")))]
@@ -62,7 +62,9 @@ def exact_answers(only: tuple[str, ...] = ()) -> None:
 
 
 def runs(seeds: int) -> None:
-    base = [Experiment(ExperimentConfig(seed=s), problem=problem_for(ExperimentConfig(seed=s))) for s in range(seeds)]
+    base = [
+        Experiment(ExperimentConfig.of(seed=s), problem=problem_for(ExperimentConfig.of(seed=s))) for s in range(seeds)
+    ]
     t = time.perf_counter()
     for e in base:
         e.run()
@@ -70,7 +72,7 @@ def runs(seeds: int) -> None:
     spreads = []
     t = time.perf_counter()
     for s in range(seeds):
-        cfg = ExperimentConfig(seed=s, pem_uncertainty=True)
+        cfg = ExperimentConfig.of(seed=s, pem_uncertainty=True)
         spreads.append(Experiment(cfg, problem=problem_for(cfg)).run().final.pem_spread)
     with_u = (time.perf_counter() - t) / seeds
     alts = [*spreads[0].members, *spreads[0].shifts]

@@ -11,7 +11,7 @@ Problems (each with its exact p_fail):
   :data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`, whose own 95 % interval is +-7 %).
 
 Methods (:func:`methods_at`, a list of (label, config fields); add a line for a new method): the default sampler
-``ExperimentConfig()`` (2,100 simulations; ``--n-final 100``: 1,200), the ``paper`` preset with its final batch
+``ExperimentConfig.of()`` (2,100 simulations; ``--n-final 100``: 1,200), the ``paper`` preset with its final batch
 set to the same budget, adaptive multilevel splitting with budget / 4 particles (when :data:`pemviz.settings.METHODS`
 has ``ams``), plain Monte Carlo with that many rollouts, and the exact zero-variance sampler q*
 (:class:`pemviz.estimators.optimal.ZeroVarianceDetector`) where V is known (toys, latched).
@@ -72,7 +72,7 @@ Q_STAR = "q*"
 """The label of the exact zero-variance sampler (not a config: built from the problem's exact V)."""
 
 
-def methods_at(n_final: int = ExperimentConfig().n_final) -> list[tuple[str, dict[str, Any] | None]]:
+def methods_at(n_final: int = ExperimentConfig.of().adaptive.n_final) -> list[tuple[str, dict[str, Any] | None]]:
     """(label, ExperimentConfig fields) per method, None for q*, all at the budget of the default sampler with a final
     batch of ``n_final`` rollouts (``n_final = 1000``: 2,100 simulations; 100: 1,200): the ``paper`` preset with its
     final batch set to that budget, Monte Carlo with that many rollouts, adaptive multilevel splitting with
@@ -83,12 +83,12 @@ def methods_at(n_final: int = ExperimentConfig().n_final) -> list[tuple[str, dic
     """
     if n_final < 1:
         raise ValueError(f"n_final = {n_final} is invalid: must be >= 1")
-    budget = ExperimentConfig(n_final=n_final).n_simulations
-    before_final = ExperimentConfig(**{**PRESETS["paper"], "n_final": 1}).n_simulations - 1
+    budget = ExperimentConfig.of(n_final=n_final).n_simulations
+    before_final = ExperimentConfig.of(**{**PRESETS["paper"], "n_final": 1}).n_simulations - 1
     if budget - before_final < 1:
         raise ValueError(f"n_final = {n_final} leaves the paper preset no final batch")
     methods: list[tuple[str, dict[str, Any] | None]] = [
-        ("state-ce", {} if n_final == ExperimentConfig().n_final else {"n_final": n_final}),
+        ("state-ce", {} if n_final == ExperimentConfig.of().adaptive.n_final else {"n_final": n_final}),
         ("paper", {**PRESETS["paper"], "n_final": budget - before_final}),  # 100 pretraining + 10 x 100 + the rest
         ("mc", {"method": "mc", "n_per_stage": budget}),
         (Q_STAR, None),
@@ -103,7 +103,7 @@ METHODS = methods_at()
 
 QUICK_METHODS: list[tuple[str, dict[str, Any] | None]] = [
     ("state-ce (quick)", dict(PRESETS["quick"])),
-    ("mc", {"method": "mc", "n_per_stage": ExperimentConfig(**PRESETS["quick"]).n_simulations}),
+    ("mc", {"method": "mc", "n_per_stage": ExperimentConfig.of(**PRESETS["quick"]).n_simulations}),
     (Q_STAR, None),
 ]
 """The methods of ``--quick``: the ``quick`` preset (1,850 simulations), Monte Carlo and q* at its budget."""
@@ -246,7 +246,7 @@ def run_job(job: Job) -> Record:
         d = draw_fixed(problem, q_star, dict(job.fields or ())["n"], seed=job.seed)
         e, n_sim = d.estimate, d.estimate.n
     else:
-        cfg = ExperimentConfig(**dict(job.fields or ()), seed=job.seed)
+        cfg = ExperimentConfig.of(**dict(job.fields or ()), seed=job.seed)
         with torch_threads(1):
             res = Experiment(cfg, problem=problem).run()
         assert isinstance(res, RunFinished)
@@ -256,7 +256,7 @@ def run_job(job: Job) -> Record:
 
 def budget_of(methods: Sequence[tuple[str, dict | None]]) -> int:
     """The simulations of the first method's run: the budget every method of the sweep gets."""
-    return ExperimentConfig(**(methods[0][1] or {})).n_simulations
+    return ExperimentConfig.of(**(methods[0][1] or {})).n_simulations
 
 
 def jobs_for(specs: Sequence[Spec], methods: Sequence[tuple[str, dict | None]], n_seeds: int) -> list[Job]:
@@ -268,8 +268,8 @@ def jobs_for(specs: Sequence[Spec], methods: Sequence[tuple[str, dict | None]], 
         for label, fields in methods:
             if fields is None and spec.kind in ("main", "cut-in"):
                 continue
-            cfg = ExperimentConfig(**(fields or {}))
-            if spec.kind == "cut-in" and not (cfg.weights_until_failure or cfg.proposal_window):
+            cfg = ExperimentConfig.of(**(fields or {}))
+            if spec.kind == "cut-in" and not (cfg.weights_until_failure or cfg.adaptive.proposal_window):
                 continue  # several objects a step: the paper's fit of whole elite rollouts takes one
             f = (("n", budget),) if fields is None else tuple(sorted(fields.items()))
             out += [Job(spec, label, f, seed) for seed in range(n_seeds)]
@@ -510,7 +510,7 @@ def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
                 finals.append(event)  # noqa: B023 (the run below calls it within the iteration)
 
         with torch_threads(1):
-            Experiment(ExperimentConfig(seed=seed), [keep], problem=problem).run()
+            Experiment(ExperimentConfig.of(seed=seed), [keep], problem=problem).run()
         (final,) = finals
         out.append(relative_variance(final.log_weight, final.failed, problem.exact_log_p))
     return problem.exact_log_p, out

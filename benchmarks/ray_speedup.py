@@ -28,7 +28,7 @@ def run(config, problem):
     from pemviz.engine.experiment import Experiment
 
     spent = [0.0]
-    ex = executors.get_executor(config.executor, config.ray_address)
+    ex = executors.get_executor(config.execution.executor, config.execution.ray_address)
     simulate = ex.simulate
 
     def timed(*a, **k):
@@ -58,7 +58,7 @@ def main() -> int:
     from pemviz.scenarios.problems import problem_for
     from pemviz.engine.executors import close_executors
 
-    base = ExperimentConfig(
+    base = ExperimentConfig.of(
         sim="highway-env", n_stages=args.k, n_per_stage=args.n, n_final=args.n, pretrain_rollouts=args.n, seed=0
     )
     problem = problem_for(base)

@@ -191,7 +191,7 @@ def tab_recording(
     from pemviz.config import ExperimentConfig
     from pemviz.scenarios.problems import problem_for
 
-    view = problem_for(ExperimentConfig(scenario=scenario)).view  # that scenario's views (e.g. the cut-in's objects)
+    view = problem_for(ExperimentConfig.of(scenario=scenario)).view  # that scenario's views (e.g. the cut-in's objects)
     default_blueprint(n_lanes, view, tab=tab, paused=True).save(APP_ID, str(path))
     return data, path
 

@@ -95,13 +95,13 @@ def main() -> None:
                 f"exact P(min gap < {m:g} m) = {math.exp(r.log_p_fail):.4e} (log {r.log_p_fail!r}), bracket width "
                 f"{r.final.relative_width:.2e}, {time.perf_counter() - t:.0f} s"
             )
-    ok = table("default run (pemviz run)", [ExperimentConfig(seed=s) for s in range(a.seeds)]) if a.seeds else True
+    ok = table("default run (pemviz run)", [ExperimentConfig.of(seed=s) for s in range(a.seeds)]) if a.seeds else True
     targeted_ok = True
     for m in (1.0, 0.5, 0.0):
         if a.targeted_seeds:
             targeted_ok &= table(
                 f"targeted run (pemviz run --margin {m:g})",
-                [ExperimentConfig(seed=s, margin=m) for s in range(a.targeted_seeds)],
+                [ExperimentConfig.of(seed=s, margin=m) for s in range(a.targeted_seeds)],
             )
     print(
         f"\nevery reported point of the default run within x{TARGET_RATIO} of the exact one and inside its interval: "
@@ -114,7 +114,7 @@ def main() -> None:
 def contact_study(seeds: int) -> None:
     """``seeds`` runs that target contact (``--margin 0``, seeds 0..K-1, the default budget) against the exact point."""
     t0 = time.perf_counter()
-    runs = [curve(ExperimentConfig(seed=s, margin=0.0)).points[0] for s in range(seeds)]
+    runs = [curve(ExperimentConfig.of(seed=s, margin=0.0)).points[0] for s in range(seeds)]
     ex = runs[0].exact_log_p
     err = np.array([abs(math.expm1(p.estimate.log_mu_hat - ex)) for p in runs])
     within = [math.exp(abs(p.estimate.log_mu_hat - ex)) <= TARGET_RATIO for p in runs]

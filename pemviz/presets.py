@@ -35,7 +35,7 @@ fitted on every step by full-batch Adam, weights over T - 1 steps, every tie at 
 mixture, i.i.d. uniforms."""
 
 DEFAULT_PRESET = "state-ce"
-"""The recommended sampler and the default of ``ExperimentConfig()``, ``pemviz run``, the panel, ``validate`` and
+"""The recommended sampler and the default of ``ExperimentConfig.of()``, ``pemviz run``, the panel, ``validate`` and
 ``tables``: cross-entropy on a state-dependent proposal (see :class:`ExperimentConfig`)."""
 
 PRESETS: dict[str, dict[str, Any]] = {

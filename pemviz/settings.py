@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
+from typing import Any
 
 
 METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt")
@@ -462,3 +463,14 @@ def _is_real(x: object) -> bool:
 
 def _is_int(x: object) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
+
+
+def setting_of(config: object, name: str, default: object = None) -> Any:
+    """The setting ``name`` (a flat name of :data:`SETTINGS`) of ``config``: an
+    :class:`~pemviz.config.ExperimentConfig`'s :meth:`~pemviz.config.ExperimentConfig.value`, else (None, an object
+    that stands for a config) its attribute ``name`` or ``default``. For the layers below the config (a scenario's
+    factory), which do not import it."""
+    value = getattr(config, "value", None)
+    if callable(value) and name in SETTINGS:
+        return value(name)
+    return getattr(config, name, default)

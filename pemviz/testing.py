@@ -429,11 +429,11 @@ def _check_drawing(checks: _Checks, sc: Any, built: Any, problem: Any, batches: 
 
 def _default_config(sc: Any) -> Any:
     """The config :func:`check_scenario` builds a scenario's problem with: the scenario's own
-    (``ExperimentConfig(scenario=name)``: the shipped PEM, the batched back-end), a built-in one's or a plugin's
+    (``ExperimentConfig.of(scenario=name)``: the shipped PEM, the batched back-end), a built-in one's or a plugin's
     alike; the defaults for a scenario not registered (a config names registered ones only)."""
     from pemviz.config import ExperimentConfig
 
-    return ExperimentConfig(scenario=sc.name) if _registered(sc) else ExperimentConfig()
+    return ExperimentConfig.of(scenario=sc.name) if _registered(sc) else ExperimentConfig.of()
 
 
 def _registered(sc: Any) -> bool:
@@ -448,13 +448,11 @@ def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -
     failure (a round trip of no failure weighs nothing)."""
     from pemviz.config import ExperimentConfig
 
-    base = ExperimentConfig(method="naive50", n_per_stage=RUN_ROLLOUTS, seed=seed)
+    base = ExperimentConfig.of(method="naive50", n_per_stage=RUN_ROLLOUTS, seed=seed)
     if _registered(sc):  # the run names it (its rollout files say which scene), its parameters checked by the config
         pairs = cast("dict[str, float | int | bool]", dict(params or {}))
         base = dataclasses.replace(base, scenario=sc.name, scenario_params=tuple(pairs.items()))
-    adaptive = dataclasses.replace(
-        base, method="adaptive", n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50
-    )
+    adaptive = base.replace(method="adaptive", n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50)
     return [base, adaptive]
 
 
@@ -466,8 +464,9 @@ def estimator_config(method: str, seed: int, n: int = ESTIMATOR_ROLLOUTS, settin
     epochs a fit and of pretraining, ``settings`` (e.g. ``ams_score``; ConfigError if refused), else the defaults."""
     from pemviz.config import ExperimentConfig
 
-    return dataclasses.replace(
-        ExperimentConfig(method=method, seed=seed),
+    return ExperimentConfig.of(
+        method=method,
+        seed=seed,
         n_stages=2,
         n_per_stage=n,
         n_final=max(1, n // 5),

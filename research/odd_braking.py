@@ -75,10 +75,10 @@ def main() -> int:
 
     params = (("ego_speed0_mps", f"~uniform({args.lo:g}, {args.hi:g})"),)
     extra = {} if args.n is None else {"n_per_stage": args.n}
-    problem = problem_for(ExperimentConfig(scenario_params=params))
+    problem = problem_for(ExperimentConfig.of(scenario_params=params))
     ratios, holds, reliable_off = [], 0, 0
     for seed in range(args.seeds):
-        done = Experiment(ExperimentConfig(scenario_params=params, seed=seed, **extra), problem=problem).run()
+        done = Experiment(ExperimentConfig.of(scenario_params=params, seed=seed, **extra), problem=problem).run()
         e = done.final.estimate
         r = math.exp(e.log_mu_hat) / p_odd
         lo, hi = e.shown_log_ci

@@ -103,11 +103,11 @@ def main() -> int:
         ("gap0_m", f"~uniform({gap[0]:g}, {gap[1]:g})"),
         ("ego_speed0_mps", f"~uniform({speed[0]:g}, {speed[1]:g})" if speed[1] > speed[0] else speed[0]),
     )
-    cfg0 = ExperimentConfig(scenario_params=params)
+    cfg0 = ExperimentConfig.of(scenario_params=params)
     cfg0 = dataclasses.replace(
         cfg0,
         n_per_stage=int(round(cfg0.n_per_stage * args.budget)),
-        n_final=int(round(cfg0.n_final * args.budget)),
+        n_final=int(round(cfg0.adaptive.n_final * args.budget)),
     )
     problem = problem_for(cfg0)
     n = args.grid

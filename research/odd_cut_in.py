@@ -46,11 +46,11 @@ def main() -> int:
     ref = failures / n
     print(f"reference p_ODD = {ref:.4e} ({failures:,} failures of {n:,} rollouts)", flush=True)
     settings = scene_defaults("cut-in", (ODD_PARAM,))
-    cfg0 = ExperimentConfig(scenario="cut-in", scenario_params=(ODD_PARAM,), **settings)
+    cfg0 = ExperimentConfig.of(scenario="cut-in", scenario_params=(ODD_PARAM,), **settings)
     problem = problem_for(cfg0)
     ratios, holds, reliable_off, rollouts = [], 0, 0, 0
     for seed in range(args.seeds):
-        done = Experiment(ExperimentConfig(**{**cfg0.__dict__, "seed": seed}), problem=problem).run()
+        done = Experiment(ExperimentConfig.of(**{**cfg0.__dict__, "seed": seed}), problem=problem).run()
         e = done.final.estimate
         r = math.exp(e.log_mu_hat) / ref
         lo, hi = e.shown_log_ci

@@ -37,7 +37,7 @@ def main() -> int:
 
     base = ToyParams(total=16, braking=5, safe=3)
     exact_b = {b: toy_log_failure_probability(dataclasses.replace(base, braking=b)) for b in VALUES}
-    cfg0 = ExperimentConfig(scenario="toy", scenario_params=PARAMS)
+    cfg0 = ExperimentConfig.of(scenario="toy", scenario_params=PARAMS)
     cfg0 = dataclasses.replace(cfg0, n_per_stage=int(round(cfg0.n_per_stage * args.budget)))
     problem = problem_for(cfg0)
     exact = problem.exact_log_p

@@ -205,20 +205,20 @@ def test_branch_replays_a_simulator_without_snapshot_as_the_vectorised_toy_does(
 def test_a_problem_without_branch_gives_one_clear_error():
     pb = dataclasses.replace(build_problem("toy-1e-3"), branch=None, name="custom")
     with pytest.raises(ValueError, match=r"^method ams needs a simulator with snapshot/restore; custom has none$"):
-        build_estimator(ExperimentConfig(method="ams"), pb)
+        build_estimator(ExperimentConfig.of(method="ams"), pb)
 
 
 def test_config_checks_k_against_n():
     with pytest.raises(ConfigError, match=r"ams_killed \(k\) = 10 is invalid"):
-        ExperimentConfig(method="ams", n_per_stage=10)
+        ExperimentConfig.of(method="ams", n_per_stage=10)
     with pytest.raises(ConfigError, match="ams_max_iterations"):
-        ExperimentConfig(method="ams", ams_max_iterations=0)
-    ExperimentConfig(method="mc", n_per_stage=5)  # k matters only to ams
+        ExperimentConfig.of(method="ams", ams_max_iterations=0)
+    ExperimentConfig.of(method="mc", n_per_stage=5)  # k matters only to ams
 
 
 def test_engine_runs_ams_in_stages_and_reports_rollout_equivalents():
     pb = build_problem("toy-1e-3")
-    cfg = ExperimentConfig(method="ams", n_per_stage=100, ams_killed=10, seed=0)
+    cfg = ExperimentConfig.of(method="ams", n_per_stage=100, ams_killed=10, seed=0)
     res = Experiment(cfg, problem=pb).run()
     assert isinstance(res, RunFinished)
     direct = run_ams(pb, 100, 10, seed=0)
@@ -259,7 +259,7 @@ def test_ams_through_snapshots_of_single_simulators_equals_the_vectorised_toy():
 def test_initial_particles_may_arrive_in_chunks():
     """A streamed stage 0 (N above the engine's STREAM_ABOVE) reaches the estimator chunk by chunk."""
     pb = build_problem("toy-1e-3")
-    est = build_estimator(ExperimentConfig(method="ams", n_per_stage=30, ams_killed=3), pb)
+    est = build_estimator(ExperimentConfig.of(method="ams", n_per_stage=30, ams_killed=3), pb)
     plan = est.next_stage()
     assert (plan.stage, plan.n, plan.draw) == (0, 30, None)
     whole = pb.simulate(30, pb.target, pb.target, np.random.default_rng(0))
@@ -311,7 +311,7 @@ def test_committor_scored_ams_is_unbiased_with_a_poor_committor():
 
 def test_engine_runs_committor_scored_ams_as_run_ams_does():
     pb = build_problem("toy-1e-3")
-    cfg = ExperimentConfig(method="ams", n_per_stage=100, ams_killed=10, seed=2, ams_score="committor")
+    cfg = ExperimentConfig.of(method="ams", n_per_stage=100, ams_killed=10, seed=2, ams_score="committor")
     res = Experiment(cfg, problem=pb).run()
     direct = run_ams(pb, 100, 10, seed=2, score="committor")
     assert res.final.estimate.log_mu_hat == direct.estimate().log_mu_hat
@@ -324,7 +324,7 @@ def test_committor_score_asked_of_a_scenario_without_one_gives_one_line():
         match=r"^ams_score committor needs a scenario with a learned committor; crowd "
         r"has none: use ams_score robustness$",
     ):
-        build_estimator(ExperimentConfig(method="ams", ams_score="committor"), build_problem("crowd"))
+        build_estimator(ExperimentConfig.of(method="ams", ams_score="committor"), build_problem("crowd"))
     r = run_cli("run", "--scenario", "crowd", "--method", "ams", "--ams-score", "committor", "--no-record")
     assert r.returncode == 2 and "Traceback" not in r.stderr and "has none: use ams_score robustness" in r.stderr
     r = run_cli("run", "--method", "ams", "--ams-score", "nope", "--no-record")

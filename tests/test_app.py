@@ -246,13 +246,19 @@ def test_typed_values_run_exactly_as_typed_and_every_error_shows_on_its_field(ta
     tab.button("Run").click()
     wait_until(lambda: tab.session.record is not None, what="the run to start")
     cfg = tab.session.record.config
-    assert (cfg.smoothing, cfg.quantile_level, cfg.n_stages, cfg.n_per_stage, cfg.n_final) == (0.001, 0.9, 2, 41, 60)
+    assert (
+        cfg.adaptive.smoothing,
+        cfg.adaptive.quantile_level,
+        cfg.adaptive.n_stages,
+        cfg.n_per_stage,
+        cfg.adaptive.n_final,
+    ) == (0.001, 0.9, 2, 41, 60)
     assert cfg.seed in (0, 12)
     for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
         f = FIELDS_BY_KEY[key]
         shown = tab.field(f.label)
         expect(shown).to_have_value(re.compile("^(" + re.escape(tab.session.fields[key].value) + ")$"))
-        assert parse(f, shown.input_value()) == getattr(cfg, key)
+        assert parse(f, shown.input_value()) == cfg.value(key)
     assert tab.field("alpha").input_value() == "1e-3"  # as typed, not reformatted
     expect(page.get_by_text("settings to fix")).to_have_count(0)
 
@@ -466,7 +472,10 @@ def test_two_tabs_have_their_own_form_runs_and_stop(tab, browser, app):
         other.button("Stop").click()
         wait_until(lambda: not other.session.running, what="tab B's run to stop")
         assert other.session.record.status == "cancelled" and tab.session.running
-        assert other.session.record.config.smoothing == 0.1 and tab.session.record.config.smoothing == 0.3
+        assert (
+            other.session.record.config.adaptive.smoothing == 0.1
+            and tab.session.record.config.adaptive.smoothing == 0.3
+        )
     finally:
         other.close()
 

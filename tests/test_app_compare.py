@@ -7,7 +7,6 @@ writes ``assets/screenshots/panel_compare.png`` (the Compare tab after the two r
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import re
@@ -18,7 +17,7 @@ import pytest
 from test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 from pemviz.app import compare
-from pemviz.config import ExperimentConfig
+from pemviz.settings import SETTINGS
 
 SCREENSHOT = Path(__file__).resolve().parents[1] / "assets" / "screenshots" / "panel_compare.png"
 EXACT_P = 1.984e-15
@@ -100,7 +99,7 @@ def test_compare_charts_each_runs_estimate_interval_and_exact_answer_and_lists_o
     assert all(math.isfinite(chart[k]) for k in ("xmin", "xmax", "ymin", "ymax"))
 
     # the table: the result rows and only the settings that differ (alpha), the identical ones counted
-    n_settings = len(dataclasses.fields(ExperimentConfig))
+    n_settings = len(SETTINGS)
     note = f"{n_settings - 1} identical settings hidden"
     expect(tab.page.get_by_text(note, exact=False)).to_be_visible(timeout=10_000)
     table = tab.page.locator(

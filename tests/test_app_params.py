@@ -70,11 +70,11 @@ def test_unchanged_fields_give_the_same_config_as_a_form_without_parameters():
         with_params = parse_form({}, choices, params=texts)
         assert with_params.config == parse_form({}, choices).config
         assert with_params.config.scenario_params == ()
-    assert parse_form({}, {}, params={}).config == ExperimentConfig()
+    assert parse_form({}, {}, params={}).config == ExperimentConfig.of()
 
 
 def test_the_fields_replace_the_starting_configs_parameters_and_only_the_panel_passes_them():
-    base = ExperimentConfig(**CUT_IN, scenario_params=(("cut_in_gap_m", 19.5),))
+    base = ExperimentConfig.of(**CUT_IN, scenario_params=(("cut_in_gap_m", 19.5),))
     assert parse_form({}, {}, base).config.scenario_params == base.scenario_params  # no fields: the base's are kept
     assert parse_form({}, {}, base, params=default_texts("cut-in")).config.scenario_params == ()
     # another scenario chosen: its own (unchanged) parameters, not the base's
@@ -140,7 +140,7 @@ class FakeGui:
 def test_the_folder_starts_collapsed_at_the_starting_configs_values_and_rebuilds_with_the_scenario():
     gui = FakeGui()
     client = SimpleNamespace(gui=gui, atomic=contextlib.nullcontext)
-    config0 = ExperimentConfig(**CUT_IN, scenario_params=(("cut_in_gap_m", 19.5),))
+    config0 = ExperimentConfig.of(**CUT_IN, scenario_params=(("cut_in_gap_m", 19.5),))
     changes = []
     form = ScenarioParamsForm(client, config0)
     form.build("cut-in", lambda: changes.append(1))

@@ -34,7 +34,9 @@ from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams,
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.panel import explain
 
-TINY = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=20, ce_epochs=20, pretrain_rollouts=10, pretrain_epochs=20)
+TINY = ExperimentConfig.of(
+    n_stages=2, n_per_stage=20, n_final=20, ce_epochs=20, pretrain_rollouts=10, pretrain_epochs=20
+)
 
 
 # -- scene geometry -------------------------------------------------------------------------------
@@ -134,7 +136,7 @@ def test_most_likely_failure_is_the_failing_rollout_with_the_highest_pem_log_pro
 
 # -- which runs are kept --------------------------------------------------------------------------
 def _run(i: int, status: str, pinned: bool = False) -> PanelRun:
-    r = PanelRun(i, ExperimentConfig())
+    r = PanelRun(i, ExperimentConfig.of())
     r.status, r.pinned = status, pinned
     return r
 
@@ -156,7 +158,14 @@ def test_the_form_parses_exactly_what_was_typed_and_reports_every_error():
         {"metric": "agm", "pem": ""},
     )
     cfg = ok.config
-    assert (cfg.smoothing, cfg.quantile_level, cfg.n_per_stage, cfg.n_stages, cfg.metric, cfg.pem) == (
+    assert (
+        cfg.adaptive.smoothing,
+        cfg.adaptive.quantile_level,
+        cfg.n_per_stage,
+        cfg.adaptive.n_stages,
+        cfg.metric,
+        cfg.perception.pem,
+    ) == (
         0.001,
         0.9,
         100000,
@@ -192,7 +201,7 @@ def test_a_whole_number_field_takes_whole_numbers_only(n, suffix):
 
 
 def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
-    cfg = ExperimentConfig(n_stages=3, n_per_stage=50, n_final=70, pretrain_rollouts=20)
+    cfg = ExperimentConfig.of(n_stages=3, n_per_stage=50, n_final=70, pretrain_rollouts=20)
     cost = run_cost(cfg)
     assert cost.simulations == 20 + 3 * 50 + 70 and not cost.needs_confirm
     from pemviz.engine.resources import BASE_BYTES, BYTES_PER_ROLLOUT_STEP, run_memory
@@ -200,7 +209,7 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
 
     assert cost.memory_bytes == 70 * 100 * BYTES_PER_ROLLOUT_STEP  # the largest batch, T = 100 steps
     plan = run_plan(cfg)  # the memory check's model, less the process's own
-    assert cost.memory_bytes == run_memory(plan, 100, cfg.quantile_level, stream_above=20_000) - BASE_BYTES
+    assert cost.memory_bytes == run_memory(plan, 100, cfg.adaptive.quantile_level, stream_above=20_000) - BASE_BYTES
     assert run_cost(cfg.replace(n_stages=1000, n_per_stage=1000)).needs_confirm
     assert cost.text().startswith("240 simulations, ")  # the rollouts are all a cross-entropy run counts
     # a tilt run and a splitting run count more than their rollouts: the line says so before the run
@@ -219,8 +228,8 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
 
 
 def test_a_run_label_names_every_setting_that_differs_from_the_defaults():
-    assert run_label(3, ExperimentConfig()) == "run 3 · classic"
-    cfg = ExperimentConfig(metric="agm", smoothing=0.2, n_stages=4, sim="highway-env", seed=7)
+    assert run_label(3, ExperimentConfig.of()) == "run 3 · classic"
+    cfg = ExperimentConfig.of(metric="agm", smoothing=0.2, n_stages=4, sim="highway-env", seed=7)
     assert run_label(4, cfg) == "run 4 · agm, K 4, alpha 0.2, seed 7, simulator highway-env"
 
 

@@ -85,9 +85,9 @@ def test_toy_twins_draw_the_same_array_rqmc_rollouts():
 
 
 def test_config_names_the_allowed_uniforms():
-    assert ExperimentConfig().uniforms == "array-rqmc" and ExperimentConfig().pool_weights == "quadratic"
+    assert ExperimentConfig.of().uniforms == "array-rqmc" and ExperimentConfig.of().adaptive.pool_weights == "quadratic"
     with pytest.raises(ConfigError, match="uniforms = 'sobol' is invalid: use one of array-rqmc, iid"):
-        ExperimentConfig(uniforms="sobol")
+        ExperimentConfig.of(uniforms="sobol")
 
 
 def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_uniform():

@@ -158,7 +158,7 @@ def test_a_default_runs_late_stage_misses_the_lead_inside_10_m_far_more_than_the
     from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RolloutsSampled, StageFinished
 
-    cfg = ExperimentConfig()
+    cfg = ExperimentConfig.of()
     events = []
     Experiment(cfg, [events.append], problem=problem_for(cfg)).run()
     late = [e for e in events if isinstance(e, RolloutsSampled) and e.kind == "ce"][-1]

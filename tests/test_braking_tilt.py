@@ -143,7 +143,7 @@ def test_the_same_seed_gives_the_same_tilted_rollouts_for_any_chunk(pem, committ
 def test_a_second_run_reuses_the_solve_and_gives_the_same_estimate():
     tilt_module._SOLVED.clear()
     problem = build_problem("main")
-    cfg = dataclasses.replace(ExperimentConfig(method="tilt", seed=4), n_per_stage=400)
+    cfg = dataclasses.replace(ExperimentConfig.of(method="tilt", seed=4), n_per_stage=400)
     first = Experiment(cfg, problem=problem).run().final
     again = Experiment(cfg, problem=problem).run().final
     assert first.prepared.startswith("the scenario's proposal solved by this run (10,240 rollout-equivalents")

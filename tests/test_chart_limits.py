@@ -117,7 +117,7 @@ def staged_run(
     exact_log10: float | None = None,
 ) -> PanelRun:
     """A real PanelRun whose stages carry the given log10 mu_hat, failure counts and 95 % interval (log10)."""
-    run = PanelRun(run_id, ExperimentConfig())
+    run = PanelRun(run_id, ExperimentConfig.of())
     run.stages = [
         SimpleNamespace(
             stage=k,
@@ -317,7 +317,7 @@ def view_record(gap: np.ndarray, q_detect: np.ndarray, stage: int = 1) -> tuple[
     obs = np.stack([gap, np.zeros_like(gap), np.zeros_like(gap)], axis=-1)
     batch = RolloutBatch(obs, detected, log_p, log_q, ("gap_m", "ego_speed_mps", "lead_speed_mps"))
     r = np.ones(n)
-    record = PanelRun(1, ExperimentConfig())
+    record = PanelRun(1, ExperimentConfig.of())
     record.proposal_axis = BrakingDrawing().proposal_axis()  # the gap's bins, standing states checked
     record.events = [RolloutsSampled(stage, "ce", batch, r, {"classic": r}, r < 0, np.zeros(n))]
     record.proposal_views = {stage: ("ce", view)}

@@ -95,15 +95,13 @@ def test_broken_simulators_fail_with_the_rule_they_break(make, message):
 
 
 TOY = toy_problem(ToyParams(10, 5, 3, 0.9))  # p_fail = 0.1^3 = 1e-3
-MC = ExperimentConfig(method="mc", n_per_stage=4000, seed=3)
+MC = ExperimentConfig.of(method="mc", n_per_stage=4000, seed=3)
 
 
 def test_pemviz_s_estimators_pass_on_the_toy_and_meet_its_exact_answer():
     est = check_estimator(lambda pb: build_estimator(MC, pb), TOY, max_relative_error=0.6)
     assert est.n == 4000 and 0 < est.n_failures < 20  # ~4 failures expected at p = 1e-3
-    adaptive = dataclasses.replace(
-        ExperimentConfig(), n_stages=2, n_per_stage=200, n_final=400, ce_epochs=50, pretrain_epochs=50
-    )
+    adaptive = ExperimentConfig.of(n_stages=2, n_per_stage=200, n_final=400, ce_epochs=50, pretrain_epochs=50)
     est = check_estimator(lambda pb: build_estimator(adaptive, pb), TOY, max_relative_error=0.5)
     assert est.n_failures > 50  # the proposal finds the failures plain Monte Carlo barely sees
 
@@ -171,8 +169,9 @@ def test_every_method_passes_the_estimator_check_on_the_toy(method):
     from pemviz.settings import METHODS
 
     assert set(METHODS) == {"mc", "naive50", "mixed50", "adaptive", "ams", "tilt"}  # a new method joins this test
-    cfg = dataclasses.replace(
-        ExperimentConfig(method=method, seed=3),
+    cfg = ExperimentConfig.of(
+        method=method,
+        seed=3,
         n_stages=2,
         n_per_stage=10_000,
         n_final=2000,

@@ -63,16 +63,25 @@ def test_every_command_that_takes_a_preset_accepts_quick() -> None:
     parser = build_parser()
     quick = config_from_args(parser.parse_args(["run", "--preset", "quick"]))
     # the quick preset as its documentation gives it (not read back from PRESETS), none of it the default's
-    assert (quick.n_stages, quick.ce_epochs, quick.pretrain_rollouts, quick.pretrain_epochs, quick.learning_rate) == (
+    assert (
+        quick.adaptive.n_stages,
+        quick.adaptive.ce_epochs,
+        quick.adaptive.pretrain_rollouts,
+        quick.adaptive.pretrain_epochs,
+        quick.adaptive.learning_rate,
+    ) == (
         8,
         200,
         50,
         200,
         2e-2,
     )
-    assert (quick.smoothing, quick.n_per_stage) == (0.1, 100)  # what it leaves: the default sampler's
+    assert (quick.adaptive.smoothing, quick.n_per_stage) == (0.1, 100)  # what it leaves: the default sampler's
     overridden = config_from_args(parser.parse_args(["run", "--preset", "quick", "--k", "3"]))
-    assert (overridden.n_stages, overridden.ce_epochs) == (3, 200)  # a flag given overrides the preset, only there
+    assert (overridden.adaptive.n_stages, overridden.adaptive.ce_epochs) == (
+        3,
+        200,
+    )  # a flag given overrides the preset, only there
     assert split_choices("quick,paper", PRESETS, "presets") == ("quick", "paper")  # validate --presets, tables --extra
     assert parser.parse_args(["serve", "--preset", "quick"]).preset == "quick"
     for name in ("pemviz run", "pemviz serve", "pemviz validate", "pemviz tables"):

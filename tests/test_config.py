@@ -35,13 +35,21 @@ from pemviz.presets import PRESETS
 )
 def test_invalid_setting_is_rejected_with_its_name_value_and_range(field, value, message):
     with pytest.raises(ConfigError, match=message) as err:
-        ExperimentConfig(**{field: value})
+        ExperimentConfig.of(**{field: value})
     assert field in str(err.value) and repr(value) in str(err.value)
 
 
 def test_defaults_keep_the_papers_stages_with_a_larger_final_batch_and_count_2100_simulations():
-    c = ExperimentConfig()
-    assert (c.n_stages, c.n_per_stage, c.n_final, c.quantile_level, c.smoothing, c.metric, c.seed) == (
+    c = ExperimentConfig.of()
+    assert (
+        c.adaptive.n_stages,
+        c.n_per_stage,
+        c.adaptive.n_final,
+        c.adaptive.quantile_level,
+        c.adaptive.smoothing,
+        c.metric,
+        c.seed,
+    ) == (
         10,
         100,
         1000,
@@ -51,27 +59,42 @@ def test_defaults_keep_the_papers_stages_with_a_larger_final_batch_and_count_210
         0,
     )
     assert c.n_simulations == 100 + 10 * 100 + 1000
-    assert ExperimentConfig(**PRESETS["paper"]).n_simulations == 100 + 10 * 100 + 100  # the paper's 1,200
-    assert ExperimentConfig(method="mc", n_per_stage=10000).n_simulations == 10000
+    assert ExperimentConfig.of(**PRESETS["paper"]).n_simulations == 100 + 10 * 100 + 100  # the paper's 1,200
+    assert ExperimentConfig.of(method="mc", n_per_stage=10000).n_simulations == 10000
 
 
 def test_default_is_the_state_ce_sampler_and_paper_turns_every_improvement_off():
-    c = ExperimentConfig()
-    assert (c.proposal_inputs, c.proposal_window, c.weights_until_failure, c.defensive) == ("state", True, True, 0.2)
-    p = ExperimentConfig(**PRESETS["paper"])
-    assert (p.proposal_inputs, p.proposal_window, p.weights_until_failure, p.smoothing_at_failure) == (
+    c = ExperimentConfig.of()
+    assert (c.adaptive.proposal_inputs, c.adaptive.proposal_window, c.weights_until_failure, c.adaptive.defensive) == (
+        "state",
+        True,
+        True,
+        0.2,
+    )
+    p = ExperimentConfig.of(**PRESETS["paper"])
+    assert (
+        p.adaptive.proposal_inputs,
+        p.adaptive.proposal_window,
+        p.weights_until_failure,
+        p.adaptive.smoothing_at_failure,
+    ) == (
         "gap",
         False,
         False,
         None,
     )
-    assert (p.elite_ties, p.pretrain_cap, p.defensive) == ("all", None, 0.0)
+    assert (p.adaptive.elite_ties, p.adaptive.pretrain_cap, p.adaptive.defensive) == ("all", None, 0.0)
 
 
 def test_authors_code_preset_is_the_paper_with_the_authors_training():
-    c = ExperimentConfig(**PRESETS["authors-code"])
-    assert (c.smoothing, c.ce_epochs, c.weights, c.final_estimate) == (0.5, 1000, "recomputed", "last-stage")
-    assert c.proposal_inputs == "gap" and c.defensive == 0.0
+    c = ExperimentConfig.of(**PRESETS["authors-code"])
+    assert (c.adaptive.smoothing, c.adaptive.ce_epochs, c.adaptive.weights, c.adaptive.final_estimate) == (
+        0.5,
+        1000,
+        "recomputed",
+        "last-stage",
+    )
+    assert c.adaptive.proposal_inputs == "gap" and c.adaptive.defensive == 0.0
     assert c.n_simulations == 100 + 10 * 100
 
 
@@ -80,13 +103,13 @@ def test_authors_code_preset_is_the_paper_with_the_authors_training():
 )
 def test_fitting_settings_are_validated(field, value):
     with pytest.raises(ConfigError, match=field):
-        ExperimentConfig(**{field: value})
+        ExperimentConfig.of(**{field: value})
 
 
 def test_paper_presets_keep_the_full_batch_adam_fit():
     for name in ("paper", "authors-code"):
-        cfg = ExperimentConfig(**PRESETS[name])
-        assert (cfg.fit, cfg.fit_rows, cfg.fit_tolerance) == ("adam", None, None)
+        cfg = ExperimentConfig.of(**PRESETS[name])
+        assert (cfg.adaptive.fit, cfg.adaptive.fit_rows, cfg.adaptive.fit_tolerance) == ("adam", None, None)
 
 
 # -- one home per setting: SETTINGS, read by the config, the command line, the panel's form and the estimators ----
@@ -127,12 +150,22 @@ def cli_error(argv: list[str]) -> str:
     return ""
 
 
-def test_every_field_has_exactly_one_setting_in_field_order_and_every_choice_is_explained():
-    assert list(SETTINGS) == [f.name for f in dataclasses.fields(ExperimentConfig)]
-    defaults = ExperimentConfig()
+def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choice_is_explained():
+    """At most 15 fields of the config's own; a method's settings are a dataclass in the method's home, its group;
+    every setting one field of the config or of one group, its owner's (the run's groups hold the run's)."""
+    from pemviz.config import GROUP_OF, GROUPS
+
+    own = [f.name for f in dataclasses.fields(ExperimentConfig)]
+    assert len(own) <= 15 and set(GROUPS) <= set(own)
+    fields = [name for name in own if name not in GROUPS] + list(GROUP_OF)
+    assert sorted(fields) == sorted(SETTINGS) and len(fields) == len(set(fields))
+    assert GROUPS["adaptive"].__module__ == "pemviz.methods.adaptive"
+    assert GROUPS["ams"].__module__ == "pemviz.methods.ams"
+    defaults = ExperimentConfig.of()
     for name, s in SETTINGS.items():
         assert s.name == name and s.owner in (RUN, "adaptive", "ams"), name
-        assert s.accepts(getattr(defaults, name)), name  # the default is inside its own range
+        assert GROUP_OF.get(name) == s.owner if s.owner != RUN else GROUP_OF.get(name) not in ("adaptive", "ams")
+        assert s.accepts(defaults.value(name)), name  # the default is inside its own range
         if s.kind == "choice":
             assert [v for v, _ in s.choice_help] == list(s.choices), f"{name}: a hint for every choice, in order"
 
@@ -156,8 +189,12 @@ def test_alpha_means_the_same_in_the_docstring_the_flag_and_the_panel():
     )
     assert FIELDS_BY_KEY["smoothing"].hint == f"smoothing alpha, a number in (0, 1]: {meaning}"
     assert run.help == f"{FIELDS_BY_KEY['smoothing'].hint} (default 0.1)"
-    assert f"smoothing: alpha in (0, 1]: {meaning}." in " ".join(ExperimentConfig.__doc__.split())
-    assert "sigma in [0.5, 1): " + SETTINGS["quantile_level"].help in " ".join(ExperimentConfig.__doc__.split())
+    from pemviz.methods.adaptive import CrossEntropySettings  # the settings' home documents them
+
+    assert f"smoothing: alpha in (0, 1]: {meaning}." in " ".join(str(CrossEntropySettings.__doc__).split())
+    assert "sigma in [0.5, 1): " + SETTINGS["quantile_level"].help in " ".join(
+        str(CrossEntropySettings.__doc__).split()
+    )
 
 
 def test_every_flag_gives_the_hint_of_its_setting():
@@ -187,7 +224,7 @@ def test_a_value_is_refused_alike_by_config_form_and_command_line_with_the_same_
     s = SETTINGS[name]
     value = int(x) if PAPER_RANGES[name][4] and float(x).is_integer() else x
     try:
-        ExperimentConfig(**{name: value})
+        ExperimentConfig.of(**{name: value})
         config_error = ""
     except ConfigError as exc:
         config_error = str(exc)
@@ -210,7 +247,10 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     fields = set(SETTINGS) | {"has_final_batch", "n_simulations"}
     for module, cls, owner in ((ce, CrossEntropy, "adaptive"), (ams, AdaptiveMultilevelSplitting, "ams")):
         source = open(module.__file__).read()
-        read = set(re.findall(r"\b(?:cfg|config)\.([a-z_]+)\b", source)) & fields
+        read = set(
+            re.findall(r"\b(?:cfg|config|ce)(?:\.adaptive|\.ams|\.stop|\.execution|\.perception)?\.([a-z_]+)\b", source)
+        )
+        read &= fields
         read -= {"has_final_batch", "n_simulations"}
         assert cls.SETTINGS, owner  # an estimator that owns nothing would pass the two checks below vacuously
         assert read <= set(cls.SETTINGS) | set(settings_of(RUN)), (
@@ -231,14 +271,14 @@ def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with()
     from pemviz.scenarios.toy import ToyParams
 
     problem = toy_problem(ToyParams(10, 5, 3, 0.9))
-    config = ExperimentConfig(smoothing=0.3, n_stages=4, quantile_level=0.9, n_final=500)
+    config = ExperimentConfig.of(smoothing=0.3, n_stages=4, quantile_level=0.9, n_final=500)
     ce = CrossEntropy(config, problem).get_params()
     assert (ce["smoothing"], ce["n_stages"], ce["quantile_level"], ce["n_final"]) == (0.3, 4, 0.9, 500)
     # the params rebuild the config they came from (scikit-learn's clone): each value the config's, and the fields
     # left out are the run-level ones, at their defaults here
-    assert ExperimentConfig(**ce) == config
+    assert ExperimentConfig.of(**ce) == config
     assert "seed" not in ce and "ams_killed" not in ce  # run-level, and another estimator's
-    cfg = ExperimentConfig(method="ams", n_per_stage=40, ams_killed=7)
+    cfg = ExperimentConfig.of(method="ams", n_per_stage=40, ams_killed=7)
     assert AdaptiveMultilevelSplitting(cfg, problem).get_params() == {
         "ams_killed": 7,
         "ams_max_iterations": 10_000,

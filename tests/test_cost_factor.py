@@ -14,7 +14,7 @@ from pemviz.settings import SCENARIO_COST_FACTORS
 
 
 def simulate_s(scenario: str, n: int = 1000) -> float:
-    return stage_cost(ExperimentConfig(scenario=scenario, method="mc", n_per_stage=n), "final", n).simulate_s
+    return stage_cost(ExperimentConfig.of(scenario=scenario, method="mc", n_per_stage=n), "final", n).simulate_s
 
 
 def test_the_cut_in_scenarios_declare_their_factor_and_the_cost_is_the_one_measured():

@@ -36,7 +36,7 @@ def test_crossing_carries_its_monte_carlo_reference_only_at_its_defaults():
 
 def test_a_small_plain_monte_carlo_run_agrees_with_the_reference():
     problem = crossing(None, None)
-    est = Experiment(ExperimentConfig(method="mc", n_per_stage=40_000, seed=2), problem=problem).run().final.estimate
+    est = Experiment(ExperimentConfig.of(method="mc", n_per_stage=40_000, seed=2), problem=problem).run().final.estimate
     failures, n = MONTE_CARLO_REFERENCE
     expected = 40_000 * failures / n  # about 12
     assert abs(est.n_failures - expected) < 4.5 * math.sqrt(expected)

@@ -87,7 +87,7 @@ def test_the_problem_formula_fails_exactly_where_the_scenarios_formula_does(prob
 
 def test_the_cut_in_runs_on_its_twin_only():
     with pytest.raises(ConfigError, match="batched twin only"):
-        ExperimentConfig(scenario="cut-in", sim="highway-env")
+        ExperimentConfig.of(scenario="cut-in", sim="highway-env")
 
 
 def test_pemviz_run_scenario_cut_in_estimates_and_says_so(tmp_path):

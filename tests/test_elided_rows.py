@@ -16,7 +16,7 @@ FIELDS = ("observations", "detected", "log_p", "log_q", "noise")
 
 
 def cut_in_chunks(keep_rows: bool, n: int = 300, chunk: int = 128) -> list[RolloutBatch]:
-    pb = problem_for(ExperimentConfig(scenario="cut-in"))
+    pb = problem_for(ExperimentConfig.of(scenario="cut-in"))
     return list(pb.stream(n, pb.target, pb.target, np.random.default_rng(7), chunk_size=chunk, keep_rows=keep_rows))
 
 
@@ -55,7 +55,7 @@ def test_a_concatenation_and_its_selection_stay_without_rows_until_read():
 def test_plain_monte_carlo_shows_its_listeners_the_sample_with_its_rows():
     """``pemviz run --scenario cut-in --method mc --n 4500`` streams (above 20,000 / 5 object rows) without the rows;
     the sample of least-robust, failing and evenly spaced rollouts carries the rows the simulation saw."""
-    cfg = ExperimentConfig(scenario="cut-in", method="mc", n_per_stage=4500, seed=3)
+    cfg = ExperimentConfig.of(scenario="cut-in", method="mc", n_per_stage=4500, seed=3)
     pb = problem_for(cfg)
     samples: list[RolloutsSampled] = []
     Experiment(cfg, [lambda e: isinstance(e, RolloutsSampled) and samples.append(e)], problem=pb).run()

@@ -217,10 +217,10 @@ def pinned_config(key: str) -> tuple[ExperimentConfig, str]:
     problem, preset, seed = key.split("/")
     if preset == "window-rqmc":  # the default sampler (every CE fit stops once converged, Adam at 1e-2, decided steps
         # drawn from the PEM, Array-RQMC inside the window)
-        return ExperimentConfig(**{**SMALL, "seed": int(seed)}), problem
+        return ExperimentConfig.of(**{**SMALL, "seed": int(seed)}), problem
     if preset == "array-rqmc":  # Array-RQMC uniforms, stages pooled by j^2 n_j, fits of every epoch at 1e-3
-        return ExperimentConfig(**{**SMALL, **FIT_RECORDED, "seed": int(seed)}), problem
-    return ExperimentConfig(**{**RECORDED, **_pinned_fields(problem, preset), "seed": int(seed)}), problem
+        return ExperimentConfig.of(**{**SMALL, **FIT_RECORDED, "seed": int(seed)}), problem
+    return ExperimentConfig.of(**{**RECORDED, **_pinned_fields(problem, preset), "seed": int(seed)}), problem
 
 
 FIT_RECORDED = {"learning_rate": 1e-3, "fit_tolerance": None, "skip_decided": False, "fit_rows": 10_000}
@@ -251,7 +251,7 @@ def _pinned_fields(problem: str, preset: str) -> dict:
 
 def run_pinned(key: str):
     config, name = pinned_config(key)
-    problem = build_problem("main" if name == "braking" else name, config.pem)
+    problem = build_problem("main" if name == "braking" else name, config.perception.pem)
     return Experiment(config, problem=problem).run()
 
 
@@ -276,7 +276,9 @@ def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
 
     events: list = []
     threads = torch.get_num_threads()
-    Experiment(ExperimentConfig(method="mc", n_per_stage=50), [events.append], problem=build_problem("toy-1e-3")).run()
+    Experiment(
+        ExperimentConfig.of(method="mc", n_per_stage=50), [events.append], problem=build_problem("toy-1e-3")
+    ).run()
     first = events[0]
     assert isinstance(first, RunStarted) and first.problem.name == "toy-1e-3" and first.problem.signal_names == ("d",)
     assert "toy braking" in first.problem.description and torch.get_num_threads() == threads
@@ -316,10 +318,10 @@ def test_stages_streamed_in_chunks_give_the_estimates_of_whole_batches(name, uni
 
     import pemviz.engine.experiment as engine
 
-    cfg = ExperimentConfig(
+    cfg = ExperimentConfig.of(
         **{**SMALL, "n_per_stage": 400, "n_final": 600, "pretrain_rollouts": 300, "seed": 2, "uniforms": uniforms}
     )
-    problem = build_problem(name, cfg.pem)
+    problem = build_problem(name, cfg.perception.pem)
     whole = Experiment(cfg, problem=problem).run()
     monkeypatch.setattr(engine, "STREAM_ABOVE", 100)
     if problem.stream is None:  # the toy: stream in chunks of 64 from one batch's uniforms
@@ -354,6 +356,6 @@ def test_a_problems_horizon_is_the_steps_of_its_rollouts(name):
     the number of steps its simulator draws."""
     from pemviz.scenarios.problems import problem_for
 
-    problem = problem_for(ExperimentConfig(scenario="cut-in")) if name == "cut-in" else build_problem(name)
+    problem = problem_for(ExperimentConfig.of(scenario="cut-in")) if name == "cut-in" else build_problem(name)
     batch = problem.simulate(3, problem.target, problem.target, np.random.default_rng(0))
     assert problem.n_steps == problem.view.n_steps == batch.n_steps > 1

@@ -94,7 +94,7 @@ def test_ce_fit_of_a_proposal_with_one_input_is_the_alpha_weighted_detection_rat
 
 def test_cross_entropy_plans_pretraining_k_stages_and_the_final_batch():
     pb = build_problem("toy-1e-3")
-    cfg = ExperimentConfig(
+    cfg = ExperimentConfig.of(
         n_stages=2, n_per_stage=30, n_final=40, pretrain_rollouts=20, pretrain_epochs=20, ce_epochs=20, seed=0
     )
     est = build_estimator(cfg, pb)
@@ -110,7 +110,7 @@ def test_cross_entropy_plans_pretraining_k_stages_and_the_final_batch():
 
 def test_a_baseline_is_one_weighted_batch_whose_estimate_is_eq_6():
     pb = build_problem("toy-1e-3")
-    est = build_estimator(ExperimentConfig(method="naive50", n_per_stage=500, weights_until_failure=False), pb)
+    est = build_estimator(ExperimentConfig.of(method="naive50", n_per_stage=500, weights_until_failure=False), pb)
     assert isinstance(est, FixedSampler)
     plan = est.next_stage()
     assert (plan.stage, plan.kind, plan.n) == (1, "final", 500) and est.next_stage() is None
@@ -280,7 +280,7 @@ def test_fit_weights_of_the_stage_mixture_reduce_to_each_samplers_own_weights_fo
         return changed
 
     def run(fit_weights):
-        config = ExperimentConfig(
+        config = ExperimentConfig.of(
             n_stages=4,
             n_per_stage=100,
             n_final=10,
@@ -326,7 +326,7 @@ def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monk
             return fit(self, proposal, **kwargs)
 
         monkeypatch.setattr(ce.EliteSteps, "fit", recorded)
-        config = ExperimentConfig(**{**SMALL_RUN, "n_stages": n_stages, **fields})
+        config = ExperimentConfig.of(**{**SMALL_RUN, "n_stages": n_stages, **fields})
         Experiment(config, problem=build_problem("main")).run()
         monkeypatch.undo()
         return calls
@@ -345,19 +345,19 @@ def test_fit_weights_are_checked():
     from pemviz.config import ConfigError
 
     with pytest.raises(ConfigError, match="fit_weights = 'bogus' is invalid: use one of mixture, sampler"):
-        ExperimentConfig(fit_weights="bogus")
+        ExperimentConfig.of(fit_weights="bogus")
     with pytest.raises(ConfigError, match="'mixture' weighs the failures of fit_all_failures"):
-        ExperimentConfig(fit_all_failures=False)
-    sampler = ExperimentConfig(fit_all_failures=False, fit_weights="sampler", final_smoothing=None)
-    assert sampler.fit_weights == "sampler"
+        ExperimentConfig.of(fit_all_failures=False)
+    sampler = ExperimentConfig.of(fit_all_failures=False, fit_weights="sampler", final_smoothing=None)
+    assert sampler.adaptive.fit_weights == "sampler"
     with pytest.raises(ConfigError, match="final_smoothing = 1.0 is invalid: a last fit of its own needs fit_weights"):
-        ExperimentConfig(fit_all_failures=False, fit_weights="sampler")
+        ExperimentConfig.of(fit_all_failures=False, fit_weights="sampler")
     with pytest.raises(
         ConfigError, match=r"smoothing_at_failure = 2.5 is invalid: .* must be None or a number in \(0, 2\]"
     ):
-        ExperimentConfig(smoothing_at_failure=2.5)
+        ExperimentConfig.of(smoothing_at_failure=2.5)
     with pytest.raises(ConfigError, match=r"final_smoothing = 0 is invalid: .* must be None or a number in \(0, 2\]"):
-        ExperimentConfig(final_smoothing=0)
+        ExperimentConfig.of(final_smoothing=0)
 
 
 @pytest.mark.parametrize("pool_weights, power", [("quadratic", 2), ("linear", 1), ("rollouts", 0)])
@@ -367,7 +367,7 @@ def test_pool_weights_count_the_jth_pooled_stage_by_j_to_the_power_times_its_rol
     # (Portier & Delyon 2018), with the final batch's n_j = 100
     from pemviz.engine.experiment import Experiment
 
-    cfg = ExperimentConfig(**{**SMALL_RUN, "n_stages": 4, "seed": 0, "pool_weights": pool_weights})
+    cfg = ExperimentConfig.of(**{**SMALL_RUN, "n_stages": 4, "seed": 0, "pool_weights": pool_weights})
     done = Experiment(cfg, problem=build_problem("main")).run()
     by_stage = {s.stage: s.estimate for s in done.stages}
     used = done.final.stages_used

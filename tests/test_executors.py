@@ -105,12 +105,12 @@ def test_a_simulator_that_does_not_draw_once_per_step_is_refused_with_a_clear_er
 
 
 def test_config_accepts_serial_and_ray_and_refuses_others():
-    assert ExperimentConfig().executor == "serial"
-    assert ExperimentConfig(executor="ray", ray_address="auto").ray_address == "auto"
+    assert ExperimentConfig.of().execution.executor == "serial"
+    assert ExperimentConfig.of(executor="ray", ray_address="auto").execution.ray_address == "auto"
     with pytest.raises(ConfigError, match="executor = 'dask' is invalid: use one of serial, ray"):
-        ExperimentConfig(executor="dask")
+        ExperimentConfig.of(executor="dask")
     with pytest.raises(ConfigError, match="ray_address"):
-        ExperimentConfig(ray_address="auto")
+        ExperimentConfig.of(ray_address="auto")
     with pytest.raises(ValueError, match="unknown executor 'dask'"):
         get_executor("dask")
 
@@ -121,8 +121,8 @@ def test_run_command_passes_executor_and_ray_address_to_the_config():
 
     args = build_parser().parse_args(["run", "--executor", "ray", "--ray-address", "ray://head:10001"])
     cfg = config_from_args(args)
-    assert (cfg.executor, cfg.ray_address) == ("ray", "ray://head:10001")
-    assert config_from_args(build_parser().parse_args(["run"])).executor == "serial"
+    assert (cfg.execution.executor, cfg.execution.ray_address) == ("ray", "ray://head:10001")
+    assert config_from_args(build_parser().parse_args(["run"])).execution.executor == "serial"
 
 
 def _run(config: ExperimentConfig, problem: Problem):
@@ -157,7 +157,7 @@ def ray_workers(request):
         ray.shutdown()
 
 
-BLOCKS = ExperimentConfig(
+BLOCKS = ExperimentConfig.of(
     n_stages=2, n_per_stage=20, n_final=9000, pretrain_rollouts=20, ce_epochs=100, pretrain_epochs=200, seed=1
 )
 """A small default-sampler run whose final batch spans two Array-RQMC blocks (8,192 + 808 rollouts)."""

@@ -37,5 +37,5 @@ def test_the_panels_cost_line_scales_by_the_load():
     from pemviz.app.form import run_cost
     from pemviz.config import ExperimentConfig
 
-    cfg = ExperimentConfig(n_stages=2, n_per_stage=50, n_final=60, pretrain_rollouts=20)
+    cfg = ExperimentConfig.of(n_stages=2, n_per_stage=50, n_final=60, pretrain_rollouts=20)
     assert run_cost(cfg, slowdown=1.5).seconds == pytest.approx(1.5 * run_cost(cfg, slowdown=1.0).seconds)

@@ -20,7 +20,7 @@ from pemviz.scenarios.registry import problem_for
 @pytest.fixture(scope="module")
 def crowd():
     """The crowd toy: three mislocated obstacles, exact p = 3.4e-5 in closed form."""
-    return problem_for(ExperimentConfig(scenario="crowd"))
+    return problem_for(ExperimentConfig.of(scenario="crowd"))
 
 
 def _ratios(problem, seeds: range, n: int, stride: int | None) -> np.ndarray:
@@ -41,7 +41,7 @@ def test_the_score_is_the_nominal_continuation_s_robustness():
     """At step 0 every rollout's state is the start: its score is the least robustness of one rollout drawn with
     every uniform at 0.5 (each object detected iff p >= 0.5, errors at their medians), through ``simulate`` instead
     of ``branch``; steps where no pedestrian is within the window are not scored."""
-    problem = problem_for(ExperimentConfig(scenario="crossing"))
+    problem = problem_for(ExperimentConfig.of(scenario="crossing"))
     everywhere = LookAheadScore(dataclasses.replace(problem, window=math.inf), stride=1)
     _, graded = everywhere.simulate(8, np.random.default_rng(3))
     nominal = problem.simulate(1, problem.target, problem.target, MedianUniforms())  # type: ignore[arg-type]

@@ -102,7 +102,7 @@ def test_a_run_weighs_its_mixture_as_a_second_pass_over_the_rollouts_would(monke
     """The default sampler's mixture weights from the logits kept while simulating, against the weights recomputed
     from the rollouts (the path Ray tasks take): asked about the same rows, step by step and block by block, the
     network gives the same bits, so the runs are the same run (the contract that serial and Ray runs agree)."""
-    cfg = ExperimentConfig(n_stages=4, n_per_stage=80, n_final=200, ce_epochs=60, pretrain_epochs=60, seed=3)
+    cfg = ExperimentConfig.of(n_stages=4, n_per_stage=80, n_final=200, ce_epochs=60, pretrain_epochs=60, seed=3)
     kept = Experiment(cfg, problem=build_problem("main")).run().final.estimate
     monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1: None)
     again = Experiment(cfg, problem=build_problem("main")).run().final.estimate

@@ -19,10 +19,10 @@ from pemviz.engine.experiment import Experiment
 from pemviz.sinks.recording import RerunSink
 
 CONFIGS = {
-    "braking": ExperimentConfig(
+    "braking": ExperimentConfig.of(
         n_stages=3, n_per_stage=100, n_final=100, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=100, seed=1
     ),
-    "cut-in": ExperimentConfig(
+    "cut-in": ExperimentConfig.of(
         scenario="cut-in",
         n_stages=2,
         n_per_stage=60,

@@ -32,11 +32,11 @@ from pemviz.sinks.recording import RerunSink  # noqa: E402
 
 SMALL = dict(ce_epochs=30, pretrain_epochs=50)
 CONFIGS = {
-    "braking": ExperimentConfig(n_stages=3, n_per_stage=100, n_final=100, pretrain_rollouts=100, seed=1, **SMALL),
-    "cut-in": ExperimentConfig(
+    "braking": ExperimentConfig.of(n_stages=3, n_per_stage=100, n_final=100, pretrain_rollouts=100, seed=1, **SMALL),
+    "cut-in": ExperimentConfig.of(
         scenario="cut-in", n_stages=2, n_per_stage=60, n_final=60, pretrain_rollouts=60, seed=2, **SMALL
     ),
-    "braking-streamed": ExperimentConfig(
+    "braking-streamed": ExperimentConfig.of(
         n_stages=2, n_per_stage=400, n_final=400, pretrain_rollouts=100, seed=1, chunk_rollouts=100, **SMALL
     ),
 }

@@ -96,7 +96,7 @@ def test_an_unknown_p_names_plain_monte_carlo_with_its_count_and_this_run_s_time
     seconds a simulation (6.3 s / 2100 = 3 ms) scaled by the cost model (plain_rollout_seconds); the sampler's own
     route keeps the run's 3 ms."""
     p = 3e-4
-    cfg = ExperimentConfig()
+    cfg = ExperimentConfig.of()
     advice = next_step(made(math.log(p)), cfg, n_simulations=2100, wall_s=6.3)
     n, plain = mc_count(p), plain_rollout_seconds(cfg, 6.3 / 2100)
     assert n == 320_038 and mc_cap(n) == 384_046
@@ -113,7 +113,7 @@ def test_an_unknown_p_names_plain_monte_carlo_with_its_count_and_this_run_s_time
 
 def test_a_known_p_sizes_plain_monte_carlo_on_the_reference_with_the_measured_time():
     e = made(math.log(4.2e-12), khat=3.06)
-    cfg = ExperimentConfig(scenario="cut-in")
+    cfg = ExperimentConfig.of(scenario="cut-in")
     advice = next_step(e, cfg, None, CUT_IN_REFERENCE, 2100, 7.0)
     n, plain = mc_count(866 / 10_000_000), plain_rollout_seconds(cfg, 7.0 / 2100)
     assert f"--method mc --rel-error 0.2 --max-sims {mc_cap(n)} (p ~ 8.66e-05, the reference: {n:,} rollouts" in advice
@@ -128,7 +128,7 @@ def test_a_probed_plain_rollout_times_plain_monte_carlo_at_its_own_speed():
     """With the engine's probe (a plain rollout's seconds measured after the run), plain Monte Carlo's time is its
     rollouts times that, and the line says it was measured; the sampler's own route keeps the run's speed."""
     e = made(math.log(4.2e-12), khat=3.06)
-    advice = next_step(e, ExperimentConfig(scenario="cut-in"), None, CUT_IN_REFERENCE, 2100, 7.0, plain_s=2.3e-4)
+    advice = next_step(e, ExperimentConfig.of(scenario="cut-in"), None, CUT_IN_REFERENCE, 2100, 7.0, plain_s=2.3e-4)
     n = mc_count(866 / 10_000_000)
     assert (
         f"{n:,} rollouts for a 20 % interval, ~{duration_text(n * 2.3e-4)} at ~0.23 ms a plain rollout (measured "
@@ -144,16 +144,17 @@ def test_the_engine_probes_a_plain_rollout_only_where_the_advice_needs_it():
     from pemviz.scenarios.problems import build_problem
 
     problem = build_problem("toy")
-    s = plain_probe(problem, ExperimentConfig(method="adaptive"), made(math.log(1e-3)))
+    s = plain_probe(problem, ExperimentConfig.of(method="adaptive"), made(math.log(1e-3)))
     assert s is not None and 0.0 < s < 0.1
-    assert plain_probe(problem, ExperimentConfig(method="mc"), made(math.log(1e-3))) is None
+    assert plain_probe(problem, ExperimentConfig.of(method="mc"), made(math.log(1e-3))) is None
     assert (
-        plain_probe(problem, ExperimentConfig(), dataclasses.replace(made(math.log(1e-3)), verdict="reliable")) is None
+        plain_probe(problem, ExperimentConfig.of(), dataclasses.replace(made(math.log(1e-3)), verdict="reliable"))
+        is None
     )
 
 
 def test_a_max_time_that_plain_monte_carlo_does_not_fit_says_so_and_what_is_left():
-    cfg = ExperimentConfig(scenario="cut-in", rel_error=0.1, max_time_s=60.0)
+    cfg = ExperimentConfig.of(scenario="cut-in", rel_error=0.1, max_time_s=60.0)
     n, plain = mc_count(866 / 10_000_000), plain_rollout_seconds(cfg, 1e-3)  # 1,108,911 rollouts, this run at 1 ms
     assert n * plain > 60.0  # plain Monte Carlo does not fit in the minute
     e = made(math.log(4.2e-12))
@@ -192,7 +193,7 @@ def test_braking_s_p_is_too_rare_for_plain_monte_carlo_and_says_so():
         "unreliable",
         "no failure",
     )
-    advice = next_step(e, ExperimentConfig(method="mc"), math.log(1.984e-15), None, 100, 0.01)
+    advice = next_step(e, ExperimentConfig.of(method="mc"), math.log(1.984e-15), None, 100, 0.01)
     assert advice.startswith(
         "p ~ 1.98e-15, the exact answer: 4.8e+16 rollouts for a 20 % interval, ~1.5e+05 years "
         "at this run's 0.1 ms a rollout: too rare for plain Monte Carlo; an importance-sampling "
@@ -216,7 +217,7 @@ def test_a_plain_monte_carlo_run_is_told_how_many_rollouts_and_how_long():
         "doubtful",
         "only 1 failure",
     )
-    advice = next_step(e, ExperimentConfig(method="mc", n_per_stage=20_000), None, CUT_IN_REFERENCE, 20_000, 4.2)
+    advice = next_step(e, ExperimentConfig.of(method="mc", n_per_stage=20_000), None, CUT_IN_REFERENCE, 20_000, 4.2)
     n = mc_count(866 / 10_000_000)  # timed at the run's own measured 4.2 s / 20,000 rollouts
     assert advice == (
         f"more rollouts: --rel-error 0.2 --max-sims {mc_cap(n)} samples until the interval is within "
@@ -230,7 +231,7 @@ def test_a_heavy_tailed_tiny_mu_hat_gets_plain_monte_carlo_capped_not_called_too
     """mu_hat 3.8e-11 from weights with k-hat 4.4 (the cut-in at a 19.5 m gap) is usually far too low: plain Monte
     Carlo capped at MC_AFFORDABLE rollouts decides p wherever p >= 1.96^2 / (0.04 cap + 1.96^2), stopping early."""
     e = made(math.log(3.8e-11), khat=4.38)
-    advice = next_step(e, ExperimentConfig(scenario="cut-in"), None, None, 2100, 7.0)
+    advice = next_step(e, ExperimentConfig.of(scenario="cut-in"), None, None, 2100, 7.0)
     assert advice.startswith("p is not known (p ~ 3.80e-11, this run's mu_hat: 2.5e+12 rollouts")
     assert "--method mc --rel-error 0.2 --max-sims 100000000: up to 100,000,000 rollouts" in advice
     assert "decides it where p >= 9.6e-07, stopping early where p is larger" in advice
@@ -252,7 +253,7 @@ def test_a_run_that_backs_no_interval_caps_plain_monte_carlo_at_its_lower_bound(
         interval_backed=backed,
         log_lower_bound=math.log(5.21e-3),
     )
-    cfg = ExperimentConfig()
+    cfg = ExperimentConfig.of()
     advice = next_step(e, cfg, n_simulations=8221, wall_s=15.2)
     n, floor, plain = mc_count(1.76e-2), mc_count(5.21e-3), plain_rollout_seconds(cfg, 15.2 / 8221, 8221)
     cap = mc_cap(floor if not backed else n)
@@ -266,7 +267,7 @@ def test_a_run_that_backs_no_interval_caps_plain_monte_carlo_at_its_lower_bound(
 
 def test_splitting_and_tilt_keep_their_own_advice_with_counts_and_times():
     e = Estimate(100, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, 0.0), math.nan, 0.0, "unreliable", "died")
-    ams = next_step(e, ExperimentConfig(method="ams"), None, None, 170, 0.2)
+    ams = next_step(e, ExperimentConfig.of(method="ams"), None, None, 170, 0.2)
     assert ams == (
         "more particles (--n 400, ~0.8 s), or particles ranked by the scenario's committor where it has one "
         "(--ams-score committor: where the robustness is flat every particle ties and the run dies out); "
@@ -275,7 +276,7 @@ def test_splitting_and_tilt_keep_their_own_advice_with_counts_and_times():
     assert_valid_flags(ams)
     tilt = next_step(
         made(math.log(9.15e-5), khat=1.72),
-        ExperimentConfig(method="tilt", scenario="cut-in"),
+        ExperimentConfig.of(method="tilt", scenario="cut-in"),
         None,
         CUT_IN_REFERENCE,
         12_995,
@@ -291,10 +292,10 @@ def test_splitting_and_tilt_keep_their_own_advice_with_counts_and_times():
 
 def test_final_lines_time_the_advice_with_the_run_s_own_seconds_a_simulation():
     e = made(math.log(3e-4))
-    lines = final_lines(FinalEstimate(e, 2100, 6.3), ExperimentConfig())
+    lines = final_lines(FinalEstimate(e, 2100, 6.3), ExperimentConfig.of())
     advice = next(line for line in lines if line.startswith("next: "))
-    assert advice == "next: " + next_step(e, ExperimentConfig(), None, None, 2100, 6.3)
-    plain = plain_rollout_seconds(ExperimentConfig(), 6.3 / 2100)  # the event's 6.3 s / 2100 simulations
+    assert advice == "next: " + next_step(e, ExperimentConfig.of(), None, None, 2100, 6.3)
+    plain = plain_rollout_seconds(ExperimentConfig.of(), 6.3 / 2100)  # the event's 6.3 s / 2100 simulations
     assert f"~{duration_text(mc_count(3e-4) * plain)} at {plain_rate(plain)}" in advice
     assert "more budget (--n 400: 5,100 simulations, ~15 s)" in advice  # 5,100 x the event's 3 ms
 
@@ -310,8 +311,8 @@ def test_a_plain_rollout_s_seconds_are_the_run_s_scaled_by_the_cost_model_s_rati
 
     ratios = []
     for cfg in (
-        ExperimentConfig(method="adaptive", scenario="braking"),
-        ExperimentConfig(method="tilt", scenario="cut-in"),
+        ExperimentConfig.of(method="adaptive", scenario="braking"),
+        ExperimentConfig.of(method="tilt", scenario="cut-in"),
     ):
         plain = stage_cost(replace(cfg, method="mc"), "final", 100_000, N_STEPS).seconds / 100_000
         run = run_cost(cfg, run_plan(cfg), N_STEPS).seconds / cfg.n_simulations
@@ -322,7 +323,7 @@ def test_a_plain_rollout_s_seconds_are_the_run_s_scaled_by_the_cost_model_s_rati
         assert plain_rollout_seconds(cfg, None) is None
     assert ratios[0] != pytest.approx(ratios[1], rel=0.1)  # each method's own ratio, not one factor for all
     for scenario in ("braking", "cut-in"):
-        mc = ExperimentConfig(method="mc", scenario=scenario)
+        mc = ExperimentConfig.of(method="mc", scenario=scenario)
         assert plain_rollout_seconds(mc, 2.1e-4) == 2.1e-4 and plain_rollout_seconds(mc, 3e-3) == 3e-3
 
 
@@ -334,7 +335,7 @@ def test_a_tilt_run_s_plain_rollout_seconds_divide_its_wall_time_not_its_look_ah
     from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
     from pemviz.estimators import run_plan
 
-    cfg = ExperimentConfig(method="tilt", scenario="cut-in")
+    cfg = ExperimentConfig.of(method="tilt", scenario="cut-in")
     wall, reported = 2.8, 1623
     plain = stage_cost(replace(cfg, method="mc"), "final", 100_000, N_STEPS).seconds / 100_000
     model = run_cost(cfg, run_plan(cfg), N_STEPS).seconds

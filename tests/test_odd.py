@@ -96,10 +96,10 @@ def test_a_bin_estimate_is_unbiased_in_closed_form():
 
 
 def test_the_toy_over_an_odd_by_plain_monte_carlo_holds_its_closed_form():
-    problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
+    problem = problem_for(ExperimentConfig.of(scenario="toy", scenario_params=TOY_ODD))
     assert math.exp(problem.exact_log_p) == pytest.approx(EXACT, rel=1e-12)
     done = Experiment(
-        ExperimentConfig(scenario="toy", scenario_params=TOY_ODD, method="mc", n_per_stage=200_000, seed=3),
+        ExperimentConfig.of(scenario="toy", scenario_params=TOY_ODD, method="mc", n_per_stage=200_000, seed=3),
         problem=problem,
     ).run()
     e = done.final.estimate
@@ -109,11 +109,11 @@ def test_the_toy_over_an_odd_by_plain_monte_carlo_holds_its_closed_form():
 def test_the_toy_over_an_odd_by_the_default_sampler_and_its_map():
     """The default sampler over seeds 0-9: near the closed form, capped at doubtful (a fit can miss a region of the
     ODD unseen by its weights); the map's bins hold each braking distance's closed form."""
-    problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
+    problem = problem_for(ExperimentConfig.of(scenario="toy", scenario_params=TOY_ODD))
     ratios = []
     for seed in range(10):
         e = (
-            Experiment(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD, seed=seed), problem=problem)
+            Experiment(ExperimentConfig.of(scenario="toy", scenario_params=TOY_ODD, seed=seed), problem=problem)
             .run()
             .final.estimate
         )
@@ -131,7 +131,7 @@ def test_the_toy_over_an_odd_by_the_default_sampler_and_its_map():
 
 
 def test_an_odd_stream_is_the_same_rollouts_at_any_chunk_size():
-    problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
+    problem = problem_for(ExperimentConfig.of(scenario="toy", scenario_params=TOY_ODD))
     whole = problem.simulate(3000, problem.target, problem.target, np.random.default_rng(7))
     for size in (1000, 777):
         chunks = list(problem.stream(3000, problem.target, problem.target, np.random.default_rng(7), chunk_size=size))
@@ -143,7 +143,7 @@ def test_an_odd_stream_is_the_same_rollouts_at_any_chunk_size():
 
 
 def test_braking_draws_its_start_per_rollout():
-    cfg = ExperimentConfig(scenario_params=(("ego_speed0_mps", "~uniform(6, 12)"),), n_per_stage=50)
+    cfg = ExperimentConfig.of(scenario_params=(("ego_speed0_mps", "~uniform(6, 12)"),), n_per_stage=50)
     problem = problem_for(cfg)
     batch = problem.simulate(400, problem.target, problem.target, np.random.default_rng(0))
     names = batch.observation_names
@@ -155,7 +155,7 @@ def test_braking_draws_its_start_per_rollout():
 def test_a_fixed_parameter_is_todays_run():
     """Without a distribution nothing changes: the same problem and rollouts as before."""
     problem = problem_for(
-        ExperimentConfig(scenario="toy", scenario_params=(("total", 10), ("safe", 3), ("braking", 5)))
+        ExperimentConfig.of(scenario="toy", scenario_params=(("total", 10), ("safe", 3), ("braking", 5)))
     )
     assert problem.odd is None and problem.exact_log_p == pytest.approx(
         toy_log_failure_probability(ToyParams(10, 5, 3, 0.9))
@@ -186,7 +186,7 @@ def test_a_bad_odd_on_the_command_line_is_one_line_exit_2(param, message, tmp_pa
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
     assert __import__("re").search(message, proc.stderr), proc.stderr
     with pytest.raises(ConfigError):
-        ExperimentConfig(scenario="toy", scenario_params=(("total", 10), ("safe", 3), tuple(param.split("~", 1))))
+        ExperimentConfig.of(scenario="toy", scenario_params=(("total", 10), ("safe", 3), tuple(param.split("~", 1))))
     assert list(tmp_path.iterdir()) == []
 
 
@@ -248,7 +248,7 @@ def test_an_odd_is_its_parameters_in_order():
 
 def test_a_branch_over_an_odd_keeps_each_parents_parameters_and_prefix():
     """Splitting and the counterfactuals replay a rollout from a step: its drawn parameters come with it."""
-    problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
+    problem = problem_for(ExperimentConfig.of(scenario="toy", scenario_params=TOY_ODD))
     parents = problem.simulate(50, problem.target, problem.target, np.random.default_rng(0))
     children = problem.branch(parents, np.arange(10, 20), np.full(10, 3), problem.target, np.random.default_rng(1))
     col = parents.observation_names.index("braking")

@@ -83,7 +83,7 @@ def _latched(config: ExperimentConfig):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_latched_members_and_shifts_against_their_closed_form(seed):
-    spread = _latched(ExperimentConfig(seed=seed, pem_uncertainty=True))
+    spread = _latched(ExperimentConfig.of(seed=seed, pem_uncertainty=True))
     assert len(spread.members) == 20 and [a.label for a in spread.shifts] == [f"{d:+g}" for d in PEM_SHIFTS]
     alts = [*spread.members, *spread.shifts]
     for a in alts:  # the truth comes from the closed form, computed for each PEM here
@@ -106,7 +106,7 @@ def test_latched_members_and_shifts_against_their_closed_form(seed):
 
 
 def test_main_scenario_members_the_truth_knows_are_within_x1_5():
-    cfg = ExperimentConfig(seed=0, pem_uncertainty=True)
+    cfg = ExperimentConfig.of(seed=0, pem_uncertainty=True)
     spread = Experiment(cfg, problem=problem_for(cfg)).run().final.pem_spread
     known = [a for a in (*spread.members, *spread.shifts) if a.exact_log_p is not None]
     assert len(known) >= 5
@@ -114,7 +114,7 @@ def test_main_scenario_members_the_truth_knows_are_within_x1_5():
         assert abs(a.estimate.log_mu_hat - a.exact_log_p) <= math.log(1.5), a
         assert a.estimate.covers(a.exact_log_p), a
     # the run's own estimate is untouched by the re-weighting
-    plain = Experiment(ExperimentConfig(seed=0), problem=problem_for(ExperimentConfig(seed=0))).run().final
+    plain = Experiment(ExperimentConfig.of(seed=0), problem=problem_for(ExperimentConfig.of(seed=0))).run().final
     assert spread.nominal.log_mu_hat == plain.estimate.log_mu_hat
 
 
@@ -128,7 +128,7 @@ def test_console_shows_the_spread_and_the_shift(capsys):
 
 def test_pem_shift_out_of_range_is_refused():
     with pytest.raises(ConfigError, match="PEM's logit shift"):
-        ExperimentConfig(pem_shift=20.0)
+        ExperimentConfig.of(pem_shift=20.0)
 
 
 def test_the_rollout_file_re_estimates_the_run_s_spread(tmp_path, capsys):

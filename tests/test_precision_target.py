@@ -23,7 +23,7 @@ TOY = "toy-1e-3"
 
 def run(problem_name: str = TOY, **fields):
     problem = build_problem(problem_name)
-    return problem, Experiment(ExperimentConfig(**fields), problem=problem).run()
+    return problem, Experiment(ExperimentConfig.of(**fields), problem=problem).run()
 
 
 def test_plain_monte_carlo_samples_until_the_clopper_pearson_interval_is_within_the_target():
@@ -46,7 +46,7 @@ def test_a_cap_on_simulations_stops_the_run_and_says_so():
 
 
 def test_a_cap_on_time_stops_adding_batches():
-    cfg = ExperimentConfig(method="mc", n_per_stage=1000, rel_error=0.01, max_time_s=10.0)
+    cfg = ExperimentConfig.of(method="mc", n_per_stage=1000, rel_error=0.01, max_time_s=10.0)
     problem = build_problem(TOY)
     ticks = iter([0.0, 100.0, 100.0, 100.0])  # the run starts, then every look at the clock is past the cap
     inner = build_estimator(cfg.replace(rel_error=None, max_time_s=None), problem)
@@ -66,7 +66,7 @@ def test_an_adaptive_run_pools_the_added_batches_with_the_final_one_as_its_rollo
     """The pool: the CE stages after the failure level with their quadratic lambda, the final batch's lambda shared by
     the final batches in proportion to their rollouts; pooled again here from the stages' own arrays."""
     problem, done = run("main", rel_error=0.05, seed=1)
-    final, k_final = done.final, ExperimentConfig().n_stages + 1
+    final, k_final = done.final, ExperimentConfig.of().adaptive.n_stages + 1
     assert final.stop.startswith("target reached") and final.estimate.rel_half_width <= 0.05
     used = final.stages_used
     assert k_final in used and used[-1] > k_final  # batches were added after the final one
@@ -117,7 +117,7 @@ def test_the_added_batch_follows_the_square_root_law_within_its_bounds():
 )
 def test_settings_that_cannot_run_are_refused_by_the_config(fields, message):
     with pytest.raises(ConfigError, match=None) as info:
-        ExperimentConfig(**fields)
+        ExperimentConfig.of(**fields)
     assert message in str(info.value)
 
 
@@ -136,7 +136,7 @@ def test_while_the_weights_back_no_interval_the_added_batches_double():
     from pemviz.presets import PRESETS
     from pemviz.scenarios.problems import problem_for
 
-    cfg = ExperimentConfig(**{**PRESETS["quick"], "n_stages": 2, "require": "p < 1e-9", "max_sims": 20_000})
+    cfg = ExperimentConfig.of(**{**PRESETS["quick"], "n_stages": 2, "require": "p < 1e-9", "max_sims": 20_000})
     done = Experiment(cfg, problem=problem_for(cfg)).run()
     final = done.final
     assert final.decision is not None and final.decision.outcome == "undecided"

@@ -81,8 +81,8 @@ def test_every_method_of_the_sweep_gets_the_default_samplers_budget(sweep, n_fin
     from pemviz.config import ExperimentConfig
 
     methods = dict(sweep.methods_at(n_final))
-    assert ExperimentConfig(**methods["state-ce"]).n_simulations == budget
-    assert ExperimentConfig(**methods["paper"]).n_simulations == budget  # 100 pretraining + 10 x 100 + the rest
+    assert ExperimentConfig.of(**methods["state-ce"]).n_simulations == budget
+    assert ExperimentConfig.of(**methods["paper"]).n_simulations == budget  # 100 pretraining + 10 x 100 + the rest
     assert methods["mc"] == {"method": "mc", "n_per_stage": budget}
     assert methods["ams"] == {"method": "ams", "n_per_stage": budget // 4, "ams_killed": budget // 40}
     assert methods["q*"] is None

@@ -96,8 +96,8 @@ def static_value(tables, name: str):
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     d = tmp_path_factory.mktemp("recording")
-    adaptive = record(d / "adaptive.rrd", ExperimentConfig(**SMALL))
-    naive = record(d / "naive.rrd", ExperimentConfig(method="naive50", n_per_stage=30, seed=2))
+    adaptive = record(d / "adaptive.rrd", ExperimentConfig.of(**SMALL))
+    naive = record(d / "naive.rrd", ExperimentConfig.of(method="naive50", n_per_stage=30, seed=2))
     tables = read({"adaptive": d / "adaptive.rrd", "naive": d / "naive.rrd"})
     return {
         "adaptive": (adaptive[0], adaptive[1], tables["adaptive"], d / "adaptive.rrd"),
@@ -314,7 +314,7 @@ def test_cancel_token_after_stage_3_leaves_a_valid_recording_of_stages_0_to_3(tm
             cancel.set()
 
     out = tmp_path / "cancelled.rrd"
-    record(out, ExperimentConfig(**{**SMALL, "n_stages": 6}), [cancel_after_stage_3], cancel)
+    record(out, ExperimentConfig.of(**{**SMALL, "n_stages": 6}), [cancel_after_stage_3], cancel)
     verify_rrd(out)
     stages, curves, text = _stages_in(out)
     assert stages == [0, 1, 2, 3]
@@ -601,7 +601,7 @@ def test_the_braking_drawing_says_which_rollouts_made_contact_at_once_as_each_ro
 def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_where_it_was_measured(tmp_path):
     from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES
 
-    cfg = ExperimentConfig(
+    cfg = ExperimentConfig.of(
         scenario="cut-in",
         n_stages=2,
         n_per_stage=60,

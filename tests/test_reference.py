@@ -63,12 +63,12 @@ def test_an_estimate_far_off_says_by_how_much():
 
 
 def test_only_the_moderate_cut_in_with_the_shipped_pems_carries_the_reference():
-    cut_in = problem_for(ExperimentConfig(scenario="cut-in"))
+    cut_in = problem_for(ExperimentConfig.of(scenario="cut-in"))
     assert (cut_in.reference.n_failures, cut_in.reference.n) == (866, 10_000_000) and cut_in.exact_log_p is None
-    assert problem_for(ExperimentConfig(scenario="cut-in", pem="ml-nn")).reference == cut_in.reference
-    assert problem_for(ExperimentConfig(scenario="cut-in", pem="gbt")).reference is None  # drawn under ml-nn only
-    assert problem_for(ExperimentConfig(scenario="cut-in-rare")).reference is None
-    assert problem_for(ExperimentConfig()).reference is None  # the braking scenario has its exact answer
+    assert problem_for(ExperimentConfig.of(scenario="cut-in", pem="ml-nn")).reference == cut_in.reference
+    assert problem_for(ExperimentConfig.of(scenario="cut-in", pem="gbt")).reference is None  # drawn under ml-nn only
+    assert problem_for(ExperimentConfig.of(scenario="cut-in-rare")).reference is None
+    assert problem_for(ExperimentConfig.of()).reference is None  # the braking scenario has its exact answer
 
 
 def test_a_cut_in_run_prints_its_estimate_beside_the_reference():
@@ -89,5 +89,5 @@ def test_the_config_knows_how_many_objects_each_scenario_perceives():
     from pemviz.settings import SCENARIOS
 
     for scenario in SCENARIOS:  # the record says what its problem perceives, before anything is loaded
-        assert problem_for(ExperimentConfig(scenario=scenario)).n_objects == objects_of(scenario), scenario
+        assert problem_for(ExperimentConfig.of(scenario=scenario)).n_objects == objects_of(scenario), scenario
     assert (objects_of("braking"), objects_of("cut-in"), objects_of("no-such-scene")) == (1, 5, 1)

@@ -35,7 +35,7 @@ def test_two_different_rows_with_one_key_are_declined():
 @pytest.fixture(scope="module")
 def cut_in_rows():
     """Object rows [R, G] of 2,048 cut-in rollouts at steps 5 and 60: many repeats, then none (a read-only array)."""
-    pb = problem_for(ExperimentConfig(scenario="cut-in"))
+    pb = problem_for(ExperimentConfig.of(scenario="cut-in"))
     (batch,) = pb.stream(2048, pb.target, pb.target, np.random.default_rng(1))
     return pb.target, {t: batch.objects[:, t].reshape(-1, batch.objects.shape[-1]) for t in (5, 60)}
 

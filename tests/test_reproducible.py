@@ -21,7 +21,7 @@ def small(scenario: str = "braking", **fields) -> ExperimentConfig:
         if scenario == "braking"
         else dict(n_stages=2, n_per_stage=150, n_final=200, pretrain_rollouts=100)
     )
-    return ExperimentConfig(scenario=scenario, **{**base, **fields})
+    return ExperimentConfig.of(scenario=scenario, **{**base, **fields})
 
 
 @pytest.mark.parametrize("scenario", ["braking", "cut-in"])
@@ -115,7 +115,7 @@ def test_cut_in_chunks_of_1000_give_the_default_chunk_s_rollouts_bit_for_bit():
     from pemviz.scenarios.problems import problem_for
     from pemviz.core.rollouts import RolloutBatch
 
-    pb = problem_for(ExperimentConfig(scenario="cut-in"))
+    pb = problem_for(ExperimentConfig.of(scenario="cut-in"))
 
     def rollouts(chunk: int) -> RolloutBatch:
         return RolloutBatch.concatenate(

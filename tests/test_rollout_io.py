@@ -51,7 +51,7 @@ def naive_run(tmp_path_factory, pem):
     path = tmp_path_factory.mktemp("naive") / "naive.parquet"
     finals = []
     sink = RolloutSink(path)
-    cfg = ExperimentConfig(method="naive50", n_per_stage=200, seed=1)
+    cfg = ExperimentConfig.of(method="naive50", n_per_stage=200, seed=1)
     Experiment(
         cfg, [sink, lambda ev: finals.append(ev) if isinstance(ev, FinalEstimate) else None], problem=problem_for(cfg)
     ).run()
@@ -170,7 +170,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
 
     path = tmp_path / "adaptive.parquet"
     sink = RolloutSink(path, pem=str(pem_file))
-    cfg = ExperimentConfig(**PRESETS["paper"], pem=str(pem_file))  # weights over T - 1 steps, as `truth` above
+    cfg = ExperimentConfig.of(**PRESETS["paper"], pem=str(pem_file))  # weights over T - 1 steps, as `truth` above
     sink(
         RunStarted(
             cfg,
@@ -222,7 +222,7 @@ def chunked(pem, monkeypatch):
     )
 
 
-STREAMED = ExperimentConfig(
+STREAMED = ExperimentConfig.of(
     n_stages=1,
     n_per_stage=100,
     n_final=1000,

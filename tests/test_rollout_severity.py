@@ -35,7 +35,7 @@ GAP = SeverityScale("d", "gap", "m", (1.5, 1.0, 0.5, 0.0), margin=2.0)
 
 @pytest.fixture(scope="module")
 def braking():
-    return problem_for(ExperimentConfig())
+    return problem_for(ExperimentConfig.of())
 
 
 def braking_batch(detected: np.ndarray) -> RolloutBatch:
@@ -97,7 +97,7 @@ def test_cut_in_impact_speed_is_the_ego_s_closing_speed_on_the_car_it_meets():
     from pemviz.scenarios.cut_in.scenario import OBSERVATION_NAMES as NAMES
     from pemviz.scenarios.cut_in.batched import replay as replay_cut_in
 
-    problem = problem_for(ExperimentConfig(scenario="cut-in"))
+    problem = problem_for(ExperimentConfig.of(scenario="cut-in"))
     p = cut_in_params("moderate")
     rng = np.random.default_rng(0)
     detected = np.ones((80, p.n_steps, p.n_objects), bool)
@@ -181,7 +181,7 @@ def test_share_text_never_rounds_a_share_to_0_or_100_percent():
 def test_a_small_run_s_failures_by_share_match_a_hand_computation(braking):
     # a braking run that keeps every rollout: each failure's severity is the scene's severity() of its rollout, and
     # each bin's share the sum of its failures' shares; the console prints the line under the severity curve
-    cfg = ExperimentConfig(
+    cfg = ExperimentConfig.of(
         n_stages=3, n_per_stage=60, n_final=200, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=40, seed=4
     )
     groups = FailureGroups(braking.drawing, braking)

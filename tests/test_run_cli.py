@@ -93,7 +93,7 @@ def test_paper_preset_reproduces_the_published_sampler_bit_for_bit():
     # seed 0 of the paper's settings (Innes & Ramamoorthy 2022, Algorithm 1), in exact arithmetic: the proposal
     # collapses onto 2 paths, 91/100 crashes, 1.2264e-24 -- 10^9 below the exact answer with an ESS of 88 and k-hat 0,
     # which the verdict must not call reliable: it is below the 3.22e-24 of the failures the run itself drew
-    cfg = ExperimentConfig(**PRESETS["paper"], seed=0)
+    cfg = ExperimentConfig.of(**PRESETS["paper"], seed=0)
     res = Experiment(cfg, problem=problem_for(cfg)).run()
     e = res.final.estimate
     assert (e.n_failures, e.n) == (91, 100)
@@ -124,7 +124,7 @@ def test_default_recording_verifies_and_holds_the_printed_estimate(default_run):
 
 
 def test_same_seed_gives_the_same_estimate_twice():
-    cfg = ExperimentConfig(n_stages=2, n_per_stage=20, n_final=20, ce_epochs=50, pretrain_epochs=100, seed=3)
+    cfg = ExperimentConfig.of(n_stages=2, n_per_stage=20, n_final=20, ce_epochs=50, pretrain_epochs=100, seed=3)
 
     def stages_and_final(c):
         got = []

@@ -154,7 +154,7 @@ def test_default_recording_name_says_what_ran_and_every_written_file_is_printed(
 
 
 def test_default_recording_names_never_collide(tmp_path: Path) -> None:
-    cfg = ExperimentConfig()
+    cfg = ExperimentConfig.of()
     first = default_recording_path(cfg, "state-ce", tmp_path)
     first.write_bytes(b"x")
     second = default_recording_path(cfg, "state-ce", tmp_path)

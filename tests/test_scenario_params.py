@@ -71,7 +71,7 @@ def test_the_dataclass_s_own_check_is_the_range():
 
 
 def test_the_config_checks_the_pairs_against_the_scenario():
-    cfg = ExperimentConfig(scenario="cut-in", scenario_params=(("cut_in_gap_m", 19.5),))
+    cfg = ExperimentConfig.of(scenario="cut-in", scenario_params=(("cut_in_gap_m", 19.5),))
     assert cfg.scenario_params == (("cut_in_gap_m", 19.5),)
     for bad in (
         (("cut_in_gap_m", 19.5),),
@@ -81,17 +81,17 @@ def test_the_config_checks_the_pairs_against_the_scenario():
         [("gap0_m", 12.0)],
     ):
         with pytest.raises(ConfigError) as info:
-            ExperimentConfig(scenario_params=bad)
+            ExperimentConfig.of(scenario_params=bad)
         assert info.value.field == "scenario_params" and "\n" not in str(info.value), bad
     with pytest.raises(ConfigError, match="give it once") as info:
-        ExperimentConfig(margin=1.0, scenario_params=(("crash_gap_m", 1.0),))
+        ExperimentConfig.of(margin=1.0, scenario_params=(("crash_gap_m", 1.0),))
     assert info.value.field == "margin"
 
 
 def test_a_json_document_s_pairs_make_the_same_config():
-    cfg = ExperimentConfig(scenario="cut-in", scenario_params=(("cut_in_gap_m", 19.5), ("n_objects", 4)))
-    recorded = json.loads(json.dumps(dataclasses.asdict(cfg)))["scenario_params"]
-    assert ExperimentConfig(scenario="cut-in", scenario_params=as_pairs(recorded)) == cfg
+    cfg = ExperimentConfig.of(scenario="cut-in", scenario_params=(("cut_in_gap_m", 19.5), ("n_objects", 4)))
+    recorded = json.loads(json.dumps(cfg.flat()))["scenario_params"]
+    assert ExperimentConfig.of(scenario="cut-in", scenario_params=as_pairs(recorded)) == cfg
 
 
 # -- the problem and its kept answers -----------------------------------------------------------------------------
@@ -100,13 +100,13 @@ def test_a_json_document_s_pairs_make_the_same_config():
 def test_the_problem_has_the_gap_and_no_reference_of_the_default_scene():
     from pemviz.scenarios.problems import problem_for
 
-    default = problem_for(ExperimentConfig(scenario="cut-in"))
-    moved = problem_for(ExperimentConfig(scenario="cut-in", scenario_params=(("cut_in_gap_m", 19.5),)))
+    default = problem_for(ExperimentConfig.of(scenario="cut-in"))
+    moved = problem_for(ExperimentConfig.of(scenario="cut-in", scenario_params=(("cut_in_gap_m", 19.5),)))
     assert "cutting in 20 m ahead" in default.description and default.reference is not None
     assert "cutting in 19.5 m ahead" in moved.description and moved.reference is None
-    same = problem_for(ExperimentConfig(scenario="cut-in", scenario_params=(("cut_in_gap_m", 20.0),)))
+    same = problem_for(ExperimentConfig.of(scenario="cut-in", scenario_params=(("cut_in_gap_m", 20.0),)))
     assert same.reference == default.reference  # the default's own value: the same scene, the same reference
-    assert problem_for(ExperimentConfig(scenario="cut-in", scenario_params=(("n_objects", 4),))).n_objects == 4
+    assert problem_for(ExperimentConfig.of(scenario="cut-in", scenario_params=(("n_objects", 4),))).n_objects == 4
 
 
 def test_the_braking_exact_answer_is_dropped_or_recomputed_for_changed_parameters():
@@ -114,17 +114,17 @@ def test_the_braking_exact_answer_is_dropped_or_recomputed_for_changed_parameter
     from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
     from pemviz.pem import load_pem
 
-    default = problem_for(ExperimentConfig(pem_shift=0.5))
+    default = problem_for(ExperimentConfig.of(pem_shift=0.5))
     assert default.exact_log_p is not None and default.severity_exact
     assert default.alternatives[0].exact_log_p is not None
-    moved = problem_for(ExperimentConfig(pem_shift=0.5, scenario_params=(("gap0_m", 12.0),)))
+    moved = problem_for(ExperimentConfig.of(pem_shift=0.5, scenario_params=(("gap0_m", 12.0),)))
     assert moved.exact_log_p is None and not moved.severity_exact  # kept for the default scene only
     assert moved.alternatives[0].exact_log_p is None
     assert moved.drawing.params == dataclasses.replace(BrakingParams(), gap0_m=12.0)
-    margin = problem_for(ExperimentConfig(margin=1.5))
-    param = problem_for(ExperimentConfig(scenario_params=(("crash_gap_m", 1.5),)))
+    margin = problem_for(ExperimentConfig.of(margin=1.5))
+    param = problem_for(ExperimentConfig.of(scenario_params=(("crash_gap_m", 1.5),)))
     assert param.exact_log_p == margin.exact_log_p is not None and param.drawing == margin.drawing
-    latched = problem_for(ExperimentConfig(scenario_params=(("latched_brake", True), ("gap0_m", 12.0))))
+    latched = problem_for(ExperimentConfig.of(scenario_params=(("latched_brake", True), ("gap0_m", 12.0))))
     truth = latched_log_failure_probability(
         load_pem(None).logit_at_gap, BrakingParams(latched_brake=True, gap0_m=12.0)
     ).log_p_fail

@@ -73,7 +73,7 @@ def test_the_exact_answer_is_the_enumeration_and_the_estimate_finds_it(plugin, m
     try:
         __import__("my_car_scenario")
         assert "my-car" in registry.registered()
-        cfg = ExperimentConfig(
+        cfg = ExperimentConfig.of(
             scenario="my-car",
             n_stages=8,
             n_per_stage=200,

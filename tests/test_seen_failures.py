@@ -29,7 +29,7 @@ def test_the_failures_seen_never_sum_above_the_exact_answer(problem, method, n):
     # the exact answers (closed forms, the braking enumeration) are independent of the sampler: the bound, a sum of
     # p over distinct failing detection prefixes, must stay below them, and the run must have seen failures
     pb = build_problem(problem)
-    res = Experiment(ExperimentConfig(method=method, n_per_stage=n, seed=1), problem=pb).run()
+    res = Experiment(ExperimentConfig.of(method=method, n_per_stage=n, seed=1), problem=pb).run()
     assert res.final.log_p_seen is not None and pb.exact_log_p is not None
     assert res.final.log_p_seen <= pb.exact_log_p + 1e-9
     if method == "adaptive":  # the default sampler draws the likely failures: a bound within 10^3 of p (measured:
@@ -44,7 +44,7 @@ def test_a_prefix_drawn_twice_counts_once_and_distinct_prefixes_add():
     from pemviz.engine.events import RolloutsSampled
 
     Experiment(
-        ExperimentConfig(method="naive50", n_per_stage=400, seed=2),
+        ExperimentConfig.of(method="naive50", n_per_stage=400, seed=2),
         [lambda e: isinstance(e, RolloutsSampled) and res_batches.append(e)],
         problem=pb,
     ).run()
@@ -76,7 +76,7 @@ def test_an_estimate_below_the_failures_seen_is_unreliable_and_one_above_keeps_i
 def test_a_scene_with_measurement_errors_gives_no_bound():
     from pemviz.scenarios.problems import problem_for
 
-    cfg = ExperimentConfig(scenario="cut-in", method="naive50", n_per_stage=200, seed=3)
+    cfg = ExperimentConfig.of(scenario="cut-in", method="naive50", n_per_stage=200, seed=3)
     res = Experiment(cfg, problem=problem_for(cfg)).run()
     assert res.final.estimate.n_failures > 0  # failures were drawn, and still
     assert res.final.log_p_seen is None  # errors are densities: a sum of them bounds no probability

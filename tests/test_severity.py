@@ -67,7 +67,7 @@ def test_the_kept_points_below_1_m_lie_in_a_coarser_enumeration_s_bracket(gap, l
 
 @pytest.fixture(scope="module")
 def default_curve():
-    cfg = ExperimentConfig(seed=0)
+    cfg = ExperimentConfig.of(seed=0)
     return Experiment(cfg, problem=problem_for(cfg)).run().final
 
 
@@ -89,7 +89,7 @@ def test_the_default_run_reports_each_known_point_within_x1_5_inside_its_interva
 def targeted_run_agrees(margin: float, exact: float):
     """A run of seed 1 that targets ``margin`` (its own proposal, fitted to those failures): reliable, within x1.5 of
     the enumeration's ``exact`` with its interval holding it; returns its final event."""
-    cfg = ExperimentConfig(seed=1, margin=margin)
+    cfg = ExperimentConfig.of(seed=1, margin=margin)
     final = Experiment(cfg, problem=problem_for(cfg)).run().final
     assert final.estimate.verdict == "reliable"
     assert final.estimate.covers(math.log(exact))
@@ -110,7 +110,7 @@ def test_a_run_that_targets_0_5_m_agrees_with_the_enumeration_on_the_cell_bound(
 def _remaining_misses_against_bound(margin: float) -> tuple[int, int]:
     """(rollout-steps where the miss bound exceeds the misses a sampled failure still made, rollout-steps checked)
     over the failures of a run that targets ``margin``."""
-    cfg = ExperimentConfig(seed=0, margin=margin, n_final=300)
+    cfg = ExperimentConfig.of(seed=0, margin=margin, n_final=300)
     pb = problem_for(cfg)
     got = []
     Experiment(

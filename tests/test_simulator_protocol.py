@@ -115,7 +115,7 @@ def test_user_simulator_through_the_protocol_recovers_its_exact_failure_probabil
         curve_grid=np.linspace(0.0, 20.0, 41),
         window=15.0,
     )
-    config = ExperimentConfig(
+    config = ExperimentConfig.of(
         n_stages=4,
         n_per_stage=200,
         n_final=2000,

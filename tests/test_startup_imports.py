@@ -84,7 +84,7 @@ def test_a_run_in_numpy_is_the_run_in_torch(numpy_first, monkeypatch):
     """The seed contract: a default-settings braking run whose proposals never enter torch gives the estimate, stage
     by stage, of the same run in torch."""
     problem = build_problem("main")
-    cfg = ExperimentConfig(n_per_stage=60, n_stages=3, n_final=200, seed=4)
+    cfg = ExperimentConfig.of(n_per_stage=60, n_stages=3, n_final=200, seed=4)
     in_numpy = Experiment(cfg, problem=problem).run()
     monkeypatch.setattr(sampling, "torch_imported", lambda: True)
     in_torch = Experiment(cfg, problem=problem).run()

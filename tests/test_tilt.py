@@ -27,7 +27,7 @@ def test_the_toys_tilt_with_a_poor_committor_is_unbiased():
     problem = build_problem("toy-1e-3")
 
     def ratio_of(seed: int) -> float:
-        cfg = dataclasses.replace(ExperimentConfig(method="tilt", seed=seed), n_per_stage=2000)
+        cfg = dataclasses.replace(ExperimentConfig.of(method="tilt", seed=seed), n_per_stage=2000)
         return math.exp(Experiment(cfg, problem=problem).run().final.estimate.log_mu_hat - problem.exact_log_p)
 
     ratio = np.array([ratio_of(s) for s in range(40)])
@@ -128,7 +128,7 @@ def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads():
     assert with_target.n_simulations == again.n_simulations  # it counts the look-aheads too, and adds no batch
     room = small.replace(rel_error=0.01, max_sims=again.n_simulations + 300)  # room for about 190 rollouts more
     grown = Experiment(room, problem=problem).run().final
-    assert again.n_simulations + 150 < grown.n_simulations <= room.max_sims  # batches added, look-aheads counted
+    assert again.n_simulations + 150 < grown.n_simulations <= room.stop.max_sims  # batches added, look-aheads counted
     other = small.replace(scenario_params=(("cut_in_gap_m", 19.0),))
     assert (
         Experiment(other, problem=problem_for(other))

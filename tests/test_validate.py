@@ -24,7 +24,7 @@ def test_default_sampler_weights_of_a_toy_failure_are_exact():
     # with the window and weights up to the failure, every failing toy rollout of one batch has the same weight
     # prod over the window of p / q(miss): the estimate's only noise is the failure count.
     pb = toy_problem(ToyParams(10, 5, 3, 0.9))
-    cfg = ExperimentConfig(final_estimate="fresh", n_stages=3, ce_epochs=100, pretrain_epochs=200, seed=1)
+    cfg = ExperimentConfig.of(final_estimate="fresh", n_stages=3, ce_epochs=100, pretrain_epochs=200, seed=1)
     res = Experiment(cfg, problem=pb).run()
     e = res.final.estimate
     assert e.n_failures > 10
@@ -134,10 +134,19 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, args, messag
 
 # -- the opt-in sampler improvements (pemviz.config) -----------------------------------------------------------
 def test_paper_preset_leaves_every_improvement_off():
-    cfg = ExperimentConfig(**PRESETS["paper"])
-    assert (cfg.proposal_inputs, cfg.proposal_window, cfg.weights_until_failure) == ("gap", False, False)
-    assert (cfg.smoothing_at_failure, cfg.elite_ties, cfg.pretrain_cap, cfg.defensive) == (None, "all", None, 0.0)
-    assert cfg.final_estimate == "fresh"
+    cfg = ExperimentConfig.of(**PRESETS["paper"])
+    assert (cfg.adaptive.proposal_inputs, cfg.adaptive.proposal_window, cfg.weights_until_failure) == (
+        "gap",
+        False,
+        False,
+    )
+    assert (
+        cfg.adaptive.smoothing_at_failure,
+        cfg.adaptive.elite_ties,
+        cfg.adaptive.pretrain_cap,
+        cfg.adaptive.defensive,
+    ) == (None, "all", None, 0.0)
+    assert cfg.adaptive.final_estimate == "fresh"
 
 
 @pytest.mark.parametrize(
@@ -155,7 +164,7 @@ def test_improvement_fields_reject_bad_values(field, value):
     from pemviz.config import ConfigError
 
     with pytest.raises(ConfigError, match=field):
-        ExperimentConfig(**{field: value})
+        ExperimentConfig.of(**{field: value})
 
 
 def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():

@@ -144,7 +144,7 @@ def test_a_runs_key_holds_every_config_field_so_a_changed_default_reruns_the_run
     # the same run, its default given or not: one key; another value of that field: another key; the key names the
     # default's value, so a pemviz with other defaults finds no finished run under it
     bare = Job("toy", "adaptive (state-ce)", (), 0)
-    explicit = Job("toy", "adaptive (state-ce)", (("uniforms", ExperimentConfig().uniforms),), 0)
+    explicit = Job("toy", "adaptive (state-ce)", (("uniforms", ExperimentConfig.of().uniforms),), 0)
     other = Job("toy", "adaptive (state-ce)", (("uniforms", "iid"),), 0)
     assert job_key(bare) == job_key(explicit) != job_key(other)
     assert '["uniforms", "array-rqmc"]' in job_key(bare) and '["seed"' not in job_key(bare)

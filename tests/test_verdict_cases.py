@@ -76,7 +76,7 @@ def test_a_single_dominating_weight_is_not_reliable():
 def test_a_run_whose_stages_never_reached_the_failure_level_is_never_reliable():
     good = distinct(np.full(400, -5.0) + np.random.default_rng(0).normal(0, 0.1, 400), np.ones(400, bool))
     assert good.verdict == "reliable"  # the numbers alone would pass every check
-    cfg = ExperimentConfig()  # the default sampler: frozen weights, window, weights until failure
+    cfg = ExperimentConfig.of()  # the default sampler: frozen weights, window, weights until failure
 
     def result(reached: bool, config: ExperimentConfig = cfg) -> tuple:
         ce = types.SimpleNamespace(
@@ -101,7 +101,7 @@ def test_the_paper_s_whole_rollout_fit_never_claims_reliable(preset):
     from pemviz.presets import PRESETS
 
     good = distinct(np.full(400, -5.0) + np.random.default_rng(0).normal(0, 0.1, 400), np.ones(400, bool))
-    cfg = ExperimentConfig(**PRESETS[preset])
+    cfg = ExperimentConfig.of(**PRESETS[preset])
     ce = types.SimpleNamespace(reached_failures=True, config=cfg, _result=lambda: (good, (10,)))
     ce.verdict_cap = CrossEntropy.verdict_cap.fget(ce)
     est = CrossEntropy.result(ce)[0]
@@ -129,7 +129,7 @@ def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():
     # an unreliable estimate backs no interval; this hand-made one keeps no terms, so it bounds nothing either way
     assert "no 95% CI from these weights: no bound either way from this run" in line
     assert "10.1 orders of magnitude too low" in line and "OUTSIDE the interval" not in line
-    cfg = ExperimentConfig(scenario="cut-in")
+    cfg = ExperimentConfig.of(scenario="cut-in")
     assert next_step(e, cfg, reference=CUT_IN_REFERENCE).startswith(
         f"plain Monte Carlo decides it: --method mc --rel-error 0.2 --max-sims {CUT_IN_MAX_SIMS} (p ~ 8.66e-05, the "
         f"reference: {CUT_IN_ROLLOUTS:,} rollouts for a 20 % interval"
@@ -157,13 +157,13 @@ def test_each_unreliable_or_doubtful_run_gets_one_line_of_advice(method, failure
     e = estimate(log_w if method == "mc" else log_w - 30.0, failed, np.zeros(n))
     assert e.verdict != "reliable"
     reference = CUT_IN_REFERENCE if method == "mc" and failures else None  # p known: how many rollouts it needs
-    advice = next_step(e, ExperimentConfig(method=method, n_per_stage=n if method == "mc" else 100), None, reference)
+    advice = next_step(e, ExperimentConfig.of(method=method, n_per_stage=n if method == "mc" else 100), None, reference)
     assert advice.startswith(start) and "\n" not in advice
 
 
 def test_a_reliable_run_gets_no_advice():
     e = distinct(np.full(400, -5.0), np.ones(400, bool))
-    assert e.verdict == "reliable" and next_step(e, ExperimentConfig(), math.log(2e-15)) is None
+    assert e.verdict == "reliable" and next_step(e, ExperimentConfig.of(), math.log(2e-15)) is None
 
 
 def test_an_ess_below_20_is_never_reliable_under_importance_sampling():
@@ -217,10 +217,10 @@ def test_the_advice_after_an_extinct_splitting_run_is_a_run_the_config_accepts()
     """AMS has no final batch, so a precision target is refused for it: the advice names particles and the committor's
     score instead, and a config with both validates (a braking run that died out on the robustness's plateau)."""
     e = estimate(np.zeros(100), np.zeros(100, bool), np.zeros(100))
-    advice = next_step(e, ExperimentConfig(method="ams", n_per_stage=100), math.log(1.984e-15))
+    advice = next_step(e, ExperimentConfig.of(method="ams", n_per_stage=100), math.log(1.984e-15))
     assert "--rel-error" not in advice and "--n 400" in advice and "--ams-score committor" in advice
-    assert ExperimentConfig(method="ams", n_per_stage=400, ams_score="committor").n_per_stage == 400
+    assert ExperimentConfig.of(method="ams", n_per_stage=400, ams_score="committor").n_per_stage == 400
     with pytest.raises(ValueError, match="no final batch"):
-        ExperimentConfig(method="ams", rel_error=0.1)
-    committor = next_step(e, ExperimentConfig(method="ams", n_per_stage=400, ams_score="committor"))
+        ExperimentConfig.of(method="ams", rel_error=0.1)
+    committor = next_step(e, ExperimentConfig.of(method="ams", n_per_stage=400, ams_score="committor"))
     assert committor == "more particles (--n 1600); the verdict says whether to trust the result"

@@ -114,7 +114,7 @@ def test_seeds_1_to_3_give_what_the_page_says(guide):
     problem = ns["problem"]
     ratios = []
     for seed in (1, 2, 3):
-        est = Experiment(ExperimentConfig(seed=seed), problem=problem).run().final.estimate
+        est = Experiment(ExperimentConfig.of(seed=seed), problem=problem).run().final.estimate
         assert est.verdict == "reliable" and est.log_ci[0] < problem.exact_log_p < est.log_ci[1]
         ratios.append(est.mu_hat / math.exp(problem.exact_log_p))
     assert [f"{r:.2f}" for r in ratios] == ["0.91", "0.95", "0.97"]  # the seed contract: the same runs anywhere
@@ -128,7 +128,7 @@ def test_a_run_s_rollout_file_re_estimates_and_its_why_line_names_the_pedestrian
     problem = ns["problem"]
     sink, likely = RolloutSink(tmp_path / "r.parquet"), MostLikelyFailure()
     sink.problem = problem
-    done = Experiment(ExperimentConfig(seed=0), [sink, likely], problem=problem).run()
+    done = Experiment(ExperimentConfig.of(seed=0), [sink, likely], problem=problem).run()
     assert done.final.estimate.log_mu_hat == ns["done"].final.estimate.log_mu_hat  # the seed contract
     side = json.loads((tmp_path / "r.rollouts.json").read_text())
     assert side["h_column"] == "dist_m" and side["dt_s"] == 0.1 and side["objects"] == 2

@@ -17,7 +17,6 @@ differ between the kept runs; it says how many identical settings it hides (the 
 
 from __future__ import annotations
 
-import dataclasses
 import html
 import math
 from dataclasses import dataclass
@@ -28,10 +27,10 @@ import viser
 import viser.uplot as up
 
 from pemviz.app.form import setting_name, setting_value
+from pemviz.settings import SETTINGS
 from pemviz.app.html import TABLE_STYLE
 from pemviz.app.plots import axes, finite_or_dash, run_colour
 from pemviz.app.runs import PanelRun
-from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability
 from pemviz.sinks.colours import BLACK, REFERENCE_LINE, hex_colour
 
@@ -310,8 +309,8 @@ def result_cells(record: PanelRun) -> list[str]:
 def differing_settings(runs: list[PanelRun]) -> tuple[list[str], int]:
     """The names of the :class:`pemviz.config.ExperimentConfig` fields whose values differ between ``runs``, in the
     config's order, and how many fields are the same in every run."""
-    names = [f.name for f in dataclasses.fields(ExperimentConfig)]
-    differ = [name for name in names if len({repr(getattr(r.config, name)) for r in runs}) > 1]
+    names = list(SETTINGS)
+    differ = [name for name in names if len({repr(r.config.value(name)) for r in runs}) > 1]
     return differ, len(names) - len(differ)
 
 
@@ -351,7 +350,7 @@ def compare_html(runs: list[PanelRun], notes: list[str] | None = None) -> str:
     for name in differ:
         body += (
             f'<tr style="font-weight:bold"><th style="text-align:left">{html.escape(setting_name(name))}</th>'
-            + "".join(f"<td>{html.escape(setting_value(getattr(r.config, name)))}</td>" for r in runs)
+            + "".join(f"<td>{html.escape(setting_value(r.config.value(name)))}</td>" for r in runs)
             + "</tr>"
         )
     if len(runs) < 2:

@@ -54,7 +54,9 @@ class ExperimentTab:
         simulators = SIMULATORS
         shipped = shipped_pems() or [DEFAULT_PEM_NAME]
         self._default_pem = DEFAULT_PEM_NAME if DEFAULT_PEM_NAME in shipped else shipped[0]
-        pem_options = list(shipped) + ([c0.pem] if c0.pem and c0.pem not in shipped else [])
+        pem_options = list(shipped) + (
+            [c0.perception.pem] if c0.perception.pem and c0.perception.pem not in shipped else []
+        )
 
         self.preset = gui.add_dropdown(
             "preset",
@@ -68,20 +70,20 @@ class ExperimentTab:
 
         def number(key: str) -> None:  # label, range and hint from the setting (pemviz.settings.SETTINGS)
             f = FIELDS_BY_KEY[key]
-            self.fields[key] = gui.add_text(f.label, format_number(f, getattr(c0, key)), hint=f.hint)
+            self.fields[key] = gui.add_text(f.label, format_number(f, c0.value(key)), hint=f.hint)
             self.field_errors[key] = gui.add_html("")
 
         def dropdown(key: str, options: tuple[str, ...] | None = None, value: str | None = None, **kw: Any) -> None:
             s = SETTINGS[key]
             self.choices[key] = gui.add_dropdown(
-                s.label, options or s.choices, initial_value=value or getattr(c0, key), hint=s.hint, **kw
+                s.label, options or s.choices, initial_value=value or c0.value(key), hint=s.hint, **kw
             )
 
         dropdown("scenario", registered())  # every registered scenario, plugins included
         dropdown("metric")
         for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
             number(key)
-        dropdown("pem", tuple(pem_options), c0.pem or self._default_pem)
+        dropdown("pem", tuple(pem_options), c0.perception.pem or self._default_pem)
         dropdown("sim", simulators, c0.sim if c0.sim in simulators else simulators[0], disabled=len(simulators) < 2)
         self.params.build(self.choices["scenario"].value, lambda: self._on_change())
         with gui.add_folder("advanced", expand_by_default=False):
@@ -110,13 +112,13 @@ class ExperimentTab:
     def choice_values(self) -> dict[str, Any]:
         values = {key: handle.value for key, handle in self.choices.items()}
         if values.get("pem") == self._default_pem:
-            values["pem"] = self.app.config0.pem
+            values["pem"] = self.app.config0.perception.pem
         return values
 
     def read_form(self) -> FormResult:
         """Parse what the form holds now (every field, every error)."""
         name = self.preset.value
-        base = self.app.config0 if name == self.app.preset_name else ExperimentConfig(**PANEL_PRESETS[name])
+        base = self.app.config0 if name == self.app.preset_name else ExperimentConfig.of(**PANEL_PRESETS[name])
         choices = self.choice_values()
         return parse_form(self.field_texts(), choices, base, self.params.texts(choices["scenario"]))
 
@@ -144,7 +146,7 @@ class ExperimentTab:
         them, and back to the preset's where it has none; show its parameters; tell whoever built the tab."""
         fields = scene_defaults(scenario)
         if not fields:
-            preset = ExperimentConfig(**PANEL_PRESETS.get(self.preset.value, {}))
+            preset = ExperimentConfig.of(**PANEL_PRESETS.get(self.preset.value, {}))
             fields = {"method": "adaptive", "n_per_stage": preset.n_per_stage}
         with self.client.atomic():
             self.choices["method"].value = fields["method"]
@@ -155,11 +157,11 @@ class ExperimentTab:
 
     def _apply_preset(self, name: str) -> None:
         """Set the fields to ``name``'s settings (metric, seed, PEM, simulator and method stay)."""
-        cfg = ExperimentConfig(**PANEL_PRESETS.get(name, {}))
+        cfg = ExperimentConfig.of(**PANEL_PRESETS.get(name, {}))
         with self.client.atomic():
             for f in NUMBER_FIELDS:
                 if f.name in self.fields and f.name != "seed":
-                    set_value(self.fields[f.name], format_number(f, getattr(cfg, f.name)))
+                    set_value(self.fields[f.name], format_number(f, cfg.value(f.name)))
             for key in ("weights", "final_estimate"):
-                self.choices[key].value = getattr(cfg, key)
+                self.choices[key].value = cfg.value(key)
         self._on_change()

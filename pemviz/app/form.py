@@ -183,16 +183,16 @@ def parse_form(
             errors[key] = error
         else:
             values[key] = value
-    known = {f.name for f in dataclasses.fields(ExperimentConfig)}
+    known = set(SETTINGS)
     values.update({k: (None if k == "pem" and v in ("", None) else v) for k, v in choices.items() if k in known})
     if params is not None:
-        pairs, param_errors = parse_params(values.get("scenario", (base or ExperimentConfig()).scenario), params)
+        pairs, param_errors = parse_params(values.get("scenario", (base or ExperimentConfig.of()).scenario), params)
         errors.update(param_errors)
         values["scenario_params"] = pairs
     if errors:
         return FormResult(None, errors)
     try:
-        return FormResult(dataclasses.replace(base or ExperimentConfig(), **values), {})
+        return FormResult((base or ExperimentConfig.of()).replace(**values), {})
     except (ConfigError, TypeError) as exc:
         return FormResult(None, {"": str(exc)})
 
@@ -234,15 +234,15 @@ def setting_value(value: Any) -> str:
 def run_label(run_id: int, cfg: ExperimentConfig, defaults: ExperimentConfig | None = None) -> str:
     """``run 3 · agm, alpha 0.2, K 8``: the run number, the metric and every setting that differs from ``defaults``;
     scenario parameters by name and value (``scenario cut-in, cut_in_gap_m=19.5``, e.g. a cut-in's)."""
-    base = defaults or ExperimentConfig()
+    base = defaults or ExperimentConfig.of()
     parts = [cfg.metric]
-    for f in dataclasses.fields(ExperimentConfig):
-        if f.name == "metric":
+    for name in SETTINGS:
+        if name == "metric":
             continue
-        value = getattr(cfg, f.name)
-        if value != getattr(base, f.name):
-            if f.name == "scenario_params":
-                parts.append(setting_value(value) if value else f"{setting_name(f.name)} {setting_value(value)}")
+        value = cfg.value(name)
+        if value != base.value(name):
+            if name == "scenario_params":
+                parts.append(setting_value(value) if value else f"{setting_name(name)} {setting_value(value)}")
             else:
-                parts.append(f"{setting_name(f.name)} {setting_value(value)}")
+                parts.append(f"{setting_name(name)} {setting_value(value)}")
     return f"run {run_id} · " + ", ".join(parts)

@@ -80,7 +80,7 @@ class PanelApp:
         if preset not in PANEL_PRESETS:
             raise ValueError(f"preset {preset!r} is invalid: use one of {', '.join(PANEL_PRESETS)}")
         self.preset_name = preset
-        self.config0 = config or ExperimentConfig(**PANEL_PRESETS[preset], pem=pem)
+        self.config0 = config or ExperimentConfig.of(**PANEL_PRESETS[preset], pem=pem)
         self.recordings_dir = Path(recordings_dir)
         self.drawing: LanePanel = idle_drawing(self.config0.scenario)
         """The lane scene every session builds first (:func:`idle_drawing`), before it draws the chosen scenario's
@@ -168,7 +168,7 @@ class PanelApp:
     def _warm_up(self) -> None:
         """Import the simulator and run torch once, so that the first real run is not slowed by them."""
         try:
-            tiny = ExperimentConfig(
+            tiny = ExperimentConfig.of(
                 n_stages=1, n_per_stage=2, n_final=1, ce_epochs=1, pretrain_rollouts=1, pretrain_epochs=1
             )
             experiment.Experiment(tiny, [], self._closed, problem=problem_for(tiny)).run()

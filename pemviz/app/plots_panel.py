@@ -69,7 +69,7 @@ class PlotsPanel:
                     r = runs[i]
                     fin = r.final.estimate if r.final is not None else None
                     mu = f", mu_hat {format_probability(fin.log_mu_hat)}" if fin is not None else ""
-                    ref = ", reference-state q" if r.config.proposal_inputs == "state" else ""
+                    ref = ", reference-state q" if r.config.adaptive.proposal_inputs == "state" else ""
                     plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}{ref}")
             self.odd.fill(record)
             for key, plot in self.stage_plots.items():

@@ -245,10 +245,10 @@ class RunControl:
             if stage.kind == "final" or not sampled:
                 doing = f"simulating {stage.n_rollouts:,} rollouts"
             elif stage.kind == "pretrain":
-                doing = f"pretraining the proposal ({cfg.pretrain_epochs} epochs)"
+                doing = f"pretraining the proposal ({cfg.adaptive.pretrain_epochs} epochs)"
             else:
-                most = "at most " if cfg.fit_tolerance is not None and cfg.fit == "adam" else ""
-                doing = f"cross-entropy update ({most}{cfg.ce_epochs} epochs)"
+                most = "at most " if cfg.adaptive.fit_tolerance is not None and cfg.adaptive.fit == "adam" else ""
+                doing = f"cross-entropy update ({most}{cfg.adaptive.ce_epochs} epochs)"
             clock = record.clock
             stage_left, run_left = clock.stage_left_s(), clock.run_left_s()
             eta = ""

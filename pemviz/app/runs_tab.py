@@ -3,7 +3,6 @@ pin and export."""
 
 from __future__ import annotations
 
-import dataclasses
 import html
 import threading
 from pathlib import Path
@@ -13,6 +12,7 @@ import viser
 from pemviz.app._viser_compat import set_value
 from pemviz.app import plots
 from pemviz.app.form import setting_name, setting_value
+from pemviz.settings import SETTINGS
 from pemviz.app.host import PanelHost
 from pemviz.app.html import GREEN, GREY, RED, TABLE_STYLE, box, display_path
 from pemviz.app.plots_panel import PlotsPanel
@@ -105,7 +105,7 @@ class RunsTab:
             runs = list(self.runs)
         if not runs:
             return
-        names = [f.name for f in dataclasses.fields(ExperimentConfig)]
+        names = list(SETTINGS)
         head = "".join(
             f'<th style="color:{plots.run_colour(r.run_id)}">run {r.run_id}{" (pinned)" if r.pinned else ""}</th>'
             for r in runs
@@ -128,10 +128,10 @@ class RunsTab:
             + "</tr>"
             for i, label in enumerate(rows[0])
         )
-        defaults = ExperimentConfig()
+        defaults = ExperimentConfig.of()
         for name in names:
-            values = [getattr(r.config, name) for r in runs]
-            differs = any(v != getattr(defaults, name) for v in values) or len({repr(v) for v in values}) > 1
+            values = [r.config.value(name) for r in runs]
+            differs = any(v != defaults.value(name) for v in values) or len({repr(v) for v in values}) > 1
             style = "font-weight:bold" if differs else "color:#777"
             body += (
                 f'<tr style="{style}"><th style="text-align:left">{html.escape(setting_name(name))}</th>'

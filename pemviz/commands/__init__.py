@@ -161,7 +161,7 @@ def base_fields(args: argparse.Namespace) -> dict[str, Any]:
     """
     fields = {k: getattr(args, k) for k in SAMPLER_SETTINGS if getattr(args, k, None) is not None}
     try:
-        ExperimentConfig(**fields)
+        ExperimentConfig.of(**fields)
     except ConfigError as exc:
         raise setting_error(exc) from None
     pem_argument(fields.get("pem"))

@@ -208,7 +208,7 @@ def run_problem(data: Any, failure: str, own: bool) -> Any:
         fields = {k: config[k] for k in ("scenario", "pem", "margin", "sim") if k in config}
         if "scenario_params" in config:  # a JSON list of [name, value] lists
             fields["scenario_params"] = as_pairs(config["scenario_params"])
-        return problem_for(ExperimentConfig(**fields))
+        return problem_for(ExperimentConfig.of(**fields))
     except (ConfigError, OSError, ValueError, TypeError):
         return None
 

@@ -160,7 +160,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     if preset not in PRESETS:
         raise ConfigError(f"--preset {preset!r} is invalid: use one of {', '.join(PRESETS)}")
     fields = dict(PRESETS[preset])
-    scene = args.scenario or ExperimentConfig().scenario
+    scene = args.scenario or ExperimentConfig.of().scenario
     params = None if args.scenario_params is None else scenario_params(scene, args.scenario_params)
     if args.method is None and args.preset is None:
         fields.update(scene_defaults(scene, params or ()))
@@ -170,7 +170,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
             fields[name] = value
     if params is not None:  # --param NAME=VALUE: parsed by the scenario's field types
         fields["scenario_params"] = params
-    return ExperimentConfig(**fields)
+    return ExperimentConfig.of(**fields)
 
 
 def scenario_params(
@@ -217,7 +217,7 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
     from pemviz.pem.recipes import DEFAULT_PEM_NAME
     from pemviz.pem.store import _pem_file, noise_pem_path
 
-    files = [("detection PEM", _pem_file(cfg.pem or DEFAULT_PEM_NAME))]
+    files = [("detection PEM", _pem_file(cfg.perception.pem or DEFAULT_PEM_NAME))]
     if cfg.scenario != "braking":
         files.append(("noise PEM", noise_pem_path()))
     return [{"what": what, "path": str(path), "sha256": sha256_file(path)} for what, path in files]
@@ -305,13 +305,13 @@ def main(args: argparse.Namespace) -> int:
         cfg = config_from_args(args)
     except ConfigError as exc:
         raise setting_error(exc) from None
-    pem_argument(cfg.pem)
-    if cfg.executor == "ray":
+    pem_argument(cfg.perception.pem)
+    if cfg.execution.executor == "ray":
         if importlib.util.find_spec("ray") is None:
             raise UsageError("--executor ray: Ray is not installed (pip install ray)")
         from pemviz.engine.executors import probe_ray_address
 
-        probe_ray_address(cfg.ray_address)  # before any work: a wrong address is one line, not a silent wait
+        probe_ray_address(cfg.execution.ray_address)  # before any work: a wrong address is one line, not a silent wait
     target = recording_target(args)
     default = (
         default_recording_path(cfg, args.preset or DEFAULT_PRESET) if target == "save" and args.save is None else None
@@ -323,11 +323,13 @@ def main(args: argparse.Namespace) -> int:
 
         try:
             rollout_sink = RolloutSink(
-                outputs.rollouts, pem=cfg.pem, overwrite=outputs.overwrite, stages=args.rollout_stages
+                outputs.rollouts, pem=cfg.perception.pem, overwrite=outputs.overwrite, stages=args.rollout_stages
             )
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-    if cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.executor == "serial":  # "save": the child's
+    if (
+        cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.execution.executor == "serial"
+    ):  # "save": the child's
         from pemviz.sinks.process import settle_pyarrow_without_pandas
 
         settle_pyarrow_without_pandas()
@@ -335,7 +337,7 @@ def main(args: argparse.Namespace) -> int:
     if target == "connect":
         args.url = probe_viewer(args.url)
     early = None
-    if target == "save" and cli.AS_PROGRAM and cfg.executor == "serial":
+    if target == "save" and cli.AS_PROGRAM and cfg.execution.executor == "serial":
         from pemviz.sinks.recording_process import RecordingProcess  # rerun imported beside the run, not before it
 
         assert save_path is not None  # plan_outputs names the file of a recording saved
@@ -363,7 +365,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.population import FailureGroups, grouping_document
 
-    serial = cfg.executor == "serial"
+    serial = cfg.execution.executor == "serial"
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg) if serial else None)
     try:
@@ -469,7 +471,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
         saved = Path(where) if where is not None and target == "save" else None
         if results is not None and (saved is not None or any(path is not None for path in result_files)):
             write_results(*results, str(where) if where is not None else None, outputs, saved)
-        if cfg.require is not None and final is not None and final.decision is not None:
+        if cfg.stop.require is not None and final is not None and final.decision is not None:
             from pemviz.core.requirement import EXIT_CODES
 
             return EXIT_CODES[final.decision.outcome]

@@ -121,7 +121,7 @@ def plan_outputs(args: argparse.Namespace, cfg: Any, target: str, default_record
                 markdown_twin(Path(report)), ".md", "--report (its Markdown twin)", overwrite=overwrite
             )
         )
-    if args.junit_path is not None and cfg.require is None:
+    if args.junit_path is not None and cfg.stop.require is None:
         raise UsageError(
             "--junit writes a requirement as a test case: give one with --require, e.g. " "--require 'p < 1e-9'"
         )

@@ -125,9 +125,11 @@ def _fit_s(epochs: float, rows: float, c: CostConstants) -> float:
 
 def ce_rows(cfg: ExperimentConfig, stage: int, n: int, c: CostConstants = COST) -> float:
     """The distinct rows CE stage ``stage`` (1..K) of ``n`` rollouts fits, about (at most ``fit_rows``)."""
-    cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
+    cap = math.inf if cfg.adaptive.fit_rows is None else float(cfg.adaptive.fit_rows)
     ramp = 1.0 - math.exp(-max(0, stage - 1) / max(1e-9, c.ce_rows_stages))
-    return min(cap, max(1.0, c.ce_rows.get(cfg.proposal_inputs, 1.0) * (n / 100.0) ** c.ce_rows_exponent * ramp))
+    return min(
+        cap, max(1.0, c.ce_rows.get(cfg.adaptive.proposal_inputs, 1.0) * (n / 100.0) ** c.ce_rows_exponent * ramp)
+    )
 
 
 def stage_cost(
@@ -151,18 +153,18 @@ def stage_cost(
     tilt = model == "look-ahead"
     rollouts = n * (c.ams_rollouts if kind == "ams" else c.tilt_rollouts if tilt else 1.0)
     simulate = n_steps * (per_step + per_rollout * rollouts) + (c.tilt_solve_s if tilt and stage == 1 else 0.0)
-    cap = math.inf if cfg.fit_rows is None else float(cfg.fit_rows)
-    inputs = cfg.proposal_inputs
+    cap = math.inf if cfg.adaptive.fit_rows is None else float(cfg.adaptive.fit_rows)
+    inputs = cfg.adaptive.proposal_inputs
     fit = c.stage_s
     if model == "proposal" and kind == "pretrain":
-        fit += _fit_s(cfg.pretrain_epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
+        fit += _fit_s(cfg.adaptive.pretrain_epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
     elif model == "proposal" and kind == "ce":
-        stages = [stage] if stage is not None else range(1, cfg.n_stages + 1)
+        stages = [stage] if stage is not None else range(1, cfg.adaptive.n_stages + 1)
         rows = sum(ce_rows(cfg, k, n, c) for k in stages) / len(stages)
-        if cfg.fit == "lbfgs":
-            epochs = float(cfg.fit_max_steps)
+        if cfg.adaptive.fit == "lbfgs":
+            epochs = float(cfg.adaptive.fit_max_steps)
         else:
-            epochs = cfg.ce_epochs * (c.early_stop_share if cfg.fit_tolerance is not None else 1.0)
+            epochs = cfg.adaptive.ce_epochs * (c.early_stop_share if cfg.adaptive.fit_tolerance is not None else 1.0)
         fit += _fit_s(epochs, rows, c)
     return StageCost(simulate, fit)
 
@@ -238,5 +240,5 @@ def run_cost(
     process's own :data:`pemviz.engine.resources.BASE_BYTES`: one model of a step's bytes for both.
     """
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
-    batch = run_memory(plan, n_steps, cfg.quantile_level, stream_above=stream_above) - BASE_BYTES
+    batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES
     return RunCost(int(cfg.n_simulations), int(batch), float(seconds), run_adds(cfg.method))

@@ -67,11 +67,11 @@ STREAM_ABOVE = 20_000
 
 
 def stream_above(config: ExperimentConfig, n_objects: int = 1) -> int:
-    """Rollouts above which a serial stage streams chunk by chunk: ``config.chunk_rollouts``, or
+    """Rollouts above which a serial stage streams chunk by chunk: ``config.execution.chunk_rollouts``, or
     :data:`STREAM_ABOVE` divided by the objects a rollout perceives (``n_objects``: a rollout of M objects holds M
     object rows a step, so the same memory) when it is None."""
-    if config.chunk_rollouts is not None:
-        return config.chunk_rollouts
+    if config.execution.chunk_rollouts is not None:
+        return config.execution.chunk_rollouts
     return STREAM_ABOVE // max(1, n_objects)
 
 
@@ -153,7 +153,7 @@ class Experiment:
     """Runs one :class:`ExperimentConfig` on a :class:`Problem` and tells listeners what happens.
 
     The estimator of ``config.method`` (:func:`pemviz.estimators.build_estimator`) plans the batches and does the
-    arithmetic; the experiment simulates them (on ``config.executor``), computes their robustness, emits the
+    arithmetic; the experiment simulates them (on ``config.execution.executor``), computes their robustness, emits the
     events and checks the cancel token. ``problem``: what to estimate (a :class:`Problem`, e.g. the one
     :func:`pemviz.scenarios.problems.problem_for` ``(config)`` builds for the config's scenario); the engine itself
     loads nothing.
@@ -257,14 +257,14 @@ class Experiment:
             plan.draw is None
             and plan.n > stream_above(cfg, pb.n_objects)
             and pb.stream is not None
-            and cfg.executor == "serial"
+            and cfg.execution.executor == "serial"
         ):
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (serial or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
                 batch = plan.draw(estimator.rng)
             else:
-                executor = get_executor(cfg.executor, cfg.ray_address)
+                executor = get_executor(cfg.execution.executor, cfg.execution.ray_address)
                 batches = [executor.simulate(pb, k, d, target, estimator.rng) for k, d in parts]
                 batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
             self._check_cancel()
@@ -312,7 +312,9 @@ class Experiment:
         stream = pb.stream
         assert stream is not None  # the caller streams a stage only then
         sample = StageSample(plan.n)
-        size: dict[str, Any] = {} if cfg.chunk_rollouts is None else {"chunk_size": cfg.chunk_rollouts}
+        size: dict[str, Any] = (
+            {} if cfg.execution.chunk_rollouts is None else {"chunk_size": cfg.execution.chunk_rollouts}
+        )
         if getattr(pb.stream, "elides_rows", False) and not needs_chunk_rows(estimator):
             size["keep_rows"] = False  # a chunk's object rows, rebuilt by replay for the few rollouts read
         chunks = itertools.chain.from_iterable(stream(k, d, target, estimator.rng, **size) for k, d in parts)

@@ -83,13 +83,13 @@ def check_run_memory(cfg: ExperimentConfig, n_steps: int, *, stream_above: int |
     """
     from pemviz.estimators import run_plan  # imports torch: only when a run is checked
 
-    need = run_memory(run_plan(cfg), n_steps, cfg.quantile_level, stream_above=stream_above)
+    need = run_memory(run_plan(cfg), n_steps, cfg.adaptive.quantile_level, stream_above=stream_above)
     have = available_memory()
     if have is not None and need > have:
         raise ValueError(
-            f"this run needs about {format_bytes(need)} of memory (N = {cfg.n_per_stage}, N_e = {cfg.n_final}, "
-            f"T = {n_steps} steps, {BYTES_PER_ROLLOUT_STEP} B per rollout step) but {format_bytes(have)} is "
-            "available: lower --n / --n-final"
+            f"this run needs about {format_bytes(need)} of memory (N = {cfg.n_per_stage}, "
+            f"N_e = {cfg.adaptive.n_final}, T = {n_steps} steps, {BYTES_PER_ROLLOUT_STEP} B per rollout step) but "
+            f"{format_bytes(have)} is available: lower --n / --n-final"
         )
     return need
 

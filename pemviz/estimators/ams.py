@@ -324,11 +324,11 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         self.rng = np.random.default_rng(config.seed)
         self.ams = Splitting(
             problem,
-            config.ams_killed,
-            config.ams_max_iterations,
+            config.ams.ams_killed,
+            config.ams.ams_max_iterations,
             self.rng,
             np.random.default_rng((config.seed, 1)),
-            committor_score(problem, config.ams_score),
+            committor_score(problem, config.ams.ams_score),
         )
         self._stage = -1
         self._initial: list[RolloutBatch] = []
@@ -425,7 +425,7 @@ def run_ams(
     Raises:
         ValueError: as :class:`AdaptiveMultilevelSplitting`.
     """
-    cfg = ExperimentConfig(
+    cfg = ExperimentConfig.of(
         method="ams", n_per_stage=n, ams_killed=killed, ams_max_iterations=max_iterations, seed=seed, ams_score=score
     )
     est = AdaptiveMultilevelSplitting(cfg, problem)

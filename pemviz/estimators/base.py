@@ -89,7 +89,7 @@ class OwnsSettings:
 
     def get_params(self) -> dict[str, Any]:
         """This estimator's settings and their values (``name -> value``, in :attr:`SETTINGS` order)."""
-        return {name: getattr(self.config, name) for name in self.SETTINGS}
+        return {name: self.config.value(name) for name in self.SETTINGS}
 
 
 class Estimator(Protocol):

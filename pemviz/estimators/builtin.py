@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from pemviz.core.plan import RunPlan
+from pemviz.settings import setting_of
 
 if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.estimators.base import Check, Estimator
@@ -83,8 +84,8 @@ def adaptive_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
     whole elite rollouts one object a step, a stop rule a final batch to add to."""
     from pemviz.config import has_final_batch, whole_rollout_fit_refusal
 
-    if config.target_share + config.plain_share > 0.0 and not (
-        config.weights == "frozen" and (config.weights_until_failure or config.proposal_window)
+    if config.adaptive.target_share + config.adaptive.plain_share > 0.0 and not (
+        config.adaptive.weights == "frozen" and (config.weights_until_failure or config.adaptive.proposal_window)
     ):
         return "target_share", (
             "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or "
@@ -104,7 +105,7 @@ def ams_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
     """Splitting's settings: k, the particles killed an iteration, below N."""
     from pemviz.settings import SETTINGS
 
-    if config.ams_killed >= config.n_per_stage:
+    if config.ams.ams_killed >= config.n_per_stage:
         return "ams_killed", f"{SETTINGS['ams_killed'].words} must be a whole number in [1, N - 1]"
     return None
 
@@ -117,8 +118,8 @@ def adaptive_more_budget(
     from pemviz.config import has_final_batch
 
     n = int(getattr(config, "n_per_stage", 100))
-    final = getattr(config, "n_final", 0) if has_final_batch(config) else 0
-    sims = getattr(config, "pretrain_rollouts", 0) + getattr(config, "n_stages", 0) * 4 * n + final
+    final = setting_of(config, "n_final", 0) if has_final_batch(config) else 0
+    sims = setting_of(config, "pretrain_rollouts", 0) + setting_of(config, "n_stages", 0) * 4 * n + final
     return text.importance_route(config, n_simulations, s_per, within_s, sims)
 
 
@@ -141,7 +142,7 @@ def ams_more_budget(
     """Splitting's route: no final batch to add to, so more particles (about 4 times the time), or a graded score."""
     n = int(getattr(config, "n_per_stage", 100))
     more = f"more particles (--n {4 * n}{text.time(4.0, wall_s) if wall_s else ''})"
-    if getattr(config, "ams_score", "robustness") == "robustness":
+    if setting_of(config, "ams_score", "robustness") == "robustness":
         return (
             f"{more}, or particles ranked by the scenario's committor where it has one (--ams-score committor: "
             "where the robustness is flat every particle ties and the run dies out)"

@@ -12,7 +12,7 @@ import numpy as np
 
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.fit_settings import EXACT
-from pemviz.core.sampling import Proposal, fit_proposal
+from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
 from pemviz.estimators.base import elite_count, elite_counts
 
 if TYPE_CHECKING:
@@ -489,3 +489,16 @@ def break_ties(
     elite = below.copy()
     elite[rng.permutation(ties)[: max(0, k - int(below.sum()) - settled)]] = True
     return elite
+
+
+def new_proposal(inputs: str, h_scale: float, pretrain: RolloutBatch) -> Proposal:
+    """The cross-entropy sampler's first proposal (before its pretraining fit): the paper's gap-only one (``inputs =
+    "gap"``), or a :class:`~pemviz.core.sampling.StateProposal` over every column of the object rows (``"state"``): the
+    first (the gap) scaled by the problem's ``h_scale`` (metres), the other columns by their largest magnitude in the
+    pretraining rollouts; its curve holds them at the first row drawn. It samples in exact arithmetic
+    (:meth:`~pemviz.core.sampling.Proposal.detect_logit`), whatever the fits' precision."""
+    if inputs == "gap":
+        return Proposal(h_scale)
+    rows, _ = pretrain.events()
+    scales = [h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
+    return StateProposal(tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))

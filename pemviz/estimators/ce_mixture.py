@@ -88,8 +88,8 @@ class MixtureWeights:
     def _refit_parameters(self, gamma: float) -> None:
         """Over an ODD, q(theta) refitted to the elites (from the failure level on, to every failure since,
         :class:`~pemviz.estimators.ce_odd.ParameterFit`): the samplers draw the next stage's parameters from it."""
-        proposal = self._parameters.refit(keep=self.config.fit_all_failures and gamma <= 0.0)
-        if self._samplers is not None and self.config.proposal_window:
+        proposal = self._parameters.refit(keep=self.config.adaptive.fit_all_failures and gamma <= 0.0)
+        if self._samplers is not None and self.config.adaptive.proposal_window:
             self._samplers.parameter_proposal = proposal
 
     def _with_parts(self, batch: RolloutBatch) -> RolloutBatch:

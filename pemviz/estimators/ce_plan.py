@@ -12,9 +12,9 @@ from pemviz.core.plan import RunPlan
 def adaptive_run_plan(config: Any) -> RunPlan:
     """Stage 0 pretraining (``pretrain_rollouts``), 1..K cross-entropy stages of N, K+1 the final batch of N_e (none
     with ``final_estimate = "last-stage"``)."""
-    final = [(config.n_stages + 1, "final", config.n_final)] if has_final_batch(config) else []
+    final = [(config.adaptive.n_stages + 1, "final", config.adaptive.n_final)] if has_final_batch(config) else []
     return RunPlan.of(
-        [(0, "pretrain", config.pretrain_rollouts)]
-        + [(k, "ce", config.n_per_stage) for k in range(1, config.n_stages + 1)]
+        [(0, "pretrain", config.adaptive.pretrain_rollouts)]
+        + [(k, "ce", config.n_per_stage) for k in range(1, config.adaptive.n_stages + 1)]
         + final
     )

@@ -34,7 +34,7 @@ from pemviz.core.detectors import (
 from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.estimators.ce_fit import EliteSteps, WeightMode, break_ties, ce_update, pretrain_proposal
+from pemviz.estimators.ce_fit import EliteSteps, WeightMode, break_ties, ce_update, new_proposal, pretrain_proposal
 from pemviz.estimators.ce_mixture import MixtureWeights
 from pemviz.estimators.ce_odd import ParameterFit
 from pemviz.estimators.ce_plan import adaptive_run_plan
@@ -55,7 +55,7 @@ from pemviz.estimators.pooling import pool_stage_weights
 from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.core.fit_settings import EXACT
-from pemviz.core.sampling import Proposal, StateProposal
+from pemviz.core.sampling import Proposal
 
 
 @dataclass(frozen=True)
@@ -105,6 +105,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         self.config, self.problem = config, problem
+        self.ce = config.adaptive
+        """The sampler's own settings (:class:`pemviz.methods.adaptive.CrossEntropySettings`)."""
         self.check: Check = check or (lambda: None)
         self.rng = np.random.default_rng(config.seed)
         self.fit_rng = np.random.default_rng((config.seed, 1))
@@ -152,9 +154,11 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         """Rollouts of the planned stage observed so far."""
         self._scored: ScoredTarget | None = None
         """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
-        self.tolerance = config.fit_tolerance if config.fit == "adam" else None
+        self.tolerance = config.adaptive.fit_tolerance if config.adaptive.fit == "adam" else None
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
-        self.fit_dtype = config.fit_precision if config.fit_precision in ("float32", "float64") else EXACT
+        self.fit_dtype = (
+            config.adaptive.fit_precision if config.adaptive.fit_precision in ("float32", "float64") else EXACT
+        )
         """The arithmetic of the Adam fits (``ExperimentConfig.fit_precision``)."""
         self._parameters = ParameterFit(problem)
         """Over an ODD: the proposal the CE stages draw the parameters from, fitted to the elites (:mod:`.ce_odd`)."""
@@ -174,24 +178,27 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     def next_stage(self) -> StagePlan | None:
         cfg, k = self.config, (-1 if self._plan is None else self._plan.stage) + 1
         if k == 0:
-            plan = StagePlan(0, "pretrain", cfg.pretrain_rollouts, self._pretrain_sampler())
-        elif k <= cfg.n_stages:
+            plan = StagePlan(0, "pretrain", self.ce.pretrain_rollouts, self._pretrain_sampler())
+        elif k <= self.ce.n_stages:
             assert self.sampler is not None, "the CE stages' sampler comes with the pretraining fit"
             if self.reached_failures:
                 self.pooled.append(k)
             plan = StagePlan(k, "ce", cfg.n_per_stage, self.sampler, mixture=self._mixture(cfg.n_per_stage))
-            if cfg.fit_weights == "mixture":
+            if self.ce.fit_weights == "mixture":
                 self._stage_samplers[k] = self._frozen_samplers(plan)
-            self._elites = EliteCandidates(plan.n, cfg.quantile_level, floor=0.0)
+            self._elites = EliteCandidates(plan.n, self.ce.quantile_level, floor=0.0)
             if self._failure_steps is not None:  # every failure since the failure level was reached
                 self._steps = self._failure_steps
-            elif cfg.weights == "frozen" and (cfg.weights_until_failure or cfg.proposal_window):
+            elif self.ce.weights == "frozen" and (cfg.weights_until_failure or self.ce.proposal_window):
                 self._steps = EliteSteps(
-                    self.problem.curve_grid, cfg.fit_rows, self.fit_rng, keep_observations=cfg.fit_weights == "mixture"
+                    self.problem.curve_grid,
+                    self.ce.fit_rows,
+                    self.fit_rng,
+                    keep_observations=self.ce.fit_weights == "mixture",
                 )
-        elif k == cfg.n_stages + 1 and cfg.final_estimate != "last-stage":
+        elif k == self.ce.n_stages + 1 and self.ce.final_estimate != "last-stage":
             assert self.sampler is not None, "the final batch's sampler comes with the pretraining fit"
-            plan = StagePlan(k, "final", cfg.n_final, self.sampler, mixture=self._mixture(cfg.n_final))
+            plan = StagePlan(k, "final", self.ce.n_final, self.sampler, mixture=self._mixture(self.ce.n_final))
         else:
             return None
         return self._open(plan)
@@ -203,7 +210,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         Raises:
             RuntimeError: before the final batch, or with ``final_estimate = "last-stage"`` (no final batch).
         """
-        final = self.config.n_stages + 1
+        final = self.ce.n_stages + 1
         if self._plan is None or self._plan.stage < final or final not in self.stages:
             raise RuntimeError("CrossEntropy.extend: the final batch has not been drawn")
         assert self.sampler is not None  # fitted before the final batch
@@ -212,7 +219,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
 
     def final_rollouts(self) -> int:
         """The final batch's rollouts and the added ones (:meth:`extend`)."""
-        return sum(self.stages[k].n for k in (self.config.n_stages + 1, *self._added) if k in self.stages)
+        return sum(self.stages[k].n for k in (self.ce.n_stages + 1, *self._added) if k in self.stages)
 
     def simulations_counted(self) -> int | None:
         """None: the rollouts planned are the simulations (:class:`pemviz.estimators.precision.Extensible`)."""
@@ -237,13 +244,12 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         """The mixture over whole rollouts of a CE or final stage of ``n`` (:attr:`StagePlan.mixture`):
         round(``target_share`` n) rollouts from the target, round(``plain_share`` n) from the proposal without the
         per-step defensive mixture, the rest from :attr:`sampler`; none with both shares 0."""
-        cfg = self.config
-        if cfg.target_share + cfg.plain_share == 0.0:
+        if self.ce.target_share + self.ce.plain_share == 0.0:
             return ()
         assert self.plain_sampler is not None and self.sampler is not None, "set by the pretraining fit"
         # before the failure level the target's rollouts would not reach the stage's level: none are drawn
-        n_p = int(round(cfg.target_share * n)) if self.reached_failures else 0
-        n_q = int(round(cfg.plain_share * n))
+        n_p = int(round(self.ce.target_share * n)) if self.reached_failures else 0
+        n_q = int(round(self.ce.plain_share * n))
         n_q = min(n_q, n - n_p)
         return ((n_p, self.problem.target), (n_q, self.plain_sampler), (n - n_p - n_q, self.sampler))
 
@@ -288,7 +294,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 assert self._elites is not None  # opened with the CE stage (next_stage)
                 kept, r, index = self._elites.candidates()
                 gamma, n_elites, rate = self._ce_stage(kept, r, index, self._elites.gamma(), plan.n)
-                if self.config.fit_all_failures and gamma <= 0.0 and self._steps is not None:
+                if self.ce.fit_all_failures and gamma <= 0.0 and self._steps is not None:
                     self._failure_steps = self._steps
                     self._index_offset += plan.n
                     self._pool_start = plan.stage if self._pool_start is None else self._pool_start
@@ -341,20 +347,23 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     def _result(self) -> tuple[Estimate, tuple[int, ...]]:
         assert self._last is not None, "result() before a stage was finished"
         stage, est = self._last
-        finals = [k for k in (self.config.n_stages + 1, *self._added) if k in self.stages]
-        pooled = self.config.final_estimate == "pooled" and self.reached_failures and self.pooled
+        finals = [k for k in (self.ce.n_stages + 1, *self._added) if k in self.stages]
+        pooled = self.ce.final_estimate == "pooled" and self.reached_failures and self.pooled
         if not pooled and len(finals) <= 1:
             self._pooling = None
             return est, (stage,)
         front = list(self.pooled) if pooled else []
         sizes = [self.stages[k].n for k in front] + [sum(self.stages[k].n for k in finals)]
-        rule = pool_stage_weights(self.config.pool_weights, sizes) if pooled else None  # None: every rollout alike
+        rule = pool_stage_weights(self.ce.pool_weights, sizes) if pooled else None  # None: every rollout alike
         lam = np.asarray(sizes, dtype=np.float64) / sum(sizes) if rule is None else rule
         # the final batches share the final's lambda, every final rollout alike
         share = np.array([self.stages[k].n for k in finals], dtype=np.float64) / sizes[-1]
         weights = np.concatenate([lam[:-1], lam[-1] * share])
         used = (*front, *finals)
-        self._pooling = ("rollouts" if rule is None else self.config.pool_weights, tuple(float(x) for x in weights))
+        self._pooling = (
+            "rollouts" if rule is None else self.ce.pool_weights,
+            tuple(float(x) for x in weights),
+        )
         return pooled_estimate([self.stages[k] for k in used], None if rule is None else weights), used
 
     def pooling(self) -> tuple[str, tuple[float, ...]] | None:
@@ -366,7 +375,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     def _pretrain_sampler(self) -> Detector:
         """The target, or with ``pretrain_cap`` c the target capped at c inside the problem's window, so that the
         first proposal misses at least 1 - c of the time there."""
-        pb, cap = self.problem, self.config.pretrain_cap
+        pb, cap = self.problem, self.ce.pretrain_cap
         if cap is None:
             return pb.target
         return WindowDetector(CappedDetector(pb.target, logit(cap)), pb.target, pb.window)
@@ -374,27 +383,27 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     def _pretrain(self, batch: RolloutBatch) -> None:
         """A new proposal fitted to the pretraining rollouts' actions; the CE stages' sampler around it."""
         cfg = self.config
-        self.proposal = proposal = self._new_proposal(batch)
+        self.proposal = proposal = new_proposal(self.ce.proposal_inputs, self.problem.h_scale, batch)
         proposal.initialise(np.random.default_rng(cfg.seed))  # the initial weights: the same on every CPU
         if noise_names_of(self.problem.target):  # errors drawn by a model of its own, the target's until fitted
             proposal.add_noise_head(len(noise_names_of(self.problem.target)))
-        features, detected, mask = self._fit_events(batch, self.step_mask(batch) if cfg.proposal_window else None)
+        features, detected, mask = self._fit_events(batch, self.step_mask(batch) if self.ce.proposal_window else None)
         pretrain_proposal(
             proposal,
             features,
             detected,
-            epochs=cfg.pretrain_epochs if cfg.fit == "adam" else cfg.fit_max_steps,
-            lr=cfg.learning_rate,
+            epochs=self.ce.pretrain_epochs if self.ce.fit == "adam" else self.ce.fit_max_steps,
+            lr=self.ce.learning_rate,
             check=self.check,
             step_mask=mask,
-            fit=cfg.fit,
-            max_rows=cfg.fit_rows,
+            fit=self.ce.fit,
+            max_rows=self.ce.fit_rows,
             rng=self.fit_rng,
             tolerance=self.tolerance,
             dtype=self.fit_dtype,
         )
         self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
-        if cfg.proposal_window:  # over an ODD the samplers (not the target) draw theta from q(theta)
+        if self.ce.proposal_window:  # over an ODD the samplers (not the target) draw theta from q(theta)
             self._samplers.parameter_proposal = self._parameters.proposal
 
     def _samplers_around(self, proposal: Proposal) -> tuple[StageSamplers, Detector, Detector]:
@@ -403,12 +412,12 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         where the detector cannot matter), plain and with the per-step defensive mixture (``defensive``), evaluated
         together once per step (:class:`StageSamplers`). Without a window or a defensive share the proposal itself
         draws (the paper)."""
-        cfg, pb = self.config, self.problem
-        eps = float(cfg.defensive)
-        if not cfg.proposal_window:  # the proposal everywhere
+        pb = self.problem
+        eps = float(self.ce.defensive)
+        if not self.ce.proposal_window:  # the proposal everywhere
             samplers = StageSamplers(proposal, pb.target, eps=eps)
             return samplers, proposal, proposal if eps == 0.0 else samplers.defensive
-        floor = pb.decided_below if cfg.skip_decided else -math.inf  # below it the outcome is decided
+        floor = pb.decided_below if self.ce.skip_decided else -math.inf  # below it the outcome is decided
         samplers = StageSamplers(proposal, pb.target, pb.window, floor, eps)
         return samplers, samplers.plain, samplers.defensive
 
@@ -430,12 +439,11 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     def _smoothing(self, gamma: float) -> float:
         """alpha of a stage at threshold gamma: ``smoothing_at_failure`` once gamma reached the failure level, and
         ``final_smoothing`` (when set) in the last stage, whose fit gives the final proposal."""
-        cfg = self.config
         if gamma > 0.0:
-            return cfg.smoothing
-        if cfg.final_smoothing is not None and self._plan is not None and self._plan.stage >= cfg.n_stages:
-            return cfg.final_smoothing
-        return cfg.smoothing if cfg.smoothing_at_failure is None else cfg.smoothing_at_failure
+            return self.ce.smoothing
+        if self.ce.final_smoothing is not None and self._plan is not None and self._plan.stage >= self.ce.n_stages:
+            return self.ce.final_smoothing
+        return self.ce.smoothing if self.ce.smoothing_at_failure is None else self.ce.smoothing_at_failure
 
     def _add_steps(self, batch: RolloutBatch, index: np.ndarray, gamma: float) -> None:
         """Reduce elite rollouts to their fitted object events (:class:`EliteSteps`): inputs, actions, alpha log w_i."""
@@ -510,16 +518,18 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         assert proposal is not None and self._elites is not None, "a CE stage comes after the pretraining fit"
         self.reached_failures = self.reached_failures or gamma <= 0.0  # latched: the pool's N is fixed once it starts
         elite = robustness <= gamma
-        if cfg.elite_ties == "random":
-            elite = break_ties(robustness, gamma, cfg.quantile_level, self.tie_rng, n, settled=self._elites.n_settled)
+        if self.ce.elite_ties == "random":
+            elite = break_ties(
+                robustness, gamma, self.ce.quantile_level, self.tie_rng, n, settled=self._elites.n_settled
+            )
         self.check()
-        epochs = cfg.ce_epochs if cfg.fit == "adam" else cfg.fit_max_steps
+        epochs = self.ce.ce_epochs if self.ce.fit == "adam" else self.ce.fit_max_steps
         fit: dict[str, Any] = dict(
             epochs=epochs,
-            lr=cfg.learning_rate,
+            lr=self.ce.learning_rate,
             check=self.check,
-            fit=cfg.fit,
-            max_rows=cfg.fit_rows,
+            fit=self.ce.fit,
+            max_rows=self.ce.fit_rows,
             rng=self.fit_rng,
             tolerance=self.tolerance,
             dtype=self.fit_dtype,
@@ -527,7 +537,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         if self._steps is not None:
             if batch is not None and elite.any():
                 self._add_steps(batch.select(elite), index[elite], gamma)
-            if self._steps is self._failure_steps and self.config.fit_weights == "mixture":
+            if self._steps is self._failure_steps and self.ce.fit_weights == "mixture":
                 self._steps.reweight(self._pool_log_weight)
             self._steps.fit(proposal, **fit)
             self._fit_noise(fit)
@@ -545,7 +555,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             batch.log_q,
             elite,
             smoothing=self._smoothing(gamma),
-            weights=cast(WeightMode, cfg.weights),
+            weights=cast(WeightMode, self.ce.weights),
             step_mask=mask,
             **fit,
         )
@@ -563,14 +573,14 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         inside the problem's window (their row's first column below it).
         """
         cfg = self.config
-        if not (cfg.weights_until_failure or cfg.proposal_window):
+        if not (cfg.weights_until_failure or self.ce.proposal_window):
             return None
         mask = np.ones(batch.detected.shape, bool)
         if cfg.weights_until_failure:
             level = level if cfg.metric == "classic" else 0.0
             before = np.arange(batch.n_steps)[None, :] < failure_steps(self.problem, batch, level)[:, None]
             mask &= before[:, :, None]
-        if cfg.proposal_window:
+        if self.ce.proposal_window:
             mask &= batch.object_rows[..., 0] < self.problem.window
         return mask
 
@@ -582,18 +592,3 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         assert self.proposal is not None  # fitted (or created, for its own pretraining) before
         rows, detected = batch.events()
         return self.proposal.features(rows), detected, None if mask is None else mask.reshape(batch.n, -1)
-
-    def _new_proposal(self, pretrain: RolloutBatch) -> Proposal:
-        """The paper's gap-only proposal, or a :class:`StateProposal` over every column of the object rows
-        (``proposal_inputs = "state"``): the first (the gap) scaled by the problem's ``h_scale``, the other columns by
-        their largest magnitude in the pretraining rollouts; its curve holds them at the first row drawn. It samples in
-        exact arithmetic (:meth:`Proposal.detect_logit`), whatever the fits' precision."""
-        if self.config.proposal_inputs == "gap":
-            proposal = Proposal(self.problem.h_scale)
-        else:
-            rows, _ = pretrain.events()
-            scales = [self.problem.h_scale] + [
-                float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])
-            ]
-            proposal = StateProposal(tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
-        return proposal

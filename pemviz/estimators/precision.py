@@ -86,9 +86,9 @@ def decision_batch_size(est: Estimate, n_final: int, log_threshold: float) -> in
 
 class PrecisionTarget:
     """Runs ``inner`` as planned, then adds final batches until the estimate's relative half-width is at most
-    ``config.rel_error`` (a precision target) or a requirement ``config.require`` is decided
-    (:func:`pemviz.core.requirement.decide`, one look after each batch), or ``config.max_sims`` simulations (default
-    :data:`pemviz.settings.DEFAULT_MAX_SIMS`) or ``config.max_time_s`` seconds are reached. :attr:`stop` says why it
+    ``rel_error`` (a precision target) or a requirement ``require`` is decided
+    (:func:`pemviz.core.requirement.decide`, one look after each batch), or ``max_sims`` simulations (default
+    :data:`pemviz.settings.DEFAULT_MAX_SIMS`) or ``max_time_s`` seconds are reached. :attr:`stop` says why it
     stopped, in one line; :attr:`decision` is the last look's :class:`pemviz.core.requirement.Decision`.
 
     Args:
@@ -96,7 +96,7 @@ class PrecisionTarget:
         config: the run's settings (``rel_error`` set).
         clock: seconds, monotonic (tests pass their own).
     Raises:
-        ValueError: ``config.rel_error`` is None.
+        ValueError: ``rel_error`` is None.
     """
 
     def __init__(
@@ -106,12 +106,12 @@ class PrecisionTarget:
             raise ValueError("PrecisionTarget: the config has neither rel_error nor require")
         self.inner, self.config, self.clock = inner, config, clock
         self.rng = inner.rng
-        self.max_sims = config.max_sims if config.max_sims is not None else DEFAULT_MAX_SIMS
+        self.max_sims = config.stop.max_sims if config.stop.max_sims is not None else DEFAULT_MAX_SIMS
         self.t0 = clock()
         self.n_simulations = 0
         """Rollouts drawn so far (rollout-equivalents where the inner estimator counts them: ``tilt``'s look-aheads)."""
         self.stop: str | None = None
-        self.requirement = None if config.require is None else parse_requirement(config.require)
+        self.requirement = None if config.stop.require is None else parse_requirement(config.stop.require)
         self.decision: Decision | None = None
         """With a requirement: the last look's decision (None before the first look)."""
         self._planned = True
@@ -149,7 +149,7 @@ class PrecisionTarget:
                 return None
             want = decision_batch_size(est, self.inner.final_rollouts(), self.requirement.log_threshold)
         else:
-            target, width = self.config.rel_error, est.rel_half_width
+            target, width = self.config.stop.rel_error, est.rel_half_width
             assert target is not None  # the stop rule is rel_error without a requirement (__init__)
             if width <= target and est.interval_backed:  # a narrow interval the weights do not back is no target
                 self.stop = (
@@ -166,11 +166,11 @@ class PrecisionTarget:
         cap = None
         if n <= 0:
             cap = f"--max-sims {self.max_sims:,} reached"
-        elif self.config.max_time_s is not None:
-            time_left = self.config.max_time_s - elapsed
+        elif self.config.stop.max_time_s is not None:
+            time_left = self.config.stop.max_time_s - elapsed
             rate = self.n_simulations / elapsed if elapsed > 0 else math.inf
             if time_left <= 0 or rate * time_left < 1:
-                cap = f"--max-time {self.config.max_time_s:g} s reached"
+                cap = f"--max-time {self.config.stop.max_time_s:g} s reached"
             else:
                 n = int(min(n, max(1, math.floor(rate * time_left / per))))
         if cap is not None:

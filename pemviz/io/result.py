@@ -15,7 +15,6 @@ budget.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -111,7 +110,7 @@ def result_document(
         "stop": final.stop,
         "proposal_prepared": final.prepared,
         "recording": recording,
-        "settings": _plain(dataclasses.asdict(config)),
+        "settings": _plain(config.flat()),
     }
     if problem is not None:
         doc["problem"] = {"name": problem.name, "description": problem.description, "formula": str(problem.formula)}
@@ -146,10 +145,10 @@ def result_document(
             ],
         }
     d = getattr(final, "decision", None)
-    if config.require is not None and d is not None:
+    if config.stop.require is not None and d is not None:
         from pemviz.core.requirement import EXIT_CODES, parse_requirement
 
-        req = parse_requirement(config.require)
+        req = parse_requirement(config.stop.require)
         doc["requirement"] = {
             "text": str(req),
             "op": req.op,

@@ -32,6 +32,7 @@ from pemviz.scenarios.crowd.problem import crowd_problem
 from pemviz.scenarios.crowd.simulator import CrowdParams
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import ToyParams
+from pemviz.settings import setting_of
 
 if TYPE_CHECKING:
     from pemviz.scenarios.braking.drawing import BrakingDrawing
@@ -87,7 +88,7 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
 def problem_for(config: Any) -> Problem:
     """The problem a run of ``config`` estimates: its scenario's registry factory called with the config
     (:attr:`pemviz.scenarios.registry.Scenario.factory`: :func:`braking_run_problem`, :func:`cut_in_run_problem`, a
-    plugin's own), which reads the parameters ``config.scenario_params`` and the PEM ``config.pem``. Loads the PEM on
+    plugin's own), which reads the parameters ``config.scenario_params`` and the PEM ``pem``. Loads the PEM on
     every call (a changed file is read again).
 
     Raises:
@@ -101,20 +102,20 @@ def problem_for(config: Any) -> Problem:
 
 def braking_run_problem(config: Any, params: BrakingParams | None = None) -> Problem:
     """The braking scenario's problem (the registry's factory of ``braking``) at ``params`` (None: the defaults), its
-    crash gap ``config.margin`` where given, the PEM ``config.pem`` on the simulator ``config.sim`` (``config`` None:
+    crash gap ``config.margin`` where given, the PEM ``pem`` on the simulator ``config.sim`` (``config`` None:
     the shipped PEM on the batched twin), with the config's alternative targets (:func:`with_alternatives`)."""
     margin = getattr(config, "margin", None)
     scene = params
     if margin is not None:
         scene = dataclasses.replace(scene or BrakingParams(), crash_gap_m=float(margin))
-    problem = braking_problem(load_pem(getattr(config, "pem", None)), scene, sim=getattr(config, "sim", "batched"))
+    problem = braking_problem(load_pem(setting_of(config, "pem", None)), scene, sim=getattr(config, "sim", "batched"))
     return with_alternatives(problem, config) if config is not None else problem
 
 
 def cut_in_run_problem(config: Any, params: Any = None) -> Problem:
     """A cut-in scenario's problem (the registry's factory of ``cut-in`` and ``cut-in-rare``) at ``params`` (a
     :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`; None: the ``moderate`` setting), named after
-    ``config.scenario``, the PEMs ``config.pem`` (``config`` None: the shipped ones), with the plain Monte Carlo
+    ``config.scenario``, the PEMs ``pem`` (``config`` None: the shipped ones), with the plain Monte Carlo
     reference of a rarity setting (:data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`) where the scene is
     that setting's own and the PEMs the shipped ones, under which it was drawn."""
     from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
@@ -122,7 +123,7 @@ def cut_in_run_problem(config: Any, params: Any = None) -> Problem:
 
     scene = params if params is not None else cut_in_params("moderate")
     assert isinstance(scene, CutInParams)  # a cut-in scenario's own dataclass
-    pem = getattr(config, "pem", None)
+    pem = setting_of(config, "pem", None)
     problem = cut_in_problem(load_pem(pem), scene, name=getattr(config, "scenario", "cut-in"))
     own = [name for name in RARITY_SETTINGS if scene == cut_in_params(name)]  # the references hold for these only
     if pem in (None, DEFAULT_PEM_NAME) and own and own[0] in MONTE_CARLO_REFERENCE:
@@ -147,10 +148,10 @@ def with_alternatives(problem: Problem, config: Any) -> Problem:
     """
     from pemviz.core.reweight import ShiftedDetector, with_pem
 
-    shifts = list(PEM_SHIFTS) if config.pem_uncertainty else []
-    if config.pem_shift is not None and config.pem_shift not in shifts:
-        shifts.append(float(config.pem_shift))
-    if not shifts and not config.pem_uncertainty:
+    shifts = list(PEM_SHIFTS) if config.perception.pem_uncertainty else []
+    if config.perception.pem_shift is not None and config.perception.pem_shift not in shifts:
+        shifts.append(float(config.perception.pem_shift))
+    if not shifts and not config.perception.pem_uncertainty:
         return problem
     target = problem.target
     # a braking problem draws with its BrakingDrawing (braking_problem)
@@ -160,10 +161,10 @@ def with_alternatives(problem: Problem, config: Any) -> Problem:
         return known_log_failure_probability(logit_at_gap, scene) if scene is not None else None
 
     alternatives, source = [], ""
-    if config.pem_uncertainty:
+    if config.perception.pem_uncertainty:
         from pemviz.pem.ensemble import ensemble_for, load_ensemble
 
-        path = ensemble_for(config.pem)
+        path = ensemble_for(config.perception.pem)
         members = load_ensemble(path)
         source = path.name
         for k, member in enumerate(members):

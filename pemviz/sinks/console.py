@@ -15,6 +15,7 @@ from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageF
 from pemviz.methods import method_or_none, plain_method
 from pemviz.plugins import resolve
 from pemviz.sinks import Sink, StageClock
+from pemviz.settings import setting_of
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
@@ -368,7 +369,7 @@ def next_step(
     :func:`mc_route`) decides it. Its time is the rollouts times this run's measured seconds a simulation,
     ``wall_s`` / ``n_simulations`` (the run's :class:`~pemviz.engine.events.FinalEstimate`); an importance-sampling
     run's includes its proposal's fits, so for plain rollouts it is an upper estimate. Where it is at most
-    :data:`MC_AFFORDABLE` rollouts and fits ``config.max_time_s`` (seconds, where set) the line names it
+    :data:`MC_AFFORDABLE` rollouts and fits ``config.stop.max_time_s`` (seconds, where set) the line names it
     (``--method mc --rel-error 0.2 --max-sims N``), then the sampler's own route; else it says why not and what is
     left: more budget for the importance sampler (the verdict says whether to trust it), for splitting, which has no
     final batch to add to, more particles or the committor's graded score (``--ams-score committor``), or that no
@@ -390,7 +391,7 @@ def next_step(
     s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
     rate = rate_source(method, plain_s is not None)  # how mc_s was had, for the text
-    max_time = getattr(config, "max_time_s", None)
+    max_time = setting_of(config, "max_time_s", None)
     route = mc_route(e, method, exact_log_p, reference, mc_s)
     budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
     if max_time is not None and mc_s is not None:
@@ -562,8 +563,8 @@ class ConsoleSink(Sink):
             f"pemviz: {cfg.method} on the {event.problem.name} scenario{scenario_params_text(cfg)}, spec "
             f"{event.formula}, metric {cfg.metric}, "
             + (
-                f"K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.n_final} sigma={cfg.quantile_level} "
-                f"alpha={cfg.smoothing}"
+                f"K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.adaptive.n_final} "
+                f"sigma={cfg.adaptive.quantile_level} alpha={cfg.adaptive.smoothing}"
                 if self.plan.n_ce
                 else f"N={cfg.n_per_stage}"
             )

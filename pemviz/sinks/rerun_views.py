@@ -209,15 +209,16 @@ def method_markdown(ev: RunStarted) -> str:
             f"{plan.stages[0].n_rollouts} rollouts of the target pretrain the proposal q(detect | d) (stage 0), "
             f"K = {plan.n_ce} stages of N = {cfg.n_per_stage} rollouts each move it toward the "
             f"failures (elites: robustness at or below the (1 - sigma) quantile gamma, sigma = "
-            f"{cfg.quantile_level}, smoothing alpha = {cfg.smoothing}), and {final}."
+            f"{cfg.adaptive.quantile_level}, smoothing alpha = {cfg.adaptive.smoothing}), and {final}."
         ),
         "mc": f"plain **Monte Carlo** with the PEM: {cfg.n_per_stage} rollouts.",
         "naive50": f"a **50 % detector** at every step, weighted by the PEM: {cfg.n_per_stage} rollouts.",
         "mixed50": f"a **50 % detector inside the window** ({window}), the PEM outside: {cfg.n_per_stage} rollouts.",
         "ams": (
-            f"**adaptive multilevel splitting** on {AMS_SCORE_WORDS.get(cfg.ams_score, cfg.ams_score)} (Cerou & "
+            f"**adaptive multilevel splitting** on {AMS_SCORE_WORDS.get(cfg.ams.ams_score, cfg.ams.ams_score)} "
+            "(Cerou & "
             f"Guyader 2007): N = {cfg.n_per_stage} "
-            f"PEM rollouts, the k = {cfg.ams_killed} highest killed per iteration and branched from survivors; "
+            f"PEM rollouts, the k = {cfg.ams.ams_killed} highest killed per iteration and branched from survivors; "
             "each stage shows the particles after about N resamplings."
         ),
         "tilt": (

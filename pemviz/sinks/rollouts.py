@@ -23,6 +23,7 @@ from pemviz.core.detectors import ArrayRQMC, ConstantDetector, SamplerView, Wind
 from pemviz.core.sampling import Proposal
 from pemviz.sinks import Sink
 from pemviz.core.weights import convention, stage_log_q
+from pemviz.settings import setting_of
 
 STAGES = ("used", "all")
 """Which stages ``--save-rollouts`` writes: those the run's estimate uses, or every stage (pretraining included)."""
@@ -146,8 +147,8 @@ class RolloutSink(Sink):
         method = getattr(cfg, "method", None)
         proposals: dict[str | None, str] = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}
         proposal = proposals.get(method)
-        provenance: dict[str, Any] = {} if cfg is None else {"config": dataclasses.asdict(cfg)}
-        pem = self.pem or getattr(cfg, "pem", None) or DEFAULT_PEM_NAME
+        provenance: dict[str, Any] = {} if cfg is None else {"config": cfg.flat()}
+        pem = self.pem or setting_of(cfg, "pem", None) or DEFAULT_PEM_NAME
         return run_meta(self.problem, self._formula, pem=pem, proposal=proposal, provenance=provenance)
 
     def write(self, finished: Any) -> Path:
@@ -157,7 +158,7 @@ class RolloutSink(Sink):
         used = [k for k in finished.final.stages_used if k in self._infos] or sorted(self._infos)  # none said: all
         keep = sorted(self._infos) if self.stages == "all" else used
         sizes = [self._infos[k]["n"] for k in used]
-        rule = "single" if len(used) == 1 else getattr(cfg, "pool_weights", "rollouts")
+        rule = "single" if len(used) == 1 else setting_of(cfg, "pool_weights", "rollouts")
         given = finished.final.pooling  # the estimator's own (added final batches), else the config's rule
         lam: np.ndarray | None
         if given is not None and len(given[1]) == len(used) and len(used) > 1:

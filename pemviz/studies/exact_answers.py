@@ -135,7 +135,7 @@ def validation_problem(name: str, pem_path: str | None = None):
 
     if name not in registry.registered():
         raise ValueError(f"unknown problem {name!r}; use one of {', '.join(validation_problems())}")
-    problem = registry.get(name).problem(ExperimentConfig(scenario=name, pem=pem_path))
+    problem = registry.get(name).problem(ExperimentConfig.of(scenario=name, pem=pem_path))
     if problem.exact_log_p is None:
         raise ValueError(f"the {name} scenario carries no exact answer: pemviz validate needs one")
     return problem

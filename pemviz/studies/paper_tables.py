@@ -112,7 +112,7 @@ def row_specs(
 ) -> list[RowSpec]:
     """Table II then Table III (the classic row of Table III is Table II's adaptive_N row); ``ams``: with an AMS row
     at the adaptive sampler's budget."""
-    n = ExperimentConfig(**base).n_per_stage
+    n = ExperimentConfig.of(**base).n_per_stage
     sim = {k: v for k, v in base.items() if k in ("pem",)}
     specs = [
         RowSpec("II", f"MC_{n}", tuple(sorted({**sim, "method": "mc", "n_per_stage": n}.items()))),
@@ -126,7 +126,7 @@ def row_specs(
         RowSpec("II", f"adaptive_{n}", tuple(sorted(base.items()))),
     ]
     if ams:  # adaptive multilevel splitting at the adaptive sampler's budget (pemviz.studies.validation.ams_fields)
-        budget = ExperimentConfig(**base).n_simulations
+        budget = ExperimentConfig.of(**base).n_simulations
         specs.append(RowSpec("II", f"AMS_{budget}", tuple(sorted({**sim, **ams_fields(budget)}.items()))))
     for name in extra:
         specs.append(RowSpec("II", f"adaptive_{n} ({name})", tuple(sorted({**PRESETS[name], **base}.items()))))
@@ -166,7 +166,7 @@ def report(
     """The Markdown report of ``pemviz tables`` (``tables.md``): how rows are formed, Table II, Table III, the
     refinement of the exact answer, the wall time (seconds) on ``n_jobs`` processes; ``base``: the adaptive
     sampler's config fields given on the command line."""
-    cfg = ExperimentConfig(**base)
+    cfg = ExperimentConfig.of(**base)
     return (
         "\n".join(
             [
@@ -174,9 +174,10 @@ def report(
                 "",
                 f"{reps} repetitions per row (seeds 0..{reps - 1}); mu_hat is the mean over repetitions +- the "
                 f"standard error std/sqrt({reps}); failures and ESS are means over repetitions; NLL is over failing "
-                f"rollouts (nats), averaged over repetitions. Adaptive: K = {cfg.n_stages}, N = {cfg.n_per_stage}, "
-                f"N_e = {cfg.n_final}, sigma = {cfg.quantile_level}, alpha = {cfg.smoothing}, "
-                f"{cfg.ce_epochs} epochs per "
+                f"rollouts (nats), averaged over repetitions. Adaptive: K = {cfg.adaptive.n_stages}, "
+                f"N = {cfg.n_per_stage}, N_e = {cfg.adaptive.n_final}, sigma = {cfg.adaptive.quantile_level}, "
+                f"alpha = {cfg.adaptive.smoothing}, "
+                f"{cfg.adaptive.ce_epochs} epochs per "
                 "stage.",
                 f"Exact p_fail {format_probability(truth.log_p_fail, 5)}: {truth.source}.",
                 "",

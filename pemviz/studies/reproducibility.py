@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> None:
         "pretrain_rollouts": a.pretrain,
         "chunk_rollouts": a.chunk,
     }
-    cfg = ExperimentConfig(
+    cfg = ExperimentConfig.of(
         scenario=a.scenario, executor=a.executor, seed=a.seed, **{k: v for k, v in fields.items() if v is not None}
     )
     try:

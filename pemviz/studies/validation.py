@@ -94,7 +94,7 @@ def run_job(job: Job) -> RunRecord:
         from pemviz.methods import load_method_plugins
 
         load_method_plugins()
-    cfg = ExperimentConfig(**dict(job.fields), seed=job.seed)
+    cfg = ExperimentConfig.of(**dict(job.fields), seed=job.seed)
     t0 = time.perf_counter()
     with torch_threads(1, blas=1):  # runs go side by side: a BLAS thread each
         res = Experiment(cfg, problem=problem).run()
@@ -139,7 +139,7 @@ def all_fields(fields: Sequence[tuple[str, Any]]) -> list[tuple[str, Any]]:
     Raises:
         ConfigError: ``fields`` not a valid config.
     """
-    config = dataclasses.asdict(ExperimentConfig(**dict(fields)))
+    config = ExperimentConfig.of(**dict(fields)).flat()
     return sorted((k, v) for k, v in config.items() if k != "seed")
 
 
@@ -460,9 +460,9 @@ def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str
     budget = None
     for name in presets:
         fields = {**PRESETS[name], **base}
-        budget = budget or ExperimentConfig(**fields).n_simulations
+        budget = budget or ExperimentConfig.of(**fields).n_simulations
         out.append((f"adaptive ({name})", fields))
-    budget = budget or ExperimentConfig(**base).n_simulations
+    budget = budget or ExperimentConfig.of(**base).n_simulations
     for m in baselines:
         own = ams_fields(budget) if m == "ams" else {"method": m, "n_per_stage": budget}
         out.append((m, {**{k: v for k, v in base.items() if k in ("pem", "sim")}, **own}))

@@ -90,7 +90,7 @@ class Tilted:
 
 
 def test_a_stream_drawing_from_a_parameter_proposal_is_the_same_rollouts_at_any_chunk_size():
-    problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=TOY_ODD))
+    problem = problem_for(ExperimentConfig.of(scenario="toy", scenario_params=TOY_ODD))
     q = ParameterProposal.of(problem.odd)
     assert q is not None
     q = q.refit(np.array([[7.0]]), np.zeros(1), rate=1.0, defensive=0.1)  # mostly braking = 7
@@ -117,11 +117,11 @@ def test_the_default_sampler_finds_the_corner_of_an_odd_spanning_nine_orders():
     each within x2 of the closed form and their median within 10 % (seeds 0-19: median 0.011, all within 18 %;
     drawing b from the ODD itself it was 0.099, 2 of 20 seeds outside x2), never ``reliable`` (capped over an
     ODD)."""
-    problem = problem_for(ExperimentConfig(scenario="toy", scenario_params=CORNER_ODD))
+    problem = problem_for(ExperimentConfig.of(scenario="toy", scenario_params=CORNER_ODD))
     assert math.exp(problem.exact_log_p) == pytest.approx(CORNER_EXACT, rel=1e-12)
     ratios = []
     for seed in range(6):
-        cfg = ExperimentConfig(scenario="toy", scenario_params=CORNER_ODD, seed=seed)
+        cfg = ExperimentConfig.of(scenario="toy", scenario_params=CORNER_ODD, seed=seed)
         e = Experiment(cfg, problem=problem).run().final.estimate
         ratios.append(math.exp(e.log_mu_hat - problem.exact_log_p))
         assert 0.5 < ratios[-1] < 2 and e.verdict != "reliable", (seed, e.summary())

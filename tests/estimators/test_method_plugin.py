@@ -61,7 +61,7 @@ def test_the_built_in_methods_are_registered_records():
 
 def test_a_registered_method_is_a_config_method_and_builds(defensive):
     assert "defensive-mc" in method_names()
-    cfg = ExperimentConfig(method="defensive-mc", scenario="braking", n_per_stage=500)
+    cfg = ExperimentConfig.of(method="defensive-mc", scenario="braking", n_per_stage=500)
     assert run_plan(cfg).stages[-1].n_rollouts == 500
     from pemviz.scenarios.problems import build_problem
 
@@ -69,7 +69,7 @@ def test_a_registered_method_is_a_config_method_and_builds(defensive):
     assert isinstance(est, FixedSampler) and est.sampler.eps == 0.3
     unregister_method("defensive-mc")
     with pytest.raises(ConfigError, match="method = 'defensive-mc' is invalid: use one of adaptive, mc, naive50"):
-        ExperimentConfig(method="defensive-mc")
+        ExperimentConfig.of(method="defensive-mc")
     register_method(defensive)
 
 
@@ -190,8 +190,8 @@ def test_a_method_that_cannot_add_batches_refuses_a_stop_rule(defensive):
             "to; use it with method adaptive, mc, naive50, mixed50, tilt, "
             "defensive-mc$",
         ):
-            run_plan(ExperimentConfig(method="one-batch", rel_error=0.2))
-        assert run_plan(ExperimentConfig(method="defensive-mc", rel_error=0.2)).open_ended
+            run_plan(ExperimentConfig.of(method="one-batch", rel_error=0.2))
+        assert run_plan(ExperimentConfig.of(method="defensive-mc", rel_error=0.2)).open_ended
     finally:
         unregister_method("one-batch")
 

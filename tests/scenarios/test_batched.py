@@ -214,9 +214,9 @@ def test_bad_arguments_raise_one_clear_error(pem):
 
 
 def test_the_default_back_end_is_batched_and_an_unknown_one_is_refused():
-    assert ExperimentConfig().sim == "batched"
+    assert ExperimentConfig.of().sim == "batched"
     with pytest.raises(ConfigError, match="sim = 'carla' is invalid: use one of highway-env, batched"):
-        ExperimentConfig(sim="carla")
+        ExperimentConfig.of(sim="carla")
     with pytest.raises(ValueError, match="unknown simulator 'carla'"):
         problems.braking_problem(None, sim="carla")
 
@@ -241,7 +241,7 @@ def test_engine_runs_the_configured_back_end_and_both_give_the_same_estimate(mon
 
         with monkeypatch.context() as patch:
             patch.setattr(braking_problem_module, unused, must_not_run)
-            cfg = ExperimentConfig(method="mixed50", n_per_stage=40, seed=1, sim=sim)
+            cfg = ExperimentConfig.of(method="mixed50", n_per_stage=40, seed=1, sim=sim)
             done = Experiment(cfg, problem=problem_for(cfg)).run()
         assert isinstance(done, RunFinished)
         estimates[sim] = done.final.estimate

@@ -66,7 +66,7 @@ def _problem(text: str):
     from pemviz.scenarios.cut_in.odd import cut_in_odd_problem
 
     odd = ODD((("cut_in_gap_m", parse_distribution(text)),))
-    return cut_in_odd_problem(ExperimentConfig(scenario="cut-in", method="mc"), P, odd)
+    return cut_in_odd_problem(ExperimentConfig.of(scenario="cut-in", method="mc"), P, odd)
 
 
 def test_a_support_where_the_traffic_is_not_moved_is_refused_in_one_line():

@@ -50,7 +50,7 @@ SIMPLE = CostConstants(
 
 
 def run_started(view: ProblemView = BRAKING, plan: RunPlan = PLAN, **config) -> RunStarted:
-    cfg = ExperimentConfig(**{"n_stages": 2, "n_per_stage": 30, "n_final": 50, "pretrain_rollouts": 20, **config})
+    cfg = ExperimentConfig.of(**{"n_stages": 2, "n_per_stage": 30, "n_final": 50, "pretrain_rollouts": 20, **config})
     return RunStarted(cfg, "G[0,4](d >= 2)", GRID, np.full(GRID.size, 0.9), view, plan, exact_log_p=None)
 
 

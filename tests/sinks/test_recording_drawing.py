@@ -129,7 +129,7 @@ def test_the_cut_ins_outcome_values_are_its_severity_and_every_failure_is_said_f
     from pemviz.scenarios.cut_in.story import cut_in_severity
     from pemviz.scenarios.problems import problem_for
 
-    problem = problem_for(ExperimentConfig(scenario="cut-in"))
+    problem = problem_for(ExperimentConfig.of(scenario="cut-in"))
     b = RolloutBatch.concatenate(
         [problem.simulate(12, ConstantDetector(p), problem.target, np.random.default_rng(3)) for p in (0.5, 0.02)]
     )  # the cut-in car seen half the time (safe), or almost never (failures)

@@ -17,11 +17,12 @@ from pemviz.core.odd_rollouts import problem_over_odd
 from pemviz.core.problems import Problem
 from pemviz.scenarios.braking.batched import BatchedBraking
 from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.settings import setting_of
 
 
 def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> Problem:
     """The braking problem over ``odd`` (parameters ``gap0_m`` and / or ``ego_speed0_mps``), the others at ``params``
-    (None: the defaults), the PEM ``config.pem`` (None: the shipped one).
+    (None: the defaults), the PEM ``config.perception.pem`` (None: the shipped one).
 
     Raises:
         ValueError: another parameter in the ODD, or the highway-env back-end (``config.sim``), which starts every
@@ -43,7 +44,7 @@ def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> 
     def make(n: int, values: np.ndarray) -> BatchedBraking:
         return BatchedBraking(p, n, starts={name: values[:, j] for j, name in enumerate(names)})
 
-    base = braking_problem(load_pem(getattr(config, "pem", None)), p, sim="batched")
+    base = braking_problem(load_pem(setting_of(config, "pem", None)), p, sim="batched")
     return problem_over_odd(
         base,
         make,

@@ -14,6 +14,7 @@ from pemviz.core.estimate import Reference
 from pemviz.core.problems import Problem, rollout_functions
 from pemviz.scenarios.crossing.scene import OBJECT_NAMES, BatchedCrossing, CrossingParams, pedestrian_ahead_rows
 from pemviz.stack.detector import NOISE_NAMES, camera_detector
+from pemviz.settings import setting_of
 
 CROSSING_FORMULA = "G(clearance >= 0)"
 """No collision with a pedestrian: the signed separation of the boxes (m) stays >= 0; failure = robustness < 0."""
@@ -76,7 +77,7 @@ def crossing(config: Any = None, params: CrossingParams | None = None) -> Proble
     from pemviz.pem.recipes import DEFAULT_PEM_NAME
     from pemviz.pem import load_pem
 
-    pem_name = getattr(config, "pem", None)
+    pem_name = setting_of(config, "pem", None)
     p = params if params is not None else CrossingParams()
     problem = crossing_problem(p, load_pem(pem_name))
     failures, n = MONTE_CARLO_REFERENCE

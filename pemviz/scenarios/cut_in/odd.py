@@ -24,6 +24,7 @@ from pemviz.core.odd_rollouts import problem_over_odd
 from pemviz.core.problems import Problem
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, translation_error
 from pemviz.scenarios.cut_in.scenario import CutInParams
+from pemviz.settings import setting_of
 
 RANDOM_PARAMS = ("cut_in_gap_m",)
 """The cut-in's parameters an ODD may draw per rollout."""
@@ -34,7 +35,7 @@ TRANSLATION_TOLERANCE_M = 1e-9
 
 def cut_in_odd_problem(config: Any, params: CutInParams | None, odd: ODD) -> Problem:
     """The cut-in problem over ``odd`` (parameter ``cut_in_gap_m``, metres), the others at ``params`` (None: the
-    defaults), the PEMs ``config.pem`` (None: the shipped ones).
+    defaults), the PEMs ``config.perception.pem`` (None: the shipped ones).
 
     Raises:
         ValueError: another parameter in the ODD; a support where the cut-in vehicle's trajectory is not the moved one
@@ -62,7 +63,7 @@ def cut_in_odd_problem(config: Any, params: CutInParams | None, odd: ODD) -> Pro
     def make(n: int, values: np.ndarray) -> BatchedCutIn:
         return BatchedCutIn(p, n, gap_shift_m=values[:, 0] - p.cut_in_gap_m)
 
-    base = cut_in_problem(load_pem(getattr(config, "pem", None)), p, name=getattr(config, "scenario", "cut-in"))
+    base = cut_in_problem(load_pem(setting_of(config, "pem", None)), p, name=getattr(config, "scenario", "cut-in"))
     return problem_over_odd(
         base,
         make,

@@ -16,6 +16,9 @@ my_package.my_method``, comma-separated, each module registering at import) or a
 This module imports no estimator: a builder (and every hook) may be given as the text ``"package.module:name"``
 (imported when first used), so listing the methods loads no torch. It sits below the config, which asks a method's
 record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
+Each built-in method's settings are a frozen dataclass in a module of this package, light to import, which the config
+holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
+``adaptive``) and :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``).
 """
 
 from __future__ import annotations

@@ -1,0 +1,129 @@
+"""The cross-entropy sampler's settings (``method = "adaptive"``): :class:`CrossEntropySettings`, the
+:attr:`pemviz.config.ExperimentConfig.adaptive` of a run. Each field's symbol, range, unit, help and flag is its row of
+:data:`pemviz.settings.SETTINGS` (owner ``adaptive``); :class:`pemviz.estimators.cross_entropy.CrossEntropy` reads
+them. Light to import: no estimator is loaded."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class CrossEntropySettings:
+    """Algorithm 1 of Innes & Ramamoorthy (2022) as pemviz runs it; the defaults are the recommended sampler
+    (:data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the paper's own). N, the rollouts of a stage, is the run's
+    :attr:`pemviz.config.ExperimentConfig.n_per_stage`; whether the weights stop at the failure step is the run's
+    :attr:`~pemviz.config.ExperimentConfig.weights_until_failure` (every method's).
+
+    Attributes:
+    n_stages: K, cross-entropy stages (adaptive only).
+    n_final: N_e, fresh rollouts from the final proposal for the estimate (paper 100; the default 1000: once the
+        proposal is fitted a rollout costs microseconds of simulation, a CE stage ~0.5 s of fitting, and these
+        rollouts are the ones drawn from the best proposal).
+    quantile_level: sigma in [0.5, 1): the stage threshold is the (1 - sigma) quantile of robustness.
+    smoothing: alpha in (0, 1]: the power on the importance weights in the CE loss.
+    ce_epochs: the most Adam epochs per stage (paper 500; authors' code 1000; the default 150: each fit starts
+        from the last stage's proposal and, with ``fit_tolerance``, stops once its loss stops falling).
+    pretrain_rollouts, pretrain_epochs: PEM-driven rollouts and epochs to pretrain the proposal (paper: 1000;
+        the default sampler 500, which measured as accurate, e.g. on the braking job, and saves a second).
+    learning_rate: Adam step size for the proposal (paper 1e-3; the default 1e-2, with fewer epochs).
+    weights: ``frozen`` (paper eq. 10-11) or ``recomputed`` with gradient (authors' code).
+    final_estimate: ``pooled``: the N_e fresh rollouts together with every CE stage whose proposal was fitted to
+        failures (the stage before it had reached gamma = 0), each rollout weighted by the proposal that drew
+        it; ``fresh``: the N_e rollouts alone (paper); ``last-stage``: the last stage's batch (authors' code).
+    pool_weights: how ``pooled`` combines its stages, one of :data:`POOL_WEIGHTS`: ``rollouts``, every rollout
+        alike (stage kappa's estimate counts n_kappa / N); ``linear``, the j-th pooled stage's estimate counts in
+        proportion to j n_kappa, so later proposals, fitted to more failures, count more; ``quadratic`` (the
+        default), in proportion to j^2 n_kappa. All are fixed before any pooled stage is drawn, so all are
+        unbiased.
+    proposal_inputs: h(s), one of :data:`PROPOSAL_INPUTS`.
+    proposal_window: the proposal replaces the PEM only where the detector can matter (the problem's
+        ``window``: gap < 10 m); elsewhere q = p_PEM, so those steps weigh exactly 1 and are not fitted.
+    skip_decided: with ``proposal_window``, the proposal also gives way to the PEM at steps where the outcome is
+        already decided (the problem's ``decided_below``: a gap below the 2 m crash gap), so that the proposal
+        network runs only where a detection can matter; those steps weigh exactly 1 and are not fitted.
+    smoothing_at_failure: alpha in (0, 2] once gamma_kappa has reached the failure threshold 0 (None:
+        ``smoothing``). 1.0 fits the failures with their full weights, the textbook CE target (the proposal
+        nearest the zero-variance density in Kullback-Leibler divergence). Above 1 (the default, 1.2) a failure
+        counts w^alpha = w x w^(alpha - 1): more where the samplers drew it too rarely. That is the gradient of
+        the Renyi divergence of order alpha with the weights frozen at the samplers (Li & Turner, "Renyi
+        divergence variational inference", NeurIPS 2016; alpha = 2 is the variance-minimisation program of de
+        Boer, Kroese, Mannor & Rubinstein, "A tutorial on the cross-entropy method", Ann. Oper. Res. 2005):
+        the proposal covers the failures it under-samples, which lightens the tail of the weights of the
+        pooled stages.
+    final_smoothing: alpha of the last stage's fit, whose proposal draws the N_e final rollouts (None: as the
+        stages before it); needs ``fit_weights = "mixture"``, which weighs the whole failure pool again at every
+        fit. The default 1.0 gives that proposal the plain CE fit: e.g. at 2,100 simulations on the braking job,
+        median relative error 0.021 over seeds 0-99 with alpha 1.2 before it (0.022 with 1.0 throughout); at
+        1,200 simulations 0.039 against 0.054.
+    elite_ties: ``all`` (paper: every rollout with r <= gamma_kappa is an elite) or ``random``: the rollouts
+        with r < gamma_kappa, plus ties at gamma_kappa drawn at random up to ceil((1 - sigma) N) elites (with a
+        discrete robustness, e.g. the toy's integer distances, ties can make every rollout an elite and stall
+        the adaptation, or make non-failing r = 0 rollouts elites at the last level).
+    pretrain_cap: None (paper: pretrain on PEM-driven rollouts) or c in (0, 1): inside the problem's
+        window the pretraining rollouts detect with min(p_PEM, c), so that the first proposal misses often
+        enough for stage 1 to rank rollouts (with p = 0.999 all 100 rollouts of stage 1 look alike).
+    defensive: eps in [0, 1): the CE stages' rollouts are drawn from the defensive mixture (1 - eps) q + eps x 50 %
+        at every step, so that both outcomes keep probability >= eps / 2 at every step (0: the proposal itself,
+        paper). It caps q(miss) at 1 - eps / 2: a failure that needs m misses in a row then has proposal
+        probability <= (1 - eps / 2)^m, whence the two shares below.
+    target_share, plain_share: once a stage has reached the failure level, a mixture over whole rollouts: these
+        shares of each stage's rollouts come from the target p and from the proposal q without the per-step
+        mixture, the rest from the per-step mixture; every rollout weighs p / (sum of share x sampler) (the
+        balance heuristic), at most 1 / ``target_share`` (Hesterberg 1995; Owen & Zhou, "Safe and effective
+        importance sampling", JASA 2000). 0 and 0: no mixture over rollouts.
+    fit_all_failures: once a stage's threshold reached the failure level, each CE fit uses the failures of every
+        stage since then, each weighted by the proposal that drew it (all are weighted samples of the same
+        zero-variance density 1[fail] p / mu), instead of the stage's alone.
+    fit_weights: how those fits weigh the failures (``fit_all_failures``), one of :data:`FIT_WEIGHTS`:
+        ``sampler``, by the sampler that drew each; ``mixture``, by the mixture of the samplers of every stage
+        since the failure level, each at its share of their rollouts (the balance heuristic: the
+        deterministic-mixture weights of adaptive multiple importance sampling, Cornuet, Marin, Mira &
+        Robert, Scand. J. Stat. 2012), which bounds the weight of a failure an early, poor proposal drew by
+        what the later ones give it. Only the fits change: the estimate weighs every rollout by its own
+        stage's samplers. Once the fitted steps are thinned (more than 20 x ``fit_rows`` of them) the steps
+        keep the weights they have.
+    fit: one of :data:`FITS`; ``adam`` runs ``ce_epochs`` / ``pretrain_epochs`` epochs at ``learning_rate``,
+        ``lbfgs`` at most ``fit_max_steps`` iterations per fit, stopping once converged.
+    fit_precision: one of :data:`FIT_PRECISIONS`: the arithmetic of the ``adam`` fits of a weighted
+        log-likelihood; the parameters stay float64, and every weight is computed in float64 from the density
+        sampled from (the logit the sampler drew with), so the precision moves the proposal only, never the
+        estimate's unbiasedness.
+    fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).
+    fit_rows: None (every fitted step) or the most steps one fit sees: beyond that, a weighted systematic
+        subsample with the same expected CE objective, so a stage's fit costs the same at any N (the default
+        5,000: at N = 100 the pretraining and the failure pool of the later stages are subsampled; it fits twice as
+        fast as 10,000 at large N, and the default run's 100-seed accuracy is the same).
+    fit_tolerance: early stopping of the CE stages' ``adam`` fits: a fit stops once its loss (nats per step)
+        fell by less than this over the last 50 epochs; None: every epoch. The pretraining fit of at most
+        ``fit_rows`` steps runs every epoch; ``lbfgs`` stops at its own tolerance.
+    """
+
+    n_stages: int = 10
+    n_final: int = 1000
+    quantile_level: float = 0.95
+    smoothing: float = 0.1
+    ce_epochs: int = 150
+    pretrain_rollouts: int = 100
+    pretrain_epochs: int = 500
+    learning_rate: float = 1e-2
+    weights: str = "frozen"
+    final_estimate: str = "pooled"
+    pool_weights: str = "quadratic"
+    proposal_inputs: str = "state"
+    proposal_window: bool = True
+    skip_decided: bool = True
+    smoothing_at_failure: float | None = 1.2
+    final_smoothing: float | None = 1.0
+    elite_ties: str = "random"
+    pretrain_cap: float | None = 0.9
+    defensive: float = 0.2
+    target_share: float = 0.1
+    plain_share: float = 0.45
+    fit_all_failures: bool = True
+    fit_weights: str = "mixture"
+    fit: str = "adam"
+    fit_precision: str = "exact"
+    fit_max_steps: int = 200
+    fit_rows: int | None = 5_000
+    fit_tolerance: float | None = 1e-3
