@@ -104,8 +104,7 @@ def main() -> int:
         ("ego_speed0_mps", f"~uniform({speed[0]:g}, {speed[1]:g})" if speed[1] > speed[0] else speed[0]),
     )
     cfg0 = ExperimentConfig.of(scenario_params=params)
-    cfg0 = dataclasses.replace(
-        cfg0,
+    cfg0 = cfg0.replace(
         n_per_stage=int(round(cfg0.n_per_stage * args.budget)),
         n_final=int(round(cfg0.adaptive.n_final * args.budget)),
     )
