@@ -128,11 +128,11 @@ def stage_log_q(
     ]
     shares = np.asarray(sizes, dtype=np.float64) / sum(sizes)
     ratios = [None if d is target else parameter_log_ratio(d, batch) for _, d in parts]
-    if all(r is None for r in ratios):
-        return mixture_step_log_q(np.stack(log_q), shares, densities=batch.noise is not None), component, None
-    log_start = np.stack([np.zeros(batch.n) if r is None else r for r in ratios])
+    log_start = None  # over an ODD, each component's parameter term (0 for one drawing from the ODD itself)
+    if any(r is not None for r in ratios):
+        log_start = np.stack([np.zeros(batch.n) if r is None else r for r in ratios])
     step = mixture_step_log_q(np.stack(log_q), shares, densities=batch.noise is not None, log_start=log_start)
-    return step, component, stage_log_q_params(log_start, shares)
+    return step, component, None if log_start is None else stage_log_q_params(log_start, shares)
 
 
 @dataclass(frozen=True)

@@ -161,13 +161,14 @@ def log_weight(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np
     return masked_log_weight(batch, weighted_steps_mask(problem, batch, until_failure))
 
 
-def masked_log_weight(batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
-    """sum_t log p - log q over the steps of ``mask`` (bool [N, T]), less the parameters' term over an ODD
-    (:attr:`~pemviz.core.rollouts.RolloutBatch.log_q_params`), float64 [N] (nats); a step the mask drops may hold
-    -inf - -inf (an action after the failure), never summed."""
+def masked_log_weight(batch: RolloutBatch, mask: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    """sum_t log p - log q over the steps of ``mask`` (bool [N, T]; with ``rows``, int [R], of those rollouts only:
+    [R, T]), less the parameters' term over an ODD (:attr:`~pemviz.core.rollouts.RolloutBatch.log_q_params`), float64
+    [N] or [R] (nats); a step the mask drops may hold -inf - -inf (an action after the failure), never summed."""
+    pick = slice(None) if rows is None else rows
     with np.errstate(invalid="ignore"):
-        log_w = np.where(mask, batch.log_p - batch.log_q, 0.0).sum(axis=1)
-    return log_w if batch.log_q_params is None else log_w - batch.log_q_params
+        log_w = np.where(mask, batch.log_p[pick] - batch.log_q[pick], 0.0).sum(axis=1)
+    return log_w if batch.log_q_params is None else log_w - batch.log_q_params[pick]
 
 
 def weighted_steps_mask(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np.ndarray:
@@ -353,9 +354,7 @@ def severity_arrays(
             full[rows] = mask
             out_w[level, rows] = weigh(full)[rows]
         else:
-            with np.errstate(invalid="ignore"):  # -inf - -inf outside the mask, where it is never summed
-                w = np.where(mask, batch.log_p[rows] - batch.log_q[rows], 0.0).sum(axis=1)
-            out_w[level, rows] = w if batch.log_q_params is None else w - batch.log_q_params[rows]
+            out_w[level, rows] = masked_log_weight(batch, mask, rows)
         out_p[level, rows] = np.where(mask, batch.log_p[rows], 0.0).sum(axis=1)
     return out_w, hit, out_p
 

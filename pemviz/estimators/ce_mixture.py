@@ -1,8 +1,7 @@
 """The importance weights of a cross-entropy stage drawn from a mixture of samplers: a stage's rollouts weighed
 under the mixture over whole rollouts it was drawn from, from the components' log-probabilities the simulation kept
 (asked again where it could not keep them), and the failure pool's rollouts weighed under the samplers of every stage
-in the pool (``fit_weights = "mixture"``); over an ODD, the refit of the samplers' proposal over the parameters to
-the elites so weighed. :class:`MixtureWeights` holds these methods of
+in the pool (``fit_weights = "mixture"``). :class:`MixtureWeights` holds these methods of
 :class:`~pemviz.estimators.cross_entropy.CrossEntropy`, which inherits them.
 """
 
@@ -17,7 +16,6 @@ from pemviz.core.detectors import (
     Detector,
     NoisyDetector,
     ScoredTarget,
-    StageSamplers,
     action_log_prob,
     errors_log_density,
 )
@@ -30,7 +28,6 @@ from pemviz.estimators.base import StagePlan, masked_log_weight, mixture_log_wei
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
     from pemviz.core.problems import Problem
-    from pemviz.estimators.ce_odd import ParameterFit
     from pemviz.core.sampling import Proposal
 
 
@@ -43,8 +40,6 @@ class MixtureWeights:
     problem: Problem
     config: ExperimentConfig
     proposal: Proposal | None
-    _parameters: ParameterFit
-    _samplers: StageSamplers | None
     _plan: StagePlan | None
     _scored: ScoredTarget | None
     _seen: int
@@ -84,13 +79,6 @@ class MixtureWeights:
         assert self._plan is not None, "a stage is planned (_open)"
         whole = weighted_steps_mask(self.problem, batch, self.config.weights_until_failure)
         return self._mixture_log_weight(batch, whole) if self._plan.mixture else masked_log_weight(batch, whole)
-
-    def _refit_parameters(self, gamma: float) -> None:
-        """Over an ODD, q(theta) refitted to the elites (from the failure level on, to every failure since,
-        :class:`~pemviz.estimators.ce_odd.ParameterFit`): the samplers draw the next stage's parameters from it."""
-        proposal = self._parameters.refit(keep=self.config.adaptive.fit_all_failures and gamma <= 0.0)
-        if self._samplers is not None and self.config.adaptive.proposal_window:
-            self._samplers.parameter_proposal = proposal
 
     def _with_parts(self, batch: RolloutBatch) -> RolloutBatch:
         """``batch`` (the planned mixture stage's next rollouts) with ``log_q_parts`` [N, K, T]: the log-probabilities

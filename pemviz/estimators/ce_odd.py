@@ -14,6 +14,7 @@ import numpy as np
 from pemviz.core.odd_proposal import ParameterProposal
 
 if TYPE_CHECKING:
+    from pemviz.core.detectors import StageSamplers
     from pemviz.core.problems import Problem
     from pemviz.core.rollouts import RolloutBatch
 
@@ -46,14 +47,16 @@ class ParameterFit:
         self._values.append(elites.observations[:, 0][:, cols])
         self._log_w.append(np.asarray(log_w, dtype=np.float64))
 
-    def refit(self, keep: bool) -> ParameterProposal | None:
-        """The proposal moved toward the elites added so far (:meth:`ParameterProposal.refit`); ``keep``: hold them
-        for the next stages' fits too (the failure pool), else forget them."""
+    def refit(self, keep: bool, samplers: StageSamplers | None) -> None:
+        """The proposal moved toward the elites added so far (:meth:`ParameterProposal.refit`), given to
+        ``samplers`` (None: none draws from it) to draw the next stage's parameters; ``keep``: hold the elites for
+        the next stages' fits too (the failure pool), else forget them."""
         if self.proposal is None:
-            return None
+            return
         if self._values:
             values, log_w = np.concatenate(self._values), np.concatenate(self._log_w)
             self.proposal = self.proposal.refit(values, log_w, RATE, DEFENSIVE)
         if not keep:
             self._values, self._log_w = [], []
-        return self.proposal
+        if samplers is not None:
+            samplers.parameter_proposal = self.proposal

@@ -48,6 +48,7 @@ from pemviz.estimators.base import (
     detect_rate,
     elite_counts,
     failure_steps,
+    masked_log_weight,
     pooled_estimate,
     weighted_steps_mask,
 )
@@ -403,8 +404,13 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             dtype=self.fit_dtype,
         )
         self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
-        if self.ce.proposal_window:  # over an ODD the samplers (not the target) draw theta from q(theta)
-            self._samplers.parameter_proposal = self._parameters.proposal
+        own = self._own_samplers()
+        if own is not None:  # over an ODD the samplers (not the target) draw theta from q(theta)
+            own.parameter_proposal = self._parameters.proposal
+
+    def _own_samplers(self) -> StageSamplers | None:
+        """The samplers that draw an ODD's parameters from q(theta): the window's (not the proposal itself)."""
+        return self._samplers if self.ce.proposal_window else None
 
     def _samplers_around(self, proposal: Proposal) -> tuple[StageSamplers, Detector, Detector]:
         """(the CE stages' samplers around a proposal, the plain sampler, the defensive one): q inside the problem's
@@ -456,7 +462,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         if plan.mixture:
             frozen_log_w = self._mixture_log_weight(batch, steps)
         else:
-            frozen_log_w = ((batch.log_p - batch.log_q) * steps).sum(axis=1)
+            frozen_log_w = masked_log_weight(batch, steps)
         rows, detected = batch.events()
         smoothed = self._smoothing(gamma) * frozen_log_w
         if self._parameters.proposal is not None:  # the parameters' fit weighs the whole rollout, theta's ratio too
@@ -541,7 +547,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 self._steps.reweight(self._pool_log_weight)
             self._steps.fit(proposal, **fit)
             self._fit_noise(fit)
-            self._refit_parameters(gamma)
+            self._parameters.refit(self.ce.fit_all_failures and gamma <= 0.0, self._own_samplers())
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
         assert batch is not None  # without fitted steps none settled: the elites are all kept (EliteCandidates)
         if batch.n_objects != 1:
@@ -560,7 +566,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             **fit,
         )
         self._parameters.add(batch.select(elite), self._smoothing(gamma) * batch.log_weight()[elite])
-        self._refit_parameters(gamma)
+        self._parameters.refit(self.ce.fit_all_failures and gamma <= 0.0, self._own_samplers())
         return gamma, int(elite.sum()), detect_rate(*elite_counts(batch, elite, grid))
 
     def step_mask(self, batch: RolloutBatch, level: float = 0.0) -> np.ndarray | None:
