@@ -29,10 +29,11 @@ PAPER: dict[str, Any] = {
     "uniforms": "iid",
     "learning_rate": 1e-3,
     "ce_epochs": 500,
+    "plain_fallback": 0,
 }
 """The sampler exactly as Innes & Ramamoorthy (2022) describe it (Algorithm 1, eq. 10-11): a gap-only proposal
 fitted on every step by full-batch Adam, weights over T - 1 steps, every tie at gamma an elite, no defensive
-mixture, i.i.d. uniforms."""
+mixture, i.i.d. uniforms, and no plain Monte Carlo after it."""
 
 DEFAULT_PRESET = "state-ce"
 """The recommended sampler and the default of ``ExperimentConfig.of()``, ``pemviz run``, the panel, ``validate`` and

@@ -438,6 +438,10 @@ SETTINGS: dict[str, Setting] = _settings(
             "same expected loss (None: every step)", kind="int", lo=1, optional=True),
     Setting("fit_tolerance", "the fit tolerance", "a CE stage's Adam fit stops once its loss fell by less than this "
             "over the last 50 epochs (None: every epoch)", unit="nats per step", lo=0.0, lo_open=True, optional=True),
+    Setting("plain_fallback", "the plain Monte Carlo fallback", "where the weights back no interval, plain Monte Carlo "
+            "after the stages, at most this many times their simulations, to the precision target or a 20 % interval "
+            "(0: none)",
+            kind="int", lo=0, flags=("--plain-fallback",)),
     Setting("ams_killed", "the particles killed per iteration k", "particles killed and resampled per AMS iteration "
             "at least (and every tie at the level); k < N", kind="int", symbol="k", lo=1, owner="ams",
             flags=("--ams-killed",)),

@@ -35,8 +35,10 @@ from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.panel import explain
 
 TINY = ExperimentConfig.of(
-    n_stages=2, n_per_stage=20, n_final=20, ce_epochs=20, pretrain_rollouts=10, pretrain_epochs=20
+    n_stages=2, n_per_stage=20, n_final=20, ce_epochs=20, pretrain_rollouts=10, pretrain_epochs=20, plain_fallback=0
 )
+"""The cross-entropy stages of a tiny run, without the plain Monte Carlo that would follow them (their weights back no
+interval): the panel's record of the stages the plan names."""
 
 
 # -- scene geometry -------------------------------------------------------------------------------

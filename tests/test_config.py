@@ -241,12 +241,17 @@ def test_a_value_is_refused_alike_by_config_form_and_command_line_with_the_same_
 def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     import pemviz.estimators.ams as ams
     import pemviz.estimators.cross_entropy as ce
+    import pemviz.estimators.fallback as fallback
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy
 
     fields = set(SETTINGS) | {"has_final_batch", "n_simulations"}
-    for module, cls, owner in ((ce, CrossEntropy, "adaptive"), (ams, AdaptiveMultilevelSplitting, "ams")):
-        source = open(module.__file__).read()
+    # the cross-entropy method is its estimator and what runs after its stages (its Method's ``then``)
+    for modules, cls, owner in (
+        ((ce, fallback), CrossEntropy, "adaptive"),
+        ((ams,), AdaptiveMultilevelSplitting, "ams"),
+    ):
+        source = "".join(open(str(module.__file__)).read() for module in modules)
         read = set(
             re.findall(r"\b(?:cfg|config|ce)(?:\.adaptive|\.ams|\.stop|\.execution|\.perception)?\.([a-z_]+)\b", source)
         )

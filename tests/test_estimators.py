@@ -15,6 +15,7 @@ from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.core.sampling import Proposal
 from pemviz.estimators.ce_fit import break_ties
 from pemviz.estimators.cross_entropy import CrossEntropy, DefensiveDetector
+from pemviz.estimators.fallback import PlainFallback
 from pemviz.estimators.fixed import FixedSampler
 from pemviz.estimators import build_estimator
 from pemviz.estimators.base import failure_steps, log_weight
@@ -97,7 +98,8 @@ def test_cross_entropy_plans_pretraining_k_stages_and_the_final_batch():
     cfg = ExperimentConfig.of(
         n_stages=2, n_per_stage=30, n_final=40, pretrain_rollouts=20, pretrain_epochs=20, ce_epochs=20, seed=0
     )
-    est = build_estimator(cfg, pb)
+    assert isinstance(build_estimator(cfg, pb), PlainFallback)  # the default: plain Monte Carlo may follow
+    est = build_estimator(cfg.replace(plain_fallback=0), pb)
     assert isinstance(est, CrossEntropy)
     plans, rng = [], np.random.default_rng(0)
     while (plan := est.next_stage()) is not None:

@@ -158,9 +158,17 @@ def ray_workers(request):
 
 
 BLOCKS = ExperimentConfig.of(
-    n_stages=2, n_per_stage=20, n_final=9000, pretrain_rollouts=20, ce_epochs=100, pretrain_epochs=200, seed=1
+    n_stages=2,
+    n_per_stage=20,
+    n_final=9000,
+    pretrain_rollouts=20,
+    ce_epochs=100,
+    pretrain_epochs=200,
+    seed=1,
+    plain_fallback=0,
 )
-"""A small default-sampler run whose final batch spans two Array-RQMC blocks (8,192 + 808 rollouts)."""
+"""A small default-sampler run whose final batch spans two Array-RQMC blocks (8,192 + 808 rollouts); no plain Monte
+Carlo after it (its stages are what is compared)."""
 
 
 @functools.lru_cache(maxsize=None)
@@ -200,8 +208,12 @@ def test_toy_blocks_on_ray_give_the_serial_batch_bit_for_bit(ray_workers):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
-RUN_ARGS = ("run", "--no-record", "--preset", "quick", "--k", "2", "--n", "30", "--n-final", "9000")
-"""A small default-sampler run whose final batch spans two blocks, so that ray runs it as tasks."""
+RUN_ARGS = (
+    *("run", "--no-record", "--preset", "quick", "--k", "2", "--n", "30", "--n-final", "9000"),
+    *("--plain-fallback", "0"),
+)
+"""A small default-sampler run whose final batch spans two blocks, so that ray runs it as tasks (no plain Monte
+Carlo after it)."""
 
 
 @functools.lru_cache(maxsize=None)

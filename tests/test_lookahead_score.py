@@ -114,13 +114,16 @@ def test_splitting_on_the_look_ahead_lands_near_the_crossing_reference(capsys):
 
 
 @pytest.mark.slow
-def test_the_crossing_default_is_plain_monte_carlo_to_a_20_percent_interval(capsys):
-    """``pemviz run --scenario crossing``: plain Monte Carlo until its interval's relative half-width is 20 %, a
-    ``reliable`` interval holding the reference."""
+def test_the_crossing_default_is_the_default_sampler_then_plain_monte_carlo_to_a_20_percent_interval(capsys):
+    """``pemviz run --scenario crossing``: the cross-entropy stages, whose weights back no interval on this stack, then
+    plain Monte Carlo until its interval's relative half-width is 20 %: a ``reliable`` interval holding the
+    reference."""
     from pemviz.cli import main
 
     assert main(["run", "--scenario", "crossing", "--no-record", "--seed", "0"]) == 0
     out = capsys.readouterr().out
     mu, line = _final_line(out)
     assert "reliable" in line and "inside the interval" in line, line
-    assert "stop: target reached: the interval's relative half-width 0.199 <= 0.2 after 358,697 simulations" in out
+    assert "plain Monte Carlo after the stages, whose weights backed no interval (unreliable): 110 failures" in out
+    assert "target reached: the interval's relative half-width 0.192 <= 0.2 after 304,871 simulations" in out
+    assert "from 306971 simulations" in out

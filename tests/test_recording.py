@@ -40,7 +40,19 @@ from pemviz.sinks.rerun_views import (  # noqa: E402
     nice_ticks,
 )
 
-SMALL = dict(n_stages=3, n_per_stage=20, n_final=20, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=20, seed=5)
+SMALL = dict(
+    n_stages=3,
+    n_per_stage=20,
+    n_final=20,
+    ce_epochs=30,
+    pretrain_epochs=50,
+    pretrain_rollouts=20,
+    seed=5,
+    plain_fallback=0,
+)
+"""A few seconds of the cross-entropy sampler, its stages alone (too small to back an interval: by default plain Monte
+Carlo would follow, a stage without a proposal curve; ``test_a_run_followed_by_plain_monte_carlo_records_its_batches``
+records one)."""
 MU_RE = re.compile(r"(?:mu_hat = (\S+)|no failure seen) \(log mu_hat = (\S+) nats\)")
 CURVE_RE = re.compile(r"/proposal/data/stage_\d\d:LineStrips2D:strips")
 
@@ -716,3 +728,20 @@ def test_the_recording_lists_every_failure_of_the_estimate_by_share_and_its_grou
         int(np.isnan(speed).sum()),
         *np.histogram(speed, [0, 2, 5, np.inf])[0].tolist(),
     ]
+
+
+def test_a_run_followed_by_plain_monte_carlo_records_its_batches(tmp_path):
+    """The default sampler too small to back an interval on the toy at p = 1e-3: plain Monte Carlo follows, each of its
+    batches a stage of the recording's timeline with its estimate, and the recording verifies."""
+    cfg = ExperimentConfig.of(
+        scenario="toy", scenario_params=(("braking", 32),), n_stages=1, n_per_stage=10, n_final=10, pretrain_rollouts=10
+    )
+    events, out = record(tmp_path / "fallback.rrd", cfg)
+    verify_rrd(tmp_path / "fallback.rrd")
+    finished = [e.result for e in of(events, StageFinished)]
+    plain = [r for r in finished if r.stage > 2]
+    assert plain and all(r.kind == "final" and r.estimate.plain_mc for r in plain)
+    tables = read({"fallback": tmp_path / "fallback.rrd"})["fallback"]
+    stages = {s for s in column(tables["stage"], "stage") if s is not None}
+    assert {r.stage for r in finished} <= stages
+    assert "plain Monte Carlo after the stages, whose weights backed no interval" in out

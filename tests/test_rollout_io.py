@@ -232,8 +232,10 @@ STREAMED = ExperimentConfig.of(
     seed=3,
     target_share=0.0,
     plain_share=0.0,
+    plain_fallback=0,
 )
-"""A run whose final batch (1,000 rollouts from one sampler) is streamed in 8 chunks by :func:`chunked`."""
+"""A run whose final batch (1,000 rollouts from one sampler) is streamed in 8 chunks by :func:`chunked` (and no plain
+Monte Carlo follows it)."""
 
 
 def test_a_streamed_final_batch_is_written_chunk_by_chunk_and_reads_back_whole(tmp_path, chunked):

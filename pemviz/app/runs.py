@@ -473,8 +473,9 @@ class PanelRun(Sink):
         (started, rollouts sampled, finished)."""
         with self.lock:
             total = len(self.plan.stages) if self.plan is not None else 1
-            if self.plan is not None and self.plan.open_ended:  # one more than done, until the run ends
-                total = max(total, len(self.stages) + 1)
+            if self.plan is not None and (self.plan.open_ended or len(self.stages) >= total):
+                total = max(total, len(self.stages) + 1)  # one more than done, until the run ends (batches past
+                # the plan: e.g. the plain Monte Carlo after a cross-entropy run whose weights back no interval)
             done = len(self.stages)
             if self.status == "finished":
                 return 100.0, 100.0

@@ -64,6 +64,7 @@ RUN_SETTINGS = (
     "pem_shift",
     "max_sims",
     "max_time_s",
+    "plain_fallback",
 )
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 

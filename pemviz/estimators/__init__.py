@@ -21,6 +21,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from pemviz.methods import Method, get_method
+from pemviz.plugins import resolve
 
 if TYPE_CHECKING:  # the package stays light: importing its registry (a config's checks) loads no estimator
     from pemviz.config import ExperimentConfig
@@ -35,7 +36,8 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
     The baselines draw ``config.n_per_stage`` rollouts and stop their weights at the failure step with
     ``config.weights_until_failure``, like the adaptive sampler's.
     The method is the registry's (:func:`pemviz.methods.get_method`: the built-in ones and a user's own);
-    a method that can be extended is wrapped in a :class:`PrecisionTarget` when the config has a stop rule.
+    a method that can be extended is wrapped in a :class:`PrecisionTarget` when the config has a stop rule, and the
+    result in what the method runs after its stages (:attr:`pemviz.methods.Method.then`).
 
     Raises:
         KeyError: a method no one registered; ValueError: a stop rule for a method that cannot take more batches.
@@ -44,7 +46,8 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
 
     method = _method_of(config)
     inner = method.builder()(config, problem, check)
-    return inner if config.stop_rule is None or not method.extensible else PrecisionTarget(inner, config)
+    built = inner if config.stop_rule is None or not method.extensible else PrecisionTarget(inner, config)
+    return built if method.then is None else resolve(method.then)(built, config, problem)
 
 
 def check_runnable(config: ExperimentConfig, problem: Problem) -> None:

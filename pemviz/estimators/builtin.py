@@ -25,6 +25,14 @@ def adaptive(config: Any, problem: Any, check: Check | None = None) -> Estimator
     return CrossEntropy(config, problem, check)
 
 
+def adaptive_then(estimator: Estimator, config: Any, problem: Any) -> Estimator:
+    """After the cross-entropy stages: plain Monte Carlo where their weights back no interval
+    (:func:`pemviz.estimators.fallback.with_plain_fallback`; ``plain_fallback`` = 0: nothing)."""
+    from pemviz.estimators.fallback import with_plain_fallback
+
+    return with_plain_fallback(estimator, config, problem)
+
+
 def adaptive_plan(config: Any) -> RunPlan:
     """The cross-entropy sampler's stages, from the config alone (:mod:`pemviz.estimators.ce_plan`: loads no
     sampler)."""

@@ -24,14 +24,24 @@ class FixedSampler:
         weights_until_failure: importance weights stop at the failure step (see
             :func:`pemviz.estimators.base.log_weight`).
         seed: the rollouts' stream, ``numpy.random.default_rng(seed)``.
+        first_stage: the number of its first batch (1; after another estimator's stages, the stage after them).
     """
 
     needs_chunk_rows = False
     """A streamed stage's chunks may come without their object rows (:attr:`pemviz.core.rollouts.RolloutBatch.replay`):
     this estimator reads the rows of failures only."""
 
-    def __init__(self, problem: Problem, sampler: Detector, n: int, weights_until_failure: bool, seed: int = 0) -> None:
+    def __init__(
+        self,
+        problem: Problem,
+        sampler: Detector,
+        n: int,
+        weights_until_failure: bool,
+        seed: int = 0,
+        first_stage: int = 1,
+    ) -> None:
         self.problem, self.sampler, self.n, self.until_failure = problem, sampler, n, weights_until_failure
+        self.first_stage = first_stage
         self.rng = np.random.default_rng(seed)
         self.stages: dict[int, StageRollouts] = {}
         """Each batch drawn: the planned one (stage 1) and the added ones (:meth:`extend`), pooled in :meth:`result`."""
@@ -39,12 +49,12 @@ class FixedSampler:
         self._outcome: StageOutcome | None = None
 
     @staticmethod
-    def run_plan(n: int) -> RunPlan:
-        """One final batch of ``n`` rollouts, stage 1."""
-        return RunPlan.of([(1, "final", n)])
+    def run_plan(n: int, first_stage: int = 1) -> RunPlan:
+        """One final batch of ``n`` rollouts, stage ``first_stage``."""
+        return RunPlan.of([(first_stage, "final", n)])
 
     def plan(self) -> RunPlan:
-        return self.run_plan(self.n)
+        return self.run_plan(self.n, self.first_stage)
 
     def next_stage(self) -> StagePlan | None:
         if self._stage is not None:
@@ -93,9 +103,12 @@ class FixedSampler:
         return pooled_estimate(list(self.stages.values())), tuple(self.stages)
 
 
-def monte_carlo(problem: Problem, n: int, weights_until_failure: bool = False, seed: int = 0) -> FixedSampler:
-    """Rollouts of the target detector itself: every weight is 1, mu_hat = failures / N."""
-    return FixedSampler(problem, problem.target, n, weights_until_failure, seed)
+def monte_carlo(
+    problem: Problem, n: int, weights_until_failure: bool = False, seed: int = 0, first_stage: int = 1
+) -> FixedSampler:
+    """Rollouts of the target detector itself: every weight is 1, mu_hat = failures / N (its first batch stage
+    ``first_stage``)."""
+    return FixedSampler(problem, problem.target, n, weights_until_failure, seed, first_stage)
 
 
 def naive50(problem: Problem, n: int, weights_until_failure: bool = False, seed: int = 0) -> FixedSampler:

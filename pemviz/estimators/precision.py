@@ -95,16 +95,22 @@ class PrecisionTarget:
         inner: the estimator (:class:`Extensible`).
         config: the run's settings (``rel_error`` set).
         clock: seconds, monotonic (tests pass their own).
+        max_batch: the most rollouts of one added batch (None: as many as the target asks), e.g. for a problem that
+            cannot stream its rollouts, which hold them all at once.
     Raises:
         ValueError: ``rel_error`` is None.
     """
 
     def __init__(
-        self, inner: Extensible, config: ExperimentConfig, clock: Callable[[], float] = time.perf_counter
+        self,
+        inner: Extensible,
+        config: ExperimentConfig,
+        clock: Callable[[], float] = time.perf_counter,
+        max_batch: int | None = None,
     ) -> None:
         if config.stop_rule is None:
             raise ValueError("PrecisionTarget: the config has neither rel_error nor require")
-        self.inner, self.config, self.clock = inner, config, clock
+        self.inner, self.config, self.clock, self.max_batch = inner, config, clock, max_batch
         self.rng = inner.rng
         self.max_sims = config.stop.max_sims if config.stop.max_sims is not None else DEFAULT_MAX_SIMS
         self.t0 = clock()
@@ -162,7 +168,7 @@ class PrecisionTarget:
             want = max(want, self.inner.final_rollouts())
         left = self.max_sims - self.n_simulations
         per = self.simulations_per_rollout()
-        n = min(want, math.floor(left / per))
+        n = min(want, math.floor(left / per), self.max_batch or want)
         cap = None
         if n <= 0:
             cap = f"--max-sims {self.max_sims:,} reached"

@@ -62,6 +62,9 @@ class Method:
             is a plain rollout's and whose failures are binomial (the console's advice, the requirement's decision).
         array_rqmc: its batches may be drawn by Array-RQMC (``ExperimentConfig.uniforms``); False for i.i.d.
             particles (splitting).
+        then: optional, ``then(estimator, config, problem) -> Estimator``: what runs after the method's stages (and
+            a stop rule's added batches), wrapping the built estimator: e.g. the cross-entropy sampler's plain Monte
+            Carlo where its weights back no interval (:mod:`pemviz.estimators.fallback`). A :data:`Ref`.
         validate: optional, ``validate(config, n_objects) -> (setting, what is allowed) | None``: the first of the
             method's own settings that conflicts with another in ``config`` (its scene perceiving ``n_objects``
             objects a step), checked when the config is made; None: none. A :data:`Ref`.
@@ -96,6 +99,7 @@ class Method:
     cost_model: str = "plain"
     run_adds: str = ""
     proposal_curves: bool = False
+    then: Ref = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -257,6 +261,7 @@ for _record in (
         no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure",
         cost_model="proposal",
         proposal_curves=True,
+        then="pemviz.estimators.builtin:adaptive_then",
     ),
     Method(
         "mc",

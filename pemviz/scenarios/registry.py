@@ -405,7 +405,6 @@ for _scenario in (
         "camera's detector and mislocation; failure: a collision",
         "pemviz.scenarios.crossing.scene:CrossingParams",
         "pemviz.scenarios.crossing.problem:crossing",
-        run_defaults={"method": "mc", "n_per_stage": 50_000, "rel_error": 0.2, "max_sims": 500_000},
     ),
 ):
     register(_scenario)

@@ -1,0 +1,111 @@
+"""Plain Monte Carlo after a cross-entropy run whose weights back no interval (pemviz.estimators.fallback), against
+the toy's closed-form answer: which stages run, what the answer is, what the stop line says, and that a seed gives the
+same run at any chunk size."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from pemviz.config import ExperimentConfig
+from pemviz.engine.experiment import Experiment
+from pemviz.estimators.fallback import PlainFallback, with_plain_fallback
+from pemviz.scenarios.problems import problem_for
+
+TINY = dict(scenario="toy", n_stages=1, n_per_stage=10, n_final=10, pretrain_rollouts=10)
+"""A cross-entropy run too small to back an interval: 10 pretraining rollouts, one stage of 10, 10 final."""
+
+
+def run(**settings):
+    config = ExperimentConfig.of(**{**TINY, **settings})
+    problem = problem_for(config)
+    return Experiment(config, problem=problem).run(), problem
+
+
+def test_plain_monte_carlo_answers_where_the_weights_back_no_interval():
+    # toy braking 32 -> safe 30: three misses in a row at p(detect) = 0.9, p = 1e-3 exactly
+    done, problem = run(scenario_params=(("braking", 32),), seed=0, plain_fallback=10_000)  # 300,000 at most
+    assert math.exp(problem.exact_log_p) == pytest.approx(1e-3, rel=1e-12)
+    final, stages = done.final, done.stages
+    ce = [s for s in stages if s.stage <= 2]  # pretraining, the CE stage, the CE final batch
+    assert [s.kind for s in ce] == ["pretrain", "ce", "final"]
+    assert ce[-1].estimate.verdict != "reliable"  # the premise: the method's weights back no interval
+    plain = [s for s in stages if s.stage > 2]
+    assert plain and all(s.kind == "final" for s in plain)
+    est = final.estimate
+    assert est.plain_mc and final.stages_used == tuple(s.stage for s in plain)
+    assert est.n == sum(s.estimate.n for s in plain) and final.n_simulations == 30 + est.n
+    # a 20 % interval: Clopper-Pearson's relative half-width <= 0.2, holding the exact answer
+    assert est.rel_half_width <= 0.2 and est.covers(problem.exact_log_p)
+    assert abs(math.exp(est.log_mu_hat) / 1e-3 - 1.0) < 0.25
+    assert "plain Monte Carlo after the stages, whose weights backed no interval" in final.stop
+    assert f"{est.n_failures:,} failures in {est.n:,} rollouts" in final.stop
+
+
+def test_a_seed_gives_the_same_fallback_at_any_chunk_size():
+    a, _ = run(scenario_params=(("braking", 32),), seed=3, plain_fallback=10_000)
+    b, _ = run(scenario_params=(("braking", 32),), seed=3, plain_fallback=10_000, chunk_rollouts=777)
+    assert a.final.estimate.log_mu_hat == b.final.estimate.log_mu_hat
+    assert a.final.n_simulations == b.final.n_simulations
+    assert [s.estimate.n_failures for s in a.stages] == [s.estimate.n_failures for s in b.stages]
+
+
+def test_no_failure_in_the_plain_rollouts_leaves_the_method_answer_with_an_upper_bound():
+    # p = 1e-21 (21 misses in a row): 40 x 30 = 1,200 plain rollouts see no failure
+    done, _ = run(plain_fallback=40, seed=0)
+    without, _ = run(plain_fallback=0, seed=0)
+    assert done.final.estimate.log_mu_hat == without.final.estimate.log_mu_hat
+    assert not done.final.estimate.plain_mc
+    assert without.final.n_simulations == 30 and done.final.n_simulations == 30 + 1200
+    # one-sided Clopper-Pearson with no failure in 1,200: 1 - 0.05^(1/1200) = 0.002493...
+    assert "0 failures in 1,200 rollouts (at most 1,200: --plain-fallback)" in done.final.stop
+    assert "p < 0.0025 (its 95 % upper bound)" in done.final.stop
+
+
+def test_a_backed_interval_or_a_zero_cap_or_an_odd_runs_no_plain_rollouts():
+    done, _ = run(scenario_params=(("braking", 32),), seed=0, plain_fallback=0)
+    assert max(s.stage for s in done.stages) == 2 and not done.final.estimate.plain_mc
+    config = ExperimentConfig.of(scenario="toy", scenario_params=(("braking", 32),))
+    problem = problem_for(config)
+    assert isinstance(with_plain_fallback(object(), config, problem), PlainFallback)  # type: ignore[arg-type]
+    assert not isinstance(with_plain_fallback(object(), config.replace(plain_fallback=0), problem), PlainFallback)  # type: ignore[arg-type]
+    odd = ExperimentConfig.of(scenario="toy", scenario_params=(("braking", "~choice(31, 32)"),))
+    assert not isinstance(with_plain_fallback(object(), odd, problem_for(odd)), PlainFallback)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="ratio must be >= 1"):
+        PlainFallback(object(), config, problem, 0)  # type: ignore[arg-type]
+
+
+def test_the_paper_preset_has_no_fallback():
+    from pemviz.presets import PRESETS
+
+    assert PRESETS["paper"]["plain_fallback"] == 0 and PRESETS["authors-code"]["plain_fallback"] == 0
+
+
+def test_a_run_answered_by_plain_monte_carlo_re_estimates_to_its_numbers(tmp_path, capsys):
+    """``--save-rollouts`` keeps the stages the answer uses (the plain batches) and ``pemviz estimate`` gives the run's
+    mu_hat again (the run prints it to 4 decimals of its log)."""
+    from pemviz.cli import main
+
+    path = tmp_path / "fallback.parquet"
+    argv = ["run", "--scenario", "toy", "--param", "braking=32", "--k", "1", "--n", "10", "--n-final", "10"]
+    argv += ["--plain-fallback", "10000", "--seed", "0", "--no-record", "--save-rollouts", str(path)]
+    assert main(argv) == 0
+    ran = capsys.readouterr().out
+    assert "plain Monte Carlo after the stages, whose weights backed no interval" in ran
+    logged = [line for line in ran.splitlines() if "(log mu_hat = " in line][0]
+    log_mu = float(logged.split("(log mu_hat = ")[1].split(" nats")[0])
+    assert main(["estimate", str(path), "--no-record"]) == 0
+    again = capsys.readouterr().out
+    line = [line for line in again.splitlines() if "(log mu_hat = " in line][0]
+    assert float(line.split("(log mu_hat = ")[1].split(" nats")[0]) == pytest.approx(log_mu, abs=1e-4)
+    assert "exact 1.000e-03" in again and "inside the interval" in again
+
+
+def test_the_fallback_stays_within_the_run_s_max_sims_and_a_million():
+    # a precision target whose --max-sims the stages' added batches spend leaves nothing for plain Monte Carlo
+    done, _ = run(seed=0, rel_error=0.2, max_sims=1030)
+    assert done.final.n_simulations <= 1030 and "--plain-fallback" not in (done.final.stop or "")
+    from pemviz.estimators.fallback import MOST
+
+    assert MOST == 1_000_000
