@@ -438,8 +438,8 @@ def cut_in_file(tmp_path_factory):
     path)."""
     tmp = tmp_path_factory.mktemp("cut_in")
     path = tmp / "r.parquet"
-    # K = 10: its pooled stages are mixtures with the target
-    args = ["--scenario", "cut-in", "--method", "adaptive", "--n-final", "300"]
+    # K = 10: its pooled stages are mixtures with the target; the stages' own file (no plain Monte Carlo after them)
+    args = ["--scenario", "cut-in", "--method", "adaptive", "--n-final", "300", "--plain-fallback", "0"]
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert cli.main(["run", "--no-record", "--save-rollouts", str(path), *args]) == 0
