@@ -98,7 +98,9 @@ def test_cross_entropy_plans_pretraining_k_stages_and_the_final_batch():
     cfg = ExperimentConfig.of(
         n_stages=2, n_per_stage=30, n_final=40, pretrain_rollouts=20, pretrain_epochs=20, ce_epochs=20, seed=0
     )
-    assert isinstance(build_estimator(cfg, pb), PlainFallback)  # the default: plain Monte Carlo may follow
+    assert isinstance(
+        build_estimator(cfg.replace(plain_fallback=500), pb), PlainFallback
+    )  # plain Monte Carlo may follow
     est = build_estimator(cfg.replace(plain_fallback=0), pb)
     assert isinstance(est, CrossEntropy)
     plans, rng = [], np.random.default_rng(0)

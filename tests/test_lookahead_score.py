@@ -120,7 +120,9 @@ def test_the_crossing_default_is_the_default_sampler_then_plain_monte_carlo_to_a
     reference."""
     from pemviz.cli import main
 
-    assert main(["run", "--scenario", "crossing", "--no-record", "--seed", "0"]) == 0
+    assert (
+        main(["run", "--scenario", "crossing", "--no-record", "--seed", "0"]) == 0
+    )  # its default: --plain-fallback 500
     out = capsys.readouterr().out
     mu, line = _final_line(out)
     assert "reliable" in line and "inside the interval" in line, line

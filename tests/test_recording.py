@@ -734,7 +734,13 @@ def test_a_run_followed_by_plain_monte_carlo_records_its_batches(tmp_path):
     """The default sampler too small to back an interval on the toy at p = 1e-3: plain Monte Carlo follows, each of its
     batches a stage of the recording's timeline with its estimate, and the recording verifies."""
     cfg = ExperimentConfig.of(
-        scenario="toy", scenario_params=(("braking", 32),), n_stages=1, n_per_stage=10, n_final=10, pretrain_rollouts=10
+        scenario="toy",
+        scenario_params=(("braking", 32),),
+        n_stages=1,
+        n_per_stage=10,
+        n_final=10,
+        pretrain_rollouts=10,
+        plain_fallback=500,
     )
     events, out = record(tmp_path / "fallback.rrd", cfg)
     verify_rrd(tmp_path / "fallback.rrd")

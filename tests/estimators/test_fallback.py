@@ -13,7 +13,7 @@ from pemviz.engine.experiment import Experiment
 from pemviz.estimators.fallback import PlainFallback, with_plain_fallback
 from pemviz.scenarios.problems import problem_for
 
-TINY = dict(scenario="toy", n_stages=1, n_per_stage=10, n_final=10, pretrain_rollouts=10)
+TINY = dict(scenario="toy", n_stages=1, n_per_stage=10, n_final=10, pretrain_rollouts=10, plain_fallback=500)
 """A cross-entropy run too small to back an interval: 10 pretraining rollouts, one stage of 10, 10 final."""
 
 
@@ -66,11 +66,11 @@ def test_no_failure_in_the_plain_rollouts_leaves_the_method_answer_with_an_upper
 def test_a_backed_interval_or_a_zero_cap_or_an_odd_runs_no_plain_rollouts():
     done, _ = run(scenario_params=(("braking", 32),), seed=0, plain_fallback=0)
     assert max(s.stage for s in done.stages) == 2 and not done.final.estimate.plain_mc
-    config = ExperimentConfig.of(scenario="toy", scenario_params=(("braking", 32),))
+    config = ExperimentConfig.of(scenario="toy", scenario_params=(("braking", 32),), plain_fallback=500)
     problem = problem_for(config)
     assert isinstance(with_plain_fallback(object(), config, problem), PlainFallback)  # type: ignore[arg-type]
     assert not isinstance(with_plain_fallback(object(), config.replace(plain_fallback=0), problem), PlainFallback)  # type: ignore[arg-type]
-    odd = ExperimentConfig.of(scenario="toy", scenario_params=(("braking", "~choice(31, 32)"),))
+    odd = ExperimentConfig.of(scenario="toy", scenario_params=(("braking", "~choice(31, 32)"),), plain_fallback=500)
     assert not isinstance(with_plain_fallback(object(), odd, problem_for(odd)), PlainFallback)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="ratio must be >= 1"):
         PlainFallback(object(), config, problem, 0)  # type: ignore[arg-type]
