@@ -119,6 +119,8 @@ def test_a_cut_in_run_says_which_errors_decided_its_most_likely_failure():
         "100",
         "--n-final",
         "200",
+        "--plain-fallback",
+        "0",  # the stages' most likely failure (a million plain cut-in rollouts after them would take minutes)
         "--no-record",
     )
     assert proc.returncode == 0, proc.stderr

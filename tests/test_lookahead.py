@@ -60,14 +60,18 @@ def test_start_steps_are_the_first_below_the_gap():
 
 
 def test_a_run_that_targets_contact_is_right_and_its_file_re_estimates_to_it(tmp_path):
-    """`pemviz run --margin 0 --seed 0` at the default budget: within x1.5 of the exact 8.058e-33 with the exact answer
-    inside its interval, capped at doubtful; before the look-ahead the same run gave 3.9e-33 (ESS 1.4)."""
+    """`pemviz run --margin 0 --seed 0 --plain-fallback 0` at the default budget: within x1.5 of the exact 8.058e-33
+    with the exact answer inside its interval, capped at doubtful; before the look-ahead the same run gave 3.9e-33 (ESS
+    1.4). (Without the flag, plain Monte Carlo follows the doubtful stages: a million rollouts with no failure at
+    8e-33, the same answer.)"""
     out = tmp_path / "contact.parquet"
     proc = run_cli(
         "run",
         "--margin",
         "0",
         "--seed",
+        "0",
+        "--plain-fallback",
         "0",
         "--no-record",
         "--save-rollouts",

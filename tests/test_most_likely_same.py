@@ -30,7 +30,7 @@ from pemviz.engine.experiment import Experiment  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 
-SMALL = dict(ce_epochs=30, pretrain_epochs=50)
+SMALL = dict(ce_epochs=30, pretrain_epochs=50, plain_fallback=0)  # the stages' failures, no plain rollouts after
 CONFIGS = {
     "braking": ExperimentConfig.of(n_stages=3, n_per_stage=100, n_final=100, pretrain_rollouts=100, seed=1, **SMALL),
     "cut-in": ExperimentConfig.of(

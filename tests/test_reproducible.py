@@ -10,16 +10,19 @@ import pytest
 from pemviz.config import ExperimentConfig
 from pemviz.studies import reproducibility as rp
 
-SMALL = ["--k", "3", "--n", "100", "--n-final", "300"]
-"""A short default run: pretraining, 3 CE stages of 100, a final batch of 300 (the default sampler)."""
+SMALL = ["--k", "3", "--n", "100", "--n-final", "300", "--plain-fallback", "0"]
+"""A short default run: pretraining, 3 CE stages of 100, a final batch of 300 (the default sampler's stages alone: the
+plain Monte Carlo after them has its own chunking test, tests/estimators/test_fallback.py)."""
 SMALL_CUT_IN = ["--scenario", "cut-in", "--k", "2", "--n", "150", "--n-final", "200", "--pretrain", "100"]
+SMALL_CUT_IN += ["--plain-fallback", "0"]  # the stages alone, as SMALL
 
 
 def small(scenario: str = "braking", **fields) -> ExperimentConfig:
+    # the stages alone: the plain Monte Carlo after them has its own chunking test (tests/estimators/test_fallback.py)
     base = (
-        dict(n_stages=3, n_per_stage=100, n_final=300)
+        dict(n_stages=3, n_per_stage=100, n_final=300, plain_fallback=0)
         if scenario == "braking"
-        else dict(n_stages=2, n_per_stage=150, n_final=200, pretrain_rollouts=100)
+        else dict(n_stages=2, n_per_stage=150, n_final=200, pretrain_rollouts=100, plain_fallback=0)
     )
     return ExperimentConfig.of(scenario=scenario, **{**base, **fields})
 

@@ -169,9 +169,9 @@ def test_chunked_runs_above_20000_rollouts_round_trip(tmp_path, capsys):
 
 
 def test_all_stages_are_written_on_request_and_only_the_pooled_ones_are_pooled(tmp_path, capsys):
-    run, est, sidecar = run_and_estimate(
-        capsys, tmp_path, "--preset", "quick", "--k", "3", "--n", "40", "--n-final", "200", "--rollout-stages", "all"
-    )
+    quick = ("--preset", "quick", "--k", "3", "--n", "40", "--n-final", "200", "--rollout-stages", "all")
+    # the stages' own rollouts: no plain Monte Carlo batches after them
+    run, est, sidecar = run_and_estimate(capsys, tmp_path, *quick, "--plain-fallback", "0")
     assert [s["stage"] for s in sidecar["stages"]] == [0, 1, 2, 3, 4]
     assert_round_trip(run, est, sidecar)
     cells, by_stage = estimate_cells(est), stage_cells(run)

@@ -128,7 +128,8 @@ def test_baselines_get_the_first_presets_simulation_budget():
         "pretrain_rollouts": 50,
         "pretrain_epochs": 200,
         "learning_rate": 2e-2,
-    }  # the quick preset, K = 3
+        "plain_fallback": 0,
+    }  # the quick preset, K = 3, its stages alone (no plain Monte Carlo past the budget)
 
 
 def test_the_main_truth_of_a_shipped_pem_is_the_kept_enumeration_not_recomputed():

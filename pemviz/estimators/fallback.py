@@ -9,7 +9,7 @@ importance weight can say by how much. Plain Monte Carlo can, at its own cost, w
 rollouts one is willing to draw: :class:`PlainFallback` draws them after the method's stages when its verdict is not
 ``reliable``, to the run's precision target (``rel_error``, else :data:`REL_ERROR`) or requirement, at most
 ``plain_fallback`` times the simulations the method spent and never more than :data:`MOST` nor than the run's own
-``max_sims`` allows (500, the crossing's default: a million after the default run's 2,100; a quick run of a few
+``max_sims`` allows (the default 500: a million after the default run's 2,100; a quick run of a few
 hundred gets a proportionate few) (:class:`pemviz.estimators.precision.PrecisionTarget` on
 :func:`pemviz.estimators.fixed.monte_carlo`), from a stream of their own (the method's rollouts are those of the run
 without it). Its answer is plain Monte Carlo's (Clopper-Pearson interval: exact, whatever the sampler before it)

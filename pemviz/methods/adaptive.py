@@ -98,8 +98,7 @@ class CrossEntropySettings:
         fell by less than this over the last 50 epochs; None: every epoch. The pretraining fit of at most
         ``fit_rows`` steps runs every epoch; ``lbfgs`` stops at its own tolerance.
     plain_fallback: when the stages' weights back no interval (a verdict other than ``reliable``), plain Monte Carlo
-        rollouts follow, at most this many times the stages' simulations (e.g. 500; the default 0: none, but the
-        scenes without a sampler of their own that turn it on, e.g. the crossing), never above 1,000,000
+        rollouts follow, at most this many times the stages' simulations (the default 500), never above 1,000,000
         nor the run's ``max_sims``, to the run's precision target (``rel_error``, else a 20 % interval) or
         requirement; the run's answer is then plain Monte Carlo's where it saw a failure
         (:mod:`pemviz.estimators.fallback`). 0: none (the ``paper`` preset's). Not over an operating design domain.
@@ -133,4 +132,4 @@ class CrossEntropySettings:
     fit_max_steps: int = 200
     fit_rows: int | None = 5_000
     fit_tolerance: float | None = 1e-3
-    plain_fallback: int = 0
+    plain_fallback: int = 500

@@ -405,7 +405,6 @@ for _scenario in (
         "camera's detector and mislocation; failure: a collision",
         "pemviz.scenarios.crossing.scene:CrossingParams",
         "pemviz.scenarios.crossing.problem:crossing",
-        run_defaults={"plain_fallback": 500},
     ),
 ):
     register(_scenario)

@@ -18,7 +18,8 @@ The contract this module checks (:func:`compare`):
   :data:`LOG_MU_RTOL` relative (the weights' last bits).
 
 ``python -m pemviz.studies.reproducibility [--scenario S] [--k K] [--n N] [--n-final N_e] [--chunk C]
-[--executor E] [--seed S]`` prints one run's fingerprint as JSON; ``benchmarks/reproducibility.py`` runs the matrix.
+[--executor E] [--seed S] [--plain-fallback R]`` prints one run's fingerprint as JSON;
+``benchmarks/reproducibility.py`` runs the matrix.
 """
 
 from __future__ import annotations
@@ -185,8 +186,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--chunk", type=int, default=None, help="ExperimentConfig.chunk_rollouts")
     p.add_argument("--executor", default="serial")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--plain-fallback", type=int, default=None, help="plain_fallback (0: the stages alone)")
     a = p.parse_args(argv)
     fields = {
+        "plain_fallback": a.plain_fallback,
         "n_stages": a.k,
         "n_per_stage": a.n,
         "n_final": a.n_final,

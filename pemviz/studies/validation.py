@@ -455,11 +455,13 @@ def ams_fields(budget: int) -> dict[str, Any]:
 
 def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str, Any]) -> list[tuple[str, dict]]:
     """(label, config fields) per method: ``adaptive (PRESET)`` for each preset, then the baselines with as
-    many rollouts as the first preset's adaptive run simulates (equal budgets; ams: :func:`ams_fields`)."""
+    many rollouts as the first preset's adaptive run simulates (equal budgets; ams: :func:`ams_fields`). The presets
+    run their stages alone (``plain_fallback`` = 0): plain Monte Carlo after them would spend past the budget the
+    baselines get."""
     out = []
     budget = None
     for name in presets:
-        fields = {**PRESETS[name], **base}
+        fields = {**PRESETS[name], "plain_fallback": 0, **base}
         budget = budget or ExperimentConfig.of(**fields).n_simulations
         out.append((f"adaptive ({name})", fields))
     budget = budget or ExperimentConfig.of(**base).n_simulations
