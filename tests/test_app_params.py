@@ -61,6 +61,16 @@ def test_a_bad_value_is_an_error_of_its_field_only(text, message):
     assert "\n" not in message
 
 
+def test_the_plain_monte_carlo_fallback_is_a_field_of_its_own():
+    # default 500; 0 turns it off; a negative number is that field's error alone
+    assert parse_form({}, {"scenario": "crowd"}).config.adaptive.plain_fallback == 500
+    off = parse_form({"plain_fallback": "0"}, {"scenario": "crowd"})
+    assert off.config.adaptive.plain_fallback == 0
+    assert run_label(1, off.config) == "run 1 · classic, scenario crowd, plain fallback 0"
+    bad = parse_form({"plain_fallback": "-3"}, {"scenario": "crowd"})
+    assert list(bad.errors) == ["plain_fallback"] and "the plain Monte Carlo fallback" in bad.errors["plain_fallback"]
+
+
 def test_unchanged_fields_give_the_same_config_as_a_form_without_parameters():
     for scenario in ("braking", "cut-in", "cut-in-rare"):
         choices = {"scenario": scenario, "sim": "batched"}

@@ -92,6 +92,7 @@ class ExperimentTab:
                 "rel_error",
                 "max_sims",
                 "max_time_s",
+                "plain_fallback",
                 "ce_epochs",
                 "pretrain_rollouts",
                 "pretrain_epochs",

@@ -40,6 +40,7 @@ NUMBER_FIELDS: tuple[Setting, ...] = tuple(
         "rel_error",
         "max_sims",
         "max_time_s",
+        "plain_fallback",
     )
 )
 """The numbers the form shows, each with its :class:`~pemviz.settings.Setting` (label, words, range, hint)."""
