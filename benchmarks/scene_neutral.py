@@ -204,8 +204,17 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     seeds = range(a.first_seed, a.first_seed + a.seeds)
     jobs = [(s, v, k) for s in a.scenes for v in a.variants for k in seeds]
+    outcomes: list[Outcome] = []
     with ProcessPoolExecutor(a.jobs) as pool:
-        outcomes = list(pool.map(one_run, *zip(*jobs, strict=False), [a.scored_steps] * len(jobs)))
+        for o in pool.map(one_run, *zip(*jobs, strict=False), [a.scored_steps] * len(jobs)):
+            outcomes.append(o)
+            print(
+                f"# {o.scene} {o.variant} seed {o.seed}: x{o.ratio:.3g} of p, {o.verdict}, interval "
+                f"{'holds' if o.interval_holds else ('misses' if o.interval else 'none')}, {o.sims:,} simulations, "
+                f"{o.wall_s:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
     print(
         "| scene | sampler | runs | median rel. error | within x2 | intervals holding p | bounds holding p | "
         "reliable outside x2 | nan | verdicts | answered by plain MC | cost (rollout-eq.) | plain MC for that error | "

@@ -327,6 +327,14 @@ class ExperimentConfig:
         return ExperimentConfig.of(**{**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)}, **changes})
 
     @property
+    def over_odd(self) -> bool:
+        """Whether a scenario parameter is drawn per rollout (``NAME~DISTRIBUTION``): a run over an operating design
+        domain."""
+        from pemviz.scenarios.odd import is_odd
+
+        return any(isinstance(pair, tuple) and is_odd(pair[-1]) for pair in self.scenario_params)
+
+    @property
     def stop_rule(self) -> str | None:
         """``rel_error`` or ``require`` when the run adds final batches until a precision target or a decision
         (:class:`pemviz.estimators.precision.PrecisionTarget`), else None."""

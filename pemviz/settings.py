@@ -442,6 +442,9 @@ SETTINGS: dict[str, Setting] = _settings(
             "after the stages, at most this many times their simulations, to the precision target or a 20 % interval "
             "(0: none)",
             kind="int", lo=0, flags=("--plain-fallback",)),
+    Setting("retry_factor", "the retry's factor on N", "where the weights back no interval, the stages once more "
+            "before plain Monte Carlo, with N this many times as large, from a stream of their own (0 or 1: no retry; "
+            "none without the plain Monte Carlo fallback)", kind="int", lo=0, flags=("--retry-factor",)),
     Setting("ams_killed", "the particles killed per iteration k", "particles killed and resampled per AMS iteration "
             "at least (and every tie at the level); k < N", kind="int", symbol="k", lo=1, owner="ams",
             flags=("--ams-killed",)),

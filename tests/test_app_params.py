@@ -69,6 +69,11 @@ def test_the_plain_monte_carlo_fallback_is_a_field_of_its_own():
     assert run_label(1, off.config) == "run 1 · classic, scenario crowd, plain fallback 0"
     bad = parse_form({"plain_fallback": "-3"}, {"scenario": "crowd"})
     assert list(bad.errors) == ["plain_fallback"] and "the plain Monte Carlo fallback" in bad.errors["plain_fallback"]
+    # the retry before it: default 4, 0 off, a fraction that field's error alone
+    assert parse_form({}, {"scenario": "crowd"}).config.adaptive.retry_factor == 4
+    assert parse_form({"retry_factor": "0"}, {"scenario": "crowd"}).config.adaptive.retry_factor == 0
+    bad = parse_form({"retry_factor": "2.5"}, {"scenario": "crowd"})
+    assert list(bad.errors) == ["retry_factor"] and "the retry's factor on N" in bad.errors["retry_factor"]
 
 
 def test_unchanged_fields_give_the_same_config_as_a_form_without_parameters():

@@ -242,13 +242,15 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     import pemviz.estimators.ams as ams
     import pemviz.estimators.cross_entropy as ce
     import pemviz.estimators.fallback as fallback
+    import pemviz.methods.adaptive as adaptive
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy
 
     fields = set(SETTINGS) | {"has_final_batch", "n_simulations"}
-    # the cross-entropy method is its estimator and what runs after its stages (its Method's ``then``)
+    # the cross-entropy method is its estimator and what runs after its stages (its Method's ``then``, whose retry's N
+    # its settings' module gives)
     for modules, cls, owner in (
-        ((ce, fallback), CrossEntropy, "adaptive"),
+        ((ce, fallback, adaptive), CrossEntropy, "adaptive"),
         ((ams,), AdaptiveMultilevelSplitting, "ams"),
     ):
         source = "".join(open(str(module.__file__)).read() for module in modules)

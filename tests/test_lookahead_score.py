@@ -115,9 +115,9 @@ def test_splitting_on_the_look_ahead_lands_near_the_crossing_reference(capsys):
 
 @pytest.mark.slow
 def test_the_crossing_default_is_the_default_sampler_then_plain_monte_carlo_to_a_20_percent_interval(capsys):
-    """``pemviz run --scenario crossing``: the cross-entropy stages, whose weights back no interval on this stack, then
-    plain Monte Carlo until its interval's relative half-width is 20 %: a ``reliable`` interval holding the
-    reference."""
+    """``pemviz run --scenario crossing``: the cross-entropy stages, whose weights back no interval on this stack (nor
+    their retry's at N = 400), then plain Monte Carlo until its interval's relative half-width is 20 %: a
+    ``reliable`` interval holding the reference."""
     from pemviz.cli import main
 
     assert (
@@ -128,4 +128,5 @@ def test_the_crossing_default_is_the_default_sampler_then_plain_monte_carlo_to_a
     assert "reliable" in line and "inside the interval" in line, line
     assert "plain Monte Carlo after the stages, whose weights backed no interval (unreliable): 110 failures" in out
     assert "target reached: the interval's relative half-width 0.192 <= 0.2 after 304,871 simulations" in out
-    assert "from 306971 simulations" in out
+    assert "the stages once more at N = 400 from a stream of their own, the first run's weights backing" in out
+    assert "from 312071 simulations" in out  # 2,100 + the retry's 5,100 + 304,871 plain rollouts

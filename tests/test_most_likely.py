@@ -20,7 +20,14 @@ from pemviz.sinks.recording import RerunSink
 
 CONFIGS = {
     "braking": ExperimentConfig.of(
-        n_stages=3, n_per_stage=100, n_final=100, ce_epochs=30, pretrain_epochs=50, pretrain_rollouts=100, seed=1
+        n_stages=3,
+        n_per_stage=100,
+        n_final=100,
+        ce_epochs=30,
+        pretrain_epochs=50,
+        pretrain_rollouts=100,
+        seed=1,
+        plain_fallback=0,  # the stages' failures: no retry, no plain rollout kept by the panel and the recording
     ),
     "cut-in": ExperimentConfig.of(
         scenario="cut-in",
@@ -31,6 +38,7 @@ CONFIGS = {
         pretrain_epochs=50,
         pretrain_rollouts=60,
         seed=2,
+        plain_fallback=0,
     ),
 }
 

@@ -622,6 +622,7 @@ def test_a_cut_in_recording_shows_every_object_detected_missed_or_unseen_and_whe
         pretrain_epochs=50,
         pretrain_rollouts=60,
         seed=2,
+        plain_fallback=0,  # the stages' rollouts: no retry, no plain rollout for the test to hold
     )
     events, _ = record(tmp_path / "cut_in.rrd", cfg)
     failures = [e for e in events if isinstance(e, RolloutsSampled) and e.failed.any()]
@@ -731,8 +732,9 @@ def test_the_recording_lists_every_failure_of_the_estimate_by_share_and_its_grou
 
 
 def test_a_run_followed_by_plain_monte_carlo_records_its_batches(tmp_path):
-    """The default sampler too small to back an interval on the toy at p = 1e-3: plain Monte Carlo follows, each of its
-    batches a stage of the recording's timeline with its estimate, and the recording verifies."""
+    """The default sampler too small to back an interval on the toy at p = 1e-3, and its retry at 4 N too: plain Monte
+    Carlo follows, each of the retry's stages and of its batches a stage of the recording's timeline with its estimate,
+    and the recording verifies."""
     cfg = ExperimentConfig.of(
         scenario="toy",
         scenario_params=(("braking", 32),),
@@ -745,7 +747,9 @@ def test_a_run_followed_by_plain_monte_carlo_records_its_batches(tmp_path):
     events, out = record(tmp_path / "fallback.rrd", cfg)
     verify_rrd(tmp_path / "fallback.rrd")
     finished = [e.result for e in of(events, StageFinished)]
-    plain = [r for r in finished if r.stage > 2]
+    assert [r.kind for r in finished[:6]] == ["pretrain", "ce", "final"] * 2  # the stages, then their retry
+    assert [r.estimate.n for r in finished[3:6]] == [10, 40, 10]
+    plain = [r for r in finished if r.stage > 5]
     assert plain and all(r.kind == "final" and r.estimate.plain_mc for r in plain)
     tables = read({"fallback": tmp_path / "fallback.rrd"})["fallback"]
     stages = {s for s in column(tables["stage"], "stage") if s is not None}

@@ -93,6 +93,7 @@ class ExperimentTab:
                 "max_sims",
                 "max_time_s",
                 "plain_fallback",
+                "retry_factor",
                 "ce_epochs",
                 "pretrain_rollouts",
                 "pretrain_epochs",

@@ -41,6 +41,7 @@ NUMBER_FIELDS: tuple[Setting, ...] = tuple(
         "max_sims",
         "max_time_s",
         "plain_fallback",
+        "retry_factor",
     )
 )
 """The numbers the form shows, each with its :class:`~pemviz.settings.Setting` (label, words, range, hint)."""

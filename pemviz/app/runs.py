@@ -35,6 +35,7 @@ from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_
 from pemviz.engine.events import (
     Event,
     FinalEstimate,
+    RolloutChunk,
     RolloutsSampled,
     RunCancelled,
     RunFinished,
@@ -410,7 +411,8 @@ class PanelRun(Sink):
 
     def __call__(self, event: Event) -> None:
         with self.lock:
-            self.events.append(event)
+            if not isinstance(event, RolloutChunk):  # a stream's chunks: every rollout; the export needs none of them
+                self.events.append(event)
             self.clock(event)
             super().__call__(event)
 

@@ -65,6 +65,7 @@ RUN_SETTINGS = (
     "max_sims",
     "max_time_s",
     "plain_fallback",
+    "retry_factor",
 )
 """The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
 

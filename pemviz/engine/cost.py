@@ -133,7 +133,13 @@ def ce_rows(cfg: ExperimentConfig, stage: int, n: int, c: CostConstants = COST) 
 
 
 def stage_cost(
-    cfg: ExperimentConfig, kind: str, n: int, n_steps: int = N_STEPS, c: CostConstants = COST, stage: int | None = None
+    cfg: ExperimentConfig,
+    kind: str,
+    n: int,
+    n_steps: int = N_STEPS,
+    c: CostConstants = COST,
+    stage: int | None = None,
+    model: str | None = None,
 ) -> StageCost:
     """Predicted seconds of a stage of ``kind`` (``pretrain`` | ``ce`` | ``final`` | ``ams``) with ``n`` rollouts.
 
@@ -144,8 +150,9 @@ def stage_cost(
         n_steps: T, steps per rollout.
         c: the constants (default :data:`COST`).
         stage: the stage's number, for a CE stage's rows (:func:`ce_rows`); None: the mean over the K stages.
+        model: the stage's cost model (:data:`pemviz.methods.COST_MODELS`); None: ``cfg.method``'s.
     """
-    model = cost_model(cfg.method)
+    model = cost_model(cfg.method) if model is None else model
     proposal = model == "proposal" and kind in ("ce", "final")
     per_step = c.proposal_step_s if proposal else c.pem_step_s
     per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
@@ -194,15 +201,34 @@ def run_adds(method: str) -> str:
     return record.run_adds if record is not None else ""
 
 
+def then_adds(cfg: ExperimentConfig, simulations: int) -> tuple[int, str]:
+    """The most simulations a run of ``cfg`` may add after the ``simulations`` it plans, and the cost line's words
+    for them (:attr:`pemviz.methods.Method.then_most`; ``(0, "")``: none)."""
+    from pemviz.methods import method_or_none, resolve
+
+    record = method_or_none(cfg.method)
+    if record is None or record.then_most is None:
+        return 0, ""
+    most, words = resolve(record.then_most)(cfg, simulations)
+    return int(most), str(words) if most > 0 else ""
+
+
 @dataclass(frozen=True)
 class RunCost:
     """What a run will take: simulations, the largest batch in memory (bytes), expected seconds, and what the run will
-    count on top of the simulations (``adds``: e.g. a tilted proposal's look-aheads; ``""``: nothing)."""
+    count on top of the simulations (``adds``: e.g. a tilted proposal's look-aheads; ``""``: nothing).
+
+    ``then_simulations`` and ``then_seconds``: the most a run may add after its planned stages, when they end in a
+    way it names (``then_words``: e.g. the cross-entropy sampler's plain Monte Carlo where its weights back no
+    interval, :mod:`pemviz.estimators.fallback`); not in :attr:`needs_confirm` (a run may well not need them)."""
 
     simulations: int
     memory_bytes: int
     seconds: float
     adds: str = ""
+    then_simulations: int = 0
+    then_seconds: float = 0.0
+    then_words: str = ""
 
     @property
     def needs_confirm(self) -> bool:
@@ -216,7 +242,12 @@ class RunCost:
     def text(self) -> str:
         mem = self.memory_bytes / 1024**2
         adds = f" {self.adds}" if self.adds else ""
-        return f"{self.simulations:,} simulations{adds}, {mem:,.1f} MB per batch, about {duration(self.seconds)}"
+        then = (
+            f"; then up to {self.then_simulations:,} {self.then_words}, about {duration(self.then_seconds)}"
+            if self.then_simulations > 0
+            else ""
+        )
+        return f"{self.simulations:,} simulations{adds}, {mem:,.1f} MB per batch, about {duration(self.seconds)}{then}"
 
 
 def duration(seconds: float) -> str:
@@ -241,4 +272,6 @@ def run_cost(
     """
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
     batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES
-    return RunCost(int(cfg.n_simulations), int(batch), float(seconds), run_adds(cfg.method))
+    then, words = then_adds(cfg, int(cfg.n_simulations))
+    then_s = stage_cost(cfg, "final", then, n_steps, c, model="plain").seconds if then > 0 else 0.0
+    return RunCost(int(cfg.n_simulations), int(batch), float(seconds), run_adds(cfg.method), then, then_s, words)

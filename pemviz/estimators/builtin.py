@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from pemviz.core.plan import RunPlan
+from pemviz.methods.adaptive import plain_fallback_most, retry_n
 from pemviz.settings import setting_of
 
 if TYPE_CHECKING:  # light to import: a config's checks read these hooks
@@ -31,6 +32,22 @@ def adaptive_then(estimator: Estimator, config: Any, problem: Any) -> Estimator:
     from pemviz.estimators.fallback import with_plain_fallback
 
     return with_plain_fallback(estimator, config, problem)
+
+
+def adaptive_then_most(config: Any, simulations: int) -> tuple[int, str]:
+    """The most rollouts :func:`adaptive_then` may draw after stages of ``simulations`` rollout-equivalents: the
+    retry's (:func:`pemviz.methods.adaptive.retry_n`) and plain Monte Carlo's
+    (:func:`pemviz.methods.adaptive.plain_fallback_most`); 0 with ``plain_fallback`` = 0 or over an operating design
+    domain; and the cost line's words for them."""
+    if config.over_odd:
+        return 0, ""
+    again = retry_n(config)
+    retry = 0 if again is None else int(config.replace(n_per_stage=again).n_simulations)
+    most = plain_fallback_most(config.adaptive.plain_fallback, simulations + retry, config.stop.max_sims)
+    if retry == 0:
+        return most, "plain rollouts if the stages' weights back no interval"
+    words = f"rollouts if the stages' weights back no interval (their retry at N = {again:,}, then plain Monte Carlo)"
+    return retry + most, words
 
 
 def adaptive_plan(config: Any) -> RunPlan:

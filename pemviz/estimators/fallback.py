@@ -8,21 +8,29 @@ weigh e^-30 each, a few dominate, and the verdict is ``unreliable`` while mu_hat
 importance weight can say by how much. Plain Monte Carlo can, at its own cost, wherever p is not too small for the
 rollouts one is willing to draw: :class:`PlainFallback` draws them after the method's stages when its verdict is not
 ``reliable``, to the run's precision target (``rel_error``, else :data:`REL_ERROR`) or requirement, at most
-``plain_fallback`` times the simulations the method spent and never more than :data:`MOST` nor than the run's own
+``plain_fallback`` times the simulations the method spent and never more than
+:data:`~pemviz.methods.adaptive.PLAIN_FALLBACK_MOST` nor than the run's own
 ``max_sims`` allows (the default 500: a million after the default run's 2,100; a quick run of a few
 hundred gets a proportionate few) (:class:`pemviz.estimators.precision.PrecisionTarget` on
 :func:`pemviz.estimators.fixed.monte_carlo`), from a stream of their own (the method's rollouts are those of the run
 without it). Its answer is plain Monte Carlo's (Clopper-Pearson interval: exact, whatever the sampler before it)
 where those rollouts saw a failure; else the method's, with plain Monte Carlo's 95 % upper bound in the stop line.
 
+Before plain Monte Carlo, the method's stages run once more (``retry_factor``, :class:`Shifted`): N that many times as
+large (the default 4), from a stream of their own, their stages numbered after the first run's. A proposal family that
+can follow the failures but whose first, small run was unlucky (a heavy weight tail at N = 100) is then ``reliable``
+at a few thousand rollouts, not a million (the crowd with measurement noise: 20/20 ``reliable`` at N = 400 where 9/20
+were at N = 100); one that cannot follow them costs those few thousand more before plain Monte Carlo.
+
 Choosing the answer by the first estimate's verdict, and the second estimate from rollouts independent of the first,
-keeps the second one's coverage: its rollouts are drawn whatever the first run found (Hesterberg, "Weighted average
-importance sampling and defensive mixture distributions", Technometrics 37(2), 1995, for the idea that the target
-bounds what a poor proposal can cost).
+keeps the second one's coverage (and so for the third): its rollouts are drawn whatever the first run found
+(Hesterberg, "Weighted average importance sampling and defensive mixture distributions", Technometrics 37(2), 1995,
+for the idea that the target bounds what a poor proposal can cost).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -37,15 +45,13 @@ from pemviz.estimators.base import Estimator, StageOutcome, StagePlan
 from pemviz.estimators.extras import extras
 from pemviz.estimators.fixed import monte_carlo
 from pemviz.estimators.precision import PrecisionTarget
+from pemviz.methods.adaptive import plain_fallback_most, retry_n
 
 REL_ERROR = 0.2
 """The relative half-width plain Monte Carlo is drawn to when the run has no precision target of its own."""
 FIRST_BATCH = 10_000
 """Plain rollouts of the fallback's first batch (fewer when ``plain_fallback`` is smaller); later batches follow the
 precision target's law (:func:`pemviz.estimators.precision.added_batch_size`: as many again while no failure)."""
-MOST = 1_000_000
-"""The most plain rollouts after any run, whatever its size (``plain_fallback`` times the stages' simulations below it:
-a large run of the stages gets no larger fallback)."""
 UNSTREAMED_BATCH = 20_000
 """The most plain rollouts of one batch, divided by the objects a rollout perceives, on a problem that cannot stream
 its rollouts chunk by chunk (or on another executor): a batch is then held whole (the engine's own threshold,
@@ -54,28 +60,119 @@ STREAMED_BATCH = 200_000
 """The most plain rollouts of one batch on a problem that streams them: a stage's per-rollout numbers stay bounded."""
 STREAM = 0x706C61696E
 """Mixed into the seed of the fallback's own stream (``numpy.random.default_rng([seed, STREAM])``)."""
+RETRY = 0x7265747279
+"""Mixed into the seed of the retry's streams (:func:`retry_seed`)."""
+
+
+def retry_seed(seed: int) -> int:
+    """The seed of the retry's stages, from the run's ``seed``: a stream of their own (an int in [0, 2^63))."""
+    return int(np.random.default_rng([int(seed), RETRY]).integers(0, 2**63))
+
+
+def retry_config(config: ExperimentConfig) -> ExperimentConfig | None:
+    """The settings of the retry of ``config``'s stages: N times ``retry_factor`` (at most
+    :data:`~pemviz.methods.adaptive.RETRY_MOST_N`, :func:`pemviz.methods.adaptive.retry_n`) and :func:`retry_seed`;
+    None where it has none."""
+    n = retry_n(config)
+    return None if n is None else config.replace(n_per_stage=n, seed=retry_seed(config.seed))
 
 
 def with_plain_fallback(estimator: Estimator, config: ExperimentConfig, problem: Problem) -> Estimator:
-    """``estimator`` followed by plain Monte Carlo where its verdict is not ``reliable`` (:class:`PlainFallback`), or
-    ``estimator`` itself with ``plain_fallback`` = 0 or over an operating design domain (whose verdict is capped
-    anyway, and whose map is the sampler's)."""
+    """``estimator`` followed by its retry and plain Monte Carlo where its verdict is not ``reliable``
+    (:class:`PlainFallback`), or ``estimator`` itself with ``plain_fallback`` = 0 or over an operating design domain
+    (whose verdict is capped anyway, and whose map is the sampler's)."""
     ratio = int(config.adaptive.plain_fallback)
     if ratio <= 0 or getattr(problem, "odd", None) is not None:
         return estimator
     return PlainFallback(estimator, config, problem, ratio)
 
 
-class PlainFallback:
-    """Runs ``inner``; if its estimate's interval is not backed (:attr:`Estimate.interval_backed`), plain Monte Carlo
-    rollouts, up to ``ratio`` times its simulations, follow as stages numbered after its last (kind ``final``), and
-    :meth:`result` is theirs once they saw a failure (module docstring).
+class _Speaks:
+    """What the engine reads of an estimator besides its interface (:mod:`pemviz.estimators.extras`): its pooling, its
+    verdict's cap and a requirement's decision, as the estimator :meth:`speaker` names says them."""
+
+    def speaker(self) -> Any:
+        raise NotImplementedError
+
+    def pooling(self) -> tuple[str, tuple[float, ...]] | None:
+        return extras(self.speaker()).pooling
+
+    @property
+    def verdict_cap(self) -> tuple[str, str] | None:
+        return extras(self.speaker()).verdict_cap
+
+    @property
+    def decision(self) -> Any:
+        return extras(self.speaker()).decision
+
+
+class Shifted(_Speaks):
+    """An estimator whose stages are numbered ``offset`` on (a retry's, after the first run's): its plans, the stages
+    its result used and its per-stage rollouts carry the shifted numbers; the rest is ``inner``'s.
+
+    Args:
+        inner: the estimator.
+        offset: added to each of its stage numbers (>= 0).
+    """
+
+    def __init__(self, inner: Estimator, offset: int) -> None:
+        self.inner, self.offset = inner, int(offset)
+
+    @property
+    def rng(self) -> np.random.Generator:
+        return self.inner.rng
+
+    @rng.setter
+    def rng(self, value: np.random.Generator) -> None:
+        self.inner.rng = value
+
+    def plan(self) -> RunPlan:
+        return RunPlan(tuple(dataclasses.replace(s, stage=s.stage + self.offset) for s in self.inner.plan().stages))
+
+    def next_stage(self) -> StagePlan | None:
+        plan = self.inner.next_stage()
+        return None if plan is None else dataclasses.replace(plan, stage=plan.stage + self.offset)
+
+    def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
+        return self.inner.observe(batch, failed, robustness)
+
+    def finish(self) -> StageOutcome:
+        return self.inner.finish()
+
+    def result(self) -> tuple[Estimate, tuple[int, ...]]:
+        est, used = self.inner.result()
+        return est, tuple(k + self.offset for k in used)
+
+    @property
+    def stages(self) -> Any:
+        own = getattr(self.inner, "stages", None)
+        return {k + self.offset: v for k, v in own.items()} if isinstance(own, dict) else own
+
+    def speaker(self) -> Any:
+        return self.inner
+
+    @property
+    def n_simulations(self) -> int | None:
+        return extras(self.inner).n_simulations
+
+    @property
+    def needs_chunk_rows(self) -> bool:
+        return extras(self.inner).needs_chunk_rows
+
+
+class PlainFallback(_Speaks):
+    """Runs ``inner``; if its estimate's interval is not backed (:attr:`Estimate.interval_backed`), its stages once
+    more at a larger N (:func:`retry_config`, numbered after its last: :class:`Shifted`), and if theirs is not backed
+    either, plain Monte Carlo rollouts, up to ``ratio`` times the simulations of both, as stages numbered after the
+    last (kind ``final``); :meth:`result` is the retry's once backed, plain Monte Carlo's once it saw a failure
+    (module docstring).
 
     Args:
         inner: the method's estimator (with its stop rule's added batches, if any).
-        config: the run's settings: ``seed``, ``weights_until_failure``, ``rel_error`` / ``require``, ``max_time_s``.
+        config: the run's settings: ``seed``, ``weights_until_failure``, ``rel_error`` / ``require``, ``max_time_s``,
+            ``retry_factor``.
         problem: what to estimate.
-        ratio: the most plain rollouts per simulation of ``inner`` (>= 1).
+        ratio: the most plain rollouts per simulation of ``inner`` and its retry (>= 1).
         clock: seconds, monotonic (tests pass their own).
     Raises:
         ValueError: ``ratio`` < 1.
@@ -90,26 +187,36 @@ class PlainFallback:
         self.cap = 0
         """The most plain rollouts: ``ratio`` times the method's simulations (set once its stages are done)."""
         self.t0 = clock()
+        self.retry: Shifted | None = None
+        """The method's stages once more, once the first run's weights backed no interval."""
         self.plain: PrecisionTarget | None = None
-        """The plain Monte Carlo run, once the method's weights backed no interval."""
+        """The plain Monte Carlo run, once the method's weights backed no interval (nor the retry's)."""
+        self.first: Estimate | None = None
+        """The method's own estimate, once its first run is done."""
         self.before: Estimate | None = None
-        """The method's own estimate, once its stages are done."""
-        self._inner_rollouts = 0
+        """The estimate plain Monte Carlo follows (the retry's, else the first run's), once the stages are done."""
+        self._rollouts = [0, 0]
+        """Rollouts of the first run's stages and of the retry's."""
         self._last_stage = -1
 
     def __getattr__(self, name: str) -> Any:  # the method's other attributes (its proposal, its settings)
-        if name in ("inner", "plain"):
+        if name in ("inner", "plain", "retry"):
             raise AttributeError(name)
         return getattr(self.inner, name)
 
     @property
+    def drawing(self) -> Any:
+        """The estimator the next batch comes from: the method's, its retry, or plain Monte Carlo."""
+        return self.plain if self.plain is not None else self.retry if self.retry is not None else self.inner
+
+    @property
     def rng(self) -> np.random.Generator:
-        """The stream the next batch is drawn from: the method's, then the fallback's own."""
-        return self.inner.rng if self.plain is None else self.plain.rng
+        """The stream the next batch is drawn from: the method's, the retry's, then the fallback's own."""
+        return self.drawing.rng
 
     @rng.setter
     def rng(self, value: np.random.Generator) -> None:
-        (self.inner if self.plain is None else self.plain).rng = value
+        self.drawing.rng = value
 
     @property
     def used_plain(self) -> bool:
@@ -117,21 +224,42 @@ class PlainFallback:
         return self.plain is not None and self.plain.result()[0].n_failures > 0
 
     def plan(self) -> RunPlan:
-        """The method's plan: the fallback's batches, if any, follow it unplanned."""
+        """The method's plan: the retry's and the fallback's batches, if any, follow it unplanned."""
         return self.inner.plan()
 
     def next_stage(self) -> StagePlan | None:
-        if self.plain is None:
-            plan = self.inner.next_stage()
+        while self.plain is None:
+            stages = self.retry if self.retry is not None else self.inner
+            plan = stages.next_stage()
             if plan is not None:
-                self._inner_rollouts += plan.n
+                self._rollouts[self.retry is not None] += plan.n
                 self._last_stage = plan.stage
                 return plan
-            self.before = self.inner.result()[0]
+            self.before = stages.result()[0]
+            if self.retry is None:
+                self.first = self.before
+                self.retry = self._retry()
+                if self.retry is not None:
+                    continue
             self.plain = self._start()
             if self.plain is None:
                 return None
         return self.plain.next_stage()
+
+    def _retry(self) -> Shifted | None:
+        """The method's stages once more (:func:`retry_config`), or None: the first run's interval is backed, it has
+        no retry, or no time is left."""
+        from pemviz.methods import get_method
+
+        assert self.first is not None
+        config = retry_config(self.config)
+        stop = self.config.stop
+        if self.first.interval_backed or config is None:
+            return None
+        if stop.max_time_s is not None and stop.max_time_s - (self.clock() - self.t0) <= 0:
+            return None
+        check = getattr(self.inner, "check", None)
+        return Shifted(get_method(config.method).builder()(config, self.problem, check), self._last_stage + 1)
 
     def _start(self) -> PrecisionTarget | None:
         """The plain run, or None: the method's interval is backed, or no time is left."""
@@ -140,9 +268,7 @@ class PlainFallback:
             return None
         stop = self.config.stop
         spent = self._method_simulations()
-        self.cap = min(self.ratio * max(1, spent), MOST)
-        if stop.max_sims is not None:  # the run's own cap holds for everything it simulates
-            self.cap = min(self.cap, stop.max_sims - spent)
+        self.cap = plain_fallback_most(self.ratio, spent, stop.max_sims)
         if self.cap < 1:
             return None
         changes: dict[str, Any] = {"method": "mc", "max_sims": self.cap}
@@ -162,22 +288,23 @@ class PlainFallback:
         return PrecisionTarget(plain, config, self.clock, max_batch=most)
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
-        return (self.inner if self.plain is None else self.plain).observe(batch, failed, robustness)
+        return self.drawing.observe(batch, failed, robustness)
 
     def finish(self) -> StageOutcome:
-        return (self.inner if self.plain is None else self.plain).finish()
+        return self.drawing.finish()
 
     def result(self) -> tuple[Estimate, tuple[int, ...]]:
-        if self.plain is not None and self.used_plain:
-            return self.plain.result()
-        return self.inner.result()
+        return self.answering.result()
 
     # -- what the engine reads besides the interface (pemviz.estimators.extras) ----------------------------------
 
     @property
     def answering(self) -> Any:
-        """The estimator whose answer :meth:`result` gives."""
-        return self.plain if self.plain is not None and self.used_plain else self.inner
+        """The estimator whose answer :meth:`result` gives: plain Monte Carlo once it saw a failure, else the retry
+        where it ran, else the method's first run."""
+        if self.plain is not None and self.used_plain:
+            return self.plain
+        return self.retry if self.retry is not None else self.inner
 
     @property
     def stages(self) -> Any:
@@ -186,26 +313,24 @@ class PlainFallback:
 
     @property
     def n_simulations(self) -> int | None:
-        """Every simulation of the run: the method's (its own count or its rollouts) and the plain rollouts."""
-        if self.plain is None:
+        """Every simulation of the run: the method's (its own count or its rollouts), its retry's and the plain
+        rollouts."""
+        if self.plain is None and self.retry is None:
             return extras(self.inner).n_simulations
-        return self._method_simulations() + self.plain.n_simulations
+        return self._method_simulations() + (0 if self.plain is None else self.plain.n_simulations)
 
     def _method_simulations(self) -> int:
-        """The simulations of the method's stages: its own count (e.g. a stop rule's), else its rollouts."""
-        own = extras(self.inner).n_simulations
-        return int(own) if own is not None else self._inner_rollouts
+        """The simulations of the method's stages and of its retry: each one's own count (e.g. a stop rule's), else
+        its rollouts."""
+        first = extras(self.inner).n_simulations
+        total = int(first) if first is not None else self._rollouts[0]
+        if self.retry is not None:
+            again = self.retry.n_simulations
+            total += int(again) if again is not None else self._rollouts[1]
+        return total
 
-    def pooling(self) -> tuple[str, tuple[float, ...]] | None:
-        return extras(self.answering).pooling
-
-    @property
-    def verdict_cap(self) -> tuple[str, str] | None:
-        return extras(self.answering).verdict_cap
-
-    @property
-    def decision(self) -> Any:
-        return extras(self.answering).decision
+    def speaker(self) -> Any:
+        return self.answering
 
     @property
     def prepared(self) -> str | None:
@@ -215,22 +340,32 @@ class PlainFallback:
     def needs_chunk_rows(self) -> bool:
         """Whether the stage being drawn needs its chunks' object rows: the method's may, plain Monte Carlo's not
         (it reads the rows of failures only, rebuilt by replay)."""
-        return extras(self.inner if self.plain is None else self.plain).needs_chunk_rows
+        return extras(self.drawing).needs_chunk_rows
 
     @property
     def stop(self) -> str | None:
-        """Why the run stopped, with the fallback's part: what the method's weights said and what plain Monte Carlo
-        gave."""
+        """Why the run stopped, with the fallback's part: what the method's weights said, what its retry gave and
+        what plain Monte Carlo gave."""
         own = extras(self.inner).stop
-        if self.plain is None or self.before is None:
+        if self.retry is None and self.plain is None:
             return own
-        est = self.plain.result()[0]
-        said = (
-            f"plain Monte Carlo after the stages, whose weights backed no interval ({self.before.verdict}): "
-            f"{est.n_failures:,} failures in {est.n:,} rollouts (at most {self.cap:,}: --plain-fallback)"
-        )
-        if est.n_failures == 0:
-            upper = 1.0 - 0.05 ** (1.0 / max(1, est.n))  # one-sided Clopper-Pearson with no failure
-            said += f", p < {upper:.2g} (its 95 % upper bound); the answer is the stages'"
-        parts = [p for p in (own, said, self.plain.stop) if p]
-        return "; ".join(parts) if parts else None
+        parts = [own]
+        if self.retry is not None and self.first is not None and self.before is not None:
+            again = self.retry.inner
+            n = getattr(getattr(again, "config", None), "n_per_stage", None)
+            parts.append(
+                f"the stages once more at N = {n:,} from a stream of their own, the first run's weights backing no "
+                f"interval ({self.first.verdict}): {self.before.verdict} (--retry-factor)"
+            )
+        if self.plain is not None and self.before is not None:
+            est = self.plain.result()[0]
+            said = (
+                f"plain Monte Carlo after the stages, whose weights backed no interval ({self.before.verdict}): "
+                f"{est.n_failures:,} failures in {est.n:,} rollouts (at most {self.cap:,}: --plain-fallback)"
+            )
+            if est.n_failures == 0:
+                upper = 1.0 - 0.05 ** (1.0 / max(1, est.n))  # one-sided Clopper-Pearson with no failure
+                said += f", p < {upper:.2g} (its 95 % upper bound); the answer is the stages'"
+            parts += [said, self.plain.stop]
+        said_all = [p for p in parts if p]
+        return "; ".join(said_all) if said_all else None

@@ -65,6 +65,9 @@ class Method:
         then: optional, ``then(estimator, config, problem) -> Estimator``: what runs after the method's stages (and
             a stop rule's added batches), wrapping the built estimator: e.g. the cross-entropy sampler's plain Monte
             Carlo where its weights back no interval (:mod:`pemviz.estimators.fallback`). A :data:`Ref`.
+        then_most: optional, ``then_most(config, simulations) -> (n, words)``: the most simulations :attr:`then` may
+            add after the ``simulations`` the method plans, and the cost line's words for them (e.g. ``plain rollouts
+            more where the stages' weights back no interval``); None: nothing. A :data:`Ref`.
         validate: optional, ``validate(config, n_objects) -> (setting, what is allowed) | None``: the first of the
             method's own settings that conflicts with another in ``config`` (its scene perceiving ``n_objects``
             objects a step), checked when the config is made; None: none. A :data:`Ref`.
@@ -100,6 +103,7 @@ class Method:
     run_adds: str = ""
     proposal_curves: bool = False
     then: Ref = None
+    then_most: Ref = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -262,6 +266,7 @@ for _record in (
         cost_model="proposal",
         proposal_curves=True,
         then="pemviz.estimators.builtin:adaptive_then",
+        then_most="pemviz.estimators.builtin:adaptive_then_most",
     ),
     Method(
         "mc",

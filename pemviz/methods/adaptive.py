@@ -6,6 +6,38 @@ them. Light to import: no estimator is loaded."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
+
+PLAIN_FALLBACK_MOST = 1_000_000
+"""The most plain rollouts the fallback draws after any run, whatever its size (``plain_fallback`` times the stages'
+simulations below it: a large run of the stages gets no larger fallback)."""
+
+
+def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> int:
+    """The most plain rollouts the fallback (:class:`pemviz.estimators.fallback.PlainFallback`) draws after stages that
+    simulated ``spent`` rollout-equivalents: ``ratio`` (``plain_fallback``) times ``spent`` (at least 1), at most
+    :data:`PLAIN_FALLBACK_MOST` and what the run's own ``max_sims`` leaves; 0 when ``ratio`` <= 0 or nothing is left.
+    """
+    if ratio <= 0:
+        return 0
+    most = min(int(ratio) * max(1, int(spent)), PLAIN_FALLBACK_MOST)
+    if max_sims is not None:  # the run's own cap holds for everything it simulates
+        most = min(most, int(max_sims) - int(spent))
+    return max(0, most)
+
+
+RETRY_MOST_N = 10_000
+"""The most rollouts of a retry's stage: a run of larger N retries at this N, and one at it or above does not retry."""
+
+
+def retry_n(config: Any) -> int | None:
+    """N of the retry of ``config``'s stages (:class:`pemviz.estimators.fallback.PlainFallback`): N times
+    ``retry_factor``, at most :data:`RETRY_MOST_N`; None where the run has none (``retry_factor`` < 2,
+    ``plain_fallback`` = 0, a precision target or requirement, or N at :data:`RETRY_MOST_N` already)."""
+    factor, n = int(config.adaptive.retry_factor), int(config.n_per_stage)
+    if factor < 2 or config.adaptive.plain_fallback <= 0 or config.stop_rule is not None or n >= RETRY_MOST_N:
+        return None
+    return min(factor * n, RETRY_MOST_N)
 
 
 @dataclass(frozen=True)
@@ -102,6 +134,10 @@ class CrossEntropySettings:
         nor the run's ``max_sims``, to the run's precision target (``rel_error``, else a 20 % interval) or
         requirement; the run's answer is then plain Monte Carlo's where it saw a failure
         (:mod:`pemviz.estimators.fallback`). 0: none (the ``paper`` preset's). Not over an operating design domain.
+    retry_factor: before that plain Monte Carlo, the stages once more, with N this many times as large (the
+        default 4: 5,100 simulations after the default 2,100), from a stream of their own; their answer is the run's
+        where their weights back an interval. 0 or 1: no retry. Only with ``plain_fallback`` > 0 and no precision
+        target or requirement.
     """
 
     n_stages: int = 10
@@ -133,3 +169,4 @@ class CrossEntropySettings:
     fit_rows: int | None = 5_000
     fit_tolerance: float | None = 1e-3
     plain_fallback: int = 500
+    retry_factor: int = 4

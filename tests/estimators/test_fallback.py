@@ -13,8 +13,15 @@ from pemviz.engine.experiment import Experiment
 from pemviz.estimators.fallback import PlainFallback, with_plain_fallback
 from pemviz.scenarios.problems import problem_for
 
-TINY = dict(scenario="toy", n_stages=1, n_per_stage=10, n_final=10, pretrain_rollouts=10, plain_fallback=500)
-"""A cross-entropy run too small to back an interval: 10 pretraining rollouts, one stage of 10, 10 final."""
+TINY = dict(
+    scenario="toy", n_stages=1, n_per_stage=10, n_final=10, pretrain_rollouts=10, plain_fallback=500, retry_factor=0
+)
+"""A cross-entropy run too small to back an interval: 10 pretraining rollouts, one stage of 10, 10 final; no retry."""
+RETRY = dict(
+    scenario_params=(("braking", 32),), n_stages=2, n_per_stage=20, n_final=30, pretrain_rollouts=20, retry_factor=10
+)
+"""Toy braking 32 (p = 1e-3 exactly): a first run of 90 rollouts whose weights back no interval at seed 0, then the
+stages once more at N = 200 (20 + 2 x 200 + 30 = 450 rollouts), whose weights do."""
 
 
 def run(**settings):
@@ -76,23 +83,71 @@ def test_a_backed_interval_or_a_zero_cap_or_an_odd_runs_no_plain_rollouts():
         PlainFallback(object(), config, problem, 0)  # type: ignore[arg-type]
 
 
+def test_a_retry_at_a_larger_n_answers_where_its_weights_back_an_interval():
+    done, problem = run(**RETRY, seed=0)
+    alone, _ = run(**{**RETRY, "plain_fallback": 0}, seed=0)  # the first run by itself: the same rollouts
+    kinds = ["pretrain", "ce", "ce", "final"]
+    assert [(s.stage, s.kind) for s in done.stages] == list(enumerate(kinds + kinds))
+    assert [s.estimate.n for s in done.stages] == [20, 20, 20, 30, 20, 200, 200, 30]
+    assert [s.estimate.n_failures for s in done.stages[:4]] == [s.estimate.n_failures for s in alone.stages]
+    assert not alone.final.estimate.interval_backed  # the premise: the first run's weights back no interval
+    final = done.final
+    est = final.estimate
+    assert final.n_simulations == 90 + 450 and not est.plain_mc and est.verdict == "reliable"
+    assert final.stages_used and set(final.stages_used) <= {4, 5, 6, 7}  # the retry's stages alone
+    assert est.covers(problem.exact_log_p) and abs(math.exp(est.log_mu_hat) / 1e-3 - 1.0) < 0.2
+    assert (
+        f"the stages once more at N = 200 from a stream of their own, the first run's weights backing no interval "
+        f"({alone.final.estimate.verdict}): reliable (--retry-factor)"
+    ) in final.stop
+    chunked, _ = run(**RETRY, seed=0, chunk_rollouts=7)  # a seed gives the same run at any chunk size
+    assert (chunked.final.estimate.log_mu_hat, chunked.final.n_simulations) == (est.log_mu_hat, 540)
+
+
+def test_the_retry_s_settings_n_times_its_factor_and_a_stream_of_its_own():
+    from pemviz.estimators.fallback import retry_config, retry_seed
+    from pemviz.methods.adaptive import RETRY_MOST_N
+
+    config = ExperimentConfig.of(scenario="toy", seed=5)
+    again = retry_config(config)
+    assert again is not None and again.n_per_stage == 4 * config.n_per_stage == 400
+    assert again.seed == retry_seed(5) != 5 and again.adaptive.n_stages == config.adaptive.n_stages
+    assert len({retry_seed(k) for k in range(1000)} | set(range(1000))) == 2000  # no seed meets another's retry
+    assert retry_config(config.replace(n_per_stage=4_000)).n_per_stage == RETRY_MOST_N  # type: ignore[union-attr]
+    for none in (
+        config.replace(retry_factor=0),
+        config.replace(retry_factor=1),
+        config.replace(rel_error=0.2),  # a precision target adds its own final batches
+        config.replace(n_per_stage=RETRY_MOST_N),
+        config.replace(plain_fallback=0),  # the stages alone
+    ):
+        assert retry_config(none) is None
+
+
 def test_the_paper_preset_has_no_fallback():
     from pemviz.presets import PRESETS
 
     assert PRESETS["paper"]["plain_fallback"] == 0 and PRESETS["authors-code"]["plain_fallback"] == 0
 
 
-def test_a_run_answered_by_plain_monte_carlo_re_estimates_to_its_numbers(tmp_path, capsys):
-    """``--save-rollouts`` keeps the stages the answer uses (the plain batches) and ``pemviz estimate`` gives the run's
-    mu_hat again (the run prints it to 4 decimals of its log)."""
+@pytest.mark.parametrize(
+    "flags, said",
+    [
+        (["--k", "1", "--n", "10", "--n-final", "10", "--retry-factor", "0"], "plain Monte Carlo after the stages"),
+        (["--k", "2", "--n", "20", "--n-final", "30", "--retry-factor", "10"], "the stages once more at N = 200"),
+    ],
+)
+def test_a_run_answered_by_plain_monte_carlo_or_the_retry_re_estimates_to_its_numbers(tmp_path, capsys, flags, said):
+    """``--save-rollouts`` keeps the stages the answer uses (the plain batches, or the retry's stages) and ``pemviz
+    estimate`` gives the run's mu_hat again (the run prints it to 4 decimals of its log)."""
     from pemviz.cli import main
 
     path = tmp_path / "fallback.parquet"
-    argv = ["run", "--scenario", "toy", "--param", "braking=32", "--k", "1", "--n", "10", "--n-final", "10"]
+    argv = ["run", "--scenario", "toy", "--param", "braking=32", *flags]
     argv += ["--plain-fallback", "10000", "--seed", "0", "--no-record", "--save-rollouts", str(path)]
     assert main(argv) == 0
     ran = capsys.readouterr().out
-    assert "plain Monte Carlo after the stages, whose weights backed no interval" in ran
+    assert said in ran
     logged = [line for line in ran.splitlines() if "(log mu_hat = " in line][0]
     log_mu = float(logged.split("(log mu_hat = ")[1].split(" nats")[0])
     assert main(["estimate", str(path), "--no-record"]) == 0
@@ -106,6 +161,6 @@ def test_the_fallback_stays_within_the_run_s_max_sims_and_a_million():
     # a precision target whose --max-sims the stages' added batches spend leaves nothing for plain Monte Carlo
     done, _ = run(seed=0, rel_error=0.2, max_sims=1030)
     assert done.final.n_simulations <= 1030 and "--plain-fallback" not in (done.final.stop or "")
-    from pemviz.estimators.fallback import MOST
+    from pemviz.methods.adaptive import PLAIN_FALLBACK_MOST as MOST
 
     assert MOST == 1_000_000

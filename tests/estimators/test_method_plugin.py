@@ -196,6 +196,26 @@ def test_a_method_that_cannot_add_batches_refuses_a_stop_rule(defensive):
         unregister_method("one-batch")
 
 
+def user_then_most(config, simulations):
+    """A method's own ``then_most``: three checks a planned rollout."""
+    return 3 * simulations, "checks of its own"
+
+
+def test_a_method_s_then_most_is_the_cost_line_s_last_words(defensive):
+    """What a method may add after its stages is the record's to say (:attr:`Method.then_most`), in the cost line."""
+    from dataclasses import replace
+
+    from pemviz.app.form import run_cost
+
+    register_method(replace(defensive, name="checked", then_most=f"{__name__}:user_then_most"))
+    try:
+        text = run_cost(ExperimentConfig.of(method="checked", n_per_stage=400)).text()
+        assert text.startswith("400 simulations, ") and "; then up to 1,200 checks of its own, about " in text
+        assert "then" not in run_cost(ExperimentConfig.of(method="defensive-mc", n_per_stage=400)).text()
+    finally:
+        unregister_method("checked")
+
+
 METHOD_HOMES = {
     "pemviz/estimators/builtin.py",
     "pemviz/estimators/cross_entropy.py",

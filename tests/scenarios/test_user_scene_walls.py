@@ -43,7 +43,9 @@ def test_first_observation_of_any_name_round_trips_and_re_estimates(tmp_path):
     problem = crosswalk_problem()
     sink = RolloutSink(tmp_path / "r.parquet")
     sink.problem = problem
-    done = Experiment(ExperimentConfig.of(seed=3, n_per_stage=100, n_final=400), [sink], problem=problem).run()
+    done = Experiment(
+        ExperimentConfig.of(seed=3, n_per_stage=100, n_final=400, plain_fallback=0), [sink], problem=problem
+    ).run()
     side = json.loads((tmp_path / "r.rollouts.json").read_text())
     assert side["h_column"] == "dist_m" and side["observation_columns"][0] == "dist_m"
     assert "gap_m" not in side["observation_columns"]
@@ -69,7 +71,9 @@ def test_a_sidecar_minus_infinity_reads_back_as_a_number(tmp_path):
     problem = crosswalk_problem()
     sink = RolloutSink(tmp_path / "r.parquet")
     sink.problem = problem
-    done = Experiment(ExperimentConfig.of(seed=1, n_per_stage=100, n_final=300), [sink], problem=problem).run()
+    done = Experiment(
+        ExperimentConfig.of(seed=1, n_per_stage=100, n_final=300, plain_fallback=0), [sink], problem=problem
+    ).run()
     data = read_rollouts(tmp_path / "r.parquet")
     again = estimate_rollouts(data, data.log_p, data.log_q, log_p_seen="-inf")
     assert again.estimate.log_mu_hat == pytest.approx(done.final.estimate.log_mu_hat, rel=1e-9, abs=1e-9)
