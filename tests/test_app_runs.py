@@ -359,3 +359,22 @@ def test_a_failed_export_leaves_no_file(tiny_record, tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="disk full"):
         export_run(tiny_record, export_path(rec, "x"))
     assert list(rec.iterdir()) == []
+
+
+def test_the_live_note_says_why_no_q_detect_chart_is_drawn():
+    """Why *Live* draws no q(detect) chart: none for braking (its stages are binned by the gap); on the crowd (several
+    objects a step and no axis to bin them by) its stages drew from a proposal all the same; plain Monte Carlo drew
+    from none."""
+    from pemviz.app.charts import marginal_note
+
+    def note(**settings):
+        cfg = TINY.replace(**settings)
+        problem = problem_for(cfg)
+        record = PanelRun(1, cfg)
+        record.problem = problem
+        Experiment(cfg, [record], problem=problem).run()
+        return marginal_note(record)
+
+    assert note() == ""
+    assert "its stages drew from a proposal, but its scene gives no axis to bin q(detect) by" in note(scenario="crowd")
+    assert "no stage drawn by a proposal yet" in note(scenario="crowd", method="mc", n_per_stage=200)

@@ -149,6 +149,11 @@ def marginal_note(record: PanelRun | None) -> str:
             f"{html.escape(record.short_label)}: its problem reports neither a gap nor the rows of several objects, "
             "so no detection probability can be binned"
         )
+    elif any(r.kind == "ce" for r in record.stages):
+        why = (
+            f"{html.escape(record.short_label)}: its stages drew from a proposal, but its scene gives no axis to "
+            "bin q(detect) by (its drawing's proposal_axis, or a detection window on a scene of one object a step)"
+        )
     else:
         why = (
             f"{html.escape(record.short_label)}: no stage drawn by a proposal yet (pretraining draws from the PEM "
