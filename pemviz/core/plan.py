@@ -14,14 +14,14 @@ from typing import Iterable
 def stage_label(stage: int, kind: str, n_stages: int) -> str:
     """The one name of a stage in console, panel, recording and CSVs.
 
-    ``pretraining`` (stage 0), ``CE stage k/K`` (stages 1..K, ``n_stages`` = K), ``final batch`` (stage K+1,
-    or the only batch of mc / naive50 / mixed50), ``AMS particles`` / ``AMS iterations k`` (adaptive multilevel
-    splitting); the number is the engine's ``stage`` everywhere.
+    ``pretraining`` (stage 0), ``CE stage k/K`` (stages 1..K, ``n_stages`` = K; ``CE stage k`` past them, a
+    retry's), ``final batch`` (stage K+1, or the only batch of mc / naive50 / mixed50), ``AMS particles`` / ``AMS
+    iterations k`` (adaptive multilevel splitting); the number is the engine's ``stage`` everywhere.
     """
     if kind == "pretrain":
         return "pretraining"
     if kind == "ce":
-        return f"CE stage {stage}/{n_stages}"
+        return f"CE stage {stage}/{n_stages}" if stage <= n_stages else f"CE stage {stage}"
     if kind == "ams":
         return f"AMS iterations {stage}" if stage else "AMS particles"
     return "final batch"

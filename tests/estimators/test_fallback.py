@@ -100,6 +100,10 @@ def test_a_retry_at_a_larger_n_answers_where_its_weights_back_an_interval():
         f"the stages once more at N = 200 from a stream of their own, the first run's weights backing no interval "
         f"({alone.final.estimate.verdict}): reliable (--retry-factor)"
     ) in final.stop
+    from pemviz.core.plan import stage_label
+
+    labels = [stage_label(k, "ce", 2) for k in (1, 2, 5, 6)]  # the retry's CE stages, past the plan's K = 2
+    assert labels == ["CE stage 1/2", "CE stage 2/2", "CE stage 5", "CE stage 6"]
     chunked, _ = run(**RETRY, seed=0, chunk_rollouts=7)  # a seed gives the same run at any chunk size
     assert (chunked.final.estimate.log_mu_hat, chunked.final.n_simulations) == (est.log_mu_hat, 540)
 
