@@ -333,8 +333,9 @@ def estimate(
     The interval: with weights all equal to 1 (plain Monte Carlo under the PEM) the Clopper-Pearson interval of
     the failure count (:func:`pemviz.core.confidence.clopper_pearson`), and with 0 failures the one-sided
     rule-of-three bound p < 3 / N; under importance sampling the log-scale t interval of the mean of 1[fail_i] w_i
-    (see :func:`pemviz.core.confidence.log_mean_interval`), and with 0 failures the interval [0, 1]: 0 failures under
-    a proposal bound nothing.
+    (see :func:`pemviz.core.confidence.log_mean_interval`) cut at 1 (p is a probability: e.g. p = 1 where every
+    rollout starts inside the failure set), and with 0 failures the interval [0, 1]: 0 failures under a proposal
+    bound nothing.
     The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, with Pareto k-hat above
     :data:`KHAT_UNRELIABLE` and an ESS below :data:`MIN_ESS_RELIABLE` (above it: ``doubtful``), or when the mean
     importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do not belong to the proposal that drew the
@@ -420,7 +421,7 @@ def _estimate(
         khat = math.nan
     else:
         _, lo, hi = log_mean_interval(log_y)
-        log_ci = (lo, hi)
+        log_ci = (min(lo, 0.0), min(hi, 0.0))  # p <= 1: the interval intersected with [0, 1] covers as often
         khat = pareto_khat(log_y)
     distinct = nf if plain_mc else distinct_failures(lw, lp)
     verdict, reason = _verdict(n, nf, ess, khat, log_weight, plain_mc, distinct)

@@ -68,7 +68,7 @@ def to_grid(x: np.ndarray, bits: int, nonneg: bool = False) -> tuple[np.ndarray,
     [...], ``scale`` a power of two (:func:`on_grid` with ``axis`` None, faster: two whole-array reductions and one
     multiply). A product of two such arrays summed k times is exact when their bits add to at most
     ``53 - ceil(log2 k)``."""
-    largest = float(x.max()) if nonneg else max(float(x.max()), -float(x.min())) if x.size else 0.0
+    largest = 0.0 if not x.size else float(x.max()) if nonneg else max(float(x.max()), -float(x.min()))
     if largest == 0.0:
         return np.zeros_like(x), 1.0
     shift = bits - math.frexp(largest)[1]

@@ -399,7 +399,8 @@ def fit_proposal(
             change of the loss (default
             :data:`pemviz.core.fit_settings.LBFGS_TOLERANCE`).
     Returns:
-        the loss per Adam epoch, or per L-BFGS evaluation.
+        the loss per Adam epoch, or per L-BFGS evaluation; ``[]`` for no ``inputs`` (M = 0: every rollout failed
+        before its first action), the proposal left as it is.
     Raises:
         ValueError: for an unknown ``optimizer``.
 
@@ -411,6 +412,8 @@ def fit_proposal(
     """
     if optimizer not in FITS:
         raise ValueError(f"fit_proposal: unknown optimizer {optimizer!r}; use one of {', '.join(FITS)}")
+    if len(inputs) == 0:  # no step to fit (every rollout failed before its first action): the proposal as it is
+        return []
     if optimizer == "adam" and dtype == EXACT and not callable(objective):
         counts = objective if isinstance(objective, np.ndarray) else objective.detach().numpy()
         return fit_exact(

@@ -456,7 +456,7 @@ class EliteSteps:
         noise = None if noise is None else noise[by]
         log_w = np.asarray(log_weight(order, obs, actions, counts, noise), dtype=np.float64)
         self.parts, self.observations = [(order, rows, actions, log_w)], [(obs, counts, noise)]
-        self.log_w_max = float(np.max(log_w))
+        self.log_w_max = float(np.max(log_w, initial=-np.inf))  # -inf: no step held
         return True
 
     def fit(self, proposal: Proposal, **kwargs) -> list[float]:

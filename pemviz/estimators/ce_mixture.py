@@ -162,10 +162,12 @@ class MixtureWeights:
         heuristic over all stages, the deterministic-mixture weight of adaptive multiple importance sampling:
         Cornuet, Marin, Mira & Robert, "Adaptive multiple importance sampling", Scand. J. Stat. 39(4), 2012;
         Owen & Zhou, "Safe and effective importance sampling", JASA 2000), over the steps that count (``counts``).
-        Arguments as :meth:`EliteSteps.reweight` passes them."""
+        Arguments as :meth:`EliteSteps.reweight` passes them; S may be 0 (every elite failed at its first step)."""
         pb, plan, pool_start = self.problem, self._plan, self._pool_start
         assert plan is not None and pool_start is not None, "the failure pool has started (CrossEntropy.finish)"
         ids, inverse = np.unique(rollout, return_inverse=True)
+        if ids.size == 0:  # no step held (every elite failed before its first action): no weight to give
+            return np.empty(0)
 
         def log_prob(key: object, detector: Detector) -> np.ndarray:
             """Per rollout, over the steps that count; each (sampler, rollout) computed once (a rollout's steps do

@@ -55,6 +55,10 @@ class BrakingParams:
 
     Distances in metres, speeds in m/s, accelerations in m/s^2, time in seconds.
 
+    A start inside the failure set (``gap0_m`` below ``crash_gap_m``) is a scene whose every rollout fails at step 0
+    (p = 1); a start in contact (``gap0_m <= contact_gap_m``) is refused: its collision has no step into contact, so
+    no impact speed (:func:`pemviz.core.severity.severity_of_signal`).
+
     Raises:
         ValueError: a value outside its range (the message names the field, what is allowed and what was given).
     """
@@ -122,6 +126,13 @@ class BrakingParams:
                 value = getattr(self, name)
                 if not (isinstance(value, (int, float)) and math.isfinite(value) and ok(value)):
                     raise bad(name, f"finite and {allowed}" if allowed != "any number" else "finite", value)
+        if self.gap0_m <= self.contact_gap_m:  # a start inside the failure set above contact is a failure (p = 1)
+            raise bad(
+                "gap0_m",
+                f"above contact_gap_m = {self.contact_gap_m:g} m (at or below it the cars start in contact: a "
+                "collision with no impact speed)",
+                self.gap0_m,
+            )
 
     @property
     def lead_accel_mps2(self) -> np.ndarray:
