@@ -189,6 +189,7 @@ def test_any_start_of_any_scenario_is_an_estimate_or_one_line(scenario_name, mon
         max_examples=EXAMPLES.get(scenario_name, 2),
         deadline=None,
         database=None,
+        derandomize=True,  # the same examples in every run: CI cannot meet a draw no developer saw
         suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
     )
     @given(param=assignments(scenario_name))

@@ -97,7 +97,7 @@ def log_exceedance_after(
     Raises:
         ValueError: ``detected`` not [N, T] with T = ``params.n_steps``, ``start`` not [N] in [0, T], or a replayed gap
             more than 1e-6 m from ``observed_gap_m``.
-        RuntimeError: more than :data:`MAX_BRANCHES` branches at once (a start gap or level whose branches cannot be
+        ValueError: more than :data:`MAX_BRANCHES` branches at once (a start gap or level whose branches cannot be
             dropped: e.g. a level above the contact gap, where no speed bound applies).
     """
     p = params
@@ -192,10 +192,11 @@ def _enumerate(
         log_path[s] = log_path[s] + log_expit(logit)
         g, v, integ, pend = braking_step(p, float(vlead[t]), g, v, integ, pend, det)
         if owner.size > MAX_BRANCHES:
-            raise RuntimeError(
+            raise ValueError(
                 f"the braking look-ahead holds {owner.size:,} branches at step {t} (at most "
-                f"{MAX_BRANCHES:,}): start it at a smaller gap, or use it for a failure below the "
-                f"contact gap ({p.contact_gap_m:g} m) only"
+                f"{MAX_BRANCHES:,}): these braking parameters leave too many detection sequences open after "
+                f"the {LOOK_AHEAD_GAP_M:g} m start (a weak brake or a margin above the contact gap "
+                f"{p.contact_gap_m:g} m); run them with --method mc, or a stronger brake"
             )
     return total
 
