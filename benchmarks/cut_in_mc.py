@@ -1,24 +1,26 @@
-"""Plain Monte Carlo of the cut-in scenario under the shipped PEMs, and the batched twin's cost per rollout.
+"""Plain Monte Carlo of the cut-in scenario through pemviz's own rollouts, and the batched twin's cost per rollout.
 
-Each step, for every rollout and object: the detection PEM (``pemviz.pem.load_pem()``, the default ml-nn) gives
-p(detected | salient variables) of the object row's 11 KITTI columns; the object is detected iff ``u < p`` and it is
-visible; the noise PEM (``pemviz.pem.store.load_noise_pem("hetero-t")``: Student-t range and lateral errors, metres)
-draws its measurement error. The rollout fails when the robustness of
-:data:`pemviz.scenarios.cut_in.scenario.FAILURE_FORMULA` is negative (pemviz's STL, classic semantics). The estimate is
-the failure fraction with its Clopper-Pearson 95 % interval (:func:`pemviz.core.estimate.estimate` with unit weights).
+The rollouts are the engine's (``Problem.stream`` of the registered cut-in, :func:`pemviz.core.lockstep.run_batched`):
+each step, for every rollout and object, the detection PEM (the shipped ml-nn) gives p(detected | salient variables)
+of the object row's 11 KITTI columns and the object is detected iff it is visible and ``log u <= log_expit(logit p)``;
+a detected object's range and lateral errors come from the noise PEM (hetero-t, Student-t) by inverse CDF of its
+other two uniforms. The rollout fails when the classic robustness of the scenario's failure formula is negative
+(``Problem.failed``). So chunk ``k`` below is exactly ``pemviz run --scenario cut-in --method mc --n CHUNK --seed
+SEED+k`` (with the same ``--param``), whatever the chunking: a line per chunk is written as it ends, so a run cut
+short pools the chunks it finished. The estimate is the failure fraction with its Clopper-Pearson 95 % interval.
+``tests/scenarios/test_cut_in_mc_paths.py`` checks these rollouts against a plain loop of its own.
 
-Settings (``--setting``): ``default`` (:class:`~pemviz.scenarios.cut_in.scenario.CutInParams` as it is), ``moderate``
-and ``rare`` (:data:`pemviz.scenarios.cut_in.scenario.RARITY_SETTINGS`), with ``--set NAME=VALUE`` overrides. Run from
-the repository root, e.g.:
+Run from the repository root, e.g.:
 
-    python benchmarks/cut_in_mc.py --setting moderate --n 1000000
+    python benchmarks/cut_in_mc.py --n 10000000 --chunk 1000000 --seed 100     # the default scene's reference
+    python benchmarks/cut_in_mc.py --param cut_in_gap_m=21 --n 10000000          # the cut-in at 21 m
+    python benchmarks/cut_in_mc.py --param "cut_in_gap_m~uniform(19.5, 21.5)" --n 1000000   # over the ODD
     python benchmarks/cut_in_mc.py --cost            # the twin's cost per rollout (no PEM), N = 4096
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 import time
@@ -28,18 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pemviz.scenarios.cut_in.scenario import (  # noqa: E402
-    FAILURE_FORMULA,
-    OBJECT_NAMES,
-    RARITY_SETTINGS,
-    SALIENT_COLUMNS,
-    CutInParams,
-)
+from pemviz.scenarios.cut_in.scenario import CutInParams  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory  # noqa: E402
-
-SETTINGS: dict[str, dict] = {"default": {}, **RARITY_SETTINGS}
-"""Overrides of :class:`CutInParams` per named setting (:data:`pemviz.scenarios.cut_in.scenario.RARITY_SETTINGS`)."""
-VISIBLE = OBJECT_NAMES.index("visible")
 
 
 def load() -> str:
@@ -47,75 +39,38 @@ def load() -> str:
     return f"load average {one:.2f}, {five:.2f}, {fifteen:.2f} on {os.cpu_count()} cores"
 
 
-def params_for(setting: str, overrides: list[str]) -> CutInParams:
-    """The named setting's parameters with ``name=value`` overrides (floats or ints)."""
-    kw = dict(SETTINGS[setting])
-    for item in overrides:
-        name, _, value = item.partition("=")
-        kw[name] = int(value) if value.lstrip("-").isdigit() else float(value)
-    return dataclasses.replace(CutInParams(), **kw)
-
-
-def run_chunk(params: CutInParams, n: int, pem, noise_pem, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
-    """``n`` rollouts with detections and errors drawn from the PEMs: (failed bool [n], signals {name: [n, T]}).
-
-    Per step, as the engine draws (one ``random(n * M)``, then the errors of every row): detected iff
-    ``log u <= log_expit(logit p)`` and the object is visible; errors ``loc + scale * t_df`` per dimension."""
-    from scipy.special import log_expit
-
-    from pemviz.pem.encoding import encode_salient
-    from pemviz.stl import robustness
-
-    sim = BatchedCutIn(params, n)
-    m, n_steps = params.n_objects, params.n_steps
-    obs = np.empty((n_steps, n, len(sim.observation_names)))
-    df = noise_pem.df
-    for t in range(n_steps):
-        sim.observation(out=obs[t])
-        rows = sim.objects()
-        features = encode_salient(rows[:, :, SALIENT_COLUMNS].reshape(n * m, -1), pem.norm)
-        visible = rows[:, :, VISIBLE].reshape(-1) > 0.5
-        detected = (np.log(rng.random(n * m)) <= log_expit(pem.logit_features(features))) & visible
-        loc, log_scale = noise_pem.noise_params(features)
-        draws = np.stack([rng.standard_t(df[d], size=n * m) for d in range(2)], axis=1)
-        sim.step(detected.reshape(n, m), (loc + np.exp(log_scale) * draws).reshape(n, m, 2))
-    signals = {name: obs[:, :, k].T for k, name in enumerate(sim.observation_names)}
-    return robustness(FAILURE_FORMULA, signals) < 0.0, signals
-
-
-def monte_carlo(params: CutInParams, n: int, chunk: int, seed: int) -> None:
-    import torch
-
-    from pemviz.core.estimate import estimate
-    from pemviz.pem import load_pem
-    from pemviz.pem.store import load_noise_pem
-
-    torch.set_num_threads(1)
-    pem, noise_pem = load_pem(), load_noise_pem("hetero-t")
+def chunk_failures(problem, n: int, seed: int) -> int:
+    """Failures among the ``n`` rollouts ``pemviz run --method mc --n n --seed seed`` draws on ``problem``."""
     rng = np.random.default_rng(seed)
-    cached_trajectory(params)
-    failed = np.zeros(n, dtype=bool)
-    collided = np.zeros(n, dtype=bool)
+    target = problem.target
+    return sum(int(problem.failed(b).sum()) for b in problem.stream(n, target, target, rng, keep_rows=False))
+
+
+def monte_carlo(params: list[str], n: int, chunk: int, seed: int) -> None:
+    """``n`` rollouts in chunks of ``chunk``, chunk ``k`` from seed ``seed + k``; a line per chunk, then the pool."""
+    import threadpoolctl
+
+    from pemviz.commands.run import scenario_params
+    from pemviz.config import ExperimentConfig
+    from pemviz.core.confidence import clopper_pearson
+    from pemviz.scenarios.registry import problem_for
+
+    threadpoolctl.threadpool_limits(1)
+    pairs = scenario_params("cut-in", params) if params else ()
+    problem = problem_for(ExperimentConfig.of(scenario="cut-in", scenario_params=pairs))
+    print(f"# {problem.description}; --param {' '.join(params) or '(none)'}; {load()}", flush=True)
+    failures = done = 0
     start = time.perf_counter()
-    print(f"# {load()}")
-    for a in range(0, n, chunk):
-        b = min(a + chunk, n)
-        f, signals = run_chunk(params, b - a, pem, noise_pem, rng)
-        failed[a:b] = f
-        collided[a:b] = (signals["clearance_m"] < 0).any(axis=1)
-        if (a // chunk) % 25 == 0:
-            print(f"  {b:>9} rollouts, {failed[:b].sum()} failures, {time.perf_counter() - start:.0f} s", flush=True)
+    for k, a in enumerate(range(0, n, chunk)):
+        m = min(chunk, n - a)
+        f = chunk_failures(problem, m, seed + k)
+        failures, done = failures + f, done + m
+        print(f"chunk seed {seed + k}: {f} failures in {m} rollouts ({time.perf_counter() - start:.0f} s)", flush=True)
     elapsed = time.perf_counter() - start
-    est = estimate(np.zeros(n), failed, np.zeros(n))
-    print(f"setting: {params}")
-    print(f"PEMs: {pem.name} (detection), {noise_pem.name} (noise); seed {seed}")
-    print(f"{n} rollouts: {failed.sum()} failures ({collided.sum()} collisions)")
-    lo, hi = np.exp(est.log_ci)
-    print(
-        f"p_fail = {np.exp(est.log_mu_hat):.3e}, 95 % interval [{lo:.3e}, {hi:.3e}], ESS {est.ess:.1f}, "
-        f"{est.verdict} ({est.reason})"
-    )
-    print(f"{elapsed:.0f} s ({elapsed / n * 1e6:.0f} us per rollout with both PEMs); {load()}")
+    lo, hi = clopper_pearson(failures, done)
+    print(f"{done} rollouts (seeds {seed}..{seed + k}): {failures} failures")
+    print(f"p_fail = {failures / done:.3e}, 95 % interval [{lo:.3e}, {hi:.3e}] (Clopper-Pearson)")
+    print(f"{elapsed:.0f} s ({elapsed / done * 1e6:.0f} us per rollout); {load()}")
 
 
 def cost(params: CutInParams, n: int, seed: int) -> None:
@@ -149,18 +104,16 @@ def cost(params: CutInParams, n: int, seed: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--setting", choices=sorted(SETTINGS), default="moderate")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a CutInParams field")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="as pemviz run --param")
     parser.add_argument("--n", type=int, default=100_000, help="rollouts")
-    parser.add_argument("--chunk", type=int, default=4096, help="rollouts simulated together")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--cost", action="store_true", help="measure the twin's cost per rollout instead")
+    parser.add_argument("--chunk", type=int, default=1_000_000, help="rollouts a seed (a line of output)")
+    parser.add_argument("--seed", type=int, default=0, help="the first chunk's seed (the k-th chunk's: seed + k)")
+    parser.add_argument("--cost", action="store_true", help="measure the twin's cost per rollout instead (N = 4096)")
     args = parser.parse_args()
-    params = params_for(args.setting, args.set)
     if args.cost:
-        cost(params, args.chunk, args.seed)
+        cost(CutInParams(), 4096, args.seed)
     else:
-        monte_carlo(params, args.n, args.chunk, args.seed)
+        monte_carlo(args.param, args.n, args.chunk, args.seed)
 
 
 if __name__ == "__main__":

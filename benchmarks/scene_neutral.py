@@ -45,9 +45,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 GAP_21_REFERENCE = (180, 7_262_784)
 """Plain Monte Carlo of the cut-in at ``cut_in_gap_m=21``: (failures, rollouts), p = 2.48e-5, 95 % interval [2.13e-5,
-2.87e-5] (relative standard error 7.5 %): ``python benchmarks/cut_in_mc.py --setting moderate --set cut_in_gap_m=21
---n N --seed S``, seed 0 10^6 rollouts (27 failures), seeds 1-4 stopped after 1,437,696 (37), 1,540,096 (40),
-1,642,496 (46) and 1,642,496 (30)."""
+2.87e-5] (relative standard error 7.5 %), drawn by the loop ``benchmarks/cut_in_mc.py`` had then (the scene the
+engine draws, the Validation page), seed 0 10^6 rollouts (27 failures), seeds 1-4 stopped after 1,437,696 (37),
+1,540,096 (40), 1,642,496 (46) and 1,642,496 (30); today ``python benchmarks/cut_in_mc.py --param cut_in_gap_m=21
+--n N --seed S``."""
 
 LOOKAHEAD = ("--method", "ams", "--ams-score", "lookahead")
 """The scene-neutral sampler's flags (its particles and k given per variant)."""

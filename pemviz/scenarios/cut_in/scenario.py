@@ -342,7 +342,8 @@ def rare_params() -> CutInParams:
 
 MONTE_CARLO_REFERENCE: dict[str, tuple[int, int]] = {"moderate": (866, 10_000_000)}
 """The plain Monte Carlo reference of a rarity setting under the shipped PEMs: (failures, rollouts) of the batched
-twin drawn from the PEMs (``benchmarks/cut_in_mc.py``, seeds 11 and 12, 5 x 10^6 rollouts each; every failure a
+twin drawn from the PEMs (``benchmarks/cut_in_mc.py``, seeds 11 and 12, 5 x 10^6 rollouts each, with the loop the
+benchmark had then, which draws this scene as the engine's rollouts do: the Validation page; every failure a
 collision). The reference p = failures / rollouts with its Clopper-Pearson interval (8.66e-5 [8.09e-5, 9.26e-5] at
 ``moderate``); the ``rare`` setting has none (about 1e-7: plain Monte Carlo would need some 10^9 rollouts)."""
 
