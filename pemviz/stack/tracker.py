@@ -72,7 +72,12 @@ class TrackerParams:
             with the square of the range (pinhole: ``dZ ~ Z^2 e_h / (f H)``).
         meas_std_y0_m, meas_std_y_per_m: the std across the road, ``meas_std_y0_m + meas_std_y_per_m * Z`` (a
             pixel error back-projects linearly in the range).
-        init_speed_std_x_mps, init_speed_std_y_mps: std of the velocity prior of a new track (m/s).
+        init_speed_std_x_mps, init_speed_std_y_mps: std of the velocity prior of a new track (m/s). Along the road
+            15 m/s by default: wide enough that an object standing still is not taken for one moving with a 20 m/s
+            ego (a prior sure to 5 m/s of the ego's speed shows a car stopped 50 m ahead at 17 m/s half a second
+            after it is first seen, 6.6 m/s after a second; at 15 m/s 7.4 and 1.2 m/s: ``benchmarks/track_prior.py``
+            and the guide's *A realistic perception stack*). A scene whose objects all move with the ego can be
+            surer (the cut-in's 5 m/s).
         max_coast_steps: a track not updated for more than this many predictions is dropped.
         gate_chi2: the validation gate on the normalised innovation squared along the road (1 degree of freedom; the
             lateral innovation is not gated: a lane change is a manoeuvre the CV model does not foresee, and the
@@ -90,7 +95,7 @@ class TrackerParams:
     meas_std_x_per_m2: float = 0.0015
     meas_std_y0_m: float = 0.1
     meas_std_y_per_m: float = 0.003
-    init_speed_std_x_mps: float = 5.0
+    init_speed_std_x_mps: float = 15.0
     init_speed_std_y_mps: float = 1.0
     max_coast_steps: int = 10
     gate_chi2: float = 15.136705226623606  # scipy.stats.chi2(1).ppf(0.9999)
@@ -241,7 +246,8 @@ def update(
             (:meth:`TrackerParams.measurement_variances`).
         prior_vx_mps: float64, broadcastable to the tracks (``[N]``, or a number): the velocity along the road (m/s)
             a new track starts with: the ego's speed for traffic that moves with the ego (cars ahead), 0 for
-            objects that stand or cross the road (pedestrians); its std is ``init_speed_std_x_mps``.
+            objects that stand or cross the road (pedestrians); its std is ``init_speed_std_x_mps`` (15 m/s by
+            default: cars ahead that may also stand still, with the ego's speed as the prior).
         params: the noise model and track management (:class:`TrackerParams`).
     Returns:
         new :class:`Tracks`: objects whose measurement was accepted (now confirmed), or that start (or restart) a
