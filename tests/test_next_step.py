@@ -269,11 +269,14 @@ def test_splitting_and_tilt_keep_their_own_advice_with_counts_and_times():
     e = Estimate(100, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, 0.0), math.nan, 0.0, "unreliable", "died")
     ams = next_step(e, ExperimentConfig.of(method="ams"), None, None, 170, 0.2)
     assert ams == (
-        "more particles (--n 400, ~0.8 s), or particles ranked by the scenario's committor where it has one "
-        "(--ams-score committor: where the robustness is flat every particle ties and the run dies out); "
+        "more particles (--n 400, ~0.8 s), or particles ranked by the nominal look-ahead (--ams-score lookahead: "
+        "where the robustness is flat every particle ties and the run dies out); "
         "the verdict says whether to trust the result"
     )
     assert_valid_flags(ams)
+    cut_in = next_step(e, ExperimentConfig.of(method="ams"), None, None, 170, 0.2, committor=True)
+    assert "or particles ranked by the scenario's learned committor (--ams-score committor)" in cut_in
+    assert "lookahead" not in cut_in
     tilt = next_step(
         made(math.log(9.15e-5), khat=1.72),
         ExperimentConfig.of(method="tilt", scenario="cut-in"),
@@ -342,3 +345,30 @@ def test_a_tilt_run_s_plain_rollout_seconds_divide_its_wall_time_not_its_look_ah
     got = plain_rollout_seconds(cfg, wall / reported, reported)
     assert got == pytest.approx(plain * wall / model, rel=1e-12)
     assert got > 10 * plain_rollout_seconds(cfg, wall / reported)  # dividing by the planned 100 instead: far too low
+
+
+def test_a_splitting_run_s_advice_speaks_of_what_splitting_has():
+    """AMS has no importance weights: its line never speaks of weights, and names a score the scene accepts (the
+    look-ahead on a scene without a committor, which --ams-score committor would refuse)."""
+    e = Estimate(
+        100,
+        4,
+        math.log(3e-4),
+        math.nan,
+        math.nan,
+        4.0,
+        (math.log(1e-4), math.log(9e-4)),
+        math.nan,
+        0.0,
+        "doubtful",
+        "few families",
+    )
+    for committor in (None, False, True):
+        ams = next_step(
+            e, ExperimentConfig.of(method="ams", ams_score="lookahead"), None, None, 10_000, 5.0, committor=committor
+        )
+        assert "weight" not in ams and "splitting's estimate is skewed, most runs low" in ams, ams
+        assert ("--ams-score committor" in ams) is bool(committor)
+        assert_valid_flags(ams)
+    adaptive = next_step(e, ExperimentConfig.of(), None, None, 10_000, 5.0)
+    assert "heavy-tailed weights make this run's estimate usually too low" in adaptive

@@ -27,3 +27,18 @@ def test_the_guides_scene_runs_and_prints_the_estimate_the_page_quotes(capsys):
     assert parts.detections.shape == batch.log_p.shape and (parts.detections <= 0).all()
     assert np.allclose(parts.total, batch.log_p, rtol=1e-12, atol=1e-9)
     assert (parts.errors > 0).any()  # a log-density of errors in metres can be positive: why they are kept apart
+
+
+def test_the_guides_occlusion_block_prints_what_its_comment_says(capsys):
+    text = (REPO / "docs" / "realistic-stack.md").read_text().split("## Objects that hide each other", 1)[1]
+    block = re.findall(r"```python\n(.*?)```", text, re.S)[0]
+    exec(compile(block, "docs/realistic-stack.md", "exec"), {"__name__": "realistic_stack_occlusion"})
+    printed = capsys.readouterr().out.strip()
+    assert printed == block.split("visible: ")[1].split("\n")[0] == "0.832 2 False"
+
+
+def test_the_guides_established_track_block_prints_what_its_comment_says(capsys):
+    text = (REPO / "docs" / "realistic-stack.md").read_text().split("## A scene that begins with a track", 1)[1]
+    block = re.findall(r"```python\n(.*?)```", text, re.S)[0]
+    exec(compile(block, "docs/realistic-stack.md", "exec"), {"__name__": "realistic_stack_established"})
+    assert capsys.readouterr().out.strip() == block.split("# ")[-1].strip() == "[ True False] 25.0"

@@ -582,3 +582,47 @@ def test_estimate_with_a_proposal_that_did_not_draw_the_file_is_refused_in_one_l
         out,
         re.M,
     )
+
+
+def test_a_run_says_how_large_its_rollout_file_will_be_before_writing_it(tmp_path, chunked, monkeypatch):
+    import re
+
+    import pemviz.sinks.rollouts as sinks
+
+    monkeypatch.setattr(sinks, "SAY_SIZE_ABOVE_BYTES", 20_000)  # the braking's rollouts are small: 20 kB, not 100 MB
+    path = tmp_path / "big.parquet"
+    said: list[tuple[str, bool]] = []
+
+    class Out:
+        def write(self, text: str) -> None:
+            if text.strip():
+                said.append((text.strip(), path.exists()))
+
+        def flush(self) -> None:
+            pass
+
+    sink = sinks.RolloutSink(path, stages="all", out=Out())
+    Experiment(STREAMED, [sink], problem=chunked).run()
+    assert len(said) == 1 and not said[0][1]  # one line, printed before the file was there
+    found = re.fullmatch(
+        r"--save-rollouts: big\.parquet will be about ([\d.]+) MB for the 1,150 rollouts planned, "
+        r"([\d.]+) kB a rollout",
+        said[0][0],
+    )
+    assert found, said[0][0]
+    size = path.stat().st_size  # pretraining's 50 rollouts, the stage's 100 and the final 1,000
+    assert abs(float(found.group(1)) * 1e6 - size) < 0.15 * size
+    quiet = sinks.RolloutSink(tmp_path / "small.parquet", out=Out())
+    monkeypatch.setattr(sinks, "SAY_SIZE_ABOVE_BYTES", 100 * 10**6)
+    Experiment(STREAMED, [quiet], problem=chunked).run()
+    assert len(said) == 1 and quiet.size_said == ""  # within 100 MB: nothing said
+
+
+def test_the_size_line_counts_what_may_follow_the_stages(tmp_path):
+    sink = RolloutSink(tmp_path / "r.parquet")
+    sink._planned = (7_200, 1_000_000)
+    assert sink.size_line(62_000, 100, 100) == (
+        "--save-rollouts: r.parquet will be about 4.46 MB for the 7,200 rollouts planned, up to 624 MB if "
+        "1,000,000 more follow (the retry and plain Monte Carlo), 0.62 kB a rollout"
+    )
+    assert sink.size_line(62_000, 10_000, 10_000) is None  # 6.2 B a rollout: 6.2 MB at most

@@ -148,7 +148,7 @@ def test_an_estimate_far_below_the_reference_says_how_far_and_what_to_do():
         ),
         ("adaptive", 3, 2100, "p is not known (p ~ 1.34e-16, this run's mu_hat: 7.2e+17 rollouts for a 20 % interval"),
         ("tilt", 3, 2100, "p is not known (p ~ 1.34e-16, this run's mu_hat: 7.2e+17 rollouts for a 20 % interval"),
-        ("ams", 0, 100, "more particles (--n 400), or particles ranked by the scenario's committor where it has one"),
+        ("ams", 0, 100, "more particles (--n 400), or particles ranked by the nominal look-ahead (--ams-score"),
     ],
 )
 def test_each_unreliable_or_doubtful_run_gets_one_line_of_advice(method, failures, n, start):
@@ -217,10 +217,10 @@ def test_the_advice_after_an_extinct_splitting_run_is_a_run_the_config_accepts()
     """AMS has no final batch, so a precision target is refused for it: the advice names particles and the committor's
     score instead, and a config with both validates (a braking run that died out on the robustness's plateau)."""
     e = estimate(np.zeros(100), np.zeros(100, bool), np.zeros(100))
-    advice = next_step(e, ExperimentConfig.of(method="ams", n_per_stage=100), math.log(1.984e-15))
+    advice = next_step(e, ExperimentConfig.of(method="ams", n_per_stage=100), math.log(1.984e-15), committor=True)
     assert "--rel-error" not in advice and "--n 400" in advice and "--ams-score committor" in advice
     assert ExperimentConfig.of(method="ams", n_per_stage=400, ams_score="committor").n_per_stage == 400
     with pytest.raises(ValueError, match="no final batch"):
         ExperimentConfig.of(method="ams", rel_error=0.1)
-    committor = next_step(e, ExperimentConfig.of(method="ams", n_per_stage=400, ams_score="committor"))
+    committor = next_step(e, ExperimentConfig.of(method="ams", n_per_stage=400, ams_score="committor"), committor=True)
     assert committor == "more particles (--n 1600); the verdict says whether to trust the result"

@@ -247,7 +247,7 @@ def result_lines(
     from pemviz.io.result import result_document
     from pemviz.sinks.console import final_lines
 
-    lines = final_lines(final, cfg, problem.exact_log_p, problem.reference, severity) + (
+    lines = final_lines(final, cfg, problem.exact_log_p, problem.reference, severity, problem.view.committor) + (
         [why] if why is not None else []
     )
     doc = result_document(

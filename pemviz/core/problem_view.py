@@ -73,6 +73,8 @@ class ProblemView:
         object_labels: what each object m is called (:meth:`object_label`); empty: ``object m``.
         odd_names: the scenario parameters drawn per rollout over an operating design domain
             (:attr:`pemviz.core.problems.Problem.odd`); empty: none (the final estimate then carries no map).
+        committor: whether the problem has a learned committor that splitting can rank its particles by
+            (``--ams-score committor``: a scenario's tilt, :attr:`pemviz.core.problems.Problem.tilt`).
     """
 
     name: str
@@ -86,6 +88,7 @@ class ProblemView:
     look_ahead_s: float = 0.0
     object_labels: tuple[str, ...] = ()
     odd_names: tuple[str, ...] = ()
+    committor: bool = False
 
     def object_label(self, m: int) -> str:
         """What object ``m`` (0-based) is called: the problem's label for it, else ``object m``."""

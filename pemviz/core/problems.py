@@ -181,6 +181,7 @@ class Problem:
             self.look_ahead_s,
             tuple(self.object_labels),
             tuple(self.odd.names) if self.odd is not None else (),
+            self.tilt is not None,
         )
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:

@@ -164,13 +164,19 @@ def tilt_more_budget(
 def ams_more_budget(
     config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None, text: Any
 ) -> str | None:
-    """Splitting's route: no final batch to add to, so more particles (about 4 times the time), or a graded score."""
+    """Splitting's route: no final batch to add to, so more particles (about 4 times the time), or a graded score the
+    scene has: its learned committor (``text.committor``: the scene has one; None: not known), else the nominal
+    look-ahead, which any scene that splits can rank by (:mod:`pemviz.estimators.lookahead_score`)."""
     n = int(getattr(config, "n_per_stage", 100))
     more = f"more particles (--n {4 * n}{text.time(4.0, wall_s) if wall_s else ''})"
-    if setting_of(config, "ams_score", "robustness") == "robustness":
+    score = setting_of(config, "ams_score", "robustness")
+    committor = getattr(text, "committor", None)
+    if committor and score != "committor":
+        return f"{more}, or particles ranked by the scenario's learned committor (--ams-score committor)"
+    if score == "robustness":
         return (
-            f"{more}, or particles ranked by the scenario's committor where it has one (--ams-score committor: "
-            "where the robustness is flat every particle ties and the run dies out)"
+            f"{more}, or particles ranked by the nominal look-ahead (--ams-score lookahead: where the robustness "
+            "is flat every particle ties and the run dies out)"
         )
     return more
 

@@ -232,6 +232,11 @@ class RolloutWriter:
                 held = held + [0] * (comp.size - len(held))
                 self.stage_counts[k] = [a + (int(comp[i]) if i < comp.size else 0) for i, a in enumerate(held)]
 
+    @property
+    def bytes_written(self) -> int:
+        """The bytes of the table written so far (the temporary file's size; 0 before the first chunk)."""
+        return os.path.getsize(self._tmp) if self._writer is not None else 0
+
     def commit(self, proposal: Any = None, keep_stages: Any = None) -> Path:
         """Close the table and move the unit into place; returns the Parquet path.
 

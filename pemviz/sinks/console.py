@@ -292,7 +292,11 @@ def _time(n: float, s_per: float | None) -> str:
 
 
 class AdviceText:
-    """The wording helpers a method's own route (:attr:`pemviz.methods.Method.more_budget`) is given."""
+    """The wording helpers a method's own route (:attr:`pemviz.methods.Method.more_budget`) is given, and
+    ``committor``: whether the scene has a learned committor (``--ams-score committor``; None: not known)."""
+
+    def __init__(self, committor: bool | None = None) -> None:
+        self.committor = committor
 
     @staticmethod
     def time(n: float, s_per: float | None) -> str:
@@ -341,14 +345,14 @@ ADVICE_TEXT = AdviceText()
 
 
 def _more_budget(
-    config, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None = None
+    config, n_simulations, s_per: float | None, wall_s: float | None, within_s: float | None = None, committor=None
 ) -> str | None:
     """The method's own route (:attr:`pemviz.methods.Method.more_budget`; an importance sampler's by
     default: a larger run or a precision target), with simulations and time at ``s_per`` seconds a simulation; with
     ``within_s`` (seconds) only what fits in it (None: nothing more fits)."""
     method = method_or_none(getattr(config, "method", "adaptive"))
     if method is not None and method.more_budget is not None:
-        return resolve(method.more_budget)(config, n_simulations, s_per, wall_s, within_s, ADVICE_TEXT)
+        return resolve(method.more_budget)(config, n_simulations, s_per, wall_s, within_s, AdviceText(committor))
     return ADVICE_TEXT.importance_route(config, n_simulations, s_per, within_s)
 
 
@@ -360,6 +364,7 @@ def next_step(
     n_simulations: int | None = None,
     wall_s: float | None = None,
     plain_s: float | None = None,
+    committor: bool | None = None,
 ) -> str | None:
     """What to do after a run whose verdict is not ``reliable``, in one line (None for a reliable one): the cheapest
     route that would decide it, with its rollouts and its time on this machine.
@@ -384,6 +389,7 @@ def next_step(
         n_simulations, wall_s: the run's simulations and wall-clock seconds (None: the line gives no times).
         plain_s: a plain rollout's seconds measured here after the run (the engine's probe,
             :attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`); None: from the run's own speed.
+        committor: whether the scene has a learned committor (:class:`AdviceText`), for splitting's route.
     """
     if e.verdict == "reliable" or config is None:
         return None
@@ -398,35 +404,28 @@ def next_step(
         budget = min(budget, max_time / mc_s)
     if plain_method(method):
         return _after_mc(e, config, route, s_per, max_time)
-    heavy = (
-        f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it)"
-        if e.khat > KHAT_UNRELIABLE
-        else ""
-    )
-    rest = _more_budget(config, n_simulations, s_per, wall_s)
+    heavy = f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it)"
+    heavy = heavy if e.khat > KHAT_UNRELIABLE else ""
+    low = "heavy-tailed weights make this run's estimate usually too low"  # splitting: skewed, most runs below p
+    low = low if getattr(method_or_none(method), "weighted", True) else "splitting's estimate is skewed, most runs low"
+    rest = _more_budget(config, n_simulations, s_per, wall_s, committor=committor)
     if route is None:  # no failure and no known p: nothing to size plain Monte Carlo on
         return f"{rest}; the verdict says whether to trust the result"
     tail = f" --max-time {max_time:g}" if max_time is not None else ""
     if route.fits(max_time):
         cap = route.cap(config)
-        upper = (
-            "; an upper estimate: heavy-tailed weights make this run's estimate usually too low, and the run "
-            "stops early where p is larger"
-            if route.upper
-            else ""
-        )
+        upper = f"; an upper estimate: {low}, and the run stops early where p is larger" if route.upper else ""
         return (
             f"plain Monte Carlo decides it: {route.command(cap)}{tail} ({route.text(mc_s, rate)}){upper}; or "
             f"{rest}, with its verdict{heavy}"
         )
     if route.upper and budget > (n_simulations or 0):  # p unknown, sized on an estimate that is usually too low:
-        # plain Monte Carlo capped at the budget stops early where p is larger and decides it wherever p is at least
-        # what the cap resolves
+        # capped at the budget, plain Monte Carlo stops early where p is larger and decides any p the cap resolves
         cap = max(int(float(f"{budget:.2g}")), getattr(config, "n_per_stage", 0))
         least = Z_95**2 / (MC_REL_ERROR**2 * cap + Z_95**2)  # the p at which mc_rollouts(p) = cap
         return (
-            f"p is not known ({route.text(mc_s, rate, floor=False)}: an upper estimate, as heavy-tailed "
-            f"weights make this run's estimate usually too low); plain Monte Carlo capped ({route.command(cap)}"
+            f"p is not known ({route.text(mc_s, rate, floor=False)}: an upper estimate, as {low}); plain Monte "
+            f"Carlo capped ({route.command(cap)}"
             f"{tail}: up to {cap:,} rollouts{_time(cap, mc_s)}) decides it where p >= {least:.2g}, stopping "
             f"early where p is larger; or {rest}, with its verdict{heavy}"
         )
@@ -435,7 +434,7 @@ def next_step(
             f"{route.text(mc_s, rate)}: too rare for plain Monte Carlo; what is left is {rest}, with its "
             f"verdict{heavy}"
         )
-    within = _more_budget(config, n_simulations, s_per, wall_s, within_s=max_time)
+    within = _more_budget(config, n_simulations, s_per, wall_s, within_s=max_time, committor=committor)
     why = f"plain Monte Carlo does not fit in --max-time {max_time:g} ({route.text(mc_s, rate)})"
     if within is None:
         cap = route.cap(config)
@@ -500,6 +499,7 @@ def final_lines(
     exact_log_p: float | None = None,
     reference: Reference | None = None,
     failure_severity: FailureSeverity | None = None,
+    committor: bool | None = None,
 ) -> list[str]:
     """The lines under the table: mu_hat with its log and the run's size, the estimate's summary with the exact answer
     or reference, the severity curve and, with ``failure_severity``, the failures by impact speed with their shares of
@@ -529,7 +529,9 @@ def final_lines(
         lines.append(f"stop: {event.stop}")
     if event.prepared is not None:
         lines.append(f"proposal: {event.prepared}")
-    advice = next_step(e, config, exact_log_p, reference, event.n_simulations, event.wall_s, event.plain_rollout_s)
+    advice = next_step(
+        e, config, exact_log_p, reference, event.n_simulations, event.wall_s, event.plain_rollout_s, committor
+    )
     if advice is not None:
         lines.append(f"next: {advice}")
     return lines
@@ -559,6 +561,7 @@ class ConsoleSink(Sink):
     def on_run_started(self, event: RunStarted) -> None:
         cfg = self.config = event.config
         self.exact_log_p, self.reference, self.plan = event.exact_log_p, event.reference, event.plan
+        self.committor = getattr(event.problem, "committor", None)
         print(
             f"pemviz: {cfg.method} on the {event.problem.name} scenario{scenario_params_text(cfg)}, spec "
             f"{event.formula}, metric {cfg.metric}, "
@@ -588,7 +591,8 @@ class ConsoleSink(Sink):
         print(f"{'final':>7} {'':>8} {'':>9} {estimate_cells(e)} {event.wall_s:>7.2f}", file=self.out)
         grouping = getattr(self.failures, "grouping", None)
         severity = getattr(grouping, "severity", None)
-        print("\n".join(final_lines(event, self.config, self.exact_log_p, self.reference, severity)), file=self.out)
+        lines = final_lines(event, self.config, self.exact_log_p, self.reference, severity, self.committor)
+        print("\n".join(lines), file=self.out)
         self.out.flush()
 
     def on_run_cancelled(self, event: RunCancelled) -> None:

@@ -8,8 +8,9 @@ from __future__ import annotations
 import copy
 import dataclasses
 import os
+import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -24,6 +25,10 @@ from pemviz.core.sampling import Proposal
 from pemviz.sinks import Sink
 from pemviz.core.weights import convention, stage_log_q
 from pemviz.settings import setting_of
+
+SAY_SIZE_ABOVE_BYTES = 100 * 10**6
+"""A run with ``--save-rollouts`` says, after its first chunk and before the rest, how large the file will be when it
+may grow above this (100 MB): :meth:`RolloutSink.size_line`."""
 
 STAGES = ("used", "all")
 """Which stages ``--save-rollouts`` writes: those the run's estimate uses, or every stage (pretraining included)."""
@@ -68,7 +73,13 @@ class RolloutSink(Sink):
     """
 
     def __init__(
-        self, path: str | os.PathLike[str], *, pem: str | None = None, overwrite: bool = False, stages: str = "used"
+        self,
+        path: str | os.PathLike[str],
+        *,
+        pem: str | None = None,
+        overwrite: bool = False,
+        stages: str = "used",
+        out: TextIO | None = None,
     ) -> None:
         if stages not in STAGES:
             raise ValueError(f"stages = {stages!r}: use one of {', '.join(STAGES)}")
@@ -85,6 +96,11 @@ class RolloutSink(Sink):
         self._infos: dict[int, dict[str, Any]] = {}
         self._proposals: dict[int, Any] = {}
         self._results: dict[int, dict[str, Any]] = {}
+        self._out = out
+        self._planned: tuple[int, int] = (0, 0)
+        """(rollouts the run plans in the stages saved, the most it may add after them: a retry, plain Monte Carlo)."""
+        self.size_said: str | None = None
+        """The line :meth:`size_line` printed, or None."""
 
     def _saves(self, kind: str) -> bool:
         """Whether a stage of this kind can enter the run's estimate (pretraining never does), or all are saved."""
@@ -98,6 +114,11 @@ class RolloutSink(Sink):
                 "its rollouts cannot be estimated from again"
             )
         self._formula, self._config = event.formula, event.config
+        from pemviz.engine.cost import then_adds
+
+        plan = event.plan
+        planned = sum(st.n_rollouts for st in plan.stages if self._saves(st.kind))
+        self._planned = (planned, then_adds(event.config, plan.n_simulations or 0)[0] if plan.stages else 0)
 
     def on_stage_started(self, event: StageStarted) -> None:
         self._sizes[event.stage] = event.n_rollouts
@@ -134,6 +155,7 @@ class RolloutSink(Sink):
                 self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
         log_q, component, log_q_params = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
         batch = chunk.batch.with_changes(log_q=log_q, log_q_params=log_q_params)  # no object rows: none rebuilt
+        before = self._writer.bytes_written
         self._writer.append(
             batch,
             salient=run_salient(self.problem, batch),
@@ -141,6 +163,29 @@ class RolloutSink(Sink):
             component=component,
             severity=run_severity(self.problem, batch),
         )
+        if self.size_said is None and chunk.kind != "pretrain":  # pretraining's rollouts pack 2-3 times tighter
+            line = self.size_line(self._writer.bytes_written - before, batch.n, self._writer.n_rollouts)
+            self.size_said = line or ""
+            if line:
+                print(line, file=self._out or sys.stderr, flush=True)
+
+    def size_line(self, chunk_bytes: int, chunk: int, written: int) -> str | None:
+        """The line that says how large the rollout file will be, from the bytes a rollout took in the first chunk
+        of a stage after pretraining (``chunk_bytes`` for ``chunk`` rollouts; ``written`` rollouts in all so far)
+        and the rollouts the run plans and may add (:class:`~pemviz.engine.events.RunStarted`'s plan;
+        :func:`pemviz.engine.cost.then_adds`: the retry and plain Monte Carlo after the stages); None where even the
+        most stays within :data:`SAY_SIZE_ABOVE_BYTES`."""
+        if chunk <= 0:
+            return None
+        per = chunk_bytes / chunk
+        planned, more = self._planned
+        planned = max(planned, written)
+        if per * (planned + more) <= SAY_SIZE_ABOVE_BYTES:
+            return None
+        size = f"about {_mb(per * planned)} for the {planned:,} rollouts planned"
+        if more:
+            size += f", up to {_mb(per * (planned + more))} if {more:,} more follow (the retry and plain Monte Carlo)"
+        return f"--save-rollouts: {self.path.name} will be {size}, {per / 1e3:.2f} kB a rollout"
 
     def _meta(self) -> Any:
         cfg = self._config
@@ -196,6 +241,14 @@ class RolloutSink(Sink):
         if self._writer is not None:
             self._writer.abort()
             self._writer = None
+
+
+def _mb(n_bytes: float) -> str:
+    """``624 MB``, ``1.2 GB``, ``1.71 MB``, ``85 kB``: a file's size in decimal units, three figures."""
+    for unit, scale in (("GB", 1e9), ("MB", 1e6)):
+        if n_bytes >= scale:
+            return f"{n_bytes / scale:.3g} {unit}"
+    return f"{n_bytes / 1e3:.3g} kB"
 
 
 def describe(detector: Any, target: Any = None) -> str:

@@ -12,10 +12,23 @@ the right; -pi/2 faces forward). From the box:
 - **truncation** (KITTI's sense: the share of the object outside the image): ``1 - area(box & image) / area(box)``,
   the 2D box being the box around the projections ``u = X / Z``, ``v = Y / Z`` of its ground-plane footprint's
   axis-aligned bounding box, raised to the object's height (KITTI, eq. 5);
-- **occlusion**: KITTI's level (0 fully visible, 1 partly, 2 largely occluded) is the caller's (default 0): this
-  module computes no occlusion between objects (a scene whose objects hide each other computes it, as the cut-in's
-  does);
-- **visible**: the centre at least :data:`pemviz.pem.camera.MIN_RANGE_M` ahead and some of the box inside the image.
+- **occluded share** (:func:`occluded_share`): the share of an object's 2D box covered by the boxes of nearer objects
+  (smaller centre depth ``loc_z``), ``min(1, sum_i area(box_i & box) / area(box))``: exact where the nearer boxes do
+  not overlap each other on the box, an upper bound where they do. KITTI's occlusion level (0 fully visible, 1
+  partly, 2 largely occluded; the salient ``occlusion``) follows from it by thresholds (:func:`occlusion_level`),
+  and a box covered beyond ``hidden`` is not visible. :func:`view` takes the level from the caller (default 0: one
+  object alone); :func:`views` computes it for objects that can hide each other;
+- **visible**: the centre at least :data:`pemviz.pem.camera.MIN_RANGE_M` ahead, some of the box inside the image and
+  (:func:`views`) the box covered less than ``hidden``.
+
+**Seeing over a roof.** The boxes are exact for upright boxes: a camera ``h`` above the road sees the roof of a car
+of height ``H < h`` at depth ``Z`` at ``v = (h - H) / Z``, higher in the image the further the car. So a car straight
+behind a nearer car of the same height shows its top above the near car's roof, and the further behind, the larger
+the share that shows. At KITTI's 1.65 m over 1.5 m cars (:data:`CAR`, both centres on the camera's axis), a car
+straight behind a car ``Z1`` ahead is hidden (share >= 0.8) up to about 3.4 ``Z1`` (67 m behind a car 20 m ahead;
+3.7 ``Z1`` at 10 m, 3.2 ``Z1`` at 30 m) and largely occluded (level 2) further: share 0.74 at 4 ``Z1`` and 0.57 at
+6 ``Z1`` behind a car 20 m ahead (``tests/stack/test_occlusion.py``). A camera lower than the roofs (``h <= H``)
+sees nothing over them.
 
 A detected object is **measured** (:func:`measure`) at its true position moved by the noise PEM's range error along
 the camera ray and its lateral error across it, as a pinhole camera reads a box whose height is off (the range,
@@ -94,6 +107,113 @@ CAR = ObjectKind("car", 1.5, 1.7, 4.2)
 
 
 @dataclass(frozen=True)
+class ImageBox:
+    """2D image boxes in normalised image coordinates (``u = X / Z`` right, ``v = Y / Z`` down; pixels are
+    ``f u + c``): float64 arrays of one shape, e.g. ``[M, N]`` (M objects, N rollouts).
+
+    Attributes:
+        u_lo, u_hi: the left and right edges.
+        v_top, v_bot: the top and bottom edges (``v_top < v_bot``).
+    """
+
+    u_lo: np.ndarray
+    u_hi: np.ndarray
+    v_top: np.ndarray
+    v_bot: np.ndarray
+
+    @property
+    def area(self) -> np.ndarray:
+        """The box's area (normalised units squared)."""
+        return (self.u_hi - self.u_lo) * (self.v_bot - self.v_top)
+
+    @staticmethod
+    def stack(boxes: "list[ImageBox] | tuple[ImageBox, ...]") -> "ImageBox":
+        """The boxes of several objects (each of shape ``S``, e.g. one per kind) as one of shape ``[M] + S``."""
+        return ImageBox(*(np.stack([getattr(b, name) for b in boxes]) for name in ("u_lo", "u_hi", "v_top", "v_bot")))
+
+
+def image_box(
+    kind: ObjectKind,
+    loc_x_m: np.ndarray,
+    loc_z_m: np.ndarray,
+    rot_y_rad: np.ndarray | float,
+    camera_height_m: float = 1.65,
+) -> ImageBox:
+    """The 2D image box of upright boxes standing on the road (module docstring; KITTI, eq. 5): the box around the
+    projections of the corners of the footprint's axis-aligned bounding box, raised to the object's height. Over
+    them ``u = X / Z`` is largest at the right edge ``X_hi`` and smallest at the left edge ``X_lo``, at the near or
+    far face (``Z_near``, ``Z_far``, clamped to at least 0.1 m); the roof ``(h - H) / Z`` is highest at the far face
+    when it is below the camera (``H < h``), at the near one otherwise; the bottom is ``h / Z_near``.
+
+    Args:
+        kind, loc_x_m, loc_z_m, rot_y_rad, camera_height_m: as :func:`view` (metres, radians).
+    Returns:
+        :class:`ImageBox` of the broadcast shape of ``loc_x_m`` and ``loc_z_m``.
+    """
+    x = np.asarray(loc_x_m, dtype=np.float64)
+    z = np.asarray(loc_z_m, dtype=np.float64)
+    rot = np.broadcast_to(np.asarray(rot_y_rad, dtype=np.float64), x.shape)
+    c, s = np.abs(np.cos(rot)), np.abs(np.sin(rot))
+    half_x = 0.5 * (c * kind.length_m + s * kind.width_m)  # the footprint's axis-aligned half extents (camera x, z)
+    half_z = 0.5 * (s * kind.length_m + c * kind.width_m)
+    z_near = np.maximum(z - half_z, _MIN_DEPTH_M)
+    z_far = np.maximum(z + half_z, _MIN_DEPTH_M)
+    x_lo, x_hi = x - half_x, x + half_x
+    u_hi = np.maximum(x_hi / z_near, x_hi / z_far)
+    u_lo = np.minimum(x_lo / z_near, x_lo / z_far)
+    v_top = (camera_height_m - kind.height_m) / np.where(kind.height_m > camera_height_m, z_near, z_far)
+    v_bot = camera_height_m / z_near
+    return ImageBox(u_lo, u_hi, v_top, v_bot)
+
+
+def occluded_share(
+    boxes: ImageBox, depth_m: np.ndarray | None = None, pairs: "tuple[tuple[int, int], ...] | None" = None
+) -> np.ndarray:
+    """The share of each object's 2D box covered by the boxes of nearer objects (module docstring):
+    ``min(1, sum over nearer i of area(box_i & box_j) / area(box_j))``, the overlap of two boxes being
+    ``max(0, min(u_hi) - max(u_lo)) * max(0, min(v_bot) - max(v_top))``. Exact where the nearer boxes do not overlap
+    each other on ``box_j``, an upper bound where they do. The occlusion between vehicles of the cut-in
+    (``pemviz.scenarios.cut_in.scene``) is this function.
+
+    Args:
+        boxes: the M objects' boxes, arrays ``[M] + S`` (:meth:`ImageBox.stack`, or :func:`image_box` of ``[M, N]``
+            positions of one kind).
+        depth_m: float64 ``[M] + S`` (or broadcastable), each object's centre depth ``loc_z`` (m): ``i`` hides ``j``
+            where ``depth_m[i] < depth_m[j]``, element by element. Needed unless ``pairs`` is given.
+        pairs: instead of depths, the ``(i, j)`` pairs in which ``i`` is nearer than ``j`` in every element (a scene
+            that knows who is in front, as the cut-in's lanes do); they are summed in the order given, so that a
+            scene gets the same bits whatever ``S``.
+    Returns:
+        float64 ``[M] + S``, in [0, 1] (dimensionless: a share of the box's area).
+    Raises:
+        ValueError: neither ``depth_m`` nor ``pairs``, or ``depth_m`` of another leading size than the boxes.
+    """
+    m = np.shape(boxes.u_lo)[0]
+    if pairs is None:
+        if depth_m is None:
+            raise ValueError("occluded_share: give depth_m (each object's centre depth, m) or pairs (nearer, farther)")
+        depth = np.asarray(depth_m, dtype=np.float64)
+        if depth.ndim == 0 or depth.shape[0] != m:
+            raise ValueError(f"occluded_share: depth_m must have {m} rows (one per object), got shape {depth.shape}")
+    covered = np.zeros(np.broadcast_shapes(np.shape(boxes.u_lo), np.shape(boxes.v_top)))
+    for i, j in pairs if pairs is not None else [(i, j) for j in range(m) for i in range(m) if i != j]:
+        du = np.minimum(boxes.u_hi[i], boxes.u_hi[j]) - np.maximum(boxes.u_lo[i], boxes.u_lo[j])
+        dv = np.minimum(boxes.v_bot[i], boxes.v_bot[j]) - np.maximum(boxes.v_top[i], boxes.v_top[j])
+        overlap = np.maximum(du, 0.0) * np.maximum(dv, 0.0)
+        covered[j] += overlap if pairs is not None else np.where(depth[i] < depth[j], overlap, 0.0)
+    return np.minimum(covered / boxes.area, 1.0)
+
+
+def occlusion_level(share: np.ndarray, partly: float = 0.01, largely: float = 0.35) -> np.ndarray:
+    """KITTI's occlusion level, float64 0.0 (fully visible), 1.0 (partly) or 2.0 (largely occluded), elementwise, from
+    the occluded share (:func:`occluded_share`): 1 from ``partly``, 2 from ``largely`` (the cut-in's thresholds;
+    KITTI labels the level by eye, it gives no share)."""
+    level = (share >= partly).astype(np.float64)
+    level += share >= largely
+    return level
+
+
+@dataclass(frozen=True)
 class CameraView:
     """What the camera sees of each object: float64 arrays of the objects' shape.
 
@@ -103,12 +223,14 @@ class CameraView:
         truncation: the share of the 2D box outside the image, in [0, 1].
         visible: bool, whether the camera can see it at all (a PEM detector should never detect an object that is
             not: :func:`pemviz.stack.detector.camera_detector` gives it logit -inf).
+        occluded: the share of the 2D box covered by nearer objects (:func:`occluded_share`; 0 from :func:`view`).
     """
 
     salient: np.ndarray
     range_m: np.ndarray
     truncation: np.ndarray
     visible: np.ndarray
+    occluded: np.ndarray | float = 0.0
 
 
 def view(
@@ -119,7 +241,8 @@ def view(
     camera_height_m: float = 1.65,
     occlusion: np.ndarray | float = 0.0,
 ) -> CameraView:
-    """The camera's view of objects of one kind (module docstring).
+    """The camera's view of objects of one kind (module docstring), none hiding another (:func:`views` for objects
+    that can).
 
     Args:
         kind: the objects' class and box.
@@ -138,22 +261,12 @@ def view(
     x = np.asarray(loc_x_m, dtype=np.float64)
     z = np.asarray(loc_z_m, dtype=np.float64)
     rot = np.broadcast_to(np.asarray(rot_y_rad, dtype=np.float64), x.shape)
-    c, s = np.abs(np.cos(rot)), np.abs(np.sin(rot))
-    half_x = 0.5 * (c * kind.length_m + s * kind.width_m)  # the footprint's axis-aligned half extents (camera x, z)
-    half_z = 0.5 * (s * kind.length_m + c * kind.width_m)
-    z_near = np.maximum(z - half_z, _MIN_DEPTH_M)
-    z_far = np.maximum(z + half_z, _MIN_DEPTH_M)
-    x_lo, x_hi = x - half_x, x + half_x
-    u_hi = np.maximum(x_hi / z_near, x_hi / z_far)
-    u_lo = np.minimum(x_lo / z_near, x_lo / z_far)
-    v_top = (camera_height_m - kind.height_m) / np.where(kind.height_m > camera_height_m, z_near, z_far)
-    v_bot = camera_height_m / z_near
+    box = image_box(kind, x, z, rot, camera_height_m)
     left, right, top, bottom = IMAGE_BOUNDS
-    area = (u_hi - u_lo) * (v_bot - v_top)
-    inside = np.maximum(np.minimum(u_hi, right) - np.maximum(u_lo, left), 0.0) * np.maximum(
-        np.minimum(v_bot, bottom) - np.maximum(v_top, top), 0.0
+    inside = np.maximum(np.minimum(box.u_hi, right) - np.maximum(box.u_lo, left), 0.0) * np.maximum(
+        np.minimum(box.v_bot, bottom) - np.maximum(box.v_top, top), 0.0
     )
-    truncation = 1.0 - inside / area
+    truncation = 1.0 - inside / box.area
     salient = np.empty(x.shape + (len(SALIENT_NAMES),))
     salient[..., 0] = kind.class_index
     salient[..., 1] = truncation
@@ -169,6 +282,55 @@ def view(
     salient[..., 10] = rot
     visible = (z >= MIN_RANGE_M) & (inside > 0.0)
     return CameraView(salient, np.sqrt(x * x + z * z), truncation, visible)
+
+
+def views(
+    kinds: "list[ObjectKind] | tuple[ObjectKind, ...]",
+    loc_x_m: np.ndarray,
+    loc_z_m: np.ndarray,
+    rot_y_rad: np.ndarray | float,
+    camera_height_m: float = 1.65,
+    partly: float = 0.01,
+    largely: float = 0.35,
+    hidden: float = 0.8,
+) -> CameraView:
+    """The camera's view of M objects that can hide each other (module docstring): :func:`view` of each, with the
+    share of its box covered by nearer objects' boxes (:func:`occluded_share`, by centre depth), KITTI's occlusion
+    level from it (:func:`occlusion_level`) in the salient ``occlusion`` column, and not visible where the share is
+    ``hidden`` or more.
+
+    Args:
+        kinds: the M objects' kinds.
+        loc_x_m, loc_z_m: float64 ``[M, ...]``, the centres in the camera frame (m).
+        rot_y_rad: broadcastable to them (radians).
+        camera_height_m: as :func:`view`.
+        partly, largely, hidden: the shares from which an object is partly occluded (level 1), largely occluded
+            (level 2) and hidden (not visible); the cut-in's 0.01, 0.35, 0.8 by default.
+    Returns:
+        :class:`CameraView` of arrays ``[M, ...]`` (``salient`` ``[M, ..., 11]``; ``occluded`` the share).
+    Raises:
+        ValueError: ``len(kinds)`` not the positions' first axis, thresholds not ``0 < partly < largely < hidden <=
+            1``, or ``camera_height_m`` not in (0, 10] m.
+    """
+    x = np.asarray(loc_x_m, dtype=np.float64)
+    z = np.asarray(loc_z_m, dtype=np.float64)
+    if x.ndim == 0 or x.shape != z.shape or x.shape[0] != len(kinds):
+        raise ValueError(
+            f"views: loc_x_m and loc_z_m must be [M, ...] of one shape with M = {len(kinds)} (one row per kind), got "
+            f"{x.shape} and {z.shape}"
+        )
+    if not 0.0 < partly < largely < hidden <= 1.0:
+        raise ValueError(f"views: thresholds must be 0 < partly < largely < hidden <= 1, got {partly, largely, hidden}")
+    rot = np.broadcast_to(np.asarray(rot_y_rad, dtype=np.float64), x.shape)
+    each = [view(k, x[i], z[i], rot[i], camera_height_m) for i, k in enumerate(kinds)]
+    boxes = ImageBox.stack([image_box(k, x[i], z[i], rot[i], camera_height_m) for i, k in enumerate(kinds)])
+    share = occluded_share(boxes, z)
+    salient = np.stack([v.salient for v in each])
+    salient[..., 2] = occlusion_level(share, partly, largely)
+    visible = np.stack([v.visible for v in each]) & (share < hidden)
+    return CameraView(
+        salient, np.stack([v.range_m for v in each]), np.stack([v.truncation for v in each]), visible, share
+    )
 
 
 def measure(

@@ -2,7 +2,8 @@
 stage of a perception stack, for any scene (the Kalman filter: Kalman 1960, "A new approach to linear filtering and
 prediction problems", Trans. ASME, Journal of Basic Engineering 82(1), 35-45).
 
-Use: ``tracks = Tracks.empty((M, N))`` at the start; each step, with the step's detections and their measured
+Use: ``tracks = Tracks.empty((M, N))`` at the start (and :func:`start_confirmed` for objects the ego already
+follows); each step, with the step's detections and their measured
 positions in road coordinates, ``tracks = update(tracks, measured, z_x, z_y, range_m, prior_vx_mps, params)``, let
 the controller read ``tracks.x``, ``tracks.y``, ``tracks.vx``, ``tracks.vy`` where ``tracks.confirmed``, then
 ``tracks = predict(tracks, dt_s, params)`` for the next step. :func:`pemviz.stack.camera.measure` gives the measured
@@ -36,7 +37,10 @@ block-diagonal covariance is exactly two 2-state filters. Per step:
   a prior (along the road the caller's ``prior_vx_mps``, e.g. the ego's own speed for traffic that moves with the
   ego; across it 0) with variance ``sigma_v0^2``;
 - **drop** a track that went ``max_coast_steps`` predictions without an update (its prediction is no longer
-  trusted; the next detection starts it again).
+  trusted; the next detection starts it again);
+- **established** (:func:`start_confirmed`): a scene that begins with the ego already following an object (the lead
+  of a cut-out, tracked for a while before the scene's first step) starts its track confirmed, at the position and
+  velocity the caller gives, with their variances.
 
 Why not a library filter. The batched twin of a scenario steps N x M filters per step (10^4-10^5), interleaved with
 the controller that acts on them, and must give the same bits as the one-rollout simulator. filterpy's
@@ -68,7 +72,12 @@ class TrackerParams:
             with the square of the range (pinhole: ``dZ ~ Z^2 e_h / (f H)``).
         meas_std_y0_m, meas_std_y_per_m: the std across the road, ``meas_std_y0_m + meas_std_y_per_m * Z`` (a
             pixel error back-projects linearly in the range).
-        init_speed_std_x_mps, init_speed_std_y_mps: std of the velocity prior of a new track (m/s).
+        init_speed_std_x_mps, init_speed_std_y_mps: std of the velocity prior of a new track (m/s). Along the road
+            15 m/s by default: wide enough that an object standing still is not taken for one moving with a 20 m/s
+            ego (a prior sure to 5 m/s of the ego's speed shows a car stopped 50 m ahead at 17 m/s half a second
+            after it is first seen, 6.6 m/s after a second; at 15 m/s 7.4 and 1.2 m/s: ``benchmarks/track_prior.py``
+            and the guide's *A realistic perception stack*). A scene whose objects all move with the ego can be
+            surer (the cut-in's 5 m/s).
         max_coast_steps: a track not updated for more than this many predictions is dropped.
         gate_chi2: the validation gate on the normalised innovation squared along the road (1 degree of freedom; the
             lateral innovation is not gated: a lane change is a manoeuvre the CV model does not foresee, and the
@@ -86,7 +95,7 @@ class TrackerParams:
     meas_std_x_per_m2: float = 0.0015
     meas_std_y0_m: float = 0.1
     meas_std_y_per_m: float = 0.003
-    init_speed_std_x_mps: float = 5.0
+    init_speed_std_x_mps: float = 15.0
     init_speed_std_y_mps: float = 1.0
     max_coast_steps: int = 10
     gate_chi2: float = 15.136705226623606  # scipy.stats.chi2(1).ppf(0.9999)
@@ -237,7 +246,8 @@ def update(
             (:meth:`TrackerParams.measurement_variances`).
         prior_vx_mps: float64, broadcastable to the tracks (``[N]``, or a number): the velocity along the road (m/s)
             a new track starts with: the ego's speed for traffic that moves with the ego (cars ahead), 0 for
-            objects that stand or cross the road (pedestrians); its std is ``init_speed_std_x_mps``.
+            objects that stand or cross the road (pedestrians); its std is ``init_speed_std_x_mps`` (15 m/s by
+            default: cars ahead that may also stand still, with the ego's speed as the prior).
         params: the noise model and track management (:class:`TrackerParams`).
     Returns:
         new :class:`Tracks`: objects whose measurement was accepted (now confirmed), or that start (or restart) a
@@ -274,3 +284,73 @@ def update(
     ):
         np.copyto(field_value, start, where=new)
     return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)
+
+
+def start_confirmed(
+    tracks: Tracks,
+    where: np.ndarray | bool,
+    x_m: np.ndarray | float,
+    vx_mps: np.ndarray | float,
+    y_m: np.ndarray | float,
+    vy_mps: np.ndarray | float = 0.0,
+    var_x_m2: np.ndarray | float = 0.3,
+    var_vx_m2ps2: np.ndarray | float = 0.8,
+    var_y_m2: np.ndarray | float = 0.01,
+    var_vy_m2ps2: np.ndarray | float = 0.1,
+) -> Tracks:
+    """Tracks started as established (module docstring): active, confirmed and just updated (``coast`` 0) where
+    ``where``, at the given state with a diagonal covariance (the position-velocity covariances 0); the other tracks
+    as they were. Call it once before a scene's first step (e.g. on ``Tracks.empty((M, N))``), then ``update`` and
+    ``predict`` as usual: the controller acts on these tracks from the first step, as it would on a track that had
+    followed the object for some time.
+
+    Args:
+        tracks: the tracks (arrays of one shape, e.g. ``[M, N]``).
+        where: bool, broadcastable to them: which objects start established.
+        x_m, vx_mps, y_m, vy_mps: float64, broadcastable: the position (m) and velocity (m/s) along and across the
+            road, in the road frame the scene passes to ``update``.
+        var_x_m2, var_vx_m2ps2, var_y_m2, var_vy_m2ps2: their variances (m^2, (m/s)^2), broadcastable; by default
+            about the steady state of the default :class:`TrackerParams` on an object 25 m ahead measured every
+            0.1 s (stds 0.55 m and 0.88 m/s along the road, 0.10 m and 0.31 m/s across).
+    Returns:
+        new :class:`Tracks` (the input is not modified).
+    Raises:
+        ValueError: a non-finite value, or a variance not > 0, where ``where``.
+    """
+    shape = tracks.x.shape
+    mask = np.broadcast_to(np.asarray(where, dtype=bool), shape)
+    values = {}
+    for name, value in (
+        ("x_m", x_m),
+        ("vx_mps", vx_mps),
+        ("y_m", y_m),
+        ("vy_mps", vy_mps),
+        ("var_x_m2", var_x_m2),
+        ("var_vx_m2ps2", var_vx_m2ps2),
+        ("var_y_m2", var_y_m2),
+        ("var_vy_m2ps2", var_vy_m2ps2),
+    ):
+        array = np.broadcast_to(np.asarray(value, dtype=np.float64), shape)
+        bad = mask & ~(np.isfinite(array) & ((array > 0.0) if name.startswith("var") else True))
+        if bad.any():
+            allowed = "finite and > 0" if name.startswith("var") else "finite"
+            raise ValueError(f"start_confirmed: {name} must be {allowed} where tracks start, got {array[bad][0]!r}")
+        values[name] = array
+    out = tracks.copy()
+    for field_value, start in (
+        (out.x, values["x_m"]),
+        (out.vx, values["vx_mps"]),
+        (out.pxx, values["var_x_m2"]),
+        (out.pxv, 0.0),
+        (out.pvvx, values["var_vx_m2ps2"]),
+        (out.y, values["y_m"]),
+        (out.vy, values["vy_mps"]),
+        (out.pyy, values["var_y_m2"]),
+        (out.pyv, 0.0),
+        (out.pvvy, values["var_vy_m2ps2"]),
+        (out.active, True),
+        (out.confirmed, True),
+        (out.coast, 0),
+    ):
+        np.copyto(field_value, start, where=mask)
+    return out

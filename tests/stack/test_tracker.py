@@ -152,3 +152,36 @@ def test_bad_tracker_parameters_raise_one_clear_error():
         TrackerParams(accel_std_x_mps2=-1.0)
     with pytest.raises(ValueError, match="a measurement is never exact"):
         TrackerParams(meas_std_x0_m=0.0)
+
+
+def test_a_track_started_confirmed_is_followed_from_the_first_step_as_filterpy_follows_it():
+    params = TrackerParams(gate_chi2=np.inf)
+    tracks = tracker.start_confirmed(
+        Tracks.empty((2, 3)), np.array([[True], [False]]), 30.0, 20.0, 4.0, 0.5, 0.3, 0.8, 0.01, 0.1
+    )
+    assert tracks.confirmed.tolist() == [[True] * 3, [False] * 3] and tracks.active[0].all()
+    assert (
+        tracks.x[0].tolist() == [30.0] * 3 and tracks.vx[0].tolist() == [20.0] * 3 and tracks.x[1].tolist() == [0] * 3
+    )
+    kf = oracle_filter(params, 30.0, 4.0, 20.0, (0.3, 0.01))
+    kf.x[3, 0], kf.P[1, 1], kf.P[3, 3] = 0.5, 0.8, 0.1
+    tracks = tracker.predict(tracks, DT, params)
+    kf.predict()
+    assert tracks.confirmed[0].all()  # still confirmed after a prediction without an update
+    tracks = tracker.update(
+        tracks, np.ones((2, 3), bool), np.full((2, 3), 32.5), np.full((2, 3), 4.1), np.full((2, 3), 25.0), 0.0, params
+    )
+    r_x, r_y = params.measurement_variances(np.array(25.0))
+    kf.update(np.array([[32.5], [4.1]]), R=np.diag([r_x, r_y]))
+    x, p = as_state(Tracks(*(getattr(tracks, f)[0] for f in tracks.__dataclass_fields__)), 1)
+    np.testing.assert_allclose(x, kf.x[:, 0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(p, kf.P, rtol=1e-9, atol=1e-12)
+    assert tracks.confirmed[0].all() and not tracks.confirmed[1].any()  # the other object only started a track
+
+
+def test_start_confirmed_refuses_a_variance_of_zero_where_it_starts():
+    with pytest.raises(ValueError, match="var_vx_m2ps2 must be finite and > 0"):
+        tracker.start_confirmed(Tracks.empty((2,)), np.array([True, False]), 1.0, 2.0, 0.0, var_vx_m2ps2=0.0)
+    with pytest.raises(ValueError, match="x_m must be finite"):
+        tracker.start_confirmed(Tracks.empty((2,)), True, np.array([1.0, np.nan]), 2.0, 0.0)
+    tracker.start_confirmed(Tracks.empty((2,)), np.array([True, False]), np.array([1.0, np.nan]), 2.0, 0.0)

@@ -167,6 +167,11 @@ MAX_STEPS = 10_000
 """The most steps T of a cut-in rollout (1,000 s at the default 0.1 s step)."""
 
 
+CUT_IN_TRACKER = TrackerParams(init_speed_std_x_mps=5.0)
+"""The cut-in's tracker: the library's defaults, but a new track's velocity prior sure to 5 m/s of the ego's speed
+(the cut-in's cars all move with the ego; the library's default, 15 m/s, is for scenes where an object may stand)."""
+
+
 @dataclass(frozen=True)
 class CutInParams:
     """Every constant of the cut-in scenario.
@@ -191,7 +196,7 @@ class CutInParams:
             bins of the Caltech pedestrian benchmark (Dollar et al. 2012, "Pedestrian Detection: An Evaluation of the
             State of the Art", IEEE TPAMI 34(4), Sec. 2.2: partial 1-35 %, heavy 35-80 %, full > 80 %).
         idm: the ACC's IDM constants.
-        tracker: the tracker's noise model and track management.
+        tracker: the tracker's noise model and track management (:data:`CUT_IN_TRACKER`).
         ego_a_min_mps2, other_a_min_mps2, reaction_time_s, cut_in_grace_s: R_G1's parameters (:func:`safe_distance`):
             the braking capabilities assumed for the ego (-10.0) and the vehicle in front (-10.5), the ego's
             reaction time (0.3 s) and the time ``t_c`` after a cut-in during which the rule is waived (3 s).
@@ -220,7 +225,7 @@ class CutInParams:
     occlusion_largely: float = 0.35
     occlusion_hidden: float = 0.8
     idm: IDMParams = field(default_factory=IDMParams)
-    tracker: TrackerParams = field(default_factory=TrackerParams)
+    tracker: TrackerParams = field(default_factory=lambda: CUT_IN_TRACKER)
     ego_a_min_mps2: float = -10.0
     other_a_min_mps2: float = -10.5
     reaction_time_s: float = 0.3

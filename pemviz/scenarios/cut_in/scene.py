@@ -16,8 +16,9 @@ coordinates ``u = X / Z`` and ``v = Y / Z`` it spans ``[min u, max u]`` over its
 ``[(h_cam - H) / Z_far, h_cam / Z_near]`` vertically. From the boxes:
 
 - **truncation** (KITTI's sense: the share of the object outside the image): ``1 - area(box & image) / area(box)``;
-- **occluded fraction**: ``sum over nearer objects (smaller centre depth) of area(box_i & box) / area(box)``, at most
-  1; exact when the nearer objects' boxes do not overlap each other on the box, an upper bound otherwise. Its level
+- **occluded fraction** (:func:`pemviz.stack.camera.occluded_share`): ``sum over nearer objects (smaller centre
+  depth) of area(box_i & box) / area(box)``, at most 1; exact when the nearer objects' boxes do not overlap each
+  other on the box, an upper bound otherwise. Its level (:func:`pemviz.stack.camera.occlusion_level`)
   (KITTI's 0 fully visible, 1 partly, 2 largely occluded) and whether it is hidden follow the thresholds of
   :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`;
 - **visible**: centre depth at least :data:`pemviz.pem.camera.MIN_RANGE_M`, some of the box inside the image, not
@@ -38,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz.pem.camera import MIN_RANGE_M
-from pemviz.stack import tracker
+from pemviz.stack import camera, tracker
 from pemviz.scenarios.cut_in.scenario import (
     LANE_WIDTH_M,
     NO_VEHICLE_M,
@@ -231,22 +232,10 @@ def camera_view(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray) -> C
     inside = np.maximum(np.minimum(u_hi, right) - np.maximum(u_lo, left), 0.0) * np.maximum(
         np.minimum(v_bot, bottom) - v_top, 0.0
     )
-    covered = np.zeros_like(loc_z)
-    for i, j in traffic.occluder_pairs:  # a fixed order: the same sums whatever N
-        du = np.minimum(u_hi[i], u_hi[j]) - np.maximum(u_lo[i], u_lo[j])
-        dv = np.minimum(v_bot[i], v_bot[j]) - np.maximum(v_top[i], v_top[j])
-        covered[j] += np.maximum(du, 0.0) * np.maximum(dv, 0.0)
-    occluded = np.minimum(covered / area, 1.0)
+    # the pairs in a fixed order: the same sums whatever N
+    occluded = camera.occluded_share(camera.ImageBox(u_lo, u_hi, v_top, v_bot), pairs=traffic.occluder_pairs)
     visible = (loc_z >= MIN_RANGE_M) & (inside > 0.0) & (occluded < params.occlusion_hidden)
     return CameraView((traffic.y_m - params.ego_y_m)[:, None], loc_z, 1.0 - inside / area, occluded, inside, visible)
-
-
-def occlusion_level(params: CutInParams, occluded_fraction: np.ndarray) -> np.ndarray:
-    """KITTI's occlusion level, float64 0.0 (fully visible), 1.0 (partly) or 2.0 (largely occluded), elementwise, from
-    the occluded fraction and the thresholds of :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`."""
-    level = (occluded_fraction >= params.occlusion_partly).astype(np.float64)
-    level += occluded_fraction >= params.occlusion_largely
-    return level
 
 
 def measure(
@@ -294,7 +283,7 @@ def object_rows(
     cols[0] = np.sqrt(loc_x * loc_x + loc_z * loc_z)
     cols[1] = 0.0  # class: Car
     cols[2] = view.truncation
-    cols[3] = occlusion_level(params, view.occluded_fraction)
+    cols[3] = camera.occlusion_level(view.occluded_fraction, params.occlusion_partly, params.occlusion_largely)
     np.subtract(traffic.rot_y_rad[:, None], np.arctan2(loc_x, loc_z), out=cols[4])  # alpha: rot_y minus the ray angle
     _wrap(cols[4])
     cols[5] = params.vehicle_height_m
