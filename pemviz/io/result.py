@@ -101,6 +101,7 @@ def result_document(
             "n": int(e.n),
             "verdict": e.verdict,
             "reason": e.reason,
+            "sampling": _sampling(config, e),
         },
         "n_simulations": int(final.n_simulations),
         "wall_s": _number(final.wall_s),
@@ -161,6 +162,16 @@ def result_document(
             "why": d.why,
         }
     return doc
+
+
+def _sampling(config: Any, e: Any) -> str:
+    """How the estimate's rollouts were drawn (:data:`pemviz.core.verdict_checks.SAMPLINGS`): ``plain`` (plain Monte
+    Carlo, a method's or the fallback's), ``importance`` (a weighted method) or ``splitting`` (AMS: no weights)."""
+    from pemviz.methods import get_method
+
+    if e.plain_mc:
+        return "plain"
+    return "importance" if get_method(config.method).weighted else "splitting"
 
 
 def _pem_spread(spread: Any) -> dict[str, Any] | None:

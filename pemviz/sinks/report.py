@@ -259,21 +259,13 @@ def _spread_text(spread: dict[str, Any] | None) -> str:
 
 
 def _checks(e: dict[str, Any]) -> list[tuple[str, str]]:
-    """The verdict's checks one by one (:func:`pemviz.core.estimate.estimate`'s thresholds), each with its figure."""
-    from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES
+    """The verdict's checks one by one (:func:`pemviz.core.verdict_checks.verdict_checks`), each with what it found,
+    its rule and whether it passed, then the verdict and what the run backs."""
+    from pemviz.core.verdict_checks import verdict_checks
 
-    khat = e.get("k_hat")
+    checks = verdict_checks(e["n"], e["n_failures"], e["ess"], e["k_hat"], e["sampling"])
     return [
-        ("check: failures", f"{e['n_failures']:,} (fewer than {MIN_FAILURES}: doubtful)"),
-        (
-            "check: effective sample size",
-            f"{_num(e['ess'])} (below {MIN_ESS_RELIABLE} under importance sampling: " "never reliable)",
-        ),
-        (
-            "check: Pareto k-hat",
-            f"{_num(khat, '.2f')} (above {KHAT_UNRELIABLE}: a few weights dominate; '-' for plain "
-            "Monte Carlo or too few failures to fit)",
-        ),
+        *((f"check: {c.name}", c.text()) for c in checks),
         ("verdict", f"{e['verdict']}: {e['reason']}"),
         (
             "what is printed",
