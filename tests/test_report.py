@@ -5,6 +5,7 @@ Chromium with the network cut and holds the numbers the console printed."""
 from __future__ import annotations
 
 import contextlib
+import html
 import io
 import json
 import os
@@ -236,3 +237,79 @@ def test_the_report_says_what_its_number_rests_on(tmp_path, uncertainty):
     else:
         assert doc["pem_spread"] is None and "not computed for this run" in body and "--pem-uncertainty" in body
         assert "under the PEM's uncertainty" not in headline
+
+
+MEANINGS = {"reliable": ["run"], "bound-only": ["run", "--preset", "paper"]}
+"""A default run (its verdict reliable) and a run whose weights back no interval (the paper's preset: a lower bound
+alone), for the report's words against the console's."""
+
+
+@pytest.fixture(scope="module", params=sorted(MEANINGS))
+def meant(request, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp(f"meaning-{request.param}")
+    page, result = tmp / "page.html", tmp / "result.json"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*MEANINGS[request.param], "--no-record", "--json", str(result), "--report", str(page)]) == 0
+    doc = json.loads(result.read_text())
+    assert (doc["estimate"]["verdict"] == "reliable") == (request.param == "reliable"), doc["estimate"]
+    return request.param, out.getvalue(), page, doc
+
+
+def _md_rows(text: str, section: str) -> list[list[str]]:
+    """The cells of each body row of the Markdown table under ``## section``."""
+    block = text.split(f"## {section}\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in block.splitlines() if line.startswith("| ")][1:]  # the header off
+    return [[c.strip() for c in re.split(r"(?<!\\)\|", row)[1:-1]] for row in rows]
+
+
+def test_no_check_row_reads_as_failed_when_it_passed(meant):
+    """Each check row says what the run found and "passed" exactly when the figure meets the verdict's rule (checked
+    here from the document's figures and the rule's own numbers: 10 failures, ESS 20, k-hat min(1 - 1 / log10 N,
+    0.7)); a passed row carries no word of failure."""
+    import math
+
+    _, _, page, doc = meant
+    e = doc["estimate"]
+    rows = dict(_md_rows(page.with_suffix(".md").read_text(), "What this number rests on"))
+    truth = {
+        "check: failures": e["n_failures"] >= 10,
+        "check: effective sample size": e["ess"] is not None and e["ess"] >= 20,
+        "check: Pareto k-hat": e["k_hat"] is not None and e["k_hat"] <= min(1 - 1 / math.log10(e["n"]), 0.7),
+    }
+    assert e["sampling"] == "importance"
+    for name, passed in truth.items():
+        text = rows[name]
+        assert text.endswith(", passed") == passed and ("failed" in text) == (not passed), text
+        if passed:
+            assert not re.search(r"fewer than|below|above|doubtful|unreliable|dominate", text), text
+    assert rows["check: failures"].startswith(f"{e['n_failures']:,} failure")
+    assert rows["verdict"] == f"{e['verdict']}: {e['reason']}"
+
+
+def test_the_report_s_severity_rows_are_the_console_s(meant):
+    """The report's severity table says what the console's severity lines say, figure for figure and word for word;
+    a level the run does not estimate shows no estimate (the point the weights do not back), and the chart's legend
+    names each kind of mark it draws."""
+    scene, stdout, page, doc = meant
+    lines = stdout.splitlines()
+    start = lines.index(doc["severity"]["title"])
+    console = [line for line in lines[start + 1 : start + 1 + len(doc["severity"]["points"])]]
+    rows = _md_rows(page.with_suffix(".md").read_text(), "Severity")
+    assert len(rows) == len(console) == len(doc["severity"]["points"]) >= 5
+    for (level, says), line, pt in zip(rows, console, doc["severity"]["points"], strict=True):
+        assert re.fullmatch(rf"  {re.escape(level)} +{re.escape(says)}", line), (level, says, line)
+        numbers = re.findall(r"\d\.\d+e[-+]\d+", line)
+        assert numbers == re.findall(r"\d\.\d+e[-+]\d+", says)
+        if pt["shown"] in ("bound", "not reached") and pt["p"]:
+            assert f"{pt['p']:.3e}" not in says and says.split(" ")[0] in ("reached", "not"), says
+    html_page = page.read_text()
+    for _level, says in rows:
+        assert f"<td>{html.escape(says)}</td>" in html_page, says
+    shown = {pt["shown"] for pt in doc["severity"]["points"][1:]}
+    assert ("not reached by any rollout" in html_page) == ("not reached" in shown)
+    assert ("95 % lower bound alone" in html_page) == ("bound" in shown or scene == "bound-only")
+    if scene == "bound-only":
+        assert "not reached" in shown and rows[0][1].split(" ")[1] == ">="  # the failure: its estimate and bound
+    else:
+        assert "estimate and its 95 % interval: reliable" in html_page

@@ -130,6 +130,10 @@ class SeverityPoint:
         return self.estimate.verdict == "reliable"
 
 
+SHOWN = ("interval", "estimate and bound", "bound", "no bound", "not reached")
+"""What a run shows of a point of its severity curve (:meth:`SeverityCurve.shown`)."""
+
+
 @dataclass(frozen=True)
 class SeverityCurve:
     """The exceedance curve of a run: the failure itself, then each level of the scale (:class:`SeverityScale`).
@@ -164,44 +168,55 @@ class SeverityCurve:
         event = f"min {s.label} < x" if s.margin is not None else f"failure and min {s.label} < x"
         return f"severity: P({event}), from the same rollouts"
 
-    def rows(self) -> list[tuple[str, str]]:
-        """(the point's level in words, what the run says of it) for each point: the estimate, its interval, ESS,
-        verdict and the exact answer where known; a level the run does not reach reliably says so, and how to reach
-        it (the scale's ``target_flag``, or more rollouts)."""
-        s = self.scale
-        out = []
-        for point in self.points:
-            e = point.estimate
-            if point is not self.points[0] and not point.reached:
-                how = (
-                    f"pemviz run --{s.target_flag} {point.level:g} targets it"
-                    if s.target_flag
-                    else "more rollouts (a larger budget, or --rel-error)"
-                )
-                if e.n_failures == 0:
-                    out.append((self.point_text(point), f"not reached by this run (0 of {e.n:,} rollouts): {how}"))
-                else:  # reached, but its weights back no estimate: what they do back, a lower bound
-                    bound = (
-                        f"p >= {format_probability(e.log_lower_bound, 2)} (95 % lower bound), no upper bound"
-                        if e.log_lower_bound > -math.inf
-                        else "no bound either way"
-                    )
-                    out.append(
-                        (
-                            self.point_text(point),
-                            f"reached by {e.n_failures:,} of {e.n:,} rollouts, not "
-                            f"estimated (ESS {e.ess:.1f}, {e.verdict}): {bound}; {how}",
-                        )
-                    )
-                continue
+    def shown(self, point: SeverityPoint) -> str:
+        """What the run shows of a point (:data:`SHOWN`): ``interval``, an estimate with the interval the run backs
+        (plain Monte Carlo, or a ``reliable`` verdict); ``estimate and bound``, the failure itself where the weights
+        back no interval (its estimate beside its 95 % lower bound); ``bound``, a level reached but not estimated (its
+        lower bound alone); ``no bound``, reached with no bound either way; ``not reached``, no rollout reached it."""
+        e = point.estimate
+        if point is self.points[0]:
+            return "interval" if e.interval_backed or e.n_failures == 0 else "estimate and bound"
+        if point.reached:
+            return "interval"
+        if e.n_failures == 0:
+            return "not reached"
+        return "bound" if e.log_lower_bound > -math.inf else "no bound"
+
+    def says(self, point: SeverityPoint) -> str:
+        """What the run says of a point, the one text the console's line and the report's row both show: the
+        estimate, its interval (or lower bound), ESS, verdict and the exact answer where known; a level the run does
+        not estimate says why, what it does back, and how to reach it (the scale's ``target_flag``, or more
+        rollouts)."""
+        e, s, shown = point.estimate, self.scale, self.shown(point)
+        if shown in ("interval", "estimate and bound"):
             text = f"{format_probability(e.log_mu_hat)} {e.interval_text()}  ESS {e.ess:.1f}  {e.verdict}"
             if point.exact_log_p is not None:  # "inside" / "OUTSIDE" an interval; "above" / "BELOW" a lower bound
                 text += (
                     f"; exact {format_probability(point.exact_log_p)} "
                     f"({error_text(e.log_mu_hat, point.exact_log_p)}, {e.holds_word(point.exact_log_p)})"
                 )
-            out.append((self.point_text(point), text))
-        return out
+            return text
+        assert point.level is not None  # only a level of the scale is not estimated
+        how = (
+            f"pemviz run --{s.target_flag} {point.level:g} targets it"
+            if s.target_flag
+            else "more rollouts (a larger budget, or --rel-error)"
+        )
+        if shown == "not reached":
+            return f"not reached by this run (0 of {e.n:,} rollouts): {how}"
+        bound = (
+            f"p >= {format_probability(e.log_lower_bound, 2)} (95 % lower bound), no upper bound"
+            if shown == "bound"
+            else "no bound either way"
+        )
+        return (
+            f"reached by {e.n_failures:,} of {e.n:,} rollouts, not estimated (ESS {e.ess:.1f}, {e.verdict}): "
+            f"{bound}; {how}"
+        )
+
+    def rows(self) -> list[tuple[str, str]]:
+        """(the point's level in words, what the run says of it: :meth:`says`) for each point."""
+        return [(self.point_text(point), self.says(point)) for point in self.points]
 
     def lines(self) -> list[str]:
         """The curve as console lines: :meth:`title`, then one line per point (:meth:`rows`), e.g.

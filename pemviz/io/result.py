@@ -141,6 +141,9 @@ def result_document(
                     "n_events": int(pt.estimate.n_failures),
                     "verdict": pt.estimate.verdict,
                     "exact": None if pt.exact_log_p is None else _probability(pt.exact_log_p),
+                    "lower_bound95": _probability(pt.estimate.log_lower_bound)["p"],
+                    "shown": curve.shown(pt),
+                    "says": curve.says(pt),
                 }
                 for pt in curve.points
             ],
