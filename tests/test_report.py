@@ -135,13 +135,41 @@ def test_a_report_of_a_bad_source_is_one_line(tmp_path, capsys):
         (tmp_path / "run.rrd", "a recording without its result document beside it (run.result.json)"),
         (tmp_path / "other.json", "not a pemviz result document"),
         (tmp_path / "broken.json", "not a readable JSON file"),
-        (tmp_path / "absent.json", "no such file"),
+        (tmp_path / "absent.json", "absent.json: no such file"),
+        (tmp_path / "nosuch.rrd", "nosuch.rrd: no such file"),  # the file itself, not its result document
     ]
     for path, message in cases:
         code = main(["report", str(path)])
         err = capsys.readouterr().err.strip()
         assert code == 2 and message in err and len(err.splitlines()) == 1, err
+    assert "result document" not in err
     assert not list(tmp_path.glob("*.html"))
+
+
+@pytest.mark.parametrize("existing", [["r.md"], ["r.html"], ["r.html", "r.md"]])
+def test_a_report_onto_an_existing_file_names_both_files_before_any_work(tmp_path, capsys, existing):
+    """`pemviz run --report r.html` where r.md (or r.html, or both) exists: one line naming what would be written
+    (the page and its twin), what exists and the flag that replaces it; nothing written, no run started. `pemviz
+    report` says the same of its --out."""
+    for name in existing:
+        (tmp_path / name).write_text("kept")
+    page, result = tmp_path / "r.html", tmp_path / "result.json"
+    fields = {"scenario": "braking", "method": "adaptive", "seed": 0, "estimate": {}, "n_simulations": 1}
+    result.write_text(json.dumps({"format": "pemviz-result", **fields}))
+    for argv in (
+        ["run", "--n", "100", "--no-record", "--report", str(page)],
+        ["report", str(result), "--out", str(page)],
+    ):
+        code = main(argv)
+        out = capsys.readouterr()
+        err = out.err.strip()
+        flag = "--report" if argv[0] == "run" else "--out"
+        assert code == 2 and len(err.splitlines()) == 1 and not out.out, err
+        assert f"{flag} {page}: writes {page} and its Markdown twin {tmp_path / 'r.md'}; " in err, err
+        named = "both exist" if len(existing) == 2 else f"{tmp_path / existing[0]} exists"
+        assert f"{named}: give --overwrite to replace" in err, err
+        assert all((tmp_path / name).read_text() == "kept" for name in existing)
+        assert sorted(p.name for p in tmp_path.iterdir() if p.suffix != ".json") == sorted(existing)
 
 
 def test_report_html_needs_the_result_fields():

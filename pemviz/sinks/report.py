@@ -508,6 +508,37 @@ def markdown_twin(path: Path) -> Path:
     return path.with_suffix(".md")
 
 
+def check_report_paths(page: str | os.PathLike[str], flag: str, *, overwrite: bool = False) -> Path:
+    """Refuse a report whose page or Markdown twin (:func:`markdown_twin`) cannot be written, before any work; where
+    one of them exists (without ``overwrite``), one line names both files, which of them exists and the flag that
+    replaces it, e.g. ``--report r.html: writes r.html and its Markdown twin r.md; r.md exists: give --overwrite to
+    replace it``.
+
+    Raises:
+        ValueError: as :func:`pemviz.io.files.check_output_path` for either file (:class:`OutputExists`, naming both,
+            for an existing one).
+    """
+    from pemviz.core.files import OutputExists
+    from pemviz.io.files import check_output_path
+
+    page = Path(page)
+    twin = markdown_twin(page)
+    existing = []
+    for path, suffix, what in ((page, ".html", flag), (twin, ".md", f"{flag} (its Markdown twin)")):
+        try:
+            check_output_path(path, suffix, what, overwrite=overwrite)
+        except OutputExists:
+            existing.append(path)
+    if existing:
+        which = (
+            "both exist: give --overwrite to replace them"
+            if len(existing) == 2
+            else (f"{existing[0]} exists: give --overwrite to replace it")
+        )
+        raise OutputExists(f"{flag} {page}: writes {page} and its Markdown twin {twin}; {which}")
+    return page
+
+
 def write_report(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite: bool = False) -> tuple[Path, Path]:
     """Write the report (``path``, HTML) and its Markdown twin (:func:`markdown_twin`), each atomically.
 
