@@ -5,15 +5,15 @@ Prints, for the default ``pemviz run`` on braking over ``--seeds`` seeds, each p
 :data:`KNOWN_BRAKING_MARGIN_LOG_P`, the enumeration with ``BrakingParams(crash_gap_m=x)``): the ratio to it, whether
 the interval holds it, and how many seeds reach the point at all; then the same for runs that target a level
 (``--margin x``). With ``--exact`` it first recomputes the exact points (``braking_truth``: 1.5 m and 1 m on the
-node bound, 0.5 m and 0 m (contact) on the cell bound, 0.5-2 minutes each, 5 GB at 0.5 m). With ``--contact-seeds K``
-it ends with K runs that target contact at the default budget (``pemviz run --margin 0 --seed s``, s = 0..K-1, each
-with the look-ahead below 6 m: :mod:`pemviz.scenarios.braking.lookahead`): every estimate against the exact contact
-point whatever its verdict (within x1.5, interval holding, the median relative error), the verdicts, and how many
-runs whose weights said reliable (before the scenario's cap at ``doubtful``) were wrong.
+node bound, 0.5 m and 0 m on the cell bound, 0.5-2 minutes each, 5 GB at 0.5 m). With
+``--zero-gap-seeds K`` it ends with K runs that target a gap below 0 m at the default budget (``pemviz run --margin 0
+--seed s``, s = 0..K-1, each with the look-ahead below 6 m: :mod:`pemviz.scenarios.braking.lookahead`): every
+estimate against the exact 0 m point whatever its verdict (within x1.5, interval holding, the median relative error),
+the verdicts, and how many runs whose weights said reliable (before the scenario's cap at ``doubtful``) were wrong.
 
     python benchmarks/severity.py                    # 20 seeds of the default run, 5 of each targeted run (~4 min)
     python benchmarks/severity.py --seeds 5 --exact  # and the enumeration
-    python benchmarks/severity.py --seeds 0 --targeted-seeds 0 --contact-seeds 40   # ~6 min
+    python benchmarks/severity.py --seeds 0 --targeted-seeds 0 --zero-gap-seeds 40   # ~6 min
 """
 
 from __future__ import annotations
@@ -76,7 +76,9 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--targeted-seeds", type=int, default=5)
     ap.add_argument("--exact", action="store_true", help="recompute the exact points first")
-    ap.add_argument("--contact-seeds", type=int, default=0, help="this many runs that target contact at the end")
+    ap.add_argument(
+        "--zero-gap-seeds", type=int, default=0, help="this many runs that target a gap below 0 m at the end"
+    )
     a = ap.parse_args()
     if a.exact:
         from pemviz.scenarios.braking.truth import braking_truth
@@ -107,12 +109,13 @@ def main() -> None:
         f"\nevery reported point of the default run within x{TARGET_RATIO} of the exact one and inside its interval: "
         f"{'MET' if ok else 'MISSED'}; of the targeted runs: {'MET' if targeted_ok else 'MISSED'}"
     )
-    if a.contact_seeds:
-        contact_study(a.contact_seeds)
+    if a.zero_gap_seeds:
+        zero_gap_study(a.zero_gap_seeds)
 
 
-def contact_study(seeds: int) -> None:
-    """``seeds`` runs that target contact (``--margin 0``, seeds 0..K-1, the default budget) against the exact point."""
+def zero_gap_study(seeds: int) -> None:
+    """``seeds`` runs that target a gap below 0 m (``--margin 0``, seeds 0..K-1, the default budget) against the exact
+    point."""
     t0 = time.perf_counter()
     runs = [curve(ExperimentConfig.of(seed=s, margin=0.0)).points[0] for s in range(seeds)]
     ex = runs[0].exact_log_p
@@ -125,7 +128,8 @@ def contact_study(seeds: int) -> None:
     capped = [p.estimate.verdict == "reliable" or p.estimate.reason.startswith("a gap below") for p in runs]
     wrong = sum(c and not (w and h) for c, w, h in zip(capped, within, holds, strict=False))
     print(
-        f"\ncontact, {seeds} runs of pemviz run --margin 0 (seeds 0-{seeds - 1}, {time.perf_counter() - t0:.0f} s), "
+        f"\ngap below 0 m, {seeds} runs of pemviz run --margin 0 (seeds 0-{seeds - 1}, "
+        f"{time.perf_counter() - t0:.0f} s), "
         f"exact {math.exp(ex):.4e}: median relative error {np.median(err):.3f}; within x{TARGET_RATIO} "
         f"{sum(within)}/{seeds}; interval holds {sum(holds)}/{seeds}; seeds 0-4 all within x{TARGET_RATIO} and "
         f"holding: {'MET' if all(within[:5]) and all(holds[:5]) else 'MISSED'}; verdicts {verdicts}; weights that "

@@ -176,7 +176,7 @@ class ExperimentConfig:
         is also ``margin``: give it once.
     sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
     margin: None or the braking scenario's crash gap in metres (``BrakingParams.crash_gap_m``, default 2): a
-        failure is the gap dropping below it; 0 is contact (the severity curve's last point,
+        failure is the gap dropping below it; 0: below 0 m (the severity curve's last point,
         :mod:`pemviz.core.severity`).
     weights_until_failure: importance weights (estimate and CE fit) stop at the step where the failure
         happens: later actions change nothing, like the last action already left out.

@@ -374,8 +374,8 @@ SETTINGS: dict[str, Setting] = _settings(
             text_words="a requirement p < T, p <= T, p > T or p >= T with T in (0, 1), e.g. 'p < 1e-9'",
             optional=True, owner=RUN, flags=("--require",)),
     Setting("margin", "the crash gap", "braking: a failure is the gap dropping below this many metres (None: the "
-            "scenario's 2 m); 0 targets contact, the severity curve's last point, which a run at 2 m rarely reaches "
-            "(below where a never-detecting rollout ends, the last metres are enumerated exactly)",
+            "scenario's 2 m); 0 targets a gap below 0 m, the severity curve's last point, which a run at 2 m rarely "
+            "reaches (below where a never-detecting rollout ends, the last metres are enumerated exactly)",
             unit="m", lo=0.0, hi=10.0, optional=True, owner=RUN, flags=("--margin",)),
     Setting("pem_uncertainty", "the PEM's uncertainty", "re-weight the run's rollouts under each member of the "
             "PEM's bootstrap ensemble and under its logits shifted by a half and a whole unit either way: the spread "

@@ -1,6 +1,6 @@
-"""One meaning per word in a run's console output (docs/concepts.md#words): the severity table's ``(contact)`` marks
-exactly the levels at or below the contact level that the impact-speed line states; ``not reached`` only where no
-rollout reached the level; the ``why:`` line's log p says the steps it sums, apart from the NLL column's."""
+"""One meaning per word in a run's console output (docs/concepts.md#words): contact is one distance, the one the
+impact-speed line states, and no severity row repeats the word with another; ``not reached`` only where no rollout
+reached the level; the ``why:`` line's log p says the steps it sums, apart from the NLL column's."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from pemviz.cli import main
 
-LEVEL = re.compile(r"^  (gap|clearance) < (-?[\d.]+) m( \(contact\))?\s{2,}(.*)$")
+LEVEL = re.compile(r"^  (gap|clearance) < (-?[\d.]+) m(.*?)\s{2,}(.*)$")
 CONTACT = re.compile(r"contact: (gap|clearance) <= (-?[\d.]+) m")
 
 
@@ -25,9 +25,12 @@ def _check(text: str, signal: str, contact_m: float) -> None:
     assert found is not None and found.group(1) == signal and float(found.group(2)) == contact_m, text
     levels = [m for m in map(LEVEL.match, text.splitlines()) if m]
     assert len(levels) >= 3, text
+    # contact: one distance, the impact line's; every other mention of the word states no other distance
+    assert all(float(m.group(2)) == contact_m for m in CONTACT.finditer(text)), text
+    assert not re.search(r"\(contact\)|contact \((gap|clearance) <", text), text
     for m in levels:
-        x, tagged, rest = float(m.group(2)), m.group(3) is not None, m.group(4)
-        assert tagged == (x <= contact_m), m.group(0)  # contact: one level, the impact line's
+        tail, rest = m.group(3), m.group(4)
+        assert tail in ("", ", the spec's margin") and "contact" not in tail, m.group(0)
         if "not reached" in rest:
             assert "(0 of " in rest, m.group(0)  # not reached: no rollout reached it
         if "reached by" in rest and not rest.startswith("not"):
@@ -43,9 +46,9 @@ def _check(text: str, signal: str, contact_m: float) -> None:
 def test_braking_console_uses_one_meaning_per_word(capsys):
     text = _console(capsys)
     _check(text, "gap", 0.7)
-    assert "gap < 0.5 m (contact)" in text
-    assert "gap < 0 m (contact)           not reached by this run (0 of 1,800" in text
-    assert "gap < 1 m (contact)" not in text
+    assert "\n  gap < 0.5 m                   reached by " in text
+    assert "\n  gap < 0 m                     not reached by this run (0 of 1,800" in text
+    assert "contact: gap <= 0.7 m" in text and text.count("contact: gap <=") == 1
 
 
 @pytest.mark.slow
@@ -53,4 +56,4 @@ def test_cut_in_console_uses_one_meaning_per_word(capsys):
     text = _console(capsys, "--scenario", "cut-in")
     _check(text, "clearance", 0.0)
     assert "why: the most likely failure (stage " in text
-    assert "clearance < 0 m (contact)" in text and "clearance < 1 m (contact)" not in text
+    assert "\n  clearance < 0 m  " in text and "(contact)" not in text

@@ -5,6 +5,7 @@ Chromium with the network cut and holds the numbers the console printed."""
 from __future__ import annotations
 
 import contextlib
+import html
 import io
 import json
 import os
@@ -134,13 +135,41 @@ def test_a_report_of_a_bad_source_is_one_line(tmp_path, capsys):
         (tmp_path / "run.rrd", "a recording without its result document beside it (run.result.json)"),
         (tmp_path / "other.json", "not a pemviz result document"),
         (tmp_path / "broken.json", "not a readable JSON file"),
-        (tmp_path / "absent.json", "no such file"),
+        (tmp_path / "absent.json", "absent.json: no such file"),
+        (tmp_path / "nosuch.rrd", "nosuch.rrd: no such file"),  # the file itself, not its result document
     ]
     for path, message in cases:
         code = main(["report", str(path)])
         err = capsys.readouterr().err.strip()
         assert code == 2 and message in err and len(err.splitlines()) == 1, err
+    assert "result document" not in err
     assert not list(tmp_path.glob("*.html"))
+
+
+@pytest.mark.parametrize("existing", [["r.md"], ["r.html"], ["r.html", "r.md"]])
+def test_a_report_onto_an_existing_file_names_both_files_before_any_work(tmp_path, capsys, existing):
+    """`pemviz run --report r.html` where r.md (or r.html, or both) exists: one line naming what would be written
+    (the page and its twin), what exists and the flag that replaces it; nothing written, no run started. `pemviz
+    report` says the same of its --out."""
+    for name in existing:
+        (tmp_path / name).write_text("kept")
+    page, result = tmp_path / "r.html", tmp_path / "result.json"
+    fields = {"scenario": "braking", "method": "adaptive", "seed": 0, "estimate": {}, "n_simulations": 1}
+    result.write_text(json.dumps({"format": "pemviz-result", **fields}))
+    for argv in (
+        ["run", "--n", "100", "--no-record", "--report", str(page)],
+        ["report", str(result), "--out", str(page)],
+    ):
+        code = main(argv)
+        out = capsys.readouterr()
+        err = out.err.strip()
+        flag = "--report" if argv[0] == "run" else "--out"
+        assert code == 2 and len(err.splitlines()) == 1 and not out.out, err
+        assert f"{flag} {page}: writes {page} and its Markdown twin {tmp_path / 'r.md'}; " in err, err
+        named = "both exist" if len(existing) == 2 else f"{tmp_path / existing[0]} exists"
+        assert f"{named}: give --overwrite to replace" in err, err
+        assert all((tmp_path / name).read_text() == "kept" for name in existing)
+        assert sorted(p.name for p in tmp_path.iterdir() if p.suffix != ".json") == sorted(existing)
 
 
 def test_report_html_needs_the_result_fields():
@@ -236,3 +265,79 @@ def test_the_report_says_what_its_number_rests_on(tmp_path, uncertainty):
     else:
         assert doc["pem_spread"] is None and "not computed for this run" in body and "--pem-uncertainty" in body
         assert "under the PEM's uncertainty" not in headline
+
+
+MEANINGS = {"reliable": ["run"], "bound-only": ["run", "--preset", "paper"]}
+"""A default run (its verdict reliable) and a run whose weights back no interval (the paper's preset: a lower bound
+alone), for the report's words against the console's."""
+
+
+@pytest.fixture(scope="module", params=sorted(MEANINGS))
+def meant(request, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp(f"meaning-{request.param}")
+    page, result = tmp / "page.html", tmp / "result.json"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*MEANINGS[request.param], "--no-record", "--json", str(result), "--report", str(page)]) == 0
+    doc = json.loads(result.read_text())
+    assert (doc["estimate"]["verdict"] == "reliable") == (request.param == "reliable"), doc["estimate"]
+    return request.param, out.getvalue(), page, doc
+
+
+def _md_rows(text: str, section: str) -> list[list[str]]:
+    """The cells of each body row of the Markdown table under ``## section``."""
+    block = text.split(f"## {section}\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in block.splitlines() if line.startswith("| ")][1:]  # the header off
+    return [[c.strip() for c in re.split(r"(?<!\\)\|", row)[1:-1]] for row in rows]
+
+
+def test_no_check_row_reads_as_failed_when_it_passed(meant):
+    """Each check row says what the run found and "passed" exactly when the figure meets the verdict's rule (checked
+    here from the document's figures and the rule's own numbers: 10 failures, ESS 20, k-hat min(1 - 1 / log10 N,
+    0.7)); a passed row carries no word of failure."""
+    import math
+
+    _, _, page, doc = meant
+    e = doc["estimate"]
+    rows = dict(_md_rows(page.with_suffix(".md").read_text(), "What this number rests on"))
+    truth = {
+        "check: failures": e["n_failures"] >= 10,
+        "check: effective sample size": e["ess"] is not None and e["ess"] >= 20,
+        "check: Pareto k-hat": e["k_hat"] is not None and e["k_hat"] <= min(1 - 1 / math.log10(e["n"]), 0.7),
+    }
+    assert e["sampling"] == "importance"
+    for name, passed in truth.items():
+        text = rows[name]
+        assert text.endswith(", passed") == passed and ("failed" in text) == (not passed), text
+        if passed:
+            assert not re.search(r"fewer than|below|above|doubtful|unreliable|dominate", text), text
+    assert rows["check: failures"].startswith(f"{e['n_failures']:,} failure")
+    assert rows["verdict"] == f"{e['verdict']}: {e['reason']}"
+
+
+def test_the_report_s_severity_rows_are_the_console_s(meant):
+    """The report's severity table says what the console's severity lines say, figure for figure and word for word;
+    a level the run does not estimate shows no estimate (the point the weights do not back), and the chart's legend
+    names each kind of mark it draws."""
+    scene, stdout, page, doc = meant
+    lines = stdout.splitlines()
+    start = lines.index(doc["severity"]["title"])
+    console = [line for line in lines[start + 1 : start + 1 + len(doc["severity"]["points"])]]
+    rows = _md_rows(page.with_suffix(".md").read_text(), "Severity")
+    assert len(rows) == len(console) == len(doc["severity"]["points"]) >= 5
+    for (level, says), line, pt in zip(rows, console, doc["severity"]["points"], strict=True):
+        assert re.fullmatch(rf"  {re.escape(level)} +{re.escape(says)}", line), (level, says, line)
+        numbers = re.findall(r"\d\.\d+e[-+]\d+", line)
+        assert numbers == re.findall(r"\d\.\d+e[-+]\d+", says)
+        if pt["shown"] in ("bound", "not reached") and pt["p"]:
+            assert f"{pt['p']:.3e}" not in says and says.split(" ")[0] in ("reached", "not"), says
+    html_page = page.read_text()
+    for _level, says in rows:
+        assert f"<td>{html.escape(says)}</td>" in html_page, says
+    shown = {pt["shown"] for pt in doc["severity"]["points"][1:]}
+    assert ("not reached by any rollout" in html_page) == ("not reached" in shown)
+    assert ("95 % lower bound alone" in html_page) == ("bound" in shown or scene == "bound-only")
+    if scene == "bound-only":
+        assert "not reached" in shown and rows[0][1].split(" ")[1] == ">="  # the failure: its estimate and bound
+    else:
+        assert "estimate and its 95 % interval: reliable" in html_page

@@ -160,7 +160,7 @@ def test_console_and_json_show_the_curve(tmp_path, capsys):
     assert "severity: P(min gap < x), from the same rollouts" in text
     assert "gap < 1.5 m" in text and "exact 2.999e-17" in text
     assert (
-        "gap < 0 m (contact)           not reached by this run (0 of 1,800 rollouts): pemviz run --margin 0 "
+        "gap < 0 m                     not reached by this run (0 of 1,800 rollouts): pemviz run --margin 0 "
         "targets it" in text
     )
     doc = json.loads(out.read_text())

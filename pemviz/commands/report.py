@@ -14,8 +14,7 @@ import sys
 from pathlib import Path
 
 from pemviz.commands import COMMANDS, UsageError
-from pemviz.io.files import check_output_path
-from pemviz.sinks.report import markdown_twin, write_report
+from pemviz.sinks.report import check_report_paths, write_report
 from pemviz.io.result import RESULT_BESIDE_SUFFIX, RESULT_FORMAT, result_beside
 
 REQUIRED = ("format", "scenario", "method", "seed", "estimate", "n_simulations")
@@ -47,6 +46,10 @@ def read_result(path: Path) -> dict:
     Raises:
         UsageError: not a readable JSON file, or not a pemviz result document (one line saying what it is).
     """
+    if not path.exists():
+        raise UsageError(f"{path}: no such file")
+    if path.is_dir():
+        raise UsageError(f"{path}: a folder; give a result document (RESULT.json) or a saved recording (RUN.rrd)")
     if path.suffix == ".rrd":
         beside = result_beside(path)
         if not beside.exists():
@@ -64,8 +67,6 @@ def read_result(path: Path) -> dict:
         )
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise UsageError(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise UsageError(f"{path}: not a readable JSON file ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
@@ -86,8 +87,7 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out is not None else src.with_name(name + ".html")
     flag = "--out" if args.out is not None else "the report (named after its result; --out names another)"
     try:
-        check_output_path(out, ".html", flag, overwrite=args.overwrite)
-        check_output_path(markdown_twin(out), ".md", f"{flag}, its Markdown twin", overwrite=args.overwrite)
+        check_report_paths(out, flag, overwrite=args.overwrite)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     try:

@@ -114,13 +114,9 @@ def plan_outputs(args: argparse.Namespace, cfg: Any, target: str, default_record
         )
     report = getattr(args, "report_path", None)
     if report is not None:
-        from pemviz.sinks.report import markdown_twin
+        from pemviz.sinks.report import check_report_paths
 
-        _checked(
-            lambda: check_output_path(
-                markdown_twin(Path(report)), ".md", "--report (its Markdown twin)", overwrite=overwrite
-            )
-        )
+        report = _checked(lambda: check_report_paths(report, "--report", overwrite=overwrite))
     if args.junit_path is not None and cfg.stop.require is None:
         raise UsageError(
             "--junit writes a requirement as a test case: give one with --require, e.g. " "--require 'p < 1e-9'"
@@ -132,10 +128,9 @@ def plan_outputs(args: argparse.Namespace, cfg: Any, target: str, default_record
         for flag, value, suffix in (
             ("--json", args.json_path, ".json"),
             ("--junit", args.junit_path, ".xml"),
-            ("--report", report, ".html"),
         )
     }
-    outputs = RunOutputs(recording, rollouts, found["--json"], found["--junit"], found["--report"], overwrite)
+    outputs = RunOutputs(recording, rollouts, found["--json"], found["--junit"], report, overwrite)
     check_distinct(outputs)
     return outputs
 

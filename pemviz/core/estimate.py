@@ -446,6 +446,13 @@ def _estimate(
     )
 
 
+def khat_threshold(n: int) -> float:
+    """The k-hat above which an importance-sampling estimate of ``n`` rollouts is at best ``doubtful``: the
+    sample-size threshold min(1 - 1 / log10 n, :data:`KHAT_UNRELIABLE`) of Vehtari et al. (2024), Sec. 3.2 (0 for
+    n <= 10)."""
+    return min(1.0 - 1.0 / math.log10(n), KHAT_UNRELIABLE) if n > 10 else 0.0
+
+
 def _verdict(
     n: int, nf: int, ess: float, khat: float, log_weight: np.ndarray, plain_mc: bool, distinct: int
 ) -> tuple[str, str]:
@@ -484,7 +491,7 @@ def _verdict(
             return "doubtful", f"k-hat {khat:.2f} > {KHAT_UNRELIABLE}: the weights' tail is heavy or clustered"
         if math.isnan(khat):  # fewer than 25 failures: no tail to fit, and "reliable" needs one (nan compares False)
             return "doubtful", f"k-hat needs 25 failures to fit the weights' tail ({nf} here): more rollouts needed"
-        threshold = min(1.0 - 1.0 / math.log10(n), KHAT_UNRELIABLE) if n > 10 else 0.0
+        threshold = khat_threshold(n)
         if khat > threshold:
             return "doubtful", f"k-hat {khat:.2f} > {threshold:.2f}: more rollouts needed"
         if ess < MIN_ESS_RELIABLE:

@@ -1,9 +1,10 @@
 """Severity: how deep the failures go, as an exceedance curve P(failure and min_t s_t < x) over levels x of a signal.
 
 A failure of ``G(d >= 2)`` mixes grazes of the 2 m margin with contact. The exceedance curve splits them: for a
-signal s (e.g. the braking scenario's gap, metres) and levels x from the spec's margin down to contact (x = 0), the
-probability that
-a rollout fails and its signal drops below x: the exceedance curve that severity and fragility analyses read.
+signal s (e.g. the braking scenario's gap, metres) and levels x from the spec's margin down to 0, the probability that
+a rollout fails and its signal drops below x: the exceedance curve that severity and fragility analyses read. Contact
+is one distance of the scale (:attr:`SeverityScale.contact`), stated once with the impact speeds; the curve's levels
+are distances alone.
 
 Each point is estimated from the same importance-weighted rollouts as the failure probability: with E_x the event
 and tau_x the step at which it is decided (the later of the failure step and the first step with s < x),
@@ -48,10 +49,9 @@ class SeverityScale:
         margin: the level at which the spec itself fails on this signal (e.g. the braking scenario's crash gap, 2 m),
             or None where the failure is not a level of this signal (a failure of another signal, e.g. a safe
             distance).
-        contact: the level of contact on the curve (0: the objects touch).
-        contact_at: the distance at or below which a rollout counts as in contact for its own severity (its impact
-            speed, :func:`contact_level`): where the scene stops its objects short of 0 (e.g. the braking scenario's
-            0.7 m, where the scene stops the ego as CARLA's collision does); None: :attr:`contact`.
+        contact: the distance at or below which the objects are in contact, the one meaning of contact (the impact
+            speeds', :func:`contact_level`): 0 where the boxes meet, more where the scene stops its objects short of
+            0 (e.g. the braking scenario's 0.7 m, where it stops the ego as CARLA's collision does).
         target_flag: the ``pemviz run`` flag that makes a level the failure itself (``margin``: a run that targets
             it), or None.
     """
@@ -63,19 +63,15 @@ class SeverityScale:
     margin: float | None = None
     contact: float = 0.0
     target_flag: str | None = None
-    contact_at: float | None = None
 
     def __post_init__(self) -> None:
         if any(b >= a for a, b in zip(self.levels, self.levels[1:], strict=False)):
             raise ValueError(f"severity levels must be strictly descending, got {self.levels}")
 
     def level_text(self, x: float) -> str:
-        """``gap < 1 m``, with ``(contact)`` where every rollout below x is in contact: x at or below the contact
-        level (:attr:`contact_at` where the scene stops its objects short of 0, else :attr:`contact`), the one meaning
-        of contact that the impact speeds use too (:func:`contact_level`)."""
-        touch = self.contact if self.contact_at is None else self.contact_at
-        tail = " (contact)" if x <= touch else ""
-        return f"{self.label} < {x:g} {self.unit}{tail}".replace("  ", " ")
+        """``gap < 1 m``: the level by its distance alone. Contact is one level, :func:`contact_level`, which the
+        impact-speed line states (``contact: gap <= 0.7 m``); a level's row does not repeat the word."""
+        return f"{self.label} < {x:g} {self.unit}".replace("  ", " ")
 
 
 def level_events(
@@ -130,6 +126,10 @@ class SeverityPoint:
         return self.estimate.verdict == "reliable"
 
 
+SHOWN = ("interval", "estimate and bound", "bound", "no bound", "not reached")
+"""What a run shows of a point of its severity curve (:meth:`SeverityCurve.shown`)."""
+
+
 @dataclass(frozen=True)
 class SeverityCurve:
     """The exceedance curve of a run: the failure itself, then each level of the scale (:class:`SeverityScale`).
@@ -164,44 +164,55 @@ class SeverityCurve:
         event = f"min {s.label} < x" if s.margin is not None else f"failure and min {s.label} < x"
         return f"severity: P({event}), from the same rollouts"
 
-    def rows(self) -> list[tuple[str, str]]:
-        """(the point's level in words, what the run says of it) for each point: the estimate, its interval, ESS,
-        verdict and the exact answer where known; a level the run does not reach reliably says so, and how to reach
-        it (the scale's ``target_flag``, or more rollouts)."""
-        s = self.scale
-        out = []
-        for point in self.points:
-            e = point.estimate
-            if point is not self.points[0] and not point.reached:
-                how = (
-                    f"pemviz run --{s.target_flag} {point.level:g} targets it"
-                    if s.target_flag
-                    else "more rollouts (a larger budget, or --rel-error)"
-                )
-                if e.n_failures == 0:
-                    out.append((self.point_text(point), f"not reached by this run (0 of {e.n:,} rollouts): {how}"))
-                else:  # reached, but its weights back no estimate: what they do back, a lower bound
-                    bound = (
-                        f"p >= {format_probability(e.log_lower_bound, 2)} (95 % lower bound), no upper bound"
-                        if e.log_lower_bound > -math.inf
-                        else "no bound either way"
-                    )
-                    out.append(
-                        (
-                            self.point_text(point),
-                            f"reached by {e.n_failures:,} of {e.n:,} rollouts, not "
-                            f"estimated (ESS {e.ess:.1f}, {e.verdict}): {bound}; {how}",
-                        )
-                    )
-                continue
+    def shown(self, point: SeverityPoint) -> str:
+        """What the run shows of a point (:data:`SHOWN`): ``interval``, an estimate with the interval the run backs
+        (plain Monte Carlo, or a ``reliable`` verdict); ``estimate and bound``, the failure itself where the weights
+        back no interval (its estimate beside its 95 % lower bound); ``bound``, a level reached but not estimated (its
+        lower bound alone); ``no bound``, reached with no bound either way; ``not reached``, no rollout reached it."""
+        e = point.estimate
+        if point is self.points[0]:
+            return "interval" if e.interval_backed or e.n_failures == 0 else "estimate and bound"
+        if point.reached:
+            return "interval"
+        if e.n_failures == 0:
+            return "not reached"
+        return "bound" if e.log_lower_bound > -math.inf else "no bound"
+
+    def says(self, point: SeverityPoint) -> str:
+        """What the run says of a point, the one text the console's line and the report's row both show: the
+        estimate, its interval (or lower bound), ESS, verdict and the exact answer where known; a level the run does
+        not estimate says why, what it does back, and how to reach it (the scale's ``target_flag``, or more
+        rollouts)."""
+        e, s, shown = point.estimate, self.scale, self.shown(point)
+        if shown in ("interval", "estimate and bound"):
             text = f"{format_probability(e.log_mu_hat)} {e.interval_text()}  ESS {e.ess:.1f}  {e.verdict}"
             if point.exact_log_p is not None:  # "inside" / "OUTSIDE" an interval; "above" / "BELOW" a lower bound
                 text += (
                     f"; exact {format_probability(point.exact_log_p)} "
                     f"({error_text(e.log_mu_hat, point.exact_log_p)}, {e.holds_word(point.exact_log_p)})"
                 )
-            out.append((self.point_text(point), text))
-        return out
+            return text
+        assert point.level is not None  # only a level of the scale is not estimated
+        how = (
+            f"pemviz run --{s.target_flag} {point.level:g} targets it"
+            if s.target_flag
+            else "more rollouts (a larger budget, or --rel-error)"
+        )
+        if shown == "not reached":
+            return f"not reached by this run (0 of {e.n:,} rollouts): {how}"
+        bound = (
+            f"p >= {format_probability(e.log_lower_bound, 2)} (95 % lower bound), no upper bound"
+            if shown == "bound"
+            else "no bound either way"
+        )
+        return (
+            f"reached by {e.n_failures:,} of {e.n:,} rollouts, not estimated (ESS {e.ess:.1f}, {e.verdict}): "
+            f"{bound}; {how}"
+        )
+
+    def rows(self) -> list[tuple[str, str]]:
+        """(the point's level in words, what the run says of it: :meth:`says`) for each point."""
+        return [(self.point_text(point), self.says(point)) for point in self.points]
 
     def lines(self) -> list[str]:
         """The curve as console lines: :meth:`title`, then one line per point (:meth:`rows`), e.g.
@@ -267,9 +278,8 @@ def severity_of_signal(signal: np.ndarray, contact: float, dt_s: float) -> tuple
 
 
 def contact_level(problem: object) -> float:
-    """The distance at or below which a problem's objects touch (metres), as its severity scale states it:
-    :attr:`SeverityScale.contact_at` where the scene stops its objects short of 0 (e.g. the braking scenario's 0.7 m),
-    else :attr:`SeverityScale.contact` (0: the boxes meet).
+    """The distance at or below which a problem's objects touch (metres), as its severity scale states it
+    (:attr:`SeverityScale.contact`: 0 where the boxes meet, the braking scenario's 0.7 m where it stops the ego).
 
     Raises:
         ValueError: a problem without a severity scale.
@@ -277,7 +287,7 @@ def contact_level(problem: object) -> float:
     scale = getattr(problem, "severity", None)
     if scale is None:
         raise ValueError(f"problem {getattr(problem, 'name', problem)!r} has no severity scale")
-    return float(scale.contact if scale.contact_at is None else scale.contact_at)
+    return float(scale.contact)
 
 
 class SeverityProblem(Protocol):

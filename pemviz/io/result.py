@@ -101,6 +101,7 @@ def result_document(
             "n": int(e.n),
             "verdict": e.verdict,
             "reason": e.reason,
+            "sampling": _sampling(config, e),
         },
         "n_simulations": int(final.n_simulations),
         "wall_s": _number(final.wall_s),
@@ -140,6 +141,9 @@ def result_document(
                     "n_events": int(pt.estimate.n_failures),
                     "verdict": pt.estimate.verdict,
                     "exact": None if pt.exact_log_p is None else _probability(pt.exact_log_p),
+                    "lower_bound95": _probability(pt.estimate.log_lower_bound)["p"],
+                    "shown": curve.shown(pt),
+                    "says": curve.says(pt),
                 }
                 for pt in curve.points
             ],
@@ -161,6 +165,16 @@ def result_document(
             "why": d.why,
         }
     return doc
+
+
+def _sampling(config: Any, e: Any) -> str:
+    """How the estimate's rollouts were drawn (:data:`pemviz.core.verdict_checks.SAMPLINGS`): ``plain`` (plain Monte
+    Carlo, a method's or the fallback's), ``importance`` (a weighted method) or ``splitting`` (AMS: no weights)."""
+    from pemviz.methods import get_method
+
+    if e.plain_mc:
+        return "plain"
+    return "importance" if get_method(config.method).weighted else "splitting"
 
 
 def _pem_spread(spread: Any) -> dict[str, Any] | None:

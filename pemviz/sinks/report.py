@@ -107,34 +107,80 @@ def _estimate_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
     return rows
 
 
-def _severity_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str, str]]:
-    out = []
-    for pt in (doc.get("severity") or {}).get("points", []):
-        exact = _p(pt["exact"]["p"]) if pt.get("exact") else "-"
-        out.append((pt["text"], _p(pt["p"]), _interval(pt["ci95"]), _num(pt["ess"]), pt["verdict"], exact))
-    return out
+def _severity_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
+    """Each point of the curve: its level and what the run says of it, the console's words
+    (:meth:`pemviz.core.severity.SeverityCurve.says`)."""
+    return [(pt["text"], pt["says"]) for pt in (doc.get("severity") or {}).get("points", [])]
 
 
-def severity_svg(doc: dict[str, Any], width: int = 560, height: int = 300) -> str:
-    """The severity curve as an inline SVG: log10 p against the level (the scale's unit), each point with its 95 %
-    interval, filled where the verdict is ``reliable`` and hollow otherwise, the exact answers as crosses; an empty
-    string without a curve or without a positive estimate."""
+def _marker(kind: str, x: float, y: float, colour: str, tip: str = "") -> str:
+    """One mark of the severity chart: ``filled`` / ``hollow`` circle (an estimate), ``bound`` (an upward triangle: a
+    lower bound alone), ``unreached`` (a downward triangle on the floor) or ``exact`` (a cross)."""
+    title = f"<title>{html.escape(tip)}</title>" if tip else ""
+    if kind == "exact":
+        return (
+            f'<path d="M{x - 5:.1f},{y - 5:.1f}L{x + 5:.1f},{y + 5:.1f}M{x - 5:.1f},{y + 5:.1f}'
+            f'L{x + 5:.1f},{y - 5:.1f}" stroke="{colour}" stroke-width="1.5">{title}</path>'
+        )
+    if kind in ("bound", "unreached"):
+        d = -1 if kind == "bound" else 1  # the bound points up (p is at least this), the floor mark down
+        return (
+            f'<path d="M{x:.1f},{y + 6 * d:.1f}L{x - 5.5:.1f},{y - 4 * d:.1f}L{x + 5.5:.1f},{y - 4 * d:.1f}Z" '
+            f'fill="{colour if kind == "bound" else WHITE}" stroke="{colour}" stroke-width="1.5">{title}</path>'
+        )
+    fill = colour if kind == "filled" else WHITE
+    return (
+        f'<circle cx="{x:.1f}" cy="{y:.1f}" r="4.5" fill="{fill}" stroke="{colour}" stroke-width="2">{title}</circle>'
+    )
+
+
+LEGEND = {
+    "filled": "estimate and its 95 % interval: reliable",
+    "hollow": "estimate the verdict does not back",
+    "bound": "95 % lower bound alone (not estimated)",
+    "unreached": "not reached by any rollout",
+    "exact": "exact answer",
+}
+"""The severity chart's legend: each mark it draws (:func:`_marker`) and what it means."""
+
+
+def _log10(p: float | None) -> float | None:
+    return math.log10(p) if p else None
+
+
+def severity_svg(doc: dict[str, Any], width: int = 860, height: int = 300) -> str:
+    """The severity curve as an inline SVG with its legend: log10 p against the level (the scale's unit), each point
+    as the run shows it (the result document's ``shown``, :meth:`pemviz.core.severity.SeverityCurve.shown`): an
+    estimate with its 95 % interval (filled where ``reliable``, else hollow), a lower bound alone (an upward
+    triangle), a level no rollout reached (a downward triangle on the floor); the exact answers as crosses; the
+    colour is the verdict's. An empty string without a curve or without anything to draw."""
     sev = doc.get("severity") or {}
     pts = [pt for pt in sev.get("points", []) if pt.get("level") is not None]
-    shown = [pt for pt in pts if pt.get("p")]
-    if len(pts) < 2 or not shown:
+    values = [
+        v
+        for pt in pts
+        for v in (
+            (_log10(pt["p"]), *(_log10(c) for c in pt["ci95"]))
+            if pt["shown"] in ("interval", "estimate and bound")
+            else ()
+        )
+        + ((_log10(pt["lower_bound95"]),) if pt["shown"] in ("estimate and bound", "bound") else ())
+        + ((_log10(pt["exact"]["p"]),) if pt.get("exact") else ())
+        if v is not None
+    ]
+    if len(pts) < 2 or not values:
         return ""
-    values = [math.log10(v) for pt in shown for v in (pt["p"], *(c for c in pt["ci95"] if c))]
-    values += [math.log10(pt["exact"]["p"]) for pt in pts if pt.get("exact") and pt["exact"]["p"]]
     lo, hi = math.floor(min(values)), math.ceil(max(values))
+    lo -= any(pt["shown"] == "not reached" for pt in pts)  # a decade below for the floor's marks
     hi = hi if hi > lo else lo + 1
     levels = [pt["level"] for pt in pts]
     x0, x1 = min(levels), max(levels)
     x1 = x1 if x1 > x0 else x0 + 1
-    left, right, top, bottom = 70, 20, 20, 45
+    plot_w = 520
+    left, top, bottom = 70, 20, 45
 
     def sx(x: float) -> float:  # larger levels on the left: the curve falls as the failures get worse
-        return left + (x1 - x) / (x1 - x0) * (width - left - right)
+        return left + 10 + (x1 - x) / (x1 - x0) * (plot_w - left - 20)
 
     def sy(log10p: float) -> float:
         return top + (hi - log10p) / (hi - lo) * (height - top - bottom)
@@ -147,44 +193,58 @@ def severity_svg(doc: dict[str, Any], width: int = 560, height: int = 300) -> st
     step = max(1, (hi - lo) // 6)
     for k in range(lo, hi + 1, step):
         y = sy(k)
-        parts.append(f'<line x1="{left}" x2="{width - right}" y1="{y:.1f}" y2="{y:.1f}" stroke="{RULE}"/>')
+        parts.append(f'<line x1="{left}" x2="{plot_w}" y1="{y:.1f}" y2="{y:.1f}" stroke="{RULE}"/>')
         parts.append(f'<text x="{left - 6}" y="{y + 4:.1f}" font-size="11" text-anchor="end">1e{k}</text>')
     for x in levels:
         parts.append(
-            f'<text x="{sx(x):.1f}" y="{height - bottom + 16}" font-size="11" text-anchor="middle">' f"{x:g}</text>"
+            f'<text x="{sx(x):.1f}" y="{height - bottom + 16}" font-size="11" text-anchor="middle">{x:g}</text>'
         )
     unit = html.escape(sev.get("unit", ""))
     parts.append(
-        f'<text x="{(left + width - right) / 2:.1f}" y="{height - 8}" font-size="12" text-anchor="middle">'
+        f'<text x="{(left + plot_w) / 2:.1f}" y="{height - 8}" font-size="12" text-anchor="middle">'
         f'{html.escape(sev.get("label", "level"))} below x ({unit})</text>'
     )
     parts.append(
         f'<text x="14" y="{(top + height - bottom) / 2:.1f}" font-size="12" text-anchor="middle" '
         f'transform="rotate(-90 14 {(top + height - bottom) / 2:.1f})">probability</text>'
     )
+    used: set[str] = set()
+
+    def mark(kind: str, x: float, y: float, colour: str, tip: str) -> None:
+        used.add(kind)
+        parts.append(_marker(kind, x, y, colour, tip))
+
     for pt in pts:
-        x = sx(pt["level"])
-        if pt.get("exact") and pt["exact"]["p"]:
-            y = sy(math.log10(pt["exact"]["p"]))
-            parts.append(
-                f'<path d="M{x - 5:.1f},{y - 5:.1f}L{x + 5:.1f},{y + 5:.1f}M{x - 5:.1f},{y + 5:.1f}'
-                f'L{x + 5:.1f},{y - 5:.1f}" stroke="{MUTED}" stroke-width="1.5"/>'
-            )
-        if not pt.get("p"):
-            continue
+        x, tip = sx(pt["level"]), f"{pt['text']}: {pt['says']}"
         colour = VERDICT_COLOURS.get(pt["verdict"], MUTED)
-        a, b = pt["ci95"]
-        if a and b:
-            parts.append(
-                f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{sy(math.log10(b)):.1f}" y2="{sy(math.log10(a)):.1f}" '
-                f'stroke="{colour}" stroke-width="2"/>'
+        if pt.get("exact") and pt["exact"]["p"]:
+            mark("exact", x, sy(math.log10(pt["exact"]["p"])), MUTED, f"{pt['text']}: exact {_p(pt['exact']['p'])}")
+        if pt["shown"] == "not reached":
+            mark("unreached", x, height - bottom - 6, MUTED, tip)
+        if pt["shown"] in ("estimate and bound", "bound") and pt["lower_bound95"]:
+            mark("bound", x, sy(math.log10(pt["lower_bound95"])), colour, tip)
+        if pt["shown"] in ("interval", "estimate and bound") and pt["p"]:
+            a, b = pt["ci95"]
+            if pt["shown"] == "interval" and a and b:
+                parts.append(
+                    f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{sy(math.log10(b)):.1f}" y2="{sy(math.log10(a)):.1f}" '
+                    f'stroke="{colour}" stroke-width="2"/>'
+                )
+            mark("filled" if pt["verdict"] == "reliable" else "hollow", x, sy(math.log10(pt["p"])), colour, tip)
+    y = top + 4
+    for kind, words in LEGEND.items():
+        if kind in used:
+            colour = (
+                MUTED
+                if kind in ("exact", "unreached")
+                else VERDICT_COLOURS["reliable" if kind == "filled" else "doubtful"]
             )
-        fill = colour if pt["verdict"] == "reliable" else WHITE
-        parts.append(
-            f'<circle cx="{x:.1f}" cy="{sy(math.log10(pt["p"])):.1f}" r="4.5" fill="{fill}" '
-            f'stroke="{colour}" stroke-width="2"><title>{html.escape(pt["text"])}: {_p(pt["p"])} '
-            f'({pt["verdict"]})</title></circle>'
-        )
+            parts.append(_marker(kind, plot_w + 30, y, colour))
+            parts.append(f'<text x="{plot_w + 44}" y="{y + 4:.1f}" font-size="11">{html.escape(words)}</text>')
+            y += 20
+    for line in ("colour: the verdict (green reliable,", "amber doubtful, red unreliable)"):
+        parts.append(f'<text x="{plot_w + 24}" y="{y + 4:.1f}" font-size="11" fill="{MUTED}">{line}</text>')
+        y += 16
     parts.append("</svg>")
     return "".join(parts)
 
@@ -259,21 +319,13 @@ def _spread_text(spread: dict[str, Any] | None) -> str:
 
 
 def _checks(e: dict[str, Any]) -> list[tuple[str, str]]:
-    """The verdict's checks one by one (:func:`pemviz.core.estimate.estimate`'s thresholds), each with its figure."""
-    from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES
+    """The verdict's checks one by one (:func:`pemviz.core.verdict_checks.verdict_checks`), each with what it found,
+    its rule and whether it passed, then the verdict and what the run backs."""
+    from pemviz.core.verdict_checks import verdict_checks
 
-    khat = e.get("k_hat")
+    checks = verdict_checks(e["n"], e["n_failures"], e["ess"], e["k_hat"], e["sampling"])
     return [
-        ("check: failures", f"{e['n_failures']:,} (fewer than {MIN_FAILURES}: doubtful)"),
-        (
-            "check: effective sample size",
-            f"{_num(e['ess'])} (below {MIN_ESS_RELIABLE} under importance sampling: " "never reliable)",
-        ),
-        (
-            "check: Pareto k-hat",
-            f"{_num(khat, '.2f')} (above {KHAT_UNRELIABLE}: a few weights dominate; '-' for plain "
-            "Monte Carlo or too few failures to fit)",
-        ),
+        *((f"check: {c.name}", c.text()) for c in checks),
         ("verdict", f"{e['verdict']}: {e['reason']}"),
         (
             "what is printed",
@@ -337,7 +389,7 @@ def _sections(doc: dict[str, Any]) -> list[Section]:
             (
                 "Severity",
                 f"{title.removeprefix('severity: ')}: how deep the failures go.",
-                ("level", "p", "95 % interval", "ESS", "verdict", "exact"),
+                ("level", "what this run says (the console's words)"),
                 _severity_rows(doc),
             )
         )
@@ -454,6 +506,37 @@ def report_markdown(doc: dict[str, Any]) -> str:
 def markdown_twin(path: Path) -> Path:
     """Where the Markdown twin of the report ``path`` goes: the same name with ``.md``."""
     return path.with_suffix(".md")
+
+
+def check_report_paths(page: str | os.PathLike[str], flag: str, *, overwrite: bool = False) -> Path:
+    """Refuse a report whose page or Markdown twin (:func:`markdown_twin`) cannot be written, before any work; where
+    one of them exists (without ``overwrite``), one line names both files, which of them exists and the flag that
+    replaces it, e.g. ``--report r.html: writes r.html and its Markdown twin r.md; r.md exists: give --overwrite to
+    replace it``.
+
+    Raises:
+        ValueError: as :func:`pemviz.io.files.check_output_path` for either file (:class:`OutputExists`, naming both,
+            for an existing one).
+    """
+    from pemviz.core.files import OutputExists
+    from pemviz.io.files import check_output_path
+
+    page = Path(page)
+    twin = markdown_twin(page)
+    existing = []
+    for path, suffix, what in ((page, ".html", flag), (twin, ".md", f"{flag} (its Markdown twin)")):
+        try:
+            check_output_path(path, suffix, what, overwrite=overwrite)
+        except OutputExists:
+            existing.append(path)
+    if existing:
+        which = (
+            "both exist: give --overwrite to replace them"
+            if len(existing) == 2
+            else (f"{existing[0]} exists: give --overwrite to replace it")
+        )
+        raise OutputExists(f"{flag} {page}: writes {page} and its Markdown twin {twin}; {which}")
+    return page
 
 
 def write_report(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite: bool = False) -> tuple[Path, Path]:

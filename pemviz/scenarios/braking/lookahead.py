@@ -2,10 +2,10 @@
 until its gap first drops below a start gap (5 m), and from there every detection sequence is enumerated, so the
 rollout contributes its importance weight up to that step times the exact probability of a failure after it.
 
-Why: a contact (gap < 0 m) needs the ego to reach the contact gap with its gap just above it at full speed, a window of
+Why: a gap below 0 m needs the ego to reach the contact gap with its gap just above it at full speed, a window of
 about 2 cm that the detections of the last 40 steps set (:func:`pemviz.scenarios.braking.problem.
 never_detected_min_gap_m`). A proposal of the state does not see that phase, and the weights of a run that targets
-contact were heavy (ESS 1-13 of 1,000, up to 4 times off). Enumerating the last steps replaces that phase by its exact
+0 m were heavy (ESS 1-13 of 1,000, up to 4 times off). Enumerating the last steps replaces that phase by its exact
 average: the estimator stays unbiased (a conditional expectation given the state at a stopping time: Asmussen & Glynn,
 Stochastic Simulation, Springer 2007, V.4, conditional Monte Carlo), and only the weights before the start gap vary.
 
@@ -34,7 +34,7 @@ branch steps a rollout, each one step of the scene's dynamics); from 5 m, 0.149 
 from 2 m the weights stay heavy (ESS 8 of 1,000), from 7 m a run takes about a minute."""
 
 LOOK_AHEAD_ROLLOUT_S = 3.5e-3
-"""Seconds per rollout of the look-ahead from :data:`LOOK_AHEAD_GAP_M` targeting contact, about (2-core developer
+"""Seconds per rollout of the look-ahead from :data:`LOOK_AHEAD_GAP_M` targeting 0 m, about (2-core developer
 machine: 3 s for a final batch of 1,000, 0.3-0.5 s for a CE stage of 100), for the run's time estimates."""
 
 PRUNE_NATS = 40.0
@@ -42,7 +42,7 @@ PRUNE_NATS = 40.0
 
 MAX_BRANCHES = 4_000_000
 """The most branches held at once (about 0.3 GB); more raise an error rather than exhaust the memory. Rollouts are
-enumerated in groups of 100: from 6 m, targeting contact, a group held at most 1.4 x 10^6 (seeds 0-4)."""
+enumerated in groups of 100: from 6 m, targeting 0 m, a group held at most 1.4 x 10^6 (seeds 0-4)."""
 
 
 def start_steps(gap_m: np.ndarray, start_gap_m: float) -> np.ndarray:

@@ -39,7 +39,8 @@ def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":
 
 
 BRAKING_SEVERITY_LEVELS_M = (1.5, 1.0, 0.5, 0.0)
-"""Gaps (metres) of the braking scenario's exceedance curve below its crash gap: 0 is contact."""
+"""Gaps (metres) of the braking scenario's exceedance curve below its crash gap, down to 0 m (contact is a gap at or
+below ``BrakingParams.contact_gap_m``, 0.7 m: the severity scale's ``contact``)."""
 
 
 def never_detected_min_gap_m(params: BrakingParams) -> float:
@@ -101,7 +102,7 @@ def braking_problem(pem: GapModel, params: BrakingParams | None = None, sim: str
         tuple(x for x in BRAKING_SEVERITY_LEVELS_M if x < p.crash_gap_m),
         margin=p.crash_gap_m,
         target_flag="margin",
-        contact_at=p.contact_gap_m,
+        contact=p.contact_gap_m,
     )
     exact = {}
     if hasattr(pem, "logit_at_gap"):
