@@ -7,13 +7,14 @@ the output folder check, and the argument helpers of ``validate`` and ``tables``
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterable, cast
 
 from pemviz.settings import SETTINGS, Setting
 from pemviz.config import ConfigError, ExperimentConfig, default_of
-from pemviz.io.files import check_output_path
+from pemviz.io.files import check_output_path, write_text_atomic
 
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -141,10 +142,36 @@ SAMPLER_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ce_epochs", "pretrain
 """The settings ``validate`` and ``tables`` take from the command line."""
 
 
-def add_sampler_arguments(p: argparse.ArgumentParser) -> None:
-    """The sampler sizes shared by ``validate`` and ``tables``: --k, --n, --n-final, --ce-epochs, ..."""
-    for name in SAMPLER_SETTINGS:
-        add_setting(p, name)
+def add_study_arguments(p: argparse.ArgumentParser, name: str, files: str, jobs: int, jobs_note: str = "") -> None:
+    """The arguments ``validate`` and ``tables`` share: the sampler sizes (--k, --n, --n-final, --ce-epochs, ...),
+    ``--jobs`` (default ``jobs``) and ``--out`` (default ``name``: the folder of ``files`` and the runs file)."""
+    from pemviz.studies.validation import RUNS_FILE
+
+    for setting in SAMPLER_SETTINGS:
+        add_setting(p, setting)
+    p.add_argument("--jobs", type=int, default=jobs, help=f"worker processes (default {jobs}{jobs_note})")
+    p.add_argument(
+        "--out",
+        default=name,
+        metavar="DIR",
+        help=f"folder for {files} and {RUNS_FILE} (each run as it ends; an existing folder resumes: finished runs are "
+        f"not run again) (default {name})",
+    )
+
+
+def say(text: str) -> None:
+    """A progress line of ``validate`` or ``tables``, on stderr."""
+    print(text, file=sys.stderr, flush=True)
+
+
+def write_study(out: Path, name: str, text: str, csv_text: str) -> None:
+    """Print a study's report and write it as ``<name>.md`` and ``<name>.csv`` into ``out`` (atomically)."""
+    from pemviz.studies.validation import RUNS_FILE
+
+    print(text)
+    write_text_atomic(out / f"{name}.md", text)
+    write_text_atomic(out / f"{name}.csv", csv_text)
+    say(f"wrote {out / f'{name}.md'}, {out / f'{name}.csv'} and {out / RUNS_FILE}")
 
 
 def setting_error(exc: ConfigError) -> UsageError:

@@ -19,24 +19,17 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 
-from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
+from pemviz.commands import COMMANDS, UsageError, add_study_arguments, base_fields, output_folder, say
+from pemviz.commands import split_choices, write_study
 from pemviz.core.estimate import format_probability
 from pemviz.engine.resources import cap_jobs
-from pemviz.io.files import check_output_folder, write_text_atomic
+from pemviz.io.files import check_output_folder
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import PROBLEMS, build_problem
-from pemviz.studies.paper_tables import (
-    records_by_row,
-    report,
-    row_specs,
-    rows_csv,
-    table_jobs,
-    tables_rows,
-    write_recording,
-)
+from pemviz.studies.paper_tables import records_by_row, report, row_specs, rows_csv, table_jobs, tables_rows
+from pemviz.studies.paper_tables import write_recording
 from pemviz.studies.exact_answers import ExactAnswer, exact_answer
 from pemviz.studies.validation import RUNS_FILE, RunRecord, run_jobs
 
@@ -59,15 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--mc-large", type=int, default=10000, help="rollouts of the large MC row (default 10000)")
     p.add_argument("--naive-large", type=int, default=1000, help="rollouts of the large naive-50 row (default 1000)")
-    add_sampler_arguments(p)
-    p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2: the CI machine's cores)")
-    p.add_argument(
-        "--out",
-        default="tables",
-        metavar="DIR",
-        help=f"folder for tables.md, tables.csv, tables.rrd and {RUNS_FILE} (each run as it ends; an existing folder "
-        "resumes: finished runs are not run again) (default tables)",
-    )
+    add_study_arguments(p, "tables", "tables.md, tables.csv, tables.rrd", 2, ": the CI machine's cores")
     p.add_argument("--no-record", action="store_true", help="write no recording")
     p.set_defaults(func=main)
 
@@ -83,9 +68,6 @@ def main(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out, ("tables.md", "tables.csv", "tables.rrd"))
     base = base_fields(args)
     out = output_folder(out)
-
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
 
     n_jobs = cap_jobs(args.jobs, say)
 
@@ -107,10 +89,7 @@ def main(args: argparse.Namespace) -> int:
     by_label = records_by_row(specs, done)
     rows_all = tables_rows(specs, by_label, truth.log_p_fail, extra)
     text = report(args.problem, args.reps, base, truth, rows_all, n_jobs, time.perf_counter() - t0)
-    print(text)
-    write_text_atomic(out / "tables.md", text)
-    write_text_atomic(out / "tables.csv", rows_csv(rows_all))
-    say(f"wrote {out / 'tables.md'}, {out / 'tables.csv'} and {out / RUNS_FILE}")
+    write_study(out, "tables", text, rows_csv(rows_all))
     if not args.no_record:
         problem = build_problem(args.problem, args.pem)
         write_recording(out / "tables.rrd", specs, by_label, problem.curve_grid, problem.target_curve(), text)

@@ -14,29 +14,19 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 
-from pemviz.commands import COMMANDS, UsageError, add_sampler_arguments, base_fields, output_folder, split_choices
+from pemviz.commands import COMMANDS, UsageError, add_study_arguments, base_fields, output_folder, say
+from pemviz.commands import split_choices, write_study
 from pemviz.core.estimate import format_probability, relative_error
 from pemviz.engine.resources import cap_jobs
-from pemviz.io.files import check_output_folder, write_text_atomic
+from pemviz.io.files import check_output_folder
 from pemviz.presets import DEFAULT_PRESET, PRESETS
 from pemviz.scenarios.problems import PROBLEMS
 from pemviz.studies.exact_answers import ExactAnswer, exact_answer, problem_description, validation_problems
-from pemviz.studies.validation import (
-    BASELINES,
-    DEFAULT_PROBLEMS,
-    RUNS_FILE,
-    RunRecord,
-    methods_for,
-    report,
-    run_jobs,
-    study_jobs,
-    summaries_csv,
-    summarise,
-)
+from pemviz.studies.validation import BASELINES, DEFAULT_PROBLEMS, RUNS_FILE, RunRecord, methods_for, report
+from pemviz.studies.validation import run_jobs, study_jobs, summaries_csv, summarise
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -65,15 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "ams: adaptive multilevel splitting, N = budget / 4 particles)",
     )
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
-    add_sampler_arguments(p)
-    p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
-    p.add_argument(
-        "--out",
-        default="validate",
-        metavar="DIR",
-        help=f"folder for validate.md, validate.csv and {RUNS_FILE} (each run as it ends; an existing folder resumes: "
-        "finished runs are not run again) (default validate)",
-    )
+    add_study_arguments(p, "validate", "validate.md, validate.csv", 1)
     p.set_defaults(func=main)
 
 
@@ -95,9 +77,6 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError("nothing to run: give --presets and/or --baselines")
     out_dir = output_folder(args.out)
 
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
     n_jobs = cap_jobs(args.jobs, say)
     t0 = time.perf_counter()
     truths: dict[str, ExactAnswer] = {}
@@ -118,8 +97,5 @@ def main(args: argparse.Namespace) -> int:
     records = run_jobs(jobs, n_jobs, on_record, runs_file=out_dir / RUNS_FILE, progress=True)
     summaries = summarise(records, truths)
     text = report(problems, truths, summaries, args.seeds, time.perf_counter() - t0)
-    print(text)
-    write_text_atomic(out_dir / "validate.md", text)
-    write_text_atomic(out_dir / "validate.csv", summaries_csv(summaries))
-    say(f"wrote {out_dir / 'validate.md'}, {out_dir / 'validate.csv'} and {out_dir / RUNS_FILE}")
+    write_study(out_dir, "validate", text, summaries_csv(summaries))
     return 0

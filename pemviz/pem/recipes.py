@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -32,8 +32,57 @@ DEFAULT_NOISE_NAME = "hetero-t"
 """The noise PEM :func:`pemviz.pem.load_noise_pem` loads when given no name."""
 
 
+_Model = TypeVar("_Model")
+
+
+class _Recipe(Generic[_Model]):
+    """What the recipes below share: ``train`` with the recipe's ``seed`` / ``epochs`` unless overridden."""
+
+    name: str
+    epochs: int
+    seed: int
+
+    def train(
+        self,
+        inputs: np.ndarray,
+        targets: np.ndarray,
+        *,
+        seed: int | None = None,
+        epochs: int | None = None,
+        norm: NormStats | None = None,
+        progress: bool = False,
+        metadata: Mapping[str, Any] | None = None,
+    ) -> _Model:
+        """Train on raw inputs ``[M, F]`` and the recipe's targets (detection labels ``[M]`` in {0, 1}, or metric
+        errors ``[M, 2]`` in metres for a noise PEM); ``seed`` / ``epochs`` override the recipe's (``epochs`` is the
+        number of trees of a tree PEM, which draws no progress bar)."""
+        return self._fit(
+            inputs,
+            targets,
+            epochs=self.epochs if epochs is None else epochs,
+            seed=self.seed if seed is None else seed,
+            norm=norm,
+            progress=progress,
+            metadata={"recipe": self.name, **dict(metadata or {})},
+        )
+
+    def _fit(
+        self,
+        inputs: np.ndarray,
+        targets: np.ndarray,
+        /,
+        *,
+        epochs: int,
+        seed: int,
+        norm: NormStats | None,
+        progress: bool,
+        metadata: dict[str, Any],
+    ) -> _Model:
+        raise NotImplementedError
+
+
 @dataclass(frozen=True)
-class PemRecipe:
+class PemRecipe(_Recipe[PEM]):
     """An ML-NN-style PEM: the architecture and optimiser settings passed to :func:`pemviz.pem.training.train_pem`."""
 
     name: str
@@ -47,18 +96,7 @@ class PemRecipe:
     weight_decay: float = 0.0
     seed: int = 0
 
-    def train(
-        self,
-        inputs: np.ndarray,
-        labels: np.ndarray,
-        *,
-        seed: int | None = None,
-        epochs: int | None = None,
-        norm: NormStats | None = None,
-        progress: bool = False,
-        metadata: Mapping[str, Any] | None = None,
-    ) -> PEM:
-        """:func:`pemviz.pem.training.train_pem` with this recipe (``seed`` / ``epochs`` override the recipe's)."""
+    def _fit(self, inputs: np.ndarray, labels: np.ndarray, /, **common: Any) -> PEM:
         return train_pem(
             inputs,
             labels,
@@ -66,19 +104,15 @@ class PemRecipe:
             hidden=self.hidden,
             batch_norm=self.batch_norm,
             dropout=self.dropout,
-            epochs=self.epochs if epochs is None else epochs,
             batch_size=self.batch_size,
             lr=self.lr,
             weight_decay=self.weight_decay,
-            seed=self.seed if seed is None else seed,
-            norm=norm,
-            progress=progress,
-            metadata={"recipe": self.name, **dict(metadata or {})},
+            **common,
         )
 
 
 @dataclass(frozen=True)
-class TreeRecipe:
+class TreeRecipe(_Recipe[TreePEM]):
     """A boosted-trees PEM: the settings passed to :func:`train_tree_pem` (``epochs`` = number of trees)."""
 
     name: str
@@ -90,30 +124,17 @@ class TreeRecipe:
     l2_regularization: float = 1.0
     seed: int = 0
 
-    def train(
-        self,
-        inputs: np.ndarray,
-        labels: np.ndarray,
-        *,
-        seed: int | None = None,
-        epochs: int | None = None,
-        norm: NormStats | None = None,
-        progress: bool = False,
-        metadata: Mapping[str, Any] | None = None,
-    ) -> TreePEM:
-        """:func:`train_tree_pem` with this recipe (``epochs`` overrides the number of trees; no progress bar)."""
+    def _fit(self, inputs: np.ndarray, labels: np.ndarray, /, *, epochs: int, progress: bool, **common: Any) -> TreePEM:
         return train_tree_pem(
             inputs,
             labels,
             name=self.name,
             learning_rate=self.learning_rate,
-            max_iter=self.epochs if epochs is None else epochs,
+            max_iter=epochs,
             max_leaf_nodes=self.max_leaf_nodes,
             min_samples_leaf=self.min_samples_leaf,
             l2_regularization=self.l2_regularization,
-            seed=self.seed if seed is None else seed,
-            norm=norm,
-            metadata={"recipe": self.name, **dict(metadata or {})},
+            **common,
         )
 
 
@@ -133,7 +154,7 @@ PEM_RECIPES: dict[str, PemRecipe | TreeRecipe] = {
 
 
 @dataclass(frozen=True)
-class NoiseRecipe:
+class NoiseRecipe(_Recipe[NoisePEM]):
     """A heteroscedastic noise PEM: the family, architecture and optimiser settings passed to
     :func:`train_noise_pem`."""
 
@@ -147,33 +168,17 @@ class NoiseRecipe:
     weight_decay: float = 0.0
     seed: int = 0
 
-    def train(
-        self,
-        inputs: np.ndarray,
-        errors: np.ndarray,
-        *,
-        seed: int | None = None,
-        epochs: int | None = None,
-        norm: NormStats | None = None,
-        progress: bool = False,
-        metadata: Mapping[str, Any] | None = None,
-    ) -> NoisePEM:
-        """:func:`train_noise_pem` with this recipe on raw inputs ``[M, 11]`` and metric errors ``[M, 2]`` (metres);
-        ``seed`` / ``epochs`` override the recipe's."""
+    def _fit(self, inputs: np.ndarray, errors: np.ndarray, /, **common: Any) -> NoisePEM:
         return train_noise_pem(
             inputs,
             errors,
             name=self.name,
             family=self.family,
             hidden=self.hidden,
-            epochs=self.epochs if epochs is None else epochs,
             batch_size=self.batch_size,
             lr=self.lr,
             weight_decay=self.weight_decay,
-            seed=self.seed if seed is None else seed,
-            norm=norm,
-            progress=progress,
-            metadata={"recipe": self.name, **dict(metadata or {})},
+            **common,
         )
 
 

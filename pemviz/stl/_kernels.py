@@ -33,12 +33,69 @@ def is_tensor(x: Any) -> bool:
 Array = Any  # np.ndarray | torch.Tensor
 
 
-class NumpyOps:
+class _Ops:
+    """The array operations numpy and torch spell alike, on the array module ``xp`` (float64 arrays)."""
+
+    xp: Any
+
+    @classmethod
+    def minimum(cls, a: Array, b: Array) -> Array:
+        return cls.xp.minimum(a, b)
+
+    @classmethod
+    def maximum(cls, a: Array, b: Array) -> Array:
+        return cls.xp.maximum(a, b)
+
+    @classmethod
+    def where(cls, c: Array, a: Any, b: Any) -> Array:
+        return cls.xp.where(c, a, b)
+
+    @classmethod
+    def log(cls, x: Array) -> Array:
+        return cls.xp.log(x)
+
+    @classmethod
+    def expm1(cls, x: Array) -> Array:
+        return cls.xp.expm1(x)
+
+    @classmethod
+    def zeros_like(cls, x: Array) -> Array:
+        return cls.xp.zeros_like(x)
+
+    @classmethod
+    def isnan_any(cls, x: Array) -> bool:
+        return bool(cls.xp.isnan(x).any())
+
+    @classmethod
+    def amin(cls, x: Array, axis: int) -> Array:
+        return cls.xp.amin(x, axis=axis)
+
+    @classmethod
+    def amax(cls, x: Array, axis: int) -> Array:
+        return cls.xp.amax(x, axis=axis)
+
+    @classmethod
+    def sum(cls, x: Array, axis: int) -> Array:
+        return cls.xp.sum(x, axis=axis)
+
+    @classmethod
+    def prod(cls, x: Array, axis: int) -> Array:
+        return cls.xp.prod(x, axis=axis)
+
+    @staticmethod
+    def affine(x: Array, c: float, k: float) -> Array:
+        """c * x + k as a fresh array of x's layout."""
+        if c == 1.0:
+            return x + k
+        if c == -1.0:
+            return k - x
+        return x * c + k if k != 0.0 else x * c
+
+
+class NumpyOps(_Ops):
     """Array operations on float64 numpy arrays."""
 
-    name = "numpy"
-    minimum = staticmethod(np.minimum)
-    maximum = staticmethod(np.maximum)
+    xp = np
 
     @staticmethod
     def logaddexp(a: Array, b: Array) -> Array:
@@ -70,28 +127,6 @@ class NumpyOps:
         return e
 
     @staticmethod
-    def prod(x: Array, axis: int) -> Array:
-        return x.prod(axis=axis)
-
-    log1p = staticmethod(np.log1p)
-    expm1 = staticmethod(np.expm1)
-    log = staticmethod(np.log)
-    exp = staticmethod(np.exp)
-    where = staticmethod(np.where)
-
-    @staticmethod
-    def amin(x: Array, axis: int) -> Array:
-        return x.min(axis=axis)
-
-    @staticmethod
-    def amax(x: Array, axis: int) -> Array:
-        return x.max(axis=axis)
-
-    @staticmethod
-    def sum(x: Array, axis: int) -> Array:
-        return x.sum(axis=axis)
-
-    @staticmethod
     def logsumexp(x: Array, axis: int) -> Array:
         m = x.max(axis=axis, keepdims=True)
         m = np.where(np.isfinite(m), m, 0.0)
@@ -111,20 +146,8 @@ class NumpyOps:
         return np.concatenate(xs, axis=axis)
 
     @staticmethod
-    def stack(xs: Sequence[Array], axis: int) -> Array:
-        return np.stack(xs, axis=axis)
-
-    @staticmethod
     def const(values: Any, like: Array) -> Array:
         return np.asarray(values, dtype=np.float64)
-
-    @staticmethod
-    def isnan_any(x: Array) -> bool:
-        return bool(np.isnan(x).any())
-
-    @staticmethod
-    def zeros_like(x: Array) -> Array:
-        return np.zeros_like(x)
 
     @staticmethod
     def affine_t(x: Array, c: float, k: float) -> Array:
@@ -139,18 +162,6 @@ class NumpyOps:
             np.multiply(xt, c, out=out)
             if k != 0.0:
                 out += k
-        return out
-
-    @staticmethod
-    def affine(x: Array, c: float, k: float) -> Array:
-        """c * x + k as a fresh array of x's layout."""
-        if c == 1.0:
-            return x + k
-        if c == -1.0:
-            return k - x
-        out = x * c
-        if k != 0.0:
-            out += k
         return out
 
     @staticmethod
@@ -170,18 +181,10 @@ class NumpyOps:
         return np.clip(x, lo, hi)
 
 
-class TorchOps:
+class TorchOps(_Ops):
     """Array operations on float64 torch tensors (differentiable where the maths is)."""
 
-    name = "torch"
-
-    @staticmethod
-    def minimum(a: Array, b: Array) -> Array:
-        return torch.minimum(a, b)
-
-    @staticmethod
-    def maximum(a: Array, b: Array) -> Array:
-        return torch.maximum(a, b)
+    xp = torch
 
     @staticmethod
     def logaddexp(a: Array, b: Array) -> Array:
@@ -191,31 +194,6 @@ class TorchOps:
     def softplus(x: Array, b: float) -> Array:
         # threshold 40: beyond it log1p(e^u)/b differs from u by < e^-40 / b
         return torch.nn.functional.softplus(x, beta=b, threshold=40.0)
-
-    @staticmethod
-    def prod(x: Array, axis: int) -> Array:
-        return torch.prod(x, dim=axis)
-
-    log1p = staticmethod(lambda x: torch.log1p(x))
-    expm1 = staticmethod(lambda x: torch.expm1(x))
-    log = staticmethod(lambda x: torch.log(x))
-    exp = staticmethod(lambda x: torch.exp(x))
-
-    @staticmethod
-    def where(c: Array, a: Any, b: Any) -> Array:
-        return torch.where(c, a, b)
-
-    @staticmethod
-    def amin(x: Array, axis: int) -> Array:
-        return torch.amin(x, dim=axis)
-
-    @staticmethod
-    def amax(x: Array, axis: int) -> Array:
-        return torch.amax(x, dim=axis)
-
-    @staticmethod
-    def sum(x: Array, axis: int) -> Array:
-        return torch.sum(x, dim=axis)
 
     @staticmethod
     def logsumexp(x: Array, axis: int) -> Array:
@@ -234,38 +212,13 @@ class TorchOps:
         return torch.cat(list(xs), dim=axis)
 
     @staticmethod
-    def stack(xs: Sequence[Array], axis: int) -> Array:
-        return torch.stack(list(xs), dim=axis)
-
-    @staticmethod
     def const(values: Any, like: Array) -> Array:
         return torch.as_tensor(values, dtype=torch.float64, device=like.device)
 
-    @staticmethod
-    def isnan_any(x: Array) -> bool:
-        return bool(torch.isnan(x).any())
-
-    @staticmethod
-    def zeros_like(x: Array) -> Array:
-        return torch.zeros_like(x)
-
-    @staticmethod
-    def affine_t(x: Array, c: float, k: float) -> Array:
+    @classmethod
+    def affine_t(cls, x: Array, c: float, k: float) -> Array:
         """c * x.T + k for x [n, L], as a fresh contiguous (time-major) [L, n] tensor."""
-        xt = x.T.contiguous()
-        if c == 1.0:
-            return xt + k
-        if c == -1.0:
-            return k - xt
-        return xt * c + k if k != 0.0 else xt * c
-
-    @staticmethod
-    def affine(x: Array, c: float, k: float) -> Array:
-        if c == 1.0:
-            return x + k
-        if c == -1.0:
-            return k - x
-        return x * c + k if k != 0.0 else x * c
+        return cls.affine(x.T.contiguous(), c, k)
 
     @staticmethod
     def contiguous(x: Array) -> Array:
