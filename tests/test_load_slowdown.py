@@ -41,34 +41,19 @@ def test_the_panels_cost_line_scales_by_the_load():
     assert run_cost(cfg, slowdown=1.5).seconds == pytest.approx(1.5 * run_cost(cfg, slowdown=1.0).seconds)
 
 
-def test_other_sessions_count_once_and_this_session_s_tasks_by_their_niceness(monkeypatch):
+def test_other_tasks_count_by_their_niceness_against_the_run_s(monkeypatch):
     import io
 
-    stat = "{pid} ({name}) {state} 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 {nice} 1 0 5 0 0"  # field 3 the state, 19 the nice
-    files = {
-        "/proc/sys/kernel/sched_autogroup_enabled": "1\n",
-        "/proc/99/autogroup": "/autogroup-4 nice 0\n",  # this run's session
-        "/proc/11/stat": stat.format(pid=11, name="busy one", state="R", nice=0),
-        "/proc/11/autogroup": "/autogroup-4 nice 0\n",
-        "/proc/12/stat": stat.format(pid=12, name="nice) 10", state="R", nice=10),
-        "/proc/12/autogroup": "/autogroup-4 nice 0\n",
-        "/proc/13/stat": stat.format(pid=13, name="idle", state="S", nice=0),
-        "/proc/13/autogroup": "/autogroup-4 nice 0\n",
-        "/proc/21/stat": stat.format(pid=21, name="other", state="R", nice=0),  # another session, three busy
-        "/proc/21/autogroup": "/autogroup-7 nice 0\n",
-        "/proc/22/stat": stat.format(pid=22, name="other", state="R", nice=10),
-        "/proc/22/autogroup": "/autogroup-7 nice 0\n",
-        "/proc/23/stat": stat.format(pid=23, name="other", state="R", nice=0),
-        "/proc/23/autogroup": "/autogroup-7 nice 0\n",
+    stats = {  # pid -> /proc/<pid>/stat: state (field 3) and nice (field 19), a name with a space and a parenthesis
+        "11": "11 (busy one) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 0 1 0 5 0 0",
+        "12": "12 (nice) 10) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 30 10 1 0 5 0 0",
+        "13": "13 (idle) S 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 0 1 0 5 0 0",
     }
-    monkeypatch.setattr(resources.os, "listdir", lambda path: ["self", "11", "12", "13", "21", "22", "23", "99"])
+    monkeypatch.setattr(resources.os, "listdir", lambda path: ["self", "11", "12", "13", "99"])
     monkeypatch.setattr(resources.os, "getpid", lambda: 99)
     monkeypatch.setattr(resources.os, "getpriority", lambda which, who: 10)  # this run under nice -n 10
-    monkeypatch.setattr(resources, "open", lambda path, **kw: io.StringIO(files[path]), raising=False)
-    # the kernel's weights (sched_prio_to_weight): nice 0 1024, nice 10 110; the sleeping task does not count, the
-    # other session counts once
-    assert resources.competing_now() == pytest.approx(1024 / 110 + 110 / 110 + 1, rel=1e-3)
-    files["/proc/sys/kernel/sched_autogroup_enabled"] = "0\n"  # no autogroups: every task by its weight
-    assert resources.competing_now() == pytest.approx(3 * 1024 / 110 + 2, rel=1e-3)
+    monkeypatch.setattr(resources, "open", lambda path, **kw: io.StringIO(stats[path.split("/")[2]]), raising=False)
+    # the kernel's weights (sched_prio_to_weight): nice 0 1024, nice 10 110; the sleeping task does not count
+    assert resources.relative_weight() == pytest.approx((1024 / 110 + 110 / 110) / 2, rel=1e-3)
     monkeypatch.setattr(resources.os, "getpriority", lambda which, who: 0)
-    assert resources.competing_now() == pytest.approx(3 + 2 * 110 / 1024, rel=1e-3)
+    assert resources.relative_weight() == pytest.approx((1.0 + 110 / 1024) / 2, rel=1e-3)

@@ -113,65 +113,49 @@ NICE_WEIGHT = 1.25
 n as 1024 / 1.25^n (``sched_prio_to_weight``, kernel/sched/core.c)."""
 
 
-def _read(path: str) -> str:
-    with open(path, encoding="ascii", errors="replace") as f:
-        return f.read()
-
-
-def competing_now() -> float | None:
-    """The other processes running or waiting for a CPU now (state R in ``/proc/<pid>/stat``), as the scheduler
-    shares the CPUs between them and this one: with autogroups on (``/proc/sys/kernel/sched_autogroup_enabled``) the
-    CPUs go to the sessions alike (Linux's autogroup scheduling, ``/proc/<pid>/autogroup``), so each other session
-    with a runnable process counts once whatever its processes and their niceness; within this process's own session
-    (or everywhere, with autogroups off) each counts by its weight against this one's, :data:`NICE_WEIGHT` to the
-    power (this nice - its nice). None where ``/proc`` cannot be read (not Linux)."""
+def relative_weight() -> float:
+    """The mean scheduler weight of the other processes running or waiting for a CPU now, relative to this one's:
+    :data:`NICE_WEIGHT` to the power (this process's nice - theirs), each read from ``/proc/<pid>/stat`` (state R,
+    field 19 the nice value); 1 where none runs or ``/proc`` cannot be read. A run under ``nice -n 10`` among tasks at
+    nice 0 gets a tenth of their share: each of them counts as 9.3 tasks of its own niceness. With Linux's autogroups
+    (sessions shared alike) this overstates a pure CPU loop's slowdown (3.0x measured where it says 11-14x on 2 loaded
+    cores), but a pemviz run's, whose fits slow far more than their CPU share under load, it met within 11-39 % where
+    the plain count said 2.5 times too little (``benchmarks/time_estimates.py``, docs/validation.md)."""
+    own, me, weights = os.getpriority(os.PRIO_PROCESS, 0), os.getpid(), []
     try:
         names = os.listdir("/proc")
-        groups = _read("/proc/sys/kernel/sched_autogroup_enabled").strip() == "1"
     except OSError:
-        return None
-    own_nice, me = os.getpriority(os.PRIO_PROCESS, 0), os.getpid()
-    own_group = _group(me) if groups else ""
-    ours, others = 0.0, set()
+        return 1.0
     for name in names:
         if not name.isdigit() or int(name) == me:
             continue
         try:
-            fields = _read(f"/proc/{name}/stat").rsplit(")", 1)[1].split()  # field 3 on: the name may hold spaces
-            if fields[0] != "R":
-                continue
-            group = _group(int(name)) if groups else ""
+            with open(f"/proc/{name}/stat", encoding="ascii", errors="replace") as f:
+                fields = f.read().rsplit(")", 1)[1].split()  # from field 3 (the state) on: the name may hold spaces
+            if fields[0] == "R":
+                weights.append(NICE_WEIGHT ** (own - int(fields[16])))
         except (OSError, IndexError, ValueError):
             continue
-        if group == own_group:
-            ours += NICE_WEIGHT ** (own_nice - int(fields[16]))  # field 19: the nice value
-        else:
-            others.add(group)
-    return ours + len(others)
-
-
-def _group(pid: int) -> str:
-    """The autogroup of process ``pid`` (``/autogroup-58``); OSError where it cannot be read."""
-    return _read(f"/proc/{pid}/autogroup").split()[0]
+    return sum(weights) / len(weights) if weights else 1.0
 
 
 def runnable_now(samples: int = LOAD_SAMPLES, gap_s: float = LOAD_GAP_S) -> float | None:
-    """The tasks other than this one that are running or waiting for a CPU now, as they share the CPUs with it: the
-    mean over ``samples`` readings of :func:`competing_now`, else (no ``/proc/<pid>`` to read) of the kernel's count of
-    runnable tasks (the fourth field of ``/proc/loadavg``, which counts the reader) less one; None where neither can be
+    """The tasks other than this one that are running or waiting for a CPU now, weighed by their niceness against this
+    process's (:func:`relative_weight`): the mean over ``samples`` readings of the kernel's count of runnable tasks (the
+    fourth field of ``/proc/loadavg``, which counts the reader) less one, times that weight; None where it cannot be
     read (not Linux). Unlike the load averages it does not lag: a machine busy a minute ago and idle now reads 0."""
     counts = []
     for i in range(samples):
-        now = competing_now()
-        if now is None:
-            try:
-                now = max(0, int(_read("/proc/loadavg").split()[3].split("/")[0]) - 1)
-            except (OSError, IndexError, ValueError):
-                return None
-        counts.append(float(now))
+        try:
+            with open("/proc/loadavg", encoding="ascii") as f:
+                running = f.read().split()[3].split("/")[0]
+            counts.append(max(0, int(running) - 1))
+        except (OSError, IndexError, ValueError):
+            return None
         if i + 1 < samples:
             time.sleep(gap_s)
-    return sum(counts) / len(counts)
+    mean = sum(counts) / len(counts)
+    return mean * relative_weight() if mean > 0 else 0.0
 
 
 def load_slowdown(threads: int = 1) -> float:
