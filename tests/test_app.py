@@ -486,7 +486,7 @@ def test_progress_shows_elapsed_and_expected_time(tab):
     tab.button("Run").click()
     status = re.compile(
         r"CE stage \d+/40: cross-entropy update \(at most 150 epochs\) · stage \d+\.\d s(, about \d+\.\d s left in "
-        r"it|, nearly done) · run \d+\.\d s, about \d+ (s|min) left in all"
+        r"it|, nearly done) · run \d+\.\d s, ~[0-9.]+ (s|min) left in all(, up to ~[0-9.]+ (s|min))?"
     )
     expect(tab.page.get_by_text(status)).to_be_visible(timeout=60_000)
     tab.button("Stop").click()

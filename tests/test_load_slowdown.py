@@ -39,3 +39,21 @@ def test_the_panels_cost_line_scales_by_the_load():
 
     cfg = ExperimentConfig.of(n_stages=2, n_per_stage=50, n_final=60, pretrain_rollouts=20)
     assert run_cost(cfg, slowdown=1.5).seconds == pytest.approx(1.5 * run_cost(cfg, slowdown=1.0).seconds)
+
+
+def test_other_tasks_count_by_their_niceness_against_the_run_s(monkeypatch):
+    import io
+
+    stats = {  # pid -> /proc/<pid>/stat: state (field 3) and nice (field 19), a name with a space and a parenthesis
+        "11": "11 (busy one) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 0 1 0 5 0 0",
+        "12": "12 (nice) 10) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 30 10 1 0 5 0 0",
+        "13": "13 (idle) S 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 0 1 0 5 0 0",
+    }
+    monkeypatch.setattr(resources.os, "listdir", lambda path: ["self", "11", "12", "13", "99"])
+    monkeypatch.setattr(resources.os, "getpid", lambda: 99)
+    monkeypatch.setattr(resources.os, "getpriority", lambda which, who: 10)  # this run under nice -n 10
+    monkeypatch.setattr(resources, "open", lambda path, **kw: io.StringIO(stats[path.split("/")[2]]), raising=False)
+    # the kernel's weights (sched_prio_to_weight): nice 0 1024, nice 10 110; the sleeping task does not count
+    assert resources.relative_weight() == pytest.approx((1024 / 110 + 110 / 110) / 2, rel=1e-3)
+    monkeypatch.setattr(resources.os, "getpriority", lambda which, who: 0)
+    assert resources.relative_weight() == pytest.approx((1.0 + 110 / 1024) / 2, rel=1e-3)

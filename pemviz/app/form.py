@@ -199,18 +199,41 @@ def parse_form(
         return FormResult(None, {"": str(exc)})
 
 
-def run_cost(cfg: ExperimentConfig, n_steps: int = N_STEPS, slowdown: float | None = None) -> RunCost:
+_HORIZONS: dict[tuple[Any, ...], tuple[int, float]] = {}
+
+
+def horizon(cfg: ExperimentConfig) -> tuple[int, float]:
+    """T, the steps of a rollout of ``cfg``'s problem, and its look-ahead's seconds a rollout
+    (:attr:`pemviz.core.problems.Problem.n_steps`, :attr:`~pemviz.core.problems.Problem.look_ahead_s`), as the run's
+    clock reads them: the problem built once per scene, parameters, PEM, crash gap and simulator
+    (:func:`pemviz.scenarios.registry.problem_for`); (:data:`pemviz.engine.cost.N_STEPS`, 0) where it cannot be
+    built (the run then says why)."""
+    from pemviz.scenarios.registry import problem_for
+
+    key = (cfg.scenario, cfg.scenario_params, cfg.value("pem"), cfg.margin, cfg.sim)
+    if key not in _HORIZONS:
+        try:
+            problem = problem_for(cfg)
+            _HORIZONS[key] = (int(problem.n_steps or N_STEPS), float(problem.look_ahead_s))
+        except (OSError, ValueError, KeyError):  # a PEM that cannot be read, parameters refused: the run says which
+            _HORIZONS[key] = (N_STEPS, 0.0)
+    return _HORIZONS[key]
+
+
+def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float | None = None) -> RunCost:
     """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of the plan its estimator states,
-    :func:`pemviz.estimators.run_plan`): simulations, memory of the largest batch, expected seconds on this machine as
-    loaded now (times ``slowdown``; None: :func:`pemviz.engine.resources.load_slowdown`, as the console's first
-    progress line)."""
+    :func:`pemviz.estimators.run_plan`, on its problem's :func:`horizon`, or ``n_steps`` steps and no look-ahead):
+    simulations, memory of the largest batch, expected seconds as planned and with what may follow, on this machine
+    as loaded now (times ``slowdown``; None: :func:`pemviz.engine.resources.load_slowdown`), as the console's first
+    progress line says them (:class:`pemviz.sinks.StageClock`)."""
     from pemviz.engine.experiment import stream_above  # the engine and the estimators import torch: only when asked
     from pemviz.engine.resources import load_slowdown
     from pemviz.estimators import run_plan
 
-    idle = cost.run_cost(cfg, run_plan(cfg), n_steps, stream_above(cfg))
+    steps, look = horizon(cfg) if n_steps is None else (n_steps, 0.0)
+    idle = cost.run_cost(cfg, run_plan(cfg), steps, stream_above(cfg), look_ahead_s=look)
     factor = load_slowdown() if slowdown is None else float(slowdown)
-    return dataclasses.replace(idle, seconds=idle.seconds * factor)
+    return dataclasses.replace(idle, seconds=idle.seconds * factor, then_seconds=idle.then_seconds * factor)
 
 
 def setting_name(key: str) -> str:

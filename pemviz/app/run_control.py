@@ -25,7 +25,7 @@ from pemviz.app.runs_tab import RunsTab
 from pemviz.app.scene_view import SceneView
 from pemviz.scenarios.registry import problem_for
 from pemviz.engine import experiment
-from pemviz.engine.cost import duration
+from pemviz.engine.cost import range_text
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.engine.resources import torch_threads
 from pemviz.sinks import Sink
@@ -254,7 +254,9 @@ class RunControl:
             eta = ""
             if math.isfinite(stage_left):
                 eta = f", about {stage_left:.1f} s left in it" if stage_left > 0.05 else ", nearly done"
-            whole = f", about {duration(run_left)} left in all" if math.isfinite(run_left) else ""
+            whole = ""
+            if math.isfinite(run_left):
+                whole = f", {range_text(run_left, clock.run_most_s(), left=' left in all')}"
             self.status(
                 f"{record.short_label} · {label}: {doing} · stage {clock.stage_elapsed_s():.1f} s{eta} · run "
                 f"{record.elapsed_s():.1f} s{whole}"

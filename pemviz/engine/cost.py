@@ -214,13 +214,122 @@ def then_adds(cfg: ExperimentConfig, simulations: int) -> tuple[int, str]:
 
 
 @dataclass(frozen=True)
+class FollowOn:
+    """What a run may draw after its planned stages when they end in a way its method names
+    (:attr:`pemviz.methods.Method.then`): its stages once more (``retry``, numbered from ``offset`` on, as the engine
+    numbers them: :class:`pemviz.estimators.fallback.Shifted`), then at most ``plain_most`` plain rollouts.
+
+    Attributes:
+        retry: the plan of the stages run again (:attr:`pemviz.methods.Method.then_plan`; stage numbers from 0), or
+            None.
+        offset: the engine's number of the retry's first stage (the planned stages' last + 1).
+        plain_most: the most plain rollouts after the stages (and their retry).
+        simulations: all the simulations it may add (the retry's and the plain rollouts).
+        words: the cost line's words for them (:func:`then_adds`).
+    """
+
+    retry: RunPlan | None
+    offset: int
+    plain_most: int
+    simulations: int
+    words: str
+
+    @property
+    def retry_last(self) -> int:
+        """The engine's number of the retry's last stage (the planned stages' last without a retry)."""
+        return self.offset - 1 + (0 if self.retry is None else self.retry.stages[-1].stage + 1)
+
+    def text(self) -> str:
+        """``1,005,100 rollouts if the stages' weights back no interval (...)``: how many, and when."""
+        return f"{self.simulations:,} {self.words}"
+
+
+def follow_on(cfg: ExperimentConfig, plan: RunPlan) -> FollowOn | None:
+    """What a run of ``cfg`` and ``plan`` may draw after the plan's stages (:class:`FollowOn`), or None: nothing
+    (its method has no :attr:`~pemviz.methods.Method.then_most`, or it is 0)."""
+    from pemviz.methods import method_or_none, resolve
+
+    most, words = then_adds(cfg, int(cfg.n_simulations))
+    if most <= 0 or not plan.stages:
+        return None
+    record = method_or_none(cfg.method)
+    retry = None if record is None or record.then_plan is None else resolve(record.then_plan)(cfg)
+    again = 0 if retry is None else sum(s.n_rollouts for s in retry.stages)
+    return FollowOn(retry, plan.stages[-1].stage + 1, max(0, most - again), most, words)
+
+
+def follow_on_seconds(
+    cfg: ExperimentConfig, follow: FollowOn, n_steps: int = N_STEPS, look_ahead_s: float = 0.0, c: CostConstants = COST
+) -> float:
+    """The model's seconds of all of ``follow``: the retry's stages (:func:`stage_cost`, each rollout's look-ahead
+    ``look_ahead_s`` added) and ``plain_most`` plain rollouts (``stage_cost`` of a ``plain`` final batch)."""
+    again = 0.0
+    for s in () if follow.retry is None else follow.retry.stages:
+        again += stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage).seconds + s.n_rollouts * look_ahead_s
+    plain = stage_cost(cfg, "final", follow.plain_most, n_steps, c, model="plain").seconds if follow.plain_most else 0
+    return again + plain
+
+
+Z_95 = 1.96
+"""The standard normal's 97.5 % quantile: a 95 % interval's half-width in standard errors."""
+
+MC_REL_ERROR = 0.2
+"""The relative half-width of the 95 % interval the console's advice sizes plain Monte Carlo for (``--rel-error
+0.2``): about 96 failures."""
+
+
+def mc_rollouts(log_p: float, rel_error: float = MC_REL_ERROR) -> float:
+    """Rollouts plain Monte Carlo needs for a 95 % interval of half-width ``rel_error`` times p at the failure
+    probability p = e^``log_p`` (``log_p`` in nats): n = ceil(z^2 (1 - p) / (rel_error^2 p)), z = :data:`Z_95`, from the
+    binomial standard error sqrt(p (1 - p) / n) (the normal approximation to the binomial; the crude Monte Carlo
+    estimator's relative error sqrt((1 - p) / (n p)), Rubinstein & Kroese, "Simulation and the Monte Carlo Method", 3rd
+    ed., 2017; about 96 / p at 20 %, i.e. about 96 failures). A whole number as a float; inf where p underflows float64
+    (p < ~1e-300)."""
+    p = math.exp(log_p)
+    if not p > 1e-300:
+        return math.inf
+    return float(math.ceil(Z_95**2 * (1.0 - p) / (rel_error**2 * p)))
+
+
+def duration_text(seconds: float) -> str:
+    """``0.8 s``, ``42 s``, ``9.8 min``, ``63 min``, ``3.1 h``, ``12 days``, ``3.0e+05 years``: a duration given in
+    seconds, in the unit that reads best."""
+    if seconds < 10:
+        return f"{seconds:.1f} s"
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 600:
+        return f"{seconds / 60:.1f} min"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 48 * 3600:
+        return f"{seconds / 3600:.1f} h"
+    if seconds < 730 * 86400:
+        return f"{seconds / 86400:.0f} days"
+    years = seconds / (365.25 * 86400)
+    return f"{years:,.0f} years" if years < 10_000 else f"{years:.1e} years"
+
+
+def range_text(low_s: float, high_s: float = math.nan, then: str = "", left: str = "") -> str:
+    """``~1.2 s left, up to ~6.5 min with 1,005,100 rollouts if ...``: a run's seconds from ``low_s`` (as planned) up
+    to ``high_s`` (with what may follow, ``then``: :meth:`FollowOn.text`; empty: not said), in the words of both the
+    console's progress line and the panel's cost line (``left``: after the first figure, e.g. `` left``). The upper
+    end is left out where it is not finite or reads as the lower."""
+    text = f"~{duration_text(low_s)}{left}"
+    if math.isfinite(high_s) and duration_text(high_s) != duration_text(low_s):
+        text += f", up to ~{duration_text(high_s)}" + (f" with {then}" if then else "")
+    return text
+
+
+@dataclass(frozen=True)
 class RunCost:
     """What a run will take: simulations, the largest batch in memory (bytes), expected seconds, and what the run will
     count on top of the simulations (``adds``: e.g. a tilted proposal's look-aheads; ``""``: nothing).
 
     ``then_simulations`` and ``then_seconds``: the most a run may add after its planned stages, when they end in a
-    way it names (``then_words``: e.g. the cross-entropy sampler's plain Monte Carlo where its weights back no
-    interval, :mod:`pemviz.estimators.fallback`); not in :attr:`needs_confirm` (a run may well not need them)."""
+    way it names (``then_words``: e.g. the cross-entropy sampler's retry and plain Monte Carlo where its weights back
+    no interval, :mod:`pemviz.estimators.fallback`; :class:`FollowOn`); not in :attr:`needs_confirm` (a run may well
+    not need them)."""
 
     simulations: int
     memory_bytes: int
@@ -239,31 +348,31 @@ class RunCost:
             or self.memory_bytes > CONFIRM_BYTES
         )
 
+    def time_text(self, left: str = "") -> str:
+        """The run's seconds as a range (:func:`range_text`): as planned, up to the most that may follow."""
+        if self.then_simulations <= 0:
+            return range_text(self.seconds, left=left)
+        then = f"{self.then_simulations:,} {self.then_words}"
+        return range_text(self.seconds, self.seconds + self.then_seconds, then, left)
+
     def text(self) -> str:
         mem = self.memory_bytes / 1024**2
         adds = f" {self.adds}" if self.adds else ""
-        then = (
-            f"; then up to {self.then_simulations:,} {self.then_words}, about {duration(self.then_seconds)}"
-            if self.then_simulations > 0
-            else ""
-        )
-        return f"{self.simulations:,} simulations{adds}, {mem:,.1f} MB per batch, about {duration(self.seconds)}{then}"
-
-
-def duration(seconds: float) -> str:
-    """``7 s``, ``12 min``, ``1.5 h``: a rough duration in words."""
-    if seconds < 90:
-        return f"{max(1.0, seconds):.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
+        return f"{self.simulations:,} simulations{adds}, {mem:,.1f} MB per batch, {self.time_text()}"
 
 
 def run_cost(
-    cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, stream_above: int = 20_000, c: CostConstants = COST
+    cfg: ExperimentConfig,
+    plan: RunPlan,
+    n_steps: int = N_STEPS,
+    stream_above: int = 20_000,
+    c: CostConstants = COST,
+    look_ahead_s: float = 0.0,
 ) -> RunCost:
     """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, and the seconds of ``plan``
-    (the sum of :func:`stage_cost`; an open-ended plan counts its first stage only).
+    (the sum of :func:`stage_cost`, each rollout's look-ahead ``look_ahead_s`` added, as
+    :class:`pemviz.sinks.StageClock` adds it; an open-ended plan counts its first stage only) and of what may follow
+    it (:func:`follow_on`, :func:`follow_on_seconds`).
 
     A stage above ``stream_above`` rollouts (:data:`pemviz.engine.experiment.STREAM_ABOVE`) is simulated in chunks, so
     it does not count in full towards memory. The memory is the run's memory check's model
@@ -271,7 +380,11 @@ def run_cost(
     process's own :data:`pemviz.engine.resources.BASE_BYTES`: one model of a step's bytes for both.
     """
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
+    seconds += look_ahead_s * sum(s.n_rollouts for s in plan.stages)
     batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES
-    then, words = then_adds(cfg, int(cfg.n_simulations))
-    then_s = stage_cost(cfg, "final", then, n_steps, c, model="plain").seconds if then > 0 else 0.0
-    return RunCost(int(cfg.n_simulations), int(batch), float(seconds), run_adds(cfg.method), then, then_s, words)
+    follow = follow_on(cfg, plan)
+    if follow is None:
+        return RunCost(int(cfg.n_simulations), int(batch), float(seconds), run_adds(cfg.method))
+    then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c)
+    sims, adds = int(cfg.n_simulations), run_adds(cfg.method)
+    return RunCost(sims, int(batch), float(seconds), adds, follow.simulations, then_s, follow.words)

@@ -50,6 +50,15 @@ def adaptive_then_most(config: Any, simulations: int) -> tuple[int, str]:
     return retry + most, words
 
 
+def adaptive_then_plan(config: Any) -> RunPlan | None:
+    """The stages :func:`adaptive_then` runs once more before plain Monte Carlo: the plan at the retry's N
+    (:func:`pemviz.methods.adaptive.retry_n`), or None where the run has no retry (or no fallback at all)."""
+    again = retry_n(config)
+    if again is None or config.over_odd:
+        return None
+    return adaptive_plan(config.replace(n_per_stage=again))
+
+
 def adaptive_plan(config: Any) -> RunPlan:
     """The cross-entropy sampler's stages, from the config alone (:mod:`pemviz.estimators.ce_plan`: loads no
     sampler)."""

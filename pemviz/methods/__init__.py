@@ -68,6 +68,9 @@ class Method:
         then_most: optional, ``then_most(config, simulations) -> (n, words)``: the most simulations :attr:`then` may
             add after the ``simulations`` the method plans, and the cost line's words for them (e.g. ``plain rollouts
             more where the stages' weights back no interval``); None: nothing. A :data:`Ref`.
+        then_plan: optional, ``then_plan(config) -> RunPlan | None``: the stages :attr:`then` runs once more before
+            any plain rollouts (numbered from 0; the engine numbers them after the planned ones), for the time
+            estimates (:func:`pemviz.engine.cost.follow_on`); None: none. A :data:`Ref`.
         validate: optional, ``validate(config, n_objects) -> (setting, what is allowed) | None``: the first of the
             method's own settings that conflicts with another in ``config`` (its scene perceiving ``n_objects``
             objects a step), checked when the config is made; None: none. A :data:`Ref`.
@@ -104,6 +107,7 @@ class Method:
     proposal_curves: bool = False
     then: Ref = None
     then_most: Ref = None
+    then_plan: Ref = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -267,6 +271,7 @@ for _record in (
         proposal_curves=True,
         then="pemviz.estimators.builtin:adaptive_then",
         then_most="pemviz.estimators.builtin:adaptive_then_most",
+        then_plan="pemviz.estimators.builtin:adaptive_then_plan",
     ),
     Method(
         "mc",

@@ -322,6 +322,12 @@ _CUT_IN_COST_FACTOR = 6.7
 """A cut-in rollout step costs 6.7 braking ones (its five cars, their salient variables, measurement errors and
 tracker): 9.5 x 5.6 s / 7.9 s, the cut-in 1.4x faster, measured 2026-11-25 (``benchmarks/calibrate_cost.py``)."""
 
+_CROSSING_COST_FACTOR = 4.0
+"""A crossing rollout step (its pedestrians, the noise PEM's measurement errors and the Kalman tracker) costs 4 braking
+ones: 20,000 plain rollouts' CPU seconds against the model's, 4.1 and 5.7 times braking's and 3.0 times the cut-in's
+over the factor the model gives each, measured on 2 loaded cores (their median, 4.1; ``benchmarks/time_estimates.py``
+checks it)."""
+
 _CUT_IN = (
     "ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "
     "or the safe distance of rule R_G1"
@@ -405,6 +411,7 @@ for _scenario in (
         "camera's detector and mislocation; failure: a collision",
         "pemviz.scenarios.crossing.scene:CrossingParams",
         "pemviz.scenarios.crossing.problem:crossing",
+        cost_factor=_CROSSING_COST_FACTOR,
     ),
 ):
     register(_scenario)

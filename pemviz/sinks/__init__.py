@@ -11,7 +11,7 @@ import math
 import time
 from typing import TYPE_CHECKING, Callable
 
-from pemviz.engine.cost import COST, N_STEPS, CostConstants, StageCost, stage_cost
+from pemviz.engine.cost import COST, N_STEPS, CostConstants, FollowOn, StageCost, follow_on, mc_rollouts, stage_cost
 from pemviz.engine.events import (
     Event,
     FinalEstimate,
@@ -100,12 +100,20 @@ class StageClock(Sink):
     predictions are the model's times the machine's load at the run's start (``slowdown()``, default
     :func:`pemviz.engine.resources.load_slowdown`: 1 on an idle machine, 1.5 with two busy processes on two CPUs).
 
+    What may follow the planned stages (:func:`pemviz.engine.cost.follow_on`: the stages once more, then plain Monte
+    Carlo up to its cap) gives the upper end, :meth:`run_most_s`; once it runs, its stages are what is left. The plain
+    rollouts' simulating is measured on its own (their speed is not a proposal's); while they run, the rollouts still
+    to draw are those the precision target needs at the failure rate seen so far (about z^2 / (rel_error^2 p),
+    :func:`pemviz.engine.cost.mc_rollouts`, times the target's margin, :data:`pemviz.estimators.precision.MARGIN`;
+    with no failure yet, at p = 3 / n, its 95 % upper bound), at most the cap.
+
     Attributes:
         t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were sampled
             (None before).
         simulate_scale: measured / predicted seconds of simulating over the stages so far (:attr:`load` before any);
             :meth:`after_scale` the same of what follows (fits), per kind of stage.
         done: the finished stages' results.
+        follow: what may follow the planned stages (None: nothing).
     """
 
     def __init__(
@@ -130,6 +138,10 @@ class StageClock(Sink):
         self.done: list[StageResult] = []
         self._measured: dict[str, list[float]] = {}  # part ("simulate", or "after:" + kind) -> [measured, predicted s]
         self._planned: dict[str, float] = {}  # part ("simulate", "after") -> the plan's predicted seconds
+        self.follow: FollowOn | None = None
+        self._last = -1  # the planned stages' last number
+        self._phases: dict[str, list[tuple[int, str]]] = {}  # "plan", "retry" -> (stage, kind) of each stage
+        self._rollouts: dict[int, int] = {}  # stage -> its rollouts, as started
 
     def on_run_started(self, event: RunStarted) -> None:
         self.t0 = self.stage_t0 = self.now()
@@ -143,7 +155,19 @@ class StageClock(Sink):
             self.load = float(self._slowdown())
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
         self._look_ahead_s = float(event.problem.look_ahead_s)
+        # an open-ended plan's added batches follow its last stage: no time is said for it (run_left_s)
+        self.follow = None if event.plan.open_ended else follow_on(event.config, event.plan)
+        self._rollouts = {}
+        self._last = event.plan.stages[-1].stage if event.plan.stages else -1
+        retry = self.follow.retry if self.follow is not None else None
+        shift = self._last + 1
+        self._phases = {
+            "plan": [(s.stage, s.kind) for s in event.plan.stages],
+            "retry": [(s.stage + shift, s.kind) for s in (retry.stages if retry is not None else ())],
+        }
         self.predicted = {s.stage: self._model(s.kind, s.n_rollouts, s.stage) for s in event.plan.stages}
+        for s in retry.stages if retry is not None else ():
+            self.predicted[s.stage + shift] = self._model(s.kind, s.n_rollouts, s.stage + shift)
         self._measured = {}
         self._planned = {
             "simulate": sum(c.simulate_s for c in self.predicted.values()),
@@ -152,12 +176,20 @@ class StageClock(Sink):
 
     def on_stage_started(self, event: StageStarted) -> None:
         self.stage_t0, self.sampled_t, self.current = self.now(), None, event
+        self._rollouts[event.stage] = event.n_rollouts
+
+    def phase(self, stage: int) -> str:
+        """Where stage number ``stage`` is: ``plan`` (a planned stage), ``retry`` (the stages once more) or ``plain``
+        (the plain rollouts after them), by the engine's numbering (:class:`pemviz.engine.cost.FollowOn`)."""
+        if self.follow is None or stage <= self._last:
+            return "plan"
+        return "retry" if stage <= self.follow.retry_last else "plain"
 
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         self.sampled_t = self.now()
         if self.current is not None and self.current.stage == event.stage:  # all of a streamed stage's rollouts
             predicted = self._model(event.kind, event.n_rollouts, event.stage).simulate_s
-            self._add("simulate", self.sampled_t - self.stage_t0, predicted)
+            self._add(self._part(event.stage), self.sampled_t - self.stage_t0, predicted)
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self.done = self.done + [event.result]
@@ -184,6 +216,10 @@ class StageClock(Sink):
         scale = self._scale("simulate")
         return self.load if scale is None else scale
 
+    def _part(self, stage: int | None) -> str:
+        """The measured part simulating stage ``stage`` counts in: the plain rollouts' own, or every other stage's."""
+        return "simulate:plain" if stage is not None and self.phase(stage) == "plain" else "simulate"
+
     def after_scale(self, kind: str) -> float:
         """Measured / predicted seconds after the rollouts of the stages of ``kind`` so far (the simulating scale
         before one)."""
@@ -191,41 +227,102 @@ class StageClock(Sink):
         return self.simulate_scale if scale is None else scale
 
     def _model(self, kind: str, n_rollouts: int, stage: int | None = None) -> StageCost:
-        """The model's prediction of a stage of this run (nan before the run starts)."""
+        """The model's prediction of a stage of this run (nan before the run starts): a retry's stage as the planned
+        stage of its number, a plain rollouts' stage as plain Monte Carlo's final batch."""
         if self._config is None:
             return StageCost(math.nan, math.nan)
+        phase = "plan" if stage is None else self.phase(stage)
+        if phase == "plain":
+            return stage_cost(self._config, "final", n_rollouts, self._n_steps, self.constants, model="plain")
+        if phase == "retry" and stage is not None:
+            stage -= self._last + 1
         cost = stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage)
         if self._look_ahead_s > 0.0:  # the problem's look-ahead: the estimator weighs the rollouts before they are out
             cost = StageCost(cost.simulate_s + n_rollouts * self._look_ahead_s, cost.after_s)
         return cost
 
-    def _scaled(self, cost: StageCost, kind: str) -> tuple[float, float]:
-        return cost.simulate_s * self.simulate_scale, cost.after_s * self.after_scale(kind)
+    def _scaled(self, cost: StageCost, kind: str, stage: int | None = None) -> tuple[float, float]:
+        part = self._part(stage)
+        measured = self._scale(part) if part != "simulate" else None  # plain rollouts: their own speed, once measured
+        simulate = self.simulate_scale if measured is None else measured
+        return cost.simulate_s * simulate, cost.after_s * self.after_scale(kind)
 
-    def expected_s(self, kind: str, n_rollouts: int) -> float:
-        """Expected seconds of a stage of ``kind`` and ``n_rollouts``: its predicted simulating and what follows
-        (:func:`pemviz.engine.cost.stage_cost`), each scaled by what the run measured so far; nan before the run
-        starts."""
-        return sum(self._scaled(self._model(kind, n_rollouts), kind))
+    def expected_s(self, kind: str, n_rollouts: int, stage: int | None = None) -> float:
+        """Expected seconds of a stage of ``kind`` and ``n_rollouts`` (numbered ``stage``; None: a planned one): its
+        predicted simulating and what follows (:func:`pemviz.engine.cost.stage_cost`), each scaled by what the run
+        measured so far; nan before the run starts."""
+        return sum(self._scaled(self._model(kind, n_rollouts, stage), kind, stage))
 
     def stage_left_s(self) -> float:
         """Expected seconds left in the current stage (0 once it has taken longer than expected; nan: none going)."""
         if self.current is None:
             return math.nan
-        cost = self._model(self.current.kind, self.current.n_rollouts, self.current.stage)
-        simulate, after = self._scaled(cost, self.current.kind)
+        kind, stage = self.current.kind, self.current.stage
+        simulate, after = self._scaled(self._model(kind, self.current.n_rollouts, stage), kind, stage)
         if self.sampled_t is None:
             return max(0.0, simulate - (self.now() - self.stage_t0)) + after
         return max(0.0, after - (self.now() - self.sampled_t))
 
+    def _at(self) -> int:
+        """The current stage's number, else the last finished one's (-1 before any)."""
+        return self.current.stage if self.current is not None else (self.done[-1].stage if self.done else -1)
+
+    def _stages_s(self, phase: str, after: int) -> float:
+        """Expected seconds of the stages of ``phase`` numbered above ``after``."""
+        stages = [(s, kind) for s, kind in self._phases.get(phase, ()) if s > after]
+        return sum(sum(self._scaled(self.predicted[s], kind, s)) for s, kind in stages)
+
+    def _plain_s(self, n: float) -> float:
+        """Expected seconds of ``n`` plain rollouts more (as one batch; 0 for none)."""
+        if n <= 0 or self._config is None:
+            return 0.0
+        return self.expected_s("final", int(n), self.follow.retry_last + 1 if self.follow is not None else None)
+
+    def _plain_rest(self) -> tuple[float, float]:
+        """Plain rollouts still to draw after the current batch: those the precision target needs at the failure rate
+        seen so far (class docstring), and the most (the cap's rest)."""
+        from pemviz.estimators.fallback import REL_ERROR
+        from pemviz.estimators.precision import MARGIN
+
+        assert self.follow is not None and self._config is not None
+        drawn = sum(n for s, n in self._rollouts.items() if self.phase(s) == "plain")
+        plain = [r for r in self.done if self.phase(r.stage) == "plain"]
+        seen = sum(self._rollouts.get(r.stage, r.estimate.n) for r in plain)
+        failures = sum(r.estimate.n_failures for r in plain)
+        most = max(0, self.follow.plain_most - drawn)
+        stop = self._config.stop
+        if seen == 0 or stop.require is not None:  # nothing seen yet, or a decision: the current batch may end it
+            return 0.0, float(most)
+        rate = failures / seen if failures else min(1.0, 3.0 / seen)
+        need = MARGIN * mc_rollouts(math.log(rate), stop.rel_error or REL_ERROR)
+        return float(min(most, max(0.0, need - drawn))), float(most)
+
     def run_left_s(self) -> float:
         """Expected seconds left in the whole run: the current stage's rest and every later stage of the plan
-        (:meth:`expected_s`); nan for an open-ended plan (AMS) or before the run starts."""
+        (:meth:`expected_s`), or of the retry while it runs, or the plain rollouts still needed while they run
+        (class docstring); nan for an open-ended plan (AMS) or before the run starts."""
         if self.plan is None or self.plan.open_ended:
             return math.nan
-        after = self.current.stage if self.current is not None else (self.done[-1].stage if self.done else -1)
-        left = sum(sum(self._scaled(self.predicted[s.stage], s.kind)) for s in self.plan.stages if s.stage > after)
-        return left + (self.stage_left_s() if self.current is not None else 0.0)
+        at = self._at()
+        rest = self.stage_left_s() if self.current is not None else 0.0
+        phase = self.phase(at)
+        if phase == "plain":
+            return rest + self._plain_s(self._plain_rest()[0])
+        return rest + self._stages_s(phase, at)
+
+    def run_most_s(self) -> float:
+        """Expected seconds left in the whole run if all that may follow the planned stages runs (:attr:`follow`):
+        what :meth:`run_left_s` says, the retry's stages still to come and the plain rollouts up to their cap; as
+        :meth:`run_left_s` where nothing may follow."""
+        left = self.run_left_s()
+        if self.follow is None or not math.isfinite(left):
+            return left
+        at = self._at()
+        phase = self.phase(at)
+        if phase == "plain":
+            return left - self._plain_s(self._plain_rest()[0]) + self._plain_s(self._plain_rest()[1])
+        retry = self._stages_s("retry", at) if phase == "plan" else 0.0
+        return left + retry + self._plain_s(self.follow.plain_most)
 
     def elapsed_s(self) -> float:
         """Seconds since the run started."""

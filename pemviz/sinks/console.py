@@ -10,7 +10,16 @@ from typing import TYPE_CHECKING, TextIO
 
 from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability
 from pemviz.core.severity import FailureSeverity
-from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
+from pemviz.engine.cost import (
+    MC_REL_ERROR,
+    N_STEPS,
+    Z_95,
+    duration_text,
+    mc_rollouts,
+    range_text,
+    run_cost,
+    stage_cost,
+)
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.methods import method_or_none, plain_method
 from pemviz.plugins import resolve
@@ -55,12 +64,20 @@ def estimate_cells(e: Estimate) -> str:
 
 
 def progress_line(
-    label: str, n_rollouts: int, elapsed_s: float, expected_s: float, run_left_s: float = math.nan
+    label: str,
+    n_rollouts: int,
+    elapsed_s: float,
+    expected_s: float,
+    run_left_s: float = math.nan,
+    run_most_s: float = math.nan,
+    then: str = "",
 ) -> str:
-    """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s, run ~8.4 s left)``: the stage's
-    expected seconds and the whole run's left (:class:`pemviz.sinks.StageClock`), each left out where unknown."""
+    """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s, run ~8.4 s left, up to ~6.5 min)``: the
+    stage's expected seconds and the whole run's left, as planned and at most (:class:`pemviz.sinks.StageClock`; the
+    range in the words of the panel's cost line, :func:`pemviz.engine.cost.range_text`, with ``then`` saying what may
+    follow), each left out where unknown."""
     eta = f", this stage ~{expected_s:.1f} s" if math.isfinite(expected_s) else ""
-    left = f", run ~{run_left_s:.1f} s left" if math.isfinite(run_left_s) else ""
+    left = f", run {range_text(run_left_s, run_most_s, then, ' left')}" if math.isfinite(run_left_s) else ""
     return f"{label}: {n_rollouts} rollouts ... (elapsed {elapsed_s:.1f} s{eta}{left})"
 
 
@@ -75,51 +92,12 @@ def stage_row(res: StageResult) -> str:
 MC_AFFORDABLE = 10**8
 """The most rollouts :func:`next_step` suggests plain Monte Carlo for (at p ~ 1e-6 and below it needs more)."""
 
-MC_REL_ERROR = 0.2
-"""The relative half-width of the 95 % interval :func:`next_step` sizes plain Monte Carlo for (``--rel-error 0.2``):
-about 96 failures."""
-
 PERCENT = f"{100 * MC_REL_ERROR:.0f} %"
 """:data:`MC_REL_ERROR` as the lines print it (``20 %``)."""
-
-Z_95 = 1.96
-"""The standard normal's 97.5 % quantile: a 95 % interval's half-width in standard errors."""
 
 IS_MAX_SIMS = 100_000
 """The least ``--max-sims`` :func:`next_step` suggests with a precision target for an importance sampler (four times
 the run's simulations, rounded up, where that is more)."""
-
-
-def mc_rollouts(log_p: float, rel_error: float = MC_REL_ERROR) -> float:
-    """Rollouts plain Monte Carlo needs for a 95 % interval of half-width ``rel_error`` times p at the failure
-    probability p = e^``log_p`` (``log_p`` in nats): n = ceil(z^2 (1 - p) / (rel_error^2 p)), z = :data:`Z_95`, from the
-    binomial standard error sqrt(p (1 - p) / n) (the normal approximation to the binomial; the crude Monte Carlo
-    estimator's relative error sqrt((1 - p) / (n p)), Rubinstein & Kroese, "Simulation and the Monte Carlo Method", 3rd
-    ed., 2017; about 96 / p at 20 %, i.e. about 96 failures). A whole number as a float; inf where p underflows float64
-    (p < ~1e-300)."""
-    p = math.exp(log_p)
-    if not p > 1e-300:
-        return math.inf
-    return float(math.ceil(Z_95**2 * (1.0 - p) / (rel_error**2 * p)))
-
-
-def duration_text(seconds: float) -> str:
-    """``0.8 s``, ``42 s``, ``9.8 min``, ``63 min``, ``3.1 h``, ``12 days``, ``3.0e+05 years``: a duration given in
-    seconds, in the unit that reads best."""
-    if seconds < 10:
-        return f"{seconds:.1f} s"
-    if seconds < 120:
-        return f"{seconds:.0f} s"
-    if seconds < 600:
-        return f"{seconds / 60:.1f} min"
-    if seconds < 2 * 3600:
-        return f"{seconds / 60:.0f} min"
-    if seconds < 48 * 3600:
-        return f"{seconds / 3600:.1f} h"
-    if seconds < 730 * 86400:
-        return f"{seconds / 86400:.0f} days"
-    years = seconds / (365.25 * 86400)
-    return f"{years:,.0f} years" if years < 10_000 else f"{years:.1e} years"
 
 
 def count_text(n: float) -> str:
@@ -579,8 +557,11 @@ class ConsoleSink(Sink):
     def on_stage_started(self, event: StageStarted) -> None:
         assert self.plan is not None  # the run has started
         label = self.plan.label(event.stage, event.kind)
-        expected = self.clock.expected_s(event.kind, event.n_rollouts)
-        line = progress_line(label, event.n_rollouts, self.clock.elapsed_s(), expected, self.clock.run_left_s())
+        clock = self.clock
+        expected = clock.expected_s(event.kind, event.n_rollouts, event.stage)
+        then = clock.follow.text() if clock.follow is not None and not clock.done else ""  # the first line says why
+        left, most = clock.run_left_s(), clock.run_most_s()
+        line = progress_line(label, event.n_rollouts, clock.elapsed_s(), expected, left, most, then)
         print(f"  {line}", file=self.progress, flush=True)
 
     def on_stage_finished(self, event: StageFinished) -> None:

@@ -36,7 +36,7 @@ def console():
 def test_the_progress_names_each_stage_and_predicts_it_and_the_whole_run_from_what_was_measured():
     sink, out, progress, now = console()
     plan = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 40_000), (3, "final", 50_000)])
-    sink(run_started(plan=plan))  # 500 pretraining epochs, at most 150 per CE stage
+    sink(run_started(plan=plan, plain_fallback=0))  # 500 pretraining epochs, at most 150 per CE stage; no fallback
     for stage, kind, n in plan_rows(plan):
         sink(StageStarted(stage, kind, n))
         predicted = n * 1e-5
@@ -95,10 +95,10 @@ def test_a_problem_s_look_ahead_seconds_count_in_each_stage_s_prediction():
     from .synthetic import BRAKING
 
     sink, out, progress, now = console()
-    sink(run_started(view=dataclasses.replace(BRAKING, look_ahead_s=0.01)))
+    sink(run_started(view=dataclasses.replace(BRAKING, look_ahead_s=0.01), plain_fallback=0))
     sink(StageStarted(0, "pretrain", 20))
     assert progress.getvalue().splitlines()[0].endswith("this stage ~0.7 s, run ~2.1 s left)")
     sink, out, progress, now = console()
-    sink(run_started())
+    sink(run_started(plain_fallback=0))
     sink(StageStarted(0, "pretrain", 20))
     assert progress.getvalue().splitlines()[0].endswith("this stage ~0.5 s, run ~0.8 s left)")

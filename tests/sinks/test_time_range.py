@@ -1,0 +1,100 @@
+"""The time a run may take, as a range: the console's first progress line and the panel's cost line say the same
+words (one function builds both), from the planned stages up to their retry and plain Monte Carlo's cap; while the
+retry and plain Monte Carlo run, what is left is theirs."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+
+import numpy as np
+import pytest
+
+from pemviz.app.form import run_cost
+from pemviz.config import ExperimentConfig
+from pemviz.engine.cost import COST, duration_text, stage_cost
+from pemviz.engine.events import StageStarted
+from pemviz.estimators import run_plan
+from pemviz.sinks import StageClock
+from pemviz.sinks.console import ConsoleSink
+
+from .synthetic import BRAKING, PLAN, SIMPLE, batch, finished, run_started, sampled
+
+
+class Ticks:
+    """A clock that says what it is told (seconds)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_the_first_progress_line_and_the_panel_s_cost_line_say_the_same_range():
+    cfg = ExperimentConfig.of(scenario="crossing")  # 2,100 simulations, retry at N = 400, then plain Monte Carlo
+    view = dataclasses.replace(BRAKING, n_steps=50)  # the crossing's 50 steps
+    progress = io.StringIO()
+    sink = ConsoleSink(io.StringIO(), progress)
+    sink.clock = StageClock(lambda: 0.0, COST, lambda: 1.0)
+    plan = run_plan(cfg)
+    sink(dataclasses.replace(run_started(view=view), config=cfg, plan=plan))
+    sink(StageStarted(0, "pretrain", 100))
+    line = progress.getvalue().splitlines()[0]
+    cost = run_cost(cfg, n_steps=50, slowdown=1.0)
+    # by hand: the planned stages, then the same stages at N = 400, then 500 x 7,200 plain rollouts at most a million
+    low = sum(stage_cost(cfg, s.kind, s.n_rollouts, 50, stage=s.stage).seconds for s in plan.stages)
+    again = cfg.replace(n_per_stage=400)
+    retry = sum(stage_cost(again, s.kind, s.n_rollouts, 50, stage=s.stage).seconds for s in run_plan(again).stages)
+    plain = stage_cost(cfg, "final", 1_000_000, 50, model="plain").seconds
+    assert (cost.seconds, cost.seconds + cost.then_seconds) == pytest.approx((low, low + retry + plain), rel=1e-12)
+    said = (
+        f"~{duration_text(low)}, up to ~{duration_text(low + retry + plain)} with 1,005,100 rollouts if the stages' "
+        "weights back no interval (their retry at N = 400, then plain Monte Carlo)"
+    )
+    assert cost.text().endswith(f"MB per batch, {said}")
+    assert line.endswith(f", run {said.replace(',', ' left,', 1)})")
+    assert duration_text(low) != duration_text(low + retry + plain)  # a range, not one figure
+
+
+def test_while_the_retry_and_plain_monte_carlo_run_what_is_left_is_theirs():
+    now = Ticks()
+    clock = StageClock(now, SIMPLE, lambda: 1.0)  # n rollouts simulate in n x 1e-5 s, a fit 1 ms an epoch
+    clock(run_started(plan=PLAN))  # 130 simulations: the retry at N = 120 (310), then 500 x 440 plain rollouts
+    assert clock.follow is not None and (clock.follow.plain_most, clock.follow.simulations) == (220_000, 220_310)
+    fit = {"pretrain": 0.5, "ce": 0.15, "final": 0.0}  # 500 pretraining epochs, 150 per CE stage
+
+    def stage(number: int, kind: str, n: int, failures: int = 0) -> None:
+        clock(StageStarted(number, kind, n))
+        now.t += n * 1e-5  # every stage as fast as predicted
+        clock(sampled(number, kind, batch(np.full((4, 5), 9.0)), n_total=n))
+        now.t += fit[kind]
+        clock(finished(number, kind, min(n, 10_000), failures))
+
+    for s in PLAN.stages:
+        stage(s.stage, s.kind, s.n_rollouts)
+    assert clock.run_left_s() == pytest.approx(0.0, abs=1e-12)
+    retry = [(4, "pretrain", 20), (5, "ce", 120), (6, "ce", 120), (7, "final", 50)]
+    assert [clock.phase(k) for k in (3, 4, 7, 8)] == ["plan", "retry", "retry", "plain"]
+    stage(*retry[0])
+    clock(StageStarted(5, "ce", 120))
+    left = 2 * (120e-5 + 0.15) + 50e-5  # CE stages 5 and 6, the final batch 7
+    assert clock.run_left_s() == pytest.approx(left, rel=1e-9)
+    assert clock.run_most_s() == pytest.approx(left + 220_000 * 1e-5, rel=1e-9)  # and the plain cap
+    now.t += 120e-5 + 0.15
+    clock(finished(5, "ce", 120, 0))
+    for s in retry[2:]:
+        stage(*s)
+    # plain Monte Carlo's first batch: at least itself, at most the cap
+    clock(StageStarted(8, "final", 10_000))
+    assert (clock.run_left_s(), clock.run_most_s()) == pytest.approx((0.1, 2.2), rel=1e-9)
+    now.t += 0.1
+    clock(sampled(8, "final", batch(np.full((4, 5), 9.0)), n_total=10_000))
+    clock(finished(8, "final", 10_000, 10))
+    # 10 failures in 10,000: about 1.2 x 1.96^2 (1 - p) / (0.2^2 p) rollouts in all at p = 1e-3, 50,000 drawn by the
+    # end of the next batch (whole rollouts)
+    clock(StageStarted(9, "final", 40_000))
+    need = 1.2 * math.ceil(1.96**2 * (1 - 1e-3) / (0.2**2 * 1e-3))
+    assert clock.run_left_s() == pytest.approx(0.4 + (math.floor(need) - 50_000) * 1e-5, rel=1e-9)
+    assert clock.run_most_s() == pytest.approx(0.4 + (220_000 - 50_000) * 1e-5, rel=1e-9)
