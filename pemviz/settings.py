@@ -344,11 +344,7 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("pem", "the perception error model", "the PEM the rollouts detect with", kind="pem",
             short="PEM", owner=RUN, flags=("--pem",)),
     Setting("scenario", "the scenario", "what is simulated and whose failure probability is estimated",
-            kind="scenario", choices=SCENARIOS, owner=RUN, flags=("--scenario",),
-            choice_help=(("braking", "the paper's: braking behind one lead car, with an exact answer"),
-                         ("cut-in", "a car cutting in on a 3-lane highway, an ACC on a tracker, missed and "
-                                    "mislocated cars; moderately rare"),
-                         ("cut-in-rare", "the same cut-in from further back: far rarer"))),
+            kind="scenario", choices=SCENARIOS, owner=RUN, flags=("--scenario",)),
     Setting("scenario_params", "the scenario's parameters", "set one of the scenario's parameters, e.g. "
             "cut_in_gap_m=25 (repeatable; the names, units and defaults: the user guide's command-line page)",
             kind="params", short="scenario parameters", owner=RUN, flags=("--param",)),
