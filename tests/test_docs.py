@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import subprocess
 import sys
 
@@ -104,3 +105,23 @@ def test_the_count_check_finds_a_wrong_count(tmp_path, monkeypatch) -> None:
         test_docs.test_every_count_in_the_docs_is_the_code_s_or_absent()
     assert "'16 tests skip'" in str(err.value) and "'4 presets', but the code has 5" in str(err.value)
     assert "6 methods" not in str(err.value)
+
+
+CPU_TORCH = "pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu"
+"""The line that installs the CPU build of torch (pip's default on Linux brings CUDA's, several GB)."""
+
+
+def test_the_install_steps_users_copy_install_the_cpu_torch_and_the_ci_test_command_does_not() -> None:
+    """The README's quick start and the CI page's job install the CPU build of torch before pemviz, on a line of its
+    own; the README's test command (this project's CI runs it on machines that reach only the package registry) is
+    left as it is, without the PyTorch index."""
+    readme = (REPO / "README.md").read_text()
+    quick = re.search(r"## Quick start\n(.*?)\n## ", readme, re.S).group(1)
+    steps = re.findall(r"```bash\n(.*?)```", quick, re.S)
+    assert steps[0].splitlines() == [CPU_TORCH, "pip install -e . && pemviz run"]
+    test_command = readme.split("<!-- ci: test command -->\n```bash\n", 1)[1].splitlines()[0]
+    assert test_command == 'pip install torch==2.13.0 -e ".[test]" && python -m pytest -q -n 2 --dist loadfile'
+    job = re.search(r"<!-- ci job -->\n```yaml\n(.*?)```", (REPO / "docs" / "ci.md").read_text(), re.S).group(1)
+    install = job.split("- name: Install pemviz", 1)[1].split("- name:", 1)[0]
+    assert [line.strip() for line in install.splitlines()[2:4]] == [CPU_TORCH, "pip install -e ."]
+    assert "torch==2.13.0 -e" not in job
