@@ -125,3 +125,17 @@ def test_the_install_steps_users_copy_install_the_cpu_torch_and_the_ci_test_comm
     install = job.split("- name: Install pemviz", 1)[1].split("- name:", 1)[0]
     assert [line.strip() for line in install.splitlines()[2:4]] == [CPU_TORCH, "pip install -e ."]
     assert "torch==2.13.0 -e" not in job
+
+
+def test_the_readme_claims_for_the_cut_in_s_default_what_it_prints() -> None:
+    """The cut-in's default (its tilt) prints a lower bound, never an interval (no run `reliable`): the README counts
+    the lower bounds that held, as the Validation page's rows of this release give them (20 of 20 at each gap), and
+    claims no interval holding the reference."""
+    readme = " ".join((REPO / "README.md").read_text().split())
+    cut_in = readme.split("On the cut-in scenario", 1)[1].split("Braking has a tilted proposal", 1)[0]
+    assert "intervals that hold" not in cut_in and "of 40 runs" not in cut_in
+    assert "a run prints no interval: it prints a 95 % lower bound, which held the reference in all 40 runs" in cut_in
+    assert "(0.21 over 20 seeds, 19 of them within x2;" in cut_in
+    rows = [r for r in (REPO / "docs" / "validation.md").read_text().splitlines() if "| default: its tilt |" in r]
+    assert len(rows) == 2 and all("| 20 |" in r and "| 19/20 | none printed (lower bounds 20/20) |" in r for r in rows)
+    assert "| 0.209 |" in rows[0] and rows[0].startswith("| cut-in (")
