@@ -211,7 +211,7 @@ class Setting:
             text = f"a number {'>' if self.lo_open else '>='} {self.lo:g}"
         else:
             text = f"a number in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
-        return f"None or {text}" if self.optional else text
+        return f"none or {text}" if self.optional else text  # none: typed as such, or the flag left out
 
     @property
     def hint(self) -> str:
@@ -247,8 +247,9 @@ class Setting:
         too_high = value >= self.hi if self.hi_open else value > self.hi
         return not (too_low or too_high)
 
-    def parse(self, text: str) -> int | float:
-        """The number typed as ``text`` (the panel's fields, the command line's flags), its range not checked.
+    def parse(self, text: str) -> int | float | None:
+        """The number typed as ``text`` (the panel's fields, the command line's flags), its range not checked;
+        ``none`` (any case) for an optional setting: None.
 
         Decimal and scientific notation (``0.2``, ``1e-3``, ``1e5``) with surrounding spaces; a whole-number
         setting takes only whole values (``1e5`` yes, ``12.5`` no), exactly beyond float64's 2^53. Nothing is
@@ -259,6 +260,8 @@ class Setting:
                 to type, in :attr:`allowed`'s words.
         """
         raw = str(text).strip()
+        if self.optional and raw.lower() == "none":  # what the messages say to type for "no value"
+            return None
         if raw == "":
             raise ValueError(f"empty; type {self.allowed} ({self.words})")
         if not _NUMBER.match(raw):

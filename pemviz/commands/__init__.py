@@ -148,11 +148,11 @@ def _scenario_help(shown: object) -> str:
     return f"{scenario_hint()} (default {shown})".replace("%", "%%")
 
 
-def _number(s: Setting) -> Callable[[str], int | float]:
+def _number(s: Setting) -> Callable[[str], int | float | None]:
     """The flag's number, parsed as the panel's field parses it (:meth:`Setting.parse`); its range is checked by
     the config, in one line."""
 
-    def parse(text: str) -> int | float:
+    def parse(text: str) -> int | float | None:
         try:
             return s.parse(text)
         except ValueError as exc:

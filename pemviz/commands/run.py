@@ -476,6 +476,6 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
             return EXIT_CODES[final.decision.outcome]
         return 0
     except KeyboardInterrupt as exc:  # after the run: say what it had written (rollouts, recording), not "nothing"
-        written = [*kept, *([str(where)] if where is not None else [])]
+        written = [*(str(path) for _, path in kept), *([str(where)] if where is not None else [])]
         files = f"{', '.join(written)} written" if written else "no file written"
         raise interrupted(exc, f"the run finished; {files}; its result files not written") from None

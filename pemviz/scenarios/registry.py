@@ -294,8 +294,9 @@ def described() -> tuple[tuple[str, str], ...]:
     to the first ``;`` (the failure it counts follows there), `` (exact answer)`` where it has one. The command line's
     help and the panel's hint list the scenarios from here. A plugin that cannot be loaded leaves the scenarios
     registered so far and its one line as a last pair ``("not listed", message)``: help is still shown."""
+    trouble: tuple[tuple[str, str], ...] = ()
     try:
-        names, trouble = registered(), ()
+        names = registered()
     except ScenarioPluginError as exc:
         names, trouble = tuple(_REGISTRY), (("not listed", str(exc)),)
     rows = tuple(
