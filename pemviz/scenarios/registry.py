@@ -28,6 +28,7 @@ from pemviz.scenarios.parameters import (
     RANDOM_PARAMS,
     Parameter,
     ParameterError,
+    refusal,
     register_defaults,
     unit_of,
 )
@@ -141,7 +142,8 @@ class Scenario:
 
         Raises:
             ParameterError: a ValueError: an unknown name (the message lists the scenario's), a value not of its
-                field's kind, or a value the dataclass refuses (its own message: the field and its range).
+                field's kind, or a value the dataclass refuses (its own message, led by the scenario's name:
+                :func:`pemviz.scenarios.parameters.refusal`).
         """
         values = dict(values or {})
         found = {p.name: p for p in self.parameters()}
@@ -157,7 +159,7 @@ class Scenario:
         try:
             return dataclasses.replace(params, **changes)
         except ValueError as exc:
-            raise ParameterError(str(exc).replace("\n", " ")) from None
+            raise refusal(self.name, params, exc) from None
 
     def problem(self, config: Any = None, params: Mapping[str, object] | None = None) -> Any:
         """The :class:`pemviz.core.problems.Problem` of this scenario for ``config`` (a
