@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import functools
 import importlib
 import os
 import signal
@@ -17,7 +18,7 @@ import sys
 from typing import NoReturn
 
 from pemviz import __version__
-from pemviz.commands import COMMANDS, Terminated, UsageError
+from pemviz.commands import COMMANDS, Terminated, UsageError, command_help
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -28,6 +29,17 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message}{self._nearest(message)}\n")
+
+    def format_help(self) -> str:
+        """The help, each action's text that says what is registered (``describe``: the scenarios of ``--scenario``
+        and of ``pemviz --help``'s ``run``) read now, when it is shown, not when the parser was built."""
+        for action in self._actions:
+            choices = action._choices_actions if isinstance(action, argparse._SubParsersAction) else []
+            for each in (action, *choices):
+                describe = getattr(each, "describe", None)
+                if describe is not None:
+                    each.help = describe()
+        return super().format_help()
 
     def _flags(self) -> set[str]:
         """Every long flag of this parser and of its commands' parsers."""
@@ -72,6 +84,8 @@ def build_parser(command: str | None = None, *, full: bool = True) -> argparse.A
             importlib.import_module(module).register(sub)
         else:
             sub.add_parser(name, help=help_text)
+    for choice in sub._choices_actions:  # run's help lists the registered scenarios when shown
+        choice.describe = functools.partial(command_help, choice.dest)  # type: ignore[attr-defined]
     return parser
 
 

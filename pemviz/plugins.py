@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import importlib
 import os
+import sys
 from typing import Any, Callable
 
 Ref = Any
@@ -37,12 +38,14 @@ def resolve(ref: Ref) -> Any:
 def load_plugins(
     variable: str, group: str, register_object: Callable[[object], None], error: type[ValueError], kind: str
 ) -> None:
-    """Import the modules named (comma-separated) by the environment variable ``variable`` (each registers at import)
-    and register each object of the entry-point group ``group`` with ``register_object``.
+    """Import the modules named (comma-separated) by the environment variable ``variable`` (each registers at import;
+    found as ``python -m`` finds them, the current folder included: :func:`import_here`) and register each object of
+    the entry-point group ``group`` with ``register_object``.
 
     Raises:
         ``error``: one line, ``{kind} plugin <which>: <exception type>: <message>``, for the first plugin that cannot
-            be imported or that raised while registering.
+            be imported or that raised while registering; for a module named by ``variable`` that is nowhere to
+            import from (:func:`import_here`), what to set instead of the exception.
     """
 
     def load(what: str, action: Callable[[], object]) -> None:
@@ -51,11 +54,12 @@ def load_plugins(
         except error:
             raise
         except Exception as exc:  # a plugin's own failure: one line naming it
-            raise error(f"{kind} plugin {what}: {type(exc).__name__}: {exc}") from None
+            detail = str(exc) if isinstance(exc, PluginNotFound) else f"{type(exc).__name__}: {exc}"
+            raise error(f"{kind} plugin {what}: {detail}") from None
 
     for module in (m.strip() for m in os.environ.get(variable, "").split(",")):
         if module:
-            load(f"{variable} module {module}", functools.partial(importlib.import_module, module))
+            load(f"{variable} module {module}", functools.partial(import_here, module, variable))
     from importlib.metadata import EntryPoint, entry_points
 
     def register_entry_point(ep: EntryPoint) -> None:
@@ -63,6 +67,48 @@ def load_plugins(
 
     for ep in entry_points(group=group):
         load(f"entry point {ep.name} ({ep.value}) of group {group}", functools.partial(register_entry_point, ep))
+
+
+class PluginNotFound(LookupError):
+    """A module an environment variable names that is neither in the current folder nor on the Python path."""
+
+
+def import_here(module: str, variable: str) -> None:
+    """Import ``module`` as ``python -m`` finds it: from the Python path, else from the current folder (added to the
+    end of ``sys.path`` then, so that a module there shadows nothing installed and its own sibling modules import).
+
+    Raises:
+        ModuleNotFoundError: a module ``module`` imports is missing (its own message).
+        PluginNotFound: ``module`` itself is neither in the current folder nor on the Python path; the message says what
+            to set.
+    """
+    try:
+        importlib.import_module(module)
+        return
+    except ModuleNotFoundError as exc:
+        if not _names_it(exc, module):  # the module was found: one of its own imports is missing
+            raise
+    here = os.getcwd()
+    if here not in sys.path and "" not in sys.path:
+        sys.path.append(here)
+        importlib.invalidate_caches()
+        try:
+            importlib.import_module(module)
+            return
+        except ModuleNotFoundError as exc:
+            if not _names_it(exc, module):
+                raise
+    top = module.split(".")[0]
+    holder = f"{top}.py" if top == module else f"the package {top}/"
+    raise PluginNotFound(
+        f"no module {module} in the current folder ({here}) nor on the Python path: run pemviz in the folder of "
+        f"{holder}, or set PYTHONPATH to that folder"
+    ) from None
+
+
+def _names_it(exc: ModuleNotFoundError, module: str) -> bool:
+    """Whether ``exc`` says that ``module`` itself (or a package above it) is missing, not one of its imports."""
+    return exc.name is not None and (module == exc.name or module.startswith(exc.name + "."))
 
 
 class Plugins:

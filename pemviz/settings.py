@@ -211,7 +211,7 @@ class Setting:
             text = f"a number {'>' if self.lo_open else '>='} {self.lo:g}"
         else:
             text = f"a number in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
-        return f"None or {text}" if self.optional else text
+        return f"none or {text}" if self.optional else text  # none: typed as such, or the flag left out
 
     @property
     def hint(self) -> str:
@@ -247,8 +247,9 @@ class Setting:
         too_high = value >= self.hi if self.hi_open else value > self.hi
         return not (too_low or too_high)
 
-    def parse(self, text: str) -> int | float:
-        """The number typed as ``text`` (the panel's fields, the command line's flags), its range not checked.
+    def parse(self, text: str) -> int | float | None:
+        """The number typed as ``text`` (the panel's fields, the command line's flags), its range not checked;
+        ``none`` (any case) for an optional setting: None.
 
         Decimal and scientific notation (``0.2``, ``1e-3``, ``1e5``) with surrounding spaces; a whole-number
         setting takes only whole values (``1e5`` yes, ``12.5`` no), exactly beyond float64's 2^53. Nothing is
@@ -259,6 +260,8 @@ class Setting:
                 to type, in :attr:`allowed`'s words.
         """
         raw = str(text).strip()
+        if self.optional and raw.lower() == "none":  # what the messages say to type for "no value"
+            return None
         if raw == "":
             raise ValueError(f"empty; type {self.allowed} ({self.words})")
         if not _NUMBER.match(raw):
@@ -344,11 +347,7 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("pem", "the perception error model", "the PEM the rollouts detect with", kind="pem",
             short="PEM", owner=RUN, flags=("--pem",)),
     Setting("scenario", "the scenario", "what is simulated and whose failure probability is estimated",
-            kind="scenario", choices=SCENARIOS, owner=RUN, flags=("--scenario",),
-            choice_help=(("braking", "the paper's: braking behind one lead car, with an exact answer"),
-                         ("cut-in", "a car cutting in on a 3-lane highway, an ACC on a tracker, missed and "
-                                    "mislocated cars; moderately rare"),
-                         ("cut-in-rare", "the same cut-in from further back: far rarer"))),
+            kind="scenario", choices=SCENARIOS, owner=RUN, flags=("--scenario",)),
     Setting("scenario_params", "the scenario's parameters", "set one of the scenario's parameters, e.g. "
             "cut_in_gap_m=25 (repeatable; the names, units and defaults: the user guide's command-line page)",
             kind="params", short="scenario parameters", owner=RUN, flags=("--param",)),

@@ -48,7 +48,7 @@ def test_a_changed_parameter_goes_into_the_runs_scenario_params_and_its_label():
     "text, message",
     [
         ("abc", "cut_in_gap_m='abc' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
-        ("-5", "CutInParams: cut_in_gap_m must be finite and >= 0, got -5.0"),
+        ("-5", "the cut-in scenario: cut_in_gap_m must be finite and >= 0, got -5.0"),
         ("", "cut_in_gap_m='' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
     ],
     ids=["not-a-number", "out-of-range", "empty"],

@@ -50,7 +50,10 @@ def test_serve_refuses_an_unreadable_pem_before_it_serves(tmp_path):
     (tmp_path / "empty.pt").write_bytes(b"")
     proc = run_cli("serve", "--pem", "empty.pt", "--port", "0", cwd=tmp_path, timeout=60)
     assert proc.returncode == 2 and "open http" not in proc.stdout
-    assert proc.stderr.strip().splitlines() == ["pemviz serve: error: empty.pt: not a readable PEM file (it is empty)"]
+    assert proc.stderr.strip().splitlines() == [
+        "pemviz serve: error: empty.pt: not a readable PEM file (it is empty): give a PEM file pemviz wrote "
+        "(pemviz pem train, save_pem) or a shipped PEM (gbt, ml-nn)"
+    ]
 
 
 def test_an_unwritable_folder_says_read_only_not_errno_s_contradiction(tmp_path):

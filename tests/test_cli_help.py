@@ -174,3 +174,32 @@ def test_every_command_takes_a_shipped_pem_by_name(command) -> None:
 
     args = build_parser().parse_args([*SHIPPED_PEM_ARGS[command], "--pem", "gbt"])
     assert args.pem == "gbt" and pem_argument(args.pem) == "gbt"
+
+
+def test_help_lists_every_registered_scenario_from_the_registry(monkeypatch) -> None:
+    """``pemviz --help`` and ``pemviz run --help`` name each scenario the registry holds (a scenario registered now
+    included) and, in run's, what each simulates: the registry's description up to its first ``;``."""
+    import contextlib
+    import io
+
+    from pemviz.cli import main
+    from pemviz.scenarios.registry import Scenario, register, registered, unregister
+
+    register(Scenario("help-probe", "a probe scene for the help; failure: none", None, "pemviz.scenarios.builtin:toy"))
+    try:
+        names = registered()
+        assert {"braking", "cut-in", "cut-in-rare", "toy", "crowd", "crossing", "help-probe"} <= set(names)
+        pages = {}
+        for argv in (["--help"], ["run", "--help"]):
+            out = io.StringIO()
+            with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
+                main(argv)
+            pages[argv[0]] = " ".join(out.getvalue().split())
+        assert f"record the run (scenarios: {', '.join(names)})" in pages["--help"]
+        run = pages["run"]
+        assert f"scenario, one of {', '.join(names)}: what is simulated" in run
+        assert "; help-probe: a probe scene for the help" in run and "failure: none" not in run
+        assert "braking: automated braking behind a lead car, the PEM as the camera's detector (exact answer);" in run
+    finally:
+        unregister("help-probe")
+    assert "help-probe" not in " ".join(build_parser().format_help().split())

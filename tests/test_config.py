@@ -291,3 +291,21 @@ def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with()
         "ams_max_iterations": 10_000,
         "ams_score": "robustness",
     }
+
+
+def test_an_optional_number_s_messages_say_what_to_type_and_none_is_typed_as_such() -> None:
+    """`--rel-error abc` says to type ``none or a number in (0, 10]`` (was ``None or ...``, a Python word), and
+    ``none`` typed on the command line or in the panel's field is the setting's None."""
+    from pemviz.app.form import FIELDS_BY_KEY, parse_number
+    from pemviz.cli import build_parser
+    from pemviz.settings import SETTINGS
+
+    rel = SETTINGS["rel_error"]
+    with pytest.raises(ValueError) as refused:
+        rel.parse("abc")
+    assert str(refused.value) == "'abc' is not a number; type none or a number in (0, 10] (the target relative error)"
+    assert rel.parse(" None ") is None and rel.parse("0.05") == 0.05
+    with pytest.raises(ValueError, match="'none' is not a number; type a whole number >= 2"):
+        SETTINGS["n_per_stage"].parse("none")  # not optional: none is no value of it
+    assert build_parser().parse_args(["run", "--rel-error", "none"]).rel_error is None
+    assert parse_number(FIELDS_BY_KEY["rel_error"], "none") == (None, "")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import subprocess
 import sys
 
@@ -104,3 +105,37 @@ def test_the_count_check_finds_a_wrong_count(tmp_path, monkeypatch) -> None:
         test_docs.test_every_count_in_the_docs_is_the_code_s_or_absent()
     assert "'16 tests skip'" in str(err.value) and "'4 presets', but the code has 5" in str(err.value)
     assert "6 methods" not in str(err.value)
+
+
+CPU_TORCH = "pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu"
+"""The line that installs the CPU build of torch (pip's default on Linux brings CUDA's, several GB)."""
+
+
+def test_the_install_steps_users_copy_install_the_cpu_torch_and_the_ci_test_command_does_not() -> None:
+    """The README's quick start and the CI page's job install the CPU build of torch before pemviz, on a line of its
+    own; the README's test command (this project's CI runs it on machines that reach only the package registry) is
+    left as it is, without the PyTorch index."""
+    readme = (REPO / "README.md").read_text()
+    quick = re.search(r"## Quick start\n(.*?)\n## ", readme, re.S).group(1)
+    steps = re.findall(r"```bash\n(.*?)```", quick, re.S)
+    assert steps[0].splitlines() == [CPU_TORCH, "pip install -e . && pemviz run"]
+    test_command = readme.split("<!-- ci: test command -->\n```bash\n", 1)[1].splitlines()[0]
+    assert test_command == 'pip install torch==2.13.0 -e ".[test]" && python -m pytest -q -n 2 --dist loadfile'
+    job = re.search(r"<!-- ci job -->\n```yaml\n(.*?)```", (REPO / "docs" / "ci.md").read_text(), re.S).group(1)
+    install = job.split("- name: Install pemviz", 1)[1].split("- name:", 1)[0]
+    assert [line.strip() for line in install.splitlines()[2:4]] == [CPU_TORCH, "pip install -e ."]
+    assert "torch==2.13.0 -e" not in job
+
+
+def test_the_readme_claims_for_the_cut_in_s_default_what_it_prints() -> None:
+    """The cut-in's default (its tilt) prints a lower bound, never an interval (no run `reliable`): the README counts
+    the lower bounds that held, as the Validation page's rows of this release give them (20 of 20 at each gap), and
+    claims no interval holding the reference."""
+    readme = " ".join((REPO / "README.md").read_text().split())
+    cut_in = readme.split("On the cut-in scenario", 1)[1].split("Braking has a tilted proposal", 1)[0]
+    assert "intervals that hold" not in cut_in and "of 40 runs" not in cut_in
+    assert "a run prints no interval: it prints a 95 % lower bound, which held the reference in all 40 runs" in cut_in
+    assert "(0.21 over 20 seeds, 19 of them within x2;" in cut_in
+    rows = [r for r in (REPO / "docs" / "validation.md").read_text().splitlines() if "| default: its tilt |" in r]
+    assert len(rows) == 2 and all("| 20 |" in r and "| 19/20 | none printed (lower bounds 20/20) |" in r for r in rows)
+    assert "| 0.209 |" in rows[0] and rows[0].startswith("| cut-in (")

@@ -357,10 +357,10 @@ def test_fit_weights_are_checked():
     with pytest.raises(ConfigError, match="final_smoothing = 1.0 is invalid: a last fit of its own needs fit_weights"):
         ExperimentConfig.of(fit_all_failures=False, fit_weights="sampler")
     with pytest.raises(
-        ConfigError, match=r"smoothing_at_failure = 2.5 is invalid: .* must be None or a number in \(0, 2\]"
+        ConfigError, match=r"smoothing_at_failure = 2.5 is invalid: .* must be none or a number in \(0, 2\]"
     ):
         ExperimentConfig.of(smoothing_at_failure=2.5)
-    with pytest.raises(ConfigError, match=r"final_smoothing = 0 is invalid: .* must be None or a number in \(0, 2\]"):
+    with pytest.raises(ConfigError, match=r"final_smoothing = 0 is invalid: .* must be none or a number in \(0, 2\]"):
         ExperimentConfig.of(final_smoothing=0)
 
 

@@ -200,6 +200,17 @@ def test_load_pem_errors_name_the_problem(tmp_path: Path) -> None:
     junk.write_bytes(b"not a torch file")
     with pytest.raises(PemFormatError, match="not a readable PEM"):
         pem.load_pem(junk)
+    allowed = "give a PEM file pemviz wrote (pemviz pem train, save_pem) or a shipped PEM (gbt, ml-nn)"
+    for content, kind in (
+        (b"101\nsecond line\n", "it is a text file whose first line is '101'"),  # was: (101), torch's message
+        (b"", "it is empty"),
+        (b"\x80\x02\xff\xfe\x00junk", "it is binary data not written by torch.save"),
+        (b"PK\x03\x04broken", "it is a zip archive torch cannot read (damaged, or not written by torch.save)"),
+    ):
+        junk.write_bytes(content)
+        with pytest.raises(PemFormatError) as refused:
+            pem.load_pem(junk)
+        assert str(refused.value) == f"{junk}: not a readable PEM file ({kind}): {allowed}"
 
 
 def test_save_to_an_unwritable_folder_raises_and_writes_nothing(tmp_path: Path) -> None:

@@ -112,7 +112,7 @@ def test_the_added_batch_follows_the_square_root_law_within_its_bounds():
             "the most simulations must be at least the run's planned 2,100 simulations",
         ),
         (dict(rel_error=0.1, final_estimate="last-stage"), "final_estimate = 'last-stage' has none"),
-        (dict(rel_error=0.0), "the target relative error must be None or a number in (0, 10]"),
+        (dict(rel_error=0.0), "the target relative error must be none or a number in (0, 10]"),
     ],
 )
 def test_settings_that_cannot_run_are_refused_by_the_config(fields, message):

@@ -142,15 +142,21 @@ def test_default_recording_name_says_what_ran_and_every_written_file_is_printed(
     assert len(list((tmp_path / "recordings").iterdir())) == 2  # the recording and its result document
     (rrd,) = (tmp_path / "recordings").glob("*.rrd")
     assert rrd.name.startswith("braking-adaptive-paper-agm-batched-seed3-") and rrd.suffix == ".rrd"
-    printed = {
-        line.split(": ", 1)[1]
+    named = dict(
+        line.split(": ", 1)
         for line in proc.stderr.splitlines()
-        if line.startswith(("recording: ", "rollouts: ", "result: "))
-    }
+        if line.startswith(("recording: ", "rollouts: ", "rollouts' ", "result: "))
+    )
     beside = "recordings/" + rrd.name.removesuffix(".rrd") + ".result.json"  # the run's result document
-    assert printed == {"recordings/" + rrd.name, beside, "r.parquet", "r.rollouts.json", "r.proposal.pt"}
+    assert named == {  # each file named for what it is: the Parquet table as the rollouts, the JSON as its sidecar
+        "recording": "recordings/" + rrd.name,
+        "result": beside,
+        "rollouts": "r.parquet",
+        "rollouts' sidecar": "r.rollouts.json",
+        "rollouts' proposal": "r.proposal.pt",
+    }
     written = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file()}
-    assert written == printed
+    assert written == set(named.values())
 
 
 def test_default_recording_names_never_collide(tmp_path: Path) -> None:

@@ -59,8 +59,16 @@ def test_the_dataclass_s_own_check_is_the_range():
         apply_parameters("cut-in", {"cut_in_gap_m": -1.0})
     with pytest.raises(ParameterError, match=r"n_objects must be an integer in 3\.\.6"):
         apply_parameters("cut-in", {"n_objects": 9})
-    with pytest.raises(ParameterError, match=r"BrakingParams: dt_s must be finite and > 0, got 0.0"):
+    with pytest.raises(ParameterError, match=r"^the braking scenario: dt_s must be finite and > 0, got 0.0$"):
         apply_parameters("braking", {"dt_s": 0.0})
+    for scenario, values, words in (  # the scenario a user named, never the dataclass's class name
+        ("toy", {"braking": -1}, "the toy scenario: need 1 <= safe <= braking < total, got total=100, braking=-1"),
+        ("crossing", {"walk_speed_mps": -1.0}, "the crossing scenario: walk_speed_mps must be in [0.3, 4], got -1.0"),
+        ("cut-in", {"cut_in_gap_m": -1.0}, "the cut-in scenario: cut_in_gap_m must be finite and >= 0, got -1.0"),
+    ):
+        with pytest.raises(ParameterError) as refused:
+            apply_parameters(scenario, values)
+        assert str(refused.value).startswith(words) and "Params" not in str(refused.value)
     with pytest.raises(ParameterError, match="use one of dt_s, n_steps, gap0_m"):
         apply_parameters("braking", {"cut_in_gap_m": 19.5})
     with pytest.raises(ParameterError, match="is not a whole number"):
@@ -188,7 +196,7 @@ def test_a_parameter_at_its_default_is_not_named_in_the_header(capsys):
     "param, words",
     [
         ("cut_in_gapm=19.5", "'cut_in_gapm' is not a parameter of the cut-in scenario; use one of dt_s, n_steps, "),
-        ("cut_in_gap_m=-3", "CutInParams: cut_in_gap_m must be finite and >= 0, got -3.0"),
+        ("cut_in_gap_m=-3", "the cut-in scenario: cut_in_gap_m must be finite and >= 0, got -3.0"),
         ("cut_in_gap_m=abc", "cut_in_gap_m='abc' is not a number: cut_in_gap_m takes a number in m (default 20.0)"),
         ("cut_in_gap_m", "'cut_in_gap_m' is not NAME=VALUE; the cut-in scenario's names: dt_s, "),
         ("n_objects=4.5", "n_objects='4.5' is not a whole number"),

@@ -132,3 +132,32 @@ def test_an_unknown_scenario_lists_the_registered_ones(plugin, tmp_path):
     proc = pemviz("run", "--scenario", "my-bike", "--no-record", cwd=tmp_path, plugin=plugin)
     assert proc.returncode == 2
     assert "use one of braking, cut-in, cut-in-rare, toy, crowd, crossing, my-car" in proc.stderr
+
+
+def test_a_module_is_found_in_the_current_folder_as_python_m_finds_it(tmp_path, monkeypatch):
+    """Named by the variable, a module (or a package's module) in the current folder imports with nothing on the
+    path; one that is nowhere says what to set; a module found whose own import fails keeps that import's error."""
+    from pemviz.plugins import PluginNotFound, import_here
+
+    (tmp_path / "here_mod.py").write_text("import here_sibling\nVALUE = here_sibling.VALUE + 1\n")
+    (tmp_path / "here_sibling.py").write_text("VALUE = 41\n")
+    (tmp_path / "here_pkg").mkdir()
+    (tmp_path / "here_pkg" / "__init__.py").write_text("")
+    (tmp_path / "here_pkg" / "scenario.py").write_text("VALUE = 7\n")
+    (tmp_path / "here_broken.py").write_text("import no_such_dependency_xyz\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
+    for name in ("here_mod", "here_sibling", "here_pkg", "here_pkg.scenario", "here_broken"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    import_here("here_mod", "PEMVIZ_SCENARIOS")
+    import_here("here_pkg.scenario", "PEMVIZ_METHODS")
+    assert sys.modules["here_mod"].VALUE == 42 and sys.modules["here_pkg.scenario"].VALUE == 7
+    assert sys.path[-1] == str(tmp_path)  # appended: nothing installed is shadowed
+    with pytest.raises(ModuleNotFoundError, match="no_such_dependency_xyz"):
+        import_here("here_broken", "PEMVIZ_SCENARIOS")
+    with pytest.raises(PluginNotFound) as missing:
+        import_here("here_pkg.nothing", "PEMVIZ_METHODS")
+    assert str(missing.value) == (
+        f"no module here_pkg.nothing in the current folder ({tmp_path}) nor on the Python path: run pemviz in the "
+        "folder of the package here_pkg/, or set PYTHONPATH to that folder"
+    )

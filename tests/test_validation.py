@@ -62,6 +62,27 @@ def test_relative_error_and_summary_by_hand():
     assert summaries_csv([s]).splitlines()[1].startswith(f"toy,{lt!r},1e-21,m,4,")
 
 
+def test_a_run_with_no_failure_and_the_trivial_interval_is_counted_apart_not_as_covering():
+    """[0, 1] (no failure, no bound) holds every p and says nothing: not counted as covering, reported apart; a
+    real upper bound with no failure (plain Monte Carlo's [0, 3/n]) and a real interval still count."""
+    lt = math.log(1e-3)
+
+    def record(seed: int, log_mu: float, lo: float, hi: float, failures: int) -> RunRecord:
+        return RunRecord(
+            "toy-1e-3", "m", seed, log_mu, failures, 1000, 1.0, 5.0, 5.0, 1000, 1.0, log_ci_lo=lo, log_ci_hi=hi
+        )
+
+    trivial = record(0, -math.inf, -math.inf, 0.0, 0)
+    assert trivial.says_nothing and not trivial.covers(lt)
+    rule_of_three = record(1, -math.inf, -math.inf, math.log(3e-3), 0)
+    real = record(2, math.log(1.1e-3), math.log(0.8e-3), math.log(1.4e-3), 11)
+    assert rule_of_three.covers(lt) and real.covers(lt) and not (rule_of_three.says_nothing or real.says_nothing)
+    (s,) = summarise([trivial, rule_of_three, real], {"toy-1e-3": ExactAnswer(lt, "closed form")})
+    assert (s.covered, s.said_nothing, s.n_seeds) == (2, 1, 3)
+    assert "| 2/3 (1 no failure: [0, 1]) |" in markdown_table([s])
+    assert summaries_csv([s]).splitlines()[1].endswith(",1")
+
+
 def test_exact_answers_of_the_toys():
     assert exact_answer("toy").log_p_fail == pytest.approx(math.log(1e-21), rel=1e-12)
     assert exact_answer("toy-1e-30").log_p_fail == pytest.approx(math.log(1e-30), rel=1e-9)

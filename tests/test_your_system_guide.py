@@ -15,13 +15,12 @@ import os
 import re
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import BIN, REPO
 from pemviz.config import ExperimentConfig
 from pemviz.engine.experiment import Experiment
 from pemviz.io.rollout_estimate import estimate_rollouts
@@ -146,26 +145,30 @@ def test_a_run_s_rollout_file_re_estimates_and_its_why_line_names_the_pedestrian
 
 
 def pemviz(command: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {
-        **os.environ,
-        "RERUN_ANALYTICS": "false",
-        "PEMVIZ_SCENARIOS": "my_crosswalk",
-        "PYTHONPATH": os.pathsep.join((str(cwd), str(REPO))),
-    }
+    """The page's ``command`` through the installed console script (the ``pemviz`` beside this interpreter), run in
+    ``cwd`` as a user runs it: ``PEMVIZ_SCENARIOS`` set as the page sets it, nothing pointing at the plugin's folder
+    (this environment's ``PYTHONPATH`` passed through without it: where pemviz is not installed, it names pemviz)."""
+    path = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p and Path(p).resolve() != cwd.resolve()]
+    env = {**os.environ, "RERUN_ANALYTICS": "false", "PEMVIZ_SCENARIOS": "my_crosswalk"}
+    env.pop("PYTHONPATH", None)
+    if path:
+        env["PYTHONPATH"] = os.pathsep.join(path)
     args = shlex.split(command.split("#", 1)[0])
-    assert args[0] == "pemviz"
+    assert args[0] == "pemviz" and (BIN / "pemviz").is_file(), f"no console script {BIN / 'pemviz'}: install pemviz"
     return subprocess.run(
-        [sys.executable, "-m", "pemviz.cli", *args[1:]], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+        [str(BIN / "pemviz"), *args[1:]], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
     )
 
 
 def test_the_command_line_form_runs_the_saved_module_and_estimate_gives_its_number_back(guide, tmp_path):
-    """The first four blocks saved as my_crosswalk.py, found through PEMVIZ_SCENARIOS: the page's ``pemviz`` commands
-    as written; the run prints the page's line and a why-line in the objects' names, writes the recording and the
-    rollout file, and ``pemviz estimate`` gives the run's log mu_hat back within 1e-9."""
+    """The first four blocks saved as my_crosswalk.py, found through PEMVIZ_SCENARIOS in the folder the installed
+    ``pemviz`` runs in: the page's ``pemviz`` commands as written; the run prints the page's line and a why-line in the
+    objects' names, writes the recording and the rollout file, and ``pemviz estimate`` gives the run's log mu_hat back
+    within 1e-9."""
     (tmp_path / "my_crosswalk.py").write_text("\n\n".join(blocks()[:MODULE_BLOCKS]))
     commands = [line for line in blocks("bash")[0].splitlines() if line.startswith("pemviz ")]
     assert [c.split()[1] for c in commands] == ["run", "estimate"]
+    assert "export PEMVIZ_SCENARIOS=my_crosswalk  # in the folder of my_crosswalk.py" in blocks("bash")[0]
     run = pemviz(commands[0], tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     assert blocks("text")[0].strip() in run.stdout.splitlines()
@@ -179,3 +182,14 @@ def test_the_command_line_form_runs_the_saved_module_and_estimate_gives_its_numb
     assert logged and float(logged.group(1)) == pytest.approx(ran, rel=1e-9, abs=1e-9)
     assert json.loads((tmp_path / "r.rollouts.json").read_text())["h_column"] == "dist_m"
     assert not list(tmp_path.glob("recordings/estimate-*"))  # --no-record
+
+
+def test_the_command_line_form_outside_the_module_s_folder_says_what_to_set(tmp_path):
+    """From a folder without my_crosswalk.py: one line, exit 2, naming the folder searched and what to set."""
+    run = pemviz("pemviz run --scenario my-crosswalk --no-record", tmp_path)
+    assert run.returncode == 2 and run.stdout == "" and "Traceback" not in run.stderr
+    assert run.stderr.splitlines() == [
+        "pemviz run: error: scenario plugin PEMVIZ_SCENARIOS module my_crosswalk: no module my_crosswalk in the "
+        f"current folder ({tmp_path.resolve()}) nor on the Python path: run pemviz in the folder of my_crosswalk.py, "
+        "or set PYTHONPATH to that folder"
+    ]

@@ -22,7 +22,7 @@ from pemviz.pem.recipes import DEFAULT_PEM_NAME
 from pemviz.pem import shipped_pems
 from pemviz.presets import preset_help
 from pemviz.methods import method_names
-from pemviz.scenarios.registry import registered
+from pemviz.scenarios.registry import registered, scenario_hint
 
 
 class ExperimentTab:
@@ -75,11 +75,12 @@ class ExperimentTab:
 
         def dropdown(key: str, options: tuple[str, ...] | None = None, value: str | None = None, **kw: Any) -> None:
             s = SETTINGS[key]
+            kw.setdefault("hint", s.hint)
             self.choices[key] = gui.add_dropdown(
-                s.label, options or s.choices, initial_value=value or c0.value(key), hint=s.hint, **kw
+                s.label, options or s.choices, initial_value=value or c0.value(key), **kw
             )
 
-        dropdown("scenario", registered())  # every registered scenario, plugins included
+        dropdown("scenario", registered(), hint=scenario_hint())  # every registered scenario, plugins included
         dropdown("metric")
         for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
             number(key)

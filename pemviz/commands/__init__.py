@@ -7,6 +7,7 @@ the output folder check, and the argument helpers of ``validate`` and ``tables``
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import tempfile
 from pathlib import Path
@@ -18,7 +19,7 @@ from pemviz.io.files import check_output_path, write_text_atomic
 
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "run": ("pemviz.commands.run", "estimate a scenario's failure probability (braking, cut-in) and record the run"),
+    "run": ("pemviz.commands.run", "estimate a scenario's failure probability and record the run"),
     "data": ("pemviz.commands.data", "fetch or locate the KITTI salient-variable files"),
     "pem": ("pemviz.commands.pem", "train or evaluate the perception error model (PEM)"),
     "serve": ("pemviz.commands.serve", "open the interactive panel in the browser (viser)"),
@@ -33,7 +34,19 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "write a safety-case report (HTML and Markdown) from a run's result document or recording",
     ),
 }
-"""Each command: (its module, its one-line help). ``pemviz --help`` lists them without importing any command module."""
+"""Each command: (its module, its one-line help). ``pemviz --help`` lists them without importing any command module
+(``run``'s with the registered scenarios: :func:`command_help`)."""
+
+
+def command_help(name: str) -> str:
+    """The one-line help of the command ``name`` as ``pemviz --help`` prints it: :data:`COMMANDS`' text, ``run``'s
+    followed by every registered scenario, plugins included (:func:`pemviz.scenarios.registry.described`)."""
+    text = COMMANDS[name][1]
+    if name != "run":
+        return text
+    from pemviz.scenarios.registry import described
+
+    return f"{text} (scenarios: {', '.join(n for n, _ in described() if n != 'not listed')})"
 
 
 class UsageError(Exception):
@@ -117,6 +130,10 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
             help=f"{s.hint} (default none: the scenario's own values)".replace("%", "%%"),
         )
         return
+    if s.kind == "scenario":  # every registered scenario, listed by the registry when the help is shown
+        action = p.add_argument(*s.flags, dest=name, type=str, default=default, help=text)
+        action.describe = functools.partial(_scenario_help, shown)  # type: ignore[attr-defined]
+        return
     if s.kind == "bool":  # a switch: present sets True, absent leaves the config's value
         p.add_argument(*s.flags, dest=name, action="store_const", const=True, default=default, help=text)
         return
@@ -125,11 +142,18 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
     )
 
 
-def _number(s: Setting) -> Callable[[str], int | float]:
+def _scenario_help(shown: object) -> str:
+    """``--scenario``'s help: every registered scenario (:func:`pemviz.scenarios.registry.scenario_hint`)."""
+    from pemviz.scenarios.registry import scenario_hint
+
+    return f"{scenario_hint()} (default {shown})".replace("%", "%%")
+
+
+def _number(s: Setting) -> Callable[[str], int | float | None]:
     """The flag's number, parsed as the panel's field parses it (:meth:`Setting.parse`); its range is checked by
     the config, in one line."""
 
-    def parse(text: str) -> int | float:
+    def parse(text: str) -> int | float | None:
         try:
             return s.parse(text)
         except ValueError as exc:

@@ -197,18 +197,19 @@ def scenario_params(
         raise ConfigError(str(exc), "scenario_params") from None
 
 
-def rollout_files(parquet: Path) -> list[Path]:
-    """The files ``--save-rollouts`` wrote: the table, its sidecar and, if the sidecar names one, the proposal."""
+def rollout_files(parquet: Path) -> list[tuple[str, Path]]:
+    """The files ``--save-rollouts`` wrote, each with what it is, as the run names them: ``rollouts`` (the Parquet
+    table), ``rollouts' sidecar`` (its JSON) and, if the sidecar names one, ``rollouts' proposal``."""
     from pemviz.io.rollout_format import sidecar_path
 
     sidecar = sidecar_path(parquet)
-    files = [parquet, sidecar]
+    files = [("rollouts", parquet), ("rollouts' sidecar", sidecar)]
     try:
         proposal = json.loads(sidecar.read_text()).get("proposal")
     except (OSError, ValueError, AttributeError):
         proposal = None
     if isinstance(proposal, str) and proposal.endswith(".pt"):
-        files.append(parquet.parent / proposal)
+        files.append(("rollouts' proposal", parquet.parent / proposal))
     return files
 
 
@@ -435,13 +436,9 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     finally:
         if rollout_sink is not None:
             rollout_sink.close()  # rollouts of a run that did not finish are not kept
-    kept = (
-        [str(path) for path in rollout_files(rollout_sink.written)]
-        if rollout_sink is not None and rollout_sink.written is not None
-        else []
-    )
-    for path in kept:
-        print(f"rollouts: {path}", file=sys.stderr)
+    kept = rollout_files(rollout_sink.written) if rollout_sink is not None and rollout_sink.written is not None else []
+    for what, path in kept:
+        print(f"{what}: {path}", file=sys.stderr)
     where = None
     try:
         why = likely.why(problem) if likely is not None else None  # the errors that decided the most likely failure
@@ -479,6 +476,6 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
             return EXIT_CODES[final.decision.outcome]
         return 0
     except KeyboardInterrupt as exc:  # after the run: say what it had written (rollouts, recording), not "nothing"
-        written = [*kept, *([str(where)] if where is not None else [])]
+        written = [*(str(path) for _, path in kept), *([str(where)] if where is not None else [])]
         files = f"{', '.join(written)} written" if written else "no file written"
         raise interrupted(exc, f"the run finished; {files}; its result files not written") from None

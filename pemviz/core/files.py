@@ -71,8 +71,38 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None], *, 
     return target
 
 
+def file_kind(path: Path) -> str:
+    """What the file at ``path`` is, in words, from its first bytes (for a message that refuses it): ``it is empty``,
+    ``it is a text file whose first line is 'hello'``, ``it is a zip archive torch cannot read (...)``, ``it is
+    binary data not written by torch.save``."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError as exc:
+        return f"it cannot be read: {exc.strerror or exc}"
+    if not head:
+        return "it is empty"
+    if head.startswith(b"PK\x03\x04"):
+        return "it is a zip archive torch cannot read (damaged, or not written by torch.save)"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return "it is binary data not written by torch.save"
+    if "\x00" in text:
+        return "it is binary data not written by torch.save"
+    first = next((line.strip() for line in text.splitlines() if line.strip()), "")
+    return f"it is a text file whose first line is {first[:40]!r}" if first else "it is a text file of blank lines"
+
+
 def load_tagged(
-    path: Path, tag: str, version: int, what: str, error: type[Exception], *, as_numpy: bool = False
+    path: Path,
+    tag: str,
+    version: int,
+    what: str,
+    error: type[Exception],
+    *,
+    as_numpy: bool = False,
+    allowed: str | None = None,
 ) -> dict:
     """A pemviz payload dict written by ``torch.save``, checked for its format tag and version.
 
@@ -84,6 +114,8 @@ def load_tagged(
         as_numpy: tensors as numpy arrays, read without importing torch for the files pemviz writes
             (:func:`pemviz.core.torch_payload.load_payload`, which falls back to torch for any other file); else
             ``torch.load(path, weights_only=True)``'s tensors.
+        allowed: what a file that cannot be read is told to give instead (default: ``a {what} file is the
+            torch.save archive pemviz writes``).
     Raises:
         ``error``: damaged file, missing tag, or another format version.
     """
@@ -96,10 +128,9 @@ def load_tagged(
             import torch  # ~1 s to import: only when a checkpoint is read (see pemviz.io.files.write_rrd's rerun)
 
             payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for damaged files
-        size = path.stat().st_size if path.is_file() else None
-        why = "it is empty" if size == 0 else str(exc).strip() or "not written by torch.save, or damaged"
-        raise error(f"{path}: not a readable {what} file ({why})") from None
+    except Exception:  # torch raises several types for damaged files, their messages no help to a user
+        allowed = allowed or f"a {what} file is the torch.save archive pemviz writes"
+        raise error(f"{path}: not a readable {what} file ({file_kind(path)}): {allowed}") from None
     if not isinstance(payload, dict) or payload.get("format") != tag:
         raise error(f"{path}: not a pemviz {what} file (missing format tag {tag!r})")
     if payload.get("version") != version:

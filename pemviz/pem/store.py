@@ -175,14 +175,14 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
 
 
 def _load_payload(p: Path, tag: str, version: int, what: str) -> dict:
-    """:func:`pemviz.core.files.load_tagged`, tensors as numpy arrays, with a one-line PemFormatError (torch's own
-    message for a file that ``torch.load`` cannot read spans several lines and suggests ``weights_only=False``)."""
-    try:
-        return load_tagged(p, tag, version, what, PemFormatError, as_numpy=True)
-    except PemFormatError as exc:
-        if "\n" not in str(exc):
-            raise
-    raise PemFormatError(f"{p}: not a readable {what} file (not written by torch.save, or damaged)")
+    """:func:`pemviz.core.files.load_tagged`, tensors as numpy arrays: a file that cannot be read is one
+    PemFormatError line saying what the file is and what to give instead."""
+    allowed = f"give a {what} file pemviz wrote (torch.save)"
+    if what == "PEM":
+        allowed = (
+            f"give a PEM file pemviz wrote (pemviz pem train, save_pem) or a shipped PEM ({', '.join(shipped_pems())})"
+        )
+    return load_tagged(p, tag, version, what, PemFormatError, as_numpy=True, allowed=allowed)
 
 
 def _pem_from_payload(payload: Mapping[str, Any], p: Path) -> AnyPEM:

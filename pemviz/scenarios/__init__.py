@@ -17,7 +17,18 @@ own: :func:`simulate` and :func:`branch` (N simulators in lockstep, :mod:`pemviz
 module's.
 """
 
-from pemviz.core.lockstep import branch, simulate
+from typing import Any
+
 from pemviz.scenarios.registry import register, registered
 
 __all__ = ["branch", "register", "registered", "simulate"]
+
+
+def __getattr__(name: str) -> Any:
+    """:func:`branch` and :func:`simulate`, imported when first asked for (PEP 562): the registry's import (the
+    command line's help lists the scenarios) loads no rollout runner."""
+    if name in ("branch", "simulate"):
+        from pemviz.core import lockstep
+
+        return getattr(lockstep, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

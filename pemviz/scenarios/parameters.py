@@ -303,7 +303,8 @@ def apply_parameters(scenario: str, values: Mapping[str, object]) -> BrakingPara
 
     Raises:
         ParameterError: an unknown name (the message lists the allowed ones), a value not of its field's kind, or a
-            value the dataclass refuses (its message: the field, what is allowed and what was given).
+            value the dataclass refuses (its message, led by the scenario's name instead of the dataclass's: the
+            field, what is allowed and what was given).
     """
     changes: dict[str, Any] = {}  # the fields' own kinds, each checked by Parameter.check
     for name, value in values.items():
@@ -314,7 +315,17 @@ def apply_parameters(scenario: str, values: Mapping[str, object]) -> BrakingPara
     try:
         return dataclasses.replace(cast("DataclassInstance", params), **changes)
     except ValueError as exc:
-        raise ParameterError(str(exc).replace("\n", " ")) from None
+        raise refusal(scenario, params, exc) from None
+
+
+def refusal(scenario: str, params: object, exc: ValueError) -> ParameterError:
+    """The one line of a value the parameters' dataclass ``params`` refused with ``exc``: its words, led by the
+    scenario's name instead of the dataclass's (``the cut-in scenario: cut_in_gap_m must be finite and >= 0, got
+    -5.0``, not ``CutInParams: ...``: a user names the scenario, never its class)."""
+    text, name = str(exc).replace("\n", " "), type(params).__name__
+    for sep in (": ", "."):
+        text = text.removeprefix(name + sep)
+    return ParameterError(f"the {scenario} scenario: {text}")
 
 
 def changed_parameters(scenario: str, pairs: Iterable[tuple[str, PairValue]]) -> tuple[tuple[str, PairValue], ...]:

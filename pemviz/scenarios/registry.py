@@ -28,11 +28,12 @@ from pemviz.scenarios.parameters import (
     RANDOM_PARAMS,
     Parameter,
     ParameterError,
+    refusal,
     register_defaults,
     unit_of,
 )
 from pemviz.plugins import Plugins, Ref, resolve
-from pemviz.settings import REGISTERED_SCENARIOS, SCENARIO_COST_FACTORS
+from pemviz.settings import REGISTERED_SCENARIOS, SCENARIO_COST_FACTORS, SETTINGS
 
 
 def _kind(field: dataclasses.Field) -> str:
@@ -141,7 +142,8 @@ class Scenario:
 
         Raises:
             ParameterError: a ValueError: an unknown name (the message lists the scenario's), a value not of its
-                field's kind, or a value the dataclass refuses (its own message: the field and its range).
+                field's kind, or a value the dataclass refuses (its own message, led by the scenario's name:
+                :func:`pemviz.scenarios.parameters.refusal`).
         """
         values = dict(values or {})
         found = {p.name: p for p in self.parameters()}
@@ -157,7 +159,7 @@ class Scenario:
         try:
             return dataclasses.replace(params, **changes)
         except ValueError as exc:
-            raise ParameterError(str(exc).replace("\n", " ")) from None
+            raise refusal(self.name, params, exc) from None
 
     def problem(self, config: Any = None, params: Mapping[str, object] | None = None) -> Any:
         """The :class:`pemviz.core.problems.Problem` of this scenario for ``config`` (a
@@ -287,6 +289,30 @@ def registered() -> tuple[str, ...]:
     """
     load_plugins()
     return tuple(_REGISTRY)
+
+
+def described() -> tuple[tuple[str, str], ...]:
+    """``(name, what it simulates)`` for every registered scenario in :func:`registered`'s order: its description up
+    to the first ``;`` (the failure it counts follows there), `` (exact answer)`` where it has one. The command line's
+    help and the panel's hint list the scenarios from here. A plugin that cannot be loaded leaves the scenarios
+    registered so far and its one line as a last pair ``("not listed", message)``: help is still shown."""
+    trouble: tuple[tuple[str, str], ...] = ()
+    try:
+        names = registered()
+    except ScenarioPluginError as exc:
+        names, trouble = tuple(_REGISTRY), (("not listed", str(exc)),)
+    rows = tuple(
+        (n, _REGISTRY[n].description.split(";")[0].strip() + (" (exact answer)" if _REGISTRY[n].exact else ""))
+        for n in names
+    )
+    return rows + trouble
+
+
+def scenario_hint() -> str:
+    """The ``--scenario`` flag's help and the panel's scenario hint: the setting's (``the scenario, one of braking,
+    cut-in, ...: what is simulated ...``), then each registered scenario and what it simulates (:func:`described`)."""
+    rows = described()  # first: the plugins' scenarios join the setting's list of names
+    return "; ".join((SETTINGS["scenario"].hint, *(f"{name}: {what}" for name, what in rows)))
 
 
 def get(name: str) -> Scenario:

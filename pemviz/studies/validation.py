@@ -70,9 +70,16 @@ class RunRecord:
     verdict: str = "unreliable"
     reason: str = ""
 
+    @property
+    def says_nothing(self) -> bool:
+        """Whether its interval is the trivial [0, 1] (a run that saw no failure and has no bound): it holds every p,
+        so it is counted apart, neither holding nor missing one."""
+        return self.log_ci_lo == -math.inf and self.log_ci_hi >= 0.0
+
     def covers(self, log_p: float) -> bool:
-        """Whether the 95 % interval holds the probability whose natural log is ``log_p``."""
-        return self.log_ci_lo <= log_p <= self.log_ci_hi
+        """Whether the 95 % interval holds the probability whose natural log is ``log_p``; never the trivial [0, 1]
+        (:attr:`says_nothing`)."""
+        return not self.says_nothing and self.log_ci_lo <= log_p <= self.log_ci_hi
 
 
 @dataclass(frozen=True)
@@ -283,6 +290,8 @@ class Summary:
     """Seeds whose 95 % interval holds the exact answer."""
     reliable: int
     """Seeds whose verdict is ``reliable``."""
+    said_nothing: int = 0
+    """Seeds whose interval is the trivial [0, 1] (no failure, no bound): not among :attr:`covered`."""
 
 
 def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> list[Summary]:
@@ -312,6 +321,7 @@ def summarise(records: Iterable[RunRecord], truths: dict[str, ExactAnswer]) -> l
                 float(np.median([r.wall_s for r in rs])),
                 sum(r.covers(lt) for r in rs),
                 sum(r.verdict == "reliable" for r in rs),
+                sum(r.says_nothing for r in rs),
             )
         )
     return out
@@ -348,7 +358,7 @@ def _row(s: Summary) -> list[str]:
         fp(s.max_mu_hat),
         f"{s.median_rel_error:.3f}",
         f"{s.within_2x}/{s.n_seeds}",
-        f"{s.covered}/{s.n_seeds}",
+        f"{s.covered}/{s.n_seeds}" + (f" ({s.said_nothing} no failure: [0, 1])" if s.said_nothing else ""),
         f"{s.reliable}/{s.n_seeds}",
         f"{s.median_failures:g}/{s.n_per_estimate}",
         f"{s.median_ess:.1f}",
@@ -388,6 +398,7 @@ def summaries_csv(summaries: Sequence[Summary]) -> str:
             "median_ess",
             "simulations",
             "median_wall_s",
+            "said_nothing",
         ]
     )
     for s in summaries:
@@ -411,6 +422,7 @@ def summaries_csv(summaries: Sequence[Summary]) -> str:
                 f"{s.median_ess:.6g}",
                 s.n_simulations,
                 f"{s.median_wall_s:.3f}",
+                s.said_nothing,
             ]
         )
     return buf.getvalue()
