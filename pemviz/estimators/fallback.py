@@ -89,7 +89,8 @@ p < 1 - CI_TAIL^(1/n), about 3 / n (the rule of three)."""
 
 def rollouts_to_bound(threshold: float) -> int:
     """The fewest plain rollouts whose Clopper-Pearson upper bound with no failure, 1 - 0.05^(1/n), lies below
-    ``threshold`` in (0, 1): ln 0.05 / ln(1 - threshold), about 3 / threshold (an int >= 1)."""
+    ``threshold`` in (0, 1): ln 0.05 / ln(1 - threshold), about 3 / threshold (an int >= 1; Clopper & Pearson,
+    Biometrika 26(4), 1934; the rule of three: Hanley & Lippman-Hand, JAMA 249(13), 1983)."""
     return max(1, math.ceil(math.log(CI_TAIL) / math.log1p(-threshold)))
 
 
