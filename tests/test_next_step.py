@@ -372,3 +372,26 @@ def test_a_splitting_run_s_advice_speaks_of_what_splitting_has():
         assert_valid_flags(ams)
     adaptive = next_step(e, ExperimentConfig.of(), None, None, 10_000, 5.0)
     assert "heavy-tailed weights make this run's estimate usually too low" in adaptive
+
+
+def test_the_rare_cut_in_s_default_says_no_method_shipped_answers_with_the_bound_it_has():
+    """``pemviz run --scenario cut-in-rare``: plain Monte Carlo of 5,000 rollouts (about 15 s), then, not a method that
+    cannot answer at about 1e-7, the line that none shipped can, with the run's Clopper-Pearson bound; the same
+    scene with another start gap, or a scene a method answers, keeps its own route."""
+    from pemviz.config import scene_defaults
+
+    assert scene_defaults("cut-in-rare") == {"method": "mc", "n_per_stage": 5_000}
+    config = ExperimentConfig.of(scenario="cut-in-rare", **scene_defaults("cut-in-rare"))
+    upper = 1.0 - 0.05 ** (1.0 / 5_000)  # one-sided Clopper-Pearson with no failure in 5,000: 5.99e-4
+    none = Estimate(5_000, 0, -math.inf, math.nan, math.nan, 0.0, (-math.inf, math.log(upper)), plain_mc=True)
+    said = next_step(none, config, None, None, 5_000, 15.0) or ""
+    assert said.startswith("no method shipped today answers at this scene's rarity: p is about 1e-7"), said
+    assert said.endswith("the bound this run has: p < 5.99e-04 (95 %, 5,000 rollouts without a failure)"), said
+    assert "--method adaptive" not in said and "--method" not in said
+    tilted = next_step(made(math.log(4e-10), "unreliable"), config.replace(method="tilt"), None, None, 7280, 30.0)
+    assert tilted is not None and tilted.startswith("no method shipped today answers")
+    assert tilted.endswith("no bound either way from this run")  # made() keeps no terms: no lower bound
+    moved = config.replace(scenario_params=(("cut_in_gap_m", 20.0),))  # the moderate gap: the tilt answers there
+    assert "no method shipped" not in (next_step(none, moved, None, None, 5_000, 15.0) or "")
+    cut_in = ExperimentConfig.of(scenario="cut-in", method="mc", n_per_stage=5_000)
+    assert "no method shipped" not in (next_step(none, cut_in, None, None, 5_000, 15.0) or "")

@@ -16,11 +16,23 @@ hundred gets a proportionate few) (:class:`pemviz.estimators.precision.Precision
 without it). Its answer is plain Monte Carlo's (Clopper-Pearson interval: exact, whatever the sampler before it)
 where those rollouts saw a failure; else the method's, with plain Monte Carlo's 95 % upper bound in the stop line.
 
+Plain Monte Carlo is drawn only where its cap can decide something (:func:`plain_cannot_decide`). Its cap is known
+before its first rollout; p is not, and no importance weight bounds it from above (a proposal that misses the failure
+region that carries p is orders of magnitude low, e.g. the crossing's stages at 2.98e-4), nor do a few thousand plain
+rollouts without a failure (they leave p just below 3 / n possible, where the rest of the cap would see failures). So
+it is not drawn only where that follows from what the run knows for certain: the scene's exact answer, or the upper
+end of its plain Monte Carlo reference, expects less than one failure in the cap (braking at ``--margin 0``:
+8.06e-33 against 10^6 rollouts); or a requirement it could decide only by a bound below its threshold, which needs
+more rollouts than the cap (``p < 1e-13``: 3 x 10^13), and which that answer says it cannot decide by failures
+either. Where no answer states p the fallback is drawn (the crossing with other parameters, a user's scene).
+
 Before plain Monte Carlo, the method's stages run once more (``retry_factor``, :class:`Shifted`): N that many times as
 large (the default 4), from a stream of their own, their stages numbered after the first run's. A proposal family that
 can follow the failures but whose first, small run was unlucky (a heavy weight tail at N = 100) is then ``reliable``
 at a few thousand rollouts, not a million (the crowd with measurement noise: 20/20 ``reliable`` at N = 400 where 9/20
-were at N = 100); one that cannot follow them costs those few thousand more before plain Monte Carlo.
+were at N = 100); one that cannot follow them costs those few thousand more before plain Monte Carlo. There is no
+retry where the scene caps the verdict of every run of its stages below ``reliable``
+(:attr:`pemviz.core.problems.Problem.verdict_cap`: braking at ``--margin 0``): its interval could not be backed either.
 
 Choosing the answer by the first estimate's verdict, and the second estimate from rollouts independent of the first,
 keeps the second one's coverage (and so for the third): its rollouts are drawn whatever the first run found
@@ -31,15 +43,17 @@ for the idea that the target bounds what a poor proposal can cost).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from typing import Any
 
 import numpy as np
 
 from pemviz.config import ExperimentConfig
-from pemviz.core.estimate import Estimate
+from pemviz.core.estimate import Estimate, format_probability
 from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
+from pemviz.core.requirement import parse_requirement
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import Estimator, StageOutcome, StagePlan
 from pemviz.estimators.extras import extras
@@ -62,6 +76,74 @@ STREAM = 0x706C61696E
 """Mixed into the seed of the fallback's own stream (``numpy.random.default_rng([seed, STREAM])``)."""
 RETRY = 0x7265747279
 """Mixed into the seed of the retry's streams (:func:`retry_seed`)."""
+
+
+LEAST_EXPECTED_FAILURES = 1.0
+"""Plain Monte Carlo is drawn where its cap expects at least this many failures at the largest p the scene states
+(:func:`plain_cannot_decide`): it then sees one with probability >= 1 - e^-1 = 63 %, and one failure gives an exact
+Clopper-Pearson interval."""
+CI_TAIL = 0.05
+"""The one-sided level of plain Monte Carlo's bounds in :func:`plain_cannot_decide`: after n rollouts with no failure
+p < 1 - CI_TAIL^(1/n), about 3 / n (the rule of three)."""
+
+
+def rollouts_to_bound(threshold: float) -> int:
+    """The fewest plain rollouts whose Clopper-Pearson upper bound with no failure, 1 - 0.05^(1/n), lies below
+    ``threshold`` in (0, 1): ln 0.05 / ln(1 - threshold), about 3 / threshold (an int >= 1; Clopper & Pearson,
+    Biometrika 26(4), 1934; the rule of three: Hanley & Lippman-Hand, JAMA 249(13), 1983)."""
+    return max(1, math.ceil(math.log(CI_TAIL) / math.log1p(-threshold)))
+
+
+def stated_log_p(problem: Problem) -> tuple[float, str] | None:
+    """The largest p the scene states, as a natural log with its words: its exact answer
+    (:attr:`~pemviz.core.problems.Problem.exact_log_p`), else the upper end of its plain Monte Carlo reference's
+    interval; None where it states neither (a user's scene, the crossing with other parameters)."""
+    if problem.exact_log_p is not None:
+        return float(problem.exact_log_p), "the exact answer"
+    if problem.reference is not None:
+        return problem.reference.log_ci[1], "the upper end of the reference's interval"
+    return None
+
+
+def plain_cannot_decide(cap: int, stated: tuple[float, str] | None, require: str | None = None) -> str | None:
+    """Why plain Monte Carlo of at most ``cap`` rollouts cannot decide the run, or None where it may.
+
+    Without a requirement it decides where it sees a failure (an exact interval): not where the scene's stated p
+    expects fewer than :data:`LEAST_EXPECTED_FAILURES` in the cap. With a requirement ``p < T`` (or ``p > T``) it
+    decides one side by a bound below T with no failure, which needs :func:`rollouts_to_bound` (T) rollouts whatever
+    p, and the other by failures, which the stated p must expect in the cap and lie beyond T; not where neither can
+    happen. With no stated p (``stated`` None) nothing rules out failures: None.
+
+    Args:
+        cap: the most plain rollouts (>= 0).
+        stated: :func:`stated_log_p` (natural log of p, its words), or None.
+        require: the run's requirement (``"p < 1e-9"``), or None.
+    Returns:
+        one clause saying why not (e.g. ``p = 8.06e-33 (the exact answer) expects 8.1e-27 failures in 1,000,000
+        rollouts``), or None.
+    """
+    if cap < 1:
+        return "no plain rollout is left in the run's budget"
+    if stated is None:
+        return None  # nothing rules out a failure
+    log_p, words = stated
+    said = f"p = {format_probability(log_p, 3)} ({words})"
+    sees = math.exp(log_p) * cap
+    expects = f"expects {sees:.2g} failures in {cap:,} rollouts"
+    if require is None:
+        return None if sees >= LEAST_EXPECTED_FAILURES else f"{said} {expects}: it would end with no interval"
+    req = parse_requirement(require)
+    need = rollouts_to_bound(req.threshold)
+    if need <= cap:
+        return None  # a bound below T is within the cap: p < T decided met, or p > T refuted
+    beyond = log_p > req.log_threshold
+    if beyond and sees >= LEAST_EXPECTED_FAILURES:
+        return None  # failures beyond T: p < T refuted, or p > T decided met
+    side = expects if beyond else "lies below it"
+    return (
+        f"a bound below {req.threshold:g} needs {need:,} rollouts without a failure, past its cap of {cap:,}, and "
+        f"{said} {side}: it could not decide {req}"
+    )
 
 
 def retry_seed(seed: int) -> int:
@@ -197,6 +279,11 @@ class PlainFallback(_Speaks):
         """The estimate plain Monte Carlo follows (the retry's, else the first run's), once the stages are done."""
         self._rollouts = [0, 0]
         """Rollouts of the first run's stages and of the retry's."""
+        self.not_retried: str | None = None
+        """Why the stages were not run once more although their weights backed no interval, or None."""
+        self.not_drawn: str | None = None
+        """Why plain Monte Carlo was not drawn although the stages' weights backed no interval
+        (:func:`plain_cannot_decide`), or None."""
         self._last_stage = -1
 
     def __getattr__(self, name: str) -> Any:  # the method's other attributes (its proposal, its settings)
@@ -256,20 +343,31 @@ class PlainFallback(_Speaks):
         stop = self.config.stop
         if self.first.interval_backed or config is None:
             return None
+        capped = self.problem.verdict_cap
+        if capped is not None and capped[0] != "reliable":  # the retry's interval could not be backed either
+            self.not_retried = f"the scene caps every run of the stages at {capped[0]}"
+            return None
         if stop.max_time_s is not None and stop.max_time_s - (self.clock() - self.t0) <= 0:
             return None
         check = getattr(self.inner, "check", None)
         return Shifted(get_method(config.method).builder()(config, self.problem, check), self._last_stage + 1)
 
     def _start(self) -> PrecisionTarget | None:
-        """The plain run, or None: the method's interval is backed, or no time is left."""
+        """The plain run, or None: the method's interval is backed, its requirement decided, no time is left, or
+        plain Monte Carlo could not decide (:func:`plain_cannot_decide`, the reason kept in :attr:`not_drawn`)."""
         assert self.before is not None
         if self.before.interval_backed:
+            return None
+        decided = extras(self.drawing).decision
+        if decided is not None and decided.outcome != "undecided":
             return None
         stop = self.config.stop
         spent = self._method_simulations()
         self.cap = plain_fallback_most(self.ratio, spent, stop.max_sims)
         if self.cap < 1:
+            return None
+        self.not_drawn = plain_cannot_decide(self.cap, stated_log_p(self.problem), stop.require)
+        if self.not_drawn is not None:
             return None
         changes: dict[str, Any] = {"method": "mc", "max_sims": self.cap}
         if stop.rel_error is None and stop.require is None:
@@ -347,9 +445,14 @@ class PlainFallback(_Speaks):
         """Why the run stopped, with the fallback's part: what the method's weights said, what its retry gave and
         what plain Monte Carlo gave."""
         own = extras(self.inner).stop
-        if self.retry is None and self.plain is None:
+        if self.retry is None and self.plain is None and self.not_retried is None and self.not_drawn is None:
             return own
         parts = [own]
+        if self.not_retried is not None and self.first is not None:
+            parts.append(
+                f"the stages not run once more ({self.first.verdict}): {self.not_retried}, so their retry's weights "
+                "could not back an interval either"
+            )
         if self.retry is not None and self.first is not None and self.before is not None:
             again = self.retry.inner
             n = getattr(getattr(again, "config", None), "n_per_stage", None)
@@ -367,5 +470,17 @@ class PlainFallback(_Speaks):
                 upper = 1.0 - 0.05 ** (1.0 / max(1, est.n))  # one-sided Clopper-Pearson with no failure
                 said += f", p < {upper:.2g} (its 95 % upper bound); the answer is the stages'"
             parts += [said, self.plain.stop]
+        if self.not_drawn is not None and self.before is not None:
+            bound = self.before.log_lower_bound
+            what = (
+                f"p >= {format_probability(bound, 2)}, the stages' 95 % lower bound, holds whatever their weights' tail"
+                if bound > -math.inf
+                else "the stages bound nothing"
+            )
+            parts.append(
+                f"plain Monte Carlo not drawn after the stages, whose weights backed no interval "
+                f"({self.before.verdict}): {self.not_drawn} (--plain-fallback); {what}; a larger stage budget or "
+                "another method may decide it (next)"
+            )
         said_all = [p for p in parts if p]
         return "; ".join(said_all) if said_all else None

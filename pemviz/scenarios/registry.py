@@ -28,6 +28,7 @@ from pemviz.scenarios.parameters import (
     RANDOM_PARAMS,
     Parameter,
     ParameterError,
+    changed_parameters,
     refusal,
     register_defaults,
     unit_of,
@@ -82,6 +83,9 @@ class Scenario:
             defaults (:func:`pemviz.config.scene_defaults`).
         odd_defaults: those settings over an operating design domain (a parameter drawn per rollout), in place of
             :attr:`run_defaults`; empty: :attr:`run_defaults`.
+        beyond: one line saying why no method shipped today answers at the scene's rarity (its p, what each method
+            gives there), or empty: one does. A run of it whose verdict is not ``reliable`` then says so with the
+            bound it has (``next:``, :func:`pemviz.sinks.console.next_step`), in place of a method that cannot.
     """
 
     name: str
@@ -98,12 +102,15 @@ class Scenario:
     n_objects: int = 1
     run_defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     odd_defaults: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    beyond: str = ""
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
             raise ValueError(f"Scenario: name must be a non-empty text without surrounding spaces, got {self.name!r}")
         if not isinstance(self.description, str) or "\n" in self.description:
             raise ValueError(f"Scenario {self.name}: description must be one line of text")
+        if not isinstance(self.beyond, str) or "\n" in self.beyond:
+            raise ValueError(f"Scenario {self.name}: beyond must be one line of text (empty: a method answers)")
         if self.factory is None:
             raise ValueError(f"Scenario {self.name}: a factory (config, params) -> Problem is needed")
         if isinstance(self.n_objects, bool) or not isinstance(self.n_objects, int) or self.n_objects < 1:
@@ -333,6 +340,27 @@ def known(name: str) -> Scenario | None:
     return _REGISTRY.get(name)
 
 
+def no_method_answers(config: Any, est: Any) -> str | None:
+    """The ``next:`` line of a run of ``config`` (its ``scenario`` and ``scenario_params``) whose estimate ``est``
+    (:class:`pemviz.core.estimate.Estimate`) is not ``reliable``, on a scene at its defaults at whose rarity no method
+    shipped today answers (:attr:`Scenario.beyond`): that, why, and the bound the run has (plain Monte Carlo's
+    Clopper-Pearson upper bound with no failure, an interval it backs, else its lower bound); None elsewhere."""
+    from pemviz.core.estimate import format_probability
+
+    record = known(getattr(config, "scenario", "") or "")
+    if record is None or not record.beyond or est.verdict == "reliable":
+        return None
+    if changed_parameters(record.name, getattr(config, "scenario_params", ())):
+        return None  # another scene than the one the record speaks of
+    if est.plain_mc and est.n_failures == 0:
+        bound = f"p < {format_probability(est.log_ci[1], 2)} (95 %, {est.n:,} rollouts without a failure)"
+    elif est.interval_backed:
+        bound = f"p in {est.interval_text()} (95 %)"
+    else:
+        bound = est.bound_text()
+    return f"no method shipped today answers at this scene's rarity: {record.beyond}; the bound this run has: {bound}"
+
+
 def problem_for(config: Any) -> Any:
     """The :class:`pemviz.core.problems.Problem` a run of ``config`` estimates, for any registered scenario
     (``config.scenario``), built-in or a plugin's alike: its factory with the config (:meth:`Scenario.problem`).
@@ -363,11 +391,12 @@ _CUT_IN = (
 # cut-in scenes the adaptive sampler's estimates are orders of magnitude low (the user guide's Validation page). The
 # cut-in runs its own tilted proposal (tilt: pemviz.scenarios.cut_in.tilt) on 7,280 rollouts, about 13,000
 # rollout-equivalents with its look-aheads; over an ODD of its start gap, where that proposal (solved for one gap) does
-# not apply, plain Monte Carlo of 100,000 rollouts (about 35 s). The rare cut-in (about 1e-7), where the tilt's
-# intervals are too narrow (its seeds spread 1.8 times what they say) and no reference exists, runs plain Monte Carlo,
-# whose Clopper-Pearson interval holds p in at least 95 % of runs at any budget. The crossing (a noisy detector behind
-# a Kalman tracker, p about 3e-4), where the cross-entropy sampler is 5 to 10 orders of magnitude low and splitting on
-# the scene-neutral look-ahead costs 1.3 times plain Monte Carlo for the same median error
+# not apply, plain Monte Carlo of 100,000 rollouts (about 35 s). At the rare cut-in (about 1e-7) no shipped method
+# answers (beyond): the tilt's and the cross-entropy sampler's weights back no interval there, no reference exists, and
+# plain Monte Carlo needs some 10^9 rollouts for an interval; it runs plain Monte Carlo of 5,000 rollouts (about 15 s),
+# whose Clopper-Pearson bound holds whatever p, and says that no method shipped answers. The crossing (a noisy
+# detector behind a Kalman tracker, p about 3e-4), where the cross-entropy sampler is 5 to 10 orders of magnitude low
+# and splitting on the scene-neutral look-ahead costs 1.3 times plain Monte Carlo for the same median error
 # (benchmarks/scene_neutral.py), runs plain Monte Carlo to a 20 % interval (at most 500,000 rollouts, about 15 s).
 
 for _scenario in (
@@ -410,7 +439,13 @@ for _scenario in (
         random_params=("cut_in_gap_m",),
         odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
         n_objects=5,
-        run_defaults={"method": "mc", "n_per_stage": 20_000},
+        run_defaults={"method": "mc", "n_per_stage": 5_000},
+        beyond=(
+            "p is about 1e-7, a provisional figure (no reference; 10 tilted runs gave 1.8e-7, every one unreliable): "
+            "plain Monte Carlo needs some 10^9 rollouts for a 20 % interval, and the tilt's and the cross-entropy "
+            "sampler's weights back no interval here, single runs orders of magnitude apart "
+            "(docs/cut-in.md, Limits)"
+        ),
     ),
     Scenario(
         "toy",

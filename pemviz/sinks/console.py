@@ -23,6 +23,7 @@ from pemviz.engine.cost import (
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.methods import method_or_none, plain_method
 from pemviz.plugins import resolve
+from pemviz.scenarios.registry import no_method_answers
 from pemviz.sinks import Sink, StageClock
 from pemviz.settings import setting_of
 
@@ -371,6 +372,9 @@ def next_step(
     """
     if e.verdict == "reliable" or config is None:
         return None
+    beyond = no_method_answers(config, e)  # a scene at whose rarity no method shipped answers: that, and the bound
+    if beyond is not None:
+        return beyond
     method = getattr(config, "method", "adaptive")
     s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)

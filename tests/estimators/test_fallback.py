@@ -4,6 +4,7 @@ same run at any chunk size."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -58,10 +59,17 @@ def test_a_seed_gives_the_same_fallback_at_any_chunk_size():
     assert [s.estimate.n_failures for s in a.stages] == [s.estimate.n_failures for s in b.stages]
 
 
+def unstated(**settings):
+    """:func:`run` on the toy as a scene that states no p (its exact answer dropped, as a user's scene has none)."""
+    config = ExperimentConfig.of(**{**TINY, **settings})
+    problem = dataclasses.replace(problem_for(config), exact_log_p=None)
+    return Experiment(config, problem=problem).run(), problem
+
+
 def test_no_failure_in_the_plain_rollouts_leaves_the_method_answer_with_an_upper_bound():
-    # p = 1e-21 (21 misses in a row): 40 x 30 = 1,200 plain rollouts see no failure
-    done, _ = run(plain_fallback=40, seed=0)
-    without, _ = run(plain_fallback=0, seed=0)
+    # p = 1e-21 (21 misses in a row), stated by no answer: 40 x 30 = 1,200 plain rollouts see no failure
+    done, _ = unstated(plain_fallback=40, seed=0)
+    without, _ = unstated(plain_fallback=0, seed=0)
     assert done.final.estimate.log_mu_hat == without.final.estimate.log_mu_hat
     assert not done.final.estimate.plain_mc
     assert without.final.n_simulations == 30 and done.final.n_simulations == 30 + 1200
@@ -168,3 +176,92 @@ def test_the_fallback_stays_within_the_run_s_max_sims_and_a_million():
     from pemviz.methods.adaptive import PLAIN_FALLBACK_MOST as MOST
 
     assert MOST == 1_000_000
+
+
+def test_plain_monte_carlo_is_not_drawn_where_the_scene_s_exact_answer_expects_no_failure_in_its_cap():
+    # the same run on the toy, whose exact answer 1e-21 expects 1.2e-18 failures in the 1,200 rollouts: none drawn
+    done, problem = run(plain_fallback=40, seed=0)
+    without, _ = run(plain_fallback=0, seed=0)
+    assert math.exp(problem.exact_log_p) == pytest.approx(1e-21, rel=1e-9)
+    assert done.final.n_simulations == without.final.n_simulations == 30
+    assert done.final.estimate.log_mu_hat == without.final.estimate.log_mu_hat
+    stop = done.final.stop
+    assert (
+        "plain Monte Carlo not drawn after the stages, whose weights backed no interval "
+        f"({without.final.estimate.verdict}): p = 1.000e-21 (the exact answer) expects 1.2e-18 failures in 1,200 "
+        "rollouts: it would end with no interval (--plain-fallback)"
+    ) in stop
+    assert "a larger stage budget or another method may decide it" in stop
+
+
+def test_a_scene_that_caps_the_stages_verdict_gets_no_retry_but_still_plain_monte_carlo():
+    # toy braking 32 (p = 1e-3): a retry at N = 200 would back its interval (the test above), but a scene that caps
+    # every run of its stages at doubtful (as braking at --margin 0) makes it useless: plain Monte Carlo follows at once
+    config = ExperimentConfig.of(**{**TINY, **RETRY, "plain_fallback": 100})  # 9,000 plain rollouts at most
+    problem = dataclasses.replace(problem_for(config), verdict_cap=("doubtful", "a test's cap"))
+    done = Experiment(config.replace(seed=0), problem=problem).run()
+    assert [s.kind for s in done.stages[:4]] == ["pretrain", "ce", "ce", "final"]
+    assert all(s.kind == "final" for s in done.stages[4:]) and done.final.estimate.plain_mc
+    assert "the stages not run once more (doubtful): the scene caps every run of the stages at doubtful" in (
+        done.final.stop
+    )
+    assert "once more at N" not in done.final.stop and done.final.estimate.covers(problem.exact_log_p)
+
+
+@pytest.mark.parametrize(
+    "cap, log_p, require, why",
+    [
+        # braking at --margin 0: 8.058e-33 against the most plain rollouts, 10^6
+        (10**6, math.log(8.058e-33), None, "p = 8.058e-33 (the exact answer) expects 8.1e-27 failures in 1,000,000"),
+        (10**6, math.log(2.98e-4), None, None),  # the crossing's reference: 298 failures expected
+        (1_000, math.log(1e-3), None, None),  # one failure expected
+        (999, math.log(1e-3), None, "expects 1 failures in 999 rollouts"),  # 0.999 (printed to 2 digits)
+        (10**6, None, None, None),  # no stated p: nothing rules a failure out
+        # a requirement p < 1e-13: a bound below it needs 2.996e13 rollouts; p = 1.98e-15 gives no failure either
+        (10**6, math.log(1.984e-15), "p < 1e-13", "a bound below 1e-13 needs 29,957,322,735,"),
+        (10**6, None, "p < 1e-13", None),  # p unknown: failures could refute it
+        (10**6, math.log(1e-8), "p < 1e-9", "p = 1.000e-08 (the exact answer) expects 0.01 failures"),
+        (10**6, math.log(1e-3), "p < 1e-9", None),  # 1,000 failures refute it
+        (10**6, math.log(1e-7), "p < 1e-5", None),  # 299,572 rollouts without a failure bound p below 1e-5
+        (10**6, math.log(1e-15), "p > 1e-13", "lies below it: it could not decide p > 1e-13"),
+        (0, math.log(1e-3), None, "no plain rollout is left"),
+    ],
+)
+def test_the_rule_draws_plain_monte_carlo_only_where_its_cap_can_decide(cap, log_p, require, why):
+    from pemviz.estimators.fallback import plain_cannot_decide
+
+    said = plain_cannot_decide(cap, None if log_p is None else (log_p, "the exact answer"), require)
+    assert said is None if why is None else why in (said or ""), said
+
+
+def test_the_rollouts_a_bound_needs_and_the_p_a_scene_states():
+    from pemviz.estimators.fallback import rollouts_to_bound, stated_log_p
+
+    n = rollouts_to_bound(0.0025)  # ln 0.05 / ln 0.9975 = 1196.8
+    assert n == 1197 and 1 - 0.05 ** (1 / n) < 0.0025 <= 1 - 0.05 ** (1 / (n - 1))
+    assert rollouts_to_bound(1e-5) == 299_572  # the rule of three: 3 / 1e-5, to 0.2 %
+    toy = problem_for(ExperimentConfig.of(scenario="toy"))
+    assert stated_log_p(toy) == (toy.exact_log_p, "the exact answer")
+    assert stated_log_p(dataclasses.replace(toy, exact_log_p=None)) is None
+    from pemviz.core.confidence import clopper_pearson
+    from pemviz.core.estimate import Reference
+
+    ref = dataclasses.replace(toy, exact_log_p=None, reference=Reference(866, 10_000_000))
+    stated = stated_log_p(ref)
+    assert stated is not None and stated[1] == "the upper end of the reference's interval"
+    assert math.exp(stated[0]) == pytest.approx(clopper_pearson(866, 10_000_000)[1], rel=1e-12)
+
+
+def test_pemviz_run_at_margin_0_draws_neither_retry_nor_plain_monte_carlo_and_says_why(capsys):
+    """``pemviz run --margin 0`` (contact, exact 8.06e-33), here with a tiny stage budget: its verdict is doubtful at
+    best, so no retry, and plain Monte Carlo would expect no failure: the run ends after its stages and says why."""
+    from pemviz.cli import main
+
+    argv = ["run", "--margin", "0", "--k", "1", "--n", "10", "--n-final", "10", "--seed", "0", "--no-record"]
+    main(argv)
+    out = capsys.readouterr().out
+    stop = [line for line in out.splitlines() if line.startswith("stop: ")]
+    assert len(stop) == 1, out
+    assert "the stages not run once more" in stop[0] and "the scene caps every run of the stages at doubtful" in stop[0]
+    assert "plain Monte Carlo not drawn" in stop[0] and "p = 8.058e-33 (the exact answer) expects" in stop[0]
+    assert "0 failures in" not in out and "once more at N" not in out
