@@ -30,7 +30,9 @@ def test_the_crossing_reports_the_trackers_state_of_each_pedestrian_at_every_ste
     assert f.ego.shape == (48, 50, len(FEATURE_NAMES)) and f.objects.shape == (48, 50, 2, len(tracker.FEATURE_NAMES))
     assert f.feature_names == FEATURE_NAMES and f.object_feature_names == tracker.FEATURE_NAMES
     # the tracker's confirmed flag is the one the object rows report (the AEB's input), at every step
-    np.testing.assert_array_equal(f.object_feature("track_confirmed"), batch.objects[..., OBJECT_NAMES.index("tracked")])
+    np.testing.assert_array_equal(
+        f.object_feature("track_confirmed"), batch.objects[..., OBJECT_NAMES.index("tracked")]
+    )
     np.testing.assert_array_equal(f.feature("ego_speed_mps"), batch.signal("ego_speed_mps"))
     np.testing.assert_allclose(f.feature("time_s")[0], 0.1 * np.arange(50), rtol=1e-12)
     age = f.object_feature("track_age_steps")

@@ -168,7 +168,7 @@ def check_features(features: FeaturesFn, batch: RolloutBatch, chunk_size: int) -
                 i = tuple(map(int, differ[np.lexsort((differ[:, 0], differ[:, 1]))[0]]))
                 return (
                     f"{kind} {names[i[-1]]!r} at rollout {i[0]}, step {i[1]}"
-                    f"{f', object {i[2]}' if len(i) == 4 else ''}: {a[i].item()!r}, {how} {b[i].item()!r} "
+                    f"{f', object {i[2]}' if len(i) == 4 else ''}: {a[i].item()!r} replayed at once, {b[i].item()!r} {how} "
                     "(features must be a function of each rollout's own events)"
                 )
     return None
