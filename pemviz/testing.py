@@ -263,8 +263,9 @@ def check_scenario(
     - ``determinism``: the same seed gives the same rollouts bit for bit (observations, detections, log p and log q,
       object rows, measurement errors; :data:`SIMULATED_ROLLOUTS`, drawn by the PEM and by a 50 % detector), from
       the same problem, from a problem built again, and streamed in chunks where the problem streams.
-    - ``features``: where the scene reports state features (:mod:`pemviz.core.features`; not listed where it has none),
-      they are finite, the same replayed twice and the same in chunks of a third (:func:`pemviz.core.features.check_features`).
+    - ``features``: where the scene reports state features (:mod:`pemviz.core.features`; not listed where it has
+      none), they are finite, the same replayed twice and in chunks of a third
+      (:func:`pemviz.core.features.check_features`).
     - ``twin``: where the scenario has a single black-box simulator (:attr:`Scenario.simulator`), it passes
       :func:`pemviz.core.checks.check_simulator` (single-object ones), and :data:`TWIN_ROLLOUTS` of it in lockstep
       (:func:`pemviz.scenarios.simulate`) are those of the problem's batched twin, step by step, bit for bit.

@@ -25,9 +25,10 @@ from pemviz.core.rollouts import BatchedSimulator, RolloutBatch, n_objects_of
 
 
 class FeatureSimulator(BatchedSimulator, Protocol):
-    """A :class:`pemviz.core.rollouts.BatchedSimulator` that reports the state its controller acts on: ``state_features()
-    -> (ego float64 [n, F], objects float64 [n, M, G])`` at the current step, named ``feature_names`` (F) and
-    ``object_feature_names`` (G); a function of the events before the step only, and of each rollout's own."""
+    """A :class:`pemviz.core.rollouts.BatchedSimulator` that reports the state its controller acts on:
+    ``state_features() -> (ego float64 [n, F], objects float64 [n, M, G])`` at the current step, named
+    ``feature_names`` (F) and ``object_feature_names`` (G); a function of the events before the step only, and of each
+    rollout's own."""
 
     @property
     def feature_names(self) -> Sequence[str]: ...
@@ -168,7 +169,7 @@ def check_features(features: FeaturesFn, batch: RolloutBatch, chunk_size: int) -
                 i = tuple(map(int, differ[np.lexsort((differ[:, 0], differ[:, 1]))[0]]))
                 return (
                     f"{kind} {names[i[-1]]!r} at rollout {i[0]}, step {i[1]}"
-                    f"{f', object {i[2]}' if len(i) == 4 else ''}: {a[i].item()!r} replayed at once, {b[i].item()!r} {how} "
-                    "(features must be a function of each rollout's own events)"
+                    f"{f', object {i[2]}' if len(i) == 4 else ''}: {a[i].item()!r} replayed at once, "
+                    f"{b[i].item()!r} {how} (features must be a function of each rollout's own events)"
                 )
     return None
