@@ -27,7 +27,7 @@ import numpy as np
 
 from pemviz.conformance_runs import KitRun, files_folder, run_engine, run_with_files
 
-SCENARIO_CHECKS = ("schema", "problem", "determinism", "twin", "drawing", "rollout-file", "recording")
+SCENARIO_CHECKS = ("schema", "problem", "determinism", "features", "twin", "drawing", "rollout-file", "recording")
 """The checks of :func:`check_scenario`, in the order they run."""
 
 ESTIMATOR_CHECKS = ("interface", "unbiased", "verdicts", "rollout-file", "recording")
@@ -263,6 +263,9 @@ def check_scenario(
     - ``determinism``: the same seed gives the same rollouts bit for bit (observations, detections, log p and log q,
       object rows, measurement errors; :data:`SIMULATED_ROLLOUTS`, drawn by the PEM and by a 50 % detector), from
       the same problem, from a problem built again, and streamed in chunks where the problem streams.
+    - ``features``: where the scene reports state features (:mod:`pemviz.core.features`; not listed where it has
+      none), they are finite, the same replayed twice and in chunks of a third
+      (:func:`pemviz.core.features.check_features`).
     - ``twin``: where the scenario has a single black-box simulator (:attr:`Scenario.simulator`), it passes
       :func:`pemviz.core.checks.check_simulator` (single-object ones), and :data:`TWIN_ROLLOUTS` of it in lockstep
       (:func:`pemviz.scenarios.simulate`) are those of the problem's batched twin, step by step, bit for bit.
@@ -292,6 +295,7 @@ def check_scenario(
         ConformanceError: the first check that fails, e.g. ``check_scenario('toy'): determinism: ...``.
         KeyError: no scenario of that name.
     """
+    from pemviz.core.features import check_features
     from pemviz.scenarios import simulate
     from pemviz.scenarios.registry import Scenario, get
 
@@ -351,6 +355,16 @@ def check_scenario(
                 "detector's; draw nothing of its own)",
             )
     checks.passed.append(name)
+
+    features = getattr(problem, "features", None)
+    if features is not None and features(first["a 50 % detector"].select(slice(0, 1)), None) is not None:
+        for label, batch in first.items():
+            try:
+                message = check_features(features, batch, SIMULATED_ROLLOUTS // 3)
+            except ValueError as exc:
+                message = str(exc)
+            checks.require(message is None, "features", f"rollouts drawn by {label}: {message}")
+        checks.passed.append("features")
 
     name = "twin"
     if sc.simulator is None:

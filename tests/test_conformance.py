@@ -69,6 +69,10 @@ def test_listing_the_scenarios_loads_no_problem_pem_or_torch():
 # -- everything pemviz has passes ------------------------------------------------------------------------------------
 
 
+WITH_FEATURES = {"crossing"}
+"""The registered scenarios that report state features (pemviz.core.features), which the kit checks."""
+
+
 @pytest.mark.parametrize("name", registered())
 def test_every_registered_scenario_passes_the_kit(name, tmp_path):
     if name in KNOWN_FAILURES:
@@ -78,7 +82,17 @@ def test_every_registered_scenario_passes_the_kit(name, tmp_path):
     report = check_scenario(name, folder=tmp_path)
     twin = () if get_scenario(name).simulator is None else ("twin",)
     drawing = () if get_scenario(name).drawing is None else ("drawing",)
-    assert report.passed == ("schema", "problem", "determinism", *twin, *drawing, "rollout-file", "recording")
+    features = ("features",) if name in WITH_FEATURES else ()
+    assert report.passed == (
+        "schema",
+        "problem",
+        "determinism",
+        *features,
+        *twin,
+        *drawing,
+        "rollout-file",
+        "recording",
+    )
     assert (tmp_path / f"{name}-naive50.parquet").is_file() or (tmp_path / f"{name}-adaptive.parquet").is_file()
 
 

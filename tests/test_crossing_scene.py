@@ -23,7 +23,7 @@ from pemviz.testing import check_scenario
 def test_crossing_is_registered_and_passes_the_conformance_kit(tmp_path):
     assert "crossing" in registered()
     report = check_scenario("crossing", folder=tmp_path)
-    assert report.passed == ("schema", "problem", "determinism", "rollout-file", "recording")
+    assert report.passed == ("schema", "problem", "determinism", "features", "rollout-file", "recording")
 
 
 def test_crossing_carries_its_monte_carlo_reference_only_at_its_defaults():

@@ -42,3 +42,20 @@ def test_the_guides_established_track_block_prints_what_its_comment_says(capsys)
     block = re.findall(r"```python\n(.*?)```", text, re.S)[0]
     exec(compile(block, "docs/realistic-stack.md", "exec"), {"__name__": "realistic_stack_established"})
     assert capsys.readouterr().out.strip() == block.split("# ")[-1].strip() == "[ True False] 25.0"
+
+
+def test_the_guides_state_features_block_prints_what_its_comment_says(capsys):
+    """The example's scene names the tracker's state; the page's block reads it back from the example's batch: rollout
+    0's track confirmed at step 2 (its second measurement), 2.82 s from the ego then (the checks of
+    tests/stack/test_tracker_features.py hold the numbers to hand computation)."""
+    scene, split = guide_blocks()
+    text = (REPO / "docs" / "realistic-stack.md").read_text().split("## The state the stack acts on", 1)[1]
+    block = re.findall(r"```python\n(.*?)```", text, re.S)[0]
+    namespace: dict = {"__name__": "realistic_stack_features"}
+    for code in (scene, split, block):
+        exec(compile(code, "docs/realistic-stack.md", "exec"), namespace)
+    printed = capsys.readouterr().out.strip().splitlines()[-1]
+    assert printed == block.split("# ")[-1].strip() == "(100, 40, 1, 13) 2 2.82"
+    from pemviz.core.features import check_features
+
+    assert check_features(namespace["problem"].features, namespace["batch"], 30) is None

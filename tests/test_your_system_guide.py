@@ -63,7 +63,7 @@ def guide():
 def test_the_page_has_the_blocks_the_tests_run_and_is_in_the_nav():
     assert len(blocks()) == MODULE_BLOCKS + 2 and len(blocks("bash")) == 1 and len(blocks("text")) == 1
     text = PAGE.read_text()
-    assert text.startswith("# Your system in 30 minutes\n") and len(text.splitlines()) <= 250
+    assert text.startswith("# Your system in 30 minutes\n") and len(text.splitlines()) <= 260
     assert "your-system.md" in (REPO / "mkdocs.yml").read_text()
 
 
@@ -85,8 +85,21 @@ def test_the_fit_recovers_the_law_the_table_was_drawn_from_and_the_page_quotes_i
 
 def test_the_scenario_passes_the_conformance_kit(guide):
     _, printed = guide
-    assert f"scenario {NAME}: 5 checks passed (schema, problem, determinism, rollout-file, recording)" in printed
+    report = "6 checks passed (schema, problem, determinism, features, rollout-file, recording)"
+    assert f"scenario {NAME}: {report}" in printed
     assert "skipped twin" in printed and "skipped drawing" in printed  # no single simulator, no drawing
+
+
+def test_the_scenes_state_features_are_the_time_each_pedestrian_is_away(guide):
+    """At the start the car (10 m/s) is 32 m and 29 m from pedestrians A and B: 3.2 s and 2.9 s away; the problem
+    replays them from a batch's events, named as the page declares them."""
+    ns, _ = guide
+    problem = ns["problem"]
+    batch = problem.simulate(20, problem.target, problem.target, np.random.default_rng(0))
+    f = problem.features(batch, None)
+    assert f.feature_names == ("speed_mps", "braking") and f.object_feature_names == ("time_to_reach_s",)
+    np.testing.assert_allclose(f.object_feature("time_to_reach_s")[:, 0], [[3.2, 2.9]] * 20, rtol=1e-12)
+    np.testing.assert_array_equal(f.feature("speed_mps"), batch.signal("speed_mps"))
 
 
 def test_the_exact_answer_is_what_plain_monte_carlo_finds_and_the_default_run_holds_it(guide):

@@ -25,6 +25,7 @@ from scipy.special import expit
 from pemviz import stl
 from pemviz.core.detectors import Detector, GapModel
 from pemviz.core.estimate import Reference
+from pemviz.core.features import FeaturesFn, feature_replay
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, iter_rollouts, simulate_rollouts
 from pemviz.core.problem_view import ProblemView, SignalView, Thresholds
 from pemviz.core.reweight import AlternativeTarget
@@ -128,6 +129,9 @@ class Problem:
         odd: the operating design domain its rollouts draw their scenario parameters from
             (:class:`pemviz.core.odd.ODD`, :mod:`pemviz.core.odd_rollouts`: each rollout's parameters are observation
             columns), or None: the parameters are fixed.
+        features: the state features of a batch's rollouts (:data:`pemviz.core.features.FeaturesFn`: ``features(batch,
+            chunk_size) -> StateFeatures | None``, None where its simulator reports none); None: taken from
+            ``simulate`` where :func:`rollout_functions` made it (the replay of its simulator), else none.
     """
 
     name: str
@@ -164,6 +168,11 @@ class Problem:
     tilt: Callable[[], TiltSampler] | None = None
     object_labels: tuple[str, ...] = ()
     odd: Any = None
+    features: FeaturesFn | None = None
+
+    def __post_init__(self) -> None:
+        if self.features is None:  # a problem on rollout_functions: its simulator's replay
+            object.__setattr__(self, "features", getattr(self.simulate, "state_features", None))
 
     @property
     def view(self) -> ProblemView:
@@ -232,7 +241,9 @@ class Problem:
 def rollout_functions(make: Callable[[int], BatchedSimulator], n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:
     """A :class:`Problem`'s ``simulate``, ``stream`` and ``branch`` for a batched simulator ``make(n)`` (n rollouts at
     their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.core.lockstep.simulate_rollouts`,
-    :func:`~pemviz.core.lockstep.iter_rollouts`, :func:`~pemviz.core.lockstep.branch_rollouts`).
+    :func:`~pemviz.core.lockstep.iter_rollouts`, :func:`~pemviz.core.lockstep.branch_rollouts`). ``simulate`` carries
+    the replay of the simulator's state features (:func:`pemviz.core.features.feature_replay`), which a
+    :class:`Problem` built on it takes as its :attr:`Problem.features`.
 
     The rollouts are simulated on one BLAS thread (``threadpoolctl``): pemviz's PEM products are exact
     (:class:`pemviz.pem.network.GridMLP`), so threads change no bit of them, but a second thread only slows these small
@@ -266,6 +277,7 @@ def rollout_functions(make: Callable[[int], BatchedSimulator], n_steps: int) -> 
             return branch_rollouts(make, parents, parent, at, target, rng)
 
     stream.elides_rows = True  # type: ignore[attr-defined]  # it takes keep_rows=False (Experiment)
+    run.state_features = feature_replay(make)  # type: ignore[attr-defined]  # the Problem's features (post_init)
     return run, stream, resume
 
 

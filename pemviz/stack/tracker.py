@@ -129,6 +129,7 @@ class Tracks:
         active: bool, whether the object has a track.
         confirmed: bool, whether that track has been updated since it started (the controller uses only these).
         coast: int64, predictions since the last update.
+        age: int64, predictions since the track started (or restarted); 0 where no track.
     """
 
     x: np.ndarray
@@ -144,6 +145,7 @@ class Tracks:
     active: np.ndarray
     confirmed: np.ndarray
     coast: np.ndarray
+    age: np.ndarray
 
     @classmethod
     def empty(cls, shape: tuple[int, ...]) -> "Tracks":
@@ -163,6 +165,7 @@ class Tracks:
             active=np.zeros(shape, dtype=bool),
             confirmed=np.zeros(shape, dtype=bool),
             coast=np.zeros(shape, dtype=np.int64),
+            age=np.zeros(shape, dtype=np.int64),
         )
 
     def copy(self) -> "Tracks":
@@ -221,7 +224,20 @@ def predict(tracks: Tracks, dt: float, params: TrackerParams) -> Tracks:
     coast = tracks.coast + 1
     active = tracks.active & (coast <= params.max_coast_steps)
     return Tracks(
-        x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, tracks.confirmed & active, np.where(active, coast, 0)
+        x,
+        vx,
+        pxx,
+        pxv,
+        pvvx,
+        y,
+        vy,
+        pyy,
+        pyv,
+        pvvy,
+        active,
+        tracks.confirmed & active,
+        np.where(active, coast, 0),
+        np.where(active, tracks.age + 1, 0),
     )
 
 
@@ -265,8 +281,9 @@ def update(
     active = tracks.active | new
     confirmed = (tracks.confirmed | upd) & ~new
     coast = np.where(upd | new, 0, tracks.coast)
+    age = np.where(new, 0, tracks.age)
     if not new.any():  # starting no track: copying the start values where new would change nothing
-        return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)
+        return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast, age)
     start_vx = np.where(tracks.active, tracks.vx, prior_vx_mps)  # a restart keeps its velocity estimate
     start_vy = np.where(tracks.active, tracks.vy, 0.0)
     sx2, sy2 = params.init_speed_std_x_mps**2, params.init_speed_std_y_mps**2
@@ -283,7 +300,7 @@ def update(
         (pvvy, sy2),
     ):
         np.copyto(field_value, start, where=new)
-    return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast)
+    return Tracks(x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy, active, confirmed, coast, age)
 
 
 def start_confirmed(
@@ -351,6 +368,81 @@ def start_confirmed(
         (out.active, True),
         (out.confirmed, True),
         (out.coast, 0),
+        (out.age, 0),
     ):
         np.copyto(field_value, start, where=mask)
     return out
+
+
+FEATURE_NAMES: tuple[str, ...] = (
+    "track_active",
+    "track_confirmed",
+    "track_age_steps",
+    "track_misses",
+    "track_range_m",
+    "track_y_m",
+    "track_vx_mps",
+    "track_vy_mps",
+    "track_var_x_m2",
+    "track_var_y_m2",
+    "track_var_vx_m2ps2",
+    "track_var_vy_m2ps2",
+    "track_ttc_s",
+)
+"""The tracker's state of an object as named features [G] (:func:`features`): 1.0 if it has a track, 1.0 if that track
+is confirmed, the track's age (predictions since it started or restarted), its consecutive misses (steps without an
+accepted measurement before the step now perceived), its estimated range ahead of the ego's reference point (m) and
+position across the road (m), its estimated velocity along and across the road (m/s), their variances (m^2, (m/s)^2),
+and its predicted time to collision (s, capped: :func:`features`). Every value 0 where the object has no track, except
+the time to collision, the cap."""
+
+TTC_CAP_S = 10.0
+"""The predicted time to collision of :func:`features` is at most this (s): finite for a track that does not close."""
+
+
+def features(
+    tracks: Tracks, ego_x_m: np.ndarray | float, ego_speed_mps: np.ndarray | float, ttc_cap_s: float = TTC_CAP_S
+) -> np.ndarray:
+    """The tracks' state as float64 features ``[N, M, G]`` (rollout-major, as a simulator's object rows), named
+    :data:`FEATURE_NAMES`: what a proposal can read of the state the controller acts on. Call it at a step's start
+    (after :func:`predict`, before the step's :func:`update`), as ``objects()`` reports the rows.
+
+    The predicted time to collision of a track ``range / (ego_speed - vx)`` (s; the range ahead of ``ego_x_m`` and the
+    closing speed from the estimated velocity), at most ``ttc_cap_s``; the cap where the track does not close (closing
+    speed <= 0) or there is no track; 0 where the track is at or behind ``ego_x_m`` (range <= 0).
+
+    Args:
+        tracks: the tracks of M objects in N rollouts (arrays ``[M, N]``).
+        ego_x_m: float64 ``[N]`` or a number: the road position (m, the tracker's frame along the road) the range is
+            measured from, e.g. the ego's front plus half the object's length.
+        ego_speed_mps: float64 ``[N]`` or a number: the ego's speed along the road (m/s).
+        ttc_cap_s: the time to collision's cap (s), > 0.
+    Returns:
+        float64 ``[N, M, G]``, finite where the tracks are.
+    Raises:
+        ValueError: ``ttc_cap_s`` not finite and > 0.
+    """
+    if not (np.isfinite(ttc_cap_s) and ttc_cap_s > 0):
+        raise ValueError(f"tracker.features: ttc_cap_s must be finite and > 0, got {ttc_cap_s!r}")
+    on = tracks.active
+    range_m = tracks.x - np.asarray(ego_x_m, dtype=np.float64)
+    closing = np.asarray(ego_speed_mps, dtype=np.float64) - tracks.vx
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ttc = np.where(closing > 0.0, np.minimum(range_m / closing, ttc_cap_s), ttc_cap_s)
+    ttc = np.where(on, np.where(range_m > 0.0, ttc, 0.0), ttc_cap_s)
+    columns = (
+        on,
+        tracks.confirmed,
+        tracks.age,
+        np.maximum(tracks.coast - 1, 0),
+        range_m,
+        tracks.y,
+        tracks.vx,
+        tracks.vy,
+        tracks.pxx,
+        tracks.pyy,
+        tracks.pvvx,
+        tracks.pvvy,
+    )
+    out = np.stack([np.where(on, c, 0).astype(np.float64) for c in columns] + [ttc], axis=-1)
+    return out.transpose(1, 0, 2)

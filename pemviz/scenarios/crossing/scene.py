@@ -61,6 +61,11 @@ OBJECT_NAMES: tuple[str, ...] = (
 lane's centre), the time the ego would take to reach it at its speed (s, at most 10), 1.0 if its track is confirmed,
 and the ego's state (braking, speed)."""
 
+FEATURE_NAMES: tuple[str, ...] = ("ego_speed_mps", "ego_braking", "time_s")
+"""The ego's state features [F] (:meth:`BatchedCrossing.state_features`): its speed (m/s), 1.0 once the AEB brakes,
+the time since the scene's start (s). Each pedestrian's are the tracker's (:data:`pemviz.stack.tracker.FEATURE_NAMES`),
+its range measured from the ego's front plus half a pedestrian's width, as the AEB measures its gap."""
+
 PEDESTRIAN_TRACKER = tracker.TrackerParams(
     accel_std_x_mps2=0.5, accel_std_y_mps2=1.0, init_speed_std_x_mps=0.5, init_speed_std_y_mps=1.5, max_coast_steps=3
 )
@@ -146,6 +151,8 @@ class BatchedCrossing:
 
     observation_names = OBSERVATION_NAMES
     object_names = OBJECT_NAMES
+    feature_names = FEATURE_NAMES
+    object_feature_names = tracker.FEATURE_NAMES
 
     def __init__(self, params: CrossingParams, n: int) -> None:
         if n < 1:
@@ -185,6 +192,13 @@ class BatchedCrossing:
             np.broadcast_to(self.v, loc_z.shape)[..., None],
         ]
         return np.concatenate([np.asarray(c, dtype=np.float64) for c in cols], axis=-1).transpose(1, 0, 2)
+
+    def state_features(self) -> tuple[np.ndarray, np.ndarray]:
+        """The state the AEB acts on: float64 [n, F] (:data:`FEATURE_NAMES`) and [n, M, G] (the tracker's,
+        :func:`pemviz.stack.tracker.features`)."""
+        ego = np.stack([self.v, self.braking.astype(np.float64), np.full(self.n, self.t * self.p.dt_s)], axis=1)
+        front = self.x + EGO_LENGTH_M / 2 + PEDESTRIAN.width_m / 2
+        return ego, tracker.features(self.tracks, front, self.v)
 
     def observation(self) -> np.ndarray:
         """float64 [n, F] (:data:`OBSERVATION_NAMES`)."""
