@@ -19,7 +19,7 @@ from pemviz.estimators.fallback import PlainFallback
 from pemviz.estimators.fixed import FixedSampler
 from pemviz.estimators import build_estimator
 from pemviz.estimators.base import failure_steps, log_weight
-from pemviz.estimators.ce_fit import ce_update
+from pemviz.estimators.ce_fit import FitOptions, ce_update
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.toy import ToyParams
 
@@ -83,12 +83,9 @@ def test_ce_fit_of_a_proposal_with_one_input_is_the_alpha_weighted_detection_rat
         log_p,
         log_q,
         elite,
+        FitOptions(epochs, lr, fit=fit, tolerance=1e-15 if fit == "lbfgs" else None),
         smoothing=alpha,
-        epochs=epochs,
-        lr=lr,
         step_mask=mask,
-        fit=fit,
-        tolerance=1e-15 if fit == "lbfgs" else None,
     )
     assert 0.2 < expected < 0.5 and q.curve(np.array([5.0]))[0] == pytest.approx(expected, abs=1e-4)
 
@@ -324,10 +321,10 @@ def test_the_first_fit_at_the_failure_level_raises_its_weights_to_its_alpha(monk
         calls = []
         fit = ce.EliteSteps.fit
 
-        def recorded(self, proposal, **kwargs):
+        def recorded(self, proposal, options):
             log_w = self.arrays()[2]
             calls.append(log_w - log_w.max())
-            return fit(self, proposal, **kwargs)
+            return fit(self, proposal, options)
 
         monkeypatch.setattr(ce.EliteSteps, "fit", recorded)
         config = ExperimentConfig.of(**{**SMALL_RUN, "n_stages": n_stages, **fields})

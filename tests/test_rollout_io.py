@@ -17,7 +17,7 @@ import pytest
 
 from conftest import run_cli, verify_rrd
 from pemviz.core.estimate import estimate
-from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
+from pemviz.estimators.ce_fit import FitOptions, ce_update, pretrain_proposal
 from pemviz.core.plan import RunPlan
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import problem_for
@@ -150,7 +150,7 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     rng = np.random.default_rng(2)
     proposal = Proposal()
     pem_batch = problem.simulate(40, problem.target, problem.target, rng)
-    pretrain_proposal(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], epochs=100, lr=1e-2)
+    pretrain_proposal(proposal, pem_batch.signal("gap_m"), pem_batch.detected[..., 0], FitOptions(100, 1e-2))
     r = problem.robustness(pem_batch, "classic")
     ce_update(
         proposal,
@@ -159,9 +159,8 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
         pem_batch.log_p,
         pem_batch.log_q,
         r <= np.sort(r)[3],
+        FitOptions(50, 1e-2),
         smoothing=0.5,
-        epochs=50,
-        lr=1e-2,
     )
     batch = problem.simulate(60, proposal, problem.target, rng)
     failed = problem.failed(batch)

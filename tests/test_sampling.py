@@ -19,7 +19,7 @@ from pemviz.core.sampling import (
     save_proposal,
 )
 from pemviz.estimators.base import quantile_threshold
-from pemviz.estimators.ce_fit import ce_update, pretrain_proposal
+from pemviz.estimators.ce_fit import FitOptions, ce_update, pretrain_proposal
 from pemviz.scenarios import simulate
 
 
@@ -104,7 +104,7 @@ def test_pretraining_fits_the_detection_rate():
     gaps = np.tile(np.linspace(0, 12, 40), (50, 1))
     detected = np.arange(50)[:, None] < 45 + np.zeros((1, 40))  # exactly 90 % at every gap
     q = Proposal()
-    pretrain_proposal(q, gaps, detected, epochs=800, lr=1e-2)
+    pretrain_proposal(q, gaps, detected, FitOptions(800, 1e-2))
     np.testing.assert_allclose(q.curve(np.array([1.0, 6.0, 11.0])), 0.9, atol=0.01)
 
 
@@ -120,7 +120,7 @@ def test_ce_update_moves_the_proposal_to_the_elites_miss_rate_inside_10m(weights
     elite = np.zeros(60, bool)
     elite[:30] = True
     q = Proposal()
-    ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.0001, epochs=600, lr=1e-2, weights=weights)
+    ce_update(q, gaps, detected, log_p, log_q, elite, FitOptions(600, 1e-2), smoothing=0.0001, weights=weights)
     curve = q.curve(np.array([2.0, 5.0, 8.0, 11.5]))
     np.testing.assert_allclose(curve[:3], detected[:30][inside[:30]].mean(), atol=0.06)
     assert curve[3] > 0.85
@@ -129,7 +129,7 @@ def test_ce_update_moves_the_proposal_to_the_elites_miss_rate_inside_10m(weights
 def test_ce_update_refuses_an_empty_elite_set():
     with pytest.raises(ValueError, match="no elite"):
         z = np.zeros((3, 4))
-        ce_update(Proposal(), z, z > 0, z, z, np.zeros(3, bool), smoothing=0.1)
+        ce_update(Proposal(), z, z > 0, z, z, np.zeros(3, bool), FitOptions(500), smoothing=0.1)
 
 
 def test_an_elite_set_with_no_step_to_fit_leaves_the_proposal_as_it_was():
@@ -140,7 +140,7 @@ def test_an_elite_set_with_no_step_to_fit_leaves_the_proposal_as_it_was():
     q = Proposal()
     before = q.curve(np.array([1.0, 6.0, 11.0]))
     losses = fit_elite_steps(
-        q, np.zeros(0), np.zeros(0, bool), np.zeros(0), -np.inf, epochs=50, lr=1e-2, tolerance=1e-4
+        q, np.zeros(0), np.zeros(0, bool), np.zeros(0), -np.inf, FitOptions(50, 1e-2, tolerance=1e-4)
     )
     assert losses == []
     np.testing.assert_array_equal(q.curve(np.array([1.0, 6.0, 11.0])), before)
@@ -156,7 +156,7 @@ def test_training_loops_call_check_every_25_epochs_and_stop_when_it_raises():
 
     gaps = np.tile(np.linspace(0, 12, 10), (4, 1))
     with pytest.raises(KeyboardInterrupt):
-        pretrain_proposal(Proposal(), gaps, gaps > 5, epochs=1000, check=check)
+        pretrain_proposal(Proposal(), gaps, gaps > 5, FitOptions(1000, check=check))
     assert len(calls) == 3  # epochs 0, 25, 50: stopped after ~50 of 1000 epochs
 
 
@@ -200,12 +200,8 @@ def test_converging_fits_reach_the_elites_miss_rate_and_stop_early(fit, epochs, 
         log_p,
         log_q,
         elite,
+        FitOptions(epochs, 1e-2, fit=fit, tolerance=tolerance, max_rows=1_000),
         smoothing=0.0001,
-        epochs=epochs,
-        lr=1e-2,
-        fit=fit,
-        tolerance=tolerance,
-        max_rows=1_000,
     )
     assert len(losses) < epochs  # converged, then stopped
     curve = q.curve(np.array([2.0, 5.0, 8.0, 11.5]))
@@ -414,7 +410,7 @@ def test_the_exact_sampler_follows_its_network_and_every_change_of_its_parameter
     with torch.no_grad():
         q.net[4].bias[1] += 1.0
     np.testing.assert_allclose(q.detect_logit(obs) - z, 1.0, atol=1e-5)
-    pretrain_proposal(q, obs[:, None, :], np.ones((500, 1), bool), epochs=30, lr=1e-2)  # every row detected
+    pretrain_proposal(q, obs[:, None, :], np.ones((500, 1), bool), FitOptions(30, 1e-2))  # every row detected
     fitted = q.detect_logit(obs)
     assert fitted.mean() > z.mean() + 1.0
     save_proposal(Proposal(h_scale=12.0), tmp_path / "q.pt")

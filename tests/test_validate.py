@@ -170,7 +170,7 @@ def test_improvement_fields_reject_bad_values(field, value):
 def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
     import torch
     from pemviz.core.sampling import Proposal
-    from pemviz.estimators.ce_fit import ce_update
+    from pemviz.estimators.ce_fit import FitOptions, ce_update
 
     rng = np.random.default_rng(0)
     gaps = np.tile(np.linspace(12, 1, 30), (40, 1))
@@ -181,7 +181,7 @@ def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
     for mask in (None, np.ones(gaps.shape, bool)):
         torch.manual_seed(0)
         q = Proposal()
-        ce_update(q, gaps, detected, log_p, log_q, elite, smoothing=0.1, epochs=30, step_mask=mask)
+        ce_update(q, gaps, detected, log_p, log_q, elite, FitOptions(30), smoothing=0.1, step_mask=mask)
         params.append(torch.cat([p.detach().ravel() for p in q.parameters()]))
     torch.testing.assert_close(params[1], params[0], rtol=1e-9, atol=1e-10)  # the same sums, masked or not: ~1e-14
 

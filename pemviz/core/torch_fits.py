@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from pemviz.core.fit_settings import CHECK_EVERY, EXACT, LBFGS_TOLERANCE, PLATEAU_EPOCHS, Objective
+from pemviz.core.fit_settings import CHECK_EVERY, EXACT, LBFGS_TOLERANCE, PLATEAU_EPOCHS, FitOptions, Objective
 from pemviz.core.torch_use import torch_module
 
 WIDTH = 32
@@ -96,13 +96,7 @@ def fit_noise_shift(
     family: str,
     df: np.ndarray | None,
     log_w: np.ndarray,
-    *,
-    epochs: int,
-    lr: float,
-    max_rows: int | None,
-    rng: np.random.Generator,
-    check: Callable[[], None] | None = None,
-    tolerance: float | None = None,
+    options: FitOptions,
 ) -> list[float]:
     """The cross-entropy update of the proposal's error head, in place: maximise the weighted log-likelihood
     ``sum_s w_s log q(e_s | h_s)`` of detected objects' errors (Innes & Ramamoorthy 2022, eq. 10-11, for the errors'
@@ -113,10 +107,12 @@ def fit_noise_shift(
             target's parameters at the rows; family, df: the target's family
             (:data:`pemviz.core.detector_noise.NOISE_FAMILIES`).
         log_w: float64 [S] each error's weight in log space (alpha times its rollout's importance log-weight).
-        max_rows: beyond that many errors, a weighted systematic subsample of them (:func:`pemviz.estimators.ce_fit`'s
-            rule: the expected loss is kept); None: all.
-        tolerance: stop once the loss fell by less than this over :data:`PLATEAU_EPOCHS` epochs.
+        options: Adam's epochs and lr, the cancel ``check``; beyond ``max_rows`` errors, a weighted systematic subsample
+            of them drawn by ``rng`` (:func:`pemviz.estimators.ce_fit`'s rule: the expected loss is kept; None: all);
+            ``tolerance``: stop once the loss fell by less than this over :data:`PLATEAU_EPOCHS` epochs.
     """
+    max_rows, tolerance, check = options.max_rows, options.tolerance, options.check
+    rng = options.rng or np.random.default_rng(0)
     head = proposal.noise_shift
     w = np.exp(np.asarray(log_w, dtype=np.float64) - np.max(log_w))
     if max_rows is not None and w.size > max_rows:  # systematic resampling in proportion to the weights
@@ -128,9 +124,9 @@ def fit_noise_shift(
     e, lp, ls = (torch.as_tensor(np.asarray(a, dtype=np.float64)) for a in (noise, loc_p, log_scale_p))
     weights = torch.as_tensor(w / w.sum())
     params = list(head.parameters())
-    opt = Adam(params, lr=lr)
+    opt = Adam(params, lr=options.lr)
     losses: list[float] = []
-    for epoch in range(epochs):
+    for epoch in range(options.epochs):
         if check is not None and epoch % CHECK_EVERY == 0:
             check()
         for p in params:

@@ -6,12 +6,12 @@ chunk. :class:`pemviz.estimators.cross_entropy.CrossEntropy` runs the stages aro
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable, Literal
+from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
 
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.core.fit_settings import EXACT
+from pemviz.core.fit_settings import FitOptions
 from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
 from pemviz.estimators.base import elite_count, elite_counts
 
@@ -105,28 +105,28 @@ def _action_counts(
     return uniq, counts, inverse
 
 
-def _summed_fit(fit: str, max_rows: int | None, n_fitted: int) -> bool:
-    """Whether a fit of ``n_fitted`` weighted steps is the paper's: every step, summed over distinct inputs (with a
-    ``tolerance``, a CE stage's such fit stops once converged, as the others do). The other fits (more than
-    ``max_rows`` steps, or L-BFGS) see at most ``max_rows`` steps, with a loss normalised to nats per step, and stop
-    once converged (``tolerance``): their cost is bounded whatever the number of rollouts."""
-    return fit == "adam" and (max_rows is None or n_fitted <= max_rows)
+def _subsampled_fit(
+    proposal: Proposal,
+    inputs: np.ndarray,
+    actions: np.ndarray,
+    weight: np.ndarray,
+    options: FitOptions,
+    floor: float = 0.0,
+) -> list[float]:
+    """The fit on at most ``max_rows`` of the weighted steps (:func:`weighted_steps`: inputs [N, T(, k)], actions and
+    weights [N, T]), its loss divided by their total weight (at least ``floor``)."""
+    rng = options.rng or np.random.default_rng(0)
+    rows, counts = weighted_steps(inputs, actions, weight, options.max_rows or np.size(weight), rng)
+    per = max(float(counts.sum()), floor)
+    return fit_proposal(proposal, rows, counts, *options.args, options.tolerance, per=per, dtype=options.dtype)
 
 
 def pretrain_proposal(
     proposal: Proposal,
     inputs: np.ndarray,
     detected: np.ndarray,
-    *,
-    epochs: int = 1000,
-    lr: float = 1e-3,
-    check: Callable[[], None] | None = None,
+    options: FitOptions,
     step_mask: np.ndarray | None = None,
-    fit: str = "adam",
-    max_rows: int | None = None,
-    rng: np.random.Generator | None = None,
-    tolerance: float | None = None,
-    dtype: Any = EXACT,
 ) -> list[float]:
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
 
@@ -134,23 +134,14 @@ def pretrain_proposal(
         inputs: float64 [N, T] proposal inputs of PEM-driven rollouts (the first observation column), or [N, T, k]
             inputs of a :class:`StateProposal` (``proposal.features(observations)``).
         detected: bool [N, T] the PEM's detections.
-        epochs: Adam epochs, or the most L-BFGS iterations (``fit``).
-        check: called every :data:`pemviz.core.fit_settings.CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
+        options: the fit's settings; a fit of at most ``max_rows`` steps runs every epoch.
         step_mask: bool [N, T] or None: only these steps are fitted (e.g. inside the proposal's window).
-        fit: one of :data:`pemviz.settings.FITS`.
-        max_rows: None (``adam``: every step, summed over distinct inputs, the paper's fit) or the most steps
-            the fit sees: a uniform systematic subsample of the fitted steps beyond that (:func:`weighted_steps`).
-        rng: draws that subsample (default: seeded 0).
-        tolerance: early stopping of a fit of more than ``max_rows`` steps (nats per step;
-            :func:`pemviz.core.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps runs
-            every epoch.
-        dtype: the arithmetic of an ``adam`` fit (:func:`pemviz.core.sampling.fit_proposal`); float64 for the paper's.
     Returns:
         the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
     Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts).
     """
     n_fitted = np.size(detected) if step_mask is None else int(np.count_nonzero(step_mask))
-    if _summed_fit(fit, max_rows, n_fitted):
+    if options.summed(n_fitted):
         if step_mask is None:
             uniq, counts, _ = _action_counts(inputs, detected)
             total = float(np.size(detected))
@@ -158,11 +149,9 @@ def pretrain_proposal(
             step_mask = np.asarray(step_mask, dtype=np.float64)
             uniq, counts, _ = _action_counts(inputs, detected, step_mask, drop_unweighted=True)
             total = max(float(step_mask.sum()), 1.0)
-        return fit_proposal(proposal, uniq, counts, epochs, lr, check, per=total, dtype=dtype)
+        return fit_proposal(proposal, uniq, counts, *options.args, per=total, dtype=options.dtype)
     mask = np.ones(np.shape(detected)) if step_mask is None else np.asarray(step_mask, dtype=np.float64)
-    rows, counts = weighted_steps(inputs, detected, mask, max_rows or mask.size, rng or np.random.default_rng(0))
-    total = max(float(counts.sum()), 1.0)
-    return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
+    return _subsampled_fit(proposal, inputs, detected, mask, options, floor=1.0)
 
 
 def ce_update(
@@ -172,19 +161,12 @@ def ce_update(
     log_p: np.ndarray,
     log_q: np.ndarray,
     elite: np.ndarray,
+    options: FitOptions,
     *,
     smoothing: float,
-    epochs: int = 500,
-    lr: float = 1e-3,
     weights: WeightMode = "frozen",
     n_factors: int | None = None,
-    check: Callable[[], None] | None = None,
     step_mask: np.ndarray | None = None,
-    fit: str = "adam",
-    max_rows: int | None = None,
-    rng: np.random.Generator | None = None,
-    tolerance: float | None = None,
-    dtype: Any = EXACT,
 ) -> list[float]:
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
@@ -192,24 +174,13 @@ def ce_update(
         inputs, detected, log_p, log_q: [N, T] from the stage's rollouts (log_p under the PEM, log_q
             under the proposal that sampled them; nats).
         elite: bool [N], robustness <= gamma_kappa.
+        options: the fit's settings; ``weights = "recomputed"`` always fits every step, in float64.
         smoothing: alpha in (0, 2], the power on the importance weights.
         weights: ``"frozen"``: w from the proposal that sampled the batch (textbook CE, paper eq. 10-11);
             ``"recomputed"``: w from the current q_phi with the gradient flowing through it (authors' code).
         n_factors: steps in each weight (default T - 1: the last action affects nothing).
-        check: called every :data:`pemviz.core.fit_settings.CHECK_EVERY` epochs; may raise to abandon the update
-            (cancel).
         step_mask: bool [N, T] or None: steps that count, in the weights and in the fit (False: left out,
             e.g. outside the proposal's window or after the failure).
-        fit: one of :data:`pemviz.settings.FITS`; ``epochs`` are then Adam epochs or the most L-BFGS iterations.
-        max_rows: None (``adam``: every elite step, summed over distinct inputs, the paper's fit) or the most
-            steps the fit sees: beyond that a weighted systematic subsample whose weighted log-likelihood has
-            the same expectation (:func:`weighted_steps`); the loss is then divided by the total weight.
-            ``weights = "recomputed"`` always fits every step.
-        rng: draws that subsample (default: seeded 0).
-        tolerance: early stopping of a fit of more than ``max_rows`` steps, or of ``lbfgs`` (nats per step;
-            :func:`pemviz.core.sampling.fit_proposal`), None: every epoch; a fit of at most ``max_rows`` steps with
-            ``adam`` runs every epoch (the paper's fit).
-        dtype: the arithmetic of an ``adam`` fit (:func:`pemviz.core.sampling.fit_proposal`); float64 for the paper's.
     Returns:
         the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
         constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
@@ -227,37 +198,19 @@ def ce_update(
     if weights == "frozen" and step_mask is not None:
         scaled = smoothing * frozen_log_w
         rows, actions = inputs[idx][mask], detected[idx][mask]
-        return fit_elite_steps(
-            proposal,
-            rows,
-            actions,
-            np.broadcast_to(scaled[:, None], mask.shape)[mask],
-            float(scaled.max()),
-            epochs=epochs,
-            lr=lr,
-            check=check,
-            fit=fit,
-            max_rows=max_rows,
-            rng=rng,
-            tolerance=tolerance,
-            dtype=dtype,
-        )
+        log_w = np.broadcast_to(scaled[:, None], mask.shape)[mask]
+        return fit_elite_steps(proposal, rows, actions, log_w, float(scaled.max()), options)
     if weights == "frozen":
         scaled = smoothing * frozen_log_w
         step_w = np.exp(scaled - scaled.max())[:, None] * mask
-        if not _summed_fit(fit, max_rows, int(np.count_nonzero(step_w))):
-            step_w = np.broadcast_to(step_w, detected[idx].shape)
-            rows, counts = weighted_steps(
-                inputs[idx], detected[idx], step_w, max_rows or step_w.size, rng or np.random.default_rng(0)
-            )
-            total = float(counts.sum())
-            return fit_proposal(proposal, rows, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
+        if not options.summed(int(np.count_nonzero(step_w))):
+            return _subsampled_fit(proposal, inputs[idx], detected[idx], np.broadcast_to(step_w, mask.shape), options)
         uniq, counts, _ = _action_counts(inputs[idx], detected[idx], step_w[:, 0])
-        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, dtype=dtype)
+        return fit_proposal(proposal, uniq, counts, *options.args, dtype=options.dtype)
     # w depends on q_phi: per-rollout sums of log q over the first k steps, through the gradient.
     uniq, _, inverse = _action_counts(inputs[idx], detected[idx])
     slot = inverse * 2 + detected[idx].astype(np.int64)
-    return fit_proposal(proposal, uniq, recomputed_objective(slot, lp, mask, k, smoothing), epochs, lr, check, fit)
+    return fit_proposal(proposal, uniq, recomputed_objective(slot, lp, mask, k, smoothing), *options.args)
 
 
 def recomputed_objective(
@@ -306,15 +259,7 @@ def fit_elite_steps(
     actions: np.ndarray,
     log_w: np.ndarray,
     log_w_max: float,
-    *,
-    epochs: int,
-    lr: float,
-    check: Callable[[], None] | None = None,
-    fit: str = "adam",
-    max_rows: int | None = None,
-    rng: np.random.Generator | None = None,
-    tolerance: float | None = None,
-    dtype: Any = EXACT,
+    options: FitOptions,
     n_steps: int | None = None,
 ) -> list[float]:
     """The frozen-weight CE fit on the elites' fitted steps: minimise ``-sum_s w_s log q_phi(a_s | h_s)``, in place.
@@ -326,8 +271,8 @@ def fit_elite_steps(
         log_w: float64 [S] each step's weight in log space (nats): alpha times its rollout's importance log-weight.
         log_w_max: the largest rollout log-weight (alpha log w_i) of the elites; the weights are divided by its
             exponential (a constant factor, to which Adam's steps are invariant), so that none overflows.
+        options: the fit's settings.
         n_steps: the steps these rows stand for (default S; more once they were thinned as they came).
-        epochs, lr, check, fit, max_rows, rng, tolerance, dtype: see :func:`ce_update`.
     Returns:
         the loss per epoch (per L-BFGS evaluation).
     Source: Innes & Ramamoorthy 2022, eq. 10-11 (the CE update), summed over distinct inputs. With no step to fit
@@ -337,15 +282,12 @@ def fit_elite_steps(
         return []
     w = np.exp(np.asarray(log_w, dtype=np.float64) - log_w_max)[None]
     rows, actions = np.asarray(rows)[None], np.asarray(actions, dtype=bool)[None]
-    if not _summed_fit(fit, max_rows, int(np.count_nonzero(w)) if n_steps is None else n_steps):
-        fitted, counts = weighted_steps(rows, actions, w, max_rows or w.size, rng or np.random.default_rng(0))
-        total = float(counts.sum())
-        return fit_proposal(proposal, fitted, counts, epochs, lr, check, fit, tolerance, per=total, dtype=dtype)
+    if not options.summed(int(np.count_nonzero(w)) if n_steps is None else n_steps):
+        return _subsampled_fit(proposal, rows, actions, w, options)
     uniq, counts, _ = _action_counts(rows, actions, w, drop_unweighted=True)
-    if tolerance is None:
-        return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, dtype=dtype)
-    # the proposal starts from the last stage's fit (a warm start): stop once the loss per step stops falling
-    return fit_proposal(proposal, uniq, counts, epochs, lr, check, fit, tolerance, per=float(counts.sum()), dtype=dtype)
+    # with a tolerance, from the last stage's fit (a warm start): stop once the loss per step stops falling
+    per = None if options.tolerance is None else float(counts.sum())
+    return fit_proposal(proposal, uniq, counts, *options.args, options.tolerance, per=per, dtype=options.dtype)
 
 
 class EliteSteps:
@@ -459,12 +401,11 @@ class EliteSteps:
         self.log_w_max = float(np.max(log_w, initial=-np.inf))  # -inf: no step held
         return True
 
-    def fit(self, proposal: Proposal, **kwargs) -> list[float]:
-        """:func:`fit_elite_steps` on the gathered steps (``kwargs``: epochs, lr, check, fit, max_rows, rng,
-        tolerance)."""
+    def fit(self, proposal: Proposal, options: FitOptions) -> list[float]:
+        """:func:`fit_elite_steps` on the gathered steps."""
         rows, actions, log_w = self.arrays()
         return fit_elite_steps(
-            proposal, rows, actions, log_w, self.log_w_max, n_steps=self.n_steps if self.thinned else None, **kwargs
+            proposal, rows, actions, log_w, self.log_w_max, options, self.n_steps if self.thinned else None
         )
 
 

@@ -16,7 +16,7 @@ import copy
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 
@@ -55,7 +55,7 @@ from pemviz.estimators.base import (
 from pemviz.estimators.pooling import pool_stage_weights
 from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
-from pemviz.core.fit_settings import EXACT
+from pemviz.core.fit_settings import EXACT, FitOptions
 from pemviz.core.sampling import Proposal
 
 
@@ -389,24 +389,19 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         if noise_names_of(self.problem.target):  # errors drawn by a model of its own, the target's until fitted
             proposal.add_noise_head(len(noise_names_of(self.problem.target)))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch) if self.ce.proposal_window else None)
-        pretrain_proposal(
-            proposal,
-            features,
-            detected,
-            epochs=self.ce.pretrain_epochs if self.ce.fit == "adam" else self.ce.fit_max_steps,
-            lr=self.ce.learning_rate,
-            check=self.check,
-            step_mask=mask,
-            fit=self.ce.fit,
-            max_rows=self.ce.fit_rows,
-            rng=self.fit_rng,
-            tolerance=self.tolerance,
-            dtype=self.fit_dtype,
-        )
+        pretrain_proposal(proposal, features, detected, self._fit_options(self.ce.pretrain_epochs), mask)
         self._samplers, self.plain_sampler, self.sampler = self._samplers_around(proposal)
         own = self._own_samplers()
         if own is not None:  # over an ODD the samplers (not the target) draw theta from q(theta)
             own.parameter_proposal = self._parameters.proposal
+
+    def _fit_options(self, adam_epochs: int) -> FitOptions:
+        """The proposal's fits' settings: ``adam_epochs`` Adam epochs, or ``fit_max_steps`` L-BFGS iterations."""
+        ce = self.ce
+        epochs = adam_epochs if ce.fit == "adam" else ce.fit_max_steps
+        return FitOptions(
+            epochs, ce.learning_rate, self.check, ce.fit, ce.fit_rows, self.fit_rng, self.tolerance, self.fit_dtype
+        )
 
     def _own_samplers(self) -> StageSamplers | None:
         """The samplers that draw an ODD's parameters from q(theta): the window's (not the proposal itself)."""
@@ -485,7 +480,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 )
             )
 
-    def _fit_noise(self, fit: dict[str, Any]) -> None:
+    def _fit_noise(self, fit: FitOptions) -> None:
         """The CE update of the proposal's error head on the errors of the detected objects of this stage's elites
         (:func:`pemviz.core.torch_fits.fit_noise_shift`), weighted as their rollouts in the detection fit."""
         data, self._noise_data = self._noise_data, []
@@ -497,22 +492,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         rows, noise, log_w = (np.concatenate(a) for a in zip(*data, strict=False))
         target = cast(NoisyDetector, self.problem.target)  # the errors' data come from a noisy target's rollouts
         loc_p, log_scale_p = target.noise_params(rows)
-        fit_noise_shift(
-            self.proposal,
-            rows,
-            noise,
-            loc_p,
-            log_scale_p,
-            target.noise_family,
-            target.noise_df,
-            log_w,
-            epochs=fit["epochs"],
-            lr=fit["lr"],
-            max_rows=fit["max_rows"],
-            rng=self.fit_rng,
-            check=self.check,
-            tolerance=fit["tolerance"],
-        )
+        family, df = target.noise_family, target.noise_df
+        fit_noise_shift(self.proposal, rows, noise, loc_p, log_scale_p, family, df, log_w, fit)
 
     def _ce_stage(
         self, batch: RolloutBatch | None, robustness: np.ndarray, index: np.ndarray, gamma: float, n: int
@@ -529,23 +510,13 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 robustness, gamma, self.ce.quantile_level, self.tie_rng, n, settled=self._elites.n_settled
             )
         self.check()
-        epochs = self.ce.ce_epochs if self.ce.fit == "adam" else self.ce.fit_max_steps
-        fit: dict[str, Any] = dict(
-            epochs=epochs,
-            lr=self.ce.learning_rate,
-            check=self.check,
-            fit=self.ce.fit,
-            max_rows=self.ce.fit_rows,
-            rng=self.fit_rng,
-            tolerance=self.tolerance,
-            dtype=self.fit_dtype,
-        )
+        fit = self._fit_options(self.ce.ce_epochs)
         if self._steps is not None:
             if batch is not None and elite.any():
                 self._add_steps(batch.select(elite), index[elite], gamma)
             if self._steps is self._failure_steps and self.ce.fit_weights == "mixture":
                 self._steps.reweight(self._pool_log_weight)
-            self._steps.fit(proposal, **fit)
+            self._steps.fit(proposal, fit)
             self._fit_noise(fit)
             self._parameters.refit(self.ce.fit_all_failures and gamma <= 0.0, self._own_samplers())
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
@@ -560,10 +531,10 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             batch.log_p,
             batch.log_q,
             elite,
+            fit,
             smoothing=self._smoothing(gamma),
             weights=cast(WeightMode, self.ce.weights),
             step_mask=mask,
-            **fit,
         )
         self._parameters.add(batch.select(elite), self._smoothing(gamma) * batch.log_weight()[elite])
         self._parameters.refit(self.ce.fit_all_failures and gamma <= 0.0, self._own_samplers())
