@@ -37,7 +37,7 @@ def _html(text: str, chart: Any) -> str:
 def add_chart(gui: viser.GuiApi, *args: Any, title: str, caption: str = "", visible: bool = True, **kw: Any) -> Any:
     """``gui.add_uplot(*args, title=title, visible=visible, **kw)`` and, right below it, its caption (plain text,
     escaped; an empty caption is not shown). Returns the chart's handle (:func:`set_chart`, :func:`show_chart`)."""
-    plot = gui.add_uplot(*args, title=title, visible=visible, **kw)
+    plot: Any = gui.add_uplot(*args, title=title, visible=visible, **kw)
     plot.caption_text = caption
     plot.caption_handle = gui.add_html(  # right after the chart, whatever is inserted after it later
         _html(caption, plot), visible=visible and bool(caption), order=float(plot.order) + 0.001
