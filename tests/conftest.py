@@ -83,6 +83,18 @@ def run_cli(*args: str, cwd: Path | None = None, timeout: float = 600) -> subpro
     )
 
 
+def estimated_log_mu(path: Path) -> float:
+    """log mu_hat (nats, full float64) of a ``pemviz estimate --json PATH`` document: its ``log_p``; -inf where it is
+    null with p = 0 (no failure weighs anything), nan where both are null."""
+    import json
+    import math
+
+    e = json.loads(Path(path).read_text())["estimate"]
+    if e["log_p"] is not None:
+        return float(e["log_p"])
+    return -math.inf if e["p"] == 0.0 else math.nan
+
+
 def doc_python_block(page: str, heading: str) -> str:
     """The first python code block under ``heading`` (a whole heading line, e.g. ``## An example``) of the user guide's
     ``docs/<page>``: the guide's examples are run by tests as written."""

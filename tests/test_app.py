@@ -155,10 +155,12 @@ class Tab:
         return record
 
     def uplots(self) -> list[dict]:
-        """Every uPlot chart in the page: title, series labels, x data and x / y scale ranges."""
+        """Every uPlot chart in the page: title, caption (the text below it), series labels, x data and x / y scale
+        ranges."""
         return self.page.evaluate(
-            """() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(u => ({
+            """() => Object.entries(window.__viserTestpoints?.uplots ?? {}).map(([k, u]) => ({
                    title: u.chart.root.querySelector('.u-title')?.textContent ?? '',
+                   caption: document.querySelector(`.pemviz-caption[data-chart="${k}"]`)?.textContent ?? '',
                    legend: u.chart.root.querySelector('.u-legend')?.textContent ?? '',
                    labels: u.chart.series.map(s => s.label),
                    x: Array.from(u.chart.data[0] ?? []),
@@ -293,7 +295,7 @@ def test_the_scene_and_strip_chart_follow_the_newest_run_and_name_it(tab, app):
     assert shown is second.most_likely_failure or second.most_likely_failure is None
     ego_x, _ = app.drawing.lane_positions(shown.batch, 0)[:2]
     wait_until(
-        lambda: tab.scene()["label"].startswith(f"{second.short_label} {shown.key} t=0.00s"),
+        lambda: tab.scene()["label"].startswith(f"{second.short_label} {shown.name} t=0.00s"),
         what="the browser's scene label to name run 2",
     )
     assert abs(tab.scene()["x"] - ego_x[0]) < 1e-3
@@ -302,17 +304,21 @@ def test_the_scene_and_strip_chart_follow_the_newest_run_and_name_it(tab, app):
     ex = explain(shown.signal("gap_m"), shown.detected, shown.log_p, shown.log_q, app.drawing.params)
     tab.page.get_by_role("tab", name="Explain").click()
     expect(tab.page.get_by_text("Counterfactual", exact=False)).to_be_visible(timeout=10_000)
-    gap = tab.plot(f"{second.short_label} {shown.key}: gap and speeds")
+    gap = tab.plot("gap and speeds")
+    assert (
+        gap["title"] == "gap and speeds"
+        and gap["caption"] == f"{second.short_label} stage {shown.stage} rollout {shown.index}"
+    )
     assert np.allclose(gap["data"][1], shown.signal("gap_m"))
     assert set(gap["labels"]) >= {"crash gap 2 m", "braking distance 10 m", "gap (m)"}
-    detect = tab.plot("p(detect) under the PEM")
+    detect = tab.plot("p(detect) and q(detect)")
     decisive = shown_at(detect["data"][detect["labels"].index("decisive miss")])
     assert decisive == ex.decisive.tolist()
 
     # playback moves the scene and the strip chart's marker together
     tab.session.step_slider.value = 30
     wait_until(lambda: abs(tab.scene()["x"] - ego_x[30]) < 1e-3, what="the scene at step 30")
-    now = tab.plot("p(detect) under the PEM")["data"][-1]
+    now = tab.plot("p(detect) and q(detect)")["data"][-1]
     assert shown_at(now) == [30]
 
 
@@ -393,7 +399,8 @@ def test_one_stage_numbering_and_plot_axes_follow_the_stages_that_ran(tab):
         assert p["xmax"] == pytest.approx(last + 0.5) and p["axes"][0].startswith("stage (0 pretraining")
         assert p["axes"][1] and "--" not in p["legend"]
     assert tab.plot("log10 mu_hat per stage")["ymax"] > max(v for v in record.stage_series("log10_mu_hat").values())
-    curve = tab.plot(f"{record.short_label}: mean q(detect) over the visited states")
+    curve = tab.plot("mean q(detect) vs the PEM")
+    assert curve["caption"].startswith(f"{record.short_label}: mean q(detect) over the visited states")
     assert "PEM" in curve["labels"] and "stage 1" in curve["labels"] and "pretraining" not in curve["labels"]
     assert curve["ymax"] > 1.0  # the top tick "1" is inside the plot
 
@@ -403,7 +410,8 @@ def test_gamma_of_runs_with_other_metrics_is_not_drawn_on_the_same_axis(tab):
     classic = tab.run()
     tab.choose("metric", "agm")
     agm = tab.run()
-    p = tab.plot("gamma per stage, agm (unitless); 1 run of another metric not shown")
+    p = tab.plot("gamma per stage, agm (unitless)")
+    assert p["caption"].endswith("; 1 run of another metric not shown")
     assert p["labels"] == ["stage", agm.short_label]
     assert classic.short_label not in p["labels"]
 
@@ -446,7 +454,7 @@ def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_ov
     t_crash = int(np.argmax(shown.signal("gap_m") < app.drawing.params.crash_gap_m))
     tab.session.step_slider.value = t_crash
     wait_until(
-        lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={t_crash * 0.05:.2f}s"),
+        lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.name} t={t_crash * 0.05:.2f}s"),
         what="the crash step",
     )
     s = tab.scene()
@@ -506,7 +514,7 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     s = tab.session
     tab.choose("preset", "state-ce")
     record = tab.run({"seed": "0"}, timeout=300)
-    live = tab.plot(f"{record.short_label}: mean q(detect) over the visited states")
+    live = tab.plot("mean q(detect) vs the PEM")
     x = np.array(live["data"][0])
     pem = np.array(live["data"][live["labels"].index("PEM")], dtype=float)
     final = np.array(live["data"][live["labels"].index("final batch")], dtype=float)
@@ -514,7 +522,8 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     assert inside.sum() >= 8 and np.all(final[inside] < pem[inside])
     assert np.mean(pem[inside] - final[inside]) > 0.2  # the sampler misses far more often than the PEM there
     assert "median log q(miss)/q(detect)" in tab.plot("log q(miss)/q(detect)")["title"]
-    mu = tab.plot("log10 mu_hat per stage, 95 % interval")
+    mu = tab.plot("log10 mu_hat per stage")
+    assert "band: its 95 % interval" in mu["caption"] and "black: the exact answer" in mu["caption"]
     assert f"{record.short_label} 95 % low" in mu["labels"] and any(lab.startswith("exact") for lab in mu["labels"])
 
     # Explain: the most likely failure with its severity in words, what happened, and the controller
@@ -556,7 +565,7 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     expect(tab.page.get_by_text(f"{cf.minimal_set.size} misses at", exact=False)).to_be_visible(timeout=10_000)
     expect(tab.page.get_by_text("none: no single detection saves it", exact=False)).to_be_visible()
     wait_until(
-        lambda: shown_series("p(detect) under the PEM", "minimal miss set") == cf.minimal_set.tolist(),
+        lambda: shown_series("p(detect) and q(detect)", "minimal miss set") == cf.minimal_set.tolist(),
         what="the minimal miss set marked in the strip chart",
     )
 
@@ -650,7 +659,7 @@ def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detecti
         assert b == int(np.argmax(shown.signal("gap_m") < p.crash_gap_m))
         s.step_slider.value = b
         wait_until(
-            lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.key} t={b * p.dt_s:.2f}s"),
+            lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.name} t={b * p.dt_s:.2f}s"),
             what="the breach step",
         )
         ego_x, lead_x = app.drawing.lane_positions(shown.batch, 0)[:2]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ from scipy.special import expit
 from test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 from pemviz.app import charts
+from pemviz.app.captions import MAX_TITLE
 from pemviz.scenarios.cut_in.panel import GAP_BINS_M as OBJECT_GAP_BINS_M
 from pemviz.scenarios.cut_in.panel import VIEW_OBJECT
 
@@ -34,14 +36,15 @@ CHARTS_PER_TAB = {"braking": {"Live": 6, "Explain": 4, "Compare": 2}, "cut_in": 
 braking scenario's four strip charts or the cut-in's three (tracker gap, tracker lateral offset, ACC); Compare the
 estimates and the run's reference-state curve."""
 
-CHARTS_JS = """() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(u => ({
+CHARTS_JS = """() => Object.entries(window.__viserTestpoints?.uplots ?? {}).map(([k, u]) => ({
     title: u.chart.root.querySelector('.u-title')?.textContent ?? '',
+    caption: document.querySelector(`.pemviz-caption[data-chart="${k}"]`)?.textContent ?? '',
     visible: u.chart.root.checkVisibility(),
     labels: u.chart.series.map(s => s.label),
     finite: u.chart.data.slice(1).map(d => Array.from(d ?? []).filter(v => v != null && Number.isFinite(v)).length),
     data: u.chart.data.map(d => Array.from(d ?? []).map(v => v ?? null))}))"""
-"""Every uPlot chart of the page: its title, whether it is shown, its series' labels, each y series' count of finite
-values and its data."""
+"""Every uPlot chart of the page: its title, its caption (the text below it), whether it is shown, its series' labels,
+each y series' count of finite values and its data."""
 
 
 def shown_charts(tab: Tab) -> list[dict]:
@@ -69,6 +72,12 @@ def check_every_tab(tab: Tab, scene: str) -> dict[str, list[dict]]:
         )
         shown = shown_charts(tab)
         assert not [c["title"] for c in shown if empty(c)], f"{scene} {name}: empty charts shown"
+        long = [c["title"] for c in tab.page.evaluate(CHARTS_JS) if len(c["title"]) > MAX_TITLE]
+        assert (
+            not long
+        ), f"{scene} {name}: chart titles over {MAX_TITLE} characters (the caption is for the rest): {long}"
+        text = tab.page.inner_text("body")
+        assert not re.search(r"\bs\d+r\d+\b", text), f"{scene} {name}: a rollout named by its key, not in words"
         seen[name] = shown
         if os.environ.get("PEMVIZ_SCREENSHOTS") == "1":
             tab.page.wait_for_function("() => document.fonts.ready.then(() => true)")
@@ -106,9 +115,12 @@ def test_every_braking_tab_shows_only_charts_with_data(wide_tab):
         what="the run's rollout explained",
     )
     seen = check_every_tab(tab, "braking")
-    live = chart(seen["Live"], "mean q(detect) over the visited states")
+    live = chart(seen["Live"], "mean q(detect) vs the PEM")
+    assert "mean q(detect) over the visited states" in live["caption"]
     assert "PEM" in live["labels"] and np.isfinite(series(live, "PEM")).any()
     assert chart(seen["Explain"], "controller")["finite"][0] > 0
+    weight = chart(seen["Explain"], "log w")
+    assert weight["caption"].startswith("log w: the rollout's importance log-weight")  # what log w is, below it
     # the Compare tab shows one reference-state chart per kept run, no empty slot
     assert not any(c["title"].startswith("slot ") for c in seen["Compare"])
 
@@ -136,7 +148,8 @@ def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and
     seen = check_every_tab(tab, "cut_in")
 
     # Live: q(detect) and p(detect) of the cut-in car per 1 m bin of its gap ahead, every stage drawn by a proposal
-    live = chart(seen["Live"], "mean q(detect) of car 0 (the cut-in car) over the visited states")
+    live = chart(seen["Live"], "mean q(detect) vs the PEM")
+    assert "mean q(detect) of car 0 (the cut-in car) over the visited states" in live["caption"]
     assert {"PEM", "stage 1", "final batch"} <= set(live["labels"]) and "pretraining" not in live["labels"]
     x = np.array(live["data"][0])
     np.testing.assert_allclose(x, (OBJECT_GAP_BINS_M[:-1] + OBJECT_GAP_BINS_M[1:]) / 2)
@@ -153,7 +166,8 @@ def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and
     full = [k for k in range(x.size) if np.sum(b == k) >= charts.MIN_BIN_STATES]
     assert len(full) >= 10
     np.testing.assert_allclose(pem[full], [p[b == k].mean() for k in full], rtol=1e-9)
-    assert chart(seen["Live"], "median log q(miss)/q(detect) of car 0")["finite"][0] > 0
+    odds = chart(seen["Live"], "median log q(miss)/q(detect)")
+    assert odds["finite"][0] > 0 and "of car 0" in odds["caption"]
 
     # Explain: what happened in words, the severity, the tracker against the truth, the ACC
     page = tab.page
@@ -163,13 +177,13 @@ def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and
     expect(page.get_by_text("minimum clearance", exact=False).first).to_be_visible()
     expect(page.get_by_text(st.sentences[1], exact=False).first).to_be_visible()  # the lane entry, in words
     explain = seen["Explain"]
-    gap = chart(explain, "car 0's gap ahead, truth and the tracker")
+    gap = chart(explain, "car 0's gap ahead")
     truth, track = series(gap, "truth"), series(gap, "tracker (confirmed track)")
     lo, hi = min(v for v in truth if np.isfinite(v)), max(v for v in truth if np.isfinite(v))
     inside = np.isfinite(ox.gap_ahead[:, 0]) & (ox.gap_ahead[:, 0] >= lo) & (ox.gap_ahead[:, 0] <= hi)
     np.testing.assert_allclose(truth[inside], ox.gap_ahead[inside, 0])
     assert np.isfinite(track).sum() > 10 and np.isfinite(series(gap, "measured (detected)")).any()
-    lateral = chart(explain, "car 0's lateral offset from the ego's lane centre, truth and the tracker")
+    lateral = chart(explain, "car 0's lateral offset from the ego's lane centre")
     np.testing.assert_allclose(series(lateral, "truth"), ox.lateral_m[:, 0], atol=1e-9)
     assert np.isfinite(series(lateral, "tracker (confirmed track)")).sum() > 10
     acc = chart(explain, "ACC acceleration")
@@ -178,7 +192,7 @@ def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and
     assert np.isfinite(series(acc, "follows car 0")).any()  # the ACC followed the cut-in car at some step
     assert a.min() < 0.0  # and braked
     # the braking scenario's strip charts are hidden, never shown empty
-    assert not any("gap and speeds" in c["title"] or "cumulative importance" in c["title"] for c in explain)
+    assert not any("gap and speeds" in c["title"] or "log w" in c["title"] for c in explain)
 
 
 def test_the_cut_in_story_tells_a_hand_made_rollout_step_by_step():

@@ -145,7 +145,8 @@ def test_the_stage_chart_fits_the_stages_that_agree_and_draws_the_others_at_the_
     plots.fill_stage_plot(plot, "log10_mu_hat", [run])
     lo, hi = y_limits(plot)
     assert (lo, hi) == pytest.approx((-15.15, -14.65))
-    assert plot.title == "log10 mu_hat per stage; 2 points off scale, drawn at the edge (lowest -40.0)"
+    assert plot.title == "log10 mu_hat per stage"  # a short title, what it says of the chart below it
+    assert plot.caption_text == "2 points off scale, drawn at the edge (lowest -40.0)"
     assert labels(plot) == ["stage", run.short_label, "2 below the scale (at the edge)"]
     assert_drawn_in_place(mu, plot.data[1], lo, hi)
     np.testing.assert_array_equal(plot.data[2], [lo, lo, np.nan, np.nan, np.nan])  # the rings, at the edge
@@ -163,7 +164,7 @@ def test_the_mu_hat_chart_ignores_the_interval_of_stages_without_failures_and_sh
     lo, hi = y_limits(plot)
     # the estimates and the bounds of stages 2-5 with a pad of 0.08 * (15.52 - 13.43) = 0.167
     assert (lo, hi) == pytest.approx((-15.52 - 0.1672, -13.43 + 0.1672))
-    assert plot.title.endswith("exact answer (black); 2 points off scale, drawn at the edge (highest 0.0)")
+    assert plot.caption_text.endswith("black: the exact answer; 2 points off scale, drawn at the edge (highest 0.0)")
     names = labels(plot)
     assert names[-1] == "2 above the scale (at the edge)" and "exact answer -14.702" in names
     high = np.array([s.estimate.log_ci[1] / LN10 for s in run.stages])  # the bounds as the run holds them (log10)
@@ -188,9 +189,10 @@ def test_early_in_a_run_the_first_stage_with_failures_sets_the_mu_hat_axis():
     plots.fill_stage_plot(plot, "log10_mu_hat", [run])
     charts.fill_mu_hat_plot(plot, [run])
     assert y_limits(plot) == pytest.approx((-15.5 - 0.128, -13.9 + 0.128))
-    assert (
-        plot.title == "log10 mu_hat per stage, 95 % interval (band); 3 points off scale, drawn at the edge "
-        "(highest 0.0)"
+    assert plot.title == "log10 mu_hat per stage"
+    assert plot.caption_text == (
+        "log10 of each stage's mu_hat; band: its 95 % interval (a bound alone where no interval is backed); 3 points "
+        "off scale, drawn at the edge (highest 0.0)"
     )
 
 
@@ -203,7 +205,7 @@ def test_before_any_failure_the_mu_hat_axis_is_the_exact_answer_with_room_never_
     assert y_limits(plot) == (-0.05, 1.05)  # no value yet
     charts.fill_mu_hat_plot(plot, [run])
     assert y_limits(plot) == pytest.approx((-14.702 - 0.05, -14.702 + 0.05))
-    assert plot.title.endswith("; 1 point off scale, drawn at the edge (highest 0.0)")
+    assert plot.caption_text.endswith("; 1 point off scale, drawn at the edge (highest 0.0)")
     for at_least, limits in (((3.0, 3.0), (-math.inf, math.inf)), ((20.0, 20.0), (-12.0, 12.0))):
         r = robust_range(np.zeros(0), at_least=at_least, limits=limits)
         assert r.hi - r.lo >= 1.0 - 1e-12, (at_least, limits, r)
@@ -216,7 +218,7 @@ def test_an_exact_answer_far_from_the_estimates_stays_on_the_axis():
     plots.fill_stage_plot(plot, "log10_mu_hat", [run])
     charts.fill_mu_hat_plot(plot, [run])
     lo, hi = y_limits(plot)
-    assert lo < -20.3 and hi == pytest.approx(-14.7) and "off scale" not in plot.title
+    assert lo < -20.3 and hi == pytest.approx(-14.7) and "off scale" not in plot.caption_text
 
 
 # -- the controller chart ----------------------------------------------------------------------------
@@ -258,9 +260,9 @@ def test_the_contact_steps_acceleration_is_drawn_at_the_edge_and_named():
     bottom, top = -9.0, 4.0
     row = 0.07 * (top - bottom)
     assert y_limits(plot) == pytest.approx((bottom, top + 3 * row))
-    assert plot.title == (
-        "run 1 r0: controller; 1 step off scale, drawn at the edge: -110.0 m/s^2 at 2.00 s "
-        "(contact: the ego stops within one step)"
+    assert plot.title == "controller"
+    assert plot.caption_text.startswith("run 1 r0: the ego's acceleration (m/s^2)") and plot.caption_text.endswith(
+        "; 1 step off scale, drawn at the edge: -110.0 m/s^2 at 2.00 s (contact: the ego stops within one step)"
     )
     assert_drawn_in_place(accel, plot.data[1], bottom, top)
     ring, now = plot.data[4], plot.data[5]
@@ -280,9 +282,8 @@ def test_a_contact_step_near_full_braking_still_leaves_the_axis():
     explain_charts.fill_controller_plot(plot, controller_explanation(accel, gap), 0, "r")
     bottom = -25.96 - 0.08 * (1.5 + 25.96)
     assert y_limits(plot)[0] == pytest.approx(bottom)
-    assert plot.title == (
-        "r: controller; 1 step off scale, drawn at the edge: -76.8 m/s^2 at 2.95 s "
-        "(contact: the ego stops within one step)"
+    assert plot.title == "controller" and plot.caption_text.endswith(
+        "; 1 step off scale, drawn at the edge: -76.8 m/s^2 at 2.95 s (contact: the ego stops within one step)"
     )
     assert_drawn_in_place(accel, plot.data[1], bottom, y_limits(plot)[1])
 
@@ -292,7 +293,7 @@ def test_a_lone_spike_leaves_the_controller_axis_even_before_contact():
     plot = handle()
     explain_charts.fill_controller_plot(plot, controller_explanation(accel, np.full(accel.size, 5.0)), 0, "r")
     assert y_limits(plot)[0] == pytest.approx(-9.0)
-    assert plot.title == "r: controller; 1 step off scale, drawn at the edge: -110.0 m/s^2 at 3.00 s"
+    assert plot.caption_text.endswith("; 1 step off scale, drawn at the edge: -110.0 m/s^2 at 3.00 s")
 
 
 def test_the_emergency_brake_stays_on_the_controller_axis():
@@ -301,7 +302,7 @@ def test_the_emergency_brake_stays_on_the_controller_axis():
     plot = handle()
     explain_charts.fill_controller_plot(plot, controller_explanation(accel, np.full(accel.size, 3.0)), 0, "r")
     bottom = -27.5 - 0.08 * 29.0
-    assert y_limits(plot)[0] == pytest.approx(bottom) and plot.title == "r: controller"
+    assert y_limits(plot)[0] == pytest.approx(bottom) and "off scale" not in plot.caption_text
     np.testing.assert_array_equal(plot.data[1], accel)
     assert "acceleration off scale" not in " ".join(labels(plot))
 
@@ -336,7 +337,7 @@ def test_a_bin_of_few_states_is_not_drawn_as_a_spike_but_as_a_hollow_ring_with_i
     charts.fill_marginal_plots(m, record)
     plot = m[charts.PROB]
     names = labels(plot)
-    assert plot.title.endswith("; 1 bin of under 20 states hollow")
+    assert plot.caption_text.endswith("; 1 bin of under 20 states hollow")
     line = plot.data[names.index("stage 1")]
     assert np.isnan(line[1])  # not joined into the stage's line
     full = view.n_states >= charts.MIN_BIN_STATES
@@ -368,7 +369,7 @@ def test_a_bin_crowded_with_standing_states_keeps_its_value_and_says_why():
     m = {charts.PROB: handle(), charts.LOG_ODDS: handle()}
     charts.fill_marginal_plots(m, record)
     plot = m[charts.PROB]
-    assert f"6-6.5 m {share[b]:.0%} of {int(view.n_states[b]):,}" in plot.title
+    assert f"6-6.5 m {share[b]:.0%} of {int(view.n_states[b]):,}" in plot.caption_text
     names = labels(plot)
     line = plot.data[names.index("stage 1")]
     assert line[b] == pytest.approx(view.q_mean[b]) and line[b] > 0.8  # the real value, not hidden
@@ -387,6 +388,8 @@ def test_a_median_beyond_12_nats_is_drawn_at_the_edge_of_the_log_odds_chart():
     lo, hi = y_limits(odds)
     assert lo == -12.0 and hi == pytest.approx(2.4)
     n_low = int(np.sum(view.q_log_odds < -12.0))
-    assert n_low == 2 and odds.title.endswith(f"; {n_low} medians off scale, drawn at the edge (lowest -16.1 nats)")
+    assert n_low == 2 and odds.caption_text.endswith(
+        f"; {n_low} medians off scale, drawn at the edge (lowest -16.1 nats)"
+    )
     line = odds.data[labels(odds).index("stage 1")]
     assert_drawn_in_place(view.q_log_odds, line, lo, hi)

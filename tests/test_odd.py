@@ -213,8 +213,9 @@ def test_an_odd_run_writes_its_map_and_re_estimates_to_its_p(tmp_path):
     assert [b["lo"] for b in doc["odd_map"]["bins"]] == [4.5, 5.5, 6.5]
     page = (tmp_path / "o.md").read_text()  # the report's Markdown twin: the map as a section of its own
     assert "## Operating design domain" in page and "| braking in [4.5, 5.5) | 0.33 |" in page
-    again = pemviz_cli(tmp_path, "estimate", "o.parquet", "--no-record")
-    said = float(__import__("re").search(r"log mu_hat = (-?[0-9.]+) nats", again.stdout).group(1))
+    again = pemviz_cli(tmp_path, "estimate", "o.parquet", "--no-record", "--json", "e.json")
+    assert again.returncode == 0, again.stderr
+    said = json.loads((tmp_path / "e.json").read_text())["estimate"]["log_p"]
     assert said == pytest.approx(doc["estimate"]["log_p"], rel=1e-12, abs=0)  # the run's p_ODD again
     recorded = recorded_map(tmp_path / "o.rrd")  # the recording's ODD view: the document's numbers
     assert [round(b["log_p"] / math.log(10), 9) for b in doc["odd_map"]["bins"]] == [

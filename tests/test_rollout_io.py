@@ -15,7 +15,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from conftest import run_cli, verify_rrd
+from conftest import estimated_log_mu, run_cli, verify_rrd
 from pemviz.core.estimate import estimate
 from pemviz.estimators.ce_fit import FitOptions, ce_update, pretrain_proposal
 from pemviz.core.plan import RunPlan
@@ -132,11 +132,12 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
     assert not set(rollout_table.SEVERITY_COLUMNS) & set(pq.read_schema(bare).names)  # a file without severity columns
     old = rio.read_rollouts(bare)
     assert old.min_distance is None and old.impact_speed is None
-    for args in ([str(bare)], [str(path), "--pem", "ml-nn", "--proposal", "naive50"]):
-        code, out, err = estimate_cli(capsys, *args, "--no-record")
+    for k, args in enumerate(([str(bare)], [str(path), "--pem", "ml-nn", "--proposal", "naive50"])):
+        doc = tmp_path / f"estimate{k}.json"
+        code, out, err = estimate_cli(capsys, *args, "--no-record", "--json", str(doc))
         assert code == 0, err
         assert "recomputed" in out
-        assert same_mu(float(LOG_MU_RE.search(out).group(1)), run_estimate.log_mu_hat)
+        assert same_mu(estimated_log_mu(doc), run_estimate.log_mu_hat)
     code, out, err = estimate_cli(capsys, str(bare), "--log-q-column", "--no-record")
     assert code == 2 and "has no log_q column" in err
 
@@ -199,11 +200,12 @@ def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, ca
     )  # no salient columns: the gap
     meta = json.loads(rollout_format.sidecar_path(bare).read_text())
     assert meta["proposal"] == "adaptive.proposal.pt" and meta["pem"] == str(pem_file)
-    for args in ([str(bare)], [str(bare), "--pem", str(pem_file), "--proposal", str(ckpt)]):
-        code, out, err = estimate_cli(capsys, *args, "--no-record")
+    for k, args in enumerate(([str(bare)], [str(bare), "--pem", str(pem_file), "--proposal", str(ckpt)])):
+        doc = tmp_path / f"estimate{k}.json"
+        code, out, err = estimate_cli(capsys, *args, "--no-record", "--json", str(doc))
         assert code == 0, err
         assert f"{truth.n_failures}/60" in out
-        assert same_mu(float(LOG_MU_RE.search(out).group(1)), truth.log_mu_hat)
+        assert same_mu(estimated_log_mu(doc), truth.log_mu_hat)
 
 
 @pytest.fixture
@@ -348,11 +350,22 @@ def test_cli_run_then_estimate_prints_the_runs_mu_hat_and_writes_a_recording(tmp
     )
     run = capsys.readouterr()
     assert code == 0, run.err
-    est = run_cli("estimate", str(rollouts), "--save", str(recording))  # the installed entry point, end to end
+    doc = tmp_path / "estimate.json"
+    est = run_cli(
+        "estimate", str(rollouts), "--save", str(recording), "--json", str(doc)
+    )  # the entry point, end to end
     assert est.returncode == 0, est.stderr
-    run_log_mu = json.loads(rollout_format.sidecar_path(rollouts).read_text())["provenance"]["estimate"]["log_mu_hat"]
-    assert same_mu(float(LOG_MU_RE.search(est.stdout).group(1)), run_log_mu)
-    assert re.search(r"log mu_hat = (\S+) nats", run.out).group(1) == f"{run_log_mu:.4f}"
+    run_said = json.loads(rollout_format.sidecar_path(rollouts).read_text())["provenance"]["estimate"]
+    run_log_mu = run_said["log_mu_hat"]
+    assert same_mu(estimated_log_mu(doc), run_log_mu)
+    assert LOG_MU_RE.search(run.out).group(1) == f"{run_log_mu:.4f}"
+    assert LOG_MU_RE.search(est.stdout).group(1) == LOG_MU_RE.search(run.out).group(1)  # one format: 4 decimals
+    said = json.loads(doc.read_text())
+    assert said["format"] == "pemviz-estimate"
+    assert (said["estimate"]["n_failures"], said["estimate"]["n"]) == (run_said["n_failures"], run_said["n"])
+    assert f"result: {doc}" in est.stderr
+    again = run_cli("estimate", str(rollouts), "--no-record", "--json", str(doc))  # an existing file: refused
+    assert again.returncode == 2 and again.stderr.count("\n") == 1 and "--overwrite" in again.stderr, again.stderr
     assert f"rollouts: {rollouts}" in run.err
     assert recording.stat().st_size > 10_000 and not (tmp_path / "estimate.rrd.partial").exists()
     verify_rrd(recording)

@@ -18,12 +18,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import estimated_log_mu
+
 from pemviz import cli
 from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
 from pemviz.io import rollout_format, rollout_writer, rollouts as rio
 from pemviz.core.rollouts import RolloutBatch
 
-LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
 META = rollout_format.RolloutMeta(formula="G[0,5](d >= 2)", dt_s=0.1)
 """A sidecar for the hand-written batches: one signal, the gap (metres), T = 6 steps."""
 
@@ -214,11 +215,12 @@ def test_a_cut_in_naive50_run_re_estimates_from_its_file_to_its_own_numbers(scen
     assert same(est.ess, float(said["ess"]))
     if scenario == "cut-in-rare":
         assert est.log_mu_hat == -math.inf and est.n_failures > 0 and np.isneginf(again.log_weight[again.failed]).all()
-    assert cli.main(["estimate", str(path), "--no-record"]) == 0
+    doc = tmp_path / "estimate.json"
+    assert cli.main(["estimate", str(path), "--no-record", "--json", str(doc)]) == 0
     out = capsys.readouterr()
-    assert out.err == "" and "warning" not in out.out
+    assert out.err == f"result: {doc}\n" and "warning" not in out.out
     assert final_row(out.out) == final_row(run)
-    assert float(LOG_MU_RE.search(out.out).group(1)) == est.log_mu_hat
+    assert estimated_log_mu(doc) == est.log_mu_hat  # bit for bit, -inf included
     assert "mean importance weight" in out.out and " nan " not in out.out
 
 

@@ -19,6 +19,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.special import logsumexp
 
+from conftest import estimated_log_mu
+
 from pemviz import cli
 from pemviz.core.severity import severity_of_signal
 from pemviz.core.weights import component_of, mean_weight, mixture_step_log_q
@@ -26,16 +28,16 @@ from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
 from pemviz.io.rollout_estimate import REESTIMATE_RTOL
 
-LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
-
 
 def run_and_estimate(capsys, tmp_path, *run_args: str, estimate_args: tuple[str, ...] = ()) -> tuple[str, str, dict]:
     """(the run's stdout, the estimate's stdout, the sidecar) of ``pemviz run ... --save-rollouts`` then
-    ``pemviz estimate``."""
+    ``pemviz estimate`` (its JSON document in ``tmp_path / "estimate.json"``)."""
     path = tmp_path / "r.parquet"
     assert cli.main(["run", "--no-record", "--save-rollouts", str(path), *run_args]) == 0, capsys.readouterr().err
     run = capsys.readouterr().out
-    code = cli.main(["estimate", str(path), "--no-record", *estimate_args])
+    code = cli.main(
+        ["estimate", str(path), "--no-record", "--json", str(tmp_path / "estimate.json"), "--overwrite", *estimate_args]
+    )
     out = capsys.readouterr()
     assert code == 0, out.err
     return run, out.out, json.loads(rollout_format.sidecar_path(path).read_text())
@@ -68,9 +70,9 @@ def summary_line(out: str) -> str:
     ][-1]
 
 
-def assert_round_trip(run: str, est: str, sidecar: dict) -> None:
+def assert_round_trip(run: str, est: str, sidecar: dict, est_log_mu: float) -> None:
     """The estimate prints the run's final row and its whole verdict line (the exact answer included), its stage rows,
-    and mu_hat to REESTIMATE_RTOL."""
+    and mu_hat (``est_log_mu``: its JSON's full float) to REESTIMATE_RTOL."""
     run_final = " ".join(next(ln for ln in run.splitlines() if ln.startswith("  final "))[27:-8].split())
     cells = estimate_cells(est)
     final = cells.get("final", cells.get(sidecar["pooling"]["stages"][0]))
@@ -80,7 +82,6 @@ def assert_round_trip(run: str, est: str, sidecar: dict) -> None:
     for k in sidecar["pooling"]["stages"]:
         assert cells[k] == by_stage[k]
     run_log_mu = float(sidecar["provenance"]["estimate"]["log_mu_hat"])  # "-inf" in JSON
-    est_log_mu = float(LOG_MU_RE.search(est).group(1))
     assert est_log_mu == run_log_mu or abs(math.expm1(est_log_mu - run_log_mu)) <= REESTIMATE_RTOL
     assert "warning" not in est
 
@@ -90,7 +91,7 @@ def assert_round_trip(run: str, est: str, sidecar: dict) -> None:
 
 def test_default_run_round_trips_all_its_pooled_stages_and_its_mean_weight_is_one(tmp_path, capsys):
     run, est, sidecar = run_and_estimate(capsys, tmp_path)
-    assert_round_trip(run, est, sidecar)
+    assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
     pooling = sidecar["pooling"]
     assert pooling["rule"] == "quadratic" and pooling["stages"][-1] == 11 and len(pooling["stages"]) > 1
     j = np.arange(1, len(pooling["stages"]) + 1)
@@ -131,7 +132,7 @@ def test_default_run_round_trips_all_its_pooled_stages_and_its_mean_weight_is_on
 )
 def test_every_preset_and_method_round_trips(tmp_path, capsys, run_args):
     run, est, sidecar = run_and_estimate(capsys, tmp_path, *run_args)
-    assert_round_trip(run, est, sidecar)
+    assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
     paper_like = "paper" in run_args or "authors-code" in run_args
     assert sidecar["weights"] == ("full" if paper_like else "to-failure")
     if "--rel-error" in run_args:  # final batches added after the planned ones, pooled as the run pooled them
@@ -148,7 +149,7 @@ def test_a_tilted_run_round_trips_and_its_sidecar_names_the_tilt_without_a_weigh
     bound on the weights (a bound of 1 made every re-estimate warn that log_q was wrong); every braking rollout of the
     tilt fails, so the mean weight is p itself, below 1, as unbounded weights aimed at the failures give."""
     run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "tilt", "--n", "300")
-    assert_round_trip(run, est, sidecar)
+    assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
     assert [(s["max_weight"], [c["sampler"] for c in s["components"]]) for s in sidecar["stages"]] == [
         (None, ["the scenario's tilted proposal"])
     ]
@@ -158,13 +159,13 @@ def test_a_tilted_run_round_trips_and_its_sidecar_names_the_tilt_without_a_weigh
 def test_chunked_runs_above_20000_rollouts_round_trip(tmp_path, capsys):
     # naive50 with 20,001 rollouts (streamed in chunks of 8,192) and a small default sampler whose final batch is
     run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "naive50", "--n", "20001")
-    assert_round_trip(run, est, sidecar)
+    assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
     assert pq.ParquetFile(tmp_path / "r.parquet").num_row_groups == 3
     (tmp_path / "r.parquet").unlink(), rollout_format.sidecar_path(tmp_path / "r.parquet").unlink()
     run, est, sidecar = run_and_estimate(
         capsys, tmp_path, "--preset", "quick", "--k", "3", "--n", "40", "--n-final", "20001", "--seed", "2"
     )
-    assert_round_trip(run, est, sidecar)
+    assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
     assert sidecar["stages"][-1]["n"] == 20001 and len(sidecar["pooling"]["stages"]) >= 2
 
 
@@ -173,7 +174,7 @@ def test_all_stages_are_written_on_request_and_only_the_pooled_ones_are_pooled(t
     # the stages' own rollouts: no plain Monte Carlo batches after them
     run, est, sidecar = run_and_estimate(capsys, tmp_path, *quick, "--plain-fallback", "0")
     assert [s["stage"] for s in sidecar["stages"]] == [0, 1, 2, 3, 4]
-    assert_round_trip(run, est, sidecar)
+    assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
     cells, by_stage = estimate_cells(est), stage_cells(run)
     assert all(cells[k] == by_stage[k] for k in range(5))  # pretraining and every CE stage, pooled or not
 
@@ -265,10 +266,16 @@ def test_a_full_trajectory_log_reproduces_its_own_estimate_and_both_conventions_
     (tmp_path / "toy.json").write_text(json.dumps({"formula": "G[0,11](d >= 2)", "dt_s": 0.1, "weights": "full"}))
     found = {}
     for weights in ("full", "to-failure"):
-        assert cli.main(["estimate", str(tmp_path / "toy.parquet"), "--no-record", "--weights", weights]) == 0
+        doc = tmp_path / f"{weights}.json"
+        assert (
+            cli.main(
+                ["estimate", str(tmp_path / "toy.parquet"), "--no-record", "--weights", weights, "--json", str(doc)]
+            )
+            == 0
+        )
         out = capsys.readouterr().out
         assert out.splitlines()[1].startswith(f"  weights: {weights}, prod p/q over ")
-        found[weights] = math.exp(float(LOG_MU_RE.search(out).group(1)))
+        found[weights] = math.exp(estimated_log_mu(doc))
     assert found["full"] == pytest.approx(tool, rel=1e-6)
     assert found["to-failure"] == pytest.approx(float(np.mean(w_stop * failed)), rel=1e-6)
     for w in (w_full, w_stop):  # both unbiased: within 4 standard errors of the exact 1e-5
@@ -446,7 +453,7 @@ def cut_in_file(tmp_path_factory):
     run = out.getvalue()
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        assert cli.main(["estimate", str(path), "--no-record"]) == 0
+        assert cli.main(["estimate", str(path), "--no-record", "--json", str(tmp / "estimate.json")]) == 0
     return run, out.getvalue(), json.loads(rollout_format.sidecar_path(path).read_text()), path
 
 
@@ -457,7 +464,7 @@ def test_a_cut_in_run_round_trips_each_cars_detections_and_errors(cut_in_file):
     assert (sidecar["version"], sidecar["objects"], sidecar["noise"]) == (3, 5, ["range_error_m", "lateral_error_m"])
     assert sidecar["dt_s"] == 0.1 and sidecar["signals"]["clearance"] == "clearance_m"
     run_log_mu = float(sidecar["provenance"]["estimate"]["log_mu_hat"])
-    est_log_mu = float(LOG_MU_RE.search(est).group(1))
+    est_log_mu = estimated_log_mu(path.parent / "estimate.json")
     assert math.isfinite(run_log_mu) and abs(math.expm1(est_log_mu - run_log_mu)) <= REESTIMATE_RTOL
     run_final = " ".join(next(ln for ln in run.splitlines() if ln.startswith("  final "))[27:-8].split())
     cells = estimate_cells(est)

@@ -188,11 +188,14 @@ def test_the_command_line_form_runs_the_saved_module_and_estimate_gives_its_numb
     why = [line for line in run.stdout.splitlines() if line.startswith("why: ")]
     assert len(why) == 1 and "pedestrian B missed at step 11; pedestrian A missed at step 12" in why[0]
     assert (tmp_path / "r.rrd").stat().st_size > 0
-    estimate = pemviz(commands[1], tmp_path)
+    estimate = pemviz(
+        f"{commands[1].split('#', 1)[0]} --json e.json", tmp_path
+    )  # the page's command, its result kept in full
     assert estimate.returncode == 0, estimate.stderr[-2000:]
-    logged = re.search(r"log mu_hat = (\S+) nats", estimate.stdout)
+    logged = json.loads((tmp_path / "e.json").read_text())["estimate"]["log_p"]
     ran = guide[0]["done"].final.estimate.log_mu_hat  # the page's run in this process: the same seed, the same run
-    assert logged and float(logged.group(1)) == pytest.approx(ran, rel=1e-9, abs=1e-9)
+    assert logged == pytest.approx(ran, rel=1e-9, abs=1e-9)
+    assert f"log mu_hat = {ran:.4f} nats" in estimate.stdout
     assert json.loads((tmp_path / "r.rollouts.json").read_text())["h_column"] == "dist_m"
     assert not list(tmp_path.glob("recordings/estimate-*"))  # --no-record
 

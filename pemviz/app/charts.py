@@ -17,6 +17,7 @@ import numpy as np
 import viser
 import viser.uplot as up
 
+from pemviz.app.captions import add_chart, set_chart, show_chart
 from pemviz.app.html import GREY as GREY_BOX
 from pemviz.app.html import box
 from pemviz.methods import plain_method
@@ -65,20 +66,22 @@ def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
     none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 13.0))
     return {
-        PROB: gui.add_uplot(
+        PROB: add_chart(
+            gui,
             data=(x, none),
             series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(BLACK))),
-            title="q(detect) over the visited states per stage vs the PEM",
+            title="mean q(detect) vs the PEM",
             scales={"x": x_scale, "y": up.Scale(auto=False, range=(0.0, 1.04))},
             axes=axes("gap d (m), 0.5 m bins", "mean q(detect)"),
             legend=LEGEND,
             height=230,
             visible=False,
         ),
-        LOG_ODDS: gui.add_uplot(
+        LOG_ODDS: add_chart(
+            gui,
             data=(x, none),
             series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(BLACK))),
-            title="log q(miss) / q(detect) over the visited states",
+            title="median log q(miss)/q(detect) (nats)",
             scales={"x": x_scale, "y": up.Scale(auto=False, range=(-6.0, 2.0))},
             axes=axes("gap d (m), 0.5 m bins", "log-odds (nats)"),
             legend=LEGEND,
@@ -187,7 +190,7 @@ def fill_marginal_plots(
     if note is not None:
         note.content = marginal_note(record)
     for plot in plots.values():
-        plot.visible = bool(stages)
+        show_chart(plot, bool(stages))
     if not stages:
         return
     cfg = record.config
@@ -237,10 +240,14 @@ def fill_marginal_plots(
         colour = css(stage_rgb(last_stage, n_colour))
         lines = [enough(last, getattr(last, p_mid))] + [enough(view, getattr(view, mid)) for _, _, view in stages]
         if key == PROB:
-            title = f"{record.short_label}: mean q(detect){whose} over the visited states · {who}{few}{crowd}"
+            title = "mean q(detect) vs the PEM"
+            caption = f"{record.short_label}: mean q(detect){whose} over the visited states · {who}{few}{crowd}"
             rng = robust_range(np.zeros(0), at_least=(0.0, 1.04))  # probabilities: always 0..1 (tick 1 inside)
         else:
-            title = f"{record.short_label}: median log q(miss)/q(detect){whose} over the visited states " f"(nats){few}"
+            title = "median log q(miss)/q(detect) (nats)"
+            caption = (
+                f"{record.short_label}: the median log-odds of a miss{whose} over the visited states, in nats{few}"
+            )
             # the medians of the bins with enough states decide the range (ticks -6 and 2 inside it); a band may
             # leave it, a median beyond is drawn at the edge
             rng = robust_range(
@@ -250,7 +257,7 @@ def fill_marginal_plots(
                 at_least=(-6.4, 2.4),
                 limits=(-LOG_ODDS_SPAN, LOG_ODDS_SPAN),
             )
-            title += rng.note("median", ".1f", " nats")
+            caption += rng.note("median", ".1f", " nats")
         series: list[Any] = [
             up.Series(label=axis.series_label),
             up.Series(label=f"{last_name} 10 %", stroke=colour, width=1, dash=(3, 3)),
@@ -286,7 +293,7 @@ def fill_marginal_plots(
             data.append(mark)
         extra_series, extra_data = off_scale_series(x, rng, lines)
         plot = plots[key]
-        plot.title = title
+        set_chart(plot, title, caption)
         plot.series = tuple(series + extra_series)
         plot.data = tuple(np.asarray(d, dtype=np.float64) for d in data + extra_data)
         plot.bands = (up.Band(series=(2, 1), fill=css(stage_rgb(last_stage, n_colour), 0.15)),)
@@ -301,11 +308,11 @@ def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
 
     The y range is :func:`pemviz.app.plots.robust_range` (:data:`MU_HAT_RULE`) of the estimates and the interval
     bounds of the stages with at least one failure, widened to the exact answer: a stage without failures has the
-    upper bound log10 1 = 0 (the interval says nothing), drawn at the top edge, ringed, and counted in the title.
+    upper bound log10 1 = 0 (the interval says nothing), drawn at the top edge, ringed, and counted in the caption.
     """
     if not runs:
         return
-    _, shown, x, ys = stage_values("log10_mu_hat", runs)
+    _, _, shown, x, ys = stage_values("log10_mu_hat", runs)
     n = x.size
     series: list[Any] = [up.Series(label="stage"), *(run_series(r) for r in shown)]
     lines = list(ys)
@@ -348,8 +355,12 @@ def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
         series.append(up.Series(label=f"exact answer {exact10:.3f}", stroke=hex_colour(BLACK), width=1.5, dash=(8, 4)))
         data.append(np.full(n, exact10))
     extra_series, extra_data = off_scale_series(x, rng, lines)
-    plot.title = (
-        "log10 mu_hat per stage, 95 % interval (band)" + (", exact answer (black)" * known) + rng.note("point", ".1f")
+    set_chart(
+        plot,
+        "log10 mu_hat per stage",
+        "log10 of each stage's mu_hat; band: its 95 % interval (a bound alone where no interval is backed)"
+        + ("; black: the exact answer" * known)
+        + rng.note("point", ".1f"),
     )
     plot.series = tuple(series + extra_series)
     plot.data = tuple(data + extra_data)

@@ -28,13 +28,19 @@ import viser.uplot as up
 
 from pemviz.app.form import setting_name, setting_value
 from pemviz.settings import SETTINGS
+from pemviz.app.captions import add_chart
 from pemviz.app.html import TABLE_STYLE
 from pemviz.app.plots import axes, finite_or_dash, run_colour
 from pemviz.app.runs import PanelRun
 from pemviz.core.estimate import format_probability
 from pemviz.sinks.colours import BLACK, REFERENCE_LINE, hex_colour
 
-TITLE = "log10 mu_hat of each kept run with its 95 % interval; exact answer (black) or reference (grey, dashed)"
+TITLE = "log10 mu_hat of each kept run"
+CAPTION = (
+    "each kept run's log10 mu_hat with its 95 % interval; the exact answer (black) or the plain Monte Carlo reference "
+    "(grey, dashed) where its scene has one"
+)
+"""The chart's caption (:mod:`pemviz.app.captions`): what its marks mean."""
 EXACT = "exact"
 """The end of the label of a run's exact answer (a bar across its position where its problem knows it)."""
 REFERENCE = "reference (plain Monte Carlo)"
@@ -140,7 +146,9 @@ def run_point(record: PanelRun) -> RunPoint:
 
 def estimate_plot(gui: viser.GuiApi) -> viser.GuiUplotHandle:
     """The empty chart of the *Compare* tab (x: kept runs; y: log10 p)."""
-    return gui.add_uplot(
+    return add_chart(
+        gui,
+        caption=CAPTION,
         data=(np.array([0.5, 1.5]), np.full(2, np.nan)),
         series=(up.Series(label="run"), up.Series(label="no run yet", stroke=hex_colour(BLACK))),
         title="log10 mu_hat of each kept run (no run yet)",

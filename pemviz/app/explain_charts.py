@@ -4,7 +4,7 @@ A rollout of several objects whose drawing tells a story (e.g. the cut-in): car 
 against the tracker's estimate, and the ACC's acceleration with the car it follows (:func:`fill_object_plots`). Each
 chart's last series is the marker of the step shown. Colours from :mod:`pemviz.sinks.colours`; every range set from
 the data that exists, by :func:`pemviz.app.plots.robust_range` (:data:`CONTROLLER_RULE`, :data:`TRACK_RULE`): values
-far from the rest are drawn at the edge, ringed, and counted in the title. The charts of *Live* are
+far from the rest are drawn at the edge, ringed, and counted in the caption below the chart. The charts of *Live* are
 :mod:`pemviz.app.charts`'.
 """
 
@@ -17,6 +17,7 @@ import viser
 import viser.uplot as up
 
 from pemviz.app.drawing import LaneExplanation
+from pemviz.app.captions import add_chart, set_chart, show_chart
 from pemviz.app.plots import LEGEND, _points, _ring, axes, off_scale_series, robust_range
 from pemviz.sinks.colours import BLACK, BLUE, BRAKE_ZONE, CRASH, EGO_SPEED, GREY, MISSED, VIOLET, css, hex_colour
 
@@ -28,10 +29,12 @@ CONTROLLER_RULE: dict[str, Any] = {"min_gap": 10.0, "min_pad": 1.0, "at_least": 
 def controller_plot(gui: viser.GuiApi, order: float | None = None) -> viser.GuiUplotHandle:
     """The empty controller chart of *Explain*."""
     t = np.linspace(0, 5, 2)
-    return gui.add_uplot(
+    return add_chart(
+        gui,
         data=(t, np.full(2, np.nan)),
         series=(up.Series(label="t (s)"), up.Series(label="acceleration (m/s^2)")),
-        title="controller: brake command, brake applied, acceleration (choose a rollout)",
+        title="controller (choose a rollout)",
+        caption="the ego's acceleration (m/s^2), and the steps at which the emergency brake was commanded and applied",
         scales={"x": up.Scale(time=False, auto=False, range=(0.0, 5.0))},
         axes=axes("time (s)", "m/s^2"),
         legend=LEGEND,
@@ -76,7 +79,12 @@ def fill_controller_plot(plot: viser.GuiUplotHandle, ex: LaneExplanation, step: 
             + (" ..." if off.size > 3 else "")
         )
     )
-    plot.title = f"{title}: controller{note}"
+    set_chart(
+        plot,
+        "controller",
+        f"{title}: the ego's acceleration (m/s^2), the steps at which the emergency brake was commanded (the object "
+        f"detected within the window) and applied (one step later){note}",
+    )
     plot.series = (
         up.Series(label="t (s)"),
         up.Series(label="acceleration (m/s^2)", stroke=css(EGO_SPEED), width=2),
@@ -119,12 +127,13 @@ def object_plots(gui: viser.GuiApi, order: float | None = None) -> dict[str, vis
     made = {}
     for i, (key, title, y, height) in enumerate(
         (
-            (TRACK_GAP, "car 0's gap ahead: truth and the tracker", "gap (m)", 190),
-            (TRACK_LATERAL, "car 0's lateral offset: truth and the tracker", "m, right +", 180),
+            (TRACK_GAP, "car 0's gap ahead", "gap (m)", 190),
+            (TRACK_LATERAL, "car 0's lateral offset", "m, right +", 180),
             (ACC, "ACC: acceleration and the car it follows", "m/s^2", 180),
         )
     ):
-        made[key] = gui.add_uplot(
+        made[key] = add_chart(
+            gui,
             data=(t, none),
             series=(up.Series(label="t (s)"), up.Series(label=y)),
             title=title,
@@ -165,7 +174,7 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
     Sources: ``ox``'s positions, detections, measurements, tracks and gaps ahead, and its story (``severity``,
     ``acc``: the ACC's decisions, ``in_lane``: the steps object 0 overlapped the ego's lane),
     e.g. :class:`pemviz.scenarios.cut_in.story.CutInStory`. The y ranges are :func:`pemviz.app.plots.robust_range`'s
-    (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`): a value off them is drawn at the edge and the title counts it.
+    (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`): a value off them is drawn at the edge and the caption counts it.
     """
     st = ox.story
     t = np.asarray(ox.time_s, dtype=np.float64)
@@ -207,7 +216,12 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
         drawn = [rng.drawn(v) for v in values]
         extra_series, extra_data = off_scale_series(t, rng, values)
         plot = plots[key]
-        plot.title = f"{title}: car 0's {what}, truth and the tracker{rng.note('value', '.1f', ' m')}"
+        set_chart(
+            plot,
+            f"car 0's {what}",
+            f"{title}: the truth, the detector's measurements and the tracker's estimate"
+            f"{rng.note('value', '.1f', ' m')}",
+        )
         plot.series = (
             up.Series(label="t (s)"),
             up.Series(label="truth", stroke=hex_colour(BLACK), width=2),
@@ -232,7 +246,7 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
         )
         plot.scales = {"x": x_scale, "y": up.Scale(auto=False, range=rng.range)}
         plot.axes = axes("time (s)", unit_label)
-        plot.visible = True
+        show_chart(plot, True)
 
     gap = ox.gap_ahead[:, 0]
     nan = np.full(t.size, np.nan)
@@ -293,15 +307,15 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
         (up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots), _at(drawn, ia))
     )  # the last series
     plot = plots[ACC]
-    plot.title = f"{title}: ACC acceleration (IDM on the followed track){note}"
+    set_chart(plot, "ACC acceleration", f"{title}: the ACC's acceleration (IDM on the followed track){note}")
     plot.series = (up.Series(label="t (s)"), *(series for series, _ in pairs))
     plot.data = (ta, *(values for _, values in pairs))
     plot.scales = {"x": x_scale, "y": up.Scale(auto=False, range=(rng.lo, rng.hi + 3 * row))}
     plot.axes = axes("time (s)", "m/s^2")
-    plot.visible = True
+    show_chart(plot, True)
 
 
 def hide_object_plots(plots: dict[str, viser.GuiUplotHandle]) -> None:
     """Hide the charts of *Explain* for a rollout of several objects (another kind of rollout is shown, or none)."""
     for plot in plots.values():
-        plot.visible = False
+        show_chart(plot, False)

@@ -12,6 +12,7 @@ import html
 import viser
 
 from pemviz.app import explain_charts, plots
+from pemviz.app.captions import show_chart
 from pemviz.app import objects_view as OV
 from pemviz.app.drawing import LaneExplanation, LanePanel
 from pemviz.app.html import GREEN, GREY, RED, TABLE_STYLE, box, explanation_html
@@ -84,14 +85,14 @@ class ExplainTab:
         self.objects_ex, self.explanation = ox, None
         self.show_strips(False)
         if ox.story is not None:
-            explain_charts.fill_object_plots(self.object_plots, ox, 0, f"{record.short_label} {traj.key}")
+            explain_charts.fill_object_plots(self.object_plots, ox, 0, f"{record.short_label} {traj.name}")
         return ox
 
     def show_strips(self, visible: bool) -> None:
         """Show the lane scene's strip charts or hide them (several objects); the charts and details of several objects
         are hidden with a lane scene's rollout and until a rollout of several objects fills them."""
         for plot in self.strip.values():
-            plot.visible = visible
+            show_chart(plot, visible)
         explain_charts.hide_object_plots(self.object_plots)
         if visible:
             self.objects_html.content = ""
@@ -108,7 +109,7 @@ class ExplainTab:
         ex = self.explanation
         if ex is None:
             return
-        title = f"{record.short_label} {traj.key}"
+        title = f"{record.short_label} {traj.name}"
         assert record.view is not None  # its drawing drew the lane scene
         plots.fill_strip_plots(
             self.strip,
@@ -139,7 +140,7 @@ class ExplainTab:
             else ("a failure" if traj.crashed else "no failure")
         )
         head = (
-            f"<b>{html.escape(record.short_label)} {traj.key}</b>: {what} · robustness {traj.robustness:+.4g} "
+            f"<b>{html.escape(record.short_label)} {traj.name}</b>: {what} · robustness {traj.robustness:+.4g} "
             f"({record.config.metric}) · under the PEM (every object): {html.escape(traj.log_p_words())}"
         )
         why = f"<b>Which errors decided it</b> (each undone alone, replayed): {html.escape(objects_summary(ox))}"

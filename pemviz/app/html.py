@@ -8,6 +8,7 @@ from pathlib import Path
 
 
 from pemviz.app import plots
+from pemviz.app.captions import LOG_W_CAPTION
 from pemviz.app.drawing import LaneExplanation
 from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.core.estimate import error_text, format_probability
@@ -81,6 +82,14 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
     return box("<br>".join(lines), colour)
 
 
+def log_w_html(log_w: float) -> str:
+    """``importance log-weight log w -35.5 nats`` with :data:`pemviz.app.captions.LOG_W_CAPTION` as its tooltip."""
+    return (
+        f'<span title="{html.escape(LOG_W_CAPTION)}" style="border-bottom:1px dotted">importance log-weight log w '
+        f"{log_w:.1f} nats</span> (log p - log q)"
+    )
+
+
 def explanation_html(record: PanelRun, traj: Trajectory, ex: LaneExplanation, title: str, dt: float) -> str:
     """Explain's header: the rollout, its severity, what happened in words, the minimal miss set, the last step at
     which one detection still saves it, and the counterfactual's summary."""
@@ -90,7 +99,7 @@ def explanation_html(record: PanelRun, traj: Trajectory, ex: LaneExplanation, ti
     lines = [
         f"<b>{html.escape(title)}</b>: {what} · <b>{html.escape(ex.severity.short)}</b> · robustness "
         f"{traj.robustness:+.4g} ({record.config.metric}) · under the PEM: {html.escape(traj.log_p_words())} · "
-        f"log w {traj.log_weight:.1f} nats",
+        f"{log_w_html(traj.log_weight)}",
         f"<b>What happened</b>: {html.escape(ex.sentence)}",
     ]
     if ex.crashed and ex.replay_matches:

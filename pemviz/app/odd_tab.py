@@ -13,6 +13,7 @@ import numpy as np
 import viser
 import viser.uplot as up
 
+from pemviz.app.captions import add_chart, set_chart, show_chart
 from pemviz.app.html import AMBER, GREY, TABLE_STYLE, VERDICT_COLOURS, box
 from pemviz.app.plots import LEGEND, axes
 from pemviz.app.runs import PanelRun
@@ -117,7 +118,8 @@ class OddTab:
         gui = self.client.gui
         self.note = gui.add_html(box(NO_ODD, GREY))
         self.charts = [
-            gui.add_uplot(
+            add_chart(
+                gui,
                 data=(np.arange(2, dtype=np.float64), np.full(2, np.nan)),
                 series=(up.Series(label="parameter"), up.Series(label="p", stroke=hex_colour(C.BLACK))),
                 title="log10 p(failure | bin)",
@@ -140,13 +142,13 @@ class OddTab:
             self.note.visible = True
             self.table.content = ""
             for chart in self.charts:
-                chart.visible = False
+                show_chart(chart, False)
             return
         self.note.visible = False
         self.table.content = odd_table_html(m) + (pair_html(m.pair) if m.pair is not None else "")
         names = list(m.odd.names)
         for i, chart in enumerate(self.charts):
-            chart.visible = i < len(names)
+            show_chart(chart, i < len(names))
             if i < len(names):
                 self._chart(chart, names[i], [b for b in m.bins if b.name == names[i]])
 
@@ -157,7 +159,11 @@ class OddTab:
         y_lo, y_hi = (float(shown.min()) - 0.3, float(shown.max()) + 0.3) if shown.size else (-1.0, 0.0)
         pad = 0.5 * float(np.min(np.diff(x))) if x.size > 1 else 0.5
         dot: up.Series_Points = {"show": True, "size": 7}
-        chart.title = f"log10 p(failure | {name} bin), 95 % interval"
+        set_chart(
+            chart,
+            f"log10 p(failure | {name} bin)",
+            f"the failure probability of each bin of {name} (log10), with its 95 % interval (blue: low end, red: high)",
+        )
         chart.series = (
             up.Series(label=name),
             up.Series(label="p", stroke=hex_colour(C.BLACK), width=2, points=dot),

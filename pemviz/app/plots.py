@@ -4,7 +4,8 @@ Every figure names its axes, keeps its legend to the series' names (no live valu
 placeholders), leaves room for long tick labels (``-14.75``) and sets its ranges from the data that
 exists, never from what a run planned. Where a few values lie far from the rest (a stage estimated orders of
 magnitude off, an acceleration spike at contact), :func:`robust_range` fits the axis to the rest and the
-figure draws those few at the edge, ringed, and says so in its title. Colours come from :mod:`pemviz.sinks.colours`.
+figure draws those few at the edge, ringed, and says so in its caption (:mod:`pemviz.app.captions`: titles are a
+few words, the explanation is below the chart). Colours come from :mod:`pemviz.sinks.colours`.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 import viser
 import viser.uplot as up
 
+from pemviz.app.captions import LOG_W_CAPTION, add_chart, set_chart
 from pemviz.scenarios.panel_data import CurveAxis, Series
 from pemviz.app.drawing import LaneExplanation
 from pemviz.app.runs import PanelRun
@@ -253,7 +255,8 @@ def off_scale_series(x: np.ndarray, rng: AxisRange, ys: list[np.ndarray]) -> tup
 
 def curve_plot(gui: viser.GuiApi, title: str, height: int = 230, visible: bool = True) -> viser.GuiUplotHandle:
     """An empty q(detect | gap) plot: gap 0..13 m, probability 0..1 (the top tick 1 included)."""
-    return gui.add_uplot(
+    return add_chart(
+        gui,
         data=(np.linspace(0, 13, 2), np.full(2, np.nan)),
         series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(C.BLACK))),
         title=title,
@@ -270,7 +273,7 @@ DEFAULT_CURVE_AXIS = CurveAxis("gap (m)", "gap d (m)", "p(detect | d)")
 (:meth:`pemviz.app.drawing.PanelDrawing.curve_axis`): the distance to the object ahead (metres)."""
 
 
-def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) -> None:
+def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str, caption: str = "") -> None:
     """The PEM and the proposal after each stage (blue early, orange late) of ``record``, over the run's curve grid
     (metres, e.g. 0-13 m of gap in the braking scenario, 0-50 m of range in the cut-in), its axis the drawing's
     (:meth:`pemviz.app.drawing.PanelDrawing.curve_axis`, else :data:`DEFAULT_CURVE_AXIS`)."""
@@ -288,7 +291,7 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) ->
         name = "pretraining" if s.kind == "pretrain" else f"stage {s.stage}"  # short: uPlot's legend is narrow
         series.append(up.Series(label=name, stroke=css(stage_rgb(s.stage, n_colour)), width=1.5))
         data.append(np.asarray(s.proposal_curve, dtype=np.float64))
-    plot.title = title
+    set_chart(plot, title, caption)
     plot.series = tuple(series)
     plot.data = tuple(data)
     plot.scales = {
@@ -299,7 +302,8 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str) ->
 
 
 def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHandle:
-    return gui.add_uplot(
+    return add_chart(
+        gui,
         data=(np.arange(2, dtype=np.float64), np.full(2, np.nan)),
         series=(up.Series(label="stage"), up.Series(label="no run yet", stroke=hex_colour(C.GREY))),
         title=title,
@@ -313,16 +317,17 @@ def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHan
     )
 
 
-def stage_values(key: str, runs: list[PanelRun]) -> tuple[str, list[PanelRun], np.ndarray, list[np.ndarray]]:
-    """(title, the runs drawn, stages 0..last float64, each drawn run's value per stage float64 [stages], nan where
-    it has none) of a per-stage chart (:data:`STAGE_PLOTS`). ``gamma`` draws only the newest run's metric."""
-    title = dict((k, t) for k, t, _ in STAGE_PLOTS)[key]
+def stage_values(key: str, runs: list[PanelRun]) -> tuple[str, str, list[PanelRun], np.ndarray, list[np.ndarray]]:
+    """(title, caption, the runs drawn, stages 0..last float64, each drawn run's value per stage float64 [stages],
+    nan where it has none) of a per-stage chart (:data:`STAGE_PLOTS`). ``gamma`` draws only the newest run's metric."""
+    title, caption = dict((k, t) for k, t, _ in STAGE_PLOTS)[key], ""
     shown = runs
     if key == "gamma" and runs:
         metric = runs[-1].config.metric
         shown = [r for r in runs if r.config.metric == metric]
         left_out = len(runs) - len(shown)
-        title = f"gamma per stage, {metric} ({GAMMA_UNITS.get(metric, 'unitless')})" + (
+        title = f"gamma per stage, {metric} ({GAMMA_UNITS.get(metric, 'unitless')})"
+        caption = "gamma: the robustness level each stage's elite rollouts reached (the stage's threshold)" + (
             f"; {left_out} run{'s' * (left_out != 1)} of another metric not shown" if left_out else ""
         )
     values = [r.stage_series(key) for r in shown]
@@ -334,7 +339,7 @@ def stage_values(key: str, runs: list[PanelRun]) -> tuple[str, list[PanelRun], n
         for stage, value in v.items():
             y[stage] = value
         ys.append(y)
-    return title, shown, x, ys
+    return title, caption, shown, x, ys
 
 
 def run_series(r: PanelRun) -> up.Series:
@@ -347,16 +352,16 @@ def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) 
     """One series per run over the stages finished so far (x from 0 to the last finished stage).
 
     ``gamma`` has a unit that depends on the metric (metres for classic, none for AGM): only runs with the
-    newest run's metric are drawn, and the title says the unit and how many runs are left out. The y range is
+    newest run's metric are drawn, the title says the unit and the caption how many runs are left out. The y range is
     :func:`stage_range`'s: log10 mu_hat (log10 probability) fits the stages that agree, a stage orders of magnitude
-    off is drawn at the edge, ringed, and the title counts it.
+    off is drawn at the edge, ringed, and the caption counts it.
     """
     if not runs:
         return
-    title, shown, x, ys = stage_values(key, runs)
+    title, caption, shown, x, ys = stage_values(key, runs)
     rng = stage_range(key, ys)
     extra_series, extra_data = off_scale_series(x, rng, ys)
-    plot.title = title + rng.note()
+    set_chart(plot, title, (caption + rng.note()).removeprefix("; "))
     plot.series = (up.Series(label="stage"), *(run_series(r) for r in shown), *extra_series)
     plot.data = (x, *(rng.drawn(y) for y in ys), *extra_data)
     # uPlot's auto-range breaks on NaN (stages without a value): give both ranges explicitly
@@ -376,7 +381,8 @@ def strip_plots(gui: viser.GuiApi, title: str = "distance and speeds") -> dict[s
     none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 5.0))
     return {
-        "gap": gui.add_uplot(
+        "gap": add_chart(
+            gui,
             data=(t, none),
             series=(up.Series(label="t (s)"), up.Series(label="gap (m)")),
             title=f"{title} (choose a rollout)",
@@ -385,19 +391,24 @@ def strip_plots(gui: viser.GuiApi, title: str = "distance and speeds") -> dict[s
             legend=LEGEND,
             height=185,
         ),
-        "detect": gui.add_uplot(
+        "detect": add_chart(
+            gui,
             data=(t, none),
             series=(up.Series(label="t (s)"), up.Series(label="p(detect)")),
-            title="p(detect) under the PEM and q(detect) of the sampler",
+            title="p(detect) and q(detect)",
+            caption="p(detect): the PEM's probability of detecting the object at each step; q(detect): the "
+            "sampler's, which drew the rollout; dots: detected (top) and missed (bottom) steps",
             scales={"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))},
             axes=axes("time (s)", "probability"),
             legend=LEGEND,
             height=200,
         ),
-        "weight": gui.add_uplot(
+        "weight": add_chart(
+            gui,
             data=(t, none),
             series=(up.Series(label="t (s)"), up.Series(label="log w")),
-            title="cumulative importance log-weight",
+            title="importance log-weight log w (nats)",
+            caption=LOG_W_CAPTION,
             scales={"x": x_scale},
             axes=axes("time (s)", "nats"),
             legend=LEGEND,
@@ -433,7 +444,8 @@ def fill_strip_plots(
             the marker follows it; float64 [T] each.
         detected: bool [T] the detections taken.
         ex: the rollout explained (:meth:`pemviz.app.drawing.LanePanel.lane_explanation`).
-        what: the first chart's title after the rollout's (:attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`).
+        title: the rollout's name (the first chart's caption).
+        what: the first chart's title (:attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`).
     """
     t = ex.time_s
     now = np.full(t.size, np.nan)
@@ -457,7 +469,7 @@ def fill_strip_plots(
     values = [np.asarray(s.values, dtype=np.float64) for s in lines]
     main = values[0]
     gap_hi = float(np.nanmax(np.concatenate([*values, [12.0]])))
-    plots["gap"].title = f"{title}: {what}"
+    set_chart(plots["gap"], what, title)
     plots["gap"].series = (
         up.Series(label="t (s)"),
         *(up.Series(label=s.label, **SERIES_STYLE[s.role]) for s in lines),

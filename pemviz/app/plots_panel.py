@@ -10,6 +10,7 @@ from __future__ import annotations
 import viser
 
 from pemviz.app import charts, compare, plots
+from pemviz.app.captions import show_chart
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.odd_tab import OddTab
 from pemviz.app.runs import PanelRun
@@ -64,13 +65,17 @@ class PlotsPanel:
             if record is not None:
                 charts.fill_marginal_plots(self.marginal_plots, record, self.marginal_note)
             for i, plot in enumerate(self.compare_plots):
-                plot.visible = i < len(runs) and runs[i].curve_grid_m.size > 0  # a slot without a run is hidden
+                show_chart(plot, i < len(runs) and runs[i].curve_grid_m.size > 0)  # a slot without a run is hidden
                 if i < len(runs):
                     r = runs[i]
                     fin = r.final.estimate if r.final is not None else None
                     mu = f", mu_hat {format_probability(fin.log_mu_hat)}" if fin is not None else ""
-                    ref = ", reference-state q" if r.config.adaptive.proposal_inputs == "state" else ""
-                    plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}{ref}")
+                    ref = (
+                        "the proposal's reference-state q(detect) after each stage"
+                        if r.config.adaptive.proposal_inputs == "state"
+                        else ""
+                    )
+                    plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}", ref)
             self.odd.fill(record)
             for key, plot in self.stage_plots.items():
                 plots.fill_stage_plot(plot, key, runs)

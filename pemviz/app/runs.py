@@ -222,8 +222,14 @@ class Trajectory:
 
     @property
     def key(self) -> str:
-        """``s<stage>r<index>``: unique within a run."""
+        """``s<stage>r<index>``: unique within a run (an identifier, never shown: :attr:`name` is)."""
         return f"s{self.stage}r{self.index}"
+
+    @property
+    def name(self) -> str:
+        """``stage 3 rollout 6``: the rollout as the panel names it (stage 0 = pretraining, K+1 = the final batch;
+        the rollout's index within its stage's batch), as the *Rollouts* list does."""
+        return f"stage {self.stage} rollout {self.index}"
 
     @property
     def n_steps(self) -> int:

@@ -161,7 +161,7 @@ class SceneView:
         self._scene_kind(ox.detected.shape[1], scene if isinstance(scene, ObjectsScene) else DEFAULT_OBJECTS)
         self._frame_objects()
         self.scene_html.content = box(
-            f"Scene: {html.escape(record.short_label)} {traj.key}, every object seen from the ego (blue-grey): green "
+            f"Scene: {html.escape(record.short_label)} {traj.name}, every object seen from the ego (blue-grey): green "
             "detected, orange missed, grey unseen. Explain draws them from above with where each was measured.",
             GREY,
         )
@@ -476,7 +476,7 @@ class SceneView:
                 t = int(np.clip(step, 0, traj.n_steps - 1))
                 self.shown_step = t
                 self.explain.render_objects(record, traj, t)
-                label = f"{record.short_label} {traj.key} step {t}\n{OV.state_counts(ox, t)}"
+                label = f"{record.short_label} {traj.name} step {t}\n{OV.state_counts(ox, t)}"
                 self._render_objects_scene(ox, t, label)
             return
         with self.lock:
@@ -508,7 +508,7 @@ class SceneView:
                 self.trail.points = trail
                 self.trail.colors = trail_colours
                 self.trail.visible = True
-                self.scene_label.text = f"{record.short_label} {traj.key} t={t * dt:.2f}s\n{seen}"
+                self.scene_label.text = f"{record.short_label} {traj.name} t={t * dt:.2f}s\n{seen}"
                 self.explain.move_marker(t)
             if self.follow.value:
                 self._frame(ego_x, object_x, self._shown_span)
@@ -520,8 +520,8 @@ class SceneView:
             crash = f" · <b style='color:{RED}'>{html.escape(ex.severity.short)}</b>" if traj.crashed else ""
             before, after = drawing.step_caption(traj.batch, 0, ex, t)
             self.scene_html.content = box(
-                f"Scene: <b>{html.escape(record.short_label)} {traj.key}</b> (stage {traj.stage}, rollout "
-                f"{traj.index}{crash}) · step {t} (t = {t * dt:.2f} s) · {html.escape(before)} · detector: "
+                f"Scene: <b>{html.escape(record.short_label)} {traj.name}</b>{crash} · step {t} "
+                f"(t = {t * dt:.2f} s) · {html.escape(before)} · detector: "
                 f"{mark} · {html.escape(after)}",
                 RED if traj.crashed else BLUE,
             )

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 import sys
 from datetime import datetime
 from pathlib import Path
@@ -29,7 +30,7 @@ from pemviz.core.estimate import format_probability
 from pemviz.core.sampling import load_proposal
 from pemviz.core.weights import CONVENTIONS
 from pemviz.io.data import sha256_file
-from pemviz.io.files import check_output_folder, free_default_path, write_rrd
+from pemviz.io.files import check_output_folder, check_output_path, free_default_path, write_rrd
 from pemviz.io.rollout_estimate import detector_log_prob, estimate_rollouts, pem_log_prob, sampler_detector
 from pemviz.io.rollout_format import SAMPLERS, RolloutFormatError
 from pemviz.io.rollouts import read_rollouts
@@ -88,6 +89,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_setting(p, "pem_uncertainty")
     add_setting(p, "pem_shift")
+    p.add_argument(
+        "--json",
+        dest="json_path",
+        default=None,
+        metavar="PATH.json",
+        help="write the estimate as one JSON document (log mu_hat in full float64; the estimate's fields as in "
+        "pemviz run --json, and each stage's; format: pemviz.io.result.estimate_document)",
+    )
     rec = p.add_argument_group("recording (rerun)")
     rec.add_argument(
         "--save",
@@ -96,7 +105,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="write the recording here (default recordings/estimate-<name>-<time>.rrd)",
     )
     rec.add_argument("--no-record", action="store_true", help="write no recording")
-    rec.add_argument("--overwrite", action="store_true", help="replace an existing --save file (only one pemviz wrote)")
+    rec.add_argument(
+        "--overwrite", action="store_true", help="replace an existing --save or --json file (only one pemviz wrote)"
+    )
     p.set_defaults(func=main)
 
 
@@ -249,7 +260,7 @@ def summary_lines(
         )
     nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.4f}"
     lines.append(
-        f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat!r} nats), "
+        f"mu_hat = {format_probability(e.log_mu_hat, 4)} (log mu_hat = {e.log_mu_hat:.4f} nats), "
         f"NLL mean {nll} / -log-mean-exp {e.nll_lme:.4f} nats, ESS {e.ess:.4f}, min robustness "
         f"{float(np.min(result.robustness)):.4f}"
     )
@@ -408,6 +419,12 @@ def main(args: argparse.Namespace) -> int:
             check_output_folder(save_path.parent, (save_path.name,), "recording folder")
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+    json_path = None
+    if args.json_path is not None:
+        try:
+            json_path = check_output_path(args.json_path, ".json", "--json", overwrite=args.overwrite)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     data = read_rollouts(rollouts)
     log_p, log_q, p_src, q_src = log_probabilities(data, args)
     weights, why = weights_convention(data.meta, args.weights)
@@ -441,6 +458,18 @@ def main(args: argparse.Namespace) -> int:
     if args.pem_uncertainty or args.pem_shift is not None:
         lines += pem_spread_lines(data, args, result, log_q, weights, cap if own else None)
     print("\n".join(lines), flush=True)
+    if json_path is not None:
+        from pemviz.io.result import estimate_document, write_result_json
+
+        doc = estimate_document(
+            result,
+            rollouts=str(rollouts),
+            sources=(p_src, q_src),
+            known=known_answer(problem),
+            command=shlex.join(["pemviz", *sys.argv[1:]]),
+            console=lines,
+        )
+        print(f"result: {write_result_json(json_path, doc, overwrite=args.overwrite)}", file=sys.stderr)
     if save_path is not None:
         save_path.parent.mkdir(exist_ok=True)  # the default folder, as pemviz run makes it
         where = write_recording(save_path, data, result, lines, overwrite=args.overwrite)

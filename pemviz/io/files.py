@@ -131,7 +131,8 @@ def write_rrd(
 
 def written_by_pemviz(path: Path) -> bool:
     """Whether an existing file looks like one pemviz writes for its suffix (:data:`MAGIC`; a ``.json`` must be a
-    pemviz rollout sidecar). Other suffixes (Markdown, CSV, LaTeX reports) cannot be told and count as True."""
+    pemviz rollout sidecar or result document). Other suffixes (Markdown, CSV, LaTeX reports) cannot be told and count
+    as True."""
     try:
         with open(path, "rb") as f:
             head = f.read(4096)
@@ -139,8 +140,8 @@ def written_by_pemviz(path: Path) -> bool:
         return False
     if path.suffix in MAGIC:
         return head.startswith(MAGIC[path.suffix])
-    if path.suffix == ".json":  # a rollout sidecar or a run's result (pemviz run --json)
-        return b'"pemviz-rollouts"' in head or b'"pemviz-result"' in head
+    if path.suffix == ".json":  # a rollout sidecar, a run's result (pemviz run --json) or an estimate's
+        return any(b'"%s"' % tag in head for tag in (b"pemviz-rollouts", b"pemviz-result", b"pemviz-estimate"))
     return True
 
 

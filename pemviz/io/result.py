@@ -1,4 +1,5 @@
-"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``) and a JUnit XML test case for a
+"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``; ``pemviz estimate --json``'s
+holds the same ``estimate`` object, :func:`estimate_document`) and a JUnit XML test case for a
 requirement (``pemviz run --junit``).
 
 The JSON document (format tag ``pemviz-result``, :data:`RESULT_VERSION`) holds the estimate with its 95 % interval,
@@ -47,6 +48,28 @@ def _plain(value: Any) -> Any:
     return value if value is None or isinstance(value, (bool, int, str)) else str(value)
 
 
+def estimate_fields(e: Any, sampling: str) -> dict[str, Any]:
+    """The ``estimate`` object of a result document: of :class:`pemviz.core.estimate.Estimate` ``e``, p and log p
+    (full float64: the console rounds log p to 4 decimals), the 95 % interval or lower bound alone, ESS, k-hat, the
+    failures, the verdict and its reason, and ``sampling`` (``plain``, ``importance`` or ``splitting``)."""
+    lo, hi = e.log_ci if e.interval_backed else (e.log_lower_bound, None)  # a bound alone: no upper end
+    return {
+        **_probability(e.log_mu_hat),
+        "interval": "ci95" if e.interval_backed else "lower_bound95",
+        "ci95": [_probability(lo)["p"], None if hi is None else _probability(hi)["p"]],
+        "log_ci95": [_number(lo), _number(hi)],
+        "lower_bound95": _probability(e.log_lower_bound)["p"],
+        "log_lower_bound95": _number(e.log_lower_bound),
+        "ess": _number(e.ess),
+        "k_hat": _number(e.khat),
+        "n_failures": int(e.n_failures),
+        "n": int(e.n),
+        "verdict": e.verdict,
+        "reason": e.reason,
+        "sampling": sampling,
+    }
+
+
 def result_document(
     config: Any,
     final: Any,
@@ -78,8 +101,6 @@ def result_document(
     """
     import pemviz
 
-    e = final.estimate
-    lo, hi = e.log_ci if e.interval_backed else (e.log_lower_bound, None)  # a bound alone: no upper end
     doc: dict[str, Any] = {
         "format": RESULT_FORMAT,
         "version": RESULT_VERSION,
@@ -88,21 +109,7 @@ def result_document(
         "scenario": config.scenario,
         "method": config.method,
         "seed": config.seed,
-        "estimate": {
-            **_probability(e.log_mu_hat),
-            "interval": "ci95" if e.interval_backed else "lower_bound95",
-            "ci95": [_probability(lo)["p"], None if hi is None else _probability(hi)["p"]],
-            "log_ci95": [_number(lo), _number(hi)],
-            "lower_bound95": _probability(e.log_lower_bound)["p"],
-            "log_lower_bound95": _number(e.log_lower_bound),
-            "ess": _number(e.ess),
-            "k_hat": _number(e.khat),
-            "n_failures": int(e.n_failures),
-            "n": int(e.n),
-            "verdict": e.verdict,
-            "reason": e.reason,
-            "sampling": _sampling(config, e),
-        },
+        "estimate": estimate_fields(final.estimate, _sampling(config, final.estimate)),
         "n_simulations": int(final.n_simulations),
         "wall_s": _number(final.wall_s),
         "exact": None if exact_log_p is None else _probability(exact_log_p),
@@ -165,6 +172,66 @@ def result_document(
             "why": d.why,
         }
     return doc
+
+
+ESTIMATE_FORMAT = "pemviz-estimate"
+
+
+def estimate_document(
+    result: Any,
+    *,
+    rollouts: str,
+    sources: tuple[str, str],
+    known: tuple[float | None, Any] = (None, None),
+    command: str | None = None,
+    console: list[str] | None = None,
+) -> dict[str, Any]:
+    """The JSON document of ``pemviz estimate --json`` (format tag ``pemviz-estimate``, :data:`RESULT_VERSION`): the
+    estimate in the fields of a run's document (:func:`estimate_fields`, log p in full float64) with the mean NLL,
+    the -log-mean-exp NLL (nats), the log mean importance weight and the least robustness; each stage's estimate; the
+    weight convention, the failure event, the metric, where log p and log q came from; the exact answer or
+    reference ``known`` (log p in nats, :class:`pemviz.core.estimate.Reference`) of the run that wrote the file.
+
+    Args:
+        result: :class:`pemviz.io.rollout_estimate.RolloutEstimate` of the file.
+        rollouts: the rollout file's path; sources: (log p's source, log q's source) as printed.
+        console: the lines ``pemviz estimate`` printed.
+    """
+    import pemviz
+
+    def fields(e: Any) -> dict[str, Any]:
+        return estimate_fields(e, "plain" if e.plain_mc else "importance")
+
+    exact_log_p, reference = known
+    e = result.estimate
+    return {
+        "format": ESTIMATE_FORMAT,
+        "version": RESULT_VERSION,
+        "pemviz_version": pemviz.__version__,
+        "command": command,
+        "rollouts": rollouts,
+        "estimate": {
+            **fields(e),
+            "nll_mean": _number(e.nll_mean),
+            "nll_lme": _number(e.nll_lme),
+            "log_mean_weight": _number(result.check.log_mean),
+            "min_robustness": _number(float(result.robustness.min())) if len(result.robustness) else None,
+        },
+        "stages": [
+            {"stage": None if r.stage is None else int(r.stage), "kind": r.kind, "estimate": fields(r.estimate)}
+            for r in result.stages
+        ],
+        "pooled_stages": [int(k) for k in result.pooled],
+        "pooling": result.rule if result.pooled else None,
+        "weights": result.weights,
+        "failure": result.failure,
+        "metric": result.metric,
+        "log_p_source": sources[0],
+        "log_q_source": sources[1],
+        "exact": None if exact_log_p is None else _probability(exact_log_p),
+        "reference": None if reference is None else {**_probability(reference.log_p), "source": reference.source},
+        "console": None if console is None else list(console),
+    }
 
 
 def _sampling(config: Any, e: Any) -> str:

@@ -129,10 +129,11 @@ def test_pemviz_run_records_and_re_estimates_a_method_of_ones_own(tmp_path):
     assert result["method"] == "defensive-mc"
     assert result["estimate"]["p"] == pytest.approx(1e-3, rel=0.5)  # the toy (10, 5, 3, p = 0.9): exactly 1e-3
     assert (tmp_path / "r.rrd").stat().st_size > 0
-    again = _pemviz("estimate", "r.parquet", "--no-record", cwd=tmp_path)
+    again = _pemviz("estimate", "r.parquet", "--no-record", "--json", "e.json", cwd=tmp_path)
     assert again.returncode == 0, again.stderr
     log_mu = result["estimate"]["log_p"]
-    assert f"log mu_hat = {log_mu!r} nats" in again.stdout
+    assert json.loads((tmp_path / "e.json").read_text())["estimate"]["log_p"] == log_mu  # bit for bit
+    assert f"log mu_hat = {log_mu:.4f} nats" in again.stdout
 
 
 def test_pemviz_validate_runs_a_method_of_ones_own(tmp_path):
