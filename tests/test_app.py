@@ -267,8 +267,11 @@ def test_typed_values_run_exactly_as_typed_and_every_error_shows_on_its_field(ta
 
 def test_every_field_and_dropdown_has_a_hint_each_setting_the_one_its_flag_gives(tab):
     s = tab.session
+    from pemviz.scenarios.registry import scenario_hint
+
     for key, handle in {**s.fields, **s.choices}.items():
-        assert (handle.label, handle.hint) == (SETTINGS[key].label, SETTINGS[key].hint), key
+        hint = scenario_hint() if key == "scenario" else SETTINGS[key].hint  # every registered scenario, as --help
+        assert (handle.label, handle.hint) == (SETTINGS[key].label, hint), key
     # not the weight of a new fit in an update: that is another method
     assert s.fields["smoothing"].hint == (
         "smoothing alpha, a number in (0, 1]: the power on the importance weights " "in the CE loss"

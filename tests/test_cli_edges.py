@@ -71,7 +71,7 @@ def test_a_report_named_after_its_result_says_so_when_it_exists(tmp_path):
     assert again.returncode == 2 and "--out b.html" not in again.stderr  # no --out was given
     assert again.stderr.strip() == (
         "pemviz report: error: the report (named after its result; --out names another) "
-        "b.html: exists; give --overwrite to replace it"
+        "b.html: writes b.html and its Markdown twin b.md; b.html exists: give --overwrite to replace it"
     )
     assert (tmp_path / "b.html").read_text() == "mine"
 

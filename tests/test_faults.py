@@ -479,7 +479,7 @@ def test_cli_save_rollouts_never_replaces_a_file_pemviz_did_not_write(tmp_path, 
         ),
         (
             ["run", "--margin", "-1", "--no-record"],
-            "--margin: margin = -1.0 is invalid: the crash gap must be None or " "a number in [0, 10]",
+            "--margin: margin = -1.0 is invalid: the crash gap must be none or a number in [0, 10]",
         ),
         (
             ["run", "--scenario", "cut-in", "--margin", "1", "--no-record"],

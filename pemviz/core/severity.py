@@ -279,7 +279,7 @@ def severity_of_signal(signal: np.ndarray, contact: float, dt_s: float) -> tuple
 
 def contact_level(problem: object) -> float:
     """The distance at or below which a problem's objects touch (metres), as its severity scale states it
-    (:attr:`SeverityScale.contact`: 0 where the boxes meet, the braking scenario's 0.7 m where it stops the ego).
+    (:attr:`SeverityScale.contact`: 0 where the boxes meet, or e.g. 0.7 m where a scene's controller stops the ego).
 
     Raises:
         ValueError: a problem without a severity scale.

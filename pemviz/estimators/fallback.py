@@ -21,7 +21,7 @@ before its first rollout; p is not, and no importance weight bounds it from abov
 region that carries p is orders of magnitude low, e.g. the crossing's stages at 2.98e-4), nor do a few thousand plain
 rollouts without a failure (they leave p just below 3 / n possible, where the rest of the cap would see failures). So
 it is not drawn only where that follows from what the run knows for certain: the scene's exact answer, or the upper
-end of its plain Monte Carlo reference, expects less than one failure in the cap (braking at ``--margin 0``:
+end of its plain Monte Carlo reference, expects less than one failure in the cap (e.g. braking at ``--margin 0``:
 8.06e-33 against 10^6 rollouts); or a requirement it could decide only by a bound below its threshold, which needs
 more rollouts than the cap (``p < 1e-13``: 3 x 10^13), and which that answer says it cannot decide by failures
 either. Where no answer states p the fallback is drawn (the crossing with other parameters, a user's scene).
@@ -32,7 +32,8 @@ can follow the failures but whose first, small run was unlucky (a heavy weight t
 at a few thousand rollouts, not a million (the crowd with measurement noise: 20/20 ``reliable`` at N = 400 where 9/20
 were at N = 100); one that cannot follow them costs those few thousand more before plain Monte Carlo. There is no
 retry where the scene caps the verdict of every run of its stages below ``reliable``
-(:attr:`pemviz.core.problems.Problem.verdict_cap`: braking at ``--margin 0``): its interval could not be backed either.
+(:attr:`pemviz.core.problems.Problem.verdict_cap`, e.g. braking at ``--margin 0``): its interval could not be backed
+either.
 
 Choosing the answer by the first estimate's verdict, and the second estimate from rollouts independent of the first,
 keeps the second one's coverage (and so for the third): its rollouts are drawn whatever the first run found
