@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
 import numpy as np
@@ -56,10 +56,15 @@ class _Recipe(Generic[_Model]):
         """Train on raw inputs ``[M, F]`` and the recipe's targets (detection labels ``[M]`` in {0, 1}, or metric
         errors ``[M, 2]`` in metres for a noise PEM); ``seed`` / ``epochs`` override the recipe's (``epochs`` is the
         number of trees of a tree PEM, which draws no progress bar)."""
-        epochs, seed = self.epochs if epochs is None else epochs, self.seed if seed is None else seed
-        recipe = replace(self, epochs=epochs, seed=seed)  # type: ignore[type-var]  # every recipe is a dataclass
-        metadata = {"recipe": self.name, **dict(metadata or {})}
-        return recipe._fit(inputs, targets, norm=norm, progress=progress, metadata=metadata)
+        return self._fit(
+            inputs,
+            targets,
+            epochs=self.epochs if epochs is None else epochs,
+            seed=self.seed if seed is None else seed,
+            norm=norm,
+            progress=progress,
+            metadata={"recipe": self.name, **dict(metadata or {})},
+        )
 
     def _fit(
         self,
@@ -67,6 +72,8 @@ class _Recipe(Generic[_Model]):
         targets: np.ndarray,
         /,
         *,
+        epochs: int,
+        seed: int,
         norm: NormStats | None,
         progress: bool,
         metadata: dict[str, Any],
@@ -75,34 +82,38 @@ class _Recipe(Generic[_Model]):
 
 
 @dataclass(frozen=True)
-class NetworkRecipe(_Recipe[_Model]):
-    """A network PEM's settings that :func:`pemviz.pem.training.fit_network` reads: the ``hidden`` layers' widths, and
-    Adam's ``epochs``, ``batch_size``, ``lr``, ``weight_decay`` (its L2 term) and ``seed``."""
+class PemRecipe(_Recipe[PEM]):
+    """An ML-NN-style PEM: the architecture and optimiser settings passed to :func:`pemviz.pem.training.train_pem`."""
 
     name: str
     description: str
     hidden: tuple[int, ...] = (20, 20)
+    batch_norm: bool = True
+    dropout: float = 0.0
     epochs: int = 300
     batch_size: int = 1024
     lr: float = 1e-3
     weight_decay: float = 0.0
     seed: int = 0
 
-
-@dataclass(frozen=True)
-class PemRecipe(NetworkRecipe[PEM]):
-    """An ML-NN-style PEM: the architecture and optimiser settings of :func:`pemviz.pem.training.train_pem`."""
-
-    batch_norm: bool = True
-    dropout: float = 0.0
-
     def _fit(self, inputs: np.ndarray, labels: np.ndarray, /, **common: Any) -> PEM:
-        return train_pem(self, inputs, labels, **common)
+        return train_pem(
+            inputs,
+            labels,
+            name=self.name,
+            hidden=self.hidden,
+            batch_norm=self.batch_norm,
+            dropout=self.dropout,
+            batch_size=self.batch_size,
+            lr=self.lr,
+            weight_decay=self.weight_decay,
+            **common,
+        )
 
 
 @dataclass(frozen=True)
 class TreeRecipe(_Recipe[TreePEM]):
-    """A boosted-trees PEM: the settings passed to :func:`train_tree_pem` (``epochs``: the number of trees)."""
+    """A boosted-trees PEM: the settings passed to :func:`train_tree_pem` (``epochs`` = number of trees)."""
 
     name: str
     description: str
@@ -113,8 +124,18 @@ class TreeRecipe(_Recipe[TreePEM]):
     l2_regularization: float = 1.0
     seed: int = 0
 
-    def _fit(self, inputs: np.ndarray, labels: np.ndarray, /, *, progress: bool, **common: Any) -> TreePEM:
-        return train_tree_pem(self, inputs, labels, **common)
+    def _fit(self, inputs: np.ndarray, labels: np.ndarray, /, *, epochs: int, progress: bool, **common: Any) -> TreePEM:
+        return train_tree_pem(
+            inputs,
+            labels,
+            name=self.name,
+            learning_rate=self.learning_rate,
+            max_iter=epochs,
+            max_leaf_nodes=self.max_leaf_nodes,
+            min_samples_leaf=self.min_samples_leaf,
+            l2_regularization=self.l2_regularization,
+            **common,
+        )
 
 
 PEM_RECIPES: dict[str, PemRecipe | TreeRecipe] = {
@@ -133,17 +154,32 @@ PEM_RECIPES: dict[str, PemRecipe | TreeRecipe] = {
 
 
 @dataclass(frozen=True)
-class NoiseRecipe(NetworkRecipe[NoisePEM]):
-    """A heteroscedastic noise PEM: the family, architecture and optimiser settings of :func:`train_noise_pem`."""
+class NoiseRecipe(_Recipe[NoisePEM]):
+    """A heteroscedastic noise PEM: the family, architecture and optimiser settings passed to
+    :func:`train_noise_pem`."""
 
+    name: str
+    description: str
     family: str = "student-t"
     hidden: tuple[int, ...] = (32, 32)
     epochs: int = 100
     batch_size: int = 512
     lr: float = 3e-3
+    weight_decay: float = 0.0
+    seed: int = 0
 
     def _fit(self, inputs: np.ndarray, errors: np.ndarray, /, **common: Any) -> NoisePEM:
-        return train_noise_pem(self, inputs, errors, **common)
+        return train_noise_pem(
+            inputs,
+            errors,
+            name=self.name,
+            family=self.family,
+            hidden=self.hidden,
+            batch_size=self.batch_size,
+            lr=self.lr,
+            weight_decay=self.weight_decay,
+            **common,
+        )
 
 
 NOISE_RECIPES: dict[str, NoiseRecipe] = {
