@@ -53,7 +53,7 @@ def wait_until(predicate, timeout: float, what: str) -> None:
 def show_step(page, session, step: int) -> None:
     """Move the playback to ``step`` and wait until the browser's scene shows it (its ego label) and its fonts."""
     session.step_slider.value = step
-    label = f"{session.record.short_label} {session.shown.key} t={step * 0.05:.2f}s"
+    label = f"{session.record.short_label} {session.shown.name} t={step * 0.05:.2f}s"
     wait_until(
         lambda: page.evaluate(
             "() => window.__viserSceneTree.getState()['/ego/label']?.message?.props?.text ?? ''"
