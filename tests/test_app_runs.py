@@ -5,6 +5,7 @@ counterfactual, one stage numbering, export names and files."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import re
 import math
@@ -216,15 +217,17 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     assert cost.memory_bytes == run_memory(plan, 100, cfg.adaptive.quantile_level, stream_above=20_000) - BASE_BYTES
     assert run_cost(cfg.replace(n_stages=1000, n_per_stage=1000)).needs_confirm
     assert cost.text().startswith("240 simulations, ")  # the rollouts are all a cross-entropy run counts
-    # then, where the stages' weights back no interval, plain Monte Carlo: 500 times the stages' 240, at most a million
-    alone = run_cost(cfg.replace(retry_factor=0), slowdown=1.0)
+    # then, where the stages' weights back no interval, whatever the scene (the model on T = 100 steps, no problem):
+    model = functools.partial(run_cost, n_steps=100)
+    # plain Monte Carlo: 500 times the stages' 240, at most a million
+    alone = model(cfg.replace(retry_factor=0), slowdown=1.0)
     plain = stage_cost(dataclasses.replace(cfg, method="mc"), "final", 120_000).seconds
     assert (alone.then_simulations, alone.then_seconds) == (120_000, pytest.approx(plain, rel=1e-12))
     said = f"~{duration_text(alone.seconds)}, up to ~{duration_text(alone.seconds + plain)} with 120,000 plain rollouts"
     assert f"{said} if the stages' weights back no interval" in alone.text()
     # before it, their retry at 4 N = 200: 20 + 3 x 200 + 70 = 690 more, and 500 times 240 + 690 plain rollouts; the
     # retry's seconds are its stages' (a learned proposal's), the rest plain rollouts'
-    cost = run_cost(cfg, slowdown=1.0)
+    cost = model(cfg, slowdown=1.0)
     assert cost.then_simulations == 690 + 465_000
     again = cfg.replace(n_per_stage=200)
     retry = sum(stage_cost(again, s.kind, s.n_rollouts, stage=s.stage).seconds for s in run_plan(again).stages)
@@ -232,15 +235,15 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     assert cost.then_seconds == pytest.approx(retry + plain, rel=1e-12) and retry > 690 * plain / 465_000
     said = "with 465,690 rollouts if the stages' weights back no interval (their retry at N = 200, then plain"
     assert said in cost.text()
-    assert run_cost(cfg, slowdown=2.0).then_seconds == pytest.approx(2.0 * cost.then_seconds, rel=1e-12)
-    default = run_cost(ExperimentConfig.of())  # 2,100 simulations: 5,100 and the million cap, no confirmation asked
+    assert model(cfg, slowdown=2.0).then_seconds == pytest.approx(2.0 * cost.then_seconds, rel=1e-12)
+    default = model(ExperimentConfig.of())  # 2,100 simulations: 5,100 and the million cap, no confirmation asked
     assert default.then_simulations == 5_100 + 1_000_000 and not default.needs_confirm
-    assert run_cost(cfg.replace(plain_fallback=3)).then_simulations == 690 + 3 * 930
+    assert model(cfg.replace(plain_fallback=3)).then_simulations == 690 + 3 * 930
     odd = cfg.replace(scenario="toy", scenario_params=(("total", 10), ("safe", 3), ("braking", "~choice(5, 6, 7)")))
     for none in (cfg.replace(plain_fallback=0), odd):  # none over an operating design domain
-        assert run_cost(none).then_simulations == 0 and "up to" not in run_cost(none).text()
+        assert model(none).then_simulations == 0 and "up to" not in model(none).text()
     capped = cfg.replace(rel_error=0.1, max_sims=1_000)  # the run's own cap holds for the fallback too
-    assert run_cost(capped).then_simulations == 1_000 - capped.n_simulations
+    assert model(capped).then_simulations == 1_000 - capped.n_simulations
     # a tilt run and a splitting run count more than their rollouts: the line says so before the run
     assert (
         run_cost(cfg.replace(method="tilt", n_per_stage=1280))

@@ -12,6 +12,7 @@ that differ from the defaults. No viser here.
 from __future__ import annotations
 
 import dataclasses
+import types
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -199,7 +200,7 @@ def parse_form(
         return FormResult(None, {"": str(exc)})
 
 
-_HORIZONS: dict[tuple[Any, ...], tuple[int, float]] = {}
+_HORIZONS: dict[tuple[Any, ...], tuple[int, float, Any]] = {}
 
 
 def horizon(cfg: ExperimentConfig) -> tuple[int, float]:
@@ -208,30 +209,41 @@ def horizon(cfg: ExperimentConfig) -> tuple[int, float]:
     clock reads them: the problem built once per scene, parameters, PEM, crash gap and simulator
     (:func:`pemviz.scenarios.registry.problem_for`); (:data:`pemviz.engine.cost.N_STEPS`, 0) where it cannot be
     built (the run then says why)."""
+    return _horizon(cfg)[:2]
+
+
+def _horizon(cfg: ExperimentConfig) -> tuple[int, float, Any]:
+    """:func:`horizon` and what the problem states of its answer (its ``exact_log_p``, ``reference`` and
+    ``verdict_cap``, as the run's :class:`~pemviz.engine.events.RunStarted` carries them; None where it cannot be
+    built)."""
     from pemviz.scenarios.registry import problem_for
 
     key = (cfg.scenario, cfg.scenario_params, cfg.value("pem"), cfg.margin, cfg.sim)
     if key not in _HORIZONS:
         try:
             problem = problem_for(cfg)
-            _HORIZONS[key] = (int(problem.n_steps or N_STEPS), float(problem.look_ahead_s))
+            stated = types.SimpleNamespace(
+                exact_log_p=problem.exact_log_p, reference=problem.reference, verdict_cap=problem.verdict_cap
+            )
+            _HORIZONS[key] = (int(problem.n_steps or N_STEPS), float(problem.look_ahead_s), stated)
         except (OSError, ValueError, KeyError):  # a PEM that cannot be read, parameters refused: the run says which
-            _HORIZONS[key] = (N_STEPS, 0.0)
+            _HORIZONS[key] = (N_STEPS, 0.0, None)
     return _HORIZONS[key]
 
 
 def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float | None = None) -> RunCost:
     """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of the plan its estimator states,
-    :func:`pemviz.estimators.run_plan`, on its problem's :func:`horizon`, or ``n_steps`` steps and no look-ahead):
-    simulations, memory of the largest batch, expected seconds as planned and with what may follow, on this machine
-    as loaded now (times ``slowdown``; None: :func:`pemviz.engine.resources.load_slowdown`), as the console's first
-    progress line says them (:class:`pemviz.sinks.StageClock`)."""
+    :func:`pemviz.estimators.run_plan`, on its problem's :func:`horizon`, or ``n_steps`` steps, no look-ahead and no
+    problem): simulations, memory of the largest batch, expected seconds as planned and with what may follow on its
+    scene (whatever the scene with ``n_steps``), on this machine as loaded now (times ``slowdown``; None:
+    :func:`pemviz.engine.resources.load_slowdown`), as the console's first progress line says them
+    (:class:`pemviz.sinks.StageClock`)."""
     from pemviz.engine.experiment import stream_above  # the engine and the estimators import torch: only when asked
     from pemviz.engine.resources import load_slowdown
     from pemviz.estimators import run_plan
 
-    steps, look = horizon(cfg) if n_steps is None else (n_steps, 0.0)
-    idle = cost.run_cost(cfg, run_plan(cfg), steps, stream_above(cfg), look_ahead_s=look)
+    steps, look, stated = _horizon(cfg) if n_steps is None else (n_steps, 0.0, None)
+    idle = cost.run_cost(cfg, run_plan(cfg), steps, stream_above(cfg), look_ahead_s=look, problem=stated)
     factor = load_slowdown() if slowdown is None else float(slowdown)
     return dataclasses.replace(idle, seconds=idle.seconds * factor, then_seconds=idle.then_seconds * factor)
 

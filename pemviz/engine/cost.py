@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.plan import RunPlan
@@ -244,18 +245,28 @@ class FollowOn:
         return f"{self.simulations:,} {self.words}"
 
 
-def follow_on(cfg: ExperimentConfig, plan: RunPlan) -> FollowOn | None:
+def follow_on(cfg: ExperimentConfig, plan: RunPlan, problem: Any = None) -> FollowOn | None:
     """What a run of ``cfg`` and ``plan`` may draw after the plan's stages (:class:`FollowOn`), or None: nothing
-    (its method has no :attr:`~pemviz.methods.Method.then_most`, or it is 0)."""
+    (its method has no :attr:`~pemviz.methods.Method.then_most`, or it is 0). With ``problem`` (a
+    :class:`~pemviz.core.problems.Problem` or the run's :class:`~pemviz.engine.events.RunStarted`), what its method
+    would draw on that scene (:attr:`~pemviz.methods.Method.then_drawn`, where it has one): e.g. no plain rollouts
+    where they could decide nothing (braking at ``--margin 0``, :func:`pemviz.estimators.fallback.plain_cannot_decide`).
+    """
     from pemviz.methods import method_or_none, resolve
 
-    most, words = then_adds(cfg, int(cfg.n_simulations))
-    if most <= 0 or not plan.stages:
+    if not plan.stages:
         return None
     record = method_or_none(cfg.method)
-    retry = None if record is None or record.then_plan is None else resolve(record.then_plan)(cfg)
+    sims = int(cfg.n_simulations)
+    if problem is not None and record is not None and record.then_drawn is not None:
+        retry, most, words = resolve(record.then_drawn)(cfg, sims, problem)
+    else:
+        most, words = then_adds(cfg, sims)
+        retry = None if record is None or record.then_plan is None or most <= 0 else resolve(record.then_plan)(cfg)
+    if most <= 0:
+        return None
     again = 0 if retry is None else sum(s.n_rollouts for s in retry.stages)
-    return FollowOn(retry, plan.stages[-1].stage + 1, max(0, most - again), most, words)
+    return FollowOn(retry, plan.stages[-1].stage + 1, max(0, most - again), int(most), str(words))
 
 
 def follow_on_seconds(
@@ -368,11 +379,12 @@ def run_cost(
     stream_above: int = 20_000,
     c: CostConstants = COST,
     look_ahead_s: float = 0.0,
+    problem: Any = None,
 ) -> RunCost:
     """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, and the seconds of ``plan``
     (the sum of :func:`stage_cost`, each rollout's look-ahead ``look_ahead_s`` added, as
     :class:`pemviz.sinks.StageClock` adds it; an open-ended plan counts its first stage only) and of what may follow
-    it (:func:`follow_on`, :func:`follow_on_seconds`).
+    it (:func:`follow_on` on ``problem``, :func:`follow_on_seconds`; ``problem`` None: whatever the scene).
 
     A stage above ``stream_above`` rollouts (:data:`pemviz.engine.experiment.STREAM_ABOVE`) is simulated in chunks, so
     it does not count in full towards memory. The memory is the run's memory check's model
@@ -382,7 +394,7 @@ def run_cost(
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
     seconds += look_ahead_s * sum(s.n_rollouts for s in plan.stages)
     batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES
-    follow = follow_on(cfg, plan)
+    follow = follow_on(cfg, plan, problem)
     if follow is None:
         return RunCost(int(cfg.n_simulations), int(batch), float(seconds), run_adds(cfg.method))
     then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c)

@@ -51,6 +51,9 @@ class RunStarted:
     reference: Reference | None = None
     """Where no exact answer is known, the problem's plain Monte Carlo reference (:attr:`Problem.reference`), else
     None: sinks show it beside every estimate the same way."""
+    verdict_cap: tuple[str, str] | None = None
+    """The best verdict any run of the method's stages may have on this scene and why
+    (:attr:`pemviz.core.problems.Problem.verdict_cap`), or None: the time estimates leave out a retry it refuses."""
 
 
 @dataclass(frozen=True)

@@ -203,6 +203,7 @@ class Experiment:
                 estimator.plan(),
                 pb.exact_log_p,
                 pb.reference,
+                pb.verdict_cap,
             )
         )
         try:

@@ -39,24 +39,45 @@ def adaptive_then_most(config: Any, simulations: int) -> tuple[int, str]:
     retry's (:func:`pemviz.methods.adaptive.retry_n`) and plain Monte Carlo's
     (:func:`pemviz.methods.adaptive.plain_fallback_most`); 0 with ``plain_fallback`` = 0 or over an operating design
     domain; and the cost line's words for them."""
-    if config.over_odd:
-        return 0, ""
-    again = retry_n(config)
-    retry = 0 if again is None else int(config.replace(n_per_stage=again).n_simulations)
-    most = plain_fallback_most(config.adaptive.plain_fallback, simulations + retry, config.stop.max_sims)
-    if retry == 0:
-        return most, "plain rollouts if the stages' weights back no interval"
-    words = f"rollouts if the stages' weights back no interval (their retry at N = {again:,}, then plain Monte Carlo)"
-    return retry + most, words
+    _, most, words = _then(config, simulations, None)
+    return most, words
 
 
 def adaptive_then_plan(config: Any) -> RunPlan | None:
     """The stages :func:`adaptive_then` runs once more before plain Monte Carlo: the plan at the retry's N
     (:func:`pemviz.methods.adaptive.retry_n`), or None where the run has no retry (or no fallback at all)."""
+    return _then(config, 0, None)[0]
+
+
+def adaptive_then_drawn(config: Any, simulations: int, problem: Any) -> tuple[RunPlan | None, int, str]:
+    """What :func:`adaptive_then` may draw on ``problem`` after stages of ``simulations`` rollout-equivalents: as
+    :func:`adaptive_then_plan` and :func:`adaptive_then_most`, less the retry where the scene refuses it
+    (:func:`pemviz.estimators.fallback.retry_refused`) and the plain rollouts where they could decide nothing
+    (:func:`pemviz.estimators.fallback.plain_cannot_decide` on their cap and the scene's stated p): the rules
+    :class:`pemviz.estimators.fallback.PlainFallback` draws by."""
+    return _then(config, simulations, problem)
+
+
+def _then(config: Any, simulations: int, problem: Any) -> tuple[RunPlan | None, int, str]:
+    """(the retry's plan or None, the most simulations after the stages, their words); ``problem`` None: whatever
+    the scene."""
+    if config.over_odd or config.adaptive.plain_fallback <= 0:
+        return None, 0, ""
     again = retry_n(config)
-    if again is None or config.over_odd:
-        return None
-    return adaptive_plan(config.replace(n_per_stage=again))
+    if problem is not None:
+        from pemviz.estimators.fallback import plain_cannot_decide, retry_refused, stated_log_p
+
+        again = None if retry_refused(problem) is not None else again
+    plan = None if again is None else adaptive_plan(config.replace(n_per_stage=again))
+    retry = 0 if again is None else int(config.replace(n_per_stage=again).n_simulations)
+    most = plain_fallback_most(config.adaptive.plain_fallback, simulations + retry, config.stop.max_sims)
+    if problem is not None and plain_cannot_decide(most, stated_log_p(problem), config.stop.require) is not None:
+        most = 0
+    when = "if the stages' weights back no interval"
+    if retry == 0:
+        return None, most, f"plain rollouts {when}" if most else ""
+    then = ", then plain Monte Carlo" if most else ""
+    return plan, retry + most, f"rollouts {when} (their retry at N = {again:,}{then})"
 
 
 def adaptive_plan(config: Any) -> RunPlan:

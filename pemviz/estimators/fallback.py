@@ -95,10 +95,12 @@ def rollouts_to_bound(threshold: float) -> int:
     return max(1, math.ceil(math.log(CI_TAIL) / math.log1p(-threshold)))
 
 
-def stated_log_p(problem: Problem) -> tuple[float, str] | None:
+def stated_log_p(problem: Any) -> tuple[float, str] | None:
     """The largest p the scene states, as a natural log with its words: its exact answer
     (:attr:`~pemviz.core.problems.Problem.exact_log_p`), else the upper end of its plain Monte Carlo reference's
-    interval; None where it states neither (a user's scene, the crossing with other parameters)."""
+    interval; None where it states neither (a user's scene, the crossing with other parameters). ``problem``: a
+    :class:`~pemviz.core.problems.Problem`, or anything with its ``exact_log_p`` and ``reference`` (the run's
+    :class:`~pemviz.engine.events.RunStarted`)."""
     if problem.exact_log_p is not None:
         return float(problem.exact_log_p), "the exact answer"
     if problem.reference is not None:
@@ -145,6 +147,18 @@ def plain_cannot_decide(cap: int, stated: tuple[float, str] | None, require: str
         f"a bound below {req.threshold:g} needs {need:,} rollouts without a failure, past its cap of {cap:,}, and "
         f"{said} {side}: it could not decide {req}"
     )
+
+
+def retry_refused(problem: Any) -> str | None:
+    """Why the stages of a run on ``problem`` are never run once more, or None where they may be: the scene caps the
+    verdict of every run of its stages below ``reliable`` (:attr:`~pemviz.core.problems.Problem.verdict_cap`, e.g.
+    braking at ``--margin 0``), so the retry's interval could not be backed either. ``problem``: a
+    :class:`~pemviz.core.problems.Problem`, or anything with its ``verdict_cap`` (the run's
+    :class:`~pemviz.engine.events.RunStarted`)."""
+    capped = getattr(problem, "verdict_cap", None)
+    if capped is not None and capped[0] != "reliable":
+        return f"the scene caps every run of the stages at {capped[0]}"
+    return None
 
 
 def retry_seed(seed: int) -> int:
@@ -344,9 +358,8 @@ class PlainFallback(_Speaks):
         stop = self.config.stop
         if self.first.interval_backed or config is None:
             return None
-        capped = self.problem.verdict_cap
-        if capped is not None and capped[0] != "reliable":  # the retry's interval could not be backed either
-            self.not_retried = f"the scene caps every run of the stages at {capped[0]}"
+        self.not_retried = retry_refused(self.problem)
+        if self.not_retried is not None:  # the retry's interval could not be backed either
             return None
         if stop.max_time_s is not None and stop.max_time_s - (self.clock() - self.t0) <= 0:
             return None

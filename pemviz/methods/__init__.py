@@ -71,6 +71,12 @@ class Method:
         then_plan: optional, ``then_plan(config) -> RunPlan | None``: the stages :attr:`then` runs once more before
             any plain rollouts (numbered from 0; the engine numbers them after the planned ones), for the time
             estimates (:func:`pemviz.engine.cost.follow_on`); None: none. A :data:`Ref`.
+        then_drawn: optional, ``then_drawn(config, simulations, problem) -> (plan | None, n, words)``: what
+            :attr:`then` may draw on ``problem`` (a :class:`~pemviz.core.problems.Problem` or the run's
+            :class:`~pemviz.engine.events.RunStarted`), by the rules it draws by: the stages it runs once more (as
+            :attr:`then_plan`), the most simulations it may add (as :attr:`then_most`, 0 where it would draw nothing
+            there) and their words; the time estimates use it where the problem is known. None: :attr:`then_most`
+            and :attr:`then_plan` whatever the problem. A :data:`Ref`.
         validate: optional, ``validate(config, n_objects) -> (setting, what is allowed) | None``: the first of the
             method's own settings that conflicts with another in ``config`` (its scene perceiving ``n_objects``
             objects a step), checked when the config is made; None: none. A :data:`Ref`.
@@ -108,6 +114,7 @@ class Method:
     then: Ref = None
     then_most: Ref = None
     then_plan: Ref = None
+    then_drawn: Ref = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -272,6 +279,7 @@ for _record in (
         then="pemviz.estimators.builtin:adaptive_then",
         then_most="pemviz.estimators.builtin:adaptive_then_most",
         then_plan="pemviz.estimators.builtin:adaptive_then_plan",
+        then_drawn="pemviz.estimators.builtin:adaptive_then_drawn",
     ),
     Method(
         "mc",

@@ -100,12 +100,13 @@ class StageClock(Sink):
     predictions are the model's times the machine's load at the run's start (``slowdown()``, default
     :func:`pemviz.engine.resources.load_slowdown`: 1 on an idle machine, 1.5 with two busy processes on two CPUs).
 
-    What may follow the planned stages (:func:`pemviz.engine.cost.follow_on`: the stages once more, then plain Monte
-    Carlo up to its cap) gives the upper end, :meth:`run_most_s`; once it runs, its stages are what is left. The plain
-    rollouts' simulating is measured on its own (their speed is not a proposal's); while they run, the rollouts still
-    to draw are those the precision target needs at the failure rate seen so far (about z^2 / (rel_error^2 p),
-    :func:`pemviz.engine.cost.mc_rollouts`, times the target's margin, :data:`pemviz.estimators.precision.MARGIN`;
-    with no failure yet, at p = 3 / n, its 95 % upper bound), at most the cap.
+    What may follow the planned stages on the run's scene (:func:`pemviz.engine.cost.follow_on`: the stages once
+    more, then plain Monte Carlo up to its cap, each where the method would draw it there) gives the upper end,
+    :meth:`run_most_s`; once it runs, its stages are what is left. The plain rollouts' simulating is measured on its
+    own (their speed is not a proposal's); while they run, the rollouts still to draw are those the precision target
+    needs at the failure rate seen so far (about z^2 / (rel_error^2 p), :func:`pemviz.engine.cost.mc_rollouts`, times
+    the target's margin, :data:`pemviz.estimators.precision.MARGIN`; with no failure yet, at p = 3 / n, its 95 %
+    upper bound), at most the cap.
 
     Attributes:
         t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were sampled
@@ -156,7 +157,7 @@ class StageClock(Sink):
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
         self._look_ahead_s = float(event.problem.look_ahead_s)
         # an open-ended plan's added batches follow its last stage: no time is said for it (run_left_s)
-        self.follow = None if event.plan.open_ended else follow_on(event.config, event.plan)
+        self.follow = None if event.plan.open_ended else follow_on(event.config, event.plan, event)
         self._rollouts = {}
         self._last = event.plan.stages[-1].stage if event.plan.stages else -1
         retry = self.follow.retry if self.follow is not None else None

@@ -98,3 +98,48 @@ def test_while_the_retry_and_plain_monte_carlo_run_what_is_left_is_theirs():
     need = 1.2 * math.ceil(1.96**2 * (1 - 1e-3) / (0.2**2 * 1e-3))
     assert clock.run_left_s() == pytest.approx(0.4 + (math.floor(need) - 50_000) * 1e-5, rel=1e-9)
     assert clock.run_most_s() == pytest.approx(0.4 + (220_000 - 50_000) * 1e-5, rel=1e-9)
+
+
+def test_the_range_s_top_leaves_out_what_the_fallback_would_skip_on_the_scene():
+    """The range's top prices the retry and plain Monte Carlo only where the fallback would draw them on that scene:
+    one predicate for both (:func:`pemviz.estimators.fallback.plain_cannot_decide`, ``retry_refused``)."""
+    from pemviz.engine.cost import follow_on
+    from pemviz.estimators.fallback import plain_cannot_decide, retry_refused, stated_log_p
+    from pemviz.scenarios.registry import problem_for
+
+    # braking at --margin 0: p = 8.06e-33 (exact), every run of the stages capped at doubtful: neither is drawn, so the
+    # range is the planned stages' estimate alone
+    zero = ExperimentConfig.of(margin=0.0)
+    problem = problem_for(zero)
+    assert retry_refused(problem) is not None and plain_cannot_decide(1_000_000, stated_log_p(problem)) is not None
+    cost = run_cost(zero, slowdown=1.0)
+    assert (cost.then_simulations, cost.then_seconds) == (0, 0.0) and "up to" not in cost.text()
+    assert cost.seconds + cost.then_seconds == cost.seconds > 0
+    # the default braking run (p = 1.98e-15): its retry at N = 400 may run, its million plain rollouts not
+    default = ExperimentConfig.of()
+    follow = follow_on(default, run_plan(default), problem_for(default))
+    assert follow is not None and follow.plain_most == 0 and follow.simulations == 5_100
+    assert follow.text() == "5,100 rollouts if the stages' weights back no interval (their retry at N = 400)"
+    assert follow_on(default, run_plan(default)).plain_most == 1_000_000  # whatever the scene: the cap
+    # the crossing (reference 2.98e-4, some 300 failures in the cap): both
+    crossing = ExperimentConfig.of(scenario="crossing")
+    follow = follow_on(crossing, run_plan(crossing), problem_for(crossing))
+    assert follow is not None and (follow.plain_most, follow.simulations) == (1_000_000, 1_005_100)
+    # a requirement plain Monte Carlo could decide by no bound within its cap, at p below it: nothing after the retry
+    required = follow_on(default.replace(require="p < 1e-9"), run_plan(default), problem_for(default))
+    assert required is None  # a requirement has no retry either (retry_n)
+
+
+@pytest.mark.parametrize("p, drawn", [(1e-3, True), (1.01e-6, True), (0.99e-6, False), (1e-30, False)])
+def test_the_plain_rollouts_are_priced_exactly_where_the_fallback_draws_them(p, drawn):
+    """At the boundary of one expected failure in the million cap, as the console's clock reads the run's start."""
+    stated = {"exact_log_p": math.log(p), "reference": None}
+    cfg = ExperimentConfig.of(retry_factor=0)  # 2,100 simulations: 500 x 2,100, at most a million plain rollouts
+    clock = StageClock(lambda: 0.0, COST, lambda: 1.0)
+    clock(dataclasses.replace(run_started(), config=cfg, plan=run_plan(cfg), **stated))
+    assert (clock.follow is not None) == drawn
+    assert (clock.run_most_s() > clock.run_left_s()) == drawn
+    capped = ("doubtful", "the scene's proposal misses part of the failures")
+    clock(dataclasses.replace(run_started(), config=ExperimentConfig.of(), plan=run_plan(cfg), verdict_cap=capped))
+    assert clock.follow is not None and clock.follow.retry is None  # a capped scene: no retry, plain rollouts still
+    assert clock.follow.simulations == 1_000_000
