@@ -17,14 +17,8 @@ from pemviz.commands.run import config_from_args
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference
 from pemviz.engine.events import FinalEstimate
-from pemviz.sinks.console import (
-    MC_AFFORDABLE,
-    duration_text,
-    final_lines,
-    mc_rollouts,
-    next_step,
-    plain_rollout_seconds,
-)
+from pemviz.engine.cost import duration_text, mc_rollouts
+from pemviz.sinks.console import MC_AFFORDABLE, final_lines, next_step, plain_rollout_seconds
 
 CUT_IN_REFERENCE = Reference(866, 10_000_000, "plain Monte Carlo, shipped PEMs")
 

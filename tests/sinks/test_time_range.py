@@ -143,3 +143,22 @@ def test_the_plain_rollouts_are_priced_exactly_where_the_fallback_draws_them(p, 
     clock(dataclasses.replace(run_started(), config=ExperimentConfig.of(), plan=run_plan(cfg), verdict_cap=capped))
     assert clock.follow is not None and clock.follow.retry is None  # a capped scene: no retry, plain rollouts still
     assert clock.follow.simulations == 1_000_000
+
+
+def test_the_duration_and_plain_rollout_helpers_have_one_import_path():
+    """``duration_text`` and ``mc_rollouts`` live in :mod:`pemviz.engine.cost` and are imported from there only."""
+    import re
+    from pathlib import Path
+
+    import pemviz.sinks.console as console
+
+    assert not {"duration_text", "mc_rollouts"} & set(console.__all__)
+    root = Path(__file__).resolve().parents[2]
+    pattern = re.compile(r"from pemviz\.sinks\.console import \(?[^)]*?\b(duration_text|mc_rollouts)\b", re.S)
+    found = [
+        str(path.relative_to(root))
+        for folder in ("pemviz", "tests", "benchmarks")
+        for path in (root / folder).rglob("*.py")
+        if pattern.search(path.read_text(encoding="utf-8"))
+    ]
+    assert found == []
