@@ -4,6 +4,7 @@ and panel).
     python benchmarks/calibrate_cost.py              # predicted vs measured seconds of each run, and the ratio
     python benchmarks/calibrate_cost.py --fit        # also the constants fitted to these runs, ready to paste
     python benchmarks/calibrate_cost.py --repeat 3   # the median of 3 runs of each configuration
+    python benchmarks/calibrate_cost.py --tilt --repeat 3   # the tilt's constants from the cut-in's rollouts
 
 What it does: runs a handful of configurations (the default, ``--preset quick``, N = 1000, plain Monte Carlo with
 N = 10,000, ``--preset paper``, the agm run of the panel's screenshots, a small highway-env run) as the panel runs
@@ -113,15 +114,16 @@ def config_of(preset: str, settings: dict) -> ExperimentConfig:
     return ExperimentConfig.of(**{**PRESETS[preset], **settings})
 
 
-def measure(cfg: ExperimentConfig) -> tuple[float, float, Recorder]:
-    """:data:`CLOCK` (wall) and CPU seconds of one run as the panel runs it (the problem loaded before the clocks
-    start), and its stage records (:data:`CLOCK` seconds)."""
+def measure(cfg: ExperimentConfig, panel: bool = True) -> tuple[float, float, Recorder]:
+    """:data:`CLOCK` (wall) and CPU seconds of one run as the panel runs it (``panel`` False: with no listener but the
+    records, as ``pemviz run --no-record`` apart from its console lines; the problem loaded before the clocks start),
+    and its stage records (:data:`CLOCK` seconds)."""
     global RECORDER
     problem = problem_for(cfg)
     RECORDER = Recorder()
     with torch_threads(1):
         t0, c0 = CLOCK(), time.process_time()
-        engine.Experiment(cfg, [PanelRun(0, cfg), RECORDER], problem=problem).run()
+        engine.Experiment(cfg, [PanelRun(0, cfg), RECORDER] if panel else [RECORDER], problem=problem).run()
         seconds, cpu = CLOCK() - t0, time.process_time() - c0
     recorder, RECORDER = RECORDER, None
     return seconds, cpu, recorder
@@ -259,12 +261,66 @@ def literal(c: cost.CostConstants, measured: str) -> str:
     return "COST = CostConstants(\n" + "\n".join(parts) + f'\n    measured="{measured}",\n)'
 
 
+def calibrate_tilt(repeat: int) -> None:
+    """The tilt's two constants (``tilt_rollouts``, ``tilt_solve_s``) from per-rollout costs measured in one process,
+    in CPU seconds (the machine's load cancels: every part is the same kind of work): plain cut-in rollouts (an
+    ``mc`` run of 20,000), then a default cut-in tilt run with its solve and its draws timed inside
+    (:meth:`pemviz.scenarios.cut_in.tilt.CutInTilt.solve`, ``draw``; the rest is its weights and estimate). A tilted
+    rollout costs (draw + rest) / n over a plain one's CPU seconds; the solve, its CPU seconds in the model's seconds
+    of plain cut-in rollouts (:func:`pemviz.engine.cost.stage_cost`)."""
+    import functools
+
+    from pemviz.scenarios.cut_in import tilt as cut_in_tilt
+
+    parts: dict[str, float] = {}
+
+    def timed(name, f):
+        @functools.wraps(f)
+        def wrapper(*a, **k):
+            c0 = time.process_time()
+            try:
+                return f(*a, **k)
+            finally:
+                parts[name] = parts.get(name, 0.0) + time.process_time() - c0
+
+        return wrapper
+
+    cut_in_tilt.CutInTilt.solve = timed("solve", cut_in_tilt.CutInTilt.solve)
+    cut_in_tilt.CutInTilt.draw = timed("draw", cut_in_tilt.CutInTilt.draw)
+    plain_cfg = ExperimentConfig.of(scenario="cut-in", method="mc", n_per_stage=20_000)
+    tilt_cfg = ExperimentConfig.of(scenario="cut-in", method="tilt", n_per_stage=7_280)
+    n_steps = problem_for(plain_cfg).n_steps or cost.N_STEPS
+    plain_model = cost.stage_cost(plain_cfg, "final", 20_000, n_steps, model="plain").simulate_s
+    rollouts, solves = [], []
+    for _ in range(repeat):
+        _, plain_cpu, _ = measure(plain_cfg, panel=False)
+        cut_in_tilt._SOLVED.clear()  # a fresh solve, as a new process's run
+        parts.clear()
+        _, tilt_cpu, _ = measure(tilt_cfg, panel=False)
+        solve, draw = parts.get("solve", 0.0), parts.get("draw", 0.0)
+        per_plain = plain_cpu / 20_000
+        rollouts.append((tilt_cpu - solve) / 7_280 / per_plain)
+        solves.append(solve * plain_model / plain_cpu)
+        print(
+            f"  CPU s: 20,000 plain cut-in rollouts {plain_cpu:.2f} (model {plain_model:.2f}); a default tilt run "
+            f"{tilt_cpu:.2f}: solve {solve:.2f}, draw {draw:.2f}, weights and the rest {tilt_cpu - solve - draw:.2f}; "
+            f"tilt_rollouts {rollouts[-1]:.2f}, tilt_solve_s {solves[-1]:.2f} (now {cost.COST.tilt_rollouts}, "
+            f"{cost.COST.tilt_solve_s})",
+            flush=True,
+        )
+    print(f"median: tilt_rollouts={statistics.median(rollouts):.2f}, tilt_solve_s={statistics.median(solves):.2f}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fit", action="store_true", help="fit the constants to these runs and print them")
     ap.add_argument("--repeat", type=int, default=1, help="runs per configuration; the median counts (default 1)")
     ap.add_argument("--only", default=None, help="comma-separated names of CONFIGS to run (default all)")
+    ap.add_argument("--tilt", action="store_true", help="measure the tilt's constants (the cut-in's) only")
     args = ap.parse_args()
+    if args.tilt:
+        calibrate_tilt(args.repeat)
+        return 0
     names = list(CONFIGS) if args.only is None else [n.strip() for n in args.only.split(",")]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     print(

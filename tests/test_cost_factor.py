@@ -49,3 +49,24 @@ def test_a_registered_scenario_s_factor_scales_its_cost_and_leaves_with_it():
 def test_a_cost_factor_that_is_no_positive_number_is_refused(factor):
     with pytest.raises(ValueError, match="cost_factor must be a finite number > 0"):
         Scenario("bad", "a scenario", None, "pemviz.scenarios.builtin:toy", cost_factor=factor)
+
+
+def test_the_tilt_prices_its_solve_once_and_each_rollout_as_plain_ones_of_its_scene():
+    """A tilt run (the cut-in's default): its solve once, on its first stage only, and each tilted rollout (its draw,
+    look-ahead and weights) as ``tilt_rollouts`` plain rollouts of the scene, at the scene's cost factor; the console's
+    clock and the panel's cost line price it alike (:func:`pemviz.engine.cost.run_cost`)."""
+    from pemviz.app.form import run_cost
+    from pemviz.estimators import run_plan
+
+    cfg = ExperimentConfig.of(scenario="cut-in", method="tilt", n_per_stage=7_280)
+    plain_step = COST.rollout_step_s["batched"] * 6.7  # a plain cut-in rollout's step
+    first = stage_cost(cfg, "final", 7_280, stage=1)
+    assert first.simulate_s == pytest.approx(
+        COST.tilt_solve_s + N_STEPS * (COST.pem_step_s + plain_step * 7_280 * COST.tilt_rollouts), rel=1e-12
+    )
+    later = stage_cost(cfg, "final", 7_280, stage=2)  # a precision target's added batch: no solve again
+    assert first.simulate_s - later.simulate_s == pytest.approx(COST.tilt_solve_s, rel=1e-12)
+    assert run_plan(cfg).stages[0].stage == 1  # the solve is priced on the stage the tilt draws first
+    cost = run_cost(cfg, slowdown=1.0)  # one figure: the tilt has nothing that may follow
+    assert cost.seconds == pytest.approx(first.seconds, rel=1e-12) and cost.then_simulations == 0
+    assert 2.0 <= COST.tilt_rollouts <= 4.0 and 0.0 < COST.tilt_solve_s  # as measured: calibrate_cost.py --tilt

@@ -59,9 +59,9 @@ class CostConstants:
             of pretraining's proposal; the pool of failures grows over the next stages).
         early_stop_share: the mean share of ``ce_epochs`` a CE fit with ``fit_tolerance`` runs before it stops.
         ams_rollouts: rollout-equivalents AMS simulates per particle (its continuations), about.
-        tilt_rollouts: the seconds of a rollout of ``method = "tilt"`` in plain rollouts' (its look-ahead and the
-            proposal's arithmetic), about.
-        tilt_solve_s: the seconds of the tilt's solve, once a run, about.
+        tilt_rollouts: the seconds of a rollout of ``method = "tilt"`` in plain rollouts' of its scene (its draw, its
+            look-aheads and its weights), about.
+        tilt_solve_s: the seconds of the tilt's solve, once a run (on its first stage), about.
         measured: when, where and how the constants were measured.
     """
 
@@ -100,10 +100,11 @@ COST = CostConstants(
     early_stop_share=0.88,
     ams_rollouts=5,
     tilt_rollouts=2.7,
-    tilt_solve_s=2.7,
+    tilt_solve_s=2.5,
     measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
-    "tilt_rollouts and tilt_solve_s from default tilt runs in fresh processes (7.4-7.6 s to the estimate, the solve "
-    "2.6 s; 2026-11-28, benchmarks/time_estimates.py)",
+    "tilt_rollouts and tilt_solve_s from per-rollout CPU seconds against the cut-in's plain rollouts in the same "
+    "process (2026-11-29, benchmarks/calibrate_cost.py --tilt: a tilted rollout 2.5-3.0 plain ones, its weights "
+    "0.3-0.4 of them; a fresh process's solve 2.4-2.6 model seconds)",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 

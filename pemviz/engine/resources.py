@@ -113,64 +113,112 @@ NICE_WEIGHT = 1.25
 n as 1024 / 1.25^n (``sched_prio_to_weight``, kernel/sched/core.c)."""
 
 
-def relative_weight() -> float:
-    """The mean scheduler weight of the other processes running or waiting for a CPU now, relative to this one's:
-    :data:`NICE_WEIGHT` to the power (this process's nice - theirs), each read from ``/proc/<pid>/stat`` (state R,
-    field 19 the nice value); 1 where none runs or ``/proc`` cannot be read. A run under ``nice -n 10`` among tasks at
-    nice 0 gets a tenth of their share: each of them counts as 9.3 tasks of its own niceness. With Linux's autogroups
-    (sessions shared alike) this overstates a pure CPU loop's slowdown (3.0x measured where it says 11-14x on 2 loaded
-    cores), but a pemviz run's, whose fits slow far more than their CPU share under load, it met within 11-39 % where
-    the plain count said 2.5 times too little (``benchmarks/time_estimates.py``, docs/validation.md)."""
-    own, me, weights = os.getpriority(os.PRIO_PROCESS, 0), os.getpid(), []
+def _autogroup(pid: str) -> tuple[str, int] | None:
+    """The autogroup of process ``pid`` (``self``: this one) and its nice value, from ``/proc/<pid>/autogroup``
+    (``/autogroup-408 nice 0``); None where it cannot be read (autogroups off, not Linux, the process gone)."""
+    try:
+        with open(f"/proc/{pid}/autogroup", encoding="ascii") as f:
+            name, _, nice = f.read().split()[:3]
+        return name, int(nice)
+    except (OSError, ValueError):
+        return None
+
+
+def competing_now() -> float | None:
+    """What the other tasks running or waiting for a CPU now claim of the CPUs, in this task's shares: one reading of
+    ``/proc/<pid>/stat`` (state R, field 19 the nice value) of every other process. With Linux's autogroups (each
+    session one group, ``/proc/sys/kernel/sched_autogroup_enabled``) the scheduler shares the CPUs alike among the
+    groups with a runnable task, each weighed by its group's nice, and within a group among its tasks by their nice:
+    another group counts :data:`NICE_WEIGHT` ^ (this group's nice - its), however many tasks it runs; a task of this
+    group :data:`NICE_WEIGHT` ^ (this task's nice - its). Without autogroups every task counts as in this group.
+    None where ``/proc`` cannot be read."""
+    own, me, mine = os.getpriority(os.PRIO_PROCESS, 0), os.getpid(), _autogroup("self")
     try:
         names = os.listdir("/proc")
     except OSError:
-        return 1.0
+        return None
+    groups: dict[str, float] = {}
+    inside = 0.0
     for name in names:
         if not name.isdigit() or int(name) == me:
             continue
         try:
             with open(f"/proc/{name}/stat", encoding="ascii", errors="replace") as f:
                 fields = f.read().rsplit(")", 1)[1].split()  # from field 3 (the state) on: the name may hold spaces
-            if fields[0] == "R":
-                weights.append(NICE_WEIGHT ** (own - int(fields[16])))
+            if fields[0] != "R":
+                continue
+            nice = int(fields[16])
         except (OSError, IndexError, ValueError):
             continue
-    return sum(weights) / len(weights) if weights else 1.0
+        group = _autogroup(name) if mine is not None else None
+        if group is None or mine is None or group[0] == mine[0]:
+            inside += NICE_WEIGHT ** (own - nice)
+        else:
+            groups[group[0]] = NICE_WEIGHT ** (mine[1] - group[1])
+    return sum(groups.values()) + inside
 
 
 def runnable_now(samples: int = LOAD_SAMPLES, gap_s: float = LOAD_GAP_S) -> float | None:
-    """The tasks other than this one that are running or waiting for a CPU now, weighed by their niceness against this
-    process's (:func:`relative_weight`): the mean over ``samples`` readings of the kernel's count of runnable tasks (the
-    fourth field of ``/proc/loadavg``, which counts the reader) less one, times that weight; None where it cannot be
-    read (not Linux). Unlike the load averages it does not lag: a machine busy a minute ago and idle now reads 0."""
-    counts = []
+    """The other tasks' claim on the CPUs now, in this task's shares (:func:`competing_now`): the mean of ``samples``
+    readings ``gap_s`` apart; None where they cannot be read (not Linux). Unlike the load averages it does not lag: a
+    machine busy a minute ago and idle now reads 0. On 2 loaded cores shared by a few sessions (load average 9-11, of
+    them 2.5 groups' worth against a run under ``nice -n 5``) it gave the CPU share a run then had (its wall / CPU
+    seconds: 2.5-2.7) within 10 %, where counting every task by its nice said 2.3-19 (``benchmarks/time_estimates.py``,
+    docs/validation.md)."""
+    readings = []
     for i in range(samples):
-        try:
-            with open("/proc/loadavg", encoding="ascii") as f:
-                running = f.read().split()[3].split("/")[0]
-            counts.append(max(0, int(running) - 1))
-        except (OSError, IndexError, ValueError):
+        now = competing_now()
+        if now is None:
             return None
+        readings.append(now)
         if i + 1 < samples:
             time.sleep(gap_s)
-    mean = sum(counts) / len(counts)
-    return mean * relative_weight() if mean > 0 else 0.0
+    return sum(readings) / len(readings)
+
+
+PROBE_PIECES = 400
+"""Pieces of arithmetic :func:`cpu_speed` times (each a few array operations on 1,000 x 100 floats in place, as a
+simulation step of a batch does)."""
+PROBE_REFERENCE_CPU_S = 0.0236
+"""The CPU seconds of :data:`PROBE_PIECES` pieces at the speed the cost model's constants hold
+(:data:`pemviz.engine.cost.COST`): 200 pieces' CPU seconds beside default braking and plain cut-in runs, divided by
+those runs' CPU seconds over the model's (32-48 ms at 3.0-3.9 times the model's on 2 loaded cores, 2026-11-29:
+10.4-13.5 ms, the median 11.8 ms per 200)."""
+
+
+def cpu_speed(pieces: int = PROBE_PIECES) -> float:
+    """How many times the CPU seconds the cost model gives a run's arithmetic takes now: the CPU seconds of ``pieces``
+    pieces of array arithmetic over :data:`PROBE_REFERENCE_CPU_S` (per :data:`PROBE_PIECES`). A CPU second does less
+    where many tasks share a CPU (each time slice starts with caches others filled): on 2 cores with 9-11 runnable
+    tasks a run's CPU seconds were 3.0-3.9 times the model's, with 5 of them 1.5-2.6 times; no count of tasks says by
+    how much, so it is measured. About 25 ms of CPU on an idle machine."""
+    import numpy as np
+
+    a = np.random.default_rng(0).random((1000, 100))
+    buf, row = np.empty_like(a), np.empty(1000)
+    start = time.process_time()
+    for _ in range(max(1, int(pieces))):
+        np.multiply(a, 1.0001, out=buf)
+        np.add(buf, 0.5, out=buf)
+        np.minimum(buf, 0.9, out=buf)
+        np.log1p(buf.sum(axis=1, out=row), out=row)
+    return (time.process_time() - start) / (PROBE_REFERENCE_CPU_S * max(1, int(pieces)) / PROBE_PIECES)
 
 
 def load_slowdown(threads: int = 1) -> float:
-    """How many times longer than on an idle machine a run of ``threads`` busy threads will take now, from the
-    machine's load: ``max(1, (L + threads) / C)``, L the other tasks running or waiting for a CPU now
+    """How many times longer than the cost model says a run of ``threads`` busy threads will take now, from the
+    machine's load: ``max(1, (L + threads) / C x S)``, L the other tasks' claim on the CPUs now
     (:func:`runnable_now`; the 1-minute load average where that cannot be read), shared by the scheduler among the C
-    usable CPUs (:func:`usable_cpus`). On an idle machine 1; with two busy processes on two CPUs a one-thread run gets
-    two thirds of a CPU, 1.5. 1 where neither can be read."""
+    usable CPUs (:func:`usable_cpus`), and S the CPU seconds its arithmetic takes now over the model's
+    (:func:`cpu_speed`). On an idle machine 1; with two other sessions busy on two CPUs a one-thread run gets two
+    thirds of a CPU, 1.5 (times S). 1 where neither L nor the load average can be read."""
     load = runnable_now()
     if load is None:
         try:
             load = os.getloadavg()[0]
         except (AttributeError, OSError):
             return 1.0
-    return max(1.0, (float(load) + threads) / usable_cpus())
+    return max(1.0, (float(load) + threads) / usable_cpus() * cpu_speed())
 
 
 def cap_jobs(jobs: int, say=None) -> int:
