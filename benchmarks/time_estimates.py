@@ -16,7 +16,7 @@ after it are not the run). A line's prediction of the whole run is its "elapsed 
 Both read the machine's load when they predict (:func:`pemviz.engine.resources.load_slowdown`); the load average is
 printed before and after. ``--busy K`` runs K busy loops (other processes) throughout.
 
-    nice -n 10 python benchmarks/time_estimates.py            # 1 run of each scene (~3-10 min on 2 loaded cores)
+    nice -n 5 python benchmarks/time_estimates.py             # 1 run of each scene (~3-10 min on 2 loaded cores)
     python benchmarks/time_estimates.py --repeat 3 --scenes braking cut-in
 """
 

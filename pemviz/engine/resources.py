@@ -103,7 +103,7 @@ def usable_cpus() -> int:
 
 
 LOAD_SAMPLES = 5
-"""How many times :func:`runnable_now` reads the count of runnable tasks (:data:`LOAD_GAP_S` apart)."""
+"""How many times :func:`runnable_now` reads the runnable tasks (:func:`competing_now`, :data:`LOAD_GAP_S` apart)."""
 LOAD_GAP_S = 0.005
 """Seconds between two of those readings."""
 
@@ -161,10 +161,9 @@ def competing_now() -> float | None:
 def runnable_now(samples: int = LOAD_SAMPLES, gap_s: float = LOAD_GAP_S) -> float | None:
     """The other tasks' claim on the CPUs now, in this task's shares (:func:`competing_now`): the mean of ``samples``
     readings ``gap_s`` apart; None where they cannot be read (not Linux). Unlike the load averages it does not lag: a
-    machine busy a minute ago and idle now reads 0. On 2 loaded cores shared by a few sessions (load average 9-11, of
-    them 2.5 groups' worth against a run under ``nice -n 5``) it gave the CPU share a run then had (its wall / CPU
-    seconds: 2.5-2.7) within 10 %, where counting every task by its nice said 2.3-19 (``benchmarks/time_estimates.py``,
-    docs/validation.md)."""
+    machine busy a minute ago and idle now reads 0. On 2 cores shared by a few sessions (load average 9-12) it gave the
+    share of a CPU a run under ``nice -n 5`` then had (its wall over its CPU seconds, mostly 2.4-2.9) within 20 % in 25
+    of 29 readings, where counting every runnable task by its nice said 2.4-19 (2026-11-29)."""
     readings = []
     for i in range(samples):
         now = competing_now()
