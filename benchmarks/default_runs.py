@@ -25,7 +25,7 @@ for the failures' importance weights, how far they are from a zero-variance prop
 
 Measured (2-core developer machine; cut-in reference 8.66e-5 [8.09e-5, 9.26e-5]):
 
-- see the CHANGELOG, docs/cut-in.md and research/cut-in-notes.md for every run.
+- see docs/validation.md, docs/cut-in.md and research/cut-in-notes.md for every run.
 
 Usage::
 

@@ -33,7 +33,7 @@ on the same seed, and prints whether its interval holds the reference and its wa
 predicted.
 
 Exit status 1 when a goal is missed. Measured figures: the Validation page ("Every printed claim against the
-answer") and the CHANGELOG.
+answer").
 """
 
 from __future__ import annotations

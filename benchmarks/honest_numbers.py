@@ -1,6 +1,6 @@
 """Honest numbers on every scene: no nan, no "reliable" when wrong, every default interval holds, a precision target.
 
-Prints, as markdown tables (the figures of the CHANGELOG and the user guide's Validation page):
+Prints, as markdown tables (the figures of the user guide's Validation page):
 
 1. ``matrix``: braking and cut-in, every method (adaptive under each preset, mc, naive50, mixed50, ams, tilt), N = 100
    (the default budget: every method's default N) and N = 1000, ``--seeds`` seeds: the verdicts, how many intervals hold

@@ -27,7 +27,7 @@ Usage::
     python benchmarks/scene_neutral.py --scenes crossing --seeds 5
     python benchmarks/scene_neutral.py --scenes crossing --variants lookahead-400 --seeds 10 --scored-steps 10
 
-Measured figures: the Validation page ("A scene-neutral sampler") and the CHANGELOG.
+Measured figures: the Validation page ("A scene-neutral sampler").
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The braking scenario over an ODD of its start speed: p_ODD by quadrature of exact answers against the default
-sampler's runs (one-off study; figures in the CHANGELOG and docs/odd.md).
+sampler's runs (one-off study; figures in docs/odd.md).
 
 p(v) = the exact failure probability of the braking scenario starting at ego speed v
 (:func:`pemviz.scenarios.braking.truth.braking_truth`, 1 % bracket); p_ODD = the mean of p over v ~ uniform(lo, hi), by

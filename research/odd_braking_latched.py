@@ -1,5 +1,5 @@
 """Braking with the latched brake over an ODD of its start gap and speed, where p(theta) spans 13 orders of magnitude,
-against a quadrature of exact answers (one-off study; figures in the CHANGELOG and docs/odd.md).
+against a quadrature of exact answers (one-off study; figures in docs/odd.md).
 
 With the brake latched, the first effective detection decides a rollout, so p(theta) is exact at every start
 (:func:`pemviz.scenarios.braking.truth_latched.latched_log_failure_probability`, about 5 ms), unlike the enumeration of

@@ -1,6 +1,6 @@
 """The cut-in over an ODD of its start gap, ``cut_in_gap_m~uniform(19.5, 21.5)``: the default command's runs (plain
 Monte Carlo of 100,000 rollouts over an ODD) against a plain Monte Carlo reference ten times larger (one-off study;
-figures in the CHANGELOG and docs/odd.md).
+figures in docs/odd.md).
 
 The reference (made once, about 5 min on 2 cores)::
 

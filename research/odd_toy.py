@@ -1,5 +1,5 @@
 """The toy over an ODD whose p(theta) spans 9 orders of magnitude, against its closed form (one-off study; figures in
-the CHANGELOG and docs/odd.md): ``--param total=16 --param safe=3 --param "braking~choice(5, 6, ..., 14)"``, p(b) =
+docs/odd.md): ``--param total=16 --param safe=3 --param "braking~choice(5, 6, ..., 14)"``, p(b) =
 1e-3 ... 1e-12, p_ODD their mean (:func:`pemviz.scenarios.toy.odd.toy_odd_log_failure_probability`). ``--seeds`` runs of
 the default command (the default sampler at ``--budget`` times its default rollouts a stage); for each, the estimate
 against p_ODD and each of the map's ten points (p(failure | braking = b), its interval or lower bound) against p(b).
