@@ -363,6 +363,14 @@ class StateProposal(Proposal):
         return h
 
 
+class FeatureProposal(StateProposal):
+    """A :class:`StateProposal` over the object rows with the step's state features appended
+    (:mod:`pemviz.core.features`): it reads them (``reads_state``), so :func:`pemviz.core.lockstep.run_batched` asks
+    it about each row with its object's and its ego's features after the row's own columns."""
+
+    reads_state = True
+
+
 def fit_proposal(
     proposal: Proposal,
     inputs: np.ndarray | torch.Tensor,
