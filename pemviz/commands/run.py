@@ -45,6 +45,7 @@ RUN_SETTINGS = (
     "n_final",
     "ams_killed",
     "ams_score",
+    "state_share",
     "quantile_level",
     "smoothing",
     "metric",
