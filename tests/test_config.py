@@ -262,7 +262,10 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     ):
         source = "".join(open(str(module.__file__)).read() for module in modules)
         read = set(
-            re.findall(r"\b(?:cfg|config|ce)(?:\.adaptive|\.ams|\.state|\.stop|\.execution|\.perception)?\.([a-z_]+)\b", source)
+            re.findall(
+                r"\b(?:cfg|config|ce)(?:\.adaptive|\.ams|\.state|\.stop|\.execution|\.perception)?\.([a-z_]+)\b",
+                source,
+            )
         )
         read &= fields
         read -= {"has_final_batch", "n_simulations"}

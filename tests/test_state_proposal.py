@@ -21,7 +21,7 @@ from pemviz.estimators import build_estimator
 from pemviz.estimators.state import FirstColumns
 from pemviz.scenarios.crossing.problem import crossing_problem
 from pemviz.scenarios.crossing.scene import FEATURE_NAMES, OBJECT_NAMES, BatchedCrossing, CrossingParams
-from pemviz.scenarios.problems import build_problem, problem_for
+from pemviz.scenarios.problems import problem_for
 from pemviz.stack import tracker
 from pemviz.testing import check_estimator
 from tests.conftest import run_cli

@@ -396,7 +396,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             own.parameter_proposal = self._parameters.proposal
 
     def _new_proposal(self, batch: RolloutBatch) -> Proposal:
-        """The first proposal, before its pretraining fit on ``batch``: of ``proposal_inputs`` (:func:`new_proposal`)."""
+        """The first proposal, before its pretraining fit on ``batch``: :func:`new_proposal` of ``proposal_inputs``."""
         return new_proposal(self.ce.proposal_inputs, self.problem.h_scale, batch)
 
     def _fit_options(self, adam_epochs: int) -> FitOptions:

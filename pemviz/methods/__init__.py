@@ -18,8 +18,8 @@ This module imports no estimator: a builder (and every hook) may be given as the
 record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
 Each built-in method's settings are a frozen dataclass in a module of this package, light to import, which the config
 holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
-``adaptive``) and :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``) and :mod:`pemviz.methods.state`
-(:class:`~pemviz.methods.state.StateSettings`, its ``state``).
+``adaptive``), :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``) and
+:mod:`pemviz.methods.state` (:class:`~pemviz.methods.state.StateSettings`, its ``state``).
 """
 
 from __future__ import annotations
