@@ -13,8 +13,11 @@ the perception), and the row says how many and how many seconds they took.
 
 Samplers: ``default`` (the scene's default command: on the crossing the cross-entropy stages, their retry, then plain
 Monte Carlo), ``state`` (``--method state``: the same stages and fallback with the state-dependent proposal),
-``state-only`` (``--method state --plain-fallback 0``: the proposal's own answer) and ``state-only-400`` (the same at
-N = 400 a stage, the default's retry's N).
+``state-only`` (``--method state --plain-fallback 0``: the proposal's own answer), ``state-only-400`` (the same at
+N = 400 a stage, the default's retry's N), and the proposal's variants, each alone (``--plain-fallback 0``):
+``glm-only`` (``--state-model glm``: the PEM's logit plus a linear function of the state), ``pem-errors-only``
+(``--state-pem-errors``: the errors drawn from the PEM, only the detections proposed), ``glm-pem-errors-only`` (both)
+and ``glm-pem-errors-only-400`` (both, N = 400).
 
 Usage::
 
@@ -43,6 +46,19 @@ SAMPLERS: dict[str, tuple[str, ...]] = {
     "state": STATE,
     "state-only": (*STATE, "--plain-fallback", "0"),
     "state-only-400": (*STATE, "--plain-fallback", "0", "--n", "400"),
+    "glm-only": (*STATE, "--state-model", "glm", "--plain-fallback", "0"),
+    "pem-errors-only": (*STATE, "--state-pem-errors", "--plain-fallback", "0"),
+    "glm-pem-errors-only": (*STATE, "--state-model", "glm", "--state-pem-errors", "--plain-fallback", "0"),
+    "glm-pem-errors-only-400": (
+        *STATE,
+        "--state-model",
+        "glm",
+        "--state-pem-errors",
+        "--plain-fallback",
+        "0",
+        "--n",
+        "400",
+    ),
 }
 """Each sampler's flags (module docstring)."""
 

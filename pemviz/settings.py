@@ -102,6 +102,8 @@ AMS_SCORES = ("robustness", "lookahead", "committor")
 each step (any scene with snapshot/restore: :mod:`pemviz.estimators.lookahead_score`), or -log of the scenario's
 learned committor (:mod:`pemviz.scenarios.cut_in.splitting`)."""
 PROPOSAL_INPUTS = ("gap", "state")
+STATE_MODELS = ("network", "glm")
+"""The state proposal's model of q(detect) (``state_model``, :class:`pemviz.methods.state.StateSettings`)."""
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
 
@@ -460,6 +462,13 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("state_share", "the PEM's share of the state proposal's mixture", "the share of the rollouts drawn by the "
             "PEM itself in every stage after the failure level and in the final batch: each weight at most 1 / share",
             kind="real", lo=0.0, hi=1.0, lo_open=True, hi_open=True, owner="state", flags=("--state-share",)),
+    Setting("state_model", "the state proposal's model", "q(detect) as a function of the row and its state features",
+            kind="choice", choices=STATE_MODELS, owner="state", flags=("--state-model",),
+            choice_help=(("network", "the paper's network over the row and its features"),
+                         ("glm", "the PEM's own logit plus a linear function of the row and its features"))),
+    Setting("state_pem_errors", "the PEM's errors in the state proposal", "the state proposal draws the measurement "
+            "errors from the PEM's own error model and proposes only the detections", kind="bool", owner="state",
+            flags=("--state-pem-errors",)),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
 

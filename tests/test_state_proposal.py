@@ -6,6 +6,7 @@ features were plumbed in (fingerprints of their batches taken on the commit befo
 
 from __future__ import annotations
 
+import copy
 import hashlib
 
 import numpy as np
@@ -103,11 +104,29 @@ def test_the_existing_methods_draw_and_weigh_the_same_rollouts_as_before_the_fea
     assert fingerprint(**settings) == before
 
 
-def test_the_state_method_is_unbiased_on_the_toy_from_a_poor_start():
+@pytest.mark.parametrize("model", ["network", "glm"])
+def test_the_state_method_is_unbiased_on_the_toy_from_a_poor_start(model):
     # check_estimator's runs: 2 stages of 2,000 rollouts from a proposal pretrained on the PEM (p = 0.9 of detecting:
     # far from the failures' all-miss law), 8 seeds against the exact 1e-3
-    report = check_estimator("state")
+    report = check_estimator("state", settings={"state_model": model})
     assert report.passed == ("interface", "unbiased", "verdicts", "rollout-file", "recording")
+
+
+def test_the_glm_is_the_pem_until_fitted_and_its_fit_moves_it_toward_the_elites_misses():
+    from pemviz.estimators.state_glm import StateGLM
+    from pemviz.scenarios.toy.simulator import ToyDetector, ToyParams
+
+    target = ToyDetector(ToyParams(10, 5, 3, 0.9))
+    glm = StateGLM((0, 1, 2, 3), (10.0, 1.0, 1.0, 1.0), (10.0, 0.0, 0.0, 0.0), FirstColumns(target, 2))
+    rows = np.array([[5.0, 0.0, 0.0, 0.0], [4.0, 0.0, 1.0, 0.0], [3.0, 0.0, 2.0, 0.0]])
+    np.testing.assert_array_equal(glm.detect_logit(rows), target.detect_logit(rows))  # w = 0, b = 0: the PEM
+    # elites that always miss: the fit lowers q(detect) below the PEM's 0.9 at their rows
+    counts = np.array([[5.0, 0.0], [5.0, 0.0], [5.0, 0.0]])
+    glm.fit_counts(rows, counts)
+    q = 1.0 / (1.0 + np.exp(-glm.detect_logit(rows)))
+    assert (q < 0.5).all()
+    frozen = copy.deepcopy(glm)
+    assert frozen.offset is glm.offset and frozen.coef is not glm.coef
 
 
 def test_a_scene_without_features_is_refused_in_one_line():

@@ -46,6 +46,8 @@ RUN_SETTINGS = (
     "ams_killed",
     "ams_score",
     "state_share",
+    "state_model",
+    "state_pem_errors",
     "quantile_level",
     "smoothing",
     "metric",

@@ -420,6 +420,10 @@ def fit_proposal(
     """
     if optimizer not in FITS:
         raise ValueError(f"fit_proposal: unknown optimizer {optimizer!r}; use one of {', '.join(FITS)}")
+    own_fit = getattr(proposal, "fit_counts", None)
+    if own_fit is not None and not callable(objective):  # a proposal with a fit of its own (a GLM's)
+        counts = objective if isinstance(objective, np.ndarray) else objective.detach().numpy()
+        return own_fit(np.asarray(inputs, dtype=np.float64), np.asarray(counts, dtype=np.float64), check)
     if len(inputs) == 0:  # no step to fit (every rollout failed before its first action): the proposal as it is
         return []
     if optimizer == "adam" and dtype == EXACT and not callable(objective):

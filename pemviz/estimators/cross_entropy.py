@@ -103,6 +103,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     """
 
     SETTINGS = settings_of("adaptive")
+    fits_errors = True
+    """Whether the proposal draws a noisy target's measurement errors from a model of its own (else the target's)."""
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         self.config, self.problem = config, problem
@@ -386,7 +388,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         cfg = self.config
         self.proposal = proposal = self._new_proposal(batch)
         proposal.initialise(np.random.default_rng(cfg.seed))  # the initial weights: the same on every CPU
-        if noise_names_of(self.problem.target):  # errors drawn by a model of its own, the target's until fitted
+        if noise_names_of(self.problem.target) and self.fits_errors:  # errors by a model of its own, p's until fitted
             proposal.add_noise_head(len(noise_names_of(self.problem.target)))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch) if self.ce.proposal_window else None)
         pretrain_proposal(proposal, features, detected, self._fit_options(self.ce.pretrain_epochs), mask)

@@ -107,6 +107,7 @@ class StateCrossEntropy(CrossEntropy):
         self._first = FirstColumns(problem.target)
         super().__init__(config, dataclasses.replace(problem, target=self._first), check)
         self.ce = dataclasses.replace(self.ce, target_share=float(config.state.state_share))
+        self.fits_errors = not config.state.state_pem_errors
         self.replayed = 0
         """Rollouts whose state features were replayed for the fits and weights (rollout-equivalents)."""
 
@@ -122,8 +123,14 @@ class StateCrossEntropy(CrossEntropy):
         return with_state(batch, features)
 
     def _new_proposal(self, batch: RolloutBatch) -> Proposal:
-        """A :class:`FeatureProposal` over every column of the rows with their state features: the first (the gap)
-        scaled by the problem's ``h_scale``, the others by their largest magnitude in the pretraining rollouts."""
+        """A :class:`FeatureProposal` (``state_model = "network"``) or a :class:`~pemviz.estimators.state_glm.StateGLM`
+        (``"glm"``) over every column of the rows with their state features: the first (the gap) scaled by the
+        problem's ``h_scale``, the others by their largest magnitude in the pretraining rollouts."""
         rows, _ = batch.events()
         scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
-        return FeatureProposal(tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
+        shape = (tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
+        if self.config.state.state_model == "glm":
+            from pemviz.estimators.state_glm import StateGLM
+
+            return StateGLM(*shape, self._first)
+        return FeatureProposal(*shape)

@@ -19,6 +19,14 @@ class StateSettings:
         and of the final batch (the adaptive sampler's ``target_share``, for this method): each of those rollouts'
         weights is at most 1 / ``state_share`` (a defensive mixture over whole rollouts: Hesterberg 1995; Owen &
         Zhou 2000), in (0, 1).
+    state_model: q(detect)'s model, one of :data:`pemviz.settings.STATE_MODELS`: ``network``, the paper's network
+        (:class:`pemviz.core.sampling.FeatureProposal`) over the row and its features; ``glm``, the PEM's own logit
+        plus a linear function of them (:class:`pemviz.estimators.state_glm.StateGLM`). The measurement error's
+        location and log-scale shifts are linear in them either way (:class:`pemviz.core.torch_fits.NoiseShift`).
+    state_pem_errors: the measurement errors are drawn from the PEM's own error model (only the detections are
+        proposed); False: the proposal fits their location and log-scale shifts too.
     """
 
     state_share: float = 0.1
+    state_model: str = "network"
+    state_pem_errors: bool = False
