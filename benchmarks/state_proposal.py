@@ -12,12 +12,12 @@ rollout whose state features were replayed for the fits and weights (an upper bo
 the perception), and the row says how many and how many seconds they took.
 
 Samplers: ``default`` (the scene's default command: on the crossing the cross-entropy stages, their retry, then plain
-Monte Carlo), ``state`` (``--method state``: the same stages and fallback with the state-dependent proposal),
-``state-only`` (``--method state --plain-fallback 0``: the proposal's own answer), ``state-only-400`` (the same at
-N = 400 a stage, the default's retry's N), and the proposal's variants, each alone (``--plain-fallback 0``):
-``glm-only`` (``--state-model glm``: the PEM's logit plus a linear function of the state), ``pem-errors-only``
-(``--state-pem-errors``: the errors drawn from the PEM, only the detections proposed), ``glm-pem-errors-only`` (both)
-and ``glm-pem-errors-only-400`` (both, N = 400).
+Monte Carlo), ``state`` (``--method state``: the same stages and fallback with the state-dependent proposal, by default
+the PEM's logit plus a linear function of the row and its features, the errors drawn from the PEM), ``state-only``
+(``--plain-fallback 0``: the proposal's own answer), ``state-only-400`` (the same at N = 400 a stage, the default's
+retry's N), and the proposal's variants, each alone: ``network-only`` (``--state-model network``: the paper's
+network over the row and its features), ``fit-errors-only`` (``--state-fit-errors``: the errors' location and
+log-scale shifts fitted too), ``network-fit-errors-only`` (both) and ``network-fit-errors-only-400`` (both, N = 400).
 
 Usage::
 
@@ -46,14 +46,14 @@ SAMPLERS: dict[str, tuple[str, ...]] = {
     "state": STATE,
     "state-only": (*STATE, "--plain-fallback", "0"),
     "state-only-400": (*STATE, "--plain-fallback", "0", "--n", "400"),
-    "glm-only": (*STATE, "--state-model", "glm", "--plain-fallback", "0"),
-    "pem-errors-only": (*STATE, "--state-pem-errors", "--plain-fallback", "0"),
-    "glm-pem-errors-only": (*STATE, "--state-model", "glm", "--state-pem-errors", "--plain-fallback", "0"),
-    "glm-pem-errors-only-400": (
+    "network-only": (*STATE, "--state-model", "network", "--plain-fallback", "0"),
+    "fit-errors-only": (*STATE, "--state-fit-errors", "--plain-fallback", "0"),
+    "network-fit-errors-only": (*STATE, "--state-model", "network", "--state-fit-errors", "--plain-fallback", "0"),
+    "network-fit-errors-only-400": (
         *STATE,
         "--state-model",
-        "glm",
-        "--state-pem-errors",
+        "network",
+        "--state-fit-errors",
         "--plain-fallback",
         "0",
         "--n",

@@ -466,9 +466,9 @@ SETTINGS: dict[str, Setting] = _settings(
             kind="choice", choices=STATE_MODELS, owner="state", flags=("--state-model",),
             choice_help=(("network", "the paper's network over the row and its features"),
                          ("glm", "the PEM's own logit plus a linear function of the row and its features"))),
-    Setting("state_pem_errors", "the PEM's errors in the state proposal", "the state proposal draws the measurement "
-            "errors from the PEM's own error model and proposes only the detections", kind="bool", owner="state",
-            flags=("--state-pem-errors",)),
+    Setting("state_fit_errors", "the state proposal's error shifts", "the state proposal fits the measurement errors' "
+            "location and log-scale shifts too (off: they are drawn from the PEM, only the detections proposed)",
+            kind="bool", owner="state", flags=("--state-fit-errors",)),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
 

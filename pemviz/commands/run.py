@@ -47,7 +47,7 @@ RUN_SETTINGS = (
     "ams_score",
     "state_share",
     "state_model",
-    "state_pem_errors",
+    "state_fit_errors",
     "quantile_level",
     "smoothing",
     "metric",

@@ -107,7 +107,7 @@ class StateCrossEntropy(CrossEntropy):
         self._first = FirstColumns(problem.target)
         super().__init__(config, dataclasses.replace(problem, target=self._first), check)
         self.ce = dataclasses.replace(self.ce, target_share=float(config.state.state_share))
-        self.fits_errors = not config.state.state_pem_errors
+        self.fits_errors = bool(config.state.state_fit_errors)
         self.replayed = 0
         """Rollouts whose state features were replayed for the fits and weights (rollout-equivalents)."""
 

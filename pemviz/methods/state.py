@@ -22,11 +22,13 @@ class StateSettings:
     state_model: q(detect)'s model, one of :data:`pemviz.settings.STATE_MODELS`: ``network``, the paper's network
         (:class:`pemviz.core.sampling.FeatureProposal`) over the row and its features; ``glm``, the PEM's own logit
         plus a linear function of them (:class:`pemviz.estimators.state_glm.StateGLM`). The measurement error's
-        location and log-scale shifts are linear in them either way (:class:`pemviz.core.torch_fits.NoiseShift`).
-    state_pem_errors: the measurement errors are drawn from the PEM's own error model (only the detections are
-        proposed); False: the proposal fits their location and log-scale shifts too.
+        location and log-scale shifts, where fitted (``state_fit_errors``), are linear in them either way.
+    state_fit_errors: the proposal fits the measurement errors' location and log-scale shifts too
+        (:class:`pemviz.core.torch_fits.NoiseShift`, linear in the row and its features); False: the errors are drawn
+        from the PEM's own error model and only the detections are proposed. The defaults (``glm``, the PEM's errors)
+        are the variant measured closest to the answer on the crossing (the Validation page).
     """
 
     state_share: float = 0.1
-    state_model: str = "network"
-    state_pem_errors: bool = False
+    state_model: str = "glm"
+    state_fit_errors: bool = False
