@@ -168,7 +168,8 @@ def test_every_method_passes_the_estimator_check_on_the_toy(method):
     rollouts a stage: plain Monte Carlo's relative standard deviation 0.32)."""
     from pemviz.settings import METHODS
 
-    assert set(METHODS) == {"mc", "naive50", "mixed50", "adaptive", "ams", "tilt", "state"}  # a new method joins this test
+    # a new method joins this test
+    assert set(METHODS) == {"mc", "naive50", "mixed50", "adaptive", "ams", "tilt", "state"}
     cfg = ExperimentConfig.of(
         method=method,
         seed=3,
