@@ -299,8 +299,8 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("ams", "adaptive multilevel splitting on the robustness, no importance weights"),
                          ("tilt", "the scenario's own proposal: each step's events tilted by an approximate "
                                   "probability of failure after them (the cut-in, braking)"),
-                         ("state", "cross-entropy importance sampling of every perception event by the state the "
-                                   "stack acts on (the tracker's features; scenes that report features)"))),
+                         ("state", "cross-entropy importance sampling of each detection by the state the stack "
+                                   "acts on (the tracker's features; scenes that report features)"))),
     Setting("n_stages", "the number of cross-entropy stages K",
             "stages of N rollouts, the proposal refitted after each", kind="int", symbol="K", lo=1, hi=MAX_STAGES,
             flags=("--k", "--stages")),

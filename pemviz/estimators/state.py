@@ -2,11 +2,13 @@
 proposal reads, besides each object's row, the state the stack acts on (:mod:`pemviz.core.features`: the tracker's
 state of the object, the ego's), for every perception event of a step.
 
-The paper's proposal is q_phi(detect | salient variables), a network fitted by cross-entropy; here the same network
-(:class:`pemviz.core.sampling.FeatureProposal`, a :class:`~pemviz.core.sampling.StateProposal` with more input columns)
-sees each object row with its object's and its ego's state features appended, and so does its measurement-error head
-(:class:`pemviz.core.torch_fits.NoiseShift`: the location and log-scale shifts of the error), fitted by the same CE
-stages, weights and mixtures as :class:`~pemviz.estimators.cross_entropy.CrossEntropy`. The rollouts are drawn with the
+The paper's proposal is q_phi(detect | salient variables), a network fitted by cross-entropy; here q(detect) sees each
+object row with its object's and its ego's state features appended: by default the PEM's own logit plus a linear
+function of them (:class:`pemviz.estimators.state_glm.StateGLM`), or the paper's network over them
+(:class:`pemviz.core.sampling.FeatureProposal`, a :class:`~pemviz.core.sampling.StateProposal` with more input
+columns); with ``state_fit_errors`` a measurement-error head reads them too (:class:`pemviz.core.torch_fits.NoiseShift`:
+the location and log-scale shifts of the error), else the errors are the PEM's. All are fitted by the same CE stages,
+weights and mixtures as :class:`~pemviz.estimators.cross_entropy.CrossEntropy`. The rollouts are drawn with the
 features (:func:`pemviz.core.lockstep.run_batched` asks a detector that ``reads_state`` about the rows with them);
 each batch the estimator observes gets them back by replay (:attr:`pemviz.core.problems.Problem.features`), appended to
 its object rows, and the target reads the rows' own columns only (:class:`FirstColumns`), so every log p is the PEM's

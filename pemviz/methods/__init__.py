@@ -307,8 +307,9 @@ for _record in (
     ),
     Method(
         "state",
-        "cross-entropy importance sampling of every perception event (detection, error location and scale) by the "
-        "object's row and the state the stack acts on (the tracker's features, the ego's); scenes that report them",
+        "cross-entropy importance sampling of each detection (and with --state-fit-errors each error's location and "
+        "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
+        "report them",
         "pemviz.estimators.builtin:state",
         plan="pemviz.estimators.builtin:adaptive_plan",
         validate="pemviz.estimators.builtin:state_conflict",
