@@ -22,6 +22,7 @@ from typing import Any, cast
 from pemviz.core.requirement import RequirementError, parse_requirement
 from pemviz.methods.ams import AmsSettings
 from pemviz.methods.adaptive import CrossEntropySettings
+from pemviz.methods.state import StateSettings
 from pemviz.settings import SETTINGS
 
 
@@ -130,6 +131,7 @@ GROUPS: dict[str, type] = {
     "stop": StopRule,
     "adaptive": CrossEntropySettings,
     "ams": AmsSettings,
+    "state": StateSettings,
 }
 """The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three, and each
 built-in method's settings (a dataclass in the method's home)."""
@@ -145,8 +147,8 @@ class ExperimentConfig:
 
     The defaults are the recommended sampler (preset :data:`pemviz.presets.DEFAULT_PRESET`);
     :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the paper's own settings. Its fields are the run's own
-    settings and five groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, and each built-in method's
-    settings (:attr:`adaptive`, :attr:`ams`). Every setting has one flat name, its row of
+    settings and six groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, and each built-in method's
+    settings (:attr:`adaptive`, :attr:`ams`, :attr:`state`). Every setting has one flat name, its row of
     :data:`pemviz.settings.SETTINGS` (``smoothing``, ``executor``, ``ams_killed``): :meth:`of` makes a config from flat
     names, :meth:`value` reads one, :meth:`flat` gives them all (the result document's, the rollout file's and
     ``runs.jsonl``'s ``config``), :meth:`replace` changes some.
@@ -186,6 +188,7 @@ class ExperimentConfig:
         adaptive: the cross-entropy sampler's settings
             (:class:`pemviz.methods.adaptive.CrossEntropySettings`).
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
+        state: the state-dependent proposal's (:class:`pemviz.methods.state.StateSettings`).
     """
 
     method: str = "adaptive"
@@ -203,6 +206,7 @@ class ExperimentConfig:
     stop: StopRule = StopRule()
     adaptive: CrossEntropySettings = CrossEntropySettings()
     ams: AmsSettings = AmsSettings()
+    state: StateSettings = StateSettings()
 
     @classmethod
     def of(cls, **settings: Any) -> "ExperimentConfig":

@@ -15,11 +15,12 @@ from dataclasses import dataclass
 from typing import Any
 
 
-METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt")
+METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt", "state")
 """adaptive: Algorithm 1; mc: rollouts with the PEM itself; naive50: a 50 % detector at every step;
 mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table II); ams: adaptive multilevel
 splitting of PEM rollouts on their robustness, no importance weights (Cerou & Guyader 2007; Brehier et al. 2016;
-:mod:`pemviz.estimators.ams`)."""
+:mod:`pemviz.estimators.ams`); tilt: the scenario's own proposal; state: the cross-entropy sampler whose proposal
+reads the state features the stack acts on (:mod:`pemviz.estimators.state`)."""
 
 DEFAULT_MAX_SIMS = 1_000_000
 """The most simulations of a run with a target relative error (``rel_error``) and no ``max_sims``."""
@@ -101,6 +102,8 @@ AMS_SCORES = ("robustness", "lookahead", "committor")
 each step (any scene with snapshot/restore: :mod:`pemviz.estimators.lookahead_score`), or -log of the scenario's
 learned committor (:mod:`pemviz.scenarios.cut_in.splitting`)."""
 PROPOSAL_INPUTS = ("gap", "state")
+STATE_MODELS = ("network", "glm")
+"""The state proposal's model of q(detect) (``state_model``, :class:`pemviz.methods.state.StateSettings`)."""
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
 
@@ -295,7 +298,9 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("mixed50", "50 % inside the window and the PEM outside"),
                          ("ams", "adaptive multilevel splitting on the robustness, no importance weights"),
                          ("tilt", "the scenario's own proposal: each step's events tilted by an approximate "
-                                  "probability of failure after them (the cut-in, braking)"))),
+                                  "probability of failure after them (the cut-in, braking)"),
+                         ("state", "cross-entropy importance sampling of each detection by the state the stack "
+                                   "acts on (the tracker's features; scenes that report features)"))),
     Setting("n_stages", "the number of cross-entropy stages K",
             "stages of N rollouts, the proposal refitted after each", kind="int", symbol="K", lo=1, hi=MAX_STAGES,
             flags=("--k", "--stages")),
@@ -454,12 +459,22 @@ SETTINGS: dict[str, Setting] = _settings(
             choice_help=(("robustness", "the formula's classic robustness"),
                          ("lookahead", "the robustness of the nominal continuation from each step (any scene)"),
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
+    Setting("state_share", "the PEM's share of the state proposal's mixture", "the share of the rollouts drawn by the "
+            "PEM itself in every stage after the failure level and in the final batch: each weight at most 1 / share",
+            kind="real", lo=0.0, hi=1.0, lo_open=True, hi_open=True, owner="state", flags=("--state-share",)),
+    Setting("state_model", "the state proposal's model", "q(detect) as a function of the row and its state features",
+            kind="choice", choices=STATE_MODELS, owner="state", flags=("--state-model",),
+            choice_help=(("network", "the paper's network over the row and its features"),
+                         ("glm", "the PEM's own logit plus a linear function of the row and its features"))),
+    Setting("state_fit_errors", "the state proposal's error shifts", "the state proposal fits the measurement errors' "
+            "location and log-scale shifts too (off: they are drawn from the PEM, only the detections proposed)",
+            kind="bool", owner="state", flags=("--state-fit-errors",)),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
 
 
 def settings_of(owner: str) -> tuple[str, ...]:
-    """The fields that ``owner`` reads (:attr:`Setting.owner`): :data:`RUN`, ``adaptive`` or ``ams``."""
+    """The fields that ``owner`` reads (:attr:`Setting.owner`): :data:`RUN`, ``adaptive``, ``ams`` or ``state``."""
     return tuple(name for name, s in SETTINGS.items() if s.owner == owner)
 
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from pemviz.config import ExperimentConfig
-from pemviz.core.detectors import ConstantDetector, ScoredTarget, StageSamplers, WindowDetector
+from pemviz.core.detectors import ConstantDetector, StageSamplers, WindowDetector
+from pemviz.core.scored_target import ScoredTarget
 from pemviz.estimators.cross_entropy import DefensiveDetector
 from pemviz.engine.experiment import Experiment
 from pemviz.scenarios.problems import build_problem

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.core.detectors import SamplerView, ScoredTarget
+from pemviz.core.detectors import SamplerView
+from pemviz.core.scored_target import ScoredTarget
 from pemviz.core.event_probs import batch_log_probs
 from pemviz.core.problem_view import object_label
 from pemviz.core.rollouts import RolloutBatch
@@ -197,7 +198,7 @@ def failure_log_p(batch: RolloutBatch, failed: np.ndarray) -> np.ndarray:
 
 def scoring_detector(target: object) -> object:
     """The PEM behind a run's target detector: ``target`` itself, or the detector that a
-    :class:`pemviz.core.detectors.ScoredTarget` (a mixture stage's target, which keeps every logit it is asked for)
+    :class:`pemviz.core.scored_target.ScoredTarget` (a mixture stage's target, which keeps every logit it is asked for)
     or a stage's target view (:class:`pemviz.core.detectors.SamplerView` 0, whose answers are the target's) wraps.
     Asking it about a rollout after the stage changes nothing the run keeps."""
     while True:

@@ -138,7 +138,7 @@ def draw_noise(detector: Any, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) 
 
 def error_model_of(detector: object) -> object:
     """The detector whose error model ``detector`` uses: itself, or behind :class:`ErrorModelOf` wrappers (e.g.
-    :class:`~pemviz.core.detectors.ArrayRQMC`, :class:`~pemviz.core.detectors.ScoredTarget`) the wrapped one, whose
+    :class:`~pemviz.core.detectors.ArrayRQMC`, :class:`~pemviz.core.scored_target.ScoredTarget`) the wrapped one, whose
     densities theirs are."""
     while isinstance(detector, ErrorModelOf):
         detector = detector._errors

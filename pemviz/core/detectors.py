@@ -74,6 +74,12 @@ class NoiseShifting(Protocol):
     def noise_shift_of(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
+def reads_state(detector: object) -> bool:
+    """Whether ``detector`` asks for the step's state features after each object row (``reads_state = True``:
+    :func:`draw_step`'s ``state``, :mod:`pemviz.core.features`)."""
+    return bool(getattr(detector, "reads_state", False))
+
+
 def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
     """``log p(a | s)`` of the taken actions: log_expit(+logit) if detected else log_expit(-logit).
 
@@ -339,6 +345,12 @@ class SamplerView:
         return self.samplers.logits(obs)[self.index]
 
     @property
+    def reads_state(self) -> bool:
+        """Whether the proposal reads the state features (:func:`reads_state`): then every view is asked about the
+        rows with them (the target view's target reads its own columns)."""
+        return reads_state(self.samplers.proposal)
+
+    @property
     def parameter_proposal(self) -> Any:
         """The samplers' proposal over an ODD's parameters (:attr:`StageSamplers.parameter_proposal`); None for the
         target view, which draws them from the ODD."""
@@ -401,6 +413,10 @@ class ArrayRQMC(ErrorModelOf):
         """``detector``'s logit p(detect | obs), float64 [N], for observations [N, F]."""
         return self.detector.detect_logit(obs)
 
+    @property
+    def reads_state(self) -> bool:
+        return reads_state(self.detector)
+
 
 def step_uniforms(
     u: np.ndarray, sampler: Detector, q_logit: np.ndarray, obs: np.ndarray, block: int = RQMC_BLOCK
@@ -457,6 +473,7 @@ def draw_step(
     block: int = RQMC_BLOCK,
     forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
     n_objects: int = 1,
+    state: np.ndarray | None = None,
 ) -> StepDraw:
     """Draw one step's perception events for R object rows from ``sampler``, scored under ``target``: the arithmetic
     every simulator's rollouts share (Innes & Ramamoorthy 2022, Algorithm 1: detect iff u <= q(detect | s), as the
@@ -481,6 +498,9 @@ def draw_step(
             uniforms differ by multiples of the lattice's generator), so rollouts of M > 1 objects draw i.i.d.
         forced: optional (detected bool [R], noise [R, D] or None, given bool [R]): the rows where ``given`` take
             these events instead of drawing them (a replayed prefix).
+        state: optional float64 [R, H], the step's state features of each row (:mod:`pemviz.core.features`): a
+            detector that reads them (:func:`reads_state`) is asked about the rows with these H columns appended,
+            any other about ``rows`` alone.
     Returns:
         :class:`StepDraw`.
     Raises:
@@ -488,6 +508,12 @@ def draw_step(
     """
     rows, u = np.asarray(rows, dtype=np.float64).view(), np.asarray(u, dtype=np.float64)
     rows.flags.writeable = False  # a new read-only view: the detectors asked about it in turn may keep their answers
+    rows_p = rows  # the target's rows, and the sampler's (with the state features where it reads them)
+    if state is not None and (reads_state(sampler) or reads_state(target)):
+        with_state = np.concatenate([rows, np.asarray(state, dtype=np.float64)], axis=1)
+        with_state.flags.writeable = False
+        rows_p = with_state if reads_state(target) else rows
+        rows = with_state if reads_state(sampler) else rows
     names = noise_names_of(target)
     if u.ndim != 2 or u.shape != (rows.shape[0], 1 + len(names)):
         raise ValueError(
@@ -495,7 +521,7 @@ def draw_step(
             f"target's errors {names}, got shape {u.shape}"
         )
     q_logit = by_blocks(sampler.detect_logit, rows, block)
-    p_logit = q_logit if target is sampler else by_blocks(target.detect_logit, rows, block)
+    p_logit = q_logit if target is sampler else by_blocks(target.detect_logit, rows_p, block)
     u_detect = np.ascontiguousarray(u[:, 0])
     if n_objects == 1:
         u_detect = step_uniforms(u_detect, sampler, q_logit, rows, block)
@@ -512,22 +538,23 @@ def draw_step(
     if not names:
         return StepDraw(detected, None, log_q, log_p)
     # a sampler without an error model draws p's; both have one where they name errors (``names``, not empty)
-    source = cast(NoisyDetector, sampler if noise_names_of(sampler) == names else target)
+    own = noise_names_of(sampler) == names
+    source, rows_s = cast(NoisyDetector, sampler if own else target), rows if own else rows_p
     noise = np.zeros((rows.shape[0], len(names)))
     if detected.any():  # only a detected object is measured: its error, drawn (or replayed), and its densities
         hit = detected
         if forced is not None and forced[1] is not None:  # a replayed error's density is at the replayed error
-            e = np.asarray(source.noise_from_uniforms(rows[hit], u[hit, 1:]), dtype=np.float64)
+            e = np.asarray(source.noise_from_uniforms(rows_s[hit], u[hit, 1:]), dtype=np.float64)
             e = np.where(forced[2][hit][:, None], forced[1][hit], e)
-            lq_noise = np.asarray(source.noise_log_prob(rows[hit], e), dtype=np.float64)
+            lq_noise = np.asarray(source.noise_log_prob(rows_s[hit], e), dtype=np.float64)
         else:  # the error model evaluated once for the draw and its density
-            e, lq_noise = draw_noise(source, rows, u[hit, 1:], hit)
+            e, lq_noise = draw_noise(source, rows_s, u[hit, 1:], hit)
         noise[hit] = e
         log_q[hit] += lq_noise
         if source is target or error_model_of(source) is error_model_of(target):  # one error model: one density
             log_p[hit] += lq_noise
         else:
-            log_p[hit] += np.asarray(cast(NoisyDetector, target).noise_log_prob(rows[hit], e), dtype=np.float64)
+            log_p[hit] += np.asarray(cast(NoisyDetector, target).noise_log_prob(rows_p[hit], e), dtype=np.float64)
     return StepDraw(detected, noise, log_q, log_p)
 
 
@@ -546,51 +573,3 @@ def errors_log_density(batch: Any, detector: Detector, target: Detector | None) 
     noise = batch.noise.reshape(rows.shape[0], -1)
     log_density = np.asarray(cast(NoisyDetector, source).noise_log_prob(rows, noise), dtype=np.float64)
     return np.where(batch.detected.reshape(-1), log_density, 0.0).reshape(batch.detected.shape).sum(axis=2)
-
-
-class ScoredTarget(ErrorModelOf):
-    """The target detector that also asks ``extras`` about every observation it is asked about and keeps their
-    logits and its own, so that a mixture's component densities come out of the simulation that drew the rollouts
-    instead of a second pass over them (each simulator asks its target once per step about all rollouts it steps
-    together).
-
-    :meth:`take` hands the kept logits over as [K, n, T] (and the target's [n, T]) for the next ``n`` rollouts of T
-    steps, or None when the asks do not fit that shape (a simulator that asks otherwise, or a remote executor whose
-    copy of this object did the asking): the caller then asks ``extras`` itself.
-    """
-
-    _error_model_of = "target"  # it scores as the target does
-
-    def __init__(self, target: Detector, extras: tuple[Detector, ...]) -> None:
-        self.target, self.extras = target, tuple(extras)
-        self._asked: list[tuple[np.ndarray, ...]] = []
-
-    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
-        """The target's logit p(detect | obs), float64 [N]; it and the extras' logits (K + 1 arrays [N]) are kept."""
-        extras = tuple(np.asarray(d.detect_logit(obs), dtype=np.float64) for d in self.extras)
-        p = np.asarray(self.target.detect_logit(obs), dtype=np.float64)
-        self._asked.append((p, *extras))
-        return p
-
-    def take(self, n: int, n_steps: int, n_objects: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
-        """(the extras' logits float64 [K, n, T, M], the target's [n, T, M]) of the next ``n`` rollouts of M objects, in
-        the order simulated: groups of T asks of equal rows (one group per chunk of rollouts stepped together, each
-        rollout's M object rows together), or None (all kept logits are dropped) when the asks kept do not start with
-        such groups covering ``n`` rollouts."""
-        asked, groups, used, rows = self._asked, [], 0, 0
-        while rows < n and used + n_steps <= len(asked):
-            r = asked[used][0].shape[0]
-            if r % n_objects or any(a[0].shape[0] != r for a in asked[used : used + n_steps]):
-                break
-            groups.append((used, rows, r // n_objects))
-            used, rows = used + n_steps, rows + r // n_objects
-        if rows != n:
-            self._asked = []
-            return None
-        out = np.empty((len(self.extras) + 1, n, n_steps, n_objects))
-        for first, row, m in groups:
-            for t in range(n_steps):
-                for k, logit in enumerate(asked[first + t]):
-                    out[k, row : row + m, t] = logit.reshape(m, n_objects)
-        del asked[:used]
-        return out[1:], out[0]

@@ -16,6 +16,7 @@ replayed twice and the same at any chunk size.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Protocol, Sequence, TypeGuard
 
@@ -173,3 +174,19 @@ def check_features(features: FeaturesFn, batch: RolloutBatch, chunk_size: int) -
                     f"{b[i].item()!r} {how} (features must be a function of each rollout's own events)"
                 )
     return None
+
+
+def with_state(batch: RolloutBatch, features: StateFeatures) -> RolloutBatch:
+    """``batch`` whose object rows [N, T, M, G] carry the rollouts' state features after their own columns: [N, T, M,
+    G + G_o + F], each object's features (``object_feature_names``) then its ego's (``feature_names``), the order
+    :func:`pemviz.core.lockstep.run_batched` hands them to a detector that reads them."""
+    rows = batch.object_rows
+    n, n_steps, m = batch.detected.shape
+    ego = np.broadcast_to(features.ego[:, :, None, :], (n, n_steps, m, features.ego.shape[-1]))
+    names = (
+        *batch.row_names,
+        *(f"object {x}" for x in features.object_feature_names),
+        *(f"ego {x}" for x in features.feature_names),
+    )
+    objects = np.concatenate([rows, features.objects, ego], axis=-1)
+    return dataclasses.replace(batch, objects=objects, object_names=names, replay=None)

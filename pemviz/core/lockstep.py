@@ -18,7 +18,8 @@ from typing import Callable, Iterable, Iterator, Sequence, cast
 
 import numpy as np
 
-from pemviz.core.detectors import Detector, draw_step
+from pemviz.core.detectors import Detector, draw_step, reads_state
+from pemviz.core.features import reports_features
 from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.exact import row_sum
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
@@ -86,6 +87,12 @@ def run_batched(
             events at its steps before ``until[i]`` (a replayed prefix).
         keep_rows: False: a simulator with object rows does not keep them (``objects`` None; the caller attaches a
             :attr:`RolloutBatch.replay`): float64 [n, T, M, G] is most of a multi-object batch's memory.
+
+    A sampler (or target) that reads the state features (:func:`pemviz.core.detectors.reads_state`) of a simulator
+    that reports them (:func:`pemviz.core.features.reports_features`) is asked about each object row with the step's
+    features appended, [its object features (``object_feature_names``), the ego's (``feature_names``)], read once
+    per step before the step's perception; every other detector about the rows alone, and the batch keeps the rows
+    alone.
     Returns:
         :class:`RolloutBatch` [n, T] (``objects`` when the simulator reports object rows and ``keep_rows``, ``noise``
         when the target mislocates).
@@ -101,6 +108,7 @@ def run_batched(
     log_p, log_q = np.empty((n, n_steps)), np.empty((n, n_steps))
     objects = np.empty((n, n_steps, m, len(scene.object_names))) if scene is not None and keep_rows else None
     noise = np.empty((n, n_steps, m, d)) if d else None
+    featured = sim if (reads_state(sampler) or reads_state(target)) and reports_features(sim) else None
     for t, u in zip(range(n_steps), uniforms, strict=False):
         o = np.asarray(sim.observation(), dtype=np.float64)
         obs[:, t] = o
@@ -115,8 +123,12 @@ def run_batched(
         if forced is not None:
             given = np.repeat(t < forced[2], m)
             f = (forced[0][:, t].reshape(-1), None if forced[1] is None else forced[1][:, t].reshape(-1, d), given)
+        state = None
+        if featured is not None:  # the step's state features, each object's then its rollout's ego's
+            ego, per_object = (np.asarray(a, dtype=np.float64) for a in featured.state_features())
+            state = np.concatenate([per_object.reshape(n * m, -1), np.repeat(ego, m, axis=0)], axis=1)
         step = draw_step(
-            sampler, target, rows, np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d), RQMC_BLOCK * m, f, m
+            sampler, target, rows, np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d), RQMC_BLOCK * m, f, m, state
         )
         detected = step.detected.reshape(n, m)
         det[:, t] = detected

@@ -363,6 +363,14 @@ class StateProposal(Proposal):
         return h
 
 
+class FeatureProposal(StateProposal):
+    """A :class:`StateProposal` over the object rows with the step's state features appended
+    (:mod:`pemviz.core.features`): it reads them (``reads_state``), so :func:`pemviz.core.lockstep.run_batched` asks
+    it about each row with its object's and its ego's features after the row's own columns."""
+
+    reads_state = True
+
+
 def fit_proposal(
     proposal: Proposal,
     inputs: np.ndarray | torch.Tensor,
@@ -412,6 +420,10 @@ def fit_proposal(
     """
     if optimizer not in FITS:
         raise ValueError(f"fit_proposal: unknown optimizer {optimizer!r}; use one of {', '.join(FITS)}")
+    own_fit = getattr(proposal, "fit_counts", None)
+    if own_fit is not None and not callable(objective):  # a proposal with a fit of its own (a GLM's)
+        counts = objective if isinstance(objective, np.ndarray) else objective.detach().numpy()
+        return own_fit(np.asarray(inputs, dtype=np.float64), np.asarray(counts, dtype=np.float64), check)
     if len(inputs) == 0:  # no step to fit (every rollout failed before its first action): the proposal as it is
         return []
     if optimizer == "adam" and dtype == EXACT and not callable(objective):

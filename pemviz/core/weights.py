@@ -27,7 +27,8 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.special import logsumexp
 
-from pemviz.core.detectors import Detector, action_log_prob, errors_log_density
+from pemviz.core.detectors import Detector, action_log_prob, errors_log_density, reads_state
+from pemviz.core.features import FeaturesFn, with_state
 from pemviz.core.odd_proposal import parameter_log_ratio
 
 CONVENTIONS = ("to-failure", "full")
@@ -100,7 +101,11 @@ def component_of(start: int, n: int, sizes: Sequence[int]) -> np.ndarray:
 
 
 def stage_log_q(
-    batch: Any, parts: Sequence[tuple[int, Detector]], target: Detector | None, start: int = 0
+    batch: Any,
+    parts: Sequence[tuple[int, Detector]],
+    target: Detector | None,
+    start: int = 0,
+    features: FeaturesFn | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """The per-step log density the rollouts of a stage were weighed with, and each rollout's component.
 
@@ -108,6 +113,9 @@ def stage_log_q(
         batch: rollouts ``start .. start + n - 1`` of the stage (a :class:`~pemviz.core.rollouts.RolloutBatch`, [n, T]).
         parts: the stage's samplers in the order drawn, ``(rollouts, detector)`` each (one: no mixture).
         target: the target detector (its component's density is ``batch.log_p``), or None.
+        features: the problem's state features (:attr:`pemviz.core.problems.Problem.features`): a sampler that reads
+            them (:func:`pemviz.core.detectors.reads_state`) is asked about the rows with them
+            (:func:`pemviz.core.features.with_state`, replayed).
     Returns:
         (log q float64 [n, T] in nats: ``batch.log_q`` for one sampler, else :func:`mixture_step_log_q` of every
         sampler's density of the logged actions, the measurement errors' included (:func:`errors_log_density`);
@@ -118,14 +126,18 @@ def stage_log_q(
     component = component_of(start, batch.n, sizes)
     if len(parts) <= 1:
         return np.asarray(batch.log_q, dtype=np.float64), component, batch.log_q_params
-    rows = batch.object_rows.reshape(-1, batch.object_rows.shape[-1])
-    log_q = [
-        batch.log_p
-        if d is target
-        else action_log_prob(d.detect_logit(rows).reshape(batch.detected.shape), batch.detected).sum(axis=2)
-        + (0.0 if batch.noise is None else errors_log_density(batch, d, target))
-        for _, d in parts
-    ]
+    state = None
+    if features is not None and any(reads_state(d) for _, d in parts):
+        replayed = features(batch, None)
+        state = None if replayed is None else with_state(batch, replayed)
+
+    def density(d: Detector) -> np.ndarray:
+        b = state if state is not None and reads_state(d) else batch
+        rows = b.object_rows.reshape(-1, b.object_rows.shape[-1])
+        log_q = action_log_prob(d.detect_logit(rows).reshape(b.detected.shape), b.detected).sum(axis=2)
+        return log_q + (0.0 if b.noise is None else errors_log_density(b, d, target))
+
+    log_q = [batch.log_p if d is target else density(d) for _, d in parts]
     shares = np.asarray(sizes, dtype=np.float64) / sum(sizes)
     ratios = [None if d is target else parameter_log_ratio(d, batch) for _, d in parts]
     log_start = None  # over an ODD, each component's parameter term (0 for one drawing from the ODD itself)

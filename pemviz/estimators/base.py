@@ -46,7 +46,7 @@ class StagePlan:
             this order; each rollout then weighs p / sum_k (n_k / n) q_k (:func:`mixture_log_weight`); empty: all ``n``
             from ``sampler``.
         target: what the simulator asks for the target's logits: None (the problem's target) or a detector that gives
-            the same logits and keeps more (:class:`pemviz.core.detectors.ScoredTarget`: the mixture components'
+            the same logits and keeps more (:class:`pemviz.core.scored_target.ScoredTarget`: the mixture components'
             logits).
     """
 

@@ -1,7 +1,8 @@
 """The built-in methods' builders and plans, as :mod:`pemviz.methods` names them (each imported when a
 run first uses it): ``adaptive`` (:class:`pemviz.estimators.cross_entropy.CrossEntropy`), ``mc``, ``naive50``,
-``mixed50`` (:mod:`pemviz.estimators.fixed`), ``ams`` (:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`) and
-``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`).
+``mixed50`` (:mod:`pemviz.estimators.fixed`), ``ams`` (:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`),
+``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`) and ``state``
+(:class:`pemviz.estimators.state.StateCrossEntropy`).
 
 Each builder is ``(config, problem, check) -> Estimator``: the baselines draw ``config.n_per_stage`` rollouts and stop
 their weights at the failure step with ``config.weights_until_failure``, like the adaptive sampler's.
@@ -154,6 +155,22 @@ def adaptive_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
             "a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled " "or fresh)"
         )
     return None
+
+
+def state(config: Any, problem: Any, check: Check | None = None) -> Estimator:
+    """The cross-entropy sampler whose proposal reads the state features
+    (:class:`pemviz.estimators.state.StateCrossEntropy`); refuses a scene that reports none (ValueError)."""
+    from pemviz.estimators.state import StateCrossEntropy
+
+    return StateCrossEntropy(config, problem, check)
+
+
+def state_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
+    """The state method's settings: the cross-entropy sampler's (:func:`adaptive_conflict`), and the PEM's share with
+    the plain proposal's at most all of a stage."""
+    if config.state.state_share + config.adaptive.plain_share > 1.0:
+        return "state_share", "state_share + plain_share must be <= 1"
+    return adaptive_conflict(config, n_objects)
 
 
 def ams_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:

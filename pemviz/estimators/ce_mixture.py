@@ -15,11 +15,11 @@ import numpy as np
 from pemviz.core.detectors import (
     Detector,
     NoisyDetector,
-    ScoredTarget,
     action_log_prob,
     errors_log_density,
 )
 from pemviz.core.detector_noise import noise_names_of
+from pemviz.core.scored_target import ScoredTarget
 from pemviz.core.odd_proposal import parameter_log_ratio
 from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.rollouts import RolloutBatch

@@ -25,13 +25,13 @@ from pemviz.settings import settings_of
 from pemviz.core.detectors import (
     Detector,
     NoisyDetector,
-    ScoredTarget,
     StageSamplers,
     WindowDetector,
     defensive_logit,
     logit,
 )
 from pemviz.core.detector_noise import noise_names_of
+from pemviz.core.scored_target import ScoredTarget
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.ce_fit import EliteSteps, WeightMode, break_ties, ce_update, new_proposal, pretrain_proposal
@@ -103,6 +103,8 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     """
 
     SETTINGS = settings_of("adaptive")
+    fits_errors = True
+    """Whether the proposal draws a noisy target's measurement errors from a model of its own (else the target's)."""
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         self.config, self.problem = config, problem
@@ -384,9 +386,9 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     def _pretrain(self, batch: RolloutBatch) -> None:
         """A new proposal fitted to the pretraining rollouts' actions; the CE stages' sampler around it."""
         cfg = self.config
-        self.proposal = proposal = new_proposal(self.ce.proposal_inputs, self.problem.h_scale, batch)
+        self.proposal = proposal = self._new_proposal(batch)
         proposal.initialise(np.random.default_rng(cfg.seed))  # the initial weights: the same on every CPU
-        if noise_names_of(self.problem.target):  # errors drawn by a model of its own, the target's until fitted
+        if noise_names_of(self.problem.target) and self.fits_errors:  # errors by a model of its own, p's until fitted
             proposal.add_noise_head(len(noise_names_of(self.problem.target)))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch) if self.ce.proposal_window else None)
         pretrain_proposal(proposal, features, detected, self._fit_options(self.ce.pretrain_epochs), mask)
@@ -394,6 +396,10 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         own = self._own_samplers()
         if own is not None:  # over an ODD the samplers (not the target) draw theta from q(theta)
             own.parameter_proposal = self._parameters.proposal
+
+    def _new_proposal(self, batch: RolloutBatch) -> Proposal:
+        """The first proposal, before its pretraining fit on ``batch``: :func:`new_proposal` of ``proposal_inputs``."""
+        return new_proposal(self.ce.proposal_inputs, self.problem.h_scale, batch)
 
     def _fit_options(self, adam_epochs: int) -> FitOptions:
         """The proposal's fits' settings: ``adam_epochs`` Adam epochs, or ``fit_max_steps`` L-BFGS iterations."""

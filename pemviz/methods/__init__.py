@@ -18,7 +18,8 @@ This module imports no estimator: a builder (and every hook) may be given as the
 record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
 Each built-in method's settings are a frozen dataclass in a module of this package, light to import, which the config
 holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
-``adaptive``) and :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``).
+``adaptive``), :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``) and
+:mod:`pemviz.methods.state` (:class:`~pemviz.methods.state.StateSettings`, its ``state``).
 """
 
 from __future__ import annotations
@@ -311,6 +312,22 @@ for _record in (
         more_budget="pemviz.estimators.builtin:tilt_more_budget",
         cost_model="look-ahead",
         run_adds="plus the proposal's look-aheads",
+    ),
+    Method(
+        "state",
+        "cross-entropy importance sampling of each detection (and with --state-fit-errors each error's location and "
+        "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
+        "report them",
+        "pemviz.estimators.builtin:state",
+        plan="pemviz.estimators.builtin:adaptive_plan",
+        validate="pemviz.estimators.builtin:state_conflict",
+        more_budget="pemviz.estimators.builtin:adaptive_more_budget",
+        no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure",
+        cost_model="proposal",
+        run_adds="plus the replay of each batch's state features",
+        then="pemviz.estimators.builtin:adaptive_then",
+        then_most="pemviz.estimators.builtin:adaptive_then_most",
+        then_plan="pemviz.estimators.builtin:adaptive_then_plan",
     ),
 ):
     register_method(_record)

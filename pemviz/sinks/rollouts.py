@@ -153,7 +153,9 @@ class RolloutSink(Sink):
             }
             if isinstance(chunk.sampler, Proposal):  # trained in place afterwards: keep the one that sampled
                 self._proposals[chunk.stage] = copy.deepcopy(chunk.sampler)
-        log_q, component, log_q_params = stage_log_q(chunk.batch, chunk.parts, chunk.target, chunk.start)
+        log_q, component, log_q_params = stage_log_q(
+            chunk.batch, chunk.parts, chunk.target, chunk.start, getattr(self.problem, "features", None)
+        )
         batch = chunk.batch.with_changes(log_q=log_q, log_q_params=log_q_params)  # no object rows: none rebuilt
         before = self._writer.bytes_written
         self._writer.append(

@@ -48,7 +48,7 @@ def _pemviz(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def test_the_built_in_methods_are_registered_records():
-    assert method_names()[:6] == ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt")
+    assert method_names()[:7] == ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt", "state")
     assert not get_method("ams").weighted and not get_method("ams").extensible
     assert all(get_method(m).weighted for m in ("adaptive", "mc", "naive50", "mixed50", "tilt"))
     with pytest.raises(ValueError, match="built in"):
@@ -171,7 +171,7 @@ def test_a_bad_method_plugin_or_name_is_one_line(tmp_path):
     assert "method plugin PEMVIZ_METHODS module broken: RuntimeError: boom" in proc.stderr
     proc = _pemviz("run", "--method", "defensive", "--no-record", cwd=tmp_path)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
-    assert "use one of adaptive, mc, naive50, mixed50, ams, tilt, defensive-mc" in proc.stderr
+    assert "use one of adaptive, mc, naive50, mixed50, ams, tilt, state, defensive-mc" in proc.stderr
 
 
 def test_the_guide_shows_this_very_module():
@@ -188,7 +188,7 @@ def test_a_method_that_cannot_add_batches_refuses_a_stop_rule(defensive):
         with pytest.raises(
             ValueError,
             match="rel_error = 0.2 is invalid: method one-batch has no final batch to add "
-            "to; use it with method adaptive, mc, naive50, mixed50, tilt, "
+            "to; use it with method adaptive, mc, naive50, mixed50, tilt, state, "
             "defensive-mc$",
         ):
             run_plan(ExperimentConfig.of(method="one-batch", rel_error=0.2))

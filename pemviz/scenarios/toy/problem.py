@@ -9,9 +9,11 @@ import numpy as np
 
 from pemviz import stl
 from pemviz.core.detectors import Detector
+from pemviz.core.features import feature_replay
 from pemviz.core.problem_view import Thresholds
 from pemviz.core.problems import Problem
 from pemviz.scenarios.toy.simulator import (
+    BatchedToy,
     ToyDetector,
     ToyParams,
     branch_toy,
@@ -59,6 +61,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
         exact_log_p=toy_log_failure_probability(p),
         branch=branch,
         tilt=tilt,
+        features=feature_replay(lambda n: BatchedToy(p, n)),
         description=(
             f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
             f"closer than {p.safe}; detection probability {p_label}"

@@ -152,16 +152,31 @@ class ToyBraking:
             self.distance -= 1
 
 
+FEATURE_NAMES: tuple[str, ...] = ("stopped",)
+"""The toy's ego state feature (:meth:`BatchedToy.state_features`): 1.0 once stopped or crashed."""
+
+OBJECT_FEATURE_NAMES: tuple[str, ...] = ("misses_in_a_row",)
+"""The toy's object state feature: the detector's misses since its last detection (a count)."""
+
+
 class BatchedToy:
     """n toy rollouts stepped together, a :class:`~pemviz.core.rollouts.BatchedSimulator`: the vectorised
-    :class:`ToyBraking` (the same states for the same detections)."""
+    :class:`ToyBraking` (the same states for the same detections). It reports its state features
+    (:class:`pemviz.core.features.FeatureSimulator`): whether the car stopped, and the misses in a row."""
 
     observation_names = OBSERVATION_NAMES
+    feature_names = FEATURE_NAMES
+    object_feature_names = OBJECT_FEATURE_NAMES
 
     def __init__(self, params: ToyParams, n: int) -> None:
         self.params = params
         self.distance = np.full(n, float(params.total))
         self.stopped = np.zeros(n, dtype=bool)
+        self.misses = np.zeros(n)
+
+    def state_features(self) -> tuple[np.ndarray, np.ndarray]:
+        """float64 [n, 1] (:data:`FEATURE_NAMES`) and [n, 1, 1] (:data:`OBJECT_FEATURE_NAMES`)."""
+        return self.stopped.astype(np.float64)[:, None], self.misses[:, None, None].copy()
 
     def observation(self) -> np.ndarray:
         """float64 [n, 2]: (distance, stopped)."""
@@ -171,6 +186,7 @@ class BatchedToy:
         """``detected``: bool [n, 1] (or [n]), the detector's output at each rollout's one object."""
         p, a = self.params, np.asarray(detected, dtype=bool).reshape(self.distance.size)
         crashed = self.distance < p.safe
+        self.misses = np.where(a, 0.0, self.misses + 1.0)
         self.stopped = self.stopped | crashed | (a & (self.distance <= p.braking))
         self.distance = np.where(self.stopped, self.distance, self.distance - 1.0)
 

@@ -1,0 +1,58 @@
+"""A mixture stage's target that keeps its components' logits: :class:`ScoredTarget` (the detectors asked about each
+step's rows are :mod:`pemviz.core.detectors`')."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pemviz.core.detector_noise import ErrorModelOf
+from pemviz.core.detectors import Detector, reads_state
+
+
+class ScoredTarget(ErrorModelOf):
+    """The target detector that also asks ``extras`` about every observation it is asked about and keeps their
+    logits and its own, so that a mixture's component densities come out of the simulation that drew the rollouts
+    instead of a second pass over them (each simulator asks its target once per step about all rollouts it steps
+    together).
+
+    :meth:`take` hands the kept logits over as [K, n, T] (and the target's [n, T]) for the next ``n`` rollouts of T
+    steps, or None when the asks do not fit that shape (a simulator that asks otherwise, or a remote executor whose
+    copy of this object did the asking): the caller then asks ``extras`` itself.
+    """
+
+    _error_model_of = "target"  # it scores as the target does
+
+    def __init__(self, target: Detector, extras: tuple[Detector, ...]) -> None:
+        self.target, self.extras = target, tuple(extras)
+        self.reads_state = any(reads_state(d) for d in (target, *self.extras))
+        self._asked: list[tuple[np.ndarray, ...]] = []
+
+    def detect_logit(self, obs: np.ndarray) -> np.ndarray:
+        """The target's logit p(detect | obs), float64 [N]; it and the extras' logits (K + 1 arrays [N]) are kept."""
+        extras = tuple(np.asarray(d.detect_logit(obs), dtype=np.float64) for d in self.extras)
+        p = np.asarray(self.target.detect_logit(obs), dtype=np.float64)
+        self._asked.append((p, *extras))
+        return p
+
+    def take(self, n: int, n_steps: int, n_objects: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
+        """(the extras' logits float64 [K, n, T, M], the target's [n, T, M]) of the next ``n`` rollouts of M objects, in
+        the order simulated: groups of T asks of equal rows (one group per chunk of rollouts stepped together, each
+        rollout's M object rows together), or None (all kept logits are dropped) when the asks kept do not start with
+        such groups covering ``n`` rollouts."""
+        asked, groups, used, rows = self._asked, [], 0, 0
+        while rows < n and used + n_steps <= len(asked):
+            r = asked[used][0].shape[0]
+            if r % n_objects or any(a[0].shape[0] != r for a in asked[used : used + n_steps]):
+                break
+            groups.append((used, rows, r // n_objects))
+            used, rows = used + n_steps, rows + r // n_objects
+        if rows != n:
+            self._asked = []
+            return None
+        out = np.empty((len(self.extras) + 1, n, n_steps, n_objects))
+        for first, row, m in groups:
+            for t in range(n_steps):
+                for k, logit in enumerate(asked[first + t]):
+                    out[k, row : row + m, t] = logit.reshape(m, n_objects)
+        del asked[:used]
+        return out[1:], out[0]
