@@ -153,14 +153,8 @@ def log_explanation(
     """
     s = stream
     if failure is None:
-        s.log(
-            f"{E}/summary",
-            rr.TextDocument(
-                "# No failure found\n\nThe run found no failing rollout: nothing to " "explain.",
-                media_type=rr.MediaType.MARKDOWN,
-            ),
-            static=True,
-        )
+        text = "# No failure found\n\nThe run found no failing rollout: nothing to explain."
+        s.log(f"{E}/summary", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
         return None
     b = failure.batch
     col = view.signals[0].column
@@ -170,7 +164,7 @@ def log_explanation(
     if view.objects_xy is not None and b.objects is not None:
         _log_objects(s, view, b, indexes)
     p_det, q_det = prob_detect(b.log_p[0], detected), prob_detect(b.log_q[0], detected)
-    number, stage = int(failure.rollout_numbers[0]), failure.stage
+    number = int(failure.rollout_numbers[0])
     drawing = recording_hooks(view.drawing)
     tale = drawing.explanation(b, 0) if drawing is not None else None
 
@@ -189,21 +183,7 @@ def log_explanation(
 
     if parts is None and b.noise is None:  # detections only: log p is their log-probability
         parts = LogPParts.of(b, 0, None)
-    props: dict = dict(
-        stage=stage,
-        stage_name=stage_name,
-        rollout=number,
-        log_p=log_p,
-        log_weight=float(failure.log_weight[0]),
-        robustness=float(failure.robustness[0]),
-        n_failures_compared=n_failures,
-        misses=misses,
-        n_steps=trace.size,
-    )
-    if parts is not None:
-        props["log_prob_detections"] = parts.detections
-        if parts.errors is not None:
-            props["log_density_errors"] = parts.errors
+    props = _failure_props(failure, stage_name, log_p, n_failures, misses, trace.size, parts)
     chosen = _chosen_words(failure, log_p, parts, n_failures, misses, drawing, trace.size)
     lines = [f"## Most likely failure: {stage_name}, rollout {number}" + (f": {words}" if tale else ""), ""]
     if tale is not None:
@@ -268,6 +248,36 @@ def _log_object_events(
                 indexes,
                 width=1.5,
             )
+
+
+def _failure_props(
+    failure: RolloutsSampled,
+    stage_name: str,
+    log_p: float,
+    n_failures: int,
+    misses: np.ndarray,
+    n_steps: int,
+    parts: LogPParts | None,
+) -> dict[str, Any]:
+    """The explained failure's properties (``explain/failure``): where it was drawn, its log p (and its parts where
+    known), log-weight, robustness, misses."""
+    stage, number = failure.stage, int(failure.rollout_numbers[0])
+    props: dict = dict(
+        stage=stage,
+        stage_name=stage_name,
+        rollout=number,
+        log_p=log_p,
+        log_weight=float(failure.log_weight[0]),
+        robustness=float(failure.robustness[0]),
+        n_failures_compared=n_failures,
+        misses=misses,
+        n_steps=n_steps,
+    )
+    if parts is not None:
+        props["log_prob_detections"] = parts.detections
+        if parts.errors is not None:
+            props["log_density_errors"] = parts.errors
+    return props
 
 
 def _chosen_words(
