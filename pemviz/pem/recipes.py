@@ -12,14 +12,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
-import numpy as np
-
 from pemviz.pem.noise import NoiseRecipe
-from pemviz.pem.training import PemRecipe, Recipe
-from pemviz.pem.trees import TreePEM, train_tree_pem
+from pemviz.pem.training import PemRecipe
+from pemviz.pem.trees import TreeRecipe
 
 DEFAULT_PEM_NAME = "ml-nn"
 """The PEM :func:`pemviz.pem.load_pem` loads when given no name."""
@@ -27,34 +22,6 @@ BEST_PEM_NAME = "gbt"
 """The best cross-validated PEM (by 5-fold cross-validated BCE and ROC-AUC)."""
 DEFAULT_NOISE_NAME = "hetero-t"
 """The noise PEM :func:`pemviz.pem.load_noise_pem` loads when given no name."""
-
-
-@dataclass(frozen=True)
-class TreeRecipe(Recipe[TreePEM]):
-    """A boosted-trees PEM: the settings passed to :func:`train_tree_pem` (``epochs`` = number of trees)."""
-
-    name: str
-    description: str
-    learning_rate: float = 0.05
-    epochs: int = 300
-    max_leaf_nodes: int = 63
-    min_samples_leaf: int = 20
-    l2_regularization: float = 1.0
-    seed: int = 0
-
-    def _fit(self, inputs: np.ndarray, labels: np.ndarray, /, *, progress: bool, **common: Any) -> TreePEM:
-        return train_tree_pem(
-            inputs,
-            labels,
-            name=self.name,
-            learning_rate=self.learning_rate,
-            max_iter=self.epochs,
-            seed=self.seed,
-            max_leaf_nodes=self.max_leaf_nodes,
-            min_samples_leaf=self.min_samples_leaf,
-            l2_regularization=self.l2_regularization,
-            **common,
-        )
 
 
 PEM_RECIPES: dict[str, PemRecipe | TreeRecipe] = {
