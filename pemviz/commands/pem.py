@@ -10,7 +10,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from pemviz.commands import COMMANDS, UsageError, output_folder
+from pemviz.commands import UsageError, add_command, output_folder
 from pemviz.io.data import DataError, load_salient_data, sha256_file
 from pemviz.io.files import check_output_folder, check_output_path, write_text_atomic
 from pemviz.pem.recipes import NOISE_RECIPES, PEM_RECIPES
@@ -32,13 +32,14 @@ from pemviz.studies.pem_eval import (
 NOISE_CSV = "pem-noise-eval.csv"
 
 
+DESCRIPTION = (
+    "Train the PEM on the KITTI salient files or cross-validate the models (both need the files: " "pemviz data fetch)."
+)
+"""``pemviz pem --help``'s description."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "pem",
-        help=COMMANDS["pem"][1],
-        description="Train the PEM on the KITTI salient files or cross-validate the models (both need the files: "
-        "pemviz data fetch).",
-    )
+    p = add_command(sub, "pem", DESCRIPTION)
     actions = p.add_subparsers(dest="pem_command", required=True)
     _add_train(actions)
     _add_eval(actions)
