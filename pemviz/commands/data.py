@@ -9,7 +9,9 @@ from pemviz.io import data
 from pemviz.commands import add_command, UsageError
 
 
-DESCRIPTION = "The KITTI salient files are never shipped: fetch them or show where " "pemviz finds them."
+DESCRIPTION = """
+The KITTI salient files are never shipped: fetch them or show where pemviz finds them.
+"""
 """``pemviz data --help``'s description."""
 
 

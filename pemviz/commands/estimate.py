@@ -42,10 +42,10 @@ MAX_TRACES = 300
 """Rollouts whose traces go into the recording: the least robust ones (every failure first)."""
 
 
-DESCRIPTION = (
-    "Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its "
-    "JSON sidecar (format: pemviz.io.rollout_format), and a rerun recording of it."
-)
+DESCRIPTION = """
+Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its JSON sidecar (format:
+pemviz.io.rollout_format), and a rerun recording of it.
+"""
 """``pemviz estimate --help``'s description."""
 
 

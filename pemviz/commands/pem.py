@@ -32,9 +32,9 @@ from pemviz.studies.pem_eval import (
 NOISE_CSV = "pem-noise-eval.csv"
 
 
-DESCRIPTION = (
-    "Train the PEM on the KITTI salient files or cross-validate the models (both need the files: " "pemviz data fetch)."
-)
+DESCRIPTION = """
+Train the PEM on the KITTI salient files or cross-validate the models (both need the files: pemviz data fetch).
+"""
 """``pemviz pem --help``'s description."""
 
 

@@ -21,11 +21,11 @@ REQUIRED = ("format", "scenario", "method", "seed", "estimate", "n_simulations")
 """The fields a result document must have for a report (the rest is shown where present)."""
 
 
-DESCRIPTION = (
-    "Write a safety-case report of a run from its result document (pemviz run --json RESULT.json, "
-    "or the one a run writes beside its recording: give the recording RUN.rrd): one self-contained HTML page, "
-    "readable offline, and its Markdown twin (PAGE.md)."
-)
+DESCRIPTION = """
+Write a safety-case report of a run from its result document (pemviz run --json RESULT.json, or the one a run writes
+beside its recording: give the recording RUN.rrd): one self-contained HTML page, readable offline, and its Markdown
+twin (PAGE.md).
+"""
 """``pemviz report --help``'s description."""
 
 

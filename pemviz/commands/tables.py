@@ -34,11 +34,11 @@ from pemviz.studies.exact_answers import ExactAnswer, exact_answer
 from pemviz.studies.validation import RUNS_FILE, RunRecord, run_jobs
 
 
-DESCRIPTION = (
-    "Table II (MC, naive-50, adaptive) and Table III (robustness metrics) with repetitions, "
-    "mean +- standard error, failures, NLL, ESS and the exact p_fail; Markdown, CSV and a rerun recording "
-    "of every repetition's proposal curves (Fig. 4)."
-)
+DESCRIPTION = """
+Table II (MC, naive-50, adaptive) and Table III (robustness metrics) with repetitions, mean +- standard error,
+failures, NLL, ESS and the exact p_fail; Markdown, CSV and a rerun recording of every repetition's proposal curves
+(Fig. 4).
+"""
 """``pemviz tables --help``'s description."""
 
 

@@ -29,11 +29,11 @@ from pemviz.studies.validation import BASELINES, DEFAULT_PROBLEMS, RUNS_FILE, Ru
 from pemviz.studies.validation import run_jobs, study_jobs, summaries_csv, summarise
 
 
-DESCRIPTION = (
-    "Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact "
-    "answers for several seeds at equal simulation budgets; print truth, median and spread of mu_hat, median "
-    "relative error, failures, ESS, simulations and wall time."
-)
+DESCRIPTION = """
+Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact answers for several
+seeds at equal simulation budgets; print truth, median and spread of mu_hat, median relative error, failures, ESS,
+simulations and wall time.
+"""
 """``pemviz validate --help``'s description."""
 
 
