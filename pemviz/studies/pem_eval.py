@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 from scipy.special import expit
@@ -142,8 +142,37 @@ class ModelEvaluation:
         return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
 
 
+class _Scored(Protocol):
+    @property
+    def name(self) -> str: ...
+
+    def mean(self, metric: str) -> Any: ...
+
+
+_Model = TypeVar("_Model", bound=_Scored)
+
+
+class Evaluated(Generic[_Model]):
+    """What the results of a cross-validation share: its models by name, and the best one, the lowest mean of the
+    metric ``best_by`` over the folds."""
+
+    models: tuple[_Model, ...]
+    best_by: ClassVar[str]
+    what: ClassVar[str] = "model"
+
+    def model(self, name: str) -> _Model:
+        for m in self.models:
+            if m.name == name:
+                return m
+        raise KeyError(f"{self.what} {name!r} was not evaluated; evaluated: {[m.name for m in self.models]}")
+
+    def best(self) -> str:
+        """The model with the lowest mean ``best_by`` (BCE for the detection PEMs, NLL for the noise PEMs)."""
+        return min(self.models, key=lambda m: m.mean(self.best_by)).name
+
+
 @dataclass(frozen=True)
-class EvalResult:
+class EvalResult(Evaluated[ModelEvaluation]):
     """Everything :func:`evaluate_pems` measured (``labels``: the full file's, ``[N]``)."""
 
     config: EvalConfig
@@ -154,15 +183,7 @@ class EvalResult:
     wall_s: float
     data_source: str = ""
 
-    def model(self, name: str) -> ModelEvaluation:
-        for m in self.models:
-            if m.name == name:
-                return m
-        raise KeyError(f"model {name!r} was not evaluated; evaluated: {[m.name for m in self.models]}")
-
-    def best(self) -> str:
-        """The model with the lowest mean BCE."""
-        return min(self.models, key=lambda m: m.mean("bce")).name
+    best_by: ClassVar[str] = "bce"
 
 
 # ------------------------------------------------------------------------------------------- metrics
