@@ -106,6 +106,7 @@ import numpy as np
 
 import pemviz
 from pemviz import stl
+from pemviz.pem.encoding import INPUT_COLUMNS
 
 FORMAT_TAG = "pemviz-rollouts"
 
@@ -122,23 +123,9 @@ READ_VERSIONS = (1, FORMAT_VERSION, OBJECTS_VERSION)
 WEIGHTS = ("to-failure", "full")
 """Weight conventions (:mod:`pemviz.core.weights`)."""
 
-KITTI_COLUMNS = (
-    "class",
-    "truncation",
-    "occlusion",
-    "alpha",
-    "dim_w",
-    "dim_l",
-    "dim_h",
-    "loc_x",
-    "loc_y",
-    "loc_z",
-    "rot_y",
-)
-"""The 11 salient-variable columns of the KITTI files (:data:`pemviz.pem.encoding.INPUT_COLUMNS`)."""
-
-SALIENT_COLUMNS = tuple(f"salient_{c}" for c in KITTI_COLUMNS)
-"""Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads."""
+SALIENT_COLUMNS = tuple(f"salient_{c}" for c in INPUT_COLUMNS)
+"""Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads
+(:data:`pemviz.pem.encoding.INPUT_COLUMNS`)."""
 
 SAMPLERS = ("pem", "naive50", "mixed50")
 """Named samplers a file's log q can be recomputed from besides a proposal checkpoint."""
