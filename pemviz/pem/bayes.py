@@ -22,6 +22,7 @@ from scipy.special import expit, log_expit, logsumexp
 from tqdm.auto import tqdm
 
 from pemviz.pem.encoding import (
+    check_features,
     N_FEATURES,
     NormStats,
     braking_salient_inputs,
@@ -70,9 +71,7 @@ class BayesianPEM:
 
     def logit_features(self, features: np.ndarray, *, chunk: int = 256) -> np.ndarray:
         """Logit of the posterior predictive mean p(detect), float64 ``[N]`` (rows in chunks)."""
-        x = np.asarray(features, dtype=np.float64)
-        if x.ndim != 2 or x.shape[1] != N_FEATURES:
-            raise ValueError(f"PEM features must have shape [N, {N_FEATURES}], got {x.shape}")
+        x = check_features(features)
         out = np.empty(x.shape[0], dtype=np.float64)
         for start in range(0, x.shape[0], chunk):
             logits = self.sample_logits(x[start : start + chunk])  # [S, n]

@@ -29,7 +29,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pemviz.pem.camera import MIN_RANGE_M, box_errors_to_metric
-from pemviz.pem.encoding import N_FEATURES, ONE_HOT_GROUPS, NormStats, SalientCodes, encode_salient, fit_norm_stats
+from pemviz.pem.encoding import (
+    check_features,
+    N_FEATURES,
+    ONE_HOT_GROUPS,
+    NormStats,
+    SalientCodes,
+    encode_salient,
+    fit_norm_stats,
+)
 from pemviz.pem.network import GridMLP, OneHotColumns, PemFormatError, as_arrays, fold_state_dict
 from pemviz.pem.training import NetworkRecipe, fit_network
 
@@ -39,13 +47,6 @@ FAMILIES = ("normal", "laplace", "student-t")
 """Location-scale families of the noise PEM (``scipy.stats`` ``norm``, ``laplace``, ``t``)."""
 DF_MIN = 1.0
 """Lower bound of the Student-t degrees of freedom (``nu = DF_MIN + softplus(raw)``): above it the mean exists."""
-
-
-def _check_features(features: np.ndarray) -> np.ndarray:
-    x = np.asarray(features, dtype=np.float64)
-    if x.ndim != 2 or x.shape[1] != N_FEATURES:
-        raise ValueError(f"noise PEM features must have shape [R, {N_FEATURES}], got {x.shape}")
-    return x
 
 
 def _check_errors(errors: np.ndarray, rows: int) -> np.ndarray:
@@ -120,7 +121,7 @@ class NoiseModel:
         Raises:
             ValueError: features not ``[R, 14]`` or errors not ``[R, 2]``.
         """
-        x = _check_features(features)
+        x = check_features(features, "noise PEM", "R")
         return self.distribution(x).logpdf(_check_errors(errors, x.shape[0]))
 
     def log_prob(self, features: np.ndarray, errors: np.ndarray) -> np.ndarray:
@@ -134,7 +135,7 @@ class NoiseModel:
     def cdf(self, features: np.ndarray, errors: np.ndarray) -> np.ndarray:
         """Predictive CDF of each error dimension at the errors (the probability integral transform, PIT),
         ``[R, 2]``."""
-        x = _check_features(features)
+        x = check_features(features, "noise PEM", "R")
         return self.distribution(x).cdf(_check_errors(errors, x.shape[0]))
 
     def interval(self, features: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
@@ -145,11 +146,11 @@ class NoiseModel:
         """
         if not 0.0 < level < 1.0:
             raise ValueError(f"interval level must be in (0, 1), got {level}")
-        return self.distribution(_check_features(features)).interval(level)
+        return self.distribution(check_features(features, "noise PEM", "R")).interval(level)
 
     def sample(self, features: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """One error per row, float64 ``[R, 2]`` (metres), drawn with ``rng`` (reproducible for a seeded generator)."""
-        dist = self.distribution(_check_features(features))
+        dist = self.distribution(check_features(features, "noise PEM", "R"))
         return np.asarray(dist.rvs(random_state=rng), dtype=np.float64).reshape(-1, len(NOISE_DIMS))
 
 
@@ -193,7 +194,7 @@ class NoisePEM(NoiseModel):
         object.__setattr__(self, "_one_hot", self._grid.one_hot(ONE_HOT_GROUPS))
 
     def noise_params(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out = self._grid(_check_features(features))
+        out = self._grid(check_features(features, "noise PEM", "R"))
         return out[:, :2], out[:, 2:]
 
     def noise_params_codes(self, codes: SalientCodes) -> tuple[np.ndarray, np.ndarray]:
@@ -223,7 +224,7 @@ class HomoscedasticNoise(NoiseModel):
         object.__setattr__(self, "_grid", GridMLP.of(((self.coef.T, self.intercept),)))
 
     def noise_params(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = _check_features(features)
+        x = check_features(features, "noise PEM", "R")
         return self._grid(x), np.broadcast_to(self.log_scale, (x.shape[0], 2)).copy()
 
 

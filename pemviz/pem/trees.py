@@ -21,6 +21,7 @@ import numpy as np
 from scipy.special import expit
 
 from pemviz.pem.encoding import (
+    check_features,
     BRAKING_Z_FEATURE,
     N_FEATURES,
     NormStats,
@@ -113,9 +114,7 @@ class TreePEM:
 
     def logit_features(self, features: np.ndarray, *, chunk: int = 4096) -> np.ndarray:
         """Logit of p(detect), float64 ``[N]``, from encoded features ``[N, 14]`` (rows in chunks)."""
-        x = np.asarray(features, dtype=np.float64)
-        if x.ndim != 2 or x.shape[1] != N_FEATURES:
-            raise ValueError(f"PEM features must have shape [N, {N_FEATURES}], got {x.shape}")
+        x = check_features(features)
         out = np.empty(x.shape[0], dtype=np.float64)
         for start in range(0, x.shape[0], chunk):
             xs = x[start : start + chunk]
