@@ -380,40 +380,29 @@ def strip_plots(gui: viser.GuiApi, title: str = "distance and speeds") -> dict[s
     t = np.linspace(0, 5, 2)
     none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 5.0))
+    probability = up.Scale(auto=False, range=(-0.1, 1.1))
+    detect_caption = (
+        "p(detect): the PEM's probability of detecting the object at each step; q(detect): the sampler's, which drew "
+        "the rollout; dots: detected (top) and missed (bottom) steps"
+    )
+    charts = (  # key, series label, title, caption, y scale, unit, height
+        ("gap", "gap (m)", f"{title} (choose a rollout)", "", None, "m, m/s", 185),
+        ("detect", "p(detect)", "p(detect) and q(detect)", detect_caption, probability, "probability", 200),
+        ("weight", "log w", "importance log-weight log w (nats)", LOG_W_CAPTION, None, "nats", 170),
+    )
     return {
-        "gap": add_chart(
+        key: add_chart(
             gui,
             data=(t, none),
-            series=(up.Series(label="t (s)"), up.Series(label="gap (m)")),
-            title=f"{title} (choose a rollout)",
-            scales={"x": x_scale},
-            axes=axes("time (s)", "m, m/s"),
+            series=(up.Series(label="t (s)"), up.Series(label=label)),
+            title=chart_title,
+            caption=caption,
+            scales={"x": x_scale} if y is None else {"x": x_scale, "y": y},
+            axes=axes("time (s)", unit),
             legend=LEGEND,
-            height=185,
-        ),
-        "detect": add_chart(
-            gui,
-            data=(t, none),
-            series=(up.Series(label="t (s)"), up.Series(label="p(detect)")),
-            title="p(detect) and q(detect)",
-            caption="p(detect): the PEM's probability of detecting the object at each step; q(detect): the "
-            "sampler's, which drew the rollout; dots: detected (top) and missed (bottom) steps",
-            scales={"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))},
-            axes=axes("time (s)", "probability"),
-            legend=LEGEND,
-            height=200,
-        ),
-        "weight": add_chart(
-            gui,
-            data=(t, none),
-            series=(up.Series(label="t (s)"), up.Series(label="log w")),
-            title="importance log-weight log w (nats)",
-            caption=LOG_W_CAPTION,
-            scales={"x": x_scale},
-            axes=axes("time (s)", "nats"),
-            legend=LEGEND,
-            height=170,
-        ),
+            height=height,
+        )
+        for key, label, chart_title, caption, y, unit, height in charts
     }
 
 
