@@ -84,13 +84,8 @@ class BrakingRecording:
         if "gap_m" not in batch.observation_names:
             return None
         sev = self.outcome(batch, i)
-        return dict(
-            outcome=sev.short,
-            min_gap_m=sev.min_gap_m,
-            breach_closing_mps=sev.breach_closing_mps,
-            contact=sev.contact,
-            contact_speed_mps=sev.contact_speed_mps,
-        )
+        fields = ("min_gap_m", "breach_closing_mps", "contact", "contact_speed_mps")
+        return {"outcome": sev.short, **{name: getattr(sev, name) for name in fields}}
 
     def contacts(self, batch: RolloutBatch, rows: np.ndarray) -> np.ndarray | None:
         """Whether each of the rollouts ``rows`` (int [k]) made contact, bool [k]: the ``contact`` of
