@@ -26,8 +26,8 @@ from pemviz.studies.pem_eval import (
     format_csv,
     format_markdown,
     summary_lines,
-    write_recording,
 )
+from pemviz.studies.pem_eval_recording import write_recording
 
 NOISE_CSV = "pem-noise-eval.csv"
 
