@@ -240,3 +240,9 @@ def check_save_path(path: Path, overwrite: bool = False) -> Path:
         return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+
+
+def add_command(sub: argparse._SubParsersAction, name: str, description: str, **kw: Any) -> argparse.ArgumentParser:
+    """The parser of the command ``name`` (its one-line help :data:`COMMANDS`'), with its ``--help`` description."""
+    parser: argparse.ArgumentParser = sub.add_parser(name, help=COMMANDS[name][1], description=description, **kw)
+    return parser

@@ -17,7 +17,7 @@ import math
 import time
 from pathlib import Path
 
-from pemviz.commands import COMMANDS, UsageError, add_study_arguments, base_fields, output_folder, say
+from pemviz.commands import UsageError, add_command, add_study_arguments, base_fields, output_folder, say
 from pemviz.commands import split_choices, write_study
 from pemviz.core.estimate import format_probability, relative_error
 from pemviz.engine.resources import cap_jobs
@@ -29,14 +29,16 @@ from pemviz.studies.validation import BASELINES, DEFAULT_PROBLEMS, RUNS_FILE, Ru
 from pemviz.studies.validation import run_jobs, study_jobs, summaries_csv, summarise
 
 
+DESCRIPTION = """
+Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact answers for several
+seeds at equal simulation budgets; print truth, median and spread of mu_hat, median relative error, failures, ESS,
+simulations and wall time.
+"""
+"""``pemviz validate --help``'s description."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "validate",
-        help=COMMANDS["validate"][1],
-        description="Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact "
-        "answers for several seeds at equal simulation budgets; print truth, median and spread of mu_hat, median "
-        "relative error, failures, ESS, simulations and wall time.",
-    )
+    p = add_command(sub, "validate", DESCRIPTION)
     p.add_argument(
         "--problems",
         default=",".join(DEFAULT_PROBLEMS),

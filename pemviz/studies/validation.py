@@ -374,35 +374,25 @@ def markdown_table(summaries: Sequence[Summary]) -> str:
     return "\n".join(lines)
 
 
-def summaries_csv(summaries: Sequence[Summary]) -> str:
-    """The summaries as CSV text, logs in nats beside the probabilities."""
+def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    """``header`` and ``rows`` as CSV text (the ``csv`` module's dialect: ``\r\n`` line ends)."""
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(
-        [
-            "problem",
-            "log_truth",
-            "truth",
-            "method",
-            "seeds",
-            "median_log_mu_hat",
-            "min_log_mu_hat",
-            "max_log_mu_hat",
-            "median_mu_hat",
-            "median_rel_error",
-            "within_2x",
-            "covered",
-            "reliable",
-            "median_failures",
-            "n_per_estimate",
-            "median_ess",
-            "simulations",
-            "median_wall_s",
-            "said_nothing",
-        ]
-    )
-    for s in summaries:
-        w.writerow(
+    w.writerow(header)
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def summaries_csv(summaries: Sequence[Summary]) -> str:
+    """The summaries as CSV text, logs in nats beside the probabilities."""
+    header = (
+        "problem log_truth truth method seeds median_log_mu_hat min_log_mu_hat max_log_mu_hat median_mu_hat "
+        "median_rel_error within_2x covered reliable median_failures n_per_estimate median_ess simulations "
+        "median_wall_s said_nothing"
+    ).split()
+    return csv_text(
+        header,
+        (
             [
                 s.problem,
                 repr(s.log_truth),
@@ -424,8 +414,9 @@ def summaries_csv(summaries: Sequence[Summary]) -> str:
                 f"{s.median_wall_s:.3f}",
                 s.said_nothing,
             ]
-        )
-    return buf.getvalue()
+            for s in summaries
+        ),
+    )
 
 
 def report(
