@@ -100,6 +100,7 @@ def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ..
 
 SHOWN_DEFAULTS = {
     "pem": "ml-nn",
+    "workers": "every usable core",
     "ray_address": "a local one",
     "chunk_rollouts": "8192, and only stages above 20000 rollouts stream",
 }

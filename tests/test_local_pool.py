@@ -1,0 +1,133 @@
+"""The ``local`` executor (the default): a batch's or a streamed stage's blocks simulated by worker processes give the
+rollouts and the printed run of one process, bit for bit; the pool starts only for batches of several blocks; its
+workers are the usable cores."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import os
+import re
+
+import numpy as np
+import pytest
+
+import pemviz.engine.pool as pool
+from pemviz.config import ConfigError, ExperimentConfig
+from pemviz.engine.executors import SerialExecutor, close_executors, get_executor
+from pemviz.engine.pool import LocalExecutor, usable_cores
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _pool_closed_after_the_module():
+    yield
+    close_executors()
+
+
+def test_usable_cores_are_the_affinity_mask_capped_by_the_cgroup_quota(tmp_path):
+    mask = len(os.sched_getaffinity(0))
+    quota = tmp_path / "cpu.max"
+    assert usable_cores(tmp_path / "absent") == mask
+    quota.write_text("max 100000\n")
+    assert usable_cores(quota) == mask
+    quota.write_text("50000 100000\n")  # half a core: one worker
+    assert usable_cores(quota) == 1
+    quota.write_text(f"{100000 * mask + 1} 100000\n")  # a share of one more core than the mask: the mask
+    assert usable_cores(quota) == mask
+
+
+def test_the_default_executor_is_local_with_every_usable_core_and_one_worker_is_the_serial_path():
+    from pemviz.cli import build_parser
+    from pemviz.commands.run import config_from_args
+
+    cfg = config_from_args(build_parser().parse_args(["run"]))
+    assert (cfg.execution.executor, cfg.execution.workers) == ("local", None)
+    assert config_from_args(build_parser().parse_args(["run", "--workers", "3"])).execution.workers == 3
+    assert isinstance(get_executor("local", workers=1), SerialExecutor)
+    assert get_executor("local", workers=2).workers == 2
+    default = get_executor("local")
+    assert default.workers == usable_cores()
+    with pytest.raises(ConfigError, match="workers"):
+        ExperimentConfig.of(workers=0)
+    with pytest.raises(ConfigError, match="give it only with executor = 'local'"):
+        ExperimentConfig.of(executor="serial", workers=2)
+
+
+def test_a_batch_goes_to_the_pool_only_from_three_blocks_and_with_a_jumpable_generator():
+    ex = LocalExecutor(2)
+    rng = np.random.default_rng(0)
+    assert not ex.pooled(2100, rng)  # braking's default stages and final batch
+    assert not ex.pooled(2 * 8192, rng)
+    assert ex.pooled(2 * 8192 + 1, rng)
+    assert not ex.pooled(10**6, np.random.Generator(np.random.MT19937(0)))
+    assert not LocalExecutor(1).pooled(10**6, rng)
+
+
+def test_pooled_blocks_and_streamed_chunks_are_the_serial_rollouts_and_leave_the_rng_where_it_would_be(monkeypatch):
+    from pemviz.core.rollouts import RolloutBatch
+    from pemviz.scenarios.problems import problem_for
+
+    monkeypatch.setattr(pool, "POOL_MIN_BLOCKS", 2)
+    problem = problem_for(ExperimentConfig.of(scenario="crossing"))  # two pedestrians: K = 2 uniforms a rollout
+    n, ex = 8192 + 500, get_executor("local", workers=2)
+    serial_rng, pooled_rng = np.random.default_rng(3), np.random.default_rng(3)
+    a = problem.simulate(n, problem.target, problem.target, serial_rng)
+    b = ex.simulate(problem, n, problem.target, problem.target, pooled_rng)
+    chunks = list(ex.stream(problem, n, problem.target, problem.target, np.random.default_rng(3), chunk_size=3000))
+    assert [c.n for c in chunks] == [3000, 3000, 2192, 500]  # block by block, then at most chunk_size
+    streamed = RolloutBatch.concatenate(chunks)
+    for name in ("observations", "detected", "log_p", "log_q"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        np.testing.assert_array_equal(getattr(a, name), getattr(streamed, name))
+    assert serial_rng.random() == pooled_rng.random()
+    assert ex.started
+
+
+@functools.lru_cache(maxsize=None)
+def _printed(args: tuple[str, ...], workers: int, min_blocks: int) -> tuple[list[str], bool]:
+    """The lines ``pemviz run ARGS --workers W`` prints that do not say a time, and whether a pool started."""
+    from pemviz import cli
+
+    saved, pool.POOL_MIN_BLOCKS = pool.POOL_MIN_BLOCKS, min_blocks
+    out = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+            assert cli.main(["run", "--no-record", *args, "--workers", str(workers)]) == 0
+    finally:
+        pool.POOL_MIN_BLOCKS = saved
+    ex = get_executor("local", workers=workers)
+    started = bool(getattr(ex, "started", False))
+    timed = re.compile(r"\d (s|ms|min)\b|wall s")
+    lines = [ln for ln in out.getvalue().splitlines() if not timed.search(ln)]
+    return [" ".join(ln.split()[:-1]) if ln.lstrip()[:1].isdigit() or "final " in ln else ln for ln in lines], started
+
+
+CROSSING_MC = ("--scenario", "crossing", "--method", "mc", "--n", "9000", "--seed", "2")
+"""Plain Monte Carlo on the two-pedestrian crossing, two blocks (8,192 + 808 rollouts)."""
+
+
+@pytest.mark.parametrize("chunk", [None, "4000"], ids=["one-batch", "streamed"])
+def test_crossing_plain_monte_carlo_prints_the_same_run_with_one_and_two_workers(chunk):
+    args = CROSSING_MC if chunk is None else (*CROSSING_MC, "--chunk", chunk)  # --chunk 4000: the stage streams
+    one, _ = _printed(args, 1, 2)
+    two, started = _printed(args, 2, 2)
+    assert started
+    assert any(ln.startswith("mu_hat = ") and "reference" in ln for ln in one)
+    assert one == two
+
+
+def test_a_braking_run_whose_final_stage_streams_prints_the_same_run_with_one_and_two_workers():
+    args = ("--n-final", "40000", "--seed", "1")  # the default sampler; its final stage streams 5 blocks: the pool
+    one, _ = _printed(args, 1, pool.POOL_MIN_BLOCKS)
+    two, started = _printed(args, 2, pool.POOL_MIN_BLOCKS)
+    assert started and one == two
+    assert any(ln.startswith("mu_hat = ") and "exact 1.984e-15" in ln for ln in one)
+
+
+def test_the_braking_default_run_never_starts_the_pool():
+    close_executors()  # a fresh executor: whatever an earlier test started
+    two, started = _printed(("--seed", "0"), 2, pool.POOL_MIN_BLOCKS)  # pemviz run: braking, 2,100 rollouts
+    assert not started
+    assert two == _printed(("--seed", "0"), 1, pool.POOL_MIN_BLOCKS)[0]
+    assert any("exact 4.670e-19" in ln for ln in two)
