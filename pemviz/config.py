@@ -71,7 +71,7 @@ class Execution:
     Attributes:
     executor: where rollouts are simulated, one of :data:`EXECUTORS`.
     workers: the worker processes of ``executor="local"`` (None: every usable core,
-        :func:`pemviz.engine.pool.usable_cores`; 1: this process, as ``serial``).
+        :func:`pemviz.engine.resources.usable_cpus`; 1: this process, as ``serial``).
     ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
     chunk_rollouts: None (serial stages above :data:`pemviz.engine.experiment.STREAM_ABOVE` rollouts stream
         in chunks of :data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`) or the most rollouts simulated and scored at a

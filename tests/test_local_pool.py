@@ -13,10 +13,11 @@ import re
 import numpy as np
 import pytest
 
-import pemviz.engine.pool as pool
+import pemviz.engine.resources as resources
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine.executors import SerialExecutor, close_executors, get_executor
-from pemviz.engine.pool import LocalExecutor, usable_cores
+from pemviz.engine.pool import LocalExecutor
+from pemviz.engine.resources import usable_cpus
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -25,16 +26,16 @@ def _pool_closed_after_the_module():
     close_executors()
 
 
-def test_usable_cores_are_the_affinity_mask_capped_by_the_cgroup_quota(tmp_path):
+def test_usable_cpus_are_the_affinity_mask_capped_by_the_cgroup_quota(tmp_path):
     mask = len(os.sched_getaffinity(0))
     quota = tmp_path / "cpu.max"
-    assert usable_cores(tmp_path / "absent") == mask
+    assert usable_cpus(tmp_path / "absent") == mask
     quota.write_text("max 100000\n")
-    assert usable_cores(quota) == mask
+    assert usable_cpus(quota) == mask
     quota.write_text("50000 100000\n")  # half a core: one worker
-    assert usable_cores(quota) == 1
+    assert usable_cpus(quota) == 1
     quota.write_text(f"{100000 * mask + 1} 100000\n")  # a share of one more core than the mask: the mask
-    assert usable_cores(quota) == mask
+    assert usable_cpus(quota) == mask
 
 
 def test_the_default_executor_is_local_with_every_usable_core_and_one_worker_is_the_serial_path():
@@ -47,7 +48,7 @@ def test_the_default_executor_is_local_with_every_usable_core_and_one_worker_is_
     assert isinstance(get_executor("local", workers=1), SerialExecutor)
     assert get_executor("local", workers=2).workers == 2
     default = get_executor("local")
-    assert default.workers == usable_cores()
+    assert default.workers == usable_cpus()
     with pytest.raises(ConfigError, match="workers"):
         ExperimentConfig.of(workers=0)
     with pytest.raises(ConfigError, match="give it only with executor = 'local'"):
@@ -64,11 +65,28 @@ def test_a_batch_goes_to_the_pool_only_from_three_blocks_and_with_a_jumpable_gen
     assert not LocalExecutor(1).pooled(10**6, rng)
 
 
+def test_the_first_time_estimate_divides_a_pooled_batch_s_simulation_by_the_workers_used():
+    from pemviz.core.rng import RQMC_BLOCK
+    from pemviz.engine.cost import stage_cost
+    from pemviz.engine.resources import POOL_BLOCK, pool_workers
+
+    assert POOL_BLOCK == RQMC_BLOCK
+    one = ExperimentConfig.of(method="mc", workers=1)
+    two = ExperimentConfig.of(method="mc", workers=2)
+    assert [pool_workers(two, n) for n in (2100, 2 * 8192, 2 * 8192 + 1)] == [1, 1, 2]
+    assert pool_workers(ExperimentConfig.of(executor="serial"), 10**6) == 1
+    assert pool_workers(ExperimentConfig.of(), 10**6) == usable_cpus()
+    a, b = (stage_cost(cfg, "final", 10**6, model="plain") for cfg in (one, two))
+    assert b.simulate_s == pytest.approx(a.simulate_s / 2, rel=1e-12) and b.after_s == a.after_s
+    small = [stage_cost(cfg, "final", 2100, model="plain").simulate_s for cfg in (one, two)]
+    assert small[0] == small[1]
+
+
 def test_pooled_blocks_and_streamed_chunks_are_the_serial_rollouts_and_leave_the_rng_where_it_would_be(monkeypatch):
     from pemviz.core.rollouts import RolloutBatch
     from pemviz.scenarios.problems import problem_for
 
-    monkeypatch.setattr(pool, "POOL_MIN_BLOCKS", 2)
+    monkeypatch.setattr(resources, "POOL_MIN_BLOCKS", 2)
     problem = problem_for(ExperimentConfig.of(scenario="crossing"))  # two pedestrians: K = 2 uniforms a rollout
     n, ex = 8192 + 500, get_executor("local", workers=2)
     serial_rng, pooled_rng = np.random.default_rng(3), np.random.default_rng(3)
@@ -89,13 +107,13 @@ def _printed(args: tuple[str, ...], workers: int, min_blocks: int) -> tuple[list
     """The lines ``pemviz run ARGS --workers W`` prints that do not say a time, and whether a pool started."""
     from pemviz import cli
 
-    saved, pool.POOL_MIN_BLOCKS = pool.POOL_MIN_BLOCKS, min_blocks
+    saved, resources.POOL_MIN_BLOCKS = resources.POOL_MIN_BLOCKS, min_blocks
     out = io.StringIO()
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
             assert cli.main(["run", "--no-record", *args, "--workers", str(workers)]) == 0
     finally:
-        pool.POOL_MIN_BLOCKS = saved
+        resources.POOL_MIN_BLOCKS = saved
     ex = get_executor("local", workers=workers)
     started = bool(getattr(ex, "started", False))
     timed = re.compile(r"\d (s|ms|min)\b|wall s")
@@ -119,15 +137,28 @@ def test_crossing_plain_monte_carlo_prints_the_same_run_with_one_and_two_workers
 
 def test_a_braking_run_whose_final_stage_streams_prints_the_same_run_with_one_and_two_workers():
     args = ("--n-final", "40000", "--seed", "1")  # the default sampler; its final stage streams 5 blocks: the pool
-    one, _ = _printed(args, 1, pool.POOL_MIN_BLOCKS)
-    two, started = _printed(args, 2, pool.POOL_MIN_BLOCKS)
+    one, _ = _printed(args, 1, resources.POOL_MIN_BLOCKS)
+    two, started = _printed(args, 2, resources.POOL_MIN_BLOCKS)
     assert started and one == two
     assert any(ln.startswith("mu_hat = ") and "exact 1.984e-15" in ln for ln in one)
 
 
 def test_the_braking_default_run_never_starts_the_pool():
     close_executors()  # a fresh executor: whatever an earlier test started
-    two, started = _printed(("--seed", "0"), 2, pool.POOL_MIN_BLOCKS)  # pemviz run: braking, 2,100 rollouts
+    two, started = _printed(("--seed", "0"), 2, resources.POOL_MIN_BLOCKS)  # pemviz run: braking, 2,100 rollouts
     assert not started
-    assert two == _printed(("--seed", "0"), 1, pool.POOL_MIN_BLOCKS)[0]
+    assert two == _printed(("--seed", "0"), 1, resources.POOL_MIN_BLOCKS)[0]
     assert any("exact 4.670e-19" in ln for ln in two)
+
+
+def test_validate_runs_its_seeds_on_every_core_and_they_give_one_process_records():
+    from pemviz.cli import build_parser
+    from pemviz.studies.validation import methods_for, run_jobs, study_jobs
+
+    assert build_parser().parse_args(["validate"]).jobs is None  # None: every usable core
+    sizes = {"n_stages": 4, "ce_epochs": 150, "pretrain_epochs": 300}
+    jobs = study_jobs(["toy-1e-3"], methods_for(["paper"], ["mc"], sizes), 2)  # 2 methods x 2 seeds
+    one, two = run_jobs(jobs, 1), run_jobs(jobs, 2)
+    assert [(r.method, r.seed) for r in two] == [(j.method, j.seed) for j in jobs]
+    assert [(r.log_mu_hat, r.n_failures, r.n) for r in one] == [(r.log_mu_hat, r.n_failures, r.n) for r in two]
+    assert sum(r.n_failures for r in one) > 0

@@ -299,7 +299,7 @@ _EXECUTORS: dict[tuple[str, str | int | None], Executor] = {}
 
 def get_executor(name: str = "local", address: str | None = None, workers: int | None = None) -> Executor:
     """The executor called ``name`` (:data:`EXECUTORS`), made once per process and (name, address or workers):
-    ``local`` with ``workers`` processes (None: :func:`pemviz.engine.pool.usable_cores`; one: the ``serial``
+    ``local`` with ``workers`` processes (None: :func:`pemviz.engine.resources.usable_cpus`; one: the ``serial``
     executor).
 
     Raises:
@@ -309,11 +309,12 @@ def get_executor(name: str = "local", address: str | None = None, workers: int |
     if name not in EXECUTORS:
         raise ValueError(f"unknown executor {name!r}; use one of {', '.join(EXECUTORS)}")
     if name == "local":
-        from pemviz.engine.pool import LocalExecutor, usable_cores
+        from pemviz.engine.pool import LocalExecutor
+        from pemviz.engine.resources import usable_cpus
 
         if workers is not None and workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
-        workers = usable_cores() if workers is None else workers
+        workers = usable_cpus() if workers is None else workers
         name = "serial" if workers == 1 else name
     key = (name, address if name == "ray" else workers if name == "local" else None)
     ex = _EXECUTORS.get(key)

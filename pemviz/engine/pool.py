@@ -8,8 +8,9 @@ ahead, at most two per worker, and handed back in order. The pool is joblib's lo
 fork + exec, so a parent with threads, e.g. the panel's, is safe; a broken worker is detected and replaced; idle
 workers exit after :data:`IDLE_S` seconds). Measured on a 2-core machine (load ~2): starting 2 workers with pemviz
 imported takes 4.6 s with loky, 4.6 s with ``concurrent.futures`` spawn, 5.2 s forkserver, 0.6 s fork (unsafe in a
-process with threads), so the pool starts only for a batch of at least :data:`POOL_MIN_BLOCKS` blocks (a braking
-default run of 2,100 rollouts never starts it), at the first such batch, and then serves the rest of the run.
+process with threads), so the pool starts only for a batch of at least
+:data:`pemviz.engine.resources.POOL_MIN_BLOCKS` blocks (a braking default run of 2,100 rollouts never starts it), at
+the first such batch, and then serves the rest of the run.
 
 Ctrl-C and SIGTERM reach the run only: the workers ignore SIGINT, and the run's end (its result, Ctrl-C, SIGTERM)
 shuts the pool down (:func:`pemviz.engine.executors.close_executors`, also at exit), killing the workers; a streamed
@@ -21,10 +22,7 @@ from __future__ import annotations
 import atexit
 import collections
 import hashlib
-import math
-import os
 import signal
-from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
@@ -32,29 +30,12 @@ import numpy as np
 from pemviz.core.detectors import Detector
 from pemviz.core.rng import JUMPABLE, advance, block_bounds
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine import resources
+from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
 from pemviz.engine.executors import ChunkUniforms, check_draws, gather_chunks, simulate_blocks, task_blocks
 
-POOL_MIN_BLOCKS = 3
-"""The fewest blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts (more than 16,384 rollouts) a batch needs for the
-pool to simulate it: below, one process does (a worker's start costs seconds, a block of braking rollouts 0.5 s)."""
 IDLE_S = 120
 """Seconds an idle worker waits for work before it exits (a new one starts when work comes)."""
-
-
-def usable_cores(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
-    """The CPU cores this process may use: those of its affinity mask (``os.sched_getaffinity``, else ``os.cpu_count``),
-    at most the cgroup v2 CPU quota ``ceil(quota / period)`` of ``cpu_max`` where it sets one; at least 1."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    try:
-        quota, period = cpu_max.read_text().split()[:2]
-        if quota != "max" and int(period) > 0:
-            cores = min(cores, math.ceil(int(quota) / int(period)))
-    except (OSError, ValueError):
-        pass
-    return max(1, cores)
 
 
 _PROBLEMS: collections.OrderedDict[str, Any] = collections.OrderedDict()
@@ -116,11 +97,12 @@ def _ignore_interrupts() -> None:
 
 
 class LocalExecutor:
-    """Simulates batches of at least :data:`POOL_MIN_BLOCKS` blocks on ``workers`` processes (module docstring), any
-    other batch in this process; the rollouts do not depend on the workers.
+    """Simulates batches of at least :data:`pemviz.engine.resources.POOL_MIN_BLOCKS` blocks on ``workers`` processes
+    (module docstring), any other batch in this process; the rollouts do not depend on the workers.
 
     Args:
-        workers: worker processes (None: :func:`usable_cores`); 1 never starts a pool (the serial executor).
+        workers: worker processes (None: :func:`pemviz.engine.resources.usable_cpus`); 1 never starts a pool (the
+            serial executor).
     Raises:
         ValueError: ``workers`` below 1.
     """
@@ -130,23 +112,23 @@ class LocalExecutor:
     def __init__(self, workers: int | None = None) -> None:
         if workers is not None and workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
-        self.workers = usable_cores() if workers is None else int(workers)
+        self.workers = usable_cpus() if workers is None else int(workers)
         self.started = False
         """Whether a batch was big enough to start the pool."""
         self._pool: Any = None
 
     def pooled(self, n: int, rng: np.random.Generator) -> bool:
         """Whether a batch of ``n`` rollouts drawn from ``rng`` goes to the pool (else: this process)."""
-        return self.workers > 1 and len(block_bounds(n)) >= POOL_MIN_BLOCKS and isinstance(rng.bit_generator, JUMPABLE)
+        enough = len(block_bounds(n)) >= resources.POOL_MIN_BLOCKS
+        return self.workers > 1 and enough and isinstance(rng.bit_generator, JUMPABLE)
 
     def _executor(self) -> Any:
         from joblib.externals.loky import get_reusable_executor
 
         if self._pool is None:
             atexit.register(self.close)
-        one = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
         self._pool = get_reusable_executor(
-            max_workers=self.workers, timeout=IDLE_S, initializer=_ignore_interrupts, env=one
+            max_workers=self.workers, timeout=IDLE_S, initializer=_ignore_interrupts, env=dict(ONE_THREAD_ENV)
         )
         self.started = True
         return self._pool

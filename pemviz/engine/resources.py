@@ -5,8 +5,10 @@ the number instead of failing hours in."""
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
 from pemviz.config import ExperimentConfig
@@ -94,12 +96,38 @@ def check_run_memory(cfg: ExperimentConfig, n_steps: int, *, stream_above: int |
     return need
 
 
-def usable_cpus() -> int:
-    """CPUs this process may run on (its affinity mask, else ``os.cpu_count()``)."""
+def usable_cpus(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
+    """CPUs this process may use: those of its affinity mask (``os.sched_getaffinity``, else ``os.cpu_count()``), at
+    most the cgroup v2 CPU quota ``ceil(quota / period)`` that ``cpu_max`` sets, if any; at least 1."""
     try:
-        return len(os.sched_getaffinity(0)) or 1
+        cpus = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
-        return os.cpu_count() or 1
+        cpus = os.cpu_count() or 1
+    try:
+        quota, period = cpu_max.read_text().split()[:2]
+        if quota != "max" and int(period) > 0:
+            cpus = min(cpus, math.ceil(int(quota) / int(period)))
+    except (OSError, ValueError):
+        pass
+    return max(1, cpus)
+
+
+POOL_BLOCK = 8192
+"""The rollouts of a block the local executor hands a worker: :data:`pemviz.core.rng.RQMC_BLOCK` (a test keeps the two
+equal; this module imports no numpy)."""
+POOL_MIN_BLOCKS = 3
+"""The fewest blocks of :data:`POOL_BLOCK` rollouts (more than 16,384 rollouts) a batch needs for the local executor's
+pool to simulate it: below, one process does (a worker's start costs seconds, a block of braking rollouts 0.5 s)."""
+
+
+def pool_workers(config: ExperimentConfig, n: int) -> int:
+    """The processes that simulate a batch of ``n`` rollouts of a run of ``config``: its ``workers`` (None: every
+    :func:`usable_cpus`) with executor ``local`` and at least :data:`POOL_MIN_BLOCKS` blocks, else 1 (this process; a
+    Ray cluster's size is not known before it starts)."""
+    run = config.execution
+    if run.executor != "local" or -(-int(n) // POOL_BLOCK) < POOL_MIN_BLOCKS:
+        return 1
+    return run.workers if run.workers is not None else usable_cpus()
 
 
 LOAD_SAMPLES = 5
