@@ -160,10 +160,11 @@ def _seconds(text: str) -> float:
 
 def cores(cases: list[str], n: int, workers: str | None) -> None:
     """Time each case with the default workers (or ``workers``) and with ``--workers 1``, in fresh processes: wall,
-    the run's first time estimate, the peak memory of the run's process and of its largest worker, the load."""
+    CPU (the run's and its workers', user + system), the run's first time estimate, the peak memory of the run's
+    process and of its largest worker, the load."""
     print(f"{len(os.sched_getaffinity(0))} usable cores; load average before: {os.getloadavg()[0]:.2f}")
     print(
-        f"{'case':>17} {'workers':>8} {'wall s':>7} {'first est. s':>12} {'est/wall':>8} {'run MB':>7} "
+        f"{'case':>17} {'workers':>8} {'wall s':>7} {'cpu s':>7} {'first est. s':>12} {'est/wall':>8} {'run MB':>7} "
         f"{'worker MB':>9} {'workers':>7}  load (1, 5 min)"
     )
     for case in cases:
@@ -176,12 +177,14 @@ def cores(cases: list[str], n: int, workers: str | None) -> None:
             cmd += [] if w == "default" else ["--workers", w]
             peaks: dict[int, float] = {}
             done = threading.Event()
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
             proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             watch = threading.Thread(target=_peaks, args=(proc.pid, peaks, done), daemon=True)
             watch.start()
             out, err = proc.communicate()
             walls[w] = wall = time.perf_counter() - t0
+            c1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the run and its workers, reaped
+            cpu = c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime
             done.set()
             watch.join()
             tmp.cleanup()
@@ -193,8 +196,8 @@ def cores(cases: list[str], n: int, workers: str | None) -> None:
             worker_mb = max(peaks.values(), default=0.0)
             load = os.getloadavg()
             print(
-                f"{case:>17} {w:>8} {wall:>7.1f} {est:>12.1f} {est / wall:>8.2f} {run_mb:>7.0f} {worker_mb:>9.0f} "
-                f"{len(peaks):>7}  {load[0]:.2f} {load[1]:.2f}",
+                f"{case:>17} {w:>8} {wall:>7.1f} {cpu:>7.1f} {est:>12.1f} {est / wall:>8.2f} {run_mb:>7.0f} "
+                f"{worker_mb:>9.0f} {len(peaks):>7}  {load[0]:.2f} {load[1]:.2f}",
                 flush=True,
             )
         first_w = workers or "default"

@@ -9,6 +9,11 @@ import functools
 import io
 import os
 import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -162,3 +167,42 @@ def test_validate_runs_its_seeds_on_every_core_and_they_give_one_process_records
     assert [(r.method, r.seed) for r in two] == [(j.method, j.seed) for j in jobs]
     assert [(r.log_mu_hat, r.n_failures, r.n) for r in one] == [(r.log_mu_hat, r.n_failures, r.n) for r in two]
     assert sum(r.n_failures for r in one) > 0
+
+
+def _workers_of(pid: int) -> list[int]:
+    """The local executor's worker processes (``LokyProcess``) whose parent is ``pid``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            if entry.name.isdigit() and ppid == pid and b"LokyProcess" in (entry / "cmdline").read_bytes():
+                found.append(int(entry.name))
+        except (OSError, ValueError, IndexError):
+            continue
+    return found
+
+
+@pytest.mark.parametrize("how", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_and_sigterm_end_the_run_and_its_workers(how):
+    cmd = [sys.executable, "-m", "pemviz.cli", "run", "--no-record", "--method", "mc", "--n", "5000000"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        workers: list[int] = []
+        for _ in range(1200):  # until the pool's workers are up (a few seconds), at most about 2 minutes
+            workers = _workers_of(proc.pid)
+            if len(workers) == usable_cpus() or proc.poll() is not None:
+                break
+            time.sleep(0.1)
+        assert len(workers) == usable_cpus() > 1, "the run did not start its workers"
+        if how == "SIGINT":  # Ctrl-C in a terminal: the whole foreground group
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == (130 if how == "SIGINT" else 143)
+    assert f"interrupted ({'Ctrl-C' if how == 'SIGINT' else 'SIGTERM'}); 0 stage(s) finished" in err
+    assert "Traceback" not in err and "leaked" not in err
+    assert [pid for pid in workers if Path(f"/proc/{pid}").exists()] == []
