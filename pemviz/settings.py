@@ -358,8 +358,8 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("batched", "all rollouts advanced together in numpy"))),
     Setting("executor", "the executor", "where rollouts are simulated; a seed gives the same rollouts and estimate, "
             "bit for bit", kind="choice", choices=EXECUTORS, owner=RUN, flags=("--executor",),
-            choice_help=(("local", "worker processes on this machine (--workers) for batches of 3 blocks of 8192 or "
-                                   "more; smaller ones in this process"),
+            choice_help=(("local", "worker processes on this machine (--workers) for batches whose blocks of 8192 "
+                                   "rollouts pay for their start; smaller ones in this process"),
                          ("serial", "in this process"),
                          ("ray", "Ray tasks over blocks of rollouts; a batch of one block runs in this process"))),
     Setting("workers", "the workers", "the processes executor local simulates on (None: every usable core, the "

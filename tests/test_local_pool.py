@@ -60,14 +60,15 @@ def test_the_default_executor_is_local_with_every_usable_core_and_one_worker_is_
         ExperimentConfig.of(executor="serial", workers=2)
 
 
-def test_a_batch_goes_to_the_pool_only_from_three_blocks_and_with_a_jumpable_generator():
+def test_a_batch_goes_to_the_pool_only_from_two_blocks_that_pay_for_its_start():
     ex = LocalExecutor(2)
     rng = np.random.default_rng(0)
-    assert not ex.pooled(2100, rng)  # braking's default stages and final batch
-    assert not ex.pooled(2 * 8192, rng)
-    assert ex.pooled(2 * 8192 + 1, rng)
-    assert not ex.pooled(10**6, np.random.Generator(np.random.MT19937(0)))
-    assert not LocalExecutor(1).pooled(10**6, rng)
+    assert not ex.eligible(2100, rng)  # braking's default stages and final batch
+    assert not ex.eligible(8192, rng)
+    assert ex.eligible(8193, rng)
+    assert not ex.eligible(10**6, np.random.Generator(np.random.MT19937(0)))
+    assert not LocalExecutor(1).eligible(10**6, rng)
+    assert not ex._pays(10, 1.9) and ex._pays(10, 2.0)  # 20 CPU seconds left: resources.POOL_PAYS_S
 
 
 def test_the_first_time_estimate_divides_a_pooled_batch_s_simulation_by_the_workers_used():
@@ -78,9 +79,14 @@ def test_the_first_time_estimate_divides_a_pooled_batch_s_simulation_by_the_work
     assert POOL_BLOCK == RQMC_BLOCK
     one = ExperimentConfig.of(method="mc", workers=1)
     two = ExperimentConfig.of(method="mc", workers=2)
-    assert [pool_workers(two, n) for n in (2100, 2 * 8192, 2 * 8192 + 1)] == [1, 1, 2]
-    assert pool_workers(ExperimentConfig.of(executor="serial"), 10**6) == 1
-    assert pool_workers(ExperimentConfig.of(), 10**6) == usable_cpus()
+    assert [pool_workers(two, n, s) for n, s in ((2100, 99.0), (8192, 99.0), (8193, 19.9), (8193, 20.0))] == [
+        1,
+        1,
+        1,
+        2,
+    ]
+    assert pool_workers(ExperimentConfig.of(executor="serial"), 10**6, 99.0) == 1
+    assert pool_workers(ExperimentConfig.of(), 10**6, 99.0) == usable_cpus()
     a, b = (stage_cost(cfg, "final", 10**6, model="plain") for cfg in (one, two))
     assert b.simulate_s == pytest.approx(a.simulate_s / 2, rel=1e-12) and b.after_s == a.after_s
     small = [stage_cost(cfg, "final", 2100, model="plain").simulate_s for cfg in (one, two)]
@@ -91,7 +97,7 @@ def test_pooled_blocks_and_streamed_chunks_are_the_serial_rollouts_and_leave_the
     from pemviz.core.rollouts import RolloutBatch
     from pemviz.scenarios.problems import problem_for
 
-    monkeypatch.setattr(resources, "POOL_MIN_BLOCKS", 2)
+    monkeypatch.setattr(resources, "POOL_PAYS_S", 0.0)  # the pool after the first block, whatever it cost
     problem = problem_for(ExperimentConfig.of(scenario="crossing"))  # two pedestrians: K = 2 uniforms a rollout
     n, ex = 8192 + 500, get_executor("local", workers=2)
     serial_rng, pooled_rng = np.random.default_rng(3), np.random.default_rng(3)
@@ -108,17 +114,17 @@ def test_pooled_blocks_and_streamed_chunks_are_the_serial_rollouts_and_leave_the
 
 
 @functools.lru_cache(maxsize=None)
-def _printed(args: tuple[str, ...], workers: int, min_blocks: int) -> tuple[list[str], bool]:
+def _printed(args: tuple[str, ...], workers: int, pays_s: float) -> tuple[list[str], bool]:
     """The lines ``pemviz run ARGS --workers W`` prints that do not say a time, and whether a pool started."""
     from pemviz import cli
 
-    saved, resources.POOL_MIN_BLOCKS = resources.POOL_MIN_BLOCKS, min_blocks
+    saved, resources.POOL_PAYS_S = resources.POOL_PAYS_S, pays_s
     out = io.StringIO()
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
             assert cli.main(["run", "--no-record", *args, "--workers", str(workers)]) == 0
     finally:
-        resources.POOL_MIN_BLOCKS = saved
+        resources.POOL_PAYS_S = saved
     ex = get_executor("local", workers=workers)
     started = bool(getattr(ex, "started", False))
     timed = re.compile(r"\d (s|ms|min)\b|wall s")
@@ -133,8 +139,8 @@ CROSSING_MC = ("--scenario", "crossing", "--method", "mc", "--n", "9000", "--see
 @pytest.mark.parametrize("chunk", [None, "4000"], ids=["one-batch", "streamed"])
 def test_crossing_plain_monte_carlo_prints_the_same_run_with_one_and_two_workers(chunk):
     args = CROSSING_MC if chunk is None else (*CROSSING_MC, "--chunk", chunk)  # --chunk 4000: the stage streams
-    one, _ = _printed(args, 1, 2)
-    two, started = _printed(args, 2, 2)
+    one, _ = _printed(args, 1, 0.0)
+    two, started = _printed(args, 2, 0.0)
     assert started
     assert any(ln.startswith("mu_hat = ") and "reference" in ln for ln in one)
     assert one == two
@@ -142,17 +148,17 @@ def test_crossing_plain_monte_carlo_prints_the_same_run_with_one_and_two_workers
 
 def test_a_braking_run_whose_final_stage_streams_prints_the_same_run_with_one_and_two_workers():
     args = ("--n-final", "40000", "--seed", "1")  # the default sampler; its final stage streams 5 blocks: the pool
-    one, _ = _printed(args, 1, resources.POOL_MIN_BLOCKS)
-    two, started = _printed(args, 2, resources.POOL_MIN_BLOCKS)
+    one, _ = _printed(args, 1, 0.0)
+    two, started = _printed(args, 2, 0.0)  # the pool for the blocks after the first, whatever they cost
     assert started and one == two
     assert any(ln.startswith("mu_hat = ") and "exact 1.984e-15" in ln for ln in one)
 
 
 def test_the_braking_default_run_never_starts_the_pool():
     close_executors()  # a fresh executor: whatever an earlier test started
-    two, started = _printed(("--seed", "0"), 2, resources.POOL_MIN_BLOCKS)  # pemviz run: braking, 2,100 rollouts
+    two, started = _printed(("--seed", "0"), 2, resources.POOL_PAYS_S)  # pemviz run: braking, 2,100 rollouts
     assert not started
-    assert two == _printed(("--seed", "0"), 1, resources.POOL_MIN_BLOCKS)[0]
+    assert two == _printed(("--seed", "0"), 1, resources.POOL_PAYS_S)[0]
     assert any("exact 4.670e-19" in ln for ln in two)
 
 

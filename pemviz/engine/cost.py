@@ -159,7 +159,8 @@ def stage_cost(
     per_rollout *= SCENARIO_COST_FACTORS.get(cfg.scenario, 1.0)  # what the scenario declares (1: none)
     tilt = model == "look-ahead"
     rollouts = n * (c.ams_rollouts if kind == "ams" else c.tilt_rollouts if tilt else 1.0)
-    simulate = n_steps * (per_step + per_rollout * rollouts) / pool_workers(cfg, n)  # worker processes share a batch
+    simulate = n_steps * (per_step + per_rollout * rollouts)
+    simulate /= pool_workers(cfg, n, simulate)  # worker processes share a large batch
     simulate += c.tilt_solve_s if tilt and stage == 1 else 0.0
     cap = math.inf if cfg.adaptive.fit_rows is None else float(cfg.adaptive.fit_rows)
     inputs = cfg.adaptive.proposal_inputs

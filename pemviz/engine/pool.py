@@ -3,14 +3,16 @@ rollouts, bit for bit, as one process gives.
 
 A batch is cut into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts
 (:func:`pemviz.core.rng.block_bounds`) and each block is simulated from its slice of the serial uniform stream
-(:class:`pemviz.engine.executors.ChunkUniforms`), as the Ray executor does; a streamed stage's blocks are simulated
-ahead, at most two per worker, and handed back in order. The pool is joblib's loky executor (processes started by
-fork + exec, so a parent with threads, e.g. the panel's, is safe; a broken worker is detected and replaced; idle
-workers exit after :data:`IDLE_S` seconds). Measured on a 2-core machine (load ~2): starting 2 workers with pemviz
-imported takes 4.6 s with loky, 4.6 s with ``concurrent.futures`` spawn, 5.2 s forkserver, 0.6 s fork (unsafe in a
-process with threads), so the pool starts only for a batch of at least
-:data:`pemviz.engine.resources.POOL_MIN_BLOCKS` blocks (a braking default run of 2,100 rollouts never starts it), at
-the first such batch, and then serves the rest of the run.
+(:class:`pemviz.engine.executors.ChunkUniforms`), as the Ray executor does. The first block of a batch is simulated in
+this process and timed (CPU seconds); the pool starts when the blocks left would take at least
+:data:`pemviz.engine.resources.POOL_PAYS_S` seconds more (its workers' start costs about 4 s of CPU each), and once
+started takes every batch of two blocks or more: a streamed stage's blocks at most two per worker ahead, handed back in
+order. A batch of one block (a braking default run's 2,100 rollouts) never starts it.
+
+The pool is joblib's loky executor: processes started by fork + exec, so a parent with threads (the panel's) is safe;
+a broken worker is detected and replaced; idle workers exit after :data:`IDLE_S` seconds. Measured on a 2-core machine
+(load ~2): starting 2 workers with pemviz imported takes 4.6 s with loky, 4.6 s with ``concurrent.futures`` spawn,
+5.2 s forkserver, 0.6 s fork (unsafe in a process with threads, e.g. torch's or the panel's).
 
 Ctrl-C and SIGTERM reach the run only: the workers ignore SIGINT, and the run's end (its result, Ctrl-C, SIGTERM)
 shuts the pool down (:func:`pemviz.engine.executors.close_executors`, also at exit), killing the workers; a streamed
@@ -23,16 +25,17 @@ import atexit
 import collections
 import hashlib
 import signal
+import time
 from typing import Any, Iterator
 
 import numpy as np
 
 from pemviz.core.detectors import Detector
-from pemviz.core.rng import JUMPABLE, advance, block_bounds
+from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, block_bounds
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine import resources
 from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
-from pemviz.engine.executors import ChunkUniforms, check_draws, gather_chunks, simulate_blocks, task_blocks
+from pemviz.engine.executors import ChunkUniforms, check_draws, gather_chunks, simulate_blocks, simulate_chunk
 
 IDLE_S = 120
 """Seconds an idle worker waits for work before it exits (a new one starts when work comes)."""
@@ -97,8 +100,8 @@ def _ignore_interrupts() -> None:
 
 
 class LocalExecutor:
-    """Simulates batches of at least :data:`pemviz.engine.resources.POOL_MIN_BLOCKS` blocks on ``workers`` processes
-    (module docstring), any other batch in this process; the rollouts do not depend on the workers.
+    """Simulates the blocks of a large batch on ``workers`` processes where they pay for their start (module
+    docstring), the others in this process; the rollouts do not depend on the workers.
 
     Args:
         workers: worker processes (None: :func:`pemviz.engine.resources.usable_cpus`); 1 never starts a pool (the
@@ -117,10 +120,15 @@ class LocalExecutor:
         """Whether a batch was big enough to start the pool."""
         self._pool: Any = None
 
-    def pooled(self, n: int, rng: np.random.Generator) -> bool:
-        """Whether a batch of ``n`` rollouts drawn from ``rng`` goes to the pool (else: this process)."""
-        enough = len(block_bounds(n)) >= resources.POOL_MIN_BLOCKS
-        return self.workers > 1 and enough and isinstance(rng.bit_generator, JUMPABLE)
+    def eligible(self, n: int, rng: np.random.Generator) -> bool:
+        """Whether a batch of ``n`` rollouts drawn from ``rng`` may go to the pool: two blocks or more, more than one
+        worker, a generator that can jump (else: this process, as ``problem.simulate``)."""
+        return self.workers > 1 and n > RQMC_BLOCK and isinstance(rng.bit_generator, JUMPABLE)
+
+    def _pays(self, blocks_left: int, block_s: float) -> bool:
+        """Whether to hand the blocks left to the pool: it is started, or they take at least
+        :data:`pemviz.engine.resources.POOL_PAYS_S` CPU seconds at ``block_s`` a block."""
+        return self._pool is not None or blocks_left * block_s >= resources.POOL_PAYS_S
 
     def _executor(self) -> Any:
         from joblib.externals.loky import get_reusable_executor
@@ -144,24 +152,32 @@ class LocalExecutor:
         self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
     ) -> RolloutBatch:
         """The rollouts of ``problem.simulate(n, sampler, target, rng)`` [N, T], bit for bit, ``rng`` left where that
-        leaves it."""
-        if not self.pooled(n, rng):
+        leaves it: the first block here, timed, and the others in the pool where they pay for it (:meth:`_pays`)."""
+        if not self.eligible(n, rng):
             return problem.simulate(n, sampler, target, rng)
+        state, blocks = rng.bit_generator.state, block_bounds(n)
+        if self._pool is None:
+            t0 = time.thread_time()
+            first = [simulate_chunk(problem, n, *blocks[0], sampler, target, state)]
+            block_s, blocks = time.thread_time() - t0, blocks[1:]
+        else:
+            first, block_s = [], 0.0
+        if not self._pays(len(blocks), block_s):
+            rest = [simulate_chunk(problem, n, a, b, sampler, target, state) for a, b in blocks]
+            return gather_chunks(problem, n, rng, first + rest)
         import cloudpickle
 
         digest, blob = self._pickled(problem)
-        state = rng.bit_generator.state
         pool = self._executor()
-        futures = [
-            pool.submit(_task, digest, blob, n, blocks, sampler, target, state, False, None)
-            for blocks in task_blocks(n, self.workers)
-        ]
+        k = -(-len(blocks) // self.workers)
+        tasks = [blocks[i : i + k] for i in range(0, len(blocks), k)]
+        futures = [pool.submit(_task, digest, blob, n, part, sampler, target, state, False, None) for part in tasks]
         try:
             parts = [r for f in futures for r in cloudpickle.loads(f.result())]
         finally:
             for f in futures:
                 f.cancel()
-        return gather_chunks(problem, n, rng, parts)
+        return gather_chunks(problem, n, rng, first + parts)
 
     def stream(
         self,
@@ -175,33 +191,34 @@ class LocalExecutor:
     ) -> Iterator[RolloutBatch]:
         """The chunks of ``problem.stream(n, sampler, target, rng, ...)`` in order, each at most ``chunk_size`` rollouts
         (None: one block): the same rollouts, bit for bit; ``rng`` is left where the serial stream leaves it once the
-        last chunk is handed out."""
+        last chunk is handed out. The first block is simulated here and timed; the others here too, or in the pool,
+        at most two per worker ahead, where they pay for it (:meth:`_pays`)."""
         size: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
         if keep_rows is not None:
             size["keep_rows"] = keep_rows
-        if not self.pooled(n, rng):
+        if not self.eligible(n, rng):
             yield from problem.stream(n, sampler, target, rng, **size)
             return
         import cloudpickle
 
-        digest, blob = self._pickled(problem)
         state = rng.bit_generator.state
-        pool = self._executor()
-        todo = iter(block_bounds(n))
+        todo = collections.deque(block_bounds(n))
         pending: collections.deque[Any] = collections.deque()
-
-        def submit() -> None:
-            block = next(todo, None)
-            if block is not None:
-                pending.append(pool.submit(_task, digest, blob, n, [block], sampler, target, state, True, keep_rows))
-
-        for _ in range(2 * self.workers):
-            submit()
-        drawn = (0, 0)
+        drawn, pool, block_s, digest, blob = (0, 0), None, 0.0, "", b""
         try:
-            while pending:
-                result = cloudpickle.loads(pending.popleft().result())
-                submit()
+            while todo or pending:
+                if pool is None and todo and self._pays(len(todo), block_s):
+                    digest, blob = self._pickled(problem)
+                    pool = self._executor()
+                while pool is not None and todo and len(pending) < 2 * self.workers:
+                    block = [todo.popleft()]
+                    pending.append(pool.submit(_task, digest, blob, n, block, sampler, target, state, True, keep_rows))
+                if pending:
+                    result = cloudpickle.loads(pending.popleft().result())
+                else:  # in this process, timed: what the blocks left would cost
+                    t0 = time.thread_time()
+                    result = [_stream_block(problem, n, *todo.popleft(), sampler, target, state, keep_rows)]
+                    block_s = time.thread_time() - t0
                 drawn = check_draws(problem, result)
                 batch = result[0][0]
                 step = chunk_size or batch.n

@@ -115,17 +115,20 @@ def usable_cpus(cpu_max: Path = Path("/sys/fs/cgroup/cpu.max")) -> int:
 POOL_BLOCK = 8192
 """The rollouts of a block the local executor hands a worker: :data:`pemviz.core.rng.RQMC_BLOCK` (a test keeps the two
 equal; this module imports no numpy)."""
-POOL_MIN_BLOCKS = 3
-"""The fewest blocks of :data:`POOL_BLOCK` rollouts (more than 16,384 rollouts) a batch needs for the local executor's
-pool to simulate it: below, one process does (a worker's start costs seconds, a block of braking rollouts 0.5 s)."""
+POOL_PAYS_S = 20.0
+"""CPU seconds of simulation left in a batch from which the local executor starts its pool: a worker's start (Python,
+numpy, torch and pemviz imported) takes about 4 s of CPU (measured on 2 cores: 100,000 crossing rollouts took 16.1 s
+of CPU in one process and 24.0 s with 2 workers started for them). Once started, the pool takes every batch of two
+blocks or more."""
 
 
-def pool_workers(config: ExperimentConfig, n: int) -> int:
-    """The processes that simulate a batch of ``n`` rollouts of a run of ``config``: its ``workers`` (None: every
-    :func:`usable_cpus`) with executor ``local`` and at least :data:`POOL_MIN_BLOCKS` blocks, else 1 (this process; a
-    Ray cluster's size is not known before it starts)."""
+def pool_workers(config: ExperimentConfig, n: int, seconds: float) -> int:
+    """The processes that simulate a batch of ``n`` rollouts of a run of ``config`` that takes ``seconds`` in one
+    process: its ``workers`` (None: every :func:`usable_cpus`) with executor ``local``, at least two blocks of
+    :data:`POOL_BLOCK` and at least :data:`POOL_PAYS_S` seconds, else 1 (this process; a Ray cluster's size is not
+    known before it starts)."""
     run = config.execution
-    if run.executor != "local" or -(-int(n) // POOL_BLOCK) < POOL_MIN_BLOCKS:
+    if run.executor != "local" or n <= POOL_BLOCK or seconds < POOL_PAYS_S:
         return 1
     return run.workers if run.workers is not None else usable_cpus()
 
