@@ -22,6 +22,15 @@ wall (``perf_counter``) and CPU (user + system, ``RUSAGE_SELF``; the split by th
 the run is single-threaded); the load average is printed with each row: on a machine shared with other jobs compare
 the CPU ratios. The target (a million rollouts in minutes): at
 N >= 10^4 everything but simulation costs at most 2x the simulation time.
+
+``--cores`` times runs on every usable core (the default ``local`` executor) against ``--workers 1``, each in a fresh
+``pemviz run`` process: plain Monte Carlo of ``--cores-n`` rollouts on the crossing and the cut-in (200,000 by
+default: the issue asks 10^6, about 14 and 33 minutes a run with 1 worker on the 2-core machine at load 9-11),
+braking's default run (2,100 rollouts: the pool never starts), and with ``--cases crossing-save`` plain Monte Carlo
+streamed to a ``--save-rollouts`` file.
+Per run it prints wall and CPU seconds (the run's and its reaped workers', user + system), the run's first time
+estimate (its first ``run ~X left``), the peak resident memory (``VmHWM``) of the run's process and of its largest
+worker, and the load average; per case the wall ratio. Figures: docs/validation.md, "Every core".
 """
 
 from __future__ import annotations
@@ -172,7 +181,7 @@ def cores(cases: list[str], n: int, workers: str | None) -> None:
         walls = {}
         for w in (workers or "default", "1"):
             tmp = tempfile.TemporaryDirectory()
-            saved = [str(Path(tmp.name) / "rollouts.parquet")] if args[-1] == "--save-rollouts" else []
+            saved = [str(Path(tmp.name) / "rollouts.parquet")] if args[-1:] == ["--save-rollouts"] else []
             cmd = [sys.executable, "-m", "pemviz.cli", "run", "--no-record", *args, *saved]
             cmd += [] if w == "default" else ["--workers", w]
             peaks: dict[int, float] = {}
