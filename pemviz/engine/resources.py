@@ -116,10 +116,10 @@ POOL_BLOCK = 8192
 """The rollouts of a block the local executor hands a worker: :data:`pemviz.core.rng.RQMC_BLOCK` (a test keeps the two
 equal; this module imports no numpy)."""
 POOL_PAYS_S = 20.0
-"""CPU seconds of simulation left in a batch from which the local executor starts its pool: a worker's start (Python,
-numpy, torch and pemviz imported) takes about 4 s of CPU (measured on 2 cores: 100,000 crossing rollouts took 16.1 s
-of CPU in one process and 24.0 s with 2 workers started for them). Once started, the pool takes every batch of two
-blocks or more."""
+"""CPU seconds of simulation left in a batch from which the local executor starts its pool: the pool costs CPU, a
+worker's start (about 1.5 s) and each block's own stream and transfer (measured on 2 cores: 100,000 crossing rollouts
+took 16.1 s of CPU in one process and 24.0 s with 2 workers started for them). Once started, the pool takes every
+batch of two blocks or more."""
 
 
 def pool_workers(config: ExperimentConfig, n: int, seconds: float) -> int:
