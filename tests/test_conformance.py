@@ -117,7 +117,8 @@ def test_the_user_guide_s_kit_examples_run_as_written(capsys):
         "scenario braking: 7 checks passed (schema, problem, determinism, twin, drawing, rollout-file, " "recording)"
     )
     assert out[1] == "estimator adaptive: 5 checks passed (interface, unbiased, verdicts, rollout-file, recording)"
-    assert out[2].startswith("scenario short-toy: 6 checks passed") and len(out) == 4
+    assert len(out) == 4
+    assert out[2].startswith("scenario short-toy: 7 checks passed (schema, problem, determinism, features,")
     assert out[3] == "  skipped drawing: the problem has no drawing object: only its signals are drawn"
 
 

@@ -102,7 +102,7 @@ COST = CostConstants(
     tilt_rollouts=2.7,
     tilt_solve_s=2.5,
     measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
-    "tilt_rollouts and tilt_solve_s from per-rollout CPU seconds against the cut-in's plain rollouts in the same "
+    "tilt_rollouts and tilt_solve_s from per-rollout CPU seconds against a scene's plain rollouts in the same "
     "process (2026-11-29, benchmarks/calibrate_cost.py --tilt: a tilted rollout 2.5-3.0 plain ones, its weights "
     "0.3-0.4 of them; a fresh process's solve 2.4-2.6 model seconds)",
 )
@@ -253,7 +253,8 @@ def follow_on(cfg: ExperimentConfig, plan: RunPlan, problem: Any = None) -> Foll
     (its method has no :attr:`~pemviz.methods.Method.then_most`, or it is 0). With ``problem`` (a
     :class:`~pemviz.core.problems.Problem` or the run's :class:`~pemviz.engine.events.RunStarted`), what its method
     would draw on that scene (:attr:`~pemviz.methods.Method.then_drawn`, where it has one): e.g. no plain rollouts
-    where they could decide nothing (braking at ``--margin 0``, :func:`pemviz.estimators.fallback.plain_cannot_decide`).
+    where they could decide nothing (e.g. braking at ``--margin 0``,
+    :func:`pemviz.estimators.fallback.plain_cannot_decide`).
     """
     from pemviz.methods import method_or_none, resolve
 

@@ -309,8 +309,11 @@ def get_executor(name: str = "local", address: str | None = None, workers: int |
     if name not in EXECUTORS:
         raise ValueError(f"unknown executor {name!r}; use one of {', '.join(EXECUTORS)}")
     if name == "local":
-        from pemviz.engine.pool import LocalExecutor
         from pemviz.engine.resources import usable_cpus
+        from pemviz.plugins import resolve
+
+        # named by text: the pool is built on this module's blocks (pool -> executors, never back at import)
+        local_executor = resolve("pemviz.engine.pool:LocalExecutor")
 
         if workers is not None and workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
@@ -320,7 +323,7 @@ def get_executor(name: str = "local", address: str | None = None, workers: int |
     ex = _EXECUTORS.get(key)
     if ex is None or (name == "ray" and not ex._ray.is_initialized()):  # type: ignore[attr-defined]
         if name == "local":
-            ex = LocalExecutor(workers)
+            ex = local_executor(workers)
         else:
             ex = SerialExecutor() if name == "serial" else RayExecutor(address)
         _EXECUTORS[key] = ex

@@ -7,8 +7,8 @@ A batch is cut into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollo
 this process and timed (CPU seconds); the pool starts when the blocks left would take at least
 :data:`pemviz.engine.resources.POOL_PAYS_S` seconds more (a worker's start costs about 1.5 s of CPU, each block
 about half its own simulation), and once started takes every batch of two blocks or more: a streamed stage's blocks at
-most two per worker ahead, handed back in order. A batch of one block (a braking default run's 2,100 rollouts) never
-starts it.
+most two per worker ahead, handed back in order. A batch of one block (e.g. a braking default run's 2,100 rollouts)
+never starts it.
 
 The pool is joblib's loky executor: processes started by fork + exec, so a parent with threads (the panel's) is safe;
 a broken worker is detected and replaced; idle workers exit after :data:`IDLE_S` seconds. Measured on a 2-core machine
@@ -121,10 +121,17 @@ class LocalExecutor:
         """Whether a batch was big enough to start the pool."""
         self._pool: Any = None
 
-    def eligible(self, n: int, rng: np.random.Generator) -> bool:
-        """Whether a batch of ``n`` rollouts drawn from ``rng`` may go to the pool: two blocks or more, more than one
-        worker, a generator that can jump (else: this process, as ``problem.simulate``)."""
-        return self.workers > 1 and n > RQMC_BLOCK and isinstance(rng.bit_generator, JUMPABLE)
+    def eligible(self, n: int, rng: np.random.Generator, problem: Any = None) -> bool:
+        """Whether a batch of ``n`` rollouts of ``problem`` drawn from ``rng`` may go to the pool: two blocks or more,
+        more than one worker, a generator that can jump, and a problem whose rollouts draw only their steps' uniforms
+        (not one over an operating design domain, which draws every rollout's parameters first); else this process,
+        as ``problem.simulate``."""
+        return (
+            self.workers > 1
+            and n > RQMC_BLOCK
+            and isinstance(rng.bit_generator, JUMPABLE)
+            and getattr(problem, "odd", None) is None
+        )
 
     def _pays(self, blocks_left: int, block_s: float) -> bool:
         """Whether to hand the blocks left to the pool: it is started, or they take at least
@@ -154,7 +161,7 @@ class LocalExecutor:
     ) -> RolloutBatch:
         """The rollouts of ``problem.simulate(n, sampler, target, rng)`` [N, T], bit for bit, ``rng`` left where that
         leaves it: the first block here, timed, and the others in the pool where they pay for it (:meth:`_pays`)."""
-        if not self.eligible(n, rng):
+        if not self.eligible(n, rng, problem):
             return problem.simulate(n, sampler, target, rng)
         state, blocks = rng.bit_generator.state, block_bounds(n)
         if self._pool is None:
@@ -197,7 +204,7 @@ class LocalExecutor:
         size: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
         if keep_rows is not None:
             size["keep_rows"] = keep_rows
-        if not self.eligible(n, rng):
+        if not self.eligible(n, rng, problem):
             yield from problem.stream(n, sampler, target, rng, **size)
             return
         import cloudpickle

@@ -211,7 +211,7 @@ PROBE_PIECES = 400
 simulation step of a batch does)."""
 PROBE_REFERENCE_CPU_S = 0.0236
 """The CPU seconds of :data:`PROBE_PIECES` pieces at the speed the cost model's constants hold
-(:data:`pemviz.engine.cost.COST`): 200 pieces' CPU seconds beside default braking and plain cut-in runs, divided by
+(:data:`pemviz.engine.cost.COST`): 200 pieces' CPU seconds beside other runs (e.g. braking and cut-in ones), divided by
 those runs' CPU seconds over the model's (32-48 ms at 3.0-3.9 times the model's on 2 loaded cores, 2026-11-29:
 10.4-13.5 ms, the median 11.8 ms per 200)."""
 

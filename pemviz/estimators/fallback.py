@@ -151,8 +151,8 @@ def plain_cannot_decide(cap: int, stated: tuple[float, str] | None, require: str
 
 def retry_refused(problem: Any) -> str | None:
     """Why the stages of a run on ``problem`` are never run once more, or None where they may be: the scene caps the
-    verdict of every run of its stages below ``reliable`` (:attr:`~pemviz.core.problems.Problem.verdict_cap`, e.g.
-    braking at ``--margin 0``), so the retry's interval could not be backed either. ``problem``: a
+    verdict of every run of its stages below ``reliable`` (:attr:`~pemviz.core.problems.Problem.verdict_cap`),
+    e.g. braking at ``--margin 0``, so the retry's interval could not be backed either. ``problem``: a
     :class:`~pemviz.core.problems.Problem`, or anything with its ``verdict_cap`` (the run's
     :class:`~pemviz.engine.events.RunStarted`)."""
     capped = getattr(problem, "verdict_cap", None)

@@ -86,7 +86,8 @@ def reports_state(problem: Problem) -> bool:
     """Whether ``problem``'s simulator reports state features (its :attr:`Problem.features` replays some)."""
     if problem.features is None:
         return False
-    empty = RolloutBatch(np.zeros((0, 1, 0)), np.zeros((0, 1, 1), bool), np.zeros((0, 1)), np.zeros((0, 1)), ())
+    no_rollout = np.zeros((0, 1))  # no rollout of one step
+    empty = RolloutBatch(no_rollout[..., None][..., :0], no_rollout[..., None] > 0, no_rollout, no_rollout, ())
     try:
         return problem.features(empty, None) is not None
     except ValueError:  # a simulator of several objects replayed as one: its features exist
