@@ -5,6 +5,8 @@ peak memory and recording size, for N = 10^2 .. 10^5 rollouts per stage (default
     python benchmarks/scale.py --n 100 10000 --check    # exit 1 if at N = 10,000 (other + fit) / simulation > 1
     python benchmarks/scale.py --n 100 1000 --record    # also write a recording and report its size
     python benchmarks/scale.py --args --preset paper    # extra ExperimentConfig settings via pemviz run flags
+    python benchmarks/scale.py --cores                  # every core (the default) against --workers 1
+    python benchmarks/scale.py --cores --cores-n 1000000 --cases crossing cut-in braking
 
 Besides the table, one line per N gives the two ratios to watch: (other + fit) / simulation (what the sampler costs
 beyond simulating; at most 1.0 at N = 10,000), and the experiment's simulation cost per rollout against the pure
@@ -20,6 +22,15 @@ wall (``perf_counter``) and CPU (user + system, ``RUSAGE_SELF``; the split by th
 the run is single-threaded); the load average is printed with each row: on a machine shared with other jobs compare
 the CPU ratios. The target (a million rollouts in minutes): at
 N >= 10^4 everything but simulation costs at most 2x the simulation time.
+
+``--cores`` times runs on every usable core (the default ``local`` executor) against ``--workers 1``, each in a fresh
+``pemviz run`` process: plain Monte Carlo of ``--cores-n`` rollouts on the crossing and the cut-in (200,000 by
+default: the issue asks 10^6, about 14 and 33 minutes a run with 1 worker on the 2-core machine at load 9-11),
+braking's default run (2,100 rollouts: the pool never starts), and with ``--cases crossing-save`` plain Monte Carlo
+streamed to a ``--save-rollouts`` file.
+Per run it prints wall and CPU seconds (the run's and its reaped workers', user + system), the run's first time
+estimate (its first ``run ~X left``), the peak resident memory (``VmHWM``) of the run's process and of its largest
+worker, and the load average; per case the wall ratio. Figures: docs/validation.md, "Every core".
 """
 
 from __future__ import annotations
@@ -32,6 +43,8 @@ import subprocess
 import sys
 import tempfile
 import time
+import re
+import threading
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -118,6 +131,88 @@ def _pure_twin_us(n: int) -> tuple[float, float]:
     return best / m * 1e6, best_cpu / m * 1e6
 
 
+CORES_CASES = {
+    "crossing": ("--scenario", "crossing", "--method", "mc"),
+    "cut-in": ("--scenario", "cut-in", "--method", "mc"),
+    "braking": (),  # the default run: 2,100 rollouts, never the pool
+    "crossing-default": ("--scenario", "crossing"),  # its stages, then plain Monte Carlo
+    "crossing-save": ("--scenario", "crossing", "--method", "mc", "--save-rollouts"),  # streamed to a Parquet file
+}
+"""``--cores``: the runs timed with the default workers and with ``--workers 1``; the plain Monte Carlo ones at
+``--cores-n`` rollouts."""
+
+
+def _peaks(pid: int, peaks: dict[int, float], done: threading.Event) -> None:
+    """Every 0.2 s until ``done``: the peak resident memory (``VmHWM``, MB) of ``pid`` and of each of its local
+    executor's workers (children named ``LokyProcess``), into ``peaks``."""
+    while not done.wait(0.2):
+        for entry in Path("/proc").iterdir():
+            if not entry.name.isdigit():
+                continue
+            try:
+                stat = (entry / "stat").read_text()
+                ppid = int(stat.rsplit(")", 1)[1].split()[1])
+                worker = ppid == pid and b"LokyProcess" in (entry / "cmdline").read_bytes()
+                if int(entry.name) != pid and not worker:
+                    continue
+                hwm = re.search(r"VmHWM:\s+(\d+) kB", (entry / "status").read_text())
+            except (OSError, ValueError, IndexError):
+                continue
+            if hwm:
+                peaks[int(entry.name)] = max(peaks.get(int(entry.name), 0.0), int(hwm.group(1)) / 1024)
+
+
+def _seconds(text: str) -> float:
+    value, unit = text.split()
+    return float(value) * {"s": 1.0, "min": 60.0, "h": 3600.0}[unit]
+
+
+def cores(cases: list[str], n: int, workers: str | None) -> None:
+    """Time each case with the default workers (or ``workers``) and with ``--workers 1``, in fresh processes: wall,
+    CPU (the run's and its workers', user + system), the run's first time estimate, the peak memory of the run's
+    process and of its largest worker, the load."""
+    print(f"{len(os.sched_getaffinity(0))} usable cores; load average before: {os.getloadavg()[0]:.2f}")
+    print(
+        f"{'case':>17} {'workers':>8} {'wall s':>7} {'cpu s':>7} {'first est. s':>12} {'est/wall':>8} {'run MB':>7} "
+        f"{'worker MB':>9} {'workers':>7}  load (1, 5 min)"
+    )
+    for case in cases:
+        args = [*(["--n", str(n)] if "mc" in CORES_CASES[case] else []), *CORES_CASES[case]]
+        walls = {}
+        for w in (workers or "default", "1"):
+            tmp = tempfile.TemporaryDirectory()
+            saved = [str(Path(tmp.name) / "rollouts.parquet")] if args[-1:] == ["--save-rollouts"] else []
+            cmd = [sys.executable, "-m", "pemviz.cli", "run", "--no-record", *args, *saved]
+            cmd += [] if w == "default" else ["--workers", w]
+            peaks: dict[int, float] = {}
+            done = threading.Event()
+            t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
+            proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            watch = threading.Thread(target=_peaks, args=(proc.pid, peaks, done), daemon=True)
+            watch.start()
+            out, err = proc.communicate()
+            walls[w] = wall = time.perf_counter() - t0
+            c1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the run and its workers, reaped
+            cpu = c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime
+            done.set()
+            watch.join()
+            tmp.cleanup()
+            if proc.returncode != 0:
+                raise SystemExit(f"{case} --workers {w} failed:\n{err[-3000:]}")
+            first = re.search(r"run ~([\d.]+ (?:s|min|h)) left", err)
+            est = _seconds(first.group(1)) if first else float("nan")
+            run_mb = peaks.pop(proc.pid, float("nan"))
+            worker_mb = max(peaks.values(), default=0.0)
+            load = os.getloadavg()
+            print(
+                f"{case:>17} {w:>8} {wall:>7.1f} {cpu:>7.1f} {est:>12.1f} {est / wall:>8.2f} {run_mb:>7.0f} "
+                f"{worker_mb:>9.0f} {len(peaks):>7}  {load[0]:.2f} {load[1]:.2f}",
+                flush=True,
+            )
+        first_w = workers or "default"
+        print(f"{case:>17}: wall with {first_w} workers / with 1 = {walls[first_w] / walls['1']:.2f}", flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, nargs="+", default=[100, 1000, 10_000, 100_000], help="rollouts per stage")
@@ -129,9 +224,16 @@ def main() -> int:
         action="store_true",
         help=f"exit 1 if at N = {CHECK_N:,} (other + fit) / simulation exceeds {CHECK_RATIO}",
     )
+    ap.add_argument("--cores", action="store_true", help="time every core against --workers 1 instead (see --cases)")
+    ap.add_argument("--cases", nargs="+", default=["crossing", "cut-in", "braking"], choices=sorted(CORES_CASES))
+    ap.add_argument("--cores-n", type=int, default=200_000, help="--cores: plain Monte Carlo's rollouts")
+    ap.add_argument("--workers", default=None, help="--cores: the workers compared with 1 (default: every core)")
     args = ap.parse_args()
     if args.child is not None:
         _child(args.child)
+        return 0
+    if args.cores:
+        cores(args.cases, args.cores_n, args.workers)
         return 0
     os.environ.setdefault("RERUN_ANALYTICS", "false")
     print(f"{os.cpu_count()} cores; times in seconds, per simulation in microseconds")

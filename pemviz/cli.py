@@ -120,6 +120,10 @@ def main(argv: list[str] | None = None) -> int:
         if argv is None:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            executors = sys.modules.get("pemviz.engine.executors")  # os._exit skips atexit: kill the pool's workers
+            if executors is not None:
+                executors.close_executors()
+                __import__("multiprocessing.util").util._run_finalizers(0)  # what atexit does: its semaphores freed
         elif previous is not None:
             signal.signal(signal.SIGTERM, previous)
     if argv is None:

@@ -71,6 +71,8 @@ class Execution:
 
     Attributes:
     executor: where rollouts are simulated, one of :data:`EXECUTORS`.
+    workers: the worker processes of ``executor="local"`` (None: every usable core,
+        :func:`pemviz.engine.resources.usable_cpus`; 1: this process, as ``serial``).
     ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
     chunk_rollouts: None (serial stages above :data:`pemviz.engine.experiment.STREAM_ABOVE` rollouts stream
         in chunks of :data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`) or the most rollouts simulated and scored at a
@@ -79,7 +81,8 @@ class Execution:
         couples fixed blocks, whatever the chunks).
     """
 
-    executor: str = "serial"
+    executor: str = "local"
+    workers: int | None = None
     ray_address: str | None = None
     chunk_rollouts: int | None = None
 
@@ -266,6 +269,7 @@ class ExperimentConfig:
         )
         run, ce, stop = self.execution, self.adaptive, self.stop
         need(run.ray_address is None or run.executor == "ray", "ray_address", "give it only with executor = 'ray'")
+        need(run.workers is None or run.executor == "local", "workers", "give it only with executor = 'local'")
         need(
             self.scenario == "braking" or self.sim == "batched",
             "scenario",

@@ -70,9 +70,10 @@ def scenario_names() -> tuple[str, ...]:
     return (*SCENARIOS, *(n for n in REGISTERED_SCENARIOS if n not in SCENARIOS))
 
 
-EXECUTORS = ("serial", "ray")
-"""Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``serial`` in this
-process, ``ray`` as Ray tasks on a local or remote cluster; the same seed gives the same rollouts and estimate, bit for
+EXECUTORS = ("local", "serial", "ray")
+"""Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``local`` in worker processes on this
+machine (every usable core, or ``workers``), ``serial`` in this process, ``ray`` as Ray tasks on a local or remote
+cluster; the same seed gives the same rollouts and estimate, bit for
 bit (:mod:`pemviz.engine.executors`)."""
 
 WEIGHT_MODES = ("frozen", "recomputed")
@@ -362,8 +363,13 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("batched", "all rollouts advanced together in numpy"))),
     Setting("executor", "the executor", "where rollouts are simulated; a seed gives the same rollouts and estimate, "
             "bit for bit", kind="choice", choices=EXECUTORS, owner=RUN, flags=("--executor",),
-            choice_help=(("serial", "in this process"),
+            choice_help=(("local", "worker processes on this machine (--workers) for batches whose blocks of 8192 "
+                                   "rollouts pay for their start; smaller ones in this process"),
+                         ("serial", "in this process"),
                          ("ray", "Ray tasks over blocks of rollouts; a batch of one block runs in this process"))),
+    Setting("workers", "the workers", "the processes executor local simulates on (None: every usable core, the "
+            "affinity mask and cgroup quota's; 1: this process only); a seed gives the same rollouts and estimate, bit "
+            "for bit", kind="int", lo=1, optional=True, owner=RUN, flags=("--workers",)),
     Setting("ray_address", "the Ray cluster", "the cluster that executor ray uses", kind="text",
             text_words="a Ray address, e.g. ray://host:10001", optional=True, owner=RUN, flags=("--ray-address",)),
     Setting("chunk_rollouts", "the chunk size", "the most rollouts simulated and scored at a time: a serial stage of "

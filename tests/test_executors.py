@@ -104,10 +104,10 @@ def test_a_simulator_that_does_not_draw_once_per_step_is_refused_with_a_clear_er
         ChunkUniforms(state, 6, 0, 3).integers(2)
 
 
-def test_config_accepts_serial_and_ray_and_refuses_others():
-    assert ExperimentConfig.of().execution.executor == "serial"
+def test_config_accepts_local_serial_and_ray_and_refuses_others():
+    assert ExperimentConfig.of().execution.executor == "local"
     assert ExperimentConfig.of(executor="ray", ray_address="auto").execution.ray_address == "auto"
-    with pytest.raises(ConfigError, match="executor = 'dask' is invalid: use one of serial, ray"):
+    with pytest.raises(ConfigError, match="executor = 'dask' is invalid: use one of local, serial, ray"):
         ExperimentConfig.of(executor="dask")
     with pytest.raises(ConfigError, match="ray_address"):
         ExperimentConfig.of(ray_address="auto")
@@ -122,7 +122,7 @@ def test_run_command_passes_executor_and_ray_address_to_the_config():
     args = build_parser().parse_args(["run", "--executor", "ray", "--ray-address", "ray://head:10001"])
     cfg = config_from_args(args)
     assert (cfg.execution.executor, cfg.execution.ray_address) == ("ray", "ray://head:10001")
-    assert config_from_args(build_parser().parse_args(["run"])).execution.executor == "serial"
+    assert config_from_args(build_parser().parse_args(["run"])).execution.executor == "local"
 
 
 def _run(config: ExperimentConfig, problem: Problem):

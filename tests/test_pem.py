@@ -17,7 +17,7 @@ from pemviz.pem.modules import MLNN
 from pemviz.pem.network import PemFormatError
 from pemviz.pem.recipes import BEST_PEM_NAME
 from pemviz.pem.store import ASSETS_DIR_ENV, load_reference_pem, pem_path, reference_pem_dir
-from pemviz.pem.training import train_pem
+from pemviz.pem.training import PemRecipe, train_pem
 from pemviz.pem.trees import export_hist_gradient_boosting
 from pemviz.core.files import repo_root
 from pemviz.io import data
@@ -241,9 +241,7 @@ def test_training_is_seeded_and_learns_a_known_logistic_dependence_on_distance()
     )
     p_true = 1 / (1 + np.exp(-(4 - 0.08 * z)))
     y = (rng.uniform(size=n) < p_true).astype(float)
-    a = train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=7)
-    b = train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=7)
-    c = train_pem(raw, y, epochs=20, batch_size=512, lr=3e-3, seed=8)
+    a, b, c = (train_pem(PemRecipe("t", "", epochs=20, batch_size=512, lr=3e-3, seed=s), raw, y) for s in (7, 7, 8))
     assert np.array_equal(a.logit(raw), b.logit(raw))
     assert not np.array_equal(a.logit(raw), c.logit(raw))
     # Within 0.05 of the truth at the bulk of the data, and its BCE close to the true model's.
@@ -257,7 +255,7 @@ def test_training_is_seeded_and_learns_a_known_logistic_dependence_on_distance()
 def test_train_rejects_labels_outside_0_1() -> None:
     raw = pem.braking_salient_inputs(np.arange(4.0))
     with pytest.raises(ValueError, match="0 or 1"):
-        train_pem(raw, np.array([0, 1, 2, 1]), epochs=1)
+        train_pem(PemRecipe("t", "", epochs=1), raw, np.array([0, 1, 2, 1]))
 
 
 # ------------------------------------------------------------------------------ shipped weights (issue 3)

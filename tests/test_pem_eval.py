@@ -24,8 +24,8 @@ from pemviz.studies.pem_eval import (
     reliability_curve,
     score,
     stratified_folds,
-    write_recording,
 )
+from pemviz.studies.pem_eval_recording import write_recording
 
 SHARED_DATA = repo_root().parent / "shared" / "data" / "kitti-salient"
 QUICK = EvalConfig(folds=(0,), mlnn_epochs=20, gbt_trees=60, bnn_steps=200, bnn_samples=100)

@@ -19,7 +19,15 @@ from pemviz.pem.camera import KITTI_FOCAL_PX, box_errors_to_metric
 from pemviz.pem.encoding import NormStats
 from pemviz.pem.modules import MLNN, NoiseNLL
 from pemviz.pem.network import PemFormatError
-from pemviz.pem.noise import HomoscedasticNoise, NoisePEM, fit_homoscedastic, nll, noise_training_data, train_noise_pem
+from pemviz.pem.noise import (
+    HomoscedasticNoise,
+    NoisePEM,
+    NoiseRecipe,
+    fit_homoscedastic,
+    nll,
+    noise_training_data,
+    train_noise_pem,
+)
 from pemviz.pem.recipes import NOISE_RECIPES
 from pemviz.pem.store import noise_pem_path, save_noise_pem
 from pemviz.cli import main as cli_main
@@ -252,7 +260,7 @@ def test_fit_on_synthetic_data_beats_the_baseline_and_nears_the_true_model(synth
 
 def test_training_is_reproducible_with_a_seed() -> None:
     raw, errors, _ = _synthetic(2000, 5)
-    a, b, c = (train_noise_pem(raw, errors, epochs=2, norm=NORM, seed=s) for s in (3, 3, 4))
+    a, b, c = (train_noise_pem(NoiseRecipe("t", "", epochs=2, seed=s), raw, errors, norm=NORM) for s in (3, 3, 4))
     for key, value in a.state_dict.items():
         np.testing.assert_array_equal(value, b.state_dict[key], strict=True)
     assert not all(np.array_equal(v, c.state_dict[k]) for k, v in a.state_dict.items())

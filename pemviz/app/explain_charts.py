@@ -10,7 +10,7 @@ far from the rest are drawn at the edge, ringed, and counted in the caption belo
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import viser
@@ -155,6 +155,75 @@ def _at(values: np.ndarray, step: int | None) -> np.ndarray:
     return out
 
 
+class _Frame(NamedTuple):
+    """What every chart of :func:`fill_object_plots` shares: times (s), the marked step, the title, the missed steps,
+    the failure step and its series, the time axis."""
+
+    t: np.ndarray
+    i: int
+    title: str
+    missed: np.ndarray
+    fail: int | None
+    failure_series: list[up.Series]
+    x_scale: up.Scale
+
+
+def _fill_track_chart(
+    plot: viser.GuiUplotHandle,
+    frame: _Frame,
+    what: str,
+    unit_label: str,
+    truth: np.ndarray,
+    track: np.ndarray,
+    measured: np.ndarray,
+    levels: list[tuple[str, float, tuple[int, ...]]],
+    at_least: tuple[float, float],
+) -> None:
+    """One of :func:`fill_object_plots`' track charts: the truth, the tracker's estimate, the measurements, the
+    misses, the ``levels`` (label, value, colour: dashed lines) and the failure and ``frame.i`` markers."""
+    t, i, title, missed, fail, failure_series, x_scale = frame
+    dots: up.Series = {"width": 0}
+    values = [truth, track, measured]
+    rng = robust_range(
+        np.concatenate(values),
+        **TRACK_RULE,
+        at_least=(min(at_least[0], *(v for _, v, _ in levels)), max(at_least[1], *(v for _, v, _ in levels))),
+    )
+    drawn = [rng.drawn(v) for v in values]
+    extra_series, extra_data = off_scale_series(t, rng, values)
+    set_chart(
+        plot,
+        f"car 0's {what}",
+        f"{title}: the truth, the detector's measurements and the tracker's estimate"
+        f"{rng.note('value', '.1f', ' m')}",
+    )
+    plot.series = (
+        up.Series(label="t (s)"),
+        up.Series(label="truth", stroke=hex_colour(BLACK), width=2),
+        up.Series(label="measured (detected)", stroke=css(BLUE), points=_points(BLUE, 4), **dots),
+        up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **dots),
+        up.Series(label="tracker (confirmed track)", stroke=css(VIOLET), width=2),  # over the dots
+        *(up.Series(label=label, stroke=css(colour), width=1.5, dash=(6, 4)) for label, _, colour in levels),
+        *failure_series,
+        *extra_series,
+        up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots),  # the last series
+    )
+    plot.data = (
+        t,
+        drawn[0],
+        drawn[2],
+        np.where(missed, drawn[0], np.nan),
+        drawn[1],
+        *(np.full(t.size, v) for _, v, _ in levels),
+        *([_at(drawn[0], fail)] if failure_series else []),
+        *extra_data,
+        _at(drawn[0], i),
+    )
+    plot.scales = {"x": x_scale, "y": up.Scale(auto=False, range=rng.range)}
+    plot.axes = axes("time (s)", unit_label)
+    show_chart(plot, True)
+
+
 def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int, title: str) -> None:
     """Draw object 0 of ``ox`` (:class:`pemviz.app.objects_view.ObjectsExplanation` with a story, e.g. the car that
     cuts in) in the charts of :func:`object_plots`, with a marker at ``step`` (the 3D scene's step, the last series of
@@ -197,67 +266,27 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
         ]
     )
 
-    def chart(
-        key: str,
-        what: str,
-        unit_label: str,
-        truth: np.ndarray,
-        track: np.ndarray,
-        measured: np.ndarray,
-        levels: list[tuple[str, float, tuple[int, ...]]],
-        at_least: tuple[float, float],
-    ) -> None:
-        values = [truth, track, measured]
-        rng = robust_range(
-            np.concatenate(values),
-            **TRACK_RULE,
-            at_least=(min(at_least[0], *(v for _, v, _ in levels)), max(at_least[1], *(v for _, v, _ in levels))),
-        )
-        drawn = [rng.drawn(v) for v in values]
-        extra_series, extra_data = off_scale_series(t, rng, values)
-        plot = plots[key]
-        set_chart(
-            plot,
-            f"car 0's {what}",
-            f"{title}: the truth, the detector's measurements and the tracker's estimate"
-            f"{rng.note('value', '.1f', ' m')}",
-        )
-        plot.series = (
-            up.Series(label="t (s)"),
-            up.Series(label="truth", stroke=hex_colour(BLACK), width=2),
-            up.Series(label="measured (detected)", stroke=css(BLUE), points=_points(BLUE, 4), **dots),
-            up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **dots),
-            up.Series(label="tracker (confirmed track)", stroke=css(VIOLET), width=2),  # over the dots
-            *(up.Series(label=label, stroke=css(colour), width=1.5, dash=(6, 4)) for label, _, colour in levels),
-            *failure_series,
-            *extra_series,
-            up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots),  # the last series
-        )
-        plot.data = (
-            t,
-            drawn[0],
-            drawn[2],
-            np.where(missed, drawn[0], np.nan),
-            drawn[1],
-            *(np.full(t.size, v) for _, v, _ in levels),
-            *([_at(drawn[0], fail)] if failure_series else []),
-            *extra_data,
-            _at(drawn[0], i),
-        )
-        plot.scales = {"x": x_scale, "y": up.Scale(auto=False, range=rng.range)}
-        plot.axes = axes("time (s)", unit_label)
-        show_chart(plot, True)
+    frame = _Frame(t, i, title, missed, fail, failure_series, x_scale)
 
     gap = ox.gap_ahead[:, 0]
     nan = np.full(t.size, np.nan)
     along = (ox.tracked[:, 0, 1] - ox.ahead_m[:, 0]) if ox.tracked is not None else nan
     meas_along = (ox.measured[:, 0, 1] - ox.ahead_m[:, 0]) if ox.measured is not None else np.where(det, 0.0, np.nan)
-    chart(
-        TRACK_GAP, "gap ahead", "gap (m)", gap, gap + along, gap + meas_along, [("contact 0 m", 0.0, CRASH)], (0.0, 5.0)
+    _fill_track_chart(
+        plots[TRACK_GAP],
+        frame,
+        "gap ahead",
+        "gap (m)",
+        gap,
+        gap + along,
+        gap + meas_along,
+        [("contact 0 m", 0.0, CRASH)],
+        (0.0, 5.0),
     )
     half = ox.lane_width_m / 2
-    chart(
-        TRACK_LATERAL,
+    _fill_track_chart(
+        plots[TRACK_LATERAL],
+        frame,
         "lateral offset from the ego's lane centre",
         "m, right +",
         ox.lateral_m[:, 0],
@@ -267,7 +296,16 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
         (-half, half),
     )
 
-    acc = st.acc
+    _fill_acc_plot(plots[ACC], st, step, title, x_scale, failure_series)
+
+
+def _fill_acc_plot(
+    plot: viser.GuiUplotHandle, st: Any, step: int, title: str, x_scale: up.Scale, failure_series: list[up.Series]
+) -> None:
+    """The ACC's acceleration chart of :func:`fill_object_plots`, with its rows of dots (the car it followed, car 0
+    in the ego's lane) and the failure and ``step`` markers."""
+    acc, fail = st.acc, st.severity.failure_step
+    dots: up.Series = {"width": 0}
     ta, a = acc.time_s, acc.accel_mps2
     rng = robust_range(a, **CONTROLLER_RULE)
     row = 0.07 * (rng.hi - rng.lo)
@@ -306,7 +344,6 @@ def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int
     pairs.append(
         (up.Series(label="now", stroke=hex_colour(BLACK), points=_points(BLACK, 9), **dots), _at(drawn, ia))
     )  # the last series
-    plot = plots[ACC]
     set_chart(plot, "ACC acceleration", f"{title}: the ACC's acceleration (IDM on the followed track){note}")
     plot.series = (up.Series(label="t (s)"), *(series for series, _ in pairs))
     plot.data = (ta, *(values for _, values in pairs))

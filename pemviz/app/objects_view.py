@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from typing import Any
+from typing import Any, Callable
 
 from pemviz.app.drawing import objects_panel
 from pemviz.core.counterfactuals import MISS, Counterfactuals, counterfactuals
@@ -173,6 +173,25 @@ def state_colour(detected: bool, seen: bool) -> str:
     return GREEN if detected else (ORANGE if seen else UNSEEN)
 
 
+def _road_svg(
+    lane_width_m: float, px: Callable[[float, float], tuple[float, float]], width: int, height: int
+) -> list[str]:
+    """The road of :func:`birds_eye_svg`: the lines of three lanes, the ego's in the middle (dashed between lanes),
+    and the distance ahead every 25 m (``px``: metres ahead and to the right -> pixels)."""
+    parts = []
+    for k in (-1.5, -0.5, 0.5, 1.5):
+        y = px(0.0, k * lane_width_m)[1]
+        dash = "" if abs(k) > 1 else ' stroke-dasharray="6 6"'
+        parts.append(f'<line x1="0" y1="{y:.1f}" x2="{width}" y2="{y:.1f}" stroke="{LANE}"{dash}/>')
+    for metres in range(0, int(AHEAD_M[1]) + 1, 25):
+        x = px(float(metres), 0.0)[0]
+        parts.append(
+            f'<text x="{x:.1f}" y="{height - 3}" font-size="9" fill="{AXIS_TEXT}" text-anchor="middle">'
+            f"{metres} m</text>"
+        )
+    return parts
+
+
 def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: int = 170) -> str:
     """The scene at ``step`` from above: the ego (blue-grey, at the left third), each object where it truly is
     (green detected, orange missed, grey unseen; a red outline where its error at this step was decisive), for a
@@ -193,16 +212,7 @@ def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: i
             f'style="background:{BACKGROUND};border-radius:4px">'
         )
     ]
-    for k in (-1.5, -0.5, 0.5, 1.5):  # the lines of three lanes, the ego's in the middle: dashed between lanes
-        y = px(0.0, k * ox.lane_width_m)[1]
-        dash = "" if abs(k) > 1 else ' stroke-dasharray="6 6"'
-        parts.append(f'<line x1="0" y1="{y:.1f}" x2="{width}" y2="{y:.1f}" stroke="{LANE}"{dash}/>')
-    for metres in range(0, int(hi) + 1, 25):
-        x = px(float(metres), 0.0)[0]
-        parts.append(
-            f'<text x="{x:.1f}" y="{height - 3}" font-size="9" fill="{AXIS_TEXT}" text-anchor="middle">'
-            f"{metres} m</text>"
-        )
+    parts += _road_svg(ox.lane_width_m, px, width, height)
 
     def car(ahead: float, lateral: float, fill: str, stroke: str = "none", width_px: float = 0.0) -> str:
         x, y = px(ahead - CAR_LENGTH_M / 2, lateral - CAR_WIDTH_M / 2)

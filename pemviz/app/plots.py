@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, TypedDict
+from typing import TYPE_CHECKING, Any, Callable, TypedDict
 
 import numpy as np
 import viser
@@ -380,40 +380,29 @@ def strip_plots(gui: viser.GuiApi, title: str = "distance and speeds") -> dict[s
     t = np.linspace(0, 5, 2)
     none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 5.0))
+    probability = up.Scale(auto=False, range=(-0.1, 1.1))
+    detect_caption = (
+        "p(detect): the PEM's probability of detecting the object at each step; q(detect): the sampler's, which drew "
+        "the rollout; dots: detected (top) and missed (bottom) steps"
+    )
+    charts = (  # key, series label, title, caption, y scale, unit, height
+        ("gap", "gap (m)", f"{title} (choose a rollout)", "", None, "m, m/s", 185),
+        ("detect", "p(detect)", "p(detect) and q(detect)", detect_caption, probability, "probability", 200),
+        ("weight", "log w", "importance log-weight log w (nats)", LOG_W_CAPTION, None, "nats", 170),
+    )
     return {
-        "gap": add_chart(
+        key: add_chart(
             gui,
             data=(t, none),
-            series=(up.Series(label="t (s)"), up.Series(label="gap (m)")),
-            title=f"{title} (choose a rollout)",
-            scales={"x": x_scale},
-            axes=axes("time (s)", "m, m/s"),
+            series=(up.Series(label="t (s)"), up.Series(label=label)),
+            title=chart_title,
+            caption=caption,
+            scales={"x": x_scale} if y is None else {"x": x_scale, "y": y},
+            axes=axes("time (s)", unit),
             legend=LEGEND,
-            height=185,
-        ),
-        "detect": add_chart(
-            gui,
-            data=(t, none),
-            series=(up.Series(label="t (s)"), up.Series(label="p(detect)")),
-            title="p(detect) and q(detect)",
-            caption="p(detect): the PEM's probability of detecting the object at each step; q(detect): the "
-            "sampler's, which drew the rollout; dots: detected (top) and missed (bottom) steps",
-            scales={"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))},
-            axes=axes("time (s)", "probability"),
-            legend=LEGEND,
-            height=200,
-        ),
-        "weight": add_chart(
-            gui,
-            data=(t, none),
-            series=(up.Series(label="t (s)"), up.Series(label="log w")),
-            title="importance log-weight log w (nats)",
-            caption=LOG_W_CAPTION,
-            scales={"x": x_scale},
-            axes=axes("time (s)", "nats"),
-            legend=LEGEND,
-            height=170,
-        ),
+            height=height,
+        )
+        for key, label, chart_title, caption, y, unit, height in charts
     }
 
 
@@ -424,6 +413,43 @@ def _points(colour: tuple[int, int, int], size: float = 6) -> up.Series_Points:
 def _ring(colour: tuple[int, int, int], size: float = 11) -> up.Series_Points:
     """Hollow points: a value drawn at the edge of its chart (off scale) or a bin of too few states."""
     return {"show": True, "size": size, "fill": "transparent", "stroke": css(colour), "width": 1.5}
+
+
+def _fill_detect_chart(
+    plot: viser.GuiUplotHandle,
+    ex: LaneExplanation,
+    detected: np.ndarray,
+    x_scale: up.Scale,
+    marker: Callable[[np.ndarray], np.ndarray],
+) -> None:
+    """The p(detect) strip chart of :func:`fill_strip_plots`: the PEM's and the sampler's p(detect), the detections
+    and misses, the decisive misses and the minimal miss set, and the ``marker`` of the scene's step."""
+    t = ex.time_s
+    no_line: up.Series = {"width": 0}
+    # detections as a row of dots just above 1 and misses just below 0, clear of the probability curves
+    det = np.where(detected, 1.05, np.nan)
+    miss = np.where(detected, np.nan, -0.05)
+    decisive = np.full(t.size, np.nan)
+    decisive[ex.decisive] = -0.05
+    minimal = np.full(t.size, np.nan)
+    minimal[ex.counterfactual.minimal_set] = -0.05
+    plot.series = (
+        up.Series(label="t (s)"),
+        up.Series(label="p(detect) PEM", stroke=hex_colour(C.BLACK), width=2),
+        up.Series(label="q(detect) sampler", stroke=css(PROPOSAL), width=2),
+        up.Series(label="detected", stroke=css(DETECTED), points=_points(DETECTED, 5), **no_line),
+        up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **no_line),
+        up.Series(label="decisive miss", stroke=css(CRASH), points=_points(CRASH, 10), **no_line),
+        up.Series(
+            label="minimal miss set",
+            stroke=hex_colour(C.BLACK),
+            points={"show": True, "size": 13, "fill": "transparent", "stroke": hex_colour(C.BLACK), "width": 1.5},
+            **no_line,
+        ),
+        up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
+    )
+    plot.data = (t, ex.p_detect, ex.q_detect, det, miss, decisive, minimal, marker(ex.p_detect))
+    plot.scales = {"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))}
 
 
 def fill_strip_plots(
@@ -457,13 +483,6 @@ def fill_strip_plots(
         m[now_i] = values[now_i]
         return m
 
-    # detections as a row of dots just above 1 and misses just below 0, clear of the probability curves
-    det = np.where(detected, 1.05, np.nan)
-    miss = np.where(detected, np.nan, -0.05)
-    decisive = np.full(t.size, np.nan)
-    decisive[ex.decisive] = -0.05
-    minimal = np.full(t.size, np.nan)
-    minimal[ex.counterfactual.minimal_set] = -0.05
     t_max = float(t[-1])
     x_scale = up.Scale(time=False, auto=False, range=(0.0, t_max))
     values = [np.asarray(s.values, dtype=np.float64) for s in lines]
@@ -484,23 +503,7 @@ def fill_strip_plots(
     gap_lo = min(0.0, float(np.min(main)))
     plots["gap"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(gap_lo, gap_hi * 1.05))}
 
-    plots["detect"].series = (
-        up.Series(label="t (s)"),
-        up.Series(label="p(detect) PEM", stroke=hex_colour(C.BLACK), width=2),
-        up.Series(label="q(detect) sampler", stroke=css(PROPOSAL), width=2),
-        up.Series(label="detected", stroke=css(DETECTED), points=_points(DETECTED, 5), **no_line),
-        up.Series(label="missed", stroke=css(MISSED), points=_points(MISSED, 5), **no_line),
-        up.Series(label="decisive miss", stroke=css(CRASH), points=_points(CRASH, 10), **no_line),
-        up.Series(
-            label="minimal miss set",
-            stroke=hex_colour(C.BLACK),
-            points={"show": True, "size": 13, "fill": "transparent", "stroke": hex_colour(C.BLACK), "width": 1.5},
-            **no_line,
-        ),
-        up.Series(label="now", stroke=hex_colour(C.BLACK), points=_points(C.BLACK, 9), **no_line),
-    )
-    plots["detect"].data = (t, ex.p_detect, ex.q_detect, det, miss, decisive, minimal, marker(ex.p_detect))
-    plots["detect"].scales = {"x": x_scale, "y": up.Scale(auto=False, range=(-0.1, 1.1))}
+    _fill_detect_chart(plots["detect"], ex, detected, x_scale, marker)
 
     lw = ex.cum_log_weight
     finite = lw[np.isfinite(lw)]

@@ -32,18 +32,8 @@ from pemviz.core.counterfactuals import most_likely_failure as pick_most_likely
 from pemviz.core.estimate import Reference
 from pemviz.core.population import FailureShares
 from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities, proposal_view
-from pemviz.engine.events import (
-    Event,
-    FinalEstimate,
-    RolloutChunk,
-    RolloutsSampled,
-    RunCancelled,
-    RunFinished,
-    RunStarted,
-    StageFinished,
-    StageResult,
-    StageStarted,
-)
+from pemviz.engine.events import Event, FinalEstimate, RolloutChunk, RolloutsSampled, RunCancelled, RunFinished
+from pemviz.engine.events import RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.presets import PRESETS
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.panel_data import ViewAxis

@@ -100,6 +100,7 @@ def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ..
 
 SHOWN_DEFAULTS = {
     "pem": "ml-nn",
+    "workers": "every usable core",
     "ray_address": "a local one",
     "chunk_rollouts": "8192, and only stages above 20000 rollouts stream",
 }
@@ -166,14 +167,18 @@ SAMPLER_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ce_epochs", "pretrain
 """The settings ``validate`` and ``tables`` take from the command line."""
 
 
-def add_study_arguments(p: argparse.ArgumentParser, name: str, files: str, jobs: int, jobs_note: str = "") -> None:
+def add_study_arguments(
+    p: argparse.ArgumentParser, name: str, files: str, jobs: int | None, jobs_note: str = ""
+) -> None:
     """The arguments ``validate`` and ``tables`` share: the sampler sizes (--k, --n, --n-final, --ce-epochs, ...),
-    ``--jobs`` (default ``jobs``) and ``--out`` (default ``name``: the folder of ``files`` and the runs file)."""
+    ``--jobs`` (default ``jobs``; None: every usable CPU, :func:`pemviz.engine.resources.usable_cpus`) and ``--out``
+    (default ``name``: the folder of ``files`` and the runs file)."""
     from pemviz.studies.validation import RUNS_FILE
 
     for setting in SAMPLER_SETTINGS:
         add_setting(p, setting)
-    p.add_argument("--jobs", type=int, default=jobs, help=f"worker processes (default {jobs}{jobs_note})")
+    said = "every usable core" if jobs is None else jobs
+    p.add_argument("--jobs", type=int, default=jobs, help=f"worker processes (default {said}{jobs_note})")
     p.add_argument(
         "--out",
         default=name,
@@ -240,3 +245,9 @@ def check_save_path(path: Path, overwrite: bool = False) -> Path:
         return check_output_path(path, ".rrd", "--save", overwrite=overwrite)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+
+
+def add_command(sub: argparse._SubParsersAction, name: str, description: str, **kw: Any) -> argparse.ArgumentParser:
+    """The parser of the command ``name`` (its one-line help :data:`COMMANDS`'), with its ``--help`` description."""
+    parser: argparse.ArgumentParser = sub.add_parser(name, help=COMMANDS[name][1], description=description, **kw)
+    return parser

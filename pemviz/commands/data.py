@@ -6,15 +6,17 @@ import argparse
 import sys
 
 from pemviz.io import data
-from pemviz.commands import COMMANDS, UsageError
+from pemviz.commands import add_command, UsageError
+
+
+DESCRIPTION = """
+The KITTI salient files are never shipped: fetch them or show where pemviz finds them.
+"""
+"""``pemviz data --help``'s description."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "data",
-        help=COMMANDS["data"][1],
-        description="The KITTI salient files are never shipped: fetch them or show where " "pemviz finds them.",
-    )
+    p = add_command(sub, "data", DESCRIPTION)
     actions = p.add_subparsers(dest="data_command", required=True)
     f = actions.add_parser(
         "fetch",

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 import pemviz
-from pemviz.commands import COMMANDS, UsageError, add_setting, check_save_path, pem_argument
+from pemviz.commands import UsageError, add_command, add_setting, check_save_path, pem_argument
 from pemviz.settings import SETTINGS
 from pemviz.config import ExperimentConfig, default_of
 from pemviz.core.estimate import format_probability
@@ -42,13 +42,15 @@ MAX_TRACES = 300
 """Rollouts whose traces go into the recording: the least robust ones (every failure first)."""
 
 
+DESCRIPTION = """
+Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its JSON sidecar (format:
+pemviz.io.rollout_format), and a rerun recording of it.
+"""
+"""``pemviz estimate --help``'s description."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "estimate",
-        help=COMMANDS["estimate"][1],
-        description="Importance-sampling estimate (failures, mu_hat, NLL, ESS) from a rollout file and its "
-        "JSON sidecar (format: pemviz.io.rollout_format), and a rerun recording of it.",
-    )
+    p = add_command(sub, "estimate", DESCRIPTION)
     p.add_argument(
         "rollouts",
         metavar="ROLLOUTS.parquet",

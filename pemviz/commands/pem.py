@@ -6,10 +6,11 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
-from pemviz.commands import COMMANDS, UsageError, output_folder
+from pemviz.commands import UsageError, add_command, output_folder
 from pemviz.io.data import DataError, load_salient_data, sha256_file
 from pemviz.io.files import check_output_folder, check_output_path, write_text_atomic
 from pemviz.pem.recipes import NOISE_RECIPES, PEM_RECIPES
@@ -25,20 +26,27 @@ from pemviz.studies.pem_eval import (
     format_csv,
     format_markdown,
     summary_lines,
-    write_recording,
 )
+from pemviz.studies.pem_eval_recording import write_recording
 
 NOISE_CSV = "pem-noise-eval.csv"
 
 
+DESCRIPTION = """
+Train the PEM on the KITTI salient files or cross-validate the models (both need the files: pemviz data fetch).
+"""
+"""``pemviz pem --help``'s description."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "pem",
-        help=COMMANDS["pem"][1],
-        description="Train the PEM on the KITTI salient files or cross-validate the models (both need the files: "
-        "pemviz data fetch).",
-    )
+    p = add_command(sub, "pem", DESCRIPTION)
     actions = p.add_subparsers(dest="pem_command", required=True)
+    _add_train(actions)
+    _add_eval(actions)
+
+
+def _add_train(actions: argparse._SubParsersAction) -> None:
+    """``pemviz pem train``'s flags."""
     t = actions.add_parser(
         "train",
         help="train a PEM on the full salient file and write its weights",
@@ -74,6 +82,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_main)
 
+
+def _add_eval(actions: argparse._SubParsersAction) -> None:
+    """``pemviz pem eval``'s flags."""
     e = actions.add_parser(
         "eval",
         help="5-fold cross-validation of the PEM models (paper Table I) and the noise PEMs, with calibration",
@@ -330,25 +341,29 @@ def eval_main(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cross_validate(heading: str, fold_line: Callable[[str, Any], str], run: Callable, summary: Callable, best: str):
+    """Print ``heading``, run ``run(on_fold)`` printing a line per fold, then the ``summary`` lines and the best model
+    (``best``: what it is best by); the result."""
+    print(heading, flush=True)
+    result = run(lambda name, fs: print(f"  {fold_line(name, fs)}", flush=True))
+    print("\n".join(summary(result)))
+    print(f"{best}: {result.best()}; wall time {result.wall_s:.0f} s", flush=True)
+    return result
+
+
 def _eval_detection(data, config: EvalConfig):  # -> pemviz.studies.pem_eval.EvalResult
     """Table I: the detection PEMs' cross-validation, with its console lines."""
-    print(
+    return _cross_validate(
         f"cross-validating {', '.join(config.models)} on folds {list(config.fold_ids)} of {config.n_splits} "
         f"({len(data)} rows from {data.inputs_path.parent})",
-        flush=True,
+        lambda name, fs: f"{name:9s} fold {fs.fold}: BCE {fs.bce:.4f}  AUC {fs.auc:.4f}  AP {fs.ap:.4f}  "
+        f"ECE {fs.ece:.4f}  ({fs.fit_s:.1f} s)",
+        lambda on_fold: evaluate_pems(
+            data.inputs, data.labels, config, on_fold=on_fold, data_source=data.inputs_path.name
+        ),
+        summary_lines,
+        "best by mean BCE",
     )
-
-    def on_fold(name, fs) -> None:
-        print(
-            f"  {name:9s} fold {fs.fold}: BCE {fs.bce:.4f}  AUC {fs.auc:.4f}  AP {fs.ap:.4f}  ECE {fs.ece:.4f}  "
-            f"({fs.fit_s:.1f} s)",
-            flush=True,
-        )
-
-    result = evaluate_pems(data.inputs, data.labels, config, on_fold=on_fold, data_source=data.inputs_path.name)
-    print("\n".join(summary_lines(result)))
-    print(f"best by mean BCE: {result.best()}; wall time {result.wall_s:.0f} s", flush=True)
-    return result
 
 
 def _eval_ensemble(data, args: argparse.Namespace, config, result, out: Path) -> Path:
@@ -377,22 +392,14 @@ def _eval_ensemble(data, args: argparse.Namespace, config, result, out: Path) ->
 
 def _eval_noise(data, config: noise_eval.NoiseEvalConfig) -> noise_eval.NoiseEvalResult:
     """The noise PEMs' cross-validation against the homoscedastic baseline, with its console lines."""
-    print(
+    return _cross_validate(
         f"cross-validating the noise PEMs {', '.join(config.models)} on folds {list(config.fold_ids)} of "
         f"{config.n_splits} (detected obstacles of {data.labels_path.name})",
-        flush=True,
+        lambda name, fs: f"{name:14s} fold {fs.fold}: NLL {fs.nll:.4f}  coverage 95 % {fs.coverage[-1, 0]:.3f} / "
+        f"{fs.coverage[-1, 1]:.3f}  ({fs.fit_s:.1f} s)",
+        lambda on_fold: noise_eval.evaluate_noise_pems(
+            data.inputs, data.label_table, config, on_fold=on_fold, data_source=data.labels_path.name
+        ),
+        noise_eval.summary_lines,
+        "best noise PEM by mean NLL",
     )
-
-    def on_fold(name, fs) -> None:
-        print(
-            f"  {name:14s} fold {fs.fold}: NLL {fs.nll:.4f}  coverage 95 % {fs.coverage[-1, 0]:.3f} / "
-            f"{fs.coverage[-1, 1]:.3f}  ({fs.fit_s:.1f} s)",
-            flush=True,
-        )
-
-    result = noise_eval.evaluate_noise_pems(
-        data.inputs, data.label_table, config, on_fold=on_fold, data_source=data.labels_path.name
-    )
-    print("\n".join(noise_eval.summary_lines(result)))
-    print(f"best noise PEM by mean NLL: {result.best()}; wall time {result.wall_s:.0f} s", flush=True)
-    return result

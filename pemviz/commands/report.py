@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from pemviz.commands import COMMANDS, UsageError
+from pemviz.commands import add_command, UsageError
 from pemviz.sinks.report import check_report_paths, write_report
 from pemviz.io.result import RESULT_BESIDE_SUFFIX, RESULT_FORMAT, result_beside
 
@@ -21,14 +21,16 @@ REQUIRED = ("format", "scenario", "method", "seed", "estimate", "n_simulations")
 """The fields a result document must have for a report (the rest is shown where present)."""
 
 
+DESCRIPTION = """
+Write a safety-case report of a run from its result document (pemviz run --json RESULT.json, or the one a run writes
+beside its recording: give the recording RUN.rrd): one self-contained HTML page, readable offline, and its Markdown
+twin (PAGE.md).
+"""
+"""``pemviz report --help``'s description."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "report",
-        help=COMMANDS["report"][1],
-        description="Write a safety-case report of a run from its result document (pemviz run --json RESULT.json, "
-        "or the one a run writes beside its recording: give the recording RUN.rrd): one self-contained HTML page, "
-        "readable offline, and its Markdown twin (PAGE.md).",
-    )
+    p = add_command(sub, "report", DESCRIPTION)
     p.add_argument("result", metavar="RUN", help="the run's result document (pemviz run --json), or its recording")
     p.add_argument(
         "--out",

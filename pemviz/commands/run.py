@@ -58,6 +58,7 @@ RUN_SETTINGS = (
     "scenario_params",
     "sim",
     "executor",
+    "workers",
     "ray_address",
     "chunk_rollouts",
     "rel_error",
@@ -334,7 +335,7 @@ def main(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     if (
-        cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.execution.executor == "serial"
+        cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.execution.executor != "ray"
     ):  # "save": the child's
         from pemviz.sinks.process import settle_pyarrow_without_pandas
 
@@ -343,7 +344,7 @@ def main(args: argparse.Namespace) -> int:
     if target == "connect":
         args.url = probe_viewer(args.url)
     early = None
-    if target == "save" and cli.AS_PROGRAM and cfg.execution.executor == "serial":
+    if target == "save" and cli.AS_PROGRAM and cfg.execution.executor != "ray":
         from pemviz.sinks.recording_process import RecordingProcess  # rerun imported beside the run, not before it
 
         assert save_path is not None  # plan_outputs names the file of a recording saved
@@ -371,7 +372,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.population import FailureGroups, grouping_document
 
-    serial = cfg.execution.executor == "serial"
+    serial = cfg.execution.executor != "ray"  # streams large stages (engine.experiment.streams_locally)
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg) if serial else None)
     try:

@@ -9,20 +9,20 @@ import socket
 import sys
 from typing import cast
 
-from pemviz.commands import COMMANDS, UsageError, add_setting, pem_argument
+from pemviz.commands import UsageError, add_command, add_setting, pem_argument
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 
+DESCRIPTION = """
+Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM (--pem: the one it starts with), run the
+adaptive sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, compare up to 4 runs and export
+them to recordings/*.rrd.
+"""
+"""``pemviz serve --help``'s description."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "serve",
-        help=COMMANDS["serve"][1],
-        description=(
-            "Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM (--pem: the one it starts "
-            "with), run the adaptive sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, "
-            "compare up to 4 runs and export them to recordings/*.rrd."
-        ),
-    )
+    p = add_command(sub, "serve", DESCRIPTION)
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
     p.add_argument(

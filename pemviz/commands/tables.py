@@ -21,7 +21,7 @@ import argparse
 import math
 import time
 
-from pemviz.commands import COMMANDS, UsageError, add_study_arguments, base_fields, output_folder, say
+from pemviz.commands import UsageError, add_command, add_study_arguments, base_fields, output_folder, say
 from pemviz.commands import split_choices, write_study
 from pemviz.core.estimate import format_probability
 from pemviz.engine.resources import cap_jobs
@@ -34,14 +34,16 @@ from pemviz.studies.exact_answers import ExactAnswer, exact_answer
 from pemviz.studies.validation import RUNS_FILE, RunRecord, run_jobs
 
 
+DESCRIPTION = """
+Table II (MC, naive-50, adaptive) and Table III (robustness metrics) with repetitions, mean +- standard error,
+failures, NLL, ESS and the exact p_fail; Markdown, CSV and a rerun recording of every repetition's proposal curves
+(Fig. 4).
+"""
+"""``pemviz tables --help``'s description."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "tables",
-        help=COMMANDS["tables"][1],
-        description="Table II (MC, naive-50, adaptive) and Table III (robustness metrics) with repetitions, "
-        "mean +- standard error, failures, NLL, ESS and the exact p_fail; Markdown, CSV and a rerun recording "
-        "of every repetition's proposal curves (Fig. 4).",
-    )
+    p = add_command(sub, "tables", DESCRIPTION)
     p.add_argument("--problem", default="main", help=f"one of {', '.join(PROBLEMS)} (default main)")
     p.add_argument("--reps", type=int, default=10, help="repetitions per row (default 10)")
     p.add_argument(

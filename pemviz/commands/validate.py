@@ -17,10 +17,10 @@ import math
 import time
 from pathlib import Path
 
-from pemviz.commands import COMMANDS, UsageError, add_study_arguments, base_fields, output_folder, say
+from pemviz.commands import UsageError, add_command, add_study_arguments, base_fields, output_folder, say
 from pemviz.commands import split_choices, write_study
 from pemviz.core.estimate import format_probability, relative_error
-from pemviz.engine.resources import cap_jobs
+from pemviz.engine.resources import cap_jobs, usable_cpus
 from pemviz.io.files import check_output_folder
 from pemviz.presets import DEFAULT_PRESET, PRESETS
 from pemviz.scenarios.problems import PROBLEMS
@@ -29,14 +29,16 @@ from pemviz.studies.validation import BASELINES, DEFAULT_PROBLEMS, RUNS_FILE, Ru
 from pemviz.studies.validation import run_jobs, study_jobs, summaries_csv, summarise
 
 
+DESCRIPTION = """
+Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact answers for several
+seeds at equal simulation budgets; print truth, median and spread of mu_hat, median relative error, failures, ESS,
+simulations and wall time.
+"""
+"""``pemviz validate --help``'s description."""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "validate",
-        help=COMMANDS["validate"][1],
-        description="Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact "
-        "answers for several seeds at equal simulation budgets; print truth, median and spread of mu_hat, median "
-        "relative error, failures, ESS, simulations and wall time.",
-    )
+    p = add_command(sub, "validate", DESCRIPTION)
     p.add_argument(
         "--problems",
         default=",".join(DEFAULT_PROBLEMS),
@@ -55,7 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "ams: adaptive multilevel splitting, N = budget / 4 particles)",
     )
     p.add_argument("--seeds", type=int, default=10, help="seeds per problem and method (default 10)")
-    add_study_arguments(p, "validate", "validate.md, validate.csv", 1)
+    add_study_arguments(p, "validate", "validate.md, validate.csv", None, ": one seed's run each")
     p.set_defaults(func=main)
 
 
@@ -66,7 +68,7 @@ def main(args: argparse.Namespace) -> int:
 
     others = tuple(m for m in method_names() if m not in (*BASELINES, "adaptive", "tilt"))  # plugins' methods
     baselines = split_choices(args.baselines, (*BASELINES, *others), "baselines") if args.baselines.strip() else ()
-    if args.seeds < 1 or args.jobs < 1:
+    if args.seeds < 1 or (args.jobs is not None and args.jobs < 1):
         raise UsageError("--seeds and --jobs must be >= 1")
     out_dir = Path(args.out) if args.out else None
     if out_dir is not None:
@@ -77,7 +79,7 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError("nothing to run: give --presets and/or --baselines")
     out_dir = output_folder(args.out)
 
-    n_jobs = cap_jobs(args.jobs, say)
+    n_jobs = cap_jobs(args.jobs, say) if args.jobs is not None else usable_cpus()
     t0 = time.perf_counter()
     truths: dict[str, ExactAnswer] = {}
     for name in problems:

@@ -27,7 +27,7 @@ from typing import Any
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.plan import RunPlan
-from pemviz.engine.resources import BASE_BYTES, run_memory
+from pemviz.engine.resources import BASE_BYTES, pool_workers, run_memory
 from pemviz.settings import SCENARIO_COST_FACTORS
 
 N_STEPS = 100
@@ -161,7 +161,9 @@ def stage_cost(
     per_rollout *= SCENARIO_COST_FACTORS.get(cfg.scenario, 1.0)  # what the scenario declares (1: none)
     tilt = model == "look-ahead"
     rollouts = n * (c.ams_rollouts if kind == "ams" else c.tilt_rollouts if tilt else 1.0)
-    simulate = n_steps * (per_step + per_rollout * rollouts) + (c.tilt_solve_s if tilt and stage == 1 else 0.0)
+    simulate = n_steps * (per_step + per_rollout * rollouts)
+    simulate /= pool_workers(cfg, n, simulate)  # worker processes share a large batch
+    simulate += c.tilt_solve_s if tilt and stage == 1 else 0.0
     cap = math.inf if cfg.adaptive.fit_rows is None else float(cfg.adaptive.fit_rows)
     inputs = cfg.adaptive.proposal_inputs
     fit = c.stage_s

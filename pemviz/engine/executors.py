@@ -1,9 +1,13 @@
-"""Executors: where a stage's rollouts are simulated, in this process (``serial``) or as Ray tasks (``ray``).
+"""Executors: where a stage's rollouts are simulated: worker processes on this machine (``local``, the default:
+:mod:`pemviz.engine.pool`), this process (``serial``) or Ray tasks (``ray``).
 
-The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``).
-Both executors give the same rollouts, bit for bit, for the same seed, whatever the number of workers or tasks:
+The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``) and, for a
+stage streamed in chunks, the ``local`` and ``serial`` ones for its chunks (``executor.stream(...)``). All give the
+same rollouts, bit for bit, for the same seed, whatever the number of workers or tasks:
 
-- ``serial`` calls ``problem.simulate(n, sampler, target, rng)``, exactly what the engine did before.
+- ``serial`` calls ``problem.simulate(n, sampler, target, rng)`` (``problem.stream`` for chunks); so does ``local``
+  with one worker, or for a batch too small to pay for its pool.
+- ``local`` simulates the blocks (below) of a large batch, or of a streamed stage, in a pool of worker processes.
 - ``ray`` cuts the N rollouts into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts
   (:func:`pemviz.core.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the
   rollouts of a block, and detectors are asked about one block at a time. Each Ray task simulates a run of whole blocks
@@ -30,7 +34,7 @@ and :func:`pemviz.core.lockstep.simulate` do; anything else raises a RuntimeErro
 from __future__ import annotations
 
 import socket
-from typing import Any, Mapping, Protocol
+from typing import Any, Iterator, Mapping, Protocol
 
 import numpy as np
 
@@ -55,9 +59,10 @@ class Executor(Protocol):
 
 
 class SerialExecutor:
-    """Runs ``problem.simulate`` in this process (the default)."""
+    """Runs ``problem.simulate`` in this process (``--workers 1``)."""
 
     name = "serial"
+    workers = 1
 
     def simulate(
         self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
@@ -65,6 +70,12 @@ class SerialExecutor:
         """``problem.simulate(n, sampler, target, rng)``: N rollouts [N, T] (see
         :class:`pemviz.core.problems.Problem`)."""
         return problem.simulate(n, sampler, target, rng)
+
+    def stream(
+        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator, **size: Any
+    ) -> Iterator[RolloutBatch]:
+        """``problem.stream(n, sampler, target, rng, **size)``: its chunks in order."""
+        return problem.stream(n, sampler, target, rng, **size)
 
     def close(self) -> None:
         pass
@@ -170,22 +181,33 @@ def simulate_blocks(
     return [simulate_chunk(problem, n, a, b, sampler, target, rng_state) for a, b in blocks]
 
 
-def gather_chunks(
-    problem: Any, n: int, rng: np.random.Generator, results: list[tuple[RolloutBatch, int, int]]
-) -> RolloutBatch:
-    """Concatenate chunk results in rollout order, check each drew T times, and advance ``rng`` by n K T.
+def check_draws(problem: Any, results: list[tuple[RolloutBatch, int, int]]) -> tuple[int, int]:
+    """Check that every chunk result ``(batch, draws, uniforms per rollout)`` drew once per step; returns (T, K).
 
     Raises:
         RuntimeError: a chunk drew another number of times than its rollouts have steps.
     """
-    batches = [b for b, _, _ in results]
-    n_steps, per_rollout = batches[0].n_steps, results[0][2]
+    n_steps, per_rollout = results[0][0].n_steps, results[0][2]
     for batch, calls, _ in results:
         if calls != n_steps or batch.n_steps != n_steps:
             raise RuntimeError(
                 f"executor: problem {getattr(problem, 'name', problem)!r} drew rng.random {calls} times for "
                 f"{batch.n_steps} steps; an executor needs exactly one rng.random(n K) per step"
             )
+    return n_steps, per_rollout
+
+
+def gather_chunks(
+    problem: Any, n: int, rng: np.random.Generator, results: list[tuple[RolloutBatch, int, int]]
+) -> RolloutBatch:
+    """Concatenate chunk results in rollout order, check each drew T times (:func:`check_draws`), and advance ``rng``
+    by n K T.
+
+    Raises:
+        RuntimeError: a chunk drew another number of times than its rollouts have steps.
+    """
+    n_steps, per_rollout = check_draws(problem, results)
+    batches = [b for b, _, _ in results]
     advance(rng, n * per_rollout * n_steps)
     return batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
 
@@ -272,28 +294,42 @@ class RayExecutor:
         self._started = False
 
 
-_EXECUTORS: dict[tuple[str, str | None], Executor] = {}
+_EXECUTORS: dict[tuple[str, str | int | None], Executor] = {}
 
 
-def get_executor(name: str = "serial", address: str | None = None) -> Executor:
-    """The executor called ``name`` (:data:`EXECUTORS`), made once per process and (name, address).
+def get_executor(name: str = "local", address: str | None = None, workers: int | None = None) -> Executor:
+    """The executor called ``name`` (:data:`EXECUTORS`), made once per process and (name, address or workers):
+    ``local`` with ``workers`` processes (None: :func:`pemviz.engine.resources.usable_cpus`; one: the ``serial``
+    executor).
 
     Raises:
-        ValueError: an unknown name.
+        ValueError: an unknown name, or ``workers`` below 1.
         ImportError: ``ray`` without Ray installed.
     """
     if name not in EXECUTORS:
         raise ValueError(f"unknown executor {name!r}; use one of {', '.join(EXECUTORS)}")
-    key = (name, address if name == "ray" else None)
+    if name == "local":
+        from pemviz.engine.pool import LocalExecutor
+        from pemviz.engine.resources import usable_cpus
+
+        if workers is not None and workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        workers = usable_cpus() if workers is None else workers
+        name = "serial" if workers == 1 else name
+    key = (name, address if name == "ray" else workers if name == "local" else None)
     ex = _EXECUTORS.get(key)
     if ex is None or (name == "ray" and not ex._ray.is_initialized()):  # type: ignore[attr-defined]
-        ex = SerialExecutor() if name == "serial" else RayExecutor(address)
+        if name == "local":
+            ex = LocalExecutor(workers)
+        else:
+            ex = SerialExecutor() if name == "serial" else RayExecutor(address)
         _EXECUTORS[key] = ex
     return ex
 
 
 def close_executors() -> None:
-    """Close every executor :func:`get_executor` made (shuts down a Ray cluster it started)."""
+    """Close every executor :func:`get_executor` made (kills a local pool's workers, shuts down a Ray cluster it
+    started)."""
     for ex in _EXECUTORS.values():
         ex.close()
     _EXECUTORS.clear()

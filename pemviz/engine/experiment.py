@@ -61,9 +61,22 @@ class Cancelled(Exception):
 
 
 STREAM_ABOVE = 20_000
-"""Stages of more rollouts than this are simulated chunk by chunk when the problem can stream
-(``Problem.stream``) and the executor is serial, and kept only as per-rollout numbers and a bounded sample: a
+"""Stages of more rollouts than this are simulated chunk by chunk when the problem can stream (``Problem.stream``)
+and the executor is on this machine (:func:`streams_locally`), and kept only as per-rollout numbers and a bounded
+sample: a
 [10^5, 100] batch with its robustness and masks holds ~1 GB, a chunk of 8,192 rollouts ~80 MB."""
+
+
+def streams_locally(config: ExperimentConfig) -> bool:
+    """Whether the run's executor streams large stages in chunks (``local`` and ``serial``; Ray tasks return whole
+    batches)."""
+    return config.execution.executor in ("local", "serial")
+
+
+def run_executor(config: ExperimentConfig) -> Any:
+    """The executor of ``config.execution`` (:func:`pemviz.engine.executors.get_executor`)."""
+    run = config.execution
+    return get_executor(run.executor, run.ray_address, run.workers)
 
 
 def stream_above(config: ExperimentConfig, n_objects: int = 1) -> int:
@@ -258,14 +271,14 @@ class Experiment:
             plan.draw is None
             and plan.n > stream_above(cfg, pb.n_objects)
             and pb.stream is not None
-            and cfg.execution.executor == "serial"
+            and streams_locally(cfg)
         ):
             self._streamed(estimator, plan, parts, target)
-        else:  # one batch, on the configured executor (serial or Ray tasks)
+        else:  # one batch, on the configured executor (worker processes, this process or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
                 batch = plan.draw(estimator.rng)
             else:
-                executor = get_executor(cfg.execution.executor, cfg.execution.ray_address)
+                executor = run_executor(cfg)
                 batches = [executor.simulate(pb, k, d, target, estimator.rng) for k, d in parts]
                 batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
             self._check_cancel()
@@ -310,15 +323,18 @@ class Experiment:
         under ``target``: the estimator and the listeners see each chunk once, then the listeners a
         :class:`StageSample` of the stage."""
         pb, cfg = self.problem, self.config
-        stream = pb.stream
-        assert stream is not None  # the caller streams a stage only then
+        assert pb.stream is not None  # the caller streams a stage only then
         sample = StageSample(plan.n)
         size: dict[str, Any] = (
             {} if cfg.execution.chunk_rollouts is None else {"chunk_size": cfg.execution.chunk_rollouts}
         )
         if getattr(pb.stream, "elides_rows", False) and not needs_chunk_rows(estimator):
             size["keep_rows"] = False  # a chunk's object rows, rebuilt by replay for the few rollouts read
-        chunks = itertools.chain.from_iterable(stream(k, d, target, estimator.rng, **size) for k, d in parts)
+        executor = run_executor(cfg)
+        chunks = itertools.chain.from_iterable(
+            executor.stream(pb, k, d, target, estimator.rng, **size)  # type: ignore[attr-defined]
+            for k, d in parts
+        )
         for batch in chunks:
             self._check_cancel()
             robustness = pb.robustness(batch, cfg.metric)

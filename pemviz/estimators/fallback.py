@@ -392,7 +392,7 @@ class PlainFallback(_Speaks):
                 return None
             changes["max_time_s"] = left
         config = self.config.replace(**changes)
-        streams = self.problem.stream is not None and config.execution.executor == "serial"
+        streams = self.problem.stream is not None and config.execution.executor != "ray"
         most = STREAMED_BATCH if streams else max(1, UNSTREAMED_BATCH // max(1, self.problem.n_objects))
         first = min(FIRST_BATCH, self.cap, most)
         plain = monte_carlo(self.problem, first, self.config.weights_until_failure, first_stage=self._last_stage + 1)

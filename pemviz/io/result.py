@@ -131,47 +131,60 @@ def result_document(
     doc["pem_spread"] = _pem_spread(getattr(final, "pem_spread", None))
     curve = getattr(final, "severity", None)
     if curve is not None:
-        doc["severity"] = {
-            "signal": curve.scale.signal,
-            "label": curve.scale.label,
-            "unit": curve.scale.unit,
-            "title": curve.title(),
-            "points": [
-                {
-                    "level": pt.level,
-                    "text": curve.point_text(pt),
-                    **_probability(pt.estimate.log_mu_hat),
-                    "ci95": [
-                        _probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in pt.estimate.shown_log_ci
-                    ],
-                    "ess": _number(pt.estimate.ess),
-                    "n_events": int(pt.estimate.n_failures),
-                    "verdict": pt.estimate.verdict,
-                    "exact": None if pt.exact_log_p is None else _probability(pt.exact_log_p),
-                    "lower_bound95": _probability(pt.estimate.log_lower_bound)["p"],
-                    "shown": curve.shown(pt),
-                    "says": curve.says(pt),
-                }
-                for pt in curve.points
-            ],
-        }
+        doc["severity"] = _severity_document(curve)
     d = getattr(final, "decision", None)
     if config.stop.require is not None and d is not None:
-        from pemviz.core.requirement import EXIT_CODES, parse_requirement
-
-        req = parse_requirement(config.stop.require)
-        doc["requirement"] = {
-            "text": str(req),
-            "op": req.op,
-            "threshold": req.threshold,
-            "outcome": d.outcome,
-            "exit_code": EXIT_CODES[d.outcome],
-            "look": d.look,
-            "level": d.level,
-            "ci": [_probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in d.log_ci],
-            "why": d.why,
-        }
+        doc["requirement"] = _requirement_document(config.stop.require, d)
     return doc
+
+
+def _ci(log_ci: Any) -> list[float | None]:
+    """An interval's two ends as probabilities (None for a non-finite log bound above 0)."""
+    return [_probability(x)["p"] if math.isfinite(x) or x < 0 else None for x in log_ci]
+
+
+def _severity_document(curve: Any) -> dict[str, Any]:
+    """The severity curve's part of the result document: its scale, title and each level's estimate."""
+    return {
+        "signal": curve.scale.signal,
+        "label": curve.scale.label,
+        "unit": curve.scale.unit,
+        "title": curve.title(),
+        "points": [
+            {
+                "level": pt.level,
+                "text": curve.point_text(pt),
+                **_probability(pt.estimate.log_mu_hat),
+                "ci95": _ci(pt.estimate.shown_log_ci),
+                "ess": _number(pt.estimate.ess),
+                "n_events": int(pt.estimate.n_failures),
+                "verdict": pt.estimate.verdict,
+                "exact": None if pt.exact_log_p is None else _probability(pt.exact_log_p),
+                "lower_bound95": _probability(pt.estimate.log_lower_bound)["p"],
+                "shown": curve.shown(pt),
+                "says": curve.says(pt),
+            }
+            for pt in curve.points
+        ],
+    }
+
+
+def _requirement_document(require: str, d: Any) -> dict[str, Any]:
+    """The requirement's part of the result document: its text, the decision ``d`` and its exit code."""
+    from pemviz.core.requirement import EXIT_CODES, parse_requirement
+
+    req = parse_requirement(require)
+    return {
+        "text": str(req),
+        "op": req.op,
+        "threshold": req.threshold,
+        "outcome": d.outcome,
+        "exit_code": EXIT_CODES[d.outcome],
+        "look": d.look,
+        "level": d.level,
+        "ci": _ci(d.log_ci),
+        "why": d.why,
+    }
 
 
 ESTIMATE_FORMAT = "pemviz-estimate"

@@ -205,12 +205,7 @@ def estimate_rollouts(
         ValueError: an unknown metric, failure mode or convention, arrays of the wrong shape, or a formula the file's
             signals cannot evaluate (a RolloutFormatError naming the file).
     """
-    if metric not in METRICS:
-        raise ValueError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
-    if failure not in ("crash", "metric"):
-        raise ValueError(f"unknown failure event {failure!r}; use crash or metric")
-    if weights not in CONVENTIONS:
-        raise ValueError(f"unknown weight convention {weights!r}; use one of {', '.join(CONVENTIONS)}")
+    _check_choices(metric, failure, weights)
     shape = (data.n, data.n_steps)
     log_p_seen = json_float(log_p_seen)  # a sidecar writes -inf as text
     log_p, log_q = np.asarray(log_p, np.float64), np.asarray(log_q, np.float64)
@@ -233,6 +228,56 @@ def estimate_rollouts(
         except ValueError:  # not G[a,b](state predicate): the first T - 1 steps
             log_w, weights = batch.log_weight(), "full"
         log_p_total = log_p_before_failure(problem, batch)
+    _check_finite(data, where, log_w, log_p_total, log_p, log_q)
+    checked = log_w  # the weights whose mean should be 1
+    if look_ahead is not None and failure == "crash":
+        weighed = look_ahead_weights(replace(problem, look_ahead=look_ahead), batch)
+        assert weighed is not None  # the problem has a look-ahead
+        log_w, failed, checked = weighed
+    est, rows, pooled, rule = _pooled(data, log_w, failed, log_p_total)
+    if failure == "crash":  # the failures the run drew: the file's own and the sidecar's
+        seen = SeenFailures()
+        seen.add(problem, batch, failed)
+        est = est.below_seen(max((b for b in (seen.log_p, log_p_seen) if b is not None), default=None))
+    est = est.at_most(verdict_cap)
+    return RolloutEstimate(
+        est,
+        rho[metric],
+        failed,
+        log_w,
+        metric,
+        failure,
+        weights,
+        rows,
+        pooled,
+        rule,
+        _mean_weight(checked, _stage_bounds(data)),
+    )
+
+
+def _check_choices(metric: str, failure: str, weights: str) -> None:
+    """:func:`estimate_rollouts`' metric, failure event and weight convention, each one of those known.
+
+    Raises:
+        ValueError: an unknown one.
+    """
+    if metric not in METRICS:
+        raise ValueError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
+    if failure not in ("crash", "metric"):
+        raise ValueError(f"unknown failure event {failure!r}; use crash or metric")
+    if weights not in CONVENTIONS:
+        raise ValueError(f"unknown weight convention {weights!r}; use one of {', '.join(CONVENTIONS)}")
+
+
+def _check_finite(
+    data: RolloutData, where: str, log_w: np.ndarray, log_p_total: np.ndarray, log_p: np.ndarray, log_q: np.ndarray
+) -> None:
+    """Every rollout's log-weight and log p sum finite or -inf (an action the PEM cannot take: weight 0, as in the
+    run).
+
+    Raises:
+        RolloutFormatError: one beyond float64, naming the rollout.
+    """
     k = data.n_steps - 1
     for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
         bad = np.isnan(x) | (x == np.inf)  # -inf: an action the PEM cannot take, weight 0 (as in the run)
@@ -244,25 +289,15 @@ def estimate_rollouts(
                 f"float64 (+-1.8e308 nats; log_p down to {log_p[i, :k].min():.3g}, log_q down to "
                 f"{log_q[i, :k].min():.3g}): no estimate can be formed from these log-probabilities"
             )
-    checked = log_w  # the weights whose mean should be 1
-    if look_ahead is not None and failure == "crash":
-        weighed = look_ahead_weights(replace(problem, look_ahead=look_ahead), batch)
-        assert weighed is not None  # the problem has a look-ahead
-        log_w, failed, checked = weighed
-    est, rows, pooled, rule = _pooled(data, log_w, failed, log_p_total)
-    if failure == "crash":
-        seen = SeenFailures()
-        seen.add(problem, batch, failed)
-        bounds = [b for b in (seen.log_p, log_p_seen) if b is not None]
-        est = est.below_seen(max(bounds) if bounds else None)
-    est = est.at_most(verdict_cap)
-    bound = None
-    if data.stage is not None and data.meta.stages:
-        b = {s["stage"]: s["max_weight"] for s in data.meta.stages}
-        bound = np.array([math.nan if b.get(int(k)) is None else b[int(k)] for k in data.stage])
-    return RolloutEstimate(
-        est, rho[metric], failed, log_w, metric, failure, weights, rows, pooled, rule, _mean_weight(checked, bound)
-    )
+
+
+def _stage_bounds(data: RolloutData) -> np.ndarray | None:
+    """Each rollout's stage's largest possible weight (the sidecar's ``max_weight``; NaN: not known), or None
+    without stages."""
+    if data.stage is None or data.meta is None or not data.meta.stages:
+        return None
+    b = {s["stage"]: s["max_weight"] for s in data.meta.stages}
+    return np.array([math.nan if b.get(int(k)) is None else b[int(k)] for k in data.stage])
 
 
 def _mean_weight(log_w: np.ndarray, bound: np.ndarray | None) -> MeanWeight:

@@ -100,12 +100,13 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 import pemviz
 from pemviz import stl
+from pemviz.pem.encoding import INPUT_COLUMNS
 
 FORMAT_TAG = "pemviz-rollouts"
 
@@ -122,23 +123,9 @@ READ_VERSIONS = (1, FORMAT_VERSION, OBJECTS_VERSION)
 WEIGHTS = ("to-failure", "full")
 """Weight conventions (:mod:`pemviz.core.weights`)."""
 
-KITTI_COLUMNS = (
-    "class",
-    "truncation",
-    "occlusion",
-    "alpha",
-    "dim_w",
-    "dim_l",
-    "dim_h",
-    "loc_x",
-    "loc_y",
-    "loc_z",
-    "rot_y",
-)
-"""The 11 salient-variable columns of the KITTI files (:data:`pemviz.pem.encoding.INPUT_COLUMNS`)."""
-
-SALIENT_COLUMNS = tuple(f"salient_{c}" for c in KITTI_COLUMNS)
-"""Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads."""
+SALIENT_COLUMNS = tuple(f"salient_{c}" for c in INPUT_COLUMNS)
+"""Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads
+(:data:`pemviz.pem.encoding.INPUT_COLUMNS`)."""
 
 SAMPLERS = ("pem", "naive50", "mixed50")
 """Named samplers a file's log q can be recomputed from besides a proposal checkpoint."""
@@ -264,29 +251,7 @@ class RolloutMeta:
         def bad(msg: str) -> RolloutFormatError:
             return RolloutFormatError(f"{where}: {msg}")
 
-        if not isinstance(obj, dict):
-            raise bad(f"must be a JSON object, got {type(obj).__name__}")
-        if obj.get("format", FORMAT_TAG) != FORMAT_TAG:
-            raise bad(f"format is {obj.get('format')!r}, expected {FORMAT_TAG!r}")
-        version = obj.get("version", FORMAT_VERSION)
-        if isinstance(version, bool) or version not in READ_VERSIONS:
-            raise bad(
-                f"format version {version!r}; this pemviz reads versions {', '.join(map(str, READ_VERSIONS))}: "
-                "a newer pemviz wrote the file, upgrade pemviz to read it"
-            )
-        for key in ("formula", "dt_s"):
-            if key not in obj:
-                raise bad(f"field {key!r} is missing (required: formula, dt_s)")
-        formula = obj["formula"]
-        if not isinstance(formula, str):
-            raise bad(f"formula must be STL text such as 'G[0,99](d >= 2)', got {formula!r}")
-        try:
-            stl.parse(formula)
-        except ValueError as exc:
-            raise bad(f"formula {formula!r} is not valid STL: {exc}") from None
-        dt = obj["dt_s"]
-        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
-            raise bad(f"dt_s must be a number of seconds > 0, got {dt!r}")
+        version, formula, dt = _check_header(obj, bad)
         signals = obj.get("signals") or {"d": "gap_m"}
         if not isinstance(signals, dict) or not all(
             isinstance(k, str) and isinstance(v, str) for k, v in signals.items()
@@ -309,21 +274,7 @@ class RolloutMeta:
         h_column = obj.get("h_column", "gap_m")
         if not isinstance(h_column, str) or not h_column:
             raise bad(f"h_column must be a column name such as 'gap_m', got {h_column!r}")
-        for key in ("n_rollouts", "n_steps"):
-            v = obj.get(key)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-                raise bad(f"{key} must be an integer >= 1, got {v!r}")
-        for key in ("pem", "proposal", "pemviz_version"):
-            v = obj.get(key)
-            if v is not None and not isinstance(v, str):
-                raise bad(f"{key} must be a string, got {v!r}")
-        window = obj.get("window_m", 10.0)
-        if not _is_number(window) or window < 0:
-            raise bad(f"window_m must be a number of metres >= 0, got {window!r}")
-        for key in ("table_sha256", "proposal_sha256"):
-            v = obj.get(key)
-            if v is not None and not (isinstance(v, str) and len(v) == 64):
-                raise bad(f"{key} must be a SHA-256 hex digest (64 characters), got {v!r}")
+        window = _check_plain_fields(obj, bad)
         weights = obj.get("weights")
         if weights is not None and weights not in WEIGHTS:
             raise bad(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
@@ -365,6 +316,55 @@ class RolloutMeta:
             version=int(version),
             h_column=h_column,
         )
+
+
+def _check_header(obj: Any, bad: Callable[[str], RolloutFormatError]) -> tuple[Any, str, Any]:
+    """A sidecar's format tag and version, and its two required fields (``formula``: valid STL, ``dt_s``: seconds
+    > 0); ``bad`` makes the error to raise."""
+    if not isinstance(obj, dict):
+        raise bad(f"must be a JSON object, got {type(obj).__name__}")
+    if obj.get("format", FORMAT_TAG) != FORMAT_TAG:
+        raise bad(f"format is {obj.get('format')!r}, expected {FORMAT_TAG!r}")
+    version = obj.get("version", FORMAT_VERSION)
+    if isinstance(version, bool) or version not in READ_VERSIONS:
+        raise bad(
+            f"format version {version!r}; this pemviz reads versions {', '.join(map(str, READ_VERSIONS))}: "
+            "a newer pemviz wrote the file, upgrade pemviz to read it"
+        )
+    for key in ("formula", "dt_s"):
+        if key not in obj:
+            raise bad(f"field {key!r} is missing (required: formula, dt_s)")
+    formula = obj["formula"]
+    if not isinstance(formula, str):
+        raise bad(f"formula must be STL text such as 'G[0,99](d >= 2)', got {formula!r}")
+    try:
+        stl.parse(formula)
+    except ValueError as exc:
+        raise bad(f"formula {formula!r} is not valid STL: {exc}") from None
+    dt = obj["dt_s"]
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
+        raise bad(f"dt_s must be a number of seconds > 0, got {dt!r}")
+    return version, formula, dt
+
+
+def _check_plain_fields(obj: Any, bad: Callable[[str], RolloutFormatError]) -> Any:
+    """A sidecar's optional counts, names and digests, checked; its ``window_m`` (metres, default 10)."""
+    for key in ("n_rollouts", "n_steps"):
+        v = obj.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise bad(f"{key} must be an integer >= 1, got {v!r}")
+    for key in ("pem", "proposal", "pemviz_version"):
+        v = obj.get(key)
+        if v is not None and not isinstance(v, str):
+            raise bad(f"{key} must be a string, got {v!r}")
+    window = obj.get("window_m", 10.0)
+    if not _is_number(window) or window < 0:
+        raise bad(f"window_m must be a number of metres >= 0, got {window!r}")
+    for key in ("table_sha256", "proposal_sha256"):
+        v = obj.get(key)
+        if v is not None and not (isinstance(v, str) and len(v) == 64):
+            raise bad(f"{key} must be a SHA-256 hex digest (64 characters), got {v!r}")
+    return window
 
 
 def _is_count(x: Any, least: int = 0) -> bool:

@@ -31,13 +31,13 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pemviz.io.rollout_format import (
-    KITTI_COLUMNS,
     SALIENT_COLUMNS,
     RolloutFormatError,
     RolloutMeta,
     check_stage_counts,
 )
 from pemviz.pem import braking_salient_inputs
+from pemviz.pem.encoding import INPUT_COLUMNS
 from pemviz.core.rollouts import RolloutBatch
 
 SEVERITY_COLUMNS = ("min_distance_m", "impact_speed_mps")
@@ -51,7 +51,7 @@ def braking_salient(gap_m: np.ndarray) -> np.ndarray:
     :func:`pemviz.pem.braking_salient_inputs` row by row (the lead's KITTI salient variables at each gap).
     """
     gap = np.asarray(gap_m, dtype=np.float64)
-    return braking_salient_inputs(gap).reshape(*gap.shape, len(KITTI_COLUMNS))
+    return braking_salient_inputs(gap).reshape(*gap.shape, len(INPUT_COLUMNS))
 
 
 @dataclass(frozen=True)

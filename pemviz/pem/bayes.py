@@ -22,6 +22,7 @@ from scipy.special import expit, log_expit, logsumexp
 from tqdm.auto import tqdm
 
 from pemviz.pem.encoding import (
+    check_features,
     N_FEATURES,
     NormStats,
     braking_salient_inputs,
@@ -70,9 +71,7 @@ class BayesianPEM:
 
     def logit_features(self, features: np.ndarray, *, chunk: int = 256) -> np.ndarray:
         """Logit of the posterior predictive mean p(detect), float64 ``[N]`` (rows in chunks)."""
-        x = np.asarray(features, dtype=np.float64)
-        if x.ndim != 2 or x.shape[1] != N_FEATURES:
-            raise ValueError(f"PEM features must have shape [N, {N_FEATURES}], got {x.shape}")
+        x = check_features(features)
         out = np.empty(x.shape[0], dtype=np.float64)
         for start in range(0, x.shape[0], chunk):
             logits = self.sample_logits(x[start : start + chunk])  # [S, n]
@@ -159,24 +158,7 @@ def train_bnn_pem(
             loss = svi.step(x, t) / x.shape[0]
             if progress:
                 it.set_postfix(elbo_loss=f"{loss:.4f}", refresh=False)
-        with torch.no_grad():
-            latent = guide.get_posterior().sample((n_samples,)).to(torch.float64)  # [S, D]
-            weights: dict[str, np.ndarray] = {}
-            start = 0
-            for k, s in shapes.items():  # the guide flattens the sites in the model's sample order
-                size = math.prod(s)
-                weights[k] = latent[:, start : start + size].reshape(n_samples, *s).numpy()
-                start += size
-            if start != latent.shape[1]:
-                raise RuntimeError(f"guide latent has {latent.shape[1]} dims, the sites {start}")
-            median = guide.median()
-            loc = guide.get_posterior().mean.to(torch.float64)
-            start = 0
-            for k, s in shapes.items():  # check the site order against the guide's own unpacking
-                size = math.prod(s)
-                if not torch.allclose(median[k].to(torch.float64).reshape(-1), loc[start : start + size]):
-                    raise RuntimeError(f"guide site order differs from the model's at {k}")
-                start += size
+        weights = _guide_weights(guide, shapes, n_samples)
     finally:
         torch.set_num_threads(threads)
     meta = {
@@ -191,3 +173,27 @@ def train_bnn_pem(
         "final_elbo_loss_per_row": float(loss),
     }
     return BayesianPEM(name=name, norm=norm, weights=weights, metadata=meta)
+
+
+def _guide_weights(guide: Any, shapes: dict[str, tuple[int, ...]], n_samples: int) -> dict[str, np.ndarray]:
+    """``n_samples`` weight sets drawn from the fitted guide, per site ``[n_samples, *shape]`` (float64); the guide
+    flattens the sites in the model's sample order, checked against its own unpacking (its median).
+
+    Raises:
+        RuntimeError: the guide's latent size or site order differs from the model's.
+    """
+    import torch
+
+    offsets = np.cumsum([0, *(math.prod(s) for s in shapes.values())])
+    cuts = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
+    sites = [(k, s, cut) for (k, s), cut in zip(shapes.items(), cuts, strict=True)]
+    with torch.no_grad():
+        latent = guide.get_posterior().sample((n_samples,)).to(torch.float64)  # [S, D]
+        if offsets[-1] != latent.shape[1]:
+            raise RuntimeError(f"guide latent has {latent.shape[1]} dims, the sites {offsets[-1]}")
+        median = guide.median()
+        loc = guide.get_posterior().mean.to(torch.float64)
+        for k, _, cut in sites:
+            if not torch.allclose(median[k].to(torch.float64).reshape(-1), loc[cut]):
+                raise RuntimeError(f"guide site order differs from the model's at {k}")
+        return {k: latent[:, cut].reshape(n_samples, *s).numpy() for k, s, cut in sites}

@@ -96,6 +96,18 @@ def _check_raw(raw_inputs: np.ndarray) -> np.ndarray:
     return raw
 
 
+def check_features(features: np.ndarray, kind: str = "PEM", rows: str = "N") -> np.ndarray:
+    """Encoded features as float64 ``[rows, 14]`` (:func:`encode_salient`'s layout).
+
+    Raises:
+        ValueError: another shape (the message names the ``kind`` of PEM).
+    """
+    x = np.asarray(features, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != N_FEATURES:
+        raise ValueError(f"{kind} features must have shape [{rows}, {N_FEATURES}], got {x.shape}")
+    return x
+
+
 def check_training_data(inputs: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Raw salient inputs float64 [N, 11] and labels float64 [N] in {0, 1}, checked for training.
 

@@ -65,7 +65,7 @@ def train_ensemble(
     progress: bool = False,
     metadata: Mapping[str, Any] | None = None,
 ) -> list[PEM]:
-    """M bootstrap refits of a detection recipe (:class:`pemviz.pem.recipes.PemRecipe`).
+    """M bootstrap refits of a detection recipe (:class:`pemviz.pem.training.PemRecipe`).
 
     Member k trains on :func:`bootstrap_rows` ``(n, seed, k)`` with the recipe's architecture and optimiser, initial
     weights seeded ``seed + 1 + k`` (the nominal PEM keeps ``seed``), and the z-score statistics of the full

@@ -27,6 +27,7 @@ import numpy as np
 from scipy.special import expit
 
 from pemviz.pem.encoding import (
+    check_features,
     BRAKING_CAMERA_TO_LEAD_CENTRE_M,
     BRAKING_Z_FEATURE,
     N_FEATURES,
@@ -464,9 +465,7 @@ class PEM:
 
     def logit_features(self, features: np.ndarray) -> np.ndarray:
         """Logit of p(detect), float64 ``[N]``, from encoded features ``[N, 14]``."""
-        x = np.asarray(features, dtype=np.float64)
-        if x.ndim != 2 or x.shape[1] != N_FEATURES:
-            raise ValueError(f"PEM features must have shape [N, {N_FEATURES}], got {x.shape}")
+        x = check_features(features)
         return self._mlp(x)
 
     def logit_codes(self, codes: SalientCodes) -> np.ndarray:

@@ -22,16 +22,24 @@ and :func:`fit_homoscedastic` fit the two kinds. The choice of family by held-ou
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 
 from pemviz.pem.camera import MIN_RANGE_M, box_errors_to_metric
-from pemviz.pem.encoding import N_FEATURES, ONE_HOT_GROUPS, NormStats, SalientCodes, encode_salient, fit_norm_stats
+from pemviz.pem.encoding import (
+    check_features,
+    N_FEATURES,
+    ONE_HOT_GROUPS,
+    NormStats,
+    SalientCodes,
+    encode_salient,
+    fit_norm_stats,
+)
 from pemviz.pem.network import GridMLP, OneHotColumns, PemFormatError, as_arrays, fold_state_dict
-from pemviz.pem.training import fit_network
+from pemviz.pem.training import NetworkRecipe, fit_network
 
 NOISE_DIMS = ("range", "lateral")
 """The error dimensions, in column order: range error dZ (along camera z) and lateral error dX (along x), metres."""
@@ -39,13 +47,6 @@ FAMILIES = ("normal", "laplace", "student-t")
 """Location-scale families of the noise PEM (``scipy.stats`` ``norm``, ``laplace``, ``t``)."""
 DF_MIN = 1.0
 """Lower bound of the Student-t degrees of freedom (``nu = DF_MIN + softplus(raw)``): above it the mean exists."""
-
-
-def _check_features(features: np.ndarray) -> np.ndarray:
-    x = np.asarray(features, dtype=np.float64)
-    if x.ndim != 2 or x.shape[1] != N_FEATURES:
-        raise ValueError(f"noise PEM features must have shape [R, {N_FEATURES}], got {x.shape}")
-    return x
 
 
 def _check_errors(errors: np.ndarray, rows: int) -> np.ndarray:
@@ -120,7 +121,7 @@ class NoiseModel:
         Raises:
             ValueError: features not ``[R, 14]`` or errors not ``[R, 2]``.
         """
-        x = _check_features(features)
+        x = check_features(features, "noise PEM", "R")
         return self.distribution(x).logpdf(_check_errors(errors, x.shape[0]))
 
     def log_prob(self, features: np.ndarray, errors: np.ndarray) -> np.ndarray:
@@ -134,7 +135,7 @@ class NoiseModel:
     def cdf(self, features: np.ndarray, errors: np.ndarray) -> np.ndarray:
         """Predictive CDF of each error dimension at the errors (the probability integral transform, PIT),
         ``[R, 2]``."""
-        x = _check_features(features)
+        x = check_features(features, "noise PEM", "R")
         return self.distribution(x).cdf(_check_errors(errors, x.shape[0]))
 
     def interval(self, features: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
@@ -145,11 +146,11 @@ class NoiseModel:
         """
         if not 0.0 < level < 1.0:
             raise ValueError(f"interval level must be in (0, 1), got {level}")
-        return self.distribution(_check_features(features)).interval(level)
+        return self.distribution(check_features(features, "noise PEM", "R")).interval(level)
 
     def sample(self, features: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """One error per row, float64 ``[R, 2]`` (metres), drawn with ``rng`` (reproducible for a seeded generator)."""
-        dist = self.distribution(_check_features(features))
+        dist = self.distribution(check_features(features, "noise PEM", "R"))
         return np.asarray(dist.rvs(random_state=rng), dtype=np.float64).reshape(-1, len(NOISE_DIMS))
 
 
@@ -193,7 +194,7 @@ class NoisePEM(NoiseModel):
         object.__setattr__(self, "_one_hot", self._grid.one_hot(ONE_HOT_GROUPS))
 
     def noise_params(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out = self._grid(_check_features(features))
+        out = self._grid(check_features(features, "noise PEM", "R"))
         return out[:, :2], out[:, 2:]
 
     def noise_params_codes(self, codes: SalientCodes) -> tuple[np.ndarray, np.ndarray]:
@@ -223,7 +224,7 @@ class HomoscedasticNoise(NoiseModel):
         object.__setattr__(self, "_grid", GridMLP.of(((self.coef.T, self.intercept),)))
 
     def noise_params(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = _check_features(features)
+        x = check_features(features, "noise PEM", "R")
         return self._grid(x), np.broadcast_to(self.log_scale, (x.shape[0], 2)).copy()
 
 
@@ -276,18 +277,25 @@ def noise_training_data(inputs: np.ndarray, label_table: np.ndarray, *, seed: in
 # -------------------------------------------------------------------------------------------- training
 
 
+@dataclass(frozen=True)
+class NoiseRecipe(NetworkRecipe[NoisePEM]):
+    """A heteroscedastic noise PEM: the family, architecture and optimiser settings of :func:`train_noise_pem`."""
+
+    family: str = "student-t"
+    hidden: tuple[int, ...] = (32, 32)
+    epochs: int = 100
+    batch_size: int = 512
+    lr: float = 3e-3
+
+    def _fit(self, inputs: np.ndarray, errors: np.ndarray, /, **common: Any) -> NoisePEM:
+        return train_noise_pem(self, inputs, errors, **common)
+
+
 def train_noise_pem(
+    recipe: NoiseRecipe,
     inputs: np.ndarray,
     errors: np.ndarray,
     *,
-    name: str = "hetero-t",
-    family: str = "student-t",
-    hidden: Sequence[int] = (32, 32),
-    epochs: int = 100,
-    batch_size: int = 512,
-    lr: float = 3e-3,
-    weight_decay: float = 0.0,
-    seed: int = 0,
     norm: NormStats | None = None,
     progress: bool = False,
     metadata: Mapping[str, Any] | None = None,
@@ -299,9 +307,9 @@ def train_noise_pem(
     back. The same seed gives the same weights on the same torch build.
 
     Args:
+        recipe: the name, family (one of :data:`FAMILIES`), network and optimiser settings (hidden, epochs,
+            batch_size, lr, weight_decay, seed).
         inputs: raw salient inputs ``[M, 11]`` of detected obstacles; errors: their metric errors ``[M, 2]`` (metres).
-        family: one of :data:`FAMILIES`.
-        hidden, epochs, batch_size, lr, weight_decay, seed: network and optimiser settings.
         norm: z-score statistics of the encoding (default: fitted on ``inputs``; pemviz uses the full file's).
         metadata: extra provenance stored with the model.
 
@@ -319,46 +327,24 @@ def train_noise_pem(
     err = _check_errors(errors, x.shape[0])
     if not np.all(np.isfinite(err)) or x.shape[0] < 2:
         raise ValueError(f"need >= 2 rows of finite errors, got {x.shape[0]} rows")
-    if epochs < 1 or batch_size < 1:
-        raise ValueError(f"need epochs >= 1 and batch_size >= 1, got {epochs}, {batch_size}")
-    loss_fn = NoiseNLL(family)
+    if recipe.epochs < 1 or recipe.batch_size < 1:
+        raise ValueError(f"need epochs >= 1 and batch_size >= 1, got {recipe.epochs}, {recipe.batch_size}")
+    loss_fn = NoiseNLL(recipe.family)
     target_scale = err.std(axis=0)
-    module, last_loss = fit_network(
-        torch.as_tensor(x, dtype=torch.float32),
-        torch.as_tensor(err / target_scale, dtype=torch.float32),
-        loss_fn=loss_fn,
-        hidden=hidden,
-        batch_norm=False,
-        dropout=0.0,
-        epochs=epochs,
-        batch_size=batch_size,
-        lr=lr,
-        weight_decay=weight_decay,
-        seed=seed,
-        progress=progress,
-        name=name,
-        out_dim=4,
-    )
-    df = loss_fn.df().detach().to(torch.float64).numpy() if family == "student-t" else None
-    meta = {
-        "seed": int(seed),
-        "epochs": int(epochs),
-        "batch_size": int(batch_size),
-        "lr": float(lr),
-        "weight_decay": float(weight_decay),
-        "n_train": int(x.shape[0]),
-        # the loss is on errors / target_scale: add log(target_scale) to read it in nats of metres
-        "final_epoch_train_nll": float(last_loss + np.log(target_scale).sum()),
-        "torch_version": str(torch.__version__),
-        **dict(metadata or {}),
-    }
+    x_t, t = (torch.as_tensor(a, dtype=torch.float32) for a in (x, err / target_scale))
+    module, last_loss, meta = fit_network(x_t, t, recipe, loss_fn, progress=progress, out_dim=4)
+    df = loss_fn.df().detach().to(torch.float64).numpy() if recipe.family == "student-t" else None
+    meta["n_train"] = int(x.shape[0])
+    # the loss is on errors / target_scale: add log(target_scale) to read it in nats of metres
+    meta["final_epoch_train_nll"] = float(last_loss + np.log(target_scale).sum())
+    meta.update(torch_version=str(torch.__version__), **dict(metadata or {}))
     return NoisePEM(
-        name=name,
+        name=recipe.name,
         norm=norm,
-        family=family,
+        family=recipe.family,
         df=df,
         state_dict=module.state_dict(),
-        hidden=tuple(int(h) for h in hidden),
+        hidden=tuple(int(h) for h in recipe.hidden),
         target_scale=target_scale,
         metadata=meta,
     )

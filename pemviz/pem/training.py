@@ -1,13 +1,16 @@
-"""Training the paper's ML-NN PEM (Innes & Ramamoorthy 2022, Sec. IV-A: BCE with logits, Adam lr 1e-3, batch
-1024, 300 epochs, eval mode; the authors' ``train_tp_pem_det.py``): :func:`train_pem`, and the training loop
-:func:`fit_network` that the noise PEM (:mod:`pemviz.pem.noise`) shares. Both import torch (about 1 s) when
-called; the :class:`~pemviz.pem.network.PEM` they return is evaluated without it.
+"""Training the network PEMs: the recipes' shared part (:class:`Recipe`: ``train`` with the recipe's seed and
+epochs; :class:`NetworkRecipe`: the settings of the training loop), the paper's ML-NN (Innes & Ramamoorthy 2022,
+Sec. IV-A: BCE with logits, Adam lr 1e-3, batch 1024, 300 epochs, eval mode; the authors' ``train_tp_pem_det.py``):
+:class:`PemRecipe`, :func:`train_pem`, and the training loop :func:`fit_network` that the noise PEM
+(:mod:`pemviz.pem.noise`) shares. Training imports torch (about 1 s); the :class:`~pemviz.pem.network.PEM` it returns
+is evaluated without it. The named recipes are in :mod:`pemviz.pem.recipes`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 import numpy as np
 
@@ -19,38 +22,91 @@ if TYPE_CHECKING:  # annotations only: these import torch
 
     from pemviz.pem.modules import MLNN
 
+_Model = TypeVar("_Model")
+
+
+class Recipe(Generic[_Model]):
+    """What every recipe shares: ``train`` with the recipe's ``seed`` / ``epochs`` unless overridden (every recipe
+    is a frozen dataclass with at least these fields)."""
+
+    name: str
+    epochs: int
+    seed: int
+
+    def train(
+        self,
+        inputs: np.ndarray,
+        targets: np.ndarray,
+        *,
+        seed: int | None = None,
+        epochs: int | None = None,
+        norm: NormStats | None = None,
+        progress: bool = False,
+        metadata: Mapping[str, Any] | None = None,
+    ) -> _Model:
+        """Train on raw inputs ``[M, F]`` and the recipe's targets (detection labels ``[M]`` in {0, 1}, or metric
+        errors ``[M, 2]`` in metres for a noise PEM); ``seed`` / ``epochs`` override the recipe's (``epochs`` is the
+        number of trees of a tree PEM, which draws no progress bar)."""
+        recipe = replace(  # type: ignore[type-var]  # every recipe is a dataclass
+            self, epochs=self.epochs if epochs is None else epochs, seed=self.seed if seed is None else seed
+        )
+        metadata = {"recipe": self.name, **dict(metadata or {})}
+        return recipe._fit(inputs, targets, norm=norm, progress=progress, metadata=metadata)
+
+    def _fit(
+        self, inputs: np.ndarray, targets: np.ndarray, /, *, norm: NormStats | None, progress: bool, metadata: Any
+    ) -> _Model:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class NetworkRecipe(Recipe[_Model]):
+    """A network PEM's name and the settings :func:`fit_network` reads: the ``hidden`` layers' widths, and Adam's
+    ``epochs``, ``batch_size``, ``lr``, ``weight_decay`` (its L2 term) and ``seed``."""
+
+    name: str
+    description: str
+    hidden: tuple[int, ...] = (20, 20)
+    epochs: int = 300
+    batch_size: int = 1024
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class PemRecipe(NetworkRecipe[PEM]):
+    """An ML-NN-style PEM: the architecture and optimiser settings of :func:`train_pem` (default: the paper's 20-20
+    with BatchNorm)."""
+
+    batch_norm: bool = True
+    dropout: float = 0.0
+
+    def _fit(self, inputs: np.ndarray, labels: np.ndarray, /, **common: Any) -> PEM:
+        return train_pem(self, inputs, labels, **common)
+
 
 def train_pem(
+    recipe: PemRecipe,
     inputs: np.ndarray,
     labels: np.ndarray,
     *,
-    name: str = "ml-nn",
-    hidden: Sequence[int] = (20, 20),
-    batch_norm: bool = True,
-    dropout: float = 0.0,
-    epochs: int = 300,
-    batch_size: int = 1024,
-    lr: float = 1e-3,
-    weight_decay: float = 0.0,
-    seed: int = 0,
     norm: NormStats | None = None,
     progress: bool = False,
     metadata: Mapping[str, Any] | None = None,
 ) -> PEM:
-    """Train a PEM network with the paper's recipe (Innes & Ramamoorthy (2022), Sec. V; the authors'
-    ``train_tp_pem_det.py``).
+    """Train a PEM network with a recipe's architecture and optimiser settings (the paper's: Innes & Ramamoorthy
+    (2022), Sec. V; the authors' ``train_tp_pem_det.py``).
 
     BCE with logits, Adam (lr 1e-3), mini-batches of 1024 reshuffled every epoch, 300 epochs, float32;
     seeded (``torch.manual_seed(seed)`` for the initial weights, a seeded generator for the shuffles), so
     the same seed gives the same weights on the same torch build.
 
     Args:
+        recipe: the name, architecture (hidden, batch_norm, dropout), optimiser settings (epochs, batch_size, lr,
+            weight_decay) and seed.
         inputs: raw salient inputs ``[N, 11]`` (KITTI layout).
         labels: detected, ``[N]`` in {0, 1}.
-        name: the PEM's name (``ml-nn`` for the paper's model).
-        hidden, batch_norm, dropout: architecture (default: the paper's 20-20 with BatchNorm).
-        epochs, batch_size, lr, weight_decay: optimiser settings (weight_decay: Adam's L2 term).
-        seed: random seed.
         norm: z-score statistics; default: fitted on ``inputs`` (the spec fits them on the full file,
             also when training on a cross-validation fold).
         progress: show a tqdm progress bar over epochs.
@@ -66,85 +122,64 @@ def train_pem(
     from torch import nn
 
     raw, y = check_training_data(inputs, labels)
-    if epochs < 1 or batch_size < 2:
-        raise ValueError(f"need epochs >= 1 and batch_size >= 2, got {epochs}, {batch_size}")
+    if recipe.epochs < 1 or recipe.batch_size < 2:
+        raise ValueError(f"need epochs >= 1 and batch_size >= 2, got {recipe.epochs}, {recipe.batch_size}")
     norm = norm if norm is not None else fit_norm_stats(raw)
     x = torch.as_tensor(encode_salient(raw, norm), dtype=torch.float32)
     t = torch.as_tensor(y, dtype=torch.float32).unsqueeze(1)
-    n = x.shape[0]
-
-    module, last_loss = fit_network(
-        x,
-        t,
-        loss_fn=nn.BCEWithLogitsLoss(),
-        hidden=hidden,
-        batch_norm=batch_norm,
-        dropout=dropout,
-        epochs=epochs,
-        batch_size=batch_size,
-        lr=lr,
-        weight_decay=weight_decay,
-        seed=seed,
-        progress=progress,
-        name=name,
+    module, last_loss, meta = fit_network(
+        x, t, recipe, nn.BCEWithLogitsLoss(), batch_norm=recipe.batch_norm, dropout=recipe.dropout, progress=progress
     )
-    meta = {
-        "seed": int(seed),
-        "epochs": int(epochs),
-        "batch_size": int(batch_size),
-        "lr": float(lr),
-        "weight_decay": float(weight_decay),
-        "dropout": float(dropout),
-        "n_train": int(n),
-        "final_epoch_train_bce": float(last_loss),
-        "torch_version": str(torch.__version__),
-    }
-    meta.update(dict(metadata or {}))
-    return PEM.from_module(module, norm, name=name, hidden=hidden, batch_norm=batch_norm, metadata=meta)
+    meta.update(dropout=float(recipe.dropout), n_train=int(x.shape[0]), final_epoch_train_bce=float(last_loss))
+    meta.update(torch_version=str(torch.__version__), **dict(metadata or {}))
+    hidden, batch_norm = recipe.hidden, recipe.batch_norm
+    return PEM.from_module(module, norm, name=recipe.name, hidden=hidden, batch_norm=batch_norm, metadata=meta)
 
 
 def fit_network(
     x: torch.Tensor,
     t: torch.Tensor,
-    *,
+    recipe: NetworkRecipe[Any],
     loss_fn: torch.nn.Module,
-    hidden: Sequence[int],
-    batch_norm: bool,
-    dropout: float,
-    epochs: int,
-    batch_size: int,
-    lr: float,
-    weight_decay: float,
-    seed: int,
-    progress: bool,
-    name: str,
+    *,
+    batch_norm: bool = False,
+    dropout: float = 0.0,
+    progress: bool = False,
     out_dim: int = 1,
-) -> tuple[MLNN, float]:
+) -> tuple[MLNN, float, dict[str, Any]]:
     """The training loop of :func:`train_pem` (and of the noise PEM): an :class:`MLNN` with ``out_dim`` outputs on
     float32 inputs ``x [N, 14]`` and targets ``t [N, ...]``, minimising ``loss_fn(module(x[batch]), t[batch])``.
 
     Adam (lr, weight_decay) over the network's and the loss's own parameters (e.g. the noise PEM's Student-t degrees
     of freedom), mini-batches reshuffled every epoch by a generator seeded with ``seed``, initial weights from
     ``torch.manual_seed(seed)``, one CPU thread (tiny networks gain nothing from threads, and one is reproducible).
-    Returns the module in eval mode and the last epoch's mean training loss.
+    Returns the module in eval mode, the last epoch's mean training loss and the recipe's settings as metadata
+    (seed, epochs, batch_size, lr, weight_decay).
     """
     import torch
     from tqdm.auto import tqdm
 
     from pemviz.pem.modules import MLNN
 
+    seed, epochs, batch_size, lr, weight_decay = (
+        recipe.seed,
+        recipe.epochs,
+        recipe.batch_size,
+        recipe.lr,
+        recipe.weight_decay,
+    )
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         n = x.shape[0]
         torch.manual_seed(seed)
         generator = torch.Generator().manual_seed(seed)
-        module = MLNN(N_FEATURES, hidden, batch_norm=batch_norm, dropout=dropout, out_dim=out_dim)
+        module = MLNN(N_FEATURES, recipe.hidden, batch_norm=batch_norm, dropout=dropout, out_dim=out_dim)
         optimiser = torch.optim.Adam([*module.parameters(), *loss_fn.parameters()], lr=lr, weight_decay=weight_decay)
 
         epoch_iter: Any = range(epochs)
         if progress:
-            epoch_iter = tqdm(epoch_iter, desc=f"train {name}", unit="epoch", mininterval=0.5)
+            epoch_iter = tqdm(epoch_iter, desc=f"train {recipe.name}", unit="epoch", mininterval=0.5)
         last_loss = float("nan")
         module.train()
         for _ in epoch_iter:
@@ -166,4 +201,5 @@ def fit_network(
         module.eval()
     finally:
         torch.set_num_threads(threads)
-    return module, last_loss
+    meta = {"seed": int(seed), "epochs": int(epochs), "batch_size": int(batch_size), "lr": float(lr)}
+    return module, last_loss, {**meta, "weight_decay": float(weight_decay)}

@@ -21,6 +21,7 @@ import numpy as np
 from scipy.special import expit
 
 from pemviz.pem.encoding import (
+    check_features,
     BRAKING_Z_FEATURE,
     N_FEATURES,
     NormStats,
@@ -30,6 +31,7 @@ from pemviz.pem.encoding import (
     encode_salient,
     fit_norm_stats,
 )
+from pemviz.pem.training import Recipe
 
 TREE_ARRAYS = ("feature", "threshold", "left", "right", "is_leaf", "value", "roots")
 
@@ -112,9 +114,7 @@ class TreePEM:
 
     def logit_features(self, features: np.ndarray, *, chunk: int = 4096) -> np.ndarray:
         """Logit of p(detect), float64 ``[N]``, from encoded features ``[N, 14]`` (rows in chunks)."""
-        x = np.asarray(features, dtype=np.float64)
-        if x.ndim != 2 or x.shape[1] != N_FEATURES:
-            raise ValueError(f"PEM features must have shape [N, {N_FEATURES}], got {x.shape}")
+        x = check_features(features)
         out = np.empty(x.shape[0], dtype=np.float64)
         for start in range(0, x.shape[0], chunk):
             xs = x[start : start + chunk]
@@ -216,27 +216,38 @@ def export_hist_gradient_boosting(
     )
 
 
+@dataclass(frozen=True)
+class TreeRecipe(Recipe[TreePEM]):
+    """A boosted-trees PEM: the settings of :func:`train_tree_pem` (``epochs``: the number of trees), passed to
+    scikit-learn's ``HistGradientBoostingClassifier``."""
+
+    name: str
+    description: str
+    learning_rate: float = 0.05
+    epochs: int = 300
+    max_leaf_nodes: int = 63
+    min_samples_leaf: int = 20
+    l2_regularization: float = 1.0
+    seed: int = 0
+
+    def _fit(self, inputs: np.ndarray, labels: np.ndarray, /, *, progress: bool, **common: Any) -> TreePEM:
+        return train_tree_pem(self, inputs, labels, **common)
+
+
 def train_tree_pem(
+    recipe: TreeRecipe,
     inputs: np.ndarray,
     labels: np.ndarray,
     *,
-    name: str = "gbt",
-    learning_rate: float = 0.05,
-    max_iter: int = 300,
-    max_leaf_nodes: int = 63,
-    min_samples_leaf: int = 20,
-    l2_regularization: float = 1.0,
-    seed: int = 0,
     norm: NormStats | None = None,
     metadata: Mapping[str, Any] | None = None,
 ) -> TreePEM:
     """Fit gradient-boosted trees (log-loss, no early stopping) on the 14 encoded features; one thread.
 
     Args:
+        recipe: the name and the settings passed to ``HistGradientBoostingClassifier`` (``epochs``: its ``max_iter``,
+            the number of trees; ``seed``: its ``random_state``, the fit is deterministic without early stopping).
         inputs: raw salient inputs ``[N, 11]``; labels: ``[N]`` in {0, 1}.
-        learning_rate, max_iter, max_leaf_nodes, min_samples_leaf, l2_regularization: passed to
-            ``HistGradientBoostingClassifier`` (``max_iter`` = number of trees).
-        seed: its ``random_state`` (the fit is deterministic without early stopping).
         norm: z-score statistics (default: fitted on ``inputs``; the spec uses the full file's).
 
     Raises:
@@ -247,27 +258,25 @@ def train_tree_pem(
 
     raw, y = check_training_data(inputs, labels)
     norm = norm if norm is not None else fit_norm_stats(raw)
+    settings = ("learning_rate", "max_leaf_nodes", "min_samples_leaf", "l2_regularization")
     model = HistGradientBoostingClassifier(
-        learning_rate=learning_rate,
-        max_iter=max_iter,
-        max_leaf_nodes=max_leaf_nodes,
-        min_samples_leaf=min_samples_leaf,
-        l2_regularization=l2_regularization,
+        **{k: getattr(recipe, k) for k in settings},
+        max_iter=recipe.epochs,
         early_stopping=False,
-        random_state=seed,
+        random_state=recipe.seed,
     )
     # One OpenMP thread: on a busy 2-core machine, 2 threads measured 40x slower (spin-waiting).
     with threadpool_limits(1):
         model.fit(encode_salient(raw, norm), y.astype(np.int64))
     meta = {
         "model": "sklearn.ensemble.HistGradientBoostingClassifier",
-        "learning_rate": float(learning_rate),
-        "max_iter": int(max_iter),
-        "max_leaf_nodes": int(max_leaf_nodes),
-        "min_samples_leaf": int(min_samples_leaf),
-        "l2_regularization": float(l2_regularization),
-        "seed": int(seed),
+        "learning_rate": float(recipe.learning_rate),
+        "max_iter": int(recipe.epochs),
+        "max_leaf_nodes": int(recipe.max_leaf_nodes),
+        "min_samples_leaf": int(recipe.min_samples_leaf),
+        "l2_regularization": float(recipe.l2_regularization),
+        "seed": int(recipe.seed),
         "n_train": int(raw.shape[0]),
     }
     meta.update(dict(metadata or {}))
-    return export_hist_gradient_boosting(model, norm, name=name, metadata=meta)
+    return export_hist_gradient_boosting(model, norm, name=recipe.name, metadata=meta)

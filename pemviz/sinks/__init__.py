@@ -12,18 +12,8 @@ import time
 from typing import TYPE_CHECKING, Callable
 
 from pemviz.engine.cost import COST, N_STEPS, CostConstants, FollowOn, StageCost, follow_on, mc_rollouts, stage_cost
-from pemviz.engine.events import (
-    Event,
-    FinalEstimate,
-    RolloutChunk,
-    RolloutsSampled,
-    RunCancelled,
-    RunFinished,
-    RunStarted,
-    StageFinished,
-    StageResult,
-    StageStarted,
-)
+from pemviz.engine.events import Event, FinalEstimate, RolloutChunk, RolloutsSampled, RunCancelled, RunFinished
+from pemviz.engine.events import RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.core.plan import RunPlan
 
 if TYPE_CHECKING:

@@ -156,18 +156,7 @@ def severity_svg(doc: dict[str, Any], width: int = 860, height: int = 300) -> st
     colour is the verdict's. An empty string without a curve or without anything to draw."""
     sev = doc.get("severity") or {}
     pts = [pt for pt in sev.get("points", []) if pt.get("level") is not None]
-    values = [
-        v
-        for pt in pts
-        for v in (
-            (_log10(pt["p"]), *(_log10(c) for c in pt["ci95"]))
-            if pt["shown"] in ("interval", "estimate and bound")
-            else ()
-        )
-        + ((_log10(pt["lower_bound95"]),) if pt["shown"] in ("estimate and bound", "bound") else ())
-        + ((_log10(pt["exact"]["p"]),) if pt.get("exact") else ())
-        if v is not None
-    ]
+    values = _drawn_log10(pts)
     if len(pts) < 2 or not values:
         return ""
     lo, hi = math.floor(min(values)), math.ceil(max(values))
@@ -231,7 +220,31 @@ def severity_svg(doc: dict[str, Any], width: int = 860, height: int = 300) -> st
                     f'stroke="{colour}" stroke-width="2"/>'
                 )
             mark("filled" if pt["verdict"] == "reliable" else "hollow", x, sy(math.log10(pt["p"])), colour, tip)
-    y = top + 4
+    parts += _legend_svg(used, plot_w, top + 4)
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _drawn_log10(pts: list[dict[str, Any]]) -> list[float]:
+    """log10 of every probability :func:`severity_svg` draws of the points ``pts`` (estimates, interval ends, bounds,
+    exact answers), for its y range."""
+    return [
+        v
+        for pt in pts
+        for v in (
+            (_log10(pt["p"]), *(_log10(c) for c in pt["ci95"]))
+            if pt["shown"] in ("interval", "estimate and bound")
+            else ()
+        )
+        + ((_log10(pt["lower_bound95"]),) if pt["shown"] in ("estimate and bound", "bound") else ())
+        + ((_log10(pt["exact"]["p"]),) if pt.get("exact") else ())
+        if v is not None
+    ]
+
+
+def _legend_svg(used: set[str], plot_w: int, y0: float) -> list[str]:
+    """The severity curve's legend, right of the plot from ``y0`` down: the marks ``used``, then the colours' words."""
+    parts, y = [], y0
     for kind, words in LEGEND.items():
         if kind in used:
             colour = (
@@ -245,8 +258,7 @@ def severity_svg(doc: dict[str, Any], width: int = 860, height: int = 300) -> st
     for line in ("colour: the verdict (green reliable,", "amber doubtful, red unreliable)"):
         parts.append(f'<text x="{plot_w + 24}" y="{y + 4:.1f}" font-size="11" fill="{MUTED}">{line}</text>')
         y += 16
-    parts.append("</svg>")
-    return "".join(parts)
+    return parts
 
 
 def _table_html(header: tuple[str, ...], rows: Sequence[tuple[str, ...]]) -> str:
@@ -355,6 +367,39 @@ def _rests_on(doc: dict[str, Any]) -> list[tuple[str, str]]:
     return rows
 
 
+def _failures_section(failures: dict[str, Any]) -> Section:
+    """The failures in groups by share of p (at most :data:`MAX_GROUPS`, the rest in one row) and the failure
+    carrying the largest share."""
+    shown = failures["groups"][:MAX_GROUPS]
+    rows = [(g["label"], f"{g['count']:,}", f"{100 * g['share']:.3g} %") for g in shown]
+    rest = failures["groups"][MAX_GROUPS:]
+    if rest:
+        rows.append(
+            (
+                f"{len(rest)} more groups",
+                f"{sum(g['count'] for g in rest):,}",
+                f"{100 * sum(g['share'] for g in rest):.3g} %",
+            )
+        )
+    top = failures["largest"][0] if failures.get("largest") else None
+    largest = (
+        f" The failure carrying the largest share: stage {top['stage']} rollout {top['rollout']}, "
+        f"{100 * top['share']:.3g} % of p ({top['group']}), log-likelihood under the PEM before the "
+        f"failure {_num(top['log_p'], '.2f')} nats (the log-probability of its detections plus, where the "
+        "detector mislocates, the log-density of its measurement errors)."
+        if top
+        else ""
+    )
+    return (
+        "Failures by share of p",
+        f"The {failures['n']:,} failures of the estimate in "
+        f"{len(failures['groups'])} groups by {failures['basis']}: each group's share of p (its "
+        f"failures' importance weights over all the failures'; the shares add up to 100 %).{largest}",
+        ("group", "failures", "share of p"),
+        rows,
+    )
+
+
 def _sections(doc: dict[str, Any]) -> list[Section]:
     """(title, intro text, table header, rows) of each section both twins show."""
     problem = doc.get("problem") or {}
@@ -395,36 +440,7 @@ def _sections(doc: dict[str, Any]) -> list[Section]:
         )
     failures = doc.get("failures")
     if failures and failures.get("groups"):
-        shown = failures["groups"][:MAX_GROUPS]
-        rows = [(g["label"], f"{g['count']:,}", f"{100 * g['share']:.3g} %") for g in shown]
-        rest = failures["groups"][MAX_GROUPS:]
-        if rest:
-            rows.append(
-                (
-                    f"{len(rest)} more groups",
-                    f"{sum(g['count'] for g in rest):,}",
-                    f"{100 * sum(g['share'] for g in rest):.3g} %",
-                )
-            )
-        top = failures["largest"][0] if failures.get("largest") else None
-        largest = (
-            f" The failure carrying the largest share: stage {top['stage']} rollout {top['rollout']}, "
-            f"{100 * top['share']:.3g} % of p ({top['group']}), log-likelihood under the PEM before the "
-            f"failure {_num(top['log_p'], '.2f')} nats (the log-probability of its detections plus, where the "
-            "detector mislocates, the log-density of its measurement errors)."
-            if top
-            else ""
-        )
-        sections.append(
-            (
-                "Failures by share of p",
-                f"The {failures['n']:,} failures of the estimate in "
-                f"{len(failures['groups'])} groups by {failures['basis']}: each group's share of p (its "
-                f"failures' importance weights over all the failures'; the shares add up to 100 %).{largest}",
-                ("group", "failures", "share of p"),
-                rows,
-            )
-        )
+        sections.append(_failures_section(failures))
     severity = (failures or {}).get("severity")
     if severity and severity.get("bins") and severity.get("n_kept"):
         sections.append(

@@ -153,14 +153,8 @@ def log_explanation(
     """
     s = stream
     if failure is None:
-        s.log(
-            f"{E}/summary",
-            rr.TextDocument(
-                "# No failure found\n\nThe run found no failing rollout: nothing to " "explain.",
-                media_type=rr.MediaType.MARKDOWN,
-            ),
-            static=True,
-        )
+        text = "# No failure found\n\nThe run found no failing rollout: nothing to explain."
+        s.log(f"{E}/summary", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
         return None
     b = failure.batch
     col = view.signals[0].column
@@ -170,7 +164,7 @@ def log_explanation(
     if view.objects_xy is not None and b.objects is not None:
         _log_objects(s, view, b, indexes)
     p_det, q_det = prob_detect(b.log_p[0], detected), prob_detect(b.log_q[0], detected)
-    number, stage = int(failure.rollout_numbers[0]), failure.stage
+    number = int(failure.rollout_numbers[0])
     drawing = recording_hooks(view.drawing)
     tale = drawing.explanation(b, 0) if drawing is not None else None
 
@@ -181,50 +175,7 @@ def log_explanation(
             s, f"{E}/detect/misses", "miss", MISSED_RGBA, "cross", misses, np.full(misses.size, MARKER_ROW), indexes
         )
     else:  # log p sums every object's events and error densities: each object's events instead, a row each
-        names = b.object_names or ()
-        if "visible" in names:
-            assert b.objects is not None  # object names come with the object rows
-            seen = b.objects[0][:, :, names.index("visible")] > 0.5
-        else:
-            seen = np.ones(b.detected[0].shape, bool)
-        for j in range(b.n_objects):
-            d = b.detected[0, :, j]
-            for kind, rgba, steps_j in (
-                ("detected", DETECTED_RGBA, np.flatnonzero(d)),
-                ("missed", MISSED_RGBA, np.flatnonzero(~d & seen[:, j])),
-                ("unseen", UNSEEN_RGBA, np.flatnonzero(~d & ~seen[:, j])),
-            ):
-                _markers(
-                    s,
-                    f"{E}/detect/object_{j}/{kind}",
-                    f"{view.object_label(j)} {kind}",
-                    rgba,
-                    "circle",
-                    steps_j,
-                    np.full(steps_j.size, float(j)),
-                    indexes,
-                    size=3.0,
-                )
-            if object_detect is not None:  # the object's band: 0 at its row, 1 at OBJECT_BAND above it
-                p_j, q_j = (np.asarray(a[:, j], dtype=np.float64) for a in object_detect)
-                _series(
-                    s,
-                    f"{E}/detect/object_{j}/pem",
-                    f"{view.object_label(j)} p(detect), PEM",
-                    PEM_PLOT_RGBA,
-                    j + OBJECT_BAND * p_j,
-                    indexes,
-                    width=1.0,
-                )
-                _series(
-                    s,
-                    f"{E}/detect/object_{j}/sampler",
-                    f"{view.object_label(j)} q(detect), sampler",
-                    C.rgba(C.BLUE),
-                    j + OBJECT_BAND * q_j,
-                    indexes,
-                    width=1.5,
-                )
+        _log_object_events(s, view, b, object_detect, indexes)
     words = str(tale["words"]) if tale is not None else "failure"
     _series(s, f"{E}/{col}/recorded", f"as recorded: {words}", CRASH_RGBA[:3] + (255,), trace, indexes, width=2.5)
     log_thresholds(s, view, trace.size, indexes, path=f"{E}/{col}/thresholds")
@@ -232,6 +183,85 @@ def log_explanation(
 
     if parts is None and b.noise is None:  # detections only: log p is their log-probability
         parts = LogPParts.of(b, 0, None)
+    props = _failure_props(failure, stage_name, log_p, n_failures, misses, trace.size, parts)
+    chosen = _chosen_words(failure, log_p, parts, n_failures, misses, drawing, trace.size)
+    lines = [f"## Most likely failure: {stage_name}, rollout {number}" + (f": {words}" if tale else ""), ""]
+    if tale is not None:
+        lines += _log_drawn(s, tale, indexes, props)
+        log_scene_lane(s, f"{E}/scene", 0, failure, 0, drawing, indexes)
+    lines.append(chosen)
+    s.log(f"{E}/summary", rr.TextDocument("\n".join(lines) + "\n", media_type=rr.MediaType.MARKDOWN), static=True)
+    s.log(f"{E}/failure", rr.AnyValues(**props), static=True)
+    return tale
+
+
+def _log_object_events(
+    s: rr.RecordingStream,
+    view: ProblemView,
+    b: RolloutBatch,
+    object_detect: tuple[np.ndarray, np.ndarray] | None,
+    indexes: Indexes,
+) -> None:
+    """Several objects: each object's detected, missed and unseen steps on its own row, and its p(detect) and
+    q(detect) in its row band where ``object_detect`` gives them."""
+    names = b.object_names or ()
+    if "visible" in names:
+        assert b.objects is not None  # object names come with the object rows
+        seen = b.objects[0][:, :, names.index("visible")] > 0.5
+    else:
+        seen = np.ones(b.detected[0].shape, bool)
+    for j in range(b.n_objects):
+        d = b.detected[0, :, j]
+        for kind, rgba, steps_j in (
+            ("detected", DETECTED_RGBA, np.flatnonzero(d)),
+            ("missed", MISSED_RGBA, np.flatnonzero(~d & seen[:, j])),
+            ("unseen", UNSEEN_RGBA, np.flatnonzero(~d & ~seen[:, j])),
+        ):
+            _markers(
+                s,
+                f"{E}/detect/object_{j}/{kind}",
+                f"{view.object_label(j)} {kind}",
+                rgba,
+                "circle",
+                steps_j,
+                np.full(steps_j.size, float(j)),
+                indexes,
+                size=3.0,
+            )
+        if object_detect is not None:  # the object's band: 0 at its row, 1 at OBJECT_BAND above it
+            p_j, q_j = (np.asarray(a[:, j], dtype=np.float64) for a in object_detect)
+            _series(
+                s,
+                f"{E}/detect/object_{j}/pem",
+                f"{view.object_label(j)} p(detect), PEM",
+                PEM_PLOT_RGBA,
+                j + OBJECT_BAND * p_j,
+                indexes,
+                width=1.0,
+            )
+            _series(
+                s,
+                f"{E}/detect/object_{j}/sampler",
+                f"{view.object_label(j)} q(detect), sampler",
+                C.rgba(C.BLUE),
+                j + OBJECT_BAND * q_j,
+                indexes,
+                width=1.5,
+            )
+
+
+def _failure_props(
+    failure: RolloutsSampled,
+    stage_name: str,
+    log_p: float,
+    n_failures: int,
+    misses: np.ndarray,
+    n_steps: int,
+    parts: LogPParts | None,
+) -> dict[str, Any]:
+    """The explained failure's properties (``explain/failure``): where it was drawn, its log p (and its parts where
+    known), log-weight, robustness, misses."""
+    stage, number = failure.stage, int(failure.rollout_numbers[0])
     props: dict = dict(
         stage=stage,
         stage_name=stage_name,
@@ -241,12 +271,27 @@ def log_explanation(
         robustness=float(failure.robustness[0]),
         n_failures_compared=n_failures,
         misses=misses,
-        n_steps=trace.size,
+        n_steps=n_steps,
     )
     if parts is not None:
         props["log_prob_detections"] = parts.detections
         if parts.errors is not None:
             props["log_density_errors"] = parts.errors
+    return props
+
+
+def _chosen_words(
+    failure: RolloutsSampled,
+    log_p: float,
+    parts: LogPParts | None,
+    n_failures: int,
+    misses: np.ndarray,
+    drawing: Any,
+    n_steps: int,
+) -> str:
+    """The summary's paragraph on why this failure was chosen: its log p (in parts where known), robustness,
+    log-weight and misses."""
+    b = failure.batch
     how = (
         parts.words(2)
         if parts is not None
@@ -255,24 +300,16 @@ def log_explanation(
     )
     thing = drawing.object_words if drawing is not None else "the object"
     missed = (
-        f"The detector missed {thing} at {misses.size} of {trace.size} steps."
+        f"The detector missed {thing} at {misses.size} of {n_steps} steps."
         if b.n_objects == 1
         else f"The detector missed {int((~b.detected[0]).sum())} of {b.detected[0].size} object-steps of its "
         f"{b.n_objects} objects (those it cannot see included)."
     )
-    chosen = (
-        f"The failing rollout with the largest log p under the PEM ({how}, over the first {trace.size - 1} steps) "
+    return (
+        f"The failing rollout with the largest log p under the PEM ({how}, over the first {n_steps - 1} steps) "
         f"among the {n_failures:,} failing rollouts the run reported; robustness "
         f"{float(failure.robustness[0]):.3g}, importance log-weight {float(failure.log_weight[0]):.2f} nats. " + missed
     )
-    lines = [f"## Most likely failure: {stage_name}, rollout {number}" + (f": {words}" if tale else ""), ""]
-    if tale is not None:
-        lines += _log_drawn(s, tale, indexes, props)
-        log_scene_lane(s, f"{E}/scene", 0, failure, 0, drawing, indexes)
-    lines.append(chosen)
-    s.log(f"{E}/summary", rr.TextDocument("\n".join(lines) + "\n", media_type=rr.MediaType.MARKDOWN), static=True)
-    s.log(f"{E}/failure", rr.AnyValues(**props), static=True)
-    return tale
 
 
 def _log_drawn(s: rr.RecordingStream, tale: Mapping[str, Any], indexes: Indexes, props: dict) -> list[str]:

@@ -12,7 +12,7 @@ second.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rerun as rr
@@ -133,18 +133,7 @@ def log_stage_rollouts(
     trace = batch.signal(first)
     told = {i: outcome_values(view.drawing, batch, i) for i in keep.tolist()}
     words = [str(v["outcome"]) if v is not None else "failure" if failed[i] else "safe" for i, v in told.items()]
-    colours, widths, names = [], [], []
-    for i, said in zip(keep.tolist(), words, strict=False):
-        tag = rank.get(i)
-        what = f": {said}" if failed[i] else ""
-        if tag is None:
-            colours.append(CRASH_RGBA if failed[i] else SAFE_RGBA)
-            widths.append(1.0)
-            names.append(f"s{ev.stage} r{number[i]}{what}")
-        else:
-            colours.append(TAG_CRASH_RGBA if failed[i] else TAG_RGBA)
-            widths.append(2.5)
-            names.append(f"s{ev.stage} r{number[i]} least-robust #{tag + 1} rho={ev.robustness[i]:.3g}{what}")
+    colours, widths, names = _series_style(ev, keep, rank, words)
     index = indexes(step=np.arange(t))
     stage = f"stage_{ev.stage:02d}"
     for sig in view.signals:
@@ -176,7 +165,44 @@ def log_stage_rollouts(
     labels = []
     for i in rows.tolist():
         labels.append(_log_featured(s, ev, view, i, roles[i], said_of[i], told[i], float(log_p[i]), stage_name, index))
-    tagged = np.isin(rows, order)
+    _log_marks(s, f"rollouts/{{}}/{stage}", batch, rows, labels, np.isin(rows, order), trace, view, index)
+    return StageRollouts(keep, words, roles)
+
+
+def _series_style(
+    ev: RolloutsSampled, keep: np.ndarray, rank: dict[int, int], words: list[str]
+) -> tuple[list[tuple[int, int, int, int]], list[float], list[str]]:
+    """Each kept rollout's series colour, width and name: the least-robust ones (``rank``) tagged, failures named by
+    their outcome ``words``."""
+    failed, number = np.asarray(ev.failed, bool), ev.rollout_numbers
+    colours, widths, names = [], [], []
+    for i, said in zip(keep.tolist(), words, strict=False):
+        tag = rank.get(i)
+        what = f": {said}" if failed[i] else ""
+        if tag is None:
+            colours.append(CRASH_RGBA if failed[i] else SAFE_RGBA)
+            widths.append(1.0)
+            names.append(f"s{ev.stage} r{number[i]}{what}")
+        else:
+            colours.append(TAG_CRASH_RGBA if failed[i] else TAG_RGBA)
+            widths.append(2.5)
+            names.append(f"s{ev.stage} r{number[i]} least-robust #{tag + 1} rho={ev.robustness[i]:.3g}{what}")
+    return colours, widths, names
+
+
+def _log_marks(
+    s: rr.RecordingStream,
+    path_of: str,
+    batch: Any,
+    rows: np.ndarray,
+    labels: list[str],
+    tagged: np.ndarray,
+    trace: np.ndarray,
+    view: ProblemView,
+    index: Any,
+) -> None:
+    """The featured rollouts' detections (shown for the ``tagged`` ones) and misses on their first signal's trace,
+    where a detection can still change the outcome (:func:`deciding`); ``path_of`` names the entity of each kind."""
     marks_of: tuple[tuple[str, bool, tuple[int, ...], MarkerShapeLike, float, np.ndarray], ...] = (
         ("detected", True, DETECTED_RGBA, "circle", 1.5, tagged),
         ("missed", False, MISSED_RGBA, "cross", 3.0, np.ones_like(tagged)),
@@ -184,7 +210,7 @@ def log_stage_rollouts(
     for key, mask, rgba, marker, size, show in marks_of:
         if rows.size == 0:
             break
-        path = f"rollouts/{key}/{stage}"
+        path = path_of.format(key)
         s.log(
             path,
             rr.SeriesPoints(
@@ -198,7 +224,6 @@ def log_stage_rollouts(
         )
         marks = np.where((batch.detected[rows, :, 0] == mask) & deciding(trace[rows], view), trace[rows], np.nan)
         s.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=marks.T))
-    return StageRollouts(keep, words, roles)
 
 
 def _log_featured(

@@ -33,54 +33,27 @@ def is_tensor(x: Any) -> bool:
 Array = Any  # np.ndarray | torch.Tensor
 
 
+def _same(name: str) -> Any:
+    """A classmethod calling ``xp.<name>`` with the arguments it is given."""
+    return classmethod(lambda cls, *args: getattr(cls.xp, name)(*args))
+
+
+def _along(name: str) -> Any:
+    """A classmethod reducing ``x`` with ``xp.<name>(x, axis=axis)``."""
+    return classmethod(lambda cls, x, axis: getattr(cls.xp, name)(x, axis=axis))
+
+
 class _Ops:
     """The array operations numpy and torch spell alike, on the array module ``xp`` (float64 arrays)."""
 
     xp: Any
-
-    @classmethod
-    def minimum(cls, a: Array, b: Array) -> Array:
-        return cls.xp.minimum(a, b)
-
-    @classmethod
-    def maximum(cls, a: Array, b: Array) -> Array:
-        return cls.xp.maximum(a, b)
-
-    @classmethod
-    def where(cls, c: Array, a: Any, b: Any) -> Array:
-        return cls.xp.where(c, a, b)
-
-    @classmethod
-    def log(cls, x: Array) -> Array:
-        return cls.xp.log(x)
-
-    @classmethod
-    def expm1(cls, x: Array) -> Array:
-        return cls.xp.expm1(x)
-
-    @classmethod
-    def zeros_like(cls, x: Array) -> Array:
-        return cls.xp.zeros_like(x)
+    minimum, maximum, where = _same("minimum"), _same("maximum"), _same("where")
+    log, expm1, zeros_like = _same("log"), _same("expm1"), _same("zeros_like")
+    amin, amax, sum, prod = _along("amin"), _along("amax"), _along("sum"), _along("prod")
 
     @classmethod
     def isnan_any(cls, x: Array) -> bool:
         return bool(cls.xp.isnan(x).any())
-
-    @classmethod
-    def amin(cls, x: Array, axis: int) -> Array:
-        return cls.xp.amin(x, axis=axis)
-
-    @classmethod
-    def amax(cls, x: Array, axis: int) -> Array:
-        return cls.xp.amax(x, axis=axis)
-
-    @classmethod
-    def sum(cls, x: Array, axis: int) -> Array:
-        return cls.xp.sum(x, axis=axis)
-
-    @classmethod
-    def prod(cls, x: Array, axis: int) -> Array:
-        return cls.xp.prod(x, axis=axis)
 
     @staticmethod
     def affine(x: Array, c: float, k: float) -> Array:

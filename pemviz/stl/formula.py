@@ -35,29 +35,6 @@ from pemviz.stl.expr import (
     _where,
 )
 
-__all__ = [
-    "Formula",
-    "Predicate",
-    "Not",
-    "And",
-    "Or",
-    "Implies",
-    "Temporal",
-    "UnaryTemporal",
-    "Always",
-    "Eventually",
-    "Until",
-    "signal",
-    "const",
-    "negation",
-    "conjunction",
-    "disjunction",
-    "implies",
-    "always",
-    "eventually",
-    "until",
-]
-
 # --------------------------------------------------------------------------------------------------
 # Formulas
 # --------------------------------------------------------------------------------------------------
@@ -206,49 +183,42 @@ class Not(Formula):
 
 
 @dataclass(frozen=True, eq=True)
-class And(Formula):
-    """n-ary conjunction ``a & b & ...`` (at least two operands)."""
+class _NAry(Formula):
+    """A conjunction or disjunction of at least two operands, printed joined by ``_op``."""
 
     operands: tuple[Formula, ...]
     pos: int | None = field(default=None, compare=False, repr=False)
-    _prec = 3
+    _op = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "operands", tuple(self.operands))
         if len(self.operands) < 2:
-            raise ValueError(f"& needs at least two operands{_where(self.pos)}, got {len(self.operands)}")
+            raise ValueError(f"{self._op} needs at least two operands{_where(self.pos)}, got {len(self.operands)}")
         for o in self.operands:
-            _check_formula(o, "&")
+            _check_formula(o, self._op)
 
     @property
     def children(self) -> tuple[Formula, ...]:
         return self.operands
 
     def __str__(self) -> str:
-        return " & ".join(_paren(o, 4) for o in self.operands)
+        return f" {self._op} ".join(_paren(o, self._prec + 1) for o in self.operands)
 
 
 @dataclass(frozen=True, eq=True)
-class Or(Formula):
+class And(_NAry):
+    """n-ary conjunction ``a & b & ...`` (at least two operands)."""
+
+    _prec = 3
+    _op = "&"
+
+
+@dataclass(frozen=True, eq=True)
+class Or(_NAry):
     """n-ary disjunction ``a | b | ...`` (at least two operands)."""
 
-    operands: tuple[Formula, ...]
-    pos: int | None = field(default=None, compare=False, repr=False)
     _prec = 2
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "operands", tuple(self.operands))
-        if len(self.operands) < 2:
-            raise ValueError(f"| needs at least two operands{_where(self.pos)}, got {len(self.operands)}")
-        for o in self.operands:
-            _check_formula(o, "|")
-
-    @property
-    def children(self) -> tuple[Formula, ...]:
-        return self.operands
-
-    def __str__(self) -> str:
-        return " | ".join(_paren(o, 3) for o in self.operands)
+    _op = "|"
 
 
 @dataclass(frozen=True, eq=True)

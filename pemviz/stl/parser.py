@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Callable, Iterator
 
 from pemviz.stl.expr import COMPARISONS, KEYWORDS, BinaryExpr, Const, Expr, Negate, Signal
 from pemviz.stl.formula import Always, And, Eventually, Formula, Implies, Not, Or, Predicate, Until
@@ -207,18 +207,18 @@ class _Parser:
         return self._build(Implies, t, left, right)
 
     def disjunction(self) -> Formula:
-        first = self.conjunction()
-        ops = [first]
-        while self.accept("|"):
-            ops.append(self.conjunction())
-        return first if len(ops) == 1 else Or(tuple(ops), pos=_pos_of(first))
+        return self._nary(self.conjunction, "|", Or)
 
     def conjunction(self) -> Formula:
-        first = self.until()
+        return self._nary(self.until, "&", And)
+
+    def _nary(self, operand: Callable[[], Formula], op: str, kind: type[And] | type[Or]) -> Formula:
+        """``operand (op operand)*``: one ``kind`` of all the operands, or the single operand."""
+        first = operand()
         ops = [first]
-        while self.accept("&"):
-            ops.append(self.until())
-        return first if len(ops) == 1 else And(tuple(ops), pos=_pos_of(first))
+        while self.accept(op):
+            ops.append(operand())
+        return first if len(ops) == 1 else kind(tuple(ops), pos=_pos_of(first))
 
     def until(self) -> Formula:
         left = self.unary()
@@ -327,21 +327,18 @@ class _Parser:
         return pred
 
     def expr(self) -> Expr:
-        left = self.term()
-        while self.tok.kind == "op" and self.tok.text in ("+", "-"):
-            t = self.tok
-            self.i += 1
-            right = self.term()
-            left = self._binary(t, left, right)
-        return left
+        return self._chain(self.term, ("+", "-"))
 
     def term(self) -> Expr:
-        left = self.factor()
-        while self.tok.kind == "op" and self.tok.text in ("*", "/"):
+        return self._chain(self.factor, ("*", "/"))
+
+    def _chain(self, operand: Callable[[], Expr], ops: tuple[str, ...]) -> Expr:
+        """``operand (op operand)*`` for ``op`` in ``ops``, nesting to the left."""
+        left = operand()
+        while self.tok.kind == "op" and self.tok.text in ops:
             t = self.tok
             self.i += 1
-            right = self.factor()
-            left = self._binary(t, left, right)
+            left = self._binary(t, left, operand())
         return left
 
     def _binary(self, t: _Tok, left: Expr, right: Expr) -> Expr:

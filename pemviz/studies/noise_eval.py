@@ -25,7 +25,7 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal, overload
+from typing import ClassVar, Literal, overload
 
 import numpy as np
 
@@ -33,7 +33,7 @@ from pemviz.pem.noise import NOISE_DIMS, NoiseModel, fit_homoscedastic, noise_tr
 from pemviz.pem.recipes import NOISE_RECIPES
 from pemviz.pem.encoding import NormStats
 from pemviz.pem import encode_salient, fit_norm_stats
-from pemviz.studies.pem_eval import stratified_folds
+from pemviz.studies.pem_eval import Evaluated, stratified_folds
 
 NOISE_MODEL_NAMES = ("homo-normal", "homo-t", "hetero-normal", "hetero-laplace", "hetero-t")
 """Every noise model :func:`evaluate_noise_pems` knows, in table order."""
@@ -128,7 +128,7 @@ class NoiseModelEvaluation:
 
 
 @dataclass(frozen=True)
-class NoiseEvalResult:
+class NoiseEvalResult(Evaluated[NoiseModelEvaluation]):
     """Everything :func:`evaluate_noise_pems` measured; ``n_rows``: the noise data set's size."""
 
     config: NoiseEvalConfig
@@ -137,15 +137,8 @@ class NoiseEvalResult:
     wall_s: float
     data_source: str = ""
 
-    def model(self, name: str) -> NoiseModelEvaluation:
-        for m in self.models:
-            if m.name == name:
-                return m
-        raise KeyError(f"noise model {name!r} was not evaluated; evaluated: {[m.name for m in self.models]}")
-
-    def best(self) -> str:
-        """The model with the lowest mean held-out NLL."""
-        return min(self.models, key=lambda m: m.mean("nll")).name
+    best_by: ClassVar[str] = "nll"
+    what: ClassVar[str] = "noise model"
 
 
 def score_noise(

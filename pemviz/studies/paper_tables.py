@@ -10,8 +10,6 @@ repetition's per-stage proposal curves and the paper's Fig. 4 (the stage-3 curve
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +26,7 @@ from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import PROBLEMS
 from pemviz.sinks.colours import DARK, METRIC_COLOURS, OTHER, rgba, stage_rgba
 from pemviz.studies.exact_answers import ExactAnswer
-from pemviz.studies.validation import Job, RunRecord, ams_fields
+from pemviz.studies.validation import Job, RunRecord, ams_fields, csv_text
 
 FIG4_STAGE = 3
 """The paper's Fig. 4 shows the proposal after stage kappa = 3."""
@@ -239,31 +237,13 @@ def markdown(rows: Sequence[Row], table: str) -> str:
 
 def rows_csv(rows: Sequence[Row]) -> str:
     """Every row as CSV text, probabilities beside their logs (nats)."""
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow(
-        [
-            "table",
-            "method",
-            "reps",
-            "mu_hat_mean",
-            "mu_hat_se",
-            "log_mu_hat_mean",
-            "log_mu_hat_se",
-            "mean_failures",
-            "n",
-            "nll_mean",
-            "nll_log_mean_exp",
-            "ess",
-            "exact_p_fail",
-            "log_exact_p_fail",
-            "wall_s",
-            "covered",
-            "reliable",
-        ]
-    )
-    for r in rows:
-        w.writerow(
+    header = (
+        "table method reps mu_hat_mean mu_hat_se log_mu_hat_mean log_mu_hat_se mean_failures n nll_mean "
+        "nll_log_mean_exp ess exact_p_fail log_exact_p_fail wall_s covered reliable"
+    ).split()
+    return csv_text(
+        header,
+        (
             [
                 r.table,
                 r.label,
@@ -283,8 +263,9 @@ def rows_csv(rows: Sequence[Row]) -> str:
                 r.covered,
                 r.reliable,
             ]
-        )
-    return buf.getvalue()
+            for r in rows
+        ),
+    )
 
 
 def write_recording(

@@ -15,29 +15,26 @@ Models:
 - ``gbt``: gradient-boosted trees on the same 14 features (:mod:`pemviz.pem.trees`), pemviz's best model,
   chosen by cross-validation on these folds (settings compared in ``pemviz/assets/README.md``).
 
-:func:`evaluate_pems` computes; :func:`format_markdown` / :func:`format_csv` and :func:`write_recording`
-(rerun: ROC curves, reliability diagrams, p(detect | gap) curves beside the authors' PEM) present.
+:func:`evaluate_pems` computes; :func:`format_markdown` / :func:`format_csv` and
+:func:`pemviz.studies.pem_eval_recording.write_recording` (rerun: ROC curves, reliability diagrams, p(detect | gap)
+curves beside the authors' PEM) present.
 """
 
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 from scipy.special import expit
-from pemviz.io.files import write_rrd
 from pemviz.pem.recipes import PEM_RECIPES
 from pemviz.pem.encoding import NormStats, bce_from_logits
 from pemviz.pem import braking_salient_inputs, encode_salient, fit_norm_stats
 from pemviz.pem.store import load_reference_pem
 from pemviz.pem.bayes import train_bnn_pem
-from pemviz.sinks.colours import MODEL_COLOURS, MODEL_OTHER, REFERENCE_LINE, rgba
 
 MODEL_NAMES = ("ml-nn", "lr", "guess-mu", "b-nn", "gbt")
 """Every model :func:`evaluate_pems` knows, in table order."""
@@ -142,8 +139,37 @@ class ModelEvaluation:
         return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
 
 
+class _Scored(Protocol):
+    @property
+    def name(self) -> str: ...
+
+    def mean(self, metric: str) -> Any: ...
+
+
+_Model = TypeVar("_Model", bound=_Scored)
+
+
+class Evaluated(Generic[_Model]):
+    """What the results of a cross-validation share: its models by name, and the best one, the lowest mean of the
+    metric ``best_by`` over the folds."""
+
+    models: tuple[_Model, ...]
+    best_by: ClassVar[str]
+    what: ClassVar[str] = "model"
+
+    def model(self, name: str) -> _Model:
+        for m in self.models:
+            if m.name == name:
+                return m
+        raise KeyError(f"{self.what} {name!r} was not evaluated; evaluated: {[m.name for m in self.models]}")
+
+    def best(self) -> str:
+        """The model with the lowest mean ``best_by`` (BCE for the detection PEMs, NLL for the noise PEMs)."""
+        return min(self.models, key=lambda m: m.mean(self.best_by)).name
+
+
 @dataclass(frozen=True)
-class EvalResult:
+class EvalResult(Evaluated[ModelEvaluation]):
     """Everything :func:`evaluate_pems` measured (``labels``: the full file's, ``[N]``)."""
 
     config: EvalConfig
@@ -154,15 +180,7 @@ class EvalResult:
     wall_s: float
     data_source: str = ""
 
-    def model(self, name: str) -> ModelEvaluation:
-        for m in self.models:
-            if m.name == name:
-                return m
-        raise KeyError(f"model {name!r} was not evaluated; evaluated: {[m.name for m in self.models]}")
-
-    def best(self) -> str:
-        """The model with the lowest mean BCE."""
-        return min(self.models, key=lambda m: m.mean("bce")).name
+    best_by: ClassVar[str] = "bce"
 
 
 # ------------------------------------------------------------------------------------------- metrics
@@ -385,186 +403,6 @@ def format_csv(result: EvalResult) -> str:
             f"{m.mean('ap'):.6f},{m.mean('ece'):.6f},{m.mean('fit_s'):.3f}"
         )
     return "\n".join(out) + "\n"
-
-
-# ------------------------------------------------------------------------------------------ recording
-
-MODEL_RGBA = {name: rgba(rgb) for name, rgb in MODEL_COLOURS.items()}
-APP_ID = "pemviz_pem_eval"
-
-
-def _roc_points(logits: np.ndarray, labels: np.ndarray, max_points: int = 400) -> np.ndarray:
-    from sklearn.metrics import roc_curve
-
-    fpr, tpr, _ = roc_curve(labels, logits)
-    if fpr.shape[0] > max_points:
-        keep = np.unique(np.linspace(0, fpr.shape[0] - 1, max_points).round().astype(np.int64))
-        fpr, tpr = fpr[keep], tpr[keep]
-    return np.column_stack([fpr, tpr])
-
-
-def _legend(stream: Any, fig: Any, entries: Sequence[tuple[str, tuple[int, int, int, int]]]) -> None:
-    """Coloured labels in the lower right of a figure's box (box coordinates, y down)."""
-    import rerun as rr
-
-    n = len(entries)
-    pos = [[0.8 * fig.width, fig.height * (0.93 - 0.075 * (n - 1 - i))] for i in range(n)]
-    stream.log(
-        f"{fig.path}/legend",
-        rr.Points2D(pos, colors=[c for _, c in entries], radii=-4.0, labels=[t for t, _ in entries], show_labels=True),
-        static=True,
-    )
-
-
-def log_recording(result: EvalResult, stream: Any) -> None:
-    """Log the evaluation into a rerun ``RecordingStream`` (all static; 2D figures in (x, y) axis units).
-
-    Entities: ``description`` (Markdown table); ``roc/data/<model>`` (pooled out-of-fold ROC curve,
-    thick) and ``roc/data/<model>/fold_K`` (thin); ``reliability/data/<model>`` and ``.../bins`` (pooled
-    reliability diagram: mean predicted p against observed detection rate per bin, point area ~ rows) and
-    ``reliability/data/diagonal``; ``gap/data/<model>`` (mean over the fold models of p(detect | gap) for the
-    braking scenario's lead) and ``gap/data/authors`` (the authors' PEM);
-    ``folds/{bce,auc}/data/<model>`` (per-fold scores); ``<figure>/legend``; ``metrics/<model>`` (the
-    numbers as ``AnyValues``).
-    """
-    import rerun as rr
-    import rerun.blueprint as rrb
-
-    from pemviz.sinks.rerun_views import Figure
-
-    def colour(name: str) -> tuple[int, int, int, int]:
-        return MODEL_RGBA.get(name, rgba(MODEL_OTHER))
-
-    roc_fig = Figure("roc", "false positive rate", "true positive rate")
-    rel_fig = Figure("reliability", "mean predicted p(detect)", "observed detection rate")
-    gap_fig = Figure("gap", "gap d (m)", "p(detect | d)")
-    fold_figs = {k: Figure(f"folds/{k}", "fold", label, width=120.0) for k, label in (("bce", "BCE"), ("auc", "AUC"))}
-    stream.log(
-        "description",
-        rr.TextDocument(
-            "# PEM quality (pemviz pem eval)\n\n"
-            + format_markdown(result)
-            + "\n**ROC**: pooled out-of-fold curves (thick) and per fold (thin). **Reliability**: equal-width bins "
-            "of the pooled out-of-fold p(detect), point area ~ rows; on the diagonal = calibrated. "
-            "**p(detect | d)**: the braking scenario's lead (Car, not occluded, x = 0, y = 1.76, z = d + 2.48, "
-            "rot_y = -pi/2), mean over the fold models; white = the authors' PEM. **Per fold**: each fold's BCE "
-            "and ROC-AUC.\n",
-            media_type=rr.MediaType.MARKDOWN,
-        ),
-        static=True,
-    )
-    y = result.labels
-    grey = rgba(REFERENCE_LINE)
-
-    roc_fig.draw_axes(stream, (0.0, 1.0), (0.0, 1.0))
-    stream.log("roc/data/chance", rr.LineStrips2D([[[0, 0], [1, 1]]], colors=grey, radii=-0.5), static=True)
-    for m in result.models:
-        pooled = _roc_points(m.logits, y[m.test_rows])
-        stream.log(f"roc/data/{m.name}", rr.LineStrips2D([pooled], colors=colour(m.name), radii=-2.0), static=True)
-        for k in np.unique(m.test_fold):
-            sel = m.test_fold == k
-            strip = _roc_points(m.logits[sel], y[m.test_rows[sel]])
-            stream.log(
-                f"roc/data/{m.name}/fold_{k}",
-                rr.LineStrips2D([strip], colors=colour(m.name)[:3] + (110,), radii=-0.75),
-                static=True,
-            )
-    _legend(stream, roc_fig, [(f"{m.name}  AUC {m.mean('auc'):.3f}", colour(m.name)) for m in result.models])
-
-    probs = {m.name: expit(m.logits) for m in result.models}
-    lo = min(float(np.quantile(p, 0.001)) for p in probs.values())
-    lo = max(0.0, math.floor(lo * 10) / 10)
-    rel_fig.draw_axes(stream, (lo, 1.0), (lo, 1.0))
-    diagonal: list[list[float]] = [[lo, lo], [1, 1]]
-    stream.log("reliability/data/diagonal", rr.LineStrips2D([diagonal], colors=grey, radii=-0.5), static=True)
-    for m in result.models:
-        mean_p, rate, count = reliability_curve(probs[m.name], y[m.test_rows], result.config.n_bins)
-        ok = (count > 0) & (mean_p >= lo) & (rate >= lo)
-        pts = np.column_stack([mean_p[ok], rate[ok]])
-        share = count[ok] / count.sum()
-        stream.log(f"reliability/data/{m.name}", rr.LineStrips2D([pts], colors=colour(m.name), radii=-1.0), static=True)
-        stream.log(
-            f"reliability/data/{m.name}/bins",
-            rr.Points2D(
-                pts,
-                colors=colour(m.name),
-                radii=-(2.0 + 10.0 * np.sqrt(share)),
-                labels=[
-                    f"{m.name}: {int(c)} rows, p {p:.3f}, rate {r:.3f}"
-                    for c, p, r in zip(count[ok], mean_p[ok], rate[ok], strict=False)
-                ],
-                show_labels=False,
-            ),
-            static=True,
-        )
-    _legend(stream, rel_fig, [(f"{m.name}  ECE {m.mean('ece'):.4f}", colour(m.name)) for m in result.models])
-
-    curves = {m.name: m.gap_prob.mean(axis=0) for m in result.models}
-    if result.authors_gap_prob is not None:
-        curves["authors"] = result.authors_gap_prob
-    g_lo = max(0.0, math.floor(min(float(np.min(c)) for c in curves.values()) * 20) / 20)
-    gap_fig.draw_axes(stream, (float(result.gaps_m[0]), float(result.gaps_m[-1])), (g_lo, 1.0))
-    for name, curve in curves.items():
-        stream.log(
-            f"gap/data/{name}",
-            rr.LineStrips2D(
-                [np.column_stack([result.gaps_m, curve])],
-                colors=colour(name),
-                radii=-2.0 if name == "authors" else -1.5,
-            ),
-            static=True,
-        )
-    _legend(stream, gap_fig, [(n if n != "authors" else "authors' PEM", colour(n)) for n in curves])
-
-    fold_ids = np.array(result.config.fold_ids, dtype=np.float64)
-    for key, fig in fold_figs.items():
-        values = np.array([[getattr(f, key) for f in m.folds] for m in result.models])
-        v_lo, v_hi = float(values.min()), float(values.max())
-        pad = 0.08 * (v_hi - v_lo) if v_hi > v_lo else 0.01
-        x_range = (fold_ids[0] - 0.3, fold_ids[-1] + 0.3)
-        fig.draw_axes(stream, x_range, (v_lo - pad, v_hi + pad), x_ticks=fold_ids)
-        for m, v in zip(result.models, values, strict=False):
-            pts = np.column_stack([fold_ids, v])
-            stream.log(
-                f"{fig.path}/data/{m.name}", rr.LineStrips2D([pts], colors=colour(m.name), radii=-1.0), static=True
-            )
-            stream.log(
-                f"{fig.path}/data/{m.name}/points", rr.Points2D(pts, colors=colour(m.name), radii=-3.0), static=True
-            )
-
-    for m in result.models:
-        stream.log(
-            f"metrics/{m.name}",
-            rr.AnyValues(
-                bce=m.mean("bce"),
-                roc_auc=m.mean("auc"),
-                average_precision=m.mean("ap"),
-                ece=m.mean("ece"),
-                bce_per_fold=[f.bce for f in m.folds],
-                auc_per_fold=[f.auc for f in m.folds],
-            ),
-            static=True,
-        )
-
-    stream.send_blueprint(
-        rrb.Blueprint(
-            rrb.Horizontal(
-                rrb.Vertical(roc_fig.view("ROC (out-of-fold)"), rel_fig.view("Reliability (15 bins)")),
-                rrb.Vertical(
-                    gap_fig.view("p(detect | gap), braking scenario"),
-                    rrb.TextDocumentView(origin="/description", name="Table"),
-                ),
-                rrb.Vertical(fold_figs["bce"].view("BCE per fold"), fold_figs["auc"].view("ROC-AUC per fold")),
-                column_shares=[2, 2, 1.3],
-            ),
-            collapse_panels=True,
-        )
-    )
-
-
-def write_recording(result: EvalResult, path: str | os.PathLike[str]) -> Path:
-    """Write the rerun recording of :func:`log_recording` to ``path`` (:func:`pemviz.io.files.write_rrd`)."""
-    return write_rrd(path, lambda stream: log_recording(result, stream), app_id=APP_ID)
 
 
 def summary_lines(result: EvalResult) -> Sequence[str]:

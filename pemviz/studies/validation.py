@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import io
 import json
 import math
@@ -94,14 +95,17 @@ class Job:
     pem_path: str | None = None
 
 
-def run_job(job: Job) -> RunRecord:
-    """Run one :class:`Job` (in this process) and summarise it."""
+def run_job(job: Job, workers: int | None = None) -> RunRecord:
+    """Run one :class:`Job` (in this process, its rollouts on ``workers`` processes: None, every usable core) and
+    summarise it."""
     problem = validation_problem(job.problem, job.pem_path)
     if dict(job.fields).get("method", "adaptive") not in METHODS:  # a method of one's own: its plugin, in this worker
         from pemviz.methods import load_method_plugins
 
         load_method_plugins()
     cfg = ExperimentConfig.of(**dict(job.fields), seed=job.seed)
+    if workers is not None and cfg.execution.executor == "local":
+        cfg = cfg.replace(workers=workers)
     t0 = time.perf_counter()
     with torch_threads(1, blas=1):  # runs go side by side: a BLAS thread each
         res = Experiment(cfg, problem=problem).run()
@@ -256,7 +260,8 @@ def run_jobs(
         else:
             ctx = mp.get_context("spawn")  # torch and fork do not mix
             with ctx.Pool(min(n_jobs, len(todo))) as pool:
-                for job, rec in zip(todo, pool.imap(run_job, todo), strict=False):
+                one_each = functools.partial(run_job, workers=1)  # the seeds share the cores, not each run
+                for job, rec in zip(todo, pool.imap(one_each, todo), strict=False):
                     finished(job, rec)
     finally:
         bar.close()
@@ -374,35 +379,25 @@ def markdown_table(summaries: Sequence[Summary]) -> str:
     return "\n".join(lines)
 
 
-def summaries_csv(summaries: Sequence[Summary]) -> str:
-    """The summaries as CSV text, logs in nats beside the probabilities."""
+def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    """``header`` and ``rows`` as CSV text (the ``csv`` module's dialect: ``\r\n`` line ends)."""
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(
-        [
-            "problem",
-            "log_truth",
-            "truth",
-            "method",
-            "seeds",
-            "median_log_mu_hat",
-            "min_log_mu_hat",
-            "max_log_mu_hat",
-            "median_mu_hat",
-            "median_rel_error",
-            "within_2x",
-            "covered",
-            "reliable",
-            "median_failures",
-            "n_per_estimate",
-            "median_ess",
-            "simulations",
-            "median_wall_s",
-            "said_nothing",
-        ]
-    )
-    for s in summaries:
-        w.writerow(
+    w.writerow(header)
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def summaries_csv(summaries: Sequence[Summary]) -> str:
+    """The summaries as CSV text, logs in nats beside the probabilities."""
+    header = (
+        "problem log_truth truth method seeds median_log_mu_hat min_log_mu_hat max_log_mu_hat median_mu_hat "
+        "median_rel_error within_2x covered reliable median_failures n_per_estimate median_ess simulations "
+        "median_wall_s said_nothing"
+    ).split()
+    return csv_text(
+        header,
+        (
             [
                 s.problem,
                 repr(s.log_truth),
@@ -424,8 +419,9 @@ def summaries_csv(summaries: Sequence[Summary]) -> str:
                 f"{s.median_wall_s:.3f}",
                 s.said_nothing,
             ]
-        )
-    return buf.getvalue()
+            for s in summaries
+        ),
+    )
 
 
 def report(

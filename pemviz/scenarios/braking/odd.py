@@ -37,7 +37,7 @@ def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> 
         raise ValueError(f"the braking scenario draws only gap0_m and ego_speed0_mps per rollout, not {others}")
     if config is not None and getattr(config, "sim", "batched") != "batched":
         raise ValueError(
-            "--param NAME~DIST: an operating design domain runs on the batched twin only; use " "--sim batched"
+            "--param NAME~DIST: an operating design domain runs on the batched twin only; use --sim batched"
         )
     names = odd.names
 
@@ -45,13 +45,8 @@ def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> 
         return BatchedBraking(p, n, starts={name: values[:, j] for j, name in enumerate(names)})
 
     base = braking_problem(load_pem(setting_of(config, "pem", None)), p, sim="batched")
-    return problem_over_odd(
-        base,
-        make,
-        odd,
-        p.n_steps,
-        description=(
-            f"automated braking behind a lead car, its start drawn per rollout ({odd.text()}), the PEM as "
-            f"the camera's detector; failure: the gap drops below {p.crash_gap_m:g} m"
-        ),
+    description = (
+        f"automated braking behind a lead car, its start drawn per rollout ({odd.text()}), the PEM as "
+        f"the camera's detector; failure: the gap drops below {p.crash_gap_m:g} m"
     )
+    return problem_over_odd(base, make, odd, p.n_steps, description=description)

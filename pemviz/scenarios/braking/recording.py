@@ -41,6 +41,64 @@ def car_positions(
     return ego_x, lead_x
 
 
+def _counterfactual_story(
+    cf: Any,
+    gap: np.ndarray,
+    detected: np.ndarray,
+    misses: np.ndarray,
+    p: BrakingParams,
+    lines: list[str],
+    series: list[tuple],
+    markers: list[tuple],
+) -> None:
+    """The minimal miss set and the last saving step of a failure whose replay reproduces it
+    (:class:`pemviz.scenarios.braking.failures.Counterfactual`): their summary lines, their replays' gaps (metres)
+    and their markers, appended to ``lines``, ``series`` and ``markers``."""
+    from pemviz.scenarios.braking.failures import replay_with_detections
+
+    dt, last = p.dt_s, cf.last_saving_step
+    ms = cf.minimal_set
+    if ms.size:
+        smallest = "the smallest such set" if cf.smallest else "none of them can be left out"
+        lines += [
+            f"**Minimal miss set** ({ms.size} of {misses.size} misses, {smallest}): "
+            f"step{'s' * (ms.size > 1)} {_steps_text(ms, dt)}; detected, the min gap is "
+            f"{cf.minimal_set_min_gap_m:.2f} m.",
+            "",
+        ]
+        replay = replay_with_detections(detected, ms, p)
+        series.append(
+            (
+                "gap_m/with_minimal_set",
+                f"minimal miss set detected: min gap " f"{replay.gap_m.min():.2f} m",
+                "detected",
+                replay.gap_m,
+            )
+        )
+        markers.append(("gap_m/minimal_set", "minimal miss set", "failure", "diamond", ms, gap[ms], 6.0))
+        markers.append(("detect/minimal_set", "minimal miss set", "failure", "diamond", ms, None, 6.0))
+    else:
+        lines += ["**Minimal miss set**: none; even a detection at every miss does not avoid the failure.", ""]
+    if last is not None:
+        lines += [
+            f"**Last saving step**: {last} ({last * dt:.2f} s): one detection there still avoids the "
+            f"failure ({cf.decisive.size} of the {misses.size} misses would each do alone).",
+            "",
+        ]
+        replay = replay_with_detections(detected, np.array([last]), p)
+        series.append(
+            (
+                "gap_m/with_last_saving",
+                f"detected at {last * dt:.2f} s: min gap " f"{replay.gap_m.min():.2f} m",
+                "replay",
+                replay.gap_m,
+            )
+        )
+        markers.append(("detect/last_saving", "last saving step", "detected", "up", np.array([last]), None, 7.0))
+    else:
+        lines += ["**Last saving step**: none; no single detection avoids the failure.", ""]
+
+
 def _steps_text(steps: np.ndarray, dt: float | None, most: int = 12) -> str:
     """``3 (0.15 s), 7 (0.35 s)``: the first ``most`` steps with their times, and how many more."""
     shown = ", ".join(f"{t}" + (f" ({t * dt:.2f} s)" if dt else "") for t in steps[:most])
@@ -84,13 +142,8 @@ class BrakingRecording:
         if "gap_m" not in batch.observation_names:
             return None
         sev = self.outcome(batch, i)
-        return dict(
-            outcome=sev.short,
-            min_gap_m=sev.min_gap_m,
-            breach_closing_mps=sev.breach_closing_mps,
-            contact=sev.contact,
-            contact_speed_mps=sev.contact_speed_mps,
-        )
+        fields = ("min_gap_m", "breach_closing_mps", "contact", "contact_speed_mps")
+        return {"outcome": sev.short, **{name: getattr(sev, name) for name in fields}}
 
     def contacts(self, batch: RolloutBatch, rows: np.ndarray) -> np.ndarray | None:
         """Whether each of the rollouts ``rows`` (int [k]) made contact, bool [k]: the ``contact`` of
@@ -123,7 +176,7 @@ class BrakingRecording:
         step it crosses the crash gap and, where the replay reproduces it, the minimal miss set and the last saving
         step with their replays (gap, metres), the controller's acceleration (m/s^2) and brakes, the speeds (m/s);
         None without a ``gap_m`` column."""
-        from pemviz.scenarios.braking.failures import replay_with_detections, story
+        from pemviz.scenarios.braking.failures import story
 
         if "gap_m" not in batch.observation_names:
             return None
@@ -170,48 +223,7 @@ class BrakingRecording:
                 decisive_misses=cf.decisive,
                 recovery_step=-1 if cf.recovery_step is None else cf.recovery_step,
             )
-            ms = cf.minimal_set
-            if ms.size:
-                smallest = "the smallest such set" if cf.smallest else "none of them can be left out"
-                lines += [
-                    f"**Minimal miss set** ({ms.size} of {misses.size} misses, {smallest}): "
-                    f"step{'s' * (ms.size > 1)} {_steps_text(ms, dt)}; detected, the min gap is "
-                    f"{cf.minimal_set_min_gap_m:.2f} m.",
-                    "",
-                ]
-                replay = replay_with_detections(detected, ms, p)
-                series.append(
-                    (
-                        "gap_m/with_minimal_set",
-                        f"minimal miss set detected: min gap " f"{replay.gap_m.min():.2f} m",
-                        "detected",
-                        replay.gap_m,
-                    )
-                )
-                markers.append(("gap_m/minimal_set", "minimal miss set", "failure", "diamond", ms, gap[ms], 6.0))
-                markers.append(("detect/minimal_set", "minimal miss set", "failure", "diamond", ms, None, 6.0))
-            else:
-                lines += ["**Minimal miss set**: none; even a detection at every miss does not avoid the failure.", ""]
-            if last is not None:
-                lines += [
-                    f"**Last saving step**: {last} ({last * dt:.2f} s): one detection there still avoids the "
-                    f"failure ({cf.decisive.size} of the {misses.size} misses would each do alone).",
-                    "",
-                ]
-                replay = replay_with_detections(detected, np.array([last]), p)
-                series.append(
-                    (
-                        "gap_m/with_last_saving",
-                        f"detected at {last * dt:.2f} s: min gap " f"{replay.gap_m.min():.2f} m",
-                        "replay",
-                        replay.gap_m,
-                    )
-                )
-                markers.append(
-                    ("detect/last_saving", "last saving step", "detected", "up", np.array([last]), None, 7.0)
-                )
-            else:
-                lines += ["**Last saving step**: none; no single detection avoids the failure.", ""]
+            _counterfactual_story(cf, gap, detected, misses, p, lines, series, markers)
             a = ctrl.accel_mps2
             top = max(4.0, float(np.max(a)) + 1.0)
             row = 0.07 * (top - min(-4.0, float(np.min(a)) - 1.0))

@@ -1,0 +1,237 @@
+"""The ``local`` executor: a batch's rollouts simulated by a pool of worker processes on this machine, the same
+rollouts, bit for bit, as one process gives.
+
+A batch is cut into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts
+(:func:`pemviz.core.rng.block_bounds`) and each block is simulated from its slice of the serial uniform stream
+(:class:`pemviz.engine.executors.ChunkUniforms`), as the Ray executor does. The first block of a batch is simulated in
+this process and timed (CPU seconds); the pool starts when the blocks left would take at least
+:data:`pemviz.engine.resources.POOL_PAYS_S` seconds more (a worker's start costs about 1.5 s of CPU, each block
+about half its own simulation), and once started takes every batch of two blocks or more: a streamed stage's blocks at
+most two per worker ahead, handed back in order. A batch of one block (a braking default run's 2,100 rollouts) never
+starts it.
+
+The pool is joblib's loky executor: processes started by fork + exec, so a parent with threads (the panel's) is safe;
+a broken worker is detected and replaced; idle workers exit after :data:`IDLE_S` seconds. Measured on a 2-core machine
+(load ~2): starting 2 workers with pemviz imported takes 4.6 s with loky, 4.6 s with ``concurrent.futures`` spawn,
+5.2 s forkserver, 0.6 s fork (unsafe in a process with threads, e.g. torch's or the panel's).
+
+Ctrl-C and SIGTERM reach the run only: the workers ignore SIGINT, and the run's end (its result, Ctrl-C, SIGTERM)
+shuts the pool down (:func:`pemviz.engine.executors.close_executors`, also at exit), killing the workers; a streamed
+stage that is cancelled drops the blocks not yet handed back.
+"""
+
+from __future__ import annotations
+
+import atexit
+import collections
+import hashlib
+import signal
+import time
+from typing import Any, Iterator
+
+import numpy as np
+
+from pemviz.core.detectors import Detector
+from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, block_bounds
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine import resources
+from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
+from pemviz.engine.executors import ChunkUniforms, check_draws, gather_chunks, simulate_blocks, simulate_chunk
+
+IDLE_S = 120
+"""Seconds an idle worker waits for work before it exits (a new one starts when work comes)."""
+
+
+_PROBLEMS: collections.OrderedDict[str, Any] = collections.OrderedDict()
+"""In a worker: the problems of the last batches, by the digest of their pickle (unpickled once per batch kind)."""
+
+
+def _problem(digest: str, blob: bytes) -> Any:
+    import cloudpickle
+
+    problem = _PROBLEMS.get(digest)
+    if problem is None:
+        problem = _PROBLEMS[digest] = cloudpickle.loads(blob)
+        while len(_PROBLEMS) > 2:
+            _PROBLEMS.popitem(last=False)
+    return problem
+
+
+def _stream_block(
+    problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, state: Any, keep_rows: Any
+) -> tuple[RolloutBatch, int, int]:
+    """Rollouts ``start..stop-1`` (one block) of the serial ``problem.stream(n, ...)``, streamed as one chunk (its
+    object rows elided when ``keep_rows`` is False); the batch, the draws made and the uniforms per rollout."""
+    uniforms = ChunkUniforms(state, n, start, stop)
+    size: dict[str, Any] = {"chunk_size": stop - start}
+    if keep_rows is not None:
+        size["keep_rows"] = keep_rows
+    batches = list(problem.stream(stop - start, sampler, target, uniforms, **size))
+    batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
+    return batch, uniforms.calls, uniforms.per_rollout
+
+
+def _task(
+    digest: str,
+    blob: bytes,
+    n: int,
+    blocks: list[tuple[int, int]],
+    sampler: Detector,
+    target: Detector,
+    state: Any,
+    stream: bool,
+    keep_rows: Any,
+) -> bytes:
+    """One worker's task: the blocks' rollouts, pickled by cloudpickle (a chunk's row replay is a closure)."""
+    import cloudpickle
+    from threadpoolctl import threadpool_limits
+
+    problem = _problem(digest, blob)
+    with threadpool_limits(1):
+        if stream:
+            out = [_stream_block(problem, n, a, b, sampler, target, state, keep_rows) for a, b in blocks]
+        else:
+            out = simulate_blocks(problem, n, blocks, sampler, target, state)
+    return cloudpickle.dumps(out)
+
+
+def _ignore_interrupts() -> None:
+    """A worker's start: Ctrl-C is the run's to handle (it shuts the pool down)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+class LocalExecutor:
+    """Simulates the blocks of a large batch on ``workers`` processes where they pay for their start (module
+    docstring), the others in this process; the rollouts do not depend on the workers.
+
+    Args:
+        workers: worker processes (None: :func:`pemviz.engine.resources.usable_cpus`); 1 never starts a pool (the
+            serial executor).
+    Raises:
+        ValueError: ``workers`` below 1.
+    """
+
+    name = "local"
+
+    def __init__(self, workers: int | None = None) -> None:
+        if workers is not None and workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        self.workers = usable_cpus() if workers is None else int(workers)
+        self.started = False
+        """Whether a batch was big enough to start the pool."""
+        self._pool: Any = None
+
+    def eligible(self, n: int, rng: np.random.Generator) -> bool:
+        """Whether a batch of ``n`` rollouts drawn from ``rng`` may go to the pool: two blocks or more, more than one
+        worker, a generator that can jump (else: this process, as ``problem.simulate``)."""
+        return self.workers > 1 and n > RQMC_BLOCK and isinstance(rng.bit_generator, JUMPABLE)
+
+    def _pays(self, blocks_left: int, block_s: float) -> bool:
+        """Whether to hand the blocks left to the pool: it is started, or they take at least
+        :data:`pemviz.engine.resources.POOL_PAYS_S` CPU seconds at ``block_s`` a block."""
+        return self._pool is not None or blocks_left * block_s >= resources.POOL_PAYS_S
+
+    def _executor(self) -> Any:
+        from joblib.externals.loky import get_reusable_executor
+
+        if self._pool is None:
+            atexit.register(self.close)
+        self._pool = get_reusable_executor(
+            max_workers=self.workers, timeout=IDLE_S, initializer=_ignore_interrupts, env=dict(ONE_THREAD_ENV)
+        )
+        self.started = True
+        return self._pool
+
+    @staticmethod
+    def _pickled(problem: Any) -> tuple[str, bytes]:
+        import cloudpickle
+
+        blob = cloudpickle.dumps(problem)
+        return hashlib.blake2b(blob, digest_size=16).hexdigest(), blob
+
+    def simulate(
+        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
+    ) -> RolloutBatch:
+        """The rollouts of ``problem.simulate(n, sampler, target, rng)`` [N, T], bit for bit, ``rng`` left where that
+        leaves it: the first block here, timed, and the others in the pool where they pay for it (:meth:`_pays`)."""
+        if not self.eligible(n, rng):
+            return problem.simulate(n, sampler, target, rng)
+        state, blocks = rng.bit_generator.state, block_bounds(n)
+        if self._pool is None:
+            t0 = time.thread_time()
+            first = [simulate_chunk(problem, n, *blocks[0], sampler, target, state)]
+            block_s, blocks = time.thread_time() - t0, blocks[1:]
+        else:
+            first, block_s = [], 0.0
+        if not self._pays(len(blocks), block_s):
+            rest = [simulate_chunk(problem, n, a, b, sampler, target, state) for a, b in blocks]
+            return gather_chunks(problem, n, rng, first + rest)
+        import cloudpickle
+
+        digest, blob = self._pickled(problem)
+        pool = self._executor()
+        k = -(-len(blocks) // self.workers)
+        tasks = [blocks[i : i + k] for i in range(0, len(blocks), k)]
+        futures = [pool.submit(_task, digest, blob, n, part, sampler, target, state, False, None) for part in tasks]
+        try:
+            parts = [r for f in futures for r in cloudpickle.loads(f.result())]
+        finally:
+            for f in futures:
+                f.cancel()
+        return gather_chunks(problem, n, rng, first + parts)
+
+    def stream(
+        self,
+        problem: Any,
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng: np.random.Generator,
+        chunk_size: int | None = None,
+        keep_rows: bool | None = None,
+    ) -> Iterator[RolloutBatch]:
+        """The chunks of ``problem.stream(n, sampler, target, rng, ...)`` in order, each at most ``chunk_size`` rollouts
+        (None: one block): the same rollouts, bit for bit; ``rng`` is left where the serial stream leaves it once the
+        last chunk is handed out. The first block is simulated here and timed; the others here too, or in the pool,
+        at most two per worker ahead, where they pay for it (:meth:`_pays`)."""
+        size: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
+        if keep_rows is not None:
+            size["keep_rows"] = keep_rows
+        if not self.eligible(n, rng):
+            yield from problem.stream(n, sampler, target, rng, **size)
+            return
+        import cloudpickle
+
+        state = rng.bit_generator.state
+        todo = collections.deque(block_bounds(n))
+        pending: collections.deque[Any] = collections.deque()
+        drawn, pool, block_s, digest, blob = (0, 0), None, 0.0, "", b""
+        try:
+            while todo or pending:
+                if pool is None and todo and self._pays(len(todo), block_s):
+                    digest, blob = self._pickled(problem)
+                    pool = self._executor()
+                while pool is not None and todo and len(pending) < 2 * self.workers:
+                    block = [todo.popleft()]
+                    pending.append(pool.submit(_task, digest, blob, n, block, sampler, target, state, True, keep_rows))
+                if pending:
+                    result = cloudpickle.loads(pending.popleft().result())
+                else:  # in this process, timed: what the blocks left would cost
+                    t0 = time.thread_time()
+                    result = [_stream_block(problem, n, *todo.popleft(), sampler, target, state, keep_rows)]
+                    block_s = time.thread_time() - t0
+                drawn = check_draws(problem, result)
+                batch = result[0][0]
+                step = chunk_size or batch.n
+                for a in range(0, batch.n, step):
+                    yield batch if batch.n <= step else batch.select(slice(a, a + step))
+        finally:
+            for f in pending:
+                f.cancel()
+        advance(rng, n * drawn[0] * drawn[1])
+
+    def close(self) -> None:
+        """Shut the pool down, killing its workers (idempotent)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, kill_workers=True)
+            self._pool = None
