@@ -23,7 +23,7 @@ for the failures' importance weights, how far they are from a zero-variance prop
   committor against the exact one, the authors'-settings preset's seed 0, the toy), then a table of the targets, each
   with its figure and whether it is met; exit 1 while one is not (about 33 min on 2 cores, ``--jobs`` parts at a time).
 
-Measured (2-core developer machine; cut-in reference 8.66e-5 [8.09e-5, 9.26e-5]):
+Measured (2-core developer machine; cut-in reference then 8.66e-5 [8.09e-5, 9.26e-5]; now 7.95e-5):
 
 - see docs/validation.md, docs/cut-in.md and research/cut-in-notes.md for every run.
 

@@ -16,7 +16,7 @@ engine, no recording) over seeds 0 .. K-1 and prints:
   about normal with standard deviation sqrt((1 - p) / (N p))), and their ratio: below 0.1 is the target.
 
 Scenes: the crossing (two pedestrians, a noisy detector, a Kalman tracker, an emergency brake; reference 2.98e-4),
-the crowd toy with measurement noise (exact), the cut-in (reference 8.66e-5) and the cut-in at ``cut_in_gap_m=21``
+the crowd toy with measurement noise (exact), the cut-in (reference 7.95e-5) and the cut-in at ``cut_in_gap_m=21``
 (reference 2.48e-5 from 7.3 x 10^6 plain rollouts, :data:`GAP_21_REFERENCE`), and braking (exact 1.98e-15).
 
 Usage::

@@ -62,8 +62,9 @@ SAMPLERS: dict[str, tuple[str, ...]] = {
 }
 """Each sampler's flags (module docstring)."""
 
-SCENES = {"crossing": ("--scenario", "crossing"), "toy": ("--scenario", "toy")}
-"""The scenes that report state features: the crossing (reference 2.98e-4) and the toy (exact 1e-21 at its defaults)."""
+SCENES = {"crossing": ("--scenario", "crossing"), "toy": ("--scenario", "toy"), "cut-in": ("--scenario", "cut-in")}
+"""The scenes that report state features: the crossing (reference 2.98e-4), the toy (exact 1e-21 at its defaults) and
+the cut-in (reference 7.95e-5)."""
 
 
 @dataclasses.dataclass(frozen=True)

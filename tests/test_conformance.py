@@ -69,7 +69,7 @@ def test_listing_the_scenarios_loads_no_problem_pem_or_torch():
 # -- everything pemviz has passes ------------------------------------------------------------------------------------
 
 
-WITH_FEATURES = {"crossing", "toy"}
+WITH_FEATURES = {"crossing", "toy", "cut-in", "cut-in-rare"}
 """The registered scenarios that report state features (pemviz.core.features), which the kit checks."""
 
 

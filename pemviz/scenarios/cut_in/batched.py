@@ -24,13 +24,32 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz.stack import tracker
-from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, OBSERVATION_NAMES, CutInParams
+from pemviz.scenarios.cut_in.scenario import NO_VEHICLE_M, OBJECT_NAMES, OBSERVATION_NAMES, CutInParams, acc_control
 from pemviz.stack.detector import NOISE_NAMES
 from pemviz.scenarios.cut_in.highway import TrafficTrajectory, traffic_trajectory
 from pemviz.scenarios.cut_in.scene import CameraView, Traffic, camera_view, decide, object_rows, scene_signals
 
 MAX_SPEED_MPS = 40.0
 """highway-env's ``Vehicle.MAX_SPEED``: above it ``clip_actions`` caps the acceleration at ``MAX_SPEED - speed``."""
+
+
+FEATURE_NAMES: tuple[str, ...] = (
+    "ego_speed_mps",
+    "ego_accel_mps2",
+    "acc_has_lead",
+    "acc_gap_m",
+    "acc_closing_mps",
+    "acc_accel_mps2",
+    "time_s",
+)
+"""The ego's state features [F] (:meth:`BatchedCutIn.state_features`): its speed (m/s) and last acceleration
+(m/s^2), then what the ACC (:func:`~pemviz.scenarios.cut_in.scenario.acc_control`) reads on the tracks predicted for
+this step, before the step's measurements: 1.0 if it has a lead (a confirmed track ahead in the ego's lane), the lead
+track's estimated centre distance ahead of the ego's centre (m, :data:`NO_VEHICLE_M` without a lead) and closing speed
+(m/s, 0 without), the acceleration it would command were no car measured this step (m/s^2), and the time since the
+scene's start (s). Each car's are the tracker's (:data:`pemviz.stack.tracker.FEATURE_NAMES`), its range measured from
+the ego's front plus half a car's length (the bumper-to-bumper gap of a car straight ahead), so that its predicted time
+to collision is to contact."""
 
 
 @functools.lru_cache(maxsize=8)
@@ -119,6 +138,8 @@ class BatchedCutIn:
     observation_names = OBSERVATION_NAMES
     object_names = OBJECT_NAMES
     noise_names = NOISE_NAMES
+    feature_names = FEATURE_NAMES
+    object_feature_names = tracker.FEATURE_NAMES
 
     def __init__(self, params: CutInParams | None, n: int, gap_shift_m: np.ndarray | None = None) -> None:
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
@@ -207,6 +228,31 @@ class BatchedCutIn:
             s.followed,
             out=out,
         )
+
+    def state_features(self) -> tuple[np.ndarray, np.ndarray]:
+        """The state the ACC acts on at this step, before its measurements: float64 ``[N, F]`` (:data:`FEATURE_NAMES`)
+        and ``[N, M, G]`` (the tracker's, :func:`pemviz.stack.tracker.features`). Read only: the rollouts are the
+        same whether or not it is called."""
+        p, s = self.params, self.state
+        tracks = s.tracks
+        lead, accel = acc_control(p, tracks.x, tracks.y, tracks.vx, tracks.confirmed, s.ego_x_m, s.ego_speed_mps)
+        has = lead >= 0
+        rows, at = np.arange(self.n), np.maximum(lead, 0)
+        gap = np.where(has, tracks.x[at, rows] - s.ego_x_m, NO_VEHICLE_M)
+        closing = np.where(has, s.ego_speed_mps - tracks.vx[at, rows], 0.0)
+        ego = np.stack(
+            [
+                s.ego_speed_mps,
+                s.ego_accel_mps2,
+                has.astype(np.float64),
+                gap,
+                closing,
+                accel,
+                np.full(self.n, s.t * p.dt_s),
+            ],
+            axis=1,
+        )
+        return ego, tracker.features(tracks, s.ego_x_m + p.vehicle_length_m, s.ego_speed_mps)
 
     def step(self, detected: np.ndarray, noise: np.ndarray | None = None) -> None:
         """Advance every rollout one step of ``dt`` seconds.
