@@ -329,8 +329,8 @@ RARITY_SETTINGS: dict[str, RaritySetting] = {
 """The rarity knob's two settings (:class:`CutInParams` fields; ``moderate`` is the default): the cut-in vehicle's gap
 to the ego at t = 0 with its speed 7.6 m/s below the ego's. Under the shipped PEMs (ml-nn detection, hetero-t noise)
 the failure probability is 7.95e-5 [7.50e-5, 8.41e-5] at ``moderate`` (plain Monte Carlo by the engine's rollouts,
-1.48 x 10^7 of them: :data:`MONTE_CARLO_REFERENCE`) and about 1e-7 at ``rare``: 10 runs of the tilted proposal give a geometric mean of
-1.8e-7 and, being unbiased, p >= 1.3e-7 at 95 % (Markov's inequality:
+1.48 x 10^7 of them: :data:`MONTE_CARLO_REFERENCE`) and about 1e-7 at ``rare``: 10 runs of the tilted proposal give
+a geometric mean of 1.8e-7 and, being unbiased, p >= 1.3e-7 at 95 % (Markov's inequality:
 :func:`pemviz.core.confidence.markov_lower_bound`); splitting ranked by the same committor gives 8.8e-8
 (``research/cut-in-notes.md``)."""
 
@@ -351,7 +351,8 @@ own plain rollouts (``pemviz run --method mc``'s): ``benchmarks/cut_in_mc.py`` s
 each) and 1008-1029 (2 x 10^5 each), 396 failures in 4.8 x 10^6, with the plain Monte Carlo of ten ``--method
 adaptive`` runs (seeds 0-9, 10^6 rollouts each), 780 failures in 10^7 (the Validation page; every failure a
 collision). The reference p = failures / rollouts with its Clopper-Pearson interval (7.95e-5 [7.50e-5, 8.41e-5] at
-``moderate``; the benchmark's former loop gave 8.66e-5 [8.09e-5, 9.26e-5] from 10^7); the ``rare`` setting has none (about 1e-7: plain Monte Carlo would need some 10^9 rollouts)."""
+``moderate``; the benchmark's former loop gave 8.66e-5 [8.09e-5, 9.26e-5] from 10^7); the ``rare`` setting has none
+(about 1e-7: plain Monte Carlo would need some 10^9 rollouts)."""
 
 
 def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mps: np.ndarray) -> np.ndarray:
