@@ -190,7 +190,7 @@ def exact_log_p(spec: Spec) -> tuple[float, str]:
         lo, hi = clopper_pearson(failures, rollouts)
         return (
             math.log(failures / rollouts),
-            f"plain Monte Carlo, {failures} failures in {rollouts:.0e} rollouts "
+            f"plain Monte Carlo, {failures:,} failures in {rollouts:,} rollouts "
             f"(95 % interval [{lo:.3g}, {hi:.3g}])",
         )
     pem = ShiftedPEM(_pem(), spec.shift)

@@ -64,7 +64,7 @@ def test_an_estimate_far_off_says_by_how_much():
 
 def test_only_the_moderate_cut_in_with_the_shipped_pems_carries_the_reference():
     cut_in = problem_for(ExperimentConfig.of(scenario="cut-in"))
-    assert (cut_in.reference.n_failures, cut_in.reference.n) == (866, 10_000_000) and cut_in.exact_log_p is None
+    assert (cut_in.reference.n_failures, cut_in.reference.n) == (1176, 14_800_000) and cut_in.exact_log_p is None
     assert problem_for(ExperimentConfig.of(scenario="cut-in", pem="ml-nn")).reference == cut_in.reference
     assert problem_for(ExperimentConfig.of(scenario="cut-in", pem="gbt")).reference is None  # drawn under ml-nn only
     assert problem_for(ExperimentConfig.of(scenario="cut-in-rare")).reference is None
@@ -79,7 +79,7 @@ def test_a_cut_in_run_prints_its_estimate_beside_the_reference():
     last = next(ln for ln in proc.stdout.splitlines() if ln.startswith("no failure seen in "))
     assert last.startswith("no failure seen in 200 rollouts: p < 1.50e-02 (95%, rule of three")  # no point estimate
     assert last.endswith(
-        "; reference 8.66e-05 [8.09e-05, 9.26e-05] (866 failures in 10,000,000 rollouts, plain "
+        "; reference 7.95e-05 [7.50e-05, 8.41e-05] (1,176 failures in 14,800,000 rollouts, plain "
         "Monte Carlo, shipped PEMs): no failure seen, inside the interval"
     )
 
