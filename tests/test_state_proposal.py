@@ -25,7 +25,7 @@ from pemviz.scenarios.crossing.scene import FEATURE_NAMES, OBJECT_NAMES, Batched
 from pemviz.scenarios.problems import problem_for
 from pemviz.stack import tracker
 from pemviz.testing import check_estimator
-from tests.conftest import run_cli
+from conftest import run_cli
 
 
 class SeesState:
