@@ -150,18 +150,8 @@ class Tracks:
     @classmethod
     def empty(cls, shape: tuple[int, ...]) -> "Tracks":
         """No track yet (the float fields are 0), arrays of ``shape``."""
-        x, vx, pxx, pxv, pvvx, y, vy, pyy, pyv, pvvy = (np.zeros(shape) for _ in range(10))
         return cls(
-            x,
-            vx,
-            pxx,
-            pxv,
-            pvvx,
-            y,
-            vy,
-            pyy,
-            pyv,
-            pvvy,
+            *(np.zeros(shape) for _ in range(10)),
             active=np.zeros(shape, dtype=bool),
             confirmed=np.zeros(shape, dtype=bool),
             coast=np.zeros(shape, dtype=np.int64),
@@ -215,25 +205,13 @@ def predict(tracks: Tracks, dt: float, params: TrackerParams) -> Tracks:
     Returns:
         new :class:`Tracks` (the input is not modified).
     """
-    x, vx, pxx, pxv, pvvx = _predict_axis(
-        tracks.x, tracks.vx, tracks.pxx, tracks.pxv, tracks.pvvx, dt, params.accel_std_x_mps2
-    )
-    y, vy, pyy, pyv, pvvy = _predict_axis(
-        tracks.y, tracks.vy, tracks.pyy, tracks.pyv, tracks.pvvy, dt, params.accel_std_y_mps2
-    )
+    along = _predict_axis(tracks.x, tracks.vx, tracks.pxx, tracks.pxv, tracks.pvvx, dt, params.accel_std_x_mps2)
+    across = _predict_axis(tracks.y, tracks.vy, tracks.pyy, tracks.pyv, tracks.pvvy, dt, params.accel_std_y_mps2)
     coast = tracks.coast + 1
     active = tracks.active & (coast <= params.max_coast_steps)
     return Tracks(
-        x,
-        vx,
-        pxx,
-        pxv,
-        pvvx,
-        y,
-        vy,
-        pyy,
-        pyv,
-        pvvy,
+        *along,
+        *across,
         active,
         tracks.confirmed & active,
         np.where(active, coast, 0),

@@ -104,6 +104,10 @@ def vehicle_state(others: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     )
 
 
+_SNAPSHOT_FIELDS = ("road", "ego", "others", "t", "tracks", "followed", "accel", "_memory", "traffic")
+"""What :meth:`CutInScenario.snapshot` copies and :meth:`CutInScenario.restore` puts back."""
+
+
 @dataclass(frozen=True)
 class TrafficTrajectory:
     """The traffic at steps 0..T, shared by every rollout: ``traffic[t]`` is a :class:`Traffic` (arrays ``[M]``)."""
@@ -221,31 +225,10 @@ class CutInScenario:
 
     def snapshot(self) -> tuple:
         """A deep copy of the road, the vehicles and the ego's memory (tracks, ACC, cut-in memory)."""
-        return copy.deepcopy(
-            (
-                self.road,
-                self.ego,
-                self.others,
-                self.t,
-                self.tracks,
-                self.followed,
-                self.accel,
-                self._memory,
-                self.traffic,
-            )
-        )
+        return copy.deepcopy(tuple(getattr(self, name) for name in _SNAPSHOT_FIELDS))
 
     def restore(self, state: tuple) -> None:
         """Put back a :meth:`snapshot` (copied again, so it can be restored more than once)."""
-        (
-            self.road,
-            self.ego,
-            self.others,
-            self.t,
-            self.tracks,
-            self.followed,
-            self.accel,
-            self._memory,
-            self.traffic,
-        ) = copy.deepcopy(state)
+        for name, value in zip(_SNAPSHOT_FIELDS, copy.deepcopy(state), strict=True):
+            setattr(self, name, value)
         self._view = None
