@@ -12,12 +12,12 @@ A quoted block is a fenced ``text`` block right after a marker line naming its c
 The block matches the output when, whitespace collapsed (a block may wrap a long line) and times masked (a number of
 seconds, milliseconds or minutes, which differ from machine to machine), its text appears in the output, in order,
 ``...`` standing for any elided text. Every other number must be the same: the seed contract makes a run the same bits
-on every machine. ``tests/test_quoted_outputs.py`` runs the same check in the test command.
+on every machine. ``tests/project/test_quoted_outputs.py`` runs the same check in the test command.
 
 The screenshots of ``assets/screenshots/`` are made the same way, by the commands of one table
 (``SCREENSHOTS`` in ``benchmarks/screenshots.py``); ``--screenshots`` runs them all and rewrites
 ``assets/screenshots/MANIFEST.md`` (each image's command, commit and date). It needs Debian's ``chromium`` and takes
-about 5 min on 2 cores; ``tests/test_screenshot_manifest.py`` checks the table and makes the cheapest two.
+about 5 min on 2 cores; ``tests/project/test_screenshot_manifest.py`` checks the table and makes the cheapest two.
 
 Usage::
 

@@ -34,7 +34,7 @@ The scenario is Innes & Ramamoorthy (2022)'s automated braking on highway-env ve
 
 With :class:`BasicAgentController` (the scenario's CARLA BasicAgent: emergency brake if detected within
 10 m, else the PID toward 7.5 m/s, one step of actuation lag) the ego moves exactly as in
-:class:`~pemviz.scenarios.braking.simulator.BrakingScenario` for the same detections (tests/test_envs.py).
+:class:`~pemviz.scenarios.braking.simulator.BrakingScenario` for the same detections (tests/scenarios/test_envs.py).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The table of hostile cases tried against pemviz: group, count, passed.
 
-Runs the fault-injection tests (``tests/test_faults.py``, with ``FAULT_SEEDS`` random kill points per signal) and
+Runs the fault-injection tests (``tests/files/test_faults.py``, with ``FAULT_SEEDS`` random kill points per signal) and
 counts their cases by group, then fuzzes the STL parser with ``--stl`` hypothesis-generated strings (the three
-text strategies of ``tests/test_stl_fuzz.py``) and counts the strings that raised nothing but ``STLSyntaxError``.
+text strategies of ``tests/stl/test_stl_fuzz.py``) and counts the strings that raised nothing but ``STLSyntaxError``.
 
     python scripts/hostile_cases.py                 # 10,000 STL strings, 3 kill points per signal
     python scripts/hostile_cases.py --stl 2000 --seeds 1
@@ -34,7 +34,7 @@ GROUPS = {
 def fault_cases(seeds: int) -> tuple[Counter, Counter]:
     env = {**os.environ, "FAULT_SEEDS": str(seeds), "RERUN_ANALYTICS": "false"}
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-rA", "-p", "no:warnings", "tests/test_faults.py"],
+        [sys.executable, "-m", "pytest", "-q", "-rA", "-p", "no:warnings", "tests/files/test_faults.py"],
         cwd=REPO,
         env=env,
         capture_output=True,

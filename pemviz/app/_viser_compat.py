@@ -2,7 +2,7 @@
 
 viser has no public way to send a GUI input's value to the browser again when it has not changed on the server;
 :func:`resend_value` does it with viser's own update message. When viser changes these internals, this module is
-the one to adapt (``tests/test_app.py`` drives the panel in a browser and finds out).
+the one to adapt (``tests/app/test_app.py`` drives the panel in a browser and finds out).
 """
 
 from __future__ import annotations

@@ -77,7 +77,7 @@ def exact_answer(
             known,
             "exact enumeration kept for this PEM "
             "(pemviz.scenarios.braking.truth_known.KNOWN_BRAKING_LOG_P, bracket width < 0.25 %; "
-            "tests/test_truth.py recomputes it)",
+            "tests/scenarios/test_truth.py recomputes it)",
             wall_s=time.perf_counter() - t0,
         )
 

@@ -1,6 +1,6 @@
 """research/cut_in_lookahead_tilt.py, the study of research/cut-in-notes.md's "Approximate zero-variance sampling with a
 look-ahead": its beam's events, the options it refuses, its command line, and its cached V. (The committor grid, level
-chain and one-car look-ahead it builds on are pemviz's, tested in tests/test_cut_in_committor.py.)"""
+chain and one-car look-ahead it builds on are pemviz's, tested in tests/scenarios/test_cut_in_committor.py.)"""
 
 from __future__ import annotations
 

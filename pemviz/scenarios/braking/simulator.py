@@ -246,7 +246,7 @@ def braking_step(
     Returns:
         the state at the next step (same shapes): gap' = gap + (v_lead - v) dt; v' = max(v + a dt, 0).
     Source: :func:`ego_step` (:func:`ego_acceleration` and highway-env ``Vehicle.step``), written on the gap
-    instead of positions; it replays highway-env rollouts to ~1e-13 m (``tests/test_truth.py``).
+    instead of positions; it replays highway-env rollouts to ~1e-13 m (``tests/scenarios/test_truth.py``).
     """
     shape = np.shape(gap_m)
     g = np.asarray(gap_m, dtype=np.float64).ravel()

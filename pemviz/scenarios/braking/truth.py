@@ -93,7 +93,7 @@ def _relaxed_step(params: BrakingParams, lead_speed_mps: float, gap_m, speed_mps
     reachable value (the most throttle) and no PID brake (which, above 7.5 m/s, makes the true next speed
     fall as the speed rises). Its next speed is at least the true one from the same gap and speed, whatever
     the integral, and it is monotone: next gap non-increasing and next speed non-decreasing in the speed
-    (checked in tests/test_truth.py). So a state that is no safer (gap no larger, speed no smaller) stays
+    (checked in tests/scenarios/test_truth.py). So a state that is no safer (gap no larger, speed no smaller) stays
     no safer under the same action, which is what :class:`MissBound` rests on.
     """
     relaxed = dataclasses.replace(params, max_pid_brake=0.0)
@@ -143,8 +143,8 @@ scene stops the ego) breaks the order the table rests on: a state just above 0.7
 one further back or slower that arrives faster, so rounding to a smaller gap or a larger speed can raise the bound.
 At 0.5 m and 0 m the failures of targeted runs (``pemviz run --margin 0.5``) need fewer misses than it says (85 and
 466 of the rollout-steps of seed 0's final failures), and so do 25 and 23 of 2,000 random states 8 steps before
-the end against all 256 detection sequences (201-node grid; ``tests/test_truth_cells.py``); at 1 m, 1.5 m and 2 m
-none of 2,542 failures violates it (``tests/test_severity.py`` checks 1 m)."""
+the end against all 256 detection sequences (201-node grid; ``tests/scenarios/test_truth_cells.py``); at 1 m, 1.5 m and 2 m
+none of 2,542 failures violates it (``tests/sinks/test_severity.py`` checks 1 m)."""
 
 
 def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) -> MissBound:

@@ -254,7 +254,7 @@ def _combine(rs: list, conj: bool, sem: str, b: float) -> object:
     return tuple(agg([r[i] for r in rs], b) for i in (0, 1))
 
 
-from test_stl_rtamt import _Gen, _start_reach  # noqa: E402  (the shared random formula generator)
+from .test_stl_rtamt import _Gen, _start_reach  # noqa: E402  (the shared random formula generator)
 
 
 @pytest.mark.parametrize("sem", ["agm", "smooth-cumulative"])

@@ -3,7 +3,7 @@ folder (:func:`pemviz.app.form.parse_params`), and the *ODD* tab (:mod:`pemviz.a
 headless Chromium: the chart of log10 p(failure | bin) per parameter with its interval's ends, the table of bins and
 the region that carries most of p_ODD, against the run's own map and the toy's closed form.
 
-Uses the browser, server and tab helpers of ``tests/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the test also
+Uses the browser, server and tab helpers of ``tests/app/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the test also
 writes ``assets/screenshots/panel_odd.png`` (the ODD tab after a toy run over ``braking~choice(5, 6, 7)``).
 """
 
@@ -21,7 +21,7 @@ from pemviz.app.odd_tab import bin_points, odd_table_html
 from pemviz.core.estimate import estimate
 from pemviz.core.odd import ODD, MapBin, OddMap, parse_distribution
 
-SCREENSHOT = Path(__file__).resolve().parents[1] / "assets" / "screenshots" / "panel_odd.png"
+SCREENSHOT = Path(__file__).resolve().parents[2] / "assets" / "screenshots" / "panel_odd.png"
 TOY_EXACT = {5: 1e-3, 6: 1e-4, 7: 1e-5}
 """The toy's closed form at total 10, safe 3 and each braking distance: p = 0.1 ** (braking - safe - 1)."""
 
@@ -65,7 +65,7 @@ def test_the_chart_points_and_table_are_the_maps_own_numbers():
 
 # -- in the browser ---------------------------------------------------------------------------------
 try:  # the browser test needs playwright and chromium (test_app skips without them); the tests above do not
-    from test_app import app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
+    from .test_app import app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
     NO_BROWSER = ""
 except pytest.skip.Exception as exc:

@@ -1,6 +1,6 @@
 """The panel draws what a scenario's drawing object gives it (:mod:`pemviz.app.drawing`): the built-in drawings have
 the panel's hooks, and their data are the scenarios' constants (that the panel's code names no scene is
-``tests/test_scene_words.py``'s)."""
+``tests/project/test_scene_words.py``'s)."""
 
 from __future__ import annotations
 

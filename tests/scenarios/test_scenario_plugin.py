@@ -62,7 +62,7 @@ def test_the_guides_scenario_runs_with_its_recording_and_parameters(plugin, tmp_
 
 def test_the_exact_answer_is_the_enumeration_and_the_estimate_finds_it(plugin, monkeypatch):
     """In this process: the registry builds the problem with its exact answer, which the independent enumeration of
-    ``tests/test_simulator_protocol.py`` confirms for the default parameters (2.8576e-5, the guide's number), and a
+    ``tests/scenarios/test_simulator_protocol.py`` confirms for the default parameters (2.8576e-5, the guide's number), and a
     run's interval holds it."""
     monkeypatch.syspath_prepend(str(plugin))
     sys.modules.pop("my_car_scenario", None)
@@ -84,7 +84,7 @@ def test_the_exact_answer_is_the_enumeration_and_the_estimate_finds_it(plugin, m
             pretrain_epochs=1000,
             learning_rate=1e-2,
             plain_fallback=0,  # the stages' own interval (the guide's run, with plain Monte Carlo after it, is tested
-        )  # in tests/test_simulator_protocol.py)
+        )  # in tests/scenarios/test_simulator_protocol.py)
         problem = registry.problem_for(cfg)
         assert math.exp(problem.exact_log_p) == pytest.approx(2.8576e-5, rel=1e-3)
         est = Experiment(cfg, problem=problem).run().final.estimate

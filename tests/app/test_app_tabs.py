@@ -3,7 +3,7 @@ shown has data (at least one finite point beside its x values), and a cut-in's *
 scenario's level: q(detect) of the cut-in car per bin of its gap ahead beside the PEM's, what happened in words, the
 severity, the tracker's estimate of the cut-in car against the truth and the ACC's acceleration.
 
-Uses the browser, server and tab helpers of ``tests/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the tests also write
+Uses the browser, server and tab helpers of ``tests/app/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the tests also write
 ``assets/screenshots/panel_<scene>_<tab>.png`` (braking and cut_in; live, explain, compare, rollouts, runs,
 experiment) at 1400 x 1300.
 """
@@ -19,14 +19,14 @@ import numpy as np
 import pytest
 from scipy.special import expit
 
-from test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
+from .test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 from pemviz.app import charts
 from pemviz.app.captions import MAX_TITLE
 from pemviz.scenarios.cut_in.panel import GAP_BINS_M as OBJECT_GAP_BINS_M
 from pemviz.scenarios.cut_in.panel import VIEW_OBJECT
 
-SCREENSHOTS = Path(__file__).resolve().parents[1] / "assets" / "screenshots"
+SCREENSHOTS = Path(__file__).resolve().parents[2] / "assets" / "screenshots"
 VIEWPORT = {"width": 1400, "height": 1300}
 TABS = ("Live", "Explain", "Compare", "Rollouts", "Runs", "Experiment")
 """The plot panel's tabs (left: Live, Explain, Compare) and the control panel's (right); the left panel keeps its tab

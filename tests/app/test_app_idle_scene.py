@@ -3,7 +3,7 @@
 none (toy); a rollout shown is drawn as before and *back to idle* goes to the chosen scenario's scene.
 
 The first tests drive :class:`pemviz.app.scene_view.SceneView` with a stand-in viser client (no browser); the last,
-in headless Chromium (the helpers of ``tests/test_app.py``), chooses the scenarios in the *Experiment* tab's dropdown
+in headless Chromium (the helpers of ``tests/app/test_app.py``), chooses the scenarios in the *Experiment* tab's dropdown
 and reads the browser's scene graph. With ``PEMVIZ_IDLE_SHOTS=<folder>`` it saves ``idle_cut_in.png`` and
 ``idle_braking.png`` there.
 """
@@ -187,7 +187,7 @@ def test_a_rollouts_first_step_puts_the_cars_where_the_idle_scene_does():
 
 # -- in the browser ---------------------------------------------------------------------------------
 try:  # the browser test needs playwright and chromium (test_app skips without them); the tests above do not
-    from test_app import app, browser, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
+    from .test_app import app, browser, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
     NO_BROWSER = ""
 except pytest.skip.Exception as exc:

@@ -1,6 +1,6 @@
 """The panel runs a scenario of one's own: the user guide's ``my_car_scenario`` module, imported (so registered)
 before a browser tab opens, is in the scenario choice, and a run of it stands beside its exact answer, in headless
-Chromium. Uses the browser, server and tab helpers of ``tests/test_app.py``."""
+Chromium. Uses the browser, server and tab helpers of ``tests/app/test_app.py``."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import sys
 import pytest
 
 from conftest import doc_python_block
-from test_app import TINY, app, browser, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
-from test_scenario_plugin import HEADING
+from .test_app import TINY, app, browser, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
+from scenarios.test_scenario_plugin import HEADING
 
 
 @pytest.fixture
@@ -55,7 +55,7 @@ def defensive_mc(monkeypatch):
 
     from pemviz.methods import unregister_method
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent / "estimators"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "estimators"))
     sys.modules.pop("user_method", None)
     __import__("user_method")
     yield

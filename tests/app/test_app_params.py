@@ -4,7 +4,7 @@ field's error, unchanged ones give none), the run's label, and in headless Chrom
 parameters* of the *Experiment* tab (rebuilt with the scenario, a changed value in the run's config, a bad one on its
 field with Run disabled).
 
-The browser test uses the browser, server and tab helpers of ``tests/test_app.py``; with ``PEMVIZ_SCREENSHOTS=1`` it
+The browser test uses the browser, server and tab helpers of ``tests/app/test_app.py``; with ``PEMVIZ_SCREENSHOTS=1`` it
 also writes ``assets/screenshots/panel_params.png``.
 """
 
@@ -176,7 +176,7 @@ def test_the_folder_starts_collapsed_at_the_starting_configs_values_and_rebuilds
 
 # -- in the browser ---------------------------------------------------------------------------------
 try:  # the browser test needs playwright and chromium (test_app skips without them); the tests above do not
-    from test_app import app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
+    from .test_app import app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
     NO_BROWSER = ""
 except pytest.skip.Exception as exc:
@@ -184,7 +184,7 @@ except pytest.skip.Exception as exc:
 
 SHOT = Path(
     os.environ.get(
-        "PEMVIZ_PARAMS_SHOT", Path(__file__).resolve().parents[1] / "assets" / "screenshots" / "panel_params.png"
+        "PEMVIZ_PARAMS_SHOT", Path(__file__).resolve().parents[2] / "assets" / "screenshots" / "panel_params.png"
     )
 )
 

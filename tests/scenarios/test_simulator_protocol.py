@@ -150,7 +150,7 @@ def test_user_guide_example_is_under_30_lines_runs_and_estimates_its_exact_answe
     assert exact == pytest.approx(2.8576e-5, rel=1e-3)  # the number the guide quotes
     assert est.n_failures > 0 and exact / 3 < est.mu_hat < 3 * exact
     assert est.log_ci[0] < math.log(exact) < est.log_ci[1]  # the interval the estimate holds holds the exact answer
-    guide = (Path(__file__).resolve().parents[1] / "docs" / "own-simulator.md").read_text()
+    guide = (Path(__file__).resolve().parents[2] / "docs" / "own-simulator.md").read_text()
     quoted = guide.split("It prints `", 1)[1].split("`", 1)[0]
     assert quoted == printed.splitlines()[0]  # the guide quotes this run's line exactly (the seed contract)
     # the stages backed no interval, so they ran once more at 4 N, whose weights back one: the guide quotes it

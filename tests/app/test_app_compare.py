@@ -1,7 +1,7 @@
 """The panel's *Compare* tab in headless Chromium: the chart of every kept run's final estimate (log10 scale, 95 %
 interval, exact answer) and the table of only the settings that differ.
 
-Uses the browser, server and tab helpers of ``tests/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the test also
+Uses the browser, server and tab helpers of ``tests/app/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the test also
 writes ``assets/screenshots/panel_compare.png`` (the Compare tab after the two runs, 1400 x 900).
 """
 
@@ -14,12 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
+from .test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 from pemviz.app import compare
 from pemviz.settings import SETTINGS
 
-SCREENSHOT = Path(__file__).resolve().parents[1] / "assets" / "screenshots" / "panel_compare.png"
+SCREENSHOT = Path(__file__).resolve().parents[2] / "assets" / "screenshots" / "panel_compare.png"
 EXACT_P = 1.984e-15
 """The braking scenario's exact failure probability under the default PEM, to the digits the docs print."""
 

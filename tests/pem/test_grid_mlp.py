@@ -90,7 +90,7 @@ def digests() -> dict[str, str]:
 @pytest.mark.parametrize("setting", ["OpenBLAS Haswell", "numpy without AVX-512", "all at their lowest"])
 def test_other_kernels_give_the_same_bits(setting):
     # OpenBLAS's Haswell and Sandybridge kernels rounded these products differently before the grid form
-    code = "import json, sys; sys.path.insert(0, 'tests'); import test_grid_mlp as t; print(json.dumps(t.digests()))"
+    code = "import json, sys; sys.path.insert(0, 'tests'); import pem.test_grid_mlp as t; print(json.dumps(t.digests()))"
     env = {**os.environ, **rp.DISPATCH_SETTINGS[setting]}
     proc = subprocess.run(
         [sys.executable, "-c", code],
@@ -98,7 +98,7 @@ def test_other_kernels_give_the_same_bits(setting):
         text=True,
         env=env,
         timeout=300,
-        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+        cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == digests()

@@ -110,7 +110,7 @@ def test_paper_preset_reproduces_the_published_sampler_bit_for_bit():
 
 
 def test_default_recording_verifies_and_holds_the_printed_estimate(default_run):
-    # the recording's content, view by view, is pinned in tests/test_recording.py; here: the CLI's file
+    # the recording's content, view by view, is pinned in tests/sinks/test_recording.py; here: the CLI's file
     import rerun as rr
 
     proc, path = default_run

@@ -597,7 +597,7 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
     assert math.isclose(sum(g.share for g in pop.groups), 1.0, rel_tol=1e-12) and len(pop.groups) >= 2
     expect(tab.page.get_by_text(pop.groups[0].label, exact=False).first).to_be_visible()
     if os.environ.get("PEMVIZ_SCREENSHOTS") == "1":  # the Rollouts tab as the user guide shows it
-        shot = Path(__file__).resolve().parents[1] / "assets" / "screenshots" / "panel_rollouts.png"
+        shot = Path(__file__).resolve().parents[2] / "assets" / "screenshots" / "panel_rollouts.png"
         tab.page.get_by_text("share of p", exact=True).last.scroll_into_view_if_needed()
         tab.page.screenshot(path=str(shot.with_name(shot.name + ".partial.png")))
         os.replace(shot.with_name(shot.name + ".partial.png"), shot)

@@ -16,7 +16,7 @@ from conftest import load_script
 from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.braking.batched import simulate_batched
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "openturns_braking.py"
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "openturns_braking.py"
 
 
 bench = load_script(_PATH)
