@@ -46,7 +46,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, Callable, cast
 
 import numpy as np
 from scipy.special import log_expit
@@ -215,11 +215,24 @@ def tempering(log_w: np.ndarray, min_ess: float) -> float:
     return lo if math.isfinite(lo) else 0.0
 
 
-def install(gate_only: bool, depth: int, min_ess: float | None, gated: bool, oracle: ErrorGate | None = None) -> None:
+def install(
+    gate_only: bool, depth: int, min_ess: float | None, gated: bool, oracle: ErrorGate | None = None
+) -> Callable[[], None]:
     """Patch the state method: the gated proposal (``gated``; ``oracle``: that gate, fixed) and tempered fits
-    (``min_ess``; None: the method's own weights)."""
+    (``min_ess``; None: the method's own weights). Returns the function that undoes the patches."""
     from pemviz.estimators.state import StateCrossEntropy
     from pemviz.estimators.state_glm import StateGLM
+
+    names = ("_pool_log_weight", "_pretrain", "_fit_noise", "gate", "gated_head", "noise_shift", "detect_logit")
+    patched = [(c, n, c.__dict__.get(n, None)) for c in (StateCrossEntropy, StateGLM) for n in (*names, "fit_counts")]
+    patched += [(StateGLM, "noise_shift_of", StateGLM.__dict__.get("noise_shift_of", None))]
+
+    def restore() -> None:
+        for cls, name, value in patched:
+            if value is not None:
+                setattr(cls, name, value)
+            elif name in cls.__dict__:
+                delattr(cls, name)
 
     glm_logit, glm_fit = StateGLM.detect_logit, StateGLM.fit_counts
     pretrain, pool_log_weight = StateCrossEntropy._pretrain, StateCrossEntropy._pool_log_weight
@@ -276,7 +289,7 @@ def install(gate_only: bool, depth: int, min_ess: float | None, gated: bool, ora
 
     StateCrossEntropy._pool_log_weight = _pool_log_weight  # type: ignore[method-assign]
     if not gated:
-        return
+        return restore
     StateGLM.gate, StateGLM.gated_head = None, False  # type: ignore[attr-defined]
     StateGLM.noise_shift = property(lambda self: True if self.gated_head else None)  # type: ignore[assignment]
     StateGLM.detect_logit = detect_logit  # type: ignore[method-assign]
@@ -284,6 +297,7 @@ def install(gate_only: bool, depth: int, min_ess: float | None, gated: bool, ora
     StateGLM.noise_shift_of = noise_shift_of  # type: ignore[attr-defined]
     StateCrossEntropy._pretrain = _pretrain  # type: ignore[method-assign]
     StateCrossEntropy._fit_noise = _fit_noise  # type: ignore[method-assign]
+    return restore
 
 
 def collect(n: int, seed: int, out: str) -> int:
@@ -420,22 +434,28 @@ def main(argv: list[str] | None = None) -> int:
         return one_run(a.seed, a.flags)
 
 
-def one_run(seed: int, flags: list[str]) -> int:
-    """The run, each stage's failures and the answer against the reference."""
+def draw(seed: int, flags: list[str]) -> tuple[list[Any], Any, float]:
+    """``pemviz run --scenario crossing --method state --plain-fallback 0 FLAGS --seed SEED`` (no recording): each
+    stage's :class:`pemviz.engine.events.RolloutsSampled`, the final estimate and log p of the reference."""
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
     from pemviz.engine.events import RolloutsSampled
     from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.registry import problem_for
 
-    seen: list = []
+    seen: list[Any] = []
     argv = ["run", "--scenario", "crossing", "--method", "state", "--plain-fallback", "0", "--no-record", *flags]
     cfg = config_from_args(build_parser("run").parse_args([*argv, "--seed", str(seed)]))
     pb = problem_for(cfg)
-    truth = float(pb.reference.log_p)
+    listen = [lambda ev: isinstance(ev, RolloutsSampled) and seen.append(ev)]
+    final = Experiment(cfg, problem=pb, listeners=listen).run().final
+    return seen, final, float(pb.reference.log_p)
+
+
+def one_run(seed: int, flags: list[str]) -> int:
+    """The run (:func:`draw`), each stage's failures and the answer against the reference."""
     t0 = time.perf_counter()
-    fin = Experiment(cfg, problem=pb, listeners=[lambda ev: isinstance(ev, RolloutsSampled) and seen.append(ev)])
-    final = fin.run().final
+    seen, final, truth = draw(seed, flags)
     for ev in seen:
         f, lw = np.asarray(ev.failed), np.asarray(ev.log_weight)
         top = np.sort(lw[f])[::-1]

@@ -63,3 +63,20 @@ def test_events_like_the_pem_s_give_no_gate():
     z = rng.standard_t(3.0, (n, 2))
     gate = study.fit_error_gate(rows, detected, logit_p, z, np.full(n, 1.0 / n), "student-t", np.array([3.0, 3.0]))
     assert gate is None
+
+
+def test_the_gated_proposal_weighs_its_rollouts_exactly():
+    """Rollouts of the crossing drawn with a fixed gate (pedestrians 10-14 m away: detections' logit - 0.5, range
+    errors' scale x 1.2): their mean importance weight is 1 within 4 standard errors, and the gate moved them."""
+    gate = study.ErrorGate(((0, 10.0, 14.0),), -0.5, np.array([math.log(1.2), 0.0]), 0.0)
+    restore = study.install(True, 1, None, True, gate)
+    try:
+        seen, _, _ = study.draw(0, ["--k", "1", "--n", "50", "--n-final", "1500"])
+    finally:
+        restore()
+    from pemviz.estimators.state_glm import StateGLM
+
+    assert "noise_shift_of" not in StateGLM.__dict__  # undone
+    w = np.exp(np.asarray(seen[-1].log_weight))
+    assert (np.abs(np.log(w)) > 1e-9).mean() > 0.9  # almost every rollout's weight moved by the gate
+    assert abs(w.mean() - 1.0) <= 4.0 * w.std() / np.sqrt(w.size), (w.mean(), w.std())
