@@ -16,10 +16,11 @@ Tempering (``--min-ess``): the failure pool's weights w_i raised to the largest 
 sample size is at least the floor (:func:`tempering`; the adaptive tempering of sequential Monte Carlo samplers: Jasra,
 Stephens, Doucet & Tsagaris, Scand. J. Stat. 38, 2011), for the GLM's fit and the gate's.
 
-``--oracle FILE``: the gate fitted once to plain Monte Carlo failures (``--collect N``: N plain rollouts of the
-crossing, their failures with their state features written to FILE) and kept fixed: the best this family does with
-the true failures in hand; ``--held-out FILE``: the cost of gates and mixtures of gates fitted to half of them, on the
-other half (:func:`held_out`).
+``--oracle FILE``: the gate (``--oracle-gates K``: a mixture of the PEM, its share ``--state-share``, and K gates,
+each fitted to the failures the ones before cover least) fitted once to plain Monte Carlo failures (``--collect N``:
+N plain rollouts of the crossing, their failures with their state features written to FILE) and kept fixed: the
+best this family does with the true failures in hand; ``--held-out FILE``: the cost of gates and mixtures of gates
+fitted to half of them, on the other half (:func:`held_out`).
 
 Commands whose figures were recorded (seeds 1-5; 1-1.7 min a run on the loaded 2-core machine, two at a time)::
 
@@ -31,6 +32,8 @@ Commands whose figures were recorded (seeds 1-5; 1-1.7 min a run on the loaded 2
         -- --n 500 --sigma 0.9 --n-final 8000
     nice -n 10 python research/state_gate.py --seed S --gated --gate-only --max-scale 1 --oracle /tmp/fails.npz \\
         -- --k 1 --n-final 8000
+    nice -n 10 python research/state_gate.py --seed S --oracle /tmp/fails.npz --oracle-gates 4 \\
+        -- --k 1 --n 500 --n-final 8000    # and --n-final 16000
 
 Each run is ``pemviz run --scenario crossing --method state --plain-fallback 0 --no-record --seed S`` with the flags
 after ``--``; it prints each stage's failures, their log-weights' top and ESS, and the run's answer against the
@@ -40,6 +43,7 @@ reference 2.98e-4.
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import math
 import sys
@@ -216,14 +220,22 @@ def tempering(log_w: np.ndarray, min_ess: float) -> float:
 
 
 def install(
-    gate_only: bool, depth: int, min_ess: float | None, gated: bool, oracle: ErrorGate | None = None
+    gate_only: bool,
+    depth: int,
+    min_ess: float | None,
+    gated: bool,
+    oracle: ErrorGate | None = None,
+    mixture: tuple[ErrorGate, ...] = (),
 ) -> Callable[[], None]:
-    """Patch the state method: the gated proposal (``gated``; ``oracle``: that gate, fixed) and tempered fits
-    (``min_ess``; None: the method's own weights). Returns the function that undoes the patches."""
+    """Patch the state method: the gated proposal (``gated``; ``oracle``: that gate, fixed), tempered fits
+    (``min_ess``; None: the method's own weights), and (``mixture``) every stage drawn from a mixture over whole
+    rollouts of the PEM (its share ``state_share``, whether or not a stage reached the failure level) and the gates,
+    in equal shares, each alone inside the window. Returns the function that undoes the patches."""
     from pemviz.estimators.state import StateCrossEntropy
     from pemviz.estimators.state_glm import StateGLM
 
     names = ("_pool_log_weight", "_pretrain", "_fit_noise", "gate", "gated_head", "noise_shift", "detect_logit")
+    names = (*names, "_mixture")
     patched = [(c, n, c.__dict__.get(n, None)) for c in (StateCrossEntropy, StateGLM) for n in (*names, "fit_counts")]
     patched += [(StateGLM, "noise_shift_of", StateGLM.__dict__.get("noise_shift_of", None))]
 
@@ -297,6 +309,20 @@ def install(
     StateGLM.noise_shift_of = noise_shift_of  # type: ignore[attr-defined]
     StateCrossEntropy._pretrain = _pretrain  # type: ignore[method-assign]
     StateCrossEntropy._fit_noise = _fit_noise  # type: ignore[method-assign]
+    if mixture:
+
+        def _mixture(self, n):  # noqa: ANN001, ANN202
+            if getattr(self, "gate_samplers", None) is None:
+                self.gate_samplers = []
+                for gate in mixture:
+                    proposal = copy.deepcopy(self.proposal)
+                    proposal.gate = gate
+                    self.gate_samplers.append(self._samplers_around(proposal)[1])
+            n_p = int(round(self.ce.target_share * n))
+            sizes = np.diff(np.round(np.linspace(0, n - n_p, len(mixture) + 1)).astype(int))
+            return ((n_p, self.problem.target), *zip(sizes.tolist(), self.gate_samplers, strict=True))
+
+        StateCrossEntropy._mixture = _mixture  # type: ignore[method-assign]
     return restore
 
 
@@ -350,6 +376,43 @@ def oracle_gate(path: str, depth: int) -> ErrorGate | None:
     if gate is not None:
         print(f"oracle gate: {gate}, {gate.inside(rows[win]).sum() / n:.1f} events a failure inside")
     return gate
+
+
+def oracle_mixture(path: str, depth: int, k: int) -> tuple[ErrorGate, ...]:
+    """``k`` gates fitted to the failures of ``path`` (:func:`collect`), each to the failures the ones before cover
+    least (weights 1 / the mean of their q / p), as :func:`held_out` fits them, on every failure."""
+    from pemviz.scenarios.crossing.problem import crossing_problem
+    from pemviz.scenarios.crossing.scene import OBJECT_NAMES
+
+    d = np.load(path)
+    rows, det, z = d["rows"], d["detected"], d["z"]
+    pb = crossing_problem()
+    t = cast(Any, pb.target)
+    win = rows[..., 0] < pb.window
+    n, inside_rows = rows.shape[0], rows[win]
+    lp = t.detect_logit(np.ascontiguousarray(inside_rows[:, : len(OBJECT_NAMES)]))
+    logit = np.zeros(win.shape)
+    logit[win] = lp
+    sign = np.where(det, 1.0, -1.0)
+    gates: list[ErrorGate] = []
+    ratios: list[np.ndarray] = []
+    w = np.ones(n)
+    for _ in range(k):
+        ew = np.broadcast_to((w / w.sum())[:, None, None], win.shape)[win]
+        gate = fit_error_gate(inside_rows, det[win], lp, z[win], ew, t.noise_family, t.noise_df, depth)
+        if gate is None:
+            break
+        ins = np.zeros(win.shape, bool)
+        ins[win] = gate.inside(inside_rows)
+        dq = np.where(ins, log_expit(sign * (logit + gate.logit_shift)) - log_expit(sign * logit), 0.0)
+        b = gate.log_scale
+        f = standard_log_density(t.noise_family, t.noise_df, z * np.exp(-b)) - b
+        eq = (f - standard_log_density(t.noise_family, t.noise_df, z)).sum(-1)
+        ratios.append(np.exp((dq + np.where(ins & det, eq, 0.0)).sum(axis=(1, 2))))
+        gates.append(gate)
+        print(f"oracle gate {len(gates)}: {gate}")
+        w = 1.0 / np.mean(ratios, axis=0)
+    return tuple(gates)
 
 
 def held_out(path: str) -> int:
@@ -416,6 +479,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--collect", type=int, default=0, help="write N plain rollouts' failures to --out")
     ap.add_argument("--out", default="/tmp/crossing_failures.npz")
     ap.add_argument("--held-out", default=None, help="npz of failures (--collect): the gates' cost, held out")
+    ap.add_argument("--oracle-gates", type=int, default=0, help="with --oracle: a mixture of this many gates")
     ap.add_argument("flags", nargs="*", help="pemviz run's flags (after --)")
     a = ap.parse_args(argv)
     from threadpoolctl import threadpool_limits
@@ -427,6 +491,10 @@ def main(argv: list[str] | None = None) -> int:
             return held_out(a.held_out)
         LOGIT_GRID = np.linspace(-a.max_logit, a.max_logit, int(round(8 * a.max_logit)) + 1)
         LOG_SCALE_GRID = np.log(np.linspace(1.0, a.max_scale, max(1, int(round(2 * (a.max_scale - 1)))) + 1))
+        if a.oracle and a.oracle_gates:
+            gates = oracle_mixture(a.oracle, a.depth, a.oracle_gates)
+            install(True, a.depth, None, True, gates[0], gates)
+            return one_run(a.seed, a.flags)
         fixed = oracle_gate(a.oracle, a.depth) if a.oracle else None
         if fixed is not None and a.max_scale <= 1.0:
             fixed = dataclasses.replace(fixed, log_scale=0.0 * fixed.log_scale)
@@ -470,7 +538,7 @@ def one_run(seed: int, flags: list[str]) -> int:
     holds = "holds" if e.interval_backed and lo <= truth <= hi else ("misses" if e.interval_backed else "none")
     print(
         f"seed {seed}: x{math.exp(e.log_mu_hat - truth):.3g} of p, {e.verdict}, ESS {e.ess:.1f}, interval {holds}, "
-        f"{final.n_simulations:,} simulations, {time.perf_counter() - t0:.0f} s"
+        f"{final.n_simulations:,} simulations, {time.perf_counter() - t0:.0f} s ({e.reason})"
     )
     return 0
 

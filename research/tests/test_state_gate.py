@@ -80,3 +80,20 @@ def test_the_gated_proposal_weighs_its_rollouts_exactly():
     w = np.exp(np.asarray(seen[-1].log_weight))
     assert (np.abs(np.log(w)) > 1e-9).mean() > 0.9  # almost every rollout's weight moved by the gate
     assert abs(w.mean() - 1.0) <= 4.0 * w.std() / np.sqrt(w.size), (w.mean(), w.std())
+
+
+def test_a_mixture_of_gates_weighs_its_rollouts_exactly():
+    """Rollouts of the crossing drawn from the PEM (a tenth) and two gates (pedestrians 10-14 m and 20-26 m away):
+    their mixture's importance weights average to 1 within 4 standard errors."""
+    gates = (
+        study.ErrorGate(((0, 10.0, 14.0),), -0.5, np.array([math.log(1.2), 0.0]), 0.0),
+        study.ErrorGate(((0, 20.0, 26.0),), 0.5, np.array([0.0, math.log(1.3)]), 0.0),
+    )
+    restore = study.install(True, 1, None, True, gates[0], gates)
+    try:
+        seen, _, _ = study.draw(1, ["--k", "1", "--n", "50", "--n-final", "1500"])
+    finally:
+        restore()
+    w = np.exp(np.asarray(seen[-1].log_weight))
+    assert abs(w.mean() - 1.0) <= 4.0 * w.std() / np.sqrt(w.size), (w.mean(), w.std())
+    assert w.std() > 0.05  # the gates moved the weights
