@@ -473,3 +473,19 @@ def test_a_proposal_gives_each_row_the_logit_it_has_alone_among_repeated_rows():
         alone = np.array([q.detect_logit(row[None, :])[0] for row in obs])
         assert np.array_equal(got.view(np.int64), alone.view(np.int64))
         assert len(np.unique(got)) <= gaps.size < DISTINCT_FROM  # the repeated rows took the distinct path
+
+
+def test_two_different_rows_of_one_key_are_not_taken_for_one():
+    from pemviz.core.sampling import _MIX, _distinct_rows
+
+    # rows (a0, a1) and (c0, c1) whose mixed keys agree: c1 = (a0 * MIX) ^ a1 ^ (c0 * MIX) in uint64 arithmetic
+    a0, c0 = np.array([10.0, 30.0]).view(np.uint64)
+    for a1 in np.linspace(1.0, 2.0, 1000).view(np.uint64):
+        with np.errstate(over="ignore"):  # uint64 products wrap, as the keys' do
+            c1 = (a0 * _MIX) ^ a1 ^ (c0 * _MIX)
+        if np.isfinite(np.array([c1]).view(np.float64)[0]):
+            break
+    pair = np.array([[a0, a1], [c0, c1]], dtype=np.uint64).view(np.float64)
+    x = pair[np.arange(2 * DISTINCT_FROM) % 2]
+    assert _distinct_rows(x) is None  # one key, two rows: no sharing
+    assert _distinct_rows(np.ascontiguousarray(x[:, :1]))[0].size == 2  # the first column alone: two values
