@@ -5,8 +5,10 @@ peak memory and recording size, for N = 10^2 .. 10^5 rollouts per stage (default
     python benchmarks/scale.py --n 100 10000 --check    # exit 1 if at N = 10,000 (other + fit) / simulation > 1
     python benchmarks/scale.py --n 100 1000 --record    # also write a recording and report its size
     python benchmarks/scale.py --args --preset paper    # extra ExperimentConfig settings via pemviz run flags
+    python benchmarks/scale.py --n 100000 --plain       # also plain Monte Carlo of the run's rollouts, the wall ratio
     python benchmarks/scale.py --cores                  # every core (the default) against --workers 1
     python benchmarks/scale.py --cores --cores-n 1000000 --cases crossing cut-in braking
+    python benchmarks/scale.py --cores --cores-n 1000000 --cases crossing-save --once   # default workers only
 
 Besides the table, one line per N gives the two ratios to watch: (other + fit) / simulation (what the sampler costs
 beyond simulating; at most 1.0 at N = 10,000), and the experiment's simulation cost per rollout against the pure
@@ -14,14 +16,18 @@ batched twin's, measured in the same process (the braking scenario's N rollouts 
 proposal and no mixture, :func:`pemviz.scenarios.braking.batched.simulate_batched`): what the proposal network and the
 mixture's bookkeeping add to each simulated step. ``--check`` is for people, not CI: timings depend on the machine.
 
-Each N runs in a fresh subprocess (``pemviz run --n N --n-final N``), so that its peak resident memory
-(``ru_maxrss``) is its own. Inside, the time spent simulating (``Problem.simulate`` / ``Problem.stream``,
-detector evaluations included) and fitting the proposal (:func:`pemviz.core.sampling.fit_proposal`) is summed; "other"
-is the engine's wall time minus both (robustness, weights, elites, estimates, events, sinks). Times are
-wall (``perf_counter``) and CPU (user + system, ``RUSAGE_SELF``; the split by the run's own thread, ``thread_time``:
-the run is single-threaded); the load average is printed with each row: on a machine shared with other jobs compare
-the CPU ratios. The target (a million rollouts in minutes): at
-N >= 10^4 everything but simulation costs at most 2x the simulation time.
+``--plain`` then runs, per N, plain Monte Carlo of as many rollouts as the run simulated (``--method mc``, the
+same seed) and prints the run's wall time over plain Monte Carlo's, the engine's alone and the whole process's: what
+the sampler costs against simulating the same rollouts with no proposal (the target 1.5 at N = 10^5).
+
+Each N runs in a fresh subprocess (``pemviz run --n N --n-final N --workers 1``: one process, whose thread times
+cover the run), so that its peak resident memory (``ru_maxrss``) is its own. Inside, the time spent simulating
+(``Problem.simulate`` / ``Problem.stream``, detector evaluations included) and fitting the proposal
+(:func:`pemviz.core.sampling.fit_proposal`) is summed; "other" is the engine's wall time minus both (robustness,
+weights, elites, estimates, events, sinks). Times are wall (``perf_counter``) and CPU (user + system,
+``RUSAGE_SELF``; the split by the run's own thread, ``thread_time``: the run is single-threaded); the load average is
+printed with each row: on a machine shared with other jobs compare the CPU ratios. The target (a million rollouts in
+minutes): at N >= 10^4 everything but simulation costs at most 2x the simulation time.
 
 ``--cores`` times runs on every usable core (the default ``local`` executor) against ``--workers 1``, each in a fresh
 ``pemviz run`` process: plain Monte Carlo of ``--cores-n`` rollouts on the crossing and the cut-in (200,000 by
@@ -167,10 +173,10 @@ def _seconds(text: str) -> float:
     return float(value) * {"s": 1.0, "min": 60.0, "h": 3600.0}[unit]
 
 
-def cores(cases: list[str], n: int, workers: str | None) -> None:
-    """Time each case with the default workers (or ``workers``) and with ``--workers 1``, in fresh processes: wall,
-    CPU (the run's and its workers', user + system), the run's first time estimate, the peak memory of the run's
-    process and of its largest worker, the load."""
+def cores(cases: list[str], n: int, workers: str | None, once: bool = False) -> None:
+    """Time each case with the default workers (or ``workers``) and (unless ``once``) with ``--workers 1``, in fresh
+    processes: wall, CPU (the run's and its workers', user + system), the run's first time estimate, the peak memory of
+    the run's process and of its largest worker, the load."""
     print(f"{len(os.sched_getaffinity(0))} usable cores; load average before: {os.getloadavg()[0]:.2f}")
     print(
         f"{'case':>17} {'workers':>8} {'wall s':>7} {'cpu s':>7} {'first est. s':>12} {'est/wall':>8} {'run MB':>7} "
@@ -179,7 +185,7 @@ def cores(cases: list[str], n: int, workers: str | None) -> None:
     for case in cases:
         args = [*(["--n", str(n)] if "mc" in CORES_CASES[case] else []), *CORES_CASES[case]]
         walls = {}
-        for w in (workers or "default", "1"):
+        for w in (workers or "default",) if once else (workers or "default", "1"):
             tmp = tempfile.TemporaryDirectory()
             saved = [str(Path(tmp.name) / "rollouts.parquet")] if args[-1:] == ["--save-rollouts"] else []
             cmd = [sys.executable, "-m", "pemviz.cli", "run", "--no-record", *args, *saved]
@@ -210,7 +216,22 @@ def cores(cases: list[str], n: int, workers: str | None) -> None:
                 flush=True,
             )
         first_w = workers or "default"
+        if once:
+            continue
         print(f"{case:>17}: wall with {first_w} workers / with 1 = {walls[first_w] / walls['1']:.2f}", flush=True)
+
+
+def _timed_child(extra: list[str], what: str) -> tuple[float, dict, int]:
+    """Run ``pemviz run *extra`` in a fresh :func:`_child` process: (its wall seconds, its figures, the simulations it
+    printed)."""
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, __file__, "--child", *extra], cwd=REPO, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    line = [x for x in proc.stdout.splitlines() if x.startswith("SCALE ")]
+    if proc.returncode != 0 or not line:
+        raise SystemExit(f"{what} failed:\n{proc.stderr[-3000:]}")
+    sims = [x for x in proc.stdout.splitlines() + proc.stderr.splitlines() if "simulations" in x]
+    return wall, json.loads(line[0][6:]), int(sims[-1].split(" from ")[1].split()[0]) if sims else 0
 
 
 def main() -> int:
@@ -224,16 +245,18 @@ def main() -> int:
         action="store_true",
         help=f"exit 1 if at N = {CHECK_N:,} (other + fit) / simulation exceeds {CHECK_RATIO}",
     )
+    ap.add_argument("--plain", action="store_true", help="also plain Monte Carlo of each run's rollouts")
     ap.add_argument("--cores", action="store_true", help="time every core against --workers 1 instead (see --cases)")
     ap.add_argument("--cases", nargs="+", default=["crossing", "cut-in", "braking"], choices=sorted(CORES_CASES))
     ap.add_argument("--cores-n", type=int, default=200_000, help="--cores: plain Monte Carlo's rollouts")
     ap.add_argument("--workers", default=None, help="--cores: the workers compared with 1 (default: every core)")
+    ap.add_argument("--once", action="store_true", help="--cores: only with --workers (or the default), not with 1")
     args = ap.parse_args()
     if args.child is not None:
         _child(args.child)
         return 0
     if args.cores:
-        cores(args.cases, args.cores_n, args.workers)
+        cores(args.cases, args.cores_n, args.workers, args.once)
         return 0
     os.environ.setdefault("RERUN_ANALYTICS", "false")
     print(f"{os.cpu_count()} cores; times in seconds, per simulation in microseconds")
@@ -243,23 +266,14 @@ def main() -> int:
     )
     ratios: dict[int, float] = {}
     lines: list[str] = []
+    one = [] if "--workers" in args.args else ["--workers", "1"]
     for n in args.n:
         for record in (False, True) if args.record else (False,):
             with tempfile.TemporaryDirectory() as tmp:
                 rrd = Path(tmp) / "scale.rrd"
-                extra = ["--n", str(n), "--n-final", str(n), *args.args]
+                extra = ["--n", str(n), "--n-final", str(n), *one, *args.args]
                 extra += ["--save", str(rrd)] if record else ["--no-record"]
-                t0 = time.perf_counter()
-                proc = subprocess.run(
-                    [sys.executable, __file__, "--child", *extra], cwd=REPO, capture_output=True, text=True
-                )
-                wall = time.perf_counter() - t0
-                line = [x for x in proc.stdout.splitlines() if x.startswith("SCALE ")]
-                if proc.returncode != 0 or not line:
-                    raise SystemExit(f"N = {n} failed:\n{proc.stderr[-3000:]}")
-                f = json.loads(line[0][6:])
-                sims = [x for x in proc.stdout.splitlines() + proc.stderr.splitlines() if "simulations" in x]
-                n_sims = int(sims[-1].split(" from ")[1].split()[0]) if sims else 0
+                wall, f, n_sims = _timed_child(extra, f"N = {n}")
                 per = 1e6 / max(n_sims, 1)
                 other = f["run"] - f["simulation"] - f["fit"]
                 size = rrd.stat().st_size / 1e6 if record and rrd.exists() else float("nan")
@@ -271,6 +285,16 @@ def main() -> int:
                     f"{size:>7.1f}  {load}",
                     flush=True,
                 )
+                if not record and args.plain:
+                    mc = ["--method", "mc", "--n", str(n_sims), *one, *args.args, "--no-record"]
+                    mc_wall, mc_f, _ = _timed_child(mc, f"plain Monte Carlo of {n_sims}")
+                    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+                    lines.append(
+                        f"N = {n}: {n_sims:,} rollouts: the run {f['run']:.1f} s, "
+                        f"plain Monte Carlo {mc_f['run']:.1f} s "
+                        f"(engine wall: {f['run'] / mc_f['run']:.2f} x; CPU {f['run_cpu'] / mc_f['run_cpu']:.2f} x; "
+                        f"process wall {wall:.1f} / {mc_wall:.1f} s = {wall / mc_wall:.2f} x), load {load}"
+                    )
                 if not record:
                     ratios[n] = (other + f["fit"]) / max(f["simulation"], 1e-9)
                     other_cpu = f["run_cpu"] - f["simulation_cpu"] - f["fit_cpu"]

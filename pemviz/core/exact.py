@@ -58,9 +58,34 @@ def on_grid(x: np.ndarray, bits: int, axis: int | None, nonneg: bool = False) ->
     largest = np.max(magnitude, axis=axis, keepdims=True) if x.size else np.zeros((1, 1))
     _, e = np.frexp(largest)  # largest < 2^e (0 -> 0)
     shift = bits - e
-    xi = np.ldexp(x, shift)  # a power of two: exact
+    xi = times_power_of_two(x, shift)  # exact but where it rounds below 2^-1022, to a value rint makes 0
     np.rint(xi, out=xi)
     return xi, -shift
+
+
+def times_power_of_two(x: np.ndarray, n: np.ndarray, m: np.ndarray | None = None) -> np.ndarray:
+    """``x * 2^(n + m)`` correctly rounded, the bits of ``np.ldexp(x, n + m)``, float64 [...] (a new array).
+
+    Multiplies by the powers of two themselves (``2^n`` then ``2^m``) where each is a normal float64 and the
+    intermediate ``x * 2^n`` cannot leave the normal range (``x`` integer-valued below 2^53 in magnitude, as every
+    grid's integers, when ``m`` is given): each product is then exact or rounded once, as :func:`numpy.ldexp` rounds,
+    and takes one multiply per element where ``ldexp`` takes several (4-8 times faster on [8192, 32]). Else
+    ``np.ldexp``.
+
+    Args:
+        x: float64 [...]; n, m: int arrays broadcastable to it (``m`` None: 0).
+    """
+    lo, hi = (int(n.min()), int(n.max())) if n.size else (0, 0)
+    if m is None:
+        if -1022 <= lo and hi <= 1023:
+            return x * np.ldexp(1.0, n)
+        return np.ldexp(x, n)
+    m_lo, m_hi = (int(m.min()), int(m.max())) if m.size else (0, 0)
+    if -1022 <= lo and hi <= 960 and -1022 <= m_lo and m_hi <= 1023:
+        out = x * np.ldexp(1.0, n)
+        out *= np.ldexp(1.0, m)
+        return out
+    return np.ldexp(x, n + m)
 
 
 def to_grid(x: np.ndarray, bits: int, nonneg: bool = False) -> tuple[np.ndarray, float]:
@@ -102,7 +127,7 @@ def matmul(
             raise ValueError("matmul: give b or b_grid")
         b_grid = on_grid(b, bits, 0)
     bi, eb = b_grid
-    return np.ldexp(ai @ bi, ea + eb)
+    return times_power_of_two(ai @ bi, ea, eb)
 
 
 def exact_sum(x: np.ndarray, axis: int) -> np.ndarray:

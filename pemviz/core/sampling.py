@@ -199,12 +199,15 @@ class Proposal:
         obs = np.asarray(obs, dtype=np.float64)
         columns = self.input_columns()
         x = obs if columns == list(range(obs.shape[1])) else obs[:, columns]
-        w1, b1, w2, b2, w3, b3 = self._sampling_weights()
+        weights = self._sampling_weights()
         if x.shape[0] == 0:
             return np.zeros(0)
-        a = np.maximum(exact.matmul(x, None, w1) + b1, 0.0)
-        a = np.maximum(exact.matmul(a, None, w2, nonneg=True) + b2, 0.0)
-        return exact.matmul(a, None, w3, nonneg=True)[:, 0] + b3
+        if x.shape[0] >= DISTINCT_FROM:  # rollouts of the same past share their rows
+            x = np.ascontiguousarray(x)
+            distinct = _distinct_rows(x)
+            if distinct is not None:
+                return _network_logit(x[distinct[0]], weights)[distinct[1]]
+        return _network_logit(x, weights)
 
     def __getstate__(self) -> dict:
         """Pickled and copied without the sampling weights' cache (it holds storages; a copy computes its own)."""
@@ -311,6 +314,56 @@ class Proposal:
 
     def eval(self) -> Proposal:
         return self.train(False)
+
+
+DISTINCT_FROM = 256
+"""Rows from which :meth:`Proposal.detect_logit` evaluates the network once per distinct row of inputs (by their bits:
+a row's logit is a function of its own bits alone), where at most 3/4 of them are distinct: rollouts that drew the same
+detections so far share their state (about half the rows of a braking stage)."""
+
+
+_MIX = np.uint64(0x9E3779B97F4A7C15)
+"""An odd 64-bit multiplier (2^64 / golden ratio): it mixes a row's columns into one key (:func:`_distinct_rows`)."""
+
+
+def _distinct_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(one row of each distinct row of ``x`` float64 [n, k] by its bits, int [m]; the distinct row of each row, int
+    [n]) where at most 3/4 of the rows are distinct, else None. Rows are keyed by one uint64 of their bits (the row
+    itself for k = 1) and sorted once; a key that two different rows share is found by comparing every row with its
+    representative, and then the answer is None too."""
+    bits = x.view(np.uint64)
+    key = bits[:, 0].copy()
+    for j in range(1, bits.shape[1]):
+        key *= _MIX
+        key ^= bits[:, j]
+    order = np.argsort(key)
+    ranked = key[order]
+    new = np.empty(key.size, bool)
+    new[0] = True
+    np.not_equal(ranked[1:], ranked[:-1], out=new[1:])
+    group = np.cumsum(new) - 1
+    if 4 * (int(group[-1]) + 1) > 3 * key.size:
+        return None
+    inverse = np.empty(key.size, np.intp)
+    inverse[order] = group
+    first = order[new]
+    if bits.shape[1] > 1 and not np.array_equal(bits[first][inverse], bits):  # a key shared by different rows
+        return None
+    return first, inverse
+
+
+def _network_logit(x: np.ndarray, weights: tuple) -> np.ndarray:
+    """The logit of :meth:`Proposal.detect_logit`, float64 [N], of inputs x [N, k] and the weights of
+    :meth:`Proposal._sampling_weights`: three products on grids (:func:`pemviz.core.exact.matmul`), each row's from
+    its own inputs alone."""
+    w1, b1, w2, b2, w3, b3 = weights
+    a = exact.matmul(x, None, w1)
+    a += b1
+    np.maximum(a, 0.0, out=a)
+    a = exact.matmul(a, None, w2, nonneg=True)
+    a += b2
+    np.maximum(a, 0.0, out=a)
+    return exact.matmul(a, None, w3, nonneg=True)[:, 0] + b3
 
 
 class StateProposal(Proposal):

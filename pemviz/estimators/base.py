@@ -266,11 +266,15 @@ class SeenFailures:
             [np.packbits(detected.reshape(rows.size, -1), axis=1), k.astype("<u4").view(np.uint8).reshape(-1, 4)],
             axis=1,
         )
-        _, first = np.unique(keys, axis=0, return_index=True)  # each prefix once per batch
-        self._log_p.update(zip((keys[i].tobytes() for i in first), log_p[first].tolist(), strict=False))
-        if len(self._log_p) > 2 * self.KEEP:
-            kept = sorted(self._log_p.items(), key=lambda kv: kv[1], reverse=True)[: self.KEEP]
-            self._log_p = dict(kept)
+        # each prefix once per batch, in the order of its bytes: one bytes object per distinct row, made by numpy
+        as_bytes = np.ascontiguousarray(keys).view(f"V{keys.shape[1]}").ravel()
+        distinct, first = np.unique(as_bytes, return_index=True)
+        self._log_p.update(zip(distinct.tolist(), log_p[first].tolist(), strict=False))
+        if len(self._log_p) > 2 * self.KEEP:  # the KEEP most likely, ties in the order seen
+            values = np.fromiter(self._log_p.values(), float, len(self._log_p))
+            order = np.argsort(-values, kind="stable")[: self.KEEP]
+            held = list(self._log_p)
+            self._log_p = {held[i]: float(values[i]) for i in order.tolist()}
 
     @property
     def log_p(self) -> float | None:

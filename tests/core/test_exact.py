@@ -88,3 +88,23 @@ def test_row_sum_is_numpy_s_row_sum_bit_for_bit(k):
     if k == 3:  # by hand: (a + b) + c, where a + (b + c) rounds otherwise
         y = np.array([[1.0, 2.0**-53, 2.0**-53]])
         assert exact.row_sum(y)[0] == (1.0 + 2.0**-53) + 2.0**-53 == 1.0 != 1.0 + (2.0**-53 + 2.0**-53)
+
+
+@pytest.mark.parametrize("with_m", [False, True])
+def test_times_power_of_two_is_ldexp_bit_for_bit_from_the_normal_range_to_the_subnormals(with_m):
+    # C's ldexp (numpy's) scales exactly or rounds once; the two multiplies by powers of two must give its bits
+    # wherever they are taken, including results that round into the subnormals or to 0, and fall back to it beyond
+    rng = np.random.default_rng(7)
+    x = (
+        np.rint(rng.normal(size=(400, 6)) * 2.0 ** rng.integers(0, 52, size=(400, 1)))
+        if with_m
+        else rng.normal(size=(400, 6)) * 2.0 ** rng.integers(-1070, 1000, size=(400, 1))
+    )
+    n = rng.integers(-1100 if not with_m else -1022, 1000, size=(400, 1))
+    m = rng.integers(-1040, 40, size=(1, 6)) if with_m else None
+    with np.errstate(over="ignore"):
+        want = np.ldexp(x, n if m is None else n + m)
+        for i in range(0, 400, 4):  # a few rows at a time: most on the multiplies, the others beyond their range
+            got = exact.times_power_of_two(x[i : i + 4], n[i : i + 4], m)
+            assert np.array_equal(got.view(np.int64), want[i : i + 4].view(np.int64))
+    assert (want != 0).any() and (np.abs(want[want != 0]) < 2.0**-1022).any()  # subnormal results were checked

@@ -11,6 +11,7 @@ import torch
 from pemviz.core.detectors import ConstantDetector, action_log_prob, defensive_logit
 from pemviz.core.estimate import estimate, format_probability
 from pemviz.core.sampling import (
+    DISTINCT_FROM,
     Proposal,
     ProposalFormatError,
     StateProposal,
@@ -456,3 +457,35 @@ def test_the_defensive_logit_is_the_mixtures_log_odds():
         a, half = math.log1p(-eps), math.log(eps / 2.0)
         expected = np.logaddexp(a - np.logaddexp(0.0, -z), half) - np.logaddexp(a - np.logaddexp(0.0, z), half)
         np.testing.assert_allclose(defensive_logit(z, eps), expected, rtol=1e-14, atol=1e-14)
+
+
+def test_a_proposal_gives_each_row_the_logit_it_has_alone_among_repeated_rows():
+    # the network runs once per distinct gap (by its bits) when many rows repeat: each row must still get the bits it
+    # gets asked about alone (a batch of one row, below DISTINCT_FROM: the network itself), -0.0 apart from 0.0
+    rng = np.random.default_rng(5)
+    gaps = np.concatenate([rng.uniform(-2.0, 60.0, 40), [0.0, -0.0, 5e-324, 12.5]])
+    states = np.column_stack([gaps, rng.normal(size=(gaps.size, 2))])
+    states[-1, 1:] = [0.0, -0.0]  # the same gap with different states
+    obs = states[rng.integers(0, gaps.size, 4 * DISTINCT_FROM)]
+    for q in (Proposal(h_scale=20.0), StateProposal((0, 1, 2), (20.0, 5.0, 1.0), (50.0, 0.0, 0.0))):
+        q.initialise(np.random.default_rng(4))
+        got = q.detect_logit(obs)
+        alone = np.array([q.detect_logit(row[None, :])[0] for row in obs])
+        assert np.array_equal(got.view(np.int64), alone.view(np.int64))
+        assert len(np.unique(got)) <= gaps.size < DISTINCT_FROM  # the repeated rows took the distinct path
+
+
+def test_two_different_rows_of_one_key_are_not_taken_for_one():
+    from pemviz.core.sampling import _MIX, _distinct_rows
+
+    # rows (a0, a1) and (c0, c1) whose mixed keys agree: c1 = (a0 * MIX) ^ a1 ^ (c0 * MIX) in uint64 arithmetic
+    a0, c0 = np.array([10.0, 30.0]).view(np.uint64)
+    for a1 in np.linspace(1.0, 2.0, 1000).view(np.uint64):
+        with np.errstate(over="ignore"):  # uint64 products wrap, as the keys' do
+            c1 = (a0 * _MIX) ^ a1 ^ (c0 * _MIX)
+        if np.isfinite(np.array([c1]).view(np.float64)[0]):
+            break
+    pair = np.array([[a0, a1], [c0, c1]], dtype=np.uint64).view(np.float64)
+    x = pair[np.arange(2 * DISTINCT_FROM) % 2]
+    assert _distinct_rows(x) is None  # one key, two rows: no sharing
+    assert _distinct_rows(np.ascontiguousarray(x[:, :1]))[0].size == 2  # the first column alone: two values

@@ -80,3 +80,26 @@ def test_a_scene_with_measurement_errors_gives_no_bound():
     res = Experiment(cfg, problem=problem_for(cfg)).run()
     assert res.final.estimate.n_failures > 0  # failures were drawn, and still
     assert res.final.log_p_seen is None  # errors are densities: a sum of them bounds no probability
+
+
+def test_beyond_twice_keep_prefixes_the_most_likely_keep_are_kept(monkeypatch):
+    pb = build_problem("main")
+    from pemviz.engine.events import RolloutsSampled
+
+    sampled = []
+    Experiment(
+        ExperimentConfig.of(method="naive50", n_per_stage=400, seed=2),
+        [lambda e: isinstance(e, RolloutsSampled) and sampled.append(e)],
+        problem=pb,
+    ).run()
+    batch, failed = sampled[-1].batch, sampled[-1].failed
+    steps, log_p = failure_steps(pb, batch), log_p_before_failure(pb, batch)
+    distinct = {batch.detected[i, : steps[i]].tobytes(): log_p[i] for i in np.flatnonzero(failed)}
+    keep = len(distinct) // 3  # fewer than half: one add thins them
+    assert keep >= 5
+    monkeypatch.setattr(SeenFailures, "KEEP", keep)
+    seen = SeenFailures()
+    seen.add(pb, batch, failed)
+    top = sorted(distinct.values(), reverse=True)[:keep]
+    assert len(seen._log_p) == keep
+    assert seen.log_p == pytest.approx(math.log(sum(math.exp(v) for v in top)), rel=1e-12)
