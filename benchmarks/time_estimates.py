@@ -18,6 +18,7 @@ printed before and after. ``--busy K`` runs K busy loops (other processes) throu
 
     nice -n 5 python benchmarks/time_estimates.py             # 1 run of each scene (~3-10 min on 2 loaded cores)
     python benchmarks/time_estimates.py --repeat 3 --scenes braking cut-in
+    python benchmarks/time_estimates.py --log runs.log       # also every line of the runs, with its second
 """
 
 from __future__ import annotations
