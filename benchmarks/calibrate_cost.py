@@ -5,6 +5,7 @@ and panel).
     python benchmarks/calibrate_cost.py --fit        # also the constants fitted to these runs, ready to paste
     python benchmarks/calibrate_cost.py --repeat 3   # the median of 3 runs of each configuration
     python benchmarks/calibrate_cost.py --tilt --repeat 3   # the tilt's constants from the cut-in's rollouts
+    python benchmarks/calibrate_cost.py --parts crossing     # a scene's cost parts against braking's, in CPU seconds
 
 What it does: runs a handful of configurations (the default, ``--preset quick``, N = 1000, plain Monte Carlo with
 N = 10,000, ``--preset paper``, the agm run of the panel's screenshots, a small highway-env run) as the panel runs
@@ -311,15 +312,88 @@ def calibrate_tilt(repeat: int) -> None:
     print(f"median: tilt_rollouts={statistics.median(rollouts):.2f}, tilt_solve_s={statistics.median(solves):.2f}")
 
 
+def part_seconds(argv: list[str]) -> dict[str, list[float]]:
+    """CPU seconds and the model's seconds (:func:`pemviz.engine.cost.stage_cost` with the scene's parts left out) per
+    part of the stages of one ``pemviz run`` of ``argv`` in this process: ``simulate:`` + the stage's kind, ``after:``
+    + its kind."""
+    from pemviz.cli import build_parser
+    from pemviz.commands.run import config_from_args
+    from pemviz.scenarios.registry import problem_for as registered_problem
+    from pemviz.settings import SCENARIO_COST_PARTS
+
+    cfg = config_from_args(build_parser("run").parse_args(argv))
+    problem = registered_problem(cfg)
+    n_steps = problem.n_steps or cost.N_STEPS
+    parts: dict[str, list[float]] = {}
+    marks: dict[str, float] = {}
+
+    class PartClock(Sink):
+        def on_stage_started(self, event) -> None:
+            marks["start"], marks["kind"], marks["stage"] = time.process_time(), event.kind, event.stage
+
+        def on_rollouts_sampled(self, event) -> None:
+            marks["sampled"], marks["n"] = time.process_time(), event.n_rollouts
+
+        def on_stage_finished(self, event) -> None:
+            declared = SCENARIO_COST_PARTS.pop(cfg.scenario, None)  # the model as the reference prices it
+            try:
+                m = cost.stage_cost(cfg, str(marks["kind"]), int(marks["n"]), n_steps, stage=int(marks["stage"]))
+            finally:
+                if declared is not None:
+                    SCENARIO_COST_PARTS[cfg.scenario] = declared
+            now = time.process_time()
+            for part, cpu, model in (
+                (f"simulate:{marks['kind']}", marks["sampled"] - marks["start"], m.simulate_s),
+                (f"after:{marks['kind']}", now - marks["sampled"], m.after_s),
+            ):
+                row = parts.setdefault(part, [0.0, 0.0])
+                row[0] += cpu
+                row[1] += model
+
+    experiment = engine.Experiment(cfg, problem=problem)
+    experiment.listeners[:0] = [PartClock()]
+    with torch_threads(1, blas=1):
+        experiment.run()
+    return parts
+
+
+def calibrate_parts(scene: str, repeat: int) -> None:
+    """A scene's cost parts (:attr:`pemviz.scenarios.registry.Scenario.cost_parts`): the CPU seconds of each part of
+    its default run's planned stages (``--plain-fallback 0 --retry-factor 0``) over the model's, divided by the same
+    of braking's default run in the same process just before (the machine's speed cancels): ``simulate:ce`` gives
+    ``step`` (its batches of 100 are mostly the fixed cost of a step), ``after:ce`` gives ``fit``. The first run of
+    each is a warm-up (imports, torch)."""
+    braking = ["run", "--no-record"]
+    other = ["run", "--scenario", scene, "--no-record", "--plain-fallback", "0", "--retry-factor", "0"]
+    part_seconds(braking), part_seconds(other)
+    for _ in range(repeat):
+        base, seen = part_seconds(braking), part_seconds(other)
+        ratios = {
+            k: (cpu / model) / (base[k][0] / base[k][1])
+            for k, (cpu, model) in seen.items()
+            if k in base and model > 0 and base[k][1] > 0 and base[k][0] > 0
+        }
+        print(
+            f"  {scene} over braking, CPU / model per part: "
+            + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items())
+            + f" (load average {os.getloadavg()[0]:.1f})",
+            flush=True,
+        )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fit", action="store_true", help="fit the constants to these runs and print them")
     ap.add_argument("--repeat", type=int, default=1, help="runs per configuration; the median counts (default 1)")
     ap.add_argument("--only", default=None, help="comma-separated names of CONFIGS to run (default all)")
     ap.add_argument("--tilt", action="store_true", help="measure the tilt's constants (the cut-in's) only")
+    ap.add_argument("--parts", metavar="SCENE", default=None, help="measure a scene's cost parts against braking's")
     args = ap.parse_args()
     if args.tilt:
         calibrate_tilt(args.repeat)
+        return 0
+    if args.parts is not None:
+        calibrate_parts(args.parts, args.repeat)
         return 0
     names = list(CONFIGS) if args.only is None else [n.strip() for n in args.only.split(",")]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan

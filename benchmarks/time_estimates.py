@@ -18,6 +18,7 @@ printed before and after. ``--busy K`` runs K busy loops (other processes) throu
 
     nice -n 5 python benchmarks/time_estimates.py             # 1 run of each scene (~3-10 min on 2 loaded cores)
     python benchmarks/time_estimates.py --repeat 3 --scenes braking cut-in
+    python benchmarks/time_estimates.py --log runs.log       # also every line of the runs, with its second
 """
 
 from __future__ import annotations
@@ -63,8 +64,9 @@ def busy_loop() -> None:
         pass
 
 
-def one_run(argv: list[str]) -> dict:
-    """The panel's range, each progress line's (label, elapsed, predicted total low, high) and the wall seconds."""
+def one_run(argv: list[str], log=None) -> dict:
+    """The panel's range, each progress line's (label, elapsed, predicted total low, high) and the wall seconds (and
+    every line with its second since the start, to ``log``, an open text file, where given)."""
     panel = panel_range(argv)
     env = {**os.environ, "RERUN_ANALYTICS": "false", "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
@@ -80,6 +82,8 @@ def one_run(argv: list[str]) -> dict:
     end, start, stop = None, time.perf_counter(), ""
     for line in proc.stdout:
         now = time.perf_counter()
+        if log is not None:
+            log.write(f"{now - start:8.2f} {line}")
         m = LINE.search(line)
         if m:
             elapsed = float(m["e"])
@@ -142,12 +146,14 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     ap.add_argument("--busy", type=int, default=0, help="busy loops running throughout (a loaded machine)")
+    ap.add_argument("--log", default=None, help="write every line of the runs here, with its second")
     a = ap.parse_args()
     import multiprocessing
 
     loops = [multiprocessing.Process(target=busy_loop, daemon=True) for _ in range(a.busy)]
     for loop in loops:
         loop.start()
+    log = open(a.log, "w", encoding="utf-8") if a.log else None  # noqa: SIM115 (closed below)
     try:
         if loops:
             time.sleep(65.0)  # the 1-minute load average sees them, as it sees a machine that has been busy a while
@@ -159,12 +165,16 @@ def main() -> None:
         print("|---|---|---|---|---|---|---|")
         for scene in a.scenes:
             for _ in range(a.repeat):
-                row, _ = report(scene, one_run(SCENES[scene]))
+                if log is not None:
+                    log.write(f"== {scene}\n")
+                row, _ = report(scene, one_run(SCENES[scene], log))
                 print(row, flush=True)
         print(f"load average {os.getloadavg()[0]:.2f} at the end")
     finally:
         for loop in loops:
             loop.kill()
+        if log is not None:
+            log.close()
 
 
 if __name__ == "__main__":

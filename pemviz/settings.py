@@ -64,6 +64,11 @@ SCENARIO_COST_FACTORS: dict[str, float] = {}
 for every scenario it registers and ``unregister`` removes): what :func:`pemviz.engine.cost.stage_cost` scales a
 scenario's simulation seconds by, reading this table and never the registry (1 for a name not here)."""
 
+SCENARIO_COST_PARTS: dict[str, dict[str, float]] = {}
+"""Scenario name -> the other parts of a run's cost its scene declares (:attr:`pemviz.scenarios.registry.Scenario.
+cost_parts`: ``step``, ``fit``, ``torch``), written and removed as :data:`SCENARIO_COST_FACTORS` (none for a name not
+here)."""
+
 
 def scenario_names() -> tuple[str, ...]:
     """The scenarios a config may name: :data:`SCENARIOS`, then :data:`REGISTERED_SCENARIOS` in registration order."""

@@ -3,15 +3,18 @@
 The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimators.cross_entropy`,
 :mod:`pemviz.estimators.ce_fit`), stage by stage of its :class:`~pemviz.core.plan.RunPlan`:
 
-- simulating a batch of n rollouts of T steps: T x (a fixed cost per step of the batch, larger when a proposal
-  network and its mixture decide the detections than when the PEM alone does, + a cost per rollout and step of the
-  simulator, times the cost factor the scenario declares: :data:`pemviz.settings.SCENARIO_COST_FACTORS`);
+- simulating a batch of n rollouts of T steps: T x (a fixed cost per step of each block of the batch, larger when a
+  proposal network and its mixture decide the detections than when the PEM alone does, times the scene's ``step``
+  part, + a cost per rollout and step of the simulator, times the cost factor the scenario declares:
+  :data:`pemviz.settings.SCENARIO_COST_FACTORS`, :data:`pemviz.settings.SCENARIO_COST_PARTS`);
 - after the rollouts, a fixed cost per stage (robustness, estimate, listeners) and, in pretraining and each
   cross-entropy stage, the proposal's fit: epochs x (a fixed cost per Adam epoch + a cost per fitted row and epoch) +
   a cost per fitted row (gathering and weighing the pool). The rows are the distinct fitted steps, at most
   ``fit_rows``: per pretraining rollout a fixed number; per CE stage k a number that grows with k towards a plateau,
-  as failures are pooled from the failure level on, and slowly with N. A CE fit with ``fit_tolerance`` stops early,
-  on average after a share of ``ce_epochs``.
+  as failures are pooled from the failure level on, and slowly with N. A fit with ``fit_tolerance`` stops early,
+  on average after a share of ``ce_epochs`` (of ``pretrain_epochs`` in pretraining). The fit costs the scene's
+  ``fit`` part times that; a scene whose proposal fits on torch adds torch's import to the first pretraining of a
+  process that has not imported it.
 
 :data:`COST` holds the constants, measured by ``python benchmarks/calibrate_cost.py`` (which prints the predicted and
 measured seconds of a handful of runs and, with ``--fit``, the constants fitted to them). :class:`StageClock
@@ -22,13 +25,14 @@ left. No numpy, no torch.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 from typing import Any
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.plan import RunPlan
-from pemviz.engine.resources import BASE_BYTES, pool_workers, run_memory
-from pemviz.settings import SCENARIO_COST_FACTORS
+from pemviz.engine.resources import BASE_BYTES, POOL_BLOCK, pool_workers, run_memory
+from pemviz.settings import SCENARIO_COST_FACTORS, SCENARIO_COST_PARTS
 
 N_STEPS = 100
 """T, the steps of a rollout, where the caller states no problem's horizon: the default of the model (e.g. the braking
@@ -58,6 +62,11 @@ class CostConstants:
         ce_rows_stages: stage k's rows are the plateau times 1 - exp(-(k - 1) / this) (stage 1 fits the few rollouts
             of pretraining's proposal; the pool of failures grows over the next stages).
         early_stop_share: the mean share of ``ce_epochs`` a CE fit with ``fit_tolerance`` runs before it stops.
+        pretrain_stop_share: the same of ``pretrain_epochs`` in pretraining.
+        torch_import_s: the seconds of importing torch (a scene whose proposal fits on torch, in a process that has
+            not imported it yet, on its first pretraining).
+        streamed_share: a rollout's seconds in a batch streamed chunk by chunk (above ``stream_above``) over its
+            seconds in a batch held whole (whose arrays outgrow the caches).
         ams_rollouts: rollout-equivalents AMS simulates per particle (its continuations), about.
         tilt_rollouts: the seconds of a rollout of ``method = "tilt"`` in plain rollouts' of its scene (its draw, its
             look-aheads and its weights), about.
@@ -78,6 +87,9 @@ class CostConstants:
     ce_rows_exponent: float
     ce_rows_stages: float
     early_stop_share: float
+    pretrain_stop_share: float = 1.0
+    torch_import_s: float = 0.0
+    streamed_share: float = 1.0
     ams_rollouts: float = 5.0
     tilt_rollouts: float = 6.0
     tilt_solve_s: float = 4.0
@@ -86,9 +98,9 @@ class CostConstants:
 
 COST = CostConstants(
     pem_step_s=7.19e-05,
-    proposal_step_s=0.000148,
+    proposal_step_s=0.00035,
     rollout_step_s={"batched": 3.53e-07, "highway-env": 3.59e-05},
-    proposal_rollout_step_s=2.03e-07,
+    proposal_rollout_step_s=2e-08,
     stage_s=0.000617,
     epoch_s=9.86e-05,
     row_epoch_s=2.98e-07,
@@ -98,13 +110,21 @@ COST = CostConstants(
     ce_rows_exponent=0.32,
     ce_rows_stages=3.4,
     early_stop_share=0.88,
+    pretrain_stop_share=0.2,
+    torch_import_s=0.7,
+    streamed_share=0.75,
     ams_rollouts=5,
     tilt_rollouts=2.7,
     tilt_solve_s=2.5,
     measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
     "tilt_rollouts and tilt_solve_s from per-rollout CPU seconds against a scene's plain rollouts in the same "
     "process (2026-11-29, benchmarks/calibrate_cost.py --tilt: a tilted rollout 2.5-3.0 plain ones, its weights "
-    "0.3-0.4 of them; a fresh process's solve 2.4-2.6 model seconds)",
+    "0.3-0.4 of them; a fresh process's solve 2.4-2.6 model seconds); proposal_step_s, proposal_rollout_step_s, "
+    "pretrain_stop_share and torch_import_s from CPU seconds per part of braking's and the crossing's default runs "
+    "against the model's in one process, on 2 loaded cores (2026-11-29, benchmarks/calibrate_cost.py --parts: "
+    "braking's proposal steps 1.8-2.1 times, its pretraining fit 0.4-0.6 times, the rest's 1.0); streamed_share from "
+    "the CPU seconds of the crossing's plain rollouts, 40,000 streamed against 10,000 held whole (0.64-0.82, 4 "
+    "readings)",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
@@ -142,33 +162,44 @@ def stage_cost(
     c: CostConstants = COST,
     stage: int | None = None,
     model: str | None = None,
+    stream_above: int = 20_000,
 ) -> StageCost:
     """Predicted seconds of a stage of ``kind`` (``pretrain`` | ``ce`` | ``final`` | ``ams``) with ``n`` rollouts.
 
     Args:
         cfg: the run's settings (method, simulator, scenario, proposal inputs, epochs, fit rows, tolerance); the
             per-rollout seconds scale by the cost factor the scenario declares
-            (:data:`pemviz.settings.SCENARIO_COST_FACTORS`, 1 for one that declares none).
+            (:data:`pemviz.settings.SCENARIO_COST_FACTORS`, 1 for one that declares none), the per-step seconds and
+            the fit by its parts (:data:`pemviz.settings.SCENARIO_COST_PARTS`).
         n_steps: T, steps per rollout.
         c: the constants (default :data:`COST`).
         stage: the stage's number, for a CE stage's rows (:func:`ce_rows`); None: the mean over the K stages.
         model: the stage's cost model (:data:`pemviz.methods.COST_MODELS`); None: ``cfg.method``'s.
+        stream_above: rollouts above which the stage is streamed chunk by chunk, its rollouts at
+            :attr:`CostConstants.streamed_share` of a whole batch's (:data:`pemviz.engine.experiment.STREAM_ABOVE`, a
+            rollout of one object).
     """
     model = cost_model(cfg.method) if model is None else model
     proposal = model == "proposal" and kind in ("ce", "final")
-    per_step = c.proposal_step_s if proposal else c.pem_step_s
+    parts = SCENARIO_COST_PARTS.get(cfg.scenario, {})  # what the scene declares (none: the reference's)
+    per_step = (c.proposal_step_s if proposal else c.pem_step_s) * parts.get("step", 1.0)
     per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
     per_rollout *= SCENARIO_COST_FACTORS.get(cfg.scenario, 1.0)  # what the scenario declares (1: none)
+    per_rollout *= c.streamed_share if n > stream_above else 1.0
     tilt = model == "look-ahead"
     rollouts = n * (c.ams_rollouts if kind == "ams" else c.tilt_rollouts if tilt else 1.0)
-    simulate = n_steps * (per_step + per_rollout * rollouts)
+    blocks = max(1, math.ceil(n / POOL_BLOCK))  # a large batch is simulated block by block, each its steps
+    simulate = n_steps * (per_step * blocks + per_rollout * rollouts)
     simulate /= pool_workers(cfg, n, simulate)  # worker processes share a large batch
     simulate += c.tilt_solve_s if tilt and stage == 1 else 0.0
     cap = math.inf if cfg.adaptive.fit_rows is None else float(cfg.adaptive.fit_rows)
     inputs = cfg.adaptive.proposal_inputs
-    fit = c.stage_s
+    fit, share = c.stage_s, parts.get("fit", 1.0)
     if model == "proposal" and kind == "pretrain":
-        fit += _fit_s(cfg.adaptive.pretrain_epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
+        epochs = cfg.adaptive.pretrain_epochs * (c.pretrain_stop_share if cfg.adaptive.fit_tolerance is not None else 1)
+        fit += share * _fit_s(epochs, min(cap, n * c.pretrain_rows.get(inputs, 1.0)), c)
+        if parts.get("torch") and "torch" not in sys.modules:  # the first fit on torch in this process imports it
+            fit += c.torch_import_s
     elif model == "proposal" and kind == "ce":
         stages = [stage] if stage is not None else range(1, cfg.adaptive.n_stages + 1)
         rows = sum(ce_rows(cfg, k, n, c) for k in stages) / len(stages)
@@ -176,7 +207,7 @@ def stage_cost(
             epochs = float(cfg.adaptive.fit_max_steps)
         else:
             epochs = cfg.adaptive.ce_epochs * (c.early_stop_share if cfg.adaptive.fit_tolerance is not None else 1.0)
-        fit += _fit_s(epochs, rows, c)
+        fit += share * _fit_s(epochs, rows, c)
     return StageCost(simulate, fit)
 
 

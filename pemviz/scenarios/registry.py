@@ -34,7 +34,7 @@ from pemviz.scenarios.parameters import (
     unit_of,
 )
 from pemviz.plugins import Plugins, Ref, resolve
-from pemviz.settings import REGISTERED_SCENARIOS, SCENARIO_COST_FACTORS, SETTINGS
+from pemviz.settings import REGISTERED_SCENARIOS, SCENARIO_COST_FACTORS, SCENARIO_COST_PARTS, SETTINGS
 
 
 def _kind(field: dataclasses.Field) -> str:
@@ -42,6 +42,10 @@ def _kind(field: dataclasses.Field) -> str:
     ``""``."""
     kind = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", "")
     return kind if kind in KINDS else ""
+
+
+COST_PARTS = ("step", "fit", "torch")
+"""The parts of a run's cost a scenario may declare besides its rollout step (:attr:`Scenario.cost_parts`)."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,11 @@ class Scenario:
         cost_factor: how many times the cost model's reference rollout step (:mod:`pemviz.engine.cost`, measured on
             the braking scenario's batched twin) one rollout step of this scenario costs, > 0 (default 1): the run's
             predicted seconds scale by it (:data:`pemviz.settings.SCENARIO_COST_FACTORS`).
+        cost_parts: how many times the cost model's reference the scene's other parts cost, each > 0, where they
+            are not the braking scenario's: ``step`` the fixed cost of a batch's time step (its objects, tracker and
+            the proposal's measurement-error head, whatever the batch's size), ``fit`` a proposal's fit; ``torch``
+            (any value > 0): its proposal's fits run on torch, which a first run in a process imports
+            (:func:`pemviz.engine.cost.stage_cost`; :data:`pemviz.settings.SCENARIO_COST_PARTS`); empty: none.
         random_params: the parameters that may be drawn per rollout from a distribution over an operating design
             domain (``--param NAME~DIST``, :mod:`pemviz.scenarios.odd`); empty: none.
         odd: ``odd(config, params, odd) -> Problem``: the problem over the ODD (:class:`pemviz.core.odd.ODD`) of
@@ -97,6 +106,7 @@ class Scenario:
     defaults: Ref = None
     drawing: Ref = None
     cost_factor: float = 1.0
+    cost_parts: Mapping[str, float] = dataclasses.field(default_factory=dict)
     random_params: tuple[str, ...] = ()
     odd: Ref = None
     n_objects: int = 1
@@ -118,6 +128,16 @@ class Scenario:
         factor = self.cost_factor
         if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not 0.0 < factor < float("inf"):
             raise ValueError(f"Scenario {self.name}: cost_factor must be a finite number > 0, got {factor!r}")
+        for part, value in dict(self.cost_parts).items():
+            if part not in COST_PARTS or isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(
+                    f"Scenario {self.name}: cost_parts takes {', '.join(COST_PARTS)} with numbers > 0, got {part!r}: "
+                    f"{value!r}"
+                )
+            if not 0.0 < value < float("inf"):
+                raise ValueError(
+                    f"Scenario {self.name}: cost_parts[{part!r}] must be a finite number > 0, got {value!r}"
+                )
 
     def params_class(self) -> type | None:
         """The dataclass of the parameters (:attr:`params` imported), or None."""
@@ -234,6 +254,7 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
         )
     _REGISTRY[scenario.name] = scenario
     SCENARIO_COST_FACTORS[scenario.name] = float(scenario.cost_factor)  # the engine's cost model reads it there
+    SCENARIO_COST_PARTS[scenario.name] = {k: float(v) for k, v in dict(scenario.cost_parts).items()}
     RANDOM_PARAMS[scenario.name] = tuple(scenario.random_params)  # what --param NAME~DIST may draw
     if scenario.name not in REGISTERED_SCENARIOS:  # the settings and parameters below the registry learn of it
         REGISTERED_SCENARIOS.append(scenario.name)
@@ -251,6 +272,7 @@ def unregister(name: str) -> None:
         raise KeyError(f"unregister: no scenario named {name!r}; registered: {', '.join(_REGISTRY)}")
     del _REGISTRY[name]
     SCENARIO_COST_FACTORS.pop(name, None)
+    SCENARIO_COST_PARTS.pop(name, None)
     if name in REGISTERED_SCENARIOS:
         REGISTERED_SCENARIOS.remove(name)
     register_defaults(name, None)
@@ -382,6 +404,13 @@ ones: 20,000 plain rollouts' CPU seconds against the model's, 4.1 and 5.7 times 
 over the factor the model gives each, measured on 2 loaded cores (their median, 4.1; ``benchmarks/time_estimates.py``
 checks it)."""
 
+_CROSSING_COST_PARTS = {"step": 9.0, "fit": 1.55, "torch": 1.0}
+"""A crossing batch's time step costs 9 braking ones whatever its size (two tracked pedestrians, the noise PEM's
+errors, and the proposal's measurement-error head on torch), its fits 1.55 braking's (the error head's): CPU seconds per
+part of its default run's stages against braking's in the same process, 4.2-5.2 (proposal steps), 2.8-4.4 (PEM
+steps) and 1.1-1.7 (CE fits) times braking's over the model's (3 readings) (2026-11-29, ``benchmarks/calibrate_cost.py --parts``);
+the first of its fits imports torch (braking's run never does)."""
+
 _CUT_IN = (
     "ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "
     "or the safe distance of rule R_G1"
@@ -473,6 +502,7 @@ for _scenario in (
         "pemviz.scenarios.crossing.scene:CrossingParams",
         "pemviz.scenarios.crossing.problem:crossing",
         cost_factor=_CROSSING_COST_FACTOR,
+        cost_parts=_CROSSING_COST_PARTS,
     ),
 ):
     register(_scenario)

@@ -70,3 +70,52 @@ def test_the_tilt_prices_its_solve_once_and_each_rollout_as_plain_ones_of_its_sc
     cost = run_cost(cfg, slowdown=1.0)  # one figure: the tilt has nothing that may follow
     assert cost.seconds == pytest.approx(first.seconds, rel=1e-12) and cost.then_simulations == 0
     assert 2.0 <= COST.tilt_rollouts <= 4.0 and 0.0 < COST.tilt_solve_s  # as measured: calibrate_cost.py --tilt
+
+
+def test_a_scene_s_declared_parts_price_its_steps_its_fits_and_torch_s_import():
+    """``cost_parts``: ``step`` multiplies the fixed cost of a batch's time step (of each block of a large batch),
+    ``fit`` a proposal's fit, ``torch`` adds torch's import to the first pretraining of a process that has not
+    imported it; the parts leave with the scene."""
+    import sys
+
+    from pemviz.settings import SCENARIO_COST_PARTS
+
+    toy = ("pemviz.scenarios.toy:ToyParams", "pemviz.scenarios.builtin:toy")
+    register(
+        Scenario("parted-toy", "a toy with costly steps and fits", *toy, cost_parts={"step": 2, "fit": 3, "torch": 1})
+    )
+    try:
+        assert SCENARIO_COST_PARTS["parted-toy"] == {"step": 2.0, "fit": 3.0, "torch": 1.0}
+        per_rollout = COST.rollout_step_s["batched"] * 1000
+        assert simulate_s("parted-toy") == N_STEPS * (2 * COST.pem_step_s + per_rollout)
+        # 20,000 rollouts: three blocks of 8,192, each its steps' fixed cost
+        assert simulate_s("braking", 20_000) == N_STEPS * (
+            3 * COST.pem_step_s + COST.rollout_step_s["batched"] * 20_000
+        )
+        cfg = ExperimentConfig.of(scenario="parted-toy")
+        plain = ExperimentConfig.of(scenario="braking")
+        ce = stage_cost(cfg, "ce", 100, stage=5).after_s - COST.stage_s
+        assert ce == pytest.approx(3 * (stage_cost(plain, "ce", 100, stage=5).after_s - COST.stage_s), rel=1e-12)
+        saved = sys.modules.pop("torch", None)
+        try:
+            first = stage_cost(cfg, "pretrain", 100, stage=0).after_s
+        finally:
+            if saved is not None:
+                sys.modules["torch"] = saved
+        sys.modules.setdefault("torch", saved or type(sys)("torch"))
+        try:
+            later = stage_cost(cfg, "pretrain", 100, stage=0).after_s
+        finally:
+            if saved is None:
+                del sys.modules["torch"]
+        assert first - later == pytest.approx(COST.torch_import_s, rel=1e-12)
+        assert COST.torch_import_s > 0
+    finally:
+        unregister("parted-toy")
+    assert "parted-toy" not in SCENARIO_COST_PARTS
+
+
+@pytest.mark.parametrize("parts", [{"steps": 2.0}, {"step": 0.0}, {"fit": float("inf")}, {"fit": True}, {"step": "2"}])
+def test_cost_parts_that_are_no_known_part_or_positive_number_are_refused(parts):
+    with pytest.raises(ValueError, match="cost_parts"):
+        Scenario("bad", "a scenario", None, "pemviz.scenarios.builtin:toy", cost_parts=parts)
