@@ -28,7 +28,8 @@ from pemviz.commands import (
 )
 from pemviz.config import ConfigError, ExperimentConfig, scene_defaults
 from pemviz.engine.resources import check_run_memory
-from pemviz.settings import METHODS, SCENARIOS
+from pemviz.methods import BUILTIN_METHODS
+from pemviz.settings import SCENARIOS
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 if TYPE_CHECKING:
@@ -158,7 +159,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         from pemviz.scenarios.registry import load_plugins
 
         load_plugins()
-    if args.method is not None and args.method not in METHODS:  # a method of one's own: load the method plugins
+    if args.method is not None and args.method not in BUILTIN_METHODS:  # a method of one's own: load the method plugins
         from pemviz.methods import load_method_plugins
 
         load_method_plugins()
