@@ -24,7 +24,7 @@ from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_n
 from pemviz.methods.ams import AmsSettings
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.state import StateSettings
-from pemviz.settings import SETTINGS
+from pemviz.settings import SETTINGS, ConfigError, check_settings
 
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
@@ -51,18 +51,6 @@ def objects_of(scenario: str) -> int:
 
     record = known(scenario)
     return record.n_objects if record is not None else 1
-
-
-class ConfigError(ValueError):
-    """An invalid experiment setting: the message says which, the value, and what is allowed.
-
-    Attributes:
-        field: the :class:`ExperimentConfig` attribute at fault (None when not one field).
-    """
-
-    def __init__(self, message: str, field: str | None = None) -> None:
-        super().__init__(message)
-        self.field = field
 
 
 @dataclass(frozen=True)
@@ -178,6 +166,8 @@ class ExperimentConfig:
             (:class:`pemviz.methods.adaptive.CrossEntropySettings`).
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
         state: the state-dependent proposal's (:class:`pemviz.methods.state.StateSettings`).
+        method_settings: a method of one's own's settings, an instance of its :attr:`pemviz.methods.Method.settings`
+            (None: made from its defaults; for a method without them, None).
     """
 
     method: str = DEFAULT_METHOD
@@ -196,6 +186,7 @@ class ExperimentConfig:
     adaptive: CrossEntropySettings = CrossEntropySettings()
     ams: AmsSettings = AmsSettings()
     state: StateSettings = StateSettings()
+    method_settings: Any = None
 
     @classmethod
     def of(cls, **settings: Any) -> "ExperimentConfig":
@@ -206,7 +197,16 @@ class ExperimentConfig:
         Raises:
             ConfigError: a setting out of range or against another; TypeError: a name that is no setting.
         """
-        own = {k: v for k, v in settings.items() if k not in GROUP_OF}
+        method = method_or_none(settings.get("method", DEFAULT_METHOD))  # None: refused when the config is checked
+        mine = [f.name for f in dataclasses.fields(method.settings)] if method and method.settings else []
+        own = {k: v for k, v in settings.items() if k not in GROUP_OF and k not in mine}
+        if mine:  # the method's own settings by their names, over the instance given (of its class) or its defaults
+            assert method is not None and method.settings is not None  # mine is empty otherwise
+            given = own.get("method_settings")
+            base: Any = given if isinstance(given, method.settings) else method.settings()
+            own["method_settings"] = dataclasses.replace(base, **{k: settings[k] for k in mine if k in settings})
+        elif "method_settings" in own:  # another method's settings: not this one's
+            own["method_settings"] = None
         grouped: dict[str, dict[str, Any]] = {}
         for name, value in settings.items():
             if name in GROUP_OF:
@@ -223,12 +223,15 @@ class ExperimentConfig:
             AttributeError: not a setting.
         """
         group = GROUP_OF.get(name)
+        if group is None and name not in SETTINGS and self.method_settings is not None:
+            return getattr(self.method_settings, name)  # a method of one's own's setting
         return getattr(self if group is None else getattr(self, group), name)
 
     def flat(self) -> dict[str, Any]:
-        """Every setting by its flat name, in the table's order (what result documents, rollout files and
-        ``runs.jsonl`` record as a run's ``config``)."""
-        return {name: self.value(name) for name in SETTINGS}
+        """Every setting by its flat name, in the table's order, then a method of one's own's settings (what result
+        documents, rollout files and ``runs.jsonl`` record as a run's ``config``)."""
+        own = {} if self.method_settings is None else dataclasses.asdict(self.method_settings)
+        return {**{name: self.value(name) for name in SETTINGS}, **own}
 
     def __post_init__(self) -> None:
         for setting in SETTINGS.values():  # each setting on its own: its range from SETTINGS
@@ -282,7 +285,20 @@ class ExperimentConfig:
             "require",
             "give one stop rule: a requirement (--require) or a precision target (--rel-error)",
         )
-        method = self.method_record  # the method's own settings against the others (Method.validate)
+        method = self.method_record  # its own settings, then against the others (Method.validate)
+        if method.settings is None:
+            if self.method_settings is not None:
+                raise ConfigError(f"method {method.name} has no settings of its own; give none", "method_settings")
+        else:
+            if self.method_settings is None:  # made without them: the method's defaults
+                object.__setattr__(self, "method_settings", method.settings())
+            if not isinstance(self.method_settings, method.settings):
+                raise ConfigError(
+                    f"method {method.name}'s settings are a {method.settings.__name__}, got "
+                    f"{type(self.method_settings).__name__}",
+                    "method_settings",
+                )
+            check_settings(self.method_settings, method.name)
         need(
             self.stop_rule is None or method.extensible,
             self.stop_rule or "rel_error",

@@ -9,6 +9,7 @@ it here. The allowed values of the choices (:data:`METRICS`, ...) and the numeri
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass
@@ -462,6 +463,69 @@ SETTINGS: dict[str, Setting] = _settings(
             kind="bool", owner=STATE_METHOD, flags=("--state-fit-errors",)),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
+
+
+class ConfigError(ValueError):
+    """An invalid experiment setting: the message says which, the value, and what is allowed.
+
+    Attributes:
+        field: the :class:`~pemviz.config.ExperimentConfig` attribute (or the method's setting) at fault (None when not
+            one field).
+    """
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+ROW = "pemviz.setting"
+"""The key of a method's setting's row in its dataclass field's metadata (:func:`setting`)."""
+
+
+def setting(default: Any, words: str, help: str, **row: Any) -> Any:
+    """A field of a method's settings dataclass (:attr:`pemviz.methods.Method.settings`) and its row of the settings
+    table: ``default``, then what a :class:`Setting` says of it (``words``, ``help`` and any of ``kind``, ``symbol``,
+    ``unit``, ``lo``, ``hi``, ``lo_open``, ``hi_open``, ``optional``, ``choices``, ``choice_help``, ``flags``); the
+    field's name is the setting's (and the key a run records it by), the method's name its owner."""
+    return dataclasses.field(default=default, metadata={ROW: {"words": words, "help": help, **row}})
+
+
+def rows_of(cls: type, owner: str) -> dict[str, Setting]:
+    """The :class:`Setting` of each field of ``cls`` (a method's settings dataclass: :func:`setting`), by name, in the
+    fields' order, owned by ``owner``.
+
+    Raises:
+        TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has.
+    """
+    rows: dict[str, Setting] = {}
+    for f in dataclasses.fields(cls):
+        if ROW not in f.metadata or f.name in SETTINGS:
+            why = "is the name of a setting of pemviz" if f.name in SETTINGS else "has no row (pemviz.settings.setting)"
+            raise TypeError(f"{cls.__name__}.{f.name} {why}")
+        rows[f.name] = Setting(f.name, owner=owner, **f.metadata[ROW])
+    return rows
+
+
+def check_settings(settings: object, owner: str = "") -> None:
+    """Each field of ``settings`` (a method's settings dataclass) within its row's range.
+
+    Raises:
+        ConfigError: the first that is not, in one line (the config's words: ``coin_share (eps) = 2.0 is invalid: the
+            coin's share eps must be a number in (0, 1)``); TypeError: as :func:`rows_of`.
+    """
+    for s in rows_of(type(settings), owner).values():
+        value = getattr(settings, s.name)
+        if not s.accepts(value):
+            verb = "use" if s.kind == "choice" else f"{s.words} must be"
+            raise ConfigError(f"{s.title} = {value!r} is invalid: {verb} {s.allowed}", s.name)
+
+
+class MethodSettings:
+    """The base of a method's settings dataclass (frozen; each field made by :func:`setting`): a value out of its
+    row's range is refused when the settings are made (:func:`check_settings`)."""
+
+    def __post_init__(self) -> None:
+        check_settings(self)
 
 
 def settings_of(owner: str) -> tuple[str, ...]:

@@ -100,6 +100,13 @@ class Method:
             ``mixed50``: :data:`pemviz.io.rollout_format.SAMPLERS`); None: a fitted proposal or none.
         baseline: a validation study may compare it with the cross-entropy sampler at an equal budget
             (:data:`pemviz.studies.validation.BASELINES`).
+        settings: optional, the method's own settings: a frozen dataclass (best a subclass of
+            :class:`pemviz.settings.MethodSettings`, which checks its values when made) whose fields, each made by
+            :func:`pemviz.settings.setting`, are its rows of the settings table (symbol, range, unit, help, flag). A
+            run of the method holds them as :attr:`pemviz.config.ExperimentConfig.method_settings`, takes them by
+            their names (``ExperimentConfig.of(coin_share=0.2)``), records them with the run's other settings and
+            ``pemviz run`` takes each as a flag; None: it has none (the built-in methods' settings are the config's
+            groups).
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
@@ -125,6 +132,7 @@ class Method:
     describe: Ref = None
     sampler: str | None = None
     baseline: bool = False
+    settings: type | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -133,6 +141,9 @@ class Method:
             raise ValueError(f"Method {self.name}: description must be one line of text")
         if self.build is None:
             raise ValueError(f"Method {self.name}: a builder (config, problem, check) -> Estimator is needed")
+        params = getattr(self.settings, "__dataclass_params__", None)
+        if self.settings is not None and not (isinstance(self.settings, type) and params and params.frozen):
+            raise ValueError(f"Method {self.name}: settings must be a frozen dataclass, got {self.settings!r}")
         if self.cost_model not in COST_MODELS:
             raise ValueError(
                 f"Method {self.name}: cost_model must be one of {', '.join(COST_MODELS)}, got " f"{self.cost_model!r}"

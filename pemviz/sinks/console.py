@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 from dataclasses import dataclass
@@ -160,7 +159,7 @@ def plain_rollout_seconds(
     sims = n_simulations if n_simulations else int(config.n_simulations)
     run = run_cost(config, run_plan(config), steps).seconds / max(1, int(sims))
     big = 100_000
-    plain = stage_cost(dataclasses.replace(config, method=PLAIN_METHOD), "final", big, steps).seconds / big
+    plain = stage_cost(config.replace(method=PLAIN_METHOD), "final", big, steps).seconds / big
     return s_per * plain / run if run > 0 and plain > 0 else s_per
 
 
