@@ -189,8 +189,8 @@ def method_markdown(ev: RunStarted) -> str:
     """One sentence on the run's method, its stages and sizes from the run's plan: the method's own words
     (:attr:`pemviz.methods.Method.describe`), else its plan's stages."""
     cfg, plan = ev.config, ev.plan
-    record = getattr(cfg, "method_record", None)  # a stand-in config (a test's) has no record: its plan
-    if record is None or record.describe is None:
+    record = cfg.method_record
+    if record.describe is None:
         stages = ", ".join(f"{s.label} ({s.n_rollouts} rollouts)" for s in plan.stages)
         return f"method **{cfg.method}**: {stages or 'no stage planned'}."
     window = ev.problem.thresholds.labels()[1] if ev.problem.thresholds is not None else "the sampler window"
