@@ -12,9 +12,9 @@ Problems (each with its exact p_fail):
 
 Methods (:func:`methods_at`, a list of (label, config fields); add a line for a new method): the default sampler
 ``ExperimentConfig.of()`` (2,100 simulations; ``--n-final 100``: 1,200), the ``paper`` preset with its final batch
-set to the same budget, adaptive multilevel splitting with budget / 4 particles (when :data:`pemviz.settings.METHODS`
-has ``ams``), plain Monte Carlo with that many rollouts, and the exact zero-variance sampler q*
-(:class:`pemviz.estimators.optimal.ZeroVarianceDetector`) where V is known (toys, latched).
+set to the same budget, adaptive multilevel splitting with budget / 4 particles (when
+:data:`pemviz.methods.BUILTIN_METHODS` has ``ams``), plain Monte Carlo with that many rollouts, and the exact
+zero-variance sampler q* (:class:`pemviz.estimators.optimal.ZeroVarianceDetector`) where V is known (toys, latched).
 
 Outputs under ``--out`` (default ``recordings/sweep/``; an existing file is never replaced without ``--overwrite``):
 ``runs.jsonl`` (one line per run, appended as it ends: ``--resume`` continues a killed sweep), ``sweep.md`` and
@@ -47,7 +47,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pemviz.scenarios.braking import truth, truth_known, truth_latched
-from pemviz.settings import METHODS as CONFIG_METHODS
+from pemviz.methods import BUILTIN_METHODS as CONFIG_METHODS
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import Detector
 from pemviz.engine.experiment import Experiment

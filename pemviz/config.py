@@ -1,7 +1,7 @@
 """ExperimentConfig: every knob of a pemviz experiment, validated once.
 
 What each knob is (symbol, words, allowed range, help, command-line flag, the estimator that reads it) lives in one
-place, :data:`pemviz.settings.SETTINGS`, with the choices and limits beside it (:data:`METHODS`, :data:`MAX_SEED`,
+place, :data:`pemviz.settings.SETTINGS`, with the choices and limits beside it (:data:`METRICS`, :data:`MAX_SEED`,
 ... below are :mod:`pemviz.settings`'s): the config's checks, the command line (:mod:`pemviz.commands`), the panel's
 form (:mod:`pemviz.app.form`) and the estimators (:func:`~pemviz.settings.settings_of`) all read it there. This module
 holds :class:`ExperimentConfig`, its checks of the settings against each other and :class:`ConfigError`.
@@ -20,10 +20,11 @@ from dataclasses import dataclass
 from typing import Any, cast
 
 from pemviz.core.requirement import RequirementError, parse_requirement
+from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_none
 from pemviz.methods.ams import AmsSettings
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.state import StateSettings
-from pemviz.settings import SETTINGS
+from pemviz.settings import SETTINGS, ConfigError, check_settings
 
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
@@ -50,18 +51,6 @@ def objects_of(scenario: str) -> int:
 
     record = known(scenario)
     return record.n_objects if record is not None else 1
-
-
-class ConfigError(ValueError):
-    """An invalid experiment setting: the message says which, the value, and what is allowed.
-
-    Attributes:
-        field: the :class:`ExperimentConfig` attribute at fault (None when not one field).
-    """
-
-    def __init__(self, message: str, field: str | None = None) -> None:
-        super().__init__(message)
-        self.field = field
 
 
 @dataclass(frozen=True)
@@ -128,22 +117,6 @@ class Perception:
     pem_shift: float | None = None
 
 
-GROUPS: dict[str, type] = {
-    "perception": Perception,
-    "execution": Execution,
-    "stop": StopRule,
-    "adaptive": CrossEntropySettings,
-    "ams": AmsSettings,
-    "state": StateSettings,
-}
-"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three, and each
-built-in method's settings (a dataclass in the method's home)."""
-
-GROUP_OF: dict[str, str] = {f.name: g for g, cls in GROUPS.items() for f in dataclasses.fields(cls)}
-"""A setting's name (:data:`pemviz.settings.SETTINGS`) -> the :class:`ExperimentConfig` field of the group holding it;
-a setting not here is a field of the config itself."""
-
-
 @dataclass(frozen=True)
 class ExperimentConfig:
     """One experiment: the sampler of Innes & Ramamoorthy (2022, Algorithm 1) and its baselines.
@@ -157,7 +130,8 @@ class ExperimentConfig:
     ``runs.jsonl``'s ``config``), :meth:`replace` changes some.
 
     Attributes:
-    method: one of :data:`METHODS`.
+    method: a registered method's name (:data:`pemviz.methods.BUILTIN_METHODS` or a plugin's); its record is
+        :attr:`method_record`.
     n_per_stage: N, rollouts per stage; for mc / naive50 / mixed50 the number of rollouts; for ams the particles.
     metric: robustness semantics, one of :data:`METRICS`.
     seed: seeds the rollouts, the fits, tie-breaking and the proposal's initial weights, each its own stream;
@@ -192,9 +166,11 @@ class ExperimentConfig:
             (:class:`pemviz.methods.adaptive.CrossEntropySettings`).
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
         state: the state-dependent proposal's (:class:`pemviz.methods.state.StateSettings`).
+        method_settings: a method of one's own's settings, an instance of its :attr:`pemviz.methods.Method.settings`
+            (None: made from its defaults; for a method without them, None).
     """
 
-    method: str = "adaptive"
+    method: str = DEFAULT_METHOD
     n_per_stage: int = 100
     metric: str = "classic"
     seed: int = 0
@@ -210,6 +186,7 @@ class ExperimentConfig:
     adaptive: CrossEntropySettings = CrossEntropySettings()
     ams: AmsSettings = AmsSettings()
     state: StateSettings = StateSettings()
+    method_settings: Any = None
 
     @classmethod
     def of(cls, **settings: Any) -> "ExperimentConfig":
@@ -220,7 +197,16 @@ class ExperimentConfig:
         Raises:
             ConfigError: a setting out of range or against another; TypeError: a name that is no setting.
         """
-        own = {k: v for k, v in settings.items() if k not in GROUP_OF}
+        method = method_or_none(settings.get("method", DEFAULT_METHOD))  # None: refused when the config is checked
+        mine = [f.name for f in dataclasses.fields(method.settings)] if method and method.settings else []
+        own = {k: v for k, v in settings.items() if k not in GROUP_OF and k not in mine}
+        if mine:  # the method's own settings by their names, over the instance given (of its class) or its defaults
+            assert method is not None and method.settings is not None  # mine is empty otherwise
+            given = own.get("method_settings")
+            base: Any = given if isinstance(given, method.settings) else method.settings()
+            own["method_settings"] = dataclasses.replace(base, **{k: settings[k] for k in mine if k in settings})
+        elif "method_settings" in own:  # another method's settings: not this one's
+            own["method_settings"] = None
         grouped: dict[str, dict[str, Any]] = {}
         for name, value in settings.items():
             if name in GROUP_OF:
@@ -237,12 +223,15 @@ class ExperimentConfig:
             AttributeError: not a setting.
         """
         group = GROUP_OF.get(name)
+        if group is None and name not in SETTINGS and self.method_settings is not None:
+            return getattr(self.method_settings, name)  # a method of one's own's setting
         return getattr(self if group is None else getattr(self, group), name)
 
     def flat(self) -> dict[str, Any]:
-        """Every setting by its flat name, in the table's order (what result documents, rollout files and
-        ``runs.jsonl`` record as a run's ``config``)."""
-        return {name: self.value(name) for name in SETTINGS}
+        """Every setting by its flat name, in the table's order, then a method of one's own's settings (what result
+        documents, rollout files and ``runs.jsonl`` record as a run's ``config``)."""
+        own = {} if self.method_settings is None else dataclasses.asdict(self.method_settings)
+        return {**{name: self.value(name) for name in SETTINGS}, **own}
 
     def __post_init__(self) -> None:
         for setting in SETTINGS.values():  # each setting on its own: its range from SETTINGS
@@ -296,21 +285,30 @@ class ExperimentConfig:
             "require",
             "give one stop rule: a requirement (--require) or a precision target (--rel-error)",
         )
-        from pemviz.methods import extensible_names, method_or_none
-
-        method = method_or_none(self.method)
-        if method is not None:  # the method's own settings against the others (Method.validate)
-            need(
-                self.stop_rule is None or method.extensible,
-                self.stop_rule or "rel_error",
-                f"method {method.name} has no final batch to add to; use it with method "
-                f"{', '.join(extensible_names())}",
-            )
-            # a whole number: check_pairs checked the value's kind (the field's, an int)
-            n_objects = cast(int, dict(self.scenario_params).get("n_objects", objects_of(self.scenario)))
-            conflict = method.conflict(self, n_objects)
-            if conflict is not None:
-                need(False, *conflict)
+        method = self.method_record  # its own settings, then against the others (Method.validate)
+        if method.settings is None:
+            if self.method_settings is not None:
+                raise ConfigError(f"method {method.name} has no settings of its own; give none", "method_settings")
+        else:
+            if self.method_settings is None:  # made without them: the method's defaults
+                object.__setattr__(self, "method_settings", method.settings())
+            if not isinstance(self.method_settings, method.settings):
+                raise ConfigError(
+                    f"method {method.name}'s settings are a {method.settings.__name__}, got "
+                    f"{type(self.method_settings).__name__}",
+                    "method_settings",
+                )
+            check_settings(self.method_settings, method.name)
+        need(
+            self.stop_rule is None or method.extensible,
+            self.stop_rule or "rel_error",
+            f"method {method.name} has no final batch to add to; use it with method {', '.join(extensible_names())}",
+        )
+        # a whole number: check_pairs checked the value's kind (the field's, an int)
+        n_objects = cast(int, dict(self.scenario_params).get("n_objects", objects_of(self.scenario)))
+        conflict = method.conflict(self, n_objects)
+        if conflict is not None:
+            need(False, *conflict)
         for cap in ("max_sims", "max_time_s"):
             need(
                 self.value(cap) is None or self.stop_rule is not None,
@@ -329,6 +327,14 @@ class ExperimentConfig:
             "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
             "set final_smoothing = None with fit_weights = 'sampler'",
         )
+
+    @property
+    def method_record(self) -> Method:
+        """The registry's record of :attr:`method` (the config checked that it is registered): what the engine, the
+        estimators and the sinks ask about the method, never its name."""
+        method = method_or_none(self.method)
+        assert method is not None, self.method  # checked in __post_init__: a registered name
+        return method
 
     def replace(self, **changes: Any) -> "ExperimentConfig":
         """A copy with some settings changed (flat names or groups, as :meth:`of` takes them), validated again."""
@@ -362,11 +368,19 @@ class ExperimentConfig:
         """Rollouts the experiment will simulate, pretraining included: those of the plan its method states
         (:meth:`pemviz.methods.Method.run_plan`; an open-ended plan, e.g. splitting's, the N initial
         particles; the run reports the rollout-equivalents its continuations or look-aheads add)."""
-        from pemviz.methods import method_or_none
-
-        method = method_or_none(self.method)
-        planned = method.run_plan(self).n_simulations if method is not None else None
+        planned = self.method_record.run_plan(self).n_simulations
         return int(planned) if planned is not None else self.n_per_stage
+
+
+GROUPS: dict[str, type] = {
+    f.name: type(f.default) for f in dataclasses.fields(ExperimentConfig) if dataclasses.is_dataclass(f.default)
+}
+"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three, and each
+built-in method's settings (a dataclass in the method's home)."""
+
+GROUP_OF: dict[str, str] = {f.name: g for g, cls in GROUPS.items() for f in dataclasses.fields(cls)}
+"""A setting's name (:data:`pemviz.settings.SETTINGS`) -> the :class:`ExperimentConfig` field of the group holding it;
+a setting not here is a field of the config itself."""
 
 
 def has_final_batch(config: ExperimentConfig) -> bool:

@@ -3,24 +3,21 @@
 Each field's symbol, words, allowed range, unit, help, command-line flag and owner (the estimator that reads it) is a
 :class:`Setting` in :data:`SETTINGS`: the config's checks (:mod:`pemviz.config`), the command line
 (:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read
-it here. The allowed values of the choices (:data:`METHODS`, :data:`METRICS`, ...) and the numeric limits
+it here. The allowed values of the choices (:data:`METRICS`, ...) and the numeric limits
 (:data:`MAX_SEED`, :data:`MAX_STAGES`, ...) live beside it: each name has one import path, this module.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass
 from typing import Any
 
+from pemviz.methods import BUILTIN_METHODS, CROSS_ENTROPY_METHOD, SPLITTING_METHOD, STATE_METHOD, registered_names
+from pemviz.methods.adaptive import PROPOSAL_INPUTS, STATE_INPUTS
 
-METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt", "state")
-"""adaptive: Algorithm 1; mc: rollouts with the PEM itself; naive50: a 50 % detector at every step;
-mixed50: 50 % inside 10 m and the PEM outside (Innes & Ramamoorthy 2022, Table II); ams: adaptive multilevel
-splitting of PEM rollouts on their robustness, no importance weights (Cerou & Guyader 2007; Brehier et al. 2016;
-:mod:`pemviz.estimators.ams`); tilt: the scenario's own proposal; state: the cross-entropy sampler whose proposal
-reads the state features the stack acts on (:mod:`pemviz.estimators.state`)."""
 
 DEFAULT_MAX_SIMS = 1_000_000
 """The most simulations of a run with a target relative error (``rel_error``) and no ``max_sims``."""
@@ -38,17 +35,6 @@ SCENARIOS = ("braking", "cut-in", "cut-in-rare")
 car, a closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and
 measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same at about 1e-7
 (:mod:`pemviz.scenarios.cut_in`)."""
-
-
-REGISTERED_METHODS: list[str] = []
-"""The methods registered in this process besides :data:`METHODS`: a user's own, once its plugin is loaded
-(:func:`pemviz.methods.register_method` adds each name, ``unregister_method`` removes it). The settings
-read this list and never import the registry."""
-
-
-def method_names() -> tuple[str, ...]:
-    """The methods a config may name: :data:`METHODS`, then :data:`REGISTERED_METHODS` in registration order."""
-    return (*METHODS, *(n for n in REGISTERED_METHODS if n not in METHODS))
 
 
 REGISTERED_SCENARIOS: list[str] = []
@@ -107,11 +93,8 @@ AMS_SCORES = ("robustness", "lookahead", "committor")
 :mod:`pemviz.estimators.ams`): the formula's classic robustness, the robustness of the nominal continuation from
 each step (any scene with snapshot/restore: :mod:`pemviz.estimators.lookahead_score`), or -log of the scenario's
 learned committor (:mod:`pemviz.scenarios.cut_in.splitting`)."""
-PROPOSAL_INPUTS = ("gap", "state")
 STATE_MODELS = ("network", "glm")
 """The state proposal's model of q(detect) (``state_model``, :class:`pemviz.methods.state.StateSettings`)."""
-"""h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
-e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
 
 
 MAX_SEED = 2**64 - 1
@@ -141,8 +124,8 @@ class Setting:
             ``<words> must be <allowed>``.
         help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
         kind: ``int``, ``real``, ``choice``, ``method`` (the built-in :attr:`choices` or a name the method registry
-            has registered in this process: :func:`method_names`), ``scenario`` (the same for the scenario
-            registry: :func:`scenario_names`), ``bool``,
+            has registered in this process: :func:`pemviz.methods.registered_names`), ``scenario`` (the same for the
+            scenario registry: :func:`scenario_names`), ``bool``,
             ``text``, ``pem`` (a shipped PEM name or a file, checked
             where it is loaded: the config does no I/O) or ``params`` (``(name, value)`` pairs of the scenario's
             parameters, :mod:`pemviz.scenarios.parameters`, checked against the scenario by the config).
@@ -178,7 +161,7 @@ class Setting:
     choices: tuple[str, ...] = ()
     choice_help: tuple[tuple[str, str], ...] = ()
     flags: tuple[str, ...] = ()
-    owner: str = "adaptive"
+    owner: str = CROSS_ENTROPY_METHOD
 
     @property
     def label(self) -> str:
@@ -201,7 +184,7 @@ class Setting:
         if self.kind == "choice":
             text = f"one of {', '.join(self.choices)}"
         elif self.kind == "method":
-            text = f"one of {', '.join(method_names())}"
+            text = f"one of {', '.join(registered_names())}"
         elif self.kind == "scenario":
             text = f"one of {', '.join(scenario_names())}"
         elif self.kind == "bool":
@@ -227,7 +210,17 @@ class Setting:
         """The flag's help and the panel's hint: ``smoothing alpha, a number in (0, 1]: the power on ...``."""
         noun = self.words.removeprefix("the ") + (f" in {self.unit}" if self.unit else "")
         text = f"{noun}, {self.allowed}: {self.help}"
-        return "; ".join((text, *(f"{value}: {what}" for value, what in self.choice_help)))
+        return "; ".join((text, *(f"{value}: {what}" for value, what in self.choices_help)))
+
+    @property
+    def choices_help(self) -> tuple[tuple[str, str], ...]:
+        """(value, what it does) for each choice: :attr:`choice_help`, of a ``method`` each registered method's
+        :attr:`~pemviz.methods.Method.description`."""
+        if self.kind != "method":
+            return self.choice_help
+        from pemviz.methods import records
+
+        return tuple((record.name, record.description) for record in records())
 
     def accepts(self, value: object) -> bool:
         """Whether ``value`` is allowed on its own (the config also checks settings against each other)."""
@@ -238,7 +231,7 @@ class Setting:
         if self.kind == "choice":
             return isinstance(value, str) and value in self.choices
         if self.kind == "method":  # a built-in one, or one a plugin has registered in this process
-            return isinstance(value, str) and value in method_names()
+            return isinstance(value, str) and value in registered_names()
         if self.kind == "scenario":  # a built-in one, or one the registry has registered in this process
             return isinstance(value, str) and value in scenario_names()
         if self.kind == "bool":
@@ -298,15 +291,8 @@ def _settings(*settings: Setting) -> dict[str, Setting]:
 
 
 SETTINGS: dict[str, Setting] = _settings(
-    Setting("method", "the method", "the estimator", kind="method", choices=METHODS, owner=RUN, flags=("--method",),
-            choice_help=(("adaptive", "cross-entropy adaptive importance sampling (Algorithm 1)"),
-                         ("mc", "rollouts with the PEM itself"), ("naive50", "a 50 % detector at every step"),
-                         ("mixed50", "50 % inside the window and the PEM outside"),
-                         ("ams", "adaptive multilevel splitting on the robustness, no importance weights"),
-                         ("tilt", "the scenario's own proposal: each step's events tilted by an approximate "
-                                  "probability of failure after them (the cut-in, braking)"),
-                         ("state", "cross-entropy importance sampling of each detection by the state the stack "
-                                   "acts on (the tracker's features; scenes that report features)"))),
+    Setting("method", "the method", "the estimator", kind="method", choices=BUILTIN_METHODS, owner=RUN,
+            flags=("--method",)),
     Setting("n_stages", "the number of cross-entropy stages K",
             "stages of N rollouts, the proposal refitted after each", kind="int", symbol="K", lo=1, hi=MAX_STAGES,
             flags=("--k", "--stages")),
@@ -409,7 +395,7 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("proposal_inputs", "the proposal's inputs h(s)", "what the proposal sees", kind="choice",
             choices=PROPOSAL_INPUTS,
             choice_help=(("gap", "the gap to the lead car (the paper)"),
-                         ("state", "every observation column of the problem"))),
+                         (STATE_INPUTS, "every observation column of the problem"))),
     Setting("proposal_window", "the proposal window",
             "the proposal replaces the PEM only where the detector can matter", kind="bool"),
     Setting("skip_decided", "the skip of decided steps", "with the window, the proposal also gives way to the PEM "
@@ -461,27 +447,90 @@ SETTINGS: dict[str, Setting] = _settings(
             "before plain Monte Carlo, with N this many times as large, from a stream of their own (0 or 1: no retry; "
             "none without the plain Monte Carlo fallback)", kind="int", lo=0, flags=("--retry-factor",)),
     Setting("ams_killed", "the particles killed per iteration k", "particles killed and resampled per AMS iteration "
-            "at least (and every tie at the level); k < N", kind="int", symbol="k", lo=1, owner="ams",
+            "at least (and every tie at the level); k < N", kind="int", symbol="k", lo=1, owner=SPLITTING_METHOD,
             flags=("--ams-killed",)),
     Setting("ams_max_iterations", "the most AMS iterations", "a run stopped by them before the failure level is "
-            "doubtful", kind="int", lo=1, owner="ams"),
+            "doubtful", kind="int", lo=1, owner=SPLITTING_METHOD),
     Setting("ams_score", "the AMS score", "what ranks the AMS particles", kind="choice", choices=AMS_SCORES,
-            owner="ams", flags=("--ams-score",),
+            owner=SPLITTING_METHOD, flags=("--ams-score",),
             choice_help=(("robustness", "the formula's classic robustness"),
                          ("lookahead", "the robustness of the nominal continuation from each step (any scene)"),
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
     Setting("state_share", "the PEM's share of the state proposal's mixture", "the share of the rollouts drawn by the "
             "PEM itself in every stage after the failure level and in the final batch: each weight at most 1 / share",
-            kind="real", lo=0.0, hi=1.0, lo_open=True, hi_open=True, owner="state", flags=("--state-share",)),
+            kind="real", lo=0.0, hi=1.0, lo_open=True, hi_open=True, owner=STATE_METHOD, flags=("--state-share",)),
     Setting("state_model", "the state proposal's model", "q(detect) as a function of the row and its state features",
-            kind="choice", choices=STATE_MODELS, owner="state", flags=("--state-model",),
+            kind="choice", choices=STATE_MODELS, owner=STATE_METHOD, flags=("--state-model",),
             choice_help=(("network", "the paper's network over the row and its features"),
                          ("glm", "the PEM's own logit plus a linear function of the row and its features"))),
     Setting("state_fit_errors", "the state proposal's error shifts", "the state proposal fits the measurement errors' "
             "location and log-scale shifts too (off: they are drawn from the PEM, only the detections proposed)",
-            kind="bool", owner="state", flags=("--state-fit-errors",)),
+            kind="bool", owner=STATE_METHOD, flags=("--state-fit-errors",)),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
+
+
+class ConfigError(ValueError):
+    """An invalid experiment setting: the message says which, the value, and what is allowed.
+
+    Attributes:
+        field: the :class:`~pemviz.config.ExperimentConfig` attribute (or the method's setting) at fault (None when not
+            one field).
+    """
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+ROW = "pemviz.setting"
+"""The key of a method's setting's row in its dataclass field's metadata (:func:`setting`)."""
+
+
+def setting(default: Any, words: str, help: str, **row: Any) -> Any:
+    """A field of a method's settings dataclass (:attr:`pemviz.methods.Method.settings`) and its row of the settings
+    table: ``default``, then what a :class:`Setting` says of it (``words``, ``help`` and any of ``kind``, ``symbol``,
+    ``unit``, ``lo``, ``hi``, ``lo_open``, ``hi_open``, ``optional``, ``choices``, ``choice_help``, ``flags``); the
+    field's name is the setting's (and the key a run records it by), the method's name its owner."""
+    return dataclasses.field(default=default, metadata={ROW: {"words": words, "help": help, **row}})
+
+
+def rows_of(cls: type, owner: str) -> dict[str, Setting]:
+    """The :class:`Setting` of each field of ``cls`` (a method's settings dataclass: :func:`setting`), by name, in the
+    fields' order, owned by ``owner``.
+
+    Raises:
+        TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has.
+    """
+    rows: dict[str, Setting] = {}
+    for f in dataclasses.fields(cls):
+        if ROW not in f.metadata or f.name in SETTINGS:
+            why = "is the name of a setting of pemviz" if f.name in SETTINGS else "has no row (pemviz.settings.setting)"
+            raise TypeError(f"{cls.__name__}.{f.name} {why}")
+        rows[f.name] = Setting(f.name, owner=owner, **f.metadata[ROW])
+    return rows
+
+
+def check_settings(settings: object, owner: str = "") -> None:
+    """Each field of ``settings`` (a method's settings dataclass) within its row's range.
+
+    Raises:
+        ConfigError: the first that is not, in one line (the config's words: ``coin_share (eps) = 2.0 is invalid: the
+            coin's share eps must be a number in (0, 1)``); TypeError: as :func:`rows_of`.
+    """
+    for s in rows_of(type(settings), owner).values():
+        value = getattr(settings, s.name)
+        if not s.accepts(value):
+            verb = "use" if s.kind == "choice" else f"{s.words} must be"
+            raise ConfigError(f"{s.title} = {value!r} is invalid: {verb} {s.allowed}", s.name)
+
+
+class MethodSettings:
+    """The base of a method's settings dataclass (frozen; each field made by :func:`setting`): a value out of its
+    row's range is refused when the settings are made (:func:`check_settings`)."""
+
+    def __post_init__(self) -> None:
+        check_settings(self)
 
 
 def settings_of(owner: str) -> tuple[str, ...]:

@@ -1,6 +1,7 @@
 """A conformance kit to run in one's own tests (as scikit-learn's ``check_estimator`` and Gymnasium's ``check_env``):
 :func:`check_scenario` checks a scenario of the registry (:mod:`pemviz.scenarios.registry`) and
-:func:`check_estimator` an estimation method of :data:`pemviz.settings.METHODS`, each the way pemviz's own tests do::
+:func:`check_estimator` an estimation method (:data:`pemviz.methods.BUILTIN_METHODS` or one of one's own), each
+the way pemviz's own tests do::
 
     from pemviz.testing import check_estimator, check_scenario
 
@@ -462,11 +463,15 @@ def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -
     failure (a round trip of no failure weighs nothing)."""
     from pemviz.config import ExperimentConfig
 
-    base = ExperimentConfig.of(method="naive50", n_per_stage=RUN_ROLLOUTS, seed=seed)
+    from pemviz.methods import CROSS_ENTROPY_METHOD, NAIVE_METHOD
+
+    base = ExperimentConfig.of(method=NAIVE_METHOD, n_per_stage=RUN_ROLLOUTS, seed=seed)
     if _registered(sc):  # the run names it (its rollout files say which scene), its parameters checked by the config
         pairs = cast("dict[str, float | int | bool]", dict(params or {}))
         base = dataclasses.replace(base, scenario=sc.name, scenario_params=tuple(pairs.items()))
-    adaptive = base.replace(method="adaptive", n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50)
+    adaptive = base.replace(
+        method=CROSS_ENTROPY_METHOD, n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50
+    )
     return [base, adaptive]
 
 

@@ -151,12 +151,12 @@ def cli_error(argv: list[str]) -> str:
 
 
 def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choice_is_explained():
-    """At most 10 fields of the config's own besides its groups; a method's settings are a dataclass in the method's
-    home, its group;
+    """At most 10 fields of the config's own besides its groups and a method of one's own's settings
+    (``method_settings``); a method's settings are a dataclass in the method's home, its group;
     every setting one field of the config or of one group, its owner's (the run's groups hold the run's)."""
     from pemviz.config import GROUP_OF, GROUPS
 
-    own = [f.name for f in dataclasses.fields(ExperimentConfig)]
+    own = [f.name for f in dataclasses.fields(ExperimentConfig) if f.name != "method_settings"]
     assert len([name for name in own if name not in GROUPS]) <= 10 and set(GROUPS) <= set(own)
     fields = [name for name in own if name not in GROUPS] + list(GROUP_OF)
     assert sorted(fields) == sorted(SETTINGS) and len(fields) == len(set(fields))

@@ -20,7 +20,6 @@ import viser.uplot as up
 from pemviz.app.captions import add_chart, set_chart, show_chart
 from pemviz.app.html import GREY as GREY_BOX
 from pemviz.app.html import box
-from pemviz.methods import plain_method
 from pemviz.app.plots import (
     LEGEND,
     _ring,
@@ -199,7 +198,7 @@ def fill_marginal_plots(
     n_colour = stage_span(record.plan)
     x = last.centres_m
     x_range = (float(last.edges_m[0]), float(last.edges_m[-1]))
-    plain_mc = plain_method(cfg.method)
+    plain_mc = cfg.method_record.plain
     standing_signal = axis.standing_signal
     whose = "" if standing_signal is not None else f" of {axis.subject}"
     who = (

@@ -150,7 +150,7 @@ class ExperimentTab:
         fields = scene_defaults(scenario)
         if not fields:
             preset = ExperimentConfig.of(**PANEL_PRESETS.get(self.preset.value, {}))
-            fields = {"method": "adaptive", "n_per_stage": preset.n_per_stage}
+            fields = {"method": preset.method, "n_per_stage": preset.n_per_stage}
         with self.client.atomic():
             self.choices["method"].value = fields["method"]
             set_value(self.fields["n_per_stage"], format_number(FIELDS_BY_KEY["n_per_stage"], fields["n_per_stage"]))

@@ -13,6 +13,7 @@ from pemviz.app.drawing import LaneExplanation
 from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.core.estimate import error_text, format_probability
 from pemviz.engine.events import FinalEstimate
+from pemviz.methods import Method
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 
@@ -63,7 +64,9 @@ def accuracy_html(record: PanelRun, ev: FinalEstimate) -> str:
         text = html.escape(record.reference.comparison(e, outside="OUTSIDE"))
         lines.append(text.replace("OUTSIDE", "<b>outside</b>"))
     if e.n_failures == 0:
-        lines.append(f"no failure among {e.n} rollouts, so mu_hat = 0: " + no_failure_advice(record.config.method, e.n))
+        lines.append(
+            f"no failure among {e.n} rollouts, so mu_hat = 0: " + no_failure_advice(record.config.method_record, e.n)
+        )
     lines.append(
         f"failures {e.n_failures}/{e.n} · ESS {plots.finite_or_dash(e.ess, '.1f')} · k-hat "
         f"{plots.finite_or_dash(e.khat, '.2f')} · NLL {plots.finite_or_dash(e.nll_mean, '.1f')} nats · "
@@ -123,18 +126,16 @@ def explanation_html(record: PanelRun, traj: Trajectory, ex: LaneExplanation, ti
     return box("<br>".join(lines), RED if traj.crashed else GREEN)
 
 
-def no_failure_advice(method: str, n: int) -> str:
-    """What to try after a run without a failure, in the terms of its ``method`` (its own words where it has them:
-    :attr:`pemviz.methods.Method.no_failure_advice`)."""
-    from pemviz.methods import method_or_none
+def no_failure_advice(record: Method, n: int) -> str:
+    """What to try after a run without a failure, in the terms of its method ``record`` (its own words where it has
+    them: :attr:`pemviz.methods.Method.no_failure_advice`)."""
     from pemviz.plugins import resolve
 
-    record = method_or_none(method)
-    if record is not None and record.no_failure_advice is not None:
+    if record.no_failure_advice is not None:
         return str(resolve(record.no_failure_advice)(n))
     return (
-        f"this fixed sampler ({method}) reached no crash: more rollouts (N) or the adaptive method (state-ce preset), "
-        "which learns where to miss."
+        f"this fixed sampler ({record.name}) reached no crash: more rollouts (N) or the adaptive method (state-ce "
+        "preset), which learns where to miss."
     )
 
 

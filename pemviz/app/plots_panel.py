@@ -72,7 +72,7 @@ class PlotsPanel:
                     mu = f", mu_hat {format_probability(fin.log_mu_hat)}" if fin is not None else ""
                     ref = (
                         "the proposal's reference-state q(detect) after each stage"
-                        if r.config.adaptive.proposal_inputs == "state"
+                        if r.config.adaptive.reads_state
                         else ""
                     )
                     plots.fill_curve_plot(plot, r, f"{r.short_label}{mu}", ref)

@@ -117,13 +117,20 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
 
     ``default`` is what the flag gives when absent (None: leave the field to the preset / the default config).
     """
-    s = SETTINGS[name]
     shown = default_of(name)
-    shown = SHOWN_DEFAULTS.get(name, shown) if shown is None else shown
-    text = f"{s.hint} (default {shown})".replace("%", "%%")  # argparse formats help with %
+    add_row(p, SETTINGS[name], SHOWN_DEFAULTS.get(name, shown) if shown is None else shown, default)
+
+
+def add_row(
+    p: argparse.ArgumentParser | argparse._ArgumentGroup, s: Setting, shown: object, default: Any = None, lead: str = ""
+) -> None:
+    """The flag of the setting ``s`` (its first flag, or ``--`` + its name: :attr:`Setting.flag`; its type and help from
+    the row, ``lead`` before the help), its value kept as ``s.name``; the help says ``shown`` as the default."""
+    name, flags = s.name, s.flags or (s.flag,)
+    text = f"{lead}{s.hint} (default {shown})".replace("%", "%%")  # argparse formats help with %
     if s.kind == "params":  # NAME=VALUE, repeatable: the texts, parsed once the scenario is known
         p.add_argument(
-            *s.flags,
+            *flags,
             dest=name,
             action="append",
             metavar="NAME=VALUE",
@@ -132,15 +139,13 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
         )
         return
     if s.kind == "scenario":  # every registered scenario, listed by the registry when the help is shown
-        action = p.add_argument(*s.flags, dest=name, type=str, default=default, help=text)
+        action = p.add_argument(*flags, dest=name, type=str, default=default, help=text)
         action.describe = functools.partial(_scenario_help, shown)  # type: ignore[attr-defined]
         return
     if s.kind == "bool":  # a switch: present sets True, absent leaves the config's value
-        p.add_argument(*s.flags, dest=name, action="store_const", const=True, default=default, help=text)
+        p.add_argument(*flags, dest=name, action="store_const", const=True, default=default, help=text)
         return
-    p.add_argument(
-        *s.flags, dest=name, type=_number(s) if s.kind in ("int", "real") else str, default=default, help=text
-    )
+    p.add_argument(*flags, dest=name, type=_number(s) if s.kind in ("int", "real") else str, default=default, help=text)
 
 
 def _scenario_help(shown: object) -> str:

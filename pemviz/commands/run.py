@@ -8,7 +8,7 @@ import json
 import shlex
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from pemviz.commands.run_outputs import RunOutputs, plan_outputs
 from pemviz.commands.run_recording import (
@@ -21,6 +21,7 @@ from pemviz.commands.run_recording import (
 from pemviz.commands import (
     COMMANDS,
     UsageError,
+    add_row,
     add_setting,
     interrupted,
     pem_argument,
@@ -28,7 +29,8 @@ from pemviz.commands import (
 )
 from pemviz.config import ConfigError, ExperimentConfig, scene_defaults
 from pemviz.engine.resources import check_run_memory
-from pemviz.settings import METHODS, SCENARIOS
+from pemviz.methods import BUILTIN_METHODS, DEFAULT_METHOD
+from pemviz.settings import SCENARIOS, SETTINGS, rows_of
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 if TYPE_CHECKING:
@@ -39,39 +41,33 @@ if TYPE_CHECKING:
 # `pemviz run --no-record` never loads rerun.
 
 
-RUN_SETTINGS = (
-    "n_stages",
-    "n_per_stage",
-    "n_final",
-    "ams_killed",
-    "ams_score",
-    "state_share",
-    "state_model",
-    "state_fit_errors",
-    "quantile_level",
-    "smoothing",
-    "metric",
-    "seed",
-    "ce_epochs",
-    "pem",
-    "scenario",
-    "scenario_params",
-    "sim",
-    "executor",
-    "workers",
-    "ray_address",
-    "chunk_rollouts",
-    "rel_error",
-    "require",
-    "margin",
-    "pem_uncertainty",
-    "pem_shift",
-    "max_sims",
-    "max_time_s",
-    "plain_fallback",
-    "retry_factor",
-)
-"""The settings ``pemviz run`` takes as flags besides ``--method`` (each flag from :data:`pemviz.config.SETTINGS`)."""
+RUN_SETTINGS = tuple(name for name, s in SETTINGS.items() if s.flags and name != "method")
+"""The settings ``pemviz run`` takes as flags besides ``--method``: every row of :data:`pemviz.settings.SETTINGS` that
+has a flag, in the table's order (a method of one's own adds its own: :func:`add_method_settings`)."""
+
+
+def add_method_settings(p: argparse.ArgumentParser) -> None:
+    """A flag for each setting of each registered method's own settings (:attr:`pemviz.methods.Method.settings`; the
+    method plugins loaded first), its help led by the method's name; a flag ``pemviz run`` has already is left out (the
+    setting is still the config's by its name). A plugin that cannot be loaded, or a settings class without rows, is
+    left to :func:`config_from_args`, which says why in one line."""
+    from pemviz.methods import MethodPluginError, load_method_plugins, records
+
+    try:
+        load_method_plugins()
+    except MethodPluginError:
+        return
+    taken = {flag for action in p._actions for flag in action.option_strings}
+    for record in records():
+        if record.settings is None:
+            continue
+        try:
+            rows, defaults = rows_of(record.settings, record.name), record.settings()
+        except (TypeError, ValueError):
+            continue
+        for row in rows.values():
+            if not taken & {*(row.flags or (row.flag,))}:
+                add_row(p, row, getattr(defaults, row.name), lead=f"method {record.name}'s ")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -92,6 +88,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     for name in RUN_SETTINGS:
         add_setting(p, name)
+    add_method_settings(p)
     p.add_argument(
         "--save-rollouts",
         dest="save_rollouts",
@@ -158,7 +155,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         from pemviz.scenarios.registry import load_plugins
 
         load_plugins()
-    if args.method is not None and args.method not in METHODS:  # a method of one's own: load the method plugins
+    if args.method is not None and args.method not in BUILTIN_METHODS:  # a method of one's own: load the method plugins
         from pemviz.methods import load_method_plugins
 
         load_method_plugins()
@@ -174,9 +171,30 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         value = getattr(args, name)
         if value is not None:
             fields[name] = value
+    fields.update(method_settings_of(args, fields.get("method", DEFAULT_METHOD)))
     if params is not None:  # --param NAME=VALUE: parsed by the scenario's field types
         fields["scenario_params"] = params
     return ExperimentConfig.of(**fields)
+
+
+def method_settings_of(args: argparse.Namespace, method: str) -> dict[str, Any]:
+    """The settings of ``method``'s own given as flags (:func:`add_method_settings`), by name.
+
+    Raises:
+        ConfigError: a flag of another method's settings."""
+    from pemviz.methods import records
+
+    given: dict[str, Any] = {}
+    for record in records():
+        for row in () if record.settings is None else rows_of(record.settings, record.name).values():
+            value = getattr(args, row.name, None)
+            if value is not None and record.name != method:
+                raise ConfigError(
+                    f"{row.flag} is a setting of method {record.name}: give it with --method {record.name}", row.name
+                )
+            if value is not None:
+                given[row.name] = value
+    return given
 
 
 def scenario_params(

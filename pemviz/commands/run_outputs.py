@@ -101,10 +101,9 @@ def plan_outputs(args: argparse.Namespace, cfg: Any, target: str, default_record
     recording = _recording(args, target, default_recording, overwrite)
     rollouts = None
     if args.save_rollouts is not None:
-        from pemviz.methods import get_method
         from pemviz.io.rollout_writer import check_rollouts_path
 
-        if not get_method(cfg.method).weighted:
+        if not cfg.method_record.weighted:
             raise UsageError(
                 f"--save-rollouts: method {cfg.method} estimates without importance weights; its "
                 "rollouts cannot be estimated from again (use an importance-sampling method)"

@@ -64,9 +64,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     problems = split_choices(args.problems, validation_problems(), "problems")
     presets = split_choices(args.presets, PRESETS, "presets") if args.presets.strip() else ()
-    from pemviz.methods import method_names
+    from pemviz.methods import BUILTIN_METHODS, method_names
 
-    others = tuple(m for m in method_names() if m not in (*BASELINES, "adaptive", "tilt"))  # plugins' methods
+    others = tuple(m for m in method_names() if m not in BUILTIN_METHODS)  # plugins' methods
     baselines = split_choices(args.baselines, (*BASELINES, *others), "baselines") if args.baselines.strip() else ()
     if args.seeds < 1 or (args.jobs is not None and args.jobs < 1):
         raise UsageError("--seeds and --jobs must be >= 1")

@@ -143,14 +143,14 @@ def problem_over_odd(base: Problem, make: MakeWith, odd: ODD, n_steps: int, **ch
     sampler's verdict capped (:data:`ODD_VERDICT_CAP`); ``changes`` replace any field besides (a closed form over the
     ODD as ``exact_log_p``, a description)."""
     simulate, stream, branch = odd_rollout_functions(make, odd, n_steps)
-    cleared: dict[str, Any] = {
-        "exact_log_p": None,
-        "severity_exact": {},
-        "reference": None,
-        "look_ahead": None,
-        "look_ahead_s": 0.0,
-        "tilt": None,
-        "verdict_cap": ODD_VERDICT_CAP,
-    }
+    cleared: dict[str, Any] = dict(
+        exact_log_p=None,
+        severity_exact={},
+        reference=None,
+        look_ahead=None,
+        look_ahead_s=0.0,
+        tilt=None,
+        verdict_cap=ODD_VERDICT_CAP,
+    )
     fields = {**cleared, **changes, "simulate": simulate, "stream": stream, "branch": branch, "odd": odd}
     return dataclasses.replace(base, **fields)

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterable
 
+from pemviz.methods.ams import AMS_STAGE
+
 
 def stage_label(stage: int, kind: str, n_stages: int) -> str:
     """The one name of a stage in console, panel, recording and CSVs.
@@ -22,7 +24,7 @@ def stage_label(stage: int, kind: str, n_stages: int) -> str:
         return "pretraining"
     if kind == "ce":
         return f"CE stage {stage}/{n_stages}" if stage <= n_stages else f"CE stage {stage}"
-    if kind == "ams":
+    if kind == AMS_STAGE:
         return f"AMS iterations {stage}" if stage else "AMS particles"
     return "final batch"
 

@@ -32,6 +32,8 @@ from typing import Any
 from pemviz.config import ExperimentConfig
 from pemviz.core.plan import RunPlan
 from pemviz.engine.resources import BASE_BYTES, POOL_BLOCK, pool_workers, run_memory
+from pemviz.methods.adaptive import STATE_INPUTS
+from pemviz.methods.ams import AMS_STAGE
 from pemviz.settings import SCENARIO_COST_FACTORS, SCENARIO_COST_PARTS
 
 N_STEPS = 100
@@ -56,7 +58,7 @@ class CostConstants:
         epoch_s: per Adam epoch of a fit, whatever its rows, seconds.
         row_epoch_s: per fitted row and Adam epoch, seconds.
         row_s: per fitted row of a fit, outside the epochs (gathering and weighing the failures), seconds.
-        pretrain_rows: distinct fitted rows per pretraining rollout, by :data:`pemviz.settings.PROPOSAL_INPUTS`.
+        pretrain_rows: distinct fitted rows per pretraining rollout, by :data:`pemviz.methods.adaptive.PROPOSAL_INPUTS`.
         ce_rows: distinct fitted rows of a late CE stage's fit at N = 100 (the plateau), by proposal inputs.
         ce_rows_exponent: the CE rows grow as (N / 100) to this power.
         ce_rows_stages: stage k's rows are the plateau times 1 - exp(-(k - 1) / this) (stage 1 fits the few rollouts
@@ -105,8 +107,8 @@ COST = CostConstants(
     epoch_s=9.86e-05,
     row_epoch_s=2.98e-07,
     row_s=8.16e-06,
-    pretrain_rows={"state": 12.2, "gap": 0.91},
-    ce_rows={"state": 2.21e03, "gap": 130},
+    pretrain_rows={STATE_INPUTS: 12.2, "gap": 0.91},
+    ce_rows={STATE_INPUTS: 2.21e03, "gap": 130},
     ce_rows_exponent=0.32,
     ce_rows_stages=3.4,
     early_stop_share=0.88,
@@ -179,7 +181,7 @@ def stage_cost(
             :attr:`CostConstants.streamed_share` of a whole batch's (:data:`pemviz.engine.experiment.STREAM_ABOVE`, a
             rollout of one object).
     """
-    model = cost_model(cfg.method) if model is None else model
+    model = cfg.method_record.cost_model if model is None else model
     proposal = model == "proposal" and kind in ("ce", "final")
     parts = SCENARIO_COST_PARTS.get(cfg.scenario, {})  # what the scene declares (none: the reference's)
     per_step = (c.proposal_step_s if proposal else c.pem_step_s) * parts.get("step", 1.0)
@@ -187,7 +189,7 @@ def stage_cost(
     per_rollout *= SCENARIO_COST_FACTORS.get(cfg.scenario, 1.0)  # what the scenario declares (1: none)
     per_rollout *= c.streamed_share if n > stream_above else 1.0
     tilt = model == "look-ahead"
-    rollouts = n * (c.ams_rollouts if kind == "ams" else c.tilt_rollouts if tilt else 1.0)
+    rollouts = n * (c.ams_rollouts if kind == AMS_STAGE else c.tilt_rollouts if tilt else 1.0)
     blocks = max(1, math.ceil(n / POOL_BLOCK))  # a large batch is simulated block by block, each its steps
     simulate = n_steps * (per_step * blocks + per_rollout * rollouts)
     simulate /= pool_workers(cfg, n, simulate)  # worker processes share a large batch
@@ -218,31 +220,13 @@ def plan_costs(
     return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage) for s in plan.stages}
 
 
-def cost_model(method: str) -> str:
-    """How the stages of ``method`` cost (:attr:`pemviz.methods.Method.cost_model`; ``plain`` for a name no
-    one registered)."""
-    from pemviz.methods import method_or_none
-
-    record = method_or_none(method)
-    return record.cost_model if record is not None else "plain"
-
-
-def run_adds(method: str) -> str:
-    """What a run of ``method`` counts in its simulations besides the rollouts :attr:`pemviz.config.ExperimentConfig.
-    n_simulations` plans (the final line's rollout-equivalents; :attr:`pemviz.methods.Method.run_adds`)."""
-    from pemviz.methods import method_or_none
-
-    record = method_or_none(method)
-    return record.run_adds if record is not None else ""
-
-
 def then_adds(cfg: ExperimentConfig, simulations: int) -> tuple[int, str]:
     """The most simulations a run of ``cfg`` may add after the ``simulations`` it plans, and the cost line's words
     for them (:attr:`pemviz.methods.Method.then_most`; ``(0, "")``: none)."""
-    from pemviz.methods import method_or_none, resolve
+    from pemviz.methods import resolve
 
-    record = method_or_none(cfg.method)
-    if record is None or record.then_most is None:
+    record = cfg.method_record
+    if record.then_most is None:
         return 0, ""
     most, words = resolve(record.then_most)(cfg, simulations)
     return int(most), str(words) if most > 0 else ""
@@ -287,17 +271,17 @@ def follow_on(cfg: ExperimentConfig, plan: RunPlan, problem: Any = None) -> Foll
     where they could decide nothing (e.g. braking at ``--margin 0``,
     :func:`pemviz.estimators.fallback.plain_cannot_decide`).
     """
-    from pemviz.methods import method_or_none, resolve
+    from pemviz.methods import resolve
 
     if not plan.stages:
         return None
-    record = method_or_none(cfg.method)
+    record = cfg.method_record
     sims = int(cfg.n_simulations)
-    if problem is not None and record is not None and record.then_drawn is not None:
+    if problem is not None and record.then_drawn is not None:
         retry, most, words = resolve(record.then_drawn)(cfg, sims, problem)
     else:
         most, words = then_adds(cfg, sims)
-        retry = None if record is None or record.then_plan is None or most <= 0 else resolve(record.then_plan)(cfg)
+        retry = None if record.then_plan is None or most <= 0 else resolve(record.then_plan)(cfg)
     if most <= 0:
         return None
     again = 0 if retry is None else sum(s.n_rollouts for s in retry.stages)
@@ -431,7 +415,7 @@ def run_cost(
     batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES
     follow = follow_on(cfg, plan, problem)
     if follow is None:
-        return RunCost(int(cfg.n_simulations), int(batch), float(seconds), run_adds(cfg.method))
+        return RunCost(int(cfg.n_simulations), int(batch), float(seconds), cfg.method_record.run_adds)
     then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c)
-    sims, adds = int(cfg.n_simulations), run_adds(cfg.method)
+    sims, adds = int(cfg.n_simulations), cfg.method_record.run_adds
     return RunCost(sims, int(batch), float(seconds), adds, follow.simulations, then_s, follow.words)

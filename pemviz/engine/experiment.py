@@ -53,7 +53,6 @@ from pemviz.estimators.base import Estimator, SeenFailures, StagePlan
 from pemviz.estimators.extras import extras, needs_chunk_rows
 from pemviz.estimators import build_estimator
 from pemviz.estimators.pooling import failure_population, pem_spread, severity_curve
-from pemviz.methods import get_method, plain_method
 
 
 class Cancelled(Exception):
@@ -263,7 +262,7 @@ class Experiment:
         pb, cfg = self.problem, self.config
         target = pb.target if plan.target is None else plan.target
         parts = plan.parts  # (rollouts, detector) in the order drawn
-        if cfg.uniforms == "array-rqmc" and get_method(cfg.method).array_rqmc:  # ExperimentConfig.uniforms
+        if cfg.uniforms == "array-rqmc" and cfg.method_record.array_rqmc:  # ExperimentConfig.uniforms
             # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
             # almost never fail, so coupling them would reduce no estimate's variance
             parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
@@ -381,7 +380,7 @@ def plain_probe(problem: Problem, config: ExperimentConfig, estimate: Estimate) 
     Carlo (its verdict is not ``reliable`` and its method is not ``mc``, whose own speed is measured); else None. A
     run's own seconds a simulation hold what its method adds (fits, look-aheads, replayed prefixes): up to 10 times a
     plain rollout's."""
-    if estimate.verdict == "reliable" or plain_method(config.method):
+    if estimate.verdict == "reliable" or config.method_record.plain:
         return None
     from threadpoolctl import threadpool_limits
 

@@ -1,4 +1,4 @@
-"""Rare-event estimators, one per method of :data:`pemviz.settings.METHODS`, behind one small interface
+"""Rare-event estimators, one per method of :data:`pemviz.methods.BUILTIN_METHODS`, behind one small interface
 (:class:`~pemviz.estimators.base.Estimator`) that the engine drives stage by stage.
 
 - :class:`~pemviz.estimators.cross_entropy.CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022)
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from pemviz.methods import Method, get_method
+from pemviz.methods import Method
 from pemviz.plugins import resolve
 
 if TYPE_CHECKING:  # the package stays light: importing its registry (a config's checks) loads no estimator
@@ -58,18 +58,18 @@ def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
     Raises:
         ValueError: one line naming what cannot run and what to use instead.
     """
-    conflict = get_method(config.method).conflict(config, problem.n_objects)
+    conflict = config.method_record.conflict(config, problem.n_objects)
     if conflict is not None:
         raise ValueError(conflict[1])
 
 
 def _method_of(config: ExperimentConfig) -> Method:
-    """The registry's record of ``config.method``.
+    """The registry's record of ``config.method`` (:attr:`pemviz.config.ExperimentConfig.method_record`).
 
     Raises:
-        KeyError: a method no one registered; ValueError: a stop rule (``rel_error``, ``require``) for a method that
+        ValueError: a stop rule (``rel_error``, ``require``) for a method that
             cannot take more final batches (:attr:`pemviz.methods.Method.extensible`)."""
-    method = get_method(config.method)
+    method = config.method_record
     if config.stop_rule is not None and not method.extensible:
         raise ValueError(
             f"method {method.name} cannot add final batches: --rel-error and --require need a method "

@@ -48,6 +48,8 @@ from scipy.special import logsumexp, ndtri
 
 from pemviz import stl
 from pemviz.config import ExperimentConfig
+from pemviz.methods import SPLITTING_METHOD
+from pemviz.methods.ams import AMS_STAGE
 from pemviz.settings import settings_of
 from pemviz.core.confidence import CI_LEVEL
 from pemviz.core.estimate import MIN_FAILURES, Estimate
@@ -311,7 +313,7 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
             formula, or a committor score asked of a problem without one: one line.
     """
 
-    SETTINGS = settings_of("ams")
+    SETTINGS = settings_of(SPLITTING_METHOD)
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         if problem.branch is None:
@@ -342,7 +344,7 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
     @staticmethod
     def run_plan(config: ExperimentConfig) -> RunPlan:
         """Stage 0 the N initial particles, then groups of iterations until the run stops (open-ended)."""
-        return RunPlan.of([(0, "ams", config.n_per_stage)], open_ended=True)
+        return RunPlan.of([(0, AMS_STAGE, config.n_per_stage)], open_ended=True)
 
     def plan(self) -> RunPlan:
         return self.run_plan(self.config)
@@ -353,7 +355,7 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         self._stage += 1
         n = self.config.n_per_stage
         first = None if self.ams.scorer is None else self._initial_scored
-        return StagePlan(self._stage, "ams", n, self.problem.target, first if self._stage == 0 else self._iterate)
+        return StagePlan(self._stage, AMS_STAGE, n, self.problem.target, first if self._stage == 0 else self._iterate)
 
     def _initial_scored(self, rng: np.random.Generator) -> RolloutBatch:
         """The N initial particles drawn by the graded score (their scores kept for :meth:`finish`)."""
@@ -426,7 +428,12 @@ def run_ams(
         ValueError: as :class:`AdaptiveMultilevelSplitting`.
     """
     cfg = ExperimentConfig.of(
-        method="ams", n_per_stage=n, ams_killed=killed, ams_max_iterations=max_iterations, seed=seed, ams_score=score
+        method=SPLITTING_METHOD,
+        n_per_stage=n,
+        ams_killed=killed,
+        ams_max_iterations=max_iterations,
+        seed=seed,
+        ams_score=score,
     )
     est = AdaptiveMultilevelSplitting(cfg, problem)
     if est.ams.scorer is not None:

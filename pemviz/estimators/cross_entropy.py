@@ -21,6 +21,7 @@ from typing import cast
 import numpy as np
 
 from pemviz.config import ExperimentConfig, whole_rollout_fit_refusal
+from pemviz.methods import CROSS_ENTROPY_METHOD
 from pemviz.settings import settings_of
 from pemviz.core.detectors import (
     Detector,
@@ -102,7 +103,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         check: called between and inside fits; may raise to abandon the run.
     """
 
-    SETTINGS = settings_of("adaptive")
+    SETTINGS = settings_of(CROSS_ENTROPY_METHOD)
     fits_errors = True
     """Whether the proposal draws a noisy target's measurement errors from a model of its own (else the target's)."""
 

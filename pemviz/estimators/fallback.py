@@ -60,6 +60,7 @@ from pemviz.estimators.base import Estimator, StageOutcome, StagePlan
 from pemviz.estimators.extras import extras
 from pemviz.estimators.fixed import monte_carlo
 from pemviz.estimators.precision import PrecisionTarget
+from pemviz.methods import PLAIN_METHOD
 from pemviz.methods.adaptive import plain_fallback_most, retry_n
 
 REL_ERROR = 0.2
@@ -351,8 +352,6 @@ class PlainFallback(_Speaks):
     def _retry(self) -> Shifted | None:
         """The method's stages once more (:func:`retry_config`), or None: the first run's interval is backed, it has
         no retry, or no time is left."""
-        from pemviz.methods import get_method
-
         assert self.first is not None
         config = retry_config(self.config)
         stop = self.config.stop
@@ -364,7 +363,7 @@ class PlainFallback(_Speaks):
         if stop.max_time_s is not None and stop.max_time_s - (self.clock() - self.t0) <= 0:
             return None
         check = getattr(self.inner, "check", None)
-        return Shifted(get_method(config.method).builder()(config, self.problem, check), self._last_stage + 1)
+        return Shifted(config.method_record.builder()(config, self.problem, check), self._last_stage + 1)
 
     def _start(self) -> PrecisionTarget | None:
         """The plain run, or None: the method's interval is backed, its requirement decided, no time is left, or
@@ -383,7 +382,7 @@ class PlainFallback(_Speaks):
         self.not_drawn = plain_cannot_decide(self.cap, stated_log_p(self.problem), stop.require)
         if self.not_drawn is not None:
             return None
-        changes: dict[str, Any] = {"method": "mc", "max_sims": self.cap}
+        changes: dict[str, Any] = {"method": PLAIN_METHOD, "max_sims": self.cap}
         if stop.rel_error is None and stop.require is None:
             changes["rel_error"] = REL_ERROR
         if stop.max_time_s is not None:

@@ -28,7 +28,6 @@ from pemviz.core.requirement import Decision, decide, parse_requirement
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan
-from pemviz.methods import plain_method
 
 GROWTH = 4.0
 """An added batch is at most this many times the final rollouts so far: the interval's width is itself noisy, so the
@@ -146,7 +145,7 @@ class PrecisionTarget:
         elapsed = self.clock() - self.t0
         if self.requirement is not None:
             look = 1 if self.decision is None else self.decision.look + 1
-            self.decision = decide(est, self.requirement, look, plain_mc=plain_method(self.config.method))
+            self.decision = decide(est, self.requirement, look, plain_mc=self.config.method_record.plain)
             if self.decision.outcome != "undecided":
                 self.stop = (
                     f"requirement {self.decision.outcome}: {self.decision.why}, after "

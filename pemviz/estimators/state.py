@@ -30,6 +30,7 @@ from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import FeatureProposal, Proposal
 from pemviz.estimators.base import Check
 from pemviz.estimators.cross_entropy import CrossEntropy
+from pemviz.methods import CROSS_ENTROPY_METHOD, STATE_METHOD
 from pemviz.settings import settings_of
 
 
@@ -102,7 +103,7 @@ class StateCrossEntropy(CrossEntropy):
         ValueError: the problem's simulator reports no state features (:func:`no_features_refusal`).
     """
 
-    SETTINGS = (*settings_of("adaptive"), *settings_of("state"))
+    SETTINGS = (*settings_of(CROSS_ENTROPY_METHOD), *settings_of(STATE_METHOD))
 
     def __init__(self, config: Any, problem: Problem, check: Check | None = None) -> None:
         if not reports_state(problem):

@@ -250,11 +250,9 @@ def estimate_document(
 def _sampling(config: Any, e: Any) -> str:
     """How the estimate's rollouts were drawn (:data:`pemviz.core.verdict_checks.SAMPLINGS`): ``plain`` (plain Monte
     Carlo, a method's or the fallback's), ``importance`` (a weighted method) or ``splitting`` (AMS: no weights)."""
-    from pemviz.methods import get_method
-
     if e.plain_mc:
         return "plain"
-    return "importance" if get_method(config.method).weighted else "splitting"
+    return "importance" if config.method_record.weighted else "splitting"
 
 
 def _pem_spread(spread: Any) -> dict[str, Any] | None:

@@ -17,6 +17,7 @@ from typing import Any, cast
 import numpy as np
 
 from pemviz import stl
+from pemviz.methods import MIXED_METHOD, NAIVE_METHOD
 from pemviz.settings import METRICS
 from pemviz.core.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.core.estimate import Estimate, estimate
@@ -87,9 +88,9 @@ def sampler_detector(name: str, pem: Any, window_m: float = 10.0) -> Detector:
     target = PEMDetector(pem)
     if name == "pem":
         return target
-    if name == "naive50":
+    if name == NAIVE_METHOD:
         return ConstantDetector(0.5)
-    if name == "mixed50":
+    if name == MIXED_METHOD:
         return WindowDetector(ConstantDetector(0.5), target, window_m)
     raise ValueError(f"unknown sampler {name!r}; use a proposal checkpoint or one of {', '.join(SAMPLERS)}")
 

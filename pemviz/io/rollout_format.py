@@ -106,6 +106,7 @@ import numpy as np
 
 import pemviz
 from pemviz import stl
+from pemviz.methods import MIXED_METHOD, NAIVE_METHOD
 from pemviz.pem.encoding import INPUT_COLUMNS
 
 FORMAT_TAG = "pemviz-rollouts"
@@ -127,7 +128,7 @@ SALIENT_COLUMNS = tuple(f"salient_{c}" for c in INPUT_COLUMNS)
 """Parquet names of the PEM's salient variables, in the KITTI order :meth:`pemviz.pem.PEM.logit` reads
 (:data:`pemviz.pem.encoding.INPUT_COLUMNS`)."""
 
-SAMPLERS = ("pem", "naive50", "mixed50")
+SAMPLERS = ("pem", NAIVE_METHOD, MIXED_METHOD)
 """Named samplers a file's log q can be recomputed from besides a proposal checkpoint."""
 
 

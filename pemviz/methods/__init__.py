@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from pemviz.plugins import Plugins, Ref, resolve
-from pemviz.settings import METHODS, REGISTERED_METHODS
 
 PLUGIN_VARIABLE = "PEMVIZ_METHODS"
 """The environment variable naming modules (comma-separated) that register methods when imported."""
@@ -94,6 +93,20 @@ class Method:
             ``plus the branches' continuations``); empty: nothing.
         proposal_curves: each stage ends with a fitted proposal whose q(detect | d) curve is worth keeping (a
             validation study's curves).
+        describe: optional, ``describe(config, plan, window) -> str``: one Markdown sentence on a run of ``config``
+            and its :class:`~pemviz.core.plan.RunPlan` (``window``: the sampler window's words), the recording's
+            description of the method; None: its plan's stages. A :data:`Ref`.
+        sampler: the name a rollout file records for the fixed sampler the method draws by (``pem``, ``naive50``,
+            ``mixed50``: :data:`pemviz.io.rollout_format.SAMPLERS`); None: a fitted proposal or none.
+        baseline: a validation study may compare it with the cross-entropy sampler at an equal budget
+            (:data:`pemviz.studies.validation.BASELINES`).
+        settings: optional, the method's own settings: a frozen dataclass (best a subclass of
+            :class:`pemviz.settings.MethodSettings`, which checks its values when made) whose fields, each made by
+            :func:`pemviz.settings.setting`, are its rows of the settings table (symbol, range, unit, help, flag). A
+            run of the method holds them as :attr:`pemviz.config.ExperimentConfig.method_settings`, takes them by
+            their names (``ExperimentConfig.of(coin_share=0.2)``), records them with the run's other settings and
+            ``pemviz run`` takes each as a flag; None: it has none (the built-in methods' settings are the config's
+            groups).
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
@@ -116,6 +129,10 @@ class Method:
     then_most: Ref = None
     then_plan: Ref = None
     then_drawn: Ref = None
+    describe: Ref = None
+    sampler: str | None = None
+    baseline: bool = False
+    settings: type | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -124,6 +141,9 @@ class Method:
             raise ValueError(f"Method {self.name}: description must be one line of text")
         if self.build is None:
             raise ValueError(f"Method {self.name}: a builder (config, problem, check) -> Estimator is needed")
+        params = getattr(self.settings, "__dataclass_params__", None)
+        if self.settings is not None and not (isinstance(self.settings, type) and params and params.frozen):
+            raise ValueError(f"Method {self.name}: settings must be a frozen dataclass, got {self.settings!r}")
         if self.cost_model not in COST_MODELS:
             raise ValueError(
                 f"Method {self.name}: cost_model must be one of {', '.join(COST_MODELS)}, got " f"{self.cost_model!r}"
@@ -142,15 +162,17 @@ class Method:
         """The :class:`pemviz.core.plan.RunPlan` a run of ``config`` states before the estimator is built."""
         if self.plan is not None:
             return resolve(self.plan)(config)
-        from pemviz.core.plan import RunPlan
-
-        return RunPlan.of([(1, "final", int(config.n_per_stage))])
+        run_plan = resolve(
+            "pemviz.core.plan:RunPlan"
+        )  # by its path: the core (its stage kinds) sits above the registry
+        return run_plan.of([(1, "final", int(config.n_per_stage))])
 
 
 COST_MODELS = ("plain", "proposal", "look-ahead", "splitting")
 """The kinds of stage :mod:`pemviz.engine.cost` can predict the seconds of (:attr:`Method.cost_model`)."""
 
 _REGISTRY: dict[str, Method] = {}
+_BUILTIN: list[str] = []
 
 
 def register_method(method: Method, *, replace: bool = False) -> Method:
@@ -162,13 +184,11 @@ def register_method(method: Method, *, replace: bool = False) -> Method:
     """
     if not isinstance(method, Method):
         raise TypeError(f"register_method: expected a Method, got {type(method).__name__}")
-    if method.name in METHODS and method.name in _REGISTRY and _REGISTRY[method.name] is not method:
+    if method.name in _BUILTIN and _REGISTRY[method.name] is not method:
         raise ValueError(f"method {method.name!r} is built in; name yours otherwise")
     if method.name in _REGISTRY and not replace:
         raise ValueError(f"method {method.name!r} is already registered (replace=True replaces it)")
     _REGISTRY[method.name] = method
-    if method.name not in METHODS and method.name not in REGISTERED_METHODS:
-        REGISTERED_METHODS.append(method.name)
     return method
 
 
@@ -178,11 +198,9 @@ def unregister_method(name: str) -> None:
     Raises:
         ValueError: a built-in method; KeyError: no method of that name.
     """
-    if name in METHODS:
+    if name in _BUILTIN:
         raise ValueError(f"method {name!r} is built in and stays registered")
     del _REGISTRY[name]
-    if name in REGISTERED_METHODS:
-        REGISTERED_METHODS.remove(name)
 
 
 def load_method_plugins() -> None:
@@ -235,11 +253,14 @@ def registered_name(method: str | Method, who: str = "method") -> str:
     return str(method)
 
 
-def plain_method(name: str) -> bool:
-    """Whether the method called ``name`` draws from the target itself (:attr:`Method.plain`); False for a name no one
-    registered."""
-    method = _REGISTRY.get(name)
-    return bool(method is not None and method.plain)
+def records() -> tuple[Method, ...]:
+    """The registered methods' records, the built-in ones first, no plugin loaded."""
+    return tuple(_REGISTRY.values())
+
+
+def registered_names() -> tuple[str, ...]:
+    """The names registered in this process, the built-in ones first, no plugin loaded (what a config may name)."""
+    return tuple(_REGISTRY)
 
 
 def extensible_names() -> tuple[str, ...]:
@@ -266,9 +287,27 @@ def get_method(name: str) -> Method:
     return _REGISTRY[name]
 
 
+CROSS_ENTROPY_METHOD = "adaptive"
+"""The cross-entropy sampler of Innes & Ramamoorthy (2022), Algorithm 1 (:mod:`pemviz.methods.adaptive`)."""
+DEFAULT_METHOD = CROSS_ENTROPY_METHOD
+"""The method a run uses where neither it nor a scenario's defaults name one."""
+PLAIN_METHOD = "mc"
+"""Plain Monte Carlo: what the fallback draws, and what the advice routes a run to where it decides (its record is
+:attr:`Method.plain`)."""
+NAIVE_METHOD = "naive50"
+"""The paper's fixed 50 % detector (Table II's baseline)."""
+MIXED_METHOD = "mixed50"
+"""The paper's 50 % detector inside the window."""
+SPLITTING_METHOD = "ams"
+"""Adaptive multilevel splitting (its stages' kind is :data:`pemviz.methods.ams.AMS_STAGE`)."""
+TILT_METHOD = "tilt"
+"""The scenario's own tilted proposal (a scenario's default where it offers one)."""
+STATE_METHOD = "state"
+"""The cross-entropy sampler whose proposal reads the state the stack acts on (:mod:`pemviz.methods.state`)."""
+
 for _record in (
     Method(
-        "adaptive",
+        CROSS_ENTROPY_METHOD,
         "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
         "pemviz.estimators.builtin:adaptive",
         plan="pemviz.estimators.builtin:adaptive_plan",
@@ -281,18 +320,36 @@ for _record in (
         then_most="pemviz.estimators.builtin:adaptive_then_most",
         then_plan="pemviz.estimators.builtin:adaptive_then_plan",
         then_drawn="pemviz.estimators.builtin:adaptive_then_drawn",
+        describe="pemviz.methods.words:adaptive",
     ),
     Method(
-        "mc",
+        PLAIN_METHOD,
         "rollouts with the PEM itself (plain Monte Carlo)",
         "pemviz.estimators.builtin:mc",
         plain=True,
         no_failure_advice="pemviz.estimators.builtin:mc_no_failure",
+        describe="pemviz.methods.words:mc",
+        sampler="pem",
+        baseline=True,
     ),
-    Method("naive50", "a 50 % detector at every step", "pemviz.estimators.builtin:naive50"),
-    Method("mixed50", "50 % inside the window and the PEM outside", "pemviz.estimators.builtin:mixed50"),
     Method(
-        "ams",
+        NAIVE_METHOD,
+        "a 50 % detector at every step",
+        "pemviz.estimators.builtin:naive50",
+        describe="pemviz.methods.words:naive50",
+        sampler=NAIVE_METHOD,
+        baseline=True,
+    ),
+    Method(
+        MIXED_METHOD,
+        "50 % inside the window and the PEM outside",
+        "pemviz.estimators.builtin:mixed50",
+        describe="pemviz.methods.words:mixed50",
+        sampler=MIXED_METHOD,
+        baseline=True,
+    ),
+    Method(
+        SPLITTING_METHOD,
         "adaptive multilevel splitting on the robustness, no importance weights",
         "pemviz.estimators.builtin:ams",
         plan="pemviz.estimators.builtin:ams_plan",
@@ -304,17 +361,20 @@ for _record in (
         no_failure_advice="pemviz.estimators.builtin:ams_no_failure",
         cost_model="splitting",
         run_adds="plus the branches' continuations",
+        describe="pemviz.methods.words:ams",
+        baseline=True,
     ),
     Method(
-        "tilt",
+        TILT_METHOD,
         "the scenario's own proposal: each step's events tilted by an approximate probability of failure " "after them",
         "pemviz.estimators.builtin:tilt",
         more_budget="pemviz.estimators.builtin:tilt_more_budget",
         cost_model="look-ahead",
         run_adds="plus the proposal's look-aheads",
+        describe="pemviz.methods.words:tilt",
     ),
     Method(
-        "state",
+        STATE_METHOD,
         "cross-entropy importance sampling of each detection (and with --state-fit-errors each error's location and "
         "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
         "report them",
@@ -328,7 +388,12 @@ for _record in (
         then="pemviz.estimators.builtin:adaptive_then",
         then_most="pemviz.estimators.builtin:adaptive_then_most",
         then_plan="pemviz.estimators.builtin:adaptive_then_plan",
+        baseline=True,
     ),
 ):
     register_method(_record)
+    _BUILTIN.append(_record.name)
 del _record
+
+BUILTIN_METHODS = tuple(_BUILTIN)
+"""The built-in methods' names, in the order a list of methods gives them (a user's own come after)."""

@@ -8,6 +8,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+STATE_INPUTS = "state"
+"""The proposal's inputs h(s) of every observation column (:attr:`CrossEntropySettings.proposal_inputs`)."""
+PROPOSAL_INPUTS = ("gap", STATE_INPUTS)
+"""h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
+e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
+
 PLAIN_FALLBACK_MOST = 1_000_000
 """The most plain rollouts the fallback draws after any run, whatever its size (``plain_fallback`` times the stages'
 simulations below it: a large run of the stages gets no larger fallback)."""
@@ -170,3 +176,8 @@ class CrossEntropySettings:
     fit_tolerance: float | None = 1e-3
     plain_fallback: int = 500
     retry_factor: int = 4
+
+    @property
+    def reads_state(self) -> bool:
+        """Whether the proposal reads every observation column (``proposal_inputs`` :data:`STATE_INPUTS`)."""
+        return self.proposal_inputs == STATE_INPUTS

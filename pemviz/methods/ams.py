@@ -6,6 +6,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+AMS_STAGE = "ams"
+"""The kind of splitting's stages in a run's plan (:class:`pemviz.core.plan.RunPlan`): its particles, then each batch
+of iterations."""
+
 
 @dataclass(frozen=True)
 class AmsSettings:

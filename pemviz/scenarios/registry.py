@@ -33,6 +33,7 @@ from pemviz.scenarios.parameters import (
     register_defaults,
     unit_of,
 )
+from pemviz.methods import PLAIN_METHOD, TILT_METHOD
 from pemviz.plugins import Plugins, Ref, resolve
 from pemviz.settings import REGISTERED_SCENARIOS, SCENARIO_COST_FACTORS, SCENARIO_COST_PARTS, SETTINGS
 
@@ -453,8 +454,8 @@ for _scenario in (
         random_params=("cut_in_gap_m",),
         odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
         n_objects=5,
-        run_defaults={"method": "tilt", "n_per_stage": 7_280},
-        odd_defaults={"method": "mc", "n_per_stage": 100_000},
+        run_defaults={"method": TILT_METHOD, "n_per_stage": 7_280},
+        odd_defaults={"method": PLAIN_METHOD, "n_per_stage": 100_000},
     ),
     Scenario(
         "cut-in-rare",
@@ -468,7 +469,7 @@ for _scenario in (
         random_params=("cut_in_gap_m",),
         odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
         n_objects=5,
-        run_defaults={"method": "mc", "n_per_stage": 5_000},
+        run_defaults={"method": PLAIN_METHOD, "n_per_stage": 5_000},
         beyond=(
             "p is about 1e-7, a provisional figure (no reference; 10 tilted runs gave 1.8e-7, every one unreliable): "
             "plain Monte Carlo needs some 10^9 rollouts for a 20 % interval, and the tilt's and the cross-entropy "

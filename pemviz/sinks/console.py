@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 from dataclasses import dataclass
@@ -21,7 +20,7 @@ from pemviz.engine.cost import (
     stage_cost,
 )
 from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
-from pemviz.methods import method_or_none, plain_method
+from pemviz.methods import PLAIN_METHOD
 from pemviz.plugins import resolve
 from pemviz.scenarios.registry import no_method_answers
 from pemviz.sinks import Sink, StageClock
@@ -118,9 +117,10 @@ engine's probe after another method's run (:attr:`pemviz.engine.events.FinalEsti
 own speed scaled by the cost model."""
 
 
-def rate_source(method: str, probed: bool) -> str:
-    """The :data:`RATE_SOURCES` entry of a run of ``method`` (``probed``: the engine timed plain rollouts after it)."""
-    return "plain" if plain_method(method) else "probed" if probed else "model"
+def rate_source(plain: bool, probed: bool) -> str:
+    """The :data:`RATE_SOURCES` entry of a run of a method that is plain Monte Carlo or not (``plain``:
+    :attr:`pemviz.methods.Method.plain`; ``probed``: the engine timed plain rollouts after it)."""
+    return "plain" if plain else "probed" if probed else "model"
 
 
 def _rate_text(s_per: float, source: str) -> str:
@@ -151,7 +151,7 @@ def plain_rollout_seconds(
     large plain batch): the machine's speed is this run's, what each method adds is the model's. None unmeasured;
     ``s_per`` itself for a plain Monte Carlo run. After a cross-entropy run it
     over-estimates (its wall time holds costs the model leaves out: e.g. about 4 times on the cut-in)."""
-    if s_per is None or getattr(config, "method", "mc") == "mc":
+    if s_per is None or config.method_record.plain:
         return s_per
     from pemviz.estimators import run_plan  # the estimators import torch: only when a run is advised
 
@@ -159,7 +159,7 @@ def plain_rollout_seconds(
     sims = n_simulations if n_simulations else int(config.n_simulations)
     run = run_cost(config, run_plan(config), steps).seconds / max(1, int(sims))
     big = 100_000
-    plain = stage_cost(dataclasses.replace(config, method="mc"), "final", big, steps).seconds / big
+    plain = stage_cost(config.replace(method=PLAIN_METHOD), "final", big, steps).seconds / big
     return s_per * plain / run if run > 0 and plain > 0 else s_per
 
 
@@ -229,7 +229,7 @@ class McRoute:
 
 def mc_route(
     e: Estimate,
-    method: str,
+    plain: bool,
     exact_log_p: float | None = None,
     reference: Reference | None = None,
     s_per: float | None = None,
@@ -237,7 +237,8 @@ def mc_route(
     """Plain Monte Carlo sized from the exact answer, else the reference, else the run's own estimate: mu_hat, or
     where the run does not back its interval (``Estimate.interval_backed``) its 95 % lower bound
     (``Estimate.log_lower_bound``) when that is higher, and that lower bound as :attr:`McRoute.log_floor` when it is
-    lower; None with no failure and no known p. ``method``: the run's; ``s_per``: its measured seconds a simulation
+    lower; None with no failure and no known p. ``plain``: the run is plain Monte Carlo
+    (:attr:`pemviz.methods.Method.plain`); ``s_per``: its measured seconds a simulation
     (None: not measured)."""
     lower, floor = getattr(e, "log_lower_bound", -math.inf), None
     backed = getattr(e, "interval_backed", True)
@@ -256,7 +257,7 @@ def mc_route(
     if not log_p > -math.inf:
         return None
     n = mc_rollouts(log_p)
-    upper = source.startswith("this run's") and not plain_method(method)
+    upper = source.startswith("this run's") and not plain
     n_floor = mc_rollouts(floor) if floor is not None and upper else math.nan
     return McRoute(log_p, source, upper, n, n * s_per if s_per is not None else None, floor if upper else None, n_floor)
 
@@ -327,8 +328,8 @@ def _more_budget(
     """The method's own route (:attr:`pemviz.methods.Method.more_budget`; an importance sampler's by
     default: a larger run or a precision target), with simulations and time at ``s_per`` seconds a simulation; with
     ``within_s`` (seconds) only what fits in it (None: nothing more fits)."""
-    method = method_or_none(getattr(config, "method", "adaptive"))
-    if method is not None and method.more_budget is not None:
+    method = config.method_record
+    if method.more_budget is not None:
         return resolve(method.more_budget)(config, n_simulations, s_per, wall_s, within_s, AdviceText(committor))
     return ADVICE_TEXT.importance_route(config, n_simulations, s_per, within_s)
 
@@ -373,21 +374,21 @@ def next_step(
     beyond = no_method_answers(config, e)  # a scene at whose rarity no method shipped answers: that, and the bound
     if beyond is not None:
         return beyond
-    method = getattr(config, "method", "adaptive")
+    method = config.method_record
     s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
-    rate = rate_source(method, plain_s is not None)  # how mc_s was had, for the text
+    rate = rate_source(method.plain, plain_s is not None)  # how mc_s was had, for the text
     max_time = setting_of(config, "max_time_s", None)
-    route = mc_route(e, method, exact_log_p, reference, mc_s)
+    route = mc_route(e, method.plain, exact_log_p, reference, mc_s)
     budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
     if max_time is not None and mc_s is not None:
         budget = min(budget, max_time / mc_s)
-    if plain_method(method):
+    if method.plain:
         return _after_mc(e, config, route, s_per, max_time)
     heavy = f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it)"
     heavy = heavy if e.khat > KHAT_UNRELIABLE else ""
     low = "heavy-tailed weights make this run's estimate usually too low"  # splitting: skewed, most runs below p
-    low = low if getattr(method_or_none(method), "weighted", True) else "splitting's estimate is skewed, most runs low"
+    low = low if method.weighted else "splitting's estimate is skewed, most runs low"
     rest = _more_budget(config, n_simulations, s_per, wall_s, committor=committor)
     if route is None:  # no failure and no known p: nothing to size plain Monte Carlo on
         return f"{rest}; the verdict says whether to trust the result"

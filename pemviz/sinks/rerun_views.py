@@ -21,6 +21,7 @@ from pemviz.core.proposal_view import LOG_ODDS_SPAN_NATS, ProposalView
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import RolloutsSampled, RunStarted
 from pemviz.sinks import colours as C
+from pemviz.plugins import resolve
 from pemviz.sinks.drawing import recording_hooks
 
 
@@ -184,51 +185,16 @@ Indexes = Callable[..., list]
 """``indexes(step=array)``: the time columns of a ``send_columns`` (the sink's, with its repetition)."""
 
 
-AMS_SCORE_WORDS = {"robustness": "robustness", "committor": "-log of the scenario's learned committor"}
-"""What ranks the AMS particles, in the recording's description of the run."""
-DESCRIBED_METHODS = ("adaptive", "mc", "naive50", "mixed50", "ams", "tilt")
-"""The methods :func:`method_markdown` describes in words; any other is described by its plan's stages."""
-
-
 def method_markdown(ev: RunStarted) -> str:
-    """One sentence on the run's method, its stages and sizes from the run's plan."""
+    """One sentence on the run's method, its stages and sizes from the run's plan: the method's own words
+    (:attr:`pemviz.methods.Method.describe`), else its plan's stages."""
     cfg, plan = ev.config, ev.plan
-    if cfg.method not in DESCRIBED_METHODS:  # a method added since these words were written: its plan
+    record = cfg.method_record
+    if record.describe is None:
         stages = ", ".join(f"{s.label} ({s.n_rollouts} rollouts)" for s in plan.stages)
         return f"method **{cfg.method}**: {stages or 'no stage planned'}."
     window = ev.problem.thresholds.labels()[1] if ev.problem.thresholds is not None else "the sampler window"
-    n_final = plan.stages[-1].n_rollouts if plan.has_final_batch else None
-    final = (
-        f"a final batch of N_e = {n_final} rollouts gives the estimate"
-        if n_final is not None
-        else "the last stages give the estimate"
-    )
-    known = {
-        "adaptive": (
-            f"**adaptive importance sampling** (cross-entropy method, Innes & Ramamoorthy 2022): "
-            f"{plan.stages[0].n_rollouts} rollouts of the target pretrain the proposal q(detect | d) (stage 0), "
-            f"K = {plan.n_ce} stages of N = {cfg.n_per_stage} rollouts each move it toward the "
-            f"failures (elites: robustness at or below the (1 - sigma) quantile gamma, sigma = "
-            f"{cfg.adaptive.quantile_level}, smoothing alpha = {cfg.adaptive.smoothing}), and {final}."
-        ),
-        "mc": f"plain **Monte Carlo** with the PEM: {cfg.n_per_stage} rollouts.",
-        "naive50": f"a **50 % detector** at every step, weighted by the PEM: {cfg.n_per_stage} rollouts.",
-        "mixed50": f"a **50 % detector inside the window** ({window}), the PEM outside: {cfg.n_per_stage} rollouts.",
-        "ams": (
-            f"**adaptive multilevel splitting** on {AMS_SCORE_WORDS.get(cfg.ams.ams_score, cfg.ams.ams_score)} "
-            "(Cerou & "
-            f"Guyader 2007): N = {cfg.n_per_stage} "
-            f"PEM rollouts, the k = {cfg.ams.ams_killed} highest killed per iteration and branched from survivors; "
-            "each stage shows the particles after about N resamplings."
-        ),
-        "tilt": (
-            f"**approximate zero-variance importance sampling** (L'Ecuyer & Tuffin 2008): {cfg.n_per_stage} "
-            "rollouts, each step's events drawn in proportion to their PEM probability times the scenario's "
-            "approximate probability of failure after them, mixed with the PEM; the simulations count the "
-            "look-aheads' steps too."
-        ),
-    }
-    return known[cfg.method]
+    return str(resolve(record.describe)(cfg, plan, window))
 
 
 def intro_markdown(ev: RunStarted) -> str:

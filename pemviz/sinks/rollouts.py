@@ -16,7 +16,6 @@ import numpy as np
 
 from pemviz.engine.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.estimators.pooling import pool_stage_weights
-from pemviz.methods import get_method
 from pemviz.io.rollout_writer import RolloutWriter, check_rollouts_path
 from pemviz.io.run_rollouts import run_meta, run_salient, run_severity
 from pemviz.pem.recipes import DEFAULT_PEM_NAME
@@ -107,10 +106,9 @@ class RolloutSink(Sink):
         return self.stages == "all" or kind != "pretrain"
 
     def on_run_started(self, event: RunStarted) -> None:
-        method = getattr(event.config, "method", None)
-        if method is not None and not get_method(method).weighted:
+        if not event.config.method_record.weighted:
             raise ValueError(
-                f"--save-rollouts: method {method} estimates without importance weights; "
+                f"--save-rollouts: method {event.config.method} estimates without importance weights; "
                 "its rollouts cannot be estimated from again"
             )
         self._formula, self._config = event.formula, event.config
@@ -191,9 +189,7 @@ class RolloutSink(Sink):
 
     def _meta(self) -> Any:
         cfg = self._config
-        method = getattr(cfg, "method", None)
-        proposals: dict[str | None, str] = {"mc": "pem", "naive50": "naive50", "mixed50": "mixed50"}
-        proposal = proposals.get(method)
+        proposal = None if cfg is None else cfg.method_record.sampler  # a fixed sampler's name, or a fitted one
         provenance: dict[str, Any] = {} if cfg is None else {"config": cfg.flat()}
         pem = self.pem or setting_of(cfg, "pem", None) or DEFAULT_PEM_NAME
         return run_meta(self.problem, self._formula, pem=pem, proposal=proposal, provenance=provenance)

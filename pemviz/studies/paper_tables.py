@@ -22,6 +22,7 @@ from pemviz.settings import METRICS
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability
 from pemviz.io.files import write_rrd
+from pemviz.methods import CROSS_ENTROPY_METHOD, DEFAULT_METHOD, NAIVE_METHOD, PLAIN_METHOD
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import PROBLEMS
 from pemviz.sinks.colours import DARK, METRIC_COLOURS, OTHER, rgba, stage_rgba
@@ -113,13 +114,15 @@ def row_specs(
     n = ExperimentConfig.of(**base).n_per_stage
     sim = {k: v for k, v in base.items() if k in ("pem",)}
     specs = [
-        RowSpec("II", f"MC_{n}", tuple(sorted({**sim, "method": "mc", "n_per_stage": n}.items()))),
-        RowSpec("II", f"MC_{mc_large}", tuple(sorted({**sim, "method": "mc", "n_per_stage": mc_large}.items()))),
-        RowSpec("II", f"naive-50_{n}", tuple(sorted({**sim, "method": "naive50", "n_per_stage": n}.items()))),
+        RowSpec("II", f"MC_{n}", tuple(sorted({**sim, "method": PLAIN_METHOD, "n_per_stage": n}.items()))),
+        RowSpec(
+            "II", f"MC_{mc_large}", tuple(sorted({**sim, "method": PLAIN_METHOD, "n_per_stage": mc_large}.items()))
+        ),
+        RowSpec("II", f"naive-50_{n}", tuple(sorted({**sim, "method": NAIVE_METHOD, "n_per_stage": n}.items()))),
         RowSpec(
             "II",
             f"naive-50_{naive_large}",
-            tuple(sorted({**sim, "method": "naive50", "n_per_stage": naive_large}.items())),
+            tuple(sorted({**sim, "method": NAIVE_METHOD, "n_per_stage": naive_large}.items())),
         ),
         RowSpec("II", f"adaptive_{n}", tuple(sorted(base.items()))),
     ]
@@ -147,7 +150,7 @@ def table_jobs(problem: str, specs: Sequence[RowSpec], reps: int, pem_path: str 
         for s in specs
         for seed in range(reps)
     ]
-    return sorted(jobs, key=lambda j: dict(j.fields).get("method", "adaptive") != "adaptive")
+    return sorted(jobs, key=lambda j: dict(j.fields).get("method", DEFAULT_METHOD) != CROSS_ENTROPY_METHOD)
 
 
 def records_by_row(specs: Sequence[RowSpec], records: Sequence[RunRecord]) -> dict[str, list[RunRecord]]:
@@ -306,7 +309,9 @@ def _log_tables(stream, gap_mm, specs, records, pem_curve, description) -> None:
                 )
         metric = dict(spec.fields).get("metric", "classic")
         preset = spec.label[spec.label.index("(") + 1 : -1] if spec.label.endswith(")") else None
-        if spec.label.startswith(("adaptive", "r_")) and all(r.curves.shape[0] > FIG4_STAGE for r in recs):
+        if spec.label.startswith((f"{CROSS_ENTROPY_METHOD}_", "r_")) and all(
+            r.curves.shape[0] > FIG4_STAGE for r in recs
+        ):
             mean = np.mean([r.curves[FIG4_STAGE] for r in recs], axis=0)
             where = f"fig4/{metric}" if preset is None else f"fig4/{preset}/{metric}"
             curve(

@@ -26,13 +26,12 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from pemviz.settings import METHODS
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability, relative_error
 from pemviz.engine.resources import torch_threads
 from pemviz.engine.experiment import Experiment
+from pemviz.methods import BUILTIN_METHODS, DEFAULT_METHOD, SPLITTING_METHOD, records
 from pemviz.engine.events import RunFinished
-from pemviz.methods import get_method
 from pemviz.core.files import atomic_write
 from pemviz.presets import PRESETS
 from pemviz.studies.exact_answers import ExactAnswer, problem_description, validation_problem
@@ -99,7 +98,9 @@ def run_job(job: Job, workers: int | None = None) -> RunRecord:
     """Run one :class:`Job` (in this process, its rollouts on ``workers`` processes: None, every usable core) and
     summarise it."""
     problem = validation_problem(job.problem, job.pem_path)
-    if dict(job.fields).get("method", "adaptive") not in METHODS:  # a method of one's own: its plugin, in this worker
+    if (
+        dict(job.fields).get("method", DEFAULT_METHOD) not in BUILTIN_METHODS
+    ):  # a method of one's own: its plugin, in this worker
         from pemviz.methods import load_method_plugins
 
         load_method_plugins()
@@ -114,7 +115,7 @@ def run_job(job: Job, workers: int | None = None) -> RunRecord:
     e = res.final.estimate
     curves = (
         np.stack([s.proposal_curve for s in res.stages])
-        if job.keep_curves and get_method(cfg.method).proposal_curves
+        if job.keep_curves and cfg.method_record.proposal_curves
         else None
     )
     gammas = tuple(float(s.gamma) for s in res.stages if s.kind == "ce")
@@ -444,7 +445,7 @@ def report(
 
 # -- methods at equal budgets -------------------------------------------------------------------------------------
 
-BASELINES = tuple(m for m in METHODS if m not in ("adaptive", "tilt"))
+BASELINES = tuple(r.name for r in records() if r.name in BUILTIN_METHODS and r.baseline)
 """The baseline methods a study can compare the adaptive sampler with."""
 
 
@@ -458,7 +459,7 @@ def ams_fields(budget: int) -> dict[str, Any]:
     toy 2.9 N, main 3.2 N, latched 0.5 N, toy-1e-30 0, where every particle ties at once), so the total stays near or
     below the budget; the run's own count of rollout-equivalents is what a table reports."""
     n = max(2, budget // AMS_SHARE)
-    return {"method": "ams", "n_per_stage": n, "ams_killed": max(1, n // 10)}
+    return {"method": SPLITTING_METHOD, "n_per_stage": n, "ams_killed": max(1, n // 10)}
 
 
 def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str, Any]) -> list[tuple[str, dict]]:
@@ -474,7 +475,7 @@ def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str
         out.append((f"adaptive ({name})", fields))
     budget = budget or ExperimentConfig.of(**base).n_simulations
     for m in baselines:
-        own = ams_fields(budget) if m == "ams" else {"method": m, "n_per_stage": budget}
+        own = ams_fields(budget) if m == SPLITTING_METHOD else {"method": m, "n_per_stage": budget}
         out.append((m, {**{k: v for k, v in base.items() if k in ("pem", "sim")}, **own}))
     return out
 

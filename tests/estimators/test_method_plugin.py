@@ -5,6 +5,7 @@ one line."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import math
@@ -41,7 +42,8 @@ def defensive():
 
 
 def _pemviz(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PEMVIZ_METHODS": "user_method", "PYTHONPATH": str(HERE)}
+    path = os.pathsep.join(p for p in (str(HERE), os.environ.get("PYTHONPATH")) if p)  # this pemviz, if set
+    env = {**os.environ, "PEMVIZ_METHODS": "user_method", "PYTHONPATH": path}
     return subprocess.run(
         [sys.executable, "-m", "pemviz.cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
     )
@@ -94,7 +96,10 @@ def test_check_estimator_takes_a_registered_name_and_a_method_object(defensive, 
     from pemviz.testing import ConformanceError
 
     with pytest.raises(ConformanceError, match=r"check_estimator\('doubled'\): (unbiased|rollout-file): "):
-        check_estimator(Method("doubled", "defensive-mc, every weight doubled", biased), folder=tmp_path / "c")
+        check_estimator(
+            Method("doubled", "defensive-mc, every weight doubled", biased, settings=defensive.settings),
+            folder=tmp_path / "c",
+        )
     unregister_method("doubled")
 
 
@@ -111,6 +116,10 @@ def test_pemviz_run_records_and_re_estimates_a_method_of_ones_own(tmp_path):
         "safe=3",
         "--method",
         "defensive-mc",
+        "--coin-share",
+        "0.2",
+        "--coin-radius",
+        "4",
         "--n",
         "3000",
         "--seed",
@@ -128,6 +137,11 @@ def test_pemviz_run_records_and_re_estimates_a_method_of_ones_own(tmp_path):
     result = json.loads((tmp_path / "r.json").read_text())
     assert result["method"] == "defensive-mc"
     assert result["estimate"]["p"] == pytest.approx(1e-3, rel=0.5)  # the toy (10, 5, 3, p = 0.9): exactly 1e-3
+    assert result["settings"]["coin_share"] == 0.2 and result["settings"]["coin_radius_m"] == 4.0  # its own, recorded
+    from pemviz.io.rollout_format import read_sidecar
+
+    config = read_sidecar(tmp_path / "r.parquet").provenance["config"]  # the rollout file's sidecar
+    assert (config["coin_share"], config["coin_radius_m"], config["method"]) == (0.2, 4.0, "defensive-mc")
     assert (tmp_path / "r.rrd").stat().st_size > 0
     again = _pemviz("estimate", "r.parquet", "--no-record", "--json", "e.json", cwd=tmp_path)
     assert again.returncode == 0, again.stderr
@@ -259,3 +273,36 @@ def test_no_branch_on_a_method_name_outside_its_home_and_no_capability_probe_in_
     found = [m for m in _matches(branch, ("pemviz",)) if m.split(":")[0] not in METHOD_HOMES]
     assert found == []
     assert _matches(probe, ("pemviz/engine", "pemviz/sinks", "pemviz/app", "pemviz/studies", "pemviz/commands")) == []
+
+
+def test_a_methods_own_settings_are_its_flags_checked_and_recorded(defensive):
+    """The guide's two settings: a flag each on ``pemviz run``, read into the config by their names, refused out of
+    range in one line, recorded with the run's other settings, and what the builder draws by."""
+    from pemviz.cli import build_parser
+    from pemviz.commands.run import config_from_args
+    from pemviz.core.detectors import WindowDetector
+    from pemviz.scenarios.problems import build_problem
+
+    parser = build_parser("run", full=False)
+    run = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["run"]
+    assert "--coin-share COIN_SHARE method defensive-mc's coin's share eps, a number in (0, 1): the share" in " ".join(
+        run.format_help().split()
+    )
+    args = parser.parse_args(["run", "--method", "defensive-mc", "--coin-share", "0.2", "--coin-radius", "4"])
+    cfg = config_from_args(args)
+    assert (cfg.method_settings.coin_share, cfg.method_settings.coin_radius_m) == (0.2, 4.0)
+    assert list(cfg.flat())[-2:] == ["coin_share", "coin_radius_m"] and cfg.value("coin_share") == 0.2
+    assert cfg.replace(coin_share=0.4).method_settings.coin_share == 0.4
+    assert cfg.replace(method="mc").method_settings is None and "coin_share" not in cfg.replace(method="mc").flat()
+    est = build_estimator(cfg, build_problem("toy-1e-3"))
+    assert isinstance(est.sampler, WindowDetector) and est.sampler.radius_m == 4.0 and est.sampler.inside.eps == 0.2
+    with pytest.raises(ConfigError, match=r"^coin_share \(eps\) = 1.5 is invalid: the coin's share eps must be a "):
+        ExperimentConfig.of(method="defensive-mc", coin_share=1.5)
+    with pytest.raises(ConfigError, match="^--coin-share is a setting of method defensive-mc: give it with --method"):
+        config_from_args(parser.parse_args(["run", "--method", "mc", "--coin-share", "0.2"]))
+
+
+def test_a_methods_own_setting_out_of_range_is_one_line(tmp_path):
+    proc = _pemviz("run", "--method", "defensive-mc", "--coin-radius", "-1", "--no-record", cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "coin_radius_m = -1.0 is invalid: the coin's radius must be none or a number > 0" in proc.stderr

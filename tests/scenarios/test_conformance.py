@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from conftest import doc_python_block
-from pemviz.settings import METHODS, SCENARIOS
+from pemviz.methods import BUILTIN_METHODS as METHODS
+from pemviz.settings import SCENARIOS
 from pemviz.scenarios.problems import build_problem
 from pemviz.estimators.fixed import FixedSampler
 from pemviz.scenarios import builtin, register, registered

@@ -9,6 +9,7 @@ import pytest
 
 pytest.importorskip("rerun")
 
+from pemviz.config import ExperimentConfig  # noqa: E402
 from pemviz.engine.events import StageStarted  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.rerun_views import DETECTED_RGBA, MISSED_RGBA  # noqa: E402
@@ -154,20 +155,24 @@ def test_the_detection_colours_are_green_and_orange():
     assert DETECTED_RGBA == (40, 170, 80, 255) and MISSED_RGBA == (245, 130, 30, 255)
 
 
-def test_a_method_the_recording_does_not_know_is_described_by_its_plan():
-    """A method added after the recording's words were written: its description lists the planned stages (was a
-    KeyError that stopped the run)."""
+def test_a_method_without_its_own_words_is_described_by_its_plan():
+    """A method whose record has no words of its own (:attr:`pemviz.methods.Method.describe`): its description lists
+    the planned stages (was a KeyError that stopped the run); a built-in one says its own."""
     from types import SimpleNamespace
 
     from pemviz.core.plan import RunPlan
+    from pemviz.methods import Method, register_method, unregister_method
     from pemviz.sinks.rerun_views import method_markdown
 
     plan = RunPlan.of([(0, "pretrain", 50), (1, "ce", 80), (2, "final", 300)])
-    ev = SimpleNamespace(
-        config=SimpleNamespace(method="splitting-2030", n_per_stage=80),
-        plan=plan,
-        problem=SimpleNamespace(thresholds=None),
-    )
-    text = method_markdown(ev)
+    register_method(Method("splitting-2030", "a method of one's own", "pemviz.estimators.builtin:mc"))
+    try:
+        config = ExperimentConfig.of(method="splitting-2030", n_per_stage=80)
+        ev = SimpleNamespace(config=config, plan=plan, problem=SimpleNamespace(thresholds=None))
+        text = method_markdown(ev)
+    finally:
+        unregister_method("splitting-2030")
     assert text.startswith("method **splitting-2030**:")
     assert "pretraining (50 rollouts)" in text and "(300 rollouts)" in text
+    ev = SimpleNamespace(config=ExperimentConfig.of(method="mc", n_per_stage=80), plan=plan, problem=ev.problem)
+    assert method_markdown(ev) == "plain **Monte Carlo** with the PEM: 80 rollouts."
