@@ -10,7 +10,7 @@ from pathlib import Path
 
 from pemviz.methods import BUILTIN_METHODS
 
-PACKAGE = Path(__file__).resolve().parents[1] / "pemviz"
+PACKAGE = Path(__file__).resolve().parents[2] / "pemviz"
 
 LOOKUPS = ("get_method", "method_or_none", "registered_name")
 """The registry's functions that take a method's name and return its record."""
