@@ -6,8 +6,8 @@ the table (``--only NAME ...``: the entries that make those images), checks that
 A command is run from the repository root as a list of words (no shell): leading ``NAME=value`` words are environment
 variables, ``python`` is this interpreter, ``pemviz`` is ``python -m pemviz.cli``, ``$TMP`` is a temporary folder
 (removed afterwards) and a word beginning with ``assets/screenshots/`` is a path in the output folder (so that a test
-can make an image elsewhere: ``tests/project/test_screenshot_manifest.py``). Every command needs Debian's ``chromium``; the
-whole table takes about 5 min on the 2-core machine.
+can make an image elsewhere: ``tests/project/test_screenshot_manifest.py``). Every command needs Debian's ``chromium``;
+the whole table takes about 5 min on the 2-core machine.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ TAB_SHOTS = tuple(
     for scene in ("braking", "cut_in")
     for tab in ("live", "explain", "compare", "rollouts", "runs", "experiment")
 )
-"""What ``PEMVIZ_SCREENSHOTS=1`` writes in ``tests/app/test_app_tabs.py``: every tab after a tiny braking and cut-in run."""
+"""What ``PEMVIZ_SCREENSHOTS=1`` writes in ``tests/app/test_app_tabs.py``: every tab after a tiny braking and cut-in
+run."""
 
 
 @dataclass(frozen=True)
@@ -193,8 +194,8 @@ def write_manifest(made: dict[str, tuple[str, str]], path: Path = MANIFEST) -> N
         "`benchmarks/screenshots.py`), which runs every command below from the repository root and then rewrites",
         "this file; `--only NAME ...` remakes some. `$TMP` is a temporary folder. The commit is the code that made",
         'the image (`git rev-parse --short HEAD`; "with uncommitted changes" when `pemviz/` or `benchmarks/`',
-        "differed from it). `tests/project/test_screenshot_manifest.py` checks that every image is in the table and here, and",
-        "makes the cheapest panel and recording screenshots; it does not compare pixels.",
+        "differed from it). `tests/project/test_screenshot_manifest.py` checks that every image is in the table",
+        "and here, and makes the cheapest panel and recording screenshots; it does not compare pixels.",
         "",
         "| image | command | commit | date |",
         "|---|---|---|---|",

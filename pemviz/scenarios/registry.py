@@ -409,8 +409,8 @@ _CROSSING_COST_PARTS = {"step": 9.0, "fit": 1.55, "torch": 1.0}
 """A crossing batch's time step costs 9 braking ones whatever its size (two tracked pedestrians, the noise PEM's
 errors, and the proposal's measurement-error head on torch), its fits 1.55 braking's (the error head's): CPU seconds per
 part of its default run's stages against braking's in the same process, 4.2-5.2 (proposal steps), 2.8-4.4 (PEM
-steps) and 1.1-1.7 (CE fits) times braking's over the model's (3 readings) (2026-11-29, ``benchmarks/calibrate_cost.py --parts``);
-the first of its fits imports torch (braking's run never does)."""
+steps) and 1.1-1.7 (CE fits) times braking's over the model's (3 readings) (2026-11-29, ``benchmarks/calibrate_cost.py
+--parts``); the first of its fits imports torch (braking's run never does)."""
 
 _CUT_IN = (
     "ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "

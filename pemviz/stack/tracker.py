@@ -150,13 +150,10 @@ class Tracks:
     @classmethod
     def empty(cls, shape: tuple[int, ...]) -> "Tracks":
         """No track yet (the float fields are 0), arrays of ``shape``."""
-        return cls(
-            *(np.zeros(shape) for _ in range(10)),
-            active=np.zeros(shape, dtype=bool),
-            confirmed=np.zeros(shape, dtype=bool),
-            coast=np.zeros(shape, dtype=np.int64),
-            age=np.zeros(shape, dtype=np.int64),
-        )
+        zeros = (np.zeros(shape) for _ in range(10))
+        flags = (np.zeros(shape, dtype=bool) for _ in range(2))  # active, confirmed
+        counts = (np.zeros(shape, dtype=np.int64) for _ in range(2))  # coast, age
+        return cls(*zeros, *flags, *counts)
 
     def copy(self) -> "Tracks":
         return Tracks(*(getattr(self, f.name).copy() for f in fields(self)))
@@ -166,9 +163,13 @@ class Tracks:
         return Tracks(*(getattr(self, f.name)[..., rows] for f in fields(self)))
 
 
+_Axis = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""One axis of a track: position, velocity, and the covariance's three entries (pp, pv, vv)."""
+
+
 def _predict_axis(
     p: np.ndarray, v: np.ndarray, ppp: np.ndarray, ppv: np.ndarray, pvv: np.ndarray, dt: float, accel_std: float
-) -> tuple[np.ndarray, ...]:
+) -> _Axis:
     """One CV prediction on one axis: ``F = [[1, dt], [0, 1]]``, DWNA ``Q`` (module docstring); arrays ``[...]``."""
     q = accel_std * accel_std
     q_pp, q_pv, q_vv = q * (dt**4 / 4.0), q * (dt**3 / 2.0), q * (dt * dt)

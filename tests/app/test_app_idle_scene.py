@@ -3,8 +3,8 @@
 none (toy); a rollout shown is drawn as before and *back to idle* goes to the chosen scenario's scene.
 
 The first tests drive :class:`pemviz.app.scene_view.SceneView` with a stand-in viser client (no browser); the last,
-in headless Chromium (the helpers of ``tests/app/test_app.py``), chooses the scenarios in the *Experiment* tab's dropdown
-and reads the browser's scene graph. With ``PEMVIZ_IDLE_SHOTS=<folder>`` it saves ``idle_cut_in.png`` and
+in headless Chromium (the helpers of ``tests/app/test_app.py``), chooses the scenarios in the *Experiment* tab's
+dropdown and reads the browser's scene graph. With ``PEMVIZ_IDLE_SHOTS=<folder>`` it saves ``idle_cut_in.png`` and
 ``idle_braking.png`` there.
 """
 

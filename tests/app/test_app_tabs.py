@@ -3,8 +3,8 @@ shown has data (at least one finite point beside its x values), and a cut-in's *
 scenario's level: q(detect) of the cut-in car per bin of its gap ahead beside the PEM's, what happened in words, the
 severity, the tracker's estimate of the cut-in car against the truth and the ACC's acceleration.
 
-Uses the browser, server and tab helpers of ``tests/app/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the tests also write
-``assets/screenshots/panel_<scene>_<tab>.png`` (braking and cut_in; live, explain, compare, rollouts, runs,
+Uses the browser, server and tab helpers of ``tests/app/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the tests also
+write ``assets/screenshots/panel_<scene>_<tab>.png`` (braking and cut_in; live, explain, compare, rollouts, runs,
 experiment) at 1400 x 1300.
 """
 

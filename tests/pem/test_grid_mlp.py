@@ -90,7 +90,9 @@ def digests() -> dict[str, str]:
 @pytest.mark.parametrize("setting", ["OpenBLAS Haswell", "numpy without AVX-512", "all at their lowest"])
 def test_other_kernels_give_the_same_bits(setting):
     # OpenBLAS's Haswell and Sandybridge kernels rounded these products differently before the grid form
-    code = "import json, sys; sys.path.insert(0, 'tests'); import pem.test_grid_mlp as t; print(json.dumps(t.digests()))"
+    code = (
+        "import json, sys; sys.path.insert(0, 'tests'); import pem.test_grid_mlp as t; print(json.dumps(t.digests()))"  # noqa: E501
+    )
     env = {**os.environ, **rp.DISPATCH_SETTINGS[setting]}
     proc = subprocess.run(
         [sys.executable, "-c", code],

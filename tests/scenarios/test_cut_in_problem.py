@@ -98,7 +98,8 @@ def test_pemviz_run_scenario_cut_in_estimates_and_says_so(tmp_path):
 
 
 def test_save_rollouts_refuses_splitting_on_the_cut_in_before_it_runs(tmp_path):
-    """A cut-in run's rollouts are saved (tests/files/test_rollout_roundtrip.py); splitting's have no weights to save."""
+    """A cut-in run's rollouts are saved (tests/files/test_rollout_roundtrip.py); splitting's have no weights to
+    save."""
     out = tmp_path / "r.parquet"
     proc = run_cli("run", "--scenario", "cut-in", "--method", "ams", "--no-record", "--save-rollouts", str(out))
     assert proc.returncode == 2

@@ -62,8 +62,8 @@ def test_the_guides_scenario_runs_with_its_recording_and_parameters(plugin, tmp_
 
 def test_the_exact_answer_is_the_enumeration_and_the_estimate_finds_it(plugin, monkeypatch):
     """In this process: the registry builds the problem with its exact answer, which the independent enumeration of
-    ``tests/scenarios/test_simulator_protocol.py`` confirms for the default parameters (2.8576e-5, the guide's number), and a
-    run's interval holds it."""
+    ``tests/scenarios/test_simulator_protocol.py`` confirms for the default parameters (2.8576e-5, the guide's number),
+    and a run's interval holds it."""
     monkeypatch.syspath_prepend(str(plugin))
     sys.modules.pop("my_car_scenario", None)
     from pemviz.config import ExperimentConfig

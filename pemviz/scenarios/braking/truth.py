@@ -143,8 +143,8 @@ scene stops the ego) breaks the order the table rests on: a state just above 0.7
 one further back or slower that arrives faster, so rounding to a smaller gap or a larger speed can raise the bound.
 At 0.5 m and 0 m the failures of targeted runs (``pemviz run --margin 0.5``) need fewer misses than it says (85 and
 466 of the rollout-steps of seed 0's final failures), and so do 25 and 23 of 2,000 random states 8 steps before
-the end against all 256 detection sequences (201-node grid; ``tests/scenarios/test_truth_cells.py``); at 1 m, 1.5 m and 2 m
-none of 2,542 failures violates it (``tests/sinks/test_severity.py`` checks 1 m)."""
+the end against all 256 detection sequences (201-node grid; ``tests/scenarios/test_truth_cells.py``); at 1 m, 1.5 m and
+2 m none of 2,542 failures violates it (``tests/sinks/test_severity.py`` checks 1 m)."""
 
 
 def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) -> MissBound:

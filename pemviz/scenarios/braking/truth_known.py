@@ -3,8 +3,8 @@ PEMs (:data:`KNOWN_BRAKING_LOG_P`, :data:`KNOWN_BRAKING_MARGIN_LOG_P`), kept by 
 (:func:`pem_fingerprint`), and :func:`known_log_failure_probability`, which gives them (or the latched scenario's
 closed form) where they are cheap to know.
 
-The kept answers come from :func:`pemviz.scenarios.braking.truth.braking_truth` (20-40 s each); ``tests/scenarios/test_truth.py``
-and the benchmarks named beside each table recompute them.
+The kept answers come from :func:`pemviz.scenarios.braking.truth.braking_truth` (20-40 s each);
+``tests/scenarios/test_truth.py`` and the benchmarks named beside each table recompute them.
 """
 
 from __future__ import annotations
@@ -53,10 +53,10 @@ KNOWN_BRAKING_LOG_P: dict[str, float] = {
 }
 """PEM fingerprint (:func:`pem_fingerprint`) -> natural log of the exact crash probability of the main braking
 scenario (default :class:`BrakingParams`), from :func:`~pemviz.scenarios.braking.truth.braking_truth` (bracket width <
-0.1 %): the enumeration takes 20-40 s, so the answers for the shipped PEMs are kept here (``tests/scenarios/test_truth.py``
-recomputes them), and those of the shipped PEM's ensemble members and logit shifts, for ``pemviz run --pem-uncertainty``
-(from :func:`~pemviz.scenarios.braking.truth.braking_exact` with drop thresholds below each one's p, bracket widths
-0.04-2.3 %; ``benchmarks/pem_uncertainty.py --exact`` recomputes them)."""
+0.1 %): the enumeration takes 20-40 s, so the answers for the shipped PEMs are kept here
+(``tests/scenarios/test_truth.py`` recomputes them), and those of the shipped PEM's ensemble members and logit shifts,
+for ``pemviz run --pem-uncertainty`` (from :func:`~pemviz.scenarios.braking.truth.braking_exact` with drop thresholds
+below each one's p, bracket widths 0.04-2.3 %; ``benchmarks/pem_uncertainty.py --exact`` recomputes them)."""
 
 
 KNOWN_BRAKING_MARGIN_LOG_P: dict[tuple[str, float], float] = {
@@ -69,8 +69,8 @@ KNOWN_BRAKING_MARGIN_LOG_P: dict[tuple[str, float], float] = {
 """(PEM fingerprint, crash gap in metres) -> natural log of the exact probability that the gap of the main braking
 scenario drops below that crash gap (the points of the exceedance curve, :mod:`pemviz.core.severity`; 0 m is
 contact), from :func:`~pemviz.scenarios.braking.truth.braking_truth` with ``BrakingParams(crash_gap_m=...)`` and drop
-thresholds down to -110 nats (``benchmarks/severity.py --exact`` recomputes them; ``tests/sinks/test_severity.py`` checks
-the 0.5 m and 0 m ones against coarser brackets)."""
+thresholds down to -110 nats (``benchmarks/severity.py --exact`` recomputes them; ``tests/sinks/test_severity.py``
+checks the 0.5 m and 0 m ones against coarser brackets)."""
 
 
 def pem_fingerprint(logit_at_gap: LogitFn) -> str:
