@@ -88,6 +88,11 @@ class Reference:
         """The relative standard error of p, sqrt((1 - p) / failures)."""
         return math.sqrt((1.0 - self.p) / self.failures)
 
+    def short(self) -> str:
+        """``p [lo, hi]``, e.g. ``7.95e-5 [7.50e-5, 8.41e-5]``."""
+        lo, hi = self.interval
+        return f"{_sci(self.p)} [{_sci(lo)}, {_sci(hi)}]"
+
     def text(self) -> str:
         lo, hi = self.interval
         return f"{_sci(self.p)} [{_sci(lo)}, {_sci(hi)}] ({self.failures:,} in {self.rollouts:,}, {self.source})"
@@ -365,7 +370,7 @@ def row(r: Rung, runs: list[dict[str, Any]]) -> str:
     ratio = "-" if math.isinf(mc) else f"{sims / mc:.2g} / {cpu / mc:.2g}"
     mc_text = "-" if math.isinf(mc) else f"{mc:,.0f}"
     return (
-        f"{head}{r.reference.text()} | {n} | {med:.3f} | {within}/{n} | {held}/{shown} of {n} | {wrong} | {nan} | "
+        f"{head}{r.reference.short()} | {n} | {med:.3f} | {within}/{n} | {held}/{shown} of {n} | {wrong} | {nan} | "
         f"{tail} {mc_text} | {ratio} | {targets(r, med, within, held, wrong, nan, n, cost, mc)} |"
     )
 
