@@ -52,6 +52,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from default_runs import default_config  # noqa: E402  (the command's own settings)
 from scene_neutral import mc_cost  # noqa: E402  (plain Monte Carlo's cost for a median relative error)
 
+SERIAL = ("--executor", "serial")
+"""Every run simulates in its own process (a seed gives the same rollouts and estimate on any executor, bit for bit),
+so that its CPU seconds are all counted and ``--jobs`` runs take ``--jobs`` cores."""
+
 PLAIN_PROBE = 20_000
 """Plain rollouts timed once a process and rung: their CPU seconds each convert a run's CPU time to rollouts."""
 
@@ -142,13 +146,14 @@ RUNGS: tuple[Rung, ...] = (
     Rung(
         "crossing-1e-5",
         "crossing",
-        ("brake_mps2=9",),
+        ("brake_mps2=9.5",),
         -5,
         None,
-        "the brake's deceleration is the crossing's knob (brake_mps2 8 -> 12: p 3e-4 -> about 4e-9, splitting by the "
-        "look-ahead, one run each, ESS near 1 so likely low); 9 m/s^2 by interpolating log p between 8 and 10",
+        "the brake's deceleration is the crossing's knob (brake_mps2 8 -> 12: p 3e-4 -> about 4e-9); log p "
+        "interpolated between 9 m/s^2, 4.30e-5 [3.11e-5, 5.79e-5] (the default command's plain Monte Carlo, 43 "
+        "failures in 10^6, seed 0), and 10 m/s^2 (below)",
         "plain Monte Carlo at 5 % needs 400 failures, about 4e7 rollouts: "
-        + CROSSING_MC.format("brake_mps2=9", "2000000")
+        + CROSSING_MC.format("brake_mps2=9.5", "2000000")
         + " for S = 1..20: about 0.45 core-hours at 25,000 rollouts/s (hours on this shared machine)",
     ),
     Rung(
@@ -208,8 +213,10 @@ RUNGS: tuple[Rung, ...] = (
         ("cut_in_gap_m=22.125",),
         -6,
         None,
-        "p falls by steps in the gap: the tilt gives 4.0e-6 and 4.2e-6 at 21.5 and 22 m (docs/cut-in.md), 1.7e-7 at "
-        "22.25 m (one run, seed 1, unreliable); 22.125 m lies on the step",
+        "NOT located: p falls by steps in the gap, the tilt giving 4.0e-6 and 4.2e-6 at 21.5 and 22 m "
+        "(docs/cut-in.md), 5.2e-6 and 5.3e-6 at 22.125 m (seeds 0, 1 of this ladder) and 1.7e-7 at 22.25 m "
+        "(one run, seed 1): the step from about 5e-6 to about 2e-7 lies between 22.125 and 22.25 m, and no gap "
+        "off it gives 1e-6",
         "plain Monte Carlo at 5 % needs 400 failures, 4e8 rollouts at 1e-6: "
         + CUT_IN_MC.format("cut_in_gap_m=22.125", "400000000 --chunk 1000000")
         + ": about 38 core-hours at 2,900 rollouts/s",
@@ -251,7 +258,7 @@ def plain_cpu_per_rollout(r: Rung) -> float:
         from pemviz.engine.experiment import Experiment
         from pemviz.scenarios.problems import problem_for
 
-        cfg = default_config(r.scene, 999_999, (*r.flags, "--method", "mc", "--n", str(PLAIN_PROBE)))
+        cfg = default_config(r.scene, 999_999, (*r.flags, *SERIAL, "--method", "mc", "--n", str(PLAIN_PROBE)))
         problem = problem_for(cfg)
         t0 = time.process_time()
         Experiment(cfg, problem=problem).run()
@@ -260,10 +267,10 @@ def plain_cpu_per_rollout(r: Rung) -> float:
 
 
 def one_run(name: str, seed: int) -> dict[str, Any]:
-    """The default command of rung ``name`` at ``seed`` (one thread), as a JSON-able record: the estimate (``log_mu``,
-    nats, -inf as null), what it printed (``lo``, ``hi``: its interval, or its lower bound and +inf), whether that is
-    an ``interval``, the verdict, failures, ``sims`` (rollout-equivalents), ``cpu_s`` and ``wall_s`` of the run,
-    ``plain_cpu_s`` (one plain rollout's) and whether the answer is plain Monte Carlo's."""
+    """The default command of rung ``name`` at ``seed`` (one thread, :data:`SERIAL`), as a JSON-able record: the
+    estimate (``log_mu``, nats, -inf as null), what it printed (``lo``, ``hi``: its interval, or its lower bound and
+    +inf), whether that is an ``interval``, the verdict, failures, ``sims`` (rollout-equivalents), ``cpu_s`` and
+    ``wall_s`` of the run, ``plain_cpu_s`` (one plain rollout's) and whether the answer is plain Monte Carlo's."""
     import os
 
     from pemviz.engine.experiment import Experiment
@@ -273,7 +280,7 @@ def one_run(name: str, seed: int) -> dict[str, Any]:
     r = rung(name)
     with torch_threads(1, blas=1):
         plain_cpu = plain_cpu_per_rollout(r)
-        cfg = default_config(r.scene, seed, r.flags)
+        cfg = default_config(r.scene, seed, (*r.flags, *SERIAL))
         problem = problem_for(cfg)
         t0, c0 = time.perf_counter(), time.process_time()
         final = Experiment(cfg, problem=problem).run().final
@@ -376,12 +383,16 @@ def row(r: Rung, runs: list[dict[str, Any]]) -> str:
 
 
 def report(runs: list[dict[str, Any]], names: list[str]) -> str:
-    """The table of ``runs`` for the rungs ``names`` that have runs, with a line on the costs."""
-    lines = [HEADER]
+    """The table of ``runs`` for the rungs ``names`` that have runs, with a line on the costs. A run whose command is
+    not its rung's now (a rung moved since) is left out, and a line says so."""
+    lines, stale = [HEADER], []
     for name in names:
-        mine = [x for x in runs if x["rung"] == name]
+        mine = [x for x in runs if x["rung"] == name and x["command"] == rung(name).command]
+        stale += [f"{x['rung']} seed {x['seed']} ({x['command']})" for x in runs if x["rung"] == name and x not in mine]
         if mine:
             lines.append(row(rung(name), sorted(mine, key=lambda x: x["seed"])))
+    if stale:
+        lines.append(f"\nleft out, run at a rung's former setting: {'; '.join(stale)}")
     lines.append(
         "\ncost: the mean over the seeds of the run's simulations (rollout-equivalents) and of its CPU seconds over "
         "one plain rollout's; ratio: each over plain Monte Carlo's (0.6745 / m)^2 (1 - p) / p rollouts for the same "
