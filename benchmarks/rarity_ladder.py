@@ -162,11 +162,12 @@ RUNGS: tuple[Rung, ...] = (
         ("brake_mps2=10",),
         -6,
         None,
-        "splitting ranked by the look-ahead (--method ams --ams-score lookahead --n 400 --ams-killed 40, seed 1): "
-        "7.2e-7, doubtful, ESS 1.2",
-        "plain Monte Carlo at 5 % needs 400 failures, about 4e8 rollouts: "
+        "NOT located: splitting ranked by the look-ahead (--method ams --ams-score lookahead --n 400 --ams-killed 40, "
+        "seed 1) gave 7.2e-7, doubtful, ESS 1.2; the default command's plain Monte Carlo (seed 0) 3.00e-6 [6.19e-7, "
+        "8.77e-6], 3 failures in 10^6, the same 3 rollouts as at 11 m/s^2",
+        "plain Monte Carlo at 5 % needs 400 failures, about 1.3e8 rollouts at 3e-6: "
         + CROSSING_MC.format("brake_mps2=10", "2000000")
-        + " for S = 1..200: about 4.4 core-hours",
+        + " for S = 1..70: about 1.5 core-hours",
     ),
     Rung(
         "crossing-1e-7",
@@ -174,11 +175,12 @@ RUNGS: tuple[Rung, ...] = (
         ("brake_mps2=11",),
         -7,
         None,
-        "between the splitting runs at 10 m/s^2 (7.2e-7) and 12 m/s^2 (3.6e-9, doubtful, ESS 1.0): log p "
-        "interpolated",
-        "plain Monte Carlo at 5 % needs 400 failures, about 4e9 rollouts: "
+        "NOT located: meant to lie between the splitting runs at 10 (7.2e-7) and 12 m/s^2 (3.6e-9, doubtful, ESS 1.0), "
+        "but the default command's plain Monte Carlo (seed 0) saw the same 3 failures in 10^6 as at 10 m/s^2, "
+        "3.00e-6 [6.19e-7, 8.77e-6]: crashes the brake never starts for, which no deceleration prevents",
+        "plain Monte Carlo at 5 % needs 400 failures, about 1.3e8 rollouts at 3e-6: "
         + CROSSING_MC.format("brake_mps2=11", "2000000")
-        + " for S = 1..2000: about 44 core-hours",
+        + " for S = 1..70: about 1.5 core-hours",
     ),
     Rung(
         "cut-in-1e-4",
@@ -360,8 +362,8 @@ def row(r: Rung, runs: list[dict[str, Any]]) -> str:
     tail = f"{verdicts}; {plain} by plain MC | {sims:,.0f} | {cpu:,.0f} |"
     if r.reference is None:
         finite = [v for v in logs if math.isfinite(v)]
-        gm = f"{math.exp(statistics.mean(finite)):.2g}" if finite else "-"
-        spread = f"{math.exp(min(finite)):.2g} to {math.exp(max(finite)):.2g}" if finite else "no failure"
+        gm = _sci(math.exp(statistics.mean(finite))) if finite else "-"
+        spread = f"{_sci(math.exp(min(finite)))} to {_sci(math.exp(max(finite)))}" if finite else "no failure"
         return (
             f"{head}no reference | {n} | - (estimates {spread}, geometric mean {gm}) | - | {shown} printed | - | {nan} "
             f"| {tail} - | - | cost <= 50,000: {'met' if cpu <= 50_000 and sims <= 50_000 else 'missed'} |"
