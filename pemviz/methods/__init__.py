@@ -366,7 +366,7 @@ for _record in (
     ),
     Method(
         TILT_METHOD,
-        "the scenario's own proposal: each step's events tilted by an approximate probability of failure " "after them",
+        "the scenario's own proposal: each step's events tilted by an approximate probability of failure after them",
         "pemviz.estimators.builtin:tilt",
         more_budget="pemviz.estimators.builtin:tilt_more_budget",
         cost_model="look-ahead",
