@@ -177,94 +177,275 @@ class CrossEntropySettings:
         target or requirement.
     """
 
-    # a table, as pemviz.settings.SETTINGS: each setting in the few lines it reads best in
-    # fmt: off
-    n_stages: int = setting(10, "the number of cross-entropy stages K", "stages of N rollouts, the proposal "
-            "refitted after each", kind="int", symbol="K", lo=1, hi=MAX_STAGES, flags=("--k", "--stages"))
-    n_final: int = setting(1000, "the rollouts of the final estimate N_e", "fresh rollouts from the final proposal "
-            "for the estimate", kind="int", symbol="N_e", lo=1, flags=("--n-final",))
-    quantile_level: float = setting(0.95, "the quantile level sigma", "the stage threshold is the (1 - sigma) "
-            "quantile of robustness", symbol="sigma", lo=0.5, hi=1.0, hi_open=True, flags=("--sigma",))
-    smoothing: float = setting(0.1, "the smoothing alpha", "the power on the importance weights in the CE loss",
-            symbol="alpha", lo=0.0, hi=1.0, lo_open=True, flags=("--alpha",))
-    ce_epochs: int = setting(150, "the Adam epochs per stage", "the most Adam epochs of a cross-entropy stage's fit",
-            kind="int", short="CE epochs", lo=1, hi=MAX_EPOCHS, flags=("--ce-epochs",))
-    pretrain_rollouts: int = setting(100, "the pretraining rollouts", "PEM-driven rollouts the first proposal is "
-            "fitted to", kind="int", short="pretrain rollouts", lo=1)
-    pretrain_epochs: int = setting(500, "the pretraining epochs", "Adam epochs of the first proposal's fit", kind="int",
-            short="pretrain epochs", lo=1, hi=MAX_EPOCHS, flags=("--pretrain-epochs",))
-    learning_rate: float = setting(1e-2, "the learning rate", "Adam's step size for the proposal", lo=0.0, lo_open=True)
-    weights: str = setting("frozen", "the importance weights of the fit", "how the CE loss holds the importance "
-            "weights", kind="choice", choices=WEIGHT_MODES,
-            choice_help=(("frozen", "constants of each fit (the paper's eq. 10-11)"),
-                         ("recomputed", "recomputed from the proposal, with their gradient (the authors' code)")))
-    final_estimate: str = setting("pooled", "the final estimate", "which rollouts the estimate weighs", kind="choice",
-            choices=FINAL_MODES,
-            choice_help=(("pooled", "the final rollouts and every stage fitted to failures, each weighted by the "
-                                    "proposal that drew it"),
-                         ("fresh", "the final rollouts alone (the paper)"),
-                         ("last-stage", "the last stage's batch (the authors' code)")))
-    pool_weights: str = setting("quadratic", "the weights of the pooled stages", "how the pooled estimate counts "
-            "its stages", kind="choice", choices=POOL_WEIGHTS,
-            choice_help=(("quadratic", "the j-th pooled stage in proportion to j^2 n_j"),
-                         ("linear", "in proportion to j n_j"),
-                         ("rollouts", "every rollout alike")))
-    proposal_inputs: str = setting(STATE_INPUTS, "the proposal's inputs h(s)", "what the proposal sees", kind="choice",
-            choices=PROPOSAL_INPUTS,
-            choice_help=(("gap", "the gap to the lead car (the paper)"),
-                         (STATE_INPUTS, "every observation column of the problem")))
-    proposal_window: bool = setting(True, "the proposal window", "the proposal replaces the PEM only where the "
-            "detector can matter", kind="bool")
-    skip_decided: bool = setting(True, "the skip of decided steps", "with the window, the proposal also gives way "
-            "to the PEM where the outcome is already decided", kind="bool")
-    smoothing_at_failure: float | None = setting(1.2, "the smoothing alpha at the failure level", "alpha once the "
-            "stage threshold has reached the failure level (None: the smoothing alpha)", short="alpha at failure",
-            lo=0.0, hi=MAX_SMOOTHING_AT_FAILURE, lo_open=True, optional=True)
-    final_smoothing: float | None = setting(1.0, "the smoothing alpha of the last fit", "alpha of the last stage's "
-            "fit, whose proposal draws the final rollouts (None: as the stages before it)", short="final alpha", lo=0.0,
-            hi=MAX_SMOOTHING_AT_FAILURE, lo_open=True, optional=True)
-    elite_ties: str = setting("random", "the elite ties", "which rollouts tied at the stage threshold are elites",
-            kind="choice", choices=ELITE_TIES,
-            choice_help=(("all", "every rollout at or below the threshold (the paper)"),
-                         ("random", "ties drawn at random up to ceil((1 - sigma) N) elites")))
-    pretrain_cap: float | None = setting(0.9, "the pretraining detection cap", "inside the window the pretraining "
-            "rollouts detect with at most this probability (None: the PEM's)", lo=0.0, hi=1.0, lo_open=True,
-            hi_open=True, optional=True)
-    defensive: float = setting(0.2, "the defensive share eps", "the CE stages draw from (1 - eps) q + eps x 50 % at "
-            "every step", lo=0.0, hi=1.0, hi_open=True)
-    target_share: float = setting(0.1, "the target's share", "once the failure level is reached, the share of a "
-            "stage's rollouts drawn from the target p", lo=0.0, hi=1.0)
-    plain_share: float = setting(0.45, "the plain proposal's share", "the share of a stage's rollouts drawn from "
-            "the proposal without the per-step mixture", lo=0.0, hi=1.0)
-    fit_all_failures: bool = setting(True, "the fit to all failures", "each fit uses the failures of every stage "
-            "since the failure level", kind="bool")
-    fit_weights: str = setting("mixture", "the weights of the failures in a fit", "how the fits weigh the failures "
-            "of every stage", kind="choice", choices=FIT_WEIGHTS,
-            choice_help=(("mixture", "by the mixture of the samplers since the failure level"),
-                         ("sampler", "by the sampler that drew each")))
-    fit: str = setting("adam", "the fitting method", "how the proposal is fitted each stage", kind="choice",
-            choices=FITS,
-            choice_help=(("adam", "full-batch Adam, a number of epochs"),
-                         ("lbfgs", "L-BFGS from the previous proposal until converged")))
-    fit_precision: str = setting("exact", "the fit's precision", "the arithmetic of the proposal's Adam fits (the "
-            "parameters and every weight stay float64)", kind="choice", choices=FIT_PRECISIONS,
-            choice_help=(("exact", "the same proposal on every CPU; the default"),
-                         ("float32", "torch's float32 kernels: the last bits depend on the CPU"),
-                         ("float64", "torch's float64 kernels, as the paper's fits")))
-    fit_max_steps: int = setting(200, "the L-BFGS iterations", "the most L-BFGS iterations of one fit", kind="int",
-            lo=1)
-    fit_rows: int | None = setting(5_000, "the rows of a fit", "the most steps one fit sees, beyond them a weighted "
-            "subsample with the same expected loss (None: every step)", kind="int", lo=1, optional=True)
-    fit_tolerance: float | None = setting(0.001, "the fit tolerance", "a CE stage's Adam fit stops once its loss "
-            "fell by less than this over the last 50 epochs (None: every epoch)", unit="nats per step", lo=0.0,
-            lo_open=True, optional=True)
-    plain_fallback: int = setting(500, "the plain Monte Carlo fallback", "where the weights back no interval, plain "
-            "Monte Carlo after the stages, at most this many times their simulations, to the precision target or a "
-            "20 % interval (0: none)", kind="int", lo=0, flags=("--plain-fallback",))
-    retry_factor: int = setting(4, "the retry's factor on N", "where the weights back no interval, the stages once "
-            "more before plain Monte Carlo, with N this many times as large, from a stream of their own (0 or 1: no "
-            "retry; none without the plain Monte Carlo fallback)", kind="int", lo=0, flags=("--retry-factor",))
-    # fmt: on
+    n_stages: int = setting(
+        10,
+        "the number of cross-entropy stages K",
+        "stages of N rollouts, the proposal refitted after each",
+        kind="int",
+        symbol="K",
+        lo=1,
+        hi=MAX_STAGES,
+        flags=("--k", "--stages"),
+    )
+    n_final: int = setting(
+        1000,
+        "the rollouts of the final estimate N_e",
+        "fresh rollouts from the final proposal for the estimate",
+        kind="int",
+        symbol="N_e",
+        lo=1,
+        flags=("--n-final",),
+    )
+    quantile_level: float = setting(
+        0.95,
+        "the quantile level sigma",
+        "the stage threshold is the (1 - sigma) quantile of robustness",
+        symbol="sigma",
+        lo=0.5,
+        hi=1.0,
+        hi_open=True,
+        flags=("--sigma",),
+    )
+    smoothing: float = setting(
+        0.1,
+        "the smoothing alpha",
+        "the power on the importance weights in the CE loss",
+        symbol="alpha",
+        lo=0.0,
+        hi=1.0,
+        lo_open=True,
+        flags=("--alpha",),
+    )
+    ce_epochs: int = setting(
+        150,
+        "the Adam epochs per stage",
+        "the most Adam epochs of a cross-entropy stage's fit",
+        kind="int",
+        short="CE epochs",
+        lo=1,
+        hi=MAX_EPOCHS,
+        flags=("--ce-epochs",),
+    )
+    pretrain_rollouts: int = setting(
+        100,
+        "the pretraining rollouts",
+        "PEM-driven rollouts the first proposal is fitted to",
+        kind="int",
+        short="pretrain rollouts",
+        lo=1,
+    )
+    pretrain_epochs: int = setting(
+        500,
+        "the pretraining epochs",
+        "Adam epochs of the first proposal's fit",
+        kind="int",
+        short="pretrain epochs",
+        lo=1,
+        hi=MAX_EPOCHS,
+        flags=("--pretrain-epochs",),
+    )
+    learning_rate: float = setting(0.01, "the learning rate", "Adam's step size for the proposal", lo=0.0, lo_open=True)
+    weights: str = setting(
+        "frozen",
+        "the importance weights of the fit",
+        "how the CE loss holds the importance weights",
+        kind="choice",
+        choices=WEIGHT_MODES,
+        choice_help=(
+            ("frozen", "constants of each fit (the paper's eq. 10-11)"),
+            ("recomputed", "recomputed from the proposal, with their gradient (the authors' code)"),
+        ),
+    )
+    final_estimate: str = setting(
+        "pooled",
+        "the final estimate",
+        "which rollouts the estimate weighs",
+        kind="choice",
+        choices=FINAL_MODES,
+        choice_help=(
+            (
+                "pooled",
+                "the final rollouts and every stage fitted to failures, each weighted by the proposal that drew it",
+            ),
+            ("fresh", "the final rollouts alone (the paper)"),
+            ("last-stage", "the last stage's batch (the authors' code)"),
+        ),
+    )
+    pool_weights: str = setting(
+        "quadratic",
+        "the weights of the pooled stages",
+        "how the pooled estimate counts its stages",
+        kind="choice",
+        choices=POOL_WEIGHTS,
+        choice_help=(
+            ("quadratic", "the j-th pooled stage in proportion to j^2 n_j"),
+            ("linear", "in proportion to j n_j"),
+            ("rollouts", "every rollout alike"),
+        ),
+    )
+    proposal_inputs: str = setting(
+        STATE_INPUTS,
+        "the proposal's inputs h(s)",
+        "what the proposal sees",
+        kind="choice",
+        choices=PROPOSAL_INPUTS,
+        choice_help=(
+            ("gap", "the gap to the lead car (the paper)"),
+            (STATE_INPUTS, "every observation column of the problem"),
+        ),
+    )
+    proposal_window: bool = setting(
+        True, "the proposal window", "the proposal replaces the PEM only where the detector can matter", kind="bool"
+    )
+    skip_decided: bool = setting(
+        True,
+        "the skip of decided steps",
+        "with the window, the proposal also gives way to the PEM where the outcome is already decided",
+        kind="bool",
+    )
+    smoothing_at_failure: float | None = setting(
+        1.2,
+        "the smoothing alpha at the failure level",
+        "alpha once the stage threshold has reached the failure level (None: the smoothing alpha)",
+        short="alpha at failure",
+        lo=0.0,
+        hi=MAX_SMOOTHING_AT_FAILURE,
+        lo_open=True,
+        optional=True,
+    )
+    final_smoothing: float | None = setting(
+        1.0,
+        "the smoothing alpha of the last fit",
+        "alpha of the last stage's fit, whose proposal draws the final rollouts (None: as the stages before it)",
+        short="final alpha",
+        lo=0.0,
+        hi=MAX_SMOOTHING_AT_FAILURE,
+        lo_open=True,
+        optional=True,
+    )
+    elite_ties: str = setting(
+        "random",
+        "the elite ties",
+        "which rollouts tied at the stage threshold are elites",
+        kind="choice",
+        choices=ELITE_TIES,
+        choice_help=(
+            ("all", "every rollout at or below the threshold (the paper)"),
+            ("random", "ties drawn at random up to ceil((1 - sigma) N) elites"),
+        ),
+    )
+    pretrain_cap: float | None = setting(
+        0.9,
+        "the pretraining detection cap",
+        "inside the window the pretraining rollouts detect with at most this probability (None: the PEM's)",
+        lo=0.0,
+        hi=1.0,
+        lo_open=True,
+        hi_open=True,
+        optional=True,
+    )
+    defensive: float = setting(
+        0.2,
+        "the defensive share eps",
+        "the CE stages draw from (1 - eps) q + eps x 50 % at every step",
+        lo=0.0,
+        hi=1.0,
+        hi_open=True,
+    )
+    target_share: float = setting(
+        0.1,
+        "the target's share",
+        "once the failure level is reached, the share of a stage's rollouts drawn from the target p",
+        lo=0.0,
+        hi=1.0,
+    )
+    plain_share: float = setting(
+        0.45,
+        "the plain proposal's share",
+        "the share of a stage's rollouts drawn from the proposal without the per-step mixture",
+        lo=0.0,
+        hi=1.0,
+    )
+    fit_all_failures: bool = setting(
+        True,
+        "the fit to all failures",
+        "each fit uses the failures of every stage since the failure level",
+        kind="bool",
+    )
+    fit_weights: str = setting(
+        "mixture",
+        "the weights of the failures in a fit",
+        "how the fits weigh the failures of every stage",
+        kind="choice",
+        choices=FIT_WEIGHTS,
+        choice_help=(
+            ("mixture", "by the mixture of the samplers since the failure level"),
+            ("sampler", "by the sampler that drew each"),
+        ),
+    )
+    fit: str = setting(
+        "adam",
+        "the fitting method",
+        "how the proposal is fitted each stage",
+        kind="choice",
+        choices=FITS,
+        choice_help=(
+            ("adam", "full-batch Adam, a number of epochs"),
+            ("lbfgs", "L-BFGS from the previous proposal until converged"),
+        ),
+    )
+    fit_precision: str = setting(
+        "exact",
+        "the fit's precision",
+        "the arithmetic of the proposal's Adam fits (the parameters and every weight stay float64)",
+        kind="choice",
+        choices=FIT_PRECISIONS,
+        choice_help=(
+            ("exact", "the same proposal on every CPU; the default"),
+            ("float32", "torch's float32 kernels: the last bits depend on the CPU"),
+            ("float64", "torch's float64 kernels, as the paper's fits"),
+        ),
+    )
+    fit_max_steps: int = setting(
+        200, "the L-BFGS iterations", "the most L-BFGS iterations of one fit", kind="int", lo=1
+    )
+    fit_rows: int | None = setting(
+        5_000,
+        "the rows of a fit",
+        "the most steps one fit sees, beyond them a weighted subsample with the same expected loss (None: every "
+        "step)",
+        kind="int",
+        lo=1,
+        optional=True,
+    )
+    fit_tolerance: float | None = setting(
+        0.001,
+        "the fit tolerance",
+        "a CE stage's Adam fit stops once its loss fell by less than this over the last 50 epochs (None: every "
+        "epoch)",
+        unit="nats per step",
+        lo=0.0,
+        lo_open=True,
+        optional=True,
+    )
+    plain_fallback: int = setting(
+        500,
+        "the plain Monte Carlo fallback",
+        "where the weights back no interval, plain Monte Carlo after the stages, at most this many times their "
+        "simulations, to the precision target or a 20 % interval (0: none)",
+        kind="int",
+        lo=0,
+        flags=("--plain-fallback",),
+    )
+    retry_factor: int = setting(
+        4,
+        "the retry's factor on N",
+        "where the weights back no interval, the stages once more before plain Monte Carlo, with N this many times "
+        "as large, from a stream of their own (0 or 1: no retry; none without the plain Monte Carlo fallback)",
+        kind="int",
+        lo=0,
+        flags=("--retry-factor",),
+    )
 
     @property
     def reads_state(self) -> bool:
